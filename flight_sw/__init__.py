@@ -1,0 +1,1 @@
+"""Flight software: SfM hazard detection from two descent images (thesis ch. 3-4)."""

@@ -1,0 +1,1 @@
+"""Ground simulator: procedural lunar terrain, descent imagery with ground truth, scoring."""

@@ -1,0 +1,1 @@
+"""HIL server: emulated flight processor, supervision, deadlines, telemetry, runs."""

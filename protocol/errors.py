@@ -1,0 +1,11 @@
+"""Error types shared by every package.
+
+:class:`InputError` marks a problem with what the user or a peer supplied (a bad
+file, a wrong image size, a NaN pose). The CLI prints it as one clear line
+instead of a traceback; library callers can catch it like any ``ValueError``.
+"""
+from __future__ import annotations
+
+
+class InputError(ValueError):
+    """Bad input, with a message that names the problem and where it is."""
