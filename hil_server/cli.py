@@ -24,7 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "ground_sim.cli",          # render
     "flight_sw.cli",           # process
     "hil_server.cli_hil",      # budgets, calibrate, run, regress, demo
-    "ground_sim.cli_evaluate", # evaluate, sensitivity
+    "hil_server.cli_evaluate", # evaluate, sensitivity
 )
 
 

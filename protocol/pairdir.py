@@ -11,6 +11,7 @@ is fixed by ``shared/DESIGN.md``::
     gt_elevation_i1.npy    optional float32 HxW, world Z seen by each pixel of i1
     gt_depth_i1.npy        optional float32 HxW, camera-1 z-depth
     gt_shadow_i1.npy       optional bool HxW, pixel of i1 not directly lit
+    gt_hazard_i1.npy       optional float32 HxW in [0,1], ground-truth hazard (DESIGN.md rules)
 
 Conventions: world Z up; camera frame is OpenCV's (x right, y down, z forward);
 a pose is the centre ``C`` (world) and ``R`` (world->camera), so
@@ -34,8 +35,10 @@ TRUTH_FILES = {
     "elevation": "gt_elevation_i1.npy",
     "depth": "gt_depth_i1.npy",
     "shadow": "gt_shadow_i1.npy",
+    "hazard": "gt_hazard_i1.npy",
 }
-_TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_}
+_TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_,
+                 "hazard": np.float32}
 
 
 class PairFormatError(InputError):
