@@ -1,0 +1,351 @@
+"""The message schema: one typed dataclass per message, versioned.
+
+Every message has a one-byte type code (``TYPE``) carried in the frame header
+and a wire form that is a msgpack map ``{field: value}``. Each field is
+declared once, with a *checker* in its metadata; the same checker validates
+and normalises the value when a message is encoded and when it is decoded, so
+sender and receiver agree on exactly one definition. Arrays travel as real
+``np.ndarray`` fields (see :mod:`protocol.codec`); decoded arrays are
+read-only views on the received bytes.
+
+Link-level sequence numbers live in the frame header (:mod:`protocol.framing`),
+not here; ``Frame.seq`` is the ground simulator's own frame counter that
+``Result.frame_seqs`` refers back to.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+
+from protocol.errors import InputError
+
+PROTOCOL_VERSION = 1
+MAX_TEXT = 4096          # longest free-text field (error text, names)
+MAX_SITES = 256
+MAX_DICT_ITEMS = 128     # stages, link statistics, camera
+
+
+class SchemaError(InputError):
+    """A message field has the wrong type, shape, range or is missing."""
+
+
+Checker = Callable[[Any, str], Any]
+
+
+def _int(lo: int = 0, hi: int = 2**63 - 1) -> Checker:
+    def check(v: Any, name: str) -> int:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+            raise SchemaError(f"{name}: expected an integer, got {type(v).__name__}")
+        if not lo <= int(v) <= hi:
+            raise SchemaError(f"{name}: {int(v)} outside [{lo}, {hi}]")
+        return int(v)
+    return check
+
+
+def _float(finite: bool = True) -> Checker:
+    def check(v: Any, name: str) -> float:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise SchemaError(f"{name}: expected a number, got {type(v).__name__}")
+        f = float(v)
+        if finite and not math.isfinite(f):
+            raise SchemaError(f"{name}: must be finite, got {f}")
+        return f
+    return check
+
+
+def _bool(v: Any, name: str) -> bool:
+    if not isinstance(v, (bool, np.bool_)):
+        raise SchemaError(f"{name}: expected a bool, got {type(v).__name__}")
+    return bool(v)
+
+
+def _str(maxlen: int = MAX_TEXT) -> Checker:
+    def check(v: Any, name: str) -> str:
+        if not isinstance(v, str):
+            raise SchemaError(f"{name}: expected a string, got {type(v).__name__}")
+        if len(v) > maxlen:
+            raise SchemaError(f"{name}: string of {len(v)} chars exceeds {maxlen}")
+        return v
+    return check
+
+
+def _floats(n: int, finite: bool = True) -> Checker:
+    item = _float(finite)
+
+    def check(v: Any, name: str) -> tuple[float, ...]:
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        if not isinstance(v, (list, tuple)) or len(v) != n:
+            raise SchemaError(f"{name}: expected {n} numbers")
+        return tuple(item(x, f"{name}[{i}]") for i, x in enumerate(v))
+    return check
+
+
+def _ints(n: int) -> Checker:
+    item = _int()
+
+    def check(v: Any, name: str) -> tuple[int, ...]:
+        if not isinstance(v, (list, tuple)) or len(v) != n:
+            raise SchemaError(f"{name}: expected {n} integers")
+        return tuple(item(x, f"{name}[{i}]") for i, x in enumerate(v))
+    return check
+
+
+def _array(dtype: str, ndim: int, shape: tuple[int, ...] | None = None, max_side: int = 8192) -> Checker:
+    dt = np.dtype(dtype)
+
+    def check(v: Any, name: str) -> np.ndarray:
+        if not isinstance(v, np.ndarray):
+            raise SchemaError(f"{name}: expected a numpy array, got {type(v).__name__}")
+        if v.dtype != dt:
+            if v.dtype.kind not in "biuf" or (dt.kind in "iu" and v.dtype.kind == "f"):
+                raise SchemaError(f"{name}: expected dtype {dt}, got {v.dtype}")
+            v = v.astype(dt)
+        if v.ndim != ndim:
+            raise SchemaError(f"{name}: expected {ndim}-D, got shape {v.shape}")
+        if shape is not None and v.shape != shape:
+            raise SchemaError(f"{name}: expected shape {shape}, got {v.shape}")
+        if any(s > max_side for s in v.shape):
+            raise SchemaError(f"{name}: side {max(v.shape)} exceeds {max_side}")
+        return v
+    return check
+
+
+def _optional(inner: Checker) -> Checker:
+    def check(v: Any, name: str) -> Any:
+        return None if v is None else inner(v, name)
+    return check
+
+
+def _number_dict(v: Any, name: str) -> dict[str, float | int]:
+    if not isinstance(v, dict) or len(v) > MAX_DICT_ITEMS:
+        raise SchemaError(f"{name}: expected a dict of at most {MAX_DICT_ITEMS} numbers")
+    out: dict[str, float | int] = {}
+    for k, x in v.items():
+        _str(64)(k, f"{name} key")
+        if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+            raise SchemaError(f"{name}[{k!r}]: expected a number, got {type(x).__name__}")
+        out[k] = int(x) if isinstance(x, (int, np.integer)) else float(x)
+    return out
+
+
+def _camera(v: Any, name: str) -> dict[str, float | int]:
+    d = _number_dict(v, name)
+    need = ("width", "height", "fx", "fy", "cx", "cy")
+    missing = [k for k in need if k not in d]
+    if missing or len(d) != len(need):
+        raise SchemaError(f"{name}: need exactly {', '.join(need)} (missing {missing})")
+    return {"width": _int(1, 65535)(d["width"], f"{name}.width"),
+            "height": _int(1, 65535)(d["height"], f"{name}.height"),
+            **{k: _float()(d[k], f"{name}.{k}") for k in ("fx", "fy", "cx", "cy")}}
+
+
+def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
+    if not isinstance(v, dict) or len(v) > MAX_DICT_ITEMS:
+        raise SchemaError(f"{name}: expected a dict of at most {MAX_DICT_ITEMS} stages")
+    out = {}
+    for k, t in v.items():
+        _str(64)(k, f"{name} key")
+        if not isinstance(t, dict) or set(t) != {"wall_s", "cpu_s"}:
+            raise SchemaError(f"{name}[{k!r}]: expected {{'wall_s', 'cpu_s'}}")
+        out[k] = {"wall_s": _float()(t["wall_s"], f"{name}[{k!r}].wall_s"),
+                  "cpu_s": _float()(t["cpu_s"], f"{name}[{k!r}].cpu_s")}
+    return out
+
+
+def _wire(check: Checker, default: Any = ..., factory: Callable[[], Any] | None = None) -> Any:
+    if factory is not None:
+        return field(default_factory=factory, metadata={"check": check})
+    if default is ...:
+        return field(metadata={"check": check})
+    return field(default=default, metadata={"check": check})
+
+
+class Message:
+    """Base of all messages: ``TYPE`` code plus generic validate / wire conversion."""
+
+    TYPE: ClassVar[int] = 0
+
+    def validated(self) -> "Message":
+        """Return a copy whose fields passed their checkers (raises :class:`SchemaError`)."""
+        return type(self)(**{f.name: f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
+                             for f in fields(self)})  # type: ignore[arg-type]
+
+    def to_wire(self) -> dict[str, Any]:
+        out = {}
+        for f in fields(self):  # type: ignore[arg-type]
+            v = f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
+            if f.name == "sites":
+                v = [s.to_wire() for s in v]
+            out[f.name] = v
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Any) -> "Message":
+        if not isinstance(d, dict):
+            raise SchemaError(f"{cls.__name__}: body must be a map, got {type(d).__name__}")
+        kwargs = {}
+        for f in fields(cls):  # type: ignore[arg-type]
+            if f.name in d:
+                v = d[f.name]
+                if f.name == "sites":
+                    if not isinstance(v, list) or len(v) > MAX_SITES:
+                        raise SchemaError(f"{cls.__name__}.sites: expected a list of at most {MAX_SITES}")
+                    v = [Site.from_wire(s) for s in v]
+                kwargs[f.name] = f.metadata["check"](v, f"{cls.__name__}.{f.name}")
+            elif f.default is MISSING and f.default_factory is MISSING:
+                raise SchemaError(f"{cls.__name__}: missing field {f.name!r}")
+        unknown = set(d) - {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        if unknown:
+            raise SchemaError(f"{cls.__name__}: unknown fields {sorted(map(str, unknown))}")
+        return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class Site:
+    """A candidate landing site (world metres; hazard in [0, 1]; margin to nearest hazard)."""
+
+    x: float
+    y: float
+    z: float
+    hazard: float
+    margin: float
+    distance_m: float
+
+    _NAMES: ClassVar[tuple[str, ...]] = ("x", "y", "z", "hazard", "margin", "distance_m")
+
+    def to_wire(self) -> list[float]:
+        return [_float()(getattr(self, n), f"Site.{n}") for n in self._NAMES]
+
+    @classmethod
+    def from_wire(cls, v: Any) -> "Site":
+        if isinstance(v, Site):
+            return v
+        if isinstance(v, dict):
+            v = [v.get(n) for n in cls._NAMES]
+        return cls(*_floats(6)(v, "Site"))
+
+
+def _sites(v: Any, name: str) -> list[Site]:
+    if not isinstance(v, (list, tuple)) or len(v) > MAX_SITES:
+        raise SchemaError(f"{name}: expected a list of at most {MAX_SITES} sites")
+    return [Site.from_wire(s) for s in v]
+
+
+@dataclass(frozen=True)
+class Hello(Message):
+    """First message each side sends: who it is and which protocol it speaks."""
+
+    TYPE: ClassVar[int] = 1
+    role: str = _wire(_str(64))
+    protocol_version: int = _wire(_int(0, 255), PROTOCOL_VERSION)
+    software: str = _wire(_str(128), "hazard-hil")
+
+
+@dataclass(frozen=True)
+class Config(Message):
+    """Run configuration sent ground -> flight: camera (``pairdir.Camera.to_dict()``), budget, deadline."""
+
+    TYPE: ClassVar[int] = 2
+    camera: dict = _wire(_camera)
+    budget: str = _wire(_str(64))
+    deadline_s: float = _wire(_float())
+    preset: str = _wire(_str(64), "")
+    protocol_version: int = _wire(_int(0, 255), PROTOCOL_VERSION)
+    options: dict = _wire(_number_dict, factory=dict)
+
+
+@dataclass(frozen=True)
+class Frame(Message):
+    """One descent image with its reported pose and altimeter reading."""
+
+    TYPE: ClassVar[int] = 3
+    seq: int = _wire(_int(0, 2**32 - 1))
+    capture_time_s: float = _wire(_float())
+    position_m: tuple = _wire(_floats(3))
+    R_world_to_cam: np.ndarray = _wire(_array("<f8", 2, (3, 3)))
+    altimeter_m: float = _wire(_float(finite=False))   # NaN = no altimeter reading
+    image: np.ndarray = _wire(_array("|u1", 2))
+    pair_id: str | None = _wire(_optional(_str(128)), None)
+    frame_index: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
+
+
+@dataclass(frozen=True)
+class Result(Message):
+    """Hazard-detection output for the pair ``frame_seqs`` (upper, lower)."""
+
+    TYPE: ClassVar[int] = 4
+    frame_seqs: tuple = _wire(_ints(2))
+    hazard_grid: np.ndarray = _wire(_array("<f4", 2))
+    elevation_grid: np.ndarray = _wire(_array("<f4", 2))
+    grid_origin_xy: tuple = _wire(_floats(2))
+    grid_cell_m: float = _wire(_float())
+    hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None)
+    elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None)
+    sites: list = _wire(_sites, factory=list)
+    degraded: bool = _wire(_bool, False)
+    level: str = _wire(_str(64), "full")
+
+
+@dataclass(frozen=True)
+class Telemetry(Message):
+    """Timing and resource report for one processed pair (``stages[name] = {wall_s, cpu_s}``)."""
+
+    TYPE: ClassVar[int] = 5
+    frame_seqs: tuple = _wire(_ints(2))
+    stages: dict = _wire(_stages, factory=dict)
+    queue_wait_s: float = _wire(_float(), 0.0)
+    total_latency_s: float = _wire(_float(), 0.0)
+    cpu_fraction: float = _wire(_float(finite=False), float("nan"))
+    peak_rss_bytes: int = _wire(_int(), 0)
+    deadline_s: float = _wire(_float(finite=False), float("nan"))
+    deadline_met: bool = _wire(_bool, True)
+    link: dict = _wire(_number_dict, factory=dict)
+
+
+@dataclass(frozen=True)
+class Heartbeat(Message):
+    TYPE: ClassVar[int] = 6
+    time_s: float = _wire(_float())
+    counter: int = _wire(_int(), 0)
+
+
+@dataclass(frozen=True)
+class Error(Message):
+    """A failure report; ``seq`` names the offending frame (``Frame.seq``) if any."""
+
+    TYPE: ClassVar[int] = 7
+    code: str = _wire(_str(64))
+    text: str = _wire(_str(MAX_TEXT))
+    seq: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
+
+
+@dataclass(frozen=True)
+class Ack(Message):
+    """Link-level: the packet with link sequence ``seq`` arrived intact."""
+
+    TYPE: ClassVar[int] = 8
+    seq: int = _wire(_int(0, 2**32 - 1))
+
+
+@dataclass(frozen=True)
+class Nack(Message):
+    """Link-level: packet ``seq`` arrived intact but could not be accepted (``reason``)."""
+
+    TYPE: ClassVar[int] = 9
+    seq: int = _wire(_int(0, 2**32 - 1))
+    reason: str = _wire(_str(MAX_TEXT))
+
+
+MESSAGE_TYPES: dict[int, type[Message]] = {
+    cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error, Ack, Nack)}
+
+
+def message_class(type_code: int) -> type[Message]:
+    try:
+        return MESSAGE_TYPES[type_code]
+    except KeyError:
+        raise SchemaError(f"unknown message type code {type_code}") from None
