@@ -1,0 +1,239 @@
+"""Run embarrassingly parallel evaluation tasks locally or on a Dask cluster, resumably.
+
+A campaign is a list of :class:`Task` (a deterministic id plus keyword
+arguments) and one module-level function. Every finished task is appended to a
+JSON-lines file as ``{"id": ..., "result": {...}}`` and flushed at once, so an
+interrupted campaign (Ctrl-C, a lost node, a killed job) resumes by skipping
+the ids already in the file. A truncated last line - the write that was cut
+off - is ignored and its task simply runs again.
+
+Backends: ``workers == 1`` runs inline (no process start-up cost, easiest to
+debug); ``workers > 1`` uses a local process pool; ``scheduler`` (an address
+such as ``tcp://host:8786`` or a ``distributed.Client``) ships the same
+function to a Dask distributed cluster. Results do not depend on the backend
+because each task is a pure function of its arguments.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, TextIO
+
+from protocol.errors import InputError
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: ``fn(**kwargs)`` recorded under ``id``."""
+
+    id: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+class CampaignError(RuntimeError):
+    """Some tasks raised; the others are saved and a rerun retries only the failures."""
+
+    def __init__(self, failures: dict[str, str]):
+        self.failures = failures
+        first = next(iter(failures.items()))
+        super().__init__(f"{len(failures)} task(s) failed, first {first[0]}: {first[1]}")
+
+
+class Progress:
+    """A dependency-free text progress bar on stderr (redrawn in place on a terminal)."""
+
+    def __init__(self, total: int, done: int = 0, desc: str = "", *, enabled: bool = True,
+                 stream: TextIO | None = None, width: int = 28):
+        self.total, self.done, self.desc, self.width = total, done, desc, width
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled and total > 0
+        self._t0 = time.monotonic()
+        self._start_done = done
+        self._last = 0.0
+        self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._draw(force=True)
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        self._draw(force=self.done >= self.total)
+
+    def _draw(self, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if not force and now - self._last < (0.2 if self._tty else 5.0):
+            return
+        self._last = now
+        frac = self.done / self.total
+        fill = int(round(frac * self.width))
+        elapsed = now - self._t0
+        ran = self.done - self._start_done
+        eta = elapsed / ran * (self.total - self.done) if ran else math.nan
+        eta_s = "?" if math.isnan(eta) else f"{eta:5.0f}s"
+        line = (f"{self.desc} [{'#' * fill}{'.' * (self.width - fill)}] {self.done}/{self.total} "
+                f"{100 * frac:3.0f}% {elapsed:5.0f}s elapsed, eta {eta_s}")
+        self.stream.write(("\r" + line) if self._tty else (line + "\n"))
+        if self._tty and self.done >= self.total:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def load_results(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Finished results in a JSON-lines file, by id (unparsable lines, e.g. a cut-off write, are skipped)."""
+    p = Path(path)
+    out: dict[str, dict[str, Any]] = {}
+    if not p.is_file():
+        return out
+    with p.open() as fh:
+        for line in fh:
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(rec, dict) and "id" in rec and isinstance(rec.get("result"), dict):
+                out[str(rec["id"])] = rec["result"]
+    return out
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with path.open("rb") as fh:
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) == b"\n"
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _call(fn: Callable[..., dict[str, Any]], kwargs: dict[str, Any]) -> dict[str, Any]:
+    return fn(**kwargs)
+
+
+def _worker_init() -> None:
+    # One OpenCV thread per worker process: the pool already fills the cores.
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover - cv2 is a hard dependency
+        pass
+
+
+def run_tasks(fn: Callable[..., dict[str, Any]], tasks: Iterable[Task], results_path: str | Path, *,
+              scheduler: Any = None, workers: int | None = None, progress: bool = True,
+              desc: str = "tasks") -> dict[str, dict[str, Any]]:
+    """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
+
+    The returned dict follows the order of ``tasks``. ``scheduler`` selects
+    Dask (address string or ``distributed.Client``); otherwise ``workers``
+    local processes (default: CPU count; 1 = inline). Raises
+    :class:`CampaignError` after the run if any task raised - finished results
+    stay saved - and :class:`InputError` for duplicate task ids.
+    """
+    tasks = list(tasks)
+    ids = [t.id for t in tasks]
+    if len(set(ids)) != len(ids):
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        raise InputError(f"duplicate task ids: {dup[:5]}")
+    path = Path(results_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    done = load_results(path)
+    pending = [t for t in tasks if t.id not in done]
+    bar = Progress(len(tasks), len(tasks) - len(pending), desc, enabled=progress)
+    failures: dict[str, str] = {}
+
+    with path.open("a") as fh:
+        if path.stat().st_size and not _ends_with_newline(path):
+            fh.write("\n")  # close a line cut off by an interruption so the next record starts clean
+
+        def record(task_id: str, result: dict[str, Any]) -> None:
+            fh.write(json.dumps({"id": task_id, "result": result}, default=_json_default,
+                                sort_keys=True) + "\n")
+            fh.flush()
+            done[task_id] = json.loads(json.dumps(result, default=_json_default))
+            bar.update()
+
+        if pending and scheduler is not None:
+            _run_dask(fn, pending, scheduler, record, failures)
+        elif pending and (workers or os.cpu_count() or 1) > 1 and len(pending) > 1:
+            _run_pool(fn, pending, int(workers or os.cpu_count() or 1), record, failures)
+        else:
+            for t in pending:
+                try:
+                    res = fn(**t.kwargs)
+                except (KeyboardInterrupt, SystemExit):
+                    raise
+                except Exception as exc:  # noqa: BLE001 - reported per task, campaign goes on
+                    failures[t.id] = f"{type(exc).__name__}: {exc}"
+                    continue
+                record(t.id, res)
+    if failures:
+        raise CampaignError(failures)
+    return {t.id: done[t.id] for t in tasks}
+
+
+def _run_pool(fn: Callable[..., dict[str, Any]], pending: list[Task], workers: int,
+              record: Callable[[str, dict[str, Any]], None], failures: dict[str, str]) -> None:
+    import multiprocessing as mp
+
+    # spawn: OpenCV/numpy thread pools do not survive fork reliably
+    with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=mp.get_context("spawn"),
+                             initializer=_worker_init) as pool:
+        futs: dict[Future, str] = {pool.submit(_call, fn, t.kwargs): t.id for t in pending}
+        try:
+            remaining = set(futs)
+            while remaining:
+                finished, remaining = wait(remaining, return_when=FIRST_COMPLETED)
+                for f in sorted(finished, key=lambda f: futs[f]):
+                    exc = f.exception()
+                    if exc is not None:
+                        failures[futs[f]] = f"{type(exc).__name__}: {exc}"
+                    else:
+                        record(futs[f], f.result())
+        except KeyboardInterrupt:
+            for f in futs:
+                f.cancel()
+            raise
+
+
+def _run_dask(fn: Callable[..., dict[str, Any]], pending: list[Task], scheduler: Any,
+              record: Callable[[str, dict[str, Any]], None], failures: dict[str, str]) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'") from None
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, timeout="20s") if own else scheduler
+    except OSError as exc:
+        raise InputError(f"cannot reach Dask scheduler {scheduler!r}: {exc}") from None
+    try:
+        futs = {}
+        for t in pending:
+            f = client.submit(_call, fn, t.kwargs, key=f"{getattr(fn, '__name__', 'task')}-{t.id}", pure=False)
+            futs[f.key] = (f, t.id)
+        for f in as_completed([v[0] for v in futs.values()]):
+            task_id = futs[f.key][1]
+            if f.status == "error":
+                exc = f.exception()
+                failures[task_id] = f"{type(exc).__name__}: {exc}"
+            else:
+                record(task_id, f.result())
+            f.release()
+    finally:
+        if own:
+            client.close()
