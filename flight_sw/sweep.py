@@ -81,9 +81,10 @@ def planes_uniform_disparity(camera: Camera, pose1: Pose, pose2: Pose, z_min: fl
     A, B, cz = homography_parts(camera, pose1, pose2)
     zs = np.linspace(z_min, z_max, 2001)
     u, v = _probe_grid(camera)
-    pos = np.empty((zs.size, 2, u.size))
-    for i, z in enumerate(zs):
-        pos[i] = map_points(A - B / (cz - z), u, v)
+    x = np.stack([u, v, np.ones_like(u)])            # 3 x P
+    inv_d = (1.0 / (cz - zs))[:, None, None]          # Z x 1 x 1
+    h = (A @ x)[None] - inv_d * (B @ x)[None]         # Z x 3 x P, H(z) = A - B / d(z)
+    pos = h[:, :2] / h[:, 2:3]
     mid = pos[zs.size // 2]
     seen = (mid[0] >= 0) & (mid[0] <= camera.width - 1) & (mid[1] >= 0) & (mid[1] <= camera.height - 1)
     if not seen.any():

@@ -1,0 +1,117 @@
+"""Mapping (thesis sec 4.4.5): combine hazard layers; move layers between i1's image plane and a world grid.
+
+Hazard = max(slope/15 deg, roughness/0.30 m, shadow, rock), each scaled 0 -> 1.
+The world grid (:class:`HazardGrid`) is regular in X, Y: cell ``[i, j]`` has its
+centre at ``x = origin_x + j * cell_m``, ``y = origin_y - i * cell_m`` - the row
+index increases toward -Y (north up, like a nadir image with DESIGN.md's
+conventions). Image -> grid resampling "pulls": each cell centre is projected
+into i1 at the elevation seen there (two fixed-point passes), and the layer is
+read bilinearly, so the grid has no holes from perspective sampling.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from protocol.pairdir import Camera, Pose
+
+
+@dataclass
+class HazardGrid:
+    """Hazard and elevation on a regular world grid; rows go toward -Y (see module doc)."""
+
+    hazard: np.ndarray        # float32 (rows, cols) in [0, 1], NaN outside the covered area
+    elevation: np.ndarray     # float32 (rows, cols), NaN where not recovered
+    origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
+    cell_m: float
+
+    def cell_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        """World X, Y of every cell centre."""
+        return grid_xy(self.hazard.shape, self.origin_xy, self.cell_m)
+
+
+def grid_xy(shape: tuple[int, int], origin_xy: tuple[float, float], cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    i, j = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    return origin_xy[0] + j * cell_m, origin_xy[1] - i * cell_m
+
+
+def grid_extent(x: np.ndarray, y: np.ndarray, cell_m: float) -> tuple[tuple[float, float], tuple[int, int]]:
+    """Origin (cell [0,0] centre) and shape of a cell-aligned grid covering the finite points."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    if not ok.any():
+        return (0.0, 0.0), (0, 0)
+    x0 = np.floor(x[ok].min() / cell_m) * cell_m
+    x1 = np.ceil(x[ok].max() / cell_m) * cell_m
+    y0 = np.floor(y[ok].min() / cell_m) * cell_m
+    y1 = np.ceil(y[ok].max() / cell_m) * cell_m
+    shape = (int(round((y1 - y0) / cell_m)) + 1, int(round((x1 - x0) / cell_m)) + 1)
+    return (float(x0), float(y1)), shape
+
+
+def ground_sample_distance(x: np.ndarray, y: np.ndarray, mask: np.ndarray, q: float = 90.0) -> float:
+    """``q``-th percentile over ``mask`` of the distance between horizontally adjacent pixels (m)."""
+    d = np.hypot(np.diff(x, axis=1), np.diff(y, axis=1))
+    d = d[mask[:, 1:] & mask[:, :-1]]
+    d = d[np.isfinite(d)]
+    return float(np.percentile(d, q)) if d.size else float("nan")
+
+
+def project(camera: Camera, pose: Pose, X: np.ndarray, Y: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of world points in a camera (pinhole, eq. 3.1-3.2)."""
+    R, C = pose.R, pose.position
+    dx, dy, dz = X - C[0], Y - C[1], Z - C[2]
+    xc = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
+    yc = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+    zc = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(zc > 0, camera.fx * xc / zc + camera.cx, np.nan)
+        v = np.where(zc > 0, camera.fy * yc / zc + camera.cy, np.nan)
+    return u, v
+
+
+def _remap(layer: np.ndarray, mx: np.ndarray, my: np.ndarray, interp: int = cv2.INTER_LINEAR) -> np.ndarray:
+    mx = np.nan_to_num(mx, nan=-1e4).astype(np.float32)
+    my = np.nan_to_num(my, nan=-1e4).astype(np.float32)
+    return cv2.remap(layer.astype(np.float32), mx, my, interp, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=float("nan"))
+
+
+def image_to_grid_coords(camera: Camera, pose: Pose, elevation_filled: np.ndarray, X: np.ndarray,
+                         Y: np.ndarray, z_ref: float, passes: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """i1 pixel (u, v) seeing each grid cell centre: project at ``z_ref``, then at the elevation read there."""
+    Z = np.full(X.shape, z_ref)
+    for _ in range(passes):
+        u, v = project(camera, pose, X, Y, Z)
+        zn = _remap(elevation_filled, u, v)
+        Z = np.where(np.isfinite(zn), zn, Z)
+    return project(camera, pose, X, Y, Z)
+
+
+def pull(layer: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear read of an image-plane layer at (u, v); NaN outside the image."""
+    return _remap(layer, u, v)
+
+
+def sample_grid(grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, X: np.ndarray,
+                Y: np.ndarray) -> np.ndarray:
+    """Bilinear read of a grid layer at world (X, Y) (e.g. back to i1's pixels); NaN outside."""
+    return _remap(grid, (X - origin_xy[0]) / cell_m, (origin_xy[1] - Y) / cell_m)
+
+
+def combine(slope_deg: np.ndarray | None, rough_m: np.ndarray | None, shadow: np.ndarray, rock: np.ndarray,
+            covered: np.ndarray, slope_limit_deg: float = 15.0, rough_limit_m: float = 0.30) -> np.ndarray:
+    """Hazard = max of the scaled layers (sec 4.4.5); NaN outside ``covered``.
+
+    With a DEM (``slope_deg`` given), a covered point whose slope or roughness
+    is unknown is unsafe (1): flight software must not call unknown ground safe.
+    Without one (image-only level) only shadow and rocks count.
+    """
+    haz = np.maximum(np.asarray(shadow, np.float32), np.asarray(rock, np.float32))
+    if slope_deg is not None:
+        s = np.minimum(slope_deg / np.float32(slope_limit_deg), 1.0)
+        r = np.minimum(rough_m / np.float32(rough_limit_m), 1.0)
+        dem = np.maximum(s, r)
+        haz = np.maximum(haz, np.where(np.isfinite(dem), dem, np.float32(1.0)))
+    return np.where(covered, haz, np.nan).astype(np.float32)

@@ -1,0 +1,261 @@
+"""The hazard-detection pipeline (thesis Fig. 4.2) as one call: images + poses in, DEM + hazards out.
+
+Stages: validate -> rocks, shadow, coverage (image-only hazards) -> coarse DEM
+(half-resolution sweep) -> full DEM -> georeferencing -> world grid -> slope,
+roughness -> hazard -> sites. Anytime: with a deadline, the sweeps check the
+clock every few planes and stop ``mapping_reserve_s`` before it; the result is
+then built from the best level reached (``image_only`` < ``coarse`` < ``full``)
+and flagged ``degraded``. Ground truth is never an input.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+from protocol.pairdir import Camera, Pose
+
+from .georef import backproject
+from .mapping import (HazardGrid, combine, grid_extent, grid_xy, ground_sample_distance, image_to_grid_coords,
+                      pull, sample_grid)
+from .rocks import rock_mask
+from .shadow import shadow_mask
+from .sites import Site, select_sites
+from .slope import plane_fit, roughness
+from .sweep import (coverage_mask, planes_uniform_disparity, planes_uniform_dz, scaled_camera, sweep_dem)
+from .validate import FlightInputError, check_inputs
+from .warping import area_sigma
+
+LEVELS = ("image_only", "coarse", "full")
+
+
+@dataclass(frozen=True)
+class Params:
+    """Pipeline knobs. ``PRESETS`` holds the two reference settings."""
+
+    name: str = "custom"
+    half_window: int = 6                 # correlation window is (2W+1)^2 (sec 4.3)
+    cost: str = "sad"                    # "sad" | "ssd" (eq. 3.13/3.14)
+    plane_spacing: str = "disparity"     # "dz": uniform metres; "disparity": uniform i2 pixels at the edge
+    dz_m: float = 0.15                   # plane step for "dz"
+    disparity_step_px: float = 0.5       # largest i2-pixel move between planes for "disparity"
+    prefilter: bool = True               # low-pass i2 to i1's pixel footprint before warping
+    coarse_to_fine: bool = True          # narrow the full-resolution range to the coarse DEM's
+    coarse_half_window: int = 4
+    coarse_step_px: float = 0.5          # at half resolution
+    relief_margin_frac: float = 0.06     # sweep range: +- max(min_m, frac * altitude) around Z = 0
+    relief_margin_min_m: float = 10.0
+    rock_k: float = 11.0                 # eq. 4.8
+    rock_dilate_px: int = 2
+    harris_alpha: float = 0.04
+    footprint_m: float = 3.0             # lander footprint (Table 2.1)
+    slope_limit_deg: float = 15.0
+    rough_limit_m: float = 0.30
+    cell_m: float | None = None          # world grid cell; None: 90th-percentile GSD of i1
+    n_sites: int = 5
+    mapping_reserve_s: float = 0.03      # sweeps stop this long before the deadline
+    check_every: int = 4                 # planes between clock checks
+
+    def validate(self) -> None:
+        if self.half_window < 1 or self.coarse_half_window < 1:
+            raise FlightInputError("params: half_window must be >= 1")
+        if self.cost not in ("sad", "ssd"):
+            raise FlightInputError(f"params: cost must be 'sad' or 'ssd', got {self.cost!r}")
+        if self.plane_spacing not in ("dz", "disparity"):
+            raise FlightInputError(f"params: plane_spacing must be 'dz' or 'disparity', got {self.plane_spacing!r}")
+        for name in ("dz_m", "disparity_step_px", "coarse_step_px", "footprint_m", "slope_limit_deg",
+                     "rough_limit_m", "relief_margin_min_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise FlightInputError(f"params: {name} must be a positive number, got {v!r}")
+        if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
+            raise FlightInputError(f"params: cell_m must be positive, got {self.cell_m!r}")
+
+
+PRESETS: dict[str, Params] = {
+    "fast": Params(name="fast"),
+    "thesis": Params(name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False,
+                     coarse_to_fine=False),
+}
+
+
+@dataclass
+class PipelineResult:
+    """Everything the pipeline produced. Image-plane arrays are HxW in i1's pixels."""
+
+    elevation: np.ndarray       # float32 world Z, NaN where not recovered
+    hazard: np.ndarray          # float32 in [0, 1], NaN outside the area both images cover
+    slope_deg: np.ndarray       # float32
+    roughness_m: np.ndarray     # float32
+    rock_mask: np.ndarray       # bool
+    shadow_mask: np.ndarray     # bool
+    covered: np.ndarray         # bool: seen by both images
+    world_xy: np.ndarray        # float32 HxWx2 world X, Y of each pixel
+    grid: HazardGrid
+    sites: list[Site]
+    timings: dict[str, dict[str, float]]
+    degraded: bool
+    level: str
+    valid_fraction: float
+    params: dict[str, Any]
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@contextmanager
+def _stage(timings: dict[str, dict[str, float]], name: str) -> Iterator[None]:
+    w0, c0 = time.perf_counter(), time.thread_time()
+    try:
+        yield
+    finally:
+        timings[name] = {"wall_s": time.perf_counter() - w0, "cpu_s": time.thread_time() - c0}
+
+
+def _resolve(preset: str | Params) -> Params:
+    if isinstance(preset, Params):
+        p = preset
+    elif isinstance(preset, str) and preset in PRESETS:
+        p = PRESETS[preset]
+    else:
+        raise FlightInputError(f"preset must be one of {sorted(PRESETS)} or a Params, got {preset!r}")
+    p.validate()
+    return p
+
+
+def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
+    """GSD(i2) / GSD(i1) at the image centre over the reference plane (~0.5 for a halved altitude)."""
+    d1 = pose1.position[2] / max(1e-9, -pose1.R[2, 2])
+    d2 = pose2.position[2] / max(1e-9, -pose2.R[2, 2])
+    return float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
+
+
+def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camera: Camera, *,
+                 preset: str | Params = "fast", deadline_s: float | None = None,
+                 nominal_site_xy: tuple[float, float] = (0.0, 0.0)) -> PipelineResult:
+    """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
+
+    ``deadline_s`` is a budget in seconds from the call; the result is the best
+    level reached in time (see module doc). Raises :class:`FlightInputError`
+    for bad arguments.
+    """
+    t_start = time.monotonic()
+    timings: dict[str, dict[str, float]] = {}
+    with _stage(timings, "validate"):
+        p = _resolve(preset)
+        check_inputs(i1, i2, pose1, pose2, camera)
+        if deadline_s is not None and not (isinstance(deadline_s, (int, float)) and math.isfinite(deadline_s)):
+            raise FlightInputError(f"deadline_s must be a finite number of seconds, got {deadline_s!r}")
+        try:
+            nominal = (float(nominal_site_xy[0]), float(nominal_site_xy[1]))
+        except (TypeError, ValueError, IndexError):
+            raise FlightInputError(f"nominal_site_xy must be (x, y), got {nominal_site_xy!r}") from None
+        if not all(math.isfinite(v) for v in nominal):
+            raise FlightInputError(f"nominal_site_xy must be finite, got {nominal_site_xy!r}")
+        deadline = None if deadline_s is None else t_start + float(deadline_s)
+        sweep_deadline = None if deadline is None else deadline - p.mapping_reserve_s
+        a1 = np.ascontiguousarray(i1, dtype=np.float32)
+        a2 = np.ascontiguousarray(i2, dtype=np.float32)
+        alt = float(pose1.position[2])
+        margin = max(p.relief_margin_min_m, p.relief_margin_frac * alt)
+        z_lo, z_hi = -margin, min(margin, float(pose2.position[2]) * 0.5)
+        scale = _gsd_scale(camera, pose1, pose2)
+        sigma = area_sigma(scale) if p.prefilter else 0.0
+    info: dict[str, Any] = {"sweep_range_m": [z_lo, z_hi], "gsd_ratio": scale}
+
+    with _stage(timings, "rocks"):
+        rocks = rock_mask(i1, p.rock_k, p.harris_alpha, p.rock_dilate_px)
+    with _stage(timings, "shadow"):
+        shadow = shadow_mask(i1)
+    with _stage(timings, "coverage"):
+        covered = coverage_mask(camera, pose1, pose2, 0.0)
+    level = "image_only"
+    elevation = np.full(i1.shape, np.nan, np.float32)
+
+    with _stage(timings, "coarse_dem"):
+        cam_c = scaled_camera(camera, 1)
+        c1, c2 = cv2.pyrDown(a1), cv2.pyrDown(a2)
+        rock_c = cv2.resize(rocks.astype(np.uint8), (cam_c.width, cam_c.height),
+                            interpolation=cv2.INTER_NEAREST).astype(bool)
+        planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
+        res_c = sweep_dem(c1, c2, cam_c, pose1, pose2, planes_c, half_window=p.coarse_half_window, cost=p.cost,
+                          prefilter_sigma=sigma, ignore=rock_c, deadline=sweep_deadline,
+                          check_every=p.check_every)
+        info["coarse_planes"] = int(planes_c.size)
+        if res_c.complete and np.isfinite(res_c.elevation).any():
+            coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+            elevation = np.where(rocks, np.nan, coarse).astype(np.float32)
+            level = "coarse"
+
+    with _stage(timings, "full_dem"):
+        if level == "coarse":
+            f_lo, f_hi = z_lo, z_hi
+            if p.coarse_to_fine:
+                pad = 2.0 * float(np.max(np.diff(planes_c)))
+                lo, hi = np.nanpercentile(res_c.elevation, [0.5, 99.5])
+                f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
+            if p.plane_spacing == "dz":
+                planes = planes_uniform_dz(f_lo, f_hi, p.dz_m)
+            else:
+                planes = planes_uniform_disparity(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px)
+            info["full_planes"] = int(planes.size)
+            info["full_range_m"] = [f_lo, f_hi]
+            res_f = sweep_dem(a1, a2, camera, pose1, pose2, planes, half_window=p.half_window, cost=p.cost,
+                              prefilter_sigma=sigma, ignore=rocks, deadline=sweep_deadline,
+                              check_every=p.check_every)
+            info["full_planes_done"] = res_f.planes_done
+            if res_f.complete:
+                elevation = res_f.elevation
+                level = "full"
+
+    with _stage(timings, "georef"):
+        have_dem = level != "image_only"
+        z_ref = float(np.nanmedian(elevation)) if have_dem and np.isfinite(elevation).any() else 0.0
+        z_fill = np.where(np.isfinite(elevation), elevation, np.float32(z_ref))
+        X, Y = backproject(camera, pose1, z_fill)
+        world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
+
+    with _stage(timings, "grid"):
+        cell = p.cell_m or ground_sample_distance(X, Y, covered)
+        if not math.isfinite(cell) or cell <= 0:
+            cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
+        origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
+        GX, GY = grid_xy(shape, origin, cell)
+        gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
+        g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
+        g_elev = pull(elevation, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
+        g_rock = pull(rocks.astype(np.float32), gu, gv) > 0
+        g_shadow = pull(shadow.astype(np.float32), gu, gv) > 0.5
+
+    with _stage(timings, "slope"):
+        if have_dem:
+            g_slope, g_plane = plane_fit(g_elev, cell, p.footprint_m)
+            g_rough = roughness(g_elev, g_plane)
+            slope_img = sample_grid(g_slope, origin, cell, X, Y)
+            rough_img = roughness(elevation, sample_grid(g_plane, origin, cell, X, Y))
+        else:
+            g_slope = g_rough = None
+            slope_img = np.full(i1.shape, np.nan, np.float32)
+            rough_img = np.full(i1.shape, np.nan, np.float32)
+
+    with _stage(timings, "hazard"):
+        hazard = combine(slope_img if have_dem else None, rough_img, shadow, rocks, covered,
+                         p.slope_limit_deg, p.rough_limit_m)
+        g_haz = combine(g_slope, g_rough, g_shadow, g_rock, g_cov, p.slope_limit_deg, p.rough_limit_m)
+        grid = HazardGrid(g_haz, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell))
+
+    with _stage(timings, "sites"):
+        sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
+
+    timings["total"] = {"wall_s": sum(t["wall_s"] for t in timings.values()),
+                        "cpu_s": sum(t["cpu_s"] for t in timings.values())}
+    n_cov = int(covered.sum())
+    valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
+    params = dataclasses.asdict(p)
+    return PipelineResult(elevation.astype(np.float32), hazard, slope_img.astype(np.float32),
+                          rough_img.astype(np.float32), rocks, shadow, covered, world_xy, grid, sites, timings,
+                          level != "full", level, valid, params, info)

@@ -1,0 +1,120 @@
+"""Hazard-computation blocks (thesis Table 5.2): shadows, rocks, slope/roughness, mapping, sites."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from flight_sw.mapping import HazardGrid, combine, grid_extent, grid_xy, sample_grid
+from flight_sw.rocks import rock_mask
+from flight_sw.shadow import shadow_mask, shadow_threshold
+from flight_sw.sites import footprint_stats, select_sites
+from flight_sw.slope import footprint_cells, plane_fit, roughness
+
+
+def test_chessboard_shadows():
+    sq = (np.indices((128, 128)) // 16).sum(axis=0) % 2
+    img = np.where(sq == 1, 200, 40).astype(np.uint8)
+    assert shadow_threshold(img) == pytest.approx((120 + 80) / 2)
+    np.testing.assert_array_equal(shadow_mask(img), sq == 0)
+
+
+@pytest.mark.parametrize("slope_deg", [10.0, 20.0])
+def test_roof_dem_slope_at_1m(slope_deg):
+    cell = 1.0
+    x = (np.arange(61) - 30) * cell
+    X, Y = np.meshgrid(x, x)
+    g = math.tan(math.radians(slope_deg))
+    z = 100.0 - g * np.abs(X)
+    slope, zp = plane_fit(z, cell, footprint_m=3.0)
+    r = footprint_cells(3.0, cell) // 2
+    away = (np.abs(X) > r) & (np.abs(X) < 28) & (np.abs(Y) < 28)
+    np.testing.assert_allclose(slope[away], slope_deg, atol=1e-3)
+    np.testing.assert_allclose(roughness(z, zp)[away], 0.0, atol=1e-3)
+    ridge = (X == 0) & (np.abs(Y) < 28)
+    assert np.all(slope[ridge] < 1.0)               # symmetric roof: the fit is level at the ridge
+    assert np.all(roughness(z, zp)[ridge] > 0.5 * g)  # ... and the ridge stands above it
+
+
+def test_plane_fit_matches_lstsq_with_holes():
+    rng = np.random.default_rng(7)
+    z = cv2.GaussianBlur(rng.normal(0, 1, (40, 40)), (0, 0), 2.0) * 5
+    z[rng.random(z.shape) < 0.2] = np.nan
+    cell, n = 0.5, 7
+    slope, zp = plane_fit(z, cell, footprint_m=n * cell, min_fraction=0.3)
+    for (i, j) in [(10, 10), (20, 25), (30, 8)]:
+        win = z[i - 3:i + 4, j - 3:j + 4]
+        yy, xx = np.mgrid[-3:4, -3:4] * cell
+        ok = np.isfinite(win)
+        A = np.column_stack([xx[ok], yy[ok], np.ones(ok.sum())])
+        (p, q, c), *_ = np.linalg.lstsq(A, win[ok], rcond=None)
+        assert slope[i, j] == pytest.approx(math.degrees(math.atan(math.hypot(p, q))), abs=1e-3)
+        assert zp[i, j] == pytest.approx(c, abs=1e-4)
+    sparse = np.full((20, 20), np.nan)
+    sparse[10, 10] = 1.0
+    assert np.isnan(plane_fit(sparse, 1.0)[0]).all()
+
+
+def test_rock_detection_finds_rocks_and_surroundings():
+    rng = np.random.default_rng(8)
+    img = 120 + cv2.GaussianBlur(rng.normal(0, 1, (200, 200)), (0, 0), 3.0) * 30
+    rocks = [(40, 50), (100, 150), (160, 70)]
+    for r, c in rocks:
+        img[r:r + 4, c:c + 4] = 250   # sunlit boulder
+        img[r + 4:r + 7, c:c + 4] = 5  # its shadow
+    m = rock_mask(np.clip(img, 0, 255).astype(np.uint8))
+    for r, c in rocks:
+        assert m[r:r + 7, c:c + 4].mean() > 0.5
+        assert m[r - 1, c + 1] or m[r + 7, c + 1]   # immediate surroundings included
+    assert m.mean() < 0.05
+    assert not rock_mask(np.full((50, 50), 90, np.uint8)).any()
+
+
+def test_combine_on_artificial_maps():
+    slope = np.array([[0.0, 7.5, 30.0, np.nan, 0.0, 0.0]], np.float32)
+    rough = np.array([[0.0, 0.15, 0.0, 0.0, 0.0, 0.0]], np.float32)
+    shadow = np.array([[0, 0, 0, 0, 1, 0]], bool)
+    rock = np.array([[0, 0, 0, 0, 0, 1]], bool)
+    cov = np.ones((1, 6), bool)
+    np.testing.assert_allclose(combine(slope, rough, shadow, rock, cov), [[0, 0.5, 1, 1, 1, 1]])
+    cov[0, 0] = False
+    assert np.isnan(combine(slope, rough, shadow, rock, cov)[0, 0])
+    # image-only: DEM layers ignored
+    np.testing.assert_allclose(combine(None, None, shadow, rock, np.ones((1, 6), bool)), [[0, 0, 0, 0, 1, 1]])
+
+
+def test_grid_round_trip():
+    origin, shape = grid_extent(np.array([-3.2, 4.9]), np.array([-1.0, 2.6]), 0.5)
+    X, Y = grid_xy(shape, origin, 0.5)
+    assert X.min() <= -3.2 and X.max() >= 4.9 and Y.min() <= -1.0 and Y.max() >= 2.6
+    assert Y[0, 0] > Y[1, 0]  # rows go toward -Y
+    px, py = np.array([[0.3, -2.0]]), np.array([[1.1, 0.4]])
+    np.testing.assert_allclose(sample_grid(X, origin, 0.5, px, py), px, atol=1e-5)
+    np.testing.assert_allclose(sample_grid(Y, origin, 0.5, px, py), py, atol=1e-5)
+
+
+def test_sites_avoid_hazards_and_spiral_out():
+    cell = 0.5
+    haz = np.full((81, 81), 0.2, np.float32)
+    haz[30:51, 30:51] = 1.0            # unsafe block around the nominal site
+    haz[10:20, 60:70] = 0.0            # the safest area, far away
+    haz[:, 0:3] = np.nan               # unknown strip
+    grid = HazardGrid(haz, np.zeros_like(haz), (-20.0, 20.0), cell)  # cell [40, 40] is (0, 0)
+    sites = select_sites(grid, 3.0, (0.0, 0.0), k=4)
+    assert len(sites) == 4
+    n = footprint_cells(3.0, cell)
+    safe, hmax = footprint_stats(haz, n)
+    X, Y = grid.cell_xy()
+    for s in sites:
+        j, i = int(round((s.x + 20) / cell)), int(round((20 - s.y) / cell))
+        assert safe[i, j] and np.all(haz[i - n // 2:i + n // 2 + 1, j - n // 2:j + n // 2 + 1] < 1)
+        assert s.margin == pytest.approx(0.8)
+    d = [s.distance_m for s in sites]
+    assert min(d) >= 5.0 + 1.5 - 1e-9 and max(d) < 5.0 + 1.5 + 3.0 + 1e-9  # first ring outside the block
+    for a in sites:
+        for b in sites:
+            if a is not b:
+                assert math.hypot(a.x - b.x, a.y - b.y) >= 3.0
+    assert select_sites(HazardGrid(np.ones((20, 20), np.float32), np.zeros((20, 20)), (0, 0), 1.0)) == []
