@@ -1,0 +1,207 @@
+"""Craters and boulders: power-law populations generated lazily per spatial cell.
+
+Each size class ``[D_k, 2 D_k)`` has its own square cell grid (cell ~ a few D_k);
+the number of features in a cell is Poisson with mean ``cell_area * (N(>D_k) - N(>2D_k))``
+and every attribute is a hash of (seed, stream, class, cell, index) - so the
+population seen through any window is the same (scenes.md: "generate craters lazily,
+per spatial cell, from a deterministic hash"). Diameters inside a class follow the
+truncated power law of the cumulative SFD ``N(>D) = A D^-b`` by inverse CDF.
+
+Shapes (heights added to the base relief), r = distance / radius:
+
+* crater, fresh (MPD/PANGU model, scenes.md sec. 1): parabolic bowl from depth
+  ``-H`` (``H = d/D * D``) up to a rim ``+Hr`` at r=1, ejecta ``Hr r^-3`` outside,
+  tapered to zero at r = 2; degraded: a shallow smooth bowl ``-0.04 D (1 - r^2/1.44)^2``.
+  A crater with degradation state ``s`` is ``(1-s) fresh + s degraded``.
+* boulder: half-ellipsoid ``H sqrt(1 - r^2)``, H ~ 0.5 D (Golombek).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ground_sim.hashing import poisson, uniform
+
+CRATER_STREAM, BOULDER_STREAM, RIM_BOULDER_STREAM = 2, 3, 4
+CRATER_REACH = 2.0     # influence radius / crater radius (ejecta cut)
+BOULDER_REACH = 1.0
+
+
+@dataclass(frozen=True)
+class Features:
+    """Flat arrays of features of one kind: centre, diameter, height scale, state."""
+
+    x: np.ndarray
+    y: np.ndarray
+    d: np.ndarray        # diameter (m)
+    h: np.ndarray        # crater depth or boulder height (m)
+    s: np.ndarray        # crater degradation state in [0,1] (0 fresh); unused for boulders
+    kind: str            # "crater" or "boulder"
+
+    @property
+    def reach(self) -> np.ndarray:
+        return 0.5 * self.d * (CRATER_REACH if self.kind == "crater" else BOULDER_REACH)
+
+    def __len__(self) -> int:
+        return int(self.x.size)
+
+    @staticmethod
+    def concat(parts: list["Features"], kind: str) -> "Features":
+        if not parts:
+            e = np.zeros(0)
+            return Features(e, e, e, e, e, kind)
+        return Features(*(np.concatenate([getattr(p, f) for p in parts]) for f in "xydhs"), kind)
+
+    def select(self, m: np.ndarray) -> "Features":
+        return Features(self.x[m], self.y[m], self.d[m], self.h[m], self.s[m], self.kind)
+
+
+@dataclass(frozen=True)
+class PowerLaw:
+    """Cumulative size-frequency distribution ``N(>D) = coef * D^-exponent`` per m^2 on [d_min, d_max]."""
+
+    coef: float
+    exponent: float
+    d_min: float
+    d_max: float
+
+    def classes(self) -> list[tuple[int, float, float]]:
+        out, k, lo = [], 0, self.d_min
+        while lo < self.d_max:
+            out.append((k, lo, min(2 * lo, self.d_max)))
+            k, lo = k + 1, 2 * lo
+        return out
+
+    def density(self, lo: float, hi: float) -> float:
+        return self.coef * (lo ** -self.exponent - hi ** -self.exponent)
+
+    def sample_d(self, lo: float, hi: float, u: np.ndarray) -> np.ndarray:
+        """Inverse CDF of the truncated power law on [lo, hi)."""
+        b = self.exponent
+        return lo * (1.0 - u * (1.0 - (hi / lo) ** -b)) ** (-1.0 / b)
+
+
+def _cells(bbox: tuple[float, float, float, float], cell: float, margin: float):
+    x0, y0, x1, y1 = bbox
+    i0, i1 = int(np.floor((x0 - margin) / cell)), int(np.floor((x1 + margin) / cell))
+    j0, j1 = int(np.floor((y0 - margin) / cell)), int(np.floor((y1 + margin) / cell))
+    ci, cj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1))
+    return ci.ravel(), cj.ravel()
+
+
+def _populate(seed: int, stream: int, k: int, lo: float, hi: float, sfd: PowerLaw,
+              bbox, reach_factor: float, mean_per_cell: float = 1.5):
+    """Cell-hashed positions and diameters of class k overlapping ``bbox`` (+ reach)."""
+    dens = sfd.density(lo, hi)
+    if dens <= 0:
+        return None
+    cell = float(np.sqrt(mean_per_cell / dens))
+    ci, cj = _cells(bbox, cell, reach_factor * hi / 2)
+    if ci.size > 4_000_000:
+        raise MemoryError("feature window too large for this size class")
+    counts = poisson(dens * cell * cell, uniform(seed, stream, k, ci, cj, -1))
+    if counts.sum() == 0:
+        return None
+    rep = np.repeat(np.arange(ci.size), counts)
+    idx = np.arange(rep.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    ci, cj = ci[rep], cj[rep]
+    u = [uniform(seed, stream, k, ci, cj, idx, f) for f in range(5)]
+    x = (ci + u[0]) * cell
+    y = (cj + u[1]) * cell
+    d = sfd.sample_d(lo, hi, u[2])
+    return x, y, d, u[3], u[4], (ci, cj, idx)
+
+
+def craters_in(seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float) -> Features:
+    """Craters with diameter >= ``d_min`` whose influence reaches ``bbox`` = (x0, y0, x1, y1)."""
+    parts = []
+    g = float(np.clip(degradation, 0.02, 0.98))
+    for k, lo, hi in sfd.classes():
+        if hi <= d_min:
+            continue
+        r = _populate(seed, CRATER_STREAM, k, lo, hi, sfd, bbox, CRATER_REACH)
+        if r is None:
+            continue
+        x, y, d, u3, u4, _ = r
+        s = u3 ** ((1 - g) / g)                  # g -> 0: all fresh, g -> 1: all worn
+        dd = np.where(d >= 400, 0.21, np.where(d >= 200, 0.17, np.where(d >= 100, 0.15, np.where(
+            d >= 40, 0.13, np.where(d >= 10, 0.11, 0.10)))))   # Stopar 2017 fresh d/D
+        h = (dd + 0.02 * (u4 - 0.5)) * d
+        f = Features(x, y, d, h, s, "crater")
+        parts.append(f.select((d >= d_min) & _touches(f, bbox)))
+    return Features.concat(parts, "crater")
+
+
+def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
+                rim_per_crater_m2: float) -> Features:
+    """Background boulders plus boulders strewn around fresh craters (denser near rims)."""
+    parts = []
+    for k, lo, hi in sfd.classes():
+        if hi <= d_min:
+            continue
+        r = _populate(seed, BOULDER_STREAM, k, lo, hi, sfd, bbox, BOULDER_REACH)
+        if r is None:
+            continue
+        x, y, d, u3, _, _ = r
+        f = Features(x, y, d, d * (0.35 + 0.25 * u3), np.zeros_like(d), "boulder")
+        parts.append(f.select((d >= d_min) & _touches(f, bbox)))
+    # Rim boulders: fresh craters >= 8 m shed blocks into an annulus 0.9-1.8 R.
+    if rim_per_crater_m2 > 0 and len(craters):
+        fresh = craters.select((craters.d >= 8.0) & (craters.s < 0.35))
+        if len(fresh):
+            area = np.pi * ((0.9 * fresh.d) ** 2 - (0.45 * fresh.d) ** 2)
+            key = np.round(fresh.x * 64).astype(np.int64), np.round(fresh.y * 64).astype(np.int64)
+            lam = rim_per_crater_m2 * area * (1 - fresh.s / 0.35)
+            for j in range(len(fresh)):
+                lam_j = float(lam[j])
+                n = int(poisson(lam_j, uniform(seed, RIM_BOULDER_STREAM, key[0][j], key[1][j], -1), cap=4000))
+                if n == 0:
+                    continue
+                i = np.arange(n)
+                u = [uniform(seed, RIM_BOULDER_STREAM, key[0][j], key[1][j], i, f) for f in range(4)]
+                rr = 0.5 * fresh.d[j] * (0.9 + 0.9 * u[0] ** 1.5)
+                th = 2 * np.pi * u[1]
+                d = np.minimum(sfd.sample_d(sfd.d_min, sfd.d_max, u[2]), 0.2 * fresh.d[j])
+                b = Features(fresh.x[j] + rr * np.sin(th), fresh.y[j] + rr * np.cos(th), d,
+                             d * (0.35 + 0.25 * u[3]), np.zeros(n), "boulder")
+                parts.append(b.select((d >= d_min) & _touches(b, bbox)))
+    return Features.concat(parts, "boulder")
+
+
+def _touches(f: Features, bbox) -> np.ndarray:
+    x0, y0, x1, y1 = bbox
+    r = f.reach
+    return (f.x + r >= x0) & (f.x - r <= x1) & (f.y + r >= y0) & (f.y - r <= y1)
+
+
+def crater_profile(r2: np.ndarray, d: np.ndarray, h: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Height change at squared normalised radius r2 = (dist/R)^2; zero for r >= 2.
+
+    fresh: ``-H + (H + Hr) r^2`` inside, ``Hr r^-3 (1 - (r^2-1)/3)^2`` outside (C1 taper to 0
+    at r = 2), ``Hr = (0.036/0.196) H`` (MPD ratio); worn: ``-0.04 D (1 - r^2/1.44)^2``.
+    """
+    hr = (0.036 / 0.196) * h
+    r2c = np.clip(r2, 1.0, 4.0)
+    taper = 1.0 - (r2c - 1.0) / 3.0
+    fresh = np.where(r2 < 1.0, -h + (h + hr) * r2, hr * r2c ** -1.5 * taper * taper)
+    q = np.clip(1.0 - r2 / 1.44, 0.0, None)
+    return fresh + s * (-0.04 * d * q * q - fresh)
+
+
+def crater_albedo(r2: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Relative albedo change: fresh ejecta is brighter (scenes.md: highlands/ejecta 0.25-0.30)."""
+    halo = np.where(r2 < 1.0, 0.3 + 0.7 * r2, np.clip((4.0 - r2) / 3.0, 0.0, 1.0))
+    return 0.25 * (1.0 - s) ** 3 * halo
+
+
+def boulder_profile(r2: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Half-ellipsoid boulder of height h: ``H sqrt(1 - r^2)``."""
+    return h * np.sqrt(np.clip(1.0 - r2, 0.0, None))
+
+
+def profile(f: Features, r2: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(height change, relative albedo change) of features ``idx`` at squared normalised radii r2."""
+    if f.kind == "crater":
+        return crater_profile(r2, f.d[idx], f.h[idx], f.s[idx]), crater_albedo(r2, f.s[idx])
+    return boulder_profile(r2, f.h[idx]), np.where(r2 < 1.0, 0.15, 0.0)

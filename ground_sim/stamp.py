@@ -1,0 +1,91 @@
+"""Add feature shapes to heights: on a regular raster (stamping) or at scattered points.
+
+Raster: small features are stamped in vectorised batches of equal-size patches and
+accumulated with ``np.bincount``; large ones (patch > ``BIG`` cells) are evaluated on
+their clipped window one by one (there are few). Points: features are tested against
+tiles of points so the cost is (points x nearby features), not (points x all).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ground_sim.features import Features, profile
+
+BIG = 48          # patch side (cells) above which a feature gets its own window
+BATCH = 3_000_000  # max patch elements per vectorised batch
+
+
+def stamp_raster(f: Features, x0: float, y0: float, cell: float, nx: int, ny: int,
+                 height: np.ndarray, albedo: np.ndarray) -> None:
+    """Add the features' height/albedo changes to ``height``/``albedo`` (ny x nx) in place."""
+    if not len(f):
+        return
+    reach = f.reach
+    side = np.ceil(2 * reach / cell).astype(np.int64) + 2
+    small = np.nonzero(side <= BIG)[0]
+    for p in np.unique(side[small]):
+        sel = small[side[small] == p]
+        for chunk in np.array_split(sel, max(1, int(np.ceil(sel.size * p * p / BATCH)))):
+            _stamp_batch(f, chunk, int(p), x0, y0, cell, nx, ny, height, albedo)
+    for i in np.nonzero(side > BIG)[0]:
+        r = reach[i]
+        c0 = max(int(np.floor((f.x[i] - r - x0) / cell)), 0)
+        c1 = min(int(np.ceil((f.x[i] + r - x0) / cell)), nx - 1)
+        r0 = max(int(np.floor((f.y[i] - r - y0) / cell)), 0)
+        r1 = min(int(np.ceil((f.y[i] + r - y0) / cell)), ny - 1)
+        if c1 < c0 or r1 < r0:
+            continue
+        gx = x0 + np.arange(c0, c1 + 1) * cell - f.x[i]
+        gy = y0 + np.arange(r0, r1 + 1) * cell - f.y[i]
+        rr = (gx[None, :] ** 2 + gy[:, None] ** 2) / (0.5 * f.d[i]) ** 2
+        dh, da = profile(f, rr, np.full(rr.shape, i))
+        height[r0:r1 + 1, c0:c1 + 1] += dh
+        albedo[r0:r1 + 1, c0:c1 + 1] += da
+
+
+def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, height, albedo):
+    c0 = np.floor((f.x[sel] - f.reach[sel] - x0) / cell).astype(np.int64)
+    r0 = np.floor((f.y[sel] - f.reach[sel] - y0) / cell).astype(np.int64)
+    a = np.arange(p)
+    cols = c0[:, None, None] + a[None, None, :]
+    rows = r0[:, None, None] + a[None, :, None]
+    dx = x0 + cols * cell - f.x[sel][:, None, None]
+    dy = y0 + rows * cell - f.y[sel][:, None, None]
+    lim = (f.reach[sel] / (0.5 * f.d[sel])) ** 2
+    rr = (dx * dx + dy * dy) / (0.25 * f.d[sel] ** 2)[:, None, None]
+    ok = (rr < lim[:, None, None]) & (cols >= 0) & (cols < nx) & (rows >= 0) & (rows < ny)
+    idx = np.broadcast_to(sel[:, None, None], rr.shape)[ok]
+    dh, da = profile(f, rr[ok], idx)
+    flat = (np.broadcast_to(rows, rr.shape) * nx + cols)[ok]
+    height += np.bincount(flat, dh, minlength=nx * ny).reshape(ny, nx)
+    if f.kind == "boulder" or np.any(f.s[sel] < 0.9):
+        albedo += np.bincount(flat, da, minlength=nx * ny).reshape(ny, nx)
+
+
+def stamp_points(f: Features, x: np.ndarray, y: np.ndarray, tile: float = 32.0) -> tuple[np.ndarray, np.ndarray]:
+    """Height and albedo changes of ``f`` at scattered points (flat arrays)."""
+    dh = np.zeros(x.shape)
+    da = np.zeros(x.shape)
+    if not len(f) or not x.size:
+        return dh, da
+    tx = np.floor(x / tile).astype(np.int64)
+    ty = np.floor(y / tile).astype(np.int64)
+    key = tx * 1_000_003 + ty
+    order = np.argsort(key, kind="stable")
+    uk, start = np.unique(key[order], return_index=True)
+    bounds = np.append(start, order.size)
+    reach = f.reach
+    for t in range(uk.size):
+        pts = order[bounds[t]:bounds[t + 1]]
+        px, py = x[pts], y[pts]
+        near = np.nonzero((f.x + reach >= px.min()) & (f.x - reach <= px.max())
+                          & (f.y + reach >= py.min()) & (f.y - reach <= py.max()))[0]
+        for chunk in np.array_split(near, max(1, int(np.ceil(near.size * pts.size / BATCH)))):
+            if not chunk.size:
+                continue
+            rr = (px[:, None] - f.x[chunk][None, :]) ** 2 + (py[:, None] - f.y[chunk][None, :]) ** 2
+            rr /= 0.25 * f.d[chunk][None, :] ** 2
+            h, a = profile(f, rr, np.broadcast_to(chunk[None, :], rr.shape))
+            dh[pts] += h.sum(axis=1)
+            da[pts] += a.sum(axis=1)
+    return dh, da
