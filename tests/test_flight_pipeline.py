@@ -1,0 +1,120 @@
+"""End-to-end pipeline on synthetic scenes: accuracy, hazards, anytime levels, validation, determinism."""
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import make_pair, plane, roof, tilted_R  # noqa: E402
+
+from flight_sw.pipeline import PRESETS, Params, PipelineResult, run_pipeline
+from flight_sw.sweep import plane_homography  # noqa: F401  (part of the interface contract)
+from flight_sw.validate import FlightInputError
+from protocol.errors import InputError
+from protocol.pairdir import Pose
+
+
+@pytest.fixture(scope="module")
+def plane_scene():
+    return make_pair(256, 200.0, 100.0, plane(-3.0), seed=11)
+
+
+@pytest.mark.parametrize("preset", ["fast", "thesis"])
+def test_pipeline_recovers_plane(plane_scene, preset):
+    cam, p1, p2, i1, i2, z = plane_scene
+    res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+    assert isinstance(res, PipelineResult)
+    assert res.level == "full" and not res.degraded
+    err = res.elevation - z
+    assert np.nanmean(np.abs(err)) < 0.10
+    assert res.valid_fraction > 0.6
+    assert res.elevation.dtype == np.float32 and res.hazard.dtype == np.float32
+    assert np.isnan(res.hazard[~res.covered]).all() and np.isfinite(res.hazard[res.covered]).all()
+    assert np.nanmedian(res.slope_deg[res.covered]) < 2.0
+    # world_xy lies on the plane's ray intersection
+    ok = np.isfinite(res.elevation)
+    assert res.world_xy.shape == i1.shape + (2,)
+    assert set(res.timings) >= {"rocks", "coarse_dem", "full_dem", "slope", "sites", "total"}
+    assert all(t["wall_s"] >= 0 and t["cpu_s"] >= 0 for t in res.timings.values())
+    g = res.grid
+    assert g.hazard.shape == g.elevation.shape and g.cell_m > 0
+    assert np.nanmedian(np.abs(g.elevation - (-3.0))) < 0.1
+    for s in res.sites:  # sites are on known-safe ground
+        assert s.hazard < 1 and 0 < s.margin <= 1
+        assert abs(s.z + 3.0) < (0.3 if preset == "fast" else 1.0)  # thesis preset: window-sized blobs
+    assert ok.sum() > 0
+
+
+@pytest.mark.parametrize("slope_deg", [10.0, 20.0])
+def test_pipeline_measures_roof_slope(slope_deg):
+    cam, p1, p2, i1, i2, z = make_pair(192, 120.0, 60.0, roof(slope_deg), seed=12)
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
+    X = res.world_xy[..., 0]
+    flank = res.covered & (np.abs(X) > 4) & np.isfinite(res.slope_deg)
+    assert flank.sum() > 500
+    assert np.median(res.slope_deg[flank]) == pytest.approx(slope_deg, abs=1.5)
+    unsafe = res.hazard[flank] >= 1
+    assert unsafe.mean() > 0.9 if slope_deg > 15 else unsafe.mean() < 0.5
+
+
+def test_oblique_approach_pair():
+    cam, p1, p2, i1, i2, z = make_pair(256, 250.0, 125.0, plane(2.0), seed=13, R=tilted_R(20),
+                                       offset2=(0.0, -45.0))
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
+    err = res.elevation - z
+    assert res.level == "full" and res.valid_fraction > 0.5
+    assert np.nanmean(np.abs(err)) < 0.2
+
+
+def test_anytime_levels(plane_scene):
+    cam, p1, p2, i1, i2, _ = plane_scene
+    r0 = run_pipeline(i1, i2, p1, p2, cam, deadline_s=0.0)
+    assert r0.level == "image_only" and r0.degraded
+    assert np.isnan(r0.elevation).all() and np.isfinite(r0.hazard[r0.covered]).all()
+    assert r0.grid.hazard.size > 0
+    slow = dataclasses.replace(PRESETS["thesis"], dz_m=0.002, check_every=1)  # ~12000 planes: cannot finish
+    r1 = run_pipeline(i1, i2, p1, p2, cam, preset=slow, deadline_s=1.0)
+    assert r1.level == "coarse" and r1.degraded
+    assert r1.timings["total"]["wall_s"] < 1.5
+    # half-resolution DEM: unbiased but noisy, worst near the epipole (image centre)
+    assert np.nanmean(np.abs(r1.elevation + 3.0)) < 1.5
+    assert abs(np.nanmedian(r1.elevation + 3.0)) < 0.3
+    r2 = run_pipeline(i1, i2, p1, p2, cam, deadline_s=30.0)
+    assert r2.level == "full" and not r2.degraded
+
+
+def _bad(plane_scene, **kw):
+    cam, p1, p2, i1, i2, _ = plane_scene
+    args = dict(i1=i1, i2=i2, pose1=p1, pose2=p2, camera=cam)
+    args.update(kw)
+    with pytest.raises(InputError) as exc:
+        run_pipeline(args["i1"], args["i2"], args["pose1"], args["pose2"], args["camera"],
+                     **{k: v for k, v in kw.items() if k in ("preset", "deadline_s", "nominal_site_xy")})
+    assert isinstance(exc.value, FlightInputError)
+    return str(exc.value)
+
+
+def test_bad_inputs_raise_clear_errors(plane_scene):
+    cam, p1, p2, i1, i2, _ = plane_scene
+    assert "size" in _bad(plane_scene, i2=i2[:100])
+    assert "2-D" in _bad(plane_scene, i1=np.stack([i1, i1], -1))
+    assert "orthonormal" in _bad(plane_scene, pose1=Pose(p1.position, p1.R * 1.1))
+    assert "NaN" in _bad(plane_scene, pose2=Pose([0, np.nan, 100.0], p2.R))
+    assert "below" in _bad(plane_scene, pose1=p2, pose2=p1)
+    assert "preset" in _bad(plane_scene, preset="turbo")
+    assert "deadline" in _bad(plane_scene, deadline_s=float("nan"))
+    assert "half_window" in _bad(plane_scene, preset=Params(half_window=0))
+    assert "NaN" in _bad(plane_scene, i1=np.full(i1.shape, np.nan))
+
+
+def test_deterministic(plane_scene):
+    cam, p1, p2, i1, i2, _ = plane_scene
+    a = run_pipeline(i1, i2, p1, p2, cam)
+    b = run_pipeline(i1, i2, p1, p2, cam)
+    assert a.elevation.tobytes() == b.elevation.tobytes()
+    assert a.hazard.tobytes() == b.hazard.tobytes()
+    assert a.sites == b.sites
