@@ -1,0 +1,131 @@
+"""Descent trajectories: lists of image pairs (upper frame at h, lower at ~h/2).
+
+* ``vertical`` (thesis sec. 6.1): nadir pairs h -> h/2 above the landing site (origin),
+  h in {1000, 800, 600, 400, 300, 200, 150, 100} m.
+* ``approach`` (thesis sec. 2.1/6.2, Chang'e-3-like): 45 deg descent path toward the site
+  (heading +Y), lander pitch 9 deg and camera line of sight offset 40 deg, so the camera is
+  49 deg off nadir; pairs 2400/1200 ... 500/250. For 300/150 and 250/125 the lander attitude
+  is aligned with the surface normal (pitch 0) while the 40 deg sensor offset remains: the
+  thesis's epipole then moves above the image centre (sec. 6.2), which a nadir camera on a
+  45 deg path could not show.
+* a TOML/JSON file: ``{"pairs": [{"label": .., "altitude_m": .., "frames": [{"position_m":
+  [x,y,z], "off_nadir_deg": t, "heading_deg": h} | {"position_m", "R_world_to_cam"}, x2]}]}``.
+
+Pairs are labelled "upper/lower"; ``altitude_m`` is the LOWER altitude - the altitude the
+thesis Tables 6.1 and 6.8 list (600->300 is the 300 m row, 2400->1200 the 1200 m row).
+Frame times come from a velocity profile along the path: speed ``v = v_min + k s`` with
+``s`` the remaining path length, so ``t(s) = ln((v_min + k s0) / (v_min + k s)) / k``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ground_sim.errors import TrajectoryError
+from ground_sim.geometry import look_rotation
+from protocol.errors import InputError
+from protocol.pairdir import Camera, Pose
+
+VERTICAL_UPPER = (1000, 800, 600, 400, 300, 200, 150, 100)
+APPROACH_PAIRS = ((2400, 1200, 49.0), (2000, 1000, 49.0), (1200, 600, 49.0), (1000, 500, 49.0),
+                  (600, 300, 49.0), (500, 250, 49.0), (300, 150, 40.0), (250, 125, 40.0))
+V_MIN, K_DECEL = 1.0, 0.05
+
+
+@dataclass(frozen=True)
+class PairSpec:
+    label: str
+    altitude_m: float
+    poses: tuple[Pose, Pose]
+    camera: Camera
+    scenario: str = "custom"
+
+
+def _time(s0: float, s: float) -> float:
+    return math.log((V_MIN + K_DECEL * s0) / (V_MIN + K_DECEL * s)) / K_DECEL
+
+
+def _label(hu: float, hl: float) -> str:
+    return f"{hu:g}/{hl:g}"
+
+
+def vertical(camera: Camera | None = None) -> list[PairSpec]:
+    cam = camera or Camera.thesis()
+    R = look_rotation(0.0)
+    s0 = float(VERTICAL_UPPER[0])
+    return [PairSpec(_label(h, h / 2), h / 2,
+                     (Pose([0, 0, h], R, _time(s0, h)), Pose([0, 0, h / 2], R, _time(s0, h / 2))),
+                     cam, "vertical") for h in VERTICAL_UPPER]
+
+
+def approach(camera: Camera | None = None) -> list[PairSpec]:
+    cam = camera or Camera.thesis()
+    s0 = APPROACH_PAIRS[0][0] * math.sqrt(2)
+    out = []
+    for hu, hl, tilt in APPROACH_PAIRS:
+        R = look_rotation(tilt, 0.0)
+        poses = tuple(Pose([0.0, -h, h], R, _time(s0, h * math.sqrt(2))) for h in (hu, hl))
+        out.append(PairSpec(_label(hu, hl), float(hl), poses, cam, "approach"))
+    return out
+
+
+def _frame(fr: dict, where: str) -> Pose:
+    try:
+        pos = np.array(fr["position_m"], dtype=float).reshape(3)
+        if "R_world_to_cam" in fr:
+            R = np.array(fr["R_world_to_cam"], dtype=float).reshape(3, 3)
+        else:
+            R = look_rotation(float(fr.get("off_nadir_deg", 0.0)), float(fr.get("heading_deg", 0.0)))
+        pose = Pose(pos, R, float(fr.get("time_s", 0.0)))
+        pose.validate(where)
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise TrajectoryError(str(exc)) from None
+        raise TrajectoryError(f"{where}: need position_m [x,y,z] and R_world_to_cam or off_nadir_deg ({exc})") from None
+    return pose
+
+
+def from_file(path: Path) -> list[PairSpec]:
+    try:
+        text = path.read_text()
+        doc = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise TrajectoryError(f"trajectory file {path}: unreadable ({exc})") from None
+    pairs = doc.get("pairs") if isinstance(doc, dict) else None
+    if not isinstance(pairs, list) or not pairs:
+        raise TrajectoryError(f"trajectory file {path}: needs a non-empty 'pairs' list")
+    cam = Camera.thesis()
+    if isinstance(doc.get("camera"), dict):
+        try:
+            cam = Camera.from_dict(doc["camera"])
+        except InputError as exc:
+            raise TrajectoryError(f"trajectory file {path}: {exc}") from None
+    out = []
+    for i, p in enumerate(pairs):
+        where = f"trajectory file {path} pair #{i}"
+        if not isinstance(p, dict) or not isinstance(p.get("frames"), list) or len(p["frames"]) != 2:
+            raise TrajectoryError(f"{where}: needs 'frames' with exactly two frames")
+        poses = (_frame(p["frames"][0], where + " frame 0"), _frame(p["frames"][1], where + " frame 1"))
+        if not poses[1].position[2] < poses[0].position[2]:
+            raise TrajectoryError(f"{where}: frame 1 must be below frame 0")
+        hl = float(p.get("altitude_m", poses[1].position[2]))
+        label = str(p.get("label", _label(round(poses[0].position[2], 1), round(poses[1].position[2], 1))))
+        out.append(PairSpec(label, hl, poses, cam, str(doc.get("name", path.stem))))
+    return out
+
+
+def load_trajectory(spec: str | Path) -> list[PairSpec]:
+    """``vertical``, ``approach`` or a TOML/JSON trajectory file."""
+    if str(spec) == "vertical":
+        return vertical()
+    if str(spec) == "approach":
+        return approach()
+    path = Path(spec)
+    if not path.is_file():
+        raise TrajectoryError(f"unknown scenario {str(spec)!r}: use vertical, approach or a .toml/.json file")
+    return from_file(path)
