@@ -136,10 +136,12 @@ def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
 
 def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camera: Camera, *,
                  preset: str | Params = "fast", deadline_s: float | None = None,
-                 nominal_site_xy: tuple[float, float] = (0.0, 0.0)) -> PipelineResult:
+                 nominal_site_xy: tuple[float, float] = (0.0, 0.0),
+                 deadline_at: float | None = None) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
-    ``deadline_s`` is a budget in seconds from the call; the result is the best
+    ``deadline_s`` is a budget in seconds from the call, ``deadline_at`` an absolute
+    ``time.monotonic()`` value (the earlier wins); the result is the best
     level reached in time (see module doc). Raises :class:`FlightInputError`
     for bad arguments.
     """
@@ -156,7 +158,10 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
             raise FlightInputError(f"nominal_site_xy must be (x, y), got {nominal_site_xy!r}") from None
         if not all(math.isfinite(v) for v in nominal):
             raise FlightInputError(f"nominal_site_xy must be finite, got {nominal_site_xy!r}")
-        deadline = None if deadline_s is None else t_start + float(deadline_s)
+        if deadline_at is not None and not (isinstance(deadline_at, (int, float)) and math.isfinite(deadline_at)):
+            raise FlightInputError(f"deadline_at must be a finite time.monotonic() value, got {deadline_at!r}")
+        ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
+        deadline = min(ends) if ends else None
         sweep_deadline = None if deadline is None else deadline - p.mapping_reserve_s
         a1 = np.ascontiguousarray(i1, dtype=np.float32)
         a2 = np.ascontiguousarray(i2, dtype=np.float32)

@@ -1,0 +1,104 @@
+"""``hazard-hil process PAIR_DIR --out OUT_DIR``: run the pipeline offline on a pair directory.
+
+Writes ``elevation.npy``, ``hazard.npy``, ``result.json`` and pictures
+(``dem.png``, ``hazard.png``, ``hazard_grid.png``; with ground truth also
+``dem_error.png`` and ``confusion.png``). Ground truth is read here only for
+those pictures and the comparison block of ``result.json`` - never by the pipeline.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("process", help="DEM, hazard map and safe sites from a pair directory",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png)")
+    p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
+    p.add_argument("--preset", default="fast", choices=("fast", "thesis"), help="parameter preset (default fast)")
+    p.add_argument("--deadline", type=float, default=None, metavar="S",
+                   help="time budget in seconds; past it the best level reached is returned (degraded)")
+    p.add_argument("--sites", type=int, default=None, metavar="K", help="number of safe sites (default 5)")
+    p.set_defaults(func=_process)
+
+
+def _stats(err) -> dict[str, float]:
+    import numpy as np
+
+    e = err[np.isfinite(err)]
+    if e.size == 0:
+        return {"n": 0}
+    med = float(np.median(e))
+    return {"n": int(e.size), "mean_abs_m": float(np.abs(e).mean()), "median_m": med,
+            "mad_m": float(np.median(np.abs(e - med)))}
+
+
+def _process(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import cv2
+    import numpy as np
+
+    from protocol.pairdir import read_pair
+
+    from .pictures import colour_map, confusion, confusion_picture
+    from .pipeline import PRESETS, run_pipeline
+    from .validate import FlightInputError
+
+    if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
+        raise FlightInputError(f"--deadline must be a non-negative number of seconds, got {args.deadline}")
+    pair = read_pair(args.pair_dir)
+    params = PRESETS[args.preset]
+    if args.sites is not None:
+        if args.sites < 0:
+            raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
+        params = dataclasses.replace(params, n_sites=args.sites)
+    res = run_pipeline(pair.images[0], pair.images[1], pair.poses[0], pair.poses[1], pair.camera,
+                       preset=params, deadline_s=args.deadline)
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FlightInputError(f"--out {out}: cannot create ({exc.strerror})") from None
+    np.save(out / "elevation.npy", res.elevation)
+    np.save(out / "hazard.npy", res.hazard)
+    doc: dict[str, Any] = {
+        "pair_dir": str(Path(args.pair_dir).resolve()),
+        "preset": args.preset, "params": res.params, "level": res.level, "degraded": res.degraded,
+        "valid_fraction": res.valid_fraction, "timings": res.timings, "info": res.info,
+        "grid": {"origin_xy": list(res.grid.origin_xy), "cell_m": res.grid.cell_m,
+                 "shape": list(res.grid.hazard.shape), "rows_toward": "-Y"},
+        "sites": [s.to_dict() for s in res.sites],
+        "covered_fraction": float(res.covered.mean()),
+        "unsafe_fraction": float(np.nanmean(res.hazard >= 1)) if res.covered.any() else None,
+    }
+    cv2.imwrite(str(out / "dem.png"), colour_map(res.elevation))
+    cv2.imwrite(str(out / "hazard.png"), colour_map(res.hazard, 0.0, 1.0, cv2.COLORMAP_JET))
+    cv2.imwrite(str(out / "hazard_grid.png"), colour_map(res.grid.hazard, 0.0, 1.0, cv2.COLORMAP_JET))
+    truth: dict[str, Any] = {}
+    gt_z = pair.truth.get("elevation")
+    if gt_z is not None:
+        err = res.elevation - gt_z
+        truth["dem_error"] = _stats(err)
+        lim = float(np.nanpercentile(np.abs(err), 99)) if np.isfinite(err).any() else 1.0
+        cv2.imwrite(str(out / "dem_error.png"), colour_map(err, -lim, lim, cv2.COLORMAP_COOL))
+    gt_h = pair.truth.get("hazard")
+    if gt_h is not None:
+        masks = confusion(res.hazard, gt_h)
+        counts = {k: int(v.sum()) for k, v in masks.items()}
+        n = sum(counts.values())
+        truth["confusion"] = {**counts, **({k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {})}
+        cv2.imwrite(str(out / "confusion.png"), confusion_picture(masks))
+    if truth:
+        doc["vs_truth"] = truth
+    (out / "result.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    line = f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}, " \
+           f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
+    if "dem_error" in truth and truth["dem_error"].get("n"):
+        line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
+    print(f"{out}: {line}")
+    return 0

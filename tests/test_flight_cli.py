@@ -1,0 +1,57 @@
+"""``hazard-hil process``: outputs on a synthetic pair with truth, clean errors on bad input."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import crater, make_pair  # noqa: E402
+
+from hil_server.cli import main
+from protocol.pairdir import Pair, write_pair
+
+
+def _pair(tmp_path):
+    cam, p1, p2, i1, i2, z = make_pair(160, 150.0, 75.0, crater(20.0, 4.0), seed=21)
+    gt_h = np.zeros_like(z)
+    gt_h[60:100, 60:80] = 1.0  # inside the area both images see
+    return write_pair(tmp_path / "pair", Pair(cam, (p1, p2), (i1, i2), truth={"elevation": z, "hazard": gt_h})), z
+
+
+def test_process_writes_outputs(tmp_path, capsys):
+    d, z = _pair(tmp_path)
+    out = tmp_path / "out"
+    assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
+    for f in ("elevation.npy", "hazard.npy", "result.json", "dem.png", "hazard.png", "dem_error.png",
+              "confusion.png"):
+        assert (out / f).is_file(), f
+    elev = np.load(out / "elevation.npy")
+    assert elev.dtype == np.float32 and elev.shape == z.shape
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["level"] == "full" and doc["params"]["name"] == "fast"
+    assert doc["vs_truth"]["dem_error"]["mean_abs_m"] < 0.3
+    assert set(doc["timings"]["full_dem"]) == {"wall_s", "cpu_s"}
+    c = doc["vs_truth"]["confusion"]
+    assert c["FP"] + c["TN"] > 0  # the truth's unsafe strip is scored
+    assert "full" in capsys.readouterr().out
+
+
+def test_process_deadline_zero_is_degraded(tmp_path):
+    d, _ = _pair(tmp_path)
+    out = tmp_path / "out0"
+    assert main(["process", str(d), "--out", str(out), "--deadline", "0"]) == 0
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["level"] == "image_only" and doc["degraded"] is True
+
+
+def test_process_bad_input_is_one_line(tmp_path, capsys):
+    assert main(["process", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not a directory" in err and len(err.splitlines()) == 1
+    d, _ = _pair(tmp_path)
+    (d / "i2.png").unlink()
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
+    assert "missing image i2.png" in capsys.readouterr().err
