@@ -523,7 +523,7 @@ class ZmqLink(Link):
             try:
                 self._sock.send_multipart([head, body, *bufs], copy=not bufs)
             except self._zmq.Again:
-                self._resolve(seq, type(message).__name__, "send timed out: peer not draining (high-water mark)")
+                self._resolve(seq, type(message).__name__, "send timed out: peer not connected or not draining (high-water mark)")
                 return seq
         self._count("busy_s", time.monotonic() - t0)
         self._count("bytes_sent", len(head) + len(body) + sum(b.nbytes for b in bufs))

@@ -14,13 +14,14 @@ import sys
 import numpy as np
 
 from protocol.links import SerialLink, ZmqLink
-from protocol.messages import Frame, Heartbeat, Result, Telemetry
+from protocol.messages import Frame, Heartbeat, Hello, Result, Telemetry
 
 
 def main() -> int:
     kind, where = sys.argv[1], sys.argv[2]
     link = SerialLink(where, ack_timeout=0.3, max_attempts=20, name="peer") if kind == "serial" \
         else ZmqLink(where, bind=False, name="peer")
+    link.send(Hello(role="flight"))            # handshake: the ground waits for this before streaming
     prev = None
     while True:
         msg = link.recv(timeout=60.0)

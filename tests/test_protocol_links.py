@@ -15,7 +15,7 @@ from protocol.codec import encode_message
 from protocol.faults import CorruptingChannel, PtyBridge, open_pty_pair
 from protocol.framing import frame_payload
 from protocol.links import LinkClosed, SerialLink, StreamLink, ZmqLink
-from protocol.messages import Frame, Heartbeat, Result, Telemetry
+from protocol.messages import Frame, Heartbeat, Hello, Result, Telemetry
 
 PEER = Path(__file__).with_name("protocol_peer.py")
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,6 +121,8 @@ def test_serial_link_bad_port_is_input_error():
 
 
 def _descent(link, n: int = 20) -> tuple[list[Result], Telemetry]:
+    hello = link.recv(60.0)                   # the peer may start slowly on a loaded machine
+    assert isinstance(hello, Hello) and hello.role == "flight"
     for i in range(n):
         link.send(frame(i))
     link.send(Heartbeat(time_s=0.0, counter=0xFFFF))
