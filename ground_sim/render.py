@@ -123,7 +123,7 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     x0, y0, cell, nx, ny, _, _, gsd = plan_raster(scene, camera, pose, sun, ss)
     H, A = scene.raster(x0, y0, cell, nx, ny)
     r = Raster(x0, y0, cell, H)
-    zmin, zmax = float(H.min()), float(H.max())
+    zmin, zmax = float(H.min()) - 0.01, float(H.max()) + 0.01   # float32 sampling slack
     C = pose.position
     W, Hh = camera.width, camera.height
 
@@ -135,7 +135,7 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     tlo = np.maximum((C[2] - zmax) / -dcoarse[:, 2], 0.0)
     thi = (C[2] - zmin) / -dcoarse[:, 2]
     sin_t = np.sqrt(np.maximum(1 - dcoarse[:, 2] ** 2, 1e-12))
-    step = np.minimum(1.0 * cell / np.abs(dcoarse[:, 2]) * 0 + 1.0 * cell, 1.0 * cell / sin_t)
+    step = np.minimum(1.0 * cell, 1.0 * cell / sin_t)
     tc, hitc = intersect(r, C, dcoarse, tlo, thi, step, refine=1)
     if not hitc.all():
         raise RenderError("some rays leave the terrain window without hitting the ground")

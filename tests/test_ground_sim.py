@@ -1,0 +1,243 @@
+"""ground_sim: geometry, photometry, populations, truth and error handling against closed forms."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ground_sim.descent import render_pair, render_scenario
+from ground_sim.errors import RenderError, SceneError, TrajectoryError
+from ground_sim.features import PowerLaw, boulders_in, crater_profile, craters_in, Features
+from ground_sim.geometry import ground_footprint, look_rotation, pixel_rays, project
+from ground_sim.pose_error import PoseError
+from ground_sim.render import render_view
+from ground_sim.scene import Scene, load_scene, parse_scene
+from ground_sim.trajectory import approach, load_trajectory, vertical
+from protocol.errors import InputError
+from protocol.pairdir import Camera, Pose, Sun, read_pair
+
+F128 = 64.0 / math.tan(math.radians(15.0))
+CAM = Camera(128, 128, F128, F128, 63.5, 63.5)
+
+
+def flat_scene(**sections) -> Scene:
+    doc = {"terrain": {"rms_relief_m": 0.0, "micro_rms_m": 0.0}, "craters": {"coef": 0.0},
+           "boulders": {"coef": 0.0, "rim_density_m2": 0.0}, "albedo": {"sigma": 0.0}}
+    for k, v in sections.items():
+        if k == "feature":
+            doc["feature"] = v
+        else:
+            doc[k] = doc.get(k, {}) | v
+    return Scene(parse_scene(doc, "test"), 0)
+
+
+def closed_form_plane(pose, z=0.0):
+    v, u = np.mgrid[0:128, 0:128].astype(float)
+    d = pixel_rays(CAM, pose, u, v)
+    t = (z - pose.position[2]) / d[..., 2]
+    X = pose.position + t[..., None] * d
+    return X, t * (d @ pose.R[2])
+
+
+@pytest.mark.parametrize("tilt", [0.0, 49.0])
+def test_flat_plane_depth_and_world_xy_match_closed_form(tilt):
+    pose = Pose([3.0, -100.0 if tilt else 0.0, 100.0], look_rotation(tilt))
+    v = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False)
+    X, depth = closed_form_plane(pose)
+    assert np.abs(v.elevation).max() < 1e-4
+    assert np.abs(v.depth - depth).max() / depth.max() < 1e-5
+    assert np.abs(v.world_xy - X[..., :2]).max() < 1e-3 * np.abs(depth).max() / 100
+
+
+def test_single_crater_elevation_matches_profile():
+    D = 20.0
+    sc = flat_scene(feature=[{"kind": "crater", "x_m": 1.0, "y_m": -2.0, "diameter_m": D,
+                              "depth_ratio": 0.2, "degradation": 0.0}])
+    pose = Pose([0.0, 0.0, 60.0], look_rotation(0.0))
+    v = render_view(sc, CAM, pose, Sun(135, 60), noise=False)
+    r2 = ((v.world_xy[..., 0] - 1.0) ** 2 + (v.world_xy[..., 1] + 2.0) ** 2) / (D / 2) ** 2
+    expect = crater_profile(r2.astype(float), D, 0.2 * D, 0.0)
+    assert expect.min() < -3.5                         # the bowl is in view
+    assert np.abs(v.elevation - expect).max() < 0.03   # bilinear raster of the analytic profile
+    # depth is consistent with the hit point: z_cam of (x, y, elevation)
+    X = np.dstack([v.world_xy, v.elevation]).astype(float)
+    assert np.abs(project(CAM, pose, X)[2] - v.depth).max() < 1e-3
+
+
+def test_tilted_footprint_is_the_thesis_trapezoid():
+    spec = approach(CAM)[0]
+    T1, T2 = (ground_footprint(CAM, p) for p in spec.poses)
+    far1, near1 = np.linalg.norm(T1[1] - T1[0]), np.linalg.norm(T1[2] - T1[3])
+    assert far1 > 1.5 * near1                          # wider at the top (far) edge: trapezoid
+    assert abs(T1[0, 1] - T1[1, 1]) < 1e-6 and abs(T1[2, 1] - T1[3, 1]) < 1e-6  # parallel sides
+    # half altitude on the same 45 deg line: homothetic, AB = 2 EF (thesis sec. 6.2)
+    assert np.linalg.norm(T1[1] - T1[0]) == pytest.approx(2 * np.linalg.norm(T2[1] - T2[0]), rel=1e-9)
+    # the rendered corner pixels see the corners of the trapezoid
+    v = render_view(flat_scene(), CAM, spec.poses[1], Sun(120, 30), noise=False)
+    X, _ = closed_form_plane(spec.poses[1])
+    assert np.abs(v.world_xy - X[..., :2]).max() < 0.05
+
+
+def test_shadows_at_low_sun_and_none_at_zenith():
+    sc = flat_scene(feature=[{"kind": "boulder", "x_m": 0.0, "y_m": 0.0, "diameter_m": 4.0, "height_m": 2.0}])
+    pose = Pose([0.0, 0.0, 40.0], look_rotation(0.0))
+    low = render_view(sc, CAM, pose, Sun(90.0, 15.0), noise=False)      # sun in the east (+X)
+    assert low.shadow.mean() > 0.01
+    xs = low.world_xy[..., 0][low.shadow]
+    assert np.median(xs) < 0                           # shadow falls west, away from the sun
+    # cast shadow reaches about h / tan(el) beyond the boulder's west edge
+    on_axis = low.shadow & (np.abs(low.world_xy[..., 1]) < 0.3)
+    tip = -low.world_xy[..., 0][on_axis].min()
+    assert tip == pytest.approx(2.0 / math.tan(math.radians(15)), rel=0.15)
+    flat = render_view(flat_scene(), CAM, pose, Sun(0.0, 90.0), noise=False)
+    assert not flat.shadow.any()
+    assert np.ptp(flat.image) <= 2                     # uniform plane, no noise: uniform image
+
+
+def test_pair_photometric_consistency():
+    sc = load_scene("default", 3)
+    R = look_rotation(0.0)
+    p1, p2 = Pose([40.0, 30.0, 200.0], R), Pose([40.0, 30.0, 100.0], R)
+    v1 = render_view(sc, CAM, p1, Sun(135, 30), noise=False)
+    v2 = render_view(sc, CAM, p2, Sun(135, 30), noise=False)
+    import cv2
+
+    def warp(elev):
+        X = np.dstack([v1.world_xy, elev]).astype(float)
+        u, v, _ = project(CAM, p2, X)
+        out = cv2.remap(v2.image.astype(np.float32), u.astype(np.float32), v.astype(np.float32),
+                        cv2.INTER_LINEAR, borderValue=-1)
+        ok = (out >= 0) & (u > 2) & (u < 125) & (v > 2) & (v < 125)
+        return np.abs(out - v1.image)[ok]
+
+    good = warp(v1.elevation)
+    bad = warp(v1.elevation + 3.0)                     # wrong elevation: misregistered
+    assert good.size > 0.2 * 128 * 128
+    assert np.median(good) < 4.0
+    assert np.median(bad) > 1.5 * np.median(good)
+
+
+def test_sampled_populations_follow_power_laws():
+    sfd = PowerLaw(0.079, 2.0, 1.0, 64.0)
+    cr = craters_in(5, sfd, (-400, -400, 400, 400), 2.0, 0.5)
+    D = np.sort(cr.d[(np.abs(cr.x) < 400) & (np.abs(cr.y) < 400)])
+    assert D.min() >= 2.0 and D.max() < 64.0
+    n_gt = np.arange(D.size, 0, -1)
+    sel = D < 20                                       # away from the truncation
+    slope = np.polyfit(np.log(D[sel]), np.log(n_gt[sel]), 1)[0]
+    assert slope == pytest.approx(-2.0, abs=0.15)
+    expected = 0.079 * (2.0 ** -2 - 64.0 ** -2) * 800 ** 2
+    assert D.size == pytest.approx(expected, rel=0.1)
+    bsfd = PowerLaw(3e-3, 2.482, 0.3, 5.0)
+    empty = Features.concat([], "crater")
+    bl = boulders_in(6, bsfd, (-200, -200, 200, 200), 0.3, empty, 0.0)
+    B = np.sort(bl.d)
+    bslope = np.polyfit(np.log(B[B < 1.5]), np.log(np.arange(B.size, 0, -1)[B < 1.5]), 1)[0]
+    assert bslope == pytest.approx(-2.482, abs=0.2)
+
+
+def test_raster_equals_pointwise_height():
+    sc = load_scene("default", 11)
+    H, A = sc.raster(-20.0, 5.0, 0.25, 160, 120)
+    rng = np.random.default_rng(0)
+    i, j = rng.integers(0, 120, 300), rng.integers(0, 160, 300)
+    h, a = sc.height_albedo(-20.0 + 0.25 * j, 5.0 + 0.25 * i, 0.5)
+    assert np.abs(h - H[i, j]).max() < 1e-9
+    assert np.abs(a - A[i, j]).max() < 1e-3
+
+
+def test_same_seed_same_bytes_and_seed_matters():
+    sc = load_scene("default", 2)
+    pose = Pose([0.0, 0.0, 120.0], look_rotation(0.0))
+    a = render_view(sc, CAM, pose, Sun(135, 25), seed=4)
+    b = render_view(load_scene("default", 2), CAM, pose, Sun(135, 25), seed=4)
+    c = render_view(load_scene("default", 3), CAM, pose, Sun(135, 25), seed=4)
+    assert a.image.tobytes() == b.image.tobytes() and a.elevation.tobytes() == b.elevation.tobytes()
+    assert a.image.tobytes() != c.image.tobytes()
+
+
+@pytest.mark.parametrize("tilt,expect", [(7.5, 0.5), (20.0, 1.0)])
+def test_truth_slope_hazard_on_tilted_plane(tilt, expect):
+    sc = flat_scene(terrain={"tilt_deg": tilt, "tilt_azimuth_deg": 0.0})
+    v = render_view(sc, CAM, Pose([0, 0, 80.0], look_rotation(0.0)), Sun(0.0, 80.0), noise=False)
+    core = v.hazard[8:-8, 8:-8]
+    assert np.abs(core - expect).max() < 0.02
+
+
+def test_big_boulder_at_landing_site_is_hazard():
+    sc = load_scene("default", 0)
+    v = render_view(sc, CAM, Pose([0, 0, 60.0], look_rotation(0.0)), Sun(135, 25), noise=False)
+    # a 6 m boulder: its flanks are >15 deg; its crown is flattish (the 3 m plane fit), hence mostly
+    assert np.mean(v.hazard[58:70, 58:70] >= 1.0) > 0.8
+    assert v.elevation[63, 63] - np.median(v.elevation) > 2.0
+
+
+def test_trajectories_follow_the_thesis():
+    vt = vertical()
+    assert [s.altitude_m for s in vt] == [500, 400, 300, 200, 150, 100, 75, 50]
+    assert vt[2].label == "600/300"
+    ap = approach()
+    assert [s.altitude_m for s in ap] == [1200, 1000, 600, 500, 300, 250, 150, 125]
+    for s in ap:
+        p0, p1 = s.poses
+        assert p1.time_s > p0.time_s
+        off = math.degrees(math.acos(-p0.optical_axis[2]))
+        assert off == pytest.approx(49.0 if s.altitude_m >= 250 else 40.0)
+        assert abs(p0.position[1]) == pytest.approx(p0.position[2])   # 45 deg path to the site
+
+
+def test_pose_error_is_seeded_bounded_and_recorded():
+    pe = PoseError(altitude_uniform_m=0.5, pitch_uniform_deg=0.05)
+    d1 = pe.sample(np.random.default_rng(1))
+    d2 = pe.sample(np.random.default_rng(1))
+    assert d1 == d2 and all(abs(d.dz_m) <= 0.5 for d in d1)
+    assert d1[0].pitch_deg == d1[1].pitch_deg                 # equal pitch on both frames (thesis 6.3.2)
+    pose = Pose([0, -100, 100.0], look_rotation(30.0))
+    rep = d1[0].apply(pose)
+    ang = math.degrees(math.acos(np.clip(rep.optical_axis @ pose.optical_axis, -1, 1)))
+    assert ang == pytest.approx(abs(d1[0].pitch_deg), abs=1e-6)
+    # pitch-plane: the tilt stays in the plane of the surface normal and the optical axis
+    assert abs(rep.optical_axis[0]) < 1e-12
+    assert rep.position[2] - pose.position[2] == pytest.approx(d1[0].dz_m)
+    with pytest.raises(InputError):
+        PoseError.parse("alt=-1")
+    with pytest.raises(InputError):
+        PoseError.parse("bogus=1")
+
+
+def test_render_pair_and_scenario_files(tmp_path):
+    traj = {"camera": CAM.to_dict(), "pairs": [{"label": "120/60", "altitude_m": 60,
+            "frames": [{"position_m": [0, 0, 120], "time_s": 0}, {"position_m": [0, 0, 60], "time_s": 9}]}]}
+    f = tmp_path / "t.json"
+    f.write_text(json.dumps(traj))
+    out = render_scenario(f, tmp_path / "out", scene="default", seed=1,
+                          pose_error=PoseError(altitude_uniform_m=0.5), progress=False)
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["pairs"][0]["path"] == "120_60" and man["pairs"][0]["altitude_m"] == 60
+    pair = read_pair(out / "120_60")
+    assert set(pair.truth) == {"elevation", "depth", "shadow", "hazard"}
+    true_z = pair.meta["true_frames"][0]["position_m"][2]
+    dz = pair.meta["pose_error"]["frames"][0]["dz_m"]
+    assert pair.poses[0].position[2] == pytest.approx(true_z + dz) and dz != 0
+    assert (out / "contact.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("text,msg", [("[terrain]\nhurst = 2\n", "hurst"), ("[terrain]\nbogus = 1\n", "bogus"),
+                                      ("[terrain\n", "invalid TOML"), ("[[feature]]\nkind='tree'\n", "kind")])
+def test_invalid_scene_files_give_clear_errors(tmp_path, text, msg):
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    with pytest.raises(SceneError, match=msg):
+        load_scene(p)
+
+
+def test_bad_views_give_clear_errors():
+    sc = load_scene("default", 0)
+    with pytest.raises(RenderError, match="below"):
+        render_view(sc, CAM, Pose([0, 0, -30.0], look_rotation(0.0)), Sun(135, 25))
+    with pytest.raises(RenderError, match="sky"):
+        render_view(sc, CAM, Pose([0, 0, 100.0], look_rotation(85.0)), Sun(135, 25))
+    with pytest.raises(TrajectoryError):
+        load_trajectory("nowhere")
+    with pytest.raises(InputError):
+        load_scene("nope")
