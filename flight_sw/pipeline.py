@@ -51,6 +51,7 @@ class Params:
     coarse_step_px: float = 0.5          # at half resolution
     relief_margin_frac: float = 0.06     # sweep range: +- max(min_m, frac * altitude) around Z = 0
     relief_margin_min_m: float = 10.0
+    mask_rocks: bool = True              # rock pixels excluded from correlation, NaN elevation (sec 4.2)
     rock_k: float = 11.0                 # eq. 4.8
     rock_dilate_px: int = 2
     harris_alpha: float = 0.04
@@ -188,12 +189,12 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
                             interpolation=cv2.INTER_NEAREST).astype(bool)
         planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
         res_c = sweep_dem(c1, c2, cam_c, pose1, pose2, planes_c, half_window=p.coarse_half_window, cost=p.cost,
-                          prefilter_sigma=sigma, ignore=rock_c, deadline=sweep_deadline,
+                          prefilter_sigma=sigma, ignore=rock_c if p.mask_rocks else None, deadline=sweep_deadline,
                           check_every=p.check_every)
         info["coarse_planes"] = int(planes_c.size)
         if res_c.complete and np.isfinite(res_c.elevation).any():
             coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
-            elevation = np.where(rocks, np.nan, coarse).astype(np.float32)
+            elevation = np.where(rocks & p.mask_rocks, np.nan, coarse).astype(np.float32)
             level = "coarse"
 
     with _stage(timings, "full_dem"):
@@ -210,7 +211,8 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]
             res_f = sweep_dem(a1, a2, camera, pose1, pose2, planes, half_window=p.half_window, cost=p.cost,
-                              prefilter_sigma=sigma, ignore=rocks, deadline=sweep_deadline,
+                              prefilter_sigma=sigma, ignore=rocks if p.mask_rocks else None,
+                              deadline=sweep_deadline,
                               check_every=p.check_every)
             info["full_planes_done"] = res_f.planes_done
             if res_f.complete:

@@ -45,14 +45,22 @@ class Texture:
     cell: float
 
     @classmethod
-    def random(cls, half_extent_m: float, cell: float, seed: int, blur_cells: float = 1.2) -> "Texture":
+    def random(cls, half_extent_m: float, cell: float, seed: int, blur_cells: float = 1.2,
+               spots_per_km2: float = 0.0, spot_m: float = 1.5) -> "Texture":
+        """Smooth random albedo; optional bright/black spot pairs mimic sunlit boulders and their shadows
+        (intensity only - no relief), the high-contrast features behind the thesis's squared pattern."""
         rng = np.random.default_rng(seed)
         n = int(math.ceil(2 * half_extent_m / cell)) + 1
         fine = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), blur_cells)
         coarse = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), 8 * blur_cells)
         t = fine / fine.std() + 0.7 * coarse / coarse.std()
-        t = 128 + 40 * t
-        return cls(np.clip(t, 5, 250).astype(np.float32), -half_extent_m, -half_extent_m, cell)
+        t = np.clip(128 + 40 * t, 5, 250).astype(np.float32)
+        k = int(rng.poisson(spots_per_km2 * (2 * half_extent_m / 1000.0) ** 2))
+        r = max(1, int(round(spot_m / cell / 2)))
+        for ci, cj in rng.integers(2 * r, n - 4 * r, size=(k, 2)):
+            t[ci - r:ci + r, cj - r:cj + r] = 255.0
+            t[ci + r:ci + 3 * r, cj - r:cj + r] = 0.0
+        return cls(t, -half_extent_m, -half_extent_m, cell)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         mx = ((x - self.x0) / self.cell).astype(np.float32)
@@ -103,14 +111,14 @@ def crater(radius: float, depth: float, cx: float = 0.0, cy: float = 0.0) -> Cal
 
 
 def make_pair(size: int, alt1: float, alt2: float, height: Callable, seed: int = 0,
-              R: np.ndarray = NADIR_R, offset2: tuple[float, float] = (0.0, 0.0)):
+              R: np.ndarray = NADIR_R, offset2: tuple[float, float] = (0.0, 0.0), spots_per_km2: float = 0.0):
     """Camera, poses, images and true elevation of i1 for a vertical descent alt1 -> alt2."""
     cam = camera_fov30(size)
     p1 = Pose(np.array([0.0, 0.0, alt1]), R)
     p2 = Pose(np.array([offset2[0], offset2[1], alt2]), R)
     gsd2 = alt2 / cam.fx
     half = alt1 * 0.6 + 10
-    tex = Texture.random(half, gsd2 / 1.5, seed)
+    tex = Texture.random(half, gsd2 / 1.5, seed, spots_per_km2=spots_per_km2, spot_m=3 * gsd2)
     i1, z1 = render(cam, p1, height, tex)
     i2, _ = render(cam, p2, height, tex)
     return cam, p1, p2, i1, i2, z1

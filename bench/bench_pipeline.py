@@ -1,0 +1,173 @@
+"""Benchmark the flight pipeline on one core: median stage times, peak memory growth, DEM accuracy.
+
+    .venv/bin/python bench/bench_pipeline.py [--pair DIR] [--size 512] [--runs 7] [--presets fast thesis]
+
+Without ``--pair`` it renders a seeded synthetic 600 m -> 300 m vertical pair
+(textured terrain with craters, tests/synthetic.py). OpenCV runs single-threaded
+and the process is pinned to one CPU. Timings are medians over ``--runs``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+
+def synthetic_pair(size: int, seed: int = 0, spots_per_km2: float = 2000.0):
+    from synthetic import make_pair
+
+    craters = [(-40.0, 25.0, 30.0, 6.0), (35.0, -20.0, 18.0, 3.5), (5.0, 5.0, 8.0, 1.2), (-10.0, -45.0, 45.0, 8.0)]
+
+    def height(x, y):
+        z = 0.02 * x - 0.015 * y
+        for cx, cy, r, d in craters:
+            z = z - d * np.clip(1 - ((x - cx) ** 2 + (y - cy) ** 2) / r**2, 0, None)
+        return z
+
+    cam, p1, p2, i1, i2, z = make_pair(size, 600.0, 300.0, height, seed=seed, spots_per_km2=spots_per_km2)
+    return cam, p1, p2, i1, i2, z
+
+
+def rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
+
+class RssSampler:
+    """Peak RSS over a block, sampled every millisecond from a thread (catches OpenCV's own buffers)."""
+
+    def __enter__(self):
+        import threading
+
+        self.base = self.peak = rss_mb()
+        self._stop = threading.Event()
+
+        def loop():
+            while not self._stop.is_set():
+                self.peak = max(self.peak, rss_mb())
+                self._stop.wait(0.001)
+
+        self._t = threading.Thread(target=loop, daemon=True)
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, rss_mb())
+
+
+def ablation(i1, i2, p1, p2, cam, z) -> dict:
+    """DEM error of preset variants; the >1 m tail measures the thesis's "squared pattern" blobs."""
+    import dataclasses
+
+    from flight_sw.pipeline import PRESETS, run_pipeline
+
+    variants = {}
+    for base in ("thesis", "fast"):
+        for cost in ("ssd", "sad"):
+            for pre in (False, True):
+                for mask in (False, True):
+                    variants[f"{base} {cost} prefilter={int(pre)} rocks_masked={int(mask)}"] = \
+                        dataclasses.replace(PRESETS[base], cost=cost, prefilter=pre, mask_rocks=mask)
+    for w in (4, 5, 8):
+        variants[f"fast W={w}"] = dataclasses.replace(PRESETS["fast"], half_window=w)
+    variants["fast step=0.25px"] = dataclasses.replace(PRESETS["fast"], disparity_step_px=0.25)
+    variants["fast no coarse-to-fine"] = dataclasses.replace(PRESETS["fast"], coarse_to_fine=False)
+    out = {}
+    print("\nablation (one run each)")
+    for name, prm in variants.items():
+        t0 = time.perf_counter()
+        res = run_pipeline(i1, i2, p1, p2, cam, preset=prm)
+        dt = time.perf_counter() - t0
+        e = res.elevation - z
+        ok = np.isfinite(e)
+        row = {"wall_s": dt, "mean_abs_m": float(np.abs(e[ok]).mean()), "p99_abs_m": float(np.percentile(np.abs(e[ok]), 99)),
+               "frac_gt_1m": float((np.abs(e[ok]) > 1.0).mean()), "valid": res.valid_fraction}
+        out[name] = row
+        print(f"  {name:45s} {dt:6.3f} s  mean|e| {row['mean_abs_m']:.3f} m  p99 {row['p99_abs_m']:.2f} m  "
+              f">1m {row['frac_gt_1m']:.2%}  valid {row['valid']:.1%}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pair", help="pair directory (default: synthetic)")
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--presets", nargs="+", default=["fast", "thesis"])
+    ap.add_argument("--json", help="write the summary here")
+    ap.add_argument("--ablation", action="store_true",
+                    help="also compare prefilter / rock masking / SAD vs SSD / window (DEM error only)")
+    args = ap.parse_args(argv)
+
+    cv2.setNumThreads(1)
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    from flight_sw.pipeline import run_pipeline
+
+    if args.pair:
+        from protocol.pairdir import read_pair
+
+        pair = read_pair(args.pair)
+        cam, (p1, p2), (i1, i2) = pair.camera, pair.poses, pair.images
+        z = pair.truth.get("elevation")
+        source = args.pair
+    else:
+        cam, p1, p2, i1, i2, z = synthetic_pair(args.size)
+        source = f"synthetic {args.size}px 600->300 m"
+    run_pipeline(i1, i2, p1, p2, cam, preset="fast")  # warm-up (imports, allocator)
+    summary = {"source": source, "runs": args.runs, "presets": {}}
+    for preset in args.presets:
+        walls, stages, res = [], {}, None
+        for _ in range(args.runs):
+            t0 = time.perf_counter()
+            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+            walls.append(time.perf_counter() - t0)
+            for k, v in res.timings.items():
+                stages.setdefault(k, []).append((v["wall_s"], v["cpu_s"]))
+        # memory on a separate run: tracemalloc slows allocation and would skew the timings
+        res = None
+        tracemalloc.start()
+        with RssSampler() as mem:
+            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+        traced = tracemalloc.get_traced_memory()[1] / 2**20
+        tracemalloc.stop()
+        row = {"median_wall_s": statistics.median(walls), "min_wall_s": min(walls), "max_wall_s": max(walls),
+               "stages": {k: {"wall_s": statistics.median(a for a, _ in v), "cpu_s": statistics.median(b for _, b in v)}
+                          for k, v in stages.items()},
+               "peak_rss_growth_mb": mem.peak - mem.base, "peak_numpy_alloc_mb": traced,
+               "level": res.level, "valid_fraction": res.valid_fraction, "info": res.info}
+        if z is not None:
+            e = res.elevation - z
+            ok = np.isfinite(e)
+            row["dem_mean_abs_m"] = float(np.abs(e[ok]).mean())
+            row["dem_median_m"] = float(np.median(e[ok]))
+        summary["presets"][preset] = row
+        print(f"{preset:7s} median {row['median_wall_s']:.3f} s (min {row['min_wall_s']:.3f}, max "
+              f"{row['max_wall_s']:.3f}), peak RSS growth {row['peak_rss_growth_mb']:.1f} MB (numpy peak {row['peak_numpy_alloc_mb']:.1f} MB), valid "
+              f"{row['valid_fraction']:.1%}" + (f", DEM mean |err| {row['dem_mean_abs_m']:.3f} m" if z is not None else ""))
+        for k, v in row["stages"].items():
+            print(f"    {k:11s} wall {v['wall_s'] * 1e3:8.1f} ms   cpu {v['cpu_s'] * 1e3:8.1f} ms")
+    if args.ablation and z is not None:
+        summary["ablation"] = ablation(i1, i2, p1, p2, cam, z)
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
