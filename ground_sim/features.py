@@ -153,20 +153,34 @@ def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
             area = np.pi * ((0.9 * fresh.d) ** 2 - (0.45 * fresh.d) ** 2)
             key = np.round(fresh.x * 64).astype(np.int64), np.round(fresh.y * 64).astype(np.int64)
             lam = rim_per_crater_m2 * area * (1 - fresh.s / 0.35)
-            for j in range(len(fresh)):
-                lam_j = float(lam[j])
-                n = int(poisson(lam_j, uniform(seed, RIM_BOULDER_STREAM, key[0][j], key[1][j], -1), cap=4000))
-                if n == 0:
-                    continue
-                i = np.arange(n)
+            u0 = uniform(seed, RIM_BOULDER_STREAM, key[0], key[1], -1)
+            n = np.array([poisson(float(l), np.array([u]), cap=4000)[0] for l, u in zip(lam, u0)]) \
+                if lam.size < 64 else _poisson_many(lam, u0)
+            if n.sum():
+                j = np.repeat(np.arange(len(fresh)), n)
+                i = np.arange(j.size) - np.repeat(np.cumsum(n) - n, n)
                 u = [uniform(seed, RIM_BOULDER_STREAM, key[0][j], key[1][j], i, f) for f in range(4)]
                 rr = 0.5 * fresh.d[j] * (0.9 + 0.9 * u[0] ** 1.5)
                 th = 2 * np.pi * u[1]
                 d = np.minimum(sfd.sample_d(sfd.d_min, sfd.d_max, u[2]), 0.2 * fresh.d[j])
                 b = Features(fresh.x[j] + rr * np.sin(th), fresh.y[j] + rr * np.cos(th), d,
-                             d * (0.35 + 0.25 * u[3]), np.zeros(n), "boulder")
+                             d * (0.35 + 0.25 * u[3]), np.zeros(j.size), "boulder")
                 parts.append(b.select((d >= d_min) & _touches(b, bbox)))
     return Features.concat(parts, "boulder")
+
+
+def _poisson_many(lam: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Poisson draws with per-item means: exact inverse CDF for small means, normal approximation above 50."""
+    out = np.empty(lam.size, np.int64)
+    small = lam < 50
+    for lv in np.unique(np.round(lam[small], 6)):
+        m = small & (np.round(lam, 6) == lv)
+        out[m] = poisson(float(lv), u[m], cap=200)
+    if np.any(~small):
+        from statistics import NormalDist
+        z = np.array([NormalDist().inv_cdf(min(max(x, 1e-12), 1 - 1e-12)) for x in u[~small]])
+        out[~small] = np.maximum(np.rint(lam[~small] + np.sqrt(lam[~small]) * z), 0).astype(np.int64)
+    return out
 
 
 def _touches(f: Features, bbox) -> np.ndarray:

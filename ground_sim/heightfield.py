@@ -61,7 +61,7 @@ class Raster:
 
 
 def intersect(r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray,
-              step: np.ndarray, refine: int = 4) -> tuple[np.ndarray, np.ndarray]:
+              step: np.ndarray, refine: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """First t in [t0, t1] where the ray ``C + t d`` meets the height raster.
 
     March with per-ray ``step`` until the ray is at or below the surface, then refine
@@ -105,15 +105,22 @@ def intersect(r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.nd
     a, b = lo[m], t[m]
     dm = d[m]
 
+    def fast(tv):
+        return C[2] + tv * dm[:, 2] - r.sample_fast(C[0] + tv * dm[:, 0], C[1] + tv * dm[:, 1])
+
     def fn(tv):
         return C[2] + tv * dm[:, 2] - r.sample(C[0] + tv * dm[:, 0], C[1] + tv * dm[:, 1])
 
-    fa, fb = fn(a), fn(b)
-    for _ in range(refine):
+    # narrow the bracket on the fast sampler, finish on the exact surface
+    fa, fb = fast(a), fast(b)
+    for it in range(refine):
+        if it == refine - 2 or refine == 1:
+            fa, fb = fn(a), fn(b)
+        fn_it = fn if it >= refine - 2 else fast
         fa_pos = fa > 0
         denom = np.where(fa - fb == 0, 1.0, fa - fb)
         c = np.where(fa_pos & (fb <= 0), a + (b - a) * fa / denom, b)
-        fc = fn(c)
+        fc = fn_it(c)
         up = fc > 0
         a, fa = np.where(up, c, a), np.where(up, fc, fa)
         b, fb = np.where(up, b, c), np.where(up, fb, fc)

@@ -31,7 +31,7 @@ from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
-MAX_CELLS = 1_400_000
+MAX_CELLS = 1_000_000
 MIN_RAY_DOWN = 0.05          # |d_z| below this: ray too close to the horizon
 COARSE = 4
 REFERENCE_DN = 95.0          # DN of flat ground of mean albedo under this sun

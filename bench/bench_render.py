@@ -1,0 +1,60 @@
+"""Benchmark: seconds to render one 512x512 frame with ground truth, one core.
+
+Median of N runs per altitude class (nadir 1000/300/100/50 m, oblique 2400/1200/250 m of
+the approach scenario), default scene. Usage:
+    .venv/bin/python bench/bench_render.py [--repeat 5] [--out docs/benchmarks/render.md]
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+
+from ground_sim.geometry import look_rotation  # noqa: E402
+from ground_sim.render import render_view  # noqa: E402
+from ground_sim.scene import load_scene  # noqa: E402
+from protocol.pairdir import Camera, Pose, Sun  # noqa: E402
+
+CASES = [("nadir 1000 m", (0, 0, 1000), 0.0), ("nadir 300 m", (0, 0, 300), 0.0),
+         ("nadir 100 m", (0, 0, 100), 0.0), ("nadir 50 m", (0, 0, 50), 0.0),
+         ("oblique 49deg 2400 m", (0, -2400, 2400), 49.0), ("oblique 49deg 1200 m", (0, -1200, 1200), 49.0),
+         ("oblique 40deg 250 m", (0, -250, 250), 40.0)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    scene = load_scene("default", 0)
+    cam = Camera.thesis()
+    rows = []
+    for name, pos, tilt in CASES:
+        pose = Pose(pos, look_rotation(tilt))
+        render_view(scene, cam, pose, Sun(135, 25), seed=0)        # warm-up
+        ts = []
+        for k in range(args.repeat):
+            t0 = time.perf_counter()
+            v = render_view(scene, cam, pose, Sun(135, 25), seed=k)
+            ts.append(time.perf_counter() - t0)
+        rows.append((name, statistics.median(ts), min(ts), max(ts), v.info["raster_shape"], v.info["raster_cell_m"]))
+        print(f"{name:24s} median {rows[-1][1]:.2f} s  (min {min(ts):.2f}, max {max(ts):.2f}) "
+              f"raster {v.info['raster_shape']} cell {v.info['raster_cell_m']:.3f} m", flush=True)
+    if args.out:
+        lines = ["| case | median s | min s | max s | raster (rows x cols) | cell m |", "|---|---|---|---|---|---|"]
+        lines += [f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {s[0]}x{s[1]} | {c:.3f} |" for n, m, lo, hi, s, c in rows]
+        with open(args.out, "w") as fh:
+            fh.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
