@@ -58,7 +58,7 @@ class Params:
     footprint_m: float = 3.0             # lander footprint (Table 2.1)
     slope_limit_deg: float = 15.0
     rough_limit_m: float = 0.30
-    cell_m: float | None = None          # world grid cell; None: 90th-percentile GSD of i1
+    cell_m: float | None = None          # world grid cell; None: median GSD of i1 over the covered area
     n_sites: int = 5
     mapping_reserve_s: float = 0.03      # sweeps stop this long before the deadline
     check_every: int = 4                 # planes between clock checks
@@ -227,7 +227,7 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
 
     with _stage(timings, "grid"):
-        cell = p.cell_m or ground_sample_distance(X, Y, covered)
+        cell = p.cell_m or ground_sample_distance(X, Y, covered, 50.0)
         if not math.isfinite(cell) or cell <= 0:
             cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
         origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)

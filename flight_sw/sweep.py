@@ -10,7 +10,7 @@ index, and the costs of the planes just before and after it.
 Only the region of i1 that can see i2 (for some plane in the range) is swept.
 Samples warped from outside i2 take a value far outside the intensity range,
 so planes that leave the image lose; the final validity test is geometric
-(the window around a pixel must map inside i2 through its chosen plane).
+(the window around a pixel must map inside i2 through every swept plane).
 """
 from __future__ import annotations
 
@@ -195,11 +195,11 @@ def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2
     interior = (best_k > 0) & (best_k < n - 1)
     frac = best_k + parabolic_offset(c_before, best, c_after)
     z_roi = np.interp(frac.ravel(), np.arange(n), planes).reshape(shape).astype(np.float32)
-    v, u = np.mgrid[y0:y0 + rh, x0:x0 + rw].astype(np.float64)
-    ok = interior & _inside(camera, None, u, v, z_roi.astype(np.float64), (A, B, cz))
-    # the whole window must lie in i2 and inside the swept region
-    ok = cv2.erode(ok.astype(np.uint8), np.ones((2 * W + 1, 2 * W + 1), np.uint8),
-                   borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    # Valid only where the whole window maps inside i2 for EVERY swept plane: near the edge of
+    # i2's view, out-of-image samples penalise some planes, which would bias the choice.
+    seen = coverage_mask(camera, pose1, pose2, planes[0], planes[-1], mode="all")[y0:y0 + rh, x0:x0 + rw]
+    ok = interior & cv2.erode(seen.astype(np.uint8), np.ones((2 * W + 1, 2 * W + 1), np.uint8),
+                              borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
     if keep is not None:
         ok &= keep > 0
     elev = nan_img.copy()
