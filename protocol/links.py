@@ -491,7 +491,7 @@ class ZmqLink(Link):
     reported in :meth:`failures`.
     """
 
-    def __init__(self, endpoint: str, bind: bool, *, hwm: int = 64, send_timeout: float = 10.0,
+    def __init__(self, endpoint: str, bind: bool, *, hwm: int = 256, send_timeout: float = 30.0,
                  oob_min_bytes: int = 64 << 10, limits: Limits = DEFAULT_LIMITS, name: str = "") -> None:
         import zmq
 

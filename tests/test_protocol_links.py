@@ -182,6 +182,6 @@ def test_two_processes_over_zeromq_tcp():
             results, telem = _descent(G)
         finally:
             assert peer.wait(60) == 0
-        assert G.failures() == []
+        assert G.failures() == [], G.failures()
     _check_descent(results, telem)
     assert telem.link["frames_received"] == 21 and telem.link["decode_errors"] == 0
