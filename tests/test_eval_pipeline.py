@@ -1,0 +1,84 @@
+"""End to end on small cameras: render -> pipeline -> score, resume, pose errors, Dask == local."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from hil_server import evaluate as ev
+
+PX = 96
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("render_cache")
+
+
+def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path):
+    rows = ev.evaluate_scenario("vertical", tmp_path, presets=["fast"], seeds=[0], cache_dir=cache, camera_px=PX,
+                                altitudes=[300], workers=1, progress=False)
+    (r,) = rows
+    assert r["scenario"] == "vertical" and r["altitude_m"] == 300 and r["label"] == "600/300"
+    # a DEM from a 96 px pair at 300 m: GSD ~0.8 m in i1, so metres of error at worst, not tens
+    assert 0 < r["dem_mean_abs_m"] < 5.0 and r["dem_n"] > 500
+    assert r["tp_pct"] + r["tn_pct"] + r["fp_pct"] + r["fn_pct"] == pytest.approx(100.0)
+    assert r["cdi_pct"] == pytest.approx(r["tp_pct"] + r["tn_pct"])
+    assert 0 < r["hazards_in_scene_pct"] < 100 and r["slope_mean_abs_deg"] is not None
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
+    for col in ("scenario", "altitude_m", "preset", "dem_mean_abs_m", "dem_median_m", "dem_mad_m",
+                "slope_mean_abs_deg", "fp_pct", "fn_pct", "tp_pct", "tn_pct", "hazards_detected_pct",
+                "safe_detected_pct", "cdi_pct", "pipeline_s"):
+        assert col in header
+    log = tmp_path / "runs" / "evaluate.jsonl"
+    before = log.read_text()
+    again = ev.evaluate_scenario("vertical", tmp_path, presets=["fast"], seeds=[0], cache_dir=cache, camera_px=PX,
+                                 altitudes=[300], workers=1, progress=False)
+    assert log.read_text() == before and again == rows  # nothing re-ran
+
+
+def test_pose_knowledge_errors_raise_dem_error(cache: Path):
+    (e,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
+    perfect = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False)
+    alt = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False,
+                           pose_error={"frames": [{"dz_m": 0.0}, {"dz_m": 3.0}]})
+    att = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False,
+                           pose_error={"frames": [{"pitch_deg": 0.3}, {"pitch_deg": 0.3}]})
+    assert alt["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
+    assert att["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
+    assert perfect["slope_mean_abs_deg"] is None  # truth slope skipped on request
+
+
+def test_sample_pose_errors_are_seeded_and_bounded():
+    a = ev.sample_pose_error("altitude", 3, 7)
+    assert a == ev.sample_pose_error("altitude", 3, 7) != ev.sample_pose_error("altitude", 3, 8)
+    assert all(abs(f["dz_m"]) <= 0.5 for f in a["frames"])
+    levels = [ev.sample_pose_error("attitude", 0, i)["frames"][0]["pitch_deg"] for i in range(6)]
+    assert levels == list(ev.ATTITUDE_LEVELS_DEG)
+    with pytest.raises(ev.EvaluationError):
+        ev.sample_pose_error("sideways", 0, 0)
+
+
+def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
+    from distributed import Client, LocalCluster
+
+    kw = dict(samples=2, seeds=[0], presets=["fast"], cache_dir=cache, camera_px=PX, altitudes=[250],
+              progress=False)
+    local = ev.sensitivity_campaign("altitude", tmp_path / "local", workers=1, **kw)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, \
+            Client(cl):
+        dask = ev.sensitivity_campaign("altitude", tmp_path / "dask", scheduler=cl.scheduler_address, **kw)
+
+    def strip(rows):
+        return [{k: v for k, v in r.items() if k != "pipeline_s"} for r in rows]
+
+    assert len(local) == 3 and [r["sample"] for r in local] == [-1, 0, 1]
+    assert strip(local) == strip(dask)
+    assert local[0]["dem_mean_rel_pct"] == 0.0
+    assert all(math.isfinite(r["dem_mean_rel_pct"]) for r in local)
+    assert (tmp_path / "dask" / "sensitivity_altitude.csv").is_file()
+    lines = (tmp_path / "dask" / "runs" / "sensitivity-altitude.jsonl").read_text().splitlines()
+    assert sorted(json.loads(x)["id"] for x in lines) == ["altitude-fast-s0-250-0", "altitude-fast-s0-250-1",
+                                                         "altitude-fast-s0-250-ref"]

@@ -1,0 +1,104 @@
+"""Thesis reference values, side-by-side tables and the HTML report, on synthetic metric rows."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hil_server import evaluate as ev
+from hil_server import report
+
+
+def test_thesis_csv_spot_values_and_derived_rates():
+    vals = ev.load_thesis()
+    idx = ev.thesis_index(vals)
+    assert idx[("6.2", "vertical", 500, "dem_mean_abs_m")] == 3.8769
+    assert idx[("6.9", "approach", 125, "dem_mean_abs_m")] == 0.72354
+    assert idx[("6.11", "approach", 150, "fp_pct")] == 0.75
+    assert idx[("6.19", "approach", 300, "dev+0.05.dem_mean_rel_pct")] == 20.06
+    assert idx[("6.12", "approach", 125, "s20.h2_m")] == 125.2749
+    assert {v.table for v in vals} == {f"6.{k}" for k in range(1, 20)}
+    # TN%/TP%/CDI derived from Table 6.4 with the formulas that reproduce Table 6.7's own columns
+    for a in (300, 400, 500):
+        tp, tn, fp, fn = (idx[("6.7", "vertical", a, m)] for m in ("tp_pct", "tn_pct", "fp_pct", "fn_pct"))
+        assert 100 * tp / (tp + fn) == pytest.approx(idx[("6.7", "vertical", a, "safe_detected_pct")], abs=0.02)
+        assert 100 * tn / (tn + fp) == pytest.approx(idx[("6.7", "vertical", a, "hazards_detected_pct")], abs=0.02)
+    assert idx[("Fig. 6.6", "vertical", 500, "cdi_pct")] == pytest.approx(63.06 + 19.98)
+    # the sensitivity tables' relative errors are relative to Table 6.9 (perfect knowledge)
+    mu, rel = idx[("6.12", "approach", 125, "s01.dem_mean_abs_m")], idx[("6.12", "approach", 125, "s01.dem_mean_rel_pct")]
+    assert mu / (1 + rel / 100) == pytest.approx(idx[("6.9", "approach", 125, "dem_mean_abs_m")], rel=1e-3)
+
+
+def _rows():
+    rows = []
+    for preset, k in (("fast", 0.5), ("thesis", 1.0)):
+        for alt in (300, 500):
+            for seed in (0, 1):
+                r = {c: None for c in ev.METRIC_COLUMNS}
+                r.update(scenario="vertical", altitude_m=alt, label=f"{2 * alt}/{alt}", preset=preset, seed=seed,
+                         pair="x", dem_mean_abs_m=k * alt / 100 + seed, fp_pct=k, fn_pct=10.0, tp_pct=60.0,
+                         tn_pct=30.0 - k, cdi_pct=90.0 - k, hazards_detected_pct=90.0, safe_detected_pct=85.0,
+                         pipeline_s=0.5, level="full", degraded=False)
+                rows.append(r)
+    return rows
+
+
+def test_summary_is_median_over_seeds_and_comparison_pairs_thesis_cells():
+    s = ev.summarise(_rows())
+    assert s[("vertical", "fast", 300)]["dem_mean_abs_m"] == pytest.approx(2.0)  # median of 1.5, 2.5
+    cells = ev.comparison(s, "vertical")
+    c = next(c for c in cells if c["metric"] == "dem_mean_abs_m" and c["altitude_m"] == 500)
+    assert c["thesis"] == 3.8769 and c["ours_fast"] == pytest.approx(3.0) and c["ours_thesis"] == pytest.approx(5.5)
+    md = report.comparison_markdown(cells)
+    assert "| 500 | 3.88 | 3.00 | 5.50 |" in md
+    for block in md.split("\n\n"):  # every row of every table has as many cells as its header
+        rows = [ln for ln in block.splitlines() if ln.startswith("|")]
+        assert len({ln.count("|") for ln in rows}) <= 1, block
+
+
+def test_metrics_csv_roundtrip(tmp_path: Path):
+    rows = _rows()
+    rows[0]["cdi_pct"] = float("nan")
+    p = ev.write_metrics_csv(rows, tmp_path / "metrics.csv")
+    header = p.read_text().splitlines()[0].split(",")
+    assert header[:len(ev.METRIC_COLUMNS)] == list(ev.METRIC_COLUMNS)
+    back = ev.read_metrics_csv(p)
+    assert back[1]["dem_mean_abs_m"] == pytest.approx(rows[1]["dem_mean_abs_m"])
+    assert back[0]["cdi_pct"] is None and back[0]["altitude_m"] == 300 and back[0]["scenario"] == "vertical"
+
+
+def test_confusion_overlay_colours():
+    est = np.array([[0.0, 1.0, 0.0, 1.0, np.nan]])
+    tru = np.array([[0.0, 1.0, 1.0, 0.0, 0.0]])
+    img = report.confusion_image(est, tru, np.array([[1, 1, 1, 1, 0]], bool))
+    assert [tuple(img[0, k]) for k in range(5)] == [report.CONFUSION_BGR[n] for n in ("TP", "TN", "FP", "FN", "none")]
+
+
+def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
+    rng = np.random.default_rng(1)
+    h = w = 64
+    truth = rng.normal(0, 1, (h, w)).astype(np.float32)
+    cov = np.zeros((h, w), bool)
+    cov[16:48, 16:48] = True
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for alt in (300, 500):
+        np.savez_compressed(maps / f"vertical-fast-s0-{alt}.npz", image=(rng.random((h, w)) * 255).astype(np.uint8),
+                            est_elevation=truth + 0.1, true_elevation=truth, est_hazard=np.clip(truth, 0, 1),
+                            true_hazard=np.clip(truth + 0.2, 0, 1), est_slope=np.abs(truth) * 5,
+                            true_slope=np.abs(truth) * 6, est_rough=np.abs(truth) * .1, true_rough=np.abs(truth) * .1,
+                            covered=cov, epipole_box=np.zeros((h, w), bool), rocks=np.zeros((h, w), bool))
+    page = report.evaluation_report(tmp_path, _rows())
+    text = page.read_text()
+    pngs = sorted(p.name for p in page.parent.glob("*.png"))
+    assert "vertical_detection.png" in pngs and "vertical_500m_dem.png" in pngs and len(pngs) == 9
+    for name in pngs:
+        assert f"src='{name}'" in text
+        assert cv2.imread(str(page.parent / name)) is not None
+    assert "3.88" in text and "<table>" in text
+    dem = cv2.imread(str(page.parent / "vertical_300m_dem.png"))
+    assert dem.shape[1] == 3 * (report.PANEL_PX + 4)  # three panels, cropped to the covered area
+    assert math.isclose(ev.summarise(_rows())[("vertical", "thesis", 500)]["fp_pct"], 1.0)
