@@ -43,6 +43,8 @@ class SweepResult:
     planes_done: int
     complete: bool             # False if the deadline stopped the loop
     roi: tuple[int, int, int, int]
+    curvature: np.ndarray | None = None  # float32 HxW (C_{k-1} + C_{k+1} - 2 C_k) / C_k at the best plane
+    range_end: np.ndarray | None = None  # bool HxW: the minimum fell on the first or last plane
 
 
 def scaled_camera(camera: Camera, level: int) -> Camera:
@@ -198,12 +200,20 @@ def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2
     # Valid only where the whole window maps inside i2 for EVERY swept plane: near the edge of
     # i2's view, out-of-image samples penalise some planes, which would bias the choice.
     seen = coverage_mask(camera, pose1, pose2, planes[0], planes[-1], mode="all")[y0:y0 + rh, x0:x0 + rw]
-    ok = interior & cv2.erode(seen.astype(np.uint8), np.ones((2 * W + 1, 2 * W + 1), np.uint8),
-                              borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    # A minimum on the first or last plane means no interior minimum (ambiguous or out of range);
+    # window neighbours share most of that window, so they are rejected too (window-sized erosion).
+    box = np.ones((2 * W + 1, 2 * W + 1), np.uint8)
+    ok = cv2.erode((seen & interior).astype(np.uint8), box, borderType=cv2.BORDER_CONSTANT,
+                   borderValue=0).astype(bool)
     if keep is not None:
         ok &= keep > 0
     elev = nan_img.copy()
     elev[y0:y0 + rh, x0:x0 + rw] = np.where(ok, z_roi, np.nan)
     bc = nan_img.copy()
     bc[y0:y0 + rh, x0:x0 + rw] = np.where(ok, best, np.nan)
-    return SweepResult(elev, bc, planes, done, True, roi)
+    curv = nan_img.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        curv[y0:y0 + rh, x0:x0 + rw] = (c_before + c_after - 2 * best) / np.maximum(best, 1e-6)
+    ends = np.zeros(i1.shape, bool)
+    ends[y0:y0 + rh, x0:x0 + rw] = ~interior
+    return SweepResult(elev, bc, planes, done, True, roi, curv, ends)
