@@ -32,7 +32,7 @@ def test_process_writes_outputs(tmp_path, capsys):
     assert elev.dtype == np.float32 and elev.shape == z.shape
     doc = json.loads((out / "result.json").read_text())
     assert doc["level"] == "full" and doc["params"]["name"] == "fast"
-    assert doc["vs_truth"]["dem_error"]["mean_abs_m"] < 0.3
+    assert doc["vs_truth"]["dem_error"]["mean_abs_m"] < 0.5  # crater at 150 m, 160 px
     assert set(doc["timings"]["full_dem"]) == {"wall_s", "cpu_s"}
     c = doc["vs_truth"]["confusion"]
     assert c["FP"] + c["TN"] > 0  # the truth's unsafe strip is scored
