@@ -1,0 +1,270 @@
+"""Processor budgets and per-host calibration.
+
+A budget names a flight computer by absolute single-core speed in DMIPS
+(``budgets.toml`` says where each figure comes from). To emulate it here the
+flight process gets a CPU duty cycle
+
+    duty = min(1, cpu_dmips / host_dmips),
+    host_dmips = anchor_dmips * host_rate / anchor_rate,
+
+where ``host_rate`` is this host's single-core rate on the reference workload
+(:mod:`hil_server.calibrate`) and the anchor is a machine of known speed on which
+the same workload was measured (recorded in ``budgets.toml``). So a budget means
+the same on any host; a faster host simply gets a smaller duty cycle.
+
+``hazard-hil calibrate`` measures ``host_rate`` and stores it per host (hostname
++ CPU model) in ``$HAZARD_HIL_HOME/calibration.json`` (default
+``~/.cache/hazard-hil/``). Without a calibration the host is assumed to be as
+fast as the anchor, with an :class:`UncalibratedWarning`.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import socket
+import tomllib
+import warnings
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from protocol.errors import InputError
+
+LINKS = ("zmq", "serial")
+
+
+class BudgetError(InputError):
+    """A budget or calibration file is malformed, or a budget name is unknown."""
+
+
+class UncalibratedWarning(UserWarning):
+    """Duty cycles are computed without a calibration of this host."""
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """The reference machine: its speed in DMIPS and its reference-workload rate."""
+
+    description: str
+    dmips: float
+    units_per_s: float
+    coremark: float | None = None
+    coremark_per_dmips: float | None = None
+
+
+@dataclass(frozen=True)
+class HostCalibration:
+    """This host's single-core rate on the reference workload."""
+
+    key: str                 # hostname|cpu model: what the calibration is valid for
+    hostname: str
+    cpu_model: str
+    units_per_s: float       # median reference-workload rate, units per CPU-second
+    spread: float            # (p90 - p10) / median over the measurement batches
+    seconds: float           # CPU seconds measured
+    measured_at: str         # ISO 8601, UTC
+
+    def host_dmips(self, anchor: Anchor) -> float:
+        """host_dmips = anchor.dmips * units_per_s / anchor.units_per_s."""
+        return anchor.dmips * self.units_per_s / anchor.units_per_s
+
+
+@dataclass(frozen=True)
+class Budget:
+    """One processor budget (an entry of ``budgets.toml``)."""
+
+    name: str
+    description: str
+    cpu_dmips: float | None          # None: one whole core of this host
+    memory_mib: int
+    deadline_s: float
+    link: str                        # "zmq" | "serial"
+    baud: int | None
+    source: str
+    anchor: Anchor = field(repr=False, compare=False, default=None)  # type: ignore[assignment]
+
+    @property
+    def is_host(self) -> bool:
+        return self.cpu_dmips is None
+
+    def host_dmips(self, cal: HostCalibration | None) -> float:
+        """This host's single-core speed in DMIPS; the anchor's if uncalibrated (warns)."""
+        if cal is not None:
+            return cal.host_dmips(self.anchor)
+        warnings.warn("no calibration for this host; assuming it is as fast as the anchor "
+                      f"({self.anchor.dmips:.0f} DMIPS). Run `hazard-hil calibrate`.",
+                      UncalibratedWarning, stacklevel=3)
+        return self.anchor.dmips
+
+    def duty_fraction(self, cal: HostCalibration | None) -> float:
+        """CPU duty cycle in (0, 1]: min(1, cpu_dmips / host_dmips); 'host' budgets -> 1.0."""
+        if self.cpu_dmips is None:
+            return 1.0
+        return min(1.0, self.cpu_dmips / self.host_dmips(cal))
+
+
+def default_budgets_path() -> Path:
+    return Path(str(resources.files("hil_server").joinpath("budgets.toml")))
+
+
+def _number(entry: dict, key: str, where: str, positive: bool = True) -> float:
+    value = entry.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise BudgetError(f"{where}: '{key}' must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise BudgetError(f"{where}: '{key}' must be > 0, got {value!r}")
+    return float(value)
+
+
+def _string(entry: dict, key: str, where: str) -> str:
+    value = entry.get(key)
+    if not isinstance(value, str) or not value.strip():
+        raise BudgetError(f"{where}: '{key}' must be a non-empty string, got {value!r}")
+    return value
+
+
+def _parse_anchor(doc: dict, where: str) -> Anchor:
+    a = doc.get("anchor")
+    if not isinstance(a, dict):
+        raise BudgetError(f"{where}: missing [anchor] table")
+    w = f"{where} [anchor]"
+    return Anchor(description=_string(a, "description", w), dmips=_number(a, "dmips", w),
+                  units_per_s=_number(a, "units_per_s", w),
+                  coremark=_number(a, "coremark", w) if "coremark" in a else None,
+                  coremark_per_dmips=_number(a, "coremark_per_dmips", w) if "coremark_per_dmips" in a else None)
+
+
+def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
+    w = f"{where} [budget.{name}]"
+    if not isinstance(entry, dict):
+        raise BudgetError(f"{w}: must be a table")
+    cpu = entry.get("cpu_dmips")
+    cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w)
+    memory = _number(entry, "memory_mib", w)
+    if memory != int(memory):
+        raise BudgetError(f"{w}: 'memory_mib' must be a whole number of MiB, got {memory}")
+    link = _string(entry, "link", w)
+    if link not in LINKS:
+        raise BudgetError(f"{w}: 'link' must be one of {', '.join(LINKS)}, got {link!r}")
+    baud = None
+    if link == "serial":
+        baud_f = _number(entry, "baud", w)
+        if baud_f != int(baud_f):
+            raise BudgetError(f"{w}: 'baud' must be an integer, got {baud_f}")
+        baud = int(baud_f)
+    elif "baud" in entry:
+        raise BudgetError(f"{w}: 'baud' only applies to link = \"serial\"")
+    return Budget(name=name, description=_string(entry, "description", w), cpu_dmips=cpu_dmips,
+                  memory_mib=int(memory), deadline_s=_number(entry, "deadline_s", w), link=link, baud=baud,
+                  source=_string(entry, "source", w), anchor=anchor)
+
+
+def load_budgets(path: str | os.PathLike | None = None) -> dict[str, Budget]:
+    """All budgets of ``path`` (default: the packaged ``budgets.toml``), in file order."""
+    p = Path(path) if path is not None else default_budgets_path()
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise BudgetError(f"budget file not found: {p}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise BudgetError(f"{p}: not valid TOML: {exc}") from None
+    anchor = _parse_anchor(doc, str(p))
+    entries = doc.get("budget")
+    if not isinstance(entries, dict) or not entries:
+        raise BudgetError(f"{p}: no [budget.NAME] tables")
+    return {name: _parse_budget(name, entry, anchor, str(p)) for name, entry in entries.items()}
+
+
+def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
+    """The budget called ``name``; :class:`BudgetError` naming the choices otherwise."""
+    budgets = load_budgets(path)
+    try:
+        return budgets[name]
+    except KeyError:
+        raise BudgetError(f"unknown budget {name!r}; choose one of: {', '.join(budgets)}") from None
+
+
+# --- calibration ---------------------------------------------------------------------------
+
+def calibration_path() -> Path:
+    """``$HAZARD_HIL_HOME/calibration.json``, else ``$XDG_CACHE_HOME|~/.cache/hazard-hil/``."""
+    home = os.environ.get("HAZARD_HIL_HOME")
+    if home:
+        return Path(home) / "calibration.json"
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "hazard-hil" / "calibration.json"
+
+
+def cpu_model() -> str:
+    """CPU model name plus family/model numbers (the name alone can be vague on VMs)."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                if not line.strip():
+                    break  # first processor only
+                k, _, v = line.partition(":")
+                fields[k.strip()] = v.strip()
+    except OSError:
+        pass
+    name = fields.get("model name") or platform.processor() or platform.machine() or "unknown cpu"
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']}, model {fields['model']})"
+    return name
+
+
+def host_key() -> str:
+    return f"{socket.gethostname()}|{cpu_model()}"
+
+
+def _read_store(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise BudgetError(f"calibration file {path} is unreadable ({exc}); delete it and run "
+                          "`hazard-hil calibrate`") from None
+    if not isinstance(data, dict):
+        raise BudgetError(f"calibration file {path}: expected a JSON object keyed by host")
+    return data
+
+
+def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration | None:
+    """This host's stored calibration, or None if it was never calibrated."""
+    p = Path(path) if path is not None else calibration_path()
+    entry = _read_store(p).get(host_key())
+    if entry is None:
+        return None
+    try:
+        cal = HostCalibration(**entry)
+        if not (isinstance(cal.units_per_s, (int, float)) and cal.units_per_s > 0):
+            raise ValueError("units_per_s must be > 0")
+    except (TypeError, ValueError) as exc:
+        raise BudgetError(f"calibration file {p}: bad entry for this host ({exc}); run `hazard-hil calibrate`") from None
+    return cal
+
+
+def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None,
+                   save: bool = True) -> HostCalibration:
+    """Measure this host's single-core reference-workload rate and (by default) store it."""
+    from hil_server.calibrate import measure_rate
+
+    if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 < seconds <= 600):
+        raise BudgetError(f"calibration time must be in (0, 600] s, got {seconds!r}")
+    rate = measure_rate(float(seconds))
+    cal = HostCalibration(key=host_key(), hostname=socket.gethostname(), cpu_model=cpu_model(),
+                          units_per_s=rate.units_per_s, spread=rate.spread, seconds=rate.cpu_s,
+                          measured_at=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    if save:
+        p = Path(path) if path is not None else calibration_path()
+        store = _read_store(p)
+        store[cal.key] = asdict(cal)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(store, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        os.replace(tmp, p)  # atomic: a concurrent reader never sees half a file
+    return cal

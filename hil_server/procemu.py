@@ -1,0 +1,563 @@
+"""The emulated flight processor: one pinned core, a CPU duty cycle, a memory ceiling.
+
+The flight process is an ordinary child process; everything is imposed from
+the parent side, because flight_sw must not import hil_server:
+
+* **One core.** ``sched_setaffinity`` to one core in ``preexec_fn`` (before the
+  child starts any thread, so every thread inherits it) and the thread-pool
+  variables of :func:`thread_env` in its environment, which numpy/OpenBLAS/
+  OpenMP/MKL/OpenCV read at import. (The flight main should still call
+  ``cv2.setNumThreads(1)``; the affinity alone already keeps it on one core.)
+* **Memory ceiling.** ``memory_mib`` caps the resident set: an RSS watchdog
+  thread polls ``/proc/PID/statm`` and kills the child when RSS exceeds it. The
+  hard stop is ``RLIMIT_AS`` = measured address-space baseline of a Python with
+  numpy/cv2/zmq/msgpack/serial imported + ``memory_mib`` + headroom; an
+  allocation past it fails in the child (``MemoryError``).
+* **CPU duty cycle** (the cpulimit technique, closed loop). A throttle thread
+  SIGSTOPs/SIGCONTs the child. Let f be the target fraction and
+
+      credit = f * t_avail - cpu,   t_avail = wall - contention,
+
+  where ``cpu`` is the child's on-CPU time (sum of the first field of
+  ``/proc/PID/task/*/schedstat``, ns) and ``contention`` its run-queue wait
+  (second field): time it was runnable but the *host* ran something else. The
+  child is stopped when credit <= 0 and resumed when credit >= f * P, so each
+  cycle is ~P stopped and ~f P / (1 - f) running. Credit is capped at f * P so
+  the child cannot bank idle time (a slow processor that waited for I/O is not
+  faster afterwards).
+
+**Achieved fraction** = cpu / (wall - contention): the share of a core the
+emulated processor delivered while the host was not preempting it. On an idle
+host it equals cpu / wall; on a loaded host the raw cpu / wall (``raw_fraction``)
+drops, but the emulated processor is then simply paused for the stolen time,
+which ``stats()['contention_s']`` reports so deadline accounting can subtract it.
+
+Exit reports distinguish: normal exit ("ok"), error exit ("error"), crash by
+signal ("crash"), memory-ceiling breach by the watchdog or a failed allocation
+("memory"), a kill requested through :meth:`EmulatedProcessor.kill` ("killed"),
+and a kill from outside ("external").
+"""
+from __future__ import annotations
+
+import atexit
+import collections
+import os
+import resource
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+from protocol.errors import InputError
+
+MIB = 1 << 20
+PAGE = os.sysconf("SC_PAGE_SIZE")
+
+# Thread pools of every numeric library the flight software may load.
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+               "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+
+# Markers of a failed allocation in the child's stderr: Python/numpy MemoryError,
+# OpenCV's Insufficient memory, a failed thread stack under RLIMIT_AS.
+_MEMORY_MARKERS = (b"MemoryError", b"Insufficient memory", b"Failed to allocate", b"std::bad_alloc",
+                   b"can't start new thread", b"Cannot allocate memory")
+
+# Exit status a flight main may use to say "allocation failed" without a traceback.
+EXIT_MEMORY = 75
+
+MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
+
+_BASELINE_MODULES = ("numpy", "cv2", "zmq", "msgpack", "serial")
+
+
+class ProcessorError(InputError):
+    """A processor spec is invalid, or the emulator was used out of order."""
+
+
+def thread_env() -> dict[str, str]:
+    """Environment that limits every thread pool to one thread (set before imports)."""
+    env = {k: "1" for k in THREAD_VARS}
+    # glibc gives each new thread that mallocs a 64 MiB arena of address space;
+    # two arenas keep the address-space baseline small and predictable.
+    env["MALLOC_ARENA_MAX"] = "2"
+    return env
+
+
+def measure_baseline_vms_mib(python: str = sys.executable, modules: tuple[str, ...] = _BASELINE_MODULES) -> float:
+    """Peak address space (VmPeak, MiB) of ``python`` after importing ``modules`` single-threaded.
+
+    The flight process pays this before doing any work, so the address-space
+    rlimit is set on top of it. A ZeroMQ context is created too (its I/O thread
+    has a stack).
+    """
+    code = ("import importlib, sys\n"
+            "for m in sys.argv[1:]:\n"
+            "    try: importlib.import_module(m)\n"
+            "    except ImportError: pass\n"
+            "try:\n"
+            "    import zmq; zmq.Context().socket(zmq.PAIR)\n"
+            "except ImportError: pass\n"
+            "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmPeak')][0])\n")
+    env = {**os.environ, **thread_env()}
+    out = subprocess.run([python, "-c", code, *modules], env=env, capture_output=True, text=True, timeout=120)
+    if out.returncode != 0:
+        raise ProcessorError(f"could not measure the address-space baseline: {out.stderr.strip()[-300:]}")
+    return int(out.stdout.split()[-1]) / 1024.0
+
+
+@dataclass(frozen=True)
+class ProcessorSpec:
+    """What the emulated processor imposes on the flight process.
+
+    cpu_fraction: duty cycle in (0, 1]; 1.0 means no throttling.
+    memory_mib: RSS ceiling (MiB) enforced by the watchdog; None = no ceiling.
+    core: the host core to pin to; None = the highest-numbered core allowed to us.
+    throttle_period_s: P, the stopped time per duty cycle (raised so that the
+        running slice f P / (1 - f) is at least 1 ms).
+    rss_poll_s: watchdog polling interval.
+    address_space_mib: RLIMIT_AS in MiB; None = baseline + memory_mib + as_headroom_mib
+        (no rlimit when memory_mib is None); 0 = no rlimit.
+    as_headroom_mib: address space allowed beyond baseline + memory_mib (thread
+        stacks, allocator slack) so that the RSS watchdog, not the rlimit, trips first.
+    """
+
+    cpu_fraction: float = 1.0
+    memory_mib: float | None = None
+    core: int | None = None
+    throttle_period_s: float = 0.02
+    rss_poll_s: float = 0.005
+    address_space_mib: float | None = None
+    as_headroom_mib: float = 256.0
+
+    def __post_init__(self) -> None:
+        f = self.cpu_fraction
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not (0.0 < f <= 1.0):
+            raise ProcessorError(f"cpu_fraction must be in (0, 1], got {f!r}")
+        if self.memory_mib is not None and not (self.memory_mib > 0):
+            raise ProcessorError(f"memory_mib must be > 0 or None, got {self.memory_mib!r}")
+        if not (0.001 <= self.throttle_period_s <= 1.0):
+            raise ProcessorError(f"throttle_period_s must be in [0.001, 1] s, got {self.throttle_period_s!r}")
+        if not (0.0005 <= self.rss_poll_s <= 1.0):
+            raise ProcessorError(f"rss_poll_s must be in [0.0005, 1] s, got {self.rss_poll_s!r}")
+        if self.address_space_mib is not None and self.address_space_mib < 0:
+            raise ProcessorError(f"address_space_mib must be >= 0 or None, got {self.address_space_mib!r}")
+        if self.core is not None:
+            allowed = os.sched_getaffinity(0)
+            if self.core not in allowed:
+                raise ProcessorError(f"core {self.core} is not available; allowed cores: {sorted(allowed)}")
+
+
+@dataclass(frozen=True)
+class ExitReport:
+    """How the flight process ended.
+
+    kind: "ok" | "error" | "crash" | "memory" | "killed" | "external".
+    reason: one line for people; memory breaches start with "memory ceiling".
+    """
+
+    returncode: int
+    signal: int | None
+    reason: str
+    peak_rss_mib: float
+    cpu_s: float
+    wall_s: float
+    kind: str = "ok"
+    stderr_tail: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.reason}"
+
+
+def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int, int]:
+    """Total (on-CPU ns, run-queue-wait ns) over the threads of ``pid``.
+
+    Threads that have exited keep their last reading in ``per_task``, so the sum
+    never goes backwards when a worker thread ends.
+    """
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        tids = []
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat", "rb") as fh:
+                run, wait, _ = fh.read().split()
+            per_task[int(tid)] = (int(run), int(wait))
+        except (OSError, ValueError):
+            continue
+    run_ns = sum(v[0] for v in per_task.values())
+    wait_ns = sum(v[1] for v in per_task.values())
+    return run_ns, wait_ns
+
+
+def _read_rss_bytes(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/statm", "rb") as fh:
+            return int(fh.read().split()[1]) * PAGE
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _read_hwm_kib(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/status", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"VmHWM:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+class _Child:
+    """State of one started child; replaced on every start()."""
+
+    def __init__(self, popen: subprocess.Popen, core: int, t0: float) -> None:
+        self.popen = popen
+        self.pid = popen.pid
+        self.core = core
+        self.t0 = t0
+        self.lock = threading.Lock()       # guards signals vs. reaping (no PID reuse races)
+        self.exited = threading.Event()
+        self.stop_threads = threading.Event()
+        self.per_task: dict[int, tuple[int, int]] = {}
+        self.cpu_ns = 0
+        self.wait_ns = 0
+        self.stopped = False
+        self.stops = 0
+        self.peak_rss = 0
+        self.rss = 0
+        self.kill_reason: str | None = None
+        self.kill_kind: str | None = None
+        self.report: ExitReport | None = None
+        self.t_end: float | None = None
+        self.stderr_tail: collections.deque[bytes] = collections.deque(maxlen=64)
+        self.threads: list[threading.Thread] = []
+
+    def sample(self) -> tuple[int, int]:
+        run, wait = _read_schedstat(self.pid, self.per_task)
+        self.cpu_ns = max(self.cpu_ns, run)
+        self.wait_ns = max(self.wait_ns, wait)
+        return self.cpu_ns, self.wait_ns
+
+    def signal(self, sig: int) -> bool:
+        """Send ``sig`` unless the child has been reaped (its PID may be reused then)."""
+        with self.lock:
+            if self.exited.is_set():
+                return False
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                return False
+            if sig == signal.SIGSTOP:
+                self.stopped, self.stops = True, self.stops + 1
+            elif sig == signal.SIGCONT:
+                self.stopped = False
+            return True
+
+
+class EmulatedProcessor:
+    """Runs one flight process at a time under a :class:`ProcessorSpec`.
+
+    ``start`` may be called again once the previous child has exited (a fresh
+    child, fresh statistics). Throttle, RSS watchdog and reaper are daemon
+    threads of the calling process; an atexit hook resumes and kills a child
+    still running when the supervisor exits.
+    """
+
+    def __init__(self, spec: ProcessorSpec) -> None:
+        if not isinstance(spec, ProcessorSpec):
+            raise ProcessorError(f"spec must be a ProcessorSpec, got {type(spec).__name__}")
+        self.spec = spec
+        self._child: _Child | None = None
+        self._baseline_vms_mib: float | None = None
+        self._atexit_registered = False
+
+    # --- lifecycle -----------------------------------------------------------------------
+
+    @property
+    def pid(self) -> int | None:
+        return self._child.pid if self._child else None
+
+    @property
+    def alive(self) -> bool:
+        return self._child is not None and not self._child.exited.is_set()
+
+    @property
+    def core(self) -> int:
+        return self.spec.core if self.spec.core is not None else max(os.sched_getaffinity(0))
+
+    def address_space_limit_mib(self) -> float | None:
+        """RLIMIT_AS the child gets (None: unlimited); measures the baseline once per emulator."""
+        s = self.spec
+        if s.address_space_mib is not None:
+            return s.address_space_mib or None
+        if s.memory_mib is None:
+            return None
+        if self._baseline_vms_mib is None:
+            self._baseline_vms_mib = measure_baseline_vms_mib()
+        return self._baseline_vms_mib + s.memory_mib + s.as_headroom_mib
+
+    def start(self, argv: list[str], env: dict | None = None, pass_fds: tuple[int, ...] = (),
+              **popen_kwargs) -> subprocess.Popen:
+        """Start ``argv`` on the emulated processor and return its Popen.
+
+        ``env`` (default: this process's environment) is overlaid with
+        :func:`thread_env`. stderr is forwarded to ours line by line while its
+        tail is kept to classify failed allocations; pass ``stderr=`` to override.
+        """
+        if self.alive:
+            raise ProcessorError(f"a flight process (pid {self.pid}) is still running; kill or wait for it first")
+        if not argv or not all(isinstance(a, str) for a in argv):
+            raise ProcessorError(f"argv must be a non-empty list of strings, got {argv!r}")
+        self._join_threads()
+        core = self.core
+        as_mib = self.address_space_limit_mib()
+        as_bytes = int(as_mib * MIB) if as_mib else None
+        child_env = dict(os.environ if env is None else env)
+        child_env.update(thread_env())
+
+        def preexec() -> None:  # runs in the child between fork and exec: async-signal-safe calls only
+            os.sched_setaffinity(0, {core})
+            if as_bytes is not None:
+                resource.setrlimit(resource.RLIMIT_AS, (as_bytes, as_bytes))
+
+        capture = "stderr" not in popen_kwargs
+        if capture:
+            popen_kwargs["stderr"] = subprocess.PIPE
+        try:
+            popen = subprocess.Popen(argv, env=child_env, pass_fds=tuple(pass_fds), preexec_fn=preexec,
+                                     close_fds=True, **popen_kwargs)
+        except (OSError, subprocess.SubprocessError) as exc:
+            raise ProcessorError(f"cannot start {argv[0]!r}: {exc}") from None
+        child = _Child(popen, core, time.monotonic())
+        self._child = child
+        if not self._atexit_registered:
+            atexit.register(self._atexit)
+            self._atexit_registered = True
+        threads = [threading.Thread(target=self._reaper, args=(child,), name=f"procemu-reap-{child.pid}", daemon=True)]
+        if capture:
+            threads.append(threading.Thread(target=self._stderr_pump, args=(child,),
+                                            name=f"procemu-stderr-{child.pid}", daemon=True))
+        if self.spec.memory_mib is not None:
+            threads.append(threading.Thread(target=self._watchdog, args=(child,),
+                                            name=f"procemu-rss-{child.pid}", daemon=True))
+        if self.spec.cpu_fraction < 1.0:
+            threads.append(threading.Thread(target=self._throttle, args=(child,),
+                                            name=f"procemu-throttle-{child.pid}", daemon=True))
+        child.threads = threads
+        for t in threads:
+            t.start()
+        return popen
+
+    def kill(self, reason: str) -> None:
+        """SIGKILL the child (resumed first, so it never stays stopped) and record ``reason``."""
+        self._kill(reason, "killed")
+
+    def _kill(self, reason: str, kind: str) -> None:
+        child = self._child
+        if child is None or child.exited.is_set():
+            return
+        if child.kill_reason is None:
+            child.kill_reason, child.kill_kind = reason, kind
+        child.stop_threads.set()
+        child.signal(signal.SIGCONT)
+        child.signal(signal.SIGKILL)
+
+    def wait(self, timeout: float | None = None) -> ExitReport | None:
+        """Wait up to ``timeout`` s for the child to end; its report, or None if still running."""
+        child = self._child
+        if child is None:
+            return None
+        if not child.exited.wait(timeout):
+            return None
+        for t in child.threads:
+            if t is not threading.current_thread():
+                t.join(timeout=1.0)
+        return child.report
+
+    def poll(self) -> ExitReport | None:
+        return self.wait(0)
+
+    def close(self) -> None:
+        """Stop the helper threads; kill the child if it is still running."""
+        child = self._child
+        if child is not None and not child.exited.is_set():
+            self._kill("closed by supervisor", "killed")
+            child.exited.wait(5.0)
+        self._join_threads()
+        if self._atexit_registered:
+            atexit.unregister(self._atexit)
+            self._atexit_registered = False
+
+    def _atexit(self) -> None:
+        child = self._child
+        if child is not None and not child.exited.is_set():
+            child.signal(signal.SIGCONT)
+            child.signal(signal.SIGKILL)
+
+    def _join_threads(self) -> None:
+        child = self._child
+        if child is None:
+            return
+        child.stop_threads.set()
+        for t in child.threads:
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
+
+    def __enter__(self) -> "EmulatedProcessor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- measurements ------------------------------------------------------------------
+
+    def stats(self) -> dict:
+        """cpu_s, wall_s, achieved_fraction, peak_rss_mib, rss_mib, core (+ contention_s,
+        raw_fraction, stops, stopped, target_fraction). Zeros before the first start."""
+        child = self._child
+        if child is None:
+            return dict(cpu_s=0.0, wall_s=0.0, achieved_fraction=0.0, peak_rss_mib=0.0, rss_mib=0.0, core=self.core,
+                        contention_s=0.0, raw_fraction=0.0, stops=0, stopped=False,
+                        target_fraction=self.spec.cpu_fraction)
+        if not child.exited.is_set():
+            child.sample()
+            rss = _read_rss_bytes(child.pid)
+            if rss is not None:
+                child.rss = rss
+                child.peak_rss = max(child.peak_rss, rss)
+        end = child.t_end if child.t_end is not None else time.monotonic()
+        wall = end - child.t0
+        cpu = child.cpu_ns / 1e9
+        contention = min(child.wait_ns / 1e9, wall)
+        avail = wall - contention
+        return dict(cpu_s=cpu, wall_s=wall, achieved_fraction=cpu / avail if avail > 0 else 0.0,
+                    peak_rss_mib=child.peak_rss / MIB, rss_mib=(0.0 if child.exited.is_set() else child.rss / MIB),
+                    core=child.core, contention_s=contention, raw_fraction=cpu / wall if wall > 0 else 0.0,
+                    stops=child.stops, stopped=child.stopped, target_fraction=self.spec.cpu_fraction)
+
+    # --- helper threads -------------------------------------------------------------------
+
+    def _throttle(self, child: _Child) -> None:
+        f = self.spec.cpu_fraction
+        # Stopped time per cycle P, raised so the running slice f P / (1 - f) is >= MIN_ON_SLICE_S.
+        period = max(self.spec.throttle_period_s, MIN_ON_SLICE_S * (1.0 - f) / f)
+        cap = f * period
+        t0 = time.monotonic()
+        cpu0, wait0 = child.sample()
+        offset = 0.0  # credit dropped by the cap, so idle time is not banked
+        try:
+            while not child.stop_threads.is_set() and not child.exited.is_set():
+                cpu, wait = child.sample()
+                avail = (time.monotonic() - t0) - (wait - wait0) / 1e9
+                credit = f * avail - (cpu - cpu0) / 1e9 - offset
+                if credit > cap:
+                    offset += credit - cap
+                    credit = cap
+                if child.stopped:
+                    if credit >= cap:
+                        child.signal(signal.SIGCONT)
+                        continue
+                    # Stopped: credit grows at f per second.
+                    time.sleep(max((cap - credit) / f, 0.0002))
+                else:
+                    if credit <= 0.0:
+                        child.signal(signal.SIGSTOP)
+                        continue
+                    # Running flat out, credit falls at (1 - f) per second.
+                    time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
+        finally:
+            child.signal(signal.SIGCONT)  # never leave it stopped
+
+    def _watchdog(self, child: _Child) -> None:
+        limit = self.spec.memory_mib * MIB
+        poll = self.spec.rss_poll_s
+        while not child.stop_threads.wait(poll) and not child.exited.is_set():
+            rss = _read_rss_bytes(child.pid)
+            if rss is None:
+                continue
+            child.rss = rss
+            child.peak_rss = max(child.peak_rss, rss)
+            if rss > limit:
+                self._kill(f"memory ceiling: RSS {rss / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB", "memory")
+                return
+
+    def _stderr_pump(self, child: _Child) -> None:
+        stream = child.popen.stderr
+        out = getattr(sys.stderr, "buffer", None)
+        try:
+            for line in iter(stream.readline, b""):
+                child.stderr_tail.append(line[-2000:])
+                if out is not None:
+                    try:
+                        out.write(line)
+                        out.flush()
+                    except (OSError, ValueError):
+                        out = None
+        except (OSError, ValueError):
+            pass
+        finally:
+            try:
+                stream.close()
+            except OSError:
+                pass
+
+    def _reaper(self, child: _Child) -> None:
+        # Wait without reaping, so no signal can hit a reused PID; then reap under the lock.
+        while True:
+            try:
+                os.waitid(os.P_PID, child.pid, os.WEXITED | os.WNOWAIT)
+                break
+            except ChildProcessError:
+                break
+            except InterruptedError:
+                continue
+        child.sample()
+        hwm = _read_hwm_kib(child.pid)
+        if hwm:
+            child.peak_rss = max(child.peak_rss, hwm * 1024)
+        with child.lock:
+            try:
+                _, status, usage = os.wait4(child.pid, 0)
+            except ChildProcessError:
+                status, usage = 0, None
+            child.t_end = time.monotonic()
+            child.stopped = False
+            child.exited.set()
+        child.stop_threads.set()
+        if usage is not None:
+            child.peak_rss = max(child.peak_rss, usage.ru_maxrss * 1024)
+            child.cpu_ns = max(child.cpu_ns, int((usage.ru_utime + usage.ru_stime) * 1e9))
+        code = os.waitstatus_to_exitcode(status)
+        child.popen.returncode = code  # keep Popen consistent: it must not wait again
+        for t in child.threads:
+            if t is not threading.current_thread() and t.name.startswith("procemu-stderr"):
+                t.join(timeout=2.0)  # the pipe drains once the child is gone
+        child.report = self._classify(child, code)
+
+    def _classify(self, child: _Child, code: int) -> ExitReport:
+        sig = -code if code < 0 else None
+        tail = b"".join(child.stderr_tail)[-4000:]
+        if child.kill_reason is not None and sig == signal.SIGKILL:
+            kind, reason = child.kill_kind or "killed", child.kill_reason
+        elif sig is not None:
+            name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else f"signal {sig}"
+            if sig in (signal.SIGSEGV, signal.SIGABRT, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGSYS,
+                       signal.SIGTRAP):
+                kind, reason = "crash", f"crash: killed by {name}"
+            else:
+                kind, reason = "external", f"external kill: {name}"
+        elif code == 0:
+            kind, reason = "ok", "exited normally"
+        elif code == EXIT_MEMORY or any(m in tail for m in _MEMORY_MARKERS):
+            marker = next((m.decode() for m in _MEMORY_MARKERS if m in tail), f"exit status {EXIT_MEMORY}")
+            kind, reason = "memory", f"memory ceiling: allocation failed ({marker}; exit status {code})"
+        else:
+            last = tail.strip().splitlines()[-1].decode("utf-8", "replace")[:200] if tail.strip() else ""
+            kind, reason = "error", f"error exit: status {code}" + (f" ({last})" if last else "")
+        return ExitReport(returncode=code, signal=sig, reason=reason, peak_rss_mib=child.peak_rss / MIB,
+                          cpu_s=child.cpu_ns / 1e9, wall_s=(child.t_end or time.monotonic()) - child.t0, kind=kind,
+                          stderr_tail=tail.decode("utf-8", "replace"))

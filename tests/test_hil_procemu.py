@@ -1,0 +1,222 @@
+"""The emulated flight processor: duty cycle, one core, memory ceiling, exit reports."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import psutil
+import pytest
+
+from hil_server.procemu import EmulatedProcessor, ExitReport, ProcessorError, ProcessorSpec, thread_env
+from protocol.errors import InputError
+
+PY = sys.executable
+BUSY = "import time\nt = time.process_time()\nwhile time.process_time() - t < {cpu}: pass\n"
+
+
+def _run(spec: ProcessorSpec, code: str, timeout: float = 30.0, **kw) -> tuple[ExitReport, dict, EmulatedProcessor]:
+    proc = EmulatedProcessor(spec)
+    proc.start([PY, "-c", code], **kw)
+    report = proc.wait(timeout)
+    assert report is not None, "child did not finish"
+    stats = proc.stats()
+    proc.close()
+    return report, stats, proc
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def test_throttle_accuracy_and_wall_scaling():
+    """Achieved fraction within 10 % of the target; available wall time = CPU work / fraction.
+
+    Achieved = cpu / (wall - contention), contention being the child's run-queue
+    wait (the host running other jobs on its core), so this holds on a loaded host.
+    """
+    rows = []
+    for f in (0.05, 0.25, 0.5, 1.0):
+        report, s, _ = _run(ProcessorSpec(cpu_fraction=f), BUSY.format(cpu=1.2 * f))
+        assert report.kind == "ok", report
+        rows.append((f, s))
+        assert s["achieved_fraction"] == pytest.approx(f, rel=0.10), (f, s)
+        avail = s["wall_s"] - s["contention_s"]
+        assert avail == pytest.approx(s["cpu_s"] / f, rel=0.10), (f, s)
+        if f < 1.0:
+            assert s["stops"] > 5  # really duty-cycled, not one long pause
+    # Same CPU work per unit of fraction -> the wall time of each run is ~1.2 s + startup,
+    # while the 0.05 run did 20x less work than the 1.0 run in about the same available time.
+    cpu = {f: s["cpu_s"] for f, s in rows}
+    assert cpu[1.0] / cpu[0.05] > 8
+
+
+def test_pinned_to_one_core_and_single_threaded_env():
+    """Affinity reads back as one core, thread vars are set, and a multi-threaded workload
+    (two Python threads doing BLAS matmuls plus OpenCV asked for 4 threads) never gets
+    more than ~1 core of CPU time per wall second."""
+    code = textwrap.dedent("""
+        import os, threading, time
+        import numpy as np, cv2
+        cv2.setNumThreads(4)
+        a = np.random.default_rng(0).random((400, 400))
+        img = np.random.default_rng(1).random((1024, 1024)).astype(np.float32)
+        def work():
+            end = time.monotonic() + 0.8
+            while time.monotonic() < end:
+                a @ a
+                cv2.GaussianBlur(img, (31, 31), 5)
+        c0, w0 = time.process_time(), time.monotonic()
+        ts = [threading.Thread(target=work) for _ in range(3)]
+        [t.start() for t in ts]; [t.join() for t in ts]
+        print(sorted(os.sched_getaffinity(0)), (time.process_time() - c0) / (time.monotonic() - w0))
+    """)
+    proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=1.0, core=0))
+    popen = proc.start([PY, "-c", code], stdout=subprocess.PIPE)
+    time.sleep(0.3)
+    assert psutil.Process(proc.pid).cpu_affinity() == [0]
+    with open(f"/proc/{proc.pid}/environ", "rb") as fh:
+        environ = fh.read().split(b"\0")
+    for k, v in thread_env().items():
+        assert f"{k}={v}".encode() in environ
+    out = popen.stdout.read().decode()
+    report = proc.wait(30)
+    proc.close()
+    assert report.kind == "ok", report
+    affinity, ratio = out.rsplit("]", 1)
+    assert affinity.strip() + "]" == "[0]"
+    assert float(ratio) <= 1.05, f"child used {float(ratio):.2f} cores"
+
+
+def test_rss_watchdog_kills_at_memory_ceiling_and_a_fresh_child_starts():
+    code = textwrap.dedent("""
+        import time, numpy as np
+        hog = []
+        for _ in range(40):
+            hog.append(np.ones(16 << 20, dtype=np.uint8))
+            time.sleep(0.01)
+        print("survived")
+    """)
+    proc = EmulatedProcessor(ProcessorSpec(memory_mib=120))
+    proc.start([PY, "-c", code], stdout=subprocess.PIPE)
+    report = proc.wait(30)
+    assert report.kind == "memory" and report.reason.startswith("memory ceiling"), report
+    assert report.signal == signal.SIGKILL
+    assert 120 <= report.peak_rss_mib < 120 + 200
+    assert not proc.alive
+    proc.start([PY, "-c", "import numpy; print('fresh')"], stdout=subprocess.PIPE)
+    fresh = proc.wait(30)
+    proc.close()
+    assert fresh.kind == "ok" and fresh.reason == "exited normally", fresh
+    assert fresh.peak_rss_mib < 120
+
+
+def test_address_space_limit_fails_large_allocation():
+    """A 3 GiB allocation (untouched, so RSS stays tiny) succeeds without a ceiling and
+    fails under the RLIMIT_AS, which the report calls a memory-ceiling breach."""
+    code = "import numpy as np\nx = np.empty(3 << 30, dtype=np.uint8)\nprint('allocated')\n"
+    free, _, _ = _run(ProcessorSpec(), code, stdout=subprocess.DEVNULL)
+    assert free.kind == "ok", free
+    proc = EmulatedProcessor(ProcessorSpec(memory_mib=200))
+    limit = proc.address_space_limit_mib()
+    assert 200 < limit < 3 * 1024
+    proc.start([PY, "-c", code], stdout=subprocess.DEVNULL, )
+    report = proc.wait(30)
+    proc.close()
+    assert report.kind == "memory", report
+    assert report.reason.startswith("memory ceiling: allocation failed"), report
+    assert "MemoryError" in report.stderr_tail
+    assert report.peak_rss_mib < 200
+
+
+def test_exit_kinds_are_distinguishable():
+    crash, _, _ = _run(ProcessorSpec(), "import os; os.abort()")
+    assert (crash.kind, crash.signal) == ("crash", signal.SIGABRT) and "SIGABRT" in crash.reason
+    err, _, _ = _run(ProcessorSpec(), "import sys; sys.stderr.write('bad pair\\n'); sys.exit(3)")
+    assert (err.kind, err.returncode) == ("error", 3) and "bad pair" in err.reason
+    ok, _, _ = _run(ProcessorSpec(), "pass")
+    assert (ok.kind, ok.returncode, ok.signal) == ("ok", 0, None)
+
+    proc = EmulatedProcessor(ProcessorSpec())
+    proc.start([PY, "-c", "import time; time.sleep(30)"])
+    time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)  # e.g. the kernel OOM killer or an operator
+    ext = proc.wait(10)
+    assert (ext.kind, ext.signal) == ("external", signal.SIGKILL) and "SIGKILL" in ext.reason
+
+    proc.start([PY, "-c", "import time; time.sleep(30)"])
+    os.kill(proc.pid, signal.SIGTERM)
+    term = proc.wait(10)
+    assert term.kind == "external" and "SIGTERM" in term.reason
+    proc.close()
+
+
+def test_kill_while_throttled_never_leaves_child_stopped():
+    proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.05))
+    proc.start([PY, "-c", BUSY.format(cpu=100)])
+    pid = proc.pid
+    deadline = time.monotonic() + 5
+    while not proc.stats()["stopped"] and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert proc.stats()["stopped"], "throttle never stopped the child"
+    proc.kill("deadline exceeded")
+    report = proc.wait(5)
+    assert report is not None and report.kind == "killed" and report.reason == "deadline exceeded"
+    assert _gone(pid)
+    proc.close()
+
+
+def test_supervisor_exit_kills_throttled_child():
+    """The atexit hook resumes and kills a child the supervisor forgot to close."""
+    script = textwrap.dedent(f"""
+        import sys, time
+        from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+        p = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.05))
+        p.start([sys.executable, "-c", {BUSY.format(cpu=100)!r}])
+        time.sleep(0.3)
+        print(p.pid, flush=True)
+    """)
+    out = subprocess.run([PY, "-c", script], capture_output=True, text=True, timeout=60, cwd=os.getcwd())
+    pid = int(out.stdout.split()[-1])
+    deadline = time.monotonic() + 3
+    while not _gone(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(pid), "child outlived its supervisor"
+
+
+def test_close_kills_and_pass_fds_reach_child():
+    r, w = os.pipe()
+    proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.5))
+    proc.start([PY, "-c", f"import os, time; os.write({w}, b'hello'); time.sleep(30)"], pass_fds=(w,))
+    os.close(w)
+    assert os.read(r, 5) == b"hello"
+    os.close(r)
+    pid = proc.pid
+    assert proc.alive and proc.poll() is None
+    with pytest.raises(ProcessorError):
+        proc.start([PY, "-c", "pass"])  # one flight process at a time
+    proc.close()
+    assert not proc.alive and _gone(pid)
+    assert proc.poll().kind == "killed"
+
+
+@pytest.mark.parametrize("kw", [dict(cpu_fraction=0.0), dict(cpu_fraction=1.5), dict(cpu_fraction=float("nan")),
+                                dict(memory_mib=-1), dict(throttle_period_s=5.0), dict(core=4096)])
+def test_bad_spec_is_input_error(kw):
+    with pytest.raises(InputError):
+        ProcessorSpec(**kw)
+
+
+def test_bad_argv_is_input_error():
+    proc = EmulatedProcessor(ProcessorSpec())
+    with pytest.raises(InputError, match="cannot start"):
+        proc.start(["/nonexistent/flight-binary"])
+    with pytest.raises(InputError):
+        proc.start([])
+    assert proc.stats()["cpu_s"] == 0.0
