@@ -1,0 +1,133 @@
+"""Processor budgets, the reference workload and per-host calibration."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from hil_server import budgets as B
+from hil_server.calibrate import make_inputs, run_unit
+from hil_server.cli import main
+from protocol.errors import InputError
+
+
+@pytest.fixture()
+def home(tmp_path, monkeypatch):
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path))
+    return tmp_path
+
+
+def _cal(units_per_s: float) -> B.HostCalibration:
+    return B.HostCalibration(key=B.host_key(), hostname="h", cpu_model="m", units_per_s=units_per_s,
+                             spread=0.1, seconds=1.0, measured_at="2025-01-01T00:00:00+00:00")
+
+
+def test_shipped_budgets_are_complete_and_sane():
+    budgets = B.load_budgets()
+    assert {"host", "rad750", "gr740", "snapdragon801"} <= set(budgets)
+    host = budgets["host"]
+    assert host.is_host and host.link == "zmq" and host.baud is None
+    assert host.duty_fraction(None) == 1.0
+    for b in budgets.values():
+        assert b.memory_mib > 0 and b.deadline_s > 0 and b.source and b.description
+        if not b.is_host:
+            assert b.link == "serial" and b.baud >= 115200
+    anchor = host.anchor
+    assert anchor.dmips == pytest.approx(anchor.coremark / anchor.coremark_per_dmips, rel=1e-3)
+    # The rad-hard computers are tens of times slower than a host core, Ingenuity's SoC a few times.
+    cal = _cal(anchor.units_per_s)
+    assert 20 < 1 / budgets["rad750"].duty_fraction(cal) < 200
+    assert 50 < 1 / budgets["gr740"].duty_fraction(cal) < 400
+    assert 1.5 < 1 / budgets["snapdragon801"].duty_fraction(cal) < 10
+
+
+def test_duty_fraction_closed_form():
+    b = B.get_budget("rad750")
+    a = b.anchor
+    for rate in (a.units_per_s / 2, a.units_per_s, a.units_per_s * 3):
+        cal = _cal(rate)
+        host_dmips = a.dmips * rate / a.units_per_s
+        assert cal.host_dmips(a) == pytest.approx(host_dmips)
+        assert b.duty_fraction(cal) == pytest.approx(b.cpu_dmips / host_dmips)
+    # A host slower than the budget gets the whole core, never more.
+    assert b.duty_fraction(_cal(a.units_per_s * b.cpu_dmips / a.dmips / 2)) == 1.0
+
+
+def test_uncalibrated_host_warns_and_uses_anchor(home):
+    assert B.load_calibration() is None
+    b = B.get_budget("rad750")
+    with pytest.warns(B.UncalibratedWarning, match="calibrate"):
+        f = b.duty_fraction(B.load_calibration())
+    assert f == pytest.approx(b.cpu_dmips / b.anchor.dmips)
+
+
+def test_calibrate_stores_per_host_and_round_trips(home):
+    other = {"otherhost|Some CPU": {"key": "otherhost|Some CPU", "hostname": "otherhost", "cpu_model": "Some CPU",
+                                    "units_per_s": 1.0, "spread": 0.0, "seconds": 1.0, "measured_at": "x"}}
+    (home / "calibration.json").write_text(json.dumps(other))
+    cal = B.calibrate_host(seconds=0.3)
+    assert cal.units_per_s > 0 and cal.key == B.host_key()
+    stored = json.loads((home / "calibration.json").read_text())
+    assert set(stored) == {"otherhost|Some CPU", B.host_key()}  # other hosts' entries kept
+    assert B.load_calibration() == cal
+    # This host runs the same workload at a comparable rate to the anchor VM (same machine type).
+    anchor = B.get_budget("host").anchor
+    assert 0.2 < cal.units_per_s / anchor.units_per_s < 5
+
+
+def test_reference_workload_is_deterministic():
+    img1, img2, K = make_inputs()
+    again = make_inputs()
+    assert all((x == y).all() for x, y in zip((img1, img2, K), again))
+    assert run_unit(img1, img2, K) == run_unit(*again)
+
+
+def test_corrupt_calibration_is_input_error(home):
+    (home / "calibration.json").write_text("{not json")
+    with pytest.raises(InputError, match="calibration file"):
+        B.load_calibration()
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): {"units_per_s": 3}}))
+    with pytest.raises(InputError, match="bad entry"):
+        B.load_calibration()
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
+    (('link = "serial"\nbaud = 3000000\nsource = "opf', 'link = "can"\nbaud = 3000000\nsource = "opf'), "link"),
+    (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
+    (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),
+    (("[anchor]", "[anchorx]"), "anchor"),
+    (("[budget.rad750]", "[budget.rad750\n"), "TOML"),
+])
+def test_malformed_budget_file_is_input_error(tmp_path, edit, message):
+    text = B.default_budgets_path().read_text()
+    old, new = edit
+    assert old in text
+    bad = tmp_path / "budgets.toml"
+    bad.write_text(text.replace(old, new, 1))
+    with pytest.raises(InputError, match=message):
+        B.load_budgets(bad)
+
+
+def test_unknown_budget_names_choices():
+    with pytest.raises(InputError, match="rad750"):
+        B.get_budget("pentium")
+
+
+def test_cli_budgets_and_calibrate(home, capsys):
+    assert main(["budgets"]) == 0
+    out, err = capsys.readouterr()
+    assert "not calibrated" in err
+    for name in ("host", "rad750", "gr740", "snapdragon801"):
+        assert name in out
+    assert main(["calibrate", "--seconds", "0.3"]) == 0
+    out, _ = capsys.readouterr()
+    assert "DMIPS" in out and (home / "calibration.json").exists()
+    assert main(["budgets"]) == 0
+    out, err = capsys.readouterr()
+    assert "not calibrated" not in err and "calibrated" in out
+    rad = next(line for line in out.splitlines() if line.startswith("rad750"))
+    cal = B.load_calibration()
+    assert f"{B.get_budget('rad750').duty_fraction(cal):.2%}" in rad
+    assert main(["calibrate", "--seconds", "-1"]) == 2
+    assert "--seconds" in capsys.readouterr().err
