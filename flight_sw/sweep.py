@@ -111,18 +111,36 @@ def _inside(camera: Camera, H: np.ndarray, u: np.ndarray, v: np.ndarray, z_map: 
     return (u2 >= 0) & (u2 <= camera.width - 1) & (v2 >= 0) & (v2 <= camera.height - 1)
 
 
+def _inside_polygon(camera: Camera, H: np.ndarray) -> np.ndarray:
+    """i1 pixels that ``H`` maps inside i2: the convex quadrilateral ``H^-1`` (i2 rectangle), rasterised."""
+    w, h = camera.width, camera.height
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], dtype=np.float64).T
+    q = np.linalg.inv(H) @ corners
+    mask = np.zeros((h, w), np.uint8)
+    if np.all(q[2] > 0) or np.all(q[2] < 0):
+        pts = np.round(16 * (q[:2] / q[2]).T).astype(np.int64)
+        pts = np.clip(pts, -(1 << 24), 1 << 24).astype(np.int32)  # far-away corners: keep fixed point sane
+        cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+        mask = cv2.erode(mask, np.ones((3, 3), np.uint8))  # the fill includes edge-touching pixels
+    else:  # the quadrilateral wraps through infinity: fall back to the per-pixel test
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        return _inside(camera, H, u, v)
+    return mask.astype(bool)
+
+
 def coverage_mask(camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float | None = None,
                   mode: str = "all") -> np.ndarray:
     """i1 pixels that map inside i2 for the planes ``z_lo`` and ``z_hi``.
 
     A pixel's image in i2 moves along a straight epipolar segment as z varies and
     the image is convex, so inside at both ends means inside for every plane in
-    between (``mode="all"``); ``mode="any"`` is the union.
+    between (``mode="all"``); ``mode="any"`` is the union. Each mask is the
+    rasterised quadrilateral ``H^-1`` (i2's rectangle), not a per-pixel test.
     """
-    z_hi = z_lo if z_hi is None else z_hi
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    a = _inside(camera, plane_homography(camera, pose1, pose2, z_lo), u, v)
-    b = _inside(camera, plane_homography(camera, pose1, pose2, z_hi), u, v)
+    a = _inside_polygon(camera, plane_homography(camera, pose1, pose2, z_lo))
+    if z_hi is None or z_hi == z_lo:
+        return a
+    b = _inside_polygon(camera, plane_homography(camera, pose1, pose2, z_hi))
     return (a & b) if mode == "all" else (a | b)
 
 

@@ -176,3 +176,15 @@ def test_georeferencing_matches_thesis_equations(tilt):
         assert X[r, c] == pytest.approx(Xo, abs=1e-6)
         assert Y[r, c] == pytest.approx(-Yo, abs=1e-6)  # tilted_R looks toward -Y
     assert np.isnan(backproject(cam, pose, np.full((64, 64), np.nan))[0]).all()
+
+
+@pytest.mark.parametrize("tilt,off", [(0.0, 0.0), (40.0, -100.0), (49.0, -250.0)])
+def test_coverage_polygon_is_conservative_per_pixel_test(tilt, off):
+    from flight_sw.sweep import _inside
+    cam = camera_fov30(256)
+    p1, p2 = Pose([0, 0, 500.0], tilted_R(tilt)), Pose([0, off, 250.0], tilted_R(tilt))
+    fast = coverage_mask(cam, p1, p2, -20.0)
+    v, u = np.mgrid[0:256, 0:256].astype(np.float64)
+    exact = _inside(cam, plane_homography(cam, p1, p2, -20.0), u, v)
+    assert not (fast & ~exact).any()                  # never claims an uncovered pixel
+    assert (exact & ~fast).sum() < 4 * 256            # loses at most a thin boundary ring
