@@ -74,7 +74,7 @@ def _process(args: argparse.Namespace) -> int:
                  "shape": list(res.grid.hazard.shape), "rows_toward": "-Y"},
         "sites": [s.to_dict() for s in res.sites],
         "covered_fraction": float(res.covered.mean()),
-        "unsafe_fraction": float(np.nanmean(res.hazard >= 1)) if res.covered.any() else None,
+        "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }
     cv2.imwrite(str(out / "dem.png"), colour_map(res.elevation))
     cv2.imwrite(str(out / "hazard.png"), colour_map(res.hazard, 0.0, 1.0, cv2.COLORMAP_JET))
