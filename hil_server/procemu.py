@@ -446,8 +446,9 @@ class EmulatedProcessor:
         # Stopped time per cycle P, raised so the running slice f P / (1 - f) is >= MIN_ON_SLICE_S.
         period = max(self.spec.throttle_period_s, MIN_ON_SLICE_S * (1.0 - f) / f)
         cap = f * period
-        t0 = time.monotonic()
-        cpu0, wait0 = child.sample()
+        # Account from the child's start, not this thread's: CPU it used before the
+        # first sample (exec, interpreter start-up) is paid back by a longer first stop.
+        t0, cpu0, wait0 = child.t0, 0, 0
         offset = 0.0  # credit dropped by the cap, so idle time is not banked
         try:
             while not child.stop_threads.is_set() and not child.exited.is_set():
