@@ -40,7 +40,8 @@ class Params:
     """Pipeline knobs. ``PRESETS`` holds the two reference settings."""
 
     name: str = "custom"
-    half_window: int = 6                 # correlation window is (2W+1)^2 (sec 4.3)
+    half_window: int = 6                 # correlation window (2W+1)^2 (sec 4.3); capped by window_px
+    cap_window_to_overlap: bool = True   # keep the window <= 1/4 of the overlap (tiny sensors), see window_px
     cost: str = "sad"                    # "sad" | "ssd" (eq. 3.13/3.14)
     plane_spacing: str = "disparity"     # "dz": uniform metres; "disparity": uniform i2 pixels at the edge
     dz_m: float = 0.15                   # plane step for "dz"
@@ -77,6 +78,19 @@ class Params:
                 raise FlightInputError(f"params: {name} must be a positive number, got {v!r}")
         if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
             raise FlightInputError(f"params: cell_m must be positive, got {self.cell_m!r}")
+
+
+def window_px(half_window: int, overlap_px: int, cap: bool = True) -> int:
+    """Half-window actually used: ``W``, capped so the window spans at most a quarter of the overlap.
+
+    The thesis tuned 17x17 on 512 px images (sec 4.3), where i2 overlaps i1 on
+    ~256 px. On a tiny sensor (a 96 px pair overlaps on ~46 px) a 17 px window and
+    its border would leave almost nothing, so ``2W + 1 <= overlap / 4`` (min W = 2).
+    Unchanged for 256 px images and up.
+    """
+    if not cap:
+        return int(half_window)
+    return int(min(half_window, max(2, int((overlap_px / 4.0 - 1.0) / 2.0))))
 
 
 PRESETS: dict[str, Params] = {
@@ -182,6 +196,11 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         shadow = shadow_mask(i1)
     with _stage(timings, "coverage"):
         covered = coverage_mask(camera, pose1, pose2, 0.0)
+        rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
+        overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
+        W_full = window_px(p.half_window, overlap, p.cap_window_to_overlap)
+        W_coarse = window_px(p.coarse_half_window, overlap // 2, p.cap_window_to_overlap)
+        info["half_window_px"], info["coarse_half_window_px"] = W_full, W_coarse
     level = "image_only"
     elevation = np.full(i1.shape, np.nan, np.float32)
 
@@ -191,19 +210,21 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         rock_c = cv2.resize(rocks.astype(np.uint8), (cam_c.width, cam_c.height),
                             interpolation=cv2.INTER_NEAREST).astype(bool)
         planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
-        res_c = sweep_dem(c1, c2, cam_c, pose1, pose2, planes_c, half_window=p.coarse_half_window, cost=p.cost,
+        res_c = sweep_dem(c1, c2, cam_c, pose1, pose2, planes_c, half_window=W_coarse, cost=p.cost,
                           prefilter_sigma=sigma, ignore=rock_c if p.mask_rocks else None, deadline=sweep_deadline,
                           check_every=p.check_every)
         info["coarse_planes"] = int(planes_c.size)
-        if res_c.complete and np.isfinite(res_c.elevation).any():
+        n_coarse = int(np.isfinite(res_c.elevation).sum())
+        if res_c.complete and n_coarse > 0:
             coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
             elevation = np.where(rocks & p.mask_rocks, np.nan, coarse).astype(np.float32)
             level = "coarse"
 
     with _stage(timings, "full_dem"):
-        if level == "coarse":
+        # tiny images can leave the half-resolution DEM empty: then sweep the full range
+        if res_c.complete:
             f_lo, f_hi = z_lo, z_hi
-            if p.coarse_to_fine:
+            if p.coarse_to_fine and n_coarse >= 50:
                 pad = 2.0 * float(np.max(np.diff(planes_c)))
                 lo, hi = np.nanpercentile(res_c.elevation, [0.5, 99.5])
                 f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
@@ -213,7 +234,7 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
                 planes = planes_uniform_disparity(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]
-            res_f = sweep_dem(a1, a2, camera, pose1, pose2, planes, half_window=p.half_window, cost=p.cost,
+            res_f = sweep_dem(a1, a2, camera, pose1, pose2, planes, half_window=W_full, cost=p.cost,
                               prefilter_sigma=sigma, ignore=rocks if p.mask_rocks else None,
                               deadline=sweep_deadline,
                               check_every=p.check_every)

@@ -157,14 +157,15 @@ def _roi(mask: np.ndarray, pad: int) -> tuple[int, int, int, int]:
 def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2: Pose,
               planes: np.ndarray, *, half_window: int = 8, cost: str = "sad", prefilter_sigma: float = 0.0,
               ignore: np.ndarray | None = None, deadline: float | None = None,
-              check_every: int = 4) -> SweepResult:
+              check_every: int = 4, end_erosion: int | None = None) -> SweepResult:
     """Sweep ``planes`` (ascending elevations) and return the per-pixel elevation of i1.
 
     ``prefilter_sigma`` (i2 pixels, see :func:`flight_sw.warping.area_sigma`) low-passes
     i2 before warping. ``ignore`` (bool HxW, e.g. the rock mask) pixels contribute nothing to any
     window and get NaN (thesis sec 4.2). ``deadline`` is a ``time.monotonic()``
     value checked every ``check_every`` planes; if it passes, the sweep stops
-    with ``complete=False`` and an all-NaN elevation.
+    with ``complete=False`` and an all-NaN elevation. Pixels within ``end_erosion``
+    (default W) of a range-end minimum are rejected.
     """
     planes = np.asarray(planes, dtype=np.float64)
     H_img, W_img = i1.shape
@@ -221,8 +222,10 @@ def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2
     # A minimum on the first or last plane means no interior minimum (ambiguous or out of range);
     # window neighbours share most of that window, so they are rejected too (window-sized erosion).
     box = np.ones((2 * W + 1, 2 * W + 1), np.uint8)
-    ok = cv2.erode((seen & interior).astype(np.uint8), box, borderType=cv2.BORDER_CONSTANT,
-                   borderValue=0).astype(bool)
+    ok = cv2.erode(seen.astype(np.uint8), box, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    E = W if end_erosion is None else int(end_erosion)
+    ok &= cv2.erode(interior.astype(np.uint8), np.ones((2 * E + 1, 2 * E + 1), np.uint8),
+                    borderType=cv2.BORDER_REPLICATE).astype(bool)
     if keep is not None:
         ok &= keep > 0
     elev = nan_img.copy()

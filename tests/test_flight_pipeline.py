@@ -118,3 +118,15 @@ def test_deterministic(plane_scene):
     assert a.elevation.tobytes() == b.elevation.tobytes()
     assert a.hazard.tobytes() == b.hazard.tobytes()
     assert a.sites == b.sites
+
+
+def test_tiny_sensor_still_gets_a_dem():
+    """96 px pair: the window is capped to the ~46 px overlap; an empty coarse level falls back to the full range."""
+    from flight_sw.pipeline import window_px
+    assert window_px(8, 256) == 8 and window_px(8, 46) == 5 and window_px(8, 10) == 2
+    assert window_px(8, 46, cap=False) == 8
+    cam, p1, p2, i1, i2, z = make_pair(96, 200.0, 100.0, plane(1.0), seed=14)
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    assert res.level == "full" and res.info["half_window_px"] == 5
+    assert np.isfinite(res.elevation).sum() > 300
+    assert np.nanmean(np.abs(res.elevation - z)) < 0.3
