@@ -135,7 +135,13 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (("site_fp_pct", "site FP % (3 m footprint)"), ("site_cdi_pct", "site CDI %"),
                  ("chosen_sites_safe_pct", "chosen sites truly safe %"), ("valid_pct", "DEM valid %"),
-                 ("pipeline_s", "pipeline s"))
+                 ("pipeline_s", "pipeline s"),
+                 ("fn_dem_invalid_pct", "FN: DEM not recovered %"), ("fn_rock_pct", "FN: rock %"),
+                 ("fn_slope_pct", "FN: est. slope %"), ("fn_rough_pct", "FN: est. rough %"),
+                 ("fn_shadow_pct", "FN: det. shadow %"), ("fn_other_pct", "FN: other %"),
+                 ("fp_steep_pct", "FP: true slope %"), ("fp_rough_pct", "FP: true rough %"),
+                 ("fp_other_pct", "FP: true shadow %"), ("fp_in_epipole_box_pct", "FP in epipole box %"),
+                 ("fp_near_threshold_pct", "FP with est. hazard >= 0.8 %"))
 _THESIS_METRIC = {"epi_fp_pct": "fp_pct", "epi_fn_pct": "fn_pct", "epi_tp_pct": "tp_pct", "epi_tn_pct": "tn_pct",
                   "epi_safe_detected_pct": "safe_detected_pct", "epi_hazards_detected_pct": "hazards_detected_pct",
                   "epi_cdi_pct": "cdi_pct"}
@@ -223,6 +229,46 @@ def score_arrays(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, co
     return m
 
 
+def error_causes(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, covered: np.ndarray,
+                 rocks: np.ndarray, shadow: np.ndarray, epipole_box: np.ndarray) -> dict[str, float]:
+    """Where the FP and FN pixels come from, in % of the scored pixels (so they add up to fp_pct / fn_pct).
+
+    FN (false alarms) by the first estimated cause in the order: DEM not
+    recovered (hazard forced to 1, not a rock), detected rock, estimated slope
+    >= 15 deg, estimated roughness >= 0.30 m, detected shadow. FP (undetected
+    hazards) by the first true cause: slope >= 15 deg, roughness >= 0.30 m,
+    true shadow - with the share inside the epipole box and the share where the
+    estimate was close (hazard >= 0.8) reported on top.
+    """
+    from ground_sim.scoring import unsafe_estimate
+
+    ht = np.asarray(truth["hazard"], dtype=np.float64)
+    keep = np.asarray(covered, bool) & np.isfinite(ht)
+    n = max(1, int(keep.sum()))
+    eu, tu = unsafe_estimate(est["hazard"]), ht >= 1.0
+    fn, fp = keep & eu & ~tu, keep & ~eu & tu
+    out: dict[str, float] = {}
+    left = fn.copy()
+    for name, cause in (("dem_invalid", ~np.isfinite(est["elevation"]) & ~rocks), ("rock", rocks),
+                        ("slope", np.nan_to_num(est["slope_deg"]) >= 15.0),
+                        ("rough", np.nan_to_num(est["roughness_m"]) >= 0.30), ("shadow", shadow)):
+        hit = left & cause
+        out[f"fn_{name}_pct"] = 100.0 * hit.sum() / n
+        left &= ~hit
+    out["fn_other_pct"] = 100.0 * left.sum() / n
+    left = fp.copy()
+    tslope, trough = truth.get("slope_deg"), truth.get("roughness_m")
+    if tslope is not None and trough is not None:
+        for name, cause in (("steep", np.nan_to_num(tslope) >= 15.0), ("rough", np.nan_to_num(trough) >= 0.30)):
+            hit = left & cause
+            out[f"fp_{name}_pct"] = 100.0 * hit.sum() / n
+            left &= ~hit
+        out["fp_other_pct"] = 100.0 * left.sum() / n
+    out["fp_in_epipole_box_pct"] = 100.0 * (fp & epipole_box).sum() / n
+    out["fp_near_threshold_pct"] = 100.0 * (fp & (np.nan_to_num(est["hazard"]) >= 0.8)).sum() / n
+    return out
+
+
 def _site_radius_px(camera: Camera, depth: np.ndarray, covered: np.ndarray) -> float:
     """Footprint radius in i1 pixels: 1.5 m over the median ground sample distance (depth / f)."""
     z = depth[covered & np.isfinite(depth)]
@@ -286,6 +332,8 @@ def evaluate_pair(pair_dir: str, preset: str = "fast", *, pose_error: dict[str, 
         ch = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)
     else:
         ch = {"n": 0, "safe_pct": math.nan}
+    m.update(error_causes(est, truth, covered=res.covered, rocks=res.rock_mask, shadow=res.shadow_mask,
+                          epipole_box=box))
     m.update({"chosen_sites": ch["n"], "chosen_sites_safe_pct": ch["safe_pct"],
               "valid_pct": 100.0 * res.valid_fraction, "level": res.level, "degraded": bool(res.degraded),
               "pipeline_s": wall, "timings": {k: round(v["wall_s"], 4) for k, v in res.timings.items()},
@@ -297,7 +345,8 @@ def evaluate_pair(pair_dir: str, preset: str = "fast", *, pose_error: dict[str, 
             est_hazard=res.hazard, true_hazard=pair.truth["hazard"].astype(np.float32),
             est_slope=res.slope_deg, true_slope=truth.get("slope_deg", np.full_like(truth_elev, np.nan)),
             est_rough=res.roughness_m, true_rough=truth.get("roughness_m", np.full_like(truth_elev, np.nan)),
-            covered=res.covered, epipole_box=box, rocks=res.rock_mask)
+            covered=res.covered, epipole_box=box, rocks=res.rock_mask, est_shadow=res.shadow_mask,
+            true_shadow=pair.truth.get("shadow", np.zeros(truth_elev.shape, bool)))
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in m.items()}
 
 

@@ -27,6 +27,10 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert r["tp_pct"] + r["tn_pct"] + r["fp_pct"] + r["fn_pct"] == pytest.approx(100.0)
     assert r["cdi_pct"] == pytest.approx(r["tp_pct"] + r["tn_pct"])
     assert 0 < r["hazards_in_scene_pct"] < 100 and r["slope_mean_abs_deg"] is not None
+    fn_parts = [r[k] for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct",
+                               "fn_other_pct")]
+    assert sum(fn_parts) == pytest.approx(r["fn_pct"])
+    assert r["fp_steep_pct"] + r["fp_rough_pct"] + r["fp_other_pct"] == pytest.approx(r["fp_pct"])
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
     for col in ("scenario", "altitude_m", "preset", "dem_mean_abs_m", "dem_median_m", "dem_mad_m",
                 "slope_mean_abs_deg", "fp_pct", "fn_pct", "tp_pct", "tn_pct", "hazards_detected_pct",
