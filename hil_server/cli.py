@@ -23,7 +23,8 @@ from protocol.errors import InputError
 COMMAND_MODULES: tuple[str, ...] = (
     "ground_sim.cli",          # render
     "flight_sw.cli",           # process
-    "hil_server.cli_hil",      # budgets, calibrate, run, regress, demo
+    "hil_server.cli_hil",      # budgets, calibrate
+    "hil_server.cli_run",      # run, demo, regress
     "hil_server.cli_evaluate", # evaluate, sensitivity
 )
 

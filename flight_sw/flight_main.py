@@ -1,0 +1,221 @@
+"""The flight process: the hazard-detection software as it runs on the emulated processor.
+
+Started by the HIL supervisor (``hil_server.supervisor``) as a separate OS
+process, pinned, throttled and memory-capped from outside; it only talks to
+the supervisor over an inherited socket using the protocol's framing.
+
+Message flow (one pair = two ``Frame``s sharing a ``pair_id``)::
+
+    supervisor -> flight : Config, Frame, Frame, Frame, ...
+    flight -> supervisor : Hello, Heartbeat (periodic), Result + Telemetry per pair,
+                           Error (bad frame, pipeline failure) - never silence
+
+The deadline counts from the arrival of the pair's last frame (thesis Table
+2.1's "computational time", measured as the HIL latency "last frame in ->
+result out"); the anytime pipeline returns its best level by then.
+
+``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
+to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
+``oom@N`` act on the N-th pair (0-based) this process receives.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.errors import InputError
+from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.pairdir import Camera, Pose
+
+# Result transmission and encoding happen after the pipeline returns; keep a
+# slice of the deadline for them so the result leaves on time.
+OUTPUT_RESERVE_FRACTION = 0.05
+
+
+@dataclass
+class PendingPair:
+    frames: dict[int, Frame] = field(default_factory=dict)
+    arrival: float = 0.0          # monotonic time the last frame arrived
+
+
+@dataclass
+class FaultPlan:
+    kind: str | None = None
+    pair_index: int = -1
+
+    @classmethod
+    def parse(cls, spec: str | None) -> "FaultPlan":
+        if not spec:
+            return cls()
+        kind, _, idx = spec.partition("@")
+        if kind not in ("crash", "hang", "oom") or not idx.isdigit():
+            raise InputError(f"--fault must be crash@N, hang@N or oom@N, got {spec!r}")
+        return cls(kind, int(idx))
+
+    def trigger(self, pair_index: int) -> None:
+        if pair_index != self.pair_index:
+            return
+        if self.kind == "crash":
+            os.abort()
+        if self.kind == "hang":  # a hang in native code: no heartbeats, no progress
+            time.sleep(1e6)
+        if self.kind == "oom":
+            hog = []
+            while True:
+                hog.append(np.ones(16 << 20, dtype=np.uint8))
+
+
+def frame_pose(frame: Frame) -> Pose:
+    return Pose(np.asarray(frame.position_m, dtype=float), np.asarray(frame.R_world_to_cam, dtype=float),
+                float(frame.capture_time_s))
+
+
+class FlightProcess:
+    """Pairs frames, runs the pipeline under the deadline, reports results and telemetry."""
+
+    def __init__(self, link, faults: FaultPlan, heartbeat_s: float = 0.25) -> None:
+        self.link = link
+        self.faults = faults
+        self.heartbeat_s = heartbeat_s
+        self.config: Config | None = None
+        self.pending: dict[str, PendingPair] = {}
+        self.pairs_seen = 0
+        self._stop = threading.Event()
+
+    # -- heartbeat -------------------------------------------------------------------------
+    def _heartbeat_loop(self) -> None:
+        n = 0
+        while not self._stop.wait(self.heartbeat_s):
+            n += 1
+            try:
+                self.link.send(Heartbeat(time_s=time.monotonic(), counter=n))
+            except OSError:
+                return
+
+    # -- message handling ------------------------------------------------------------------
+    def handle(self, msg) -> None:
+        if isinstance(msg, Config):
+            try:
+                Camera.from_dict(msg.camera)
+            except InputError as exc:
+                self.link.send(Error(code="bad_config", text=str(exc)))
+                return
+            self.config = msg
+        elif isinstance(msg, Frame):
+            self._on_frame(msg)
+
+    def _on_frame(self, frame: Frame) -> None:
+        now = time.monotonic()
+        if self.config is None:
+            self.link.send(Error(code="no_config", text="frame received before Config", seq=frame.seq))
+            return
+        if frame.pair_id is None or frame.frame_index not in (0, 1):
+            self.link.send(Error(code="bad_frame", seq=frame.seq,
+                                 text="frame needs pair_id and frame_index 0 (upper) or 1 (lower)"))
+            return
+        cam = Camera.from_dict(self.config.camera)
+        if frame.image.shape != (cam.height, cam.width):
+            self.link.send(Error(code="bad_frame", seq=frame.seq,
+                                 text=f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}"))
+            return
+        pend = self.pending.setdefault(frame.pair_id, PendingPair())
+        pend.frames[frame.frame_index] = frame
+        pend.arrival = now
+        if len(pend.frames) == 2:
+            del self.pending[frame.pair_id]
+            self._process(pend)
+
+    def _process(self, pend: PendingPair) -> None:
+        from flight_sw.pipeline import run_pipeline
+
+        cfg = self.config
+        assert cfg is not None
+        upper, lower = pend.frames[0], pend.frames[1]
+        seqs = (upper.seq, lower.seq)
+        start = time.monotonic()
+        cpu0 = time.process_time()
+        queue_wait = start - pend.arrival
+        self.faults.trigger(self.pairs_seen)
+        self.pairs_seen += 1
+        budget = cfg.deadline_s * (1.0 - OUTPUT_RESERVE_FRACTION) - queue_wait
+        try:
+            res = run_pipeline(np.asarray(upper.image), np.asarray(lower.image), frame_pose(upper),
+                               frame_pose(lower), Camera.from_dict(cfg.camera),
+                               preset=cfg.preset or "fast", deadline_s=max(budget, 0.0))
+        except InputError as exc:
+            self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))
+            return
+        except Exception as exc:  # a flight bug must not kill the loop: report and go on
+            self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
+            return
+        grid = res.grid
+        send_images = bool(cfg.options.get("send_image_maps", 1))
+        result = Result(
+            frame_seqs=seqs,
+            hazard_grid=np.asarray(grid.hazard, dtype=np.float32),
+            elevation_grid=np.asarray(grid.elevation, dtype=np.float32),
+            grid_origin_xy=tuple(float(v) for v in grid.origin_xy),
+            grid_cell_m=float(grid.cell_m),
+            hazard_image=np.asarray(res.hazard, dtype=np.float32) if send_images else None,
+            elevation_image=np.asarray(res.elevation, dtype=np.float32) if send_images else None,
+            sites=[{"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin,
+                    "distance_m": s.distance_m} for s in res.sites],
+            degraded=bool(res.degraded),
+            level=str(res.level),
+        )
+        self.link.send(result)
+        done = time.monotonic()
+        self.link.send(Telemetry(
+            frame_seqs=seqs,
+            stages={k: {"wall_s": float(v["wall_s"]), "cpu_s": float(v["cpu_s"])} for k, v in res.timings.items()},
+            queue_wait_s=queue_wait,
+            total_latency_s=done - pend.arrival,
+            cpu_fraction=(time.process_time() - cpu0) / max(done - start, 1e-9),
+            deadline_s=float(cfg.deadline_s),
+            deadline_met=(done - pend.arrival) <= cfg.deadline_s,
+        ))
+
+    def run(self) -> int:
+        parent = os.getppid()
+        self.link.send(Hello(role="flight"))
+        hb = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
+        hb.start()
+        try:
+            while True:
+                msg = self.link.recv(timeout=1.0)
+                if msg is not None:
+                    self.handle(msg)
+                elif os.getppid() != parent:  # the supervisor is gone: nobody to report to
+                    return 0
+        finally:
+            self._stop.set()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m flight_sw.flight_main", description=__doc__.splitlines()[0])
+    ap.add_argument("--fd", type=int, required=True, help="inherited socket file descriptor to the supervisor")
+    ap.add_argument("--heartbeat", type=float, default=0.25, help="heartbeat period (s)")
+    ap.add_argument("--fault", default=None, help="test fault injection: crash@N, hang@N, oom@N")
+    args = ap.parse_args(argv)
+    import cv2
+
+    cv2.setNumThreads(1)  # one core, one thread: the emulated processor has no pool
+    from protocol.links import StreamLink
+
+    sock = socket.socket(fileno=args.fd)
+    link = StreamLink(sock)
+    try:
+        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat).run()
+    finally:
+        link.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

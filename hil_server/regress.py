@@ -1,0 +1,141 @@
+"""Latency and deadline regression: re-run fixed scenario x budget cases, compare to a baseline.
+
+Latencies are stored in *reference seconds*: ``latency_s x effective_speed /
+REFERENCE_SPEED``, where ``effective_speed`` is the speed the flight process
+actually had (the budget's absolute speed when throttled, the calibrated host
+speed for ``host``). A throttled budget means the same absolute speed on any
+calibrated host, so its reference seconds are comparable across machines; for
+``host`` the factor removes the host's own speed.
+
+A regression is: deadline hit rate below the baseline's minus
+``hit_rate_drop``, or a latency percentile above the baseline's by more than
+``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
+so tiny latencies do not flap). ``--update`` rewrites the baseline.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+DEFAULT_TOLERANCES = {"hit_rate_drop": 0.0, "latency_rel": 0.35, "latency_abs_s": 0.25}
+
+# The cases `regress` runs when the baseline does not exist yet (`--update`).
+DEFAULT_CASES: dict[str, dict] = {
+    "vertical-host-zmq": {"scenario": "vertical", "budget": "host", "link": "zmq",
+                          "pairs": ["600/300", "300/150"]},
+    "vertical-snapdragon-serial": {"scenario": "vertical", "budget": "snapdragon801", "link": "serial",
+                                   "pairs": ["600/300", "300/150"]},
+    "approach-rad750-serial": {"scenario": "approach", "budget": "rad750", "link": "serial",
+                               "pairs": ["500/250"]},
+}
+METRICS = ("latency_p50_s", "latency_p95_s", "latency_max_s")
+
+
+@dataclass
+class CaseOutcome:
+    name: str
+    current: dict
+    baseline: dict | None
+    problems: list[str] = field(default_factory=list)
+
+
+def effective_speed(budget_name: str) -> tuple[float, float]:
+    """(speed the flight process had, reference speed), both in the budgets' unit."""
+    from hil_server.budgets import get_budget, load_calibration, reference_speed
+
+    cal = load_calibration()
+    b = get_budget(budget_name)
+    frac = b.duty_fraction(cal)
+    host = cal.host_speed if cal is not None else reference_speed()
+    return host * frac, reference_speed()
+
+
+def measure_case(name: str, case: dict, out: Path) -> dict:
+    from hil_server.run import RunConfig, run_descent
+
+    cfg = RunConfig(scenario=case["scenario"], link=case["link"], budget=case["budget"], out=out / name,
+                    pairs=case.get("pairs"), seed=int(case.get("seed", 0)), image_size=case.get("image_size"))
+    summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
+    speed, ref = effective_speed(case["budget"])
+    scale = speed / ref
+    cur = {"deadline_hit_rate": summary["deadline_hit_rate"], "errors": summary["errors"],
+           "pairs": summary["pairs"]}
+    for m in METRICS:
+        cur[m.replace("_s", "_ref_s")] = summary[m] * scale
+    return cur
+
+
+def compare(name: str, cur: dict, base: dict | None, tol: dict) -> CaseOutcome:
+    o = CaseOutcome(name, cur, base)
+    if base is None:
+        o.problems.append("no baseline for this case (run with --update)")
+        return o
+    if cur["deadline_hit_rate"] < base["deadline_hit_rate"] - tol["hit_rate_drop"] - 1e-9:
+        o.problems.append(f"deadline hit rate {cur['deadline_hit_rate']:.2f} < baseline {base['deadline_hit_rate']:.2f}")
+    if cur.get("errors", 0) > base.get("errors", 0):
+        o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
+    for m in METRICS:
+        k = m.replace("_s", "_ref_s")
+        c, b = cur.get(k, math.nan), base.get(k, math.nan)
+        if math.isnan(b):
+            continue
+        limit = max(b * (1 + tol["latency_rel"]), b + tol["latency_abs_s"])
+        if math.isnan(c) or c > limit:
+            o.problems.append(f"{k} {c:.3f} > limit {limit:.3f} (baseline {b:.3f})")
+    return o
+
+
+def diff_table(outcomes: list[CaseOutcome]) -> str:
+    lines = [f"{'case':<30} {'metric':<22} {'baseline':>10} {'current':>10}  verdict"]
+    for o in outcomes:
+        keys = ["deadline_hit_rate"] + [m.replace("_s", "_ref_s") for m in METRICS]
+        for k in keys:
+            b = (o.baseline or {}).get(k, math.nan)
+            c = o.current.get(k, math.nan)
+            bad = any(p.startswith(k) for p in o.problems)
+            lines.append(f"{o.name:<30} {k:<22} {b:>10.3f} {c:>10.3f}  {'REGRESSION' if bad else 'ok'}")
+        for p in o.problems:
+            if not any(p.startswith(k) for k in keys):
+                lines.append(f"{o.name:<30} {p}")
+    return "\n".join(lines)
+
+
+def check_regression(baseline: Path, *, out: Path = Path("out/regress"), cases: list[str] | None = None,
+                     update: bool = False) -> tuple[bool, str, dict]:
+    """Run the cases; returns (ok, readable diff, new baseline document)."""
+    doc = json.loads(Path(baseline).read_text()) if Path(baseline).is_file() else {}
+    all_cases = doc.get("cases") or {k: {**v} for k, v in DEFAULT_CASES.items()}
+    tol = {**DEFAULT_TOLERANCES, **doc.get("tolerances", {})}
+    names = cases or list(all_cases)
+    unknown = [n for n in names if n not in all_cases]
+    if unknown:
+        from protocol.errors import InputError
+
+        raise InputError(f"unknown regression case(s) {unknown}; known: {sorted(all_cases)}")
+    outcomes = []
+    for n in names:
+        case = all_cases[n]
+        cur = measure_case(n, case, out)
+        outcomes.append(compare(n, cur, case.get("metrics"), tol))
+        if update:
+            case["metrics"] = cur
+    new_doc = {"tolerances": tol, "cases": all_cases,
+               "note": "latencies in reference seconds; see hil_server/regress.py"}
+    ok = update or all(not o.problems for o in outcomes)
+    return ok, diff_table(outcomes), new_doc
+
+
+def run_regression(baseline: Path, *, update: bool = False, out: Path = Path("out/regress"),
+                   cases: list[str] | None = None) -> int:
+    ok, diff, new_doc = check_regression(baseline, out=out, cases=cases, update=update)
+    print(diff)
+    if update:
+        Path(baseline).parent.mkdir(parents=True, exist_ok=True)
+        Path(baseline).write_text(json.dumps(new_doc, indent=1, sort_keys=True) + "\n")
+        print(f"baseline written: {baseline}")
+        return 0
+    print("no regression" if ok else "REGRESSION against " + str(baseline))
+    return 0 if ok else 1
