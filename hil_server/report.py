@@ -171,21 +171,21 @@ def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scen
     for metric, c in colors.items():
         alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[0] and s == scenario and mm == metric)
         axes[0].plot(alts, [thesis[(fig_tab[0], scenario, a, metric)] for a in alts], "--", color=c, alpha=0.6,
-                     label=f"{names[metric]} thesis")
+                     label=f"{names[metric]} THESIS")
         for p in presets:
             keys = sorted(k for k in summary if k[0] == scenario and k[1] == p)
             axes[0].plot([k[2] for k in keys], [summary[k].get(metric, np.nan) for k in keys], "-",
-                         marker=marks[p], color=c, label=f"{names[metric]} {p}")
+                         marker=marks[p], color=c, label=f"{names[metric]} ours-{p}")
     axes[0].set_xlabel("altitude [m]")
     axes[0].set_ylabel("%")
     axes[0].set_title("correct detection")
     axes[0].legend(fontsize=6, ncol=3)
     alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[1] and s == scenario and mm == "fp_pct")
-    axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="thesis")
+    axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="THESIS")
     for p in presets:
         keys = sorted(k for k in summary if k[0] == scenario and k[1] == p)
         axes[1].plot([k[2] for k in keys], [summary[k].get("fp_pct", np.nan) for k in keys], "-",
-                     marker=marks[p], label=p)
+                     marker=marks[p], label=f"ours-{p}")
     axes[1].axhline(1.0, color="tab:red", lw=0.8, label="Table 2.1 limit")
     axes[1].set_xlabel("altitude [m]")
     axes[1].set_ylabel("FP (undetected hazards) %")
