@@ -448,14 +448,22 @@ class EmulatedProcessor:
         cap = f * period
         # Account from the child's start, not this thread's: CPU it used before the
         # first sample (exec, interpreter start-up) is paid back by a longer first stop.
-        t0, cpu0, wait0 = child.t0, 0, 0
+        t0 = child.t0
         offset = 0.0  # credit dropped by the cap, so idle time is not banked
+        last_avail = last_cpu = 0.0
         try:
             while not child.stop_threads.is_set() and not child.exited.is_set():
-                cpu, wait = child.sample()
-                avail = (time.monotonic() - t0) - (wait - wait0) / 1e9
-                credit = f * avail - (cpu - cpu0) / 1e9 - offset
-                if credit > cap:
+                cpu_ns, wait_ns = child.sample()
+                avail = (time.monotonic() - t0) - wait_ns / 1e9
+                cpu = cpu_ns / 1e9
+                credit = f * avail - cpu - offset
+                # Cap only credit the child left unused while released and mostly idle; credit
+                # gained by our own late wake-ups while it was stopped is kept (no bias).
+                # (judged over >= 1 ms: right after SIGCONT it has not had time to run yet).
+                span = avail - last_avail
+                idle = not child.stopped and span >= 0.001 and (cpu - last_cpu) < 0.5 * span
+                last_avail, last_cpu = avail, cpu
+                if idle and credit > cap:
                     offset += credit - cap
                     credit = cap
                 if child.stopped:

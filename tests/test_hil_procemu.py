@@ -57,6 +57,26 @@ def test_throttle_accuracy_and_wall_scaling():
     assert cpu[1.0] / cpu[0.05] > 8
 
 
+def test_idle_time_is_not_banked():
+    """A slow processor that waited for I/O is not faster afterwards: after 0.6 s asleep,
+    0.1 s of CPU work at f = 0.25 still takes ~0.4 s (it would take ~0.2 s if the
+    0.15 s of credit from the sleep were spent flat out)."""
+    code = textwrap.dedent("""
+        import time
+        def wait(): return int(open('/proc/self/schedstat').read().split()[1]) / 1e9
+        time.sleep(0.6)
+        w0, q0, c0 = time.monotonic(), wait(), time.process_time()
+        while time.process_time() - c0 < 0.1: pass
+        print(time.monotonic() - w0 - (wait() - q0), time.process_time() - c0)
+    """)
+    proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.25))
+    popen = proc.start([PY, "-c", code], stdout=subprocess.PIPE)
+    busy_wall, busy_cpu = map(float, popen.stdout.read().split())
+    assert proc.wait(30).kind == "ok"
+    proc.close()
+    assert busy_wall == pytest.approx(busy_cpu / 0.25, rel=0.15)
+
+
 def test_pinned_to_one_core_and_single_threaded_env():
     """Affinity reads back as one core, thread vars are set, and a multi-threaded workload
     (two Python threads doing BLAS matmuls plus OpenCV asked for 4 threads) never gets
