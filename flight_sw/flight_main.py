@@ -155,21 +155,11 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
-        grid = res.grid
-        send_images = bool(cfg.options.get("send_image_maps", 1))
-        result = Result(
-            frame_seqs=seqs,
-            hazard_grid=np.asarray(grid.hazard, dtype=np.float32),
-            elevation_grid=np.asarray(grid.elevation, dtype=np.float32),
-            grid_origin_xy=tuple(float(v) for v in grid.origin_xy),
-            grid_cell_m=float(grid.cell_m),
-            hazard_image=np.asarray(res.hazard, dtype=np.float32) if send_images else None,
-            elevation_image=np.asarray(res.elevation, dtype=np.float32) if send_images else None,
-            sites=[{"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin,
-                    "distance_m": s.distance_m} for s in res.sites],
-            degraded=bool(res.degraded),
-            level=str(res.level),
-        )
+        try:
+            result = self._result_message(res, seqs, cfg)
+        except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
+            self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
+            return
         self.link.send(result)
         done = time.monotonic()
         self.link.send(Telemetry(
@@ -181,6 +171,24 @@ class FlightProcess:
             deadline_s=float(cfg.deadline_s),
             deadline_met=(done - pend.arrival) <= cfg.deadline_s,
         ))
+
+    @staticmethod
+    def _result_message(res, seqs: tuple[int, int], cfg: Config) -> Result:
+        grid = res.grid
+        send_images = bool(cfg.options.get("send_image_maps", 1))
+        return Result(
+            frame_seqs=seqs,
+            hazard_grid=np.asarray(grid.hazard, dtype=np.float32),
+            elevation_grid=np.asarray(grid.elevation, dtype=np.float32),
+            grid_origin_xy=tuple(float(v) for v in grid.origin_xy),
+            grid_cell_m=float(grid.cell_m),
+            hazard_image=np.asarray(res.hazard, dtype=np.float32) if send_images else None,
+            elevation_image=np.asarray(res.elevation, dtype=np.float32) if send_images else None,
+            sites=[{"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin,
+                    "distance_m": s.distance_m} for s in res.sites],
+            degraded=bool(res.degraded),
+            level=str(res.level),
+        ).validated()
 
     def run(self) -> int:
         parent = os.getppid()

@@ -14,7 +14,7 @@ from ground_sim.pose_error import PoseError
 from ground_sim.render import render_view
 from ground_sim.scene import Scene, load_scene
 from ground_sim.trajectory import PairSpec, load_trajectory
-from protocol.pairdir import Pair, Sun, write_pair
+from protocol.pairdir import Camera, Pair, Sun, write_pair
 
 DEFAULT_SUN = {"vertical": Sun(135.0, 25.0), "approach": Sun(120.0, 25.0)}
 ALTITUDE_CONVENTION = ("altitude_m is the LOWER frame's altitude above the reference plane, as in "
@@ -60,9 +60,13 @@ def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
 
 def render_scenario(spec: str | Path, out_dir: str | Path, *, scene: str | Path | Scene = "default",
                     seed: int = 0, pairs: list[str] | None = None, pose_error: PoseError | None = None,
-                    progress: bool = True, sun: Sun | None = None, supersample: int = 2) -> Path:
-    """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``."""
-    specs = load_trajectory(spec)
+                    progress: bool = True, sun: Sun | None = None, supersample: int = 2,
+                    camera: Camera | None = None) -> Path:
+    """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
+
+    ``camera`` replaces the scenario's camera (e.g. a smaller sensor with the same FOV).
+    """
+    specs = load_trajectory(spec, camera)
     if pairs:
         known = {s.label: s for s in specs}
         missing = [p for p in pairs if p not in known]

@@ -148,9 +148,18 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
             outcomes[o.seqs] = o
             by_lower_seq[seq + 1] = o
             o.sent_at = time.monotonic()
-            for k in (0, 1):
-                link.send(_frame_from_pair(pair, k, seq + k, pair_id))
+            link_seqs = {link.send(_frame_from_pair(pair, k, seq + k, pair_id)) for k in (0, 1)}
+            link.flush(timeout=timeout)  # both frames on the far side: their line time is the link time
             o.link_s = time.monotonic() - o.sent_at
+            failed = [f for f in link.failures() if f.seq in link_seqs]
+            if failed:  # the link gave up on a frame: the pair cannot be processed, say so
+                o.error = Error(code="link_failure", seq=seq + 1,
+                                text="; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed))
+                rec = write_outcome(out_dir, o)
+                records.append(rec)
+                results_file.write(json.dumps(rec, sort_keys=True) + "\n")
+                seq += 2
+                continue
             seq += 2
             if pace == "lockstep":
                 collect(time.monotonic() + timeout + o.link_s, {o.seqs})

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -119,13 +119,14 @@ def from_file(path: Path) -> list[PairSpec]:
     return out
 
 
-def load_trajectory(spec: str | Path) -> list[PairSpec]:
-    """``vertical``, ``approach`` or a TOML/JSON trajectory file."""
+def load_trajectory(spec: str | Path, camera: Camera | None = None) -> list[PairSpec]:
+    """``vertical``, ``approach`` or a TOML/JSON trajectory file; ``camera`` overrides the built-in one."""
     if str(spec) == "vertical":
-        return vertical()
+        return vertical(camera)
     if str(spec) == "approach":
-        return approach()
+        return approach(camera)
     path = Path(spec)
     if not path.is_file():
         raise TrajectoryError(f"unknown scenario {str(spec)!r}: use vertical, approach or a .toml/.json file")
-    return from_file(path)
+    specs = from_file(path)
+    return [replace(s, camera=camera) for s in specs] if camera is not None else specs

@@ -45,6 +45,7 @@ class RunConfig:
     baud: int | None = None          # None = the budget's (serial only)
     fault: str | None = None         # flight fault injection (tests)
     image_size: int | None = None    # render a smaller camera with the same FOV (tests, quick looks)
+    manifest: Path | None = None     # stream these already-rendered pairs instead of rendering
     timeout_s: float = 900.0
 
 
@@ -57,12 +58,22 @@ def _free_tcp_port() -> int:
 def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
     from ground_sim.descent import render_scenario
 
-    kwargs = {}
+    kwargs: dict = {}
     if cfg.scene:
         kwargs["scene"] = cfg.scene
     if cfg.image_size:
-        kwargs["image_size"] = cfg.image_size
+        kwargs["camera"] = scaled_camera(cfg.image_size)
     return Path(render_scenario(cfg.scenario, pairs_dir, seed=cfg.seed, pairs=cfg.pairs, progress=True, **kwargs))
+
+
+def scaled_camera(size: int):
+    """The thesis camera's 30 deg FOV on a ``size`` x ``size`` sensor."""
+    from protocol.pairdir import Camera
+
+    if not 32 <= size <= 4096:
+        raise InputError(f"--image-size must be in [32, 4096], got {size}")
+    f = Camera.thesis().fx * size / 512.0
+    return Camera(size, size, f, f, (size - 1) / 2.0, (size - 1) / 2.0)
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -153,10 +164,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     if cfg.link not in ("serial", "zmq"):
         raise InputError(f"--link must be serial or zmq, got {cfg.link!r}")
 
-    log(f"run: rendering {cfg.scenario} pairs into {out / 'pairs'}")
-    manifest = _render(cfg, out / "pairs")
-    if manifest.is_dir():
-        manifest = manifest / "manifest.json"
+    if cfg.manifest is not None:
+        manifest = Path(cfg.manifest)
+        if not manifest.is_file():
+            raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
+    else:
+        log(f"run: rendering {cfg.scenario} pairs into {out / 'pairs'}")
+        manifest = _render(cfg, out / "pairs") / "manifest.json"
 
     bridge = None
     if cfg.link == "serial":

@@ -43,13 +43,30 @@ class PairState:
     pair_id: str
     frames: dict[int, Frame] = field(default_factory=dict)
     complete_at: float | None = None      # monotonic time the last frame arrived
+    proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
+    proc_at_result: dict | None = None
     sent_to: int = -1                     # flight generation the frames went to
     result: Result | None = None
+    result_link_s: float = 0.0
     done: bool = False
 
     @property
     def seqs(self) -> tuple[int, int]:
         return (self.frames[0].seq, self.frames[1].seq)
+
+
+def pair_cpu_fraction(before: dict | None, after: dict) -> float:
+    """CPU the flight process got while a pair was outstanding, over the wall time it could run.
+
+    ``(cpu_after - cpu_before) / (avail_after - avail_before)`` with ``avail = wall -
+    contention`` (time it waited for a host core that another process held is not
+    the emulator's doing). The lifetime figure would be diluted by idle waits.
+    """
+    if before is None:
+        return float("nan")
+    d_cpu = after["cpu_s"] - before["cpu_s"]
+    d_avail = (after["wall_s"] - after["contention_s"]) - (before["wall_s"] - before["contention_s"])
+    return d_cpu / d_avail if d_avail > 0 else float("nan")
 
 
 class Reader(threading.Thread):
@@ -158,7 +175,7 @@ class Supervisor:
     def _oldest_outstanding(self) -> PairState | None:
         for pid in self.order:
             st = self.pairs[pid]
-            if not st.done and st.complete_at is not None:
+            if not st.done and st.complete_at is not None and st.result is None:
                 return st
         return None
 
@@ -203,9 +220,10 @@ class Supervisor:
                 st = self.pairs[msg.pair_id] = PairState(msg.pair_id)
                 self.order.append(msg.pair_id)
             st.frames[msg.frame_index] = msg
+            assert self.flight is not None
             if len(st.frames) == 2:
                 st.complete_at = time.monotonic()
-            assert self.flight is not None
+                st.proc_at_complete = self.flight.proc.stats()
             self.flight.link.send(msg)
             st.sent_to = self.generation
         return True
@@ -225,21 +243,27 @@ class Supervisor:
             if st is None or st.done:
                 return
             st.result = msg
+            st.proc_at_result = self.flight.proc.stats()
+            t0 = time.monotonic()
             self.ground.send(msg)
+            self.ground.flush(timeout=self._hard_limit() + 120.0)  # the result's line time is telemetry too
+            st.result_link_s = time.monotonic() - t0
         elif isinstance(msg, Telemetry):
             st = self._pair_for_seqs(msg.frame_seqs)
             if st is None or st.done:
                 return
             st.done = True
             now = time.monotonic()
-            latency = now - (st.complete_at or now)
+            # "last frame in -> result out": out = handed to the link, before its line time
+            latency = now - (st.complete_at or now) - st.result_link_s
             deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
             met = latency <= deadline
             stats = self.flight.proc.stats()
             tel = replace(msg, total_latency_s=latency, deadline_s=deadline, deadline_met=met,
-                          cpu_fraction=float(stats.get("achieved_fraction", float("nan"))),
+                          cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
                           peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
                           link={**msg.link, **self._link_stats(), "flight_latency_s": msg.total_latency_s,
+                                "result_link_s": st.result_link_s,
                                 "restarts": float(self.counters["restarts"])})
             self.counters["results"] += 1
             if st.result is not None and st.result.degraded:
@@ -252,7 +276,7 @@ class Supervisor:
                                    "degraded": bool(st.result.degraded) if st.result else None,
                                    "latency_s": latency, "deadline_s": deadline, "deadline_met": met,
                                    "deadline_margin_s": deadline - latency, "queue_wait_s": msg.queue_wait_s,
-                                   "stages": msg.stages, "cpu_fraction": tel.cpu_fraction,
+                                   "result_link_s": st.result_link_s, "stages": msg.stages, "cpu_fraction": tel.cpu_fraction,
                                    "peak_rss_mib": stats.get("peak_rss_mib")})
         elif isinstance(msg, Error):
             # an error from the flight software about a specific frame or pair

@@ -206,7 +206,10 @@ class Message:
 
 @dataclass(frozen=True)
 class Site:
-    """A candidate landing site (world metres; hazard in [0, 1]; margin to nearest hazard)."""
+    """A candidate landing site (world metres; hazard in [0, 1]; margin to nearest hazard).
+
+    ``z`` may be NaN: a degraded (image-only) result knows where a site is but not its elevation.
+    """
 
     x: float
     y: float
@@ -217,8 +220,16 @@ class Site:
 
     _NAMES: ClassVar[tuple[str, ...]] = ("x", "y", "z", "hazard", "margin", "distance_m")
 
+    _FINITE: ClassVar[tuple[bool, ...]] = (True, True, False, True, True, True)
+
+    @classmethod
+    def _check(cls, v: Any) -> list[float]:
+        if not isinstance(v, (list, tuple)) or len(v) != len(cls._NAMES):
+            raise SchemaError(f"Site: expected {len(cls._NAMES)} numbers")
+        return [_float(fin)(x, f"Site.{n}") for x, n, fin in zip(v, cls._NAMES, cls._FINITE)]
+
     def to_wire(self) -> list[float]:
-        return [_float()(getattr(self, n), f"Site.{n}") for n in self._NAMES]
+        return self._check([getattr(self, n) for n in self._NAMES])
 
     @classmethod
     def from_wire(cls, v: Any) -> "Site":
@@ -226,7 +237,7 @@ class Site:
             return v
         if isinstance(v, dict):
             v = [v.get(n) for n in cls._NAMES]
-        return cls(*_floats(6)(v, "Site"))
+        return cls(*cls._check(v))
 
 
 def _sites(v: Any, name: str) -> list[Site]:

@@ -166,3 +166,15 @@ def test_unknown_dtype_refused_on_encode():
     with pytest.raises(SchemaError):
         encode_message(Frame(seq=1, capture_time_s=0.0, position_m=(0, 0, 1), R_world_to_cam=np.eye(3),
                              altimeter_m=1.0, image=np.array([["a"]], dtype=object)))
+
+
+def test_site_elevation_may_be_unknown_but_position_may_not():
+    base = dict(frame_seqs=(0, 1), hazard_grid=np.zeros((2, 2), np.float32),
+                elevation_grid=np.zeros((2, 2), np.float32), grid_origin_xy=(0.0, 0.0), grid_cell_m=1.0)
+    nan_z = Result(**base, sites=[{"x": 1.0, "y": 2.0, "z": math.nan, "hazard": 0.1, "margin": 1.0,
+                                   "distance_m": 2.2}])
+    back = decode_message(encode_message(nan_z))
+    assert math.isnan(back.sites[0].z) and back.sites[0].x == 1.0
+    with pytest.raises(SchemaError, match="Site.x"):
+        encode_message(Result(**base, sites=[{"x": math.nan, "y": 2.0, "z": 0.0, "hazard": 0.1,
+                                              "margin": 1.0, "distance_m": 2.2}]))
