@@ -1,9 +1,9 @@
 """Latency and deadline regression: re-run fixed scenario x budget cases, compare to a baseline.
 
-Latencies are stored in *reference seconds*: ``latency_s x effective_speed /
-REFERENCE_SPEED``, where ``effective_speed`` is the speed the flight process
+Latencies are stored in *reference seconds*: ``latency_s x effective_dmips /
+anchor_dmips``, where ``effective_dmips`` is the speed the flight process
 actually had (the budget's absolute speed when throttled, the calibrated host
-speed for ``host``). A throttled budget means the same absolute speed on any
+speed for ``host``) and the anchor is the reference machine of budgets.toml. A throttled budget means the same absolute speed on any
 calibrated host, so its reference seconds are comparable across machines; for
 ``host`` the factor removes the host's own speed.
 
@@ -43,21 +43,25 @@ class CaseOutcome:
 
 
 def effective_speed(budget_name: str) -> tuple[float, float]:
-    """(speed the flight process had, reference speed), both in the budgets' unit."""
-    from hil_server.budgets import get_budget, load_calibration, reference_speed
+    """(DMIPS the flight process had, the anchor's DMIPS): see budgets.toml for the unit."""
+    import warnings
 
-    cal = load_calibration()
+    from hil_server.budgets import UncalibratedWarning, get_budget, load_calibration
+
     b = get_budget(budget_name)
-    frac = b.duty_fraction(cal)
-    host = cal.host_speed if cal is not None else reference_speed()
-    return host * frac, reference_speed()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UncalibratedWarning)  # the run itself already warned
+        cal = load_calibration()
+        host = b.host_dmips(cal)
+        return host * b.duty_fraction(cal), b.anchor.dmips
 
 
 def measure_case(name: str, case: dict, out: Path) -> dict:
     from hil_server.run import RunConfig, run_descent
 
     cfg = RunConfig(scenario=case["scenario"], link=case["link"], budget=case["budget"], out=out / name,
-                    pairs=case.get("pairs"), seed=int(case.get("seed", 0)), image_size=case.get("image_size"))
+                    pairs=case.get("pairs"), seed=int(case.get("seed", 0)), image_size=case.get("image_size"),
+                    manifest=Path(case["manifest"]) if case.get("manifest") else None)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     speed, ref = effective_speed(case["budget"])
     scale = speed / ref

@@ -1,0 +1,60 @@
+"""Latency regression: a baseline is written, re-checked, and a regression fails with a diff."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from ground_sim.descent import render_scenario
+from hil_server.regress import DEFAULT_TOLERANCES, check_regression, compare
+from hil_server.run import scaled_camera
+
+
+def test_compare_flags_slower_latency_and_lower_hit_rate():
+    base = {"deadline_hit_rate": 1.0, "errors": 0, "latency_p50_ref_s": 1.0, "latency_p95_ref_s": 2.0,
+            "latency_max_ref_s": 2.0}
+    assert compare("c", dict(base), base, DEFAULT_TOLERANCES).problems == []
+    slow = {**base, "latency_p95_ref_s": 3.5}
+    assert any("latency_p95_ref_s" in p for p in compare("c", slow, base, DEFAULT_TOLERANCES).problems)
+    missed = {**base, "deadline_hit_rate": 0.5}
+    assert any("hit rate" in p for p in compare("c", missed, base, DEFAULT_TOLERANCES).problems)
+    # within tolerance: small absolute jitter on tiny latencies does not flap
+    jitter = {**base, "latency_p50_ref_s": 1.2}
+    assert compare("c", jitter, base, DEFAULT_TOLERANCES).problems == []
+
+
+def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline):
+    ok, diff, doc = check_regression(tiny_baseline, out=tmp_path / "r1", update=True)
+    assert ok and "tiny" in diff
+    metrics = doc["cases"]["tiny"]["metrics"]
+    assert metrics["deadline_hit_rate"] == 1.0 and metrics["latency_p50_ref_s"] > 0
+    tiny_baseline.write_text(json.dumps(doc))
+    ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r2")
+    assert ok, diff
+    # make the baseline impossibly fast: the same run now regresses, and the diff says where
+    doc["cases"]["tiny"]["metrics"].update(latency_p50_ref_s=1e-4, latency_p95_ref_s=1e-4, latency_max_ref_s=1e-4)
+    doc["tolerances"]["latency_abs_s"] = 0.0
+    tiny_baseline.write_text(json.dumps(doc))
+    ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r3")
+    assert not ok and "REGRESSION" in diff and "latency_p50_ref_s" in diff
+
+
+@pytest.fixture
+def tiny_baseline(tmp_path):
+    pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96),
+                            progress=False)
+    baseline = tmp_path / "baseline.json"
+    baseline.write_text(json.dumps({"cases": {"tiny": {
+        "scenario": "vertical", "budget": "host", "link": "zmq", "manifest": str(pairs / "manifest.json")}}}))
+    return baseline
+
+
+def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regression, tiny_baseline, tmp_path):
+    assert request.config.pluginmanager.has_plugin("hazard_hil")
+    _, _, doc = check_regression(tiny_baseline, out=tmp_path / "u", update=True)
+    tiny_baseline.write_text(json.dumps(doc))
+    assert "tiny" in hil_regression(baseline=tiny_baseline)
+    doc["cases"]["tiny"]["metrics"]["deadline_hit_rate"] = 2.0   # unreachable: must fail
+    tiny_baseline.write_text(json.dumps(doc))
+    with pytest.raises(pytest.fail.Exception, match="deadline_hit_rate"):
+        hil_regression(baseline=tiny_baseline)
