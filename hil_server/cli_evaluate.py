@@ -105,10 +105,16 @@ def _sensitivity(args: argparse.Namespace) -> int:
         return 1
     summ = ev.sensitivity_summary(rows)
     print(report.rows_markdown(summ, list(summ[0]) if summ else []))
-    rep = args.out / "report"
-    plot = report.plot_sensitivity(rows, args.kind, rep / f"sensitivity_{args.kind}.png")
-    page = report.write_html(rep, f"hazard-hil sensitivity: {args.kind}",
-                             [(f"sensitivity: {args.kind}", report.rows_markdown(summ, list(summ[0]) if summ else []),
-                               [plot.name])]) if args.kind else None
+    # one page for every study run into this directory, so kinds do not overwrite each other
+    sections = []
+    for kind in ev.SENSITIVITY_KINDS:
+        csv_path = args.out / f"sensitivity_{kind}.csv"
+        if not csv_path.is_file():
+            continue
+        krows = rows if kind == args.kind else ev.read_metrics_csv(csv_path)
+        ks = ev.sensitivity_summary(krows)
+        plot = report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png")
+        sections.append((f"sensitivity: {kind}", report.rows_markdown(ks, list(ks[0]) if ks else []), [plot.name]))
+    page = report.write_html(args.out / "report", "hazard-hil sensitivity (thesis sec 6.3)", sections)
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     return 0

@@ -490,8 +490,11 @@ def render_all(scenario: str, seeds: Iterable[int], cache_dir: str | Path, *, ca
     from ground_sim import trajectory
     from hil_server.executor import Task, run_tasks
 
-    alts = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None)) \
-        if altitudes is None else sorted(int(a) for a in altitudes)
+    have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
+    alts = have if altitudes is None else sorted({int(a) for a in altitudes})
+    if not set(alts) <= set(have) or not alts:
+        raise EvaluationError(f"scenario {scenario}: no pair at altitude(s) {sorted(set(alts) - set(have))} m "
+                              f"(it has {have})")
     seeds = [int(s) for s in seeds]
     tasks = [Task(f"{scenario}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
                   {"scenario": scenario, "seed": s, "cache_dir": str(cache_dir), "camera_px": camera_px,

@@ -86,3 +86,12 @@ def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
     lines = (tmp_path / "dask" / "runs" / "sensitivity-altitude.jsonl").read_text().splitlines()
     assert sorted(json.loads(x)["id"] for x in lines) == ["altitude-fast-s0-250-0", "altitude-fast-s0-250-1",
                                                          "altitude-fast-s0-250-ref"]
+
+
+def test_cli_bad_input_is_one_clean_line(tmp_path: Path, capsys):
+    from hil_server.cli import main
+
+    assert main(["evaluate", "--scenario", "vertical", "--altitudes", "33", "--camera-px", "64",
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no pair at altitude(s) [33]" in err[0]
