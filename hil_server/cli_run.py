@@ -28,6 +28,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s)")
     p.add_argument("--baud", type=int, default=None, help="override the budget's serial baud rate")
     p.add_argument("--image-size", type=int, default=None, help="render a smaller square camera, same FOV")
+    p.add_argument("--manifest", type=Path, default=None,
+                   help="stream pairs already rendered by `hazard-hil render` (their manifest.json)")
     p.add_argument("--out", type=Path, default=Path("out/run"))
 
 
@@ -36,7 +38,8 @@ def _config(args: argparse.Namespace):
 
     return RunConfig(scenario=args.scenario, link=args.link, budget=args.budget, out=args.out,
                      pairs=_pairs(args.pairs), seed=args.seed, scene=args.scene, preset=args.preset,
-                     pace=args.pace, deadline_s=args.deadline, baud=args.baud, image_size=args.image_size)
+                     pace=args.pace, deadline_s=args.deadline, baud=args.baud, image_size=args.image_size,
+                     manifest=args.manifest)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

@@ -52,7 +52,7 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     events = telemetry_events(tmp_path)
     assert sum(e["event"] == "result" for e in events) == 3
     html = (tmp_path / "report.html").read_text()
-    assert all(p in html for p in PAIRS) and "confusion" in html
+    assert all(p in html for p in PAIRS) and html.count("_hazard.png") == 3
 
 
 def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
