@@ -9,7 +9,7 @@ the parent side, because flight_sw must not import hil_server:
   OpenMP/MKL/OpenCV read at import. (The flight main should still call
   ``cv2.setNumThreads(1)``; the affinity alone already keeps it on one core.)
 * **Memory ceiling.** ``memory_mib`` caps the resident set: an RSS watchdog
-  thread polls ``/proc/PID/statm`` and kills the child when RSS exceeds it. The
+  thread polls ``/proc/PID/status`` and kills the child when RSS exceeds it. The
   hard stop is ``RLIMIT_AS`` = measured address-space baseline of a Python with
   numpy/cv2/zmq/msgpack/serial imported + ``memory_mib`` + headroom; an
   allocation past it fails in the child (``MemoryError``).
@@ -192,23 +192,26 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
     return run_ns, wait_ns
 
 
-def _read_rss_bytes(pid: int) -> int | None:
-    try:
-        with open(f"/proc/{pid}/statm", "rb") as fh:
-            return int(fh.read().split()[1]) * PAGE
-    except (OSError, ValueError, IndexError):
-        return None
+def _read_rss_hwm_bytes(pid: int) -> tuple[int, int] | None:
+    """(VmRSS, VmHWM) in bytes from /proc/PID/status; None once the process is gone.
 
-
-def _read_hwm_kib(pid: int) -> int | None:
+    VmHWM is the kernel's resident high-water mark of the *exec'd* image. (wait4's
+    ru_maxrss is not used: after fork+exec it still holds the parent's RSS at fork.)
+    """
+    rss = hwm = None
     try:
         with open(f"/proc/{pid}/status", "rb") as fh:
             for line in fh:
                 if line.startswith(b"VmHWM:"):
-                    return int(line.split()[1])
+                    hwm = int(line.split()[1]) * 1024
+                elif line.startswith(b"VmRSS:"):
+                    rss = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError):
-        pass
-    return None
+        return None
+    if rss is None:
+        return None  # zombie: no memory map left
+    return rss, max(hwm or 0, rss)
 
 
 class _Child:
@@ -341,9 +344,9 @@ class EmulatedProcessor:
         if capture:
             threads.append(threading.Thread(target=self._stderr_pump, args=(child,),
                                             name=f"procemu-stderr-{child.pid}", daemon=True))
-        if self.spec.memory_mib is not None:
-            threads.append(threading.Thread(target=self._watchdog, args=(child,),
-                                            name=f"procemu-rss-{child.pid}", daemon=True))
+        # The watchdog runs without a ceiling too: it keeps the peak RSS.
+        threads.append(threading.Thread(target=self._watchdog, args=(child,), name=f"procemu-rss-{child.pid}",
+                                        daemon=True))
         if self.spec.cpu_fraction < 1.0:
             threads.append(threading.Thread(target=self._throttle, args=(child,),
                                             name=f"procemu-throttle-{child.pid}", daemon=True))
@@ -425,10 +428,10 @@ class EmulatedProcessor:
                         target_fraction=self.spec.cpu_fraction)
         if not child.exited.is_set():
             child.sample()
-            rss = _read_rss_bytes(child.pid)
-            if rss is not None:
-                child.rss = rss
-                child.peak_rss = max(child.peak_rss, rss)
+            mem = _read_rss_hwm_bytes(child.pid)
+            if mem is not None:
+                child.rss = mem[0]
+                child.peak_rss = max(child.peak_rss, mem[1])
         end = child.t_end if child.t_end is not None else time.monotonic()
         wall = end - child.t0
         cpu = child.cpu_ns / 1e9
@@ -482,16 +485,17 @@ class EmulatedProcessor:
             child.signal(signal.SIGCONT)  # never leave it stopped
 
     def _watchdog(self, child: _Child) -> None:
-        limit = self.spec.memory_mib * MIB
+        limit = self.spec.memory_mib * MIB if self.spec.memory_mib is not None else None
         poll = self.spec.rss_poll_s
-        while not child.stop_threads.wait(poll) and not child.exited.is_set():
-            rss = _read_rss_bytes(child.pid)
-            if rss is None:
-                continue
-            child.rss = rss
-            child.peak_rss = max(child.peak_rss, rss)
-            if rss > limit:
-                self._kill(f"memory ceiling: RSS {rss / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB", "memory")
+        while not child.exited.is_set():
+            mem = _read_rss_hwm_bytes(child.pid)
+            if mem is not None:
+                child.rss = mem[0]
+                child.peak_rss = max(child.peak_rss, mem[1])
+                if limit is not None and mem[0] > limit:
+                    self._kill(f"memory ceiling: RSS {mem[0] / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB", "memory")
+                    return
+            if child.stop_threads.wait(poll):
                 return
 
     def _stderr_pump(self, child: _Child) -> None:
@@ -525,9 +529,6 @@ class EmulatedProcessor:
             except InterruptedError:
                 continue
         child.sample()
-        hwm = _read_hwm_kib(child.pid)
-        if hwm:
-            child.peak_rss = max(child.peak_rss, hwm * 1024)
         with child.lock:
             try:
                 _, status, usage = os.wait4(child.pid, 0)
@@ -538,7 +539,6 @@ class EmulatedProcessor:
             child.exited.set()
         child.stop_threads.set()
         if usage is not None:
-            child.peak_rss = max(child.peak_rss, usage.ru_maxrss * 1024)
             child.cpu_ns = max(child.cpu_ns, int((usage.ru_utime + usage.ru_stime) * 1e9))
         code = os.waitstatus_to_exitcode(status)
         child.popen.returncode = code  # keep Popen consistent: it must not wait again

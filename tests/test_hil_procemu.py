@@ -130,7 +130,10 @@ def test_rss_watchdog_kills_at_memory_ceiling_and_a_fresh_child_starts():
     assert report.signal == signal.SIGKILL
     assert 120 <= report.peak_rss_mib < 120 + 200
     assert not proc.alive
+    import numpy as np
+    ballast = np.ones(300 << 20, dtype=np.uint8)  # a big supervisor must not inflate the child's peak
     proc.start([PY, "-c", "import numpy; print('fresh')"], stdout=subprocess.PIPE)
+    del ballast
     fresh = proc.wait(30)
     proc.close()
     assert fresh.kind == "ok" and fresh.reason == "exited normally", fresh
