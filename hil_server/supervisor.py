@@ -42,6 +42,7 @@ MIN_GRACE_S = 2.0
 class PairState:
     pair_id: str
     frames: dict[int, Frame] = field(default_factory=dict)
+    arrivals: dict[int, float] = field(default_factory=dict)   # frame_index -> monotonic arrival time
     complete_at: float | None = None      # monotonic time the last frame arrived
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
     proc_at_result: dict | None = None
@@ -137,6 +138,7 @@ class Supervisor:
         self.counters = {"results": 0, "degraded": 0, "errors": 0, "deadline_missed": 0,
                          "restarts": 0, "crashes": 0, "memory_ceiling": 0, "hangs": 0}
         self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None
+        self.t_start = time.monotonic()  # telemetry times are seconds since the supervisor started
 
     # -- flight process lifecycle ---------------------------------------------------------
     def _start_flight(self) -> None:
@@ -220,6 +222,7 @@ class Supervisor:
                 st = self.pairs[msg.pair_id] = PairState(msg.pair_id)
                 self.order.append(msg.pair_id)
             st.frames[msg.frame_index] = msg
+            st.arrivals[msg.frame_index] = time.monotonic()
             assert self.flight is not None
             if len(st.frames) == 2:
                 st.complete_at = time.monotonic()
@@ -275,7 +278,8 @@ class Supervisor:
                                    "level": st.result.level if st.result else None,
                                    "degraded": bool(st.result.degraded) if st.result else None,
                                    "latency_s": latency, "deadline_s": deadline, "deadline_met": met,
-                                   "deadline_margin_s": deadline - latency, "queue_wait_s": msg.queue_wait_s,
+                                   "deadline_margin_s": deadline - latency,
+                                   "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)], "queue_wait_s": msg.queue_wait_s,
                                    "result_link_s": st.result_link_s, "stages": msg.stages, "cpu_fraction": tel.cpu_fraction,
                                    "peak_rss_mib": stats.get("peak_rss_mib")})
         elif isinstance(msg, Error):

@@ -50,7 +50,10 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     assert s["deadline_hit_rate"] == 1.0
     assert s["latency_p50_s"] <= s["latency_p95_s"] <= s["latency_max_s"]
     events = telemetry_events(tmp_path)
-    assert sum(e["event"] == "result" for e in events) == 3
+    results = [e for e in events if e["event"] == "result"]
+    assert len(results) == 3
+    assert all(len(e["arrival_s"]) == 2 and e["arrival_s"][0] <= e["arrival_s"][1] for e in results)
+    assert all(abs(e["deadline_margin_s"] - (e["deadline_s"] - e["latency_s"])) < 1e-9 for e in results)
     html = (tmp_path / "report.html").read_text()
     assert all(p in html for p in PAIRS) and html.count("_hazard.png") == 3
 
