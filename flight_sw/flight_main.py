@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.errors import InputError
+from protocol.errors import EXIT_MEMORY, InputError
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import Camera, Pose
 
@@ -221,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     link = StreamLink(sock)
     try:
         return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat).run()
+    except MemoryError:  # the emulated memory ceiling: say so by exit status, not a traceback
+        os._exit(EXIT_MEMORY)
     finally:
         link.close()
 

@@ -50,7 +50,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from protocol.errors import InputError
+from protocol.errors import EXIT_MEMORY, InputError
 
 MIB = 1 << 20
 PAGE = os.sysconf("SC_PAGE_SIZE")
@@ -64,8 +64,7 @@ THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NU
 _MEMORY_MARKERS = (b"MemoryError", b"Insufficient memory", b"Failed to allocate", b"std::bad_alloc",
                    b"can't start new thread", b"Cannot allocate memory")
 
-# Exit status a flight main may use to say "allocation failed" without a traceback.
-EXIT_MEMORY = 75
+# EXIT_MEMORY (protocol.errors): the status a flight main uses to say "allocation failed".
 
 MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
 

@@ -9,3 +9,7 @@ from __future__ import annotations
 
 class InputError(ValueError):
     """Bad input, with a message that names the problem and where it is."""
+
+# Exit status of a flight process that ran out of memory (MemoryError or a failed
+# allocation under RLIMIT_AS): the supervisor reports it as a memory-ceiling breach.
+EXIT_MEMORY = 75
