@@ -21,10 +21,13 @@ import numpy as np
 
 from protocol.pairdir import Camera, Pose
 
+from .confidence import elevation_uncertainty, reject_uncertain
+from .gapfill import fill_small_gaps
 from .georef import backproject
 from .mapping import (HazardGrid, combine, grid_extent, grid_xy, ground_sample_distance, image_to_grid_coords,
                       pull, sample_grid)
 from .rocks import rock_mask
+from .shading import local_shadow_mask, relative_brightness, shading_mask
 from .shadow import shadow_mask
 from .sites import Site, select_sites
 from .slope import plane_fit, roughness
@@ -48,7 +51,15 @@ class Params:
     disparity_step_px: float = 0.5       # largest i2-pixel move between planes for "disparity"
     prefilter: bool = True               # low-pass i2 to i1's pixel footprint before warping
     coarse_to_fine: bool = True          # narrow the full-resolution range to the coarse DEM's
+    reject_rel_uncertainty: float = 0.0  # drop matches with u > this x median u (confidence.py); 0: off
+    sharp_curvature: float = 0.2         # ... but keep matches whose cost-curve curvature is at least this
+    shading_sigma_px: float = 10.0       # local-mean scale of the photometric cues (shading.py)
+    shadow_dark_rel: float = 0.0         # > 0: shadow also needs rho < -this (shading.py); 0: eq. 4.9 only
+    shading_limit: float = 0.0           # > 0: |rho| > this is a hazard (steep-wall cue); 0: off
+    fill_gap_px: int = 0                 # fill DEM gaps narrower than ~this (i1 px) before the slope fit
+    fill_min_frac: float = 0.3           # ... where this share of the (2r+1)^2 neighbourhood is valid
     coarse_half_window: int = 4
+    coarse_range_pct: float = 0.5        # fine range: this .. 100-this percentile of the coarse DEM, padded
     coarse_step_px: float = 0.5          # at half resolution
     relief_margin_frac: float = 0.06     # sweep range: +- max(min_m, frac * altitude) around Z = 0
     relief_margin_min_m: float = 10.0
@@ -97,7 +108,10 @@ PRESETS: dict[str, Params] = {
     # fast: SSD + 17x17 window, chosen on ground_sim seed-0 pairs and confirmed on seed-1 pairs
     # (docs/benchmarks/pipeline.md); with i2 prefiltered and rocks masked, SSD's outlier sensitivity
     # (the thesis's reason for SAD, sec 4.2) no longer dominates.
-    "fast": Params(name="fast", half_window=8, cost="ssd"),
+    # Confidence rejection, photometric cues and gap filling (issue #6): tuned on approach/vertical
+    # seeds 0-1, seed 2 held out (docs/benchmarks/pipeline.md).
+    "fast": Params(name="fast", half_window=8, cost="ssd", reject_rel_uncertainty=1.5, shadow_dark_rel=0.1,
+                   shading_limit=0.15, fill_gap_px=8),
     "thesis": Params(name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False,
                      coarse_to_fine=False),
 }
@@ -194,6 +208,13 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         rocks = rock_mask(i1, p.rock_k, p.harris_alpha, p.rock_dilate_px)
     with _stage(timings, "shadow"):
         shadow = shadow_mask(i1)
+        shading = np.zeros(i1.shape, bool)
+        if p.shadow_dark_rel > 0 or p.shading_limit > 0:
+            rho = relative_brightness(i1, p.shading_sigma_px)
+            if p.shadow_dark_rel > 0:
+                shadow = local_shadow_mask(i1, shadow, rho, p.shadow_dark_rel)
+            if p.shading_limit > 0:
+                shading = shading_mask(rho, p.shading_limit)
     with _stage(timings, "coverage"):
         covered = coverage_mask(camera, pose1, pose2, 0.0)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
@@ -214,6 +235,10 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
                           prefilter_sigma=sigma, ignore=rock_c if p.mask_rocks else None, deadline=sweep_deadline,
                           check_every=p.check_every)
         info["coarse_planes"] = int(planes_c.size)
+        if res_c.complete and p.reject_rel_uncertainty > 0:  # outliers would widen the fine range
+            u_c = elevation_uncertainty(res_c.elevation, res_c.curvature, res_c.planes)
+            res_c.elevation = reject_uncertain(res_c.elevation, u_c, p.reject_rel_uncertainty, res_c.curvature,
+                                               p.sharp_curvature)
         n_coarse = int(np.isfinite(res_c.elevation).sum())
         if res_c.complete and n_coarse > 0:
             coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
@@ -226,7 +251,7 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
             f_lo, f_hi = z_lo, z_hi
             if p.coarse_to_fine and n_coarse >= 50:
                 pad = 2.0 * float(np.max(np.diff(planes_c)))
-                lo, hi = np.nanpercentile(res_c.elevation, [0.5, 99.5])
+                lo, hi = np.nanpercentile(res_c.elevation, [p.coarse_range_pct, 100.0 - p.coarse_range_pct])
                 f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
             if p.plane_spacing == "dz":
                 planes = planes_uniform_dz(f_lo, f_hi, p.dz_m)
@@ -241,12 +266,22 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
             info["full_planes_done"] = res_f.planes_done
             if res_f.complete:
                 elevation = res_f.elevation
+                if p.reject_rel_uncertainty > 0:
+                    u = elevation_uncertainty(elevation, res_f.curvature, res_f.planes)
+                    elevation = reject_uncertain(elevation, u, p.reject_rel_uncertainty, res_f.curvature,
+                                                 p.sharp_curvature)
                 level = "full"
 
-    with _stage(timings, "georef"):
+    with _stage(timings, "gap_fill"):
+        # hazard mapping uses the gap-filled DEM; the returned elevation stays measured-only
         have_dem = level != "image_only"
+        elev_map = fill_small_gaps(elevation, p.fill_gap_px, p.fill_min_frac) if have_dem else elevation
+        info["filled_fraction"] = float((np.isfinite(elev_map) & ~np.isfinite(elevation) & covered).sum()
+                                        / max(1, int(covered.sum())))
+
+    with _stage(timings, "georef"):
         z_ref = float(np.nanmedian(elevation)) if have_dem and np.isfinite(elevation).any() else 0.0
-        z_fill = np.where(np.isfinite(elevation), elevation, np.float32(z_ref))
+        z_fill = np.where(np.isfinite(elev_map), elev_map, np.float32(z_ref))
         X, Y = backproject(camera, pose1, z_fill)
         world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
 
@@ -258,23 +293,23 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         GX, GY = grid_xy(shape, origin, cell)
         gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
         g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
-        g_elev = pull(elevation, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
+        g_elev = pull(elev_map, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
         g_rock = pull(rocks.astype(np.float32), gu, gv) > 0
-        g_shadow = pull(shadow.astype(np.float32), gu, gv) > 0.5
+        g_shadow = pull((shadow | shading).astype(np.float32), gu, gv) > 0.5
 
     with _stage(timings, "slope"):
         if have_dem:
             g_slope, g_plane = plane_fit(g_elev, cell, p.footprint_m)
             g_rough = roughness(g_elev, g_plane)
             slope_img = sample_grid(g_slope, origin, cell, X, Y)
-            rough_img = roughness(elevation, sample_grid(g_plane, origin, cell, X, Y))
+            rough_img = roughness(elev_map, sample_grid(g_plane, origin, cell, X, Y))
         else:
             g_slope = g_rough = None
             slope_img = np.full(i1.shape, np.nan, np.float32)
             rough_img = np.full(i1.shape, np.nan, np.float32)
 
     with _stage(timings, "hazard"):
-        hazard = combine(slope_img if have_dem else None, rough_img, shadow, rocks, covered,
+        hazard = combine(slope_img if have_dem else None, rough_img, shadow | shading, rocks, covered,
                          p.slope_limit_deg, p.rough_limit_m)
         g_haz = combine(g_slope, g_rough, g_shadow, g_rock, g_cov, p.slope_limit_deg, p.rough_limit_m)
         grid = HazardGrid(g_haz, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell))
