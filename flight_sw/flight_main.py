@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flight_sw.pipeline import run_pipeline  # loaded at boot, before Hello: not inside the first pair's deadline
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import Camera, Pose
@@ -133,8 +134,6 @@ class FlightProcess:
             self._process(pend)
 
     def _process(self, pend: PendingPair) -> None:
-        from flight_sw.pipeline import run_pipeline
-
         cfg = self.config
         assert cfg is not None
         upper, lower = pend.frames[0], pend.frames[1]

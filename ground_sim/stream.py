@@ -81,7 +81,7 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
 
 def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, deadline_s: float,
                    preset: str = "fast", pace: str = "lockstep", response_timeout_s: float | None = None,
-                   hello_timeout_s: float = 30.0, progress=None) -> list[dict]:
+                   hello_timeout_s: float = 900.0, progress=None) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``)."""
     manifest = json.loads(Path(manifest_path).read_text())
     base = Path(manifest_path).parent
@@ -91,12 +91,17 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
 
     link.send(Hello(role="ground"))
     t0 = time.monotonic()
-    while True:  # the server answers Hello once its flight process is up
+    next_note = t0 + 5.0
+    while True:  # the server answers Hello once its flight process has booted
         msg = link.recv(timeout=0.5)
         if isinstance(msg, Hello):
             break
-        if time.monotonic() - t0 > hello_timeout_s:
+        now = time.monotonic()
+        if now - t0 > hello_timeout_s:
             raise TimeoutError(f"no Hello from the HIL server within {hello_timeout_s:.0f} s")
+        if now > next_note:  # a slow emulated processor boots slowly: show that we are waiting
+            print(f"ground: waiting for the flight process to boot ({now - t0:.0f} s)", file=sys.stderr, flush=True)
+            next_note = now + 10.0
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}

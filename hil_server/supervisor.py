@@ -134,6 +134,7 @@ class Supervisor:
         self.flight: FlightHandle | None = None
         self.flight_reader: Reader | None = None
         self.generation = 0
+        self.ground_waiting_hello = False
         self.restarts = 0
         self.counters = {"results": 0, "degraded": 0, "errors": 0, "deadline_missed": 0,
                          "restarts": 0, "crashes": 0, "memory_ceiling": 0, "hangs": 0}
@@ -207,7 +208,9 @@ class Supervisor:
         if isinstance(msg, EOFError):
             return False
         if isinstance(msg, Hello):
-            self.ground.send(Hello(role="hil-server"))
+            # answer once the flight process has booted (at a low duty cycle its imports alone take a while)
+            self.ground_waiting_hello = True
+            self._answer_ground_hello()
         elif isinstance(msg, Config):
             self.config = msg
             assert self.flight is not None
@@ -239,6 +242,7 @@ class Supervisor:
             self._on_flight_exit()
         elif isinstance(msg, Hello):
             self.flight.hello = True
+            self._answer_ground_hello()
         elif isinstance(msg, Heartbeat):
             pass
         elif isinstance(msg, Result):
@@ -294,6 +298,11 @@ class Supervisor:
             else:
                 self.counters["errors"] += 1
                 self.ground.send(msg)
+
+    def _answer_ground_hello(self) -> None:
+        if self.ground_waiting_hello and self.flight is not None and self.flight.hello:
+            self.ground_waiting_hello = False
+            self.ground.send(Hello(role="hil-server"))
 
     def _on_flight_exit(self) -> None:
         assert self.flight is not None
