@@ -53,7 +53,8 @@ class Params:
     coarse_to_fine: bool = True          # narrow the full-resolution range to the coarse DEM's
     reject_rel_uncertainty: float = 0.0  # drop matches with u > this x median u (confidence.py); 0: off
     sharp_curvature: float = 0.2         # ... but keep matches whose cost-curve curvature is at least this
-    shading_sigma_px: float = 10.0       # local-mean scale of the photometric cues (shading.py)
+    shading_sigma_px: float = 10.0       # local-mean scale of the photometric cues (shading.py), at least ...
+    shading_sigma_footprints: float = 3.0  # ... this many lander footprints (in i1 px at the image centre)
     shadow_dark_rel: float = 0.0         # > 0: shadow also needs rho < -this (shading.py); 0: eq. 4.9 only
     shading_limit: float = 0.0           # > 0: |rho| > this is a hazard (steep-wall cue); 0: off
     fill_gap_px: int = 0                 # fill DEM gaps narrower than ~this (i1 px) before the slope fit
@@ -110,8 +111,8 @@ PRESETS: dict[str, Params] = {
     # (the thesis's reason for SAD, sec 4.2) no longer dominates.
     # Confidence rejection, photometric cues and gap filling (issue #6): tuned on approach/vertical
     # seeds 0-1, seed 2 held out (docs/benchmarks/pipeline.md).
-    "fast": Params(name="fast", half_window=8, cost="ssd", reject_rel_uncertainty=1.5, shadow_dark_rel=0.1,
-                   shading_limit=0.15, fill_gap_px=8),
+    "fast": Params(name="fast", half_window=10, cost="ssd", reject_rel_uncertainty=1.5,
+                   shadow_dark_rel=0.1, shading_limit=0.15, fill_gap_px=8),
     "thesis": Params(name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False,
                      coarse_to_fine=False),
 }
@@ -157,6 +158,12 @@ def _resolve(preset: str | Params) -> Params:
         raise FlightInputError(f"preset must be one of {sorted(PRESETS)} or a Params, got {preset!r}")
     p.validate()
     return p
+
+
+def _centre_gsd(camera: Camera, pose: Pose) -> float:
+    """Ground sample distance (m) at the image centre over the reference plane: slant range / f."""
+    d = pose.position[2] / max(1e-9, -pose.R[2, 2])
+    return float(max(1e-6, d / camera.fx))
 
 
 def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
@@ -210,7 +217,9 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         shadow = shadow_mask(i1)
         shading = np.zeros(i1.shape, bool)
         if p.shadow_dark_rel > 0 or p.shading_limit > 0:
-            rho = relative_brightness(i1, p.shading_sigma_px)
+            fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+            rho = relative_brightness(i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px),
+                                      max(1.0, fp_px / 3.0))
             if p.shadow_dark_rel > 0:
                 shadow = local_shadow_mask(i1, shadow, rho, p.shadow_dark_rel)
             if p.shading_limit > 0:

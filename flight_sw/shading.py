@@ -21,10 +21,15 @@ import cv2
 import numpy as np
 
 
-def relative_brightness(img: np.ndarray, sigma_px: float = 10.0) -> np.ndarray:
-    """``rho`` (float32): lightly smoothed intensity over its ``sigma_px`` Gaussian local mean, minus 1."""
+def relative_brightness(img: np.ndarray, sigma_px: float = 10.0, fine_sigma_px: float = 1.0) -> np.ndarray:
+    """``rho`` (float32): intensity smoothed by ``fine_sigma_px`` over its ``sigma_px`` Gaussian local mean, minus 1.
+
+    The pipeline ties both scales to the lander footprint: ``fine`` averages the texture within a
+    facet (footprint / 3), ``sigma_px`` spans a few footprints, so the cue asks about footprint-sized
+    facets whatever the altitude.
+    """
     I = np.asarray(img, dtype=np.float32)
-    fine = cv2.GaussianBlur(I, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
+    fine = cv2.GaussianBlur(I, (0, 0), float(fine_sigma_px), borderType=cv2.BORDER_REFLECT)
     local = cv2.GaussianBlur(I, (0, 0), float(sigma_px), borderType=cv2.BORDER_REFLECT)
     floor = np.float32(max(1e-6, 1e-3 * float(np.abs(I).max())))
     return (fine / np.maximum(local, floor) - 1.0).astype(np.float32)
