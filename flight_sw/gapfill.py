@@ -1,20 +1,24 @@
-"""Filling small DEM gaps by normalized convolution (box filters, O(1) per pixel).
+"""Filling small DEM gaps by first-order normalized convolution (box filters, O(1) per pixel).
 
-A pixel without a recovered elevation gets the mean of the valid elevations in
-the ``(2r+1)^2`` square around it::
+A pixel without a recovered elevation gets the value at its centre of the
+least-squares plane through the valid elevations in the ``(2r+1)^2`` square
+around it (the same closed-form box-sum solver as the footprint slope,
+:func:`flight_sw.slope.plane_fit`, eq. 4.11/4.12)::
 
-    z_f(x) = sum_{N(x)} w z / sum_{N(x)} w,     w = 1 where z is valid, else 0
+    z_f(x) = p_x * 0 + q_x * 0 + r_x,   (p, q, r) = argmin sum_{N(x), valid} (p u + q v + r - z)^2
 
-but only where ``sum w >= min_frac (2r+1)^2``: a gap narrower than about the
-window (surrounded by measured ground) is interpolated, a large hole stays
-NaN and is later mapped unsafe ("unknown is unsafe", mapping.combine). The
-filled value is a local mean, so it carries the surrounding slope into the
-footprint plane fit (slope.plane_fit) without inventing relief.
+but only where at least ``min_frac`` of the neighbourhood is valid: a gap
+narrower than about the window (surrounded by measured ground) is
+interpolated, a large hole stays NaN and is later mapped unsafe ("unknown is
+unsafe", mapping.combine). A plane - not a local mean - is used so that a
+filled patch on a slope keeps that slope: a mean would make it a flat
+terrace and hide a steep wall from the hazard stage.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
+
+from .slope import plane_fit
 
 
 def fill_small_gaps(z: np.ndarray, radius_px: int, min_frac: float = 0.3) -> np.ndarray:
@@ -27,14 +31,11 @@ def fill_small_gaps(z: np.ndarray, radius_px: int, min_frac: float = 0.3) -> np.
     out = z.copy()
     if radius_px <= 0:
         return out
-    k = 2 * int(radius_px) + 1
-    w = np.isfinite(z).astype(np.float32)
-    if w.all() or not w.any():
+    valid = np.isfinite(z)
+    if valid.all() or not valid.any():
         return out
-    num = cv2.boxFilter(np.where(w > 0, z, np.float32(0)), cv2.CV_64F, (k, k), normalize=False,
-                        borderType=cv2.BORDER_CONSTANT)
-    den = cv2.boxFilter(w, cv2.CV_64F, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    take = (w == 0) & (den >= max(1.0, min_frac * k * k))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out[take] = (num[take] / den[take]).astype(np.float32)
+    k = 2 * int(radius_px) + 1
+    _, zc = plane_fit(z, 1.0, float(k), min_fraction=min_frac)
+    take = ~valid & np.isfinite(zc)
+    out[take] = zc[take]
     return out

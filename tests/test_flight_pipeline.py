@@ -23,9 +23,16 @@ def plane_scene():
     return make_pair(256, 200.0, 100.0, plane(-3.0), seed=11)
 
 
+@pytest.fixture(scope="module")
+def plane_scene_512():
+    return make_pair(512, 200.0, 100.0, plane(-3.0), seed=11)
+
+
 @pytest.mark.parametrize("preset", ["fast", "thesis"])
-def test_pipeline_recovers_plane(plane_scene, preset):
-    cam, p1, p2, i1, i2, z = plane_scene
+def test_pipeline_recovers_plane(plane_scene, plane_scene_512, preset):
+    # fast is tuned for the thesis's 512 px camera (21x21 window): its border loss on a 256 px
+    # pair would dominate the valid fraction, so it is held to the same limits at 512 px
+    cam, p1, p2, i1, i2, z = plane_scene_512 if preset == "fast" else plane_scene
     res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
     assert isinstance(res, PipelineResult)
     assert res.level == "full" and not res.degraded

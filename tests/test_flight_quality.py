@@ -79,3 +79,18 @@ def test_local_shadow_test_ignores_a_smooth_illumination_gradient():
     local = local_shadow_mask(img, g, relative_brightness(img, 10.0), 0.1)
     assert not local[:, :50].any() and g[:, :50].sum() > 6000
     assert local[62:68, 202:208].all()
+
+
+def test_filled_gap_on_a_slope_keeps_the_slope():
+    # a local mean would make the gap a flat terrace (a hidden wall); the plane fill must not
+    from flight_sw.slope import plane_fit
+    xx = np.mgrid[0:60, 0:60][1].astype(np.float32)
+    z = np.tan(np.radians(25.0)) * xx                   # 25 deg wall, 1 m cells
+    holed = z.copy()
+    holed[:, 28:35] = np.nan                            # a 7-cell strip across the wall
+    holed[:, 55:] = np.nan                              # one-sided gap at the edge
+    out = fill_small_gaps(holed, 6, 0.3)
+    assert np.nanmax(np.abs(out[:, 28:35] - z[:, 28:35])) < 1e-3
+    assert np.nanmax(np.abs(out[:, 55:] - z[:, 55:])) < 1e-3
+    slope, _ = plane_fit(out, 1.0, 3.0)
+    assert np.nanmin(slope[5:-5, 5:-5]) > 24.0
