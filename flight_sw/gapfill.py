@@ -35,7 +35,12 @@ def fill_small_gaps(z: np.ndarray, radius_px: int, min_frac: float = 0.3) -> np.
     if valid.all() or not valid.any():
         return out
     k = 2 * int(radius_px) + 1
-    _, zc = plane_fit(z, 1.0, float(k), min_fraction=min_frac)
-    take = ~valid & np.isfinite(zc)
-    out[take] = zc[take]
+    # only cells within the radius of a valid one can be filled: work on that bounding box
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    r = int(radius_px)
+    y0, y1 = max(0, rows[0] - r), min(z.shape[0], rows[-1] + r + 1)
+    x0, x1 = max(0, cols[0] - r), min(z.shape[1], cols[-1] + r + 1)
+    _, zc = plane_fit(z[y0:y1, x0:x1], 1.0, float(k), min_fraction=min_frac)
+    take = ~valid[y0:y1, x0:x1] & np.isfinite(zc)
+    out[y0:y1, x0:x1][take] = zc[take]
     return out
