@@ -206,7 +206,7 @@ def crater_profile(r2: np.ndarray, d: np.ndarray, h: np.ndarray, s: np.ndarray) 
 def crater_albedo(r2: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Relative albedo change: fresh ejecta is brighter (scenes.md: highlands/ejecta 0.25-0.30)."""
     halo = np.where(r2 < 1.0, 0.3 + 0.7 * r2, np.clip((4.0 - r2) / 3.0, 0.0, 1.0))
-    return 0.25 * (1.0 - s) ** 3 * halo
+    return 0.12 * (1.0 - s) ** 3 * halo
 
 
 def boulder_profile(r2: np.ndarray, h: np.ndarray) -> np.ndarray:
