@@ -51,8 +51,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from hil_server.budgets import calibrate_host, load_calibration
     from hil_server.run import run_descent
 
+    if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
+        print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate)")
+        cal = calibrate_host(seconds=2.0)
+        print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
     run_descent(_config(args))
     print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
