@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.errors import InputError
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_pair
 
@@ -139,33 +140,42 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
                 if progress:
                     progress(rec)
 
+    def give_up(o: PairOutcome, code: str, text: str) -> None:
+        o.error = Error(code=code, seq=o.seqs[1], text=text)
+        rec = write_outcome(out_dir, o)
+        records.append(rec)
+        results_file.write(json.dumps(rec, sort_keys=True) + "\n")
+        results_file.flush()
+        if progress:
+            progress(rec)
+
     try:
         for i, entry in enumerate(entries):
             pair_dir = base / entry["path"]
-            pair = read_pair(pair_dir, load_truth=False)
-            if not config_sent:
-                link.send(Config(camera=pair.camera.to_dict(), budget=budget, deadline_s=float(deadline_s),
-                                 preset=preset))
-                config_sent = True
             pair_id = f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
             o = PairOutcome(pair_id, str(entry.get("label", i)), float(entry.get("altitude_m", float("nan"))),
                             str(pair_dir), (seq, seq + 1))
             outcomes[o.seqs] = o
             by_lower_seq[seq + 1] = o
+            seq += 2
+            try:  # a bad pair (NaN pose, wrong size, unreadable file) is reported, the descent goes on
+                pair = read_pair(pair_dir, load_truth=False)
+                frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id).validated() for k in (0, 1)]
+            except InputError as exc:
+                give_up(o, "bad_input", str(exc))
+                continue
+            if not config_sent:
+                link.send(Config(camera=pair.camera.to_dict(), budget=budget, deadline_s=float(deadline_s),
+                                 preset=preset))
+                config_sent = True
             o.sent_at = time.monotonic()
-            link_seqs = {link.send(_frame_from_pair(pair, k, seq + k, pair_id)) for k in (0, 1)}
+            link_seqs = {link.send(f) for f in frames}
             link.flush(timeout=timeout)  # both frames on the far side: their line time is the link time
             o.link_s = time.monotonic() - o.sent_at
             failed = [f for f in link.failures() if f.seq in link_seqs]
             if failed:  # the link gave up on a frame: the pair cannot be processed, say so
-                o.error = Error(code="link_failure", seq=seq + 1,
-                                text="; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed))
-                rec = write_outcome(out_dir, o)
-                records.append(rec)
-                results_file.write(json.dumps(rec, sort_keys=True) + "\n")
-                seq += 2
+                give_up(o, "link_failure", "; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed))
                 continue
-            seq += 2
             if pace == "lockstep":
                 collect(time.monotonic() + timeout + o.link_s, {o.seqs})
         pending = {s for s, o in outcomes.items() if not o.finished and not any(r["frame_seqs"] == list(s) for r in records)}

@@ -101,3 +101,21 @@ def test_memory_ceiling_breach_is_stopped_and_reported(manifest, tmp_path):
     assert s["records"][0]["status"] == "error" and s["records"][0]["code"] == "memory_ceiling"
     assert "memory ceiling" in s["records"][0]["text"]
     assert [r["status"] for r in s["records"][1:]] == ["result", "result"]
+
+
+def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, tmp_path):
+    import shutil
+
+    import cv2
+
+    pairs = tmp_path / "pairs"
+    shutil.copytree(manifest.parent, pairs)
+    doc = json.loads((pairs / "600_300" / "pair.json").read_text())
+    doc["frames"][1]["position_m"][2] = float("nan")          # a NaN pose
+    (pairs / "600_300" / "pair.json").write_text(json.dumps(doc))
+    cv2.imwrite(str(pairs / "300_150" / "i2.png"), np.zeros((64, 64), np.uint8))  # wrong image size
+    s = run(pairs / "manifest.json", tmp_path / "run")
+    got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
+    assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"),
+                   ("200/100", "result", None)]
+    assert "finite" in s["records"][0]["text"] and "does not match" in s["records"][1]["text"]
