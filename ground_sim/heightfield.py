@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+REMAP_ROW = 16384   # flat remap maps are folded into rows of this length (< SHRT_MAX)
+
 
 @dataclass
 class Raster:
@@ -31,15 +33,9 @@ class Raster:
     def sample_fast(self, x: np.ndarray, y: np.ndarray, img: np.ndarray | None = None) -> np.ndarray:
         """Bilinear sample (cv2.remap) of ``img`` (default heights) at world (x, y); flat arrays."""
         src = self._H32 if img is None else img
-        mx = ((x - self.x0) / self.cell).astype(np.float32).reshape(1, -1)
-        my = ((y - self.y0) / self.cell).astype(np.float32).reshape(1, -1)
-        out = np.empty(mx.shape, np.float32)
-        n = mx.shape[1]
-        step = 32000   # remap maps are limited to SHRT_MAX columns
-        for s in range(0, n, step):
-            out[:, s:s + step] = cv2.remap(src, mx[:, s:s + step], my[:, s:s + step], cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_REPLICATE)
-        out = out.ravel().astype(np.float64)
+        mx = ((x - self.x0) / self.cell).astype(np.float32)
+        my = ((y - self.y0) / self.cell).astype(np.float32)
+        out = remap_flat(src, mx, my).astype(np.float64)
         return out + self.zref if img is None else out
 
     def sample(self, x: np.ndarray, y: np.ndarray, img: np.ndarray | None = None) -> np.ndarray:
@@ -48,16 +44,37 @@ class Raster:
         ny, nx = A.shape
         gx = np.clip((x - self.x0) / self.cell, 0.0, nx - 1.000001)
         gy = np.clip((y - self.y0) / self.cell, 0.0, ny - 1.000001)
-        j, i = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+        j, i = np.floor(gx), np.floor(gy)
         fx, fy = gx - j, gy - i
-        a = A[i, j] * (1 - fx) + A[i, j + 1] * fx
-        b = A[i + 1, j] * (1 - fx) + A[i + 1, j + 1] * fx
-        return a * (1 - fy) + b * fy
+        k = i.astype(np.int64) * nx + j.astype(np.int64)
+        flat = A.ravel()
+        a = np.take(flat, k)
+        a += (np.take(flat, k + 1) - a) * fx
+        b = np.take(flat, k + nx)
+        b += (np.take(flat, k + nx + 1) - b) * fx
+        return a + (b - a) * fy
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         ny, nx = self.H.shape
         return ((x >= self.x0) & (x <= self.x0 + (nx - 1) * self.cell)
                 & (y >= self.y0) & (y <= self.y0 + (ny - 1) * self.cell))
+
+
+def remap_flat(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+    """cv2.remap bilinear lookup of float32 ``src`` at flat float32 pixel coordinates (one call).
+
+    Remap maps are limited to SHRT_MAX per side, so the flat maps are folded into rows.
+    """
+    n = mx.size
+    w = REMAP_ROW if n > REMAP_ROW else max(n, 1)
+    rows = -(-n // w)
+    if rows * w != n:
+        pad = rows * w - n
+        mx = np.concatenate([mx, np.zeros(pad, np.float32)])
+        my = np.concatenate([my, np.zeros(pad, np.float32)])
+    out = cv2.remap(src, mx.reshape(rows, w), my.reshape(rows, w), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n]
 
 
 def intersect(r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray,
@@ -67,39 +84,44 @@ def intersect(r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.nd
     March with per-ray ``step`` until the ray is at or below the surface, then refine
     in the last bracket. Returns (t, hit) - ``hit`` False where the ray stayed above
     (t is then t1). Rays already below the surface at t0 report t0 (caller restarts them).
+    The march runs in float32 raster units (remap quantises to 1/32 cell anyway) on
+    compacted arrays of the rays still in flight; the refinement is float64.
     """
     n = d.shape[0]
     t = t0.astype(np.float64).copy()
     lo = t.copy()
     hit = np.zeros(n, bool)
-    done = np.zeros(n, bool)
-    active = np.arange(n)
-    first = True
-    while active.size:
-        tt = t[active]
-        px = C[0] + tt * d[active, 0]
-        py = C[1] + tt * d[active, 1]
-        f = C[2] + tt * d[active, 2] - r.sample_fast(px, py)
+    inv = 1.0 / r.cell
+    ax, ay, az = np.float32((C[0] - r.x0) * inv), np.float32((C[1] - r.y0) * inv), np.float32(C[2] - r.zref)
+    idx = np.arange(n)
+    ta = t.astype(np.float32)
+    la = ta.copy()
+    bx = (d[:, 0] * inv).astype(np.float32)
+    by = (d[:, 1] * inv).astype(np.float32)
+    bz = d[:, 2].astype(np.float32)
+    sa = step.astype(np.float32)
+    t1a = t1.astype(np.float32)
+    while idx.size:
+        f = az + ta * bz - remap_flat(r._H32, ax + ta * bx, ay + ta * by)
         below = f <= 0.0
-        if first:
-            lo[active[below]] = t[active[below]]   # no bracket: already under
-            first = False
-        idx = active[below]
-        hit[idx] = True
-        done[idx] = True
-        rest = active[~below]
-        lo[rest] = t[rest]
-        t[rest] = t[rest] + step[rest]
-        over = t[rest] > t1[rest]
-        if np.any(over):
-            ov = rest[over]
+        if below.any():
+            bi = idx[below]
+            hit[bi] = True
+            t[bi] = ta[below]
+            lo[bi] = la[below]
+        nt = ta + sa
+        over = ~below & (nt > t1a)
+        if over.any():
             # one last probe exactly at t1
-            fz = C[2] + t1[ov] * d[ov, 2] - r.sample_fast(C[0] + t1[ov] * d[ov, 0], C[1] + t1[ov] * d[ov, 1])
-            ok = fz <= 0
-            t[ov] = t1[ov]
-            hit[ov[ok]] = True
-            done[ov] = True
-        active = rest[~over]
+            oi = idx[over]
+            tz = t1[oi]
+            fz = C[2] + tz * d[oi, 2] - r.sample_fast(C[0] + tz * d[oi, 0], C[1] + tz * d[oi, 1])
+            t[oi] = tz
+            lo[oi] = ta[over]
+            hit[oi] = fz <= 0
+        keep = ~(below | over)
+        idx, la, ta = idx[keep], ta[keep], nt[keep]
+        bx, by, bz, sa, t1a = bx[keep], by[keep], bz[keep], sa[keep], t1a[keep]
     # regula falsi on the exact bilinear surface inside [lo, t]
     m = hit & (t > lo)
     a, b = lo[m], t[m]

@@ -147,11 +147,15 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     max_feature = 0.6 * scene.params.boulders.d_max_m
     margin = 1.0 + max_feature + 2.0 * COARSE * gsd
 
-    def march(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = pixel_rays(camera, pose, u, v)
+    def coarse_start(u: np.ndarray, v: np.ndarray) -> np.ndarray:
         bi = np.clip(np.floor(v / COARSE).astype(np.int64), 0, zstart.shape[0] - 1)
         bj = np.clip(np.floor(u / COARSE).astype(np.int64), 0, zstart.shape[1] - 1)
-        zs = np.minimum(zstart[bi, bj] + margin, zmax)
+        return zstart[bi, bj] + margin
+
+    def march(u: np.ndarray, v: np.ndarray, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hits of the rays through pixels (u, v), marched down from heights ``zs``."""
+        d = pixel_rays(camera, pose, u, v)
+        zs = np.minimum(zs, zmax)
         t0 = np.maximum((C[2] - zs) / -d[:, 2], 0.0)
         t1 = (C[2] - zmin) / -d[:, 2]
         s = np.sqrt(np.maximum(1 - d[:, 2] ** 2, 1e-12))
@@ -174,7 +178,7 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     su = (np.arange(W)[None, :, None] + off[None, None, :]).reshape(1, W * ss)
     sv = (np.arange(Hh)[:, None, None] + off[None, :, None]).reshape(Hh * ss, 1)
     SU, SV = np.broadcast_arrays(su, sv)
-    d, t = march(SU.ravel(), SV.ravel())
+    d, t = march(SU.ravel(), SV.ravel(), coarse_start(SU.ravel(), SV.ravel()))
     X = C + t[:, None] * d
     sun_dir = sun.direction()
     gyy, gxx = np.gradient(H, cell)
@@ -195,9 +199,13 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     rad = cv2.resize(rad.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
     litf = cv2.resize(lit.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
 
-    # -- pixel-centre rays for geometric truth
+    # -- pixel-centre rays for geometric truth; the sub-pixel hits bracket each centre ray, so
+    # start it just above the highest sub-pixel hit of its 3x3 pixel neighbourhood (a feature
+    # hiding between sub-pixel rays is narrower than ~1 pixel, hence lower than ~0.6 GSD)
+    zsub = X[:, 2].reshape(Hh, ss, W, ss).max(axis=(1, 3)).astype(np.float32)
+    zpix = cv2.dilate(zsub, np.ones((3, 3), np.uint8)).astype(np.float64).ravel()
     PU, PV = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(Hh, dtype=np.float64))
-    dp, tp = march(PU.ravel(), PV.ravel())
+    dp, tp = march(PU.ravel(), PV.ravel(), zpix + 0.5 + 0.6 * min(scene.params.boulders.d_max_m, 2.0 * gsd))
     Xp = C + tp[:, None] * dp
     depth = tp * (dp @ pose.R[2])
     shadow = litf < 0.5

@@ -23,10 +23,17 @@ def stamp_raster(f: Features, x0: float, y0: float, cell: float, nx: int, ny: in
     reach = f.reach
     side = np.ceil(2 * reach / cell).astype(np.int64) + 2
     small = np.nonzero(side <= BIG)[0]
+    flat, dh, da = [], [], []
     for p in np.unique(side[small]):
         sel = small[side[small] == p]
         for chunk in np.array_split(sel, max(1, int(np.ceil(sel.size * p * p / BATCH)))):
-            _stamp_batch(f, chunk, int(p), x0, y0, cell, nx, ny, height, albedo)
+            _stamp_batch(f, chunk, int(p), x0, y0, cell, nx, ny, flat, dh, da)
+    if flat:
+        # one scatter-add over the whole raster for all batches (a bincount per batch costs a full raster pass)
+        flat_all = np.concatenate(flat)
+        height += np.bincount(flat_all, np.concatenate(dh), minlength=nx * ny).reshape(ny, nx)
+        if f.kind == "boulder" or np.any(f.s[small] < 0.9):
+            albedo += np.bincount(flat_all, np.concatenate(da), minlength=nx * ny).reshape(ny, nx)
     for i in np.nonzero(side > BIG)[0]:
         r = reach[i]
         c0 = max(int(np.floor((f.x[i] - r - x0) / cell)), 0)
@@ -43,7 +50,8 @@ def stamp_raster(f: Features, x0: float, y0: float, cell: float, nx: int, ny: in
         albedo[r0:r1 + 1, c0:c1 + 1] += da
 
 
-def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, height, albedo):
+def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, flat_out, dh_out, da_out):
+    """Append the flat raster indices and height/albedo changes of features ``sel`` (patch side p)."""
     c0 = np.floor((f.x[sel] - f.reach[sel] - x0) / cell).astype(np.int64)
     r0 = np.floor((f.y[sel] - f.reach[sel] - y0) / cell).astype(np.int64)
     a = np.arange(p)
@@ -56,10 +64,9 @@ def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, height, albedo):
     ok = (rr < lim[:, None, None]) & (cols >= 0) & (cols < nx) & (rows >= 0) & (rows < ny)
     idx = np.broadcast_to(sel[:, None, None], rr.shape)[ok]
     dh, da = profile(f, rr[ok], idx)
-    flat = (np.broadcast_to(rows, rr.shape) * nx + cols)[ok]
-    height += np.bincount(flat, dh, minlength=nx * ny).reshape(ny, nx)
-    if f.kind == "boulder" or np.any(f.s[sel] < 0.9):
-        albedo += np.bincount(flat, da, minlength=nx * ny).reshape(ny, nx)
+    flat_out.append((np.broadcast_to(rows, rr.shape) * nx + cols)[ok])
+    dh_out.append(dh)
+    da_out.append(da)
 
 
 def stamp_points(f: Features, x: np.ndarray, y: np.ndarray, tile: float = 32.0) -> tuple[np.ndarray, np.ndarray]:
