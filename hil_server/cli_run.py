@@ -30,6 +30,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument("--image-size", type=int, default=None, help="render a smaller square camera, same FOV")
     p.add_argument("--manifest", type=Path, default=None,
                    help="stream pairs already rendered by `hazard-hil render` (their manifest.json)")
+    p.add_argument("--corrupt", type=float, default=0.0,
+                   help="serial only: per-byte drop/flip/duplicate rate injected on the line (e.g. 1e-6)")
     p.add_argument("--out", type=Path, default=Path("out/run"))
 
 
@@ -39,7 +41,7 @@ def _config(args: argparse.Namespace):
     return RunConfig(scenario=args.scenario, link=args.link, budget=args.budget, out=args.out,
                      pairs=_pairs(args.pairs), seed=args.seed, scene=args.scene, preset=args.preset,
                      pace=args.pace, deadline_s=args.deadline, baud=args.baud, image_size=args.image_size,
-                     manifest=args.manifest)
+                     manifest=args.manifest, corrupt=args.corrupt)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

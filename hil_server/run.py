@@ -46,6 +46,7 @@ class RunConfig:
     fault: str | None = None         # flight fault injection (tests)
     image_size: int | None = None    # render a smaller camera with the same FOV (tests, quick looks)
     manifest: Path | None = None     # stream these already-rendered pairs instead of rendering
+    corrupt: float = 0.0             # serial only: per-byte drop, flip and duplicate rate on the line
     timeout_s: float = 900.0
 
 
@@ -163,6 +164,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     if cfg.link not in ("serial", "zmq"):
         raise InputError(f"--link must be serial or zmq, got {cfg.link!r}")
+    if cfg.corrupt and (cfg.link != "serial" or not 0 <= cfg.corrupt < 0.01):
+        raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.01)")
 
     if cfg.manifest is not None:
         manifest = Path(cfg.manifest)
@@ -178,7 +181,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
 
         # Two raw ptys joined by a relay: each process opens a real serial device path.
         baud = cfg.baud if cfg.baud is not None else budget.baud
-        bridge = PtyBridge()
+        channels = {}
+        if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
+            from protocol.faults import CorruptingChannel
+
+            channels = {d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt,
+                                             dup=cfg.corrupt) for k, d in enumerate(("a_to_b", "b_to_a"))}
+        bridge = PtyBridge(**channels)
         suffix = f"@{baud}" if baud else ""
         server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
     else:
@@ -229,7 +238,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             rec = json.loads(line)
             if rec.get("event") == "summary":
                 counters = {k: v for k, v in rec.items() if k != "event"}
-    summary = summarize(records, cfg, {"cpu_fraction": fraction, "deadline_s": deadline,
+    if bridge is not None and channels:
+        extra_link = {d: ch.stats for d, ch in channels.items()}
+    else:
+        extra_link = {}
+    summary = summarize(records, cfg, {"cpu_fraction": fraction, "deadline_s": deadline, "line_faults": extra_link,
                                        "memory_mib": budget.memory_mib, "wall_s": wall,
                                        "supervisor_counters": counters})
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=float) + "\n")

@@ -77,6 +77,9 @@ class Reader(threading.Thread):
         super().__init__(name=f"reader-{tag}", daemon=True)
         self.link, self.tag, self.events, self.generation = link, tag, events, generation
         self.stopped = threading.Event()
+        # stamped here, not in the main loop: the loop may be busy (a result's line time on a slow
+        # or noisy link) while the peer is perfectly alive
+        self.last_message = time.monotonic()
 
     def run(self) -> None:
         while not self.stopped.is_set():
@@ -86,6 +89,7 @@ class Reader(threading.Thread):
                 self.events.put((self.tag, self.generation, EOFError()))
                 return
             if msg is not None:
+                self.last_message = time.monotonic()
                 self.events.put((self.tag, self.generation, msg))
 
 
@@ -105,7 +109,6 @@ class FlightHandle:
         self.proc.start(argv, pass_fds=(child.fileno(),))
         child.close()
         self.link = StreamLink(parent)
-        self.last_heartbeat = time.monotonic()
         self.hello = False
 
     def close(self, reason: str | None = None) -> None:
@@ -237,7 +240,6 @@ class Supervisor:
     def _on_flight(self, generation: int, msg) -> None:
         if self.flight is None or generation != self.flight.generation:
             return  # a message from a dead incarnation
-        self.flight.last_heartbeat = time.monotonic()
         if isinstance(msg, EOFError):
             self._on_flight_exit()
         elif isinstance(msg, Hello):
@@ -332,7 +334,8 @@ class Supervisor:
             self._restart_flight("hung past the hard deadline")
             return
         hb_limit = HEARTBEAT_TIMEOUT_S / max(self.cpu_fraction, 0.01)
-        if now - self.flight.last_heartbeat > hb_limit:
+        assert self.flight_reader is not None
+        if now - self.flight_reader.last_message > hb_limit:
             self.counters["hangs"] += 1
             if st is not None:
                 self._fail_pair(st, "heartbeat_lost", f"no heartbeat for {hb_limit:.1f} s")

@@ -119,3 +119,14 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
     assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"),
                    ("200/100", "result", None)]
     assert "finite" in s["records"][0]["text"] and "does not match" in s["records"][1]["text"]
+
+
+def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
+    s = run(manifest, tmp_path, link="serial", corrupt=1e-6, seed=3)
+    faults = s["line_faults"]
+    assert sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in faults.values()) > 0  # the line was noisy
+    assert s["results"] == 3 and s["errors"] == 0                      # ...and every pair still came back
+    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1   # thanks to retransmission
+    for r in s["records"]:
+        hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
+        assert hz.shape == (128, 128)
