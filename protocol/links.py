@@ -489,6 +489,12 @@ class ZmqLink(Link):
     duplicates. ``MAXMSGSIZE`` and high-water marks bound what a peer can make
     us buffer; a send that cannot complete within ``send_timeout`` is
     reported in :meth:`failures`.
+
+    Every send is tracked (``track=True``) so :meth:`flush` means "handed to
+    the kernel", and each link owns its context, terminated on close: libzmq
+    must have released every zero-copy buffer before the interpreter may free
+    it (exiting with frames still queued otherwise crashes the process in the
+    I/O thread - "Bad address" - under load).
     """
 
     def __init__(self, endpoint: str, bind: bool, *, hwm: int = 256, send_timeout: float = 30.0,
@@ -499,18 +505,21 @@ class ZmqLink(Link):
         self._zmq = zmq
         self.limits = limits
         self.oob_min_bytes = oob_min_bytes
-        self._ctx = zmq.Context.instance()
+        self._ctx = zmq.Context(io_threads=1)
         self._sock = self._ctx.socket(zmq.PAIR)
         for opt, val in ((zmq.MAXMSGSIZE, limits.max_message_bytes + (1 << 20)), (zmq.SNDHWM, hwm),
                          (zmq.RCVHWM, hwm), (zmq.LINGER, 1000), (zmq.SNDTIMEO, int(send_timeout * 1000))):
             self._sock.setsockopt(opt, val)
+        self._sock.copy_threshold = 0   # track every frame, so flush() covers small messages too
         try:
             (self._sock.bind if bind else self._sock.connect)(endpoint)
         except zmq.ZMQError as exc:
             self._sock.close(0)
+            self._ctx.term()
             raise InputError(f"cannot {'bind' if bind else 'connect'} {endpoint!r}: {exc}") from None
         self.endpoint = self._sock.getsockopt(zmq.LAST_ENDPOINT).decode() if bind else endpoint
         self._lock = threading.Lock()
+        self._trackers: deque[tuple[int, str, Any]] = deque()   # (seq, type name, zmq.MessageTracker)
 
     def send(self, message: Message, timeout: float | None = None) -> int:
         if self._closed.is_set():
@@ -521,10 +530,16 @@ class ZmqLink(Link):
         t0 = time.monotonic()
         with self._lock:
             try:
-                self._sock.send_multipart([head, body, *bufs], copy=not bufs)
+                parts = [head, body, *bufs]
+                trackers = [self._sock.send(part, self._zmq.SNDMORE if i < len(parts) - 1 else 0,
+                                            copy=False, track=True) for i, part in enumerate(parts)]
+                tracker = self._zmq.MessageTracker(*trackers)
             except self._zmq.Again:
                 self._resolve(seq, type(message).__name__, "send timed out: peer not connected or not draining (high-water mark)")
                 return seq
+            self._trackers.append((seq, type(message).__name__, tracker))
+            while self._trackers and self._trackers[0][2].done:
+                self._trackers.popleft()
         self._count("busy_s", time.monotonic() - t0)
         self._count("bytes_sent", len(head) + len(body) + sum(b.nbytes for b in bufs))
         self._count("frames_sent")
@@ -567,11 +582,28 @@ class ZmqLink(Link):
         return None
 
     def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every message sent so far has left this process (True) or ``timeout`` passes."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            pending = list(self._trackers)
+        for _, _, tracker in pending:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                tracker.wait(left)
+            except self._zmq.NotDone:
+                return False
         return True
 
-    def close(self) -> None:
+    def close(self, flush_timeout: float = 5.0) -> None:
+        """Flush (bounded), report what never left as failures, close and terminate the context."""
         if self._closed.is_set():
             return
+        self.flush(flush_timeout)
         self._closed.set()
         with self._lock:
+            for seq, type_name, tracker in self._trackers:
+                if not tracker.done:
+                    self._resolve(seq, type_name, "link closed before the message left this process")
             self._sock.close(linger=1000)
+            self._ctx.term()   # returns once libzmq has released every buffer it still held
+            self._trackers.clear()
