@@ -97,7 +97,9 @@ def test_hung_flight_process_is_killed_by_the_watchdog(manifest, tmp_path):
 
 
 def test_memory_ceiling_breach_is_stopped_and_reported(manifest, tmp_path):
-    s = run(manifest, tmp_path, fault="oom@0")
+    # Filling 1 GiB takes 0.2 s on a quiet core but > 5 s on a shared one: a generous deadline keeps
+    # the hang watchdog out of the way, so the memory watchdog is what must fire.
+    s = run(manifest, tmp_path, fault="oom@0", deadline_s=10.0)
     assert s["records"][0]["status"] == "error" and s["records"][0]["code"] == "memory_ceiling"
     assert "memory ceiling" in s["records"][0]["text"]
     assert [r["status"] for r in s["records"][1:]] == ["result", "result"]
