@@ -10,6 +10,7 @@ read bilinearly, so the grid has no holes from perspective sampling.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -101,17 +102,43 @@ def sample_grid(grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float,
 
 
 def combine(slope_deg: np.ndarray | None, rough_m: np.ndarray | None, shadow: np.ndarray, rock: np.ndarray,
-            covered: np.ndarray, slope_limit_deg: float = 15.0, rough_limit_m: float = 0.30) -> np.ndarray:
+            covered: np.ndarray, slope_limit_deg: float = 15.0, rough_limit_m: float = 0.30,
+            margin_px: float = 0.0) -> np.ndarray:
     """Hazard = max of the scaled layers (sec 4.4.5); NaN outside ``covered``.
 
     With a DEM (``slope_deg`` given), a covered point whose slope or roughness
     is unknown is unsafe (1): flight software must not call unknown ground safe.
-    Without one (image-only level) only shadow and rocks count.
+    Without one (image-only level) only shadow and rocks count. ``margin_px``
+    widens the measured DEM layer (:func:`widen_hazards`) before the maximum;
+    the image cues are pixel-exact and rocks are already dilated.
     """
     haz = np.maximum(np.asarray(shadow, np.float32), np.asarray(rock, np.float32))
     if slope_deg is not None:
         s = np.minimum(slope_deg / np.float32(slope_limit_deg), 1.0)
         r = np.minimum(rough_m / np.float32(rough_limit_m), 1.0)
-        dem = np.maximum(s, r)
+        dem = widen_hazards(np.maximum(s, r).astype(np.float32), margin_px)
         haz = np.maximum(haz, np.where(np.isfinite(dem), dem, np.float32(1.0)))
     return np.where(covered, haz, np.nan).astype(np.float32)
+
+
+def widen_hazards(hazard: np.ndarray, margin_px: float) -> np.ndarray:
+    """Keep-out margin: ``h'(p) = max{h(q) : |q - p| <= margin_px}`` (grey dilation by a disk).
+
+    Not in the thesis. The correlation window blurs the DEM, so a slope hazard's
+    edge is only known to about a pixel; without a margin the pixels just
+    outside an estimated hazard carry most undetected hazards (on ground_sim's
+    approach pairs, 75-88 % of false "safe" pixels lie within 2 px of an
+    estimated hazard). NaN (unknown) neither spreads nor is filled.
+    ``margin_px = 0`` returns the map unchanged.
+    """
+    if not (math.isfinite(margin_px) and margin_px >= 0):
+        raise ValueError(f"margin_px must be finite and >= 0, got {margin_px}")
+    r = int(math.floor(margin_px))
+    if r == 0:
+        return hazard
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disk = ((xx * xx + yy * yy) <= margin_px * margin_px + 1e-9).astype(np.uint8)
+    outside = np.isnan(hazard)
+    grown = cv2.dilate(np.where(outside, np.float32(0.0), hazard).astype(np.float32), disk,
+                       borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return np.where(outside, np.nan, grown).astype(np.float32)

@@ -36,7 +36,7 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError:
             raise RenderError(f"--sun: expected AZ,EL in degrees, got {args.sun!r}") from None
         sun = Sun(az, el)
-    scene = args.scene or ("approach" if args.scenario == "approach" else "default")
+    scene = args.scene or None   # None: the scenario's default scene
     pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs else None
     out = render_scenario(args.scenario, args.out, scene=scene, seed=args.seed, pairs=pairs, pose_error=pe,
                           progress=not args.no_progress, sun=sun, supersample=args.supersample)

@@ -58,13 +58,24 @@ def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
     sys.stderr.flush()
 
 
-def render_scenario(spec: str | Path, out_dir: str | Path, *, scene: str | Path | Scene = "default",
+def default_scene(scenario: str) -> str:
+    """Scene preset a scenario is rendered on unless told otherwise.
+
+    The approach scenario flies over the thesis's safer area (Table 6.8, fewer
+    hazards than the vertical descent's Table 6.1 scene); everything else,
+    custom trajectories included, uses ``default``.
+    """
+    return "approach" if scenario == "approach" else "default"
+
+
+def render_scenario(spec: str | Path, out_dir: str | Path, *, scene: str | Path | Scene | None = None,
                     seed: int = 0, pairs: list[str] | None = None, pose_error: PoseError | None = None,
                     progress: bool = True, sun: Sun | None = None, supersample: int = 2,
                     camera: Camera | None = None) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
 
-    ``camera`` replaces the scenario's camera (e.g. a smaller sensor with the same FOV).
+    ``camera`` replaces the scenario's camera (e.g. a smaller sensor with the same FOV);
+    ``scene=None`` renders on :func:`default_scene` of the scenario.
     """
     specs = load_trajectory(spec, camera)
     if pairs:
@@ -73,8 +84,8 @@ def render_scenario(spec: str | Path, out_dir: str | Path, *, scene: str | Path 
         if missing:
             raise TrajectoryError(f"unknown pair(s) {missing}; this scenario has {list(known)}")
         specs = [known[p] for p in pairs]
-    sc = scene if isinstance(scene, Scene) else load_scene(scene, seed)
     name = specs[0].scenario
+    sc = scene if isinstance(scene, Scene) else load_scene(scene if scene is not None else default_scene(name), seed)
     sun = sun or DEFAULT_SUN.get(name, Sun(135.0, 25.0))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

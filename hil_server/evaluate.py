@@ -466,8 +466,10 @@ def render_cache(scenario: str, seed: int, cache_dir: str | Path, *, camera_px: 
 
 
 def scenario_scene(scenario: str) -> str:
-    """Scene preset per scenario: the approach scenario is the thesis's safer area (Table 6.8)."""
-    return "approach" if scenario == "approach" else "default"
+    """Scene preset per scenario (:func:`ground_sim.descent.default_scene`, as ``render`` and ``run`` use)."""
+    from ground_sim.descent import default_scene
+
+    return default_scene(scenario)
 
 
 # --------------------------------------------------------------------------- campaigns

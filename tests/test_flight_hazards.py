@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from flight_sw.mapping import HazardGrid, combine, grid_extent, grid_xy, sample_grid
+from flight_sw.mapping import HazardGrid, combine, grid_extent, grid_xy, sample_grid, widen_hazards
 from flight_sw.rocks import rock_mask
 from flight_sw.shadow import shadow_mask, shadow_threshold
 from flight_sw.sites import footprint_stats, select_sites
@@ -83,6 +83,30 @@ def test_combine_on_artificial_maps():
     assert np.isnan(combine(slope, rough, shadow, rock, cov)[0, 0])
     # image-only: DEM layers ignored
     np.testing.assert_allclose(combine(None, None, shadow, rock, np.ones((1, 6), bool)), [[0, 0, 0, 0, 1, 1]])
+
+
+def test_keep_out_margin_grows_hazards_by_a_disk_and_leaves_uncovered_alone():
+    h = np.zeros((9, 9), np.float32)
+    h[4, 4] = 1.0
+    h[0, :] = np.nan                                   # outside the covered area
+    h[8, 8] = 0.4
+    assert widen_hazards(h, 0.0) is h
+    w = widen_hazards(h, 1.0)
+    unsafe = w >= 1.0
+    assert unsafe.sum() == 5 and unsafe[3:6, 4].all() and unsafe[4, 3:6].all()   # 4-neighbours, no corners
+    assert np.isnan(w[0]).all() and not np.isnan(w[1:]).any()
+    assert w[7, 8] == pytest.approx(0.4) and w[7, 7] == 0.0 and w[8, 8] == pytest.approx(0.4)   # graded values too
+    w2 = widen_hazards(h, 2.0)
+    assert (w2 >= 1.0).sum() == 13 and w2[2, 4] == 1.0 and w2[3, 3] == 1.0 and w2[2, 3] < 1.0
+    with pytest.raises(ValueError):
+        widen_hazards(h, float("nan"))
+    # in combine: only the measured DEM layer is widened; image cues and unknown DEM stay put
+    slope = np.zeros((1, 9), np.float32)
+    slope[0, 1], slope[0, 7] = 30.0, np.nan
+    shadow = np.zeros((1, 9), bool)
+    shadow[0, 4] = True
+    out = combine(slope, np.zeros_like(slope), shadow, np.zeros_like(shadow), np.ones((1, 9), bool), margin_px=1.0)
+    np.testing.assert_array_equal(out[0] >= 1, [1, 1, 1, 0, 1, 0, 0, 1, 0])
 
 
 def test_grid_round_trip():

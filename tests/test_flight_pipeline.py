@@ -64,8 +64,11 @@ def test_pipeline_measures_roof_slope(slope_deg):
     flank = res.covered & (np.abs(X) > 4) & np.isfinite(res.slope_deg)
     assert flank.sum() > 500
     assert np.median(res.slope_deg[flank]) == pytest.approx(slope_deg, abs=1.5)
+    assert (res.slope_deg[flank] >= 15).mean() > 0.9 if slope_deg > 15 else (res.slope_deg[flank] >= 15).mean() < 0.05
     unsafe = res.hazard[flank] >= 1
-    assert unsafe.mean() > 0.9 if slope_deg > 15 else unsafe.mean() < 0.5
+    # 10 deg: the shading cue (the lit and the dark flank differ) and the 1 px keep-out margin
+    # still call part of the flank unsafe; it must stay far from "everything unsafe"
+    assert unsafe.mean() > 0.9 if slope_deg > 15 else unsafe.mean() < 0.7
 
 
 def test_oblique_approach_pair():

@@ -222,6 +222,23 @@ def test_render_pair_and_scenario_files(tmp_path):
     assert (out / "contact.png").stat().st_size > 1000
 
 
+def test_each_scenario_renders_on_its_own_scene_unless_told(tmp_path):
+    """`render`, `run` and `evaluate` must score the same terrain: the approach flies the safer area."""
+    from ground_sim.descent import default_scene
+    from hil_server.evaluate import scenario_scene
+
+    from hil_server.run import scaled_camera
+
+    small = scaled_camera(48)
+    out = render_scenario("approach", tmp_path / "a", pairs=["250/125"], camera=small, progress=False)
+    assert json.loads((out / "manifest.json").read_text())["scene"] == "approach"
+    out = render_scenario("approach", tmp_path / "b", scene="default", pairs=["250/125"], camera=small,
+                          progress=False)
+    assert json.loads((out / "manifest.json").read_text())["scene"] == "default"
+    assert [default_scene(s) for s in ("vertical", "approach", "custom")] == ["default", "approach", "default"]
+    assert scenario_scene("approach") == default_scene("approach")
+
+
 @pytest.mark.parametrize("text,msg", [("[terrain]\nhurst = 2\n", "hurst"), ("[terrain]\nbogus = 1\n", "bogus"),
                                       ("[terrain\n", "invalid TOML"), ("[[feature]]\nkind='tree'\n", "kind")])
 def test_invalid_scene_files_give_clear_errors(tmp_path, text, msg):
