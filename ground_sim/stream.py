@@ -133,21 +133,19 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
                 o.telemetry = msg
             if o is not None and o.finished and o.seqs in want:
                 want.discard(o.seqs)
-                rec = write_outcome(out_dir, o)
-                records.append(rec)
-                results_file.write(json.dumps(rec, sort_keys=True) + "\n")
-                results_file.flush()
-                if progress:
-                    progress(rec)
+                record(o)
 
-    def give_up(o: PairOutcome, code: str, text: str) -> None:
-        o.error = Error(code=code, seq=o.seqs[1], text=text)
+    def record(o: PairOutcome) -> None:
         rec = write_outcome(out_dir, o)
         records.append(rec)
         results_file.write(json.dumps(rec, sort_keys=True) + "\n")
         results_file.flush()
         if progress:
             progress(rec)
+
+    def give_up(o: PairOutcome, code: str, text: str) -> None:
+        o.error = Error(code=code, seq=o.seqs[1], text=text)
+        record(o)
 
     try:
         for i, entry in enumerate(entries):

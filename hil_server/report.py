@@ -19,6 +19,17 @@ CONFUSION_BGR = {"TP": (80, 175, 76), "TN": (54, 67, 244), "FP": (255, 0, 255), 
 PANEL_PX = 200
 
 
+def _save(fig, path: str | Path) -> Path:
+    """Write ``fig`` as a PNG (creating the folder) and release it."""
+    import matplotlib.pyplot as plt
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    return p
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
@@ -193,11 +204,7 @@ def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scen
     axes[1].legend(fontsize=7)
     fig.suptitle(f"{scenario} scenario")
     fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
 
 
 def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) -> Path:
@@ -240,11 +247,7 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
             ax.legend(fontsize=7)
         ax.set_title(f"{kind} errors, preset {preset}")
     fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
 
 
 # --------------------------------------------------------------------------- tables
