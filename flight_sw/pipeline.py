@@ -115,7 +115,7 @@ PRESETS: dict[str, Params] = {
     # Confidence rejection, photometric cues and gap filling (issue #6): tuned on approach/vertical
     # seeds 0-1, seed 2 held out (docs/benchmarks/pipeline.md).
     # A 1 px keep-out margin around slope/roughness hazards (issue #6 follow-up): approach 300 m
-    # seed 0 FP 1.23 -> 0.86 % for ~5 points more false alarms (docs/benchmarks/pipeline.md).
+    # seed 0 FP 1.23 -> 0.86 % for 5-15 points more false alarms (docs/benchmarks/pipeline.md).
     "fast": Params(name="fast", half_window=10, cost="ssd", reject_rel_uncertainty=1.5,
                    shadow_dark_rel=0.1, shading_limit=0.15, fill_gap_px=8, hazard_margin_px=1.0),
     "thesis": Params(name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False,
