@@ -36,22 +36,24 @@ def _gone(pid: int) -> bool:
 
 
 def test_throttle_accuracy_and_wall_scaling():
-    """Achieved fraction within 20 % of the target; available wall time = CPU work / fraction.
+    """Achieved fraction within 10 % of the target; available wall time = CPU work / fraction.
 
     Achieved = cpu / (wall - contention), contention being the child's run-queue
     wait (the host running other jobs on its core), so this holds on a loaded host.
-    The bound is loose on purpose: a broken throttle is off by integer factors,
-    while a 2-core host saturated by other jobs costs up to ~11 % at f = 0.05.
-    The accuracy itself (-1.7 ... +3.6 %) is measured by bench/bench_throttle.py.
+    At f = 0.05 the bound is 20 %: there the child runs in ~1 ms slices, and on a
+    2-core host saturated by other jobs the late wake-up of the throttling thread
+    alone cost 11 %. On a quiet host every fraction is within -1.7 ... +3.6 %
+    (bench/bench_throttle.py).
     """
     rows = []
     for f in (0.05, 0.25, 0.5, 1.0):
         report, s, _ = _run(ProcessorSpec(cpu_fraction=f), BUSY.format(cpu=1.2 * f))
         assert report.kind == "ok", report
         rows.append((f, s))
-        assert s["achieved_fraction"] == pytest.approx(f, rel=0.20), (f, s)
+        rel = 0.10 if f >= 0.25 else 0.20
+        assert s["achieved_fraction"] == pytest.approx(f, rel=rel), (f, s)
         avail = s["wall_s"] - s["contention_s"]
-        assert avail == pytest.approx(s["cpu_s"] / f, rel=0.20), (f, s)
+        assert avail == pytest.approx(s["cpu_s"] / f, rel=rel), (f, s)
         if f < 1.0:
             assert s["stops"] > 5  # really duty-cycled, not one long pause
     # Same CPU work per unit of fraction -> the wall time of each run is ~1.2 s + startup,
