@@ -176,12 +176,12 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         manifest = _render(cfg, out / "pairs") / "manifest.json"
 
     bridge = None
+    channels: dict = {}   # serial line faults by direction (--corrupt)
     if cfg.link == "serial":
         from protocol.faults import PtyBridge
 
         # Two raw ptys joined by a relay: each process opens a real serial device path.
         baud = cfg.baud if cfg.baud is not None else budget.baud
-        channels = {}
         if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
             from protocol.faults import CorruptingChannel
 
@@ -238,11 +238,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             rec = json.loads(line)
             if rec.get("event") == "summary":
                 counters = {k: v for k, v in rec.items() if k != "event"}
-    if bridge is not None and channels:
-        extra_link = {d: ch.stats for d, ch in channels.items()}
-    else:
-        extra_link = {}
-    summary = summarize(records, cfg, {"cpu_fraction": fraction, "deadline_s": deadline, "line_faults": extra_link,
+    line_faults = {d: ch.stats for d, ch in channels.items()}
+    summary = summarize(records, cfg, {"cpu_fraction": fraction, "deadline_s": deadline, "line_faults": line_faults,
                                        "memory_mib": budget.memory_mib, "wall_s": wall,
                                        "supervisor_counters": counters})
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=float) + "\n")
