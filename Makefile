@@ -4,13 +4,16 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 OUT    ?= out
+PACKAGES := ground_sim flight_sw protocol hil_server studies reports
 
-.PHONY: demo test bench install clean
+.PHONY: demo test lint bench install clean
 
+# PYTHONWARNINGS: setuptools warns that an editable install is editable; nothing else is hidden
+# (a failed install still fails the target).
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -18,11 +21,16 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/hazard-hil demo --out $(OUT)/demo
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy $(PACKAGES)
+
+test: lint
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache

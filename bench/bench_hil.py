@@ -8,6 +8,7 @@ results. Writes ``docs/benchmarks/hil.md``.
 
     .venv/bin/python bench/bench_hil.py [--budgets host,snapdragon801,rad750,gr740] [--pairs 600/300,300/150]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,20 +43,33 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.budgets.split(","):
         b = get_budget(name)
         t0 = time.monotonic()
-        s = run_descent(RunConfig(scenario=args.scenario, link=b.link, budget=name, out=work / name,
-                                  manifest=manifest), log=lambda m: print(m, file=sys.stderr))
+        s = run_descent(
+            RunConfig(scenario=args.scenario, link=b.link, budget=name, out=work / name, manifest=manifest),
+            log=lambda m: print(m, file=sys.stderr),
+        )
         recs = [r for r in s["records"] if r["status"] == "result"]
-        rows.append({
-            "budget": name, "link": b.link + (f" {b.baud:,} baud" if b.link == "serial" and b.baud else ""),
-            "fraction": s["cpu_fraction"], "deadline": s["deadline_s"], "pairs": s["pairs"],
-            "results": s["results"], "errors": s["errors"], "hit": s["deadline_hit_rate"],
-            "p50": s["latency_p50_s"], "p95": s["latency_p95_s"], "max": s["latency_max_s"],
-            "levels": ",".join(sorted({r["level"] for r in recs})) or "-",
-            "achieved": statistics.median([r["cpu_fraction"] for r in recs]) if recs else float("nan"),
-            "frames_link": statistics.median([r["link_s"] for r in recs]) if recs else float("nan"),
-            "result_link": statistics.median([r["link"].get("result_link_s", 0.0) for r in recs]) if recs else float("nan"),
-            "wall": time.monotonic() - t0,
-        })
+        rows.append(
+            {
+                "budget": name,
+                "link": b.link + (f" {b.baud:,} baud" if b.link == "serial" and b.baud else ""),
+                "fraction": s["cpu_fraction"],
+                "deadline": s["deadline_s"],
+                "pairs": s["pairs"],
+                "results": s["results"],
+                "errors": s["errors"],
+                "hit": s["deadline_hit_rate"],
+                "p50": s["latency_p50_s"],
+                "p95": s["latency_p95_s"],
+                "max": s["latency_max_s"],
+                "levels": ",".join(sorted({r["level"] for r in recs})) or "-",
+                "achieved": statistics.median([r["cpu_fraction"] for r in recs]) if recs else float("nan"),
+                "frames_link": statistics.median([r["link_s"] for r in recs]) if recs else float("nan"),
+                "result_link": statistics.median([r["link"].get("result_link_s", 0.0) for r in recs])
+                if recs
+                else float("nan"),
+                "wall": time.monotonic() - t0,
+            }
+        )
         print(json.dumps(rows[-1]), file=sys.stderr)
 
     lines = [
@@ -63,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Measured {time.strftime('%Y-%m-%d')}: `{args.scenario}` pairs {', '.join(pairs)} at 512x512, `fast` preset, "
         f"lockstep pacing. Host calibration: "
-        + (f"{cal.units_per_s:.1f} reference units/s ({cal.cpu_model})" if cal else "none (anchor assumed)") + ".",
+        + (f"{cal.units_per_s:.1f} reference units/s ({cal.cpu_model})" if cal else "none (anchor assumed)")
+        + ".",
         "",
         "Latency = last frame in -> result out at the HIL server (the result's own line time is the",
         "`result link` column). Achieved = the flight process's CPU time over the wall time it could",
@@ -71,14 +86,17 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "Reproduce: `.venv/bin/python bench/bench_hil.py`",
         "",
-        "| budget | link | duty | deadline s | results | hit rate | latency p50 / p95 / max s | level | achieved | frames link s | result link s |",
+        "| budget | link | duty | deadline s | results | hit rate | latency p50 / p95 / max s | level | achieved "
+        "| frames link s | result link s |",
         "|---|---|---:|---:|---:|---:|---|---|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(f"| {r['budget']} | {r['link']} | {r['fraction']:.4f} | {r['deadline']:g} | "
-                     f"{r['results']}/{r['pairs']} | {100 * r['hit']:.0f} % | {r['p50']:.2f} / {r['p95']:.2f} / "
-                     f"{r['max']:.2f} | {r['levels']} | {r['achieved']:.3f} | {r['frames_link']:.2f} | "
-                     f"{r['result_link']:.2f} |")
+        lines.append(
+            f"| {r['budget']} | {r['link']} | {r['fraction']:.4f} | {r['deadline']:g} | "
+            f"{r['results']}/{r['pairs']} | {100 * r['hit']:.0f} % | {r['p50']:.2f} / {r['p95']:.2f} / "
+            f"{r['max']:.2f} | {r['levels']} | {r['achieved']:.3f} | {r['frames_link']:.2f} | "
+            f"{r['result_link']:.2f} |"
+        )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -6,6 +6,7 @@ Without ``--pair`` it renders a seeded synthetic 600 m -> 300 m vertical pair
 (textured terrain with craters, tests/synthetic.py). OpenCV runs single-threaded
 and the process is pinned to one CPU. Timings are medians over ``--runs``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -81,8 +82,9 @@ def ablation(i1, i2, p1, p2, cam, z) -> dict:
         for cost in ("ssd", "sad"):
             for pre in (False, True):
                 for mask in (False, True):
-                    variants[f"{base} {cost} prefilter={int(pre)} rocks_masked={int(mask)}"] = \
-                        dataclasses.replace(PRESETS[base], cost=cost, prefilter=pre, mask_rocks=mask)
+                    variants[f"{base} {cost} prefilter={int(pre)} rocks_masked={int(mask)}"] = dataclasses.replace(
+                        PRESETS[base], cost=cost, prefilter=pre, mask_rocks=mask
+                    )
     for w in (4, 5, 8):
         variants[f"fast W={w}"] = dataclasses.replace(PRESETS["fast"], half_window=w)
     variants["fast step=0.25px"] = dataclasses.replace(PRESETS["fast"], disparity_step_px=0.25)
@@ -95,11 +97,18 @@ def ablation(i1, i2, p1, p2, cam, z) -> dict:
         dt = time.perf_counter() - t0
         e = res.elevation - z
         ok = np.isfinite(e)
-        row = {"wall_s": dt, "mean_abs_m": float(np.abs(e[ok]).mean()), "p99_abs_m": float(np.percentile(np.abs(e[ok]), 99)),
-               "frac_gt_1m": float((np.abs(e[ok]) > 1.0).mean()), "valid": res.valid_fraction}
+        row = {
+            "wall_s": dt,
+            "mean_abs_m": float(np.abs(e[ok]).mean()),
+            "p99_abs_m": float(np.percentile(np.abs(e[ok]), 99)),
+            "frac_gt_1m": float((np.abs(e[ok]) > 1.0).mean()),
+            "valid": res.valid_fraction,
+        }
         out[name] = row
-        print(f"  {name:45s} {dt:6.3f} s  mean|e| {row['mean_abs_m']:.3f} m  p99 {row['p99_abs_m']:.2f} m  "
-              f">1m {row['frac_gt_1m']:.2%}  valid {row['valid']:.1%}")
+        print(
+            f"  {name:45s} {dt:6.3f} s  mean|e| {row['mean_abs_m']:.3f} m  p99 {row['p99_abs_m']:.2f} m  "
+            f">1m {row['frac_gt_1m']:.2%}  valid {row['valid']:.1%}"
+        )
     return out
 
 
@@ -110,8 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--presets", nargs="+", default=["fast", "thesis"])
     ap.add_argument("--json", help="write the summary here")
-    ap.add_argument("--ablation", action="store_true",
-                    help="also compare prefilter / rock masking / SAD vs SSD / window (DEM error only)")
+    ap.add_argument(
+        "--ablation",
+        action="store_true",
+        help="also compare prefilter / rock masking / SAD vs SSD / window (DEM error only)",
+    )
     args = ap.parse_args(argv)
 
     cv2.setNumThreads(1)
@@ -146,20 +158,33 @@ def main(argv: list[str] | None = None) -> int:
             res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
         traced = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
-        row = {"median_wall_s": statistics.median(walls), "min_wall_s": min(walls), "max_wall_s": max(walls),
-               "stages": {k: {"wall_s": statistics.median(a for a, _ in v), "cpu_s": statistics.median(b for _, b in v)}
-                          for k, v in stages.items()},
-               "peak_rss_growth_mb": mem.peak - mem.base, "peak_numpy_alloc_mb": traced,
-               "level": res.level, "valid_fraction": res.valid_fraction, "info": res.info}
+        row = {
+            "median_wall_s": statistics.median(walls),
+            "min_wall_s": min(walls),
+            "max_wall_s": max(walls),
+            "stages": {
+                k: {"wall_s": statistics.median(a for a, _ in v), "cpu_s": statistics.median(b for _, b in v)}
+                for k, v in stages.items()
+            },
+            "peak_rss_growth_mb": mem.peak - mem.base,
+            "peak_numpy_alloc_mb": traced,
+            "level": res.level,
+            "valid_fraction": res.valid_fraction,
+            "info": res.info,
+        }
         if z is not None:
             e = res.elevation - z
             ok = np.isfinite(e)
             row["dem_mean_abs_m"] = float(np.abs(e[ok]).mean())
             row["dem_median_m"] = float(np.median(e[ok]))
         summary["presets"][preset] = row
-        print(f"{preset:7s} median {row['median_wall_s']:.3f} s (min {row['min_wall_s']:.3f}, max "
-              f"{row['max_wall_s']:.3f}), peak RSS growth {row['peak_rss_growth_mb']:.1f} MB (numpy peak {row['peak_numpy_alloc_mb']:.1f} MB), valid "
-              f"{row['valid_fraction']:.1%}" + (f", DEM mean |err| {row['dem_mean_abs_m']:.3f} m" if z is not None else ""))
+        print(
+            f"{preset:7s} median {row['median_wall_s']:.3f} s (min {row['min_wall_s']:.3f}, max "
+            f"{row['max_wall_s']:.3f}), peak RSS growth {row['peak_rss_growth_mb']:.1f} MB "
+            f"(numpy peak {row['peak_numpy_alloc_mb']:.1f} MB), valid "
+            f"{row['valid_fraction']:.1%}"
+            + (f", DEM mean |err| {row['dem_mean_abs_m']:.3f} m" if z is not None else "")
+        )
         for k, v in row["stages"].items():
             print(f"    {k:11s} wall {v['wall_s'] * 1e3:8.1f} ms   cpu {v['cpu_s'] * 1e3:8.1f} ms")
     if args.ablation and z is not None:

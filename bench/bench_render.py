@@ -5,6 +5,7 @@ the approach scenario), default scene; wall-clock median/min/max and the median 
 (time.process_time, less sensitive to other jobs on a shared machine). Usage:
     .venv/bin/python bench/bench_render.py [--repeat 5] [--out docs/benchmarks/render.md]
 """
+
 from __future__ import annotations
 
 import os
@@ -13,21 +14,26 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
+import argparse
+import statistics
+import time
 
-import cv2  # noqa: E402
+import cv2
 
-from ground_sim.geometry import look_rotation  # noqa: E402
-from ground_sim.render import render_view  # noqa: E402
-from ground_sim.scene import load_scene  # noqa: E402
-from protocol.pairdir import Camera, Pose, Sun  # noqa: E402
+from ground_sim.geometry import look_rotation
+from ground_sim.render import render_view
+from ground_sim.scene import load_scene
+from protocol.pairdir import Camera, Pose, Sun
 
-CASES = [("nadir 1000 m", (0, 0, 1000), 0.0), ("nadir 300 m", (0, 0, 300), 0.0),
-         ("nadir 100 m", (0, 0, 100), 0.0), ("nadir 50 m", (0, 0, 50), 0.0),
-         ("oblique 49deg 2400 m", (0, -2400, 2400), 49.0), ("oblique 49deg 1200 m", (0, -1200, 1200), 49.0),
-         ("oblique 40deg 250 m", (0, -250, 250), 40.0)]
+CASES = [
+    ("nadir 1000 m", (0, 0, 1000), 0.0),
+    ("nadir 300 m", (0, 0, 300), 0.0),
+    ("nadir 100 m", (0, 0, 100), 0.0),
+    ("nadir 50 m", (0, 0, 50), 0.0),
+    ("oblique 49deg 2400 m", (0, -2400, 2400), 49.0),
+    ("oblique 49deg 1200 m", (0, -1200, 1200), 49.0),
+    ("oblique 40deg 250 m", (0, -250, 250), 40.0),
+]
 
 
 def main() -> None:
@@ -41,23 +47,39 @@ def main() -> None:
     rows = []
     for name, pos, tilt in CASES:
         pose = Pose(pos, look_rotation(tilt))
-        render_view(scene, cam, pose, Sun(135, 25), seed=0)        # warm-up
+        render_view(scene, cam, pose, Sun(135, 25), seed=0)  # warm-up
         ts, cs = [], []
         for k in range(args.repeat):
             t0, c0 = time.perf_counter(), time.process_time()
             v = render_view(scene, cam, pose, Sun(135, 25), seed=k)
             ts.append(time.perf_counter() - t0)
             cs.append(time.process_time() - c0)
-        rows.append((name, statistics.median(ts), min(ts), max(ts), statistics.median(cs),
-                     v.info["raster_shape"], v.info["raster_cell_m"]))
-        print(f"{name:24s} median {rows[-1][1]:.2f} s  (min {min(ts):.2f}, max {max(ts):.2f}, "
-              f"cpu median {rows[-1][4]:.2f}) raster {v.info['raster_shape']} "
-              f"cell {v.info['raster_cell_m']:.3f} m", flush=True)
+        rows.append(
+            (
+                name,
+                statistics.median(ts),
+                min(ts),
+                max(ts),
+                statistics.median(cs),
+                v.info["raster_shape"],
+                v.info["raster_cell_m"],
+            )
+        )
+        print(
+            f"{name:24s} median {rows[-1][1]:.2f} s  (min {min(ts):.2f}, max {max(ts):.2f}, "
+            f"cpu median {rows[-1][4]:.2f}) raster {v.info['raster_shape']} "
+            f"cell {v.info['raster_cell_m']:.3f} m",
+            flush=True,
+        )
     if args.out:
-        lines = ["| case | median s | min s | max s | CPU median s | raster (rows x cols) | cell m |",
-                 "|---|---|---|---|---|---|---|"]
-        lines += [f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {cp:.2f} | {s[0]}x{s[1]} | {c:.3f} |"
-                  for n, m, lo, hi, cp, s, c in rows]
+        lines = [
+            "| case | median s | min s | max s | CPU median s | raster (rows x cols) | cell m |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {cp:.2f} | {s[0]}x{s[1]} | {c:.3f} |"
+            for n, m, lo, hi, cp, s, c in rows
+        ]
         with open(args.out, "w") as fh:
             fh.write("\n".join(lines) + "\n")
 

@@ -11,6 +11,7 @@
 4. Supervisor overhead: CPU the throttle/watchdog threads cost the supervisor.
 Medians of repeats; the machine is shared with other jobs, so raw fractions are noisy.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,23 +24,28 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil_server.procemu import EmulatedProcessor, ProcessorSpec  # noqa: E402
+from hil_server.procemu import EmulatedProcessor, ProcessorSpec
 
 PY = sys.executable
 BUSY = "import time\nt = time.process_time()\nwhile time.process_time() - t < {cpu}: pass\n"
 # Times its own work: wall, CPU and run-queue wait (contention) over the units only.
-UNITS = ("from hil_server.calibrate import make_inputs, run_unit\nimport cv2, time\ncv2.setNumThreads(1)\n"
-         "a = make_inputs()\nrun_unit(*a)\n"
-         "def wait(): return int(open('/proc/self/schedstat').read().split()[1]) / 1e9\n"
-         "w0, c0, q0 = time.monotonic(), time.process_time(), wait()\n"
-         "for _ in range({n}): run_unit(*a)\n"
-         "print(time.monotonic() - w0, time.process_time() - c0, wait() - q0)\n")
+UNITS = (
+    "from hil_server.calibrate import make_inputs, run_unit\nimport cv2, time\ncv2.setNumThreads(1)\n"
+    "a = make_inputs()\nrun_unit(*a)\n"
+    "def wait(): return int(open('/proc/self/schedstat').read().split()[1]) / 1e9\n"
+    "w0, c0, q0 = time.monotonic(), time.process_time(), wait()\n"
+    "for _ in range({n}): run_unit(*a)\n"
+    "print(time.monotonic() - w0, time.process_time() - c0, wait() - q0)\n"
+)
 
 
 def run(f: float, code: str, period: float = 0.02, capture: bool = False) -> tuple[dict, str]:
     proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=f, throttle_period_s=period))
-    popen = proc.start([PY, "-c", code], stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
-                       cwd=str(Path(__file__).resolve().parents[1]))
+    popen = proc.start(
+        [PY, "-c", code],
+        stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
+        cwd=str(Path(__file__).resolve().parents[1]),
+    )
     out = popen.stdout.read().decode() if capture else ""
     report = proc.wait(600)
     stats = proc.stats()
@@ -60,16 +66,22 @@ def main() -> int:
     fractions = (0.05, 0.25, 0.5, 1.0) if args.quick else (0.008, 0.017, 0.05, 0.1, 0.25, 0.33, 0.5, 0.75, 1.0)
     reps = 1 if args.quick else 3
     window = 2.0 if args.quick else 3.0
-    lines = ["# Throttle accuracy (emulated flight processor)", "",
-             f"Host: {os.cpu_count()} cores, load average at start {os.getloadavg()[0]:.2f} "
-             "(other engineers' jobs share the machine). Command: `.venv/bin/python bench/bench_throttle.py"
-             f"{' --quick' if args.quick else ''}`.",
-             "", "Achieved = child CPU time / (wall - contention), contention = the child's run-queue wait "
-             "(runnable, but the host ran another process on its core); raw = CPU / wall. "
-             f"Median of {reps} run(s) of ~{window:g} s each; P = 20 ms.", "",
-             "## 1. Busy loop", "",
-             "| target | achieved | error | raw cpu/wall | contention s | stops/s | wall s |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "# Throttle accuracy (emulated flight processor)",
+        "",
+        f"Host: {os.cpu_count()} cores, load average at start {os.getloadavg()[0]:.2f} "
+        "(other engineers' jobs share the machine). Command: `.venv/bin/python bench/bench_throttle.py"
+        f"{' --quick' if args.quick else ''}`.",
+        "",
+        "Achieved = child CPU time / (wall - contention), contention = the child's run-queue wait "
+        "(runnable, but the host ran another process on its core); raw = CPU / wall. "
+        f"Median of {reps} run(s) of ~{window:g} s each; P = 20 ms.",
+        "",
+        "## 1. Busy loop",
+        "",
+        "| target | achieved | error | raw cpu/wall | contention s | stops/s | wall s |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     self_cpu0, self_wall0 = time.process_time(), time.monotonic()
     busy_wall = 0.0
     for f in fractions:
@@ -79,17 +91,24 @@ def main() -> int:
             busy_wall += s["wall_s"]
             rs.append(s)
         ach = med([s["achieved_fraction"] for s in rs])
-        row = (f"| {f:.3f} | {ach:.4f} | {100 * (ach / f - 1):+.1f} % | {med([s['raw_fraction'] for s in rs]):.4f} "
-               f"| {med([s['contention_s'] for s in rs]):.2f} | {med([s['stops'] / s['wall_s'] for s in rs]):.0f} "
-               f"| {med([s['wall_s'] for s in rs]):.2f} |")
+        row = (
+            f"| {f:.3f} | {ach:.4f} | {100 * (ach / f - 1):+.1f} % | {med([s['raw_fraction'] for s in rs]):.4f} "
+            f"| {med([s['contention_s'] for s in rs]):.2f} | {med([s['stops'] / s['wall_s'] for s in rs]):.0f} "
+            f"| {med([s['wall_s'] for s in rs]):.2f} |"
+        )
         print(row, flush=True)
         lines.append(row)
     overhead = (time.process_time() - self_cpu0) / max(time.monotonic() - self_wall0, 1e-9)
 
-    lines += ["", "## 2. Reference workload (plane-sweep image ops), wall time scaling", "",
-              "Timed by the child over its units only. Expected wall - contention = CPU / f.", "",
-              "| target | units | CPU s | wall s | contention s | (wall - contention) x f / CPU |",
-              "|---:|---:|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "## 2. Reference workload (plane-sweep image ops), wall time scaling",
+        "",
+        "Timed by the child over its units only. Expected wall - contention = CPU / f.",
+        "",
+        "| target | units | CPU s | wall s | contention s | (wall - contention) x f / CPU |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
     n = 10 if args.quick else 20
     for f in (1.0, 0.5, 0.25, 0.1, 0.05):
         rows = []
@@ -102,8 +121,13 @@ def main() -> int:
         print(row, flush=True)
         lines.append(row)
 
-    lines += ["", "## 3. Contention: a competing busy process pinned to the same core", "",
-              "| target | achieved | raw cpu/wall | contention s |", "|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "## 3. Contention: a competing busy process pinned to the same core",
+        "",
+        "| target | achieved | raw cpu/wall | contention s |",
+        "|---:|---:|---:|---:|",
+    ]
     core = max(os.sched_getaffinity(0))
     hog = subprocess.Popen([PY, "-c", "while True: pass"], preexec_fn=lambda: os.sched_setaffinity(0, {core}))
     try:
@@ -116,22 +140,31 @@ def main() -> int:
         hog.kill()
         hog.wait()
 
-    lines += ["", "## 4. Supervisor overhead", "",
-              f"The benchmark process (throttle thread + reaper, nothing else running) used "
-              f"{100 * overhead:.1f} % of a core during section 1 ({busy_wall:.0f} s of throttled runs).", ""]
-    lines += ["## How to read this", "",
-              "- The throttle is closed loop on the child's own CPU time from `/proc/PID/task/*/schedstat` (ns). "
-              "`psutil.Process.cpu_times()` ticks at 10 ms, coarser than the ~1 ms running slice at low duty.",
-              "- Each duty cycle is ~P = 20 ms stopped and f P / (1 - f) running; P is raised so that the "
-              "running slice is >= 1 ms (RAD750 at f ~ 0.017: ~58 ms stopped, 1 ms running). Any stage "
-              "shorter than one cycle sees up to one cycle of jitter; over a whole pair the error averages out.",
-              "- On a contended host the child is sometimes runnable but not running; that run-queue wait is "
-              "excluded from the 'available' wall time, so the emulated processor is paused rather than slowed "
-              "(section 3: raw cpu/wall halves, achieved stays on target). `stats()['contention_s']` lets the "
-              "deadline accounting subtract it.",
-              "- Not throttled: grandchildren of the flight process (SIGSTOP targets one PID), and the throttle "
-              "thread itself can be delayed by the supervisor's GIL holders (bounded by the 5 ms switch "
-              "interval), which the closed loop then pays back.", ""]
+    lines += [
+        "",
+        "## 4. Supervisor overhead",
+        "",
+        f"The benchmark process (throttle thread + reaper, nothing else running) used "
+        f"{100 * overhead:.1f} % of a core during section 1 ({busy_wall:.0f} s of throttled runs).",
+        "",
+    ]
+    lines += [
+        "## How to read this",
+        "",
+        "- The throttle is closed loop on the child's own CPU time from `/proc/PID/task/*/schedstat` (ns). "
+        "`psutil.Process.cpu_times()` ticks at 10 ms, coarser than the ~1 ms running slice at low duty.",
+        "- Each duty cycle is ~P = 20 ms stopped and f P / (1 - f) running; P is raised so that the "
+        "running slice is >= 1 ms (RAD750 at f ~ 0.017: ~58 ms stopped, 1 ms running). Any stage "
+        "shorter than one cycle sees up to one cycle of jitter; over a whole pair the error averages out.",
+        "- On a contended host the child is sometimes runnable but not running; that run-queue wait is "
+        "excluded from the 'available' wall time, so the emulated processor is paused rather than slowed "
+        "(section 3: raw cpu/wall halves, achieved stays on target). `stats()['contention_s']` lets the "
+        "deadline accounting subtract it.",
+        "- Not throttled: grandchildren of the flight process (SIGSTOP targets one PID), and the throttle "
+        "thread itself can be delayed by the supervisor's GIL holders (bounded by the 5 ms switch "
+        "interval), which the closed loop then pays back.",
+        "",
+    ]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

@@ -4,6 +4,7 @@ Each ``bench_*.py`` prints its own table and writes its section under
 ``docs/benchmarks/``; docs/BENCHMARKS.md collects the headline numbers.
 Pass names to run a subset: ``python bench/run_all.py pipeline render``.
 """
+
 from __future__ import annotations
 
 import subprocess

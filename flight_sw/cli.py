@@ -5,6 +5,7 @@ Writes ``elevation.npy``, ``hazard.npy``, ``result.json`` and pictures
 ``dem_error.png`` and ``confusion.png``). Ground truth is read here only for
 those pictures and the comparison block of ``result.json`` - never by the pipeline.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -15,13 +16,19 @@ from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("process", help="DEM, hazard map and safe sites from a pair directory",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser(
+        "process", help="DEM, hazard map and safe sites from a pair directory", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
     p.add_argument("--preset", default="fast", choices=("fast", "thesis"), help="parameter preset (default fast)")
-    p.add_argument("--deadline", type=float, default=None, metavar="S",
-                   help="time budget in seconds; past it the best level reached is returned (degraded)")
+    p.add_argument(
+        "--deadline",
+        type=float,
+        default=None,
+        metavar="S",
+        help="time budget in seconds; past it the best level reached is returned (degraded)",
+    )
     p.add_argument("--sites", type=int, default=None, metavar="K", help="number of safe sites (default 5)")
     p.set_defaults(func=_process)
 
@@ -33,8 +40,12 @@ def _stats(err) -> dict[str, float]:
     if e.size == 0:
         return {"n": 0}
     med = float(np.median(e))
-    return {"n": int(e.size), "mean_abs_m": float(np.abs(e).mean()), "median_m": med,
-            "mad_m": float(np.median(np.abs(e - med)))}
+    return {
+        "n": int(e.size),
+        "mean_abs_m": float(np.abs(e).mean()),
+        "median_m": med,
+        "mad_m": float(np.median(np.abs(e - med))),
+    }
 
 
 def _process(args: argparse.Namespace) -> int:
@@ -57,8 +68,15 @@ def _process(args: argparse.Namespace) -> int:
         if args.sites < 0:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
         params = dataclasses.replace(params, n_sites=args.sites)
-    res = run_pipeline(pair.images[0], pair.images[1], pair.poses[0], pair.poses[1], pair.camera,
-                       preset=params, deadline_s=args.deadline)
+    res = run_pipeline(
+        pair.images[0],
+        pair.images[1],
+        pair.poses[0],
+        pair.poses[1],
+        pair.camera,
+        preset=params,
+        deadline_s=args.deadline,
+    )
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -68,10 +86,19 @@ def _process(args: argparse.Namespace) -> int:
     np.save(out / "hazard.npy", res.hazard)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
-        "preset": args.preset, "params": res.params, "level": res.level, "degraded": res.degraded,
-        "valid_fraction": res.valid_fraction, "timings": res.timings, "info": res.info,
-        "grid": {"origin_xy": list(res.grid.origin_xy), "cell_m": res.grid.cell_m,
-                 "shape": list(res.grid.hazard.shape), "rows_toward": "-Y"},
+        "preset": args.preset,
+        "params": res.params,
+        "level": res.level,
+        "degraded": res.degraded,
+        "valid_fraction": res.valid_fraction,
+        "timings": res.timings,
+        "info": res.info,
+        "grid": {
+            "origin_xy": list(res.grid.origin_xy),
+            "cell_m": res.grid.cell_m,
+            "shape": list(res.grid.hazard.shape),
+            "rows_toward": "-Y",
+        },
         "sites": [s.to_dict() for s in res.sites],
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
@@ -96,8 +123,10 @@ def _process(args: argparse.Namespace) -> int:
     if truth:
         doc["vs_truth"] = truth
     (out / "result.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
-    line = f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}, " \
-           f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
+    line = (
+        f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}, "
+        f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
+    )
     if "dem_error" in truth and truth["dem_error"].get("n"):
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
     print(f"{out}: {line}")

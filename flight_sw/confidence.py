@@ -14,6 +14,7 @@ altitude (dz_k does), so the test is relative: a pixel is rejected when its
 ``u`` exceeds ``k`` times the image's median ``u`` - an outlier in
 reliability, whatever the altitude.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,8 +33,13 @@ def elevation_uncertainty(elevation: np.ndarray, curvature: np.ndarray, planes: 
     return np.where(ok, u, np.nan).astype(np.float32)
 
 
-def reject_uncertain(elevation: np.ndarray, uncertainty: np.ndarray, rel_limit: float,
-                     curvature: np.ndarray | None = None, sharp_curvature: float = np.inf) -> np.ndarray:
+def reject_uncertain(
+    elevation: np.ndarray,
+    uncertainty: np.ndarray,
+    rel_limit: float,
+    curvature: np.ndarray | None = None,
+    sharp_curvature: float = np.inf,
+) -> np.ndarray:
     """NaN where ``uncertainty > rel_limit * median(uncertainty)`` over the valid pixels; ``rel_limit <= 0``: off.
 
     Pixels whose cost curve is sharp in absolute terms (``curvature >= sharp_curvature``) are

@@ -4,6 +4,7 @@ SAD: ``C(x, y) = sum_{window} |I1 - I2k|``;  SSD: ``sum_{window} (I1 - I2k)^2``,
 window ``(2W+1)^2``. Box sums accumulate in double inside OpenCV, so a single
 huge out-of-image sample does not disturb its neighbours' sums.
 """
+
 from __future__ import annotations
 
 import cv2

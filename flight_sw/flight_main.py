@@ -18,6 +18,7 @@ result out"); the anytime pipeline returns its best level by then.
 to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
 ``oom@N`` act on the N-th pair (0-based) this process receives.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,7 +44,7 @@ OUTPUT_RESERVE_FRACTION = 0.05
 @dataclass
 class PendingPair:
     frames: dict[int, Frame] = field(default_factory=dict)
-    arrival: float = 0.0          # monotonic time the last frame arrived
+    arrival: float = 0.0  # monotonic time the last frame arrived
 
 
 @dataclass
@@ -52,7 +53,7 @@ class FaultPlan:
     pair_index: int = -1
 
     @classmethod
-    def parse(cls, spec: str | None) -> "FaultPlan":
+    def parse(cls, spec: str | None) -> FaultPlan:
         if not spec:
             return cls()
         kind, _, idx = spec.partition("@")
@@ -74,8 +75,11 @@ class FaultPlan:
 
 
 def frame_pose(frame: Frame) -> Pose:
-    return Pose(np.asarray(frame.position_m, dtype=float), np.asarray(frame.R_world_to_cam, dtype=float),
-                float(frame.capture_time_s))
+    return Pose(
+        np.asarray(frame.position_m, dtype=float),
+        np.asarray(frame.R_world_to_cam, dtype=float),
+        float(frame.capture_time_s),
+    )
 
 
 class FlightProcess:
@@ -118,13 +122,21 @@ class FlightProcess:
             self.link.send(Error(code="no_config", text="frame received before Config", seq=frame.seq))
             return
         if frame.pair_id is None or frame.frame_index not in (0, 1):
-            self.link.send(Error(code="bad_frame", seq=frame.seq,
-                                 text="frame needs pair_id and frame_index 0 (upper) or 1 (lower)"))
+            self.link.send(
+                Error(
+                    code="bad_frame", seq=frame.seq, text="frame needs pair_id and frame_index 0 (upper) or 1 (lower)"
+                )
+            )
             return
         cam = Camera.from_dict(self.config.camera)
         if frame.image.shape != (cam.height, cam.width):
-            self.link.send(Error(code="bad_frame", seq=frame.seq,
-                                 text=f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}"))
+            self.link.send(
+                Error(
+                    code="bad_frame",
+                    seq=frame.seq,
+                    text=f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}",
+                )
+            )
             return
         pend = self.pending.setdefault(frame.pair_id, PendingPair())
         pend.frames[frame.frame_index] = frame
@@ -145,9 +157,15 @@ class FlightProcess:
         self.pairs_seen += 1
         budget = cfg.deadline_s * (1.0 - OUTPUT_RESERVE_FRACTION) - queue_wait
         try:
-            res = run_pipeline(np.asarray(upper.image), np.asarray(lower.image), frame_pose(upper),
-                               frame_pose(lower), Camera.from_dict(cfg.camera),
-                               preset=cfg.preset or "fast", deadline_s=max(budget, 0.0))
+            res = run_pipeline(
+                np.asarray(upper.image),
+                np.asarray(lower.image),
+                frame_pose(upper),
+                frame_pose(lower),
+                Camera.from_dict(cfg.camera),
+                preset=cfg.preset or "fast",
+                deadline_s=max(budget, 0.0),
+            )
         except InputError as exc:
             self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))
             return
@@ -161,21 +179,23 @@ class FlightProcess:
             return
         self.link.send(result)
         done = time.monotonic()
-        self.link.send(Telemetry(
-            frame_seqs=seqs,
-            stages={k: {"wall_s": float(v["wall_s"]), "cpu_s": float(v["cpu_s"])} for k, v in res.timings.items()},
-            queue_wait_s=queue_wait,
-            total_latency_s=done - pend.arrival,
-            cpu_fraction=(time.process_time() - cpu0) / max(done - start, 1e-9),
-            deadline_s=float(cfg.deadline_s),
-            deadline_met=(done - pend.arrival) <= cfg.deadline_s,
-        ))
+        self.link.send(
+            Telemetry(
+                frame_seqs=seqs,
+                stages={k: {"wall_s": float(v["wall_s"]), "cpu_s": float(v["cpu_s"])} for k, v in res.timings.items()},
+                queue_wait_s=queue_wait,
+                total_latency_s=done - pend.arrival,
+                cpu_fraction=(time.process_time() - cpu0) / max(done - start, 1e-9),
+                deadline_s=float(cfg.deadline_s),
+                deadline_met=(done - pend.arrival) <= cfg.deadline_s,
+            )
+        )
 
     @staticmethod
     def _result_message(res, seqs: tuple[int, int], cfg: Config) -> Result:
         grid = res.grid
         send_images = bool(cfg.options.get("send_image_maps", 1))
-        return Result(
+        msg = Result(
             frame_seqs=seqs,
             hazard_grid=np.asarray(grid.hazard, dtype=np.float32),
             elevation_grid=np.asarray(grid.elevation, dtype=np.float32),
@@ -183,11 +203,15 @@ class FlightProcess:
             grid_cell_m=float(grid.cell_m),
             hazard_image=np.asarray(res.hazard, dtype=np.float32) if send_images else None,
             elevation_image=np.asarray(res.elevation, dtype=np.float32) if send_images else None,
-            sites=[{"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin,
-                    "distance_m": s.distance_m} for s in res.sites],
+            sites=[
+                {"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin, "distance_m": s.distance_m}
+                for s in res.sites
+            ],
             degraded=bool(res.degraded),
             level=str(res.level),
         ).validated()
+        assert isinstance(msg, Result)
+        return msg
 
     def run(self) -> int:
         parent = os.getppid()

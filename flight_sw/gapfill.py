@@ -14,6 +14,7 @@ unsafe", mapping.combine). A plane - not a local mean - is used so that a
 filled patch on a slope keeps that slope: a mean would make it a flat
 terrace and hide a steep wall from the hazard stage.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ with the horizontal plane ``Z = z(u, v)``, ``t = (z - C1_z) / d_z``. The
 thesis's eq. 4.16/4.17 are the special case of a camera pitched about one axis
 (used as a test oracle).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,7 +15,7 @@ from protocol.pairdir import Camera, Pose
 
 def pixel_rays(camera: Camera, pose: Pose) -> np.ndarray:
     """World-frame ray directions (3xHxW, not normalised) of every pixel centre."""
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
     d_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)])
     return np.tensordot(pose.R.T, d_cam, axes=1)
 

@@ -9,6 +9,7 @@ A horizontal world plane ``Z = h`` has ``n = R1 e_z`` and ``d = C1_z - h``;
 with ``R21 = R2 R1^T`` and ``t21 = R2 (C1 - C2)``. For a nadir camera this is
 the thesis's eq. 3.8.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -8,6 +8,7 @@ conventions). Image -> grid resampling "pulls": each cell centre is projected
 into i1 at the elevation seen there (two fixed-point passes), and the layer is
 read bilinearly, so the grid has no holes from perspective sampling.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,8 @@ from protocol.pairdir import Camera, Pose
 class HazardGrid:
     """Hazard and elevation on a regular world grid; rows go toward -Y (see module doc)."""
 
-    hazard: np.ndarray        # float32 (rows, cols) in [0, 1], NaN outside the covered area
-    elevation: np.ndarray     # float32 (rows, cols), NaN where not recovered
+    hazard: np.ndarray  # float32 (rows, cols) in [0, 1], NaN outside the covered area
+    elevation: np.ndarray  # float32 (rows, cols), NaN where not recovered
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
 
@@ -34,7 +35,7 @@ class HazardGrid:
 
 
 def grid_xy(shape: tuple[int, int], origin_xy: tuple[float, float], cell_m: float) -> tuple[np.ndarray, np.ndarray]:
-    i, j = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    i, j = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
     return origin_xy[0] + j * cell_m, origin_xy[1] - i * cell_m
 
 
@@ -75,12 +76,18 @@ def project(camera: Camera, pose: Pose, X: np.ndarray, Y: np.ndarray, Z: np.ndar
 def _remap(layer: np.ndarray, mx: np.ndarray, my: np.ndarray, interp: int = cv2.INTER_LINEAR) -> np.ndarray:
     mx = np.nan_to_num(mx, nan=-1e4).astype(np.float32)
     my = np.nan_to_num(my, nan=-1e4).astype(np.float32)
-    return cv2.remap(layer.astype(np.float32), mx, my, interp, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=float("nan"))
+    return cv2.remap(layer.astype(np.float32), mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 
 
-def image_to_grid_coords(camera: Camera, pose: Pose, elevation_filled: np.ndarray, X: np.ndarray,
-                         Y: np.ndarray, z_ref: float, passes: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def image_to_grid_coords(
+    camera: Camera,
+    pose: Pose,
+    elevation_filled: np.ndarray,
+    X: np.ndarray,
+    Y: np.ndarray,
+    z_ref: float,
+    passes: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
     """i1 pixel (u, v) seeing each grid cell centre: project at ``z_ref``, then at the elevation read there."""
     Z = np.full(X.shape, z_ref)
     for _ in range(passes):
@@ -95,15 +102,23 @@ def pull(layer: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return _remap(layer, u, v)
 
 
-def sample_grid(grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, X: np.ndarray,
-                Y: np.ndarray) -> np.ndarray:
+def sample_grid(
+    grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, X: np.ndarray, Y: np.ndarray
+) -> np.ndarray:
     """Bilinear read of a grid layer at world (X, Y) (e.g. back to i1's pixels); NaN outside."""
     return _remap(grid, (X - origin_xy[0]) / cell_m, (origin_xy[1] - Y) / cell_m)
 
 
-def combine(slope_deg: np.ndarray | None, rough_m: np.ndarray | None, shadow: np.ndarray, rock: np.ndarray,
-            covered: np.ndarray, slope_limit_deg: float = 15.0, rough_limit_m: float = 0.30,
-            margin_px: float = 0.0) -> np.ndarray:
+def combine(
+    slope_deg: np.ndarray | None,
+    rough_m: np.ndarray | None,
+    shadow: np.ndarray,
+    rock: np.ndarray,
+    covered: np.ndarray,
+    slope_limit_deg: float = 15.0,
+    rough_limit_m: float = 0.30,
+    margin_px: float = 0.0,
+) -> np.ndarray:
     """Hazard = max of the scaled layers (sec 4.4.5); NaN outside ``covered``.
 
     With a DEM (``slope_deg`` given), a covered point whose slope or roughness
@@ -113,7 +128,7 @@ def combine(slope_deg: np.ndarray | None, rough_m: np.ndarray | None, shadow: np
     the image cues are pixel-exact and rocks are already dilated.
     """
     haz = np.maximum(np.asarray(shadow, np.float32), np.asarray(rock, np.float32))
-    if slope_deg is not None:
+    if slope_deg is not None and rough_m is not None:
         s = np.minimum(slope_deg / np.float32(slope_limit_deg), 1.0)
         r = np.minimum(rough_m / np.float32(rough_limit_m), 1.0)
         dem = widen_hazards(np.maximum(s, r).astype(np.float32), margin_px)
@@ -136,9 +151,13 @@ def widen_hazards(hazard: np.ndarray, margin_px: float) -> np.ndarray:
     r = int(math.floor(margin_px))
     if r == 0:
         return hazard
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     disk = ((xx * xx + yy * yy) <= margin_px * margin_px + 1e-9).astype(np.uint8)
     outside = np.isnan(hazard)
-    grown = cv2.dilate(np.where(outside, np.float32(0.0), hazard).astype(np.float32), disk,
-                       borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+    grown = cv2.dilate(
+        np.where(outside, np.float32(0.0), hazard).astype(np.float32),
+        disk,
+        borderType=cv2.BORDER_CONSTANT,
+        borderValue=0.0,
+    )
     return np.where(outside, np.nan, grown).astype(np.float32)

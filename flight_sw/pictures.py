@@ -1,4 +1,5 @@
 """PNG pictures of pipeline outputs for people (the CLI's only use of ground truth is here)."""
+
 from __future__ import annotations
 
 import cv2
@@ -8,8 +9,9 @@ import numpy as np
 CONFUSION_COLOURS = {"TP": (80, 200, 80), "TN": (160, 160, 160), "FP": (40, 40, 230), "FN": (40, 210, 230)}
 
 
-def colour_map(values: np.ndarray, lo: float | None = None, hi: float | None = None,
-               cmap: int = cv2.COLORMAP_VIRIDIS) -> np.ndarray:
+def colour_map(
+    values: np.ndarray, lo: float | None = None, hi: float | None = None, cmap: int = cv2.COLORMAP_VIRIDIS
+) -> np.ndarray:
     """BGR uint8 picture of a float layer scaled ``lo..hi`` (default: 1st-99th percentile); NaN is black."""
     v = np.asarray(values, np.float64)
     ok = np.isfinite(v)
@@ -27,8 +29,12 @@ def confusion(hazard: np.ndarray, truth_hazard: np.ndarray) -> dict[str, np.ndar
     """Masks TP/TN/FP/FN where both maps are known; safe means hazard < 1."""
     both = np.isfinite(hazard) & np.isfinite(truth_hazard)
     called_safe, is_safe = hazard < 1, truth_hazard < 1
-    return {"TP": both & called_safe & is_safe, "TN": both & ~called_safe & ~is_safe,
-            "FP": both & called_safe & ~is_safe, "FN": both & ~called_safe & is_safe}
+    return {
+        "TP": both & called_safe & is_safe,
+        "TN": both & ~called_safe & ~is_safe,
+        "FP": both & called_safe & ~is_safe,
+        "FN": both & ~called_safe & is_safe,
+    }
 
 
 def confusion_picture(masks: dict[str, np.ndarray]) -> np.ndarray:

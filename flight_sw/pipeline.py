@@ -7,14 +7,16 @@ clock every few planes and stop ``mapping_reserve_s`` before it; the result is
 then built from the best level reached (``image_only`` < ``coarse`` < ``full``)
 and flagged ``degraded``. Ground truth is never an input.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import math
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -24,14 +26,22 @@ from protocol.pairdir import Camera, Pose
 from .confidence import elevation_uncertainty, reject_uncertain
 from .gapfill import fill_small_gaps
 from .georef import backproject
-from .mapping import (HazardGrid, combine, grid_extent, grid_xy, ground_sample_distance, image_to_grid_coords,
-                      pull, sample_grid)
+from .mapping import (
+    HazardGrid,
+    combine,
+    grid_extent,
+    grid_xy,
+    ground_sample_distance,
+    image_to_grid_coords,
+    pull,
+    sample_grid,
+)
 from .rocks import rock_mask
 from .shading import local_shadow_mask, relative_brightness, shading_mask
 from .shadow import shadow_mask
 from .sites import Site, select_sites
 from .slope import plane_fit, roughness
-from .sweep import (coverage_mask, planes_uniform_disparity, planes_uniform_dz, scaled_camera, sweep_dem)
+from .sweep import coverage_mask, planes_uniform_disparity, planes_uniform_dz, scaled_camera, sweep_dem
 from .validate import FlightInputError, check_inputs
 from .warping import area_sigma
 
@@ -43,39 +53,39 @@ class Params:
     """Pipeline knobs. ``PRESETS`` holds the two reference settings."""
 
     name: str = "custom"
-    half_window: int = 6                 # correlation window (2W+1)^2 (sec 4.3); capped by window_px
-    cap_window_to_overlap: bool = True   # keep the window <= 1/4 of the overlap (tiny sensors), see window_px
-    cost: str = "sad"                    # "sad" | "ssd" (eq. 3.13/3.14)
-    plane_spacing: str = "disparity"     # "dz": uniform metres; "disparity": uniform i2 pixels at the edge
-    dz_m: float = 0.15                   # plane step for "dz"
-    disparity_step_px: float = 0.5       # largest i2-pixel move between planes for "disparity"
-    prefilter: bool = True               # low-pass i2 to i1's pixel footprint before warping
-    coarse_to_fine: bool = True          # narrow the full-resolution range to the coarse DEM's
+    half_window: int = 6  # correlation window (2W+1)^2 (sec 4.3); capped by window_px
+    cap_window_to_overlap: bool = True  # keep the window <= 1/4 of the overlap (tiny sensors), see window_px
+    cost: str = "sad"  # "sad" | "ssd" (eq. 3.13/3.14)
+    plane_spacing: str = "disparity"  # "dz": uniform metres; "disparity": uniform i2 pixels at the edge
+    dz_m: float = 0.15  # plane step for "dz"
+    disparity_step_px: float = 0.5  # largest i2-pixel move between planes for "disparity"
+    prefilter: bool = True  # low-pass i2 to i1's pixel footprint before warping
+    coarse_to_fine: bool = True  # narrow the full-resolution range to the coarse DEM's
     reject_rel_uncertainty: float = 0.0  # drop matches with u > this x median u (confidence.py); 0: off
-    sharp_curvature: float = 0.2         # ... but keep matches whose cost-curve curvature is at least this
-    shading_sigma_px: float = 10.0       # local-mean scale of the photometric cues (shading.py), at least ...
+    sharp_curvature: float = 0.2  # ... but keep matches whose cost-curve curvature is at least this
+    shading_sigma_px: float = 10.0  # local-mean scale of the photometric cues (shading.py), at least ...
     shading_sigma_footprints: float = 3.0  # ... this many lander footprints (in i1 px at the image centre)
-    shadow_dark_rel: float = 0.0         # > 0: shadow also needs rho < -this (shading.py); 0: eq. 4.9 only
-    shading_limit: float = 0.0           # > 0: |rho| > this is a hazard (steep-wall cue); 0: off
-    fill_gap_px: int = 0                 # fill DEM gaps narrower than ~this (i1 px) before the slope fit
-    fill_min_frac: float = 0.3           # ... where this share of the (2r+1)^2 neighbourhood is valid
+    shadow_dark_rel: float = 0.0  # > 0: shadow also needs rho < -this (shading.py); 0: eq. 4.9 only
+    shading_limit: float = 0.0  # > 0: |rho| > this is a hazard (steep-wall cue); 0: off
+    fill_gap_px: int = 0  # fill DEM gaps narrower than ~this (i1 px) before the slope fit
+    fill_min_frac: float = 0.3  # ... where this share of the (2r+1)^2 neighbourhood is valid
     coarse_half_window: int = 4
-    coarse_range_pct: float = 0.5        # fine range: this .. 100-this percentile of the coarse DEM, padded
-    coarse_step_px: float = 0.5          # at half resolution
-    relief_margin_frac: float = 0.06     # sweep range: +- max(min_m, frac * altitude) around Z = 0
+    coarse_range_pct: float = 0.5  # fine range: this .. 100-this percentile of the coarse DEM, padded
+    coarse_step_px: float = 0.5  # at half resolution
+    relief_margin_frac: float = 0.06  # sweep range: +- max(min_m, frac * altitude) around Z = 0
     relief_margin_min_m: float = 10.0
-    mask_rocks: bool = True              # rock pixels excluded from correlation, NaN elevation (sec 4.2)
-    rock_k: float = 11.0                 # eq. 4.8
+    mask_rocks: bool = True  # rock pixels excluded from correlation, NaN elevation (sec 4.2)
+    rock_k: float = 11.0  # eq. 4.8
     rock_dilate_px: int = 2
     harris_alpha: float = 0.04
-    footprint_m: float = 3.0             # lander footprint (Table 2.1)
+    footprint_m: float = 3.0  # lander footprint (Table 2.1)
     slope_limit_deg: float = 15.0
-    hazard_margin_px: float = 0.0        # keep-out margin around DEM hazards, i1 px / grid cells (mapping.combine)
+    hazard_margin_px: float = 0.0  # keep-out margin around DEM hazards, i1 px / grid cells (mapping.combine)
     rough_limit_m: float = 0.30
-    cell_m: float | None = None          # world grid cell; None: median GSD of i1 over the covered area
+    cell_m: float | None = None  # world grid cell; None: median GSD of i1 over the covered area
     n_sites: int = 5
-    mapping_reserve_s: float = 0.03      # sweeps stop this long before the deadline
-    check_every: int = 4                 # planes between clock checks
+    mapping_reserve_s: float = 0.03  # sweeps stop this long before the deadline
+    check_every: int = 4  # planes between clock checks
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -84,8 +94,15 @@ class Params:
             raise FlightInputError(f"params: cost must be 'sad' or 'ssd', got {self.cost!r}")
         if self.plane_spacing not in ("dz", "disparity"):
             raise FlightInputError(f"params: plane_spacing must be 'dz' or 'disparity', got {self.plane_spacing!r}")
-        for name in ("dz_m", "disparity_step_px", "coarse_step_px", "footprint_m", "slope_limit_deg",
-                     "rough_limit_m", "relief_margin_min_m"):
+        for name in (
+            "dz_m",
+            "disparity_step_px",
+            "coarse_step_px",
+            "footprint_m",
+            "slope_limit_deg",
+            "rough_limit_m",
+            "relief_margin_min_m",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise FlightInputError(f"params: {name} must be a positive number, got {v!r}")
@@ -116,10 +133,19 @@ PRESETS: dict[str, Params] = {
     # seeds 0-1, seed 2 held out (docs/benchmarks/pipeline.md).
     # A 1 px keep-out margin around slope/roughness hazards (issue #6 follow-up): approach 300 m
     # seed 0 FP 1.23 -> 0.86 % for 5-15 points more false alarms (docs/benchmarks/pipeline.md).
-    "fast": Params(name="fast", half_window=10, cost="ssd", reject_rel_uncertainty=1.5,
-                   shadow_dark_rel=0.1, shading_limit=0.15, fill_gap_px=8, hazard_margin_px=1.0),
-    "thesis": Params(name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False,
-                     coarse_to_fine=False),
+    "fast": Params(
+        name="fast",
+        half_window=10,
+        cost="ssd",
+        reject_rel_uncertainty=1.5,
+        shadow_dark_rel=0.1,
+        shading_limit=0.15,
+        fill_gap_px=8,
+        hazard_margin_px=1.0,
+    ),
+    "thesis": Params(
+        name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False, coarse_to_fine=False
+    ),
 }
 
 
@@ -127,14 +153,14 @@ PRESETS: dict[str, Params] = {
 class PipelineResult:
     """Everything the pipeline produced. Image-plane arrays are HxW in i1's pixels."""
 
-    elevation: np.ndarray       # float32 world Z, NaN where not recovered
-    hazard: np.ndarray          # float32 in [0, 1], NaN outside the area both images cover
-    slope_deg: np.ndarray       # float32
-    roughness_m: np.ndarray     # float32
-    rock_mask: np.ndarray       # bool
-    shadow_mask: np.ndarray     # bool
-    covered: np.ndarray         # bool: seen by both images
-    world_xy: np.ndarray        # float32 HxWx2 world X, Y of each pixel
+    elevation: np.ndarray  # float32 world Z, NaN where not recovered
+    hazard: np.ndarray  # float32 in [0, 1], NaN outside the area both images cover
+    slope_deg: np.ndarray  # float32
+    roughness_m: np.ndarray  # float32
+    rock_mask: np.ndarray  # bool
+    shadow_mask: np.ndarray  # bool
+    covered: np.ndarray  # bool: seen by both images
+    world_xy: np.ndarray  # float32 HxWx2 world X, Y of each pixel
     grid: HazardGrid
     sites: list[Site]
     timings: dict[str, dict[str, float]]
@@ -178,10 +204,18 @@ def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
     return float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
 
 
-def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camera: Camera, *,
-                 preset: str | Params = "fast", deadline_s: float | None = None,
-                 nominal_site_xy: tuple[float, float] = (0.0, 0.0),
-                 deadline_at: float | None = None) -> PipelineResult:
+def run_pipeline(
+    i1: np.ndarray,
+    i2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    *,
+    preset: str | Params = "fast",
+    deadline_s: float | None = None,
+    nominal_site_xy: tuple[float, float] = (0.0, 0.0),
+    deadline_at: float | None = None,
+) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
     ``deadline_s`` is a budget in seconds from the call, ``deadline_at`` an absolute
@@ -223,8 +257,9 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         shading = np.zeros(i1.shape, bool)
         if p.shadow_dark_rel > 0 or p.shading_limit > 0:
             fp_px = p.footprint_m / _centre_gsd(camera, pose1)
-            rho = relative_brightness(i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px),
-                                      max(1.0, fp_px / 3.0))
+            rho = relative_brightness(
+                i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
+            )
             if p.shadow_dark_rel > 0:
                 shadow = local_shadow_mask(i1, shadow, rho, p.shadow_dark_rel)
             if p.shading_limit > 0:
@@ -242,17 +277,31 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
     with _stage(timings, "coarse_dem"):
         cam_c = scaled_camera(camera, 1)
         c1, c2 = cv2.pyrDown(a1), cv2.pyrDown(a2)
-        rock_c = cv2.resize(rocks.astype(np.uint8), (cam_c.width, cam_c.height),
-                            interpolation=cv2.INTER_NEAREST).astype(bool)
+        rock_c = cv2.resize(
+            rocks.astype(np.uint8), (cam_c.width, cam_c.height), interpolation=cv2.INTER_NEAREST
+        ).astype(bool)
         planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
-        res_c = sweep_dem(c1, c2, cam_c, pose1, pose2, planes_c, half_window=W_coarse, cost=p.cost,
-                          prefilter_sigma=sigma, ignore=rock_c if p.mask_rocks else None, deadline=sweep_deadline,
-                          check_every=p.check_every)
+        res_c = sweep_dem(
+            c1,
+            c2,
+            cam_c,
+            pose1,
+            pose2,
+            planes_c,
+            half_window=W_coarse,
+            cost=p.cost,
+            prefilter_sigma=sigma,
+            ignore=rock_c if p.mask_rocks else None,
+            deadline=sweep_deadline,
+            check_every=p.check_every,
+        )
         info["coarse_planes"] = int(planes_c.size)
-        if res_c.complete and p.reject_rel_uncertainty > 0:  # outliers would widen the fine range
+        if res_c.complete and res_c.curvature is not None and p.reject_rel_uncertainty > 0:
+            # outliers would widen the fine range
             u_c = elevation_uncertainty(res_c.elevation, res_c.curvature, res_c.planes)
-            res_c.elevation = reject_uncertain(res_c.elevation, u_c, p.reject_rel_uncertainty, res_c.curvature,
-                                               p.sharp_curvature)
+            res_c.elevation = reject_uncertain(
+                res_c.elevation, u_c, p.reject_rel_uncertainty, res_c.curvature, p.sharp_curvature
+            )
         n_coarse = int(np.isfinite(res_c.elevation).sum())
         if res_c.complete and n_coarse > 0:
             coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
@@ -273,25 +322,37 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
                 planes = planes_uniform_disparity(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]
-            res_f = sweep_dem(a1, a2, camera, pose1, pose2, planes, half_window=W_full, cost=p.cost,
-                              prefilter_sigma=sigma, ignore=rocks if p.mask_rocks else None,
-                              deadline=sweep_deadline,
-                              check_every=p.check_every)
+            res_f = sweep_dem(
+                a1,
+                a2,
+                camera,
+                pose1,
+                pose2,
+                planes,
+                half_window=W_full,
+                cost=p.cost,
+                prefilter_sigma=sigma,
+                ignore=rocks if p.mask_rocks else None,
+                deadline=sweep_deadline,
+                check_every=p.check_every,
+            )
             info["full_planes_done"] = res_f.planes_done
             if res_f.complete:
                 elevation = res_f.elevation
-                if p.reject_rel_uncertainty > 0:
+                if p.reject_rel_uncertainty > 0 and res_f.curvature is not None:
                     u = elevation_uncertainty(elevation, res_f.curvature, res_f.planes)
-                    elevation = reject_uncertain(elevation, u, p.reject_rel_uncertainty, res_f.curvature,
-                                                 p.sharp_curvature)
+                    elevation = reject_uncertain(
+                        elevation, u, p.reject_rel_uncertainty, res_f.curvature, p.sharp_curvature
+                    )
                 level = "full"
 
     with _stage(timings, "gap_fill"):
         # hazard mapping uses the gap-filled DEM; the returned elevation stays measured-only
         have_dem = level != "image_only"
         elev_map = fill_small_gaps(elevation, p.fill_gap_px, p.fill_min_frac) if have_dem else elevation
-        info["filled_fraction"] = float((np.isfinite(elev_map) & ~np.isfinite(elevation) & covered).sum()
-                                        / max(1, int(covered.sum())))
+        info["filled_fraction"] = float(
+            (np.isfinite(elev_map) & ~np.isfinite(elevation) & covered).sum() / max(1, int(covered.sum()))
+        )
 
     with _stage(timings, "georef"):
         z_ref = float(np.nanmedian(elevation)) if have_dem and np.isfinite(elevation).any() else 0.0
@@ -312,32 +373,59 @@ def run_pipeline(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         g_shadow = pull((shadow | shading).astype(np.float32), gu, gv) > 0.5
 
     with _stage(timings, "slope"):
+        g_slope: np.ndarray | None = None
+        g_rough: np.ndarray | None = None
         if have_dem:
             g_slope, g_plane = plane_fit(g_elev, cell, p.footprint_m)
             g_rough = roughness(g_elev, g_plane)
             slope_img = sample_grid(g_slope, origin, cell, X, Y)
             rough_img = roughness(elev_map, sample_grid(g_plane, origin, cell, X, Y))
         else:
-            g_slope = g_rough = None
             slope_img = np.full(i1.shape, np.nan, np.float32)
             rough_img = np.full(i1.shape, np.nan, np.float32)
 
     with _stage(timings, "hazard"):
-        hazard = combine(slope_img if have_dem else None, rough_img, shadow | shading, rocks, covered,
-                         p.slope_limit_deg, p.rough_limit_m, p.hazard_margin_px)
+        hazard = combine(
+            slope_img if have_dem else None,
+            rough_img,
+            shadow | shading,
+            rocks,
+            covered,
+            p.slope_limit_deg,
+            p.rough_limit_m,
+            p.hazard_margin_px,
+        )
         # the grid cell is i1's median GSD, so the same count of pixels and cells is the same margin
-        g_haz = combine(g_slope, g_rough, g_shadow, g_rock, g_cov, p.slope_limit_deg, p.rough_limit_m,
-                        p.hazard_margin_px)
+        g_haz = combine(
+            g_slope, g_rough, g_shadow, g_rock, g_cov, p.slope_limit_deg, p.rough_limit_m, p.hazard_margin_px
+        )
         grid = HazardGrid(g_haz, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell))
 
     with _stage(timings, "sites"):
         sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
 
-    timings["total"] = {"wall_s": sum(t["wall_s"] for t in timings.values()),
-                        "cpu_s": sum(t["cpu_s"] for t in timings.values())}
+    timings["total"] = {
+        "wall_s": sum(t["wall_s"] for t in timings.values()),
+        "cpu_s": sum(t["cpu_s"] for t in timings.values()),
+    }
     n_cov = int(covered.sum())
     valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
     params = dataclasses.asdict(p)
-    return PipelineResult(elevation.astype(np.float32), hazard, slope_img.astype(np.float32),
-                          rough_img.astype(np.float32), rocks, shadow, covered, world_xy, grid, sites, timings,
-                          level != "full", level, valid, params, info)
+    return PipelineResult(
+        elevation.astype(np.float32),
+        hazard,
+        slope_img.astype(np.float32),
+        rough_img.astype(np.float32),
+        rocks,
+        shadow,
+        covered,
+        world_xy,
+        grid,
+        sites,
+        timings,
+        level != "full",
+        level,
+        valid,
+        params,
+        info,
+    )

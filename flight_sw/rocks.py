@@ -7,6 +7,7 @@ against Harris & Stephens, which the thesis's own appendix C squares);
 rock pixels are ``R > k mean(R)`` with ``k = 11`` (eq. 4.8), dilated to take
 in the rock's immediate surroundings (shadow and rim pixels).
 """
+
 from __future__ import annotations
 
 import cv2
@@ -27,8 +28,9 @@ def harris_response(img: np.ndarray, alpha: float = 0.04, sigma: float = 1.0) ->
     return sxx * syy - sxy * sxy - alpha * tr * tr
 
 
-def rock_mask(img: np.ndarray, k: float = 11.0, alpha: float = 0.04, dilate_px: int = 2,
-              sigma: float = 1.0) -> np.ndarray:
+def rock_mask(
+    img: np.ndarray, k: float = 11.0, alpha: float = 0.04, dilate_px: int = 2, sigma: float = 1.0
+) -> np.ndarray:
     """Boolean rock map: Harris response above ``k * mean(response)``, dilated by ``dilate_px``.
 
     If the mean response is not positive (an image of pure edges), the mean of
@@ -40,7 +42,7 @@ def rock_mask(img: np.ndarray, k: float = 11.0, alpha: float = 0.04, dilate_px: 
         mu = float(np.abs(R).mean())
     if mu == 0:
         return np.zeros(img.shape, bool)
-    mask = (R > k * mu).astype(np.uint8)
+    mask: np.ndarray = (k * mu < R).astype(np.uint8)
     if dilate_px > 0:
         ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate_px + 1, 2 * dilate_px + 1))
         mask = cv2.dilate(mask, ker)

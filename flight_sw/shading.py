@@ -15,6 +15,7 @@ crater walls that the window-correlated DEM smooths below the limit (sec 4.3's
 window spans ~11 m at 300 m altitude). The threshold is empirical (ground_sim
 seeds 0-1, docs/benchmarks/pipeline.md): albedo contrast also moves ``rho``.
 """
+
 from __future__ import annotations
 
 import cv2

@@ -1,4 +1,5 @@
 """Shadow detection (thesis sec 4.4.1, eq. 4.9): pixels darker than ``(mu + sigma) / 2``."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -7,6 +7,7 @@ rings one footprint wide (``ring = floor(distance / footprint)``), and within a
 ring by decreasing margin; sites are taken greedily at least one footprint
 apart.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -25,9 +26,9 @@ class Site:
     x: float
     y: float
     z: float
-    hazard: float       # hazard of the centre cell
-    margin: float       # 1 - max hazard over the footprint
-    distance_m: float   # from the nominal site
+    hazard: float  # hazard of the centre cell
+    margin: float  # 1 - max hazard over the footprint
+    distance_m: float  # from the nominal site
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in asdict(self).items()}
@@ -46,8 +47,9 @@ def footprint_stats(hazard: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]
     return safe, hmax
 
 
-def select_sites(grid: HazardGrid, footprint_m: float = 3.0, nominal_xy: tuple[float, float] = (0.0, 0.0),
-                 k: int = 5) -> list[Site]:
+def select_sites(
+    grid: HazardGrid, footprint_m: float = 3.0, nominal_xy: tuple[float, float] = (0.0, 0.0), k: int = 5
+) -> list[Site]:
     """Top-``k`` safe sites by spiral order around ``nominal_xy`` (see module doc)."""
     if grid.hazard.size == 0 or k <= 0:
         return []
@@ -68,8 +70,16 @@ def select_sites(grid: HazardGrid, footprint_m: float = 3.0, nominal_xy: tuple[f
         if any((x[o] - a) ** 2 + (y[o] - b) ** 2 < footprint_m**2 for a, b in taken):
             continue
         i, j = ii[o], jj[o]
-        sites.append(Site(float(x[o]), float(y[o]), float(grid.elevation[i, j]), float(grid.hazard[i, j]),
-                          float(margin[o]), float(dist[o])))
+        sites.append(
+            Site(
+                float(x[o]),
+                float(y[o]),
+                float(grid.elevation[i, j]),
+                float(grid.hazard[i, j]),
+                float(margin[o]),
+                float(dist[o]),
+            )
+        )
         taken.append((x[o], y[o]))
         if len(sites) == k:
             break

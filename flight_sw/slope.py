@@ -11,6 +11,7 @@ weight 0) and solved in closed form through the centred moments::
 
 Roughness is the deviation from that plane at the cell (eq. 4.18).
 """
+
 from __future__ import annotations
 
 import cv2
@@ -28,8 +29,9 @@ def _box(a: np.ndarray, n: int) -> np.ndarray:
     return cv2.boxFilter(a, cv2.CV_64F, (n, n), normalize=False, borderType=cv2.BORDER_CONSTANT)
 
 
-def plane_fit(z: np.ndarray, cell_m: float, footprint_m: float = 3.0,
-              min_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def plane_fit(
+    z: np.ndarray, cell_m: float, footprint_m: float = 3.0, min_fraction: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-cell LSQ plane over the footprint: returns ``(slope_deg, z_plane)``, float32.
 
     ``z_plane`` is the fitted plane evaluated at the cell centre. Cells whose
@@ -71,4 +73,3 @@ def roughness(z: np.ndarray, z_plane: np.ndarray) -> np.ndarray:
 def scale_hazard(value: np.ndarray, limit: float) -> np.ndarray:
     """Map ``0 -> 0`` and ``limit -> 1`` linearly, clipped at 1 (thesis sec 4.4.2, 4.4.4)."""
     return np.minimum(np.asarray(value, np.float32) / np.float32(limit), np.float32(1.0))
-

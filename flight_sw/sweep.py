@@ -12,6 +12,7 @@ Samples warped from outside i2 take a value far outside the intensity range,
 so planes that leave the image lose; the final validity test is geometric
 (the window around a pixel must map inside i2 through every swept plane).
 """
+
 from __future__ import annotations
 
 import time
@@ -26,8 +27,15 @@ from .correlation import parabolic_offset, pixel_cost, window_sum
 from .homography import homography_parts, map_points, plane_homography
 from .warping import warp_to_i1
 
-__all__ = ["plane_homography", "planes_uniform_dz", "planes_uniform_disparity", "coverage_mask",
-           "sweep_dem", "SweepResult", "scaled_camera"]
+__all__ = [
+    "SweepResult",
+    "coverage_mask",
+    "plane_homography",
+    "planes_uniform_disparity",
+    "planes_uniform_dz",
+    "scaled_camera",
+    "sweep_dem",
+]
 
 # Out-of-image samples read this value: any difference to it exceeds every in-image difference.
 _OUTSIDE = 1000.0
@@ -37,11 +45,11 @@ _OUTSIDE = 1000.0
 class SweepResult:
     """Outcome of one sweep. ``elevation`` is NaN where not recovered."""
 
-    elevation: np.ndarray      # float32 HxW world Z
-    best_cost: np.ndarray      # float32 HxW, NaN where not swept
-    planes: np.ndarray         # the elevations swept
+    elevation: np.ndarray  # float32 HxW world Z
+    best_cost: np.ndarray  # float32 HxW, NaN where not swept
+    planes: np.ndarray  # the elevations swept
     planes_done: int
-    complete: bool             # False if the deadline stopped the loop
+    complete: bool  # False if the deadline stopped the loop
     roi: tuple[int, int, int, int]
     curvature: np.ndarray | None = None  # float32 HxW (C_{k-1} + C_{k+1} - 2 C_k) / C_k at the best plane
     range_end: np.ndarray | None = None  # bool HxW: the minimum fell on the first or last plane
@@ -49,9 +57,15 @@ class SweepResult:
 
 def scaled_camera(camera: Camera, level: int) -> Camera:
     """Camera of a pyramid level (cv2.pyrDown keeps pixel 2j at j: ``u' = u / 2``)."""
-    s = 0.5 ** level
-    return Camera((camera.width + (1 << level) - 1) >> level, (camera.height + (1 << level) - 1) >> level,
-                  camera.fx * s, camera.fy * s, camera.cx * s, camera.cy * s)
+    s = 0.5**level
+    return Camera(
+        (camera.width + (1 << level) - 1) >> level,
+        (camera.height + (1 << level) - 1) >> level,
+        camera.fx * s,
+        camera.fy * s,
+        camera.cx * s,
+        camera.cy * s,
+    )
 
 
 def planes_uniform_dz(z_min: float, z_max: float, dz: float) -> np.ndarray:
@@ -67,8 +81,9 @@ def _probe_grid(camera: Camera, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
     return u.ravel(), v.ravel()
 
 
-def planes_uniform_disparity(camera: Camera, pose1: Pose, pose2: Pose, z_min: float, z_max: float,
-                             step_px: float, scale: float = 1.0) -> np.ndarray:
+def planes_uniform_disparity(
+    camera: Camera, pose1: Pose, pose2: Pose, z_min: float, z_max: float, step_px: float, scale: float = 1.0
+) -> np.ndarray:
     """Elevations spaced so that no covered i1 pixel moves more than ``step_px`` in the warped image
     between adjacent planes.
 
@@ -83,9 +98,9 @@ def planes_uniform_disparity(camera: Camera, pose1: Pose, pose2: Pose, z_min: fl
     A, B, cz = homography_parts(camera, pose1, pose2)
     zs = np.linspace(z_min, z_max, 2001)
     u, v = _probe_grid(camera)
-    x = np.stack([u, v, np.ones_like(u)])            # 3 x P
-    inv_d = (1.0 / (cz - zs))[:, None, None]          # Z x 1 x 1
-    h = (A @ x)[None] - inv_d * (B @ x)[None]         # Z x 3 x P, H(z) = A - B / d(z)
+    x = np.stack([u, v, np.ones_like(u)])  # 3 x P
+    inv_d = (1.0 / (cz - zs))[:, None, None]  # Z x 1 x 1
+    h = (A @ x)[None] - inv_d * (B @ x)[None]  # Z x 3 x P, H(z) = A - B / d(z)
     pos = h[:, :2] / h[:, 2:3]
     mid = pos[zs.size // 2]
     seen = (mid[0] >= 0) & (mid[0] <= camera.width - 1) & (mid[1] >= 0) & (mid[1] <= camera.height - 1)
@@ -97,11 +112,18 @@ def planes_uniform_disparity(camera: Camera, pose1: Pose, pose2: Pose, z_min: fl
     return np.interp(np.linspace(0.0, arc[-1], n), arc, zs)
 
 
-def _inside(camera: Camera, H: np.ndarray, u: np.ndarray, v: np.ndarray, z_map: np.ndarray | None = None,
-            parts: tuple | None = None) -> np.ndarray:
+def _inside(
+    camera: Camera,
+    H: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    z_map: np.ndarray | None = None,
+    parts: tuple | None = None,
+) -> np.ndarray:
     if z_map is None:
         u2, v2 = map_points(H, u, v)
     else:  # per-pixel plane: H(z) = A - B / (C1z - z)
+        assert parts is not None
         A, B, cz = parts
         inv_d = 1.0 / (cz - z_map)
         hu = (A[0, 0] - B[0, 0] * inv_d) * u + (A[0, 1] - B[0, 1] * inv_d) * v + (A[0, 2] - B[0, 2] * inv_d)
@@ -116,7 +138,7 @@ def _inside_polygon(camera: Camera, H: np.ndarray) -> np.ndarray:
     w, h = camera.width, camera.height
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], dtype=np.float64).T
     q = np.linalg.inv(H) @ corners
-    mask = np.zeros((h, w), np.uint8)
+    mask: np.ndarray = np.zeros((h, w), np.uint8)
     if np.all(q[2] > 0) or np.all(q[2] < 0):
         pts = np.round(16 * (q[:2] / q[2]).T).astype(np.int64)
         pts = np.clip(pts, -(1 << 24), 1 << 24).astype(np.int32)  # far-away corners: keep fixed point sane
@@ -128,8 +150,9 @@ def _inside_polygon(camera: Camera, H: np.ndarray) -> np.ndarray:
     return mask.astype(bool)
 
 
-def coverage_mask(camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float | None = None,
-                  mode: str = "all") -> np.ndarray:
+def coverage_mask(
+    camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float | None = None, mode: str = "all"
+) -> np.ndarray:
     """i1 pixels that map inside i2 for the planes ``z_lo`` and ``z_hi``.
 
     A pixel's image in i2 moves along a straight epipolar segment as z varies and
@@ -154,10 +177,22 @@ def _roi(mask: np.ndarray, pad: int) -> tuple[int, int, int, int]:
     return int(x0), int(y0), int(x1 - x0), int(y1 - y0)
 
 
-def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2: Pose,
-              planes: np.ndarray, *, half_window: int = 8, cost: str = "sad", prefilter_sigma: float = 0.0,
-              ignore: np.ndarray | None = None, deadline: float | None = None,
-              check_every: int = 4, end_erosion: int | None = None) -> SweepResult:
+def sweep_dem(
+    i1: np.ndarray,
+    i2: np.ndarray,
+    camera: Camera,
+    pose1: Pose,
+    pose2: Pose,
+    planes: np.ndarray,
+    *,
+    half_window: int = 8,
+    cost: str = "sad",
+    prefilter_sigma: float = 0.0,
+    ignore: np.ndarray | None = None,
+    deadline: float | None = None,
+    check_every: int = 4,
+    end_erosion: int | None = None,
+) -> SweepResult:
     """Sweep ``planes`` (ascending elevations) and return the per-pixel elevation of i1.
 
     ``prefilter_sigma`` (i2 pixels, see :func:`flight_sw.warping.area_sigma`) low-passes
@@ -178,13 +213,13 @@ def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2
     x0, y0, rw, rh = roi
     if rw <= 2 * W or rh <= 2 * W:
         return SweepResult(nan_img, nan_img.copy(), planes, 0, True, roi)
-    src = i2.astype(np.float32)
+    src: np.ndarray = i2.astype(np.float32)
     if prefilter_sigma > 0:  # low-pass i2 to i1's pixel footprint (warping.area_sigma)
         src = cv2.GaussianBlur(src, (0, 0), prefilter_sigma, borderType=cv2.BORDER_REPLICATE)
-    a = np.ascontiguousarray(i1[y0:y0 + rh, x0:x0 + rw], dtype=np.float32)
+    a = np.ascontiguousarray(i1[y0 : y0 + rh, x0 : x0 + rw], dtype=np.float32)
     keep = None
     if ignore is not None and ignore.any():
-        keep = (~ignore[y0:y0 + rh, x0:x0 + rw]).astype(np.float32)
+        keep = (~ignore[y0 : y0 + rh, x0 : x0 + rw]).astype(np.float32)
     A, B, cz = homography_parts(camera, pose1, pose2)
     shape = (rh, rw)
     best = np.full(shape, np.inf, np.float32)
@@ -218,23 +253,24 @@ def sweep_dem(i1: np.ndarray, i2: np.ndarray, camera: Camera, pose1: Pose, pose2
     z_roi = np.interp(frac.ravel(), np.arange(n), planes).reshape(shape).astype(np.float32)
     # Valid only where the whole window maps inside i2 for EVERY swept plane: near the edge of
     # i2's view, out-of-image samples penalise some planes, which would bias the choice.
-    seen = coverage_mask(camera, pose1, pose2, planes[0], planes[-1], mode="all")[y0:y0 + rh, x0:x0 + rw]
+    seen = coverage_mask(camera, pose1, pose2, planes[0], planes[-1], mode="all")[y0 : y0 + rh, x0 : x0 + rw]
     # A minimum on the first or last plane means no interior minimum (ambiguous or out of range);
     # window neighbours share most of that window, so they are rejected too (window-sized erosion).
     box = np.ones((2 * W + 1, 2 * W + 1), np.uint8)
     ok = cv2.erode(seen.astype(np.uint8), box, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
     E = W if end_erosion is None else int(end_erosion)
-    ok &= cv2.erode(interior.astype(np.uint8), np.ones((2 * E + 1, 2 * E + 1), np.uint8),
-                    borderType=cv2.BORDER_REPLICATE).astype(bool)
+    ok &= cv2.erode(
+        interior.astype(np.uint8), np.ones((2 * E + 1, 2 * E + 1), np.uint8), borderType=cv2.BORDER_REPLICATE
+    ).astype(bool)
     if keep is not None:
         ok &= keep > 0
     elev = nan_img.copy()
-    elev[y0:y0 + rh, x0:x0 + rw] = np.where(ok, z_roi, np.nan)
+    elev[y0 : y0 + rh, x0 : x0 + rw] = np.where(ok, z_roi, np.nan)
     bc = nan_img.copy()
-    bc[y0:y0 + rh, x0:x0 + rw] = np.where(ok, best, np.nan)
+    bc[y0 : y0 + rh, x0 : x0 + rw] = np.where(ok, best, np.nan)
     curv = nan_img.copy()
     with np.errstate(divide="ignore", invalid="ignore"):
-        curv[y0:y0 + rh, x0:x0 + rw] = (c_before + c_after - 2 * best) / np.maximum(best, 1e-6)
+        curv[y0 : y0 + rh, x0 : x0 + rw] = (c_before + c_after - 2 * best) / np.maximum(best, 1e-6)
     ends = np.zeros(i1.shape, bool)
-    ends[y0:y0 + rh, x0:x0 + rw] = ~interior
+    ends[y0 : y0 + rh, x0 : x0 + rw] = ~interior
     return SweepResult(elev, bc, planes, done, True, roi, curv, ends)

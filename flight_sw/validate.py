@@ -3,6 +3,7 @@
 Every problem raises :class:`FlightInputError` (an :class:`protocol.errors.InputError`)
 with a message naming the argument, so callers never see a bare numpy traceback.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,8 +23,9 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
     if img.ndim != 2:
         raise FlightInputError(f"{name}: must be a 2-D gray image, got shape {img.shape}")
     if img.shape != (camera.height, camera.width):
-        raise FlightInputError(f"{name}: size {img.shape[1]}x{img.shape[0]} does not match the camera's "
-                               f"{camera.width}x{camera.height}")
+        raise FlightInputError(
+            f"{name}: size {img.shape[1]}x{img.shape[0]} does not match the camera's {camera.width}x{camera.height}"
+        )
     if not np.issubdtype(img.dtype, np.number) or np.issubdtype(img.dtype, np.complexfloating):
         raise FlightInputError(f"{name}: must be real-valued, got dtype {img.dtype}")
     if np.issubdtype(img.dtype, np.floating) and not np.all(np.isfinite(img)):
@@ -49,6 +51,7 @@ def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
     if not pose2.position[2] < pose1.position[2]:
         raise FlightInputError(
             f"pose2 must be below pose1 (z = {pose2.position[2]:.3f} m vs {pose1.position[2]:.3f} m): "
-            "i1 is the higher image")
+            "i1 is the higher image"
+        )
     if pose1.position[2] <= 0 or pose2.position[2] <= 0:
         raise FlightInputError("poses must be above the reference plane Z = 0 (positive altitude)")

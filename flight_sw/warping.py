@@ -6,6 +6,7 @@ before warping it is optionally low-passed and decimated to i1's sampling
 (``prefilter_levels`` Gaussian-pyramid steps); the homography is then composed
 with the decimation ``u' = u / 2^L`` (cv2.pyrDown keeps pixel 2j at j).
 """
+
 from __future__ import annotations
 
 import math
@@ -23,10 +24,10 @@ def prefilter_levels(scale: float) -> int:
 
 def prefilter(img: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
     """Low-pass and decimate ``levels`` times; return the float32 image and the 3x3 map S: full -> reduced."""
-    out = img.astype(np.float32)
+    out: np.ndarray = img.astype(np.float32)
     for _ in range(levels):
         out = cv2.pyrDown(out)
-    s = 0.5 ** levels
+    s = 0.5**levels
     return out, np.diag([s, s, 1.0])
 
 
@@ -43,15 +44,14 @@ def area_sigma(scale: float) -> float:
 
 def area_prefilter(img: np.ndarray, scale: float) -> np.ndarray:
     """Blur i2 (float32, full resolution) so its footprint matches i1's pixels (see :func:`area_sigma`)."""
-    out = img.astype(np.float32)
+    out: np.ndarray = img.astype(np.float32)
     sigma = area_sigma(scale)
     if sigma > 0:
         out = cv2.GaussianBlur(out, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
     return out
 
 
-def warp_to_i1(src: np.ndarray, H: np.ndarray, roi: tuple[int, int, int, int],
-               border_value: float = 0.0) -> np.ndarray:
+def warp_to_i1(src: np.ndarray, H: np.ndarray, roi: tuple[int, int, int, int], border_value: float = 0.0) -> np.ndarray:
     """Bilinear reverse warp: ``out[r, c] = src(H [c + x0, r + y0, 1])`` over ``roi = (x0, y0, w, h)``.
 
     Samples falling outside ``src`` take ``border_value``. ``H`` maps i1 pixels to
@@ -59,8 +59,14 @@ def warp_to_i1(src: np.ndarray, H: np.ndarray, roi: tuple[int, int, int, int],
     """
     x0, y0, w, h = roi
     T = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
-    return cv2.warpPerspective(src, H @ T, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=float(border_value))
+    return cv2.warpPerspective(
+        src,
+        H @ T,
+        (w, h),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float(border_value),
+    )
 
 
 def bilinear_sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, fill: float = np.nan) -> np.ndarray:
@@ -73,6 +79,10 @@ def bilinear_sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, fill: float =
     inside = (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
     u0c, v0c = np.clip(u0, 0, w - 1), np.clip(v0, 0, h - 1)
     u1c, v1c = np.clip(u0 + 1, 0, w - 1), np.clip(v0 + 1, 0, h - 1)
-    val = ((1 - fu) * (1 - fv) * img[v0c, u0c] + fu * (1 - fv) * img[v0c, u1c]
-           + (1 - fu) * fv * img[v1c, u0c] + fu * fv * img[v1c, u1c])
+    val = (
+        (1 - fu) * (1 - fv) * img[v0c, u0c]
+        + fu * (1 - fv) * img[v0c, u1c]
+        + (1 - fu) * fv * img[v1c, u0c]
+        + fu * fv * img[v1c, u1c]
+    )
     return np.where(inside, val, fill)

@@ -1,4 +1,5 @@
 """Error types of the ground simulator; all are :class:`protocol.errors.InputError`."""
+
 from __future__ import annotations
 
 from protocol.errors import InputError

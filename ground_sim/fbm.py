@@ -13,6 +13,7 @@ Band-limiting is the terrain-level anti-aliasing: octaves with wavelength below
 smoothstep, so a raster with cell ``c`` evaluated with ``min_wavelength = 2c``
 holds no content above its Nyquist frequency.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -63,11 +64,11 @@ class FBm:
         """Node standard deviation per octave (before band-limiting)."""
         lam = self.wavelengths()
         base = (lam / lam[0]) ** self.hurst
-        base = self.rms_m * base / np.sqrt(np.sum(base ** 2))
+        base = self.rms_m * base / np.sqrt(np.sum(base**2))
         micro = np.where(lam <= self.micro_scale_m, (lam / self.micro_scale_m) ** self.hurst, 0.0)
         if micro.any():
-            micro = self.micro_rms_m * micro / np.sqrt(np.sum(micro ** 2))
-        return np.sqrt(base ** 2 + micro ** 2) / _VAR1D  # 2-D variance is _VAR1D**2
+            micro = self.micro_rms_m * micro / np.sqrt(np.sum(micro**2))
+        return np.sqrt(base**2 + micro**2) / _VAR1D  # 2-D variance is _VAR1D**2
 
     def _weights(self, min_wavelength: float) -> np.ndarray:
         lam = self.wavelengths()
@@ -119,9 +120,12 @@ class FBm:
             gx, gy = xs / lam + ox, ys / lam + oy
             x0 = int(np.floor(gx.min())) - 1
             y0 = int(np.floor(gy.min())) - 1
-            nodes = self._nodes(o, np.arange(x0, int(np.floor(gx.max())) + 3)[None, :],
-                                np.arange(y0, int(np.floor(gy.max())) + 3)[:, None])
-            tmp = _interp_axis(nodes.T, gx - x0).T       # (ny_nodes, nx)
+            nodes = self._nodes(
+                o,
+                np.arange(x0, int(np.floor(gx.max())) + 3)[None, :],
+                np.arange(y0, int(np.floor(gy.max())) + 3)[:, None],
+            )
+            tmp = _interp_axis(nodes.T, gx - x0).T  # (ny_nodes, nx)
             out += a * _interp_axis(tmp, gy - y0)
         return out
 
@@ -146,9 +150,9 @@ def _interp_axis(nodes: np.ndarray, g: np.ndarray) -> np.ndarray:
             sl = slice(p, n, k)
             m = len(range(p, n, k))
             b = ig[p]
-            acc = w[0][p] * nodes[b - 1:b - 1 + m]
+            acc = w[0][p] * nodes[b - 1 : b - 1 + m]
             for i in range(1, 4):
-                acc += w[i][p] * nodes[b - 1 + i:b - 1 + i + m]
+                acc += w[i][p] * nodes[b - 1 + i : b - 1 + i + m]
             out[sl] = acc
         return out
     return sum(w[i].reshape((n,) + (1,) * (nodes.ndim - 1)) * nodes[ig + i - 1] for i in range(4))

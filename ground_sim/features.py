@@ -15,6 +15,7 @@ Shapes (heights added to the base relief), r = distance / radius:
   A crater with degradation state ``s`` is ``(1-s) fresh + s degraded``.
 * boulder: half-ellipsoid ``H sqrt(1 - r^2)``, H ~ 0.5 D (Golombek).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ import numpy as np
 from ground_sim.hashing import poisson, uniform
 
 CRATER_STREAM, BOULDER_STREAM, RIM_BOULDER_STREAM = 2, 3, 4
-CRATER_REACH = 2.0     # influence radius / crater radius (ejecta cut)
+CRATER_REACH = 2.0  # influence radius / crater radius (ejecta cut)
 BOULDER_REACH = 1.0
 
 
@@ -34,10 +35,10 @@ class Features:
 
     x: np.ndarray
     y: np.ndarray
-    d: np.ndarray        # diameter (m)
-    h: np.ndarray        # crater depth or boulder height (m)
-    s: np.ndarray        # crater degradation state in [0,1] (0 fresh); unused for boulders
-    kind: str            # "crater" or "boulder"
+    d: np.ndarray  # diameter (m)
+    h: np.ndarray  # crater depth or boulder height (m)
+    s: np.ndarray  # crater degradation state in [0,1] (0 fresh); unused for boulders
+    kind: str  # "crater" or "boulder"
 
     @property
     def reach(self) -> np.ndarray:
@@ -47,13 +48,14 @@ class Features:
         return int(self.x.size)
 
     @staticmethod
-    def concat(parts: list["Features"], kind: str) -> "Features":
+    def concat(parts: list[Features], kind: str) -> Features:
         if not parts:
             e = np.zeros(0)
             return Features(e, e, e, e, e, kind)
-        return Features(*(np.concatenate([getattr(p, f) for p in parts]) for f in "xydhs"), kind)
+        x, y, d, h, s = (np.concatenate([getattr(p, f) for p in parts]) for f in "xydhs")
+        return Features(x, y, d, h, s, kind)
 
-    def select(self, m: np.ndarray) -> "Features":
+    def select(self, m: np.ndarray) -> Features:
         return Features(self.x[m], self.y[m], self.d[m], self.h[m], self.s[m], self.kind)
 
 
@@ -74,7 +76,7 @@ class PowerLaw:
         return out
 
     def density(self, lo: float, hi: float) -> float:
-        return self.coef * (lo ** -self.exponent - hi ** -self.exponent)
+        return self.coef * (lo**-self.exponent - hi**-self.exponent)
 
     def sample_d(self, lo: float, hi: float, u: np.ndarray) -> np.ndarray:
         """Inverse CDF of the truncated power law on [lo, hi)."""
@@ -90,8 +92,17 @@ def _cells(bbox: tuple[float, float, float, float], cell: float, margin: float):
     return ci.ravel(), cj.ravel()
 
 
-def _populate(seed: int, stream: int, k: int, lo: float, hi: float, sfd: PowerLaw,
-              bbox, reach_factor: float, mean_per_cell: float = 1.5):
+def _populate(
+    seed: int,
+    stream: int,
+    k: int,
+    lo: float,
+    hi: float,
+    sfd: PowerLaw,
+    bbox,
+    reach_factor: float,
+    mean_per_cell: float = 1.5,
+):
     """Cell-hashed positions and diameters of class k overlapping ``bbox`` (+ reach)."""
     dens = sfd.density(lo, hi)
     if dens <= 0:
@@ -124,17 +135,19 @@ def craters_in(seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float)
         if r is None:
             continue
         x, y, d, u3, u4, _ = r
-        s = u3 ** ((1 - g) / g)                  # g -> 0: all fresh, g -> 1: all worn
-        dd = np.where(d >= 400, 0.21, np.where(d >= 200, 0.17, np.where(d >= 100, 0.15, np.where(
-            d >= 40, 0.13, np.where(d >= 10, 0.11, 0.10)))))   # Stopar 2017 fresh d/D
+        s = u3 ** ((1 - g) / g)  # g -> 0: all fresh, g -> 1: all worn
+        dd = np.where(
+            d >= 400,
+            0.21,
+            np.where(d >= 200, 0.17, np.where(d >= 100, 0.15, np.where(d >= 40, 0.13, np.where(d >= 10, 0.11, 0.10)))),
+        )  # Stopar 2017 fresh d/D
         h = (dd + 0.02 * (u4 - 0.5)) * d
         f = Features(x, y, d, h, s, "crater")
         parts.append(f.select((d >= d_min) & _touches(f, bbox)))
     return Features.concat(parts, "crater")
 
 
-def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
-                rim_per_crater_m2: float) -> Features:
+def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features, rim_per_crater_m2: float) -> Features:
     """Background boulders plus boulders strewn around fresh craters (denser near rims)."""
     parts = []
     for k, lo, hi in sfd.classes():
@@ -154,8 +167,11 @@ def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
             key = np.round(fresh.x * 64).astype(np.int64), np.round(fresh.y * 64).astype(np.int64)
             lam = rim_per_crater_m2 * area * (1 - fresh.s / 0.35)
             u0 = uniform(seed, RIM_BOULDER_STREAM, key[0], key[1], -1)
-            n = np.array([poisson(float(l), np.array([u]), cap=4000)[0] for l, u in zip(lam, u0)]) \
-                if lam.size < 64 else _poisson_many(lam, u0)
+            n = (
+                np.array([poisson(float(l), np.array([u]), cap=4000)[0] for l, u in zip(lam, u0)])
+                if lam.size < 64
+                else _poisson_many(lam, u0)
+            )
             if n.sum():
                 j = np.repeat(np.arange(len(fresh)), n)
                 i = np.arange(j.size) - np.repeat(np.cumsum(n) - n, n)
@@ -163,8 +179,14 @@ def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
                 rr = 0.5 * fresh.d[j] * (0.9 + 0.9 * u[0] ** 1.5)
                 th = 2 * np.pi * u[1]
                 d = np.minimum(sfd.sample_d(sfd.d_min, sfd.d_max, u[2]), 0.2 * fresh.d[j])
-                b = Features(fresh.x[j] + rr * np.sin(th), fresh.y[j] + rr * np.cos(th), d,
-                             d * (0.35 + 0.25 * u[3]), np.zeros(j.size), "boulder")
+                b = Features(
+                    fresh.x[j] + rr * np.sin(th),
+                    fresh.y[j] + rr * np.cos(th),
+                    d,
+                    d * (0.35 + 0.25 * u[3]),
+                    np.zeros(j.size),
+                    "boulder",
+                )
                 parts.append(b.select((d >= d_min) & _touches(b, bbox)))
     return Features.concat(parts, "boulder")
 
@@ -178,6 +200,7 @@ def _poisson_many(lam: np.ndarray, u: np.ndarray) -> np.ndarray:
         out[m] = poisson(float(lv), u[m], cap=200)
     if np.any(~small):
         from statistics import NormalDist
+
         z = np.array([NormalDist().inv_cdf(min(max(x, 1e-12), 1 - 1e-12)) for x in u[~small]])
         out[~small] = np.maximum(np.rint(lam[~small] + np.sqrt(lam[~small]) * z), 0).astype(np.int64)
     return out
@@ -198,7 +221,7 @@ def crater_profile(r2: np.ndarray, d: np.ndarray, h: np.ndarray, s: np.ndarray) 
     hr = (0.036 / 0.196) * h
     r2c = np.clip(r2, 1.0, 4.0)
     taper = 1.0 - (r2c - 1.0) / 3.0
-    fresh = np.where(r2 < 1.0, -h + (h + hr) * r2, hr * r2c ** -1.5 * taper * taper)
+    fresh = np.where(r2 < 1.0, -h + (h + hr) * r2, hr * r2c**-1.5 * taper * taper)
     q = np.clip(1.0 - r2 / 1.44, 0.0, None)
     return fresh + s * (-0.04 * d * q * q - fresh)
 

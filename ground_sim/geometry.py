@@ -1,4 +1,5 @@
 """Camera geometry: pixel rays, attitude construction, view footprint."""
+
 from __future__ import annotations
 
 import math
@@ -26,7 +27,7 @@ def look_rotation(off_nadir_deg: float, heading_deg: float = 0.0) -> np.ndarray:
 def pixel_rays(camera: Camera, pose: Pose, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Unit world ray directions (..., 3) through pixel coordinates (u, v)."""
     dc = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(np.shape(u))], axis=-1)
-    d = dc @ pose.R          # R^T applied to row vectors: camera -> world
+    d = dc @ pose.R  # R^T applied to row vectors: camera -> world
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 

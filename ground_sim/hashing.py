@@ -4,6 +4,7 @@ Lazily generated features (craters, boulders, noise lattices) must be the same
 whatever window is evaluated, so randomness is a hash of (seed, stream, cell,
 index) rather than a stateful generator. splitmix64 finaliser on uint64 arrays.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ Marching uses OpenCV bilinear sampling (fast; positions quantised to 1/32 cell),
 final root is refined by regula falsi on exact float64 bilinear interpolation, so the
 returned hit lies on the bilinear surface through the raster samples.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-REMAP_ROW = 16384   # flat remap maps are folded into rows of this length (< SHRT_MAX)
+REMAP_ROW = 16384  # flat remap maps are folded into rows of this length (< SHRT_MAX)
 
 
 @dataclass
@@ -20,7 +21,7 @@ class Raster:
     x0: float
     y0: float
     cell: float
-    H: np.ndarray            # float64 (ny, nx)
+    H: np.ndarray  # float64 (ny, nx)
 
     def __post_init__(self) -> None:
         self.zref = float(self.H.mean())
@@ -56,8 +57,12 @@ class Raster:
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         ny, nx = self.H.shape
-        return ((x >= self.x0) & (x <= self.x0 + (nx - 1) * self.cell)
-                & (y >= self.y0) & (y <= self.y0 + (ny - 1) * self.cell))
+        return (
+            (x >= self.x0)
+            & (x <= self.x0 + (nx - 1) * self.cell)
+            & (y >= self.y0)
+            & (y <= self.y0 + (ny - 1) * self.cell)
+        )
 
 
 def remap_flat(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
@@ -72,13 +77,13 @@ def remap_flat(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
         pad = rows * w - n
         mx = np.concatenate([mx, np.zeros(pad, np.float32)])
         my = np.concatenate([my, np.zeros(pad, np.float32)])
-    out = cv2.remap(src, mx.reshape(rows, w), my.reshape(rows, w), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(src, mx.reshape(rows, w), my.reshape(rows, w), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.ravel()[:n]
 
 
-def intersect(r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray,
-              step: np.ndarray, refine: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def intersect(
+    r: Raster, C: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, step: np.ndarray, refine: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
     """First t in [t0, t1] where the ray ``C + t d`` meets the height raster.
 
     March with per-ray ``step`` until the ray is at or below the surface, then refine

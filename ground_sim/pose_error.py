@@ -7,6 +7,7 @@ same draw to both frames as the thesis did), roll/yaw (about camera z / y) and l
 (horizontal position). ``sample(rng)`` draws a :class:`PoseDelta`; ``PoseDelta.apply(pose)``
 gives the reported pose.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,7 +40,11 @@ class PoseDelta:
 
     def apply(self, pose: Pose) -> Pose:
         """Reported pose: centre shifted, attitude ``R' = Rx(pitch) Ry(yaw) Rz(roll) R`` (camera axes)."""
-        Rd = _rot(0, math.radians(self.pitch_deg)) @ _rot(1, math.radians(self.yaw_deg)) @ _rot(2, math.radians(self.roll_deg))
+        Rd = (
+            _rot(0, math.radians(self.pitch_deg))
+            @ _rot(1, math.radians(self.yaw_deg))
+            @ _rot(2, math.radians(self.roll_deg))
+        )
         return Pose(pose.position + np.array([self.dx_m, self.dy_m, self.dz_m]), Rd @ pose.R, pose.time_s)
 
     def to_dict(self) -> dict:
@@ -91,11 +96,17 @@ class PoseError:
         return asdict(self)
 
     @classmethod
-    def parse(cls, text: str) -> "PoseError":
+    def parse(cls, text: str) -> PoseError:
         """``alt=0.5,alt_sigma=0,pitch=0.05,pitch_sigma=0,roll_yaw=0,lateral=0,equal_pitch=1``."""
-        names = {"alt": "altitude_uniform_m", "alt_sigma": "altitude_sigma_m", "pitch": "pitch_uniform_deg",
-                 "pitch_sigma": "pitch_sigma_deg", "roll_yaw": "roll_yaw_sigma_deg",
-                 "lateral": "lateral_sigma_m", "equal_pitch": "equal_pitch"}
+        names = {
+            "alt": "altitude_uniform_m",
+            "alt_sigma": "altitude_sigma_m",
+            "pitch": "pitch_uniform_deg",
+            "pitch_sigma": "pitch_sigma_deg",
+            "roll_yaw": "roll_yaw_sigma_deg",
+            "lateral": "lateral_sigma_m",
+            "equal_pitch": "equal_pitch",
+        }
         kw: dict = {}
         for item in filter(None, (s.strip() for s in text.split(","))):
             key, sep, val = item.partition("=")

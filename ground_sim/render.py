@@ -14,6 +14,7 @@ Pipeline per frame:
 5. truth from pixel-centre rays: elevation, camera z-depth, shadow (< half the pixel
    lit), hazard (slope/roughness of the true raster + shadow).
 """
+
 from __future__ import annotations
 
 import math
@@ -32,22 +33,22 @@ from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
 MAX_CELLS = 1_000_000
-MIN_RAY_DOWN = 0.05          # |d_z| below this: ray too close to the horizon
+MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
-REFERENCE_DN = 95.0          # DN of flat ground of mean albedo under this sun
+REFERENCE_DN = 95.0  # DN of flat ground of mean albedo under this sun
 
 
 @dataclass
 class View:
     """A rendered frame and its per-pixel ground truth."""
 
-    image: np.ndarray        # uint8 (H, W)
-    elevation: np.ndarray    # float32 world Z seen by each pixel centre
-    depth: np.ndarray        # float32 camera z of that point
-    shadow: np.ndarray       # bool, pixel not directly lit (majority of its area)
-    hazard: np.ndarray       # float32 [0, 1] truth hazard
-    world_xy: np.ndarray     # float32 (H, W, 2)
-    radiance: np.ndarray     # float32 noise-free radiance factor (before exposure)
+    image: np.ndarray  # uint8 (H, W)
+    elevation: np.ndarray  # float32 world Z seen by each pixel centre
+    depth: np.ndarray  # float32 camera z of that point
+    shadow: np.ndarray  # bool, pixel not directly lit (majority of its area)
+    hazard: np.ndarray  # float32 [0, 1] truth hazard
+    world_xy: np.ndarray  # float32 (H, W, 2)
+    radiance: np.ndarray  # float32 noise-free radiance factor (before exposure)
     info: dict
 
 
@@ -62,8 +63,9 @@ def _check_pose(camera: Camera, pose: Pose) -> None:
 def _exposure(scene: Scene, sun: Sun) -> float:
     """Fixed gain per sun: flat ground of mean albedo seen at nadir maps to REFERENCE_DN."""
     ci = math.sin(math.radians(sun.elevation_deg))
-    ref = lunar_lambert(np.array(scene.params.albedo.mean), np.array(ci), np.array(1.0),
-                        np.array(90.0 - sun.elevation_deg))
+    ref = lunar_lambert(
+        np.array(scene.params.albedo.mean), np.array(ci), np.array(1.0), np.array(90.0 - sun.elevation_deg)
+    )
     return REFERENCE_DN / max(float(ref), 1e-6)
 
 
@@ -76,13 +78,16 @@ def plan_raster(scene: Scene, camera: Camera, pose: Pose, sun: Sun, supersample:
     d = pixel_rays(camera, pose, bu, bv)
     if d[:, 2].max() > -MIN_RAY_DOWN:
         worst = math.degrees(math.asin(min(1.0, d[:, 2].max())))
-        raise RenderError(f"camera sees the sky or the horizon (a border ray points {worst:+.1f} deg "
-                          f"from horizontal; need < {-math.degrees(math.asin(MIN_RAY_DOWN)):.1f})")
+        raise RenderError(
+            f"camera sees the sky or the horizon (a border ray points {worst:+.1f} deg "
+            f"from horizontal; need < {-math.degrees(math.asin(MIN_RAY_DOWN)):.1f})"
+        )
     # coarse terrain bounds around the approximate footprint
     z_c = float(scene.height(np.array([C[0]]), np.array([C[1]]), 1.0)[0])
     if C[2] <= z_c + 0.5:
-        raise RenderError(f"camera at Z = {C[2]:.2f} m is below or too close to the terrain "
-                          f"(ground Z = {z_c:.2f} m under it)")
+        raise RenderError(
+            f"camera at Z = {C[2]:.2f} m is below or too close to the terrain (ground Z = {z_c:.2f} m under it)"
+        )
     t0 = (C[2] - z_c) / -d[:, 2]
     fx, fy = C[0] + t0 * d[:, 0], C[1] + t0 * d[:, 1]
     span = max(np.ptp(fx), np.ptp(fy), 1.0)
@@ -111,8 +116,9 @@ def plan_raster(scene: Scene, camera: Camera, pose: Pose, sun: Sun, supersample:
     return x0, y0, cell, nx, ny, zlo, zhi, gsd
 
 
-def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int = 0,
-                supersample: int = 2, noise: bool = True) -> View:
+def render_view(
+    scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int = 0, supersample: int = 2, noise: bool = True
+) -> View:
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method."""
     _check_pose(camera, pose)
     if not (0.0 < sun.elevation_deg <= 90.0) or not math.isfinite(sun.azimuth_deg):
@@ -123,7 +129,7 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     x0, y0, cell, nx, ny, _, _, gsd = plan_raster(scene, camera, pose, sun, ss)
     H, A = scene.raster(x0, y0, cell, nx, ny)
     r = Raster(x0, y0, cell, H)
-    zmin, zmax = float(H.min()) - 0.01, float(H.max()) + 0.01   # float32 sampling slack
+    zmin, zmax = float(H.min()) - 0.01, float(H.max()) + 0.01  # float32 sampling slack
     C = pose.position
     W, Hh = camera.width, camera.height
 
@@ -166,8 +172,14 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
         under = (z0 < zmax) & (np.abs(t - t0) < 1e-9)
         if np.any(under):
             iu = np.nonzero(under)[0]
-            tt, hh = intersect(r, C, d[iu], np.maximum((C[2] - zmax) / -d[iu, 2], 0.0), t1[iu],
-                               np.minimum(1.0 * cell, 1.0 * cell / s[iu]))
+            tt, hh = intersect(
+                r,
+                C,
+                d[iu],
+                np.maximum((C[2] - zmax) / -d[iu, 2], 0.0),
+                t1[iu],
+                np.minimum(1.0 * cell, 1.0 * cell / s[iu]),
+            )
             t[iu], hit[iu] = tt, hh
         if not hit.all():
             raise RenderError("some rays leave the terrain window without hitting the ground")
@@ -195,7 +207,7 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
     soft = cell * math.tan(math.radians(sun.elevation_deg)) + 0.02
     vis = np.clip((X[:, 2] - level) / soft + 1.0, 0.0, 1.0)
     lit = vis * (cos_i > 0)
-    rad = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb   # faint scattered light
+    rad = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb  # faint scattered light
     rad = cv2.resize(rad.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
     litf = cv2.resize(lit.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
 
@@ -217,7 +229,14 @@ def render_view(scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int
 
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
     image = sensor(rad, _exposure(scene, sun), rng)
-    info = {"raster_cell_m": cell, "raster_shape": [ny, nx], "gsd_min_m": gsd,
-            "raster_origin_m": [x0, y0]}
-    return View(image, Xp[:, 2].reshape(Hh, W).astype(np.float32), depth.reshape(Hh, W).astype(np.float32),
-                shadow, hazard, Xp[:, :2].reshape(Hh, W, 2).astype(np.float32), rad, info)
+    info = {"raster_cell_m": cell, "raster_shape": [ny, nx], "gsd_min_m": gsd, "raster_origin_m": [x0, y0]}
+    return View(
+        image,
+        Xp[:, 2].reshape(Hh, W).astype(np.float32),
+        depth.reshape(Hh, W).astype(np.float32),
+        shadow,
+        hazard,
+        Xp[:, :2].reshape(Hh, W, 2).astype(np.float32),
+        rad,
+        info,
+    )

@@ -14,6 +14,7 @@ TOML layout (all keys optional; defaults below)::
     [albedo]   mean, sigma
     [[feature]] kind = "boulder"|"crater", x_m, y_m, diameter_m, height_m (boulder) | depth_ratio, degradation (crater)
 """
+
 from __future__ import annotations
 
 import math
@@ -46,7 +47,7 @@ class Terrain:
 
 @dataclass(frozen=True)
 class Craters:
-    coef: float = 0.079            # Trask equilibrium N(>D) = 0.079 D^-2 per m^2
+    coef: float = 0.079  # Trask equilibrium N(>D) = 0.079 D^-2 per m^2
     exponent: float = 2.0
     d_min_m: float = 1.0
     d_max_m: float = 400.0
@@ -56,11 +57,11 @@ class Craters:
 
 @dataclass(frozen=True)
 class Boulders:
-    coef: float = 3.0e-4           # VIPER default N(>D) = 3e-4 D^-2.482 per m^2
+    coef: float = 3.0e-4  # VIPER default N(>D) = 3e-4 D^-2.482 per m^2
     exponent: float = 2.482
     d_min_m: float = 0.2
     d_max_m: float = 5.0
-    rim_density_m2: float = 0.02   # boulders >= d_min per m^2 around fresh craters
+    rim_density_m2: float = 0.02  # boulders >= d_min per m^2 around fresh craters
     exclude_radius_m: float = 0.0
 
 
@@ -106,7 +107,7 @@ def _section(cls, doc: dict, where: str):
     if not isinstance(doc, dict):
         raise SceneError(f"{where}: must be a table")
     known = {f.name: f for f in fields(cls)}
-    kw = {}
+    kw: dict[str, Any] = {}
     for k, v in doc.items():
         if k not in known:
             raise SceneError(f"{where}: unknown key {k!r} (known: {', '.join(known)})")
@@ -123,8 +124,9 @@ def parse_scene(doc: dict[str, Any], name: str = "custom") -> SceneParams:
     """Validate a scene document (parsed TOML) into :class:`SceneParams`."""
     extra = set(doc) - set(_SECTIONS) - {"feature", "name"}
     if extra:
-        raise SceneError(f"scene {name}: unknown section(s) {sorted(extra)}; "
-                         f"expected {sorted(_SECTIONS) + ['feature']}")
+        raise SceneError(
+            f"scene {name}: unknown section(s) {sorted(extra)}; expected {sorted(_SECTIONS) + ['feature']}"
+        )
     secs = {k: _section(cls, doc.get(k, {}), f"scene {name} [{k}]") for k, cls in _SECTIONS.items()}
     feats = []
     raw = doc.get("feature", [])
@@ -139,8 +141,9 @@ def parse_scene(doc: dict[str, Any], name: str = "custom") -> SceneParams:
                 raise SceneError(f"scene {name} feature #{i}: missing {req}")
         p = _section(Placed, {"kind": fd["kind"], **body}, f"scene {name} feature #{i}")
         feats.append(Placed(fd["kind"], p.x_m, p.y_m, p.diameter_m, p.height_m, p.depth_ratio, p.degradation))
-    params = SceneParams(str(doc.get("name", name)), secs["terrain"], secs["craters"], secs["boulders"],
-                         secs["albedo"], tuple(feats))
+    params = SceneParams(
+        str(doc.get("name", name)), secs["terrain"], secs["craters"], secs["boulders"], secs["albedo"], tuple(feats)
+    )
     _check(params)
     return params
 
@@ -188,7 +191,7 @@ def load_scene_params(spec: str | Path = "default") -> SceneParams:
     return parse_scene(doc, path.stem)
 
 
-def load_scene(spec: str | Path = "default", seed: int = 0) -> "Scene":
+def load_scene(spec: str | Path = "default", seed: int = 0) -> Scene:
     """Load a scene preset or TOML file with a seed."""
     if isinstance(spec, Scene):
         return spec
@@ -202,9 +205,15 @@ class Scene:
         self.params = params
         self.seed = int(seed)
         t = params.terrain
-        self._fbm = FBm(self.seed, t.rms_relief_m, t.hurst, t.max_wavelength_m,
-                        n_octaves=int(np.ceil(np.log2(t.max_wavelength_m / FINEST_WAVELENGTH_M))) + 1,
-                        micro_rms_m=t.micro_rms_m, micro_scale_m=t.micro_scale_m)
+        self._fbm = FBm(
+            self.seed,
+            t.rms_relief_m,
+            t.hurst,
+            t.max_wavelength_m,
+            n_octaves=int(np.ceil(np.log2(t.max_wavelength_m / FINEST_WAVELENGTH_M))) + 1,
+            micro_rms_m=t.micro_rms_m,
+            micro_scale_m=t.micro_scale_m,
+        )
         self._albedo_fbm = FBm(self.seed + 7919, 1.0, 0.5, 512.0, n_octaves=5)
         c, b = params.craters, params.boulders
         self._crater_sfd = PowerLaw(c.coef, c.exponent, c.d_min_m, c.d_max_m)
@@ -224,30 +233,57 @@ class Scene:
         cr = craters_in(self.seed, self._crater_sfd, bbox, 1.5 * max(min_size, 0.0), p.craters.degradation)
         if p.craters.exclude_radius_m > 0:
             cr = cr.select(np.hypot(cr.x, cr.y) - cr.reach > p.craters.exclude_radius_m)
-        bl = boulders_in(self.seed, self._boulder_sfd, bbox, max(0.5 * min_size, 0.0),
-                         cr.select(cr.d >= 8.0), p.boulders.rim_density_m2)
+        bl = boulders_in(
+            self.seed,
+            self._boulder_sfd,
+            bbox,
+            max(0.5 * min_size, 0.0),
+            cr.select(cr.d >= 8.0),
+            p.boulders.rim_density_m2,
+        )
         if p.boulders.exclude_radius_m > 0:
             bl = bl.select(np.hypot(bl.x, bl.y) - bl.reach > p.boulders.exclude_radius_m)
         pc = [f for f in p.features if f.kind == "crater"]
         pb = [f for f in p.features if f.kind == "boulder"]
         if pc:
-            cr = Features.concat([cr, Features(np.array([f.x_m for f in pc]), np.array([f.y_m for f in pc]),
-                                               np.array([f.diameter_m for f in pc]),
-                                               np.array([f.depth_ratio * f.diameter_m for f in pc]),
-                                               np.array([f.degradation for f in pc]), "crater")], "crater")
+            cr = Features.concat(
+                [
+                    cr,
+                    Features(
+                        np.array([f.x_m for f in pc]),
+                        np.array([f.y_m for f in pc]),
+                        np.array([f.diameter_m for f in pc]),
+                        np.array([f.depth_ratio * f.diameter_m for f in pc]),
+                        np.array([f.degradation for f in pc]),
+                        "crater",
+                    ),
+                ],
+                "crater",
+            )
         if pb:
-            bl = Features.concat([bl, Features(np.array([f.x_m for f in pb]), np.array([f.y_m for f in pb]),
-                                               np.array([f.diameter_m for f in pb]),
-                                               np.array([f.height_m for f in pb]), np.zeros(len(pb)),
-                                               "boulder")], "boulder")
+            bl = Features.concat(
+                [
+                    bl,
+                    Features(
+                        np.array([f.x_m for f in pb]),
+                        np.array([f.y_m for f in pb]),
+                        np.array([f.diameter_m for f in pb]),
+                        np.array([f.height_m for f in pb]),
+                        np.zeros(len(pb)),
+                        "boulder",
+                    ),
+                ],
+                "boulder",
+            )
         return cr, bl
 
     # -- evaluation ----------------------------------------------------------
     def _base(self, x, y, mw):
         return self._fbm.at(x, y, mw) + self._plane[0] * x + self._plane[1] * y
 
-    def height_albedo(self, x: np.ndarray, y: np.ndarray,
-                      min_wavelength: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def height_albedo(
+        self, x: np.ndarray, y: np.ndarray, min_wavelength: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Height (world Z) and albedo at scattered points, features >= ``min_wavelength``."""
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
@@ -278,8 +314,9 @@ class Scene:
         a = self.params.albedo
         return np.clip(a.mean * (1.0 + rel) + a.sigma * noise, 0.02, 0.6)
 
-    def raster(self, x0: float, y0: float, cell: float, nx: int, ny: int,
-               min_wavelength: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def raster(
+        self, x0: float, y0: float, cell: float, nx: int, ny: int, min_wavelength: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(height, albedo) on the grid x = x0 + j*cell, y = y0 + i*cell (row i, column j).
 
         Identical (to rounding) to :meth:`height_albedo` at the grid points; the default

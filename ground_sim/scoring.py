@@ -15,6 +15,7 @@ Conventions (DESIGN.md "Scoring convention", thesis sec 2.8, Tables 6.4/6.11):
 * Pixels whose ground truth is NaN, outside ``covered_mask`` or inside
   ``exclude`` are not scored at all.
 """
+
 from __future__ import annotations
 
 import math
@@ -81,12 +82,18 @@ def error_stats(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = No
     dev = err - err.mean()
     m2 = float(np.mean(dev * dev))
     if m2 > 0.0:
-        skew = float(np.mean(dev ** 3)) / m2 ** 1.5
-        kurt = float(np.mean(dev ** 4)) / (m2 * m2) - 3.0
+        skew = float(np.mean(dev**3)) / m2**1.5
+        kurt = float(np.mean(dev**4)) / (m2 * m2) - 3.0
     else:
         skew = kurt = float("nan")
-    return {"mean_abs": float(np.mean(np.abs(err))), "median": med,
-            "mad": float(np.median(np.abs(err - med))), "skewness": skew, "kurtosis": kurt, "n": n}
+    return {
+        "mean_abs": float(np.mean(np.abs(err))),
+        "median": med,
+        "mad": float(np.median(np.abs(err - med))),
+        "skewness": skew,
+        "kurtosis": kurt,
+        "n": n,
+    }
 
 
 def dem_error_stats(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
@@ -111,13 +118,22 @@ def _counts(est_unsafe: np.ndarray, true_unsafe: np.ndarray, keep: np.ndarray) -
     def pct(a: int, b: int) -> float:
         return 100.0 * a / b if b else float("nan")
 
-    return {"tp": pct(tp, n), "tn": pct(tn, n), "fp": pct(fp, n), "fn": pct(fn, n),
-            "tn_rate": pct(tn, tn + fp), "tp_rate": pct(tp, tp + fn), "cdi": pct(tp + tn, n),
-            "hazards_pct": pct(tn + fp, n), "n": n}
+    return {
+        "tp": pct(tp, n),
+        "tn": pct(tn, n),
+        "fp": pct(fp, n),
+        "fn": pct(fn, n),
+        "tn_rate": pct(tn, tn + fp),
+        "tp_rate": pct(tp, tp + fn),
+        "cdi": pct(tp + tn, n),
+        "hazards_pct": pct(tn + fp, n),
+        "n": n,
+    }
 
 
-def confusion(hazard_est: np.ndarray, hazard_true: np.ndarray, covered_mask: np.ndarray | None,
-              exclude: np.ndarray | None = None) -> dict[str, float]:
+def confusion(
+    hazard_est: np.ndarray, hazard_true: np.ndarray, covered_mask: np.ndarray | None, exclude: np.ndarray | None = None
+) -> dict[str, float]:
     """Pixel-level detection probabilities (thesis Tables 6.4/6.11, Fig. 6.6/6.12), in percent.
 
     ``tp, tn, fp, fn`` are shares of the scored pixels (covered, not excluded,
@@ -137,7 +153,7 @@ def disk_kernel(radius_px: float) -> np.ndarray:
     if not (math.isfinite(radius_px) and radius_px >= 0):
         raise ScoringInputError(f"footprint radius must be finite and >= 0 px, got {radius_px}")
     r = int(math.floor(radius_px))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     return ((xx * xx + yy * yy) <= radius_px * radius_px + 1e-9).astype(np.uint8)
 
 
@@ -148,8 +164,13 @@ def _grow(mask: np.ndarray, kernel: np.ndarray, outside: int = 0) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=outside) > 0
 
 
-def site_scores(hazard_est: np.ndarray, hazard_true: np.ndarray, covered_mask: np.ndarray | None,
-                radius_px: float, exclude: np.ndarray | None = None) -> dict[str, float]:
+def site_scores(
+    hazard_est: np.ndarray,
+    hazard_true: np.ndarray,
+    covered_mask: np.ndarray | None,
+    radius_px: float,
+    exclude: np.ndarray | None = None,
+) -> dict[str, float]:
     """Landing-site level detection probabilities (whole lander footprint), in percent.
 
     Every pixel whose footprint disk (``radius_px``, e.g. 1.5 m / GSD for the
@@ -223,7 +244,7 @@ def box_mask(shape: tuple[int, int], centre_uv: tuple[float, float] | None, size
         raise ScoringInputError(f"box centre must be finite, got {centre_uv}")
     u0 = int(math.floor(cu - (size_px - 1) / 2.0 + 0.5))
     v0 = int(math.floor(cv - (size_px - 1) / 2.0 + 0.5))
-    m[max(v0, 0):max(min(v0 + size_px, h), 0), max(u0, 0):max(min(u0 + size_px, w), 0)] = True
+    m[max(v0, 0) : max(min(v0 + size_px, h), 0), max(u0, 0) : max(min(u0 + size_px, w), 0)] = True
     return m
 
 

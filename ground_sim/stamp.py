@@ -5,25 +5,29 @@ accumulated with ``np.bincount``; large ones (patch > ``BIG`` cells) are evaluat
 their clipped window one by one (there are few). Points: features are tested against
 tiles of points so the cost is (points x nearby features), not (points x all).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from ground_sim.features import Features, profile
 
-BIG = 48          # patch side (cells) above which a feature gets its own window
+BIG = 48  # patch side (cells) above which a feature gets its own window
 BATCH = 3_000_000  # max patch elements per vectorised batch
 
 
-def stamp_raster(f: Features, x0: float, y0: float, cell: float, nx: int, ny: int,
-                 height: np.ndarray, albedo: np.ndarray) -> None:
+def stamp_raster(
+    f: Features, x0: float, y0: float, cell: float, nx: int, ny: int, height: np.ndarray, albedo: np.ndarray
+) -> None:
     """Add the features' height/albedo changes to ``height``/``albedo`` (ny x nx) in place."""
     if not len(f):
         return
     reach = f.reach
     side = np.ceil(2 * reach / cell).astype(np.int64) + 2
     small = np.nonzero(side <= BIG)[0]
-    flat, dh, da = [], [], []
+    flat: list[np.ndarray] = []
+    dh: list[np.ndarray] = []
+    da: list[np.ndarray] = []
     for p in np.unique(side[small]):
         sel = small[side[small] == p]
         for chunk in np.array_split(sel, max(1, int(np.ceil(sel.size * p * p / BATCH)))):
@@ -45,9 +49,9 @@ def stamp_raster(f: Features, x0: float, y0: float, cell: float, nx: int, ny: in
         gx = x0 + np.arange(c0, c1 + 1) * cell - f.x[i]
         gy = y0 + np.arange(r0, r1 + 1) * cell - f.y[i]
         rr = (gx[None, :] ** 2 + gy[:, None] ** 2) / (0.5 * f.d[i]) ** 2
-        dh, da = profile(f, rr, np.full(rr.shape, i))
-        height[r0:r1 + 1, c0:c1 + 1] += dh
-        albedo[r0:r1 + 1, c0:c1 + 1] += da
+        dh_i, da_i = profile(f, rr, np.full(rr.shape, i))
+        height[r0 : r1 + 1, c0 : c1 + 1] += dh_i
+        albedo[r0 : r1 + 1, c0 : c1 + 1] += da_i
 
 
 def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, flat_out, dh_out, da_out):
@@ -83,10 +87,14 @@ def stamp_points(f: Features, x: np.ndarray, y: np.ndarray, tile: float = 32.0) 
     bounds = np.append(start, order.size)
     reach = f.reach
     for t in range(uk.size):
-        pts = order[bounds[t]:bounds[t + 1]]
+        pts = order[bounds[t] : bounds[t + 1]]
         px, py = x[pts], y[pts]
-        near = np.nonzero((f.x + reach >= px.min()) & (f.x - reach <= px.max())
-                          & (f.y + reach >= py.min()) & (f.y - reach <= py.max()))[0]
+        near = np.nonzero(
+            (f.x + reach >= px.min())
+            & (f.x - reach <= px.max())
+            & (f.y + reach >= py.min())
+            & (f.y - reach <= py.max())
+        )[0]
         for chunk in np.array_split(near, max(1, int(np.ceil(near.size * pts.size / BATCH)))):
             if not chunk.size:
                 continue

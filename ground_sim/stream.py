@@ -11,6 +11,7 @@ queueing on a slow processor. Every pair ends in ``results.jsonl`` as
 ``result`` or ``error`` with a reason; a pair with no answer within the
 ground's own timeout is recorded as ``error: no_response`` - nothing is lost.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,15 +50,28 @@ class PairOutcome:
 def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
     pose = pair.poses[index]
     alt = pair.meta.get("altimeter_m", [float("nan"), float("nan")])
-    return Frame(seq=seq, capture_time_s=float(pose.time_s), position_m=tuple(float(v) for v in pose.position),
-                 R_world_to_cam=np.asarray(pose.R, dtype="<f8"), altimeter_m=float(alt[index]),
-                 image=np.ascontiguousarray(pair.images[index]), pair_id=pair_id, frame_index=index)
+    return Frame(
+        seq=seq,
+        capture_time_s=float(pose.time_s),
+        position_m=tuple(float(v) for v in pose.position),
+        R_world_to_cam=np.asarray(pose.R, dtype="<f8"),
+        altimeter_m=float(alt[index]),
+        image=np.ascontiguousarray(pair.images[index]),
+        pair_id=pair_id,
+        frame_index=index,
+    )
 
 
 def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
     """Save arrays of a finished pair under ``out_dir/<pair_id>/`` and return its JSON record."""
-    rec: dict = {"pair_id": o.pair_id, "label": o.label, "altitude_m": o.altitude_m, "pair_dir": o.pair_dir,
-                 "frame_seqs": list(o.seqs), "link_s": o.link_s}
+    rec: dict = {
+        "pair_id": o.pair_id,
+        "label": o.label,
+        "altitude_m": o.altitude_m,
+        "pair_dir": o.pair_dir,
+        "frame_seqs": list(o.seqs),
+        "link_s": o.link_s,
+    }
     if o.error is not None:
         rec.update(status="error", code=o.error.code, text=o.error.text)
         return rec
@@ -71,18 +85,39 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         np.save(d / "hazard.npy", np.asarray(r.hazard_image, dtype=np.float32))
     if r.elevation_image is not None:
         np.save(d / "elevation.npy", np.asarray(r.elevation_image, dtype=np.float32))
-    rec.update(status="result", degraded=bool(r.degraded), level=r.level,
-               grid_origin_xy=list(r.grid_origin_xy), grid_cell_m=r.grid_cell_m,
-               sites=[[s.x, s.y, s.z, s.hazard, s.margin, s.distance_m] for s in r.sites],
-               latency_s=t.total_latency_s, deadline_s=t.deadline_s, deadline_met=bool(t.deadline_met),
-               queue_wait_s=t.queue_wait_s, cpu_fraction=t.cpu_fraction,
-               peak_rss_mib=t.peak_rss_bytes / 2**20, stages=t.stages, link=t.link, out_dir=str(d))
+    rec.update(
+        status="result",
+        degraded=bool(r.degraded),
+        level=r.level,
+        grid_origin_xy=list(r.grid_origin_xy),
+        grid_cell_m=r.grid_cell_m,
+        sites=[[s.x, s.y, s.z, s.hazard, s.margin, s.distance_m] for s in r.sites],
+        latency_s=t.total_latency_s,
+        deadline_s=t.deadline_s,
+        deadline_met=bool(t.deadline_met),
+        queue_wait_s=t.queue_wait_s,
+        cpu_fraction=t.cpu_fraction,
+        peak_rss_mib=t.peak_rss_bytes / 2**20,
+        stages=t.stages,
+        link=t.link,
+        out_dir=str(d),
+    )
     return rec
 
 
-def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, deadline_s: float,
-                   preset: str = "fast", pace: str = "lockstep", response_timeout_s: float | None = None,
-                   hello_timeout_s: float = 900.0, progress=None) -> list[dict]:
+def stream_descent(
+    link,
+    manifest_path: Path,
+    out_dir: Path,
+    *,
+    budget: str,
+    deadline_s: float,
+    preset: str = "fast",
+    pace: str = "lockstep",
+    response_timeout_s: float | None = None,
+    hello_timeout_s: float = 900.0,
+    progress=None,
+) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``)."""
     manifest = json.loads(Path(manifest_path).read_text())
     base = Path(manifest_path).parent
@@ -151,8 +186,13 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
         for i, entry in enumerate(entries):
             pair_dir = base / entry["path"]
             pair_id = f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
-            o = PairOutcome(pair_id, str(entry.get("label", i)), float(entry.get("altitude_m", float("nan"))),
-                            str(pair_dir), (seq, seq + 1))
+            o = PairOutcome(
+                pair_id,
+                str(entry.get("label", i)),
+                float(entry.get("altitude_m", float("nan"))),
+                str(pair_dir),
+                (seq, seq + 1),
+            )
             outcomes[o.seqs] = o
             by_lower_seq[seq + 1] = o
             seq += 2
@@ -163,8 +203,9 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
                 give_up(o, "bad_input", str(exc))
                 continue
             if not config_sent:
-                link.send(Config(camera=pair.camera.to_dict(), budget=budget, deadline_s=float(deadline_s),
-                                 preset=preset))
+                link.send(
+                    Config(camera=pair.camera.to_dict(), budget=budget, deadline_s=float(deadline_s), preset=preset)
+                )
                 config_sent = True
             o.sent_at = time.monotonic()
             link_seqs = {link.send(f) for f in frames}
@@ -176,7 +217,9 @@ def stream_descent(link, manifest_path: Path, out_dir: Path, *, budget: str, dea
                 continue
             if pace == "lockstep":
                 collect(time.monotonic() + timeout + o.link_s, {o.seqs})
-        pending = {s for s, o in outcomes.items() if not o.finished and not any(r["frame_seqs"] == list(s) for r in records)}
+        pending = {
+            s for s, o in outcomes.items() if not o.finished and not any(r["frame_seqs"] == list(s) for r in records)
+        }
         if pending:
             collect(time.monotonic() + timeout * max(1, len(pending)), pending)
         for s, o in outcomes.items():
@@ -207,14 +250,25 @@ def main(argv: list[str] | None = None) -> int:
     def show(rec: dict) -> None:
         if rec["status"] == "result":
             flag = "met" if rec["deadline_met"] else "MISSED"
-            print(f"ground: {rec['label']:>10}  {rec['level']:<10} latency {rec['latency_s']:7.2f} s  "
-                  f"deadline {flag}", file=sys.stderr, flush=True)
+            print(
+                f"ground: {rec['label']:>10}  {rec['level']:<10} latency {rec['latency_s']:7.2f} s  deadline {flag}",
+                file=sys.stderr,
+                flush=True,
+            )
         else:
             print(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}", file=sys.stderr, flush=True)
 
     try:
-        records = stream_descent(link, args.manifest, args.out, budget=args.budget, deadline_s=args.deadline,
-                                 preset=args.preset, pace=args.pace, progress=show)
+        records = stream_descent(
+            link,
+            args.manifest,
+            args.out,
+            budget=args.budget,
+            deadline_s=args.deadline,
+            preset=args.preset,
+            pace=args.pace,
+            progress=show,
+        )
     finally:
         link.close()
     failed = sum(r["status"] != "result" for r in records)

@@ -16,6 +16,7 @@ thesis Tables 6.1 and 6.8 list (600->300 is the 300 m row, 2400->1200 the 1200 m
 Frame times come from a velocity profile along the path: speed ``v = v_min + k s`` with
 ``s`` the remaining path length, so ``t(s) = ln((v_min + k s0) / (v_min + k s)) / k``.
 """
+
 from __future__ import annotations
 
 import json
@@ -32,8 +33,16 @@ from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose
 
 VERTICAL_UPPER = (1000, 800, 600, 400, 300, 200, 150, 100)
-APPROACH_PAIRS = ((2400, 1200, 49.0), (2000, 1000, 49.0), (1200, 600, 49.0), (1000, 500, 49.0),
-                  (600, 300, 49.0), (500, 250, 49.0), (300, 150, 40.0), (250, 125, 40.0))
+APPROACH_PAIRS = (
+    (2400, 1200, 49.0),
+    (2000, 1000, 49.0),
+    (1200, 600, 49.0),
+    (1000, 500, 49.0),
+    (600, 300, 49.0),
+    (500, 250, 49.0),
+    (300, 150, 40.0),
+    (250, 125, 40.0),
+)
 V_MIN, K_DECEL = 1.0, 0.05
 
 
@@ -58,9 +67,16 @@ def vertical(camera: Camera | None = None) -> list[PairSpec]:
     cam = camera or Camera.thesis()
     R = look_rotation(0.0)
     s0 = float(VERTICAL_UPPER[0])
-    return [PairSpec(_label(h, h / 2), h / 2,
-                     (Pose([0, 0, h], R, _time(s0, h)), Pose([0, 0, h / 2], R, _time(s0, h / 2))),
-                     cam, "vertical") for h in VERTICAL_UPPER]
+    return [
+        PairSpec(
+            _label(h, h / 2),
+            h / 2,
+            (Pose(np.array([0.0, 0.0, h]), R, _time(s0, h)), Pose(np.array([0.0, 0.0, h / 2]), R, _time(s0, h / 2))),
+            cam,
+            "vertical",
+        )
+        for h in VERTICAL_UPPER
+    ]
 
 
 def approach(camera: Camera | None = None) -> list[PairSpec]:
@@ -69,7 +85,8 @@ def approach(camera: Camera | None = None) -> list[PairSpec]:
     out = []
     for hu, hl, tilt in APPROACH_PAIRS:
         R = look_rotation(tilt, 0.0)
-        poses = tuple(Pose([0.0, -h, h], R, _time(s0, h * math.sqrt(2))) for h in (hu, hl))
+        pu, pl = (Pose(np.array([0.0, -h, h]), R, _time(s0, h * math.sqrt(2))) for h in (hu, hl))
+        poses = (pu, pl)
         out.append(PairSpec(_label(hu, hl), float(hl), poses, cam, "approach"))
     return out
 

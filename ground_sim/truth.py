@@ -8,6 +8,7 @@ correlations). Slope = atan(sqrt(b^2 + c^2)), scaled 0->1 at 15 deg; roughness =
 The plane is fitted on a raster coarsened so the disk spans <= ~25 cells (bounded cost),
 and its coefficients are interpolated back (they are smooth at that scale).
 """
+
 from __future__ import annotations
 
 import math
@@ -29,8 +30,8 @@ def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_ra
     n = int(math.floor(rad))
     off = np.arange(-n, n + 1) * cc
     dx, dy = np.meshgrid(off, off)
-    disk = (dx ** 2 + dy ** 2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
-    if disk.sum() < 5:   # footprint under ~2 cells: 3x3 neighbourhood
+    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+    if disk.sum() < 5:  # footprint under ~2 cells: 3x3 neighbourhood
         disk = np.ones((3, 3))
         dx, dy = np.meshgrid(np.array([-cc, 0, cc]), np.array([-cc, 0, cc]))
     kz = disk / disk.sum()
@@ -44,12 +45,11 @@ def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_ra
     if k > 1:
         size = (H.shape[1], H.shape[0])
         # coarse cell centre (i+0.5)k-0.5 in fine indices: cv2.resize linear uses the same convention
-        a, b, c = (cv2.resize(m, size, interpolation=cv2.INTER_LINEAR) for m in (a, b, c))
+        a, b, c = (cv2.resize(m, size, interpolation=cv2.INTER_LINEAR) for m in (a, b, c))  # type: ignore[assignment]
     return a, b, c
 
 
-def hazard_layers(z: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
-                  shadow: np.ndarray) -> np.ndarray:
+def hazard_layers(z: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, shadow: np.ndarray) -> np.ndarray:
     """Hazard in [0,1] per DESIGN.md from point heights z and the local plane (a, b, c)."""
     slope = np.degrees(np.arctan(np.hypot(b, c)))
     hz = np.maximum(np.clip(slope / SLOPE_LIMIT_DEG, 0, 1), np.clip(np.abs(z - a) / ROUGH_LIMIT_M, 0, 1))

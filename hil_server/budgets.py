@@ -17,6 +17,7 @@ the same on any host; a faster host simply gets a smaller duty cycle.
 ``~/.cache/hazard-hil/``). Without a calibration the host is assumed to be as
 fast as the anchor, with an :class:`UncalibratedWarning`.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -59,13 +60,13 @@ class Anchor:
 class HostCalibration:
     """This host's single-core rate on the reference workload."""
 
-    key: str                 # hostname|cpu model: what the calibration is valid for
+    key: str  # hostname|cpu model: what the calibration is valid for
     hostname: str
     cpu_model: str
-    units_per_s: float       # median reference-workload rate, units per CPU-second
-    spread: float            # (p90 - p10) / median over the measurement batches
-    seconds: float           # CPU seconds measured
-    measured_at: str         # ISO 8601, UTC
+    units_per_s: float  # median reference-workload rate, units per CPU-second
+    spread: float  # (p90 - p10) / median over the measurement batches
+    seconds: float  # CPU seconds measured
+    measured_at: str  # ISO 8601, UTC
 
     def host_dmips(self, anchor: Anchor) -> float:
         """host_dmips = anchor.dmips * units_per_s / anchor.units_per_s."""
@@ -78,10 +79,10 @@ class Budget:
 
     name: str
     description: str
-    cpu_dmips: float | None          # None: one whole core of this host
+    cpu_dmips: float | None  # None: one whole core of this host
     memory_mib: int
     deadline_s: float
-    link: str                        # "zmq" | "serial"
+    link: str  # "zmq" | "serial"
     baud: int | None
     source: str
     anchor: Anchor = field(repr=False, compare=False, default=None)  # type: ignore[assignment]
@@ -94,9 +95,12 @@ class Budget:
         """This host's single-core speed in DMIPS; the anchor's if uncalibrated (warns)."""
         if cal is not None:
             return cal.host_dmips(self.anchor)
-        warnings.warn("no calibration for this host; assuming it is as fast as the anchor "
-                      f"({self.anchor.dmips:.0f} DMIPS). Run `hazard-hil calibrate`.",
-                      UncalibratedWarning, stacklevel=3)
+        warnings.warn(
+            "no calibration for this host; assuming it is as fast as the anchor "
+            f"({self.anchor.dmips:.0f} DMIPS). Run `hazard-hil calibrate`.",
+            UncalibratedWarning,
+            stacklevel=3,
+        )
         return self.anchor.dmips
 
     def duty_fraction(self, cal: HostCalibration | None) -> float:
@@ -131,10 +135,13 @@ def _parse_anchor(doc: dict, where: str) -> Anchor:
     if not isinstance(a, dict):
         raise BudgetError(f"{where}: missing [anchor] table")
     w = f"{where} [anchor]"
-    return Anchor(description=_string(a, "description", w), dmips=_number(a, "dmips", w),
-                  units_per_s=_number(a, "units_per_s", w),
-                  coremark=_number(a, "coremark", w) if "coremark" in a else None,
-                  coremark_per_dmips=_number(a, "coremark_per_dmips", w) if "coremark_per_dmips" in a else None)
+    return Anchor(
+        description=_string(a, "description", w),
+        dmips=_number(a, "dmips", w),
+        units_per_s=_number(a, "units_per_s", w),
+        coremark=_number(a, "coremark", w) if "coremark" in a else None,
+        coremark_per_dmips=_number(a, "coremark_per_dmips", w) if "coremark_per_dmips" in a else None,
+    )
 
 
 def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
@@ -157,9 +164,17 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
         baud = int(baud_f)
     elif "baud" in entry:
         raise BudgetError(f"{w}: 'baud' only applies to link = \"serial\"")
-    return Budget(name=name, description=_string(entry, "description", w), cpu_dmips=cpu_dmips,
-                  memory_mib=int(memory), deadline_s=_number(entry, "deadline_s", w), link=link, baud=baud,
-                  source=_string(entry, "source", w), anchor=anchor)
+    return Budget(
+        name=name,
+        description=_string(entry, "description", w),
+        cpu_dmips=cpu_dmips,
+        memory_mib=int(memory),
+        deadline_s=_number(entry, "deadline_s", w),
+        link=link,
+        baud=baud,
+        source=_string(entry, "source", w),
+        anchor=anchor,
+    )
 
 
 def load_budgets(path: str | os.PathLike | None = None) -> dict[str, Budget]:
@@ -188,6 +203,7 @@ def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
 
 
 # --- calibration ---------------------------------------------------------------------------
+
 
 def calibration_path() -> Path:
     """``$HAZARD_HIL_HOME/calibration.json``, else ``$XDG_CACHE_HOME|~/.cache/hazard-hil/``."""
@@ -226,8 +242,9 @@ def _read_store(path: Path) -> dict:
     except FileNotFoundError:
         return {}
     except (OSError, ValueError) as exc:
-        raise BudgetError(f"calibration file {path} is unreadable ({exc}); delete it and run "
-                          "`hazard-hil calibrate`") from None
+        raise BudgetError(
+            f"calibration file {path} is unreadable ({exc}); delete it and run `hazard-hil calibrate`"
+        ) from None
     if not isinstance(data, dict):
         raise BudgetError(f"calibration file {path}: expected a JSON object keyed by host")
     return data
@@ -244,21 +261,28 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
         if not (isinstance(cal.units_per_s, (int, float)) and cal.units_per_s > 0):
             raise ValueError("units_per_s must be > 0")
     except (TypeError, ValueError) as exc:
-        raise BudgetError(f"calibration file {p}: bad entry for this host ({exc}); run `hazard-hil calibrate`") from None
+        raise BudgetError(
+            f"calibration file {p}: bad entry for this host ({exc}); run `hazard-hil calibrate`"
+        ) from None
     return cal
 
 
-def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None,
-                   save: bool = True) -> HostCalibration:
+def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, save: bool = True) -> HostCalibration:
     """Measure this host's single-core reference-workload rate and (by default) store it."""
     from hil_server.calibrate import measure_rate
 
     if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 < seconds <= 600):
         raise BudgetError(f"calibration time must be in (0, 600] s, got {seconds!r}")
     rate = measure_rate(float(seconds))
-    cal = HostCalibration(key=host_key(), hostname=socket.gethostname(), cpu_model=cpu_model(),
-                          units_per_s=rate.units_per_s, spread=rate.spread, seconds=rate.cpu_s,
-                          measured_at=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    cal = HostCalibration(
+        key=host_key(),
+        hostname=socket.gethostname(),
+        cpu_model=cpu_model(),
+        units_per_s=rate.units_per_s,
+        spread=rate.spread,
+        seconds=rate.cpu_s,
+        measured_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    )
     if save:
         p = Path(path) if path is not None else calibration_path()
         store = _read_store(p)

@@ -12,6 +12,7 @@ The rate is measured on CPU time (``time.process_time``), not wall time, so
 that other processes sharing the host shift it little; the median over many
 units rejects the odd slow unit (cache eviction, frequency change).
 """
+
 from __future__ import annotations
 
 import statistics
@@ -30,11 +31,11 @@ _SEED = 20240611
 class WorkloadRate:
     """Result of a reference-workload run."""
 
-    units_per_s: float       # median rate, units per CPU-second
-    spread: float            # (p90 - p10) / median of the per-batch rates
-    units: int               # units executed
-    cpu_s: float             # CPU time spent
-    checksum: int            # proves the work was done identically each time
+    units_per_s: float  # median rate, units per CPU-second
+    spread: float  # (p90 - p10) / median of the per-batch rates
+    units: int  # units executed
+    cpu_s: float  # CPU time spent
+    checksum: int  # proves the work was done identically each time
 
 
 def make_inputs(seed: int = _SEED) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,7 +63,7 @@ def run_unit(img1: np.ndarray, img2: np.ndarray, K: np.ndarray) -> int:
     best = np.full(img1.shape, np.inf, dtype=np.float32)
     index = np.zeros(img1.shape, dtype=np.int16)
     for k in range(PLANES_PER_UNIT):
-        d = -1000.0 + 0.15 * k       # planes 15 cm apart, as the thesis's depth step
+        d = -1000.0 + 0.15 * k  # planes 15 cm apart, as the thesis's depth step
         H = K @ (R - np.outer(t, n) / d) @ Kinv
         H /= H[2, 2]
         warped = cv2.warpPerspective(img2, H, (IMAGE_SIZE, IMAGE_SIZE), flags=cv2.INTER_LINEAR)

@@ -1,32 +1,44 @@
-"""The ``hazard-hil`` console script.
+"""The ``hazard-hil`` console script, and the HIL server's own subcommands.
 
-Each package contributes its subcommands through a module exposing
-``register(subparsers)``; this file only assembles them, so packages stay
-independent (ground_sim never imports flight_sw and vice versa). Heavy imports
-happen inside the command handlers, keeping ``hazard-hil --help`` fast.
+Each package contributes its subcommands through a ``cli`` module with
+``register(subparsers)``, declared as an entry point in the group
+``hazard_hil.commands`` (pyproject.toml). This module only assembles them, so
+packages stay independent: ground_sim never imports flight_sw, and nothing
+imports studies. Heavy imports happen inside the command handlers, keeping
+``hazard-hil --help`` fast.
 
 A handler is stored as ``func`` on the parsed namespace and returns an exit
 code. Errors meant for users are raised as :class:`protocol.errors.InputError`
 (or a subclass) and printed as one line, not a traceback.
+
+The HIL server's subcommands: ``budgets``, ``calibrate`` (emulation), ``run``,
+``demo``, ``regress`` (runs).
 """
+
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import sys
+from importlib import metadata
+from pathlib import Path
 
 from protocol.errors import InputError
 
-# Modules that add subcommands, in help order. A module that does not exist
-# yet is skipped; one that exists but fails to import is a real error.
-COMMAND_MODULES: tuple[str, ...] = (
-    "ground_sim.cli",          # render
-    "flight_sw.cli",           # process
-    "hil_server.cli_hil",      # budgets, calibrate
-    "hil_server.cli_run",      # run, demo, regress
-    "hil_server.cli_evaluate", # evaluate, sensitivity
-)
+ENTRY_POINT_GROUP = "hazard_hil.commands"
+# help order of the project's own packages; commands of other installed packages follow by name
+_ORDER = ("ground_sim", "flight_sw", "hil_server", "studies")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    _register_emulation(subparsers)
+    _register_runs(subparsers)
+
+
+def version() -> str:
+    try:
+        return metadata.version("hazard-hil")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,11 +46,16 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hazard-hil",
         description="Hardware-in-the-loop emulation of vision-based hazard detection for planetary landing.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        if importlib.util.find_spec(name) is None:
-            continue
-        importlib.import_module(name).register(sub)
+    eps = sorted(
+        metadata.entry_points(group=ENTRY_POINT_GROUP),
+        key=lambda e: (_ORDER.index(e.name) if e.name in _ORDER else len(_ORDER), e.name),
+    )
+    if not eps:  # running from a source tree that was never installed
+        raise SystemExit("hazard-hil: no commands registered; install the package (make install)")
+    for ep in eps:
+        ep.load()(sub)
     return parser
 
 
@@ -56,6 +73,196 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+# --------------------------------------------------------------------------- emulation
+def _register_emulation(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "budgets",
+        help="list processor budgets and the duty cycle each means on this host",
+        description="List the processor budgets (hil_server/budgets.toml) with the CPU duty "
+        "cycle each one means on this host.",
+    )
+    p.add_argument("--file", default=None, help="budget file (default: the packaged budgets.toml)")
+    p.add_argument("--sources", action="store_true", help="also print where each figure comes from")
+    p.set_defaults(func=_budgets)
+
+    c = subparsers.add_parser(
+        "calibrate",
+        help="measure this host's single-core speed and store it",
+        description="Run the reference workload (plane-sweep image operations) on one "
+        "thread and store this host's speed for the budgets.",
+    )
+    c.add_argument("--seconds", type=float, default=3.0, help="CPU seconds to measure (default 3)")
+    c.add_argument("--file", default=None, help="budget file whose anchor to report against")
+    c.set_defaults(func=_calibrate)
+
+
+def _budgets(args: argparse.Namespace) -> int:
+    import warnings
+
+    from hil_server.budgets import UncalibratedWarning, calibration_path, load_budgets, load_calibration
+
+    budgets = load_budgets(args.file)
+    cal = load_calibration()
+    anchor = next(iter(budgets.values())).anchor
+    if cal is None:
+        print(
+            f"warning: this host is not calibrated; assuming the anchor's {anchor.dmips:.0f} DMIPS "
+            "(run `hazard-hil calibrate`)",
+            file=sys.stderr,
+        )
+        host_dmips = anchor.dmips
+    else:
+        host_dmips = cal.host_dmips(anchor)
+        print(
+            f"host: {cal.cpu_model} on {cal.hostname}, {host_dmips:.0f} DMIPS per core "
+            f"(calibrated {cal.measured_at}, {calibration_path()})"
+        )
+    print(f"{'budget':<15}{'DMIPS':>8}{'duty':>9}{'slower':>8}{'memory':>10}{'deadline':>10}  {'link':<16}description")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UncalibratedWarning)  # said once above
+        for b in budgets.values():
+            dmips = "host" if b.is_host else f"{b.cpu_dmips:.0f}"
+            link = b.link if b.baud is None else f"{b.link} {b.baud}"
+            duty = b.duty_fraction(cal)
+            print(
+                f"{b.name:<15}{dmips:>8}{duty:>9.2%}{1 / duty:>7.1f}x{b.memory_mib:>6} MiB{b.deadline_s:>9g}s"
+                f"  {link:<16}{b.description}"
+            )
+            if args.sources:
+                print(f"{'':<15}source: {b.source}")
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from hil_server.budgets import BudgetError, calibrate_host, calibration_path, load_budgets
+
+    if not 0 < args.seconds <= 600:
+        raise BudgetError(f"--seconds must be in (0, 600], got {args.seconds:g}")
+    anchor = next(iter(load_budgets(args.file).values())).anchor
+    print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread...")
+    cal = calibrate_host(seconds=args.seconds)
+    print(
+        f"{cal.units_per_s:.2f} units/s (spread p10-p90 {cal.spread:.0%}); anchor {anchor.units_per_s:g} units/s "
+        f"= {anchor.dmips:.0f} DMIPS -> this host {cal.host_dmips(anchor):.0f} DMIPS per core"
+    )
+    print(f"stored for {cal.key} in {calibration_path()}")
+    return 0
+
+
+# --------------------------------------------------------------------------- runs
+# The demo: a short vertical descent over loopback serial on a flight-computer
+# budget, sized to finish well inside two minutes on a 2-core machine.
+DEMO_DEFAULTS = {
+    "scenario": "vertical",
+    "link": "serial",
+    "budget": "snapdragon801",
+    "pairs": ["600/300", "300/150", "200/100"],
+}
+
+
+def _pairs(text: str | None) -> list[str] | None:
+    return [p.strip() for p in text.split(",") if p.strip()] if text else None
+
+
+def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
+    p.add_argument(
+        "--scenario", default=defaults.get("scenario", "vertical"), help="vertical | approach | trajectory FILE"
+    )
+    p.add_argument("--link", choices=("serial", "zmq"), default=defaults.get("link", "serial"))
+    p.add_argument("--budget", default=defaults.get("budget", "host"), help="see `hazard-hil budgets`")
+    p.add_argument(
+        "--pairs",
+        default=",".join(defaults["pairs"]) if defaults.get("pairs") else None,
+        help="comma-separated pair labels, e.g. 600/300,300/150 (default: all)",
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scene", default=None, help="scene preset or TOML file")
+    p.add_argument("--preset", choices=("fast", "thesis"), default="fast")
+    p.add_argument("--pace", choices=("lockstep", "asap"), default="lockstep")
+    p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s)")
+    p.add_argument("--baud", type=int, default=None, help="override the budget's serial baud rate")
+    p.add_argument("--image-size", type=int, default=None, help="render a smaller square camera, same FOV")
+    p.add_argument(
+        "--manifest",
+        type=Path,
+        default=None,
+        help="stream pairs already rendered by `hazard-hil render` (their manifest.json)",
+    )
+    p.add_argument(
+        "--corrupt",
+        type=float,
+        default=0.0,
+        help="serial only: per-byte drop/flip/duplicate rate injected on the line (e.g. 1e-6)",
+    )
+    p.add_argument("--out", type=Path, default=Path("out/run"))
+
+
+def _config(args: argparse.Namespace):
+    from hil_server.run import RunConfig
+
+    return RunConfig(
+        scenario=args.scenario,
+        link=args.link,
+        budget=args.budget,
+        out=args.out,
+        pairs=_pairs(args.pairs),
+        seed=args.seed,
+        scene=args.scene,
+        preset=args.preset,
+        pace=args.pace,
+        deadline_s=args.deadline,
+        baud=args.baud,
+        image_size=args.image_size,
+        manifest=args.manifest,
+        corrupt=args.corrupt,
+    )
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from hil_server.run import run_descent
+
+    summary = run_descent(_config(args))
+    print(f"report: {Path(args.out) / 'report.html'}")
+    return 0 if summary["pairs"] and summary["results"] + summary["errors"] == summary["pairs"] else 1
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from hil_server.budgets import calibrate_host, load_calibration
+    from hil_server.run import run_descent
+
+    if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
+        print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate)")
+        cal = calibrate_host(seconds=2.0)
+        print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
+    run_descent(_config(args))
+    print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
+    print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
+    return 0
+
+
+def _cmd_regress(args: argparse.Namespace) -> int:
+    from hil_server.regress import run_regression
+
+    return run_regression(args.baseline, update=args.update, out=args.out, cases=_pairs(args.cases))
+
+
+def _register_runs(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="end-to-end HIL descent: ground sim -> link -> emulated flight processor")
+    _add_run_options(p, {})
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("demo", help="a short HIL descent over loopback serial with sensible defaults")
+    _add_run_options(p, DEMO_DEFAULTS)
+    p.set_defaults(func=_cmd_demo, out=Path("out/demo"))
+
+    p = sub.add_parser("regress", help="re-run fixed scenario x budget cases and compare to a baseline")
+    p.add_argument("--baseline", type=Path, default=Path("bench/latency_baseline.json"))
+    p.add_argument("--update", action="store_true", help="rewrite the baseline with this run's numbers")
+    p.add_argument("--cases", default=None, help="comma-separated case names (default: all in the baseline)")
+    p.add_argument("--out", type=Path, default=Path("out/regress"))
+    p.set_defaults(func=_cmd_regress)
 
 
 if __name__ == "__main__":

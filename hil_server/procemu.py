@@ -37,6 +37,7 @@ signal ("crash"), memory-ceiling breach by the watchdog or a failed allocation
 ("memory"), a kill requested through :meth:`EmulatedProcessor.kill` ("killed"),
 and a kill from outside ("external").
 """
+
 from __future__ import annotations
 
 import atexit
@@ -56,13 +57,26 @@ MIB = 1 << 20
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
 # Thread pools of every numeric library the flight software may load.
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "BLIS_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",
+)
 
 # Markers of a failed allocation in the child's stderr: Python/numpy MemoryError,
 # OpenCV's Insufficient memory, a failed thread stack under RLIMIT_AS.
-_MEMORY_MARKERS = (b"MemoryError", b"Insufficient memory", b"Failed to allocate", b"std::bad_alloc",
-                   b"can't start new thread", b"Cannot allocate memory")
+_MEMORY_MARKERS = (
+    b"MemoryError",
+    b"Insufficient memory",
+    b"Failed to allocate",
+    b"std::bad_alloc",
+    b"can't start new thread",
+    b"Cannot allocate memory",
+)
 
 # EXIT_MEMORY (protocol.errors): the status a flight main uses to say "allocation failed".
 
@@ -91,14 +105,16 @@ def measure_baseline_vms_mib(python: str = sys.executable, modules: tuple[str, .
     rlimit is set on top of it. A ZeroMQ context is created too (its I/O thread
     has a stack).
     """
-    code = ("import importlib, sys\n"
-            "for m in sys.argv[1:]:\n"
-            "    try: importlib.import_module(m)\n"
-            "    except ImportError: pass\n"
-            "try:\n"
-            "    import zmq; zmq.Context().socket(zmq.PAIR)\n"
-            "except ImportError: pass\n"
-            "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmPeak')][0])\n")
+    code = (
+        "import importlib, sys\n"
+        "for m in sys.argv[1:]:\n"
+        "    try: importlib.import_module(m)\n"
+        "    except ImportError: pass\n"
+        "try:\n"
+        "    import zmq; zmq.Context().socket(zmq.PAIR)\n"
+        "except ImportError: pass\n"
+        "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmPeak')][0])\n"
+    )
     env = {**os.environ, **thread_env()}
     out = subprocess.run([python, "-c", code, *modules], env=env, capture_output=True, text=True, timeout=120)
     if out.returncode != 0:
@@ -221,7 +237,7 @@ class _Child:
         self.pid = popen.pid
         self.core = core
         self.t0 = t0
-        self.lock = threading.Lock()       # guards signals vs. reaping (no PID reuse races)
+        self.lock = threading.Lock()  # guards signals vs. reaping (no PID reuse races)
         self.exited = threading.Event()
         self.stop_threads = threading.Event()
         self.per_task: dict[int, tuple[int, int]] = {}
@@ -302,8 +318,9 @@ class EmulatedProcessor:
             self._baseline_vms_mib = measure_baseline_vms_mib()
         return self._baseline_vms_mib + s.memory_mib + s.as_headroom_mib
 
-    def start(self, argv: list[str], env: dict | None = None, pass_fds: tuple[int, ...] = (),
-              **popen_kwargs) -> subprocess.Popen:
+    def start(
+        self, argv: list[str], env: dict | None = None, pass_fds: tuple[int, ...] = (), **popen_kwargs
+    ) -> subprocess.Popen:
         """Start ``argv`` on the emulated processor and return its Popen.
 
         ``env`` (default: this process's environment) is overlaid with
@@ -330,8 +347,9 @@ class EmulatedProcessor:
         if capture:
             popen_kwargs["stderr"] = subprocess.PIPE
         try:
-            popen = subprocess.Popen(argv, env=child_env, pass_fds=tuple(pass_fds), preexec_fn=preexec,
-                                     close_fds=True, **popen_kwargs)
+            popen = subprocess.Popen(
+                argv, env=child_env, pass_fds=tuple(pass_fds), preexec_fn=preexec, close_fds=True, **popen_kwargs
+            )
         except (OSError, subprocess.SubprocessError) as exc:
             raise ProcessorError(f"cannot start {argv[0]!r}: {exc}") from None
         child = _Child(popen, core, time.monotonic())
@@ -341,14 +359,21 @@ class EmulatedProcessor:
             self._atexit_registered = True
         threads = [threading.Thread(target=self._reaper, args=(child,), name=f"procemu-reap-{child.pid}", daemon=True)]
         if capture:
-            threads.append(threading.Thread(target=self._stderr_pump, args=(child,),
-                                            name=f"procemu-stderr-{child.pid}", daemon=True))
+            threads.append(
+                threading.Thread(
+                    target=self._stderr_pump, args=(child,), name=f"procemu-stderr-{child.pid}", daemon=True
+                )
+            )
         # The watchdog runs without a ceiling too: it keeps the peak RSS.
-        threads.append(threading.Thread(target=self._watchdog, args=(child,), name=f"procemu-rss-{child.pid}",
-                                        daemon=True))
+        threads.append(
+            threading.Thread(target=self._watchdog, args=(child,), name=f"procemu-rss-{child.pid}", daemon=True)
+        )
         if self.spec.cpu_fraction < 1.0:
-            threads.append(threading.Thread(target=self._throttle, args=(child,),
-                                            name=f"procemu-throttle-{child.pid}", daemon=True))
+            threads.append(
+                threading.Thread(
+                    target=self._throttle, args=(child,), name=f"procemu-throttle-{child.pid}", daemon=True
+                )
+            )
         child.threads = threads
         for t in threads:
             t.start()
@@ -409,7 +434,7 @@ class EmulatedProcessor:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
 
-    def __enter__(self) -> "EmulatedProcessor":
+    def __enter__(self) -> EmulatedProcessor:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -422,9 +447,19 @@ class EmulatedProcessor:
         raw_fraction, stops, stopped, target_fraction). Zeros before the first start."""
         child = self._child
         if child is None:
-            return dict(cpu_s=0.0, wall_s=0.0, achieved_fraction=0.0, peak_rss_mib=0.0, rss_mib=0.0, core=self.core,
-                        contention_s=0.0, raw_fraction=0.0, stops=0, stopped=False,
-                        target_fraction=self.spec.cpu_fraction)
+            return dict(
+                cpu_s=0.0,
+                wall_s=0.0,
+                achieved_fraction=0.0,
+                peak_rss_mib=0.0,
+                rss_mib=0.0,
+                core=self.core,
+                contention_s=0.0,
+                raw_fraction=0.0,
+                stops=0,
+                stopped=False,
+                target_fraction=self.spec.cpu_fraction,
+            )
         if not child.exited.is_set():
             child.sample()
             mem = _read_rss_hwm_bytes(child.pid)
@@ -436,10 +471,19 @@ class EmulatedProcessor:
         cpu = child.cpu_ns / 1e9
         contention = min(child.wait_ns / 1e9, wall)
         avail = wall - contention
-        return dict(cpu_s=cpu, wall_s=wall, achieved_fraction=cpu / avail if avail > 0 else 0.0,
-                    peak_rss_mib=child.peak_rss / MIB, rss_mib=(0.0 if child.exited.is_set() else child.rss / MIB),
-                    core=child.core, contention_s=contention, raw_fraction=cpu / wall if wall > 0 else 0.0,
-                    stops=child.stops, stopped=child.stopped, target_fraction=self.spec.cpu_fraction)
+        return dict(
+            cpu_s=cpu,
+            wall_s=wall,
+            achieved_fraction=cpu / avail if avail > 0 else 0.0,
+            peak_rss_mib=child.peak_rss / MIB,
+            rss_mib=(0.0 if child.exited.is_set() else child.rss / MIB),
+            core=child.core,
+            contention_s=contention,
+            raw_fraction=cpu / wall if wall > 0 else 0.0,
+            stops=child.stops,
+            stopped=child.stopped,
+            target_fraction=self.spec.cpu_fraction,
+        )
 
     # --- helper threads -------------------------------------------------------------------
 
@@ -499,6 +543,7 @@ class EmulatedProcessor:
 
     def _stderr_pump(self, child: _Child) -> None:
         stream = child.popen.stderr
+        assert stream is not None  # started with stderr=PIPE
         out = getattr(sys.stderr, "buffer", None)
         try:
             for line in iter(stream.readline, b""):
@@ -553,8 +598,15 @@ class EmulatedProcessor:
             kind, reason = child.kill_kind or "killed", child.kill_reason
         elif sig is not None:
             name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else f"signal {sig}"
-            if sig in (signal.SIGSEGV, signal.SIGABRT, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGSYS,
-                       signal.SIGTRAP):
+            if sig in (
+                signal.SIGSEGV,
+                signal.SIGABRT,
+                signal.SIGBUS,
+                signal.SIGILL,
+                signal.SIGFPE,
+                signal.SIGSYS,
+                signal.SIGTRAP,
+            ):
                 kind, reason = "crash", f"crash: killed by {name}"
             else:
                 kind, reason = "external", f"external kill: {name}"
@@ -566,6 +618,13 @@ class EmulatedProcessor:
         else:
             last = tail.strip().splitlines()[-1].decode("utf-8", "replace")[:200] if tail.strip() else ""
             kind, reason = "error", f"error exit: status {code}" + (f" ({last})" if last else "")
-        return ExitReport(returncode=code, signal=sig, reason=reason, peak_rss_mib=child.peak_rss / MIB,
-                          cpu_s=child.cpu_ns / 1e9, wall_s=(child.t_end or time.monotonic()) - child.t0, kind=kind,
-                          stderr_tail=tail.decode("utf-8", "replace"))
+        return ExitReport(
+            returncode=code,
+            signal=sig,
+            reason=reason,
+            peak_rss_mib=child.peak_rss / MIB,
+            cpu_s=child.cpu_ns / 1e9,
+            wall_s=(child.t_end or time.monotonic()) - child.t0,
+            kind=kind,
+            stderr_tail=tail.decode("utf-8", "replace"),
+        )

@@ -9,6 +9,7 @@ Installed with the package (entry point ``pytest11``), it adds the option
 The fixture runs the cases of the baseline (see :mod:`hil_server.regress`) and
 fails the test with the readable diff when any case regresses.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,8 +20,7 @@ DEFAULT_BASELINE = Path("bench/latency_baseline.json")
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
-    parser.addoption("--hil-baseline", default=None,
-                     help="hazard-hil latency baseline for the hil_regression fixture")
+    parser.addoption("--hil-baseline", default=None, help="hazard-hil latency baseline for the hil_regression fixture")
 
 
 @pytest.fixture
@@ -30,8 +30,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
 
         path = Path(baseline or request.config.getoption("--hil-baseline") or DEFAULT_BASELINE)
         if not path.is_file():
-            pytest.fail(f"no latency baseline at {path} (create it with `hazard-hil regress --update`)",
-                        pytrace=False)
+            pytest.fail(f"no latency baseline at {path} (create it with `hazard-hil regress --update`)", pytrace=False)
         ok, diff, _ = check_regression(path, out=tmp_path / "regress", cases=cases)
         if not ok:
             pytest.fail("latency regression:\n" + diff, pytrace=False)

@@ -3,15 +3,17 @@
 Latencies are stored in *reference seconds*: ``latency_s x effective_dmips /
 anchor_dmips``, where ``effective_dmips`` is the speed the flight process
 actually had (the budget's absolute speed when throttled, the calibrated host
-speed for ``host``) and the anchor is the reference machine of budgets.toml. A throttled budget means the same absolute speed on any
-calibrated host, so its reference seconds are comparable across machines; for
-``host`` the factor removes the host's own speed.
+speed for ``host``) and the anchor is the reference machine of budgets.toml.
+A throttled budget means the same absolute speed on any calibrated host, so
+its reference seconds are comparable across machines; for ``host`` the factor
+removes the host's own speed.
 
 A regression is: deadline hit rate below the baseline's minus
 ``hit_rate_drop``, or a latency percentile above the baseline's by more than
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
 so tiny latencies do not flap). ``--update`` rewrites the baseline.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,12 +26,14 @@ DEFAULT_TOLERANCES = {"hit_rate_drop": 0.0, "latency_rel": 0.35, "latency_abs_s"
 
 # The cases `regress` runs when the baseline does not exist yet (`--update`).
 DEFAULT_CASES: dict[str, dict] = {
-    "vertical-host-zmq": {"scenario": "vertical", "budget": "host", "link": "zmq",
-                          "pairs": ["600/300", "300/150"]},
-    "vertical-snapdragon-serial": {"scenario": "vertical", "budget": "snapdragon801", "link": "serial",
-                                   "pairs": ["600/300", "300/150"]},
-    "approach-rad750-serial": {"scenario": "approach", "budget": "rad750", "link": "serial",
-                               "pairs": ["500/250"]},
+    "vertical-host-zmq": {"scenario": "vertical", "budget": "host", "link": "zmq", "pairs": ["600/300", "300/150"]},
+    "vertical-snapdragon-serial": {
+        "scenario": "vertical",
+        "budget": "snapdragon801",
+        "link": "serial",
+        "pairs": ["600/300", "300/150"],
+    },
+    "approach-rad750-serial": {"scenario": "approach", "budget": "rad750", "link": "serial", "pairs": ["500/250"]},
 }
 METRICS = ("latency_p50_s", "latency_p95_s", "latency_max_s")
 
@@ -59,14 +63,20 @@ def effective_speed(budget_name: str) -> tuple[float, float]:
 def measure_case(name: str, case: dict, out: Path) -> dict:
     from hil_server.run import RunConfig, run_descent
 
-    cfg = RunConfig(scenario=case["scenario"], link=case["link"], budget=case["budget"], out=out / name,
-                    pairs=case.get("pairs"), seed=int(case.get("seed", 0)), image_size=case.get("image_size"),
-                    manifest=Path(case["manifest"]) if case.get("manifest") else None)
+    cfg = RunConfig(
+        scenario=case["scenario"],
+        link=case["link"],
+        budget=case["budget"],
+        out=out / name,
+        pairs=case.get("pairs"),
+        seed=int(case.get("seed", 0)),
+        image_size=case.get("image_size"),
+        manifest=Path(case["manifest"]) if case.get("manifest") else None,
+    )
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     speed, ref = effective_speed(case["budget"])
     scale = speed / ref
-    cur = {"deadline_hit_rate": summary["deadline_hit_rate"], "errors": summary["errors"],
-           "pairs": summary["pairs"]}
+    cur = {"deadline_hit_rate": summary["deadline_hit_rate"], "errors": summary["errors"], "pairs": summary["pairs"]}
     for m in METRICS:
         cur[m.replace("_s", "_ref_s")] = summary[m] * scale
     return cur
@@ -78,7 +88,9 @@ def compare(name: str, cur: dict, base: dict | None, tol: dict) -> CaseOutcome:
         o.problems.append("no baseline for this case (run with --update)")
         return o
     if cur["deadline_hit_rate"] < base["deadline_hit_rate"] - tol["hit_rate_drop"] - 1e-9:
-        o.problems.append(f"deadline hit rate {cur['deadline_hit_rate']:.2f} < baseline {base['deadline_hit_rate']:.2f}")
+        o.problems.append(
+            f"deadline hit rate {cur['deadline_hit_rate']:.2f} < baseline {base['deadline_hit_rate']:.2f}"
+        )
     if cur.get("errors", 0) > base.get("errors", 0):
         o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
     for m in METRICS:
@@ -107,8 +119,9 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
     return "\n".join(lines)
 
 
-def check_regression(baseline: Path, *, out: Path = Path("out/regress"), cases: list[str] | None = None,
-                     update: bool = False) -> tuple[bool, str, dict]:
+def check_regression(
+    baseline: Path, *, out: Path = Path("out/regress"), cases: list[str] | None = None, update: bool = False
+) -> tuple[bool, str, dict]:
     """Run the cases; returns (ok, readable diff, new baseline document)."""
     doc = json.loads(Path(baseline).read_text()) if Path(baseline).is_file() else {}
     all_cases = doc.get("cases") or {k: {**v} for k, v in DEFAULT_CASES.items()}
@@ -126,14 +139,18 @@ def check_regression(baseline: Path, *, out: Path = Path("out/regress"), cases: 
         outcomes.append(compare(n, cur, case.get("metrics"), tol))
         if update:
             case["metrics"] = cur
-    new_doc = {"tolerances": tol, "cases": all_cases,
-               "note": "latencies in reference seconds; see hil_server/regress.py"}
+    new_doc = {
+        "tolerances": tol,
+        "cases": all_cases,
+        "note": "latencies in reference seconds; see hil_server/regress.py",
+    }
     ok = update or all(not o.problems for o in outcomes)
     return ok, diff_table(outcomes), new_doc
 
 
-def run_regression(baseline: Path, *, update: bool = False, out: Path = Path("out/regress"),
-                   cases: list[str] | None = None) -> int:
+def run_regression(
+    baseline: Path, *, update: bool = False, out: Path = Path("out/regress"), cases: list[str] | None = None
+) -> int:
     ok, diff, new_doc = check_regression(baseline, out=out, cases=cases, update=update)
     print(diff)
     if update:

@@ -12,6 +12,7 @@ result against ground truth and writes::
     OUT/summary.md           the same as a table
     OUT/report.html          tables and pictures for people
 """
+
 from __future__ import annotations
 
 import json
@@ -33,20 +34,20 @@ from protocol.errors import InputError
 @dataclass
 class RunConfig:
     scenario: str = "vertical"
-    link: str = "serial"             # serial | zmq
+    link: str = "serial"  # serial | zmq
     budget: str = "host"
     out: Path = Path("out/run")
-    pairs: list[str] | None = None   # labels such as "600/300"; None = all
+    pairs: list[str] | None = None  # labels such as "600/300"; None = all
     seed: int = 0
     scene: str | None = None
     preset: str = "fast"
     pace: str = "lockstep"
     deadline_s: float | None = None  # None = the budget's
-    baud: int | None = None          # None = the budget's (serial only)
-    fault: str | None = None         # flight fault injection (tests)
-    image_size: int | None = None    # render a smaller camera with the same FOV (tests, quick looks)
-    manifest: Path | None = None     # stream these already-rendered pairs instead of rendering
-    corrupt: float = 0.0             # serial only: per-byte drop, flip and duplicate rate on the line
+    baud: int | None = None  # None = the budget's (serial only)
+    fault: str | None = None  # flight fault injection (tests)
+    image_size: int | None = None  # render a smaller camera with the same FOV (tests, quick looks)
+    manifest: Path | None = None  # stream these already-rendered pairs instead of rendering
+    corrupt: float = 0.0  # serial only: per-byte drop, flip and duplicate rate on the line
     timeout_s: float = 900.0
 
 
@@ -98,8 +99,7 @@ def score_records(records: list[dict]) -> list[dict]:
         if "hazard" in truth:
             covered = ~np.isnan(hazard)
             c = confusion(hazard, truth["hazard"], covered)
-            rec["scores"] = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v)
-                             for k, v in c.items()}
+            rec["scores"] = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
         elev_path = Path(rec["out_dir"]) / "elevation.npy"
         if elev_path.is_file() and "elevation" in truth:
             st = dem_error_stats(np.load(elev_path), truth["elevation"])
@@ -112,13 +112,17 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
     n = len(records)
     met = sum(1 for r in records if r.get("status") == "result" and r.get("deadline_met"))
     return {
-        "scenario": cfg.scenario, "link": cfg.link, "budget": cfg.budget, "preset": cfg.preset,
+        "scenario": cfg.scenario,
+        "link": cfg.link,
+        "budget": cfg.budget,
+        "preset": cfg.preset,
         "pairs": n,
         "results": sum(r.get("status") == "result" for r in records),
         "degraded": sum(bool(r.get("degraded")) for r in records),
         "errors": sum(r.get("status") != "result" for r in records),
         "deadline_hit_rate": met / n if n else float("nan"),
-        "latency_p50_s": percentile(lat, 50), "latency_p95_s": percentile(lat, 95),
+        "latency_p50_s": percentile(lat, 50),
+        "latency_p95_s": percentile(lat, 95),
         "latency_max_s": max(lat) if lat else float("nan"),
         **extra,
         "records": records,
@@ -132,24 +136,32 @@ def _fmt(v, spec: str = ".2f") -> str:
 
 
 def summary_table(summary: dict) -> str:
-    rows = ["| pair | altitude m | outcome | level | latency s | deadline | FP % | CDI % | DEM mean abs m |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| pair | altitude m | outcome | level | latency s | deadline | FP % | CDI % | DEM mean abs m |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in summary["records"]:
         sc = r.get("scores", {})
         if r.get("status") == "result":
             outcome = "degraded" if r.get("degraded") else "result"
             dl = "met" if r.get("deadline_met") else "MISSED"
-            rows.append(f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {r.get('level')} | "
-                        f"{_fmt(r.get('latency_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
-                        f"{_fmt(sc.get('dem_mean_abs'))} |")
+            rows.append(
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {r.get('level')} | "
+                f"{_fmt(r.get('latency_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
+                f"{_fmt(sc.get('dem_mean_abs'))} |"
+            )
         else:
-            rows.append(f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | — | — |")
+            rows.append(
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | — | — |"
+            )
     s = summary
-    head = (f"**{s['scenario']}** over **{s['link']}** on budget **{s['budget']}** "
-            f"(CPU fraction {_fmt(s.get('cpu_fraction'), '.4f')}, deadline {_fmt(s.get('deadline_s'))} s): "
-            f"{s['results']}/{s['pairs']} results ({s['degraded']} degraded), {s['errors']} errors; "
-            f"latency p50 {_fmt(s['latency_p50_s'])} s, p95 {_fmt(s['latency_p95_s'])} s, "
-            f"max {_fmt(s['latency_max_s'])} s; deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %")
+    head = (
+        f"**{s['scenario']}** over **{s['link']}** on budget **{s['budget']}** "
+        f"(CPU fraction {_fmt(s.get('cpu_fraction'), '.4f')}, deadline {_fmt(s.get('deadline_s'))} s): "
+        f"{s['results']}/{s['pairs']} results ({s['degraded']} degraded), {s['errors']} errors; "
+        f"latency p50 {_fmt(s['latency_p50_s'])} s, p95 {_fmt(s['latency_p95_s'])} s, "
+        f"max {_fmt(s['latency_max_s'])} s; deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
+    )
     return head + "\n\n" + "\n".join(rows) + "\n"
 
 
@@ -176,7 +188,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         manifest = _render(cfg, out / "pairs") / "manifest.json"
 
     bridge = None
-    channels: dict = {}   # serial line faults by direction (--corrupt)
+    channels: dict = {}  # serial line faults by direction (--corrupt)
     if cfg.link == "serial":
         from protocol.faults import PtyBridge
 
@@ -185,8 +197,10 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
             from protocol.faults import CorruptingChannel
 
-            channels = {d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt,
-                                             dup=cfg.corrupt) for k, d in enumerate(("a_to_b", "b_to_a"))}
+            channels = {
+                d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt, dup=cfg.corrupt)
+                for k, d in enumerate(("a_to_b", "b_to_a"))
+            }
         bridge = PtyBridge(**channels)
         suffix = f"@{baud}" if baud else ""
         server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
@@ -197,15 +211,42 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     env = dict(os.environ)
     telemetry = out / "telemetry.jsonl"
     telemetry.unlink(missing_ok=True)
-    sup_cmd = [sys.executable, "-m", "hil_server.supervisor", "--link", server_spec, "--budget", cfg.budget,
-               "--telemetry", str(telemetry)]
+    sup_cmd = [
+        sys.executable,
+        "-m",
+        "hil_server.supervisor",
+        "--link",
+        server_spec,
+        "--budget",
+        cfg.budget,
+        "--telemetry",
+        str(telemetry),
+    ]
     if cfg.fault:
         sup_cmd += ["--fault", cfg.fault]
-    ground_cmd = [sys.executable, "-m", "ground_sim.stream", "--link", ground_spec, "--manifest", str(manifest),
-                  "--out", str(out / "received"), "--budget", cfg.budget, "--deadline", str(deadline),
-                  "--preset", cfg.preset, "--pace", cfg.pace]
-    log(f"run: budget {budget.name}: CPU fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
-        f"deadline {deadline:g} s, link {server_spec}")
+    ground_cmd = [
+        sys.executable,
+        "-m",
+        "ground_sim.stream",
+        "--link",
+        ground_spec,
+        "--manifest",
+        str(manifest),
+        "--out",
+        str(out / "received"),
+        "--budget",
+        cfg.budget,
+        "--deadline",
+        str(deadline),
+        "--preset",
+        cfg.preset,
+        "--pace",
+        cfg.pace,
+    ]
+    log(
+        f"run: budget {budget.name}: CPU fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
+        f"deadline {deadline:g} s, link {server_spec}"
+    )
     t0 = time.monotonic()
     with open(out / "supervisor.log", "w") as sup_log:
         sup = subprocess.Popen(sup_cmd, stdout=sup_log, stderr=subprocess.STDOUT, env=env)
@@ -239,9 +280,18 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             if rec.get("event") == "summary":
                 counters = {k: v for k, v in rec.items() if k != "event"}
     line_faults = {d: ch.stats for d, ch in channels.items()}
-    summary = summarize(records, cfg, {"cpu_fraction": fraction, "deadline_s": deadline, "line_faults": line_faults,
-                                       "memory_mib": budget.memory_mib, "wall_s": wall,
-                                       "supervisor_counters": counters})
+    summary = summarize(
+        records,
+        cfg,
+        {
+            "cpu_fraction": fraction,
+            "deadline_s": deadline,
+            "line_faults": line_faults,
+            "memory_mib": budget.memory_mib,
+            "wall_s": wall,
+            "supervisor_counters": counters,
+        },
+    )
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=float) + "\n")
     table = summary_table(summary)
     (out / "summary.md").write_text(table)

@@ -17,11 +17,11 @@ socket pair. Being in the middle lets it account for every pair:
 Every pair the ground completes ends in exactly one of: ``Result`` (full or
 degraded) or ``Error`` with a reason. Telemetry is also written as JSON lines.
 """
+
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import queue
 import socket
 import sys
@@ -34,7 +34,7 @@ from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Te
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
-HEARTBEAT_TIMEOUT_S = 5.0       # at full speed; scaled by 1/duty when throttled
+HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
 
 
@@ -42,11 +42,11 @@ MIN_GRACE_S = 2.0
 class PairState:
     pair_id: str
     frames: dict[int, Frame] = field(default_factory=dict)
-    arrivals: dict[int, float] = field(default_factory=dict)   # frame_index -> monotonic arrival time
-    complete_at: float | None = None      # monotonic time the last frame arrived
+    arrivals: dict[int, float] = field(default_factory=dict)  # frame_index -> monotonic arrival time
+    complete_at: float | None = None  # monotonic time the last frame arrived
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
     proc_at_result: dict | None = None
-    sent_to: int = -1                     # flight generation the frames went to
+    sent_to: int = -1  # flight generation the frames went to
     result: Result | None = None
     result_link_s: float = 0.0
     done: bool = False
@@ -102,8 +102,15 @@ class FlightHandle:
         self.generation = generation
         parent, child = socket.socketpair()
         self.proc = processor_factory()
-        argv = [sys.executable, "-m", "flight_sw.flight_main", "--fd", str(child.fileno()),
-                "--heartbeat", str(heartbeat_s)]
+        argv = [
+            sys.executable,
+            "-m",
+            "flight_sw.flight_main",
+            "--fd",
+            str(child.fileno()),
+            "--heartbeat",
+            str(heartbeat_s),
+        ]
         if fault:
             argv += ["--fault", fault]
         self.proc.start(argv, pass_fds=(child.fileno(),))
@@ -119,9 +126,19 @@ class FlightHandle:
 
 
 class Supervisor:
-    def __init__(self, ground_link, budget, processor_factory, *, telemetry_path: Path | None = None,
-                 fault: str | None = None, heartbeat_s: float = 0.25, grace_s: float | None = None,
-                 cpu_fraction: float = 1.0, log=print) -> None:
+    def __init__(
+        self,
+        ground_link,
+        budget,
+        processor_factory,
+        *,
+        telemetry_path: Path | None = None,
+        fault: str | None = None,
+        heartbeat_s: float = 0.25,
+        grace_s: float | None = None,
+        cpu_fraction: float = 1.0,
+        log=print,
+    ) -> None:
         self.ground = ground_link
         self.budget = budget
         self.processor_factory = processor_factory
@@ -139,16 +156,26 @@ class Supervisor:
         self.generation = 0
         self.ground_waiting_hello = False
         self.restarts = 0
-        self.counters = {"results": 0, "degraded": 0, "errors": 0, "deadline_missed": 0,
-                         "restarts": 0, "crashes": 0, "memory_ceiling": 0, "hangs": 0}
-        self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None
+        self.counters = {
+            "results": 0,
+            "degraded": 0,
+            "errors": 0,
+            "deadline_missed": 0,
+            "restarts": 0,
+            "crashes": 0,
+            "memory_ceiling": 0,
+            "hangs": 0,
+        }
+        # open for the supervisor's lifetime, closed in serve()'s finally
+        self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None  # noqa: SIM115
         self.t_start = time.monotonic()  # telemetry times are seconds since the supervisor started
 
     # -- flight process lifecycle ---------------------------------------------------------
     def _start_flight(self) -> None:
         self.generation += 1
-        self.flight = FlightHandle(self.processor_factory, self.generation, self.fault if self.generation == 1 else None,
-                                   self.heartbeat_s)
+        self.flight = FlightHandle(
+            self.processor_factory, self.generation, self.fault if self.generation == 1 else None, self.heartbeat_s
+        )
         self.flight_reader = Reader(self.flight.link, "flight", self.events, self.generation)
         self.flight_reader.start()
         if self.config is not None:
@@ -268,26 +295,46 @@ class Supervisor:
             deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
             met = latency <= deadline
             stats = self.flight.proc.stats()
-            tel = replace(msg, total_latency_s=latency, deadline_s=deadline, deadline_met=met,
-                          cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
-                          peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
-                          link={**msg.link, **self._link_stats(), "flight_latency_s": msg.total_latency_s,
-                                "result_link_s": st.result_link_s,
-                                "restarts": float(self.counters["restarts"])})
+            tel = replace(
+                msg,
+                total_latency_s=latency,
+                deadline_s=deadline,
+                deadline_met=met,
+                cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
+                peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
+                link={
+                    **msg.link,
+                    **self._link_stats(),
+                    "flight_latency_s": msg.total_latency_s,
+                    "result_link_s": st.result_link_s,
+                    "restarts": float(self.counters["restarts"]),
+                },
+            )
             self.counters["results"] += 1
             if st.result is not None and st.result.degraded:
                 self.counters["degraded"] += 1
             if not met:
                 self.counters["deadline_missed"] += 1
             self.ground.send(tel)
-            self._write_telemetry({"pair_id": st.pair_id, "event": "result", "frame_seqs": list(msg.frame_seqs),
-                                   "level": st.result.level if st.result else None,
-                                   "degraded": bool(st.result.degraded) if st.result else None,
-                                   "latency_s": latency, "deadline_s": deadline, "deadline_met": met,
-                                   "deadline_margin_s": deadline - latency,
-                                   "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)], "queue_wait_s": msg.queue_wait_s,
-                                   "result_link_s": st.result_link_s, "stages": msg.stages, "cpu_fraction": tel.cpu_fraction,
-                                   "peak_rss_mib": stats.get("peak_rss_mib")})
+            self._write_telemetry(
+                {
+                    "pair_id": st.pair_id,
+                    "event": "result",
+                    "frame_seqs": list(msg.frame_seqs),
+                    "level": st.result.level if st.result else None,
+                    "degraded": bool(st.result.degraded) if st.result else None,
+                    "latency_s": latency,
+                    "deadline_s": deadline,
+                    "deadline_met": met,
+                    "deadline_margin_s": deadline - latency,
+                    "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)],
+                    "queue_wait_s": msg.queue_wait_s,
+                    "result_link_s": st.result_link_s,
+                    "stages": msg.stages,
+                    "cpu_fraction": tel.cpu_fraction,
+                    "peak_rss_mib": stats.get("peak_rss_mib"),
+                }
+            )
         elif isinstance(msg, Error):
             # an error from the flight software about a specific frame or pair
             st = None
@@ -328,9 +375,12 @@ class Supervisor:
         st = self._oldest_outstanding()
         if st is not None and st.complete_at is not None and now - st.complete_at > self._hard_limit():
             self.counters["hangs"] += 1
-            self._fail_pair(st, "deadline_hang",
-                            f"no result {now - st.complete_at:.1f} s after the last frame "
-                            f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted")
+            self._fail_pair(
+                st,
+                "deadline_hang",
+                f"no result {now - st.complete_at:.1f} s after the last frame "
+                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted",
+            )
             self._restart_flight("hung past the hard deadline")
             return
         hb_limit = HEARTBEAT_TIMEOUT_S / max(self.cpu_fraction, 0.01)
@@ -382,8 +432,8 @@ def main(argv: list[str] | None = None) -> int:
     import signal
 
     from hil_server.budgets import get_budget, load_calibration
-    from protocol.linkspec import open_link
     from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+    from protocol.linkspec import open_link
 
     ap = argparse.ArgumentParser(prog="python -m hil_server.supervisor", description=__doc__.splitlines()[0])
     ap.add_argument("--link", required=True, help="serial:PATH[@BAUD] or zmq:ENDPOINT (bound here)")
@@ -402,11 +452,21 @@ def main(argv: list[str] | None = None) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _term)
-    sup = Supervisor(link, budget, lambda: EmulatedProcessor(spec), telemetry_path=args.telemetry,
-                     fault=args.fault, cpu_fraction=fraction,
-                     log=lambda s: print(s, file=sys.stderr, flush=True))
-    print(f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
-          f"deadline {budget.deadline_s} s", file=sys.stderr, flush=True)
+    sup = Supervisor(
+        link,
+        budget,
+        lambda: EmulatedProcessor(spec),
+        telemetry_path=args.telemetry,
+        fault=args.fault,
+        cpu_fraction=fraction,
+        log=lambda s: print(s, file=sys.stderr, flush=True),
+    )
+    print(
+        f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
+        f"deadline {budget.deadline_s} s",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         return sup.serve(idle_timeout_s=args.idle_timeout)
     except KeyboardInterrupt:

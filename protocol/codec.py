@@ -12,11 +12,13 @@ container and string length is capped by :class:`Limits`, and nesting depth is
 checked, so a corrupted or hostile peer cannot make the decoder allocate more
 than ``Limits.max_message_bytes``.
 """
+
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -26,8 +28,10 @@ from protocol.messages import Message, message_class
 
 EXT_INLINE = 1
 EXT_REF = 2
-DTYPES: dict[int, np.dtype] = {code: np.dtype(s) for code, s in enumerate(
-    ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8", "|b1"), start=1)}
+DTYPES: dict[int, np.dtype] = {
+    code: np.dtype(s)
+    for code, s in enumerate(("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8", "|b1"), start=1)
+}
 _DTYPE_CODES = {dt: code for code, dt in DTYPES.items()}
 _U32 = struct.Struct(">I")
 
@@ -43,7 +47,7 @@ class Limits:
     max_message_bytes: int = 32 << 20
     max_array_bytes: int = 16 << 20
     max_str: int = 64 << 10
-    max_items: int = 4096        # msgpack array / map length
+    max_items: int = 4096  # msgpack array / map length
     max_depth: int = 8
     max_ndim: int = 4
 
@@ -55,8 +59,10 @@ def _array_header(arr: np.ndarray) -> bytes:
     dt = arr.dtype.newbyteorder("<") if arr.dtype.byteorder == ">" else arr.dtype
     code = _DTYPE_CODES.get(np.dtype(dt.str))
     if code is None:
-        raise CodecError(f"array dtype {arr.dtype} is not allowed on the wire (allowed: "
-                         f"{', '.join(sorted(d.str for d in DTYPES.values()))})")
+        raise CodecError(
+            f"array dtype {arr.dtype} is not allowed on the wire (allowed: "
+            f"{', '.join(sorted(d.str for d in DTYPES.values()))})"
+        )
     if arr.ndim > 255:
         raise CodecError(f"array with {arr.ndim} dimensions")
     return bytes((code, arr.ndim)) + b"".join(_U32.pack(s) for s in arr.shape)
@@ -124,7 +130,7 @@ def encode_parts(message: Message, oob_min_bytes: int | None = None) -> tuple[by
             arr = _wire_array(obj)
             head = _array_header(arr)
             if oob_min_bytes is not None and arr.nbytes >= oob_min_bytes:
-                buffers.append(memoryview(arr.reshape(-1)).cast("B"))
+                buffers.append(memoryview(arr.reshape(-1)).cast("B"))  # type: ignore[arg-type]
                 return msgpack.ExtType(EXT_REF, head + _U32.pack(len(buffers) - 1))
             return msgpack.ExtType(EXT_INLINE, head + arr.tobytes())
         if isinstance(obj, tuple):
@@ -145,8 +151,12 @@ def encode_message(message: Message) -> bytes:
     return encode_parts(message, None)[0]
 
 
-def decode_parts(body: bytes | memoryview, buffers: Sequence[bytes | memoryview] = (),
-                 limits: Limits = DEFAULT_LIMITS, expect_type: int | None = None) -> Message:
+def decode_parts(
+    body: bytes | memoryview,
+    buffers: Sequence[bytes | memoryview] = (),
+    limits: Limits = DEFAULT_LIMITS,
+    expect_type: int | None = None,
+) -> Message:
     """Inverse of :func:`encode_parts`; every problem raises :class:`CodecError` (or SchemaError)."""
     if len(body) > limits.max_message_bytes:
         raise CodecError(f"message of {len(body)} bytes exceeds the {limits.max_message_bytes}-byte limit")
@@ -168,18 +178,24 @@ def decode_parts(body: bytes | memoryview, buffers: Sequence[bytes | memoryview]
 
     try:
         obj = msgpack.unpackb(
-            body, raw=False, strict_map_key=True, use_list=True, ext_hook=ext_hook,
+            body,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            ext_hook=ext_hook,
             max_str_len=limits.max_str,
-            max_bin_len=limits.max_array_bytes, max_array_len=limits.max_items,
-            max_map_len=limits.max_items, max_ext_len=limits.max_array_bytes + 1024)
+            max_bin_len=limits.max_array_bytes,
+            max_array_len=limits.max_items,
+            max_map_len=limits.max_items,
+            max_ext_len=limits.max_array_bytes + 1024,
+        )
     except InputError:
         raise
     except Exception as exc:  # msgpack raises ValueError/FormatError/StackError/ExtraData/UnicodeError
         raise CodecError(f"malformed msgpack: {type(exc).__name__}: {exc}") from None
     if not _depth_ok(obj, limits.max_depth):
         raise CodecError(f"message nesting deeper than {limits.max_depth}")
-    if not (isinstance(obj, list) and len(obj) == 2 and isinstance(obj[0], int)
-            and not isinstance(obj[0], bool)):
+    if not (isinstance(obj, list) and len(obj) == 2 and isinstance(obj[0], int) and not isinstance(obj[0], bool)):
         raise CodecError("message must be [type, body]")
     if expect_type is not None and obj[0] != expect_type:
         raise CodecError(f"frame header says type {expect_type}, body says {obj[0]}")

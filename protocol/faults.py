@@ -7,6 +7,7 @@
   does), so two processes can each open a :class:`protocol.links.SerialLink`
   on ``bridge.paths[0]`` / ``bridge.paths[1]``, with corruption in the middle.
 """
+
 from __future__ import annotations
 
 import errno
@@ -45,7 +46,7 @@ class CorruptingChannel:
             bits = self._rng.integers(0, 8, len(data))
         arr = np.frombuffer(data, np.uint8).copy()
         flipped = u[:, 1] < flip
-        arr[flipped] ^= (np.uint8(1) << bits[flipped].astype(np.uint8))
+        arr[flipped] ^= np.uint8(1) << bits[flipped].astype(np.uint8)
         dropped = u[:, 0] < drop
         duplicated = (u[:, 2] < dup) & ~dropped
         counts = 1 - dropped.astype(np.int64) + duplicated
@@ -90,7 +91,7 @@ class ByteRelay:
                 data = os.read(self.src, 1 << 16)
             except OSError as exc:
                 if exc.errno in (errno.EIO, errno.EBADF) and not self._stop.is_set():
-                    self._stop.wait(0.02)       # slave side not open yet, or just closed
+                    self._stop.wait(0.02)  # slave side not open yet, or just closed
                     continue
                 return
             if not data:
@@ -100,7 +101,7 @@ class ByteRelay:
             mv = memoryview(data)
             try:
                 while mv:
-                    mv = mv[os.write(self.dst, mv):]
+                    mv = mv[os.write(self.dst, mv) :]
             except OSError:
                 if self._stop.is_set():
                     return
@@ -139,7 +140,7 @@ class PtyBridge:
             except OSError:
                 pass
 
-    def __enter__(self) -> "PtyBridge":
+    def __enter__(self) -> PtyBridge:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -17,6 +17,7 @@ that will never come. Stuffing and unstuffing are ``bytes.replace`` calls
 (escape validity, length, CRC, payload decode); anything wrong is counted and
 dropped, never raised. Empty pieces (two adjacent flags) are idle fill.
 """
+
 from __future__ import annotations
 
 import struct
@@ -30,7 +31,7 @@ from protocol.messages import Message
 FLAG = 0x7E
 ESC = 0x7D
 WIRE_VERSION = 1
-FLAG_ACK_REQ = 0x0001          # sender wants an Ack for this sequence number
+FLAG_ACK_REQ = 0x0001  # sender wants an Ack for this sequence number
 HEADER = struct.Struct(">BBHII")
 _CRC = struct.Struct(">I")
 _MIN_BODY = HEADER.size + _CRC.size
@@ -96,10 +97,21 @@ class StreamDecoder:
         self.max_frame_bytes = max_frame_bytes
         self.limits = limits
         self._buf = bytearray()
-        self._skipping = False   # inside an oversize piece: drop until the next flag
+        self._skipping = False  # inside an oversize piece: drop until the next flag
         self.rejected: list[Rejected] = []
-        self.stats = dict.fromkeys(("frames_ok", "crc_errors", "malformed", "oversize", "decode_errors",
-                                    "resyncs", "bytes_discarded", "bytes_in"), 0)
+        self.stats = dict.fromkeys(
+            (
+                "frames_ok",
+                "crc_errors",
+                "malformed",
+                "oversize",
+                "decode_errors",
+                "resyncs",
+                "bytes_discarded",
+                "bytes_in",
+            ),
+            0,
+        )
 
     @property
     def pending_bytes(self) -> int:
@@ -181,7 +193,7 @@ class StreamDecoder:
             self._discard(len(piece))
             return
         try:
-            msg = decode_parts(memoryview(body)[HEADER.size:-4], (), self.limits, expect_type=type_code)
+            msg = decode_parts(memoryview(body)[HEADER.size : -4], (), self.limits, expect_type=type_code)
         except InputError as exc:
             self.stats["decode_errors"] += 1
             self.rejected.append(Rejected(seq, flags, str(exc)))

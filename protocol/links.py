@@ -32,6 +32,7 @@ or with one pty pair: the parent keeps ``master_fd`` from
 :func:`protocol.faults.open_pty_pair` and wraps it in ``StreamLink(master_fd)``
 while the child opens ``SerialLink(slave_path)``.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -44,8 +45,9 @@ import struct
 import threading
 import time
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any
 
 from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
@@ -53,7 +55,7 @@ from protocol.framing import FLAG_ACK_REQ, Packet, StreamDecoder, frame_payload
 from protocol.messages import Ack, Heartbeat, Message, Nack, message_class
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE, Ack.TYPE, Nack.TYPE})
-BITS_PER_BYTE = 10   # 8N1: start + 8 data + stop
+BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 
 
 class LinkClosed(InputError):
@@ -75,7 +77,7 @@ class _Pending:
     data: bytes
     type_name: str
     attempts: int = 1
-    sent_at: float | None = None   # None while queued / being written
+    sent_at: float | None = None  # None while queued / being written
 
 
 class Link:
@@ -92,10 +94,29 @@ class Link:
         self._outcomes: dict[int, str] = {}
         self._closed = threading.Event()
         self._stats_lock = threading.Lock()
-        self._stats: dict[str, float] = dict.fromkeys((
-            "bytes_sent", "bytes_received", "frames_sent", "frames_received", "retransmits", "crc_errors",
-            "malformed", "oversize", "decode_errors", "resyncs", "bytes_discarded", "frame_timeouts",
-            "duplicates_dropped", "acks_sent", "acks_received", "delivered", "failures", "busy_s"), 0)
+        self._stats: dict[str, float] = dict.fromkeys(
+            (
+                "bytes_sent",
+                "bytes_received",
+                "frames_sent",
+                "frames_received",
+                "retransmits",
+                "crc_errors",
+                "malformed",
+                "oversize",
+                "decode_errors",
+                "resyncs",
+                "bytes_discarded",
+                "frame_timeouts",
+                "duplicates_dropped",
+                "acks_sent",
+                "acks_received",
+                "delivered",
+                "failures",
+                "busy_s",
+            ),
+            0,
+        )
 
     def _next_seq(self) -> int:
         with self._seq_lock:
@@ -158,7 +179,7 @@ class Link:
     def close(self) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def __enter__(self) -> "Link":
+    def __enter__(self) -> Link:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -168,9 +189,18 @@ class Link:
 class ByteStreamLink(Link):
     """Framed, acknowledged link over a byte stream; subclasses supply ``_read``/``_write``."""
 
-    def __init__(self, *, baud: float | None = None, reliable_types: Iterable[int] | None = None,
-                 ack_timeout: float = 1.0, max_attempts: int = 6, frame_timeout: float = 2.0,
-                 acks: bool = True, limits: Limits = DEFAULT_LIMITS, name: str = "") -> None:
+    def __init__(
+        self,
+        *,
+        baud: float | None = None,
+        reliable_types: Iterable[int] | None = None,
+        ack_timeout: float = 1.0,
+        max_attempts: int = 6,
+        frame_timeout: float = 2.0,
+        acks: bool = True,
+        limits: Limits = DEFAULT_LIMITS,
+        name: str = "",
+    ) -> None:
         super().__init__(name)
         if baud is not None and baud <= 0:
             raise InputError(f"baud must be positive or None, got {baud}")
@@ -226,7 +256,7 @@ class ByteStreamLink(Link):
         """
         if self._closed.is_set() or self._error:
             raise LinkClosed(f"link {self.name!r} is closed{': ' + self._error if self._error else ''}")
-        body = encode_message(message)        # schema errors surface here, in the caller
+        body = encode_message(message)  # schema errors surface here, in the caller
         reliable = self.is_reliable(message)
         seq = self._next_seq()
         data = frame_payload(message.TYPE, seq, body, FLAG_ACK_REQ if reliable else 0)
@@ -256,11 +286,11 @@ class ByteStreamLink(Link):
         if self.baud is None:
             self._write(data)
             return
-        chunk = max(16, int(self.baud / BITS_PER_BYTE * 0.02))   # ~20 ms slices
+        chunk = max(16, int(self.baud / BITS_PER_BYTE * 0.02))  # ~20 ms slices
         t0 = time.monotonic()
         for i in range(0, len(data), chunk):
-            self._write(data[i:i + chunk])
-            wait = t0 + (i + len(data[i:i + chunk])) * BITS_PER_BYTE / self.baud - time.monotonic()
+            self._write(data[i : i + chunk])
+            wait = t0 + (i + len(data[i : i + chunk])) * BITS_PER_BYTE / self.baud - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
 
@@ -275,7 +305,7 @@ class ByteStreamLink(Link):
             t0 = time.monotonic()
             try:
                 self._write_paced(data)
-            except (OSError, ValueError) as exc:   # pyserial raises SerialException (an OSError)
+            except (OSError, ValueError) as exc:  # pyserial raises SerialException (an OSError)
                 self._error = f"write failed: {exc}"
                 self._fail_inflight(self._error)
             finally:
@@ -307,13 +337,12 @@ class ByteStreamLink(Link):
             with self._cond:
                 cur = self._inflight
                 if cur is None or cur.seq != msg.seq:
-                    return                      # late ack of something already resolved
+                    return  # late ack of something already resolved
                 self._inflight = None
-                self._resolve(cur.seq, cur.type_name,
-                              None if isinstance(msg, Ack) else f"peer rejected: {msg.reason}")
+                self._resolve(cur.seq, cur.type_name, None if isinstance(msg, Ack) else f"peer rejected: {msg.reason}")
                 self._cond.notify_all()
             return
-        if p.wants_ack:                         # ack every copy: the previous ack may have been lost
+        if p.wants_ack:  # ack every copy: the previous ack may have been lost
             self._enqueue(0, frame_payload(Ack.TYPE, self._next_seq(), encode_message(Ack(seq=p.seq))))
             self._count("acks_sent")
         if self._accept(p):
@@ -326,8 +355,9 @@ class ByteStreamLink(Link):
                 return
             if p.attempts >= self.max_attempts:
                 self._inflight = None
-                self._resolve(p.seq, p.type_name,
-                              f"no ack after {p.attempts} attempts ({self.ack_timeout:g} s timeout each)")
+                self._resolve(
+                    p.seq, p.type_name, f"no ack after {p.attempts} attempts ({self.ack_timeout:g} s timeout each)"
+                )
                 self._cond.notify_all()
                 return
             p.attempts += 1
@@ -359,8 +389,12 @@ class ByteStreamLink(Link):
                     self._handle(p)
                 for rej in self._decoder.take_rejected():
                     if rej.flags & FLAG_ACK_REQ:
-                        self._enqueue(0, frame_payload(Nack.TYPE, self._next_seq(),
-                                                       encode_message(Nack(seq=rej.seq, reason=rej.reason[:4000]))))
+                        self._enqueue(
+                            0,
+                            frame_payload(
+                                Nack.TYPE, self._next_seq(), encode_message(Nack(seq=rej.seq, reason=rej.reason[:4000]))
+                            ),
+                        )
                 self._sync_decoder_stats()
             elif self._decoder.pending_bytes and now - last_rx > self.frame_timeout:
                 self._decoder.expire_partial()
@@ -391,10 +425,11 @@ class StreamLink(ByteStreamLink):
     pacing by default; ``acks=False`` turns off acknowledgement for a lossless local stream.
     """
 
-    def __init__(self, rx: int | socket.socket, tx: int | socket.socket | None = None, *,
-                 close_fds: bool = True, **kw: Any) -> None:
+    def __init__(
+        self, rx: int | socket.socket, tx: int | socket.socket | None = None, *, close_fds: bool = True, **kw: Any
+    ) -> None:
         super().__init__(**kw)
-        self._objs = (rx, tx)                   # keep socket objects alive
+        self._objs = (rx, tx)  # keep socket objects alive
         self._rfd = rx.fileno() if isinstance(rx, socket.socket) else int(rx)
         self._wfd = self._rfd if tx is None else (tx.fileno() if isinstance(tx, socket.socket) else int(tx))
         self._close_fds = close_fds
@@ -411,7 +446,7 @@ class StreamLink(ByteStreamLink):
         try:
             data = os.read(self._rfd, 1 << 16)
         except OSError as exc:
-            if exc.errno == 5:                  # EIO: pty slave not (yet / any more) open
+            if exc.errno == 5:  # EIO: pty slave not (yet / any more) open
                 time.sleep(timeout)
                 return b""
             raise
@@ -452,8 +487,9 @@ class SerialLink(ByteStreamLink):
 
         super().__init__(baud=baud, **kw)
         try:
-            self._ser = serial.serial_for_url(port, baudrate=int(baud or 115200), timeout=0.05,
-                                              write_timeout=None, dsrdtr=False, rtscts=False)
+            self._ser = serial.serial_for_url(
+                port, baudrate=int(baud or 115200), timeout=0.05, write_timeout=None, dsrdtr=False, rtscts=False
+            )
         except (serial.SerialException, ValueError) as exc:
             raise InputError(f"cannot open serial port {port!r}: {exc}") from None
         self.port = port
@@ -461,7 +497,7 @@ class SerialLink(ByteStreamLink):
 
     def _read(self, timeout: float) -> bytes:
         self._ser.timeout = timeout
-        first = self._ser.read(1)               # short read on timeout is normal
+        first = self._ser.read(1)  # short read on timeout is normal
         if not first:
             return b""
         n = self._ser.in_waiting
@@ -477,7 +513,7 @@ class SerialLink(ByteStreamLink):
             pass
 
 
-_ZHEAD = struct.Struct(">BBHI")   # version, type, flags, seq
+_ZHEAD = struct.Struct(">BBHI")  # version, type, flags, seq
 
 
 class ZmqLink(Link):
@@ -497,8 +533,17 @@ class ZmqLink(Link):
     I/O thread - "Bad address" - under load).
     """
 
-    def __init__(self, endpoint: str, bind: bool, *, hwm: int = 256, send_timeout: float = 30.0,
-                 oob_min_bytes: int = 64 << 10, limits: Limits = DEFAULT_LIMITS, name: str = "") -> None:
+    def __init__(
+        self,
+        endpoint: str,
+        bind: bool,
+        *,
+        hwm: int = 256,
+        send_timeout: float = 30.0,
+        oob_min_bytes: int = 64 << 10,
+        limits: Limits = DEFAULT_LIMITS,
+        name: str = "",
+    ) -> None:
         import zmq
 
         super().__init__(name)
@@ -507,19 +552,24 @@ class ZmqLink(Link):
         self.oob_min_bytes = oob_min_bytes
         self._ctx = zmq.Context(io_threads=1)
         self._sock = self._ctx.socket(zmq.PAIR)
-        for opt, val in ((zmq.MAXMSGSIZE, limits.max_message_bytes + (1 << 20)), (zmq.SNDHWM, hwm),
-                         (zmq.RCVHWM, hwm), (zmq.LINGER, 1000), (zmq.SNDTIMEO, int(send_timeout * 1000))):
+        for opt, val in (
+            (zmq.MAXMSGSIZE, limits.max_message_bytes + (1 << 20)),
+            (zmq.SNDHWM, hwm),
+            (zmq.RCVHWM, hwm),
+            (zmq.LINGER, 1000),
+            (zmq.SNDTIMEO, int(send_timeout * 1000)),
+        ):
             self._sock.setsockopt(opt, val)
-        self._sock.copy_threshold = 0   # track every frame, so flush() covers small messages too
+        self._sock.copy_threshold = 0  # track every frame, so flush() covers small messages too
         try:
             (self._sock.bind if bind else self._sock.connect)(endpoint)
         except zmq.ZMQError as exc:
             self._sock.close(0)
             self._ctx.term()
             raise InputError(f"cannot {'bind' if bind else 'connect'} {endpoint!r}: {exc}") from None
-        self.endpoint = self._sock.getsockopt(zmq.LAST_ENDPOINT).decode() if bind else endpoint
+        self.endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT) if bind else endpoint
         self._lock = threading.Lock()
-        self._trackers: deque[tuple[int, str, Any]] = deque()   # (seq, type name, zmq.MessageTracker)
+        self._trackers: deque[tuple[int, str, Any]] = deque()  # (seq, type name, zmq.MessageTracker)
 
     def send(self, message: Message, timeout: float | None = None) -> int:
         if self._closed.is_set():
@@ -530,12 +580,16 @@ class ZmqLink(Link):
         t0 = time.monotonic()
         with self._lock:
             try:
-                parts = [head, body, *bufs]
-                trackers = [self._sock.send(part, self._zmq.SNDMORE if i < len(parts) - 1 else 0,
-                                            copy=False, track=True) for i, part in enumerate(parts)]
+                parts: list[Any] = [head, body, *bufs]
+                trackers = [
+                    self._sock.send(part, self._zmq.SNDMORE if i < len(parts) - 1 else 0, copy=False, track=True)
+                    for i, part in enumerate(parts)
+                ]
                 tracker = self._zmq.MessageTracker(*trackers)
             except self._zmq.Again:
-                self._resolve(seq, type(message).__name__, "send timed out: peer not connected or not draining (high-water mark)")
+                self._resolve(
+                    seq, type(message).__name__, "send timed out: peer not connected or not draining (high-water mark)"
+                )
                 return seq
             self._trackers.append((seq, type(message).__name__, tracker))
             while self._trackers and self._trackers[0][2].done:
@@ -605,5 +659,5 @@ class ZmqLink(Link):
                 if not tracker.done:
                     self._resolve(seq, type_name, "link closed before the message left this process")
             self._sock.close(linger=1000)
-            self._ctx.term()   # returns once libzmq has released every buffer it still held
+            self._ctx.term()  # returns once libzmq has released every buffer it still held
             self._trackers.clear()

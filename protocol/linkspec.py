@@ -5,6 +5,7 @@
 ``zmq:ENDPOINT``        a ZeroMQ endpoint, e.g. ``zmq:tcp://127.0.0.1:5555``; the
                         server side binds, the client connects.
 """
+
 from __future__ import annotations
 
 from protocol.errors import InputError

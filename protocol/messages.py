@@ -12,20 +12,22 @@ Link-level sequence numbers live in the frame header (:mod:`protocol.framing`),
 not here; ``Frame.seq`` is the ground simulator's own frame counter that
 ``Result.frame_seqs`` refers back to.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from protocol.errors import InputError
 
 PROTOCOL_VERSION = 1
-MAX_TEXT = 4096          # longest free-text field (error text, names)
+MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
-MAX_DICT_ITEMS = 128     # stages, link statistics, camera
+MAX_DICT_ITEMS = 128  # stages, link statistics, camera
 
 
 class SchemaError(InputError):
@@ -42,6 +44,7 @@ def _int(lo: int = 0, hi: int = 2**63 - 1) -> Checker:
         if not lo <= int(v) <= hi:
             raise SchemaError(f"{name}: {int(v)} outside [{lo}, {hi}]")
         return int(v)
+
     return check
 
 
@@ -53,6 +56,7 @@ def _float(finite: bool = True) -> Checker:
         if finite and not math.isfinite(f):
             raise SchemaError(f"{name}: must be finite, got {f}")
         return f
+
     return check
 
 
@@ -69,6 +73,7 @@ def _str(maxlen: int = MAX_TEXT) -> Checker:
         if len(v) > maxlen:
             raise SchemaError(f"{name}: string of {len(v)} chars exceeds {maxlen}")
         return v
+
     return check
 
 
@@ -81,6 +86,7 @@ def _floats(n: int, finite: bool = True) -> Checker:
         if not isinstance(v, (list, tuple)) or len(v) != n:
             raise SchemaError(f"{name}: expected {n} numbers")
         return tuple(item(x, f"{name}[{i}]") for i, x in enumerate(v))
+
     return check
 
 
@@ -91,6 +97,7 @@ def _ints(n: int) -> Checker:
         if not isinstance(v, (list, tuple)) or len(v) != n:
             raise SchemaError(f"{name}: expected {n} integers")
         return tuple(item(x, f"{name}[{i}]") for i, x in enumerate(v))
+
     return check
 
 
@@ -111,12 +118,14 @@ def _array(dtype: str, ndim: int, shape: tuple[int, ...] | None = None, max_side
         if any(s > max_side for s in v.shape):
             raise SchemaError(f"{name}: side {max(v.shape)} exceeds {max_side}")
         return v
+
     return check
 
 
 def _optional(inner: Checker) -> Checker:
     def check(v: Any, name: str) -> Any:
         return None if v is None else inner(v, name)
+
     return check
 
 
@@ -138,9 +147,11 @@ def _camera(v: Any, name: str) -> dict[str, float | int]:
     missing = [k for k in need if k not in d]
     if missing or len(d) != len(need):
         raise SchemaError(f"{name}: need exactly {', '.join(need)} (missing {missing})")
-    return {"width": _int(1, 65535)(d["width"], f"{name}.width"),
-            "height": _int(1, 65535)(d["height"], f"{name}.height"),
-            **{k: _float()(d[k], f"{name}.{k}") for k in ("fx", "fy", "cx", "cy")}}
+    return {
+        "width": _int(1, 65535)(d["width"], f"{name}.width"),
+        "height": _int(1, 65535)(d["height"], f"{name}.height"),
+        **{k: _float()(d[k], f"{name}.{k}") for k in ("fx", "fy", "cx", "cy")},
+    }
 
 
 def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
@@ -151,8 +162,10 @@ def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
         _str(64)(k, f"{name} key")
         if not isinstance(t, dict) or set(t) != {"wall_s", "cpu_s"}:
             raise SchemaError(f"{name}[{k!r}]: expected {{'wall_s', 'cpu_s'}}")
-        out[k] = {"wall_s": _float()(t["wall_s"], f"{name}[{k!r}].wall_s"),
-                  "cpu_s": _float()(t["cpu_s"], f"{name}[{k!r}].cpu_s")}
+        out[k] = {
+            "wall_s": _float()(t["wall_s"], f"{name}[{k!r}].wall_s"),
+            "cpu_s": _float()(t["cpu_s"], f"{name}[{k!r}].cpu_s"),
+        }
     return out
 
 
@@ -169,10 +182,14 @@ class Message:
 
     TYPE: ClassVar[int] = 0
 
-    def validated(self) -> "Message":
+    def validated(self) -> Message:
         """Return a copy whose fields passed their checkers (raises :class:`SchemaError`)."""
-        return type(self)(**{f.name: f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
-                             for f in fields(self)})  # type: ignore[arg-type]
+        return type(self)(
+            **{
+                f.name: f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
+                for f in fields(self)  # type: ignore[arg-type]
+            }
+        )
 
     def to_wire(self) -> dict[str, Any]:
         out = {}
@@ -184,7 +201,7 @@ class Message:
         return out
 
     @classmethod
-    def from_wire(cls, d: Any) -> "Message":
+    def from_wire(cls, d: Any) -> Message:
         if not isinstance(d, dict):
             raise SchemaError(f"{cls.__name__}: body must be a map, got {type(d).__name__}")
         kwargs = {}
@@ -232,7 +249,7 @@ class Site:
         return self._check([getattr(self, n) for n in self._NAMES])
 
     @classmethod
-    def from_wire(cls, v: Any) -> "Site":
+    def from_wire(cls, v: Any) -> Site:
         if isinstance(v, Site):
             return v
         if isinstance(v, dict):
@@ -278,7 +295,7 @@ class Frame(Message):
     capture_time_s: float = _wire(_float())
     position_m: tuple = _wire(_floats(3))
     R_world_to_cam: np.ndarray = _wire(_array("<f8", 2, (3, 3)))
-    altimeter_m: float = _wire(_float(finite=False))   # NaN = no altimeter reading
+    altimeter_m: float = _wire(_float(finite=False))  # NaN = no altimeter reading
     image: np.ndarray = _wire(_array("|u1", 2))
     pair_id: str | None = _wire(_optional(_str(128)), None)
     frame_index: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
@@ -352,7 +369,8 @@ class Nack(Message):
 
 
 MESSAGE_TYPES: dict[int, type[Message]] = {
-    cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error, Ack, Nack)}
+    cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error, Ack, Nack)
+}
 
 
 def message_class(type_code: int) -> type[Message]:

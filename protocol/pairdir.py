@@ -18,6 +18,7 @@ a pose is the centre ``C`` (world) and ``R`` (world->camera), so
 ``X_cam = R (X_world - C)``. Extra top-level keys in ``pair.json`` (for example
 the true poses behind injected pose errors) are kept in :attr:`Pair.meta`.
 """
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,7 @@ TRUTH_FILES = {
     "shadow": "gt_shadow_i1.npy",
     "hazard": "gt_hazard_i1.npy",
 }
-_TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_,
-                 "hazard": np.float32}
+_TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_, "hazard": np.float32}
 
 
 class PairFormatError(InputError):
@@ -57,7 +57,7 @@ class Camera:
     cy: float
 
     @classmethod
-    def thesis(cls) -> "Camera":
+    def thesis(cls) -> Camera:
         """The thesis camera (Table 2.2, eq. 3.16): 512x512, 30 deg FOV."""
         f = 256.0 / math.tan(math.radians(15.0))  # 955.405 px
         return cls(512, 512, f, f, 255.5, 255.5)
@@ -67,14 +67,12 @@ class Camera:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def to_dict(self) -> dict[str, float | int]:
-        return {"width": self.width, "height": self.height, "fx": self.fx,
-                "fy": self.fy, "cx": self.cx, "cy": self.cy}
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Camera":
+    def from_dict(cls, d: dict[str, Any]) -> Camera:
         try:
-            cam = cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
-                      float(d["cx"]), float(d["cy"]))
+            cam = cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise PairFormatError(f"camera: need width, height, fx, fy, cx, cy ({exc})") from None
         cam.validate()
@@ -102,8 +100,7 @@ class Pose:
 
     def validate(self, what: str = "pose", tol: float = 1e-6) -> None:
         """Raise :class:`PairFormatError` unless finite with ``R`` a proper rotation."""
-        if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.R))
-                and math.isfinite(self.time_s)):
+        if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.R)) and math.isfinite(self.time_s)):
             raise PairFormatError(f"{what}: position, rotation and time must be finite (got NaN/inf)")
         err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
         if err > tol:
@@ -117,9 +114,12 @@ class Pose:
         return self.R[2].copy()
 
     def to_dict(self, image: str) -> dict[str, Any]:
-        return {"image": image, "position_m": [float(v) for v in self.position],
-                "R_world_to_cam": [[float(v) for v in row] for row in self.R],
-                "time_s": float(self.time_s)}
+        return {
+            "image": image,
+            "position_m": [float(v) for v in self.position],
+            "R_world_to_cam": [[float(v) for v in row] for row in self.R],
+            "time_s": float(self.time_s),
+        }
 
 
 @dataclass(frozen=True)
@@ -154,14 +154,16 @@ class Pair:
             if img.dtype != np.uint8 or img.ndim != 2:
                 raise PairFormatError(f"i{k + 1}: must be 8-bit gray, got {img.dtype} with shape {img.shape}")
             if img.shape != shape:
-                raise PairFormatError(f"i{k + 1}: size {img.shape[1]}x{img.shape[0]} does not match the "
-                                      f"camera's {shape[1]}x{shape[0]}")
+                raise PairFormatError(
+                    f"i{k + 1}: size {img.shape[1]}x{img.shape[0]} does not match the camera's {shape[1]}x{shape[0]}"
+                )
         for k, pose in enumerate(self.poses):
             pose.validate(f"frame {k} pose")
         if not self.poses[1].position[2] < self.poses[0].position[2]:
             raise PairFormatError(
                 f"frame 1 must be below frame 0 (z = {self.poses[1].position[2]:.3f} m vs "
-                f"{self.poses[0].position[2]:.3f} m): frame 0 is the higher image")
+                f"{self.poses[0].position[2]:.3f} m): frame 0 is the higher image"
+            )
         for name, arr in self.truth.items():
             if name not in TRUTH_FILES:
                 raise PairFormatError(f"unknown ground-truth layer {name!r}")
@@ -212,7 +214,9 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise PairFormatError(f"{meta_path}: not valid JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise PairFormatError(f"{meta_path}: format must be {FORMAT!r}, got {doc.get('format') if isinstance(doc, dict) else doc!r}")
+        raise PairFormatError(
+            f"{meta_path}: format must be {FORMAT!r}, got {doc.get('format') if isinstance(doc, dict) else doc!r}"
+        )
     camera = Camera.from_dict(doc.get("camera") or {})
     frames = doc.get("frames")
     if not isinstance(frames, list) or len(frames) != 2:
@@ -220,12 +224,16 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     poses, images = [], []
     for k, fr in enumerate(frames):
         try:
-            pose = Pose(np.array(fr["position_m"], dtype=float), np.array(fr["R_world_to_cam"], dtype=float),
-                        float(fr.get("time_s", 0.0)))
+            pose = Pose(
+                np.array(fr["position_m"], dtype=float),
+                np.array(fr["R_world_to_cam"], dtype=float),
+                float(fr.get("time_s", 0.0)),
+            )
             img_name = str(fr["image"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise PairFormatError(f"{meta_path}: frame {k}: need image, position_m[3], "
-                                  f"R_world_to_cam[3][3] ({exc})") from None
+            raise PairFormatError(
+                f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] ({exc})"
+            ) from None
         img_path = d / img_name
         if not img_path.is_file():
             raise PairFormatError(f"{d}: missing image {img_name}")

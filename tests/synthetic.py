@@ -6,11 +6,12 @@ ray's grazing angle), the texture is sampled there bilinearly (cv2.remap), and
 pixels are integrated over an ``ss x ss`` sub-pixel grid before 8-bit
 quantisation. Everything is deterministic in ``seed``.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -30,8 +31,7 @@ def tilted_R(tilt_deg: float, about: str = "x") -> np.ndarray:
     """Nadir camera rotated by ``tilt_deg`` about its own x axis (looks toward -Y) or y axis."""
     t = math.radians(tilt_deg)
     c, s = math.cos(t), math.sin(t)
-    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) if about == "x" else \
-        np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) if about == "x" else np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
     return rot @ NADIR_R
 
 
@@ -45,8 +45,15 @@ class Texture:
     cell: float
 
     @classmethod
-    def random(cls, half_extent_m: float, cell: float, seed: int, blur_cells: float = 1.2,
-               spots_per_km2: float = 0.0, spot_m: float = 1.5) -> "Texture":
+    def random(
+        cls,
+        half_extent_m: float,
+        cell: float,
+        seed: int,
+        blur_cells: float = 1.2,
+        spots_per_km2: float = 0.0,
+        spot_m: float = 1.5,
+    ) -> Texture:
         """Smooth random albedo; optional bright/black spot pairs mimic sunlit boulders and their shadows
         (intensity only - no relief), the high-contrast features behind the thesis's squared pattern."""
         rng = np.random.default_rng(seed)
@@ -58,8 +65,8 @@ class Texture:
         k = int(rng.poisson(spots_per_km2 * (2 * half_extent_m / 1000.0) ** 2))
         r = max(1, int(round(spot_m / cell / 2)))
         for ci, cj in rng.integers(2 * r, n - 4 * r, size=(k, 2)):
-            t[ci - r:ci + r, cj - r:cj + r] = 255.0
-            t[ci + r:ci + 3 * r, cj - r:cj + r] = 0.0
+            t[ci - r : ci + r, cj - r : cj + r] = 255.0
+            t[ci + r : ci + 3 * r, cj - r : cj + r] = 0.0
         return cls(t, -half_extent_m, -half_extent_m, cell)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -68,8 +75,9 @@ class Texture:
         return cv2.remap(self.img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 
-def ray_surface(camera: Camera, pose: Pose, height: Callable, u: np.ndarray, v: np.ndarray,
-                iters: int = 30) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ray_surface(
+    camera: Camera, pose: Pose, height: Callable, u: np.ndarray, v: np.ndarray, iters: int = 30
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World (X, Y, Z) where the rays of pixels (u, v) meet ``Z = height(X, Y)``."""
     d_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)])
     d = np.tensordot(pose.R.T, d_cam, axes=1)
@@ -84,7 +92,7 @@ def ray_surface(camera: Camera, pose: Pose, height: Callable, u: np.ndarray, v: 
 def render(camera: Camera, pose: Pose, height: Callable, tex: Texture, ss: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Render an 8-bit image and the true elevation per pixel (at pixel centres)."""
     acc = np.zeros((camera.height, camera.width), np.float64)
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
     offs = (np.arange(ss) + 0.5) / ss - 0.5
     for dv in offs:
         for du in offs:
@@ -110,8 +118,16 @@ def crater(radius: float, depth: float, cx: float = 0.0, cy: float = 0.0) -> Cal
     return lambda x, y: -depth * np.clip(1 - ((x - cx) ** 2 + (y - cy) ** 2) / radius**2, 0, None)
 
 
-def make_pair(size: int, alt1: float, alt2: float, height: Callable, seed: int = 0,
-              R: np.ndarray = NADIR_R, offset2: tuple[float, float] = (0.0, 0.0), spots_per_km2: float = 0.0):
+def make_pair(
+    size: int,
+    alt1: float,
+    alt2: float,
+    height: Callable,
+    seed: int = 0,
+    R: np.ndarray = NADIR_R,
+    offset2: tuple[float, float] = (0.0, 0.0),
+    spots_per_km2: float = 0.0,
+):
     """Camera, poses, images and true elevation of i1 for a vertical descent alt1 -> alt2."""
     cam = camera_fov30(size)
     p1 = Pose(np.array([0.0, 0.0, alt1]), R)

@@ -1,4 +1,5 @@
 """Executor: same numbers on every backend, incremental results, resume after failure."""
+
 from __future__ import annotations
 
 import io
@@ -8,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil_server import executor
-from hil_server.executor import CampaignError, Task, load_results, run_tasks
 from protocol.errors import InputError
+from studies import executor
+from studies.executor import CampaignError, Task, load_results, run_tasks
 
 
 def noisy_mean(seed: int, n: int = 2000) -> dict:
@@ -34,12 +35,13 @@ def test_inline_pool_and_dask_give_identical_results(tmp_path: Path):
 
     inline = run_tasks(noisy_mean, TASKS, tmp_path / "a.jsonl", workers=1, progress=False)
     pool = run_tasks(noisy_mean, TASKS, tmp_path / "b.jsonl", workers=2, progress=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl, \
-            Client(cl) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl,
+        Client(cl) as client,
+    ):
         dask = run_tasks(noisy_mean, TASKS, tmp_path / "c.jsonl", scheduler=client, progress=False)
         # by address too, as the CLI passes it
-        dask2 = run_tasks(noisy_mean, TASKS[:2], tmp_path / "d.jsonl", scheduler=cl.scheduler_address,
-                          progress=False)
+        dask2 = run_tasks(noisy_mean, TASKS[:2], tmp_path / "d.jsonl", scheduler=cl.scheduler_address, progress=False)
     assert list(inline) == [t.id for t in TASKS]
     assert inline == pool == dask
     assert dask2 == {k: inline[k] for k in ("s00", "s01")}

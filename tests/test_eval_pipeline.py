@@ -1,4 +1,5 @@
 """End to end on small cameras: render -> pipeline -> score, resume, pose errors, Dask == local."""
+
 from __future__ import annotations
 
 import json
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from hil_server import evaluate as ev
+from studies import evaluate as ev
 
 PX = 96
 
@@ -18,8 +19,17 @@ def cache(tmp_path_factory) -> Path:
 
 
 def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path):
-    rows = ev.evaluate_scenario("vertical", tmp_path, presets=["fast"], seeds=[0], cache_dir=cache, camera_px=PX,
-                                altitudes=[300], workers=1, progress=False)
+    rows = ev.evaluate_scenario(
+        "vertical",
+        tmp_path,
+        presets=["fast"],
+        seeds=[0],
+        cache_dir=cache,
+        camera_px=PX,
+        altitudes=[300],
+        workers=1,
+        progress=False,
+    )
     (r,) = rows
     assert r["scenario"] == "vertical" and r["altitude_m"] == 300 and r["label"] == "600/300"
     # a DEM from a 96 px pair at 300 m: GSD ~0.8 m in i1, so metres of error at worst, not tens
@@ -27,29 +37,56 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert r["tp_pct"] + r["tn_pct"] + r["fp_pct"] + r["fn_pct"] == pytest.approx(100.0)
     assert r["cdi_pct"] == pytest.approx(r["tp_pct"] + r["tn_pct"])
     assert 0 < r["hazards_in_scene_pct"] < 100 and r["slope_mean_abs_deg"] is not None
-    fn_parts = [r[k] for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct",
-                               "fn_other_pct")]
+    fn_parts = [
+        r[k]
+        for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct", "fn_other_pct")
+    ]
     assert sum(fn_parts) == pytest.approx(r["fn_pct"])
     assert r["fp_steep_pct"] + r["fp_rough_pct"] + r["fp_other_pct"] == pytest.approx(r["fp_pct"])
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
-    for col in ("scenario", "altitude_m", "preset", "dem_mean_abs_m", "dem_median_m", "dem_mad_m",
-                "slope_mean_abs_deg", "fp_pct", "fn_pct", "tp_pct", "tn_pct", "hazards_detected_pct",
-                "safe_detected_pct", "cdi_pct", "pipeline_s"):
+    for col in (
+        "scenario",
+        "altitude_m",
+        "preset",
+        "dem_mean_abs_m",
+        "dem_median_m",
+        "dem_mad_m",
+        "slope_mean_abs_deg",
+        "fp_pct",
+        "fn_pct",
+        "tp_pct",
+        "tn_pct",
+        "hazards_detected_pct",
+        "safe_detected_pct",
+        "cdi_pct",
+        "pipeline_s",
+    ):
         assert col in header
     log = tmp_path / "runs" / "evaluate.jsonl"
     before = log.read_text()
-    again = ev.evaluate_scenario("vertical", tmp_path, presets=["fast"], seeds=[0], cache_dir=cache, camera_px=PX,
-                                 altitudes=[300], workers=1, progress=False)
+    again = ev.evaluate_scenario(
+        "vertical",
+        tmp_path,
+        presets=["fast"],
+        seeds=[0],
+        cache_dir=cache,
+        camera_px=PX,
+        altitudes=[300],
+        workers=1,
+        progress=False,
+    )
     assert log.read_text() == before and again == rows  # nothing re-ran
 
 
 def test_pose_knowledge_errors_raise_dem_error(cache: Path):
     (e,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
     perfect = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False)
-    alt = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False,
-                           pose_error={"frames": [{"dz_m": 0.0}, {"dz_m": 3.0}]})
-    att = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False,
-                           pose_error={"frames": [{"pitch_deg": 0.3}, {"pitch_deg": 0.3}]})
+    alt = ev.evaluate_pair(
+        e["pair_dir"], "fast", truth_slope=False, pose_error={"frames": [{"dz_m": 0.0}, {"dz_m": 3.0}]}
+    )
+    att = ev.evaluate_pair(
+        e["pair_dir"], "fast", truth_slope=False, pose_error={"frames": [{"pitch_deg": 0.3}, {"pitch_deg": 0.3}]}
+    )
     assert alt["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
     assert att["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
     assert perfect["slope_mean_abs_deg"] is None  # truth slope skipped on request
@@ -68,11 +105,9 @@ def test_sample_pose_errors_are_seeded_and_bounded():
 def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
     from distributed import Client, LocalCluster
 
-    kw = dict(samples=2, seeds=[0], presets=["fast"], cache_dir=cache, camera_px=PX, altitudes=[250],
-              progress=False)
+    kw = dict(samples=2, seeds=[0], presets=["fast"], cache_dir=cache, camera_px=PX, altitudes=[250], progress=False)
     local = ev.sensitivity_campaign("altitude", tmp_path / "local", workers=1, **kw)
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, \
-            Client(cl):
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, Client(cl):
         dask = ev.sensitivity_campaign("altitude", tmp_path / "dask", scheduler=cl.scheduler_address, **kw)
 
     def strip(rows):
@@ -84,14 +119,19 @@ def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
     assert all(math.isfinite(r["dem_mean_rel_pct"]) for r in local)
     assert (tmp_path / "dask" / "sensitivity_altitude.csv").is_file()
     lines = (tmp_path / "dask" / "runs" / "sensitivity-altitude.jsonl").read_text().splitlines()
-    assert sorted(json.loads(x)["id"] for x in lines) == ["altitude-fast-s0-250-0", "altitude-fast-s0-250-1",
-                                                         "altitude-fast-s0-250-ref"]
+    assert sorted(json.loads(x)["id"] for x in lines) == [
+        "altitude-fast-s0-250-0",
+        "altitude-fast-s0-250-1",
+        "altitude-fast-s0-250-ref",
+    ]
 
 
 def test_cli_bad_input_is_one_clean_line(tmp_path: Path, capsys):
     from hil_server.cli import main
 
-    assert main(["evaluate", "--scenario", "vertical", "--altitudes", "33", "--camera-px", "64",
-                 "--out", str(tmp_path)]) == 2
+    assert (
+        main(["evaluate", "--scenario", "vertical", "--altitudes", "33", "--camera-px", "64", "--out", str(tmp_path)])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no pair at altitude(s) [33]" in err[0]

@@ -1,4 +1,5 @@
 """Thesis reference values, side-by-side tables and the HTML report, on synthetic metric rows."""
+
 from __future__ import annotations
 
 import math
@@ -8,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from hil_server import evaluate as ev
-from hil_server import report
+from reports import figures
+from studies import evaluate as ev
+from studies import report
 
 
 def test_thesis_csv_spot_values_and_derived_rates():
@@ -28,7 +30,10 @@ def test_thesis_csv_spot_values_and_derived_rates():
         assert 100 * tn / (tn + fp) == pytest.approx(idx[("6.7", "vertical", a, "hazards_detected_pct")], abs=0.02)
     assert idx[("Fig. 6.6", "vertical", 500, "cdi_pct")] == pytest.approx(63.06 + 19.98)
     # the sensitivity tables' relative errors are relative to Table 6.9 (perfect knowledge)
-    mu, rel = idx[("6.12", "approach", 125, "s01.dem_mean_abs_m")], idx[("6.12", "approach", 125, "s01.dem_mean_rel_pct")]
+    mu, rel = (
+        idx[("6.12", "approach", 125, "s01.dem_mean_abs_m")],
+        idx[("6.12", "approach", 125, "s01.dem_mean_rel_pct")],
+    )
     assert mu / (1 + rel / 100) == pytest.approx(idx[("6.9", "approach", 125, "dem_mean_abs_m")], rel=1e-3)
 
 
@@ -38,10 +43,25 @@ def _rows():
         for alt in (300, 500):
             for seed in (0, 1):
                 r = {c: None for c in ev.METRIC_COLUMNS}
-                r.update(scenario="vertical", altitude_m=alt, label=f"{2 * alt}/{alt}", preset=preset, seed=seed,
-                         pair="x", dem_mean_abs_m=k * alt / 100 + seed, fp_pct=k, fn_pct=10.0, tp_pct=60.0,
-                         tn_pct=30.0 - k, cdi_pct=90.0 - k, hazards_detected_pct=90.0, safe_detected_pct=85.0,
-                         pipeline_s=0.5, level="full", degraded=False)
+                r.update(
+                    scenario="vertical",
+                    altitude_m=alt,
+                    label=f"{2 * alt}/{alt}",
+                    preset=preset,
+                    seed=seed,
+                    pair="x",
+                    dem_mean_abs_m=k * alt / 100 + seed,
+                    fp_pct=k,
+                    fn_pct=10.0,
+                    tp_pct=60.0,
+                    tn_pct=30.0 - k,
+                    cdi_pct=90.0 - k,
+                    hazards_detected_pct=90.0,
+                    safe_detected_pct=85.0,
+                    pipeline_s=0.5,
+                    level="full",
+                    degraded=False,
+                )
                 rows.append(r)
     return rows
 
@@ -64,7 +84,7 @@ def test_metrics_csv_roundtrip(tmp_path: Path):
     rows[0]["cdi_pct"] = float("nan")
     p = ev.write_metrics_csv(rows, tmp_path / "metrics.csv")
     header = p.read_text().splitlines()[0].split(",")
-    assert header[:len(ev.METRIC_COLUMNS)] == list(ev.METRIC_COLUMNS)
+    assert header[: len(ev.METRIC_COLUMNS)] == list(ev.METRIC_COLUMNS)
     back = ev.read_metrics_csv(p)
     assert back[1]["dem_mean_abs_m"] == pytest.approx(rows[1]["dem_mean_abs_m"])
     assert back[0]["cdi_pct"] is None and back[0]["altitude_m"] == 300 and back[0]["scenario"] == "vertical"
@@ -73,8 +93,8 @@ def test_metrics_csv_roundtrip(tmp_path: Path):
 def test_confusion_overlay_colours():
     est = np.array([[0.0, 1.0, 0.0, 1.0, np.nan]])
     tru = np.array([[0.0, 1.0, 1.0, 0.0, 0.0]])
-    img = report.confusion_image(est, tru, np.array([[1, 1, 1, 1, 0]], bool))
-    assert [tuple(img[0, k]) for k in range(5)] == [report.CONFUSION_BGR[n] for n in ("TP", "TN", "FP", "FN", "none")]
+    img = figures.confusion_image(est, tru, np.array([[1, 1, 1, 1, 0]], bool))
+    assert [tuple(img[0, k]) for k in range(5)] == [figures.CONFUSION_BGR[n] for n in ("TP", "TN", "FP", "FN", "none")]
 
 
 def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
@@ -86,11 +106,21 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
     maps = tmp_path / "maps"
     maps.mkdir()
     for alt in (300, 500):
-        np.savez_compressed(maps / f"vertical-fast-s0-{alt}.npz", image=(rng.random((h, w)) * 255).astype(np.uint8),
-                            est_elevation=truth + 0.1, true_elevation=truth, est_hazard=np.clip(truth, 0, 1),
-                            true_hazard=np.clip(truth + 0.2, 0, 1), est_slope=np.abs(truth) * 5,
-                            true_slope=np.abs(truth) * 6, est_rough=np.abs(truth) * .1, true_rough=np.abs(truth) * .1,
-                            covered=cov, epipole_box=np.zeros((h, w), bool), rocks=np.zeros((h, w), bool))
+        np.savez_compressed(
+            maps / f"vertical-fast-s0-{alt}.npz",
+            image=(rng.random((h, w)) * 255).astype(np.uint8),
+            est_elevation=truth + 0.1,
+            true_elevation=truth,
+            est_hazard=np.clip(truth, 0, 1),
+            true_hazard=np.clip(truth + 0.2, 0, 1),
+            est_slope=np.abs(truth) * 5,
+            true_slope=np.abs(truth) * 6,
+            est_rough=np.abs(truth) * 0.1,
+            true_rough=np.abs(truth) * 0.1,
+            covered=cov,
+            epipole_box=np.zeros((h, w), bool),
+            rocks=np.zeros((h, w), bool),
+        )
     page = report.evaluation_report(tmp_path, _rows())
     text = page.read_text()
     pngs = sorted(p.name for p in page.parent.glob("*.png"))
@@ -100,5 +130,5 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
         assert cv2.imread(str(page.parent / name)) is not None
     assert "3.88" in text and "<table>" in text
     dem = cv2.imread(str(page.parent / "vertical_300m_dem.png"))
-    assert dem.shape[1] == 3 * (report.PANEL_PX + 4)  # three panels, cropped to the covered area
+    assert dem.shape[1] == 3 * (figures.PANEL_PX + 4)  # three panels, cropped to the covered area
     assert math.isclose(ev.summarise(_rows())[("vertical", "thesis", 500)]["fp_pct"], 1.0)

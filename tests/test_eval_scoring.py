@@ -1,4 +1,5 @@
 """Scoring against closed forms and hand-counted confusion matrices."""
+
 from __future__ import annotations
 
 import math
@@ -96,7 +97,7 @@ def test_site_scores_missed_rock_spoils_every_site_around_it():
     assert s["n"] == n_sites
     assert s["fp"] == pytest.approx(100.0 * disk / n_sites)
     pix = scoring.confusion(est, truth, None)
-    assert pix["fp"] == pytest.approx(100 / 41 ** 2)  # pixel level sees one pixel only
+    assert pix["fp"] == pytest.approx(100 / 41**2)  # pixel level sees one pixel only
     est[20, 20] = 1.0
     assert scoring.site_scores(est, truth, None, r)["fp"] == 0.0
 

@@ -1,4 +1,5 @@
 """``hazard-hil process``: outputs on a synthetic pair with truth, clean errors on bad input."""
+
 from __future__ import annotations
 
 import json
@@ -8,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import crater, make_pair  # noqa: E402
+from synthetic import crater, make_pair
 
 from hil_server.cli import main
 from protocol.pairdir import Pair, write_pair
@@ -25,8 +26,7 @@ def test_process_writes_outputs(tmp_path, capsys):
     d, z = _pair(tmp_path)
     out = tmp_path / "out"
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
-    for f in ("elevation.npy", "hazard.npy", "result.json", "dem.png", "hazard.png", "dem_error.png",
-              "confusion.png"):
+    for f in ("elevation.npy", "hazard.npy", "result.json", "dem.png", "hazard.png", "dem_error.png", "confusion.png"):
         assert (out / f).is_file(), f
     elev = np.load(out / "elevation.npy")
     assert elev.dtype == np.float32 and elev.shape == z.shape

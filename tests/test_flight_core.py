@@ -1,4 +1,5 @@
 """DEM-computation blocks (thesis Table 5.2): homography, warping, SAD/SSD, sweep, georeferencing."""
+
 from __future__ import annotations
 
 import math
@@ -10,13 +11,14 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import NADIR_R, camera_fov30, crater, make_pair, plane, tilted_R  # noqa: E402
+import itertools
+
+from synthetic import NADIR_R, camera_fov30, crater, make_pair, plane, tilted_R
 
 from flight_sw.correlation import parabolic_offset, window_cost
 from flight_sw.georef import backproject
 from flight_sw.homography import map_points
-from flight_sw.sweep import (coverage_mask, plane_homography, planes_uniform_disparity, planes_uniform_dz,
-                             sweep_dem)
+from flight_sw.sweep import coverage_mask, plane_homography, planes_uniform_disparity, planes_uniform_dz, sweep_dem
 from flight_sw.warping import area_sigma, bilinear_sample, warp_to_i1
 from protocol.pairdir import Pose
 
@@ -26,8 +28,9 @@ def project(cam, pose, X):
     return cam.fx * xc[0] / xc[2] + cam.cx, cam.fy * xc[1] / xc[2] + cam.cy
 
 
-@pytest.mark.parametrize("R1,R2", [(NADIR_R, NADIR_R), (tilted_R(40), tilted_R(38, "x")),
-                                   (tilted_R(10, "y"), tilted_R(-5, "x"))])
+@pytest.mark.parametrize(
+    "R1,R2", [(NADIR_R, NADIR_R), (tilted_R(40), tilted_R(38, "x")), (tilted_R(10, "y"), tilted_R(-5, "x"))]
+)
 def test_plane_homography_maps_projections_of_plane_points(R1, R2):
     cam = camera_fov30(512)
     p1 = Pose([3.0, -2.0, 600.0], R1)
@@ -73,7 +76,7 @@ def test_bilinear_warp_matches_reference():
 def test_sad_ssd_hand_checked_3x3():
     i1 = np.arange(1, 10, dtype=np.float32).reshape(3, 3)
     i2 = np.ones((3, 3), np.float32)
-    assert window_cost(i1, i2, 1, "sad")[1, 1] == pytest.approx(36.0)   # 0+1+...+8
+    assert window_cost(i1, i2, 1, "sad")[1, 1] == pytest.approx(36.0)  # 0+1+...+8
     assert window_cost(i1, i2, 1, "ssd")[1, 1] == pytest.approx(204.0)  # 0+1+4+...+64
     c = window_cost(i1, i2, 1, "sad")
     assert np.isnan(c[0]).all() and np.isnan(c[:, 2]).all()
@@ -99,9 +102,17 @@ def test_uniform_disparity_planes_step_in_pixels():
     # largest move between adjacent planes over the covered area is <= 0.5 px (and close to it)
     cov = coverage_mask(cam, p1, p2, -10, 10)
     v, u = np.nonzero(cov)
-    moves = [np.hypot(*(np.subtract(map_points(plane_homography(cam, p1, p2, b), u, v),
-                                    map_points(plane_homography(cam, p1, p2, a), u, v)))).max()
-             for a, b in zip(pl[:-1], pl[1:])]
+    moves = [
+        np.hypot(
+            *(
+                np.subtract(
+                    map_points(plane_homography(cam, p1, p2, b), u, v),
+                    map_points(plane_homography(cam, p1, p2, a), u, v),
+                )
+            )
+        ).max()
+        for a, b in itertools.pairwise(pl)
+    ]
     assert max(moves) <= 0.5 + 1e-3 and max(moves) > 0.4
     np.testing.assert_allclose(np.diff(planes_uniform_dz(-1, 1, 0.15)), 0.15)
 
@@ -117,8 +128,16 @@ def test_textured_plane_recovered_within_centimetres(plane_pair, mode):
     if mode == "thesis":
         res = sweep_dem(i1, i2, cam, p1, p2, planes_uniform_dz(-15, 15, 0.15), half_window=8)
     else:
-        res = sweep_dem(i1, i2, cam, p1, p2, planes_uniform_disparity(cam, p1, p2, -15, 15, 0.5),
-                        half_window=6, prefilter_sigma=area_sigma(0.5))
+        res = sweep_dem(
+            i1,
+            i2,
+            cam,
+            p1,
+            p2,
+            planes_uniform_disparity(cam, p1, p2, -15, 15, 0.5),
+            half_window=6,
+            prefilter_sigma=area_sigma(0.5),
+        )
     err = res.elevation - z
     ok = np.isfinite(err)
     assert ok.mean() > 0.12  # i2 sees the central quarter of i1, minus window borders
@@ -143,8 +162,7 @@ def test_rock_pixels_are_nan_and_ignored(plane_pair):
     cam, p1, p2, i1, i2, z = plane_pair
     ign = np.zeros(i1.shape, bool)
     ign[120:130, 120:130] = True
-    res = sweep_dem(i1, i2, cam, p1, p2, planes_uniform_disparity(cam, p1, p2, -15, 15, 0.5), half_window=6,
-                    ignore=ign)
+    res = sweep_dem(i1, i2, cam, p1, p2, planes_uniform_disparity(cam, p1, p2, -15, 15, 0.5), half_window=6, ignore=ign)
     assert np.isnan(res.elevation[ign]).all()
     assert np.isfinite(res.elevation[115:118, 115:135]).all()
 
@@ -170,7 +188,7 @@ def test_georeferencing_matches_thesis_equations(tilt):
     rng = np.random.default_rng(5)
     Z = rng.uniform(-20, 20, (64, 64))
     X, Y = backproject(cam, pose, Z)
-    for (r, c) in [(0, 0), (10, 50), (31, 31), (63, 5), (40, 63)]:
+    for r, c in [(0, 0), (10, 50), (31, 31), (63, 5), (40, 63)]:
         x_c, y_c = (c - cam.cx) / cam.fx, (r - cam.cy) / cam.fy
         Xo, Yo = thesis_georef(h, math.radians(tilt), x_c, y_c, Z[r, c])
         assert X[r, c] == pytest.approx(Xo, abs=1e-6)
@@ -181,10 +199,11 @@ def test_georeferencing_matches_thesis_equations(tilt):
 @pytest.mark.parametrize("tilt,off", [(0.0, 0.0), (40.0, -100.0), (49.0, -250.0)])
 def test_coverage_polygon_is_conservative_per_pixel_test(tilt, off):
     from flight_sw.sweep import _inside
+
     cam = camera_fov30(256)
     p1, p2 = Pose([0, 0, 500.0], tilted_R(tilt)), Pose([0, off, 250.0], tilted_R(tilt))
     fast = coverage_mask(cam, p1, p2, -20.0)
     v, u = np.mgrid[0:256, 0:256].astype(np.float64)
     exact = _inside(cam, plane_homography(cam, p1, p2, -20.0), u, v)
-    assert not (fast & ~exact).any()                  # never claims an uncovered pixel
-    assert (exact & ~fast).sum() < 4 * 256            # loses at most a thin boundary ring
+    assert not (fast & ~exact).any()  # never claims an uncovered pixel
+    assert (exact & ~fast).sum() < 4 * 256  # loses at most a thin boundary ring

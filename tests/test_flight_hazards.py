@@ -1,4 +1,5 @@
 """Hazard-computation blocks (thesis Table 5.2): shadows, rocks, slope/roughness, mapping, sites."""
+
 from __future__ import annotations
 
 import math
@@ -34,7 +35,7 @@ def test_roof_dem_slope_at_1m(slope_deg):
     np.testing.assert_allclose(slope[away], slope_deg, atol=1e-3)
     np.testing.assert_allclose(roughness(z, zp)[away], 0.0, atol=1e-3)
     ridge = (X == 0) & (np.abs(Y) < 28)
-    assert np.all(slope[ridge] < 1.0)               # symmetric roof: the fit is level at the ridge
+    assert np.all(slope[ridge] < 1.0)  # symmetric roof: the fit is level at the ridge
     assert np.all(roughness(z, zp)[ridge] > 0.5 * g)  # ... and the ridge stands above it
 
 
@@ -44,8 +45,8 @@ def test_plane_fit_matches_lstsq_with_holes():
     z[rng.random(z.shape) < 0.2] = np.nan
     cell, n = 0.5, 7
     slope, zp = plane_fit(z, cell, footprint_m=n * cell, min_fraction=0.3)
-    for (i, j) in [(10, 10), (20, 25), (30, 8)]:
-        win = z[i - 3:i + 4, j - 3:j + 4]
+    for i, j in [(10, 10), (20, 25), (30, 8)]:
+        win = z[i - 3 : i + 4, j - 3 : j + 4]
         yy, xx = np.mgrid[-3:4, -3:4] * cell
         ok = np.isfinite(win)
         A = np.column_stack([xx[ok], yy[ok], np.ones(ok.sum())])
@@ -62,12 +63,12 @@ def test_rock_detection_finds_rocks_and_surroundings():
     img = 120 + cv2.GaussianBlur(rng.normal(0, 1, (200, 200)), (0, 0), 3.0) * 30
     rocks = [(40, 50), (100, 150), (160, 70)]
     for r, c in rocks:
-        img[r:r + 4, c:c + 4] = 250   # sunlit boulder
-        img[r + 4:r + 7, c:c + 4] = 5  # its shadow
+        img[r : r + 4, c : c + 4] = 250  # sunlit boulder
+        img[r + 4 : r + 7, c : c + 4] = 5  # its shadow
     m = rock_mask(np.clip(img, 0, 255).astype(np.uint8))
     for r, c in rocks:
-        assert m[r:r + 7, c:c + 4].mean() > 0.5
-        assert m[r - 1, c + 1] or m[r + 7, c + 1]   # immediate surroundings included
+        assert m[r : r + 7, c : c + 4].mean() > 0.5
+        assert m[r - 1, c + 1] or m[r + 7, c + 1]  # immediate surroundings included
     assert m.mean() < 0.05
     assert not rock_mask(np.full((50, 50), 90, np.uint8)).any()
 
@@ -88,14 +89,14 @@ def test_combine_on_artificial_maps():
 def test_keep_out_margin_grows_hazards_by_a_disk_and_leaves_uncovered_alone():
     h = np.zeros((9, 9), np.float32)
     h[4, 4] = 1.0
-    h[0, :] = np.nan                                   # outside the covered area
+    h[0, :] = np.nan  # outside the covered area
     h[8, 8] = 0.4
     assert widen_hazards(h, 0.0) is h
     w = widen_hazards(h, 1.0)
     unsafe = w >= 1.0
-    assert unsafe.sum() == 5 and unsafe[3:6, 4].all() and unsafe[4, 3:6].all()   # 4-neighbours, no corners
+    assert unsafe.sum() == 5 and unsafe[3:6, 4].all() and unsafe[4, 3:6].all()  # 4-neighbours, no corners
     assert np.isnan(w[0]).all() and not np.isnan(w[1:]).any()
-    assert w[7, 8] == pytest.approx(0.4) and w[7, 7] == 0.0 and w[8, 8] == pytest.approx(0.4)   # graded values too
+    assert w[7, 8] == pytest.approx(0.4) and w[7, 7] == 0.0 and w[8, 8] == pytest.approx(0.4)  # graded values too
     w2 = widen_hazards(h, 2.0)
     assert (w2 >= 1.0).sum() == 13 and w2[2, 4] == 1.0 and w2[3, 3] == 1.0 and w2[2, 3] < 1.0
     with pytest.raises(ValueError):
@@ -122,9 +123,9 @@ def test_grid_round_trip():
 def test_sites_avoid_hazards_and_spiral_out():
     cell = 0.5
     haz = np.full((81, 81), 0.2, np.float32)
-    haz[30:51, 30:51] = 1.0            # unsafe block around the nominal site
-    haz[10:20, 60:70] = 0.0            # the safest area, far away
-    haz[:, 0:3] = np.nan               # unknown strip
+    haz[30:51, 30:51] = 1.0  # unsafe block around the nominal site
+    haz[10:20, 60:70] = 0.0  # the safest area, far away
+    haz[:, 0:3] = np.nan  # unknown strip
     grid = HazardGrid(haz, np.zeros_like(haz), (-20.0, 20.0), cell)  # cell [40, 40] is (0, 0)
     sites = select_sites(grid, 3.0, (0.0, 0.0), k=4)
     assert len(sites) == 4
@@ -133,7 +134,7 @@ def test_sites_avoid_hazards_and_spiral_out():
     X, Y = grid.cell_xy()
     for s in sites:
         j, i = int(round((s.x + 20) / cell)), int(round((20 - s.y) / cell))
-        assert safe[i, j] and np.all(haz[i - n // 2:i + n // 2 + 1, j - n // 2:j + n // 2 + 1] < 1)
+        assert safe[i, j] and np.all(haz[i - n // 2 : i + n // 2 + 1, j - n // 2 : j + n // 2 + 1] < 1)
         assert s.margin == pytest.approx(0.8)
     d = [s.distance_m for s in sites]
     assert min(d) >= 5.0 + 1.5 - 1e-9 and max(d) < 5.0 + 1.5 + 3.0 + 1e-9  # first ring outside the block

@@ -1,4 +1,5 @@
 """End-to-end pipeline on synthetic scenes: accuracy, hazards, anytime levels, validation, determinism."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import make_pair, plane, roof, tilted_R  # noqa: E402
+from synthetic import make_pair, plane, roof, tilted_R
 
 from flight_sw.pipeline import PRESETS, Params, PipelineResult, run_pipeline
 from flight_sw.sweep import plane_homography  # noqa: F401  (part of the interface contract)
@@ -72,8 +73,7 @@ def test_pipeline_measures_roof_slope(slope_deg):
 
 
 def test_oblique_approach_pair():
-    cam, p1, p2, i1, i2, z = make_pair(256, 250.0, 125.0, plane(2.0), seed=13, R=tilted_R(20),
-                                       offset2=(0.0, -45.0))
+    cam, p1, p2, i1, i2, z = make_pair(256, 250.0, 125.0, plane(2.0), seed=13, R=tilted_R(20), offset2=(0.0, -45.0))
     res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
     err = res.elevation - z
     assert res.level == "full" and res.valid_fraction > 0.5
@@ -102,8 +102,14 @@ def _bad(plane_scene, **kw):
     args = dict(i1=i1, i2=i2, pose1=p1, pose2=p2, camera=cam)
     args.update(kw)
     with pytest.raises(InputError) as exc:
-        run_pipeline(args["i1"], args["i2"], args["pose1"], args["pose2"], args["camera"],
-                     **{k: v for k, v in kw.items() if k in ("preset", "deadline_s", "nominal_site_xy")})
+        run_pipeline(
+            args["i1"],
+            args["i2"],
+            args["pose1"],
+            args["pose2"],
+            args["camera"],
+            **{k: v for k, v in kw.items() if k in ("preset", "deadline_s", "nominal_site_xy")},
+        )
     assert isinstance(exc.value, FlightInputError)
     return str(exc.value)
 
@@ -133,6 +139,7 @@ def test_deterministic(plane_scene):
 def test_tiny_sensor_still_gets_a_dem():
     """96 px pair: the window is capped to the ~46 px overlap; an empty coarse level falls back to the full range."""
     from flight_sw.pipeline import window_px
+
     assert window_px(8, 256) == 8 and window_px(8, 46) == 5 and window_px(8, 10) == 2
     assert window_px(8, 46, cap=False) == 8
     cam, p1, p2, i1, i2, z = make_pair(96, 200.0, 100.0, plane(1.0), seed=14)

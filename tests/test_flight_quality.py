@@ -1,4 +1,5 @@
 """Match confidence, gap filling and photometric cues (flight_sw.confidence / gapfill / shading)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +12,7 @@ from flight_sw.shadow import shadow_mask
 
 
 def test_uncertainty_is_plane_step_over_root_curvature():
-    planes = np.array([0.0, 1.0, 3.0, 6.0])           # spacings 1, 2, 3 centred at 0.5, 2, 4.5
+    planes = np.array([0.0, 1.0, 3.0, 6.0])  # spacings 1, 2, 3 centred at 0.5, 2, 4.5
     z = np.array([[2.0, 4.5, np.nan]])
     kappa = np.array([[0.25, 0.09, 1.0]])
     u = elevation_uncertainty(z, kappa, planes)
@@ -25,21 +26,21 @@ def test_reject_uncertain_drops_outliers_but_keeps_sharp_matches():
     rng = np.random.default_rng(0)
     z = rng.normal(0, 1, (50, 50)).astype(np.float32)
     u = np.ones_like(z)
-    u[10, 10] = u[20, 20] = 5.0                        # two flat cost curves
+    u[10, 10] = u[20, 20] = 5.0  # two flat cost curves
     kappa = np.full_like(z, 0.05)
-    kappa[20, 20] = 0.5                                # ... one of them sharp in absolute terms
+    kappa[20, 20] = 0.5  # ... one of them sharp in absolute terms
     out = reject_uncertain(z, u, 1.5, kappa, sharp_curvature=0.2)
     assert np.isnan(out[10, 10]) and out[20, 20] == z[20, 20]
     assert np.isfinite(out).sum() == z.size - 1
-    np.testing.assert_array_equal(reject_uncertain(z, u, 0.0), z)   # off
+    np.testing.assert_array_equal(reject_uncertain(z, u, 0.0), z)  # off
 
 
 def test_fill_small_gaps_interpolates_small_holes_and_keeps_large_ones():
     yy, xx = np.mgrid[0:80, 0:80].astype(np.float32)
     z = 0.3 * xx - 0.2 * yy + 5.0
     holed = z.copy()
-    holed[20:23, 20:23] = np.nan                       # 3x3 gap surrounded by data
-    holed[45:80, 45:80] = np.nan                       # 35x35 hole: must stay unknown
+    holed[20:23, 20:23] = np.nan  # 3x3 gap surrounded by data
+    holed[45:80, 45:80] = np.nan  # 35x35 hole: must stay unknown
     out = fill_small_gaps(holed, 4, 0.3)
     # a symmetric neighbourhood of a linear surface averages to its centre value
     assert out[21, 21] == pytest.approx(z[21, 21], abs=1e-4)
@@ -59,9 +60,9 @@ def _lambert(normal_tilt_deg: np.ndarray, sun_elev_deg: float) -> np.ndarray:
 def test_shading_flags_steep_facets_not_flat_ground():
     rng = np.random.default_rng(1)
     tilt = np.zeros((200, 200))
-    tilt[90:110, 40:60] = 20.0                         # wall facing the sun
-    tilt[90:110, 140:160] = -20.0                      # wall facing away
-    tilt[20:40, 90:110] = 3.0                          # gentle undulation: safe
+    tilt[90:110, 40:60] = 20.0  # wall facing the sun
+    tilt[90:110, 140:160] = -20.0  # wall facing away
+    tilt[20:40, 90:110] = 3.0  # gentle undulation: safe
     img = 100.0 * _lambert(tilt, 35.0) * (1 + 0.02 * rng.standard_normal(tilt.shape))
     mask = shading_mask(relative_brightness(img, 10.0), 0.15)
     assert mask[95:105, 45:55].mean() > 0.9 and mask[95:105, 145:155].mean() > 0.9
@@ -75,7 +76,7 @@ def test_local_shadow_test_ignores_a_smooth_illumination_gradient():
     img = 40.0 + 120.0 * xx / 255.0
     img[60:70, 200:210] *= 0.2
     g = shadow_mask(img)
-    assert g[:, :50].all()                             # eq. 4.9 alone flags the whole dim side
+    assert g[:, :50].all()  # eq. 4.9 alone flags the whole dim side
     local = local_shadow_mask(img, g, relative_brightness(img, 10.0), 0.1)
     assert not local[:, :50].any() and g[:, :50].sum() > 6000
     assert local[62:68, 202:208].all()
@@ -84,11 +85,12 @@ def test_local_shadow_test_ignores_a_smooth_illumination_gradient():
 def test_filled_gap_on_a_slope_keeps_the_slope():
     # a local mean would make the gap a flat terrace (a hidden wall); the plane fill must not
     from flight_sw.slope import plane_fit
+
     xx = np.mgrid[0:60, 0:60][1].astype(np.float32)
-    z = np.tan(np.radians(25.0)) * xx                   # 25 deg wall, 1 m cells
+    z = np.tan(np.radians(25.0)) * xx  # 25 deg wall, 1 m cells
     holed = z.copy()
-    holed[:, 28:35] = np.nan                            # a 7-cell strip across the wall
-    holed[:, 55:] = np.nan                              # one-sided gap at the edge
+    holed[:, 28:35] = np.nan  # a 7-cell strip across the wall
+    holed[:, 55:] = np.nan  # one-sided gap at the edge
     out = fill_small_gaps(holed, 6, 0.3)
     assert np.nanmax(np.abs(out[:, 28:35] - z[:, 28:35])) < 1e-3
     assert np.nanmax(np.abs(out[:, 55:] - z[:, 55:])) < 1e-3

@@ -1,13 +1,14 @@
 """ground_sim: geometry, photometry, populations, truth and error handling against closed forms."""
+
 import json
 import math
 
 import numpy as np
 import pytest
 
-from ground_sim.descent import render_pair, render_scenario
+from ground_sim.descent import render_scenario
 from ground_sim.errors import RenderError, SceneError, TrajectoryError
-from ground_sim.features import PowerLaw, boulders_in, crater_profile, craters_in, Features
+from ground_sim.features import Features, PowerLaw, boulders_in, crater_profile, craters_in
 from ground_sim.geometry import ground_footprint, look_rotation, pixel_rays, project
 from ground_sim.pose_error import PoseError
 from ground_sim.render import render_view
@@ -21,8 +22,12 @@ CAM = Camera(128, 128, F128, F128, 63.5, 63.5)
 
 
 def flat_scene(**sections) -> Scene:
-    doc = {"terrain": {"rms_relief_m": 0.0, "micro_rms_m": 0.0}, "craters": {"coef": 0.0},
-           "boulders": {"coef": 0.0, "rim_density_m2": 0.0}, "albedo": {"sigma": 0.0}}
+    doc = {
+        "terrain": {"rms_relief_m": 0.0, "micro_rms_m": 0.0},
+        "craters": {"coef": 0.0},
+        "boulders": {"coef": 0.0, "rim_density_m2": 0.0},
+        "albedo": {"sigma": 0.0},
+    }
     for k, v in sections.items():
         if k == "feature":
             doc["feature"] = v
@@ -51,14 +56,15 @@ def test_flat_plane_depth_and_world_xy_match_closed_form(tilt):
 
 def test_single_crater_elevation_matches_profile():
     D = 20.0
-    sc = flat_scene(feature=[{"kind": "crater", "x_m": 1.0, "y_m": -2.0, "diameter_m": D,
-                              "depth_ratio": 0.2, "degradation": 0.0}])
+    sc = flat_scene(
+        feature=[{"kind": "crater", "x_m": 1.0, "y_m": -2.0, "diameter_m": D, "depth_ratio": 0.2, "degradation": 0.0}]
+    )
     pose = Pose([0.0, 0.0, 60.0], look_rotation(0.0))
     v = render_view(sc, CAM, pose, Sun(135, 60), noise=False)
     r2 = ((v.world_xy[..., 0] - 1.0) ** 2 + (v.world_xy[..., 1] + 2.0) ** 2) / (D / 2) ** 2
     expect = crater_profile(r2.astype(float), D, 0.2 * D, 0.0)
-    assert expect.min() < -3.5                         # the bowl is in view
-    assert np.abs(v.elevation - expect).max() < 0.03   # bilinear raster of the analytic profile
+    assert expect.min() < -3.5  # the bowl is in view
+    assert np.abs(v.elevation - expect).max() < 0.03  # bilinear raster of the analytic profile
     # depth is consistent with the hit point: z_cam of (x, y, elevation)
     X = np.dstack([v.world_xy, v.elevation]).astype(float)
     assert np.abs(project(CAM, pose, X)[2] - v.depth).max() < 1e-3
@@ -68,7 +74,7 @@ def test_tilted_footprint_is_the_thesis_trapezoid():
     spec = approach(CAM)[0]
     T1, T2 = (ground_footprint(CAM, p) for p in spec.poses)
     far1, near1 = np.linalg.norm(T1[1] - T1[0]), np.linalg.norm(T1[2] - T1[3])
-    assert far1 > 1.5 * near1                          # wider at the top (far) edge: trapezoid
+    assert far1 > 1.5 * near1  # wider at the top (far) edge: trapezoid
     assert abs(T1[0, 1] - T1[1, 1]) < 1e-6 and abs(T1[2, 1] - T1[3, 1]) < 1e-6  # parallel sides
     # half altitude on the same 45 deg line: homothetic, AB = 2 EF (thesis sec. 6.2)
     assert np.linalg.norm(T1[1] - T1[0]) == pytest.approx(2 * np.linalg.norm(T2[1] - T2[0]), rel=1e-9)
@@ -81,17 +87,17 @@ def test_tilted_footprint_is_the_thesis_trapezoid():
 def test_shadows_at_low_sun_and_none_at_zenith():
     sc = flat_scene(feature=[{"kind": "boulder", "x_m": 0.0, "y_m": 0.0, "diameter_m": 4.0, "height_m": 2.0}])
     pose = Pose([0.0, 0.0, 40.0], look_rotation(0.0))
-    low = render_view(sc, CAM, pose, Sun(90.0, 15.0), noise=False)      # sun in the east (+X)
+    low = render_view(sc, CAM, pose, Sun(90.0, 15.0), noise=False)  # sun in the east (+X)
     assert low.shadow.mean() > 0.01
     xs = low.world_xy[..., 0][low.shadow]
-    assert np.median(xs) < 0                           # shadow falls west, away from the sun
+    assert np.median(xs) < 0  # shadow falls west, away from the sun
     # cast shadow reaches about h / tan(el) beyond the boulder's west edge
     on_axis = low.shadow & (np.abs(low.world_xy[..., 1]) < 0.3)
     tip = -low.world_xy[..., 0][on_axis].min()
     assert tip == pytest.approx(2.0 / math.tan(math.radians(15)), rel=0.15)
     flat = render_view(flat_scene(), CAM, pose, Sun(0.0, 90.0), noise=False)
     assert not flat.shadow.any()
-    assert np.ptp(flat.image) <= 2                     # uniform plane, no noise: uniform image
+    assert np.ptp(flat.image) <= 2  # uniform plane, no noise: uniform image
 
 
 def test_pair_photometric_consistency():
@@ -105,13 +111,14 @@ def test_pair_photometric_consistency():
     def warp(elev):
         X = np.dstack([v1.world_xy, elev]).astype(float)
         u, v, _ = project(CAM, p2, X)
-        out = cv2.remap(v2.image.astype(np.float32), u.astype(np.float32), v.astype(np.float32),
-                        cv2.INTER_LINEAR, borderValue=-1)
+        out = cv2.remap(
+            v2.image.astype(np.float32), u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderValue=-1
+        )
         ok = (out >= 0) & (u > 2) & (u < 125) & (v > 2) & (v < 125)
         return np.abs(out - v1.image)[ok]
 
     good = warp(v1.elevation)
-    bad = warp(v1.elevation + 3.0)                     # wrong elevation: misregistered
+    bad = warp(v1.elevation + 3.0)  # wrong elevation: misregistered
     assert good.size > 0.2 * 128 * 128
     assert np.median(good) < 4.0
     assert np.median(bad) > 1.5 * np.median(good)
@@ -123,10 +130,10 @@ def test_sampled_populations_follow_power_laws():
     D = np.sort(cr.d[(np.abs(cr.x) < 400) & (np.abs(cr.y) < 400)])
     assert D.min() >= 2.0 and D.max() < 64.0
     n_gt = np.arange(D.size, 0, -1)
-    sel = D < 20                                       # away from the truncation
+    sel = D < 20  # away from the truncation
     slope = np.polyfit(np.log(D[sel]), np.log(n_gt[sel]), 1)[0]
     assert slope == pytest.approx(-2.0, abs=0.15)
-    expected = 0.079 * (2.0 ** -2 - 64.0 ** -2) * 800 ** 2
+    expected = 0.079 * (2.0**-2 - 64.0**-2) * 800**2
     assert D.size == pytest.approx(expected, rel=0.1)
     bsfd = PowerLaw(3e-3, 2.482, 0.3, 5.0)
     empty = Features.concat([], "crater")
@@ -183,7 +190,7 @@ def test_trajectories_follow_the_thesis():
         assert p1.time_s > p0.time_s
         off = math.degrees(math.acos(-p0.optical_axis[2]))
         assert off == pytest.approx(49.0 if s.altitude_m >= 250 else 40.0)
-        assert abs(p0.position[1]) == pytest.approx(p0.position[2])   # 45 deg path to the site
+        assert abs(p0.position[1]) == pytest.approx(p0.position[2])  # 45 deg path to the site
 
 
 def test_pose_error_is_seeded_bounded_and_recorded():
@@ -191,7 +198,7 @@ def test_pose_error_is_seeded_bounded_and_recorded():
     d1 = pe.sample(np.random.default_rng(1))
     d2 = pe.sample(np.random.default_rng(1))
     assert d1 == d2 and all(abs(d.dz_m) <= 0.5 for d in d1)
-    assert d1[0].pitch_deg == d1[1].pitch_deg                 # equal pitch on both frames (thesis 6.3.2)
+    assert d1[0].pitch_deg == d1[1].pitch_deg  # equal pitch on both frames (thesis 6.3.2)
     pose = Pose([0, -100, 100.0], look_rotation(30.0))
     rep = d1[0].apply(pose)
     ang = math.degrees(math.acos(np.clip(rep.optical_axis @ pose.optical_axis, -1, 1)))
@@ -206,12 +213,21 @@ def test_pose_error_is_seeded_bounded_and_recorded():
 
 
 def test_render_pair_and_scenario_files(tmp_path):
-    traj = {"camera": CAM.to_dict(), "pairs": [{"label": "120/60", "altitude_m": 60,
-            "frames": [{"position_m": [0, 0, 120], "time_s": 0}, {"position_m": [0, 0, 60], "time_s": 9}]}]}
+    traj = {
+        "camera": CAM.to_dict(),
+        "pairs": [
+            {
+                "label": "120/60",
+                "altitude_m": 60,
+                "frames": [{"position_m": [0, 0, 120], "time_s": 0}, {"position_m": [0, 0, 60], "time_s": 9}],
+            }
+        ],
+    }
     f = tmp_path / "t.json"
     f.write_text(json.dumps(traj))
-    out = render_scenario(f, tmp_path / "out", scene="default", seed=1,
-                          pose_error=PoseError(altitude_uniform_m=0.5), progress=False)
+    out = render_scenario(
+        f, tmp_path / "out", scene="default", seed=1, pose_error=PoseError(altitude_uniform_m=0.5), progress=False
+    )
     man = json.loads((out / "manifest.json").read_text())
     assert man["pairs"][0]["path"] == "120_60" and man["pairs"][0]["altitude_m"] == 60
     pair = read_pair(out / "120_60")
@@ -225,22 +241,27 @@ def test_render_pair_and_scenario_files(tmp_path):
 def test_each_scenario_renders_on_its_own_scene_unless_told(tmp_path):
     """`render`, `run` and `evaluate` must score the same terrain: the approach flies the safer area."""
     from ground_sim.descent import default_scene
-    from hil_server.evaluate import scenario_scene
-
     from hil_server.run import scaled_camera
+    from studies.evaluate import scenario_scene
 
     small = scaled_camera(48)
     out = render_scenario("approach", tmp_path / "a", pairs=["250/125"], camera=small, progress=False)
     assert json.loads((out / "manifest.json").read_text())["scene"] == "approach"
-    out = render_scenario("approach", tmp_path / "b", scene="default", pairs=["250/125"], camera=small,
-                          progress=False)
+    out = render_scenario("approach", tmp_path / "b", scene="default", pairs=["250/125"], camera=small, progress=False)
     assert json.loads((out / "manifest.json").read_text())["scene"] == "default"
     assert [default_scene(s) for s in ("vertical", "approach", "custom")] == ["default", "approach", "default"]
     assert scenario_scene("approach") == default_scene("approach")
 
 
-@pytest.mark.parametrize("text,msg", [("[terrain]\nhurst = 2\n", "hurst"), ("[terrain]\nbogus = 1\n", "bogus"),
-                                      ("[terrain\n", "invalid TOML"), ("[[feature]]\nkind='tree'\n", "kind")])
+@pytest.mark.parametrize(
+    "text,msg",
+    [
+        ("[terrain]\nhurst = 2\n", "hurst"),
+        ("[terrain]\nbogus = 1\n", "bogus"),
+        ("[terrain\n", "invalid TOML"),
+        ("[[feature]]\nkind='tree'\n", "kind"),
+    ],
+)
 def test_invalid_scene_files_give_clear_errors(tmp_path, text, msg):
     p = tmp_path / "s.toml"
     p.write_text(text)

@@ -1,4 +1,5 @@
 """Processor budgets, the reference workload and per-host calibration."""
+
 from __future__ import annotations
 
 import json
@@ -18,8 +19,15 @@ def home(tmp_path, monkeypatch):
 
 
 def _cal(units_per_s: float) -> B.HostCalibration:
-    return B.HostCalibration(key=B.host_key(), hostname="h", cpu_model="m", units_per_s=units_per_s,
-                             spread=0.1, seconds=1.0, measured_at="2025-01-01T00:00:00+00:00")
+    return B.HostCalibration(
+        key=B.host_key(),
+        hostname="h",
+        cpu_model="m",
+        units_per_s=units_per_s,
+        spread=0.1,
+        seconds=1.0,
+        measured_at="2025-01-01T00:00:00+00:00",
+    )
 
 
 def test_shipped_budgets_are_complete_and_sane():
@@ -62,8 +70,17 @@ def test_uncalibrated_host_warns_and_uses_anchor(home):
 
 
 def test_calibrate_stores_per_host_and_round_trips(home):
-    other = {"otherhost|Some CPU": {"key": "otherhost|Some CPU", "hostname": "otherhost", "cpu_model": "Some CPU",
-                                    "units_per_s": 1.0, "spread": 0.0, "seconds": 1.0, "measured_at": "x"}}
+    other = {
+        "otherhost|Some CPU": {
+            "key": "otherhost|Some CPU",
+            "hostname": "otherhost",
+            "cpu_model": "Some CPU",
+            "units_per_s": 1.0,
+            "spread": 0.0,
+            "seconds": 1.0,
+            "measured_at": "x",
+        }
+    }
     (home / "calibration.json").write_text(json.dumps(other))
     cal = B.calibrate_host(seconds=0.3)
     assert cal.units_per_s > 0 and cal.key == B.host_key()
@@ -91,14 +108,17 @@ def test_corrupt_calibration_is_input_error(home):
         B.load_calibration()
 
 
-@pytest.mark.parametrize("edit, message", [
-    (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
-    (('link = "serial"\nbaud = 3000000\nsource = "opf', 'link = "can"\nbaud = 3000000\nsource = "opf'), "link"),
-    (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
-    (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),
-    (("[anchor]", "[anchorx]"), "anchor"),
-    (("[budget.rad750]", "[budget.rad750\n"), "TOML"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
+        (('link = "serial"\nbaud = 3000000\nsource = "opf', 'link = "can"\nbaud = 3000000\nsource = "opf'), "link"),
+        (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
+        (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),
+        (("[anchor]", "[anchorx]"), "anchor"),
+        (("[budget.rad750]", "[budget.rad750\n"), "TOML"),
+    ],
+)
 def test_malformed_budget_file_is_input_error(tmp_path, edit, message):
     text = B.default_budgets_path().read_text()
     old, new = edit

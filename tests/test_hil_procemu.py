@@ -1,4 +1,5 @@
 """The emulated flight processor: duty cycle, one core, memory ceiling, exit reports."""
+
 from __future__ import annotations
 
 import os
@@ -136,6 +137,7 @@ def test_rss_watchdog_kills_at_memory_ceiling_and_a_fresh_child_starts():
     assert 120 <= report.peak_rss_mib < 120 + 200
     assert not proc.alive
     import numpy as np
+
     ballast = np.ones(300 << 20, dtype=np.uint8)  # a big supervisor must not inflate the child's peak
     proc.start([PY, "-c", "import numpy; print('fresh')"], stdout=subprocess.PIPE)
     del ballast
@@ -154,7 +156,10 @@ def test_address_space_limit_fails_large_allocation():
     proc = EmulatedProcessor(ProcessorSpec(memory_mib=200))
     limit = proc.address_space_limit_mib()
     assert 200 < limit < 3 * 1024
-    proc.start([PY, "-c", code], stdout=subprocess.DEVNULL, )
+    proc.start(
+        [PY, "-c", code],
+        stdout=subprocess.DEVNULL,
+    )
     report = proc.wait(30)
     proc.close()
     assert report.kind == "memory", report
@@ -234,8 +239,17 @@ def test_close_kills_and_pass_fds_reach_child():
     assert proc.poll().kind == "killed"
 
 
-@pytest.mark.parametrize("kw", [dict(cpu_fraction=0.0), dict(cpu_fraction=1.5), dict(cpu_fraction=float("nan")),
-                                dict(memory_mib=-1), dict(throttle_period_s=5.0), dict(core=4096)])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(cpu_fraction=0.0),
+        dict(cpu_fraction=1.5),
+        dict(cpu_fraction=float("nan")),
+        dict(memory_mib=-1),
+        dict(throttle_period_s=5.0),
+        dict(core=4096),
+    ],
+)
 def test_bad_spec_is_input_error(kw):
     with pytest.raises(InputError):
         ProcessorSpec(**kw)

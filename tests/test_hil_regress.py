@@ -1,4 +1,5 @@
 """Latency regression: a baseline is written, re-checked, and a regression fails with a diff."""
+
 from __future__ import annotations
 
 import json
@@ -11,8 +12,13 @@ from hil_server.run import scaled_camera
 
 
 def test_compare_flags_slower_latency_and_lower_hit_rate():
-    base = {"deadline_hit_rate": 1.0, "errors": 0, "latency_p50_ref_s": 1.0, "latency_p95_ref_s": 2.0,
-            "latency_max_ref_s": 2.0}
+    base = {
+        "deadline_hit_rate": 1.0,
+        "errors": 0,
+        "latency_p50_ref_s": 1.0,
+        "latency_p95_ref_s": 2.0,
+        "latency_max_ref_s": 2.0,
+    }
     assert compare("c", dict(base), base, DEFAULT_TOLERANCES).problems == []
     slow = {**base, "latency_p95_ref_s": 3.5}
     assert any("latency_p95_ref_s" in p for p in compare("c", slow, base, DEFAULT_TOLERANCES).problems)
@@ -41,11 +47,22 @@ def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline)
 
 @pytest.fixture
 def tiny_baseline(tmp_path):
-    pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96),
-                            progress=False)
+    pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96), progress=False)
     baseline = tmp_path / "baseline.json"
-    baseline.write_text(json.dumps({"cases": {"tiny": {
-        "scenario": "vertical", "budget": "host", "link": "zmq", "manifest": str(pairs / "manifest.json")}}}))
+    baseline.write_text(
+        json.dumps(
+            {
+                "cases": {
+                    "tiny": {
+                        "scenario": "vertical",
+                        "budget": "host",
+                        "link": "zmq",
+                        "manifest": str(pairs / "manifest.json"),
+                    }
+                }
+            }
+        )
+    )
     return baseline
 
 
@@ -54,7 +71,7 @@ def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regr
     _, _, doc = check_regression(tiny_baseline, out=tmp_path / "u", update=True)
     tiny_baseline.write_text(json.dumps(doc))
     assert "tiny" in hil_regression(baseline=tiny_baseline)
-    doc["cases"]["tiny"]["metrics"]["deadline_hit_rate"] = 2.0   # unreachable: must fail
+    doc["cases"]["tiny"]["metrics"]["deadline_hit_rate"] = 2.0  # unreachable: must fail
     tiny_baseline.write_text(json.dumps(doc))
     with pytest.raises(pytest.fail.Exception, match="deadline_hit_rate"):
         hil_regression(baseline=tiny_baseline)

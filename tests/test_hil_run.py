@@ -6,6 +6,7 @@ pair ends in exactly one result or error with a reason, deadlines flip the
 degraded/met flags, crashes, hangs and memory breaches are contained and the
 run goes on. A 128 px camera with the thesis FOV keeps them quick.
 """
+
 from __future__ import annotations
 
 import json
@@ -113,13 +114,12 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
     pairs = tmp_path / "pairs"
     shutil.copytree(manifest.parent, pairs)
     doc = json.loads((pairs / "600_300" / "pair.json").read_text())
-    doc["frames"][1]["position_m"][2] = float("nan")          # a NaN pose
+    doc["frames"][1]["position_m"][2] = float("nan")  # a NaN pose
     (pairs / "600_300" / "pair.json").write_text(json.dumps(doc))
     cv2.imwrite(str(pairs / "300_150" / "i2.png"), np.zeros((64, 64), np.uint8))  # wrong image size
     s = run(pairs / "manifest.json", tmp_path / "run")
     got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
-    assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"),
-                   ("200/100", "result", None)]
+    assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"), ("200/100", "result", None)]
     assert "finite" in s["records"][0]["text"] and "does not match" in s["records"][1]["text"]
 
 
@@ -127,8 +127,8 @@ def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
     s = run(manifest, tmp_path, link="serial", corrupt=1e-6, seed=3)
     faults = s["line_faults"]
     assert sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in faults.values()) > 0  # the line was noisy
-    assert s["results"] == 3 and s["errors"] == 0                      # ...and every pair still came back
-    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1   # thanks to retransmission
+    assert s["results"] == 3 and s["errors"] == 0  # ...and every pair still came back
+    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1  # thanks to retransmission
     for r in s["records"]:
         hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
         assert hz.shape == (128, 128)

@@ -3,14 +3,15 @@
 The full >= 100 000-input fuzz run is ``bench/bench_protocol.py --fuzz``; this
 file runs the same generator (``protocol.fuzz``) on a bounded number of inputs.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
-from protocol.framing import (FLAG_ACK_REQ, StreamDecoder, encode_stream_frame, frame_payload, stuff,
-                              unstuff)
+from protocol.framing import FLAG_ACK_REQ, StreamDecoder, encode_stream_frame, frame_payload, stuff, unstuff
 from protocol.fuzz import fuzz_decoder, sample_messages
 from protocol.messages import Ack, Frame, Heartbeat
 
@@ -66,7 +67,7 @@ def test_oversize_frame_is_dropped_without_buffering_it_all():
     ok = encode_stream_frame(Ack(seq=3), seq=3)
     out = []
     for i in range(0, len(big), 100):
-        out += d.feed(big[i:i + 100])
+        out += d.feed(big[i : i + 100])
         assert d.pending_bytes <= 2 * 1100
     out += d.feed(ok)
     assert out == [Ack(seq=3)] and d.stats["oversize"] == 1
@@ -81,8 +82,14 @@ def test_crc_ok_but_bad_payload_is_reported_as_rejected():
 
 def test_big_image_frame_survives_and_recovers_after_garbage():
     rng = np.random.default_rng(1)
-    f = Frame(seq=1, capture_time_s=0.0, position_m=(0, 0, 1000), R_world_to_cam=np.eye(3), altimeter_m=1000.0,
-              image=rng.integers(0, 256, (512, 512), dtype=np.uint8))
+    f = Frame(
+        seq=1,
+        capture_time_s=0.0,
+        position_m=(0, 0, 1000),
+        R_world_to_cam=np.eye(3),
+        altimeter_m=1000.0,
+        image=rng.integers(0, 256, (512, 512), dtype=np.uint8),
+    )
     wire = encode_stream_frame(f, seq=1)
     d = StreamDecoder()
     out = d.feed(rng.integers(0, 256, 5000, dtype=np.uint8).tobytes() + wire[:100_000] + wire)

@@ -1,4 +1,5 @@
 """Links: delivery guarantees in-process, and two real OS processes over a pty pair and ZeroMQ."""
+
 from __future__ import annotations
 
 import os
@@ -23,8 +24,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def frame(i: int, side: int = 512) -> Frame:
     img = np.random.default_rng(i).integers(0, 256, (side, side), dtype=np.uint8)
-    return Frame(seq=i, capture_time_s=0.5 * i, position_m=(0.0, 0.0, 1000.0 - 20 * i), R_world_to_cam=np.eye(3),
-                 altimeter_m=1000.0 - 20 * i, image=img)
+    return Frame(
+        seq=i,
+        capture_time_s=0.5 * i,
+        position_m=(0.0, 0.0, 1000.0 - 20 * i),
+        R_world_to_cam=np.eye(3),
+        altimeter_m=1000.0 - 20 * i,
+        image=img,
+    )
 
 
 def test_socketpair_delivers_in_order_and_acks():
@@ -43,7 +50,7 @@ def test_socketpair_delivers_in_order_and_acks():
 
 
 def test_unanswered_frame_fails_with_reason_never_silently():
-    a, b = socket.socketpair()   # nobody reads b
+    a, b = socket.socketpair()  # nobody reads b
     with StreamLink(a, ack_timeout=0.05, max_attempts=3, name="A") as A:
         seq = A.send(frame(1, 8))
         assert A.flush(3.0)
@@ -57,7 +64,7 @@ def test_retransmitted_duplicates_are_dropped():
     a, b = socket.socketpair()
     with StreamLink(b, name="B") as B:
         wire = frame_payload(Heartbeat.TYPE, 9, encode_message(Heartbeat(time_s=2.0, counter=1)), 1)
-        a.sendall(wire + wire + wire)          # same link seq three times, ack requested
+        a.sendall(wire + wire + wire)  # same link seq three times, ack requested
         assert B.recv(2.0) == Heartbeat(time_s=2.0, counter=1)
         assert B.recv(0.2) is None
         assert B.stats["duplicates_dropped"] == 2 and B.stats["acks_sent"] == 3
@@ -66,7 +73,7 @@ def test_retransmitted_duplicates_are_dropped():
 
 def test_peer_rejection_becomes_failure_with_reason():
     a, b = socket.socketpair()
-    with StreamLink(a, name="A") as A:
+    with StreamLink(a, name="A"):
         raw = frame_payload(Frame.TYPE, 1, b"\x92\x03\x80", 1)  # valid CRC, Frame body missing fields
         b.sendall(raw)
         deadline = time.monotonic() + 2
@@ -75,9 +82,10 @@ def test_peer_rejection_becomes_failure_with_reason():
             b.settimeout(0.2)
             try:
                 data += b.recv(4096)
-            except socket.timeout:
+            except TimeoutError:
                 pass
     from protocol.framing import StreamDecoder
+
     [nack] = StreamDecoder().feed(data)
     assert nack.seq == 1 and "missing field" in nack.reason
     b.close()
@@ -87,7 +95,7 @@ def test_baud_pacing_costs_real_line_time():
     a, b = socket.socketpair()
     with StreamLink(a, baud=9600, acks=False) as A, StreamLink(b) as B:
         t0 = time.monotonic()
-        A.send(frame(0, 30))                   # ~960 bytes -> >= 1.0 s at 9600 baud 8N1
+        A.send(frame(0, 30))  # ~960 bytes -> >= 1.0 s at 9600 baud 8N1
         assert B.recv(5.0) is not None
         elapsed = time.monotonic() - t0
         line_time = A.stats["bytes_sent"] * 10 / 9600
@@ -116,12 +124,13 @@ def test_serial_link_over_one_pty_pair_with_master_as_stream():
 
 def test_serial_link_bad_port_is_input_error():
     from protocol.errors import InputError
+
     with pytest.raises(InputError, match="cannot open serial port"):
         SerialLink("/dev/definitely-not-a-port")
 
 
 def _descent(link, n: int = 20) -> tuple[list[Result], Telemetry]:
-    hello = link.recv(60.0)                   # the peer may start slowly on a loaded machine
+    hello = link.recv(60.0)  # the peer may start slowly on a loaded machine
     assert isinstance(hello, Hello) and hello.role == "flight"
     for i in range(n):
         link.send(frame(i))
@@ -144,21 +153,26 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 def _check_descent(results: list[Result], telem: Telemetry | None, n: int = 20) -> None:
     assert telem is not None
-    assert [r.frame_seqs[1] for r in results] == list(range(n))        # exactly once, in order
-    for r in results:   # content made it through: the peer reports each image's mean
+    assert [r.frame_seqs[1] for r in results] == list(range(n))  # exactly once, in order
+    for r in results:  # content made it through: the peer reports each image's mean
         assert r.hazard_grid[0, 0] == pytest.approx(frame(r.frame_seqs[1]).image.mean(), abs=1e-3)
         assert r.hazard_image.shape == (512, 512)
 
 
 @pytest.mark.slow
 def test_two_processes_over_corrupting_pty_bridge():
-    down = CorruptingChannel(seed=11, drop=4e-7, flip=4e-7, dup=4e-7)   # ~1/3 of 256 KiB frames hit
+    down = CorruptingChannel(seed=11, drop=4e-7, flip=4e-7, dup=4e-7)  # ~1/3 of 256 KiB frames hit
     up = CorruptingChannel(seed=12, drop=2e-7, flip=2e-7, dup=2e-7)
     with PtyBridge(down, up) as bridge:
         peer = _spawn("serial", bridge.paths[1])
         try:
-            with SerialLink(bridge.paths[0], ack_timeout=0.3, max_attempts=20, name="ground",
-                            reliable_types={Frame.TYPE, Heartbeat.TYPE}) as G:
+            with SerialLink(
+                bridge.paths[0],
+                ack_timeout=0.3,
+                max_attempts=20,
+                name="ground",
+                reliable_types={Frame.TYPE, Heartbeat.TYPE},
+            ) as G:
                 results, telem = _descent(G)
                 assert G.flush(30.0)
                 failures = G.failures()
@@ -167,11 +181,11 @@ def test_two_processes_over_corrupting_pty_bridge():
             assert peer.wait(60) == 0
     hit = down.stats["dropped"] + down.stats["flipped"] + down.stats["duplicated"]
     assert hit > 0, "the channel must actually corrupt something"
-    if failures:   # allowed only as explicit, reasoned failures - and then the frame is missing
+    if failures:  # allowed only as explicit, reasoned failures - and then the frame is missing
         pytest.fail(f"unexpected delivery failures at these rates: {failures}")
     _check_descent(results, telem)
     assert stats["retransmits"] >= 1 and telem.link["crc_errors"] + telem.link["malformed"] >= 1
-    assert stats["delivered"] == 21   # 20 frames + the 'done' heartbeat (made reliable on this link)
+    assert stats["delivered"] == 21  # 20 frames + the 'done' heartbeat (made reliable on this link)
 
 
 @pytest.mark.slow

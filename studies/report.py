@@ -4,134 +4,18 @@ Images (triptychs, hazard confusion overlays) are OpenCV colormaps; line plots
 and the sensitivity heat map use matplotlib with the Agg backend. The HTML
 report is a self-contained directory: ``index.html`` plus the PNGs it shows.
 """
+
 from __future__ import annotations
 
 import html
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
-# Confusion overlay colours (BGR): positive = safe (DESIGN.md).
-CONFUSION_BGR = {"TP": (80, 175, 76), "TN": (54, 67, 244), "FP": (255, 0, 255), "FN": (180, 180, 180),
-                 "none": (0, 0, 0)}
-PANEL_PX = 200
-
-
-def _save(fig, path: str | Path) -> Path:
-    """Write ``fig`` as a PNG (creating the folder) and release it."""
-    import matplotlib.pyplot as plt
-
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
-
-
-def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
-        return str(v)
-    if isinstance(v, (float, np.floating)):
-        a = abs(float(v))
-        if a != 0 and (a >= 1e4 or a < 1e-3):
-            return f"{v:.2e}"
-        return f"{v:.{max(0, digits - 1 - int(math.floor(math.log10(a))))}f}" if a else "0"
-    return str(v)
-
-
-def colorize(a: np.ndarray, lo: float, hi: float, cmap: int | None = None) -> np.ndarray:
-    """BGR uint8 image of ``a`` mapped linearly from [lo, hi] through an OpenCV colormap; NaN -> black."""
-    import cv2
-
-    cmap = cv2.COLORMAP_VIRIDIS if cmap is None else cmap
-    span = hi - lo if hi > lo else 1.0
-    x = np.clip((np.nan_to_num(a, nan=lo) - lo) / span, 0, 1)
-    img = cv2.applyColorMap((x * 255).astype(np.uint8), cmap)
-    img[~np.isfinite(a)] = 0
-    return img
-
-
-def _panel(img: np.ndarray, title: str, lo: float | None = None, hi: float | None = None,
-           cmap: int | None = None, px: int = PANEL_PX) -> np.ndarray:
-    import cv2
-
-    t = cv2.resize(img, (px, px), interpolation=cv2.INTER_AREA)
-    bar_h = 14 if lo is not None else 0
-    t = cv2.copyMakeBorder(t, 18, 4 + bar_h, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
-    cv2.putText(t, title, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    if lo is not None and hi is not None:
-        ramp = colorize(np.tile(np.linspace(lo, hi, px // 2)[None, :], (6, 1)), lo, hi, cmap)
-        y = 18 + px + 2
-        t[y:y + 6, 2:2 + px // 2] = ramp
-        cv2.putText(t, f"{_fmt(lo, 2)} .. {_fmt(hi, 2)}", (px // 2 + 8, y + 7), cv2.FONT_HERSHEY_SIMPLEX, 0.33,
-                    (0, 0, 0), 1, cv2.LINE_AA)
-    return t
-
-
-def triptych(est: np.ndarray, truth: np.ndarray, names: tuple[str, str, str], unit: str,
-             err_limit: float | None = None, px: int = PANEL_PX) -> np.ndarray:
-    """Computed | ground truth | error (est - truth), like thesis appendices G/J/L. Returns BGR uint8.
-
-    Computed and truth share one colour range (2nd-98th percentile of the
-    truth); the error uses a symmetric diverging range (``err_limit`` or the
-    95th percentile of |error|).
-    """
-    import cv2
-
-    fin = truth[np.isfinite(truth)]
-    lo, hi = (float(np.percentile(fin, 2)), float(np.percentile(fin, 98))) if fin.size else (0.0, 1.0)
-    err = est - truth
-    fe = np.abs(err[np.isfinite(err)])
-    lim = err_limit or (float(np.percentile(fe, 95)) if fe.size else 1.0) or 1.0
-    return np.hstack([_panel(colorize(est, lo, hi), f"{names[0]} [{unit}]", lo, hi, px=px),
-                      _panel(colorize(truth, lo, hi), f"{names[1]} [{unit}]", lo, hi, px=px),
-                      _panel(colorize(err, -lim, lim, cv2.COLORMAP_COOL), f"{names[2]} [{unit}]", -lim, lim,
-                             cv2.COLORMAP_COOL, px=px)])
-
-
-def confusion_image(hazard_est: np.ndarray, hazard_true: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """BGR map of TP/TN/FP/FN per pixel (positive = safe; NaN estimate = unsafe, as in scoring)."""
-    from ground_sim.scoring import unsafe_estimate
-
-    eu = unsafe_estimate(hazard_est)
-    tu = np.asarray(hazard_true) >= 1.0
-    keep = np.asarray(covered, bool) & np.isfinite(hazard_true)
-    out = np.zeros(hazard_true.shape + (3,), np.uint8)
-    for name, m in (("TP", ~eu & ~tu), ("TN", eu & tu), ("FP", ~eu & tu), ("FN", eu & ~tu)):
-        out[m & keep] = CONFUSION_BGR[name]
-    return out
-
-
-def hazard_figure(image: np.ndarray, hazard_est: np.ndarray, hazard_true: np.ndarray, covered: np.ndarray,
-                  epipole_box: np.ndarray | None = None, px: int = PANEL_PX) -> np.ndarray:
-    """Input i1 | computed hazard | true hazard | confusion overlay (thesis appendix H)."""
-    import cv2
-
-    gray = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    conf = confusion_image(hazard_est, hazard_true, covered)
-    if epipole_box is not None and epipole_box.any():
-        rows, cols = np.nonzero(epipole_box)
-        cv2.rectangle(conf, (int(cols.min()), int(rows.min())), (int(cols.max()), int(rows.max())),
-                      (255, 255, 255), max(1, image.shape[0] // 256))
-    panels = [_panel(gray, "i1", px=px),
-              _panel(colorize(hazard_est, 0, 1, 2), "computed hazard", px=px),
-              _panel(colorize(hazard_true, 0, 1, 2), "true hazard", px=px),
-              _panel(conf, "TP green TN red FP magenta FN gray", px=px)]
-    return np.hstack(panels)
-
-
-def write_png(path: str | Path, img: np.ndarray) -> Path:
-    import cv2
-
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(p), img, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
-        raise OSError(f"could not write {p}")
-    return p
+from reports.figures import PANEL_PX, fmt_number, hazard_figure, save_figure, triptych, write_png
 
 
 def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px: int = PANEL_PX) -> list[Path]:
@@ -149,24 +33,58 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     def masked(a: np.ndarray) -> np.ndarray:
         return np.where(cov, a, np.nan)
 
-    files = [write_png(out / f"{stem}_dem.png", triptych(masked(m["est_elevation"]), masked(m["true_elevation"]),
-                                                         ("computed DEM", "ground truth", "DEM error"), "m",
-                                                         px=px)),
-             write_png(out / f"{stem}_hazard.png", hazard_figure(m["image"], m["est_hazard"], m["true_hazard"],
-                                                                 cov, m["epipole_box"], px=px))]
+    files = [
+        write_png(
+            out / f"{stem}_dem.png",
+            triptych(
+                masked(m["est_elevation"]),
+                masked(m["true_elevation"]),
+                ("computed DEM", "ground truth", "DEM error"),
+                "m",
+                px=px,
+            ),
+        ),
+        write_png(
+            out / f"{stem}_hazard.png",
+            hazard_figure(m["image"], m["est_hazard"], m["true_hazard"], cov, m["epipole_box"], px=px),
+        ),
+    ]
     if np.isfinite(m["true_slope"]).any():
-        files.append(write_png(out / f"{stem}_slope.png",
-                               triptych(masked(m["est_slope"]), masked(m["true_slope"]),
-                                        ("computed slope", "true slope", "slope error"), "deg", 15.0, px=px)))
-        files.append(write_png(out / f"{stem}_rough.png",
-                               triptych(masked(m["est_rough"]), masked(m["true_rough"]),
-                                        ("computed roughness", "true roughness", "roughness error"), "m", 0.3,
-                                        px=px)))
+        files.append(
+            write_png(
+                out / f"{stem}_slope.png",
+                triptych(
+                    masked(m["est_slope"]),
+                    masked(m["true_slope"]),
+                    ("computed slope", "true slope", "slope error"),
+                    "deg",
+                    15.0,
+                    px=px,
+                ),
+            )
+        )
+        files.append(
+            write_png(
+                out / f"{stem}_rough.png",
+                triptych(
+                    masked(m["est_rough"]),
+                    masked(m["true_rough"]),
+                    ("computed roughness", "true roughness", "roughness error"),
+                    "m",
+                    0.3,
+                    px=px,
+                ),
+            )
+        )
     return files
 
 
-def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scenario: str,
-                     thesis: dict[tuple[str, str, int, str], float], path: str | Path) -> Path:
+def plot_vs_altitude(
+    summary: dict[tuple[str, str, int], dict[str, float]],
+    scenario: str,
+    thesis: dict[tuple[str, str, int, str], float],
+    path: str | Path,
+) -> Path:
     """CDI, TN%, TP% and FP against altitude for each preset, thesis values dashed (Fig. 6.6/6.12)."""
     import matplotlib
 
@@ -181,12 +99,24 @@ def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scen
     marks = {p: m for p, m in zip(presets, ("o", "s", "^"))}
     for metric, c in colors.items():
         alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[0] and s == scenario and mm == metric)
-        axes[0].plot(alts, [thesis[(fig_tab[0], scenario, a, metric)] for a in alts], "--", color=c, alpha=0.6,
-                     label=f"{names[metric]} THESIS")
+        axes[0].plot(
+            alts,
+            [thesis[(fig_tab[0], scenario, a, metric)] for a in alts],
+            "--",
+            color=c,
+            alpha=0.6,
+            label=f"{names[metric]} THESIS",
+        )
         for p in presets:
             keys = sorted(k for k in summary if k[0] == scenario and k[1] == p)
-            axes[0].plot([k[2] for k in keys], [summary[k].get(metric, np.nan) for k in keys], "-",
-                         marker=marks[p], color=c, label=f"{names[metric]} ours-{p}")
+            axes[0].plot(
+                [k[2] for k in keys],
+                [summary[k].get(metric, np.nan) for k in keys],
+                "-",
+                marker=marks[p],
+                color=c,
+                label=f"{names[metric]} ours-{p}",
+            )
     axes[0].set_xlabel("altitude [m]")
     axes[0].set_ylabel("%")
     axes[0].set_title("correct detection")
@@ -195,8 +125,13 @@ def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scen
     axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="THESIS")
     for p in presets:
         keys = sorted(k for k in summary if k[0] == scenario and k[1] == p)
-        axes[1].plot([k[2] for k in keys], [summary[k].get("fp_pct", np.nan) for k in keys], "-",
-                     marker=marks[p], label=f"ours-{p}")
+        axes[1].plot(
+            [k[2] for k in keys],
+            [summary[k].get("fp_pct", np.nan) for k in keys],
+            "-",
+            marker=marks[p],
+            label=f"ours-{p}",
+        )
     axes[1].axhline(1.0, color="tab:red", lw=0.8, label="Table 2.1 limit")
     axes[1].set_xlabel("altitude [m]")
     axes[1].set_ylabel("FP (undetected hazards) %")
@@ -204,7 +139,7 @@ def plot_vs_altitude(summary: dict[tuple[str, str, int], dict[str, float]], scen
     axes[1].legend(fontsize=7)
     fig.suptitle(f"{scenario} scenario")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) -> Path:
@@ -223,15 +158,26 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
         sel = [r for r in rs if r["preset"] == preset]
         if kind == "altitude":
             rel = np.array([r["dem_mean_rel_pct"] for r in sel])
-            sc = ax.scatter([r["dz_m1"] for r in sel], [r["dz_m2"] for r in sel], c=np.clip(rel, 0, 300),
-                            cmap="jet", s=22, vmin=0, vmax=300, edgecolors="none")
+            sc = ax.scatter(
+                [r["dz_m1"] for r in sel],
+                [r["dz_m2"] for r in sel],
+                c=np.clip(rel, 0, 300),
+                cmap="jet",
+                s=22,
+                vmin=0,
+                vmax=300,
+                edgecolors="none",
+            )
             ax.plot([-0.5, 0.5], [-0.5, 0.5], "k:", lw=0.8)
             ax.set_xlabel("dh1 [m]")
             ax.set_ylabel("dh2 [m]")
             fig.colorbar(sc, ax=ax, label="DEM mean error increase % (clipped 300)")
         else:
-            key = {"attitude": ("pitch_deg1", "pitch error [deg]"), "rollyaw": (None, "|roll|+|yaw| [deg]"),
-                   "lateral": (None, "lateral error |d1 - d2| [m]")}[kind]
+            key = {
+                "attitude": ("pitch_deg1", "pitch error [deg]"),
+                "rollyaw": (None, "|roll|+|yaw| [deg]"),
+                "lateral": (None, "lateral error |d1 - d2| [m]"),
+            }[kind]
             for a in alts:
                 ss = [r for r in sel if r["altitude_m"] == a]
                 if kind == "attitude":
@@ -247,7 +193,7 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
             ax.legend(fontsize=7)
         ax.set_title(f"{kind} errors, preset {preset}")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- tables
@@ -266,7 +212,7 @@ def comparison_markdown(cells: list[dict[str, Any]], max_metrics: int = 3) -> st
     out = []
     for table, metrics in groups.items():
         for i in range(0, len(metrics), max_metrics):
-            ms = metrics[i:i + max_metrics]
+            ms = metrics[i : i + max_metrics]
             title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
             head = ["alt [m]"]
             for m in ms:
@@ -281,8 +227,8 @@ def comparison_markdown(cells: list[dict[str, Any]], max_metrics: int = 3) -> st
                 for m in ms:
                     c = by.get((table, m, a), {})
                     if table != "-":
-                        row.append(_fmt(c.get("thesis")))
-                    row += [_fmt(c.get(f"ours_{p}")) for p in presets]
+                        row.append(fmt_number(c.get("thesis")))
+                    row += [fmt_number(c.get(f"ours_{p}")) for p in presets]
                 lines.append("| " + " | ".join(row) + " |")
             out.append("\n".join(lines))
     return "\n\n".join(out) + "\n"
@@ -292,7 +238,7 @@ def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
     cols = list(columns)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---:|" * len(cols)]
     for r in rows:
-        lines.append("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
+        lines.append("| " + " | ".join(fmt_number(r.get(c)) for c in cols) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -300,7 +246,7 @@ def _md_table_to_html(md: str) -> str:
     """The tiny Markdown subset our tables use (bold titles, pipe tables) -> HTML."""
     out, in_table = [], False
     for line in md.splitlines():
-        if line.startswith("|---") or line.startswith("|-"):
+        if line.startswith(("|---", "|-")):
             continue
         if line.startswith("| "):
             cells = [html.escape(c.strip()) for c in line.strip("|").split("|")]
@@ -326,12 +272,14 @@ def write_html(out_dir: str | Path, title: str, sections: list[tuple[str, str, l
     """``out_dir/index.html`` from (heading, markdown tables/text, [png names in out_dir]) sections."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
-             "<style>body{font-family:sans-serif;margin:1.5em;max-width:1400px}"
-             "table{border-collapse:collapse;margin:.5em 0 1em;font-size:12px}"
-             "td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}th{background:#eee}"
-             "img{max-width:100%;margin:4px 0;display:block}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1>"]
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+        "<style>body{font-family:sans-serif;margin:1.5em;max-width:1400px}"
+        "table{border-collapse:collapse;margin:.5em 0 1em;font-size:12px}"
+        "td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}th{background:#eee}"
+        "img{max-width:100%;margin:4px 0;display:block}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+    ]
     for heading, md, images in sections:
         parts.append(f"<h2>{html.escape(heading)}</h2>")
         if md:
@@ -339,18 +287,25 @@ def write_html(out_dir: str | Path, title: str, sections: list[tuple[str, str, l
         for name in images:
             if not (d / name).is_file():
                 raise FileNotFoundError(f"report image {name} missing in {d}")
-            parts.append(f"<figure><img src='{html.escape(name)}' alt='{html.escape(name)}'>"
-                         f"<figcaption>{html.escape(name)}</figcaption></figure>")
+            parts.append(
+                f"<figure><img src='{html.escape(name)}' alt='{html.escape(name)}'>"
+                f"<figcaption>{html.escape(name)}</figcaption></figure>"
+            )
     parts.append("</body></html>")
     p = d / "index.html"
     p.write_text("\n".join(parts) + "\n")
     return p
 
 
-def evaluation_report(out_dir: str | Path, rows: list[dict[str, Any]], *,
-                      figure_altitudes: Iterable[int] | None = None, figure_preset: str = "fast",
-                      sensitivity: dict[str, list[dict[str, Any]]] | None = None,
-                      title: str = "hazard-hil evaluation") -> Path:
+def evaluation_report(
+    out_dir: str | Path,
+    rows: list[dict[str, Any]],
+    *,
+    figure_altitudes: Iterable[int] | None = None,
+    figure_preset: str = "fast",
+    sensitivity: dict[str, list[dict[str, Any]]] | None = None,
+    title: str = "hazard-hil evaluation",
+) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
 
     Writes ``report/`` under ``out_dir``: per scenario the comparison tables
@@ -358,7 +313,7 @@ def evaluation_report(out_dir: str | Path, rows: list[dict[str, Any]], *,
     the DEM/slope/roughness triptychs and hazard overlays of each altitude in
     ``figure_altitudes`` (all when None) whose maps were kept.
     """
-    from hil_server import evaluate as ev
+    from studies import evaluate as ev
 
     out = Path(out_dir)
     rep = out / "report"

@@ -13,6 +13,7 @@ such as ``tcp://host:8786`` or a ``distributed.Client``) ships the same
 function to a Dask distributed cluster. Results do not depend on the backend
 because each task is a pure function of its arguments.
 """
+
 from __future__ import annotations
 
 import json
@@ -20,10 +21,11 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, TextIO
+from typing import Any, TextIO
 
 from protocol.errors import InputError
 
@@ -48,8 +50,16 @@ class CampaignError(RuntimeError):
 class Progress:
     """A dependency-free text progress bar on stderr (redrawn in place on a terminal)."""
 
-    def __init__(self, total: int, done: int = 0, desc: str = "", *, enabled: bool = True,
-                 stream: TextIO | None = None, width: int = 28):
+    def __init__(
+        self,
+        total: int,
+        done: int = 0,
+        desc: str = "",
+        *,
+        enabled: bool = True,
+        stream: TextIO | None = None,
+        width: int = 28,
+    ):
         self.total, self.done, self.desc, self.width = total, done, desc, width
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled and total > 0
@@ -76,8 +86,10 @@ class Progress:
         ran = self.done - self._start_done
         eta = elapsed / ran * (self.total - self.done) if ran else math.nan
         eta_s = "?" if math.isnan(eta) else f"{eta:5.0f}s"
-        line = (f"{self.desc} [{'#' * fill}{'.' * (self.width - fill)}] {self.done}/{self.total} "
-                f"{100 * frac:3.0f}% {elapsed:5.0f}s elapsed, eta {eta_s}")
+        line = (
+            f"{self.desc} [{'#' * fill}{'.' * (self.width - fill)}] {self.done}/{self.total} "
+            f"{100 * frac:3.0f}% {elapsed:5.0f}s elapsed, eta {eta_s}"
+        )
         self.stream.write(("\r" + line) if self._tty else (line + "\n"))
         if self._tty and self.done >= self.total:
             self.stream.write("\n")
@@ -133,9 +145,16 @@ def _worker_init() -> None:
         pass
 
 
-def run_tasks(fn: Callable[..., dict[str, Any]], tasks: Iterable[Task], results_path: str | Path, *,
-              scheduler: Any = None, workers: int | None = None, progress: bool = True,
-              desc: str = "tasks") -> dict[str, dict[str, Any]]:
+def run_tasks(
+    fn: Callable[..., dict[str, Any]],
+    tasks: Iterable[Task],
+    results_path: str | Path,
+    *,
+    scheduler: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+    desc: str = "tasks",
+) -> dict[str, dict[str, Any]]:
     """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
 
     The returned dict follows the order of ``tasks``. ``scheduler`` selects
@@ -161,8 +180,7 @@ def run_tasks(fn: Callable[..., dict[str, Any]], tasks: Iterable[Task], results_
             fh.write("\n")  # close a line cut off by an interruption so the next record starts clean
 
         def record(task_id: str, result: dict[str, Any]) -> None:
-            fh.write(json.dumps({"id": task_id, "result": result}, default=_json_default,
-                                sort_keys=True) + "\n")
+            fh.write(json.dumps({"id": task_id, "result": result}, default=_json_default, sort_keys=True) + "\n")
             fh.flush()
             done[task_id] = json.loads(json.dumps(result, default=_json_default))
             bar.update()
@@ -177,7 +195,7 @@ def run_tasks(fn: Callable[..., dict[str, Any]], tasks: Iterable[Task], results_
                     res = fn(**t.kwargs)
                 except (KeyboardInterrupt, SystemExit):
                     raise
-                except Exception as exc:  # noqa: BLE001 - reported per task, campaign goes on
+                except Exception as exc:
                     failures[t.id] = f"{type(exc).__name__}: {exc}"
                     continue
                 record(t.id, res)
@@ -186,13 +204,19 @@ def run_tasks(fn: Callable[..., dict[str, Any]], tasks: Iterable[Task], results_
     return {t.id: done[t.id] for t in tasks}
 
 
-def _run_pool(fn: Callable[..., dict[str, Any]], pending: list[Task], workers: int,
-              record: Callable[[str, dict[str, Any]], None], failures: dict[str, str]) -> None:
+def _run_pool(
+    fn: Callable[..., dict[str, Any]],
+    pending: list[Task],
+    workers: int,
+    record: Callable[[str, dict[str, Any]], None],
+    failures: dict[str, str],
+) -> None:
     import multiprocessing as mp
 
     # spawn: OpenCV/numpy thread pools do not survive fork reliably
-    with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(pending)), mp_context=mp.get_context("spawn"), initializer=_worker_init
+    ) as pool:
         futs: dict[Future, str] = {pool.submit(_call, fn, t.kwargs): t.id for t in pending}
         try:
             remaining = set(futs)
@@ -210,8 +234,13 @@ def _run_pool(fn: Callable[..., dict[str, Any]], pending: list[Task], workers: i
             raise
 
 
-def _run_dask(fn: Callable[..., dict[str, Any]], pending: list[Task], scheduler: Any,
-              record: Callable[[str, dict[str, Any]], None], failures: dict[str, str]) -> None:
+def _run_dask(
+    fn: Callable[..., dict[str, Any]],
+    pending: list[Task],
+    scheduler: Any,
+    record: Callable[[str, dict[str, Any]], None],
+    failures: dict[str, str],
+) -> None:
     try:
         from distributed import Client, as_completed
     except ImportError:
@@ -229,8 +258,8 @@ def _run_dask(fn: Callable[..., dict[str, Any]], pending: list[Task], scheduler:
         for f in as_completed([v[0] for v in futs.values()]):
             task_id = futs[f.key][1]
             if f.status == "error":
-                exc = f.exception()
-                failures[task_id] = f"{type(exc).__name__}: {exc}"
+                err = f.exception()
+                failures[task_id] = f"{type(err).__name__}: {err}"
             else:
                 record(task_id, f.result())
             f.release()

@@ -12,17 +12,18 @@ same rendered images with the *flight* poses perturbed - the images stay true,
 only the knowledge of the poses is wrong, as in thesis sec 6.3 - and reports
 the DEM error increase relative to perfect knowledge per sample.
 """
+
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import shutil
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -31,28 +32,62 @@ from protocol.pairdir import Camera, Pose, read_pair
 
 SCENARIOS = ("vertical", "approach")
 PRESETS = ("fast", "thesis")
-EPIPOLE_BOX_PX = 80          # Table 6.7: 80x80 px around the epipole
+EPIPOLE_BOX_PX = 80  # Table 6.7: 80x80 px around the epipole
 THESIS_CAMERA_PX = 512
-FOOTPRINT_M = 3.0            # lander footprint (Table 2.1)
+FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)
 SENSITIVITY_KINDS = ("altitude", "attitude", "lateral", "rollyaw")
-ALTITUDE_ERROR_M = 0.5       # sec 6.3.1: uniform in +-0.5 m per pose
-ATTITUDE_LEVELS_DEG = (-0.15, -0.10, -0.05, 0.05, 0.10, 0.15)   # Tables 6.16-6.19
-LATERAL_ERROR_M = 0.5        # ch. 8 recommendation; same scale as the altitude study
-ROLLYAW_ERROR_DEG = 0.15     # ch. 8 recommendation; same scale as the attitude study
-SENSITIVITY_ALTITUDES = (125, 150, 250, 300)   # Tables 6.12-6.19 (approach scenario)
+ALTITUDE_ERROR_M = 0.5  # sec 6.3.1: uniform in +-0.5 m per pose
+ATTITUDE_LEVELS_DEG = (-0.15, -0.10, -0.05, 0.05, 0.10, 0.15)  # Tables 6.16-6.19
+LATERAL_ERROR_M = 0.5  # ch. 8 recommendation; same scale as the altitude study
+ROLLYAW_ERROR_DEG = 0.15  # ch. 8 recommendation; same scale as the attitude study
+SENSITIVITY_ALTITUDES = (125, 150, 250, 300)  # Tables 6.12-6.19 (approach scenario)
 
 METRIC_COLUMNS = (
-    "scenario", "altitude_m", "label", "preset", "seed", "pair",
-    "dem_mean_abs_m", "dem_median_m", "dem_mad_m", "dem_skewness", "dem_kurtosis", "dem_n",
-    "slope_mean_abs_deg", "slope_median_deg", "slope_mad_deg",
-    "rough_mean_abs_m", "rough_median_m", "rough_mad_m",
-    "hazards_in_scene_pct", "fp_pct", "fn_pct", "tp_pct", "tn_pct",
-    "hazards_detected_pct", "safe_detected_pct", "cdi_pct",
-    "epi_fp_pct", "epi_fn_pct", "epi_tp_pct", "epi_tn_pct",
-    "epi_hazards_detected_pct", "epi_safe_detected_pct", "epi_cdi_pct",
-    "site_fp_pct", "site_fn_pct", "site_tp_pct", "site_tn_pct", "site_cdi_pct", "site_radius_px",
-    "chosen_sites", "chosen_sites_safe_pct",
-    "valid_pct", "level", "degraded", "pipeline_s",
+    "scenario",
+    "altitude_m",
+    "label",
+    "preset",
+    "seed",
+    "pair",
+    "dem_mean_abs_m",
+    "dem_median_m",
+    "dem_mad_m",
+    "dem_skewness",
+    "dem_kurtosis",
+    "dem_n",
+    "slope_mean_abs_deg",
+    "slope_median_deg",
+    "slope_mad_deg",
+    "rough_mean_abs_m",
+    "rough_median_m",
+    "rough_mad_m",
+    "hazards_in_scene_pct",
+    "fp_pct",
+    "fn_pct",
+    "tp_pct",
+    "tn_pct",
+    "hazards_detected_pct",
+    "safe_detected_pct",
+    "cdi_pct",
+    "epi_fp_pct",
+    "epi_fn_pct",
+    "epi_tp_pct",
+    "epi_tn_pct",
+    "epi_hazards_detected_pct",
+    "epi_safe_detected_pct",
+    "epi_cdi_pct",
+    "site_fp_pct",
+    "site_fn_pct",
+    "site_tp_pct",
+    "site_tn_pct",
+    "site_cdi_pct",
+    "site_radius_px",
+    "chosen_sites",
+    "chosen_sites_safe_pct",
+    "valid_pct",
+    "level",
+    "degraded",
+    "pipeline_s",
 )
 
 
@@ -75,12 +110,14 @@ def thesis_csv_path() -> Path:
 
 
 def load_thesis(path: str | Path | None = None) -> list[ThesisValue]:
-    """The thesis's ch. 6 numbers (``hil_server/data/thesis_tables.csv``)."""
+    """The thesis's ch. 6 numbers (``studies/data/thesis_tables.csv``)."""
     p = Path(path) if path is not None else thesis_csv_path()
     try:
         with p.open(newline="") as fh:
-            return [ThesisValue(r["table"], r["scenario"], int(r["altitude_m"]), r["metric"], float(r["value"]))
-                    for r in csv.DictReader(fh)]
+            return [
+                ThesisValue(r["table"], r["scenario"], int(r["altitude_m"]), r["metric"], float(r["value"]))
+                for r in csv.DictReader(fh)
+            ]
     except (OSError, KeyError, ValueError) as exc:
         raise EvaluationError(f"{p}: cannot read thesis table CSV ({exc})") from None
 
@@ -106,45 +143,84 @@ def thesis_index(values: Iterable[ThesisValue]) -> dict[tuple[str, str, int, str
 
 # Which thesis table holds which of our metrics, per scenario (printed side by side).
 COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
-    "vertical": [("6.1", "hazards_in_scene_pct", "hazards in scene %"),
-                 ("6.2", "dem_mean_abs_m", "DEM mean abs err m"), ("6.2", "dem_median_m", "DEM median m"),
-                 ("6.2", "dem_mad_m", "DEM MAD m"), ("6.2", "slope_mean_abs_deg", "slope mean abs err deg"),
-                 ("6.2", "slope_median_deg", "slope median deg"), ("6.2", "slope_mad_deg", "slope MAD deg"),
-                 ("6.2", "rough_mean_abs_m", "rough mean abs err m"), ("6.2", "rough_median_m", "rough median m"),
-                 ("6.2", "rough_mad_m", "rough MAD m"),
-                 ("6.3", "dem_skewness", "DEM skewness"), ("6.3", "dem_kurtosis", "DEM kurtosis*"),
-                 ("6.4", "fp_pct", "FP %"), ("6.4", "fn_pct", "FN %"), ("6.4", "tp_pct", "TP %"),
-                 ("6.4", "tn_pct", "TN %"), ("Fig. 6.6", "hazards_detected_pct", "TN% (hazards found)"),
-                 ("Fig. 6.6", "safe_detected_pct", "TP% (safe found)"), ("Fig. 6.6", "cdi_pct", "CDI %"),
-                 ("6.7", "epi_fp_pct", "FP % excl. epipole"), ("6.7", "epi_fn_pct", "FN % excl. epipole"),
-                 ("6.7", "epi_tp_pct", "TP % excl. epipole"), ("6.7", "epi_tn_pct", "TN % excl. epipole"),
-                 ("6.7", "epi_safe_detected_pct", "TP% excl. epipole"),
-                 ("6.7", "epi_hazards_detected_pct", "TN% excl. epipole"),
-                 ("6.7", "epi_cdi_pct", "CDI % excl. epipole")],
-    "approach": [("6.8", "hazards_in_scene_pct", "hazards in scene %"),
-                 ("6.9", "dem_mean_abs_m", "DEM mean abs err m"), ("6.9", "dem_median_m", "DEM median m"),
-                 ("6.9", "dem_mad_m", "DEM MAD m"), ("6.9", "slope_mean_abs_deg", "slope mean abs err deg"),
-                 ("6.9", "slope_median_deg", "slope median deg"), ("6.9", "slope_mad_deg", "slope MAD deg"),
-                 ("6.9", "rough_mean_abs_m", "rough mean abs err m"), ("6.9", "rough_median_m", "rough median m"),
-                 ("6.9", "rough_mad_m", "rough MAD m"),
-                 ("6.10", "dem_skewness", "DEM skewness"), ("6.10", "dem_kurtosis", "DEM kurtosis*"),
-                 ("6.11", "fp_pct", "FP %"), ("6.11", "fn_pct", "FN %"), ("6.11", "tp_pct", "TP %"),
-                 ("6.11", "tn_pct", "TN %"), ("Fig. 6.12", "hazards_detected_pct", "TN% (hazards found)"),
-                 ("Fig. 6.12", "safe_detected_pct", "TP% (safe found)"), ("Fig. 6.12", "cdi_pct", "CDI %")],
+    "vertical": [
+        ("6.1", "hazards_in_scene_pct", "hazards in scene %"),
+        ("6.2", "dem_mean_abs_m", "DEM mean abs err m"),
+        ("6.2", "dem_median_m", "DEM median m"),
+        ("6.2", "dem_mad_m", "DEM MAD m"),
+        ("6.2", "slope_mean_abs_deg", "slope mean abs err deg"),
+        ("6.2", "slope_median_deg", "slope median deg"),
+        ("6.2", "slope_mad_deg", "slope MAD deg"),
+        ("6.2", "rough_mean_abs_m", "rough mean abs err m"),
+        ("6.2", "rough_median_m", "rough median m"),
+        ("6.2", "rough_mad_m", "rough MAD m"),
+        ("6.3", "dem_skewness", "DEM skewness"),
+        ("6.3", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.4", "fp_pct", "FP %"),
+        ("6.4", "fn_pct", "FN %"),
+        ("6.4", "tp_pct", "TP %"),
+        ("6.4", "tn_pct", "TN %"),
+        ("Fig. 6.6", "hazards_detected_pct", "TN% (hazards found)"),
+        ("Fig. 6.6", "safe_detected_pct", "TP% (safe found)"),
+        ("Fig. 6.6", "cdi_pct", "CDI %"),
+        ("6.7", "epi_fp_pct", "FP % excl. epipole"),
+        ("6.7", "epi_fn_pct", "FN % excl. epipole"),
+        ("6.7", "epi_tp_pct", "TP % excl. epipole"),
+        ("6.7", "epi_tn_pct", "TN % excl. epipole"),
+        ("6.7", "epi_safe_detected_pct", "TP% excl. epipole"),
+        ("6.7", "epi_hazards_detected_pct", "TN% excl. epipole"),
+        ("6.7", "epi_cdi_pct", "CDI % excl. epipole"),
+    ],
+    "approach": [
+        ("6.8", "hazards_in_scene_pct", "hazards in scene %"),
+        ("6.9", "dem_mean_abs_m", "DEM mean abs err m"),
+        ("6.9", "dem_median_m", "DEM median m"),
+        ("6.9", "dem_mad_m", "DEM MAD m"),
+        ("6.9", "slope_mean_abs_deg", "slope mean abs err deg"),
+        ("6.9", "slope_median_deg", "slope median deg"),
+        ("6.9", "slope_mad_deg", "slope MAD deg"),
+        ("6.9", "rough_mean_abs_m", "rough mean abs err m"),
+        ("6.9", "rough_median_m", "rough median m"),
+        ("6.9", "rough_mad_m", "rough MAD m"),
+        ("6.10", "dem_skewness", "DEM skewness"),
+        ("6.10", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.11", "fp_pct", "FP %"),
+        ("6.11", "fn_pct", "FN %"),
+        ("6.11", "tp_pct", "TP %"),
+        ("6.11", "tn_pct", "TN %"),
+        ("Fig. 6.12", "hazards_detected_pct", "TN% (hazards found)"),
+        ("Fig. 6.12", "safe_detected_pct", "TP% (safe found)"),
+        ("Fig. 6.12", "cdi_pct", "CDI %"),
+    ],
 }
 # Metrics without a thesis counterpart that we still show per altitude.
-EXTRA_METRICS = (("site_fp_pct", "site FP % (3 m footprint)"), ("site_cdi_pct", "site CDI %"),
-                 ("chosen_sites_safe_pct", "chosen sites truly safe %"), ("valid_pct", "DEM valid %"),
-                 ("pipeline_s", "pipeline s"),
-                 ("fn_dem_invalid_pct", "FN: DEM not recovered %"), ("fn_rock_pct", "FN: rock %"),
-                 ("fn_slope_pct", "FN: est. slope %"), ("fn_rough_pct", "FN: est. rough %"),
-                 ("fn_shadow_pct", "FN: det. shadow %"), ("fn_other_pct", "FN: other %"),
-                 ("fp_steep_pct", "FP: true slope %"), ("fp_rough_pct", "FP: true rough %"),
-                 ("fp_other_pct", "FP: true shadow %"), ("fp_in_epipole_box_pct", "FP in epipole box %"),
-                 ("fp_near_threshold_pct", "FP with est. hazard >= 0.8 %"))
-_THESIS_METRIC = {"epi_fp_pct": "fp_pct", "epi_fn_pct": "fn_pct", "epi_tp_pct": "tp_pct", "epi_tn_pct": "tn_pct",
-                  "epi_safe_detected_pct": "safe_detected_pct", "epi_hazards_detected_pct": "hazards_detected_pct",
-                  "epi_cdi_pct": "cdi_pct"}
+EXTRA_METRICS = (
+    ("site_fp_pct", "site FP % (3 m footprint)"),
+    ("site_cdi_pct", "site CDI %"),
+    ("chosen_sites_safe_pct", "chosen sites truly safe %"),
+    ("valid_pct", "DEM valid %"),
+    ("pipeline_s", "pipeline s"),
+    ("fn_dem_invalid_pct", "FN: DEM not recovered %"),
+    ("fn_rock_pct", "FN: rock %"),
+    ("fn_slope_pct", "FN: est. slope %"),
+    ("fn_rough_pct", "FN: est. rough %"),
+    ("fn_shadow_pct", "FN: det. shadow %"),
+    ("fn_other_pct", "FN: other %"),
+    ("fp_steep_pct", "FP: true slope %"),
+    ("fp_rough_pct", "FP: true rough %"),
+    ("fp_other_pct", "FP: true shadow %"),
+    ("fp_in_epipole_box_pct", "FP in epipole box %"),
+    ("fp_near_threshold_pct", "FP with est. hazard >= 0.8 %"),
+)
+_THESIS_METRIC = {
+    "epi_fp_pct": "fp_pct",
+    "epi_fn_pct": "fn_pct",
+    "epi_tp_pct": "tp_pct",
+    "epi_tn_pct": "tn_pct",
+    "epi_safe_detected_pct": "safe_detected_pct",
+    "epi_hazards_detected_pct": "hazards_detected_pct",
+    "epi_cdi_pct": "cdi_pct",
+}
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -162,8 +238,9 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
     return np.stack([camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx, camera.fy * Xc[:, 1] / Xc[:, 2] + camera.cy], 1)
 
 
-def truth_slope_roughness(scene: Any, world: np.ndarray, cell_m: float,
-                          max_cells: int = 4_000_000) -> tuple[np.ndarray, np.ndarray]:
+def truth_slope_roughness(
+    scene: Any, world: np.ndarray, cell_m: float, max_cells: int = 4_000_000
+) -> tuple[np.ndarray, np.ndarray]:
     """True slope (deg) and roughness (m) at each pixel's true ground point.
 
     The scene is rastered at ``cell_m`` over the pixels' footprint and the same
@@ -194,8 +271,14 @@ def truth_slope_roughness(scene: Any, world: np.ndarray, cell_m: float,
 
 
 # --------------------------------------------------------------------------- scoring one result
-def score_arrays(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, covered: np.ndarray,
-                 epipole_box: np.ndarray, site_radius_px: float) -> dict[str, float]:
+def score_arrays(
+    est: dict[str, np.ndarray],
+    truth: dict[str, np.ndarray],
+    *,
+    covered: np.ndarray,
+    epipole_box: np.ndarray,
+    site_radius_px: float,
+) -> dict[str, float]:
     """Flat metric dict from estimated and true image-plane layers (keys as in :data:`METRIC_COLUMNS`).
 
     ``est``: elevation, hazard, slope_deg, roughness_m. ``truth``: elevation,
@@ -205,32 +288,68 @@ def score_arrays(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, co
     """
     from ground_sim import scoring
 
-    m: dict[str, float] = {}
+    m: dict[str, Any] = {}
     d = scoring.dem_error_stats(est["elevation"], truth["elevation"], covered)
-    m.update({"dem_mean_abs_m": d["mean_abs"], "dem_median_m": d["median"], "dem_mad_m": d["mad"],
-              "dem_skewness": d["skewness"], "dem_kurtosis": d["kurtosis"], "dem_n": d["n"]})
+    m.update(
+        {
+            "dem_mean_abs_m": d["mean_abs"],
+            "dem_median_m": d["median"],
+            "dem_mad_m": d["mad"],
+            "dem_skewness": d["skewness"],
+            "dem_kurtosis": d["kurtosis"],
+            "dem_n": d["n"],
+        }
+    )
     for key, name, unit in (("slope_deg", "slope", "deg"), ("roughness_m", "rough", "m")):
         if truth.get(key) is not None and est.get(key) is not None:
             s = scoring.error_stats(est[key], truth[key], covered)
         else:
             s = {"mean_abs": math.nan, "median": math.nan, "mad": math.nan}
-        m.update({f"{name}_mean_abs_{unit}": s["mean_abs"], f"{name}_median_{unit}": s["median"],
-                  f"{name}_mad_{unit}": s["mad"]})
+        m.update(
+            {
+                f"{name}_mean_abs_{unit}": s["mean_abs"],
+                f"{name}_median_{unit}": s["median"],
+                f"{name}_mad_{unit}": s["mad"],
+            }
+        )
     c = scoring.confusion(est["hazard"], truth["hazard"], covered)
     e = scoring.confusion(est["hazard"], truth["hazard"], covered, exclude=epipole_box)
     s = scoring.site_scores(est["hazard"], truth["hazard"], covered, site_radius_px)
     m["hazards_in_scene_pct"] = c["hazards_pct"]
     for prefix, src in (("", c), ("epi_", e)):
-        m.update({f"{prefix}fp_pct": src["fp"], f"{prefix}fn_pct": src["fn"], f"{prefix}tp_pct": src["tp"],
-                  f"{prefix}tn_pct": src["tn"], f"{prefix}hazards_detected_pct": src["tn_rate"],
-                  f"{prefix}safe_detected_pct": src["tp_rate"], f"{prefix}cdi_pct": src["cdi"]})
-    m.update({"site_fp_pct": s["fp"], "site_fn_pct": s["fn"], "site_tp_pct": s["tp"], "site_tn_pct": s["tn"],
-              "site_cdi_pct": s["cdi"], "site_radius_px": s["radius_px"]})
+        m.update(
+            {
+                f"{prefix}fp_pct": src["fp"],
+                f"{prefix}fn_pct": src["fn"],
+                f"{prefix}tp_pct": src["tp"],
+                f"{prefix}tn_pct": src["tn"],
+                f"{prefix}hazards_detected_pct": src["tn_rate"],
+                f"{prefix}safe_detected_pct": src["tp_rate"],
+                f"{prefix}cdi_pct": src["cdi"],
+            }
+        )
+    m.update(
+        {
+            "site_fp_pct": s["fp"],
+            "site_fn_pct": s["fn"],
+            "site_tp_pct": s["tp"],
+            "site_tn_pct": s["tn"],
+            "site_cdi_pct": s["cdi"],
+            "site_radius_px": s["radius_px"],
+        }
+    )
     return m
 
 
-def error_causes(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, covered: np.ndarray,
-                 rocks: np.ndarray, shadow: np.ndarray, epipole_box: np.ndarray) -> dict[str, float]:
+def error_causes(
+    est: dict[str, np.ndarray],
+    truth: dict[str, np.ndarray],
+    *,
+    covered: np.ndarray,
+    rocks: np.ndarray,
+    shadow: np.ndarray,
+    epipole_box: np.ndarray,
+) -> dict[str, float]:
     """Where the FP and FN pixels come from, in % of the scored pixels (so they add up to fp_pct / fn_pct).
 
     FN (false alarms) by the first estimated cause in the order: DEM not
@@ -249,9 +368,13 @@ def error_causes(est: dict[str, np.ndarray], truth: dict[str, np.ndarray], *, co
     fn, fp = keep & eu & ~tu, keep & ~eu & tu
     out: dict[str, float] = {}
     left = fn.copy()
-    for name, cause in (("dem_invalid", ~np.isfinite(est["elevation"]) & ~rocks), ("rock", rocks),
-                        ("slope", np.nan_to_num(est["slope_deg"]) >= 15.0),
-                        ("rough", np.nan_to_num(est["roughness_m"]) >= 0.30), ("shadow", shadow)):
+    for name, cause in (
+        ("dem_invalid", ~np.isfinite(est["elevation"]) & ~rocks),
+        ("rock", rocks),
+        ("slope", np.nan_to_num(est["slope_deg"]) >= 15.0),
+        ("rough", np.nan_to_num(est["roughness_m"]) >= 0.30),
+        ("shadow", shadow),
+    ):
         hit = left & cause
         out[f"fn_{name}_pct"] = 100.0 * hit.sum() / n
         left &= ~hit
@@ -278,10 +401,17 @@ def _site_radius_px(camera: Camera, depth: np.ndarray, covered: np.ndarray) -> f
     return max(1.0, 0.5 * FOOTPRINT_M / gsd)
 
 
-def evaluate_pair(pair_dir: str, preset: str = "fast", *, pose_error: dict[str, Any] | None = None,
-                  maps_path: str | None = None, epipole_box_px: int | None = None,
-                  scene: str | None = None, scene_seed: int | None = None,
-                  truth_slope: bool = True) -> dict[str, Any]:
+def evaluate_pair(
+    pair_dir: str,
+    preset: str = "fast",
+    *,
+    pose_error: dict[str, Any] | None = None,
+    maps_path: str | None = None,
+    epipole_box_px: int | None = None,
+    scene: str | None = None,
+    scene_seed: int | None = None,
+    truth_slope: bool = True,
+) -> dict[str, Any]:
     """Run the pipeline on one pair directory and score it against its ground truth.
 
     ``pose_error`` perturbs the poses handed to the flight software (keys of
@@ -318,35 +448,54 @@ def evaluate_pair(pair_dir: str, preset: str = "fast", *, pose_error: dict[str, 
         from ground_sim.scene import load_scene
 
         gsd = float(np.nanmedian(pair.truth["depth"])) / pair.camera.fx
-        truth["slope_deg"], truth["roughness_m"] = truth_slope_roughness(load_scene(scene_spec, seed), world,
-                                                                         max(gsd, 0.02))
+        truth["slope_deg"], truth["roughness_m"] = truth_slope_roughness(
+            load_scene(scene_spec, seed), world, max(gsd, 0.02)
+        )
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera
         epipole_box_px = max(1, round(EPIPOLE_BOX_PX * pair.camera.width / THESIS_CAMERA_PX))
     box = scoring.box_mask(truth_elev.shape, epi, epipole_box_px)
-    est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": res.slope_deg,
-           "roughness_m": res.roughness_m}
-    m = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": res.slope_deg, "roughness_m": res.roughness_m}
+    m: dict[str, Any] = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
     if res.sites:
         uv = project_points(pair.camera, true1, np.array([[s.x, s.y, s.z] for s in res.sites]))
         ch = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)
     else:
         ch = {"n": 0, "safe_pct": math.nan}
-    m.update(error_causes(est, truth, covered=res.covered, rocks=res.rock_mask, shadow=res.shadow_mask,
-                          epipole_box=box))
-    m.update({"chosen_sites": ch["n"], "chosen_sites_safe_pct": ch["safe_pct"],
-              "valid_pct": 100.0 * res.valid_fraction, "level": res.level, "degraded": bool(res.degraded),
-              "pipeline_s": wall, "timings": {k: round(v["wall_s"], 4) for k, v in res.timings.items()},
-              "epipole_uv": list(epi) if epi is not None else None})
+    m.update(
+        error_causes(est, truth, covered=res.covered, rocks=res.rock_mask, shadow=res.shadow_mask, epipole_box=box)
+    )
+    m.update(
+        {
+            "chosen_sites": ch["n"],
+            "chosen_sites_safe_pct": ch["safe_pct"],
+            "valid_pct": 100.0 * res.valid_fraction,
+            "level": res.level,
+            "degraded": bool(res.degraded),
+            "pipeline_s": wall,
+            "timings": {k: round(v["wall_s"], 4) for k, v in res.timings.items()},
+            "epipole_uv": list(epi) if epi is not None else None,
+        }
+    )
     if maps_path:
         Path(maps_path).parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(
-            maps_path, image=pair.images[0], est_elevation=res.elevation, true_elevation=truth_elev,
-            est_hazard=res.hazard, true_hazard=pair.truth["hazard"].astype(np.float32),
-            est_slope=res.slope_deg, true_slope=truth.get("slope_deg", np.full_like(truth_elev, np.nan)),
-            est_rough=res.roughness_m, true_rough=truth.get("roughness_m", np.full_like(truth_elev, np.nan)),
-            covered=res.covered, epipole_box=box, rocks=res.rock_mask, est_shadow=res.shadow_mask,
-            true_shadow=pair.truth.get("shadow", np.zeros(truth_elev.shape, bool)))
+            maps_path,
+            image=pair.images[0],
+            est_elevation=res.elevation,
+            true_elevation=truth_elev,
+            est_hazard=res.hazard,
+            true_hazard=pair.truth["hazard"].astype(np.float32),
+            est_slope=res.slope_deg,
+            true_slope=truth.get("slope_deg", np.full_like(truth_elev, np.nan)),
+            est_rough=res.roughness_m,
+            true_rough=truth.get("roughness_m", np.full_like(truth_elev, np.nan)),
+            covered=res.covered,
+            epipole_box=box,
+            rocks=res.rock_mask,
+            est_shadow=res.shadow_mask,
+            true_shadow=pair.truth.get("shadow", np.zeros(truth_elev.shape, bool)),
+        )
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in m.items()}
 
 
@@ -361,8 +510,12 @@ def true_poses(pair: Any) -> tuple[Pose, Pose]:
     tp = pair.meta.get("true_frames")
     if isinstance(tp, list) and len(tp) == 2:
         try:
-            return tuple(Pose(np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float),
-                              float(p.get("time_s", 0.0))) for p in tp)  # type: ignore[return-value]
+            return tuple(
+                Pose(
+                    np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float), float(p.get("time_s", 0.0))
+                )
+                for p in tp
+            )  # type: ignore[return-value]
         except (KeyError, TypeError, ValueError) as exc:
             raise EvaluationError(f"pair meta true_frames unreadable ({exc})") from None
     return pair.poses
@@ -387,7 +540,7 @@ def perturb_poses(pose1: Pose, pose2: Pose, frames: list[dict[str, float]]) -> t
     return d1.apply(pose1), d2.apply(pose2)
 
 
-def sample_pose_error(kind: str, seed: int, index: int) -> dict[str, float]:
+def sample_pose_error(kind: str, seed: int, index: int) -> dict[str, Any]:
     """Deterministic pose error for sample ``index`` of a campaign (seeded by kind, scene seed, index).
 
     altitude: dh1, dh2 ~ U(-0.5, 0.5) m (sec 6.3.1). attitude: the first six
@@ -422,8 +575,15 @@ def _camera_for(size_px: int | None) -> Camera | None:
     return Camera(size_px, size_px, f, f, c, c)
 
 
-def render_cache(scenario: str, seed: int, cache_dir: str | Path, *, camera_px: int | None = None,
-                 altitudes: Iterable[int] | None = None, progress: bool = False) -> list[dict[str, Any]]:
+def render_cache(
+    scenario: str,
+    seed: int,
+    cache_dir: str | Path,
+    *,
+    camera_px: int | None = None,
+    altitudes: Iterable[int] | None = None,
+    progress: bool = False,
+) -> list[dict[str, Any]]:
     """Render (or reuse) the scenario's pairs for one scene seed; return [{label, altitude_m, pair_dir}].
 
     Pairs are rendered with ``ground_sim`` from the true trajectory (no pose
@@ -444,8 +604,9 @@ def render_cache(scenario: str, seed: int, cache_dir: str | Path, *, camera_px: 
         want = {int(a) for a in altitudes}
         have = [int(round(s.altitude_m)) for s in specs]
         if not want <= set(have):
-            raise EvaluationError(f"scenario {scenario}: no pair at altitude(s) {sorted(want - set(have))} m "
-                                  f"(it has {sorted(have)})")
+            raise EvaluationError(
+                f"scenario {scenario}: no pair at altitude(s) {sorted(want - set(have))} m (it has {sorted(have)})"
+            )
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
     out = Path(cache_dir) / f"{scenario}_s{seed}_{camera_px or THESIS_CAMERA_PX}px"
     scene = None
@@ -485,25 +646,47 @@ def _check_choice(name: str, values: Iterable[Any], allowed: Iterable[Any]) -> l
     return vals
 
 
-def render_all(scenario: str, seeds: Iterable[int], cache_dir: str | Path, *, camera_px: int | None = None,
-               altitudes: Iterable[int] | None = None, scheduler: Any = None, workers: int | None = None,
-               progress: bool = True, run_dir: str | Path | None = None) -> list[dict[str, Any]]:
+def render_all(
+    scenario: str,
+    seeds: Iterable[int],
+    cache_dir: str | Path,
+    *,
+    camera_px: int | None = None,
+    altitudes: Iterable[int] | None = None,
+    scheduler: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+    run_dir: str | Path | None = None,
+) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
-    from hil_server.executor import Task, run_tasks
+    from studies.executor import Task, run_tasks
 
     have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
     alts = have if altitudes is None else sorted({int(a) for a in altitudes})
     if not set(alts) <= set(have) or not alts:
-        raise EvaluationError(f"scenario {scenario}: no pair at altitude(s) {sorted(set(alts) - set(have))} m "
-                              f"(it has {have})")
+        raise EvaluationError(
+            f"scenario {scenario}: no pair at altitude(s) {sorted(set(alts) - set(have))} m (it has {have})"
+        )
     seeds = [int(s) for s in seeds]
-    tasks = [Task(f"{scenario}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
-                  {"scenario": scenario, "seed": s, "cache_dir": str(cache_dir), "camera_px": camera_px,
-                   "altitude": a}) for s in seeds for a in alts]
+    tasks = [
+        Task(
+            f"{scenario}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
+            {"scenario": scenario, "seed": s, "cache_dir": str(cache_dir), "camera_px": camera_px, "altitude": a},
+        )
+        for s in seeds
+        for a in alts
+    ]
     run_dir = Path(run_dir) if run_dir is not None else Path(cache_dir)
-    res = run_tasks(_render_task, tasks, run_dir / "render.jsonl", scheduler=scheduler, workers=workers,
-                    progress=progress, desc=f"render {scenario}")
+    res = run_tasks(
+        _render_task,
+        tasks,
+        run_dir / "render.jsonl",
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        desc=f"render {scenario}",
+    )
     out = []
     for t in tasks:
         if not (Path(res[t.id]["pair_dir"]) / "pair.json").is_file():  # cache wiped since the log was written
@@ -512,37 +695,69 @@ def render_all(scenario: str, seeds: Iterable[int], cache_dir: str | Path, *, ca
     return out
 
 
-def evaluate_scenario(scenario: str, out_dir: str | Path, *, presets: Iterable[str] = ("fast",),
-                      seeds: Iterable[int] = (0,), cache_dir: str | Path | None = None,
-                      camera_px: int | None = None, altitudes: Iterable[int] | None = None,
-                      scheduler: Any = None, workers: int | None = None, progress: bool = True,
-                      maps_seeds: int = 1) -> list[dict[str, Any]]:
+def evaluate_scenario(
+    scenario: str,
+    out_dir: str | Path,
+    *,
+    presets: Iterable[str] = ("fast",),
+    seeds: Iterable[int] = (0,),
+    cache_dir: str | Path | None = None,
+    camera_px: int | None = None,
+    altitudes: Iterable[int] | None = None,
+    scheduler: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+    maps_seeds: int = 1,
+) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
     One row per (preset, seed, pair), columns :data:`METRIC_COLUMNS`. Finished
     pairs are logged to ``out_dir/runs/evaluate.jsonl`` so a rerun resumes. The
     layers of the first ``maps_seeds`` seeds are kept in ``out_dir/maps`` for figures.
     """
-    from hil_server.executor import Task, run_tasks
+    from studies.executor import Task, run_tasks
 
     _check_choice("scenario", [scenario], SCENARIOS)
     presets = _check_choice("preset", presets, PRESETS)
     seeds = [int(s) for s in seeds]
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"
-    pairs = render_all(scenario, seeds, cache, camera_px=camera_px, altitudes=altitudes, scheduler=scheduler,
-                       workers=workers, progress=progress, run_dir=out / "runs")
-    tasks, info = [], {}
+    pairs = render_all(
+        scenario,
+        seeds,
+        cache,
+        camera_px=camera_px,
+        altitudes=altitudes,
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        run_dir=out / "runs",
+    )
+    tasks: list[Any] = []
+    info: dict[str, dict[str, Any]] = {}
     for preset in presets:
         for e in pairs:
             alt = int(round(e["altitude_m"]))
             tid = f"{scenario}-{preset}-s{e['seed']}-{alt}"
             maps = str(out / "maps" / f"{tid}.npz") if e["seed"] in seeds[:maps_seeds] else None
             tasks.append(Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": maps}))
-            info[tid] = {"scenario": scenario, "altitude_m": alt, "label": e["label"], "preset": preset,
-                         "seed": e["seed"], "pair": e["pair_dir"]}
-    res = run_tasks(evaluate_pair, tasks, out / "runs" / "evaluate.jsonl", scheduler=scheduler,
-                    workers=workers, progress=progress, desc=f"evaluate {scenario}")
+            info[tid] = {
+                "scenario": scenario,
+                "altitude_m": alt,
+                "label": e["label"],
+                "preset": preset,
+                "seed": e["seed"],
+                "pair": e["pair_dir"],
+            }
+    res = run_tasks(
+        evaluate_pair,
+        tasks,
+        out / "runs" / "evaluate.jsonl",
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        desc=f"evaluate {scenario}",
+    )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     write_metrics_csv(rows, out / "metrics.csv")
     return rows
@@ -552,8 +767,9 @@ def write_metrics_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
     """``metrics.csv``: :data:`METRIC_COLUMNS` first, then any other scalar keys; empty cell = not available."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    extra = sorted({k for r in rows for k, v in r.items()
-                    if k not in METRIC_COLUMNS and not isinstance(v, (dict, list))})
+    extra = sorted(
+        {k for r in rows for k, v in r.items() if k not in METRIC_COLUMNS and not isinstance(v, (dict, list))}
+    )
     cols = list(METRIC_COLUMNS) + extra
     with p.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
@@ -573,6 +789,7 @@ def _fmt_csv(v: Any) -> Any:
 
 def read_metrics_csv(path: str | Path) -> list[dict[str, Any]]:
     """Rows of a ``metrics.csv`` with numbers parsed (empty -> None)."""
+
     def conv(v: str) -> Any:
         if v == "":
             return None
@@ -596,21 +813,27 @@ def summarise(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str, int], dict
         agg: dict[str, float] = {"n_seeds": float(len(rs))}
         for k in rs[0]:
             vals = [r.get(k) for r in rs]
-            nums = [float(v) for v in vals if isinstance(v, (int, float)) and not isinstance(v, bool)
-                    and v is not None and math.isfinite(float(v))]
+            nums = [
+                float(v)
+                for v in vals
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and v is not None and math.isfinite(float(v))
+            ]
             if nums and k not in ("altitude_m", "seed"):
                 agg[k] = float(np.median(nums))
         out[key] = agg
     return out
 
 
-def comparison(summary: dict[tuple[str, str, int], dict[str, float]], scenario: str,
-               thesis: dict[tuple[str, str, int, str], float] | None = None
-               ) -> list[dict[str, Any]]:
+def comparison(
+    summary: dict[tuple[str, str, int], dict[str, float]],
+    scenario: str,
+    thesis: dict[tuple[str, str, int, str], float] | None = None,
+) -> list[dict[str, Any]]:
     """Side-by-side cells: one dict per (thesis table, metric, altitude) with ``thesis`` and ours per preset."""
     idx = thesis if thesis is not None else thesis_index(load_thesis())
-    presets = sorted({k[1] for k in summary if k[0] == scenario}, key=lambda p: PRESETS.index(p)
-                     if p in PRESETS else 99)
+    presets = sorted(
+        {k[1] for k in summary if k[0] == scenario}, key=lambda p: PRESETS.index(p) if p in PRESETS else 99
+    )
     alts = sorted({k[2] for k in summary if k[0] == scenario})
     cells = []
     for table, metric, label in COMPARISON_TABLES[scenario]:
@@ -618,22 +841,47 @@ def comparison(summary: dict[tuple[str, str, int], dict[str, float]], scenario: 
         for a in alts:
             tv = idx.get((table, scenario, a, tmetric))
             ours = {p: summary.get((scenario, p, a), {}).get(metric) for p in presets}
-            cells.append({"table": table, "metric": metric, "label": label, "altitude_m": a,
-                          "thesis": tv, **{f"ours_{p}": v for p, v in ours.items()}})
+            cells.append(
+                {
+                    "table": table,
+                    "metric": metric,
+                    "label": label,
+                    "altitude_m": a,
+                    "thesis": tv,
+                    **{f"ours_{p}": v for p, v in ours.items()},
+                }
+            )
     for metric, label in EXTRA_METRICS:
         for a in alts:
             ours = {p: summary.get((scenario, p, a), {}).get(metric) for p in presets}
-            cells.append({"table": "-", "metric": metric, "label": label, "altitude_m": a, "thesis": None,
-                          **{f"ours_{p}": v for p, v in ours.items()}})
+            cells.append(
+                {
+                    "table": "-",
+                    "metric": metric,
+                    "label": label,
+                    "altitude_m": a,
+                    "thesis": None,
+                    **{f"ours_{p}": v for p, v in ours.items()},
+                }
+            )
     return cells
 
 
 # --------------------------------------------------------------------------- sensitivity
-def sensitivity_campaign(kind: str, out_dir: str | Path, *, samples: int = 20, seeds: Iterable[int] = (0, 1),
-                         presets: Iterable[str] = ("thesis", "fast"), cache_dir: str | Path | None = None,
-                         camera_px: int | None = None, altitudes: Iterable[int] = SENSITIVITY_ALTITUDES,
-                         scheduler: Any = None, workers: int | None = None,
-                         progress: bool = True) -> list[dict[str, Any]]:
+def sensitivity_campaign(
+    kind: str,
+    out_dir: str | Path,
+    *,
+    samples: int = 20,
+    seeds: Iterable[int] = (0, 1),
+    presets: Iterable[str] = ("thesis", "fast"),
+    cache_dir: str | Path | None = None,
+    camera_px: int | None = None,
+    altitudes: Iterable[int] = SENSITIVITY_ALTITUDES,
+    scheduler: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
     """Thesis sec 6.3 Monte Carlo on the approach scenario; one row per (preset, seed, altitude, sample).
 
     Every (preset, seed, altitude) also runs once with perfect pose knowledge
@@ -642,7 +890,7 @@ def sensitivity_campaign(kind: str, out_dir: str | Path, *, samples: int = 20, s
     Results go to ``out_dir/runs/sensitivity-<kind>.jsonl`` (resumable) and
     ``out_dir/sensitivity_<kind>.csv``.
     """
-    from hil_server.executor import Task, run_tasks
+    from studies.executor import Task, run_tasks
 
     _check_choice("kind", [kind], SENSITIVITY_KINDS)
     presets = _check_choice("preset", presets, PRESETS)
@@ -651,28 +899,57 @@ def sensitivity_campaign(kind: str, out_dir: str | Path, *, samples: int = 20, s
     seeds = [int(s) for s in seeds]
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"
-    pairs = render_all("approach", seeds, cache, camera_px=camera_px, altitudes=altitudes, scheduler=scheduler,
-                       workers=workers, progress=progress, run_dir=out / "runs")
-    tasks, info = [], {}
+    pairs = render_all(
+        "approach",
+        seeds,
+        cache,
+        camera_px=camera_px,
+        altitudes=altitudes,
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        run_dir=out / "runs",
+    )
+    tasks: list[Any] = []
+    info: dict[str, dict[str, Any]] = {}
     for preset in presets:
         for e in pairs:
             alt = int(round(e["altitude_m"]))
             for i in range(-1, samples):
                 pe = None if i < 0 else sample_pose_error(kind, e["seed"] * 100003 + alt, i)
                 tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}"
-                tasks.append(Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe,
-                                        "truth_slope": False}))
-                info[tid] = {"kind": kind, "preset": preset, "seed": e["seed"], "altitude_m": alt,
-                             "sample": i, **_flat_error(pe)}
-    res = run_tasks(evaluate_pair, tasks, out / "runs" / f"sensitivity-{kind}.jsonl", scheduler=scheduler,
-                    workers=workers, progress=progress, desc=f"sensitivity {kind}")
+                tasks.append(
+                    Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe, "truth_slope": False})
+                )
+                info[tid] = {
+                    "kind": kind,
+                    "preset": preset,
+                    "seed": e["seed"],
+                    "altitude_m": alt,
+                    "sample": i,
+                    **_flat_error(pe),
+                }
+    res = run_tasks(
+        evaluate_pair,
+        tasks,
+        out / "runs" / f"sensitivity-{kind}.jsonl",
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        desc=f"sensitivity {kind}",
+    )
     rows = []
     for t in tasks:
-        i = info[t.id]
-        ref = res[f"{kind}-{i['preset']}-s{i['seed']}-{i['altitude_m']}-ref"]
+        meta = info[t.id]
+        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref"]
         r = res[t.id]
-        row = {**i, **{k: r.get(k) for k in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "fp_pct",
-                                             "cdi_pct", "valid_pct", "pipeline_s")}}
+        row = {
+            **meta,
+            **{
+                k: r.get(k)
+                for k in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "fp_pct", "cdi_pct", "valid_pct", "pipeline_s")
+            },
+        }
         for k, name in (("dem_mean_abs_m", "dem_mean_rel_pct"), ("dem_mad_m", "dem_mad_rel_pct")):
             a, b = r.get(k), ref.get(k)
             row[name] = 100.0 * (a - b) / b if a is not None and b else None
@@ -682,8 +959,7 @@ def sensitivity_campaign(kind: str, out_dir: str | Path, *, samples: int = 20, s
 
 
 def _flat_error(pe: dict[str, Any] | None) -> dict[str, float]:
-    out = {f"{k}{j + 1}": 0.0 for j in range(2) for k in ("dz_m", "dx_m", "dy_m", "pitch_deg", "roll_deg",
-                                                          "yaw_deg")}
+    out = {f"{k}{j + 1}": 0.0 for j in range(2) for k in ("dz_m", "dx_m", "dy_m", "pitch_deg", "roll_deg", "yaw_deg")}
     for j, fr in enumerate((pe or {}).get("frames", [])):
         for k, v in fr.items():
             out[f"{k}{j + 1}"] = float(v)
@@ -715,9 +991,15 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for (kind, preset, alt), rs in sorted(groups.items()):
         rel = np.array([r["dem_mean_rel_pct"] for r in rs], float)
-        s: dict[str, Any] = {"kind": kind, "preset": preset, "altitude_m": alt, "n": len(rs),
-                             "median_rel_pct": float(np.median(rel)), "max_rel_pct": float(rel.max()),
-                             "within_15pct": float(np.mean(rel <= 15.0) * 100)}
+        s: dict[str, Any] = {
+            "kind": kind,
+            "preset": preset,
+            "altitude_m": alt,
+            "n": len(rs),
+            "median_rel_pct": float(np.median(rel)),
+            "max_rel_pct": float(rel.max()),
+            "within_15pct": float(np.mean(rel <= 15.0) * 100),
+        }
         if kind == "altitude":
             d = np.array([abs(r["dz_m1"] - r["dz_m2"]) for r in rs])
             near, far = rel[d <= 0.15], rel[d > 0.3]

@@ -1,4 +1,5 @@
 """``hazard-hil evaluate`` and ``hazard-hil sensitivity``: the thesis's ch. 6 tables and sec 6.3 Monte Carlo."""
+
 from __future__ import annotations
 
 import argparse
@@ -18,36 +19,56 @@ def _positive(kind: str):
         if v < 1:
             raise argparse.ArgumentTypeError(f"{kind} must be >= 1, got {v}")
         return v
+
     return conv
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seeds", type=_positive("--seeds"), default=None,
-                   help="number of scene seeds (0..N-1); results are medians over seeds")
+    p.add_argument(
+        "--seeds",
+        type=_positive("--seeds"),
+        default=None,
+        help="number of scene seeds (0..N-1); results are medians over seeds",
+    )
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
     p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
-    p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 "
-                   "(default: local processes)")
-    p.add_argument("--workers", type=_positive("--workers"), default=None,
-                   help="local worker processes (default: CPU count; 1 = in-process)")
-    p.add_argument("--camera-px", type=_positive("--camera-px"), default=None,
-                   help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)")
+    p.add_argument(
+        "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)"
+    )
+    p.add_argument(
+        "--workers",
+        type=_positive("--workers"),
+        default=None,
+        help="local worker processes (default: CPU count; 1 = in-process)",
+    )
+    p.add_argument(
+        "--camera-px",
+        type=_positive("--camera-px"),
+        default=None,
+        help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)",
+    )
     p.add_argument("--altitudes", default=None, help="comma-separated subset of table altitudes [m]")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def register(subparsers: Any) -> None:
-    p = subparsers.add_parser("evaluate", help="score the pipeline against ground truth; thesis tables side by side",
-                              description="Render (or reuse) a scenario, run the pipeline, score it against "
-                              "ground truth and print/write the thesis's ch. 6 tables next to ours.")
+    p = subparsers.add_parser(
+        "evaluate",
+        help="score the pipeline against ground truth; thesis tables side by side",
+        description="Render (or reuse) a scenario, run the pipeline, score it against "
+        "ground truth and print/write the thesis's ch. 6 tables next to ours.",
+    )
     p.add_argument("--scenario", required=True, choices=["vertical", "approach"])
     p.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
     _common(p)
     p.set_defaults(func=_evaluate, seeds_default=2)
 
-    s = subparsers.add_parser("sensitivity", help="pose-error Monte Carlo (thesis sec 6.3)",
-                              description="DEM error increase under pose-knowledge errors on the approach "
-                              "scenario (Tables 6.12-6.19), relative to perfect knowledge.")
+    s = subparsers.add_parser(
+        "sensitivity",
+        help="pose-error Monte Carlo (thesis sec 6.3)",
+        description="DEM error increase under pose-knowledge errors on the approach "
+        "scenario (Tables 6.12-6.19), relative to perfect knowledge.",
+    )
     s.add_argument("--kind", required=True, choices=["altitude", "attitude", "lateral", "rollyaw"])
     s.add_argument("--samples", type=_positive("--samples"), default=20, help="samples per seed and altitude")
     s.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
@@ -69,16 +90,24 @@ def _presets(choice: str) -> list[str]:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from hil_server import evaluate as ev
-    from hil_server import report
-    from hil_server.executor import CampaignError
+    from studies import evaluate as ev
+    from studies import report
+    from studies.executor import CampaignError
 
     seeds = list(range(args.seeds or args.seeds_default))
     try:
-        rows = ev.evaluate_scenario(args.scenario, args.out, presets=_presets(args.preset), seeds=seeds,
-                                    cache_dir=args.cache, camera_px=args.camera_px,
-                                    altitudes=_parse_alts(args.altitudes), scheduler=args.scheduler,
-                                    workers=args.workers, progress=not args.no_progress)
+        rows = ev.evaluate_scenario(
+            args.scenario,
+            args.out,
+            presets=_presets(args.preset),
+            seeds=seeds,
+            cache_dir=args.cache,
+            camera_px=args.camera_px,
+            altitudes=_parse_alts(args.altitudes),
+            scheduler=args.scheduler,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
     except CampaignError as exc:
         print(f"hazard-hil evaluate: {exc}; rerun the same command to retry them", file=sys.stderr)
         return 1
@@ -89,17 +118,26 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _sensitivity(args: argparse.Namespace) -> int:
-    from hil_server import evaluate as ev
-    from hil_server import report
-    from hil_server.executor import CampaignError
+    from studies import evaluate as ev
+    from studies import report
+    from studies.executor import CampaignError
 
     seeds = list(range(args.seeds or args.seeds_default))
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
     try:
-        rows = ev.sensitivity_campaign(args.kind, args.out, samples=args.samples, seeds=seeds,
-                                       presets=_presets(args.preset), cache_dir=args.cache,
-                                       camera_px=args.camera_px, altitudes=alts, scheduler=args.scheduler,
-                                       workers=args.workers, progress=not args.no_progress)
+        rows = ev.sensitivity_campaign(
+            args.kind,
+            args.out,
+            samples=args.samples,
+            seeds=seeds,
+            presets=_presets(args.preset),
+            cache_dir=args.cache,
+            camera_px=args.camera_px,
+            altitudes=alts,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
     except CampaignError as exc:
         print(f"hazard-hil sensitivity: {exc}; rerun the same command to retry them", file=sys.stderr)
         return 1
