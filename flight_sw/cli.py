@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,8 @@ def _process(args: argparse.Namespace) -> int:
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a non-negative number of seconds, got {args.deadline}")
     pair = read_pair(args.pair_dir)
+    for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
+        print(f"note: {note}", file=sys.stderr)
     params = PRESETS[args.preset]
     if args.sites is not None:
         if args.sites < 0:
@@ -70,9 +73,9 @@ def _process(args: argparse.Namespace) -> int:
         params = dataclasses.replace(params, n_sites=args.sites)
     res = run_pipeline(
         pair.images[0],
-        pair.images[1],
+        pair.images[-1],
         pair.poses[0],
-        pair.poses[1],
+        pair.poses[-1],
         pair.camera,
         preset=params,
         deadline_s=args.deadline,
@@ -84,6 +87,8 @@ def _process(args: argparse.Namespace) -> int:
         raise FlightInputError(f"--out {out}: cannot create ({exc.strerror})") from None
     np.save(out / "elevation.npy", res.elevation)
     np.save(out / "hazard.npy", res.hazard)
+    np.save(out / "state.npy", res.state)
+    np.save(out / "psafe.npy", res.psafe)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "preset": args.preset,

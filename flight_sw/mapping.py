@@ -12,22 +12,34 @@ read bilinearly, so the grid has no holes from perspective sampling.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from protocol.pairdir import Camera, Pose
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose
 
 
 @dataclass
 class HazardGrid:
-    """Hazard and elevation on a regular world grid; rows go toward -Y (see module doc)."""
+    """Hazard and elevation on a regular world grid; rows go toward -Y (see module doc).
+
+    ``state`` uses the pair format's codes (``protocol.pairdir.STATE_*``: safe,
+    unsafe, unknown, outside) and ``psafe`` is the probability that a cell is
+    safe (NaN outside). When not given they are derived from ``hazard`` and
+    ``elevation`` by :func:`three_state`.
+    """
 
     hazard: np.ndarray  # float32 (rows, cols) in [0, 1], NaN outside the covered area
     elevation: np.ndarray  # float32 (rows, cols), NaN where not recovered
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
+    state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))  # uint8 (rows, cols)
+    psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32, NaN outside
+
+    def __post_init__(self) -> None:
+        if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
+            self.state, self.psafe = three_state(self.hazard, self.elevation)
 
     def cell_xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World X, Y of every cell centre."""
@@ -134,6 +146,27 @@ def combine(
         dem = widen_hazards(np.maximum(s, r).astype(np.float32), margin_px)
         haz = np.maximum(haz, np.where(np.isfinite(dem), dem, np.float32(1.0)))
     return np.where(covered, haz, np.nan).astype(np.float32)
+
+
+def three_state(hazard: np.ndarray, elevation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(state, psafe) from a hazard map alone: the fallback when no uncertainty is known.
+
+    Outside (hazard NaN) -> ``STATE_OUTSIDE``; no elevation -> ``STATE_UNKNOWN``
+    unless an image cue (shadow, rock) already made it unsafe; otherwise safe
+    below 1 and unsafe at 1. ``psafe`` is 1 for safe, 0 for unsafe and 0.5 for
+    unknown: with no error model, the map's own call is all there is.
+    """
+    h = np.asarray(hazard, np.float32)
+    outside = np.isnan(h)
+    unsafe = ~outside & (h >= 1.0)
+    unknown = ~outside & ~np.isfinite(np.asarray(elevation, np.float32)) & ~unsafe
+    state = np.full(h.shape, STATE_SAFE, np.uint8)
+    state[unsafe] = STATE_UNSAFE
+    state[unknown] = STATE_UNKNOWN
+    state[outside] = STATE_OUTSIDE
+    psafe = np.where(state == STATE_SAFE, 1.0, np.where(state == STATE_UNKNOWN, 0.5, 0.0)).astype(np.float32)
+    psafe[outside] = np.nan
+    return state, psafe
 
 
 def widen_hazards(hazard: np.ndarray, margin_px: float) -> np.ndarray:

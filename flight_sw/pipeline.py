@@ -35,6 +35,7 @@ from .mapping import (
     image_to_grid_coords,
     pull,
     sample_grid,
+    three_state,
 )
 from .rocks import rock_mask
 from .shading import local_shadow_mask, relative_brightness, shading_mask
@@ -169,6 +170,14 @@ class PipelineResult:
     valid_fraction: float
     params: dict[str, Any]
     info: dict[str, Any] = field(default_factory=dict)
+    # uint8 HxW, protocol.pairdir.STATE_* (safe/unsafe/unknown/outside); derived from hazard when not given
+    state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))
+    psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32 HxW P(safe), NaN outside
+    sigma: np.ndarray | None = None  # float32 HxW elevation standard uncertainty (m), NaN where unknown
+
+    def __post_init__(self) -> None:
+        if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
+            self.state, self.psafe = three_state(self.hazard, self.elevation)
 
 
 @contextmanager

@@ -29,6 +29,8 @@ class Site:
     hazard: float  # hazard of the centre cell
     margin: float  # 1 - max hazard over the footprint
     distance_m: float  # from the nominal site
+    p_safe: float = float("nan")  # probability that the whole footprint is safe; NaN: not estimated
+    clearance_m: float = float("nan")  # distance from the centre to the nearest cell not known safe
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in asdict(self).items()}

@@ -146,7 +146,7 @@ def render_scenario(
     return out
 
 
-def contact_sheet(items: list[tuple[str, tuple[np.ndarray, np.ndarray]]], path: Path, tile: int = 200) -> Path:
+def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, tile: int = 200) -> Path:
     """PNG grid for people: each pair as i1 | i2 with its label, two pairs per row."""
     import cv2
 

@@ -49,13 +49,12 @@ class PairOutcome:
 
 def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
     pose = pair.poses[index]
-    alt = pair.meta.get("altimeter_m", [float("nan"), float("nan")])
     return Frame(
         seq=seq,
         capture_time_s=float(pose.time_s),
         position_m=tuple(float(v) for v in pose.position),
         R_world_to_cam=np.asarray(pose.R, dtype="<f8"),
-        altimeter_m=float(alt[index]),
+        altimeter_m=float(pair.altimeter_m[index]),
         image=np.ascontiguousarray(pair.images[index]),
         pair_id=pair_id,
         frame_index=index,

@@ -1,13 +1,13 @@
-"""The pair directory: two descent images, their poses and optional ground truth.
+"""The pair directory: 2-16 descent images, their poses and optional ground truth.
 
 This is the offline exchange format between ``ground_sim`` (writer) and
-``flight_sw`` (reader), and the way users bring their own images. The layout
-is fixed by ``shared/DESIGN.md``::
+``flight_sw`` (reader), and the way users bring their own images (docs/design.md)::
 
     pair.json              {"format": "sfm-hd-pair/1", "camera": {...},
-                            "frames": [{"image", "position_m", "R_world_to_cam", "time_s"}, x2],
+                            "frames": [{"image", "position_m", "R_world_to_cam" | "q_world_to_cam",
+                                        "time_s", "altimeter_m"?}, ... 2 to 16],
                             "sun": {"azimuth_deg", "elevation_deg"}}   # sun optional
-    i1.png, i2.png         8-bit gray; frame 0 is the higher (earlier) image
+    i1.png, i2.png, ...    gray images; frame 0 is the highest (earliest), frames ordered by time
     gt_elevation_i1.npy    optional float32 HxW, world Z seen by each pixel of i1
     gt_depth_i1.npy        optional float32 HxW, camera-1 z-depth
     gt_shadow_i1.npy       optional bool HxW, pixel of i1 not directly lit
@@ -17,12 +17,22 @@ Conventions: world Z up; camera frame is OpenCV's (x right, y down, z forward);
 a pose is the centre ``C`` (world) and ``R`` (world->camera), so
 ``X_cam = R (X_world - C)``. Extra top-level keys in ``pair.json`` (for example
 the true poses behind injected pose errors) are kept in :attr:`Pair.meta`.
+
+Reading is defensive, because users bring these directories: ``pair.json`` is
+size-limited before it is parsed, image paths must stay inside the directory,
+image sizes are read from the file header and checked against the camera
+before anything is decoded, colour and 16-bit images are converted (with a
+note in :attr:`Pair.notes`), a rotation off orthonormal by up to
+:data:`ORTHONORMAL_TOL` is re-orthonormalised (with a note), quaternions are
+accepted, and geometry that cannot see the ground is refused. Every problem is
+one :class:`PairFormatError` line naming the file.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +42,15 @@ import numpy as np
 from protocol.errors import InputError
 
 FORMAT = "sfm-hd-pair/1"
+MIN_FRAMES, MAX_FRAMES = 2, 16
+MAX_PAIR_JSON_BYTES = 1 << 20  # a pair.json of many frames is a few kB
+MAX_IMAGE_SIDE = 8192
+ORTHONORMAL_TOL = 1e-3  # max |R R^T - I| re-orthonormalised with a note; beyond it: an error
+MIN_DEPRESSION_DEG = 10.0  # the optical axis must point at least this far below the horizon
+
+# state.npy codes (DESIGN.md): every tool that writes or scores three-state maps uses these
+STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE = 0, 1, 2, 255
+
 TRUTH_FILES = {
     "elevation": "gt_elevation_i1.npy",
     "depth": "gt_depth_i1.npy",
@@ -71,19 +90,43 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Camera:
+        if not isinstance(d, dict):
+            raise PairFormatError(f"camera: expected an object with width, height, fx, fy, cx, cy, got {d!r:.60}")
         try:
             cam = cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"camera: need width, height, fx, fy, cx, cy ({exc})") from None
         cam.validate()
         return cam
 
     def validate(self) -> None:
         vals = (self.fx, self.fy, self.cx, self.cy)
-        if self.width <= 0 or self.height <= 0:
-            raise PairFormatError(f"camera: size must be positive, got {self.width}x{self.height}")
+        if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
+            raise PairFormatError(
+                f"camera: size must be 1..{MAX_IMAGE_SIDE} px per side, got {self.width}x{self.height}"
+            )
         if not all(math.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
             raise PairFormatError(f"camera: focal lengths must be finite and positive, got {vals}")
+
+
+def quaternion_to_matrix(q: Any) -> np.ndarray:
+    """Rotation matrix of a unit quaternion ``[w, x, y, z]`` (Hamilton, scalar first).
+
+    In the pair format ``q_world_to_cam`` rotates world vectors into the camera
+    frame, exactly like ``R_world_to_cam``. The quaternion is normalised first.
+    """
+    a = np.asarray(q, dtype=np.float64).reshape(4)
+    n = float(np.linalg.norm(a))
+    if not math.isfinite(n) or n < 1e-9:
+        raise PairFormatError(f"q_world_to_cam must be a finite non-zero [w, x, y, z], got {list(a)}")
+    w, x, y, z = a / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -107,6 +150,26 @@ class Pose:
             raise PairFormatError(f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.2e})")
         if np.linalg.det(self.R) < 0:
             raise PairFormatError(f"{what}: R_world_to_cam is a reflection (det < 0)")
+
+    def orthonormalised(self, what: str = "pose", tol: float = ORTHONORMAL_TOL) -> tuple[Pose, str | None]:
+        """The nearest rotation to ``R`` (polar decomposition by SVD) when ``R`` is within ``tol`` of one.
+
+        Rotations written with a few decimals are a few 1e-4 off orthonormal;
+        they are repaired and a note says so. Further off is an error.
+        """
+        if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.R)) and math.isfinite(self.time_s)):
+            raise PairFormatError(f"{what}: position, rotation and time must be finite (got NaN/inf)")
+        err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
+        if err <= 1e-9:
+            return self, None
+        if err > tol:
+            raise PairFormatError(
+                f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.2e} > {tol:g}); "
+                "give a rotation matrix or q_world_to_cam"
+            )
+        u, _, vt = np.linalg.svd(self.R)
+        fixed = Pose(self.position, u @ vt, self.time_s)
+        return fixed, f"{what}: rotation re-orthonormalised (was {err:.1e} off)"
 
     @property
     def optical_axis(self) -> np.ndarray:
@@ -135,20 +198,59 @@ class Sun:
         return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
 
 
+def image_name(k: int) -> str:
+    """File name of frame ``k`` (0-based): ``i1.png``, ``i2.png``, ..."""
+    return f"i{k + 1}.png"
+
+
 @dataclass
 class Pair:
-    """Two descent frames: index 0 is the higher, earlier image ``i1``."""
+    """2-16 descent frames ordered by time; frame 0 (``i1``) is the highest and the reference.
+
+    Tools that need exactly two images use :attr:`upper` and :attr:`lower`
+    (frames 0 and -1). ``altimeter_m`` holds one slant range per frame (NaN:
+    no reading). ``notes`` collects what reading had to convert or repair.
+    """
 
     camera: Camera
-    poses: tuple[Pose, Pose]
-    images: tuple[np.ndarray, np.ndarray]
+    poses: tuple[Pose, ...]
+    images: tuple[np.ndarray, ...]
     sun: Sun | None = None
     truth: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    altimeter_m: tuple[float, ...] = ()
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.poses = tuple(self.poses)
+        self.images = tuple(self.images)
+        if not self.altimeter_m:
+            self.altimeter_m = tuple(math.nan for _ in self.poses)
+        self.altimeter_m = tuple(float(a) for a in self.altimeter_m)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.images)
+
+    @property
+    def upper(self) -> tuple[np.ndarray, Pose]:
+        """Frame 0: the reference image (all maps are in its pixels) and its pose."""
+        return self.images[0], self.poses[0]
+
+    @property
+    def lower(self) -> tuple[np.ndarray, Pose]:
+        """The last (lowest) frame and its pose: with frame 0, the pair of a two-view tool."""
+        return self.images[-1], self.poses[-1]
 
     def validate(self) -> None:
-        """Check sizes, dtypes, poses and the altitude order; raise :class:`PairFormatError`."""
+        """Check frame count, sizes, dtypes, poses, geometry and the altitude order."""
         self.camera.validate()
+        n = len(self.images)
+        if not MIN_FRAMES <= n <= MAX_FRAMES or len(self.poses) != n or len(self.altimeter_m) != n:
+            raise PairFormatError(
+                f"need {MIN_FRAMES}-{MAX_FRAMES} frames with one pose and one altimeter value each, got "
+                f"{n} images, {len(self.poses)} poses, {len(self.altimeter_m)} altimeter values"
+            )
         shape = (self.camera.height, self.camera.width)
         for k, img in enumerate(self.images):
             if img.dtype != np.uint8 or img.ndim != 2:
@@ -159,16 +261,55 @@ class Pair:
                 )
         for k, pose in enumerate(self.poses):
             pose.validate(f"frame {k} pose")
-        if not self.poses[1].position[2] < self.poses[0].position[2]:
-            raise PairFormatError(
-                f"frame 1 must be below frame 0 (z = {self.poses[1].position[2]:.3f} m vs "
-                f"{self.poses[0].position[2]:.3f} m): frame 0 is the higher image"
-            )
+            check_sees_ground(pose, f"frame {k}")
+        for k in range(1, n):
+            z0, z1 = self.poses[k - 1].position[2], self.poses[k].position[2]
+            if not z1 < z0:
+                raise PairFormatError(
+                    f"frame {k} must be below frame {k - 1} (z = {z1:.3f} m vs {z0:.3f} m): frames are ordered by "
+                    "time through a descent, frame 0 highest"
+                )
+        for k, a in enumerate(self.altimeter_m):
+            if not (math.isnan(a) or (math.isfinite(a) and a > 0)):
+                raise PairFormatError(f"frame {k}: altimeter_m must be a positive range or absent, got {a}")
         for name, arr in self.truth.items():
             if name not in TRUTH_FILES:
                 raise PairFormatError(f"unknown ground-truth layer {name!r}")
             if arr.shape != shape:
                 raise PairFormatError(f"ground truth {name}: shape {arr.shape} != image shape {shape}")
+
+    def scale_notes(self) -> list[str]:
+        """Warnings for geometry that is legal but implausible (e.g. positions in km, not m)."""
+        out = []
+        z0 = float(self.poses[0].position[2])
+        gsd = z0 / max(1e-9, -float(self.poses[0].R[2, 2])) / self.camera.fx
+        if gsd < 1e-3 or gsd > 100.0:
+            out.append(
+                f"frame 0 sees {gsd:.2g} m per pixel at {z0:g} m altitude: positions must be in metres "
+                "(expected 1 mm - 100 m per pixel)"
+            )
+        base = float(np.linalg.norm(self.poses[0].position - self.poses[-1].position))
+        if base < 0.01 * z0:
+            out.append(
+                f"the baseline between the first and last frame is {base:.3g} m, under 1 % of the altitude "
+                f"({z0:g} m): there is almost no parallax to recover elevation from"
+            )
+        return out
+
+
+def check_sees_ground(pose: Pose, what: str = "pose") -> None:
+    """Refuse a camera under the reference plane or looking less than 10 deg below the horizon."""
+    if not pose.position[2] > 0:
+        raise PairFormatError(
+            f"{what}: camera at z = {pose.position[2]:g} m is not above the reference ground plane (world Z up)"
+        )
+    depression = math.degrees(math.asin(max(-1.0, min(1.0, -float(pose.R[2, 2])))))
+    if depression < MIN_DEPRESSION_DEG:
+        raise PairFormatError(
+            f"{what}: the camera looks {depression:.0f} deg below the horizon (optical axis {pose.R[2].round(3)} "
+            f"in world coordinates): it cannot see the ground; need >= {MIN_DEPRESSION_DEG:g} deg "
+            "(is R_world_to_cam transposed?)"
+        )
 
 
 def write_pair(directory: str | Path, pair: Pair) -> Path:
@@ -178,15 +319,17 @@ def write_pair(directory: str | Path, pair: Pair) -> Path:
     pair.validate()
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    names = ("i1.png", "i2.png")
+    names = [image_name(k) for k in range(pair.n_frames)]
     for name, img in zip(names, pair.images):
         if not cv2.imwrite(str(d / name), img):
             raise OSError(f"could not write {d / name}")
-    doc: dict[str, Any] = {
-        "format": FORMAT,
-        "camera": pair.camera.to_dict(),
-        "frames": [p.to_dict(n) for p, n in zip(pair.poses, names)],
-    }
+    frames = []
+    for p, n, a in zip(pair.poses, names, pair.altimeter_m):
+        fr = p.to_dict(n)
+        if math.isfinite(a):
+            fr["altimeter_m"] = a
+        frames.append(fr)
+    doc: dict[str, Any] = {"format": FORMAT, "camera": pair.camera.to_dict(), "frames": frames}
     if pair.sun is not None:
         doc["sun"] = {"azimuth_deg": pair.sun.azimuth_deg, "elevation_deg": pair.sun.elevation_deg}
     for key, value in pair.meta.items():
@@ -199,6 +342,154 @@ def write_pair(directory: str | Path, pair: Pair) -> Path:
     return d
 
 
+# --------------------------------------------------------------------------- image headers
+def image_header_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the file header, without decoding: PNG, JPEG, PGM/PPM, BMP, TIFF.
+
+    Lets a reader refuse a 65535 x 65535 image before it allocates anything.
+    """
+    with path.open("rb") as f:
+        head = f.read(64 * 1024)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    if head[:2] == b"\xff\xd8":
+        return _jpeg_size(path)
+    if head[:2] in (b"P2", b"P5", b"P3", b"P6"):
+        tokens: list[bytes] = []
+        for line in head[2:].split(b"\n"):
+            tokens += line.split(b"#", 1)[0].split()
+            if len(tokens) >= 2:
+                return int(tokens[0]), int(tokens[1])
+    if head[:2] == b"BM" and len(head) >= 26:
+        w, h = struct.unpack("<ii", head[18:26])
+        return abs(int(w)), abs(int(h))
+    if head[:4] in (b"II*\x00", b"MM\x00*"):
+        return _tiff_size(head)
+    raise PairFormatError(f"{path}: not a PNG, JPEG, PGM/PPM, BMP or TIFF image")
+
+
+def _jpeg_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()[: 4 << 20]
+    i = 2
+    while i + 9 < len(data):
+        if data[i] != 0xFF:
+            i += 1
+            continue
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = struct.unpack(">H", data[i + 2 : i + 4])[0]
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return int(w), int(h)
+        i += 2 + length
+    raise PairFormatError(f"{path}: JPEG without a frame header")
+
+
+def _tiff_size(head: bytes) -> tuple[int, int]:
+    e = "<" if head[:2] == b"II" else ">"
+    (off,) = struct.unpack(e + "I", head[4:8])
+    if off + 2 > len(head):
+        raise PairFormatError("TIFF directory beyond the first 64 kB")
+    (n,) = struct.unpack(e + "H", head[off : off + 2])
+    size: dict[int, int] = {}
+    for k in range(n):
+        p = off + 2 + 12 * k
+        if p + 12 > len(head):
+            break
+        tag, typ = struct.unpack(e + "HH", head[p : p + 4])
+        if tag in (256, 257):
+            size[tag] = struct.unpack(e + ("H" if typ == 3 else "I"), head[p + 8 : p + (10 if typ == 3 else 12)])[0]
+    if 256 not in size or 257 not in size:
+        raise PairFormatError("TIFF without width/height tags")
+    return int(size[256]), int(size[257])
+
+
+def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray], list[str]]:
+    """8-bit gray versions of decoded images, and notes on what was converted.
+
+    Colour becomes luminance (OpenCV's BT.601 weights). Deeper images are
+    shifted right by the same number of bits in every frame (the bits above
+    the largest value are unused), so the frames keep one common radiometric
+    scale, which the correlation needs.
+    """
+    import cv2
+
+    notes = []
+    out = []
+    for img, name in zip(imgs, names):
+        if img.ndim == 3:
+            code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(img.shape[2])
+            if code is None:
+                raise PairFormatError(f"{name}: {img.shape[2]} channels (need gray, BGR or BGRA)")
+            notes.append(f"{name}: colour converted to gray")
+            out.append(cv2.cvtColor(img, code))
+        else:
+            out.append(img)
+    deep = [k for k, img in enumerate(out) if img.dtype != np.uint8]
+    if deep:
+        for k in deep:
+            if out[k].dtype not in (np.uint16, np.dtype(">u2")):
+                raise PairFormatError(f"{names[k]}: {out[k].dtype} pixels (need 8- or 16-bit unsigned)")
+        top = max(int(out[k].max()) for k in deep)
+        shift = max(0, top.bit_length() - 8)
+        for k in deep:
+            out[k] = np.right_shift(out[k].astype(np.uint16), shift).astype(np.uint8)
+        notes.append(f"16-bit images ({', '.join(names[k] for k in deep)}) shifted right by {shift} bits to 8-bit")
+    return out, notes
+
+
+def _load_json(path: Path) -> Any:
+    size = path.stat().st_size
+    if size > MAX_PAIR_JSON_BYTES:
+        raise PairFormatError(f"{path}: {size} bytes is more than a pair.json can be ({MAX_PAIR_JSON_BYTES} bytes)")
+    try:
+        return json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise PairFormatError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise PairFormatError(f"{path}: JSON nested too deeply") from None
+
+
+def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
+    if not isinstance(fr, dict):
+        raise PairFormatError(f"{meta_path}: frame {k} must be an object")
+    try:
+        if "R_world_to_cam" in fr:
+            R = np.array(fr["R_world_to_cam"], dtype=float)
+            if R.shape != (3, 3):
+                raise ValueError(f"R_world_to_cam has shape {R.shape}, need 3x3")
+        elif "q_world_to_cam" in fr:
+            R = quaternion_to_matrix(fr["q_world_to_cam"])
+        else:
+            raise KeyError("R_world_to_cam or q_world_to_cam")
+        pos = np.array(fr["position_m"], dtype=float)
+        if pos.shape != (3,):
+            raise ValueError(f"position_m has shape {pos.shape}, need 3")
+        pose = Pose(pos, R, float(fr.get("time_s", 0.0)))
+        img_name = fr["image"]
+        if not isinstance(img_name, str) or not img_name:
+            raise ValueError("image must be a file name")
+        alt = fr.get("altimeter_m")
+        alt = math.nan if alt is None else float(alt)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise PairFormatError(
+            f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] or q_world_to_cam[4] ({exc})"
+        ) from None
+    return pose, img_name, alt
+
+
+def _image_path(d: Path, name: str) -> Path:
+    p = (d / name).resolve()
+    if not p.is_relative_to(d.resolve()):
+        raise PairFormatError(f"{d}: image {name!r} lies outside the pair directory")
+    if not p.is_file():
+        raise PairFormatError(f"{d}: missing image {name}")
+    return p
+
+
 def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     """Read and validate a pair directory; every problem raises :class:`PairFormatError`."""
     import cv2
@@ -209,43 +500,37 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     meta_path = d / "pair.json"
     if not meta_path.is_file():
         raise PairFormatError(f"{d}: missing pair.json")
-    try:
-        doc = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise PairFormatError(f"{meta_path}: not valid JSON ({exc})") from None
+    doc = _load_json(meta_path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise PairFormatError(
-            f"{meta_path}: format must be {FORMAT!r}, got {doc.get('format') if isinstance(doc, dict) else doc!r}"
-        )
+        got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise PairFormatError(f"{meta_path}: format must be {FORMAT!r}, got {got!r:.60}")
     camera = Camera.from_dict(doc.get("camera") or {})
     frames = doc.get("frames")
-    if not isinstance(frames, list) or len(frames) != 2:
-        raise PairFormatError(f"{meta_path}: 'frames' must list exactly two frames")
-    poses, images = [], []
+    if not isinstance(frames, list) or not MIN_FRAMES <= len(frames) <= MAX_FRAMES:
+        n = len(frames) if isinstance(frames, list) else "no"
+        raise PairFormatError(f"{meta_path}: 'frames' must list {MIN_FRAMES} to {MAX_FRAMES} frames, got {n}")
+    notes: list[str] = []
+    poses, raw, names, alts = [], [], [], []
     for k, fr in enumerate(frames):
-        try:
-            pose = Pose(
-                np.array(fr["position_m"], dtype=float),
-                np.array(fr["R_world_to_cam"], dtype=float),
-                float(fr.get("time_s", 0.0)),
-            )
-            img_name = str(fr["image"])
-        except (KeyError, TypeError, ValueError) as exc:
+        pose, img_name, alt = _frame_pose(fr, k, meta_path)
+        pose, note = pose.orthonormalised(f"frame {k}")
+        if note:
+            notes.append(note)
+        img_path = _image_path(d, img_name)
+        w, h = image_header_size(img_path)
+        if (w, h) != (camera.width, camera.height):
             raise PairFormatError(
-                f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] ({exc})"
-            ) from None
-        img_path = d / img_name
-        if not img_path.is_file():
-            raise PairFormatError(f"{d}: missing image {img_name}")
+                f"{img_path}: size {w}x{h} does not match the camera's {camera.width}x{camera.height}"
+            )
         img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise PairFormatError(f"{img_path}: not a readable image")
-        if img.ndim == 3:
-            raise PairFormatError(f"{img_path}: must be 8-bit gray, got {img.shape[2]} channels")
-        if img.dtype != np.uint8:
-            raise PairFormatError(f"{img_path}: must be 8-bit, got {img.dtype}")
         poses.append(pose)
-        images.append(img)
+        raw.append(img)
+        names.append(img_name)
+        alts.append(alt)
+    images, conv = to_gray8(raw, names)
+    notes += conv
     sun = None
     if doc.get("sun") is not None:
         try:
@@ -259,9 +544,10 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
             if p.is_file():
                 try:
                     truth[name] = np.load(p, allow_pickle=False)
-                except ValueError as exc:
-                    raise PairFormatError(f"{p}: unreadable ({exc})") from None
+                except (ValueError, EOFError, OSError) as exc:
+                    raise PairFormatError(f"{p}: unreadable ({exc or 'empty file'})") from None
     meta = {k: v for k, v in doc.items() if k not in ("format", "camera", "frames", "sun")}
-    pair = Pair(camera, (poses[0], poses[1]), (images[0], images[1]), sun, truth, meta)
+    pair = Pair(camera, tuple(poses), tuple(images), sun, truth, meta, tuple(alts), notes)
     pair.validate()
+    pair.notes += pair.scale_notes()
     return pair

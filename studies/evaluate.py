@@ -431,11 +431,11 @@ def evaluate_pair(
         if key not in pair.truth:
             raise EvaluationError(f"{pair_dir}: no ground truth {key!r} (gt_{key}_i1.npy)")
     true1, true2 = true_poses(pair)
-    fly1, fly2 = pair.poses
+    fly1, fly2 = pair.poses[0], pair.poses[-1]
     if pose_error:
         fly1, fly2 = perturb_poses(true1, true2, pose_error["frames"])
     t0 = time.perf_counter()
-    res = run_pipeline(pair.images[0], pair.images[1], fly1, fly2, pair.camera, preset=preset)
+    res = run_pipeline(pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset)
     wall = time.perf_counter() - t0
 
     truth_elev = pair.truth["elevation"].astype(np.float32)
@@ -518,7 +518,7 @@ def true_poses(pair: Any) -> tuple[Pose, Pose]:
             )  # type: ignore[return-value]
         except (KeyError, TypeError, ValueError) as exc:
             raise EvaluationError(f"pair meta true_frames unreadable ({exc})") from None
-    return pair.poses
+    return pair.poses[0], pair.poses[-1]
 
 
 # --------------------------------------------------------------------------- pose perturbation

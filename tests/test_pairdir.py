@@ -74,3 +74,99 @@ def test_missing_files_are_named(tmp_path):
     (tmp_path / "i2.png").unlink()
     with pytest.raises(PairFormatError, match=r"i2\.png"):
         read_pair(tmp_path)
+
+
+def _rewrite(d, fn):
+    doc = json.loads((d / "pair.json").read_text())
+    fn(doc)
+    (d / "pair.json").write_text(json.dumps(doc))
+
+
+def test_multi_frame_round_trip_with_altimeter(tmp_path):
+    rng = np.random.default_rng(3)
+    cam = Camera(64, 64, 120.0, 120.0, 31.5, 31.5)
+    alts = (400.0, 300.0, 200.0, 150.0)
+    poses = tuple(Pose([0, 0, h], NADIR, float(k)) for k, h in enumerate(alts))
+    imgs = tuple(rng.integers(0, 256, (64, 64), dtype=np.uint8) for _ in alts)
+    pair = Pair(cam, poses, imgs, altimeter_m=(401.0, float("nan"), 201.5, 150.2))
+    write_pair(tmp_path, pair)
+    assert sorted(p.name for p in tmp_path.glob("i*.png")) == ["i1.png", "i2.png", "i3.png", "i4.png"]
+    back = read_pair(tmp_path)
+    assert back.n_frames == 4
+    np.testing.assert_array_equal(back.lower[0], imgs[-1])
+    assert back.lower[1].position[2] == 150.0
+    assert back.altimeter_m[0] == 401.0 and np.isnan(back.altimeter_m[1]) and back.altimeter_m[3] == 150.2
+
+
+def test_frames_must_descend_and_count_is_bounded(tmp_path):
+    write_pair(tmp_path, make_pair())
+    _rewrite(tmp_path, lambda d: d.update(frames=d["frames"] * 9))
+    with pytest.raises(PairFormatError, match="2 to 16 frames, got 18"):
+        read_pair(tmp_path)
+    write_pair(tmp_path, make_pair())
+    _rewrite(tmp_path, lambda d: d.update(frames=d["frames"][:1]))
+    with pytest.raises(PairFormatError, match="got 1"):
+        read_pair(tmp_path)
+
+
+def test_quaternion_and_rounded_rotation_are_accepted(tmp_path):
+    write_pair(tmp_path, make_pair())
+    # NADIR = diag(1, -1, -1) is a 180 deg turn about x: q = [0, 1, 0, 0]
+    _rewrite(
+        tmp_path, lambda d: (d["frames"][0].pop("R_world_to_cam"), d["frames"][0].update(q_world_to_cam=[0, 1, 0, 0]))
+    )
+    np.testing.assert_allclose(read_pair(tmp_path).poses[0].R, NADIR, atol=1e-12)
+    c, s = np.cos(np.radians(7)), np.sin(np.radians(7))
+    R = np.round(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ NADIR, 4)  # written to 4 decimals
+    _rewrite(tmp_path, lambda d: d["frames"][1].update(R_world_to_cam=R.tolist()))
+    back = read_pair(tmp_path)
+    assert np.abs(back.poses[1].R @ back.poses[1].R.T - np.eye(3)).max() < 1e-12
+    assert any("re-orthonormalised" in n for n in back.notes)
+
+
+def test_colour_and_16bit_images_are_converted_with_a_note(tmp_path):
+    import cv2
+
+    pair = make_pair()
+    write_pair(tmp_path, pair)
+    cv2.imwrite(str(tmp_path / "i1.png"), cv2.cvtColor(pair.images[0], cv2.COLOR_GRAY2BGR))
+    cv2.imwrite(str(tmp_path / "i2.png"), pair.images[1].astype(np.uint16) * 16)  # a 12-bit sensor
+    back = read_pair(tmp_path)
+    np.testing.assert_array_equal(back.images[0], pair.images[0])
+    np.testing.assert_array_equal(back.images[1], pair.images[1])  # >> 4 restores the 8-bit values
+    assert any("colour" in n for n in back.notes) and any("shifted right by 4" in n for n in back.notes)
+
+
+def _png_header(w: int, h: int) -> bytes:
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+
+
+@pytest.mark.parametrize(
+    "attack, message",
+    [
+        (lambda d: (d / "i2.png").write_bytes(_png_header(65535, 65535)), "65535x65535 does not match"),
+        (lambda d: (d / "pair.json").write_text(" " * (2 << 20)), "more than a pair.json can be"),
+        (lambda d: (d / "pair.json").write_text("[" * 100_000 + "]" * 100_000), "nested too deeply"),
+        (lambda d: _rewrite(d, lambda doc: doc["frames"][1].update(image="../../etc/passwd")), "outside the pair"),
+        (lambda d: (d / "gt_elevation_i1.npy").write_bytes(b""), "gt_elevation_i1.npy: unreadable"),
+        (lambda d: _rewrite(d, lambda doc: doc["frames"][0].update(R_world_to_cam=np.eye(3).tolist())), "cannot see"),
+        (lambda d: _rewrite(d, lambda doc: doc["frames"][1].update(altimeter_m=-3)), "altimeter_m"),
+        (lambda d: _rewrite(d, lambda doc: doc["camera"].update(width=65535)), "1..8192"),
+    ],
+)
+def test_hostile_or_broken_input_is_one_clear_error(tmp_path, attack, message):
+    write_pair(tmp_path, make_pair())
+    attack(tmp_path)
+    with pytest.raises(PairFormatError, match=message):
+        read_pair(tmp_path)
+
+
+def test_positions_in_km_are_flagged(tmp_path):
+    pair = make_pair()
+    pair.poses = (Pose([0, 0, 0.6], NADIR, 0.0), Pose([0, 0, 0.3], NADIR, 12.5))
+    write_pair(tmp_path, pair)
+    assert any("metres" in n for n in read_pair(tmp_path).notes)
