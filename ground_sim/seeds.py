@@ -1,0 +1,23 @@
+"""The two scene-seed sets: tune on one, report the other.
+
+Every study that chooses parameters (flight presets, thresholds, the k of a
+test against uncertainty) may look only at :data:`TUNING_SEEDS`. Every figure
+that is quoted as a result (RESULTS.md, closing notes, the landing Monte
+Carlo) comes from :data:`HELD_OUT_SEEDS`, which nothing is tuned on. A scene
+seed selects the terrain of a named scene (``ground_sim/presets``); the
+renderer's noise seeds derive from it.
+"""
+
+from __future__ import annotations
+
+TUNING_SEEDS: tuple[int, ...] = tuple(range(0, 10))
+HELD_OUT_SEEDS: tuple[int, ...] = tuple(range(1000, 1100))
+SEED_SETS: dict[str, tuple[int, ...]] = {"tuning": TUNING_SEEDS, "held-out": HELD_OUT_SEEDS}
+
+
+def seed_set_of(seed: int) -> str:
+    """``"tuning"``, ``"held-out"`` or ``"other"`` for a scene seed."""
+    for name, seeds in SEED_SETS.items():
+        if seed in seeds:
+            return name
+    return "other"
