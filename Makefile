@@ -5,8 +5,9 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 OUT    ?= out
 PACKAGES := ground_sim flight_sw protocol hil_server studies reports
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test lint bench install clean
+.PHONY: demo test lint chromium bench install clean
 
 # PYTHONWARNINGS: setuptools warns that an editable install is editable; nothing else is hidden
 # (a failed install still fails the target).
@@ -26,8 +27,15 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy $(PACKAGES)
 
-test: lint
-	$(PY) -m pytest -q
+# The browser test opens every kind of report in Debian's headless Chromium.
+chromium:
+	@command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || \
+	  { echo "installing Debian's chromium for the browser test"; \
+	    $(SUDO) apt-get install -y -q chromium >/dev/null 2>&1 || \
+	    { $(SUDO) apt-get update -q >/dev/null && $(SUDO) apt-get install -y -q chromium >/dev/null; }; }
+
+test: lint chromium
+	HAZARD_HIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py

@@ -10,7 +10,7 @@ renderer's noise seeds derive from it.
 
 from __future__ import annotations
 
-TUNING_SEEDS: tuple[int, ...] = tuple(range(0, 10))
+TUNING_SEEDS: tuple[int, ...] = tuple(range(10))
 HELD_OUT_SEEDS: tuple[int, ...] = tuple(range(1000, 1100))
 SEED_SETS: dict[str, tuple[int, ...]] = {"tuning": TUNING_SEEDS, "held-out": HELD_OUT_SEEDS}
 

@@ -1,0 +1,163 @@
+"""Report pages: one Jinja2 template for `run`, `evaluate`, `landings` and `process`.
+
+A page is a title, a few headline numbers, and sections; a section holds
+paragraphs, tables and figures. Tables take their column labels and
+explanations from :mod:`reports.style`'s glossary, and the page ends with the
+glossary entries it used, so every label on a page is unique and explained.
+Figures are PNG files next to the page (relative links). The page is written
+atomically: a half-written report never replaces a whole one.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from reports.style import CONFUSION_COLOURS, CONFUSION_NAMES, STATE_COLOURS, STATE_NAMES, Term, term
+
+
+@dataclass
+class Column:
+    key: str
+    label: str = ""  # default: the glossary label of ``key``
+    digits: int = 3
+
+
+@dataclass
+class Table:
+    columns: list[Column]
+    rows: list[dict[str, Any]]
+    caption: str = ""
+
+
+@dataclass
+class Figure:
+    src: str  # path relative to the page
+    caption: str
+    alt: str = ""
+
+
+@dataclass
+class Section:
+    title: str
+    paragraphs: list[str] = field(default_factory=list)
+    tables: list[Table] = field(default_factory=list)
+    figures: list[Figure] = field(default_factory=list)
+    status: str = ""  # "", "ok", "warn" or "bad": a coloured marker beside the title
+
+
+@dataclass
+class Headline:
+    key: str  # glossary key, or a free label
+    value: Any
+    status: str = ""  # "", "ok", "warn", "bad"
+    label: str = ""
+
+
+def fmt_value(v: Any, digits: int = 3) -> str:
+    """Numbers for people: significant digits, no float noise, '-' for missing."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        a = abs(float(v))
+        if a == 0:
+            return "0"
+        if a >= 1e5 or a < 1e-3:
+            return f"{float(v):.2e}"
+        return f"{float(v):.{max(0, digits - 1 - math.floor(math.log10(a)))}f}"
+    return str(v)
+
+
+def _environment() -> Any:
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("reports", "templates"),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["fmt"] = fmt_value
+    return env
+
+
+def write_atomic(path: str | Path, data: str | bytes) -> Path:
+    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p
+
+
+def render_page(
+    title: str,
+    sections: list[Section],
+    *,
+    subtitle: str = "",
+    headline: list[Headline] | None = None,
+    legends: tuple[str, ...] = ("confusion", "state"),
+    base_dir: Path | None = None,
+) -> str:
+    """The HTML text of a report page. ``base_dir`` (the page's folder) checks that figures exist."""
+    used: dict[str, Term] = {}
+    tables = []
+    for s in sections:
+        for t in s.tables:
+            for c in t.columns:
+                entry = term(c.key)
+                if entry.explanation:
+                    used[c.key] = entry
+            tables.append(t)
+        if base_dir is not None:
+            for f in s.figures:
+                if not (base_dir / f.src).is_file():
+                    raise FileNotFoundError(f"report figure {f.src} missing in {base_dir}")
+    heads = []
+    for h in headline or []:
+        entry = term(h.key)
+        if entry.explanation:
+            used[h.key] = entry
+        heads.append({"label": h.label or entry.label, "value": h.value, "status": h.status, "help": entry.explanation})
+    legend_items = []
+    if "confusion" in legends:
+        legend_items.append(("pixel scores", [(CONFUSION_COLOURS[k], CONFUSION_NAMES[k]) for k in CONFUSION_COLOURS]))
+    if "state" in legends:
+        legend_items.append(("hazard states", [(STATE_COLOURS[k], STATE_NAMES[k]) for k in STATE_COLOURS]))
+    return (
+        _environment()
+        .get_template("page.html")
+        .render(
+            title=title,
+            subtitle=subtitle,
+            headline=heads,
+            sections=sections,
+            glossary=sorted(used.values(), key=lambda t: t.label.lower()),
+            legends=legend_items,
+            label=lambda c: c.label or term(c.key).label,
+            help=lambda c: term(c.key).explanation,
+        )
+    )
+
+
+def write_page(path: str | Path, title: str, sections: list[Section], **kwargs: Any) -> Path:
+    """Render and write a report page atomically; returns its path."""
+    p = Path(path)
+    return write_atomic(p, render_page(title, sections, base_dir=p.parent, **kwargs))

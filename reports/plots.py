@@ -1,0 +1,296 @@
+"""Figures for people, drawn with matplotlib in the colours of :mod:`reports.style`.
+
+Map figures are rows of panels: the input image, scalar layers with a colour
+bar and unit, three-state maps and pixel-score (confusion) maps with a legend,
+and landing sites drawn as footprint circles numbered by rank. Telemetry
+figures show where each pair's time went and how the run sat against its
+deadline and its processor budget.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from reports.style import (
+    CONFUSION_COLOURS,
+    CONFUSION_NAMES,
+    ERROR_CMAP,
+    MISSED,
+    OUTSIDE,
+    SAFE,
+    STATE_COLOURS,
+    STATE_NAMES,
+)
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save(fig: Any, path: str | Path, dpi: int = 100) -> Path:
+    """Write ``fig`` as a PNG (creating the folder) and release it."""
+    plt = _plt()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return p
+
+
+@dataclass
+class Site:
+    """A landing site in image pixels of the panel (u = column, v = row), its footprint radius in px."""
+
+    u: float
+    v: float
+    radius_px: float
+    rank: int
+    safe: bool | None = None  # truly safe (when ground truth is known)
+
+
+@dataclass
+class Panel:
+    """One map panel. ``kind``: ``image`` (gray), ``scalar`` (colour bar), ``state`` or ``confusion``."""
+
+    kind: str
+    data: np.ndarray
+    title: str
+    unit: str = ""
+    cmap: str = "viridis"
+    vmin: float | None = None
+    vmax: float | None = None
+    sites: list[Site] = field(default_factory=list)
+
+
+def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Per pixel 0 TP, 1 TN, 2 FP, 3 FN, 255 outside (DESIGN.md: positive = safe)."""
+    cs, ts = np.asarray(called_safe, bool), np.asarray(truly_safe, bool)
+    out = np.full(cs.shape, 255, np.uint8)
+    cov = np.asarray(covered, bool)
+    out[cov & cs & ts] = 0
+    out[cov & ~cs & ~ts] = 1
+    out[cov & cs & ~ts] = 2
+    out[cov & ~cs & ts] = 3
+    return out
+
+
+_CONF_ORDER = ("TP", "TN", "FP", "FN")
+
+
+def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dict[int, str], show_pct: bool) -> None:
+    from matplotlib.colors import to_rgb
+    from matplotlib.patches import Patch
+
+    rgb = np.ones(codes.shape + (3,), np.float32)
+    inside = codes != 255
+    n_in = max(1, int(inside.sum()))
+    handles = []
+    for code, colour in colours.items():
+        m = codes == code
+        rgb[m] = to_rgb(colour)
+        if code == 255:
+            continue
+        pct = f" {100.0 * m.sum() / n_in:.1f} %" if show_pct else ""
+        handles.append(Patch(facecolor=colour, edgecolor="#555", label=f"{names[code]}{pct}"))
+    ax.imshow(rgb, interpolation="nearest")
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=2, frameon=False)
+
+
+def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
+    from matplotlib.patches import Circle
+
+    for s in sites:
+        colour = "#000000" if s.safe is None else (SAFE if s.safe else MISSED)
+        ax.add_patch(Circle((s.u, s.v), max(s.radius_px, 2.0), fill=False, lw=1.6, color=colour))
+        ax.annotate(
+            str(s.rank),
+            (s.u, s.v),
+            xytext=(4, 4),
+            textcoords="offset points",
+            fontsize=8,
+            color=colour,
+            weight="bold",
+        )
+
+
+def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) -> Any:
+    """A row of map panels; returns the matplotlib figure (see :func:`save`)."""
+    plt = _plt()
+    n = len(panels)
+    fig, axes = plt.subplots(1, n, figsize=(panel_in * n, panel_in * 1.25), squeeze=False)
+    for ax, p in zip(axes[0], panels):
+        ax.set_title(p.title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if p.kind == "image":
+            ax.imshow(p.data, cmap="gray", interpolation="nearest")
+        elif p.kind == "scalar":
+            d = np.asarray(p.data, np.float64)
+            fin = d[np.isfinite(d)]
+            vmin = p.vmin if p.vmin is not None else (float(np.percentile(fin, 2)) if fin.size else 0.0)
+            vmax = p.vmax if p.vmax is not None else (float(np.percentile(fin, 98)) if fin.size else 1.0)
+            cmap = plt.get_cmap(p.cmap).with_extremes(bad=OUTSIDE)
+            im = ax.imshow(np.ma.masked_invalid(d), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+            cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+            cb.set_label(p.unit, fontsize=8)
+            cb.ax.tick_params(labelsize=7)
+        elif p.kind == "state":
+            _categorical(ax, np.asarray(p.data, np.uint8), STATE_COLOURS, STATE_NAMES, True)
+        elif p.kind == "confusion":
+            names = {i: CONFUSION_NAMES[k] for i, k in enumerate(_CONF_ORDER)} | {255: "outside"}
+            colours = {i: CONFUSION_COLOURS[k] for i, k in enumerate(_CONF_ORDER)} | {255: OUTSIDE}
+            _categorical(ax, np.asarray(p.data, np.uint8), colours, names, True)
+        else:
+            raise ValueError(f"unknown panel kind {p.kind!r}")
+        _draw_sites(ax, p.sites)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return fig
+
+
+def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elevation", unit: str = "m") -> list[Panel]:
+    """Estimate | truth | error panels sharing one colour range (the truth's 2nd-98th percentile)."""
+    ref = truth if truth is not None else estimate
+    fin = ref[np.isfinite(ref)]
+    lo, hi = (float(np.percentile(fin, 2)), float(np.percentile(fin, 98))) if fin.size else (0.0, 1.0)
+    panels = [Panel("scalar", estimate, f"computed {what}", unit, "terrain", lo, hi)]
+    if truth is not None:
+        err = estimate - truth
+        fe = np.abs(err[np.isfinite(err)])
+        lim = float(np.percentile(fe, 95)) if fe.size else 1.0
+        panels += [
+            Panel("scalar", truth, f"true {what}", unit, "terrain", lo, hi),
+            Panel("scalar", err, f"{what} error (computed - true)", unit, ERROR_CMAP, -lim or -1.0, lim or 1.0),
+        ]
+    return panels
+
+
+# --------------------------------------------------------------------------- telemetry
+def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str | None) -> None:
+    if width > 0:
+        ax.barh(y, width, left=start, height=0.6, color=colour, edgecolor="none", label=label)
+
+
+STAGE_COLOURS = ("#4c78a8", "#72b7b2", "#54a24b", "#eeca3b", "#b279a2", "#ff9da6", "#9d755d", "#bab0ac")
+
+
+def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
+    """Per pair, left to right from the end of the last frame: the frames' line time (before), compute stages,
+    the result's line time, and the deadline as a red tick.
+
+    Keys read per record (missing ones are skipped): ``label``, ``frames_link_s``, ``stages``
+    ({name: {"wall_s"}}), ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``.
+    """
+    plt = _plt()
+    recs = [r for r in records if r.get("status", "result") == "result"]
+    fig, ax = plt.subplots(figsize=(9, 0.45 * max(3, len(recs)) + 1.2))
+    seen: set[str] = set()
+    stage_names: list[str] = []
+    for r in recs:
+        for k in r.get("stages", {}) or {}:
+            if k != "total" and k not in stage_names:
+                stage_names.append(k)
+    colour = {k: STAGE_COLOURS[i % len(STAGE_COLOURS)] for i, k in enumerate(stage_names)}
+
+    def once(name: str) -> str | None:
+        if name in seen:
+            return None
+        seen.add(name)
+        return name
+
+    for i, r in enumerate(recs):
+        y = len(recs) - 1 - i
+        fl = float(r.get("frames_link_s") or 0.0)
+        _bar(ax, y, -fl, fl, "#cccccc", once("frames on the link"))
+        t = float(r.get("queue_wait_s") or 0.0)
+        _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
+        for k in stage_names:
+            w = float(((r.get("stages") or {}).get(k) or {}).get("wall_s", 0.0))
+            _bar(ax, y, t, w, colour[k], once(k))
+            t += w
+        rl = float(r.get("result_link_s") or 0.0)
+        e2e = r.get("e2e_latency_s")
+        start = (float(e2e) - rl) if e2e is not None else t
+        _bar(ax, y, start, rl, "#333333", once("result on the link"))
+        if r.get("deadline_s") is not None:
+            ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=MISSED, lw=2, label=once("deadline"))
+    ax.set_yticks(range(len(recs)))
+    ax.set_yticklabels([str(r.get("label", i)) for i, r in enumerate(recs)][::-1], fontsize=8)
+    ax.axvline(0, color="#888", lw=0.8)
+    ax.set_xlabel("seconds since the ground sent the pair's last frame")
+    ax.set_title("where each pair's time went")
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    fig.tight_layout()
+    return fig
+
+
+def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
+    """End-to-end latency of each pair against its deadline, in descent order; misses in red."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    xs, ys, cs, labels = [], [], [], []
+    for i, r in enumerate(records):
+        labels.append(str(r.get("label", i)))
+        lat = r.get("e2e_latency_s", r.get("latency_s"))
+        if r.get("status", "result") != "result" or lat is None:
+            ax.plot(i, 0, "x", color=MISSED, ms=8)
+            continue
+        xs.append(i)
+        ys.append(float(lat))
+        cs.append(SAFE if r.get("deadline_met") else MISSED)
+    ax.bar(xs, ys, color=cs)
+    dl = [r.get("deadline_s") for r in records]
+    if any(d is not None for d in dl):
+        ax.step(
+            range(len(records)),
+            [np.nan if d is None else d for d in dl],
+            where="mid",
+            color="#000",
+            lw=1.2,
+            label="deadline",
+        )
+        ax.legend(fontsize=8)
+    ax.set_xticks(range(len(records)))
+    ax.set_xticklabels(labels, rotation=30, fontsize=8)
+    ax.set_ylabel("end-to-end latency [s]")
+    ax.set_title("latency against the deadline over the descent (x: no result)")
+    fig.tight_layout()
+    return fig
+
+
+def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None, memory_mib: float | None) -> Any:
+    """Achieved CPU fraction and peak RSS per pair against the budget's duty cycle and memory ceiling."""
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.2))
+    recs = [r for r in records if r.get("status", "result") == "result"]
+    x = range(len(recs))
+    labels = [str(r.get("label", i)) for i, r in enumerate(recs)]
+    a1.plot(x, [r.get("cpu_fraction", np.nan) for r in recs], "o-", color="#4c78a8", label="achieved")
+    if cpu_budget is not None:
+        a1.axhline(cpu_budget, color=MISSED, lw=1, ls="--", label="budget")
+    a1.set_ylabel("CPU fraction of one core")
+    a1.set_ylim(bottom=0)
+    a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak RSS")
+    if memory_mib is not None:
+        a2.axhline(memory_mib, color=MISSED, lw=1, ls="--", label="memory ceiling")
+    a2.set_ylabel("MiB")
+    a2.set_ylim(bottom=0)
+    for a in (a1, a2):
+        a.set_xticks(list(x))
+        a.set_xticklabels(labels, rotation=30, fontsize=8)
+        a.legend(fontsize=8)
+    a1.set_title("CPU against the budget")
+    a2.set_title("memory against the ceiling")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,118 @@
+"""One colour convention and one glossary for every report.
+
+Colours (DESIGN.md scoring: positive = safe):
+
+* green  — safe: a safe state, or a TP (safe ground called safe);
+* purple — hazard: an unsafe state, or a TN (a hazard called unsafe);
+* red    — only ever an undetected hazard (FP: unsafe ground called safe), the
+  error a lander cannot afford;
+* orange — a false alarm (FN: safe ground not called safe);
+* grey   — unknown (not enough evidence; scored as not called safe);
+* white  — outside the area both images cover.
+
+Metric labels are unique; :data:`GLOSSARY` explains each one, and every page
+lists the entries it uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+SAFE = "#2e9e44"
+HAZARD = "#7b3fa0"
+MISSED = "#e3111b"
+FALSE_ALARM = "#ff9a1f"
+UNKNOWN = "#a6a6a6"
+OUTSIDE = "#ffffff"
+
+CONFUSION_COLOURS = {"TP": SAFE, "TN": HAZARD, "FP": MISSED, "FN": FALSE_ALARM}
+CONFUSION_NAMES = {
+    "TP": "TP: safe, called safe",
+    "TN": "TN: hazard, called unsafe",
+    "FP": "FP: hazard called safe (undetected)",
+    "FN": "FN: safe, not called safe (false alarm)",
+}
+STATE_COLOURS = {0: SAFE, 1: HAZARD, 2: UNKNOWN, 255: OUTSIDE}
+STATE_NAMES = {0: "safe", 1: "unsafe", 2: "unknown", 255: "outside"}
+
+# Continuous layers: one colour map per kind of quantity.
+ELEVATION_CMAP = "terrain"
+ERROR_CMAP = "RdBu_r"  # diverging, symmetric about zero
+HAZARD_CMAP = "magma_r"  # 0 = pale (safe) .. 1 = dark (unsafe)
+PSAFE_CMAP = "RdYlGn"  # 0 = red .. 1 = green
+
+
+@dataclass(frozen=True)
+class Term:
+    label: str  # column header / axis label, unique across the glossary
+    explanation: str
+    unit: str = ""
+
+
+GLOSSARY: dict[str, Term] = {
+    "fp_pct": Term(
+        "FP % (undetected hazard)",
+        "Share of covered pixels that are truly unsafe but called safe. Table 2.1 of the thesis requires <= 1 %.",
+        "%",
+    ),
+    "fn_pct": Term(
+        "FN % (false alarm)",
+        "Share of covered pixels that are truly safe but not called safe (unsafe or unknown).",
+        "%",
+    ),
+    "tp_pct": Term("TP % (safe called safe)", "Share of covered pixels that are safe and called safe.", "%"),
+    "tn_pct": Term("TN % (hazard called unsafe)", "Share of covered pixels that are unsafe and called unsafe.", "%"),
+    "cdi_pct": Term(
+        "CDI % (correct detection)", "Correct detection index: TP % + TN %, the share of pixels called right.", "%"
+    ),
+    "hazards_detected_pct": Term(
+        "hazards detected %", "TN / (TN + FP): of the truly unsafe pixels, the share called unsafe.", "%"
+    ),
+    "safe_detected_pct": Term(
+        "safe ground recognised %", "TP / (TP + FN): of the truly safe pixels, the share called safe.", "%"
+    ),
+    "hazards_in_scene_pct": Term(
+        "hazards in scene %", "Share of covered pixels that are unsafe by the ground-truth rules.", "%"
+    ),
+    "valid_pct": Term("DEM coverage %", "Share of the covered area (seen by both images) that got an elevation.", "%"),
+    "dem_mean_abs_m": Term("DEM mean |error| [m]", "Mean absolute elevation error over pixels with both values.", "m"),
+    "dem_median_m": Term("DEM median error [m]", "Median of the signed elevation error (estimate - truth).", "m"),
+    "dem_mad_m": Term(
+        "DEM MAD [m]", "Median absolute deviation of the signed elevation error: its spread, blind to an offset.", "m"
+    ),
+    "dem_kurtosis": Term(
+        "DEM error kurtosis",
+        "Fourth standardised moment of the signed error (3 for a normal distribution): heavy tails score high.",
+    ),
+    "dem_skewness": Term("DEM error skewness", "Third standardised moment of the signed error."),
+    "epi_fp_pct": Term(
+        "FP % outside epipole box",
+        "FP % over the pixels outside the thesis's 80 x 80 px box around the epipole (Table 6.7), where the "
+        "plane sweep cannot resolve elevation.",
+        "%",
+    ),
+    "epi_cdi_pct": Term("CDI % outside epipole box", "CDI % over the pixels outside the epipole box.", "%"),
+    "latency_p50_s": Term("latency p50 [s]", "Median end-to-end latency over the pairs that returned a result.", "s"),
+    "latency_p95_s": Term("latency p95 [s]", "95th percentile of the end-to-end latency.", "s"),
+    "e2e_latency_s": Term(
+        "end-to-end latency [s]",
+        "From the moment the ground finished sending a pair's last frame to the moment it holds the whole Result.",
+        "s",
+    ),
+    "deadline_hit_rate": Term(
+        "deadline hit rate", "Share of pairs whose Result reached the ground within the deadline."
+    ),
+    "p_safe": Term(
+        "P(safe landing)",
+        "Share of landings whose top-ranked site is truly safe over its whole 3 m footprint; a landing with no "
+        "site is not safe.",
+    ),
+    "p_safe_ci95": Term("95 % interval", "Wilson score interval of P(safe landing)."),
+    "p_no_site": Term("P(no site)", "Share of landings for which the flight software offered no site."),
+    "divert_m": Term("divert [m]", "Distance from the aim point to the chosen site.", "m"),
+}
+
+
+def term(key: str) -> Term:
+    """The glossary entry of ``key``; an unknown key is its own label with no explanation."""
+    return GLOSSARY.get(key, Term(key, ""))

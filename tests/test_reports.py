@@ -1,0 +1,104 @@
+"""The shared report kit: pages render every label once with its explanation, figures load in a real browser."""
+
+import os
+
+import numpy as np
+import pytest
+from browser import check_page, chromium_path
+
+from reports import plots
+from reports.html import Column, Figure, Headline, Section, Table, fmt_value, render_page, write_page
+from reports.style import GLOSSARY
+
+
+def _page(tmp_path, broken: bool = False):
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (64, 64), dtype=np.uint8)
+    truth_safe = rng.random((64, 64)) > 0.3
+    called_safe = truth_safe ^ (rng.random((64, 64)) > 0.9)
+    covered = np.ones((64, 64), bool)
+    covered[:, :8] = False
+    state = np.where(called_safe, 0, 1).astype(np.uint8)
+    state[20:30, 20:30] = 2
+    state[~covered] = 255
+    fig = plots.map_figure(
+        [
+            plots.Panel("image", img, "i1"),
+            plots.Panel("state", state, "hazard states", sites=[plots.Site(40, 40, 5, 1, True)]),
+            plots.Panel("confusion", plots.confusion_codes(called_safe, truth_safe, covered), "scores"),
+            plots.Panel("scalar", rng.normal(size=(64, 64)), "elevation", "m", "terrain"),
+        ]
+    )
+    plots.save(fig, tmp_path / "maps.png")
+    recs = [
+        {
+            "label": "600/300",
+            "frames_link_s": 0.2,
+            "stages": {"sweep": {"wall_s": 0.3}, "hazard": {"wall_s": 0.1}},
+            "result_link_s": 0.05,
+            "e2e_latency_s": 0.45,
+            "deadline_s": 2.0,
+            "deadline_met": True,
+            "cpu_fraction": 0.3,
+            "peak_rss_mib": 150.0,
+        },
+        {"label": "300/150", "status": "error"},
+    ]
+    plots.save(plots.timeline_figure(recs), tmp_path / "timeline.png")
+    plots.save(plots.latency_figure(recs), tmp_path / "latency.png")
+    plots.save(plots.resources_figure(recs, 0.35, 256), tmp_path / "resources.png")
+    figs = [
+        Figure("maps.png", "maps"),
+        Figure("timeline.png", "timeline"),
+        Figure("latency.png", "latency"),
+        Figure("resources.png", "resources"),
+    ]
+    if broken:
+        (tmp_path / "gone.png").write_bytes(b"not a png")
+        figs.append(Figure("gone.png", "broken on purpose"))
+    table = Table(
+        [Column("label", "pair"), Column("fp_pct"), Column("cdi_pct")],
+        [{"label": "600/300", "fp_pct": 0.41, "cdi_pct": 81.234}],
+    )
+    return write_page(
+        tmp_path / "report.html",
+        "test report",
+        [Section("maps", ["text"], [table], figs)],
+        headline=[Headline("fp_pct", 0.41, "ok")],
+    )
+
+
+def test_page_labels_are_unique_and_explained(tmp_path):
+    html = _page(tmp_path).read_text()
+    assert html.count(GLOSSARY["fp_pct"].label) >= 2  # header and glossary
+    assert GLOSSARY["cdi_pct"].explanation in html
+    labels = [t.label for t in GLOSSARY.values()]
+    assert len(labels) == len(set(labels)) and len({lab.replace(" ", "") for lab in labels}) == len(labels)
+    assert "81.2" in html and "**" not in html
+
+
+def test_missing_figure_is_refused(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nothere\.png"):
+        write_page(tmp_path / "r.html", "t", [Section("s", figures=[Figure("nothere.png", "x")])])
+
+
+def test_values_are_formatted_for_people():
+    assert fmt_value(None) == "–" and fmt_value(float("nan")) == "–"
+    assert fmt_value(0.000012) == "1.20e-05" and fmt_value(81.2345) == "81.2" and fmt_value(True) == "yes"
+    assert "<script>" not in render_page("<script>", [Section("x")])
+
+
+# make test installs chromium and sets HAZARD_HIL_REQUIRE_BROWSER, so a missing browser fails there, not skips
+needs_browser = pytest.mark.skipif(
+    chromium_path() is None and not os.environ.get("HAZARD_HIL_REQUIRE_BROWSER"),
+    reason="chromium not installed (make test installs it)",
+)
+
+
+@needs_browser
+def test_report_opens_in_a_real_browser(tmp_path):
+    good = check_page(_page(tmp_path))
+    assert good.ok, good
+    assert good.images == 4 and good.title == "test report"
+    bad = check_page(_page(tmp_path / "b", broken=True))
+    assert not bad.ok and bad.broken_images == ["gone.png"]
