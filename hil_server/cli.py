@@ -243,9 +243,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
-    from hil_server.regress import run_regression
+    from hil_server.regress import default_baseline_path, run_regression
 
-    return run_regression(args.baseline, update=args.update, out=args.out, cases=_pairs(args.cases))
+    return run_regression(
+        args.baseline or default_baseline_path(), update=args.update, out=args.out, cases=_pairs(args.cases)
+    )
 
 
 def _register_runs(sub: argparse._SubParsersAction) -> None:
@@ -258,7 +260,12 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_demo, out=Path("out/demo"))
 
     p = sub.add_parser("regress", help="re-run fixed scenario x budget cases and compare to a baseline")
-    p.add_argument("--baseline", type=Path, default=Path("bench/latency_baseline.json"))
+    p.add_argument(
+        "--baseline",
+        type=Path,
+        default=None,
+        help="latency baseline JSON (default: the one shipped with the package, hil_server/latency_baseline.json)",
+    )
     p.add_argument("--update", action="store_true", help="rewrite the baseline with this run's numbers")
     p.add_argument("--cases", default=None, help="comma-separated case names (default: all in the baseline)")
     p.add_argument("--out", type=Path, default=Path("out/regress"))

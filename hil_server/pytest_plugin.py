@@ -16,8 +16,6 @@ from pathlib import Path
 
 import pytest
 
-DEFAULT_BASELINE = Path("bench/latency_baseline.json")
-
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--hil-baseline", default=None, help="hazard-hil latency baseline for the hil_regression fixture")
@@ -26,9 +24,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 @pytest.fixture
 def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
     def check(baseline: str | Path | None = None, cases: list[str] | None = None) -> str:
-        from hil_server.regress import check_regression
+        from hil_server.regress import check_regression, default_baseline_path
 
-        path = Path(baseline or request.config.getoption("--hil-baseline") or DEFAULT_BASELINE)
+        path = Path(baseline or request.config.getoption("--hil-baseline") or default_baseline_path())
         if not path.is_file():
             pytest.fail(f"no latency baseline at {path} (create it with `hazard-hil regress --update`)", pytrace=False)
         ok, diff, _ = check_regression(path, out=tmp_path / "regress", cases=cases)

@@ -12,6 +12,15 @@ A regression is: deadline hit rate below the baseline's minus
 ``hit_rate_drop``, or a latency percentile above the baseline's by more than
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
 so tiny latencies do not flap). ``--update`` rewrites the baseline.
+
+The unthrottled ``host`` case is judged on the flight process's CPU seconds per
+pair, not on wall latency: on a busy host the wall clock of an unthrottled
+process measures the other load, not the flight software. Throttled budgets
+are judged on latency (the emulator's duty cycle sets their wall time).
+
+The baseline shipped with the package (:func:`default_baseline_path`) is used
+unless another is given; relative ``manifest`` paths in a baseline are
+relative to the baseline file.
 """
 
 from __future__ import annotations
@@ -35,7 +44,18 @@ DEFAULT_CASES: dict[str, dict] = {
     },
     "approach-rad750-serial": {"scenario": "approach", "budget": "rad750", "link": "serial", "pairs": ["500/250"]},
 }
-METRICS = ("latency_p50_s", "latency_p95_s", "latency_max_s")
+LATENCY_METRICS = ("latency_p50_ref_s", "latency_p95_ref_s", "latency_max_ref_s")
+CPU_METRICS = ("cpu_p50_ref_s", "cpu_p95_ref_s", "cpu_max_ref_s")
+
+
+def default_baseline_path() -> Path:
+    """The latency baseline shipped with the package (recorded on a quiet, calibrated host)."""
+    return Path(__file__).with_name("latency_baseline.json")
+
+
+def judged_metrics(budget: str) -> tuple[str, ...]:
+    """CPU seconds for the unthrottled host budget, latency for throttled ones (module doc)."""
+    return CPU_METRICS if budget == "host" else LATENCY_METRICS
 
 
 @dataclass
@@ -44,6 +64,8 @@ class CaseOutcome:
     current: dict
     baseline: dict | None
     problems: list[str] = field(default_factory=list)
+    metrics: tuple[str, ...] = LATENCY_METRICS
+    limits: dict[str, float] = field(default_factory=dict)  # the bound each metric was held to
 
 
 def effective_speed(budget_name: str) -> tuple[float, float]:
@@ -60,8 +82,20 @@ def effective_speed(budget_name: str) -> tuple[float, float]:
         return host * b.duty_fraction(cal), b.anchor.dmips
 
 
-def measure_case(name: str, case: dict, out: Path) -> dict:
+def _pct(values: list[float], q: float) -> float:
+    import numpy as np
+
+    return float(np.percentile(values, q)) if values else math.nan
+
+
+def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None) -> dict:
     from hil_server.run import RunConfig, run_descent
+
+    manifest = None
+    if case.get("manifest"):
+        manifest = Path(case["manifest"])
+        if not manifest.is_absolute() and base_dir is not None:
+            manifest = base_dir / manifest
 
     cfg = RunConfig(
         scenario=case["scenario"],
@@ -71,19 +105,28 @@ def measure_case(name: str, case: dict, out: Path) -> dict:
         pairs=case.get("pairs"),
         seed=int(case.get("seed", 0)),
         image_size=case.get("image_size"),
-        manifest=Path(case["manifest"]) if case.get("manifest") else None,
+        manifest=manifest,
     )
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     speed, ref = effective_speed(case["budget"])
     scale = speed / ref
     cur = {"deadline_hit_rate": summary["deadline_hit_rate"], "errors": summary["errors"], "pairs": summary["pairs"]}
-    for m in METRICS:
-        cur[m.replace("_s", "_ref_s")] = summary[m] * scale
+    for m in LATENCY_METRICS:
+        cur[m] = summary[m.replace("_ref_s", "_s")] * scale
+    cpu = [
+        float(r["stages"]["total"]["cpu_s"])
+        for r in summary["records"]
+        if r.get("status") == "result" and "total" in (r.get("stages") or {})
+    ]
+    for m, q in zip(CPU_METRICS, (50, 95, 100)):
+        cur[m] = _pct(cpu, q) * scale
     return cur
 
 
-def compare(name: str, cur: dict, base: dict | None, tol: dict) -> CaseOutcome:
-    o = CaseOutcome(name, cur, base)
+def compare(
+    name: str, cur: dict, base: dict | None, tol: dict, metrics: tuple[str, ...] = LATENCY_METRICS
+) -> CaseOutcome:
+    o = CaseOutcome(name, cur, base, metrics=metrics)
     if base is None:
         o.problems.append("no baseline for this case (run with --update)")
         return o
@@ -93,26 +136,33 @@ def compare(name: str, cur: dict, base: dict | None, tol: dict) -> CaseOutcome:
         )
     if cur.get("errors", 0) > base.get("errors", 0):
         o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
-    for m in METRICS:
-        k = m.replace("_s", "_ref_s")
+    o.limits["deadline_hit_rate"] = base["deadline_hit_rate"] - tol["hit_rate_drop"]
+    for k in metrics:
         c, b = cur.get(k, math.nan), base.get(k, math.nan)
         if math.isnan(b):
             continue
         limit = max(b * (1 + tol["latency_rel"]), b + tol["latency_abs_s"])
+        o.limits[k] = limit
         if math.isnan(c) or c > limit:
             o.problems.append(f"{k} {c:.3f} > limit {limit:.3f} (baseline {b:.3f})")
     return o
 
 
 def diff_table(outcomes: list[CaseOutcome]) -> str:
-    lines = [f"{'case':<30} {'metric':<22} {'baseline':>10} {'current':>10}  verdict"]
+    """One line per case and metric: baseline, the limit it was held to, the current value, the verdict.
+
+    The hit rate's limit is a floor; every other limit is a ceiling.
+    """
+    lines = [f"{'case':<30} {'metric':<22} {'baseline':>10} {'limit':>10} {'current':>10}  verdict"]
     for o in outcomes:
-        keys = ["deadline_hit_rate"] + [m.replace("_s", "_ref_s") for m in METRICS]
+        keys = ["deadline_hit_rate", *o.metrics]
         for k in keys:
             b = (o.baseline or {}).get(k, math.nan)
             c = o.current.get(k, math.nan)
+            lim = o.limits.get(k, math.nan)
+            bound = ("≥" if k == "deadline_hit_rate" else "≤") + f"{lim:.3f}" if math.isfinite(lim) else "–"
             bad = any(p.startswith(k) for p in o.problems)
-            lines.append(f"{o.name:<30} {k:<22} {b:>10.3f} {c:>10.3f}  {'REGRESSION' if bad else 'ok'}")
+            lines.append(f"{o.name:<30} {k:<22} {b:>10.3f} {bound:>10} {c:>10.3f}  {'REGRESSION' if bad else 'ok'}")
         for p in o.problems:
             if not any(p.startswith(k) for k in keys):
                 lines.append(f"{o.name:<30} {p}")
@@ -123,20 +173,26 @@ def check_regression(
     baseline: Path, *, out: Path = Path("out/regress"), cases: list[str] | None = None, update: bool = False
 ) -> tuple[bool, str, dict]:
     """Run the cases; returns (ok, readable diff, new baseline document)."""
-    doc = json.loads(Path(baseline).read_text()) if Path(baseline).is_file() else {}
+    from protocol.errors import InputError
+
+    baseline = Path(baseline)
+    if not baseline.is_file() and not update:
+        raise InputError(f"no latency baseline at {baseline} (record one with `hazard-hil regress --update`)")
+    try:
+        doc = json.loads(baseline.read_text()) if baseline.is_file() else {}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"latency baseline {baseline}: unreadable ({exc})") from None
     all_cases = doc.get("cases") or {k: {**v} for k, v in DEFAULT_CASES.items()}
     tol = {**DEFAULT_TOLERANCES, **doc.get("tolerances", {})}
     names = cases or list(all_cases)
     unknown = [n for n in names if n not in all_cases]
     if unknown:
-        from protocol.errors import InputError
-
         raise InputError(f"unknown regression case(s) {unknown}; known: {sorted(all_cases)}")
     outcomes = []
     for n in names:
         case = all_cases[n]
-        cur = measure_case(n, case, out)
-        outcomes.append(compare(n, cur, case.get("metrics"), tol))
+        cur = measure_case(n, case, out, baseline.resolve().parent)
+        outcomes.append(compare(n, cur, case.get("metrics"), tol, judged_metrics(case["budget"])))
         if update:
             case["metrics"] = cur
     new_doc = {

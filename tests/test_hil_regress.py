@@ -7,7 +7,7 @@ import json
 import pytest
 
 from ground_sim.descent import render_scenario
-from hil_server.regress import DEFAULT_TOLERANCES, check_regression, compare
+from hil_server.regress import DEFAULT_TOLERANCES, check_regression, compare, diff_table
 from hil_server.run import scaled_camera
 
 
@@ -38,11 +38,12 @@ def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline)
     ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r2")
     assert ok, diff
     # make the baseline impossibly fast: the same run now regresses, and the diff says where
-    doc["cases"]["tiny"]["metrics"].update(latency_p50_ref_s=1e-4, latency_p95_ref_s=1e-4, latency_max_ref_s=1e-4)
+    # (the tiny case runs on the unthrottled host budget, so it is judged on CPU seconds)
+    doc["cases"]["tiny"]["metrics"].update(cpu_p50_ref_s=1e-4, cpu_p95_ref_s=1e-4, cpu_max_ref_s=1e-4)
     doc["tolerances"]["latency_abs_s"] = 0.0
     tiny_baseline.write_text(json.dumps(doc))
     ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r3")
-    assert not ok and "REGRESSION" in diff and "latency_p50_ref_s" in diff
+    assert not ok and "REGRESSION" in diff and "cpu_p50_ref_s" in diff
 
 
 @pytest.fixture
@@ -75,3 +76,40 @@ def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regr
     tiny_baseline.write_text(json.dumps(doc))
     with pytest.raises(pytest.fail.Exception, match="deadline_hit_rate"):
         hil_regression(baseline=tiny_baseline)
+
+
+def test_host_case_is_judged_on_cpu_seconds_not_wall_latency():
+    from hil_server.regress import CPU_METRICS, judged_metrics
+
+    base = {"deadline_hit_rate": 1.0, "errors": 0, "latency_p50_ref_s": 0.2, "cpu_p50_ref_s": 0.15}
+    busy_host = {**base, "latency_p50_ref_s": 5.0, "cpu_p50_ref_s": 0.16}  # wall clock ruined by other load
+    assert judged_metrics("host") == CPU_METRICS
+    assert compare("h", busy_host, base, DEFAULT_TOLERANCES, judged_metrics("host")).problems == []
+    slower_code = {**base, "cpu_p50_ref_s": 0.9}
+    o = compare("h", slower_code, base, DEFAULT_TOLERANCES, judged_metrics("host"))
+    assert o.problems and o.limits["cpu_p50_ref_s"] == pytest.approx(0.4)
+    assert "≤0.400" in diff_table([o]) and "REGRESSION" in diff_table([o])
+
+
+def test_regress_from_another_directory_and_bad_names(tmp_path, tiny_baseline, monkeypatch):
+    from hil_server.cli import main
+
+    doc = json.loads(tiny_baseline.read_text())
+    # a manifest path relative to the baseline file, and the command run from somewhere else entirely
+    doc["cases"]["tiny"]["manifest"] = "pairs/manifest.json"
+    tiny_baseline.write_text(json.dumps(doc))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    rel = "../baseline.json"
+    assert main(["regress", "--baseline", rel, "--update", "--out", "o"]) == 0
+    assert main(["regress", "--baseline", rel, "--out", "o"]) == 0
+    assert main(["regress", "--baseline", rel, "--cases", "nope", "--out", "o"]) == 2
+    assert main(["regress", "--baseline", "missing.json", "--out", "o"]) == 2
+
+
+def test_packaged_baseline_exists_and_names_its_cases():
+    from hil_server.regress import default_baseline_path
+
+    doc = json.loads(default_baseline_path().read_text())
+    assert set(doc["cases"]) >= {"vertical-host-zmq", "vertical-snapdragon-serial"}
