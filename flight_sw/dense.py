@@ -38,6 +38,7 @@ class DenseParams:
     speckle_px: int = 30
     speckle_diff: float = 2.0  # planes
     temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
+    uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
     kappa_radius: int = 2
 
 
@@ -85,13 +86,15 @@ def dem_from_slab(
     # otherwise: half of them had their true plane outside the part they see)
     em = int(dp.end_margin)
     partial_lo, partial_hi = lo > 0, hi < D - 1
-    m.ok &= (hi - lo + 1) >= dp.min_interval_frac * D
-    m.ok &= ~(partial_lo & (m.k < lo + em)) & ~(partial_hi & (m.k > hi - em))
+    ok0 = m.ok.copy()
+    band = ((hi - lo + 1) < dp.min_interval_frac * D) | (partial_lo & (m.k < lo + em)) | (partial_hi & (m.k > hi - em))
+    m.ok &= ~band
+    ok1 = m.ok.copy()
     ok = speckle_filter(m.frac, m.ok, dp.speckle_px, dp.speckle_diff)
     idx = np.arange(D, dtype=np.float64)
     z = np.interp(m.frac.ravel(), idx, planes).reshape(h, w).astype(np.float32)
     dz = np.interp(m.frac.ravel(), 0.5 * (idx[1:] + idx[:-1]), np.diff(planes)).reshape(h, w)
-    sig = (plane_sigma(m.kappa, dp.temperature) * dz).astype(np.float32)
+    sig = (plane_sigma(m.kappa, dp.temperature, m.uniq, m.k2 - m.k, dp.uniq_scale) * dz).astype(np.float32)
     ok &= np.isfinite(sig)
     elev = nan.copy()
     sigma = nan.copy()
@@ -100,8 +103,9 @@ def dem_from_slab(
     info = {
         "planes": int(D),
         "roi": [int(v) for v in slab.roi],
-        "rejected_unique": float(np.mean(m.uniq < dp.uniqueness)) if dp.uniqueness > 0 else 0.0,
-        "rejected_speckle": float(np.mean(m.ok & ~ok)),
+        "rejected_ends_unique": float(np.mean(~ok0)),
+        "rejected_band": float(np.mean(ok0 & ~ok1)),
+        "rejected_speckle": float(np.mean(ok1 & ~ok)),
     }
     return DenseDEM(elev, sigma, True, info)
 

@@ -106,6 +106,15 @@ def weighted_plane_fit(
     )
 
 
+def footprint_mean(a: np.ndarray, n: int) -> np.ndarray:
+    """Mean of the finite values of ``a`` over the ``n x n`` square around each cell (NaN if none)."""
+    ok = np.isfinite(a)
+    s = _box(np.where(ok, a, 0.0).astype(np.float64), n)
+    c = _box(ok.astype(np.float64), n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(c > 0, s / c, np.nan).astype(np.float32)
+
+
 def norm_cdf(x: np.ndarray) -> np.ndarray:
     """Standard normal CDF, float32, via erf (vectorised through cv2-free numpy)."""
     x = np.asarray(x, np.float64)

@@ -25,7 +25,7 @@ from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
 from .dense import DenseParams, dense_dem
-from .evidence import classify, weighted_plane_fit, widen_unsafe
+from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
 from .gapfill import fill_small_gaps
 from .georef import backproject
 from .mapping import (
@@ -45,7 +45,7 @@ from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, shading_mask
 from .shadow import shadow_mask
 from .sites import Site, select_safe_sites, select_sites
-from .slope import plane_fit, roughness
+from .slope import footprint_cells, plane_fit, roughness
 from .sweep import (
     SweepResult,
     coverage_mask,
@@ -115,8 +115,10 @@ class Params:
     end_margin: int = 3  # planes: minima this close to a partially seen end of a pixel's plane interval are dropped
     min_interval_frac: float = 0.8  # pixels must see at least this share of the planes
     sigma_temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
+    sigma_uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
     max_planes: int = 64  # full-resolution planes; the disparity step grows to stay under it
-    sigma_rho: float = 9.0  # correlation inflation of the weighted plane fit (evidence.py)
+    slope_sigma_gain: float = 1.0  # slope uncertainty = gain * mean footprint sigma / footprint (evidence.py)
+    rough_sigma_gain: float = 0.2  # roughness uncertainty = gain * sigma
     sigma_k: float = 2.0  # unsafe only beyond k sigma of a limit
     psafe_min: float = 0.9  # safe only with P(safe) >= this
     shadow_dark_frac: float = 0.0  # > 0: shadow = I < frac * median(I) (replaces eq. 4.9 in the v2 flow)
@@ -156,8 +158,8 @@ class Params:
             raise FlightInputError(f"params: max_planes must be in [3, 256], got {self.max_planes!r}")
         if self.sgm_radius < 0 or self.sgm_mean_radius < 1:
             raise FlightInputError("params: sgm_radius must be >= 0 and sgm_mean_radius >= 1")
-        if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0 and self.sigma_rho > 0):
-            raise FlightInputError("params: need 0 <= psafe_min < 1, sigma_k >= 0, sigma_rho > 0")
+        if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
+            raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
 
 
 def window_px(half_window: int, overlap_px: int, cap: bool = True) -> int:
@@ -202,6 +204,12 @@ PRESETS: dict[str, Params] = {
         hazard_margin_px=0.0,
         shadow_dark_frac=0.2,
         mapping_reserve_s=0.06,
+        uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
+        sigma_temperature=0.1,
+        slope_sigma_gain=0.5,
+        rough_sigma_gain=0.3,
+        psafe_min=0.9,
+        max_planes=48,
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,
@@ -598,6 +606,7 @@ def _dense_params(p: Params) -> DenseParams:
         uniqueness=p.uniqueness,
         speckle_px=p.speckle_px,
         temperature=p.sigma_temperature,
+        uniq_scale=p.sigma_uniq_scale,
         end_margin=p.end_margin,
         min_interval_frac=p.min_interval_frac,
     )
@@ -779,16 +788,19 @@ def _run_v2(
             have_dem = False  # past the deadline: the image cues are all the evidence there is
             info["skipped"].append("slope")
         if have_dem:
-            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m, rho=p.sigma_rho)
+            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m)
+            # uncertainty of the footprint-scale quantities, calibrated on tuning seeds (evidence.py):
+            # slope from the footprint's mean sigma, roughness from the point's sigma
+            g_sbar = footprint_mean(g_sig, footprint_cells(p.footprint_m, cell))
+            g_gsig = (p.slope_sigma_gain * g_sbar * cell / p.footprint_m).astype(np.float32)
             g_rough = np.abs(g_elev - fit.z_plane)
-            g_rsig = np.sqrt(g_sig * g_sig + fit.z_plane_sigma**2)
+            g_rsig = (p.rough_sigma_gain * g_sig).astype(np.float32)
             slope_img = sample_grid(fit.slope_deg, origin, cell, X, Y)
             grad_img = sample_grid(fit.grad, origin, cell, X, Y)
-            gsig_img = sample_grid(fit.grad_sigma, origin, cell, X, Y)
+            gsig_img = sample_grid(g_gsig, origin, cell, X, Y)
             plane_img = sample_grid(fit.z_plane, origin, cell, X, Y)
-            psig_img = sample_grid(fit.z_plane_sigma, origin, cell, X, Y)
             rough_img = np.abs(elevation - plane_img)
-            rsig_img = np.sqrt(sigma * sigma + psig_img * psig_img)
+            rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
         else:
             slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
             fit = None
@@ -802,7 +814,7 @@ def _run_v2(
         }
         ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
         if fit is not None:
-            gev = classify(fit.grad, fit.grad_sigma, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+            gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
         else:
             nan_g = np.full(shape, np.nan, np.float32)
             gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)

@@ -208,6 +208,7 @@ class Match:
     frac: np.ndarray  # float32 h x w sub-plane index (k + parabolic offset)
     ok: np.ndarray  # bool h x w: passed the interval-end and uniqueness tests
     uniq: np.ndarray  # float32 h x w: (S2 - S1) / S1, S2 the best plane outside k +- 1
+    k2: np.ndarray  # int32 h x w: that competing plane
     kappa: np.ndarray  # float32 h x w: local curvature of the raw cost at the winner (cost units)
 
 
@@ -242,7 +243,8 @@ def winner(
     big = np.int16(np.iinfo(np.int16).max)
     for kk in (km, k, kp):
         np.put_along_axis(S2, kk[..., None], big, 2)
-    s2 = S2.min(axis=2).astype(np.float32)
+    k2 = S2.argmin(axis=2).astype(np.int32)
+    s2 = np.take_along_axis(S2, k2[..., None], 2)[..., 0].astype(np.float32)
     del S2
     uniq = (s2 - s0) / np.maximum(s0, 1.0)
     if uniqueness > 0:
@@ -253,7 +255,7 @@ def winner(
     curv = 0.5 * (cm + cp - 2.0 * c0)
     kr = 2 * int(kappa_radius) + 1
     kappa = cv2.blur(curv, (kr, kr), borderType=cv2.BORDER_REPLICATE)
-    return Match(k, frac, ok, uniq.astype(np.float32), kappa.astype(np.float32))
+    return Match(k, frac, ok, uniq.astype(np.float32), k2, kappa.astype(np.float32))
 
 
 def speckle_filter(frac: np.ndarray, ok: np.ndarray, max_size: int, max_diff: float = 1.0) -> np.ndarray:
@@ -265,8 +267,25 @@ def speckle_filter(frac: np.ndarray, ok: np.ndarray, max_size: int, max_diff: fl
     return ok & (d != -16)
 
 
-def plane_sigma(kappa: np.ndarray, temperature: float) -> np.ndarray:
-    """``sigma_k = sqrt(T / kappa + 1/12)`` in plane steps (inf where the curve is not convex)."""
+def plane_sigma(
+    kappa: np.ndarray,
+    temperature: float,
+    uniq: np.ndarray | None = None,
+    jump: np.ndarray | None = None,
+    uniq_scale: float = 0.2,
+) -> np.ndarray:
+    """Elevation uncertainty in plane steps (inf where the cost curve is not convex)::
+
+        sigma_k^2 = T / kappa + 1/12 + w (k2 - k)^2,   w = max(0, 1 - uniq / uniq_scale)
+
+    The last term is the ambiguity of a second minimum ``k2`` of the aggregated cost whose
+    cost is within ``uniq_scale`` (relative) of the winner's: the closer it is, the more its
+    distance counts.
+    """
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.sqrt(temperature / kappa + 1.0 / 12.0)
+        v = temperature / kappa + 1.0 / 12.0
+        if uniq is not None and jump is not None and uniq_scale > 0:
+            wgt = np.clip(1.0 - uniq / uniq_scale, 0.0, 1.0)
+            v = v + wgt * np.asarray(jump, np.float32) ** 2
+        s = np.sqrt(v)
     return np.where(kappa > 0, s, np.inf).astype(np.float32)
