@@ -70,6 +70,7 @@ def cost_slab(
     ignore: np.ndarray | None = None,
     deadline: float | None = None,
     check_every: int = 4,
+    min_support: float = 0.5,
 ) -> CostSlab:
     """Cost slab of ``planes`` for one (reference, other) image pair (module doc).
 
@@ -92,25 +93,29 @@ def cost_slab(
     a = zero_mean(np.ascontiguousarray(ref[y0 : y0 + h, x0 : x0 + w], dtype=np.float32), mean_radius)
     A, B, cz = homography_parts(camera, pose_ref, pose_other)
     k = 2 * int(radius) + 1
-    support = 2 * (int(radius) + int(mean_radius)) + 1  # pixels whose cost reads a sample
-    erode_k = np.ones((support, support), np.uint8)
+    km = 2 * int(mean_radius) + 1
     keep = None if ignore is None else ~np.asarray(ignore, bool)[y0 : y0 + h, x0 : x0 + w]
     diff = np.empty((h, w), np.float32)
     for i, z in enumerate(planes):
         if deadline is not None and i % check_every == 0 and time.monotonic() > deadline:
             return CostSlab(cost, valid, planes, roi, complete=False)
         warped = warp_to_i1(src, A - B / (cz - z), roi, _OUTSIDE)
-        inside = (warped > _OUTSIDE * 0.5).view(np.uint8)
-        inside = cv2.erode(inside, erode_k, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
-        np.copyto(warped, 0.0, where=warped < _OUTSIDE * 0.5)
-        cv2.absdiff(a, zero_mean(warped, mean_radius), dst=diff)
-        c = cv2.blur(diff, (k, k), borderType=cv2.BORDER_REPLICATE)
+        inside = (warped > _OUTSIDE * 0.5).astype(np.float32)
+        np.multiply(warped, inside, out=warped)
+        # partial supports at the edge of the other image: means and sums over the samples it has
+        n_m = cv2.blur(inside, (km, km), borderType=cv2.BORDER_REPLICATE)
+        mu = cv2.blur(warped, (km, km), borderType=cv2.BORDER_REPLICATE) / np.maximum(n_m, 1e-6)
+        cv2.absdiff(a, warped - mu, dst=diff)
+        np.multiply(diff, inside, out=diff)
+        n_c = cv2.blur(inside, (k, k), borderType=cv2.BORDER_REPLICATE)
+        c = cv2.blur(diff, (k, k), borderType=cv2.BORDER_REPLICATE) / np.maximum(n_c, 1e-6)
         np.multiply(c, COST_SCALE, out=c)
         np.minimum(c, COST_MAX, out=c)
+        ok = (inside > 0) & (n_c >= min_support) & (n_m >= min_support)
         if keep is not None:
-            inside &= keep
-        cost[i] = np.where(inside, c, COST_MAX)
-        valid[i] = inside
+            ok &= keep
+        cost[i] = np.where(ok, c, COST_MAX)
+        valid[i] = ok
     return CostSlab(cost, valid, planes, roi)
 
 

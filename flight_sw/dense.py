@@ -40,6 +40,7 @@ class DenseParams:
     temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
     uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
     kappa_radius: int = 2
+    kappa_floor: float = 0.0  # > 0: a non-convex raw cost curve gets this curvature (large sigma) instead of no match
 
 
 @dataclass
@@ -60,9 +61,19 @@ def roi_of(camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float) -
 
 
 def dem_from_slab(
-    slab: CostSlab, ref: np.ndarray, shape: tuple[int, int], dp: DenseParams, deadline: float | None = None
+    slab: CostSlab,
+    ref: np.ndarray,
+    shape: tuple[int, int],
+    dp: DenseParams,
+    deadline: float | None = None,
+    prior: np.ndarray | None = None,
 ) -> DenseDEM:
-    """Aggregate a (possibly multi-frame) slab and extract the DEM and its uncertainty."""
+    """Aggregate a (possibly multi-frame) slab and extract the DEM and its uncertainty.
+
+    ``prior`` (elevation, reference size, NaN = none; e.g. the coarse level's DEM) vouches for
+    pixels of the overlap-edge band: one that sees only part of the planes is kept when the
+    prior's plane lies well inside the part it sees (then its minimum there is a real one).
+    """
     H, W = shape
     nan = np.full(shape, np.nan, np.float32)
     x0, y0, w, h = slab.roi
@@ -88,13 +99,20 @@ def dem_from_slab(
     partial_lo, partial_hi = lo > 0, hi < D - 1
     ok0 = m.ok.copy()
     band = ((hi - lo + 1) < dp.min_interval_frac * D) | (partial_lo & (m.k < lo + em)) | (partial_hi & (m.k > hi - em))
+    if prior is not None:
+        zp = np.asarray(prior, np.float32)[y0 : y0 + h, x0 : x0 + w]
+        with np.errstate(invalid="ignore"):
+            kp = np.interp(np.nan_to_num(zp, nan=-1e9), planes, np.arange(D, dtype=np.float64), left=-1e9, right=1e9)
+            vouched = np.isfinite(zp) & (kp >= lo + em) & (kp <= hi - em) & (np.abs(m.frac - kp) <= 2.0 * em)
+        band &= ~vouched
     m.ok &= ~band
     ok1 = m.ok.copy()
     ok = speckle_filter(m.frac, m.ok, dp.speckle_px, dp.speckle_diff)
     idx = np.arange(D, dtype=np.float64)
     z = np.interp(m.frac.ravel(), idx, planes).reshape(h, w).astype(np.float32)
     dz = np.interp(m.frac.ravel(), 0.5 * (idx[1:] + idx[:-1]), np.diff(planes)).reshape(h, w)
-    sig = (plane_sigma(m.kappa, dp.temperature, m.uniq, m.k2 - m.k, dp.uniq_scale) * dz).astype(np.float32)
+    kappa = np.maximum(m.kappa, dp.kappa_floor) if dp.kappa_floor > 0 else m.kappa
+    sig = (plane_sigma(kappa, dp.temperature, m.uniq, m.k2 - m.k, dp.uniq_scale) * dz).astype(np.float32)
     ok &= np.isfinite(sig)
     elev = nan.copy()
     sigma = nan.copy()
@@ -122,8 +140,9 @@ def dense_dem(
     prefilter_sigma: float = 0.0,
     ignore: np.ndarray | None = None,
     deadline: float | None = None,
+    prior: np.ndarray | None = None,
 ) -> DenseDEM:
-    """Two-frame dense DEM of i1 over ``planes`` (module doc)."""
+    """Two-frame dense DEM of i1 over ``planes`` (module doc); ``prior`` see :func:`dem_from_slab`."""
     roi = roi_of(camera, pose1, pose2, float(planes[0]), float(planes[-1]))
     slab = cost_slab(
         i1,
@@ -139,4 +158,4 @@ def dense_dem(
         ignore=ignore,
         deadline=deadline,
     )
-    return dem_from_slab(slab, i1, i1.shape, dp, deadline)
+    return dem_from_slab(slab, i1, i1.shape, dp, deadline, prior)

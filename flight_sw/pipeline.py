@@ -101,8 +101,8 @@ class Params:
     # ---- flight v2 (issue 9); dem="sweep" is the v1 / thesis flow and ignores these
     dem: str = "sweep"  # "sweep": WTA window sweep (v1, thesis); "sgm": cost volume + semi-global aggregation
     range_search: bool = False  # find the ground (rangefind.py) instead of +- relief_margin around Z = 0
-    range_below_frac: float = 0.6  # wide prior: [-below * h1, min(above * h1, 0.5 h2)]
-    range_above_frac: float = 0.3
+    range_below_frac: float = 0.6  # wide prior: [-below * h1, min(above * h1, 0.3 h2)]
+    range_above_frac: float = 0.2
     sgm_radius: int = 2  # cost support (2r+1)^2 (costvolume.py)
     sgm_mean_radius: int = 3
     sgm_p1: int = 16
@@ -115,8 +115,10 @@ class Params:
     end_margin: int = 3  # planes: minima this close to a partially seen end of a pixel's plane interval are dropped
     min_interval_frac: float = 0.8  # pixels must see at least this share of the planes
     sigma_temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
+    kappa_floor: float = 0.0  # > 0: keep matches with a non-convex raw cost curve at this curvature (sgm.py)
     sigma_uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
-    max_planes: int = 64  # full-resolution planes; the disparity step grows to stay under it
+    max_planes: int = 64  # full-resolution planes; the disparity step grows to stay under it ...
+    min_planes: int = 24  # ... and shrinks to reach this many
     slope_sigma_gain: float = 1.0  # slope uncertainty = gain * mean footprint sigma / footprint (evidence.py)
     rough_sigma_gain: float = 0.2  # roughness uncertainty = gain * sigma
     sigma_k: float = 2.0  # unsafe only beyond k sigma of a limit
@@ -154,8 +156,10 @@ class Params:
             raise FlightInputError(f"params: sgm_paths must be 0, 4 or 8, got {self.sgm_paths!r}")
         if not 0 < self.sgm_p1 < self.sgm_p2 <= 2000:
             raise FlightInputError(f"params: need 0 < sgm_p1 < sgm_p2 <= 2000, got {self.sgm_p1}, {self.sgm_p2}")
-        if not 3 <= self.max_planes <= 256:
-            raise FlightInputError(f"params: max_planes must be in [3, 256], got {self.max_planes!r}")
+        if not 3 <= self.min_planes <= self.max_planes <= 256:
+            raise FlightInputError(
+                f"params: need 3 <= min_planes <= max_planes <= 256, got {self.min_planes!r}, {self.max_planes!r}"
+            )
         if self.sgm_radius < 0 or self.sgm_mean_radius < 1:
             raise FlightInputError("params: sgm_radius must be >= 0 and sgm_mean_radius >= 1")
         if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
@@ -204,6 +208,8 @@ PRESETS: dict[str, Params] = {
         hazard_margin_px=0.0,
         shadow_dark_frac=0.2,
         mapping_reserve_s=0.06,
+        mask_rocks=False,
+        coarse_range_pct=2.0,
         uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
         sigma_temperature=0.1,
         slope_sigma_gain=0.5,
@@ -594,6 +600,23 @@ def _run_v1(
     )
 
 
+def _bounded_planes(
+    camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float, step_px: float, n_min: int, n_max: int
+) -> np.ndarray:
+    """Planes uniform in disparity (``step_px``), the step adjusted so that ``n_min <= D <= n_max``:
+    a bounded cost volume over a wide range, enough planes for the sub-plane fit over a narrow one."""
+    planes = planes_uniform_disparity(camera, pose1, pose2, z_lo, z_hi, step_px)
+    for _ in range(12):
+        if planes.size > n_max:
+            step_px *= 1.25 * planes.size / n_max
+        elif planes.size < n_min:
+            step_px *= 0.9 * planes.size / n_min
+        else:
+            break
+        planes = planes_uniform_disparity(camera, pose1, pose2, z_lo, z_hi, step_px)
+    return planes
+
+
 def _dense_params(p: Params) -> DenseParams:
     return DenseParams(
         radius=p.sgm_radius,
@@ -606,6 +629,7 @@ def _dense_params(p: Params) -> DenseParams:
         uniqueness=p.uniqueness,
         speckle_px=p.speckle_px,
         temperature=p.sigma_temperature,
+        kappa_floor=p.kappa_floor,
         uniq_scale=p.sigma_uniq_scale,
         end_margin=p.end_margin,
         min_interval_frac=p.min_interval_frac,
@@ -675,7 +699,10 @@ def _run_v2(
                 }
             else:
                 info["skipped"].append("range")
-            z_mid = gr.median_z if gr is not None and gr.found else 0.5 * (z_lo + z_hi)
+            if gr is not None and gr.found:
+                z_mid = gr.median_z
+            else:  # nothing found: the datum if the prior holds it
+                z_mid = 0.0 if z_lo < 0.0 < z_hi else 0.5 * (z_lo + z_hi)
         else:
             margin = max(p.relief_margin_min_m, p.relief_margin_frac * float(pose1.position[2]))
             z_lo, z_hi = -margin, min(margin, float(pose2.position[2]) * 0.5)
@@ -734,14 +761,7 @@ def _run_v2(
 
     with _stage(timings, "full_dem"):
         if clock.ok(reserve) and f_hi > f_lo:
-            planes = planes_uniform_disparity(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px)
-            if planes.size > p.max_planes:  # bounded volume: coarser steps over a wide range
-                step = p.disparity_step_px
-                while True:
-                    step *= 1.25
-                    planes = planes_uniform_disparity(camera, pose1, pose2, f_lo, f_hi, step)
-                    if planes.size <= p.max_planes:
-                        break
+            planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]
             dem = dense_dem(
@@ -755,6 +775,7 @@ def _run_v2(
                 prefilter_sigma=sigma_pf,
                 ignore=rocks if p.mask_rocks else None,
                 deadline=clock.before(reserve),
+                prior=elevation if level == "coarse" else None,
             )
             info["dense"] = dem.info
             if dem.complete:

@@ -6,11 +6,12 @@ crater has its ground tens of metres below that datum, so the band misses it ent
 1. The prior range is either the altimeter's ground point ``Z_alt = C_z + r R_22`` (``r`` the
    slant range along the optical axis, ``R_22`` the optical axis's world-Z component; DESIGN.md)
    +- ``max(min_m, frac_alt * r)``, or without an altimeter a wide band
-   ``[-below * h, min(above * h, 0.5 * h_2)]`` around the datum (``h``, ``h_2``: the two camera
+   ``[-below * h, min(above * h, 0.3 * h_2)]`` around the datum (``h``, ``h_2``: the two camera
    heights above it; planes must stay below camera 2).
 2. A quarter-resolution winner-take-all sweep over that range (planes uniform in disparity,
    :func:`flight_sw.sweep.planes_uniform_disparity`; 16x fewer pixel-planes than half
-   resolution) gives a rough elevation per pixel; its ``[q, 100 - q]`` percentiles, padded by
+   resolution; flat cost curves dropped, :mod:`flight_sw.confidence`) gives a rough elevation per
+   pixel; its ``[q, 100 - q]`` percentiles (q = 5), padded by
    two coarse plane steps and a relative margin, are the range the finer levels sweep.
 
 If the quarter-resolution pass finds too few matches, the prior range is returned unchanged.
@@ -26,6 +27,7 @@ import numpy as np
 
 from protocol.pairdir import Camera, Pose
 
+from .confidence import elevation_uncertainty, reject_uncertain
 from .sweep import planes_uniform_disparity, scaled_camera, sweep_dem
 
 
@@ -51,13 +53,13 @@ def prior_range(
     altimeter_m: float | None,
     *,
     below_frac: float = 0.6,
-    above_frac: float = 0.3,
+    above_frac: float = 0.2,
     alt_frac: float = 0.15,
     alt_min_m: float = 10.0,
 ) -> tuple[float, float, str]:
     """Range to search before any image evidence (module doc, step 1)."""
     h1, h2 = float(pose1.position[2]), float(pose2.position[2])
-    top = 0.5 * h2  # planes must stay well below camera 2
+    top = 0.3 * h2  # planes must stay well below camera 2
     if altimeter_m is not None and math.isfinite(altimeter_m) and altimeter_m > 0:
         zg = altimeter_ground(pose1, altimeter_m)
         m = max(alt_min_m, alt_frac * altimeter_m)
@@ -79,16 +81,25 @@ def find_ground(
     source: str = "wide",
     step_px: float = 0.5,
     half_window: int = 3,
-    pct: float = 1.0,
+    pct: float = 5.0,
     pad_frac: float = 0.03,
     min_valid: int = 40,
     prefilter_sigma: float = 0.0,
     deadline: float | None = None,
+    min_size_px: int = 64,
 ) -> GroundRange:
-    """Quarter-resolution sweep over ``[z_lo, z_hi]``; the range of the ground it sees (module doc)."""
-    cam_q = scaled_camera(camera, 2)
-    q1 = cv2.pyrDown(cv2.pyrDown(np.asarray(i1, np.float32)))
-    q2 = cv2.pyrDown(cv2.pyrDown(np.asarray(i2, np.float32)))
+    """Quarter-resolution sweep over ``[z_lo, z_hi]``; the range of the ground it sees (module doc).
+
+    Small sensors are reduced less: the level is the coarsest (at most 2) that keeps the
+    image at least ``min_size_px`` wide.
+    """
+    level = 0
+    while level < 2 and min(camera.width, camera.height) >> (level + 1) >= min_size_px:
+        level += 1
+    cam_q = scaled_camera(camera, level)
+    q1, q2 = np.asarray(i1, np.float32), np.asarray(i2, np.float32)
+    for _ in range(level):
+        q1, q2 = cv2.pyrDown(q1), cv2.pyrDown(q2)
     planes = planes_uniform_disparity(cam_q, pose1, pose2, z_lo, z_hi, step_px)
     if planes.size < 3:
         return GroundRange(z_lo, z_hi, (z_lo, z_hi), source, False, int(planes.size))
@@ -105,7 +116,11 @@ def find_ground(
         deadline=deadline,
         end_erosion=1,
     )
-    z = res.elevation[np.isfinite(res.elevation)]
+    elev = res.elevation
+    if res.complete and res.curvature is not None:  # drop flat cost curves: they scatter over the range
+        u = elevation_uncertainty(elev, res.curvature, res.planes)
+        elev = reject_uncertain(elev, u, 1.5, res.curvature, 0.2)
+    z = elev[np.isfinite(elev)]
     if not res.complete or z.size < min_valid:
         return GroundRange(z_lo, z_hi, (z_lo, z_hi), source, False, int(planes.size))
     lo, hi = np.percentile(z, [pct, 100.0 - pct])

@@ -133,6 +133,12 @@ def select_safe_sites(
             f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe "
             f"(largest clearance {float(dist.max()) * grid.cell_m:.1f} m)"
         )
+    rf = 0.5 * footprint_m / grid.cell_m
+    rr = int(np.ceil(rf))
+    fy, fx = np.mgrid[-rr : rr + 1, -rr : rr + 1]
+    fdisk = ((fx * fx + fy * fy) <= rf * rf + 1e-9).astype(np.uint8)
+    hz = np.where(np.isfinite(grid.hazard), grid.hazard, np.float32(1.0)).astype(np.float32)
+    hmax = cv2.dilate(hz, fdisk, borderType=cv2.BORDER_CONSTANT, borderValue=1.0)
     ps = np.where(np.isfinite(grid.psafe), grid.psafe, 0.0).astype(np.float32)
     pmin = cv2.erode(ps, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
     ii, jj = np.nonzero(ok)
@@ -152,7 +158,7 @@ def select_safe_sites(
                 float(y[o]),
                 float(grid.elevation[i, j]),
                 float(grid.hazard[i, j]),
-                float(1.0 - np.nanmax(grid.hazard[max(0, i - r) : i + r + 1, max(0, j - r) : j + r + 1])),
+                float(1.0 - hmax[i, j]),
                 float(d[o]),
                 float(p[o]),
                 float(dist[i, j] * grid.cell_m),
