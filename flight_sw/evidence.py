@@ -3,14 +3,16 @@
 Footprint plane (thesis eq. 4.11/4.12) by weighted least squares with weights ``w = 1 / sigma_z^2``
 (box sums of ``w, wx, wy, wz, wx^2, wxy, wy^2, wxz, wyz``; O(1) per cell)::
 
-    [cxx cxy] [p]   [cxz]                         Cov(p, q) = rho / sum(w) * [cxx cxy; cxy cyy]^-1
-    [cxy cyy] [q] = [cyz]   (weighted centred moments),   Var(z_plane) = rho / sum(w)
+    [cxx cxy] [p]   [cxz]
+    [cxy cyy] [q] = [cyz]     (w-weighted centred moments),   g = |(p, q)|  (m per cell)
 
-``rho`` inflates the covariance because neighbouring elevations are not independent (they share
-the matching support and the aggregation): the effective number of samples in the footprint
-is about ``n / rho``. The gradient magnitude ``g = |(p, q)|`` (per cell) has the delta-method
-variance ``g^T Cov g / g^2`` (``tr(Cov) / 2`` at g = 0). Roughness ``r = |z - z_plane|`` has
-``sigma_r^2 = sigma_z^2 + Var(z_plane)``.
+:func:`weighted_plane_fit` also returns the textbook covariance ``rho / sum(w) [cxx cxy; cxy cyy]^-1``
+of ``(p, q)``, but it assumes independent elevation errors: on ground_sim's tuning pairs the SGM
+DEM's errors are correlated over many pixels, and the textbook slope uncertainty was off by 0.1x
+to 4.5x depending on how many cells a footprint spans. The flight pipeline therefore uses the
+empirical scales (calibrated on ``ground_sim.seeds.TUNING_SEEDS``, docs/benchmarks/pipeline.md)::
+
+    sigma_g = a_g * mean_footprint(sigma_z) * cell / footprint     sigma_r = a_r * sigma_z
 
 Per point, with ``Phi`` the normal CDF, ``G = tan(15 deg) * cell`` and the hazard limits of
 Table 2.1::
@@ -21,8 +23,7 @@ Table 2.1::
     unknown  otherwise (also: no elevation, or a footprint with too few measured points)
 
 so a hazard is only declared on evidence beyond ``k`` standard uncertainties, and ground is only
-called safe when it is safe with probability ``p_min`` (k and p_min are chosen on tuning seeds,
-docs/benchmarks/pipeline.md).
+called safe when it is safe with probability ``p_min``.
 """
 
 from __future__ import annotations

@@ -1,11 +1,22 @@
 """The hazard-detection pipeline (thesis Fig. 4.2) as one call: images + poses in, DEM + hazards out.
 
-Stages: validate -> rocks, shadow, coverage (image-only hazards) -> coarse DEM
-(half-resolution sweep) -> full DEM -> georeferencing -> world grid -> slope,
-roughness -> hazard -> sites. Anytime: with a deadline, the sweeps check the
-clock every few planes and stop ``mapping_reserve_s`` before it; the result is
-then built from the best level reached (``image_only`` < ``coarse`` < ``full``)
-and flagged ``degraded``. Ground truth is never an input.
+Two flows, chosen by ``Params.dem``:
+
+* ``"sweep"`` (the ``thesis`` reproduction and ``fast_v1``): validate -> rocks, shadow, coverage
+  (image-only hazards) -> coarse DEM (half-resolution WTA sweep) -> full DEM (WTA window sweep)
+  -> georeferencing -> world grid -> slope, roughness -> hazard = max of the scaled layers -> sites.
+* ``"sgm"`` (``fast``, flight v2, issue 9): rocks, dark shadow, wall cue -> ground range from the
+  data (:mod:`flight_sw.rangefind`) -> coarse DEM -> dense DEM: cost volume
+  (:mod:`flight_sw.costvolume`) + semi-global aggregation (:mod:`flight_sw.sgm`) with a per-pixel
+  elevation uncertainty sigma (:mod:`flight_sw.dense`) -> georeferencing -> world grid -> weighted
+  footprint planes and three-state evidence with P(safe) (:mod:`flight_sw.evidence`) -> sites on
+  known-safe ground ranked by P(safe) (:func:`flight_sw.sites.select_safe_sites`).
+
+Anytime: with a deadline every stage checks the clock; the DEM stages stop
+``mapping_reserve_s x time_scale`` before it (``time_scale`` = the emulated processor's slowdown,
+so the reserve is in unthrottled seconds), later stages are skipped once it has passed (listed in
+``info["skipped"]``); the result is built from the best level reached (``image_only`` <
+``coarse`` < ``full``) and flagged ``degraded``. Ground truth is never an input.
 """
 
 from __future__ import annotations
@@ -210,6 +221,8 @@ PRESETS: dict[str, Params] = {
         mapping_reserve_s=0.06,
         mask_rocks=False,
         coarse_range_pct=2.0,
+        sgm_p1=2,
+        sgm_p2=96,
         uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
         sigma_temperature=0.1,
         slope_sigma_gain=0.5,

@@ -97,7 +97,8 @@ def find_ground(
     while level < 2 and min(camera.width, camera.height) >> (level + 1) >= min_size_px:
         level += 1
     cam_q = scaled_camera(camera, level)
-    q1, q2 = np.asarray(i1, np.float32), np.asarray(i2, np.float32)
+    q1: np.ndarray = np.asarray(i1, np.float32)
+    q2: np.ndarray = np.asarray(i2, np.float32)
     for _ in range(level):
         q1, q2 = cv2.pyrDown(q1), cv2.pyrDown(q2)
     planes = planes_uniform_disparity(cam_q, pose1, pose2, z_lo, z_hi, step_px)
@@ -116,7 +117,7 @@ def find_ground(
         deadline=deadline,
         end_erosion=1,
     )
-    elev = res.elevation
+    elev: np.ndarray = res.elevation
     if res.complete and res.curvature is not None:  # drop flat cost curves: they scatter over the range
         u = elevation_uncertainty(elev, res.curvature, res.planes)
         elev = reject_uncertain(elev, u, 1.5, res.curvature, 0.2)
