@@ -190,6 +190,8 @@ def ablation_variants() -> dict[str, Any]:
         "uniqueness check 0.05 (reject instead of sigma)": r(f, uniqueness=0.05),
         "no speckle filter": r(f, speckle_px=0),
         "no uncertainty in hazards (k = 0, sigma ignored)": r(f, sigma_k=0.0, psafe_min=0.0),
+        "no wide-scale slope (footprint slope only)": r(f, wide_slope_factor=0.0),
+        "shadow pixels matched (no dark mask in the cost)": r(f, mask_shadow=False),
         "P1/P2 = 2/96 (weak smoothing)": r(f, sgm_p1=2, sgm_p2=96),
         "P1/P2 = 8/128": r(f, sgm_p1=8, sgm_p2=128),
         "non-convex raw cost = no match (kappa floor 0)": r(f, kappa_floor=0.0),

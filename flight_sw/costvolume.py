@@ -55,6 +55,15 @@ def zero_mean(img: np.ndarray, mean_radius: int) -> np.ndarray:
     return img - cv2.blur(img, (k, k), borderType=cv2.BORDER_REPLICATE)
 
 
+def local_contrast(img: np.ndarray, radius: int) -> np.ndarray:
+    """Grey-level standard deviation over the ``(2r+1)^2`` square around each pixel (float32)."""
+    k = 2 * int(radius) + 1
+    a = np.asarray(img, np.float32)
+    m = cv2.blur(a, (k, k), borderType=cv2.BORDER_REPLICATE)
+    m2 = cv2.blur(a * a, (k, k), borderType=cv2.BORDER_REPLICATE)
+    return np.sqrt(np.maximum(m2 - m * m, 0.0)).astype(np.float32)
+
+
 def cost_slab(
     ref: np.ndarray,
     other: np.ndarray,

@@ -35,6 +35,7 @@ import numpy as np
 from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
+from .costvolume import local_contrast
 from .dense import DenseParams, dense_dem
 from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
 from .gapfill import fill_small_gaps
@@ -136,6 +137,9 @@ class Params:
     psafe_min: float = 0.9  # safe only with P(safe) >= this
     shadow_dark_frac: float = 0.0  # > 0: shadow = I < frac * median(I) (replaces eq. 4.9 in the v2 flow)
     rocks_as_hazard: bool = True  # Harris rocks are an unsafe cue
+    mask_shadow: bool = False  # v2: dark-shadow pixels get no elevation (no texture to match)
+    texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
+    wide_slope_factor: float = 0.0  # > 1: slope = max(footprint slope, slope over this many footprints)
     site_margin_m: float = 0.5  # known-safe margin around a site's footprint
 
     def validate(self) -> None:
@@ -226,8 +230,11 @@ PRESETS: dict[str, Params] = {
         sgm_p2=128,
         uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
         kappa_floor=0.05,
+        mask_shadow=True,
+        texture_min=1.0,
         sigma_temperature=0.1,
-        slope_sigma_gain=1.0,
+        slope_sigma_gain=0.9,
+        wide_slope_factor=3.0,
         rough_sigma_gain=0.15,
         sigma_k=2.0,
         psafe_min=0.9,
@@ -681,10 +688,10 @@ def _run_v2(
             info["skipped"].append("rocks")
     with _stage(timings, "shadow"):
         if p.shadow_dark_frac > 0:
-            shadow = a1 < np.float32(p.shadow_dark_frac * float(np.median(a1)))
-            shadow = cv2.dilate(shadow.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+            dark = a1 < np.float32(p.shadow_dark_frac * float(np.median(a1)))
+            shadow = cv2.dilate(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
         else:
-            shadow = shadow_mask(i1)
+            dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)
         if p.shading_limit > 0 and clock.ok(reserve):
             fp_px = p.footprint_m / _centre_gsd(camera, pose1)
@@ -776,6 +783,10 @@ def _run_v2(
             info["skipped"].append("coarse_dem")
 
     with _stage(timings, "full_dem"):
+        # no match where there is nothing to match: dark shadow (and rocks, if masked)
+        ignore = (dark if p.mask_shadow else np.zeros(i1.shape, bool)) | (rocks if p.mask_rocks else False)
+        if p.texture_min > 0:  # blank support: nothing to match (its cost curve is flat, whatever SGM says)
+            ignore |= local_contrast(a1, p.sgm_radius + p.sgm_mean_radius) < p.texture_min
         if clock.ok(reserve) and f_hi > f_lo:
             planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
@@ -789,7 +800,7 @@ def _run_v2(
                 planes,
                 _dense_params(p),
                 prefilter_sigma=sigma_pf,
-                ignore=rocks if p.mask_rocks else None,
+                ignore=ignore,
                 deadline=clock.before(reserve),
                 prior=elevation if level == "coarse" else None,
             )
@@ -826,6 +837,13 @@ def _run_v2(
             info["skipped"].append("slope")
         if have_dem:
             fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m)
+            if p.wide_slope_factor > 1:
+                # SGM over horizontal planes can terrace a steep wall into flat steps a footprint wide;
+                # the slope over a few footprints still sees the wall: the steeper of the two counts
+                wide = weighted_plane_fit(g_elev, g_sig, cell, p.wide_slope_factor * p.footprint_m)
+                steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
+                fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
+                fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)
             # uncertainty of the footprint-scale quantities, calibrated on tuning seeds (evidence.py):
             # slope from the footprint's mean sigma, roughness from the point's sigma
             g_sbar = footprint_mean(g_sig, footprint_cells(p.footprint_m, cell))
