@@ -61,50 +61,58 @@ def weighted_plane_fit(
     footprint_m: float = 3.0,
     min_fraction: float = 0.5,
     rho: float = 1.0,
+    with_cov: bool = True,
 ) -> PlaneFit:
-    """Weighted LSQ plane over the footprint around every cell (module doc); ``sigma`` in metres."""
+    """Weighted LSQ plane over the footprint around every cell (module doc); ``sigma`` in metres.
+
+    ``with_cov=False`` skips the textbook uncertainties (``grad_sigma``, ``z_plane_sigma`` are NaN).
+    """
     z = np.asarray(z, np.float64)
     s = np.asarray(sigma, np.float64)
     n = footprint_cells(footprint_m, cell_m)
     h, w = z.shape
     okz = np.isfinite(z) & np.isfinite(s) & (s > 0)
-    wt = np.where(okz, 1.0 / np.where(okz, s * s, 1.0), 0.0)
+    wt = np.zeros((h, w))
+    np.divide(1.0, s * s, out=wt, where=okz)
     zz = np.where(okz, z, 0.0)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    xx -= w / 2.0
-    yy -= h / 2.0
+    wz = wt * zz
+    # coordinates relative to the grid centre keep the moments well conditioned
+    xx = (np.arange(w, dtype=np.float64) - w / 2.0)[None, :]
+    yy = (np.arange(h, dtype=np.float64) - h / 2.0)[:, None]
+    wx, wy = wt * xx, wt * yy
     cnt = _box(okz.astype(np.float64), n)
     s1 = _box(wt, n)
-    sx, sy, sz = _box(wt * xx, n), _box(wt * yy, n), _box(wt * zz, n)
-    sxx, sxy, syy = _box(wt * xx * xx, n), _box(wt * xx * yy, n), _box(wt * yy * yy, n)
-    sxz, syz = _box(wt * zz * xx, n), _box(wt * zz * yy, n)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mx, my, mz = sx / s1, sy / s1, sz / s1
-        # weighted centred moments (means of w-weighted products)
-        cxx, cxy, cyy = sxx / s1 - mx * mx, sxy / s1 - mx * my, syy / s1 - my * my
-        cxz, cyz = sxz / s1 - mx * mz, syz / s1 - my * mz
-        det = cxx * cyy - cxy * cxy
-        p = (cxz * cyy - cyz * cxy) / det
-        q = (cyz * cxx - cxz * cxy) / det
-        zc = mz + p * (xx - mx) + q * (yy - my)
-        # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
-        f = rho / (s1 * det)
-        vpp, vqq, vpq = f * cyy, f * cxx, -f * cxy
-        g = np.hypot(p, q)
-        gvar = np.where(g > 1e-12, (p * p * vpp + q * q * vqq + 2 * p * q * vpq) / (g * g), 0.5 * (vpp + vqq))
-        # plane value at the cell: Var = rho (1/s1 + d^T Cov d), d = offset of the cell from the weighted centroid
-        dx, dy = xx - mx, yy - my
-        zvar = rho / s1 + dx * dx * vpp + dy * dy * vqq + 2 * dx * dy * vpq
-    ok = (cnt >= min_fraction * n * n) & (det > 1e-6) & np.isfinite(zc)
+    sx, sy, sz = _box(wx, n), _box(wy, n), _box(wz, n)
+    sxx, sxy, syy = _box(wx * xx, n), _box(wx * yy, n), _box(wy * yy, n)
+    sxz, syz = _box(wz * xx, n), _box(wz * yy, n)
     nan = np.float32(np.nan)
-    slope = np.degrees(np.arctan(g / cell_m))
-    return PlaneFit(
-        np.where(ok, slope, nan).astype(np.float32),
-        np.where(ok, g, nan).astype(np.float32),
-        np.where(ok, np.sqrt(np.maximum(gvar, 0.0)), nan).astype(np.float32),
-        np.where(ok, zc, nan).astype(np.float32),
-        np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32),
-    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / s1
+        mx, my, mz = sx * inv, sy * inv, sz * inv
+        # weighted centred moments (means of w-weighted products)
+        cxx, cxy, cyy = sxx * inv - mx * mx, sxy * inv - mx * my, syy * inv - my * my
+        cxz, cyz = sxz * inv - mx * mz, syz * inv - my * mz
+        det = cxx * cyy - cxy * cxy
+        idet = 1.0 / det
+        p = (cxz * cyy - cyz * cxy) * idet
+        q = (cyz * cxx - cxz * cxy) * idet
+        dx, dy = xx - mx, yy - my
+        zc = mz + p * dx + q * dy
+        g = np.hypot(p, q)
+        ok = (cnt >= min_fraction * n * n) & (det > 1e-6) & np.isfinite(zc)
+        gsig = zsig = np.full((h, w), nan, np.float32)
+        if with_cov:
+            # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
+            f = rho * inv * idet
+            vpp, vqq, vpq = f * cyy, f * cxx, -f * cxy
+            gvar = np.where(g > 1e-12, (p * p * vpp + q * q * vqq + 2 * p * q * vpq) / (g * g), 0.5 * (vpp + vqq))
+            # plane value at the cell: Var = rho/s1 + d^T Cov d, d = offset of the cell from the weighted centroid
+            zvar = rho * inv + dx * dx * vpp + dy * dy * vqq + 2 * dx * dy * vpq
+            gsig = np.where(ok, np.sqrt(np.maximum(gvar, 0.0)), nan).astype(np.float32)
+            zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
+    g32 = np.where(ok, g, nan).astype(np.float32)
+    slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
+    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig)
 
 
 def footprint_mean(a: np.ndarray, n: int) -> np.ndarray:
@@ -117,9 +125,9 @@ def footprint_mean(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def norm_cdf(x: np.ndarray) -> np.ndarray:
-    """Standard normal CDF, float32, via erf (vectorised through cv2-free numpy)."""
-    x = np.asarray(x, np.float64)
-    return (0.5 * (1.0 + _erf(x / math.sqrt(2.0)))).astype(np.float32)
+    """Standard normal CDF (float32) via erf."""
+    x = np.asarray(x, np.float32)
+    return (0.5 * (1.0 + _erf(x * np.float32(1.0 / math.sqrt(2.0))))).astype(np.float32)
 
 
 def _erf(x: np.ndarray) -> np.ndarray:

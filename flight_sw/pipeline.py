@@ -837,11 +837,11 @@ def _run_v2(
             have_dem = False  # past the deadline: the image cues are all the evidence there is
             info["skipped"].append("slope")
         if have_dem:
-            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m)
+            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m, with_cov=False)
             if p.wide_slope_factor > 1:
                 # SGM over horizontal planes can terrace a steep wall into flat steps a footprint wide;
                 # the slope over a few footprints still sees the wall: the steeper of the two counts
-                wide = weighted_plane_fit(g_elev, g_sig, cell, p.wide_slope_factor * p.footprint_m)
+                wide = weighted_plane_fit(g_elev, g_sig, cell, p.wide_slope_factor * p.footprint_m, with_cov=False)
                 steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
                 fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
                 fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)
