@@ -197,9 +197,8 @@ def ablation_variants() -> dict[str, Any]:
         "non-convex raw cost = no match (kappa floor 0)": r(f, kappa_floor=0.0),
         "wall cue at 0.15 (v1's)": r(f, shading_limit=0.15),
         "P(safe) >= 0.8": r(f, psafe_min=0.8),
-        "no wall cue, no rock cue": r(f, shading_limit=0.0, rocks_as_hazard=False),
         "no wall cue": r(f, shading_limit=0.0),
-        "no rock mask": r(f, rocks_as_hazard=False),
+        "with the Harris rock cue": r(f, rocks_as_hazard=True),
         "with keep-out margin 1 px": r(f, hazard_margin_px=1.0),
         "fixed sweep range (v1 +-max(10 m, 6 %))": r(f, range_search=False),
     }
