@@ -179,6 +179,20 @@ class Params:
             raise FlightInputError("params: sgm_radius must be >= 0 and sgm_mean_radius >= 1")
         if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
             raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
+        for name in (
+            "sigma_temperature",
+            "slope_sigma_gain",
+            "rough_sigma_gain",
+            "kappa_floor",
+            "texture_min",
+            "wide_slope_factor",
+            "site_margin_m",
+            "shadow_dark_frac",
+            "mapping_reserve_s",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise FlightInputError(f"params: {name} must be a non-negative number, got {v!r}")
 
 
 def window_px(half_window: int, overlap_px: int, cap: bool = True) -> int:

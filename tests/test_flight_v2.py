@@ -298,3 +298,16 @@ def test_every_stage_checks_the_clock_in_the_v1_flow_too():
     past = run_pipeline(i1, i2, p1, p2, cam, preset="thesis", deadline_at=time.monotonic() - 1.0)
     assert past.level == "image_only" and "sites" in past.info["skipped"] and past.sites == []
     assert past.info["no_site_reason"]
+
+
+def test_v2_params_are_checked():
+    cam, p1, p2, i1, i2, _ = make_pair(96, 200.0, 100.0, plane(0.0), seed=38)
+    for bad, word in (
+        ({"sgm_paths": 3}, "sgm_paths"),
+        ({"sgm_p1": 200, "sgm_p2": 100}, "sgm_p1"),
+        ({"sigma_temperature": -1.0}, "sigma_temperature"),
+        ({"dem": "magic"}, "dem"),
+        ({"min_planes": 80, "max_planes": 40}, "min_planes"),
+    ):
+        with pytest.raises(FlightInputError, match=word):
+            run_pipeline(i1, i2, p1, p2, cam, preset=dataclasses.replace(PRESETS["fast"], **bad))
