@@ -11,7 +11,7 @@ SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 # PYTHONWARNINGS: setuptools warns that an editable install is editable; nothing else is hidden
 # (a failed install still fails the target).
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py flight_sw/_sgmc.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test]'

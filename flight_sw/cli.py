@@ -22,7 +22,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
-    p.add_argument("--preset", default="fast", choices=("fast", "thesis"), help="parameter preset (default fast)")
+    p.add_argument(
+        "--preset",
+        default="fast",
+        choices=("fast", "thesis", "fast_v1"),
+        help="parameter preset: fast (flight v2, default), thesis (the reproduction), fast_v1 (issue-6 fast)",
+    )
     p.add_argument(
         "--deadline",
         type=float,
@@ -79,6 +84,7 @@ def _process(args: argparse.Namespace) -> int:
         pair.camera,
         preset=params,
         deadline_s=args.deadline,
+        altimeter_m=pair.altimeter_m,  # per frame; the pipeline uses frame 0's reading when there is one
     )
     out = Path(args.out)
     try:
@@ -105,6 +111,7 @@ def _process(args: argparse.Namespace) -> int:
             "rows_toward": "-Y",
         },
         "sites": [s.to_dict() for s in res.sites],
+        "no_site_reason": res.info.get("no_site_reason", ""),
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }

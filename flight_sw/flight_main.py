@@ -165,6 +165,9 @@ class FlightProcess:
                 Camera.from_dict(cfg.camera),
                 preset=cfg.preset or "fast",
                 deadline_s=max(budget, 0.0),
+                altimeter_m=float(upper.altimeter_m),  # NaN: no reading
+                # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
+                time_scale=float(cfg.options.get("time_scale", 1.0)),
             )
         except InputError as exc:
             self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))

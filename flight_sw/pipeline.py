@@ -1,11 +1,22 @@
 """The hazard-detection pipeline (thesis Fig. 4.2) as one call: images + poses in, DEM + hazards out.
 
-Stages: validate -> rocks, shadow, coverage (image-only hazards) -> coarse DEM
-(half-resolution sweep) -> full DEM -> georeferencing -> world grid -> slope,
-roughness -> hazard -> sites. Anytime: with a deadline, the sweeps check the
-clock every few planes and stop ``mapping_reserve_s`` before it; the result is
-then built from the best level reached (``image_only`` < ``coarse`` < ``full``)
-and flagged ``degraded``. Ground truth is never an input.
+Two flows, chosen by ``Params.dem``:
+
+* ``"sweep"`` (the ``thesis`` reproduction and ``fast_v1``): validate -> rocks, shadow, coverage
+  (image-only hazards) -> coarse DEM (half-resolution WTA sweep) -> full DEM (WTA window sweep)
+  -> georeferencing -> world grid -> slope, roughness -> hazard = max of the scaled layers -> sites.
+* ``"sgm"`` (``fast``, flight v2, issue 9): rocks, dark shadow, wall cue -> ground range from the
+  data (:mod:`flight_sw.rangefind`) -> coarse DEM -> dense DEM: cost volume
+  (:mod:`flight_sw.costvolume`) + semi-global aggregation (:mod:`flight_sw.sgm`) with a per-pixel
+  elevation uncertainty sigma (:mod:`flight_sw.dense`) -> georeferencing -> world grid -> weighted
+  footprint planes and three-state evidence with P(safe) (:mod:`flight_sw.evidence`) -> sites on
+  known-safe ground ranked by P(safe) (:func:`flight_sw.sites.select_safe_sites`).
+
+Anytime: with a deadline every stage checks the clock; the DEM stages stop
+``mapping_reserve_s x time_scale`` before it (``time_scale`` = the emulated processor's slowdown,
+so the reserve is in unthrottled seconds), later stages are skipped once it has passed (listed in
+``info["skipped"]``); the result is built from the best level reached (``image_only`` <
+``coarse`` < ``full``) and flagged ``degraded``. Ground truth is never an input.
 """
 
 from __future__ import annotations
@@ -13,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,9 +32,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.pairdir import Camera, Pose
+from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
+from .costvolume import local_contrast
+from .dense import DenseParams, dense_dem
+from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
 from .gapfill import fill_small_gaps
 from .georef import backproject
 from .mapping import (
@@ -37,12 +51,21 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
+from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, shading_mask
 from .shadow import shadow_mask
-from .sites import Site, select_sites
-from .slope import plane_fit, roughness
-from .sweep import coverage_mask, planes_uniform_disparity, planes_uniform_dz, scaled_camera, sweep_dem
+from .sites import Site, select_safe_sites, select_sites
+from .slope import footprint_cells, plane_fit, roughness
+from .sweep import (
+    SweepResult,
+    coverage_mask,
+    planes_uniform_disparity,
+    planes_uniform_dz,
+    scaled_camera,
+    sweep_dem,
+)
 from .validate import FlightInputError, check_inputs
 from .warping import area_sigma
 
@@ -85,8 +108,39 @@ class Params:
     rough_limit_m: float = 0.30
     cell_m: float | None = None  # world grid cell; None: median GSD of i1 over the covered area
     n_sites: int = 5
-    mapping_reserve_s: float = 0.03  # sweeps stop this long before the deadline
+    mapping_reserve_s: float = 0.03  # sweeps stop this long (unthrottled s, x time_scale) before the deadline
     check_every: int = 4  # planes between clock checks
+    # ---- flight v2 (issue 9); dem="sweep" is the v1 / thesis flow and ignores these
+    dem: str = "sweep"  # "sweep": WTA window sweep (v1, thesis); "sgm": cost volume + semi-global aggregation
+    range_search: bool = False  # find the ground (rangefind.py) instead of +- relief_margin around Z = 0
+    range_below_frac: float = 0.6  # wide prior: [-below * h1, min(above * h1, 0.3 h2)]
+    range_above_frac: float = 0.2
+    sgm_radius: int = 2  # cost support (2r+1)^2 (costvolume.py)
+    sgm_mean_radius: int = 3
+    sgm_p1: int = 16
+    sgm_p2: int = 128
+    sgm_p2_g0: float = 4.0
+    p2_gradient_adapt: bool = True
+    sgm_paths: int = 8  # 8, 4 or 0 (no aggregation)
+    uniqueness: float = 0.05
+    speckle_px: int = 30
+    end_margin: int = 3  # planes: minima this close to a partially seen end of a pixel's plane interval are dropped
+    min_interval_frac: float = 0.8  # pixels must see at least this share of the planes
+    sigma_temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
+    kappa_floor: float = 0.0  # > 0: keep matches with a non-convex raw cost curve at this curvature (sgm.py)
+    sigma_uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
+    max_planes: int = 64  # full-resolution planes; the disparity step grows to stay under it ...
+    min_planes: int = 24  # ... and shrinks to reach this many
+    slope_sigma_gain: float = 1.0  # slope uncertainty = gain * mean footprint sigma / footprint (evidence.py)
+    rough_sigma_gain: float = 0.2  # roughness uncertainty = gain * sigma
+    sigma_k: float = 2.0  # unsafe only beyond k sigma of a limit
+    psafe_min: float = 0.9  # safe only with P(safe) >= this
+    shadow_dark_frac: float = 0.0  # > 0: shadow = I < frac * median(I) (replaces eq. 4.9 in the v2 flow)
+    rocks_as_hazard: bool = True  # Harris rocks are an unsafe cue
+    mask_shadow: bool = False  # v2: dark-shadow pixels get no elevation (no texture to match)
+    texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
+    wide_slope_factor: float = 0.0  # > 1: slope = max(footprint slope, slope over this many footprints)
+    site_margin_m: float = 0.5  # known-safe margin around a site's footprint
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -111,6 +165,34 @@ class Params:
             raise FlightInputError(f"params: hazard_margin_px must be in [0, 50], got {self.hazard_margin_px!r}")
         if self.cell_m is not None and not (math.isfinite(self.cell_m) and self.cell_m > 0):
             raise FlightInputError(f"params: cell_m must be positive, got {self.cell_m!r}")
+        if self.dem not in ("sweep", "sgm"):
+            raise FlightInputError(f"params: dem must be 'sweep' or 'sgm', got {self.dem!r}")
+        if self.sgm_paths not in (0, 4, 8):
+            raise FlightInputError(f"params: sgm_paths must be 0, 4 or 8, got {self.sgm_paths!r}")
+        if not 0 < self.sgm_p1 < self.sgm_p2 <= 2000:
+            raise FlightInputError(f"params: need 0 < sgm_p1 < sgm_p2 <= 2000, got {self.sgm_p1}, {self.sgm_p2}")
+        if not 3 <= self.min_planes <= self.max_planes <= 256:
+            raise FlightInputError(
+                f"params: need 3 <= min_planes <= max_planes <= 256, got {self.min_planes!r}, {self.max_planes!r}"
+            )
+        if self.sgm_radius < 0 or self.sgm_mean_radius < 1:
+            raise FlightInputError("params: sgm_radius must be >= 0 and sgm_mean_radius >= 1")
+        if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
+            raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
+        for name in (
+            "sigma_temperature",
+            "slope_sigma_gain",
+            "rough_sigma_gain",
+            "kappa_floor",
+            "texture_min",
+            "wide_slope_factor",
+            "site_margin_m",
+            "shadow_dark_frac",
+            "mapping_reserve_s",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise FlightInputError(f"params: {name} must be a non-negative number, got {v!r}")
 
 
 def window_px(half_window: int, overlap_px: int, cap: bool = True) -> int:
@@ -126,24 +208,58 @@ def window_px(half_window: int, overlap_px: int, cap: bool = True) -> int:
     return int(min(half_window, max(2, int((overlap_px / 4.0 - 1.0) / 2.0))))
 
 
+# fast_v1 (issue 6): SSD + 21x21 window, chosen on ground_sim seed-0 pairs and confirmed on seed-1 pairs
+# (docs/benchmarks/pipeline.md); with i2 prefiltered and rocks masked, SSD's outlier sensitivity
+# (the thesis's reason for SAD, sec 4.2) no longer dominates. Confidence rejection, photometric cues and
+# gap filling (issue #6); a 1 px keep-out margin around slope/roughness hazards.
+_FAST_V1 = Params(
+    name="fast_v1",
+    half_window=10,
+    cost="ssd",
+    reject_rel_uncertainty=1.5,
+    shadow_dark_rel=0.1,
+    shading_limit=0.15,
+    fill_gap_px=8,
+    hazard_margin_px=1.0,
+)
+
 PRESETS: dict[str, Params] = {
-    # fast: SSD + 17x17 window, chosen on ground_sim seed-0 pairs and confirmed on seed-1 pairs
-    # (docs/benchmarks/pipeline.md); with i2 prefiltered and rocks masked, SSD's outlier sensitivity
-    # (the thesis's reason for SAD, sec 4.2) no longer dominates.
-    # Confidence rejection, photometric cues and gap filling (issue #6): tuned on approach/vertical
-    # seeds 0-1, seed 2 held out (docs/benchmarks/pipeline.md).
-    # A 1 px keep-out margin around slope/roughness hazards (issue #6 follow-up): approach 300 m
-    # seed 0 FP 1.23 -> 0.86 % for 5-15 points more false alarms (docs/benchmarks/pipeline.md).
-    "fast": Params(
+    # fast = flight v2 (issue 9): ground range from the data, cost volume + 8-path SGM, sigma per pixel,
+    # uncertainty-aware three-state hazards, sites on known-safe ground. Tuned on ground_sim.seeds.TUNING_SEEDS
+    # (docs/benchmarks/pipeline.md, bench/eval_flight.py).
+    "fast": dataclasses.replace(
+        _FAST_V1,
         name="fast",
-        half_window=10,
-        cost="ssd",
-        reject_rel_uncertainty=1.5,
-        shadow_dark_rel=0.1,
-        shading_limit=0.15,
-        fill_gap_px=8,
-        hazard_margin_px=1.0,
+        dem="sgm",
+        range_search=True,
+        mask_rocks=False,  # rocks are not masked out of the matching ...
+        rocks_as_hazard=False,  # ... nor a hazard cue: the ablation shows no FP gain for 0.7 CDI points
+        coarse_range_pct=2.0,
+        reject_rel_uncertainty=1.5,  # coarse level and range search only
+        fill_gap_px=0,
+        hazard_margin_px=0.0,
+        shadow_dark_frac=0.2,
+        shading_limit=0.1,
+        mapping_reserve_s=0.06,
+        sgm_p1=16,
+        sgm_p2=128,
+        uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
+        kappa_floor=0.05,
+        mask_shadow=True,
+        texture_min=1.0,
+        sigma_temperature=0.1,
+        slope_sigma_gain=0.9,
+        wide_slope_factor=3.0,
+        rough_sigma_gain=0.15,
+        sigma_k=2.0,
+        psafe_min=0.9,
+        max_planes=48,
+        # 1.5 m of known-safe ground around the footprint: on the tuning crater descents (seeds 0-1) the
+        # 0.5 m margin offered 2 of 6 top sites on terraced wall steps at the edge of the map
+        site_margin_m=1.5,
     ),
+    # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
+    "fast_v1": _FAST_V1,
     "thesis": Params(
         name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False, coarse_to_fine=False
     ),
@@ -213,6 +329,43 @@ def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
     return float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
 
 
+@dataclass
+class _Clock:
+    """The deadline in ``time.monotonic()`` seconds; reserves are unthrottled seconds x ``scale``.
+
+    ``scale`` is the emulated processor's slowdown (1 / CPU fraction): a reserve that covers the
+    mapping stages on this host covers them on a processor ``scale`` times slower.
+    """
+
+    deadline: float | None
+    scale: float = 1.0
+
+    def before(self, reserve_s: float) -> float | None:
+        """The time by which work must stop to leave ``reserve_s`` (unthrottled) for what follows."""
+        return None if self.deadline is None else self.deadline - reserve_s * self.scale
+
+    def ok(self, reserve_s: float = 0.0) -> bool:
+        """True while ``reserve_s`` (unthrottled) still fits before the deadline."""
+        return self.deadline is None or time.monotonic() + reserve_s * self.scale < self.deadline
+
+
+def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
+    """The slant range of i1's altimeter reading (first finite value of a per-frame sequence), or None."""
+    if altimeter_m is None:
+        return None
+    vals = [altimeter_m] if isinstance(altimeter_m, (int, float)) else list(altimeter_m)[:1]
+    for v in vals:
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise FlightInputError(f"altimeter_m must be a number (m) or None, got {altimeter_m!r}") from None
+        if math.isfinite(f):
+            if f <= 0:
+                raise FlightInputError(f"altimeter_m must be a positive slant range, got {f}")
+            return f
+    return None
+
+
 def run_pipeline(
     i1: np.ndarray,
     i2: np.ndarray,
@@ -224,13 +377,18 @@ def run_pipeline(
     deadline_s: float | None = None,
     nominal_site_xy: tuple[float, float] = (0.0, 0.0),
     deadline_at: float | None = None,
+    altimeter_m: float | Sequence[float] | None = None,
+    time_scale: float = 1.0,
 ) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
     ``deadline_s`` is a budget in seconds from the call, ``deadline_at`` an absolute
     ``time.monotonic()`` value (the earlier wins); the result is the best
-    level reached in time (see module doc). Raises :class:`FlightInputError`
-    for bad arguments.
+    level reached in time (see module doc). ``altimeter_m`` is i1's altimeter slant range
+    (``Pair.altimeter_m``: a per-frame sequence is accepted; NaN = none); the v2 flow centres
+    its ground search on it. ``time_scale`` is the emulated processor's slowdown factor
+    (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
+    are multiplied by it. Raises :class:`FlightInputError` for bad arguments.
     """
     t_start = time.monotonic()
     timings: dict[str, dict[str, float]] = {}
@@ -247,9 +405,37 @@ def run_pipeline(
             raise FlightInputError(f"nominal_site_xy must be finite, got {nominal_site_xy!r}")
         if deadline_at is not None and not (isinstance(deadline_at, (int, float)) and math.isfinite(deadline_at)):
             raise FlightInputError(f"deadline_at must be a finite time.monotonic() value, got {deadline_at!r}")
+        if not (isinstance(time_scale, (int, float)) and math.isfinite(time_scale) and time_scale > 0):
+            raise FlightInputError(f"time_scale must be a positive number, got {time_scale!r}")
+        alt_range = _altimeter(altimeter_m)
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
-        deadline = min(ends) if ends else None
-        sweep_deadline = None if deadline is None else deadline - p.mapping_reserve_s
+        clock = _Clock(min(ends) if ends else None, float(time_scale))
+    if p.dem == "sgm":
+        return _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings)
+    return _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
+
+
+def _finish(timings: dict[str, dict[str, float]]) -> None:
+    timings["total"] = {
+        "wall_s": sum(t["wall_s"] for t in timings.values()),
+        "cpu_s": sum(t["cpu_s"] for t in timings.values()),
+    }
+
+
+def _run_v1(
+    i1: np.ndarray,
+    i2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    p: Params,
+    clock: _Clock,
+    nominal: tuple[float, float],
+    timings: dict[str, dict[str, float]],
+) -> PipelineResult:
+    """The thesis / issue-6 flow: window-correlation WTA sweeps, hazard = max of scaled layers."""
+    with _stage(timings, "prepare"):
+        sweep_deadline = clock.before(p.mapping_reserve_s)
         a1 = np.ascontiguousarray(i1, dtype=np.float32)
         a2 = np.ascontiguousarray(i2, dtype=np.float32)
         alt = float(pose1.position[2])
@@ -257,14 +443,14 @@ def run_pipeline(
         z_lo, z_hi = -margin, min(margin, float(pose2.position[2]) * 0.5)
         scale = _gsd_scale(camera, pose1, pose2)
         sigma = area_sigma(scale) if p.prefilter else 0.0
-    info: dict[str, Any] = {"sweep_range_m": [z_lo, z_hi], "gsd_ratio": scale}
+    info: dict[str, Any] = {"sweep_range_m": [z_lo, z_hi], "gsd_ratio": scale, "skipped": []}
 
     with _stage(timings, "rocks"):
         rocks = rock_mask(i1, p.rock_k, p.harris_alpha, p.rock_dilate_px)
     with _stage(timings, "shadow"):
         shadow = shadow_mask(i1)
         shading = np.zeros(i1.shape, bool)
-        if p.shadow_dark_rel > 0 or p.shading_limit > 0:
+        if (p.shadow_dark_rel > 0 or p.shading_limit > 0) and clock.ok(p.mapping_reserve_s):
             fp_px = p.footprint_m / _centre_gsd(camera, pose1)
             rho = relative_brightness(
                 i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
@@ -273,6 +459,8 @@ def run_pipeline(
                 shadow = local_shadow_mask(i1, shadow, rho, p.shadow_dark_rel)
             if p.shading_limit > 0:
                 shading = shading_mask(rho, p.shading_limit)
+        elif p.shadow_dark_rel > 0 or p.shading_limit > 0:
+            info["skipped"].append("photometric_cues")
     with _stage(timings, "coverage"):
         covered = coverage_mask(camera, pose1, pose2, 0.0)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
@@ -282,47 +470,52 @@ def run_pipeline(
         info["half_window_px"], info["coarse_half_window_px"] = W_full, W_coarse
     level = "image_only"
     elevation = np.full(i1.shape, np.nan, np.float32)
+    res_c: SweepResult | None = None
+    n_coarse = 0
 
     with _stage(timings, "coarse_dem"):
-        cam_c = scaled_camera(camera, 1)
-        c1, c2 = cv2.pyrDown(a1), cv2.pyrDown(a2)
-        rock_c = cv2.resize(
-            rocks.astype(np.uint8), (cam_c.width, cam_c.height), interpolation=cv2.INTER_NEAREST
-        ).astype(bool)
-        planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
-        res_c = sweep_dem(
-            c1,
-            c2,
-            cam_c,
-            pose1,
-            pose2,
-            planes_c,
-            half_window=W_coarse,
-            cost=p.cost,
-            prefilter_sigma=sigma,
-            ignore=rock_c if p.mask_rocks else None,
-            deadline=sweep_deadline,
-            check_every=p.check_every,
-        )
-        info["coarse_planes"] = int(planes_c.size)
-        if res_c.complete and res_c.curvature is not None and p.reject_rel_uncertainty > 0:
-            # outliers would widen the fine range
-            u_c = elevation_uncertainty(res_c.elevation, res_c.curvature, res_c.planes)
-            res_c.elevation = reject_uncertain(
-                res_c.elevation, u_c, p.reject_rel_uncertainty, res_c.curvature, p.sharp_curvature
+        if clock.ok(p.mapping_reserve_s):
+            cam_c = scaled_camera(camera, 1)
+            c1, c2 = cv2.pyrDown(a1), cv2.pyrDown(a2)
+            rock_c = cv2.resize(
+                rocks.astype(np.uint8), (cam_c.width, cam_c.height), interpolation=cv2.INTER_NEAREST
+            ).astype(bool)
+            planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
+            res_c = sweep_dem(
+                c1,
+                c2,
+                cam_c,
+                pose1,
+                pose2,
+                planes_c,
+                half_window=W_coarse,
+                cost=p.cost,
+                prefilter_sigma=sigma,
+                ignore=rock_c if p.mask_rocks else None,
+                deadline=sweep_deadline,
+                check_every=p.check_every,
             )
-        n_coarse = int(np.isfinite(res_c.elevation).sum())
-        if res_c.complete and n_coarse > 0:
-            coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
-            elevation = np.where(rocks & p.mask_rocks, np.nan, coarse).astype(np.float32)
-            level = "coarse"
+            info["coarse_planes"] = int(planes_c.size)
+            if res_c.complete and res_c.curvature is not None and p.reject_rel_uncertainty > 0:
+                # outliers would widen the fine range
+                u_c = elevation_uncertainty(res_c.elevation, res_c.curvature, res_c.planes)
+                res_c.elevation = reject_uncertain(
+                    res_c.elevation, u_c, p.reject_rel_uncertainty, res_c.curvature, p.sharp_curvature
+                )
+            n_coarse = int(np.isfinite(res_c.elevation).sum())
+            if res_c.complete and n_coarse > 0:
+                coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+                elevation = np.where(rocks & p.mask_rocks, np.nan, coarse).astype(np.float32)
+                level = "coarse"
+        else:
+            info["skipped"].append("coarse_dem")
 
     with _stage(timings, "full_dem"):
         # tiny images can leave the half-resolution DEM empty: then sweep the full range
-        if res_c.complete:
+        if res_c is not None and res_c.complete and clock.ok(p.mapping_reserve_s):
             f_lo, f_hi = z_lo, z_hi
             if p.coarse_to_fine and n_coarse >= 50:
-                pad = 2.0 * float(np.max(np.diff(planes_c)))
+                pad = 2.0 * float(np.max(np.diff(res_c.planes)))
                 lo, hi = np.nanpercentile(res_c.elevation, [p.coarse_range_pct, 100.0 - p.coarse_range_pct])
                 f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
             if p.plane_spacing == "dz":
@@ -354,11 +547,15 @@ def run_pipeline(
                         elevation, u, p.reject_rel_uncertainty, res_f.curvature, p.sharp_curvature
                     )
                 level = "full"
+        elif res_c is not None and res_c.complete:
+            info["skipped"].append("full_dem")
 
     with _stage(timings, "gap_fill"):
         # hazard mapping uses the gap-filled DEM; the returned elevation stays measured-only
         have_dem = level != "image_only"
-        elev_map = fill_small_gaps(elevation, p.fill_gap_px, p.fill_min_frac) if have_dem else elevation
+        elev_map = elevation
+        if have_dem and p.fill_gap_px > 0 and clock.ok():
+            elev_map = fill_small_gaps(elevation, p.fill_gap_px, p.fill_min_frac)
         info["filled_fraction"] = float(
             (np.isfinite(elev_map) & ~np.isfinite(elevation) & covered).sum() / max(1, int(covered.sum()))
         )
@@ -384,6 +581,9 @@ def run_pipeline(
     with _stage(timings, "slope"):
         g_slope: np.ndarray | None = None
         g_rough: np.ndarray | None = None
+        if have_dem and not clock.ok():
+            have_dem = False  # past the deadline: map the image cues only
+            info["skipped"].append("slope")
         if have_dem:
             g_slope, g_plane = plane_fit(g_elev, cell, p.footprint_m)
             g_rough = roughness(g_elev, g_plane)
@@ -411,15 +611,16 @@ def run_pipeline(
         grid = HazardGrid(g_haz, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell))
 
     with _stage(timings, "sites"):
-        sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
+        if clock.ok():
+            sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
+        else:
+            sites = []
+            info["skipped"].append("sites")
+            info["no_site_reason"] = "deadline reached before site selection"
 
-    timings["total"] = {
-        "wall_s": sum(t["wall_s"] for t in timings.values()),
-        "cpu_s": sum(t["cpu_s"] for t in timings.values()),
-    }
+    _finish(timings)
     n_cov = int(covered.sum())
     valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
-    params = dataclasses.asdict(p)
     return PipelineResult(
         elevation.astype(np.float32),
         hazard,
@@ -432,9 +633,302 @@ def run_pipeline(
         grid,
         sites,
         timings,
-        level != "full",
+        level != "full" or bool(info["skipped"]),
         level,
         valid,
-        params,
+        dataclasses.asdict(p),
         info,
+    )
+
+
+def _bounded_planes(
+    camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float, step_px: float, n_min: int, n_max: int
+) -> np.ndarray:
+    """Planes uniform in disparity (``step_px``), the step adjusted so that ``n_min <= D <= n_max``:
+    a bounded cost volume over a wide range, enough planes for the sub-plane fit over a narrow one."""
+    planes = planes_uniform_disparity(camera, pose1, pose2, z_lo, z_hi, step_px)
+    for _ in range(12):
+        if planes.size > n_max:
+            step_px *= 1.25 * planes.size / n_max
+        elif planes.size < n_min:
+            step_px *= 0.9 * planes.size / n_min
+        else:
+            break
+        planes = planes_uniform_disparity(camera, pose1, pose2, z_lo, z_hi, step_px)
+    return planes
+
+
+def _dense_params(p: Params) -> DenseParams:
+    return DenseParams(
+        radius=p.sgm_radius,
+        mean_radius=p.sgm_mean_radius,
+        p1=p.sgm_p1,
+        p2=p.sgm_p2,
+        p2_g0=p.sgm_p2_g0,
+        p2_adapt=p.p2_gradient_adapt,
+        paths=p.sgm_paths,
+        uniqueness=p.uniqueness,
+        speckle_px=p.speckle_px,
+        temperature=p.sigma_temperature,
+        kappa_floor=p.kappa_floor,
+        uniq_scale=p.sigma_uniq_scale,
+        end_margin=p.end_margin,
+        min_interval_frac=p.min_interval_frac,
+    )
+
+
+def _run_v2(
+    i1: np.ndarray,
+    i2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    p: Params,
+    clock: _Clock,
+    nominal: tuple[float, float],
+    alt_range: float | None,
+    timings: dict[str, dict[str, float]],
+) -> PipelineResult:
+    """Flight v2 (issue 9): ground range from the data, dense SGM DEM with sigma, three-state evidence."""
+    reserve = p.mapping_reserve_s
+    with _stage(timings, "prepare"):
+        a1 = np.ascontiguousarray(i1, dtype=np.float32)
+        a2 = np.ascontiguousarray(i2, dtype=np.float32)
+        scale = _gsd_scale(camera, pose1, pose2)
+        sigma_pf = area_sigma(scale) if p.prefilter else 0.0
+    info: dict[str, Any] = {"gsd_ratio": scale, "skipped": [], "sgm_kernel": "c" if sgm_kernel() else "numpy"}
+
+    with _stage(timings, "rocks"):
+        rocks = np.zeros(i1.shape, bool)
+        if (p.rocks_as_hazard or p.mask_rocks) and clock.ok(reserve):
+            rocks = rock_mask(i1, p.rock_k, p.harris_alpha, p.rock_dilate_px)
+        elif p.rocks_as_hazard or p.mask_rocks:
+            info["skipped"].append("rocks")
+    with _stage(timings, "shadow"):
+        if p.shadow_dark_frac > 0:
+            dark = a1 < np.float32(p.shadow_dark_frac * float(np.median(a1)))
+            shadow = cv2.dilate(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
+        else:
+            dark = shadow = shadow_mask(i1)
+        wall = np.zeros(i1.shape, bool)
+        if p.shading_limit > 0 and clock.ok(reserve):
+            fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+            rho = relative_brightness(
+                i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
+            )
+            wall = shading_mask(rho, p.shading_limit)
+        elif p.shading_limit > 0:
+            info["skipped"].append("wall_cue")
+
+    with _stage(timings, "range"):
+        if p.range_search:
+            z_lo, z_hi, source = prior_range(
+                pose1, pose2, alt_range, below_frac=p.range_below_frac, above_frac=p.range_above_frac
+            )
+            gr = None
+            if clock.ok(reserve):
+                gr = find_ground(
+                    a1, a2, camera, pose1, pose2, z_lo, z_hi, source=source, deadline=clock.before(reserve)
+                )
+                z_lo, z_hi = gr.z_lo, gr.z_hi
+                info["range_search"] = {
+                    "prior_m": list(gr.prior),
+                    "source": gr.source,
+                    "found": gr.found,
+                    "planes": gr.planes,
+                    "median_z_m": gr.median_z,
+                }
+            else:
+                info["skipped"].append("range")
+            if gr is not None and gr.found:
+                z_mid = gr.median_z
+            else:  # nothing found: the datum if the prior holds it
+                z_mid = 0.0 if z_lo < 0.0 < z_hi else 0.5 * (z_lo + z_hi)
+        else:
+            margin = max(p.relief_margin_min_m, p.relief_margin_frac * float(pose1.position[2]))
+            z_lo, z_hi = -margin, min(margin, float(pose2.position[2]) * 0.5)
+            z_mid = 0.0
+        info["sweep_range_m"] = [z_lo, z_hi]
+
+    with _stage(timings, "coverage"):
+        # the overlap on the ground that was found (a crater floor 50 m down overlaps elsewhere than Z = 0)
+        covered = coverage_mask(camera, pose1, pose2, z_mid)
+        rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
+        overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
+        W_coarse = window_px(p.coarse_half_window, overlap // 2, p.cap_window_to_overlap)
+        info["coarse_half_window_px"] = W_coarse
+        info["coverage_z_m"] = z_mid
+
+    level = "image_only"
+    elevation = np.full(i1.shape, np.nan, np.float32)
+    sigma = np.full(i1.shape, np.nan, np.float32)
+    f_lo, f_hi = z_lo, z_hi
+    with _stage(timings, "coarse_dem"):
+        if clock.ok(reserve):
+            cam_c = scaled_camera(camera, 1)
+            planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
+            res_c = sweep_dem(
+                cv2.pyrDown(a1),
+                cv2.pyrDown(a2),
+                cam_c,
+                pose1,
+                pose2,
+                planes_c,
+                half_window=W_coarse,
+                cost=p.cost,
+                prefilter_sigma=sigma_pf,
+                deadline=clock.before(reserve),
+                check_every=p.check_every,
+            )
+            info["coarse_planes"] = int(planes_c.size)
+            if res_c.complete and res_c.curvature is not None:
+                u_c = elevation_uncertainty(res_c.elevation, res_c.curvature, res_c.planes)
+                rel, sharp = p.reject_rel_uncertainty, p.sharp_curvature
+                ez = reject_uncertain(res_c.elevation, u_c, rel, res_c.curvature, sharp)
+                n_c = int(np.isfinite(ez).sum())
+                if n_c > 0:
+                    size = (camera.width, camera.height)
+                    elevation = cv2.resize(ez, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
+                    u_full = np.where(np.isfinite(ez), u_c, np.nan).astype(np.float32)
+                    sigma = cv2.resize(u_full, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
+                    elevation[~np.isfinite(sigma)] = np.nan
+                    level = "coarse"
+                if n_c >= 50:  # coarse-to-fine: the full-resolution range
+                    pad = 2.0 * float(np.max(np.diff(planes_c)))
+                    lo, hi = np.nanpercentile(ez, [p.coarse_range_pct, 100.0 - p.coarse_range_pct])
+                    f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
+        else:
+            info["skipped"].append("coarse_dem")
+
+    with _stage(timings, "full_dem"):
+        # no match where there is nothing to match: dark shadow (and rocks, if masked)
+        ignore = (dark if p.mask_shadow else np.zeros(i1.shape, bool)) | (rocks if p.mask_rocks else False)
+        if p.texture_min > 0:  # blank support: nothing to match (its cost curve is flat, whatever SGM says)
+            ignore |= local_contrast(a1, p.sgm_radius + p.sgm_mean_radius) < p.texture_min
+        if clock.ok(reserve) and f_hi > f_lo:
+            planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
+            info["full_planes"] = int(planes.size)
+            info["full_range_m"] = [f_lo, f_hi]
+            dem = dense_dem(
+                a1,
+                a2,
+                camera,
+                pose1,
+                pose2,
+                planes,
+                _dense_params(p),
+                prefilter_sigma=sigma_pf,
+                ignore=ignore,
+                deadline=clock.before(reserve),
+                prior=elevation if level == "coarse" else None,
+            )
+            info["dense"] = dem.info
+            if dem.complete:
+                elevation, sigma, level = dem.elevation, dem.sigma, "full"
+        else:
+            info["skipped"].append("full_dem")
+
+    have_dem = level != "image_only"
+    with _stage(timings, "georef"):
+        z_ref = float(np.nanmedian(elevation)) if have_dem and np.isfinite(elevation).any() else z_mid
+        z_fill = np.where(np.isfinite(elevation), elevation, np.float32(z_ref))
+        X, Y = backproject(camera, pose1, z_fill)
+        world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
+
+    with _stage(timings, "grid"):
+        cell = p.cell_m or ground_sample_distance(X, Y, covered, 50.0)
+        if not math.isfinite(cell) or cell <= 0:
+            cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
+        origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
+        GX, GY = grid_xy(shape, origin, cell)
+        gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
+        g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
+        g_elev = pull(elevation, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
+        g_sig = pull(sigma, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
+        cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
+        g_cue = pull(cues.astype(np.float32), gu, gv) > 0.25
+
+    nan_img = np.full(i1.shape, np.nan, np.float32)
+    with _stage(timings, "slope"):
+        if have_dem and not clock.ok():
+            have_dem = False  # past the deadline: the image cues are all the evidence there is
+            info["skipped"].append("slope")
+        if have_dem:
+            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m, with_cov=False)
+            if p.wide_slope_factor > 1:
+                # SGM over horizontal planes can terrace a steep wall into flat steps a footprint wide;
+                # the slope over a few footprints still sees the wall: the steeper of the two counts
+                wide = weighted_plane_fit(g_elev, g_sig, cell, p.wide_slope_factor * p.footprint_m, with_cov=False)
+                steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
+                fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
+                fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)
+            # uncertainty of the footprint-scale quantities, calibrated on tuning seeds (evidence.py):
+            # slope from the footprint's mean sigma, roughness from the point's sigma
+            g_sbar = footprint_mean(g_sig, footprint_cells(p.footprint_m, cell))
+            g_gsig = (p.slope_sigma_gain * g_sbar * cell / p.footprint_m).astype(np.float32)
+            g_rough = np.abs(g_elev - fit.z_plane)
+            g_rsig = (p.rough_sigma_gain * g_sig).astype(np.float32)
+            slope_img = sample_grid(fit.slope_deg, origin, cell, X, Y)
+            grad_img = sample_grid(fit.grad, origin, cell, X, Y)
+            gsig_img = sample_grid(g_gsig, origin, cell, X, Y)
+            plane_img = sample_grid(fit.z_plane, origin, cell, X, Y)
+            rough_img = np.abs(elevation - plane_img)
+            rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
+        else:
+            slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
+            fit = None
+
+    with _stage(timings, "hazard"):
+        kw = {
+            "slope_limit_deg": p.slope_limit_deg,
+            "rough_limit_m": p.rough_limit_m,
+            "k": p.sigma_k,
+            "p_min": p.psafe_min,
+        }
+        ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
+        if fit is not None:
+            gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+        else:
+            nan_g = np.full(shape, np.nan, np.float32)
+            gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
+        if p.hazard_margin_px > 0:
+            ev = widen_unsafe(ev, p.hazard_margin_px)
+            gev = widen_unsafe(gev, p.hazard_margin_px)
+        grid = HazardGrid(
+            gev.hazard, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell), gev.state, gev.psafe
+        )
+
+    with _stage(timings, "sites"):
+        if clock.ok():
+            sites, reason = select_safe_sites(grid, p.footprint_m, nominal, p.n_sites, p.site_margin_m)
+        else:
+            sites, reason = [], "deadline reached before site selection"
+            info["skipped"].append("sites")
+        if not sites:
+            info["no_site_reason"] = reason
+
+    _finish(timings)
+    n_cov = int(covered.sum())
+    valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
+    info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if n_cov else 0.0
+    return PipelineResult(
+        elevation.astype(np.float32),
+        ev.hazard,
+        slope_img.astype(np.float32),
+        rough_img.astype(np.float32),
+        rocks,
+        shadow,
+        covered,
+        world_xy,
+        grid,
+        sites,
+        timings,
+        level != "full" or bool(info["skipped"]),
+        level,
+        valid,
+        dataclasses.asdict(p),
+        info,
+        ev.state,
+        ev.psafe,
+        np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
     )

@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN
+
 from .mapping import HazardGrid
 from .slope import footprint_cells
 
@@ -86,3 +88,82 @@ def select_sites(
         if len(sites) == k:
             break
     return sites
+
+
+def select_safe_sites(
+    grid: HazardGrid,
+    footprint_m: float = 3.0,
+    nominal_xy: tuple[float, float] = (0.0, 0.0),
+    k: int = 5,
+    margin_m: float = 0.5,
+    p_quantum: float = 0.01,
+) -> tuple[list[Site], str]:
+    """Sites whose whole footprint plus ``margin_m`` is known-safe, ranked by P(safe), then distance.
+
+    Uses ``grid.state`` / ``grid.psafe`` (uncertainty-aware, :mod:`flight_sw.evidence`). A cell
+    qualifies when every cell within ``footprint_m / 2 + margin_m`` of it is ``STATE_SAFE``
+    (a disk; cells past the grid edge are not known). The site's ``p_safe`` is the smallest
+    cell P(safe) over that disk - cell errors are correlated over a footprint, so the minimum
+    is used rather than a product - and ``clearance_m`` the distance from its centre to the
+    nearest cell not known safe. Candidates are ordered by ``p_safe`` (in steps of
+    ``p_quantum``, so that equally certain sites are told apart by distance) and then by distance
+    to ``nominal_xy``, and taken greedily at least one footprint apart. Returns
+    ``(sites, reason)``: ``reason`` says why the list is empty (``""`` otherwise).
+    """
+    if k <= 0:
+        return [], "no sites requested"
+    if grid.hazard.size == 0:
+        return [], "no overlap between the images: nothing was mapped"
+    safe = grid.state == STATE_SAFE
+    n_cov = int((grid.state != STATE_OUTSIDE).sum())
+    if not safe.any():
+        unk = 100.0 * float((grid.state == STATE_UNKNOWN).sum()) / max(1, n_cov)
+        return [], f"no cell is known safe ({unk:.0f} % of the mapped area unknown, the rest unsafe)"
+    radius = 0.5 * footprint_m + max(0.0, margin_m)
+    rc = radius / grid.cell_m
+    r = int(np.ceil(rc))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = ((xx * xx + yy * yy) <= rc * rc + 1e-9).astype(np.uint8)
+    s8 = safe.astype(np.uint8)
+    ok = cv2.erode(s8, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    # distance (cells) to the nearest cell not known safe; the grid edge counts as not known
+    dist = cv2.distanceTransform(np.pad(s8, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    if not ok.any():
+        return [], (
+            f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe "
+            f"(largest clearance {float(dist.max()) * grid.cell_m:.1f} m)"
+        )
+    rf = 0.5 * footprint_m / grid.cell_m
+    rr = int(np.ceil(rf))
+    fy, fx = np.mgrid[-rr : rr + 1, -rr : rr + 1]
+    fdisk = ((fx * fx + fy * fy) <= rf * rf + 1e-9).astype(np.uint8)
+    hz = np.where(np.isfinite(grid.hazard), grid.hazard, np.float32(1.0)).astype(np.float32)
+    hmax = cv2.dilate(hz, fdisk, borderType=cv2.BORDER_CONSTANT, borderValue=1.0)
+    ps = np.where(np.isfinite(grid.psafe), grid.psafe, 0.0).astype(np.float32)
+    pmin = cv2.erode(ps, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+    ii, jj = np.nonzero(ok)
+    X, Y = grid.cell_xy()
+    x, y = X[ii, jj], Y[ii, jj]
+    d = np.hypot(x - nominal_xy[0], y - nominal_xy[1])
+    p = pmin[ii, jj]
+    order = np.lexsort((d, -np.floor(p / p_quantum + 1e-6)))
+    sites: list[Site] = []
+    for o in order:
+        if any((x[o] - a.x) ** 2 + (y[o] - a.y) ** 2 < footprint_m**2 for a in sites):
+            continue
+        i, j = ii[o], jj[o]
+        sites.append(
+            Site(
+                float(x[o]),
+                float(y[o]),
+                float(grid.elevation[i, j]),
+                float(grid.hazard[i, j]),
+                float(1.0 - hmax[i, j]),
+                float(d[o]),
+                float(p[o]),
+                float(dist[i, j] * grid.cell_m),
+            )
+        )
+        if len(sites) == k:
+            break
+    return sites, ""

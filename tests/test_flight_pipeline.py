@@ -143,7 +143,10 @@ def test_tiny_sensor_still_gets_a_dem():
     assert window_px(8, 256) == 8 and window_px(8, 46) == 5 and window_px(8, 10) == 2
     assert window_px(8, 46, cap=False) == 8
     cam, p1, p2, i1, i2, z = make_pair(96, 200.0, 100.0, plane(1.0), seed=14)
-    res = run_pipeline(i1, i2, p1, p2, cam)
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast_v1")
     assert res.level == "full" and res.info["half_window_px"] == 5
     assert np.isfinite(res.elevation).sum() > 300
     assert np.nanmean(np.abs(res.elevation - z)) < 0.3
+    v2 = run_pipeline(i1, i2, p1, p2, cam)  # flight v2: small support, no window cap needed
+    assert v2.level == "full" and np.isfinite(v2.elevation).sum() > 300
+    assert np.nanmean(np.abs(v2.elevation - z)) < 0.3

@@ -1,0 +1,269 @@
+"""Tuning / evaluation driver for the flight pipeline (issue 9): renders into a cache, prints the tables.
+
+    .venv/bin/python bench/eval_flight.py --set tuning --n-seeds 3                    # tune on seeds 0-2
+    .venv/bin/python bench/eval_flight.py --set held-out --n-seeds 4 --json out.json  # report (1000-1003)
+    .venv/bin/python bench/eval_flight.py --cases crater lowsun tilted --set held-out --n-seeds 2
+    .venv/bin/python bench/eval_flight.py --ablation --set tuning --n-seeds 2         # the ablation table
+
+Cases: ``vertical`` and ``approach`` are the thesis scenarios on their default scenes; ``crater`` is a
+vertical descent into ``bench/scenes/deep_crater.toml`` (floor ~50 m below the datum); ``lowsun`` the
+vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``.
+Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``) and are reused. Every pair is scored
+against its ground truth with ``studies.evaluate.score_arrays`` (pixel FP/FN/CDI, DEM error) plus the
+top-ranked site's footprint (``ground_sim.scoring.chosen_sites_safe``). Seeds come from
+``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SCENES = ROOT / "bench" / "scenes"
+# case -> (trajectory, scene spec, sun (az, el) or None for the scenario default)
+CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
+    "vertical": ("vertical", "default", None),
+    "approach": ("approach", "approach", None),
+    "crater": ("vertical", str(SCENES / "deep_crater.toml"), None),
+    "lowsun": ("vertical", "default", (135.0, 10.0)),
+    "tilted": ("approach", str(SCENES / "tilted.toml"), None),
+}
+
+
+def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None = None) -> list[dict[str, Any]]:
+    """Render (or reuse) every pair of a case for one scene seed."""
+    from ground_sim import trajectory
+    from ground_sim.descent import DEFAULT_SUN, render_pair
+    from ground_sim.scene import load_scene
+    from protocol.pairdir import Sun, write_pair
+
+    traj, scene_spec, sun = CASES[case]
+    specs = getattr(trajectory, traj)(None)
+    if altitudes:
+        specs = [s for s in specs if int(round(s.altitude_m)) in altitudes]
+    out = cache / f"{case}_s{seed}"
+    scene = None
+    entries = []
+    for spec in specs:
+        d = out / spec.label.replace("/", "_")
+        if not (d / "pair.json").is_file():
+            scene = scene or load_scene(scene_spec, seed)
+            s = Sun(*sun) if sun else DEFAULT_SUN[traj]
+            tmp = d.with_name(d.name + ".partial")
+            shutil.rmtree(tmp, ignore_errors=True)
+            write_pair(tmp, render_pair(scene, spec, s, seed=seed))
+            os.replace(tmp, d)
+        entries.append({"case": case, "seed": seed, "altitude_m": int(round(spec.altitude_m)), "pair_dir": str(d)})
+    return entries
+
+
+def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
+    """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
+    from flight_sw.pipeline import run_pipeline
+    from ground_sim import scoring
+    from protocol.pairdir import read_pair
+    from studies.evaluate import _site_radius_px, project_points, score_arrays, true_poses
+
+    pair = read_pair(pair_dir)
+    t1, t2 = true_poses(pair)
+    c0 = time.thread_time()
+    res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=preset)
+    cpu = time.thread_time() - c0
+    tz = pair.truth["elevation"].astype(np.float32)
+    radius = _site_radius_px(pair.camera, pair.truth["depth"], res.covered)
+    est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": None, "roughness_m": None}
+    truth = {"elevation": tz, "hazard": pair.truth["hazard"]}
+    box = np.zeros(tz.shape, bool)
+    m = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    top = math.nan
+    if res.sites:
+        s = res.sites[0]
+        uv = project_points(pair.camera, t1, np.array([[s.x, s.y, s.z]]))
+        top = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)["safe_pct"]
+    st = res.state[res.covered]
+    return {
+        "fp": m["fp_pct"],
+        "fn": m["fn_pct"],
+        "cdi": m["cdi_pct"],
+        "dem": m["dem_mean_abs_m"],
+        "valid": 100.0 * res.valid_fraction,
+        "unknown": 100.0 * float(np.mean(st == 2)) if st.size else math.nan,
+        "n_sites": len(res.sites),
+        "top_safe": top,
+        "no_site": res.info.get("no_site_reason", ""),
+        "cpu_s": cpu,
+        "level": res.level,
+    }
+
+
+def _thesis_dem() -> dict[tuple[str, int], float]:
+    from studies.evaluate import load_thesis
+
+    return {
+        (v.scenario, v.altitude_m): v.value
+        for v in load_thesis()
+        if v.metric == "dem_mean_abs_m" and v.table in ("6.2", "6.9")
+    }
+
+
+def _med(v: list[float]) -> float:
+    v = [x for x in v if x is not None and math.isfinite(x)]
+    return statistics.median(v) if v else math.nan
+
+
+def table(rows: list[dict[str, Any]], title: str) -> str:
+    """Markdown table per (case, altitude): coverage min/median, DEM error vs 0.5x thesis, FP worst/median,
+    FN and CDI median, top-site safety, CPU time."""
+    thesis = _thesis_dem()
+    out = [
+        f"\n### {title}\n",
+        "| case | alt m | pairs | DEM valid % min / med | DEM err m med / worst | 0.5x thesis m | FP % med / worst "
+        "| FN % med | CDI % med / min | unknown % med | top site safe | no site | CPU s med |",
+        "|---|---:|---:|---|---|---:|---|---:|---|---:|---:|---:|---:|",
+    ]
+    keys = sorted({(r["case"], r["altitude_m"]) for r in rows}, key=lambda k: (list(CASES).index(k[0]), k[1]))
+    for case, alt in keys:
+        rs = [r for r in rows if r["case"] == case and r["altitude_m"] == alt]
+        th = thesis.get((CASES[case][0], alt), math.nan)
+        tops = [r["top_safe"] for r in rs if math.isfinite(r["top_safe"])]
+        out.append(
+            f"| {case} | {alt} | {len(rs)} | {min(r['valid'] for r in rs):.1f} / {_med([r['valid'] for r in rs]):.1f} "
+            f"| {_med([r['dem'] for r in rs]):.3f} / {max(r['dem'] for r in rs):.3f} | {0.5 * th:.3f} "
+            f"| {_med([r['fp'] for r in rs]):.2f} / {max(r['fp'] for r in rs):.2f} | {_med([r['fn'] for r in rs]):.1f} "
+            f"| {_med([r['cdi'] for r in rs]):.1f} / {min(r['cdi'] for r in rs):.1f} "
+            f"| {_med([r['unknown'] for r in rs]):.1f} | {sum(t >= 100 for t in tops)}/{len(tops)} "
+            f"| {sum(1 for r in rs if r['n_sites'] == 0)} | {_med([r['cpu_s'] for r in rs]):.3f} |"
+        )
+    tops = [r["top_safe"] for r in rows if math.isfinite(r["top_safe"])]
+    out.append(
+        f"\nall: {len(rows)} pairs, FP worst {max(r['fp'] for r in rows):.2f} %, median CDI "
+        f"{_med([r['cdi'] for r in rows]):.1f} %, DEM valid min {min(r['valid'] for r in rows):.1f} %, top site "
+        f"truly safe {sum(t >= 100 for t in tops)}/{len(tops)}, no site {sum(1 for r in rows if r['n_sites'] == 0)}, "
+        f"CPU median {_med([r['cpu_s'] for r in rows]):.3f} s"
+    )
+    return "\n".join(out)
+
+
+def summary(rows: list[dict[str, Any]]) -> dict[str, float]:
+    tops = [r["top_safe"] for r in rows if math.isfinite(r["top_safe"])]
+    return {
+        "pairs": len(rows),
+        "valid_min": min(r["valid"] for r in rows),
+        "valid_med": _med([r["valid"] for r in rows]),
+        "dem_med": _med([r["dem"] for r in rows]),
+        "fp_med": _med([r["fp"] for r in rows]),
+        "fp_max": max(r["fp"] for r in rows),
+        "fn_med": _med([r["fn"] for r in rows]),
+        "cdi_med": _med([r["cdi"] for r in rows]),
+        "top_safe": sum(t >= 100 for t in tops),
+        "top_n": len(tops),
+        "cpu_med": _med([r["cpu_s"] for r in rows]),
+    }
+
+
+def ablation_variants() -> dict[str, Any]:
+    """Each v2 change switched off (or back to v1) on its own; see docs/benchmarks/pipeline.md."""
+    from flight_sw.pipeline import PRESETS
+
+    f = PRESETS["fast"]
+    r = dataclasses.replace
+    return {
+        "fast (v2)": f,
+        "v1 (issue 6 fast)": PRESETS["fast_v1"],
+        "no SGM (WTA on the small-window cost)": r(f, sgm_paths=0),
+        "SGM 4 paths": r(f, sgm_paths=4),
+        "constant P2 (no gradient adaptation)": r(f, p2_gradient_adapt=False),
+        "uniqueness check 0.05 (reject instead of sigma)": r(f, uniqueness=0.05),
+        "no speckle filter": r(f, speckle_px=0),
+        "no uncertainty in hazards (k = 0, sigma ignored)": r(f, sigma_k=0.0, psafe_min=0.0),
+        "no wide-scale slope (footprint slope only)": r(f, wide_slope_factor=0.0),
+        "shadow pixels matched (no dark mask in the cost)": r(f, mask_shadow=False),
+        "P1/P2 = 2/96 (weak smoothing)": r(f, sgm_p1=2, sgm_p2=96),
+        "P1/P2 = 8/128": r(f, sgm_p1=8, sgm_p2=128),
+        "non-convex raw cost = no match (kappa floor 0)": r(f, kappa_floor=0.0),
+        "wall cue at 0.15 (v1's)": r(f, shading_limit=0.15),
+        "P(safe) >= 0.8": r(f, psafe_min=0.8),
+        "no wall cue": r(f, shading_limit=0.0),
+        "with the Harris rock cue": r(f, rocks_as_hazard=True),
+        "with keep-out margin 1 px": r(f, hazard_margin_px=1.0),
+        "fixed sweep range (v1 +-max(10 m, 6 %))": r(f, range_search=False),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
+    ap.add_argument("--n-seeds", type=int, default=2, help="first N seeds of the set")
+    ap.add_argument("--seeds", type=int, nargs="*", help="explicit seeds (overrides --set/--n-seeds)")
+    ap.add_argument("--cases", nargs="+", default=["vertical", "approach"], choices=list(CASES))
+    ap.add_argument("--altitudes", type=int, nargs="*", help="only these (lower-frame) altitudes")
+    ap.add_argument("--presets", nargs="+", default=["fast"])
+    ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="override fields of the preset")
+    ap.add_argument("--ablation", action="store_true", help="run the ablation variants instead of --presets")
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument("--render-only", action="store_true")
+    ap.add_argument("--json", help="write all rows here")
+    args = ap.parse_args(argv)
+
+    import cv2
+
+    cv2.setNumThreads(1)
+    from flight_sw.pipeline import PRESETS
+    from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
+
+    seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
+    cache = Path(args.cache)
+    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes)]
+    if args.render_only:
+        print(f"{len(pairs)} pairs in {cache}")
+        return 0
+    if args.ablation:
+        variants = ablation_variants()
+    else:
+        variants = {}
+        for p in args.presets:
+            prm = PRESETS[p]
+            for kv in args.set_param:
+                k, v = kv.split("=", 1)
+                cur = getattr(prm, k)
+                val: Any = (v.lower() in ("1", "true")) if isinstance(cur, bool) else type(cur or 0.0)(v)
+                prm = dataclasses.replace(prm, **{k: val})
+            variants[p + ("" if not args.set_param else " " + " ".join(args.set_param))] = prm
+    all_rows: dict[str, list[dict[str, Any]]] = {}
+    for name, prm in variants.items():
+        rows = []
+        for e in pairs:
+            r = score_pair(e["pair_dir"], prm)
+            rows.append({**e, **r})
+        all_rows[name] = rows
+        print(table(rows, f"{name} - seeds {seeds}"), flush=True)
+    if args.ablation:
+        print("\n| variant | DEM valid % min / med | FP % med / worst | FN % med | CDI % med | top site safe | CPU s |")
+        print("|---|---|---|---:|---:|---:|---:|")
+        for name, rows in all_rows.items():
+            s = summary(rows)
+            print(
+                f"| {name} | {s['valid_min']:.1f} / {s['valid_med']:.1f} | {s['fp_med']:.2f} / {s['fp_max']:.2f} "
+                f"| {s['fn_med']:.1f} | {s['cdi_med']:.1f} | {s['top_safe']}/{s['top_n']} | {s['cpu_med']:.3f} |"
+            )
+    if args.json:
+        Path(args.json).write_text(json.dumps(all_rows, indent=1, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

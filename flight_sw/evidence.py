@@ -1,0 +1,217 @@
+"""Uncertainty-aware hazard evidence: slope and roughness judged against their uncertainty, three states.
+
+Footprint plane (thesis eq. 4.11/4.12) by weighted least squares with weights ``w = 1 / sigma_z^2``
+(box sums of ``w, wx, wy, wz, wx^2, wxy, wy^2, wxz, wyz``; O(1) per cell)::
+
+    [cxx cxy] [p]   [cxz]
+    [cxy cyy] [q] = [cyz]     (w-weighted centred moments),   g = |(p, q)|  (m per cell)
+
+:func:`weighted_plane_fit` also returns the textbook covariance ``rho / sum(w) [cxx cxy; cxy cyy]^-1``
+of ``(p, q)``, but it assumes independent elevation errors: on ground_sim's tuning pairs the SGM
+DEM's errors are correlated over many pixels, and the textbook slope uncertainty was off by 0.1x
+to 4.5x depending on how many cells a footprint spans. The flight pipeline therefore uses the
+empirical scales (calibrated on ``ground_sim.seeds.TUNING_SEEDS``, docs/benchmarks/pipeline.md)::
+
+    sigma_g = a_g * mean_footprint(sigma_z) * cell / footprint     sigma_r = a_r * sigma_z
+
+Per point, with ``Phi`` the normal CDF, ``G = tan(15 deg) * cell`` and the hazard limits of
+Table 2.1::
+
+    P(safe) = Phi((G - g) / sigma_g) * Phi((0.30 - r) / sigma_r)
+    unsafe   if  g - k sigma_g > G  or  r - k sigma_r > 0.30  (or an image cue: shadow, wall, rock)
+    safe     if  P(safe) >= p_min  and no image cue
+    unknown  otherwise (also: no elevation, or a footprint with too few measured points)
+
+so a hazard is only declared on evidence beyond ``k`` standard uncertainties, and ground is only
+called safe when it is safe with probability ``p_min``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
+
+from .slope import footprint_cells
+
+
+def _box(a: np.ndarray, n: int) -> np.ndarray:
+    return cv2.boxFilter(a, cv2.CV_64F, (n, n), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+
+@dataclass
+class PlaneFit:
+    """Per-cell weighted footprint plane (float32 arrays, NaN where not determined)."""
+
+    slope_deg: np.ndarray
+    grad: np.ndarray  # |(p, q)| in metres per cell
+    grad_sigma: np.ndarray  # standard uncertainty of grad (m per cell)
+    z_plane: np.ndarray  # plane at the cell centre
+    z_plane_sigma: np.ndarray
+
+
+def weighted_plane_fit(
+    z: np.ndarray,
+    sigma: np.ndarray,
+    cell_m: float,
+    footprint_m: float = 3.0,
+    min_fraction: float = 0.5,
+    rho: float = 1.0,
+    with_cov: bool = True,
+) -> PlaneFit:
+    """Weighted LSQ plane over the footprint around every cell (module doc); ``sigma`` in metres.
+
+    ``with_cov=False`` skips the textbook uncertainties (``grad_sigma``, ``z_plane_sigma`` are NaN).
+    """
+    z = np.asarray(z, np.float64)
+    s = np.asarray(sigma, np.float64)
+    n = footprint_cells(footprint_m, cell_m)
+    h, w = z.shape
+    okz = np.isfinite(z) & np.isfinite(s) & (s > 0)
+    wt = np.zeros((h, w))
+    np.divide(1.0, s * s, out=wt, where=okz)
+    zz = np.where(okz, z, 0.0)
+    wz = wt * zz
+    # coordinates relative to the grid centre keep the moments well conditioned
+    xx = (np.arange(w, dtype=np.float64) - w / 2.0)[None, :]
+    yy = (np.arange(h, dtype=np.float64) - h / 2.0)[:, None]
+    wx, wy = wt * xx, wt * yy
+    cnt = _box(okz.astype(np.float64), n)
+    s1 = _box(wt, n)
+    sx, sy, sz = _box(wx, n), _box(wy, n), _box(wz, n)
+    sxx, sxy, syy = _box(wx * xx, n), _box(wx * yy, n), _box(wy * yy, n)
+    sxz, syz = _box(wz * xx, n), _box(wz * yy, n)
+    nan = np.float32(np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / s1
+        mx, my, mz = sx * inv, sy * inv, sz * inv
+        # weighted centred moments (means of w-weighted products)
+        cxx, cxy, cyy = sxx * inv - mx * mx, sxy * inv - mx * my, syy * inv - my * my
+        cxz, cyz = sxz * inv - mx * mz, syz * inv - my * mz
+        det = cxx * cyy - cxy * cxy
+        idet = 1.0 / det
+        p = (cxz * cyy - cyz * cxy) * idet
+        q = (cyz * cxx - cxz * cxy) * idet
+        dx, dy = xx - mx, yy - my
+        zc = mz + p * dx + q * dy
+        g = np.hypot(p, q)
+        ok = (cnt >= min_fraction * n * n) & (det > 1e-6) & np.isfinite(zc)
+        gsig = zsig = np.full((h, w), nan, np.float32)
+        if with_cov:
+            # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
+            f = rho * inv * idet
+            vpp, vqq, vpq = f * cyy, f * cxx, -f * cxy
+            gvar = np.where(g > 1e-12, (p * p * vpp + q * q * vqq + 2 * p * q * vpq) / (g * g), 0.5 * (vpp + vqq))
+            # plane value at the cell: Var = rho/s1 + d^T Cov d, d = offset of the cell from the weighted centroid
+            zvar = rho * inv + dx * dx * vpp + dy * dy * vqq + 2 * dx * dy * vpq
+            gsig = np.where(ok, np.sqrt(np.maximum(gvar, 0.0)), nan).astype(np.float32)
+            zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
+    g32 = np.where(ok, g, nan).astype(np.float32)
+    slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
+    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig)
+
+
+def footprint_mean(a: np.ndarray, n: int) -> np.ndarray:
+    """Mean of the finite values of ``a`` over the ``n x n`` square around each cell (NaN if none)."""
+    ok = np.isfinite(a)
+    s = _box(np.where(ok, a, 0.0).astype(np.float64), n)
+    c = _box(ok.astype(np.float64), n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(c > 0, s / c, np.nan).astype(np.float32)
+
+
+def norm_cdf(x: np.ndarray) -> np.ndarray:
+    """Standard normal CDF (float32) via erf."""
+    x = np.asarray(x, np.float32)
+    return (0.5 * (1.0 + _erf(x * np.float32(1.0 / math.sqrt(2.0))))).astype(np.float32)
+
+
+def _erf(x: np.ndarray) -> np.ndarray:
+    # Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): numpy has no vectorised erf
+    s = np.sign(x)
+    a = np.abs(x)
+    t = 1.0 / (1.0 + 0.3275911 * a)
+    poly = ((((1.061405429 * t - 1.453152027) * t + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t
+    y = 1.0 - poly * np.exp(-a * a)
+    return s * y
+
+
+@dataclass
+class Evidence:
+    state: np.ndarray  # uint8, protocol.pairdir.STATE_*
+    psafe: np.ndarray  # float32, NaN outside
+    hazard: np.ndarray  # float32 in [0, 1], NaN outside; unknown and unsafe are 1 (DESIGN.md)
+
+
+def classify(
+    grad: np.ndarray,
+    grad_sigma: np.ndarray,
+    rough: np.ndarray,
+    rough_sigma: np.ndarray,
+    cues: np.ndarray,
+    covered: np.ndarray,
+    cell_m: float | np.ndarray,
+    *,
+    slope_limit_deg: float = 15.0,
+    rough_limit_m: float = 0.30,
+    k: float = 2.0,
+    p_min: float = 0.9,
+    prior: float = 0.5,
+) -> Evidence:
+    """Three states, P(safe) and the DESIGN.md hazard map from the layers (module doc).
+
+    ``grad`` (m per cell) and ``cell_m`` give the slope; ``cues`` (bool) are image evidence of a
+    hazard (shadow, wall, rock). NaN slope or roughness is no evidence: unknown, with P(safe) =
+    ``prior`` unless a cue says unsafe. ``k = 0`` and ``p_min = 0`` ignore the uncertainty (a
+    point is then unsafe exactly when its estimate crosses a limit).
+    """
+    G = np.float32(math.tan(math.radians(slope_limit_deg))) * np.asarray(cell_m, np.float32)
+    g = np.asarray(grad, np.float32)
+    sg = np.maximum(np.asarray(grad_sigma, np.float32), 1e-6)
+    r = np.asarray(rough, np.float32)
+    sr = np.maximum(np.asarray(rough_sigma, np.float32), 1e-6)
+    known = np.isfinite(g) & np.isfinite(r) & np.isfinite(sg) & np.isfinite(sr)
+    with np.errstate(invalid="ignore"):
+        p = norm_cdf((G - g) / sg) * norm_cdf((rough_limit_m - r) / sr)
+        bad = known & ((g - k * sg > G) | (r - k * sr > rough_limit_m))
+        if k <= 0 and p_min <= 0:  # no uncertainty: the estimate decides
+            bad = known & ((g >= G) | (r >= rough_limit_m))
+            good = known & ~bad
+        else:
+            good = known & ~bad & (p >= p_min)
+    cue = np.asarray(cues, bool)
+    cov = np.asarray(covered, bool)
+    state = np.full(g.shape, STATE_UNKNOWN, np.uint8)
+    state[good] = STATE_SAFE
+    state[bad | cue] = STATE_UNSAFE
+    state[~cov] = STATE_OUTSIDE
+    psafe = np.where(known, p, np.float32(prior)).astype(np.float32)
+    psafe[bad | cue] = np.minimum(psafe[bad | cue], 0.0)
+    psafe[~cov] = np.nan
+    with np.errstate(invalid="ignore"):
+        h = np.maximum(g / G, r / np.float32(rough_limit_m))
+    hazard = np.where(state == STATE_SAFE, np.minimum(h, np.float32(0.999)), np.float32(1.0)).astype(np.float32)
+    hazard[~cov] = np.nan
+    return Evidence(state, psafe, hazard)
+
+
+def widen_unsafe(ev: Evidence, margin_px: float) -> Evidence:
+    """Keep-out margin: every covered point within ``margin_px`` of an unsafe one becomes unsafe."""
+    r = int(math.floor(margin_px))
+    if r <= 0:
+        return ev
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = ((xx * xx + yy * yy) <= margin_px * margin_px + 1e-9).astype(np.uint8)
+    near = cv2.dilate((ev.state == STATE_UNSAFE).astype(np.uint8), disk).astype(bool)
+    grow = near & (ev.state != STATE_OUTSIDE)
+    state = ev.state.copy()
+    state[grow] = STATE_UNSAFE
+    psafe = ev.psafe.copy()
+    psafe[grow] = 0.0
+    hazard = ev.hazard.copy()
+    hazard[grow] = 1.0
+    return Evidence(state, psafe, hazard)

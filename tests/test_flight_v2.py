@@ -1,0 +1,313 @@
+"""Flight v2 (issue 9): ground range search, SGM DEM with sigma, three states, sites, deadlines.
+
+Synthetic pairs (tests/synthetic.py): a seeded random texture draped on analytic terrain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import NADIR_R, Texture, camera_fov30, make_pair, plane, render, roof
+
+from flight_sw.costvolume import COST_MAX, CostSlab, combine, cost_slab, valid_interval
+from flight_sw.evidence import classify, weighted_plane_fit
+from flight_sw.mapping import HazardGrid
+from flight_sw.pipeline import PRESETS, run_pipeline
+from flight_sw.rangefind import altimeter_ground, find_ground, prior_range
+from flight_sw.sgm import aggregate, kernel
+from flight_sw.sites import select_safe_sites
+from flight_sw.validate import FlightInputError
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Pair, Pose, write_pair
+
+
+@pytest.fixture(scope="module")
+def deep_pair():
+    """Nadir 200 m -> 100 m over flat ground 50 m BELOW the datum (a crater floor)."""
+    return make_pair(256, 200.0, 100.0, plane(-50.0), seed=31)
+
+
+def test_range_search_finds_ground_50m_below_datum(deep_pair):
+    cam, p1, p2, i1, i2, z = deep_pair
+    lo, hi, src = prior_range(p1, p2, None)
+    assert src == "wide" and lo < -50.0 < hi
+    gr = find_ground(i1, i2, cam, p1, p2, lo, hi)
+    assert gr.found and abs(gr.median_z + 50.0) < 1.5
+    assert gr.z_lo < -50.0 < gr.z_hi and gr.z_hi - gr.z_lo < 0.5 * (hi - lo)  # narrowed around the floor
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
+    assert res.level == "full" and res.valid_fraction > 0.9
+    assert np.nanmean(np.abs(res.elevation - z)) < 0.15
+    # the v1 band (+- max(10 m, 6 % of 200 m) around Z = 0) cannot see it
+    v1 = run_pipeline(i1, i2, p1, p2, cam, preset="fast_v1")
+    assert v1.valid_fraction < 0.05 or np.nanmean(np.abs(v1.elevation - z)) > 5.0
+
+
+def test_altimeter_centres_the_search(deep_pair):
+    cam, p1, p2, i1, i2, z = deep_pair
+    slant = 250.0  # nadir camera 200 m above the datum, ground at -50 m
+    assert altimeter_ground(p1, slant) == pytest.approx(-50.0)
+    lo, hi, src = prior_range(p1, p2, slant)
+    assert src == "altimeter" and lo < -50.0 < hi and hi - lo < 80.0
+    res = run_pipeline(i1, i2, p1, p2, cam, altimeter_m=(slant, float("nan")))
+    assert res.info["range_search"]["source"] == "altimeter" and res.info["range_search"]["found"]
+    assert np.nanmean(np.abs(res.elevation - z)) < 0.15
+    with pytest.raises(FlightInputError, match="altimeter"):
+        run_pipeline(i1, i2, p1, p2, cam, altimeter_m=-3.0)
+
+
+def _blank_texture_pair(size=256, seed=32):
+    """Textured plane at -2 m with a square of uniform albedo (no texture at all) in the middle."""
+    cam = camera_fov30(size)
+    p1 = Pose(np.array([0.0, 0.0, 200.0]), NADIR_R)
+    p2 = Pose(np.array([0.0, 0.0, 100.0]), NADIR_R)
+    tex = Texture.random(130.0, (100.0 / cam.fx) / 1.5, seed)
+    c = tex.img.shape[0] // 2
+    half = int(round(12.0 / tex.cell))  # a 24 m square
+    tex.img[c - half : c + half, c - half : c + half] = 128.0
+    i1, z1 = render(cam, p1, plane(-2.0), tex)
+    i2, _ = render(cam, p2, plane(-2.0), tex)
+    # the square's pixels in i1: world |X|, |Y| < 12 m (nadir, +X right, +Y up)
+    v, u = np.mgrid[0:size, 0:size]
+    X = (u - cam.cx) / cam.fx * 202.0
+    Y = -(v - cam.cy) / cam.fy * 202.0
+    blank = (np.abs(X) < 8.0) & (np.abs(Y) < 8.0)  # 4 m (10 px) inside the square: no texture in any support
+    textured = (np.abs(X) > 16.0) | (np.abs(Y) > 16.0)
+    return cam, p1, p2, i1, i2, z1, blank, textured
+
+
+def test_sigma_grows_where_texture_vanishes():
+    cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair()
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    assert res.sigma is not None and res.sigma.dtype == np.float32
+    cov = res.covered
+    tex_sig = np.nanmedian(res.sigma[cov & textured])
+    # on blank ground: either no elevation at all, or one with a much larger sigma
+    sb = res.sigma[cov & blank]
+    big = ~np.isfinite(sb) | (sb > 3.0 * tex_sig)
+    assert (cov & blank).sum() > 200 and big.mean() > 0.9
+    # and the blank square is never called safe
+    assert not np.any(res.state[cov & blank] == STATE_SAFE)
+    assert np.mean(res.state[cov & textured] == STATE_SAFE) > 0.3
+
+
+def _three_state_pair(tmp_path):
+    """A 25 deg roof (unsafe flanks) beside flat ground, with a blank (unknown) square."""
+    cam, p1, p2, i1, i2, z = make_pair(256, 200.0, 100.0, roof(25.0), seed=33)
+    return cam, p1, p2, i1, i2, z
+
+
+def test_three_states_reach_the_result_and_process_outputs(tmp_path):
+    from hil_server.cli import main
+
+    cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair(seed=34)
+    # make the left third of the scene a steep roof: re-render with a composite height
+    g = math.tan(math.radians(30.0))
+
+    def height(x, y):
+        return np.where(x < -20.0, -2.0 + g * (x + 20.0), -2.0)
+
+    tex = Texture.random(130.0, (100.0 / cam.fx) / 1.5, 34)
+    c = tex.img.shape[0] // 2
+    half = int(round(12.0 / tex.cell))
+    tex.img[c - half : c + half, c - half : c + half] = 128.0
+    i1, z = render(cam, p1, height, tex)
+    i2, _ = render(cam, p2, height, tex)
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    cov = res.covered
+    states = set(np.unique(res.state[cov]).tolist())
+    assert {STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN} <= states
+    assert np.all(res.state[~cov] == STATE_OUTSIDE) and np.all(np.isnan(res.psafe[~cov]))
+    # psafe agrees with the state; hazard.npy semantics: unknown and unsafe are 1, safe below 1
+    assert np.all(res.psafe[res.state == STATE_SAFE] >= PRESETS["fast"].psafe_min)
+    assert np.all(res.psafe[res.state == STATE_UNSAFE] == 0.0)
+    assert np.all(res.hazard[res.state == STATE_UNKNOWN] == 1.0)
+    assert np.all(res.hazard[res.state == STATE_SAFE] < 1.0)
+    # the steep part is unsafe, not just unknown
+    X = res.world_xy[..., 0]
+    steep = cov & (X < -26.0) & np.isfinite(res.elevation)
+    assert steep.sum() > 200 and np.mean(res.state[steep] == STATE_UNSAFE) > 0.6
+    assert np.mean(res.state[steep] == STATE_SAFE) < 0.02
+    # grid too
+    gs = set(np.unique(res.grid.state).tolist())
+    assert {STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN} <= gs
+    for s in res.sites:
+        assert s.p_safe >= PRESETS["fast"].psafe_min and s.clearance_m >= 1.5
+    # the process command writes them
+    d = write_pair(tmp_path / "pair", Pair(cam, (p1, p2), (i1, i2), truth={"elevation": z}))
+    out = tmp_path / "out"
+    assert main(["process", str(d), "--out", str(out)]) == 0
+    st = np.load(out / "state.npy")
+    ps = np.load(out / "psafe.npy")
+    hz = np.load(out / "hazard.npy")
+    assert st.dtype == np.uint8 and np.array_equal(st, res.state)
+    assert np.allclose(ps, res.psafe, equal_nan=True) and np.all(hz[st == STATE_UNKNOWN] == 1.0)
+    doc = json.loads((out / "result.json").read_text())
+    assert all("p_safe" in s and "clearance_m" in s for s in doc["sites"])
+
+
+def test_no_safe_site_is_reported():
+    # everything steep: 30 deg roof flanks and a narrow ridge
+    cam, p1, p2, i1, i2, z = make_pair(192, 120.0, 60.0, roof(30.0), seed=35)
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    assert res.sites == []
+    assert res.info.get("no_site_reason")
+    # a grid with nothing known safe says so; one whose safe patches are too small says that
+    st = np.full((20, 20), STATE_UNKNOWN, np.uint8)
+    g = HazardGrid(
+        np.ones((20, 20), np.float32),
+        np.zeros((20, 20), np.float32),
+        (0.0, 0.0),
+        0.5,
+        st,
+        np.full(st.shape, 0.5, np.float32),
+    )
+    sites, reason = select_safe_sites(g)
+    assert sites == [] and "no cell is known safe" in reason
+    st[5:8, 5:8] = STATE_SAFE  # 1.5 m patch < 3 m footprint + margin
+    sites, reason = select_safe_sites(g)
+    assert sites == [] and "footprint" in reason
+
+
+def test_sites_rank_by_psafe_then_distance():
+    n = 60
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    ps = np.full((n, n), 0.95, np.float32)
+    ps[:, 30:] = 0.99  # the right half is more certain
+    st[28:32, :] = STATE_UNSAFE
+    g = HazardGrid(np.zeros((n, n), np.float32), np.zeros((n, n), np.float32), (0.0, 0.0), 0.5, st, ps)
+    nominal = (10.0, -20.0)  # near the left half
+    sites, reason = select_safe_sites(g, 3.0, nominal, k=4, margin_m=0.5)
+    assert reason == "" and len(sites) == 4
+    assert sites[0].p_safe == pytest.approx(0.99) and sites[0].x >= 15.0
+    p = [s.p_safe for s in sites]
+    assert p == sorted(p, reverse=True)
+    X, Y = g.cell_xy()
+    for s in sites:  # whole footprint + margin known safe, clearance measured to the nearest non-safe cell
+        d = np.hypot(X - s.x, Y - s.y)
+        assert np.all(st[d <= 2.0] == STATE_SAFE) and s.clearance_m >= 2.0
+        for t in sites:
+            assert s is t or math.hypot(s.x - t.x, s.y - t.y) >= 3.0
+
+
+def test_sgm_kernel_equals_numpy_reference():
+    rng = np.random.default_rng(3)
+    C = rng.integers(0, 2000, (23, 31, 9)).astype(np.int16)
+    g = rng.normal(100, 20, (23, 31)).astype(np.float32)
+    for paths in (4, 8):
+        ref = aggregate(C, g, 12, 150, paths=paths, use_kernel=False)
+        assert ref.dtype == np.int16 and ref.shape == C.shape
+        if kernel() is not None:
+            assert np.array_equal(aggregate(C, g, 12, 150, paths=paths), ref)
+    # a single path by hand: left-to-right along one row
+    c1 = np.array([[[5, 0, 9], [9, 9, 0]]], np.int16)  # 1 x 2 pixels x 3 planes
+    L = aggregate(c1, np.zeros((1, 2), np.float32), 2, 5, paths=4, adapt=False, use_kernel=False)
+    # pixel 0: four paths start there or pass through with only pixel 1 before it (horizontal R->L)
+    # horizontal L->R at pixel 1: C + min(prev, prev+-1 + P1, min+P2) - min = [9+2, 9+0, 0+(5)] etc.
+    lr = np.array([9, 9, 0]) + np.minimum.reduce([np.array([5, 0, 9]), np.array([2, 7, 2]), np.full(3, 5)]) - 0
+    vertical_and_start = 2 * np.array([9, 9, 0]) + np.array([9, 9, 0])  # up, down: no predecessor; R->L starts
+    assert np.array_equal(L[0, 1], lr + vertical_and_start)
+
+
+def test_cost_slabs_sum_over_frames_and_mark_the_edge_band(deep_pair):
+    cam, p1, p2, i1, i2, z = deep_pair
+    planes = np.linspace(-56.0, -44.0, 13)
+    roi = (40, 40, 176, 176)
+    a = cost_slab(i1, i2, cam, p1, p2, planes, roi)
+    assert a.cost.dtype == np.uint16 and a.cost.shape == (13, 176, 176)
+    assert np.all(a.cost[~a.valid] == COST_MAX)
+    lo, hi = valid_interval(a.valid)
+    inside = lo >= 0
+    assert inside.mean() > 0.5 and np.all(hi[inside] >= lo[inside])
+    # the true plane (-50, index 6) has the lowest cost on most valid pixels
+    k = np.where(a.valid, a.cost, COST_MAX).argmin(axis=0)
+    assert np.mean(np.abs(k[(lo == 0) & (hi == 12)] - 6) <= 1) > 0.8
+    # combining: a slab with itself is itself; a slab missing a plane takes the other frame's cost
+    b = CostSlab(a.cost.copy(), a.valid.copy(), a.planes, a.roi)
+    b.valid[3] = False
+    b.cost[3] = COST_MAX
+    m = combine([a, b])
+    assert np.array_equal(m.valid, a.valid) and np.array_equal(m.cost[3], a.cost[3])
+    assert np.array_equal(combine([a, a]).cost, a.cost)
+
+
+def test_weighted_plane_fit_and_classification():
+    n = 31
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    z = 0.1 * xx - 0.05 * yy
+    sig = np.full((n, n), 0.05)
+    sig[10:20, 10:20] = 5.0  # an unreliable patch barely counts ...
+    z_bad = z.copy()
+    z_bad[10:20, 10:20] += 3.0  # ... so its wrong values do not tilt the plane
+    fit = weighted_plane_fit(z_bad, sig, 1.0, 9.0)
+    assert fit.grad[15, 25] == pytest.approx(math.hypot(0.1, 0.05), abs=0.01)
+    unweighted = weighted_plane_fit(z_bad, np.ones((n, n)), 1.0, 9.0)
+    assert abs(unweighted.grad[15, 22] - math.hypot(0.1, 0.05)) > 0.05
+    # classify: beyond k sigma -> unsafe; certain and flat -> safe; uncertain -> unknown
+    g = np.array([0.5, 0.0, 0.0, 0.3, np.nan], np.float32)  # tan(15 deg) = 0.268 per 1 m cell
+    gs = np.array([0.01, 0.01, 0.3, 0.01, 0.01], np.float32)
+    r = np.zeros(5, np.float32)
+    rs = np.full(5, 0.01, np.float32)
+    ev = classify(g, gs, r, rs, np.zeros(5, bool), np.ones(5, bool), 1.0, k=2.0, p_min=0.9)
+    assert ev.state.tolist() == [STATE_UNSAFE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, STATE_UNKNOWN]
+    assert ev.hazard[2] == 1.0 and ev.hazard[4] == 1.0 and ev.hazard[1] < 1.0
+    rough = classify(
+        np.zeros(3, np.float32),
+        np.full(3, 0.01, np.float32),
+        np.array([0.35, 0.35, 0.5], np.float32),
+        np.array([0.01, 0.1, 0.05], np.float32),
+        np.zeros(3, bool),
+        np.ones(3, bool),
+        1.0,
+        k=2.0,
+    )
+    # 0.35 +- 0.01 is rough; 0.35 +- 0.1 is within 2 sigma of the limit: unknown
+    assert rough.state.tolist() == [STATE_UNSAFE, STATE_UNKNOWN, STATE_UNSAFE]
+
+
+def test_deadline_gives_a_degraded_result_in_time():
+    cam, p1, p2, i1, i2, _ = make_pair(256, 200.0, 100.0, plane(-3.0), seed=36)
+    full = run_pipeline(i1, i2, p1, p2, cam)
+    assert full.level == "full" and not full.degraded
+    # a deadline the full level cannot meet
+    t0 = time.monotonic()
+    r = run_pipeline(i1, i2, p1, p2, cam, deadline_s=0.4 * full.timings["total"]["wall_s"])
+    assert r.degraded and r.level in ("image_only", "coarse")
+    assert time.monotonic() - t0 < full.timings["total"]["wall_s"]
+    # time_scale: reserves in unthrottled seconds x the slowdown; 1 s at a 100x slower processor leaves
+    # no time for any DEM stage (mapping reserve 0.06 s x 100 = 6 s)
+    r2 = run_pipeline(i1, i2, p1, p2, cam, deadline_s=1.0, time_scale=100.0)
+    assert r2.level == "image_only" and r2.degraded and "full_dem" in r2.info["skipped"]
+    assert r2.state.shape == i1.shape and not np.any(r2.state[r2.covered] == STATE_SAFE)
+    with pytest.raises(FlightInputError, match="time_scale"):
+        run_pipeline(i1, i2, p1, p2, cam, time_scale=0.0)
+
+
+def test_every_stage_checks_the_clock_in_the_v1_flow_too():
+    cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(-3.0), seed=37)
+    slow = dataclasses.replace(PRESETS["fast_v1"], mapping_reserve_s=0.05)
+    r = run_pipeline(i1, i2, p1, p2, cam, preset=slow, deadline_s=2.0, time_scale=100.0)
+    assert r.level == "image_only" and {"coarse_dem", "photometric_cues"} <= set(r.info["skipped"])
+    past = run_pipeline(i1, i2, p1, p2, cam, preset="thesis", deadline_at=time.monotonic() - 1.0)
+    assert past.level == "image_only" and "sites" in past.info["skipped"] and past.sites == []
+    assert past.info["no_site_reason"]
+
+
+def test_v2_params_are_checked():
+    cam, p1, p2, i1, i2, _ = make_pair(96, 200.0, 100.0, plane(0.0), seed=38)
+    for bad, word in (
+        ({"sgm_paths": 3}, "sgm_paths"),
+        ({"sgm_p1": 200, "sgm_p2": 100}, "sgm_p1"),
+        ({"sigma_temperature": -1.0}, "sigma_temperature"),
+        ({"dem": "magic"}, "dem"),
+        ({"min_planes": 80, "max_planes": 40}, "min_planes"),
+    ):
+        with pytest.raises(FlightInputError, match=word):
+            run_pipeline(i1, i2, p1, p2, cam, preset=dataclasses.replace(PRESETS["fast"], **bad))
