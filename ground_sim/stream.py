@@ -20,8 +20,9 @@ Config again, and carries on with the next pair. The process exits 3 when a
 session was lost on the way (0 otherwise).
 
 Each record carries what the ground measured: ``e2e_latency_s`` (the last
-frame written -> the whole Result received), ``result_line_s`` (first to last
-byte of the Result at the ground), ``result_bytes`` and ``frames_line_s``.
+frame written -> the whole Result received), ``result_rx_s`` (first to last
+frame of the Result here), ``result_bytes``, ``frames_line_s``, and the
+Result's line time as its sender measured it, ``result_line_s``.
 """
 
 from __future__ import annotations
@@ -97,6 +98,8 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         "frame_seqs": list(o.seqs),
         "link_s": o.link_s,
         "frames_line_s": o.frames_line_s,
+        # from the first byte of the pair queued to its outcome recorded (how long an error took, too)
+        "elapsed_s": time.monotonic() - o.sent_at if o.sent_at else None,
     }
     if o.error is not None:
         rec.update(status="error", code=o.error.code, text=o.error.text)
@@ -113,6 +116,7 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
             np.save(d / f"{name}.npy", np.asarray(arr))
     e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
     e2e = None
+    rx_span = None if o.result_t_first is None or o.result_t_done is None else o.result_t_done - o.result_t_first
     if o.result_t_done is not None and o.frames_written_at is not None:
         e2e = o.result_t_done - o.frames_written_at
     rec.update(
@@ -131,7 +135,10 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         deadline_s=t.deadline_s,
         deadline_met=bool(t.deadline_met),
         e2e_latency_s=e2e,
-        result_line_s=None if o.result_t_first is None else o.result_t_done - o.result_t_first,  # type: ignore[operator]
+        # the Result's line time as its sender measured it (first byte on the line -> acknowledged); the
+        # span between its first and last frame here misses the first frame's own line time
+        result_line_s=t.link.get("result_link_s", rx_span),
+        result_rx_s=rx_span,
         result_bytes=o.result_bytes,
         queue_wait_s=t.queue_wait_s,
         cpu_fraction=t.cpu_fraction,
@@ -331,13 +338,14 @@ def stream_descent(
                     preset=preset,
                     options=options,
                 )
+            if link.failed:  # the transport is gone for good (EOF, device unplugged): nothing more can go
+                give_up(o, "link_down", f"link failed: {link.failed}")
+                continue
             try:
                 ensure_session(first=state.sessions == 0)
             except LinkDown as exc:
                 note(f"LINK ERROR: {exc}")
                 give_up(o, "link_down", str(exc))
-                if state.sessions == 0 or link.failed:
-                    break  # never connected, or the transport is gone: the rest cannot go either
                 continue
             send_config()
             if not send_frames(o, frames):

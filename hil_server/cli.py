@@ -214,6 +214,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=4.0,
         help="a far end silent or not acknowledging this long ends the link session (s, default 4)",
     )
+    p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     p.add_argument("--out", type=Path, default=Path("out/run"))
 
 
@@ -238,6 +239,7 @@ def _config(args: argparse.Namespace):
         full_maps=args.full_maps,
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
+        link_fault=args.link_fault,
     )
 
 
