@@ -376,7 +376,8 @@ def stream_descent(
 
 def auto_elevation_step(link_spec: str) -> int:
     """Elevation grid decimation that keeps the Result small for the line: 1 unpaced/ZeroMQ, 2 at >= 460800
-    baud, 4 below (a 255 x 255 int16 grid compresses to ~35-48 kB; decimated by 4 to ~4 kB)."""
+    baud, 4 at >= 230400, 8 below. A 255 x 255 int16 grid (demo pairs) compresses to 35-48 kB; by 2 to
+    ~14 kB, by 4 to ~4 kB, by 8 to ~1.3 kB, beside ~2.5-4 kB each for the state and P(safe) grids."""
     from protocol.linkspec import parse_serial
 
     kind, _, rest = link_spec.partition(":")
@@ -385,7 +386,7 @@ def auto_elevation_step(link_spec: str) -> int:
     _, baud = parse_serial(rest)
     if baud is None:
         return 1
-    return 2 if baud >= 460800 else 4
+    return 2 if baud >= 460800 else 4 if baud >= 230400 else 8
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -548,7 +548,9 @@ class Arq:
             replaced, reply, newly = self.sess.on_hello(f.src, f.dst)
             if replaced is not None:
                 self.stats["peer_restarts"] += 1
-                self._drop_all(f"peer restarted (session {replaced:08x} replaced by {f.src:08x})", now)
+                self._drop_all(
+                    f"peer started a new session {f.src:08x} (it restarted, or gave up on session {replaced:08x})", now
+                )
                 self._events.append(_Event("restarted", f"peer session {replaced:08x} -> {f.src:08x}", self.epoch))
             self.peer_max_frame = f.max_frame
             self.peer_window = max(f.window, MIN_FRAME)

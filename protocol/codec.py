@@ -43,7 +43,7 @@ EXT_REF = 2
 EXT_ZLIB = 3
 FILTER_NONE = 0
 FILTER_DELTA = 1
-ZLIB_LEVEL = 6
+ZLIB_LEVEL = 6  # level 9 saves ~12 % on the grids but costs ~10x the CPU: a throttled flight CPU pays that
 _WIRE_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8", "|b1", "<f2")
 DTYPES: dict[int, np.dtype] = {code: np.dtype(s) for code, s in enumerate(_WIRE_DTYPES, start=1)}
 _DTYPE_CODES = {dt: code for code, dt in DTYPES.items()}

@@ -925,7 +925,7 @@ class ZmqLink(Link):
                 replaced, reply, newly = self.sess.on_hello(src, dst)
                 if replaced is not None:
                     self._stats["peer_restarts"] += 1
-                    self._drop_all(f"peer restarted (session {replaced:08x} replaced by {src:08x})")
+                    self._drop_all(f"peer started a new session {src:08x} (it restarted, or gave up on {replaced:08x})")
                     self._pending_events.append(("restarted", f"peer session {replaced:08x} -> {src:08x}", self.epoch))
                 self._last_heard = now
                 if newly:
