@@ -289,7 +289,11 @@ def stream_descent(
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
         ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
-        deadline = time.monotonic() + timeout
+        # the frames' own line time (a 512x512 pair is ~46 s at 115200 baud) on top of the response timeout;
+        # a stalled link ends sooner anyway (its peer timeout fails them)
+        baud = getattr(link, "baud", None)
+        line_s = 2.0 * sum(f.image.nbytes for f in frames) * 10 / baud if baud else 0.0
+        deadline = time.monotonic() + timeout + line_s
         while time.monotonic() < deadline:  # both frames on the far side: their line time is the link time
             outs = [link.outcome(i) or "" for i in ids]
             if all(x != "pending" for x in outs):

@@ -60,6 +60,7 @@ from protocol.errors import InputError
 from protocol.framing import (
     ACK,
     CLOSE,
+    CLOSE_LOST,
     DATA,
     DATA_OVERHEAD,
     DEFAULT_MAX_FRAME,
@@ -356,11 +357,12 @@ class Arq:
             self._fail(m, reason)
         self._reset_session_state(now)
 
-    def _lose(self, reason: str, now: float, kind: str = "lost") -> None:
+    def _lose(self, reason: str, now: float, kind: str = "lost", notify: bool = True) -> None:
         self.stats["peer_losses"] += 1
-        if kind != "closed" and self.sess.peer:  # best effort: tell the peer why, so its error says so too
+        if notify and not self.closed and self.sess.peer:  # best effort: tell the peer why, so its error says so
             self._control.clear()
-            self._control.append(close_frame(self.sess.local, self.sess.peer, self._cum, f"session lost: {reason}"))
+            lost = close_frame(self.sess.local, self.sess.peer, self._cum, f"session lost: {reason}", CLOSE_LOST)
+            self._control.append(lost)
         self._drop_all(f"session lost: {reason}", now)
         self.sess.lose()
         self._events.append(_Event(kind, reason, self.sess.epoch))
@@ -579,7 +581,10 @@ class Arq:
             self._deliver(f.type_code, f.payload, -1, now, now, f.wire_bytes)
         elif f.kind == CLOSE:  # its cum acknowledges what the peer received before closing
             self._on_ack(WireFrame(ACK, f.src, f.dst, cum=max(f.cum, self._una), window=self.peer_window), now)
-            self._lose(f"peer closed the link ({f.reason or 'no reason given'})", now, kind="closed")
+            if f.code == CLOSE_LOST:  # it gave up on this session and will start a new one
+                self._lose(f"peer gave up on the session ({f.reason or 'no reason given'})", now, notify=False)
+            else:
+                self._lose(f"peer closed the link ({f.reason or 'no reason given'})", now, "closed", notify=False)
         elif f.kind == REJECT:
             self.stats["rejected_received"] += 1
             hit = self._pos_id.get(f.pos)
@@ -620,6 +625,8 @@ class Arq:
                 if k + len(d) > self._cum:
                     self._consume(d[self._cum - k :], now)
             return
+        if not self._ooo and self._rlen is None and not self._rhead:
+            self._rlast = now  # nothing was pending: the reassembly clock starts now, not at the last message
         pieces = [(lo, hi)]
         i = max(0, bisect.bisect_right(self._ooo_keys, lo) - 1)
         while i < len(self._ooo_keys) and self._ooo_keys[i] < hi:  # keep only what is not held yet
@@ -817,7 +824,17 @@ class Arq:
                 return
             partial = self._rlen is not None or bool(self._rhead) or bool(self._ooo)
             if partial and now - self._rlast > pt:
-                self._lose(f"reassembly stalled: a message is incomplete and nothing came for {pt:g} s", now)
+                held = sum(len(v) for v in self._ooo.values())
+                what = (
+                    f"record at {self._rpos}: {self._rgot} of {self._rlen} bytes"
+                    if self._rlen is not None
+                    else f"{len(self._rhead)} header bytes"
+                )
+                self._lose(
+                    f"reassembly stalled: nothing in order for {pt:g} s ({what}; stream at {self._cum}, "
+                    f"{held} bytes held beyond a gap)",
+                    now,
+                )
                 return
         rto = min(cfg.rto_max, self._rto * self._backoff)
         expired = [

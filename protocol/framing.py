@@ -14,7 +14,7 @@ DATA       1     pos:u32 (stream byte position of the first byte) | stream bytes
 ACK        2     cum:u32 | window:u32 | n:u8 | n x (start:u32, end:u32)  (SACK)
 DGRAM      3     type:u8 | whole message body (unreliable, e.g. Heartbeat)
 HELLO      4     max_frame:u32 | window:u32
-CLOSE      5     cum:u32 (as in ACK: what the closing side received) | reason (UTF-8, <= 256 bytes)
+CLOSE      5     cum:u32 (as in ACK) | code:u8 (0 closed, 1 session lost) | reason (UTF-8, <= 256 bytes)
 REJECT     6     pos:u32 (stream position of the refused message's record) | reason (UTF-8)
 =========  ====  =============================================================
 
@@ -97,8 +97,11 @@ def hello_frame(src: int, dst: int, max_frame: int, window: int) -> bytes:
     return _frame(HELLO, src, dst, HELLO_BODY.pack(max_frame, window))
 
 
-def close_frame(src: int, dst: int, cum: int, reason: str) -> bytes:
-    return _frame(CLOSE, src, dst, _U32.pack(cum) + reason.encode("utf-8", "replace")[:MAX_REASON])
+CLOSE_APP, CLOSE_LOST = 0, 1  # the application closed the link / the sender gave up on this session
+
+
+def close_frame(src: int, dst: int, cum: int, reason: str, code: int = CLOSE_APP) -> bytes:
+    return _frame(CLOSE, src, dst, _U32.pack(cum) + bytes((code,)) + reason.encode("utf-8", "replace")[:MAX_REASON])
 
 
 def reject_frame(src: int, dst: int, pos: int, reason: str) -> bytes:
@@ -120,6 +123,7 @@ class WireFrame:
     sacks: list[tuple[int, int]] = field(default_factory=list)  # ACK
     max_frame: int = 0  # HELLO
     reason: str = ""  # CLOSE, REJECT
+    code: int = 0  # CLOSE
     wire_bytes: int = 0  # stuffed length between the flags (for statistics)
 
 
@@ -163,10 +167,11 @@ def parse_body(raw: bytes) -> WireFrame | str:
         if f.max_frame < MIN_FRAME or f.window < 1 or src == 0:
             return "malformed"
     elif kind == CLOSE:
-        if len(body) < 4 or len(body) > 4 + MAX_REASON:
+        if len(body) < 5 or len(body) > 5 + MAX_REASON or body[4] not in (CLOSE_APP, CLOSE_LOST):
             return "malformed"
         f.cum = _U32.unpack_from(body)[0]
-        f.reason = body[4:].decode("utf-8", "replace")
+        f.code = body[4]
+        f.reason = body[5:].decode("utf-8", "replace")
     elif kind == REJECT:
         if len(body) < 4 or len(body) > 4 + MAX_REASON:
             return "malformed"

@@ -53,6 +53,7 @@ from typing import Any
 from protocol.arq import Arq, ArqConfig, DeliveryFailure, MessageTimes, Received
 from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
+from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
 from protocol.session import SessionState
 
@@ -772,14 +773,14 @@ class ZmqLink(Link):
     def _hello(self) -> list[bytes]:
         return [_ZHEAD.pack(Z_VERSION, Z_HELLO, 0, 0, self.sess.local, self.sess.peer, 0)]
 
-    def _lose(self, reason: str, kind: str = "lost") -> None:
+    def _lose(self, reason: str, kind: str = "lost", notify: bool = True) -> None:
         """Caller holds the lock."""
         self._stats["peer_losses"] += 1
-        if kind != "closed" and self.sess.peer:
+        if notify and self.sess.peer:
             self._control.append(
                 [
                     _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
-                    f"session lost: {reason}".encode()[:256],
+                    bytes((CLOSE_LOST,)) + f"session lost: {reason}".encode()[:256],
                 ]
             )
         self._drop_all(f"session lost: {reason}")
@@ -944,8 +945,12 @@ class ZmqLink(Link):
             if self.sess.confirm():
                 self._established(now)
             if kind == Z_CLOSE:
-                reason = bytes(parts[1].buffer[:256]).decode("utf-8", "replace") if len(parts) > 1 else ""
-                self._lose(f"peer closed the link ({reason or 'no reason given'})", kind="closed")
+                body = bytes(parts[1].buffer[:257]) if len(parts) > 1 else b""
+                reason = body[1:].decode("utf-8", "replace") or "no reason given"
+                if body[:1] == bytes((CLOSE_LOST,)):  # it gave up on this session and will start a new one
+                    self._lose(f"peer gave up on the session ({reason})", kind="lost", notify=False)
+                else:
+                    self._lose(f"peer closed the link ({reason})", kind="closed", notify=False)
                 return
             if kind != Z_MSG:
                 self._stats["decode_errors"] += 1
@@ -1032,7 +1037,7 @@ class ZmqLink(Link):
                 self._control.append(
                     [
                         _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
-                        b"closed by the application",
+                        bytes((CLOSE_APP,)) + b"closed by the application",
                     ]
                 )
             self._cv.wait_for(lambda: not self._control, 0.5)

@@ -213,3 +213,24 @@ def test_duplicated_frames_on_the_line_give_each_message_once():
     line.run(line.now + 10, stop=lambda s: all(s.eps[0].outcome(i) == "delivered" for i in ids))
     assert [r.message.seq for r in line.received[1]] == [0, 1, 2]
     assert line.eps[1].stats["duplicates_dropped"] > 0
+
+
+def test_a_gap_after_a_long_idle_is_not_a_stall():
+    """Regression: the reassembly clock starts when data is first held, not at the last message
+    (the first frame of a Result lost after 10 s of silence ended the session at once)."""
+    line = pair()
+    line.run(line.now + 10)  # idle, keepalives only
+    drop_first = CorruptingChannel(1)
+    dropped = []
+
+    def apply(data: bytes) -> bytes:
+        if data[2] == 1 and not dropped:  # the first DATA frame (kind byte after the flag and version)
+            dropped.append(data)
+            return b""
+        return data
+
+    drop_first.apply = apply  # type: ignore[method-assign]
+    line.channels = (drop_first, None)
+    ids = send(line, [frame(0, 64)])
+    line.run(line.now + 10, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending")
+    assert dropped and line.eps[0].outcome(ids[0]) == "delivered" and line.eps[1].stats["peer_losses"] == 0

@@ -49,7 +49,7 @@ def test_every_kind_round_trips_with_its_fields():
         + ack_frame(7, 9, 5, 32768, [(8, 10), (12, 20)])
         + dgram_frame(7, 9, 6, b"\x01\x02")
         + hello_frame(7, 0, 1024, 65536)
-        + close_frame(7, 9, 77, "bye")
+        + close_frame(7, 9, 77, "bye", 1)
         + reject_frame(7, 9, 44, "too big")
     )
     f = d.feed(wire)
@@ -59,7 +59,7 @@ def test_every_kind_round_trips_with_its_fields():
     assert (f[1].cum, f[1].window, f[1].sacks) == (5, 32768, [(8, 10), (12, 20)])
     assert (f[2].type_code, f[2].payload) == (6, b"\x01\x02")
     assert (f[3].max_frame, f[3].window) == (1024, 65536)
-    assert (f[4].cum, f[4].reason) == (77, "bye") and (f[5].pos, f[5].reason) == (44, "too big")
+    assert (f[4].cum, f[4].code, f[4].reason) == (77, 1, "bye") and (f[5].pos, f[5].reason) == (44, "too big")
 
 
 @pytest.mark.parametrize(
