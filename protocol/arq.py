@@ -7,43 +7,45 @@ received bytes (:meth:`Arq.receive`), asks it for the next frame to write
 the current time. :mod:`protocol.links` drives it with a reader and a writer
 thread; tests drive it with a simulated line and a virtual clock.
 
-Sending (models: CCSDS COP-1 FOP, TCP SACK RFC 2018, RACK RFC 8985, RTO RFC 6298):
+Sending (models: TCP's byte sequence with SACK RFC 2018, RACK RFC 8985, RTO RFC 6298; CCSDS COP-1):
 
-* a message body is cut into segments, each one DATA frame of at most the
-  current frame size, numbered by a per-session sequence ``seq`` (u32, from 0);
-* at most ``window`` segments (and at most the peer's announced window) are
-  outstanding, counted from the lowest unacknowledged one;
-* the receiver's ACK carries ``cum`` (every seq below it arrived) and up to 16
-  SACK ranges above it; a segment is done once covered by either;
-* loss detection: an unacknowledged segment transmitted *before* a segment that
-  has since been acknowledged is lost (a serial line does not reorder) and is
-  retransmitted at once; otherwise after the retransmission timeout
-  ``RTO = SRTT + 4 RTTVAR`` (Karn: no samples from retransmitted segments),
-  doubled per timeout up to ``rto_max``;
+* each session direction is one reliable byte stream of records
+  ``type:u8 | length:u32 | body`` (one per message), numbered by stream position
+  from 0; DATA frames carry any range of it, at most the current frame size;
+* at most ``window`` bytes (and at most the peer's announced window) are
+  outstanding, counted from the lowest unacknowledged byte;
+* the receiver's ACK carries ``cum`` (every byte below it arrived), up to 16
+  SACK ranges above it (the most recently received first, then the lowest),
+  and ``echo``, the transmission number of the latest DATA frame it received;
+* loss detection: every DATA frame carries a new transmission number, so an
+  ACK's echo says exactly which transmissions preceded the last one received;
+  any still unacknowledged is lost (a serial line does not reorder) and is
+  resent at once, cut to the current frame size. Otherwise after the
+  retransmission timeout ``RTO = SRTT + 4 RTTVAR`` (samples from the echo, exact
+  even for resent frames), doubled per timeout period up to ``rto_max``;
 * frame size adapts to the line: from the loss rate L of frames of mean size n
   the per-byte error rate is ``e = -ln(1 - L) / n`` and the size maximising
   goodput ``(1 - h/f)(1 - e)^f`` (h = per-frame overhead) is
   ``f = (e h + sqrt(e^2 h^2 + 4 e h)) / (2 e)``, clamped to
   [``min_frame``, ``max_frame``];
-* a message is *delivered* when every segment is acknowledged, and *failed*
-  with a reason when the session it was sent in ends first (peer lost,
-  restarted or closed) or the peer rejects it (REJECT). Nothing is dropped
-  silently.
+* a message is *delivered* when ``cum`` passes the end of its record, and
+  *failed* with a reason when the session it was sent in ends first (peer
+  lost, restarted or closed) or the peer rejects it (REJECT). Nothing is
+  dropped silently.
 
-Receiving: segments are accepted inside ``[cum, cum + window)``, held out of
-order until the gap fills (at most ``window`` frames of ``max_frame`` bytes),
-then appended to the message being reassembled. A message announcing more than
-``limits.max_message_bytes`` is refused (REJECT) before a byte of it is kept,
-and every reassembled body is decoded under the codec's budget
-(:func:`protocol.codec.decode_parts`). Duplicates and segments outside the
-window are dropped and acknowledged again.
+Receiving: bytes are accepted inside ``[cum, cum + window)`` and held out of
+order until the gap fills (at most ``window`` bytes), then parsed into records.
+A record announcing more than ``limits.max_message_bytes`` or an unknown type
+is skipped without keeping a byte of it and refused (REJECT), and every other
+body is decoded under the codec's budget (:func:`protocol.codec.decode_parts`).
+Duplicates and bytes outside the window are dropped and acknowledged again.
 
 Liveness: while a session is up each side sends a HELLO as keepalive when it
 has sent nothing for ``keepalive`` s. The session is lost (an explicit error
 for every message in flight, reported by :meth:`Arq.take_events`) when the
 peer has sent nothing valid for ``peer_timeout`` s, when outstanding data
-makes no progress for ``peer_timeout`` s, when a started message is not
-completed within ``peer_timeout`` s (reassembly timeout), or when the peer
+makes no progress for ``peer_timeout`` s, when a started message gets no byte
+in order for ``2 * peer_timeout`` s (reassembly timeout), or when the peer
 sends CLOSE. Queued messages wait at most ``connect_timeout`` s for a session.
 """
 
@@ -181,7 +183,7 @@ class _Seg:
     end: int
     tx: int = 0
     sent_at: float | None = None  # last write completed
-    order: int = 0  # transmission counter at the last write
+    order: int = 0  # transmission number of its latest transmission
     queued: bool = True  # waiting for (re)transmission or being written
     acked: bool = False
 
@@ -252,7 +254,6 @@ class Arq:
         # line estimates survive session changes (the line is the same)
         self._srtt: float | None = None
         self._rttvar = 0.0
-        self._rtt_min = math.inf
         self._rto = self.cfg.rto_initial  # from RTT samples (RFC 6298)
         self._backoff = 1.0  # doubled per timeout, reset by progress
         self._last_timeout = -math.inf
@@ -274,7 +275,9 @@ class Arq:
         self._segs: dict[int, _Seg] = {}
         self._keys: list[int] = []  # sorted segment starts
         self._retx: deque[int] = deque()
-        self._order = 0
+        self._txid = 0  # transmission number of the last DATA frame built
+        self._last_echo = 0  # highest transmission number an ACK has echoed
+        self._txmap: OrderedDict[int, _Seg] = OrderedDict()  # transmission number -> segment
         self._last_progress = now
         self._was_busy = False
         # receiving
@@ -282,6 +285,8 @@ class Arq:
         self._ooo: dict[int, bytes] = {}
         self._ooo_keys: list[int] = []
         self._ack_due = False
+        self._echo = 0  # transmission number of the latest DATA received (echoed in ACKs)
+        self._last_pos = 0  # stream position of the latest DATA received
         self._rhead = bytearray()
         self._rtype = 0
         self._rlen: int | None = None
@@ -438,8 +443,15 @@ class Arq:
                 ranges[-1] = (ranges[-1][0], max(ranges[-1][1], e))
             else:
                 ranges.append((k, e))
+        # RFC 2018: the first block holds the most recently received data, so over successive ACKs the
+        # sender learns of every range even when there are more than 16; then the lowest ones
+        recent = next((r for r in ranges if r[0] <= self._last_pos < r[1]), None)
+        if recent is not None:
+            ranges.remove(recent)
+            ranges.insert(0, recent)
         self.stats["acks_sent"] += 1
-        return ack_frame(self.sess.local, self.sess.peer, self._cum, self.cfg.window, ranges[:MAX_SACK_RANGES])
+        sacks = ranges[:MAX_SACK_RANGES]
+        return ack_frame(self.sess.local, self.sess.peer, self._cum, self.cfg.window, sacks, self._echo)
 
     def _payload_size(self) -> int:
         return max(self.cfg.min_frame, min(self._frame, self.cfg.max_frame, self.peer_max_frame)) - DATA_OVERHEAD
@@ -455,7 +467,7 @@ class Arq:
             bisect.insort(self._keys, seg.start)
 
     def next_frame(self, now: float) -> tuple[bytes, int | None] | None:
-        """The next frame to write and a token for :meth:`written` (a DATA position, or None)."""
+        """The next frame to write and a token for :meth:`written` (a DATA transmission number, or None)."""
         if self._control:
             return self._control.popleft(), None
         if not self.sess.established:
@@ -478,7 +490,7 @@ class Arq:
                 self._insert_seg(tail)
                 self._retx.appendleft(tail.start)
             self.stats["retransmits"] += 1
-            return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end)), seg.start
+            return self._transmit(seg, now), self._txid
         end = self._una + len(self._sbuf)
         room = min(self.cfg.window, self.peer_window) - (self._nxt - self._una)
         if self.closed or self._nxt >= end or room <= 0 or len(self._segs) >= self.cfg.max_segments:
@@ -487,11 +499,22 @@ class Arq:
             self._lose("stream positions exhausted", now)
             return None
         n = min(k, end - self._nxt, room)
-        seg = _Seg(self._nxt, self._nxt + n, sent_at=now)  # provisional times: the ack may beat written()
+        seg = _Seg(self._nxt, self._nxt + n)
         self._insert_seg(seg)
         self._nxt += n
-        self._stamp(seg, now, now)
-        return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end)), seg.start
+        self._stamp(seg, now, now)  # provisional times: the ack may beat written()
+        return self._transmit(seg, now), self._txid
+
+    def _transmit(self, seg: _Seg, now: float) -> bytes:
+        """A DATA frame for ``seg`` under a new transmission number (echoed back by the receiver's ACK)."""
+        self._txid += 1
+        seg.order = self._txid
+        seg.tx += 1
+        seg.sent_at = now  # provisional until written()
+        self._txmap[self._txid] = seg
+        if len(self._txmap) > 8192:
+            self._txmap.popitem(last=False)
+        return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end), self._txid)
 
     def _stamp(self, seg: _Seg, started: float, now: float) -> None:
         """First transmission of ``seg``: the line times of the messages it starts or ends."""
@@ -518,14 +541,13 @@ class Arq:
         self.stats["bytes_sent"] += nbytes
         if token is None:
             return
-        seg = self._segs.get(token)
-        if seg is None:
-            return
         self.stats["data_frames_sent"] += 1
-        seg.tx += 1
+        seg = self._txmap.get(token)
+        if seg is None or seg.order != token:
+            return  # acknowledged already, or transmitted again since
         seg.sent_at = now if ok else now - self._rto * self._backoff  # a timed-out write counts as lost at once
-        self._order += 1
-        seg.order = self._order
+        if seg.acked:
+            return
         seg.queued = False
         if seg.tx == 1:
             self._stamp(seg, now if started is None else started, now)
@@ -609,6 +631,8 @@ class Arq:
     def _on_data(self, f: WireFrame, now: float) -> None:
         s, e = f.pos, f.pos + len(f.payload)
         self._ack_due = True
+        self._echo = max(self._echo, f.txid)
+        self._last_pos = s
         if e <= self._cum:
             self.stats["duplicates_dropped"] += 1
             return
@@ -691,7 +715,7 @@ class Arq:
 
     def _on_ack(self, f: WireFrame, now: float) -> None:
         self.stats["acks_received"] += 1
-        if f.cum > self._nxt or any(b > self._nxt for _, b in f.sacks):
+        if f.cum > self._nxt or any(b > self._nxt for _, b in f.sacks) or f.echo > self._txid:
             self.stats["malformed"] += 1  # acknowledges what was never sent
             return
         self.peer_window = max(MIN_FRAME, f.window)
@@ -729,25 +753,20 @@ class Arq:
                     seg.acked = True
                     newly.append(seg)
                 i += 1
-        if not newly:
-            return
-        self._last_progress = now
-        self._backoff = 1.0
-        hi_order = 0
-        sample = None
+        if f.echo > self._last_echo:  # the DATA frame that triggered this ACK: one exact RTT sample
+            self._last_echo = f.echo
+            hit = self._txmap.get(f.echo)
+            if hit is not None and hit.order == f.echo and hit.sent_at is not None:
+                self._rtt(max(now - hit.sent_at, 0.0))
         for seg in newly:
-            if seg.sent_at is None:
-                continue
-            rtt = now - seg.sent_at
-            if seg.tx == 1:
-                sample = rtt if sample is None else min(sample, rtt)
-            if seg.tx == 1 or rtt >= 0.8 * self._rtt_min:  # this ack is for the latest transmission
-                hi_order = max(hi_order, seg.order)
             self._loss_sample(0.0, seg.end - seg.start + DATA_OVERHEAD)
-        if sample is not None:
-            self._rtt(sample)
-        for seg in self._segs.values():  # RACK: sent before something acknowledged -> lost
-            if not seg.acked and not seg.queued and seg.order < hi_order:
+        if newly:
+            self._last_progress = now
+            self._backoff = 1.0
+        # RACK with exact ordering: a segment whose latest transmission went out before the frame the
+        # receiver just reported (a serial line does not reorder) and is still unacknowledged was lost
+        for seg in self._segs.values():
+            if not seg.acked and not seg.queued and seg.order < f.echo:
                 self._retransmit(seg)
 
     def _delivered(self, m: _Out, now: float) -> None:
@@ -764,7 +783,6 @@ class Arq:
         self._loss_sample(1.0, seg.end - seg.start + DATA_OVERHEAD)
 
     def _rtt(self, r: float) -> None:
-        self._rtt_min = min(self._rtt_min, r)
         if self._srtt is None:
             self._srtt, self._rttvar = r, r / 2
         else:
@@ -823,7 +841,8 @@ class Arq:
                 )
                 return
             partial = self._rlen is not None or bool(self._rhead) or bool(self._ooo)
-            if partial and now - self._rlast > pt:
+            # a noisy line may hold a gap for a few RTOs; a sender that stopped is caught by silence anyway
+            if partial and now - self._rlast > 2 * pt:
                 held = sum(len(v) for v in self._ooo.values())
                 what = (
                     f"record at {self._rpos}: {self._rgot} of {self._rlen} bytes"
@@ -831,7 +850,7 @@ class Arq:
                     else f"{len(self._rhead)} header bytes"
                 )
                 self._lose(
-                    f"reassembly stalled: nothing in order for {pt:g} s ({what}; stream at {self._cum}, "
+                    f"reassembly stalled: nothing in order for {2 * pt:g} s ({what}; stream at {self._cum}, "
                     f"{held} bytes held beyond a gap)",
                     now,
                 )

@@ -10,8 +10,8 @@ One frame on the wire (HDLC-style byte stuffing, RFC 1662 section 4.2)::
 Kinds and their bodies (all integers big-endian; docs/protocol.md is the spec):
 
 =========  ====  =============================================================
-DATA       1     pos:u32 (stream byte position of the first byte) | stream bytes
-ACK        2     cum:u32 | window:u32 | n:u8 | n x (start:u32, end:u32)  (SACK)
+DATA       1     pos:u32 (stream byte position of the first byte) | txid:u32 | stream bytes
+ACK        2     cum:u32 | window:u32 | echo:u32 | n:u8 | n x (start:u32, end:u32)  (SACK)
 DGRAM      3     type:u8 | whole message body (unreliable, e.g. Heartbeat)
 HELLO      4     max_frame:u32 | window:u32
 CLOSE      5     cum:u32 (as in ACK) | code:u8 (0 closed, 1 session lost) | reason (UTF-8, <= 256 bytes)
@@ -47,14 +47,14 @@ WIRE_VERSION = 2
 DATA, ACK, DGRAM, HELLO, CLOSE, REJECT = 1, 2, 3, 4, 5, 6
 KIND_NAMES = {DATA: "DATA", ACK: "ACK", DGRAM: "DGRAM", HELLO: "HELLO", CLOSE: "CLOSE", REJECT: "REJECT"}
 HEADER = struct.Struct(">BBHII")
-DATA_HEAD = struct.Struct(">I")
-ACK_HEAD = struct.Struct(">IIB")
+DATA_HEAD = struct.Struct(">II")  # pos, txid (the sender's transmission number, echoed in ACKs)
+ACK_HEAD = struct.Struct(">IIIB")  # cum, window, echo (txid of the latest DATA received), n
 SACK_RANGE = struct.Struct(">II")
 HELLO_BODY = struct.Struct(">II")
 _U32 = struct.Struct(">I")
 _CRC = struct.Struct(">I")
 OVERHEAD = HEADER.size + _CRC.size  # unstuffed bytes besides the body
-DATA_OVERHEAD = OVERHEAD + DATA_HEAD.size  # 20 bytes around a segment (+ 2 flags + stuffing)
+DATA_OVERHEAD = OVERHEAD + DATA_HEAD.size  # 24 bytes around a segment (+ 2 flags + stuffing)
 MAX_SACK_RANGES = 16
 MAX_REASON = 256
 MIN_FRAME = 64  # smallest max_frame a peer may announce
@@ -79,13 +79,13 @@ def _frame(kind: int, src: int, dst: int, body: bytes) -> bytes:
     return b"\x7e" + stuff(raw + _CRC.pack(zlib.crc32(raw))) + b"\x7e"
 
 
-def data_frame(src: int, dst: int, pos: int, segment: bytes) -> bytes:
-    return _frame(DATA, src, dst, DATA_HEAD.pack(pos) + segment)
+def data_frame(src: int, dst: int, pos: int, segment: bytes, txid: int = 0) -> bytes:
+    return _frame(DATA, src, dst, DATA_HEAD.pack(pos, txid) + segment)
 
 
-def ack_frame(src: int, dst: int, cum: int, window: int, sacks: list[tuple[int, int]]) -> bytes:
+def ack_frame(src: int, dst: int, cum: int, window: int, sacks: list[tuple[int, int]], echo: int = 0) -> bytes:
     sacks = sacks[:MAX_SACK_RANGES]
-    body = ACK_HEAD.pack(cum, window, len(sacks)) + b"".join(SACK_RANGE.pack(a, b) for a, b in sacks)
+    body = ACK_HEAD.pack(cum, window, echo, len(sacks)) + b"".join(SACK_RANGE.pack(a, b) for a, b in sacks)
     return _frame(ACK, src, dst, body)
 
 
@@ -116,6 +116,8 @@ class WireFrame:
     src: int
     dst: int
     pos: int = 0  # DATA, REJECT
+    txid: int = 0  # DATA
+    echo: int = 0  # ACK
     type_code: int = 0  # DGRAM
     payload: bytes = b""  # DATA stream bytes / DGRAM body
     cum: int = 0  # ACK, CLOSE
@@ -141,14 +143,14 @@ def parse_body(raw: bytes) -> WireFrame | str:
     if kind == DATA:
         if len(body) <= DATA_HEAD.size:
             return "malformed"
-        (f.pos,) = DATA_HEAD.unpack_from(body)
+        f.pos, f.txid = DATA_HEAD.unpack_from(body)
         f.payload = body[DATA_HEAD.size :]
         if f.pos + len(f.payload) > 2**32:
             return "malformed"
     elif kind == ACK:
         if len(body) < ACK_HEAD.size:
             return "malformed"
-        f.cum, f.window, n = ACK_HEAD.unpack_from(body)
+        f.cum, f.window, f.echo, n = ACK_HEAD.unpack_from(body)
         if n > MAX_SACK_RANGES or len(body) != ACK_HEAD.size + n * SACK_RANGE.size:
             return "malformed"
         for k in range(n):

@@ -40,6 +40,7 @@ from protocol.codec import encode_message
 from protocol.framing import (
     ACK_HEAD,
     CLOSE,
+    DATA_OVERHEAD,
     DGRAM,
     REJECT,
     _frame,
@@ -157,7 +158,7 @@ def fuzz_noise(n_inputs: int, seed: int, messages: list[Message] | None = None, 
         frames = []
         pos = 0
         while pos < len(stream):
-            n = int(rng.integers(1, 1024 - 20))
+            n = int(rng.integers(1, 1024 - DATA_OVERHEAD + 1))
             frames.append(data_frame(PEER, RX, pos, stream[pos : pos + n]))
             pos += n
         parts: list[bytes] = []
@@ -270,9 +271,13 @@ def _hostile_frame(rng: np.random.Generator, bodies: list[bytes], stream_pos: in
     if kind == 2:  # ACK of data never sent / bogus SACK ranges
         n = int(rng.integers(0, 17))
         sacks = sorted({(int(a), int(a) + int(rng.integers(1, 1 << 20))) for a in rng.integers(1, 2**31, n)})
-        return ack_frame(PEER, RX, int(rng.integers(0, 2**32)), int(rng.integers(0, 2**32)), sacks)
+        return ack_frame(
+            PEER, RX, int(rng.integers(0, 2**32)), int(rng.integers(0, 2**32)), sacks, int(rng.integers(0, 2**32))
+        )
     if kind == 3:  # a raw ACK body with inconsistent counts
-        body = ACK_HEAD.pack(0, 1, int(rng.integers(0, 256))) + rng.bytes(int(rng.integers(0, 64)))
+        body = ACK_HEAD.pack(0, 1, int(rng.integers(0, 2**32)), int(rng.integers(0, 256))) + rng.bytes(
+            int(rng.integers(0, 64))
+        )
         return _frame(2, PEER, RX, body)
     if kind == 4:  # datagrams with hostile bodies
         return dgram_frame(PEER, RX, int(rng.integers(0, 256)), bodies[int(rng.integers(0, len(bodies)))][:900])
@@ -314,7 +319,7 @@ def fuzz_hostile(n_inputs: int, seed: int, max_frame: int = 1024, window: int = 
         parts = []
         pos = 0
         while pos < len(stream):
-            n = int(rng.integers(1, max_frame - 20))
+            n = int(rng.integers(1, max_frame - DATA_OVERHEAD + 1))
             parts.append(data_frame(PEER, RX, pos, stream[pos : pos + n]))
             pos += n
             while rng.random() < 0.3:
