@@ -423,6 +423,34 @@ class Arq:
         q = self.queued_bytes
         return q == 0 or q + nbytes <= self.cfg.send_buffer
 
+    def held_bytes(self) -> dict[str, int]:
+        """Memory held on the receive side (the bounds the fuzz campaign checks)."""
+        return {
+            "frame": self.decoder.pending_bytes,
+            "out_of_order": sum(len(v) for v in self._ooo.values()),
+            "reassembly": len(self._rbuf),
+        }
+
+    @property
+    def control_pending(self) -> bool:
+        """Control frames (HELLO, CLOSE, REJECT) not yet handed to the line."""
+        return bool(self._control)
+
+    def fail_all(self, reason: str) -> None:
+        """Fail every message not yet delivered (the link is going away)."""
+        for m in list(self._msgs) + list(self._pending):
+            self._fail(m, reason)
+        self._msgs.clear()
+        self._pending.clear()
+        self._pending_bytes = 0
+
+    def transport_failed(self, reason: str, now: float) -> None:
+        """The byte stream itself is gone: end the session, fail everything, accept nothing more."""
+        self._lose(f"transport failed: {reason}", now, notify=False)
+        self.fail_all(f"transport failed: {reason}")
+        self.closed = True
+        self._events.clear()
+
     def close(self, reason: str = "closed by the application") -> None:
         """Queue a CLOSE for the peer (if any) and stop accepting messages."""
         if self.closed:

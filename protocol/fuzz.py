@@ -334,11 +334,11 @@ def fuzz_hostile(n_inputs: int, seed: int, max_frame: int = 1024, window: int = 
             step = int(rng.integers(1, 1 << 15))
             arq.receive(blob[pos : pos + step], 1.0)
             pos += step
-            held_ooo = sum(len(v) for v in arq._ooo.values())
+            held = arq.held_bytes()
             if (
-                arq.decoder.pending_bytes > 2 * max_frame
-                or held_ooo > window
-                or len(arq._rbuf) > arq.cfg.limits.max_message_bytes
+                held["frame"] > 2 * max_frame
+                or held["out_of_order"] > window
+                or held["reassembly"] > arq.cfg.limits.max_message_bytes
             ):
                 report["violations"] += 1
         report["max_input_s"] = max(report["max_input_s"], time.perf_counter() - t0)

@@ -361,9 +361,7 @@ class ByteStreamLink(Link):
             if self._failed is not None:
                 return
             self._failed = reason
-            self.arq._lose(f"transport failed: {reason}", time.monotonic())
-            self.arq.closed = True
-            self.arq.take_events()
+            self.arq.transport_failed(reason, time.monotonic())
             self._cv.notify_all()
         self._event("transport", reason, self.arq.epoch)
 
@@ -376,9 +374,8 @@ class ByteStreamLink(Link):
         with self._cv:
             self.arq.close()
             self._cv.notify_all()
-            self._cv.wait_for(lambda: not self.arq._control or self._failed is not None, 0.5)
-            for m in list(self.arq._msgs) + list(self.arq._pending):
-                self.arq._fail(m, "link closed before the message was delivered")
+            self._cv.wait_for(lambda: not self.arq.control_pending or self._failed is not None, 0.5)
+            self.arq.fail_all("link closed before the message was delivered")
             self._stop = True
             self._cv.notify_all()
         self._closed.set()

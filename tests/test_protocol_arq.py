@@ -178,7 +178,7 @@ def test_oversize_record_is_rejected_before_it_is_buffered():
     ids = send(line, [frame(0, 128)])  # ~16 kB > the receiver's 10 kB limit
     line.run(line.now + 10, stop=lambda s: str(s.eps[0].outcome(ids[0])).startswith("failed"))
     assert "peer rejected: message of" in line.eps[0].outcome(ids[0])
-    assert line.eps[1]._rbuf == bytearray() and line.received[1] == []
+    assert line.eps[1].held_bytes()["reassembly"] == 0 and line.received[1] == []
     ids = send(line, [frame(1, 32)])  # the stream goes on after the refused record
     line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) == "delivered")
     assert [r.message.seq for r in line.received[1]] == [1]
