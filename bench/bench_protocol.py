@@ -91,21 +91,23 @@ def bench_result() -> None:
         pair = read_pair(_demo_pairs() / label, load_truth=False)
         res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset="fast")
         row = {"pair": label, "grid": list(res.grid.state.shape)}
-        for step in (1, 2, 4, 8):
-            cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options={"elevation_step": step})
+        for pstep, step in ((1, 1), (1, 2), (2, 4), (4, 8)):  # ground_sim.stream.auto_grid_steps by line rate
+            opts = {"elevation_step": step, "psafe_step": pstep}
+            cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options=opts)
             msg = FlightProcess._result_message(res, (0, 1), cfg)
             b = encode_message(msg)
-            row[f"step{step}_bytes"] = len(b)
-            if step == 4:
+            row[f"p{pstep}e{step}_bytes"] = len(b)
+            if step == 8:
                 row["encode_ms"] = 1e3 * timeit(lambda m=msg: encode_message(m), 10)[1]
                 row["decode_ms"] = 1e3 * timeit(lambda b=b: decode_message(b), 10)[1]
         cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options={"full_maps": 1})
         row["full_maps_bytes"] = len(encode_message(FlightProcess._result_message(res, (0, 1), cfg)))
         rows.append(row)
         print(
-            f"Result {label}: grid {row['grid']}, {row['step1_bytes']} B (step 1), {row['step2_bytes']} B (2), "
-            f"{row['step4_bytes']} B (4), {row['step8_bytes']} B (8); with full maps {row['full_maps_bytes']} B; "
-            f"encode {row['encode_ms']:.1f} ms CPU, decode {row['decode_ms']:.1f} ms CPU"
+            f"Result {label}: grid {row['grid']}, steps (P(safe), elevation) (1,1) {row['p1e1_bytes']} B, "
+            f"(1,2) {row['p1e2_bytes']} B, (2,4) {row['p2e4_bytes']} B, (4,8) {row['p4e8_bytes']} B; "
+            f"with full maps {row['full_maps_bytes']} B; encode {row['encode_ms']:.1f} ms CPU, "
+            f"decode {row['decode_ms']:.1f} ms CPU"
         )
     RESULTS["result"] = rows
 

@@ -43,9 +43,10 @@ from protocol.pairdir import Camera, Pose
 # Result transmission and encoding happen after the pipeline returns; keep a
 # slice of the deadline for them so the result leaves on time.
 OUTPUT_RESERVE_FRACTION = 0.05
-# Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result)
-# and elevation_step (k >= 1: the elevation grid is the world grid decimated by k; docs/protocol.md).
+# Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
+# elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md).
 DEFAULT_ELEVATION_STEP = 1
+DEFAULT_PSAFE_STEP = 1
 
 
 @dataclass
@@ -116,9 +117,10 @@ class FlightProcess:
         if isinstance(msg, Config):
             try:
                 Camera.from_dict(msg.camera)
-                step = msg.options.get("elevation_step", DEFAULT_ELEVATION_STEP)
-                if step != int(step) or not 1 <= step <= 1024:
-                    raise InputError(f"Config option elevation_step must be an integer in [1, 1024], got {step}")
+                for name, default in (("elevation_step", DEFAULT_ELEVATION_STEP), ("psafe_step", DEFAULT_PSAFE_STEP)):
+                    step = msg.options.get(name, default)
+                    if step != int(step) or not 1 <= step <= 1024:
+                        raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
             except InputError as exc:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
@@ -210,12 +212,14 @@ class FlightProcess:
         grid = res.grid
         full = bool(cfg.options.get("full_maps", 0))
         step = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
+        pstep = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
         elevation, offset = elevation_to_wire(grid.elevation, step)
         reason = res.info.get("no_site_reason")
         msg = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),
-            psafe_grid=psafe_to_wire(grid.psafe),
+            psafe_grid=psafe_to_wire(grid.psafe, pstep),
+            psafe_step=pstep,
             elevation_grid=elevation,
             grid_origin_xy=tuple(float(v) for v in grid.origin_xy),
             grid_cell_m=float(grid.cell_m),

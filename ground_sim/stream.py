@@ -109,12 +109,13 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
     d.mkdir(parents=True, exist_ok=True)
     r, t = o.result, o.telemetry
     np.save(d / "state_grid.npy", np.asarray(r.state_grid, dtype=np.uint8))
-    np.save(d / "psafe_grid.npy", psafe_from_wire(r.psafe_grid))
+    np.save(d / "psafe_grid.npy", psafe_from_wire(r.psafe_grid))  # on its own (decimated) geometry
     np.save(d / "elevation_grid.npy", elevation_from_wire(r.elevation_grid, r.elevation_offset_m))
     for name, arr in (("hazard", r.hazard_image), ("elevation", r.elevation_image), ("state", r.state_image)):
         if arr is not None:
             np.save(d / f"{name}.npy", np.asarray(arr))
     e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
+    p_origin, p_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.psafe_step)
     e2e = None
     rx_span = None if o.result_t_first is None or o.result_t_done is None else o.result_t_done - o.result_t_first
     if o.result_t_done is not None and o.frames_written_at is not None:
@@ -128,6 +129,9 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         elevation_origin_xy=list(e_origin),
         elevation_cell_m=e_cell,
         elevation_step=r.elevation_step,
+        psafe_origin_xy=list(p_origin),
+        psafe_cell_m=p_cell,
+        psafe_step=r.psafe_step,
         full_maps=r.hazard_image is not None,
         sites=[asdict(s) for s in r.sites],
         no_site_reason=r.no_site_reason,
@@ -176,6 +180,7 @@ def stream_descent(
     reconnect_timeout_s: float = 10.0,
     full_maps: bool = False,
     elevation_step: int = 1,
+    psafe_step: int = 1,
     progress=None,
 ) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``)."""
@@ -184,7 +189,7 @@ def stream_descent(
     entries = manifest["pairs"]
     out_dir.mkdir(parents=True, exist_ok=True)
     timeout = response_timeout_s if response_timeout_s is not None else 3.0 * deadline_s + 30.0
-    options = {"full_maps": int(bool(full_maps)), "elevation_step": int(elevation_step)}
+    options = {"full_maps": int(bool(full_maps)), "elevation_step": int(elevation_step), "psafe_step": int(psafe_step)}
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
@@ -378,19 +383,25 @@ def stream_descent(
     return records
 
 
-def auto_elevation_step(link_spec: str) -> int:
-    """Elevation grid decimation that keeps the Result small for the line: 1 unpaced/ZeroMQ, 2 at >= 460800
-    baud, 4 at >= 230400, 8 below. A 255 x 255 int16 grid (demo pairs) compresses to 35-48 kB; by 2 to
-    ~14 kB, by 4 to ~4 kB, by 8 to ~1.3 kB, beside ~2.5-4 kB each for the state and P(safe) grids."""
+def auto_grid_steps(link_spec: str) -> tuple[int, int]:
+    """(P(safe) step, elevation step) that keep the Result small for the line (docs/benchmarks/protocol.md).
+
+    On the demo pairs (256 x 256 grid, flight v2) the state grid compresses to 4-8 kB, P(safe) to
+    15-34 kB at full resolution, 4-8 kB decimated by 2, 1.3-1.6 kB by 4, and the elevation grid to
+    1.3-14 kB at steps 8-2: ZeroMQ or unpaced (1, 1); from 460800 baud (1, 2); from 230400 (2, 4);
+    below (4, 8), ~11 kB or ~1 s at 115200 baud.
+    """
     from protocol.linkspec import parse_serial
 
     kind, _, rest = link_spec.partition(":")
     if kind != "serial":
-        return 1
+        return 1, 1
     _, baud = parse_serial(rest)
     if baud is None:
-        return 1
-    return 2 if baud >= 460800 else 4 if baud >= 230400 else 8
+        return 1, 1
+    if baud >= 460800:
+        return 1, 2
+    return (2, 4) if baud >= 230400 else (4, 8)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -408,15 +419,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
     ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
     ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
+    ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")
     ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import open_link
 
     try:
-        step = auto_elevation_step(args.link) if args.elevation_step == "auto" else int(args.elevation_step)
-        if not 1 <= step <= 1024:
-            raise InputError(f"--elevation-step must be in [1, 1024] or auto, got {args.elevation_step}")
+        auto_p, auto_e = auto_grid_steps(args.link)
+        step = auto_e if args.elevation_step == "auto" else int(args.elevation_step)
+        pstep = auto_p if args.psafe_step == "auto" else int(args.psafe_step)
+        if not (1 <= step <= 1024 and 1 <= pstep <= 1024):
+            raise InputError("--elevation-step and --psafe-step must be in [1, 1024] or auto")
         link = open_link(
             args.link,
             server=False,
@@ -457,6 +471,7 @@ def main(argv: list[str] | None = None) -> int:
             reconnect_timeout_s=args.reconnect_timeout,
             full_maps=args.full_maps,
             elevation_step=step,
+            psafe_step=pstep,
             progress=show,
         )
     finally:

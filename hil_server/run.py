@@ -54,6 +54,7 @@ class RunConfig:
     timeout_s: float = 900.0
     full_maps: bool = False  # Results also carry the full-resolution image maps
     elevation_step: int | None = None  # elevation grid decimation; None = by line rate (ground_sim.stream)
+    psafe_step: int | None = None  # P(safe) grid decimation; None = by line rate
     insecure: bool = False  # zmq without CURVE (loopback debugging)
     link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
@@ -293,6 +294,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         str(cfg.link_timeout_s),
         "--elevation-step",
         str(cfg.elevation_step) if cfg.elevation_step else "auto",
+        "--psafe-step",
+        str(cfg.psafe_step) if cfg.psafe_step else "auto",
         *security,
     ]
     if cfg.full_maps:

@@ -1,7 +1,9 @@
 """The compact Result's grids: quantisation to and from the wire (docs/protocol.md, "Result").
 
 * P(safe) as uint8: ``v = round(254 p)`` for p in [0, 1], 255 = outside (NaN);
-  the quantisation step is 1/254, so the error is at most 1/508.
+  the quantisation step is 1/254, so the error is at most 1/508. Decimated by an
+  integer step k, a block's value is the *minimum* P(safe) of its cells (finite
+  ones; outside if none): conservative, a block is never safer than its worst cell.
 * Elevation as int16 centimetres above an offset: ``v = round(100 (z - offset))``,
   saturated to [-32767, 32767], -32768 = no elevation; the offset is the median
   elevation rounded to a metre, so the grid spans +-327 m around it at 5 mm error.
@@ -25,9 +27,9 @@ ELEVATION_NONE = -32768
 ELEVATION_SCALE = 100.0  # wire units per metre (centimetres)
 
 
-def psafe_to_wire(psafe: np.ndarray) -> np.ndarray:
-    """float P(safe), NaN outside -> uint8 (0..254, 255 outside)."""
-    p = np.asarray(psafe, np.float32)
+def psafe_to_wire(psafe: np.ndarray, step: int = 1) -> np.ndarray:
+    """float P(safe), NaN outside -> uint8 (0..254, 255 outside), decimated by ``step`` (block minimum)."""
+    p = decimate_min(psafe, step)
     q = np.rint(np.clip(np.nan_to_num(p, nan=0.0), 0.0, 1.0) * PSAFE_SCALE).astype(np.uint8)
     q[~np.isfinite(p)] = PSAFE_OUTSIDE
     return q
@@ -41,16 +43,33 @@ def psafe_from_wire(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def _blocks(a: np.ndarray, k: int) -> np.ndarray:
+    """``a`` padded with NaN to multiples of k, as (H/k, k, W/k, k) blocks."""
+    h, w = a.shape
+    H, W = -(-h // k), -(-w // k)
+    pad = np.full((H * k, W * k), np.nan, np.float32)
+    pad[:h, :w] = a
+    return pad.reshape(H, k, W, k)
+
+
+def decimate_min(a: np.ndarray, k: int) -> np.ndarray:
+    """Minimum of the finite values in each k x k block (NaN where a block has none)."""
+    a = np.asarray(a, np.float32)
+    if k == 1:
+        return a.copy()
+    blocks = _blocks(a, k)
+    out = np.where(np.isfinite(blocks), blocks, np.inf).min(axis=(1, 3))
+    out[np.isinf(out)] = np.nan
+    return out.astype(np.float32)
+
+
 def decimate_mean(a: np.ndarray, k: int) -> np.ndarray:
     """Mean of the finite values in each k x k block (NaN where a block has none); shape ceil(H/k), ceil(W/k)."""
     a = np.asarray(a, np.float32)
     if k == 1:
         return a.copy()
-    h, w = a.shape
-    H, W = -(-h // k), -(-w // k)
-    pad = np.full((H * k, W * k), np.nan, np.float32)
-    pad[:h, :w] = a
-    blocks = pad.reshape(H, k, W, k)
+    blocks = _blocks(a, k)
+    H, W = blocks.shape[0], blocks.shape[2]
     ok = np.isfinite(blocks)
     n = ok.sum(axis=(1, 3))
     s = np.where(ok, blocks, 0.0).sum(axis=(1, 3), dtype=np.float64)

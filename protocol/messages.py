@@ -366,7 +366,8 @@ class Result(Message):
     World grid (rows toward -Y; cell ``[i, j]`` centred at ``origin_x + j * cell``, ``origin_y - i * cell``):
 
     * ``state_grid`` uint8: 0 safe, 1 unsafe, 2 unknown, 255 outside (``protocol.pairdir.STATE_*``);
-    * ``psafe_grid`` uint8: P(safe) = v / 254 for v in 0..254, 255 = outside;
+    * ``psafe_grid`` uint8: P(safe) = v / 254 for v in 0..254, 255 = outside, on the grid decimated
+      by ``psafe_step`` (block minimum: conservative);
     * ``elevation_grid`` int16 centimetres above ``elevation_offset_m`` (-32768 = no elevation), on
       the grid decimated by ``elevation_step`` k: cell ``[i, j]`` is the mean over grid cells
       ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``).
@@ -384,6 +385,7 @@ class Result(Message):
     grid_cell_m: float = _wire(_positive)
     elevation_step: int = _wire(_int(1, 1024), 1)
     elevation_offset_m: float = _wire(_float(), 0.0)
+    psafe_step: int = _wire(_int(1, 1024), 1)
     sites: list = _wire(_sites, factory=list)
     no_site_reason: str | None = _wire(_optional(_str(256)), None)
     degraded: bool = _wire(_bool, False)
@@ -394,8 +396,13 @@ class Result(Message):
 
     def check_consistency(self) -> None:
         shape = np.shape(self.state_grid)
-        if np.shape(self.psafe_grid) != shape:
-            raise SchemaError(f"Result.psafe_grid: shape {np.shape(self.psafe_grid)} != state_grid {shape}")
+        kp = int(self.psafe_step)
+        want_p = tuple(-(-s // kp) for s in shape)
+        if np.shape(self.psafe_grid) != want_p:
+            raise SchemaError(
+                f"Result.psafe_grid: shape {np.shape(self.psafe_grid)} != state_grid {shape} "
+                f"decimated by {kp} = {want_p}"
+            )
         k = int(self.elevation_step)
         want = tuple(-(-s // k) for s in shape)
         if np.shape(self.elevation_grid) != want:

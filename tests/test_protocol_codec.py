@@ -55,13 +55,14 @@ sites = st.lists(st.builds(Site, finite, finite, anyfloat, finite, finite, finit
 def results(draw) -> Result:
     """Compact Results with consistent grid shapes, any elevation step and optional image maps."""
     h, w = draw(st.integers(0, 12)), draw(st.integers(0, 12))
-    step = draw(st.integers(1, 5))
+    step, pstep = draw(st.integers(1, 5)), draw(st.integers(1, 5))
     states = draw(hnp.arrays(np.uint8, (h, w), elements=st.sampled_from([0, 1, 2, 255])))
     img = draw(st.none() | st.tuples(st.integers(0, 9), st.integers(0, 9)))
     return Result(
         frame_seqs=draw(st.tuples(u32, u32)),
         state_grid=states,
-        psafe_grid=draw(hnp.arrays(np.uint8, (h, w))),
+        psafe_grid=draw(hnp.arrays(np.uint8, (-(-h // pstep), -(-w // pstep)))),
+        psafe_step=pstep,
         elevation_grid=draw(hnp.arrays(np.int16, (-(-h // step), -(-w // step)))),
         grid_origin_xy=draw(st.tuples(finite, finite)),
         grid_cell_m=draw(st.floats(1e-3, 1e3)),
@@ -201,6 +202,7 @@ def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
         (dict(psafe_grid=np.zeros((3, 2), np.uint8)), "psafe_grid"),
         (dict(elevation_grid=np.zeros((1, 1), np.int16)), "decimated"),
         (dict(elevation_step=2, elevation_grid=np.zeros((2, 2), np.int16)), "decimated"),
+        (dict(psafe_step=2, psafe_grid=np.zeros((2, 2), np.uint8)), "decimated by 2"),
         (dict(state_grid=np.array([[0, 3], [2, 255]], np.uint8)), "state codes"),
         (dict(grid_cell_m=0.0), "> 0"),
         (dict(hazard_image=np.zeros((4, 4), np.float32), state_image=np.zeros((4, 3), np.uint8)), "one shape"),
@@ -259,6 +261,13 @@ def test_grid_quantisation_round_trips_within_a_step():
     back = elevation_from_wire(v, off)
     assert np.isnan(back[0, 0]) and abs(back[0, 1] - 1.234) <= 0.005
     assert back[0, 2] == pytest.approx(328.67)  # saturated 327.67 m above the offset
+
+
+def test_decimated_psafe_is_the_block_minimum():
+    p = np.array([[0.9, 0.2, 1.0], [0.8, np.nan, np.nan], [np.nan, np.nan, 0.5]], np.float32)
+    q = psafe_to_wire(p, 2)
+    assert q.shape == (2, 2) and q[0, 0] == round(0.2 * 254) and q[0, 1] == 254 and q[1, 1] == 127
+    assert q[1, 0] == 255  # a block with no finite value is outside
 
 
 def test_delta_filter_wraps_around_int16():

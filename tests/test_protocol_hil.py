@@ -175,7 +175,7 @@ def test_115200_baud_works_end_to_end_and_reports_the_result_line_time(manifest,
     s = run(manifest, tmp_path, budget="snapdragon801", baud=115200, pairs=None)
     assert s["results"] == 3 and s["errors"] == 0
     for r in s["records"]:
-        assert r["elevation_step"] == 8  # auto: the grid is decimated on a slow line
+        assert r["elevation_step"] == 8 and r["psafe_step"] == 4  # auto: grids decimated on a slow line
         assert r["result_bytes"] < 20_000
         line = r["result_bytes"] * 10 / 115200
         assert r["result_line_s"] >= 0.8 * line  # the result really crossed a 115200 baud line
