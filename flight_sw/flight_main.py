@@ -10,6 +10,9 @@ Message flow (one pair = two ``Frame``s sharing a ``pair_id``)::
     flight -> supervisor : Hello, Heartbeat (periodic), Result + Telemetry per pair,
                            Error (bad frame, pipeline failure) - never silence
 
+The Result is the compact one of docs/protocol.md (grids as uint8/int16, sites);
+full-resolution image maps only when ``Config.options["full_maps"]`` is 1.
+
 The deadline counts from the arrival of the pair's last frame (thesis Table
 2.1's "computational time", measured as the HIL latency "last frame in ->
 result out"); the anytime pipeline returns its best level by then.
@@ -33,12 +36,17 @@ import numpy as np
 
 from flight_sw.pipeline import run_pipeline  # loaded at boot, before Hello: not inside the first pair's deadline
 from protocol.errors import EXIT_MEMORY, InputError
-from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.grids import elevation_to_wire, psafe_to_wire
+from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
 from protocol.pairdir import Camera, Pose
 
 # Result transmission and encoding happen after the pipeline returns; keep a
 # slice of the deadline for them so the result leaves on time.
 OUTPUT_RESERVE_FRACTION = 0.05
+# Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
+# elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md).
+DEFAULT_ELEVATION_STEP = 1
+DEFAULT_PSAFE_STEP = 1
 
 
 @dataclass
@@ -101,7 +109,7 @@ class FlightProcess:
             n += 1
             try:
                 self.link.send(Heartbeat(time_s=time.monotonic(), counter=n))
-            except OSError:
+            except (OSError, InputError):  # the link is closed: nobody to beat for
                 return
 
     # -- message handling ------------------------------------------------------------------
@@ -109,6 +117,10 @@ class FlightProcess:
         if isinstance(msg, Config):
             try:
                 Camera.from_dict(msg.camera)
+                for name, default in (("elevation_step", DEFAULT_ELEVATION_STEP), ("psafe_step", DEFAULT_PSAFE_STEP)):
+                    step = msg.options.get(name, default)
+                    if step != int(step) or not 1 <= step <= 1024:
+                        raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
             except InputError as exc:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
@@ -196,22 +208,33 @@ class FlightProcess:
 
     @staticmethod
     def _result_message(res, seqs: tuple[int, int], cfg: Config) -> Result:
+        """The compact Result (docs/protocol.md): uint8 states and P(safe), int16 cm elevation, sites."""
         grid = res.grid
-        send_images = bool(cfg.options.get("send_image_maps", 1))
+        full = bool(cfg.options.get("full_maps", 0))
+        step = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
+        pstep = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
+        elevation, offset = elevation_to_wire(grid.elevation, step)
+        reason = res.info.get("no_site_reason")
         msg = Result(
             frame_seqs=seqs,
-            hazard_grid=np.asarray(grid.hazard, dtype=np.float32),
-            elevation_grid=np.asarray(grid.elevation, dtype=np.float32),
+            state_grid=np.asarray(grid.state, dtype=np.uint8),
+            psafe_grid=psafe_to_wire(grid.psafe, pstep),
+            psafe_step=pstep,
+            elevation_grid=elevation,
             grid_origin_xy=tuple(float(v) for v in grid.origin_xy),
             grid_cell_m=float(grid.cell_m),
-            hazard_image=np.asarray(res.hazard, dtype=np.float32) if send_images else None,
-            elevation_image=np.asarray(res.elevation, dtype=np.float32) if send_images else None,
+            elevation_step=step,
+            elevation_offset_m=offset,
             sites=[
-                {"x": s.x, "y": s.y, "z": s.z, "hazard": s.hazard, "margin": s.margin, "distance_m": s.distance_m}
+                Site(s.x, s.y, s.z, s.hazard, s.margin, s.distance_m, float(s.p_safe), float(s.clearance_m))
                 for s in res.sites
             ],
+            no_site_reason=None if reason is None else str(reason)[:256],
             degraded=bool(res.degraded),
             level=str(res.level),
+            hazard_image=np.asarray(res.hazard, dtype=np.float32) if full else None,
+            elevation_image=np.asarray(res.elevation, dtype=np.float32) if full else None,
+            state_image=np.asarray(res.state, dtype=np.uint8) if full else None,
         ).validated()
         assert isinstance(msg, Result)
         return msg
@@ -221,9 +244,14 @@ class FlightProcess:
         self.link.send(Hello(role="flight"))
         hb = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
         hb.start()
+        from protocol.links import LinkClosed
+
         try:
             while True:
-                msg = self.link.recv(timeout=1.0)
+                try:
+                    msg = self.link.recv(timeout=1.0)
+                except LinkClosed:  # the supervisor closed its end: nobody to report to
+                    return 0
                 if msg is not None:
                     self.handle(msg)
                 elif os.getppid() != parent:  # the supervisor is gone: nobody to report to
@@ -241,10 +269,10 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)  # one core, one thread: the emulated processor has no pool
-    from protocol.links import StreamLink
+    from protocol.links import LOCAL_CONFIG, StreamLink
 
     sock = socket.socket(fileno=args.fd)
-    link = StreamLink(sock)
+    link = StreamLink(sock, config=LOCAL_CONFIG, name="supervisor")
     try:
         return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat).run()
     except MemoryError:  # the emulated memory ceiling: say so by exit status, not a traceback

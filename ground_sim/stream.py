@@ -10,6 +10,19 @@ the next - clean per-pair latency. ``asap`` sends everything at once and shows
 queueing on a slow processor. Every pair ends in ``results.jsonl`` as
 ``result`` or ``error`` with a reason; a pair with no answer within the
 ground's own timeout is recorded as ``error: no_response`` - nothing is lost.
+
+Link sessions (docs/protocol.md): the ground says Hello (with its link session
+id), waits for the server's Hello, then sends Config. When the session is lost
+(the far end stopped reading, went silent, closed, or was restarted), the pairs
+in flight end at once as ``link_down`` errors with the link's reason; the ground
+then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
+Config again, and carries on with the next pair. The process exits 3 when a
+session was lost on the way (0 otherwise).
+
+Each record carries what the ground measured: ``e2e_latency_s`` (the last
+frame written -> the whole Result received), ``result_rx_s`` (first to last
+frame of the Result here), ``result_bytes``, ``frames_line_s``, and the
+Result's line time as its sender measured it, ``result_line_s``.
 """
 
 from __future__ import annotations
@@ -18,14 +31,18 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from protocol.errors import InputError
+from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_pair
+
+EXIT_LINK_LOST = 3
+LINK_CODES = ("link_down",)
 
 
 @dataclass
@@ -40,6 +57,11 @@ class PairOutcome:
     telemetry: Telemetry | None = None
     error: Error | None = None
     link_s: float = 0.0
+    frames_written_at: float | None = None  # the lower frame's last byte on the line
+    frames_line_s: float | None = None
+    result_t_first: float | None = None
+    result_t_done: float | None = None
+    result_bytes: int = 0
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -62,7 +84,12 @@ def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
 
 
 def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
-    """Save arrays of a finished pair under ``out_dir/<pair_id>/`` and return its JSON record."""
+    """Save arrays of a finished pair under ``out_dir/<pair_id>/`` and return its JSON record.
+
+    Grids: ``state_grid.npy`` (uint8 codes), ``psafe_grid.npy`` (float32, NaN outside),
+    ``elevation_grid.npy`` (float32 m, NaN = none; on its own, possibly decimated grid);
+    full-resolution maps when sent: ``hazard.npy``, ``elevation.npy``, ``state.npy``.
+    """
     rec: dict = {
         "pair_id": o.pair_id,
         "label": o.label,
@@ -70,6 +97,9 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         "pair_dir": o.pair_dir,
         "frame_seqs": list(o.seqs),
         "link_s": o.link_s,
+        "frames_line_s": o.frames_line_s,
+        # from the first byte of the pair queued to its outcome recorded (how long an error took, too)
+        "elapsed_s": time.monotonic() - o.sent_at if o.sent_at else None,
     }
     if o.error is not None:
         rec.update(status="error", code=o.error.code, text=o.error.text)
@@ -78,22 +108,42 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
     d = out_dir / o.pair_id
     d.mkdir(parents=True, exist_ok=True)
     r, t = o.result, o.telemetry
-    np.save(d / "hazard_grid.npy", np.asarray(r.hazard_grid, dtype=np.float32))
-    np.save(d / "elevation_grid.npy", np.asarray(r.elevation_grid, dtype=np.float32))
-    if r.hazard_image is not None:
-        np.save(d / "hazard.npy", np.asarray(r.hazard_image, dtype=np.float32))
-    if r.elevation_image is not None:
-        np.save(d / "elevation.npy", np.asarray(r.elevation_image, dtype=np.float32))
+    np.save(d / "state_grid.npy", np.asarray(r.state_grid, dtype=np.uint8))
+    np.save(d / "psafe_grid.npy", psafe_from_wire(r.psafe_grid))  # on its own (decimated) geometry
+    np.save(d / "elevation_grid.npy", elevation_from_wire(r.elevation_grid, r.elevation_offset_m))
+    for name, arr in (("hazard", r.hazard_image), ("elevation", r.elevation_image), ("state", r.state_image)):
+        if arr is not None:
+            np.save(d / f"{name}.npy", np.asarray(arr))
+    e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
+    p_origin, p_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.psafe_step)
+    e2e = None
+    rx_span = None if o.result_t_first is None or o.result_t_done is None else o.result_t_done - o.result_t_first
+    if o.result_t_done is not None and o.frames_written_at is not None:
+        e2e = o.result_t_done - o.frames_written_at
     rec.update(
         status="result",
         degraded=bool(r.degraded),
         level=r.level,
         grid_origin_xy=list(r.grid_origin_xy),
         grid_cell_m=r.grid_cell_m,
-        sites=[[s.x, s.y, s.z, s.hazard, s.margin, s.distance_m] for s in r.sites],
+        elevation_origin_xy=list(e_origin),
+        elevation_cell_m=e_cell,
+        elevation_step=r.elevation_step,
+        psafe_origin_xy=list(p_origin),
+        psafe_cell_m=p_cell,
+        psafe_step=r.psafe_step,
+        full_maps=r.hazard_image is not None,
+        sites=[asdict(s) for s in r.sites],
+        no_site_reason=r.no_site_reason,
         latency_s=t.total_latency_s,
         deadline_s=t.deadline_s,
         deadline_met=bool(t.deadline_met),
+        e2e_latency_s=e2e,
+        # the Result's line time as its sender measured it (first byte on the line -> acknowledged); the
+        # span between its first and last frame here misses the first frame's own line time
+        result_line_s=t.link.get("result_link_s", rx_span),
+        result_rx_s=rx_span,
+        result_bytes=o.result_bytes,
         queue_wait_s=t.queue_wait_s,
         cpu_fraction=t.cpu_fraction,
         peak_rss_mib=t.peak_rss_bytes / 2**20,
@@ -102,6 +152,17 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         out_dir=str(d),
     )
     return rec
+
+
+class LinkDown(Exception):
+    """The link session is gone and did not come back in time."""
+
+
+@dataclass
+class _SessionState:
+    epoch: int | None = None  # link session the app handshake (Hello both ways) was done in
+    config_epoch: int | None = None  # link session Config was sent in
+    sessions: int = 0
 
 
 def stream_descent(
@@ -115,6 +176,11 @@ def stream_descent(
     pace: str = "lockstep",
     response_timeout_s: float | None = None,
     hello_timeout_s: float = 900.0,
+    connect_timeout_s: float = 60.0,
+    reconnect_timeout_s: float = 10.0,
+    full_maps: bool = False,
+    elevation_step: int = 1,
+    psafe_step: int = 1,
     progress=None,
 ) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``)."""
@@ -123,33 +189,76 @@ def stream_descent(
     entries = manifest["pairs"]
     out_dir.mkdir(parents=True, exist_ok=True)
     timeout = response_timeout_s if response_timeout_s is not None else 3.0 * deadline_s + 30.0
-
-    link.send(Hello(role="ground"))
-    t0 = time.monotonic()
-    next_note = t0 + 5.0
-    while True:  # the server answers Hello once its flight process has booted
-        msg = link.recv(timeout=0.5)
-        if isinstance(msg, Hello):
-            break
-        now = time.monotonic()
-        if now - t0 > hello_timeout_s:
-            raise TimeoutError(f"no Hello from the HIL server within {hello_timeout_s:.0f} s")
-        if now > next_note:  # a slow emulated processor boots slowly: show that we are waiting
-            print(f"ground: waiting for the flight process to boot ({now - t0:.0f} s)", file=sys.stderr, flush=True)
-            next_note = now + 10.0
+    options = {"full_maps": int(bool(full_maps)), "elevation_step": int(elevation_step), "psafe_step": int(psafe_step)}
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
     records: list[dict] = []
     seq = 0
-    config_sent = False
+    config: Config | None = None
+    state = _SessionState()
     results_path = out_dir / "results.jsonl"
     results_file = results_path.open("w")
 
+    def note(text: str) -> None:
+        print(f"ground: {text}", file=sys.stderr, flush=True)
+
+    def session_ok() -> bool:
+        return state.epoch is not None and link.established and link.epoch == state.epoch
+
+    def handshake(wait_s: float) -> None:
+        """Hello both ways in a fresh link session (raises LinkDown)."""
+        state.epoch = None
+        if not link.wait_established(wait_s):
+            raise LinkDown(f"no link session with the HIL server within {wait_s:g} s ({link.last_error or 'silent'})")
+        epoch = link.epoch
+        link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
+        t0 = time.monotonic()
+        next_note = t0 + 5.0
+        while True:  # the server answers Hello once its flight process has booted
+            pkt = link.recv_packet(timeout=0.5)
+            if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
+                break
+            if not link.established or link.epoch != epoch:
+                raise LinkDown(f"link session lost during the handshake: {link.last_error}")
+            now = time.monotonic()
+            if now - t0 > hello_timeout_s:
+                raise LinkDown(f"no Hello from the HIL server within {hello_timeout_s:.0f} s")
+            if now > next_note:  # a slow emulated processor boots slowly: show that we are waiting
+                note(f"waiting for the flight process to boot ({now - t0:.0f} s)")
+                next_note = now + 10.0
+        state.epoch = epoch
+        state.sessions += 1
+        if state.sessions > 1:
+            note(f"resynchronised: new link session {link.session_id:08x} <-> {link.peer_session:08x}")
+
+    def ensure_session(first: bool) -> None:
+        if session_ok():
+            return
+        handshake(connect_timeout_s if first else reconnect_timeout_s)
+
+    def send_config() -> None:
+        if config is not None and state.config_epoch != state.epoch:
+            link.send(config, epoch=state.epoch)
+            state.config_epoch = state.epoch
+
+    def fail_in_flight(want: set[tuple[int, int]], why: str) -> None:
+        for s in list(want):
+            o = outcomes[s]
+            if not o.finished:
+                give_up(o, "link_down", why)
+            want.discard(s)
+
     def collect(until: float, want: set[tuple[int, int]]) -> None:
         while want and time.monotonic() < until:
-            msg = link.recv(timeout=0.2)
-            if msg is None or isinstance(msg, (Heartbeat, Hello)):
+            if not session_ok():
+                fail_in_flight(want, f"link session lost: {link.last_error}")
+                return
+            pkt = link.recv_packet(timeout=0.2)
+            if pkt is None or pkt.epoch != state.epoch:
+                continue
+            msg = pkt.message
+            if isinstance(msg, (Heartbeat, Hello)):
                 continue
             key = tuple(getattr(msg, "frame_seqs", ()) or ())
             o = outcomes.get(key) if key else None
@@ -158,11 +267,12 @@ def stream_descent(
                 if o is None:
                     o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
                 if o is None:
-                    print(f"ground: unattributed error from flight side: {msg.code}: {msg.text}", file=sys.stderr)
+                    note(f"unattributed error from flight side: {msg.code}: {msg.text}")
                     continue
                 o.error = msg
             elif isinstance(msg, Result) and o is not None:
                 o.result = msg
+                o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
             elif isinstance(msg, Telemetry) and o is not None:
                 o.telemetry = msg
             if o is not None and o.finished and o.seqs in want:
@@ -178,8 +288,34 @@ def stream_descent(
             progress(rec)
 
     def give_up(o: PairOutcome, code: str, text: str) -> None:
-        o.error = Error(code=code, seq=o.seqs[1], text=text)
+        o.error = Error(code=code, seq=o.seqs[1], text=text[:4000])
         record(o)
+
+    def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
+        o.sent_at = time.monotonic()
+        ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
+        # the frames' own line time (a 512x512 pair is ~46 s at 115200 baud) on top of the response timeout;
+        # a stalled link ends sooner anyway (its peer timeout fails them)
+        baud = getattr(link, "baud", None)
+        line_s = 2.0 * sum(f.image.nbytes for f in frames) * 10 / baud if baud else 0.0
+        deadline = time.monotonic() + timeout + line_s
+        while time.monotonic() < deadline:  # both frames on the far side: their line time is the link time
+            outs = [link.outcome(i) or "" for i in ids]
+            if all(x != "pending" for x in outs):
+                break
+            link.flush(timeout=0.2)
+        failed = [f for f in link.failures() if f.seq in ids]
+        outs = [link.outcome(i) or "" for i in ids]
+        if failed or any(x == "pending" for x in outs):
+            why = "; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed) or "frames still queued"
+            give_up(o, "link_down", why)
+            return False
+        t_up, t_low = link.times(ids[0]), link.times(ids[1])
+        o.frames_written_at = t_low.written if t_low is not None else None
+        if t_up is not None and t_low is not None and t_up.first_tx is not None and t_low.delivered is not None:
+            o.frames_line_s = t_low.delivered - t_up.first_tx
+        o.link_s = time.monotonic() - o.sent_at
+        return True
 
     try:
         for i, entry in enumerate(entries):
@@ -197,22 +333,32 @@ def stream_descent(
             seq += 2
             try:  # a bad pair (NaN pose, wrong size, unreadable file) is reported, the descent goes on
                 pair = read_pair(pair_dir, load_truth=False)
-                frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id).validated() for k in (0, 1)]
+                frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id) for k in (0, 1)]
+                for f in frames:
+                    f.validated()
             except InputError as exc:
                 give_up(o, "bad_input", str(exc))
                 continue
-            if not config_sent:
-                link.send(
-                    Config(camera=pair.camera.to_dict(), budget=budget, deadline_s=float(deadline_s), preset=preset)
+            if config is None:
+                config = Config(
+                    camera=pair.camera.to_dict(),
+                    budget=budget,
+                    deadline_s=float(deadline_s),
+                    preset=preset,
+                    options=options,
                 )
-                config_sent = True
-            o.sent_at = time.monotonic()
-            link_seqs = {link.send(f) for f in frames}
-            link.flush(timeout=timeout)  # both frames on the far side: their line time is the link time
-            o.link_s = time.monotonic() - o.sent_at
-            failed = [f for f in link.failures() if f.seq in link_seqs]
-            if failed:  # the link gave up on a frame: the pair cannot be processed, say so
-                give_up(o, "link_failure", "; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed))
+            if link.failed:  # the transport is gone for good (EOF, device unplugged): nothing more can go
+                give_up(o, "link_down", f"link failed: {link.failed}")
+                continue
+            try:
+                ensure_session(first=state.sessions == 0)
+            except LinkDown as exc:
+                note(f"LINK ERROR: {exc}")
+                give_up(o, "link_down", str(exc))
+                continue
+            send_config()
+            if not send_frames(o, frames):
+                note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")
                 continue
             if pace == "lockstep":
                 collect(time.monotonic() + timeout + o.link_s, {o.seqs})
@@ -223,7 +369,12 @@ def stream_descent(
             collect(time.monotonic() + timeout * max(1, len(pending)), pending)
         for s, o in outcomes.items():
             if not any(r["frame_seqs"] == list(s) for r in records):
-                o.error = Error(code="no_response", text=f"no result or error within {timeout:.0f} s", seq=s[1])
+                if not session_ok() and state.sessions:
+                    o.error = Error(code="link_down", text=f"link session lost: {link.last_error}", seq=s[1])
+                elif not state.sessions:
+                    o.error = Error(code="link_down", text="no session with the HIL server", seq=s[1])
+                else:
+                    o.error = Error(code="no_response", text=f"no result or error within {timeout:.0f} s", seq=s[1])
                 rec = write_outcome(out_dir, o)
                 records.append(rec)
                 results_file.write(json.dumps(rec, sort_keys=True) + "\n")
@@ -232,25 +383,76 @@ def stream_descent(
     return records
 
 
+def auto_grid_steps(link_spec: str) -> tuple[int, int]:
+    """(P(safe) step, elevation step) that keep the Result small for the line (docs/benchmarks/protocol.md).
+
+    On the demo pairs (256 x 256 grid, flight v2) the state grid compresses to 4-8 kB, P(safe) to
+    15-34 kB at full resolution, 4-8 kB decimated by 2, 1.3-1.6 kB by 4, and the elevation grid to
+    1.3-14 kB at steps 8-2: ZeroMQ or unpaced (1, 1); from 460800 baud (1, 2); from 230400 (2, 4);
+    below (4, 8), ~11 kB or ~1 s at 115200 baud.
+    """
+    from protocol.linkspec import parse_serial
+
+    kind, _, rest = link_spec.partition(":")
+    if kind != "serial":
+        return 1, 1
+    _, baud = parse_serial(rest)
+    if baud is None:
+        return 1, 1
+    if baud >= 460800:
+        return 1, 2
+    return (2, 4) if baud >= 230400 else (4, 8)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ground_sim.stream", description=__doc__.splitlines()[0])
-    ap.add_argument("--link", required=True, help="serial:PATH[@BAUD] or zmq:ENDPOINT (connect)")
+    ap.add_argument("--link", required=True, help="serial:URL[@BAUD] or zmq:ENDPOINT (connect)")
     ap.add_argument("--manifest", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--budget", required=True)
     ap.add_argument("--deadline", type=float, required=True)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--pace", choices=("lockstep", "asap"), default="lockstep")
+    ap.add_argument("--keys", type=Path, default=None, help="CURVE key directory (zmq links)")
+    ap.add_argument("--insecure", action="store_true", help="zmq without CURVE (loopback debugging only)")
+    ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
+    ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
+    ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
+    ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
+    ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")
+    ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
     args = ap.parse_args(argv)
+    from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import open_link
 
-    link = open_link(args.link, server=False)
+    try:
+        auto_p, auto_e = auto_grid_steps(args.link)
+        step = auto_e if args.elevation_step == "auto" else int(args.elevation_step)
+        pstep = auto_p if args.psafe_step == "auto" else int(args.psafe_step)
+        if not (1 <= step <= 1024 and 1 <= pstep <= 1024):
+            raise InputError("--elevation-step and --psafe-step must be in [1, 1024] or auto")
+        link = open_link(
+            args.link,
+            server=False,
+            keys=args.keys,
+            insecure=args.insecure,
+            peer_timeout=args.link_timeout,
+            connect_timeout=args.reconnect_timeout,
+            name="hil-server",
+            log=lambda s: print(f"ground: {s}", file=sys.stderr, flush=True),
+        )
+    except (InputError, ValueError) as exc:
+        print(f"ground: error: {exc}", file=sys.stderr)
+        return 2
+    apply_memory_ceiling(args.memory_mib)
 
     def show(rec: dict) -> None:
         if rec["status"] == "result":
             flag = "met" if rec["deadline_met"] else "MISSED"
+            e2e = rec.get("e2e_latency_s")
             print(
-                f"ground: {rec['label']:>10}  {rec['level']:<10} latency {rec['latency_s']:7.2f} s  deadline {flag}",
+                f"ground: {rec['label']:>10}  {rec['level']:<10} latency {rec['latency_s']:7.2f} s  deadline {flag}"
+                + (f"  (at the ground: {e2e:.2f} s incl. result line {rec['result_line_s']:.2f} s)" if e2e else ""),
                 file=sys.stderr,
                 flush=True,
             )
@@ -266,12 +468,20 @@ def main(argv: list[str] | None = None) -> int:
             deadline_s=args.deadline,
             preset=args.preset,
             pace=args.pace,
+            reconnect_timeout_s=args.reconnect_timeout,
+            full_maps=args.full_maps,
+            elevation_step=step,
+            psafe_step=pstep,
             progress=show,
         )
     finally:
         link.close()
     failed = sum(r["status"] != "result" for r in records)
+    lost = sum(r.get("code") in LINK_CODES for r in records)
     print(f"ground: {len(records)} pairs, {len(records) - failed} results, {failed} errors", file=sys.stderr)
+    if lost:
+        print(f"ground: LINK ERROR: {lost} pairs lost to link failures ({link.last_error})", file=sys.stderr)
+        return EXIT_LINK_LOST
     return 0
 
 

@@ -182,7 +182,9 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument("--preset", choices=("fast", "thesis"), default="fast")
     p.add_argument("--pace", choices=("lockstep", "asap"), default="lockstep")
     p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s)")
-    p.add_argument("--baud", type=int, default=None, help="override the budget's serial baud rate")
+    p.add_argument(
+        "--baud", type=int, default=None, help="serial baud rate (default: the budget's, else 921600; 115200 works)"
+    )
     p.add_argument("--image-size", type=int, default=None, help="render a smaller square camera, same FOV")
     p.add_argument(
         "--manifest",
@@ -196,6 +198,23 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=0.0,
         help="serial only: per-byte drop/flip/duplicate rate injected on the line (e.g. 1e-6)",
     )
+    p.add_argument(
+        "--full-maps",
+        action="store_true",
+        help="Results also carry full-resolution image maps (hazard, elevation, state: MBs per pair on the line)",
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="zmq only: no CURVE authentication (loopback debugging only; by default every run makes its own keys)",
+    )
+    p.add_argument(
+        "--link-timeout",
+        type=float,
+        default=4.0,
+        help="a far end silent or not acknowledging this long ends the link session (s, default 4)",
+    )
+    p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     p.add_argument("--out", type=Path, default=Path("out/run"))
 
 
@@ -217,6 +236,10 @@ def _config(args: argparse.Namespace):
         image_size=args.image_size,
         manifest=args.manifest,
         corrupt=args.corrupt,
+        full_maps=args.full_maps,
+        insecure=args.insecure,
+        link_timeout_s=args.link_timeout,
+        link_fault=args.link_fault,
     )
 
 
@@ -225,6 +248,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     summary = run_descent(_config(args))
     print(f"report: {Path(args.out) / 'report.html'}")
+    if summary.get("link_errors"):
+        print(f"run: LINK ERROR: {summary['link_errors']} pairs lost to link failures", file=sys.stderr)
+        return 1
     return 0 if summary["pairs"] and summary["results"] + summary["errors"] == summary["pairs"] else 1
 
 
@@ -236,10 +262,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate)")
         cal = calibrate_host(seconds=2.0)
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
-    run_descent(_config(args))
+    summary = run_descent(_config(args))
     print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
-    return 0
+    return 1 if summary.get("link_errors") else 0
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:

@@ -6,6 +6,7 @@ and the ground streamer as separate OS processes connected over a pty pair
 result against ground truth and writes::
 
     OUT/pairs/...            rendered pair directories + manifest.json
+    OUT/keys/                CURVE keys of this run (ZeroMQ; files mode 0600)
     OUT/received/            what came back: results.jsonl + arrays per pair
     OUT/telemetry.jsonl      the supervisor's telemetry lines
     OUT/summary.json         latency p50/p95/max, deadline hit rate, per-pair scores
@@ -30,6 +31,8 @@ import numpy as np
 
 from protocol.errors import InputError
 
+EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
+
 
 @dataclass
 class RunConfig:
@@ -49,6 +52,12 @@ class RunConfig:
     manifest: Path | None = None  # stream these already-rendered pairs instead of rendering
     corrupt: float = 0.0  # serial only: per-byte drop, flip and duplicate rate on the line
     timeout_s: float = 900.0
+    full_maps: bool = False  # Results also carry the full-resolution image maps
+    elevation_step: int | None = None  # elevation grid decimation; None = by line rate (ground_sim.stream)
+    psafe_step: int | None = None  # P(safe) grid decimation; None = by line rate
+    insecure: bool = False  # zmq without CURVE (loopback debugging)
+    link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
+    link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
 
 
 def _free_tcp_port() -> int:
@@ -83,32 +92,50 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def score_records(records: list[dict]) -> list[dict]:
-    """Add detection and DEM scores (ground truth of each pair) to the received records."""
+    """Add detection and DEM scores (ground truth of each pair) to the received records.
+
+    ``scores``: from the compact Result's world grids, per pixel of i1 through its true ground
+    point (:mod:`ground_sim.gridscore`); ``scores_full``: from the full-resolution image maps,
+    when the run asked for them (``--full-maps``).
+    """
+    from ground_sim.gridscore import score_grids
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
     for rec in records:
         if rec.get("status") != "result" or "out_dir" not in rec:
             continue
-        hz_path = Path(rec["out_dir"]) / "hazard.npy"
-        if not hz_path.is_file():
-            continue
+        d = Path(rec["out_dir"])
         pair = read_pair(rec["pair_dir"])
         truth = pair.truth
-        hazard = np.load(hz_path)
-        if "hazard" in truth:
-            covered = ~np.isnan(hazard)
-            c = confusion(hazard, truth["hazard"], covered)
-            rec["scores"] = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
-        elev_path = Path(rec["out_dir"]) / "elevation.npy"
-        if elev_path.is_file() and "elevation" in truth:
-            st = dem_error_stats(np.load(elev_path), truth["elevation"])
-            rec.setdefault("scores", {}).update({f"dem_{k}": float(v) for k, v in st.items()})
+        if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
+            elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
+            scores, called = score_grids(
+                pair,
+                np.load(d / "state_grid.npy"),
+                tuple(rec["grid_origin_xy"]),
+                float(rec["grid_cell_m"]),
+                elev,
+                tuple(rec.get("elevation_origin_xy") or rec["grid_origin_xy"]),
+                float(rec.get("elevation_cell_m") or rec["grid_cell_m"]),
+            )
+            rec["scores"] = scores
+            np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report
+        if (d / "hazard.npy").is_file() and "hazard" in truth:
+            hazard = np.load(d / "hazard.npy")
+            c = confusion(hazard, truth["hazard"], ~np.isnan(hazard))
+            full = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
+            if (d / "elevation.npy").is_file() and "elevation" in truth:
+                st = dem_error_stats(np.load(d / "elevation.npy"), truth["elevation"])
+                full.update({f"dem_{k}": float(v) for k, v in st.items()})
+            rec["scores_full"] = full
     return records
 
 
 def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
     lat = [r["latency_s"] for r in records if r.get("status") == "result"]
+    e2e = [r["e2e_latency_s"] for r in records if r.get("status") == "result" and r.get("e2e_latency_s") is not None]
+    line = [r["result_line_s"] for r in records if r.get("status") == "result" and r.get("result_line_s") is not None]
     n = len(records)
     met = sum(1 for r in records if r.get("status") == "result" and r.get("deadline_met"))
     return {
@@ -124,6 +151,11 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "latency_p50_s": percentile(lat, 50),
         "latency_p95_s": percentile(lat, 95),
         "latency_max_s": max(lat) if lat else float("nan"),
+        "e2e_latency_p50_s": percentile(e2e, 50),
+        "e2e_latency_max_s": max(e2e) if e2e else float("nan"),
+        "result_line_max_s": max(line) if line else float("nan"),
+        "result_bytes_max": max((r.get("result_bytes", 0) for r in records), default=0),
+        "link_errors": sum(r.get("code") == "link_down" for r in records),
         **extra,
         "records": records,
     }
@@ -176,8 +208,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     if cfg.link not in ("serial", "zmq"):
         raise InputError(f"--link must be serial or zmq, got {cfg.link!r}")
-    if cfg.corrupt and (cfg.link != "serial" or not 0 <= cfg.corrupt < 0.01):
-        raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.01)")
+    if cfg.corrupt and (cfg.link != "serial" or not 0 <= cfg.corrupt <= 0.05):
+        raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.05]")
 
     if cfg.manifest is not None:
         manifest = Path(cfg.manifest)
@@ -207,6 +239,17 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     else:
         port = _free_tcp_port()
         server_spec = ground_spec = f"zmq:tcp://127.0.0.1:{port}"
+    security: list[str] = []
+    if cfg.link == "zmq":
+        if cfg.insecure:
+            security = ["--insecure"]
+        else:  # fresh CURVE keys for every run, private to its output directory
+            import shutil
+
+            from protocol.zmqauth import generate_keys
+
+            shutil.rmtree(out / "keys", ignore_errors=True)
+            security = ["--keys", str(generate_keys(out / "keys"))]
 
     env = dict(os.environ)
     telemetry = out / "telemetry.jsonl"
@@ -221,9 +264,14 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         cfg.budget,
         "--telemetry",
         str(telemetry),
+        "--link-timeout",
+        str(cfg.link_timeout_s),
+        *security,
     ]
     if cfg.fault:
         sup_cmd += ["--fault", cfg.fault]
+    if cfg.link_fault:
+        sup_cmd += ["--link-fault", cfg.link_fault]
     ground_cmd = [
         sys.executable,
         "-m",
@@ -242,7 +290,16 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         cfg.preset,
         "--pace",
         cfg.pace,
+        "--link-timeout",
+        str(cfg.link_timeout_s),
+        "--elevation-step",
+        str(cfg.elevation_step) if cfg.elevation_step else "auto",
+        "--psafe-step",
+        str(cfg.psafe_step) if cfg.psafe_step else "auto",
+        *security,
     ]
+    if cfg.full_maps:
+        ground_cmd.append("--full-maps")
     log(
         f"run: budget {budget.name}: CPU fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
         f"deadline {deadline:g} s, link {server_spec}"
@@ -257,10 +314,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             except subprocess.TimeoutExpired:
                 ground.kill()
                 raise TimeoutError(f"ground simulator did not finish within {cfg.timeout_s:.0f} s") from None
-            if rc != 0:
+            if rc not in (0, EXIT_LINK_LOST):
                 raise RuntimeError(f"ground simulator exited with {rc}; see {out / 'supervisor.log'}")
         finally:
             if sup.poll() is None:
+                sup.send_signal(signal.SIGCONT)  # a supervisor frozen by a stall test must wake to terminate
                 sup.send_signal(signal.SIGTERM)
                 try:
                     sup.wait(timeout=15)
@@ -290,6 +348,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             "memory_mib": budget.memory_mib,
             "wall_s": wall,
             "supervisor_counters": counters,
+            "ground_exit": rc,
         },
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=float) + "\n")

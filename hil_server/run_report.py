@@ -37,9 +37,11 @@ def write_run_report(summary: dict, path: Path) -> Path:
         pid = r["pair_id"]
         imgs = []
         out = Path(r.get("out_dir", ""))
-        if r.get("status") == "result" and (out / "hazard.npy").is_file():
+        # the full-resolution map when the run asked for it, else the compact grid's call per pixel
+        hz_file = next((out / n for n in ("hazard.npy", "called_i1.npy") if (out / n).is_file()), None)
+        if r.get("status") == "result" and hz_file is not None:
             pair = read_pair(r["pair_dir"])
-            hazard = np.load(out / "hazard.npy")
+            hazard = np.load(hz_file)
             if "hazard" in pair.truth:
                 imgs.append(
                     write_png(

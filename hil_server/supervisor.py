@@ -12,17 +12,28 @@ socket pair. Being in the middle lets it account for every pair:
   pair in progress, restarts the flight process, replays the frames of the
   pairs still outstanding, and carries on,
 * it adds what only the outside can measure (achieved CPU fraction, peak RSS,
-  deadline outcome seen from the link) to the flight's ``Telemetry``.
+  deadline outcome seen from the link, the result's line time) to the flight's
+  ``Telemetry``, sent once the ground has acknowledged the whole Result.
 
 Every pair the ground completes ends in exactly one of: ``Result`` (full or
 degraded) or ``Error`` with a reason. Telemetry is also written as JSON lines.
+
+Link sessions (docs/protocol.md): a ground that stops answering, closes or is
+replaced by a restarted one ends its session; the pairs it had outstanding end
+as ``link_down`` errors in the telemetry (the ground cannot be told), and a new
+ground session starts from a clean slate. Frames go to the flight process under
+the supervisor's own sequence numbers and pair ids, so a result the flight
+process finishes for a dead session is recognised and dropped. The process
+exits 0 after a clean session, 3 if a ground session was lost.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import queue
+import signal
 import socket
 import sys
 import threading
@@ -30,30 +41,40 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from protocol.errors import InputError
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
+EXIT_LINK_LOST = 3
 
 
 @dataclass
 class PairState:
     pair_id: str
-    frames: dict[int, Frame] = field(default_factory=dict)
+    frames: dict[int, Frame] = field(default_factory=dict)  # as the ground sent them
+    fframes: dict[int, Frame] = field(default_factory=dict)  # as forwarded to the flight process
     arrivals: dict[int, float] = field(default_factory=dict)  # frame_index -> monotonic arrival time
     complete_at: float | None = None  # monotonic time the last frame arrived
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
     proc_at_result: dict | None = None
     sent_to: int = -1  # flight generation the frames went to
     result: Result | None = None
+    result_at: float | None = None  # monotonic time the Result came from the flight process
+    result_mid: int | None = None  # its message id on the ground link
+    flight_telemetry: Telemetry | None = None  # held until the Result is acknowledged
     result_link_s: float = 0.0
     done: bool = False
 
     @property
     def seqs(self) -> tuple[int, int]:
         return (self.frames[0].seq, self.frames[1].seq)
+
+    @property
+    def fseqs(self) -> tuple[int, int]:
+        return (self.fframes[0].seq, self.fframes[1].seq)
 
 
 def pair_cpu_fraction(before: dict | None, after: dict) -> float:
@@ -82,22 +103,24 @@ class Reader(threading.Thread):
         self.last_message = time.monotonic()
 
     def run(self) -> None:
+        from protocol.links import LinkClosed
+
         while not self.stopped.is_set():
             try:
-                msg = self.link.recv(timeout=0.2)
-            except (EOFError, OSError):
-                self.events.put((self.tag, self.generation, EOFError()))
+                pkt = self.link.recv_packet(timeout=0.2)
+            except (EOFError, OSError, LinkClosed):
+                self.events.put((self.tag, self.generation, EOFError(), 0))
                 return
-            if msg is not None:
+            if pkt is not None:
                 self.last_message = time.monotonic()
-                self.events.put((self.tag, self.generation, msg))
+                self.events.put((self.tag, self.generation, pkt.message, pkt.epoch))
 
 
 class FlightHandle:
     """One incarnation of the flight process on the emulated processor."""
 
     def __init__(self, processor_factory, generation: int, fault: str | None, heartbeat_s: float) -> None:
-        from protocol.links import StreamLink
+        from protocol.links import LOCAL_CONFIG, StreamLink
 
         self.generation = generation
         parent, child = socket.socketpair()
@@ -115,7 +138,7 @@ class FlightHandle:
             argv += ["--fault", fault]
         self.proc.start(argv, pass_fds=(child.fileno(),))
         child.close()
-        self.link = StreamLink(parent)
+        self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
         self.hello = False
 
     def close(self, reason: str | None = None) -> None:
@@ -134,6 +157,7 @@ class Supervisor:
         *,
         telemetry_path: Path | None = None,
         fault: str | None = None,
+        link_fault: str | None = None,
         heartbeat_s: float = 0.25,
         grace_s: float | None = None,
         cpu_fraction: float = 1.0,
@@ -143,6 +167,7 @@ class Supervisor:
         self.budget = budget
         self.processor_factory = processor_factory
         self.fault = fault
+        self.link_fault = parse_link_fault(link_fault)
         self.heartbeat_s = heartbeat_s
         self.cpu_fraction = cpu_fraction
         self.grace_s = grace_s
@@ -155,6 +180,11 @@ class Supervisor:
         self.flight_reader: Reader | None = None
         self.generation = 0
         self.ground_waiting_hello = False
+        self.ground_epoch: int | None = None  # link session of the current ground
+        self.ground_session: int | None = None  # its Hello.session
+        self.ground_gen = 0  # ground sessions seen: prefixes pair ids sent to the flight process
+        self.fseq = 0  # sequence numbers of frames forwarded to the flight process
+        self.pairs_seen = 0
         self.restarts = 0
         self.counters = {
             "results": 0,
@@ -165,6 +195,8 @@ class Supervisor:
             "crashes": 0,
             "memory_ceiling": 0,
             "hangs": 0,
+            "link_errors": 0,
+            "stale_results": 0,
         }
         # open for the supervisor's lifetime, closed in serve()'s finally
         self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None  # noqa: SIM115
@@ -183,8 +215,8 @@ class Supervisor:
         for pid in self.order:  # replay what the dead incarnation never answered
             st = self.pairs[pid]
             if not st.done:
-                for idx in sorted(st.frames):
-                    self.flight.link.send(st.frames[idx])
+                for idx in sorted(st.fframes):
+                    self.flight.link.send(st.fframes[idx])
                 st.sent_to = self.generation
 
     def _restart_flight(self, reason: str) -> None:
@@ -213,11 +245,18 @@ class Supervisor:
         return None
 
     # -- accounting -------------------------------------------------------------------------
-    def _fail_pair(self, st: PairState, code: str, text: str) -> None:
+    def _to_ground(self, msg) -> int | None:
+        """Send within the current ground session only (a message for a dead session never reaches the next)."""
+        if self.ground_epoch is None:
+            return None
+        return self.ground.send(msg, epoch=self.ground_epoch)
+
+    def _fail_pair(self, st: PairState, code: str, text: str, tell_ground: bool = True) -> None:
         st.done = True
         self.counters["errors"] += 1
-        err = Error(code=code, text=f"pair {st.pair_id}: {text}", seq=st.frames[1].seq if 1 in st.frames else None)
-        self.ground.send(err)
+        if tell_ground:
+            err = Error(code=code, text=f"pair {st.pair_id}: {text}", seq=st.frames[1].seq if 1 in st.frames else None)
+            self._to_ground(err)
         self._write_telemetry({"pair_id": st.pair_id, "event": "error", "code": code, "text": text})
 
     def _write_telemetry(self, record: dict) -> None:
@@ -225,44 +264,84 @@ class Supervisor:
             self.telemetry_file.write(json.dumps(record, sort_keys=True) + "\n")
             self.telemetry_file.flush()
 
-    def _pair_for_seqs(self, seqs) -> PairState | None:
+    def _pair_for_fseqs(self, fseqs) -> PairState | None:
         for pid in self.order:
             st = self.pairs[pid]
-            if 0 in st.frames and 1 in st.frames and st.seqs == tuple(seqs):
+            if 0 in st.fframes and 1 in st.fframes and st.fseqs == tuple(fseqs):
                 return st
         return None
 
     # -- event handlers ---------------------------------------------------------------------
-    def _on_ground(self, msg) -> bool:
-        """Returns False when the ground is finished."""
+    def _on_ground(self, msg, epoch: int) -> bool:
+        """Returns False when the ground link is gone for good."""
         if isinstance(msg, EOFError):
             return False
         if isinstance(msg, Hello):
+            self._new_ground_session(msg, epoch)
             # answer once the flight process has booted (at a low duty cycle its imports alone take a while)
             self.ground_waiting_hello = True
             self._answer_ground_hello()
+        elif epoch != self.ground_epoch:
+            return True  # from a session whose Hello we never saw: nothing to attribute it to
         elif isinstance(msg, Config):
             self.config = msg
             assert self.flight is not None
             self.flight.link.send(msg)
         elif isinstance(msg, Frame):
             if msg.pair_id is None or msg.frame_index not in (0, 1):
-                self.ground.send(Error(code="bad_frame", seq=msg.seq, text="frame needs pair_id and frame_index 0/1"))
+                self._to_ground(Error(code="bad_frame", seq=msg.seq, text="frame needs pair_id and frame_index 0/1"))
                 self.counters["errors"] += 1
                 return True
             st = self.pairs.get(msg.pair_id)
             if st is None:
                 st = self.pairs[msg.pair_id] = PairState(msg.pair_id)
                 self.order.append(msg.pair_id)
+                self._inject_link_fault()
+            self.fseq += 1
+            fmsg = replace(msg, seq=self.fseq, pair_id=f"g{self.ground_gen}:{msg.pair_id}")
             st.frames[msg.frame_index] = msg
+            st.fframes[msg.frame_index] = fmsg
             st.arrivals[msg.frame_index] = time.monotonic()
             assert self.flight is not None
             if len(st.frames) == 2:
                 st.complete_at = time.monotonic()
                 st.proc_at_complete = self.flight.proc.stats()
-            self.flight.link.send(msg)
+            self.flight.link.send(fmsg)
             st.sent_to = self.generation
         return True
+
+    def _inject_link_fault(self) -> None:
+        """Test fault: at the N-th pair the ground link's far end freezes (stall) or vanishes (exit)."""
+        kind, n = self.link_fault
+        self.pairs_seen += 1
+        if kind is None or self.pairs_seen - 1 != n:
+            return
+        self.log(f"supervisor: injected link fault {kind}@{n}")
+        if kind == "stall":
+            os.kill(os.getpid(), signal.SIGSTOP)  # stops reading and writing; run.py continues and ends us
+        elif kind == "exit":
+            if self.flight is not None:
+                self.flight.proc.kill("link fault exit")
+            os._exit(EXIT_LINK_LOST)
+
+    def _new_ground_session(self, hello: Hello, epoch: int) -> None:
+        if epoch == self.ground_epoch and hello.session == self.ground_session:
+            return  # the same ground saying Hello again
+        if self.ground_epoch is not None:
+            self.log(f"supervisor: new ground session {hello.session:08x} (link session {epoch})")
+        self._end_ground_session("ground_restarted", "a new ground session replaced this one")
+        self.ground_epoch, self.ground_session = epoch, hello.session
+        self.ground_gen += 1
+
+    def _end_ground_session(self, code: str, text: str) -> None:
+        """The pairs of the ending ground session can no longer be answered: record them, clear the tables."""
+        for pid in self.order:
+            st = self.pairs[pid]
+            if not st.done:
+                self._fail_pair(st, code, text, tell_ground=False)
+        self.pairs.clear()
+        self.order.clear()
+        self.ground_epoch = None
 
     def _on_flight(self, generation: int, msg) -> None:
         if self.flight is None or generation != self.flight.generation:
@@ -275,83 +354,105 @@ class Supervisor:
         elif isinstance(msg, Heartbeat):
             pass
         elif isinstance(msg, Result):
-            st = self._pair_for_seqs(msg.frame_seqs)
+            st = self._pair_for_fseqs(msg.frame_seqs)
             if st is None or st.done:
+                self.counters["stale_results"] += 1
                 return
             st.result = msg
+            st.result_at = time.monotonic()
             st.proc_at_result = self.flight.proc.stats()
-            t0 = time.monotonic()
-            self.ground.send(msg)
-            self.ground.flush(timeout=self._hard_limit() + 120.0)  # the result's line time is telemetry too
-            st.result_link_s = time.monotonic() - t0
+            st.result_mid = self._to_ground(replace(msg, frame_seqs=st.seqs))
+            self._finish_if_delivered(st)
         elif isinstance(msg, Telemetry):
-            st = self._pair_for_seqs(msg.frame_seqs)
+            st = self._pair_for_fseqs(msg.frame_seqs)
             if st is None or st.done:
                 return
-            st.done = True
-            now = time.monotonic()
-            # "last frame in -> result out": out = handed to the link, before its line time
-            latency = now - (st.complete_at or now) - st.result_link_s
-            deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
-            met = latency <= deadline
-            stats = self.flight.proc.stats()
-            tel = replace(
-                msg,
-                total_latency_s=latency,
-                deadline_s=deadline,
-                deadline_met=met,
-                cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
-                peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
-                link={
-                    **msg.link,
-                    **self._link_stats(),
-                    "flight_latency_s": msg.total_latency_s,
-                    "result_link_s": st.result_link_s,
-                    "restarts": float(self.counters["restarts"]),
-                },
-            )
-            self.counters["results"] += 1
-            if st.result is not None and st.result.degraded:
-                self.counters["degraded"] += 1
-            if not met:
-                self.counters["deadline_missed"] += 1
-            self.ground.send(tel)
-            self._write_telemetry(
-                {
-                    "pair_id": st.pair_id,
-                    "event": "result",
-                    "frame_seqs": list(msg.frame_seqs),
-                    "level": st.result.level if st.result else None,
-                    "degraded": bool(st.result.degraded) if st.result else None,
-                    "latency_s": latency,
-                    "deadline_s": deadline,
-                    "deadline_met": met,
-                    "deadline_margin_s": deadline - latency,
-                    "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)],
-                    "queue_wait_s": msg.queue_wait_s,
-                    "result_link_s": st.result_link_s,
-                    "stages": msg.stages,
-                    "cpu_fraction": tel.cpu_fraction,
-                    "peak_rss_mib": stats.get("peak_rss_mib"),
-                }
-            )
+            st.flight_telemetry = msg
+            self._finish_if_delivered(st)
         elif isinstance(msg, Error):
             # an error from the flight software about a specific frame or pair
             st = None
             for pid in self.order:
                 s = self.pairs[pid]
-                if not s.done and msg.seq is not None and any(f.seq == msg.seq for f in s.frames.values()):
+                if not s.done and msg.seq is not None and any(f.seq == msg.seq for f in s.fframes.values()):
                     st = s
             if st is not None:
                 self._fail_pair(st, msg.code, msg.text)
-            else:
+            elif msg.seq is None:
                 self.counters["errors"] += 1
-                self.ground.send(msg)
+                self._to_ground(msg)
+
+    def _finish_if_delivered(self, st: PairState) -> None:
+        """Send the pair's Telemetry once the ground holds the whole Result (its line time is then known)."""
+        if st.done or st.result is None or st.flight_telemetry is None:
+            return
+        if st.result_mid is None:
+            self._fail_pair(st, "link_down", "no ground session to send the result to", tell_ground=False)
+            return
+        outcome = self.ground.outcome(st.result_mid) or "pending"
+        if outcome == "pending":
+            return
+        if outcome.startswith("failed"):
+            self._fail_pair(st, "link_down", f"result not delivered: {outcome[8:]}", tell_ground=False)
+            return
+        times = self.ground.times(st.result_mid)
+        st.result_link_s = float(times.line_s) if times is not None and times.line_s is not None else 0.0
+        self._complete(st, st.flight_telemetry)
+
+    def _complete(self, st: PairState, msg: Telemetry) -> None:
+        assert self.flight is not None and st.result_at is not None
+        st.done = True
+        # "last frame in -> result out": out = handed to the link, before its line time
+        latency = st.result_at - (st.complete_at or st.result_at)
+        deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
+        met = latency <= deadline
+        stats = self.flight.proc.stats()
+        tel = replace(
+            msg,
+            frame_seqs=st.seqs,
+            total_latency_s=latency,
+            deadline_s=deadline,
+            deadline_met=met,
+            cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
+            peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
+            link={
+                **msg.link,
+                **self._link_stats(),
+                "flight_latency_s": msg.total_latency_s,
+                "result_link_s": st.result_link_s,
+                "restarts": float(self.counters["restarts"]),
+            },
+        )
+        self.counters["results"] += 1
+        if st.result is not None and st.result.degraded:
+            self.counters["degraded"] += 1
+        if not met:
+            self.counters["deadline_missed"] += 1
+        self._to_ground(tel)
+        self._write_telemetry(
+            {
+                "pair_id": st.pair_id,
+                "event": "result",
+                "frame_seqs": list(st.seqs),
+                "level": st.result.level if st.result else None,
+                "degraded": bool(st.result.degraded) if st.result else None,
+                "latency_s": latency,
+                "deadline_s": deadline,
+                "deadline_met": met,
+                "deadline_margin_s": deadline - latency,
+                "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)],
+                "queue_wait_s": msg.queue_wait_s,
+                "result_link_s": st.result_link_s,
+                "stages": msg.stages,
+                "cpu_fraction": tel.cpu_fraction,
+                "peak_rss_mib": stats.get("peak_rss_mib"),
+            }
+        )
 
     def _answer_ground_hello(self) -> None:
         if self.ground_waiting_hello and self.flight is not None and self.flight.hello:
             self.ground_waiting_hello = False
-            self.ground.send(Hello(role="hil-server"))
+            self._to_ground(Hello(role="hil-server", session=self.ground.session_id))
 
     def _on_flight_exit(self) -> None:
         assert self.flight is not None
@@ -368,6 +469,25 @@ class Supervisor:
         stats = getattr(self.ground, "stats", {})
         stats = stats() if callable(stats) else stats
         return {f"ground_{k}": float(v) for k, v in dict(stats).items() if isinstance(v, (int, float))}
+
+    def _check_ground_link(self) -> bool:
+        """Session events of the ground link; False when the ground ended the session or the link is gone."""
+        keep = True
+        for ev in self.ground.events():
+            if ev.kind in ("lost", "restarted", "transport") or (ev.kind == "closed" and self._outstanding()):
+                self.counters["link_errors"] += 1
+                self.log(f"supervisor: LINK ERROR: ground {ev.kind}: {ev.text}")
+                self._end_ground_session("link_down", f"ground link {ev.kind}: {ev.text}")
+            elif ev.kind == "closed":
+                self._end_ground_session("link_down", "ground closed the link")
+            if ev.kind in ("closed", "transport"):
+                keep = False
+        for pid in list(self.order):
+            self._finish_if_delivered(self.pairs[pid])
+        return keep
+
+    def _outstanding(self) -> bool:
+        return any(not self.pairs[pid].done for pid in self.order)
 
     def _check_watchdogs(self) -> None:
         assert self.flight is not None
@@ -396,6 +516,10 @@ class Supervisor:
             self._on_flight_exit()
 
     def serve(self, idle_timeout_s: float = 600.0) -> int:
+        """Run until the ground closes its session, the link fails, or nothing happens for ``idle_timeout_s``.
+
+        Returns 0, or :data:`EXIT_LINK_LOST` if a ground session was lost on the way.
+        """
         self._start_flight()
         ground_reader = Reader(self.ground, "ground", self.events)
         ground_reader.start()
@@ -403,20 +527,24 @@ class Supervisor:
         try:
             while True:
                 try:
-                    tag, gen, msg = self.events.get(timeout=0.05)
+                    tag, gen, msg, epoch = self.events.get(timeout=0.05)
                 except queue.Empty:
                     self._check_watchdogs()
+                    if not self._check_ground_link():
+                        return self._exit_code()
                     if time.monotonic() - last_activity > idle_timeout_s:
                         self.log("supervisor: idle timeout, shutting down")
-                        return 0
+                        return self._exit_code()
                     continue
                 if tag == "ground":
                     last_activity = time.monotonic()
-                    if not self._on_ground(msg):
-                        return 0
+                    if not self._on_ground(msg, epoch):
+                        return self._exit_code()
                 else:
                     self._on_flight(gen, msg)
                 self._check_watchdogs()
+                if not self._check_ground_link():
+                    return self._exit_code()
         finally:
             ground_reader.stopped.set()
             if self.flight_reader:
@@ -427,26 +555,60 @@ class Supervisor:
             if self.telemetry_file:
                 self.telemetry_file.close()
 
+    def _exit_code(self) -> int:
+        return EXIT_LINK_LOST if self.counters["link_errors"] else 0
+
+
+def parse_link_fault(spec: str | None) -> tuple[str | None, int]:
+    """``stall@N`` or ``exit@N`` (test fault injection on the ground link), or None."""
+    if not spec:
+        return None, -1
+    kind, _, n = spec.partition("@")
+    if kind not in ("stall", "exit") or not n.isdigit():
+        raise InputError(f"--link-fault must be stall@N or exit@N, got {spec!r}")
+    return kind, int(n)
+
 
 def main(argv: list[str] | None = None) -> int:
-    import signal
-
     from hil_server.budgets import get_budget, load_calibration
     from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+    from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import open_link
 
     ap = argparse.ArgumentParser(prog="python -m hil_server.supervisor", description=__doc__.splitlines()[0])
-    ap.add_argument("--link", required=True, help="serial:PATH[@BAUD] or zmq:ENDPOINT (bound here)")
+    ap.add_argument("--link", required=True, help="serial:URL[@BAUD] or zmq:ENDPOINT (bound here)")
     ap.add_argument("--budget", required=True)
     ap.add_argument("--telemetry", type=Path, default=None, help="JSON-lines telemetry file")
     ap.add_argument("--fault", default=None, help="fault injection for the first flight incarnation")
+    ap.add_argument("--link-fault", default=None, help="test fault on the ground link: stall@N or exit@N")
+    ap.add_argument("--keys", type=Path, default=None, help="CURVE key directory (zmq links)")
+    ap.add_argument("--insecure", action="store_true", help="zmq without CURVE (loopback debugging only)")
+    ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
+    ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
     ap.add_argument("--idle-timeout", type=float, default=600.0)
     args = ap.parse_args(argv)
 
-    budget = get_budget(args.budget)
-    fraction = budget.duty_fraction(load_calibration())
-    spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
-    link = open_link(args.link, server=True)
+    def log(s: str) -> None:
+        print(s, file=sys.stderr, flush=True)
+
+    try:
+        budget = get_budget(args.budget)
+        parse_link_fault(args.link_fault)
+        fraction = budget.duty_fraction(load_calibration())
+        spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
+        link = open_link(
+            args.link,
+            server=True,
+            keys=args.keys,
+            insecure=args.insecure,
+            peer_timeout=args.link_timeout,
+            connect_timeout=None,
+            name="ground",
+            log=log,
+        )
+    except InputError as exc:
+        log(f"supervisor: error: {exc}")
+        return 2
 
     def _term(signum, frame):  # orderly shutdown: the finally blocks kill the flight process
         raise KeyboardInterrupt
@@ -458,20 +620,21 @@ def main(argv: list[str] | None = None) -> int:
         lambda: EmulatedProcessor(spec),
         telemetry_path=args.telemetry,
         fault=args.fault,
+        link_fault=args.link_fault,
         cpu_fraction=fraction,
-        log=lambda s: print(s, file=sys.stderr, flush=True),
+        log=log,
     )
-    print(
+    limit = apply_memory_ceiling(args.memory_mib)
+    log(
         f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
-        f"deadline {budget.deadline_s} s",
-        file=sys.stderr,
-        flush=True,
+        f"deadline {budget.deadline_s} s; own memory ceiling {limit / 2**20:.0f} MiB address space"
     )
     try:
         return sup.serve(idle_timeout_s=args.idle_timeout)
     except KeyboardInterrupt:
-        return 0
+        return sup._exit_code()
     finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # already shutting down: finish closing the link
         link.close()
 
 

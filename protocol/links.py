@@ -1,42 +1,42 @@
-"""Links: one interface over a serial line, any byte stream, or ZeroMQ.
+"""Links: one interface over a serial line, any byte stream, or ZeroMQ (docs/protocol.md).
 
-Every link has ``send(message) -> seq``, ``recv(timeout) -> Message | None``,
-``close()``, ``stats`` (a dict snapshot) and ``failures()``. ``send`` is
-thread-safe (a heartbeat thread and the main loop may both call it).
+Every link has ``send(message, timeout) -> id``, ``recv(timeout) -> Message |
+None``, ``recv_packet(timeout) -> Received | None`` (the message with its
+reception times), ``flush(timeout)``, ``close()``, ``stats`` (a dict
+snapshot), ``failures()``, ``outcome(id)``, ``times(id)`` and the session
+state: ``established``, ``epoch`` (sessions so far), ``wait_established()``,
+``events()``. ``send`` is thread-safe.
 
-Byte-stream links (:class:`SerialLink`, :class:`StreamLink`) use the framing
-of :mod:`protocol.framing` and give these delivery guarantees:
+Every blocking call has a timeout: ``send`` waits for buffer space at most
+``timeout``, ``recv``/``flush``/``wait_established`` take one, writes time out
+after ``write_timeout`` (a frame that cannot be written counts as lost), the
+handshake and reassembly are bounded by the session timers of
+:class:`protocol.arq.ArqConfig`. A peer that stops reading, goes silent or
+closes ends the session within ``peer_timeout`` (default 4 s): every message
+in flight fails with the reason (:meth:`Link.failures`), an event says so, and
+the link waits for a new session (a restarted peer resynchronises). Only a
+broken transport (EOF, device gone) or :meth:`Link.close` ends a link for good:
+``send`` then raises :class:`LinkClosed` and ``recv`` raises it once the
+received messages are drained.
 
-* every packet carries a link sequence number; duplicates are dropped;
-* messages of a *reliable* type (default: everything but Heartbeat/Ack/Nack)
-  ask for an Ack and are retransmitted after ``ack_timeout`` seconds (timer
-  started when the last byte was written), up to ``max_attempts`` sends;
-* one reliable message is in flight at a time (stop-and-wait), so reliable
-  messages arrive in order even across retransmissions - ``send`` of the
-  next reliable message blocks until the previous one is resolved;
-* every reliable message ends as delivered (``outcome(seq) == "delivered"``)
-  or as a :class:`DeliveryFailure` with a reason - never silently lost.
-
-Threads: a reader (bytes -> decoder -> acks/dedup -> receive queue; also the
-retransmit timer and the partial-frame timeout) and a writer (a priority
-queue: acks jump ahead of data, so two peers both busy sending big frames
-cannot deadlock on each other's acks). ``baud`` paces writes at 10 bits per
-byte (8N1) because a pty has no baud rate; ``None`` means unlimited.
+Byte-stream links (:class:`SerialLink`, :class:`StreamLink`) run
+:class:`protocol.arq.Arq` (segmentation, selective repeat, sessions) with a
+reader and a writer thread; ``baud`` paces writes at 10 bits per byte (8N1),
+the frame leaving when the line would have carried its last byte.
+:class:`ZmqLink` carries whole messages as multipart ZeroMQ messages with
+CURVE authentication, one peer per session, and the same session rules.
 
 How two processes connect over a pty (no socat needed)::
 
     bridge = PtyBridge()                    # parent: two raw ptys + relay thread(s)
     # child A: SerialLink(bridge.paths[0])  # child B: SerialLink(bridge.paths[1])
-
-or with one pty pair: the parent keeps ``master_fd`` from
-:func:`protocol.faults.open_pty_pair` and wraps it in ``StreamLink(master_fd)``
-while the child opens ``SerialLink(slave_path)``.
 """
 
 from __future__ import annotations
 
-import heapq
-import itertools
+import errno
+import fcntl
+import ipaddress
 import os
 import queue
 import select
@@ -44,140 +44,112 @@ import socket
 import struct
 import threading
 import time
-from collections import deque
-from collections.abc import Iterable
+from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+from protocol.arq import Arq, ArqConfig, DeliveryFailure, MessageTimes, Received
 from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
-from protocol.framing import FLAG_ACK_REQ, Packet, StreamDecoder, frame_payload
-from protocol.messages import Ack, Heartbeat, Message, Nack, message_class
+from protocol.framing import CLOSE_APP, CLOSE_LOST
+from protocol.messages import Heartbeat, Message, message_class
+from protocol.session import SessionState
 
-UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE, Ack.TYPE, Nack.TYPE})
+UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
+# A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
+# peer timeout - a throttled flight process answers late; the supervisor's heartbeat watchdog judges it.
+LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=5.0)
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
+RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
+
+__all__ = [
+    "BITS_PER_BYTE",
+    "LOCAL_CONFIG",
+    "ByteStreamLink",
+    "DeliveryFailure",
+    "Link",
+    "LinkClosed",
+    "MessageTimes",
+    "Received",
+    "SerialLink",
+    "StreamLink",
+    "ZmqLink",
+]
+
+Log = Callable[[str], None]
 
 
 class LinkClosed(InputError):
-    """send() on a link that has been closed or whose transport failed."""
+    """The link was closed or its transport failed; nothing more can be sent or received."""
 
 
 @dataclass(frozen=True)
-class DeliveryFailure:
-    """A reliable message that was not acknowledged, and why."""
-
-    seq: int
-    message_type: str
-    reason: str
-
-
-@dataclass
-class _Pending:
-    seq: int
-    data: bytes
-    type_name: str
-    attempts: int = 1
-    sent_at: float | None = None  # None while queued / being written
+class LinkEvent:
+    time: float  # monotonic
+    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport
+    text: str
+    epoch: int
 
 
 class Link:
-    """Shared bookkeeping: sequence numbers, stats, dedup, receive queue, failures."""
+    """Shared bookkeeping: receive queue, events, logging, the common API."""
 
-    def __init__(self, name: str = "") -> None:
+    def __init__(self, name: str = "", log: Log | None = None) -> None:
         self.name = name
-        self._seq = itertools.count(1)
-        self._seq_lock = threading.Lock()
-        self._rx: queue.Queue[Packet] = queue.Queue()
-        self._seen: set[int] = set()
-        self._seen_order: deque[int] = deque()
-        self._failures: list[DeliveryFailure] = []
-        self._outcomes: dict[int, str] = {}
+        self._log = log
+        self._rx: queue.Queue[Received] = queue.Queue(maxsize=RX_QUEUE_MESSAGES)
+        self._events: deque[LinkEvent] = deque(maxlen=256)
         self._closed = threading.Event()
-        self._stats_lock = threading.Lock()
-        self._stats: dict[str, float] = dict.fromkeys(
-            (
-                "bytes_sent",
-                "bytes_received",
-                "frames_sent",
-                "frames_received",
-                "retransmits",
-                "crc_errors",
-                "malformed",
-                "oversize",
-                "decode_errors",
-                "resyncs",
-                "bytes_discarded",
-                "frame_timeouts",
-                "duplicates_dropped",
-                "acks_sent",
-                "acks_received",
-                "delivered",
-                "failures",
-                "busy_s",
-            ),
-            0,
-        )
+        self._failed: str | None = None  # transport failure: permanent
+        self.last_error: str | None = None  # the most recent session loss / failure reason
 
-    def _next_seq(self) -> int:
-        with self._seq_lock:
-            return next(self._seq) & 0xFFFFFFFF
+    def _event(self, kind: str, text: str, epoch: int) -> None:
+        self._events.append(LinkEvent(time.monotonic(), kind, text, epoch))
+        if kind in ("lost", "closed", "restarted", "refused", "auth_failed", "transport"):
+            self.last_error = text
+        if self._log is not None:
+            self._log(f"link {self.name or '?'}: {kind}: {text}")
 
-    def _count(self, key: str, n: float = 1) -> None:
-        with self._stats_lock:
-            self._stats[key] = self._stats.get(key, 0) + n
+    def events(self) -> list[LinkEvent]:
+        """Session events so far (and clears them): established, lost, restarted, closed, refused, ..."""
+        out = list(self._events)
+        self._events.clear()
+        return out
 
     @property
-    def stats(self) -> dict[str, float]:
-        with self._stats_lock:
-            return dict(self._stats)
+    def failed(self) -> str | None:
+        """Why the transport failed for good (None while usable)."""
+        return self._failed
 
-    def failures(self) -> list[DeliveryFailure]:
-        with self._stats_lock:
-            return list(self._failures)
-
-    def outcome(self, seq: int) -> str | None:
-        """``"delivered"``, ``"failed: <reason>"``, ``"pending"`` or None (unknown/unreliable seq)."""
-        with self._stats_lock:
-            return self._outcomes.get(seq)
-
-    def _resolve(self, seq: int, type_name: str, failure: str | None) -> None:
-        with self._stats_lock:
-            if failure is None:
-                self._outcomes[seq] = "delivered"
-                self._stats["delivered"] += 1
-            else:
-                self._outcomes[seq] = f"failed: {failure}"
-                self._failures.append(DeliveryFailure(seq, type_name, failure))
-                self._stats["failures"] += 1
-
-    def _accept(self, packet: Packet) -> bool:
-        """Dedup by link sequence number; True if new."""
-        if packet.seq in self._seen:
-            self._count("duplicates_dropped")
-            return False
-        self._seen.add(packet.seq)
-        self._seen_order.append(packet.seq)
-        if len(self._seen_order) > 8192:
-            self._seen.discard(self._seen_order.popleft())
-        self._count("frames_received")
-        return True
-
-    def recv_packet(self, timeout: float | None = None) -> Packet | None:
-        try:
-            return self._rx.get(timeout=timeout) if timeout is None or timeout > 0 else self._rx.get_nowait()
-        except queue.Empty:
-            return None
+    def recv_packet(self, timeout: float | None = None) -> Received | None:
+        """Next received message with its reception times, or None after ``timeout`` s."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+            try:
+                return self._rx.get(timeout=max(left, 0.0)) if left > 0 else self._rx.get_nowait()
+            except queue.Empty:
+                pass
+            if self._failed is not None or self._closed.is_set():
+                raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
 
     def recv(self, timeout: float | None = None) -> Message | None:
         """Next received message, or None after ``timeout`` seconds (``None`` waits forever)."""
         p = self.recv_packet(timeout)
         return None if p is None else p.message
 
-    def send(self, message: Message) -> int:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def close(self) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    def _put_received(self, item: Received, keep_going: Callable[[], bool]) -> None:
+        """Queue a received message; when the application does not keep up, block (backpressure)."""
+        while keep_going():
+            try:
+                self._rx.put(item, timeout=0.05)
+                return
+            except queue.Full:
+                continue
 
     def __enter__(self) -> Link:
         return self
@@ -185,41 +157,51 @@ class Link:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
+    # implemented by subclasses
+    def send(
+        self, message: Message, timeout: float | None = None, epoch: int | None = None
+    ) -> int:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
 
 class ByteStreamLink(Link):
-    """Framed, acknowledged link over a byte stream; subclasses supply ``_read``/``_write``."""
+    """Segmented, selectively acknowledged link over a byte stream; subclasses supply ``_read``/``_write``."""
 
     def __init__(
         self,
         *,
         baud: float | None = None,
-        reliable_types: Iterable[int] | None = None,
-        ack_timeout: float = 1.0,
-        max_attempts: int = 6,
+        config: ArqConfig | None = None,
+        session_id: int | None = None,
+        write_timeout: float = 1.0,
         frame_timeout: float = 2.0,
-        acks: bool = True,
-        limits: Limits = DEFAULT_LIMITS,
+        limits: Limits | None = None,
         name: str = "",
+        log: Log | None = None,
     ) -> None:
-        super().__init__(name)
+        super().__init__(name, log)
         if baud is not None and baud <= 0:
             raise InputError(f"baud must be positive or None, got {baud}")
-        if max_attempts < 1 or ack_timeout <= 0:
-            raise InputError("max_attempts must be >= 1 and ack_timeout > 0")
+        if not write_timeout > 0:
+            raise InputError(f"write_timeout must be > 0, got {write_timeout}")
+        cfg = config or ArqConfig()
+        if limits is not None:
+            cfg = ArqConfig(**{**cfg.__dict__, "limits": limits})
+        if baud is not None:  # an ack may wait for a full frame in the other direction: RTO above ~3 frames
+            floor = 3 * cfg.max_frame * BITS_PER_BYTE / baud + 0.02
+            if cfg.rto_min < floor:
+                cfg = ArqConfig(**{**cfg.__dict__, "rto_min": floor, "rto_initial": max(cfg.rto_initial, floor)})
         self.baud = baud
-        self.acks = acks
-        self.ack_timeout = ack_timeout
-        self.max_attempts = max_attempts
+        self.write_timeout = write_timeout
         self.frame_timeout = frame_timeout
-        self._reliable = frozenset(reliable_types) if reliable_types is not None else None
-        self._decoder = StreamDecoder(limits.max_message_bytes, limits)
-        self._cond = threading.Condition()
-        self._inflight: _Pending | None = None
-        self._wq: list[tuple[int, int, bytes | None, int | None]] = []
-        self._wq_count = itertools.count()
-        self._wq_cond = threading.Condition()
-        self._writing = False
-        self._error: str | None = None
+        self.arq = Arq(cfg, session_id=session_id, now=time.monotonic())
+        self._cv = threading.Condition()
+        self._stop = False
+        self._line_free = 0.0
+        self._extra = {"busy_s": 0.0, "write_timeouts": 0.0, "frame_timeouts": 0.0}
         self._reader = threading.Thread(target=self._reader_loop, name=f"{name or 'link'}-rx", daemon=True)
         self._writer = threading.Thread(target=self._writer_loop, name=f"{name or 'link'}-tx", daemon=True)
 
@@ -229,200 +211,183 @@ class ByteStreamLink(Link):
 
     # transport hooks ------------------------------------------------------
     def _read(self, timeout: float) -> bytes:  # pragma: no cover - abstract
+        """Up to 64 KiB within ``timeout`` (b"" if none); raises EOFError at end of stream."""
         raise NotImplementedError
 
-    def _write(self, data: bytes) -> None:  # pragma: no cover - abstract
+    def _write(self, data: bytes, timeout: float) -> bool:  # pragma: no cover - abstract
+        """Write all of ``data`` within ``timeout``; False if it timed out (part may be on the line)."""
         raise NotImplementedError
 
     def _close_transport(self) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    # session state ----------------------------------------------------------
+    @property
+    def established(self) -> bool:
+        return self.arq.established
+
+    @property
+    def epoch(self) -> int:
+        return self.arq.epoch
+
+    @property
+    def session_id(self) -> int:
+        return self.arq.session_id
+
+    @property
+    def peer_session(self) -> int:
+        return self.arq.peer_session
+
+    def wait_established(self, timeout: float | None = None) -> bool:
+        with self._cv:
+            return self._cv.wait_for(lambda: self.arq.established or self._dead(), timeout) and self.arq.established
+
+    def _dead(self) -> bool:
+        return self._failed is not None or self._closed.is_set()
+
+    @property
+    def stats(self) -> dict[str, float]:
+        with self._cv:
+            return {**self.arq.snapshot(), **self._extra}
+
+    def failures(self) -> list[DeliveryFailure]:
+        with self._cv:
+            return self.arq.failures()
+
+    def outcome(self, msg_id: int) -> str | None:
+        """``"pending"``, ``"delivered"`` (every byte acknowledged), ``"failed: <reason>"`` or None."""
+        with self._cv:
+            return self.arq.outcome(msg_id)
+
+    def times(self, msg_id: int) -> MessageTimes | None:
+        with self._cv:
+            t = self.arq.times(msg_id)
+            return None if t is None else MessageTimes(t.submitted, t.first_tx, t.written, t.delivered)
+
     # sending --------------------------------------------------------------
-    def is_reliable(self, message: Message) -> bool:
-        if not self.acks:
-            return False
-        return message.TYPE in self._reliable if self._reliable is not None else message.TYPE not in UNRELIABLE_TYPES
+    def send(self, message: Message, timeout: float | None = None, epoch: int | None = None) -> int:
+        """Queue ``message``; returns its id. Waits at most ``timeout`` s for send-buffer space.
 
-    def _enqueue(self, priority: int, data: bytes | None, seq: int | None = None) -> None:
-        with self._wq_cond:
-            heapq.heappush(self._wq, (priority, next(self._wq_count), data, seq))
-            self._wq_cond.notify()
-
-    def send(self, message: Message, timeout: float | None = None) -> int:
-        """Queue ``message``; returns its link sequence number.
-
-        For a reliable message this first waits (up to ``timeout``) until the
-        previous reliable message is acknowledged or failed.
+        ``epoch``: send only within that session (see :meth:`protocol.arq.Arq.submit`).
         """
-        if self._closed.is_set() or self._error:
-            raise LinkClosed(f"link {self.name!r} is closed{': ' + self._error if self._error else ''}")
+        if self._dead():
+            raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
         body = encode_message(message)  # schema errors surface here, in the caller
-        reliable = self.is_reliable(message)
-        seq = self._next_seq()
-        data = frame_payload(message.TYPE, seq, body, FLAG_ACK_REQ if reliable else 0)
-        if reliable:
-            with self._cond:
-                if not self._cond.wait_for(lambda: self._inflight is None or self._closed.is_set(), timeout):
-                    raise TimeoutError(f"link {self.name!r}: previous reliable message still unacknowledged")
-                if self._closed.is_set():
-                    raise LinkClosed(f"link {self.name!r} closed while waiting to send")
-                self._inflight = _Pending(seq, data, type(message).__name__)
-                with self._stats_lock:
-                    self._outcomes[seq] = "pending"
-        self._enqueue(1, data, seq if reliable else None)
-        return seq
+        reliable = message.TYPE not in UNRELIABLE_TYPES
+        with self._cv:
+            if not self._cv.wait_for(lambda: self._dead() or self.arq.can_accept(len(body)), timeout):
+                raise TimeoutError(f"link {self.name!r}: send buffer still full after {timeout:g} s")
+            if self._dead():
+                raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
+            mid = self.arq.submit(message.TYPE, body, type(message).__name__, time.monotonic(), reliable, epoch)
+            self._cv.notify_all()
+        return mid
 
     def flush(self, timeout: float | None = None) -> bool:
-        """Wait until everything queued is written and the in-flight message resolved."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._wq_cond:
-            if not self._wq_cond.wait_for(lambda: not self._wq and not self._writing, timeout):
-                return False
-        left = None if deadline is None else max(0.0, deadline - time.monotonic())
-        with self._cond:
-            return self._cond.wait_for(lambda: self._inflight is None, left)
+        """Wait until every queued message is delivered or failed; False on timeout."""
+        with self._cv:
+            return self._cv.wait_for(lambda: self.arq.idle or self._dead(), timeout) and self.arq.idle
 
-    def _write_paced(self, data: bytes) -> None:
+    def _pace(self, n: int) -> float:
+        """Sleep until the line has carried ``n`` more bytes; returns when the first of them started."""
+        now = time.monotonic()
         if self.baud is None:
-            self._write(data)
-            return
-        chunk = max(16, int(self.baud / BITS_PER_BYTE * 0.02))  # ~20 ms slices
-        t0 = time.monotonic()
-        for i in range(0, len(data), chunk):
-            self._write(data[i : i + chunk])
-            wait = t0 + (i + len(data[i : i + chunk])) * BITS_PER_BYTE / self.baud - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
+            return now
+        start = max(self._line_free, now)
+        self._line_free = start + n * BITS_PER_BYTE / self.baud
+        wait = self._line_free - now
+        if wait > 0:
+            time.sleep(wait)
+        return start
 
     def _writer_loop(self) -> None:
         while True:
-            with self._wq_cond:
-                self._wq_cond.wait_for(lambda: bool(self._wq))
-                _, _, data, seq = heapq.heappop(self._wq)
-                self._writing = data is not None
-            if data is None:
-                return
+            with self._cv:
+                while True:
+                    if self._stop or self._failed is not None:
+                        return
+                    nxt = self.arq.next_frame(time.monotonic())
+                    if nxt is not None:
+                        break
+                    self._cv.wait(0.05)
+            frame, token = nxt
             t0 = time.monotonic()
+            started = self._pace(len(frame))
             try:
-                self._write_paced(data)
+                ok = self._write(frame, self.write_timeout)
             except (OSError, ValueError) as exc:  # pyserial raises SerialException (an OSError)
-                self._error = f"write failed: {exc}"
-                self._fail_inflight(self._error)
-            finally:
-                with self._wq_cond:
-                    self._writing = False
-                    self._wq_cond.notify_all()
-            self._count("busy_s", time.monotonic() - t0)
-            self._count("bytes_sent", len(data))
-            self._count("frames_sent")
-            if seq is not None:
-                with self._cond:
-                    if self._inflight is not None and self._inflight.seq == seq:
-                        self._inflight.sent_at = time.monotonic()
-
-    # receiving ------------------------------------------------------------
-    def _fail_inflight(self, reason: str, seq: int | None = None) -> None:
-        with self._cond:
-            p = self._inflight
-            if p is None or (seq is not None and p.seq != seq):
-                return
-            self._inflight = None
-            self._resolve(p.seq, p.type_name, reason)
-            self._cond.notify_all()
-
-    def _handle(self, p: Packet) -> None:
-        msg = p.message
-        if isinstance(msg, (Ack, Nack)):
-            self._count("acks_received")
-            with self._cond:
-                cur = self._inflight
-                if cur is None or cur.seq != msg.seq:
-                    return  # late ack of something already resolved
-                self._inflight = None
-                self._resolve(cur.seq, cur.type_name, None if isinstance(msg, Ack) else f"peer rejected: {msg.reason}")
-                self._cond.notify_all()
-            return
-        if p.wants_ack:  # ack every copy: the previous ack may have been lost
-            self._enqueue(0, frame_payload(Ack.TYPE, self._next_seq(), encode_message(Ack(seq=p.seq))))
-            self._count("acks_sent")
-        if self._accept(p):
-            self._rx.put(p)
-
-    def _check_retransmit(self, now: float) -> None:
-        with self._cond:
-            p = self._inflight
-            if p is None or p.sent_at is None or now - p.sent_at < self.ack_timeout:
-                return
-            if p.attempts >= self.max_attempts:
-                self._inflight = None
-                self._resolve(
-                    p.seq, p.type_name, f"no ack after {p.attempts} attempts ({self.ack_timeout:g} s timeout each)"
-                )
-                self._cond.notify_all()
-                return
-            p.attempts += 1
-            p.sent_at = None
-        self._count("retransmits")
-        self._enqueue(1, p.data, p.seq)
-
-    def _sync_decoder_stats(self) -> None:
-        with self._stats_lock:
-            for k in ("crc_errors", "malformed", "oversize", "decode_errors", "resyncs", "bytes_discarded"):
-                self._stats[k] = self._decoder.stats[k]
-
-    def _reader_loop(self) -> None:
-        last_rx = time.monotonic()
-        while not self._closed.is_set():
-            try:
-                data = self._read(0.05)
-            except (OSError, ValueError, TypeError) as exc:
-                if self._closed.is_set():
-                    return
-                self._error = f"read failed: {exc}"
-                self._fail_inflight(self._error)
+                self._fail_transport(f"write failed: {exc}")
                 return
             now = time.monotonic()
-            if data:
-                last_rx = now
-                self._count("bytes_received", len(data))
-                for p in self._decoder.feed_packets(data):
-                    self._handle(p)
-                for rej in self._decoder.take_rejected():
-                    if rej.flags & FLAG_ACK_REQ:
-                        self._enqueue(
-                            0,
-                            frame_payload(
-                                Nack.TYPE, self._next_seq(), encode_message(Nack(seq=rej.seq, reason=rej.reason[:4000]))
-                            ),
-                        )
-                self._sync_decoder_stats()
-            elif self._decoder.pending_bytes and now - last_rx > self.frame_timeout:
-                self._decoder.expire_partial()
-                self._count("frame_timeouts")
-                self._sync_decoder_stats()
-            self._check_retransmit(now)
+            with self._cv:
+                self._extra["busy_s"] += now - t0
+                if not ok:
+                    self._extra["write_timeouts"] += 1
+                self.arq.written(token, len(frame), now, ok, started)
+                self._cv.notify_all()
+
+    # receiving ------------------------------------------------------------
+    def _reader_loop(self) -> None:
+        last_rx = time.monotonic()
+        while not self._stop:
+            try:
+                data = self._read(0.05)
+            except EOFError:
+                self._fail_transport("end of stream: the peer closed the connection")
+                return
+            except (OSError, ValueError, TypeError) as exc:
+                if not self._stop:
+                    self._fail_transport(f"read failed: {exc}")
+                return
+            now = time.monotonic()
+            with self._cv:
+                if data:
+                    last_rx = now
+                    self.arq.receive(data, now)
+                elif self.arq.decoder.pending_bytes and now - last_rx > self.frame_timeout:
+                    self.arq.decoder.expire_partial()
+                    self._extra["frame_timeouts"] += 1
+                self.arq.poll(now)
+                got = self.arq.take_received()
+                events = self.arq.take_events()
+                self._cv.notify_all()
+            for ev in events:
+                self._event(ev.kind, ev.text, ev.epoch)
+            for item in got:
+                self._put_received(item, lambda: not self._stop)
+
+    def _fail_transport(self, reason: str) -> None:
+        with self._cv:
+            if self._failed is not None:
+                return
+            self._failed = reason
+            self.arq.transport_failed(reason, time.monotonic())
+            self._cv.notify_all()
+        self._event("transport", reason, self.arq.epoch)
 
     def close(self, flush_timeout: float = 1.0) -> None:
-        """Flush (bounded), stop the threads, fail whatever is still in flight, close the transport."""
+        """Flush (bounded), tell the peer (CLOSE), stop the threads, fail what is left, close the transport."""
         if self._closed.is_set():
             return
-        if self._error is None and self._writer.is_alive():
+        if self._failed is None and self.arq.established:
             self.flush(flush_timeout)
+        with self._cv:
+            self.arq.close()
+            self._cv.notify_all()
+            self._cv.wait_for(lambda: not self.arq.control_pending or self._failed is not None, 0.5)
+            self.arq.fail_all("link closed before the message was delivered")
+            self._stop = True
+            self._cv.notify_all()
         self._closed.set()
-        self._enqueue(-1, None)
         self._writer.join(timeout=2.0)
         self._reader.join(timeout=2.0)
-        self._fail_inflight("link closed before the message was acknowledged")
-        with self._cond:
-            self._cond.notify_all()
         self._close_transport()
 
 
 class StreamLink(ByteStreamLink):
-    """Framed link over a connected socket, a pty master fd, or an fd pair (``os.pipe``).
+    """Link over a connected socket, a pty master fd, or an fd pair (``os.pipe``).
 
-    ``StreamLink(sock)`` / ``StreamLink(fd)`` / ``StreamLink(read_fd, write_fd)``. No baud
-    pacing by default; ``acks=False`` turns off acknowledgement for a lossless local stream.
+    ``StreamLink(sock)`` / ``StreamLink(fd)`` / ``StreamLink(read_fd, write_fd)``. No baud pacing by default.
     """
 
     def __init__(
@@ -432,42 +397,52 @@ class StreamLink(ByteStreamLink):
         self._objs = (rx, tx)  # keep socket objects alive
         self._rfd = rx.fileno() if isinstance(rx, socket.socket) else int(rx)
         self._wfd = self._rfd if tx is None else (tx.fileno() if isinstance(tx, socket.socket) else int(tx))
+        for fd in {self._rfd, self._wfd}:
+            fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
         self._close_fds = close_fds
-        self._eof = False
         self._start()
 
     def _read(self, timeout: float) -> bytes:
-        if self._eof:
-            time.sleep(timeout)
-            return b""
         r, _, _ = select.select([self._rfd], [], [], timeout)
         if not r:
             return b""
         try:
             data = os.read(self._rfd, 1 << 16)
+        except BlockingIOError:
+            return b""
         except OSError as exc:
-            if exc.errno == 5:  # EIO: pty slave not (yet / any more) open
+            if exc.errno == errno.EIO:  # pty slave not (yet / any more) open
                 time.sleep(timeout)
                 return b""
             raise
         if not data:
-            self._eof = True
+            raise EOFError
         return data
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, timeout: float) -> bool:
         mv = memoryview(data)
+        deadline = time.monotonic() + timeout
         while mv:
-            n = os.write(self._wfd, mv)
-            mv = mv[n:]
+            try:
+                n = os.write(self._wfd, mv)
+                mv = mv[n:]
+                continue
+            except BlockingIOError:
+                pass
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            select.select([], [self._wfd], [], left)
+        return True
 
     def _close_transport(self) -> None:
         if not self._close_fds:
             return
-        for obj in self._objs:
-            if isinstance(obj, socket.socket):
-                obj.close()
-        for fd in {self._rfd, self._wfd}:
-            if not any(isinstance(o, socket.socket) for o in self._objs):
+        socks = [o for o in self._objs if isinstance(o, socket.socket)]
+        for s in socks:
+            s.close()
+        if not socks:
+            for fd in {self._rfd, self._wfd}:
                 try:
                     os.close(fd)
                 except OSError:
@@ -475,24 +450,31 @@ class StreamLink(ByteStreamLink):
 
 
 class SerialLink(ByteStreamLink):
-    """Framed, acknowledged link over pyserial: ``/dev/ttyUSB0``, a pty slave path, or ``loop://``.
+    """Link over pyserial: any ``serial_for_url`` URL - ``/dev/ttyUSB0``, a pty, ``socket://``, ``rfc2217://``.
 
-    ``baud`` paces writes in software (a pty ignores the line rate); ``None`` is unlimited.
-    The port's own reads use a short timeout and our frame timeout, never
-    ``inter_byte_timeout`` or DTR (both unreliable on ptys).
+    ``baud`` sets the port's rate and paces writes in software (a pty or a socket has
+    no line rate of its own); ``None`` leaves writes unpaced. Reads use a short
+    timeout and our frame timeout, never ``inter_byte_timeout`` or DTR (both
+    unreliable on ptys).
     """
 
-    def __init__(self, port: str, baud: float | None = None, **kw: Any) -> None:
+    def __init__(self, port: str, baud: float | None = None, *, device_baud: int | None = None, **kw: Any) -> None:
         import serial
 
         super().__init__(baud=baud, **kw)
         try:
             self._ser = serial.serial_for_url(
-                port, baudrate=int(baud or 115200), timeout=0.05, write_timeout=None, dsrdtr=False, rtscts=False
+                port,
+                baudrate=int(device_baud or baud or 115200),
+                timeout=0.05,
+                write_timeout=self.write_timeout,
+                dsrdtr=False,
+                rtscts=False,
             )
-        except (serial.SerialException, ValueError) as exc:
+        except (serial.SerialException, ValueError, OSError) as exc:
             raise InputError(f"cannot open serial port {port!r}: {exc}") from None
         self.port = port
+        self._timeout_exc = serial.SerialTimeoutException
         self._start()
 
     def _read(self, timeout: float) -> bytes:
@@ -501,10 +483,14 @@ class SerialLink(ByteStreamLink):
         if not first:
             return b""
         n = self._ser.in_waiting
-        return first + (self._ser.read(n) if n else b"")
+        return first + (self._ser.read(min(n, 1 << 16)) if n else b"")
 
-    def _write(self, data: bytes) -> None:
-        self._ser.write(data)
+    def _write(self, data: bytes, timeout: float) -> bool:
+        try:
+            self._ser.write(data)
+        except self._timeout_exc:
+            return False
+        return True
 
     def _close_transport(self) -> None:
         try:
@@ -513,24 +499,55 @@ class SerialLink(ByteStreamLink):
             pass
 
 
-_ZHEAD = struct.Struct(">BBHI")  # version, type, flags, seq
+# ---------------------------------------------------------------------------------- ZeroMQ
+_ZHEAD = struct.Struct(">BBBBIII")  # version, kind, type, flags, src session, dst session, seq
+Z_VERSION = 2
+Z_MSG, Z_HELLO, Z_CLOSE = 1, 4, 5
+_LOOPBACK_HOSTS = {"localhost"}
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """``ipc://``, ``inproc://`` or ``tcp://`` to a loopback address."""
+    scheme, _, rest = endpoint.partition("://")
+    if scheme in ("ipc", "inproc"):
+        return True
+    if scheme != "tcp":
+        return False
+    host = rest.rsplit(":", 1)[0].strip("[]")
+    if host in _LOOPBACK_HOSTS:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class _ZOut:
+    id: int
+    name: str
+    type_code: int
+    body: bytes
+    bufs: list
+    submitted: float
+    nbytes: int
 
 
 class ZmqLink(Link):
-    """ZeroMQ PAIR link: multipart ``[header, msgpack body, *array buffers]``.
+    """ZeroMQ PAIR link: multipart ``[header, msgpack body, *array buffers]``, CURVE-authenticated.
 
-    Arrays of at least ``oob_min_bytes`` go as separate zero-copy frames
-    (``copy=False``), smaller ones inline. TCP gives integrity and order, so
-    there are no acks; sequence numbers still let the receiver drop
-    duplicates. ``MAXMSGSIZE`` and high-water marks bound what a peer can make
-    us buffer; a send that cannot complete within ``send_timeout`` is
-    reported in :meth:`failures`.
+    Header (16 bytes, big-endian): ``version:u8 (=2) | kind:u8 (1 message, 4 HELLO, 5 CLOSE) |
+    type:u8 | flags:u8 | src_session:u32 | dst_session:u32 | seq:u32``. TCP gives integrity
+    and order, so there is no ARQ; sessions, keepalives and timeouts follow the same rules as
+    the byte-stream links. Arrays of at least ``oob_min_bytes`` go as separate zero-copy
+    frames (tracked: :meth:`flush` means "left this process").
 
-    Every send is tracked (``track=True``) so :meth:`flush` means "handed to
-    the kernel", and each link owns its context, terminated on close: libzmq
-    must have released every zero-copy buffer before the interpreter may free
-    it (exiting with frames still queued otherwise crashes the process in the
-    I/O thread - "Bad address" - under load).
+    Security: with ``keys`` (a directory from :func:`protocol.zmqauth.generate_keys`) the
+    binding side is a CURVE server that accepts only the client keys in ``keys/clients``
+    (ZAP, ``zmq.auth.thread.ThreadAuthenticator``); the connecting side authenticates with
+    ``keys/client.key_secret``. ``insecure=True`` turns CURVE off and is refused unless the
+    endpoint is loopback. A PAIR socket attaches exactly one peer: a second connection is
+    refused by libzmq (it gets nothing) and logged here from the socket monitor.
     """
 
     def __init__(
@@ -538,126 +555,527 @@ class ZmqLink(Link):
         endpoint: str,
         bind: bool,
         *,
+        keys: str | Path | None = None,
+        insecure: bool = False,
         hwm: int = 256,
-        send_timeout: float = 30.0,
+        peer_timeout: float | None = 4.0,
+        connect_timeout: float | None = 30.0,
+        keepalive: float = 1.0,
+        hello_interval: float = 0.25,
         oob_min_bytes: int = 64 << 10,
         limits: Limits = DEFAULT_LIMITS,
+        session_id: int | None = None,
         name: str = "",
+        log: Log | None = None,
     ) -> None:
         import zmq
 
-        super().__init__(name)
+        super().__init__(name, log)
+        if keys is None and not insecure:
+            raise InputError(
+                "ZeroMQ links are CURVE-authenticated: give a key directory (python -m protocol.zmqauth DIR "
+                "creates one) or insecure=True (--insecure) for loopback debugging"
+            )
+        if insecure and not is_loopback_endpoint(endpoint):
+            raise InputError(f"--insecure is for loopback debugging only; {endpoint!r} is not a loopback endpoint")
         self._zmq = zmq
         self.limits = limits
         self.oob_min_bytes = oob_min_bytes
+        self.peer_timeout = peer_timeout
+        self.connect_timeout = connect_timeout
+        self.keepalive = keepalive
+        self.hello_interval = hello_interval
+        self.bind = bind
+        self.secure = keys is not None
+        self.sess = SessionState(session_id)
+        self._cv = threading.Condition()
+        self._out: deque[_ZOut] = deque()
+        self._trackers: deque[tuple[int, str, Any]] = deque()
+        self._outcomes: OrderedDict[int, str] = OrderedDict()
+        self._times: OrderedDict[int, MessageTimes] = OrderedDict()
+        self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
+        self._next_id = 1
+        self._seq = 0
+        self._peer_seq = -1
+        self._control: deque[list[Any]] = deque()
+        self._stats: dict[str, float] = dict.fromkeys(
+            (
+                "bytes_sent",
+                "bytes_received",
+                "frames_sent",
+                "frames_received",
+                "messages_sent",
+                "messages_received",
+                "decode_errors",
+                "duplicates_dropped",
+                "old_session_frames",
+                "foreign_frames",
+                "failures",
+                "peer_restarts",
+                "peer_losses",
+                "peers_refused",
+                "auth_failures",
+                "connections",
+                "busy_s",
+            ),
+            0,
+        )
+        now = time.monotonic()
+        self._last_heard = now
+        self._last_sent = -1e9
+        self._last_hello = -1e9
+        self._stall_since: float | None = None
+        self._auth: Any = None
         self._ctx = zmq.Context(io_threads=1)
         self._sock = self._ctx.socket(zmq.PAIR)
-        for opt, val in (
-            (zmq.MAXMSGSIZE, limits.max_message_bytes + (1 << 20)),
-            (zmq.SNDHWM, hwm),
-            (zmq.RCVHWM, hwm),
-            (zmq.LINGER, 1000),
-            (zmq.SNDTIMEO, int(send_timeout * 1000)),
-        ):
-            self._sock.setsockopt(opt, val)
-        self._sock.copy_threshold = 0  # track every frame, so flush() covers small messages too
         try:
+            for opt, val in (
+                (zmq.MAXMSGSIZE, limits.max_message_bytes + (1 << 20)),
+                (zmq.SNDHWM, hwm),
+                (zmq.RCVHWM, hwm),
+                (zmq.LINGER, 1000),
+                (zmq.RECONNECT_IVL, 100),
+                (zmq.RECONNECT_IVL_MAX, 1000),
+                (zmq.HEARTBEAT_IVL, 1000),
+                (zmq.HEARTBEAT_TIMEOUT, int(1000 * (peer_timeout or 30.0))),
+            ):
+                self._sock.setsockopt(opt, val)
+            self._sock.copy_threshold = 0  # track every frame, so flush() covers small messages too
+            if keys is not None:
+                self._setup_curve(Path(keys), bind)
+            self._mon = self._sock.get_monitor_socket()
             (self._sock.bind if bind else self._sock.connect)(endpoint)
-        except zmq.ZMQError as exc:
-            self._sock.close(0)
-            self._ctx.term()
+        except (zmq.ZMQError, InputError) as exc:
+            self._teardown()
+            if isinstance(exc, InputError):
+                raise
             raise InputError(f"cannot {'bind' if bind else 'connect'} {endpoint!r}: {exc}") from None
         self.endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT) if bind else endpoint
-        self._lock = threading.Lock()
-        self._trackers: deque[tuple[int, str, Any]] = deque()  # (seq, type name, zmq.MessageTracker)
+        self._pending_events: list[tuple[str, str, int]] = []
+        self._closing = False
+        self._accepted: deque[tuple[int, str]] = deque()  # (fd, peer address) awaiting their handshake
+        self._owner: int | None = None  # fd of the attached peer
+        self._stop = False
+        self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
+        self._io.start()
 
-    def send(self, message: Message, timeout: float | None = None) -> int:
-        if self._closed.is_set():
-            raise LinkClosed(f"link {self.name!r} is closed")
-        body, bufs = encode_parts(message, self.oob_min_bytes)
-        seq = self._next_seq()
-        head = _ZHEAD.pack(1, message.TYPE, 0, seq)
-        t0 = time.monotonic()
-        with self._lock:
-            try:
-                parts: list[Any] = [head, body, *bufs]
-                trackers = [
-                    self._sock.send(part, self._zmq.SNDMORE if i < len(parts) - 1 else 0, copy=False, track=True)
-                    for i, part in enumerate(parts)
-                ]
-                tracker = self._zmq.MessageTracker(*trackers)
-            except self._zmq.Again:
-                self._resolve(
-                    seq, type(message).__name__, "send timed out: peer not connected or not draining (high-water mark)"
-                )
-                return seq
-            self._trackers.append((seq, type(message).__name__, tracker))
-            while self._trackers and self._trackers[0][2].done:
-                self._trackers.popleft()
-        self._count("busy_s", time.monotonic() - t0)
-        self._count("bytes_sent", len(head) + len(body) + sum(b.nbytes for b in bufs))
-        self._count("frames_sent")
-        return seq
+    def _setup_curve(self, keys: Path, bind: bool) -> None:
+        from protocol.zmqauth import client_keys, server_keys
 
-    def _poll_one(self) -> None:
         zmq = self._zmq
-        try:
-            parts = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
-        except zmq.Again:
+        if not zmq.has("curve"):
+            raise InputError("this libzmq has no CURVE support; use --insecure on loopback only")
+        if bind:
+            from zmq.auth.thread import ThreadAuthenticator
+
+            pub, sec, clients = server_keys(keys)
+            self._auth = ThreadAuthenticator(self._ctx)
+            self._auth.start()
+            self._auth.configure_curve(domain="*", location=str(clients))
+            self._sock.curve_server = True
+            self._sock.curve_publickey = pub
+            self._sock.curve_secretkey = sec
+        else:
+            pub, sec, server_pub = client_keys(keys)
+            self._sock.curve_serverkey = server_pub
+            self._sock.curve_publickey = pub
+            self._sock.curve_secretkey = sec
+
+    # session state ----------------------------------------------------------
+    @property
+    def established(self) -> bool:
+        return self.sess.established
+
+    @property
+    def epoch(self) -> int:
+        return self.sess.epoch
+
+    @property
+    def session_id(self) -> int:
+        return self.sess.local
+
+    @property
+    def peer_session(self) -> int:
+        return self.sess.peer
+
+    def wait_established(self, timeout: float | None = None) -> bool:
+        with self._cv:
+            ok = self._cv.wait_for(lambda: self.sess.established or self._dead(), timeout)
+            return bool(ok) and self.sess.established
+
+    def _dead(self) -> bool:
+        return self._failed is not None or self._closed.is_set()
+
+    @property
+    def stats(self) -> dict[str, float]:
+        with self._cv:
+            return {**self._stats, "established": float(self.sess.established), "sessions": float(self.sess.epoch)}
+
+    def failures(self) -> list[DeliveryFailure]:
+        with self._cv:
+            return list(self._failures)
+
+    def outcome(self, msg_id: int) -> str | None:
+        """``"pending"``, ``"sent"`` (left this process), ``"failed: <reason>"`` or None."""
+        with self._cv:
+            return self._outcomes.get(msg_id)
+
+    def times(self, msg_id: int) -> MessageTimes | None:
+        with self._cv:
+            return self._times.get(msg_id)
+
+    def _remember(self, table: OrderedDict, key: int, value: Any) -> None:
+        table[key] = value
+        while len(table) > 8192:
+            table.popitem(last=False)
+
+    def _fail(self, mid: int, name: str, reason: str) -> None:
+        self._remember(self._outcomes, mid, f"failed: {reason}")
+        self._failures.append(DeliveryFailure(mid, name, reason))
+        self._stats["failures"] += 1
+
+    # sending --------------------------------------------------------------
+    def send(self, message: Message, timeout: float | None = None, epoch: int | None = None) -> int:
+        """Queue ``message``; returns its id (never blocks: libzmq's high-water mark is watched instead)."""
+        if self._dead():
+            raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
+        body, bufs = encode_parts(message, self.oob_min_bytes)
+        n = len(body) + sum(b.nbytes for b in bufs)
+        with self._cv:
+            mid = self._next_id
+            self._next_id += 1
+            if epoch is not None and (epoch != self.sess.epoch or not self.sess.established):
+                self._fail(mid, type(message).__name__, f"session {epoch} has ended")
+                return mid
+            if message.TYPE in UNRELIABLE_TYPES and not self.sess.established:
+                return mid  # a heartbeat with nobody to hear it
+            self._out.append(_ZOut(mid, type(message).__name__, message.TYPE, body, bufs, time.monotonic(), n))
+            self._remember(self._outcomes, mid, "pending")
+            self._remember(self._times, mid, MessageTimes(time.monotonic()))
+            self._stats["messages_sent"] += 1
+            self._cv.notify_all()
+        return mid
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every message sent so far has left this process (True), or ``timeout`` passes."""
+
+        def done() -> bool:
+            return self._dead() or (not self._out and all(t.done for _, _, t in self._trackers))
+
+        with self._cv:
+            ok = bool(self._cv.wait_for(done, timeout)) and not self._out
+            self._retire_trackers(time.monotonic())
+            return ok
+
+    def _hello(self) -> list[bytes]:
+        return [_ZHEAD.pack(Z_VERSION, Z_HELLO, 0, 0, self.sess.local, self.sess.peer, 0)]
+
+    def _lose(self, reason: str, kind: str = "lost", notify: bool = True) -> None:
+        """Caller holds the lock."""
+        self._stats["peer_losses"] += 1
+        if notify and self.sess.peer:
+            self._control.append(
+                [
+                    _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
+                    bytes((CLOSE_LOST,)) + f"session lost: {reason}".encode()[:256],
+                ]
+            )
+        self._drop_all(f"session lost: {reason}")
+        self.sess.lose()
+        self._pending_events.append((kind, reason, self.sess.epoch))
+
+    def _drop_all(self, reason: str) -> None:
+        while self._out:
+            m = self._out.popleft()
+            self._fail(m.id, m.name, reason)
+        for mid, name, tracker in self._trackers:
+            if not tracker.done:
+                self._fail(mid, name, f"{reason} (it had not left this process)")
+        self._seq = 0
+        self._peer_seq = -1
+
+    # the I/O thread ---------------------------------------------------------
+    def _io_loop(self) -> None:
+        zmq = self._zmq
+        poller = zmq.Poller()
+        poller.register(self._sock, zmq.POLLIN)
+        poller.register(self._mon, zmq.POLLIN)
+        while not self._stop:
+            now = time.monotonic()
+            with self._cv:
+                self._timers(now)
+                control: list[Any] = list(self._control)
+                self._control.clear()
+            for parts in control:
+                try:
+                    self._sock.send_multipart(parts, flags=zmq.NOBLOCK)
+                    self._last_sent = now
+                except zmq.Again:
+                    pass  # a HELLO or CLOSE is best effort
+            self._send_pending(now)
+            try:
+                ready = dict(poller.poll(20))
+            except zmq.ZMQError:
+                if self._stop:
+                    return
+                raise
+            if self._mon in ready:
+                self._monitor()
+            if self._sock in ready:
+                for _ in range(64):
+                    try:
+                        parts = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    self._on_parts(parts, time.monotonic())
+            with self._cv:
+                events, self._pending_events = self._pending_events, []
+                self._cv.notify_all()
+            for kind, text, epoch in events:
+                self._event(kind, text, epoch)
+
+    def _timers(self, now: float) -> None:
+        self._retire_trackers(now)
+        if not self.sess.established:
+            if now - self._last_hello >= self.hello_interval:
+                self._control.append(self._hello())
+                self._last_hello = now
+            if self.connect_timeout is not None:
+                while self._out and now - self._out[0].submitted > self.connect_timeout:
+                    m = self._out.popleft()
+                    self._fail(m.id, m.name, f"no session with the peer within {self.connect_timeout:g} s")
             return
-        self._count("bytes_received", sum(len(p.buffer) for p in parts))
+        if now - self._last_hello >= self.keepalive:
+            self._control.append(self._hello())
+            self._last_hello = now
+        if self.peer_timeout is not None:
+            if now - self._last_heard > self.peer_timeout:
+                self._lose(
+                    f"no message from the peer for {now - self._last_heard:.1f} s (timeout {self.peer_timeout:g} s)"
+                )
+            elif self._stall_since is not None and now - self._stall_since > self.peer_timeout:
+                self._lose(f"peer not draining: sends blocked for {now - self._stall_since:.1f} s (high-water mark)")
+
+    def _retire_trackers(self, now: float) -> None:
+        """Caller holds the lock: messages whose frames libzmq has released are ``sent``."""
+        while self._trackers and self._trackers[0][2].done:
+            mid, _, _ = self._trackers.popleft()
+            if self._outcomes.get(mid) == "pending":
+                self._remember(self._outcomes, mid, "sent")
+                t = self._times.get(mid)
+                if t is not None:
+                    t.delivered = now
+
+    def _send_pending(self, now: float) -> None:
+        zmq = self._zmq
+        while True:
+            with self._cv:
+                if not self._out or not self.sess.established:
+                    self._stall_since = None
+                    return
+                m = self._out[0]
+                self._seq += 1
+                head = _ZHEAD.pack(Z_VERSION, Z_MSG, m.type_code, 0, self.sess.local, self.sess.peer, self._seq)
+            parts: list[Any] = [head, m.body, *m.bufs]
+            t0 = time.monotonic()
+            try:
+                trackers = [
+                    self._sock.send(p, (zmq.SNDMORE if i < len(parts) - 1 else 0) | zmq.NOBLOCK, copy=False, track=True)
+                    for i, p in enumerate(parts)
+                ]
+            except zmq.Again:  # high-water mark: the peer is not draining
+                with self._cv:
+                    self._seq -= 1
+                    if self._stall_since is None:
+                        self._stall_since = now
+                return
+            with self._cv:
+                if self._out and self._out[0] is m:
+                    self._out.popleft()
+                self._stall_since = None
+                self._trackers.append((m.id, m.name, zmq.MessageTracker(*trackers)))
+                t = self._times.get(m.id)
+                if t is not None:
+                    t.first_tx = t0
+                    t.written = time.monotonic()
+                self._stats["busy_s"] += time.monotonic() - t0
+                self._stats["bytes_sent"] += len(head) + m.nbytes
+                self._stats["frames_sent"] += 1
+                self._last_sent = now
+
+    def _on_parts(self, parts: list, now: float) -> None:
+        self._stats["bytes_received"] += sum(len(p.buffer) for p in parts)
+        self._stats["frames_received"] += 1
+        if self._closing:  # we said CLOSE: whatever the peer says now is not for this link
+            return
+        if not parts or len(parts[0].buffer) != _ZHEAD.size:
+            self._stats["decode_errors"] += 1
+            return
+        version, kind, type_code, flags, src, dst, seq = _ZHEAD.unpack(parts[0].buffer)
+        if version != Z_VERSION or flags != 0 or src == 0:
+            self._stats["decode_errors"] += 1
+            return
+        with self._cv:
+            if kind == Z_HELLO:
+                if self.sess.retired(src) or len(parts) != 1:
+                    self._stats["old_session_frames"] += 1
+                    return
+                replaced, reply, newly = self.sess.on_hello(src, dst)
+                if replaced is not None:
+                    self._stats["peer_restarts"] += 1
+                    self._drop_all(f"peer started a new session {src:08x} (it restarted, or gave up on {replaced:08x})")
+                    self._pending_events.append(("restarted", f"peer session {replaced:08x} -> {src:08x}", self.epoch))
+                self._last_heard = now
+                if newly:
+                    self._established(now)
+                elif reply:
+                    self._control.append(self._hello())
+                    self._last_hello = now
+                return
+            verdict = self.sess.classify(src, dst)
+            if verdict != "ok":
+                self._stats["old_session_frames" if verdict == "old" else "foreign_frames"] += 1
+                if verdict == "old" and src == self.sess.peer:
+                    self._control.append(self._hello())
+                return
+            self._last_heard = now
+            if self.sess.confirm():
+                self._established(now)
+            if kind == Z_CLOSE:
+                body = bytes(parts[1].buffer[:257]) if len(parts) > 1 else b""
+                reason = body[1:].decode("utf-8", "replace") or "no reason given"
+                if body[:1] == bytes((CLOSE_LOST,)):  # it gave up on this session and will start a new one
+                    self._lose(f"peer gave up on the session ({reason})", kind="lost", notify=False)
+                else:
+                    self._lose(f"peer closed the link ({reason})", kind="closed", notify=False)
+                return
+            if kind != Z_MSG:
+                self._stats["decode_errors"] += 1
+                return
+            if seq <= self._peer_seq:
+                self._stats["duplicates_dropped"] += 1
+                return
+            self._peer_seq = seq
+            epoch = self.sess.epoch
         try:
-            if len(parts) < 2 or len(parts[0].buffer) != _ZHEAD.size:
+            if len(parts) < 2:
                 raise CodecError(f"bad multipart shape ({len(parts)} parts)")
-            version, type_code, flags, seq = _ZHEAD.unpack(parts[0].buffer)
-            if version != 1:
-                raise CodecError(f"unsupported wire version {version}")
             message_class(type_code)
             msg = decode_parts(parts[1].buffer, [p.buffer for p in parts[2:]], self.limits, expect_type=type_code)
         except InputError:
-            self._count("decode_errors")
+            with self._cv:
+                self._stats["decode_errors"] += 1
             return
-        p = Packet(seq, flags, msg)
-        if self._accept(p):
-            self._rx.put(p)
+        with self._cv:
+            self._stats["messages_received"] += 1
+        nbytes = sum(len(p.buffer) for p in parts)
+        self._put_received(Received(msg, seq, now, now, nbytes, epoch), lambda: not self._stop)
 
-    def recv_packet(self, timeout: float | None = None) -> Packet | None:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._closed.is_set():
-            p = super().recv_packet(0)
-            if p is not None:
-                return p
-            with self._lock:
-                ready = self._sock.poll(20)
-                if ready:
-                    self._poll_one()
-            if self._rx.empty() and deadline is not None and time.monotonic() >= deadline:
-                return None
-        return None
+    def _established(self, now: float) -> None:
+        self._last_heard = now
+        self._control.append(self._hello())
+        self._last_hello = now
+        self._pending_events.append(
+            ("established", f"session {self.sess.local:08x} <-> {self.sess.peer:08x}", self.sess.epoch)
+        )
 
-    def flush(self, timeout: float | None = None) -> bool:
-        """Wait until every message sent so far has left this process (True) or ``timeout`` passes."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._lock:
-            pending = list(self._trackers)
-        for _, _, tracker in pending:
-            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+    def _monitor(self) -> None:
+        from zmq.utils.monitor import recv_monitor_message
+
+        zmq = self._zmq
+        while True:
             try:
-                tracker.wait(left)
-            except self._zmq.NotDone:
-                return False
-        return True
+                ev = recv_monitor_message(self._mon, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            except zmq.ZMQError:
+                return
+            kind, value = ev["event"], ev["value"]
+            if kind == zmq.EVENT_ACCEPTED:
+                self._accepted.append((value, _peer_address(value)))
+            elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                fd, addr = self._accepted.popleft() if self._accepted else (-1, "?")
+                with self._cv:
+                    self._stats["connections"] += 1
+                    if self.bind and self._owner is not None:
+                        self._stats["peers_refused"] += 1
+                        self._pending_events.append(
+                            ("refused", f"second peer from {addr} refused: this session already has one", self.epoch)
+                        )
+                    elif self.bind:
+                        self._owner = fd
+            elif kind in (
+                zmq.EVENT_HANDSHAKE_FAILED_AUTH,
+                zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL,
+                zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
+            ):
+                fd, addr = self._accepted.popleft() if self._accepted and self.bind else (-1, "the server")
+                with self._cv:
+                    self._stats["auth_failures"] += 1
+                    who = f"connection from {addr}" if self.bind else "the server"
+                    self._pending_events.append(
+                        ("auth_failed", f"{who}: CURVE handshake failed (wrong or missing key?)", self.epoch)
+                    )
+            elif kind == zmq.EVENT_DISCONNECTED:
+                if value == self._owner:
+                    self._owner = None
+                self._accepted = deque((f, a) for f, a in self._accepted if f != value)
 
+    # closing ----------------------------------------------------------------
     def close(self, flush_timeout: float = 5.0) -> None:
-        """Flush (bounded), report what never left as failures, close and terminate the context."""
+        """Flush (bounded), tell the peer (CLOSE), close the socket and terminate the context."""
         if self._closed.is_set():
             return
-        self.flush(flush_timeout)
+        if self.sess.established and self._failed is None:
+            self.flush(flush_timeout)
+        with self._cv:
+            self._closing = True
+            if self.sess.peer:
+                self._control.append(
+                    [
+                        _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
+                        bytes((CLOSE_APP,)) + b"closed by the application",
+                    ]
+                )
+            self._cv.wait_for(lambda: not self._control, 0.5)
+            self._stop = True
+            for m in self._out:
+                self._fail(m.id, m.name, "link closed before the message was sent")
+            self._out.clear()
         self._closed.set()
-        with self._lock:
-            for seq, type_name, tracker in self._trackers:
+        self._io.join(timeout=3.0)
+        with self._cv:
+            for mid, name, tracker in self._trackers:
                 if not tracker.done:
-                    self._resolve(seq, type_name, "link closed before the message left this process")
-            self._sock.close(linger=1000)
-            self._ctx.term()  # returns once libzmq has released every buffer it still held
+                    self._fail(mid, name, "link closed before the message left this process")
+        self._teardown()
+        with self._cv:
             self._trackers.clear()
+
+    def _teardown(self) -> None:
+        try:
+            self._sock.disable_monitor()
+        except Exception:
+            pass
+        mon = getattr(self, "_mon", None)
+        if mon is not None:
+            mon.close(0)
+        self._sock.close(linger=1000)
+        if self._auth is not None:
+            self._auth.stop()
+        self._ctx.term()  # returns once libzmq has released every buffer it still held
+
+
+def _peer_address(fd: int) -> str:
+    """``host:port`` of an accepted TCP connection (from the monitor's fd), for the log."""
+    try:
+        s = socket.socket(fileno=os.dup(fd))
+    except OSError:
+        return f"fd {fd}"
+    try:
+        host, port = s.getpeername()[:2]
+        return f"{host}:{port}"
+    except (OSError, ValueError):
+        return f"fd {fd}"
+    finally:
+        s.close()

@@ -1,29 +1,67 @@
 """Open a link from a one-line spec, the form every command line and config uses.
 
-``serial:PATH[@BAUD]``  a pyserial port (a pty slave path, a device, or ``loop://``);
-                        BAUD paces writes to that line rate (a pty has none of its own).
-``zmq:ENDPOINT``        a ZeroMQ endpoint, e.g. ``zmq:tcp://127.0.0.1:5555``; the
-                        server side binds, the client connects.
+``serial:URL[@BAUD]``  any pyserial port URL: a device (``/dev/ttyUSB0``), a pty slave path,
+                       ``socket://HOST:PORT``, ``rfc2217://HOST:PORT``, ``loop://``. BAUD (default
+                       921600) sets the port and paces writes in software at 10 bits per byte,
+                       since a pty or a socket has no line rate of its own; ``@0`` leaves writes
+                       unpaced. A trailing ``@digits`` is always read as the baud rate.
+``zmq:ENDPOINT``       a ZeroMQ endpoint, e.g. ``zmq:tcp://127.0.0.1:5555``; the server side
+                       binds, the client connects. CURVE-authenticated with the keys in
+                       ``keys`` (see :mod:`protocol.zmqauth`); ``insecure=True`` only on loopback.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from protocol.arq import ArqConfig
 from protocol.errors import InputError
 
-SERIAL_MAX_ATTEMPTS = 12
+DEFAULT_BAUD = 921600
 
 
-def open_link(spec: str, *, server: bool):
+def parse_serial(rest: str) -> tuple[str, int | None]:
+    """``URL[@BAUD]`` -> (url, baud or None for unpaced)."""
+    url, sep, baud = rest.rpartition("@")
+    if not sep or not baud.isdigit():
+        return rest, DEFAULT_BAUD
+    if not url:
+        raise InputError(f"serial link spec {rest!r} has no device")
+    b = int(baud)
+    if b and not 50 <= b <= 100_000_000:
+        raise InputError(f"serial baud must be 0 (unpaced) or in [50, 1e8], got {b}")
+    return url, (b or None)
+
+
+def open_link(
+    spec: str,
+    *,
+    server: bool,
+    keys: str | Path | None = None,
+    insecure: bool = False,
+    peer_timeout: float | None = 4.0,
+    connect_timeout: float | None = 30.0,
+    name: str = "",
+    log=None,
+):
     from protocol.links import SerialLink, ZmqLink
 
+    if peer_timeout is not None and not peer_timeout > 0:
+        raise InputError(f"link timeout must be > 0 s, got {peer_timeout}")
     kind, _, rest = spec.partition(":")
     if kind == "serial" and rest:
-        path, _, baud = rest.rpartition("@") if "@" in rest else (rest, "", "")
-        if baud and not baud.isdigit():
-            raise InputError(f"link spec {spec!r}: baud must be an integer")
-        # HIL serial lines carry 0.3-3 MB results in one CRC-checked frame: on a noisy line a
-        # few more attempts than the library default keep a run from losing whole pairs.
-        return SerialLink(path, baud=int(baud) if baud else None, max_attempts=SERIAL_MAX_ATTEMPTS)
+        url, baud = parse_serial(rest)
+        cfg = ArqConfig(peer_timeout=peer_timeout, connect_timeout=connect_timeout)
+        return SerialLink(url, baud=baud, device_baud=baud or DEFAULT_BAUD, config=cfg, name=name, log=log)
     if kind == "zmq" and rest:
-        return ZmqLink(rest, bind=server)
-    raise InputError(f"link spec must be serial:PATH[@BAUD] or zmq:ENDPOINT, got {spec!r}")
+        return ZmqLink(
+            rest,
+            bind=server,
+            keys=keys,
+            insecure=insecure,
+            peer_timeout=peer_timeout,
+            connect_timeout=connect_timeout,
+            name=name,
+            log=log,
+        )
+    raise InputError(f"link spec must be serial:URL[@BAUD] or zmq:ENDPOINT, got {spec!r}")

@@ -8,9 +8,13 @@ sender and receiver agree on exactly one definition. Arrays travel as real
 ``np.ndarray`` fields (see :mod:`protocol.codec`); decoded arrays are
 read-only views on the received bytes.
 
-Link-level sequence numbers live in the frame header (:mod:`protocol.framing`),
-not here; ``Frame.seq`` is the ground simulator's own frame counter that
-``Result.frame_seqs`` refers back to.
+Link-level sequence numbers, acknowledgements and sessions live in the frame
+header (:mod:`protocol.framing`, :mod:`protocol.arq`), not here; ``Frame.seq``
+is the ground simulator's own frame counter that ``Result.frame_seqs`` refers
+back to. Type codes 8 and 9 (the version-1 link Ack/Nack messages) are retired.
+
+Fields marked *compressed* travel as zlib'd arrays (codec ext 3); the full
+schema with types and limits is in docs/protocol.md.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import numpy as np
 
 from protocol.errors import InputError
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
 MAX_DICT_ITEMS = 128  # stages, link statistics, camera
@@ -32,6 +36,14 @@ MAX_DICT_ITEMS = 128  # stages, link statistics, camera
 
 class SchemaError(InputError):
     """A message field has the wrong type, shape, range or is missing."""
+
+
+@dataclass(frozen=True)
+class Compressed:
+    """An array the codec sends zlib-compressed (ext 3); ``delta``: difference along the last axis first."""
+
+    array: np.ndarray
+    delta: bool = False
 
 
 Checker = Callable[[Any, str], Any]
@@ -169,12 +181,20 @@ def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
     return out
 
 
-def _wire(check: Checker, default: Any = ..., factory: Callable[[], Any] | None = None) -> Any:
+def _wire(
+    check: Checker,
+    default: Any = ...,
+    factory: Callable[[], Any] | None = None,
+    *,
+    compress: bool = False,
+    delta: bool = False,
+) -> Any:
+    meta = {"check": check, "compress": compress, "delta": delta}
     if factory is not None:
-        return field(default_factory=factory, metadata={"check": check})
+        return field(default_factory=factory, metadata=meta)
     if default is ...:
-        return field(metadata={"check": check})
-    return field(default=default, metadata={"check": check})
+        return field(metadata=meta)
+    return field(default=default, metadata=meta)
 
 
 class Message:
@@ -184,20 +204,30 @@ class Message:
 
     def validated(self) -> Message:
         """Return a copy whose fields passed their checkers (raises :class:`SchemaError`)."""
-        return type(self)(
+        msg = type(self)(
             **{
                 f.name: f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
                 for f in fields(self)  # type: ignore[arg-type]
             }
         )
+        msg.check_consistency()
+        return msg
+
+    def check_consistency(self) -> None:
+        """Cross-field rules (shapes that must agree); fields are already checked one by one."""
 
     def to_wire(self) -> dict[str, Any]:
         out = {}
+        checked = {}
         for f in fields(self):  # type: ignore[arg-type]
             v = f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
+            checked[f.name] = v
             if f.name == "sites":
                 v = [s.to_wire() for s in v]
+            elif f.metadata.get("compress") and isinstance(v, np.ndarray):
+                v = Compressed(v, f.metadata.get("delta", False))
             out[f.name] = v
+        type(self)(**checked).check_consistency()
         return out
 
     @classmethod
@@ -218,14 +248,19 @@ class Message:
         unknown = set(d) - {f.name for f in fields(cls)}  # type: ignore[arg-type]
         if unknown:
             raise SchemaError(f"{cls.__name__}: unknown fields {sorted(map(str, unknown))}")
-        return cls(**kwargs)
+        msg = cls(**kwargs)
+        msg.check_consistency()
+        return msg
 
 
 @dataclass(frozen=True)
 class Site:
-    """A candidate landing site (world metres; hazard in [0, 1]; margin to nearest hazard).
+    """A candidate landing site (world metres; hazard in [0, 1]; margin = 1 - max hazard over the footprint).
 
     ``z`` may be NaN: a degraded (image-only) result knows where a site is but not its elevation.
+    ``p_safe`` (probability the whole footprint is safe) and ``clearance_m`` (distance from the
+    centre to the nearest cell not known safe) are NaN when the flight software did not estimate them.
+    On the wire a site is a list of 8 numbers in this order.
     """
 
     x: float
@@ -234,10 +269,12 @@ class Site:
     hazard: float
     margin: float
     distance_m: float
+    p_safe: float = math.nan
+    clearance_m: float = math.nan
 
-    _NAMES: ClassVar[tuple[str, ...]] = ("x", "y", "z", "hazard", "margin", "distance_m")
+    _NAMES: ClassVar[tuple[str, ...]] = ("x", "y", "z", "hazard", "margin", "distance_m", "p_safe", "clearance_m")
 
-    _FINITE: ClassVar[tuple[bool, ...]] = (True, True, False, True, True, True)
+    _FINITE: ClassVar[tuple[bool, ...]] = (True, True, False, True, True, True, False, False)
 
     @classmethod
     def _check(cls, v: Any) -> list[float]:
@@ -253,7 +290,7 @@ class Site:
         if isinstance(v, Site):
             return v
         if isinstance(v, dict):
-            v = [v.get(n) for n in cls._NAMES]
+            v = [v.get(n, math.nan if n in ("p_safe", "clearance_m") else None) for n in cls._NAMES]
         return cls(*cls._check(v))
 
 
@@ -271,6 +308,7 @@ class Hello(Message):
     role: str = _wire(_str(64))
     protocol_version: int = _wire(_int(0, 255), PROTOCOL_VERSION)
     software: str = _wire(_str(128), "hazard-hil")
+    session: int = _wire(_int(0, 2**32 - 1), 0)  # the sender's link session id (0: not given)
 
 
 @dataclass(frozen=True)
@@ -301,21 +339,80 @@ class Frame(Message):
     frame_index: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
 
 
+def _positive(v: Any, name: str) -> float:
+    f = _float()(v, name)
+    if f <= 0:
+        raise SchemaError(f"{name}: must be > 0, got {f}")
+    return f
+
+
+_STATE_CODES = np.array([0, 1, 2, 255], np.uint8)  # protocol.pairdir.STATE_SAFE/UNSAFE/UNKNOWN/OUTSIDE
+
+
+def _states(inner: Checker) -> Checker:
+    def check(v: Any, name: str) -> np.ndarray:
+        arr = inner(v, name)
+        if arr.size and not np.isin(arr, _STATE_CODES).all():
+            raise SchemaError(f"{name}: state codes must be 0 safe, 1 unsafe, 2 unknown or 255 outside")
+        return arr
+
+    return check
+
+
 @dataclass(frozen=True)
 class Result(Message):
-    """Hazard-detection output for the pair ``frame_seqs`` (upper, lower)."""
+    """Hazard-detection output for the pair ``frame_seqs`` (upper, lower): compact, for a serial line.
+
+    World grid (rows toward -Y; cell ``[i, j]`` centred at ``origin_x + j * cell``, ``origin_y - i * cell``):
+
+    * ``state_grid`` uint8: 0 safe, 1 unsafe, 2 unknown, 255 outside (``protocol.pairdir.STATE_*``);
+    * ``psafe_grid`` uint8: P(safe) = v / 254 for v in 0..254, 255 = outside, on the grid decimated
+      by ``psafe_step`` (block minimum: conservative);
+    * ``elevation_grid`` int16 centimetres above ``elevation_offset_m`` (-32768 = no elevation), on
+      the grid decimated by ``elevation_step`` k: cell ``[i, j]`` is the mean over grid cells
+      ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``).
+
+    Full-resolution image maps (i1's pixels) only when the Config asked for them (``full_maps``).
+    Helpers to build and read these grids: :mod:`protocol.grids`.
+    """
 
     TYPE: ClassVar[int] = 4
     frame_seqs: tuple = _wire(_ints(2))
-    hazard_grid: np.ndarray = _wire(_array("<f4", 2))
-    elevation_grid: np.ndarray = _wire(_array("<f4", 2))
+    state_grid: np.ndarray = _wire(_states(_array("|u1", 2)), compress=True)
+    psafe_grid: np.ndarray = _wire(_array("|u1", 2), compress=True)
+    elevation_grid: np.ndarray = _wire(_array("<i2", 2), compress=True, delta=True)
     grid_origin_xy: tuple = _wire(_floats(2))
-    grid_cell_m: float = _wire(_float())
-    hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None)
-    elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None)
+    grid_cell_m: float = _wire(_positive)
+    elevation_step: int = _wire(_int(1, 1024), 1)
+    elevation_offset_m: float = _wire(_float(), 0.0)
+    psafe_step: int = _wire(_int(1, 1024), 1)
     sites: list = _wire(_sites, factory=list)
+    no_site_reason: str | None = _wire(_optional(_str(256)), None)
     degraded: bool = _wire(_bool, False)
     level: str = _wire(_str(64), "full")
+    hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
+    elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
+    state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
+
+    def check_consistency(self) -> None:
+        shape = np.shape(self.state_grid)
+        kp = int(self.psafe_step)
+        want_p = tuple(-(-s // kp) for s in shape)
+        if np.shape(self.psafe_grid) != want_p:
+            raise SchemaError(
+                f"Result.psafe_grid: shape {np.shape(self.psafe_grid)} != state_grid {shape} "
+                f"decimated by {kp} = {want_p}"
+            )
+        k = int(self.elevation_step)
+        want = tuple(-(-s // k) for s in shape)
+        if np.shape(self.elevation_grid) != want:
+            raise SchemaError(
+                f"Result.elevation_grid: shape {np.shape(self.elevation_grid)} != state_grid {shape} "
+                f"decimated by {k} = {want}"
+            )
+        images = [a for a in (self.hazard_image, self.elevation_image, self.state_image) if a is not None]
+        if any(np.shape(a) != np.shape(images[0]) for a in images):
+            raise SchemaError("Result: full-resolution image maps must share one shape")
 
 
 @dataclass(frozen=True)
@@ -351,25 +448,8 @@ class Error(Message):
     seq: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
 
 
-@dataclass(frozen=True)
-class Ack(Message):
-    """Link-level: the packet with link sequence ``seq`` arrived intact."""
-
-    TYPE: ClassVar[int] = 8
-    seq: int = _wire(_int(0, 2**32 - 1))
-
-
-@dataclass(frozen=True)
-class Nack(Message):
-    """Link-level: packet ``seq`` arrived intact but could not be accepted (``reason``)."""
-
-    TYPE: ClassVar[int] = 9
-    seq: int = _wire(_int(0, 2**32 - 1))
-    reason: str = _wire(_str(MAX_TEXT))
-
-
 MESSAGE_TYPES: dict[int, type[Message]] = {
-    cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error, Ack, Nack)
+    cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error)
 }
 
 

@@ -112,7 +112,7 @@ def test_corrupt_calibration_is_input_error(home):
     "edit, message",
     [
         (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
-        (('link = "serial"\nbaud = 3000000\nsource = "opf', 'link = "can"\nbaud = 3000000\nsource = "opf'), "link"),
+        (('link = "serial"\nbaud = 921600\nsource = "opf', 'link = "can"\nbaud = 921600\nsource = "opf'), "link"),
         (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
         (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),
         (("[anchor]", "[anchorx]"), "anchor"),

@@ -44,8 +44,9 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
         assert 0 < r["latency_s"] < r["deadline_s"]
         assert set(r["stages"]) >= {"rocks", "full_dem", "slope", "sites", "total"}
-        hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
-        assert hz.shape == (128, 128) and np.nanmax(hz) <= 1.0
+        states = np.load(tmp_path / "received" / r["pair_id"] / "state_grid.npy")  # the compact result
+        assert states.ndim == 2 and set(np.unique(states)) <= {0, 1, 2, 255} and (states != 255).any()
+        assert not (tmp_path / "received" / r["pair_id"] / "hazard.npy").exists()  # no full maps unless asked
         assert 0.0 <= r["scores"]["fp_pct"] <= 100.0 and r["scores"]["n"] > 0
         assert np.isfinite(r["scores"]["dem_mean_abs"])
     assert s["deadline_hit_rate"] == 1.0
@@ -73,7 +74,7 @@ def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
 
 
 def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_path):
-    s = run(manifest, tmp_path, deadline_s=0.02)
+    s = run(manifest, tmp_path, deadline_s=0.02, full_maps=True)
     assert s["results"] == 3 and s["errors"] == 0
     for r in s["records"]:
         assert r["degraded"] and r["level"] in ("image_only", "coarse")
@@ -124,11 +125,10 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
 
 
 def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
-    s = run(manifest, tmp_path, link="serial", corrupt=1e-6, seed=3)
+    s = run(manifest, tmp_path, link="serial", corrupt=1e-4, seed=3)
     faults = s["line_faults"]
     assert sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in faults.values()) > 0  # the line was noisy
     assert s["results"] == 3 and s["errors"] == 0  # ...and every pair still came back
     assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1  # thanks to retransmission
     for r in s["records"]:
-        hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
-        assert hz.shape == (128, 128)
+        assert np.load(tmp_path / "received" / r["pair_id"] / "state_grid.npy").size > 0

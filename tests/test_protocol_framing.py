@@ -1,7 +1,7 @@
-"""Stream framing: byte stuffing, CRC, resynchronisation, and a bounded fuzz run.
+"""Stream framing (wire version 2): byte stuffing, CRC, frame kinds, resynchronisation, bounded fuzz runs.
 
-The full >= 100 000-input fuzz run is ``bench/bench_protocol.py --fuzz``; this
-file runs the same generator (``protocol.fuzz``) on a bounded number of inputs.
+The full >= 100 000-input fuzz campaign is ``bench/bench_protocol.py --fuzz``; this
+file runs the same generators (``protocol.fuzz``) on a bounded number of inputs.
 """
 
 from __future__ import annotations
@@ -11,9 +11,25 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from protocol.framing import FLAG_ACK_REQ, StreamDecoder, encode_stream_frame, frame_payload, stuff, unstuff
-from protocol.fuzz import fuzz_decoder, sample_messages
-from protocol.messages import Ack, Frame, Heartbeat
+from protocol.framing import (
+    ACK,
+    CLOSE,
+    DATA,
+    DGRAM,
+    HELLO,
+    REJECT,
+    StreamDecoder,
+    _frame,
+    ack_frame,
+    close_frame,
+    data_frame,
+    dgram_frame,
+    hello_frame,
+    reject_frame,
+    stuff,
+    unstuff,
+)
+from protocol.fuzz import fuzz_hostile, fuzz_noise
 
 
 @given(st.binary(max_size=300))
@@ -26,31 +42,64 @@ def test_unstuff_rejects_dangling_escape():
     assert unstuff(b"ab\x7d") is None and unstuff(b"\x7d\x41") is None
 
 
-def test_header_carries_seq_flags_and_type():
+def test_every_kind_round_trips_with_its_fields():
     d = StreamDecoder()
-    [p] = d.feed_packets(encode_stream_frame(Heartbeat(time_s=1.0, counter=9), seq=77, flags=FLAG_ACK_REQ))
-    assert p.seq == 77 and p.wants_ack and p.message == Heartbeat(time_s=1.0, counter=9)
+    wire = (
+        data_frame(7, 9, 1000, b"\x7e\x7dpayload")
+        + ack_frame(7, 9, 5, 32768, [(8, 10), (12, 20)])
+        + dgram_frame(7, 9, 6, b"\x01\x02")
+        + hello_frame(7, 0, 1024, 65536)
+        + close_frame(7, 9, 77, "bye", 1)
+        + reject_frame(7, 9, 44, "too big")
+    )
+    f = d.feed(wire)
+    assert [x.kind for x in f] == [DATA, ACK, DGRAM, HELLO, CLOSE, REJECT]
+    assert all(x.src == 7 for x in f) and f[3].dst == 0 and f[0].dst == 9
+    assert f[0].pos == 1000 and f[0].payload == b"\x7e\x7dpayload"
+    assert (f[1].cum, f[1].window, f[1].sacks) == (5, 32768, [(8, 10), (12, 20)])
+    assert (f[2].type_code, f[2].payload) == (6, b"\x01\x02")
+    assert (f[3].max_frame, f[3].window) == (1024, 65536)
+    assert (f[4].cum, f[4].code, f[4].reason) == (77, 1, "bye") and (f[5].pos, f[5].reason) == (44, "too big")
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        _frame(ACK, 1, 2, b"\x00\x00\x00\x05\x00\x00\x00\x01\x01"),  # claims one SACK range, has none
+        ack_frame(1, 2, 10, 5, [(4, 8)]),  # SACK range below cum
+        _frame(HELLO, 1, 2, b"\x00\x00\x00\x10\x00\x00\x00\x01"),  # max_frame 16 < the minimum
+        _frame(HELLO, 0, 2, b"\x00\x00\x04\x00\x00\x00\x00\x01"),  # session id 0
+        _frame(DATA, 1, 2, b"\x00\x00\x00"),  # no payload
+        _frame(99, 1, 2, b"x"),  # unknown kind
+        _frame(DGRAM, 1, 2, b"\x06"),  # empty body
+    ],
+)
+def test_crc_valid_but_malformed_frames_are_counted_not_raised(frame):
+    d = StreamDecoder()
+    assert d.feed(frame) == [] and d.stats["malformed"] == 1
 
 
 def test_byte_by_byte_feeding_equals_bulk():
-    frames = [encode_stream_frame(Ack(seq=i), seq=i) for i in range(20)]
+    frames = [data_frame(1, 2, i * 10, bytes([i]) * 10) for i in range(20)]
     d = StreamDecoder()
     got = []
     for b in b"".join(frames):
         got += d.feed(bytes([b]))
-    assert got == [Ack(seq=i) for i in range(20)] and d.stats["frames_ok"] == 20
+    assert [f.pos for f in got] == [i * 10 for i in range(20)] and d.stats["frames_ok"] == 20
 
 
 def test_truncated_frame_then_intact_frame_recovers_immediately():
-    a = encode_stream_frame(Ack(seq=1), seq=1)
-    b = encode_stream_frame(Ack(seq=2), seq=2)
+    a = data_frame(1, 2, 0, b"first")
+    b = data_frame(1, 2, 5, b"second")
     d = StreamDecoder()
-    assert d.feed(a[:-7] + b) == [Ack(seq=2)]
+    got = d.feed(a[:-7] + b)
+    assert [f.payload for f in got] == [b"second"]
     assert d.stats["crc_errors"] + d.stats["malformed"] == 1 and d.pending_bytes == 0
 
 
 def test_every_single_bit_flip_is_caught():
-    frame = encode_stream_frame(Heartbeat(time_s=2.5, counter=3), seq=5)
+    body = b"\x92\x06\x81\xa6time_s\xcb" + bytes(8)
+    frame = dgram_frame(3, 4, 6, body)
     bits = np.unpackbits(np.frombuffer(frame, np.uint8))
     for k in range(len(bits)):
         flipped = bits.copy()
@@ -58,47 +107,39 @@ def test_every_single_bit_flip_is_caught():
         d = StreamDecoder()
         out = d.feed(np.packbits(flipped).tobytes() + frame)
         # the corrupted copy is dropped; the intact copy that follows is always recovered
-        assert out == [Heartbeat(time_s=2.5, counter=3)], k
+        assert len(out) == 1 and out[0].payload == body and out[0].type_code == 6 and out[0].src == 3, k
 
 
 def test_oversize_frame_is_dropped_without_buffering_it_all():
-    d = StreamDecoder(max_frame_bytes=1000)
-    big = frame_payload(6, 1, b"\x01" * 5000)
-    ok = encode_stream_frame(Ack(seq=3), seq=3)
+    d = StreamDecoder(max_frame=1000)
+    big = data_frame(1, 2, 0, b"\x01" * 5000)
+    ok = data_frame(1, 2, 0, b"ok")
     out = []
     for i in range(0, len(big), 100):
         out += d.feed(big[i : i + 100])
-        assert d.pending_bytes <= 2 * 1100
+        assert d.pending_bytes <= 2 * 1000
     out += d.feed(ok)
-    assert out == [Ack(seq=3)] and d.stats["oversize"] == 1
+    assert [f.payload for f in out] == [b"ok"] and d.stats["oversize"] == 1
 
 
-def test_crc_ok_but_bad_payload_is_reported_as_rejected():
-    d = StreamDecoder()
-    assert d.feed(frame_payload(8, 41, b"\x92\x08\x80", FLAG_ACK_REQ)) == []  # Ack body missing 'seq'
-    [rej] = d.take_rejected()
-    assert rej.seq == 41 and "missing field" in rej.reason and d.stats["decode_errors"] == 1
-
-
-def test_big_image_frame_survives_and_recovers_after_garbage():
+def test_garbage_and_idle_flags_between_frames():
     rng = np.random.default_rng(1)
-    f = Frame(
-        seq=1,
-        capture_time_s=0.0,
-        position_m=(0, 0, 1000),
-        R_world_to_cam=np.eye(3),
-        altimeter_m=1000.0,
-        image=rng.integers(0, 256, (512, 512), dtype=np.uint8),
-    )
-    wire = encode_stream_frame(f, seq=1)
     d = StreamDecoder()
-    out = d.feed(rng.integers(0, 256, 5000, dtype=np.uint8).tobytes() + wire[:100_000] + wire)
-    assert len(out) == 1 and np.array_equal(out[0].image, f.image)
+    wire = b"\x7e\x7e\x7e" + rng.integers(0, 256, 5000, dtype=np.uint8).tobytes() + data_frame(1, 2, 0, b"x" * 900)
+    out = d.feed(wire)
+    assert len(out) == 1 and out[0].payload == b"x" * 900
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_fuzz_bounded(seed):
-    report = fuzz_decoder(n_inputs=5000, seed=seed, messages=sample_messages(seed, image_side=32))
-    assert report["spurious"] == 0, report
-    assert report["missed_intact"] == 0, report
-    assert report["inputs"] == 5000 and report["intact_frames"] > 2000 and report["mutated_frames"] > 8000
+def test_noise_fuzz_bounded(seed):
+    report = fuzz_noise(n_inputs=1500, seed=seed)
+    assert report["spurious"] == 0 and report["missed"] == 0, report
+    assert report["inputs"] == 1500 and report["mutated_frames"] > 1000 and report["messages"] > 3000
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_hostile_fuzz_bounded(seed):
+    report = fuzz_hostile(n_inputs=300, seed=seed)
+    assert report["violations"] == 0, report
+    assert report["inputs"] == 300 and report["hostile_records"] > 200
+    assert report["rejected_sent"] + report["decode_errors"] > 200  # refused, never delivered

@@ -1,0 +1,109 @@
+"""Scoring a compact Result (world grids) per pixel of i1, from ground truth (DESIGN.md "Scoring convention").
+
+The flight side returns hazard states on a world grid, not per pixel. To score
+them with the thesis's pixel-level metrics, each pixel of i1 is taken to the
+ground point it truly sees: ``X = C + z R^T K^-1 [u, v, 1]`` with the *true*
+pose of frame 0 (``pair.json`` meta ``true_frames``, else the reported one) and
+the true depth ``z`` (``gt_depth_i1.npy``); its true X, Y selects the grid cell
+(nearest cell centre; rows toward -Y, :mod:`protocol.grids`). The pixel is
+*called safe* when that cell's state is SAFE - unknown and unsafe are not
+called safe, and a pixel whose ground point is off the grid or OUTSIDE is not
+scored. The same true X, Y reads the elevation grid for the DEM error
+(nearest cell of the possibly decimated grid).
+
+Scores come from :mod:`ground_sim.scoring` (confusion, DEM error statistics).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ground_sim import scoring
+from protocol.grids import cells_at
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, Camera, Pose
+
+
+def true_pose_upper(pair: Any) -> Pose:
+    """The true pose of frame 0: ``meta["true_frames"][0]`` (written by ground_sim.descent), else the reported one."""
+    tp = pair.meta.get("true_frames") if isinstance(pair.meta, dict) else None
+    if isinstance(tp, list) and tp:
+        try:
+            p = tp[0]
+            return Pose(
+                np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float), float(p.get("time_s", 0))
+            )
+        except (KeyError, TypeError, ValueError):
+            pass
+    return pair.poses[0]
+
+
+def pixel_ground_xy(camera: Camera, pose: Pose, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """True world X, Y of every pixel from its camera z-depth: ``X = C + z R^T K^-1 [u, v, 1]``."""
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    d = np.asarray(depth, np.float64)
+    rays = np.stack([(u - camera.cx) / camera.fx * d, (v - camera.cy) / camera.fy * d, d], axis=-1)
+    world = pose.position + rays @ pose.R
+    return world[..., 0], world[..., 1]
+
+
+def states_at_pixels(
+    state_grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """uint8 state of the grid cell under each pixel's ground point; OUTSIDE off the grid."""
+    i, j, ok = cells_at(x, y, origin_xy, cell_m, state_grid.shape)
+    out = np.full(x.shape, STATE_OUTSIDE, np.uint8)
+    out[ok] = np.asarray(state_grid)[i[ok], j[ok]]
+    return out
+
+
+def values_at_pixels(
+    grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """float32 value of the grid cell under each pixel's ground point; NaN off the grid."""
+    i, j, ok = cells_at(x, y, origin_xy, cell_m, grid.shape)
+    out = np.full(x.shape, np.nan, np.float32)
+    out[ok] = np.asarray(grid, np.float32)[i[ok], j[ok]]
+    return out
+
+
+def called_map(states: np.ndarray) -> np.ndarray:
+    """Per-pixel hazard-like map for :func:`ground_sim.scoring.confusion`: 0 called safe, 1 not, NaN not scored."""
+    out = np.where(states == STATE_SAFE, 0.0, 1.0).astype(np.float32)
+    out[states == STATE_OUTSIDE] = np.nan
+    return out
+
+
+def score_grids(
+    pair: Any,
+    state_grid: np.ndarray,
+    origin_xy: tuple[float, float],
+    cell_m: float,
+    elevation: np.ndarray | None = None,
+    elevation_origin_xy: tuple[float, float] | None = None,
+    elevation_cell_m: float | None = None,
+) -> tuple[dict[str, float], np.ndarray]:
+    """Pixel-level scores of a compact Result against ``pair``'s ground truth; also the per-pixel called map.
+
+    ``elevation`` is the float grid in metres (NaN = none) on its own geometry (the world grid
+    decimated by the Result's ``elevation_step``: :func:`protocol.grids.decimated_geometry`).
+    """
+    truth = pair.truth
+    if "depth" not in truth or "hazard" not in truth:
+        raise scoring.ScoringInputError("grid scoring needs ground-truth depth and hazard (gt_depth_i1.npy, ...)")
+    x, y = pixel_ground_xy(pair.camera, true_pose_upper(pair), truth["depth"])
+    origin = (float(origin_xy[0]), float(origin_xy[1]))
+    states = states_at_pixels(state_grid, origin, float(cell_m), x, y)
+    called = called_map(states)
+    scored = states != STATE_OUTSIDE
+    c = scoring.confusion(called, truth["hazard"], scored)
+    out = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
+    out["unknown_pct"] = float(100.0 * np.count_nonzero(scored & (states == STATE_UNKNOWN)) / max(1, int(scored.sum())))
+    if "elevation" in truth and elevation is not None:
+        e_origin = origin if elevation_origin_xy is None else elevation_origin_xy
+        e_cell = float(cell_m if elevation_cell_m is None else elevation_cell_m)
+        est = values_at_pixels(elevation, e_origin, e_cell, x, y)
+        out.update({f"dem_{k}": float(v) for k, v in scoring.dem_error_stats(est, truth["elevation"], scored).items()})
+    return out, called

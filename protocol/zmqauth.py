@@ -1,0 +1,104 @@
+"""CURVE keys for ZeroMQ links (docs/protocol.md, "Security").
+
+A key directory holds two key pairs in ZeroMQ's certificate format (readable by
+``zmq.auth.load_certificate``), every file created with mode 0600 and the
+directory with 0700::
+
+    server.key_secret   the server's public + secret key (the supervisor side)
+    client.key_secret   the client's public + secret key (the ground side)
+    server.key          the server's public key (all a client needs of the server)
+    clients/client.key  the public keys the server accepts, one file per client
+
+:func:`generate_keys` writes a fresh directory (``hazard-hil run`` does this
+once per run, under the run's output directory). Generate keys with
+``python -m protocol.zmqauth DIR`` to connect your own peer.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from protocol.errors import InputError
+
+_HEADER = "#   ZeroMQ CURVE certificate (hazard-hil); keep *_secret files private\n\nmetadata\ncurve\n"
+
+
+def _write(path: Path, public: bytes, secret: bytes | None) -> None:
+    text = _HEADER + f'    public-key = "{public.decode("ascii")}"\n'
+    if secret is not None:
+        text += f'    secret-key = "{secret.decode("ascii")}"\n'
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)  # never world-readable, not even briefly
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+
+
+def generate_keys(directory: str | Path) -> Path:
+    """Create ``directory`` (must not exist or be empty) with a server and a client key pair."""
+    import zmq
+
+    d = Path(directory)
+    if d.exists() and any(d.iterdir()):
+        raise InputError(f"key directory {d} is not empty; refusing to overwrite keys")
+    d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(d, 0o700)
+    (d / "clients").mkdir(mode=0o700, exist_ok=True)
+    s_pub, s_sec = zmq.curve_keypair()
+    c_pub, c_sec = zmq.curve_keypair()
+    _write(d / "server.key_secret", s_pub, s_sec)
+    _write(d / "server.key", s_pub, None)
+    _write(d / "client.key_secret", c_pub, c_sec)
+    _write(d / "clients" / "client.key", c_pub, None)
+    return d
+
+
+def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
+    import zmq.auth
+
+    if not path.is_file():
+        raise InputError(f"CURVE key file {path} does not exist (create keys with `python -m protocol.zmqauth DIR`)")
+    try:
+        pub, sec = zmq.auth.load_certificate(str(path))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"CURVE key file {path} is unreadable: {exc}") from None
+    if pub is None or (need_secret and sec is None):
+        raise InputError(f"CURVE key file {path} lacks a {'secret' if need_secret else 'public'} key")
+    return pub, sec
+
+
+def server_keys(directory: str | Path) -> tuple[bytes, bytes, Path]:
+    """(public, secret, directory of accepted client public keys) for the binding side."""
+    d = Path(directory)
+    pub, sec = _load(d / "server.key_secret", True)
+    assert sec is not None
+    if not (d / "clients").is_dir():
+        raise InputError(f"CURVE key directory {d} has no clients/ directory of accepted keys")
+    return pub, sec, d / "clients"
+
+
+def client_keys(directory: str | Path) -> tuple[bytes, bytes, bytes]:
+    """(public, secret, server public) for the connecting side."""
+    d = Path(directory)
+    pub, sec = _load(d / "client.key_secret", True)
+    server_pub, _ = _load(d / "server.key", False)
+    assert sec is not None
+    return pub, sec, server_pub
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1:
+        print("usage: python -m protocol.zmqauth DIR   (creates DIR with a server and a client CURVE key pair)")
+        return 2
+    try:
+        d = generate_keys(args[0])
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"CURVE keys written to {d} (mode 0600)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

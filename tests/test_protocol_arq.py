@@ -1,0 +1,236 @@
+"""The ARQ engine on a simulated serial line (virtual clock): throughput, loss recovery, sessions, timeouts.
+
+Deterministic: the line is :class:`protocol.linesim.SimLine` with seeded
+:class:`protocol.faults.CorruptingChannel` faults, so these tests measure the
+protocol, not the machine. The same properties over real ptys and processes are
+in tests/test_protocol_links.py and tests/test_protocol_hil.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.arq import Arq, ArqConfig
+from protocol.codec import encode_message
+from protocol.faults import CorruptingChannel
+from protocol.framing import data_frame
+from protocol.fuzz import same_message
+from protocol.linesim import SimLine
+from protocol.messages import Frame, Heartbeat
+
+RATE = 921600 / 10  # bytes per second on the line (8N1)
+CFG = ArqConfig(rto_min=3 * 1024 / RATE + 0.02)
+
+
+def frame(i: int, side: int = 128) -> Frame:
+    img = np.random.default_rng(i).integers(0, 256, (side, side), dtype=np.uint8)
+    return Frame(
+        seq=i, capture_time_s=0.0, position_m=(0.0, 0.0, 100.0), R_world_to_cam=np.eye(3), altimeter_m=1.0, image=img
+    )
+
+
+def pair(rate: float = RATE, corrupt: float = 0.0, seed: int = 0, cfg: ArqConfig = CFG) -> SimLine:
+    channels = (None, None)
+    if corrupt:
+        channels = tuple(CorruptingChannel(seed * 2 + k, corrupt, corrupt, corrupt) for k in range(2))  # type: ignore[assignment]
+    line = SimLine(Arq(cfg, session_id=0xA), Arq(cfg, session_id=0xB), rate, channels=channels)
+    line.run(1.0, stop=lambda s: s.eps[0].established and s.eps[1].established)
+    assert line.eps[0].established and line.eps[1].established
+    return line
+
+
+def send(line: SimLine, msgs, side: int = 0) -> list[int]:
+    ep = line.eps[side]
+    return [ep.submit(m.TYPE, encode_message(m), type(m).__name__, line.now) for m in msgs]
+
+
+def test_clean_line_runs_at_over_90_percent_of_line_rate():
+    line = pair()
+    msgs = [frame(i, 256) for i in range(4)]
+    ids = send(line, msgs)
+    t0 = line.now
+    line.run(t0 + 60, stop=lambda s: all(s.eps[0].outcome(i) == "delivered" for i in ids))
+    payload = sum(len(encode_message(m)) for m in msgs)
+    assert payload / (line.now - t0) >= 0.9 * RATE
+    assert [r.message.seq for r in line.received[1]] == [0, 1, 2, 3]
+    assert line.eps[0].stats["retransmits"] == 0
+    t = line.eps[0].times(ids[0])
+    assert t is not None and t.line_s == pytest.approx(len(encode_message(msgs[0])) / RATE, rel=0.1)
+
+
+@pytest.mark.parametrize("corrupt", [1e-4, 1e-3])
+def test_noisy_line_loses_nothing(corrupt):
+    """drop, flip and duplicate each at ``corrupt`` per byte, both directions: all delivered, once, in order."""
+    line = pair(corrupt=corrupt, seed=3)
+    msgs = [frame(i) for i in range(6)] + [Heartbeat(time_s=1.0, counter=i) for i in range(3)]
+    ids = send(line, msgs[:6])
+    line.run(line.now + 120, stop=lambda s: all(s.eps[0].outcome(i) != "pending" for i in ids))
+    a = line.eps[0]
+    assert [a.outcome(i) for i in ids] == ["delivered"] * 6, a.failures()
+    got = [r.message for r in line.received[1]]
+    assert len(got) == 6 and all(same_message(g, m) for g, m in zip(got, msgs))
+    hit = sum(ch.stats["flipped"] + ch.stats["dropped"] + ch.stats["duplicated"] for ch in line.channels if ch)
+    assert hit > 20 and a.stats["retransmits"] > 0
+    if corrupt >= 1e-3:  # the frame size adapted to the line
+        assert a.snapshot()["frame_bytes"] < 400
+
+
+def test_very_noisy_line_ends_every_message_delivered_or_failed_with_a_reason():
+    line = pair(corrupt=1e-2, seed=5)
+    ids = send(line, [frame(i, 64) for i in range(3)])
+    line.run(line.now + 60, stop=lambda s: all(s.eps[0].outcome(i) != "pending" for i in ids))
+    a = line.eps[0]
+    outcomes = [a.outcome(i) for i in ids]
+    assert all(o == "delivered" or o.startswith("failed: ") for o in outcomes), outcomes
+    for f in a.failures():
+        assert f.reason  # explicit
+
+
+def test_stalled_peer_is_an_explicit_error_within_the_timeout():
+    line = pair()
+    ids = send(line, [frame(0, 256)])
+    line.run(line.now + 0.2)
+    line.stopped[1] = True  # the far end stops reading (and writing)
+    t_stop = line.now
+    line.run(line.now + 30, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending")
+    a = line.eps[0]
+    assert a.outcome(ids[0]).startswith("failed: session lost")
+    assert line.now - t_stop <= CFG.peer_timeout + 0.1  # 4 s default: explicit within <= 5 s
+    [ev] = [e for e in a.take_events() if e.kind == "lost"]
+    assert "peer" in ev.text and not a.established
+
+
+def test_idle_link_notices_a_silent_peer_through_keepalives():
+    line = pair()
+    line.stopped[1] = True
+    t0 = line.now
+    line.run(line.now + 30, stop=lambda s: not s.eps[0].established)
+    assert line.now - t0 <= CFG.peer_timeout + 0.1
+    assert any(e.kind == "lost" and "no frame from the peer" in e.text for e in line.eps[0].take_events())
+
+
+def test_peer_close_is_immediate_and_explicit():
+    line = pair()
+    ids = send(line, [frame(0, 256)])
+    line.run(line.now + 0.1)
+    line.eps[1].close("shutting down")
+    t0 = line.now
+    line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending")
+    assert line.now - t0 < 0.1
+    assert "peer closed the link (shutting down)" in line.eps[0].outcome(ids[0])
+
+
+def test_restarted_receiver_resynchronises_and_old_session_frames_are_dropped():
+    line = pair()
+    a = line.eps[0]
+    ids = send(line, [frame(0, 256)])
+    line.run(line.now + 0.2)
+    line.stopped[1] = True  # the old receiver dies mid-message; a restarted one takes its place at once
+    b2 = Arq(CFG, session_id=0xC)
+    line.eps = (a, b2)
+    line.stopped[1] = False
+    line.run(line.now + 2, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending" and s.eps[0].established)
+    assert "peer started a new session" in a.outcome(ids[0])
+    assert a.peer_session == 0xC and a.epoch == 2
+    assert b2.stats["old_session_frames"] > 0  # a's frames for the dead session, dropped and counted
+    ids2 = send(line, [frame(1), frame(2)])
+    line.run(line.now + 10, stop=lambda s: all(a.outcome(i) == "delivered" for i in ids2))
+    assert [r.message.seq for r in line.received[1] if r.epoch == 1] == [1, 2]
+    # a frame of the dead session arriving late is dropped and counted, not delivered
+    before = a.stats["old_session_frames"]
+    a.receive(data_frame(0xB, 0xA, 0, b"\x03\x00\x00\x00\x05stale"), line.now)
+    assert a.stats["old_session_frames"] == before + 1
+
+
+def test_restarted_sender_resynchronises():
+    line = pair()
+    b = line.eps[1]
+    send(line, [frame(0, 256)])
+    line.run(line.now + 0.2)
+    a2 = Arq(CFG, session_id=0xD)  # the sending side restarts mid-message
+    line.eps = (a2, b)
+    line.run(line.now + 2, stop=lambda s: s.eps[1].peer_session == 0xD and s.eps[0].established)
+    assert b.stats["peer_restarts"] == 1
+    ids = send(line, [frame(5)])
+    line.run(line.now + 10, stop=lambda s: a2.outcome(ids[0]) == "delivered")
+    assert [r.message.seq for r in line.received[1]] == [5]  # the half-sent message of the old session is gone
+
+
+def test_both_sides_recover_after_a_long_stall():
+    """A frozen peer that wakes up after both sides gave up: a new session, new ids, and traffic flows."""
+    line = pair()
+    line.stopped[1] = True
+    line.run(line.now + 6)
+    assert not line.eps[0].established
+    line.stopped[1] = False
+    line.run(line.now + 10, stop=lambda s: s.eps[0].established and s.eps[1].established)
+    assert line.eps[0].established and line.eps[1].established and line.eps[0].epoch == 2
+    ids = send(line, [frame(9)])
+    line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) == "delivered")
+    assert line.received[1][-1].message.seq == 9
+
+
+def test_oversize_record_is_rejected_before_it_is_buffered():
+    small = ArqConfig(**{**CFG.__dict__, "limits": type(CFG.limits)(max_message_bytes=10_000)})
+    line = SimLine(Arq(CFG, session_id=1), Arq(small, session_id=2), RATE)
+    line.run(1.0)
+    ids = send(line, [frame(0, 128)])  # ~16 kB > the receiver's 10 kB limit
+    line.run(line.now + 10, stop=lambda s: str(s.eps[0].outcome(ids[0])).startswith("failed"))
+    assert "peer rejected: message of" in line.eps[0].outcome(ids[0])
+    assert line.eps[1].held_bytes()["reassembly"] == 0 and line.received[1] == []
+    ids = send(line, [frame(1, 32)])  # the stream goes on after the refused record
+    line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) == "delivered")
+    assert [r.message.seq for r in line.received[1]] == [1]
+
+
+def test_messages_wait_for_a_session_at_most_connect_timeout():
+    a = Arq(ArqConfig(connect_timeout=2.0), session_id=1)
+    mid = a.submit(6, encode_message(Heartbeat(time_s=0.0)), "Heartbeat", 0.0)
+    a.poll(1.0)
+    assert a.outcome(mid) == "pending"
+    a.poll(2.5)
+    assert a.outcome(mid) == "failed: no session with the peer within 2 s"
+
+
+def test_a_message_bound_to_a_session_never_reaches_the_next_one():
+    line = pair()
+    a = line.eps[0]
+    epoch = a.epoch
+    line.eps[1].close()
+    line.run(line.now + 0.1)
+    mid = a.submit(6, encode_message(Heartbeat(time_s=0.0)), "Heartbeat", line.now, epoch=epoch)
+    assert a.outcome(mid).startswith("failed") and a.idle
+
+
+def test_duplicated_frames_on_the_line_give_each_message_once():
+    line = pair()
+    dup = CorruptingChannel(1, dup=0.0)
+    orig = dup.apply
+    dup.apply = lambda data: orig(data) * 2  # type: ignore[method-assign]  # every frame arrives twice
+    line.channels = (dup, None)
+    ids = send(line, [frame(i) for i in range(3)])
+    line.run(line.now + 10, stop=lambda s: all(s.eps[0].outcome(i) == "delivered" for i in ids))
+    assert [r.message.seq for r in line.received[1]] == [0, 1, 2]
+    assert line.eps[1].stats["duplicates_dropped"] > 0
+
+
+def test_a_gap_after_a_long_idle_is_not_a_stall():
+    """Regression: the reassembly clock starts when data is first held, not at the last message
+    (the first frame of a Result lost after 10 s of silence ended the session at once)."""
+    line = pair()
+    line.run(line.now + 10)  # idle, keepalives only
+    drop_first = CorruptingChannel(1)
+    dropped = []
+
+    def apply(data: bytes) -> bytes:
+        if data[2] == 1 and not dropped:  # the first DATA frame (kind byte after the flag and version)
+            dropped.append(data)
+            return b""
+        return data
+
+    drop_first.apply = apply  # type: ignore[method-assign]
+    line.channels = (drop_first, None)
+    ids = send(line, [frame(0, 64)])
+    line.run(line.now + 10, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending")
+    assert dropped and line.eps[0].outcome(ids[0]) == "delivered" and line.eps[1].stats["peer_losses"] == 0
