@@ -474,6 +474,13 @@ class Supervisor:
         """Session events of the ground link; False when the ground ended the session or the link is gone."""
         keep = True
         for ev in self.ground.events():
+            earlier = self.ground_epoch is not None and ev.epoch != self.ground_epoch
+            if ev.kind in ("lost", "restarted", "closed") and earlier:
+                # about a session a newer Hello already replaced (the Reader's queue can run ahead of these events)
+                if ev.kind != "closed":
+                    self.counters["link_errors"] += 1  # counted whichever of the two the supervisor saw first
+                self.log(f"supervisor: LINK ERROR: ground {ev.kind} (earlier session {ev.epoch}): {ev.text}")
+                continue
             if ev.kind in ("lost", "restarted", "transport") or (ev.kind == "closed" and self._outstanding()):
                 self.counters["link_errors"] += 1
                 self.log(f"supervisor: LINK ERROR: ground {ev.kind}: {ev.text}")

@@ -597,13 +597,14 @@ class Arq:
             if self.sess.retired(f.src):
                 self.stats["old_session_frames"] += 1
                 return
+            ended = self.epoch  # the "restarted" event names the session that ended, not the one starting
             replaced, reply, newly = self.sess.on_hello(f.src, f.dst)
             if replaced is not None:
                 self.stats["peer_restarts"] += 1
                 self._drop_all(
                     f"peer started a new session {f.src:08x} (it restarted, or gave up on session {replaced:08x})", now
                 )
-                self._events.append(_Event("restarted", f"peer session {replaced:08x} -> {f.src:08x}", self.epoch))
+                self._events.append(_Event("restarted", f"peer session {replaced:08x} -> {f.src:08x}", ended))
             self.peer_max_frame = f.max_frame
             self.peer_window = max(f.window, MIN_FRAME)
             self._last_heard = now

@@ -920,11 +920,12 @@ class ZmqLink(Link):
                 if self.sess.retired(src) or len(parts) != 1:
                     self._stats["old_session_frames"] += 1
                     return
+                ended = self.sess.epoch  # the "restarted" event names the session that ended
                 replaced, reply, newly = self.sess.on_hello(src, dst)
                 if replaced is not None:
                     self._stats["peer_restarts"] += 1
                     self._drop_all(f"peer started a new session {src:08x} (it restarted, or gave up on {replaced:08x})")
-                    self._pending_events.append(("restarted", f"peer session {replaced:08x} -> {src:08x}", self.epoch))
+                    self._pending_events.append(("restarted", f"peer session {replaced:08x} -> {src:08x}", ended))
                 self._last_heard = now
                 if newly:
                     self._established(now)
