@@ -1,8 +1,8 @@
 """``hazard-hil process PAIR_DIR --out OUT_DIR``: run the pipeline offline on a pair directory.
 
-Writes ``elevation.npy``, ``hazard.npy``, ``result.json`` and pictures
-(``dem.png``, ``hazard.png``, ``hazard_grid.png``; with ground truth also
-``dem_error.png`` and ``confusion.png``). Ground truth is read here only for
+Writes ``elevation.npy``, ``hazard.npy``, ``state.npy``, ``psafe.npy``,
+``result.json``, pictures (``dem.png``, ``hazard.png``; with a true hazard map
+also ``confusion.png``) and ``report.html``. Ground truth is read here only for
 those pictures and the comparison block of ``result.json`` - never by the pipeline.
 """
 
@@ -57,12 +57,12 @@ def _stats(err) -> dict[str, float]:
 def _process(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import cv2
     import numpy as np
 
     from protocol.pairdir import read_pair
+    from reports.html import write_atomic
 
-    from .pictures import colour_map, confusion, confusion_picture
+    from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline
     from .validate import FlightInputError
 
@@ -115,26 +115,20 @@ def _process(args: argparse.Namespace) -> int:
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }
-    cv2.imwrite(str(out / "dem.png"), colour_map(res.elevation))
-    cv2.imwrite(str(out / "hazard.png"), colour_map(res.hazard, 0.0, 1.0, cv2.COLORMAP_JET))
-    cv2.imwrite(str(out / "hazard_grid.png"), colour_map(res.grid.hazard, 0.0, 1.0, cv2.COLORMAP_JET))
     truth: dict[str, Any] = {}
     gt_z = pair.truth.get("elevation")
     if gt_z is not None:
-        err = res.elevation - gt_z
-        truth["dem_error"] = _stats(err)
-        lim = float(np.nanpercentile(np.abs(err), 99)) if np.isfinite(err).any() else 1.0
-        cv2.imwrite(str(out / "dem_error.png"), colour_map(err, -lim, lim, cv2.COLORMAP_COOL))
+        truth["dem_error"] = _stats(res.elevation - gt_z)
     gt_h = pair.truth.get("hazard")
     if gt_h is not None:
-        masks = confusion(res.hazard, gt_h)
+        masks = confusion(res.hazard, gt_h, res.covered)
         counts = {k: int(v.sum()) for k, v in masks.items()}
         n = sum(counts.values())
         truth["confusion"] = {**counts, **({k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {})}
-        cv2.imwrite(str(out / "confusion.png"), confusion_picture(masks))
     if truth:
         doc["vs_truth"] = truth
-    (out / "result.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    write_atomic(out / "result.json", json.dumps(doc, indent=1, default=float) + "\n")
+    write_process_report(out, pair.images[0], res, pair.truth, doc)
     line = (
         f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}, "
         f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
@@ -142,4 +136,5 @@ def _process(args: argparse.Namespace) -> int:
     if "dem_error" in truth and truth["dem_error"].get("n"):
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
     print(f"{out}: {line}")
+    print(f"report: {out / 'report.html'}")
     return 0

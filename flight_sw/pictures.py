@@ -1,45 +1,179 @@
-"""PNG pictures of pipeline outputs for people (the CLI's only use of ground truth is here)."""
+"""Pictures and the report page of ``hazard-hil process`` (the CLI's only use of ground truth is here).
+
+Figures follow the one colour convention of :mod:`reports.style` (green safe,
+purple hazard, red only an undetected hazard, orange a false alarm, grey
+unknown) and carry titles, colour bars with units, legends, and the ranked
+landing sites as 3 m footprint circles. Pixel scoring follows docs/design.md:
+positive = safe, a pixel is called safe when its hazard is < 1, scored over
+the covered pixels where the truth is known.
+"""
 
 from __future__ import annotations
 
-import cv2
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
-# BGR colours of the confusion map (positive = safe, DESIGN.md scoring convention)
-CONFUSION_COLOURS = {"TP": (80, 200, 80), "TN": (160, 160, 160), "FP": (40, 40, 230), "FN": (40, 210, 230)}
+FOOTPRINT_RADIUS_M = 1.5  # the lander's 3 m footprint (docs/design.md, thesis Table 2.1)
 
 
-def colour_map(
-    values: np.ndarray, lo: float | None = None, hi: float | None = None, cmap: int = cv2.COLORMAP_VIRIDIS
-) -> np.ndarray:
-    """BGR uint8 picture of a float layer scaled ``lo..hi`` (default: 1st-99th percentile); NaN is black."""
-    v = np.asarray(values, np.float64)
-    ok = np.isfinite(v)
-    if not ok.any():
-        return np.zeros(v.shape + (3,), np.uint8)
-    lo = float(np.percentile(v[ok], 1)) if lo is None else lo
-    hi = float(np.percentile(v[ok], 99)) if hi is None else hi
-    g = np.clip((np.where(ok, v, lo) - lo) / max(hi - lo, 1e-12), 0, 1)
-    img = cv2.applyColorMap((g * 255).astype(np.uint8), cmap)
-    img[~ok] = 0
-    return img
-
-
-def confusion(hazard: np.ndarray, truth_hazard: np.ndarray) -> dict[str, np.ndarray]:
-    """Masks TP/TN/FP/FN where both maps are known; safe means hazard < 1."""
-    both = np.isfinite(hazard) & np.isfinite(truth_hazard)
-    called_safe, is_safe = hazard < 1, truth_hazard < 1
+def confusion(hazard: np.ndarray, truth_hazard: np.ndarray, covered: np.ndarray) -> dict[str, np.ndarray]:
+    """Masks TP/TN/FP/FN over covered pixels with known truth; called safe = finite hazard < 1."""
+    known = np.asarray(covered, bool) & np.isfinite(truth_hazard)
+    called_safe = np.isfinite(hazard) & (np.nan_to_num(hazard, nan=1.0) < 1)
+    is_safe = np.nan_to_num(truth_hazard, nan=1.0) < 1
     return {
-        "TP": both & called_safe & is_safe,
-        "TN": both & ~called_safe & ~is_safe,
-        "FP": both & called_safe & ~is_safe,
-        "FN": both & ~called_safe & is_safe,
+        "TP": known & called_safe & is_safe,
+        "TN": known & ~called_safe & ~is_safe,
+        "FP": known & called_safe & ~is_safe,
+        "FN": known & ~called_safe & is_safe,
     }
 
 
-def confusion_picture(masks: dict[str, np.ndarray]) -> np.ndarray:
-    shape = next(iter(masks.values())).shape
-    img = np.zeros(shape + (3,), np.uint8)
-    for name, m in masks.items():
-        img[m] = CONFUSION_COLOURS[name]
-    return img
+def site_pixels(world_xy: np.ndarray, sites: list[Any]) -> list[tuple[float, float, float]]:
+    """Per site ``(u, v, footprint radius px)``: the pixel whose world X, Y is nearest the site's centre.
+
+    The radius is 1.5 m divided by the local ground sample distance (the mean
+    world distance between neighbouring pixels there).
+    """
+    out: list[tuple[float, float, float]] = []
+    xy = np.asarray(world_xy, np.float64)
+    finite = np.isfinite(xy).all(axis=2)
+    if not finite.any():
+        return out
+    for s in sites:
+        d2 = np.where(finite, (xy[..., 0] - s.x) ** 2 + (xy[..., 1] - s.y) ** 2, np.inf)
+        v, u = np.unravel_index(int(np.argmin(d2)), d2.shape)
+        v1, u1 = min(v + 1, xy.shape[0] - 1), min(u + 1, xy.shape[1] - 1)
+        steps = [np.linalg.norm(xy[v, u1] - xy[v, u]), np.linalg.norm(xy[v1, u] - xy[v, u])]
+        gsd = float(np.nanmean([g for g in steps if np.isfinite(g) and g > 0] or [np.nan]))
+        out.append((float(u), float(v), FOOTPRINT_RADIUS_M / gsd if gsd > 0 else 2.0))
+    return out
+
+
+def write_process_report(
+    out: Path,
+    image: np.ndarray,
+    res: Any,
+    truth: dict[str, np.ndarray],
+    doc: dict[str, Any],
+) -> list[Path]:
+    """``dem.png``, ``hazard.png`` (and ``confusion.png`` with a true hazard map) and ``report.html`` in ``out``.
+
+    ``res`` is a :class:`flight_sw.pipeline.PipelineResult`, ``doc`` the
+    ``result.json`` document (its ``vs_truth`` block feeds the page's table).
+    Sites are marked safe/unsafe against the true hazard map when there is one.
+    """
+    from reports.html import Column, Figure, Headline, Section, Table, write_page
+    from reports.plots import Panel, Site, confusion_codes, dem_panels, map_figure, save
+    from reports.style import ELEVATION_CMAP, HAZARD_CMAP, PSAFE_CMAP
+
+    gt_z, gt_h = truth.get("elevation"), truth.get("hazard")
+    px = site_pixels(res.world_xy, res.sites)
+    truly_safe = None
+    if gt_h is not None:
+        safe_px = np.nan_to_num(gt_h, nan=1.0) < 1
+        yy, xx = np.mgrid[: safe_px.shape[0], : safe_px.shape[1]]
+        truly_safe = [bool(safe_px[(xx - u) ** 2 + (yy - v) ** 2 <= r * r].all()) for u, v, r in px]
+    marks = [Site(u, v, r, i + 1, None if truly_safe is None else truly_safe[i]) for i, (u, v, r) in enumerate(px)]
+    written: list[Path] = []
+    figures: list[Figure] = []
+
+    dem = dem_panels(res.elevation, gt_z)
+    dem[0].cmap = ELEVATION_CMAP
+    if res.sigma is not None:
+        dem.insert(1, Panel("scalar", res.sigma, "elevation uncertainty sigma", "m", "viridis"))
+    written.append(save(map_figure(dem, "Elevation (DEM)"), out / "dem.png"))
+    figures.append(Figure("dem.png", "Computed elevation, its uncertainty; with truth, the true one and the error."))
+
+    hz = [
+        Panel("image", image, "upper image (i1)", sites=marks),
+        Panel("state", res.state, "hazard state", sites=marks),
+        Panel("scalar", res.psafe, "P(safe)", "probability", PSAFE_CMAP, 0.0, 1.0),
+        Panel("scalar", res.hazard, "hazard score (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+    ]
+    written.append(save(map_figure(hz, "Hazards and landing sites"), out / "hazard.png"))
+    figures.append(
+        Figure(
+            "hazard.png",
+            "Numbered circles are the ranked landing sites' 3 m footprints "
+            "(green truly clear, red not, black without truth).",
+        )
+    )
+
+    rows: list[dict[str, Any]] = []
+    if gt_h is not None:
+        masks = confusion(res.hazard, gt_h, res.covered)
+        codes = confusion_codes(masks["TP"] | masks["FP"], masks["TP"] | masks["FN"], sum(masks.values()) > 0)
+        conf = [
+            Panel("confusion", codes, "pixel scores", sites=marks),
+            Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+        ]
+        written.append(save(map_figure(conf, "Against ground truth"), out / "confusion.png"))
+        figures.append(Figure("confusion.png", "Pixel scores against the true hazard map (positive = safe)."))
+        c = doc.get("vs_truth", {}).get("confusion", {})
+        d = doc.get("vs_truth", {}).get("dem_error", {})
+        rows.append(
+            {
+                "fp_pct": c.get("FP_pct"),
+                "fn_pct": c.get("FN_pct"),
+                "tp_pct": c.get("TP_pct"),
+                "tn_pct": c.get("TN_pct"),
+                "cdi_pct": (c.get("TP_pct", np.nan) + c.get("TN_pct", np.nan)) if c else None,
+                "dem_mean_abs_m": d.get("mean_abs_m"),
+                "dem_median_m": d.get("median_m"),
+                "dem_mad_m": d.get("mad_m"),
+            }
+        )
+    site_rows = [
+        {
+            "rank": i + 1,
+            "x_m": s.x,
+            "y_m": s.y,
+            "p_safe_site": s.p_safe,
+            "clearance": s.clearance_m,
+            **({"truly_clear": "yes" if truly_safe[i] else "NO"} if truly_safe is not None else {}),
+        }
+        for i, s in enumerate(res.sites)
+    ]
+    site_cols = [
+        Column("rank", "rank", 0),
+        Column("x_m", "X [m]", 1),
+        Column("y_m", "Y [m]", 1),
+        Column("p_safe_site", "site P(safe)", 3),
+        Column("clearance", "clearance [m]", 2),
+    ]
+    if truly_safe is not None:
+        site_cols.append(Column("truly_clear", "footprint truly clear"))
+    sections = [
+        Section(
+            "Landing sites",
+            paragraphs=[doc.get("no_site_reason") or ""] if not res.sites else [],
+            tables=[Table(site_cols, site_rows)] if site_rows else [],
+        ),
+        Section("Maps", figures=figures),
+    ]
+    if rows:
+        keys = ["fp_pct", "fn_pct", "tp_pct", "tn_pct", "cdi_pct", "dem_mean_abs_m", "dem_median_m", "dem_mad_m"]
+        sections.insert(0, Section("Against ground truth", tables=[Table([Column(k) for k in keys], rows)]))
+    total = res.timings.get("total", {})
+    headline = [
+        Headline("level", res.level + (" (degraded)" * res.degraded), "warn" if res.degraded else "ok", "level"),
+        Headline("valid_pct", 100.0 * res.valid_fraction),
+        Headline("sites", len(res.sites), "ok" if res.sites else "warn", "landing sites"),
+        Headline("compute_cpu_s", total.get("cpu_s"), label="compute CPU [s]"),
+    ]
+    if rows and rows[0]["fp_pct"] is not None:
+        fp = rows[0]["fp_pct"]
+        headline.append(Headline("fp_pct", fp, "ok" if fp <= 1.0 else "bad"))
+    written.append(
+        write_page(
+            out / "report.html",
+            f"process: {Path(doc.get('pair_dir', '')).name}",
+            sections,
+            subtitle=f"preset {doc.get('preset', '')}",
+            headline=headline,
+        )
+    )
+    return written

@@ -10,6 +10,7 @@ and collects console errors, uncaught exceptions and failed requests.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import tempfile
@@ -149,3 +150,12 @@ def check_page(path: str | Path, timeout: float = 30.0) -> PageCheck:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+
+
+def browser_available() -> bool:
+    """True when a report test should open a browser: chromium is here, or ``make test`` demands it.
+
+    ``make test`` installs chromium and sets ``HAZARD_HIL_REQUIRE_BROWSER``, so there a missing
+    browser fails the test (check_page raises) instead of skipping it.
+    """
+    return chromium_path() is not None or bool(os.environ.get("HAZARD_HIL_REQUIRE_BROWSER"))

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+from browser import browser_available, check_page
 from synthetic import crater, make_pair
 
 from hil_server.cli import main
@@ -26,7 +27,7 @@ def test_process_writes_outputs(tmp_path, capsys):
     d, z = _pair(tmp_path)
     out = tmp_path / "out"
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
-    for f in ("elevation.npy", "hazard.npy", "result.json", "dem.png", "hazard.png", "dem_error.png", "confusion.png"):
+    for f in ("elevation.npy", "state.npy", "result.json", "dem.png", "hazard.png", "confusion.png", "report.html"):
         assert (out / f).is_file(), f
     elev = np.load(out / "elevation.npy")
     assert elev.dtype == np.float32 and elev.shape == z.shape
@@ -37,6 +38,9 @@ def test_process_writes_outputs(tmp_path, capsys):
     c = doc["vs_truth"]["confusion"]
     assert c["FP"] + c["TN"] > 0  # the truth's unsafe strip is scored
     assert "full" in capsys.readouterr().out
+    if browser_available():
+        page = check_page(out / "report.html")
+        assert page.ok and page.images == 3, page  # dem, hazard, confusion: every image loads, no console error
 
 
 def test_process_deadline_zero_is_degraded(tmp_path):
