@@ -46,7 +46,7 @@ def site_pixels(world_xy: np.ndarray, sites: list[Any]) -> list[tuple[float, flo
         d2 = np.where(finite, (xy[..., 0] - s.x) ** 2 + (xy[..., 1] - s.y) ** 2, np.inf)
         v, u = np.unravel_index(int(np.argmin(d2)), d2.shape)
         v1, u1 = min(v + 1, xy.shape[0] - 1), min(u + 1, xy.shape[1] - 1)
-        steps = [np.linalg.norm(xy[v, u1] - xy[v, u]), np.linalg.norm(xy[v1, u] - xy[v, u])]
+        steps = [float(np.linalg.norm(xy[v, u1] - xy[v, u])), float(np.linalg.norm(xy[v1, u] - xy[v, u]))]
         gsd = float(np.nanmean([g for g in steps if np.isfinite(g) and g > 0] or [np.nan]))
         out.append((float(u), float(v), FOOTPRINT_RADIUS_M / gsd if gsd > 0 else 2.0))
     return out
@@ -105,7 +105,8 @@ def write_process_report(
     rows: list[dict[str, Any]] = []
     if gt_h is not None:
         masks = confusion(res.hazard, gt_h, res.covered)
-        codes = confusion_codes(masks["TP"] | masks["FP"], masks["TP"] | masks["FN"], sum(masks.values()) > 0)
+        scored = masks["TP"] | masks["TN"] | masks["FP"] | masks["FN"]
+        codes = confusion_codes(masks["TP"] | masks["FP"], masks["TP"] | masks["FN"], scored)
         conf = [
             Panel("confusion", codes, "pixel scores", sites=marks),
             Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
