@@ -27,6 +27,10 @@ def _rot(axis: int, ang: float) -> np.ndarray:
     return R
 
 
+MAX_ANGLE_DEG = 45.0  # attitude error bound of a pose-error spec
+MAX_OFFSET_M = 10_000.0  # altitude and lateral error bound
+
+
 @dataclass(frozen=True)
 class PoseDelta:
     """A realised error: reported = true + these offsets (metres, degrees)."""
@@ -65,8 +69,12 @@ class PoseError:
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():
-            if k != "equal_pitch" and (not math.isfinite(v) or v < 0):
-                raise PoseErrorSpecError(f"pose error {k} must be a finite number >= 0, got {v}")
+            if k == "equal_pitch":
+                continue
+            # beyond these the "error" is no longer a navigation error (and 1e308 overflows the sampler)
+            limit = MAX_ANGLE_DEG if k.endswith("_deg") else MAX_OFFSET_M
+            if not math.isfinite(v) or not 0 <= v <= limit:
+                raise PoseErrorSpecError(f"pose error {k} must be a number in [0, {limit:g}], got {v}")
 
     def _one(self, rng: np.random.Generator, pitch: float) -> PoseDelta:
         dz = rng.normal(0.0, self.altitude_sigma_m) if self.altitude_sigma_m else 0.0
