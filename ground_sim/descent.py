@@ -63,13 +63,16 @@ def render_pair(
 
 
 def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
+    """Render progress: in place on a terminal, one plain line per frame in a log (no run-on bar)."""
     if not enabled:
         return
     w = 24
     fill = int(w * i / n)
-    sys.stderr.write(f"\rrender [{'#' * fill}{'.' * (w - fill)}] {i}/{n} {label:<12} {time.time() - t0:6.1f} s")
-    if i == n:
-        sys.stderr.write("\n")
+    line = f"render [{'#' * fill}{'.' * (w - fill)}] {i}/{n} {label:<12} {time.time() - t0:6.1f} s"
+    if sys.stderr.isatty():
+        sys.stderr.write("\r" + line + ("\n" if i == n else ""))
+    elif i > 0:
+        sys.stderr.write(line + "\n")
     sys.stderr.flush()
 
 

@@ -17,17 +17,15 @@ because each task is a pure function of its arguments.
 from __future__ import annotations
 
 import json
-import math
 import os
-import sys
-import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 from protocol.errors import InputError
+from reports.progress import Progress
 
 
 @dataclass(frozen=True)
@@ -45,55 +43,6 @@ class CampaignError(RuntimeError):
         self.failures = failures
         first = next(iter(failures.items()))
         super().__init__(f"{len(failures)} task(s) failed, first {first[0]}: {first[1]}")
-
-
-class Progress:
-    """A dependency-free text progress bar on stderr (redrawn in place on a terminal)."""
-
-    def __init__(
-        self,
-        total: int,
-        done: int = 0,
-        desc: str = "",
-        *,
-        enabled: bool = True,
-        stream: TextIO | None = None,
-        width: int = 28,
-    ):
-        self.total, self.done, self.desc, self.width = total, done, desc, width
-        self.stream = stream if stream is not None else sys.stderr
-        self.enabled = enabled and total > 0
-        self._t0 = time.monotonic()
-        self._start_done = done
-        self._last = 0.0
-        self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self._draw(force=True)
-
-    def update(self, n: int = 1) -> None:
-        self.done += n
-        self._draw(force=self.done >= self.total)
-
-    def _draw(self, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if not force and now - self._last < (0.2 if self._tty else 5.0):
-            return
-        self._last = now
-        frac = self.done / self.total
-        fill = int(round(frac * self.width))
-        elapsed = now - self._t0
-        ran = self.done - self._start_done
-        eta = elapsed / ran * (self.total - self.done) if ran else math.nan
-        eta_s = "?" if math.isnan(eta) else f"{eta:5.0f}s"
-        line = (
-            f"{self.desc} [{'#' * fill}{'.' * (self.width - fill)}] {self.done}/{self.total} "
-            f"{100 * frac:3.0f}% {elapsed:5.0f}s elapsed, eta {eta_s}"
-        )
-        self.stream.write(("\r" + line) if self._tty else (line + "\n"))
-        if self._tty and self.done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
 
 
 def load_results(path: str | Path) -> dict[str, dict[str, Any]]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from protocol.errors import InputError
-from studies import executor
+from reports.progress import Progress
 from studies.executor import CampaignError, Task, load_results, run_tasks
 
 
@@ -73,7 +73,7 @@ def test_duplicate_ids_rejected(tmp_path: Path):
 
 def test_progress_bar_counts_to_total():
     buf = io.StringIO()
-    bar = executor.Progress(4, 1, "demo", stream=buf)
+    bar = Progress(4, 1, "demo", stream=buf)
     for _ in range(3):
         bar.update()
     last = buf.getvalue().strip().splitlines()[-1]
