@@ -25,8 +25,13 @@ from reports.style import CONFUSION_COLOURS, CONFUSION_NAMES, STATE_COLOURS, STA
 @dataclass
 class Column:
     key: str
-    label: str = ""  # default: the glossary label of ``key``
+    label: str = ""  # default: the glossary label of ``term`` (or ``key``)
     digits: int = 3
+    term: str = ""  # glossary key explaining this column when it differs from ``key``
+
+    @property
+    def glossary_key(self) -> str:
+        return self.term or self.key
 
 
 @dataclass
@@ -122,9 +127,9 @@ def render_page(
     for s in sections:
         for t in s.tables:
             for c in t.columns:
-                entry = term(c.key)
+                entry = term(c.glossary_key)
                 if entry.explanation:
-                    used[c.key] = entry
+                    used[c.glossary_key] = entry
             tables.append(t)
         if base_dir is not None:
             for f in s.figures:
@@ -151,8 +156,8 @@ def render_page(
             sections=sections,
             glossary=sorted(used.values(), key=lambda t: t.label.lower()),
             legends=legend_items,
-            label=lambda c: c.label or term(c.key).label,
-            help=lambda c: term(c.key).explanation,
+            label=lambda c: c.label or term(c.glossary_key).label,
+            help=lambda c: term(c.glossary_key).explanation,
         )
     )
 

@@ -114,7 +114,7 @@ def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
     import matplotlib.patheffects as pe
     from matplotlib.patches import Circle
 
-    halo = [pe.withStroke(linewidth=3.2, foreground="white")]
+    halo: list[pe.AbstractPathEffect] = [pe.withStroke(linewidth=3.2, foreground="white")]
     x0, x1 = ax.get_xlim()
     floor = 0.015 * abs(x1 - x0)
     for s in sites:

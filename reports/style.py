@@ -113,6 +113,57 @@ GLOSSARY: dict[str, Term] = {
 }
 
 
+for _what, _unit, _name in (("slope", "deg", "slope"), ("rough", "m", "roughness")):
+    GLOSSARY[f"{_what}_mean_abs_{_unit}"] = Term(
+        f"{_name} mean |error| [{_unit}]", f"Mean absolute {_name} error over covered pixels with both values.", _unit
+    )
+    GLOSSARY[f"{_what}_median_{_unit}"] = Term(
+        f"{_name} median error [{_unit}]", f"Median of the signed {_name} error (estimate - truth).", _unit
+    )
+    GLOSSARY[f"{_what}_mad_{_unit}"] = Term(
+        f"{_name} MAD [{_unit}]", f"Median absolute deviation of the signed {_name} error.", _unit
+    )
+# the thesis's Tables 6.4/6.11 also exclude the epipole box; each metric has an "outside epipole box" twin
+for _key in ("fn_pct", "tp_pct", "tn_pct", "hazards_detected_pct", "safe_detected_pct"):
+    GLOSSARY[f"epi_{_key}"] = Term(
+        f"{GLOSSARY[_key].label} outside epipole box",
+        f"{GLOSSARY[_key].label} over the pixels outside the 80 x 80 px box around the epipole.",
+        GLOSSARY[_key].unit,
+    )
+GLOSSARY.update(
+    {
+        "site_fp_pct": Term(
+            "site FP % (3 m footprint)",
+            "Share of candidate site centres called safe whose whole 3 m footprint is not truly safe.",
+            "%",
+        ),
+        "site_cdi_pct": Term("site CDI %", "CDI computed on whole 3 m footprints instead of pixels.", "%"),
+        "chosen_sites_safe_pct": Term(
+            "chosen sites truly clear %",
+            "Share of the offered sites whose footprint is truly clear.",
+            "%",
+        ),
+        "pipeline_s": Term("pipeline time [s]", "Wall time of the flight pipeline for the pair on one core.", "s"),
+        "fn_dem_invalid_pct": Term("false alarm: no DEM %", "False alarms where no elevation was recovered.", "%"),
+        "fn_rock_pct": Term("false alarm: rock %", "False alarms caused by a detected rock.", "%"),
+        "fn_slope_pct": Term("false alarm: slope %", "False alarms caused by the estimated slope.", "%"),
+        "fn_rough_pct": Term("false alarm: roughness %", "False alarms caused by the estimated roughness.", "%"),
+        "fn_shadow_pct": Term("false alarm: shadow %", "False alarms caused by a detected shadow.", "%"),
+        "fn_other_pct": Term("false alarm: other %", "False alarms with none of the causes above.", "%"),
+        "fp_steep_pct": Term("undetected: true slope %", "Undetected hazards that are truly too steep.", "%"),
+        "fp_rough_pct": Term("undetected: true roughness %", "Undetected hazards that are truly too rough.", "%"),
+        "fp_other_pct": Term("undetected: true shadow %", "Undetected hazards that are truly in shadow.", "%"),
+        "fp_in_epipole_box_pct": Term(
+            "undetected in epipole box %", "Share of the undetected hazards inside the epipole box.", "%"
+        ),
+        "fp_near_threshold_pct": Term(
+            "undetected near threshold %", "Share of the undetected hazards whose estimated hazard was >= 0.8.", "%"
+        ),
+        "altitude_m": Term("altitude [m]", "Altitude of the upper image of the pair.", "m"),
+    }
+)
+
+
 def term(key: str) -> Term:
     """The glossary entry of ``key``; an unknown key is its own label with no explanation."""
     return GLOSSARY.get(key, Term(key, ""))

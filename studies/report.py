@@ -1,25 +1,37 @@
 """Pictures and pages for people: thesis-style figures, side-by-side tables, one HTML report.
 
-Images (triptychs, hazard confusion overlays) are OpenCV colormaps; line plots
-and the sensitivity heat map use matplotlib with the Agg backend. The HTML
+Map figures (DEM, slope and roughness triptychs with colour bars; pixel scores
+and hazard states with legends) and line plots are matplotlib in the colours of
+:mod:`reports.style`; the page is the shared Jinja2 design of
+:mod:`reports.html` (tables with explained, unique labels and a glossary). The
 report is a self-contained directory: ``index.html`` plus the PNGs it shows.
 """
 
 from __future__ import annotations
 
-import html
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from reports.figures import PANEL_PX, fmt_number, hazard_figure, save_figure, triptych, write_png
+from reports.figures import fmt_number, save_figure
+from reports.html import Column, Figure, Section, Table, write_page
+from reports.style import HAZARD_CMAP, term
+
+PANEL_IN = 3.2  # inches per map panel
 
 
-def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px: int = PANEL_PX) -> list[Path]:
-    """The four figure kinds for one evaluated pair (``evaluate_pair(maps_path=...)`` output)."""
+def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px: int = 0) -> list[Path]:
+    """The figure kinds for one evaluated pair (``evaluate_pair(maps_path=...)`` output), cropped to the covered area.
+
+    ``{stem}_dem.png`` (computed | true | error), ``{stem}_hazard.png`` (image, pixel scores against the
+    truth, true hazard), and with true slope ``{stem}_slope.png`` and ``{stem}_rough.png``. ``px`` is unused
+    (kept for callers of the OpenCV version).
+    """
+    from reports.plots import Panel, confusion_codes, dem_panels, map_figure, save
+
     z = np.load(maps_path)
     out = Path(out_dir)
     rows_, cols_ = np.nonzero(z["covered"])
@@ -34,48 +46,26 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
         return np.where(cov, a, np.nan)
 
     files = [
-        write_png(
+        save(
+            map_figure(dem_panels(masked(m["est_elevation"]), masked(m["true_elevation"])), panel_in=PANEL_IN),
             out / f"{stem}_dem.png",
-            triptych(
-                masked(m["est_elevation"]),
-                masked(m["true_elevation"]),
-                ("computed DEM", "ground truth", "DEM error"),
-                "m",
-                px=px,
-            ),
-        ),
-        write_png(
-            out / f"{stem}_hazard.png",
-            hazard_figure(m["image"], m["est_hazard"], m["true_hazard"], cov, m["epipole_box"], px=px),
-        ),
+        )
     ]
+    truly_safe = np.nan_to_num(m["true_hazard"], nan=1.0) < 1
+    called_safe = np.isfinite(m["est_hazard"]) & (np.nan_to_num(m["est_hazard"], nan=1.0) < 1)
+    scored = cov & np.isfinite(m["true_hazard"])
+    hz = [
+        Panel("image", m["image"], "upper image (i1)"),
+        Panel("confusion", confusion_codes(called_safe, truly_safe, scored), "pixel scores"),
+        Panel("scalar", masked(m["true_hazard"]), "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+    ]
+    files.append(save(map_figure(hz, panel_in=PANEL_IN), out / f"{stem}_hazard.png"))
     if np.isfinite(m["true_slope"]).any():
-        files.append(
-            write_png(
-                out / f"{stem}_slope.png",
-                triptych(
-                    masked(m["est_slope"]),
-                    masked(m["true_slope"]),
-                    ("computed slope", "true slope", "slope error"),
-                    "deg",
-                    15.0,
-                    px=px,
-                ),
-            )
-        )
-        files.append(
-            write_png(
-                out / f"{stem}_rough.png",
-                triptych(
-                    masked(m["est_rough"]),
-                    masked(m["true_rough"]),
-                    ("computed roughness", "true roughness", "roughness error"),
-                    "m",
-                    0.3,
-                    px=px,
-                ),
-            )
-        )
+        for key, what, unit, limit in (("slope", "slope", "deg", 15.0), ("rough", "roughness", "m", 0.3)):
+            panels = dem_panels(masked(m[f"est_{key}"]), masked(m[f"true_{key}"]), what, unit)
+            for p in panels[:2]:  # estimate and truth on 0..2x the hazard threshold
+                p.cmap, p.vmin, p.vmax = HAZARD_CMAP, 0.0, 2.0 * limit
+            files.append(save(map_figure(panels, panel_in=PANEL_IN), out / f"{stem}_{key}.png"))
     return files
 
 
@@ -242,59 +232,93 @@ def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _md_table_to_html(md: str) -> str:
-    """The tiny Markdown subset our tables use (bold titles, pipe tables) -> HTML."""
-    out, in_table = [], False
-    for line in md.splitlines():
+def markdown_tables(md: str) -> list[Table]:
+    """The pipe tables of ``md`` (``rows_markdown``/``comparison_markdown`` output) as page tables."""
+    tables: list[Table] = []
+    caption, head = "", None
+    for line in md.splitlines() + [""]:
         if line.startswith(("|---", "|-")):
             continue
         if line.startswith("| "):
-            cells = [html.escape(c.strip()) for c in line.strip("|").split("|")]
-            if not in_table:
-                out.append("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells) + "</tr>")
-                in_table = True
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if head is None:
+                head = cells
+                tables.append(Table([Column(h, h, term=h) for h in head], [], caption))
             else:
-                out.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+                tables[-1].rows.append(dict(zip(head, cells)))
             continue
-        if in_table:
-            out.append("</table>")
-            in_table = False
+        head = None
         if line.startswith("**") and line.endswith("**"):
-            out.append(f"<h4>{html.escape(line.strip('*'))}</h4>")
-        elif line.strip():
-            out.append(f"<p>{html.escape(line)}</p>")
-    if in_table:
-        out.append("</table>")
-    return "\n".join(out)
+            caption = line.strip("*")
+    return tables
 
 
-def write_html(out_dir: str | Path, title: str, sections: list[tuple[str, str, list[str]]]) -> Path:
-    """``out_dir/index.html`` from (heading, markdown tables/text, [png names in out_dir]) sections."""
+def write_html(
+    out_dir: str | Path, title: str, sections: Sequence[tuple[str, str | list[Table], list[str]]], subtitle: str = ""
+) -> Path:
+    """``out_dir/index.html`` (the shared page design) from (heading, tables or Markdown tables, [png names])."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    parts = [
-        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
-        "<style>body{font-family:sans-serif;margin:1.5em;max-width:1400px}"
-        "table{border-collapse:collapse;margin:.5em 0 1em;font-size:12px}"
-        "td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}th{background:#eee}"
-        "img{max-width:100%;margin:4px 0;display:block}</style></head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-    ]
-    for heading, md, images in sections:
-        parts.append(f"<h2>{html.escape(heading)}</h2>")
-        if md:
-            parts.append(_md_table_to_html(md))
-        for name in images:
-            if not (d / name).is_file():
-                raise FileNotFoundError(f"report image {name} missing in {d}")
-            parts.append(
-                f"<figure><img src='{html.escape(name)}' alt='{html.escape(name)}'>"
-                f"<figcaption>{html.escape(name)}</figcaption></figure>"
+    page = []
+    for heading, tables, images in sections:
+        page.append(
+            Section(
+                heading,
+                tables=markdown_tables(tables) if isinstance(tables, str) else list(tables),
+                figures=[Figure(name, _caption(name)) for name in images],
             )
-    parts.append("</body></html>")
-    p = d / "index.html"
-    p.write_text("\n".join(parts) + "\n")
-    return p
+        )
+    return write_page(d / "index.html", title, page, subtitle=subtitle)
+
+
+def _caption(name: str) -> str:
+    stem = Path(name).stem
+    for suffix, text in (
+        ("_dem", "elevation: computed, true, error (computed - true)"),
+        ("_hazard", "pixel scores against the true hazard map (positive = safe)"),
+        ("_slope", "slope over the 3 m footprint: computed, true, error"),
+        ("_rough", "roughness over the 3 m footprint: computed, true, error"),
+        ("_detection", "detection rates and undetected hazards against altitude, thesis dashed"),
+    ):
+        if stem.endswith(suffix):
+            return f"{stem[: -len(suffix)].replace('_', ' ')}: {text}"
+    return stem.replace("_", " ")
+
+
+def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list[Table]:
+    """Page tables, one per thesis table (split every ``max_metrics`` metrics): rows = altitude, per metric
+    the thesis's value then ours per preset. Labels come from the glossary, so they are unique and explained."""
+    presets = [k[5:] for k in (cells[0] if cells else {}) if k.startswith("ours_")]
+    groups: dict[str, list[str]] = {}
+    for c in cells:
+        ms = groups.setdefault(c["table"], [])
+        if c["metric"] not in ms:
+            ms.append(c["metric"])
+    by = {(c["table"], c["metric"], c["altitude_m"]): c for c in cells}
+    alts = sorted({c["altitude_m"] for c in cells})
+    tables = []
+    for table, metrics in groups.items():
+        for i in range(0, len(metrics), max_metrics):
+            ms = metrics[i : i + max_metrics]
+            title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
+            cols = [Column("altitude_m", digits=0)]
+            for m in ms:
+                digits = 2 if "kurtosis" in m or "skewness" in m else 3
+                if table != "-":
+                    cols.append(Column(f"{m}|reference", f"{term(m).label}: thesis", digits, term=m))
+                cols += [Column(f"{m}|{p}", f"{term(m).label}: ours ({p})", digits, term=m) for p in presets]
+            rows = []
+            for a in alts:
+                if not any((table, m, a) in by for m in ms):
+                    continue
+                row: dict[str, Any] = {"altitude_m": a}
+                for m in ms:
+                    c = by.get((table, m, a), {})
+                    row[f"{m}|reference"] = c.get("thesis")
+                    row.update({f"{m}|{p}": c.get(f"ours_{p}") for p in presets})
+                rows.append(row)
+            tables.append(Table(cols, rows, title))
+    return tables
 
 
 def evaluation_report(
@@ -320,13 +344,13 @@ def evaluation_report(
     rep.mkdir(parents=True, exist_ok=True)
     thesis = ev.thesis_index(ev.load_thesis())
     summary = ev.summarise(rows)
-    sections: list[tuple[str, str, list[str]]] = []
+    sections: list[tuple[str, str | list[Table], list[str]]] = []
     want = None if figure_altitudes is None else {int(a) for a in figure_altitudes}
     for scen in [s for s in ev.SCENARIOS if any(r["scenario"] == s for r in rows)]:
-        md = comparison_markdown(ev.comparison(summary, scen, thesis))
-        (rep / f"tables_{scen}.md").write_text(md)
+        cells = ev.comparison(summary, scen, thesis)
+        (rep / f"tables_{scen}.md").write_text(comparison_markdown(cells))
         plot = plot_vs_altitude(summary, scen, thesis, rep / f"{scen}_detection.png")
-        sections.append((f"{scen}: ours vs thesis (medians over seeds)", md, [plot.name]))
+        sections.append((f"{scen}: ours vs thesis (medians over seeds)", comparison_tables(cells), [plot.name]))
         imgs: list[str] = []
         for alt in sorted({int(r["altitude_m"]) for r in rows if r["scenario"] == scen}):
             if want is not None and alt not in want:
