@@ -188,40 +188,18 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
 
 # --------------------------------------------------------------------------- tables
 def comparison_markdown(cells: list[dict[str, Any]], max_metrics: int = 3) -> str:
-    """Markdown tables, one per thesis table (split every ``max_metrics`` metrics): rows = altitude,
-    for each metric the thesis's value (``THESIS``) then ours per preset (``ours-fast``, ``ours-thesis``)."""
-    presets = [k[5:] for k in (cells[0] if cells else {}) if k.startswith("ours_")]
-    groups: dict[str, list[str]] = {}
-    for c in cells:
-        ms = groups.setdefault(c["table"], [])
-        if c["metric"] not in ms:
-            ms.append(c["metric"])
-    by = {(c["table"], c["metric"], c["altitude_m"]): c for c in cells}
-    label = {(c["table"], c["metric"]): c["label"] for c in cells}
-    alts = sorted({c["altitude_m"] for c in cells})
-    out = []
-    for table, metrics in groups.items():
-        for i in range(0, len(metrics), max_metrics):
-            ms = metrics[i : i + max_metrics]
-            title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
-            head = ["alt [m]"]
-            for m in ms:
-                if table != "-":
-                    head.append(f"{label[(table, m)]} THESIS")
-                head += [f"{label[(table, m)]} ours-{p}" for p in presets]
-            lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
-            for a in alts:
-                if not any((table, m, a) in by for m in ms):
-                    continue
-                row = [str(a)]
-                for m in ms:
-                    c = by.get((table, m, a), {})
-                    if table != "-":
-                        row.append(fmt_number(c.get("thesis")))
-                    row += [fmt_number(c.get(f"ours_{p}")) for p in presets]
-                lines.append("| " + " | ".join(row) + " |")
-            out.append("\n".join(lines))
-    return "\n\n".join(out) + "\n"
+    """The tables of :func:`comparison_tables` as Markdown (``tables_<scenario>.md``, RESULTS.md)."""
+    return "\n\n".join(table_markdown(t) for t in comparison_tables(cells, max_metrics)) + "\n"
+
+
+def table_markdown(t: Table) -> str:
+    """One page table as a Markdown pipe table, its caption in bold above it."""
+    head = [(c.label or term(c.glossary_key).label).replace("|", "\\|") for c in t.columns]
+    lines = [f"**{t.caption}**", ""] if t.caption else []
+    lines += ["| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
+    for r in t.rows:
+        lines.append("| " + " | ".join(fmt_number(r.get(c.key)) for c in t.columns) + " |")
+    return "\n".join(lines)
 
 
 def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
