@@ -1,77 +1,180 @@
-"""The report page of an HIL run: the summary table, then per pair the pictures a person wants.
+"""The report page of an HIL run (``OUT/report.html``), in the shared page design of :mod:`reports.html`.
 
-Per pair, from what actually came back over the link: i1 | computed hazard |
-true hazard | confusion overlay (DESIGN.md: positive = safe), and the DEM
-triptych (computed | truth | error) - the same panels as the evaluation
-report (:mod:`reports.figures`). Everything is PNG next to ``report.html``.
+Headline: the deadline verdict (judged end to end at the ground, docs/hil.md),
+results, latency. Then the per-pair table; the telemetry figures (where each
+pair's time went, latency against the deadline over the descent, CPU fraction
+and peak RSS against the budget); and per pair the maps a person wants, from
+what actually came back over the link: the upper image, the pixel scores against
+the truth (positive = safe) and the DEM against the truth. Figures are PNG files
+in ``OUT/figures``.
 """
 
 from __future__ import annotations
 
-import html
+import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from hil_server.run import summary_table
-from reports.figures import hazard_figure, triptych, write_png
+from reports.html import Column, Figure, Headline, Section, Table, write_page
+from reports.plots import (
+    Panel,
+    confusion_codes,
+    dem_panels,
+    latency_figure,
+    map_figure,
+    resources_figure,
+    save,
+    timeline_figure,
+)
+
+PAIR_COLUMNS = [
+    Column("label", "pair", 0),
+    Column("altitude_m", digits=0),
+    Column("outcome", "outcome"),
+    Column("e2e_latency_s"),
+    Column("flight_latency_s"),
+    Column("result_line_s"),
+    Column("deadline_verdict"),
+    Column("fp_pct"),
+    Column("cdi_pct"),
+    Column("dem_mean_abs_m"),
+]
 
 
-def _status(r: dict) -> str:
-    if r.get("status") != "result":
-        return f"error {r.get('code')}: {r.get('text')}"
-    return (
-        f"{r.get('level')}{' (degraded)' if r.get('degraded') else ''} · latency {r['latency_s']:.2f} s · "
-        f"deadline {'met' if r.get('deadline_met') else 'MISSED'} · "
-        f"result link {r['link'].get('result_link_s', 0):.2f} s"
-    )
+def _first(r: dict, *keys: str) -> Any:
+    for k in keys:
+        if r.get(k) is not None:
+            return r[k]
+    return None
+
+
+def pair_row(r: dict) -> dict[str, Any]:
+    """One row of the per-pair table from a run record."""
+    sc = r.get("scores", {}) or {}
+    ok = r.get("status") == "result"
+    return {
+        "label": r.get("label"),
+        "altitude_m": r.get("altitude_m"),
+        "outcome": (("degraded " if r.get("degraded") else "") + str(r.get("level")))
+        if ok
+        else f"error: {r.get('code')}",
+        "e2e_latency_s": _first(r, "e2e_latency_s", "latency_s") if ok else None,
+        "flight_latency_s": r.get("flight_latency_s") if ok else None,
+        "result_line_s": _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")
+        if ok
+        else None,
+        "deadline_verdict": ("met" if r.get("deadline_met") else "MISSED") if ok else "no result",
+        "fp_pct": sc.get("fp_pct"),
+        "cdi_pct": sc.get("cdi_pct"),
+        "dem_mean_abs_m": _first(sc, "dem_mean_abs", "dem_mean_abs_m"),
+    }
+
+
+def _telemetry_records(records: list[dict]) -> list[dict]:
+    """Records with the key names the telemetry figures read (line times under either name)."""
+    out = []
+    for r in records:
+        t = dict(r)
+        t.setdefault("frames_link_s", r.get("frames_line_s"))
+        t["result_link_s"] = _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")
+        if t.get("e2e_latency_s") is None and r.get("status") == "result":
+            t["e2e_latency_s"] = r.get("latency_s")
+        t.setdefault("deadline_s", r.get("deadline_s"))
+        out.append(t)
+    return out
+
+
+def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
+    from protocol.pairdir import read_pair
+
+    out = Path(r.get("out_dir", ""))
+    # the full-resolution map when the run asked for it, else the compact grid's call per pixel
+    hz_file = next((out / n for n in ("hazard.npy", "called_i1.npy") if (out / n).is_file()), None)
+    if r.get("status") != "result" or hz_file is None:
+        return []
+    pair = read_pair(r["pair_dir"])
+    hazard = np.load(hz_file)
+    pid = r["pair_id"]
+    figs = []
+    panels = [Panel("image", pair.images[0], "upper image (i1)")]
+    gt_h = pair.truth.get("hazard")
+    if gt_h is not None:
+        covered = np.isfinite(hazard) & np.isfinite(gt_h)
+        called_safe = covered & (np.nan_to_num(hazard, nan=1.0) < 1)
+        truly_safe = np.nan_to_num(gt_h, nan=1.0) < 1
+        panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), "pixel scores"))
+    else:
+        panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", "magma_r", 0.0, 1.0))
+    save(map_figure(panels, f"{r.get('label')}: hazards"), fig_dir / f"{pid}_hazard.png")
+    figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, scored against the truth."))
+    if (out / "elevation.npy").is_file():
+        dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))
+        save(map_figure(dem, f"{r.get('label')}: elevation"), fig_dir / f"{pid}_dem.png")
+        figs.append(Figure(f"figures/{pid}_dem.png", f"{r.get('label')}: the returned DEM and its error."))
+    return figs
 
 
 def write_run_report(summary: dict, path: Path) -> Path:
-    from protocol.pairdir import read_pair
-
+    """Write ``report.html`` (and ``figures/``) for a run summary; returns the page's path."""
     path = Path(path)
-    fig = path.parent / "figures"
-    blocks = []
-    for r in summary["records"]:
-        pid = r["pair_id"]
-        imgs = []
-        out = Path(r.get("out_dir", ""))
-        # the full-resolution map when the run asked for it, else the compact grid's call per pixel
-        hz_file = next((out / n for n in ("hazard.npy", "called_i1.npy") if (out / n).is_file()), None)
-        if r.get("status") == "result" and hz_file is not None:
-            pair = read_pair(r["pair_dir"])
-            hazard = np.load(hz_file)
-            if "hazard" in pair.truth:
-                imgs.append(
-                    write_png(
-                        fig / f"{pid}_hazard.png",
-                        hazard_figure(pair.images[0], hazard, pair.truth["hazard"], ~np.isnan(hazard)),
-                    )
-                )
-            if (out / "elevation.npy").is_file() and "elevation" in pair.truth:
-                imgs.append(
-                    write_png(
-                        fig / f"{pid}_dem.png",
-                        triptych(
-                            np.load(out / "elevation.npy"),
-                            pair.truth["elevation"],
-                            ("computed DEM", "true DEM", "error"),
-                            "m",
-                        ),
-                    )
-                )
-        pics = "".join(f'<img src="figures/{html.escape(p.name)}">' for p in imgs)
-        blocks.append(f"<h3>{html.escape(str(r['label']))} — {html.escape(_status(r))}</h3><div>{pics}</div>")
+    fig_dir = path.parent / "figures"
     s = summary
-    page = f"""<!doctype html><meta charset=utf-8><title>hazard-hil run</title>
-<style>body{{font-family:sans-serif;margin:2em;max-width:1300px}} img{{display:block;margin:4px 0}}
-pre{{background:#f4f4f4;padding:1em;overflow-x:auto}}</style>
-<h1>HIL run: {html.escape(s["scenario"])} over {html.escape(s["link"])} on {html.escape(s["budget"])}</h1>
-<p>Latency is "last frame in -> result out" at the HIL server; the result's own line time is listed separately.
-Scores are per pixel of i1 against ground truth (positive = safe; FP = undetected hazard).</p>
-<pre>{html.escape(summary_table(s))}</pre>
-{"".join(blocks)}
-"""
-    path.write_text(page)
-    return path
+    records = list(s.get("records", []))
+    pairs = int(s.get("pairs", len(records)) or 0)
+    results = int(s.get("results", sum(r.get("status") == "result" for r in records)))
+    met = s.get("deadline_met")
+    hit = s.get("deadline_hit_rate")
+    hit_ok = isinstance(hit, (int, float)) and math.isfinite(hit) and hit >= 1.0
+    complete = s.get("complete", True)
+    headline = [
+        Headline("deadline_hit_rate", hit, "ok" if hit_ok and complete else "bad"),
+        Headline("results", f"{results}/{pairs}", "ok" if results == pairs and pairs else "bad", "results"),
+        Headline("e2e_latency_s", _first(s, "e2e_latency_p50_s", "latency_p50_s"), label="end-to-end latency p50 [s]"),
+        Headline("e2e_max", _first(s, "e2e_latency_max_s", "latency_max_s"), label="end-to-end latency max [s]"),
+    ]
+    fps = [r["scores"]["fp_pct"] for r in records if (r.get("scores") or {}).get("fp_pct") is not None]
+    if fps:
+        worst = max(fps)
+        headline.append(Headline("fp_pct", worst, "ok" if worst <= 1.0 else "bad", "worst FP % (undetected hazard)"))
+    where = f"budget {s['budget']}" if s.get("budget") else f"flight {s.get('flight', '?')}"
+    subtitle = (
+        f"{s.get('scenario')} over {s.get('link')} on {where}; deadline {s.get('deadline_s', '?')} s, judged end "
+        "to end: from the ground sending a pair's last frame to the ground holding the whole Result (docs/hil.md)."
+    )
+    intro = []
+    if not complete:
+        intro.append(f"INCOMPLETE: {s.get('reason')}. Only the pairs below finished.")
+    if met is not None:
+        intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
+    sections = [
+        Section(
+            "Pairs",
+            paragraphs=intro,
+            tables=[Table(PAIR_COLUMNS, [pair_row(r) for r in records])],
+            status="ok" if hit_ok and complete else "bad",
+        )
+    ]
+    tel = _telemetry_records(records)
+    tel_figs = []
+    if any(r.get("status") == "result" for r in records):
+        save(timeline_figure(tel), fig_dir / "timeline.png")
+        tel_figs.append(
+            Figure("figures/timeline.png", "Per pair: frames on the link, compute stages, result line time.")
+        )
+    if records:
+        save(latency_figure(tel), fig_dir / "latency.png")
+        tel_figs.append(Figure("figures/latency.png", "End-to-end latency over the descent; red bars missed."))
+    if any(r.get("cpu_fraction") is not None for r in records):
+        save(
+            resources_figure(tel, s.get("cpu_fraction"), s.get("memory_mib")),
+            fig_dir / "resources.png",
+        )
+        tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and peak RSS against the budget."))
+    sections.append(Section("Telemetry", figures=tel_figs))
+    for r in records:
+        figs = _pair_figures(r, fig_dir)
+        if figs:
+            sections.append(Section(f"Pair {r.get('label')}", figures=figs))
+    return write_page(path, "HIL run", sections, subtitle=subtitle, headline=headline)

@@ -99,6 +99,15 @@ GLOSSARY: dict[str, Term] = {
         "From the moment the ground finished sending a pair's last frame to the moment it holds the whole Result.",
         "s",
     ),
+    "flight_latency_s": Term(
+        "flight latency [s]",
+        "At the flight side: from the pair's last frame arriving to the Result handed to the link.",
+        "s",
+    ),
+    "result_line_s": Term("result line time [s]", "Time the Result took on the link to reach the ground.", "s"),
+    "deadline_verdict": Term(
+        "deadline", "met when the end-to-end latency is within the deadline; a pair with no result missed it."
+    ),
     "deadline_hit_rate": Term(
         "deadline hit rate", "Share of pairs whose Result reached the ground within the deadline."
     ),

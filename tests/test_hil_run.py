@@ -13,6 +13,7 @@ import json
 
 import numpy as np
 import pytest
+from browser import browser_available, check_page
 
 from ground_sim.descent import render_scenario
 from hil_server.run import RunConfig, run_descent, scaled_camera
@@ -58,6 +59,9 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     assert all(abs(e["deadline_margin_s"] - (e["deadline_s"] - e["latency_s"])) < 1e-9 for e in results)
     html = (tmp_path / "report.html").read_text()
     assert all(p in html for p in PAIRS) and html.count("_hazard.png") == 3
+    if browser_available():  # every figure (3 telemetry + 1 map per pair) loads, no console error
+        page = check_page(tmp_path / "report.html")
+        assert page.ok and page.images == 3 + 3, page
 
 
 def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
