@@ -16,11 +16,25 @@ from typing import Any
 
 import numpy as np
 
-from reports.figures import fmt_number, save_figure
 from reports.html import Column, Figure, Section, Table, write_page
+from reports.plots import save as save_figure
 from reports.style import HAZARD_CMAP, term
 
 PANEL_IN = 3.2  # inches per map panel
+
+
+def fmt_number(v: Any, digits: int = 3) -> str:
+    """A number for a Markdown table: ``digits`` significant digits, '-' for missing."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return str(v)
+    if isinstance(v, (float, np.floating)):
+        a = abs(float(v))
+        if a != 0 and (a >= 1e4 or a < 1e-3):
+            return f"{v:.2e}"
+        return f"{v:.{max(0, digits - 1 - int(math.floor(math.log10(a))))}f}" if a else "0"
+    return str(v)
 
 
 def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px: int = 0) -> list[Path]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from browser import browser_available, check_page
 
-from reports import figures
+from reports import plots
 from studies import evaluate as ev
 from studies import report
 
@@ -91,11 +91,11 @@ def test_metrics_csv_roundtrip(tmp_path: Path):
     assert back[0]["cdi_pct"] is None and back[0]["altitude_m"] == 300 and back[0]["scenario"] == "vertical"
 
 
-def test_confusion_overlay_colours():
+def test_confusion_codes_follow_positive_is_safe():
     est = np.array([[0.0, 1.0, 0.0, 1.0, np.nan]])
     tru = np.array([[0.0, 1.0, 1.0, 0.0, 0.0]])
-    img = figures.confusion_image(est, tru, np.array([[1, 1, 1, 1, 0]], bool))
-    assert [tuple(img[0, k]) for k in range(5)] == [figures.CONFUSION_BGR[n] for n in ("TP", "TN", "FP", "FN", "none")]
+    codes = plots.confusion_codes(est < 1, tru < 1, np.array([[1, 1, 1, 1, 0]], bool))
+    assert codes.tolist() == [[0, 1, 2, 3, 255]]  # TP, TN, FP (undetected hazard), FN, outside
 
 
 def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
