@@ -216,7 +216,7 @@ class FlightProcess:
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
         t_out = time.monotonic()
-        sent0 = self.link.stats().get("bytes_sent", 0)
+        sent0 = self._bytes_sent()
         try:
             result = self._result_message(res, seqs, cfg)
             self.link.send(result)  # encodes here, in this thread
@@ -226,7 +226,7 @@ class FlightProcess:
         done = time.monotonic()
         self.last_output_s = done - t_out
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
-            self.last_result_bytes = max(0, int(self.link.stats().get("bytes_sent", 0) - sent0))
+            self.last_result_bytes = max(0, int(self._bytes_sent() - sent0))
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -239,6 +239,10 @@ class FlightProcess:
                 deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,
             )
         )
+
+    def _bytes_sent(self) -> float:
+        stats = getattr(self.link, "stats", {})
+        return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
 
     def expected_result_bytes(self, cfg: Config) -> float:
         """The next Result's size on the wire: the last one's (+20 %), else a prior from the camera (bytes)."""
