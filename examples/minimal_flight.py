@@ -27,6 +27,7 @@ It imports nothing from hazard-hil on purpose: it is the proof that the spec is 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import random
 import struct
@@ -259,7 +260,7 @@ def footprint(frame_msg: dict, cam: dict) -> tuple[np.ndarray, np.ndarray]:
     r = np.asarray(frame_msg["R_world_to_cam"], float)
     axis = r.T @ np.array([0.0, 0.0, 1.0])  # optical axis in world
     alt = frame_msg["altimeter_m"]
-    ground_z = pos[2] + alt * axis[2] if alt == alt and axis[2] < 0 else 0.0  # NaN: no reading -> datum
+    ground_z = pos[2] + alt * axis[2] if not math.isnan(alt) and axis[2] < 0 else 0.0  # NaN: no reading -> datum
     u = np.array([0.0, cam["width"] - 1.0, cam["width"] - 1.0, 0.0])
     v = np.array([0.0, 0.0, cam["height"] - 1.0, cam["height"] - 1.0])
     rays = r.T @ np.stack([(u - cam["cx"]) / cam["fx"], (v - cam["cy"]) / cam["fy"], np.ones(4)])
@@ -289,7 +290,9 @@ def answer(upper: dict, lower: dict, config: dict) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--port", default=os.environ.get("HAZARD_HIL_PORT"), help="serial device (default $HAZARD_HIL_PORT)")
+    ap.add_argument(
+        "--port", default=os.environ.get("HAZARD_HIL_PORT"), help="serial device (default $HAZARD_HIL_PORT)"
+    )
     ap.add_argument("--baud", type=int, default=921600, help="line rate of a real serial port (a pty ignores it)")
     args = ap.parse_args(argv)
     if not args.port:

@@ -309,16 +309,22 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
 
 
 def _image_side(cfg: RunConfig, manifest: Path | None) -> tuple[int, int]:
-    """(width, height) of the camera the run streams."""
+    """(width, height) of the largest camera the run streams (from each pair.json's camera; a pair that
+    cannot be read is skipped here: the ground reports it as bad input)."""
     if manifest is None:
         s = cfg.image_size or 512
         return s, s
-    from protocol.pairdir import read_pair
+    from protocol.pairdir import Camera
 
-    doc = json.loads(manifest.read_text())
-    first = doc["pairs"][0]["path"]
-    cam = read_pair(manifest.parent / first, load_truth=False).camera
-    return cam.width, cam.height
+    best = (0, 0)
+    for e in _manifest_entries(manifest):
+        try:
+            cam = Camera.from_dict(json.loads((manifest.parent / e["path"] / "pair.json").read_text())["camera"])
+        except (OSError, ValueError, KeyError, TypeError, InputError):
+            continue
+        if cam.width * cam.height > best[0] * best[1]:
+            best = (cam.width, cam.height)
+    return best
 
 
 def check_memory(budget, width: int, height: int) -> None:
