@@ -112,8 +112,8 @@ class Budget:
 
 # Peak resident set of our flight process (Python, numpy, OpenCV, the link, the `fast` pipeline at its full
 # level), measured on the host budget with procemu's VmHWM (docs/hil.md, "Memory"): 86 MiB at 256x256,
-# 118-120 MiB at 512x512, 245-251 MiB at 1024x1024, i.e. ~76 MiB + ~180 bytes per pixel. A camera is refused
-# when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
+# 103-120 MiB at 512x512, 229-251 MiB at 1024x1024 (two sessions), bounded by ~76 MiB + ~180 bytes per pixel.
+# A camera is refused when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
 FLIGHT_BASE_MIB = 76.0
 FLIGHT_BYTES_PER_PIXEL = 180.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
