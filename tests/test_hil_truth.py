@@ -193,7 +193,8 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def test_sigterm_stops_every_process_and_leaves_an_incomplete_summary(manifest, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, tmp_path, sig):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
     cmd += ["--budget", "snapdragon801", "--baud", "115200", "--out", str(out)]
@@ -207,17 +208,17 @@ def test_sigterm_stops_every_process_and_leaves_an_incomplete_summary(manifest, 
         assert len(seen) >= 3, seen
         time.sleep(0.5)
         seen |= _descendants(proc.pid)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         stdout, _ = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM
+    assert proc.returncode == 128 + sig
     assert "INCOMPLETE" in stdout
     left = [p for p in seen if _alive(p)]
     assert not left, [Path(f"/proc/{p}/cmdline").read_bytes() for p in left]
     s = json.loads((out / "summary.json").read_text())
-    assert s["complete"] is False and "SIGTERM" in s["reason"]
+    assert s["complete"] is False and sig.name in s["reason"]
     assert len(s["records"]) == len(PAIRS)  # every pair accounted for, unfinished ones marked
     assert all(r["status"] == "result" or r["code"] in ("not_run", "link_down") for r in s["records"])
     assert not [p.name for p in out.rglob(".*") if p.is_file()]  # no temporary files left behind
