@@ -96,11 +96,6 @@ GLOSSARY: dict[str, Term] = {
         "e2e latency p50 [s]", "Median end-to-end latency over the pairs that returned a result.", "s"
     ),
     "e2e_latency_p95_s": Term("e2e latency p95 [s]", "95th percentile of the end-to-end latency.", "s"),
-    "flight_latency_s": Term(
-        "flight latency [s]",
-        "Last frame in at the flight side's link -> Result out of the flight process (compute, before the line).",
-        "s",
-    ),
     "e2e_latency_s": Term(
         "end-to-end latency [s]",
         "From the moment the ground finished sending a pair's last frame to the moment it holds the whole Result.",
