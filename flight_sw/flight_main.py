@@ -13,9 +13,14 @@ Message flow (one pair = two ``Frame``s sharing a ``pair_id``)::
 The Result is the compact one of docs/protocol.md (grids as uint8/int16, sites);
 full-resolution image maps only when ``Config.options["full_maps"]`` is 1.
 
-The deadline counts from the arrival of the pair's last frame (thesis Table
-2.1's "computational time", measured as the HIL latency "last frame in ->
-result out"); the anytime pipeline returns its best level by then.
+Deadline planning (docs/hil.md): the deadline runs from the ground's last frame
+to the ground holding the whole Result, so the Result's own line time counts.
+The anytime pipeline gets ``arrival + deadline_s - expected result line time -
+output reserve`` in this process's clock: the line time from the Result's
+expected size (the largest Result's so far, or a prior from the camera and the grid
+steps for the first) and the rate ``Config.options["link_baud"]`` announces;
+the output reserve (encoding and handing over the Result) in emulated seconds,
+``OUTPUT_RESERVE_S x time_scale`` or the last pair's measured time if longer.
 
 ``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
 to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
@@ -40,11 +45,20 @@ from protocol.grids import elevation_to_wire, psafe_to_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
 from protocol.pairdir import Camera, Pose
 
-# Result transmission and encoding happen after the pipeline returns; keep a
-# slice of the deadline for them so the result leaves on time.
-OUTPUT_RESERVE_FRACTION = 0.05
+# Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
+# scaled by time_scale (Config.options, set by the HIL server from the budget) like the pipeline's reserves.
+OUTPUT_RESERVE_S = 0.02
+# Line time of the Result = bytes x LINE_OVERHEAD x 10 / baud + LINE_LATENCY_S: framing (26 B per 1 KiB
+# frame) and byte stuffing (~1 % of compressed bytes) on top of the 8N1 bits, plus relay and scheduling slack.
+LINE_OVERHEAD = 1.05
+LINE_LATENCY_S = 0.05
+# Prior for the first Result's size, bytes per cell of the world grid (~1 cell per 2x2 pixels): zlib'd state
+# grid <= 0.13, P(safe) <= 0.55 / kp^2, int16 elevation <= 1.4 / k^2 (docs/protocol.md measured 72-106 kB at
+# (1, 1), 7-11 kB at (4, 8) on 512 px), sites and fields ~2 kB; the full image maps ~1.6 B per pixel.
+PRIOR_STATE_B, PRIOR_PSAFE_B, PRIOR_ELEV_B, PRIOR_FIXED_B, PRIOR_MAPS_B = 0.13, 0.55, 1.4, 2048, 1.6
 # Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
-# elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md).
+# elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md),
+# link_baud (the ground link's rate, 0 = none to plan for) and time_scale (the emulated slowdown).
 DEFAULT_ELEVATION_STEP = 1
 DEFAULT_PSAFE_STEP = 1
 
@@ -82,6 +96,13 @@ class FaultPlan:
                 hog.append(np.ones(16 << 20, dtype=np.uint8))
 
 
+def expected_line_s(nbytes: float, baud: float) -> float:
+    """Line time of ``nbytes`` at ``baud`` (8N1 + framing); 0 when the link announces no rate (ZeroMQ, unpaced)."""
+    if not baud > 0:
+        return 0.0
+    return nbytes * LINE_OVERHEAD * 10.0 / baud + LINE_LATENCY_S
+
+
 def frame_pose(frame: Frame) -> Pose:
     return Pose(
         np.asarray(frame.position_m, dtype=float),
@@ -100,6 +121,10 @@ class FlightProcess:
         self.config: Config | None = None
         self.pending: dict[str, PendingPair] = {}
         self.pairs_seen = 0
+        # wire size (framed) of the largest Result under the current Config, for the next pair's line time: the
+        # largest, since a degraded Result is smaller than the full one the next pair may reach
+        self.max_result_bytes = 0
+        self.last_output_s = 0.0  # encoding + handing over the last Result, in this process's clock
         self._stop = threading.Event()
 
     # -- heartbeat -------------------------------------------------------------------------
@@ -121,10 +146,13 @@ class FlightProcess:
                     step = msg.options.get(name, default)
                     if step != int(step) or not 1 <= step <= 1024:
                         raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
+                if not msg.options.get("time_scale", 1.0) > 0 or not msg.options.get("link_baud", 0) >= 0:
+                    raise InputError("Config options time_scale must be > 0 and link_baud >= 0")
             except InputError as exc:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
             self.config = msg
+            self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
         elif isinstance(msg, Frame):
             self._on_frame(msg)
 
@@ -167,7 +195,10 @@ class FlightProcess:
         queue_wait = start - pend.arrival
         self.faults.trigger(self.pairs_seen)
         self.pairs_seen += 1
-        budget = cfg.deadline_s * (1.0 - OUTPUT_RESERVE_FRACTION) - queue_wait
+        time_scale = float(cfg.options.get("time_scale", 1.0))
+        line_s = expected_line_s(self.expected_result_bytes(cfg), float(cfg.options.get("link_baud", 0)))
+        reserve_s = max(OUTPUT_RESERVE_S * time_scale, self.last_output_s)
+        deadline_at = pend.arrival + cfg.deadline_s - line_s - reserve_s
         try:
             res = run_pipeline(
                 np.asarray(upper.image),
@@ -176,10 +207,10 @@ class FlightProcess:
                 frame_pose(lower),
                 Camera.from_dict(cfg.camera),
                 preset=cfg.preset or "fast",
-                deadline_s=max(budget, 0.0),
+                deadline_at=deadline_at,
                 altimeter_m=float(upper.altimeter_m),  # NaN: no reading
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
-                time_scale=float(cfg.options.get("time_scale", 1.0)),
+                time_scale=time_scale,
             )
         except InputError as exc:
             self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))
@@ -187,13 +218,18 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
+        t_out = time.monotonic()
+        sent0 = self._bytes_sent()
         try:
             result = self._result_message(res, seqs, cfg)
+            self.link.send(result)  # encodes here, in this thread
         except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
             self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
             return
-        self.link.send(result)
         done = time.monotonic()
+        self.last_output_s = done - t_out
+        if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
+            self.max_result_bytes = max(self.max_result_bytes, int(self._bytes_sent() - sent0))
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -202,9 +238,25 @@ class FlightProcess:
                 total_latency_s=done - pend.arrival,
                 cpu_fraction=(time.process_time() - cpu0) / max(done - start, 1e-9),
                 deadline_s=float(cfg.deadline_s),
-                deadline_met=(done - pend.arrival) <= cfg.deadline_s,
+                # the flight side's own view (compute + expected line time); the ground judges the real one
+                deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,
             )
         )
+
+    def _bytes_sent(self) -> float:
+        stats = getattr(self.link, "stats", {})
+        return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
+
+    def expected_result_bytes(self, cfg: Config) -> float:
+        """The next Result's size on the wire: the largest so far (+20 %), else a prior from the camera (bytes)."""
+        if self.max_result_bytes:
+            return 1.2 * self.max_result_bytes
+        cam = cfg.camera
+        cells = int(cam["width"]) * int(cam["height"]) / 4.0
+        kp = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
+        k = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
+        maps = PRIOR_MAPS_B * 4 * cells if cfg.options.get("full_maps", 0) else 0.0
+        return cells * (PRIOR_STATE_B + PRIOR_PSAFE_B / kp**2 + PRIOR_ELEV_B / k**2) + PRIOR_FIXED_B + maps
 
     @staticmethod
     def _result_message(res, seqs: tuple[int, int], cfg: Config) -> Result:

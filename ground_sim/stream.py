@@ -19,17 +19,30 @@ then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
 Config again, and carries on with the next pair. The process exits 3 when a
 session was lost on the way (0 otherwise).
 
-Each record carries what the ground measured: ``e2e_latency_s`` (the last
-frame written -> the whole Result received), ``result_rx_s`` (first to last
-frame of the Result here), ``result_bytes``, ``frames_line_s``, and the
-Result's line time as its sender measured it, ``result_line_s``.
+The deadline (docs/hil.md) is judged here, on ``e2e_latency_s``: from the
+moment the ground finished sending the pair's last frame (its last byte on the
+line) to the moment the ground holds the whole Result. Each record carries it
+with ``deadline_met`` and ``deadline_margin_s``, and beside it the flight
+latency the far end reported (``flight_latency_s``), the frames' and the
+Result's line times (``frames_line_s``, ``result_line_s`` as the sender
+measured it, ``result_rx_s`` first to last frame here) and ``result_bytes``.
+``Config.options["link_baud"]`` tells the flight side this link's rate (0 =
+none to plan for), so it can leave room for its Result's line time.
+
+Outputs are replaced atomically after every pair (written beside, then
+renamed): ``results.jsonl`` and, with ``--telemetry``, the per-pair timing
+lines. SIGTERM and SIGINT end the descent between messages: what finished is
+on disk, the process exits 128 + the signal number.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -43,6 +56,51 @@ from protocol.pairdir import read_pair
 
 EXIT_LINK_LOST = 3
 LINK_CODES = ("link_down",)
+# timing fields of a record that also go to the telemetry lines
+TELEMETRY_KEYS = (
+    "pair_id",
+    "label",
+    "status",
+    "code",
+    "level",
+    "degraded",
+    "e2e_latency_s",
+    "deadline_s",
+    "deadline_met",
+    "deadline_margin_s",
+    "flight_latency_s",
+    "flight_deadline_met",
+    "server_e2e_s",
+    "frames_line_s",
+    "result_line_s",
+    "result_rx_s",
+    "result_bytes",
+    "queue_wait_s",
+    "cpu_fraction",
+    "peak_rss_mib",
+    "stages",
+    "elapsed_s",
+)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write beside ``path``, then rename over it: a reader never sees half a file."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class Interrupted(Exception):
+    """SIGTERM or SIGINT: end the descent, keeping what finished."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"interrupted by {signal.Signals(signum).name}")
+        self.signum = signum
 
 
 @dataclass
@@ -83,8 +141,11 @@ def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
     )
 
 
-def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
+def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan")) -> dict:
     """Save arrays of a finished pair under ``out_dir/<pair_id>/`` and return its JSON record.
+
+    ``deadline_s``: the deadline the ground set; the record's ``deadline_met`` is
+    ``e2e_latency_s <= deadline_s`` (docs/hil.md).
 
     Grids: ``state_grid.npy`` (uint8 codes), ``psafe_grid.npy`` (float32, NaN outside),
     ``elevation_grid.npy`` (float32 m, NaN = none; on its own, possibly decimated grid);
@@ -100,6 +161,8 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         "frames_line_s": o.frames_line_s,
         # from the first byte of the pair queued to its outcome recorded (how long an error took, too)
         "elapsed_s": time.monotonic() - o.sent_at if o.sent_at else None,
+        "deadline_s": deadline_s,
+        "deadline_met": False,
     }
     if o.error is not None:
         rec.update(status="error", code=o.error.code, text=o.error.text)
@@ -108,18 +171,25 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
     d = out_dir / o.pair_id
     d.mkdir(parents=True, exist_ok=True)
     r, t = o.result, o.telemetry
-    np.save(d / "state_grid.npy", np.asarray(r.state_grid, dtype=np.uint8))
-    np.save(d / "psafe_grid.npy", psafe_from_wire(r.psafe_grid))  # on its own (decimated) geometry
-    np.save(d / "elevation_grid.npy", elevation_from_wire(r.elevation_grid, r.elevation_offset_m))
+    arrays = {
+        "state_grid": np.asarray(r.state_grid, dtype=np.uint8),
+        "psafe_grid": psafe_from_wire(r.psafe_grid),  # on its own (decimated) geometry
+        "elevation_grid": elevation_from_wire(r.elevation_grid, r.elevation_offset_m),
+    }
     for name, arr in (("hazard", r.hazard_image), ("elevation", r.elevation_image), ("state", r.state_image)):
         if arr is not None:
-            np.save(d / f"{name}.npy", np.asarray(arr))
+            arrays[name] = np.asarray(arr)
+    for name, arr in arrays.items():  # each file whole or absent
+        tmp = d / f".{name}.tmp.npy"
+        np.save(tmp, arr)
+        os.replace(tmp, d / f"{name}.npy")
     e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
     p_origin, p_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.psafe_step)
     e2e = None
     rx_span = None if o.result_t_first is None or o.result_t_done is None else o.result_t_done - o.result_t_first
     if o.result_t_done is not None and o.frames_written_at is not None:
         e2e = o.result_t_done - o.frames_written_at
+    met = e2e is not None and e2e <= deadline_s
     rec.update(
         status="result",
         degraded=bool(r.degraded),
@@ -135,10 +205,14 @@ def write_outcome(out_dir: Path, o: PairOutcome) -> dict:
         full_maps=r.hazard_image is not None,
         sites=[asdict(s) for s in r.sites],
         no_site_reason=r.no_site_reason,
-        latency_s=t.total_latency_s,
-        deadline_s=t.deadline_s,
-        deadline_met=bool(t.deadline_met),
+        # the deadline, judged here: the last frame's last byte sent -> the whole Result held
         e2e_latency_s=e2e,
+        deadline_met=bool(met),
+        deadline_margin_s=None if e2e is None else deadline_s - e2e,
+        # what the far end reported: its compute latency (last frame in -> Result out) and its own verdict
+        flight_latency_s=t.total_latency_s,
+        flight_deadline_met=bool(t.deadline_met),
+        server_e2e_s=t.link.get("server_e2e_s"),
         # the Result's line time as its sender measured it (first byte on the line -> acknowledged); the
         # span between its first and last frame here misses the first frame's own line time
         result_line_s=t.link.get("result_link_s", rx_span),
@@ -182,14 +256,25 @@ def stream_descent(
     elevation_step: int = 1,
     psafe_step: int = 1,
     progress=None,
+    telemetry_path: Path | None = None,
 ) -> list[dict]:
-    """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``)."""
+    """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``).
+
+    On :class:`Interrupted` (raised by a signal handler) the records so far are on disk and the
+    exception propagates.
+    """
     manifest = json.loads(Path(manifest_path).read_text())
     base = Path(manifest_path).parent
     entries = manifest["pairs"]
     out_dir.mkdir(parents=True, exist_ok=True)
     timeout = response_timeout_s if response_timeout_s is not None else 3.0 * deadline_s + 30.0
-    options = {"full_maps": int(bool(full_maps)), "elevation_step": int(elevation_step), "psafe_step": int(psafe_step)}
+    options = {
+        "full_maps": int(bool(full_maps)),
+        "elevation_step": int(elevation_step),
+        "psafe_step": int(psafe_step),
+        # the line the Result comes back on, so the flight side can plan for its line time (0: no rate)
+        "link_baud": int(getattr(link, "baud", None) or 0),
+    }
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
@@ -198,7 +283,9 @@ def stream_descent(
     config: Config | None = None
     state = _SessionState()
     results_path = out_dir / "results.jsonl"
-    results_file = results_path.open("w")
+    write_atomic(results_path, "")
+    if telemetry_path is not None:
+        write_atomic(telemetry_path, "")
 
     def note(text: str) -> None:
         print(f"ground: {text}", file=sys.stderr, flush=True)
@@ -279,11 +366,16 @@ def stream_descent(
                 want.discard(o.seqs)
                 record(o)
 
+    def save() -> None:
+        write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+        if telemetry_path is not None:
+            lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)
+            write_atomic(telemetry_path, "".join(json.dumps(x, sort_keys=True) + "\n" for x in lines))
+
     def record(o: PairOutcome) -> None:
-        rec = write_outcome(out_dir, o)
+        rec = write_outcome(out_dir, o, deadline_s)
         records.append(rec)
-        results_file.write(json.dumps(rec, sort_keys=True) + "\n")
-        results_file.flush()
+        save()
         if progress:
             progress(rec)
 
@@ -375,11 +467,11 @@ def stream_descent(
                     o.error = Error(code="link_down", text="no session with the HIL server", seq=s[1])
                 else:
                     o.error = Error(code="no_response", text=f"no result or error within {timeout:.0f} s", seq=s[1])
-                rec = write_outcome(out_dir, o)
-                records.append(rec)
-                results_file.write(json.dumps(rec, sort_keys=True) + "\n")
-    finally:
-        results_file.close()
+                records.append(write_outcome(out_dir, o, deadline_s))
+        save()
+    except Interrupted:
+        save()
+        raise
     return records
 
 
@@ -421,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
     ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")
     ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
+    ap.add_argument("--telemetry", type=Path, default=None, help="per-pair timing lines (JSON) written here")
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import open_link
@@ -450,15 +543,23 @@ def main(argv: list[str] | None = None) -> int:
         if rec["status"] == "result":
             flag = "met" if rec["deadline_met"] else "MISSED"
             e2e = rec.get("e2e_latency_s")
+            line = rec.get("result_line_s")
             print(
-                f"ground: {rec['label']:>10}  {rec['level']:<10} latency {rec['latency_s']:7.2f} s  deadline {flag}"
-                + (f"  (at the ground: {e2e:.2f} s incl. result line {rec['result_line_s']:.2f} s)" if e2e else ""),
+                f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
+                + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
+                + f"  deadline {rec['deadline_s']:g} s {flag}  (flight {rec['flight_latency_s']:.2f} s"
+                + (f", result line {line:.2f} s)" if line is not None else ")"),
                 file=sys.stderr,
                 flush=True,
             )
         else:
             print(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}", file=sys.stderr, flush=True)
 
+    def _interrupt(signum, frame):
+        raise Interrupted(signum)
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, _interrupt)
     try:
         records = stream_descent(
             link,
@@ -473,8 +574,14 @@ def main(argv: list[str] | None = None) -> int:
             elevation_step=step,
             psafe_step=pstep,
             progress=show,
+            telemetry_path=args.telemetry,
         )
+    except Interrupted as exc:
+        print(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}", file=sys.stderr)
+        return 128 + exc.signum
     finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)  # already ending: let the link close
         link.close()
     failed = sum(r["status"] != "result" for r in records)
     lost = sum(r.get("code") in LINK_CODES for r in records)

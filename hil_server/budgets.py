@@ -110,6 +110,26 @@ class Budget:
         return min(1.0, self.cpu_dmips / self.host_dmips(cal))
 
 
+# Peak resident set of our flight process (Python, numpy, OpenCV, the link, the `fast` pipeline at its full
+# level), measured on the host budget with procemu's VmHWM (docs/hil.md, "Memory"): 86 MiB at 256x256,
+# 103-120 MiB at 512x512, 229-251 MiB at 1024x1024 (two sessions), bounded by ~76 MiB + ~180 bytes per pixel.
+# A camera is refused when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
+FLIGHT_BASE_MIB = 76.0
+FLIGHT_BYTES_PER_PIXEL = 180.0
+FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
+
+
+def flight_peak_rss_mib(pixels: int) -> float:
+    """Expected peak RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included."""
+    return (FLIGHT_BASE_MIB + FLIGHT_BYTES_PER_PIXEL * pixels / 2**20) * (1.0 + FLIGHT_RSS_MARGIN)
+
+
+def max_image_side(memory_mib: float) -> int:
+    """The largest square camera side (px) whose expected peak RSS fits ``memory_mib``."""
+    room = memory_mib / (1.0 + FLIGHT_RSS_MARGIN) - FLIGHT_BASE_MIB
+    return int(math.sqrt(room * 2**20 / FLIGHT_BYTES_PER_PIXEL)) if room > 0 else 0
+
+
 def default_budgets_path() -> Path:
     return Path(str(resources.files("hil_server").joinpath("budgets.toml")))
 

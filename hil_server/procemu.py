@@ -32,6 +32,11 @@ host it equals cpu / wall; on a loaded host the raw cpu / wall (``raw_fraction``
 drops, but the emulated processor is then simply paused for the stolen time,
 which ``stats()['contention_s']`` reports so deadline accounting can subtract it.
 
+**Process group.** The child leads its own process group (anything it spawns
+is killed with it) and gets SIGKILL if the thread that started it dies
+(``PR_SET_PDEATHSIG``): a supervisor that is killed outright leaves no flight
+process behind, even one the throttle holds stopped.
+
 Exit reports distinguish: normal exit ("ok"), error exit ("error"), crash by
 signal ("crash"), memory-ceiling breach by the watchdog or a failed allocation
 ("memory"), a kill requested through :meth:`EmulatedProcessor.kill` ("killed"),
@@ -42,6 +47,7 @@ from __future__ import annotations
 
 import atexit
 import collections
+import ctypes
 import os
 import resource
 import signal
@@ -81,6 +87,17 @@ _MEMORY_MARKERS = (
 # EXIT_MEMORY (protocol.errors): the status a flight main uses to say "allocation failed".
 
 MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _libc_prctl():
+    """libc's prctl, loaded before fork (loading a library in the forked child is not safe); None if absent."""
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
 
 _BASELINE_MODULES = ("numpy", "cv2", "zmq", "msgpack", "serial")
 
@@ -261,12 +278,18 @@ class _Child:
         return self.cpu_ns, self.wait_ns
 
     def signal(self, sig: int) -> bool:
-        """Send ``sig`` unless the child has been reaped (its PID may be reused then)."""
+        """Send ``sig`` unless the child has been reaped (its PID may be reused then).
+
+        SIGKILL goes to the child's whole process group (what it spawned dies with it).
+        """
         with self.lock:
             if self.exited.is_set():
                 return False
             try:
-                os.kill(self.pid, sig)
+                if sig == signal.SIGKILL:
+                    os.killpg(self.pid, sig)
+                else:
+                    os.kill(self.pid, sig)
             except ProcessLookupError:
                 return False
             if sig == signal.SIGSTOP:
@@ -337,8 +360,12 @@ class EmulatedProcessor:
         as_bytes = int(as_mib * MIB) if as_mib else None
         child_env = dict(os.environ if env is None else env)
         child_env.update(thread_env())
+        prctl = _libc_prctl()
 
         def preexec() -> None:  # runs in the child between fork and exec: async-signal-safe calls only
+            os.setpgid(0, 0)  # its own process group: killed as a whole, untouched by the terminal's Ctrl-C
+            if prctl is not None:
+                prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
             os.sched_setaffinity(0, {core})
             if as_bytes is not None:
                 resource.setrlimit(resource.RLIMIT_AS, (as_bytes, as_bytes))
@@ -586,6 +613,10 @@ class EmulatedProcessor:
             child.cpu_ns = max(child.cpu_ns, int((usage.ru_utime + usage.ru_stime) * 1e9))
         code = os.waitstatus_to_exitcode(status)
         child.popen.returncode = code  # keep Popen consistent: it must not wait again
+        try:  # what the child left behind in its group (the group id stays reserved while any member lives)
+            os.killpg(child.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
         for t in child.threads:
             if t is not threading.current_thread() and t.name.startswith("procemu-stderr"):
                 t.join(timeout=2.0)  # the pipe drains once the child is gone

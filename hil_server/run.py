@@ -8,10 +8,25 @@ result against ground truth and writes::
     OUT/pairs/...            rendered pair directories + manifest.json
     OUT/keys/                CURVE keys of this run (ZeroMQ; files mode 0600)
     OUT/received/            what came back: results.jsonl + arrays per pair
-    OUT/telemetry.jsonl      the supervisor's telemetry lines
-    OUT/summary.json         latency p50/p95/max, deadline hit rate, per-pair scores
+    OUT/telemetry.jsonl      per pair, measured at the ground: e2e_latency_s, the deadline verdict, the flight
+                             latency, the frames' and the Result's line times, the flight's stages
+    OUT/supervisor.jsonl     the HIL server's own log: its view of each pair, restarts, hangs, counters
+    OUT/summary.json         e2e and flight latency p50/p95/max, deadline hit rate, per-pair scores;
+                             ``complete`` false with a ``reason`` when the run was cut short
     OUT/summary.md           the same as a table
     OUT/report.html          tables and pictures for people
+
+The deadline is judged at the ground on ``e2e_latency_s`` (docs/hil.md). The flight side is one of:
+
+* ``flight="emulated"`` (default): our flight software, or the user's program given by ``flight_cmd``,
+  under the supervisor on the budget's emulated processor;
+* ``flight="external"``: a flight computer outside, reached through ``link`` given as a full spec
+  (``serial:/dev/ttyUSB0@115200``, ``zmq:tcp://HOST:PORT``); no supervisor, no budget.
+
+Shutdown: SIGINT and SIGTERM end the run at once: the ground, then the supervisor (each leads its own
+process group; SIGTERM, then SIGKILL after :data:`GRACE_S`), the supervisor takes its flight process with
+it. Every output file is written beside and renamed; ``summary.json`` exists from the start (``complete``
+false until the run has ended normally).
 """
 
 from __future__ import annotations
@@ -19,10 +34,12 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,12 +49,13 @@ import numpy as np
 from protocol.errors import InputError
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
+GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 
 
 @dataclass
 class RunConfig:
     scenario: str = "vertical"
-    link: str = "serial"  # serial | zmq
+    link: str = "serial"  # serial | zmq; with flight="external" a full spec: serial:DEVICE[@BAUD] | zmq:ENDPOINT
     budget: str = "host"
     out: Path = Path("out/run")
     pairs: list[str] | None = None  # labels such as "600/300"; None = all
@@ -58,6 +76,10 @@ class RunConfig:
     insecure: bool = False  # zmq without CURVE (loopback debugging)
     link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
+    flight: str = "emulated"  # emulated (under the supervisor) | external (a flight computer on `link`)
+    flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
+    keys: Path | None = None  # external zmq: the ground's CURVE key directory
+    min_hit_rate: float | None = None  # exit code: pass at this deadline hit rate instead of every pair
 
 
 def _free_tcp_port() -> int:
@@ -133,32 +155,68 @@ def score_records(records: list[dict]) -> list[dict]:
 
 
 def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
-    lat = [r["latency_s"] for r in records if r.get("status") == "result"]
-    e2e = [r["e2e_latency_s"] for r in records if r.get("status") == "result" and r.get("e2e_latency_s") is not None]
-    line = [r["result_line_s"] for r in records if r.get("status") == "result" and r.get("result_line_s") is not None]
+    """Counts, deadline hit rate and latency percentiles over the records (the deadline judged on e2e)."""
+    ok = [r for r in records if r.get("status") == "result"]
+
+    def vals(key: str) -> list[float]:
+        return [float(r[key]) for r in ok if r.get(key) is not None]
+
+    e2e, flight, line = vals("e2e_latency_s"), vals("flight_latency_s"), vals("result_line_s")
     n = len(records)
-    met = sum(1 for r in records if r.get("status") == "result" and r.get("deadline_met"))
+    met = sum(1 for r in ok if r.get("deadline_met"))
     return {
         "scenario": cfg.scenario,
         "link": cfg.link,
-        "budget": cfg.budget,
+        "flight": cfg.flight if not cfg.flight_cmd else f"command: {cfg.flight_cmd}",
+        "budget": cfg.budget if cfg.flight == "emulated" else None,
         "preset": cfg.preset,
         "pairs": n,
-        "results": sum(r.get("status") == "result" for r in records),
-        "degraded": sum(bool(r.get("degraded")) for r in records),
-        "errors": sum(r.get("status") != "result" for r in records),
+        "results": len(ok),
+        "degraded": sum(bool(r.get("degraded")) for r in ok),
+        "errors": n - len(ok),
+        "deadline_met": met,
+        "deadline_missed": len(ok) - met,
         "deadline_hit_rate": met / n if n else float("nan"),
-        "latency_p50_s": percentile(lat, 50),
-        "latency_p95_s": percentile(lat, 95),
-        "latency_max_s": max(lat) if lat else float("nan"),
         "e2e_latency_p50_s": percentile(e2e, 50),
+        "e2e_latency_p95_s": percentile(e2e, 95),
         "e2e_latency_max_s": max(e2e) if e2e else float("nan"),
+        "flight_latency_p50_s": percentile(flight, 50),
+        "flight_latency_p95_s": percentile(flight, 95),
+        "flight_latency_max_s": max(flight) if flight else float("nan"),
         "result_line_max_s": max(line) if line else float("nan"),
         "result_bytes_max": max((r.get("result_bytes", 0) for r in records), default=0),
         "link_errors": sum(r.get("code") == "link_down" for r in records),
         **extra,
         "records": records,
     }
+
+
+def exit_code(summary: dict, min_hit_rate: float | None = None) -> int:
+    """0 only when every pair returned a result within its deadline (or the hit rate reaches ``min_hit_rate``);
+    1 when a pair missed, was lost or failed, or the run did not complete; 128 + N when signal N cut it short."""
+    if summary.get("interrupted_by"):
+        return 128 + int(summary["interrupted_by"])
+    if not summary.get("complete") or not summary.get("pairs"):
+        return 1
+    if min_hit_rate is None:
+        return 0 if summary["deadline_met"] == summary["pairs"] else 1
+    return 0 if summary["deadline_hit_rate"] >= min_hit_rate - 1e-12 else 1
+
+
+def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
+    s = summary
+    if not s.get("complete"):
+        head = f"INCOMPLETE ({s.get('reason')})"
+    elif exit_code(s, min_hit_rate) == 0:
+        head = "PASS"
+    else:
+        head = "FAIL"
+    need = "every pair" if min_hit_rate is None else f"hit rate >= {min_hit_rate:.0%}"
+    return (
+        f"{head}: {s['deadline_met']}/{s['pairs']} pairs returned a result within the "
+        f"{_fmt(s.get('deadline_s'), 'g')} s deadline end to end "
+        f"({s['deadline_missed']} late, {s['errors']} errors; needed: {need})"
+    )
 
 
 def _fmt(v, spec: str = ".2f") -> str:
@@ -169,8 +227,9 @@ def _fmt(v, spec: str = ".2f") -> str:
 
 def summary_table(summary: dict) -> str:
     rows = [
-        "| pair | altitude m | outcome | level | latency s | deadline | FP % | CDI % | DEM mean abs m |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
+        "| DEM mean abs m |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in summary["records"]:
         sc = r.get("scores", {})
@@ -179,183 +238,432 @@ def summary_table(summary: dict) -> str:
             dl = "met" if r.get("deadline_met") else "MISSED"
             rows.append(
                 f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {r.get('level')} | "
-                f"{_fmt(r.get('latency_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
+                f"{_fmt(r.get('e2e_latency_s'))} | {_fmt(r.get('flight_latency_s'))} | "
+                f"{_fmt(r.get('result_line_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
                 f"{_fmt(sc.get('dem_mean_abs'))} |"
             )
         else:
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | — | — |"
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | MISSED "
+                "| — | — | — |"
             )
     s = summary
+    where = f"on budget **{s['budget']}** (CPU fraction {_fmt(s.get('cpu_fraction'), '.4f')})" if s["budget"] else ""
     head = (
-        f"**{s['scenario']}** over **{s['link']}** on budget **{s['budget']}** "
-        f"(CPU fraction {_fmt(s.get('cpu_fraction'), '.4f')}, deadline {_fmt(s.get('deadline_s'))} s): "
-        f"{s['results']}/{s['pairs']} results ({s['degraded']} degraded), {s['errors']} errors; "
-        f"latency p50 {_fmt(s['latency_p50_s'])} s, p95 {_fmt(s['latency_p95_s'])} s, "
-        f"max {_fmt(s['latency_max_s'])} s; deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
+        f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']} {where}, deadline "
+        f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
+        f"degraded), {s['errors']} errors; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
+        f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
+        f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
+    if not s.get("complete", True):
+        head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
     return head + "\n\n" + "\n".join(rows) + "\n"
 
 
+def _write_json(path: Path, doc: dict) -> None:
+    from reports.html import write_atomic
+
+    write_atomic(path, json.dumps(doc, indent=1, sort_keys=True, default=float) + "\n")
+
+
+def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
+    """(kind, full spec or None) of ``cfg.link``, checked against ``cfg.flight``."""
+    if cfg.flight not in ("emulated", "external"):
+        raise InputError(f"--flight must be emulated or external, got {cfg.flight!r}")
+    kind, sep, rest = cfg.link.partition(":")
+    if kind not in ("serial", "zmq") or (sep and not rest):
+        raise InputError(f"--link must be serial, zmq, serial:DEVICE[@BAUD] or zmq:ENDPOINT, got {cfg.link!r}")
+    if cfg.flight == "external":
+        if not sep:
+            raise InputError(
+                "--flight external needs the far end in --link: serial:DEVICE[@BAUD] (e.g. serial:/dev/ttyUSB0@115200) "
+                "or zmq:tcp://HOST:PORT"
+            )
+        if cfg.flight_cmd or cfg.fault or cfg.link_fault or cfg.corrupt:
+            raise InputError("--flight-cmd, --corrupt and fault injection need the emulated flight processor")
+        if kind == "zmq" and not (cfg.keys or cfg.insecure):
+            raise InputError(
+                "zmq to an external flight computer needs --keys DIR (client.key_secret and server.key, "
+                "docs/protocol.md section 7) or --insecure on loopback"
+            )
+        if kind == "serial":
+            from protocol.linkspec import parse_serial
+
+            parse_serial(rest)
+        return kind, cfg.link
+    if sep:
+        raise InputError(
+            f"--link {cfg.link}: a device or endpoint needs --flight external; the emulated flight processor "
+            "takes --link serial or zmq"
+        )
+    if cfg.flight_cmd:
+        from hil_server.supervisor import flight_argv
+
+        argv = flight_argv(cfg.flight_cmd, "PORT")
+        if shutil.which(argv[0]) is None:
+            raise InputError(f"--flight-cmd: program {argv[0]!r} not found (give a path or a command on PATH)")
+        if cfg.fault:
+            raise InputError("--fault injects faults into our flight software, not into a --flight-cmd program")
+    return kind, None
+
+
+def _image_side(cfg: RunConfig, manifest: Path | None) -> tuple[int, int]:
+    """(width, height) of the largest camera the run streams (from each pair.json's camera; a pair that
+    cannot be read is skipped here: the ground reports it as bad input)."""
+    if manifest is None:
+        s = cfg.image_size or 512
+        return s, s
+    from protocol.pairdir import Camera
+
+    best = (0, 0)
+    for e in _manifest_entries(manifest):
+        try:
+            cam = Camera.from_dict(json.loads((manifest.parent / e["path"] / "pair.json").read_text())["camera"])
+        except (OSError, ValueError, KeyError, TypeError, InputError):
+            continue
+        if cam.width * cam.height > best[0] * best[1]:
+            best = (cam.width, cam.height)
+    return best
+
+
+def check_memory(budget, width: int, height: int) -> None:
+    """Refuse, before anything runs, a camera whose flight pipeline cannot fit the budget's memory ceiling."""
+    from hil_server.budgets import flight_peak_rss_mib, max_image_side
+
+    need = flight_peak_rss_mib(width * height)
+    if need > budget.memory_mib:
+        raise InputError(
+            f"a {width}x{height} camera needs ~{need:.0f} MiB peak RSS in the flight process, over budget "
+            f"{budget.name}'s {budget.memory_mib} MiB; the largest square camera that fits is "
+            f"{max_image_side(budget.memory_mib)} px (--image-size), see `hazard-hil budgets`"
+        )
+
+
+def _spawn(cmd: list[str], env: dict, **kw) -> subprocess.Popen:
+    """A child leading its own process group: stopped as a whole, and the terminal's Ctrl-C reaches us only."""
+    return subprocess.Popen(cmd, env=env, process_group=0, **kw)
+
+
+def _stop(proc: subprocess.Popen | None, grace_s: float = GRACE_S) -> None:
+    """SIGCONT + SIGTERM to the child's group; SIGKILL to the group after ``grace_s``."""
+    if proc is None:
+        return
+    if proc.poll() is None:
+        for sig in (signal.SIGCONT, signal.SIGTERM):  # a child frozen by a stall test must wake to terminate
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+    try:  # whatever is left of its group (also after a clean exit: nothing may outlive the run)
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    if proc.poll() is None:
+        proc.wait()
+
+
+class _Interrupted(Exception):
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"interrupted by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+class _Signals:
+    """SIGINT/SIGTERM raise :class:`_Interrupted` in the main thread while armed; later ones are only noted."""
+
+    def __init__(self) -> None:
+        self.armed = False
+        self.received: int | None = None
+        self.saved: dict[int, object] = {}
+
+    def __enter__(self) -> _Signals:
+        if threading.current_thread() is threading.main_thread():
+            self.armed = True
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.saved[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.received is None:
+            self.received = signum
+        if self.armed:
+            self.armed = False  # once: the cleanup that follows must not be interrupted
+            raise _Interrupted(signum)
+
+    def disarm(self) -> None:
+        self.armed = False
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self.saved.items():
+            signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+def _manifest_entries(manifest: Path | None) -> list[dict]:
+    if manifest is None or not manifest.is_file():
+        return []
+    try:
+        return list(json.loads(manifest.read_text()).get("pairs", []))
+    except (OSError, ValueError):
+        return []
+
+
+def _read_records(path: Path) -> list[dict]:
+    """The ground's records (a torn last line, impossible with atomic writes, is skipped all the same)."""
+    out = []
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                continue
+    return out
+
+
+def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> list[dict]:
+    """Records for the manifest's pairs that have none (the run ended before them), in descent order."""
+    have = {r["pair_id"] for r in records}
+    full = []
+    by_id = {r["pair_id"]: r for r in records}
+    for i, e in enumerate(entries):
+        pid = f"p{i:03d}-{e.get('label', i)}".replace("/", "_")  # ground_sim.stream's pair ids
+        if pid in have:
+            full.append(by_id.pop(pid))
+            continue
+        full.append(
+            {
+                "pair_id": pid,
+                "label": str(e.get("label", i)),
+                "altitude_m": float(e.get("altitude_m", float("nan"))),
+                "pair_dir": str(base / e["path"]),
+                "status": "error",
+                "code": "not_run",
+                "text": why,
+                "deadline_met": False,
+            }
+        )
+    return full + list(by_id.values())
+
+
 def run_descent(cfg: RunConfig, log=print) -> dict:
-    """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``)."""
+    """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``).
+
+    Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
+    signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
+    """
     from hil_server.budgets import get_budget, load_calibration
 
+    kind, spec = _parse_link(cfg)
     budget = get_budget(cfg.budget)
-    fraction = budget.duty_fraction(load_calibration())
+    emulated = cfg.flight == "emulated"
+    fraction = budget.duty_fraction(load_calibration()) if emulated else float("nan")
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if cfg.link not in ("serial", "zmq"):
-        raise InputError(f"--link must be serial or zmq, got {cfg.link!r}")
-    if cfg.corrupt and (cfg.link != "serial" or not 0 <= cfg.corrupt <= 0.05):
+    if not (math.isfinite(deadline) and deadline > 0):
+        raise InputError(f"--deadline must be a positive number of seconds, got {deadline}")
+    if cfg.corrupt and (kind != "serial" or not 0 <= cfg.corrupt <= 0.05):
         raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.05]")
-
+    if cfg.min_hit_rate is not None and not 0.0 <= cfg.min_hit_rate <= 1.0:
+        raise InputError(f"--min-hit-rate must be in [0, 1], got {cfg.min_hit_rate}")
+    manifest: Path | None = None
     if cfg.manifest is not None:
         manifest = Path(cfg.manifest)
         if not manifest.is_file():
             raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
-    else:
-        log(f"run: rendering {cfg.scenario} pairs into {out / 'pairs'}")
-        manifest = _render(cfg, out / "pairs") / "manifest.json"
+    if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
+        check_memory(budget, *_image_side(cfg, manifest))
 
-    bridge = None
-    channels: dict = {}  # serial line faults by direction (--corrupt)
-    if cfg.link == "serial":
-        from protocol.faults import PtyBridge
-
-        # Two raw ptys joined by a relay: each process opens a real serial device path.
-        baud = cfg.baud if cfg.baud is not None else budget.baud
-        if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
-            from protocol.faults import CorruptingChannel
-
-            channels = {
-                d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt, dup=cfg.corrupt)
-                for k, d in enumerate(("a_to_b", "b_to_a"))
-            }
-        bridge = PtyBridge(**channels)
-        suffix = f"@{baud}" if baud else ""
-        server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
-    else:
-        port = _free_tcp_port()
-        server_spec = ground_spec = f"zmq:tcp://127.0.0.1:{port}"
-    security: list[str] = []
-    if cfg.link == "zmq":
-        if cfg.insecure:
-            security = ["--insecure"]
-        else:  # fresh CURVE keys for every run, private to its output directory
-            import shutil
-
-            from protocol.zmqauth import generate_keys
-
-            shutil.rmtree(out / "keys", ignore_errors=True)
-            security = ["--keys", str(generate_keys(out / "keys"))]
-
-    env = dict(os.environ)
-    telemetry = out / "telemetry.jsonl"
-    telemetry.unlink(missing_ok=True)
-    sup_cmd = [
-        sys.executable,
-        "-m",
-        "hil_server.supervisor",
-        "--link",
-        server_spec,
-        "--budget",
-        cfg.budget,
-        "--telemetry",
-        str(telemetry),
-        "--link-timeout",
-        str(cfg.link_timeout_s),
-        *security,
-    ]
-    if cfg.fault:
-        sup_cmd += ["--fault", cfg.fault]
-    if cfg.link_fault:
-        sup_cmd += ["--link-fault", cfg.link_fault]
-    ground_cmd = [
-        sys.executable,
-        "-m",
-        "ground_sim.stream",
-        "--link",
-        ground_spec,
-        "--manifest",
-        str(manifest),
-        "--out",
-        str(out / "received"),
-        "--budget",
-        cfg.budget,
-        "--deadline",
-        str(deadline),
-        "--preset",
-        cfg.preset,
-        "--pace",
-        cfg.pace,
-        "--link-timeout",
-        str(cfg.link_timeout_s),
-        "--elevation-step",
-        str(cfg.elevation_step) if cfg.elevation_step else "auto",
-        "--psafe-step",
-        str(cfg.psafe_step) if cfg.psafe_step else "auto",
-        *security,
-    ]
-    if cfg.full_maps:
-        ground_cmd.append("--full-maps")
-    log(
-        f"run: budget {budget.name}: CPU fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
-        f"deadline {deadline:g} s, link {server_spec}"
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.strftime("%Y-%m-%dT%H:%M:%S")
+    _write_json(
+        out / "summary.json",
+        {
+            "complete": False,
+            "reason": "run in progress (if it stays like this, the run was killed before it could write a summary)",
+            "started": started,
+        },
     )
+    for stale in ("summary.md", "report.html"):
+        (out / stale).unlink(missing_ok=True)
+    received = out / "received"
+    shutil.rmtree(received, ignore_errors=True)  # a previous run's records must not pass for this one's
+
+    reason: str | None = None
+    interrupted: int | None = None
+    rc: int | None = None
+    channels: dict = {}
+    bridge = None
+    sup = ground = None
+    sup_log = None
     t0 = time.monotonic()
-    with open(out / "supervisor.log", "w") as sup_log:
-        sup = subprocess.Popen(sup_cmd, stdout=sup_log, stderr=subprocess.STDOUT, env=env)
+    with _Signals() as sigs:
         try:
-            ground = subprocess.Popen(ground_cmd, env=env)
+            if manifest is None:
+                log(f"run: rendering {cfg.scenario} pairs into {out / 'pairs'}")
+                manifest = _render(cfg, out / "pairs") / "manifest.json"
+            security: list[str] = []
+            if kind == "serial" and spec is None:
+                from protocol.faults import PtyBridge
+
+                # Two raw ptys joined by a relay: each process opens a real serial device path.
+                baud = cfg.baud if cfg.baud is not None else budget.baud
+                if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
+                    from protocol.faults import CorruptingChannel
+
+                    channels = {
+                        d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt, dup=cfg.corrupt)
+                        for k, d in enumerate(("a_to_b", "b_to_a"))
+                    }
+                bridge = PtyBridge(**channels)
+                suffix = f"@{baud}" if baud else ""
+                server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
+            elif spec is None:
+                port = _free_tcp_port()
+                server_spec = ground_spec = f"zmq:tcp://127.0.0.1:{port}"
+            else:
+                server_spec, ground_spec = "", spec
+                if cfg.baud is not None and kind == "serial" and "@" not in spec:
+                    ground_spec = f"{spec}@{cfg.baud}"
+            if kind == "zmq":
+                if cfg.insecure:
+                    security = ["--insecure"]
+                elif cfg.keys is not None:
+                    security = ["--keys", str(cfg.keys)]
+                else:  # fresh CURVE keys for every run, private to its output directory
+                    from protocol.zmqauth import generate_keys
+
+                    shutil.rmtree(out / "keys", ignore_errors=True)
+                    security = ["--keys", str(generate_keys(out / "keys"))]
+
+            env = dict(os.environ)
+            for name in ("telemetry.jsonl", "supervisor.jsonl"):
+                (out / name).unlink(missing_ok=True)
+            ground_cmd = [
+                sys.executable,
+                "-m",
+                "ground_sim.stream",
+                "--link",
+                ground_spec,
+                "--manifest",
+                str(manifest),
+                "--out",
+                str(received),
+                "--telemetry",
+                str(out / "telemetry.jsonl"),
+                "--budget",
+                cfg.budget if emulated else "external",
+                "--deadline",
+                str(deadline),
+                "--preset",
+                cfg.preset,
+                "--pace",
+                cfg.pace,
+                "--link-timeout",
+                str(cfg.link_timeout_s),
+                "--elevation-step",
+                str(cfg.elevation_step) if cfg.elevation_step else "auto",
+                "--psafe-step",
+                str(cfg.psafe_step) if cfg.psafe_step else "auto",
+                *security,
+            ]
+            if cfg.full_maps:
+                ground_cmd.append("--full-maps")
+            if emulated:
+                sup_cmd = [
+                    sys.executable,
+                    "-m",
+                    "hil_server.supervisor",
+                    "--link",
+                    server_spec,
+                    "--budget",
+                    cfg.budget,
+                    "--telemetry",
+                    str(out / "supervisor.jsonl"),
+                    "--link-timeout",
+                    str(cfg.link_timeout_s),
+                    *security,
+                ]
+                if cfg.fault:
+                    sup_cmd += ["--fault", cfg.fault]
+                if cfg.link_fault:
+                    sup_cmd += ["--link-fault", cfg.link_fault]
+                if cfg.flight_cmd:
+                    sup_cmd += ["--flight-cmd", cfg.flight_cmd]
+                who = f"flight program `{cfg.flight_cmd}`" if cfg.flight_cmd else "our flight software"
+                log(
+                    f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}, memory "
+                    f"{budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
+                )
+                sup_log = open(out / "supervisor.log", "w")  # noqa: SIM115 (closed below)
+                sup = _spawn(sup_cmd, env, stdout=sup_log, stderr=subprocess.STDOUT)
+            else:
+                log(f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end")
+            ground = _spawn(ground_cmd, env)
             try:
                 rc = ground.wait(timeout=cfg.timeout_s)
             except subprocess.TimeoutExpired:
-                ground.kill()
-                raise TimeoutError(f"ground simulator did not finish within {cfg.timeout_s:.0f} s") from None
-            if rc not in (0, EXIT_LINK_LOST):
-                raise RuntimeError(f"ground simulator exited with {rc}; see {out / 'supervisor.log'}")
+                reason = f"the ground simulator did not finish within {cfg.timeout_s:.0f} s"
+            if rc is not None and rc not in (0, EXIT_LINK_LOST):
+                reason = f"the ground simulator exited with {rc}" + (
+                    f"; see {out / 'supervisor.log'}" if emulated else ""
+                )
+        except _Interrupted as exc:
+            interrupted, reason = exc.signum, str(exc)
+        except InputError as exc:  # e.g. a scene file the renderer refuses: bad usage, after the placeholder
+            reason = f"error: {exc}"
+            _write_json(out / "summary.json", {"complete": False, "reason": reason, "started": started})
+            raise
         finally:
-            if sup.poll() is None:
-                sup.send_signal(signal.SIGCONT)  # a supervisor frozen by a stall test must wake to terminate
-                sup.send_signal(signal.SIGTERM)
-                try:
-                    sup.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    sup.kill()
-                    sup.wait()
+            sigs.disarm()
+            if interrupted is not None or reason is not None:
+                log(f"run: stopping ({reason})")
+            _stop(ground)
+            _stop(sup)
             if bridge is not None:
                 bridge.close()
+            if sup_log is not None:
+                sup_log.close()
+        if interrupted is None and sigs.received is not None:  # arrived during the cleanup
+            interrupted = sigs.received
+            reason = f"interrupted by {signal.Signals(interrupted).name}"
     wall = time.monotonic() - t0
 
-    records = [json.loads(line) for line in (out / "received" / "results.jsonl").read_text().splitlines() if line]
+    entries = _manifest_entries(manifest)
+    records = _read_records(received / "results.jsonl")
+    if reason is not None:
+        records = _missing(entries, records, manifest.parent if manifest else out, f"not run: {reason}")
     score_records(records)
     counters = {}
-    if telemetry.is_file():
-        for line in telemetry.read_text().splitlines():
-            rec = json.loads(line)
-            if rec.get("event") == "summary":
-                counters = {k: v for k, v in rec.items() if k != "event"}
-    line_faults = {d: ch.stats for d, ch in channels.items()}
+    for line in _read_records(out / "supervisor.jsonl"):
+        if line.get("event") == "summary":
+            counters = {k: v for k, v in line.items() if k != "event"}
     summary = summarize(
         records,
         cfg,
         {
+            "complete": reason is None,
+            "reason": reason,
+            "interrupted_by": interrupted,
+            "started": started,
             "cpu_fraction": fraction,
             "deadline_s": deadline,
-            "line_faults": line_faults,
-            "memory_mib": budget.memory_mib,
+            "line_faults": {d: ch.stats for d, ch in channels.items()},
+            "memory_mib": budget.memory_mib if emulated else None,
             "wall_s": wall,
             "supervisor_counters": counters,
             "ground_exit": rc,
         },
     )
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=float) + "\n")
     table = summary_table(summary)
-    (out / "summary.md").write_text(table)
     from hil_server.run_report import write_run_report
+    from reports.html import write_atomic
 
+    write_atomic(out / "summary.md", table)
     write_run_report(summary, out / "report.html")
+    _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
     log(table)
     return summary

@@ -3,17 +3,25 @@
 It relays between the ground link (serial pty or ZeroMQ) and the flight
 process, which it starts on an emulated processor (one pinned core, CPU duty
 cycle, memory ceiling; :mod:`hil_server.procemu`) and talks to over a local
-socket pair. Being in the middle lets it account for every pair:
+socket pair - or, for a user's own flight program (``--flight-cmd``), over a
+pty whose path the program gets as ``{port}`` in its command line and as
+``$HAZARD_HIL_PORT`` (docs/hil.md). Being in the middle lets it account for
+every pair:
 
-* it timestamps the last frame of each pair (latency starts there),
+* it tells the flight software the emulated slowdown (``time_scale`` = 1 / CPU
+  fraction in ``Config.options``), so reserves it plans in unthrottled seconds
+  scale with the budget,
+* it timestamps the last frame of each pair (the flight latency starts there),
 * it enforces a hard limit (deadline + grace) and a heartbeat watchdog, killing
   and restarting a hung flight process,
 * it turns crashes and memory-ceiling breaches into ``Error`` messages for the
   pair in progress, restarts the flight process, replays the frames of the
   pairs still outstanding, and carries on,
 * it adds what only the outside can measure (achieved CPU fraction, peak RSS,
-  deadline outcome seen from the link, the result's line time) to the flight's
-  ``Telemetry``, sent once the ground has acknowledged the whole Result.
+  the result's line time, its own estimate of the end-to-end latency: last frame
+  in -> Result acknowledged) to the flight's ``Telemetry``, sent once the ground
+  has acknowledged the whole Result. The deadline verdict that counts is the
+  ground's, on ``e2e_latency_s`` (docs/hil.md).
 
 Every pair the ground completes ends in exactly one of: ``Result`` (full or
 degraded) or ``Error`` with a reason. Telemetry is also written as JSON lines.
@@ -33,6 +41,7 @@ import argparse
 import json
 import os
 import queue
+import shlex
 import signal
 import socket
 import sys
@@ -66,6 +75,7 @@ class PairState:
     result_mid: int | None = None  # its message id on the ground link
     flight_telemetry: Telemetry | None = None  # held until the Result is acknowledged
     result_link_s: float = 0.0
+    result_acked_at: float | None = None  # monotonic time the ground acknowledged the whole Result
     done: bool = False
 
     @property
@@ -116,29 +126,65 @@ class Reader(threading.Thread):
                 self.events.put((self.tag, self.generation, pkt.message, pkt.epoch))
 
 
-class FlightHandle:
-    """One incarnation of the flight process on the emulated processor."""
+def flight_argv(flight_cmd: str, port: str) -> list[str]:
+    """A user's flight command split like a shell would (no shell runs it), ``{port}`` replaced by the pty path."""
+    try:
+        argv = shlex.split(flight_cmd)
+    except ValueError as exc:
+        raise InputError(f"--flight-cmd: cannot split {flight_cmd!r}: {exc}") from None
+    if not argv:
+        raise InputError("--flight-cmd is empty")
+    return [a.replace("{port}", port) for a in argv]
 
-    def __init__(self, processor_factory, generation: int, fault: str | None, heartbeat_s: float) -> None:
+
+class FlightHandle:
+    """One incarnation of the flight process on the emulated processor.
+
+    Our own flight software talks over an inherited socket; a user's program
+    (``flight_cmd``) over a fresh raw pty, the same byte stream a serial board gets.
+    """
+
+    def __init__(
+        self,
+        processor_factory,
+        generation: int,
+        fault: str | None,
+        heartbeat_s: float,
+        flight_cmd: str | None = None,
+    ) -> None:
         from protocol.links import LOCAL_CONFIG, StreamLink
 
         self.generation = generation
-        parent, child = socket.socketpair()
         self.proc = processor_factory()
-        argv = [
-            sys.executable,
-            "-m",
-            "flight_sw.flight_main",
-            "--fd",
-            str(child.fileno()),
-            "--heartbeat",
-            str(heartbeat_s),
-        ]
-        if fault:
-            argv += ["--fault", fault]
-        self.proc.start(argv, pass_fds=(child.fileno(),))
-        child.close()
-        self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
+        if flight_cmd:
+            from protocol.faults import open_pty_pair
+
+            master, port = open_pty_pair()
+            env = {**os.environ, "HAZARD_HIL_PORT": port, "HAZARD_HIL_LINK": f"serial:{port}@0"}
+            try:
+                self.proc.start(flight_argv(flight_cmd, port), env=env)
+            except BaseException:
+                os.close(master)
+                raise
+            self.link = StreamLink(master, config=LOCAL_CONFIG, name=f"flight{generation}")
+        else:
+            parent, child = socket.socketpair()
+            argv = [
+                sys.executable,
+                "-m",
+                "flight_sw.flight_main",
+                "--fd",
+                str(child.fileno()),
+                "--heartbeat",
+                str(heartbeat_s),
+            ]
+            if fault:
+                argv += ["--fault", fault]
+            self.proc.start(argv, pass_fds=(child.fileno(),))
+            child.close()
+            self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
+        # the flight side answers the ground's Hello (docs/protocol.md section 6); ours says Hello unasked
+        self.link.send(Hello(role="hil-server"))
         self.hello = False
 
     def close(self, reason: str | None = None) -> None:
@@ -158,6 +204,7 @@ class Supervisor:
         telemetry_path: Path | None = None,
         fault: str | None = None,
         link_fault: str | None = None,
+        flight_cmd: str | None = None,
         heartbeat_s: float = 0.25,
         grace_s: float | None = None,
         cpu_fraction: float = 1.0,
@@ -167,6 +214,7 @@ class Supervisor:
         self.budget = budget
         self.processor_factory = processor_factory
         self.fault = fault
+        self.flight_cmd = flight_cmd
         self.link_fault = parse_link_fault(link_fault)
         self.heartbeat_s = heartbeat_s
         self.cpu_fraction = cpu_fraction
@@ -206,7 +254,11 @@ class Supervisor:
     def _start_flight(self) -> None:
         self.generation += 1
         self.flight = FlightHandle(
-            self.processor_factory, self.generation, self.fault if self.generation == 1 else None, self.heartbeat_s
+            self.processor_factory,
+            self.generation,
+            self.fault if self.generation == 1 else None,
+            self.heartbeat_s,
+            self.flight_cmd,
         )
         self.flight_reader = Reader(self.flight.link, "flight", self.events, self.generation)
         self.flight_reader.start()
@@ -284,9 +336,10 @@ class Supervisor:
         elif epoch != self.ground_epoch:
             return True  # from a session whose Hello we never saw: nothing to attribute it to
         elif isinstance(msg, Config):
-            self.config = msg
+            # the emulated slowdown, so the flight software can scale reserves it plans in unthrottled seconds
+            self.config = replace(msg, options={**msg.options, "time_scale": 1.0 / self.cpu_fraction})
             assert self.flight is not None
-            self.flight.link.send(msg)
+            self.flight.link.send(self.config)
         elif isinstance(msg, Frame):
             if msg.pair_id is None or msg.frame_index not in (0, 1):
                 self._to_ground(Error(code="bad_frame", seq=msg.seq, text="frame needs pair_id and frame_index 0/1"))
@@ -397,15 +450,19 @@ class Supervisor:
             return
         times = self.ground.times(st.result_mid)
         st.result_link_s = float(times.line_s) if times is not None and times.line_s is not None else 0.0
+        st.result_acked_at = times.delivered if times is not None and times.delivered is not None else time.monotonic()
         self._complete(st, st.flight_telemetry)
 
     def _complete(self, st: PairState, msg: Telemetry) -> None:
         assert self.flight is not None and st.result_at is not None
         st.done = True
-        # "last frame in -> result out": out = handed to the link, before its line time
+        # flight latency: last frame in here -> Result out of the flight process (before its line time)
         latency = st.result_at - (st.complete_at or st.result_at)
+        # the server's view of the deadline: last frame in -> Result acknowledged by the ground. It exceeds the
+        # ground's e2e_latency_s (the deadline's definition, judged at the ground) by the ACK's trip back.
+        server_e2e = (st.result_acked_at or time.monotonic()) - (st.complete_at or st.result_at)
         deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
-        met = latency <= deadline
+        met = server_e2e <= deadline
         stats = self.flight.proc.stats()
         tel = replace(
             msg,
@@ -420,6 +477,7 @@ class Supervisor:
                 **self._link_stats(),
                 "flight_latency_s": msg.total_latency_s,
                 "result_link_s": st.result_link_s,
+                "server_e2e_s": server_e2e,
                 "restarts": float(self.counters["restarts"]),
             },
         )
@@ -436,10 +494,10 @@ class Supervisor:
                 "frame_seqs": list(st.seqs),
                 "level": st.result.level if st.result else None,
                 "degraded": bool(st.result.degraded) if st.result else None,
-                "latency_s": latency,
+                "flight_latency_s": latency,
+                "server_e2e_s": server_e2e,
                 "deadline_s": deadline,
-                "deadline_met": met,
-                "deadline_margin_s": deadline - latency,
+                "server_deadline_met": met,
                 "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)],
                 "queue_wait_s": msg.queue_wait_s,
                 "result_link_s": st.result_link_s,
@@ -587,6 +645,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget", required=True)
     ap.add_argument("--telemetry", type=Path, default=None, help="JSON-lines telemetry file")
     ap.add_argument("--fault", default=None, help="fault injection for the first flight incarnation")
+    ap.add_argument(
+        "--flight-cmd",
+        default=None,
+        help="run this flight program instead of ours (split like a shell; {port} = its pty, also $HAZARD_HIL_PORT)",
+    )
     ap.add_argument("--link-fault", default=None, help="test fault on the ground link: stall@N or exit@N")
     ap.add_argument("--keys", type=Path, default=None, help="CURVE key directory (zmq links)")
     ap.add_argument("--insecure", action="store_true", help="zmq without CURVE (loopback debugging only)")
@@ -601,6 +664,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         budget = get_budget(args.budget)
         parse_link_fault(args.link_fault)
+        if args.flight_cmd:
+            flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now
         fraction = budget.duty_fraction(load_calibration())
         spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
         link = open_link(
@@ -628,6 +693,7 @@ def main(argv: list[str] | None = None) -> int:
         telemetry_path=args.telemetry,
         fault=args.fault,
         link_fault=args.link_fault,
+        flight_cmd=args.flight_cmd,
         cpu_fraction=fraction,
         log=log,
     )

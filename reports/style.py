@@ -92,8 +92,10 @@ GLOSSARY: dict[str, Term] = {
         "%",
     ),
     "epi_cdi_pct": Term("CDI % outside epipole box", "CDI % over the pixels outside the epipole box.", "%"),
-    "latency_p50_s": Term("latency p50 [s]", "Median end-to-end latency over the pairs that returned a result.", "s"),
-    "latency_p95_s": Term("latency p95 [s]", "95th percentile of the end-to-end latency.", "s"),
+    "e2e_latency_p50_s": Term(
+        "e2e latency p50 [s]", "Median end-to-end latency over the pairs that returned a result.", "s"
+    ),
+    "e2e_latency_p95_s": Term("e2e latency p95 [s]", "95th percentile of the end-to-end latency.", "s"),
     "e2e_latency_s": Term(
         "end-to-end latency [s]",
         "From the moment the ground finished sending a pair's last frame to the moment it holds the whole Result.",

@@ -33,8 +33,8 @@ def run(manifest, tmp_path, **kw):
     return run_descent(cfg, log=lambda s: None)
 
 
-def telemetry_events(path):
-    return [json.loads(line) for line in (path / "telemetry.jsonl").read_text().splitlines()]
+def telemetry_events(path, name="supervisor.jsonl"):
+    return [json.loads(line) for line in (path / name).read_text().splitlines()]
 
 
 def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
@@ -43,7 +43,9 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
-        assert 0 < r["latency_s"] < r["deadline_s"]
+        # the deadline is judged end to end at the ground: it includes the flight's compute and the line
+        assert 0 < r["flight_latency_s"] < r["e2e_latency_s"] <= r["deadline_s"]
+        assert r["deadline_margin_s"] == pytest.approx(r["deadline_s"] - r["e2e_latency_s"])
         assert set(r["stages"]) >= {"rocks", "full_dem", "slope", "sites", "total"}
         states = np.load(tmp_path / "received" / r["pair_id"] / "state_grid.npy")  # the compact result
         assert states.ndim == 2 and set(np.unique(states)) <= {0, 1, 2, 255} and (states != 255).any()
@@ -51,12 +53,20 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
         assert 0.0 <= r["scores"]["fp_pct"] <= 100.0 and r["scores"]["n"] > 0
         assert np.isfinite(r["scores"]["dem_mean_abs"])
     assert s["deadline_hit_rate"] == 1.0
-    assert s["latency_p50_s"] <= s["latency_p95_s"] <= s["latency_max_s"]
-    events = telemetry_events(tmp_path)
+    assert s["e2e_latency_p50_s"] <= s["e2e_latency_p95_s"] <= s["e2e_latency_max_s"]
+    assert s["complete"] is True and s["reason"] is None
+    from hil_server.budgets import flight_peak_rss_mib
+
+    # the memory model `run` refuses cameras by (docs/hil.md) does not underestimate the measured peak
+    assert 0 < max(r["peak_rss_mib"] for r in s["records"]) <= flight_peak_rss_mib(128 * 128)
+    events = telemetry_events(tmp_path)  # the HIL server's own view
     results = [e for e in events if e["event"] == "result"]
     assert len(results) == 3
     assert all(len(e["arrival_s"]) == 2 and e["arrival_s"][0] <= e["arrival_s"][1] for e in results)
-    assert all(abs(e["deadline_margin_s"] - (e["deadline_s"] - e["latency_s"])) < 1e-9 for e in results)
+    assert all(e["flight_latency_s"] <= e["server_e2e_s"] for e in results)
+    ground = telemetry_events(tmp_path, "telemetry.jsonl")  # measured at the ground, one line per pair
+    assert [t["pair_id"] for t in ground] == [r["pair_id"] for r in s["records"]]
+    assert all(t["e2e_latency_s"] == r["e2e_latency_s"] for t, r in zip(ground, s["records"]))
     html = (tmp_path / "report.html").read_text()
     assert all(p in html for p in PAIRS) and html.count("_hazard.png") == 3
     if browser_available():  # every figure (3 telemetry + 1 map per pair) loads, no console error
@@ -82,7 +92,7 @@ def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_pa
     assert s["results"] == 3 and s["errors"] == 0
     for r in s["records"]:
         assert r["degraded"] and r["level"] in ("image_only", "coarse")
-        assert not r["deadline_met"] or r["latency_s"] <= 0.02
+        assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.02)
         hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
         assert np.isfinite(hz).any()  # image-only hazards (rocks, shadows) still come back
 

@@ -1,0 +1,231 @@
+"""HIL truth (issue 13): the deadline judged end to end at the ground, budgets that scale, exit codes, clean
+shutdown, a user's own flight program in the loop (emulated and external), memory refused up front.
+
+Each end-to-end test starts real OS processes; a 128 px camera (96 px for the slowest budget) keeps them quick.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ground_sim.descent import render_scenario
+from hil_server.cli import main as cli
+from hil_server.run import RunConfig, exit_code, run_descent, scaled_camera
+from protocol.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+MINIMAL = ROOT / "examples" / "minimal_flight.py"
+PAIRS = ["600/300", "300/150"]
+
+
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pairs")
+    render_scenario("vertical", out, pairs=PAIRS, camera=scaled_camera(128), progress=False)
+    return out / "manifest.json"
+
+
+def run(manifest, tmp_path, **kw):
+    cfg = RunConfig(out=tmp_path, manifest=manifest, **{"link": "zmq", "budget": "host", **kw})
+    return run_descent(cfg, log=lambda s: None)
+
+
+def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):
+    # Full maps at 115200 baud: a full-level Result needs ~1.5 s on the line, more than the 1 s deadline, while
+    # the flight side computes it in a fraction of that. Counting only "last frame in -> result out" (the flight
+    # latency) would call it met; the ground, which holds the Result only after its line time, must not.
+    out = tmp_path / "run"
+    args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--baud", "115200"]
+    args += ["--full-maps", "--deadline", "1", "--out", str(out)]
+    assert cli(args) == 1  # a missed deadline fails the run
+    assert "FAIL: " in capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    recs = s["records"]
+    assert all(r["status"] == "result" for r in recs) and s["complete"] is True
+    for r in recs:
+        assert r["deadline_met"] == (r["e2e_latency_s"] <= 1.0)
+        assert r["e2e_latency_s"] >= r["result_line_s"] > 0
+        assert r["deadline_margin_s"] == pytest.approx(1.0 - r["e2e_latency_s"])
+    # the first pair: the flight side expects its Result (prior from the camera) to need > 1 s on this line, so
+    # it leaves the pipeline no time: a degraded Result, quickly
+    assert recs[0]["degraded"] and recs[0]["flight_latency_s"] < 1.0
+    # the second: it planned with the first (small, degraded) Result's size, reached a fuller level, and the
+    # line time of that bigger Result pushed it past the deadline: reported missed, though computed in time
+    late = [r for r in recs if not r["deadline_met"]]
+    assert late, recs
+    assert all(r["flight_latency_s"] < 1.0 < r["e2e_latency_s"] for r in late)
+    assert s["deadline_missed"] == len(late) and s["deadline_hit_rate"] < 1.0
+
+
+@pytest.mark.slow  # ~30 s: the flight process's Python imports alone take ~25 s at rad750's 1.9 % duty
+def test_rad750_deadline_the_full_level_cannot_meet_returns_a_degraded_result_in_time(tmp_path):
+    pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96), progress=False)
+    # the full level of a 96 px pair takes ~0.1 s of host CPU, ~5 s at rad750's 1.9 % duty; the reserves are in
+    # emulated seconds (x 52 here) and every stage checks the clock, so the anytime pipeline stops in time
+    s = run(pairs / "manifest.json", tmp_path / "run", budget="rad750", link="serial", deadline_s=3.0)
+    (r,) = s["records"]
+    assert r["status"] == "result" and r["degraded"] and r["level"] != "full", r
+    assert r["deadline_met"] and r["e2e_latency_s"] <= 3.0
+    assert exit_code(s) == 0
+
+
+def test_exit_codes_follow_the_rules():
+    base = {"complete": True, "pairs": 4, "deadline_met": 4, "deadline_hit_rate": 1.0}
+    assert exit_code(base) == 0
+    late = {**base, "deadline_met": 3, "deadline_hit_rate": 0.75}
+    assert exit_code(late) == 1
+    assert exit_code(late, min_hit_rate=0.75) == 0 and exit_code(late, min_hit_rate=0.8) == 1
+    assert exit_code({**base, "pairs": 0, "deadline_met": 0, "deadline_hit_rate": float("nan")}) == 1
+    assert exit_code({**base, "complete": False}) == 1
+    assert exit_code({**base, "complete": False, "interrupted_by": 15}) == 143
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--min-hit-rate", "1.5"],
+        ["--link", "serial:/dev/ttyUSB0"],  # a device needs --flight external
+        ["--flight", "external"],  # ... and external needs a device
+        ["--flight-cmd", "no-such-flight-program --port {port}"],
+        ["--flight-cmd", "'unbalanced"],
+        ["--budget", "rad750", "--image-size", "1024"],  # does not fit 256 MiB
+    ],
+)
+def test_bad_usage_is_a_one_line_error_and_exit_2_before_anything_runs(tmp_path, capsys, extra):
+    out = tmp_path / "out"
+    assert cli(["run", "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hazard-hil run: error:"), err
+    assert not (out / "pairs").exists()  # refused up front: nothing rendered
+
+
+def test_memory_ceiling_refuses_1024_on_256_mib_budgets():
+    from hil_server.budgets import flight_peak_rss_mib, get_budget, max_image_side
+    from hil_server.run import check_memory
+
+    for name in ("rad750", "gr740"):
+        b = get_budget(name)
+        with pytest.raises(InputError, match=r"1024x1024 camera needs ~\d+ MiB peak RSS"):
+            check_memory(b, 1024, 1024)
+        check_memory(b, 512, 512)  # the thesis camera fits
+        side = max_image_side(b.memory_mib)
+        assert 512 <= side < 1024 and flight_peak_rss_mib(side * side) <= b.memory_mib
+
+
+def test_minimal_flight_imports_nothing_of_this_project():
+    tree = ast.parse(MINIMAL.read_text())
+    roots = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            roots.add((node.module or "").split(".")[0])
+    assert roots - sys.stdlib_module_names == {"msgpack", "numpy", "serial"}
+
+
+def _check_minimal_results(s: dict, out: Path) -> None:
+    assert s["results"] == s["pairs"] == len(PAIRS) and s["errors"] == 0
+    for r in s["records"]:
+        assert r["status"] == "result" and r["level"] == "none" and r["degraded"] and r["deadline_met"]
+        states = np.load(out / "received" / r["pair_id"] / "state_grid.npy")
+        assert states.size > 0 and set(np.unique(states)) == {2}  # everything unknown, honestly
+
+
+def test_minimal_flight_runs_a_descent_under_flight_cmd(manifest, tmp_path, capsys):
+    out = tmp_path / "run"
+    cmd = f"{sys.executable} {MINIMAL} --port {{port}}"
+    args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "snapdragon801"]
+    assert cli([*args, "--flight-cmd", cmd, "--out", str(out)]) == 0
+    assert "PASS: 2/2 pairs" in capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    _check_minimal_results(s, out)
+    assert s["flight"].startswith("command:") and s["budget"] == "snapdragon801"
+    assert 0 < np.median([r["cpu_fraction"] for r in s["records"]]) < 0.9  # throttled like ours
+
+
+def test_external_flight_computer_on_a_serial_device(manifest, tmp_path):
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(MINIMAL), "--port", bridge.paths[0]])
+        try:
+            s = run(manifest, tmp_path, flight="external", link=f"serial:{bridge.paths[1]}@115200")
+        finally:
+            board.terminate()
+            board.wait(timeout=10)
+    _check_minimal_results(s, tmp_path)
+    assert s["budget"] is None and s["memory_mib"] is None and exit_code(s) == 0
+    assert all(r["e2e_latency_s"] >= r["result_line_s"] >= 0 for r in s["records"])  # measured at the ground
+    assert not (tmp_path / "supervisor.log").exists()  # no supervisor
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, tmp_path, sig):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
+    cmd += ["--budget", "snapdragon801", "--baud", "115200", "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    seen: set[int] = set()
+    t0 = time.monotonic()
+    try:
+        while len(seen) < 3 and time.monotonic() - t0 < 60:  # ground, supervisor, flight process
+            seen |= _descendants(proc.pid)
+            time.sleep(0.1)
+        assert len(seen) >= 3, seen
+        time.sleep(0.5)
+        seen |= _descendants(proc.pid)
+        proc.send_signal(sig)
+        stdout, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig
+    assert "INCOMPLETE" in stdout
+    left = [p for p in seen if _alive(p)]
+    assert not left, [Path(f"/proc/{p}/cmdline").read_bytes() for p in left]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["complete"] is False and sig.name in s["reason"]
+    assert len(s["records"]) == len(PAIRS)  # every pair accounted for, unfinished ones marked
+    assert all(r["status"] == "result" or r["code"] in ("not_run", "link_down") for r in s["records"])
+    assert not [p.name for p in out.rglob(".*") if p.is_file()]  # no temporary files left behind
+
+
+def test_regress_from_another_directory_uses_the_packaged_baseline(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert cli(["regress", "--cases", "nope", "--out", "o"]) == 2  # found the packaged baseline, named the case
+    err = capsys.readouterr().err
+    assert "unknown regression case" in err and "vertical-host-zmq" in err
