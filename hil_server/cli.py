@@ -208,14 +208,18 @@ def _pairs(text: str | None) -> list[str] | None:
 
 
 def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
+    p.set_defaults(run_defaults=defaults)
     p.add_argument(
-        "--scenario", default=defaults.get("scenario", "vertical"), help="vertical | approach | trajectory FILE"
+        "--scenario",
+        default=None,
+        help=f"vertical | approach | trajectory FILE (default: {defaults.get('scenario', 'vertical')})",
     )
     p.add_argument(
         "--link",
-        default=defaults.get("link", "serial"),
+        default=None,
         help="serial | zmq (a loopback link to the emulated flight processor); with --flight external the far "
-        "end: serial:DEVICE[@BAUD] (e.g. serial:/dev/ttyUSB0@115200) or zmq:tcp://HOST:PORT",
+        "end: serial:DEVICE[@BAUD] (e.g. serial:/dev/ttyUSB0@115200) or zmq:tcp://HOST:PORT "
+        f"(default: {defaults.get('link', 'the budget’s link, see `hazard-hil budgets`')})",
     )
     p.add_argument(
         "--flight",
@@ -239,17 +243,25 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=None,
         help="exit 0 when at least this share of pairs met the deadline (default: every pair must)",
     )
-    p.add_argument("--budget", default=defaults.get("budget", "host"), help="see `hazard-hil budgets`")
+    p.add_argument(
+        "--budget", default=defaults.get("budget", "host"), help="emulated processor, see `hazard-hil budgets`"
+    )
     p.add_argument(
         "--pairs",
-        default=",".join(defaults["pairs"]) if defaults.get("pairs") else None,
-        help="comma-separated pair labels, e.g. 600/300,300/150 (default: all)",
+        default=None,
+        help="comma-separated pair labels, e.g. 600/300,300/150 "
+        f"(default: {','.join(defaults['pairs']) if defaults.get('pairs') else 'all of the scenario'})",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scene", default=None, help="scene preset or TOML file")
-    p.add_argument("--preset", choices=("fast", "thesis"), default="fast")
-    p.add_argument("--pace", choices=("lockstep", "asap"), default="lockstep")
-    p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s)")
+    p.add_argument("--seed", type=int, default=None, help="terrain and noise seed of the rendered descent (default: 0)")
+    p.add_argument("--scene", default=None, help="scene preset or TOML file (default: the scenario's)")
+    p.add_argument("--preset", choices=("fast", "thesis"), default="fast", help="flight software parameter preset")
+    p.add_argument(
+        "--pace",
+        choices=("lockstep", "asap"),
+        default="lockstep",
+        help="lockstep: the next pair goes once the last is answered; asap: stream the descent without waiting",
+    )
+    p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s, end to end)")
     p.add_argument(
         "--baud", type=int, default=None, help="serial baud rate (default: the budget's, else 921600; 115200 works)"
     )
@@ -283,19 +295,47 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         help="a far end silent or not acknowledging this long ends the link session (s, default 4)",
     )
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
-    p.add_argument("--out", type=Path, default=Path("out/run"))
+    p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
+
+
+# what a rendered descent takes, and a manifest already fixes
+_RENDER_OPTIONS = ("scenario", "pairs", "seed", "scene", "image_size")
 
 
 def _config(args: argparse.Namespace):
+    import math
+
+    from hil_server.budgets import get_budget
     from hil_server.run import RunConfig
 
+    defaults = getattr(args, "run_defaults", {})
+    if args.manifest is not None:
+        given = [f"--{k.replace('_', '-')}" for k in _RENDER_OPTIONS if getattr(args, k) is not None]
+        if given:
+            raise InputError(f"--manifest streams pairs already rendered; {', '.join(given)} would be ignored")
+    for name, value in (("--deadline", args.deadline), ("--link-timeout", args.link_timeout)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{name} must be a positive number of seconds, got {value}")
+    if args.baud is not None and args.baud <= 0:
+        raise InputError(f"--baud must be a positive rate, got {args.baud}")
+    if args.image_size is not None and not 16 <= args.image_size <= 8192:
+        raise InputError(f"--image-size must be 16..8192 px, got {args.image_size}")
+    link = args.link or defaults.get("link")
+    if link is None:  # the budget's own link: a host run over ZeroMQ, a flight board over serial
+        link = get_budget(args.budget).link if args.flight == "emulated" else "serial"
+    pairs = _pairs(args.pairs) if args.pairs is not None else defaults.get("pairs")
+    scenario = args.scenario or defaults.get("scenario", "vertical")
+    if args.manifest is None:
+        from ground_sim.trajectory import load_trajectory
+
+        load_trajectory(scenario)  # an unknown name is refused before anything starts
     return RunConfig(
-        scenario=args.scenario,
-        link=args.link,
+        scenario=scenario,
+        link=link,
         budget=args.budget,
         out=args.out,
-        pairs=_pairs(args.pairs),
-        seed=args.seed,
+        pairs=pairs,
+        seed=args.seed or 0,
         scene=args.scene,
         preset=args.preset,
         pace=args.pace,
@@ -362,15 +402,33 @@ def _cmd_regress(args: argparse.Namespace) -> int:
 
 
 def _register_runs(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="end-to-end HIL descent: ground sim -> link -> emulated flight processor")
+    p = sub.add_parser(
+        "run",
+        help="end-to-end HIL descent: ground sim -> link -> emulated flight processor",
+        description="Render a descent (or stream --manifest pairs), send each pair's frames over a serial line or "
+        "ZeroMQ to flight software on an emulated flight processor, and score what comes back against the "
+        "deadline (end to end, docs/hil.md) and the truth. Writes summary.json, summary.md, telemetry.jsonl and "
+        "report.html in --out. Exit 0 only when every pair met its deadline, 1 otherwise, 2 on bad usage.",
+    )
     _add_run_options(p, {})
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("demo", help="a short HIL descent over loopback serial with sensible defaults")
+    p = sub.add_parser(
+        "demo",
+        help="a short HIL descent over loopback serial with sensible defaults",
+        description="`run` with defaults: the vertical descent's 600/300, 300/150 and 200/100 pairs over loopback "
+        "serial to the Snapdragon 801 budget; calibrates this host first if it never was. Same exit codes as run.",
+    )
     _add_run_options(p, DEMO_DEFAULTS)
     p.set_defaults(func=_cmd_demo, out=Path("out/demo"))
 
-    p = sub.add_parser("regress", help="re-run fixed scenario x budget cases and compare to a baseline")
+    p = sub.add_parser(
+        "regress",
+        help="re-run fixed scenario x budget cases and compare to a baseline",
+        description="Re-run the baseline's scenario x budget cases and compare deadline hit rate and latency "
+        "percentiles (host-independent reference seconds; the unthrottled host case on CPU seconds) with "
+        "tolerances. Exit 0 when nothing regressed, 1 with a diff table that shows each crossed limit, 2 on bad usage.",
+    )
     p.add_argument(
         "--baseline",
         type=Path,
@@ -385,7 +443,7 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="also pass when a case's pairs met the deadline at least this often (default: every pair must)",
     )
-    p.add_argument("--out", type=Path, default=Path("out/regress"))
+    p.add_argument("--out", type=Path, default=Path("out/regress"), help="where the cases' runs are written")
     p.set_defaults(func=_cmd_regress)
 
 
