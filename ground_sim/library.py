@@ -175,9 +175,14 @@ def scene_sun(spec: str | Scene | None, scenario: str, seed: int) -> Sun:
     return DEFAULT_SUN.get(scenario, FALLBACK_SUN)
 
 
+DOC_ONLY = ("description", "order", "band_pct", "bands", "targets")  # [library] keys that do not change the scene
+
+
 def params_digest(name: str) -> str:
-    """sha256 of a preset's parsed TOML (comments and layout do not count)."""
+    """sha256 of what makes a preset's hazard share: its parsed TOML (comments, layout and the
+    [library] documentation keys - description, bands, targets - do not count; the sun does)."""
     doc, _, _ = scene_document(name)
+    doc = {**doc, "library": {k: v for k, v in doc.get("library", {}).items() if k not in DOC_ONLY}}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
