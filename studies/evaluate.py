@@ -197,9 +197,13 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
 }
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (
+    ("fp_pct_worst", "FP % worst seed"),
+    ("cdi_pct_worst", "CDI % worst seed"),
+    ("hazards_in_scene_pct_worst", "hazards in scene % most hazardous seed"),
     ("site_fp_pct", "site FP % (3 m footprint)"),
     ("site_cdi_pct", "site CDI %"),
     ("chosen_sites_safe_pct", "chosen sites truly safe %"),
+    ("chosen_sites_safe_pct_worst", "chosen sites truly safe % worst seed"),
     ("valid_pct", "DEM valid %"),
     ("pipeline_s", "pipeline s"),
     ("fn_dem_invalid_pct", "FN: DEM not recovered %"),
@@ -849,8 +853,13 @@ def read_metrics_csv(path: str | Path) -> list[dict[str, Any]]:
         return [{k: conv(v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
 
+# The worst seed beside the median (brief: quote held-out results with their worst case): max or min.
+WORST = {"fp_pct": max, "cdi_pct": min, "hazards_in_scene_pct": max, "chosen_sites_safe_pct": min}
+
+
 def summarise(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str, int], dict[str, float]]:
-    """(scenario, preset, altitude) -> median over seeds of every numeric metric (plus ``n_seeds``)."""
+    """(scenario, preset, altitude) -> median over seeds of every numeric metric (plus ``n_seeds``),
+    and ``<metric>_worst`` for the metrics of :data:`WORST`."""
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["scenario"], r["preset"], int(r["altitude_m"])), []).append(r)
@@ -866,6 +875,8 @@ def summarise(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str, int], dict
             ]
             if nums and k not in ("altitude_m", "seed"):
                 agg[k] = float(np.median(nums))
+                if k in WORST:
+                    agg[f"{k}_worst"] = float(WORST[k](nums))
         out[key] = agg
     return out
 
