@@ -46,10 +46,13 @@ RESULTS_SEEDS ?= 5
 RESULTS_LANDINGS ?= 1008
 # Scores and landings are recomputed (the flight software may have changed); rendered pairs are reused.
 results: $(STAMP)
-	rm -rf $(OUT)/eval_vertical/runs/evaluate.jsonl $(OUT)/eval_approach/runs/evaluate.jsonl $(OUT)/landings
+	rm -rf $(OUT)/eval_vertical/runs/evaluate.jsonl $(OUT)/eval_approach/runs/evaluate.jsonl
+	rm -rf $(OUT)/landings $(OUT)/landings_perfect_nav
 	$(VENV)/bin/hazard-hil evaluate --scenario vertical --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_vertical
 	$(VENV)/bin/hazard-hil evaluate --scenario approach --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_approach
-	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --out $(OUT)/landings
+	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders --out $(OUT)/landings
+	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders \
+	  --pose-error none --out $(OUT)/landings_perfect_nav
 	$(PY) bench/results.py $(OUT)
 
 clean:

@@ -2,11 +2,12 @@
 
 `make results` runs the campaigns and then this script; it copies the tables, per-pair metrics and a few
 figures into docs/results/ and replaces the text between ``<!-- BEGIN name -->`` and ``<!-- END name -->``
-markers in docs/RESULTS.md (blocks: ``vertical``, ``approach``, ``landings``, ``provenance``). Prose
+markers in docs/RESULTS.md (blocks: ``vertical``, ``approach``, ``landings``, ``landings_perfect_nav``,
+``provenance``). Prose
 outside the markers is left alone: read the new numbers and update it by hand.
 
 Usage: ``.venv/bin/python bench/results.py OUT [--results docs/RESULTS.md]`` with OUT holding
-``eval_vertical/``, ``eval_approach/`` and ``landings/``.
+``eval_vertical/``, ``eval_approach/``, ``landings/`` (and optionally ``landings_perfect_nav/``).
 """
 
 from __future__ import annotations
@@ -101,6 +102,12 @@ def main() -> None:
         shutil.copy(lp / "report" / f, dest / f"landings_{f}")
     shutil.copy(lp / "landings.json", dest / "landings.json")
     text = _block(text, "landings", _landings_md(doc))
+    pn = args.out / "landings_perfect_nav"
+    if (pn / "landings.json").is_file():
+        doc = json.loads((pn / "landings.json").read_text())
+        shutil.copy(pn / "landings.json", dest / "landings_perfect_nav.json")
+        shutil.copy(pn / "report" / "p_safe_by_scene.png", dest / "landings_perfect_nav_p_safe_by_scene.png")
+        text = _block(text, "landings_perfect_nav", _landings_md(doc))
     if args.wall:
         prov.append(f"- wall times: {args.wall}")
     text = _block(text, "provenance", "\n".join(prov) + "\n")

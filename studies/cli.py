@@ -243,6 +243,13 @@ def register_landings(subparsers: Any) -> None:
         help="local worker processes (default: CPU count; 1 = in-process)",
     )
     p.add_argument("--camera-px", type=_positive("--camera-px"), default=None, help=argparse.SUPPRESS)
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="keep rendered pairs here and reuse them (campaigns that differ only in aim points, navigation "
+        "errors or presets render once); default: no cache",
+    )
     add_seed_options(p, "scene seeds to cycle through")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_landings, seeds_default=100)
@@ -270,7 +277,12 @@ def _landings(args: argparse.Namespace) -> int:
     t0 = time.time()
     try:
         _, summary = ld.run_campaign(
-            c, args.out, scheduler=args.scheduler, workers=args.workers, progress=not args.no_progress
+            c,
+            args.out,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            progress=not args.no_progress,
+            cache_dir=args.cache,
         )
     except CampaignError as exc:
         print(f"hazard-hil landings: {exc}; rerun the same command to retry them", file=sys.stderr)

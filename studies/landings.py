@@ -223,26 +223,58 @@ def judge_site(
     return {"safe": n > 0 and unsafe == 0 and not border, "n_px": n, "n_unsafe": unsafe, "incomplete": border or n == 0}
 
 
-def land_group(plan: dict[str, Any], presets: list[str]) -> dict[str, Any]:
-    """Render one group's pair and fly every landing of it with every preset (a pure function: any backend)."""
-    from flight_sw.pipeline import run_pipeline
-    from ground_sim.descent import assemble_pair, render_views
-    from ground_sim.library import covered, share_pct
+def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any, Any]:
+    """(spec, pair) of a render group: rendered, or read from ``cache_dir`` where an earlier campaign left it.
+
+    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera), so
+    campaigns that differ only in aim points, navigation errors or presets share their renders."""
+    import os
+    import shutil
+
+    from ground_sim.descent import render_pair
     from ground_sim.scene import load_scene
     from ground_sim.trajectory import load_trajectory
-    from protocol.pairdir import Sun
+    from protocol.pairdir import Sun, read_pair, write_pair
     from studies.evaluate import _camera_for
 
     scenario = plan["scenario"]
     spec = next(s for s in load_trajectory(scenario, _camera_for(plan["camera_px"])) if s.label == plan["pair"])
-    sc = load_scene(plan["scene"], plan["seed"], scenario)
     sun = Sun(*plan["sun"])
-    views = render_views(sc, spec.camera, list(spec.poses), sun, workers=1)
-    pair = assemble_pair(sc, spec, sun, views, seed=plan["seed"])
-    world = views[0].world_xy
-    hazard = views[0].hazard
-    Xw = np.dstack([world, views[0].elevation]).reshape(-1, 3).astype(np.float64)
-    share = share_pct(hazard, covered(spec.camera, spec.poses[-1], Xw).reshape(hazard.shape))
+    if cache_dir is None:
+        return spec, render_pair(load_scene(plan["scene"], plan["seed"], scenario), spec, sun, seed=plan["seed"])
+    key = (
+        f"{plan['scene']}_{scenario}_{plan['pair'].replace('/', '-')}_s{plan['seed']}"
+        f"_sun{sun.azimuth_deg:.4f}-{sun.elevation_deg:.4f}_{plan['camera_px'] or 512}px"
+    )
+    d = Path(cache_dir) / key
+    if not (d / "pair.json").is_file():
+        sc = load_scene(plan["scene"], plan["seed"], scenario)
+        tmp = d.with_name(d.name + f".partial{os.getpid()}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        write_pair(tmp, render_pair(sc, spec, sun, seed=plan["seed"]))
+        try:
+            os.replace(tmp, d)  # atomic; a concurrent writer of the same key wrote the same bytes
+        except OSError:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return spec, read_pair(d)
+
+
+def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None = None) -> dict[str, Any]:
+    """Render one group's pair and fly every landing of it with every preset (a pure function: any backend).
+
+    Truth is read from the pair as written (float32 depth backprojected with the true pose), so a cached
+    and a fresh render give the same rows."""
+    from flight_sw.pipeline import run_pipeline
+    from ground_sim.library import covered, share_pct
+    from studies.evaluate import backproject_depth
+
+    scenario = plan["scenario"]
+    spec, pair = group_pair(plan, cache_dir)
+    hazard = pair.truth["hazard"]
+    X = backproject_depth(spec.camera, spec.poses[0], pair.truth["depth"].astype(np.float64))
+    world = X[..., :2]
+    X[..., 2] = pair.truth["elevation"]
+    share = share_pct(hazard, covered(spec.camera, spec.poses[-1], X.reshape(-1, 3)).reshape(hazard.shape))
     rows = []
     for ld in plan["landings"]:
         aim = (float(ld["aim"][0]), float(ld["aim"][1]))
@@ -390,14 +422,20 @@ def run_campaign(
     scheduler: Any = None,
     workers: int | None = None,
     progress: bool = True,
+    cache_dir: str | Path | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Fly the campaign (resuming ``out_dir/runs/landings.jsonl``); write CSV, JSON and the page.
 
+    ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
     Returns (rows, summary)."""
     from studies.executor import Task, run_tasks
 
     out = claim_out_dir(c, out_dir)
-    tasks = [Task(f"g{g:05d}", {"plan": plan_group(c, g), "presets": list(c.presets)}) for g in range(c.n_groups)]
+    cache = None if cache_dir is None else str(Path(cache_dir).resolve())
+    tasks = [
+        Task(f"g{g:05d}", {"plan": plan_group(c, g), "presets": list(c.presets), "cache_dir": cache})
+        for g in range(c.n_groups)
+    ]
     t0 = time.time()
     res = run_tasks(
         land_group,

@@ -99,9 +99,9 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_pa
     calls = []
     real = ld.land_group
 
-    def counting(plan, presets):
+    def counting(plan, presets, **kw):
         calls.append(plan["group"])
-        return real(plan, presets)
+        return real(plan, presets, **kw)
 
     monkeypatch.setattr(ld, "land_group", counting)
     rows1, s1 = ld.run_campaign(_campaign(n=2), tmp_path, workers=1, progress=False)
@@ -139,3 +139,24 @@ def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path):
         {k: v for k, v in r.items() if k not in drop} for r in dask
     ]
     assert {r["preset"] for r in local} == {"fast", "thesis"}
+
+
+@pytest.mark.slow
+def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch):
+    c = _campaign(n=2)
+    fresh, _ = ld.run_campaign(c, tmp_path / "a", workers=1, progress=False)
+    cached1, _ = ld.run_campaign(c, tmp_path / "b", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    assert len(list((tmp_path / "cache").iterdir())) == 2
+
+    def no_render(*a, **k):
+        raise AssertionError("rendered although the pair was cached")
+
+    monkeypatch.setattr("ground_sim.descent.render_pair", no_render)
+    other = _campaign(n=2, pose_error=None)  # other navigation errors: same renders
+    cached2, _ = ld.run_campaign(other, tmp_path / "c", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    drop = ("pipeline_s",)
+    assert [{k: v for k, v in r.items() if k not in drop} for r in fresh] == [
+        {k: v for k, v in r.items() if k not in drop} for r in cached1
+    ]
+    assert [r["hazards_in_scene_pct"] for r in cached2] == [r["hazards_in_scene_pct"] for r in fresh]
+    assert all(r["dz1_m"] == 0.0 for r in cached2)
