@@ -72,7 +72,16 @@ GLOSSARY: dict[str, Term] = {
         "safe ground recognised %", "TP / (TP + FN): of the truly safe pixels, the share called safe.", "%"
     ),
     "hazards_in_scene_pct": Term(
-        "hazards in scene %", "Share of covered pixels that are unsafe by the ground-truth rules.", "%"
+        "hazards in scene %",
+        "Share of the pixels whose true ground both frames see that are unsafe by the ground-truth rules "
+        "(thesis Tables 6.1/6.8; a property of the scene, not of the flight software).",
+        "%",
+    ),
+    "hazards_in_scored_pct": Term(
+        "hazards in the scored area %",
+        "Share of the pixels the flight software covered (and that are scored) that are unsafe by the "
+        "ground-truth rules: the most FP % could be.",
+        "%",
     ),
     "valid_pct": Term("DEM coverage %", "Share of the covered area (seen by both images) that got an elevation.", "%"),
     "dem_mean_abs_m": Term("DEM mean |error| [m]", "Mean absolute elevation error over pixels with both values.", "m"),

@@ -200,6 +200,7 @@ EXTRA_METRICS = (
     ("fp_pct_worst", "FP % worst seed"),
     ("cdi_pct_worst", "CDI % worst seed"),
     ("hazards_in_scene_pct_worst", "hazards in scene % most hazardous seed"),
+    ("hazards_in_scored_pct", "hazards in the scored area %"),
     ("site_fp_pct", "site FP % (3 m footprint)"),
     ("site_cdi_pct", "site CDI %"),
     ("chosen_sites_safe_pct", "chosen sites truly safe %"),
@@ -321,7 +322,8 @@ def score_arrays(
     c = scoring.confusion(est["hazard"], truth["hazard"], covered)
     e = scoring.confusion(est["hazard"], truth["hazard"], covered, exclude=epipole_box)
     s = scoring.site_scores(est["hazard"], truth["hazard"], covered, site_radius_px)
-    m["hazards_in_scene_pct"] = c["hazards_pct"]
+    m["hazards_in_scene_pct"] = c["hazards_pct"]  # over the scored area; evaluate_pair replaces it (truth area)
+    m["hazards_in_scored_pct"] = c["hazards_pct"]
     for prefix, src in (("", c), ("epi_", e)):
         m.update(
             {
@@ -466,6 +468,12 @@ def evaluate_pair(
     box = scoring.box_mask(truth_elev.shape, epi, epipole_box_px)
     est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": res.slope_deg, "roughness_m": res.roughness_m}
     m: dict[str, Any] = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    # Table 6.1/6.8's hazards in scene is a property of the scene: the share of frame-0 pixels whose true
+    # ground the last frame sees, as ground_sim measures it - not of the area the flight software covered
+    from ground_sim.library import covered, share_pct
+
+    true_cov = covered(pair.camera, true2, world.reshape(-1, 3)).reshape(truth_elev.shape)
+    m["hazards_in_scene_pct"] = share_pct(pair.truth["hazard"], true_cov & np.isfinite(pair.truth["hazard"]))
     if res.sites:
         uv = project_points(pair.camera, true1, np.array([[s.x, s.y, s.z] for s in res.sites]))
         ch = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)

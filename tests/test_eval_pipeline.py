@@ -37,6 +37,13 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert r["tp_pct"] + r["tn_pct"] + r["fp_pct"] + r["fn_pct"] == pytest.approx(100.0)
     assert r["cdi_pct"] == pytest.approx(r["tp_pct"] + r["tn_pct"])
     assert 0 < r["hazards_in_scene_pct"] < 100 and r["slope_mean_abs_deg"] is not None
+    # hazards in scene is the scene's (over the truly covered area, as the renderer recorded it), not the
+    # flight software's covered area
+    from protocol.pairdir import read_pair
+
+    meta = read_pair(r["pair"], load_truth=False).meta
+    assert r["hazards_in_scene_pct"] == pytest.approx(meta["hazards_in_scene_pct"], abs=0.05)
+    assert 0 < r["hazards_in_scored_pct"] < 100
     fn_parts = [
         r[k]
         for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct", "fn_other_pct")
