@@ -173,3 +173,19 @@ def test_truth_geometry_error_at_grazing_angles_is_bounded(scene, scenario, idx)
     assert np.mean(dz > 0.01) < 0.03
     assert np.mean(dz > 0.3) < 0.002
     assert np.mean(ref_unsafe != (v.hazard.ravel() >= 1)) < 0.003
+
+
+def test_scenes_command_lists_the_library(capsys):
+    from hil_server.cli import main
+
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    for name in REQUIRED:
+        assert f"\n{name}: " in "\n" + out
+    assert out.count("hazards in scene %") == 2 * len(REQUIRED)
+    assert "held-out seeds 1000-1009" in out and "sun drawn per seed: azimuth 0-360 deg, elevation 2-5 deg" in out
+    assert main(["scenes", "--json", "thesis"]) == 0
+    import json
+
+    (d,) = json.loads(capsys.readouterr().out)
+    assert d["name"] == "thesis" and d["problems"] == [] and set(d["hazards_in_scene_pct"]) == {"vertical", "approach"}
