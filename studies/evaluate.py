@@ -769,7 +769,7 @@ def evaluate_scenario(
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"
     scene_spec = scene or scenario_scene(scenario)
     n_alts = len(list(altitudes)) if altitudes is not None else 8
-    with local_pool(None if scheduler else workers, len(seeds) * n_alts * len(presets)) as pool:
+    with local_pool(1 if scheduler else workers, len(seeds) * n_alts * len(presets)) as pool:
         pairs = render_all(
             scenario,
             seeds,
