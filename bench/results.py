@@ -40,9 +40,10 @@ def _seeds(metrics_csv: Path) -> tuple[str, list[int], str]:
 
 def _landings_md(doc: dict) -> str:
     camp = doc["campaign"]
+    seeds = doc.get("seeds_used") or camp["seeds"]
     lines = [
         f"{camp['n_landings']} landings per preset ({camp['n_renders']} renders × {camp['per_render']} aim points) "
-        f"over {', '.join(camp['scenes'])}; {camp['seed_set']} seeds {min(camp['seeds'])}-{max(camp['seeds'])}; "
+        f"over {', '.join(camp['scenes'])}; {camp['seed_set']} seeds {min(seeds)}-{max(seeds)}; "
         f"navigation errors per frame `{camp['pose_error']}`.",
         "",
         "| preset | P(safe landing) | 95 % Wilson interval | P(no site) | P(unsafe site) | P(aim point safe) | "

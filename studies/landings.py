@@ -450,6 +450,7 @@ def run_campaign(
     rows = [r for t in tasks for r in res[t.id]["rows"]]
     summary = summarise(rows)
     summary["campaign"] = {**c.identity(), "n": c.n, "n_landings": c.n_landings, "n_renders": c.n_groups}
+    summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
     summary["wall_s_this_run"] = wall
     write_rows(rows, out / "landings.csv")
     (out / "landings.json").write_text(json.dumps(summary, indent=1) + "\n")
@@ -555,7 +556,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
     rep.mkdir(parents=True, exist_ok=True)
     figs = _plots(rep, rows, summary)
     camp = summary["campaign"]
-    seeds = camp["seeds"]
+    seeds = summary.get("seeds_used") or camp["seeds"]
     head = []
     for p, st in summary["per_preset"].items():
         lo, hi = st["p_safe_ci95"]
