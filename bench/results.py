@@ -41,10 +41,14 @@ def _seeds(metrics_csv: Path) -> tuple[str, list[int], str]:
 def _landings_md(doc: dict) -> str:
     camp = doc["campaign"]
     seeds = doc.get("seeds_used") or camp["seeds"]
+    nav = (
+        f"navigation errors per frame `{camp['pose_error']}`."
+        if camp["pose_error"]
+        else "perfect navigation knowledge (no pose errors)."
+    )
     lines = [
         f"{camp['n_landings']} landings per preset ({camp['n_renders']} renders × {camp['per_render']} aim points) "
-        f"over {', '.join(camp['scenes'])}; {camp['seed_set']} seeds {min(seeds)}-{max(seeds)}; "
-        f"navigation errors per frame `{camp['pose_error']}`.",
+        f"over {', '.join(camp['scenes'])}; {camp['seed_set']} seeds {min(seeds)}-{max(seeds)}; " + nav,
         "",
         "| preset | P(safe landing) | 95 % Wilson interval | P(no site) | P(unsafe site) | P(aim point safe) | "
         "divert p50 / p90 m |",
