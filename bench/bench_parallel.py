@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -66,10 +67,17 @@ def _load() -> float:
     return os.getloadavg()[0]
 
 
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def _run(code: str, env: dict[str, str]) -> tuple[float, float]:
+    """(wall, CPU seconds of the case process and every worker it started)."""
+    c0 = _children_cpu()
     out = subprocess.run([PY, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
-    wall, cpu = (float(x) for x in out.stdout.split()[-2:])
-    return wall, cpu
+    wall = float(out.stdout.split()[-2])
+    return wall, _children_cpu() - c0
 
 
 def _env(single: bool) -> dict[str, str]:
@@ -113,6 +121,7 @@ def bench_evaluate(repeat: int, workers: int) -> dict:
             name = f"--workers {w}"
             d = Path(tempfile.mkdtemp(prefix="bench_eval_"))
             l0 = _load()
+            c0 = _children_cpu()
             t0 = time.perf_counter()
             subprocess.run(
                 [exe, "evaluate", "--scenario", "vertical", "--preset", "fast", "--seeds", "2"]
@@ -126,6 +135,7 @@ def bench_evaluate(repeat: int, workers: int) -> dict:
             shutil.rmtree(d, ignore_errors=True)
             r = res.setdefault(name, {"wall": [], "cpu": [], "load": []})
             r["wall"].append(wall)
+            r["cpu"].append(_children_cpu() - c0)
             r["load"].append((l0 + _load()) / 2)
             print(f"  [{k + 1}/{repeat}] evaluate {name}: {wall:.1f} s (load {r['load'][-1]:.2f})", flush=True)
     return res
@@ -133,11 +143,15 @@ def bench_evaluate(repeat: int, workers: int) -> dict:
 
 def _table(title: str, res: dict, base: str) -> list[str]:
     med = {k: statistics.median(v["wall"]) for k, v in res.items()}
-    lines = [f"**{title}**", "", "| case | median wall s | min s | max s | load avg during | speed-up vs first |"]
-    lines.append("|---|---|---|---|---|---|")
+    lines = [
+        f"**{title}**",
+        "",
+        "| case | median wall s | min s | max s | CPU s, all processes | load avg during | speed-up vs first |",
+    ]
+    lines.append("|---|---|---|---|---|---|---|")
     for k, v in res.items():
         lines.append(
-            f"| {k} | {med[k]:.1f} | {min(v['wall']):.1f} | {max(v['wall']):.1f} | "
+            f"| {k} | {med[k]:.1f} | {min(v['wall']):.1f} | {max(v['wall']):.1f} | {statistics.median(v['cpu']):.1f} | "
             f"{min(v['load']):.2f}-{max(v['load']):.2f} | {med[base] / med[k]:.2f}x |"
         )
     return lines

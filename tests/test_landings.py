@@ -160,3 +160,37 @@ def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: 
     ]
     assert [r["hazards_in_scene_pct"] for r in cached2] == [r["hazards_in_scene_pct"] for r in fresh]
     assert all(r["dz1_m"] == 0.0 for r in cached2)
+
+
+def test_summary_and_report_page_from_known_rows(tmp_path: Path):
+    """Counts -> P(safe), P(no site), Wilson interval, divert percentiles per scene and preset; the page shows
+    them and, where a browser is installed, loads with every figure."""
+    import os
+    import sys
+
+    rows = []
+    for i in range(40):
+        outcome = "safe" if i < 25 else ("unsafe" if i < 30 else "no_site")
+        scene = "mare" if i % 2 else "thesis"
+        row = {"landing": i, "group": i // 8, "preset": "fast", "outcome": outcome, "safe": outcome == "safe"}
+        row |= {"site_found": outcome != "no_site", "scene": scene, "aim_safe": i < 20, "scenario": "vertical"}
+        row |= {"pair": "200/100", "divert_m": float(i) if outcome != "no_site" else None}
+        rows.append(row)
+    s = ld.summarise(rows)
+    st = s["per_preset"]["fast"]
+    assert (st["n"], st["n_safe"], st["n_unsafe"], st["n_no_site"]) == (40, 25, 5, 10)
+    assert st["p_safe"] == 25 / 40 and st["p_no_site"] == 0.25 and st["p_safe_ci95"] == list(wilson(25, 40))
+    assert st["divert_m"]["p50"] == pytest.approx(np.percentile(np.arange(30.0), 50)) and st["p_aim_safe"] == 0.5
+    assert s["per_scene"]["mare"]["fast"]["n"] == 20
+    s["campaign"] = {"n_landings": 40, "n_renders": 5, "per_render": 8, "scenes": ["thesis", "mare"]}
+    s["campaign"] |= {"seed_set": "held-out", "seeds": [1000, 1001], "pose_error": None}
+    page = ld.write_report(tmp_path, rows, s)
+    text = page.read_text()
+    assert "0.625" in text and "P(safe landing)" in text and "held-out scene seeds 1000-1001" in text
+    sys.path.insert(0, str(Path(__file__).parent))
+    from browser import check_page, chromium_path
+
+    if chromium_path() is None and not os.environ.get("HAZARD_HIL_REQUIRE_BROWSER"):
+        return
+    res = check_page(page)
+    assert res.ok and res.images == 3, res
