@@ -446,7 +446,10 @@ def evaluate_pair(
     if pose_error:
         fly1, fly2 = perturb_poses(true1, true2, pose_error["frames"])
     t0 = time.perf_counter()
-    res = run_pipeline(pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset)
+    # the altimeter reading the flight process gets in HIL runs (flight v2 centres its ground search on it)
+    res = run_pipeline(
+        pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset, altimeter_m=pair.altimeter_m
+    )
     wall = time.perf_counter() - t0
 
     truth_elev = pair.truth["elevation"].astype(np.float32)

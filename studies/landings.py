@@ -283,7 +283,14 @@ def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None =
         for preset in presets:
             t0 = time.process_time()
             res = run_pipeline(
-                pair.images[0], pair.images[-1], fly[0], fly[-1], spec.camera, preset=preset, nominal_site_xy=aim
+                pair.images[0],
+                pair.images[-1],
+                fly[0],
+                fly[-1],
+                spec.camera,
+                preset=preset,
+                nominal_site_xy=aim,
+                altimeter_m=pair.altimeter_m,  # the reading the flight process gets in HIL runs
             )
             cpu = time.process_time() - t0
             row: dict[str, Any] = {
