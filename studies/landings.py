@@ -358,7 +358,11 @@ def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
     den = 1.0 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    # exact at the boundaries (k = 0 or n): centre - half is 0 or 1 only up to rounding, which could put
+    # the proportion itself outside its interval
+    lo = 0.0 if k == 0 else max(0.0, centre - half)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return (lo, hi)
 
 
 def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -507,7 +511,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             val = [s["p_safe"] for s in st]
             ci = [s["p_safe_ci95"] for s in st]
             colour = None
-        err = np.array([[v - c[0] for v, c in zip(val, ci)], [c[1] - v for v, c in zip(val, ci)]])
+        err = np.clip(np.array([[v - c[0] for v, c in zip(val, ci)], [c[1] - v for v, c in zip(val, ci)]]), 0, None)
         ax.bar(
             x + (i - len(presets) / 2) * w,
             val,

@@ -33,6 +33,10 @@ def test_wilson_edge_cases():
         wilson(5, 4)
     lo, hi = wilson(500, 1000)
     assert lo < 0.5 < hi and hi - lo == pytest.approx(2 * 1.96 * math.sqrt(0.25 / 1000), rel=0.01)
+    # all or nothing: the interval holds the proportion exactly (n = 56 left 7e-18 above 0 by rounding, which
+    # made the report's error bars negative)
+    for n in (1, 56, 112, 336, 1008):
+        assert wilson(0, n)[0] == 0.0 and wilson(n, n)[1] == 1.0
 
 
 def _grid(n=41, cell=0.25):
