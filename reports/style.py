@@ -180,6 +180,21 @@ GLOSSARY.update(
             "undetected near threshold %", "Share of the undetected hazards whose estimated hazard was >= 0.8.", "%"
         ),
         "altitude_m": Term("altitude [m]", "Altitude of the upper image of the pair.", "m"),
+        # the worst seed beside the median (studies.evaluate.WORST)
+        "fp_pct_worst": Term(
+            "FP % worst seed", "The highest FP % (undetected hazard) of any seed at this altitude.", "%"
+        ),
+        "cdi_pct_worst": Term("CDI % worst seed", "The lowest CDI % of any seed at this altitude.", "%"),
+        "hazards_in_scene_pct_worst": Term(
+            "hazards in scene % most hazardous seed",
+            "The highest hazards in scene % of any seed at this altitude.",
+            "%",
+        ),
+        "chosen_sites_safe_pct_worst": Term(
+            "chosen sites truly clear % worst seed",
+            "The lowest share of truly clear offered sites of any seed at this altitude.",
+            "%",
+        ),
     }
 )
 

@@ -135,6 +135,7 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
     # labels from the glossary: unique, explained, no Markdown left on the page
     assert "FP % (undetected hazard): thesis" in text and "DEM error kurtosis" in text and "**" not in text
     assert "kurtosis*" not in text and "TN% excl" not in text
+    assert "_worst" not in text  # the worst-seed metrics have glossary labels too
     if browser_available():
         check = check_page(page)
         assert check.ok and check.images == 9, check
