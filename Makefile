@@ -7,7 +7,7 @@ OUT    ?= out
 PACKAGES := ground_sim flight_sw protocol hil_server studies reports
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test lint chromium bench install clean
+.PHONY: demo test lint chromium bench results install clean
 
 # PYTHONWARNINGS: setuptools warns that an editable install is editable; nothing else is hidden
 # (a failed install still fails the target).
@@ -39,6 +39,21 @@ test: lint chromium
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py
+
+# docs/RESULTS.md's measured blocks: both scenario tables on the thesis scene (held-out seeds) and the
+# landing Monte Carlo over every library scene, then bench/results.py copies them into docs/.
+RESULTS_SEEDS ?= 5
+RESULTS_LANDINGS ?= 1008
+# Scores and landings are recomputed (the flight software may have changed); rendered pairs are reused.
+results: $(STAMP)
+	rm -rf $(OUT)/eval_vertical/runs/evaluate.jsonl $(OUT)/eval_approach/runs/evaluate.jsonl
+	rm -rf $(OUT)/landings $(OUT)/landings_perfect_nav
+	$(VENV)/bin/hazard-hil evaluate --scenario vertical --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_vertical
+	$(VENV)/bin/hazard-hil evaluate --scenario approach --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_approach
+	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders --out $(OUT)/landings
+	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders \
+	  --pose-error none --out $(OUT)/landings_perfect_nav
+	$(PY) bench/results.py $(OUT)
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache

@@ -1,36 +1,77 @@
-"""``hazard-hil render``: render a descent scenario to pair directories."""
+"""``hazard-hil render`` (a descent to pair directories) and ``hazard-hil scenes`` (the scene library)."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "render",
         help="render a descent (image pairs + ground truth) to pair directories",
-        description="Render a descent scenario: one pair directory per pair "
-        "(DESIGN.md format, with gt_*_i1.npy), manifest.json and contact.png.",
+        description="Render a descent scenario: one pair directory per pair (DESIGN.md format, with "
+        "gt_*_i1.npy and each frame's altimeter range), manifest.json (scene, sun, hazards in scene per "
+        "pair) and contact.png. Frames are rendered in a pool of single-threaded processes.",
     )
     p.add_argument("--scenario", required=True, help="vertical, approach, or a .toml/.json trajectory file")
     p.add_argument("--pairs", default=None, help="comma-separated pair labels, e.g. 600/300,400/200")
+    p.add_argument(
+        "--frames",
+        action="append",
+        default=None,
+        metavar="ALT,ALT,...",
+        help="one multi-frame directory (2-16 frames, highest first) at these altitudes along the "
+        "scenario's path, e.g. 300,250,200,150; repeat for several",
+    )
     p.add_argument("--seed", type=int, default=0, help="scene and noise seed (default 0)")
     p.add_argument(
         "--scene",
         default=None,
-        help="scene preset (default, approach, flat) or .toml file "
-        "(default: 'approach' for the approach scenario, else 'default')",
+        help="library scene (hazard-hil scenes), other preset, name:variant, or .toml file "
+        "(default: thesis, in the scenario's variant)",
     )
     p.add_argument(
         "--pose-error",
         default=None,
         help="inject pose errors, e.g. alt=0.5,pitch=0.05,roll_yaw=0,lateral=0,equal_pitch=1",
     )
-    p.add_argument("--sun", default=None, help="AZ,EL in degrees (default per scenario)")
+    p.add_argument("--sun", default=None, help="AZ,EL in degrees (default: the scene's sun for this seed)")
     p.add_argument("--supersample", type=int, default=2, help="sub-pixels per axis (default 2)")
+    p.add_argument("--workers", type=int, default=None, help="render processes (default: CPU count)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_run)
+
+    s = subparsers.add_parser(
+        "scenes",
+        help="list the scene library: parameters, sun, measured hazards in scene",
+        description="The named scenes, their parameters, their sun and their ground-truth hazards in scene "
+        "(the thesis's Table 6.1/6.8 quantity) per table altitude, median and range over the held-out "
+        "seeds, against each scene's documented band. --measure re-measures and rewrites the table.",
+    )
+    s.add_argument("names", nargs="*", help="scenes to show (default: all)")
+    s.add_argument("--measure", action="store_true", help="re-measure the hazard shares and store them")
+    s.add_argument("--seeds", type=int, default=10, help="held-out seeds to measure (default 10: 1000-1009)")
+    s.add_argument("--workers", type=int, default=None, help="measurement processes (default: CPU count)")
+    s.add_argument("--table", default=None, help="hazard-share table to read/write (default: the packaged one)")
+    s.add_argument("--json", action="store_true", help="print the library as JSON")
+    s.set_defaults(func=_scenes)
+
+
+def _parse_frames(groups: list[str] | None) -> list[list[float]] | None:
+    from ground_sim.errors import TrajectoryError
+
+    if not groups:
+        return None
+    out = []
+    for g in groups:
+        try:
+            out.append([float(a) for a in g.split(",") if a.strip()])
+        except ValueError:
+            raise TrajectoryError(f"--frames: expected comma-separated altitudes, got {g!r}") from None
+    return out
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -47,18 +88,54 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError:
             raise RenderError(f"--sun: expected AZ,EL in degrees, got {args.sun!r}") from None
         sun = Sun(az, el)
-    scene = args.scene or None  # None: the scenario's default scene
+    if args.frames and args.pairs:
+        raise RenderError("--frames and --pairs exclude each other")
+    if args.workers is not None and args.workers < 1:
+        raise RenderError(f"--workers must be >= 1, got {args.workers}")
     pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs else None
     out = render_scenario(
         args.scenario,
         args.out,
-        scene=scene,
+        scene=args.scene or None,
         seed=args.seed,
         pairs=pairs,
+        frames=_parse_frames(args.frames),
         pose_error=pe,
         progress=not args.no_progress,
         sun=sun,
         supersample=args.supersample,
+        workers=args.workers,
     )
     print(out / "manifest.json")
     return 0
+
+
+def _scenes(args: argparse.Namespace) -> int:
+    from ground_sim import library as lib
+    from ground_sim.errors import SceneError
+    from ground_sim.seeds import HELD_OUT_SEEDS
+
+    known = {e.name: e for e in lib.entries()}
+    names = args.names or list(known)
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise SceneError(f"not library scenes: {bad} (library: {', '.join(known)})")
+    table_path = args.table or lib.SHARES_PATH
+    if args.measure:
+        if not 1 <= args.seeds <= len(HELD_OUT_SEEDS):
+            raise SceneError(f"--seeds must be 1..{len(HELD_OUT_SEEDS)}, got {args.seeds}")
+        seeds = list(HELD_OUT_SEEDS[: args.seeds])
+        print(f"measuring {len(names)} scene(s) on held-out seeds {seeds[0]}-{seeds[-1]} ...", file=sys.stderr)
+        doc = lib.merge_shares(lib.load_shares(table_path), lib.measure(names, seeds, workers=args.workers))
+        from pathlib import Path
+
+        Path(table_path).write_text(json.dumps(doc, indent=1) + "\n")
+    table = lib.load_shares(table_path)
+    if args.json:
+        print(json.dumps(lib.describe(names, table), indent=1))
+        return 0
+    print(lib.format_listing(names, table))
+    problems = [p for n in names for p in lib.check(known[n], table.get("scenes", {}).get(n))]
+    for p in problems:
+        print(f"WARNING: {p}", file=sys.stderr)
+    return 1 if problems and args.measure else 0

@@ -1,4 +1,10 @@
-"""Render descent pairs to pair directories (DESIGN.md format) with ground truth."""
+"""Render descent pairs (2-16 frames each) to pair directories (DESIGN.md format) with ground truth.
+
+Frames are rendered in a pool of single-threaded processes (:mod:`ground_sim.parallel`);
+a pose shared by two pairs (the vertical descent's 400 m frame is the lower frame of
+800/400 and the upper one of 400/200) is rendered once and given each pair's own sensor
+noise, so the bytes do not depend on the pool or on the sharing.
+"""
 
 from __future__ import annotations
 
@@ -6,20 +12,26 @@ import json
 import sys
 import time
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ground_sim import library
 from ground_sim.errors import TrajectoryError
+from ground_sim.library import DEFAULT_SUN, covered, share_pct
 from ground_sim.pose_error import PoseError
-from ground_sim.render import render_view
-from ground_sim.scene import Scene, load_scene
-from ground_sim.trajectory import PairSpec, load_trajectory
-from protocol.pairdir import Camera, Pair, Sun, write_pair
+from ground_sim.render import View, noisy_image, render_view
+from ground_sim.scene import Scene, SceneParams, load_scene
+from ground_sim.trajectory import PairSpec, frames_at, load_trajectory
+from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
 
-DEFAULT_SUN = {"vertical": Sun(135.0, 25.0), "approach": Sun(120.0, 25.0)}
+__all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
+
+INLINE_PIXELS = 2 * 512 * 512  # default-worker renders up to this many pixels stay in-process
 ALTITUDE_CONVENTION = (
-    "altitude_m is the LOWER frame's altitude above the reference plane, as in "
+    "altitude_m is the LOWER (last) frame's altitude above the reference plane, as in "
     "thesis Tables 6.1/6.8 (600/300 is the 300 m row)"
 )
 
@@ -28,38 +40,110 @@ def _key(label: str) -> int:
     return zlib.crc32(label.encode())
 
 
-def render_pair(
-    scene: Scene, spec: PairSpec, sun: Sun, *, seed: int = 0, pose_error: PoseError | None = None, supersample: int = 2
+def noise_seed(seed: int, label: str, k: int) -> int:
+    """Sensor-noise seed of frame ``k`` of the pair ``label`` rendered with scene seed ``seed``."""
+    return seed * 7919 + _key(label) * 2 + k
+
+
+@dataclass(frozen=True)
+class _Job:
+    params: SceneParams
+    scene_seed: int
+    camera: Camera
+    pose: Pose
+    sun: Sun
+    supersample: int
+
+
+def _render_job(job: _Job) -> View:
+    return render_view(
+        Scene(job.params, job.scene_seed), job.camera, job.pose, job.sun, supersample=job.supersample, noise=False
+    )
+
+
+def _pose_key(camera: Camera, pose: Pose) -> bytes:
+    return repr(camera).encode() + pose.position.tobytes() + pose.R.tobytes()
+
+
+def render_views(
+    scene: Scene, camera: Camera, poses: list[Pose], sun: Sun, *, supersample: int = 2, workers: int | None = 1
+) -> list[View]:
+    """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes."""
+    from ground_sim.parallel import pool_map
+
+    uniq: dict[bytes, int] = {}
+    jobs: list[tuple[_Job]] = []
+    for p in poses:
+        k = _pose_key(camera, p)
+        if k not in uniq:
+            uniq[k] = len(jobs)
+            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample)),))
+    if workers is None and camera.width * camera.height * len(jobs) <= INLINE_PIXELS:
+        workers = 1  # a pool's start-up (spawn + imports, ~1 s) would cost more than it saves
+    views = pool_map(_render_job, jobs, workers)
+    return [views[uniq[_pose_key(camera, p)]] for p in poses]
+
+
+def _true_frames(poses: tuple[Pose, ...]) -> list[dict[str, Any]]:
+    return [p.to_dict(image_name(k)) for k, p in enumerate(poses)]
+
+
+def assemble_pair(
+    scene: Scene,
+    spec: PairSpec,
+    sun: Sun,
+    views: list[View],
+    *,
+    seed: int = 0,
+    pose_error: PoseError | None = None,
 ) -> Pair:
-    """Render both frames of ``spec``; reported poses carry the injected errors, truth is for i1."""
-    views = [
-        render_view(scene, spec.camera, p, sun, seed=seed * 7919 + _key(spec.label) * 2 + k, supersample=supersample)
-        for k, p in enumerate(spec.poses)
-    ]
-    reported = spec.poses
-    meta: dict = {
-        "scenario": spec.scenario,
-        "label": spec.label,
-        "altitude_m": spec.altitude_m,
-        "altitude_convention": ALTITUDE_CONVENTION,
-        "scene": scene.params.name,
-        "scene_seed": scene.seed,
-        "seed": seed,
-        "true_frames": [p.to_dict(n) for p, n in zip(spec.poses, ("i1.png", "i2.png"))],
-        "render": [v.info | {"raster_origin_m": [float(x) for x in v.info["raster_origin_m"]]} for v in views],
-    }
-    if pose_error is not None:
-        rng = np.random.default_rng([seed & 0xFFFFFFFF, _key(spec.label), 0xE77])
-        deltas = pose_error.sample(rng)
-        reported = (deltas[0].apply(spec.poses[0]), deltas[1].apply(spec.poses[1]))
-        meta["pose_error"] = {"distribution": pose_error.to_dict(), "frames": [d.to_dict() for d in deltas]}
+    """A :class:`Pair` from rendered views: each frame's sensor noise, reported poses, truth of frame 0."""
+    images = tuple(noisy_image(v, noise_seed(seed, spec.label, k)) for k, v in enumerate(views))
     truth = {
         "elevation": views[0].elevation,
         "depth": views[0].depth,
         "shadow": views[0].shadow,
         "hazard": views[0].hazard,
     }
-    return Pair(spec.camera, reported, (views[0].image, views[1].image), sun, truth, meta)
+    world = np.dstack([views[0].world_xy, views[0].elevation]).reshape(-1, 3).astype(np.float64)
+    cov = covered(spec.camera, spec.poses[-1], world).reshape(views[0].hazard.shape)
+    meta: dict = {
+        "scenario": spec.scenario,
+        "label": spec.label,
+        "altitude_m": spec.altitude_m,
+        "altitude_convention": ALTITUDE_CONVENTION,
+        "scene": scene.params.name,
+        "scene_variant": scene.params.variant,
+        "scene_spec": scene.params.spec,
+        "scene_seed": scene.seed,
+        "seed": seed,
+        "hazards_in_scene_pct": share_pct(views[0].hazard, cov),
+        "hazard_fraction": float(np.mean(views[0].hazard >= 1.0)),
+        "true_frames": _true_frames(spec.poses),
+        "render": [v.info | {"raster_origin_m": [float(x) for x in v.info["raster_origin_m"]]} for v in views],
+    }
+    reported = spec.poses
+    if pose_error is not None:
+        rng = np.random.default_rng([seed & 0xFFFFFFFF, _key(spec.label), 0xE77])
+        deltas = pose_error.sample_n(rng, len(spec.poses))
+        reported = tuple(d.apply(p) for d, p in zip(deltas, spec.poses))
+        meta["pose_error"] = {"distribution": pose_error.to_dict(), "frames": [d.to_dict() for d in deltas]}
+    return Pair(spec.camera, reported, images, sun, truth, meta, altimeter_m=tuple(float(v.altimeter_m) for v in views))
+
+
+def render_pair(
+    scene: Scene,
+    spec: PairSpec,
+    sun: Sun,
+    *,
+    seed: int = 0,
+    pose_error: PoseError | None = None,
+    supersample: int = 2,
+    workers: int | None = 1,
+) -> Pair:
+    """Render every frame of ``spec``; reported poses carry the injected errors, truth is for frame 0."""
+    views = render_views(scene, spec.camera, list(spec.poses), sun, supersample=supersample, workers=workers)
+    return assemble_pair(scene, spec, sun, views, seed=seed, pose_error=pose_error)
 
 
 def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
@@ -77,13 +161,12 @@ def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
 
 
 def default_scene(scenario: str) -> str:
-    """Scene preset a scenario is rendered on unless told otherwise.
+    """Scene a scenario is rendered on unless told otherwise: the library's ``thesis`` scene.
 
-    The approach scenario flies over the thesis's safer area (Table 6.8, fewer
-    hazards than the vertical descent's Table 6.1 scene); everything else,
-    custom trajectories included, uses ``default``.
+    ``thesis`` has one variant per thesis scenario (the approach flies over the safer area of
+    Table 6.8); custom trajectories use its base (vertical-descent) terrain.
     """
-    return "approach" if scenario == "approach" else "default"
+    return "thesis"
 
 
 def render_scenario(
@@ -93,34 +176,49 @@ def render_scenario(
     scene: str | Path | Scene | None = None,
     seed: int = 0,
     pairs: list[str] | None = None,
+    frames: list[list[float]] | None = None,
     pose_error: PoseError | None = None,
     progress: bool = True,
     sun: Sun | None = None,
     supersample: int = 2,
     camera: Camera | None = None,
+    workers: int | None = None,
 ) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
 
-    ``camera`` replaces the scenario's camera (e.g. a smaller sensor with the same FOV);
-    ``scene=None`` renders on :func:`default_scene` of the scenario.
+    ``frames`` (lists of altitudes, highest first) renders multi-frame directories of the
+    scenario instead of its pairs. ``camera`` replaces the scenario's camera (e.g. a smaller
+    sensor with the same FOV); ``scene=None`` renders on :func:`default_scene`; ``sun=None``
+    uses the library scene's sun for this seed (or the scenario's). ``workers`` renders frames
+    in that many single-threaded processes (default: CPU count).
     """
     specs = load_trajectory(spec, camera)
-    if pairs:
+    name = specs[0].scenario
+    if frames:
+        specs = [frames_at(name, f, camera) for f in frames]
+    elif pairs:
         known = {s.label: s for s in specs}
         missing = [p for p in pairs if p not in known]
         if missing:
             raise TrajectoryError(f"unknown pair(s) {missing}; this scenario has {list(known)}")
         specs = [known[p] for p in pairs]
-    name = specs[0].scenario
-    sc = scene if isinstance(scene, Scene) else load_scene(scene if scene is not None else default_scene(name), seed)
-    sun = sun or DEFAULT_SUN.get(name, Sun(135.0, 25.0))
+    scene_spec = scene if scene is not None else default_scene(name)
+    sc = scene_spec if isinstance(scene_spec, Scene) else load_scene(scene_spec, seed, name)
+    sun = sun or library.scene_sun(sc, name, seed)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    entries, thumbs = [], []
     t0 = time.time()
-    _progress(0, len(specs), "", t0, progress)
+    poses = [p for ps in specs for p in ps.poses]
+    cam = specs[0].camera
+    if any(ps.camera != cam for ps in specs):
+        raise TrajectoryError("all pairs of a scenario must share one camera")
+    _progress(0, len(specs), "frames", t0, progress)
+    views = render_views(sc, cam, poses, sun, supersample=supersample, workers=workers)
+    entries, thumbs = [], []
+    k = 0
     for i, ps in enumerate(specs):
-        pair = render_pair(sc, ps, sun, seed=seed, pose_error=pose_error, supersample=supersample)
+        vs, k = views[k : k + len(ps.poses)], k + len(ps.poses)
+        pair = assemble_pair(sc, ps, sun, vs, seed=seed, pose_error=pose_error)
         d = write_pair(out / ps.label.replace("/", "_"), pair)
         entries.append(
             {
@@ -128,15 +226,22 @@ def render_scenario(
                 "altitude_m": ps.altitude_m,
                 "path": d.name,
                 "seed": seed,
-                "hazard_fraction": float(np.mean(pair.truth["hazard"] >= 1.0)),
+                "frames": len(ps.poses),
+                "hazards_in_scene_pct": pair.meta["hazards_in_scene_pct"],
+                "hazard_fraction": pair.meta["hazard_fraction"],
+                "altimeter_m": list(pair.altimeter_m),
             }
         )
         thumbs.append((ps.label, pair.images))
         _progress(i + 1, len(specs), ps.label, t0, progress)
+    e = library.entry(sc)
     manifest = {
         "format": "hazard-hil-descent/1",
         "scenario": name,
         "scene": sc.params.name,
+        "scene_variant": sc.params.variant,
+        "scene_spec": sc.params.spec,
+        "scene_description": e.description if e else "",
         "scene_params": sc.params.to_dict(),
         "seed": seed,
         "sun": {"azimuth_deg": sun.azimuth_deg, "elevation_deg": sun.elevation_deg},
@@ -150,13 +255,13 @@ def render_scenario(
 
 
 def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, tile: int = 200) -> Path:
-    """PNG grid for people: each pair as i1 | i2 with its label, two pairs per row."""
+    """PNG grid for people: each entry's first and last frames with its label, two entries per row."""
     import cv2
 
     cells = []
-    for label, (i1, i2) in items:
+    for label, imgs in items:
         row = []
-        for k, img in enumerate((i1, i2)):
+        for k, img in ((0, imgs[0]), (len(imgs) - 1, imgs[-1])):
             t = cv2.resize(img, (tile, tile), interpolation=cv2.INTER_AREA)
             t = cv2.copyMakeBorder(t, 18, 2, 2, 2, cv2.BORDER_CONSTANT, value=0)
             cv2.putText(t, f"{label} i{k + 1}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1, cv2.LINE_AA)

@@ -22,11 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ground_sim.hashing import poisson, uniform
+from ground_sim.hashing import hash_u64, poisson, uniform
 
-CRATER_STREAM, BOULDER_STREAM, RIM_BOULDER_STREAM = 2, 3, 4
+CRATER_STREAM, BOULDER_STREAM, RIM_BOULDER_STREAM, FIELD_STREAM, FIELD_BOULDER_STREAM = 2, 3, 4, 5, 6
 CRATER_REACH = 2.0  # influence radius / crater radius (ejecta cut)
 BOULDER_REACH = 1.0
+THIN = 5  # hash field of the thinning draw (fields 0-4 are position, size and shape)
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,38 @@ class PowerLaw:
         return lo * (1.0 - u * (1.0 - (hi / lo) ** -b)) ** (-1.0 / b)
 
 
+@dataclass(frozen=True)
+class RadialProfile:
+    """Density factor against distance from the origin (the nominal landing site): piecewise linear.
+
+    ``knots`` = ((r0, f0), (r1, f1), ...) with r ascending; constant beyond the ends. A
+    population with a profile is drawn at ``max(f) x`` its density and each feature is kept
+    with probability ``f(r) / max(f)`` (a hashed draw, so any window sees the same features).
+    """
+
+    knots: tuple[tuple[float, float], ...]
+
+    @property
+    def peak(self) -> float:
+        return max(f for _, f in self.knots)
+
+    def factor(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        r = np.hypot(x, y)
+        return np.interp(r, [k[0] for k in self.knots], [k[1] for k in self.knots])
+
+
+def _thin(f: Features, keep_u: np.ndarray, profile: RadialProfile | None) -> Features:
+    if profile is None:
+        return f
+    return f.select(keep_u * profile.peak < profile.factor(f.x, f.y))
+
+
+def _scaled(sfd: PowerLaw, profile: RadialProfile | None) -> PowerLaw:
+    if profile is None:
+        return sfd
+    return PowerLaw(sfd.coef * profile.peak, sfd.exponent, sfd.d_min, sfd.d_max)
+
+
 def _cells(bbox: tuple[float, float, float, float], cell: float, margin: float):
     x0, y0, x1, y1 = bbox
     i0, i1 = int(np.floor((x0 - margin) / cell)), int(np.floor((x1 + margin) / cell))
@@ -124,17 +157,20 @@ def _populate(
     return x, y, d, u[3], u[4], (ci, cj, idx)
 
 
-def craters_in(seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float) -> Features:
+def craters_in(
+    seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float, profile: RadialProfile | None = None
+) -> Features:
     """Craters with diameter >= ``d_min`` whose influence reaches ``bbox`` = (x0, y0, x1, y1)."""
     parts = []
     g = float(np.clip(degradation, 0.02, 0.98))
+    gen = _scaled(sfd, profile)
     for k, lo, hi in sfd.classes():
         if hi <= d_min:
             continue
-        r = _populate(seed, CRATER_STREAM, k, lo, hi, sfd, bbox, CRATER_REACH)
+        r = _populate(seed, CRATER_STREAM, k, lo, hi, gen, bbox, CRATER_REACH)
         if r is None:
             continue
-        x, y, d, u3, u4, _ = r
+        x, y, d, u3, u4, (ci, cj, idx) = r
         s = u3 ** ((1 - g) / g)  # g -> 0: all fresh, g -> 1: all worn
         dd = np.where(
             d >= 400,
@@ -143,22 +179,39 @@ def craters_in(seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float)
         )  # Stopar 2017 fresh d/D
         h = (dd + 0.02 * (u4 - 0.5)) * d
         f = Features(x, y, d, h, s, "crater")
-        parts.append(f.select((d >= d_min) & _touches(f, bbox)))
+        keep_u = uniform(seed, CRATER_STREAM, k, ci, cj, idx, THIN) if profile is not None else np.zeros(0)
+        f, keep_u = _select2(f, keep_u, (d >= d_min) & _touches(f, bbox))
+        parts.append(_thin(f, keep_u, profile))
     return Features.concat(parts, "crater")
 
 
-def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features, rim_per_crater_m2: float) -> Features:
+def _select2(f: Features, u: np.ndarray, m: np.ndarray) -> tuple[Features, np.ndarray]:
+    return f.select(m), (u[m] if u.size else u)
+
+
+def boulders_in(
+    seed: int,
+    sfd: PowerLaw,
+    bbox,
+    d_min: float,
+    craters: Features,
+    rim_per_crater_m2: float,
+    profile: RadialProfile | None = None,
+) -> Features:
     """Background boulders plus boulders strewn around fresh craters (denser near rims)."""
     parts = []
+    gen = _scaled(sfd, profile)
     for k, lo, hi in sfd.classes():
         if hi <= d_min:
             continue
-        r = _populate(seed, BOULDER_STREAM, k, lo, hi, sfd, bbox, BOULDER_REACH)
+        r = _populate(seed, BOULDER_STREAM, k, lo, hi, gen, bbox, BOULDER_REACH)
         if r is None:
             continue
-        x, y, d, u3, _, _ = r
+        x, y, d, u3, _, (ci, cj, idx) = r
         f = Features(x, y, d, d * (0.35 + 0.25 * u3), np.zeros_like(d), "boulder")
-        parts.append(f.select((d >= d_min) & _touches(f, bbox)))
+        keep_u = uniform(seed, BOULDER_STREAM, k, ci, cj, idx, THIN) if profile is not None else np.zeros(0)
+        f, keep_u = _select2(f, keep_u, (d >= d_min) & _touches(f, bbox))
+        parts.append(_thin(f, keep_u, profile))
     # Rim boulders: fresh craters >= 8 m shed blocks into an annulus 0.9-1.8 R.
     if rim_per_crater_m2 > 0 and len(craters):
         fresh = craters.select((craters.d >= 8.0) & (craters.s < 0.35))
@@ -189,6 +242,71 @@ def boulders_in(seed: int, sfd: PowerLaw, bbox, d_min: float, craters: Features,
                 )
                 parts.append(b.select((d >= d_min) & _touches(b, bbox)))
     return Features.concat(parts, "boulder")
+
+
+def field_boulders(
+    seed: int,
+    sfd: PowerLaw,
+    fx: np.ndarray,
+    fy: np.ndarray,
+    fr: np.ndarray,
+    keys: np.ndarray,
+    bbox,
+    d_min: float,
+) -> Features:
+    """Boulders of boulder fields: disks (centre fx, fy, radius fr) each holding its own population.
+
+    Per field and size class the count is Poisson(pi r^2 x class density) and positions are
+    uniform over the disk; every draw hashes (seed, field key, class, index), so a window
+    sees the same boulders whatever its size (fields are generated whole, then clipped).
+    """
+    parts: list[Features] = []
+    if fx.size == 0:
+        return Features.concat(parts, "boulder")
+    area = np.pi * fr * fr
+    for k, lo, hi in sfd.classes():
+        if hi <= d_min:
+            continue
+        lam = area * sfd.density(lo, hi)
+        n = _poisson_many(lam, uniform(seed, FIELD_BOULDER_STREAM, keys, k, -1))
+        if n.sum() == 0:
+            continue
+        j = np.repeat(np.arange(fx.size), n)
+        i = np.arange(j.size) - np.repeat(np.cumsum(n) - n, n)
+        u = [uniform(seed, FIELD_BOULDER_STREAM, keys[j], k, i, f) for f in range(4)]
+        rr = fr[j] * np.sqrt(u[0])
+        th = 2 * np.pi * u[1]
+        d = sfd.sample_d(lo, hi, u[2])
+        b = Features(
+            fx[j] + rr * np.sin(th), fy[j] + rr * np.cos(th), d, d * (0.35 + 0.25 * u[3]), np.zeros(j.size), "boulder"
+        )
+        parts.append(b.select((d >= d_min) & _touches(b, bbox)))
+    return Features.concat(parts, "boulder")
+
+
+def random_fields(
+    seed: int, per_km2: float, radius_m: float, bbox
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Centres, radii (uniform in 0.5-1.5 x ``radius_m``) and keys of random boulder fields touching ``bbox``."""
+    dens = per_km2 * 1e-6
+    e = np.zeros(0)
+    if dens <= 0:
+        return e, e, e, e.astype(np.int64)
+    cell = float(np.sqrt(1.5 / dens))
+    ci, cj = _cells(bbox, cell, 1.5 * radius_m)
+    counts = poisson(dens * cell * cell, uniform(seed, FIELD_STREAM, ci, cj, -1))
+    if counts.sum() == 0:
+        return e, e, e, e.astype(np.int64)
+    rep = np.repeat(np.arange(ci.size), counts)
+    idx = np.arange(rep.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    ci, cj = ci[rep], cj[rep]
+    u = [uniform(seed, FIELD_STREAM, ci, cj, idx, f) for f in range(3)]
+    x, y = (ci + u[0]) * cell, (cj + u[1]) * cell
+    r = radius_m * (0.5 + u[2])
+    keys = (hash_u64(ci, cj, idx) >> np.uint64(2)).astype(np.int64)
+    x0, y0, x1, y1 = bbox
+    m = (x + r >= x0) & (x - r <= x1) & (y + r >= y0) & (y - r <= y1)
+    return x[m], y[m], r[m], keys[m]
 
 
 def _poisson_many(lam: np.ndarray, u: np.ndarray) -> np.ndarray:

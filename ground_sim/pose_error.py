@@ -92,9 +92,14 @@ class PoseError:
 
     def sample(self, rng: np.random.Generator) -> tuple[PoseDelta, PoseDelta]:
         """One delta per frame of a pair (upper, lower)."""
+        d = self.sample_n(rng, 2)
+        return d[0], d[1]
+
+    def sample_n(self, rng: np.random.Generator, n: int) -> tuple[PoseDelta, ...]:
+        """One delta per frame of an n-frame descent (the same draws as :meth:`sample` for n = 2)."""
         p0 = self._pitch(rng)
-        p1 = p0 if self.equal_pitch else self._pitch(rng)
-        return self._one(rng, p0), self._one(rng, p1)
+        pitches = [p0] + [p0 if self.equal_pitch else self._pitch(rng) for _ in range(n - 1)]
+        return tuple(self._one(rng, p) for p in pitches)
 
     def apply(self, pose: Pose, rng: np.random.Generator) -> Pose:
         """Reported version of a single pose."""

@@ -12,13 +12,20 @@ Pipeline per frame:
 4. shade with lunar-Lambert (normals from raster gradients) x cast-shadow visibility
    from a horizon sweep; box-downsample the sub-pixels; seeded sensor noise; 8 bit;
 5. truth from pixel-centre rays: elevation, camera z-depth, shadow (< half the pixel
-   lit), hazard (slope/roughness of the true raster + shadow).
+   lit), hazard (slope/roughness of the true raster + shadow), and the altimeter range
+   (the ray along the optical axis, ``t`` of its hit: the slant range a laser altimeter
+   would measure).
+
+:func:`truth_at` computes the same truth for chosen pixels only, on a raster limited
+to a pixel box (same cell, grid aligned with the full view's): the scene library uses
+it to measure hazard shares without rendering images.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -28,7 +35,7 @@ from ground_sim.geometry import boundary_pixels, pixel_rays
 from ground_sim.heightfield import Raster, intersect
 from ground_sim.scene import Scene
 from ground_sim.shading import lunar_lambert, sensor, shadow_level
-from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit
+from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit, plane_fit_factor
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
@@ -50,6 +57,8 @@ class View:
     world_xy: np.ndarray  # float32 (H, W, 2)
     radiance: np.ndarray  # float32 noise-free radiance factor (before exposure)
     info: dict
+    altimeter_m: float = math.nan  # slant range along the optical axis to the true ground
+    exposure: float = 1.0  # DN per unit radiance (sensor gain for this scene and sun)
 
 
 def _check_pose(camera: Camera, pose: Pose) -> None:
@@ -60,7 +69,14 @@ def _check_pose(camera: Camera, pose: Pose) -> None:
         raise RenderError(str(exc)) from None
 
 
-def _exposure(scene: Scene, sun: Sun) -> float:
+def _check_args(sun: Sun, supersample: int) -> None:
+    if not (0.0 < sun.elevation_deg <= 90.0) or not math.isfinite(sun.azimuth_deg):
+        raise RenderError(f"sun elevation must be in (0, 90] deg, got {sun.elevation_deg}")
+    if supersample < 1 or supersample > 8:
+        raise RenderError(f"supersample must be 1..8, got {supersample}")
+
+
+def exposure(scene: Scene, sun: Sun) -> float:
     """Fixed gain per sun: flat ground of mean albedo seen at nadir maps to REFERENCE_DN."""
     ci = math.sin(math.radians(sun.elevation_deg))
     ref = lunar_lambert(
@@ -69,8 +85,48 @@ def _exposure(scene: Scene, sun: Sun) -> float:
     return REFERENCE_DN / max(float(ref), 1e-6)
 
 
-def plan_raster(scene: Scene, camera: Camera, pose: Pose, sun: Sun, supersample: int) -> tuple:
-    """Raster window (x0, y0, cell, nx, ny) and the coarse height bounds of the view."""
+_exposure = exposure  # old private name
+
+
+@dataclass(frozen=True)
+class RasterPlan:
+    """World raster window of a view: origin, cell, size; coarse terrain bounds; min GSD."""
+
+    x0: float
+    y0: float
+    cell: float
+    nx: int
+    ny: int
+    zlo: float
+    zhi: float
+    gsd: float
+    sun_ext_m: float
+
+    def __iter__(self):  # the old tuple interface: x0, y0, cell, nx, ny, zlo, zhi, gsd
+        return iter((self.x0, self.y0, self.cell, self.nx, self.ny, self.zlo, self.zhi, self.gsd))
+
+
+def _footprint_xy(camera: Camera, pose: Pose, u: np.ndarray, v: np.ndarray, zlo: float, zhi: float) -> np.ndarray:
+    C = pose.position
+    d = pixel_rays(camera, pose, u, v)
+    return np.concatenate([C[:2] + ((C[2] - z) / -d[:, 2])[:, None] * d[:, :2] for z in (zlo, zhi)])
+
+
+def plan_raster(
+    scene: Scene,
+    camera: Camera,
+    pose: Pose,
+    sun: Sun,
+    supersample: int,
+    box: tuple[float, float, float, float] | None = None,
+) -> RasterPlan:
+    """Raster window (x0, y0, cell, nx, ny) and the coarse height bounds of the view.
+
+    ``box`` = (u0, v0, u1, v1) in pixel-edge coordinates limits the window to what the
+    pixels of that box need; cell, height bounds and the sun extension stay those of the
+    whole view, and the origin is snapped to the whole view's grid (in steps of the plane
+    fit's coarsening) so the rasters agree where they overlap.
+    """
     C = pose.position
     bu, bv = boundary_pixels(camera, 12)
     bu = np.append(bu, camera.cx)
@@ -96,9 +152,7 @@ def plan_raster(scene: Scene, camera: Camera, pose: Pose, sun: Sun, supersample:
     pad = 6.0 + 0.5 * max(scene.params.boulders.d_max_m, 1.0) + 0.1 * np.ptp(hz)
     zlo, zhi = float(hz.min()) - pad, float(hz.max()) + pad
     zhi = min(zhi, C[2] - 0.1)
-    ts = []
-    for z in (zlo, zhi):
-        ts.append((C[2] - z) / -d[:, 2])
+    ts = [(C[2] - z) / -d[:, 2] for z in (zlo, zhi)]
     pts = np.concatenate([C[:2] + t[:, None] * d[:, :2] for t in ts])
     x0, y0 = pts.min(axis=0) - (FOOTPRINT_M + 1.0)
     x1, y1 = pts.max(axis=0) + (FOOTPRINT_M + 1.0)
@@ -107,76 +161,109 @@ def plan_raster(scene: Scene, camera: Camera, pose: Pose, sun: Sun, supersample:
     ext = min((zhi - zlo) / math.tan(el), 1.5 * max(x1 - x0, y1 - y0))
     az = math.radians(sun.azimuth_deg)
     sx, sy = math.sin(az) * ext, math.cos(az) * ext
-    x0, x1 = min(x0, x0 + sx), max(x1, x1 + sx)
-    y0, y1 = min(y0, y0 + sy), max(y1, y1 + sy)
+    fx0, fx1 = min(x0, x0 + sx), max(x1, x1 + sx)
+    fy0, fy1 = min(y0, y0 + sy), max(y1, y1 + sy)
     gsd = float(ts[1].min()) / camera.fx
-    cell = max(gsd / supersample, math.sqrt((x1 - x0) * (y1 - y0) / MAX_CELLS))
-    nx = int(math.ceil((x1 - x0) / cell)) + 1
-    ny = int(math.ceil((y1 - y0) / cell)) + 1
-    return x0, y0, cell, nx, ny, zlo, zhi, gsd
+    cell = max(gsd / supersample, math.sqrt((fx1 - fx0) * (fy1 - fy0) / MAX_CELLS))
+    if box is not None:
+        u0, v0, u1, v1 = box
+        s = np.linspace(0.0, 1.0, 12)
+        bu = np.concatenate([u0 + s * (u1 - u0), np.full(12, u1), u1 - s * (u1 - u0), np.full(12, u0)])
+        bv = np.concatenate([np.full(12, v0), v0 + s * (v1 - v0), np.full(12, v1), v1 - s * (v1 - v0)])
+        bp = _footprint_xy(camera, pose, bu, bv, zlo, zhi)
+        bx0, by0 = bp.min(axis=0) - (FOOTPRINT_M + 1.0)
+        bx1, by1 = bp.max(axis=0) + (FOOTPRINT_M + 1.0)
+        bx0, bx1 = min(bx0, bx0 + sx), max(bx1, bx1 + sx)
+        by0, by1 = min(by0, by0 + sy), max(by1, by1 + sy)
+        snap = cell * plane_fit_factor(cell)
+        bx0 = fx0 + math.floor(max(bx0 - fx0, 0.0) / snap) * snap
+        by0 = fy0 + math.floor(max(by0 - fy0, 0.0) / snap) * snap
+        fx0, fy0, fx1, fy1 = bx0, by0, min(bx1, fx1), min(by1, fy1)
+    nx = int(math.ceil((fx1 - fx0) / cell)) + 1
+    ny = int(math.ceil((fy1 - fy0) / cell)) + 1
+    return RasterPlan(float(fx0), float(fy0), cell, nx, ny, zlo, zhi, gsd, float(ext))
 
 
-def render_view(
-    scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int = 0, supersample: int = 2, noise: bool = True
-) -> View:
-    """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method."""
-    _check_pose(camera, pose)
-    if not (0.0 < sun.elevation_deg <= 90.0) or not math.isfinite(sun.azimuth_deg):
-        raise RenderError(f"sun elevation must be in (0, 90] deg, got {sun.elevation_deg}")
-    if supersample < 1 or supersample > 8:
-        raise RenderError(f"supersample must be 1..8, got {supersample}")
-    ss = int(supersample)
-    x0, y0, cell, nx, ny, _, _, gsd = plan_raster(scene, camera, pose, sun, ss)
-    H, A = scene.raster(x0, y0, cell, nx, ny)
-    r = Raster(x0, y0, cell, H)
-    zmin, zmax = float(H.min()) - 0.01, float(H.max()) + 0.01  # float32 sampling slack
-    C = pose.position
-    W, Hh = camera.width, camera.height
+class _Caster:
+    """The raster of a view and its ray casting: coarse pass, conservative starts, fine march."""
 
-    # -- coarse pass: every COARSE-th pixel centre, full march from the top of the terrain
-    cu = np.arange(COARSE / 2 - 0.5, W, COARSE)
-    cv = np.arange(COARSE / 2 - 0.5, Hh, COARSE)
-    CU, CV = np.meshgrid(cu, cv)
-    dcoarse = pixel_rays(camera, pose, CU.ravel(), CV.ravel())
-    tlo = np.maximum((C[2] - zmax) / -dcoarse[:, 2], 0.0)
-    thi = (C[2] - zmin) / -dcoarse[:, 2]
-    sin_t = np.sqrt(np.maximum(1 - dcoarse[:, 2] ** 2, 1e-12))
-    step = np.minimum(1.0 * cell, 1.0 * cell / sin_t)
-    tc, hitc = intersect(r, C, dcoarse, tlo, thi, step, refine=1)
-    if not hitc.all():
-        raise RenderError("some rays leave the terrain window without hitting the ground")
-    zc = C[2] + tc * dcoarse[:, 2]
-    tc = tc.reshape(CU.shape)
-    zc = zc.reshape(CU.shape)
-    # conservative start height per block: max hit height in the 3x3 block neighbourhood + margin
-    zstart = cv2.dilate(zc.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.float64)
-    max_feature = 0.6 * scene.params.boulders.d_max_m
-    margin = 1.0 + max_feature + 2.0 * COARSE * gsd
+    def __init__(
+        self,
+        scene: Scene,
+        camera: Camera,
+        pose: Pose,
+        sun: Sun,
+        ss: int,
+        box: tuple[int, int, int, int] | None = None,
+    ) -> None:
+        self.scene, self.camera, self.pose, self.sun, self.ss = scene, camera, pose, sun, ss
+        W, Hh = camera.width, camera.height
+        if box is None:
+            self.blocks = (0, 0, -(-Hh // COARSE), -(-W // COARSE))
+            plan = plan_raster(scene, camera, pose, sun, ss)
+        else:
+            # pixels of the box plus two coarse blocks around it (the start heights dilate by one block)
+            u0, v0, u1, v1 = box
+            bi0, bj0 = max(v0 // COARSE - 2, 0), max(u0 // COARSE - 2, 0)
+            bi1, bj1 = min(-(-v1 // COARSE) + 2, -(-Hh // COARSE)), min(-(-u1 // COARSE) + 2, -(-W // COARSE))
+            self.blocks = (bi0, bj0, bi1, bj1)
+            edge = (bj0 * COARSE - 0.5, bi0 * COARSE - 0.5, min(bj1 * COARSE, W) - 0.5, min(bi1 * COARSE, Hh) - 0.5)
+            plan = plan_raster(scene, camera, pose, sun, ss, box=edge)
+        self.plan = plan
+        self.H, self.A = scene.raster(plan.x0, plan.y0, plan.cell, plan.nx, plan.ny)
+        self.r = Raster(plan.x0, plan.y0, plan.cell, self.H)
+        self.cell, self.gsd = plan.cell, plan.gsd
+        self.zmin, self.zmax = float(self.H.min()) - 0.01, float(self.H.max()) + 0.01  # float32 sampling slack
+        self.C = pose.position
+        self._coarse()
 
-    def coarse_start(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        bi = np.clip(np.floor(v / COARSE).astype(np.int64), 0, zstart.shape[0] - 1)
-        bj = np.clip(np.floor(u / COARSE).astype(np.int64), 0, zstart.shape[1] - 1)
-        return zstart[bi, bj] + margin
+    def _coarse(self) -> None:
+        """Every COARSE-th pixel centre, full march from the top of the terrain."""
+        bi0, bj0, bi1, bj1 = self.blocks
+        C, cell = self.C, self.cell
+        cu = np.arange(bj0, bj1) * COARSE + COARSE / 2 - 0.5
+        cv = np.arange(bi0, bi1) * COARSE + COARSE / 2 - 0.5
+        CU, CV = np.meshgrid(cu, cv)
+        dcoarse = pixel_rays(self.camera, self.pose, CU.ravel(), CV.ravel())
+        tlo = np.maximum((C[2] - self.zmax) / -dcoarse[:, 2], 0.0)
+        thi = (C[2] - self.zmin) / -dcoarse[:, 2]
+        sin_t = np.sqrt(np.maximum(1 - dcoarse[:, 2] ** 2, 1e-12))
+        step = np.minimum(1.0 * cell, 1.0 * cell / sin_t)
+        tc, hitc = intersect(self.r, C, dcoarse, tlo, thi, step, refine=1)
+        if not hitc.all():
+            raise RenderError("some rays leave the terrain window without hitting the ground")
+        zc = (C[2] + tc * dcoarse[:, 2]).reshape(CU.shape)
+        # conservative start height per block: max hit height in the 3x3 block neighbourhood + margin
+        self.zstart = cv2.dilate(zc.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.float64)
+        max_feature = 0.6 * self.scene.params.boulders.d_max_m
+        self.margin = 1.0 + max_feature + 2.0 * COARSE * self.gsd
 
-    def march(u: np.ndarray, v: np.ndarray, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def coarse_start(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        bi0, bj0, _, _ = self.blocks
+        bi = np.clip(np.floor(v / COARSE).astype(np.int64) - bi0, 0, self.zstart.shape[0] - 1)
+        bj = np.clip(np.floor(u / COARSE).astype(np.int64) - bj0, 0, self.zstart.shape[1] - 1)
+        return self.zstart[bi, bj] + self.margin
+
+    def march(self, u: np.ndarray, v: np.ndarray, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Hits of the rays through pixels (u, v), marched down from heights ``zs``."""
-        d = pixel_rays(camera, pose, u, v)
-        zs = np.minimum(zs, zmax)
+        C, cell, r = self.C, self.cell, self.r
+        d = pixel_rays(self.camera, self.pose, u, v)
+        zs = np.minimum(zs, self.zmax)
         t0 = np.maximum((C[2] - zs) / -d[:, 2], 0.0)
-        t1 = (C[2] - zmin) / -d[:, 2]
+        t1 = (C[2] - self.zmin) / -d[:, 2]
         s = np.sqrt(np.maximum(1 - d[:, 2] ** 2, 1e-12))
         stp = np.minimum(3.0 * cell, 1.2 * cell / s)
         t, hit = intersect(r, C, d, t0, t1, stp)
         # rays that started under the surface (margin too small): redo from the top
         z0 = C[2] + t0 * d[:, 2]
-        under = (z0 < zmax) & (np.abs(t - t0) < 1e-9)
+        under = (z0 < self.zmax) & (np.abs(t - t0) < 1e-9)
         if np.any(under):
             iu = np.nonzero(under)[0]
             tt, hh = intersect(
                 r,
                 C,
                 d[iu],
-                np.maximum((C[2] - zmax) / -d[iu, 2], 0.0),
+                np.maximum((C[2] - self.zmax) / -d[iu, 2], 0.0),
                 t1[iu],
                 np.minimum(1.0 * cell, 1.0 * cell / s[iu]),
             )
@@ -185,27 +272,71 @@ def render_view(
             raise RenderError("some rays leave the terrain window without hitting the ground")
         return d, t
 
+    def shadow_level(self) -> np.ndarray:
+        return shadow_level(self.H, self.cell, self.sun.azimuth_deg, self.sun.elevation_deg)
+
+    def lit(self, X: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sun visibility in [0, 1] at hit points X - soft over one cell -, cos i, surface normals)."""
+        r = self.r
+        gyy, gxx = np.gradient(self.H, self.cell)
+        nxr = r.sample_fast(X[:, 0], X[:, 1], (-gxx).astype(np.float32))
+        nyr = r.sample_fast(X[:, 0], X[:, 1], (-gyy).astype(np.float32))
+        nrm = np.stack([nxr, nyr, np.ones_like(nxr)], axis=1)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        cos_i = nrm @ self.sun.direction()
+        level = r.sample_fast(X[:, 0], X[:, 1], (S - r.zref).astype(np.float32)) + r.zref
+        soft = self.cell * math.tan(math.radians(self.sun.elevation_deg)) + 0.02
+        vis = np.clip((X[:, 2] - level) / soft + 1.0, 0.0, 1.0)
+        return vis, cos_i, nrm
+
+    def centre_start(self, zsub_max: np.ndarray) -> np.ndarray:
+        """Start height of pixel-centre rays from the highest sub-pixel hit of each pixel's neighbourhood."""
+        return zsub_max + 0.5 + 0.6 * min(self.scene.params.boulders.d_max_m, 2.0 * self.gsd)
+
+    def truth(self, dp: np.ndarray, tp: np.ndarray, shadow: np.ndarray) -> dict[str, np.ndarray]:
+        """Elevation, depth, world X/Y and hazard of centre-ray hits (flat arrays)."""
+        Xp = self.C + tp[:, None] * dp
+        a, b, c = plane_fit(self.H, self.cell)
+        r = self.r
+        pa = r.sample(Xp[:, 0], Xp[:, 1], a)
+        pb = r.sample(Xp[:, 0], Xp[:, 1], b)
+        pc = r.sample(Xp[:, 0], Xp[:, 1], c)
+        return {
+            "elevation": Xp[:, 2],
+            "depth": tp * (dp @ self.pose.R[2]),
+            "world_xy": Xp[:, :2],
+            "hazard": hazard_layers(Xp[:, 2], pa, pb, pc, shadow),
+        }
+
+    def altimeter(self, zs: float) -> float:
+        """Slant range from the camera centre to the ground along the optical axis (principal point ray)."""
+        cam = self.camera
+        _, t = self.march(np.array([cam.cx]), np.array([cam.cy]), np.array([zs]))
+        return float(t[0])
+
+
+def render_view(
+    scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int = 0, supersample: int = 2, noise: bool = True
+) -> View:
+    """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method."""
+    _check_pose(camera, pose)
+    _check_args(sun, supersample)
+    ss = int(supersample)
+    cs = _Caster(scene, camera, pose, sun, ss)
+    r, C = cs.r, cs.C
+    W, Hh = camera.width, camera.height
+
     # -- sub-pixel rays
     off = (np.arange(ss) + 0.5) / ss - 0.5
     su = (np.arange(W)[None, :, None] + off[None, None, :]).reshape(1, W * ss)
     sv = (np.arange(Hh)[:, None, None] + off[None, :, None]).reshape(Hh * ss, 1)
     SU, SV = np.broadcast_arrays(su, sv)
-    d, t = march(SU.ravel(), SV.ravel(), coarse_start(SU.ravel(), SV.ravel()))
+    d, t = cs.march(SU.ravel(), SV.ravel(), cs.coarse_start(SU.ravel(), SV.ravel()))
     X = C + t[:, None] * d
-    sun_dir = sun.direction()
-    gyy, gxx = np.gradient(H, cell)
-    nxr = r.sample_fast(X[:, 0], X[:, 1], (-gxx).astype(np.float32))
-    nyr = r.sample_fast(X[:, 0], X[:, 1], (-gyy).astype(np.float32))
-    nrm = np.stack([nxr, nyr, np.ones_like(nxr)], axis=1)
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    cos_i = nrm @ sun_dir
+    vis, cos_i, nrm = cs.lit(X, cs.shadow_level())
     cos_e = -(nrm * d).sum(axis=1)
-    phase = np.degrees(np.arccos(np.clip(-(d @ sun_dir), -1.0, 1.0)))
-    alb = r.sample_fast(X[:, 0], X[:, 1], A.astype(np.float32))
-    S = shadow_level(H, cell, sun.azimuth_deg, sun.elevation_deg)
-    level = r.sample_fast(X[:, 0], X[:, 1], (S - r.zref).astype(np.float32)) + r.zref
-    soft = cell * math.tan(math.radians(sun.elevation_deg)) + 0.02
-    vis = np.clip((X[:, 2] - level) / soft + 1.0, 0.0, 1.0)
+    phase = np.degrees(np.arccos(np.clip(-(d @ sun.direction()), -1.0, 1.0)))
+    alb = r.sample_fast(X[:, 0], X[:, 1], cs.A.astype(np.float32))
     lit = vis * (cos_i > 0)
     rad = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb  # faint scattered light
     rad = cv2.resize(rad.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
@@ -215,28 +346,82 @@ def render_view(
     # start it just above the highest sub-pixel hit of its 3x3 pixel neighbourhood (a feature
     # hiding between sub-pixel rays is narrower than ~1 pixel, hence lower than ~0.6 GSD)
     zsub = X[:, 2].reshape(Hh, ss, W, ss).max(axis=(1, 3)).astype(np.float32)
-    zpix = cv2.dilate(zsub, np.ones((3, 3), np.uint8)).astype(np.float64).ravel()
+    zpix = cv2.dilate(zsub, np.ones((3, 3), np.uint8)).astype(np.float64)
     PU, PV = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(Hh, dtype=np.float64))
-    dp, tp = march(PU.ravel(), PV.ravel(), zpix + 0.5 + 0.6 * min(scene.params.boulders.d_max_m, 2.0 * gsd))
-    Xp = C + tp[:, None] * dp
-    depth = tp * (dp @ pose.R[2])
+    dp, tp = cs.march(PU.ravel(), PV.ravel(), cs.centre_start(zpix.ravel()))
     shadow = litf < 0.5
-    a, b, c = plane_fit(H, cell)
-    pa = r.sample(Xp[:, 0], Xp[:, 1], a)
-    pb = r.sample(Xp[:, 0], Xp[:, 1], b)
-    pc = r.sample(Xp[:, 0], Xp[:, 1], c)
-    hazard = hazard_layers(Xp[:, 2], pa, pb, pc, shadow.ravel()).reshape(Hh, W)
+    tr = cs.truth(dp, tp, shadow.ravel())
+    # the optical axis meets the image at the principal point: start like its nearest pixel
+    iu = int(np.clip(round(camera.cx), 0, W - 1))
+    iv = int(np.clip(round(camera.cy), 0, Hh - 1))
+    alt_m = cs.altimeter(float(cs.centre_start(zpix[iv, iu])))
 
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
-    image = sensor(rad, _exposure(scene, sun), rng)
-    info = {"raster_cell_m": cell, "raster_shape": [ny, nx], "gsd_min_m": gsd, "raster_origin_m": [x0, y0]}
+    gain = exposure(scene, sun)
+    image = sensor(rad, gain, rng)
+    p = cs.plan
+    info: dict[str, Any] = {
+        "raster_cell_m": p.cell,
+        "raster_shape": [p.ny, p.nx],
+        "gsd_min_m": p.gsd,
+        "raster_origin_m": [p.x0, p.y0],
+        "altimeter_m": alt_m,
+    }
     return View(
         image,
-        Xp[:, 2].reshape(Hh, W).astype(np.float32),
-        depth.reshape(Hh, W).astype(np.float32),
+        tr["elevation"].reshape(Hh, W).astype(np.float32),
+        tr["depth"].reshape(Hh, W).astype(np.float32),
         shadow,
-        hazard,
-        Xp[:, :2].reshape(Hh, W, 2).astype(np.float32),
+        tr["hazard"].reshape(Hh, W),
+        tr["world_xy"].reshape(Hh, W, 2).astype(np.float32),
         rad,
         info,
+        alt_m,
+        gain,
     )
+
+
+def noisy_image(view: View, seed: int) -> np.ndarray:
+    """The 8-bit image of ``view`` with the sensor noise of ``seed`` (same bytes as ``render_view(seed=seed)``)."""
+    return sensor(view.radiance, view.exposure, np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]))
+
+
+def truth_at(
+    scene: Scene,
+    camera: Camera,
+    pose: Pose,
+    sun: Sun,
+    u: np.ndarray,
+    v: np.ndarray,
+    *,
+    supersample: int = 2,
+) -> dict[str, np.ndarray]:
+    """Ground truth at integer pixel centres (u, v) as :func:`render_view` computes it, without an image.
+
+    The raster covers only the bounding box of the pixels (same cell and grid as the whole
+    view's); shadow is the sub-pixel lit fraction < 1/2, as in the render. Centre rays start
+    from the conservative coarse bound instead of the neighbouring sub-pixel hits. Returns
+    flat arrays ``elevation``, ``depth``, ``world_xy`` (N x 2), ``hazard``, ``shadow``.
+    """
+    _check_pose(camera, pose)
+    _check_args(sun, supersample)
+    ss = int(supersample)
+    u = np.asarray(u, dtype=np.int64).ravel()
+    v = np.asarray(v, dtype=np.int64).ravel()
+    if u.size == 0 or u.min() < 0 or v.min() < 0 or u.max() >= camera.width or v.max() >= camera.height:
+        raise RenderError("truth_at: pixels must lie inside the image")
+    cs = _Caster(scene, camera, pose, sun, ss, box=(int(u.min()), int(v.min()), int(u.max()) + 1, int(v.max()) + 1))
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    ou, ov = np.meshgrid(off, off)
+    su = (u[:, None] + ou.ravel()[None, :]).ravel()
+    sv = (v[:, None] + ov.ravel()[None, :]).ravel()
+    d, t = cs.march(su, sv, cs.coarse_start(su, sv))
+    X = cs.C + t[:, None] * d
+    vis, cos_i, _ = cs.lit(X, cs.shadow_level())
+    litf = (vis * (cos_i > 0)).reshape(u.size, ss * ss).mean(axis=1)
+    shadow = litf < 0.5
+    uf, vf = u.astype(np.float64), v.astype(np.float64)
+    dp, tp = cs.march(uf, vf, cs.coarse_start(uf, vf))
+    tr = cs.truth(dp, tp, shadow)
+    tr["shadow"] = shadow
+    return tr

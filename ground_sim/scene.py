@@ -9,17 +9,27 @@ limit): any window, at any resolution, gives the same terrain.
 TOML layout (all keys optional; defaults below)::
 
     [terrain]  rms_relief_m, hurst, max_wavelength_m, micro_rms_m, micro_scale_m, tilt_deg, tilt_azimuth_deg
-    [craters]  coef, exponent, d_min_m, d_max_m, degradation, exclude_radius_m
-    [boulders] coef, exponent, d_min_m, d_max_m, rim_density_m2, exclude_radius_m
+    [craters]  coef, exponent, d_min_m, d_max_m, degradation, exclude_radius_m, exclude_d_min_m, profile
+    [boulders] coef, exponent, d_min_m, d_max_m, rim_density_m2, exclude_radius_m, profile
+    [boulder_fields] per_km2, radius_m, coef, exponent   (random fields; boulder sizes from [boulders])
     [albedo]   mean, sigma
-    [[feature]] kind = "boulder"|"crater", x_m, y_m, diameter_m, height_m (boulder) | depth_ratio, degradation (crater)
+    [[feature]] kind = "boulder"|"crater"|"boulder_field", x_m, y_m, diameter_m,
+                height_m (boulder) | depth_ratio, degradation (crater) | coef (boulder_field, 0: the section's)
+    [library]  metadata of a named scene (read by :mod:`ground_sim.library`, ignored here)
+    [variant.<scenario>.<section>]  overrides applied when the scene is loaded for that scenario
+
+``profile = [[r0, f0], [r1, f1], ...]`` multiplies the population's density by a piecewise
+linear factor of the distance from the origin (the nominal landing site), see
+:class:`ground_sim.features.RadialProfile`. A scene spec ``name:variant`` (e.g.
+``thesis:approach``) names a variant explicitly.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +37,15 @@ import numpy as np
 
 from ground_sim.errors import SceneError
 from ground_sim.fbm import FBm
-from ground_sim.features import Features, PowerLaw, boulders_in, craters_in
+from ground_sim.features import (
+    Features,
+    PowerLaw,
+    RadialProfile,
+    boulders_in,
+    craters_in,
+    field_boulders,
+    random_fields,
+)
 from ground_sim.stamp import stamp_points, stamp_raster
 
 PRESET_DIR = Path(__file__).with_name("presets")
@@ -52,7 +70,9 @@ class Craters:
     d_min_m: float = 1.0
     d_max_m: float = 400.0
     degradation: float = 0.5
-    exclude_radius_m: float = 0.0  # keep random craters out of this radius around the origin
+    exclude_radius_m: float = 0.0  # keep random craters out of this radius around the origin ...
+    exclude_d_min_m: float = 0.0  # ... if at least this wide (smaller ones follow the profile)
+    profile: tuple[tuple[float, float], ...] = ()  # density factor vs distance from the origin
 
 
 @dataclass(frozen=True)
@@ -63,6 +83,17 @@ class Boulders:
     d_max_m: float = 5.0
     rim_density_m2: float = 0.02  # boulders >= d_min per m^2 around fresh craters
     exclude_radius_m: float = 0.0
+    profile: tuple[tuple[float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class BoulderFields:
+    """Random boulder fields: disks with their own dense boulder population (sizes from [boulders])."""
+
+    per_km2: float = 0.0
+    radius_m: float = 30.0  # mean; each field's radius is uniform in 0.5-1.5 x this
+    coef: float = 0.02
+    exponent: float = 2.5
 
 
 @dataclass(frozen=True)
@@ -80,9 +111,34 @@ class Placed:
     height_m: float = 0.0
     depth_ratio: float = 0.2
     degradation: float = 0.0
+    coef: float = 0.0
+    ranges: tuple[tuple[str, float, float], ...] = ()  # (key, lo, hi): drawn per scene seed
+
+    def resolved(self, seed: int, index: int) -> Placed:
+        """This feature with every ranged key drawn uniformly for ``seed`` (a hash: same seed, same value)."""
+        if not self.ranges:
+            return self
+        from ground_sim.hashing import uniform
+
+        vals: dict[str, Any] = {
+            k: lo + float(uniform(seed, PLACED_STREAM, index, j)) * (hi - lo)
+            for j, (k, lo, hi) in enumerate(self.ranges)
+        }
+        return replace(self, ranges=(), **vals)
 
 
-_SECTIONS = {"terrain": Terrain, "craters": Craters, "boulders": Boulders, "albedo": Albedo}
+PLACED_STREAM = 11
+_RANGED = ("x_m", "y_m", "diameter_m", "height_m", "depth_ratio", "degradation", "coef")
+
+
+_SECTIONS = {
+    "terrain": Terrain,
+    "craters": Craters,
+    "boulders": Boulders,
+    "boulder_fields": BoulderFields,
+    "albedo": Albedo,
+}
+_KINDS = ("boulder", "crater", "boulder_field")
 
 
 @dataclass(frozen=True)
@@ -93,14 +149,44 @@ class SceneParams:
     boulders: Boulders = field(default_factory=Boulders)
     albedo: Albedo = field(default_factory=Albedo)
     features: tuple[Placed, ...] = ()
+    boulder_fields: BoulderFields = field(default_factory=BoulderFields)
+    variant: str = ""  # the scenario variant applied ("" = the base scene)
+
+    @property
+    def spec(self) -> str:
+        """The spec that loads these parameters again: ``name`` or ``name:variant``."""
+        return f"{self.name}:{self.variant}" if self.variant else self.name
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"name": self.name}
+        out: dict[str, Any] = {"name": self.name, "variant": self.variant}
         for key in _SECTIONS:
             sec = getattr(self, key)
-            out[key] = {f.name: getattr(sec, f.name) for f in fields(sec)}
-        out["feature"] = [{f.name: getattr(p, f.name) for f in fields(p)} for p in self.features]
+            out[key] = {f.name: _plain(getattr(sec, f.name)) for f in fields(sec)}
+        out["feature"] = [{f.name: _plain(getattr(p, f.name)) for f in fields(p)} for p in self.features]
         return out
+
+
+def _plain(v: Any) -> Any:
+    return [list(k) for k in v] if isinstance(v, tuple) else v
+
+
+def _profile(v: Any, where: str) -> tuple[tuple[float, float], ...]:
+    ok = isinstance(v, list) and len(v) >= 1
+    knots: list[tuple[float, float]] = []
+    for item in v if ok else []:
+        if not (isinstance(item, list) and len(item) == 2 and all(_is_num(x) for x in item)):
+            ok = False
+            break
+        knots.append((float(item[0]), float(item[1])))
+    if not ok or any(r < 0 or f < 0 for r, f in knots) or any(b[0] <= a[0] for a, b in pairwise(knots)):
+        raise SceneError(f"{where}.profile: expected [[r_m, factor], ...] with r ascending and factors >= 0, got {v!r}")
+    if max(f for _, f in knots) <= 0:
+        raise SceneError(f"{where}.profile: at least one factor must be > 0")
+    return tuple(knots)
+
+
+def _is_num(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def _section(cls, doc: dict, where: str):
@@ -114,15 +200,39 @@ def _section(cls, doc: dict, where: str):
         if k == "kind":
             kw[k] = str(v)
             continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        if k == "profile":
+            kw[k] = _profile(v, where)
+            continue
+        if not _is_num(v):
             raise SceneError(f"{where}.{k}: must be a finite number, got {v!r}")
         kw[k] = float(v)
     return cls(**kw)
 
 
-def parse_scene(doc: dict[str, Any], name: str = "custom") -> SceneParams:
-    """Validate a scene document (parsed TOML) into :class:`SceneParams`."""
-    extra = set(doc) - set(_SECTIONS) - {"feature", "name"}
+def apply_variant(doc: dict[str, Any], variant: str | None, name: str = "custom") -> tuple[dict[str, Any], str]:
+    """``doc`` with ``[variant.<variant>]`` merged over it (section by section; a variant's
+    ``feature`` list replaces the base's), and the variant actually applied ("" if none)."""
+    variants = doc.get("variant", {})
+    if not isinstance(variants, dict) or not all(isinstance(v, dict) for v in variants.values()):
+        raise SceneError(f"scene {name}: [variant.<scenario>] must hold tables")
+    base = {k: v for k, v in doc.items() if k != "variant"}
+    if not variant or variant not in variants:
+        return base, ""
+    out = dict(base)
+    for key, val in variants[variant].items():
+        if isinstance(val, dict) and isinstance(out.get(key), dict):
+            out[key] = {**out[key], **val}
+        else:
+            out[key] = val
+    return out, variant
+
+
+def parse_scene(doc: dict[str, Any], name: str = "custom", variant: str | None = None) -> SceneParams:
+    """Validate a scene document (parsed TOML) into :class:`SceneParams`, with ``variant`` applied if it has one."""
+    doc, applied = apply_variant(doc, variant, name)
+    if not isinstance(doc.get("library", {}), dict):
+        raise SceneError(f"scene {name}: [library] must be a table")
+    extra = set(doc) - set(_SECTIONS) - {"feature", "name", "library"}
     if extra:
         raise SceneError(
             f"scene {name}: unknown section(s) {sorted(extra)}; expected {sorted(_SECTIONS) + ['feature']}"
@@ -133,16 +243,30 @@ def parse_scene(doc: dict[str, Any], name: str = "custom") -> SceneParams:
     if not isinstance(raw, list):
         raise SceneError(f"scene {name}: 'feature' must be an array of tables ([[feature]])")
     for i, fd in enumerate(raw):
-        if not isinstance(fd, dict) or fd.get("kind") not in ("boulder", "crater"):
-            raise SceneError(f"scene {name} feature #{i}: kind must be 'boulder' or 'crater'")
+        if not isinstance(fd, dict) or fd.get("kind") not in _KINDS:
+            raise SceneError(f"scene {name} feature #{i}: kind must be one of {', '.join(_KINDS)}")
         body = {k: v for k, v in fd.items() if k != "kind"}
         for req in ("x_m", "y_m", "diameter_m"):
             if req not in body:
                 raise SceneError(f"scene {name} feature #{i}: missing {req}")
+        ranges = []
+        for k, v in list(body.items()):
+            if isinstance(v, list):
+                if k not in _RANGED or len(v) != 2 or not all(_is_num(x) for x in v) or not v[0] <= v[1]:
+                    raise SceneError(f"scene {name} feature #{i}.{k}: a range must be [lo, hi] with lo <= hi")
+                ranges.append((k, float(v[0]), float(v[1])))
+                body[k] = 0.5 * (v[0] + v[1])
         p = _section(Placed, {"kind": fd["kind"], **body}, f"scene {name} feature #{i}")
-        feats.append(Placed(fd["kind"], p.x_m, p.y_m, p.diameter_m, p.height_m, p.depth_ratio, p.degradation))
+        feats.append(replace(p, ranges=tuple(ranges)))
     params = SceneParams(
-        str(doc.get("name", name)), secs["terrain"], secs["craters"], secs["boulders"], secs["albedo"], tuple(feats)
+        str(doc.get("name", name)),
+        secs["terrain"],
+        secs["craters"],
+        secs["boulders"],
+        secs["albedo"],
+        tuple(feats),
+        secs["boulder_fields"],
+        applied,
     )
     _check(params)
     return params
@@ -162,40 +286,75 @@ def _check(p: SceneParams) -> None:
         (b.coef >= 0 and b.exponent > 0.5, "boulders.coef >= 0 and boulders.exponent > 0.5"),
         (0 < b.d_min_m < b.d_max_m <= 50, "boulders: need 0 < d_min_m < d_max_m <= 50"),
         (b.rim_density_m2 >= 0, "boulders.rim_density_m2 must be >= 0"),
+        (
+            p.boulder_fields.per_km2 >= 0 and p.boulder_fields.radius_m > 0 and p.boulder_fields.coef >= 0,
+            "boulder_fields: per_km2 >= 0, radius_m > 0, coef >= 0",
+        ),
+        (p.boulder_fields.exponent > 0.5, "boulder_fields.exponent must be > 0.5"),
         (0 < a.mean < 1 and 0 <= a.sigma < a.mean, "albedo: need 0 < mean < 1 and 0 <= sigma < mean"),
     ]
     for ok, msg in checks:
         if not ok:
             raise SceneError(f"scene {p.name}: {msg}")
-    for i, f in enumerate(p.features):
-        if not 0 < f.diameter_m <= 2000:
-            raise SceneError(f"scene {p.name} feature #{i}: diameter_m must be in (0, 2000]")
-        if f.kind == "boulder" and not 0 < f.height_m <= f.diameter_m * 2:
-            raise SceneError(f"scene {p.name} feature #{i}: boulder height_m must be in (0, 2*diameter]")
+    for i, f0 in enumerate(p.features):
+        ends = [f0] + [replace(f0, **{k: v}) for k, lo, hi in f0.ranges for v in (lo, hi)]  # type: ignore[arg-type]
+        for f in ends:  # a ranged key must be valid over its whole range
+            if not 0 < f.diameter_m <= 2000:
+                raise SceneError(f"scene {p.name} feature #{i}: diameter_m must be in (0, 2000]")
+            if f.kind == "boulder" and not 0 < f.height_m <= f.diameter_m * 2:
+                raise SceneError(f"scene {p.name} feature #{i}: boulder height_m must be in (0, 2*diameter]")
+            if f.coef < 0 or not 0 <= f.degradation <= 1 or f.depth_ratio < 0:
+                raise SceneError(
+                    f"scene {p.name} feature #{i}: need coef >= 0, 0 <= degradation <= 1, depth_ratio >= 0"
+                )
 
 
-def load_scene_params(spec: str | Path = "default") -> SceneParams:
-    """Preset name (``ground_sim/presets/<name>.toml``) or path to a TOML file."""
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def scene_document(spec: str | Path) -> tuple[dict[str, Any], str, Path]:
+    """(parsed TOML, name, path) of a preset name or a TOML file; ``name:variant`` specs lose their variant here."""
+    text = str(spec)
     path = Path(spec)
     if path.suffix != ".toml" and not path.exists():
-        path = PRESET_DIR / f"{spec}.toml"
+        path = PRESET_DIR / f"{text.split(':', 1)[0]}.toml"
         if not path.is_file():
-            names = sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
-            raise SceneError(f"unknown scene preset {spec!r} (presets: {', '.join(names)}; or give a .toml file)")
+            raise SceneError(
+                f"unknown scene preset {text!r} (presets: {', '.join(preset_names())}; or give a .toml file)"
+            )
     if not path.is_file():
         raise SceneError(f"scene file {path} does not exist")
     try:
         doc = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"scene file {path}: invalid TOML ({exc})") from None
-    return parse_scene(doc, path.stem)
+    return doc, path.stem, path
 
 
-def load_scene(spec: str | Path = "default", seed: int = 0) -> Scene:
-    """Load a scene preset or TOML file with a seed."""
+def load_scene_params(spec: str | Path = "default", scenario: str | None = None) -> SceneParams:
+    """Preset name (``ground_sim/presets/<name>.toml``), ``name:variant``, or path to a TOML file.
+
+    ``scenario`` selects the scene's ``[variant.<scenario>]`` if it has one (an explicit
+    ``:variant`` in the spec wins).
+    """
+    text = str(spec)
+    variant = scenario
+    if not text.endswith(".toml") and ":" in text and not Path(text).exists():
+        variant = text.split(":", 1)[1]
+        doc, name, _ = scene_document(text)
+        if variant not in doc.get("variant", {}):
+            raise SceneError(f"scene {name} has no variant {variant!r} (it has {sorted(doc.get('variant', {}))})")
+    else:
+        doc, name, _ = scene_document(spec)
+    return parse_scene(doc, name, variant)
+
+
+def load_scene(spec: str | Path | Scene = "default", seed: int = 0, scenario: str | None = None) -> Scene:
+    """Load a scene preset or TOML file with a seed (and the scenario's variant, if the scene has one)."""
     if isinstance(spec, Scene):
         return spec
-    return Scene(load_scene_params(spec), int(seed))
+    return Scene(load_scene_params(spec, scenario), int(seed))
 
 
 class Scene:
@@ -215,9 +374,13 @@ class Scene:
             micro_scale_m=t.micro_scale_m,
         )
         self._albedo_fbm = FBm(self.seed + 7919, 1.0, 0.5, 512.0, n_octaves=5)
-        c, b = params.craters, params.boulders
+        c, b, bf = params.craters, params.boulders, params.boulder_fields
         self._crater_sfd = PowerLaw(c.coef, c.exponent, c.d_min_m, c.d_max_m)
         self._boulder_sfd = PowerLaw(b.coef, b.exponent, b.d_min_m, b.d_max_m)
+        self._crater_profile = RadialProfile(c.profile) if c.profile else None
+        self._boulder_profile = RadialProfile(b.profile) if b.profile else None
+        self._field_sfd = PowerLaw(bf.coef, bf.exponent, b.d_min_m, b.d_max_m)
+        self.placed = tuple(f.resolved(self.seed, i) for i, f in enumerate(params.features))
         tilt = math.radians(t.tilt_deg)
         az = math.radians(t.tilt_azimuth_deg)
         self._plane = (math.tan(tilt) * math.sin(az), math.tan(tilt) * math.cos(az))
@@ -230,36 +393,39 @@ class Scene:
         """(craters, boulders) with diameter >= ``min_size`` that influence ``bbox`` = (x0, y0, x1, y1)."""
         p = self.params
         # craters narrower than ~1.5 band-limit wavelengths are sub-pixel: dropped
-        cr = craters_in(self.seed, self._crater_sfd, bbox, 1.5 * max(min_size, 0.0), p.craters.degradation)
+        cr = craters_in(
+            self.seed, self._crater_sfd, bbox, 1.5 * max(min_size, 0.0), p.craters.degradation, self._crater_profile
+        )
         if p.craters.exclude_radius_m > 0:
-            cr = cr.select(np.hypot(cr.x, cr.y) - cr.reach > p.craters.exclude_radius_m)
+            cr = cr.select(
+                (np.hypot(cr.x, cr.y) - cr.reach > p.craters.exclude_radius_m) | (cr.d < p.craters.exclude_d_min_m)
+            )
+        pc = [f for f in self.placed if f.kind == "crater"]
+        placed_cr = Features(
+            np.array([f.x_m for f in pc]),
+            np.array([f.y_m for f in pc]),
+            np.array([f.diameter_m for f in pc]),
+            np.array([f.depth_ratio * f.diameter_m for f in pc]),
+            np.array([f.degradation for f in pc]),
+            "crater",
+        )
+        # placed craters shed rim boulders like random ones
+        rim_src = Features.concat([cr, placed_cr], "crater") if pc else cr
         bl = boulders_in(
             self.seed,
             self._boulder_sfd,
             bbox,
             max(0.5 * min_size, 0.0),
-            cr.select(cr.d >= 8.0),
+            rim_src.select(rim_src.d >= 8.0),
             p.boulders.rim_density_m2,
+            self._boulder_profile,
         )
         if p.boulders.exclude_radius_m > 0:
             bl = bl.select(np.hypot(bl.x, bl.y) - bl.reach > p.boulders.exclude_radius_m)
-        pc = [f for f in p.features if f.kind == "crater"]
-        pb = [f for f in p.features if f.kind == "boulder"]
+        bl = Features.concat([bl, self._field_boulders(bbox, max(0.5 * min_size, 0.0))], "boulder")
+        pb = [f for f in self.placed if f.kind == "boulder"]
         if pc:
-            cr = Features.concat(
-                [
-                    cr,
-                    Features(
-                        np.array([f.x_m for f in pc]),
-                        np.array([f.y_m for f in pc]),
-                        np.array([f.diameter_m for f in pc]),
-                        np.array([f.depth_ratio * f.diameter_m for f in pc]),
-                        np.array([f.degradation for f in pc]),
-                        "crater",
-                    ),
-                ],
-                "crater",
-            )
+            cr = Features.concat([cr, placed_cr], "crater")
         if pb:
             bl = Features.concat(
                 [
@@ -276,6 +442,24 @@ class Scene:
                 "boulder",
             )
         return cr, bl
+
+    def _field_boulders(self, bbox: tuple[float, float, float, float], d_min: float) -> Features:
+        """Boulders of the random fields and of the placed ``boulder_field`` features."""
+        p = self.params
+        bf = p.boulder_fields
+        parts = []
+        if bf.per_km2 > 0 and bf.coef > 0:
+            fx, fy, fr, keys = random_fields(self.seed, bf.per_km2, bf.radius_m, bbox)
+            parts.append(field_boulders(self.seed, self._field_sfd, fx, fy, fr, keys, bbox, d_min))
+        b = p.boulders
+        for i, f in enumerate(self.placed):
+            if f.kind != "boulder_field":
+                continue
+            sfd = PowerLaw(f.coef or bf.coef, bf.exponent, b.d_min_m, b.d_max_m)
+            key = np.array([-1 - i], np.int64)  # placed fields: negative keys, random ones are >= 0
+            one = np.array([f.x_m]), np.array([f.y_m]), np.array([0.5 * f.diameter_m])
+            parts.append(field_boulders(self.seed, sfd, *one, key, bbox, d_min))
+        return Features.concat(parts, "boulder")
 
     # -- evaluation ----------------------------------------------------------
     def _base(self, x, y, mw):

@@ -9,7 +9,10 @@
   thesis's epipole then moves above the image centre (sec. 6.2), which a nadir camera on a
   45 deg path could not show.
 * a TOML/JSON file: ``{"pairs": [{"label": .., "altitude_m": .., "frames": [{"position_m":
-  [x,y,z], "off_nadir_deg": t, "heading_deg": h} | {"position_m", "R_world_to_cam"}, x2]}]}``.
+  [x,y,z], "off_nadir_deg": t, "heading_deg": h} | {"position_m", "R_world_to_cam"}, ...]}]}``
+  with 2-16 frames per entry, ordered by time (each lower than the one before).
+* :func:`frames_at`: one multi-frame entry of a built-in scenario at chosen altitudes
+  (``render --frames 300,250,200,150``), frame 0 the highest.
 
 Pairs are labelled "upper/lower"; ``altitude_m`` is the LOWER altitude - the altitude the
 thesis Tables 6.1 and 6.8 list (600->300 is the 300 m row, 2400->1200 the 1200 m row).
@@ -23,6 +26,7 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass, replace
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -46,11 +50,16 @@ APPROACH_PAIRS = (
 V_MIN, K_DECEL = 1.0, 0.05
 
 
+MAX_FRAMES = 16
+
+
 @dataclass(frozen=True)
 class PairSpec:
+    """2-16 frames of a descent (frame 0 highest); ``altitude_m`` is the last (lowest) frame's altitude."""
+
     label: str
     altitude_m: float
-    poses: tuple[Pose, Pose]
+    poses: tuple[Pose, ...]
     camera: Camera
     scenario: str = "custom"
 
@@ -91,6 +100,35 @@ def approach(camera: Camera | None = None) -> list[PairSpec]:
     return out
 
 
+def _approach_pose(h: float, tilt: float | None = None) -> Pose:
+    """Approach path pose at altitude h: on the 45 deg line toward the site, 49 deg off nadir above 300 m."""
+    s0 = APPROACH_PAIRS[0][0] * math.sqrt(2)
+    t = (40.0 if h <= 300.0 else 49.0) if tilt is None else tilt
+    return Pose(np.array([0.0, -h, h]), look_rotation(t, 0.0), _time(s0, h * math.sqrt(2)))
+
+
+def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = None) -> PairSpec:
+    """One multi-frame entry of ``vertical`` or ``approach`` with frames at these altitudes (m, decreasing).
+
+    Vertical: nadir above the site. Approach: on the 45 deg path, 49 deg off nadir above 300 m and
+    40 deg at and below it (the lander aligned with the surface normal, as the thesis's last two pairs).
+    """
+    alts = [float(a) for a in altitudes]
+    if not 2 <= len(alts) <= MAX_FRAMES:
+        raise TrajectoryError(f"--frames: need 2-{MAX_FRAMES} altitudes, got {len(alts)}")
+    if not all(math.isfinite(a) and a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
+        raise TrajectoryError(f"--frames: altitudes must be positive and strictly decreasing, got {alts}")
+    cam = camera or Camera.thesis()
+    if scenario == "vertical":
+        s0 = float(max(VERTICAL_UPPER[0], alts[0]))
+        poses = tuple(Pose(np.array([0.0, 0.0, h]), look_rotation(0.0), _time(s0, h)) for h in alts)
+    elif scenario == "approach":
+        poses = tuple(_approach_pose(h) for h in alts)
+    else:
+        raise TrajectoryError(f"--frames needs the vertical or approach scenario, got {scenario!r}")
+    return PairSpec("/".join(f"{a:g}" for a in alts), alts[-1], poses, cam, scenario)
+
+
 def _frame(fr: dict, where: str) -> Pose:
     try:
         pos = np.array(fr["position_m"], dtype=float).reshape(3)
@@ -125,13 +163,14 @@ def from_file(path: Path) -> list[PairSpec]:
     out = []
     for i, p in enumerate(pairs):
         where = f"trajectory file {path} pair #{i}"
-        if not isinstance(p, dict) or not isinstance(p.get("frames"), list) or len(p["frames"]) != 2:
-            raise TrajectoryError(f"{where}: needs 'frames' with exactly two frames")
-        poses = (_frame(p["frames"][0], where + " frame 0"), _frame(p["frames"][1], where + " frame 1"))
-        if not poses[1].position[2] < poses[0].position[2]:
-            raise TrajectoryError(f"{where}: frame 1 must be below frame 0")
-        hl = float(p.get("altitude_m", poses[1].position[2]))
-        label = str(p.get("label", _label(round(poses[0].position[2], 1), round(poses[1].position[2], 1))))
+        if not isinstance(p, dict) or not isinstance(p.get("frames"), list) or not 2 <= len(p["frames"]) <= MAX_FRAMES:
+            raise TrajectoryError(f"{where}: needs 'frames' with 2-{MAX_FRAMES} frames")
+        poses = tuple(_frame(fr, f"{where} frame {k}") for k, fr in enumerate(p["frames"]))
+        for k in range(1, len(poses)):
+            if not poses[k].position[2] < poses[k - 1].position[2]:
+                raise TrajectoryError(f"{where}: frame {k} must be below frame {k - 1}")
+        hl = float(p.get("altitude_m", poses[-1].position[2]))
+        label = str(p.get("label", "/".join(f"{round(q.position[2], 1):g}" for q in poses)))
         out.append(PairSpec(label, hl, poses, cam, str(doc.get("name", path.stem))))
     return out
 

@@ -21,9 +21,14 @@ ROUGH_LIMIT_M = 0.30
 FOOTPRINT_M = 3.0
 
 
+def plane_fit_factor(cell: float, footprint: float = FOOTPRINT_M, max_radius_cells: int = 12) -> int:
+    """Coarsening factor of :func:`plane_fit`: the disk spans at most ``max_radius_cells`` coarse cells."""
+    return max(1, int(math.ceil((footprint / 2) / (max_radius_cells * cell))))
+
+
 def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_radius_cells: int = 12):
     """(a, b, c) rasters of the LSQ plane ``z = a + b dx + c dy`` over a disk around each cell."""
-    k = max(1, int(math.ceil((footprint / 2) / (max_radius_cells * cell))))
+    k = plane_fit_factor(cell, footprint, max_radius_cells)
     Hc = cv2.resize(H, (H.shape[1] // k, H.shape[0] // k), interpolation=cv2.INTER_AREA) if k > 1 else H
     cc = cell * k
     rad = footprint / 2 / cc

@@ -72,7 +72,16 @@ GLOSSARY: dict[str, Term] = {
         "safe ground recognised %", "TP / (TP + FN): of the truly safe pixels, the share called safe.", "%"
     ),
     "hazards_in_scene_pct": Term(
-        "hazards in scene %", "Share of covered pixels that are unsafe by the ground-truth rules.", "%"
+        "hazards in scene %",
+        "Share of the pixels whose true ground both frames see that are unsafe by the ground-truth rules "
+        "(thesis Tables 6.1/6.8; a property of the scene, not of the flight software).",
+        "%",
+    ),
+    "hazards_in_scored_pct": Term(
+        "hazards in the scored area %",
+        "Share of the pixels the flight software covered (and that are scored) that are unsafe by the "
+        "ground-truth rules: the most FP % could be.",
+        "%",
     ),
     "valid_pct": Term("DEM coverage %", "Share of the covered area (seen by both images) that got an elevation.", "%"),
     "dem_mean_abs_m": Term("DEM mean |error| [m]", "Mean absolute elevation error over pixels with both values.", "m"),
@@ -171,6 +180,21 @@ GLOSSARY.update(
             "undetected near threshold %", "Share of the undetected hazards whose estimated hazard was >= 0.8.", "%"
         ),
         "altitude_m": Term("altitude [m]", "Altitude of the upper image of the pair.", "m"),
+        # the worst seed beside the median (studies.evaluate.WORST)
+        "fp_pct_worst": Term(
+            "FP % worst seed", "The highest FP % (undetected hazard) of any seed at this altitude.", "%"
+        ),
+        "cdi_pct_worst": Term("CDI % worst seed", "The lowest CDI % of any seed at this altitude.", "%"),
+        "hazards_in_scene_pct_worst": Term(
+            "hazards in scene % most hazardous seed",
+            "The highest hazards in scene % of any seed at this altitude.",
+            "%",
+        ),
+        "chosen_sites_safe_pct_worst": Term(
+            "chosen sites truly clear % worst seed",
+            "The lowest share of truly clear offered sites of any seed at this altitude.",
+            "%",
+        ),
     }
 )
 

@@ -23,13 +23,52 @@ def _positive(kind: str):
     return conv
 
 
-def _common(p: argparse.ArgumentParser) -> None:
+def add_seed_options(p: argparse.ArgumentParser, what: str = "scene seeds") -> None:
+    """``--seed-set tuning|held-out`` (default held-out), ``--seeds N`` (the first N of it), ``--seed-list``."""
+    p.add_argument(
+        "--seed-set",
+        choices=["held-out", "tuning"],
+        default="held-out",
+        help="which documented seed set to draw from (ground_sim.seeds): held-out 1000-1099 (default; "
+        "quote these) or tuning 0-9 (tune on these)",
+    )
     p.add_argument(
         "--seeds",
         type=_positive("--seeds"),
         default=None,
-        help="number of scene seeds (0..N-1); results are medians over seeds",
+        help=f"number of {what}: the first N of the seed set; results are medians over seeds",
     )
+    p.add_argument("--seed-list", default=None, help="explicit comma-separated seeds instead (e.g. 1000,1003)")
+
+
+def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], str]:
+    """(seeds, name of the set they come from: 'held-out', 'tuning' or 'explicit ...')."""
+    from ground_sim.seeds import SEED_SETS, seed_set_of
+
+    if args.seed_list:
+        try:
+            seeds = [int(x) for x in args.seed_list.split(",") if x.strip()]
+        except ValueError:
+            raise InputError(f"--seed-list: expected comma-separated integers, got {args.seed_list!r}") from None
+        if not seeds or len(set(seeds)) != len(seeds):
+            raise InputError(f"--seed-list: need distinct seeds, got {args.seed_list!r}")
+        sets = sorted({seed_set_of(x) for x in seeds})
+        return seeds, sets[0] if len(sets) == 1 else "mixed"
+    pool = SEED_SETS[args.seed_set]
+    n = args.seeds or default_n
+    if n > len(pool):
+        raise InputError(f"--seeds {n}: the {args.seed_set} set has only {len(pool)} seeds")
+    return list(pool[:n]), args.seed_set
+
+
+def describe_seeds(seeds: list[int], seed_set: str) -> str:
+    lo, hi = min(seeds), max(seeds)
+    span = f"{lo}" if lo == hi else (f"{lo}-{hi}" if len(seeds) == hi - lo + 1 else ",".join(map(str, seeds)))
+    return f"{seed_set} seeds {span} ({len(seeds)})"
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    add_seed_options(p)
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
     p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
     p.add_argument(
@@ -61,7 +100,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--scenario", required=True, choices=["vertical", "approach"])
     p.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
     _common(p)
-    p.set_defaults(func=_evaluate, seeds_default=2)
+    p.set_defaults(func=_evaluate, seeds_default=3)
 
     s = subparsers.add_parser(
         "sensitivity",
@@ -74,6 +113,7 @@ def register(subparsers: Any) -> None:
     s.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
     _common(s)
     s.set_defaults(func=_sensitivity, seeds_default=2)
+    register_landings(subparsers)
 
 
 def _parse_alts(text: str | None) -> list[int] | None:
@@ -94,7 +134,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from studies import report
     from studies.executor import CampaignError
 
-    seeds = list(range(args.seeds or args.seeds_default))
+    seeds, seed_set = resolve_seeds(args, args.seeds_default)
     try:
         rows = ev.evaluate_scenario(
             args.scenario,
@@ -111,7 +151,14 @@ def _evaluate(args: argparse.Namespace) -> int:
     except CampaignError as exc:
         print(f"hazard-hil evaluate: {exc}; rerun the same command to retry them", file=sys.stderr)
         return 1
-    page = report.evaluation_report(args.out, rows, title=f"hazard-hil evaluate: {args.scenario} scenario")
+    seeds_text = describe_seeds(seeds, seed_set)
+    page = report.evaluation_report(
+        args.out,
+        rows,
+        title=f"hazard-hil evaluate: {args.scenario} scenario, {seeds_text}",
+        figure_preset=_presets(args.preset)[0],
+    )
+    print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
     print(f"metrics: {args.out / 'metrics.csv'}\nreport:  {page}")
     return 0
@@ -122,7 +169,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     from studies import report
     from studies.executor import CampaignError
 
-    seeds = list(range(args.seeds or args.seeds_default))
+    seeds, seed_set = resolve_seeds(args, args.seeds_default)
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
     try:
         rows = ev.sensitivity_campaign(
@@ -154,5 +201,100 @@ def _sensitivity(args: argparse.Namespace) -> int:
         plot = report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png")
         sections.append((f"sensitivity: {kind}", report.rows_markdown(ks, list(ks[0]) if ks else []), [plot.name]))
     page = report.write_html(args.out / "report", "hazard-hil sensitivity (thesis sec 6.3)", sections)
+    print(f"{describe_seeds(seeds, seed_set)}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
+    return 0
+
+
+def register_landings(subparsers: Any) -> None:
+    from studies.landings import DEFAULT_POSE_ERROR, PER_RENDER
+
+    p = subparsers.add_parser(
+        "landings",
+        help="landing Monte Carlo: P(safe landing) with its 95 %% interval, per scene and preset",
+        description="Fly N landings over library scenes (hazard-hil scenes): each draws a scene seed, an aim "
+        "point, the sun (where the scene allows), an image pair and navigation errors, runs the pipeline, and "
+        "judges its top-ranked site against ground truth (every truth pixel within 1.5 m safe). Writes "
+        "landings.csv (one row per landing and preset), landings.json (P(safe) with a Wilson interval, "
+        "P(no site), divert percentiles; overall, per scene, per preset) and report/index.html. Resumable.",
+    )
+    p.add_argument("--scenes", required=True, help="comma-separated library scenes, or 'all'")
+    p.add_argument("--n", type=_positive("--n"), required=True, help="landings (rounded up to whole renders)")
+    p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it holds this campaign)")
+    p.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
+    p.add_argument(
+        "--per-render",
+        type=_positive("--per-render"),
+        default=PER_RENDER,
+        help=f"aim points (landings) sharing one rendered pair (default {PER_RENDER})",
+    )
+    p.add_argument(
+        "--pose-error",
+        default=DEFAULT_POSE_ERROR,
+        help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
+    )
+    p.add_argument(
+        "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)"
+    )
+    p.add_argument(
+        "--workers",
+        type=_positive("--workers"),
+        default=None,
+        help="local worker processes (default: CPU count; 1 = in-process)",
+    )
+    p.add_argument("--camera-px", type=_positive("--camera-px"), default=None, help=argparse.SUPPRESS)
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="keep rendered pairs here and reuse them (campaigns that differ only in aim points, navigation "
+        "errors or presets render once); default: no cache",
+    )
+    add_seed_options(p, "scene seeds to cycle through")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_landings, seeds_default=100)
+
+
+def _landings(args: argparse.Namespace) -> int:
+    import time
+
+    from ground_sim import library
+    from studies import landings as ld
+    from studies.executor import CampaignError
+
+    scenes = [e.name for e in library.entries()] if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
+    seeds, seed_set = resolve_seeds(args, args.seeds_default)
+    pe = None if args.pose_error.strip().lower() == "none" else args.pose_error
+    c = ld.Campaign(
+        tuple(scenes), args.n, tuple(seeds), seed_set, tuple(_presets(args.preset)), args.per_render, pe, args.camera_px
+    )
+    ld.claim_out_dir(c, args.out)
+    print(
+        f"landings: {c.n_landings} landings in {c.n_groups} renders over {', '.join(scenes)}; "
+        f"{describe_seeds(seeds, seed_set)}; presets {', '.join(c.presets)}",
+        file=sys.stderr,
+    )
+    t0 = time.time()
+    try:
+        _, summary = ld.run_campaign(
+            c,
+            args.out,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            progress=not args.no_progress,
+            cache_dir=args.cache,
+        )
+    except CampaignError as exc:
+        print(f"hazard-hil landings: {exc}; rerun the same command to retry them", file=sys.stderr)
+        return 1
+    for p, st in summary["per_preset"].items():
+        lo, hi = st["p_safe_ci95"]
+        print(
+            f"{p:7s} P(safe) {st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]  P(no site) {st['p_no_site']:.3f}  "
+            f"P(unsafe site) {st['p_unsafe']:.3f}  aim point safe {st['p_aim_safe']:.3f}  "
+            f"divert p50 {st['divert_m']['p50'] or float('nan'):.1f} m  (n = {st['n']})"
+        )
+    print(f"{describe_seeds(seeds, seed_set)}; wall {time.time() - t0:.0f} s")
+    print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
+    print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0

@@ -48,6 +48,8 @@ METRIC_COLUMNS = (
     "label",
     "preset",
     "seed",
+    "seed_set",
+    "scene",
     "pair",
     "dem_mean_abs_m",
     "dem_median_m",
@@ -195,9 +197,14 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
 }
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (
+    ("fp_pct_worst", "FP % worst seed"),
+    ("cdi_pct_worst", "CDI % worst seed"),
+    ("hazards_in_scene_pct_worst", "hazards in scene % most hazardous seed"),
+    ("hazards_in_scored_pct", "hazards in the scored area %"),
     ("site_fp_pct", "site FP % (3 m footprint)"),
     ("site_cdi_pct", "site CDI %"),
     ("chosen_sites_safe_pct", "chosen sites truly safe %"),
+    ("chosen_sites_safe_pct_worst", "chosen sites truly safe % worst seed"),
     ("valid_pct", "DEM valid %"),
     ("pipeline_s", "pipeline s"),
     ("fn_dem_invalid_pct", "FN: DEM not recovered %"),
@@ -315,7 +322,8 @@ def score_arrays(
     c = scoring.confusion(est["hazard"], truth["hazard"], covered)
     e = scoring.confusion(est["hazard"], truth["hazard"], covered, exclude=epipole_box)
     s = scoring.site_scores(est["hazard"], truth["hazard"], covered, site_radius_px)
-    m["hazards_in_scene_pct"] = c["hazards_pct"]
+    m["hazards_in_scene_pct"] = c["hazards_pct"]  # over the scored area; evaluate_pair replaces it (truth area)
+    m["hazards_in_scored_pct"] = c["hazards_pct"]
     for prefix, src in (("", c), ("epi_", e)):
         m.update(
             {
@@ -411,6 +419,8 @@ def evaluate_pair(
     scene: str | None = None,
     scene_seed: int | None = None,
     truth_slope: bool = True,
+    figures_dir: str | None = None,
+    figure_stem: str | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline on one pair directory and score it against its ground truth.
 
@@ -419,9 +429,10 @@ def evaluate_pair(
     poses. ``scene``/``scene_seed`` (defaults: the pair's meta) rebuild the
     terrain for the true slope/roughness; without them (or with
     ``truth_slope=False``, as the sensitivity study does) those errors are NaN.
-    ``maps_path`` saves the layers for figures (``.npz``). ``epipole_box_px``
-    (default 80 px scaled by width/512) is the Table 6.7 exclusion square. Returns the flat
-    metric dict plus ``timings``.
+    ``maps_path`` saves the layers for figures (``.npz``); with ``figures_dir`` the
+    figures themselves are drawn here, in the worker (``<figure_stem>_dem.png`` etc.), so
+    the report does not redraw them serially. ``epipole_box_px`` (default 80 px scaled by
+    width/512) is the Table 6.7 exclusion square. Returns the flat metric dict plus ``timings``.
     """
     from flight_sw.pipeline import run_pipeline
     from ground_sim import scoring
@@ -435,7 +446,10 @@ def evaluate_pair(
     if pose_error:
         fly1, fly2 = perturb_poses(true1, true2, pose_error["frames"])
     t0 = time.perf_counter()
-    res = run_pipeline(pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset)
+    # the altimeter reading the flight process gets in HIL runs (flight v2 centres its ground search on it)
+    res = run_pipeline(
+        pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset, altimeter_m=pair.altimeter_m
+    )
     wall = time.perf_counter() - t0
 
     truth_elev = pair.truth["elevation"].astype(np.float32)
@@ -457,6 +471,12 @@ def evaluate_pair(
     box = scoring.box_mask(truth_elev.shape, epi, epipole_box_px)
     est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": res.slope_deg, "roughness_m": res.roughness_m}
     m: dict[str, Any] = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    # Table 6.1/6.8's hazards in scene is a property of the scene: the share of frame-0 pixels whose true
+    # ground the last frame sees, as ground_sim measures it - not of the area the flight software covered
+    from ground_sim.library import covered, share_pct
+
+    true_cov = covered(pair.camera, true2, world.reshape(-1, 3)).reshape(truth_elev.shape)
+    m["hazards_in_scene_pct"] = share_pct(pair.truth["hazard"], true_cov & np.isfinite(pair.truth["hazard"]))
     if res.sites:
         uv = project_points(pair.camera, true1, np.array([[s.x, s.y, s.z] for s in res.sites]))
         ch = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)
@@ -496,25 +516,30 @@ def evaluate_pair(
             est_shadow=res.shadow_mask,
             true_shadow=pair.truth.get("shadow", np.zeros(truth_elev.shape, bool)),
         )
+        if figures_dir:
+            from studies.report import figures_from_maps
+
+            files = figures_from_maps(maps_path, figures_dir, figure_stem or Path(maps_path).stem)
+            m["figures"] = [f.name for f in files]
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in m.items()}
 
 
 def _scene_of(meta: dict[str, Any], scene: str | None, seed: int | None) -> tuple[str | None, int]:
-    spec = scene if scene is not None else meta.get("scene")
+    spec = scene if scene is not None else meta.get("scene_spec", meta.get("scene"))
     s = seed if seed is not None else meta.get("scene_seed", 0)
     return (str(spec) if isinstance(spec, str) and spec else None), int(s or 0)
 
 
 def true_poses(pair: Any) -> tuple[Pose, Pose]:
-    """The true poses of a pair: ``meta["true_frames"]`` (written by ground_sim.descent), else the frames."""
+    """True poses of frames 0 and -1: ``meta["true_frames"]`` (written by ground_sim.descent), else the frames."""
     tp = pair.meta.get("true_frames")
-    if isinstance(tp, list) and len(tp) == 2:
+    if isinstance(tp, list) and len(tp) >= 2:
         try:
             return tuple(
                 Pose(
                     np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float), float(p.get("time_s", 0.0))
                 )
-                for p in tp
+                for p in (tp[0], tp[-1])
             )  # type: ignore[return-value]
         except (KeyError, TypeError, ValueError) as exc:
             raise EvaluationError(f"pair meta true_frames unreadable ({exc})") from None
@@ -583,18 +608,20 @@ def render_cache(
     camera_px: int | None = None,
     altitudes: Iterable[int] | None = None,
     progress: bool = False,
+    scene: str | None = None,
 ) -> list[dict[str, Any]]:
     """Render (or reuse) the scenario's pairs for one scene seed; return [{label, altitude_m, pair_dir}].
 
     Pairs are rendered with ``ground_sim`` from the true trajectory (no pose
     error: the sensitivity study perturbs the flight's pose knowledge instead)
-    into ``cache_dir/<scenario>_s<seed>_<px>px/<label>/``; a pair directory
-    that already holds ``pair.json`` is reused, so presets and samples share
-    one rendering.
+    on ``scene`` (default: the scenario's, :func:`scenario_scene`) under the
+    scene's sun, into ``cache_dir/<scenario>_<scene>_s<seed>_<px>px/<label>/``;
+    a pair directory that already holds ``pair.json`` is reused, so presets and
+    samples share one rendering.
     """
-    from ground_sim import trajectory
-    from ground_sim.descent import DEFAULT_SUN, render_pair
-    from ground_sim.scene import load_scene
+    from ground_sim import library, trajectory
+    from ground_sim.descent import render_pair
+    from ground_sim.scene import load_scene, load_scene_params
     from protocol.pairdir import write_pair
 
     if scenario not in SCENARIOS:
@@ -608,19 +635,22 @@ def render_cache(
                 f"scenario {scenario}: no pair at altitude(s) {sorted(want - set(have))} m (it has {sorted(have)})"
             )
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
-    out = Path(cache_dir) / f"{scenario}_s{seed}_{camera_px or THESIS_CAMERA_PX}px"
-    scene = None
+    scene_spec = scene or scenario_scene(scenario)
+    tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px"
+    sc = None
     entries = []
     for k, spec in enumerate(specs):
         d = out / spec.label.replace("/", "_")
         if not (d / "pair.json").is_file():
-            if scene is None:
-                scene = load_scene(scenario_scene(scenario), seed)
+            if sc is None:
+                sc = load_scene(scene_spec, seed, scenario)
             if progress:
                 print(f"render {scenario} seed {seed}: {spec.label} ({k + 1}/{len(specs)})", flush=True)
             tmp = d.with_name(d.name + ".partial")
             shutil.rmtree(tmp, ignore_errors=True)
-            write_pair(tmp, render_pair(scene, spec, DEFAULT_SUN[scenario], seed=seed))
+            sun = library.scene_sun(scene_spec, scenario, seed)
+            write_pair(tmp, render_pair(sc, spec, sun, seed=seed))
             os.replace(tmp, d)  # atomic: an interrupted render never leaves a half-written pair
         entries.append({"label": spec.label, "altitude_m": float(spec.altitude_m), "pair_dir": str(d)})
     return entries
@@ -634,8 +664,10 @@ def scenario_scene(scenario: str) -> str:
 
 
 # --------------------------------------------------------------------------- campaigns
-def _render_task(scenario: str, seed: int, cache_dir: str, camera_px: int | None, altitude: int) -> dict[str, Any]:
-    return render_cache(scenario, seed, cache_dir, camera_px=camera_px, altitudes=[altitude])[0]
+def _render_task(
+    scenario: str, seed: int, cache_dir: str, camera_px: int | None, altitude: int, scene: str | None = None
+) -> dict[str, Any]:
+    return render_cache(scenario, seed, cache_dir, camera_px=camera_px, altitudes=[altitude], scene=scene)[0]
 
 
 def _check_choice(name: str, values: Iterable[Any], allowed: Iterable[Any]) -> list[Any]:
@@ -657,6 +689,8 @@ def render_all(
     workers: int | None = None,
     progress: bool = True,
     run_dir: str | Path | None = None,
+    scene: str | None = None,
+    pool: Any = None,
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
@@ -669,10 +703,18 @@ def render_all(
             f"scenario {scenario}: no pair at altitude(s) {sorted(set(alts) - set(have))} m (it has {have})"
         )
     seeds = [int(s) for s in seeds]
+    tag = (scene or scenario_scene(scenario)).replace(":", "-")
     tasks = [
         Task(
-            f"{scenario}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
-            {"scenario": scenario, "seed": s, "cache_dir": str(cache_dir), "camera_px": camera_px, "altitude": a},
+            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
+            {
+                "scenario": scenario,
+                "seed": s,
+                "cache_dir": str(cache_dir),
+                "camera_px": camera_px,
+                "altitude": a,
+                "scene": scene,
+            },
         )
         for s in seeds
         for a in alts
@@ -686,6 +728,7 @@ def render_all(
         workers=workers,
         progress=progress,
         desc=f"render {scenario}",
+        pool=pool,
     )
     out = []
     for t in tasks:
@@ -708,56 +751,74 @@ def evaluate_scenario(
     workers: int | None = None,
     progress: bool = True,
     maps_seeds: int = 1,
+    scene: str | None = None,
 ) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
-    One row per (preset, seed, pair), columns :data:`METRIC_COLUMNS`. Finished
-    pairs are logged to ``out_dir/runs/evaluate.jsonl`` so a rerun resumes. The
-    layers of the first ``maps_seeds`` seeds are kept in ``out_dir/maps`` for figures.
+    One row per (preset, seed, pair), columns :data:`METRIC_COLUMNS` (with the
+    scene and the seed set each seed belongs to). Finished pairs are logged to
+    ``out_dir/runs/evaluate.jsonl`` so a rerun resumes. The layers of the first
+    ``maps_seeds`` seeds are kept in ``out_dir/maps``, and the first preset's
+    figures of them are drawn by the workers into ``out_dir/report``. Rendering
+    and evaluation share one pool of single-threaded processes.
     """
-    from studies.executor import Task, run_tasks
+    from ground_sim.seeds import seed_set_of
+    from studies.executor import Task, local_pool, run_tasks
 
     _check_choice("scenario", [scenario], SCENARIOS)
     presets = _check_choice("preset", presets, PRESETS)
     seeds = [int(s) for s in seeds]
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"
-    pairs = render_all(
-        scenario,
-        seeds,
-        cache,
-        camera_px=camera_px,
-        altitudes=altitudes,
-        scheduler=scheduler,
-        workers=workers,
-        progress=progress,
-        run_dir=out / "runs",
-    )
-    tasks: list[Any] = []
-    info: dict[str, dict[str, Any]] = {}
-    for preset in presets:
-        for e in pairs:
-            alt = int(round(e["altitude_m"]))
-            tid = f"{scenario}-{preset}-s{e['seed']}-{alt}"
-            maps = str(out / "maps" / f"{tid}.npz") if e["seed"] in seeds[:maps_seeds] else None
-            tasks.append(Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": maps}))
-            info[tid] = {
-                "scenario": scenario,
-                "altitude_m": alt,
-                "label": e["label"],
-                "preset": preset,
-                "seed": e["seed"],
-                "pair": e["pair_dir"],
-            }
-    res = run_tasks(
-        evaluate_pair,
-        tasks,
-        out / "runs" / "evaluate.jsonl",
-        scheduler=scheduler,
-        workers=workers,
-        progress=progress,
-        desc=f"evaluate {scenario}",
-    )
+    scene_spec = scene or scenario_scene(scenario)
+    n_alts = len(list(altitudes)) if altitudes is not None else 8
+    with local_pool(1 if scheduler else workers, len(seeds) * n_alts * len(presets)) as pool:
+        pairs = render_all(
+            scenario,
+            seeds,
+            cache,
+            camera_px=camera_px,
+            altitudes=altitudes,
+            scheduler=scheduler,
+            workers=workers,
+            progress=progress,
+            run_dir=out / "runs",
+            scene=scene,
+            pool=pool,
+        )
+        tasks: list[Any] = []
+        info: dict[str, dict[str, Any]] = {}
+        for preset in presets:
+            for e in pairs:
+                alt = int(round(e["altitude_m"]))
+                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}"
+                kw: dict[str, Any] = {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": None}
+                if e["seed"] in seeds[:maps_seeds]:
+                    kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
+                    if preset == presets[0]:
+                        kw["figures_dir"] = str(out / "report")
+                        kw["figure_stem"] = f"{scenario}_{alt}m"
+                tasks.append(Task(tid, kw))
+                info[tid] = {
+                    "scenario": scenario,
+                    "altitude_m": alt,
+                    "label": e["label"],
+                    "preset": preset,
+                    "seed": e["seed"],
+                    "seed_set": seed_set_of(e["seed"]),
+                    "scene": scene_spec,
+                    "pair": e["pair_dir"],
+                }
+        res = run_tasks(
+            evaluate_pair,
+            tasks,
+            out / "runs" / "evaluate.jsonl",
+            scheduler=scheduler,
+            workers=workers,
+            progress=progress,
+            desc=f"evaluate {scenario}",
+            pool=pool,
+        )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     write_metrics_csv(rows, out / "metrics.csv")
     return rows
@@ -803,8 +864,13 @@ def read_metrics_csv(path: str | Path) -> list[dict[str, Any]]:
         return [{k: conv(v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
 
+# The worst seed beside the median (brief: quote held-out results with their worst case): max or min.
+WORST = {"fp_pct": max, "cdi_pct": min, "hazards_in_scene_pct": max, "chosen_sites_safe_pct": min}
+
+
 def summarise(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str, int], dict[str, float]]:
-    """(scenario, preset, altitude) -> median over seeds of every numeric metric (plus ``n_seeds``)."""
+    """(scenario, preset, altitude) -> median over seeds of every numeric metric (plus ``n_seeds``),
+    and ``<metric>_worst`` for the metrics of :data:`WORST`."""
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["scenario"], r["preset"], int(r["altitude_m"])), []).append(r)
@@ -820,6 +886,8 @@ def summarise(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str, int], dict
             ]
             if nums and k not in ("altitude_m", "seed"):
                 agg[k] = float(np.median(nums))
+                if k in WORST:
+                    agg[f"{k}_worst"] = float(WORST[k](nums))
         out[key] = agg
     return out
 

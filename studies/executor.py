@@ -8,10 +8,13 @@ the ids already in the file. A truncated last line - the write that was cut
 off - is ignored and its task simply runs again.
 
 Backends: ``workers == 1`` runs inline (no process start-up cost, easiest to
-debug); ``workers > 1`` uses a local process pool; ``scheduler`` (an address
-such as ``tcp://host:8786`` or a ``distributed.Client``) ships the same
-function to a Dask distributed cluster. Results do not depend on the backend
-because each task is a pure function of its arguments.
+debug); ``workers > 1`` uses a local pool of single-threaded processes
+(:mod:`ground_sim.parallel`: one OpenCV and one BLAS thread each, so N workers
+use N cores, no more); ``scheduler`` (an address such as ``tcp://host:8786`` or
+a ``distributed.Client``) ships the same function to a Dask distributed
+cluster. Results do not depend on the backend because each task is a pure
+function of its arguments. A caller with several campaigns in a row passes one
+``pool`` (:func:`local_pool`) so the workers import their libraries once.
 """
 
 from __future__ import annotations
@@ -81,17 +84,21 @@ def _json_default(o: Any) -> Any:
 
 
 def _call(fn: Callable[..., dict[str, Any]], kwargs: dict[str, Any]) -> dict[str, Any]:
+    # one OpenCV thread per task, also on Dask workers: the workers already fill the cores
+    from ground_sim.parallel import worker_init
+
+    worker_init()
     return fn(**kwargs)
 
 
-def _worker_init() -> None:
-    # One OpenCV thread per worker process: the pool already fills the cores.
-    try:
-        import cv2
+def local_pool(workers: int | None, n_tasks: int | None = None) -> Any:
+    """A context manager yielding a pool of single-threaded processes, or None when one worker suffices."""
+    from contextlib import nullcontext
 
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a hard dependency
-        pass
+    from ground_sim.parallel import process_pool, resolve_workers
+
+    n = resolve_workers(workers, n_tasks if n_tasks is not None else 1 << 30)
+    return process_pool(n) if n > 1 else nullcontext(None)
 
 
 def run_tasks(
@@ -103,14 +110,16 @@ def run_tasks(
     workers: int | None = None,
     progress: bool = True,
     desc: str = "tasks",
+    pool: Any = None,
 ) -> dict[str, dict[str, Any]]:
     """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
 
     The returned dict follows the order of ``tasks``. ``scheduler`` selects
-    Dask (address string or ``distributed.Client``); otherwise ``workers``
-    local processes (default: CPU count; 1 = inline). Raises
-    :class:`CampaignError` after the run if any task raised - finished results
-    stay saved - and :class:`InputError` for duplicate task ids.
+    Dask (address string or ``distributed.Client``); otherwise ``pool`` (an
+    open process pool) or ``workers`` local processes (default: CPU count;
+    1 = inline, with one OpenCV thread). Raises :class:`CampaignError` after
+    the run if any task raised - finished results stay saved - and
+    :class:`InputError` for duplicate task ids.
     """
     tasks = list(tasks)
     ids = [t.id for t in tasks]
@@ -136,18 +145,23 @@ def run_tasks(
 
         if pending and scheduler is not None:
             _run_dask(fn, pending, scheduler, record, failures)
+        elif pending and pool is not None:
+            _drain(pool, fn, pending, record, failures)
         elif pending and (workers or os.cpu_count() or 1) > 1 and len(pending) > 1:
             _run_pool(fn, pending, int(workers or os.cpu_count() or 1), record, failures)
-        else:
-            for t in pending:
-                try:
-                    res = fn(**t.kwargs)
-                except (KeyboardInterrupt, SystemExit):
-                    raise
-                except Exception as exc:
-                    failures[t.id] = f"{type(exc).__name__}: {exc}"
-                    continue
-                record(t.id, res)
+        elif pending:
+            from ground_sim.parallel import one_thread_here
+
+            with one_thread_here():
+                for t in pending:
+                    try:
+                        res = fn(**t.kwargs)
+                    except (KeyboardInterrupt, SystemExit):
+                        raise
+                    except Exception as exc:
+                        failures[t.id] = f"{type(exc).__name__}: {exc}"
+                        continue
+                    record(t.id, res)
     if failures:
         raise CampaignError(failures)
     return {t.id: done[t.id] for t in tasks}
@@ -160,27 +174,35 @@ def _run_pool(
     record: Callable[[str, dict[str, Any]], None],
     failures: dict[str, str],
 ) -> None:
-    import multiprocessing as mp
+    from ground_sim.parallel import process_pool
 
-    # spawn: OpenCV/numpy thread pools do not survive fork reliably
-    with ProcessPoolExecutor(
-        max_workers=min(workers, len(pending)), mp_context=mp.get_context("spawn"), initializer=_worker_init
-    ) as pool:
-        futs: dict[Future, str] = {pool.submit(_call, fn, t.kwargs): t.id for t in pending}
-        try:
-            remaining = set(futs)
-            while remaining:
-                finished, remaining = wait(remaining, return_when=FIRST_COMPLETED)
-                for f in sorted(finished, key=lambda f: futs[f]):
-                    exc = f.exception()
-                    if exc is not None:
-                        failures[futs[f]] = f"{type(exc).__name__}: {exc}"
-                    else:
-                        record(futs[f], f.result())
-        except KeyboardInterrupt:
-            for f in futs:
-                f.cancel()
-            raise
+    # spawned single-threaded workers: OpenCV/numpy thread pools do not survive fork reliably
+    with process_pool(min(workers, len(pending))) as pool:
+        _drain(pool, fn, pending, record, failures)
+
+
+def _drain(
+    pool: ProcessPoolExecutor,
+    fn: Callable[..., dict[str, Any]],
+    pending: list[Task],
+    record: Callable[[str, dict[str, Any]], None],
+    failures: dict[str, str],
+) -> None:
+    futs: dict[Future, str] = {pool.submit(_call, fn, t.kwargs): t.id for t in pending}
+    try:
+        remaining = set(futs)
+        while remaining:
+            finished, remaining = wait(remaining, return_when=FIRST_COMPLETED)
+            for f in sorted(finished, key=lambda f: futs[f]):
+                exc = f.exception()
+                if exc is not None:
+                    failures[futs[f]] = f"{type(exc).__name__}: {exc}"
+                else:
+                    record(futs[f], f.result())
+    except KeyboardInterrupt:
+        for f in futs:
+            f.cancel()
+        raise
 
 
 def _run_dask(

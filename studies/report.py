@@ -22,6 +22,8 @@ from reports.style import HAZARD_CMAP, term
 
 PANEL_IN = 3.2  # inches per map panel
 
+FIGURE_KINDS = ("dem", "hazard", "slope", "rough")
+
 
 def fmt_number(v: Any, digits: int = 3) -> str:
     """A number for a Markdown table: ``digits`` significant digits, '-' for missing."""
@@ -349,7 +351,14 @@ def evaluation_report(
                 continue
             maps = sorted((out / "maps").glob(f"{scen}-{figure_preset}-s*-{alt}.npz"))
             if maps:
-                imgs += [f.name for f in figures_from_maps(maps[0], rep, f"{scen}_{alt}m")]
+                stem = f"{scen}_{alt}m"
+                done = [rep / f"{stem}_{k}.png" for k in FIGURE_KINDS]
+                if (rep / f"{stem}_hazard.png").is_file() and (rep / f"{stem}_hazard.png").stat().st_mtime >= maps[
+                    0
+                ].stat().st_mtime:
+                    imgs += [f.name for f in done if f.is_file()]  # drawn by the worker that scored the pair
+                else:
+                    imgs += [f.name for f in figures_from_maps(maps[0], rep, stem)]
         if imgs:
             sections.append((f"{scen}: maps, preset {figure_preset}", "", imgs))
     for kind, srows in (sensitivity or {}).items():

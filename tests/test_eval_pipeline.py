@@ -37,6 +37,13 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert r["tp_pct"] + r["tn_pct"] + r["fp_pct"] + r["fn_pct"] == pytest.approx(100.0)
     assert r["cdi_pct"] == pytest.approx(r["tp_pct"] + r["tn_pct"])
     assert 0 < r["hazards_in_scene_pct"] < 100 and r["slope_mean_abs_deg"] is not None
+    # hazards in scene is the scene's (over the truly covered area, as the renderer recorded it), not the
+    # flight software's covered area
+    from protocol.pairdir import read_pair
+
+    meta = read_pair(r["pair"], load_truth=False).meta
+    assert r["hazards_in_scene_pct"] == pytest.approx(meta["hazards_in_scene_pct"], abs=0.05)
+    assert 0 < r["hazards_in_scored_pct"] < 100
     fn_parts = [
         r[k]
         for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct", "fn_other_pct")
@@ -135,3 +142,31 @@ def test_cli_bad_input_is_one_clean_line(tmp_path: Path, capsys):
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no pair at altitude(s) [33]" in err[0]
+
+
+@pytest.mark.slow
+def test_evaluate_dask_matches_local_processes_and_workers_draw_the_figures(tmp_path: Path, cache: Path):
+    from distributed import Client, LocalCluster
+
+    kw = dict(
+        presets=["fast", "thesis"],
+        seeds=[1000, 1001],
+        cache_dir=cache,
+        camera_px=PX,
+        altitudes=[150, 300],
+        progress=False,
+    )
+    local = ev.evaluate_scenario("vertical", tmp_path / "local", workers=2, **kw)
+    # the first seed's figures of the first preset were drawn by the workers, before any report is built
+    assert {p.name for p in (tmp_path / "local" / "report").glob("*.png")} >= {
+        "vertical_150m_hazard.png",
+        "vertical_300m_dem.png",
+    }
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl, Client(cl):
+        dask = ev.evaluate_scenario("vertical", tmp_path / "dask", scheduler=cl.scheduler_address, **kw)
+
+    def strip(rows):
+        return [{k: v for k, v in r.items() if k not in ("pipeline_s", "timings")} for r in rows]
+
+    assert len(local) == 8 and strip(local) == strip(dask)
+    assert {(r["seed_set"], r["scene"]) for r in local} == {("held-out", "thesis")}

@@ -70,6 +70,8 @@ def _rows():
 def test_summary_is_median_over_seeds_and_comparison_pairs_thesis_cells():
     s = ev.summarise(_rows())
     assert s[("vertical", "fast", 300)]["dem_mean_abs_m"] == pytest.approx(2.0)  # median of 1.5, 2.5
+    fps = [r["fp_pct"] for r in _rows() if (r["scenario"], r["preset"], r["altitude_m"]) == ("vertical", "fast", 300)]
+    assert s[("vertical", "fast", 300)]["fp_pct_worst"] == max(fps)  # the worst seed beside the median
     cells = ev.comparison(s, "vertical")
     c = next(c for c in cells if c["metric"] == "dem_mean_abs_m" and c["altitude_m"] == 500)
     assert c["thesis"] == 3.8769 and c["ours_fast"] == pytest.approx(3.0) and c["ours_thesis"] == pytest.approx(5.5)
@@ -133,6 +135,7 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
     # labels from the glossary: unique, explained, no Markdown left on the page
     assert "FP % (undetected hazard): thesis" in text and "DEM error kurtosis" in text and "**" not in text
     assert "kurtosis*" not in text and "TN% excl" not in text
+    assert "_worst" not in text  # the worst-seed metrics have glossary labels too
     if browser_available():
         check = check_page(page)
         assert check.ok and check.images == 9, check

@@ -239,17 +239,24 @@ def test_render_pair_and_scenario_files(tmp_path):
 
 
 def test_each_scenario_renders_on_its_own_scene_unless_told(tmp_path):
-    """`render`, `run` and `evaluate` must score the same terrain: the approach flies the safer area."""
+    """`render`, `run` and `evaluate` must score the same terrain: the approach flies the thesis scene's
+    approach variant (the safer area of Table 6.8), the vertical descent its base."""
     from ground_sim.descent import default_scene
     from hil_server.run import scaled_camera
     from studies.evaluate import scenario_scene
 
     small = scaled_camera(48)
     out = render_scenario("approach", tmp_path / "a", pairs=["250/125"], camera=small, progress=False)
-    assert json.loads((out / "manifest.json").read_text())["scene"] == "approach"
+    man = json.loads((out / "manifest.json").read_text())
+    assert (man["scene"], man["scene_variant"], man["scene_spec"]) == ("thesis", "approach", "thesis:approach")
+    assert man["scene_params"]["craters"]["exclude_d_min_m"] == 12.0  # the variant's terrain, not the base's
+    pair = read_pair(out / "250_125")
+    assert pair.meta["scene_spec"] == "thesis:approach" and 0.0 <= pair.meta["hazards_in_scene_pct"] <= 100.0
+    out = render_scenario("vertical", tmp_path / "v", pairs=["100/50"], camera=small, progress=False)
+    assert json.loads((out / "manifest.json").read_text())["scene_spec"] == "thesis"
     out = render_scenario("approach", tmp_path / "b", scene="default", pairs=["250/125"], camera=small, progress=False)
     assert json.loads((out / "manifest.json").read_text())["scene"] == "default"
-    assert [default_scene(s) for s in ("vertical", "approach", "custom")] == ["default", "approach", "default"]
+    assert [default_scene(s) for s in ("vertical", "approach", "custom")] == ["thesis"] * 3
     assert scenario_scene("approach") == default_scene("approach")
 
 

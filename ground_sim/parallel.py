@@ -1,0 +1,86 @@
+"""A pool of single-threaded worker processes for embarrassingly parallel work.
+
+Each worker runs with one OpenCV thread and one BLAS/OpenMP thread: the pool
+itself fills the cores, and nested thread pools would only fight over them (on
+a 2-core machine two 2-thread processes are slower than two 1-thread ones).
+Workers are spawned, not forked (OpenCV and BLAS thread pools do not survive a
+fork reliably); the thread limits are set in the environment before the child
+imports numpy, and again in the worker initialiser for OpenCV.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+@contextmanager
+def single_threaded_env() -> Iterator[None]:
+    """Children started inside this block get one BLAS/OpenMP thread (restored afterwards)."""
+    old = {k: os.environ.get(k) for k in THREAD_VARS}
+    os.environ.update({k: "1" for k in THREAD_VARS})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def worker_init() -> None:
+    """Initialiser of every worker process: one OpenCV thread."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+@contextmanager
+def one_thread_here() -> Iterator[None]:
+    """Run the block with one OpenCV thread in this process (an inline 'worker'), then restore."""
+    import cv2
+
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(n)
+
+
+def resolve_workers(workers: int | None, n_items: int) -> int:
+    """``workers`` (default: CPU count) capped by the number of items, at least 1."""
+    w = int(workers) if workers else (os.cpu_count() or 1)
+    return max(1, min(w, n_items))
+
+
+@contextmanager
+def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
+    """A spawned pool of ``workers`` single-threaded processes."""
+    import multiprocessing as mp
+
+    with single_threaded_env():
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=worker_init)
+        try:
+            yield pool
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def pool_map(fn: Callable[..., T], items: Iterable[Any], workers: int | None = None) -> list[T]:
+    """``[fn(*item) for item in items]`` in order; inline (one OpenCV thread) when one worker suffices."""
+    items = list(items)
+    n = resolve_workers(workers, len(items))
+    if n <= 1:
+        with one_thread_here():
+            return [fn(*it) for it in items]
+    with process_pool(n) as pool:
+        futs = [pool.submit(fn, *it) for it in items]
+        return [f.result() for f in futs]

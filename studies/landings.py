@@ -1,0 +1,614 @@
+"""Landing Monte Carlo: how often does the top-ranked site turn out truly safe?
+
+ALHAT judged its hazard detection by Monte Carlo runs of thousands of landings;
+this is that study for our pipeline. A campaign is ``n`` landings over a list of
+library scenes (:mod:`ground_sim.library`), grouped ``per_render`` to a render:
+
+* render group ``g`` flies scene ``scenes[g % S]`` on the next seed of the seed set
+  (held-out by default), with an image pair drawn from :data:`LANDING_PAIRS`, the
+  scene's sun (drawn from its range where the scene has one, else the scenario's);
+* each of its landings draws an aim point (uniform in a disk of
+  :data:`AIM_FRACTION` x the lower frame's footprint around the nominal site) and
+  navigation errors for both frames (:data:`DEFAULT_POSE_ERROR`); the flight
+  pipeline runs on the images with those poses and that aim point, per preset;
+* the top-ranked site is judged against ground truth by the DESIGN.md site rule:
+  **safe** when every frame-0 truth pixel whose true ground position lies within
+  1.5 m (the 3 m footprint's radius) of the site is safe; **unsafe** otherwise (or
+  when the footprint reaches the image border, so truth cannot confirm it); **no
+  site** when the flight software offers none - its own outcome, never safe.
+
+Every draw is a hash of (campaign key, group, landing), so a campaign is the same
+whatever the backend and a rerun resumes (:mod:`studies.executor`). The divert
+distance (aim point to site) and whether the aim point itself was safe (the
+"blind landing" baseline) are recorded per landing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+import zlib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import InputError
+
+LANDING_PAIRS: tuple[tuple[str, str], ...] = (
+    ("vertical", "400/200"),
+    ("vertical", "300/150"),
+    ("vertical", "200/100"),
+    ("vertical", "150/75"),
+    ("vertical", "100/50"),
+    ("approach", "300/150"),
+    ("approach", "250/125"),
+)
+# Navigation knowledge at the final hazard-detection pairs: altimeter + IMU-grade attitude, 1 sigma
+# (thesis sec. 6.3 bounds are +-0.5 m and +-0.15 deg; these are about a third of them, per frame).
+DEFAULT_POSE_ERROR = "alt_sigma=0.15,pitch_sigma=0.03,roll_yaw=0.03,lateral=0.15,equal_pitch=0"
+PER_RENDER = 8
+AIM_FRACTION = 0.2
+FOOTPRINT_RADIUS_M = 1.5
+PRESETS = ("fast", "thesis")
+CAMPAIGN_KEY = 0x1A4D
+OUTCOMES = ("safe", "unsafe", "no_site")
+Z95 = 1.959963984540054
+
+ROW_COLUMNS = (
+    "landing",
+    "group",
+    "preset",
+    "outcome",
+    "safe",
+    "site_found",
+    "scene",
+    "scene_seed",
+    "seed_set",
+    "scenario",
+    "pair",
+    "altitude_m",
+    "sun_azimuth_deg",
+    "sun_elevation_deg",
+    "aim_x_m",
+    "aim_y_m",
+    "aim_safe",
+    "site_x_m",
+    "site_y_m",
+    "divert_m",
+    "site_truth_px",
+    "site_unsafe_px",
+    "truth_incomplete",
+    "site_rank_margin",
+    "no_site_reason",
+    "hazards_in_scene_pct",
+    "pipeline_s",
+    "level",
+    "dz1_m",
+    "dz2_m",
+    "pitch1_deg",
+    "pitch2_deg",
+)
+
+
+class LandingError(InputError):
+    """A landing campaign's options or output directory are unusable."""
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """Everything that defines a campaign's draws (``n`` only decides how many groups run)."""
+
+    scenes: tuple[str, ...]
+    n: int
+    seeds: tuple[int, ...]
+    seed_set: str
+    presets: tuple[str, ...] = ("fast",)
+    per_render: int = PER_RENDER
+    pose_error: str | None = DEFAULT_POSE_ERROR
+    camera_px: int | None = None
+
+    def __post_init__(self) -> None:
+        from ground_sim import library
+
+        known = {e.name for e in library.entries()}
+        bad = [s for s in self.scenes if s not in known]
+        if not self.scenes or bad:
+            raise LandingError(
+                f"--scenes: not library scenes: {bad or 'none given'} (library: {', '.join(sorted(known))})"
+            )
+        if len(set(self.scenes)) != len(self.scenes):
+            raise LandingError(f"--scenes: each scene once, got {list(self.scenes)}")
+        if self.n < 1 or self.per_render < 1:
+            raise LandingError(f"need n >= 1 and per_render >= 1, got n={self.n}, per_render={self.per_render}")
+        if not self.seeds:
+            raise LandingError("no scene seeds")
+        bad_p = [p for p in self.presets if p not in PRESETS]
+        if not self.presets or bad_p:
+            raise LandingError(f"presets must be among {PRESETS}, got {list(self.presets)}")
+        if self.pose_error:
+            from ground_sim.pose_error import PoseError
+
+            PoseError.parse(self.pose_error)  # fail early on a bad spec
+
+    @property
+    def n_groups(self) -> int:
+        return -(-self.n // self.per_render)
+
+    @property
+    def n_landings(self) -> int:
+        """Landings actually flown: whole groups (``n`` rounded up to a multiple of ``per_render``)."""
+        return self.n_groups * self.per_render
+
+    def identity(self) -> dict[str, Any]:
+        """The settings a resumed campaign must share (all but ``n``)."""
+        d = asdict(self)
+        d.pop("n")
+        d["scenes"] = list(self.scenes)
+        d["seeds"] = list(self.seeds)
+        d["presets"] = list(self.presets)
+        return d
+
+
+# --------------------------------------------------------------------------- draws
+def _rng(*keys: int) -> np.random.Generator:
+    return np.random.default_rng([CAMPAIGN_KEY, *[int(k) & 0xFFFFFFFF for k in keys]])
+
+
+def plan_group(c: Campaign, g: int) -> dict[str, Any]:
+    """The draws of render group ``g``: scene, seed, pair, sun, and per landing an aim point and pose errors."""
+    from ground_sim import library
+    from ground_sim.pose_error import PoseError
+    from ground_sim.trajectory import load_trajectory
+
+    scene = c.scenes[g % len(c.scenes)]
+    seed = c.seeds[(g // len(c.scenes)) % len(c.seeds)]
+    rng = _rng(g, zlib.crc32(scene.encode()))
+    scenario, label = LANDING_PAIRS[int(rng.integers(len(LANDING_PAIRS)))]
+    e = library.entry(scene)
+    if e is not None and e.sun_varies:
+        az0, az1 = e.sun_azimuth_deg or (135.0, 135.0)
+        el0, el1 = e.sun_elevation_deg or (25.0, 25.0)
+        sun = [float(rng.uniform(az0, az1)) % 360.0, float(rng.uniform(el0, el1))]
+    else:
+        s = library.DEFAULT_SUN[scenario]
+        sun = [s.azimuth_deg, s.elevation_deg]
+    spec = next(s for s in load_trajectory(scenario) if s.label == label)
+    radius = AIM_FRACTION * _footprint_width(spec.camera, spec.poses[-1])
+    pe = PoseError.parse(c.pose_error) if c.pose_error else None
+    landings = []
+    for j in range(c.per_render):
+        lr = _rng(g, j, 0xA1)
+        r, th = radius * math.sqrt(lr.uniform()), lr.uniform(0.0, 2.0 * math.pi)
+        deltas = [d.to_dict() for d in pe.sample(lr)] if pe is not None else [{}, {}]
+        landings.append(
+            {"landing": g * c.per_render + j, "aim": [r * math.sin(th), r * math.cos(th)], "errors": deltas}
+        )
+    return {
+        "group": g,
+        "scene": scene,
+        "seed": seed,
+        "seed_set": c.seed_set,
+        "scenario": scenario,
+        "pair": label,
+        "sun": sun,
+        "camera_px": c.camera_px,
+        "landings": landings,
+    }
+
+
+def _footprint_width(camera: Any, pose: Any) -> float:
+    """Narrowest edge of a frame's ground footprint on Z = 0 (m)."""
+    from ground_sim.geometry import ground_footprint
+
+    F = ground_footprint(camera, pose)
+    return float(min(np.linalg.norm(F[1] - F[0]), np.linalg.norm(F[2] - F[3]), np.linalg.norm(F[3] - F[0])))
+
+
+# --------------------------------------------------------------------------- judging
+def judge_site(
+    site_xy: tuple[float, float], world_xy: np.ndarray, hazard: np.ndarray, radius_m: float = FOOTPRINT_RADIUS_M
+) -> dict[str, Any]:
+    """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
+    ``radius_m`` of the site has hazard < 1. A footprint that holds no pixel, or reaches the image
+    border (part of it unseen), cannot be confirmed and is judged unsafe."""
+    X, Y = world_xy[..., 0], world_xy[..., 1]
+    near = (X - site_xy[0]) ** 2 + (Y - site_xy[1]) ** 2 <= radius_m * radius_m
+    n = int(np.count_nonzero(near))
+    unsafe = int(np.count_nonzero(near & ~(hazard < 1.0)))
+    border = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any())
+    return {"safe": n > 0 and unsafe == 0 and not border, "n_px": n, "n_unsafe": unsafe, "incomplete": border or n == 0}
+
+
+def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any, Any]:
+    """(spec, pair) of a render group: rendered, or read from ``cache_dir`` where an earlier campaign left it.
+
+    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera), so
+    campaigns that differ only in aim points, navigation errors or presets share their renders."""
+    import os
+    import shutil
+
+    from ground_sim.descent import render_pair
+    from ground_sim.scene import load_scene
+    from ground_sim.trajectory import load_trajectory
+    from protocol.pairdir import Sun, read_pair, write_pair
+    from studies.evaluate import _camera_for
+
+    scenario = plan["scenario"]
+    spec = next(s for s in load_trajectory(scenario, _camera_for(plan["camera_px"])) if s.label == plan["pair"])
+    sun = Sun(*plan["sun"])
+    if cache_dir is None:
+        return spec, render_pair(load_scene(plan["scene"], plan["seed"], scenario), spec, sun, seed=plan["seed"])
+    key = (
+        f"{plan['scene']}_{scenario}_{plan['pair'].replace('/', '-')}_s{plan['seed']}"
+        f"_sun{sun.azimuth_deg:.4f}-{sun.elevation_deg:.4f}_{plan['camera_px'] or 512}px"
+    )
+    d = Path(cache_dir) / key
+    if not (d / "pair.json").is_file():
+        sc = load_scene(plan["scene"], plan["seed"], scenario)
+        tmp = d.with_name(d.name + f".partial{os.getpid()}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        write_pair(tmp, render_pair(sc, spec, sun, seed=plan["seed"]))
+        try:
+            os.replace(tmp, d)  # atomic; a concurrent writer of the same key wrote the same bytes
+        except OSError:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return spec, read_pair(d)
+
+
+def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None = None) -> dict[str, Any]:
+    """Render one group's pair and fly every landing of it with every preset (a pure function: any backend).
+
+    Truth is read from the pair as written (float32 depth backprojected with the true pose), so a cached
+    and a fresh render give the same rows."""
+    from flight_sw.pipeline import run_pipeline
+    from ground_sim.library import covered, share_pct
+    from studies.evaluate import backproject_depth
+
+    scenario = plan["scenario"]
+    spec, pair = group_pair(plan, cache_dir)
+    hazard = pair.truth["hazard"]
+    X = backproject_depth(spec.camera, spec.poses[0], pair.truth["depth"].astype(np.float64))
+    world = X[..., :2]
+    X[..., 2] = pair.truth["elevation"]
+    share = share_pct(hazard, covered(spec.camera, spec.poses[-1], X.reshape(-1, 3)).reshape(hazard.shape))
+    rows = []
+    for ld in plan["landings"]:
+        aim = (float(ld["aim"][0]), float(ld["aim"][1]))
+        aim_j = judge_site(aim, world, hazard)
+        fly = _perturb(spec.poses, ld["errors"])
+        for preset in presets:
+            t0 = time.process_time()
+            res = run_pipeline(
+                pair.images[0],
+                pair.images[-1],
+                fly[0],
+                fly[-1],
+                spec.camera,
+                preset=preset,
+                nominal_site_xy=aim,
+                altimeter_m=pair.altimeter_m,  # the reading the flight process gets in HIL runs
+            )
+            cpu = time.process_time() - t0
+            row: dict[str, Any] = {
+                "landing": ld["landing"],
+                "group": plan["group"],
+                "preset": preset,
+                "scene": plan["scene"],
+                "scene_seed": plan["seed"],
+                "seed_set": plan["seed_set"],
+                "scenario": scenario,
+                "pair": plan["pair"],
+                "altitude_m": float(spec.altitude_m),
+                "sun_azimuth_deg": plan["sun"][0],
+                "sun_elevation_deg": plan["sun"][1],
+                "aim_x_m": aim[0],
+                "aim_y_m": aim[1],
+                "aim_safe": bool(aim_j["safe"]),
+                "hazards_in_scene_pct": share,
+                "pipeline_s": cpu,
+                "level": res.level,
+                "no_site_reason": str(res.info.get("no_site_reason", "")) if not res.sites else "",
+            }
+            for k, d in enumerate(ld["errors"][:2]):
+                row[f"dz{k + 1}_m"] = float(d.get("dz_m", 0.0))
+                row[f"pitch{k + 1}_deg"] = float(d.get("pitch_deg", 0.0))
+            if res.sites:
+                top = res.sites[0]
+                j = judge_site((top.x, top.y), world, hazard)
+                row.update(
+                    {
+                        "outcome": "safe" if j["safe"] else "unsafe",
+                        "safe": bool(j["safe"]),
+                        "site_found": True,
+                        "site_x_m": float(top.x),
+                        "site_y_m": float(top.y),
+                        "divert_m": float(math.hypot(top.x - aim[0], top.y - aim[1])),
+                        "site_truth_px": j["n_px"],
+                        "site_unsafe_px": j["n_unsafe"],
+                        "truth_incomplete": bool(j["incomplete"]),
+                        "site_rank_margin": float(top.margin),
+                    }
+                )
+            else:
+                row.update({"outcome": "no_site", "safe": False, "site_found": False})
+            rows.append(row)
+    return {"rows": rows}
+
+
+def _perturb(poses: tuple[Any, ...], errors: list[dict[str, float]]) -> list[Any]:
+    """Poses as navigation reports them: ``PoseDelta(**errors[k]).apply(poses[k])``."""
+    from ground_sim.pose_error import PoseDelta
+
+    return [PoseDelta(**e).apply(p) if e else p for p, e in zip(poses, errors)]
+
+
+# --------------------------------------------------------------------------- statistics
+def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion k/n (Wilson 1927): centre
+    ``(p + z^2/2n) / (1 + z^2/n)``, half-width ``z sqrt(p(1-p)/n + z^2/4n^2) / (1 + z^2/n)``."""
+    if n <= 0:
+        return (math.nan, math.nan)
+    if not 0 <= k <= n:
+        raise ValueError(f"wilson: need 0 <= k <= n, got k={k}, n={n}")
+    p = k / n
+    den = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    # exact at the boundaries (k = 0 or n): centre - half is 0 or 1 only up to rounding, which could put
+    # the proportion itself outside its interval
+    lo = 0.0 if k == 0 else max(0.0, centre - half)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return (lo, hi)
+
+
+def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """P(safe) with its Wilson 95 % interval, P(no site), P(unsafe), divert percentiles, blind baseline."""
+    n = len(rows)
+    k = {o: sum(1 for r in rows if r["outcome"] == o) for o in OUTCOMES}
+    div = np.array([r["divert_m"] for r in rows if r.get("site_found")], float)
+    aim = sum(1 for r in rows if r.get("aim_safe"))
+    pct = {f"p{q}": (float(np.percentile(div, q)) if div.size else None) for q in (50, 90, 99)}
+    return {
+        "n": n,
+        "n_safe": k["safe"],
+        "n_unsafe": k["unsafe"],
+        "n_no_site": k["no_site"],
+        "p_safe": k["safe"] / n if n else None,
+        "p_safe_ci95": list(wilson(k["safe"], n)) if n else None,
+        "p_unsafe": k["unsafe"] / n if n else None,
+        "p_no_site": k["no_site"] / n if n else None,
+        "p_no_site_ci95": list(wilson(k["no_site"], n)) if n else None,
+        "divert_m": {
+            **pct,
+            "max": float(div.max()) if div.size else None,
+            "mean": float(div.mean()) if div.size else None,
+        },
+        "p_aim_safe": aim / n if n else None,
+        "p_aim_safe_ci95": list(wilson(aim, n)) if n else None,
+    }
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Statistics per preset, overall and per scene (and per preset x pair)."""
+    out: dict[str, Any] = {"per_preset": {}, "per_scene": {}, "per_pair": {}}
+    presets = sorted({r["preset"] for r in rows}, key=lambda p: PRESETS.index(p) if p in PRESETS else 9)
+    for p in presets:
+        rp = [r for r in rows if r["preset"] == p]
+        out["per_preset"][p] = stats(rp)
+        for s in sorted({r["scene"] for r in rp}):
+            out["per_scene"].setdefault(s, {})[p] = stats([r for r in rp if r["scene"] == s])
+        for key in sorted({f"{r['scenario']} {r['pair']}" for r in rp}):
+            out["per_pair"].setdefault(key, {})[p] = stats([r for r in rp if f"{r['scenario']} {r['pair']}" == key])
+    out["overall"] = {p: out["per_preset"][p] for p in presets}
+    return out
+
+
+# --------------------------------------------------------------------------- campaign
+def claim_out_dir(c: Campaign, out_dir: str | Path) -> Path:
+    """Create ``out_dir`` for campaign ``c``; refuse one that holds a campaign with other settings."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = out / "campaign.json"
+    if cfg.is_file():
+        try:
+            old = json.loads(cfg.read_text())
+        except json.JSONDecodeError:
+            old = None
+        if old is not None and old != c.identity():
+            raise LandingError(
+                f"{out} holds a campaign with other settings ({cfg}); use another --out or the same options"
+            )
+    cfg.write_text(json.dumps(c.identity(), indent=1) + "\n")
+    return out
+
+
+def run_campaign(
+    c: Campaign,
+    out_dir: str | Path,
+    *,
+    scheduler: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+    cache_dir: str | Path | None = None,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Fly the campaign (resuming ``out_dir/runs/landings.jsonl``); write CSV, JSON and the page.
+
+    ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
+    Returns (rows, summary)."""
+    from studies.executor import Task, run_tasks
+
+    out = claim_out_dir(c, out_dir)
+    cache = None if cache_dir is None else str(Path(cache_dir).resolve())
+    tasks = [
+        Task(f"g{g:05d}", {"plan": plan_group(c, g), "presets": list(c.presets), "cache_dir": cache})
+        for g in range(c.n_groups)
+    ]
+    t0 = time.time()
+    res = run_tasks(
+        land_group,
+        tasks,
+        out / "runs" / "landings.jsonl",
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        desc=f"landings ({c.per_render} per render)",
+    )
+    wall = time.time() - t0
+    rows = [r for t in tasks for r in res[t.id]["rows"]]
+    summary = summarise(rows)
+    summary["campaign"] = {**c.identity(), "n": c.n, "n_landings": c.n_landings, "n_renders": c.n_groups}
+    summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
+    summary["wall_s_this_run"] = wall
+    write_rows(rows, out / "landings.csv")
+    (out / "landings.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_report(out, rows, summary)
+    return rows, summary
+
+
+def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
+    cols = list(ROW_COLUMNS) + sorted({k for r in rows for k in r} - set(ROW_COLUMNS))
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+        w.writeheader()
+        for r in sorted(rows, key=lambda r: (r["landing"], r["preset"])):
+            w.writerow({k: _cell(r.get(k)) for k in cols})
+    return path
+
+
+def _cell(v: Any) -> Any:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return v
+
+
+# --------------------------------------------------------------------------- report
+def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> list[tuple[str, str]]:
+    """The page's figures: P(safe) per scene with Wilson bars and the blind baseline; outcomes; divert CDF."""
+    from reports.plots import _plt, save
+    from reports.style import FALSE_ALARM, MISSED, SAFE, UNKNOWN
+
+    plt = _plt()
+    presets = list(summary["per_preset"])
+    scenes = list(summary["per_scene"])
+    files = []
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    w = 0.8 / (len(presets) + 1)
+    x = np.arange(len(scenes))
+    for i, p in enumerate(presets + ["blind"]):
+        if p == "blind":
+            st = [summary["per_scene"][s][presets[0]] for s in scenes]
+            val = [s["p_aim_safe"] for s in st]
+            ci = [s["p_aim_safe_ci95"] for s in st]
+            colour = UNKNOWN
+        else:
+            st = [summary["per_scene"][s][p] for s in scenes]
+            val = [s["p_safe"] for s in st]
+            ci = [s["p_safe_ci95"] for s in st]
+            colour = None
+        err = np.clip(np.array([[v - c[0] for v, c in zip(val, ci)], [c[1] - v for v, c in zip(val, ci)]]), 0, None)
+        ax.bar(
+            x + (i - len(presets) / 2) * w,
+            val,
+            w,
+            yerr=err,
+            capsize=3,
+            label=p if p != "blind" else "aim point (blind)",
+            color=colour,
+        )
+    ax.set_xticks(x, scenes, rotation=15)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("P(safe landing)")
+    ax.set_title("top-ranked site truly safe (95 % Wilson interval); grey: landing blind at the aim point")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    files.append((save(fig, out / "p_safe_by_scene.png").name, "P(safe landing) per scene and preset"))
+
+    fig, axes = plt.subplots(1, len(presets), figsize=(4.2 * len(presets), 3.4), squeeze=False)
+    colours = {"safe": SAFE, "unsafe": MISSED, "no_site": FALSE_ALARM}
+    for ax, p in zip(axes[0], presets):
+        bottom = np.zeros(len(scenes))
+        for o in OUTCOMES:
+            v = np.array(
+                [summary["per_scene"][s][p][f"n_{o}"] / max(1, summary["per_scene"][s][p]["n"]) for s in scenes]
+            )
+            ax.bar(scenes, v, bottom=bottom, color=colours[o], label=o.replace("_", " "))
+            bottom += v
+        ax.set_title(f"outcomes, preset {p}")
+        ax.tick_params(axis="x", rotation=30, labelsize=7)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    files.append((save(fig, out / "outcomes.png").name, "outcome shares per scene: safe, unsafe site, no site"))
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    for p in presets:
+        d = np.sort([r["divert_m"] for r in rows if r["preset"] == p and r.get("site_found")])
+        if d.size:
+            ax.plot(d, np.arange(1, d.size + 1) / d.size, label=p)
+    ax.set_xlabel("divert distance from the aim point [m]")
+    ax.set_ylabel("share of landings with a site")
+    if ax.lines:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    files.append((save(fig, out / "divert_cdf.png").name, "cumulative divert distance"))
+    return files
+
+
+def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> Path:
+    """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page)."""
+    from reports.html import Column, Figure, Headline, Section, Table, write_page
+
+    rep = out / "report"
+    rep.mkdir(parents=True, exist_ok=True)
+    figs = _plots(rep, rows, summary)
+    camp = summary["campaign"]
+    seeds = summary.get("seeds_used") or camp["seeds"]
+    head = []
+    for p, st in summary["per_preset"].items():
+        lo, hi = st["p_safe_ci95"]
+        head.append(Headline("p_safe", f"{st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]", label=f"P(safe landing), {p}"))
+    table_rows = []
+    for s, per in summary["per_scene"].items():
+        for p, st in per.items():
+            table_rows.append(
+                {
+                    "scene": s,
+                    "preset": p,
+                    "n": st["n"],
+                    "p_safe": st["p_safe"],
+                    "p_safe_ci95": f"{st['p_safe_ci95'][0]:.3f}-{st['p_safe_ci95'][1]:.3f}",
+                    "p_no_site": st["p_no_site"],
+                    "p_unsafe": st["p_unsafe"],
+                    "p_aim_safe": st["p_aim_safe"],
+                    "divert_m": st["divert_m"]["p50"],
+                }
+            )
+    cols = [
+        Column("scene", "scene"),
+        Column("preset", "preset"),
+        Column("n", "landings"),
+        Column("p_safe"),
+        Column("p_safe_ci95"),
+        Column("p_no_site"),
+        Column("p_unsafe", "P(unsafe site)"),
+        Column("p_aim_safe", "P(aim point safe)"),
+        Column("divert_m", "median divert [m]"),
+    ]
+    intro = (
+        f"{camp['n_landings']} landings ({camp['n_renders']} renders, {camp['per_render']} aim points each) over "
+        f"{', '.join(camp['scenes'])}; {camp['seed_set']} scene seeds {min(seeds)}-{max(seeds)}; pose errors "
+        f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
+        "top-ranked site is safe; no site is its own outcome and is not safe."
+    )
+    sections = [
+        Section("Per scene", [intro], [Table(cols, table_rows)]),
+        Section("Figures", [], [], [Figure(f, cap) for f, cap in figs]),
+    ]
+    return write_page(
+        rep / "index.html", "hazard-hil landings: landing Monte Carlo", sections, headline=head, legends=()
+    )

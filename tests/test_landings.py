@@ -1,0 +1,200 @@
+"""Landing Monte Carlo: the Wilson interval, the site rule, deterministic draws, resuming, Dask = local."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studies import landings as ld
+from studies.landings import Campaign, LandingError, judge_site, wilson
+
+
+@pytest.mark.parametrize(
+    "k,n,lo,hi",
+    # Newcombe (1998), Stat. Med. 17:857, Table I, method 3 (Wilson score, no continuity correction)
+    [
+        (81, 263, 0.2553, 0.3662),
+        (15, 148, 0.0624, 0.1605),
+        (0, 20, 0.0, 0.1611),
+        (1, 29, 0.0061, 0.1718),
+        (29, 29, 0.8830, 1.0),
+    ],
+)
+def test_wilson_interval_matches_published_values(k, n, lo, hi):
+    got = wilson(k, n)
+    assert got[0] == pytest.approx(lo, abs=6e-5) and got[1] == pytest.approx(hi, abs=6e-5)
+
+
+def test_wilson_edge_cases():
+    assert all(math.isnan(v) for v in wilson(0, 0))
+    with pytest.raises(ValueError):
+        wilson(5, 4)
+    lo, hi = wilson(500, 1000)
+    assert lo < 0.5 < hi and hi - lo == pytest.approx(2 * 1.96 * math.sqrt(0.25 / 1000), rel=0.01)
+    # all or nothing: the interval holds the proportion exactly (n = 56 left 7e-18 above 0 by rounding, which
+    # made the report's error bars negative)
+    for n in (1, 56, 112, 336, 1008):
+        assert wilson(0, n)[0] == 0.0 and wilson(n, n)[1] == 1.0
+
+
+def _grid(n=41, cell=0.25):
+    c = (np.arange(n) - n // 2) * cell
+    X, Y = np.meshgrid(c, c)
+    return np.dstack([X, Y]).astype(np.float32)
+
+
+def test_site_rule_uses_every_truth_pixel_within_the_footprint():
+    world = _grid()
+    hazard = np.zeros(world.shape[:2], np.float32)
+    assert judge_site((0.0, 0.0), world, hazard)["safe"]
+    hazard[20, 26] = 1.0  # 1.5 m east of the centre: on the footprint's edge -> unsafe
+    j = judge_site((0.0, 0.0), world, hazard)
+    assert (
+        not j["safe"] and j["n_unsafe"] == 1 and j["n_px"] == int(np.sum(np.hypot(*np.moveaxis(world, -1, 0)) <= 1.5))
+    )
+    hazard[20, 26] = 0.0
+    hazard[20, 27] = 1.0  # 1.75 m: outside -> still safe
+    assert judge_site((0.0, 0.0), world, hazard)["safe"]
+    # a footprint that reaches the image border cannot be confirmed
+    edge = judge_site((4.5, 0.0), world, np.zeros_like(hazard))
+    assert not edge["safe"] and edge["incomplete"]
+    # NaN truth is not safe truth
+    hazard[:] = 0.0
+    hazard[20, 20] = np.nan
+    assert not judge_site((0.0, 0.0), world, hazard)["safe"]
+
+
+def _campaign(**kw):
+    base = dict(
+        scenes=("thesis", "mare"),
+        n=2,
+        seeds=(1000, 1001),
+        seed_set="held-out",
+        presets=("fast",),
+        per_render=1,
+        camera_px=96,
+    )
+    return Campaign(**(base | kw))
+
+
+def test_draws_are_deterministic_and_cover_scenes_seeds_and_the_scene_sun():
+    c = _campaign(n=8, per_render=2)
+    plans = [ld.plan_group(c, g) for g in range(c.n_groups)]
+    assert plans == [ld.plan_group(c, g) for g in range(c.n_groups)]
+    assert [p["scene"] for p in plans] == ["thesis", "mare"] * 2
+    assert [p["seed"] for p in plans] == [1000, 1000, 1001, 1001]
+    assert [ld_["landing"] for p in plans for ld_ in p["landings"]] == list(range(8))
+    for p in plans:
+        if p["scene"] == "thesis":  # no sun range: the scenario's sun
+            assert p["sun"] == [135.0, 25.0] if p["scenario"] == "vertical" else [120.0, 25.0]
+        else:  # mare: 20-50 deg
+            assert 20.0 <= p["sun"][1] <= 50.0
+        aims = np.array([x["aim"] for x in p["landings"]])
+        assert np.all(np.hypot(aims[:, 0], aims[:, 1]) < 40.0)
+    assert len({tuple(x["aim"]) for p in plans for x in p["landings"]}) == 8
+    with pytest.raises(LandingError):
+        _campaign(scenes=("thesis", "nowhere"))
+
+
+@pytest.mark.slow
+def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_path: Path, monkeypatch):
+    calls = []
+    real = ld.land_group
+
+    def counting(plan, presets, **kw):
+        calls.append(plan["group"])
+        return real(plan, presets, **kw)
+
+    monkeypatch.setattr(ld, "land_group", counting)
+    rows1, s1 = ld.run_campaign(_campaign(n=2), tmp_path, workers=1, progress=False)
+    assert calls == [0, 1] and len(rows1) == 2
+    rows2, _ = ld.run_campaign(_campaign(n=3), tmp_path, workers=1, progress=False)
+    assert calls == [0, 1, 2]  # only the new group ran
+    assert rows2[:2] == rows1
+    ld.run_campaign(_campaign(n=3), tmp_path, workers=1, progress=False)
+    assert calls == [0, 1, 2]  # nothing left to do
+    doc = json.loads((tmp_path / "landings.json").read_text())
+    assert doc["per_preset"]["fast"]["n"] == 3 and set(doc["per_scene"]) == {"thesis", "mare"}
+    st = doc["per_preset"]["fast"]
+    assert st["n_safe"] + st["n_unsafe"] + st["n_no_site"] == 3
+    assert st["p_safe_ci95"] == list(wilson(st["n_safe"], 3))
+    lines = (tmp_path / "landings.csv").read_text().splitlines()
+    assert len(lines) == 4 and lines[0].startswith("landing,group,preset,outcome,safe")
+    assert (tmp_path / "report" / "index.html").stat().st_size > 1000
+    with pytest.raises(LandingError, match="other settings"):
+        ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False)
+
+
+@pytest.mark.slow
+def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path):
+    from distributed import Client, LocalCluster
+
+    c = _campaign(n=2, presets=("fast", "thesis"))
+    local, _ = ld.run_campaign(c, tmp_path / "local", workers=2, progress=False)
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl,
+        Client(cl) as client,
+    ):
+        dask, _ = ld.run_campaign(c, tmp_path / "dask", scheduler=client, progress=False)
+    drop = ("pipeline_s",)  # CPU time differs; everything else must not
+    assert [{k: v for k, v in r.items() if k not in drop} for r in local] == [
+        {k: v for k, v in r.items() if k not in drop} for r in dask
+    ]
+    assert {r["preset"] for r in local} == {"fast", "thesis"}
+
+
+@pytest.mark.slow
+def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch):
+    c = _campaign(n=2)
+    fresh, _ = ld.run_campaign(c, tmp_path / "a", workers=1, progress=False)
+    cached1, _ = ld.run_campaign(c, tmp_path / "b", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    assert len(list((tmp_path / "cache").iterdir())) == 2
+
+    def no_render(*a, **k):
+        raise AssertionError("rendered although the pair was cached")
+
+    monkeypatch.setattr("ground_sim.descent.render_pair", no_render)
+    other = _campaign(n=2, pose_error=None)  # other navigation errors: same renders
+    cached2, _ = ld.run_campaign(other, tmp_path / "c", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    drop = ("pipeline_s",)
+    assert [{k: v for k, v in r.items() if k not in drop} for r in fresh] == [
+        {k: v for k, v in r.items() if k not in drop} for r in cached1
+    ]
+    assert [r["hazards_in_scene_pct"] for r in cached2] == [r["hazards_in_scene_pct"] for r in fresh]
+    assert all(r["dz1_m"] == 0.0 for r in cached2)
+
+
+def test_summary_and_report_page_from_known_rows(tmp_path: Path):
+    """Counts -> P(safe), P(no site), Wilson interval, divert percentiles per scene and preset; the page shows
+    them and, where a browser is installed, loads with every figure."""
+    import os
+    import sys
+
+    rows = []
+    for i in range(40):
+        outcome = "safe" if i < 25 else ("unsafe" if i < 30 else "no_site")
+        scene = "mare" if i % 2 else "thesis"
+        row = {"landing": i, "group": i // 8, "preset": "fast", "outcome": outcome, "safe": outcome == "safe"}
+        row |= {"site_found": outcome != "no_site", "scene": scene, "aim_safe": i < 20, "scenario": "vertical"}
+        row |= {"pair": "200/100", "divert_m": float(i) if outcome != "no_site" else None}
+        rows.append(row)
+    s = ld.summarise(rows)
+    st = s["per_preset"]["fast"]
+    assert (st["n"], st["n_safe"], st["n_unsafe"], st["n_no_site"]) == (40, 25, 5, 10)
+    assert st["p_safe"] == 25 / 40 and st["p_no_site"] == 0.25 and st["p_safe_ci95"] == list(wilson(25, 40))
+    assert st["divert_m"]["p50"] == pytest.approx(np.percentile(np.arange(30.0), 50)) and st["p_aim_safe"] == 0.5
+    assert s["per_scene"]["mare"]["fast"]["n"] == 20
+    s["campaign"] = {"n_landings": 40, "n_renders": 5, "per_render": 8, "scenes": ["thesis", "mare"]}
+    s["campaign"] |= {"seed_set": "held-out", "seeds": [1000, 1001], "pose_error": None}
+    page = ld.write_report(tmp_path, rows, s)
+    text = page.read_text()
+    assert "0.625" in text and "P(safe landing)" in text and "held-out scene seeds 1000-1001" in text
+    sys.path.insert(0, str(Path(__file__).parent))
+    from browser import check_page, chromium_path
+
+    if chromium_path() is None and not os.environ.get("HAZARD_HIL_REQUIRE_BROWSER"):
+        return
+    res = check_page(page)
+    assert res.ok and res.images == 3, res
