@@ -296,6 +296,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     )
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
+    p.add_argument("--no-progress", action="store_true", help="no render progress bar (per-pair lines still print)")
 
 
 # what a rendered descent takes, and a manifest already fixes
@@ -352,6 +353,7 @@ def _config(args: argparse.Namespace):
         flight_cmd=args.flight_cmd,
         keys=args.keys,
         min_hit_rate=args.min_hit_rate,
+        progress=not args.no_progress,
     )
 
 

@@ -80,6 +80,7 @@ class RunConfig:
     flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
     keys: Path | None = None  # external zmq: the ground's CURVE key directory
     min_hit_rate: float | None = None  # exit code: pass at this deadline hit rate instead of every pair
+    progress: bool = True  # the render progress bar (off: --no-progress)
 
 
 def _free_tcp_port() -> int:
@@ -96,7 +97,9 @@ def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
         kwargs["scene"] = cfg.scene
     if cfg.image_size:
         kwargs["camera"] = scaled_camera(cfg.image_size)
-    return Path(render_scenario(cfg.scenario, pairs_dir, seed=cfg.seed, pairs=cfg.pairs, progress=True, **kwargs))
+    return Path(
+        render_scenario(cfg.scenario, pairs_dir, seed=cfg.seed, pairs=cfg.pairs, progress=cfg.progress, **kwargs)
+    )
 
 
 def scaled_camera(size: int):

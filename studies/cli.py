@@ -97,8 +97,12 @@ def register(subparsers: Any) -> None:
         description="Render (or reuse) a scenario, run the pipeline, score it against "
         "ground truth and print/write the thesis's ch. 6 tables next to ours.",
     )
-    p.add_argument("--scenario", required=True, choices=["vertical", "approach"])
-    p.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
+    p.add_argument(
+        "--scenario", required=True, choices=["vertical", "approach"], help="the thesis scenario whose tables to fill"
+    )
+    p.add_argument(
+        "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) to evaluate"
+    )
     _common(p)
     p.set_defaults(func=_evaluate, seeds_default=3)
 
@@ -108,9 +112,16 @@ def register(subparsers: Any) -> None:
         description="DEM error increase under pose-knowledge errors on the approach "
         "scenario (Tables 6.12-6.19), relative to perfect knowledge.",
     )
-    s.add_argument("--kind", required=True, choices=["altitude", "attitude", "lateral", "rollyaw"])
+    s.add_argument(
+        "--kind",
+        required=True,
+        choices=["altitude", "attitude", "lateral", "rollyaw"],
+        help="which navigation error to inject (thesis sec 6.3)",
+    )
     s.add_argument("--samples", type=_positive("--samples"), default=20, help="samples per seed and altitude")
-    s.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
+    s.add_argument(
+        "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) to study"
+    )
     _common(s)
     s.set_defaults(func=_sensitivity, seeds_default=2)
     register_landings(subparsers)
@@ -221,7 +232,9 @@ def register_landings(subparsers: Any) -> None:
     p.add_argument("--scenes", required=True, help="comma-separated library scenes, or 'all'")
     p.add_argument("--n", type=_positive("--n"), required=True, help="landings (rounded up to whole renders)")
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it holds this campaign)")
-    p.add_argument("--preset", choices=["fast", "thesis", "both"], default="both")
+    p.add_argument(
+        "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) that land"
+    )
     p.add_argument(
         "--per-render",
         type=_positive("--per-render"),
