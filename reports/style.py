@@ -180,6 +180,30 @@ GLOSSARY.update(
             "undetected near threshold %", "Share of the undetected hazards whose estimated hazard was >= 0.8.", "%"
         ),
         "altitude_m": Term("altitude [m]", "Altitude of the upper image of the pair.", "m"),
+        "kind": Term("error kind", "Which navigation error the sensitivity study injects (thesis sec 6.3)."),
+        "preset": Term("preset", "The flight software parameter preset."),
+        "n": Term("samples", "Number of Monte Carlo samples behind the row."),
+        "median_rel_pct": Term(
+            "DEM error increase, median %",
+            "Median over samples of the DEM mean |error| with the injected error relative to without it, minus 100.",
+            "%",
+        ),
+        "max_rel_pct": Term("DEM error increase, worst %", "Largest DEM error increase over the samples.", "%"),
+        "within_15pct": Term(
+            "samples within +15 %",
+            "Share of samples whose DEM error grew by at most 15 % (the thesis's tolerance).",
+            "%",
+        ),
+        "near_diag_median_rel_pct": Term(
+            "increase near dh1 = dh2, median %",
+            "Median increase over samples whose two altitude errors differ <= 0.15 m.",
+            "%",
+        ),
+        "off_diag_median_rel_pct": Term(
+            "increase off dh1 = dh2, median %",
+            "Median increase over samples whose altitude errors differ > 0.3 m.",
+            "%",
+        ),
         # the worst seed beside the median (studies.evaluate.WORST)
         "fp_pct_worst": Term(
             "FP % worst seed", "The highest FP % (undetected hazard) of any seed at this altitude.", "%"
