@@ -179,7 +179,9 @@ GLOSSARY.update(
         "fp_near_threshold_pct": Term(
             "undetected near threshold %", "Share of the undetected hazards whose estimated hazard was >= 0.8.", "%"
         ),
-        "altitude_m": Term("altitude [m]", "Altitude of the upper image of the pair.", "m"),
+        "altitude_m": Term(
+            "altitude [m]", "The lower frame's altitude, as in the thesis tables (600/300 is its 300 m row).", "m"
+        ),
         "kind": Term("error kind", "Which navigation error the sensitivity study injects (thesis sec 6.3)."),
         "preset": Term("preset", "The flight software parameter preset."),
         "n": Term("samples", "Number of Monte Carlo samples behind the row."),
