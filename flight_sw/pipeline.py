@@ -53,6 +53,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .pose_refine import refine_pair
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
@@ -150,6 +151,7 @@ class Params:
     texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
     wide_slope_factor: float = 0.0  # > 1: slope = max(footprint slope, slope over this many footprints)
     site_margin_m: float = 0.5  # known-safe margin around a site's footprint
+    refine_pose: bool = False  # refine the relative pose from the images first (pose_refine.py, issue #10)
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -267,6 +269,8 @@ PRESETS: dict[str, Params] = {
         # 1.5 m of known-safe ground around the footprint: on the tuning crater descents (seeds 0-1) the
         # 0.5 m margin offered 2 of 6 top sites on terraced wall steps at the edge of the map
         site_margin_m=1.5,
+        # relative pose refinement before the sweep (issue #10; docs/benchmarks/pose.md)
+        refine_pose=True,
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,
@@ -398,7 +402,9 @@ def run_pipeline(
     (``Pair.altimeter_m``: a per-frame sequence is accepted; NaN = none); the v2 flow centres
     its ground search on it. ``time_scale`` is the emulated processor's slowdown factor
     (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
-    are multiplied by it. Raises :class:`FlightInputError` for bad arguments.
+    are multiplied by it. With ``Params.refine_pose`` the poses are first refined from the
+    images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
+    Raises :class:`FlightInputError` for bad arguments.
     """
     t_start = time.monotonic()
     timings: dict[str, dict[str, float]] = {}
@@ -420,9 +426,30 @@ def run_pipeline(
         alt_range = _altimeter(altimeter_m)
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
         clock = _Clock(min(ends) if ends else None, float(time_scale))
+    pose_info: dict[str, Any] | None = None
+    if p.refine_pose:
+        with _stage(timings, "pose_refine"):
+            refined = refine_pair(i1, i2, pose1, pose2, camera, altimeter_m=_altimeter_pair(altimeter_m))
+            pose1, pose2, pose_info = refined.pose1, refined.pose2, refined.info
     if p.dem == "sgm":
-        return _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings)
-    return _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
+        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings)
+    else:
+        res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
+    if pose_info is not None:
+        res.info["pose_refinement"] = pose_info
+    return res
+
+
+def _altimeter_pair(altimeter_m: float | Sequence[float] | None) -> tuple[float, float] | None:
+    """(i1, i2) altimeter ranges for pose_refine (NaN = none); a single number is i1's."""
+    if altimeter_m is None:
+        return None
+    if isinstance(altimeter_m, (int, float)):
+        return (float(altimeter_m), math.nan)
+    seq = [math.nan if a is None else float(a) for a in altimeter_m]
+    if not seq:
+        return None
+    return (seq[0], seq[-1]) if len(seq) > 1 else (seq[0], math.nan)
 
 
 def _finish(timings: dict[str, dict[str, float]]) -> None:

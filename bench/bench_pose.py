@@ -1,0 +1,326 @@
+"""Benchmark the relative pose refinement (flight_sw/pose_refine.py, issue #10): cost and pose-error sensitivity.
+
+    .venv/bin/python bench/bench_pose.py [--seed-set held-out|tuning] [--n-seeds 2] [--samples 20]
+        [--altitudes 125 150 250 300] [--kinds altitude attitude] [--cache DIR] [--out DIR] [--timing-runs 7]
+
+(a) Cost: ``refine_pair`` per approach pair on one pinned core, OpenCV single-threaded; CPU
+    (``time.thread_time``) and wall medians over repeats, and the ``fast`` pipeline with and without it.
+(b) Sensitivity (thesis sec 6.3, Tables 6.12-6.19): the approach pairs of ``--n-seeds`` scene seeds of
+    the chosen set, the pose errors of ``studies.evaluate.sample_pose_error`` (altitude: dh1, dh2 ~
+    U(+-0.5 m); attitude: equal pitch on both frames, the thesis's six levels -0.15..+0.15 deg), and
+    per sample these variants of the poses handed to the ``fast`` pipeline:
+
+    ``off``     the perturbed (reported) poses, no refinement (what the thesis measured)
+    ``on``      refined from the images, scale from the reported baseline
+    ``on_alt``  refined, scale from a laser altimeter on both frames (true slant range + ``--alt-noise-m``)
+    ``oracle``  frame 0's reported pose, the TRUE relative pose, the reported baseline length: what a
+                perfect two-view refinement anchored on frame 0 would leave (the unobservable part)
+    ``oracle_alt`` the TRUE relative pose and baseline length (a perfect altimeter's scale), placed by
+                least squares on both reported positions: the best an altimeter could add
+
+    DEM error increase relative to perfect knowledge (true poses, no refinement), in percent, for the
+    mean |error| and the MAD (median absolute deviation, blind to a common datum shift), plus
+    ``detrended``: mean |error| after removing the least-squares plane ``a + b X + c Y`` of the error
+    (blind to a datum shift and a tilt - what two images can observe at all).
+
+Rows go to ``<out>/pose_rows.csv``; the summary is printed as markdown. Tune only on ``--seed-set tuning``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+VARIANTS = ("off", "on", "on_alt", "oracle", "oracle_alt")
+
+
+def pin_one_core() -> None:
+    cv2.setNumThreads(1)
+    if hasattr(os, "sched_setaffinity"):
+        cpus = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpus[-1]})
+
+
+def slant_ranges(pair, true1, true2) -> tuple[float, float]:
+    """True laser-altimeter readings: camera z-depth of the ground on each optical axis.
+
+    Frame 0: ``gt_depth_i1`` at the principal point (bilinear). Frame 1: the i1 pixel
+    whose true ground point projects onto camera 2's principal point (a Newton step on the
+    projection of i1's true ground points), and that point's camera-2 depth.
+    """
+    from studies.evaluate import backproject_depth
+
+    cam = pair.camera
+    depth = pair.truth["depth"].astype(np.float32)
+    r1 = float(cv2.getRectSubPix(depth, (1, 1), (cam.cx, cam.cy))[0, 0])
+    X = backproject_depth(cam, true1, depth.astype(np.float64))
+    Xc = (X - true2.position) @ true2.R.T
+    u = cam.fx * Xc[..., 0] / Xc[..., 2] + cam.cx
+    v = cam.fy * Xc[..., 1] / Xc[..., 2] + cam.cy
+    d2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
+    r, c = np.unravel_index(int(np.argmin(d2)), d2.shape)
+    r = min(max(r, 1), d2.shape[0] - 2)
+    c = min(max(c, 1), d2.shape[1] - 2)
+    J = np.array(
+        [[(u[r, c + 1] - u[r, c - 1]) / 2, (u[r + 1, c] - u[r - 1, c]) / 2],
+         [(v[r, c + 1] - v[r, c - 1]) / 2, (v[r + 1, c] - v[r - 1, c]) / 2]]
+    )  # fmt: skip
+    dc, dr = np.linalg.solve(J, [cam.cx - u[r, c], cam.cy - v[r, c]])
+    z2 = Xc[..., 2].astype(np.float32)
+    r2 = float(cv2.getRectSubPix(z2, (1, 1), (c + dc, r + dr))[0, 0])
+    return r1, r2
+
+
+def oracle_poses(rep1, rep2, true1, true2):
+    """Frame 0 as reported, the true relative pose, the reported baseline length."""
+    from protocol.pairdir import Pose
+
+    R21 = true2.R @ true1.R.T
+    b_cam1 = true1.R @ (true2.position - true1.position)
+    b_cam1 /= np.linalg.norm(b_cam1)
+    L = float(np.linalg.norm(rep2.position - rep1.position))
+    return rep1, Pose(rep1.position + L * (rep1.R.T @ b_cam1), R21 @ rep1.R, rep2.time_s)
+
+
+def oracle_alt_poses(rep1, rep2, true1, true2):
+    """The true relative pose and baseline length (what images plus a perfect altimeter could give), placed
+    by least squares on both reported positions: the datum error becomes the mean of the two altitude errors."""
+    from protocol.pairdir import Pose
+
+    R21 = true2.R @ true1.R.T
+    b = rep1.R.T @ (true1.R @ (true2.position - true1.position))  # true baseline, in frame 0's reported axes
+    C1 = (rep1.position + rep2.position - b) / 2.0
+    return Pose(C1, rep1.R, rep1.time_s), Pose(C1 + b, R21 @ rep1.R, rep2.time_s)
+
+
+def dem_metrics(res, truth_elev: np.ndarray, world_xy: np.ndarray) -> dict[str, float]:
+    from ground_sim import scoring
+
+    d = scoring.dem_error_stats(res.elevation, truth_elev, res.covered)
+    e = (res.elevation - truth_elev).astype(np.float64)
+    ok = res.covered & np.isfinite(e)
+    detr = math.nan
+    if ok.sum() > 10:
+        A = np.c_[np.ones(int(ok.sum())), world_xy[ok]]
+        coef, *_ = np.linalg.lstsq(A, e[ok], rcond=None)
+        detr = float(np.mean(np.abs(e[ok] - A @ coef)))
+    return {"mean_abs": d["mean_abs"], "mad": d["mad"], "detrended": detr, "valid": res.valid_fraction}
+
+
+def run_pair(entry: dict, kinds: list[str], samples: dict[str, int], alt_noise: float, rp) -> list[dict]:
+    """All samples of one pair; ``rp``: the RefineParams of the ``on`` variants (the pipeline hook's default)."""
+    import dataclasses
+
+    from flight_sw.pipeline import PRESETS, run_pipeline
+    from flight_sw.pose_refine import refine_pair
+    from protocol.pairdir import read_pair
+    from studies.evaluate import backproject_depth, perturb_poses, sample_pose_error, true_poses
+
+    pair = read_pair(entry["pair_dir"])
+    cam = pair.camera
+    t1, t2 = true_poses(pair)
+    i1, i2 = pair.images[0], pair.images[-1]
+    truth = pair.truth["elevation"].astype(np.float32)
+    wxy = backproject_depth(cam, t1, pair.truth["depth"].astype(np.float64))[..., :2]
+    r1, r2 = slant_ranges(pair, t1, t2)
+    fast = PRESETS["fast"]
+    alt = int(round(entry["altitude_m"]))
+    perfect = dem_metrics(run_pipeline(i1, i2, t1, t2, cam, preset=fast), truth, wxy)
+    rows = []
+    rp_alt = dataclasses.replace(rp, use_altimeter=True)
+    r0 = refine_pair(i1, i2, t1, t2, cam, params=rp)
+    res_on = run_pipeline(i1, i2, r0.pose1, r0.pose2, cam, preset=fast)
+    base = {"seed": entry["seed"], "altitude_m": alt}
+    rows.append({**base, "kind": "none", "sample": -1, "variant": "perfect", **perfect})
+    rows.append({**base, "kind": "none", "sample": -1, "variant": "perfect_on", **dem_metrics(res_on, truth, wxy)})
+    rng = np.random.default_rng([entry["seed"], alt, 0xA17])
+    for kind in kinds:
+        for i in range(samples[kind]):
+            pe = sample_pose_error(kind, entry["seed"] * 100003 + alt, i)
+            f1, f2 = perturb_poses(t1, t2, pe["frames"])
+            errs = {f"{k}{j + 1}": v for j, fr in enumerate(pe["frames"]) for k, v in fr.items()}
+            alt_m = (r1 + alt_noise * rng.standard_normal(), r2 + alt_noise * rng.standard_normal())
+            for variant in VARIANTS:
+                p1, p2, pr = f1, f2, None
+                if variant in ("on", "on_alt"):
+                    # the pipeline hook (Params.refine_pose) is exactly this call followed by the sweep
+                    use = variant == "on_alt"
+                    ref = refine_pair(
+                        i1, i2, f1, f2, cam, params=rp_alt if use else rp, altimeter_m=alt_m if use else None
+                    )
+                    p1, p2, pr = ref.pose1, ref.pose2, ref.info
+                elif variant == "oracle":
+                    p1, p2 = oracle_poses(f1, f2, t1, t2)
+                elif variant == "oracle_alt":
+                    p1, p2 = oracle_alt_poses(f1, f2, t1, t2)
+                res = run_pipeline(i1, i2, p1, p2, cam, preset=fast)
+                m = dem_metrics(res, truth, wxy)
+                row = {**base, "kind": kind, "sample": i, "variant": variant, **errs, **m}
+                for k in ("mean_abs", "mad", "detrended"):
+                    row[f"{k}_rel_pct"] = 100.0 * (m[k] - perfect[k]) / perfect[k]
+                if pr:
+                    row.update(
+                        refined=pr["refined"],
+                        reason=pr["reason"],
+                        inliers=pr.get("inliers"),
+                        refine_cpu_s=pr["cpu_s"],
+                        rot_corr_deg=max(pr.get("rotation_correction_deg", [0.0])),
+                    )
+                rows.append(row)
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    out = []
+    keys = sorted({(r["kind"], r["altitude_m"], r["variant"]) for r in rows if r["kind"] != "none"})
+    for kind, alt, variant in keys:
+        rs = [r for r in rows if (r["kind"], r["altitude_m"], r["variant"]) == (kind, alt, variant)]
+        s = {"kind": kind, "altitude_m": alt, "variant": variant, "n": len(rs)}
+        for k in ("mean_abs", "mad", "detrended"):
+            v = np.array([r[f"{k}_rel_pct"] for r in rs], float)
+            s[f"{k}_median"], s[f"{k}_max"] = float(np.median(v)), float(v.max())
+        if variant.startswith("on"):
+            s["fallbacks"] = sum(1 for r in rs if not r.get("refined", True))
+        out.append(s)
+    for kind in sorted({r["kind"] for r in rows if r["kind"] != "none"}):
+        for variant in VARIANTS:
+            rs = [r for r in rows if r["kind"] == kind and r["variant"] == variant]
+            if not rs:
+                continue
+            s = {"kind": kind, "altitude_m": "all", "variant": variant, "n": len(rs)}
+            for k in ("mean_abs", "mad", "detrended"):
+                v = np.array([r[f"{k}_rel_pct"] for r in rs], float)
+                s[f"{k}_median"], s[f"{k}_max"] = float(np.median(v)), float(v.max())
+            if variant.startswith("on"):
+                s["fallbacks"] = sum(1 for r in rs if not r.get("refined", True))
+            out.append(s)
+    return out
+
+
+def markdown(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            v = r.get(c, "")
+            cells.append(f"{v:+.1f}" if isinstance(v, float) and c.endswith(("_median", "_max")) else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def timing(entries: list[dict], runs: int) -> list[dict]:
+    import dataclasses
+
+    from flight_sw.pipeline import PRESETS, run_pipeline
+    from flight_sw.pose_refine import refine_pair
+    from protocol.pairdir import read_pair
+    from studies.evaluate import perturb_poses, sample_pose_error, true_poses
+
+    out = []
+    fast, fast_on = PRESETS["fast"], dataclasses.replace(PRESETS["fast"], refine_pose=True)
+    for e in entries:
+        pair = read_pair(e["pair_dir"])
+        t1, t2 = true_poses(pair)
+        f1, f2 = perturb_poses(t1, t2, sample_pose_error("attitude", 0, 0)["frames"])
+        i1, i2 = pair.images[0], pair.images[-1]
+        refine_pair(i1, i2, f1, f2, pair.camera)  # warm-up
+        cpu, wall, p_off, p_on = [], [], [], []
+        for _ in range(runs):
+            r = refine_pair(i1, i2, f1, f2, pair.camera)
+            cpu.append(r.info["cpu_s"])
+            wall.append(r.info["wall_s"])
+            c0 = time.thread_time()
+            run_pipeline(i1, i2, f1, f2, pair.camera, preset=fast)
+            p_off.append(time.thread_time() - c0)
+            c0 = time.thread_time()
+            run_pipeline(i1, i2, f1, f2, pair.camera, preset=fast_on)
+            p_on.append(time.thread_time() - c0)
+        out.append(
+            {
+                "pair": f"approach s{e['seed']} {Path(e['pair_dir']).name}",
+                "refine_cpu_ms": round(1e3 * statistics.median(cpu), 1),
+                "refine_wall_ms": round(1e3 * statistics.median(wall), 1),
+                "pipeline_cpu_ms_off": round(1e3 * statistics.median(p_off), 1),
+                "pipeline_cpu_ms_on": round(1e3 * statistics.median(p_on), 1),
+                "inliers": r.info.get("inliers"),
+                "refined": r.refined,
+            }
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ground_sim.seeds import SEED_SETS
+    from studies.evaluate import render_cache
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seed-set", choices=sorted(SEED_SETS), default="held-out")
+    ap.add_argument("--n-seeds", type=int, default=2, help="first N seeds of the set")
+    ap.add_argument("--samples", type=int, default=20, help="altitude samples per pair (attitude: the 6 levels)")
+    ap.add_argument("--altitudes", type=int, nargs="+", default=[125, 150, 250, 300])
+    ap.add_argument("--kinds", nargs="+", default=["altitude", "attitude"], choices=["altitude", "attitude"])
+    ap.add_argument("--alt-noise-m", type=float, default=0.0, help="Gaussian noise of the simulated altimeter")
+    ap.add_argument("--cache", type=Path, default=Path("out/bench_pose/cache"))
+    ap.add_argument("--out", type=Path, default=Path("out/bench_pose"))
+    ap.add_argument("--timing-runs", type=int, default=7)
+    ap.add_argument("--skip-timing", action="store_true")
+    ap.add_argument("--skip-sensitivity", action="store_true")
+    ap.add_argument("--refine", default="", help="RefineParams overrides for the sensitivity, e.g. nav_pos_sigma_m=0.3")
+    a = ap.parse_args(argv)
+    from flight_sw.pose_refine import RefineParams
+
+    over = dict(kv.split("=", 1) for kv in a.refine.split(",") if kv)
+    conv = {bool: lambda v: v.lower() in ("1", "true", "yes"), int: int, float: float, str: str}
+    rp = RefineParams(**{k: conv[type(getattr(RefineParams(), k))](v) for k, v in over.items()})
+    pin_one_core()
+    seeds = list(SEED_SETS[a.seed_set][: a.n_seeds])
+    entries = [{**e, "seed": s} for s in seeds for e in render_cache("approach", s, a.cache, altitudes=a.altitudes)]
+    a.out.mkdir(parents=True, exist_ok=True)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    if not a.skip_timing:
+        t = timing(entries[: len(a.altitudes)], a.timing_runs)
+        print(f"## cost per pair (one core, medians of {a.timing_runs}; host load {load:.1f})\n")
+        print(markdown(t) + "\n", flush=True)
+    if a.skip_sensitivity:
+        return 0
+    samples = {"altitude": a.samples, "attitude": 6}
+    rows: list[dict] = []
+    t0 = time.perf_counter()
+    for k, e in enumerate(entries):
+        rows += run_pair(e, a.kinds, samples, a.alt_noise_m, rp)
+        print(f"  pair {k + 1}/{len(entries)} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    with (a.out / "pose_rows.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    ref = [r for r in rows if r["variant"] in ("perfect", "perfect_on")]
+    pm = {}
+    for v in ("perfect", "perfect_on"):
+        rr = [r for r in ref if r["variant"] == v]
+        pm[v] = {k: round(float(np.median([r[k] for r in rr])), 3) for k in ("mean_abs", "mad", "detrended")}
+    print(f"## sensitivity ({a.seed_set} seeds {seeds}, fast preset, % increase over perfect knowledge)\n")
+    print(f"refinement parameters: {a.refine or 'defaults'}\n")
+    print(f"perfect knowledge, median over pairs (m): {pm['perfect']}; refined from true poses: {pm['perfect_on']}\n")
+    print(markdown(summarise(rows)))
+    print(f"\nrows: {a.out / 'pose_rows.csv'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
