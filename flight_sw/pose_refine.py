@@ -24,18 +24,22 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    world baseline direction ``b`` (8 unknowns), Levenberg-Marquardt (H&Z A6.2)
    minimises robust (Cauchy) Sampson errors (H&Z eq. 11.9) of
    ``F = K^-T [t]x R21 K^-1`` with ``R21 = R2 R1^T``, ``t = -R2 b``, plus Gaussian
-   navigation priors: the mean attitude error (sd ``sqrt(s_c^2 + s_r^2 / 2)``),
-   the relative attitude error (sd ``sqrt(2) s_r``) and the baseline direction
-   from the reported positions (sd ``sqrt(2) s_p / L``). Why priors: with a
-   30 deg field of view and motion along the optical axis, a rotation about
-   an axis across the view and a tilt of the baseline move the image almost
-   alike, so two views alone leave a ~0.1 deg valley that tilts the DEM
-   (see docs/benchmarks/pose.md); the priors pin it with what navigation knows.
+   navigation priors (world axes): frame 1's attitude error ``e1`` (sd ``s_c``),
+   the error frame 2 adds to it ``e2 - e1`` (sd ``s_r``), and the baseline
+   direction of the reported positions (sd ``sqrt(2) s_p / L``, ``L`` the
+   baseline). Why priors: with a 30 deg field of view and motion along the
+   optical axis, a rotation about an axis across the view and a tilt of the
+   baseline move the image almost alike, so two views alone leave a
+   ~0.05-0.2 deg valley that tilts the DEM; and the absolute attitude of the
+   pair is not in the images at all, only in the navigation's attitude and,
+   across the baseline, in its positions (docs/benchmarks/pose.md).
 4. **Scale and datum.** Images cannot observe them. The baseline length is
-   the reported baseline projected on ``b`` (frame 0's position is kept), or,
-   where frames carry a laser-altimeter slant range along the optical axis,
-   the range over the reconstructed axis depth; then both reported positions
-   are fitted (least squares), which halves the datum variance.
+   the reported baseline projected on ``b``; frame 0's reported position is
+   kept (the datum). Optionally (``use_altimeter``), a laser-altimeter slant
+   range along an optical axis over the reconstructed axis depth gives the
+   scale and both reported positions are fitted by least squares (halving
+   the datum variance); off by default: the sparse axis depth is measured no
+   better than the navigation's baseline.
 5. **Degeneracy.** Too few matches or inliers, poor spread, too little
    parallax after removing the rotation (pure rotation, identical frames),
    a correction beyond the plausible, a large residual or no convergence:
@@ -75,7 +79,7 @@ class RefineParams:
     corner_quality: float = 0.001
     track_window: int = 15  # Lucas-Kanade window (px)
     track_levels: int = 1  # pyramid levels above the base
-    track_passes: int = 2  # tracking passes; each re-warps i2 through the homography of the previous matches
+    track_passes: int = 3  # tracking passes; each re-warps i2 through the homography of the previous matches
     fb_max_px: float = 0.5  # forward-backward disagreement that drops a track
     ransac_px: float = 1.5  # E / H RANSAC threshold (px)
     cauchy_k: float = 2.5  # robust loss scale, in units of the matching noise
@@ -267,10 +271,14 @@ def axis_depth(x: np.ndarray, z: np.ndarray, radius: float = 0.08) -> float:
 
 # --------------------------------------------------------------------------- matching
 def _gray8(img: np.ndarray) -> np.ndarray:
+    """8-bit copy for the detectors and LK; float images in [0, 1] are taken as 0..255."""
     a = np.asarray(img)
     if a.dtype == np.uint8:
         return a
-    return np.clip(np.rint(a.astype(np.float32)), 0, 255).astype(np.uint8)
+    f = a.astype(np.float32)
+    if f.size and float(f.max()) <= 1.0:
+        f = f * 255.0
+    return np.clip(np.rint(f), 0, 255).astype(np.uint8)
 
 
 def _overlap(camera: Camera, H: np.ndarray, margin: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
@@ -700,13 +708,13 @@ def _refine_matches(
     t_unit = -s.R2 @ s.b
     flow = v2 - _apply_h(K @ R21 @ np.linalg.inv(K), v1)  # motion left after removing the rotation
     parallax = float(np.median(np.linalg.norm(flow[inl], axis=1))) if inl.any() else 0.0
-    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.inf
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.inf  # telemetry: None (JSON has no inf)
     info.update(
         inliers=int(inl.sum()),
         iterations=iters,
         sigma_px=sigma_px,
-        reproj_rms_px=rms,
-        reproj_median_px=float(np.median(np.abs(r[inl]))) if inl.any() else math.inf,
+        reproj_rms_px=rms if inl.any() else None,
+        reproj_median_px=float(np.median(np.abs(r[inl]))) if inl.any() else None,
         parallax_px=parallax,
         spread=_spread(v1[inl], mask, roi),
         rotation_correction_deg=[rotation_angle_deg(s.R1 @ pose1.R.T), rotation_angle_deg(s.R2 @ pose2.R.T)],
