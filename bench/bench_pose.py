@@ -7,7 +7,8 @@
     (``time.thread_time``) and wall medians over repeats, and the ``fast`` pipeline with and without it.
 (b) Sensitivity (thesis sec 6.3, Tables 6.12-6.19): the approach pairs of ``--n-seeds`` scene seeds of
     the chosen set, the pose errors of ``studies.evaluate.sample_pose_error`` (altitude: dh1, dh2 ~
-    U(+-0.5 m); attitude: equal pitch on both frames, the thesis's six levels -0.15..+0.15 deg), and
+    U(+-0.5 m); attitude: equal pitch on both frames, the thesis's six levels -0.15..+0.15 deg; not in
+    the thesis, ``frame2``: frame 2's attitude alone off by 0.5 deg about a random axis), and
     per sample these variants of the poses handed to the ``fast`` pipeline:
 
     ``off``     the perturbed (reported) poses, no refinement (what the thesis measured)
@@ -18,6 +19,7 @@
     ``oracle_alt`` the TRUE relative pose and baseline length (a perfect altimeter's scale), placed by
                 least squares on both reported positions: the best an altimeter could add
 
+    All variants run the ``fast`` preset with its own refinement switched off (each brings its poses).
     DEM error increase relative to perfect knowledge (true poses, no refinement), in percent, for the
     mean |error| and the MAD (median absolute deviation, blind to a common datum shift), plus
     ``detrended``: mean |error| after removing the least-squares plane ``a + b X + c Y`` of the error
@@ -83,6 +85,14 @@ def slant_ranges(pair, true1, true2) -> tuple[float, float]:
     return r1, r2
 
 
+def frame2_error(seed: int, index: int) -> dict:
+    """Not a thesis study: frame 2's attitude alone off by 0.5 deg about a random axis (pitch, yaw, roll)."""
+    rng = np.random.default_rng([0xF2, seed, index])
+    a = rng.normal(size=3)
+    a *= 0.5 / np.linalg.norm(a)
+    return {"frames": [{}, {"pitch_deg": float(a[0]), "yaw_deg": float(a[1]), "roll_deg": float(a[2])}]}
+
+
 def oracle_poses(rep1, rep2, true1, true2):
     """Frame 0 as reported, the true relative pose, the reported baseline length."""
     from protocol.pairdir import Pose
@@ -116,7 +126,13 @@ def dem_metrics(res, truth_elev: np.ndarray, world_xy: np.ndarray) -> dict[str, 
         A = np.c_[np.ones(int(ok.sum())), world_xy[ok]]
         coef, *_ = np.linalg.lstsq(A, e[ok], rcond=None)
         detr = float(np.mean(np.abs(e[ok] - A @ coef)))
-    return {"mean_abs": d["mean_abs"], "mad": d["mad"], "detrended": detr, "valid": res.valid_fraction}
+    return {
+        "mean_abs": d["mean_abs"],
+        "median": d["median"],  # signed: the datum shift
+        "mad": d["mad"],
+        "detrended": detr,
+        "valid": res.valid_fraction,
+    }
 
 
 def run_pair(entry: dict, kinds: list[str], samples: dict[str, int], alt_noise: float, rp) -> list[dict]:
@@ -135,7 +151,7 @@ def run_pair(entry: dict, kinds: list[str], samples: dict[str, int], alt_noise: 
     truth = pair.truth["elevation"].astype(np.float32)
     wxy = backproject_depth(cam, t1, pair.truth["depth"].astype(np.float64))[..., :2]
     r1, r2 = slant_ranges(pair, t1, t2)
-    fast = PRESETS["fast"]
+    fast = dataclasses.replace(PRESETS["fast"], refine_pose=False)  # every variant brings its own poses
     alt = int(round(entry["altitude_m"]))
     perfect = dem_metrics(run_pipeline(i1, i2, t1, t2, cam, preset=fast), truth, wxy)
     rows = []
@@ -148,7 +164,8 @@ def run_pair(entry: dict, kinds: list[str], samples: dict[str, int], alt_noise: 
     rng = np.random.default_rng([entry["seed"], alt, 0xA17])
     for kind in kinds:
         for i in range(samples[kind]):
-            pe = sample_pose_error(kind, entry["seed"] * 100003 + alt, i)
+            pe = frame2_error(entry["seed"] * 100003 + alt, i) if kind == "frame2" else None
+            pe = pe or sample_pose_error(kind, entry["seed"] * 100003 + alt, i)
             f1, f2 = perturb_poses(t1, t2, pe["frames"])
             errs = {f"{k}{j + 1}": v for j, fr in enumerate(pe["frames"]) for k, v in fr.items()}
             alt_m = (r1 + alt_noise * rng.standard_normal(), r2 + alt_noise * rng.standard_normal())
@@ -209,6 +226,35 @@ def summarise(rows: list[dict]) -> list[dict]:
     return out
 
 
+def datum_fit(rows: list[dict]) -> list[dict]:
+    """Altitude study: least squares ``median signed DEM error - perfect's = c1 dh1 + c2 dh2 + c0`` per variant.
+
+    A datum the images cannot see follows the reported altitudes: ``c1 = 1`` means the DEM rides
+    up and down with frame 0's altitude error.
+    """
+    perf = {(r["seed"], r["altitude_m"]): r["median"] for r in rows if r["variant"] == "perfect"}
+    out = []
+    for variant in VARIANTS:
+        rs = [r for r in rows if r["kind"] == "altitude" and r["variant"] == variant]
+        if len(rs) < 4:
+            continue
+        A = np.array([[r.get("dz_m1", 0.0), r.get("dz_m2", 0.0), 1.0] for r in rs])
+        y = np.array([r["median"] - perf[(r["seed"], r["altitude_m"])] for r in rs])
+        ok = np.isfinite(y)
+        c, *_ = np.linalg.lstsq(A[ok], y[ok], rcond=None)
+        resid = y[ok] - A[ok] @ c
+        out.append(
+            {
+                "variant": variant,
+                "c1 (dh1)": round(float(c[0]), 2),
+                "c2 (dh2)": round(float(c[1]), 2),
+                "c0 m": round(float(c[2]), 3),
+                "residual sd m": round(float(resid.std()), 3),
+            }
+        )
+    return out
+
+
 def markdown(rows: list[dict]) -> str:
     if not rows:
         return ""
@@ -232,7 +278,7 @@ def timing(entries: list[dict], runs: int) -> list[dict]:
     from studies.evaluate import perturb_poses, sample_pose_error, true_poses
 
     out = []
-    fast, fast_on = PRESETS["fast"], dataclasses.replace(PRESETS["fast"], refine_pose=True)
+    fast, fast_on = (dataclasses.replace(PRESETS["fast"], refine_pose=v) for v in (False, True))
     for e in entries:
         pair = read_pair(e["pair_dir"])
         t1, t2 = true_poses(pair)
@@ -404,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-seeds", type=int, default=2, help="first N seeds of the set")
     ap.add_argument("--samples", type=int, default=20, help="altitude samples per pair (attitude: the 6 levels)")
     ap.add_argument("--altitudes", type=int, nargs="+", default=[125, 150, 250, 300])
-    ap.add_argument("--kinds", nargs="+", default=["altitude", "attitude"], choices=["altitude", "attitude"])
+    ap.add_argument("--kinds", nargs="+", default=["altitude", "attitude"], choices=["altitude", "attitude", "frame2"])
     ap.add_argument("--alt-noise-m", type=float, default=0.0, help="Gaussian noise of the simulated altimeter")
     ap.add_argument("--cache", type=Path, default=Path("out/bench_pose/cache"))
     ap.add_argument("--out", type=Path, default=Path("out/bench_pose"))
@@ -437,7 +483,7 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown(detectors(entries)) + "\n", flush=True)
     if a.skip_sensitivity:
         return 0
-    samples = {"altitude": a.samples, "attitude": 6}
+    samples = {"altitude": a.samples, "attitude": 6, "frame2": 6}
     rows: list[dict] = []
     t0 = time.perf_counter()
     for k, e in enumerate(entries):
@@ -456,7 +502,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"## sensitivity ({a.seed_set} seeds {seeds}, fast preset, % increase over perfect knowledge)\n")
     print(f"refinement parameters: {a.refine or 'defaults'}\n")
     print(f"perfect knowledge, median over pairs (m): {pm['perfect']}; refined from true poses: {pm['perfect_on']}\n")
+    per = {(r["seed"], r["altitude_m"]): r for r in ref if r["variant"] == "perfect"}
+    for k in ("mean_abs", "mad"):
+        ch = [100.0 * (r[k] / per[(r["seed"], r["altitude_m"])][k] - 1) for r in ref if r["variant"] == "perfect_on"]
+        print(
+            f"refining the true poses changes {k} by {min(ch):+.0f} / {np.median(ch):+.0f} / {max(ch):+.0f} %"
+            " (min / median / max over pairs)"
+        )
+    print()
     print(markdown(summarise(rows)))
+    if "altitude" in a.kinds:
+        print("\n## datum: median signed DEM error against the reported altitude errors (altitude study)\n")
+        print(markdown(datum_fit(rows)))
     print(f"\nrows: {a.out / 'pose_rows.csv'}")
     return 0
 
