@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -784,3 +785,61 @@ def _refine_matches(
     out2 = Pose(C2, s.R2, pose2.time_s)
     info.update(refined=True, reason="ok", wall_s=time.perf_counter() - t0[0], cpu_s=time.thread_time() - t0[1])
     return PoseRefinement(out1, out2, True, info)
+
+
+def transfer_relative(ref: Pose, rel_from: Pose, rel_to: Pose) -> Pose:
+    """The pose that ``rel_to`` is relative to ``rel_from``, re-attached to ``ref``.
+
+    ``R = (R_to R_from^T) R_ref`` and ``C = C_ref + R_ref^T R_from (C_to - C_from)``: the relative
+    rotation and the baseline in the first camera's frame are kept (the pair's geometry), the
+    reference frame's pose is replaced. Used to make every frame of a descent agree with one frame 0.
+    """
+    R = rel_to.R @ rel_from.R.T @ ref.R
+    C = ref.position + ref.R.T @ (rel_from.R @ (rel_to.position - rel_from.position))
+    return Pose(C, R, rel_to.time_s)
+
+
+def refine_descent(
+    images: Sequence[np.ndarray],
+    poses: Sequence[Pose],
+    camera: Camera,
+    *,
+    altimeter_m: Sequence[float] | None = None,
+    params: RefineParams | None = None,
+) -> tuple[list[Pose], dict[str, Any]]:
+    """Refine 2-16 descent frames against frame 0; returns the poses and the telemetry.
+
+    The widest pair (frames 0 and -1) is refined first (:func:`refine_pair`) and fixes frame 0's
+    pose; every other frame k is refined with frame 0 and its relative pose re-attached to that
+    frame 0 (:func:`transfer_relative`). A degenerate pair keeps its navigation relative pose
+    (re-attached the same way) and says why in ``info["frames"]``. ``info`` is the widest pair's
+    telemetry plus ``frames``: per frame k >= 1 ``refined``, ``reason``, ``inliers``,
+    ``relative_rotation_correction_deg``.
+    """
+    n = len(images)
+    if n < 2 or len(poses) != n:
+        raise FlightInputError(f"pose refinement: need 2-16 frames with one pose each, got {n} and {len(poses)}")
+    alt = [math.nan] * n if altimeter_m is None else [math.nan if a is None else float(a) for a in altimeter_m]
+    if len(alt) != n:
+        raise FlightInputError(f"pose refinement: altimeter_m has {len(alt)} entries for {n} frames")
+    wide = refine_pair(images[0], images[-1], poses[0], poses[-1], camera, altimeter_m=(alt[0], alt[-1]), params=params)
+    out = [wide.pose1] + [poses[k] for k in range(1, n - 1)] + [wide.pose2]
+    info = dict(wide.info)
+
+    def summary(r: PoseRefinement, k: int) -> dict[str, Any]:
+        return {
+            "frame": k,
+            "refined": r.refined,
+            "reason": r.info.get("reason", ""),
+            "inliers": r.info.get("inliers", 0),
+            "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
+        }
+
+    frames = []
+    for k in range(1, n - 1):
+        r = refine_pair(images[0], images[k], poses[0], poses[k], camera, altimeter_m=(alt[0], alt[k]), params=params)
+        out[k] = transfer_relative(out[0], r.pose1, r.pose2)
+        frames.append(summary(r, k))
+    frames.append(summary(wide, n - 1))
+    info["frames"] = frames
+    return out, info
