@@ -180,7 +180,7 @@ def multi_cost_slab(
     prefilter_sigmas: Sequence[float] | None = None,
     weights: Sequence[float] | None = None,
     info: Sequence[float] | None = None,
-    rule: str = "drop_worst",
+    rule: str = "mean",
     gain: float = 1.0,
     truncate: float = 0.0,
     radius: int = 2,

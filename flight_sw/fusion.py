@@ -23,18 +23,22 @@ The fused state per cell (``p_min`` the pipeline's safe threshold, ``T = logit(p
 
 **The rule for hazards.** A result that calls a cell unsafe adds ``-w l_unsafe``. The cell is
 called safe again only once later results have added at least ``T + w l_unsafe`` of evidence
-for "safe" (each result at most ``w l_max``): with the defaults (``w = 0.7``, ``l_max = 4.6``
-i.e. P = 0.99, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``) that takes four later results
-that are each at least 99 % sure the cell is safe - no single newer result can overturn a
-hazard, and a hazard seen twice needs seven. :func:`overturn_margin` gives the exact amount.
+for "safe" (each result at most ``w l_max``): with the defaults (``w = 0.7``, ``l_max =
+logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``) that is 8.6, i.e. three
+later results that are each at least 99 % sure the cell is safe - no single newer result can
+overturn a hazard - and a hazard seen twice needs five. :func:`overturn_margin` gives the amount.
 
-**Resampling.** The fused grid is cell-aligned with cell ``c``: the finer of its current cell
-and the new result's, but never so fine that the map exceeds ``max_cells`` (memory is bounded
-before it is spent). Evidence moves between grids conservatively: a coarse cell that is
-resampled onto a finer grid gives every finer cell its log-odds (a hazard anywhere in a coarse
-cell stays a hazard in all of its parts); finer cells that fall into one coarser cell give it
-their minimum (the least safe part decides). Elevations are taken from the newest result that
-measured the cell.
+**Extent and resampling.** With ``extent="newest"`` (the flight default) the fused map after a
+result lies on that result's own grid: the lander's current view at its current resolution, so
+the map, the Result message and the time to fuse stay the size of one result while the evidence
+of every earlier result that saw those cells is kept. With ``extent="union"`` the map covers
+every result's extent, cell-aligned at the finer of its current cell and the new result's, but
+never so fine that it exceeds ``max_cells`` (memory is bounded before it is spent; the newest
+result's own grid is bounded the same way). Evidence moves between grids conservatively: a
+coarse cell that is resampled onto a finer grid gives every finer cell its log-odds (a hazard
+anywhere in a coarse cell stays a hazard in all of its parts); finer cells that fall into one
+coarser cell give it their minimum (the least safe part decides). Elevations are taken from
+the newest result that measured the cell.
 """
 
 from __future__ import annotations
@@ -54,9 +58,10 @@ class FusionParams:
     """Knobs of the fusion rule (module doc)."""
 
     weight: float = 0.7  # w: correlation discount per result
-    l_max: float = 4.6  # largest |log-odds| one result's P(safe) contributes (P = 0.99)
-    l_unsafe: float = 9.2  # log-odds against "safe" of an unsafe call (2 l_max)
+    l_max: float = math.log(99.0)  # largest |log-odds| one result's P(safe) contributes (P = 0.99)
+    l_unsafe: float = 2.0 * math.log(99.0)  # log-odds against "safe" of an unsafe call (2 l_max)
     p_min: float = 0.9  # fused safe when P(safe) >= this; unsafe when P(safe) <= 1 - this
+    extent: str = "newest"  # "newest": the map follows the newest result's grid; "union": all results' extents
     max_cells: int = 2_000_000  # the fused map never holds more cells than this
 
     def validate(self) -> None:
@@ -66,6 +71,8 @@ class FusionParams:
                 raise ValueError(f"fusion: {name} must be a positive number, got {v!r}")
         if not 0.5 < self.p_min < 1:
             raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
+        if self.extent not in ("newest", "union"):
+            raise ValueError(f"fusion: extent must be 'newest' or 'union', got {self.extent!r}")
         if not (isinstance(self.max_cells, int) and self.max_cells >= 1):
             raise ValueError(f"fusion: max_cells must be a positive integer, got {self.max_cells!r}")
 
@@ -202,16 +209,21 @@ def fuse(
     fm = fm if fm is not None else empty_map()
     if grid.hazard.size == 0 or not (grid.state != STATE_OUTSIDE).any():
         return FusedMap(fm.logodds.copy(), fm.seen.copy(), fm.elevation.copy(), fm.origin_xy, fm.cell_m, fm.results + 1)
-    boxes = [_box(grid.origin_xy, grid.hazard.shape, grid.cell_m)]
     cell = float(grid.cell_m)
-    if fm.results > 0 and fm.logodds.size:
-        boxes.append(_box(fm.origin_xy, fm.shape, fm.cell_m))
-        cell = min(cell, fm.cell_m)
-    while True:  # the finer cell, unless the union would not fit in max_cells
-        origin, shape = _aligned_extent(boxes, cell)
-        if shape[0] * shape[1] <= prm.max_cells:
-            break
-        cell *= math.sqrt(shape[0] * shape[1] / prm.max_cells) * 1.01
+    origin, shape = (
+        (float(grid.origin_xy[0]), float(grid.origin_xy[1])),
+        (int(grid.hazard.shape[0]), int(grid.hazard.shape[1])),
+    )
+    if prm.extent == "union" or shape[0] * shape[1] > prm.max_cells:
+        boxes = [_box(grid.origin_xy, grid.hazard.shape, grid.cell_m)]
+        if prm.extent == "union" and fm.results > 0 and fm.logodds.size:
+            boxes.append(_box(fm.origin_xy, fm.shape, fm.cell_m))
+            cell = min(cell, fm.cell_m)
+        while True:  # the finer cell, unless the map would not fit in max_cells
+            origin, shape = _aligned_extent(boxes, cell)
+            if shape[0] * shape[1] <= prm.max_cells:
+                break
+            cell *= math.sqrt(shape[0] * shape[1] / prm.max_cells) * 1.01
     base = _regrid(fm, origin, shape, cell)
     li = result_logodds(grid, prm)
     l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
