@@ -8,25 +8,31 @@ Robotics* ch. 9)::
 
     l_i   = logit(P_i(safe)),  clipped to [-l_max, +l_max]       (the result's own evidence)
     l_i   = -l_unsafe                                            where the result says unsafe
-    L    <- L + w * l_i                                          (w: a correlation discount)
+    L    <- L + w_i * l_i     w_i = 1 for the first result that maps the cell, w after it
 
 ``P_i(safe)`` already carries the result's own uncertainty (:mod:`flight_sw.evidence`: it is
 computed from the footprint slope and roughness against their sigma), so a confident, lower,
 finer result moves a cell more than a vague, higher one. A cell a result did not map (outside
 its overlap) gets no update; a cell it mapped without an elevation (P = 0.5) gets ``l_i = 0``.
-Successive results share frames and terrain-dependent errors, so they are not independent;
-``w < 1`` discounts each one (the independent-evidence sum would be ``w = 1``).
+Successive results share frames and terrain-dependent errors, so they are not independent:
+``w < 1`` discounts every result after the first (the independent-evidence sum would be
+``w = 1``); the first enters whole, so a map of one result is that result.
 
 The fused state per cell (``p_min`` the pipeline's safe threshold, ``T = logit(p_min)``)::
 
-    safe     L >= T          unsafe   L <= -T          unknown   otherwise          outside: never mapped
+    safe     L >= T      unsafe   L <= -(l_max + T)      unknown   otherwise      outside: never mapped
 
-**The rule for hazards.** A result that calls a cell unsafe adds ``-w l_unsafe``. The cell is
-called safe again only once later results have added at least ``T + w l_unsafe`` of evidence
-for "safe" (each result at most ``w l_max``): with the defaults (``w = 0.7``, ``l_max =
-logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``) that is 8.6, i.e. three
-later results that are each at least 99 % sure the cell is safe - no single newer result can
-overturn a hazard - and a hazard seen twice needs five. :func:`overturn_margin` gives the amount.
+The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
+unsafe after an unsafe call, or when several results agree that it is very likely unsafe, so
+a map of one result has exactly that result's states.
+
+**The rule for hazards.** A result that calls a cell unsafe adds ``-w_u l_unsafe``. The cell is
+called safe again only once the other results have added at least ``T + w_u l_unsafe`` of
+evidence for "safe" (each later result at most ``w l_max``). With the defaults (``w = 0.7``,
+``l_max = logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``): a hazard
+called by the first result to see the cell needs 11.4, i.e. four later results each at least
+99 % sure the cell is safe; one called by a later result needs 8.6, three such results. No
+single newer result can overturn a hazard. :func:`overturn_margin` gives the amounts.
 
 **Extent and resampling.** With ``extent="newest"`` (the flight default) the fused map after a
 result lies on that result's own grid: the lander's current view at its current resolution, so
@@ -71,6 +77,8 @@ class FusionParams:
                 raise ValueError(f"fusion: {name} must be a positive number, got {v!r}")
         if not 0.5 < self.p_min < 1:
             raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
+        if not self.l_unsafe > self.l_max + logit_threshold(self.p_min):
+            raise ValueError("fusion: l_unsafe must exceed l_max + logit(p_min) (an unsafe call must read unsafe)")
         if self.extent not in ("newest", "union"):
             raise ValueError(f"fusion: extent must be 'newest' or 'union', got {self.extent!r}")
         if not (isinstance(self.max_cells, int) and self.max_cells >= 1):
@@ -98,10 +106,12 @@ def logit_threshold(p_min: float) -> float:
     return math.log(p_min / (1.0 - p_min))
 
 
-def overturn_margin(params: FusionParams, times_unsafe: int = 1) -> float:
-    """Evidence for "safe" that later results must add before a cell called unsafe ``times_unsafe``
-    times is called safe: ``T + n w l_unsafe`` (module doc)."""
-    return logit_threshold(params.p_min) + times_unsafe * params.weight * params.l_unsafe
+def overturn_margin(params: FusionParams, times_unsafe: int = 1, first: bool = True) -> float:
+    """Evidence for "safe" the other results must add before a cell called unsafe ``times_unsafe``
+    times is called safe (module doc): ``T + (w_1 + (n - 1) w) l_unsafe``, ``w_1 = 1`` if the first
+    result to map the cell was one of the unsafe calls (``first``), else ``w``."""
+    w1 = 1.0 if first else params.weight
+    return logit_threshold(params.p_min) + (w1 + (times_unsafe - 1) * params.weight) * params.l_unsafe
 
 
 def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
@@ -198,8 +208,9 @@ def fuse(
 ) -> FusedMap:
     """The fused map after one more result (a new object; ``fm`` is not modified).
 
-    ``weight`` overrides ``params.weight`` for this result. The grid grows to the union of the
-    map's and the result's extents at the finer of their cells (bounded by ``max_cells``).
+    ``weight`` overrides ``params.weight`` for this result (cells it is the first to map take 1).
+    The map's grid is the result's (``extent="newest"``) or the union of both extents at the finer
+    cell (``"union"``), bounded by ``max_cells`` either way.
     """
     prm = params or FusionParams()
     prm.validate()
@@ -229,7 +240,8 @@ def fuse(
     l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
     e_new = resample(grid.elevation, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
     upd = np.isfinite(l_new)
-    logodds = base.logodds + np.where(upd, np.float32(w) * np.nan_to_num(l_new), np.float32(0.0))
+    wi = np.where(base.seen > 0, np.float32(w), np.float32(1.0))  # the first result to map a cell enters whole
+    logodds = base.logodds + np.where(upd, wi * np.nan_to_num(l_new), np.float32(0.0))
     seen = np.minimum(base.seen.astype(np.int32) + upd, 255).astype(np.uint8)
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
     return FusedMap(logodds.astype(np.float32), seen, elev, origin, cell, fm.results + 1)
@@ -239,13 +251,14 @@ def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.nd
     """``(state, psafe)`` of the fused map: STATE_* codes (uint8) and P(safe) (float32, NaN outside)."""
     prm = params or FusionParams()
     T = logit_threshold(prm.p_min)
-    L = fm.logodds
-    state = np.full(L.shape, STATE_UNKNOWN, np.uint8)
-    state[L >= T] = STATE_SAFE
-    state[L <= -T] = STATE_UNSAFE
+    lo = fm.logodds
+    state = np.full(lo.shape, STATE_UNKNOWN, np.uint8)
+    state[lo >= T] = STATE_SAFE
+    bound = np.float32(-(prm.l_max + T))
+    state[lo <= bound] = STATE_UNSAFE
     state[fm.seen == 0] = STATE_OUTSIDE
     with np.errstate(over="ignore"):
-        psafe = (1.0 / (1.0 + np.exp(-L.astype(np.float64)))).astype(np.float32)
+        psafe = (1.0 / (1.0 + np.exp(-lo.astype(np.float64)))).astype(np.float32)
     psafe[fm.seen == 0] = np.nan
     return state, psafe
 
