@@ -42,7 +42,10 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    better than the navigation's baseline.
 5. **Degeneracy.** Too few matches or inliers, poor spread, too little
    parallax after removing the rotation (pure rotation, identical frames),
-   a correction beyond the plausible, a large residual or no convergence:
+   a correction beyond the plausible, a large residual, no convergence, or a
+   relative rotation the images do not pin down (posterior sd above
+   ``max_rel_rot_sd_deg``: a near-planar scene in a narrow field of view, where
+   a rotation and a baseline-direction change move the plane's image alike):
    the navigation poses are returned unchanged with ``refined = False`` and
    the reason.
 """
@@ -95,6 +98,9 @@ class RefineParams:
     max_rotation_deg: float = 2.0  # a larger correction of either attitude is refused
     max_direction_deg: float = 5.0  # a larger change of the baseline direction is refused
     max_rms_px: float = 1.0  # inlier Sampson RMS above this: refused
+    # posterior sd (rms over the 3 axes) of the relative rotation above this: the images do not pin it down
+    # (near-planar scene seen along the baseline, narrow field of view) - refused; 0.15 deg already costs 15x
+    max_rel_rot_sd_deg: float = 0.1
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -118,6 +124,7 @@ class RefineParams:
             "max_rotation_deg",
             "max_direction_deg",
             "max_rms_px",
+            "max_rel_rot_sd_deg",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -777,6 +784,11 @@ def _refine_matches(
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
     elif rms > p.max_rms_px:
         reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
+    elif info["sigma_rel_rot_deg"] > p.max_rel_rot_sd_deg:
+        reason = (
+            f"the images do not pin down the relative rotation (posterior sd {info['sigma_rel_rot_deg']:.2f} deg"
+            f" > {p.max_rel_rot_sd_deg:g}): near-degenerate geometry"
+        )
     elif not (C2[2] < C1[2] and L > 0):
         reason = "refined geometry puts frame 2 above frame 1"
     if reason:
