@@ -97,6 +97,13 @@ def test_added_frames_average_out_sensor_noise(close_baselines):
     e_pair = float(np.mean(np.abs(pair.elevation - z)[ok]))
     e_multi = float(np.mean(np.abs(multi.elevation - z)[ok]))
     assert e_multi < 0.93 * e_pair, (e_pair, e_multi)  # measured 0.89 (frame 0 noise is common to all pairs)
+    # and no better pair exists: every (0, k) pair alone, scored on the same pixels, is worse than all frames
+    for k in (1, 2):
+        other = run_pipeline(imgs[0], imgs[k], poses[0], poses[k], cam)
+        okk = ok & np.isfinite(other.elevation) & other.covered
+        e_k = float(np.mean(np.abs(other.elevation - z)[okk]))
+        e_m = float(np.mean(np.abs(multi.elevation - z)[okk]))
+        assert okk.sum() > 0.5 * ok.sum() and e_m <= e_k, (k, e_k, e_m)
     assert multi.valid_fraction >= pair.valid_fraction
     mf = multi.info["multi_frame"]
     assert mf["frames"] == 4 and all(r > 0.9 for r in mf["parallax_rel"])  # three nearly equal baselines

@@ -271,3 +271,27 @@ def test_pipeline_hook(gsim):
         run_pipeline(i1, i2, p1, n2, cam, preset=on, altimeter_m=(-5.0, 1.0))
     with pytest.raises(FlightInputError, match="detector"):
         refine_pair(i1, i2, p1, n2, cam, params=RefineParams(detector="surf"))
+
+
+# --------------------------------------------------------------------------- multi-frame descents
+def test_descent_frames_are_refined_against_frame_0(synth):
+    """refine_descent: each later frame's relative rotation to frame 0 recovered; a degenerate frame falls back."""
+    from flight_sw.pose_refine import refine_descent, transfer_relative
+
+    cam, p1, p2, i1, i2, _, _ = synth
+    tex = Texture.random(600.0, 150.0 / cam.fx, 3, blur_cells=2.0)  # the fixture's texture and terrain
+    pm = Pose(np.array([0.0, 225.0, 225.0]), p1.R, 5.0)
+    im, _ = render(cam, pm, terrain, tex, ss=2)
+    nav = [p1, rotated(pm, 0.3, np.array([0.2, 1.0, 0.0])), rotated(p2, 0.3, np.array([1.0, 0.0, 0.5]))]
+    poses, info = refine_descent([i1, im, i2], nav, cam, params=FRAME2_ONLY)
+    assert [f["frame"] for f in info["frames"]] == [1, 2] and all(f["refined"] for f in info["frames"])
+    for k, truth in ((1, pm), (2, p2)):
+        assert rel_rot_err(nav[0], nav[k], p1, truth) == pytest.approx(0.3)
+        assert rel_rot_err(poses[0], poses[k], p1, truth) <= 0.01, k
+    # frame 1 identical to frame 0: no parallax, so it keeps its navigation pose relative to the refined frame 0
+    poses, info = refine_descent([i1, i1.copy(), i2], nav, cam, params=FRAME2_ONLY)
+    f1 = info["frames"][0]
+    assert f1["refined"] is False and f1["reason"] != "ok" and info["frames"][1]["refined"]
+    want = transfer_relative(poses[0], nav[0], nav[1])
+    assert np.allclose(poses[1].R, want.R) and np.allclose(poses[1].position, want.position)
+    assert rel_rot_err(poses[0], poses[1], nav[0], nav[1]) < 1e-9
