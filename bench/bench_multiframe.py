@@ -257,9 +257,23 @@ def table(per_descent: list[dict[str, Any]], names: list[str], title: str) -> st
 
 
 # ----------------------------------------------------------------------------------------------- speed
+def build_preset(args: argparse.Namespace) -> Any:
+    """``--preset`` with the ``--set-param K=V`` overrides (booleans: 1/true/0/false)."""
+    from flight_sw.pipeline import PRESETS
+
+    preset = PRESETS[args.preset]
+    for kv in args.set_param:
+        k, v = kv.split("=", 1)
+        cur = getattr(preset, k)
+        preset = dataclasses.replace(preset, **{k: type(cur)(v) if not isinstance(cur, bool) else v in ("1", "true")})
+    return preset
+
+
 def speed(args: argparse.Namespace) -> int:
     from flight_sw.pipeline import run_pipeline_multi
     from protocol.pairdir import read_pair
+
+    preset = build_preset(args)
 
     d = render_descent(args.case, args.seed, list(args.altitudes), Path(args.cache))
     pair = read_pair(d)
@@ -270,7 +284,7 @@ def speed(args: argparse.Namespace) -> int:
         times = []
         for _ in range(args.runs):
             c0 = time.thread_time()
-            run_pipeline_multi([pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera)
+            run_pipeline_multi([pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset)
             times.append(time.thread_time() - c0)
         meds.append(statistics.median(times))
         print(f"{m} frames {idx}: CPU median {meds[-1]:.3f} s (runs {', '.join(f'{t:.3f}' for t in times)})")
@@ -286,15 +300,10 @@ def speed(args: argparse.Namespace) -> int:
 
 def accuracy(args: argparse.Namespace) -> int:
     from flight_sw.fusion import FusionParams
-    from flight_sw.pipeline import PRESETS
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
-    preset = PRESETS[args.preset]
-    for kv in args.set_param:
-        k, v = kv.split("=", 1)
-        cur = getattr(preset, k)
-        preset = dataclasses.replace(preset, **{k: type(cur)(v) if not isinstance(cur, bool) else v in ("1", "true")})
+    preset = build_preset(args)
     fparams = FusionParams(**{k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)})
     which = ["multi", *policies(len(args.altitudes))] if args.policies is None else args.policies
     cache = Path(args.cache)
@@ -326,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         p = sub.add_parser(name)
         p.add_argument("--altitudes", type=float, nargs="+", default=list(DEFAULT_ALTITUDES))
         p.add_argument("--cache", default="/tmp/multiframe_cache")
+        p.add_argument("--preset", default="fast")
+        p.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="Params fields, e.g. refine_pose=0")
         if name == "speed":
             p.add_argument("--case", default="vertical", choices=list(SCENE))
             p.add_argument("--seed", type=int, default=0)
@@ -336,8 +347,6 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--n-seeds", type=int, default=4)
             p.add_argument("--seeds", type=int, nargs="*")
             p.add_argument("--cases", nargs="+", default=list(SCENE), choices=list(SCENE))
-            p.add_argument("--preset", default="fast")
-            p.add_argument("--set-param", nargs="*", default=[], metavar="K=V")
             p.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields")
             p.add_argument("--policies", nargs="*", default=None)
             p.add_argument("--json")
