@@ -91,7 +91,7 @@ def _process(args: argparse.Namespace) -> int:
         pair.camera,
         preset=params,
         deadline_s=args.deadline,
-        altimeter_m=pair.altimeter_m,  # per frame; the pipeline uses frame 0's reading when there is one
+        altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
     )
     out = Path(args.out)
     try:

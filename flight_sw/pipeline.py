@@ -475,14 +475,13 @@ def run_pipeline_multi(
         if not (isinstance(time_scale, (int, float)) and math.isfinite(time_scale) and time_scale > 0):
             raise FlightInputError(f"time_scale must be a positive number, got {time_scale!r}")
         alt_range = _altimeter(altimeter_m)
+        alt_frames = _altimeter_frames(altimeter_m, len(images))
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
         clock = _Clock(min(ends) if ends else None, float(time_scale))
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
         with _stage(timings, "pose_refine"):
-            poses, pose_info = refine_descent(
-                images, poses, camera, altimeter_m=_altimeter_frames(altimeter_m, len(images))
-            )
+            poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
@@ -503,7 +502,11 @@ def _altimeter_frames(altimeter_m: float | Sequence[float] | None, n: int) -> li
     if isinstance(altimeter_m, (int, float)):
         return [float(altimeter_m)] + [math.nan] * (n - 1)
     seq = [math.nan if a is None else float(a) for a in altimeter_m]
-    return seq if len(seq) == n else None
+    if len(seq) == 1:  # i1's reading only
+        return seq + [math.nan] * (n - 1)
+    if len(seq) != n:
+        raise FlightInputError(f"altimeter_m: {len(seq)} readings for {n} frames (one per frame, NaN: none)")
+    return seq
 
 
 def _finish(timings: dict[str, dict[str, float]]) -> None:

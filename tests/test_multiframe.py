@@ -167,6 +167,8 @@ def test_bad_frame_lists_are_one_line_errors():
         run_pipeline_multi([imgs[0], imgs[1], imgs[2][:32]], poses, cam)
     with pytest.raises(FlightInputError, match="multi_rule"):
         run_pipeline_multi(imgs, poses, cam, preset=dataclasses.replace(PRESETS["fast"], multi_rule="median"))
+    with pytest.raises(FlightInputError, match="2 readings for 3 frames"):
+        run_pipeline_multi(imgs, poses, cam, altimeter_m=[150.0, 75.0])
     # the v1 flow says it used the widest pair only
     res = run_pipeline_multi(imgs, poses, cam, preset="fast_v1")
     assert res.info["frames_used"] == [0, 2]
