@@ -295,6 +295,9 @@ PRESETS: dict[str, Params] = {
     ),
 }
 
+# fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
+PRESETS["fast_unrefined"] = dataclasses.replace(PRESETS["fast"], name="fast_unrefined", refine_pose=False)
+
 
 @dataclass
 class PipelineResult:

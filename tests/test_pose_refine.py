@@ -259,6 +259,11 @@ def test_telemetry_is_plain_and_complete(gsim):
 def test_pipeline_hook(gsim):
     cam, p1, p2, i1, i2, _ = gsim
     assert PRESETS["thesis"].refine_pose is False and PRESETS["fast"].refine_pose is True
+    # the A/B preset of `hazard-hil sensitivity --preset refine` differs from fast in the refinement only
+    from studies.cli import _presets
+
+    assert _presets("refine") == ["fast", "fast_unrefined"]
+    assert dataclasses.replace(PRESETS["fast_unrefined"], name="fast", refine_pose=True) == PRESETS["fast"]
     n2 = rotated(p2, 0.3, np.array([1.0, 0.0, 0.0]))
     on = dataclasses.replace(PRESETS["fast"], refine_pose=True)
     res = run_pipeline(i1, i2, p1, n2, cam, preset=on, altimeter_m=(math.nan, math.nan))
