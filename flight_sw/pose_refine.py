@@ -42,7 +42,11 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    better than the navigation's baseline.
 5. **Degeneracy.** Too few matches or inliers, poor spread, too little
    parallax after removing the rotation (pure rotation, identical frames),
-   a correction beyond the plausible, a large residual, no convergence, or a
+   a correction beyond the plausible, a large residual, no convergence, too
+   little depth variation over the inliers (``min_depth_spread``: a lateral
+   change of the baseline moves points by ~1/depth, a rotation does not, so
+   on a near-nadir view of flat ground the two are confounded and the fit
+   follows tiny matching biases - 0.05-0.4 deg from exact poses), or a
    relative rotation the images do not pin down (posterior sd above
    ``max_rel_rot_sd_deg``: a near-planar scene in a narrow field of view, where
    a rotation and a baseline-direction change move the plane's image alike):
@@ -101,6 +105,10 @@ class RefineParams:
     # posterior sd (rms over the 3 axes) of the relative rotation above this: the images do not pin it down
     # (near-planar scene seen along the baseline, narrow field of view) - refused; 0.15 deg already costs 15x
     max_rel_rot_sd_deg: float = 0.1
+    # inlier depth spread (p90 - p10) / median below this: a rotation and a baseline-direction change are
+    # confounded (near-nadir view of near-flat ground) - refused. Tuning seeds 0-2: vertical 0.007-0.047
+    # (relative rotation off 0.05-0.41 deg from exact poses), approach 0.16-0.30 (off 0.004-0.040 deg)
+    min_depth_spread: float = 0.1
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -125,6 +133,7 @@ class RefineParams:
             "max_direction_deg",
             "max_rms_px",
             "max_rel_rot_sd_deg",
+            "min_depth_spread",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -735,6 +744,12 @@ def _refine_matches(
 
     # -- 4. scale and datum
     x1n, x2n = np.c_[v1[inl], np.ones(int(inl.sum()))] @ Ki.T, np.c_[v2[inl], np.ones(int(inl.sum()))] @ Ki.T
+    # depth variation over the inliers: a lateral baseline change moves points by ~1/depth, a rotation
+    # does not depend on depth, so only depth variation tells them apart (scale-free: p90 - p10 over median)
+    zd = triangulate_depths(R21, t_unit, x1n, x2n) if inl.sum() >= 3 else np.zeros(0)
+    zd = zd[np.isfinite(zd) & (zd > 0)]
+    p10, p50, p90 = np.percentile(zd, [10, 50, 90]) if zd.size >= 3 else (0.0, 1.0, 0.0)
+    info["depth_spread"] = float((p90 - p10) / p50) if p50 > 0 else 0.0
     scales = []
     if p.use_altimeter and (math.isfinite(alt[0]) or math.isfinite(alt[1])):
         z1 = triangulate_depths(R21, t_unit, x1n, x2n)  # camera-1 depths for a unit baseline
@@ -784,6 +799,11 @@ def _refine_matches(
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
     elif rms > p.max_rms_px:
         reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
+    elif info["depth_spread"] < p.min_depth_spread:
+        reason = (
+            f"too little depth variation over the inliers ({info['depth_spread']:.3f} < {p.min_depth_spread:g}):"
+            " a rotation and a baseline-direction change are confounded (near-nadir view of flat ground)"
+        )
     elif info["sigma_rel_rot_deg"] > p.max_rel_rot_sd_deg:
         reason = (
             f"the images do not pin down the relative rotation (posterior sd {info['sigma_rel_rot_deg']:.2f} deg"
