@@ -80,6 +80,7 @@ LEVELS = ("image_only", "coarse", "full")
 REF_PIXELS = 512 * 512
 WALL_CUE_S = 0.015  # shading wall cue (relative brightness at footprint scale)
 ROCKS_S = 0.03  # Harris rock mask
+REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
 
 @dataclass(frozen=True)
@@ -483,8 +484,13 @@ def run_pipeline_multi(
         clock = _Clock(min(ends) if ends else None, float(time_scale))
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
-        with _stage(timings, "pose_refine"):
-            poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
+        # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
+        px_scale = images[0].size / REF_PIXELS
+        if clock.ok((p.mapping_reserve_s + REFINE_S * (len(images) - 1)) * px_scale):
+            with _stage(timings, "pose_refine"):
+                poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
+        else:
+            pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
@@ -495,6 +501,8 @@ def run_pipeline_multi(
             res.info["frames_used"] = [0, len(images) - 1]
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
+        if "pose_refine" not in timings:
+            res.info.setdefault("skipped", []).insert(0, "pose_refine")
     return res
 
 

@@ -272,6 +272,10 @@ def test_pipeline_hook(gsim):
     off = run_pipeline(i1, i2, p1, n2, cam, preset=dataclasses.replace(on, refine_pose=False))
     assert "pose_refinement" not in off.info
     assert np.nanmean(np.abs(res.elevation - off.elevation)) > 0.1  # the sweep used other poses
+    # no time for it: skipped (it cannot stop part-way), said so, and the navigation poses are used
+    late = run_pipeline(i1, i2, p1, n2, cam, preset=on, deadline_s=0.0)
+    assert late.info["pose_refinement"]["refined"] is False and "pose_refine" in late.info["skipped"]
+    assert "pose_refine" not in late.timings
     with pytest.raises(FlightInputError, match="altimeter"):
         run_pipeline(i1, i2, p1, n2, cam, preset=on, altimeter_m=(-5.0, 1.0))
     with pytest.raises(FlightInputError, match="detector"):
