@@ -1,5 +1,8 @@
 """``hazard-hil process PAIR_DIR --out OUT_DIR``: run the pipeline offline on a pair directory.
 
+Every frame of the directory is used (2-16, frame 0 the reference: a multi-baseline sweep,
+:func:`flight_sw.pipeline.run_pipeline_multi`); ``--widest-pair`` uses frames 0 and -1 only.
+
 Writes ``elevation.npy``, ``hazard.npy``, ``state.npy``, ``psafe.npy``,
 ``result.json``, pictures (``dem.png``, ``hazard.png``; with a true hazard map
 also ``confusion.png``) and ``report.html``. Ground truth is read here only for
@@ -20,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "process", help="DEM, hazard map and safe sites from a pair directory", description=__doc__.split("\n\n")[0]
     )
-    p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png)")
+    p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
     p.add_argument(
         "--preset",
@@ -36,6 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="time budget in seconds; past it the best level reached is returned (degraded)",
     )
     p.add_argument("--sites", type=int, default=None, metavar="K", help="number of safe sites (default 5)")
+    p.add_argument(
+        "--widest-pair",
+        action="store_true",
+        help="use frames 0 and -1 only (default: every frame of the directory, multi-baseline)",
+    )
     p.set_defaults(func=_process)
 
 
@@ -63,7 +71,7 @@ def _process(args: argparse.Namespace) -> int:
     from reports.html import write_atomic
 
     from .pictures import confusion, write_process_report
-    from .pipeline import PRESETS, run_pipeline
+    from .pipeline import PRESETS, run_pipeline_multi
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -76,15 +84,14 @@ def _process(args: argparse.Namespace) -> int:
         if args.sites < 0:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
         params = dataclasses.replace(params, n_sites=args.sites)
-    res = run_pipeline(
-        pair.images[0],
-        pair.images[-1],
-        pair.poses[0],
-        pair.poses[-1],
+    frames = [0, pair.n_frames - 1] if args.widest_pair else list(range(pair.n_frames))
+    res = run_pipeline_multi(
+        [pair.images[k] for k in frames],
+        [pair.poses[k] for k in frames],
         pair.camera,
         preset=params,
         deadline_s=args.deadline,
-        altimeter_m=pair.altimeter_m,  # per frame; the pipeline uses frame 0's reading when there is one
+        altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
     )
     out = Path(args.out)
     try:
@@ -98,6 +105,7 @@ def _process(args: argparse.Namespace) -> int:
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "preset": args.preset,
+        "frames": len(frames),
         "params": res.params,
         "level": res.level,
         "degraded": res.degraded,

@@ -37,8 +37,8 @@ import numpy as np
 from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
-from .costvolume import local_contrast
-from .dense import DenseParams, dense_dem
+from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
+from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
 from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
 from .gapfill import fill_small_gaps
 from .georef import backproject
@@ -53,6 +53,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .pose_refine import refine_descent
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
@@ -68,7 +69,7 @@ from .sweep import (
     scaled_camera,
     sweep_dem,
 )
-from .validate import FlightInputError, check_inputs
+from .validate import FlightInputError, check_frames
 from .warping import area_sigma
 
 LEVELS = ("image_only", "coarse", "full")
@@ -79,6 +80,7 @@ LEVELS = ("image_only", "coarse", "full")
 REF_PIXELS = 512 * 512
 WALL_CUE_S = 0.015  # shading wall cue (relative brightness at footprint scale)
 ROCKS_S = 0.03  # Harris rock mask
+REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
 
 @dataclass(frozen=True)
@@ -150,6 +152,14 @@ class Params:
     texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
     wide_slope_factor: float = 0.0  # > 1: slope = max(footprint slope, slope over this many footprints)
     site_margin_m: float = 0.5  # known-safe margin around a site's footprint
+    refine_pose: bool = False  # refine the relative pose from the images first (pose_refine.py, issue #10)
+    # ---- multi-frame (issue 10): frames between the reference and the widest-baseline frame (v2 flow only)
+    multi_rule: str = "mean"  # costvolume.multi_cost_slab: "mean" | "drop_worst" across frames
+    multi_cost_gain: float = 1.0  # combined cost x this (data term vs SGM penalties); N = Okutomi & Kanade's sum
+    multi_weight_exp: float = 2.0  # frame weight = (its parallax / the widest frame's)^exp; 0: equal weights
+    multi_truncate: float = 0.0  # > 0: cap each frame's cost at this (cost units) before combining
+    multi_extent: str = "widest"  # map where the widest pair sees ("widest") or where any frame does ("union")
+    multi_sigma_gamma: float = 0.3  # sigma / I^(gamma/2), I = sum_f (parallax_f / widest)^2 over the frames seen
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -186,6 +196,12 @@ class Params:
             )
         if self.sgm_radius < 0 or self.sgm_mean_radius < 1:
             raise FlightInputError("params: sgm_radius must be >= 0 and sgm_mean_radius >= 1")
+        if self.multi_rule not in RULES:
+            raise FlightInputError(f"params: multi_rule must be one of {RULES}, got {self.multi_rule!r}")
+        if not (math.isfinite(self.multi_cost_gain) and self.multi_cost_gain > 0):
+            raise FlightInputError(f"params: multi_cost_gain must be a positive number, got {self.multi_cost_gain!r}")
+        if self.multi_extent not in ("widest", "union"):
+            raise FlightInputError(f"params: multi_extent must be 'widest' or 'union', got {self.multi_extent!r}")
         if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
             raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
         for name in (
@@ -198,6 +214,9 @@ class Params:
             "site_margin_m",
             "shadow_dark_frac",
             "mapping_reserve_s",
+            "multi_truncate",
+            "multi_weight_exp",
+            "multi_sigma_gamma",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -267,6 +286,8 @@ PRESETS: dict[str, Params] = {
         # 1.5 m of known-safe ground around the footprint: on the tuning crater descents (seeds 0-1) the
         # 0.5 m margin offered 2 of 6 top sites on terraced wall steps at the edge of the map
         site_margin_m=1.5,
+        # relative pose refinement before the sweep (issue #10; docs/benchmarks/pose.md)
+        refine_pose=True,
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,
@@ -274,6 +295,9 @@ PRESETS: dict[str, Params] = {
         name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False, coarse_to_fine=False
     ),
 }
+
+# fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
+PRESETS["fast_unrefined"] = dataclasses.replace(PRESETS["fast"], name="fast_unrefined", refine_pose=False)
 
 
 @dataclass
@@ -398,13 +422,50 @@ def run_pipeline(
     (``Pair.altimeter_m``: a per-frame sequence is accepted; NaN = none); the v2 flow centres
     its ground search on it. ``time_scale`` is the emulated processor's slowdown factor
     (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
-    are multiplied by it. Raises :class:`FlightInputError` for bad arguments.
+    are multiplied by it. With ``Params.refine_pose`` the poses are first refined from the
+    images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
+    Raises :class:`FlightInputError` for bad arguments.
+    """
+    return run_pipeline_multi(
+        [i1, i2],
+        [pose1, pose2],
+        camera,
+        preset=preset,
+        deadline_s=deadline_s,
+        nominal_site_xy=nominal_site_xy,
+        deadline_at=deadline_at,
+        altimeter_m=altimeter_m,
+        time_scale=time_scale,
+    )
+
+
+def run_pipeline_multi(
+    images: Sequence[np.ndarray],
+    poses: Sequence[Pose],
+    camera: Camera,
+    *,
+    preset: str | Params = "fast",
+    deadline_s: float | None = None,
+    nominal_site_xy: tuple[float, float] = (0.0, 0.0),
+    deadline_at: float | None = None,
+    altimeter_m: float | Sequence[float] | None = None,
+    time_scale: float = 1.0,
+) -> PipelineResult:
+    """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
+
+    Maps are in frame 0's pixels. The ground range and the coarse DEM come from the widest
+    pair (frames 0 and -1, as :func:`run_pipeline`); the dense DEM's cost volume combines every
+    (frame 0, frame k) pair robustly (multi-baseline plane sweep, :func:`flight_sw.costvolume.multi_cost_slab`,
+    ``Params.multi_*``) before the same SGM, sigma and evidence stages. Two frames give exactly
+    :func:`run_pipeline`'s result. The v1 flow (``dem="sweep"``) uses frames 0 and -1 only
+    (``info["frames_used"]``). Other arguments as :func:`run_pipeline`.
     """
     t_start = time.monotonic()
     timings: dict[str, dict[str, float]] = {}
     with _stage(timings, "validate"):
         p = _resolve(preset)
-        check_inputs(i1, i2, pose1, pose2, camera)
+        images, poses = list(images), list(poses)
+        check_frames(images, poses, camera)
         if deadline_s is not None and not (isinstance(deadline_s, (int, float)) and math.isfinite(deadline_s)):
             raise FlightInputError(f"deadline_s must be a finite number of seconds, got {deadline_s!r}")
         try:
@@ -418,11 +479,45 @@ def run_pipeline(
         if not (isinstance(time_scale, (int, float)) and math.isfinite(time_scale) and time_scale > 0):
             raise FlightInputError(f"time_scale must be a positive number, got {time_scale!r}")
         alt_range = _altimeter(altimeter_m)
+        alt_frames = _altimeter_frames(altimeter_m, len(images))
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
         clock = _Clock(min(ends) if ends else None, float(time_scale))
+    pose_info: dict[str, Any] | None = None
+    if p.refine_pose:
+        # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
+        px_scale = images[0].size / REF_PIXELS
+        if clock.ok((p.mapping_reserve_s + REFINE_S * (len(images) - 1)) * px_scale):
+            with _stage(timings, "pose_refine"):
+                poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
+        else:
+            pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
+    i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
-        return _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings)
-    return _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
+        extra = list(zip(images[1:-1], poses[1:-1]))
+        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra)
+    else:
+        res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
+        if len(images) > 2:
+            res.info["frames_used"] = [0, len(images) - 1]
+    if pose_info is not None:
+        res.info["pose_refinement"] = pose_info
+        if "pose_refine" not in timings:
+            res.info.setdefault("skipped", []).insert(0, "pose_refine")
+    return res
+
+
+def _altimeter_frames(altimeter_m: float | Sequence[float] | None, n: int) -> list[float] | None:
+    """Per-frame altimeter ranges for pose_refine (NaN = none); a single number is frame 0's."""
+    if altimeter_m is None:
+        return None
+    if isinstance(altimeter_m, (int, float)):
+        return [float(altimeter_m)] + [math.nan] * (n - 1)
+    seq = [math.nan if a is None else float(a) for a in altimeter_m]
+    if len(seq) == 1:  # i1's reading only
+        return seq + [math.nan] * (n - 1)
+    if len(seq) != n:
+        raise FlightInputError(f"altimeter_m: {len(seq)} readings for {n} frames (one per frame, NaN: none)")
+    return seq
 
 
 def _finish(timings: dict[str, dict[str, float]]) -> None:
@@ -687,6 +782,93 @@ def _dense_params(p: Params) -> DenseParams:
     )
 
 
+def _multi_dem(
+    a1: np.ndarray,
+    a2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    extra: Sequence[tuple[np.ndarray, Pose]],
+    camera: Camera,
+    planes: np.ndarray,
+    p: Params,
+    ignore: np.ndarray,
+    clock: _Clock,
+    prior: np.ndarray | None,
+    info: dict[str, Any],
+    reserve: float,
+) -> DenseDEM:
+    """Multi-baseline dense DEM (issue 10): the widest pair and the ``extra`` frames in one cost volume.
+
+    The slab covers the widest pair's reach (``multi_extent="widest"``) or every frame's
+    (``"union"``). Frame f's parallax per plane relative to the widest frame, ``s_f``
+    (:func:`flight_sw.costvolume.parallax_px`), sets its weight ``w_f = s_f^multi_weight_exp``
+    in the robust mean (:func:`flight_sw.costvolume.multi_cost_slab`): near its minimum a frame's
+    cost is ``~ kappa s_f^2 dk^2`` plus noise, so a short-baseline frame carries little depth
+    signal and mostly adds interpolation noise. The slab then goes through the pair's SGM,
+    winner and sigma (:func:`flight_sw.dense.dem_from_slab`).
+
+    Sigma: the curvature-based sigma of the combined cost assumes one pair's noise. If the
+    frames' cost noise were independent, the minimum of the combination would be
+    ``sqrt(I)`` times better determined, ``I = sum_f s_f^2`` over the frames that saw the pixel
+    (1 for a pair); the frames share the reference image, so ``sigma / I^(gamma / 2)`` with
+    ``gamma = multi_sigma_gamma`` in [0, 1] calibrated on tuning seeds (docs/benchmarks/multiframe.md).
+    """
+    frames = [(a2, pose2)] + [(np.ascontiguousarray(img, dtype=np.float32), pose) for img, pose in extra]
+    z_lo, z_hi = float(planes[0]), float(planes[-1])
+    roi = roi_of(camera, pose1, pose2, z_lo, z_hi)
+    if p.multi_extent == "union":
+        whole = (0, 0, camera.width, camera.height)
+        boxes = [roi] + [frame_roi(camera, pose1, pose, z_lo, z_hi, whole) for _, pose in extra]
+        boxes = [b for b in boxes if b[2] > 0 and b[3] > 0]
+        if boxes:
+            bx0, by0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+            bx1, by1 = max(b[0] + b[2] for b in boxes), max(b[1] + b[3] for b in boxes)
+            roi = (bx0, by0, bx1 - bx0, by1 - by0)
+    dp = _dense_params(p)
+    deadline = clock.before(reserve)  # the v2 reserve (scaled with the pixel count)
+    par = [parallax_px(camera, pose1, pose, z_lo, z_hi, roi) for _, pose in frames]
+    rel = [min(1.0, v / par[0]) if par[0] > 0 else 1.0 for v in par]
+    weights = [max(r, 1e-3) ** p.multi_weight_exp for r in rel]
+    slab = multi_cost_slab(
+        a1,
+        [f[0] for f in frames],
+        camera,
+        pose1,
+        [f[1] for f in frames],
+        planes,
+        roi,
+        prefilter_sigmas=[area_sigma(_gsd_scale(camera, pose1, f[1])) if p.prefilter else 0.0 for f in frames],
+        weights=weights,
+        info=[r * r for r in rel],
+        rule=p.multi_rule,
+        gain=p.multi_cost_gain,
+        truncate=p.multi_truncate,
+        radius=dp.radius,
+        mean_radius=dp.mean_radius,
+        ignore=ignore,
+        deadline=deadline,
+        check_every=p.check_every,
+    )
+    dem = dem_from_slab(slab, a1, a1.shape, dp, deadline, prior)
+    gain_img = np.ones(a1.shape, np.float32)
+    if slab.info is not None:
+        x0, y0, w, h = roi
+        gain_img[y0 : y0 + h, x0 : x0 + w] = np.maximum(slab.info, 1.0)
+    if dem.complete and p.multi_sigma_gamma > 0:
+        dem.sigma = (dem.sigma * gain_img ** np.float32(-0.5 * p.multi_sigma_gamma)).astype(np.float32)
+    ok = np.isfinite(dem.elevation)
+    info["multi_frame"] = {
+        "frames": len(frames) + 1,
+        "rule": p.multi_rule,
+        "extent": p.multi_extent,
+        "roi": [int(v) for v in roi],
+        "parallax_rel": [round(v, 3) for v in rel],
+        "weights": [round(v, 3) for v in weights],
+        "info_median": float(np.median(gain_img[ok])) if ok.any() else 0.0,
+    }
+    return dem
+
+
 def _run_v2(
     i1: np.ndarray,
     i2: np.ndarray,
@@ -698,8 +880,12 @@ def _run_v2(
     nominal: tuple[float, float],
     alt_range: float | None,
     timings: dict[str, dict[str, float]],
+    extra: Sequence[tuple[np.ndarray, Pose]] = (),
 ) -> PipelineResult:
-    """Flight v2 (issue 9): ground range from the data, dense SGM DEM with sigma, three-state evidence."""
+    """Flight v2 (issue 9): ground range from the data, dense SGM DEM with sigma, three-state evidence.
+
+    ``extra``: the frames between i1 and i2 (issue 10); they join the dense DEM's cost volume.
+    """
     px_scale = i1.size / REF_PIXELS  # what follows the DEM costs per pixel: so does its reserve
     reserve = p.mapping_reserve_s * px_scale
     with _stage(timings, "prepare"):
@@ -764,6 +950,9 @@ def _run_v2(
     with _stage(timings, "coverage"):
         # the overlap on the ground that was found (a crater floor 50 m down overlaps elsewhere than Z = 0)
         covered = coverage_mask(camera, pose1, pose2, z_mid)
+        if extra and p.multi_extent == "union":
+            for _, pose_k in extra:
+                covered |= coverage_mask(camera, pose1, pose_k, z_mid)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
         overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
         W_coarse = window_px(p.coarse_half_window, overlap // 2, p.cap_window_to_overlap)
@@ -820,19 +1009,23 @@ def _run_v2(
             planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]
-            dem = dense_dem(
-                a1,
-                a2,
-                camera,
-                pose1,
-                pose2,
-                planes,
-                _dense_params(p),
-                prefilter_sigma=sigma_pf,
-                ignore=ignore,
-                deadline=clock.before(reserve),
-                prior=elevation if level == "coarse" else None,
-            )
+            prior = elevation if level == "coarse" else None
+            if extra:
+                dem = _multi_dem(a1, a2, pose1, pose2, extra, camera, planes, p, ignore, clock, prior, info, reserve)
+            else:
+                dem = dense_dem(
+                    a1,
+                    a2,
+                    camera,
+                    pose1,
+                    pose2,
+                    planes,
+                    _dense_params(p),
+                    prefilter_sigma=sigma_pf,
+                    ignore=ignore,
+                    deadline=clock.before(reserve),
+                    prior=prior,
+                )
             info["dense"] = dem.info
             if dem.complete:
                 elevation, sigma, level = dem.elevation, dem.sigma, "full"

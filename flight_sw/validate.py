@@ -55,3 +55,29 @@ def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         )
     if pose1.position[2] <= 0 or pose2.position[2] <= 0:
         raise FlightInputError("poses must be above the reference plane Z = 0 (positive altitude)")
+
+
+def check_frames(images: list[np.ndarray], poses: list[Pose], camera: Camera, max_frames: int = 16) -> None:
+    """Validate 2-``max_frames`` frames ordered by time (``i1`` highest): :func:`check_inputs` on the
+    first two, then each further image and pose, each frame below the one before."""
+    if not isinstance(images, (list, tuple)) or not isinstance(poses, (list, tuple)):
+        raise FlightInputError("images and poses must be lists (one entry per frame)")
+    if not 2 <= len(images) <= max_frames or len(poses) != len(images):
+        raise FlightInputError(
+            f"need 2-{max_frames} frames with one pose each, got {len(images)} images and {len(poses)} poses"
+        )
+    check_inputs(images[0], images[1], poses[0], poses[1], camera)
+    for k in range(2, len(images)):
+        pose = poses[k]
+        if not isinstance(pose, Pose):
+            raise FlightInputError(f"pose{k + 1}: expected protocol.pairdir.Pose, got {type(pose).__name__}")
+        try:
+            pose.validate(f"pose{k + 1}")
+        except PairFormatError as exc:
+            raise FlightInputError(str(exc)) from None
+        check_image(images[k], f"i{k + 1}", camera)
+        if not pose.position[2] < poses[k - 1].position[2]:
+            raise FlightInputError(
+                f"pose{k + 1} must be below pose{k} (z = {pose.position[2]:.3f} m vs "
+                f"{poses[k - 1].position[2]:.3f} m): frames are ordered by time, i1 the highest"
+            )

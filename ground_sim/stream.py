@@ -253,6 +253,7 @@ def stream_descent(
     connect_timeout_s: float = 60.0,
     reconnect_timeout_s: float = 10.0,
     full_maps: bool = False,
+    fusion: bool = True,
     elevation_step: int = 1,
     psafe_step: int = 1,
     progress=None,
@@ -274,6 +275,7 @@ def stream_descent(
         "psafe_step": int(psafe_step),
         # the line the Result comes back on, so the flight side can plan for its line time (0: no rate)
         "link_baud": int(getattr(link, "baud", None) or 0),
+        "fusion": int(bool(fusion)),
     }
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
@@ -510,6 +512,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
     ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
     ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
+    ap.add_argument(
+        "--no-fusion", action="store_true", help="ask for each pair's map alone (not fused over the descent)"
+    )
     ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
     ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")
     ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
@@ -571,6 +576,7 @@ def main(argv: list[str] | None = None) -> int:
             pace=args.pace,
             reconnect_timeout_s=args.reconnect_timeout,
             full_maps=args.full_maps,
+            fusion=not args.no_fusion,
             elevation_step=step,
             psafe_step=pstep,
             progress=show,

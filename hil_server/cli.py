@@ -284,6 +284,11 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         help="Results also carry full-resolution image maps (hazard, elevation, state: MBs per pair on the line)",
     )
     p.add_argument(
+        "--no-fusion",
+        action="store_true",
+        help="each Result reports its pair alone (default: the map fused over the descent, flight_sw.fusion)",
+    )
+    p.add_argument(
         "--insecure",
         action="store_true",
         help="zmq only: no CURVE authentication (loopback debugging only; by default every run makes its own keys)",
@@ -346,6 +351,7 @@ def _config(args: argparse.Namespace):
         manifest=args.manifest,
         corrupt=args.corrupt,
         full_maps=args.full_maps,
+        fusion=not args.no_fusion,
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
         link_fault=args.link_fault,

@@ -120,7 +120,11 @@ def register(subparsers: Any) -> None:
     )
     s.add_argument("--samples", type=_positive("--samples"), default=20, help="samples per seed and altitude")
     s.add_argument(
-        "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) to study"
+        "--preset",
+        choices=["fast", "thesis", "fast_unrefined", "both", "refine"],
+        default="both",
+        help="flight software preset(s) to study; both: fast and thesis; refine: fast with and without pose "
+        "refinement (fast_unrefined)",
     )
     _common(s)
     s.set_defaults(func=_sensitivity, seeds_default=2)
@@ -137,7 +141,7 @@ def _parse_alts(text: str | None) -> list[int] | None:
 
 
 def _presets(choice: str) -> list[str]:
-    return ["fast", "thesis"] if choice == "both" else [choice]
+    return {"both": ["fast", "thesis"], "refine": ["fast", "fast_unrefined"]}.get(choice, [choice])
 
 
 def _evaluate(args: argparse.Namespace) -> int:

@@ -31,7 +31,7 @@ from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, read_pair
 
 SCENARIOS = ("vertical", "approach")
-PRESETS = ("fast", "thesis")
+PRESETS = ("fast", "thesis", "fast_unrefined")  # fast_unrefined: fast without pose refinement
 EPIPOLE_BOX_PX = 80  # Table 6.7: 80x80 px around the epipole
 THESIS_CAMERA_PX = 512
 FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)

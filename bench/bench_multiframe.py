@@ -1,0 +1,361 @@
+"""Multi-frame descents (issue 10): per-frame cost, and accuracy against the best pair alone.
+
+    .venv/bin/python bench/bench_multiframe.py speed --runs 7                       # CPU s per added frame
+    .venv/bin/python bench/bench_multiframe.py accuracy --set tuning --n-seeds 8    # tune
+    .venv/bin/python bench/bench_multiframe.py accuracy --set held-out --n-seeds 10 --json /tmp/mf.json
+
+``speed``: CPU time (``time.thread_time``, one thread, medians of ``--runs``) of
+``run_pipeline_multi`` on the first 2, 3, ... N frames of one rendered descent; the cost of an
+added frame is the slope of a least-squares line through those medians (and each step's
+difference). ``accuracy``: for each scene seed a descent with frames at ``--altitudes``
+(default 300 250 200 150 m) is rendered into ``--cache``; every policy runs on it and is scored
+in frame 0's pixels against frame 0's ground truth, all on the same pixels: those the widest
+pair (frames 0 and -1) covers. Policies:
+
+* ``pair 0-k``: :func:`flight_sw.pipeline.run_pipeline` on frames 0 and k; ``best pair`` is the
+  one of them with the highest CDI on that descent (chosen with the truth: an upper bound for
+  any pair);
+* ``multi``: one multi-baseline run on all frames (:func:`flight_sw.pipeline.run_pipeline_multi`);
+* ``fused ...``: several runs over the descent, each a (reference, later frames) set, fused on the
+  world grid in time order (:mod:`flight_sw.fusion`); the map is read at frame 0's pixels
+  (their true ground points). ``window L``: as frame k arrives, one run with reference
+  ``max(0, k - L)`` and every frame after it up to k; ``refs->last``: when the last frame
+  arrives, one run per earlier reference with all frames after it.
+
+Scores: pixel FP / FN / CDI (``ground_sim.scoring.confusion``; unknown counts as unsafe), DEM
+mean |error| and DEM coverage (share of the scored pixels with an elevation). Seeds come from
+``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``; the worst case is given beside the
+median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DEFAULT_ALTITUDES = (300.0, 250.0, 200.0, 150.0)
+SCENE = {"vertical": "default", "approach": "approach"}
+
+
+# ----------------------------------------------------------------------------------------------- rendering
+def descent_poses(case: str, altitudes: list[float]) -> list[Any]:
+    """Frames of a built-in scenario at these altitudes (vertical: nadir above the site; approach: on the
+    45 deg path toward the site, 49 deg off nadir above 300 m and 40 deg at and below, as its pairs)."""
+    from ground_sim import trajectory as tr
+    from ground_sim.geometry import look_rotation
+    from protocol.pairdir import Pose
+
+    if hasattr(tr, "frames_at"):
+        return list(tr.frames_at(case, altitudes).poses)
+    if case == "vertical":
+        s0 = float(max(tr.VERTICAL_UPPER[0], altitudes[0]))
+        return [Pose(np.array([0.0, 0.0, h]), look_rotation(0.0), tr._time(s0, h)) for h in altitudes]
+    s0 = tr.APPROACH_PAIRS[0][0] * math.sqrt(2)
+    return [
+        Pose(np.array([0.0, -h, h]), look_rotation(40.0 if h <= 300.0 else 49.0, 0.0), tr._time(s0, h * math.sqrt(2)))
+        for h in altitudes
+    ]
+
+
+def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) -> Path:
+    """Render (or reuse) one multi-frame pair directory; ground truth is frame 0's."""
+    from ground_sim.descent import DEFAULT_SUN
+    from ground_sim.render import render_view
+    from ground_sim.scene import load_scene
+    from protocol.pairdir import Camera, Pair, write_pair
+
+    label = "_".join(f"{a:g}" for a in altitudes)
+    out = cache / f"{case}_{label}_s{seed}"
+    if (out / "pair.json").is_file():
+        return out
+    poses = descent_poses(case, altitudes)
+    scene = load_scene(SCENE[case], seed)
+    sun = DEFAULT_SUN[case]
+    cam = Camera.thesis()
+    views = [render_view(scene, cam, p, sun, seed=seed * 7919 + 104729 * k + 17) for k, p in enumerate(poses)]
+    truth = {k: getattr(views[0], k) for k in ("elevation", "depth", "shadow", "hazard")}
+    meta = {"scenario": case, "label": label.replace("_", "/"), "scene": scene.params.name, "scene_seed": seed}
+    meta["true_frames"] = [p.to_dict(f"i{k + 1}.png") for k, p in enumerate(poses)]
+    pair = Pair(cam, tuple(poses), tuple(v.image for v in views), sun, truth, meta)
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    write_pair(tmp, pair)
+    os.replace(tmp, out)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- scoring
+def _pixel_world(pair: Any) -> tuple[np.ndarray, np.ndarray]:
+    """True world X, Y of frame 0's pixels (true pose, true elevation)."""
+    from flight_sw.georef import backproject
+    from protocol.pairdir import Pose
+
+    tf = pair.meta.get("true_frames")
+    pose = pair.poses[0]
+    if isinstance(tf, list) and tf:
+        pose = Pose(np.array(tf[0]["position_m"], float), np.array(tf[0]["R_world_to_cam"], float))
+    return backproject(pair.camera, pose, pair.truth["elevation"].astype(np.float64))
+
+
+def sample_cells(grid: Any, X: np.ndarray, Y: np.ndarray, layer: np.ndarray, fill: float) -> np.ndarray:
+    """Nearest cell of a world-grid layer at world points (``fill`` off the grid)."""
+    j = np.rint((X - grid.origin_xy[0]) / grid.cell_m)
+    i = np.rint((grid.origin_xy[1] - Y) / grid.cell_m)
+    h, w = layer.shape
+    ok = np.isfinite(i) & np.isfinite(j) & (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    out = np.full(X.shape, fill, np.float32)
+    out[ok] = layer[i[ok].astype(int), j[ok].astype(int)]
+    return out
+
+
+def score(pair: Any, hazard: np.ndarray, elevation: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    from ground_sim import scoring
+
+    c = scoring.confusion(hazard, pair.truth["hazard"], mask)
+    tz = pair.truth["elevation"]
+    err = np.abs(elevation - tz)[mask]
+    fin = np.isfinite(err)
+    return {
+        "fp": c["fp"],
+        "fn": c["fn"],
+        "cdi": c["cdi"],
+        "dem": float(err[fin].mean()) if fin.any() else math.nan,
+        "coverage": 100.0 * float(fin.mean()) if fin.size else 0.0,
+    }
+
+
+def score_grid(pair: Any, grid: Any, mask: np.ndarray, XY: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+    """Score a world-grid result at frame 0's pixels: safe cells -> hazard 0, others 1 (DESIGN.md)."""
+    from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE
+
+    st = sample_cells(grid, XY[0], XY[1], grid.state.astype(np.float32), float(STATE_OUTSIDE))
+    hz = np.where(st == STATE_SAFE, 0.0, 1.0).astype(np.float32)
+    hz[st == STATE_OUTSIDE] = np.nan
+    ez = sample_cells(grid, XY[0], XY[1], grid.elevation, math.nan)
+    return score(pair, hz, ez, mask)
+
+
+# ----------------------------------------------------------------------------------------------- policies
+def window_jobs(n: int, lag: int) -> list[tuple[int, list[int]]]:
+    """As frame k = 1..n-1 arrives: reference max(0, k - lag), the frames after it up to k."""
+    return [(max(0, k - lag), list(range(max(0, k - lag) + 1, k + 1))) for k in range(1, n)]
+
+
+def refs_to_last_jobs(n: int) -> list[tuple[int, list[int]]]:
+    """When the last frame arrives: one run per earlier reference r with frames r+1 .. n-1."""
+    return [(r, list(range(r + 1, n))) for r in range(n - 1)]
+
+
+def run_jobs(pair: Any, jobs: list[tuple[int, list[int]]], preset: Any, fparams: Any) -> tuple[Any, list[Any], float]:
+    """Run each (reference, others) set and fuse the results in order; returns the fused grid, results, CPU s."""
+    from flight_sw.fusion import fuse, to_hazard_grid
+    from flight_sw.pipeline import run_pipeline_multi
+
+    fm = None
+    results = []
+    cpu = 0.0
+    for ref, others in jobs:
+        idx = [ref, *others]
+        c0 = time.thread_time()
+        res = run_pipeline_multi(
+            [pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset
+        )
+        fm = fuse(fm, res.grid, fparams)
+        cpu += time.thread_time() - c0
+        results.append(res)
+    assert fm is not None
+    return to_hazard_grid(fm, fparams), results, cpu
+
+
+def policies(n: int) -> dict[str, list[tuple[int, list[int]]]]:
+    return {
+        "fused window 2": window_jobs(n, 2),
+        "fused window 3": window_jobs(n, 3),
+        "fused refs->last": refs_to_last_jobs(n),
+        "fused refs->last pairs": [(r, [n - 1]) for r in range(n - 1)],
+    }
+
+
+def evaluate_descent(pair_dir: Path, preset: Any, fparams: Any, which: list[str]) -> dict[str, dict[str, float]]:
+    from flight_sw.pipeline import run_pipeline, run_pipeline_multi
+    from protocol.pairdir import read_pair
+
+    pair = read_pair(pair_dir)
+    n = pair.n_frames
+    XY = _pixel_world(pair)
+    rows: dict[str, dict[str, float]] = {}
+    results = {}
+    for k in range(n - 1, 0, -1):
+        c0 = time.thread_time()
+        results[k] = run_pipeline(
+            pair.images[0], pair.images[k], pair.poses[0], pair.poses[k], pair.camera, preset=preset
+        )
+        results[k].info["cpu_s"] = time.thread_time() - c0
+    mask = results[n - 1].covered & np.isfinite(pair.truth["hazard"])  # the widest pair's overlap
+    for k in range(1, n):
+        res = results[k]
+        cpu = res.info["cpu_s"]
+        rows[f"pair 0-{k}"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": cpu}
+        rows[f"pair 0-{k} (grid)"] = score_grid(pair, res.grid, mask, XY)
+    best = max(range(1, n), key=lambda k: rows[f"pair 0-{k}"]["cdi"])
+    rows["best pair"] = {**rows[f"pair 0-{best}"], "k": best}
+    if "multi" in which:
+        c0 = time.thread_time()
+        res = run_pipeline_multi(list(pair.images), list(pair.poses), pair.camera, preset=preset)
+        cpu = time.thread_time() - c0
+        rows["multi"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": cpu}
+    for name, jobs in policies(n).items():
+        if name not in which:
+            continue
+        g, _, cpu = run_jobs(pair, jobs, preset, fparams)
+        rows[name] = {**score_grid(pair, g, mask, XY), "cpu_s": cpu, "runs": len(jobs)}
+    return rows
+
+
+def _med(v: list[float]) -> float:
+    v = [x for x in v if x is not None and math.isfinite(x)]
+    return statistics.median(v) if v else math.nan
+
+
+def table(per_descent: list[dict[str, Any]], names: list[str], title: str) -> str:
+    out = [
+        f"\n### {title}\n",
+        "| policy | descents | FP % med / worst | FN % med | CDI % med / min | CDI - best pair med / min "
+        "| FP - best pair max | DEM err m med | DEM coverage % med / min | CPU s med |",
+        "|---|---:|---|---:|---|---|---:|---:|---|---:|",
+    ]
+    for name in ["best pair", *names]:
+        rs = [d["rows"][name] for d in per_descent if name in d["rows"]]
+        if not rs:
+            continue
+        bp = [d["rows"]["best pair"] for d in per_descent if name in d["rows"]]
+        dc = [r["cdi"] - b["cdi"] for r, b in zip(rs, bp)]
+        df = [r["fp"] - b["fp"] for r, b in zip(rs, bp)]
+        out.append(
+            f"| {name} | {len(rs)} | {_med([r['fp'] for r in rs]):.2f} / {max(r['fp'] for r in rs):.2f} "
+            f"| {_med([r['fn'] for r in rs]):.1f} "
+            f"| {_med([r['cdi'] for r in rs]):.1f} / {min(r['cdi'] for r in rs):.1f} "
+            f"| {_med(dc):+.1f} / {min(dc):+.1f} | {max(df):+.2f} | {_med([r['dem'] for r in rs]):.3f} "
+            f"| {_med([r['coverage'] for r in rs]):.1f} / {min(r['coverage'] for r in rs):.1f} "
+            f"| {_med([r.get('cpu_s', math.nan) for r in rs]):.3f} |"
+        )
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------------- speed
+def build_preset(args: argparse.Namespace) -> Any:
+    """``--preset`` with the ``--set-param K=V`` overrides (booleans: 1/true/0/false)."""
+    from flight_sw.pipeline import PRESETS
+
+    preset = PRESETS[args.preset]
+    for kv in args.set_param:
+        k, v = kv.split("=", 1)
+        cur = getattr(preset, k)
+        preset = dataclasses.replace(preset, **{k: type(cur)(v) if not isinstance(cur, bool) else v in ("1", "true")})
+    return preset
+
+
+def speed(args: argparse.Namespace) -> int:
+    from flight_sw.pipeline import run_pipeline_multi
+    from protocol.pairdir import read_pair
+
+    preset = build_preset(args)
+
+    d = render_descent(args.case, args.seed, list(args.altitudes), Path(args.cache))
+    pair = read_pair(d)
+    n = pair.n_frames
+    meds = []
+    for m in range(2, n + 1):
+        idx = [0, *range(1, m - 1), n - 1]  # the widest pair plus the first m - 2 frames between
+        times = []
+        for _ in range(args.runs):
+            c0 = time.thread_time()
+            run_pipeline_multi([pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset)
+            times.append(time.thread_time() - c0)
+        meds.append(statistics.median(times))
+        print(f"{m} frames {idx}: CPU median {meds[-1]:.3f} s (runs {', '.join(f'{t:.3f}' for t in times)})")
+    ms = np.arange(2, n + 1, dtype=float)
+    slope = float(np.polyfit(ms, meds, 1)[0]) if len(meds) > 1 else math.nan
+    steps = np.diff(meds)
+    print(
+        f"per added frame: {slope:.3f} s (least squares), steps {', '.join(f'{s:+.3f}' for s in steps)} s; "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    return 0 if not args.check or slope <= args.check else 1
+
+
+def accuracy(args: argparse.Namespace) -> int:
+    from flight_sw.fusion import FusionParams
+    from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
+
+    seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
+    preset = build_preset(args)
+    fparams = FusionParams(**{k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)})
+    which = ["multi", *policies(len(args.altitudes))] if args.policies is None else args.policies
+    cache = Path(args.cache)
+    per: list[dict[str, Any]] = []
+    for case in args.cases:
+        for s in seeds:
+            d = render_descent(case, s, list(args.altitudes), cache)
+            rows = evaluate_descent(d, preset, fparams, which)
+            per.append({"case": case, "seed": s, "dir": str(d), "rows": rows})
+            print(
+                f"{case} seed {s}: best pair 0-{rows['best pair']['k']} CDI {rows['best pair']['cdi']:.1f} FP "
+                f"{rows['best pair']['fp']:.2f}; "
+                + "; ".join(f"{w} CDI {rows[w]['cdi']:.1f} FP {rows[w]['fp']:.2f}" for w in which if w in rows),
+                flush=True,
+            )
+    alts = "/".join(f"{a:g}" for a in args.altitudes)
+    for case in args.cases:
+        print(table([d for d in per if d["case"] == case], which, f"{case} {alts} m, seeds {seeds}"))
+    print(table(per, which, f"all cases, seeds {seeds}"))
+    if args.json:
+        Path(args.json).write_text(json.dumps(per, indent=1, default=float) + "\n")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("speed", "accuracy"):
+        p = sub.add_parser(name)
+        p.add_argument("--altitudes", type=float, nargs="+", default=list(DEFAULT_ALTITUDES))
+        p.add_argument("--cache", default="/tmp/multiframe_cache")
+        p.add_argument("--preset", default="fast")
+        p.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="Params fields, e.g. refine_pose=0")
+        if name == "speed":
+            p.add_argument("--case", default="vertical", choices=list(SCENE))
+            p.add_argument("--seed", type=int, default=0)
+            p.add_argument("--runs", type=int, default=5)
+            p.add_argument("--check", type=float, default=None, help="exit 1 if the per-frame cost exceeds this (s)")
+        else:
+            p.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
+            p.add_argument("--n-seeds", type=int, default=4)
+            p.add_argument("--seeds", type=int, nargs="*")
+            p.add_argument("--cases", nargs="+", default=list(SCENE), choices=list(SCENE))
+            p.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields")
+            p.add_argument("--policies", nargs="*", default=None)
+            p.add_argument("--json")
+    args = ap.parse_args(argv)
+    import cv2
+
+    cv2.setNumThreads(1)
+    return speed(args) if args.cmd == "speed" else accuracy(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

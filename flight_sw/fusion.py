@@ -1,0 +1,273 @@
+"""Fusion over the descent (issue 10): one world-grid map that every new result refines.
+
+Each pipeline result is a :class:`flight_sw.mapping.HazardGrid` on its own world grid (its cell
+is the reference image's ground sample distance, so lower results are finer). The fused map
+holds, per cell of its own grid, the accumulated log-odds that the cell is safe (a binary Bayes
+filter, as in occupancy-grid mapping: Moravec & Elfes 1985, Thrun et al. *Probabilistic
+Robotics* ch. 9)::
+
+    l_i   = logit(P_i(safe)),  clipped to [-l_max, +l_max]       (the result's own evidence)
+    l_i   = -l_unsafe                                            where the result says unsafe
+    L    <- L + w_i * l_i     w_i = 1 for the first result that maps the cell, w after it
+
+``P_i(safe)`` already carries the result's own uncertainty (:mod:`flight_sw.evidence`: it is
+computed from the footprint slope and roughness against their sigma), so a confident, lower,
+finer result moves a cell more than a vague, higher one. A cell a result did not map (outside
+its overlap) gets no update; a cell it mapped without an elevation (P = 0.5) gets ``l_i = 0``.
+Successive results share frames and terrain-dependent errors, so they are not independent:
+``w < 1`` discounts every result after the first (the independent-evidence sum would be
+``w = 1``); the first enters whole, so a map of one result is that result.
+
+The fused state per cell (``p_min`` the pipeline's safe threshold, ``T = logit(p_min)``)::
+
+    safe     L >= T      unsafe   L <= -(l_max + T)      unknown   otherwise      outside: never mapped
+
+The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
+unsafe after an unsafe call, or when several results agree that it is very likely unsafe, so
+a map of one result has exactly that result's states.
+
+**The rule for hazards.** A result that calls a cell unsafe adds ``-w_u l_unsafe``. The cell is
+called safe again only once the other results have added at least ``T + w_u l_unsafe`` of
+evidence for "safe" (each later result at most ``w l_max``). With the defaults (``w = 0.7``,
+``l_max = logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``): a hazard
+called by the first result to see the cell needs 11.4, i.e. four later results each at least
+99 % sure the cell is safe; one called by a later result needs 8.6, three such results. No
+single newer result can overturn a hazard. :func:`overturn_margin` gives the amounts.
+
+**Extent and resampling.** With ``extent="newest"`` (the flight default) the fused map after a
+result lies on that result's own grid: the lander's current view at its current resolution, so
+the map, the Result message and the time to fuse stay the size of one result while the evidence
+of every earlier result that saw those cells is kept. With ``extent="union"`` the map covers
+every result's extent, cell-aligned at the finer of its current cell and the new result's, but
+never so fine that it exceeds ``max_cells`` (memory is bounded before it is spent; the newest
+result's own grid is bounded the same way). Evidence moves between grids conservatively: a
+coarse cell that is resampled onto a finer grid gives every finer cell its log-odds (a hazard
+anywhere in a coarse cell stays a hazard in all of its parts); finer cells that fall into one
+coarser cell give it their minimum (the least safe part decides). Elevations are taken from
+the newest result that measured the cell.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
+
+from .mapping import HazardGrid, grid_xy
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Knobs of the fusion rule (module doc)."""
+
+    weight: float = 0.7  # w: correlation discount per result
+    l_max: float = math.log(99.0)  # largest |log-odds| one result's P(safe) contributes (P = 0.99)
+    l_unsafe: float = 2.0 * math.log(99.0)  # log-odds against "safe" of an unsafe call (2 l_max)
+    p_min: float = 0.9  # fused safe when P(safe) >= this; unsafe when P(safe) <= 1 - this
+    extent: str = "newest"  # "newest": the map follows the newest result's grid; "union": all results' extents
+    max_cells: int = 2_000_000  # the fused map never holds more cells than this
+
+    def validate(self) -> None:
+        for name in ("weight", "l_max", "l_unsafe"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"fusion: {name} must be a positive number, got {v!r}")
+        if not 0.5 < self.p_min < 1:
+            raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
+        if not self.l_unsafe > self.l_max + logit_threshold(self.p_min):
+            raise ValueError("fusion: l_unsafe must exceed l_max + logit(p_min) (an unsafe call must read unsafe)")
+        if self.extent not in ("newest", "union"):
+            raise ValueError(f"fusion: extent must be 'newest' or 'union', got {self.extent!r}")
+        if not (isinstance(self.max_cells, int) and self.max_cells >= 1):
+            raise ValueError(f"fusion: max_cells must be a positive integer, got {self.max_cells!r}")
+
+
+@dataclass
+class FusedMap:
+    """The fused evidence on a regular world grid (rows toward -Y, as :class:`HazardGrid`)."""
+
+    logodds: np.ndarray  # float32 (rows, cols): accumulated evidence for "safe"
+    seen: np.ndarray  # uint8 (rows, cols): how many results mapped the cell (0: never, i.e. outside)
+    elevation: np.ndarray  # float32 (rows, cols): newest measured elevation, NaN if none
+    origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
+    cell_m: float
+    results: int = 0  # results fused so far
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.logodds.shape[0]), int(self.logodds.shape[1]))
+
+
+def logit_threshold(p_min: float) -> float:
+    """``T = logit(p_min)``: the log-odds a cell needs to be called safe."""
+    return math.log(p_min / (1.0 - p_min))
+
+
+def overturn_margin(params: FusionParams, times_unsafe: int = 1, first: bool = True) -> float:
+    """Evidence for "safe" the other results must add before a cell called unsafe ``times_unsafe``
+    times is called safe (module doc): ``T + (w_1 + (n - 1) w) l_unsafe``, ``w_1 = 1`` if the first
+    result to map the cell was one of the unsafe calls (``first``), else ``w``."""
+    w1 = 1.0 if first else params.weight
+    return logit_threshold(params.p_min) + (w1 + (times_unsafe - 1) * params.weight) * params.l_unsafe
+
+
+def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
+    """Per-cell evidence ``l_i`` of one result (module doc): float32, NaN where it mapped nothing."""
+    ps = np.asarray(grid.psafe, np.float64)
+    st = np.asarray(grid.state)
+    lo = 1.0 / (1.0 + math.exp(params.l_max))
+    p = np.clip(np.where(np.isfinite(ps), ps, 0.5), lo, 1.0 - lo)
+    out = np.log(p / (1.0 - p))
+    out[st == STATE_UNSAFE] = -params.l_unsafe
+    out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
+    return out.astype(np.float32)
+
+
+def _aligned_extent(
+    boxes: list[tuple[float, float, float, float]], cell: float
+) -> tuple[tuple[float, float], tuple[int, int]]:
+    """Cell-aligned origin and shape covering world boxes ``(x_min, x_max, y_min, y_max)``."""
+    x0 = math.floor(min(b[0] for b in boxes) / cell) * cell
+    x1 = math.ceil(max(b[1] for b in boxes) / cell) * cell
+    y0 = math.floor(min(b[2] for b in boxes) / cell) * cell
+    y1 = math.ceil(max(b[3] for b in boxes) / cell) * cell
+    return (x0, y1), (int(round((y1 - y0) / cell)) + 1, int(round((x1 - x0) / cell)) + 1)
+
+
+def _box(origin: tuple[float, float], shape: tuple[int, int], cell: float) -> tuple[float, float, float, float]:
+    """World extent of a grid's cell centres."""
+    return origin[0], origin[0] + (shape[1] - 1) * cell, origin[1] - (shape[0] - 1) * cell, origin[1]
+
+
+def resample(
+    values: np.ndarray,
+    origin: tuple[float, float],
+    cell: float,
+    dst_origin: tuple[float, float],
+    dst_cell: float,
+    dst_shape: tuple[int, int],
+    fill: float = np.nan,
+    pool_min: bool = True,
+) -> np.ndarray:
+    """Move a grid layer onto another grid conservatively (module doc): every destination cell takes
+    the source cell under its centre and, where the source is finer and ``pool_min``, the minimum of
+    the source cells whose centres fall in it (NaN = no value, ignored by the minimum). float32 out."""
+    src = np.asarray(values, np.float32)
+    out = np.full(dst_shape, np.float32(fill), np.float32)
+    if src.size == 0 or out.size == 0:
+        return out
+    h, w = src.shape
+    X, Y = grid_xy(dst_shape, dst_origin, dst_cell)
+    j = np.rint((X - origin[0]) / cell).astype(np.int64)
+    i = np.rint((origin[1] - Y) / cell).astype(np.int64)
+    ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    out[ok] = src[i[ok], j[ok]]
+    if pool_min and cell < dst_cell * (1.0 - 1e-9):  # finer source: several source cells per destination cell
+        Xs, Ys = grid_xy((h, w), origin, cell)
+        dj = np.rint((Xs - dst_origin[0]) / dst_cell).astype(np.int64)
+        di = np.rint((dst_origin[1] - Ys) / dst_cell).astype(np.int64)
+        inside = (di >= 0) & (di < dst_shape[0]) & (dj >= 0) & (dj < dst_shape[1]) & np.isfinite(src)
+        flat = out.ravel()
+        np.fmin.at(flat, di[inside] * dst_shape[1] + dj[inside], src[inside])
+        out = flat.reshape(dst_shape)
+    return out
+
+
+def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:
+    """The fused map on another grid (same or different cell), conservatively (module doc)."""
+    if fm.results == 0:
+        return FusedMap(
+            np.zeros(shape, np.float32),
+            np.zeros(shape, np.uint8),
+            np.full(shape, np.nan, np.float32),
+            origin,
+            cell,
+            0,
+        )
+    lo = resample(np.where(fm.seen > 0, fm.logodds, np.nan), fm.origin_xy, fm.cell_m, origin, cell, shape)
+    seen = resample(fm.seen.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
+    elev = resample(fm.elevation, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
+    seen_u8 = np.where(np.isfinite(seen), seen, 0).astype(np.uint8)
+    return FusedMap(
+        np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32), seen_u8, elev, origin, cell, fm.results
+    )
+
+
+def empty_map() -> FusedMap:
+    """A map before any result: no cells."""
+    return FusedMap(
+        np.zeros((0, 0), np.float32), np.zeros((0, 0), np.uint8), np.zeros((0, 0), np.float32), (0.0, 0.0), 0.0
+    )
+
+
+def fuse(
+    fm: FusedMap | None, grid: HazardGrid, params: FusionParams | None = None, weight: float | None = None
+) -> FusedMap:
+    """The fused map after one more result (a new object; ``fm`` is not modified).
+
+    ``weight`` overrides ``params.weight`` for this result (cells it is the first to map take 1).
+    The map's grid is the result's (``extent="newest"``) or the union of both extents at the finer
+    cell (``"union"``), bounded by ``max_cells`` either way.
+    """
+    prm = params or FusionParams()
+    prm.validate()
+    w = prm.weight if weight is None else float(weight)
+    if not (math.isfinite(w) and w > 0):
+        raise ValueError(f"fusion: weight must be a positive number, got {weight!r}")
+    fm = fm if fm is not None else empty_map()
+    if grid.hazard.size == 0 or not (grid.state != STATE_OUTSIDE).any():
+        return FusedMap(fm.logodds.copy(), fm.seen.copy(), fm.elevation.copy(), fm.origin_xy, fm.cell_m, fm.results + 1)
+    cell = float(grid.cell_m)
+    origin, shape = (
+        (float(grid.origin_xy[0]), float(grid.origin_xy[1])),
+        (int(grid.hazard.shape[0]), int(grid.hazard.shape[1])),
+    )
+    if prm.extent == "union" or shape[0] * shape[1] > prm.max_cells:
+        boxes = [_box(grid.origin_xy, grid.hazard.shape, grid.cell_m)]
+        if prm.extent == "union" and fm.results > 0 and fm.logodds.size:
+            boxes.append(_box(fm.origin_xy, fm.shape, fm.cell_m))
+            cell = min(cell, fm.cell_m)
+        while True:  # the finer cell, unless the map would not fit in max_cells
+            origin, shape = _aligned_extent(boxes, cell)
+            if shape[0] * shape[1] <= prm.max_cells:
+                break
+            cell *= math.sqrt(shape[0] * shape[1] / prm.max_cells) * 1.01
+    base = _regrid(fm, origin, shape, cell)
+    li = result_logodds(grid, prm)
+    l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
+    e_new = resample(grid.elevation, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
+    upd = np.isfinite(l_new)
+    wi = np.where(base.seen > 0, np.float32(w), np.float32(1.0))  # the first result to map a cell enters whole
+    logodds = base.logodds + np.where(upd, wi * np.nan_to_num(l_new), np.float32(0.0))
+    seen = np.minimum(base.seen.astype(np.int32) + upd, 255).astype(np.uint8)
+    elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
+    return FusedMap(logodds.astype(np.float32), seen, elev, origin, cell, fm.results + 1)
+
+
+def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(state, psafe)`` of the fused map: STATE_* codes (uint8) and P(safe) (float32, NaN outside)."""
+    prm = params or FusionParams()
+    T = logit_threshold(prm.p_min)
+    lo = fm.logodds
+    state = np.full(lo.shape, STATE_UNKNOWN, np.uint8)
+    state[lo >= T] = STATE_SAFE
+    bound = np.float32(-(prm.l_max + T))
+    state[lo <= bound] = STATE_UNSAFE
+    state[fm.seen == 0] = STATE_OUTSIDE
+    with np.errstate(over="ignore"):
+        psafe = (1.0 / (1.0 + np.exp(-lo.astype(np.float64)))).astype(np.float32)
+    psafe[fm.seen == 0] = np.nan
+    return state, psafe
+
+
+def to_hazard_grid(fm: FusedMap, params: FusionParams | None = None) -> HazardGrid:
+    """The fused map as a :class:`HazardGrid` (for :func:`flight_sw.sites.select_safe_sites` and the Result):
+    hazard = 1 - P(safe) on safe cells, 1 on unknown and unsafe ones (DESIGN.md), NaN outside."""
+    state, psafe = fused_state(fm, params)
+    hazard = np.where(state == STATE_SAFE, 1.0 - psafe, 1.0).astype(np.float32)
+    hazard[state == STATE_OUTSIDE] = np.nan
+    elev = np.where(state != STATE_OUTSIDE, fm.elevation, np.nan).astype(np.float32)
+    return HazardGrid(hazard, elev, fm.origin_xy, float(fm.cell_m), state, psafe)

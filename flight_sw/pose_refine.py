@@ -1,0 +1,877 @@
+"""Relative pose refinement before the sweep (issue #10; thesis ch. 8; Xiong, Olson & Matthies 2005).
+
+The sweep needs the epipolar geometry to a fraction of a pixel; navigation knows
+it to ~0.1 deg (several pixels). This block estimates the motion between the
+two descent images from the images themselves and hands the sweep a pose pair
+that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
+
+1. **Guided matching.** i2 is low-passed to i1's footprint and warped onto i1
+   through the navigation's homography of the reference plane ``Z = 0``
+   (H&Z eq. 13.2, :mod:`flight_sw.homography`); that removes the ~2x scale
+   change, so a binary detector works. ORB (Rublee et al. 2011; or SIFT,
+   Lowe 2004) matches in the overlap with Lowe's ratio test and a mutual
+   check; a RANSAC homography of those matches absorbs the navigation error.
+   Corners (Shi & Tomasi 1994) are then tracked by Lucas-Kanade with a
+   forward-backward check (Kalal et al. 2010) for sub-pixel matches, which
+   are mapped back to i2's pixels.
+2. **Model selection and outliers.** RANSAC fits both an essential matrix
+   and a homography; Torr's GRIC (1998),
+   ``GRIC = sum min(e_i^2 / s^2, 2 (r - d)) + ln(r) d n + ln(r n) k``
+   (``r = 4``; H: ``d = 2, k = 8``; E: ``d = 3, k = 5``), says which explains the
+   matches (descent terrain is nearly planar: typically H). The winner's
+   inliers go on.
+3. **Nonlinear refinement (MAP).** Over the two attitudes ``R1, R2`` and the
+   world baseline direction ``b`` (8 unknowns), Levenberg-Marquardt (H&Z A6.2)
+   minimises robust (Cauchy) Sampson errors (H&Z eq. 11.9) of
+   ``F = K^-T [t]x R21 K^-1`` with ``R21 = R2 R1^T``, ``t = -R2 b``, plus Gaussian
+   navigation priors (world axes): frame 1's attitude error ``e1`` (sd ``s_c``),
+   the error frame 2 adds to it ``e2 - e1`` (sd ``s_r``), and the baseline
+   direction of the reported positions (sd ``sqrt(2) s_p / L``, ``L`` the
+   baseline). Why priors: with a 30 deg field of view and motion along the
+   optical axis, a rotation about an axis across the view and a tilt of the
+   baseline move the image almost alike, so two views alone leave a
+   ~0.05-0.2 deg valley that tilts the DEM; and the absolute attitude of the
+   pair is not in the images at all, only in the navigation's attitude and,
+   across the baseline, in its positions (docs/benchmarks/pose.md).
+4. **Scale and datum.** Images cannot observe them. The baseline length is
+   the reported baseline projected on ``b``; frame 0's reported position is
+   kept (the datum). Optionally (``use_altimeter``), a laser-altimeter slant
+   range along an optical axis over the reconstructed axis depth gives the
+   scale and both reported positions are fitted by least squares (halving
+   the datum variance); off by default: the sparse axis depth is measured no
+   better than the navigation's baseline.
+5. **Degeneracy.** Too few matches or inliers, poor spread, too little
+   parallax after removing the rotation (pure rotation, identical frames),
+   a correction beyond the plausible, a large residual, no convergence, too
+   little depth variation over the inliers (``min_depth_spread``: a lateral
+   change of the baseline moves points by ~1/depth, a rotation does not, so
+   on a near-nadir view of flat ground the two are confounded and the fit
+   follows tiny matching biases - 0.05-0.4 deg from exact poses), or a
+   relative rotation the images do not pin down (posterior sd above
+   ``max_rel_rot_sd_deg``: a near-planar scene in a narrow field of view, where
+   a rotation and a baseline-direction change move the plane's image alike):
+   the navigation poses are returned unchanged with ``refined = False`` and
+   the reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from protocol.pairdir import Camera, Pose
+
+from .homography import plane_homography
+from .validate import FlightInputError
+from .warping import area_sigma
+
+DETECTORS = ("orb", "sift", "akaze")
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Knobs of the pose refinement. Navigation sigmas are the declared accuracy, not tuned on results."""
+
+    detector: str = "orb"  # coarse matcher on the pre-warped pair: "orb" | "sift" | "akaze" (OpenCV < 5)
+    n_features: int = 500  # detector budget per image (only a homography is needed)
+    ratio: float = 0.8  # Lowe's ratio test
+    coarse_ransac_px: float = 3.0  # residual-homography RANSAC threshold on the pre-warped pair (i1 px)
+    max_prewarp_shift_px: float = 60.0  # images vs navigation beyond this (i1 px): refuse (~3.5 deg at 512 px)
+    n_corners: int = 500  # Shi-Tomasi corners tracked for the fine matches
+    corner_quality: float = 0.001
+    track_window: int = 15  # Lucas-Kanade window (px)
+    track_levels: int = 1  # pyramid levels above the base
+    track_passes: int = 3  # tracking passes; each re-warps i2 through the homography of the previous matches
+    fb_max_px: float = 0.5  # forward-backward disagreement that drops a track
+    ransac_px: float = 1.5  # E / H RANSAC threshold (px)
+    cauchy_k: float = 2.5  # robust loss scale, in units of the matching noise
+    sigma_px_min: float = 0.05  # floor on the matching noise that weighs the images against navigation
+    nav_att_sigma_deg: float = 0.25  # frame-1 attitude error, shared by frame 2 (alignment, star tracker)
+    nav_rel_att_sigma_deg: float = 0.25  # frame-2 attitude error on top of frame 1's (accrued between them)
+    nav_pos_sigma_m: float = 0.5  # position error of each frame, per axis
+    use_altimeter: bool = False  # scale from altimeter ranges where given (measured: no better than navigation)
+    min_inliers: int = 40
+    min_spread: float = 0.4  # share of the overlap's 4x4 cells holding an inlier
+    min_parallax_px: float = 2.0  # median rotation-compensated motion (i2 px): below it, translation is unobservable
+    max_rotation_deg: float = 2.0  # a larger correction of either attitude is refused
+    max_direction_deg: float = 5.0  # a larger change of the baseline direction is refused
+    max_rms_px: float = 1.0  # inlier Sampson RMS above this: refused
+    # posterior sd (rms over the 3 axes) of the relative rotation above this: the images do not pin it down
+    # (near-planar scene seen along the baseline, narrow field of view) - refused; 0.15 deg already costs 15x
+    max_rel_rot_sd_deg: float = 0.1
+    # inlier depth spread (p90 - p10) / median below this: a rotation and a baseline-direction change are
+    # confounded (near-nadir view of near-flat ground) - refused. Tuning seeds 0-2: vertical 0.007-0.047
+    # (relative rotation off 0.05-0.41 deg from exact poses), approach 0.16-0.30 (off 0.004-0.040 deg)
+    min_depth_spread: float = 0.1
+    max_iterations: int = 30
+
+    def validate(self) -> None:
+        if self.detector not in DETECTORS:
+            raise FlightInputError(f"pose refinement: detector must be one of {DETECTORS}, got {self.detector!r}")
+        if self.detector == "akaze" and not hasattr(cv2, "AKAZE_create"):
+            raise FlightInputError("pose refinement: this OpenCV build has no AKAZE (OpenCV 5 moved it to contrib)")
+        for name in (
+            "ratio",
+            "coarse_ransac_px",
+            "max_prewarp_shift_px",
+            "corner_quality",
+            "fb_max_px",
+            "ransac_px",
+            "cauchy_k",
+            "sigma_px_min",
+            "nav_att_sigma_deg",
+            "nav_rel_att_sigma_deg",
+            "nav_pos_sigma_m",
+            "min_parallax_px",
+            "max_rotation_deg",
+            "max_direction_deg",
+            "max_rms_px",
+            "max_rel_rot_sd_deg",
+            "min_depth_spread",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise FlightInputError(f"pose refinement: {name} must be a positive number, got {v!r}")
+        for name in ("n_features", "n_corners", "track_window", "track_passes", "min_inliers", "max_iterations"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise FlightInputError(f"pose refinement: {name} must be a positive integer, got {v!r}")
+        if not 0 <= self.track_levels <= 5 or not 0 < self.min_spread <= 1 or not self.ratio < 1:
+            raise FlightInputError("pose refinement: need track_levels 0..5, 0 < min_spread <= 1, ratio < 1")
+
+
+@dataclass
+class PoseRefinement:
+    """Refined poses (the navigation's where ``refined`` is False) and the pose-quality telemetry."""
+
+    pose1: Pose
+    pose2: Pose
+    refined: bool
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- rotation helpers
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def rot_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation by ``|w|`` about ``w``."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3) + skew(w)
+    k = skew(np.asarray(w, float) / th)
+    return np.eye(3) + math.sin(th) * k + (1.0 - math.cos(th)) * (k @ k)
+
+
+def rot_log(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation (inverse of :func:`rot_exp` for angles < pi)."""
+    c = (float(np.trace(R)) - 1.0) / 2.0
+    th = math.acos(min(1.0, max(-1.0, c)))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    if th < 1e-9:
+        return v
+    return v * (th / math.sin(th))
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return math.degrees(float(np.linalg.norm(rot_log(R))))
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    c = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def tangent_basis(b: np.ndarray) -> np.ndarray:
+    """3x2 orthonormal basis of the plane orthogonal to the unit vector ``b``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(b[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = skew(b) @ a
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, skew(b) @ e1], axis=1)
+
+
+# --------------------------------------------------------------------------- two-view geometry
+def relative_pose(pose1: Pose, pose2: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """``(R21, t21)`` with ``X2 = R21 X1 + t21`` (DESIGN.md): ``R21 = R2 R1^T``, ``t21 = R2 (C1 - C2)``."""
+    return pose2.R @ pose1.R.T, pose2.R @ (pose1.position - pose2.position)
+
+
+def fundamental(K: np.ndarray, R21: np.ndarray, t21: np.ndarray) -> np.ndarray:
+    """``F = K^-T [t]x R K^-1`` (H&Z eq. 9.12 with ``E = [t]x R``, eq. 9.13)."""
+    Ki = np.linalg.inv(K)
+    return Ki.T @ skew(t21) @ R21 @ Ki
+
+
+def homog(u: np.ndarray) -> np.ndarray:
+    """Nx2 pixels -> Nx3 homogeneous."""
+    return np.concatenate([u, np.ones((len(u), 1))], axis=1)
+
+
+def sampson_px(F: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distance (px, H&Z eq. 11.9).
+
+    ``r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2)``.
+
+    ``u1``, ``u2``: Nx2 pixels or Nx3 homogeneous pixels.
+    """
+    x1 = u1 if u1.shape[1] == 3 else homog(u1)
+    x2 = u2 if u2.shape[1] == 3 else homog(u2)
+    Fx1 = x1 @ F.T
+    Ftx2 = x2 @ F
+    num = np.sum(x2 * Fx1, axis=1)
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return np.asarray(num / np.sqrt(np.maximum(den, 1e-300)))
+
+
+def homography_sampson_px(H: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    """Sampson error of correspondences to a homography (H&Z sec 4.2.6), px: ``sqrt(e^T (J J^T)^-1 e)``.
+
+    ``e`` are the two first rows of ``x2 x (H x1)`` and ``J`` their derivatives
+    with respect to ``(u1, v1, u2, v2)``.
+    """
+    x, y = u1[:, 0], u1[:, 1]
+    X, Y = u2[:, 0], u2[:, 1]
+    h = H.ravel()
+    a = h[0] * x + h[1] * y + h[2]
+    b = h[3] * x + h[4] * y + h[5]
+    c = h[6] * x + h[7] * y + h[8]
+    e1 = b - Y * c  # row of x2 x Hx1 (up to sign)
+    e2 = X * c - a
+    j1 = np.stack([h[3] - Y * h[6], h[4] - Y * h[7], np.zeros_like(x), -c], axis=1)
+    j2 = np.stack([X * h[6] - h[0], X * h[7] - h[1], c, np.zeros_like(x)], axis=1)
+    A = np.sum(j1 * j1, 1)
+    B = np.sum(j1 * j2, 1)
+    C = np.sum(j2 * j2, 1)
+    det = np.maximum(A * C - B * B, 1e-300)
+    q = (C * e1 * e1 - 2 * B * e1 * e2 + A * e2 * e2) / det
+    return np.asarray(np.sqrt(np.maximum(q, 0.0)))
+
+
+def gric(err_px: np.ndarray, sigma_px: float, d: int, k: int) -> float:
+    """Torr's Geometric Robust Information Criterion (1998), ``r = 4`` (two image points per match)."""
+    n = err_px.size
+    r = 4
+    rho = np.minimum((err_px / sigma_px) ** 2, 2.0 * (r - d))
+    return float(rho.sum() + math.log(r) * d * n + math.log(r * n) * k)
+
+
+def triangulate_depths(R21: np.ndarray, t21: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Camera-1 depth ``z`` of each normalised match: least squares of ``x2 x (z R21 x1 + t21) = 0``."""
+    c = np.cross(x2, x1 @ R21.T)
+    d = np.cross(x2, np.broadcast_to(t21, x2.shape))
+    return np.asarray(-np.sum(c * d, 1) / np.maximum(np.sum(c * c, 1), 1e-300))
+
+
+def axis_depth(x: np.ndarray, z: np.ndarray, radius: float = 0.08) -> float:
+    """Depth on the optical axis from scattered depths: weighted LS of ``1/z = a x + b y + c``, returns ``1/c``.
+
+    Inverse depth is exactly linear in normalised coordinates over a plane, so
+    the fit follows the terrain's mean plane; Gaussian weights of ``radius``
+    (rad) keep it local to the axis. NaN when the fit is not possible.
+    """
+    ok = np.isfinite(z) & (z > 0)
+    if ok.sum() < 6:
+        return math.nan
+    xs, zs = x[ok], z[ok]
+    w = np.exp(-0.5 * (xs[:, 0] ** 2 + xs[:, 1] ** 2) / radius**2)
+    A = np.c_[xs[:, 0], xs[:, 1], np.ones(len(xs))] * w[:, None]
+    sol, *_ = np.linalg.lstsq(A, w / zs, rcond=None)
+    return float(1.0 / sol[2]) if sol[2] > 0 else math.nan
+
+
+# --------------------------------------------------------------------------- matching
+def _gray8(img: np.ndarray) -> np.ndarray:
+    """8-bit copy for the detectors and LK; float images in [0, 1] are taken as 0..255."""
+    a = np.asarray(img)
+    if a.dtype == np.uint8:
+        return a
+    f = a.astype(np.float32)
+    if f.size and float(f.max()) <= 1.0:
+        f = f * 255.0
+    return np.clip(np.rint(f), 0, 255).astype(np.uint8)
+
+
+def _overlap(camera: Camera, H: np.ndarray, margin: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """i1 pixels whose image through ``H`` (i1 -> i2) lies inside i2 by ``margin`` px, and its bounding box."""
+    w, h = camera.width, camera.height
+    ones = np.full((h, w), 255, np.uint8)
+    inside = cv2.warpPerspective(
+        ones, H, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT
+    )
+    if margin > 0:
+        inside = cv2.erode(inside, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
+    x0, y0, w, h = cv2.boundingRect(inside)
+    return inside > 0, (int(x0), int(y0), int(w), int(h))
+
+
+def _warp(src: np.ndarray, H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``out[v, u] = src(H [u, v, 1])``, bilinear, border replicated (keeps LK pyramids out of black)."""
+    return cv2.warpPerspective(
+        src, H, (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+    )
+
+
+def _prewarp(
+    b2: np.ndarray, H: np.ndarray, camera: Camera, margin: int
+) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray]:
+    """i2 warped onto i1 through ``H`` over the overlap's bounding box: (mask, roi, image), both ROI-local."""
+    mask, roi = _overlap(camera, H, margin)
+    x0, y0, w, h = roi
+    if w == 0 or h == 0:
+        return mask[0:0, 0:0], roi, np.zeros((0, 0), np.uint8)
+    return mask[y0 : y0 + h, x0 : x0 + w], roi, _warp(b2, H @ _shift(x0, y0), (h, w))
+
+
+def _detector(name: str, n: int) -> Any:
+    # the OpenCV 5 type stubs omit the feature factories
+    if name == "sift":
+        return cv2.SIFT_create(nfeatures=n, contrastThreshold=0.01)  # type: ignore[attr-defined]
+    if name == "akaze":
+        return cv2.AKAZE_create(threshold=1e-4)  # type: ignore[attr-defined]
+    return cv2.ORB_create(  # type: ignore[attr-defined]
+        nfeatures=n, scaleFactor=1.2, nlevels=4, edgeThreshold=15, patchSize=15, fastThreshold=5
+    )
+
+
+def descriptor_matches(
+    a: np.ndarray, b: np.ndarray, mask: np.ndarray, detector: str, n: int, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Detector matches ``a -> b`` inside ``mask``: Lowe's ratio test and a mutual (cross) check. Nx2 each."""
+    det = _detector(detector, n)
+    m8 = mask.astype(np.uint8) * 255
+    ka, da = det.detectAndCompute(a, m8)
+    kb, db = det.detectAndCompute(b, m8)
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    norm = cv2.NORM_L2 if detector == "sift" else cv2.NORM_HAMMING
+    bf = cv2.BFMatcher(norm)
+    fwd = bf.knnMatch(da, db, k=2)
+    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(db, da, k=1) if m}
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in fwd
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance and back.get(m[0].trainIdx) == m[0].queryIdx
+    ]
+    if not pairs:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pa = np.array([ka[i].pt for i, _ in pairs], np.float64)
+    pb = np.array([kb[j].pt for _, j in pairs], np.float64)
+    return pa, pb
+
+
+def corners_in(a: np.ndarray, mask: np.ndarray, p: RefineParams, min_distance: float) -> np.ndarray:
+    """Shi-Tomasi corners of ``a`` inside ``mask`` (Nx2, float64)."""
+    pts = cv2.goodFeaturesToTrack(
+        a, p.n_corners, p.corner_quality, max(1.0, min_distance), mask=mask.astype(np.uint8) * 255, blockSize=7
+    )
+    return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
+
+
+def track(a: np.ndarray, b: np.ndarray, pts: np.ndarray, p: RefineParams) -> tuple[np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade ``a -> b`` of ``pts``; kept (bool mask) where tracking back lands within ``fb_max_px``."""
+    if len(pts) == 0:
+        return np.zeros(0, bool), np.zeros((0, 2))
+    p0 = pts.astype(np.float32).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    win = (p.track_window, p.track_window)
+    lk = {"winSize": win, "maxLevel": p.track_levels, "criteria": crit}
+    fwd, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, p0.copy(), **lk)  # type: ignore[call-overload]
+    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, p0.copy(), **lk)  # type: ignore[call-overload]
+    fb = np.linalg.norm((bwd - p0).reshape(-1, 2), axis=1)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_px)
+    return ok, fwd.reshape(-1, 2).astype(np.float64)
+
+
+def _apply_h(H: np.ndarray, u: np.ndarray) -> np.ndarray:
+    x = np.c_[u, np.ones(len(u))] @ H.T
+    return np.asarray(x[:, :2] / x[:, 2:3])
+
+
+def _shift(x: float, y: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, x], [0.0, 1.0, y], [0.0, 0.0, 1.0]])
+
+
+# --------------------------------------------------------------------------- MAP refinement
+@dataclass
+class _State:
+    R1: np.ndarray
+    R2: np.ndarray
+    b: np.ndarray  # unit world baseline direction C2 - C1
+
+    def step(self, d: np.ndarray) -> _State:
+        b = self.b + tangent_basis(self.b) @ d[6:8]
+        return _State(rot_exp(d[0:3]) @ self.R1, rot_exp(d[3:6]) @ self.R2, b / np.linalg.norm(b))
+
+
+def _prior_residuals(s: _State, nav: _State, B_nav: np.ndarray, sig: tuple[float, float, float]) -> np.ndarray:
+    """Whitened navigation priors (world axes): frame-1 attitude error ``e1 = c``, frame-2 error ``e2 = c + r``
+    (``c`` common to both frames, ``r`` accrued between them), and the baseline direction."""
+    e1 = nav.R1.T @ rot_log(s.R1 @ nav.R1.T)
+    e2 = nav.R2.T @ rot_log(s.R2 @ nav.R2.T)
+    s_c, s_r, s_dir = sig
+    return np.r_[e1 / s_c, (e2 - e1) / s_r, (B_nav.T @ s.b) / s_dir]
+
+
+def _data_residuals(s: _State, K: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    R21 = s.R2 @ s.R1.T
+    return sampson_px(fundamental(K, R21, -s.R2 @ s.b), u1, u2)
+
+
+def _f_derivatives(s: _State, K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``F`` of the state and its derivatives along the 8 increments of :meth:`_State.step`.
+
+    ``R1 <- exp(d1) R1`` gives ``dR21 = -R21 [e_k]x``; ``R2 <- exp(d2) R2`` gives
+    ``dR21 = [e_k]x R21`` and ``dt = [e_k]x t``; ``b <- b + B e`` gives ``dt = -R2 B_k``;
+    with ``E = [t]x R21``, ``dE = [dt]x R21 + [t]x dR21``.
+    """
+    Ki = np.linalg.inv(K)
+    R21 = s.R2 @ s.R1.T
+    t = -s.R2 @ s.b
+    B = tangent_basis(s.b)
+    tx = skew(t)
+    dE = []
+    for k in range(3):
+        G = skew(np.eye(3)[k])
+        dE.append(tx @ (-R21 @ G))
+    for k in range(3):
+        G = skew(np.eye(3)[k])
+        dE.append(skew(G @ t) @ R21 + tx @ G @ R21)
+    for k in range(2):
+        dE.append(skew(-s.R2 @ B[:, k]) @ R21)
+    return Ki.T @ tx @ R21 @ Ki, [Ki.T @ d @ Ki for d in dE]
+
+
+def map_refine(
+    K: np.ndarray,
+    u1: np.ndarray,
+    u2: np.ndarray,
+    nav: _State,
+    prior_sigmas: tuple[float, float, float],
+    sigma_px: float,
+    cauchy_k: float,
+    max_iterations: int,
+    start: _State | None = None,
+) -> tuple[_State, np.ndarray, np.ndarray, int, bool]:
+    """Levenberg-Marquardt on ``sum rho(r_i / sigma_px) + |prior|^2`` with Cauchy ``rho`` (IRLS weights).
+
+    Returns the state, the data residuals (px), the 8x8 posterior covariance
+    (rad^2), the iterations and whether the step converged.
+    """
+    B_nav = tangent_basis(nav.b)
+    c = cauchy_k
+    u1, u2 = homog(u1), homog(u2)
+
+    def cost(s: _State) -> tuple[float, np.ndarray, np.ndarray]:
+        r = _data_residuals(s, K, u1, u2) / sigma_px
+        q = _prior_residuals(s, nav, B_nav, prior_sigmas)
+        return float(c * c * np.log1p((r / c) ** 2).sum() + q @ q), r, q
+
+    s = start or nav
+    f0, r, q = cost(s)
+    lam, h = 1e-3, 1e-7
+    converged = False
+    it = 0
+    J = np.zeros((r.size, 8))
+    Jq = np.zeros((q.size, 8))
+    w = np.ones(r.size)
+    s_c, s_r, s_dir = prior_sigmas
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it is returned)
+        F, dF = _f_derivatives(s, K)
+        for k in range(8):  # data: central differences of the Sampson error along dF/dp_k
+            J[:, k] = (sampson_px(F + h * dF[k], u1, u2) - sampson_px(F - h * dF[k], u1, u2)) / (2 * h * sigma_px)
+        # priors: first-order derivatives (d log(exp(d) R) ~ d for the sub-degree errors at stake)
+        Jq[0:3, 0:3] = nav.R1.T / s_c
+        Jq[3:6, 0:3] = -nav.R1.T / s_r
+        Jq[3:6, 3:6] = nav.R2.T / s_r
+        Jq[6:8, 6:8] = B_nav.T @ tangent_basis(s.b) / s_dir
+        w = 1.0 / (1.0 + (r / c) ** 2)
+        A = J.T @ (J * w[:, None]) + Jq.T @ Jq
+        g = J.T @ (w * r) + Jq.T @ q
+        f_prev = f0
+        while True:
+            dp = -np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-12 * np.eye(8), g)
+            s_new = s.step(dp)
+            f1, r1, q1 = cost(s_new)
+            if f1 <= f0:
+                s, f0, r, q = s_new, f1, r1, q1
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                break
+        if lam > 1e8:
+            converged = True  # no downhill step left: at the minimum to numerical precision
+            break
+        if np.linalg.norm(dp) < 1e-10 or f_prev - f0 < 1e-10 * max(1.0, f0):
+            converged = True
+            break
+    w = 1.0 / (1.0 + (r / c) ** 2)
+    cov = np.linalg.pinv(J.T @ (J * w[:, None]) + Jq.T @ Jq)
+    return s, r * sigma_px, cov, it, converged
+
+
+# --------------------------------------------------------------------------- the block
+def _spread(u: np.ndarray, mask: np.ndarray, roi: tuple[int, int, int, int]) -> float:
+    """Share of the overlap's 4x4 cells (at least half inside the ROI-local ``mask``) that hold a point."""
+    x0, y0, w, h = roi
+    if w == 0 or h == 0:
+        return 0.0
+    cx = np.clip(((u[:, 0] - x0) * 4 / w).astype(int), 0, 3)
+    cy = np.clip(((u[:, 1] - y0) * 4 / h).astype(int), 0, 3)
+    sub = mask.astype(np.float32)  # ROI-local
+    cells = cv2.resize(sub, (4, 4), interpolation=cv2.INTER_AREA) >= 0.5
+    hit = np.zeros((4, 4), bool)
+    hit[cy, cx] = True
+    n = int(cells.sum())
+    return float((hit & cells).sum() / n) if n else 0.0
+
+
+def _fallback(pose1: Pose, pose2: Pose, info: dict[str, Any], reason: str, t0: tuple[float, float]) -> PoseRefinement:
+    info.update(
+        refined=False,
+        reason=reason,
+        wall_s=time.perf_counter() - t0[0],
+        cpu_s=time.thread_time() - t0[1],
+    )
+    return PoseRefinement(pose1, pose2, False, info)
+
+
+def refine_pair(
+    i1: np.ndarray,
+    i2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    *,
+    altimeter_m: tuple[float, float] | None = None,
+    params: RefineParams | None = None,
+) -> PoseRefinement:
+    """Refine the reported poses of a descent pair (i1 higher) from the images; see the module doc.
+
+    ``altimeter_m``: slant ranges (m) along each frame's optical axis, NaN where
+    there is none. Returns the navigation poses unchanged, with the reason, when
+    the geometry is degenerate. Deterministic: same inputs, same output.
+    """
+    t0 = (time.perf_counter(), time.thread_time())
+    p = params or RefineParams()
+    p.validate()
+    alt = _check_altimeter(altimeter_m)
+    info: dict[str, Any] = {"detector": p.detector, "refined": False}
+    a1, a2 = _gray8(i1), _gray8(i2)
+    if a1.shape != (camera.height, camera.width) or a2.shape != a1.shape:
+        raise FlightInputError(f"pose refinement: images must be {camera.width}x{camera.height}")
+
+    # -- 1. guided matching: pre-warp i2 onto i1 through the navigation's ground-plane homography
+    try:
+        H_nav = plane_homography(camera, pose1, pose2, 0.0)
+    except ValueError as exc:
+        return _fallback(pose1, pose2, info, f"no ground-plane homography ({exc})", t0)
+    d1 = pose1.position[2] / max(1e-9, -pose1.R[2, 2])
+    d2 = pose2.position[2] / max(1e-9, -pose2.R[2, 2])
+    gsd_ratio = float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
+    sig = area_sigma(gsd_ratio)
+    b2 = cv2.GaussianBlur(a2, (0, 0), sig, borderType=cv2.BORDER_REPLICATE) if sig > 0 else a2
+    margin = p.track_window // 2 + 2
+    mask, roi, w2 = _prewarp(b2, H_nav, camera, margin)
+    if roi[2] < 4 * p.track_window or roi[3] < 4 * p.track_window:
+        return _fallback(pose1, pose2, info, "the images hardly overlap by the navigation poses", t0)
+    x0, y0, w, h = roi
+    pa, pb = descriptor_matches(a1[y0 : y0 + h, x0 : x0 + w], w2, mask, p.detector, p.n_features, p.ratio)
+    info["coarse_matches"] = len(pa)
+    H_c = np.eye(3)  # i1 px -> pre-warped i1 px
+    info["coarse_inliers"] = 0
+    if len(pa) >= 8:
+        Hc, inl = cv2.findHomography(pa, pb, cv2.RANSAC, p.coarse_ransac_px, maxIters=2000, confidence=0.999)
+        if Hc is not None and inl is not None and int(inl.sum()) >= 8:
+            info["coarse_inliers"] = int(inl.sum())
+            H_c = _shift(x0, y0) @ Hc @ _shift(-x0, -y0)
+    # how far the images disagree with navigation, over the overlap's corners
+    corners = np.array([[x0, y0], [x0 + w, y0], [x0, y0 + h], [x0 + w, y0 + h]], float)
+    shift = float(np.max(np.linalg.norm(_apply_h(H_c, corners) - corners, axis=1)))
+    info["prewarp_shift_px"] = shift
+    if shift > p.max_prewarp_shift_px:
+        return _fallback(
+            pose1, pose2, info, f"images disagree with navigation by {shift:.0f} px (> {p.max_prewarp_shift_px:g})", t0
+        )
+    H_tot = H_nav @ H_c  # i1 px -> i2 px
+    pts: np.ndarray | None = None
+    u1 = u2 = np.zeros((0, 2))
+    for k in range(p.track_passes):
+        if k > 0:
+            # re-warp through the homography fitted to the tracks: LK then measures only the relief
+            # parallax, and its translation-only window model is not biased by a residual scale or shear
+            if len(u1) < 8:
+                break
+            Hf, inl_f = cv2.findHomography(u1, u2, cv2.RANSAC, p.coarse_ransac_px, maxIters=2000, confidence=0.999)
+            if Hf is None or int(inl_f.sum()) < 8:
+                break
+            H_tot = Hf / Hf[2, 2]
+        if k > 0 or not np.allclose(H_c, np.eye(3)):
+            mask, roi, w2 = _prewarp(b2, H_tot, camera, margin)
+        x0, y0, w, h = roi
+        if pts is None:
+            mind = max(3.0, math.sqrt(w * h / max(1, p.n_corners)) / 1.5)
+            pts = corners_in(a1[y0 : y0 + h, x0 : x0 + w], mask, p, mind) + [x0, y0]
+        inside = (pts[:, 0] >= x0) & (pts[:, 0] < x0 + w) & (pts[:, 1] >= y0) & (pts[:, 1] < y0 + h)
+        sel = pts[inside]
+        sel = sel[mask[(sel[:, 1] - y0).astype(int), (sel[:, 0] - x0).astype(int)]]
+        ok, uw = track(a1[y0 : y0 + h, x0 : x0 + w], w2, sel - [x0, y0], p)
+        u1 = sel[ok]
+        u2 = _apply_h(H_tot, uw[ok] + [x0, y0]) if ok.any() else np.zeros((0, 2))
+    info["tracks"] = len(u1)
+    spread_cells = (mask, roi)
+    return _refine_matches(u1, u2, pose1, pose2, camera, alt, p, info, t0, spread_cells)
+
+
+def refine_from_matches(
+    u1: np.ndarray,
+    u2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    *,
+    altimeter_m: tuple[float, float] | None = None,
+    params: RefineParams | None = None,
+) -> PoseRefinement:
+    """Steps 2-5 of the module doc on given matches (Nx2 pixels of i1 and i2), e.g. from another matcher."""
+    t0 = (time.perf_counter(), time.thread_time())
+    p = params or RefineParams()
+    p.validate()
+    alt = _check_altimeter(altimeter_m)
+    u1 = np.asarray(u1, np.float64).reshape(-1, 2)
+    u2 = np.asarray(u2, np.float64).reshape(-1, 2)
+    if u1.shape != u2.shape:
+        raise FlightInputError(f"pose refinement: {len(u1)} points in i1 but {len(u2)} in i2")
+    info: dict[str, Any] = {"detector": "given", "refined": False, "tracks": len(u1)}
+    x0, y0 = np.floor(u1.min(0)) if len(u1) else (0, 0)
+    x1, y1 = np.ceil(u1.max(0)) + 1 if len(u1) else (1, 1)
+    roi = (int(x0), int(y0), int(x1 - x0), int(y1 - y0))
+    return _refine_matches(u1, u2, pose1, pose2, camera, alt, p, info, t0, (np.ones((roi[3], roi[2]), bool), roi))
+
+
+def _check_altimeter(altimeter_m: tuple[float, float] | None) -> tuple[float, float]:
+    if altimeter_m is None:
+        return (math.nan, math.nan)
+    try:
+        alt = tuple(float(a) for a in altimeter_m)
+    except (TypeError, ValueError):
+        raise FlightInputError(f"altimeter_m must be two ranges (m) or NaN, got {altimeter_m!r}") from None
+    if len(alt) != 2 or any(not (math.isnan(a) or (math.isfinite(a) and a > 0)) for a in alt):
+        raise FlightInputError(f"altimeter_m must be two positive ranges (m) or NaN, got {altimeter_m!r}")
+    return alt[0], alt[1]
+
+
+def _refine_matches(
+    u1: np.ndarray,
+    u2: np.ndarray,
+    pose1: Pose,
+    pose2: Pose,
+    camera: Camera,
+    alt: tuple[float, float],
+    p: RefineParams,
+    info: dict[str, Any],
+    t0: tuple[float, float],
+    spread_cells: tuple[np.ndarray, tuple[int, int, int, int]],
+) -> PoseRefinement:
+    K = camera.K
+    mask, roi = spread_cells
+    base = pose2.position - pose1.position
+    L_nav = float(np.linalg.norm(base))
+    if not L_nav > 1e-6:
+        return _fallback(pose1, pose2, info, "navigation reports no baseline: translation direction undefined", t0)
+    if len(u1) < p.min_inliers:
+        return _fallback(pose1, pose2, info, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
+
+    # -- 2. model selection (GRIC) and outliers
+    E, inl_e = cv2.findEssentialMat(u1, u2, K, cv2.RANSAC, 0.999, p.ransac_px)
+    Hm, inl_h = cv2.findHomography(u1, u2, cv2.RANSAC, p.ransac_px, maxIters=2000, confidence=0.999)
+    if E is None or Hm is None or E.shape != (3, 3):
+        return _fallback(pose1, pose2, info, "RANSAC found no model (degenerate matches)", t0)
+    R21_nav, t21_nav = relative_pose(pose1, pose2)
+    Ki = np.linalg.inv(K)
+    e_err = np.abs(sampson_px(Ki.T @ E @ Ki, u1, u2))
+    h_err = homography_sampson_px(Hm, u1, u2)
+    ie, ih = inl_e.ravel() > 0, inl_h.ravel() > 0
+    sigma_model = max(0.05, 1.4826 * float(np.median(np.abs(e_err[ie])))) if ie.any() else 1.0
+    g_e, g_h = gric(e_err, sigma_model, 3, 5), gric(h_err, sigma_model, 2, 8)
+    model = "H" if g_h <= g_e else "E"
+    keep = ih if model == "H" else ie
+    info.update(model=model, gric_e=g_e, gric_h=g_h, ransac_inliers=int(keep.sum()))
+    if keep.sum() < p.min_inliers:
+        return _fallback(pose1, pose2, info, f"too few RANSAC inliers ({int(keep.sum())} < {p.min_inliers})", t0)
+    v1, v2 = u1[keep], u2[keep]
+
+    # -- 3. MAP refinement of R1, R2 and the baseline direction
+    nav = _State(pose1.R, pose2.R, base / L_nav)
+    sigmas = (
+        math.radians(p.nav_att_sigma_deg),
+        math.radians(p.nav_rel_att_sigma_deg),
+        math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav,
+    )
+    # matching noise: robust spread of the residuals at the navigation pose's best fit, floored
+    s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations)
+    sigma_px = max(p.sigma_px_min, 1.4826 * float(np.median(np.abs(r))))
+    s, r, cov, iters, converged = map_refine(K, v1, v2, nav, sigmas, sigma_px, p.cauchy_k, p.max_iterations, s)
+    inl = np.abs(r) < max(1.0, 3.0 * sigma_px)
+    R21 = s.R2 @ s.R1.T
+    J_rel = np.c_[-R21, np.eye(3), np.zeros((3, 2))]  # relative-rotation error ~ d2 - R21 d1 (camera-2 axes)
+    t_unit = -s.R2 @ s.b
+    flow = v2 - _apply_h(K @ R21 @ np.linalg.inv(K), v1)  # motion left after removing the rotation
+    parallax = float(np.median(np.linalg.norm(flow[inl], axis=1))) if inl.any() else 0.0
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.inf  # telemetry: None (JSON has no inf)
+    info.update(
+        inliers=int(inl.sum()),
+        iterations=iters,
+        sigma_px=sigma_px,
+        reproj_rms_px=rms if inl.any() else None,
+        reproj_median_px=float(np.median(np.abs(r[inl]))) if inl.any() else None,
+        parallax_px=parallax,
+        spread=_spread(v1[inl], mask, roi),
+        rotation_correction_deg=[rotation_angle_deg(s.R1 @ pose1.R.T), rotation_angle_deg(s.R2 @ pose2.R.T)],
+        relative_rotation_correction_deg=rotation_angle_deg(R21 @ R21_nav.T),
+        translation_dir_change_deg=angle_between_deg(s.b, nav.b),
+        sigma_rel_rot_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(J_rel @ cov @ J_rel.T))))),
+        sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
+        sigma_dir_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[6:8, 6:8]))))),
+    )
+
+    # -- 4. scale and datum
+    x1n, x2n = np.c_[v1[inl], np.ones(int(inl.sum()))] @ Ki.T, np.c_[v2[inl], np.ones(int(inl.sum()))] @ Ki.T
+    # depth variation over the inliers: a lateral baseline change moves points by ~1/depth, a rotation
+    # does not depend on depth, so only depth variation tells them apart (scale-free: p90 - p10 over median)
+    zd = triangulate_depths(R21, t_unit, x1n, x2n) if inl.sum() >= 3 else np.zeros(0)
+    zd = zd[np.isfinite(zd) & (zd > 0)]
+    p10, p50, p90 = np.percentile(zd, [10, 50, 90]) if zd.size >= 3 else (0.0, 1.0, 0.0)
+    info["depth_spread"] = float((p90 - p10) / p50) if p50 > 0 else 0.0
+    scales = []
+    if p.use_altimeter and (math.isfinite(alt[0]) or math.isfinite(alt[1])):
+        z1 = triangulate_depths(R21, t_unit, x1n, x2n)  # camera-1 depths for a unit baseline
+        if math.isfinite(alt[0]):
+            za = axis_depth(x1n, z1)
+            if math.isfinite(za):
+                scales.append(alt[0] / za)
+        if math.isfinite(alt[1]):
+            X2 = (x1n * z1[:, None]) @ R21.T + t_unit  # the same points in camera 2
+            za = axis_depth(X2 / X2[:, 2:3], X2[:, 2])
+            if math.isfinite(za):
+                scales.append(alt[1] / za)
+        L_alt = float(np.mean(scales)) if scales else math.nan
+        info["altimeter_scale"] = L_alt / L_nav
+        # beyond 3 sigma of the reported baseline's length the altimeter scale is not believed (NaN too)
+        if not abs(L_alt - L_nav) <= 3.0 * math.sqrt(2.0) * p.nav_pos_sigma_m:
+            info["altimeter_ignored"] = f"altimeter baseline {L_alt:.2f} m vs reported {L_nav:.2f} m"
+            scales = []
+    if scales:
+        L = float(np.mean(scales))
+        C1 = (pose1.position + pose2.position - L * s.b) / 2.0  # least squares on both reported positions
+        info["scale_source"] = "altimeter"
+    else:
+        L = float(s.b @ base)  # reported baseline projected on the refined direction
+        C1 = pose1.position.copy()
+        info["scale_source"] = "navigation"
+    C2 = C1 + L * s.b
+    info.update(
+        scale=L / L_nav,
+        baseline_m=L,
+        position_change_m=[float(np.linalg.norm(C1 - pose1.position)), float(np.linalg.norm(C2 - pose2.position))],
+    )
+
+    # -- 5. degeneracy checks
+    reason = ""
+    if inl.sum() < p.min_inliers:
+        reason = f"too few inliers ({int(inl.sum())} < {p.min_inliers})"
+    elif parallax < p.min_parallax_px:  # before convergence: without parallax the translation wanders
+        reason = f"too little parallax ({parallax:.2f} px < {p.min_parallax_px:g}): translation unobservable"
+    elif not converged:
+        reason = f"refinement did not converge in {iters} iterations"
+    elif info["spread"] < p.min_spread:
+        reason = f"inliers poorly spread over the overlap ({info['spread']:.2f} < {p.min_spread:g})"
+    elif max(info["rotation_correction_deg"]) > p.max_rotation_deg:
+        reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
+    elif info["translation_dir_change_deg"] > p.max_direction_deg:
+        reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
+    elif rms > p.max_rms_px:
+        reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
+    elif info["depth_spread"] < p.min_depth_spread:
+        reason = (
+            f"too little depth variation over the inliers ({info['depth_spread']:.3f} < {p.min_depth_spread:g}):"
+            " a rotation and a baseline-direction change are confounded (near-nadir view of flat ground)"
+        )
+    elif info["sigma_rel_rot_deg"] > p.max_rel_rot_sd_deg:
+        reason = (
+            f"the images do not pin down the relative rotation (posterior sd {info['sigma_rel_rot_deg']:.2f} deg"
+            f" > {p.max_rel_rot_sd_deg:g}): near-degenerate geometry"
+        )
+    elif not (C2[2] < C1[2] and L > 0):
+        reason = "refined geometry puts frame 2 above frame 1"
+    if reason:
+        return _fallback(pose1, pose2, info, reason, t0)
+    out1 = Pose(C1, s.R1, pose1.time_s)
+    out2 = Pose(C2, s.R2, pose2.time_s)
+    info.update(refined=True, reason="ok", wall_s=time.perf_counter() - t0[0], cpu_s=time.thread_time() - t0[1])
+    return PoseRefinement(out1, out2, True, info)
+
+
+def transfer_relative(ref: Pose, rel_from: Pose, rel_to: Pose) -> Pose:
+    """The pose that ``rel_to`` is relative to ``rel_from``, re-attached to ``ref``.
+
+    ``R = (R_to R_from^T) R_ref`` and ``C = C_ref + R_ref^T R_from (C_to - C_from)``: the relative
+    rotation and the baseline in the first camera's frame are kept (the pair's geometry), the
+    reference frame's pose is replaced. Used to make every frame of a descent agree with one frame 0.
+    """
+    R = rel_to.R @ rel_from.R.T @ ref.R
+    C = ref.position + ref.R.T @ (rel_from.R @ (rel_to.position - rel_from.position))
+    return Pose(C, R, rel_to.time_s)
+
+
+def refine_descent(
+    images: Sequence[np.ndarray],
+    poses: Sequence[Pose],
+    camera: Camera,
+    *,
+    altimeter_m: Sequence[float] | None = None,
+    params: RefineParams | None = None,
+) -> tuple[list[Pose], dict[str, Any]]:
+    """Refine 2-16 descent frames against frame 0; returns the poses and the telemetry.
+
+    The widest pair (frames 0 and -1) is refined first (:func:`refine_pair`) and fixes frame 0's
+    pose; every other frame k is refined with frame 0 and its relative pose re-attached to that
+    frame 0 (:func:`transfer_relative`). A degenerate pair keeps its navigation relative pose
+    (re-attached the same way) and says why in ``info["frames"]``. ``info`` is the widest pair's
+    telemetry plus ``frames``: per frame k >= 1 ``refined``, ``reason``, ``inliers``,
+    ``relative_rotation_correction_deg``.
+    """
+    n = len(images)
+    if n < 2 or len(poses) != n:
+        raise FlightInputError(f"pose refinement: need 2-16 frames with one pose each, got {n} and {len(poses)}")
+    alt = [math.nan] * n if altimeter_m is None else [math.nan if a is None else float(a) for a in altimeter_m]
+    if len(alt) != n:
+        raise FlightInputError(f"pose refinement: altimeter_m has {len(alt)} entries for {n} frames")
+    wide = refine_pair(images[0], images[-1], poses[0], poses[-1], camera, altimeter_m=(alt[0], alt[-1]), params=params)
+    out = [wide.pose1] + [poses[k] for k in range(1, n - 1)] + [wide.pose2]
+    info = dict(wide.info)
+
+    def summary(r: PoseRefinement, k: int) -> dict[str, Any]:
+        return {
+            "frame": k,
+            "refined": r.refined,
+            "reason": r.info.get("reason", ""),
+            "inliers": r.info.get("inliers", 0),
+            "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
+        }
+
+    frames = []
+    for k in range(1, n - 1):
+        r = refine_pair(images[0], images[k], poses[0], poses[k], camera, altimeter_m=(alt[0], alt[k]), params=params)
+        out[k] = transfer_relative(out[0], r.pose1, r.pose2)
+        frames.append(summary(r, k))
+    frames.append(summary(wide, n - 1))
+    info["frames"] = frames
+    return out, info

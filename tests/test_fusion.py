@@ -1,0 +1,266 @@
+"""Fusion over the descent (flight_sw.fusion): the hazard rule, resampling between cell sizes, bounds, sites."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flight_sw.fusion import (
+    FusionParams,
+    fuse,
+    fused_state,
+    logit_threshold,
+    overturn_margin,
+    resample,
+    result_logodds,
+    to_hazard_grid,
+)
+from flight_sw.mapping import HazardGrid
+from flight_sw.sites import select_safe_sites
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
+
+
+def grid_of(state: np.ndarray, psafe: np.ndarray, origin=(0.0, 0.0), cell=1.0, elevation=None) -> HazardGrid:
+    state = np.asarray(state, np.uint8)
+    ps = np.asarray(psafe, np.float32).copy()
+    ps[state == STATE_OUTSIDE] = np.nan
+    hz = np.where(state == STATE_SAFE, 0.05, 1.0).astype(np.float32)
+    hz[state == STATE_OUTSIDE] = np.nan
+    el = np.zeros(state.shape, np.float32) if elevation is None else np.asarray(elevation, np.float32)
+    return HazardGrid(hz, el, origin, cell, state, ps)
+
+
+def uniform(state: int, p: float, shape=(6, 6), **kw) -> HazardGrid:
+    return grid_of(np.full(shape, state, np.uint8), np.full(shape, p, np.float32), **kw)
+
+
+def test_one_hazard_needs_the_documented_evidence_to_be_overturned():
+    prm = FusionParams()
+    T, w = logit_threshold(prm.p_min), prm.weight
+    l_safe = math.log(0.99 / 0.01)  # the most one result can say for "safe" (l_max = logit(0.99))
+    assert prm.l_max == pytest.approx(l_safe, abs=1e-3)
+    need = math.ceil(overturn_margin(prm) / (w * prm.l_max) - 1e-9)  # 4 with the defaults (module doc)
+    assert need == 4
+    assert math.ceil(overturn_margin(prm, first=False) / (w * prm.l_max) - 1e-9) == 3
+    fm = fuse(None, uniform(STATE_UNSAFE, 0.0), prm)
+    assert np.all(fused_state(fm, prm)[0] == STATE_UNSAFE)
+    for k in range(1, need + 1):
+        fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)  # clipped to l_max: as confident as a result can be
+        st, ps = fused_state(fm, prm)
+        if k < need:
+            assert np.all(st != STATE_SAFE), f"one hazard overturned by only {k} later results"
+        else:
+            assert np.all(st == STATE_SAFE)
+    # a hazard seen three times needs more than four
+    fm = fuse(fuse(fuse(None, uniform(STATE_UNSAFE, 0.0), prm), uniform(STATE_UNSAFE, 0.0), prm), uniform(1, 0), prm)
+    for _ in range(need):
+        fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)
+    assert np.all(fused_state(fm, prm)[0] != STATE_SAFE)
+    assert math.isclose(T, math.log(9.0))
+
+
+def test_fused_safe_cells_respect_the_rule_on_random_sequences():
+    """Property: a fused-safe cell that any result called unsafe got at least overturn_margin from the others."""
+    rng = np.random.default_rng(7)
+    prm = FusionParams()
+    for trial in range(40):
+        n = int(rng.integers(2, 7))
+        shape = (9, 11)
+        grids, logs = [], []
+        for _ in range(n):
+            st = rng.choice(
+                [STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE], size=shape, p=[0.55, 0.1, 0.25, 0.1]
+            )
+            ps = np.where(st == STATE_SAFE, rng.uniform(0.9, 1.0, shape), rng.uniform(0.0, 0.9, shape))
+            ps = np.where(st == STATE_UNSAFE, 0.0, ps)
+            g = grid_of(st, ps)
+            grids.append(g)
+            logs.append(result_logodds(g, prm))
+        fm = None
+        for g in grids:
+            fm = fuse(fm, g, prm)
+        assert fm is not None
+        st, _ = fused_state(fm, prm)
+        L = np.stack(logs)  # NaN: the result did not map the cell
+        mapped = np.isfinite(L)
+        first = mapped & (np.cumsum(mapped, axis=0) == 1)  # the first result to map each cell enters whole
+        W = np.where(first, 1.0, prm.weight)
+        calls = np.stack([g.state for g in grids]) == STATE_UNSAFE
+        unsafe_calls = calls.sum(axis=0)
+        others = np.nansum(np.where(calls, np.nan, W * L), axis=0)
+        first_unsafe = np.any(first & calls, axis=0)
+        flagged = (st == STATE_SAFE) & (unsafe_calls > 0)
+        for i, j in zip(*np.nonzero(flagged)):
+            need = overturn_margin(prm, int(unsafe_calls[i, j]), bool(first_unsafe[i, j]))
+            assert others[i, j] >= need - 1e-4, (trial, i, j)
+        # and the unseen cells stay outside, the seen ones do not
+        seen = np.any(np.stack([g.state for g in grids]) != STATE_OUTSIDE, axis=0)
+        assert np.array_equal(st == STATE_OUTSIDE, ~seen)
+
+
+def test_newest_result_wins_would_fail_the_rule():
+    """The rule test is able to fail: a 'newest result replaces the map' fusion breaks it at once."""
+    prm = FusionParams()
+    fm = fuse(None, uniform(STATE_UNSAFE, 0.0), prm)
+    fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)
+    assert np.all(fused_state(fm, prm)[0] != STATE_SAFE)  # fused: the hazard holds
+    newest_only = fuse(None, uniform(STATE_SAFE, 0.999), prm)
+    assert np.all(fused_state(newest_only, prm)[0] == STATE_SAFE)  # what 'newest wins' would report
+
+
+def test_resampling_is_conservative_both_ways():
+    # coarse (2 m) result with one unsafe cell -> onto a fine (0.5 m) map: all four by four children unsafe
+    st = np.full((4, 4), STATE_SAFE, np.uint8)
+    st[1, 2] = STATE_UNSAFE
+    coarse = grid_of(st, np.where(st == STATE_SAFE, 0.99, 0.0), origin=(0.0, 0.0), cell=2.0)
+    # fine cell centres never fall on a coarse cell's edge: the newest (fine) grid is the map's grid
+    fine = uniform(STATE_SAFE, 0.99, shape=(14, 14), origin=(-0.25, 0.25), cell=0.5)
+    prm = FusionParams()
+    fm = fuse(fuse(None, coarse, prm), fine, prm)
+    assert fm.cell_m == pytest.approx(0.5)
+    s, _ = fused_state(fm, prm)
+    X = fm.origin_xy[0] + np.arange(fm.shape[1]) * fm.cell_m
+    Y = fm.origin_xy[1] - np.arange(fm.shape[0]) * fm.cell_m
+    inside = (np.abs(X[None, :] - 4.0) < 1.0) & (np.abs(Y[:, None] + 2.0) < 1.0)  # the unsafe coarse cell
+    assert inside.sum() == 16 and np.all(s[inside] != STATE_SAFE)
+    assert np.all(s[~inside & (s != STATE_OUTSIDE)] == STATE_SAFE)
+    # the union extent at the finer cell holds both grids
+    fu = fuse(fuse(None, coarse, FusionParams(extent="union")), fine, FusionParams(extent="union"))
+    assert fu.cell_m == pytest.approx(0.5) and fu.shape[0] * fu.cell_m >= 7.0
+    # fine -> coarse: one unsafe fine cell makes its coarse cell the minimum
+    v = np.full((8, 8), 3.0, np.float32)
+    v[5, 5] = -9.0  # centre (2.5, -2.5): in coarse cell [1, 1] (centre (2, -2))
+    out = resample(v, (0.0, 0.0), 0.5, (0.0, 0.0), 2.0, (2, 2))
+    assert out[1, 1] == -9.0 and out[0, 0] == 3.0 and out[0, 1] == 3.0
+    assert np.isnan(resample(v, (100.0, 0.0), 0.5, (0.0, 0.0), 2.0, (2, 2))).all()  # no overlap: no value
+
+
+def test_map_follows_the_newest_grid_and_is_bounded():
+    prm = FusionParams()  # extent = newest
+    a = uniform(STATE_UNSAFE, 0.0, shape=(10, 10), origin=(0.0, 0.0), cell=1.0)
+    b = uniform(STATE_SAFE, 0.999, shape=(10, 10), origin=(5.0, 0.0), cell=1.0)  # half overlaps a
+    fm = fuse(fuse(None, a, prm), b, prm)
+    assert fm.shape == (10, 10) and fm.origin_xy == (5.0, 0.0)
+    s, _ = fused_state(fm, prm)
+    assert np.all(s[:, :5] != STATE_SAFE) and np.all(s[:, 5:] == STATE_SAFE)  # a's hazard kept where a saw it
+    big = uniform(STATE_SAFE, 0.99, shape=(300, 300), cell=0.1)
+    fm = fuse(None, big, FusionParams(max_cells=10_000))
+    assert fm.logodds.size <= 10_000 and fm.cell_m > 0.1
+    with pytest.raises(ValueError, match="extent"):
+        fuse(None, a, FusionParams(extent="all"))
+
+
+def test_sites_on_the_fused_map_and_unknown_adds_nothing():
+    prm = FusionParams()
+    st = np.full((40, 40), STATE_SAFE, np.uint8)
+    st[:, :8] = STATE_UNSAFE
+    g = grid_of(st, np.where(st == STATE_SAFE, 0.99, 0.0), origin=(-20.0, 20.0), cell=1.0)
+    fm = fuse(None, g, prm)
+    fm = fuse(fm, uniform(STATE_UNKNOWN, 0.5, shape=(40, 40), origin=(-20.0, 20.0), cell=1.0), prm)
+    hg = to_hazard_grid(fm, prm)
+    assert np.array_equal(hg.state, fused_state(fuse(None, g, prm), prm)[0])  # an empty result changes nothing
+    assert np.all(hg.hazard[hg.state == STATE_UNSAFE] == 1.0) and np.all(hg.hazard[hg.state == STATE_SAFE] < 1.0)
+    sites, reason = select_safe_sites(hg, 3.0, (0.0, 0.0), 3, 0.5)
+    assert sites and reason == ""
+    for s in sites:
+        assert s.x > -20.0 + 8 + 1.5  # clear of the unsafe strip
+
+
+class _Link:
+    """Collects what the flight process sends."""
+
+    def __init__(self) -> None:
+        self.sent: list = []
+
+    def send(self, msg) -> None:
+        self.sent.append(msg)
+
+    def flush(self, timeout: float | None = None) -> bool:  # everything is handed over at once
+        return True
+
+    def stats(self) -> dict:
+        return {"bytes_sent": 0}
+
+
+def _frames(pair_id: str, seq0: int, cam_pose_img: list) -> list:
+    from protocol.messages import Frame
+
+    return [
+        Frame(
+            seq=seq0 + k,
+            capture_time_s=float(k),
+            position_m=tuple(float(v) for v in pose.position),
+            R_world_to_cam=np.asarray(pose.R, "<f8"),
+            altimeter_m=float("nan"),
+            image=img,
+            pair_id=pair_id,
+            frame_index=k,
+        )
+        for k, (pose, img) in enumerate(cam_pose_img)
+    ]
+
+
+@pytest.mark.slow
+def test_flight_process_reports_the_fused_map(monkeypatch):
+    """Two pairs of a descent: the second Result is the fused map (the first pair's hazards kept), not the pair."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
+
+    from flight_sw.flight_main import FaultPlan, FlightProcess
+    from flight_sw.pipeline import run_pipeline
+    from protocol.grids import psafe_from_wire
+    from protocol.messages import Config, Result, Telemetry
+    from protocol.pairdir import Pose
+
+    cam = camera_fov30(128)
+    alts = (200.0, 100.0, 150.0, 75.0)
+    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in alts]
+    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 21)
+    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    results = {}
+    for fusion in (1, 0):
+        link = _Link()
+        fp = FlightProcess(link, FaultPlan())
+        fp.handle(
+            Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast", options={"fusion": fusion})
+        )
+        for i, (a, b) in enumerate(((0, 1), (2, 3))):
+            for f in _frames(f"p{i}", 10 * i, [(poses[a], imgs[a]), (poses[b], imgs[b])]):
+                fp.handle(f)
+        res = [m for m in link.sent if isinstance(m, Result)]
+        tel = [m for m in link.sent if isinstance(m, Telemetry)]
+        assert len(res) == 2 and len(tel) == 2, [type(m).__name__ for m in link.sent]
+        results[fusion] = (res, tel)
+    (fused1, fused2), tel = results[1]
+    (alone1, alone2), _ = results[0]
+    # first pair: fusing into an empty map gives the pair's own states back
+    assert np.array_equal(fused1.state_grid, alone1.state_grid)
+    # second pair: the map is on the second pair's grid, and it differs from that pair alone
+    assert fused2.state_grid.shape == alone2.state_grid.shape and fused2.grid_origin_xy == alone2.grid_origin_xy
+    assert not np.array_equal(fused2.state_grid, alone2.state_grid)
+    assert "fusion" in tel[1].stages
+    # every cell the first pair called unsafe that the second maps is not safe in the fused map (one result
+    # cannot overturn a hazard, module doc)
+    g1 = run_pipeline(imgs[0], imgs[1], poses[0], poses[1], cam).grid
+    g2 = alone2
+    i2, j2 = np.mgrid[0 : g2.state_grid.shape[0], 0 : g2.state_grid.shape[1]]
+    X = g2.grid_origin_xy[0] + j2 * g2.grid_cell_m
+    Y = g2.grid_origin_xy[1] - i2 * g2.grid_cell_m
+    j1 = np.rint((X - g1.origin_xy[0]) / g1.cell_m).astype(int)
+    i1 = np.rint((g1.origin_xy[1] - Y) / g1.cell_m).astype(int)
+    on = (i1 >= 0) & (i1 < g1.state.shape[0]) & (j1 >= 0) & (j1 < g1.state.shape[1])
+    was_unsafe = np.zeros(on.shape, bool)
+    was_unsafe[on] = g1.state[i1[on], j1[on]] == STATE_UNSAFE
+    assert was_unsafe.sum() > 50
+    assert not np.any(fused2.state_grid[was_unsafe] == STATE_SAFE)
+    p = psafe_from_wire(fused2.psafe_grid)
+    assert np.all(p[fused2.state_grid == STATE_SAFE] >= 0.9 - 1 / 254)
+    for s in fused2.sites:  # sites stand on the fused map's known-safe ground
+        i = int(round((fused2.grid_origin_xy[1] - s.y) / fused2.grid_cell_m))
+        j = int(round((s.x - fused2.grid_origin_xy[0]) / fused2.grid_cell_m))
+        assert fused2.state_grid[i, j] == STATE_SAFE
