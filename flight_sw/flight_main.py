@@ -22,13 +22,14 @@ same Config re-sent after a link reconnection keeps it.
 
 Deadline planning (docs/hil.md): the deadline runs from the ground's last frame
 to the ground holding the whole Result, so the Result's own line time counts.
-The anytime pipeline gets ``arrival + deadline_s - expected result line time -
-output reserve`` in this process's clock: the line time from the Result's
-expected size (the largest Result's so far, or a prior from the camera and the grid
-steps for the first) and the rate ``Config.options["link_baud"]`` announces;
-the output reserve (encoding and handing over the Result) in emulated seconds,
-``OUTPUT_RESERVE_S x time_scale`` or the last pair's measured time if longer, plus
-``FUSION_RESERVE_S x time_scale`` for fusing and choosing sites when fusion is on.
+The anytime pipeline gets ``arrival + deadline_s - expected result line time``
+in this process's clock, and ``after_s`` (encoding and handing over the Result,
+``OUTPUT_RESERVE_S``, plus ``FUSION_RESERVE_S`` for fusing and choosing sites
+when fusion is on; unthrottled seconds) to reserve at the slowdown it measures,
+which at low duty cycles exceeds ``time_scale``. The line time comes from the
+Result's expected size (the largest Result's so far, or a prior from the camera
+and the grid steps for the first) and the rate ``Config.options["link_baud"]``
+announces; a longer measured output time of the last pair is kept back as well.
 
 ``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
 to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
@@ -76,7 +77,7 @@ DEFAULT_PSAFE_STEP = 1
 DEFAULT_FUSION = 1  # fusion (0/1): Results report the map fused over the descent
 # Fusing and choosing sites on the fused map happen after the pipeline returns: unthrottled seconds
 # (x time_scale) kept for them (a 400x400 grid: ~20 ms to fuse, ~10 ms for sites on this host)
-FUSION_RESERVE_S = 0.06
+FUSION_RESERVE_S = 0.03
 
 
 @dataclass
@@ -220,10 +221,10 @@ class FlightProcess:
         time_scale = float(cfg.options.get("time_scale", 1.0))
         fusion = bool(cfg.options.get("fusion", DEFAULT_FUSION))
         line_s = expected_line_s(self.expected_result_bytes(cfg), float(cfg.options.get("link_baud", 0)))
-        reserve_s = max(OUTPUT_RESERVE_S * time_scale, self.last_output_s)
-        if fusion:  # fusing and choosing sites on the fused map also follow the pipeline
-            reserve_s += FUSION_RESERVE_S * time_scale
-        deadline_at = pend.arrival + cfg.deadline_s - line_s - reserve_s
+        # what follows the pipeline, in unthrottled seconds: the pipeline reserves it at the slowdown it
+        # measures (which can exceed time_scale at low duty cycles); a longer last measurement counts too
+        after_s = OUTPUT_RESERVE_S + (FUSION_RESERVE_S if fusion else 0.0)  # fusing and sites on the fused map
+        deadline_at = pend.arrival + cfg.deadline_s - line_s - max(0.0, self.last_output_s - after_s * time_scale)
         try:
             res = run_pipeline(
                 np.asarray(upper.image),
@@ -236,6 +237,7 @@ class FlightProcess:
                 altimeter_m=float(upper.altimeter_m),  # NaN: no reading
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
                 time_scale=time_scale,
+                after_s=after_s,
             )
         except InputError as exc:
             self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))

@@ -79,6 +79,8 @@ LEVELS = ("image_only", "coarse", "full")
 # host, median of 3): a stage that cannot stop part-way starts only when its cost fits before the reserve.
 REF_PIXELS = 512 * 512
 WALL_CUE_S = 0.015  # shading wall cue (relative brightness at footprint scale)
+SHADOW_S = 0.014  # the whole shadow stage with the wall cue: the clock learns the real slowdown from it
+MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's 1 / CPU fraction
 ROCKS_S = 0.03  # Harris rock mask
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
@@ -373,14 +375,26 @@ class _Clock:
 
     deadline: float | None
     scale: float = 1.0
+    after: float = 0.0  # the caller's work after the pipeline returns, unthrottled s (reserved x scale)
+
+    def __post_init__(self) -> None:
+        self.base = self.scale
+
+    def learn(self, ref_cpu_s: float, wall_s: float) -> None:
+        """Raise ``scale`` to the slowdown a stage of known unthrottled cost really saw (at most
+        ``MAX_LEARNED_SCALE`` x the given one). At duty cycles of a few % every stop leaves the caches
+        cold, and a busy host steals time: the real slowdown can exceed 1 / CPU fraction by ~2x
+        (docs/BENCHMARKS.md, HIL latency per budget), and reserves planned with it would be too short."""
+        if ref_cpu_s > 0.005 and wall_s > 0:
+            self.scale = max(self.scale, min(wall_s / ref_cpu_s, MAX_LEARNED_SCALE * self.base))
 
     def before(self, reserve_s: float) -> float | None:
         """The time by which work must stop to leave ``reserve_s`` (unthrottled) for what follows."""
-        return None if self.deadline is None else self.deadline - reserve_s * self.scale
+        return None if self.deadline is None else self.deadline - (reserve_s + self.after) * self.scale
 
     def ok(self, reserve_s: float = 0.0) -> bool:
         """True while ``reserve_s`` (unthrottled) still fits before the deadline."""
-        return self.deadline is None or time.monotonic() + reserve_s * self.scale < self.deadline
+        return self.deadline is None or time.monotonic() + (reserve_s + self.after) * self.scale < self.deadline
 
 
 def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
@@ -413,6 +427,7 @@ def run_pipeline(
     deadline_at: float | None = None,
     altimeter_m: float | Sequence[float] | None = None,
     time_scale: float = 1.0,
+    after_s: float = 0.0,
 ) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
@@ -422,7 +437,10 @@ def run_pipeline(
     (``Pair.altimeter_m``: a per-frame sequence is accepted; NaN = none); the v2 flow centres
     its ground search on it. ``time_scale`` is the emulated processor's slowdown factor
     (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
-    are multiplied by it. With ``Params.refine_pose`` the poses are first refined from the
+    are multiplied by it (or by the slowdown the first stages really saw, if larger: ``_Clock.learn``).
+    ``after_s`` is the caller's own work after the pipeline returns (encoding, fusion), in
+    unthrottled seconds: it is reserved before the deadline at the same scale. With
+    ``Params.refine_pose`` the poses are first refined from the
     images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
     Raises :class:`FlightInputError` for bad arguments.
     """
@@ -436,6 +454,7 @@ def run_pipeline(
         deadline_at=deadline_at,
         altimeter_m=altimeter_m,
         time_scale=time_scale,
+        after_s=after_s,
     )
 
 
@@ -450,6 +469,7 @@ def run_pipeline_multi(
     deadline_at: float | None = None,
     altimeter_m: float | Sequence[float] | None = None,
     time_scale: float = 1.0,
+    after_s: float = 0.0,
 ) -> PipelineResult:
     """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
 
@@ -481,7 +501,9 @@ def run_pipeline_multi(
         alt_range = _altimeter(altimeter_m)
         alt_frames = _altimeter_frames(altimeter_m, len(images))
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
-        clock = _Clock(min(ends) if ends else None, float(time_scale))
+        if not (isinstance(after_s, (int, float)) and math.isfinite(after_s) and after_s >= 0):
+            raise FlightInputError(f"after_s must be a non-negative number of seconds, got {after_s!r}")
+        clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s))
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
         # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
@@ -489,6 +511,7 @@ def run_pipeline_multi(
         if clock.ok((p.mapping_reserve_s + REFINE_S * (len(images) - 1)) * px_scale):
             with _stage(timings, "pose_refine"):
                 poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
+            clock.learn(REFINE_S * (len(images) - 1) * px_scale, timings["pose_refine"]["wall_s"])
         else:
             pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
@@ -916,6 +939,8 @@ def _run_v2(
             wall = shading_mask(rho, p.shading_limit)
         elif p.shading_limit > 0:
             info["skipped"].append("wall_cue")
+    if "wall_cue" not in info["skipped"]:
+        clock.learn(SHADOW_S * px_scale, timings["shadow"]["wall_s"])
 
     with _stage(timings, "range"):
         if p.range_search:
