@@ -34,12 +34,20 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
 from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
 from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
-from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
+from .evidence import (
+    Evidence,
+    classify,
+    classify_calibrated,
+    footprint_mean,
+    grid_evidence,
+    weighted_plane_fit,
+    widen_unsafe,
+)
 from .gapfill import fill_small_gaps
 from .georef import backproject
 from .mapping import (
@@ -54,6 +62,9 @@ from .mapping import (
     three_state,
 )
 from .pose_refine import refine_descent
+from .psafe import WIDE_PX as PSAFE_WIDE_PX
+from .psafe import features as psafe_features
+from .psafe import load_model
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
@@ -160,6 +171,14 @@ class Params:
     multi_truncate: float = 0.0  # > 0: cap each frame's cost at this (cost units) before combining
     multi_extent: str = "widest"  # map where the widest pair sees ("widest") or where any frame does ("union")
     multi_sigma_gamma: float = 0.3  # sigma / I^(gamma/2), I = sum_f (parallax_f / widest)^2 over the frames seen
+    # "gaussian": P(safe) = Phi(..) Phi(..), safe at psafe_min (evidence.classify); "calibrated": the binned
+    # logistic model fitted on tuning seeds (psafe.py) and the FP-budget rule (safe while sum(1 - p) <= budget N)
+    psafe_model: str = "gaussian"
+    fp_budget: float = 0.005  # "calibrated": expected share of undetected hazards among the covered points
+    psafe_unsafe: float = 0.5  # "calibrated": unsafe below this P(safe), unknown between it and the call
+    call_slope_max: float = math.inf  # "calibrated": never call safe an estimated slope >= this x the limit
+    psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
+    keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -204,6 +223,14 @@ class Params:
             raise FlightInputError(f"params: multi_extent must be 'widest' or 'union', got {self.multi_extent!r}")
         if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
             raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
+        if self.psafe_model not in ("gaussian", "calibrated"):
+            raise FlightInputError(f"params: psafe_model must be 'gaussian' or 'calibrated', got {self.psafe_model!r}")
+        if not (math.isfinite(self.fp_budget) and 0 <= self.fp_budget <= 0.2):
+            raise FlightInputError(f"params: fp_budget must be in [0, 0.2], got {self.fp_budget!r}")
+        if not (self.call_slope_max > 0):
+            raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
+        if not (math.isfinite(self.psafe_unsafe) and 0 <= self.psafe_unsafe <= 1):
+            raise FlightInputError(f"params: psafe_unsafe must be in [0, 1], got {self.psafe_unsafe!r}")
         for name in (
             "sigma_temperature",
             "slope_sigma_gain",
@@ -324,6 +351,7 @@ class PipelineResult:
     state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))
     psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32 HxW P(safe), NaN outside
     sigma: np.ndarray | None = None  # float32 HxW elevation standard uncertainty (m), NaN where unknown
+    layers: dict[str, np.ndarray] = field(default_factory=dict)  # evidence features, when Params.keep_layers
 
     def __post_init__(self) -> None:
         if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
@@ -746,6 +774,24 @@ def _run_v1(
     )
 
 
+def _crop_box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
+    """Slices of the bounding box of ``mask`` grown by ``pad`` pixels (the whole array if it is empty)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    h, w = mask.shape
+    return (
+        slice(max(0, int(rows[0]) - pad), min(h, int(rows[-1]) + pad + 1)),
+        slice(max(0, int(cols[0]) - pad), min(w, int(cols[-1]) + pad + 1)),
+    )
+
+
+def _uncrop(a: np.ndarray, cs: tuple[slice, slice], shape: tuple[int, ...], fill: float = np.nan) -> np.ndarray:
+    out = np.full(shape, fill, a.dtype)
+    out[cs] = a
+    return out
+
+
 def _bounded_planes(
     camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float, step_px: float, n_min: int, n_max: int
 ) -> np.ndarray:
@@ -908,13 +954,18 @@ def _run_v2(
         else:
             dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)
-        if p.shading_limit > 0 and clock.ok(reserve + WALL_CUE_S * px_scale):
-            fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+        fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+        info["footprint_px"] = fp_px
+        calibrated = p.psafe_model == "calibrated"
+        rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
+        need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
+        if need_rho and clock.ok(reserve + WALL_CUE_S * px_scale):
             rho = relative_brightness(
                 i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
             )
-            wall = shading_mask(rho, p.shading_limit)
-        elif p.shading_limit > 0:
+            if p.shading_limit > 0 and not calibrated:  # the calibrated model weighs rho itself
+                wall = shading_mask(rho, p.shading_limit)
+        elif need_rho:
             info["skipped"].append("wall_cue")
 
     with _stage(timings, "range"):
@@ -1089,12 +1140,62 @@ def _run_v2(
             "k": p.sigma_k,
             "p_min": p.psafe_min,
         }
-        ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
-        if fit is not None:
-            gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+        layers: dict[str, np.ndarray] = {}
+        if calibrated or p.keep_layers:
+            # on the covered bounding box (+ the widest context window): same values, a quarter of the work
+            cs = _crop_box(covered, PSAFE_WIDE_PX // 2 + 1)
+            feats = psafe_features(
+                grad_img[cs],
+                gsig_img[cs],
+                rough_img[cs],
+                rho[cs],
+                cell,
+                fp_px,
+                slope_limit_deg=p.slope_limit_deg,
+                rough_limit_m=p.rough_limit_m,
+            )
+            if p.keep_layers:
+                layers = {k: _uncrop(v, cs, i1.shape) for k, v in feats.items()}
+                layers["dark"] = shadow
+        if calibrated:
+            # calibrated P(safe) per pixel and the FP-budget call (psafe.py); the grid takes the pixels' call
+            model = load_model(p.psafe_model_path or None)
+            ev_c = classify_calibrated(
+                model,
+                feats,
+                (shadow | (rocks if p.rocks_as_hazard else False))[cs],
+                covered[cs],
+                p.fp_budget,
+                p.psafe_min,
+                p.psafe_unsafe,
+                p.call_slope_max,
+            )
+            ev = Evidence(
+                _uncrop(ev_c.state, cs, i1.shape, STATE_OUTSIDE),
+                _uncrop(ev_c.psafe, cs, i1.shape),
+                _uncrop(ev_c.hazard, cs, i1.shape),
+            )
+            g_call = pull((ev.state == STATE_SAFE).astype(np.float32), gu, gv) > 0.999
+            g_ps = pull(np.nan_to_num(ev.psafe, nan=0.0), gu, gv)
+            g_bad = pull((ev.state == STATE_UNSAFE).astype(np.float32), gu, gv) > 0.5
+            gev = grid_evidence(
+                g_call,
+                g_bad,
+                g_ps,
+                g_cov,
+                fit.grad if fit is not None else None,
+                cell,
+                g_rough if fit is not None else None,
+                p.slope_limit_deg,
+                p.rough_limit_m,
+            )
         else:
-            nan_g = np.full(shape, np.nan, np.float32)
-            gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
+            ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
+            if fit is not None:
+                gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+            else:
+                nan_g = np.full(shape, np.nan, np.float32)
+                gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
         if p.hazard_margin_px > 0:
             ev = widen_unsafe(ev, p.hazard_margin_px)
             gev = widen_unsafe(gev, p.hazard_margin_px)
@@ -1135,4 +1236,5 @@ def _run_v2(
         ev.state,
         ev.psafe,
         np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
+        layers,
     )
