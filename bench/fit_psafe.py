@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown")
+FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
 
 
 def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
@@ -99,6 +99,10 @@ def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: flo
     return {"fp": fp, "cdi": tp + tn, "called": 100.0 * float(call.mean()), "p": p}
 
 
+def _med(x: list[float]) -> float:
+    return statistics.median(x) if x else math.nan
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
@@ -110,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--budgets", type=float, nargs="+", default=[0.003, 0.004, 0.005, 0.006])
-    ap.add_argument("--p-min", type=float, default=0.9)
-    ap.add_argument("--a-max", type=float, default=0.6, help="never call an estimated slope >= this x the limit")
+    ap.add_argument("--p-min", type=float, nargs="+", default=[0.9])
+    ap.add_argument(
+        "--a-max", type=float, nargs="+", default=[0.6], help="never call an estimated slope >= this x the limit"
+    )
     ap.add_argument("--reliability", action="store_true")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
     args = ap.parse_args(argv)
@@ -130,30 +136,33 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.cv or args.reliability:
         folds = [args.seeds[i :: args.folds] for i in range(args.folds)]
-        res: dict[float, list[dict[str, Any]]] = {b: [] for b in args.budgets}
+        res: dict[tuple[float, float, float], list[dict[str, Any]]] = {
+            (b, a, pm): [] for b in args.budgets for a in args.a_max for pm in args.p_min
+        }
         rel: list[tuple[float, np.ndarray, np.ndarray]] = []
         for fold in folds:
             model = fit_rows([r for r in rows if r["seed"] not in fold], args.per_pair, args.ridge)
             for r in rows:
                 if r["seed"] not in fold:
                     continue
-                for b in args.budgets:
-                    s = score(model, r, b, args.p_min, args.a_max)
-                    res[b].append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
+                for (b, a_max, pm), out in res.items():
+                    s = score(model, r, b, pm, a_max)
+                    out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
                 rel.append((float(r["fp_px"]), s["p"], r["safe"]))
         if args.cv:
             print(
-                "\n| FP budget | FP % worst / p90 / med | pairs > 1 % | worst pair "
+                "\n| FP budget | a_max | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair "
                 "| CDI % med (vertical / approach) | CDI min |"
             )
-            print("|---:|---|---:|---|---|---:|")
-            for b, rs in res.items():
+            print("|---:|---:|---:|---|---:|---|---|---:|")
+            for (b, a_max, pm), rs in res.items():
                 fps = [x["fp"] for x in rs]
                 worst = max(rs, key=lambda x: x["fp"])
-                cv = statistics.median(x["cdi"] for x in rs if x["case"] == "vertical")
-                ca = statistics.median(x["cdi"] for x in rs if x["case"] == "approach")
+                cv = _med([x["cdi"] for x in rs if x["case"] == "vertical"])
+                ca = _med([x["cdi"] for x in rs if x["case"] == "approach"])
                 print(
-                    f"| {100 * b:.2f} % | {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
+                    f"| {100 * b:.2f} % | {a_max:g} | {pm:g} "
+                    f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
                     f"| {statistics.median(x['cdi'] for x in rs):.1f} ({cv:.1f} / {ca:.1f}) "
                     f"| {min(x['cdi'] for x in rs):.1f} |"

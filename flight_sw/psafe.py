@@ -25,7 +25,11 @@ with, per point (image pixel of i1, computed by :func:`features`):
 * context - the prior where the evidence at the point is weak: ``nbad`` / ``nbad_w`` the share
   of *confidently unsafe* points (``a - 2u > 1``) within ~3 footprints / 31 px, ``nwall`` /
   ``nwall_w`` the share of strong shading (``|rho| > 0.1``) there, ``amean`` the local mean
-  slope ratio and ``nknown`` the share of points with an elevation. A point with no elevation
+  slope ratio and ``nknown`` the share of points with an elevation; ``scale`` = log2 of the
+  lander footprint in pixels (the same for the whole image: it lets the prior and the
+  calibration differ between a 30 px and a 1 px footprint); ``gbad`` the share of confidently
+  unsafe points over the whole image (a scene prior: a crater field is riskier everywhere,
+  also where the evidence at the point looks clean). A point with no elevation
   therefore gets ``b + w_nodem + context`` - a calibrated prior from its surroundings, not
   "unknown".
 
@@ -71,8 +75,10 @@ DEFAULT_EDGES: dict[str, tuple[float, ...]] = {
     "nwall_w": (0.1, 0.2, 0.3, 0.4),
     "amean": (0.3, 0.5, 0.7, 1.0, 1.5),
     "nknown": (0.3, 0.6, 0.9),
+    "scale": (0.0, 1.0, 2.0, 3.0, 4.0),
+    "gbad": (0.005, 0.01, 0.02, 0.04, 0.08),
 }
-ADDITIVE = ("rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown")
+ADDITIVE = ("rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
 MONOTONE_DECREASING = ("rough", "nbad", "nbad_w")
 WIDE_PX = 31  # the wide context window (i1 pixels)
 WALL_RHO = 0.1  # |rho| above this counts as strong shading in the context features
@@ -124,6 +130,8 @@ def features(
         "nwall_w": _bmean(wall, WIDE_PX),
         "amean": amean,
         "nknown": c,
+        "scale": np.full(a.shape, math.log2(max(float(footprint_px), 1e-3)), np.float32),
+        "gbad": np.full(a.shape, float(bad[known].mean()) if known.any() else np.nan, np.float32),
     }
 
 
