@@ -308,13 +308,17 @@ PRESETS: dict[str, Params] = {
         wide_slope_factor=3.0,
         rough_sigma_gain=0.15,
         sigma_k=2.0,
-        psafe_min=0.9,
         max_planes=48,
         # 1.5 m of known-safe ground around the footprint: on the tuning crater descents (seeds 0-1) the
         # 0.5 m margin offered 2 of 6 top sites on terraced wall steps at the edge of the map
         site_margin_m=1.5,
         # relative pose refinement before the sweep (issue #10; docs/benchmarks/pose.md)
         refine_pose=True,
+        # calibrated P(safe) and the FP-budget call (psafe.py; bench/fit_psafe.py on tuning seeds 0-9)
+        psafe_model="calibrated",
+        fp_budget=0.004,
+        psafe_min=0.97,
+        call_slope_max=0.4,
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,
@@ -322,6 +326,15 @@ PRESETS: dict[str, Params] = {
         name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False, coarse_to_fine=False
     ),
 }
+# flight v2 as merged for issue 9 (Gaussian P(safe), safe at P >= 0.9), kept for comparison
+PRESETS["fast_gaussian"] = dataclasses.replace(
+    PRESETS["fast"],
+    name="fast_gaussian",
+    psafe_model="gaussian",
+    psafe_min=0.9,
+    fp_budget=0.005,
+    call_slope_max=math.inf,
+)
 
 # fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
 PRESETS["fast_unrefined"] = dataclasses.replace(PRESETS["fast"], name="fast_unrefined", refine_pose=False)
