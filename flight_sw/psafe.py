@@ -43,8 +43,11 @@ expected undetected-hazard share ``E[FP] = sum_{i in S} (1 - p_i) / N`` (N cover
 expected true positives ``sum_{i in S} p_i``; for a budget ``B`` on the first the second is
 maximised by taking points in decreasing ``p`` while ``sum (1 - p) <= B N``
 (:func:`budget_rule`). The rule adapts per image: on easy ground it calls almost everything,
-on a crater field it stops early. A floor ``p >= p_min`` is kept as well. ``B`` is chosen on
-tuning seeds so that the *worst* pair stays under 1 % (docs/benchmarks/pipeline.md).
+on a crater field it stops early. A floor ``p >= p_min`` is kept as well. ``B``, the floor
+and a slope cap (:func:`flight_sw.evidence.classify_calibrated`) are chosen by
+cross-validation over the tuning seeds, worst pair first (``bench/fit_psafe.py --cv``). The
+rule is only as good as the calibration: on a scene where the DEM misses hazards the model is
+confidently wrong and the budget does not bound that scene's FP (docs/benchmarks/pipeline.md).
 """
 
 from __future__ import annotations
