@@ -48,6 +48,7 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
     d["dark"] = res.layers["dark"][cov]
     d["safe"] = pair.truth["hazard"][cov] < 1.0
     d["fp_px"] = np.float32(res.info["footprint_px"])
+    d["shape"] = np.asarray(cov.shape)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **d)
     return d
@@ -62,6 +63,10 @@ def load_all(seeds: list[int], cases: list[str], cache: Path, layers: Path) -> l
             for e in render_case(c, s, cache):
                 name = f"{c}_s{s}_{e['altitude_m']}"
                 d = pair_layers(e["pair_dir"], layers / f"{name}.npz")
+                if "shape" not in d:
+                    from protocol.pairdir import read_pair
+
+                    d["shape"] = np.asarray(read_pair(e["pair_dir"]).images[0].shape[:2])
                 rows.append({"name": name, "case": c, "seed": s, "alt": e["altitude_m"], **d})
     return rows
 
@@ -78,7 +83,14 @@ def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: 
             v.append(r[k][idx])
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     seeds = sorted({int(r["seed"]) for r in rows})
-    info = {"pairs": len(rows), "points": int(cat["safe"].size), "per_pair": per_pair, "ridge": ridge}
+    sizes = sorted({tuple(int(x) for x in r["shape"]) for r in rows})
+    info = {
+        "pairs": len(rows),
+        "points": int(cat["safe"].size),
+        "per_pair": per_pair,
+        "ridge": ridge,
+        "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
+    }
     return psafe.fit({k: cat[k] for k in FEATS}, cat["safe"], seeds, ridge=ridge, info=info)
 
 

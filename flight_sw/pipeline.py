@@ -970,6 +970,11 @@ def _run_v2(
         fp_px = p.footprint_m / _centre_gsd(camera, pose1)
         info["footprint_px"] = fp_px
         calibrated = p.psafe_model == "calibrated"
+        if calibrated and not load_model(p.psafe_model_path or None).fits_image(i1.shape):
+            # outside the image size it was fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
+            # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
+            calibrated = False
+            info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         if need_rho and clock.ok(reserve + WALL_CUE_S * px_scale):

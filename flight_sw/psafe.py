@@ -172,6 +172,12 @@ class PsafeModel:
             z += np.where(ok, w[i], np.float32(0.0))
         return z
 
+    def fits_image(self, shape: tuple[int, ...]) -> bool:
+        """True when the model was fitted on images of this (rows, cols) size (``info["image_px"]``, a list of
+        [rows, cols]); a model without the record is taken to fit any size."""
+        sizes = self.info.get("image_px")
+        return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+
     def predict(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None) -> np.ndarray:
         """P(safe) (float32) at the points of ``mask`` (1-D), or over the whole array when ``mask`` is None."""
         z = self.logit(feats, mask)

@@ -90,3 +90,19 @@ def test_fp_budget_holds_on_a_held_out_pair_and_calls_more_safe_ground():
     fp, tp = out["calibrated"]
     assert fp <= 1.0
     assert tp > out["gaussian"][1] + 20.0  # the Gaussian model leaves most of this pair unknown
+
+
+def test_other_image_sizes_fall_back_to_the_gaussian_rule():
+    """The model is fitted on 512 px images; on a 128 px camera its calibration does not hold (FP 1.6-5 %)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import make_pair, plane
+
+    cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(-2.0), seed=3)
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
+    assert "128x128" in res.info["psafe_fallback"]
+    assert load_model().fits_image((512, 512)) and not load_model().fits_image((128, 128))
+    safe = res.state == STATE_SAFE
+    assert np.all(res.psafe[safe] >= PRESETS["fast"].psafe_min)
