@@ -83,6 +83,17 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     c0 = time.thread_time()
     res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=preset)
     cpu = time.thread_time() - c0
+    causes: dict[str, float] = {}
+    if preset.dem == "sgm":  # the same pixels again, keeping the evidence layers (not timed)
+        lay = run_pipeline(
+            pair.images[0],
+            pair.images[-1],
+            pair.poses[0],
+            pair.poses[-1],
+            pair.camera,
+            preset=dataclasses.replace(preset, keep_layers=True),
+        )
+        causes = error_causes(lay.layers, lay.state, lay.elevation, pair.truth["hazard"], res.covered)
     tz = pair.truth["elevation"].astype(np.float32)
     radius = _site_radius_px(pair.camera, pair.truth["depth"], res.covered)
     est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": None, "roughness_m": None}
@@ -107,7 +118,79 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
         "no_site": res.info.get("no_site_reason", ""),
         "cpu_s": cpu,
         "level": res.level,
+        **causes,
     }
+
+
+# why a pixel is where it is, in priority order (the first that applies); see error_causes
+CAUSES = ("shadow", "no_dem", "over_limit", "uncertain", "near_limit", "shading", "other")
+
+
+def error_causes(
+    layers: dict[str, np.ndarray],
+    state: np.ndarray,
+    elevation: np.ndarray,
+    hazard_true: np.ndarray,
+    covered: np.ndarray,
+) -> dict[str, float]:
+    """FN and FP pixels (% of the covered pixels) by the first cause that applies:
+
+    ``shadow`` dark-shadow cue; ``no_dem`` no elevation; ``over_limit`` estimated slope or
+    roughness over its limit (a >= 1 or rough >= 1); ``uncertain`` slope uncertainty >= the
+    limit (u >= 1); ``near_limit`` estimated slope 0.6-1x the limit; ``shading`` strong shading
+    at or around the pixel (|rho| > 0.1 or > 20 % of the 3-footprint neighbourhood); ``other``
+    (the call ran out of budget / P(safe) too low for none of the above). For FP the same
+    classes say what the evidence looked like where a hazard was called safe.
+    """
+    cov = np.asarray(covered, bool)
+    n = max(1, int(cov.sum()))
+    th = np.asarray(hazard_true)[cov] >= 1.0
+    called = np.asarray(state)[cov] == 0
+    g = {k: np.asarray(v)[cov] for k, v in layers.items()}
+    nodem = ~np.isfinite(np.asarray(elevation)[cov]) | ~np.isfinite(g["a"])
+    with np.errstate(invalid="ignore"):
+        cls = [
+            g["dark"].astype(bool),
+            nodem,
+            (g["a"] >= 1.0) | (g["rough"] >= 1.0),
+            g["u"] >= 1.0,
+            g["a"] >= 0.6,
+            (np.abs(g["rho"]) > 0.1) | (g["nwall"] > 0.2),
+            np.ones(th.shape, bool),
+        ]
+    left = np.ones(th.shape, bool)
+    out: dict[str, float] = {}
+    for name, c in zip(CAUSES, cls, strict=True):
+        m = c & left
+        left &= ~m
+        out[f"fn_{name}"] = 100.0 * float((m & ~called & ~th).sum()) / n
+        out[f"fp_{name}"] = 100.0 * float((m & called & th).sum()) / n
+    return out
+
+
+def causes_table(rows: list[dict[str, Any]], title: str) -> str:
+    """Median FN share per cause (and the FP share per cause, summed over pairs / pairs) per (case, altitude)."""
+    if not rows or "fn_other" not in rows[0]:
+        return ""
+    out = [
+        f"\n### {title}\n",
+        "FN (truly safe, not called safe) by cause, median % of the covered pixels; FP column: mean FP % by cause "
+        "(the largest two)\n",
+        "| case | alt m | FN % | " + " | ".join(CAUSES) + " | FP % mean: where |",
+        "|---|---:|---:|" + "---:|" * len(CAUSES) + "---|",
+    ]
+    keys = sorted({(r["case"], r["altitude_m"]) for r in rows}, key=lambda k: (list(CASES).index(k[0]), k[1]))
+    for case, alt in keys:
+        rs = [r for r in rows if r["case"] == case and r["altitude_m"] == alt]
+        fpc = sorted(((statistics.mean(r[f"fp_{c}"] for r in rs), c) for c in CAUSES), reverse=True)[:2]
+        out.append(
+            f"| {case} | {alt} | {_med([r['fn'] for r in rs]):.1f} | "
+            + " | ".join(f"{_med([r[f'fn_{c}'] for r in rs]):.1f}" for c in CAUSES)
+            + f" | {statistics.mean(r['fp'] for r in rs):.2f}: "
+            + ", ".join(f"{c} {v:.2f}" for v, c in fpc)
+            + " |"
+        )
+    return "\n".join(out)
 
 
 def _thesis_dem() -> dict[tuple[str, int], float]:
@@ -217,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
+    ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
     args = ap.parse_args(argv)
 
     import cv2
@@ -251,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append({**e, **r})
         all_rows[name] = rows
         print(table(rows, f"{name} - seeds {seeds}"), flush=True)
+        if args.causes:
+            print(causes_table(rows, f"{name} - where the FN and FP pixels are"), flush=True)
     if args.ablation:
         print("\n| variant | DEM valid % min / med | FP % med / worst | FN % med | CDI % med | top site safe | CPU s |")
         print("|---|---|---|---:|---:|---:|---:|")

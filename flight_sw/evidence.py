@@ -29,6 +29,7 @@ called safe when it is safe with probability ``p_min``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -36,6 +37,7 @@ import numpy as np
 
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
+from .psafe import PsafeModel, budget_rule
 from .slope import footprint_cells
 
 
@@ -215,3 +217,80 @@ def widen_unsafe(ev: Evidence, margin_px: float) -> Evidence:
     hazard = ev.hazard.copy()
     hazard[grow] = 1.0
     return Evidence(state, psafe, hazard)
+
+
+def classify_calibrated(
+    model: PsafeModel,
+    feats: Mapping[str, np.ndarray],
+    cues: np.ndarray,
+    covered: np.ndarray,
+    fp_budget: float,
+    p_min: float = 0.0,
+    p_unsafe: float = 0.5,
+    a_max: float = math.inf,
+) -> Evidence:
+    """Three states from the calibrated P(safe) (:mod:`flight_sw.psafe`) and the FP-budget rule.
+
+    ``P(safe)`` is the model's at every covered point and 0 on a hard cue (``cues``: dark shadow,
+    which is a hazard by definition). Safe = called by :func:`flight_sw.psafe.budget_rule` (in
+    decreasing P(safe) while the expected share of undetected hazards stays within ``fp_budget``
+    of the covered points, and ``P >= p_min``); a point whose estimated slope is ``>= a_max`` times
+    the limit is never called safe (SGM's smoothing flattens footprint-scale walls: a near-limit
+    estimate is where the undetected hazards concentrate on tuning pairs), nor is a point without an
+    elevation (its P(safe) is a prior from its surroundings; on the held-out deep crater, calling such
+    points safe put FP over 1 % at 200-300 m); unsafe = a cue or
+    ``P(safe) < p_unsafe`` (more likely a hazard than not, for ``p_unsafe = 0.5``); unknown otherwise.
+    The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
+    """
+    cov = np.asarray(covered, bool)
+    cue = np.asarray(cues, bool) & cov
+    p = model.predict(feats, cov)
+    p[cue[cov]] = 0.0
+    a = np.asarray(feats["a"], np.float32)[cov]
+    with np.errstate(invalid="ignore"):
+        barred = (a >= a_max) | ~np.isfinite(a)  # no elevation: the context alone never calls a point safe
+    call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
+    psafe = np.full(cov.shape, np.nan, np.float32)
+    psafe[cov] = p
+    state = np.full(cov.shape, STATE_OUTSIDE, np.uint8)
+    st = np.full(p.shape, STATE_UNKNOWN, np.uint8)
+    st[call] = STATE_SAFE
+    st[(p < p_unsafe) & ~call] = STATE_UNSAFE
+    state[cov] = st
+    with np.errstate(invalid="ignore"):
+        h = np.fmax(np.asarray(feats["a"], np.float32), np.asarray(feats["rough"], np.float32))
+    h = np.where(np.isfinite(h), np.clip(h, 0.0, 0.999), np.float32(0.0))
+    hazard = np.where(state == STATE_SAFE, h, np.float32(1.0)).astype(np.float32)
+    hazard[~cov] = np.nan
+    return Evidence(state, psafe, hazard)
+
+
+def grid_evidence(
+    called: np.ndarray,
+    unsafe: np.ndarray,
+    psafe: np.ndarray,
+    covered: np.ndarray,
+    grad: np.ndarray | None,
+    cell_m: float,
+    rough: np.ndarray | None,
+    slope_limit_deg: float = 15.0,
+    rough_limit_m: float = 0.30,
+) -> Evidence:
+    """Grid states from the image's call, pulled onto the grid: safe where every pixel read was called
+    safe (``called``), unsafe where most were unsafe; P(safe) is the pulled pixel probability."""
+    cov = np.asarray(covered, bool)
+    state = np.full(cov.shape, STATE_UNKNOWN, np.uint8)
+    state[np.asarray(unsafe, bool)] = STATE_UNSAFE
+    state[np.asarray(called, bool)] = STATE_SAFE
+    state[~cov] = STATE_OUTSIDE
+    ps = np.where(cov, np.asarray(psafe, np.float32), np.nan).astype(np.float32)
+    h = np.zeros(cov.shape, np.float32)
+    G = math.tan(math.radians(slope_limit_deg)) * float(cell_m)
+    with np.errstate(invalid="ignore"):
+        if grad is not None:
+            h = np.fmax(h, np.asarray(grad, np.float32) / np.float32(G))
+        if rough is not None:
+            h = np.fmax(h, np.asarray(rough, np.float32) / np.float32(rough_limit_m))
+    hazard = np.where(state == STATE_SAFE, np.clip(np.nan_to_num(h), 0.0, 0.999), np.float32(1.0)).astype(np.float32)
+    hazard[~cov] = np.nan
+    return Evidence(state, ps, hazard)

@@ -44,7 +44,7 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -292,9 +292,11 @@ class FlightProcess:
 
     def _fuse(self, res) -> tuple[HazardGrid, list[SiteResult], str | None]:
         """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it."""
-        self.fused = fuse(self.fused, res.grid, self.fusion_params)
-        grid = to_hazard_grid(self.fused, self.fusion_params)
         p = res.params
+        # the fused map calls safe at the pipeline's own P floor (fast: 0.97 with the calibrated call)
+        prm = replace(self.fusion_params, p_min=float(p.get("psafe_min", self.fusion_params.p_min)))
+        self.fused = fuse(self.fused, res.grid, prm)
+        grid = to_hazard_grid(self.fused, prm)
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))
         n_sites = int(p.get("n_sites", PRESETS["fast"].n_sites))
         margin = float(p.get("site_margin_m", PRESETS["fast"].site_margin_m))

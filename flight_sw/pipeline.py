@@ -34,12 +34,20 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.pairdir import STATE_UNKNOWN, Camera, Pose
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose
 
 from .confidence import elevation_uncertainty, reject_uncertain
 from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
 from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
-from .evidence import classify, footprint_mean, weighted_plane_fit, widen_unsafe
+from .evidence import (
+    Evidence,
+    classify,
+    classify_calibrated,
+    footprint_mean,
+    grid_evidence,
+    weighted_plane_fit,
+    widen_unsafe,
+)
 from .gapfill import fill_small_gaps
 from .georef import backproject
 from .mapping import (
@@ -54,6 +62,9 @@ from .mapping import (
     three_state,
 )
 from .pose_refine import refine_descent
+from .psafe import WIDE_PX as PSAFE_WIDE_PX
+from .psafe import features as psafe_features
+from .psafe import load_model
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
@@ -162,6 +173,14 @@ class Params:
     multi_truncate: float = 0.0  # > 0: cap each frame's cost at this (cost units) before combining
     multi_extent: str = "widest"  # map where the widest pair sees ("widest") or where any frame does ("union")
     multi_sigma_gamma: float = 0.3  # sigma / I^(gamma/2), I = sum_f (parallax_f / widest)^2 over the frames seen
+    # "gaussian": P(safe) = Phi(..) Phi(..), safe at psafe_min (evidence.classify); "calibrated": the binned
+    # logistic model fitted on tuning seeds (psafe.py) and the FP-budget rule (safe while sum(1 - p) <= budget N)
+    psafe_model: str = "gaussian"
+    fp_budget: float = 0.005  # "calibrated": expected share of undetected hazards among the covered points
+    psafe_unsafe: float = 0.5  # "calibrated": unsafe below this P(safe), unknown between it and the call
+    call_slope_max: float = math.inf  # "calibrated": never call safe an estimated slope >= this x the limit
+    psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
+    keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
     def validate(self) -> None:
         if self.half_window < 1 or self.coarse_half_window < 1:
@@ -206,6 +225,14 @@ class Params:
             raise FlightInputError(f"params: multi_extent must be 'widest' or 'union', got {self.multi_extent!r}")
         if not (0 <= self.psafe_min < 1 and self.sigma_k >= 0):
             raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
+        if self.psafe_model not in ("gaussian", "calibrated"):
+            raise FlightInputError(f"params: psafe_model must be 'gaussian' or 'calibrated', got {self.psafe_model!r}")
+        if not (math.isfinite(self.fp_budget) and 0 <= self.fp_budget <= 0.2):
+            raise FlightInputError(f"params: fp_budget must be in [0, 0.2], got {self.fp_budget!r}")
+        if not (self.call_slope_max > 0):
+            raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
+        if not (math.isfinite(self.psafe_unsafe) and 0 <= self.psafe_unsafe <= 1):
+            raise FlightInputError(f"params: psafe_unsafe must be in [0, 1], got {self.psafe_unsafe!r}")
         for name in (
             "sigma_temperature",
             "slope_sigma_gain",
@@ -283,13 +310,17 @@ PRESETS: dict[str, Params] = {
         wide_slope_factor=3.0,
         rough_sigma_gain=0.15,
         sigma_k=2.0,
-        psafe_min=0.9,
         max_planes=48,
         # 1.5 m of known-safe ground around the footprint: on the tuning crater descents (seeds 0-1) the
         # 0.5 m margin offered 2 of 6 top sites on terraced wall steps at the edge of the map
         site_margin_m=1.5,
         # relative pose refinement before the sweep (issue #10; docs/benchmarks/pose.md)
         refine_pose=True,
+        # calibrated P(safe) and the FP-budget call (psafe.py; bench/fit_psafe.py on tuning seeds 0-9)
+        psafe_model="calibrated",
+        fp_budget=0.004,
+        psafe_min=0.97,
+        call_slope_max=0.4,
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,
@@ -297,6 +328,15 @@ PRESETS: dict[str, Params] = {
         name="thesis", half_window=8, plane_spacing="dz", dz_m=0.15, prefilter=False, coarse_to_fine=False
     ),
 }
+# flight v2 as merged for issue 9 (Gaussian P(safe), safe at P >= 0.9), kept for comparison
+PRESETS["fast_gaussian"] = dataclasses.replace(
+    PRESETS["fast"],
+    name="fast_gaussian",
+    psafe_model="gaussian",
+    psafe_min=0.9,
+    fp_budget=0.005,
+    call_slope_max=math.inf,
+)
 
 # fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
 PRESETS["fast_unrefined"] = dataclasses.replace(PRESETS["fast"], name="fast_unrefined", refine_pose=False)
@@ -326,6 +366,7 @@ class PipelineResult:
     state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))
     psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32 HxW P(safe), NaN outside
     sigma: np.ndarray | None = None  # float32 HxW elevation standard uncertainty (m), NaN where unknown
+    layers: dict[str, np.ndarray] = field(default_factory=dict)  # evidence features, when Params.keep_layers
 
     def __post_init__(self) -> None:
         if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
@@ -769,6 +810,24 @@ def _run_v1(
     )
 
 
+def _crop_box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
+    """Slices of the bounding box of ``mask`` grown by ``pad`` pixels (the whole array if it is empty)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    h, w = mask.shape
+    return (
+        slice(max(0, int(rows[0]) - pad), min(h, int(rows[-1]) + pad + 1)),
+        slice(max(0, int(cols[0]) - pad), min(w, int(cols[-1]) + pad + 1)),
+    )
+
+
+def _uncrop(a: np.ndarray, cs: tuple[slice, slice], shape: tuple[int, ...], fill: float = np.nan) -> np.ndarray:
+    out = np.full(shape, fill, a.dtype)
+    out[cs] = a
+    return out
+
+
 def _bounded_planes(
     camera: Camera, pose1: Pose, pose2: Pose, z_lo: float, z_hi: float, step_px: float, n_min: int, n_max: int
 ) -> np.ndarray:
@@ -931,13 +990,23 @@ def _run_v2(
         else:
             dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)
-        if p.shading_limit > 0 and clock.ok(reserve + WALL_CUE_S * px_scale):
-            fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+        fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+        info["footprint_px"] = fp_px
+        calibrated = p.psafe_model == "calibrated"
+        if calibrated and not load_model(p.psafe_model_path or None).fits_image(i1.shape):
+            # outside the image size it was fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
+            # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
+            calibrated = False
+            info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
+        rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
+        need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
+        if need_rho and clock.ok(reserve + WALL_CUE_S * px_scale):
             rho = relative_brightness(
                 i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
             )
-            wall = shading_mask(rho, p.shading_limit)
-        elif p.shading_limit > 0:
+            if p.shading_limit > 0 and not calibrated:  # the calibrated model weighs rho itself
+                wall = shading_mask(rho, p.shading_limit)
+        elif need_rho:
             info["skipped"].append("wall_cue")
     if "wall_cue" not in info["skipped"]:
         clock.learn(SHADOW_S * px_scale, timings["shadow"]["wall_s"])
@@ -1114,12 +1183,62 @@ def _run_v2(
             "k": p.sigma_k,
             "p_min": p.psafe_min,
         }
-        ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
-        if fit is not None:
-            gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+        layers: dict[str, np.ndarray] = {}
+        if calibrated or p.keep_layers:
+            # on the covered bounding box (+ the widest context window): same values, a quarter of the work
+            cs = _crop_box(covered, PSAFE_WIDE_PX // 2 + 1)
+            feats = psafe_features(
+                grad_img[cs],
+                gsig_img[cs],
+                rough_img[cs],
+                rho[cs],
+                cell,
+                fp_px,
+                slope_limit_deg=p.slope_limit_deg,
+                rough_limit_m=p.rough_limit_m,
+            )
+            if p.keep_layers:
+                layers = {k: _uncrop(v, cs, i1.shape) for k, v in feats.items()}
+                layers["dark"] = shadow
+        if calibrated:
+            # calibrated P(safe) per pixel and the FP-budget call (psafe.py); the grid takes the pixels' call
+            model = load_model(p.psafe_model_path or None)
+            ev_c = classify_calibrated(
+                model,
+                feats,
+                (shadow | (rocks if p.rocks_as_hazard else False))[cs],
+                covered[cs],
+                p.fp_budget,
+                p.psafe_min,
+                p.psafe_unsafe,
+                p.call_slope_max,
+            )
+            ev = Evidence(
+                _uncrop(ev_c.state, cs, i1.shape, STATE_OUTSIDE),
+                _uncrop(ev_c.psafe, cs, i1.shape),
+                _uncrop(ev_c.hazard, cs, i1.shape),
+            )
+            g_call = pull((ev.state == STATE_SAFE).astype(np.float32), gu, gv) > 0.999
+            g_ps = pull(np.nan_to_num(ev.psafe, nan=0.0), gu, gv)
+            g_bad = pull((ev.state == STATE_UNSAFE).astype(np.float32), gu, gv) > 0.5
+            gev = grid_evidence(
+                g_call,
+                g_bad,
+                g_ps,
+                g_cov,
+                fit.grad if fit is not None else None,
+                cell,
+                g_rough if fit is not None else None,
+                p.slope_limit_deg,
+                p.rough_limit_m,
+            )
         else:
-            nan_g = np.full(shape, np.nan, np.float32)
-            gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
+            ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
+            if fit is not None:
+                gev = classify(fit.grad, g_gsig, g_rough, g_rsig, g_cue, g_cov, cell, **kw)
+            else:
+                nan_g = np.full(shape, np.nan, np.float32)
+                gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
         if p.hazard_margin_px > 0:
             ev = widen_unsafe(ev, p.hazard_margin_px)
             gev = widen_unsafe(gev, p.hazard_margin_px)
@@ -1160,4 +1279,5 @@ def _run_v2(
         ev.state,
         ev.psafe,
         np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
+        layers,
     )

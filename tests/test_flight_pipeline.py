@@ -16,7 +16,7 @@ from flight_sw.pipeline import PRESETS, Params, PipelineResult, run_pipeline
 from flight_sw.sweep import plane_homography  # noqa: F401  (part of the interface contract)
 from flight_sw.validate import FlightInputError
 from protocol.errors import InputError
-from protocol.pairdir import Pose
+from protocol.pairdir import STATE_UNSAFE, Pose
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +66,14 @@ def test_pipeline_measures_roof_slope(slope_deg):
     assert flank.sum() > 500
     assert np.median(res.slope_deg[flank]) == pytest.approx(slope_deg, abs=1.5)
     assert (res.slope_deg[flank] >= 15).mean() > 0.9 if slope_deg > 15 else (res.slope_deg[flank] >= 15).mean() < 0.05
-    unsafe = res.hazard[flank] >= 1
-    # 10 deg: the shading cue (the lit and the dark flank differ) and the 1 px keep-out margin
-    # still call part of the flank unsafe; it must stay far from "everything unsafe"
-    assert unsafe.mean() > 0.9 if slope_deg > 15 else unsafe.mean() < 0.7
+    unsafe = res.state[flank] == STATE_UNSAFE
+    if slope_deg > 15:
+        assert unsafe.mean() > 0.9 and (res.hazard[flank] >= 1).all()
+    else:
+        # 10 deg is safe by the 15 deg rule. At 192 px `fast` uses the Gaussian rule (the calibrated model is
+        # fitted for 512 px): the shading cue (lit and dark flanks differ) still calls part of the flank
+        # unsafe; it must stay far from "everything unsafe"
+        assert unsafe.mean() < 0.7
 
 
 def test_oblique_approach_pair():

@@ -1,0 +1,208 @@
+"""Fit the calibrated P(safe) model (flight_sw/psafe.py) on TUNING seeds; cross-validate it and the FP budget.
+
+    .venv/bin/python bench/fit_psafe.py --seeds 0 1 2 3 4 5 6 7 8 9 --cv --budgets 0.003 0.004 0.005
+    .venv/bin/python bench/fit_psafe.py --seeds 0 1 2 3 4 5 6 7 8 9 --write flight_sw/psafe_model.json
+
+Every pair of the given tuning seeds (cases ``vertical`` and ``approach``, rendered by
+``bench/eval_flight.py`` into ``--cache``) is run through the ``fast`` front end with
+``keep_layers``; the per-pixel features of the covered area and the truth (``gt_hazard < 1`` =
+safe) are kept in ``--layers`` (reused). Held-out seeds are refused. ``--cv`` fits on all seeds
+but one fold and scores the held-back fold with the FP-budget rule for each budget: the table
+gives the worst and median pixel FP and the median CDI per scenario (what the budget is chosen
+on). ``--reliability`` prints predicted vs observed P(safe) per footprint-size band.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
+
+
+def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
+    """Features (covered pixels, 1-D float32), dark-shadow cue, truth and footprint size of one pair (cached)."""
+    if out.is_file():
+        with np.load(out) as z:
+            return {k: z[k] for k in z.files}
+    from flight_sw.pipeline import PRESETS, run_pipeline
+    from protocol.pairdir import read_pair
+
+    pair = read_pair(pair_dir)
+    prm = dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True)
+    res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=prm)
+    cov = res.covered
+    d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in FEATS}
+    d["dark"] = res.layers["dark"][cov]
+    d["safe"] = pair.truth["hazard"][cov] < 1.0
+    d["fp_px"] = np.float32(res.info["footprint_px"])
+    d["shape"] = np.asarray(cov.shape)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, **d)
+    return d
+
+
+def load_all(seeds: list[int], cases: list[str], cache: Path, layers: Path) -> list[dict[str, Any]]:
+    from eval_flight import render_case
+
+    rows = []
+    for c in cases:
+        for s in seeds:
+            for e in render_case(c, s, cache):
+                name = f"{c}_s{s}_{e['altitude_m']}"
+                d = pair_layers(e["pair_dir"], layers / f"{name}.npz")
+                if "shape" not in d:
+                    from protocol.pairdir import read_pair
+
+                    d["shape"] = np.asarray(read_pair(e["pair_dir"]).images[0].shape[:2])
+                rows.append({"name": name, "case": c, "seed": s, "alt": e["altitude_m"], **d})
+    return rows
+
+
+def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: int = 0) -> Any:
+    from flight_sw import psafe
+
+    rng = np.random.default_rng(rng_seed)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in (*FEATS, "safe")}
+    for r in rows:
+        idx = np.flatnonzero(~r["dark"])  # dark shadow is a hard cue, not part of the model
+        idx = rng.choice(idx, min(idx.size, per_pair), replace=False)
+        for k, v in parts.items():
+            v.append(r[k][idx])
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    seeds = sorted({int(r["seed"]) for r in rows})
+    sizes = sorted({tuple(int(x) for x in r["shape"]) for r in rows})
+    info = {
+        "pairs": len(rows),
+        "points": int(cat["safe"].size),
+        "per_pair": per_pair,
+        "ridge": ridge,
+        "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
+    }
+    return psafe.fit({k: cat[k] for k in FEATS}, cat["safe"], seeds, ridge=ridge, info=info)
+
+
+def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: float) -> dict[str, Any]:
+    """The FP-budget call on one pair's covered points, as the pipeline makes it (evidence.classify_calibrated)."""
+    from flight_sw.psafe import budget_rule
+
+    p = model.predict({k: r[k] for k in FEATS}, np.ones(r["safe"].shape, bool))
+    p[r["dark"]] = 0.0
+    with np.errstate(invalid="ignore"):
+        barred = (r["a"] >= a_max) | ~np.isfinite(r["a"])
+    call = budget_rule(np.where(barred, np.nan, p), budget, p_min, n=p.size)
+    th = ~r["safe"]
+    n = max(1, th.size)
+    fp = 100.0 * float((call & th).sum()) / n
+    tp = 100.0 * float((call & ~th).sum()) / n
+    tn = 100.0 * float((~call & th).sum()) / n
+    return {"fp": fp, "cdi": tp + tn, "called": 100.0 * float(call.mean()), "p": p}
+
+
+def _med(x: list[float]) -> float:
+    return statistics.median(x) if x else math.nan
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    ap.add_argument("--cases", nargs="+", default=["vertical", "approach"])
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument("--layers", default="/tmp/flight_psafe_layers")
+    ap.add_argument("--per-pair", type=int, default=15000, help="points sampled per pair for the fit")
+    ap.add_argument("--ridge", type=float, default=1.0)
+    ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
+    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--budgets", type=float, nargs="+", default=[0.003, 0.004, 0.005, 0.006])
+    ap.add_argument("--p-min", type=float, nargs="+", default=[0.9])
+    ap.add_argument(
+        "--a-max", type=float, nargs="+", default=[0.6], help="never call an estimated slope >= this x the limit"
+    )
+    ap.add_argument("--reliability", action="store_true")
+    ap.add_argument("--write", help="fit on all the seeds and write the model here")
+    args = ap.parse_args(argv)
+
+    import cv2
+
+    cv2.setNumThreads(1)
+    from ground_sim.seeds import TUNING_SEEDS
+
+    bad = [s for s in args.seeds if s not in TUNING_SEEDS]
+    if bad:
+        print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
+        return 2
+    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers))
+    print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
+
+    if args.cv or args.reliability:
+        folds = [args.seeds[i :: args.folds] for i in range(args.folds)]
+        res: dict[tuple[float, float, float], list[dict[str, Any]]] = {
+            (b, a, pm): [] for b in args.budgets for a in args.a_max for pm in args.p_min
+        }
+        rel: list[tuple[float, np.ndarray, np.ndarray]] = []
+        for fold in folds:
+            model = fit_rows([r for r in rows if r["seed"] not in fold], args.per_pair, args.ridge)
+            for r in rows:
+                if r["seed"] not in fold:
+                    continue
+                for (b, a_max, pm), out in res.items():
+                    s = score(model, r, b, pm, a_max)
+                    out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
+                rel.append((float(r["fp_px"]), s["p"], r["safe"]))
+        if args.cv:
+            print(
+                "\n| FP budget | a_max | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair "
+                "| CDI % med (vertical / approach) | CDI min |"
+            )
+            print("|---:|---:|---:|---|---:|---|---|---:|")
+            for (b, a_max, pm), rs in res.items():
+                fps = [x["fp"] for x in rs]
+                worst = max(rs, key=lambda x: x["fp"])
+                cv = _med([x["cdi"] for x in rs if x["case"] == "vertical"])
+                ca = _med([x["cdi"] for x in rs if x["case"] == "approach"])
+                print(
+                    f"| {100 * b:.2f} % | {a_max:g} | {pm:g} "
+                    f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
+                    f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
+                    f"| {statistics.median(x['cdi'] for x in rs):.1f} ({cv:.1f} / {ca:.1f}) "
+                    f"| {min(x['cdi'] for x in rs):.1f} |"
+                )
+        if args.reliability:
+            print("\nReliability (cross-validated): observed safe share per predicted-P(safe) bin, by footprint size")
+            bins = [0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 1.0001]
+            print("| footprint px | " + " | ".join(f"{bins[i]:g}-{min(1, bins[i + 1]):g}" for i in range(8)) + " |")
+            print("|---|" + "---|" * 8)
+            for lo, hi in ((0, 1.5), (1.5, 4), (4, 12), (12, math.inf)):
+                sel = [(p, y) for f, p, y in rel if lo <= f < hi]
+                if not sel:
+                    continue
+                p = np.concatenate([s[0] for s in sel])
+                y = np.concatenate([s[1] for s in sel])
+                cells = []
+                for i in range(8):
+                    m = (p >= bins[i]) & (p < bins[i + 1])
+                    cells.append(f"{p[m].mean():.3f}/{y[m].mean():.3f}" if m.sum() > 200 else "-")
+                print(f"| {lo:g}-{hi:g} | " + " | ".join(cells) + " |")
+            print("(cells: mean predicted / observed safe share)")
+
+    if args.write:
+        model = fit_rows(rows, args.per_pair, args.ridge)
+        Path(args.write).write_text(json.dumps(model.to_json(), indent=1) + "\n")
+        print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

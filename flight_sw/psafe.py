@@ -1,0 +1,355 @@
+"""Calibrated P(safe) and the FP-budget decision rule (issue 9 follow-up: CDI without trading FP).
+
+**Why.** The Gaussian evidence model (:func:`flight_sw.evidence.classify`) computes
+``P(safe) = Phi((G - g) / sigma_g) Phi((0.30 - r) / sigma_r)``: a likelihood with a *flat* prior
+over the true slope. On ground_sim's tuning pairs that is badly calibrated: pixels whose
+estimated slope is below 0.4x the limit but whose slope uncertainty exceeds the limit (most
+pixels above ~300 m) are truly safe 99 % of the time, while the model gives them 0.5-0.8 and so
+leaves them "unknown". Real terrain is mostly flat, hazards cluster (crater walls), and image
+shading sees walls that the DEM smooths; the probability has to learn that.
+
+**Model.** A binned logistic additive model (a logistic GAM with piecewise-constant shape
+functions), fitted by ridge-regularised Newton/IRLS on ``ground_sim.seeds.TUNING_SEEDS`` only
+(``bench/fit_psafe.py``; the seeds it used are stored with the weights)::
+
+    logit P(safe | x) = b + w_nodem [no elevation]
+                          + T_au[bin(a), bin(u)]                  (elevation known)
+                          + sum_f w_f[bin(x_f)]                   (each other feature f)
+
+with, per point (image pixel of i1, computed by :func:`features`):
+
+* ``a = g / G`` the footprint slope over the limit, ``u = sigma_g / G`` its uncertainty
+  (2-D table: the posterior of "slope < limit" depends on both jointly);
+* ``rough = r / 0.30 m`` (roughness over its limit), ``rho`` the signed relative brightness
+  (:mod:`flight_sw.shading`) and ``arho`` its local mean magnitude;
+* context - the prior where the evidence at the point is weak: ``nbad`` / ``nbad_w`` the share
+  of *confidently unsafe* points (``a - 2u > 1``) within ~3 footprints / 31 px, ``nwall`` /
+  ``nwall_w`` the share of strong shading (``|rho| > 0.1``) there, ``amean`` the local mean
+  slope ratio and ``nknown`` the share of points with an elevation; ``scale`` = log2 of the
+  lander footprint in pixels (the same for the whole image: it lets the prior and the
+  calibration differ between a 30 px and a 1 px footprint); ``gbad`` the share of confidently
+  unsafe points over the whole image (a scene prior: a crater field is riskier everywhere,
+  also where the evidence at the point looks clean). A point with no elevation
+  therefore gets ``b + w_nodem + context`` - a calibrated prior from its surroundings, not
+  "unknown".
+
+Shape functions that physics says are monotone (``a`` within each ``u`` row, ``rough``,
+``nbad``, ``nbad_w``) are projected onto non-increasing sequences (pool-adjacent-violators
+weighted by bin counts) after the fit. Dark shadow stays a hard unsafe cue (it is a hazard by
+definition, DESIGN.md).
+
+**Decision (Neyman-Pearson style).** With calibrated ``p_i``, calling a set ``S`` safe has
+expected undetected-hazard share ``E[FP] = sum_{i in S} (1 - p_i) / N`` (N covered points), and
+expected true positives ``sum_{i in S} p_i``; for a budget ``B`` on the first the second is
+maximised by taking points in decreasing ``p`` while ``sum (1 - p) <= B N``
+(:func:`budget_rule`). The rule adapts per image: on easy ground it calls almost everything,
+on a crater field it stops early. A floor ``p >= p_min`` is kept as well. ``B``, the floor
+and a slope cap (:func:`flight_sw.evidence.classify_calibrated`) are chosen by
+cross-validation over the tuning seeds, worst pair first (``bench/fit_psafe.py --cv``). The
+rule is only as good as the calibration: on a scene where the DEM misses hazards the model is
+confidently wrong and the budget does not bound that scene's FP (docs/benchmarks/pipeline.md).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+MODEL_PATH = Path(__file__).with_name("psafe_model.json")
+
+# bin edges per feature (a value equal to an edge goes to the upper bin; NaN contributes nothing)
+DEFAULT_EDGES: dict[str, tuple[float, ...]] = {
+    "a": (0.2, 0.4, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 3.0),
+    "u": (0.1, 0.2, 0.3, 0.5, 0.8, 1.2, 2.0),
+    "rough": (0.25, 0.5, 0.75, 1.0, 1.5),
+    "rho": (-0.4, -0.25, -0.15, -0.1, -0.05, 0.05, 0.1, 0.15, 0.25, 0.4),
+    "arho": (0.03, 0.05, 0.08, 0.12, 0.2),
+    "nbad": (0.01, 0.05, 0.1, 0.2, 0.4),
+    "nbad_w": (0.01, 0.03, 0.07, 0.15),
+    "nwall": (0.05, 0.1, 0.2, 0.35, 0.5, 0.7),
+    "nwall_w": (0.1, 0.2, 0.3, 0.4),
+    "amean": (0.3, 0.5, 0.7, 1.0, 1.5),
+    "nknown": (0.3, 0.6, 0.9),
+    "scale": (0.0, 1.0, 2.0, 3.0, 4.0),
+    "gbad": (0.005, 0.01, 0.02, 0.04, 0.08),
+}
+ADDITIVE = ("rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
+MONOTONE_DECREASING = ("rough", "nbad", "nbad_w")
+WIDE_PX = 31  # the wide context window (i1 pixels)
+WALL_RHO = 0.1  # |rho| above this counts as strong shading in the context features
+
+
+def _bmean(x: np.ndarray, k: int) -> np.ndarray:
+    return cv2.blur(np.asarray(x, np.float32), (k, k), borderType=cv2.BORDER_REPLICATE)
+
+
+def features(
+    grad: np.ndarray,
+    grad_sigma: np.ndarray,
+    rough: np.ndarray,
+    rho: np.ndarray,
+    cell_m: float,
+    footprint_px: float,
+    *,
+    slope_limit_deg: float = 15.0,
+    rough_limit_m: float = 0.30,
+) -> dict[str, np.ndarray]:
+    """Per-pixel features of the model (module doc), float32 HxW each; NaN = not available.
+
+    ``grad``/``grad_sigma`` in metres per cell of size ``cell_m``, ``rough`` in metres, ``rho``
+    the relative brightness, ``footprint_px`` the lander footprint in i1 pixels.
+    """
+    G = math.tan(math.radians(slope_limit_deg)) * float(cell_m)
+    a = (np.asarray(grad, np.float32) / np.float32(G)).astype(np.float32)
+    u = (np.asarray(grad_sigma, np.float32) / np.float32(G)).astype(np.float32)
+    known = np.isfinite(a) & np.isfinite(u)
+    k = int(2 * round(1.5 * max(1.0, float(footprint_px))) + 1)  # ~3 footprints
+    with np.errstate(invalid="ignore"):
+        bad = (known & ((a - 2.0 * u) > 1.0)).astype(np.float32)
+    r = np.asarray(rho, np.float32)
+    wall = (np.abs(r) > WALL_RHO).astype(np.float32)
+    kn = known.astype(np.float32)
+    s = _bmean(np.where(known, np.minimum(a, 4.0), 0.0), k)
+    c = _bmean(kn, k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        amean = np.where(c > 0.05, s / c, np.nan).astype(np.float32)
+    return {
+        "a": np.where(known, a, np.nan).astype(np.float32),
+        "u": np.where(known, u, np.nan).astype(np.float32),
+        "rough": (np.asarray(rough, np.float32) / np.float32(rough_limit_m)).astype(np.float32),
+        "rho": r,
+        "arho": _bmean(np.abs(r), k),
+        "nbad": _bmean(bad, k),
+        "nbad_w": _bmean(bad, WIDE_PX),
+        "nwall": _bmean(wall, k),
+        "nwall_w": _bmean(wall, WIDE_PX),
+        "amean": amean,
+        "nknown": c,
+        "scale": np.full(a.shape, math.log2(max(float(footprint_px), 1e-3)), np.float32),
+        "gbad": np.full(a.shape, float(bad[known].mean()) if known.any() else np.nan, np.float32),
+    }
+
+
+@dataclass(frozen=True)
+class PsafeModel:
+    """Weights of the binned logistic model (module doc); ``fitted_on`` = the scene seeds used."""
+
+    edges: Mapping[str, Sequence[float]]
+    table_au: Sequence[Sequence[float]]  # (len(edges["a"]) + 1) x (len(edges["u"]) + 1)
+    weights: Mapping[str, Sequence[float]]  # per additive feature: len(edges[f]) + 1
+    w_nodem: float
+    bias: float
+    fitted_on: tuple[int, ...] = ()
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def logit(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None) -> np.ndarray:
+        """``logit P(safe)`` at the points of ``mask`` (all points if None), float32 1-D."""
+
+        def take(name: str) -> np.ndarray:
+            v = np.asarray(feats[name], np.float32)
+            return v[mask] if mask is not None else v.ravel()
+
+        a, u = take("a"), take("u")
+        known = np.isfinite(a) & np.isfinite(u)
+        z = np.full(a.shape, np.float32(self.bias), np.float32)
+        T = np.asarray(self.table_au, np.float32)
+        ia = np.digitize(np.where(known, a, 0.0), np.asarray(self.edges["a"]))
+        iu = np.digitize(np.where(known, u, 0.0), np.asarray(self.edges["u"]))
+        z += np.where(known, T[ia, iu], np.float32(self.w_nodem))
+        for name in self.weights:
+            x = take(name)
+            w = np.asarray(self.weights[name], np.float32)
+            ok = np.isfinite(x)
+            i = np.digitize(np.where(ok, x, 0.0), np.asarray(self.edges[name]))
+            z += np.where(ok, w[i], np.float32(0.0))
+        return z
+
+    def fits_image(self, shape: tuple[int, ...]) -> bool:
+        """True when the model was fitted on images of this (rows, cols) size (``info["image_px"]``, a list of
+        [rows, cols]); a model without the record is taken to fit any size."""
+        sizes = self.info.get("image_px")
+        return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+
+    def predict(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None) -> np.ndarray:
+        """P(safe) (float32) at the points of ``mask`` (1-D), or over the whole array when ``mask`` is None."""
+        z = self.logit(feats, mask)
+        p = (1.0 / (1.0 + np.exp(-np.clip(z, -30.0, 30.0)))).astype(np.float32)
+        if mask is None:
+            return p.reshape(np.asarray(feats["a"]).shape)
+        return p
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": "psafe-gam/1",
+            "edges": {k: [float(x) for x in v] for k, v in self.edges.items()},
+            "table_au": [[round(float(x), 6) for x in row] for row in self.table_au],
+            "weights": {k: [round(float(x), 6) for x in v] for k, v in self.weights.items()},
+            "w_nodem": round(float(self.w_nodem), 6),
+            "bias": round(float(self.bias), 6),
+            "fitted_on": [int(s) for s in self.fitted_on],
+            "info": dict(self.info),
+        }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> PsafeModel:
+        if d.get("format") != "psafe-gam/1":
+            raise ValueError(f"not a psafe-gam/1 model: {d.get('format')!r}")
+        edges = {k: tuple(float(x) for x in v) for k, v in d["edges"].items()}
+        weights = {k: tuple(float(x) for x in v) for k, v in d["weights"].items()}
+        table = tuple(tuple(float(x) for x in row) for row in d["table_au"])
+        if len(table) != len(edges["a"]) + 1 or any(len(r) != len(edges["u"]) + 1 for r in table):
+            raise ValueError("psafe model: table_au does not match the a/u bin edges")
+        for k, w in weights.items():
+            if len(w) != len(edges[k]) + 1:
+                raise ValueError(f"psafe model: {k} has {len(w)} weights for {len(edges[k])} edges")
+        return cls(
+            edges,
+            table,
+            weights,
+            float(d["w_nodem"]),
+            float(d["bias"]),
+            tuple(d.get("fitted_on", ())),
+            d.get("info", {}),
+        )
+
+
+@functools.lru_cache(maxsize=4)
+def load_model(path: str | None = None) -> PsafeModel:
+    """The model shipped with the package (``flight_sw/psafe_model.json``) or one at ``path``."""
+    p = Path(path) if path else MODEL_PATH
+    return PsafeModel.from_json(json.loads(p.read_text()))
+
+
+def budget_rule(p: np.ndarray, budget: float, p_min: float = 0.0, n: int | None = None) -> np.ndarray:
+    """Points called safe: in decreasing ``p`` while ``sum(1 - p) <= budget * n`` and ``p >= p_min``.
+
+    ``p`` is 1-D (NaN = never called); ``n`` the count the budget is a share of (default: the
+    finite points). Exact up to ties within 1e-4 of ``1 - p``, which are resolved conservatively
+    (a bin of equal values is taken whole or not at all): O(N), no sort.
+    """
+    p = np.asarray(p, np.float32)
+    ok = np.isfinite(p) & (p >= p_min)
+    if n is None:
+        n = int(np.isfinite(p).sum())
+    out = np.zeros(p.shape, bool)
+    if n == 0 or budget <= 0 or not ok.any():
+        return out
+    q = np.clip(1.0 - p[ok], 0.0, 1.0)
+    nb = 10001
+    b = np.minimum((q * (nb - 1)).astype(np.int64), nb - 1)
+    cum = np.cumsum(np.bincount(b, weights=q, minlength=nb))
+    last = int(np.searchsorted(cum, budget * n, side="right")) - 1  # the last whole bin within the budget
+    if last < 0:
+        return out
+    out[np.flatnonzero(ok)[b <= last]] = True
+    return out
+
+
+def _pava_decreasing(w: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """Weighted least-squares projection of ``w`` onto non-increasing sequences (pool adjacent violators)."""
+    vals: list[float] = []
+    wts: list[float] = []
+    lens: list[int] = []
+    for x, c in zip(w.tolist(), np.maximum(cnt, 1e-9).tolist(), strict=True):
+        vals.append(x)
+        wts.append(c)
+        lens.append(1)
+        while len(vals) > 1 and vals[-2] < vals[-1]:
+            v2, c2, l2 = vals.pop(), wts.pop(), lens.pop()
+            vals[-1] = (vals[-1] * wts[-1] + v2 * c2) / (wts[-1] + c2)
+            wts[-1] += c2
+            lens[-1] += l2
+    return np.repeat(np.asarray(vals), lens)
+
+
+def _design(feats: Mapping[str, np.ndarray], edges: Mapping[str, Sequence[float]]) -> tuple[np.ndarray, list[str]]:
+    """One-hot design matrix (1-D features in, rows = points) and the column groups' names."""
+    a, u = np.asarray(feats["a"]), np.asarray(feats["u"])
+    n = a.size
+    known = np.isfinite(a) & np.isfinite(u)
+    na, nu = len(edges["a"]) + 1, len(edges["u"]) + 1
+    cols = [(~known).astype(np.float32)[:, None]]
+    groups = ["nodem"]
+    oh = np.zeros((n, na * nu), np.float32)
+    idx = np.digitize(np.where(known, a, 0), edges["a"]) * nu + np.digitize(np.where(known, u, 0), edges["u"])
+    oh[np.arange(n), idx] = 1.0
+    oh[~known] = 0.0
+    cols.append(oh)
+    groups += ["au"] * (na * nu)
+    for f in ADDITIVE:
+        x = np.asarray(feats[f])
+        ok = np.isfinite(x)
+        m = len(edges[f]) + 1
+        o = np.zeros((n, m), np.float32)
+        o[np.arange(n), np.digitize(np.where(ok, x, 0), edges[f])] = 1.0
+        o[~ok] = 0.0
+        cols.append(o)
+        groups += [f] * m
+    cols.append(np.ones((n, 1), np.float32))
+    groups.append("bias")
+    return np.concatenate(cols, axis=1), groups
+
+
+def fit(
+    feats: Mapping[str, np.ndarray],
+    safe: np.ndarray,
+    seeds: Sequence[int],
+    *,
+    edges: Mapping[str, Sequence[float]] | None = None,
+    ridge: float = 1.0,
+    iters: int = 40,
+    info: Mapping[str, Any] | None = None,
+) -> PsafeModel:
+    """Fit the model to 1-D feature arrays and truth labels ``safe`` (bool) by ridge-regularised IRLS.
+
+    ``seeds`` are recorded in the model (``fitted_on``); the caller checks they are tuning seeds
+    (``bench/fit_psafe.py``: flight_sw does not import ground_sim).
+    """
+    E = {k: tuple(float(x) for x in v) for k, v in (edges or DEFAULT_EDGES).items()}
+    X, groups = _design(feats, E)
+    y = np.asarray(safe, np.float64).ravel()
+    if X.shape[0] != y.size or y.size == 0:
+        raise ValueError("psafe fit: features and labels differ in length or are empty")
+    w = np.zeros(X.shape[1])
+    reg = ridge * np.ones(X.shape[1])
+    reg[-1] = 1e-6  # the bias is not shrunk
+    for _ in range(iters):
+        z = X @ w
+        p = 1.0 / (1.0 + np.exp(-np.clip(z, -30, 30)))
+        g = X.T @ (p - y) + reg * w
+        H = (X * (p * (1.0 - p))[:, None]).T @ X + np.diag(reg)
+        step = np.linalg.solve(H, g)
+        w -= step
+        if np.abs(step).max() < 1e-5:
+            break
+    cnt = X.sum(axis=0)
+    grp = np.asarray(groups)
+    na, nu = len(E["a"]) + 1, len(E["u"]) + 1
+    T = w[grp == "au"].reshape(na, nu)
+    Tc = cnt[grp == "au"].reshape(na, nu)
+    for j in range(nu):  # P(safe) does not grow with the estimated slope at a given uncertainty
+        T[:, j] = _pava_decreasing(T[:, j], Tc[:, j])
+    weights: dict[str, tuple[float, ...]] = {}
+    for f in ADDITIVE:
+        sel = grp == f
+        wf, cf = w[sel], cnt[sel]
+        if f in MONOTONE_DECREASING:
+            wf = _pava_decreasing(wf, cf)
+        weights[f] = tuple(float(x) for x in wf)
+    return PsafeModel(
+        E,
+        tuple(tuple(float(x) for x in row) for row in T),
+        weights,
+        float(w[grp == "nodem"][0]),
+        float(w[-1]),
+        tuple(int(s) for s in seeds),
+        dict(info or {}),
+    )
