@@ -44,7 +44,8 @@ def test_noisy_serial_line_returns_every_result(manifest, tmp_path, corrupt):
     hit = sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in s["line_faults"].values())
     assert hit > 30  # the line really was noisy (drop, flip and duplicate, both directions)
     assert s["results"] == 3 and s["errors"] == 0, [r.get("text") for r in s["records"]]
-    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1
+    if corrupt >= 1e-3:  # ~100 faults on the ground's 30 kB: some hit its data frames (at 1e-4 maybe none do)
+        assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1
     for r in s["records"]:
         assert np.load(Path(r["out_dir"]) / "state_grid.npy").size > 0 and "fp_pct" in r["scores"]
 
