@@ -14,23 +14,18 @@ import json
 import numpy as np
 import pytest
 from browser import browser_available, check_page
-
-from ground_sim.descent import render_scenario
-from hil_server.run import RunConfig, run_descent, scaled_camera
+from hilkit import run_hil, small_descent
 
 PAIRS = ["600/300", "300/150", "200/100"]
 
 
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory):
-    out = tmp_path_factory.mktemp("pairs")
-    render_scenario("vertical", out, pairs=PAIRS, camera=scaled_camera(128), progress=False)
-    return out / "manifest.json"
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
 
 
 def run(manifest, tmp_path, **kw):
-    cfg = RunConfig(out=tmp_path, manifest=manifest, **{"link": "zmq", "budget": "host", **kw})
-    return run_descent(cfg, log=lambda s: None)
+    return run_hil(manifest, tmp_path, kw.pop("link", "zmq"), **kw)
 
 
 def telemetry_events(path, name="supervisor.jsonl"):

@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilkit import run_hil, small_descent
 
 from ground_sim.descent import render_scenario
 from hil_server.cli import main as cli
-from hil_server.run import RunConfig, exit_code, run_descent, scaled_camera
+from hil_server.run import exit_code, scaled_camera
 from protocol.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,14 +30,11 @@ PAIRS = ["600/300", "300/150"]
 
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory):
-    out = tmp_path_factory.mktemp("pairs")
-    render_scenario("vertical", out, pairs=PAIRS, camera=scaled_camera(128), progress=False)
-    return out / "manifest.json"
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
 
 
 def run(manifest, tmp_path, **kw):
-    cfg = RunConfig(out=tmp_path, manifest=manifest, **{"link": "zmq", "budget": "host", **kw})
-    return run_descent(cfg, log=lambda s: None)
+    return run_hil(manifest, tmp_path, kw.pop("link", "zmq"), **kw)
 
 
 def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):

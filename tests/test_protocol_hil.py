@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilkit import run_hil, small_descent
 
-from ground_sim.descent import render_scenario
-from hil_server.run import RunConfig, run_descent, scaled_camera
+from hil_server.run import RunConfig, run_descent
 from protocol.faults import PtyBridge
 
 PAIRS = ["600/300", "300/150", "200/100"]
@@ -27,14 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory):
-    out = tmp_path_factory.mktemp("pairs")
-    render_scenario("vertical", out, pairs=PAIRS, camera=scaled_camera(128), progress=False)
-    return out / "manifest.json"
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
 
 
 def run(manifest, tmp_path, **kw):
-    cfg = RunConfig(out=tmp_path, manifest=manifest, **{"link": "serial", "budget": "host", **kw})
-    return run_descent(cfg, log=lambda s: None)
+    return run_hil(manifest, tmp_path, kw.pop("link", "serial"), **kw)
 
 
 @pytest.mark.slow
