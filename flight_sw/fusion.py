@@ -121,6 +121,9 @@ def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
     lo = 1.0 / (1.0 + math.exp(params.l_max))
     p = np.clip(np.where(np.isfinite(ps), ps, 0.5), lo, 1.0 - lo)
     out = np.log(p / (1.0 - p))
+    # no elevation, no evidence for "safe": a calibrated P(safe) there is only a context prior, and
+    # summed over results it would call unmeasured ground safe (demo: FP 10 % after an image-only result)
+    out[~np.isfinite(np.asarray(grid.elevation, np.float64)) & (out > 0)] = 0.0
     out[st == STATE_UNSAFE] = -params.l_unsafe
     out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
     return out.astype(np.float32)

@@ -168,6 +168,19 @@ def test_sites_on_the_fused_map_and_unknown_adds_nothing():
         assert s.x > -20.0 + 8 + 1.5  # clear of the unsafe strip
 
 
+def test_results_without_an_elevation_never_make_ground_safe():
+    """An image-only result (no DEM) may carry a high context-prior P(safe) on unknown cells; summed over
+    the descent that must not call unmeasured ground safe (the demo showed FP 10 % before this rule)."""
+    prm = FusionParams()
+    blind = uniform(STATE_UNKNOWN, 0.96, elevation=np.full((6, 6), np.nan))
+    fm = None
+    for _ in range(5):
+        fm = fuse(fm, blind, prm)
+    assert fm is not None and not (fused_state(fm, prm)[0] == STATE_SAFE).any()
+    fm = fuse(fm, uniform(STATE_UNKNOWN, 0.85), prm)  # then one measured, below p_min: the blind ones added nothing
+    assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
+
+
 class _Link:
     """Collects what the flight process sends."""
 
