@@ -253,7 +253,7 @@ def stream_descent(
     connect_timeout_s: float = 60.0,
     reconnect_timeout_s: float = 10.0,
     full_maps: bool = False,
-    fusion: bool = True,
+    fusion: bool = False,
     elevation_step: int = 1,
     psafe_step: int = 1,
     progress=None,
@@ -513,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
     ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
     ap.add_argument(
-        "--no-fusion", action="store_true", help="ask for each pair's map alone (not fused over the descent)"
+        "--fusion", action="store_true", help="ask for the map fused over the descent instead of each pair's alone"
     )
     ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
     ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")
@@ -576,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
             pace=args.pace,
             reconnect_timeout_s=args.reconnect_timeout,
             full_maps=args.full_maps,
-            fusion=not args.no_fusion,
+            fusion=args.fusion,
             elevation_step=step,
             psafe_step=pstep,
             progress=show,

@@ -284,9 +284,10 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         help="Results also carry full-resolution image maps (hazard, elevation, state: MBs per pair on the line)",
     )
     p.add_argument(
-        "--no-fusion",
+        "--fusion",
         action="store_true",
-        help="each Result reports its pair alone (default: the map fused over the descent, flight_sw.fusion)",
+        help="Results report the map fused over the descent (flight_sw.fusion; off by default: a wrong early map "
+        "carries forward, docs/benchmarks/multiframe.md); default: each Result reports its pair alone",
     )
     p.add_argument(
         "--insecure",
@@ -351,7 +352,7 @@ def _config(args: argparse.Namespace):
         manifest=args.manifest,
         corrupt=args.corrupt,
         full_maps=args.full_maps,
-        fusion=not args.no_fusion,
+        fusion=args.fusion,
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
         link_fault=args.link_fault,
