@@ -69,6 +69,7 @@ LINE_LATENCY_S = 0.05
 # grid <= 0.13, P(safe) <= 0.55 / kp^2, int16 elevation <= 1.4 / k^2 (docs/protocol.md measured 72-106 kB at
 # (1, 1), 7-11 kB at (4, 8) on 512 px), sites and fields ~2 kB; the full image maps ~1.6 B per pixel.
 PRIOR_STATE_B, PRIOR_PSAFE_B, PRIOR_ELEV_B, PRIOR_FIXED_B, PRIOR_MAPS_B = 0.13, 0.55, 1.4, 2048, 1.6
+PRIOR_FLOOR = 0.5  # after the first Result, plan for at least this share of the prior (a full-level Result)
 # Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
 # elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md),
 # link_baud (the ground link's rate, 0 = none to plan for) and time_scale (the emulated slowdown).
@@ -280,9 +281,18 @@ class FlightProcess:
         return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
 
     def expected_result_bytes(self, cfg: Config) -> float:
-        """The next Result's size on the wire: the largest so far (+20 %), else a prior from the camera (bytes)."""
+        """The next Result's size on the wire: the largest so far (+20 %), at least half the camera prior (bytes).
+
+        The floor matters after a degraded Result: an image-only one is a few kB, and planning the next
+        full-level Result's line time from it missed the deadline (demo, 300/150: 2.21 s against 2 s).
+        """
+        prior = self._prior_result_bytes(cfg)
         if self.max_result_bytes:
-            return 1.2 * self.max_result_bytes
+            return max(1.2 * self.max_result_bytes, PRIOR_FLOOR * prior)
+        return prior
+
+    @staticmethod
+    def _prior_result_bytes(cfg: Config) -> float:
         cam = cfg.camera
         cells = int(cam["width"]) * int(cam["height"]) / 4.0
         kp = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
