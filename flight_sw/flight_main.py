@@ -60,7 +60,7 @@ from protocol.pairdir import Camera, Pose
 
 # Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
 # scaled by time_scale (Config.options, set by the HIL server from the budget) like the pipeline's reserves.
-OUTPUT_RESERVE_S = 0.02
+OUTPUT_RESERVE_S = 0.04
 # Line time of the Result = bytes x LINE_OVERHEAD x 10 / baud + LINE_LATENCY_S: framing (26 B per 1 KiB
 # frame) and byte stuffing (~1 % of compressed bytes) on top of the 8N1 bits, plus relay and scheduling slack.
 LINE_OVERHEAD = 1.05

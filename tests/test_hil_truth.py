@@ -38,30 +38,24 @@ def run(manifest, tmp_path, **kw):
 
 
 def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):
-    # Full maps at 115200 baud: a full-level Result needs ~1.5 s on the line, more than the 1 s deadline, while
-    # the flight side computes it in a fraction of that. Counting only "last frame in -> result out" (the flight
-    # latency) would call it met; the ground, which holds the Result only after its line time, must not.
+    # Full maps at 115200 baud: even an image-only Result needs ~0.12 s on the line, more than the 0.1 s deadline,
+    # while the flight side answers within a few hundredths of a second. Counting only "last frame in -> result
+    # out" (the flight latency) would call it met; the ground, which holds the Result only after its line time,
+    # must not.
     out = tmp_path / "run"
     args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--baud", "115200"]
-    args += ["--full-maps", "--deadline", "1", "--out", str(out)]
+    args += ["--full-maps", "--deadline", "0.1", "--out", str(out)]
     assert cli(args) == 1  # a missed deadline fails the run
     assert "FAIL: " in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     recs = s["records"]
     assert all(r["status"] == "result" for r in recs) and s["complete"] is True
     for r in recs:
-        assert r["deadline_met"] == (r["e2e_latency_s"] <= 1.0)
-        assert r["e2e_latency_s"] >= r["result_line_s"] > 0
-        assert r["deadline_margin_s"] == pytest.approx(1.0 - r["e2e_latency_s"])
-    # the first pair: the flight side expects its Result (prior from the camera) to need > 1 s on this line, so
-    # it leaves the pipeline no time: a degraded Result, quickly
-    assert recs[0]["degraded"] and recs[0]["flight_latency_s"] < 1.0
-    # the second: it planned with the first (small, degraded) Result's size, reached a fuller level, and the
-    # line time of that bigger Result pushed it past the deadline: reported missed, though computed in time
-    late = [r for r in recs if not r["deadline_met"]]
-    assert late, recs
-    assert all(r["flight_latency_s"] < 1.0 < r["e2e_latency_s"] for r in late)
-    assert s["deadline_missed"] == len(late) and s["deadline_hit_rate"] < 1.0
+        assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.1)
+        assert r["e2e_latency_s"] >= r["result_line_s"] > 0.1  # the line alone is past the deadline
+        assert r["deadline_margin_s"] == pytest.approx(0.1 - r["e2e_latency_s"])
+    assert not any(r["deadline_met"] for r in recs) and s["deadline_hit_rate"] == 0.0
+    assert min(r["flight_latency_s"] for r in recs) < 0.1  # computed in time, late only on the line
 
 
 @pytest.mark.slow  # ~30 s: the flight process's Python imports alone take ~25 s at rad750's 1.9 % duty
