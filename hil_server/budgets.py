@@ -110,17 +110,19 @@ class Budget:
         return min(1.0, self.cpu_dmips / self.host_dmips(cal))
 
 
-# Peak resident set of our flight process (Python, numpy, OpenCV, the link, the `fast` pipeline at its full
-# level), measured on the host budget with procemu's VmHWM (docs/hil.md, "Memory"): 86 MiB at 256x256,
-# 103-120 MiB at 512x512, 229-251 MiB at 1024x1024 (two sessions), bounded by ~76 MiB + ~180 bytes per pixel.
+# Peak private resident memory (RssAnon + RssShmem, hil_server.procemu) of our flight process (Python, numpy,
+# OpenCV, the link, the `fast` pipeline at its full level), measured on the host budget (docs/hil.md, "Memory";
+# 2026-11-24, vertical 600/300 and 300/150): 32.6 MiB at 128x128, 35 at 256x256, 70 at 512x512, 200 at
+# 1024x1024, bounded by ~32 MiB + ~170 bytes per pixel. Mapped library code is not counted: how much of it is
+# resident depends on the host's page cache (25-53 MiB for the same `import cv2`), not on the flight software.
 # A camera is refused when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
-FLIGHT_BASE_MIB = 76.0
-FLIGHT_BYTES_PER_PIXEL = 180.0
+FLIGHT_BASE_MIB = 32.0
+FLIGHT_BYTES_PER_PIXEL = 170.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
 
 
 def flight_peak_rss_mib(pixels: int) -> float:
-    """Expected peak RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included."""
+    """Expected peak private RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included."""
     return (FLIGHT_BASE_MIB + FLIGHT_BYTES_PER_PIXEL * pixels / 2**20) * (1.0 + FLIGHT_RSS_MARGIN)
 
 

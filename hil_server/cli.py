@@ -169,7 +169,7 @@ def _budgets(args: argparse.Namespace) -> int:
             if args.sources:
                 print(f"{'':<15}source: {b.source}")
     print(
-        f"max image: the largest square camera whose flight process fits the memory ceiling (peak RSS ~"
+        f"max image: the largest square camera whose flight process fits the memory ceiling (peak private RSS ~"
         f"{FLIGHT_BASE_MIB:.0f} MiB + {FLIGHT_BYTES_PER_PIXEL:.0f} B/pixel, +{FLIGHT_RSS_MARGIN:.0%}); "
         "`run` refuses larger ones"
     )

@@ -8,8 +8,9 @@ the parent side, because flight_sw must not import hil_server:
   variables of :func:`thread_env` in its environment, which numpy/OpenBLAS/
   OpenMP/MKL/OpenCV read at import. (The flight main should still call
   ``cv2.setNumThreads(1)``; the affinity alone already keeps it on one core.)
-* **Memory ceiling.** ``memory_mib`` caps the resident set: an RSS watchdog
-  thread polls ``/proc/PID/status`` and kills the child when RSS exceeds it. The
+* **Memory ceiling.** ``memory_mib`` caps the private resident set (``RssAnon +
+  RssShmem``; mapped library code is not counted, see :func:`_read_rss_hwm_bytes`):
+  a watchdog thread polls ``/proc/PID/status`` and kills the child when it exceeds it. The
   hard stop is ``RLIMIT_AS`` = measured address-space baseline of a Python with
   numpy/cv2/zmq/msgpack/serial imported + ``memory_mib`` + headroom; an
   allocation past it fails in the child (``MemoryError``).
@@ -225,25 +226,32 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
 
 
 def _read_rss_hwm_bytes(pid: int) -> tuple[int, int] | None:
-    """(VmRSS, VmHWM) in bytes from /proc/PID/status; None once the process is gone.
+    """(private RSS, private RSS peak estimate) in bytes from /proc/PID/status; None once the process is gone.
 
-    VmHWM is the kernel's resident high-water mark of the *exec'd* image. (wait4's
-    ru_maxrss is not used: after fork+exec it still holds the parent's RSS at fork.)
+    Private RSS = ``RssAnon + RssShmem``: the memory the flight software itself holds. File-backed
+    pages (``RssFile``: the mapped code of Python, numpy, OpenCV) are left out because how many of
+    them count as resident depends on the host's page cache, not on the flight software: the same
+    ``import cv2`` is 25 MiB of RssFile from a long-cached install and 53 MiB from one just written
+    (large page-cache folios are mapped whole). A flight computer's code lives in its own memory.
+
+    The kernel keeps no private high-water mark, so the peak is estimated as
+    ``max(private, VmHWM - RssFile)``: with RssFile non-decreasing this never exceeds the true
+    private peak, and it catches a peak between two polls. (wait4's ru_maxrss is not used: after
+    fork+exec it still holds the parent's RSS at fork.)
     """
-    rss = hwm = None
+    fields: dict[bytes, int] = {}
     try:
         with open(f"/proc/{pid}/status", "rb") as fh:
             for line in fh:
-                if line.startswith(b"VmHWM:"):
-                    hwm = int(line.split()[1]) * 1024
-                elif line.startswith(b"VmRSS:"):
-                    rss = int(line.split()[1]) * 1024
-                    break
+                key = line.split(b":", 1)[0]
+                if key in (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem"):
+                    fields[key] = int(line.split()[1]) * 1024
     except (OSError, ValueError):
         return None
-    if rss is None:
+    if b"RssAnon" not in fields:
         return None  # zombie: no memory map left
-    return rss, max(hwm or 0, rss)
+    private = fields[b"RssAnon"] + fields.get(b"RssShmem", 0)
+    return private, max(private, fields.get(b"VmHWM", 0) - fields.get(b"RssFile", 0))
 
 
 class _Child:
@@ -563,7 +571,8 @@ class EmulatedProcessor:
                 child.rss = mem[0]
                 child.peak_rss = max(child.peak_rss, mem[1])
                 if limit is not None and mem[0] > limit:
-                    self._kill(f"memory ceiling: RSS {mem[0] / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB", "memory")
+                    why = f"memory ceiling: private RSS {mem[0] / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB"
+                    self._kill(why, "memory")
                     return
             if child.stop_threads.wait(poll):
                 return

@@ -338,7 +338,7 @@ def check_memory(budget, width: int, height: int) -> None:
     need = flight_peak_rss_mib(width * height)
     if need > budget.memory_mib:
         raise InputError(
-            f"a {width}x{height} camera needs ~{need:.0f} MiB peak RSS in the flight process, over budget "
+            f"a {width}x{height} camera needs ~{need:.0f} MiB peak private RSS in the flight process, over budget "
             f"{budget.name}'s {budget.memory_mib} MiB; the largest square camera that fits is "
             f"{max_image_side(budget.memory_mib)} px (--image-size), see `hazard-hil budgets`"
         )

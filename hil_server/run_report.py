@@ -171,7 +171,7 @@ def write_run_report(summary: dict, path: Path) -> Path:
             resources_figure(tel, s.get("cpu_fraction"), s.get("memory_mib")),
             fig_dir / "resources.png",
         )
-        tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and peak RSS against the budget."))
+        tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and private RSS peak vs the budget."))
     sections.append(Section("Telemetry", figures=tel_figs))
     for r in records:
         figs = _pair_figures(r, fig_dir)

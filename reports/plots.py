@@ -281,7 +281,7 @@ def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
 
 
 def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None, memory_mib: float | None) -> Any:
-    """Achieved CPU fraction and peak RSS per pair against the budget's duty cycle and memory ceiling."""
+    """Achieved CPU fraction and peak private RSS per pair against the budget's duty cycle and memory ceiling."""
     plt = _plt()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.2))
     recs = [r for r in records if r.get("status", "result") == "result"]
@@ -292,7 +292,7 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
         a1.axhline(cpu_budget, color=MISSED, lw=1, ls="--", label="budget")
     a1.set_ylabel("CPU fraction of one core")
     a1.set_ylim(bottom=0)
-    a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak RSS")
+    a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak private RSS")
     if memory_mib is not None:
         a2.axhline(memory_mib, color=MISSED, lw=1, ls="--", label="memory ceiling")
     a2.set_ylabel("MiB")
