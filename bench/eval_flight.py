@@ -5,9 +5,11 @@
     .venv/bin/python bench/eval_flight.py --cases crater lowsun tilted --set held-out --n-seeds 2
     .venv/bin/python bench/eval_flight.py --ablation --set tuning --n-seeds 2         # the ablation table
 
-Cases: ``vertical`` and ``approach`` are the thesis scenarios on their default scenes; ``crater`` is a
-vertical descent into ``bench/scenes/deep_crater.toml`` (floor ~50 m below the datum); ``lowsun`` the
-vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``.
+Cases: ``vertical`` and ``approach`` are the thesis scenarios on the ``default`` scene preset; ``crater`` is
+a vertical descent into ``bench/scenes/deep_crater.toml`` (floor ~50 m below the datum); ``lowsun`` the
+vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``;
+``thesis_vertical`` and ``thesis_approach`` the scenarios on the library's ``thesis`` scene with its sun
+(the scene ``render``, ``evaluate`` and ``run`` use by default; more hazardous than ``default``).
 Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``) and are reused. Every pair is scored
 against its ground truth with ``studies.evaluate.score_arrays`` (pixel FP/FN/CDI, DEM error) plus the
 top-ranked site's footprint (``ground_sim.scoring.chosen_sites_safe``). Seeds come from
@@ -41,6 +43,9 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
     "crater": ("vertical", str(SCENES / "deep_crater.toml"), None),
     "lowsun": ("vertical", "default", (135.0, 10.0)),
     "tilted": ("approach", str(SCENES / "tilted.toml"), None),
+    # the scenarios on the scene library's `thesis` scene (their default in render/evaluate/run), its sun
+    "thesis_vertical": ("vertical", "thesis", None),
+    "thesis_approach": ("approach", "thesis", None),
 }
 
 
@@ -48,6 +53,7 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
     """Render (or reuse) every pair of a case for one scene seed."""
     from ground_sim import trajectory
     from ground_sim.descent import DEFAULT_SUN, render_pair
+    from ground_sim.library import scene_sun
     from ground_sim.scene import load_scene
     from protocol.pairdir import Sun, write_pair
 
@@ -61,8 +67,8 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
     for spec in specs:
         d = out / spec.label.replace("/", "_")
         if not (d / "pair.json").is_file():
-            scene = scene or load_scene(scene_spec, seed)
-            s = Sun(*sun) if sun else DEFAULT_SUN[traj]
+            scene = scene or load_scene(scene_spec, seed, traj if scene_spec == "thesis" else None)
+            s = Sun(*sun) if sun else (scene_sun(scene, traj, seed) if scene_spec == "thesis" else DEFAULT_SUN[traj])
             tmp = d.with_name(d.name + ".partial")
             shutil.rmtree(tmp, ignore_errors=True)
             write_pair(tmp, render_pair(scene, spec, s, seed=seed))

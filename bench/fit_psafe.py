@@ -86,6 +86,7 @@ def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: 
     sizes = sorted({tuple(int(x) for x in r["shape"]) for r in rows})
     info = {
         "pairs": len(rows),
+        "cases": list(dict.fromkeys(str(r["case"]) for r in rows)),  # eval_flight.py cases: which scenes
         "points": int(cat["safe"].size),
         "per_pair": per_pair,
         "ridge": ridge,
@@ -162,22 +163,25 @@ def main(argv: list[str] | None = None) -> int:
                     out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
                 rel.append((float(r["fp_px"]), s["p"], r["safe"]))
         if args.cv:
+            cases = list(dict.fromkeys(r["case"] for r in rows))
             print(
-                "\n| FP budget | a_max | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair "
-                "| CDI % med (vertical / approach) | CDI min |"
+                "\n| FP budget | a_max | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair | CDI % med | "
+                + " | ".join(f"{c}: FP worst, CDI med" for c in cases)
+                + " |"
             )
-            print("|---:|---:|---:|---|---:|---|---|---:|")
+            print("|---:|---:|---:|---|---:|---|---:|" + "---|" * len(cases))
             for (b, a_max, pm), rs in res.items():
                 fps = [x["fp"] for x in rs]
                 worst = max(rs, key=lambda x: x["fp"])
-                cv = _med([x["cdi"] for x in rs if x["case"] == "vertical"])
-                ca = _med([x["cdi"] for x in rs if x["case"] == "approach"])
+                per_case = []
+                for c in cases:
+                    sel = [x for x in rs if x["case"] == c]
+                    per_case.append(f"{max(x['fp'] for x in sel):.2f}, {_med([x['cdi'] for x in sel]):.1f}")
                 print(
                     f"| {100 * b:.2f} % | {a_max:g} | {pm:g} "
                     f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
-                    f"| {statistics.median(x['cdi'] for x in rs):.1f} ({cv:.1f} / {ca:.1f}) "
-                    f"| {min(x['cdi'] for x in rs):.1f} |"
+                    f"| {statistics.median(x['cdi'] for x in rs):.1f} | " + " | ".join(per_case) + " |"
                 )
         if args.reliability:
             print("\nReliability (cross-validated): observed safe share per predicted-P(safe) bin, by footprint size")
