@@ -480,10 +480,11 @@ def stream_descent(
 def auto_grid_steps(link_spec: str) -> tuple[int, int]:
     """(P(safe) step, elevation step) that keep the Result small for the line (docs/benchmarks/protocol.md).
 
-    On the demo pairs (256 x 256 grid, flight v2) the state grid compresses to 4-8 kB, P(safe) to
-    15-34 kB at full resolution, 4-8 kB decimated by 2, 1.3-1.6 kB by 4, and the elevation grid to
-    1.3-14 kB at steps 8-2: ZeroMQ or unpaced (1, 1); from 460800 baud (1, 2); from 230400 (2, 4);
-    below (4, 8), ~11 kB or ~1 s at 115200 baud.
+    Encoded Result on the demo pairs (256 x 256 grid, flight v2 with the P(safe) model refitted on
+    the thesis scene): 106-110 kB at (1, 1), 65-70 kB at (1, 2) - of which 44-46 kB is the continuous
+    P(safe) grid at full resolution - 34-37 kB at (2, 2), 22-24 kB at (2, 4), 8-10 kB at (4, 8).
+    ZeroMQ or unpaced (1, 1); from 460800 baud (2, 2), ~0.4 s at 921600; from 230400 (2, 4); below
+    (4, 8), ~0.9 s at 115200 baud. (P(safe) decimation is a block minimum: conservative.)
     """
     from protocol.linkspec import parse_serial
 
@@ -494,7 +495,7 @@ def auto_grid_steps(link_spec: str) -> tuple[int, int]:
     if baud is None:
         return 1, 1
     if baud >= 460800:
-        return 1, 2
+        return 2, 2
     return (2, 4) if baud >= 230400 else (4, 8)
 
 
