@@ -311,3 +311,19 @@ def test_v2_params_are_checked():
     ):
         with pytest.raises(FlightInputError, match=word):
             run_pipeline(i1, i2, p1, p2, cam, preset=dataclasses.replace(PRESETS["fast"], **bad))
+
+
+def test_clock_learns_the_slowdown_not_a_stage_that_costs_more_on_this_data():
+    from flight_sw.pipeline import MAX_LEARNED_SCALE, _Clock
+
+    # snapdragon801 (1 / 0.366): the shadow stage cost 0.034 s CPU on the demo's 200/100 pair (reference 0.014 s)
+    # and ran 0.11 s wall: a 3.5x slowdown, not 8x (which made the demo's third pair skip its DEM)
+    c = _Clock(deadline=None, scale=2.73)
+    c.learn(0.014, 0.11, 0.034)
+    assert 3.0 < c.scale < 4.0
+    # at rad750's duty (1 / 0.019) cold caches double a stage's CPU: that slowdown is still learnt
+    c = _Clock(deadline=None, scale=52.0)
+    c.learn(0.014, 0.014 * 52.0 * 2.0, 0.028)
+    assert c.scale == pytest.approx(104.0)
+    c.learn(0.014, 1e3, 0.028)  # bounded
+    assert c.scale == pytest.approx(MAX_LEARNED_SCALE * 52.0)
