@@ -14,37 +14,22 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 STEPS = ((1, 1), (1, 2), (2, 2), (2, 4), (4, 8))
 
 
-def result_bytes(res, kp: int, k: int) -> int:
-    """Encoded size of the Result of pipeline result ``res`` with P(safe) step ``kp`` and elevation step ``k``."""
+def result_bytes(res, camera, kp: int, k: int) -> int:
+    """Encoded size of the Result the flight process builds from pipeline result ``res`` at steps (``kp``, ``k``)."""
+    from flight_sw.flight_main import FlightProcess
     from protocol.codec import encode_message
-    from protocol.grids import elevation_to_wire, psafe_to_wire
-    from protocol.messages import Result, Site
+    from protocol.messages import Config
 
-    g = res.grid
-    el, off = elevation_to_wire(g.elevation, k)
-    msg = Result(
-        frame_seqs=(1, 2),
-        state_grid=np.asarray(g.state, np.uint8),
-        psafe_grid=psafe_to_wire(g.psafe, kp),
-        psafe_step=kp,
-        elevation_grid=el,
-        grid_origin_xy=tuple(float(v) for v in g.origin_xy),
-        grid_cell_m=float(g.cell_m),
-        elevation_step=k,
-        elevation_offset_m=off,
-        sites=[
-            Site(s.x, s.y, s.z, s.hazard, s.margin, s.distance_m, float(s.p_safe), float(s.clearance_m))
-            for s in res.sites
-        ],
-    ).validated()
+    cfg = Config(
+        camera=camera.to_dict(), budget="host", deadline_s=2.0, options={"psafe_step": kp, "elevation_step": k}
+    )
+    msg = FlightProcess._result_message(res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
     return len(encode_message(msg))
 
 
@@ -66,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         pair = read_pair(out / e["path"])
         res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset="fast")
         print(
-            f"| {e['label']} | " + " | ".join(f"{result_bytes(res, kp, k):,} B" for kp, k in STEPS) + " |", flush=True
+            f"| {e['label']} | " + " | ".join(f"{result_bytes(res, pair.camera, kp, k):,} B" for kp, k in STEPS) + " |",
+            flush=True,
         )
     return 0
 
