@@ -792,6 +792,12 @@ def _run_v1(
     with _stage(timings, "sites"):
         if clock.ok():
             sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
+            if not sites and p.n_sites > 0:  # say why, as the v2 back-end does
+                info["no_site_reason"] = (
+                    "nothing was mapped"
+                    if not np.isfinite(grid.elevation).any()
+                    else f"no {p.footprint_m:g} m footprint of the hazard map is clear of hazards"
+                )
         else:
             sites = []
             info["skipped"].append("sites")

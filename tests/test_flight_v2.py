@@ -159,6 +159,10 @@ def test_no_safe_site_is_reported():
     res = run_pipeline(i1, i2, p1, p2, cam)
     assert res.sites == []
     assert res.info.get("no_site_reason")
+    # the v1 back-end (`thesis`) says why too (it still offers sites on the 30 deg roof: 45 deg flanks)
+    cam, p1, p2, i1, i2, z = make_pair(192, 120.0, 60.0, roof(45.0), seed=35)
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="thesis")
+    assert res.sites == [] and "footprint" in res.info["no_site_reason"]
     # a grid with nothing known safe says so; one whose safe patches are too small says that
     st = np.full((20, 20), STATE_UNKNOWN, np.uint8)
     g = HazardGrid(
