@@ -5,9 +5,9 @@
     .venv/bin/python bench/eval_flight.py --cases crater lowsun tilted --set held-out --n-seeds 2
     .venv/bin/python bench/eval_flight.py --ablation --set tuning --n-seeds 2         # the ablation table
 
-Cases: ``vertical`` and ``approach`` are the thesis scenarios on the ``default`` scene preset; ``crater`` is
-a vertical descent into ``bench/scenes/deep_crater.toml`` (floor ~50 m below the datum); ``lowsun`` the
-vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``;
+Cases: ``vertical`` and ``approach`` are the thesis scenarios on the ``default`` and ``approach`` scene
+presets; ``crater`` is a vertical descent into ``bench/scenes/deep_crater.toml`` (floor ~50 m below the
+datum); ``lowsun`` the vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``;
 ``thesis_vertical`` and ``thesis_approach`` the scenarios on the library's ``thesis`` scene with its sun
 (the scene ``render``, ``evaluate`` and ``run`` use by default; more hazardous than ``default``).
 Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``) and are reused. Every pair is scored
@@ -52,7 +52,7 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None = None) -> list[dict[str, Any]]:
     """Render (or reuse) every pair of a case for one scene seed."""
     from ground_sim import trajectory
-    from ground_sim.descent import DEFAULT_SUN, render_pair
+    from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
     from ground_sim.scene import load_scene
     from protocol.pairdir import Sun, write_pair
@@ -67,8 +67,8 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
     for spec in specs:
         d = out / spec.label.replace("/", "_")
         if not (d / "pair.json").is_file():
-            scene = scene or load_scene(scene_spec, seed, traj if scene_spec == "thesis" else None)
-            s = Sun(*sun) if sun else (scene_sun(scene, traj, seed) if scene_spec == "thesis" else DEFAULT_SUN[traj])
+            scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
+            s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
             tmp = d.with_name(d.name + ".partial")
             shutil.rmtree(tmp, ignore_errors=True)
             write_pair(tmp, render_pair(scene, spec, s, seed=seed))

@@ -70,7 +70,7 @@ from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, shading_mask
 from .shadow import shadow_mask
-from .sites import Site, select_safe_sites, select_sites
+from .sites import Site, no_site_reason, select_safe_sites, select_sites
 from .slope import footprint_cells, plane_fit, roughness
 from .sweep import (
     SweepResult,
@@ -793,11 +793,7 @@ def _run_v1(
         if clock.ok():
             sites = select_sites(grid, p.footprint_m, nominal, p.n_sites)
             if not sites and p.n_sites > 0:  # say why, as the v2 back-end does
-                info["no_site_reason"] = (
-                    "nothing was mapped"
-                    if not np.isfinite(grid.elevation).any()
-                    else f"no {p.footprint_m:g} m footprint of the hazard map is clear of hazards"
-                )
+                info["no_site_reason"] = no_site_reason(grid, p.footprint_m)
         else:
             sites = []
             info["skipped"].append("sites")

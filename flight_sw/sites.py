@@ -90,6 +90,13 @@ def select_sites(
     return sites
 
 
+def no_site_reason(grid: HazardGrid, footprint_m: float) -> str:
+    """Why :func:`select_sites` found no site on ``grid`` (the v1 hazard map has no states to cite)."""
+    if grid.hazard.size == 0 or not np.isfinite(grid.elevation).any():
+        return "nothing was mapped"
+    return f"no {footprint_m:g} m footprint of the hazard map is clear of hazards"
+
+
 def select_safe_sites(
     grid: HazardGrid,
     footprint_m: float = 3.0,

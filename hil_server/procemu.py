@@ -225,6 +225,9 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
     return run_ns, wait_ns
 
 
+_MEM_FIELDS = (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem")  # /proc/PID/status keys the watchdog reads
+
+
 def _read_rss_hwm_bytes(pid: int) -> tuple[int, int] | None:
     """(private RSS, private RSS peak estimate) in bytes from /proc/PID/status; None once the process is gone.
 
@@ -244,8 +247,10 @@ def _read_rss_hwm_bytes(pid: int) -> tuple[int, int] | None:
         with open(f"/proc/{pid}/status", "rb") as fh:
             for line in fh:
                 key = line.split(b":", 1)[0]
-                if key in (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem"):
+                if key in _MEM_FIELDS:
                     fields[key] = int(line.split()[1]) * 1024
+                    if len(fields) == len(_MEM_FIELDS):
+                        break
     except (OSError, ValueError):
         return None
     if b"RssAnon" not in fields:
