@@ -82,7 +82,7 @@ from protocol.framing import (
     reject_frame,
 )
 from protocol.messages import MESSAGE_TYPES, Message
-from protocol.session import SessionState
+from protocol.session import SessionState, SessionView
 
 SEQ_LIMIT = 2**32 - (1 << 26)  # a session ends (and a new one starts) before stream positions could wrap
 RECORD = struct.Struct(">BI")  # a message in the reliable stream: type, body length
@@ -229,7 +229,7 @@ STAT_KEYS = (
 )
 
 
-class Arq:
+class Arq(SessionView):
     """One endpoint's sessions, segmentation, selective repeat and reassembly (see module doc)."""
 
     def __init__(self, config: ArqConfig | None = None, *, session_id: int | None = None, now: float = 0.0) -> None:
@@ -301,22 +301,6 @@ class Arq:
         self._last_sent = now
         self._last_hello = -math.inf
         self._dgrams.clear()
-
-    @property
-    def established(self) -> bool:
-        return self.sess.established
-
-    @property
-    def epoch(self) -> int:
-        return self.sess.epoch
-
-    @property
-    def session_id(self) -> int:
-        return self.sess.local
-
-    @property
-    def peer_session(self) -> int:
-        return self.sess.peer
 
     def take_events(self) -> list[_Event]:
         out, self._events = self._events, []

@@ -55,7 +55,7 @@ from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, enc
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
-from protocol.session import SessionState
+from protocol.session import SessionState, SessionView
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 # A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
@@ -533,7 +533,7 @@ class _ZOut:
     nbytes: int
 
 
-class ZmqLink(Link):
+class ZmqLink(Link, SessionView):
     """ZeroMQ PAIR link: multipart ``[header, msgpack body, *array buffers]``, CURVE-authenticated.
 
     Header (16 bytes, big-endian): ``version:u8 (=2) | kind:u8 (1 message, 4 HELLO, 5 CLOSE) |
@@ -681,23 +681,7 @@ class ZmqLink(Link):
             self._sock.curve_publickey = pub
             self._sock.curve_secretkey = sec
 
-    # session state ----------------------------------------------------------
-    @property
-    def established(self) -> bool:
-        return self.sess.established
-
-    @property
-    def epoch(self) -> int:
-        return self.sess.epoch
-
-    @property
-    def session_id(self) -> int:
-        return self.sess.local
-
-    @property
-    def peer_session(self) -> int:
-        return self.sess.peer
-
+    # session state (established, epoch, session_id, peer_session: SessionView) ---------
     def wait_established(self, timeout: float | None = None) -> bool:
         with self._cv:
             ok = self._cv.wait_for(lambda: self.sess.established or self._dead(), timeout)

@@ -99,3 +99,25 @@ class SessionState:
         self.peer = 0
         self.established = False
         return old
+
+
+class SessionView:
+    """The session properties an endpoint that keeps its :class:`SessionState` in ``sess`` exposes."""
+
+    sess: SessionState
+
+    @property
+    def established(self) -> bool:
+        return self.sess.established
+
+    @property
+    def epoch(self) -> int:
+        return self.sess.epoch
+
+    @property
+    def session_id(self) -> int:
+        return self.sess.local
+
+    @property
+    def peer_session(self) -> int:
+        return self.sess.peer
