@@ -601,6 +601,77 @@ def _finish(timings: dict[str, dict[str, float]]) -> None:
     }
 
 
+def _ground_grid(
+    camera: Camera,
+    pose1: Pose,
+    X: np.ndarray,
+    Y: np.ndarray,
+    z_fill: np.ndarray,
+    z_ref: float,
+    covered: np.ndarray,
+    cell_m: float | None,
+) -> tuple[float, tuple[float, float], tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """The world grid over the covered ground: ``(cell, origin, shape, gu, gv, g_cov)``, ``gu, gv``
+    where each cell falls in i1 and ``g_cov`` the cells both images see.
+
+    ``cell_m`` None: i1's median GSD over the covered area (over the whole image if that gives no cell).
+    """
+    cell = cell_m or ground_sample_distance(X, Y, covered, 50.0)
+    if not math.isfinite(cell) or cell <= 0:
+        cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
+    origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
+    GX, GY = grid_xy(shape, origin, cell)
+    gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
+    g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
+    return cell, origin, shape, gu, gv, g_cov
+
+
+def _result(
+    p: Params,
+    level: str,
+    timings: dict[str, dict[str, float]],
+    info: dict[str, Any],
+    grid: HazardGrid,
+    sites: list[Site],
+    elevation: np.ndarray,
+    hazard: np.ndarray,
+    slope_img: np.ndarray,
+    rough_img: np.ndarray,
+    rocks: np.ndarray,
+    shadow: np.ndarray,
+    covered: np.ndarray,
+    world_xy: np.ndarray,
+    **three_state: Any,
+) -> PipelineResult:
+    """The back-ends' common ending: close the timings and pack what they made into a PipelineResult.
+
+    ``three_state``: v2's ``state``, ``psafe``, ``sigma`` and ``layers``; without them (v1) the
+    result derives its state from the hazard.
+    """
+    _finish(timings)
+    n_cov = int(covered.sum())
+    valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
+    return PipelineResult(
+        elevation.astype(np.float32),
+        hazard,
+        slope_img.astype(np.float32),
+        rough_img.astype(np.float32),
+        rocks,
+        shadow,
+        covered,
+        world_xy,
+        grid,
+        sites,
+        timings,
+        level != "full" or bool(info["skipped"]),
+        level,
+        valid,
+        dataclasses.asdict(p),
+        info,
+        **three_state,
+    )
+
+
 def _run_v1(
     i1: np.ndarray,
     i2: np.ndarray,
@@ -746,13 +817,7 @@ def _run_v1(
         world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
 
     with _stage(timings, "grid"):
-        cell = p.cell_m or ground_sample_distance(X, Y, covered, 50.0)
-        if not math.isfinite(cell) or cell <= 0:
-            cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
-        origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
-        GX, GY = grid_xy(shape, origin, cell)
-        gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
-        g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
+        cell, origin, shape, gu, gv, g_cov = _ground_grid(camera, pose1, X, Y, z_fill, z_ref, covered, p.cell_m)
         g_elev = pull(elev_map, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
         g_rock = pull(rocks.astype(np.float32), gu, gv) > 0
         g_shadow = pull((shadow | shading).astype(np.float32), gu, gv) > 0.5
@@ -799,26 +864,8 @@ def _run_v1(
             info["skipped"].append("sites")
             info["no_site_reason"] = "deadline reached before site selection"
 
-    _finish(timings)
-    n_cov = int(covered.sum())
-    valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
-    return PipelineResult(
-        elevation.astype(np.float32),
-        hazard,
-        slope_img.astype(np.float32),
-        rough_img.astype(np.float32),
-        rocks,
-        shadow,
-        covered,
-        world_xy,
-        grid,
-        sites,
-        timings,
-        level != "full" or bool(info["skipped"]),
-        level,
-        valid,
-        dataclasses.asdict(p),
-        info,
+    return _result(
+        p, level, timings, info, grid, sites, elevation, hazard, slope_img, rough_img, rocks, shadow, covered, world_xy
     )
 
 
@@ -1146,13 +1193,7 @@ def _run_v2(
         world_xy = np.stack([X, Y], axis=-1).astype(np.float32)
 
     with _stage(timings, "grid"):
-        cell = p.cell_m or ground_sample_distance(X, Y, covered, 50.0)
-        if not math.isfinite(cell) or cell <= 0:
-            cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
-        origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
-        GX, GY = grid_xy(shape, origin, cell)
-        gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
-        g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999
+        cell, origin, shape, gu, gv, g_cov = _ground_grid(camera, pose1, X, Y, z_fill, z_ref, covered, p.cell_m)
         g_elev = pull(elevation, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
         g_sig = pull(sigma, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
         cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
@@ -1267,29 +1308,24 @@ def _run_v2(
         if not sites:
             info["no_site_reason"] = reason
 
-    _finish(timings)
-    n_cov = int(covered.sum())
-    valid = float(np.isfinite(elevation[covered]).sum() / n_cov) if n_cov else 0.0
-    info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if n_cov else 0.0
-    return PipelineResult(
-        elevation.astype(np.float32),
+    info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if covered.any() else 0.0
+    return _result(
+        p,
+        level,
+        timings,
+        info,
+        grid,
+        sites,
+        elevation,
         ev.hazard,
-        slope_img.astype(np.float32),
-        rough_img.astype(np.float32),
+        slope_img,
+        rough_img,
         rocks,
         shadow,
         covered,
         world_xy,
-        grid,
-        sites,
-        timings,
-        level != "full" or bool(info["skipped"]),
-        level,
-        valid,
-        dataclasses.asdict(p),
-        info,
-        ev.state,
-        ev.psafe,
-        np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
-        layers,
+        state=ev.state,
+        psafe=ev.psafe,
+        sigma=np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
+        layers=layers,
     )
