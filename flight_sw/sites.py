@@ -10,6 +10,7 @@ apart.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -51,6 +52,32 @@ def footprint_stats(hazard: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]
     return safe, hmax
 
 
+def _spread_sites(
+    grid: HazardGrid,
+    ii: np.ndarray,
+    jj: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    order: np.ndarray,
+    footprint_m: float,
+    k: int,
+    scores: Callable[[int, int, int], tuple[float, ...]],
+) -> list[Site]:
+    """Up to ``k`` candidates (cell ``ii[o], jj[o]`` at world ``x[o], y[o]``) taken greedily in ``order``
+    at least one footprint apart. ``scores(o, i, j)``: a site's fields after its x, y, z and hazard."""
+    sites: list[Site] = []
+    for o in order:
+        if any((x[o] - a.x) ** 2 + (y[o] - a.y) ** 2 < footprint_m**2 for a in sites):
+            continue
+        i, j = ii[o], jj[o]
+        sites.append(
+            Site(float(x[o]), float(y[o]), float(grid.elevation[i, j]), float(grid.hazard[i, j]), *scores(o, i, j))
+        )
+        if len(sites) == k:
+            break
+    return sites
+
+
 def select_sites(
     grid: HazardGrid, footprint_m: float = 3.0, nominal_xy: tuple[float, float] = (0.0, 0.0), k: int = 5
 ) -> list[Site]:
@@ -68,26 +95,7 @@ def select_sites(
     margin = 1.0 - hmax[ii, jj]
     ring = np.floor(dist / footprint_m)
     order = np.lexsort((dist, -margin, ring))
-    sites: list[Site] = []
-    taken: list[tuple[float, float]] = []
-    for o in order:
-        if any((x[o] - a) ** 2 + (y[o] - b) ** 2 < footprint_m**2 for a, b in taken):
-            continue
-        i, j = ii[o], jj[o]
-        sites.append(
-            Site(
-                float(x[o]),
-                float(y[o]),
-                float(grid.elevation[i, j]),
-                float(grid.hazard[i, j]),
-                float(margin[o]),
-                float(dist[o]),
-            )
-        )
-        taken.append((x[o], y[o]))
-        if len(sites) == k:
-            break
-    return sites
+    return _spread_sites(grid, ii, jj, x, y, order, footprint_m, k, lambda o, i, j: (float(margin[o]), float(dist[o])))
 
 
 def no_site_reason(grid: HazardGrid, footprint_m: float) -> str:
@@ -154,23 +162,8 @@ def select_safe_sites(
     d = np.hypot(x - nominal_xy[0], y - nominal_xy[1])
     p = pmin[ii, jj]
     order = np.lexsort((d, -np.floor(p / p_quantum + 1e-6)))
-    sites: list[Site] = []
-    for o in order:
-        if any((x[o] - a.x) ** 2 + (y[o] - a.y) ** 2 < footprint_m**2 for a in sites):
-            continue
-        i, j = ii[o], jj[o]
-        sites.append(
-            Site(
-                float(x[o]),
-                float(y[o]),
-                float(grid.elevation[i, j]),
-                float(grid.hazard[i, j]),
-                float(1.0 - hmax[i, j]),
-                float(d[o]),
-                float(p[o]),
-                float(dist[i, j] * grid.cell_m),
-            )
-        )
-        if len(sites) == k:
-            break
-    return sites, ""
+
+    def scores(o: int, i: int, j: int) -> tuple[float, ...]:
+        return float(1.0 - hmax[i, j]), float(d[o]), float(p[o]), float(dist[i, j] * grid.cell_m)
+
+    return _spread_sites(grid, ii, jj, x, y, order, footprint_m, k, scores), ""
