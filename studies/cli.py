@@ -67,10 +67,8 @@ def describe_seeds(seeds: list[int], seed_set: str) -> str:
     return f"{seed_set} seeds {span} ({len(seeds)})"
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    add_seed_options(p)
-    p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
-    p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
+def _executor_options(p: argparse.ArgumentParser) -> None:
+    """--scheduler and --workers: where the tasks of a study run."""
     p.add_argument(
         "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)"
     )
@@ -80,6 +78,13 @@ def _common(p: argparse.ArgumentParser) -> None:
         default=None,
         help="local worker processes (default: CPU count; 1 = in-process)",
     )
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    add_seed_options(p)
+    p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
+    p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
+    _executor_options(p)
     p.add_argument(
         "--camera-px",
         type=_positive("--camera-px"),
@@ -251,15 +256,7 @@ def register_landings(subparsers: Any) -> None:
         default=DEFAULT_POSE_ERROR,
         help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
     )
-    p.add_argument(
-        "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)"
-    )
-    p.add_argument(
-        "--workers",
-        type=_positive("--workers"),
-        default=None,
-        help="local worker processes (default: CPU count; 1 = in-process)",
-    )
+    _executor_options(p)
     p.add_argument("--camera-px", type=_positive("--camera-px"), default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
