@@ -160,25 +160,30 @@ def refs_to_last_jobs(n: int) -> list[tuple[int, list[int]]]:
     return [(r, list(range(r + 1, n))) for r in range(n - 1)]
 
 
-def run_jobs(pair: Any, jobs: list[tuple[int, list[int]]], preset: Any, fparams: Any) -> tuple[Any, list[Any], float]:
-    """Run each (reference, others) set and fuse the results in order; returns the fused grid, results, CPU s."""
-    from flight_sw.fusion import fuse, to_hazard_grid
+def run_jobs(
+    pair: Any, jobs: list[tuple[int, list[int]]], preset: Any, overrides: dict[str, float]
+) -> tuple[Any, list[Any], float]:
+    """Run each (reference, others) set and fuse the results in order; returns the fused grid, results, CPU s.
+    Fusion decides as the flight process does (``fusion.params_for``), then ``overrides`` (``--fusion K=V``)."""
+    from flight_sw.fusion import FusionParams, fuse, params_for, to_hazard_grid
     from flight_sw.pipeline import run_pipeline_multi
 
     fm = None
     results = []
     cpu = 0.0
+    prm = FusionParams(**overrides)
     for ref, others in jobs:
         idx = [ref, *others]
         c0 = time.thread_time()
         res = run_pipeline_multi(
             [pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset
         )
-        fm = fuse(fm, res.grid, fparams)
+        prm = dataclasses.replace(params_for(res.params, res.info, FusionParams()), **overrides)
+        fm = fuse(fm, res.grid, prm)
         cpu += time.thread_time() - c0
         results.append(res)
     assert fm is not None
-    return to_hazard_grid(fm, fparams), results, cpu
+    return to_hazard_grid(fm, prm), results, cpu
 
 
 def policies(n: int) -> dict[str, list[tuple[int, list[int]]]]:
@@ -190,7 +195,9 @@ def policies(n: int) -> dict[str, list[tuple[int, list[int]]]]:
     }
 
 
-def evaluate_descent(pair_dir: Path, preset: Any, fparams: Any, which: list[str]) -> dict[str, dict[str, float]]:
+def evaluate_descent(
+    pair_dir: Path, preset: Any, overrides: dict[str, float], which: list[str]
+) -> dict[str, dict[str, float]]:
     from flight_sw.pipeline import run_pipeline, run_pipeline_multi
     from protocol.pairdir import read_pair
 
@@ -221,7 +228,7 @@ def evaluate_descent(pair_dir: Path, preset: Any, fparams: Any, which: list[str]
     for name, jobs in policies(n).items():
         if name not in which:
             continue
-        g, _, cpu = run_jobs(pair, jobs, preset, fparams)
+        g, _, cpu = run_jobs(pair, jobs, preset, overrides)
         rows[name] = {**score_grid(pair, g, mask, XY), "cpu_s": cpu, "runs": len(jobs)}
     return rows
 
@@ -304,14 +311,15 @@ def accuracy(args: argparse.Namespace) -> int:
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     preset = build_preset(args)
-    fparams = FusionParams(**{k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)})
+    overrides = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)}
+    FusionParams(**overrides).validate()  # a bad --fusion fails here, not after the first render
     which = ["multi", *policies(len(args.altitudes))] if args.policies is None else args.policies
     cache = Path(args.cache)
     per: list[dict[str, Any]] = []
     for case in args.cases:
         for s in seeds:
             d = render_descent(case, s, list(args.altitudes), cache)
-            rows = evaluate_descent(d, preset, fparams, which)
+            rows = evaluate_descent(d, preset, overrides, which)
             per.append({"case": case, "seed": s, "dir": str(d), "rows": rows})
             print(
                 f"{case} seed {s}: best pair 0-{rows['best pair']['k']} CDI {rows['best pair']['cdi']:.1f} FP "

@@ -91,6 +91,7 @@ def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: 
         "per_pair": per_pair,
         "ridge": ridge,
         "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
+        "safe_share": float(cat["safe"].mean()),  # the prior P(safe) holds (fusion counts it once: fusion.py)
     }
     return psafe.fit({k: cat[k] for k in FEATS}, cat["safe"], seeds, ridge=ridge, info=info)
 

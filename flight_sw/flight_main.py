@@ -44,11 +44,11 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from flight_sw.fusion import FusedMap, FusionParams, fuse, to_hazard_grid
+from flight_sw.fusion import FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, run_pipeline  # loaded at boot, before Hello: not inside the first deadline
 from flight_sw.sites import Site as SiteResult
@@ -303,8 +303,8 @@ class FlightProcess:
     def _fuse(self, res) -> tuple[HazardGrid, list[SiteResult], str | None]:
         """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it."""
         p = res.params
-        # the fused map calls safe at the pipeline's own P floor (fast: 0.97 with the calibrated call)
-        prm = replace(self.fusion_params, p_min=float(p.get("psafe_min", self.fusion_params.p_min)))
+        # the fused map decides as the pipeline did: its P floor, FP budget and the model's prior (fusion.py)
+        prm = params_for(p, res.info, self.fusion_params)
         self.fused = fuse(self.fused, res.grid, prm)
         grid = to_hazard_grid(self.fused, prm)
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))

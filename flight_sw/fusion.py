@@ -8,7 +8,8 @@ Robotics* ch. 9)::
 
     l_i   = logit(P_i(safe)),  clipped to [-l_max, +l_max]       (the result's own evidence)
     l_i   = -l_unsafe                                            where the result says unsafe
-    L    <- L + w_i * l_i     w_i = 1 for the first result that maps the cell, w after it
+    L    <- l_i                   for the first result that maps the cell
+    L    <- L + w (l_i - l_0)     for every later one,  l_0 = max(0, logit(prior_p))
 
 ``P_i(safe)`` already carries the result's own uncertainty (:mod:`flight_sw.evidence`: it is
 computed from the footprint slope and roughness against their sigma), so a confident, lower,
@@ -18,9 +19,32 @@ Successive results share frames and terrain-dependent errors, so they are not in
 ``w < 1`` discounts every result after the first (the independent-evidence sum would be
 ``w = 1``); the first enters whole, so a map of one result is that result.
 
+**The prior is counted once.** A calibrated P(safe) (:mod:`flight_sw.psafe`) is a posterior: it
+already holds the prior share of safe ground, ``logit(P_i) = l_0 + evidence_i``. Summing the
+posteriors of n results would count that prior n times, and with a prior of 78 % safe (the tuning
+points' share) two results that know nothing about a cell would call it 93 % safe. So a later
+result adds only its evidence beyond the prior, ``l_i - l_0`` (Bayes' rule for conditionally
+independent observations; ``prior_p = 0.5`` gives ``l_0 = 0``, the plain sum, right for the flat-prior
+Gaussian P(safe) of :mod:`flight_sw.evidence`). ``l_0`` is never taken below 0: a prior for
+"unsafe" is not added back, which keeps the rule for hazards below.
+
+**Accumulated evidence needs a higher bar.** Results of one descent share frames and terrain, so a
+hazard one result misses (a crater wall the DEM blurs) the next result tends to miss too: each says
+"93 % safe", and even with the prior counted once their sum passes ``p_min``. A cell that no result
+called safe by its own decision (the pipeline's P floor and FP budget) is therefore called safe only
+once the fused P(safe) reaches ``p_accumulate``; a cell that some result called safe needs ``p_min``.
+``p_accumulate = 0`` lets evidence accumulate to ``p_min`` (the Gaussian P(safe) setting).
+
+Measured on held-out 4-frame descents with the calibrated P(safe) (2026-11-25,
+docs/benchmarks/multiframe.md): with neither rule, fused FP reached 4.7 % where the best single pair
+had 0.15 %. The calibrated settings (:func:`params_for`: ``w = 0.3``, ``l_max = logit(0.999)``,
+``p_accumulate = 0.995``) were chosen on tuning descents (seeds 0-9) with ``bench/bench_multiframe.py``.
+
 The fused state per cell (``p_min`` the pipeline's safe threshold, ``T = logit(p_min)``)::
 
     safe     L >= T      unsafe   L <= -(l_max + T)      unknown   otherwise      outside: never mapped
+
+and a cell that no result called safe needs ``L >= logit(p_accumulate)`` as well (above).
 
 The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
 unsafe after an unsafe call, or when several results agree that it is very likely unsafe, so
@@ -28,7 +52,7 @@ a map of one result has exactly that result's states.
 
 **The rule for hazards.** A result that calls a cell unsafe adds ``-w_u l_unsafe``. The cell is
 called safe again only once the other results have added at least ``T + w_u l_unsafe`` of
-evidence for "safe" (each later result at most ``w l_max``). With the defaults (``w = 0.7``,
+evidence for "safe" (each later result at most ``w (l_max - l_0)``). With the defaults (``l_0 = 0``, ``w = 0.7``,
 ``l_max = logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``): a hazard
 called by the first result to see the cell needs 11.4, i.e. four later results each at least
 99 % sure the cell is safe; one called by a later result needs 8.6, three such results. No
@@ -50,13 +74,21 @@ the newest result that measured the cell.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
 from .mapping import HazardGrid, grid_xy
+from .psafe import load_model
+
+# chosen on tuning descents (seeds 0-9, bench/bench_multiframe.py; module doc) for the calibrated P(safe)
+CALIBRATED_WEIGHT = 0.3
+CALIBRATED_L_MAX = math.log(999.0)  # logit(0.999): one result's P(safe) is not squashed to 0.99
+CALIBRATED_P_ACCUMULATE = 0.995
 
 
 @dataclass(frozen=True)
@@ -69,6 +101,8 @@ class FusionParams:
     p_min: float = 0.9  # fused safe when P(safe) >= this; unsafe when P(safe) <= 1 - this
     extent: str = "newest"  # "newest": the map follows the newest result's grid; "union": all results' extents
     max_cells: int = 2_000_000  # the fused map never holds more cells than this
+    prior_p: float = 0.5  # the P(safe) a result's posterior holds with no evidence; later results add beyond it
+    p_accumulate: float = 0.0  # a cell no result called safe itself needs fused P(safe) >= this too
 
     def validate(self) -> None:
         for name in ("weight", "l_max", "l_unsafe"):
@@ -79,6 +113,10 @@ class FusionParams:
             raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
         if not self.l_unsafe > self.l_max + logit_threshold(self.p_min):
             raise ValueError("fusion: l_unsafe must exceed l_max + logit(p_min) (an unsafe call must read unsafe)")
+        if not 0 < self.prior_p < 1:
+            raise ValueError(f"fusion: prior_p must be in (0, 1), got {self.prior_p!r}")
+        if not 0 <= self.p_accumulate < 1:
+            raise ValueError(f"fusion: p_accumulate must be in [0, 1), got {self.p_accumulate!r}")
         if self.extent not in ("newest", "union"):
             raise ValueError(f"fusion: extent must be 'newest' or 'union', got {self.extent!r}")
         if not (isinstance(self.max_cells, int) and self.max_cells >= 1):
@@ -92,6 +130,7 @@ class FusedMap:
     logodds: np.ndarray  # float32 (rows, cols): accumulated evidence for "safe"
     seen: np.ndarray  # uint8 (rows, cols): how many results mapped the cell (0: never, i.e. outside)
     elevation: np.ndarray  # float32 (rows, cols): newest measured elevation, NaN if none
+    called: np.ndarray  # uint8 (rows, cols): how many results called the cell safe by their own decision
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
     results: int = 0  # results fused so far
@@ -104,6 +143,31 @@ class FusedMap:
 def logit_threshold(p_min: float) -> float:
     """``T = logit(p_min)``: the log-odds a cell needs to be called safe."""
     return math.log(p_min / (1.0 - p_min))
+
+
+def params_for(pipeline_params: Mapping[str, Any], info: Mapping[str, Any], base: FusionParams) -> FusionParams:
+    """``base`` set to decide as the pipeline run that made a result (``PipelineResult.params`` / ``.info``):
+    its P(safe) floor, and with the calibrated P(safe) in effect the model's prior (``info["safe_share"]``
+    of the model file: the share of safe points it was fitted on) and the calibrated weights (module doc).
+    With the Gaussian P(safe) (flat prior) ``base`` is kept apart from the floor."""
+    p_min = float(pipeline_params.get("psafe_min", base.p_min))
+    if pipeline_params.get("psafe_model") != "calibrated" or "psafe_fallback" in info:
+        return replace(base, p_min=p_min)
+    model = load_model(str(pipeline_params.get("psafe_model_path") or "") or None)
+    return replace(
+        base,
+        p_min=p_min,
+        prior_p=float(model.info.get("safe_share", 0.5)),
+        weight=CALIBRATED_WEIGHT,
+        l_max=CALIBRATED_L_MAX,
+        l_unsafe=2.0 * CALIBRATED_L_MAX,
+        p_accumulate=CALIBRATED_P_ACCUMULATE,
+    )
+
+
+def prior_logodds(params: FusionParams) -> float:
+    """``l_0 = max(0, logit(prior_p))``: the prior a later result's log-odds hold, removed before adding."""
+    return max(0.0, logit_threshold(params.prior_p))
 
 
 def overturn_margin(params: FusionParams, times_unsafe: int = 1, first: bool = True) -> float:
@@ -186,6 +250,7 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
             np.zeros(shape, np.float32),
             np.zeros(shape, np.uint8),
             np.full(shape, np.nan, np.float32),
+            np.zeros(shape, np.uint8),
             origin,
             cell,
             0,
@@ -193,17 +258,25 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
     lo = resample(np.where(fm.seen > 0, fm.logodds, np.nan), fm.origin_xy, fm.cell_m, origin, cell, shape)
     seen = resample(fm.seen.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
     elev = resample(fm.elevation, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
+    # a coarser cell counts as called safe only if all of its finer parts were (the minimum)
+    called = resample(fm.called.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
     seen_u8 = np.where(np.isfinite(seen), seen, 0).astype(np.uint8)
+    called_u8 = np.where(np.isfinite(called) & (seen_u8 > 0), called, 0).astype(np.uint8)
     return FusedMap(
-        np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32), seen_u8, elev, origin, cell, fm.results
+        np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
+        seen_u8,
+        elev,
+        called_u8,
+        origin,
+        cell,
+        fm.results,
     )
 
 
 def empty_map() -> FusedMap:
     """A map before any result: no cells."""
-    return FusedMap(
-        np.zeros((0, 0), np.float32), np.zeros((0, 0), np.uint8), np.zeros((0, 0), np.float32), (0.0, 0.0), 0.0
-    )
+    none = np.zeros((0, 0), np.uint8)
+    return FusedMap(np.zeros((0, 0), np.float32), none, np.zeros((0, 0), np.float32), none, (0.0, 0.0), 0.0)
 
 
 def fuse(
@@ -222,7 +295,7 @@ def fuse(
         raise ValueError(f"fusion: weight must be a positive number, got {weight!r}")
     fm = fm if fm is not None else empty_map()
     if grid.hazard.size == 0 or not (grid.state != STATE_OUTSIDE).any():
-        return FusedMap(fm.logodds.copy(), fm.seen.copy(), fm.elevation.copy(), fm.origin_xy, fm.cell_m, fm.results + 1)
+        return replace(fm, results=fm.results + 1)  # arrays are never modified in place
     cell = float(grid.cell_m)
     origin, shape = (
         (float(grid.origin_xy[0]), float(grid.origin_xy[1])),
@@ -243,11 +316,16 @@ def fuse(
     l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
     e_new = resample(grid.elevation, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
     upd = np.isfinite(l_new)
-    wi = np.where(base.seen > 0, np.float32(w), np.float32(1.0))  # the first result to map a cell enters whole
-    logodds = base.logodds + np.where(upd, wi * np.nan_to_num(l_new), np.float32(0.0))
+    first = base.seen == 0  # the first result to map a cell enters whole, prior included
+    wi = np.where(first, np.float32(1.0), np.float32(w))
+    li = np.nan_to_num(l_new) - np.where(first, np.float32(0.0), np.float32(prior_logodds(prm)))
+    logodds = base.logodds + np.where(upd, wi * li, np.float32(0.0))
     seen = np.minimum(base.seen.astype(np.int32) + upd, 255).astype(np.uint8)
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
-    return FusedMap(logodds.astype(np.float32), seen, elev, origin, cell, fm.results + 1)
+    # the result's own safe calls, on the map's grid (a coarser map cell: only if all its parts were called)
+    c_new = resample((grid.state == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
+    called = np.minimum(base.called.astype(np.int32) + (upd & (np.nan_to_num(c_new) > 0.5)), 255).astype(np.uint8)
+    return FusedMap(logodds.astype(np.float32), seen, elev, called, origin, cell, fm.results + 1)
 
 
 def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -256,7 +334,7 @@ def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.nd
     T = logit_threshold(prm.p_min)
     lo = fm.logodds
     state = np.full(lo.shape, STATE_UNKNOWN, np.uint8)
-    state[lo >= T] = STATE_SAFE
+    state[(lo >= T) & ((fm.called > 0) | (lo >= logit_threshold(max(prm.p_accumulate, prm.p_min))))] = STATE_SAFE
     bound = np.float32(-(prm.l_max + T))
     state[lo <= bound] = STATE_UNSAFE
     state[fm.seen == 0] = STATE_OUTSIDE

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -179,6 +180,65 @@ def test_results_without_an_elevation_never_make_ground_safe():
     assert fm is not None and not (fused_state(fm, prm)[0] == STATE_SAFE).any()
     fm = fuse(fm, uniform(STATE_UNKNOWN, 0.85), prm)  # then one measured, below p_min: the blind ones added nothing
     assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
+
+
+def test_a_calibrated_prior_is_counted_once():
+    """Calibrated P(safe) is a posterior holding the prior share of safe ground; results that add no
+    evidence beyond it must leave a cell at the prior, not sum it into "safe" (held-out descents: FP 4.7 %)."""
+    prior = 0.8
+    plain = FusionParams(p_min=0.9)
+    counted_once = FusionParams(p_min=0.9, prior_p=prior)
+    vague = uniform(STATE_UNKNOWN, prior)
+    fm_plain = fm_once = None
+    for _ in range(4):
+        fm_plain, fm_once = fuse(fm_plain, vague, plain), fuse(fm_once, vague, counted_once)
+    assert fm_plain is not None and fm_once is not None
+    assert np.all(fused_state(fm_plain, plain)[0] == STATE_SAFE)  # what summing posteriors did
+    st, ps = fused_state(fm_once, counted_once)
+    assert np.all(st == STATE_UNKNOWN) and np.allclose(ps, prior, atol=1e-5)
+    # evidence beyond the prior still adds up: two results at 0.95 with a 0.8 prior pass p_min = 0.95
+    sure = FusionParams(p_min=0.95, prior_p=prior)
+    fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.94), sure), uniform(STATE_UNKNOWN, 0.94), sure)
+    assert np.all(fused_state(fm, sure)[0] == STATE_SAFE)
+
+
+def test_accumulated_evidence_needs_the_higher_bar():
+    """A cell no result called safe itself becomes safe only at p_accumulate; one that a result called
+    safe needs p_min. Results that each say "93 % safe" must not add up to safe below that bar."""
+    prm = FusionParams(p_min=0.97, prior_p=0.8, weight=0.3, p_accumulate=0.995)
+    st = np.full((6, 6), STATE_UNKNOWN, np.uint8)
+    st[:, :3] = STATE_SAFE  # the left half: called safe by the first result at 0.98
+    first = grid_of(st, np.where(st == STATE_SAFE, 0.98, 0.93))
+    fm = fuse(None, first, prm)
+    for _ in range(3):
+        fm = fuse(fm, uniform(STATE_UNKNOWN, 0.93), prm)
+    state, ps = fused_state(fm, prm)
+    assert np.all(ps[:, 3:] >= 0.97) and np.all(ps[:, 3:] < 0.995)  # over p_min, under the bar
+    assert np.all(state[:, 3:] == STATE_UNKNOWN) and np.all(state[:, :3] == STATE_SAFE)
+    free = dataclasses.replace(prm, p_accumulate=0.0)  # without the bar the same evidence calls it safe
+    fm2 = fuse(None, first, free)
+    for _ in range(3):
+        fm2 = fuse(fm2, uniform(STATE_UNKNOWN, 0.93), free)
+    assert np.all(fused_state(fm2, free)[0] == STATE_SAFE)
+    # a called cell survives resampling onto a finer grid; onto a coarser one only if all parts were called
+    fine = fuse(fm, uniform(STATE_UNKNOWN, 0.93, shape=(12, 12), origin=(-0.25, 0.25), cell=0.5), prm)
+    assert fine.called[:, :4].min() >= 1 and fine.called[:, 8:].max() == 0
+
+
+def test_params_for_follow_the_pipeline_that_made_the_result():
+    from flight_sw.fusion import params_for
+    from flight_sw.pipeline import PRESETS
+    from flight_sw.psafe import load_model
+
+    fast = dataclasses.asdict(PRESETS["fast"])
+    prm = params_for(fast, {}, FusionParams())
+    prm.validate()
+    assert prm.p_min == fast["psafe_min"] and prm.p_accumulate > prm.p_min
+    assert prm.prior_p == load_model().info["safe_share"] and 0.5 < prm.prior_p < 1
+    fallback = params_for(fast, {"psafe_fallback": "not fitted for 128x128"}, FusionParams())
+    assert fallback == dataclasses.replace(FusionParams(), p_min=fast["psafe_min"])  # the Gaussian flat prior
+    thesis = params_for(dataclasses.asdict(PRESETS["thesis"]), {}, FusionParams())
+    assert thesis.prior_p == 0.5 and thesis.p_accumulate == 0 and thesis.p_min == PRESETS["thesis"].psafe_min
 
 
 class _Link:
