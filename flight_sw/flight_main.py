@@ -75,7 +75,7 @@ PRIOR_FLOOR = 0.5  # after the first Result, plan for at least this share of the
 # link_baud (the ground link's rate, 0 = none to plan for) and time_scale (the emulated slowdown).
 DEFAULT_ELEVATION_STEP = 1
 DEFAULT_PSAFE_STEP = 1
-DEFAULT_FUSION = 0  # fusion (0/1): Results report the map fused over the descent (opt-in: docs/hil.md)
+DEFAULT_FUSION = 1  # fusion (0/1): Results report the map fused over the descent (docs/benchmarks/multiframe.md)
 # Fusing and choosing sites on the fused map happen after the pipeline returns: unthrottled seconds
 # (x time_scale) kept for them (a 400x400 grid: ~20 ms to fuse, ~10 ms for sites on this host)
 FUSION_RESERVE_S = 0.03

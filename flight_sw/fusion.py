@@ -2,61 +2,62 @@
 
 Each pipeline result is a :class:`flight_sw.mapping.HazardGrid` on its own world grid (its cell
 is the reference image's ground sample distance, so lower results are finer). The fused map
-holds, per cell of its own grid, the accumulated log-odds that the cell is safe (a binary Bayes
-filter, as in occupancy-grid mapping: Moravec & Elfes 1985, Thrun et al. *Probabilistic
-Robotics* ch. 9)::
+holds, per cell of its own grid, the log-odds that the cell is safe (a binary Bayes filter, as in
+occupancy-grid mapping: Moravec & Elfes 1985, Thrun et al. *Probabilistic Robotics* ch. 9, with
+the discounting below)::
 
-    l_i   = logit(P_i(safe)),  clipped to [-l_max, +l_max]       (the result's own evidence)
-    l_i   = -l_unsafe                                            where the result says unsafe
-    L    <- l_i                   for the first result that maps the cell
-    L    <- L + w (l_i - l_0)     for every later one,  l_0 = max(0, logit(prior_p))
+    l_i  = logit(P_i(safe)), clipped to [-l_max, +l_max]     (the result's own evidence)
+    l_i  = -l_unsafe                                        where the result says unsafe
+    l_0  = max(0, logit(prior_p))                           (the prior every P_i holds)
+    e    = L - l_0                                          (what earlier results added to the prior)
+    L   <- l_i + (w e  if e > 0  else  e)                   (the first result to map a cell: L = l_i)
 
-``P_i(safe)`` already carries the result's own uncertainty (:mod:`flight_sw.evidence`: it is
-computed from the footprint slope and roughness against their sigma), so a confident, lower,
-finer result moves a cell more than a vague, higher one. A cell a result did not map (outside
-its overlap) gets no update; a cell it mapped without an elevation (P = 0.5) gets ``l_i = 0``.
-Successive results share frames and terrain-dependent errors, so they are not independent:
-``w < 1`` discounts every result after the first (the independent-evidence sum would be
-``w = 1``); the first enters whole, so a map of one result is that result.
+**The newest result enters whole.** Lower results are finer and see hazards a higher, coarser one
+blurred away (a 3 m footprint spans 2 cells at 500 m and 10 at 100 m), so the map takes each new
+result's P(safe) as it is, and adds what the earlier results said beyond the prior: their
+evidence *against* safety whole (a hazard stays a hazard), their evidence *for* it discounted by
+``w < 1``. Successive results share frames and terrain-dependent errors (a crater wall one
+result's DEM smooths, the next one's smooths too), so summing their evidence as if independent
+(``w = 1``) overstates it. A map of one result is that result.
 
 **The prior is counted once.** A calibrated P(safe) (:mod:`flight_sw.psafe`) is a posterior: it
-already holds the prior share of safe ground, ``logit(P_i) = l_0 + evidence_i``. Summing the
-posteriors of n results would count that prior n times, and with a prior of 78 % safe (the tuning
-points' share) two results that know nothing about a cell would call it 93 % safe. So a later
-result adds only its evidence beyond the prior, ``l_i - l_0`` (Bayes' rule for conditionally
-independent observations; ``prior_p = 0.5`` gives ``l_0 = 0``, the plain sum, right for the flat-prior
-Gaussian P(safe) of :mod:`flight_sw.evidence`). ``l_0`` is never taken below 0: a prior for
-"unsafe" is not added back, which keeps the rule for hazards below.
+already holds the prior share of safe ground, ``logit(P_i) = l_0 + evidence_i``. Adding
+posteriors would count that prior once per result: with 81 % safe ground (the share the model was
+fitted on) two results that know nothing about a cell would call it 95 % safe. So only
+``e = L - l_0`` is carried (Bayes' rule for conditionally independent observations; ``prior_p =
+0.5``, ``l_0 = 0``, suits the flat-prior Gaussian P(safe) of :mod:`flight_sw.evidence`). ``l_0`` is
+never below 0: a prior for "unsafe" is not added back, which keeps the rule for hazards below.
 
-**Accumulated evidence needs a higher bar.** Results of one descent share frames and terrain, so a
-hazard one result misses (a crater wall the DEM blurs) the next result tends to miss too: each says
-"93 % safe", and even with the prior counted once their sum passes ``p_min``. A cell that no result
-called safe by its own decision (the pipeline's P floor and FP budget) is therefore called safe only
-once the fused P(safe) reaches ``p_accumulate``; a cell that some result called safe needs ``p_min``.
-``p_accumulate = 0`` lets evidence accumulate to ``p_min`` (the Gaussian P(safe) setting).
+**No elevation, no evidence for "safe".** Where a result has no elevation its P(safe) is only a
+context prior; it leaves the cell's evidence as it was (the demo showed FP 10 % when image-only
+results were allowed to add to "safe"), unless it calls the cell unsafe (shadow) or below even.
 
-Measured on held-out 4-frame descents with the calibrated P(safe) (2026-11-25,
-docs/benchmarks/multiframe.md): with neither rule, fused FP reached 4.7 % where the best single pair
-had 0.15 %. The calibrated settings (:func:`params_for`: ``w = 0.3``, ``l_max = logit(0.999)``,
-``p_accumulate = 0.995``) were chosen on tuning descents (seeds 0-9) with ``bench/bench_multiframe.py``.
+**Accumulated evidence needs a higher bar.** A cell the newest result that measured it did not call
+safe by its own decision (the pipeline's P floor and FP budget) becomes safe only once the fused
+P(safe) reaches ``p_accumulate``; a cell it called safe needs ``p_min``. The fused state
+(``T = logit(p_min)``)::
 
-The fused state per cell (``p_min`` the pipeline's safe threshold, ``T = logit(p_min)``)::
-
-    safe     L >= T      unsafe   L <= -(l_max + T)      unknown   otherwise      outside: never mapped
-
-and a cell that no result called safe needs ``L >= logit(p_accumulate)`` as well (above).
+    safe     L >= T  and  (called safe by the newest result that measured it  or  L >= logit(p_accumulate))
+    unsafe   L <= -(l_max + T)          unknown   otherwise          outside   never mapped
 
 The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
-unsafe after an unsafe call, or when several results agree that it is very likely unsafe, so
-a map of one result has exactly that result's states.
+unsafe after an unsafe call, or when several results agree that it is very likely unsafe.
 
-**The rule for hazards.** A result that calls a cell unsafe adds ``-w_u l_unsafe``. The cell is
-called safe again only once the other results have added at least ``T + w_u l_unsafe`` of
-evidence for "safe" (each later result at most ``w (l_max - l_0)``). With the defaults (``l_0 = 0``, ``w = 0.7``,
-``l_max = logit(0.99) = 4.6``, ``l_unsafe = 2 l_max``, ``T = logit(0.9) = 2.2``): a hazard
-called by the first result to see the cell needs 11.4, i.e. four later results each at least
-99 % sure the cell is safe; one called by a later result needs 8.6, three such results. No
-single newer result can overturn a hazard. :func:`overturn_margin` gives the amounts.
+**The rule for hazards.** Because ``w e <= e`` for every ``e``, by induction ``L - l_0 <= sum_i
+(l_i - l_0)`` over all the results that mapped the cell. So a cell that results called unsafe
+``n_u`` times is called safe again only once the *other* results' evidence beyond the prior sums
+to at least ``T - l_0 + n_u (l_unsafe + l_0)`` (:func:`overturn_margin`), however they are
+ordered. With the calibrated settings (``p_min = 0.97``, ``prior_p = 0.806``, ``l_max =
+logit(0.999) = 6.9``, ``l_unsafe = 2 l_max``): 17.3 for one unsafe call, i.e. at least four later
+results each 99.9 % sure; with the defaults (``p_min = 0.9``, ``prior_p = 0.5``): 16.0, three such
+results. No single newer result can overturn a hazard (``l_unsafe > l_max + T``, checked).
+
+**Measured** (docs/benchmarks/multiframe.md): with the calibrated P(safe) the earlier rule (every
+later result added ``w l_i``, posteriors summed) gave fused FP up to 4.7 % on held-out 4-frame
+descents where the best single pair had 0.15 %, and up to 3.7 % (13 of 320 Results over 1 %) on
+HIL-like streams of a scenario's pairs fused in order where each pair alone stayed <= 0.43 %. The
+settings (``w = 0.3``, ``l_max = logit(0.999)``, ``p_accumulate = 0.995``) were chosen on tuning
+seeds 0-9 of both benchmarks.
 
 **Extent and resampling.** With ``extent="newest"`` (the flight default) the fused map after a
 result lies on that result's own grid: the lander's current view at its current resolution, so
@@ -85,30 +86,27 @@ from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNS
 from .mapping import HazardGrid, grid_xy
 from .psafe import load_model
 
-# chosen on tuning descents (seeds 0-9, bench/bench_multiframe.py; module doc) for the calibrated P(safe)
-CALIBRATED_WEIGHT = 0.3
-CALIBRATED_L_MAX = math.log(999.0)  # logit(0.999): one result's P(safe) is not squashed to 0.99
-CALIBRATED_P_ACCUMULATE = 0.995
-
 
 @dataclass(frozen=True)
 class FusionParams:
-    """Knobs of the fusion rule (module doc)."""
+    """Knobs of the fusion rule (module doc; chosen on tuning seeds 0-9 with the calibrated P(safe))."""
 
-    weight: float = 0.7  # w: correlation discount per result
-    l_max: float = math.log(99.0)  # largest |log-odds| one result's P(safe) contributes (P = 0.99)
-    l_unsafe: float = 2.0 * math.log(99.0)  # log-odds against "safe" of an unsafe call (2 l_max)
+    weight: float = 0.3  # w: the share of earlier evidence for "safe" carried into each new result
+    l_max: float = math.log(999.0)  # largest |log-odds| one result's P(safe) contributes (P = 0.999)
+    l_unsafe: float = 2.0 * math.log(999.0)  # log-odds against "safe" of an unsafe call (2 l_max)
     p_min: float = 0.9  # fused safe when P(safe) >= this; unsafe when P(safe) <= 1 - this
     extent: str = "newest"  # "newest": the map follows the newest result's grid; "union": all results' extents
     max_cells: int = 2_000_000  # the fused map never holds more cells than this
-    prior_p: float = 0.5  # the P(safe) a result's posterior holds with no evidence; later results add beyond it
-    p_accumulate: float = 0.0  # a cell no result called safe itself needs fused P(safe) >= this too
+    prior_p: float = 0.5  # the P(safe) a result's posterior holds with no evidence (counted once)
+    p_accumulate: float = 0.995  # a cell the newest measuring result did not call safe needs P(safe) >= this
 
     def validate(self) -> None:
         for name in ("weight", "l_max", "l_unsafe"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"fusion: {name} must be a positive number, got {v!r}")
+        if not self.weight <= 1:
+            raise ValueError(f"fusion: weight must be at most 1, got {self.weight!r}")
         if not 0.5 < self.p_min < 1:
             raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
         if not self.l_unsafe > self.l_max + logit_threshold(self.p_min):
@@ -130,7 +128,7 @@ class FusedMap:
     logodds: np.ndarray  # float32 (rows, cols): accumulated evidence for "safe"
     seen: np.ndarray  # uint8 (rows, cols): how many results mapped the cell (0: never, i.e. outside)
     elevation: np.ndarray  # float32 (rows, cols): newest measured elevation, NaN if none
-    called: np.ndarray  # uint8 (rows, cols): how many results called the cell safe by their own decision
+    called: np.ndarray  # uint8 (rows, cols): 1 if the newest result with evidence there called the cell safe
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
     results: int = 0  # results fused so far
@@ -148,21 +146,12 @@ def logit_threshold(p_min: float) -> float:
 def params_for(pipeline_params: Mapping[str, Any], info: Mapping[str, Any], base: FusionParams) -> FusionParams:
     """``base`` set to decide as the pipeline run that made a result (``PipelineResult.params`` / ``.info``):
     its P(safe) floor, and with the calibrated P(safe) in effect the model's prior (``info["safe_share"]``
-    of the model file: the share of safe points it was fitted on) and the calibrated weights (module doc).
-    With the Gaussian P(safe) (flat prior) ``base`` is kept apart from the floor."""
+    of the model file: the share of safe points it was fitted on); the Gaussian P(safe) has a flat prior."""
     p_min = float(pipeline_params.get("psafe_min", base.p_min))
     if pipeline_params.get("psafe_model") != "calibrated" or "psafe_fallback" in info:
-        return replace(base, p_min=p_min)
+        return replace(base, p_min=p_min, prior_p=0.5)
     model = load_model(str(pipeline_params.get("psafe_model_path") or "") or None)
-    return replace(
-        base,
-        p_min=p_min,
-        prior_p=float(model.info.get("safe_share", 0.5)),
-        weight=CALIBRATED_WEIGHT,
-        l_max=CALIBRATED_L_MAX,
-        l_unsafe=2.0 * CALIBRATED_L_MAX,
-        p_accumulate=CALIBRATED_P_ACCUMULATE,
-    )
+    return replace(base, p_min=p_min, prior_p=float(model.info.get("safe_share", 0.5)))
 
 
 def prior_logodds(params: FusionParams) -> float:
@@ -170,24 +159,24 @@ def prior_logodds(params: FusionParams) -> float:
     return max(0.0, logit_threshold(params.prior_p))
 
 
-def overturn_margin(params: FusionParams, times_unsafe: int = 1, first: bool = True) -> float:
-    """Evidence for "safe" the other results must add before a cell called unsafe ``times_unsafe``
-    times is called safe (module doc): ``T + (w_1 + (n - 1) w) l_unsafe``, ``w_1 = 1`` if the first
-    result to map the cell was one of the unsafe calls (``first``), else ``w``."""
-    w1 = 1.0 if first else params.weight
-    return logit_threshold(params.p_min) + (w1 + (times_unsafe - 1) * params.weight) * params.l_unsafe
+def overturn_margin(params: FusionParams, times_unsafe: int = 1) -> float:
+    """The least sum of ``l_i - l_0`` over the *other* results before a cell called unsafe
+    ``times_unsafe`` times can be called safe (module doc): ``T - l_0 + n_u (l_unsafe + l_0)``."""
+    l0 = prior_logodds(params)
+    return logit_threshold(params.p_min) - l0 + times_unsafe * (params.l_unsafe + l0)
 
 
 def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
-    """Per-cell evidence ``l_i`` of one result (module doc): float32, NaN where it mapped nothing."""
+    """Per-cell evidence ``l_i`` of one result (module doc): float32, NaN where it mapped nothing or has
+    no evidence (no elevation and no call against "safe")."""
     ps = np.asarray(grid.psafe, np.float64)
     st = np.asarray(grid.state)
     lo = 1.0 / (1.0 + math.exp(params.l_max))
     p = np.clip(np.where(np.isfinite(ps), ps, 0.5), lo, 1.0 - lo)
     out = np.log(p / (1.0 - p))
     # no elevation, no evidence for "safe": a calibrated P(safe) there is only a context prior, and
-    # summed over results it would call unmeasured ground safe (demo: FP 10 % after an image-only result)
-    out[~np.isfinite(np.asarray(grid.elevation, np.float64)) & (out > 0)] = 0.0
+    # counted over results it would call unmeasured ground safe (demo: FP 10 % after an image-only result)
+    out[~np.isfinite(np.asarray(grid.elevation, np.float64)) & (out > prior_logodds(params))] = np.nan
     out[st == STATE_UNSAFE] = -params.l_unsafe
     out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
     return out.astype(np.float32)
@@ -284,15 +273,15 @@ def fuse(
 ) -> FusedMap:
     """The fused map after one more result (a new object; ``fm`` is not modified).
 
-    ``weight`` overrides ``params.weight`` for this result (cells it is the first to map take 1).
+    ``weight`` overrides ``params.weight`` for this result (the share of earlier evidence for "safe" it carries).
     The map's grid is the result's (``extent="newest"``) or the union of both extents at the finer
     cell (``"union"``), bounded by ``max_cells`` either way.
     """
     prm = params or FusionParams()
     prm.validate()
     w = prm.weight if weight is None else float(weight)
-    if not (math.isfinite(w) and w > 0):
-        raise ValueError(f"fusion: weight must be a positive number, got {weight!r}")
+    if not (math.isfinite(w) and 0 < w <= 1):
+        raise ValueError(f"fusion: weight must be in (0, 1], got {weight!r}")
     fm = fm if fm is not None else empty_map()
     if grid.hazard.size == 0 or not (grid.state != STATE_OUTSIDE).any():
         return replace(fm, results=fm.results + 1)  # arrays are never modified in place
@@ -315,16 +304,18 @@ def fuse(
     li = result_logodds(grid, prm)
     l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
     e_new = resample(grid.elevation, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
-    upd = np.isfinite(l_new)
-    first = base.seen == 0  # the first result to map a cell enters whole, prior included
-    wi = np.where(first, np.float32(1.0), np.float32(w))
-    li = np.nan_to_num(l_new) - np.where(first, np.float32(0.0), np.float32(prior_logodds(prm)))
-    logodds = base.logodds + np.where(upd, wi * li, np.float32(0.0))
-    seen = np.minimum(base.seen.astype(np.int32) + upd, 255).astype(np.uint8)
+    st = np.asarray(grid.state)
+    mapped = (st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN)
+    m_new = resample(mapped.astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape, fill=0.0) > 0.5
+    upd = np.isfinite(l_new)  # the result has evidence for the cell
+    e = np.where(base.seen > 0, base.logodds - np.float32(prior_logodds(prm)), np.float32(0.0))
+    carried = np.where(e > 0, np.float32(w) * e, e)  # earlier evidence for "safe" discounted, against it whole
+    logodds = np.where(upd, np.nan_to_num(l_new) + carried, base.logodds)
+    seen = np.minimum(base.seen.astype(np.int32) + (m_new | upd), 255).astype(np.uint8)
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
-    # the result's own safe calls, on the map's grid (a coarser map cell: only if all its parts were called)
-    c_new = resample((grid.state == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
-    called = np.minimum(base.called.astype(np.int32) + (upd & (np.nan_to_num(c_new) > 0.5)), 255).astype(np.uint8)
+    # did the newest result with evidence call the cell safe (a coarser map cell: only if all its parts were)
+    c_new = resample((st == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
+    called = np.where(upd, np.nan_to_num(c_new) > 0.5, base.called > 0).astype(np.uint8)
     return FusedMap(logodds.astype(np.float32), seen, elev, called, origin, cell, fm.results + 1)
 
 

@@ -253,7 +253,7 @@ def stream_descent(
     connect_timeout_s: float = 60.0,
     reconnect_timeout_s: float = 10.0,
     full_maps: bool = False,
-    fusion: bool = False,
+    fusion: bool = True,
     elevation_step: int = 1,
     psafe_step: int = 1,
     progress=None,
@@ -514,7 +514,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
     ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
     ap.add_argument(
-        "--fusion", action="store_true", help="ask for the map fused over the descent instead of each pair's alone"
+        "--fusion",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="ask for the map fused over the descent (default) or, with --no-fusion, each pair's alone",
     )
     ap.add_argument("--elevation-step", default="auto", help="elevation grid decimation k >= 1, or auto")
     ap.add_argument("--psafe-step", default="auto", help="P(safe) grid decimation k >= 1, or auto")

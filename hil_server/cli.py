@@ -285,9 +285,10 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     )
     p.add_argument(
         "--fusion",
-        action="store_true",
-        help="Results report the map fused over the descent (flight_sw.fusion; off by default: a wrong early map "
-        "carries forward, docs/benchmarks/multiframe.md); default: each Result reports its pair alone",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="Results report the map fused over the descent (flight_sw.fusion, the default; held-out figures in "
+        "docs/benchmarks/multiframe.md); --no-fusion: each Result reports its pair alone",
     )
     p.add_argument(
         "--insecure",

@@ -71,7 +71,7 @@ class RunConfig:
     corrupt: float = 0.0  # serial only: per-byte drop, flip and duplicate rate on the line
     timeout_s: float = 900.0
     full_maps: bool = False  # Results also carry the full-resolution image maps
-    fusion: bool = False  # True: Results report the map fused over the descent (flight_sw.fusion); False: each alone
+    fusion: bool = True  # True: Results report the map fused over the descent (flight_sw.fusion); False: each alone
     elevation_step: int | None = None  # elevation grid decimation; None = by line rate (ground_sim.stream)
     psafe_step: int | None = None  # P(safe) grid decimation; None = by line rate
     insecure: bool = False  # zmq without CURVE (loopback debugging)
@@ -576,8 +576,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             ]
             if cfg.full_maps:
                 ground_cmd.append("--full-maps")
-            if cfg.fusion:
-                ground_cmd.append("--fusion")
+            ground_cmd.append("--fusion" if cfg.fusion else "--no-fusion")
             if emulated:
                 sup_cmd = [
                     sys.executable,

@@ -12,8 +12,8 @@ from flight_sw.fusion import (
     FusionParams,
     fuse,
     fused_state,
-    logit_threshold,
     overturn_margin,
+    prior_logodds,
     resample,
     result_logodds,
     to_hazard_grid,
@@ -37,68 +37,65 @@ def uniform(state: int, p: float, shape=(6, 6), **kw) -> HazardGrid:
     return grid_of(np.full(shape, state, np.uint8), np.full(shape, p, np.float32), **kw)
 
 
-def test_one_hazard_needs_the_documented_evidence_to_be_overturned():
-    prm = FusionParams()
-    T, w = logit_threshold(prm.p_min), prm.weight
-    l_safe = math.log(0.99 / 0.01)  # the most one result can say for "safe" (l_max = logit(0.99))
-    assert prm.l_max == pytest.approx(l_safe, abs=1e-3)
-    need = math.ceil(overturn_margin(prm) / (w * prm.l_max) - 1e-9)  # 4 with the defaults (module doc)
-    assert need == 4
-    assert math.ceil(overturn_margin(prm, first=False) / (w * prm.l_max) - 1e-9) == 3
+CALIBRATED = FusionParams(p_min=0.97, prior_p=0.806)  # what params_for gives fast (checked below)
+
+
+@pytest.mark.parametrize("prm, need_doc", [(FusionParams(), 3), (CALIBRATED, 4)])
+def test_one_hazard_needs_the_documented_evidence_to_be_overturned(prm, need_doc):
+    l0 = prior_logodds(prm)
+    per_result = prm.l_max - l0  # the most one result can add beyond the prior (P >= 0.999, clipped)
+    need = math.ceil(overturn_margin(prm) / per_result - 1e-9)
+    assert need == need_doc  # the module doc's counts
     fm = fuse(None, uniform(STATE_UNSAFE, 0.0), prm)
     assert np.all(fused_state(fm, prm)[0] == STATE_UNSAFE)
     for k in range(1, need + 1):
-        fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)  # clipped to l_max: as confident as a result can be
-        st, ps = fused_state(fm, prm)
+        fm = fuse(fm, uniform(STATE_SAFE, 0.9999), prm)  # as confident as a result can be
+        st, _ = fused_state(fm, prm)
         if k < need:
             assert np.all(st != STATE_SAFE), f"one hazard overturned by only {k} later results"
         else:
             assert np.all(st == STATE_SAFE)
-    # a hazard seen three times needs more than four
-    fm = fuse(fuse(fuse(None, uniform(STATE_UNSAFE, 0.0), prm), uniform(STATE_UNSAFE, 0.0), prm), uniform(1, 0), prm)
+    # a hazard seen twice needs more than that
+    fm = fuse(fuse(None, uniform(STATE_UNSAFE, 0.0), prm), uniform(STATE_UNSAFE, 0.0), prm)
     for _ in range(need):
-        fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)
+        fm = fuse(fm, uniform(STATE_SAFE, 0.9999), prm)
     assert np.all(fused_state(fm, prm)[0] != STATE_SAFE)
-    assert math.isclose(T, math.log(9.0))
+    assert math.ceil(overturn_margin(prm, 2) / per_result - 1e-9) > need
 
 
 def test_fused_safe_cells_respect_the_rule_on_random_sequences():
-    """Property: a fused-safe cell that any result called unsafe got at least overturn_margin from the others."""
+    """Property: a fused-safe cell that results called unsafe n_u times got at least overturn_margin(n_u)
+    of evidence beyond the prior from the other results, whatever the order."""
     rng = np.random.default_rng(7)
-    prm = FusionParams()
-    for trial in range(40):
-        n = int(rng.integers(2, 7))
-        shape = (9, 11)
-        grids, logs = [], []
-        for _ in range(n):
-            st = rng.choice(
-                [STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE], size=shape, p=[0.55, 0.1, 0.25, 0.1]
-            )
-            ps = np.where(st == STATE_SAFE, rng.uniform(0.9, 1.0, shape), rng.uniform(0.0, 0.9, shape))
-            ps = np.where(st == STATE_UNSAFE, 0.0, ps)
-            g = grid_of(st, ps)
-            grids.append(g)
-            logs.append(result_logodds(g, prm))
-        fm = None
-        for g in grids:
-            fm = fuse(fm, g, prm)
-        assert fm is not None
-        st, _ = fused_state(fm, prm)
-        L = np.stack(logs)  # NaN: the result did not map the cell
-        mapped = np.isfinite(L)
-        first = mapped & (np.cumsum(mapped, axis=0) == 1)  # the first result to map each cell enters whole
-        W = np.where(first, 1.0, prm.weight)
-        calls = np.stack([g.state for g in grids]) == STATE_UNSAFE
-        unsafe_calls = calls.sum(axis=0)
-        others = np.nansum(np.where(calls, np.nan, W * L), axis=0)
-        first_unsafe = np.any(first & calls, axis=0)
-        flagged = (st == STATE_SAFE) & (unsafe_calls > 0)
-        for i, j in zip(*np.nonzero(flagged)):
-            need = overturn_margin(prm, int(unsafe_calls[i, j]), bool(first_unsafe[i, j]))
-            assert others[i, j] >= need - 1e-4, (trial, i, j)
-        # and the unseen cells stay outside, the seen ones do not
-        seen = np.any(np.stack([g.state for g in grids]) != STATE_OUTSIDE, axis=0)
-        assert np.array_equal(st == STATE_OUTSIDE, ~seen)
+    for prm in (FusionParams(), CALIBRATED, FusionParams(weight=1.0, prior_p=0.7, p_accumulate=0.0)):
+        l0 = prior_logodds(prm)
+        for trial in range(40):
+            n = int(rng.integers(2, 8))
+            shape = (9, 11)
+            grids, logs = [], []
+            for _ in range(n):
+                st = rng.choice(
+                    [STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE], size=shape, p=[0.55, 0.1, 0.25, 0.1]
+                )
+                ps = np.where(st == STATE_SAFE, rng.uniform(0.97, 1.0, shape), rng.uniform(0.0, 0.97, shape))
+                ps = np.where(st == STATE_UNSAFE, 0.0, ps)
+                g = grid_of(st, ps)
+                grids.append(g)
+                logs.append(result_logodds(g, prm))
+            fm = None
+            for g in grids:
+                fm = fuse(fm, g, prm)
+            assert fm is not None
+            st, _ = fused_state(fm, prm)
+            L = np.stack(logs)  # NaN: the result did not map the cell
+            calls = np.stack([g.state for g in grids]) == STATE_UNSAFE
+            unsafe_calls = calls.sum(axis=0)
+            others = np.nansum(np.where(calls, np.nan, L - l0), axis=0)
+            flagged = (st == STATE_SAFE) & (unsafe_calls > 0)
+            for i, j in zip(*np.nonzero(flagged)):
+                assert others[i, j] >= overturn_margin(prm, int(unsafe_calls[i, j])) - 1e-4, (trial, i, j)
+            seen = np.any(np.stack([g.state for g in grids]) != STATE_OUTSIDE, axis=0)
+            assert np.array_equal(st == STATE_OUTSIDE, ~seen)  # the unseen cells stay outside, the seen ones do not
 
 
 def test_newest_result_wins_would_fail_the_rule():
@@ -159,9 +156,12 @@ def test_sites_on_the_fused_map_and_unknown_adds_nothing():
     st[:, :8] = STATE_UNSAFE
     g = grid_of(st, np.where(st == STATE_SAFE, 0.99, 0.0), origin=(-20.0, 20.0), cell=1.0)
     fm = fuse(None, g, prm)
-    fm = fuse(fm, uniform(STATE_UNKNOWN, 0.5, shape=(40, 40), origin=(-20.0, 20.0), cell=1.0), prm)
+    blind = uniform(
+        STATE_UNKNOWN, 0.8, shape=(40, 40), origin=(-20.0, 20.0), cell=1.0, elevation=np.full((40, 40), np.nan)
+    )
+    fm = fuse(fm, blind, prm)
     hg = to_hazard_grid(fm, prm)
-    assert np.array_equal(hg.state, fused_state(fuse(None, g, prm), prm)[0])  # an empty result changes nothing
+    assert np.array_equal(hg.state, fused_state(fuse(None, g, prm), prm)[0])  # an image-only result changes nothing
     assert np.all(hg.hazard[hg.state == STATE_UNSAFE] == 1.0) and np.all(hg.hazard[hg.state == STATE_SAFE] < 1.0)
     sites, reason = select_safe_sites(hg, 3.0, (0.0, 0.0), 3, 0.5)
     assert sites and reason == ""
@@ -184,45 +184,64 @@ def test_results_without_an_elevation_never_make_ground_safe():
 
 def test_a_calibrated_prior_is_counted_once():
     """Calibrated P(safe) is a posterior holding the prior share of safe ground; results that add no
-    evidence beyond it must leave a cell at the prior, not sum it into "safe" (held-out descents: FP 4.7 %)."""
+    evidence beyond it must leave a cell at the prior, not add it up into "safe"."""
     prior = 0.8
-    plain = FusionParams(p_min=0.9)
-    counted_once = FusionParams(p_min=0.9, prior_p=prior)
+    plain = FusionParams(prior_p=0.5, weight=1.0)
+    counted_once = FusionParams(prior_p=prior, weight=1.0)
     vague = uniform(STATE_UNKNOWN, prior)
     fm_plain = fm_once = None
     for _ in range(4):
         fm_plain, fm_once = fuse(fm_plain, vague, plain), fuse(fm_once, vague, counted_once)
     assert fm_plain is not None and fm_once is not None
-    assert np.all(fused_state(fm_plain, plain)[0] == STATE_SAFE)  # what summing posteriors did
+    assert np.all(fused_state(fm_plain, plain)[0] == STATE_SAFE)  # four "80 %" results read as 99.6 %
     st, ps = fused_state(fm_once, counted_once)
     assert np.all(st == STATE_UNKNOWN) and np.allclose(ps, prior, atol=1e-5)
-    # evidence beyond the prior still adds up: two results at 0.95 with a 0.8 prior pass p_min = 0.95
-    sure = FusionParams(p_min=0.95, prior_p=prior)
+    # evidence beyond the prior still adds up: two results at 0.94 with a 0.8 prior pass p_min = 0.95
+    sure = FusionParams(p_min=0.95, prior_p=prior, weight=1.0, p_accumulate=0.0)
     fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.94), sure), uniform(STATE_UNKNOWN, 0.94), sure)
     assert np.all(fused_state(fm, sure)[0] == STATE_SAFE)
 
 
+def test_the_newest_result_enters_whole():
+    """A finer, newer result that doubts a cell outweighs an earlier confident call (the stream failure:
+    coarse high results carried safe calls onto hazards the low results saw)."""
+    prm = CALIBRATED
+    fm = fuse(None, uniform(STATE_SAFE, 0.999), prm)
+    fm = fuse(fm, uniform(STATE_UNKNOWN, 0.9), prm)
+    st, ps = fused_state(fm, prm)
+    assert np.all(st == STATE_UNKNOWN) and np.all(ps < prm.p_accumulate)  # not called by the newest: the bar
+    # and evidence for "safe" from the past is discounted by w, evidence against it is not
+    e_safe = math.log(0.999 / 0.001) - prior_logodds(prm)
+    fm = fuse(fuse(None, uniform(STATE_SAFE, 0.999), prm), uniform(STATE_UNKNOWN, 0.5), prm)
+    assert np.allclose(fm.logodds, prm.weight * e_safe, atol=1e-4)
+    fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.01), prm), uniform(STATE_UNKNOWN, 0.5), prm)
+    assert np.allclose(fm.logodds, math.log(0.01 / 0.99) - prior_logodds(prm), atol=1e-4)
+
+
 def test_accumulated_evidence_needs_the_higher_bar():
-    """A cell no result called safe itself becomes safe only at p_accumulate; one that a result called
-    safe needs p_min. Results that each say "93 % safe" must not add up to safe below that bar."""
-    prm = FusionParams(p_min=0.97, prior_p=0.8, weight=0.3, p_accumulate=0.995)
-    st = np.full((6, 6), STATE_UNKNOWN, np.uint8)
-    st[:, :3] = STATE_SAFE  # the left half: called safe by the first result at 0.98
-    first = grid_of(st, np.where(st == STATE_SAFE, 0.98, 0.93))
-    fm = fuse(None, first, prm)
-    for _ in range(3):
-        fm = fuse(fm, uniform(STATE_UNKNOWN, 0.93), prm)
-    state, ps = fused_state(fm, prm)
-    assert np.all(ps[:, 3:] >= 0.97) and np.all(ps[:, 3:] < 0.995)  # over p_min, under the bar
-    assert np.all(state[:, 3:] == STATE_UNKNOWN) and np.all(state[:, :3] == STATE_SAFE)
+    """A cell the newest measuring result did not call safe becomes safe only at p_accumulate; results
+    that each say "96 % safe" must not add up to safe below that bar."""
+    prm = CALIBRATED
+    fm = None
+    for _ in range(5):
+        fm = fuse(fm, uniform(STATE_UNKNOWN, 0.96), prm)
+    assert fm is not None
+    st, ps = fused_state(fm, prm)
+    assert np.all(ps >= 0.97) and np.all(ps < 0.995)  # over p_min, under the bar
+    assert np.all(st == STATE_UNKNOWN)
     free = dataclasses.replace(prm, p_accumulate=0.0)  # without the bar the same evidence calls it safe
-    fm2 = fuse(None, first, free)
-    for _ in range(3):
-        fm2 = fuse(fm2, uniform(STATE_UNKNOWN, 0.93), free)
-    assert np.all(fused_state(fm2, free)[0] == STATE_SAFE)
-    # a called cell survives resampling onto a finer grid; onto a coarser one only if all parts were called
-    fine = fuse(fm, uniform(STATE_UNKNOWN, 0.93, shape=(12, 12), origin=(-0.25, 0.25), cell=0.5), prm)
-    assert fine.called[:, :4].min() >= 1 and fine.called[:, 8:].max() == 0
+    assert np.all(fused_state(fm, free)[0] == STATE_SAFE)
+    called = fuse(fm, uniform(STATE_SAFE, 0.98), prm)  # a result that calls it safe itself needs p_min
+    assert np.all(fused_state(called, prm)[0] == STATE_SAFE)
+    # the call survives resampling onto a finer grid; onto a coarser one only if all its parts were called
+    st2 = np.full((6, 6), STATE_UNKNOWN, np.uint8)
+    st2[:, :3] = STATE_SAFE
+    half = fuse(None, grid_of(st2, np.where(st2 == STATE_SAFE, 0.98, 0.9)), prm)
+    blind = uniform(
+        STATE_UNKNOWN, 0.9, shape=(12, 12), origin=(-0.25, 0.25), cell=0.5, elevation=np.full((12, 12), np.nan)
+    )
+    fine = fuse(half, blind, prm)
+    assert fine.called[:, :4].min() == 1 and fine.called[:, 8:].max() == 0
 
 
 def test_params_for_follow_the_pipeline_that_made_the_result():
@@ -236,9 +255,10 @@ def test_params_for_follow_the_pipeline_that_made_the_result():
     assert prm.p_min == fast["psafe_min"] and prm.p_accumulate > prm.p_min
     assert prm.prior_p == load_model().info["safe_share"] and 0.5 < prm.prior_p < 1
     fallback = params_for(fast, {"psafe_fallback": "not fitted for 128x128"}, FusionParams())
-    assert fallback == dataclasses.replace(FusionParams(), p_min=fast["psafe_min"])  # the Gaussian flat prior
+    assert fallback == dataclasses.replace(FusionParams(), p_min=fast["psafe_min"])  # the Gaussian's flat prior
     thesis = params_for(dataclasses.asdict(PRESETS["thesis"]), {}, FusionParams())
-    assert thesis.prior_p == 0.5 and thesis.p_accumulate == 0 and thesis.p_min == PRESETS["thesis"].psafe_min
+    assert thesis.prior_p == 0.5 and thesis.p_min == PRESETS["thesis"].psafe_min
+    assert dataclasses.replace(prm, extent="newest") == CALIBRATED  # the settings the tests above use
 
 
 class _Link:
