@@ -98,141 +98,7 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     return out
 
 
-# ----------------------------------------------------------------------------------------------- scoring
-def _pixel_world(pair: Any) -> tuple[np.ndarray, np.ndarray]:
-    """True world X, Y of frame 0's pixels (true pose, true elevation)."""
-    from flight_sw.georef import backproject
-    from protocol.pairdir import Pose
-
-    tf = pair.meta.get("true_frames")
-    pose = pair.poses[0]
-    if isinstance(tf, list) and tf:
-        pose = Pose(np.array(tf[0]["position_m"], float), np.array(tf[0]["R_world_to_cam"], float))
-    return backproject(pair.camera, pose, pair.truth["elevation"].astype(np.float64))
-
-
-def sample_cells(grid: Any, X: np.ndarray, Y: np.ndarray, layer: np.ndarray, fill: float) -> np.ndarray:
-    """Nearest cell of a world-grid layer at world points (``fill`` off the grid)."""
-    j = np.rint((X - grid.origin_xy[0]) / grid.cell_m)
-    i = np.rint((grid.origin_xy[1] - Y) / grid.cell_m)
-    h, w = layer.shape
-    ok = np.isfinite(i) & np.isfinite(j) & (i >= 0) & (i < h) & (j >= 0) & (j < w)
-    out = np.full(X.shape, fill, np.float32)
-    out[ok] = layer[i[ok].astype(int), j[ok].astype(int)]
-    return out
-
-
-def score(pair: Any, hazard: np.ndarray, elevation: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    from ground_sim import scoring
-
-    c = scoring.confusion(hazard, pair.truth["hazard"], mask)
-    tz = pair.truth["elevation"]
-    err = np.abs(elevation - tz)[mask]
-    fin = np.isfinite(err)
-    return {
-        "fp": c["fp"],
-        "fn": c["fn"],
-        "cdi": c["cdi"],
-        "dem": float(err[fin].mean()) if fin.any() else math.nan,
-        "coverage": 100.0 * float(fin.mean()) if fin.size else 0.0,
-    }
-
-
-def score_grid(pair: Any, grid: Any, mask: np.ndarray, XY: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
-    """Score a world-grid result at frame 0's pixels: safe cells -> hazard 0, others 1 (DESIGN.md)."""
-    from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE
-
-    st = sample_cells(grid, XY[0], XY[1], grid.state.astype(np.float32), float(STATE_OUTSIDE))
-    hz = np.where(st == STATE_SAFE, 0.0, 1.0).astype(np.float32)
-    hz[st == STATE_OUTSIDE] = np.nan
-    ez = sample_cells(grid, XY[0], XY[1], grid.elevation, math.nan)
-    return score(pair, hz, ez, mask)
-
-
-# ----------------------------------------------------------------------------------------------- policies
-def window_jobs(n: int, lag: int) -> list[tuple[int, list[int]]]:
-    """As frame k = 1..n-1 arrives: reference max(0, k - lag), the frames after it up to k."""
-    return [(max(0, k - lag), list(range(max(0, k - lag) + 1, k + 1))) for k in range(1, n)]
-
-
-def refs_to_last_jobs(n: int) -> list[tuple[int, list[int]]]:
-    """When the last frame arrives: one run per earlier reference r with frames r+1 .. n-1."""
-    return [(r, list(range(r + 1, n))) for r in range(n - 1)]
-
-
-def run_jobs(
-    pair: Any, jobs: list[tuple[int, list[int]]], preset: Any, overrides: dict[str, float]
-) -> tuple[Any, list[Any], float]:
-    """Run each (reference, others) set and fuse the results in order; returns the fused grid, results, CPU s.
-    Fusion decides as the flight process does (``fusion.params_for``), then ``overrides`` (``--fusion K=V``)."""
-    from flight_sw.fusion import FusionParams, fuse, params_for, to_hazard_grid
-    from flight_sw.pipeline import run_pipeline_multi
-
-    fm = None
-    results = []
-    cpu = 0.0
-    prm = FusionParams(**overrides)
-    for ref, others in jobs:
-        idx = [ref, *others]
-        c0 = time.thread_time()
-        res = run_pipeline_multi(
-            [pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset
-        )
-        prm = dataclasses.replace(params_for(res.params, res.info, FusionParams()), **overrides)
-        fm = fuse(fm, res.grid, prm)
-        cpu += time.thread_time() - c0
-        results.append(res)
-    assert fm is not None
-    return to_hazard_grid(fm, prm), results, cpu
-
-
-def policies(n: int) -> dict[str, list[tuple[int, list[int]]]]:
-    return {
-        "fused window 2": window_jobs(n, 2),
-        "fused window 3": window_jobs(n, 3),
-        "fused refs->last": refs_to_last_jobs(n),
-        "fused refs->last pairs": [(r, [n - 1]) for r in range(n - 1)],
-    }
-
-
-def evaluate_descent(
-    pair_dir: Path, preset: Any, overrides: dict[str, float], which: list[str]
-) -> dict[str, dict[str, float]]:
-    from flight_sw.pipeline import run_pipeline, run_pipeline_multi
-    from protocol.pairdir import read_pair
-
-    pair = read_pair(pair_dir)
-    n = pair.n_frames
-    XY = _pixel_world(pair)
-    rows: dict[str, dict[str, float]] = {}
-    results = {}
-    for k in range(n - 1, 0, -1):
-        c0 = time.thread_time()
-        results[k] = run_pipeline(
-            pair.images[0], pair.images[k], pair.poses[0], pair.poses[k], pair.camera, preset=preset
-        )
-        results[k].info["cpu_s"] = time.thread_time() - c0
-    mask = results[n - 1].covered & np.isfinite(pair.truth["hazard"])  # the widest pair's overlap
-    for k in range(1, n):
-        res = results[k]
-        cpu = res.info["cpu_s"]
-        rows[f"pair 0-{k}"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": cpu}
-        rows[f"pair 0-{k} (grid)"] = score_grid(pair, res.grid, mask, XY)
-    best = max(range(1, n), key=lambda k: rows[f"pair 0-{k}"]["cdi"])
-    rows["best pair"] = {**rows[f"pair 0-{best}"], "k": best}
-    if "multi" in which:
-        c0 = time.thread_time()
-        res = run_pipeline_multi(list(pair.images), list(pair.poses), pair.camera, preset=preset)
-        cpu = time.thread_time() - c0
-        rows["multi"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": cpu}
-    for name, jobs in policies(n).items():
-        if name not in which:
-            continue
-        g, _, cpu = run_jobs(pair, jobs, preset, overrides)
-        rows[name] = {**score_grid(pair, g, mask, XY), "cpu_s": cpu, "runs": len(jobs)}
-    return rows
-
-
+# scoring, policies and one descent's evaluation live in studies.multiframe (``hazard-hil evaluate --multi-frame``)
 def _med(v: list[float]) -> float:
     v = [x for x in v if x is not None and math.isfinite(x)]
     return statistics.median(v) if v else math.nan
@@ -308,18 +174,19 @@ def speed(args: argparse.Namespace) -> int:
 def accuracy(args: argparse.Namespace) -> int:
     from flight_sw.fusion import FusionParams
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
+    from studies.multiframe import evaluate_descent, fused_policies
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     preset = build_preset(args)
     overrides = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)}
     FusionParams(**overrides).validate()  # a bad --fusion fails here, not after the first render
-    which = ["multi", *policies(len(args.altitudes))] if args.policies is None else args.policies
+    which = ["multi", *fused_policies(len(args.altitudes))] if args.policies is None else args.policies
     cache = Path(args.cache)
     per: list[dict[str, Any]] = []
     for case in args.cases:
         for s in seeds:
             d = render_descent(case, s, list(args.altitudes), cache)
-            rows = evaluate_descent(d, preset, overrides, which)
+            rows = evaluate_descent(d, preset, which, overrides)
             per.append({"case": case, "seed": s, "dir": str(d), "rows": rows})
             print(
                 f"{case} seed {s}: best pair 0-{rows['best pair']['k']} CDI {rows['best pair']['cdi']:.1f} FP "

@@ -108,6 +108,17 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) to evaluate"
     )
+    p.add_argument(
+        "--multi-frame",
+        action="store_true",
+        help="also render one multi-frame descent per seed and compare the fast preset's multi-baseline run and "
+        "fused maps against the best single pair (chosen with the truth; issue 10)",
+    )
+    p.add_argument(
+        "--frames",
+        default=None,
+        help="with --multi-frame: comma-separated frame altitudes [m], decreasing, 2-16 (default 300,250,200,150)",
+    )
     _common(p)
     p.set_defaults(func=_evaluate, seeds_default=3)
 
@@ -145,6 +156,21 @@ def _parse_alts(text: str | None) -> list[int] | None:
         raise InputError(f"--altitudes: expected comma-separated numbers, got {text!r}") from None
 
 
+def _parse_frames(scenario: str, text: str | None) -> list[float]:
+    """``--frames``: 2-16 decreasing positive altitudes, checked by the trajectory before any work starts."""
+    from ground_sim.trajectory import frames_at
+    from studies.multiframe import DEFAULT_FRAMES
+
+    if text is None:
+        return list(DEFAULT_FRAMES)
+    try:
+        alts = [float(a) for a in text.split(",") if a.strip()]
+    except ValueError:
+        raise InputError(f"--frames: expected comma-separated altitudes, got {text!r}") from None
+    frames_at(scenario, alts)  # TrajectoryError (an InputError) with the reason
+    return alts
+
+
 def _presets(choice: str) -> list[str]:
     return {"both": ["fast", "thesis"], "refine": ["fast", "fast_unrefined"]}.get(choice, [choice])
 
@@ -155,6 +181,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from studies.executor import CampaignError
 
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
+    frames = _parse_frames(args.scenario, args.frames)
     try:
         rows = ev.evaluate_scenario(
             args.scenario,
@@ -171,15 +198,32 @@ def _evaluate(args: argparse.Namespace) -> int:
     except CampaignError as exc:
         print(f"hazard-hil evaluate: {exc}; rerun the same command to retry them", file=sys.stderr)
         return 1
+    multi = None
+    if args.multi_frame:
+        from studies import multiframe as mf
+
+        multi = mf.evaluate_multiframe(
+            args.scenario,
+            args.out,
+            seeds,
+            frames=frames,
+            cache_dir=args.cache,
+            camera_px=args.camera_px,
+            progress=None if args.no_progress else print,
+        )
     seeds_text = describe_seeds(seeds, seed_set)
     page = report.evaluation_report(
         args.out,
         rows,
         title=f"hazard-hil evaluate: {args.scenario} scenario, {seeds_text}",
         figure_preset=_presets(args.preset)[0],
+        multiframe=multi,
     )
     print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
+    if multi:
+        print(f"multi-frame descents ({'/'.join(f'{a:g}' for a in frames)} m) against the best pair, preset fast:")
+        print((args.out / "report" / f"multiframe_{args.scenario}.md").read_text())
     print(f"metrics: {args.out / 'metrics.csv'}\nreport:  {page}")
     return 0
 

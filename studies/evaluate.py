@@ -590,7 +590,8 @@ def sample_pose_error(kind: str, seed: int, index: int) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- rendering cache
-def _camera_for(size_px: int | None) -> Camera | None:
+def camera_for(size_px: int | None) -> Camera | None:
+    """A square camera with the thesis camera's 30 deg field of view (None: the thesis camera itself)."""
     if size_px is None or size_px == THESIS_CAMERA_PX:
         return None
     if size_px < 32:
@@ -626,7 +627,7 @@ def render_cache(
 
     if scenario not in SCENARIOS:
         raise EvaluationError(f"scenario must be one of {SCENARIOS}, got {scenario!r}")
-    specs = getattr(trajectory, scenario)(_camera_for(camera_px))
+    specs = getattr(trajectory, scenario)(camera_for(camera_px))
     if altitudes is not None:
         want = {int(a) for a in altitudes}
         have = [int(round(s.altitude_m)) for s in specs]

@@ -235,10 +235,10 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
     from ground_sim.scene import load_scene
     from ground_sim.trajectory import load_trajectory
     from protocol.pairdir import Sun, read_pair, write_pair
-    from studies.evaluate import _camera_for
+    from studies.evaluate import camera_for
 
     scenario = plan["scenario"]
-    spec = next(s for s in load_trajectory(scenario, _camera_for(plan["camera_px"])) if s.label == plan["pair"])
+    spec = next(s for s in load_trajectory(scenario, camera_for(plan["camera_px"])) if s.label == plan["pair"])
     sun = Sun(*plan["sun"])
     if cache_dir is None:
         return spec, render_pair(load_scene(plan["scene"], plan["seed"], scenario), spec, sun, seed=plan["seed"])

@@ -218,6 +218,38 @@ def table_markdown(t: Table) -> str:
     return "\n".join(lines)
 
 
+def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], path: str | Path) -> Path:
+    """CDI and FP of every descent, best single pair against each multi-frame policy (issue 10)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = ["best pair", *[p for p in policies if any(p in d["rows"] for d in per_descent)]]
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    x = np.arange(len(per_descent))
+    width = 0.8 / len(names)
+    for k, name in enumerate(names):
+        for ax, key in zip(axes, ("cdi", "fp"), strict=True):
+            ax.bar(
+                x + (k - (len(names) - 1) / 2) * width,
+                [d["rows"].get(name, {}).get(key, np.nan) for d in per_descent],
+                width,
+                label=name,
+            )
+    labels = [f"{d['scenario'][:4]} {d['seed']}" for d in per_descent]
+    for ax, ylabel in zip(axes, ("CDI %", "undetected hazards (FP) %"), strict=True):
+        ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=7)
+        ax.set_ylabel(ylabel)
+        ax.grid(axis="y", alpha=0.3)
+    axes[1].axhline(1.0, color="k", lw=0.8, ls="--")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
 def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
     cols = list(columns)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---:|" * len(cols)]
@@ -273,6 +305,7 @@ def _caption(name: str) -> str:
         ("_slope", "slope over the 3 m footprint: computed, true, error"),
         ("_rough", "roughness over the 3 m footprint: computed, true, error"),
         ("_detection", "detection rates and undetected hazards against altitude, thesis dashed"),
+        ("_multiframe", "per descent: the best single pair (chosen with the truth) against the multi-frame policies"),
     ):
         if stem.endswith(suffix):
             return f"{stem[: -len(suffix)].replace('_', ' ')}: {text}"
@@ -322,6 +355,7 @@ def evaluation_report(
     figure_altitudes: Iterable[int] | None = None,
     figure_preset: str = "fast",
     sensitivity: dict[str, list[dict[str, Any]]] | None = None,
+    multiframe: list[dict[str, Any]] | None = None,
     title: str = "hazard-hil evaluation",
 ) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
@@ -361,6 +395,14 @@ def evaluation_report(
                     imgs += [f.name for f in figures_from_maps(maps[0], rep, stem)]
         if imgs:
             sections.append((f"{scen}: maps, preset {figure_preset}", "", imgs))
+    if multiframe:
+        from studies import multiframe as mf
+
+        scen = multiframe[0]["scenario"]
+        alts = "/".join(f"{a:g}" for a in multiframe[0]["frames"])
+        plot = plot_multiframe(multiframe, mf.POLICIES, rep / f"{scen}_multiframe.png")
+        table = (rep / f"multiframe_{scen}.md").read_text()
+        sections.append((f"{scen}: multi-frame descents ({alts} m) against the best pair", table, [plot.name]))
     for kind, srows in (sensitivity or {}).items():
         plot = plot_sensitivity(srows, kind, rep / f"sensitivity_{kind}.png")
         summ = ev.sensitivity_summary(srows)

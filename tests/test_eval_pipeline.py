@@ -170,3 +170,40 @@ def test_evaluate_dask_matches_local_processes_and_workers_draw_the_figures(tmp_
 
     assert len(local) == 8 and strip(local) == strip(dask)
     assert {(r["seed_set"], r["scene"]) for r in local} == {("held-out", "thesis")}
+
+
+def test_multiframe_evaluation_scores_every_policy_against_the_best_pair(tmp_path: Path, cache: Path):
+    """``evaluate --multi-frame``'s core: with two frames the multi-baseline run is the pair bit for bit, so
+    it must score exactly as the best (only) pair; with three, every policy is scored on the same pixels."""
+    from studies import multiframe as mf
+
+    (two,) = mf.evaluate_multiframe("vertical", tmp_path, [0], frames=(300, 200), cache_dir=cache, camera_px=PX)
+    rows = two["rows"]
+    assert rows["best pair"]["k"] == 1
+    for key in ("fp", "fn", "cdi", "dem", "coverage"):
+        assert rows["multi"][key] == rows["pair 0-1"][key] == rows["best pair"][key]
+    (three,) = mf.evaluate_multiframe("vertical", tmp_path, [0], frames=(300, 250, 200), cache_dir=cache, camera_px=PX)
+    rows = three["rows"]
+    assert rows["best pair"]["cdi"] == max(rows[f"pair 0-{k}"]["cdi"] for k in (1, 2))
+    for name in ("best pair", *mf.POLICIES):
+        r = rows[name]
+        assert r["fp"] + r["fn"] + r["cdi"] == pytest.approx(100.0)  # the same confusion over the same pixels
+        assert 0 < r["coverage"] <= 100 and 0 < r["dem"] < 5.0
+    md = (tmp_path / "report" / "multiframe_vertical.md").read_text()
+    assert all(f"| {name} | 1 |" in md for name in ("best pair", *mf.POLICIES))
+
+
+def test_cli_multi_frame_report_and_bad_frames(tmp_path: Path, cache: Path, capsys):
+    from hil_server.cli import main
+
+    base = ["evaluate", "--scenario", "vertical", "--altitudes", "300", "--camera-px", str(PX), "--preset", "fast"]
+    base += ["--seed-set", "tuning", "--seeds", "1", "--workers", "1", "--no-progress", "--cache", str(cache)]
+    assert main([*base, "--multi-frame", "--frames", "300,350", "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "strictly decreasing" in err[0]
+    assert main([*base, "--multi-frame", "--frames", "300,250,200", "--out", str(tmp_path / "ok")]) == 0
+    out = capsys.readouterr().out
+    assert "multi-frame descents (300/250/200 m) against the best pair" in out and "| fused window 2 | 1 |" in out
+    page = (tmp_path / "ok" / "report" / "index.html").read_text()
+    assert "multi-frame descents" in page and "vertical_multiframe.png" in page
+    assert (tmp_path / "ok" / "report" / "vertical_multiframe.png").stat().st_size > 5000

@@ -74,9 +74,9 @@ def gsim():
     from ground_sim import trajectory
     from ground_sim.descent import DEFAULT_SUN, render_pair
     from ground_sim.scene import load_scene
-    from studies.evaluate import _camera_for
+    from studies.evaluate import camera_for
 
-    cam = _camera_for(PX)
+    cam = camera_for(PX)
     spec = next(s for s in trajectory.approach(cam) if s.label == "250/125")
     pair = render_pair(load_scene("approach", 0), spec, DEFAULT_SUN["approach"], seed=0)
     return cam, spec.poses[0], spec.poses[1], pair.images[0], pair.images[1], pair.truth["elevation"]

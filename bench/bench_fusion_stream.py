@@ -1,0 +1,171 @@
+"""Fusion over a whole descent as the HIL streams it (issue 10): each Result fused, against the pair alone.
+
+    .venv/bin/python bench/bench_fusion_stream.py --set tuning --n-seeds 10       # choose the fusion knobs
+    .venv/bin/python bench/bench_fusion_stream.py --set held-out --n-seeds 6      # report
+    .venv/bin/python bench/bench_fusion_stream.py --set tuning --fusion weight=0.5 p_accumulate=0.99
+
+For each case of ``bench/eval_flight.py`` (``--cases``; the default scene and the library's thesis scene,
+vertical and approach) and scene seed, the case's pairs are taken from the highest to the lowest, as the
+ground streams a descent. Each pair runs through the ``fast`` pipeline and its grid is fused into the map of
+the pairs before it (:mod:`flight_sw.fusion`, with the settings the flight process uses:
+``fusion.params_for``, then ``--fusion`` overrides). Every Result is scored where the ground scores it: at
+its own pair's reference pixels, against that pair's truth, on the pixels the pair covers
+(``studies.multiframe.score_grid``: a world-grid state read at each pixel's true ground point; unknown and
+outside count as not safe). "alone" is the pair's own grid, what a Result reports without fusion.
+
+Per case: pixel FP % (median / worst, Results over 1 %), CDI % (median), and the change fusion makes per
+Result (FP: largest increase and how many Results rise by more than 0.1 points; CDI: median and smallest).
+Seeds come from ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``; worst cases beside medians.
+Pipeline grids are cached per stream in ``--grids`` so that fusion settings can be compared quickly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pickle
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+DEFAULT_CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
+
+
+def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[str, Any]]:
+    """The case's pairs, highest first, each with its pipeline grid (cached in ``grids``)."""
+    from eval_flight import render_case
+
+    from flight_sw.pipeline import PRESETS, run_pipeline
+    from protocol.pairdir import read_pair
+
+    f = grids / f"{case}_s{seed}.pkl"
+    if f.is_file():
+        return list(pickle.loads(f.read_bytes()))
+    out = []
+    for e in sorted(render_case(case, seed, cache), key=lambda e: -e["altitude_m"]):
+        pair = read_pair(Path(e["pair_dir"]))
+        r = run_pipeline(
+            pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=PRESETS["fast"]
+        )
+        mask = r.covered & np.isfinite(pair.truth["hazard"])
+        out.append({"dir": e["pair_dir"], "alt": e["altitude_m"], "grid": r.grid, "params": r.params,
+                    "info": r.info, "mask": mask})  # fmt: skip
+    grids.mkdir(parents=True, exist_ok=True)
+    tmp = f.with_suffix(".partial")
+    tmp.write_bytes(pickle.dumps(out))
+    tmp.replace(f)
+    return out
+
+
+def score_stream(results: list[dict[str, Any]], overrides: dict[str, float]) -> list[dict[str, float]]:
+    """Fuse the stream in order; per Result the pair alone and the fused map, scored at that pair."""
+    from flight_sw.fusion import FusionParams, fuse, params_for, to_hazard_grid
+    from protocol.pairdir import read_pair
+    from studies.multiframe import pixel_world, score_grid
+
+    fm = None
+    rows = []
+    for r in results:
+        pair = read_pair(Path(r["dir"]))
+        xy = pixel_world(pair)
+        prm = dataclasses.replace(params_for(r["params"], r["info"], FusionParams()), **overrides)
+        fm = fuse(fm, r["grid"], prm)
+        alone = score_grid(pair, r["grid"], r["mask"], xy)
+        fused = score_grid(pair, to_hazard_grid(fm, prm), r["mask"], xy)
+        rows.append({"alt": r["alt"], "fp": alone["fp"], "cdi": alone["cdi"], "fp_f": fused["fp"],
+                     "cdi_f": fused["cdi"]})  # fmt: skip
+    return rows
+
+
+def summary(rows: list[dict[str, float]]) -> dict[str, float]:
+    dfp = [r["fp_f"] - r["fp"] for r in rows]
+    dcdi = [r["cdi_f"] - r["cdi"] for r in rows]
+    return {
+        "results": len(rows),
+        "fp_med": statistics.median(r["fp"] for r in rows),
+        "fp_worst": max(r["fp"] for r in rows),
+        "fp_over1": sum(r["fp"] > 1.0 for r in rows),
+        "cdi_med": statistics.median(r["cdi"] for r in rows),
+        "fp_f_med": statistics.median(r["fp_f"] for r in rows),
+        "fp_f_worst": max(r["fp_f"] for r in rows),
+        "fp_f_over1": sum(r["fp_f"] > 1.0 for r in rows),
+        "cdi_f_med": statistics.median(r["cdi_f"] for r in rows),
+        "dfp_max": max(dfp),
+        "dfp_over01": sum(d > 0.1 for d in dfp),
+        "dcdi_med": statistics.median(dcdi),
+        "dcdi_min": min(dcdi),
+    }
+
+
+def table(per_case: dict[str, dict[str, float]]) -> str:
+    out = [
+        "| case | Results | alone: FP % med / worst (> 1 %) | alone: CDI % med | fused: FP % med / worst (> 1 %) "
+        "| fused: CDI % med | FP change: max (Results > +0.1) | CDI change: med / min |",
+        "|---|---:|---|---:|---|---:|---|---|",
+    ]
+    for case, s in per_case.items():
+        out.append(
+            f"| {case} | {s['results']} | {s['fp_med']:.2f} / {s['fp_worst']:.2f} ({s['fp_over1']}) "
+            f"| {s['cdi_med']:.1f} | {s['fp_f_med']:.2f} / {s['fp_f_worst']:.2f} ({s['fp_f_over1']}) "
+            f"| {s['cdi_f_med']:.1f} | {s['dfp_max']:+.2f} ({s['dfp_over01']}) "
+            f"| {s['dcdi_med']:+.1f} / {s['dcdi_min']:+.1f} |"
+        )
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
+    ap.add_argument("--n-seeds", type=int, default=6)
+    ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES))
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
+    ap.add_argument("--grids", default="/tmp/fusion_stream_grids", help="cached pipeline grids per stream")
+    ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
+    ap.add_argument("--json", help="write per-Result rows and the summary here")
+    args = ap.parse_args(argv)
+
+    from eval_flight import CASES
+
+    from flight_sw.fusion import FusionParams
+    from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
+
+    bad = [c for c in args.cases if c not in CASES]
+    if bad:
+        ap.error(f"unknown case(s) {bad}; known: {sorted(CASES)}")
+    overrides: dict[str, Any] = {}
+    for kv in args.fusion:
+        k, _, v = kv.partition("=")
+        if k not in {f.name for f in dataclasses.fields(FusionParams)}:
+            ap.error(f"--fusion: FusionParams has no field {k!r}")
+        overrides[k] = v if k == "extent" else float(v)
+    FusionParams(**overrides).validate()
+    seeds = list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
+    streams = [(c, s) for c in args.cases for s in seeds]
+    rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}
+    t0 = time.perf_counter()
+    for k, (case, seed) in enumerate(streams, 1):
+        res = stream_results(case, seed, Path(args.cache), Path(args.grids))
+        rows[case] += [{"seed": seed, **r} for r in score_stream(res, overrides)]
+        print(f"[{k}/{len(streams)}] {case} seed {seed}: {len(res)} pairs ({time.perf_counter() - t0:.0f} s)",
+              file=sys.stderr, flush=True)  # fmt: skip
+    per_case = {c: summary(r) for c, r in rows.items() if r}
+    per_case["all"] = summary([x for r in rows.values() for x in r])
+    print(f"\nFusion over streamed descents, {args.set} seeds {seeds}, overrides {overrides or 'none'}\n")
+    print(table(per_case))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"seeds": seeds, "overrides": overrides, "summary": per_case,
+                                               "rows": rows}, indent=1))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
