@@ -48,8 +48,8 @@ RESULTS_LANDINGS ?= 1008
 results: $(STAMP)
 	rm -rf $(OUT)/eval_vertical/runs/evaluate.jsonl $(OUT)/eval_approach/runs/evaluate.jsonl
 	rm -rf $(OUT)/landings $(OUT)/landings_perfect_nav
-	$(VENV)/bin/hazard-hil evaluate --scenario vertical --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_vertical
-	$(VENV)/bin/hazard-hil evaluate --scenario approach --seeds $(RESULTS_SEEDS) --out $(OUT)/eval_approach
+	$(VENV)/bin/hazard-hil evaluate --scenario vertical --seeds $(RESULTS_SEEDS) --multi-frame --out $(OUT)/eval_vertical
+	$(VENV)/bin/hazard-hil evaluate --scenario approach --seeds $(RESULTS_SEEDS) --multi-frame --out $(OUT)/eval_approach
 	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders --out $(OUT)/landings
 	$(VENV)/bin/hazard-hil landings --scenes all --n $(RESULTS_LANDINGS) --cache $(OUT)/landing_renders \
 	  --pose-error none --out $(OUT)/landings_perfect_nav

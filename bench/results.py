@@ -2,8 +2,8 @@
 
 `make results` runs the campaigns and then this script; it copies the tables, per-pair metrics and a few
 figures into docs/results/ and replaces the text between ``<!-- BEGIN name -->`` and ``<!-- END name -->``
-markers in docs/RESULTS.md (blocks: ``vertical``, ``approach``, ``landings``, ``landings_perfect_nav``,
-``provenance``). Prose
+markers in docs/RESULTS.md (blocks: ``vertical``, ``approach``, ``multiframe`` when the evaluations ran with
+``--multi-frame``, ``landings``, ``landings_perfect_nav``, ``provenance``). Prose
 outside the markers is left alone: read the new numbers and update it by hand.
 
 Usage: ``.venv/bin/python bench/results.py OUT [--results docs/RESULTS.md]`` with OUT holding
@@ -101,6 +101,16 @@ def main() -> None:
         seed_set, seeds, scene = _seeds(src / "metrics.csv")
         prov.append(f"- {scen}: scene `{scene}`, {seed_set} seeds {', '.join(map(str, seeds))}")
         text = _block(text, scen, tables)
+    mf = []
+    for scen in ("vertical", "approach"):
+        rep = args.out / f"eval_{scen}" / "report"
+        if (rep / f"multiframe_{scen}.md").is_file():
+            shutil.copy(rep / f"{scen}_multiframe.png", dest / f"{scen}_multiframe.png")
+            mf.append(f"**{scen}**\n\n" + (rep / f"multiframe_{scen}.md").read_text())
+            alt = f"{scen}: per descent, best pair against the multi-frame policies"
+            mf.append(f"![{alt}](results/{scen}_multiframe.png)\n")
+    if mf:
+        text = _block(text, "multiframe", "\n".join(mf))
     lp = args.out / "landings"
     doc = json.loads((lp / "landings.json").read_text())
     for f in ("p_safe_by_scene.png", "outcomes.png", "divert_cdf.png"):
