@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import pickle
 import statistics
 import sys
@@ -60,7 +61,7 @@ def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[
         out.append({"dir": e["pair_dir"], "alt": e["altitude_m"], "grid": r.grid, "params": r.params,
                     "info": r.info, "mask": mask})  # fmt: skip
     grids.mkdir(parents=True, exist_ok=True)
-    tmp = f.with_suffix(".partial")
+    tmp = f.with_name(f"{f.name}.partial{os.getpid()}")  # concurrent runs never share a temporary file
     tmp.write_bytes(pickle.dumps(out))
     tmp.replace(f)
     return out

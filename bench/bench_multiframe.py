@@ -35,7 +35,6 @@ import dataclasses
 import json
 import math
 import os
-import shutil
 import statistics
 import sys
 import time
@@ -76,7 +75,7 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     from ground_sim.descent import DEFAULT_SUN
     from ground_sim.render import render_view
     from ground_sim.scene import load_scene
-    from protocol.pairdir import Camera, Pair, write_pair
+    from protocol.pairdir import Camera, Pair, write_pair_atomic
 
     label = "_".join(f"{a:g}" for a in altitudes)
     out = cache / f"{case}_{label}_s{seed}"
@@ -91,11 +90,7 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     meta = {"scenario": case, "label": label.replace("_", "/"), "scene": scene.params.name, "scene_seed": seed}
     meta["true_frames"] = [p.to_dict(f"i{k + 1}.png") for k, p in enumerate(poses)]
     pair = Pair(cam, tuple(poses), tuple(v.image for v in views), sun, truth, meta)
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    write_pair(tmp, pair)
-    os.replace(tmp, out)
-    return out
+    return write_pair_atomic(out, pair)
 
 
 # scoring, policies and one descent's evaluation live in studies.multiframe (``hazard-hil evaluate --multi-frame``)

@@ -22,8 +22,6 @@ import argparse
 import dataclasses
 import json
 import math
-import os
-import shutil
 import statistics
 import sys
 import time
@@ -55,7 +53,7 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
     from ground_sim.scene import load_scene
-    from protocol.pairdir import Sun, write_pair
+    from protocol.pairdir import Sun, write_pair_atomic
 
     traj, scene_spec, sun = CASES[case]
     specs = getattr(trajectory, traj)(None)
@@ -69,10 +67,7 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
         if not (d / "pair.json").is_file():
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
-            tmp = d.with_name(d.name + ".partial")
-            shutil.rmtree(tmp, ignore_errors=True)
-            write_pair(tmp, render_pair(scene, spec, s, seed=seed))
-            os.replace(tmp, d)
+            write_pair_atomic(d, render_pair(scene, spec, s, seed=seed))
         entries.append({"case": case, "seed": seed, "altitude_m": int(round(spec.altitude_m)), "pair_dir": str(d)})
     return entries
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -343,6 +344,27 @@ def write_pair(directory: str | Path, pair: Pair) -> Path:
 
 
 # --------------------------------------------------------------------------- image headers
+
+
+def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
+    """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
+    half-written directory, and when another process finished the same directory first (two studies
+    rendering into one cache) its copy is kept and ours dropped. Returns the directory."""
+    import shutil
+
+    d = Path(directory)
+    tmp = d.with_name(f"{d.name}.partial{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    write_pair(tmp, pair)
+    try:
+        os.replace(tmp, d)
+    except OSError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not (d / "pair.json").is_file():
+            raise
+    return d
+
+
 def image_header_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding: PNG, JPEG, PGM/PPM, BMP, TIFF.
 

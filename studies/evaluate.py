@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-import shutil
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -623,7 +621,7 @@ def render_cache(
     from ground_sim import library, trajectory
     from ground_sim.descent import render_pair
     from ground_sim.scene import load_scene, load_scene_params
-    from protocol.pairdir import write_pair
+    from protocol.pairdir import write_pair_atomic
 
     if scenario not in SCENARIOS:
         raise EvaluationError(f"scenario must be one of {SCENARIOS}, got {scenario!r}")
@@ -648,11 +646,9 @@ def render_cache(
                 sc = load_scene(scene_spec, seed, scenario)
             if progress:
                 print(f"render {scenario} seed {seed}: {spec.label} ({k + 1}/{len(specs)})", flush=True)
-            tmp = d.with_name(d.name + ".partial")
-            shutil.rmtree(tmp, ignore_errors=True)
             sun = library.scene_sun(scene_spec, scenario, seed)
-            write_pair(tmp, render_pair(sc, spec, sun, seed=seed))
-            os.replace(tmp, d)  # atomic: an interrupted render never leaves a half-written pair
+            # atomic: an interrupted render never leaves a half-written pair, a concurrent one is kept
+            write_pair_atomic(d, render_pair(sc, spec, sun, seed=seed))
         entries.append({"label": spec.label, "altitude_m": float(spec.altitude_m), "pair_dir": str(d)})
     return entries
 

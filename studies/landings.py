@@ -228,13 +228,11 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
 
     The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera), so
     campaigns that differ only in aim points, navigation errors or presets share their renders."""
-    import os
-    import shutil
 
     from ground_sim.descent import render_pair
     from ground_sim.scene import load_scene
     from ground_sim.trajectory import load_trajectory
-    from protocol.pairdir import Sun, read_pair, write_pair
+    from protocol.pairdir import Sun, read_pair, write_pair_atomic
     from studies.evaluate import camera_for
 
     scenario = plan["scenario"]
@@ -249,13 +247,7 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
     d = Path(cache_dir) / key
     if not (d / "pair.json").is_file():
         sc = load_scene(plan["scene"], plan["seed"], scenario)
-        tmp = d.with_name(d.name + f".partial{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
-        write_pair(tmp, render_pair(sc, spec, sun, seed=plan["seed"]))
-        try:
-            os.replace(tmp, d)  # atomic; a concurrent writer of the same key wrote the same bytes
-        except OSError:
-            shutil.rmtree(tmp, ignore_errors=True)
+        write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"]))  # a concurrent writer's copy is kept
     return spec, read_pair(d)
 
 

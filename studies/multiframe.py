@@ -22,8 +22,6 @@ ground point. Timing is CPU seconds (``time.thread_time``).
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -51,7 +49,7 @@ def render_descent(
     from ground_sim import library, trajectory
     from ground_sim.descent import default_scene, render_pair
     from ground_sim.scene import load_scene, load_scene_params
-    from protocol.pairdir import Camera, write_pair
+    from protocol.pairdir import Camera, write_pair_atomic
     from studies.evaluate import camera_for
 
     cam = camera_for(camera_px) or Camera.thesis()
@@ -64,11 +62,7 @@ def render_descent(
         return out
     sc = load_scene(scene_spec, seed, scenario)
     sun = library.scene_sun(scene_spec, scenario, seed)
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    write_pair(tmp, render_pair(sc, spec, sun, seed=seed))
-    os.replace(tmp, out)  # atomic: an interrupted render never leaves a half-written directory
-    return out
+    return write_pair_atomic(out, render_pair(sc, spec, sun, seed=seed))
 
 
 # ----------------------------------------------------------------------------------------------- scoring

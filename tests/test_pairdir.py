@@ -170,3 +170,22 @@ def test_positions_in_km_are_flagged(tmp_path):
     pair.poses = (Pose([0, 0, 0.6], NADIR, 0.0), Pose([0, 0, 0.3], NADIR, 12.5))
     write_pair(tmp_path, pair)
     assert any("metres" in n for n in read_pair(tmp_path).notes)
+
+
+def test_atomic_write_keeps_a_concurrent_copy_and_leaves_no_partial(tmp_path):
+    """Two studies rendering into one cache: the second writer of a finished directory keeps the first's
+    copy (no 'Directory not empty' failure), and neither leaves a half-written directory behind."""
+    from protocol.pairdir import write_pair_atomic
+
+    dest = tmp_path / "600_300"
+    write_pair_atomic(dest, make_pair(0))
+    first = (dest / "i1.png").read_bytes()
+    assert write_pair_atomic(dest, make_pair(1)) == dest  # another process got there first: its copy stays
+    assert (dest / "i1.png").read_bytes() == first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300"]
+    junk = tmp_path / "not_a_pair"
+    junk.mkdir()
+    (junk / "x.txt").write_text("x")
+    with pytest.raises(OSError):  # a non-empty directory that is not a pair is not silently kept
+        write_pair_atomic(junk, make_pair(2))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300", "not_a_pair"]
