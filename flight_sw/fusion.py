@@ -176,7 +176,8 @@ def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
     out = np.log(p / (1.0 - p))
     # no elevation, no evidence for "safe": a calibrated P(safe) there is only a context prior, and
     # counted over results it would call unmeasured ground safe (demo: FP 10 % after an image-only result)
-    out[~np.isfinite(np.asarray(grid.elevation, np.float64)) & (out > prior_logodds(params))] = np.nan
+    no_dem = ~np.isfinite(np.asarray(grid.elevation, np.float64))
+    out[no_dem & (~np.isfinite(ps) | (out >= prior_logodds(params)))] = np.nan
     out[st == STATE_UNSAFE] = -params.l_unsafe
     out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
     return out.astype(np.float32)

@@ -169,6 +169,15 @@ def test_sites_on_the_fused_map_and_unknown_adds_nothing():
         assert s.x > -20.0 + 8 + 1.5  # clear of the unsafe strip
 
 
+def test_a_result_with_no_elevation_and_no_psafe_leaves_the_map_as_it_was():
+    """An image-only result (a degraded level) may carry no P(safe) at all: it must not wipe earlier evidence."""
+    for prm in (FusionParams(), CALIBRATED):
+        fm = fuse(None, uniform(STATE_SAFE, 0.999), prm)
+        blind = uniform(STATE_UNKNOWN, np.nan, elevation=np.full((6, 6), np.nan))
+        fm2 = fuse(fm, blind, prm)
+        assert np.array_equal(fm2.logodds, fm.logodds) and np.all(fused_state(fm2, prm)[0] == STATE_SAFE)
+
+
 def test_results_without_an_elevation_never_make_ground_safe():
     """An image-only result (no DEM) may carry a high context-prior P(safe) on unknown cells; summed over
     the descent that must not call unmeasured ground safe (the demo showed FP 10 % before this rule)."""
