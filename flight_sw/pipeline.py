@@ -89,8 +89,10 @@ LEVELS = ("image_only", "coarse", "full")
 # Flight v2's stage costs for the anytime logic, unthrottled CPU seconds at REF_PIXELS (512^2, this
 # host, median of 3): a stage that cannot stop part-way starts only when its cost fits before the reserve.
 REF_PIXELS = 512 * 512
-WALL_CUE_S = 0.015  # shading wall cue (relative brightness at footprint scale)
-SHADOW_S = 0.014  # the whole shadow stage with the wall cue: the clock learns the real slowdown from it
+# shading wall cue (relative brightness at footprint scale): two Gaussian blurs, linear in the local-mean
+# sigma (5 px: 2.9 ms, 43 px: 27 ms, 60 px: 37 ms), and the footprint grows in pixels as the lander descends
+WALL_CUE_S_PER_SIGMA_PX = 0.00062
+SHADOW_BASE_S = 0.004  # the shadow stage without the wall cue: the clock learns the real slowdown from both
 MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's 1 / CPU fraction
 ROCKS_S = 0.03  # Harris rock mask
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
@@ -1059,16 +1061,19 @@ def _run_v2(
             info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
-        if need_rho and clock.ok(reserve + WALL_CUE_S * px_scale):
-            rho = relative_brightness(
-                i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
-            )
+        rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
+        wall_cue_s = WALL_CUE_S_PER_SIGMA_PX * rho_sigma
+        if need_rho and clock.ok(reserve + wall_cue_s * px_scale):
+            rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0))
             if p.shading_limit > 0 and not calibrated:  # the calibrated model weighs rho itself
                 wall = shading_mask(rho, p.shading_limit)
         elif need_rho:
             info["skipped"].append("wall_cue")
     if "wall_cue" not in info["skipped"]:
-        clock.learn(SHADOW_S * px_scale, timings["shadow"]["wall_s"], timings["shadow"]["cpu_s"])
+        # the stage's unthrottled cost follows the cue's sigma: a fixed reference (14 ms, right at 600 m)
+        # read a 200/100 pair's 29 ms as a 2x slowdown and left rad750 image-only with 16 s to spare
+        ref = (SHADOW_BASE_S + (wall_cue_s if need_rho else 0.0)) * px_scale
+        clock.learn(ref, timings["shadow"]["wall_s"], timings["shadow"]["cpu_s"])
 
     with _stage(timings, "range"):
         if p.range_search:
