@@ -220,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields")
             p.add_argument("--policies", nargs="*", default=None)
             p.add_argument("--json")
-    args = ap.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = ap.parse_args(argv or ["speed"])  # bare (``make bench``): the per-frame cost, ~30 s
     import cv2
 
     cv2.setNumThreads(1)
