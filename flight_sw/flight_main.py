@@ -303,7 +303,7 @@ class FlightProcess:
     def _fuse(self, res) -> tuple[HazardGrid, list[SiteResult], str | None]:
         """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it."""
         p = res.params
-        # the fused map decides as the pipeline did: its P floor, FP budget and the model's prior (fusion.py)
+        # the fused map decides at the pipeline's own P floor and counts the model's prior once (fusion.py)
         prm = params_for(p, res.info, self.fusion_params)
         self.fused = fuse(self.fused, res.grid, prm)
         grid = to_hazard_grid(self.fused, prm)

@@ -343,9 +343,6 @@ def write_pair(directory: str | Path, pair: Pair) -> Path:
     return d
 
 
-# --------------------------------------------------------------------------- image headers
-
-
 def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
     """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
     half-written directory, and when another process finished the same directory first (two studies
@@ -365,6 +362,7 @@ def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
     return d
 
 
+# --------------------------------------------------------------------------- image headers
 def image_header_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding: PNG, JPEG, PGM/PPM, BMP, TIFF.
 
