@@ -372,10 +372,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fd", type=int, required=True, help="inherited socket file descriptor to the supervisor")
     ap.add_argument("--heartbeat", type=float, default=0.25, help="heartbeat period (s)")
     ap.add_argument("--fault", default=None, help="test fault injection: crash@N, hang@N, oom@N")
+    ap.add_argument(
+        "--no-warm-up",
+        dest="warm_up",
+        action="store_false",
+        help="skip the boot warm-up (flight_sw.warmup): the first pair then pays the one-off set-up costs",
+    )
     args = ap.parse_args(argv)
     import cv2
 
     cv2.setNumThreads(1)  # one core, one thread: the emulated processor has no pool
+    if args.warm_up:  # before Hello, so outside every deadline
+        from flight_sw.warmup import boot_warm_up
+
+        w = boot_warm_up(PRESETS["fast"])
+        print(
+            f"flight: boot warm-up {w['cpu_s']:.3f} s CPU ({w['size_px']} px pair, level {w['level']}, "
+            f"allocator settled: {w['allocator_settled']})",
+            file=sys.stderr,
+            flush=True,
+        )
     from protocol.links import LOCAL_CONFIG, StreamLink
 
     sock = socket.socket(fileno=args.fd)
