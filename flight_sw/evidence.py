@@ -56,6 +56,72 @@ class PlaneFit:
     z_plane_sigma: np.ndarray
 
 
+def _plane_products(z: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """``(okz, [w, wx, wy, wz, wx^2, wxy, wy^2, wxz, wyz], xx, yy)``: what the box sums of a footprint run over."""
+    z = np.asarray(z, np.float64)
+    s = np.asarray(sigma, np.float64)
+    h, w = z.shape
+    okz = np.isfinite(z) & np.isfinite(s) & (s > 0)
+    wt = np.zeros((h, w))
+    np.divide(1.0, s * s, out=wt, where=okz)
+    wz = wt * np.where(okz, z, 0.0)
+    # coordinates relative to the grid centre keep the moments well conditioned
+    xx = (np.arange(w, dtype=np.float64) - w / 2.0)[None, :]
+    yy = (np.arange(h, dtype=np.float64) - h / 2.0)[:, None]
+    wx, wy = wt * xx, wt * yy
+    return okz, [wt, wx, wy, wz, wx * xx, wx * yy, wy * yy, wz * xx, wz * yy], xx, yy
+
+
+def _fit_from_products(
+    okz: np.ndarray,
+    prods: list[np.ndarray],
+    xx: np.ndarray,
+    yy: np.ndarray,
+    n: int,
+    cell_m: float,
+    min_fraction: float,
+    rho: float,
+    with_cov: bool,
+    with_plane: bool = True,
+) -> PlaneFit:
+    h, w = okz.shape
+    cnt = _box(okz.astype(np.float64), n)
+    s1, sx, sy, sz, sxx, sxy, syy, sxz, syz = (_box(a, n) for a in prods)
+    nan = np.float32(np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / s1
+        mx, my, mz = sx * inv, sy * inv, sz * inv
+        # weighted centred moments (means of w-weighted products)
+        cxx, cxy, cyy = sxx * inv - mx * mx, sxy * inv - mx * my, syy * inv - my * my
+        cxz, cyz = sxz * inv - mx * mz, syz * inv - my * mz
+        det = cxx * cyy - cxy * cxy
+        idet = 1.0 / det
+        p = (cxz * cyy - cyz * cxy) * idet
+        q = (cyz * cxx - cxz * cxy) * idet
+        g = np.hypot(p, q)
+        ok = (cnt >= min_fraction * n * n) & (det > 1e-6)
+        if with_plane or with_cov:
+            dx, dy = xx - mx, yy - my
+            zc = mz + p * dx + q * dy
+            ok &= np.isfinite(zc)
+        else:
+            ok &= np.isfinite(mz + p + q)  # zc is finite exactly where its terms are (dx, dy are)
+        gsig = zsig = np.full((h, w), nan, np.float32)
+        if with_cov:
+            # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
+            f = rho * inv * idet
+            vpp, vqq, vpq = f * cyy, f * cxx, -f * cxy
+            gvar = np.where(g > 1e-12, (p * p * vpp + q * q * vqq + 2 * p * q * vpq) / (g * g), 0.5 * (vpp + vqq))
+            # plane value at the cell: Var = rho/s1 + d^T Cov d, d = offset of the cell from the weighted centroid
+            zvar = rho * inv + dx * dx * vpp + dy * dy * vqq + 2 * dx * dy * vpq
+            gsig = np.where(ok, np.sqrt(np.maximum(gvar, 0.0)), nan).astype(np.float32)
+            zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
+    g32 = np.where(ok, g, nan).astype(np.float32)
+    slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
+    zp = np.where(ok, zc, nan).astype(np.float32) if with_plane or with_cov else np.full((h, w), nan, np.float32)
+    return PlaneFit(slope, g32, gsig, zp, zsig)
+
+
 def weighted_plane_fit(
     z: np.ndarray,
     sigma: np.ndarray,
@@ -69,52 +135,36 @@ def weighted_plane_fit(
 
     ``with_cov=False`` skips the textbook uncertainties (``grad_sigma``, ``z_plane_sigma`` are NaN).
     """
-    z = np.asarray(z, np.float64)
-    s = np.asarray(sigma, np.float64)
+    okz, prods, xx, yy = _plane_products(z, sigma)
     n = footprint_cells(footprint_m, cell_m)
-    h, w = z.shape
-    okz = np.isfinite(z) & np.isfinite(s) & (s > 0)
-    wt = np.zeros((h, w))
-    np.divide(1.0, s * s, out=wt, where=okz)
-    zz = np.where(okz, z, 0.0)
-    wz = wt * zz
-    # coordinates relative to the grid centre keep the moments well conditioned
-    xx = (np.arange(w, dtype=np.float64) - w / 2.0)[None, :]
-    yy = (np.arange(h, dtype=np.float64) - h / 2.0)[:, None]
-    wx, wy = wt * xx, wt * yy
-    cnt = _box(okz.astype(np.float64), n)
-    s1 = _box(wt, n)
-    sx, sy, sz = _box(wx, n), _box(wy, n), _box(wz, n)
-    sxx, sxy, syy = _box(wx * xx, n), _box(wx * yy, n), _box(wy * yy, n)
-    sxz, syz = _box(wz * xx, n), _box(wz * yy, n)
-    nan = np.float32(np.nan)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / s1
-        mx, my, mz = sx * inv, sy * inv, sz * inv
-        # weighted centred moments (means of w-weighted products)
-        cxx, cxy, cyy = sxx * inv - mx * mx, sxy * inv - mx * my, syy * inv - my * my
-        cxz, cyz = sxz * inv - mx * mz, syz * inv - my * mz
-        det = cxx * cyy - cxy * cxy
-        idet = 1.0 / det
-        p = (cxz * cyy - cyz * cxy) * idet
-        q = (cyz * cxx - cxz * cxy) * idet
-        dx, dy = xx - mx, yy - my
-        zc = mz + p * dx + q * dy
-        g = np.hypot(p, q)
-        ok = (cnt >= min_fraction * n * n) & (det > 1e-6) & np.isfinite(zc)
-        gsig = zsig = np.full((h, w), nan, np.float32)
-        if with_cov:
-            # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
-            f = rho * inv * idet
-            vpp, vqq, vpq = f * cyy, f * cxx, -f * cxy
-            gvar = np.where(g > 1e-12, (p * p * vpp + q * q * vqq + 2 * p * q * vpq) / (g * g), 0.5 * (vpp + vqq))
-            # plane value at the cell: Var = rho/s1 + d^T Cov d, d = offset of the cell from the weighted centroid
-            zvar = rho * inv + dx * dx * vpp + dy * dy * vqq + 2 * dx * dy * vpq
-            gsig = np.where(ok, np.sqrt(np.maximum(gvar, 0.0)), nan).astype(np.float32)
-            zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
-    g32 = np.where(ok, g, nan).astype(np.float32)
-    slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
-    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig)
+    return _fit_from_products(okz, prods, xx, yy, n, cell_m, min_fraction, rho, with_cov)
+
+
+def steeper_plane_fit(
+    z: np.ndarray,
+    sigma: np.ndarray,
+    cell_m: float,
+    footprint_m: float,
+    wide_m: float,
+    min_fraction: float = 0.5,
+) -> PlaneFit:
+    """The footprint plane of :func:`weighted_plane_fit` (``with_cov=False``), with its slope replaced by
+    the plane's over ``wide_m`` where that one is steeper (or the footprint's is undetermined).
+
+    SGM over horizontal planes can terrace a steep crater wall into flat steps about a footprint
+    wide; the slope over a few footprints still sees the wall. ``z_plane`` stays the footprint's.
+    The two fits share the per-cell products, so this costs less than two calls.
+    """
+    okz, prods, xx, yy = _plane_products(z, sigma)
+    fit = _fit_from_products(okz, prods, xx, yy, footprint_cells(footprint_m, cell_m), cell_m, min_fraction, 1.0, False)
+    if wide_m <= footprint_m:
+        return fit
+    n_w = footprint_cells(wide_m, cell_m)
+    wide = _fit_from_products(okz, prods, xx, yy, n_w, cell_m, min_fraction, 1.0, False, with_plane=False)
+    steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
+    fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
+    fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)
+    return fit
 
 
 def footprint_mean(a: np.ndarray, n: int) -> np.ndarray:

@@ -45,7 +45,7 @@ from .evidence import (
     classify_calibrated,
     footprint_mean,
     grid_evidence,
-    weighted_plane_fit,
+    steeper_plane_fit,
     widen_unsafe,
 )
 from .gapfill import fill_small_gaps
@@ -1215,14 +1215,8 @@ def _run_v2(
             have_dem = False  # past the deadline: the image cues are all the evidence there is
             info["skipped"].append("slope")
         if have_dem:
-            fit = weighted_plane_fit(g_elev, g_sig, cell, p.footprint_m, with_cov=False)
-            if p.wide_slope_factor > 1:
-                # SGM over horizontal planes can terrace a steep wall into flat steps a footprint wide;
-                # the slope over a few footprints still sees the wall: the steeper of the two counts
-                wide = weighted_plane_fit(g_elev, g_sig, cell, p.wide_slope_factor * p.footprint_m, with_cov=False)
-                steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
-                fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
-                fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)
+            # the steeper of the footprint's plane and a few footprints' (SGM can terrace a steep wall)
+            fit = steeper_plane_fit(g_elev, g_sig, cell, p.footprint_m, p.wide_slope_factor * p.footprint_m)
             # uncertainty of the footprint-scale quantities, calibrated on tuning seeds (evidence.py):
             # slope from the footprint's mean sigma, roughness from the point's sigma
             g_sbar = footprint_mean(g_sig, footprint_cells(p.footprint_m, cell))
