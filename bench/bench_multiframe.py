@@ -166,6 +166,20 @@ def speed(args: argparse.Namespace) -> int:
     return 0 if not args.check or slope <= args.check else 1
 
 
+def fusion_overrides(items: list[str]) -> dict[str, Any]:
+    """``K=V`` strings as FusionParams fields, each value parsed as its field's type (``extent=union``)."""
+    from flight_sw.fusion import FusionParams
+
+    defaults = {f.name: getattr(FusionParams(), f.name) for f in dataclasses.fields(FusionParams)}
+    out: dict[str, Any] = {}
+    for kv in items:
+        k, sep, v = kv.partition("=")
+        if not sep or k not in defaults:
+            raise ValueError(f"expected K=V with K one of {', '.join(defaults)}, got {kv!r}")
+        out[k] = type(defaults[k])(v)  # ValueError for a non-number where a number belongs
+    return out
+
+
 def accuracy(args: argparse.Namespace) -> int:
     from flight_sw.fusion import FusionParams
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
@@ -173,8 +187,12 @@ def accuracy(args: argparse.Namespace) -> int:
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     preset = build_preset(args)
-    overrides = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.fusion)}
-    FusionParams(**overrides).validate()  # a bad --fusion fails here, not after the first render
+    try:
+        overrides = fusion_overrides(args.fusion)
+        FusionParams(**overrides).validate()  # a bad --fusion fails here, not after the first render
+    except ValueError as exc:
+        print(f"bench_multiframe: --fusion: {exc}", file=sys.stderr)
+        return 2
     which = ["multi", *fused_policies(len(args.altitudes))] if args.policies is None else args.policies
     cache = Path(args.cache)
     per: list[dict[str, Any]] = []
