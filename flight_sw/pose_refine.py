@@ -13,7 +13,9 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    check; a RANSAC homography of those matches absorbs the navigation error.
    Corners (Shi & Tomasi 1994) are then tracked by Lucas-Kanade with a
    forward-backward check (Kalal et al. 2010) for sub-pixel matches, which
-   are mapped back to i2's pixels.
+   are mapped back to i2's pixels. LK sees both images high-passed
+   (minus a Gaussian local mean): it assumes constant brightness, and two
+   views at different ranges and emission angles differ smoothly in it.
 2. **Model selection and outliers.** RANSAC fits both an essential matrix
    and a homography; Torr's GRIC (1998),
    ``GRIC = sum min(e_i^2 / s^2, 2 (r - d)) + ln(r) d n + ln(r n) k``
@@ -89,6 +91,11 @@ class RefineParams:
     track_levels: int = 1  # pyramid levels above the base
     track_passes: int = 3  # tracking passes; each re-warps i2 through the homography of the previous matches
     fb_max_px: float = 0.5  # forward-backward disagreement that drops a track
+    # LK runs on both images minus their Gaussian local mean (this sigma, px; 0 = raw): the two views see the
+    # ground under different emission angles and exposures, and brightness that differs smoothly biased the
+    # tracks (tuning seeds 0-4, 40 approach pairs, exact poses: relative rotation off 0.038 deg median,
+    # 0.062 max, raw; 0.024 / 0.040 deg with sigma 2; 1-4 px alike)
+    track_highpass_sigma: float = 2.0
     ransac_px: float = 1.5  # E / H RANSAC threshold (px)
     cauchy_k: float = 2.5  # robust loss scale, in units of the matching noise
     sigma_px_min: float = 0.05  # floor on the matching noise that weighs the images against navigation
@@ -142,6 +149,9 @@ class RefineParams:
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise FlightInputError(f"pose refinement: {name} must be a positive integer, got {v!r}")
+        hp = self.track_highpass_sigma
+        if not (isinstance(hp, (int, float)) and math.isfinite(hp) and hp >= 0):
+            raise FlightInputError(f"pose refinement: track_highpass_sigma must be a number >= 0, got {hp!r}")
         if not 0 <= self.track_levels <= 5 or not 0 < self.min_spread <= 1 or not self.ratio < 1:
             raise FlightInputError("pose refinement: need track_levels 0..5, 0 < min_spread <= 1, ratio < 1")
 
@@ -374,6 +384,16 @@ def corners_in(a: np.ndarray, mask: np.ndarray, p: RefineParams, min_distance: f
     return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
 
 
+def highpass(a: np.ndarray, sigma: float) -> np.ndarray:
+    """``128 + 2 (a - G_sigma * a)`` as 8-bit (``a`` itself when ``sigma`` <= 0): brightness that varies
+    slowly between two views (exposure, lunar-Lambert emission angle) leaves what LK tracks unchanged."""
+    if sigma <= 0:
+        return a
+    f = a.astype(np.float32)
+    g = f - cv2.GaussianBlur(f, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+    return np.clip(128.0 + 2.0 * g, 0, 255).astype(np.uint8)
+
+
 def track(a: np.ndarray, b: np.ndarray, pts: np.ndarray, p: RefineParams) -> tuple[np.ndarray, np.ndarray]:
     """Pyramidal Lucas-Kanade ``a -> b`` of ``pts``; kept (bool mask) where tracking back lands within ``fb_max_px``."""
     if len(pts) == 0:
@@ -601,6 +621,7 @@ def refine_pair(
             pose1, pose2, info, f"images disagree with navigation by {shift:.0f} px (> {p.max_prewarp_shift_px:g})", t0
         )
     H_tot = H_nav @ H_c  # i1 px -> i2 px
+    hp1 = highpass(a1, p.track_highpass_sigma)
     pts: np.ndarray | None = None
     u1 = u2 = np.zeros((0, 2))
     for k in range(p.track_passes):
@@ -622,7 +643,7 @@ def refine_pair(
         inside = (pts[:, 0] >= x0) & (pts[:, 0] < x0 + w) & (pts[:, 1] >= y0) & (pts[:, 1] < y0 + h)
         sel = pts[inside]
         sel = sel[mask[(sel[:, 1] - y0).astype(int), (sel[:, 0] - x0).astype(int)]]
-        ok, uw = track(a1[y0 : y0 + h, x0 : x0 + w], w2, sel - [x0, y0], p)
+        ok, uw = track(hp1[y0 : y0 + h, x0 : x0 + w], highpass(w2, p.track_highpass_sigma), sel - [x0, y0], p)
         u1 = sel[ok]
         u2 = _apply_h(H_tot, uw[ok] + [x0, y0]) if ok.any() else np.zeros((0, 2))
     info["tracks"] = len(u1)

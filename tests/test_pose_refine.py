@@ -12,6 +12,7 @@ import math
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -319,3 +320,33 @@ def test_nadir_view_of_flat_ground_falls_back():
     assert not r.refined and r.info["refined"] is False
     assert "depth variation" in r.info["reason"] and r.info["depth_spread"] < 0.1
     assert r.info["inliers"] >= 40  # matched well: it is the geometry, not the texture, that is refused
+
+
+def test_tracks_on_highpassed_images_ignore_smooth_brightness_changes():
+    # two views of the same texture, shifted by a known sub-pixel amount, the second brighter by a smooth
+    # field (exposure, emission angle): LK's brightness constancy breaks on the raw images, not on the
+    # high-passed ones the refinement tracks on
+    from flight_sw.pose_refine import RefineParams, corners_in, highpass, track
+
+    rng = np.random.default_rng(0)
+    n = 200
+    tex = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 1.5)
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    dx, dy = 0.3, -0.2
+    shifted = cv2.warpAffine(
+        tex, np.float32([[1, 0, dx], [0, 1, dy]]), (n, n), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT
+    )
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    gain = 1.0 + 0.6 * (xx / n) ** 2 + 0.3 * np.sin(yy / 25.0)
+    a = np.clip(40 + 160 * tex, 0, 255).astype(np.uint8)
+    b = np.clip((40 + 160 * shifted) * gain - 20, 0, 255).astype(np.uint8)
+    p = RefineParams()
+    pts = corners_in(a, np.ones(a.shape, bool), p, 6.0)
+    pts = pts[(pts > 20).all(1) & (pts < n - 20).all(1)]
+    err = {}
+    for s in (0.0, p.track_highpass_sigma):
+        ok, q = track(highpass(a, s), highpass(b, s), pts, p)
+        assert ok.sum() > 0.5 * len(pts)
+        err[s] = float(np.median(np.hypot(*(q[ok] - pts[ok] - [dx, dy]).T)))
+    assert err[p.track_highpass_sigma] < 0.1
+    assert err[0.0] > 2.5 * err[p.track_highpass_sigma]
