@@ -5,7 +5,8 @@
 Each start is a fresh Python process pinned to one CPU (OpenCV single-threaded, as the flight
 process runs) that imports the pipeline, optionally prepares itself (``settle``:
 ``flight_sw.warmup.settle_allocator``; ``warm``: ``boot_warm_up``, what the flight process does at
-boot), then runs the same pair three times. Reported per mode: the first run's CPU over the median
+boot; ``warm+heap``: also ``prefault_heap`` for the camera, what it does when the Config arrives),
+then runs the same pair three times. Reported per mode: the first run's CPU over the median
 of the other two, median and worst over the starts. Without ``--pair`` the seeded synthetic 512 px
 pair of ``bench_pipeline.py``.
 """
@@ -41,9 +42,13 @@ boot = 0.0
 if mode == "settle":
     from flight_sw.warmup import settle_allocator
     settle_allocator()
-elif mode == "warm":
-    from flight_sw.warmup import boot_warm_up
+elif mode in ("warm", "warm+heap"):
+    from flight_sw.warmup import boot_warm_up, heap_mib_for, prefault_heap
     boot = boot_warm_up(PRESETS["fast"])["cpu_s"]
+    if mode == "warm+heap":  # what the flight process adds when the Config names the camera
+        c0 = time.thread_time()
+        prefault_heap(heap_mib_for(args[4].width, args[4].height))
+        boot += time.thread_time() - c0
 cpu = []
 for _ in range(3):
     c0 = time.thread_time()
@@ -64,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pair", default="", help="a pair directory (default: the synthetic 512 px pair)")
     ap.add_argument("--starts", type=int, default=3, help="fresh processes per mode")
-    ap.add_argument("--modes", nargs="+", default=["cold", "settle", "warm"], choices=["cold", "settle", "warm"])
+    modes = ["cold", "settle", "warm", "warm+heap"]
+    ap.add_argument("--modes", nargs="+", default=modes, choices=modes)
     ap.add_argument("--cpu", type=int, default=max(os.cpu_count() or 1, 1) - 1, help="the CPU to pin to")
     args = ap.parse_args(argv)
     if args.pair and not Path(args.pair).is_dir():

@@ -132,8 +132,12 @@ def frame_pose(frame: Frame) -> Pose:
 class FlightProcess:
     """Pairs frames, runs the pipeline under the deadline, reports results and telemetry."""
 
-    def __init__(self, link, faults: FaultPlan, heartbeat_s: float = 0.25) -> None:
+    def __init__(self, link, faults: FaultPlan, heartbeat_s: float = 0.25, prefault: bool = False) -> None:
         self.link = link
+        # touch the heap a new camera's pairs will use when its Config arrives (flight_sw.warmup): the frames
+        # are still on the line then, and no deadline runs
+        self.prefault = prefault
+        self.heap_ready_px = 0
         self.faults = faults
         self.heartbeat_s = heartbeat_s
         self.config: Config | None = None
@@ -176,6 +180,12 @@ class FlightProcess:
             if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
                 self.fused = None
             self.config = msg
+            cam = Camera.from_dict(msg.camera)
+            if self.prefault and cam.width * cam.height > self.heap_ready_px:
+                from flight_sw.warmup import heap_mib_for, prefault_heap
+
+                prefault_heap(heap_mib_for(cam.width, cam.height))
+                self.heap_ready_px = cam.width * cam.height
             self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
         elif isinstance(msg, Frame):
             self._on_frame(msg)
@@ -382,10 +392,12 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)  # one core, one thread: the emulated processor has no pool
+    prefault = False
     if args.warm_up:  # before Hello, so outside every deadline
         from flight_sw.warmup import boot_warm_up
 
         w = boot_warm_up(PRESETS["fast"])
+        prefault = bool(w["allocator_settled"])
         print(
             f"flight: boot warm-up {w['cpu_s']:.3f} s CPU ({w['size_px']} px pair, level {w['level']}, "
             f"allocator settled: {w['allocator_settled']})",
@@ -397,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     link = StreamLink(sock, config=LOCAL_CONFIG, name="supervisor")
     try:
-        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat).run()
+        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat, prefault).run()
     except MemoryError:  # the emulated memory ceiling: say so by exit status, not a traceback
         os._exit(EXIT_MEMORY)
     finally:

@@ -3,15 +3,16 @@
 **Why.** A fresh process pays one-off costs on its first pair: glibc maps every array above its
 mmap threshold (128 kB at start) with fresh pages and unmaps it on free, the heap's new pages
 fault in on first touch, and OpenCV and the pose refinement set themselves up on first call.
-Measured on a held-out thesis vertical 600/300 pair, one pinned core, first pair against the
-steady CPU of the next two (``bench/bench_first_pair.py``, medians of 3 fresh processes): cold 1.28x (259 vs 204 ms);
-:func:`settle_allocator` alone 1.16x; with a 128 px warm-up pair as well **1.08x**. Growing the
-heap by 64 MiB of touched pages at boot as well gave 1.02x, but the size depends on the camera,
-which the Config names only after Hello, and a 128 px camera then peaked at 90 MiB against the
-38 MiB the HIL's memory model admits: not done. In the HIL those costs are paid at the
-emulated processor's speed inside the first deadline, and the anytime clock reads them as a
-slow processor. The flight process therefore runs :func:`boot_warm_up` at boot, before it says
-Hello: the supervisor starts no deadline until then.
+In the HIL those costs are paid at the emulated processor's speed inside the first deadline,
+and the anytime clock reads them as a slow processor. So the flight process runs
+:func:`boot_warm_up` at boot, before it says Hello (the supervisor starts no deadline until
+then), and :func:`prefault_heap` when a Config names a new camera (the heap's size depends on
+the camera; the frames are still on the line then).
+
+Measured with ``bench/bench_first_pair.py`` on a held-out thesis vertical 600/300 pair, one
+pinned core, the first pair's CPU against the steady CPU of the next two, medians of 9 fresh
+processes: cold 1.33x (305 ms); after :func:`boot_warm_up` 1.12x (265 ms); with
+:func:`prefault_heap` as well 0.99x (251 ms). :func:`settle_allocator` alone gave 1.16-1.18x.
 
 The pair is a seeded, textured flat ground seen by two nadir cameras at 600 m and 300 m (the
 thesis camera scaled to ``size`` px). Both images are rendered with the pipeline's own geometry
@@ -89,6 +90,25 @@ def settle_allocator() -> bool:
         return False
     ok = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_B) == 1
     return bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_B) == 1 and ok)
+
+
+HEAP_BYTES_PER_PIXEL = 150  # the flight pipeline's working set per camera pixel (~70 MiB peak at 512 px, less the base)
+
+
+def heap_mib_for(width: int, height: int) -> int:
+    """MiB of heap worth touching ahead of the first pair of a ``width`` x ``height`` camera."""
+    return int(HEAP_BYTES_PER_PIXEL * max(0, width) * max(0, height) / 2**20)
+
+
+def prefault_heap(mib: int) -> None:
+    """Grow the heap by ``mib`` MiB of touched pages and free them again.
+
+    With :func:`settle_allocator` in force glibc keeps them, so the first pair finds its working
+    set mapped instead of taking a page fault on every new page. Blocks of 2 MiB stay under the
+    mmap threshold; freed, they merge into one free chunk below the trim threshold.
+    """
+    blocks = [np.ones(2**19, np.float32) for _ in range(max(0, int(mib)) // 2)]
+    del blocks
 
 
 def warm_up(preset: Params, size: int = 256, seed: int = 0) -> dict[str, Any]:

@@ -35,3 +35,14 @@ def test_boot_warm_up_reports_what_it_did():
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not ctypes.util.find_library("c"), reason="glibc only")
 def test_settle_allocator_takes_on_glibc():
     assert settle_allocator() is True
+
+
+def test_heap_touched_for_a_camera_stays_inside_the_hil_memory_model():
+    # the flight process touches this much heap when a Config names the camera; `run` admits a camera by the
+    # HIL's model of the flight process's peak, so the prefault must never be what breaks the ceiling
+    from flight_sw.warmup import heap_mib_for
+    from hil_server.budgets import FLIGHT_BYTES_PER_PIXEL
+
+    for side in (64, 128, 512, 1024, 2048):
+        assert heap_mib_for(side, side) * 2**20 <= FLIGHT_BYTES_PER_PIXEL * side * side
+    assert heap_mib_for(512, 512) >= 32  # and it covers most of a 512 px pair's working set (~40 MiB)
