@@ -82,7 +82,6 @@ def _fit_from_products(
     min_fraction: float,
     rho: float,
     with_cov: bool,
-    with_plane: bool = True,
 ) -> PlaneFit:
     h, w = okz.shape
     cnt = _box(okz.astype(np.float64), n)
@@ -98,14 +97,10 @@ def _fit_from_products(
         idet = 1.0 / det
         p = (cxz * cyy - cyz * cxy) * idet
         q = (cyz * cxx - cxz * cxy) * idet
+        dx, dy = xx - mx, yy - my
+        zc = mz + p * dx + q * dy
         g = np.hypot(p, q)
-        ok = (cnt >= min_fraction * n * n) & (det > 1e-6)
-        if with_plane or with_cov:
-            dx, dy = xx - mx, yy - my
-            zc = mz + p * dx + q * dy
-            ok &= np.isfinite(zc)
-        else:
-            ok &= np.isfinite(mz + p + q)  # zc is finite exactly where its terms are (dx, dy are)
+        ok = (cnt >= min_fraction * n * n) & (det > 1e-6) & np.isfinite(zc)
         gsig = zsig = np.full((h, w), nan, np.float32)
         if with_cov:
             # Cov(p, q) = (sum w * centred moment matrix)^-1 * rho
@@ -118,8 +113,7 @@ def _fit_from_products(
             zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
     g32 = np.where(ok, g, nan).astype(np.float32)
     slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
-    zp = np.where(ok, zc, nan).astype(np.float32) if with_plane or with_cov else np.full((h, w), nan, np.float32)
-    return PlaneFit(slope, g32, gsig, zp, zsig)
+    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig)
 
 
 def weighted_plane_fit(
@@ -160,7 +154,7 @@ def steeper_plane_fit(
     if wide_m <= footprint_m:
         return fit
     n_w = footprint_cells(wide_m, cell_m)
-    wide = _fit_from_products(okz, prods, xx, yy, n_w, cell_m, min_fraction, 1.0, False, with_plane=False)
+    wide = _fit_from_products(okz, prods, xx, yy, n_w, cell_m, min_fraction, 1.0, False)
     steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
     fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
     fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)

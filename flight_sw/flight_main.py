@@ -165,7 +165,7 @@ class FlightProcess:
     def handle(self, msg) -> None:
         if isinstance(msg, Config):
             try:
-                Camera.from_dict(msg.camera)
+                cam = Camera.from_dict(msg.camera)
                 for name, default in (("elevation_step", DEFAULT_ELEVATION_STEP), ("psafe_step", DEFAULT_PSAFE_STEP)):
                     step = msg.options.get(name, default)
                     if step != int(step) or not 1 <= step <= 1024:
@@ -180,7 +180,6 @@ class FlightProcess:
             if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
                 self.fused = None
             self.config = msg
-            cam = Camera.from_dict(msg.camera)
             if self.prefault and cam.width * cam.height > self.heap_ready_px:
                 from flight_sw.warmup import heap_mib_for, prefault_heap
 

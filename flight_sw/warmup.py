@@ -43,7 +43,7 @@ TRIM_THRESHOLD_B = 128 * 2**20  # keep up to this much freed heap for the next p
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # x right = +X, y down = -Y, optical axis = -Z
 
 
-def warm_up_pair(size: int = 256, seed: int = 0) -> tuple[Camera, Pose, Pose, np.ndarray, np.ndarray]:
+def warm_up_pair(size: int = 128, seed: int = 0) -> tuple[Camera, Pose, Pose, np.ndarray, np.ndarray]:
     """``(camera, pose1, pose2, i1, i2)``: flat textured ground, nadir views from 600 m and 300 m.
 
     Texture: seeded uniform noise at 0.25 m, smoothed over about a metre, with a few dark spots
@@ -111,7 +111,7 @@ def prefault_heap(mib: int) -> None:
     del blocks
 
 
-def warm_up(preset: Params, size: int = 256, seed: int = 0) -> dict[str, Any]:
+def warm_up(preset: Params, size: int = 128, seed: int = 0) -> dict[str, Any]:
     """Run one synthetic pair (:func:`warm_up_pair`) through ``preset``; its telemetry.
 
     Returns ``{"cpu_s", "wall_s", "size_px", "level"}``. Nothing of the run is kept.
