@@ -12,9 +12,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -95,11 +97,15 @@ def check_page(path: str | Path, timeout: float = 30.0) -> PageCheck:
     if exe is None:
         raise FileNotFoundError("chromium is not installed (make test installs Debian's chromium)")
     url = Path(path).resolve().as_uri()
-    with tempfile.TemporaryDirectory() as profile:
+    profile = tempfile.mkdtemp(prefix="hazard-hil-chromium-")
+    try:
+        # its own session, so the renderer and crashpad children go down with it and stop
+        # writing into the profile before the profile is removed
         proc = subprocess.Popen(
             [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            start_new_session=True,
         )
         try:
             port_file = Path(profile) / "DevToolsActivePort"
@@ -144,12 +150,39 @@ def check_page(path: str | Path, timeout: float = 30.0) -> PageCheck:
             cdp.ws.close()
             return out
         finally:
-            proc.terminate()
+            _stop_group(proc)
+    finally:
+        _remove_profile(Path(profile))
+
+
+def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+    for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            proc.wait(wait)
+        except subprocess.TimeoutExpired:
+            continue
+        # the leader is gone; give straggling children of the group a moment to exit too
+        end = time.monotonic() + wait
+        while time.monotonic() < end:
             try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.05)
+
+
+def _remove_profile(profile: Path) -> None:
+    # a child that outlived the group kill can still be flushing files: retry, then say so
+    for _ in range(20):
+        shutil.rmtree(profile, ignore_errors=True)
+        if not profile.exists():
+            return
+        time.sleep(0.1)
+    warnings.warn(f"could not remove the chromium profile {profile}", stacklevel=2)
 
 
 def browser_available() -> bool:
