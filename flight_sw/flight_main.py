@@ -319,7 +319,11 @@ class FlightProcess:
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))
         n_sites = int(p.get("n_sites", PRESETS["fast"].n_sites))
         margin = float(p.get("site_margin_m", PRESETS["fast"].site_margin_m))
-        sites, reason = select_safe_sites(grid, footprint, (0.0, 0.0), n_sites, margin)
+        relief = float(p.get("site_relief_max_m", PRESETS["fast"].site_relief_max_m))
+        window = float(p.get("site_relief_window_m", PRESETS["fast"].site_relief_window_m))
+        sites, reason = select_safe_sites(
+            grid, footprint, (0.0, 0.0), n_sites, margin, relief_max_m=relief, relief_window_m=window
+        )
         return grid, sites, (reason or None)
 
     @staticmethod

@@ -105,6 +105,46 @@ def no_site_reason(grid: HazardGrid, footprint_m: float) -> str:
     return f"no {footprint_m:g} m footprint of the hazard map is clear of hazards"
 
 
+def local_relief(elevation: np.ndarray, cell_m: float, window_m: float) -> np.ndarray:
+    """Per cell, ``max z - min z`` of the measured elevation within about ``window_m`` (a square).
+
+    NaN cells are ignored; a window without any elevation gives 0. The grid is first max/min-pooled
+    in blocks of ``s = max(1, window_cells // 8)`` cells, so the cost does not grow with the window;
+    the window then reaches ``window_cells // 2`` to ``window_cells // 2 + 2 s`` cells to each side
+    (conservative: never narrower than asked).
+    """
+    z = np.asarray(elevation, np.float32)
+    if z.size == 0:
+        return np.zeros_like(z)
+    ok = np.isfinite(z)
+    w = max(1, int(round(window_m / cell_m)))
+    s = max(1, w // 8)
+    H, W = z.shape
+    hp, wp = -(-H // s) * s, -(-W // s) * s
+    hi = np.full((hp, wp), -np.inf, np.float32)
+    lo = np.full((hp, wp), np.inf, np.float32)
+    hi[:H, :W] = np.where(ok, z, -np.inf)
+    lo[:H, :W] = np.where(ok, z, np.inf)
+    hi, lo = _block_reduce(hi, s, np.max, cv2.dilate), _block_reduce(lo, s, np.min, cv2.erode)
+    hb = -(-(w // 2) // s)  # half-window in blocks, rounded up: never narrower than asked
+    ker = np.ones((2 * hb + 1, 2 * hb + 1), np.uint8)
+    hi = cv2.dilate(hi, ker, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    lo = cv2.erode(lo, ker, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    rel = np.where(np.isfinite(hi) & np.isfinite(lo), hi - lo, np.float32(0.0))
+    return np.repeat(np.repeat(rel, s, axis=0), s, axis=1)[:H, :W]
+
+
+def _block_reduce(
+    a: np.ndarray, s: int, red: Callable[..., np.ndarray], morph: Callable[..., np.ndarray]
+) -> np.ndarray:
+    """Max or min over s x s blocks of ``a`` (shape a multiple of s)."""
+    if s >= 4:  # numpy's reductions are quick over long runs ...
+        h, w = a.shape
+        return red(red(a.reshape(h // s, s, w), axis=1).reshape(h // s, w // s, s), axis=2)
+    # ... OpenCV's morphology over short ones: a filter anchored at the block corner, read at the corners
+    return morph(a, np.ones((s, s), np.uint8), anchor=(0, 0))[::s, ::s]
+
+
 def select_safe_sites(
     grid: HazardGrid,
     footprint_m: float = 3.0,
@@ -112,6 +152,8 @@ def select_safe_sites(
     k: int = 5,
     margin_m: float = 0.5,
     p_quantum: float = 0.01,
+    relief_max_m: float = 0.0,
+    relief_window_m: float = 30.0,
 ) -> tuple[list[Site], str]:
     """Sites whose whole footprint plus ``margin_m`` is known-safe, ranked by P(safe), then distance.
 
@@ -124,6 +166,11 @@ def select_safe_sites(
     ``p_quantum``, so that equally certain sites are told apart by distance) and then by distance
     to ``nominal_xy``, and taken greedily at least one footprint apart. Returns
     ``(sites, reason)``: ``reason`` says why the list is empty (``""`` otherwise).
+
+    With ``relief_max_m > 0`` a cell is also refused when the measured elevation in the
+    ``relief_window_m`` square around it spans more than ``relief_max_m`` (:func:`local_relief`). Semi-global
+    aggregation flattens a steep wall (its smoothness penalty, Hirschmueller 2008), so a footprint
+    next to tens of metres of relief can look flat and certain while standing on the wall.
     """
     if k <= 0:
         return [], "no sites requested"
@@ -148,6 +195,13 @@ def select_safe_sites(
             f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe "
             f"(largest clearance {float(dist.max()) * grid.cell_m:.1f} m)"
         )
+    if relief_max_m > 0:
+        ok &= local_relief(grid.elevation, grid.cell_m, relief_window_m) <= relief_max_m
+        if not ok.any():
+            return [], (
+                f"every known-safe {footprint_m:g} m footprint lies in a {relief_window_m:g} m square with more "
+                f"than {relief_max_m:g} m of relief (a wall the DEM may have flattened)"
+            )
     rf = 0.5 * footprint_m / grid.cell_m
     rr = int(np.ceil(rf))
     fy, fx = np.mgrid[-rr : rr + 1, -rr : rr + 1]

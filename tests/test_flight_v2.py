@@ -24,7 +24,7 @@ from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.rangefind import altimeter_ground, find_ground, prior_range
 from flight_sw.sgm import aggregate, kernel
-from flight_sw.sites import select_safe_sites
+from flight_sw.sites import local_relief, select_safe_sites
 from flight_sw.validate import FlightInputError
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Pair, Pose, write_pair
 
@@ -199,6 +199,52 @@ def test_sites_rank_by_psafe_then_distance():
         assert np.all(st[d <= 2.0] == STATE_SAFE) and s.clearance_m >= 2.0
         for t in sites:
             assert s is t or math.hypot(s.x - t.x, s.y - t.y) >= 3.0
+
+
+def _relief_brute(z, i, j, w):
+    h = w // 2
+    a = z[max(0, i - h) : i + h + 1, max(0, j - h) : j + h + 1]
+    a = a[np.isfinite(a)]
+    return float(a.max() - a.min()) if a.size else 0.0
+
+
+def test_local_relief_spans_at_least_the_window():
+    rng = np.random.default_rng(7)
+    z = np.cumsum(rng.normal(0, 0.3, (90, 70)), axis=1).astype(np.float32)
+    z[rng.random(z.shape) < 0.2] = np.nan
+    z[:, :6] = np.nan
+    for cell, window in ((0.5, 12.0), (0.5, 30.0), (0.25, 7.0), (1.0, 3.0)):
+        rel = local_relief(z, cell, window)
+        w = int(round(window / cell))
+        s = max(1, w // 8)
+        for i in range(90):
+            for j in range(70):
+                # never narrower than the window, never wider than window + two pooling blocks on each side
+                assert _relief_brute(z, i, j, w) - 1e-5 <= rel[i, j] <= _relief_brute(z, i, j, w + 4 * s) + 1e-5
+
+
+def test_sites_refuse_footprints_beside_a_wall():
+    # a DEM that calls everything safe: a plateau, a 20 m wall (flattened by SGM into a ramp), a floor
+    n, cell = 160, 0.5
+    z = np.zeros((n, n), np.float32)
+    z[:, 80:] = -20.0
+    z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    g = HazardGrid(np.zeros((n, n), np.float32), z, (0.0, 0.0), cell, st, np.full((n, n), 0.99, np.float32))
+    nominal = (37.0, -40.0)  # on the plateau, 1 m from the wall's top
+    near, _ = select_safe_sites(g, 3.0, nominal, k=3, margin_m=0.5)
+    assert abs(near[0].x - nominal[0]) < 2.0  # without the guard the site is at the wall
+    sites, reason = select_safe_sites(g, 3.0, nominal, k=3, margin_m=0.5, relief_max_m=14.0, relief_window_m=30.0)
+    assert reason == "" and sites
+    w = int(round(30.0 / cell))
+    for s in sites:  # every site's 30 m square holds less than 14 m of relief
+        i, j = int(round(-s.y / cell)), int(round(s.x / cell))
+        assert _relief_brute(z, i, j, w) <= 14.0
+    assert min(abs(s.x - 38.0) for s in sites) >= 14.0
+    # where every safe footprint is beside the wall, the result says so
+    narrow = HazardGrid(g.hazard[:, 50:110], z[:, 50:110], (0.0, 0.0), cell, st[:, 50:110], g.psafe[:, 50:110])
+    sites, reason = select_safe_sites(narrow, 3.0, nominal, relief_max_m=14.0, relief_window_m=30.0)
+    assert sites == [] and "relief" in reason
 
 
 def test_sgm_kernel_equals_numpy_reference():
