@@ -1,0 +1,74 @@
+"""Landing campaigns with the site guard on relief at several thresholds (how `fast`'s 14 m was chosen).
+
+    .venv/bin/python bench/bench_site_guard.py --seed-set tuning --thresholds 0 12 14 [--pose-error none]
+
+Flies the `hazard-hil landings` campaign (the same draws: scenes, seeds, aim points, navigation
+errors; ``studies.landings``) with ``PipelineParams.site_relief_max_m`` set to each threshold
+(0 = no guard) and prints safe / unsafe / no-site counts and the unsafe landings. Tune on
+``--seed-set tuning`` (seeds 0-9); quote ``held-out``. Renders are cached in ``--cache`` and shared
+with any campaign of the same draws.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing as mp
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from studies import landings as L  # noqa: E402
+
+
+def _fly(args: tuple[L.Campaign, int, float, str]) -> list[dict[str, Any]]:
+    camp, g, relief, cache = args
+    from flight_sw import pipeline as P
+
+    # forked workers: the preset is patched in this process only
+    P.PRESETS["fast"] = dataclasses.replace(P.PRESETS["fast"], site_relief_max_m=relief)
+    rows: list[dict[str, Any]] = L.land_group(L.plan_group(camp, g), ["fast"], cache)["rows"]
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seed-set", choices=("tuning", "held-out"), default="tuning")
+    ap.add_argument("--seeds", type=int, default=0, help="first N seeds of the set (default: all of it)")
+    ap.add_argument("--n", type=int, default=1008, help="landings per campaign")
+    ap.add_argument("--pose-error", default=L.DEFAULT_POSE_ERROR, help="PoseError syntax, or 'none'")
+    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 12.0, 14.0])
+    ap.add_argument("--cache", default=str(ROOT / "out" / "landing_renders"))
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--json", help="write every campaign's rows here")
+    a = ap.parse_args()
+    from ground_sim import library
+    from ground_sim.seeds import SEED_SETS
+
+    seeds = SEED_SETS[a.seed_set][: a.seeds or None]
+    pe = None if a.pose_error.lower() == "none" else a.pose_error
+    camp = L.Campaign(tuple(e.name for e in library.entries()), a.n, seeds, a.seed_set, pose_error=pe)
+    print(f"{camp.n_landings} landings, {camp.n_groups} renders, {a.seed_set} seeds {seeds[0]}-{seeds[-1]}")
+    out: dict[str, list[dict[str, Any]]] = {}
+    for t in a.thresholds:
+        jobs = [(camp, g, t, a.cache) for g in range(camp.n_groups)]
+        with mp.get_context("fork").Pool(a.workers) as pool:
+            rows = [r for rs in pool.imap(_fly, jobs) for r in rs]
+        out[f"{t:g}"] = rows
+        k = {o: sum(r["outcome"] == o for r in rows) for o in ("safe", "unsafe", "no_site")}
+        print(f"threshold {t:g} m: safe {k['safe']}, unsafe {k['unsafe']}, no site {k['no_site']}")
+        for r in rows:
+            if r["outcome"] == "unsafe":
+                where = f"{r['scene']} seed {r['scene_seed']} {r['scenario']} {r['pair']}"
+                print(f"    unsafe: {where} landing {r['landing']}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
