@@ -366,3 +366,30 @@ def test_flight_process_reports_the_fused_map(monkeypatch):
         i = int(round((fused2.grid_origin_xy[1] - s.y) / fused2.grid_cell_m))
         j = int(round((s.x - fused2.grid_origin_xy[0]) / fused2.grid_cell_m))
         assert fused2.state_grid[i, j] == STATE_SAFE
+
+
+def test_flight_process_applies_the_relief_guard_to_the_fused_map():
+    """The fused map's sites follow the preset's relief guard, as the single-pair pipeline's do."""
+    from types import SimpleNamespace
+
+    from flight_sw.flight_main import FaultPlan, FlightProcess
+    from flight_sw.pipeline import PRESETS
+
+    # everything measured safe: a plateau, a 20 m wall the DEM flattened into a ramp, a floor
+    n, cell = 160, 0.5
+    z = np.zeros((n, n), np.float32)
+    z[:, 80:] = -20.0
+    z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    grid = HazardGrid(np.zeros((n, n), np.float32), z, (-38.0, 40.0), cell, st, np.full((n, n), 0.99, np.float32))
+    params = dataclasses.asdict(PRESETS["fast"]) | {"psafe_model": "gaussian"}
+    near_wall = []
+    for relief in (0.0, PRESETS["fast"].site_relief_max_m):
+        fp = FlightProcess(_Link(), FaultPlan())
+        res = SimpleNamespace(params=params | {"site_relief_max_m": relief}, info={}, grid=grid)
+        _, sites, reason = fp._fuse(res)
+        assert sites and reason is None
+        # the wall's top is at x = 0 (column 76); every site's 30 m square must stay clear of it
+        near_wall.append(min(abs(s.x) for s in sites))
+    assert near_wall[0] < 2.0  # the aim point (0, 0) is at the wall: without the guard the site is there
+    assert near_wall[1] >= 14.0
