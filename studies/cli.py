@@ -353,6 +353,8 @@ def _landings(args: argparse.Namespace) -> int:
             f"P(unsafe site) {st['p_unsafe']:.3f}  aim point safe {st['p_aim_safe']:.3f}  "
             f"divert p50 {st['divert_m']['p50'] or float('nan'):.1f} m  (n = {st['n']})"
         )
+        for why, k in summary.get("no_site_reasons", {}).get(p, {}).items():
+            print(f"{'':7s}   no site x {k}: {why}")
     print(f"{describe_seeds(seeds, seed_set)}; wall {time.time() - t0:.0f} s")
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")

@@ -384,13 +384,25 @@ def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def no_site_reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """Landings without a site, counted by the flight software's reason (its leading clause: the figures
+    in brackets differ per landing), most frequent first."""
+    counts: dict[str, int] = {}
+    for r in rows:
+        if r["outcome"] == "no_site":
+            why = str(r.get("no_site_reason") or "").split(" (")[0].strip() or "no reason given"
+            counts[why] = counts.get(why, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Statistics per preset, overall and per scene (and per preset x pair)."""
-    out: dict[str, Any] = {"per_preset": {}, "per_scene": {}, "per_pair": {}}
+    """Statistics per preset, overall and per scene (and per preset x pair), and why no site was offered."""
+    out: dict[str, Any] = {"per_preset": {}, "per_scene": {}, "per_pair": {}, "no_site_reasons": {}}
     presets = sorted({r["preset"] for r in rows}, key=lambda p: PRESETS.index(p) if p in PRESETS else 9)
     for p in presets:
         rp = [r for r in rows if r["preset"] == p]
         out["per_preset"][p] = stats(rp)
+        out["no_site_reasons"][p] = no_site_reasons(rp)
         for s in sorted({r["scene"] for r in rp}):
             out["per_scene"].setdefault(s, {})[p] = stats([r for r in rp if r["scene"] == s])
         for key in sorted({f"{r['scenario']} {r['pair']}" for r in rp}):
@@ -597,8 +609,20 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
         "top-ranked site is safe; no site is its own outcome and is not safe."
     )
+    why_rows = [
+        {"preset": p, "reason": why, "n": k, "share": k / summary["per_preset"][p]["n"]}
+        for p, reasons in summary.get("no_site_reasons", {}).items()
+        for why, k in reasons.items()
+    ]
+    why_cols = [
+        Column("preset", "preset"),
+        Column("reason", "why the flight software offered no site"),
+        Column("n", "landings"),
+        Column("share", "share of the preset's landings"),
+    ]
     sections = [
         Section("Per scene", [intro], [Table(cols, table_rows)]),
+        Section("Why no site", [], [Table(why_cols, why_rows)] if why_rows else []),
         Section("Figures", [], [], [Figure(f, cap) for f, cap in figs]),
     ]
     return write_page(

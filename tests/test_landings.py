@@ -179,6 +179,9 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
         row = {"landing": i, "group": i // 8, "preset": "fast", "outcome": outcome, "safe": outcome == "safe"}
         row |= {"site_found": outcome != "no_site", "scene": scene, "aim_safe": i < 20, "scenario": "vertical"}
         row |= {"pair": "200/100", "divert_m": float(i) if outcome != "no_site" else None}
+        if outcome == "no_site":  # two reasons, the figures in brackets differing per landing
+            why = "no cell is known safe" if i < 33 else "no 3 m footprint with a 1.5 m margin is entirely known safe"
+            row["no_site_reason"] = f"{why} ({i} % unknown)"
         rows.append(row)
     s = ld.summarise(rows)
     st = s["per_preset"]["fast"]
@@ -186,11 +189,16 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
     assert st["p_safe"] == 25 / 40 and st["p_no_site"] == 0.25 and st["p_safe_ci95"] == list(wilson(25, 40))
     assert st["divert_m"]["p50"] == pytest.approx(np.percentile(np.arange(30.0), 50)) and st["p_aim_safe"] == 0.5
     assert s["per_scene"]["mare"]["fast"]["n"] == 20
+    assert s["no_site_reasons"]["fast"] == {
+        "no 3 m footprint with a 1.5 m margin is entirely known safe": 7,
+        "no cell is known safe": 3,
+    }
     s["campaign"] = {"n_landings": 40, "n_renders": 5, "per_render": 8, "scenes": ["thesis", "mare"]}
     s["campaign"] |= {"seed_set": "held-out", "seeds": [1000, 1001], "pose_error": None}
     page = ld.write_report(tmp_path, rows, s)
     text = page.read_text()
     assert "0.625" in text and "P(safe landing)" in text and "held-out scene seeds 1000-1001" in text
+    assert "Why no site" in text and "no cell is known safe" in text and "(33 % unknown)" not in text
     sys.path.insert(0, str(Path(__file__).parent))
     from browser import check_page, chromium_path
 
