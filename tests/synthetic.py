@@ -138,3 +138,18 @@ def make_pair(
     i1, z1 = render(cam, p1, height, tex)
     i2, _ = render(cam, p2, height, tex)
     return cam, p1, p2, i1, i2, z1
+
+
+def flattened_wall_grid(origin_xy: tuple[float, float] = (0.0, 0.0)):
+    """A 160 x 160 HazardGrid (0.5 m cells) whose every cell is measured safe (P 0.99): a plateau at 0 m,
+    a 20 m wall that the DEM flattened into a 2 m ramp (columns 76-79, its top at column 76), a floor at
+    -20 m. What SGM makes of a crater wall (flight_sw.sites.local_relief)."""
+    from flight_sw.mapping import HazardGrid
+    from protocol.pairdir import STATE_SAFE
+
+    n = 160
+    z = np.zeros((n, n), np.float32)
+    z[:, 80:] = -20.0
+    z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    return HazardGrid(np.zeros((n, n), np.float32), z, origin_xy, 0.5, st, np.full((n, n), 0.99, np.float32))

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import NADIR_R, Texture, camera_fov30, make_pair, plane, render, roof
+from synthetic import NADIR_R, Texture, camera_fov30, flattened_wall_grid, make_pair, plane, render, roof
 
 from flight_sw.costvolume import COST_MAX, CostSlab, combine, cost_slab, valid_interval
 from flight_sw.evidence import classify, weighted_plane_fit
@@ -225,12 +225,8 @@ def test_local_relief_spans_at_least_the_window():
 
 def test_sites_refuse_footprints_beside_a_wall():
     # a DEM that calls everything safe: a plateau, a 20 m wall (flattened by SGM into a ramp), a floor
-    n, cell = 160, 0.5
-    z = np.zeros((n, n), np.float32)
-    z[:, 80:] = -20.0
-    z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
-    st = np.full((n, n), STATE_SAFE, np.uint8)
-    g = HazardGrid(np.zeros((n, n), np.float32), z, (0.0, 0.0), cell, st, np.full((n, n), 0.99, np.float32))
+    g = flattened_wall_grid()
+    z, st, cell = g.elevation, g.state, g.cell_m
     nominal = (37.0, -40.0)  # on the plateau, 1 m from the wall's top
     near, _ = select_safe_sites(g, 3.0, nominal, k=3, margin_m=0.5)
     assert abs(near[0].x - nominal[0]) < 2.0  # without the guard the site is at the wall

@@ -370,18 +370,18 @@ def test_flight_process_reports_the_fused_map(monkeypatch):
 
 def test_flight_process_applies_the_relief_guard_to_the_fused_map():
     """The fused map's sites follow the preset's relief guard, as the single-pair pipeline's do."""
+    import sys
+    from pathlib import Path
     from types import SimpleNamespace
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import flattened_wall_grid
 
     from flight_sw.flight_main import FaultPlan, FlightProcess
     from flight_sw.pipeline import PRESETS
 
     # everything measured safe: a plateau, a 20 m wall the DEM flattened into a ramp, a floor
-    n, cell = 160, 0.5
-    z = np.zeros((n, n), np.float32)
-    z[:, 80:] = -20.0
-    z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
-    st = np.full((n, n), STATE_SAFE, np.uint8)
-    grid = HazardGrid(np.zeros((n, n), np.float32), z, (-38.0, 40.0), cell, st, np.full((n, n), 0.99, np.float32))
+    grid = flattened_wall_grid((-38.0, 40.0))
     params = dataclasses.asdict(PRESETS["fast"]) | {"psafe_model": "gaussian"}
     near_wall = []
     for relief in (0.0, PRESETS["fast"].site_relief_max_m):
