@@ -116,6 +116,11 @@ class RefineParams:
     # confounded (near-nadir view of near-flat ground) - refused. Tuning seeds 0-2: vertical 0.007-0.047
     # (relative rotation off 0.05-0.41 deg from exact poses), approach 0.16-0.30 (off 0.004-0.040 deg)
     min_depth_spread: float = 0.1
+    # ... and then, instead of refusing, the relative rotation is held at navigation with this prior sd
+    # (deg; 0 = refuse as before) and the baseline direction takes the image motion. Tuning landing
+    # campaign, vertical pairs under navigation errors: DEM mean |error| 2.65 -> 0.47 m median
+    # (docs/benchmarks/pose.md, "Nadir pairs")
+    held_rel_att_sigma_deg: float = 0.03
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -149,6 +154,9 @@ class RefineParams:
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise FlightInputError(f"pose refinement: {name} must be a positive integer, got {v!r}")
+        held = self.held_rel_att_sigma_deg
+        if not (isinstance(held, (int, float)) and math.isfinite(held) and held >= 0):
+            raise FlightInputError(f"pose refinement: held_rel_att_sigma_deg must be a number >= 0, got {held!r}")
         hp = self.track_highpass_sigma
         if not (isinstance(hp, (int, float)) and math.isfinite(hp) and hp >= 0):
             raise FlightInputError(f"pose refinement: track_highpass_sigma must be a number >= 0, got {hp!r}")
@@ -689,6 +697,54 @@ def _check_altimeter(altimeter_m: tuple[float, float] | None) -> tuple[float, fl
     return alt[0], alt[1]
 
 
+def _map_solve(
+    K: np.ndarray,
+    v1: np.ndarray,
+    v2: np.ndarray,
+    nav: _State,
+    sigmas: tuple[float, float, float],
+    p: RefineParams,
+    info: dict[str, Any],
+) -> tuple[_State, np.ndarray, float]:
+    """Step 3 of the module doc: MAP pose from the inlier matches under ``sigmas`` (frame-1 attitude,
+    added frame-2 attitude, baseline direction; rad). Writes the fit's telemetry into ``info``; returns
+    the state, the inlier mask and the inliers' depth spread ``(p90 - p10) / median`` of the triangulated
+    depths (scale-free: a lateral baseline change moves points by ~1/depth, a rotation does not depend
+    on depth, so only depth variation tells them apart)."""
+    # matching noise: robust spread of the residuals at the navigation pose's best fit, floored
+    s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations)
+    sigma_px = max(p.sigma_px_min, 1.4826 * float(np.median(np.abs(r))))
+    s, r, cov, iters, converged = map_refine(K, v1, v2, nav, sigmas, sigma_px, p.cauchy_k, p.max_iterations, s)
+    inl = np.abs(r) < max(1.0, 3.0 * sigma_px)
+    R21 = s.R2 @ s.R1.T
+    R21_nav = nav.R2 @ nav.R1.T
+    J_rel = np.c_[-R21, np.eye(3), np.zeros((3, 2))]  # relative-rotation error ~ d2 - R21 d1 (camera-2 axes)
+    t_unit = -s.R2 @ s.b
+    flow = v2 - _apply_h(K @ R21 @ np.linalg.inv(K), v1)  # motion left after removing the rotation
+    info.update(
+        inliers=int(inl.sum()),
+        iterations=iters,
+        converged=converged,
+        sigma_px=sigma_px,
+        reproj_rms_px=float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else None,  # JSON has no inf
+        reproj_median_px=float(np.median(np.abs(r[inl]))) if inl.any() else None,
+        parallax_px=float(np.median(np.linalg.norm(flow[inl], axis=1))) if inl.any() else 0.0,
+        rotation_correction_deg=[rotation_angle_deg(s.R1 @ nav.R1.T), rotation_angle_deg(s.R2 @ nav.R2.T)],
+        relative_rotation_correction_deg=rotation_angle_deg(R21 @ R21_nav.T),
+        translation_dir_change_deg=angle_between_deg(s.b, nav.b),
+        sigma_rel_rot_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(J_rel @ cov @ J_rel.T))))),
+        sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
+        sigma_dir_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[6:8, 6:8]))))),
+    )
+    Ki = np.linalg.inv(K)
+    n = int(inl.sum())
+    x1n, x2n = np.c_[v1[inl], np.ones(n)] @ Ki.T, np.c_[v2[inl], np.ones(n)] @ Ki.T
+    zd = triangulate_depths(R21, t_unit, x1n, x2n) if n >= 3 else np.zeros(0)
+    zd = zd[np.isfinite(zd) & (zd > 0)]
+    p10, p50, p90 = np.percentile(zd, [10, 50, 90]) if zd.size >= 3 else (0.0, 1.0, 0.0)
+    return s, inl, float((p90 - p10) / p50) if p50 > 0 else 0.0
+
+
 def _refine_matches(
     u1: np.ndarray,
     u2: np.ndarray,
@@ -715,7 +771,6 @@ def _refine_matches(
     Hm, inl_h = cv2.findHomography(u1, u2, cv2.RANSAC, p.ransac_px, maxIters=2000, confidence=0.999)
     if E is None or Hm is None or E.shape != (3, 3):
         return _fallback(pose1, pose2, info, "RANSAC found no model (degenerate matches)", t0)
-    R21_nav, t21_nav = relative_pose(pose1, pose2)
     Ki = np.linalg.inv(K)
     e_err = np.abs(sampson_px(Ki.T @ E @ Ki, u1, u2))
     h_err = homography_sampson_px(Hm, u1, u2)
@@ -731,46 +786,25 @@ def _refine_matches(
 
     # -- 3. MAP refinement of R1, R2 and the baseline direction
     nav = _State(pose1.R, pose2.R, base / L_nav)
-    sigmas = (
-        math.radians(p.nav_att_sigma_deg),
-        math.radians(p.nav_rel_att_sigma_deg),
-        math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav,
-    )
-    # matching noise: robust spread of the residuals at the navigation pose's best fit, floored
-    s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations)
-    sigma_px = max(p.sigma_px_min, 1.4826 * float(np.median(np.abs(r))))
-    s, r, cov, iters, converged = map_refine(K, v1, v2, nav, sigmas, sigma_px, p.cauchy_k, p.max_iterations, s)
-    inl = np.abs(r) < max(1.0, 3.0 * sigma_px)
+    s_att, s_dir = math.radians(p.nav_att_sigma_deg), math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav
+    s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.nav_rel_att_sigma_deg), s_dir), p, info)
+    held = False
+    if spread < p.min_depth_spread and p.held_rel_att_sigma_deg > 0:
+        # confounded (near-nadir view of flat ground): hold the relative rotation at navigation and let
+        # the baseline direction take the image motion. On a plane a small rotation and a lateral
+        # baseline change move the image alike, so the ground's homography comes out right either way,
+        # and what is left (the epipole off by about the rotation error) costs height in proportion to
+        # the relief only, instead of shifting every point by the whole navigation error.
+        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.held_rel_att_sigma_deg), s_dir), p, info)
+        held = True
+    info.update(depth_spread=spread, relative_rotation_held=held, spread=_spread(v1[inl], mask, roi))
     R21 = s.R2 @ s.R1.T
-    J_rel = np.c_[-R21, np.eye(3), np.zeros((3, 2))]  # relative-rotation error ~ d2 - R21 d1 (camera-2 axes)
     t_unit = -s.R2 @ s.b
-    flow = v2 - _apply_h(K @ R21 @ np.linalg.inv(K), v1)  # motion left after removing the rotation
-    parallax = float(np.median(np.linalg.norm(flow[inl], axis=1))) if inl.any() else 0.0
-    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.inf  # telemetry: None (JSON has no inf)
-    info.update(
-        inliers=int(inl.sum()),
-        iterations=iters,
-        sigma_px=sigma_px,
-        reproj_rms_px=rms if inl.any() else None,
-        reproj_median_px=float(np.median(np.abs(r[inl]))) if inl.any() else None,
-        parallax_px=parallax,
-        spread=_spread(v1[inl], mask, roi),
-        rotation_correction_deg=[rotation_angle_deg(s.R1 @ pose1.R.T), rotation_angle_deg(s.R2 @ pose2.R.T)],
-        relative_rotation_correction_deg=rotation_angle_deg(R21 @ R21_nav.T),
-        translation_dir_change_deg=angle_between_deg(s.b, nav.b),
-        sigma_rel_rot_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(J_rel @ cov @ J_rel.T))))),
-        sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
-        sigma_dir_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[6:8, 6:8]))))),
-    )
+    x1n, x2n = np.c_[v1[inl], np.ones(int(inl.sum()))] @ Ki.T, np.c_[v2[inl], np.ones(int(inl.sum()))] @ Ki.T
+    parallax = float(info["parallax_px"])
+    rms = info["reproj_rms_px"] if info["reproj_rms_px"] is not None else math.inf
 
     # -- 4. scale and datum
-    x1n, x2n = np.c_[v1[inl], np.ones(int(inl.sum()))] @ Ki.T, np.c_[v2[inl], np.ones(int(inl.sum()))] @ Ki.T
-    # depth variation over the inliers: a lateral baseline change moves points by ~1/depth, a rotation
-    # does not depend on depth, so only depth variation tells them apart (scale-free: p90 - p10 over median)
-    zd = triangulate_depths(R21, t_unit, x1n, x2n) if inl.sum() >= 3 else np.zeros(0)
-    zd = zd[np.isfinite(zd) & (zd > 0)]
-    p10, p50, p90 = np.percentile(zd, [10, 50, 90]) if zd.size >= 3 else (0.0, 1.0, 0.0)
-    info["depth_spread"] = float((p90 - p10) / p50) if p50 > 0 else 0.0
     scales = []
     if p.use_altimeter and (math.isfinite(alt[0]) or math.isfinite(alt[1])):
         z1 = triangulate_depths(R21, t_unit, x1n, x2n)  # camera-1 depths for a unit baseline
@@ -810,8 +844,8 @@ def _refine_matches(
         reason = f"too few inliers ({int(inl.sum())} < {p.min_inliers})"
     elif parallax < p.min_parallax_px:  # before convergence: without parallax the translation wanders
         reason = f"too little parallax ({parallax:.2f} px < {p.min_parallax_px:g}): translation unobservable"
-    elif not converged:
-        reason = f"refinement did not converge in {iters} iterations"
+    elif not info["converged"]:
+        reason = f"refinement did not converge in {info['iterations']} iterations"
     elif info["spread"] < p.min_spread:
         reason = f"inliers poorly spread over the overlap ({info['spread']:.2f} < {p.min_spread:g})"
     elif max(info["rotation_correction_deg"]) > p.max_rotation_deg:
@@ -820,7 +854,7 @@ def _refine_matches(
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
     elif rms > p.max_rms_px:
         reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
-    elif info["depth_spread"] < p.min_depth_spread:
+    elif info["depth_spread"] < p.min_depth_spread and not held:
         reason = (
             f"too little depth variation over the inliers ({info['depth_spread']:.3f} < {p.min_depth_spread:g}):"
             " a rotation and a baseline-direction change are confounded (near-nadir view of flat ground)"

@@ -307,8 +307,12 @@ def test_descent_frames_are_refined_against_frame_0(synth):
     assert rel_rot_err(poses[0], poses[1], nav[0], nav[1]) < 1e-9
 
 
-def test_nadir_view_of_flat_ground_falls_back():
-    """Straight down onto flat ground a rotation and a lateral baseline change move the image alike."""
+def test_nadir_view_of_flat_ground_holds_the_rotation_and_maps_the_ground():
+    """Straight down onto flat ground a rotation and a lateral baseline change move the image alike.
+
+    The refinement then holds the relative rotation at navigation and lets the baseline direction take
+    the image motion: the ground plane's homography, which is what the sweep needs, comes out right.
+    With the hold switched off it refuses, as before."""
     from synthetic import NADIR_R, plane
 
     cam = camera_fov30(PX)
@@ -316,10 +320,43 @@ def test_nadir_view_of_flat_ground_falls_back():
     tex = Texture.random(300.0, 150.0 / cam.fx, 4, blur_cells=2.0)
     i1, _ = render(cam, p1, plane(-2.0), tex)
     i2, _ = render(cam, p2, plane(-2.0), tex)
-    r = refine_pair(i1, i2, p1, rotated(p2, 0.2, np.array([1.0, 0.0, 0.0])), cam)
-    assert not r.refined and r.info["refined"] is False
-    assert "depth variation" in r.info["reason"] and r.info["depth_spread"] < 0.1
-    assert r.info["inliers"] >= 40  # matched well: it is the geometry, not the texture, that is refused
+    nav2 = rotated(p2, 0.2, np.array([1.0, 0.0, 0.0]))
+    r = refine_pair(i1, i2, p1, nav2, cam)
+    assert r.refined and r.info["relative_rotation_held"] and r.info["depth_spread"] < 0.1
+    assert r.info["inliers"] >= 40
+    assert rel_rot_err(r.pose1, r.pose2, p1, nav2) <= 0.02  # held where navigation put it
+
+    # what the sweep needs: the true correspondences of the ground triangulate onto a plane. Navigation's
+    # 0.2 deg bends the ground by metres; the refined pair leaves it flat, up to a small tilt
+    g = np.linspace(-70.0, 70.0, 15)
+    X = np.array([[x, y, -2.0] for x in g for y in g if 30.0 <= math.hypot(x, y) <= 75.0])  # not at the epipole
+
+    def project(pose: Pose, pts: np.ndarray) -> np.ndarray:
+        P = cam.K @ np.c_[pose.R, -pose.R @ pose.position]
+        q = np.c_[pts, np.ones(len(pts))] @ P.T
+        return q[:, :2] / q[:, 2:3]
+
+    u1, u2 = project(p1, X), project(p2, X)
+
+    def bend_m(a: Pose, b: Pose) -> tuple[float, float]:
+        Pa, Pb = (cam.K @ np.c_[q.R, -q.R @ q.position] for q in (a, b))
+        Xh = cv2.triangulatePoints(Pa, Pb, u1.T, u2.T)
+        Y = (Xh[:3] / Xh[3]).T
+        A = np.c_[Y[:, :2], np.ones(len(Y))]
+        coef = np.linalg.lstsq(A, Y[:, 2], rcond=None)[0]
+        tilt = math.degrees(math.atan(math.hypot(coef[0], coef[1])))
+        return float(np.max(np.abs(Y[:, 2] - A @ coef))), tilt
+
+    assert bend_m(p1, p2)[0] < 1e-6
+    bend_nav, tilt_nav = bend_m(p1, nav2)
+    bend_ref, tilt_ref = bend_m(r.pose1, r.pose2)
+    # the held 0.2 deg leaves a tilt of about (altitude / baseline) x 0.2 deg: half a degree of slope
+    assert bend_nav > 1.0 and bend_ref < 0.05, (bend_nav, bend_ref)
+    assert tilt_ref < 1.0 and tilt_nav > 3.0 * tilt_ref, (tilt_nav, tilt_ref)
+
+    r0 = refine_pair(i1, i2, p1, nav2, cam, params=RefineParams(held_rel_att_sigma_deg=0.0))
+    assert not r0.refined and r0.info["refined"] is False
+    assert "depth variation" in r0.info["reason"] and r0.info["depth_spread"] < 0.1
 
 
 def test_tracks_on_highpassed_images_ignore_smooth_brightness_changes():
