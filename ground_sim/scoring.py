@@ -101,6 +101,30 @@ def dem_error_stats(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
     return error_stats(est, truth, mask)
 
 
+def detrended_error(est: np.ndarray, truth: np.ndarray, xy: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean |error| left after removing the error's best plane over the ground, in metres.
+
+    ``e = est - truth``; least squares ``e ~ a + b X + c Y`` over the scored pixels (``xy``: HxWx2 true
+    world X, Y of each pixel), and the result is ``mean |e - (a + b X + c Y)|``. An error in the
+    absolute attitude tilts the whole reconstruction about the camera, and an error in the datum
+    (the reported altitude) shifts it (thesis sec 6.3); to first order the plane absorbs both, and
+    neither changes a slope or a roughness at the footprint scale. What is left is the shape error a
+    hazard detector sees. NaN with fewer than 3 scored pixels.
+    """
+    _same_shape(est=est, truth=truth, mask=mask)
+    w = np.asarray(xy, dtype=np.float64)
+    if w.shape != np.shape(est) + (2,):
+        raise ValueError(f"xy must be {np.shape(est) + (2,)}, got {w.shape}")
+    e = np.asarray(est, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
+    keep = _scored(e.shape, mask, None) & np.isfinite(e) & np.isfinite(w).all(axis=-1)
+    if np.count_nonzero(keep) < 3:
+        return float("nan")
+    x, y, z = w[..., 0][keep], w[..., 1][keep], e[keep]
+    A = np.c_[np.ones(z.size), x - x.mean(), y - y.mean()]  # centred: a well-conditioned fit
+    coef = np.linalg.lstsq(A, z, rcond=None)[0]
+    return float(np.mean(np.abs(z - A @ coef)))
+
+
 def unsafe_estimate(hazard_est: np.ndarray) -> np.ndarray:
     """Estimated unsafe map: ``hazard >= 1`` or NaN (not assessed counts as unsafe)."""
     h = np.asarray(hazard_est, dtype=np.float64)

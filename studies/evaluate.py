@@ -469,6 +469,8 @@ def evaluate_pair(
     box = scoring.box_mask(truth_elev.shape, epi, epipole_box_px)
     est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": res.slope_deg, "roughness_m": res.roughness_m}
     m: dict[str, Any] = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    # the shape error alone: what a tilt (absolute attitude) and a datum shift (altitude) leave out
+    m["dem_detrended_mean_abs_m"] = scoring.detrended_error(res.elevation, truth_elev, world[..., :2], res.covered)
     # Table 6.1/6.8's hazards in scene is a property of the scene: the share of frame-0 pixels whose true
     # ground the last frame sees, as ground_sim measures it - not of the area the flight software covered
     from ground_sim.library import covered, share_pct
@@ -1012,10 +1014,23 @@ def sensitivity_campaign(
             **meta,
             **{
                 k: r.get(k)
-                for k in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "fp_pct", "cdi_pct", "valid_pct", "pipeline_s")
+                for k in (
+                    "dem_mean_abs_m",
+                    "dem_median_m",
+                    "dem_mad_m",
+                    "dem_detrended_mean_abs_m",
+                    "fp_pct",
+                    "cdi_pct",
+                    "valid_pct",
+                    "pipeline_s",
+                )
             },
         }
-        for k, name in (("dem_mean_abs_m", "dem_mean_rel_pct"), ("dem_mad_m", "dem_mad_rel_pct")):
+        for k, name in (
+            ("dem_mean_abs_m", "dem_mean_rel_pct"),
+            ("dem_mad_m", "dem_mad_rel_pct"),
+            ("dem_detrended_mean_abs_m", "dem_detrended_rel_pct"),
+        ):
             a, b = r.get(k), ref.get(k)
             row[name] = 100.0 * (a - b) / b if a is not None and b else None
         rows.append(row)
@@ -1056,6 +1071,7 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for (kind, preset, alt), rs in sorted(groups.items()):
         rel = np.array([r["dem_mean_rel_pct"] for r in rs], float)
+        det = np.array([np.nan if r.get("dem_detrended_rel_pct") is None else r["dem_detrended_rel_pct"] for r in rs])
         s: dict[str, Any] = {
             "kind": kind,
             "preset": preset,
@@ -1064,6 +1080,9 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "median_rel_pct": float(np.median(rel)),
             "max_rel_pct": float(rel.max()),
             "within_15pct": float(np.mean(rel <= 15.0) * 100),
+            # the same after removing the error's best plane (tilt + datum: scoring.detrended_error)
+            "detrended_median_rel_pct": float(np.median(det)) if np.isfinite(det).all() else None,
+            "detrended_max_rel_pct": float(det.max()) if np.isfinite(det).all() else None,
         }
         if kind == "altitude":
             d = np.array([abs(r["dz_m1"] - r["dz_m2"]) for r in rs])

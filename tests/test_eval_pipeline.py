@@ -124,6 +124,10 @@ def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
     assert strip(local) == strip(dask)
     assert local[0]["dem_mean_rel_pct"] == 0.0
     assert all(math.isfinite(r["dem_mean_rel_pct"]) for r in local)
+    assert local[0]["dem_detrended_rel_pct"] == 0.0
+    assert all(0.0 < r["dem_detrended_mean_abs_m"] < 2.0 * r["dem_mean_abs_m"] for r in local)
+    summ = ev.sensitivity_summary(local)
+    assert summ[0]["detrended_max_rel_pct"] == max(r["dem_detrended_rel_pct"] for r in local[1:])
     assert (tmp_path / "dask" / "sensitivity_altitude.csv").is_file()
     lines = (tmp_path / "dask" / "runs" / "sensitivity-altitude.jsonl").read_text().splitlines()
     assert sorted(json.loads(x)["id"] for x in lines) == [

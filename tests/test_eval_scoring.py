@@ -24,6 +24,27 @@ def test_error_stats_hand_values_and_nan_ignored():
     assert s["mad"] == 1.0  # median of |[-1,0,0,1,10] - 0|
 
 
+def test_detrended_error_removes_a_tilt_and_a_datum_shift_but_not_a_bump():
+    h, w = 40, 50
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    xy = np.dstack([x * 2.0 + 100.0, y * 2.0 - 30.0])  # world metres of each pixel
+    truth = np.sin(x / 5.0) * np.cos(y / 7.0)  # some terrain
+    tilt = 0.4 + 0.01 * xy[..., 0] - 0.02 * xy[..., 1]  # 0.6 deg of tilt and a 0.4 m datum shift
+    est = truth + tilt
+    assert scoring.dem_error_stats(est, truth)["mean_abs"] > 1.0
+    assert scoring.detrended_error(est, truth, xy) == pytest.approx(0.0, abs=1e-9)
+    bump = np.where(np.hypot(x - 25, y - 20) < 5, 1.0, 0.0)  # a 1 m shape error the plane cannot absorb
+    d = scoring.detrended_error(est + bump, truth, xy)
+    assert 0.5 * bump.mean() < d < 2.0 * bump.mean()
+    est[0, :] = np.nan  # NaN and the mask are honoured
+    mask = np.ones((h, w), bool)
+    mask[:, :10] = False
+    assert scoring.detrended_error(est, truth, xy, mask) == pytest.approx(0.0, abs=1e-9)
+    assert math.isnan(scoring.detrended_error(est[:1], truth[:1], xy[:1]))
+    with pytest.raises(ValueError):
+        scoring.detrended_error(est, truth, xy[..., :1])
+
+
 def test_error_stats_moments_match_bernoulli_closed_form():
     p = 0.2
     n = 1000
