@@ -312,7 +312,7 @@ def test_nadir_view_of_flat_ground_holds_the_rotation_and_maps_the_ground():
 
     The refinement then holds the relative rotation at navigation and lets the baseline direction take
     the image motion: the ground plane's homography, which is what the sweep needs, comes out right.
-    With the hold switched off it refuses, as before."""
+    Exact poses are kept; with the hold switched off it refuses, as before."""
     from synthetic import NADIR_R, plane
 
     cam = camera_fov30(PX)
@@ -353,6 +353,12 @@ def test_nadir_view_of_flat_ground_holds_the_rotation_and_maps_the_ground():
     # the held 0.2 deg leaves a tilt of about (altitude / baseline) x 0.2 deg: half a degree of slope
     assert bend_nav > 1.0 and bend_ref < 0.05, (bend_nav, bend_ref)
     assert tilt_ref < 1.0 and tilt_nav > 3.0 * tilt_ref, (tilt_nav, tilt_ref)
+
+    # exact poses: the held fit would move the ground's image by less than the fit can resolve, so
+    # navigation is kept as it is
+    re = refine_pair(i1, i2, p1, p2, cam)
+    assert not re.refined and "kept" in re.info["reason"] and re.info["ground_change_px"] < 0.5
+    assert re.pose2 is p2 and re.pose1 is p1
 
     r0 = refine_pair(i1, i2, p1, nav2, cam, params=RefineParams(held_rel_att_sigma_deg=0.0))
     assert not r0.refined and r0.info["refined"] is False
