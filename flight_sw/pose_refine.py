@@ -745,9 +745,7 @@ def _map_solve(
 ) -> tuple[_State, np.ndarray, float]:
     """Step 3 of the module doc: MAP pose from the inlier matches under ``sigmas`` (frame-1 attitude,
     added frame-2 attitude, baseline direction; rad). Writes the fit's telemetry into ``info``; returns
-    the state, the inlier mask and the inliers' depth spread ``(p90 - p10) / median`` of the triangulated
-    depths (scale-free: a lateral baseline change moves points by ~1/depth, a rotation does not depend
-    on depth, so only depth variation tells them apart)."""
+    the state, the inlier mask and the inliers' depth spread (:func:`_depth_spread`) under it."""
     # matching noise: robust spread of the residuals at the navigation pose's best fit, floored
     s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations)
     sigma_px = max(p.sigma_px_min, 1.4826 * float(np.median(np.abs(r))))
@@ -773,13 +771,24 @@ def _map_solve(
         sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
         sigma_dir_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[6:8, 6:8]))))),
     )
-    Ki = np.linalg.inv(K)
-    n = int(inl.sum())
-    x1n, x2n = np.c_[v1[inl], np.ones(n)] @ Ki.T, np.c_[v2[inl], np.ones(n)] @ Ki.T
-    zd = triangulate_depths(R21, t_unit, x1n, x2n) if n >= 3 else np.zeros(0)
+    return s, inl, _depth_spread(R21, t_unit, v1[inl], v2[inl], np.linalg.inv(K))
+
+
+def _depth_spread(R21: np.ndarray, t21: np.ndarray, v1: np.ndarray, v2: np.ndarray, Ki: np.ndarray) -> float:
+    """``(p90 - p10) / median`` of the matches' triangulated camera-1 depths under ``(R21, t21)``.
+
+    Scale-free: a lateral baseline change moves points by ~1/depth, a rotation does not depend on
+    depth, so only depth variation tells them apart. 0 with fewer than 3 usable depths."""
+    n = len(v1)
+    if n < 3:
+        return 0.0
+    x1n, x2n = np.c_[v1, np.ones(n)] @ Ki.T, np.c_[v2, np.ones(n)] @ Ki.T
+    zd = triangulate_depths(R21, t21, x1n, x2n)
     zd = zd[np.isfinite(zd) & (zd > 0)]
-    p10, p50, p90 = np.percentile(zd, [10, 50, 90]) if zd.size >= 3 else (0.0, 1.0, 0.0)
-    return s, inl, float((p90 - p10) / p50) if p50 > 0 else 0.0
+    if zd.size < 3:
+        return 0.0
+    p10, p50, p90 = np.percentile(zd, [10, 50, 90])
+    return float((p90 - p10) / p50) if p50 > 0 else 0.0
 
 
 def _refine_matches(
@@ -824,17 +833,19 @@ def _refine_matches(
     # -- 3. MAP refinement of R1, R2 and the baseline direction
     nav = _State(pose1.R, pose2.R, base / L_nav)
     s_att, s_dir = math.radians(p.nav_att_sigma_deg), math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav
-    s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.nav_rel_att_sigma_deg), s_dir), p, info)
-    held = False
-    if spread < p.min_depth_spread and p.held_rel_att_sigma_deg > 0:
-        # confounded (near-nadir view of flat ground): hold the relative rotation at navigation and let
-        # the baseline direction take the image motion. On a plane a small rotation and a lateral
-        # baseline change move the image alike, so the ground's homography comes out right either way,
-        # and what is left (the epipole off by about the rotation error) costs height in proportion to
-        # the relief only, instead of shifting every point by the whole navigation error.
-        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.held_rel_att_sigma_deg), s_dir), p, info)
-        held = True
-    info.update(depth_spread=spread, relative_rotation_held=held, spread=_spread(v1[inl], mask, roi))
+    # confounded (near-nadir view of flat ground: the matches hardly differ in depth, which the
+    # navigation's geometry already tells; the spread is scale-free and moves little with the fit): hold
+    # the relative rotation at navigation and let the baseline direction take the image motion. On a
+    # plane a small rotation and a lateral baseline change move the image alike, so the ground's
+    # homography comes out right either way, and what is left (the epipole off by about the rotation
+    # error) costs height in proportion to the relief only, instead of shifting every point by the
+    # whole navigation error.
+    spread_nav = _depth_spread(*relative_pose(pose1, pose2), v1, v2, Ki)
+    held = spread_nav < p.min_depth_spread and p.held_rel_att_sigma_deg > 0
+    s_rel = math.radians(p.held_rel_att_sigma_deg if held else p.nav_rel_att_sigma_deg)
+    s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, s_rel, s_dir), p, info)
+    info.update(depth_spread=spread, depth_spread_nav=spread_nav, relative_rotation_held=held)
+    info["spread"] = _spread(v1[inl], mask, roi)
     R21 = s.R2 @ s.R1.T
     t_unit = -s.R2 @ s.b
     x1n, x2n = np.c_[v1[inl], np.ones(int(inl.sum()))] @ Ki.T, np.c_[v2[inl], np.ones(int(inl.sum()))] @ Ki.T
