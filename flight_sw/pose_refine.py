@@ -844,6 +844,10 @@ def _refine_matches(
     held = spread_nav < p.min_depth_spread and p.held_rel_att_sigma_deg > 0
     s_rel = math.radians(p.held_rel_att_sigma_deg if held else p.nav_rel_att_sigma_deg)
     s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, s_rel, s_dir), p, info)
+    if not held and spread < p.min_depth_spread and p.held_rel_att_sigma_deg > 0:
+        # the free fit found the depths flatter than navigation did (rare): solve again, held
+        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.held_rel_att_sigma_deg), s_dir), p, info)
+        held = True
     info.update(depth_spread=spread, depth_spread_nav=spread_nav, relative_rotation_held=held)
     info["spread"] = _spread(v1[inl], mask, roi)
     R21 = s.R2 @ s.R1.T
