@@ -44,16 +44,21 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    better than the navigation's baseline.
 5. **Degeneracy.** Too few matches or inliers, poor spread, too little
    parallax after removing the rotation (pure rotation, identical frames),
-   a correction beyond the plausible, a large residual, no convergence, too
-   little depth variation over the inliers (``min_depth_spread``: a lateral
-   change of the baseline moves points by ~1/depth, a rotation does not, so
-   on a near-nadir view of flat ground the two are confounded and the fit
-   follows tiny matching biases - 0.05-0.4 deg from exact poses), or a
+   a correction beyond the plausible, a large residual, no convergence, or a
    relative rotation the images do not pin down (posterior sd above
    ``max_rel_rot_sd_deg``: a near-planar scene in a narrow field of view, where
    a rotation and a baseline-direction change move the plane's image alike):
    the navigation poses are returned unchanged with ``refined = False`` and
    the reason.
+6. **Confounded nadir pairs.** With too little depth variation over the
+   matches (``min_depth_spread``: a lateral change of the baseline moves points
+   by ~1/depth, a rotation does not, so on a near-nadir view of flat ground the
+   two are confounded and a free fit follows tiny matching biases - 0.05-0.4
+   deg from exact poses) the relative rotation is held at navigation
+   (``held_rel_att_sigma_deg``) and the baseline direction takes the image
+   motion: any such split maps the ground plane alike, and the ground's
+   mapping is what the sweep needs. If that moves the ground's image by less
+   than ``min_held_change_px``, navigation is kept.
 """
 
 from __future__ import annotations
@@ -122,8 +127,8 @@ class RefineParams:
     # (docs/benchmarks/pose.md, "Nadir pairs")
     held_rel_att_sigma_deg: float = 0.03
     # ... unless that moves the ground's image by less than this (px): the held fit maps the ground to
-    # ~0.4 px of the truth from poses 2.7 px off, and moves exact poses by 0.10-0.40 px (tuning renders,
-    # p10-p90), so a smaller correction is not evidence and navigation is kept
+    # ~0.4 px of the truth from poses 2.7 px off, and moves exact poses by 0.05-0.20 px (tuning renders'
+    # vertical pairs, p10-p90), so a smaller correction is not evidence and navigation is kept
     min_held_change_px: float = 0.5
     max_iterations: int = 30
 
