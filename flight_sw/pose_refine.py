@@ -760,7 +760,8 @@ def _map_solve(
     R21_nav = nav.R2 @ nav.R1.T
     J_rel = np.c_[-R21, np.eye(3), np.zeros((3, 2))]  # relative-rotation error ~ d2 - R21 d1 (camera-2 axes)
     t_unit = -s.R2 @ s.b
-    flow = v2 - _apply_h(K @ R21 @ np.linalg.inv(K), v1)  # motion left after removing the rotation
+    Ki = np.linalg.inv(K)
+    flow = v2 - _apply_h(K @ R21 @ Ki, v1)  # motion left after removing the rotation
     info.update(
         inliers=int(inl.sum()),
         iterations=iters,
@@ -776,7 +777,7 @@ def _map_solve(
         sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
         sigma_dir_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[6:8, 6:8]))))),
     )
-    return s, inl, _depth_spread(R21, t_unit, v1[inl], v2[inl], np.linalg.inv(K))
+    return s, inl, _depth_spread(R21, t_unit, v1[inl], v2[inl], Ki)
 
 
 def _depth_spread(R21: np.ndarray, t21: np.ndarray, v1: np.ndarray, v2: np.ndarray, Ki: np.ndarray) -> float:
@@ -838,20 +839,16 @@ def _refine_matches(
     # -- 3. MAP refinement of R1, R2 and the baseline direction
     nav = _State(pose1.R, pose2.R, base / L_nav)
     s_att, s_dir = math.radians(p.nav_att_sigma_deg), math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav
-    # confounded (near-nadir view of flat ground: the matches hardly differ in depth, which the
-    # navigation's geometry already tells; the spread is scale-free and moves little with the fit): hold
-    # the relative rotation at navigation and let the baseline direction take the image motion. On a
-    # plane a small rotation and a lateral baseline change move the image alike, so the ground's
-    # homography comes out right either way, and what is left (the epipole off by about the rotation
-    # error) costs height in proportion to the relief only, instead of shifting every point by the
-    # whole navigation error.
+    # confounded nadir pairs (module doc, step 6): judged first under the navigation's geometry, so such
+    # a pair costs one solve; again after the free fit in the rare case it finds the depths flatter
+    can_hold = p.held_rel_att_sigma_deg > 0
+    s_held = math.radians(p.held_rel_att_sigma_deg)
     spread_nav = _depth_spread(*relative_pose(pose1, pose2), v1, v2, Ki)
-    held = spread_nav < p.min_depth_spread and p.held_rel_att_sigma_deg > 0
-    s_rel = math.radians(p.held_rel_att_sigma_deg if held else p.nav_rel_att_sigma_deg)
+    held = can_hold and spread_nav < p.min_depth_spread
+    s_rel = s_held if held else math.radians(p.nav_rel_att_sigma_deg)
     s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, s_rel, s_dir), p, info)
-    if not held and spread < p.min_depth_spread and p.held_rel_att_sigma_deg > 0:
-        # the free fit found the depths flatter than navigation did (rare): solve again, held
-        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, math.radians(p.held_rel_att_sigma_deg), s_dir), p, info)
+    if can_hold and not held and spread < p.min_depth_spread:
+        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, s_held, s_dir), p, info)
         held = True
     info.update(depth_spread=spread, depth_spread_nav=spread_nav, relative_rotation_held=held)
     info["spread"] = _spread(v1[inl], mask, roi)
