@@ -2,8 +2,9 @@
 
 Median of N runs per altitude class (nadir 1000/300/100/50 m, oblique 2400/1200/250 m of
 the approach scenario), default scene; wall-clock median/min/max and the median CPU time
-(time.process_time, less sensitive to other jobs on a shared machine). Usage:
-    .venv/bin/python bench/bench_render.py [--repeat 5] [--out docs/benchmarks/render.md]
+(time.process_time, less sensitive to other jobs on a shared machine), peak RSS growth, and how much
+coarser than GSD/2 the terrain raster is (the raster cap, docs/scenes.md). Usage:
+    .venv/bin/python bench/bench_render.py [--repeat 5] [--max-raster-cells N] [--out table.md]
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse
+import resource
 import statistics
 import time
 
 import cv2
 
 from ground_sim.geometry import look_rotation
-from ground_sim.render import render_view
+from ground_sim.render import MAX_CELLS, render_view
 from ground_sim.scene import load_scene
 from protocol.pairdir import Camera, Pose, Sun
 
@@ -39,19 +41,26 @@ CASES = [
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="write the table here (a file of its own: it is overwritten)")
+    ap.add_argument("--max-raster-cells", type=int, default=MAX_CELLS)
+    ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")
     args = ap.parse_args()
+    mc = args.max_raster_cells
     cv2.setNumThreads(1)
     scene = load_scene("default", 0)
     cam = Camera.thesis()
     rows = []
     for name, pos, tilt in CASES:
+        if args.cases and name not in args.cases:
+            continue
         pose = Pose(pos, look_rotation(tilt))
-        render_view(scene, cam, pose, Sun(135, 25), seed=0)  # warm-up
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        render_view(scene, cam, pose, Sun(135, 25), seed=0, max_cells=mc)  # warm-up
+        rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024.0  # MiB (peak growth; 0 if lower)
         ts, cs = [], []
         for k in range(args.repeat):
             t0, c0 = time.perf_counter(), time.process_time()
-            v = render_view(scene, cam, pose, Sun(135, 25), seed=k)
+            v = render_view(scene, cam, pose, Sun(135, 25), seed=k, max_cells=mc)
             ts.append(time.perf_counter() - t0)
             cs.append(time.process_time() - c0)
         rows.append(
@@ -63,22 +72,26 @@ def main() -> None:
                 statistics.median(cs),
                 v.info["raster_shape"],
                 v.info["raster_cell_m"],
+                v.info["raster_cell_over_target"],
+                rss,
             )
         )
         print(
             f"{name:24s} median {rows[-1][1]:.2f} s  (min {min(ts):.2f}, max {max(ts):.2f}, "
             f"cpu median {rows[-1][4]:.2f}) raster {v.info['raster_shape']} "
-            f"cell {v.info['raster_cell_m']:.3f} m",
+            f"cell {v.info['raster_cell_m']:.3f} m = {v.info['raster_cell_over_target']:.2f} x GSD/2, "
+            f"peak RSS +{rss:.0f} MiB",
             flush=True,
         )
     if args.out:
         lines = [
-            "| case | median s | min s | max s | CPU median s | raster (rows x cols) | cell m |",
-            "|---|---|---|---|---|---|---|",
+            "| case | median s | min s | max s | CPU median s | raster (rows x cols) | cell m | cell / (GSD/2) "
+            "| peak RSS growth MiB |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         lines += [
-            f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {cp:.2f} | {s[0]}x{s[1]} | {c:.3f} |"
-            for n, m, lo, hi, cp, s, c in rows
+            f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {cp:.2f} | {s[0]}x{s[1]} | {c:.3f} | {r:.2f} | {g:.0f} |"
+            for n, m, lo, hi, cp, s, c, r, g in rows
         ]
         with open(args.out, "w") as fh:
             fh.write("\n".join(lines) + "\n")

@@ -47,11 +47,14 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 }
 
 
-def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None = None) -> list[dict[str, Any]]:
-    """Render (or reuse) every pair of a case for one scene seed."""
+def render_case(
+    case: str, seed: int, cache: Path, altitudes: list[int] | None = None, max_cells: int | None = None
+) -> list[dict[str, Any]]:
+    """Render (or reuse) every pair of a case for one scene seed (``max_cells``: the renderer's raster cap)."""
     from ground_sim import trajectory
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
+    from ground_sim.render import MAX_CELLS
     from ground_sim.scene import load_scene
     from protocol.pairdir import Sun, write_pair_atomic
 
@@ -67,7 +70,8 @@ def render_case(case: str, seed: int, cache: Path, altitudes: list[int] | None =
         if not (d / "pair.json").is_file():
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
-            write_pair_atomic(d, render_pair(scene, spec, s, seed=seed))
+            mc = MAX_CELLS if max_cells is None else max_cells
+            write_pair_atomic(d, render_pair(scene, spec, s, seed=seed, max_cells=mc))
         entries.append({"case": case, "seed": seed, "altitude_m": int(round(spec.altitude_m)), "pair_dir": str(d)})
     return entries
 
@@ -299,6 +303,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="override fields of the preset")
     ap.add_argument("--ablation", action="store_true", help="run the ablation variants instead of --presets")
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument(
+        "--max-raster-cells",
+        type=int,
+        default=None,
+        help="render with this raster cap (docs/scenes.md); use a cache of its own, renders are reused by path",
+    )
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
@@ -312,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     cache = Path(args.cache)
-    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes)]
+    mc = args.max_raster_cells
+    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc)]
     if args.render_only:
         print(f"{len(pairs)} pairs in {cache}")
         return 0

@@ -39,6 +39,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--sun", default=None, help="AZ,EL in degrees (default: the scene's sun for this seed)")
     p.add_argument("--supersample", type=int, default=2, help="sub-pixels per axis (default 2)")
+    p.add_argument(
+        "--max-raster-cells",
+        type=int,
+        default=None,
+        help="terrain raster cells per view (default 1000000, at most 16000000): above it the raster "
+        "is coarser than GSD/supersample and finer detail is not rendered (docs/scenes.md)",
+    )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: CPU count)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--out", required=True, help="output directory")
@@ -78,6 +85,7 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.descent import render_scenario
     from ground_sim.errors import RenderError
     from ground_sim.pose_error import PoseError
+    from ground_sim.render import MAX_CELLS
     from protocol.pairdir import Sun
 
     pe = PoseError.parse(args.pose_error) if args.pose_error else None
@@ -105,7 +113,16 @@ def _run(args: argparse.Namespace) -> int:
         sun=sun,
         supersample=args.supersample,
         workers=args.workers,
+        max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
     )
+    worst = max(e.get("raster_cell_over_target", 1.0) for e in json.loads((out / "manifest.json").read_text())["pairs"])
+    if worst > 1.05:
+        print(
+            f"note: the terrain raster is up to {worst:.1f}x coarser than GSD/{args.supersample} (the raster-size "
+            "cap): detail finer than that is in neither the images nor the truth; --max-raster-cells raises "
+            "the cap (docs/scenes.md)",
+            file=sys.stderr,
+        )
     print(out / "manifest.json")
     return 0
 

@@ -22,7 +22,7 @@ from ground_sim import library
 from ground_sim.errors import TrajectoryError
 from ground_sim.library import DEFAULT_SUN, covered, share_pct
 from ground_sim.pose_error import PoseError
-from ground_sim.render import View, noisy_image, render_view
+from ground_sim.render import MAX_CELLS, View, check_max_cells, noisy_image, render_view
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import PairSpec, frames_at, load_trajectory
 from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
@@ -53,11 +53,18 @@ class _Job:
     pose: Pose
     sun: Sun
     supersample: int
+    max_cells: int = MAX_CELLS
 
 
 def _render_job(job: _Job) -> View:
     return render_view(
-        Scene(job.params, job.scene_seed), job.camera, job.pose, job.sun, supersample=job.supersample, noise=False
+        Scene(job.params, job.scene_seed),
+        job.camera,
+        job.pose,
+        job.sun,
+        supersample=job.supersample,
+        noise=False,
+        max_cells=job.max_cells,
     )
 
 
@@ -66,18 +73,26 @@ def _pose_key(camera: Camera, pose: Pose) -> bytes:
 
 
 def render_views(
-    scene: Scene, camera: Camera, poses: list[Pose], sun: Sun, *, supersample: int = 2, workers: int | None = 1
+    scene: Scene,
+    camera: Camera,
+    poses: list[Pose],
+    sun: Sun,
+    *,
+    supersample: int = 2,
+    workers: int | None = 1,
+    max_cells: int = MAX_CELLS,
 ) -> list[View]:
     """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes."""
     from ground_sim.parallel import pool_map
 
+    check_max_cells(max_cells)  # here, not in a worker: a bad value is one clear error
     uniq: dict[bytes, int] = {}
     jobs: list[tuple[_Job]] = []
     for p in poses:
         k = _pose_key(camera, p)
         if k not in uniq:
             uniq[k] = len(jobs)
-            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample)),))
+            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells),))
     if workers is None and camera.width * camera.height * len(jobs) <= INLINE_PIXELS:
         workers = 1  # a pool's start-up (spawn + imports, ~1 s) would cost more than it saves
     views = pool_map(_render_job, jobs, workers)
@@ -140,9 +155,12 @@ def render_pair(
     pose_error: PoseError | None = None,
     supersample: int = 2,
     workers: int | None = 1,
+    max_cells: int = MAX_CELLS,
 ) -> Pair:
     """Render every frame of ``spec``; reported poses carry the injected errors, truth is for frame 0."""
-    views = render_views(scene, spec.camera, list(spec.poses), sun, supersample=supersample, workers=workers)
+    views = render_views(
+        scene, spec.camera, list(spec.poses), sun, supersample=supersample, workers=workers, max_cells=max_cells
+    )
     return assemble_pair(scene, spec, sun, views, seed=seed, pose_error=pose_error)
 
 
@@ -183,15 +201,18 @@ def render_scenario(
     supersample: int = 2,
     camera: Camera | None = None,
     workers: int | None = None,
+    max_cells: int = MAX_CELLS,
 ) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
 
     ``frames`` (lists of altitudes, highest first) renders multi-frame directories of the
     scenario instead of its pairs. ``camera`` replaces the scenario's camera (e.g. a smaller
     sensor with the same FOV); ``scene=None`` renders on :func:`default_scene`; ``sun=None``
-    uses the library scene's sun for this seed (or the scenario's). ``workers`` renders frames
+    uses the library scene's sun for this seed (or the scenario's). ``max_cells`` bounds each
+    view's terrain raster (a larger window gets a coarser cell; docs/scenes.md). ``workers`` renders frames
     in that many single-threaded processes (default: CPU count).
     """
+    check_max_cells(max_cells)
     specs = load_trajectory(spec, camera)
     name = specs[0].scenario
     if frames:
@@ -213,7 +234,7 @@ def render_scenario(
     if any(ps.camera != cam for ps in specs):
         raise TrajectoryError("all pairs of a scenario must share one camera")
     _progress(0, len(specs), "frames", t0, progress)
-    views = render_views(sc, cam, poses, sun, supersample=supersample, workers=workers)
+    views = render_views(sc, cam, poses, sun, supersample=supersample, workers=workers, max_cells=max_cells)
     entries, thumbs = [], []
     k = 0
     for i, ps in enumerate(specs):
@@ -230,6 +251,7 @@ def render_scenario(
                 "hazards_in_scene_pct": pair.meta["hazards_in_scene_pct"],
                 "hazard_fraction": pair.meta["hazard_fraction"],
                 "altimeter_m": list(pair.altimeter_m),
+                "raster_cell_over_target": max(float(v.info["raster_cell_over_target"]) for v in vs),
             }
         )
         thumbs.append((ps.label, pair.images))

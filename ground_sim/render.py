@@ -5,7 +5,10 @@ Pipeline per frame:
    footprint (the thesis's trapezoid, Fig. 6.9, for a tilted camera), padded by the 3 m
    hazard disk and extended toward the sun so off-screen terrain can cast shadows;
 2. evaluate the scene on a world raster of cell ``GSD_min / supersample`` (band-limited
-   to 2 cells: terrain-level anti-aliasing; size capped at ``MAX_CELLS``);
+   to 2 cells: terrain-level anti-aliasing), but of at most ``max_cells`` cells (default
+   ``MAX_CELLS``, for speed): a larger window gets a coarser cell, and then finer detail is
+   in neither the image nor the truth, and two views of the same ground see different
+   detail (``info["raster_cell_over_target"]`` says by how much; docs/scenes.md);
 3. ray-cast every sub-pixel ray (``supersample^2`` per pixel) and every pixel-centre ray:
    a coarse pass (every 4th pixel) gives a conservative start, then a fine march and a
    regula-falsi refinement on the bilinear surface (correct occlusion);
@@ -40,6 +43,7 @@ from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
 MAX_CELLS = 1_000_000
+MAX_CELLS_LIMIT = 16_000_000  # ~1.5 GB peak at 512 px, ss 2 (docs/scenes.md): refused above
 MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
 REFERENCE_DN = 95.0  # DN of flat ground of mean albedo under this sun
@@ -69,11 +73,18 @@ def _check_pose(camera: Camera, pose: Pose) -> None:
         raise RenderError(str(exc)) from None
 
 
-def _check_args(sun: Sun, supersample: int) -> None:
+def check_max_cells(max_cells: int) -> None:
+    """Refuse a raster-size bound that is not an integer in [10 000, ``MAX_CELLS_LIMIT``] (memory is bounded first)."""
+    if isinstance(max_cells, bool) or not isinstance(max_cells, int) or not 10_000 <= max_cells <= MAX_CELLS_LIMIT:
+        raise RenderError(f"max raster cells must be an integer in [10000, {MAX_CELLS_LIMIT}], got {max_cells!r}")
+
+
+def _check_args(sun: Sun, supersample: int, max_cells: int = MAX_CELLS) -> None:
     if not (0.0 < sun.elevation_deg <= 90.0) or not math.isfinite(sun.azimuth_deg):
         raise RenderError(f"sun elevation must be in (0, 90] deg, got {sun.elevation_deg}")
     if supersample < 1 or supersample > 8:
         raise RenderError(f"supersample must be 1..8, got {supersample}")
+    check_max_cells(max_cells)
 
 
 def exposure(scene: Scene, sun: Sun) -> float:
@@ -119,6 +130,7 @@ def plan_raster(
     sun: Sun,
     supersample: int,
     box: tuple[float, float, float, float] | None = None,
+    max_cells: int = MAX_CELLS,
 ) -> RasterPlan:
     """Raster window (x0, y0, cell, nx, ny) and the coarse height bounds of the view.
 
@@ -164,7 +176,7 @@ def plan_raster(
     fx0, fx1 = min(x0, x0 + sx), max(x1, x1 + sx)
     fy0, fy1 = min(y0, y0 + sy), max(y1, y1 + sy)
     gsd = float(ts[1].min()) / camera.fx
-    cell = max(gsd / supersample, math.sqrt((fx1 - fx0) * (fy1 - fy0) / MAX_CELLS))
+    cell = max(gsd / supersample, math.sqrt((fx1 - fx0) * (fy1 - fy0) / max_cells))
     if box is not None:
         u0, v0, u1, v1 = box
         s = np.linspace(0.0, 1.0, 12)
@@ -195,12 +207,13 @@ class _Caster:
         sun: Sun,
         ss: int,
         box: tuple[int, int, int, int] | None = None,
+        max_cells: int = MAX_CELLS,
     ) -> None:
         self.scene, self.camera, self.pose, self.sun, self.ss = scene, camera, pose, sun, ss
         W, Hh = camera.width, camera.height
         if box is None:
             self.blocks = (0, 0, -(-Hh // COARSE), -(-W // COARSE))
-            plan = plan_raster(scene, camera, pose, sun, ss)
+            plan = plan_raster(scene, camera, pose, sun, ss, max_cells=max_cells)
         else:
             # pixels of the box plus two coarse blocks around it (the start heights dilate by one block)
             u0, v0, u1, v1 = box
@@ -208,7 +221,7 @@ class _Caster:
             bi1, bj1 = min(-(-v1 // COARSE) + 2, -(-Hh // COARSE)), min(-(-u1 // COARSE) + 2, -(-W // COARSE))
             self.blocks = (bi0, bj0, bi1, bj1)
             edge = (bj0 * COARSE - 0.5, bi0 * COARSE - 0.5, min(bj1 * COARSE, W) - 0.5, min(bi1 * COARSE, Hh) - 0.5)
-            plan = plan_raster(scene, camera, pose, sun, ss, box=edge)
+            plan = plan_raster(scene, camera, pose, sun, ss, box=edge, max_cells=max_cells)
         self.plan = plan
         self.H, self.A = scene.raster(plan.x0, plan.y0, plan.cell, plan.nx, plan.ny)
         self.r = Raster(plan.x0, plan.y0, plan.cell, self.H)
@@ -316,13 +329,21 @@ class _Caster:
 
 
 def render_view(
-    scene: Scene, camera: Camera, pose: Pose, sun: Sun, *, seed: int = 0, supersample: int = 2, noise: bool = True
+    scene: Scene,
+    camera: Camera,
+    pose: Pose,
+    sun: Sun,
+    *,
+    seed: int = 0,
+    supersample: int = 2,
+    noise: bool = True,
+    max_cells: int = MAX_CELLS,
 ) -> View:
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method."""
     _check_pose(camera, pose)
-    _check_args(sun, supersample)
+    _check_args(sun, supersample, max_cells)
     ss = int(supersample)
-    cs = _Caster(scene, camera, pose, sun, ss)
+    cs = _Caster(scene, camera, pose, sun, ss, max_cells=max_cells)
     r, C = cs.r, cs.C
     W, Hh = camera.width, camera.height
 
@@ -364,6 +385,8 @@ def render_view(
         "raster_cell_m": p.cell,
         "raster_shape": [p.ny, p.nx],
         "gsd_min_m": p.gsd,
+        # > 1: the raster is this much coarser than GSD_min / supersample (the max_cells cap)
+        "raster_cell_over_target": p.cell / (p.gsd / ss),
         "raster_origin_m": [p.x0, p.y0],
         "altimeter_m": alt_m,
     }
@@ -395,6 +418,7 @@ def truth_at(
     v: np.ndarray,
     *,
     supersample: int = 2,
+    max_cells: int = MAX_CELLS,
 ) -> dict[str, np.ndarray]:
     """Ground truth at integer pixel centres (u, v) as :func:`render_view` computes it, without an image.
 
@@ -404,13 +428,14 @@ def truth_at(
     flat arrays ``elevation``, ``depth``, ``world_xy`` (N x 2), ``hazard``, ``shadow``.
     """
     _check_pose(camera, pose)
-    _check_args(sun, supersample)
+    _check_args(sun, supersample, max_cells)
     ss = int(supersample)
     u = np.asarray(u, dtype=np.int64).ravel()
     v = np.asarray(v, dtype=np.int64).ravel()
     if u.size == 0 or u.min() < 0 or v.min() < 0 or u.max() >= camera.width or v.max() >= camera.height:
         raise RenderError("truth_at: pixels must lie inside the image")
-    cs = _Caster(scene, camera, pose, sun, ss, box=(int(u.min()), int(v.min()), int(u.max()) + 1, int(v.max()) + 1))
+    box = (int(u.min()), int(v.min()), int(u.max()) + 1, int(v.max()) + 1)
+    cs = _Caster(scene, camera, pose, sun, ss, box=box, max_cells=max_cells)
     off = (np.arange(ss) + 0.5) / ss - 0.5
     ou, ov = np.meshgrid(off, off)
     su = (u[:, None] + ou.ravel()[None, :]).ravel()

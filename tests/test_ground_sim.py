@@ -276,6 +276,26 @@ def test_invalid_scene_files_give_clear_errors(tmp_path, text, msg):
         load_scene(p)
 
 
+def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
+    """The terrain raster's cell is GSD/supersample unless the cell cap coarsens it; then the view says so."""
+    sc = load_scene("default", 3)
+    pose = Pose([40.0, 30.0, 100.0], look_rotation(0.0))
+    capped = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=10_000)
+    full = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=4_000_000)
+    for v, ss in ((capped, 2), (full, 2)):
+        assert v.info["raster_cell_over_target"] == pytest.approx(v.info["raster_cell_m"] / (v.info["gsd_min_m"] / ss))
+    assert capped.info["raster_cell_over_target"] > 2.0
+    assert full.info["raster_cell_over_target"] == pytest.approx(1.0)
+    rows, cols = capped.info["raster_shape"]
+    assert rows * cols <= 10_000 * 1.05  # the cap holds (to the rounding of the window)
+    for bad in (0, 9_999, 16_000_001, 2.5, True):
+        with pytest.raises(RenderError, match="max raster cells"):
+            render_view(sc, CAM, pose, Sun(135, 30), max_cells=bad)
+    out = render_scenario("vertical", tmp_path / "r", seed=3, pairs=["200/100"], progress=False, max_cells=20_000)
+    entry = json.loads((out / "manifest.json").read_text())["pairs"][0]
+    assert entry["raster_cell_over_target"] > 1.0
+
+
 def test_bad_views_give_clear_errors():
     sc = load_scene("default", 0)
     with pytest.raises(RenderError, match="below"):
