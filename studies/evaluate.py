@@ -610,6 +610,7 @@ def render_cache(
     altitudes: Iterable[int] | None = None,
     progress: bool = False,
     scene: str | None = None,
+    max_cells: int | None = None,
 ) -> list[dict[str, Any]]:
     """Render (or reuse) the scenario's pairs for one scene seed; return [{label, altitude_m, pair_dir}].
 
@@ -622,6 +623,7 @@ def render_cache(
     """
     from ground_sim import library, trajectory
     from ground_sim.descent import render_pair
+    from ground_sim.render import MAX_CELLS
     from ground_sim.scene import load_scene, load_scene_params
     from protocol.pairdir import write_pair_atomic
 
@@ -638,7 +640,7 @@ def render_cache(
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
     scene_spec = scene or scenario_scene(scenario)
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
-    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px"
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{cells_tag(max_cells)}"
     sc = None
     entries = []
     for k, spec in enumerate(specs):
@@ -650,9 +652,23 @@ def render_cache(
                 print(f"render {scenario} seed {seed}: {spec.label} ({k + 1}/{len(specs)})", flush=True)
             sun = library.scene_sun(scene_spec, scenario, seed)
             # atomic: an interrupted render never leaves a half-written pair, a concurrent one is kept
-            write_pair_atomic(d, render_pair(sc, spec, sun, seed=seed))
+            write_pair_atomic(d, render_pair(sc, spec, sun, seed=seed, max_cells=max_cells or MAX_CELLS))
         entries.append({"label": spec.label, "altitude_m": float(spec.altitude_m), "pair_dir": str(d)})
     return entries
+
+
+def cells_tag(max_cells: int | None) -> str:
+    """Suffix of cache directories and task ids for a non-default terrain raster cap (renders differ)."""
+    from ground_sim.errors import RenderError
+    from ground_sim.render import MAX_CELLS, check_max_cells
+
+    if max_cells is None or max_cells == MAX_CELLS:
+        return ""
+    try:
+        check_max_cells(max_cells)
+    except RenderError as exc:
+        raise EvaluationError(str(exc)) from None
+    return f"_cells{max_cells}"
 
 
 def scenario_scene(scenario: str) -> str:
@@ -664,9 +680,17 @@ def scenario_scene(scenario: str) -> str:
 
 # --------------------------------------------------------------------------- campaigns
 def _render_task(
-    scenario: str, seed: int, cache_dir: str, camera_px: int | None, altitude: int, scene: str | None = None
+    scenario: str,
+    seed: int,
+    cache_dir: str,
+    camera_px: int | None,
+    altitude: int,
+    scene: str | None = None,
+    max_cells: int | None = None,
 ) -> dict[str, Any]:
-    return render_cache(scenario, seed, cache_dir, camera_px=camera_px, altitudes=[altitude], scene=scene)[0]
+    return render_cache(
+        scenario, seed, cache_dir, camera_px=camera_px, altitudes=[altitude], scene=scene, max_cells=max_cells
+    )[0]
 
 
 def _check_choice(name: str, values: Iterable[Any], allowed: Iterable[Any]) -> list[Any]:
@@ -690,6 +714,7 @@ def render_all(
     run_dir: str | Path | None = None,
     scene: str | None = None,
     pool: Any = None,
+    max_cells: int | None = None,
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
@@ -705,7 +730,7 @@ def render_all(
     tag = (scene or scenario_scene(scenario)).replace(":", "-")
     tasks = [
         Task(
-            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}",
+            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{cells_tag(max_cells)}",
             {
                 "scenario": scenario,
                 "seed": s,
@@ -713,6 +738,7 @@ def render_all(
                 "camera_px": camera_px,
                 "altitude": a,
                 "scene": scene,
+                "max_cells": max_cells,
             },
         )
         for s in seeds
@@ -751,6 +777,7 @@ def evaluate_scenario(
     progress: bool = True,
     maps_seeds: int = 1,
     scene: str | None = None,
+    max_cells: int | None = None,
 ) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
@@ -784,13 +811,14 @@ def evaluate_scenario(
             run_dir=out / "runs",
             scene=scene,
             pool=pool,
+            max_cells=max_cells,
         )
         tasks: list[Any] = []
         info: dict[str, dict[str, Any]] = {}
         for preset in presets:
             for e in pairs:
                 alt = int(round(e["altitude_m"]))
-                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}"
+                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{cells_tag(max_cells)}"
                 kw: dict[str, Any] = {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": None}
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
@@ -948,6 +976,7 @@ def sensitivity_campaign(
     scheduler: Any = None,
     workers: int | None = None,
     progress: bool = True,
+    max_cells: int | None = None,
 ) -> list[dict[str, Any]]:
     """Thesis sec 6.3 Monte Carlo on the approach scenario; one row per (preset, seed, altitude, sample).
 
@@ -976,6 +1005,7 @@ def sensitivity_campaign(
         workers=workers,
         progress=progress,
         run_dir=out / "runs",
+        max_cells=max_cells,
     )
     tasks: list[Any] = []
     info: dict[str, dict[str, Any]] = {}
@@ -984,7 +1014,7 @@ def sensitivity_campaign(
             alt = int(round(e["altitude_m"]))
             for i in range(-1, samples):
                 pe = None if i < 0 else sample_pose_error(kind, e["seed"] * 100003 + alt, i)
-                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}"
+                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{cells_tag(max_cells)}"
                 tasks.append(
                     Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe, "truth_slope": False})
                 )
@@ -1008,7 +1038,7 @@ def sensitivity_campaign(
     rows = []
     for t in tasks:
         meta = info[t.id]
-        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref"]
+        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{cells_tag(max_cells)}"]
         r = res[t.id]
         row = {
             **meta,

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from protocol.pairdir import read_pair
 from studies import evaluate as ev
 
 PX = 96
@@ -97,6 +98,29 @@ def test_pose_knowledge_errors_raise_dem_error(cache: Path):
     assert alt["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
     assert att["dem_mean_abs_m"] > 1.5 * perfect["dem_mean_abs_m"]
     assert perfect["slope_mean_abs_deg"] is None  # truth slope skipped on request
+
+
+def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, cache: Path):
+    """A non-default terrain raster cap renders other pairs: own cache directory and task ids, its cap in them."""
+    (default,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
+    rows = ev.evaluate_scenario(
+        "vertical",
+        tmp_path / "e",
+        seeds=[0],
+        cache_dir=tmp_path / "c",
+        camera_px=PX,
+        altitudes=[300],
+        progress=False,
+        max_cells=20_000,
+    )
+    capped = Path(rows[0]["pair"])
+    assert capped.parent.name.endswith("_cells20000") and capped != Path(default["pair_dir"])
+    meta = read_pair(capped).meta
+    assert all(v["raster_cell_over_target"] > 1.0 for v in meta["render"])
+    log = (tmp_path / "e" / "runs" / "evaluate.jsonl").read_text()
+    assert "_cells20000" in log
+    with pytest.raises(ev.EvaluationError, match="max raster cells"):
+        ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], max_cells=5)
 
 
 def test_sample_pose_errors_are_seeded_and_bounded():
