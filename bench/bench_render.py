@@ -43,6 +43,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", default=None, help="write the table here (a file of its own: it is overwritten)")
     ap.add_argument("--max-raster-cells", type=int, default=MAX_CELLS)
+    ap.add_argument("--raster", choices=["view", "tiles"], default="view")
     ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")
     args = ap.parse_args()
     mc = args.max_raster_cells
@@ -55,12 +56,12 @@ def main() -> None:
             continue
         pose = Pose(pos, look_rotation(tilt))
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        render_view(scene, cam, pose, Sun(135, 25), seed=0, max_cells=mc)  # warm-up
+        render_view(scene, cam, pose, Sun(135, 25), seed=0, max_cells=mc, raster=args.raster)  # warm-up
         rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024.0  # MiB (peak growth; 0 if lower)
         ts, cs = [], []
         for k in range(args.repeat):
             t0, c0 = time.perf_counter(), time.process_time()
-            v = render_view(scene, cam, pose, Sun(135, 25), seed=k, max_cells=mc)
+            v = render_view(scene, cam, pose, Sun(135, 25), seed=k, max_cells=mc, raster=args.raster)
             ts.append(time.perf_counter() - t0)
             cs.append(time.process_time() - c0)
         rows.append(

@@ -48,9 +48,14 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 
 
 def render_case(
-    case: str, seed: int, cache: Path, altitudes: list[int] | None = None, max_cells: int | None = None
+    case: str,
+    seed: int,
+    cache: Path,
+    altitudes: list[int] | None = None,
+    max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
-    """Render (or reuse) every pair of a case for one scene seed (``max_cells``: the renderer's raster cap)."""
+    """Render (or reuse) every pair of a case for one scene seed (``max_cells``, ``raster``: the terrain raster)."""
     from ground_sim import trajectory
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
@@ -71,7 +76,7 @@ def render_case(
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
             mc = MAX_CELLS if max_cells is None else max_cells
-            write_pair_atomic(d, render_pair(scene, spec, s, seed=seed, max_cells=mc))
+            write_pair_atomic(d, render_pair(scene, spec, s, seed=seed, max_cells=mc, raster=raster))
         entries.append({"case": case, "seed": seed, "altitude_m": int(round(spec.altitude_m)), "pair_dir": str(d)})
     return entries
 
@@ -309,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="render with this raster cap (docs/scenes.md); use a cache of its own, renders are reused by path",
     )
+    ap.add_argument("--raster", choices=["view", "tiles"], default="view", help="terrain rasters (docs/scenes.md)")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
@@ -323,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     cache = Path(args.cache)
     mc = args.max_raster_cells
-    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc)]
+    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)]
     if args.render_only:
         print(f"{len(pairs)} pairs in {cache}")
         return 0

@@ -43,8 +43,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--max-raster-cells",
         type=int,
         default=None,
-        help="terrain raster cells per view (default 1000000, at most 16000000): above it the raster "
-        "is coarser than GSD/supersample and finer detail is not rendered (docs/scenes.md)",
+        help="terrain raster cells per view or tile (default 1000000, at most 16000000): above it the "
+        "raster is coarser than GSD/supersample and finer detail is not rendered (docs/scenes.md)",
+    )
+    p.add_argument(
+        "--raster",
+        choices=["view", "tiles"],
+        default="view",
+        help="view: one terrain raster per view (default, capped); tiles: one per image tile at its own "
+        "GSD/supersample, 2-3x slower (docs/scenes.md)",
     )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: CPU count)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -114,13 +121,14 @@ def _run(args: argparse.Namespace) -> int:
         supersample=args.supersample,
         workers=args.workers,
         max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
+        raster=args.raster,
     )
     worst = max(e.get("raster_cell_over_target", 1.0) for e in json.loads((out / "manifest.json").read_text())["pairs"])
     if worst > 1.05:
         print(
             f"note: the terrain raster is up to {worst:.1f}x coarser than GSD/{args.supersample} (the raster-size "
-            "cap): detail finer than that is in neither the images nor the truth; --max-raster-cells raises "
-            "the cap (docs/scenes.md)",
+            "cap): detail finer than that is in neither the images nor the truth; --raster tiles draws it "
+            "(docs/scenes.md)",
             file=sys.stderr,
         )
     print(out / "manifest.json")

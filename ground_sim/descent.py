@@ -22,7 +22,7 @@ from ground_sim import library
 from ground_sim.errors import TrajectoryError
 from ground_sim.library import DEFAULT_SUN, covered, share_pct
 from ground_sim.pose_error import PoseError
-from ground_sim.render import MAX_CELLS, View, check_max_cells, noisy_image, render_view
+from ground_sim.render import MAX_CELLS, View, check_max_cells, check_raster, noisy_image, render_view
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import PairSpec, frames_at, load_trajectory
 from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
@@ -54,6 +54,7 @@ class _Job:
     sun: Sun
     supersample: int
     max_cells: int = MAX_CELLS
+    raster: str = "view"
 
 
 def _render_job(job: _Job) -> View:
@@ -65,6 +66,7 @@ def _render_job(job: _Job) -> View:
         supersample=job.supersample,
         noise=False,
         max_cells=job.max_cells,
+        raster=job.raster,
     )
 
 
@@ -81,18 +83,20 @@ def render_views(
     supersample: int = 2,
     workers: int | None = 1,
     max_cells: int = MAX_CELLS,
+    raster: str = "view",
 ) -> list[View]:
     """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes."""
     from ground_sim.parallel import pool_map
 
     check_max_cells(max_cells)  # here, not in a worker: a bad value is one clear error
+    check_raster(raster)
     uniq: dict[bytes, int] = {}
     jobs: list[tuple[_Job]] = []
     for p in poses:
         k = _pose_key(camera, p)
         if k not in uniq:
             uniq[k] = len(jobs)
-            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells),))
+            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells, raster),))
     if workers is None and camera.width * camera.height * len(jobs) <= INLINE_PIXELS:
         workers = 1  # a pool's start-up (spawn + imports, ~1 s) would cost more than it saves
     views = pool_map(_render_job, jobs, workers)
@@ -156,10 +160,18 @@ def render_pair(
     supersample: int = 2,
     workers: int | None = 1,
     max_cells: int = MAX_CELLS,
+    raster: str = "view",
 ) -> Pair:
     """Render every frame of ``spec``; reported poses carry the injected errors, truth is for frame 0."""
     views = render_views(
-        scene, spec.camera, list(spec.poses), sun, supersample=supersample, workers=workers, max_cells=max_cells
+        scene,
+        spec.camera,
+        list(spec.poses),
+        sun,
+        supersample=supersample,
+        workers=workers,
+        max_cells=max_cells,
+        raster=raster,
     )
     return assemble_pair(scene, spec, sun, views, seed=seed, pose_error=pose_error)
 
@@ -202,6 +214,7 @@ def render_scenario(
     camera: Camera | None = None,
     workers: int | None = None,
     max_cells: int = MAX_CELLS,
+    raster: str = "view",
 ) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
 
@@ -209,10 +222,12 @@ def render_scenario(
     scenario instead of its pairs. ``camera`` replaces the scenario's camera (e.g. a smaller
     sensor with the same FOV); ``scene=None`` renders on :func:`default_scene`; ``sun=None``
     uses the library scene's sun for this seed (or the scenario's). ``max_cells`` bounds each
-    view's terrain raster (a larger window gets a coarser cell; docs/scenes.md). ``workers`` renders frames
+    terrain raster (a larger window gets a coarser cell); ``raster="tiles"`` draws each view from
+    rasters per image tile at the tile's own GSD (docs/scenes.md). ``workers`` renders frames
     in that many single-threaded processes (default: CPU count).
     """
     check_max_cells(max_cells)
+    check_raster(raster)
     specs = load_trajectory(spec, camera)
     name = specs[0].scenario
     if frames:
@@ -234,7 +249,9 @@ def render_scenario(
     if any(ps.camera != cam for ps in specs):
         raise TrajectoryError("all pairs of a scenario must share one camera")
     _progress(0, len(specs), "frames", t0, progress)
-    views = render_views(sc, cam, poses, sun, supersample=supersample, workers=workers, max_cells=max_cells)
+    views = render_views(
+        sc, cam, poses, sun, supersample=supersample, workers=workers, max_cells=max_cells, raster=raster
+    )
     entries, thumbs = [], []
     k = 0
     for i, ps in enumerate(specs):

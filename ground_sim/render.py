@@ -43,6 +43,7 @@ from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
 MAX_CELLS = 1_000_000
+RASTERS = ("view", "tiles")
 MAX_CELLS_LIMIT = 16_000_000  # ~1.5 GB peak at 512 px, ss 2 (docs/scenes.md): refused above
 MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
@@ -77,6 +78,12 @@ def check_max_cells(max_cells: int) -> None:
     """Refuse a raster-size bound that is not an integer in [10 000, ``MAX_CELLS_LIMIT``] (memory is bounded first)."""
     if isinstance(max_cells, bool) or not isinstance(max_cells, int) or not 10_000 <= max_cells <= MAX_CELLS_LIMIT:
         raise RenderError(f"max raster cells must be an integer in [10000, {MAX_CELLS_LIMIT}], got {max_cells!r}")
+
+
+def check_raster(raster: str) -> None:
+    """Refuse an unknown raster layout (``"view"``: one raster per view; ``"tiles"``: one per image tile)."""
+    if raster not in RASTERS:
+        raise RenderError(f"raster must be one of {', '.join(RASTERS)}, got {raster!r}")
 
 
 def _check_args(sun: Sun, supersample: int, max_cells: int = MAX_CELLS) -> None:
@@ -196,8 +203,51 @@ def plan_raster(
     return RasterPlan(float(fx0), float(fy0), cell, nx, ny, zlo, zhi, gsd, float(ext))
 
 
+def plan_tile(
+    camera: Camera,
+    pose: Pose,
+    sun: Sun,
+    ss: int,
+    view: RasterPlan,
+    box: tuple[int, int, int, int],
+    reach_m: float,
+    max_cells: int,
+) -> RasterPlan:
+    """Raster of the pixels ``box`` = (u0, v0, u1, v1) (end exclusive) at their own GSD_min / ss.
+
+    The window holds every hit of the box's rays between the view's height bounds, two cells of
+    slack, and ``reach_m`` toward the sun (near shadow casters; farther ones come from the view's
+    raster). No hazard pad: the hazard truth stays on the view's raster.
+    """
+    u0, v0, u1, v1 = box
+    s = np.linspace(0.0, 1.0, 9)
+    a0, b0, a1, b1 = u0 - 0.5, v0 - 0.5, u1 - 0.5, v1 - 0.5
+    bu = np.concatenate([a0 + s * (a1 - a0), np.full(9, a1), a1 - s * (a1 - a0), np.full(9, a0)])
+    bv = np.concatenate([np.full(9, b0), b0 + s * (b1 - b0), np.full(9, b1), b1 - s * (b1 - b0)])
+    gu, gv = np.meshgrid(np.linspace(a0, a1, 5), np.linspace(b0, b1, 5))
+    C = pose.position
+    d_in = pixel_rays(camera, pose, np.append(gu.ravel(), bu), np.append(gv.ravel(), bv))
+    gsd = float(np.min((C[2] - view.zhi) / -d_in[:, 2])) / camera.fx
+    pts = _footprint_xy(camera, pose, bu, bv, view.zlo, view.zhi)
+    slack = 2.0 * gsd
+    x0, y0 = pts.min(axis=0) - slack
+    x1, y1 = pts.max(axis=0) + slack
+    az = math.radians(sun.azimuth_deg)
+    sx, sy = math.sin(az) * reach_m, math.cos(az) * reach_m
+    x0, x1 = min(x0, x0 + sx), max(x1, x1 + sx)
+    y0, y1 = min(y0, y0 + sy), max(y1, y1 + sy)
+    cell = max(gsd / ss, math.sqrt((x1 - x0) * (y1 - y0) / max_cells))
+    nx = int(math.ceil((x1 - x0) / cell)) + 1
+    ny = int(math.ceil((y1 - y0) / cell)) + 1
+    return RasterPlan(float(x0), float(y0), cell, nx, ny, view.zlo, view.zhi, gsd, float(reach_m))
+
+
 class _Caster:
     """The raster of a view and its ray casting: coarse pass, conservative starts, fine march."""
+
+    blocks: tuple[int, int, int, int]
+    zstart: np.ndarray
+    margin: float
 
     def __init__(
         self,
@@ -208,10 +258,15 @@ class _Caster:
         ss: int,
         box: tuple[int, int, int, int] | None = None,
         max_cells: int = MAX_CELLS,
+        tile_of: _Caster | None = None,
+        plan: RasterPlan | None = None,
     ) -> None:
         self.scene, self.camera, self.pose, self.sun, self.ss = scene, camera, pose, sun, ss
         W, Hh = camera.width, camera.height
-        if box is None:
+        if tile_of is not None and plan is not None:
+            # a tile of a view (render_view(raster="tiled")): its own raster, the view's start heights
+            self.blocks = tile_of.blocks
+        elif box is None:
             self.blocks = (0, 0, -(-Hh // COARSE), -(-W // COARSE))
             plan = plan_raster(scene, camera, pose, sun, ss, max_cells=max_cells)
         else:
@@ -222,13 +277,18 @@ class _Caster:
             self.blocks = (bi0, bj0, bi1, bj1)
             edge = (bj0 * COARSE - 0.5, bi0 * COARSE - 0.5, min(bj1 * COARSE, W) - 0.5, min(bi1 * COARSE, Hh) - 0.5)
             plan = plan_raster(scene, camera, pose, sun, ss, box=edge, max_cells=max_cells)
+        assert plan is not None
         self.plan = plan
         self.H, self.A = scene.raster(plan.x0, plan.y0, plan.cell, plan.nx, plan.ny)
         self.r = Raster(plan.x0, plan.y0, plan.cell, self.H)
         self.cell, self.gsd = plan.cell, plan.gsd
         self.zmin, self.zmax = float(self.H.min()) - 0.01, float(self.H.max()) + 0.01  # float32 sampling slack
         self.C = pose.position
-        self._coarse()
+        if tile_of is not None:
+            # the view's start heights, 1 m higher: fine relief its raster smooths away may rise above them
+            self.zstart, self.margin = tile_of.zstart, tile_of.margin + 1.0
+        else:
+            self._coarse()
 
     def _coarse(self) -> None:
         """Every COARSE-th pixel centre, full march from the top of the terrain."""
@@ -338,12 +398,21 @@ def render_view(
     supersample: int = 2,
     noise: bool = True,
     max_cells: int = MAX_CELLS,
+    raster: str = "view",
 ) -> View:
-    """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method."""
+    """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method.
+
+    ``raster="tiles"`` draws the image and the geometric truth from rasters per image tile at
+    the tile's own GSD/supersample (:func:`_render_tiles`); the hazard truth and far shadow casters
+    stay on the view's raster.
+    """
     _check_pose(camera, pose)
     _check_args(sun, supersample, max_cells)
+    check_raster(raster)
     ss = int(supersample)
     cs = _Caster(scene, camera, pose, sun, ss, max_cells=max_cells)
+    if raster == "tiles":
+        return _render_tiles(cs, seed=seed, noise=noise, max_cells=max_cells)
     r, C = cs.r, cs.C
     W, Hh = camera.width, camera.height
 
@@ -397,6 +466,125 @@ def render_view(
         shadow,
         tr["hazard"].reshape(Hh, W),
         tr["world_xy"].reshape(Hh, W, 2).astype(np.float32),
+        rad,
+        info,
+        alt_m,
+        gain,
+    )
+
+
+def _tile_boxes(cs: _Caster, box: tuple[int, int, int, int], max_cells: int, out: list) -> None:
+    """Quad-split ``box`` until its raster reaches GSD/ss within ``max_cells`` (or it is 16 px)."""
+    u0, v0, u1, v1 = box
+    plan = plan_tile(cs.camera, cs.pose, cs.sun, cs.ss, cs.plan, _grown(box, cs.camera), _reach(cs), max_cells)
+    if plan.cell <= 1.001 * plan.gsd / cs.ss or min(u1 - u0, v1 - v0) <= 16:
+        out.append((box, plan))
+        return
+    um, vm = (u0 + u1) // 2, (v0 + v1) // 2
+    for b in ((u0, v0, um, vm), (um, v0, u1, vm), (u0, vm, um, v1), (um, vm, u1, v1)):
+        _tile_boxes(cs, b, max_cells, out)
+
+
+def _grown(box: tuple[int, int, int, int], camera: Camera) -> tuple[int, int, int, int]:
+    """The box and one pixel around it (the 3x3 start-height neighbourhood of the centre rays)."""
+    u0, v0, u1, v1 = box
+    return max(u0 - 1, 0), max(v0 - 1, 0), min(u1 + 1, camera.width), min(v1 + 1, camera.height)
+
+
+def _reach(cs: _Caster) -> float:
+    """Shadow casters nearer than this come from the tiles' rasters, farther ones from the view's."""
+    return 4.0 * cs.cell
+
+
+def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> View:
+    """The image and geometric truth of ``cs``'s view from one raster per tile at the tile's GSD/ss.
+
+    Each tile (a quad-tree split of the image until every tile's raster reaches GSD_min/ss within
+    ``max_cells``) is ray cast on its own raster, grown by one pixel so the pixel-centre rays find
+    their start heights. Shadows: casters within :func:`_reach` toward the sun from the tile's raster,
+    farther ones from the view's (``shadow_level(min_dist_m=...)``). The hazard truth is the view
+    raster's, at the tile's hits, so hazards in scene do not depend on the tiling.
+    """
+    camera, pose, sun, ss, C = cs.camera, cs.pose, cs.sun, cs.ss, cs.C
+    W, Hh = camera.width, camera.height
+    tiles: list = []
+    _tile_boxes(cs, (0, 0, W, Hh), max_cells, tiles)
+    reach = _reach(cs)
+    S_far = shadow_level(cs.H, cs.cell, sun.azimuth_deg, sun.elevation_deg, min_dist_m=reach)
+    S_far32 = (S_far - cs.r.zref).astype(np.float32)
+    a_c, b_c, c_c = plane_fit(cs.H, cs.cell)
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    rad = np.zeros((Hh, W), np.float32)
+    litf = np.zeros((Hh, W), np.float32)
+    elev = np.zeros((Hh, W))
+    depth = np.zeros((Hh, W))
+    wxy = np.zeros((Hh, W, 2))
+    haz = np.zeros((Hh, W), np.float32)
+    alt_m = math.nan
+    worst, cells = 1.0, 0
+    iu = int(np.clip(round(camera.cx), 0, W - 1))
+    iv = int(np.clip(round(camera.cy), 0, Hh - 1))
+    for (u0, v0, u1, v1), plan in tiles:
+        g0, h0, g1, h1 = _grown((u0, v0, u1, v1), camera)
+        tc = _Caster(cs.scene, camera, pose, sun, ss, tile_of=cs, plan=plan)
+        worst = max(worst, plan.cell / (plan.gsd / ss))
+        cells += plan.nx * plan.ny
+        gw, gh = g1 - g0, h1 - h0
+        su = (np.arange(g0, g1)[None, :, None] + off[None, None, :]).reshape(1, gw * ss)
+        sv = (np.arange(h0, h1)[:, None, None] + off[None, :, None]).reshape(gh * ss, 1)
+        SU, SV = (a.ravel() for a in np.broadcast_arrays(su, sv))
+        d, t = tc.march(SU, SV, tc.coarse_start(SU, SV))
+        X = C + t[:, None] * d
+        nodes_x = plan.x0 + np.arange(plan.nx) * plan.cell
+        nodes_y = plan.y0 + np.arange(plan.ny) * plan.cell
+        NX, NY = np.meshgrid(nodes_x, nodes_y)
+        far = cs.r.sample_fast(NX.ravel(), NY.ravel(), S_far32).reshape(NX.shape) + cs.r.zref
+        vis, cos_i, nrm = tc.lit(X, np.maximum(tc.shadow_level(), far))
+        cos_e = -(nrm * d).sum(axis=1)
+        phase = np.degrees(np.arccos(np.clip(-(d @ sun.direction()), -1.0, 1.0)))
+        alb = tc.r.sample_fast(X[:, 0], X[:, 1], tc.A.astype(np.float32))
+        lit = vis * (cos_i > 0)
+        rd = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb
+        rd = cv2.resize(rd.reshape(gh * ss, gw * ss).astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+        lt = cv2.resize(lit.reshape(gh * ss, gw * ss).astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+        zsub = X[:, 2].reshape(gh, ss, gw, ss).max(axis=(1, 3)).astype(np.float32)
+        zpix = cv2.dilate(zsub, np.ones((3, 3), np.uint8)).astype(np.float64)
+        iy, ix = slice(v0 - h0, v1 - h0), slice(u0 - g0, u1 - g0)
+        PU, PV = np.meshgrid(np.arange(u0, u1, dtype=np.float64), np.arange(v0, v1, dtype=np.float64))
+        dp, tp = tc.march(PU.ravel(), PV.ravel(), tc.centre_start(zpix[iy, ix].ravel()))
+        Xp = C + tp[:, None] * dp
+        shadow = lt[iy, ix] < 0.5
+        zc = cs.r.sample(Xp[:, 0], Xp[:, 1])
+        pa, pb, pc = (cs.r.sample(Xp[:, 0], Xp[:, 1], m) for m in (a_c, b_c, c_c))
+        shp = (v1 - v0, u1 - u0)
+        rad[v0:v1, u0:u1], litf[v0:v1, u0:u1] = rd[iy, ix], lt[iy, ix]
+        elev[v0:v1, u0:u1] = Xp[:, 2].reshape(shp)
+        depth[v0:v1, u0:u1] = (tp * (dp @ pose.R[2])).reshape(shp)
+        wxy[v0:v1, u0:u1] = Xp[:, :2].reshape(shp + (2,))
+        haz[v0:v1, u0:u1] = hazard_layers(zc, pa, pb, pc, shadow.ravel()).reshape(shp)
+        if u0 <= iu < u1 and v0 <= iv < v1:
+            alt_m = tc.altimeter(float(tc.centre_start(zpix[iv - h0, iu - g0])))
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
+    gain = exposure(cs.scene, sun)
+    image = sensor(rad, gain, rng)
+    p = cs.plan
+    info: dict[str, Any] = {
+        "raster_cell_m": p.cell,
+        "raster_shape": [p.ny, p.nx],
+        "gsd_min_m": p.gsd,
+        "raster_cell_over_target": worst,
+        "raster_origin_m": [p.x0, p.y0],
+        "raster_tiles": len(tiles),
+        "raster_tile_cells": cells,
+        "altimeter_m": alt_m,
+    }
+    return View(
+        image,
+        elev.astype(np.float32),
+        depth.astype(np.float32),
+        litf < 0.5,
+        haz,
+        wxy.astype(np.float32),
         rad,
         info,
         alt_m,

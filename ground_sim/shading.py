@@ -8,13 +8,17 @@ import cv2
 import numpy as np
 
 
-def shadow_level(H: np.ndarray, cell: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+def shadow_level(
+    H: np.ndarray, cell: float, azimuth_deg: float, elevation_deg: float, min_dist_m: float = 0.0
+) -> np.ndarray:
     """Lowest lit height per raster cell: ``S(p) = max_{s>=0} h(p + s*u_sun) - s*tan(el)``.
 
     A point at height z is directly lit iff ``z >= S`` (``S = h`` on lit ground). Computed by
     rotating the raster so the sun lies toward -column, then a running maximum per row of
     ``h + j*cell*tan(el)`` (O(N), vectorised over rows), and rotating back.
     Raster rows are +Y, columns +X; azimuth is clockwise from +Y.
+    ``min_dist_m > 0`` keeps only casters at least that far toward the sun (``s >= min_dist_m``),
+    without the point itself: the far part of a two-level shadow (near casters from a finer raster).
     """
     ny, nx = H.shape
     az = math.radians(azimuth_deg)
@@ -43,8 +47,14 @@ def shadow_level(H: np.ndarray, cell: float, azimuth_deg: float, elevation_deg: 
         borderValue=low - zref,
     )
     ramp = (np.arange(diag, dtype=np.float64) * cell * tan_el)[None, :]
-    S = np.maximum.accumulate(Hr + ramp, axis=1) - ramp
+    acc = np.maximum.accumulate(Hr + ramp, axis=1)
+    n0 = int(math.ceil(min_dist_m / cell)) if min_dist_m > 0 else 0
+    if n0 > 0:
+        acc = np.concatenate([np.full((diag, min(n0, diag)), low - zref), acc[:, : max(diag - n0, 0)]], axis=1)
+    S = acc - ramp
     back = cv2.warpAffine(S.astype(np.float32), M, (nx, ny), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if n0 > 0:
+        return np.maximum(back.astype(np.float64) + zref, low)
     return np.maximum(back.astype(np.float64) + zref, H)
 
 

@@ -96,8 +96,15 @@ def _common(p: argparse.ArgumentParser) -> None:
         "--max-raster-cells",
         type=int,
         default=None,
-        help="render with this terrain raster cap (default 1000000; 16000000 draws the 512 px views at GSD/2, "
-        "docs/scenes.md); its renders and runs are kept apart from the default's",
+        help="render with this terrain raster cap (default 1000000; docs/scenes.md); its renders and runs "
+        "are kept apart from the default's",
+    )
+    p.add_argument(
+        "--raster",
+        choices=["view", "tiles"],
+        default="view",
+        help="tiles: render every view from rasters per image tile at the tile's own GSD/2 (faithful, 2-3x "
+        "slower; docs/scenes.md); kept apart from the default's renders and runs",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -202,6 +209,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             max_cells=args.max_raster_cells,
+            raster=args.raster,
         )
     except CampaignError as exc:
         print(f"hazard-hil evaluate: {exc}; rerun the same command to retry them", file=sys.stderr)
@@ -219,6 +227,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             camera_px=args.camera_px,
             progress=None if args.no_progress else print,
             max_cells=args.max_raster_cells,
+            raster=args.raster,
         )
     seeds_text = describe_seeds(seeds, seed_set)
     page = report.evaluation_report(
@@ -258,6 +267,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             max_cells=args.max_raster_cells,
+            raster=args.raster,
         )
     except CampaignError as exc:
         print(f"hazard-hil sensitivity: {exc}; rerun the same command to retry them", file=sys.stderr)

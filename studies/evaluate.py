@@ -611,6 +611,7 @@ def render_cache(
     progress: bool = False,
     scene: str | None = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
     """Render (or reuse) the scenario's pairs for one scene seed; return [{label, altitude_m, pair_dir}].
 
@@ -640,7 +641,7 @@ def render_cache(
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
     scene_spec = scene or scenario_scene(scenario)
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
-    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{cells_tag(max_cells)}"
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{cells_tag(max_cells, raster)}"
     sc = None
     entries = []
     for k, spec in enumerate(specs):
@@ -652,23 +653,24 @@ def render_cache(
                 print(f"render {scenario} seed {seed}: {spec.label} ({k + 1}/{len(specs)})", flush=True)
             sun = library.scene_sun(scene_spec, scenario, seed)
             # atomic: an interrupted render never leaves a half-written pair, a concurrent one is kept
-            write_pair_atomic(d, render_pair(sc, spec, sun, seed=seed, max_cells=max_cells or MAX_CELLS))
+            write_pair_atomic(d, render_pair(sc, spec, sun, seed=seed, max_cells=max_cells or MAX_CELLS, raster=raster))
         entries.append({"label": spec.label, "altitude_m": float(spec.altitude_m), "pair_dir": str(d)})
     return entries
 
 
-def cells_tag(max_cells: int | None) -> str:
-    """Suffix of cache directories and task ids for a non-default terrain raster cap (renders differ)."""
+def cells_tag(max_cells: int | None, raster: str = "view") -> str:
+    """Suffix of cache directories and task ids for non-default terrain rasters (the renders differ)."""
     from ground_sim.errors import RenderError
-    from ground_sim.render import MAX_CELLS, check_max_cells
+    from ground_sim.render import MAX_CELLS, check_max_cells, check_raster
 
-    if max_cells is None or max_cells == MAX_CELLS:
-        return ""
     try:
-        check_max_cells(max_cells)
+        check_raster(raster)
+        if max_cells is not None:
+            check_max_cells(max_cells)
     except RenderError as exc:
         raise EvaluationError(str(exc)) from None
-    return f"_cells{max_cells}"
+    tag = "" if max_cells is None or max_cells == MAX_CELLS else f"_cells{max_cells}"
+    return tag + ("" if raster == "view" else f"_{raster}")
 
 
 def scenario_scene(scenario: str) -> str:
@@ -687,9 +689,17 @@ def _render_task(
     altitude: int,
     scene: str | None = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> dict[str, Any]:
     return render_cache(
-        scenario, seed, cache_dir, camera_px=camera_px, altitudes=[altitude], scene=scene, max_cells=max_cells
+        scenario,
+        seed,
+        cache_dir,
+        camera_px=camera_px,
+        altitudes=[altitude],
+        scene=scene,
+        max_cells=max_cells,
+        raster=raster,
     )[0]
 
 
@@ -715,6 +725,7 @@ def render_all(
     scene: str | None = None,
     pool: Any = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
@@ -730,7 +741,7 @@ def render_all(
     tag = (scene or scenario_scene(scenario)).replace(":", "-")
     tasks = [
         Task(
-            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{cells_tag(max_cells)}",
+            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{cells_tag(max_cells, raster)}",
             {
                 "scenario": scenario,
                 "seed": s,
@@ -739,6 +750,7 @@ def render_all(
                 "altitude": a,
                 "scene": scene,
                 "max_cells": max_cells,
+                "raster": raster,
             },
         )
         for s in seeds
@@ -778,6 +790,7 @@ def evaluate_scenario(
     maps_seeds: int = 1,
     scene: str | None = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
@@ -812,13 +825,14 @@ def evaluate_scenario(
             scene=scene,
             pool=pool,
             max_cells=max_cells,
+            raster=raster,
         )
         tasks: list[Any] = []
         info: dict[str, dict[str, Any]] = {}
         for preset in presets:
             for e in pairs:
                 alt = int(round(e["altitude_m"]))
-                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{cells_tag(max_cells)}"
+                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{cells_tag(max_cells, raster)}"
                 kw: dict[str, Any] = {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": None}
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
@@ -977,6 +991,7 @@ def sensitivity_campaign(
     workers: int | None = None,
     progress: bool = True,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
     """Thesis sec 6.3 Monte Carlo on the approach scenario; one row per (preset, seed, altitude, sample).
 
@@ -1006,6 +1021,7 @@ def sensitivity_campaign(
         progress=progress,
         run_dir=out / "runs",
         max_cells=max_cells,
+        raster=raster,
     )
     tasks: list[Any] = []
     info: dict[str, dict[str, Any]] = {}
@@ -1014,7 +1030,7 @@ def sensitivity_campaign(
             alt = int(round(e["altitude_m"]))
             for i in range(-1, samples):
                 pe = None if i < 0 else sample_pose_error(kind, e["seed"] * 100003 + alt, i)
-                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{cells_tag(max_cells)}"
+                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{cells_tag(max_cells, raster)}"
                 tasks.append(
                     Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe, "truth_slope": False})
                 )
@@ -1038,7 +1054,7 @@ def sensitivity_campaign(
     rows = []
     for t in tasks:
         meta = info[t.id]
-        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{cells_tag(max_cells)}"]
+        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{cells_tag(max_cells, raster)}"]
         r = res[t.id]
         row = {
             **meta,

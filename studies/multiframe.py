@@ -45,6 +45,7 @@ def render_descent(
     camera_px: int | None = None,
     scene: str | None = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> Path:
     """Render (or reuse) one multi-frame pair directory of the scenario's scene under its sun."""
     from ground_sim import library, trajectory
@@ -59,12 +60,13 @@ def render_descent(
     scene_spec = scene or default_scene(scenario)
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
     label = "_".join(f"{a:g}" for a in frames)
-    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{cells_tag(max_cells)}" / f"frames_{label}"
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{cells_tag(max_cells, raster)}" / f"frames_{label}"
     if (out / "pair.json").is_file():
         return out
     sc = load_scene(scene_spec, seed, scenario)
     sun = library.scene_sun(scene_spec, scenario, seed)
-    return write_pair_atomic(out, render_pair(sc, spec, sun, seed=seed, max_cells=max_cells or MAX_CELLS))
+    pair = render_pair(sc, spec, sun, seed=seed, max_cells=max_cells or MAX_CELLS, raster=raster)
+    return write_pair_atomic(out, pair)
 
 
 # ----------------------------------------------------------------------------------------------- scoring
@@ -264,6 +266,7 @@ def evaluate_multiframe(
     which: Sequence[str] = POLICIES,
     progress: Callable[[str], None] | None = None,
     max_cells: int | None = None,
+    raster: str = "view",
 ) -> list[dict[str, Any]]:
     """Render and score one descent per seed; write ``multiframe_<scenario>.json`` and the summary table
     ``report/multiframe_<scenario>.md`` under ``out_dir``; return the per-descent records."""
@@ -276,7 +279,7 @@ def evaluate_multiframe(
     per: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for i, seed in enumerate(seeds, 1):
-        d = render_descent(scenario, seed, cache, frames, camera_px=camera_px, max_cells=max_cells)
+        d = render_descent(scenario, seed, cache, frames, camera_px=camera_px, max_cells=max_cells, raster=raster)
         rows = evaluate_descent(d, PRESETS[preset], which)
         per.append({"scenario": scenario, "seed": seed, "frames": list(frames), "dir": str(d), "rows": rows})
         if progress:

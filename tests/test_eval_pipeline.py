@@ -119,8 +119,13 @@ def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, 
     assert all(v["raster_cell_over_target"] > 1.0 for v in meta["render"])
     log = (tmp_path / "e" / "runs" / "evaluate.jsonl").read_text()
     assert "_cells20000" in log
+    (tiled,) = ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], raster="tiles")
+    assert Path(tiled["pair_dir"]).parent.name.endswith("_tiles")
+    assert all("raster_tiles" in v for v in read_pair(tiled["pair_dir"]).meta["render"])
     with pytest.raises(ev.EvaluationError, match="max raster cells"):
         ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], max_cells=5)
+    with pytest.raises(ev.EvaluationError, match="raster must be one of"):
+        ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], raster="mosaic")
 
 
 def test_sample_pose_errors_are_seeded_and_bounded():

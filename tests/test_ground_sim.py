@@ -296,6 +296,48 @@ def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
     assert entry["raster_cell_over_target"] > 1.0
 
 
+@pytest.mark.parametrize("tilt", [0.0, 49.0])
+def test_tiled_raster_reaches_the_pixel_and_keeps_the_geometry(tilt):
+    """raster="tiles": every tile at its own GSD/2 where one capped view raster is coarser; geometry still exact."""
+    pose = Pose([3.0, -100.0 if tilt else 0.0, 100.0], look_rotation(tilt))
+    capped = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000)
+    tiled = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000, raster="tiles")
+    assert capped.info["raster_cell_over_target"] > 2.0
+    assert tiled.info["raster_tiles"] > 1 and tiled.info["raster_cell_over_target"] == pytest.approx(1.0, abs=1e-3)
+    X, depth = closed_form_plane(pose)
+    assert np.abs(tiled.elevation).max() < 1e-4
+    assert np.abs(tiled.depth - depth).max() / depth.max() < 1e-5
+    assert np.abs(tiled.world_xy - X[..., :2]).max() < 1e-3 * np.abs(depth).max() / 100
+    assert tiled.altimeter_m == pytest.approx(capped.altimeter_m, rel=1e-6)
+    # flat, no noise: the same image as one raster, no seams between the tiles
+    assert np.abs(tiled.image.astype(int) - capped.image).max() <= 1
+
+
+def test_tiled_pair_is_consistent_deterministic_and_keeps_the_hazard_truth():
+    """Tiles over real terrain: i1 -> i2 registration within the photometric bound, same bytes, same hazards."""
+    import cv2
+
+    sc = load_scene("default", 3)
+    R = look_rotation(0.0)
+    p1, p2 = Pose([40.0, 30.0, 200.0], R), Pose([40.0, 30.0, 100.0], R)
+    kw = dict(noise=False, max_cells=30_000, raster="tiles")
+    v1, v2 = (render_view(sc, CAM, p, Sun(135, 30), **kw) for p in (p1, p2))
+    X = np.dstack([v1.world_xy, v1.elevation]).astype(float)
+    u, v, _ = project(CAM, p2, X)
+    out = cv2.remap(
+        v2.image.astype(np.float32), u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderValue=-1
+    )
+    ok = (out >= 0) & (u > 2) & (u < 125) & (v > 2) & (v < 125)
+    assert ok.sum() > 0.2 * 128 * 128 and np.median(np.abs(out - v1.image)[ok]) < 4.0
+    again = render_view(sc, CAM, p1, Sun(135, 30), **kw)
+    assert np.array_equal(again.image, v1.image) and np.array_equal(again.hazard, v1.hazard)
+    view = render_view(sc, CAM, p1, Sun(135, 30), noise=False, max_cells=30_000)
+    # the hazard truth stays on the view's raster: the tiles only move each hit within its pixel
+    assert np.mean(view.hazard >= 1.0) == pytest.approx(np.mean(v1.hazard >= 1.0), abs=0.01)
+    with pytest.raises(RenderError, match="raster must be one of"):
+        render_view(sc, CAM, p1, Sun(135, 30), raster="mosaic")
+
+
 def test_bad_views_give_clear_errors():
     sc = load_scene("default", 0)
     with pytest.raises(RenderError, match="below"):
