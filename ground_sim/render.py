@@ -446,19 +446,9 @@ def render_view(
     iv = int(np.clip(round(camera.cy), 0, Hh - 1))
     alt_m = cs.altimeter(float(cs.centre_start(zpix[iv, iu])))
 
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
-    gain = exposure(scene, sun)
-    image = sensor(rad, gain, rng)
-    p = cs.plan
-    info: dict[str, Any] = {
-        "raster_cell_m": p.cell,
-        "raster_shape": [p.ny, p.nx],
-        "gsd_min_m": p.gsd,
-        # > 1: the raster is this much coarser than GSD_min / supersample (the max_cells cap)
-        "raster_cell_over_target": p.cell / (p.gsd / ss),
-        "raster_origin_m": [p.x0, p.y0],
-        "altimeter_m": alt_m,
-    }
+    image, gain = _sensor_image(cs, rad, seed, noise)
+    # > 1: the raster is this much coarser than GSD_min / supersample (the max_cells cap)
+    info = _view_info(cs, alt_m, raster_cell_over_target=cs.plan.cell / (cs.plan.gsd / ss))
     return View(
         image,
         tr["elevation"].reshape(Hh, W).astype(np.float32),
@@ -471,6 +461,27 @@ def render_view(
         alt_m,
         gain,
     )
+
+
+def _sensor_image(cs: _Caster, rad: np.ndarray, seed: int, noise: bool) -> tuple[np.ndarray, float]:
+    """The 8-bit image of a radiance map (the scene's fixed gain; sensor noise of ``seed`` unless ``noise=False``)."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
+    gain = exposure(cs.scene, cs.sun)
+    return sensor(rad, gain, rng), gain
+
+
+def _view_info(cs: _Caster, alt_m: float, **extra: Any) -> dict[str, Any]:
+    """What a View records about its rendering: the view raster, its GSD, the altimeter range, ``extra``."""
+    p = cs.plan
+    return {
+        "raster_cell_m": p.cell,
+        "raster_shape": [p.ny, p.nx],
+        "gsd_min_m": p.gsd,
+        "raster_cell_over_target": extra.pop("raster_cell_over_target"),
+        "raster_origin_m": [p.x0, p.y0],
+        **extra,
+        "altimeter_m": alt_m,
+    }
 
 
 def _tile_boxes(cs: _Caster, box: tuple[int, int, int, int], max_cells: int, out: list) -> None:
@@ -564,20 +575,8 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
         haz[v0:v1, u0:u1] = hazard_layers(zc, pa, pb, pc, shadow.ravel()).reshape(shp)
         if u0 <= iu < u1 and v0 <= iv < v1:
             alt_m = tc.altimeter(float(tc.centre_start(zpix[iv - h0, iu - g0])))
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5EED]) if noise else None
-    gain = exposure(cs.scene, sun)
-    image = sensor(rad, gain, rng)
-    p = cs.plan
-    info: dict[str, Any] = {
-        "raster_cell_m": p.cell,
-        "raster_shape": [p.ny, p.nx],
-        "gsd_min_m": p.gsd,
-        "raster_cell_over_target": worst,
-        "raster_origin_m": [p.x0, p.y0],
-        "raster_tiles": len(tiles),
-        "raster_tile_cells": cells,
-        "altimeter_m": alt_m,
-    }
+    image, gain = _sensor_image(cs, rad, seed, noise)
+    info = _view_info(cs, alt_m, raster_cell_over_target=worst, raster_tiles=len(tiles), raster_tile_cells=cells)
     return View(
         image,
         elev.astype(np.float32),
