@@ -167,6 +167,7 @@ def select_safe_sites(
     to ``nominal_xy``, and taken greedily at least one footprint apart. Returns
     ``(sites, reason)``: ``reason`` says why the list is empty (``""`` otherwise).
 
+    A cell without a measured elevation is never a site (its ``z`` would be unknown).
     With ``relief_max_m > 0`` a cell is also refused when the measured elevation in the
     ``relief_window_m`` square around it spans more than ``relief_max_m`` (:func:`local_relief`). Semi-global
     aggregation flattens a steep wall (its smoothness penalty, Hirschmueller 2008), so a footprint
@@ -195,6 +196,11 @@ def select_safe_sites(
             f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe "
             f"(largest clearance {float(dist.max()) * grid.cell_m:.1f} m)"
         )
+    # a site is reported with its height: a cell the DEM did not measure is none (its state comes from
+    # the pixels' calls pulled onto the grid, its elevation from the pixels' DEM, which can have a hole)
+    ok &= np.isfinite(grid.elevation)
+    if not ok.any():
+        return [], f"no {footprint_m:g} m footprint known safe around a cell with a measured elevation"
     if relief_max_m > 0:
         ok &= local_relief(grid.elevation, grid.cell_m, relief_window_m) <= relief_max_m
         if not ok.any():

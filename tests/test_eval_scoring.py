@@ -129,6 +129,9 @@ def test_chosen_sites_safe():
     res = scoring.chosen_sites_safe(np.array([[12, 10], [40, 40]]), truth, 3.0)
     assert res == {"n": 2, "safe_pct": 50.0}
     assert math.isnan(scoring.chosen_sites_safe(np.zeros((0, 2)), truth, 3.0)["safe_pct"])
+    # a site that cannot be placed is not safe (it used to land on pixel (0, 0) and be judged there)
+    nan_site = scoring.chosen_sites_safe(np.array([[np.nan, np.nan], [40, 40]]), truth, 3.0)
+    assert nan_site == {"n": 2, "safe_pct": 50.0}
 
 
 def test_epipole_nadir_descent_is_principal_point_and_box_is_thesis_80px():

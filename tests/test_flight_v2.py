@@ -201,6 +201,23 @@ def test_sites_rank_by_psafe_then_distance():
             assert s is t or math.hypot(s.x - t.x, s.y - t.y) >= 3.0
 
 
+def test_sites_need_a_measured_elevation():
+    """A known-safe cell whose DEM has a hole is no site: the site would be reported without a height."""
+    n = 40
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    ps = np.full((n, n), 0.99, np.float32)
+    z = np.zeros((n, n), np.float32)
+    z[18:22, 18:22] = np.nan  # the centre, nearest the aim point, was not measured
+    g = HazardGrid(np.zeros((n, n), np.float32), z, (0.0, 0.0), 0.5, st, ps)
+    X, Y = g.cell_xy()
+    nominal = (float(X[20, 20]), float(Y[20, 20]))
+    sites, reason = select_safe_sites(g, 3.0, nominal, k=5, margin_m=0.5)
+    assert reason == "" and sites and all(math.isfinite(s.z) for s in sites)
+    g_hole = HazardGrid(np.zeros((n, n), np.float32), np.full((n, n), np.nan, np.float32), (0.0, 0.0), 0.5, st, ps)
+    none, why = select_safe_sites(g_hole, 3.0, nominal, k=5, margin_m=0.5)
+    assert none == [] and "measured elevation" in why
+
+
 def _relief_brute(z, i, j, w):
     h = w // 2
     a = z[max(0, i - h) : i + h + 1, max(0, j - h) : j + h + 1]
