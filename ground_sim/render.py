@@ -609,6 +609,9 @@ def truth_at(
 ) -> dict[str, np.ndarray]:
     """Ground truth at integer pixel centres (u, v) as :func:`render_view` computes it, without an image.
 
+    This is the ``raster="view"`` truth. A tiled render has the same hazard truth (its hazards come
+    from the view raster), and elevations that differ by the relief the view raster smooths away.
+
     The raster covers only the bounding box of the pixels (same cell and grid as the whole
     view's); shadow is the sub-pixel lit fraction < 1/2, as in the render. Centre rays start
     from the conservative coarse bound instead of the neighbouring sub-pixel hits. Returns
