@@ -362,6 +362,15 @@ class _Caster:
         vis = np.clip((X[:, 2] - level) / soft + 1.0, 0.0, 1.0)
         return vis, cos_i, nrm
 
+    def radiance(self, X: np.ndarray, d: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(radiance factor, directly lit share) of the hits X of rays d under shadow levels S (lunar-Lambert)."""
+        vis, cos_i, nrm = self.lit(X, S)
+        cos_e = -(nrm * d).sum(axis=1)
+        phase = np.degrees(np.arccos(np.clip(-(d @ self.sun.direction()), -1.0, 1.0)))
+        alb = self.r.sample_fast(X[:, 0], X[:, 1], self.A.astype(np.float32))
+        rad = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb  # faint scattered light
+        return rad, vis * (cos_i > 0)
+
     def centre_start(self, zsub_max: np.ndarray) -> np.ndarray:
         """Start height of pixel-centre rays from the highest sub-pixel hit of each pixel's neighbourhood."""
         return zsub_max + 0.5 + 0.6 * min(self.scene.params.boulders.d_max_m, 2.0 * self.gsd)
@@ -413,7 +422,7 @@ def render_view(
     cs = _Caster(scene, camera, pose, sun, ss, max_cells=max_cells)
     if raster == "tiles":
         return _render_tiles(cs, seed=seed, noise=noise, max_cells=max_cells)
-    r, C = cs.r, cs.C
+    C = cs.C
     W, Hh = camera.width, camera.height
 
     # -- sub-pixel rays
@@ -423,12 +432,7 @@ def render_view(
     SU, SV = np.broadcast_arrays(su, sv)
     d, t = cs.march(SU.ravel(), SV.ravel(), cs.coarse_start(SU.ravel(), SV.ravel()))
     X = C + t[:, None] * d
-    vis, cos_i, nrm = cs.lit(X, cs.shadow_level())
-    cos_e = -(nrm * d).sum(axis=1)
-    phase = np.degrees(np.arccos(np.clip(-(d @ sun.direction()), -1.0, 1.0)))
-    alb = r.sample_fast(X[:, 0], X[:, 1], cs.A.astype(np.float32))
-    lit = vis * (cos_i > 0)
-    rad = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb  # faint scattered light
+    rad, lit = cs.radiance(X, d, cs.shadow_level())
     rad = cv2.resize(rad.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
     litf = cv2.resize(lit.reshape(Hh * ss, W * ss).astype(np.float32), (W, Hh), interpolation=cv2.INTER_AREA)
 
@@ -550,12 +554,7 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
         nodes_y = plan.y0 + np.arange(plan.ny) * plan.cell
         NX, NY = np.meshgrid(nodes_x, nodes_y)
         far = cs.r.sample_fast(NX.ravel(), NY.ravel(), S_far32).reshape(NX.shape) + cs.r.zref
-        vis, cos_i, nrm = tc.lit(X, np.maximum(tc.shadow_level(), far))
-        cos_e = -(nrm * d).sum(axis=1)
-        phase = np.degrees(np.arccos(np.clip(-(d @ sun.direction()), -1.0, 1.0)))
-        alb = tc.r.sample_fast(X[:, 0], X[:, 1], tc.A.astype(np.float32))
-        lit = vis * (cos_i > 0)
-        rd = lunar_lambert(alb, cos_i, cos_e, phase) * vis + 0.01 * alb
+        rd, lit = tc.radiance(X, d, np.maximum(tc.shadow_level(), far))
         rd = cv2.resize(rd.reshape(gh * ss, gw * ss).astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
         lt = cv2.resize(lit.reshape(gh * ss, gw * ss).astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
         zsub = X[:, 2].reshape(gh, ss, gw, ss).max(axis=(1, 3)).astype(np.float32)
