@@ -44,7 +44,7 @@ from protocol.pairdir import Camera, Pose, Sun
 
 MAX_CELLS = 1_000_000
 RASTERS = ("view", "tiles")
-MAX_CELLS_LIMIT = 16_000_000  # ~1.5 GB peak at 512 px, ss 2 (docs/scenes.md): refused above
+MAX_CELLS_LIMIT = 16_000_000  # a render process peaked at 1.0-1.7 GB with it (docs/scenes.md): refused above
 MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
 REFERENCE_DN = 95.0  # DN of flat ground of mean albedo under this sun
@@ -264,7 +264,7 @@ class _Caster:
         self.scene, self.camera, self.pose, self.sun, self.ss = scene, camera, pose, sun, ss
         W, Hh = camera.width, camera.height
         if tile_of is not None and plan is not None:
-            # a tile of a view (render_view(raster="tiled")): its own raster, the view's start heights
+            # a tile of a view (render_view(raster="tiles")): its own raster, the view's start heights
             self.blocks = tile_of.blocks
         elif box is None:
             self.blocks = (0, 0, -(-Hh // COARSE), -(-W // COARSE))
