@@ -330,6 +330,13 @@ def register_landings(subparsers: Any) -> None:
         "errors or presets render once); default: no cache",
     )
     add_seed_options(p, "scene seeds to cycle through")
+    p.add_argument(
+        "--raster",
+        choices=["view", "tiles"],
+        default="view",
+        help="tiles: render every view at its GSD/2 from rasters per image tile (docs/scenes.md); "
+        "its renders are cached apart from the default's",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_landings, seeds_default=100)
 
@@ -345,7 +352,15 @@ def _landings(args: argparse.Namespace) -> int:
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error
     c = ld.Campaign(
-        tuple(scenes), args.n, tuple(seeds), seed_set, tuple(_presets(args.preset)), args.per_render, pe, args.camera_px
+        tuple(scenes),
+        args.n,
+        tuple(seeds),
+        seed_set,
+        tuple(_presets(args.preset)),
+        args.per_render,
+        pe,
+        args.camera_px,
+        args.raster,
     )
     ld.claim_out_dir(c, args.out)
     print(

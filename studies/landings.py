@@ -110,9 +110,17 @@ class Campaign:
     per_render: int = PER_RENDER
     pose_error: str | None = DEFAULT_POSE_ERROR
     camera_px: int | None = None
+    raster: str = "view"  # ground_sim's terrain rasters: "tiles" renders every view at its GSD/2
 
     def __post_init__(self) -> None:
         from ground_sim import library
+        from ground_sim.errors import RenderError
+        from ground_sim.render import check_raster
+
+        try:
+            check_raster(self.raster)
+        except RenderError as exc:
+            raise LandingError(f"--raster: {exc}") from None
 
         known = {e.name for e in library.entries()}
         bad = [s for s in self.scenes if s not in known]
@@ -150,6 +158,8 @@ class Campaign:
         d["scenes"] = list(self.scenes)
         d["seeds"] = list(self.seeds)
         d["presets"] = list(self.presets)
+        if d["raster"] == "view":  # campaigns from before the choice existed resume unchanged
+            d.pop("raster")
         return d
 
 
@@ -196,6 +206,7 @@ def plan_group(c: Campaign, g: int) -> dict[str, Any]:
         "pair": label,
         "sun": sun,
         "camera_px": c.camera_px,
+        "raster": c.raster,
         "landings": landings,
     }
 
@@ -238,16 +249,20 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
     scenario = plan["scenario"]
     spec = next(s for s in load_trajectory(scenario, camera_for(plan["camera_px"])) if s.label == plan["pair"])
     sun = Sun(*plan["sun"])
+    raster = plan.get("raster", "view")
     if cache_dir is None:
-        return spec, render_pair(load_scene(plan["scene"], plan["seed"], scenario), spec, sun, seed=plan["seed"])
+        sc = load_scene(plan["scene"], plan["seed"], scenario)
+        return spec, render_pair(sc, spec, sun, seed=plan["seed"], raster=raster)
     key = (
         f"{plan['scene']}_{scenario}_{plan['pair'].replace('/', '-')}_s{plan['seed']}"
         f"_sun{sun.azimuth_deg:.4f}-{sun.elevation_deg:.4f}_{plan['camera_px'] or 512}px"
+        + ("" if raster == "view" else f"_{raster}")
     )
     d = Path(cache_dir) / key
     if not (d / "pair.json").is_file():
         sc = load_scene(plan["scene"], plan["seed"], scenario)
-        write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"]))  # a concurrent writer's copy is kept
+        # a concurrent writer's copy is kept
+        write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"], raster=raster))
     return spec, read_pair(d)
 
 

@@ -99,6 +99,19 @@ def test_draws_are_deterministic_and_cover_scenes_seeds_and_the_scene_sun():
 
 
 @pytest.mark.slow
+def test_a_tiled_campaign_is_its_own_and_old_campaigns_keep_their_identity():
+    """--raster tiles renders other pairs: it is part of the identity; the default adds nothing to it."""
+    c = Campaign(("thesis",), 8, (1000,), "held-out")
+    assert "raster" not in c.identity() and ld.plan_group(c, 0)["raster"] == "view"
+    t = Campaign(("thesis",), 8, (1000,), "held-out", raster="tiles")
+    assert t.identity()["raster"] == "tiles" and ld.plan_group(t, 0)["raster"] == "tiles"
+    assert {k: v for k, v in ld.plan_group(t, 0).items() if k != "raster"} == {
+        k: v for k, v in ld.plan_group(c, 0).items() if k != "raster"
+    }  # the same draws: only the renders differ
+    with pytest.raises(LandingError, match="--raster"):
+        Campaign(("thesis",), 8, (1000,), "held-out", raster="mosaic")
+
+
 def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_path: Path, monkeypatch):
     calls = []
     real = ld.land_group
