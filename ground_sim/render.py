@@ -217,7 +217,7 @@ def plan_tile(
 
     The window holds every hit of the box's rays between the view's height bounds, two cells of
     slack, and ``reach_m`` toward the sun (near shadow casters; farther ones come from the view's
-    raster). No hazard pad: the hazard truth stays on the view's raster.
+    raster). No hazard pad: slope and roughness truth stay on the view's raster.
     """
     u0, v0, u1, v1 = box
     s = np.linspace(0.0, 1.0, 9)
@@ -412,8 +412,8 @@ def render_view(
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method.
 
     ``raster="tiles"`` draws the image and the geometric truth from rasters per image tile at
-    the tile's own GSD/supersample (:func:`_render_tiles`); the hazard truth and far shadow casters
-    stay on the view's raster.
+    the tile's own GSD/supersample (:func:`_render_tiles`); slope and roughness truth and far shadow
+    casters stay on the view's raster.
     """
     _check_pose(camera, pose)
     _check_args(sun, supersample, max_cells)
@@ -517,8 +517,8 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
     Each tile (a quad-tree split of the image until every tile's raster reaches GSD_min/ss within
     ``max_cells``) is ray cast on its own raster, grown by one pixel so the pixel-centre rays find
     their start heights. Shadows: casters within :func:`_reach` toward the sun from the tile's raster,
-    farther ones from the view's (``shadow_level(min_dist_m=...)``). The hazard truth is the view
-    raster's, at the tile's hits, so hazards in scene do not depend on the tiling.
+    farther ones from the view's (``shadow_level(min_dist_m=...)``). Slope and roughness truth are the
+    view raster's, at the tile's hits; the shadow truth is the tiles' (the sub-pixel lit fraction).
     """
     camera, pose, sun, ss, C = cs.camera, cs.pose, cs.sun, cs.ss, cs.C
     W, Hh = camera.width, camera.height
@@ -608,8 +608,8 @@ def truth_at(
 ) -> dict[str, np.ndarray]:
     """Ground truth at integer pixel centres (u, v) as :func:`render_view` computes it, without an image.
 
-    This is the ``raster="view"`` truth. A tiled render has the same hazard truth (its hazards come
-    from the view raster), and elevations that differ by the relief the view raster smooths away.
+    This is the ``raster="view"`` truth. A tiled render has the same slope and roughness truth (from
+    the view raster), but its own shadows and elevations: those see the relief the view raster smooths away.
 
     The raster covers only the bounding box of the pixels (same cell and grid as the whole
     view's); shadow is the sub-pixel lit fraction < 1/2, as in the render. Centre rays start

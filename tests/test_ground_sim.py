@@ -313,8 +313,8 @@ def test_tiled_raster_reaches_the_pixel_and_keeps_the_geometry(tilt):
     assert np.abs(tiled.image.astype(int) - capped.image).max() <= 1
 
 
-def test_tiled_pair_is_consistent_deterministic_and_keeps_the_hazard_truth():
-    """Tiles over real terrain: i1 -> i2 registration within the photometric bound, same bytes, same hazards."""
+def test_tiled_pair_is_consistent_deterministic_and_near_the_hazard_truth():
+    """Tiles over real terrain: i1 -> i2 registration within the photometric bound, same bytes, hazards as before."""
     import cv2
 
     sc = load_scene("default", 3)
@@ -332,7 +332,7 @@ def test_tiled_pair_is_consistent_deterministic_and_keeps_the_hazard_truth():
     again = render_view(sc, CAM, p1, Sun(135, 30), **kw)
     assert np.array_equal(again.image, v1.image) and np.array_equal(again.hazard, v1.hazard)
     view = render_view(sc, CAM, p1, Sun(135, 30), noise=False, max_cells=30_000)
-    # the hazard truth stays on the view's raster: the tiles only move each hit within its pixel
+    # slope and roughness truth stay on the view's raster; only the tiles' sharper shadows may add a little
     assert np.mean(view.hazard >= 1.0) == pytest.approx(np.mean(v1.hazard >= 1.0), abs=0.01)
     with pytest.raises(RenderError, match="raster must be one of"):
         render_view(sc, CAM, p1, Sun(135, 30), raster="mosaic")
