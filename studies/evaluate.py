@@ -641,7 +641,7 @@ def render_cache(
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
     scene_spec = scene or scenario_scene(scenario)
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
-    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{cells_tag(max_cells, raster)}"
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{render_tag(max_cells, raster)}"
     sc = None
     entries = []
     for k, spec in enumerate(specs):
@@ -658,7 +658,7 @@ def render_cache(
     return entries
 
 
-def cells_tag(max_cells: int | None, raster: str = "view") -> str:
+def render_tag(max_cells: int | None, raster: str = "view") -> str:
     """Suffix of cache directories and task ids for non-default terrain rasters (the renders differ)."""
     from ground_sim.errors import RenderError
     from ground_sim.render import MAX_CELLS, check_max_cells, check_raster
@@ -741,7 +741,7 @@ def render_all(
     tag = (scene or scenario_scene(scenario)).replace(":", "-")
     tasks = [
         Task(
-            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{cells_tag(max_cells, raster)}",
+            f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{render_tag(max_cells, raster)}",
             {
                 "scenario": scenario,
                 "seed": s,
@@ -832,7 +832,7 @@ def evaluate_scenario(
         for preset in presets:
             for e in pairs:
                 alt = int(round(e["altitude_m"]))
-                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{cells_tag(max_cells, raster)}"
+                tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{render_tag(max_cells, raster)}"
                 kw: dict[str, Any] = {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": None}
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
@@ -1030,7 +1030,7 @@ def sensitivity_campaign(
             alt = int(round(e["altitude_m"]))
             for i in range(-1, samples):
                 pe = None if i < 0 else sample_pose_error(kind, e["seed"] * 100003 + alt, i)
-                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{cells_tag(max_cells, raster)}"
+                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{render_tag(max_cells, raster)}"
                 tasks.append(
                     Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe, "truth_slope": False})
                 )
@@ -1054,7 +1054,7 @@ def sensitivity_campaign(
     rows = []
     for t in tasks:
         meta = info[t.id]
-        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{cells_tag(max_cells, raster)}"]
+        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{render_tag(max_cells, raster)}"]
         r = res[t.id]
         row = {
             **meta,

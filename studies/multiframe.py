@@ -53,14 +53,14 @@ def render_descent(
     from ground_sim.render import MAX_CELLS
     from ground_sim.scene import load_scene, load_scene_params
     from protocol.pairdir import Camera, write_pair_atomic
-    from studies.evaluate import camera_for, cells_tag
+    from studies.evaluate import camera_for, render_tag
 
     cam = camera_for(camera_px) or Camera.thesis()
     spec = trajectory.frames_at(scenario, [float(a) for a in frames], cam)
     scene_spec = scene or default_scene(scenario)
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
     label = "_".join(f"{a:g}" for a in frames)
-    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{cells_tag(max_cells, raster)}" / f"frames_{label}"
+    out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{render_tag(max_cells, raster)}" / f"frames_{label}"
     if (out / "pair.json").is_file():
         return out
     sc = load_scene(scene_spec, seed, scenario)
