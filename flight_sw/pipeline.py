@@ -1297,6 +1297,7 @@ def _run_v2(
                 g_rough if fit is not None else None,
                 p.slope_limit_deg,
                 p.rough_limit_m,
+                measured=np.isfinite(g_elev),
             )
         else:
             ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)

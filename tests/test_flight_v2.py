@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from synthetic import NADIR_R, Texture, camera_fov30, flattened_wall_grid, make_pair, plane, render, roof
 
 from flight_sw.costvolume import COST_MAX, CostSlab, combine, cost_slab, valid_interval
-from flight_sw.evidence import classify, weighted_plane_fit
+from flight_sw.evidence import classify, grid_evidence, weighted_plane_fit
 from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.rangefind import altimeter_ground, find_ground, prior_range
@@ -216,6 +216,28 @@ def test_sites_need_a_measured_elevation():
     g_hole = HazardGrid(np.zeros((n, n), np.float32), np.full((n, n), np.nan, np.float32), (0.0, 0.0), 0.5, st, ps)
     none, why = select_safe_sites(g_hole, 3.0, nominal, k=5, margin_m=0.5)
     assert none == [] and "measured elevation" in why
+
+
+def test_grid_cells_without_elevation_are_not_safe():
+    """The grid pulls the pixels' call around a DEM hole; a cell there has no height, so it stays unknown."""
+    n = 30
+    called = np.ones((n, n), bool)
+    unsafe = np.zeros((n, n), bool)
+    unsafe[:, :3] = True
+    called[:, :3] = False
+    cov = np.ones((n, n), bool)
+    cov[-2:, :] = False
+    z = np.zeros((n, n), np.float32)
+    z[10:14, 10:14] = np.nan
+    ev = grid_evidence(called, unsafe, np.full((n, n), 0.99, np.float32), cov, None, 0.5, None, measured=np.isfinite(z))
+    assert np.all(ev.state[10:14, 10:14] == STATE_UNKNOWN) and np.all(ev.hazard[10:14, 10:14] == 1.0)
+    assert np.all(ev.state[:-2, 3:][np.isfinite(z[:-2, 3:])] == STATE_SAFE)
+    assert np.all(ev.state[:-2, :3] == STATE_UNSAFE) and np.all(ev.state[-2:] == STATE_OUTSIDE)
+    # and in a whole run: no safe grid cell without an elevation
+    cam, p1, p2, i1, i2, _z, blank, textured = _blank_texture_pair(seed=34)
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    assert (res.grid.state == STATE_SAFE).any()
+    assert not np.any((res.grid.state == STATE_SAFE) & ~np.isfinite(res.grid.elevation))
 
 
 def _relief_brute(z, i, j, w):
