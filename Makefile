@@ -11,10 +11,10 @@ SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 # PYTHONWARNINGS: setuptools warns that an editable install is editable; nothing else is hidden
 # (a failed install still fails the target).
-$(STAMP): pyproject.toml setup.py flight_sw/_sgmc.c
+$(STAMP): pyproject.toml setup.py flight_sw/_sgmc.c flight_sw/_treesc.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test]'
+	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test,fit]'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -342,7 +342,8 @@ def main(argv: list[str] | None = None) -> int:
             for kv in args.set_param:
                 k, v = kv.split("=", 1)
                 cur = getattr(prm, k)
-                val: Any = (v.lower() in ("1", "true")) if isinstance(cur, bool) else type(cur or 0.0)(v)
+                kind = type(0.0 if cur is None else cur)  # a str field ("" by default) stays a str
+                val: Any = (v.lower() in ("1", "true")) if isinstance(cur, bool) else kind(v)
                 prm = dataclasses.replace(prm, **{k: val})
             variants[p + ("" if not args.set_param else " " + " ".join(args.set_param))] = prm
     all_rows: dict[str, list[dict[str, Any]]] = {}

@@ -42,7 +42,15 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
 
     pair = read_pair(pair_dir)
     prm = dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True)
-    res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=prm)
+    res = run_pipeline(
+        pair.images[0],
+        pair.images[-1],
+        pair.poses[0],
+        pair.poses[-1],
+        pair.camera,
+        preset=prm,
+        altimeter_m=pair.altimeter_m,  # as the evaluation and the flight process run it
+    )
     cov = res.covered
     d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in FEATS}
     d["dark"] = res.layers["dark"][cov]
@@ -71,7 +79,59 @@ def load_all(seeds: list[int], cases: list[str], cache: Path, layers: Path) -> l
     return rows
 
 
-def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: int = 0) -> Any:
+MONOTONE = ("a", "rough", "nbad", "nbad_w")  # P(safe) never grows with these (psafe.MONOTONE_DECREASING + a)
+
+
+def fit_trees(
+    feats: dict[str, np.ndarray], safe: np.ndarray, seeds: list[int], trees: dict[str, Any], info: dict[str, Any]
+) -> Any:
+    """Histogram gradient boosting (scikit-learn) on the features, exported as a flight_sw TreeModel."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    from flight_sw.psafe import TreeModel
+
+    X = np.stack([feats[k] for k in FEATS], axis=1).astype(np.float32)
+    clf = HistGradientBoostingClassifier(
+        max_iter=int(trees["iters"]),
+        max_leaf_nodes=int(trees["leaves"]),
+        learning_rate=float(trees["lr"]),
+        l2_regularization=1.0,
+        monotonic_cst=[-1 if k in MONOTONE else 0 for k in FEATS],
+        early_stopping=False,
+        random_state=0,
+    ).fit(X, safe)
+    cols: dict[str, list[Any]] = {k: [] for k in ("feature", "missing_left", "threshold", "left", "right", "value")}
+    roots = []
+    for (pred,) in clf._predictors:  # one tree per iteration (binary log-loss)
+        nd = pred.nodes
+        off = len(cols["value"])
+        roots.append(off)
+        leaf = nd["is_leaf"].astype(bool)
+        cols["feature"] += np.where(leaf, -1, nd["feature_idx"]).tolist()
+        cols["missing_left"] += nd["missing_go_to_left"].astype(int).tolist()
+        # the largest float32 <= the threshold: a float32 feature goes left exactly when sklearn sends it left
+        t64 = np.where(leaf, 0.0, nd["num_threshold"])
+        t32 = t64.astype(np.float32)
+        t32 = np.where(t32 > t64, np.nextafter(t32, np.float32(-np.inf)), t32)
+        cols["threshold"] += t32.tolist()
+        cols["left"] += np.where(leaf, 0, nd["left"] + off).tolist()
+        cols["right"] += np.where(leaf, 0, nd["right"] + off).tolist()
+        cols["value"] += np.where(leaf, nd["value"], 0.0).tolist()
+    doc = {
+        "format": "psafe-trees/1",
+        "features": list(FEATS),
+        "base": float(np.ravel(clf._baseline_prediction)[0]),
+        "roots": roots,
+        **cols,
+        "fitted_on": seeds,
+        "info": {**info, "trees": dict(trees), "sklearn": __import__("sklearn").__version__},
+    }
+    return TreeModel.from_json(doc)
+
+
+def fit_rows(
+    rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: int = 0, trees: dict[str, Any] | None = None
+) -> Any:
     from flight_sw import psafe
 
     rng = np.random.default_rng(rng_seed)
@@ -93,6 +153,8 @@ def fit_rows(rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: 
         "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
         "safe_share": float(cat["safe"].mean()),  # the prior P(safe) holds (fusion counts it once: fusion.py)
     }
+    if trees:
+        return fit_trees({k: cat[k] for k in FEATS}, cat["safe"], seeds, trees, info)
     return psafe.fit({k: cat[k] for k in FEATS}, cat["safe"], seeds, ridge=ridge, info=info)
 
 
@@ -133,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
         "--a-max", type=float, nargs="+", default=[0.6], help="never call an estimated slope >= this x the limit"
     )
     ap.add_argument("--reliability", action="store_true")
+    ap.add_argument("--kind", choices=("gam", "trees"), default="gam", help="additive model or boosted trees")
+    ap.add_argument("--iters", type=int, default=60, help="trees: boosting iterations")
+    ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
+    ap.add_argument("--lr", type=float, default=0.1, help="trees: learning rate")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
     args = ap.parse_args(argv)
 
@@ -145,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
         return 2
+    trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
     rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers))
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
@@ -155,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         rel: list[tuple[float, np.ndarray, np.ndarray]] = []
         for fold in folds:
-            model = fit_rows([r for r in rows if r["seed"] not in fold], args.per_pair, args.ridge)
+            model = fit_rows([r for r in rows if r["seed"] not in fold], args.per_pair, args.ridge, trees=trees)
             for r in rows:
                 if r["seed"] not in fold:
                     continue
@@ -203,8 +270,9 @@ def main(argv: list[str] | None = None) -> int:
             print("(cells: mean predicted / observed safe share)")
 
     if args.write:
-        model = fit_rows(rows, args.per_pair, args.ridge)
-        Path(args.write).write_text(json.dumps(model.to_json(), indent=1) + "\n")
+        model = fit_rows(rows, args.per_pair, args.ridge, trees=trees)
+        indent = None if trees else 1  # the trees' node arrays on one line each would still be 100 kB of lines
+        Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")
     return 0
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
-from .psafe import PsafeModel, budget_rule
+from .psafe import Model, budget_rule
 from .slope import footprint_cells
 
 
@@ -264,7 +264,7 @@ def widen_unsafe(ev: Evidence, margin_px: float) -> Evidence:
 
 
 def classify_calibrated(
-    model: PsafeModel,
+    model: Model,
     feats: Mapping[str, np.ndarray],
     cues: np.ndarray,
     covered: np.ndarray,

@@ -330,10 +330,12 @@ PRESETS: dict[str, Params] = {
         site_relief_max_m=14.0,
         # relative pose refinement before the sweep (issue #10; docs/benchmarks/pose.md)
         refine_pose=True,
-        # calibrated P(safe) and the FP-budget call (psafe.py; bench/fit_psafe.py on tuning seeds 0-9 of the
-        # default and thesis scenes, operating point by 5-fold CV: worst pair FP first, then CDI)
+        # calibrated P(safe) (boosted trees, psafe.TreeModel) and the FP-budget call (bench/fit_psafe.py --kind
+        # trees on tuning seeds 0-9 of the default and thesis scenes; operating point by 5-fold CV, worst pair FP
+        # first, then CDI: 0.3 % / 0.4x / 0.97 -> FP worst 0.63 %, CDI 44.3 %; the additive model's 0.2 % gave
+        # 0.78 % and 36.2 %)
         psafe_model="calibrated",
-        fp_budget=0.002,
+        fp_budget=0.003,
         psafe_min=0.97,
         call_slope_max=0.4,
     ),

@@ -52,7 +52,9 @@ confidently wrong and the budget does not bound that scene's FP (docs/benchmarks
 
 from __future__ import annotations
 
+import ctypes
 import functools
+import importlib.util
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -221,11 +223,197 @@ class PsafeModel:
         )
 
 
+@functools.cache
+def tree_kernel() -> ctypes.CDLL | None:
+    """The compiled tree kernel (``flight_sw/_treesc.c``, built by the install), or None if it is not there."""
+    spec = importlib.util.find_spec("flight_sw._treesc")
+    if spec is None or spec.origin is None:
+        return None
+    try:
+        lib = ctypes.CDLL(spec.origin)
+    except OSError:
+        return None
+    f = lib.psafe_trees
+    f.restype = ctypes.c_int
+    f.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_int, *[ctypes.c_void_p] * 7, ctypes.c_float]
+    f.argtypes = [*f.argtypes, ctypes.c_void_p]  # X n nf trees | roots depth feature missing threshold left value
+    return lib
+
+
+@dataclass(frozen=True)
+class TreeModel:
+    """Gradient-boosted trees for ``logit P(safe)`` over the same per-point features (format psafe-trees/1).
+
+    ``logit P(safe | x) = base + sum_t value[leaf_t(x)]``: each tree sends a point left when
+    ``x[feature] <= threshold`` and to the node's ``missing_left`` side when the feature is NaN (no
+    elevation, no shading evidence), as the histogram gradient boosting of Ke et al. 2017 (LightGBM)
+    does; fitted by ``bench/fit_psafe.py --kind trees`` (scikit-learn's
+    ``HistGradientBoostingClassifier``, log-loss, monotone non-increasing in ``a``, ``rough``,
+    ``nbad``, ``nbad_w``) on tuning seeds only. Why trees: the additive model cannot express that the
+    same slope estimate means something else beside strong shading, on a crater field or at another
+    footprint scale; on the tuning CV the trees call 9-15 more points in 100 safe at the same worst-pair
+    FP (docs/benchmarks/pipeline.md). Node arrays are flat over all trees, children indices absolute.
+    """
+
+    features: tuple[str, ...]
+    base: float
+    roots: np.ndarray  # int32 (trees,)
+    feature: np.ndarray  # int16 (nodes,), -1 at a leaf
+    missing_left: np.ndarray  # uint8
+    threshold: np.ndarray  # float32
+    left: np.ndarray  # int32
+    right: np.ndarray  # int32
+    value: np.ndarray  # float32 (the leaf's logit contribution)
+    fitted_on: tuple[int, ...] = ()
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def _matrix(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None) -> np.ndarray:
+        cols = []
+        for name in self.features:
+            v = np.asarray(feats[name], np.float32)
+            cols.append(v[mask] if mask is not None else v.ravel())
+        return np.ascontiguousarray(np.stack(cols, axis=1), dtype=np.float32)
+
+    def logit(
+        self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None, use_kernel: bool = True
+    ) -> np.ndarray:
+        """``logit P(safe)`` at the points of ``mask`` (all points if None), float32 1-D; the compiled kernel
+        when it is there, else the numpy reference (same arithmetic, ~20x slower)."""
+        X = self._matrix(feats, mask)
+        n = X.shape[0]
+        out = np.empty(n, np.float32)
+        lib = tree_kernel() if use_kernel else None
+        if lib is not None:
+            lay = self.kernel_layout
+            arrs = (lay["roots"], lay["depth"], lay["feature"], lay["missing_left"], lay["threshold"], lay["left"])
+            lib.psafe_trees(X.ctypes.data, n, X.shape[1], self.roots.size, *(a.ctypes.data for a in arrs),
+                            lay["value"].ctypes.data, self.base, out.ctypes.data)  # fmt: skip
+            return out
+        z = np.full(n, np.float32(self.base), np.float32)
+        rows = np.arange(n)
+        for root in self.roots.tolist():
+            k = np.full(n, root, np.int32)
+            live = rows[self.feature[k] >= 0]
+            while live.size:
+                kk = k[live]
+                v = X[live, self.feature[kk]]
+                go_left = np.where(np.isnan(v), self.missing_left[kk] > 0, v <= self.threshold[kk])
+                k[live] = np.where(go_left, self.left[kk], self.right[kk])
+                live = live[self.feature[k[live]] >= 0]
+            z += self.value[k]
+        return z
+
+    def predict(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None) -> np.ndarray:
+        """P(safe) (float32) at the points of ``mask`` (1-D), or over the whole array when ``mask`` is None."""
+        z = self.logit(feats, mask)
+        p = (1.0 / (1.0 + np.exp(-np.clip(z, -30.0, 30.0)))).astype(np.float32)
+        return p.reshape(np.asarray(feats[self.features[0]]).shape) if mask is None else p
+
+    @functools.cached_property
+    def kernel_layout(self) -> dict[str, np.ndarray]:
+        """The compiled kernel's node arrays (``_treesc.c``): per tree breadth-first with adjacent children, leaves
+        absorbing (feature 0, threshold +inf, missing side left, left child itself), and each tree's depth."""
+        order: list[int] = []
+        roots, depth = [], []
+        for root in self.roots.tolist():
+            base = len(order)
+            roots.append(base)
+            level, d = [root], 0
+            while level:
+                nxt: list[int] = []
+                for k in level:
+                    order.append(k)
+                    if self.feature[k] >= 0:
+                        nxt += [int(self.left[k]), int(self.right[k])]
+                if nxt:
+                    d += 1
+                level = nxt
+            depth.append(d)
+        pos = np.empty(self.feature.size, np.int64)
+        pos[np.asarray(order)] = np.arange(len(order))
+        o = np.asarray(order)
+        split = self.feature[o] >= 0
+        return {
+            "roots": np.asarray(roots, np.int32),
+            "depth": np.asarray(depth, np.uint8),
+            "feature": np.where(split, self.feature[o], 0).astype(np.int16),
+            "missing_left": np.where(split, self.missing_left[o], 1).astype(np.uint8),
+            "threshold": np.where(split, self.threshold[o], np.inf).astype(np.float32),
+            "left": np.where(split, pos[self.left[o]], np.arange(o.size)).astype(np.int32),
+            "value": self.value[o].astype(np.float32),
+        }
+
+    def fits_image(self, shape: tuple[int, ...]) -> bool:
+        """As :meth:`PsafeModel.fits_image`."""
+        sizes = self.info.get("image_px")
+        return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": "psafe-trees/1",
+            "features": list(self.features),
+            "base": float(self.base),
+            "roots": self.roots.tolist(),
+            "feature": self.feature.tolist(),
+            "missing_left": self.missing_left.tolist(),
+            "threshold": [float(x) for x in self.threshold.tolist()],
+            "left": self.left.tolist(),
+            "right": self.right.tolist(),
+            "value": self.value.tolist(),
+            "fitted_on": [int(s) for s in self.fitted_on],
+            "info": dict(self.info),
+        }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> TreeModel:
+        if d.get("format") != "psafe-trees/1":
+            raise ValueError(f"not a psafe-trees/1 model: {d.get('format')!r}")
+        feats = tuple(str(f) for f in d["features"])
+        feature = np.asarray(d["feature"], np.int16)
+        n = feature.size
+        arrs: dict[str, np.ndarray] = {
+            "missing_left": np.asarray(d["missing_left"], np.uint8),
+            "threshold": np.asarray(d["threshold"], np.float32),
+            "left": np.asarray(d["left"], np.int32),
+            "right": np.asarray(d["right"], np.int32),
+            "value": np.asarray(d["value"], np.float32),
+        }
+        roots = np.asarray(d["roots"], np.int32)
+        if any(a.shape != (n,) for a in arrs.values()) or roots.ndim != 1 or roots.size == 0:
+            raise ValueError("psafe trees: node arrays differ in length, or no tree")
+        split = feature >= 0
+        kids = np.concatenate([arrs["left"][split], arrs["right"][split], roots])
+        if (
+            np.any(feature >= len(feats))
+            or np.any(feature < -1)
+            or np.any(kids < 0)
+            or np.any(kids >= n)
+            or np.any(arrs["left"][split] <= np.flatnonzero(split))
+            or np.any(arrs["right"][split] <= np.flatnonzero(split))
+        ):
+            # children after their parent: the traversal always ends (no cycle reaches the C loop)
+            raise ValueError("psafe trees: a node points outside the model, backwards, or at an unknown feature")
+        return cls(
+            features=feats,
+            base=float(d["base"]),
+            roots=roots,
+            feature=feature,
+            fitted_on=tuple(int(x) for x in d.get("fitted_on", ())),
+            info=d.get("info", {}),
+            **arrs,
+        )
+
+
+Model = PsafeModel | TreeModel
+
+
 @functools.lru_cache(maxsize=4)
-def load_model(path: str | None = None) -> PsafeModel:
-    """The model shipped with the package (``flight_sw/psafe_model.json``) or one at ``path``."""
+def load_model(path: str | None = None) -> Model:
+    """The model shipped with the package (``flight_sw/psafe_model.json``) or one at ``path``
+    (format ``psafe-gam/1`` or ``psafe-trees/1``)."""
     p = Path(path) if path else MODEL_PATH
-    return PsafeModel.from_json(json.loads(p.read_text()))
+    d = json.loads(p.read_text())
+    return TreeModel.from_json(d) if d.get("format") == "psafe-trees/1" else PsafeModel.from_json(d)
 
 
 def budget_rule(p: np.ndarray, budget: float, p_min: float = 0.0, n: int | None = None) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from flight_sw.pipeline import PRESETS, run_pipeline
-from flight_sw.psafe import MODEL_PATH, PsafeModel, budget_rule, load_model
+from flight_sw.psafe import PsafeModel, TreeModel, budget_rule, load_model
 from ground_sim import trajectory
 from ground_sim.descent import DEFAULT_SUN, render_pair
 from ground_sim.library import scene_sun
@@ -38,12 +38,16 @@ def _run(pair, **over):
 
 def test_model_is_package_data_small_and_fitted_on_tuning_seeds_only():
     text = resources.files("flight_sw").joinpath("psafe_model.json").read_text()
-    assert len(text) < 16_000
-    m = PsafeModel.from_json(json.loads(text))
+    assert len(text) < 150_000
+    m = TreeModel.from_json(json.loads(text))
     assert m.fitted_on and set(m.fitted_on) <= set(TUNING_SEEDS)
     assert not set(m.fitted_on) & set(HELD_OUT_SEEDS)
-    assert load_model() == PsafeModel.from_json(json.loads(MODEL_PATH.read_text()))
+    assert m.info["image_px"] == [[512, 512]] and 0.5 < m.info["safe_share"] < 1.0
+    shipped = load_model()
+    assert isinstance(shipped, TreeModel) and shipped.to_json() == m.to_json()
     bad = dict(json.loads(text), format="other")
+    with pytest.raises(ValueError, match="psafe-trees"):
+        TreeModel.from_json(bad)
     with pytest.raises(ValueError, match="psafe-gam"):
         PsafeModel.from_json(bad)
 

@@ -184,8 +184,9 @@ def test_process_uses_every_frame_and_keeps_the_deadline(tmp_path):
     doc = json.loads((out / "result.json").read_text())
     assert doc["frames"] == 3 and doc["info"]["multi_frame"]["frames"] == 3
     assert np.load(out / "state.npy").shape == (128, 128)
-    # an anytime result within the deadline
+    # an anytime result within the deadline (5 ms: the whole 128 px descent takes ~40 ms on a fast host, so
+    # 50 ms was sometimes met in full and the result was not degraded)
     t0 = time.monotonic()
-    res = run_pipeline_multi(imgs, poses, cam, deadline_s=0.05)
+    res = run_pipeline_multi(imgs, poses, cam, deadline_s=0.005)
     assert time.monotonic() - t0 < 1.0 and res.degraded
     assert math.isfinite(res.valid_fraction)

@@ -1,0 +1,89 @@
+"""The boosted-tree P(safe) model (flight_sw.psafe.TreeModel): exported trees score what scikit-learn
+scores, the compiled kernel equals the numpy reference, and a malformed model is refused."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flight_sw.psafe import TreeModel, load_model, tree_kernel
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
+
+
+def _features(n: int, seed: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Synthetic features with NaNs (no elevation, no shading) and a label that depends on interactions."""
+    rng = np.random.default_rng(seed)
+    f = {k: rng.uniform(0, 2, n).astype(np.float32) for k in FEATS}
+    f["a"][rng.random(n) < 0.1] = np.nan
+    f["rho"][rng.random(n) < 0.05] = np.nan
+    logit = 3.0 - 2.5 * np.nan_to_num(f["a"], nan=1.0) - 2.0 * f["rough"] * (f["nwall"] > 1) + 0.5 * f["scale"]
+    y = rng.random(n) < 1.0 / (1.0 + np.exp(-logit))
+    return f, y
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    pytest.importorskip("sklearn", reason="bench/fit_psafe.py's trees need scikit-learn (make installs it)")
+    from fit_psafe import fit_trees
+
+    f, y = _features(20_000, 1)
+    m = fit_trees(f, y, [0, 1], {"iters": 25, "leaves": 9, "lr": 0.2}, {"image_px": [[512, 512]]})
+    return m, f, y
+
+
+def test_exported_trees_score_what_sklearn_scores(fitted):
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    m, f, y = fitted
+    X = np.stack([f[k] for k in FEATS], axis=1)
+    clf = HistGradientBoostingClassifier(
+        max_iter=25, max_leaf_nodes=9, learning_rate=0.2, l2_regularization=1.0, early_stopping=False,
+        monotonic_cst=[-1 if k in ("a", "rough", "nbad", "nbad_w") else 0 for k in FEATS], random_state=0,
+    ).fit(X, y)  # fmt: skip
+    g, _ = _features(5_000, 2)
+    Xg = np.stack([g[k] for k in FEATS], axis=1)
+    assert np.allclose(m.logit(g), clf.decision_function(Xg), atol=1e-4)
+    assert np.allclose(m.predict(g), clf.predict_proba(Xg)[:, 1], atol=1e-5)
+    # and it learned something: held-out log-loss well below the prior's
+    p = m.predict(g)
+    _, yg = _features(5_000, 2)
+    ll = -np.mean(np.where(yg, np.log(p), np.log1p(-p)))
+    q = yg.mean()
+    assert ll < 0.8 * -(q * np.log(q) + (1 - q) * np.log(1 - q))
+
+
+def test_kernel_equals_numpy_reference_and_json_round_trips(fitted, tmp_path):
+    m, _, _ = fitted
+    g, _ = _features(7_000, 3)
+    mask = np.ones(7_000, bool)
+    mask[::3] = False
+    assert tree_kernel() is not None, "the install builds flight_sw/_treesc.c"
+    assert np.array_equal(m.logit(g, mask), m.logit(g, mask, use_kernel=False))
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(m.to_json()))
+    m2 = load_model(str(path))
+    assert isinstance(m2, TreeModel) and np.array_equal(m2.logit(g), m.logit(g))
+    assert m2.fitted_on == (0, 1) and m2.fits_image((512, 512)) and not m2.fits_image((128, 128))
+
+
+def test_malformed_trees_are_refused(fitted):
+    m, _, _ = fitted
+    doc = m.to_json()
+    split = next(i for i, f in enumerate(doc["feature"]) if f >= 0)
+    for key, value in (
+        ("left", split),  # a child that is its own parent: the C loop would never end
+        ("right", len(doc["feature"])),  # outside the model
+        ("feature", len(FEATS)),  # an unknown feature
+    ):
+        bad = json.loads(json.dumps(doc))
+        bad[key][split] = value
+        with pytest.raises(ValueError, match="psafe trees"):
+            TreeModel.from_json(bad)
+    with pytest.raises(ValueError, match="psafe-trees"):
+        TreeModel.from_json(dict(doc, format="psafe-gam/1"))
