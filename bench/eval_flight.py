@@ -81,9 +81,24 @@ def render_case(
     return entries
 
 
+def run_pair(pair: Any, preset: Any) -> Any:
+    """The pipeline on a pair's widest two frames with its altimeter reading, as the flight process and
+    ``hazard-hil evaluate`` run it."""
+    from flight_sw.pipeline import run_pipeline
+
+    return run_pipeline(
+        pair.images[0],
+        pair.images[-1],
+        pair.poses[0],
+        pair.poses[-1],
+        pair.camera,
+        preset=preset,
+        altimeter_m=pair.altimeter_m,
+    )
+
+
 def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
-    from flight_sw.pipeline import run_pipeline
     from ground_sim import scoring
     from protocol.pairdir import read_pair
     from studies.evaluate import _site_radius_px, project_points, score_arrays, true_poses
@@ -91,18 +106,11 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     pair = read_pair(pair_dir)
     t1, t2 = true_poses(pair)
     c0 = time.thread_time()
-    res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=preset)
+    res = run_pair(pair, preset)
     cpu = time.thread_time() - c0
     causes: dict[str, float] = {}
     if preset.dem == "sgm":  # the same pixels again, keeping the evidence layers (not timed)
-        lay = run_pipeline(
-            pair.images[0],
-            pair.images[-1],
-            pair.poses[0],
-            pair.poses[-1],
-            pair.camera,
-            preset=dataclasses.replace(preset, keep_layers=True),
-        )
+        lay = run_pair(pair, dataclasses.replace(preset, keep_layers=True))
         causes = error_causes(lay.layers, lay.state, lay.elevation, pair.truth["hazard"], res.covered)
     tz = pair.truth["elevation"].astype(np.float32)
     radius = _site_radius_px(pair.camera, pair.truth["depth"], res.covered)

@@ -37,20 +37,13 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
     if out.is_file():
         with np.load(out) as z:
             return {k: z[k] for k in z.files}
-    from flight_sw.pipeline import PRESETS, run_pipeline
+    from eval_flight import run_pair
+
+    from flight_sw.pipeline import PRESETS
     from protocol.pairdir import read_pair
 
     pair = read_pair(pair_dir)
-    prm = dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True)
-    res = run_pipeline(
-        pair.images[0],
-        pair.images[-1],
-        pair.poses[0],
-        pair.poses[-1],
-        pair.camera,
-        preset=prm,
-        altimeter_m=pair.altimeter_m,  # as the evaluation and the flight process run it
-    )
+    res = run_pair(pair, dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True))
     cov = res.covered
     d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in FEATS}
     d["dark"] = res.layers["dark"][cov]
