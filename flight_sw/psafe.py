@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import importlib.util
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -64,6 +63,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+
+from .kernels import load_kernel
 
 MODEL_PATH = Path(__file__).with_name("psafe_model.json")
 
@@ -226,12 +227,8 @@ class PsafeModel:
 @functools.cache
 def tree_kernel() -> ctypes.CDLL | None:
     """The compiled tree kernel (``flight_sw/_treesc.c``, built by the install), or None if it is not there."""
-    spec = importlib.util.find_spec("flight_sw._treesc")
-    if spec is None or spec.origin is None:
-        return None
-    try:
-        lib = ctypes.CDLL(spec.origin)
-    except OSError:
+    lib = load_kernel("flight_sw._treesc")
+    if lib is None:
         return None
     f = lib.psafe_trees
     f.restype = ctypes.c_int

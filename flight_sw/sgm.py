@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import importlib.util
 import time
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from .kernels import load_kernel
 
 _DIRS_ROWS = ((1, 0), (1, 1), (1, -1))  # (drow, dcol) of the step; predecessor is p - r
 
@@ -82,12 +83,8 @@ def _update(prev: np.ndarray, cur: np.ndarray, p1: int, p2: np.ndarray, out: np.
 @functools.cache
 def kernel() -> ctypes.CDLL | None:
     """The compiled kernel (``flight_sw/_sgmc.c``, built by the install), or None if it is not there."""
-    spec = importlib.util.find_spec("flight_sw._sgmc")
-    if spec is None or spec.origin is None:
-        return None
-    try:
-        lib = ctypes.CDLL(spec.origin)
-    except OSError:
+    lib = load_kernel("flight_sw._sgmc")
+    if lib is None:
         return None
     f = lib.sgm_aggregate
     f.restype = ctypes.c_int
