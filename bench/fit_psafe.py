@@ -55,13 +55,15 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
     return d
 
 
-def load_all(seeds: list[int], cases: list[str], cache: Path, layers: Path) -> list[dict[str, Any]]:
+def load_all(
+    seeds: list[int], cases: list[str], cache: Path, layers: Path, raster: str = "view"
+) -> list[dict[str, Any]]:
     from eval_flight import render_case
 
     rows = []
     for c in cases:
         for s in seeds:
-            for e in render_case(c, s, cache):
+            for e in render_case(c, s, cache, raster=raster):
                 name = f"{c}_s{s}_{e['altitude_m']}"
                 d = pair_layers(e["pair_dir"], layers / f"{name}.npz")
                 if "shape" not in d:
@@ -189,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--reliability", action="store_true")
     ap.add_argument("--kind", choices=("gam", "trees"), default="gam", help="additive model or boosted trees")
+    ap.add_argument("--raster", choices=("view", "tiles"), default="view", help="the renders' terrain rasters")
     ap.add_argument("--iters", type=int, default=60, help="trees: boosting iterations")
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.1, help="trees: learning rate")
@@ -205,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
         return 2
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
-    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers))
+    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:
