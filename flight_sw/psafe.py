@@ -275,7 +275,7 @@ class TreeModel:
         self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None, use_kernel: bool = True
     ) -> np.ndarray:
         """``logit P(safe)`` at the points of ``mask`` (all points if None), float32 1-D; the compiled kernel
-        when it is there, else the numpy reference (same arithmetic, ~20x slower)."""
+        when it is there, else the numpy reference (same arithmetic, ~11x slower)."""
         X = self._matrix(feats, mask)
         n = X.shape[0]
         out = np.empty(n, np.float32)
