@@ -141,6 +141,11 @@ def features(
     }
 
 
+def _fits_image(info: Mapping[str, Any], shape: tuple[int, ...]) -> bool:
+    sizes = info.get("image_px")
+    return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+
+
 @dataclass(frozen=True)
 class PsafeModel:
     """Weights of the binned logistic model (module doc); ``fitted_on`` = the scene seeds used."""
@@ -178,8 +183,7 @@ class PsafeModel:
     def fits_image(self, shape: tuple[int, ...]) -> bool:
         """True when the model was fitted on images of this (rows, cols) size (``info["image_px"]``, a list of
         [rows, cols]); a model without the record is taken to fit any size."""
-        sizes = self.info.get("image_px")
-        return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+        return _fits_image(self.info, shape)
 
     def predict(self, feats: Mapping[str, np.ndarray], mask: np.ndarray | None = None) -> np.ndarray:
         """P(safe) (float32) at the points of ``mask`` (1-D), or over the whole array when ``mask`` is None."""
@@ -325,6 +329,8 @@ class TreeModel:
                 if nxt:
                     d += 1
                 level = nxt
+            if d > 255:  # the kernel counts a tree's steps in a byte
+                raise ValueError(f"psafe trees: a tree {d} levels deep (at most 255)")
             depth.append(d)
         pos = np.empty(self.feature.size, np.int64)
         pos[np.asarray(order)] = np.arange(len(order))
@@ -342,8 +348,7 @@ class TreeModel:
 
     def fits_image(self, shape: tuple[int, ...]) -> bool:
         """As :meth:`PsafeModel.fits_image`."""
-        sizes = self.info.get("image_px")
-        return not sizes or [int(shape[0]), int(shape[1])] in [[int(a), int(b)] for a, b in sizes]
+        return _fits_image(self.info, shape)
 
     def to_json(self) -> dict[str, Any]:
         return {
