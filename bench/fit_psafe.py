@@ -74,16 +74,15 @@ def load_all(
     return rows
 
 
-MONOTONE = ("a", "rough", "nbad", "nbad_w")  # P(safe) never grows with these (psafe.MONOTONE_DECREASING + a)
-
-
 def fit_trees(
     feats: dict[str, np.ndarray], safe: np.ndarray, seeds: list[int], trees: dict[str, Any], info: dict[str, Any]
 ) -> Any:
     """Histogram gradient boosting (scikit-learn) on the features, exported as a flight_sw TreeModel."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from flight_sw.psafe import TreeModel
+    from flight_sw.psafe import MONOTONE_DECREASING, TreeModel
+
+    monotone = ("a", *MONOTONE_DECREASING)  # P(safe) never grows with the slope either
 
     X = np.stack([feats[k] for k in FEATS], axis=1).astype(np.float32)
     clf = HistGradientBoostingClassifier(
@@ -91,7 +90,7 @@ def fit_trees(
         max_leaf_nodes=int(trees["leaves"]),
         learning_rate=float(trees["lr"]),
         l2_regularization=1.0,
-        monotonic_cst=[-1 if k in MONOTONE else 0 for k in FEATS],
+        monotonic_cst=[-1 if k in monotone else 0 for k in FEATS],
         early_stopping=False,
         random_state=0,
     ).fit(X, safe)
@@ -192,9 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reliability", action="store_true")
     ap.add_argument("--kind", choices=("gam", "trees"), default="gam", help="additive model or boosted trees")
     ap.add_argument("--raster", choices=("view", "tiles"), default="view", help="the renders' terrain rasters")
-    ap.add_argument("--iters", type=int, default=60, help="trees: boosting iterations")
+    ap.add_argument("--iters", type=int, default=30, help="trees: boosting iterations (shipped: 30)")
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
-    ap.add_argument("--lr", type=float, default=0.1, help="trees: learning rate")
+    ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
     args = ap.parse_args(argv)
 
@@ -267,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.write:
         model = fit_rows(rows, args.per_pair, args.ridge, trees=trees)
-        indent = None if trees else 1  # the trees' node arrays on one line each would still be 100 kB of lines
+        indent = None if trees else 1  # the trees' node arrays are long flat lists: one line keeps the file small
         Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")
     return 0
