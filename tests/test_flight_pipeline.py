@@ -90,7 +90,9 @@ def test_anytime_levels(plane_scene):
     assert r0.level == "image_only" and r0.degraded
     assert np.isnan(r0.elevation).all() and np.isfinite(r0.hazard[r0.covered]).all()
     assert r0.grid.hazard.size > 0
-    slow = dataclasses.replace(PRESETS["thesis"], dz_m=0.002, check_every=1)  # ~12000 planes: cannot finish
+    # ~120000 planes: about 8 s on this host. 12000 planes no longer outlasted the 1 s deadline on a fast CI
+    # host once the sweep got faster
+    slow = dataclasses.replace(PRESETS["thesis"], dz_m=0.0002, check_every=1)
     r1 = run_pipeline(i1, i2, p1, p2, cam, preset=slow, deadline_s=1.0)
     assert r1.level == "coarse" and r1.degraded
     assert r1.timings["total"]["wall_s"] < 1.5
