@@ -49,7 +49,8 @@ def stamp_raster(
         gx = x0 + np.arange(c0, c1 + 1) * cell - f.x[i]
         gy = y0 + np.arange(r0, r1 + 1) * cell - f.y[i]
         rr = (gx[None, :] ** 2 + gy[:, None] ** 2) / (0.5 * f.d[i]) ** 2
-        dh_i, da_i = profile(f, rr, np.full(rr.shape, i))
+        # one index broadcast over the window: the feature's parameters are gathered once, not per cell
+        dh_i, da_i = profile(f, rr, np.full((1, 1), i))
         height[r0 : r1 + 1, c0 : c1 + 1] += dh_i
         albedo[r0 : r1 + 1, c0 : c1 + 1] += da_i
 
