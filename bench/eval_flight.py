@@ -47,6 +47,12 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 }
 
 
+def cached_raster(pair_dir: Path) -> str:
+    """``"tiles"`` when every view of a rendered pair was drawn from rasters per tile, else ``"view"``."""
+    views = json.loads((pair_dir / "pair.json").read_text()).get("render") or [{}]
+    return "tiles" if all(isinstance(v, dict) and "raster_tiles" in v for v in views) else "view"
+
+
 def render_case(
     case: str,
     seed: int,
@@ -72,7 +78,11 @@ def render_case(
     entries = []
     for spec in specs:
         d = out / spec.label.replace("/", "_")
-        if not (d / "pair.json").is_file():
+        if (d / "pair.json").is_file():
+            have = cached_raster(d)
+            if have != raster:  # a cache is reused by path: never score one raster's renders as another's
+                raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")
+        else:
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
             mc = MAX_CELLS if max_cells is None else max_cells

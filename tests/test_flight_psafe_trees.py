@@ -87,3 +87,22 @@ def test_malformed_trees_are_refused(fitted):
             TreeModel.from_json(bad)
     with pytest.raises(ValueError, match="psafe-trees"):
         TreeModel.from_json(dict(doc, format="psafe-gam/1"))
+
+
+def test_eval_cache_of_another_raster_is_refused(tmp_path):
+    """bench/eval_flight.py reuses renders by path: a capped pair must not be scored as a tiled one."""
+    import json
+
+    from eval_flight import cached_raster, render_case
+
+    d = tmp_path / "approach_s0" / "500_250"
+    d.mkdir(parents=True)
+    views = [{"raster_cell_over_target": 2.2}, {"raster_cell_over_target": 2.6}]
+    (d / "pair.json").write_text(json.dumps({"render": views}))
+    assert cached_raster(d) == "view"
+    with pytest.raises(SystemExit, match="raster=view renders, not tiles"):
+        render_case("approach", 0, tmp_path, [250], raster="tiles")
+    (d / "pair.json").write_text(json.dumps({"render": [dict(v, raster_tiles=4) for v in views]}))
+    assert cached_raster(d) == "tiles"
+    (e,) = render_case("approach", 0, tmp_path, [250], raster="tiles")
+    assert e["pair_dir"] == str(d)
