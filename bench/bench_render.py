@@ -23,7 +23,7 @@ import time
 import cv2
 
 from ground_sim.geometry import look_rotation
-from ground_sim.render import MAX_CELLS, render_view
+from ground_sim.render import DEFAULT_RASTER, MAX_CELLS, RASTERS, render_view
 from ground_sim.scene import load_scene
 from protocol.pairdir import Camera, Pose, Sun
 
@@ -43,7 +43,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", default=None, help="write the table here (a file of its own: it is overwritten)")
     ap.add_argument("--max-raster-cells", type=int, default=MAX_CELLS)
-    ap.add_argument("--raster", choices=["view", "tiles"], default="view")
+    ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER)
     ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")
     args = ap.parse_args()
     mc = args.max_raster_cells

@@ -10,7 +10,8 @@ presets; ``crater`` is a vertical descent into ``bench/scenes/deep_crater.toml``
 datum); ``lowsun`` the vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``;
 ``thesis_vertical`` and ``thesis_approach`` the scenarios on the library's ``thesis`` scene with its sun
 (the scene ``render``, ``evaluate`` and ``run`` use by default; more hazardous than ``default``).
-Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``) and are reused. Every pair is scored
+Renders go to ``--cache`` (default ``/tmp/flight_eval_cache_tiles``, ``/tmp/flight_eval_cache`` with
+``--raster view``) and are reused. Every pair is scored
 against its ground truth with ``studies.evaluate.score_arrays`` (pixel FP/FN/CDI, DEM error) plus the
 top-ranked site's footprint (``ground_sim.scoring.chosen_sites_safe``). Seeds come from
 ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``.
@@ -32,6 +33,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
 SCENES = ROOT / "bench" / "scenes"
 # case -> (trajectory, scene spec, sun (az, el) or None for the scenario default)
@@ -47,6 +49,12 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 }
 
 
+def default_cache(raster: str, kind: str = "flight_eval_cache") -> Path:
+    """``/tmp/<kind>`` for capped (``view``) renders, ``/tmp/<kind>_tiles`` for tiled ones: a default cache
+    never mixes two rasters (renders, layers and grids are all reused by path)."""
+    return Path("/tmp") / (kind if raster == "view" else f"{kind}_{raster}")
+
+
 def cached_raster(pair_dir: Path) -> str:
     """``"tiles"`` when every view of a rendered pair was drawn from rasters per tile, else ``"view"``."""
     views = json.loads((pair_dir / "pair.json").read_text()).get("render") or [{}]
@@ -59,7 +67,7 @@ def render_case(
     cache: Path,
     altitudes: list[int] | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render (or reuse) every pair of a case for one scene seed (``max_cells``, ``raster``: the terrain raster)."""
     from ground_sim import trajectory
@@ -325,14 +333,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--presets", nargs="+", default=["fast"])
     ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="override fields of the preset")
     ap.add_argument("--ablation", action="store_true", help="run the ablation variants instead of --presets")
-    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument("--cache", default=None, help="rendered pairs (default: /tmp/flight_eval_cache[_tiles])")
     ap.add_argument(
         "--max-raster-cells",
         type=int,
         default=None,
         help="render with this raster cap (docs/scenes.md); use a cache of its own, renders are reused by path",
     )
-    ap.add_argument("--raster", choices=["view", "tiles"], default="view", help="terrain rasters (docs/scenes.md)")
+    ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER, help="terrain rasters (docs/scenes.md)")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
@@ -345,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
-    cache = Path(args.cache)
+    cache = Path(args.cache) if args.cache else default_cache(args.raster)
     mc = args.max_raster_cells
     pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)]
     if args.render_only:

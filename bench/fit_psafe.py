@@ -28,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
+from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
 FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
 
@@ -56,7 +57,7 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
 
 
 def load_all(
-    seeds: list[int], cases: list[str], cache: Path, layers: Path, raster: str = "view"
+    seeds: list[int], cases: list[str], cache: Path, layers: Path, raster: str = DEFAULT_RASTER
 ) -> list[dict[str, Any]]:
     from eval_flight import render_case
 
@@ -177,8 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     ap.add_argument("--cases", nargs="+", default=["vertical", "approach"])
-    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
-    ap.add_argument("--layers", default="/tmp/flight_psafe_layers")
+    ap.add_argument("--cache", default=None, help="rendered pairs (default: /tmp/flight_eval_cache[_tiles])")
+    ap.add_argument("--layers", default=None, help="per-pair features (default: /tmp/flight_psafe_layers[_tiles])")
     ap.add_argument("--per-pair", type=int, default=15000, help="points sampled per pair for the fit")
     ap.add_argument("--ridge", type=float, default=1.0)
     ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
@@ -190,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--reliability", action="store_true")
     ap.add_argument("--kind", choices=("gam", "trees"), default="gam", help="additive model or boosted trees")
-    ap.add_argument("--raster", choices=("view", "tiles"), default="view", help="the renders' terrain rasters")
+    ap.add_argument("--raster", choices=RASTERS, default=DEFAULT_RASTER, help="the renders' terrain rasters")
     ap.add_argument("--iters", type=int, default=30, help="trees: boosting iterations (shipped: 30)")
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
@@ -207,7 +208,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
         return 2
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
-    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
+    from eval_flight import default_cache
+
+    cache = Path(args.cache) if args.cache else default_cache(args.raster)
+    layers = Path(args.layers) if args.layers else default_cache(args.raster, "flight_psafe_layers")
+    rows = load_all(args.seeds, args.cases, cache, layers, args.raster)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:

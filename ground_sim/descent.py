@@ -22,7 +22,15 @@ from ground_sim import library
 from ground_sim.errors import TrajectoryError
 from ground_sim.library import DEFAULT_SUN, covered, share_pct
 from ground_sim.pose_error import PoseError
-from ground_sim.render import MAX_CELLS, View, check_max_cells, check_raster, noisy_image, render_view
+from ground_sim.render import (
+    DEFAULT_RASTER,
+    MAX_CELLS,
+    View,
+    check_max_cells,
+    check_raster,
+    noisy_image,
+    render_view,
+)
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import PairSpec, frames_at, load_trajectory
 from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
@@ -54,7 +62,7 @@ class _Job:
     sun: Sun
     supersample: int
     max_cells: int = MAX_CELLS
-    raster: str = "view"
+    raster: str = DEFAULT_RASTER
 
 
 def _render_job(job: _Job) -> View:
@@ -83,7 +91,7 @@ def render_views(
     supersample: int = 2,
     workers: int | None = 1,
     max_cells: int = MAX_CELLS,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[View]:
     """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes."""
     from ground_sim.parallel import pool_map
@@ -160,7 +168,7 @@ def render_pair(
     supersample: int = 2,
     workers: int | None = 1,
     max_cells: int = MAX_CELLS,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> Pair:
     """Render every frame of ``spec``; reported poses carry the injected errors, truth is for frame 0."""
     views = render_views(
@@ -214,7 +222,7 @@ def render_scenario(
     camera: Camera | None = None,
     workers: int | None = None,
     max_cells: int = MAX_CELLS,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
 

@@ -44,6 +44,9 @@ from protocol.pairdir import Camera, Pose, Sun
 
 MAX_CELLS = 1_000_000
 RASTERS = ("view", "tiles")
+# every view at its GSD/supersample from rasters per image tile: "view" (one capped raster per view) draws
+# 512 px views 1.2-4.2x coarser and the two views of a pair see different detail (docs/scenes.md, item 4)
+DEFAULT_RASTER = "tiles"
 MAX_CELLS_LIMIT = 16_000_000  # a render process peaked at 1.0-1.7 GB with it (docs/scenes.md): refused above
 MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
@@ -407,13 +410,14 @@ def render_view(
     supersample: int = 2,
     noise: bool = True,
     max_cells: int = MAX_CELLS,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> View:
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method.
 
-    ``raster="tiles"`` draws the image and the geometric truth from rasters per image tile at
+    ``raster="tiles"`` (the default) draws the image and the geometric truth from rasters per image tile at
     the tile's own GSD/supersample (:func:`_render_tiles`); slope and roughness truth and far shadow
-    casters stay on the view's raster.
+    casters stay on the view's raster. ``raster="view"`` draws everything from one raster per view, capped
+    at ``max_cells`` (the renders before 2026-11-25).
     """
     _check_pose(camera, pose)
     _check_args(sun, supersample, max_cells)

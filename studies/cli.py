@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ground_sim.render import DEFAULT_RASTER, RASTERS
 from protocol.errors import InputError
 
 
@@ -101,10 +102,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--raster",
-        choices=["view", "tiles"],
-        default="view",
-        help="tiles: render every view from rasters per image tile at the tile's own GSD/2 (faithful, 2-3x "
-        "slower; docs/scenes.md); kept apart from the default's renders and runs",
+        choices=list(RASTERS),
+        default=DEFAULT_RASTER,
+        help="tiles (default): render every view from rasters per image tile at the tile's own GSD/2; view: "
+        "one capped raster per view, 1.2-4.2x coarser at 512 px (the renders before 2026-11-25; "
+        "docs/scenes.md); each raster's renders and runs are kept apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -332,10 +334,10 @@ def register_landings(subparsers: Any) -> None:
     add_seed_options(p, "scene seeds to cycle through")
     p.add_argument(
         "--raster",
-        choices=["view", "tiles"],
-        default="view",
-        help="tiles: render every view at its GSD/2 from rasters per image tile (docs/scenes.md); "
-        "its renders are cached apart from the default's",
+        choices=list(RASTERS),
+        default=DEFAULT_RASTER,
+        help="tiles (default): render every view at its GSD/2 from rasters per image tile; view: one capped "
+        "raster per view (docs/scenes.md); each raster's renders are cached apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_landings, seeds_default=100)

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, read_pair
 
@@ -611,7 +612,7 @@ def render_cache(
     progress: bool = False,
     scene: str | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render (or reuse) the scenario's pairs for one scene seed; return [{label, altitude_m, pair_dir}].
 
@@ -658,7 +659,7 @@ def render_cache(
     return entries
 
 
-def render_tag(max_cells: int | None, raster: str = "view") -> str:
+def render_tag(max_cells: int | None, raster: str = DEFAULT_RASTER) -> str:
     """Suffix of cache directories and task ids for non-default terrain rasters (the renders differ)."""
     from ground_sim.errors import RenderError
     from ground_sim.render import MAX_CELLS, check_max_cells, check_raster
@@ -689,7 +690,7 @@ def _render_task(
     altitude: int,
     scene: str | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> dict[str, Any]:
     return render_cache(
         scenario,
@@ -725,7 +726,7 @@ def render_all(
     scene: str | None = None,
     pool: Any = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
@@ -790,7 +791,7 @@ def evaluate_scenario(
     maps_seeds: int = 1,
     scene: str | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
@@ -991,7 +992,7 @@ def sensitivity_campaign(
     workers: int | None = None,
     progress: bool = True,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Thesis sec 6.3 Monte Carlo on the approach scenario; one row per (preset, seed, altitude, sample).
 

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 
 LANDING_PAIRS: tuple[tuple[str, str], ...] = (
@@ -110,7 +111,7 @@ class Campaign:
     per_render: int = PER_RENDER
     pose_error: str | None = DEFAULT_POSE_ERROR
     camera_px: int | None = None
-    raster: str = "view"  # ground_sim's terrain rasters: "tiles" renders every view at its GSD/2
+    raster: str = DEFAULT_RASTER  # ground_sim's terrain rasters: "tiles" renders every view at its GSD/2
 
     def __post_init__(self) -> None:
         from ground_sim import library

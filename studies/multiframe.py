@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.render import DEFAULT_RASTER
+
 DEFAULT_FRAMES = (300.0, 250.0, 200.0, 150.0)
 POLICIES = ("multi", "fused refs->last", "fused window 2")
 
@@ -45,7 +47,7 @@ def render_descent(
     camera_px: int | None = None,
     scene: str | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> Path:
     """Render (or reuse) one multi-frame pair directory of the scenario's scene under its sun."""
     from ground_sim import library, trajectory
@@ -266,7 +268,7 @@ def evaluate_multiframe(
     which: Sequence[str] = POLICIES,
     progress: Callable[[str], None] | None = None,
     max_cells: int | None = None,
-    raster: str = "view",
+    raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render and score one descent per seed; write ``multiframe_<scenario>.json`` and the summary table
     ``report/multiframe_<scenario>.md`` under ``out_dir``; return the per-descent records."""

@@ -112,14 +112,17 @@ def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, 
         altitudes=[300],
         progress=False,
         max_cells=20_000,
+        raster="view",
     )
     capped = Path(rows[0]["pair"])
     assert capped.parent.name.endswith("_cells20000") and capped != Path(default["pair_dir"])
+    # the default is tiled: its renders carry the tag, so caches of capped renders are never taken for them
+    assert Path(default["pair_dir"]).parent.name.endswith("_tiles")
     meta = read_pair(capped).meta
     assert all(v["raster_cell_over_target"] > 1.0 for v in meta["render"])
     log = (tmp_path / "e" / "runs" / "evaluate.jsonl").read_text()
     assert "_cells20000" in log
-    (tiled,) = ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], raster="tiles")
+    (tiled,) = ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300])
     assert Path(tiled["pair_dir"]).parent.name.endswith("_tiles")
     assert all("raster_tiles" in v for v in read_pair(tiled["pair_dir"]).meta["render"])
     with pytest.raises(ev.EvaluationError, match="max raster cells"):
@@ -160,9 +163,9 @@ def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
     assert (tmp_path / "dask" / "sensitivity_altitude.csv").is_file()
     lines = (tmp_path / "dask" / "runs" / "sensitivity-altitude.jsonl").read_text().splitlines()
     assert sorted(json.loads(x)["id"] for x in lines) == [
-        "altitude-fast-s0-250-0",
-        "altitude-fast-s0-250-1",
-        "altitude-fast-s0-250-ref",
+        "altitude-fast-s0-250-0_tiles",  # tiled renders (the default) carry their tag in the task ids
+        "altitude-fast-s0-250-1_tiles",
+        "altitude-fast-s0-250-ref_tiles",
     ]
 
 

@@ -99,8 +99,9 @@ def test_fp_budget_holds_on_a_held_out_pair_and_calls_more_safe_ground():
     fp, tp = _fp_tp(pair)
     tp_gauss = _fp_tp(pair, psafe_model="gaussian")[1]
     assert fp <= 1.0
-    # the Gaussian model leaves most of this pair unknown (TP 1.7 %; calibrated 20.7 %)
-    assert tp > 5.0 * tp_gauss and tp > tp_gauss + 15.0
+    # the Gaussian model leaves most of this pair unknown (tiled render: TP 18.9 %; calibrated 63.4 %; on the
+    # capped renders before 2026-11-25: 1.7 % and 20.7 %)
+    assert tp > 2.0 * tp_gauss and tp > tp_gauss + 15.0
 
 
 @pytest.mark.slow

@@ -280,8 +280,8 @@ def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
     """The terrain raster's cell is GSD/supersample unless the cell cap coarsens it; then the view says so."""
     sc = load_scene("default", 3)
     pose = Pose([40.0, 30.0, 100.0], look_rotation(0.0))
-    capped = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=10_000)
-    full = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=4_000_000)
+    capped = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=10_000, raster="view")
+    full = render_view(sc, CAM, pose, Sun(135, 30), noise=False, max_cells=4_000_000, raster="view")
     for v, ss in ((capped, 2), (full, 2)):
         assert v.info["raster_cell_over_target"] == pytest.approx(v.info["raster_cell_m"] / (v.info["gsd_min_m"] / ss))
     assert capped.info["raster_cell_over_target"] > 2.0
@@ -291,7 +291,9 @@ def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
     for bad in (0, 9_999, 16_000_001, 2.5, True):
         with pytest.raises(RenderError, match="max raster cells"):
             render_view(sc, CAM, pose, Sun(135, 30), max_cells=bad)
-    out = render_scenario("vertical", tmp_path / "r", seed=3, pairs=["200/100"], progress=False, max_cells=20_000)
+    out = render_scenario(
+        "vertical", tmp_path / "r", seed=3, pairs=["200/100"], progress=False, max_cells=20_000, raster="view"
+    )
     entry = json.loads((out / "manifest.json").read_text())["pairs"][0]
     assert entry["raster_cell_over_target"] > 1.0
 
@@ -300,8 +302,8 @@ def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
 def test_tiled_raster_reaches_the_pixel_and_keeps_the_geometry(tilt):
     """raster="tiles": every tile at its own GSD/2 where one capped view raster is coarser; geometry still exact."""
     pose = Pose([3.0, -100.0 if tilt else 0.0, 100.0], look_rotation(tilt))
-    capped = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000)
-    tiled = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000, raster="tiles")
+    capped = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000, raster="view")
+    tiled = render_view(flat_scene(), CAM, pose, Sun(135, 30), noise=False, max_cells=30_000)  # the default
     assert capped.info["raster_cell_over_target"] > 2.0
     assert tiled.info["raster_tiles"] > 1 and tiled.info["raster_cell_over_target"] == pytest.approx(1.0, abs=1e-3)
     X, depth = closed_form_plane(pose)

@@ -100,10 +100,11 @@ def test_draws_are_deterministic_and_cover_scenes_seeds_and_the_scene_sun():
 
 @pytest.mark.slow
 def test_a_tiled_campaign_is_its_own_and_old_campaigns_keep_their_identity():
-    """--raster tiles renders other pairs: it is part of the identity; the default adds nothing to it."""
-    c = Campaign(("thesis",), 8, (1000,), "held-out")
+    """Tiled renders (the default since 2026-11-25) are other pairs: the raster is part of the identity; a
+    campaign of capped renders (``--raster view``, every campaign before) adds nothing to it, so it resumes."""
+    c = Campaign(("thesis",), 8, (1000,), "held-out", raster="view")
     assert "raster" not in c.identity() and ld.plan_group(c, 0)["raster"] == "view"
-    t = Campaign(("thesis",), 8, (1000,), "held-out", raster="tiles")
+    t = Campaign(("thesis",), 8, (1000,), "held-out")
     assert t.identity()["raster"] == "tiles" and ld.plan_group(t, 0)["raster"] == "tiles"
     assert {k: v for k, v in ld.plan_group(t, 0).items() if k != "raster"} == {
         k: v for k, v in ld.plan_group(c, 0).items() if k != "raster"

@@ -32,8 +32,18 @@ def _ground(scene, info, x, y):
 def test_multi_frame_render_round_trips_with_true_altimeter_ranges(tmp_path, scenario):
     alts = [300.0, 250.0, 200.0, 150.0]
     pe = PoseError(altitude_uniform_m=0.5)
+    # one raster per view, whose grid the render info gives: the ground is rebuilt below on that grid (a tiled
+    # frame's range ends on its centre tile's finer raster; test_ground_sim holds it to the capped one, flat)
     out = render_scenario(
-        scenario, tmp_path, frames=[alts], camera=CAM, seed=1000, pose_error=pe, progress=False, workers=1
+        scenario,
+        tmp_path,
+        frames=[alts],
+        camera=CAM,
+        seed=1000,
+        pose_error=pe,
+        progress=False,
+        workers=1,
+        raster="view",
     )
     man = json.loads((out / "manifest.json").read_text())
     assert man["pairs"][0]["frames"] == 4 and man["pairs"][0]["label"] == "300/250/200/150"
