@@ -146,7 +146,15 @@ def intersect(
             bx, by, bz, sa, t1a = bx[keep], by[keep], bz[keep], sa[keep], t1a[keep]
             alive = np.ones(live, bool)
             dead = 0
-    # regula falsi on the exact bilinear surface inside [lo, t]
+    return refine_roots(r, C, d, t, lo, hit, refine), hit
+
+
+def refine_roots(
+    r: Raster, C: np.ndarray, d: np.ndarray, t: np.ndarray, lo: np.ndarray, hit: np.ndarray, refine: int
+) -> np.ndarray:
+    """``t`` with each hit ray's root refined by regula falsi on the exact bilinear surface inside its
+    march bracket ``[lo, t]`` (``refine`` steps: the bracket narrowed on the fast sampler, finished on
+    the exact one). ``t`` is updated in place and returned."""
     m = hit & (t > lo)
     a, b = lo[m], t[m]
     dm = d[m]
@@ -157,7 +165,6 @@ def intersect(
     def fn(tv):
         return C[2] + tv * dm[:, 2] - r.sample(C[0] + tv * dm[:, 0], C[1] + tv * dm[:, 1])
 
-    # narrow the bracket on the fast sampler, finish on the exact surface
     fa, fb = fast(a), fast(b)
     for it in range(refine):
         if it == refine - 2 or refine == 1:
@@ -171,4 +178,4 @@ def intersect(
         a, fa = np.where(up, c, a), np.where(up, fc, fa)
         b, fb = np.where(up, b, c), np.where(up, fb, fc)
     t[m] = np.where(np.abs(fa) < np.abs(fb), a, b)
-    return t, hit
+    return t

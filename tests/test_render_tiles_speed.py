@@ -9,7 +9,7 @@ import pytest
 
 from ground_sim.features import Features, _poisson_many, profile
 from ground_sim.hashing import poisson
-from ground_sim.heightfield import Raster, intersect, remap_flat
+from ground_sim.heightfield import Raster, intersect, refine_roots, remap_flat
 from ground_sim.stamp import stamp_raster
 
 
@@ -78,30 +78,7 @@ def _intersect_compacting(r, C, d, t0, t1, step, refine=3):
         keep = ~(below | over)
         idx, la, ta = idx[keep], ta[keep], nt[keep]
         bx, by, bz, sa, t1a = bx[keep], by[keep], bz[keep], sa[keep], t1a[keep]
-    # the refinement, unchanged
-    m = hit & (t > lo)
-    a, b = lo[m], t[m]
-    dm = d[m]
-
-    def fast(tv):
-        return C[2] + tv * dm[:, 2] - r.sample_fast(C[0] + tv * dm[:, 0], C[1] + tv * dm[:, 1])
-
-    def fn(tv):
-        return C[2] + tv * dm[:, 2] - r.sample(C[0] + tv * dm[:, 0], C[1] + tv * dm[:, 1])
-
-    fa, fb = fast(a), fast(b)
-    for it in range(refine):
-        if it == refine - 2 or refine == 1:
-            fa, fb = fn(a), fn(b)
-        fn_it = fn if it >= refine - 2 else fast
-        denom = np.where(fa - fb == 0, 1.0, fa - fb)
-        c = np.where((fa > 0) & (fb <= 0), a + (b - a) * fa / denom, b)
-        fc = fn_it(c)
-        up = fc > 0
-        a, fa = np.where(up, c, a), np.where(up, fc, fa)
-        b, fb = np.where(up, b, c), np.where(up, fb, fc)
-    t[m] = np.where(np.abs(fa) < np.abs(fb), a, b)
-    return t, hit
+    return refine_roots(r, C, d, t, lo, hit, refine), hit  # the refinement did not change
 
 
 def test_intersect_marches_like_the_compacting_loop() -> None:
