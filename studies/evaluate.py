@@ -660,7 +660,9 @@ def render_cache(
 
 
 def render_tag(max_cells: int | None, raster: str = DEFAULT_RASTER) -> str:
-    """Suffix of cache directories and task ids for non-default terrain rasters (the renders differ)."""
+    """Suffix of cache directories and task ids for every terrain raster but the capped one-per-view raster
+    at ``MAX_CELLS`` (the renders differ). Tiled renders, the default, carry ``_tiles``: the untagged
+    caches and task ids of the capped renders made before stop 21 stay theirs, never taken for tiled ones."""
     from ground_sim.errors import RenderError
     from ground_sim.render import MAX_CELLS, check_max_cells, check_raster
 
