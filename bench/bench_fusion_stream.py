@@ -43,12 +43,12 @@ DEFAULT_CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
 def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[str, Any]]:
     """The case's pairs, highest first, each with its pipeline grid (cached in ``grids``)."""
-    from eval_flight import render_case
+    from eval_flight import case_key, render_case
 
     from flight_sw.pipeline import PRESETS, run_pipeline
     from protocol.pairdir import read_pair
 
-    f = grids / f"{case}_s{seed}.pkl"
+    f = grids / f"{case_key(case, seed)}.pkl"
     if f.is_file():
         return list(pickle.loads(f.read_bytes()))
     out = []
@@ -128,8 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
     ap.add_argument("--n-seeds", type=int, default=6)
     ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES))
-    ap.add_argument("--cache", default=None, help="rendered pairs, shared with eval_flight (default: its own)")
-    ap.add_argument("--grids", default=None, help="cached pipeline grids per stream (default: per raster)")
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
+    ap.add_argument("--grids", default="/tmp/fusion_stream_grids", help="cached pipeline grids per stream")
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
     ap.add_argument("--json", help="write per-Result rows and the summary here")
     args = ap.parse_args(argv)
@@ -151,16 +151,10 @@ def main(argv: list[str] | None = None) -> int:
     FusionParams(**overrides).validate()
     seeds = list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     streams = [(c, s) for c in args.cases for s in seeds]
-    from eval_flight import default_cache
-
-    from ground_sim.render import DEFAULT_RASTER
-
-    cache = Path(args.cache) if args.cache else default_cache(DEFAULT_RASTER)
-    grids = Path(args.grids) if args.grids else default_cache(DEFAULT_RASTER, "fusion_stream_grids")
     rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}
     t0 = time.perf_counter()
     for k, (case, seed) in enumerate(streams, 1):
-        res = stream_results(case, seed, cache, grids)
+        res = stream_results(case, seed, Path(args.cache), Path(args.grids))
         rows[case] += [{"seed": seed, **r} for r in score_stream(res, overrides)]
         print(f"[{k}/{len(streams)}] {case} seed {seed}: {len(res)} pairs ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)  # fmt: skip

@@ -10,8 +10,8 @@ presets; ``crater`` is a vertical descent into ``bench/scenes/deep_crater.toml``
 datum); ``lowsun`` the vertical scenario under a 10 deg sun; ``tilted`` the approach over ``bench/scenes/tilted.toml``;
 ``thesis_vertical`` and ``thesis_approach`` the scenarios on the library's ``thesis`` scene with its sun
 (the scene ``render``, ``evaluate`` and ``run`` use by default; more hazardous than ``default``).
-Renders go to ``--cache`` (default ``/tmp/flight_eval_cache_tiles``, ``/tmp/flight_eval_cache`` with
-``--raster view``) and are reused. Every pair is scored
+Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``; a case's directory carries its raster's
+tag, ``_tiles`` by default) and are reused. Every pair is scored
 against its ground truth with ``studies.evaluate.score_arrays`` (pixel FP/FN/CDI, DEM error) plus the
 top-ranked site's footprint (``ground_sim.scoring.chosen_sites_safe``). Seeds come from
 ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``.
@@ -49,10 +49,12 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 }
 
 
-def default_cache(raster: str, kind: str = "flight_eval_cache") -> Path:
-    """``/tmp/<kind>`` for capped (``view``) renders, ``/tmp/<kind>_tiles`` for tiled ones: a default cache
-    never mixes two rasters (renders, layers and grids are all reused by path)."""
-    return Path("/tmp") / (kind if raster == "view" else f"{kind}_{raster}")
+def case_key(case: str, seed: int, max_cells: int | None = None, raster: str = DEFAULT_RASTER) -> str:
+    """``<case>_s<seed>`` plus ``studies.evaluate.render_tag`` (``_tiles``, ``_cells<N>``): renders, P(safe)
+    layers and fusion grids of one raster are named apart from another's in any cache directory."""
+    from studies.evaluate import render_tag
+
+    return f"{case}_s{seed}{render_tag(max_cells, raster)}"
 
 
 def cached_raster(pair_dir: Path) -> str:
@@ -81,14 +83,14 @@ def render_case(
     specs = getattr(trajectory, traj)(None)
     if altitudes:
         specs = [s for s in specs if int(round(s.altitude_m)) in altitudes]
-    out = cache / f"{case}_s{seed}"
+    out = cache / case_key(case, seed, max_cells, raster)
     scene = None
     entries = []
     for spec in specs:
         d = out / spec.label.replace("/", "_")
         if (d / "pair.json").is_file():
             have = cached_raster(d)
-            if have != raster:  # a cache is reused by path: never score one raster's renders as another's
+            if have != raster:  # an untagged cache of tiled renders from before stop 21: never score it as another
                 raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")
         else:
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
@@ -333,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--presets", nargs="+", default=["fast"])
     ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="override fields of the preset")
     ap.add_argument("--ablation", action="store_true", help="run the ablation variants instead of --presets")
-    ap.add_argument("--cache", default=None, help="rendered pairs (default: /tmp/flight_eval_cache[_tiles])")
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument(
         "--max-raster-cells",
         type=int,
@@ -353,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
-    cache = Path(args.cache) if args.cache else default_cache(args.raster)
+    cache = Path(args.cache)
     mc = args.max_raster_cells
     pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)]
     if args.render_only:

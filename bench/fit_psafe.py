@@ -59,14 +59,14 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
 def load_all(
     seeds: list[int], cases: list[str], cache: Path, layers: Path, raster: str = DEFAULT_RASTER
 ) -> list[dict[str, Any]]:
-    from eval_flight import render_case
+    from eval_flight import case_key, render_case
 
     rows = []
     for c in cases:
         for s in seeds:
             for e in render_case(c, s, cache, raster=raster):
                 name = f"{c}_s{s}_{e['altitude_m']}"
-                d = pair_layers(e["pair_dir"], layers / f"{name}.npz")
+                d = pair_layers(e["pair_dir"], layers / f"{case_key(c, s, raster=raster)}_{e['altitude_m']}.npz")
                 if "shape" not in d:
                     from protocol.pairdir import read_pair
 
@@ -178,8 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     ap.add_argument("--cases", nargs="+", default=["vertical", "approach"])
-    ap.add_argument("--cache", default=None, help="rendered pairs (default: /tmp/flight_eval_cache[_tiles])")
-    ap.add_argument("--layers", default=None, help="per-pair features (default: /tmp/flight_psafe_layers[_tiles])")
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument("--layers", default="/tmp/flight_psafe_layers")
     ap.add_argument("--per-pair", type=int, default=15000, help="points sampled per pair for the fit")
     ap.add_argument("--ridge", type=float, default=1.0)
     ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
@@ -208,11 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
         return 2
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
-    from eval_flight import default_cache
-
-    cache = Path(args.cache) if args.cache else default_cache(args.raster)
-    layers = Path(args.layers) if args.layers else default_cache(args.raster, "flight_psafe_layers")
-    rows = load_all(args.seeds, args.cases, cache, layers, args.raster)
+    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:

@@ -90,19 +90,23 @@ def test_malformed_trees_are_refused(fitted):
 
 
 def test_eval_cache_of_another_raster_is_refused(tmp_path):
-    """bench/eval_flight.py reuses renders by path: a capped pair must not be scored as a tiled one."""
+    """bench/eval_flight.py names a case's renders by raster (``_tiles``, ``_cells<N>``: studies.evaluate's
+    tag) and refuses a pair of another raster found under its name (an untagged tiled cache of old)."""
     import json
 
-    from eval_flight import cached_raster, render_case
+    from eval_flight import cached_raster, case_key, render_case
 
-    d = tmp_path / "approach_s0" / "500_250"
+    assert case_key("approach", 0) == "approach_s0_tiles"
+    assert case_key("approach", 0, raster="view") == "approach_s0"
+    assert case_key("approach", 0, 20_000, "view") == "approach_s0_cells20000"
+    d = tmp_path / "approach_s0_tiles" / "500_250"
     d.mkdir(parents=True)
     views = [{"raster_cell_over_target": 2.2}, {"raster_cell_over_target": 2.6}]
     (d / "pair.json").write_text(json.dumps({"render": views}))
     assert cached_raster(d) == "view"
     with pytest.raises(SystemExit, match="raster=view renders, not tiles"):
-        render_case("approach", 0, tmp_path, [250], raster="tiles")
+        render_case("approach", 0, tmp_path, [250])
     (d / "pair.json").write_text(json.dumps({"render": [dict(v, raster_tiles=4) for v in views]}))
     assert cached_raster(d) == "tiles"
-    (e,) = render_case("approach", 0, tmp_path, [250], raster="tiles")
+    (e,) = render_case("approach", 0, tmp_path, [250])
     assert e["pair_dir"] == str(d)
