@@ -891,10 +891,9 @@ def _refine_matches(
         baseline_m=L,
         position_change_m=[float(np.linalg.norm(C1 - pose1.position)), float(np.linalg.norm(C2 - pose2.position))],
     )
-    if held:
-        info["ground_change_px"] = _ground_change_px(
-            camera, (pose1, pose2), (Pose(C1, s.R1), Pose(C2, s.R2)), R21, t_unit, L, x1n, x2n, v1[inl]
-        )
+    info["ground_change_px"] = _ground_change_px(
+        camera, (pose1, pose2), (Pose(C1, s.R1), Pose(C2, s.R2)), R21, t_unit, L, x1n, x2n, v1[inl]
+    )
 
     # -- 5. degeneracy checks
     reason = ""
