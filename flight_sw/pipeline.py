@@ -69,7 +69,7 @@ from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, shading_mask
-from .shadow import shadow_mask
+from .shadow import lit_level, shadow_mask
 from .sites import Site, no_site_reason, select_safe_sites, select_sites
 from .slope import footprint_cells, plane_fit, roughness
 from .sweep import (
@@ -165,6 +165,9 @@ class Params:
     sigma_k: float = 2.0  # unsafe only beyond k sigma of a limit
     psafe_min: float = 0.9  # safe only with P(safe) >= this
     shadow_dark_frac: float = 0.0  # > 0: shadow = I < frac * median(I) (replaces eq. 4.9 in the v2 flow)
+    # > 0: ... unless shadow covers most of the image (a polar sun a few degrees up), where the median is a
+    # shadow's brightness: the lit ground's median is used then (shadow.lit_level, this = the class ratio)
+    shadow_mode_ratio: float = 0.0
     rocks_as_hazard: bool = True  # Harris rocks are an unsafe cue
     mask_shadow: bool = False  # v2: dark-shadow pixels get no elevation (no texture to match)
     texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
@@ -251,6 +254,7 @@ class Params:
             "site_relief_max_m",
             "site_relief_window_m",
             "shadow_dark_frac",
+            "shadow_mode_ratio",
             "mapping_reserve_s",
             "multi_truncate",
             "multi_weight_exp",
@@ -305,6 +309,10 @@ PRESETS: dict[str, Params] = {
         fill_gap_px=0,
         hazard_margin_px=0.0,
         shadow_dark_frac=0.2,
+        # a shadow majority is told by its dark/bright class ratio: 7-66 on the tuning library renders that
+        # have one (polar-low-sun, a deep-crater floor), 1.2-1.5 where Otsu splits a lit image
+        # (docs/benchmarks/pipeline.md, "Shadow under a polar sun")
+        shadow_mode_ratio=4.0,
         shading_limit=0.1,
         # georef + grid + slope + hazard + sites: 0.082 s CPU at 512^2 (median of 3, fast v2), + 35 %
         mapping_reserve_s=0.11,
@@ -1062,7 +1070,9 @@ def _run_v2(
             info["skipped"].append("rocks")
     with _stage(timings, "shadow"):
         if p.shadow_dark_frac > 0:
-            dark = a1 < np.float32(p.shadow_dark_frac * float(np.median(a1)))
+            lit = lit_level(a1, p.shadow_mode_ratio) if p.shadow_mode_ratio > 0 else float(np.median(a1))
+            info["shadow_lit_level"] = lit
+            dark = a1 < np.float32(p.shadow_dark_frac * lit)
             shadow = cv2.dilate(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
         else:
             dark = shadow = shadow_mask(i1)
