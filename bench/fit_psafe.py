@@ -75,6 +75,29 @@ def load_all(
     return rows
 
 
+def load_library(roots: list[str], layers: Path, raster: str = DEFAULT_RASTER) -> list[dict[str, Any]]:
+    """Every rendered pair under ``roots`` (a ``hazard-hil landings --cache`` of library scenes) whose scene
+    seed is a tuning seed, as rows of its scene: the library's scenes, suns and terrain beside the eval cases."""
+    from eval_flight import cached_raster
+
+    from ground_sim.seeds import TUNING_SEEDS
+
+    rows = []
+    for root in roots:
+        for pj in sorted(Path(root).glob("*/pair.json")):
+            meta = json.loads(pj.read_text())
+            seed, scene = int(meta.get("scene_seed", -1)), str(meta.get("scene", "?"))
+            if seed not in TUNING_SEEDS:
+                raise SystemExit(f"fit_psafe: {pj.parent} has scene seed {seed}, not a tuning seed: refusing it")
+            if cached_raster(pj.parent) != raster:
+                continue
+            d = pair_layers(str(pj.parent), layers / f"library_{pj.parent.name}.npz")
+            alt = int(round(float(meta.get("altitude_m", 0))))
+            name = f"{scene}_{meta.get('scenario', '?')}_s{seed}_{alt}"
+            rows.append({"name": name, "case": f"library:{scene}", "seed": seed, "alt": alt, **d})
+    return rows
+
+
 def fit_trees(
     feats: dict[str, np.ndarray], safe: np.ndarray, seeds: list[int], trees: dict[str, Any], info: dict[str, Any]
 ) -> Any:
@@ -196,6 +219,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
+    ap.add_argument(
+        "--library",
+        nargs="*",
+        default=[],
+        help="also fit on every pair in these landing render caches (hazard-hil landings --seed-set tuning --cache)",
+    )
     args = ap.parse_args(argv)
 
     import cv2
@@ -209,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
     rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
+    rows += load_library(args.library, Path(args.layers), args.raster)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:
