@@ -279,6 +279,49 @@ def table(rows: list[dict[str, Any]], title: str) -> str:
     return "\n".join(out)
 
 
+def library_pairs(root: Path, raster: str = DEFAULT_RASTER) -> list[dict[str, Any]]:
+    """Every pair of ``raster`` in a landing render cache (``hazard-hil landings --cache``), as eval entries of
+    its library scene: the issue's "and on the scene library" criteria, pair by pair."""
+    out = []
+    for pj in sorted(root.glob("*/pair.json")):
+        if cached_raster(pj.parent) != raster:
+            continue
+        meta = json.loads(pj.read_text())
+        out.append(
+            {
+                "case": str(meta.get("scene", "?")),
+                "scenario": str(meta.get("scenario", "?")),
+                "seed": int(meta.get("scene_seed", -1)),
+                "altitude_m": int(round(float(meta.get("altitude_m", 0)))),
+                "pair_dir": str(pj.parent),
+            }
+        )
+    if not out:
+        raise SystemExit(f"eval_flight: no rendered pair (*/pair.json) of raster {raster} in {root}")
+    return out
+
+
+def library_table(rows: list[dict[str, Any]], title: str) -> str:
+    """Markdown table per library scene: pixel FP worst and pairs over 1 %, CDI, DEM coverage, top site."""
+    out = [
+        f"\n### {title}\n",
+        "| scene | pairs | FP % worst | pairs FP > 1 % | FP % med | CDI % med / min | DEM valid % min "
+        "| top site safe |",
+        "|---|---:|---:|---:|---:|---|---:|---:|",
+    ]
+    groups = sorted({r["case"] for r in rows}) + ["all"]
+    for g in groups:
+        rs = rows if g == "all" else [r for r in rows if r["case"] == g]
+        tops = [r["top_safe"] for r in rs if math.isfinite(r["top_safe"])]
+        out.append(
+            f"| {g} | {len(rs)} | {max(r['fp'] for r in rs):.2f} | {sum(r['fp'] > 1.0 for r in rs)} "
+            f"| {_med([r['fp'] for r in rs]):.2f} "
+            f"| {_med([r['cdi'] for r in rs]):.1f} / {min(r['cdi'] for r in rs):.1f} "
+            f"| {min(r['valid'] for r in rs):.1f} | {sum(t >= 100 for t in tops)}/{len(tops)} |"
+        )
+    return "\n".join(out)
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, float]:
     tops = [r["top_safe"] for r in rows if math.isfinite(r["top_safe"])]
     return {
@@ -346,6 +389,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
+    ap.add_argument(
+        "--library",
+        metavar="DIR",
+        help="score every pair of this landing render cache (hazard-hil landings --cache) instead of --cases",
+    )
     args = ap.parse_args(argv)
 
     import cv2
@@ -357,7 +405,13 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     cache = Path(args.cache)
     mc = args.max_raster_cells
-    pairs = [e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)]
+    if args.library:
+        pairs = library_pairs(Path(args.library), args.raster)
+        seeds = sorted({e["seed"] for e in pairs})
+    else:
+        pairs = [
+            e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)
+        ]
     if args.render_only:
         print(f"{len(pairs)} pairs in {cache}")
         return 0
@@ -381,8 +435,8 @@ def main(argv: list[str] | None = None) -> int:
             r = score_pair(e["pair_dir"], prm)
             rows.append({**e, **r})
         all_rows[name] = rows
-        print(table(rows, f"{name} - seeds {seeds}"), flush=True)
-        if args.causes:
+        print((library_table if args.library else table)(rows, f"{name} - seeds {seeds}"), flush=True)
+        if args.causes and not args.library:
             print(causes_table(rows, f"{name} - where the FN and FP pixels are"), flush=True)
     if args.ablation:
         print("\n| variant | DEM valid % min / med | FP % med / worst | FN % med | CDI % med | top site safe | CPU s |")
