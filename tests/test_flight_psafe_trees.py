@@ -110,3 +110,36 @@ def test_eval_cache_of_another_raster_is_refused(tmp_path):
     assert cached_raster(d) == "tiles"
     (e,) = render_case("approach", 0, tmp_path, [250])
     assert e["pair_dir"] == str(d)
+
+
+def test_library_caches_are_scored_per_scene_and_fitted_on_tuning_seeds_only(tmp_path):
+    """bench/eval_flight.py --library scores every pair of a landing render cache of its raster, one row per
+    scene, counting the pairs over 1 % FP; bench/fit_psafe.py --library refuses a held-out scene seed."""
+    from eval_flight import library_pairs, library_table
+    from fit_psafe import load_library
+
+    def pair(name: str, scene: str, seed: int, tiles: bool) -> None:
+        d = tmp_path / name
+        d.mkdir()
+        views = [{"raster_tiles": 4} if tiles else {"raster_cell_over_target": 2.0}] * 2
+        meta = {"scene": scene, "scenario": "vertical", "scene_seed": seed, "altitude_m": 200.0, "render": views}
+        (d / "pair.json").write_text(json.dumps(meta))
+
+    pair("a_tiles", "mare", 1003, True)
+    pair("b_tiles", "highland", 1004, True)
+    pair("c", "mare", 1003, False)  # the capped render of the same landing: another raster
+    got = library_pairs(tmp_path)
+    assert [(e["case"], e["seed"], e["altitude_m"]) for e in got] == [("mare", 1003, 200), ("highland", 1004, 200)]
+    assert [e["case"] for e in library_pairs(tmp_path, "view")] == ["mare"]
+    rows = [
+        {**got[0], "fp": 1.4, "cdi": 60.0, "valid": 95.0, "top_safe": 100.0},
+        {**got[1], "fp": 0.2, "cdi": 50.0, "valid": 80.0, "top_safe": float("nan")},
+    ]
+    lines = library_table(rows, "t").splitlines()
+    assert "| mare | 1 | 1.40 | 1 |" in "\n".join(lines)
+    (total,) = [ln for ln in lines if ln.startswith("| all |")]
+    assert total == "| all | 2 | 1.40 | 1 | 0.80 | 55.0 / 50.0 | 80.0 | 1/1 |"
+    with pytest.raises(SystemExit, match="not a tuning seed"):
+        load_library([str(tmp_path)], tmp_path / "layers")
+    with pytest.raises(SystemExit, match="no rendered pair"):
+        library_pairs(tmp_path / "layers")
