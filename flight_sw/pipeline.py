@@ -311,7 +311,7 @@ PRESETS: dict[str, Params] = {
         shadow_dark_frac=0.2,
         # a shadow majority is told by its dark/bright class ratio: 7-66 on the tuning library renders that
         # have one (polar-low-sun, a deep-crater floor), 1.2-1.5 where Otsu splits a lit image
-        # (docs/benchmarks/pipeline.md, "Shadow under a polar sun")
+        # (docs/benchmarks/pipeline.md, "The scene library pixel by pixel, and shadow under a polar sun")
         shadow_mode_ratio=4.0,
         shading_limit=0.1,
         # georef + grid + slope + hazard + sites: 0.082 s CPU at 512^2 (median of 3, fast v2), + 35 %
