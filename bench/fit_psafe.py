@@ -76,25 +76,21 @@ def load_all(
 
 
 def load_library(roots: list[str], layers: Path, raster: str = DEFAULT_RASTER) -> list[dict[str, Any]]:
-    """Every rendered pair under ``roots`` (a ``hazard-hil landings --cache`` of library scenes) whose scene
-    seed is a tuning seed, as rows of its scene: the library's scenes, suns and terrain beside the eval cases."""
-    from eval_flight import cached_raster
+    """Every pair of ``raster`` under ``roots`` (a ``hazard-hil landings --cache`` of library scenes), as rows
+    of its scene: the library's scenes, suns and terrain beside the eval cases. A held-out scene seed is refused."""
+    from eval_flight import library_pairs
 
     from ground_sim.seeds import TUNING_SEEDS
 
     rows = []
     for root in roots:
-        for pj in sorted(Path(root).glob("*/pair.json")):
-            meta = json.loads(pj.read_text())
-            seed, scene = int(meta.get("scene_seed", -1)), str(meta.get("scene", "?"))
+        for e in library_pairs(Path(root), raster):
+            where, seed = e["pair_dir"], e["seed"]
             if seed not in TUNING_SEEDS:
-                raise SystemExit(f"fit_psafe: {pj.parent} has scene seed {seed}, not a tuning seed: refusing it")
-            if cached_raster(pj.parent) != raster:
-                continue
-            d = pair_layers(str(pj.parent), layers / f"library_{pj.parent.name}.npz")
-            alt = int(round(float(meta.get("altitude_m", 0))))
-            name = f"{scene}_{meta.get('scenario', '?')}_s{seed}_{alt}"
-            rows.append({"name": name, "case": f"library:{scene}", "seed": seed, "alt": alt, **d})
+                raise SystemExit(f"fit_psafe: {where} has scene seed {seed}, not a tuning seed: refusing it")
+            d = pair_layers(where, layers / f"library_{Path(where).name}.npz")
+            name = f"{e['case']}_{e['scenario']}_s{e['seed']}_{e['altitude_m']}"
+            rows.append({"name": name, "case": f"library:{e['case']}", "seed": e["seed"], "alt": e["altitude_m"], **d})
     return rows
 
 
