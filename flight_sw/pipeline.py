@@ -1070,7 +1070,7 @@ def _run_v2(
             info["skipped"].append("rocks")
     with _stage(timings, "shadow"):
         if p.shadow_dark_frac > 0:
-            lit = lit_level(a1, p.shadow_mode_ratio) if p.shadow_mode_ratio > 0 else float(np.median(a1))
+            lit = lit_level(a1, p.shadow_mode_ratio)  # the median unless shadow is the majority
             info["shadow_lit_level"] = lit
             dark = a1 < np.float32(p.shadow_dark_frac * lit)
             shadow = cv2.dilate(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra

@@ -19,7 +19,7 @@ def shadow_mask(img: np.ndarray, threshold: float | None = None) -> np.ndarray:
 
 
 def lit_level(img: np.ndarray, ratio: float, dynamic_range: float = 1000.0) -> float:
-    """Brightness of the lit ground: ``median(I)``, unless shadow covers most of the image.
+    """Brightness of the lit ground: ``median(I)``, unless shadow covers most of the image (``ratio`` > 0).
 
     A dark-shadow threshold relative to the median (``I < f median(I)``) assumes most pixels are lit.
     Under a sun a few degrees up (the lunar poles) shadow can cover 60-90 % of a frame, the median is
