@@ -272,6 +272,7 @@ def classify_calibrated(
     p_min: float = 0.0,
     p_unsafe: float = 0.5,
     a_max: float = math.inf,
+    a_sigma_k: float = 0.0,
 ) -> Evidence:
     """Three states from the calibrated P(safe) (:mod:`flight_sw.psafe`) and the FP-budget rule.
 
@@ -282,7 +283,11 @@ def classify_calibrated(
     the limit is never called safe (SGM's smoothing flattens footprint-scale walls: a near-limit
     estimate is where the undetected hazards concentrate on tuning pairs), nor is a point without an
     elevation (its P(safe) is a prior from its surroundings; on the held-out deep crater, calling such
-    points safe put FP over 1 % at 200-300 m); unsafe = a cue or
+    points safe put FP over 1 % at 200-300 m). With ``a_sigma_k = k > 0`` the cap judges the slope
+    against its uncertainty instead: a point at or above ``a_max`` stays callable while
+    ``a + k u < 1`` (the slope is below the limit by k standard uncertainties; issue 9's "judge slope
+    against its uncertainty"), which lets well-measured 6-15 deg ground through at low altitude and
+    changes nothing where ``u`` is large. Unsafe = a cue or
     ``P(safe) < p_unsafe`` (more likely a hazard than not, for ``p_unsafe = 0.5``); unknown otherwise.
     The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
     """
@@ -292,7 +297,10 @@ def classify_calibrated(
     p[cue[cov]] = 0.0
     a = np.asarray(feats["a"], np.float32)[cov]
     with np.errstate(invalid="ignore"):
-        barred = (a >= a_max) | ~np.isfinite(a)  # no elevation: the context alone never calls a point safe
+        over = a >= a_max
+        if a_sigma_k > 0:
+            over &= ~(a + np.float32(a_sigma_k) * np.asarray(feats["u"], np.float32)[cov] < 1.0)
+        barred = over | ~np.isfinite(a)  # no elevation: the context alone never calls a point safe
     call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
     psafe = np.full(cov.shape, np.nan, np.float32)
     psafe[cov] = p

@@ -189,6 +189,7 @@ class Params:
     fp_budget: float = 0.005  # "calibrated": expected share of undetected hazards among the covered points
     psafe_unsafe: float = 0.5  # "calibrated": unsafe below this P(safe), unknown between it and the call
     call_slope_max: float = math.inf  # "calibrated": never call safe an estimated slope >= this x the limit
+    call_slope_sigma_k: float = 0.0  # > 0: ... unless slope + this x its uncertainty < the limit (classify_calibrated)
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
@@ -241,6 +242,8 @@ class Params:
             raise FlightInputError(f"params: fp_budget must be in [0, 0.2], got {self.fp_budget!r}")
         if not (self.call_slope_max > 0):
             raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
+        if not (math.isfinite(self.call_slope_sigma_k) and self.call_slope_sigma_k >= 0):
+            raise FlightInputError(f"params: call_slope_sigma_k must be >= 0, got {self.call_slope_sigma_k!r}")
         if not (math.isfinite(self.psafe_unsafe) and 0 <= self.psafe_unsafe <= 1):
             raise FlightInputError(f"params: psafe_unsafe must be in [0, 1], got {self.psafe_unsafe!r}")
         for name in (
@@ -1290,6 +1293,7 @@ def _run_v2(
                 p.psafe_min,
                 p.psafe_unsafe,
                 p.call_slope_max,
+                p.call_slope_sigma_k,
             )
             ev = Evidence(
                 _uncrop(ev_c.state, cs, i1.shape, STATE_OUTSIDE),

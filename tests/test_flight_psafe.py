@@ -12,8 +12,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
+from flight_sw.evidence import classify_calibrated
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.psafe import PsafeModel, TreeModel, budget_rule, load_model
+from flight_sw.validate import FlightInputError
 from ground_sim import trajectory
 from ground_sim.descent import DEFAULT_SUN, render_pair
 from ground_sim.library import scene_sun
@@ -64,6 +66,34 @@ def test_budget_rule_takes_the_most_probable_points_within_the_budget():
             assert float(np.sum(1.0 - p[call])) > 0.95 * budget * p.size
     assert not budget_rule(p, 0.05, p_min=0.99, n=p.size)[p < 0.99].any()
     assert not budget_rule(p, 0.05, n=p.size)[:100].any()
+
+
+class _ConstModel:
+    """A stand-in P(safe) model: the same probability at every covered point."""
+
+    def __init__(self, p: float) -> None:
+        self.p = p
+
+    def predict(self, feats: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
+        return np.full(int(np.count_nonzero(mask)), self.p, np.float32)
+
+
+def test_slope_cap_judged_against_its_uncertainty():
+    # a (slope / limit) and u (its uncertainty / limit) per point; the model vouches for all of them
+    a = np.array([[0.2, 0.7, 0.7, 0.95, np.nan]], np.float32)
+    u = np.array([[0.3, 0.05, 0.2, 0.01, 0.1]], np.float32)
+    feats = {"a": a, "u": u, "rough": np.zeros_like(a)}
+    cov = np.ones(a.shape, bool)
+    cues = np.zeros(a.shape, bool)
+    model = _ConstModel(0.999)
+    hard = classify_calibrated(model, feats, cues, cov, 0.01, 0.97, a_max=0.4)  # type: ignore[arg-type]
+    soft = classify_calibrated(model, feats, cues, cov, 0.01, 0.97, a_max=0.4, a_sigma_k=2.5)  # type: ignore[arg-type]
+    # the hard cap calls only the gentle slope; judged against sigma, 0.7 +- 0.05 and 0.95 +- 0.01 are
+    # below the limit by 2.5 sigma, 0.7 +- 0.2 is not; a point without an elevation is never called
+    assert (hard.state[0] == STATE_SAFE).tolist() == [True, False, False, False, False]
+    assert (soft.state[0] == STATE_SAFE).tolist() == [True, True, False, True, False]
+    with pytest.raises(FlightInputError, match="call_slope_sigma_k"):
+        dataclasses.replace(PRESETS["fast"], call_slope_sigma_k=-1.0).validate()
 
 
 @pytest.mark.slow
