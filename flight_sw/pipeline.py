@@ -189,7 +189,7 @@ class Params:
     fp_budget: float = 0.005  # "calibrated": expected share of undetected hazards among the covered points
     psafe_unsafe: float = 0.5  # "calibrated": unsafe below this P(safe), unknown between it and the call
     call_slope_max: float = math.inf  # "calibrated": never call safe an estimated slope >= this x the limit
-    call_slope_sigma_k: float = 0.0  # > 0: ... unless slope + this x its uncertainty < the limit (classify_calibrated)
+    call_slope_sigma_k: float = 0.0  # > 0: the cap spares a slope below the limit by this many sigmas (off)
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
