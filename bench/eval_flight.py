@@ -114,6 +114,7 @@ def run_pair(pair: Any, preset: Any) -> Any:
         pair.camera,
         preset=preset,
         altimeter_m=pair.altimeter_m,
+        sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
     )
 
 

@@ -245,6 +245,7 @@ class FlightProcess:
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 altimeter_m=float(upper.altimeter_m),  # NaN: no reading
+                sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
                 time_scale=time_scale,
                 after_s=after_s,

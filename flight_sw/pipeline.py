@@ -68,7 +68,7 @@ from .psafe import load_model
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
-from .shading import local_shadow_mask, relative_brightness, shading_mask
+from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask
 from .shadow import lit_level, shadow_mask
 from .sites import Site, no_site_reason, select_safe_sites, select_sites
 from .slope import footprint_cells, plane_fit, roughness
@@ -120,6 +120,8 @@ class Params:
     shading_sigma_footprints: float = 3.0  # ... this many lander footprints (in i1 px at the image centre)
     shadow_dark_rel: float = 0.0  # > 0: shadow also needs rho < -this (shading.py); 0: eq. 4.9 only
     shading_limit: float = 0.0  # > 0: |rho| > this is a hazard (steep-wall cue); 0: off
+    # > 0: under a sun higher than this (deg), rho is read as under this sun (shading.rho_at_sun); 0: off
+    shading_sun_ref_deg: float = 0.0
     fill_gap_px: int = 0  # fill DEM gaps narrower than ~this (i1 px) before the slope fit
     fill_min_frac: float = 0.3  # ... where this share of the (2r+1)^2 neighbourhood is valid
     coarse_half_window: int = 4
@@ -242,6 +244,8 @@ class Params:
             raise FlightInputError(f"params: fp_budget must be in [0, 0.2], got {self.fp_budget!r}")
         if not (self.call_slope_max > 0):
             raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
+        if not (math.isfinite(self.shading_sun_ref_deg) and 0 <= self.shading_sun_ref_deg < 90):
+            raise FlightInputError(f"params: shading_sun_ref_deg must be in [0, 90), got {self.shading_sun_ref_deg!r}")
         if not (math.isfinite(self.call_slope_sigma_k) and self.call_slope_sigma_k >= 0):
             raise FlightInputError(f"params: call_slope_sigma_k must be >= 0, got {self.call_slope_sigma_k!r}")
         if not (math.isfinite(self.psafe_unsafe) and 0 <= self.psafe_unsafe <= 1):
@@ -317,6 +321,10 @@ PRESETS: dict[str, Params] = {
         # (docs/benchmarks/pipeline.md, "The scene library pixel by pixel, and shadow under a polar sun")
         shadow_mode_ratio=4.0,
         shading_limit=0.1,
+        # every pair the P(safe) model was fitted on had a 25 deg sun; a higher sun shades a wall less and
+        # its rho is read as under 25 deg. Never mapped downward: under a low sun the map would weaken the
+        # shading cue where Lambert's first order no longer holds (docs/benchmarks/pipeline.md, stop 24)
+        shading_sun_ref_deg=25.0,
         # georef + grid + slope + hazard + sites: 0.082 s CPU at 512^2 (median of 3, fast v2), + 35 %
         mapping_reserve_s=0.11,
         sgm_p1=16,
@@ -364,6 +372,7 @@ PRESETS["fast_gaussian"] = dataclasses.replace(
     psafe_min=0.9,
     fp_budget=0.005,
     call_slope_max=math.inf,
+    shading_sun_ref_deg=0.0,
 )
 
 # fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
@@ -507,6 +516,7 @@ def run_pipeline(
     altimeter_m: float | Sequence[float] | None = None,
     time_scale: float = 1.0,
     after_s: float = 0.0,
+    sun_elevation_deg: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
@@ -518,7 +528,9 @@ def run_pipeline(
     (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
     are multiplied by it (or by the slowdown the first stages really saw, if larger: ``_Clock.learn``).
     ``after_s`` is the caller's own work after the pipeline returns (encoding, fusion), in
-    unthrottled seconds: it is reserved before the deadline at the same scale. With
+    unthrottled seconds: it is reserved before the deadline at the same scale. ``sun_elevation_deg``
+    (None or NaN = unknown) lets the shading cue be read as under the sun the P(safe) model was fitted
+    under (``Params.shading_sun_ref_deg``). With
     ``Params.refine_pose`` the poses are first refined from the
     images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
     Raises :class:`FlightInputError` for bad arguments.
@@ -534,6 +546,7 @@ def run_pipeline(
         altimeter_m=altimeter_m,
         time_scale=time_scale,
         after_s=after_s,
+        sun_elevation_deg=sun_elevation_deg,
     )
 
 
@@ -549,6 +562,7 @@ def run_pipeline_multi(
     altimeter_m: float | Sequence[float] | None = None,
     time_scale: float = 1.0,
     after_s: float = 0.0,
+    sun_elevation_deg: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
 
@@ -582,6 +596,7 @@ def run_pipeline_multi(
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
         if not (isinstance(after_s, (int, float)) and math.isfinite(after_s) and after_s >= 0):
             raise FlightInputError(f"after_s must be a non-negative number of seconds, got {after_s!r}")
+        sun_e = _sun_elevation(sun_elevation_deg)
         clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s))
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
@@ -597,7 +612,7 @@ def run_pipeline_multi(
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
-        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra)
+        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra, sun_e)
     else:
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
         if len(images) > 2:
@@ -607,6 +622,20 @@ def run_pipeline_multi(
         if "pose_refine" not in timings:
             res.info.setdefault("skipped", []).insert(0, "pose_refine")
     return res
+
+
+def _sun_elevation(sun_elevation_deg: float | None) -> float | None:
+    """The sun's elevation in degrees, or None when unknown (None or NaN); anything else is refused."""
+    if sun_elevation_deg is None:
+        return None
+    if isinstance(sun_elevation_deg, bool) or not isinstance(sun_elevation_deg, (int, float)):
+        raise FlightInputError(f"sun_elevation_deg must be a number of degrees or None, got {sun_elevation_deg!r}")
+    e = float(sun_elevation_deg)
+    if math.isnan(e):
+        return None
+    if not 0.0 < e <= 90.0:
+        raise FlightInputError(f"sun_elevation_deg must be in (0, 90] (the sun above the horizon), got {e!r}")
+    return e
 
 
 def _altimeter_frames(altimeter_m: float | Sequence[float] | None, n: int) -> list[float] | None:
@@ -1051,10 +1080,12 @@ def _run_v2(
     alt_range: float | None,
     timings: dict[str, dict[str, float]],
     extra: Sequence[tuple[np.ndarray, Pose]] = (),
+    sun_e: float | None = None,
 ) -> PipelineResult:
     """Flight v2 (issue 9): ground range from the data, dense SGM DEM with sigma, three-state evidence.
 
     ``extra``: the frames between i1 and i2 (issue 10); they join the dense DEM's cost volume.
+    ``sun_e``: the sun's elevation (deg), None if unknown.
     """
     px_scale = i1.size / REF_PIXELS  # what follows the DEM costs per pixel: so does its reserve
     reserve = p.mapping_reserve_s * px_scale
@@ -1094,6 +1125,11 @@ def _run_v2(
         wall_cue_s = WALL_CUE_S_PER_SIGMA_PX * rho_sigma
         if need_rho and clock.ok(reserve + wall_cue_s * px_scale):
             rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0))
+            sun_ref = p.shading_sun_ref_deg
+            read_as = sun_e
+            if sun_ref > 0 and sun_e is not None and sun_e > sun_ref:
+                rho, read_as = rho_at_sun(rho, sun_e, sun_ref), sun_ref
+            info["shading_sun"] = {"elevation_deg": sun_e, "read_as_deg": read_as}
             if p.shading_limit > 0 and not calibrated:  # the calibrated model weighs rho itself
                 wall = shading_mask(rho, p.shading_limit)
         elif need_rho:

@@ -14,9 +14,15 @@ reflectance the brightness of a facet is ``albedo * cos(i)``; tilting it by
 crater walls that the window-correlated DEM smooths below the limit (sec 4.3's
 window spans ~11 m at 300 m altitude). The threshold is empirical (ground_sim
 seeds 0-1, docs/benchmarks/pipeline.md): albedo contrast also moves ``rho``.
+
+The same tilt moves ``rho`` less under a higher sun (``d rho / d t = cot e``: 2.1 per radian at
+25 deg, 1.0 at 45 deg), so a model of ``rho`` fitted under one sun misreads another;
+:func:`rho_at_sun` re-expresses ``rho`` as the tilt it implies, seen under a reference sun.
 """
 
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
@@ -34,6 +40,28 @@ def relative_brightness(img: np.ndarray, sigma_px: float = 10.0, fine_sigma_px: 
     local = cv2.GaussianBlur(I, (0, 0), float(sigma_px), borderType=cv2.BORDER_REFLECT)
     floor = np.float32(max(1e-6, 1e-3 * float(np.abs(I).max())))
     return (fine / np.maximum(local, floor) - 1.0).astype(np.float32)
+
+
+def rho_at_sun(rho: np.ndarray, sun_elevation_deg: float, ref_elevation_deg: float) -> np.ndarray:
+    """``rho`` measured under a sun ``sun_elevation_deg`` high, as it would read under ``ref_elevation_deg``.
+
+    First-order photoclinometry with Lambert's law (the cos(i) term that dominates lunar-Lambert near
+    nadir view; McEwen 1991, Icarus 92, 298): a facet tilted by ``t`` toward the sun, relative to its
+    surroundings, is brighter by ``rho = sin(e + t) / sin(e) - 1``. Inverting for the tilt,
+
+        t = asin(clip((1 + rho) sin e, -1, 1)) - e,       rho_ref = sin(e_ref + t) / sin(e_ref) - 1,
+
+    so the map is the identity when ``e = e_ref`` and it leaves the sign of every cue. A facet tilted
+    past the sun (``e + t > 90 deg``) darkens again and reads as the smaller tilt. It ignores the
+    tilt across the sun (second order) and albedo (read as tilt: a higher sun amplifies albedo
+    contrast too). Float32, NaN stays NaN.
+    """
+    e, e0 = math.radians(float(sun_elevation_deg)), math.radians(float(ref_elevation_deg))
+    if not (0.0 < e <= 0.5 * math.pi and 0.0 < e0 < 0.5 * math.pi):
+        raise ValueError(f"sun elevations must be in (0, 90] deg, got {sun_elevation_deg!r} and {ref_elevation_deg!r}")
+    r = np.asarray(rho, np.float32)
+    t = np.arcsin(np.clip((1.0 + r) * np.float32(math.sin(e)), -1.0, 1.0)) - np.float32(e)
+    return (np.sin(np.float32(e0) + t) / np.float32(math.sin(e0)) - 1.0).astype(np.float32)
 
 
 def local_shadow_mask(img: np.ndarray, global_mask: np.ndarray, rho: np.ndarray, dark_rel: float) -> np.ndarray:

@@ -138,6 +138,8 @@ def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
         image=np.ascontiguousarray(pair.images[index]),
         pair_id=pair_id,
         frame_index=index,
+        sun_azimuth_deg=None if pair.sun is None else float(pair.sun.azimuth_deg),
+        sun_elevation_deg=None if pair.sun is None else float(pair.sun.elevation_deg),
     )
 
 

@@ -141,6 +141,16 @@ def _optional(inner: Checker) -> Checker:
     return check
 
 
+def _degrees(lo: float, hi: float) -> Checker:
+    def check(v: Any, name: str) -> float:
+        f = _float()(v, name)
+        if not lo <= f <= hi:
+            raise SchemaError(f"{name}: {f} deg outside [{lo:g}, {hi:g}]")
+        return f
+
+    return check
+
+
 def _number_dict(v: Any, name: str) -> dict[str, float | int]:
     if not isinstance(v, dict) or len(v) > MAX_DICT_ITEMS:
         raise SchemaError(f"{name}: expected a dict of at most {MAX_DICT_ITEMS} numbers")
@@ -337,6 +347,10 @@ class Frame(Message):
     image: np.ndarray = _wire(_array("|u1", 2))
     pair_id: str | None = _wire(_optional(_str(128)), None)
     frame_index: int | None = _wire(_optional(_int(0, 2**32 - 1)), None)
+    # the sun as DESIGN.md defines it (azimuth clockwise from +Y, elevation above the horizontal), if known:
+    # a lander has it from the ephemeris and its attitude; the shading cue reads it
+    sun_azimuth_deg: float | None = _wire(_optional(_degrees(-360.0, 360.0)), None)
+    sun_elevation_deg: float | None = _wire(_optional(_degrees(-90.0, 90.0)), None)
 
 
 def _positive(v: Any, name: str) -> float:

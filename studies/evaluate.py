@@ -447,7 +447,14 @@ def evaluate_pair(
     t0 = time.perf_counter()
     # the altimeter reading the flight process gets in HIL runs (flight v2 centres its ground search on it)
     res = run_pipeline(
-        pair.images[0], pair.images[-1], fly1, fly2, pair.camera, preset=preset, altimeter_m=pair.altimeter_m
+        pair.images[0],
+        pair.images[-1],
+        fly1,
+        fly2,
+        pair.camera,
+        preset=preset,
+        altimeter_m=pair.altimeter_m,
+        sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # as the Frames carry it
     )
     wall = time.perf_counter() - t0
 

@@ -158,7 +158,11 @@ def run_jobs(
         idx = [ref, *others]
         c0 = time.thread_time()
         res = run_pipeline_multi(
-            [pair.images[k] for k in idx], [pair.poses[k] for k in idx], pair.camera, preset=preset
+            [pair.images[k] for k in idx],
+            [pair.poses[k] for k in idx],
+            pair.camera,
+            preset=preset,
+            sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
         )
         prm = replace(params_for(res.params, res.info, FusionParams()), **(overrides or {}))
         fm = fuse(fm, res.grid, prm)
@@ -178,13 +182,20 @@ def evaluate_descent(
 
     pair = read_pair(pair_dir)
     n = pair.n_frames
+    sun_e = pair.sun.elevation_deg if pair.sun else None
     xy = pixel_world(pair)
     rows: dict[str, dict[str, float]] = {}
     results = {}
     for k in range(n - 1, 0, -1):
         c0 = time.thread_time()
         results[k] = run_pipeline(
-            pair.images[0], pair.images[k], pair.poses[0], pair.poses[k], pair.camera, preset=preset
+            pair.images[0],
+            pair.images[k],
+            pair.poses[0],
+            pair.poses[k],
+            pair.camera,
+            preset=preset,
+            sun_elevation_deg=sun_e,
         )
         results[k].info["cpu_s"] = time.thread_time() - c0
     mask = results[n - 1].covered & np.isfinite(pair.truth["hazard"])  # the widest pair's overlap
@@ -196,7 +207,9 @@ def evaluate_descent(
     rows["best pair"] = {**rows[f"pair 0-{best}"], "k": best}
     if "multi" in which:
         c0 = time.thread_time()
-        res = run_pipeline_multi(list(pair.images), list(pair.poses), pair.camera, preset=preset)
+        res = run_pipeline_multi(
+            list(pair.images), list(pair.poses), pair.camera, preset=preset, sun_elevation_deg=sun_e
+        )
         rows["multi"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": time.thread_time() - c0}
     for name, jobs in fused_policies(n).items():
         if name in which:
