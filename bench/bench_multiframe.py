@@ -73,13 +73,14 @@ def descent_poses(case: str, altitudes: list[float]) -> list[Any]:
 def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) -> Path:
     """Render (or reuse) one multi-frame pair directory; ground truth is frame 0's."""
     from ground_sim.descent import DEFAULT_SUN
-    from ground_sim.render import render_view
+    from ground_sim.render import RENDER_VERSION, render_view
+    from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene
     from protocol.pairdir import Camera, Pair, write_pair_atomic
 
     label = "_".join(f"{a:g}" for a in altitudes)
     out = cache / f"{case}_{label}_s{seed}"
-    if (out / "pair.json").is_file():
+    if reusable(out):  # else none there, or a stale one (another renderer version), now removed
         return out
     poses = descent_poses(case, altitudes)
     scene = load_scene(SCENE[case], seed)
@@ -87,7 +88,13 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     cam = Camera.thesis()
     views = [render_view(scene, cam, p, sun, seed=seed * 7919 + 104729 * k + 17) for k, p in enumerate(poses)]
     truth = {k: getattr(views[0], k) for k in ("elevation", "depth", "shadow", "hazard")}
-    meta = {"scenario": case, "label": label.replace("_", "/"), "scene": scene.params.name, "scene_seed": seed}
+    meta = {
+        "scenario": case,
+        "label": label.replace("_", "/"),
+        "scene": scene.params.name,
+        "scene_seed": seed,
+        "render_version": RENDER_VERSION,
+    }
     meta["true_frames"] = [p.to_dict(f"i{k + 1}.png") for k, p in enumerate(poses)]
     pair = Pair(cam, tuple(poses), tuple(v.image for v in views), sun, truth, meta)
     return write_pair_atomic(out, pair)

@@ -76,6 +76,7 @@ def render_case(
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
     from ground_sim.render import MAX_CELLS
+    from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene
     from protocol.pairdir import Sun, write_pair_atomic
 
@@ -88,7 +89,7 @@ def render_case(
     entries = []
     for spec in specs:
         d = out / spec.label.replace("/", "_")
-        if (d / "pair.json").is_file():
+        if reusable(d):  # else none there, or a stale one (another renderer version), now removed
             have = cached_raster(d)
             if have != raster:  # an untagged cache of tiled renders from before stop 21: never score it as another
                 raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")

@@ -25,6 +25,7 @@ from ground_sim.pose_error import PoseError
 from ground_sim.render import (
     DEFAULT_RASTER,
     MAX_CELLS,
+    RENDER_VERSION,
     View,
     check_max_cells,
     check_raster,
@@ -148,6 +149,7 @@ def assemble_pair(
         "hazard_fraction": float(np.mean(views[0].hazard >= 1.0)),
         "true_frames": _true_frames(spec.poses),
         "render": [v.info | {"raster_origin_m": [float(x) for x in v.info["raster_origin_m"]]} for v in views],
+        "render_version": RENDER_VERSION,  # render caches reuse a pair only if this renderer drew it
     }
     reported = spec.poses
     if pose_error is not None:

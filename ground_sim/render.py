@@ -42,6 +42,10 @@ from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit, plane_fit_fa
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun
 
+# Bump when a change alters what is rendered (images or truth) for the same inputs: render caches
+# (ground_sim/render_cache.py) then draw their pairs again. tests/test_render_cache.py pins a small
+# render's bytes to this number, so the change cannot land without the bump.
+RENDER_VERSION = 1
 MAX_CELLS = 1_000_000
 RASTERS = ("view", "tiles")
 # every view at its GSD/supersample from rasters per image tile: "view" (one capped raster per view) draws

@@ -633,6 +633,7 @@ def render_cache(
     from ground_sim import library, trajectory
     from ground_sim.descent import render_pair
     from ground_sim.render import MAX_CELLS
+    from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene, load_scene_params
     from protocol.pairdir import write_pair_atomic
 
@@ -654,7 +655,7 @@ def render_cache(
     entries = []
     for k, spec in enumerate(specs):
         d = out / spec.label.replace("/", "_")
-        if not (d / "pair.json").is_file():
+        if not reusable(d):  # none there, or a stale one (another renderer version), now removed
             if sc is None:
                 sc = load_scene(scene_spec, seed, scenario)
             if progress:

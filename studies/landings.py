@@ -242,6 +242,7 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
     campaigns that differ only in aim points, navigation errors or presets share their renders."""
 
     from ground_sim.descent import render_pair
+    from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene
     from ground_sim.trajectory import load_trajectory
     from protocol.pairdir import Sun, read_pair, write_pair_atomic
@@ -260,7 +261,7 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
         + ("" if raster == "view" else f"_{raster}")
     )
     d = Path(cache_dir) / key
-    if not (d / "pair.json").is_file():
+    if not reusable(d):  # none there, or a stale one (another renderer version), now removed
         sc = load_scene(plan["scene"], plan["seed"], scenario)
         # a concurrent writer's copy is kept
         write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"], raster=raster))

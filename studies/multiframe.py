@@ -53,6 +53,7 @@ def render_descent(
     from ground_sim import library, trajectory
     from ground_sim.descent import default_scene, render_pair
     from ground_sim.render import MAX_CELLS
+    from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene, load_scene_params
     from protocol.pairdir import Camera, write_pair_atomic
     from studies.evaluate import camera_for, render_tag
@@ -63,7 +64,7 @@ def render_descent(
     tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
     label = "_".join(f"{a:g}" for a in frames)
     out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{render_tag(max_cells, raster)}" / f"frames_{label}"
-    if (out / "pair.json").is_file():
+    if reusable(out):  # else none there, or a stale one (another renderer version), now removed
         return out
     sc = load_scene(scene_spec, seed, scenario)
     sun = library.scene_sun(scene_spec, scenario, seed)
