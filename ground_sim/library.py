@@ -241,6 +241,7 @@ def measure(
 ) -> dict[str, Any]:
     """Hazard shares of library scenes on every table pair, per seed: the ``hazard_shares.json`` document."""
     from ground_sim.parallel import pool_map
+    from ground_sim.render import RENDER_VERSION
     from ground_sim.trajectory import load_trajectory
 
     alts = {s: [int(round(p.altitude_m)) for p in load_trajectory(s)] for s in scenarios}
@@ -251,6 +252,7 @@ def measure(
     doc["scenes"] = {
         n: {
             "digest": params_digest(n),
+            "render_version": RENDER_VERSION,
             "scenarios": {
                 s: {str(a): [round(res[(n, s, sd, a)], 3) for sd in seeds] for a in alts[s]} for s in scenarios
             },
@@ -280,12 +282,19 @@ def merge_shares(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
 
 
 def check(e: Entry, rec: dict[str, Any] | None) -> list[str]:
-    """Problems of a stored measurement: stale digest, missing, or a median outside the band."""
+    """Problems of a stored measurement: stale digest or renderer, missing, or a median outside the band."""
+    from ground_sim.render import RENDER_VERSION
+
     if rec is None:
         return [f"{e.name}: not measured (run hazard-hil scenes --measure)"]
     out = []
     if rec.get("digest") != params_digest(e.name):
         out.append(f"{e.name}: measured with other parameters (stale; run hazard-hil scenes --measure)")
+    if rec.get("render_version", 1) != RENDER_VERSION:  # the truth (shadow edges) is the renderer's
+        out.append(
+            f"{e.name}: measured with renderer version {rec.get('render_version', 1)}, this is {RENDER_VERSION}"
+            " (stale; run hazard-hil scenes --measure)"
+        )
     for scen, per_alt in rec.get("scenarios", {}).items():
         for alt, vals in per_alt.items():
             band = e.band(scen, int(alt))

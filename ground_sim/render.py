@@ -45,7 +45,7 @@ from protocol.pairdir import Camera, Pose, Sun
 # Bump when a change alters what is rendered (images or truth) for the same inputs: render caches
 # (ground_sim/render_cache.py) then draw their pairs again. tests/test_render_cache.py pins a small
 # render's bytes to this number, so the change cannot land without the bump.
-RENDER_VERSION = 1
+RENDER_VERSION = 2  # 2: shadow edges centred on a caster level without the point itself (stop 24)
 MAX_CELLS = 1_000_000
 RASTERS = ("view", "tiles")
 # every view at its GSD/supersample from rasters per image tile: "view" (one capped raster per view) draws
@@ -353,10 +353,15 @@ class _Caster:
         return d, t
 
     def shadow_level(self) -> np.ndarray:
-        return shadow_level(self.H, self.cell, self.sun.azimuth_deg, self.sun.elevation_deg)
+        # casters from half a cell toward the sun, not the point itself: with it, the level equals the
+        # terrain on lit ground and kinks at the shadow's edge, so its interpolation (and the soft edge
+        # below) moved the edge by a fraction of the raster cell - which differs 2x between a pair's views
+        # (docs/scenes.md, item 5)
+        return shadow_level(self.H, self.cell, self.sun.azimuth_deg, self.sun.elevation_deg, min_dist_m=0.5 * self.cell)
 
     def lit(self, X: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(sun visibility in [0, 1] at hit points X - soft over one cell -, cos i, surface normals)."""
+        """(sun visibility in [0, 1] at hit points X - soft over one cell, centred on the caster level -,
+        cos i, surface normals)."""
         r = self.r
         gyy, gxx = np.gradient(self.H, self.cell)
         nxr = r.sample_fast(X[:, 0], X[:, 1], (-gxx).astype(np.float32))
@@ -366,7 +371,7 @@ class _Caster:
         cos_i = nrm @ self.sun.direction()
         level = r.sample_fast(X[:, 0], X[:, 1], (S - r.zref).astype(np.float32)) + r.zref
         soft = self.cell * math.tan(math.radians(self.sun.elevation_deg)) + 0.02
-        vis = np.clip((X[:, 2] - level) / soft + 1.0, 0.0, 1.0)
+        vis = np.clip((X[:, 2] - level) / soft + 0.5, 0.0, 1.0)  # half lit on the geometric edge
         return vis, cos_i, nrm
 
     def radiance(self, X: np.ndarray, d: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
