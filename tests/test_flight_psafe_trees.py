@@ -96,17 +96,21 @@ def test_eval_cache_of_another_raster_is_refused(tmp_path):
 
     from eval_flight import cached_raster, case_key, render_case
 
+    from ground_sim.render import RENDER_VERSION
+
     assert case_key("approach", 0) == "approach_s0_tiles"
     assert case_key("approach", 0, raster="view") == "approach_s0"
     assert case_key("approach", 0, 20_000, "view") == "approach_s0_cells20000"
     d = tmp_path / "approach_s0_tiles" / "500_250"
     d.mkdir(parents=True)
     views = [{"raster_cell_over_target": 2.2}, {"raster_cell_over_target": 2.6}]
-    (d / "pair.json").write_text(json.dumps({"render": views}))
+    # a pair of this renderer version (another one would be redrawn, not refused: ground_sim.render_cache)
+    (d / "pair.json").write_text(json.dumps({"render": views, "render_version": RENDER_VERSION}))
     assert cached_raster(d) == "view"
     with pytest.raises(SystemExit, match="raster=view renders, not tiles"):
         render_case("approach", 0, tmp_path, [250])
-    (d / "pair.json").write_text(json.dumps({"render": [dict(v, raster_tiles=4) for v in views]}))
+    tiled = [dict(v, raster_tiles=4) for v in views]
+    (d / "pair.json").write_text(json.dumps({"render": tiled, "render_version": RENDER_VERSION}))
     assert cached_raster(d) == "tiles"
     (e,) = render_case("approach", 0, tmp_path, [250])
     assert e["pair_dir"] == str(d)
