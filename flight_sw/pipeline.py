@@ -170,6 +170,10 @@ class Params:
     # > 0: ... unless shadow covers most of the image (a polar sun a few degrees up), where the median is a
     # shadow's brightness: the lit ground's median is used then (shadow.lit_level, this = the class ratio)
     shadow_mode_ratio: float = 0.0
+    # > 0: the shadow hazard cue's own threshold (x the lit level), above shadow_dark_frac, which stays the
+    # matching mask's: a boulder's shadow a pixel or two wide is partly lit (0.2-0.36 of the median on tuning
+    # renders) and is a hazard, but its pixels still carry texture to match
+    shadow_cue_frac: float = 0.0
     rocks_as_hazard: bool = True  # Harris rocks are an unsafe cue
     mask_shadow: bool = False  # v2: dark-shadow pixels get no elevation (no texture to match)
     texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
@@ -262,6 +266,7 @@ class Params:
             "site_relief_window_m",
             "shadow_dark_frac",
             "shadow_mode_ratio",
+            "shadow_cue_frac",
             "mapping_reserve_s",
             "multi_truncate",
             "multi_weight_exp",
@@ -316,6 +321,10 @@ PRESETS: dict[str, Params] = {
         fill_gap_px=0,
         hazard_margin_px=0.0,
         shadow_dark_frac=0.2,
+        # boulder shadows a pixel or two wide were the unsafe pixel of most unsafe tuning landing sites once
+        # the renders centred their penumbrae (RENDER_VERSION 2): tuning campaign 24 -> 0 unsafe landings
+        # (docs/benchmarks/pipeline.md, stop 25)
+        shadow_cue_frac=0.35,
         # a shadow majority is told by its dark/bright class ratio: 7-66 on the tuning library renders that
         # have one (polar-low-sun, a deep-crater floor), 1.2-1.5 where Otsu splits a lit image
         # (docs/benchmarks/pipeline.md, "The scene library pixel by pixel, and shadow under a polar sun")
@@ -1107,7 +1116,8 @@ def _run_v2(
             lit = lit_level(a1, p.shadow_mode_ratio)  # the median unless shadow is the majority
             info["shadow_lit_level"] = lit
             dark = a1 < np.float32(p.shadow_dark_frac * lit)
-            shadow = cv2.dilate(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
+            cue = a1 < np.float32(p.shadow_cue_frac * lit) if p.shadow_cue_frac > 0 else dark
+            shadow = cv2.dilate(cue.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
         else:
             dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)
