@@ -79,7 +79,7 @@ def test_fast_calls_the_shadow_of_a_mostly_shadowed_frame_unsafe():
 
     res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
     cov = res.covered & shadow
-    assert cov.sum() > 800
+    assert cov.sum() > 2000
     assert res.info["shadow_lit_level"] > 4 * float(np.median(i1))
     assert np.mean(res.state[cov] == 0) < 0.001  # shadow is not called safe
     old = run_pipeline(i1, i2, p1, p2, cam, preset=dataclasses.replace(PRESETS["fast"], shadow_mode_ratio=0.0))
