@@ -868,6 +868,7 @@ def _refine_matches(
     rms = info["reproj_rms_px"] if info["reproj_rms_px"] is not None else math.inf
 
     # -- 4. scale and datum
+    L_rep = float(s.b @ base)  # the reported baseline projected on the refined direction
     scales = []
     if p.use_altimeter and (math.isfinite(alt[0]) or math.isfinite(alt[1])):
         z1 = triangulate_depths(R21, t_unit, x1n, x2n)  # camera-1 depths for a unit baseline
@@ -882,7 +883,6 @@ def _refine_matches(
                 scales.append(alt[1] / za)
         L_alt = float(np.mean(scales)) if scales else math.nan
         info["altimeter_scale"] = L_alt / L_nav
-        L_rep = float(s.b @ base)  # the reported baseline projected on the refined direction
         s_nav = math.sqrt(2.0) * p.nav_pos_sigma_m
         s_alt = p.altimeter_rel_sigma * abs(L_alt) if math.isfinite(L_alt) else math.nan
         # beyond 3 sigma of the two lengths' difference the altimeter scale is not believed (NaN too)
@@ -899,7 +899,7 @@ def _refine_matches(
         C1 = (pose1.position + pose2.position - L * s.b) / 2.0  # least squares on both reported positions
         info["scale_source"] = "altimeter"
     else:
-        L = float(s.b @ base)  # reported baseline projected on the refined direction
+        L = L_rep
         C1 = pose1.position.copy()
         info["scale_source"] = "navigation"
     C2 = C1 + L * s.b
