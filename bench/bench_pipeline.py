@@ -4,7 +4,8 @@
 
 Without ``--pair`` it renders a seeded synthetic 600 m -> 300 m vertical pair
 (textured terrain with craters, tests/synthetic.py). OpenCV runs single-threaded
-and the process is pinned to one CPU. Timings are medians over ``--runs``.
+and the process is pinned to one CPU. Timings are medians over ``--runs``. The pipeline is told a sun
+(``--sun``, or the pair's), as HIL frames tell it, so the shading-slope stage is timed too.
 """
 
 from __future__ import annotations
@@ -120,6 +121,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--presets", nargs="+", default=["fast", "fast_v1", "thesis"])
     ap.add_argument("--json", help="write the summary here")
     ap.add_argument(
+        "--sun",
+        nargs=2,
+        type=float,
+        default=[135.0, 25.0],
+        metavar=("AZ", "EL"),
+        help="sun azimuth and elevation (deg) the pipeline is told, as HIL frames carry them (default 135 25; "
+        "a --pair's own sun wins)",
+    )
+    ap.add_argument(
         "--ablation",
         action="store_true",
         help="also compare prefilter / rock masking / SAD vs SSD / window (DEM error only)",
@@ -138,16 +148,19 @@ def main(argv: list[str] | None = None) -> int:
         cam, (p1, p2), (i1, i2) = pair.camera, pair.poses, pair.images
         z = pair.truth.get("elevation")
         source = args.pair
+        if pair.sun is not None:
+            args.sun = [pair.sun.azimuth_deg, pair.sun.elevation_deg]
     else:
         cam, p1, p2, i1, i2, z = synthetic_pair(args.size)
         source = f"synthetic {args.size}px 600->300 m"
-    run_pipeline(i1, i2, p1, p2, cam, preset="fast")  # warm-up (imports, allocator)
-    summary = {"source": source, "runs": args.runs, "presets": {}}
+    sun = {"sun_azimuth_deg": args.sun[0], "sun_elevation_deg": args.sun[1]}
+    run_pipeline(i1, i2, p1, p2, cam, preset="fast", **sun)  # warm-up (imports, allocator)
+    summary = {"source": source, "runs": args.runs, "sun": args.sun, "presets": {}}
     for preset in args.presets:
         walls, stages, res = [], {}, None
         for _ in range(args.runs):
             t0 = time.perf_counter()
-            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset, **sun)
             walls.append(time.perf_counter() - t0)
             for k, v in res.timings.items():
                 stages.setdefault(k, []).append((v["wall_s"], v["cpu_s"]))
@@ -155,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         res = None
         tracemalloc.start()
         with RssSampler() as mem:
-            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+            res = run_pipeline(i1, i2, p1, p2, cam, preset=preset, **sun)
         traced = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
         row = {

@@ -116,6 +116,7 @@ def run_pair(pair: Any, preset: Any) -> Any:
         preset=preset,
         altimeter_m=pair.altimeter_m,
         sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+        sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
     )
 
 

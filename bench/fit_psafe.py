@@ -30,7 +30,22 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
-FEATS = ("a", "u", "rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
+ALL_FEATS = (
+    "a",
+    "a_pc",
+    "u",
+    "rough",
+    "rho",
+    "arho",
+    "nbad",
+    "nbad_w",
+    "nwall",
+    "nwall_w",
+    "amean",
+    "nknown",
+    "scale",
+    "gbad",
+)
 
 
 def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
@@ -46,7 +61,7 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
     pair = read_pair(pair_dir)
     res = run_pair(pair, dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True))
     cov = res.covered
-    d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in FEATS}
+    d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in ALL_FEATS}
     d["dark"] = res.layers["dark"][cov]
     d["safe"] = pair.truth["hazard"][cov] < 1.0
     d["fp_px"] = np.float32(res.info["footprint_px"])
@@ -102,15 +117,16 @@ def fit_trees(
 
     from flight_sw.psafe import MONOTONE_DECREASING, TreeModel
 
-    monotone = ("a", *MONOTONE_DECREASING)  # P(safe) never grows with the slope either
+    monotone = ("a", "a_pc", *MONOTONE_DECREASING)  # P(safe) never grows with the slope either
 
-    X = np.stack([feats[k] for k in FEATS], axis=1).astype(np.float32)
+    names = list(feats)
+    X = np.stack([feats[k] for k in names], axis=1).astype(np.float32)
     clf = HistGradientBoostingClassifier(
         max_iter=int(trees["iters"]),
         max_leaf_nodes=int(trees["leaves"]),
         learning_rate=float(trees["lr"]),
         l2_regularization=1.0,
-        monotonic_cst=[-1 if k in monotone else 0 for k in FEATS],
+        monotonic_cst=[-1 if k in monotone else 0 for k in names],
         early_stopping=False,
         random_state=0,
     ).fit(X, safe)
@@ -133,7 +149,7 @@ def fit_trees(
         cols["value"] += np.where(leaf, nd["value"], 0.0).tolist()
     doc = {
         "format": "psafe-trees/1",
-        "features": list(FEATS),
+        "features": names,
         "base": float(np.ravel(clf._baseline_prediction)[0]),
         "roots": roots,
         **cols,
@@ -144,18 +160,28 @@ def fit_trees(
 
 
 def fit_rows(
-    rows: list[dict[str, Any]], per_pair: int, ridge: float, rng_seed: int = 0, trees: dict[str, Any] | None = None
+    rows: list[dict[str, Any]],
+    per_pair: int,
+    ridge: float,
+    rng_seed: int = 0,
+    trees: dict[str, Any] | None = None,
+    names: tuple[str, ...] = ALL_FEATS,
+    blank_shading: float = 0.0,
 ) -> Any:
+    """Fit on ``per_pair`` points of every row. ``blank_shading``: the share of points whose ``a_pc`` is set
+    to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN ``a_pc`` then)."""
     from flight_sw import psafe
 
     rng = np.random.default_rng(rng_seed)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in (*FEATS, "safe")}
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "safe")}
     for r in rows:
         idx = np.flatnonzero(~r["dark"])  # dark shadow is a hard cue, not part of the model
         idx = rng.choice(idx, min(idx.size, per_pair), replace=False)
         for k, v in parts.items():
             v.append(r[k][idx])
     cat = {k: np.concatenate(v) for k, v in parts.items()}
+    if blank_shading > 0 and "a_pc" in cat:
+        cat["a_pc"] = np.where(rng.random(cat["a_pc"].size) < blank_shading, np.float32(np.nan), cat["a_pc"])
     seeds = sorted({int(r["seed"]) for r in rows})
     sizes = sorted({tuple(int(x) for x in r["shape"]) for r in rows})
     info = {
@@ -167,19 +193,29 @@ def fit_rows(
         "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
         "safe_share": float(cat["safe"].mean()),  # the prior P(safe) holds (fusion counts it once: fusion.py)
     }
+    if blank_shading > 0 and "a_pc" in cat:
+        info["blank_shading"] = blank_shading
     if trees:
-        return fit_trees({k: cat[k] for k in FEATS}, cat["safe"], seeds, trees, info)
-    return psafe.fit({k: cat[k] for k in FEATS}, cat["safe"], seeds, ridge=ridge, info=info)
+        return fit_trees({k: cat[k] for k in names}, cat["safe"], seeds, trees, info)
+    return psafe.fit({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
 
 
-def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: float) -> dict[str, Any]:
-    """The FP-budget call on one pair's covered points, as the pipeline makes it (evidence.classify_calibrated)."""
+def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: float, cap: str = "a") -> dict[str, Any]:
+    """The FP-budget call on one pair's covered points, as the pipeline makes it (evidence.classify_calibrated).
+
+    ``cap``: the slope the ``a_max`` cap reads: ``a`` (the DEM's), ``a_pc`` (with shading; the DEM's where
+    it has none), ``max`` (the larger), or ``nosun``: as ``a_pc`` with every ``a_pc`` unknown (no sun given).
+    """
+    from flight_sw.evidence import cap_slope
     from flight_sw.psafe import budget_rule
 
-    p = model.predict({k: r[k] for k in FEATS}, np.ones(r["safe"].shape, bool))
+    if cap == "nosun":
+        r = {**r, "a_pc": np.full(r["a"].shape, np.nan, np.float32)}
+        cap = "a_pc"
+    p = model.predict(r, np.ones(r["safe"].shape, bool))
     p[r["dark"]] = 0.0
     with np.errstate(invalid="ignore"):
-        barred = (r["a"] >= a_max) | ~np.isfinite(r["a"])
+        barred = (cap_slope(r, cap) >= a_max) | ~np.isfinite(r["a"])
     call = budget_rule(np.where(barred, np.nan, p), budget, p_min, n=p.size)
     th = ~r["safe"]
     n = max(1, th.size)
@@ -216,6 +252,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
     ap.add_argument(
+        "--features",
+        nargs="+",
+        default=list(ALL_FEATS),
+        choices=ALL_FEATS,
+        help="the model's features (all by default)",
+    )
+    ap.add_argument(
+        "--cap",
+        nargs="+",
+        default=["a"],
+        choices=("a", "a_pc", "max", "nosun"),
+        help="CV: which slope the --a-max cap reads (score())",
+    )
+    ap.add_argument(
+        "--blank-shading", type=float, default=0.0, help="share of fit points with a_pc blanked (fit_rows())"
+    )
+    ap.add_argument(
         "--library",
         nargs="*",
         default=[],
@@ -232,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
         return 2
+    names = tuple(args.features)
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
     rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
     rows += load_library(args.library, Path(args.layers), args.raster)
@@ -239,28 +293,31 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.cv or args.reliability:
         folds = [args.seeds[i :: args.folds] for i in range(args.folds)]
-        res: dict[tuple[float, float, float], list[dict[str, Any]]] = {
-            (b, a, pm): [] for b in args.budgets for a in args.a_max for pm in args.p_min
+        res: dict[tuple[float, float, float, str], list[dict[str, Any]]] = {
+            (b, a, pm, c): [] for b in args.budgets for a in args.a_max for pm in args.p_min for c in args.cap
         }
         rel: list[tuple[float, np.ndarray, np.ndarray]] = []
         for fold in folds:
-            model = fit_rows([r for r in rows if r["seed"] not in fold], args.per_pair, args.ridge, trees=trees)
+            train = [r for r in rows if r["seed"] not in fold]
+            model = fit_rows(
+                train, args.per_pair, args.ridge, trees=trees, names=names, blank_shading=args.blank_shading
+            )
             for r in rows:
                 if r["seed"] not in fold:
                     continue
-                for (b, a_max, pm), out in res.items():
-                    s = score(model, r, b, pm, a_max)
+                for (b, a_max, pm, cap), out in res.items():
+                    s = score(model, r, b, pm, a_max, cap)
                     out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
                 rel.append((float(r["fp_px"]), s["p"], r["safe"]))
         if args.cv:
             cases = list(dict.fromkeys(r["case"] for r in rows))
             print(
-                "\n| FP budget | a_max | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair | CDI % med | "
+                "\n| FP budget | a_max | cap | p_min | FP % worst / p90 / med | pairs > 1 % | worst pair | CDI % med | "
                 + " | ".join(f"{c}: FP worst, CDI med" for c in cases)
                 + " |"
             )
-            print("|---:|---:|---:|---|---:|---|---:|" + "---|" * len(cases))
-            for (b, a_max, pm), rs in res.items():
+            print("|---:|---:|---|---:|---|---:|---|---:|" + "---|" * len(cases))
+            for (b, a_max, pm, cap), rs in res.items():
                 fps = [x["fp"] for x in rs]
                 worst = max(rs, key=lambda x: x["fp"])
                 per_case = []
@@ -268,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                     sel = [x for x in rs if x["case"] == c]
                     per_case.append(f"{max(x['fp'] for x in sel):.2f}, {_med([x['cdi'] for x in sel]):.1f}")
                 print(
-                    f"| {100 * b:.2f} % | {a_max:g} | {pm:g} "
+                    f"| {100 * b:.2f} % | {a_max:g} | {cap} | {pm:g} "
                     f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
                     f"| {statistics.median(x['cdi'] for x in rs):.1f} | " + " | ".join(per_case) + " |"
@@ -292,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
             print("(cells: mean predicted / observed safe share)")
 
     if args.write:
-        model = fit_rows(rows, args.per_pair, args.ridge, trees=trees)
+        model = fit_rows(rows, args.per_pair, args.ridge, trees=trees, names=names, blank_shading=args.blank_shading)
         indent = None if trees else 1  # the trees' node arrays are long flat lists: one line keeps the file small
         Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")

@@ -92,7 +92,8 @@ def _process(args: argparse.Namespace) -> int:
         preset=params,
         deadline_s=args.deadline,
         altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
-        sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cue's sun (optional)
+        sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
+        sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
     )
     out = Path(args.out)
     try:

@@ -54,6 +54,9 @@ class PlaneFit:
     grad_sigma: np.ndarray  # standard uncertainty of grad (m per cell)
     z_plane: np.ndarray  # plane at the cell centre
     z_plane_sigma: np.ndarray
+    # the footprint plane's gradient along the grid's columns / rows (m per cell; NaN where not determined)
+    p: np.ndarray | None = None
+    q: np.ndarray | None = None
 
 
 def _plane_products(z: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
@@ -113,7 +116,8 @@ def _fit_from_products(
             zsig = np.where(ok, np.sqrt(np.maximum(zvar, 0.0)), nan).astype(np.float32)
     g32 = np.where(ok, g, nan).astype(np.float32)
     slope = np.degrees(np.arctan(g32 / np.float32(cell_m))).astype(np.float32)
-    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig)
+    pq = [np.where(ok, v, nan).astype(np.float32) for v in (p, q)]
+    return PlaneFit(slope, g32, gsig, np.where(ok, zc, nan).astype(np.float32), zsig, pq[0], pq[1])
 
 
 def weighted_plane_fit(
@@ -263,6 +267,23 @@ def widen_unsafe(ev: Evidence, margin_px: float) -> Evidence:
     return Evidence(state, psafe, hazard)
 
 
+CAP_SLOPES = ("a", "a_pc", "max")
+
+
+def cap_slope(feats: Mapping[str, np.ndarray], which: str = "a") -> np.ndarray:
+    """The slope ratio the call's cap reads: ``a`` (the DEM's footprint slope over the limit), ``a_pc``
+    (its sun-ward part read from the shading, :mod:`flight_sw.photoclinometry`) or ``max`` of the two.
+    Where ``a_pc`` is unknown (no sun given, no lit footprint) the DEM's ``a`` stands in."""
+    a = np.asarray(feats["a"], np.float32)
+    if which == "a":
+        return a
+    if which not in CAP_SLOPES:
+        raise ValueError(f"cap slope must be one of {CAP_SLOPES}, got {which!r}")
+    pc = np.asarray(feats["a_pc"], np.float32) if "a_pc" in feats else np.full(a.shape, np.nan, np.float32)
+    pc = np.where(np.isfinite(pc), pc, a)
+    return pc if which == "a_pc" else np.fmax(a, pc)
+
+
 def classify_calibrated(
     model: Model,
     feats: Mapping[str, np.ndarray],
@@ -273,6 +294,7 @@ def classify_calibrated(
     p_unsafe: float = 0.5,
     a_max: float = math.inf,
     a_sigma_k: float = 0.0,
+    cap: str = "a",
 ) -> Evidence:
     """Three states from the calibrated P(safe) (:mod:`flight_sw.psafe`) and the FP-budget rule.
 
@@ -287,7 +309,7 @@ def classify_calibrated(
     against its uncertainty instead: a point at or above ``a_max`` stays callable while
     ``a + k u < 1`` (the slope is below the limit by k standard uncertainties; issue 9's "judge slope
     against its uncertainty"), which lets well-measured 6-15 deg ground through at low altitude and
-    changes nothing where ``u`` is large. Unsafe = a cue or
+    changes nothing where ``u`` is large. ``cap`` picks the slope the cap reads (:func:`cap_slope`). Unsafe = a cue or
     ``P(safe) < p_unsafe`` (more likely a hazard than not, for ``p_unsafe = 0.5``); unknown otherwise.
     The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
     """
@@ -295,12 +317,12 @@ def classify_calibrated(
     cue = np.asarray(cues, bool) & cov
     p = model.predict(feats, cov)
     p[cue[cov]] = 0.0
-    a = np.asarray(feats["a"], np.float32)[cov]
+    a = cap_slope(feats, cap)[cov]
     with np.errstate(invalid="ignore"):
         over = a >= a_max
         if a_sigma_k > 0:
             over &= ~(a + np.float32(a_sigma_k) * np.asarray(feats["u"], np.float32)[cov] < 1.0)
-        barred = over | ~np.isfinite(a)  # no elevation: the context alone never calls a point safe
+        barred = over | ~np.isfinite(np.asarray(feats["a"], np.float32)[cov])  # no elevation: never called on context
     call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
     psafe = np.full(cov.shape, np.nan, np.float32)
     psafe[cov] = p

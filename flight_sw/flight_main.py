@@ -246,6 +246,7 @@ class FlightProcess:
                 deadline_at=deadline_at,
                 altimeter_m=float(upper.altimeter_m),  # NaN: no reading
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
+                sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
                 time_scale=time_scale,
                 after_s=after_s,

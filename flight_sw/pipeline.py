@@ -40,6 +40,7 @@ from .confidence import elevation_uncertainty, reject_uncertain
 from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
 from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
 from .evidence import (
+    CAP_SLOPES,
     Evidence,
     classify,
     classify_calibrated,
@@ -61,6 +62,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient, sun_vector
 from .pose_refine import refine_descent
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
@@ -178,6 +180,10 @@ class Params:
     mask_shadow: bool = False  # v2: dark-shadow pixels get no elevation (no texture to match)
     texture_min: float = 0.0  # > 0: pixels whose support has a grey-level std below this get no elevation
     wide_slope_factor: float = 0.0  # > 1: slope = max(footprint slope, slope over this many footprints)
+    # the footprint slope read from the shading too (photoclinometry.py), a P(safe) feature, when the sun's
+    # azimuth and elevation are known; its brightness gain is fitted over this many footprints (16-64 px)
+    shading_slope: bool = False
+    shading_gain_footprints: float = 8.0
     site_margin_m: float = 0.5  # known-safe margin around a site's footprint
     site_relief_max_m: float = 0.0  # > 0: no site where the DEM spans more than this ...
     site_relief_window_m: float = 30.0  # ... in a square this wide around it (sites.local_relief)
@@ -196,6 +202,7 @@ class Params:
     psafe_unsafe: float = 0.5  # "calibrated": unsafe below this P(safe), unknown between it and the call
     call_slope_max: float = math.inf  # "calibrated": never call safe an estimated slope >= this x the limit
     call_slope_sigma_k: float = 0.0  # > 0: the cap spares a slope below the limit by this many sigmas (off)
+    call_slope_feature: str = "a"  # the slope the cap reads: "a" (DEM), "a_pc" (shading), "max" (evidence.cap_slope)
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
@@ -250,6 +257,10 @@ class Params:
             raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
         if not (math.isfinite(self.shading_sun_ref_deg) and 0 <= self.shading_sun_ref_deg < 90):
             raise FlightInputError(f"params: shading_sun_ref_deg must be in [0, 90), got {self.shading_sun_ref_deg!r}")
+        if self.call_slope_feature not in CAP_SLOPES:
+            raise FlightInputError(
+                f"params: call_slope_feature must be one of {CAP_SLOPES}, got {self.call_slope_feature!r}"
+            )
         if not (math.isfinite(self.call_slope_sigma_k) and self.call_slope_sigma_k >= 0):
             raise FlightInputError(f"params: call_slope_sigma_k must be >= 0, got {self.call_slope_sigma_k!r}")
         if not (math.isfinite(self.psafe_unsafe) and 0 <= self.psafe_unsafe <= 1):
@@ -264,6 +275,7 @@ class Params:
             "site_margin_m",
             "site_relief_max_m",
             "site_relief_window_m",
+            "shading_gain_footprints",
             "shadow_dark_frac",
             "shadow_mode_ratio",
             "shadow_cue_frac",
@@ -526,6 +538,7 @@ def run_pipeline(
     time_scale: float = 1.0,
     after_s: float = 0.0,
     sun_elevation_deg: float | None = None,
+    sun_azimuth_deg: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
@@ -539,7 +552,8 @@ def run_pipeline(
     ``after_s`` is the caller's own work after the pipeline returns (encoding, fusion), in
     unthrottled seconds: it is reserved before the deadline at the same scale. ``sun_elevation_deg``
     (None or NaN = unknown) lets the shading cue be read as under the sun the P(safe) model was fitted
-    under (``Params.shading_sun_ref_deg``). With
+    under (``Params.shading_sun_ref_deg``); with ``sun_azimuth_deg`` too (DESIGN.md's convention) the
+    footprint slope is also read from the shading (``Params.shading_slope``, :mod:`flight_sw.photoclinometry`). With
     ``Params.refine_pose`` the poses are first refined from the
     images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
     Raises :class:`FlightInputError` for bad arguments.
@@ -556,6 +570,7 @@ def run_pipeline(
         time_scale=time_scale,
         after_s=after_s,
         sun_elevation_deg=sun_elevation_deg,
+        sun_azimuth_deg=sun_azimuth_deg,
     )
 
 
@@ -572,6 +587,7 @@ def run_pipeline_multi(
     time_scale: float = 1.0,
     after_s: float = 0.0,
     sun_elevation_deg: float | None = None,
+    sun_azimuth_deg: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
 
@@ -606,6 +622,7 @@ def run_pipeline_multi(
         if not (isinstance(after_s, (int, float)) and math.isfinite(after_s) and after_s >= 0):
             raise FlightInputError(f"after_s must be a non-negative number of seconds, got {after_s!r}")
         sun_e = _sun_elevation(sun_elevation_deg)
+        sun_az = _sun_azimuth(sun_azimuth_deg)
         clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s))
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
@@ -621,7 +638,8 @@ def run_pipeline_multi(
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
-        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra, sun_e)
+        sun = sun_vector(sun_az, sun_e) if sun_e is not None and sun_az is not None else None
+        res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra, sun_e, sun)
     else:
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
         if len(images) > 2:
@@ -633,18 +651,30 @@ def run_pipeline_multi(
     return res
 
 
+def _degrees_or_none(value: float | None, name: str) -> float | None:
+    """``value`` as float degrees, or None when unknown (None or NaN); a non-number is refused."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise FlightInputError(f"{name} must be a number of degrees or None, got {value!r}")
+    v = float(value)
+    return None if math.isnan(v) else v
+
+
 def _sun_elevation(sun_elevation_deg: float | None) -> float | None:
     """The sun's elevation in degrees, or None when unknown (None or NaN); anything else is refused."""
-    if sun_elevation_deg is None:
-        return None
-    if isinstance(sun_elevation_deg, bool) or not isinstance(sun_elevation_deg, (int, float)):
-        raise FlightInputError(f"sun_elevation_deg must be a number of degrees or None, got {sun_elevation_deg!r}")
-    e = float(sun_elevation_deg)
-    if math.isnan(e):
-        return None
-    if not 0.0 < e <= 90.0:
+    e = _degrees_or_none(sun_elevation_deg, "sun_elevation_deg")
+    if e is not None and not 0.0 < e <= 90.0:
         raise FlightInputError(f"sun_elevation_deg must be in (0, 90] (the sun above the horizon), got {e!r}")
     return e
+
+
+def _sun_azimuth(sun_azimuth_deg: float | None) -> float | None:
+    """The sun's azimuth in degrees, or None when unknown (None or NaN); anything else is refused."""
+    a = _degrees_or_none(sun_azimuth_deg, "sun_azimuth_deg")
+    if a is not None and not -360.0 <= a <= 360.0:
+        raise FlightInputError(f"sun_azimuth_deg must be in [-360, 360], got {a!r}")
+    return a
 
 
 def _altimeter_frames(altimeter_m: float | Sequence[float] | None, n: int) -> list[float] | None:
@@ -1090,11 +1120,13 @@ def _run_v2(
     timings: dict[str, dict[str, float]],
     extra: Sequence[tuple[np.ndarray, Pose]] = (),
     sun_e: float | None = None,
+    sun: np.ndarray | None = None,
 ) -> PipelineResult:
     """Flight v2 (issue 9): ground range from the data, dense SGM DEM with sigma, three-state evidence.
 
     ``extra``: the frames between i1 and i2 (issue 10); they join the dense DEM's cost volume.
-    ``sun_e``: the sun's elevation (deg), None if unknown.
+    ``sun_e``: the sun's elevation (deg), None if unknown; ``sun``: the unit vector toward it, None if
+    its azimuth is unknown too.
     """
     px_scale = i1.size / REF_PIXELS  # what follows the DEM costs per pixel: so does its reserve
     reserve = p.mapping_reserve_s * px_scale
@@ -1299,8 +1331,23 @@ def _run_v2(
             plane_img = sample_grid(fit.z_plane, origin, cell, X, Y)
             rough_img = np.abs(elevation - plane_img)
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
+            pc_img = nan_img
+            if sun is not None and (p.shading_slope or p.keep_layers) and fit.p is not None and fit.q is not None:
+                # grid columns run along +X, rows along -Y: the world gradient of the footprint plane
+                gx = sample_grid(fit.p, origin, cell, X, Y) / np.float32(cell)
+                gy = -sample_grid(fit.q, origin, cell, X, Y) / np.float32(cell)
+                seen = ~dark & np.isfinite(elevation)  # lit and matched: what the brightness gain is fitted on
+                c_meas = measured_incidence(
+                    a1,
+                    incidence_cosine(gx, gy, sun),
+                    seen,
+                    fp_px,
+                    min(64.0, max(16.0, p.shading_gain_footprints * fp_px)),
+                )
+                pc_img = np.where(covered & seen, shading_gradient(gx, gy, c_meas, sun), np.nan).astype(np.float32)
+                pc_img *= np.float32(cell)  # m per cell, as grad_img
         else:
-            slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
+            slope_img = grad_img = gsig_img = rough_img = rsig_img = pc_img = nan_img
             fit = None
 
     with _stage(timings, "hazard"):
@@ -1323,6 +1370,7 @@ def _run_v2(
                 fp_px,
                 slope_limit_deg=p.slope_limit_deg,
                 rough_limit_m=p.rough_limit_m,
+                grad_shading=pc_img[cs],
             )
             if p.keep_layers:
                 layers = {k: _uncrop(v, cs, i1.shape) for k, v in feats.items()}
@@ -1340,6 +1388,7 @@ def _run_v2(
                 p.psafe_unsafe,
                 p.call_slope_max,
                 p.call_slope_sigma_k,
+                p.call_slope_feature,
             )
             ev = Evidence(
                 _uncrop(ev_c.state, cs, i1.shape, STATE_OUTSIDE),

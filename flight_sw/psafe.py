@@ -20,6 +20,9 @@ with, per point (image pixel of i1, computed by :func:`features`):
 
 * ``a = g / G`` the footprint slope over the limit, ``u = sigma_g / G`` its uncertainty
   (2-D table: the posterior of "slope < limit" depends on both jointly);
+* ``a_pc`` the same ratio with the sun-ward part of the footprint gradient read from the
+  shading (:mod:`flight_sw.photoclinometry`; trees only, NaN when the sun is not given: the
+  trees are fitted with a quarter of the points' ``a_pc`` blanked, so they know that case);
 * ``rough = r / 0.30 m`` (roughness over its limit), ``rho`` the signed relative brightness
   (:mod:`flight_sw.shading`) and ``arho`` its local mean magnitude;
 * context - the prior where the evidence at the point is weak: ``nbad`` / ``nbad_w`` the share
@@ -104,11 +107,14 @@ def features(
     *,
     slope_limit_deg: float = 15.0,
     rough_limit_m: float = 0.30,
+    grad_shading: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-pixel features of the model (module doc), float32 HxW each; NaN = not available.
 
     ``grad``/``grad_sigma`` in metres per cell of size ``cell_m``, ``rough`` in metres, ``rho``
-    the relative brightness, ``footprint_px`` the lander footprint in i1 pixels.
+    the relative brightness, ``footprint_px`` the lander footprint in i1 pixels. ``grad_shading``
+    (optional, m per cell): the footprint gradient with its sun-ward part read from the shading
+    (:mod:`flight_sw.photoclinometry`); it gives ``a_pc``, NaN when absent.
     """
     G = math.tan(math.radians(slope_limit_deg)) * float(cell_m)
     a = (np.asarray(grad, np.float32) / np.float32(G)).astype(np.float32)
@@ -124,8 +130,12 @@ def features(
     c = _bmean(kn, k)
     with np.errstate(invalid="ignore", divide="ignore"):
         amean = np.where(c > 0.05, s / c, np.nan).astype(np.float32)
+    a_pc = np.full(a.shape, np.nan, np.float32)
+    if grad_shading is not None:
+        a_pc = (np.asarray(grad_shading, np.float32) / np.float32(G)).astype(np.float32)
     return {
         "a": np.where(known, a, np.nan).astype(np.float32),
+        "a_pc": a_pc,
         "u": np.where(known, u, np.nan).astype(np.float32),
         "rough": (np.asarray(rough, np.float32) / np.float32(rough_limit_m)).astype(np.float32),
         "rho": r,

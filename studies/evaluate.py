@@ -455,6 +455,7 @@ def evaluate_pair(
         preset=preset,
         altimeter_m=pair.altimeter_m,
         sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # as the Frames carry it
+        sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
     )
     wall = time.perf_counter() - t0
 

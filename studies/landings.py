@@ -301,6 +301,7 @@ def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None =
                 nominal_site_xy=aim,
                 altimeter_m=pair.altimeter_m,  # the reading the flight process gets in HIL runs
                 sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+                sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
             )
             cpu = time.process_time() - t0
             row: dict[str, Any] = {

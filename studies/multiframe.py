@@ -164,6 +164,7 @@ def run_jobs(
             pair.camera,
             preset=preset,
             sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+            sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
         )
         prm = replace(params_for(res.params, res.info, FusionParams()), **(overrides or {}))
         fm = fuse(fm, res.grid, prm)
@@ -184,6 +185,7 @@ def evaluate_descent(
     pair = read_pair(pair_dir)
     n = pair.n_frames
     sun_e = pair.sun.elevation_deg if pair.sun else None
+    sun_az = pair.sun.azimuth_deg if pair.sun else None
     xy = pixel_world(pair)
     rows: dict[str, dict[str, float]] = {}
     results = {}
@@ -197,6 +199,7 @@ def evaluate_descent(
             pair.camera,
             preset=preset,
             sun_elevation_deg=sun_e,
+            sun_azimuth_deg=sun_az,
         )
         results[k].info["cpu_s"] = time.thread_time() - c0
     mask = results[n - 1].covered & np.isfinite(pair.truth["hazard"])  # the widest pair's overlap
@@ -209,7 +212,12 @@ def evaluate_descent(
     if "multi" in which:
         c0 = time.thread_time()
         res = run_pipeline_multi(
-            list(pair.images), list(pair.poses), pair.camera, preset=preset, sun_elevation_deg=sun_e
+            list(pair.images),
+            list(pair.poses),
+            pair.camera,
+            preset=preset,
+            sun_elevation_deg=sun_e,
+            sun_azimuth_deg=sun_az,
         )
         rows["multi"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": time.thread_time() - c0}
     for name, jobs in fused_policies(n).items():

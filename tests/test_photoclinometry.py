@@ -1,0 +1,99 @@
+"""Footprint slope from shading plus stereo (flight_sw/photoclinometry.py): it must beat a noisy DEM's slope."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flight_sw.photoclinometry import (
+    incidence_cosine,
+    measured_incidence,
+    shading_gradient,
+    sun_vector,
+)
+
+
+def test_sun_vector_follows_the_design_convention() -> None:
+    # azimuth clockwise from +Y toward +X
+    np.testing.assert_allclose(sun_vector(90.0, 0.0), [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(sun_vector(0.0, 90.0), [0.0, 0.0, 1.0], atol=1e-12)
+    s = sun_vector(135.0, 25.0)
+    assert s[0] > 0 > s[1] and abs(np.linalg.norm(s) - 1.0) < 1e-12
+
+
+@pytest.mark.parametrize("elevation", [10.0, 25.0, 45.0, 70.0])
+def test_exact_incidence_gives_back_the_exact_gradient(elevation: float) -> None:
+    """With the true cos i, a DEM error in the sun-ward component is replaced by the truth.
+
+    Brightness is two-valued around the brightest tilt ``a* = -s_h (1 + b^2) / s_z``; the DEM picks the
+    branch, so a DEM on the other side of ``a*`` (only under a high sun, near ``a*``) is not expected to.
+    """
+    rng = np.random.default_rng(3)
+    sun = sun_vector(135.0, elevation)
+    gx = rng.uniform(-0.25, 0.25, 4000)  # up to ~19 deg
+    gy = rng.uniform(-0.25, 0.25, 4000)
+    c = incidence_cosine(gx, gy, sun)
+    # the DEM gets the across-sun component right and the sun-ward one wrong by up to 0.1 (5.7 deg)
+    sh = math.hypot(sun[0], sun[1])
+    hx, hy = sun[0] / sh, sun[1] / sh
+    err = rng.uniform(-0.1, 0.1, gx.size)
+    a, b = gx * hx + gy * hy, gy * hx - gx * hy
+    a_star = -sh * (1 + b * b) / sun[2]
+    keep = (c > 0.05) & (np.sign(a - a_star) == np.sign(a + err - a_star))
+    assert keep.mean() > 0.6
+    g = shading_gradient(gx + err * hx, gy + err * hy, c, sun)
+    np.testing.assert_allclose(g[keep], np.hypot(gx, gy)[keep], atol=2e-4)
+
+
+def test_shading_slope_beats_a_noisy_dem_on_a_rendered_surface() -> None:
+    """Lambert image of undulating ground with a slowly varying albedo; the DEM's gradient carries noise."""
+    n = 256
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    cell = 1.0
+    # world X along columns, world Y against rows: dz/dX and dz/dY of a sum of sinusoids
+    X, Y = xx * cell, -yy * cell
+    k1, k2 = 2 * math.pi / 40.0, 2 * math.pi / 27.0
+    gx = 1.6 * k1 * np.cos(k1 * X + 0.3) + 0.8 * k2 * np.cos(k2 * (X + Y))
+    gy = 1.1 * k2 * np.cos(k2 * Y) + 0.8 * k2 * np.cos(k2 * (X + Y))
+    sun = sun_vector(135.0, 30.0)
+    cos_i = incidence_cosine(gx, gy, sun)
+    albedo = 0.12 * (1.0 + 0.15 * np.sin(2 * math.pi * X / 300.0))  # slow: the gain absorbs it
+    rng = np.random.default_rng(0)
+    img = np.clip(albedo * np.clip(cos_i, 0, None) / 0.12 * 180.0 + rng.normal(0, 1.0, (n, n)), 0, 255)
+    lit = cos_i > 0.05
+    noise = 0.08  # ~4.6 deg of slope noise per component
+    gx_d = gx + rng.normal(0, noise, gx.shape)
+    gy_d = gy + rng.normal(0, noise, gy.shape)
+    c_meas = measured_incidence(img.astype(np.float32), incidence_cosine(gx_d, gy_d, sun), lit, 1.0, 24.0)
+    g_pc = shading_gradient(gx_d, gy_d, c_meas, sun)
+    inner = np.zeros((n, n), bool)
+    inner[32:-32, 32:-32] = True
+    ok = inner & lit & np.isfinite(g_pc)
+    assert ok.mean() > 0.5
+    truth = np.hypot(gx, gy)
+    err_dem = np.median(np.abs(np.hypot(gx_d, gy_d) - truth)[ok])
+    err_pc = np.median(np.abs(g_pc - truth)[ok])
+    assert err_pc < 0.75 * err_dem, (err_pc, err_dem)
+
+
+def test_nothing_lit_gives_no_incidence() -> None:
+    img = np.full((64, 64), 100.0, np.float32)
+    c = measured_incidence(img, np.full((64, 64), 0.5, np.float32), np.zeros((64, 64), bool), 3.0, 16.0)
+    assert np.isnan(c).all()
+    g = shading_gradient(np.zeros(3), np.zeros(3), np.array([np.nan, 0.4, 0.4]), sun_vector(0.0, 25.0))
+    assert np.isnan(g[0]) and np.isfinite(g[1:]).all()
+
+
+@pytest.mark.parametrize("sigma", [4.0, 20.0, 60.0])
+def test_wide_blur_matches_a_gaussian_blur(sigma: float) -> None:
+    import cv2
+
+    from flight_sw.photoclinometry import wide_blur
+
+    rng = np.random.default_rng(1)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, (256, 256)).astype(np.float32), (0, 0), 3.0) + np.linspace(0, 80, 256)
+    exact = cv2.GaussianBlur(a.astype(np.float32), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    inner = (slice(64, -64), slice(64, -64))
+    assert np.max(np.abs(wide_blur(a, sigma) - exact)[inner]) < 0.02 * float(np.ptp(a))
