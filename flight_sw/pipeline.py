@@ -335,8 +335,9 @@ PRESETS: dict[str, Params] = {
         shadow_dark_frac=0.2,
         # boulder shadows a pixel or two wide were the unsafe pixel of most unsafe tuning landing sites once
         # the renders centred their penumbrae (RENDER_VERSION 2): tuning campaign 24 -> 0 unsafe landings
-        # (docs/benchmarks/pipeline.md, stop 25)
-        shadow_cue_frac=0.35,
+        # (docs/benchmarks/pipeline.md, stop 25); 0.35 -> 0.4 with the shading slope (stop 26), whose flatter
+        # footprints let 1 px boulder shadows at 0.37-0.39x through: tuning campaign 3 -> 0 unsafe (0.38: 1)
+        shadow_cue_frac=0.4,
         # a shadow majority is told by its dark/bright class ratio: 7-66 on the tuning library renders that
         # have one (polar-low-sun, a deep-crater floor), 1.2-1.5 where Otsu splits a lit image
         # (docs/benchmarks/pipeline.md, "The scene library pixel by pixel, and shadow under a polar sun")
@@ -378,6 +379,11 @@ PRESETS: dict[str, Params] = {
         fp_budget=0.003,
         psafe_min=0.97,
         call_slope_max=0.4,
+        # the footprint slope read from the shading as well (photoclinometry.py), a tree feature, and the cap
+        # reads it: tuning CV (320 pairs, same budget, cap and floor) CDI 55.5 -> 60.2 %, FP worst 0.79 -> 0.80 %
+        # (docs/benchmarks/pipeline.md, stop 26); without a sun the cap reads the DEM's slope, as before
+        shading_slope=True,
+        call_slope_feature="a_pc",
     ),
     # the issue-6 fast preset, kept for the ablation (bench/eval_flight.py --ablation)
     "fast_v1": _FAST_V1,

@@ -95,7 +95,9 @@ def test_sigma_grows_where_texture_vanishes():
     assert (cov & blank).sum() > 200 and big.mean() > 0.9
     # and the blank square is never called safe
     assert not np.any(res.state[cov & blank] == STATE_SAFE)
-    assert np.mean(res.state[cov & textured] == STATE_SAFE) > 0.3
+    # ... while textured ground is (0.30 with the 0.4x shadow cue of stop 26, which takes this random
+    # albedo's darkest specks as shadow; 0.31 with 0.35x)
+    assert np.mean(res.state[cov & textured] == STATE_SAFE) > 0.25
 
 
 def _three_state_pair(tmp_path):
