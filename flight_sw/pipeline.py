@@ -100,6 +100,10 @@ MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's
 # refinement, the DEM and the shadow stage (HIL telemetry against the same pairs unthrottled, 2026-11-24)
 COLD_CACHE_CPU = 0.4
 ROCKS_S = 0.03  # Harris rock mask
+# the shading slope (photoclinometry.py) within the slope stage: 11 ms on the synthetic nadir pair, 15 ms on
+# an oblique approach grid; and what still follows it (the hazard call and the sites: 25-35 ms)
+SHADING_SLOPE_S = 0.015
+AFTER_SLOPE_S = 0.035
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
 
@@ -1338,7 +1342,10 @@ def _run_v2(
             rough_img = np.abs(elevation - plane_img)
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
             pc_img = nan_img
-            if sun is not None and (p.shading_slope or p.keep_layers) and fit.p is not None and fit.q is not None:
+            want_pc = sun is not None and (p.shading_slope or p.keep_layers)
+            if want_pc and not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
+                info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
+            elif want_pc and sun is not None and fit.p is not None and fit.q is not None:
                 # grid columns run along +X, rows along -Y: the world gradient of the footprint plane
                 gx = sample_grid(fit.p, origin, cell, X, Y) / np.float32(cell)
                 gy = -sample_grid(fit.q, origin, cell, X, Y) / np.float32(cell)

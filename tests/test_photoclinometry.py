@@ -97,3 +97,32 @@ def test_wide_blur_matches_a_gaussian_blur(sigma: float) -> None:
     exact = cv2.GaussianBlur(a.astype(np.float32), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     inner = (slice(64, -64), slice(64, -64))
     assert np.max(np.abs(wide_blur(a, sigma) - exact)[inner]) < 0.02 * float(np.ptp(a))
+
+
+def test_the_pipeline_reads_it_only_when_told_the_sun_and_skips_it_when_late(monkeypatch):
+    import dataclasses
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import make_pair, plane
+
+    from flight_sw import pipeline
+    from flight_sw.validate import FlightInputError
+
+    cam, p1, p2, i1, i2, _ = make_pair(256, 200.0, 100.0, plane(0.0), seed=41)
+    prm = dataclasses.replace(pipeline.PRESETS["fast"], keep_layers=True)
+    sun = {"sun_azimuth_deg": 135.0, "sun_elevation_deg": 25.0}
+    told = pipeline.run_pipeline(i1, i2, p1, p2, cam, preset=prm, **sun)
+    a_pc = told.layers["a_pc"][told.covered]
+    assert np.isfinite(a_pc).mean() > 0.5 and "shading_slope" not in told.info["skipped"]
+    # an elevation alone is not the sun's direction: no shading slope
+    blind = pipeline.run_pipeline(i1, i2, p1, p2, cam, preset=prm, sun_elevation_deg=25.0)
+    assert np.isnan(blind.layers["a_pc"]).all()
+    with pytest.raises(FlightInputError, match="sun_azimuth_deg"):
+        pipeline.run_pipeline(i1, i2, p1, p2, cam, preset=prm, sun_azimuth_deg=400.0, sun_elevation_deg=25.0)
+    # when its cost no longer fits before the deadline it is skipped, said so, and the map still comes
+    monkeypatch.setattr(pipeline, "SHADING_SLOPE_S", 1e6)
+    late = pipeline.run_pipeline(i1, i2, p1, p2, cam, preset=prm, deadline_s=120.0, **sun)
+    assert "shading_slope" in late.info["skipped"] and np.isnan(late.layers["a_pc"]).all()
+    assert late.level == "full" and np.isfinite(late.hazard[late.covered]).all()
