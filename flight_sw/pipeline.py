@@ -1341,11 +1341,16 @@ def _run_v2(
             plane_img = sample_grid(fit.z_plane, origin, cell, X, Y)
             rough_img = np.abs(elevation - plane_img)
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
-            pc_img = nan_img
-            want_pc = sun is not None and (p.shading_slope or p.keep_layers)
-            if want_pc and not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
-                info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
-            elif want_pc and sun is not None and fit.p is not None and fit.q is not None:
+        else:
+            slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
+            fit = None
+
+    pc_img = nan_img
+    if fit is not None and sun is not None and (p.shading_slope or p.keep_layers):
+        if not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
+            info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
+        elif fit.p is not None and fit.q is not None:
+            with _stage(timings, "shading_slope"):
                 # grid columns run along +X, rows along -Y: the world gradient of the footprint plane
                 gx = sample_grid(fit.p, origin, cell, X, Y) / np.float32(cell)
                 gy = -sample_grid(fit.q, origin, cell, X, Y) / np.float32(cell)
@@ -1359,9 +1364,6 @@ def _run_v2(
                 )
                 pc_img = np.where(covered & seen, shading_gradient(gx, gy, c_meas, sun), np.nan).astype(np.float32)
                 pc_img *= np.float32(cell)  # m per cell, as grad_img
-        else:
-            slope_img = grad_img = gsig_img = rough_img = rsig_img = pc_img = nan_img
-            fit = None
 
     with _stage(timings, "hazard"):
         kw = {
