@@ -261,9 +261,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--cap",
         nargs="+",
-        default=["a"],
+        default=["a_pc"],
         choices=("a", "a_pc", "max", "nosun"),
-        help="CV: which slope the --a-max cap reads (score())",
+        help="CV: which slope the --a-max cap reads (score(); fast reads a_pc)",
     )
     ap.add_argument(
         "--blank-shading", type=float, default=0.0, help="share of fit points with a_pc blanked (fit_rows())"

@@ -41,14 +41,9 @@ import cv2
 import numpy as np
 
 
-def sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """Unit vector from the ground toward the sun, world frame (DESIGN.md: azimuth clockwise from +Y toward +X)."""
-    az, el = math.radians(float(azimuth_deg)), math.radians(float(elevation_deg))
-    return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
-
-
 def incidence_cosine(gx: np.ndarray, gy: np.ndarray, sun: np.ndarray) -> np.ndarray:
-    """``cos i`` of the facet with world gradient ``(gx, gy) = (dz/dX, dz/dY)`` under the unit sun vector (float32)."""
+    """``cos i`` of the facet with world gradient ``(gx, gy) = (dz/dX, dz/dY)`` under the unit sun vector
+    (``protocol.pairdir.Sun.direction()``), float32."""
     gx = np.asarray(gx, np.float32)
     gy = np.asarray(gy, np.float32)
     sx, sy, sz = (np.float32(v) for v in sun)

@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose, Sun
 
 from .confidence import elevation_uncertainty, reject_uncertain
 from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
@@ -62,7 +62,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
-from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient, sun_vector
+from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
 from .pose_refine import refine_descent
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
@@ -100,8 +100,8 @@ MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's
 # refinement, the DEM and the shadow stage (HIL telemetry against the same pairs unthrottled, 2026-11-24)
 COLD_CACHE_CPU = 0.4
 ROCKS_S = 0.03  # Harris rock mask
-# the shading slope (photoclinometry.py) within the slope stage: 11 ms on the synthetic nadir pair, 15 ms on
-# an oblique approach grid; and what still follows it (the hazard call and the sites: 25-35 ms)
+# the shading slope stage (photoclinometry.py): 11 ms on the synthetic nadir pair, 15 ms on an oblique
+# approach grid; and what still follows it (the hazard call and the sites: 25-35 ms)
 SHADING_SLOPE_S = 0.015
 AFTER_SLOPE_S = 0.035
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
@@ -384,8 +384,9 @@ PRESETS: dict[str, Params] = {
         psafe_min=0.97,
         call_slope_max=0.4,
         # the footprint slope read from the shading as well (photoclinometry.py), a tree feature, and the cap
-        # reads it: tuning CV (320 pairs, same budget, cap and floor) CDI 55.5 -> 60.2 %, FP worst 0.79 -> 0.80 %
-        # (docs/benchmarks/pipeline.md, stop 26); without a sun the cap reads the DEM's slope, as before
+        # reads it; the trees fitted on the 123 tuning library renders too. Tuning CV (same budget, cap, floor):
+        # CDI 55.5 -> 59.5 %, 1 of 443 pairs over 1 % FP (a library boulder field; fitted on the eval pairs
+        # alone, 2 of the 123 library renders; docs/benchmarks/pipeline.md, stop 26). No sun: the cap reads a
         shading_slope=True,
         call_slope_feature="a_pc",
     ),
@@ -648,7 +649,7 @@ def run_pipeline_multi(
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
-        sun = sun_vector(sun_az, sun_e) if sun_e is not None and sun_az is not None else None
+        sun = Sun(sun_az, sun_e).direction() if sun_e is not None and sun_az is not None else None
         res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra, sun_e, sun)
     else:
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from flight_sw.photoclinometry import (
-    incidence_cosine,
-    measured_incidence,
-    shading_gradient,
-    sun_vector,
-)
+from flight_sw.photoclinometry import incidence_cosine, measured_incidence, shading_gradient
+from protocol.pairdir import Sun
+
+
+def sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    return Sun(azimuth_deg, elevation_deg).direction()
 
 
 def test_sun_vector_follows_the_design_convention() -> None:
