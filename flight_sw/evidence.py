@@ -55,8 +55,8 @@ class PlaneFit:
     z_plane: np.ndarray  # plane at the cell centre
     z_plane_sigma: np.ndarray
     # the footprint plane's gradient along the grid's columns / rows (m per cell; NaN where not determined)
-    p: np.ndarray | None = None
-    q: np.ndarray | None = None
+    p: np.ndarray
+    q: np.ndarray
 
 
 def _plane_products(z: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:

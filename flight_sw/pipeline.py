@@ -1350,7 +1350,7 @@ def _run_v2(
     if fit is not None and sun is not None and (p.shading_slope or p.keep_layers):
         if not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
             info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
-        elif fit.p is not None and fit.q is not None:
+        else:
             with _stage(timings, "shading_slope"):
                 # grid columns run along +X, rows along -Y: the world gradient of the footprint plane
                 gx = sample_grid(fit.p, origin, cell, X, Y) / np.float32(cell)
