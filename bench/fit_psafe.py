@@ -33,6 +33,9 @@ from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 ALL_FEATS = (
     "a",
     "a_pc",
+    "upsun",
+    "speck",
+    "speck_fp",
     "u",
     "rough",
     "rho",
@@ -46,6 +49,7 @@ ALL_FEATS = (
     "scale",
     "gbad",
 )
+SUN_FEATS = ("a_pc", "upsun")  # NaN together when the pipeline is not told the sun (or skips the shading stage)
 
 
 def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
@@ -168,8 +172,8 @@ def fit_rows(
     names: tuple[str, ...] = ALL_FEATS,
     blank_shading: float = 0.0,
 ) -> Any:
-    """Fit on ``per_pair`` points of every row. ``blank_shading``: the share of points whose ``a_pc`` is set
-    to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN ``a_pc`` then)."""
+    """Fit on ``per_pair`` points of every row. ``blank_shading``: the share of points whose sun-borne features
+    (``SUN_FEATS``) are set to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN then)."""
     from flight_sw import psafe
 
     rng = np.random.default_rng(rng_seed)
@@ -180,8 +184,11 @@ def fit_rows(
         for k, v in parts.items():
             v.append(r[k][idx])
     cat = {k: np.concatenate(v) for k, v in parts.items()}
-    if blank_shading > 0 and "a_pc" in cat:
-        cat["a_pc"] = np.where(rng.random(cat["a_pc"].size) < blank_shading, np.float32(np.nan), cat["a_pc"])
+    if blank_shading > 0:
+        blank = rng.random(cat["safe"].size) < blank_shading
+        for k in SUN_FEATS:
+            if k in cat:
+                cat[k] = np.where(blank, np.float32(np.nan), cat[k])
     seeds = sorted({int(r["seed"]) for r in rows})
     sizes = sorted({tuple(int(x) for x in r["shape"]) for r in rows})
     info = {
@@ -193,7 +200,7 @@ def fit_rows(
         "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
         "safe_share": float(cat["safe"].mean()),  # the prior P(safe) holds (fusion counts it once: fusion.py)
     }
-    if blank_shading > 0 and "a_pc" in cat:
+    if blank_shading > 0 and any(k in cat for k in SUN_FEATS):
         info["blank_shading"] = blank_shading
     if trees:
         return fit_trees({k: cat[k] for k in names}, cat["safe"], seeds, trees, info)
@@ -210,7 +217,7 @@ def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: flo
     from flight_sw.psafe import budget_rule
 
     if cap == "nosun":
-        r = {**r, "a_pc": np.full(r["a"].shape, np.nan, np.float32)}
+        r = {**r, **{k: np.full(r["a"].shape, np.nan, np.float32) for k in SUN_FEATS}}
         cap = "a_pc"
     p = model.predict(r, np.ones(r["safe"].shape, bool))
     p[r["dark"]] = 0.0

@@ -85,6 +85,24 @@ def project(camera: Camera, pose: Pose, X: np.ndarray, Y: np.ndarray, Z: np.ndar
     return u, v
 
 
+def image_direction(
+    camera: Camera, pose: Pose, ground_xy: tuple[float, float], direction_xy: tuple[float, float], z: float = 0.0
+) -> tuple[float, float] | None:
+    """Unit image direction ``(du, dv)`` of a horizontal world direction at the ground point ``ground_xy``
+    (height ``z``): the projection of a 1 m step along it (eq. 3.1-3.2). None where it does not project."""
+    x0, y0 = float(ground_xy[0]), float(ground_xy[1])
+    n = math.hypot(float(direction_xy[0]), float(direction_xy[1]))
+    if not (math.isfinite(n) and n > 0 and math.isfinite(x0) and math.isfinite(y0)):
+        return None
+    ex, ey = float(direction_xy[0]) / n, float(direction_xy[1]) / n
+    u, v = project(camera, pose, np.array([x0, x0 + ex]), np.array([y0, y0 + ey]), np.array([z, z]))
+    du, dv = float(u[1] - u[0]), float(v[1] - v[0])
+    m = math.hypot(du, dv)
+    if not (math.isfinite(m) and m > 1e-9):
+        return None
+    return du / m, dv / m
+
+
 def _remap(layer: np.ndarray, mx: np.ndarray, my: np.ndarray, interp: int = cv2.INTER_LINEAR) -> np.ndarray:
     mx = np.nan_to_num(mx, nan=-1e4).astype(np.float32)
     my = np.nan_to_num(my, nan=-1e4).astype(np.float32)

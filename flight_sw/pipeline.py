@@ -57,6 +57,7 @@ from .mapping import (
     grid_extent,
     grid_xy,
     ground_sample_distance,
+    image_direction,
     image_to_grid_coords,
     pull,
     sample_grid,
@@ -70,8 +71,8 @@ from .psafe import load_model
 from .rangefind import find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
-from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask
-from .shadow import lit_level, shadow_mask
+from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask, speck_contrast
+from .shadow import caster_distance, lit_level, shadow_mask
 from .sites import Site, no_site_reason, select_safe_sites, select_sites
 from .slope import footprint_cells, plane_fit, roughness
 from .sweep import (
@@ -103,6 +104,7 @@ ROCKS_S = 0.03  # Harris rock mask
 # the shading slope stage (photoclinometry.py): 11 ms on the synthetic nadir pair, 15 ms on an oblique
 # approach grid; and what still follows it (the hazard call and the sites: 25-35 ms)
 SHADING_SLOPE_S = 0.015
+CASTER_MAX_PX = 16  # the caster search's reach (px): shadow.caster_distance costs O(reach) per pixel
 AFTER_SLOPE_S = 0.035
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
@@ -380,7 +382,10 @@ PRESETS: dict[str, Params] = {
         # first, then CDI: 0.3 % / 0.4x / 0.97 -> FP worst 0.63 %, CDI 44.3 %; the additive model's 0.2 % gave
         # 0.78 % and 36.2 %)
         psafe_model="calibrated",
-        fp_budget=0.003,
+        # stop 27: 0.3 -> 0.2 % with the caster and speck features (shadow.caster_distance,
+        # shading.speck_contrast) and larger trees (45 x 31 leaves): tuning CV FP worst 1.58 -> 0.95 %, no pair
+        # over 1 % (was 1 of 443), CDI 59.5 -> 59.8 % (docs/benchmarks/pipeline.md, stop 27)
+        fp_budget=0.002,
         psafe_min=0.97,
         call_slope_max=0.4,
         # the footprint slope read from the shading as well (photoclinometry.py), a tree feature, and the cap
@@ -1347,6 +1352,7 @@ def _run_v2(
             fit = None
 
     pc_img = nan_img
+    caster_img = nan_img  # NaN: no sun known (the trees' no-sun case, as a_pc)
     if fit is not None and sun is not None and (p.shading_slope or p.keep_layers):
         if not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
             info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
@@ -1365,6 +1371,12 @@ def _run_v2(
                 )
                 pc_img = np.where(covered & seen, shading_gradient(gx, gy, c_meas, sun), np.nan).astype(np.float32)
                 pc_img *= np.float32(cell)  # m per cell, as grad_img
+                # what casts each shadow lies sun-ward of it, within about a footprint (a boulder, a rim)
+                ground = (float(np.nanmedian(X[covered])), float(np.nanmedian(Y[covered])))
+                toward = image_direction(camera, pose1, ground, (float(sun[0]), float(sun[1])), z_ref)
+                if toward is not None:
+                    reach = int(min(CASTER_MAX_PX, max(2, round(fp_px))))
+                    caster_img = caster_distance(shadow, toward, reach)
 
     with _stage(timings, "hazard"):
         kw = {
@@ -1387,6 +1399,8 @@ def _run_v2(
                 slope_limit_deg=p.slope_limit_deg,
                 rough_limit_m=p.rough_limit_m,
                 grad_shading=pc_img[cs],
+                caster_px=caster_img[cs],
+                speck=speck_contrast(a1[cs], fp_px),
             )
             if p.keep_layers:
                 layers = {k: _uncrop(v, cs, i1.shape) for k, v in feats.items()}

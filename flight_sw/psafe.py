@@ -23,6 +23,10 @@ with, per point (image pixel of i1, computed by :func:`features`):
 * ``a_pc`` the same ratio with the sun-ward part of the footprint gradient read from the
   shading (:mod:`flight_sw.photoclinometry`; trees only, NaN when the sun is not given: the
   trees are fitted with a quarter of the points' ``a_pc`` blanked, so they know that case);
+* ``upsun`` the distance, in footprints, to the nearest dark pixel down-sun (``UPSUN_NONE`` if
+  none within about a footprint): ground just sun-ward of a shadow is what casts it, a boulder or
+  a rim (:func:`flight_sw.shadow.caster_distance`; trees only, NaN with ``a_pc`` when the sun is
+  not given);
 * ``rough = r / 0.30 m`` (roughness over its limit), ``rho`` the signed relative brightness
   (:mod:`flight_sw.shading`) and ``arho`` its local mean magnitude;
 * context - the prior where the evidence at the point is weak: ``nbad`` / ``nbad_w`` the share
@@ -90,6 +94,7 @@ DEFAULT_EDGES: dict[str, tuple[float, ...]] = {
 ADDITIVE = ("rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
 MONOTONE_DECREASING = ("rough", "nbad", "nbad_w")
 WIDE_PX = 31  # the wide context window (i1 pixels)
+UPSUN_NONE = 4.0  # upsun where no dark pixel lies down-sun within the caster search
 WALL_RHO = 0.1  # |rho| above this counts as strong shading in the context features
 
 
@@ -108,13 +113,19 @@ def features(
     slope_limit_deg: float = 15.0,
     rough_limit_m: float = 0.30,
     grad_shading: np.ndarray | None = None,
+    caster_px: np.ndarray | None = None,
+    speck: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-pixel features of the model (module doc), float32 HxW each; NaN = not available.
 
     ``grad``/``grad_sigma`` in metres per cell of size ``cell_m``, ``rough`` in metres, ``rho``
     the relative brightness, ``footprint_px`` the lander footprint in i1 pixels. ``grad_shading``
     (optional, m per cell): the footprint gradient with its sun-ward part read from the shading
-    (:mod:`flight_sw.photoclinometry`); it gives ``a_pc``, NaN when absent.
+    (:mod:`flight_sw.photoclinometry`); it gives ``a_pc``, NaN when absent. ``caster_px`` (optional): the
+    distance to the nearest dark pixel down-sun (:func:`flight_sw.shadow.caster_distance`, ``inf`` = none
+    within its reach); it gives ``upsun`` in footprints, ``UPSUN_NONE`` where none, NaN when absent.
+    ``speck`` (optional): the pixel-scale brightness range (:func:`flight_sw.shading.speck_contrast`) and
+    ``speck_fp`` its footprint mean, NaN when absent.
     """
     G = math.tan(math.radians(slope_limit_deg)) * float(cell_m)
     a = (np.asarray(grad, np.float32) / np.float32(G)).astype(np.float32)
@@ -133,9 +144,20 @@ def features(
     a_pc = np.full(a.shape, np.nan, np.float32)
     if grad_shading is not None:
         a_pc = (np.asarray(grad_shading, np.float32) / np.float32(G)).astype(np.float32)
+    upsun = np.full(a.shape, np.nan, np.float32)
+    if caster_px is not None:
+        cp = np.asarray(caster_px, np.float32)
+        with np.errstate(invalid="ignore"):
+            upsun = np.where(np.isinf(cp), np.float32(UPSUN_NONE), cp / np.float32(max(float(footprint_px), 1e-3)))
+        upsun = upsun.astype(np.float32)
+    sp = np.full(a.shape, np.nan, np.float32) if speck is None else np.asarray(speck, np.float32)
+    n_fp = max(1, int(round(float(footprint_px)))) | 1
     return {
         "a": np.where(known, a, np.nan).astype(np.float32),
         "a_pc": a_pc,
+        "upsun": upsun,
+        "speck": sp,
+        "speck_fp": sp if speck is None else _bmean(sp, n_fp),
         "u": np.where(known, u, np.nan).astype(np.float32),
         "rough": (np.asarray(rough, np.float32) / np.float32(rough_limit_m)).astype(np.float32),
         "rho": r,

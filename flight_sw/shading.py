@@ -72,3 +72,21 @@ def local_shadow_mask(img: np.ndarray, global_mask: np.ndarray, rho: np.ndarray,
 def shading_mask(rho: np.ndarray, limit: float) -> np.ndarray:
     """Facets much brighter or darker than their surroundings (``|rho| > limit``): likely steep."""
     return np.abs(rho) > float(limit)
+
+
+def speck_contrast(img: np.ndarray, footprint_px: float) -> np.ndarray:
+    """Pixel-scale brightness range ``(max_3x3 I - min_3x3 I) / mean_fp I`` (float32): a sunlit face beside its
+    own shadow.
+
+    A boulder smaller than the DEM resolves (a few pixels at 100-300 m) shows as a bright face next to a
+    dark one. On the tuning boulder-field renders the hazard pixels called safe had a median range of
+    0.8-1.6 against 0.13-0.34 for the truly safe ones called safe. ``mean_fp`` is the box mean over the
+    footprint (``footprint_px``, at least 3 px), so the cue is relative to the local brightness. O(1) per pixel.
+    """
+    I = np.asarray(img, np.float32)
+    k3 = np.ones((3, 3), np.uint8)
+    rng = cv2.dilate(I, k3, borderType=cv2.BORDER_REPLICATE) - cv2.erode(I, k3, borderType=cv2.BORDER_REPLICATE)
+    n = max(3, int(round(float(footprint_px)))) | 1
+    mean = cv2.blur(I, (n, n), borderType=cv2.BORDER_REPLICATE)
+    floor = np.float32(max(1e-6, 1e-3 * float(np.abs(I).max())))
+    return (rng / np.maximum(mean, floor)).astype(np.float32)

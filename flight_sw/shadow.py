@@ -54,3 +54,31 @@ def lit_level(img: np.ndarray, ratio: float, dynamic_range: float = 1000.0) -> f
     lo = level(float(np.searchsorted(cum, 0.5 * n_dark)))
     hi = level(float(np.searchsorted(cum, n_dark + 0.5 * (n - n_dark))))
     return hi if hi >= ratio * lo else med
+
+
+def caster_distance(dark: np.ndarray, toward_sun: tuple[float, float], max_px: int) -> np.ndarray:
+    """Distance (px, float32) from each pixel to the nearest dark pixel *away from the sun*, ``inf`` beyond ``max_px``.
+
+    A shadow lies down-sun of what casts it, so ground just sun-ward of a shadow is the caster: a boulder's
+    lit face, a crater's rim. On tuning boulder-field renders half of the hazard pixels called safe lie within
+    half a footprint sun-ward of a dark pixel, against 7 % of the truly safe ones called safe. ``toward_sun``
+    is the sun's direction in the image (unit ``(du, dv)``, :func:`flight_sw.mapping.image_direction`); the
+    search steps one pixel at a time along the opposite direction, rounding to the nearest pixel: O(max_px)
+    per pixel.
+    """
+    d = np.asarray(dark, bool).view(np.uint8)
+    h, w = d.shape
+    reach = min(int(max_px), 254)
+    out = np.full((h, w), 255, np.uint8)  # 255: none within reach
+    du, dv = float(toward_sun[0]), float(toward_sun[1])
+    for k in range(1, reach + 1):
+        # the pixel k steps down-sun of (v, u): (v + round(-k dv), u + round(-k du))
+        oy, ox = int(round(-k * dv)), int(round(-k * du))
+        if abs(oy) >= h or abs(ox) >= w:
+            continue
+        src = d[max(0, oy) : h + min(0, oy), max(0, ox) : w + min(0, ox)]
+        dst = out[max(0, -oy) : h + min(0, -oy), max(0, -ox) : w + min(0, -ox)]
+        hit = src * np.uint8(255 - k)  # uint8 arithmetic: 255 - hit is k on dark pixels, 255 elsewhere
+        np.subtract(np.uint8(255), hit, out=hit)
+        np.minimum(dst, hit, out=dst)
+    return np.where(out == 255, np.float32(np.inf), out.astype(np.float32))
