@@ -134,12 +134,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also compare prefilter / rock masking / SAD vs SSD / window (DEM error only)",
     )
+    ap.add_argument(
+        "--check-reserves",
+        action="store_true",
+        help="exit 1 when a v2 preset's deadline reserve (flight_sw.pipeline.reserves) is shorter than the "
+        "median CPU time of the stages it must cover",
+    )
     args = ap.parse_args(argv)
 
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    from flight_sw.pipeline import run_pipeline
+    from flight_sw.pipeline import PRESETS, reserve_shortfalls, reserves, run_pipeline
 
     if args.pair:
         from protocol.pairdir import read_pair
@@ -156,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     sun = {"sun_azimuth_deg": args.sun[0], "sun_elevation_deg": args.sun[1]}
     run_pipeline(i1, i2, p1, p2, cam, preset="fast", **sun)  # warm-up (imports, allocator)
     summary = {"source": source, "runs": args.runs, "sun": args.sun, "presets": {}}
+    short_any = False
     for preset in args.presets:
         walls, stages, res = [], {}, None
         for _ in range(args.runs):
@@ -202,10 +209,26 @@ def main(argv: list[str] | None = None) -> int:
         )
         for k, v in row["stages"].items():
             print(f"    {k:11s} wall {v['wall_s'] * 1e3:8.1f} ms   cpu {v['cpu_s'] * 1e3:8.1f} ms")
+        if PRESETS[preset].dem == "sgm":
+            cpu = {k: v["cpu_s"] for k, v in row["stages"].items()}
+            short = {name for name, _, _ in reserve_shortfalls(PRESETS[preset], cpu, i1.size)}
+            row["reserves"] = {}
+            for name, (covers, reserve) in reserves(PRESETS[preset]).items():
+                need = sum(cpu.get(k, 0.0) for k in covers)
+                have = reserve * i1.size / (512 * 512)
+                row["reserves"][name] = {"needed_s": need, "reserve_s": have, "short": name in short}
+                print(
+                    f"    reserve {name}: {have * 1e3:.1f} ms for {need * 1e3:.1f} ms of "
+                    f"{' + '.join(covers)}" + ("  SHORT" if name in short else "")
+                )
+                short_any = short_any or name in short
     if args.ablation and z is not None:
         summary["ablation"] = ablation(i1, i2, p1, p2, cam, z)
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    if args.check_reserves and short_any:
+        print("a deadline reserve is shorter than the stages it covers (flight_sw.pipeline.reserves)", file=sys.stderr)
+        return 1
     return 0
 
 

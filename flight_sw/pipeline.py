@@ -101,12 +101,39 @@ MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's
 # refinement, the DEM and the shadow stage (HIL telemetry against the same pairs unthrottled, 2026-11-24)
 COLD_CACHE_CPU = 0.4
 ROCKS_S = 0.03  # Harris rock mask
-# the shading slope stage (photoclinometry.py): 11 ms on the synthetic nadir pair, 15 ms on an oblique
-# approach grid; and what still follows it (the hazard call and the sites: 25-35 ms)
-SHADING_SLOPE_S = 0.015
+# the shading slope stage (photoclinometry.py, with the caster search): 13-15 ms at 512^2 on the synthetic
+# nadir pair and on held-out vertical and approach pairs; and what still follows it, the hazard call and the
+# sites: 38 + 0.5 ms on the synthetic pair, 50 + 4-7 ms on held-out pairs (one core, quiet host, stop 28)
+SHADING_SLOPE_S = 0.016
 CASTER_MAX_PX = 16  # the caster search's reach (px): shadow.caster_distance costs O(reach) per pixel
-AFTER_SLOPE_S = 0.035
+AFTER_SLOPE_S = 0.065
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
+
+
+def reserves(p: Params) -> dict[str, tuple[tuple[str, ...], float]]:
+    """What each deadline reserve of the v2 flow must cover: its name -> (the timed stages that run
+    after its gate, the reserve in unthrottled s at ``REF_PIXELS``). ``bench/bench_pipeline.py
+    --check-reserves`` compares them with measured stage times; a reserve shorter than its stages lets a
+    tight deadline pass while they still run."""
+    return {
+        "mapping_reserve_s": (("georef", "grid", "slope", "shading_slope", "hazard", "sites"), p.mapping_reserve_s),
+        "SHADING_SLOPE_S + AFTER_SLOPE_S": (("shading_slope", "hazard", "sites"), SHADING_SLOPE_S + AFTER_SLOPE_S),
+        "AFTER_SLOPE_S": (("hazard", "sites"), AFTER_SLOPE_S),
+    }
+
+
+def reserve_shortfalls(
+    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS
+) -> list[tuple[str, float, float]]:
+    """The reserves (:func:`reserves`) shorter than the CPU time their stages took on a ``pixels``-pixel
+    pair: ``(name, needed s, reserve s)``, both scaled to that pair, as the pipeline scales them."""
+    scale = pixels / REF_PIXELS
+    out = []
+    for name, (stages, reserve) in reserves(p).items():
+        needed = sum(stage_cpu_s.get(k, 0.0) for k in stages)
+        if needed > reserve * scale:
+            out.append((name, needed, reserve * scale))
+    return out
 
 
 @dataclass(frozen=True)
@@ -353,8 +380,9 @@ PRESETS: dict[str, Params] = {
         # its rho is read as under 25 deg. Never mapped downward: under a low sun the map would weaken the
         # shading cue where Lambert's first order no longer holds (docs/benchmarks/pipeline.md, stop 24)
         shading_sun_ref_deg=25.0,
-        # georef + grid + slope + hazard + sites: 0.082 s CPU at 512^2 (median of 3, fast v2), + 35 %
-        mapping_reserve_s=0.11,
+        # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.100 s CPU on the
+        # synthetic pair, 0.118-0.158 s on held-out vertical and approach pairs (stop 28), + 15 %
+        mapping_reserve_s=0.18,
         sgm_p1=16,
         sgm_p2=128,
         uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
