@@ -151,6 +151,8 @@ def test_three_states_reach_the_result_and_process_outputs(tmp_path):
     hz = np.load(out / "hazard.npy")
     assert st.dtype == np.uint8 and np.array_equal(st, res.state)
     assert np.allclose(ps, res.psafe, equal_nan=True) and np.all(hz[st == STATE_UNKNOWN] == 1.0)
+    sg, el = np.load(out / "sigma.npy"), np.load(out / "elevation.npy")
+    assert np.array_equal(np.isfinite(sg), np.isfinite(el)) and np.all(sg[np.isfinite(sg)] > 0)
     doc = json.loads((out / "result.json").read_text())
     assert all("p_safe" in s and "clearance_m" in s for s in doc["sites"])
 
