@@ -5,7 +5,7 @@ crater has its ground tens of metres below that datum, so the band misses it ent
 
 1. The prior range is either the altimeter's ground point ``Z_alt = C_z + r R_22`` (``r`` the
    slant range along the optical axis, ``R_22`` the optical axis's world-Z component; DESIGN.md)
-   +- ``max(min_m, frac_alt * r)``, or without an altimeter a wide band
+   +- ``max(min_m, frac_alt * r)`` (its top: :func:`prior_range`), or without an altimeter a wide band
    ``[-below * h, min(above * h, 0.3 * h_2)]`` around the datum (``h``, ``h_2``: the two camera
    heights above it; planes must stay below camera 2).
 2. A quarter-resolution winner-take-all sweep over that range (planes uniform in disparity,
@@ -57,16 +57,23 @@ def prior_range(
     alt_frac: float = 0.15,
     alt_min_m: float = 10.0,
 ) -> tuple[float, float, str]:
-    """Range to search before any image evidence (module doc, step 1)."""
+    """Range to search before any image evidence (module doc, step 1).
+
+    Planes must stay well below camera 2: at most ``0.3 h_2`` above the datum, where wider ranges let
+    spurious near-camera matches stretch the range the finer levels sweep. With an altimeter that top is
+    raised to half the relief margin above its ground ``z_g`` when the ground lies that high
+    (``max(0.3 h_2, z_g + m / 2)``, never above ``z_g + (h_2 - z_g) / 2``): from the datum alone, a
+    highland 18 m above it seen from 50 m was cut off at 15 m.
+    """
     h1, h2 = float(pose1.position[2]), float(pose2.position[2])
-    top = 0.3 * h2  # planes must stay well below camera 2
     if altimeter_m is not None and math.isfinite(altimeter_m) and altimeter_m > 0:
         zg = altimeter_ground(pose1, altimeter_m)
         m = max(alt_min_m, alt_frac * altimeter_m)
+        top = max(0.3 * h2, min(zg + 0.5 * m, zg + 0.5 * (h2 - zg)))
         lo, hi = zg - m, min(zg + m, top)
         if hi > lo:
             return lo, hi, "altimeter"
-    return -below_frac * h1, min(above_frac * h1, top), "wide"
+    return -below_frac * h1, min(above_frac * h1, 0.3 * h2), "wide"
 
 
 def find_ground(

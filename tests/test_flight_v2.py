@@ -63,6 +63,19 @@ def test_altimeter_centres_the_search(deep_pair):
         run_pipeline(i1, i2, p1, p2, cam, altimeter_m=-3.0)
 
 
+def test_altimeter_finds_a_highland_above_the_datum():
+    # 18 m above the datum, seen from 100 m and 50 m: 30 % of camera 2's height above the datum (15 m)
+    # would cut the sweep below the ground; half the relief margin (12.3 m) above the altimeter's ground
+    # does not
+    cam, p1, p2, i1, i2, z = make_pair(256, 100.0, 50.0, plane(18.0), seed=33)
+    lo, hi, src = prior_range(p1, p2, 82.0)
+    assert src == "altimeter" and lo < 18.0 < hi and hi == pytest.approx(18.0 + 0.5 * 0.15 * 82.0)
+    assert prior_range(p1, p2, 100.0)[1] == pytest.approx(15.0)  # ground on the datum: as before
+    res = run_pipeline(i1, i2, p1, p2, cam, altimeter_m=82.0)
+    assert res.level == "full" and res.valid_fraction > 0.9
+    assert np.nanmean(np.abs(res.elevation - z)) < 0.15
+
+
 def _blank_texture_pair(size=256, seed=32):
     """Textured plane at -2 m with a square of uniform albedo (no texture at all) in the middle."""
     cam = camera_fov30(size)
