@@ -387,7 +387,7 @@ PRESETS: dict[str, Params] = {
         # its rho is read as under 25 deg. Never mapped downward: under a low sun the map would weaken the
         # shading cue where Lambert's first order no longer holds (docs/benchmarks/pipeline.md, stop 24)
         shading_sun_ref_deg=25.0,
-        # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.100 s CPU on the
+        # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.095 s CPU on the
         # synthetic pair, 0.118-0.158 s on held-out vertical and approach pairs (stop 28), + 15 %
         mapping_reserve_s=0.18,
         sgm_p1=16,
