@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--check-reserves",
         action="store_true",
-        help="exit 1 when a v2 preset's deadline reserve (flight_sw.pipeline.reserves) is shorter than the "
+        help="exit 1 when a v2 preset's deadline reserve (flight_sw.pipeline.reserve_table) is shorter than the "
         "median CPU time of the stages it must cover",
     )
     args = ap.parse_args(argv)
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    from flight_sw.pipeline import PRESETS, reserve_shortfalls, reserves, run_pipeline
+    from flight_sw.pipeline import PRESETS, reserve_table, run_pipeline
 
     if args.pair:
         from protocol.pairdir import read_pair
@@ -211,17 +211,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"    {k:11s} wall {v['wall_s'] * 1e3:8.1f} ms   cpu {v['cpu_s'] * 1e3:8.1f} ms")
         if PRESETS[preset].dem == "sgm":
             cpu = {k: v["cpu_s"] for k, v in row["stages"].items()}
-            short = {name for name, _, _ in reserve_shortfalls(PRESETS[preset], cpu, i1.size)}
             row["reserves"] = {}
-            for name, (covers, reserve) in reserves(PRESETS[preset]).items():
-                need = sum(cpu.get(k, 0.0) for k in covers)
-                have = reserve * i1.size / (512 * 512)
-                row["reserves"][name] = {"needed_s": need, "reserve_s": have, "short": name in short}
+            for name, covers, need, have in reserve_table(PRESETS[preset], cpu, i1.size):
+                short = need > have
+                row["reserves"][name] = {"needed_s": need, "reserve_s": have, "short": short}
                 print(
                     f"    reserve {name}: {have * 1e3:.1f} ms for {need * 1e3:.1f} ms of "
-                    f"{' + '.join(covers)}" + ("  SHORT" if name in short else "")
+                    f"{' + '.join(covers)}" + ("  SHORT" if short else "")
                 )
-                short_any = short_any or name in short
+                short_any = short_any or short
     if args.ablation and z is not None:
         summary["ablation"] = ablation(i1, i2, p1, p2, cam, z)
     if args.json:

@@ -122,18 +122,23 @@ def reserves(p: Params) -> dict[str, tuple[tuple[str, ...], float]]:
     }
 
 
+def reserve_table(
+    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS
+) -> list[tuple[str, tuple[str, ...], float, float]]:
+    """Each reserve (:func:`reserves`) against the CPU time its stages took on a ``pixels``-pixel pair:
+    ``(name, stages, needed s, reserve s)``, the reserve scaled to that pair as the pipeline scales it."""
+    scale = pixels / REF_PIXELS
+    return [
+        (name, stages, sum(stage_cpu_s.get(k, 0.0) for k in stages), reserve * scale)
+        for name, (stages, reserve) in reserves(p).items()
+    ]
+
+
 def reserve_shortfalls(
     p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS
 ) -> list[tuple[str, float, float]]:
-    """The reserves (:func:`reserves`) shorter than the CPU time their stages took on a ``pixels``-pixel
-    pair: ``(name, needed s, reserve s)``, both scaled to that pair, as the pipeline scales them."""
-    scale = pixels / REF_PIXELS
-    out = []
-    for name, (stages, reserve) in reserves(p).items():
-        needed = sum(stage_cpu_s.get(k, 0.0) for k in stages)
-        if needed > reserve * scale:
-            out.append((name, needed, reserve * scale))
-    return out
+    """The reserves shorter than their stages (:func:`reserve_table`): ``(name, needed s, reserve s)``."""
+    return [(n, need, have) for n, _, need, have in reserve_table(p, stage_cpu_s, pixels) if need > have]
 
 
 @dataclass(frozen=True)
