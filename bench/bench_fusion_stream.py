@@ -54,8 +54,15 @@ def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[
     out = []
     for e in sorted(render_case(case, seed, cache), key=lambda e: -e["altitude_m"]):
         pair = read_pair(Path(e["pair_dir"]))
-        r = run_pipeline(
-            pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset=PRESETS["fast"]
+        r = run_pipeline(  # with the sun, as a HIL Frame carries it (the shading slope needs its azimuth)
+            pair.images[0],
+            pair.images[-1],
+            pair.poses[0],
+            pair.poses[-1],
+            pair.camera,
+            preset=PRESETS["fast"],
+            sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+            sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
         )
         mask = r.covered & np.isfinite(pair.truth["hazard"])
         out.append({"dir": e["pair_dir"], "alt": e["altitude_m"], "grid": r.grid, "params": r.params,
@@ -67,7 +74,7 @@ def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[
     return out
 
 
-def score_stream(results: list[dict[str, Any]], overrides: dict[str, float]) -> list[dict[str, float]]:
+def score_stream(results: list[dict[str, Any]], overrides: dict[str, Any]) -> list[dict[str, float]]:
     """Fuse the stream in order; per Result the pair alone and the fused map, scored at that pair."""
     from flight_sw.fusion import FusionParams, fuse, params_for, to_hazard_grid
     from protocol.pairdir import read_pair
@@ -129,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-seeds", type=int, default=6)
     ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES))
     ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
-    ap.add_argument("--grids", default="/tmp/fusion_stream_grids", help="cached pipeline grids per stream")
+    ap.add_argument("--grids", default="/tmp/fusion_stream_grids_sun", help="cached pipeline grids per stream")
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
     ap.add_argument("--json", help="write per-Result rows and the summary here")
     args = ap.parse_args(argv)
@@ -147,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         k, _, v = kv.partition("=")
         if k not in {f.name for f in dataclasses.fields(FusionParams)}:
             ap.error(f"--fusion: FusionParams has no field {k!r}")
-        overrides[k] = v if k == "extent" else float(v)
+        overrides[k] = v if k == "extent" else int(v) if k in ("accumulate_calls", "max_cells") else float(v)
     FusionParams(**overrides).validate()
     seeds = list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     streams = [(c, s) for c in args.cases for s in seeds]

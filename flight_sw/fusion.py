@@ -32,12 +32,19 @@ never below 0: a prior for "unsafe" is not added back, which keeps the rule for 
 context prior; it leaves the cell's evidence as it was (the demo showed FP 10 % when image-only
 results were allowed to add to "safe"), unless it calls the cell unsafe (shadow) or below even.
 
-**Accumulated evidence needs a higher bar.** A cell the newest result that measured it did not call
-safe by its own decision (the pipeline's P floor and FP budget) becomes safe only once the fused
-P(safe) reaches ``p_accumulate``; a cell it called safe needs ``p_min``. The fused state
-(``T = logit(p_min)``)::
+**Accumulated evidence needs a higher bar, and a call.** A cell the newest result that measured it
+did not call safe by its own decision (the pipeline's P floor, slope cap and FP budget) becomes safe
+only once the fused P(safe) reaches ``p_accumulate`` *and* at least ``accumulate_calls`` earlier
+results called it safe by their own decisions; a cell the newest result called safe needs ``p_min``.
+Each result's call is where its safeguards act. On the tuning 4-frame approach descents (seeds 0-9),
+the cells that no result called safe but whose summed evidence passed ``p_accumulate`` were 1.4 %
+hazards (0.8-2.2 % per descent), against 0.35 % for those an earlier result had called
+(docs/benchmarks/multiframe.md, stop 29). Evidence summed over results must not overrule every
+result's own refusal. ``accumulate_calls = 0`` is the rule before that. The fused state
+(``T = logit(p_min)``, ``n_c`` the results that called the cell safe)::
 
-    safe     L >= T  and  (called safe by the newest result that measured it  or  L >= logit(p_accumulate))
+    safe     L >= T  and  (called safe by the newest result that measured it
+                           or  (L >= logit(p_accumulate)  and  n_c >= accumulate_calls))
     unsafe   L <= -(l_max + T)          unknown   otherwise          outside   never mapped
 
 The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
@@ -99,6 +106,7 @@ class FusionParams:
     max_cells: int = 2_000_000  # the fused map never holds more cells than this
     prior_p: float = 0.5  # the P(safe) a result's posterior holds with no evidence (counted once)
     p_accumulate: float = 0.995  # a cell the newest measuring result did not call safe needs P(safe) >= this
+    accumulate_calls: int = 1  # ... and at least this many earlier results that called it safe (0: no such bar)
 
     def validate(self) -> None:
         for name in ("weight", "l_max", "l_unsafe"):
@@ -115,6 +123,8 @@ class FusionParams:
             raise ValueError(f"fusion: prior_p must be in (0, 1), got {self.prior_p!r}")
         if not 0 <= self.p_accumulate < 1:
             raise ValueError(f"fusion: p_accumulate must be in [0, 1), got {self.p_accumulate!r}")
+        if not (isinstance(self.accumulate_calls, int) and 0 <= self.accumulate_calls <= 255):
+            raise ValueError(f"fusion: accumulate_calls must be an integer in [0, 255], got {self.accumulate_calls!r}")
         if self.extent not in ("newest", "union"):
             raise ValueError(f"fusion: extent must be 'newest' or 'union', got {self.extent!r}")
         if not (isinstance(self.max_cells, int) and self.max_cells >= 1):
@@ -129,6 +139,7 @@ class FusedMap:
     seen: np.ndarray  # uint8 (rows, cols): how many results mapped the cell (0: never, i.e. outside)
     elevation: np.ndarray  # float32 (rows, cols): newest measured elevation, NaN if none
     called: np.ndarray  # uint8 (rows, cols): 1 if the newest result with evidence there called the cell safe
+    calls: np.ndarray  # uint8 (rows, cols): how many results with evidence there called the cell safe
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
     results: int = 0  # results fused so far
@@ -241,6 +252,7 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
             np.zeros(shape, np.uint8),
             np.full(shape, np.nan, np.float32),
             np.zeros(shape, np.uint8),
+            np.zeros(shape, np.uint8),
             origin,
             cell,
             0,
@@ -250,13 +262,16 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
     elev = resample(fm.elevation, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
     # a coarser cell counts as called safe only if all of its finer parts were (the minimum)
     called = resample(fm.called.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
+    calls = resample(fm.calls.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
     seen_u8 = np.where(np.isfinite(seen), seen, 0).astype(np.uint8)
     called_u8 = np.where(np.isfinite(called) & (seen_u8 > 0), called, 0).astype(np.uint8)
+    calls_u8 = np.where(np.isfinite(calls) & (seen_u8 > 0), calls, 0).astype(np.uint8)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
         seen_u8,
         elev,
         called_u8,
+        calls_u8,
         origin,
         cell,
         fm.results,
@@ -266,7 +281,7 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
 def empty_map() -> FusedMap:
     """A map before any result: no cells."""
     none = np.zeros((0, 0), np.uint8)
-    return FusedMap(np.zeros((0, 0), np.float32), none, np.zeros((0, 0), np.float32), none, (0.0, 0.0), 0.0)
+    return FusedMap(np.zeros((0, 0), np.float32), none, np.zeros((0, 0), np.float32), none, none, (0.0, 0.0), 0.0)
 
 
 def fuse(
@@ -316,8 +331,10 @@ def fuse(
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
     # did the newest result with evidence call the cell safe (a coarser map cell: only if all its parts were)
     c_new = resample((st == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
-    called = np.where(upd, np.nan_to_num(c_new) > 0.5, base.called > 0).astype(np.uint8)
-    return FusedMap(logodds.astype(np.float32), seen, elev, called, origin, cell, fm.results + 1)
+    c_bool = np.nan_to_num(c_new) > 0.5
+    called = np.where(upd, c_bool, base.called > 0).astype(np.uint8)
+    calls = np.minimum(base.calls.astype(np.int32) + (upd & c_bool), 255).astype(np.uint8)
+    return FusedMap(logodds.astype(np.float32), seen, elev, called, calls, origin, cell, fm.results + 1)
 
 
 def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -326,7 +343,8 @@ def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.nd
     T = logit_threshold(prm.p_min)
     lo = fm.logodds
     state = np.full(lo.shape, STATE_UNKNOWN, np.uint8)
-    state[(lo >= T) & ((fm.called > 0) | (lo >= logit_threshold(max(prm.p_accumulate, prm.p_min))))] = STATE_SAFE
+    accumulated = (lo >= logit_threshold(max(prm.p_accumulate, prm.p_min))) & (fm.calls >= prm.accumulate_calls)
+    state[(lo >= T) & ((fm.called > 0) | accumulated)] = STATE_SAFE
     bound = np.float32(-(prm.l_max + T))
     state[lo <= bound] = STATE_UNSAFE
     state[fm.seen == 0] = STATE_OUTSIDE

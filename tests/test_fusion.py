@@ -195,8 +195,8 @@ def test_a_calibrated_prior_is_counted_once():
     """Calibrated P(safe) is a posterior holding the prior share of safe ground; results that add no
     evidence beyond it must leave a cell at the prior, not add it up into "safe"."""
     prior = 0.8
-    plain = FusionParams(prior_p=0.5, weight=1.0)
-    counted_once = FusionParams(prior_p=prior, weight=1.0)
+    plain = FusionParams(prior_p=0.5, weight=1.0, accumulate_calls=0)  # no call needed: the prior rule alone
+    counted_once = FusionParams(prior_p=prior, weight=1.0, accumulate_calls=0)
     vague = uniform(STATE_UNKNOWN, prior)
     fm_plain = fm_once = None
     for _ in range(4):
@@ -206,7 +206,7 @@ def test_a_calibrated_prior_is_counted_once():
     st, ps = fused_state(fm_once, counted_once)
     assert np.all(st == STATE_UNKNOWN) and np.allclose(ps, prior, atol=1e-5)
     # evidence beyond the prior still adds up: two results at 0.94 with a 0.8 prior pass p_min = 0.95
-    sure = FusionParams(p_min=0.95, prior_p=prior, weight=1.0, p_accumulate=0.0)
+    sure = FusionParams(p_min=0.95, prior_p=prior, weight=1.0, p_accumulate=0.0, accumulate_calls=0)
     fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.94), sure), uniform(STATE_UNKNOWN, 0.94), sure)
     assert np.all(fused_state(fm, sure)[0] == STATE_SAFE)
 
@@ -238,7 +238,7 @@ def test_accumulated_evidence_needs_the_higher_bar():
     st, ps = fused_state(fm, prm)
     assert np.all(ps >= 0.97) and np.all(ps < 0.995)  # over p_min, under the bar
     assert np.all(st == STATE_UNKNOWN)
-    free = dataclasses.replace(prm, p_accumulate=0.0)  # without the bar the same evidence calls it safe
+    free = dataclasses.replace(prm, p_accumulate=0.0, accumulate_calls=0)  # without the bars: safe
     assert np.all(fused_state(fm, free)[0] == STATE_SAFE)
     called = fuse(fm, uniform(STATE_SAFE, 0.98), prm)  # a result that calls it safe itself needs p_min
     assert np.all(fused_state(called, prm)[0] == STATE_SAFE)
@@ -251,6 +251,35 @@ def test_accumulated_evidence_needs_the_higher_bar():
     )
     fine = fuse(half, blind, prm)
     assert fine.called[:, :4].min() == 1 and fine.called[:, 8:].max() == 0
+
+
+def test_summed_evidence_never_calls_safe_what_no_result_called_safe():
+    """The accumulated route needs a call (module doc): results that were each sure enough but held the cell
+    back (their FP budget, slope cap) do not add up to "safe"; once one of them called it, the sum may."""
+    prm = CALIBRATED
+    assert prm.accumulate_calls == 1
+    fm = None
+    for _ in range(4):
+        fm = fuse(fm, uniform(STATE_UNKNOWN, 0.99), prm)  # over p_min, never called
+    assert fm is not None
+    st, ps = fused_state(fm, prm)
+    assert np.all(ps >= prm.p_accumulate) and np.all(fm.calls == 0)
+    assert np.all(st == STATE_UNKNOWN)
+    assert np.all(fused_state(fm, dataclasses.replace(prm, accumulate_calls=0))[0] == STATE_SAFE)  # the old rule
+    # one earlier call and the same summed evidence: safe, though the newest result did not call it
+    st1 = np.full((6, 6), STATE_UNKNOWN, np.uint8)
+    st1[:, :3] = STATE_SAFE
+    fm = fuse(None, grid_of(st1, np.full((6, 6), 0.99)), prm)
+    for _ in range(3):
+        fm = fuse(fm, uniform(STATE_UNKNOWN, 0.99), prm)
+    st, _ = fused_state(fm, prm)
+    assert np.all(fm.calls[:, :3] == 1) and np.all(fm.calls[:, 3:] == 0) and np.all(fm.called == 0)
+    assert np.all(st[:, :3] == STATE_SAFE) and np.all(st[:, 3:] == STATE_UNKNOWN)
+    # a coarser map cell counts the calls of its least-called part: columns 0-1 called, 2-3 half, 4-5 none
+    coarse = fuse(fm, uniform(STATE_UNKNOWN, 0.99, shape=(3, 3), origin=(0.5, -0.5), cell=2.0), prm)
+    assert np.array_equal(coarse.calls, np.array([[1, 0, 0]] * 3, np.uint8))
+    with pytest.raises(ValueError, match="accumulate_calls"):
+        dataclasses.replace(prm, accumulate_calls=-1).validate()
 
 
 def test_params_for_follow_the_pipeline_that_made_the_result():
