@@ -212,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
         if PRESETS[preset].dem == "sgm":
             cpu = {k: v["cpu_s"] for k, v in row["stages"].items()}
             row["reserves"] = {}
-            for name, covers, need, have in reserve_table(PRESETS[preset], cpu, i1.size):
+            planned = row["info"].get("mapping_reserve_s")  # the pair's own modelled mapping reserve, if any
+            for name, covers, need, have in reserve_table(PRESETS[preset], cpu, i1.size, planned):
                 short = need > have
                 row["reserves"][name] = {"needed_s": need, "reserve_s": have, "short": short}
                 print(

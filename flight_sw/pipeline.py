@@ -110,6 +110,44 @@ AFTER_SLOPE_S = 0.065
 REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
 
 
+# what the stages after the DEM (georef, grid, slope, shading slope, hazard call, sites) cost on one core,
+# unthrottled s per REF_PIXELS of image, of covered pixels and of world-grid cells: least squares over 64
+# tuning pairs (seeds 0-1, all four eval cases, 50-1200 m; p90 of measured / model 1.06; stop 29)
+MAP_IMAGE_S = 0.052
+MAP_COVERED_S = 0.083
+MAP_CELLS_S = 0.170
+
+
+def mapping_cost_s(n_image: int, n_covered: int, n_cells: int) -> float:
+    """Modelled CPU s of the stages after the DEM::
+
+        t = (MAP_IMAGE_S n_image + MAP_COVERED_S n_covered + MAP_CELLS_S n_cells) / REF_PIXELS
+
+    Oblique views put up to 2.5x more world-grid cells over the same covered pixels than nadir ones
+    (a grid at the median ground sample distance over ground whose far part is coarser), and the slope
+    and grid stages cost per cell: 0.11 s on nadir pairs, 0.17-0.20 s on approach pairs at 512^2."""
+    return (MAP_IMAGE_S * n_image + MAP_COVERED_S * n_covered + MAP_CELLS_S * n_cells) / REF_PIXELS
+
+
+def grid_cells_estimate(camera: Camera, pose: Pose, covered: np.ndarray, z: float, cell_m: float | None) -> int:
+    """The world grid's size (cells) before there is a DEM: :func:`_ground_grid`'s rule on the covered
+    pixels backprojected to the plane ``Z = z``, every ``2^k``-th pixel (``2^k <= min side / 64``, at most
+    8: about 0.2 ms at 512^2); each side gains the ``2^k - 1`` pixels the subsample skips at its far end."""
+    cov_full = np.asarray(covered, bool)
+    level = int(max(0, min(3, math.floor(math.log2(max(1, min(cov_full.shape) // 64))))))
+    step = 1 << level
+    cam = scaled_camera(camera, level)
+    cov = cov_full[::step, ::step][: cam.height, : cam.width]
+    if not cov.any():
+        return 0
+    X, Y = backproject(cam, pose, np.full((cam.height, cam.width), z, np.float64))
+    cell = cell_m or ground_sample_distance(X, Y, cov, 50.0) / step
+    if not (math.isfinite(cell) and cell > 0):
+        return int(cov.sum()) * step * step
+    _, shape = grid_extent(np.where(cov, X, np.nan), np.where(cov, Y, np.nan), cell)
+    return int((shape[0] + step - 1) * (shape[1] + step - 1))
+
+
 def reserves(p: Params) -> dict[str, tuple[tuple[str, ...], float]]:
     """What each deadline reserve of the v2 flow must cover: its name -> (the timed stages that run
     after its gate, the reserve in unthrottled s at ``REF_PIXELS``). ``bench/bench_pipeline.py
@@ -123,22 +161,29 @@ def reserves(p: Params) -> dict[str, tuple[tuple[str, ...], float]]:
 
 
 def reserve_table(
-    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS
+    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS, mapping_s: float | None = None
 ) -> list[tuple[str, tuple[str, ...], float, float]]:
     """Each reserve (:func:`reserves`) against the CPU time its stages took on a ``pixels``-pixel pair:
-    ``(name, stages, needed s, reserve s)``, the reserve scaled to that pair as the pipeline scales it."""
+    ``(name, stages, needed s, reserve s)``, the reserve scaled to that pair as the pipeline scales it.
+    ``mapping_s``: the mapping reserve the pipeline planned for that pair (``info["mapping_reserve_s"]``,
+    from :func:`mapping_cost_s` when ``p.mapping_reserve_margin > 0``) instead of the fixed one."""
     scale = pixels / REF_PIXELS
     return [
-        (name, stages, sum(stage_cpu_s.get(k, 0.0) for k in stages), reserve * scale)
+        (
+            name,
+            stages,
+            sum(stage_cpu_s.get(k, 0.0) for k in stages),
+            mapping_s if (mapping_s is not None and name == "mapping_reserve_s") else reserve * scale,
+        )
         for name, (stages, reserve) in reserves(p).items()
     ]
 
 
 def reserve_shortfalls(
-    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS
+    p: Params, stage_cpu_s: dict[str, float], pixels: int = REF_PIXELS, mapping_s: float | None = None
 ) -> list[tuple[str, float, float]]:
     """The reserves shorter than their stages (:func:`reserve_table`): ``(name, needed s, reserve s)``."""
-    return [(n, need, have) for n, _, need, have in reserve_table(p, stage_cpu_s, pixels) if need > have]
+    return [(n, need, have) for n, _, need, have in reserve_table(p, stage_cpu_s, pixels, mapping_s) if need > have]
 
 
 @dataclass(frozen=True)
@@ -180,6 +225,9 @@ class Params:
     cell_m: float | None = None  # world grid cell; None: median GSD of i1 over the covered area
     n_sites: int = 5
     mapping_reserve_s: float = 0.03  # sweeps stop this long (unthrottled s, x time_scale) before the deadline
+    # > 0 (v2 flow): from the range search on, that reserve is this margin x mapping_cost_s of the pair's
+    # image, covered pixels and world-grid cells instead of mapping_reserve_s x its pixels
+    mapping_reserve_margin: float = 0.0
     check_every: int = 4  # planes between clock checks
     # ---- flight v2 (issue 9); dem="sweep" is the v1 / thesis flow and ignores these
     dem: str = "sweep"  # "sweep": WTA window sweep (v1, thesis); "sgm": cost volume + semi-global aggregation
@@ -325,6 +373,7 @@ class Params:
             "shadow_mode_ratio",
             "shadow_cue_frac",
             "mapping_reserve_s",
+            "mapping_reserve_margin",
             "multi_truncate",
             "multi_weight_exp",
             "multi_sigma_gamma",
@@ -393,8 +442,11 @@ PRESETS: dict[str, Params] = {
         # shading cue where Lambert's first order no longer holds (docs/benchmarks/pipeline.md, stop 24)
         shading_sun_ref_deg=25.0,
         # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.095 s CPU on the
-        # synthetic pair, 0.118-0.158 s on held-out vertical and approach pairs (stop 28), + 15 %
+        # synthetic pair, 0.118-0.158 s on held-out vertical and approach pairs (stop 28), + 15 %: the reserve
+        # before the pose refinement. From the range search on, the pair's own modelled cost + 25 %
+        # (mapping_cost_s: 0.11 s nadir, 0.17-0.20 s oblique; stop 29)
         mapping_reserve_s=0.18,
+        mapping_reserve_margin=1.25,
         sgm_p1=16,
         sgm_p2=128,
         uniqueness=0.0,  # ambiguity goes into sigma (sgm.plane_sigma) instead of rejecting the match
@@ -758,6 +810,22 @@ def _finish(timings: dict[str, dict[str, float]]) -> None:
     }
 
 
+def _overlapping(covered: np.ndarray, z: float) -> np.ndarray:
+    """``covered``, or a clear error when the frames share no ground (the world grid would be empty)."""
+    if not np.any(covered):
+        raise FlightInputError(
+            f"the frames do not overlap: no pixel of the reference frame sees ground at Z = {z:.1f} m that the "
+            "other frame sees (check the poses)"
+        )
+    return covered
+
+
+def _mapping_reserve(p: Params, camera: Camera, pose1: Pose, covered: np.ndarray, z: float, n_image: int) -> float:
+    """``p.mapping_reserve_margin x mapping_cost_s`` of a pair whose overlap is ``covered`` at ``Z = z``."""
+    cells = grid_cells_estimate(camera, pose1, covered, z, p.cell_m)
+    return p.mapping_reserve_margin * mapping_cost_s(n_image, int(np.count_nonzero(covered)), cells)
+
+
 def _ground_grid(
     camera: Camera,
     pose1: Pose,
@@ -869,7 +937,7 @@ def _run_v1(
         elif p.shadow_dark_rel > 0 or p.shading_limit > 0:
             info["skipped"].append("photometric_cues")
     with _stage(timings, "coverage"):
-        covered = coverage_mask(camera, pose1, pose2, 0.0)
+        covered = _overlapping(coverage_mask(camera, pose1, pose2, 0.0), 0.0)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
         overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
         W_full = window_px(p.half_window, overlap, p.cap_window_to_overlap)
@@ -1194,6 +1262,8 @@ def _run_v2(
     """
     px_scale = i1.size / REF_PIXELS  # what follows the DEM costs per pixel: so does its reserve
     reserve = p.mapping_reserve_s * px_scale
+    if p.mapping_reserve_margin > 0:  # this pair's own mapping cost; the datum's overlap until the ground is found
+        reserve = _mapping_reserve(p, camera, pose1, coverage_mask(camera, pose1, pose2, 0.0), 0.0, i1.size)
     with _stage(timings, "prepare"):
         a1 = np.ascontiguousarray(i1, dtype=np.float32)
         a2 = np.ascontiguousarray(i2, dtype=np.float32)
@@ -1282,11 +1352,15 @@ def _run_v2(
         if extra and p.multi_extent == "union":
             for _, pose_k in extra:
                 covered |= coverage_mask(camera, pose1, pose_k, z_mid)
+        covered = _overlapping(covered, z_mid)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
         overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
         W_coarse = window_px(p.coarse_half_window, overlap // 2, p.cap_window_to_overlap)
         info["coarse_half_window_px"] = W_coarse
         info["coverage_z_m"] = z_mid
+        if p.mapping_reserve_margin > 0:
+            reserve = _mapping_reserve(p, camera, pose1, covered, z_mid, i1.size)
+        info["mapping_reserve_s"] = reserve
 
     level = "image_only"
     elevation = np.full(i1.shape, np.nan, np.float32)

@@ -414,6 +414,46 @@ def test_each_deadline_reserve_covers_stages_the_pipeline_really_times():
     assert name == "mapping_reserve_s" and needed > have == PRESETS["fast"].mapping_reserve_s
 
 
+def test_the_mapping_reserve_follows_the_pairs_own_grid():
+    """The v2 flow reserves the mapping stages by their modelled cost on the pair (mapping_cost_s): an
+    oblique view puts more world-grid cells over its covered pixels than a nadir one, so it reserves more
+    per covered pixel; the grid's size is estimated before the DEM within 20 % of the grid it builds."""
+    from synthetic import tilted_R
+
+    from flight_sw.pipeline import grid_cells_estimate, mapping_cost_s
+    from flight_sw.sweep import coverage_mask
+
+    fast = PRESETS["fast"]
+    per_covered = {}
+    for name, R in (("nadir", None), ("oblique", tilted_R(35.0))):
+        kw = {} if R is None else {"R": R, "offset2": (0.0, -60.0)}
+        cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(0.0), seed=41, **kw)
+        r = run_pipeline(i1, i2, p1, p2, cam, preset="fast", sun_azimuth_deg=135.0, sun_elevation_deg=25.0)
+        z = r.info["coverage_z_m"]
+        cov = coverage_mask(cam, p1, p2, z)
+        cells = grid_cells_estimate(cam, p1, cov, z, None)
+        assert cells == pytest.approx(r.grid.state.size, rel=0.2), name
+        expected = fast.mapping_reserve_margin * mapping_cost_s(i1.size, int(cov.sum()), cells)
+        assert r.info["mapping_reserve_s"] == pytest.approx(expected)
+        per_covered[name] = r.info["mapping_reserve_s"] / cov.sum()
+    assert per_covered["oblique"] > 1.05 * per_covered["nadir"]
+    # the fixed reserve stays what a preset without the model uses
+    fixed = dataclasses.replace(fast, mapping_reserve_margin=0.0)
+    r = run_pipeline(i1, i2, p1, p2, cam, preset=fixed, sun_azimuth_deg=135.0, sun_elevation_deg=25.0)
+    assert r.info["mapping_reserve_s"] == pytest.approx(fast.mapping_reserve_s * i1.size / (512 * 512))
+
+
+@pytest.mark.parametrize("preset", ["fast", "thesis"])
+def test_frames_that_share_no_ground_get_a_clear_error(preset):
+    """Camera 2 60 m ahead of a camera tilted 35 deg back sees none of its ground: one clear line, not a
+    crash deep in the grid stage (an empty world grid reached cv2.remap)."""
+    from synthetic import tilted_R
+
+    cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(0.0), seed=41, R=tilted_R(35.0), offset2=(0.0, 60.0))
+    with pytest.raises(FlightInputError, match="do not overlap"):
+        run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+
+
 def test_every_stage_checks_the_clock_in_the_v1_flow_too():
     cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(-3.0), seed=37)
     slow = dataclasses.replace(PRESETS["fast_v1"], mapping_reserve_s=0.05)
