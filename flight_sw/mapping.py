@@ -103,10 +103,25 @@ def image_direction(
     return du / m, dv / m
 
 
+def remap_maps(mx: np.ndarray, my: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 copies of source coordinates for ``cv2.remap``, NaN (no source) at -1e4: outside, so NaN out.
+    (Half the cost of ``nan_to_num`` then ``astype``, with the same values: +-inf stay +-inf.)"""
+    out = []
+    for m in (mx, my):
+        a = np.array(m, dtype=np.float32)
+        np.copyto(a, np.float32(-1e4), where=np.isnan(a))
+        out.append(a)
+    return out[0], out[1]
+
+
+def remap_with(layer: np.ndarray, maps: tuple[np.ndarray, np.ndarray], interp: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """Read ``layer`` at :func:`remap_maps` coordinates (bilinear by default); NaN outside (float32)."""
+    src = np.asarray(layer, np.float32)
+    return cv2.remap(src, maps[0], maps[1], interp, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+
+
 def _remap(layer: np.ndarray, mx: np.ndarray, my: np.ndarray, interp: int = cv2.INTER_LINEAR) -> np.ndarray:
-    mx = np.nan_to_num(mx, nan=-1e4).astype(np.float32)
-    my = np.nan_to_num(my, nan=-1e4).astype(np.float32)
-    return cv2.remap(layer.astype(np.float32), mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+    return remap_with(layer, remap_maps(mx, my), interp)
 
 
 def image_to_grid_coords(
@@ -136,7 +151,14 @@ def sample_grid(
     grid: np.ndarray, origin_xy: tuple[float, float], cell_m: float, X: np.ndarray, Y: np.ndarray
 ) -> np.ndarray:
     """Bilinear read of a grid layer at world (X, Y) (e.g. back to i1's pixels); NaN outside."""
-    return _remap(grid, (X - origin_xy[0]) / cell_m, (origin_xy[1] - Y) / cell_m)
+    return remap_with(grid, grid_maps(origin_xy, cell_m, X, Y))
+
+
+def grid_maps(
+    origin_xy: tuple[float, float], cell_m: float, X: np.ndarray, Y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_grid`'s coordinates, for reading several layers of one grid at the same points."""
+    return remap_maps((X - origin_xy[0]) / cell_m, (origin_xy[1] - Y) / cell_m)
 
 
 def combine(

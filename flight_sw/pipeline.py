@@ -55,11 +55,14 @@ from .mapping import (
     HazardGrid,
     combine,
     grid_extent,
+    grid_maps,
     grid_xy,
     ground_sample_distance,
     image_direction,
     image_to_grid_coords,
     pull,
+    remap_maps,
+    remap_with,
     sample_grid,
     three_state,
 )
@@ -1450,10 +1453,12 @@ def _run_v2(
 
     with _stage(timings, "grid"):
         cell, origin, shape, gu, gv, g_cov = _ground_grid(camera, pose1, X, Y, z_fill, z_ref, covered, p.cell_m)
-        g_elev = pull(elevation, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
-        g_sig = pull(sigma, gu, gv) if have_dem else np.full(shape, np.nan, np.float32)
+        g_maps = remap_maps(gu, gv)  # the cells' i1 pixels and the pixels' cells, each read many times
+        px_maps = grid_maps(origin, cell, X, Y)
+        g_elev = remap_with(elevation, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
+        g_sig = remap_with(sigma, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
         cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
-        g_cue = pull(cues.astype(np.float32), gu, gv) > 0.25
+        g_cue = remap_with(cues.astype(np.float32), g_maps) > 0.25
 
     nan_img = np.full(i1.shape, np.nan, np.float32)
     with _stage(timings, "slope"):
@@ -1469,10 +1474,10 @@ def _run_v2(
             g_gsig = (p.slope_sigma_gain * g_sbar * cell / p.footprint_m).astype(np.float32)
             g_rough = np.abs(g_elev - fit.z_plane)
             g_rsig = (p.rough_sigma_gain * g_sig).astype(np.float32)
-            slope_img = sample_grid(fit.slope_deg, origin, cell, X, Y)
-            grad_img = sample_grid(fit.grad, origin, cell, X, Y)
-            gsig_img = sample_grid(g_gsig, origin, cell, X, Y)
-            plane_img = sample_grid(fit.z_plane, origin, cell, X, Y)
+            slope_img = remap_with(fit.slope_deg, px_maps)
+            grad_img = remap_with(fit.grad, px_maps)
+            gsig_img = remap_with(g_gsig, px_maps)
+            plane_img = remap_with(fit.z_plane, px_maps)
             rough_img = np.abs(elevation - plane_img)
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
         else:
@@ -1487,8 +1492,8 @@ def _run_v2(
         else:
             with _stage(timings, "shading_slope"):
                 # grid columns run along +X, rows along -Y: the world gradient of the footprint plane
-                gx = sample_grid(fit.p, origin, cell, X, Y) / np.float32(cell)
-                gy = -sample_grid(fit.q, origin, cell, X, Y) / np.float32(cell)
+                gx = remap_with(fit.p, px_maps) / np.float32(cell)
+                gy = -remap_with(fit.q, px_maps) / np.float32(cell)
                 seen = ~dark & np.isfinite(elevation)  # lit and matched: what the brightness gain is fitted on
                 c_meas = measured_incidence(
                     a1,
@@ -1553,9 +1558,9 @@ def _run_v2(
                 _uncrop(ev_c.psafe, cs, i1.shape),
                 _uncrop(ev_c.hazard, cs, i1.shape),
             )
-            g_call = pull((ev.state == STATE_SAFE).astype(np.float32), gu, gv) > 0.999
-            g_ps = pull(np.nan_to_num(ev.psafe, nan=0.0), gu, gv)
-            g_bad = pull((ev.state == STATE_UNSAFE).astype(np.float32), gu, gv) > 0.5
+            g_call = remap_with((ev.state == STATE_SAFE).astype(np.float32), g_maps) > 0.999
+            g_ps = remap_with(np.nan_to_num(ev.psafe, nan=0.0), g_maps)
+            g_bad = remap_with((ev.state == STATE_UNSAFE).astype(np.float32), g_maps) > 0.5
             gev = grid_evidence(
                 g_call,
                 g_bad,
