@@ -315,8 +315,11 @@ def classify_calibrated(
     """
     cov = np.asarray(covered, bool)
     cue = np.asarray(cues, bool) & cov
-    p = model.predict(feats, cov)
-    p[cue[cov]] = 0.0
+    # a hard cue is P(safe) 0 whatever the model says: the model runs on the other points only
+    p = np.zeros(int(np.count_nonzero(cov)), np.float32)
+    live = ~cue[cov]
+    if live.any():
+        p[live] = model.predict(feats, cov & ~cue)
     a = cap_slope(feats, cap)[cov]
     with np.errstate(invalid="ignore"):
         over = a >= a_max
