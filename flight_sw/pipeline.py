@@ -95,6 +95,7 @@ LEVELS = ("image_only", "coarse", "full")
 # Flight v2's stage costs for the anytime logic, unthrottled CPU seconds at REF_PIXELS (512^2, this
 # host, median of 3): a stage that cannot stop part-way starts only when its cost fits before the reserve.
 REF_PIXELS = 512 * 512
+MAX_GRID_CELLS_PER_PIXEL = 2.0  # the world grid's bound (an approach view at 512^2 has 0.6 cells per pixel)
 # shading wall cue (relative brightness at footprint scale): two Gaussian blurs, linear in the local-mean
 # sigma (5 px: 2.9 ms, 43 px: 27 ms, 60 px: 37 ms), and the footprint grows in pixels as the lander descends
 WALL_CUE_S_PER_SIGMA_PX = 0.00062
@@ -148,7 +149,7 @@ def grid_cells_estimate(camera: Camera, pose: Pose, covered: np.ndarray, z: floa
     if not (math.isfinite(cell) and cell > 0):
         return int(cov.sum()) * step * step
     _, shape = grid_extent(np.where(cov, X, np.nan), np.where(cov, Y, np.nan), cell)
-    return int((shape[0] + step - 1) * (shape[1] + step - 1))
+    return int(min((shape[0] + step - 1) * (shape[1] + step - 1), MAX_GRID_CELLS_PER_PIXEL * cov_full.size))
 
 
 def reserves(p: Params) -> dict[str, tuple[tuple[str, ...], float]]:
@@ -843,11 +844,19 @@ def _ground_grid(
     where each cell falls in i1 and ``g_cov`` the cells both images see.
 
     ``cell_m`` None: i1's median GSD over the covered area (over the whole image if that gives no cell).
+    The grid never holds more than ``MAX_GRID_CELLS_PER_PIXEL`` cells per i1 pixel: a view that reaches
+    toward the horizon covers kilometres of ground (a 128 px camera tilted 80 deg asked for 16 GiB of grid
+    indices), so its cell grows until the grid fits (memory bounded before it is spent).
     """
     cell = cell_m or ground_sample_distance(X, Y, covered, 50.0)
     if not math.isfinite(cell) or cell <= 0:
         cell = ground_sample_distance(X, Y, np.ones(covered.shape, bool))
-    origin, shape = grid_extent(np.where(covered, X, np.nan), np.where(covered, Y, np.nan), cell)
+    cx, cy = np.where(covered, X, np.nan), np.where(covered, Y, np.nan)
+    origin, shape = grid_extent(cx, cy, cell)
+    cap = MAX_GRID_CELLS_PER_PIXEL * covered.size
+    while shape[0] * shape[1] > cap:
+        cell *= 1.01 * math.sqrt(shape[0] * shape[1] / cap)
+        origin, shape = grid_extent(cx, cy, cell)
     GX, GY = grid_xy(shape, origin, cell)
     gu, gv = image_to_grid_coords(camera, pose1, z_fill, GX, GY, z_ref)
     g_cov = pull(covered.astype(np.float32), gu, gv) > 0.999

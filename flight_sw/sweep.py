@@ -108,7 +108,7 @@ def planes_uniform_disparity(
         seen[:] = True
     step = np.hypot(*np.diff(pos[:, :, seen], axis=0).transpose(1, 0, 2)).max(axis=1) * scale
     arc = np.concatenate([[0.0], np.cumsum(step)])
-    n = max(2, int(np.ceil(arc[-1] / step_px)) + 1)
+    n = max(3, int(np.ceil(arc[-1] / step_px)) + 1)  # a sweep needs three planes, however short the baseline
     return np.interp(np.linspace(0.0, arc[-1], n), arc, zs)
 
 

@@ -454,6 +454,33 @@ def test_frames_that_share_no_ground_get_a_clear_error(preset):
         run_pipeline(i1, i2, p1, p2, cam, preset=preset)
 
 
+@pytest.mark.parametrize("preset", ["fast", "thesis"])
+def test_a_view_toward_the_horizon_gets_a_bounded_grid(preset):
+    """A camera tilted 80 deg sees ground out to the horizon: at the median ground sample distance its world
+    grid asked for 16 GiB of indices (a fuzzed pose); the cell now grows until the grid fits its bound."""
+    from synthetic import tilted_R
+
+    from flight_sw.pipeline import MAX_GRID_CELLS_PER_PIXEL
+
+    cam, p1, p2, i1, i2, _ = make_pair(128, 60.6, 34.1, plane(0.0), seed=3, R=tilted_R(80.3))
+    r = run_pipeline(i1, i2, p1, p2, cam, preset=preset, sun_azimuth_deg=38.0, sun_elevation_deg=50.7)
+    assert 0 < r.grid.state.size <= MAX_GRID_CELLS_PER_PIXEL * i1.size
+    assert np.any(r.grid.state != STATE_OUTSIDE)
+
+
+def test_a_baseline_too_short_for_three_planes_still_sweeps():
+    """693 -> 650 m with a 9 deg tilt: the thesis flow's coarse range held two planes, and its sweep refused
+    them with a ValueError; a sweep now always gets three."""
+    from synthetic import tilted_R
+
+    from flight_sw.sweep import planes_uniform_disparity
+
+    cam, p1, p2, i1, i2, _ = make_pair(128, 693.6, 650.5, plane(0.0), seed=5, R=tilted_R(8.9, "y"))
+    assert planes_uniform_disparity(cam, p1, p2, -1.0, 1.0, 0.5).size == 3
+    r = run_pipeline(i1, i2, p1, p2, cam, preset="thesis")
+    assert r.level in ("image_only", "coarse", "full")
+
+
 def test_every_stage_checks_the_clock_in_the_v1_flow_too():
     cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(-3.0), seed=37)
     slow = dataclasses.replace(PRESETS["fast_v1"], mapping_reserve_s=0.05)
