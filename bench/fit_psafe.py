@@ -207,11 +207,21 @@ def fit_rows(
     return psafe.fit({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
 
 
-def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: float, cap: str = "a") -> dict[str, Any]:
+def score(
+    model: Any,
+    r: dict[str, Any],
+    budget: float,
+    p_min: float,
+    a_max: float,
+    cap: str = "a",
+    cap_hi: tuple[float, float] | None = None,
+) -> dict[str, Any]:
     """The FP-budget call on one pair's covered points, as the pipeline makes it (evidence.classify_calibrated).
 
     ``cap``: the slope the ``a_max`` cap reads: ``a`` (the DEM's), ``a_pc`` (with shading; the DEM's where
     it has none), ``max`` (the larger), or ``nosun``: as ``a_pc`` with every ``a_pc`` unknown (no sun given).
+    ``cap_hi = (s0, a_hi)``: where the footprint spans ``2^s0`` px or more (feature ``scale``), the cap is
+    ``a_hi`` instead (a footprint of many pixels measures its slope well).
     """
     from flight_sw.evidence import cap_slope
     from flight_sw.psafe import budget_rule
@@ -222,7 +232,8 @@ def score(model: Any, r: dict[str, Any], budget: float, p_min: float, a_max: flo
     p = model.predict(r, np.ones(r["safe"].shape, bool))
     p[r["dark"]] = 0.0
     with np.errstate(invalid="ignore"):
-        barred = (cap_slope(r, cap) >= a_max) | ~np.isfinite(r["a"])
+        lim = a_max if cap_hi is None else np.where(r["scale"] >= cap_hi[0], cap_hi[1], a_max)
+        barred = (cap_slope(r, cap) >= lim) | ~np.isfinite(r["a"])
     call = budget_rule(np.where(barred, np.nan, p), budget, p_min, n=p.size)
     th = ~r["safe"]
     n = max(1, th.size)
@@ -273,6 +284,13 @@ def main(argv: list[str] | None = None) -> int:
         help="CV: which slope the --a-max cap reads (score(); fast reads a_pc)",
     )
     ap.add_argument(
+        "--cap-hi",
+        nargs="+",
+        default=[],
+        metavar="S0:A",
+        help="CV: also score with the cap at A where the footprint spans 2^S0 px or more (score())",
+    )
+    ap.add_argument(
         "--blank-shading", type=float, default=0.0, help="share of fit points with a_pc blanked (fit_rows())"
     )
     ap.add_argument(
@@ -300,8 +318,16 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.cv or args.reliability:
         folds = [args.seeds[i :: args.folds] for i in range(args.folds)]
-        res: dict[tuple[float, float, float, str], list[dict[str, Any]]] = {
-            (b, a, pm, c): [] for b in args.budgets for a in args.a_max for pm in args.p_min for c in args.cap
+        his: list[tuple[float, float] | None] = [None] + [
+            (float(x.split(":")[0]), float(x.split(":")[1])) for x in args.cap_hi
+        ]
+        res: dict[tuple[float, float, float, str, tuple[float, float] | None], list[dict[str, Any]]] = {
+            (b, a, pm, c, h): []
+            for b in args.budgets
+            for a in args.a_max
+            for pm in args.p_min
+            for c in args.cap
+            for h in his
         }
         rel: list[tuple[float, np.ndarray, np.ndarray]] = []
         for fold in folds:
@@ -312,8 +338,8 @@ def main(argv: list[str] | None = None) -> int:
             for r in rows:
                 if r["seed"] not in fold:
                     continue
-                for (b, a_max, pm, cap), out in res.items():
-                    s = score(model, r, b, pm, a_max, cap)
+                for (b, a_max, pm, cap, hi), out in res.items():
+                    s = score(model, r, b, pm, a_max, cap, hi)
                     out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
                 rel.append((float(r["fp_px"]), s["p"], r["safe"]))
         if args.cv:
@@ -324,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                 + " |"
             )
             print("|---:|---:|---|---:|---|---:|---|---:|" + "---|" * len(cases))
-            for (b, a_max, pm, cap), rs in res.items():
+            for (b, a_max, pm, cap, hi), rs in res.items():
                 fps = [x["fp"] for x in rs]
                 worst = max(rs, key=lambda x: x["fp"])
                 per_case = []
@@ -332,7 +358,8 @@ def main(argv: list[str] | None = None) -> int:
                     sel = [x for x in rs if x["case"] == c]
                     per_case.append(f"{max(x['fp'] for x in sel):.2f}, {_med([x['cdi'] for x in sel]):.1f}")
                 print(
-                    f"| {100 * b:.2f} % | {a_max:g} | {cap} | {pm:g} "
+                    f"| {100 * b:.2f} % | {a_max:g}{'' if hi is None else f' ({hi[1]:g} from 2^{hi[0]:g} px)'} "
+                    f"| {cap} | {pm:g} "
                     f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
                     f"| {statistics.median(x['cdi'] for x in rs):.1f} | " + " | ".join(per_case) + " |"
