@@ -338,8 +338,8 @@ def main(argv: list[str] | None = None) -> int:
             for r in rows:
                 if r["seed"] not in fold:
                     continue
-                for (b, a_max, pm, cap, hi), out in res.items():
-                    s = score(model, r, b, pm, a_max, cap, hi)
+                for (b, a_max, pm, cap, ch), out in res.items():
+                    s = score(model, r, b, pm, a_max, cap, ch)
                     out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
                 rel.append((float(r["fp_px"]), s["p"], r["safe"]))
         if args.cv:
@@ -350,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                 + " |"
             )
             print("|---:|---:|---|---:|---|---:|---|---:|" + "---|" * len(cases))
-            for (b, a_max, pm, cap, hi), rs in res.items():
+            for (b, a_max, pm, cap, ch), rs in res.items():
                 fps = [x["fp"] for x in rs]
                 worst = max(rs, key=lambda x: x["fp"])
                 per_case = []
@@ -358,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
                     sel = [x for x in rs if x["case"] == c]
                     per_case.append(f"{max(x['fp'] for x in sel):.2f}, {_med([x['cdi'] for x in sel]):.1f}")
                 print(
-                    f"| {100 * b:.2f} % | {a_max:g}{'' if hi is None else f' ({hi[1]:g} from 2^{hi[0]:g} px)'} "
+                    f"| {100 * b:.2f} % | {a_max:g}{'' if ch is None else f' ({ch[1]:g} from 2^{ch[0]:g} px)'} "
                     f"| {cap} | {pm:g} "
                     f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
