@@ -31,15 +31,20 @@ def prefilter(img: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
     return out, np.diag([s, s, 1.0])
 
 
+MAX_AREA_SIGMA = 64.0  # i2 pixels: a GSD ratio of 1/220 (a 2:1 descent pair needs 0.5)
+
+
 def area_sigma(scale: float) -> float:
     """Gaussian sigma (i2 pixels) that turns i2's pixel integration into i1's.
 
     An i1 pixel integrates a box ``1/scale`` i2 pixels wide, an i2 pixel a box
-    1 wide; matching second moments gives ``sigma^2 = (1/scale^2 - 1) / 12``.
+    1 wide; matching second moments gives ``sigma^2 = (1/scale^2 - 1) / 12``,
+    at most ``MAX_AREA_SIGMA`` (a camera 10^7 times farther asked OpenCV for a
+    kernel it could not allocate; past a few hundred pixels nothing is left to match).
     """
     if not 0 < scale <= 1:
         return 0.0
-    return math.sqrt((1.0 / scale**2 - 1.0) / 12.0)
+    return min(math.sqrt((1.0 / scale**2 - 1.0) / 12.0), MAX_AREA_SIGMA)
 
 
 def area_prefilter(img: np.ndarray, scale: float) -> np.ndarray:

@@ -40,3 +40,34 @@ def test_random_geometry_gives_a_result_or_a_clear_error(seed):
             continue
         assert r.level in ("image_only", "coarse", "full")
         assert r.grid.state.size <= MAX_GRID_CELLS_PER_PIXEL * i1.size
+
+
+def _mutations():
+    from protocol.pairdir import Camera, Pose
+
+    cam, p1, p2, i1, i2, _ = make_pair(64, 200.0, 100.0, plane(0.0), seed=1)
+    c = cam
+    yield "NaN altitude", c, p1, Pose(np.array([0.0, 0.0, np.nan]), p2.R), i1, i2
+    yield "scaled rotation", c, p1, Pose(p2.position, p2.R * 2.0), i1, i2
+    yield "negative focal length", Camera(c.width, c.height, -c.fx, c.fy, c.cx, c.cy), p1, p2, i1, i2
+    yield "principal point far off", Camera(c.width, c.height, c.fx, c.fy, 1e6, c.cy), p1, p2, i1, i2
+    yield "zero baseline", c, p1, Pose(p1.position.copy(), p1.R), i1, i2
+    yield "camera 2 below ground", c, p1, Pose(np.array([0.0, 0.0, -50.0]), p2.R), i1, i2
+    yield "wrong image size", c, p1, p2, i1, i2[:, :32]
+    yield "NaN image", c, p1, p2, i1.astype(np.float32) * np.nan, i2
+    # the pose refinement's blur for a 10^7 GSD ratio asked OpenCV for a kernel it could not allocate
+    yield "camera 1 at 10^9 m", c, Pose(np.array([0.0, 0.0, 1e9]), p1.R), p2, i1, i2
+    yield "tiny focal length", Camera(c.width, c.height, 1e-6, 1e-6, c.cx, c.cy), p1, p2, i1, i2
+    yield "camera 2 100 km away", c, p1, Pose(np.array([1e5, 0.0, 100.0]), p2.R), i1, i2
+
+
+@pytest.mark.parametrize("case", list(_mutations()), ids=lambda c: c[0])
+@pytest.mark.parametrize("preset", ["fast", "thesis"])
+def test_bad_poses_cameras_and_images_give_a_result_or_a_clear_error(case, preset):
+    _, cam, p1, p2, i1, i2 = case
+    try:
+        r = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
+    except FlightInputError as exc:
+        assert str(exc) and "\n" not in str(exc)
+        return
+    assert r.level in ("image_only", "coarse", "full")
