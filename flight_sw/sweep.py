@@ -25,6 +25,7 @@ from protocol.pairdir import Camera, Pose
 
 from .correlation import parabolic_offset, pixel_cost, window_sum
 from .homography import homography_parts, map_points, plane_homography
+from .validate import FlightInputError
 from .warping import warp_to_i1
 
 __all__ = [
@@ -108,6 +109,8 @@ def planes_uniform_disparity(
         seen[:] = True
     step = np.hypot(*np.diff(pos[:, :, seen], axis=0).transpose(1, 0, 2)).max(axis=1) * scale
     arc = np.concatenate([[0.0], np.cumsum(step)])
+    if not np.all(np.isfinite(arc)):
+        raise FlightInputError("the poses and camera give no finite image motion between planes (check them)")
     n = max(3, int(np.ceil(arc[-1] / step_px)) + 1)  # a sweep needs three planes, however short the baseline
     return np.interp(np.linspace(0.0, arc[-1], n), arc, zs)
 

@@ -33,6 +33,34 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
     return img
 
 
+MAX_POSITION_M = 1.0e7  # 10,000 km: past any descent (the Moon's radius is 1,737 km)
+MAX_FOCAL_SIDES = 1000.0  # focal length at most 1000 image sides (a 0.06 deg field of view)
+MAX_PRINCIPAL_SIDES = 10.0  # principal point within 10 image sides of the image
+
+
+def check_geometry(camera: Camera, poses: list[Pose]) -> None:
+    """Finite is not enough: values far outside any descent make the geometry overflow (a pose at 1e308 m
+    gave NaN parallax deep in the sweep). Bounds: ``|position| <= MAX_POSITION_M``, focal lengths up to
+    ``MAX_FOCAL_SIDES`` image sides, the principal point within ``MAX_PRINCIPAL_SIDES`` sides of the image."""
+    side = float(max(camera.width, camera.height))
+    if max(camera.fx, camera.fy) > MAX_FOCAL_SIDES * side:
+        raise FlightInputError(
+            f"camera: focal length {max(camera.fx, camera.fy):.4g} px is over {MAX_FOCAL_SIDES:g} image sides"
+        )
+    lim = MAX_PRINCIPAL_SIDES * side
+    if not (-lim <= camera.cx <= camera.width + lim and -lim <= camera.cy <= camera.height + lim):
+        raise FlightInputError(
+            f"camera: principal point ({camera.cx:.4g}, {camera.cy:.4g}) lies more than {MAX_PRINCIPAL_SIDES:g} "
+            "image sides outside the image"
+        )
+    for k, pose in enumerate(poses):
+        if float(np.abs(pose.position).max()) > MAX_POSITION_M:
+            raise FlightInputError(
+                f"pose{k + 1}: position {[float(v) for v in pose.position]} m is over {MAX_POSITION_M:g} m from "
+                "the origin"
+            )
+
+
 def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camera: Camera) -> None:
     """Validate the pipeline's inputs: camera, images, poses, and i2 taken below i1."""
     if not isinstance(camera, Camera):
@@ -46,6 +74,7 @@ def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         pose2.validate("pose2")
     except PairFormatError as exc:
         raise FlightInputError(str(exc)) from None
+    check_geometry(camera, [pose1, pose2])
     check_image(i1, "i1", camera)
     check_image(i2, "i2", camera)
     if not pose2.position[2] < pose1.position[2]:
@@ -75,6 +104,7 @@ def check_frames(images: list[np.ndarray], poses: list[Pose], camera: Camera, ma
             pose.validate(f"pose{k + 1}")
         except PairFormatError as exc:
             raise FlightInputError(str(exc)) from None
+        check_geometry(camera, [pose])
         check_image(images[k], f"i{k + 1}", camera)
         if not pose.position[2] < poses[k - 1].position[2]:
             raise FlightInputError(

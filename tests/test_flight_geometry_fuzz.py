@@ -59,6 +59,10 @@ def _mutations():
     yield "camera 1 at 10^9 m", c, Pose(np.array([0.0, 0.0, 1e9]), p1.R), p2, i1, i2
     yield "tiny focal length", Camera(c.width, c.height, 1e-6, 1e-6, c.cx, c.cy), p1, p2, i1, i2
     yield "camera 2 100 km away", c, p1, Pose(np.array([1e5, 0.0, 100.0]), p2.R), i1, i2
+    # finite but past any descent: the geometry overflowed into NaN parallax inside the sweep
+    yield "camera 1 at 1e300 m", c, Pose(np.array([0.0, 0.0, 1e300]), p1.R), p2, i1, i2
+    yield "principal point at 1e300 px", Camera(c.width, c.height, c.fx, c.fy, 1e300, c.cy), p1, p2, i1, i2
+    yield "focal length 1e300 px", Camera(c.width, c.height, 1e300, 1e300, c.cx, c.cy), p1, p2, i1, i2
 
 
 @pytest.mark.parametrize("case", list(_mutations()), ids=lambda c: c[0])
