@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         k, _, v = kv.partition("=")
         if k not in {f.name for f in dataclasses.fields(FusionParams)}:
             ap.error(f"--fusion: FusionParams has no field {k!r}")
-        overrides[k] = v if k == "extent" else int(v) if k in ("accumulate_calls", "max_cells") else float(v)
+        overrides[k] = type(getattr(FusionParams(), k))(v)  # the field's own type: str, int or float
     FusionParams(**overrides).validate()
     seeds = list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     streams = [(c, s) for c in args.cases for s in seeds]
