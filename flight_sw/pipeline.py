@@ -96,10 +96,12 @@ LEVELS = ("image_only", "coarse", "full")
 # host, median of 3): a stage that cannot stop part-way starts only when its cost fits before the reserve.
 REF_PIXELS = 512 * 512
 MAX_GRID_CELLS_PER_PIXEL = 2.0  # the world grid's bound (an approach view at 512^2 has 0.6 cells per pixel)
-# shading wall cue (relative brightness at footprint scale): two Gaussian blurs, linear in the local-mean
-# sigma (5 px: 2.9 ms, 43 px: 27 ms, 60 px: 37 ms), and the footprint grows in pixels as the lander descends
-WALL_CUE_S_PER_SIGMA_PX = 0.00062
-SHADOW_BASE_S = 0.004  # the shadow stage without the wall cue: the clock learns the real slowdown from both
+# shading wall cue (relative brightness at footprint scale): two Gaussian blurs on copies small enough that
+# the cost no longer follows the sigma (shading.wide_blur; it was 0.62 ms per px of sigma, 37 ms at 60 px):
+# the whole shadow stage now takes 4-7 ms at 512^2 from 50 to 1200 m (stop 30). The clock learns the real
+# slowdown from the stage only when it cost more than that (Clock.learn ignores stages under 5 ms)
+WALL_CUE_S = 0.001
+SHADOW_BASE_S = 0.004  # the shadow stage without the wall cue
 MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's 1 / CPU fraction
 # the most CPU cold caches add to a stage at 1-2 % duty: measured <= 1.4x on rad750 and gr740 over pose
 # refinement, the DEM and the shadow stage (HIL telemetry against the same pairs unthrottled, 2026-11-24)
@@ -1310,7 +1312,7 @@ def _run_v2(
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
-        wall_cue_s = WALL_CUE_S_PER_SIGMA_PX * rho_sigma
+        wall_cue_s = WALL_CUE_S
         if need_rho and clock.ok(reserve + wall_cue_s * px_scale):
             rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0), wide=True)
             sun_ref = p.shading_sun_ref_deg
@@ -1323,8 +1325,8 @@ def _run_v2(
         elif need_rho:
             info["skipped"].append("wall_cue")
     if "wall_cue" not in info["skipped"]:
-        # the stage's unthrottled cost follows the cue's sigma: a fixed reference (14 ms, right at 600 m)
-        # read a 200/100 pair's 29 ms as a 2x slowdown and left rad750 image-only with 16 s to spare
+        # the stage's unthrottled cost must be the one it has: a reference below it reads as a slowdown (a fixed
+        # 14 ms read a 200/100 pair's 29 ms as 2x and left rad750 image-only), one above it hides a real one
         ref = (SHADOW_BASE_S + (wall_cue_s if need_rho else 0.0)) * px_scale
         clock.learn(ref, timings["shadow"]["wall_s"], timings["shadow"]["cpu_s"])
 
