@@ -1315,8 +1315,7 @@ def _run_v2(
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
-        wall_cue_s = WALL_CUE_S
-        if need_rho and clock.ok(reserve + wall_cue_s * px_scale):
+        if need_rho and clock.ok(reserve + WALL_CUE_S * px_scale):
             rho = relative_brightness(i1, rho_sigma, max(1.0, fp_px / 3.0), wide=True)
             sun_ref = p.shading_sun_ref_deg
             read_as = sun_e
@@ -1330,7 +1329,7 @@ def _run_v2(
     if "wall_cue" not in info["skipped"]:
         # the stage's unthrottled cost must be the one it has: a reference below it reads as a slowdown (a fixed
         # 14 ms read a 200/100 pair's 29 ms as 2x and left rad750 image-only), one above it hides a real one
-        ref = (SHADOW_BASE_S + (wall_cue_s if need_rho else 0.0)) * px_scale
+        ref = (SHADOW_BASE_S + (WALL_CUE_S if need_rho else 0.0)) * px_scale
         clock.learn(ref, timings["shadow"]["wall_s"], timings["shadow"]["cpu_s"])
 
     with _stage(timings, "range"):
