@@ -50,7 +50,9 @@ import numpy as np
 
 from flight_sw.fusion import FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
-from flight_sw.pipeline import PRESETS, run_pipeline  # loaded at boot, before Hello: not inside the first deadline
+
+# loaded at boot, before Hello: not inside the first deadline
+from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
 from protocol.errors import EXIT_MEMORY, InputError
@@ -79,6 +81,9 @@ DEFAULT_FUSION = 1  # fusion (0/1): Results report the map fused over the descen
 # Fusing and choosing sites on the fused map happen after the pipeline returns: unthrottled seconds
 # (x time_scale) kept for them (a 400x400 grid: ~20 ms to fuse, ~10 ms for sites on this host)
 FUSION_RESERVE_S = 0.03
+# the reserves of the next pair are planned from the largest of the last few pairs' measured costs
+# (pipeline.measured_reserve_ratio): one fast pair does not shrink them
+RESERVE_HISTORY = 3
 
 
 @dataclass
@@ -147,6 +152,8 @@ class FlightProcess:
         # largest, since a degraded Result is smaller than the full one the next pair may reach
         self.max_result_bytes = 0
         self.last_output_s = 0.0  # encoding + handing over the last Result, in this process's clock
+        # wall s per reserved unthrottled s of the mapping stages + fusion + output, on the last pairs
+        self.reserve_ratios: list[float] = []
         self.fused: FusedMap | None = None  # the map fused over the descent so far
         self.fusion_params = FusionParams()
         self._stop = threading.Event()
@@ -186,6 +193,7 @@ class FlightProcess:
                 prefault_heap(heap_mib_for(cam.width, cam.height))
                 self.heap_ready_px = cam.width * cam.height
             self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
+            self.reserve_ratios = []  # another budget or camera: what the reserves cost is measured anew
         elif isinstance(msg, Frame):
             self._on_frame(msg)
 
@@ -250,6 +258,7 @@ class FlightProcess:
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
                 time_scale=time_scale,
                 after_s=after_s,
+                reserve_measured=max(self.reserve_ratios) if self.reserve_ratios else None,
             )
         except InputError as exc:
             self.link.send(Error(code="bad_input", text=str(exc), seq=lower.seq))
@@ -272,6 +281,10 @@ class FlightProcess:
             return
         done = time.monotonic()
         self.last_output_s = done - t_out
+        fusion_wall = float(res.timings.get("fusion", {}).get("wall_s", 0.0))
+        ratio = measured_reserve_ratio(res.timings, res.info, res.level, fusion_wall + self.last_output_s, after_s)
+        if ratio is not None:
+            self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.max_result_bytes = max(self.max_result_bytes, int(self._bytes_sent() - sent0))
         self.link.send(

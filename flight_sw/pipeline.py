@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -123,6 +123,13 @@ MAP_IMAGE_S = 0.052
 MAP_COVERED_S = 0.083
 MAP_CELLS_S = 0.170
 
+# the stages the mapping reserve covers: what runs after the DEM (measured_reserve_ratio sums their wall time)
+MAPPING_STAGES = ("georef", "grid", "slope", "shading_slope", "hazard", "sites")
+# planning from what the reserved work really took on the previous pairs (_Clock.reserve_scale): kept x this.
+# Demo pairs (snapdragon801 at 21 % duty, 2026-12-02): the mapping stages and the fusion + output took 2.5-3.4 wall s
+# per reserved second against the nominal 4.75; planning with the largest of the last pairs x this covers that spread
+MEASURED_RESERVE_MARGIN = 1.25
+
 
 def mapping_cost_s(n_image: int, n_covered: int, n_cells: int) -> float:
     """Modelled CPU s of the stages after the DEM::
@@ -133,6 +140,39 @@ def mapping_cost_s(n_image: int, n_covered: int, n_cells: int) -> float:
     (a grid at the median ground sample distance over ground whose far part is coarser), and the slope
     and grid stages cost per cell: 0.11 s on nadir pairs, 0.17-0.20 s on approach pairs at 512^2."""
     return (MAP_IMAGE_S * n_image + MAP_COVERED_S * n_covered + MAP_CELLS_S * n_cells) / REF_PIXELS
+
+
+def measured_reserve_ratio(
+    timings: Mapping[str, Mapping[str, float]],
+    info: Mapping[str, Any],
+    level: str,
+    after_wall_s: float,
+    after_s: float,
+) -> float | None:
+    """Wall seconds the reserved work took per unthrottled second reserved for it, on one pair.
+
+    ``ratio = (sum of the MAPPING_STAGES' wall time + after_wall_s) / (info["mapping_reserve_s"] + after_s)``:
+    the pair's planned mapping reserve and what the caller reserved for its own work after the pipeline
+    (``after_wall_s``: what that work took). Only a pair with a DEM (full or coarse: the mapping stages map
+    it on the same grid) that skipped none of those stages measures the work its reserve was planned for:
+    None otherwise (an image-only pair's mapping stages have no DEM to map and cost a fraction of it), or
+    when nothing was reserved. The flight process passes
+    the recent pairs' largest ratio as ``reserve_measured``.
+    """
+    reserved = float(info.get("mapping_reserve_s", 0.0)) + after_s
+    skipped = set(info.get("skipped", ()))
+    if (
+        level not in ("full", "coarse")
+        or skipped & set(MAPPING_STAGES)
+        or not (reserved > 0 and after_s >= 0 and after_wall_s >= 0)
+    ):
+        return None
+    needed = [k for k in MAPPING_STAGES if k != "shading_slope"]  # no sun, no shading slope: not a degradation
+    if any(k not in timings for k in needed):
+        return None
+    wall = sum(float(timings[k]["wall_s"]) for k in MAPPING_STAGES if k in timings)
+    ratio = (wall + after_wall_s) / reserved
+    return ratio if math.isfinite(ratio) and ratio > 0 else None
 
 
 def grid_cells_estimate(camera: Camera, pose: Pose, covered: np.ndarray, z: float, cell_m: float | None) -> int:
@@ -587,15 +627,19 @@ def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
 
 @dataclass
 class _Clock:
-    """The deadline in ``time.monotonic()`` seconds; reserves are unthrottled seconds x ``scale``.
+    """The deadline in ``time.monotonic()`` seconds; reserves are unthrottled seconds x :meth:`reserve_scale`.
 
     ``scale`` is the emulated processor's slowdown (1 / CPU fraction): a reserve that covers the
-    mapping stages on this host covers them on a processor ``scale`` times slower.
+    mapping stages on this host covers them on a processor ``scale`` times slower. ``measured``, when
+    the caller has it, is what the reserved work really took on its previous pairs: wall seconds per
+    reserved unthrottled second (:func:`measured_reserve_ratio`), which also holds the host's speed
+    against the reference costs the reserves are written in.
     """
 
     deadline: float | None
     scale: float = 1.0
     after: float = 0.0  # the caller's work after the pipeline returns, unthrottled s (reserved x scale)
+    measured: float | None = None
 
     def __post_init__(self) -> None:
         self.base = self.scale
@@ -618,13 +662,30 @@ class _Clock:
         if ref > 0.005 and wall_s > 0:
             self.scale = max(self.scale, min(wall_s / ref, MAX_LEARNED_SCALE * self.base))
 
+    def reserve_scale(self) -> float:
+        """Wall seconds to keep per unthrottled second of reserve.
+
+        Without a measurement: ``scale``. With one: ``measured x MEASURED_RESERVE_MARGIN``, what the reserved
+        work really cost on the previous pairs. The reserves are modelled costs on a reference host with a
+        margin, so ``scale`` kept 0.5-0.8 s of a 2 s deadline unused on snapdragon801; and ``scale`` is raised
+        by the slowest of two short early stages (pose refinement, shadows: 0.05 s of CPU), whose wall time
+        at 21 % duty swung it from 4.75 to 5.5-7.7 on 4 of 8 pairs of one descent and skipped their DEM. The
+        reserved work lasts about a second of wall time: its own past cost predicts it better than a spike
+        does (docs/hil.md, "How our flight software plans for it").
+        """
+        if self.measured is None:
+            return self.scale
+        return self.measured * MEASURED_RESERVE_MARGIN
+
     def before(self, reserve_s: float) -> float | None:
         """The time by which work must stop to leave ``reserve_s`` (unthrottled) for what follows."""
-        return None if self.deadline is None else self.deadline - (reserve_s + self.after) * self.scale
+        return None if self.deadline is None else self.deadline - (reserve_s + self.after) * self.reserve_scale()
 
     def ok(self, reserve_s: float = 0.0) -> bool:
         """True while ``reserve_s`` (unthrottled) still fits before the deadline."""
-        return self.deadline is None or time.monotonic() + (reserve_s + self.after) * self.scale < self.deadline
+        if self.deadline is None:
+            return True
+        return time.monotonic() + (reserve_s + self.after) * self.reserve_scale() < self.deadline
 
 
 def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
@@ -660,6 +721,7 @@ def run_pipeline(
     after_s: float = 0.0,
     sun_elevation_deg: float | None = None,
     sun_azimuth_deg: float | None = None,
+    reserve_measured: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from two descent images (i1 higher, i2 lower; poses world->camera).
 
@@ -677,7 +739,9 @@ def run_pipeline(
     footprint slope is also read from the shading (``Params.shading_slope``, :mod:`flight_sw.photoclinometry`). With
     ``Params.refine_pose`` the poses are first refined from the
     images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
-    Raises :class:`FlightInputError` for bad arguments.
+    ``reserve_measured`` (wall s per reserved unthrottled s, :func:`measured_reserve_ratio` on the caller's
+    previous pairs) plans the reserves from what they really cost instead of ``time_scale`` alone
+    (``_Clock.reserve_scale``). Raises :class:`FlightInputError` for bad arguments.
     """
     return run_pipeline_multi(
         [i1, i2],
@@ -692,6 +756,7 @@ def run_pipeline(
         after_s=after_s,
         sun_elevation_deg=sun_elevation_deg,
         sun_azimuth_deg=sun_azimuth_deg,
+        reserve_measured=reserve_measured,
     )
 
 
@@ -709,6 +774,7 @@ def run_pipeline_multi(
     after_s: float = 0.0,
     sun_elevation_deg: float | None = None,
     sun_azimuth_deg: float | None = None,
+    reserve_measured: float | None = None,
 ) -> PipelineResult:
     """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
 
@@ -744,7 +810,12 @@ def run_pipeline_multi(
             raise FlightInputError(f"after_s must be a non-negative number of seconds, got {after_s!r}")
         sun_e = _sun_elevation(sun_elevation_deg)
         sun_az = _sun_azimuth(sun_azimuth_deg)
-        clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s))
+        if reserve_measured is not None and not (
+            isinstance(reserve_measured, (int, float)) and math.isfinite(reserve_measured) and reserve_measured > 0
+        ):
+            raise FlightInputError(f"reserve_measured must be a positive number, got {reserve_measured!r}")
+        measured = None if reserve_measured is None else float(reserve_measured)
+        clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s), measured)
     pose_info: dict[str, Any] | None = None
     if p.refine_pose:
         # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve

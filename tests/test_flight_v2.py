@@ -522,3 +522,47 @@ def test_clock_learns_the_slowdown_not_a_stage_that_costs_more_on_this_data():
     assert c.scale < 52.0 * 1.6
     c.learn(0.014, 1e3, 0.028)  # bounded
     assert c.scale == pytest.approx(MAX_LEARNED_SCALE * 52.0)
+
+
+def test_reserves_follow_what_the_reserved_work_really_cost():
+    """With a measurement of what the reserved work took on earlier pairs, the clock plans from it (x the
+    margin, raised by this pair's own slowdown over the nominal one) instead of the nominal slowdown alone;
+    without one it plans as before. The measurement is wall s per reserved unthrottled s."""
+    from flight_sw.pipeline import MAPPING_STAGES, MEASURED_RESERVE_MARGIN, _Clock, measured_reserve_ratio
+
+    # snapdragon801 on a host faster than the reserves' reference: the work took 3 wall s per reserved s, not 4.75
+    nominal = _Clock(deadline=100.0, scale=4.75, after=0.07)
+    measured = _Clock(deadline=100.0, scale=4.75, after=0.07, measured=3.0)
+    assert nominal.before(0.14) == pytest.approx(100.0 - 0.21 * 4.75)
+    assert measured.before(0.14) == pytest.approx(100.0 - 0.21 * 3.0 * MEASURED_RESERVE_MARGIN)
+    assert measured.before(0.14) > nominal.before(0.14)  # more of the deadline for the DEM
+    # one short early stage ran 1.4x slower than nominal: the nominal plan follows that spike, the measured one
+    # keeps to what the reserved work itself cost
+    nominal.learn(0.06, 0.06 * 4.75 * 1.4, 0.05)
+    measured.learn(0.06, 0.06 * 4.75 * 1.4, 0.05)
+    assert nominal.reserve_scale() == pytest.approx(4.75 * 1.4)
+    assert measured.reserve_scale() == pytest.approx(3.0 * MEASURED_RESERVE_MARGIN)
+    # a slower host than the reference: the measurement raises the reserve above the nominal one
+    assert _Clock(deadline=0.0, scale=4.75, measured=6.0).reserve_scale() > 4.75
+
+    timings = {k: {"wall_s": 0.05, "cpu_s": 0.01} for k in MAPPING_STAGES}
+    n, info = len(MAPPING_STAGES), {"mapping_reserve_s": 0.1, "skipped": []}
+    assert measured_reserve_ratio(timings, info, "full", 0.02, 0.05) == pytest.approx((0.05 * n + 0.02) / 0.15)
+    no_sun = {k: v for k, v in timings.items() if k != "shading_slope"}
+    assert measured_reserve_ratio(no_sun, info, "full", 0.0, 0.0) == pytest.approx(0.05 * (n - 1) / 0.1)
+    # a degraded pair ran part of what was reserved: no measurement (an image-only pair still times its mapping
+    # stages, at a fraction of their cost with a DEM); nor without a reserve
+    assert measured_reserve_ratio(timings, info, "image_only", 0.0, 0.0) is None
+    assert measured_reserve_ratio(timings, {**info, "skipped": ["sites"]}, "full", 0.0, 0.0) is None
+    assert measured_reserve_ratio({k: v for k, v in timings.items() if k != "hazard"}, info, "full", 0.0, 0.0) is None
+    assert measured_reserve_ratio(timings, {}, "full", 0.0, 0.0) is None
+    cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(0.0), seed=43)
+    for bad in (0.0, -1.0, float("nan"), "3"):
+        with pytest.raises(FlightInputError, match="reserve_measured"):
+            run_pipeline(i1, i2, p1, p2, cam, reserve_measured=bad)  # type: ignore[arg-type]
+    # at a nominal 1e5x slowdown the reserves (a few ms here) outgrow a 10 s deadline and every DEM stage is
+    # skipped; measured at 1e-3 wall s per reserved s, the same deadline leaves room for the full level
+    nominal_r = run_pipeline(i1, i2, p1, p2, cam, deadline_s=10.0, time_scale=1e5)
+    assert nominal_r.level == "image_only" and "full_dem" in nominal_r.info["skipped"]
+    planned = run_pipeline(i1, i2, p1, p2, cam, deadline_s=10.0, time_scale=1e5, reserve_measured=1e-3)
+    assert planned.level == "full" and not planned.degraded

@@ -422,3 +422,47 @@ def test_flight_process_applies_the_relief_guard_to_the_fused_map():
         near_wall.append(min(abs(s.x) for s in sites))
     assert near_wall[0] < 2.0  # the aim point (0, 0) is at the wall: without the guard the site is there
     assert near_wall[1] >= 14.0
+
+
+def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_cost(monkeypatch):
+    """The first pair of a Config plans its reserves from the nominal slowdown; each later one from the
+    largest measured cost of the reserved work on the last pairs (pipeline.measured_reserve_ratio); a new
+    Config measures anew."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
+
+    import flight_sw.flight_main as fm
+    from protocol.messages import Config, Result
+    from protocol.pairdir import Pose
+
+    cam = camera_fov30(128)
+    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
+    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
+    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    seen: list = []
+    real = fm.run_pipeline
+
+    def spy(*args, **kw):
+        seen.append((kw.get("reserve_measured"), list(fp.reserve_ratios)))  # what it was told, what it had
+        return real(*args, **kw)
+
+    monkeypatch.setattr(fm, "run_pipeline", spy)
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
+    fp.handle(Config(**cfg, options={"time_scale": 2.0}))
+    for i in range(fm.RESERVE_HISTORY + 1):
+        for f in _frames(f"p{i}", 10 * i, list(zip(poses, imgs))):
+            fp.handle(f)
+    assert len([m for m in link.sent if isinstance(m, Result)]) == fm.RESERVE_HISTORY + 1
+    assert seen[0] == (None, [])
+    for k, (told, had) in enumerate(seen[1:], 1):
+        assert len(had) == min(k, fm.RESERVE_HISTORY)  # the last few pairs only
+        assert all(v > 0 for v in had) and told == max(had)  # planned from the largest of them
+    fp.handle(Config(**cfg, options={"time_scale": 4.0}))
+    for f in _frames("q", 100, list(zip(poses, imgs))):
+        fp.handle(f)
+    assert seen[-1] == (None, [])
