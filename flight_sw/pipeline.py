@@ -156,17 +156,18 @@ def measured_reserve_ratio(
     (``after_wall_s``: what that work took). Only a pair with a DEM (full or coarse: the mapping stages map
     it on the same grid) that skipped none of those stages measures the work its reserve was planned for:
     None otherwise (an image-only pair's mapping stages have no DEM to map and cost a fraction of it), or
-    when nothing was reserved. The flight process passes
-    the recent pairs' largest ratio as ``reserve_measured``.
+    when the pair planned no mapping reserve (the v1 flow of ``thesis``). The flight process passes the
+    recent pairs' largest ratio as ``reserve_measured``.
     """
-    reserved = float(info.get("mapping_reserve_s", 0.0)) + after_s
+    mapping = float(info.get("mapping_reserve_s", 0.0))
     skipped = set(info.get("skipped", ()))
     if (
         level not in ("full", "coarse")
         or skipped & set(MAPPING_STAGES)
-        or not (reserved > 0 and after_s >= 0 and after_wall_s >= 0)
+        or not (mapping > 0 and after_s >= 0 and after_wall_s >= 0)
     ):
         return None
+    reserved = mapping + after_s
     needed = [k for k in MAPPING_STAGES if k != "shading_slope"]  # no sun, no shading slope: not a degradation
     if any(k not in timings for k in needed):
         return None
@@ -638,7 +639,7 @@ class _Clock:
 
     deadline: float | None
     scale: float = 1.0
-    after: float = 0.0  # the caller's work after the pipeline returns, unthrottled s (reserved x scale)
+    after: float = 0.0  # the caller's work after the pipeline returns, unthrottled s (reserved x reserve_scale())
     measured: float | None = None
 
     def __post_init__(self) -> None:

@@ -556,6 +556,8 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     assert measured_reserve_ratio(timings, {**info, "skipped": ["sites"]}, "full", 0.0, 0.0) is None
     assert measured_reserve_ratio({k: v for k, v in timings.items() if k != "hazard"}, info, "full", 0.0, 0.0) is None
     assert measured_reserve_ratio(timings, {}, "full", 0.0, 0.0) is None
+    # the v1 flow (thesis preset) plans no mapping reserve: the caller's own reserve alone is not its measure
+    assert measured_reserve_ratio(timings, {"skipped": []}, "full", 0.02, 0.05) is None
     cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(0.0), seed=43)
     for bad in (0.0, -1.0, float("nan"), "3"):
         with pytest.raises(FlightInputError, match="reserve_measured"):
