@@ -41,7 +41,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -416,6 +416,15 @@ def _manifest_entries(manifest: Path | None) -> list[dict]:
         return []
 
 
+def _manifest_scenario(manifest: Path) -> str:
+    """The scenario a rendered descent's manifest names; a hand-made one without it is named by its path."""
+    try:
+        name = json.loads(manifest.read_text()).get("scenario")
+    except (OSError, ValueError, AttributeError):
+        name = None
+    return str(name) if isinstance(name, str) and name else f"pairs of {manifest}"
+
+
 def _read_records(path: Path) -> list[dict]:
     """The ground's records (a torn last line, impossible with atomic writes, is skipped all the same)."""
     out = []
@@ -477,6 +486,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         manifest = Path(cfg.manifest)
         if not manifest.is_file():
             raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
+        # the report names what was streamed: the manifest's scenario, not the default one
+        cfg = replace(cfg, scenario=_manifest_scenario(manifest))
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
         check_memory(budget, *_image_side(cfg, manifest))
 

@@ -33,8 +33,9 @@ def telemetry_events(path, name="supervisor.jsonl"):
 
 
 def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
-    s = run(manifest, tmp_path)
+    s = run(manifest, tmp_path, scenario="approach")  # ignored: the manifest says what was streamed
     assert [r["label"] for r in s["records"]] == PAIRS
+    assert s["scenario"] == "vertical" and "**vertical** over **zmq**" in (tmp_path / "summary.md").read_text()
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
