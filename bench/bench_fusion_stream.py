@@ -17,18 +17,27 @@ Per case: pixel FP % (median / worst, Results over 1 %), CDI % (median), and the
 Result (FP: largest increase and how many Results rise by more than 0.1 points; CDI: median and smallest).
 Seeds come from ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``; worst cases beside medians.
 Pipeline grids are cached per stream in ``--grids`` so that fusion settings can be compared quickly.
+
+``--levels`` runs the stream's pairs at the given levels, position by position (cycled), as a slow
+flight processor delivers them: ``image_only`` (the nominal-slowdown trick of the tests: reserves that
+outgrow the deadline), ``coarse`` (the full-resolution DEM reported incomplete, as when the deadline
+stops its sweep), ``full``. The snapdragon801 approach descent of docs/hil.md (stop 32) delivered
+``image_only,image_only,coarse,full,full,coarse,coarse,full``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import math
 import os
 import pickle
 import statistics
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -41,32 +50,58 @@ sys.path.insert(0, str(ROOT / "bench"))
 DEFAULT_CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
 
-def stream_results(case: str, seed: int, cache: Path, grids: Path) -> list[dict[str, Any]]:
-    """The case's pairs, highest first, each with its pipeline grid (cached in ``grids``)."""
+LEVELS = ("image_only", "coarse", "full")
+
+
+@contextlib.contextmanager
+def dense_incomplete(on: bool) -> Iterator[None]:
+    """While ``on``: the pipeline's full-resolution DEM comes back incomplete, so a pair stops at ``coarse``."""
+    import flight_sw.pipeline as pl
+
+    real = pl.dense_dem
+    if on:
+        pl.dense_dem = lambda *a, **k: dataclasses.replace(real(*a, **k), complete=False)  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        pl.dense_dem = real
+
+
+def stream_results(
+    case: str, seed: int, cache: Path, grids: Path, levels: tuple[str, ...] = ("full",)
+) -> list[dict[str, Any]]:
+    """The case's pairs, highest first, each with its pipeline grid at ``levels[k % len]`` (cached in ``grids``)."""
     from eval_flight import case_key, render_case
 
     from flight_sw.pipeline import PRESETS, run_pipeline
     from protocol.pairdir import read_pair
 
-    f = grids / f"{case_key(case, seed)}.pkl"
+    tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
+    f = grids / f"{case_key(case, seed)}{tag}.pkl"
     if f.is_file():
         return list(pickle.loads(f.read_bytes()))
     out = []
-    for e in sorted(render_case(case, seed, cache), key=lambda e: -e["altitude_m"]):
+    for k, e in enumerate(sorted(render_case(case, seed, cache), key=lambda e: -e["altitude_m"])):
         pair = read_pair(Path(e["pair_dir"]))
-        r = run_pipeline(  # with the sun, as a HIL Frame carries it (the shading slope needs its azimuth)
-            pair.images[0],
-            pair.images[-1],
-            pair.poses[0],
-            pair.poses[-1],
-            pair.camera,
-            preset=PRESETS["fast"],
-            sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
-            sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
-        )
+        want = levels[k % len(levels)]
+        slow = {"deadline_s": 10.0, "time_scale": 1e5} if want == "image_only" else {}
+        with dense_incomplete(want == "coarse"):
+            r = run_pipeline(  # with the sun, as a HIL Frame carries it (the shading slope needs its azimuth)
+                pair.images[0],
+                pair.images[-1],
+                pair.poses[0],
+                pair.poses[-1],
+                pair.camera,
+                preset=PRESETS["fast"],
+                sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+                sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
+                **slow,  # type: ignore[arg-type]
+            )
+        if r.level != want:
+            raise RuntimeError(f"{e['pair_dir']}: asked for level {want}, the pipeline gave {r.level}")
         mask = r.covered & np.isfinite(pair.truth["hazard"])
         out.append({"dir": e["pair_dir"], "alt": e["altitude_m"], "grid": r.grid, "params": r.params,
-                    "info": r.info, "mask": mask})  # fmt: skip
+                    "info": r.info, "mask": mask, "level": r.level})  # fmt: skip
     grids.mkdir(parents=True, exist_ok=True)
     tmp = f.with_name(f"{f.name}.partial{os.getpid()}")  # concurrent runs never share a temporary file
     tmp.write_bytes(pickle.dumps(out))
@@ -89,14 +124,15 @@ def score_stream(results: list[dict[str, Any]], overrides: dict[str, Any]) -> li
         fm = fuse(fm, r["grid"], prm)
         alone = score_grid(pair, r["grid"], r["mask"], xy)
         fused = score_grid(pair, to_hazard_grid(fm, prm), r["mask"], xy)
-        rows.append({"alt": r["alt"], "fp": alone["fp"], "cdi": alone["cdi"], "fp_f": fused["fp"],
-                     "cdi_f": fused["cdi"]})  # fmt: skip
+        rows.append({"alt": r["alt"], "level": r.get("level", "full"), "fp": alone["fp"], "cdi": alone["cdi"],
+                     "fp_f": fused["fp"], "cdi_f": fused["cdi"]})  # fmt: skip
     return rows
 
 
 def summary(rows: list[dict[str, float]]) -> dict[str, float]:
     dfp = [r["fp_f"] - r["fp"] for r in rows]
     dcdi = [r["cdi_f"] - r["cdi"] for r in rows]
+    dcdi_full = [r["cdi_f"] - r["cdi"] for r in rows if r.get("level", "full") == "full"] or [math.nan]
     return {
         "results": len(rows),
         "fp_med": statistics.median(r["fp"] for r in rows),
@@ -111,21 +147,26 @@ def summary(rows: list[dict[str, float]]) -> dict[str, float]:
         "dfp_over01": sum(d > 0.1 for d in dfp),
         "dcdi_med": statistics.median(dcdi),
         "dcdi_min": min(dcdi),
+        "full": sum(r.get("level", "full") == "full" for r in rows),
+        "dcdi_full_med": statistics.median(dcdi_full),
+        "dcdi_full_min": min(dcdi_full),
     }
 
 
 def table(per_case: dict[str, dict[str, float]]) -> str:
     out = [
         "| case | Results | alone: FP % med / worst (> 1 %) | alone: CDI % med | fused: FP % med / worst (> 1 %) "
-        "| fused: CDI % med | FP change: max (Results > +0.1) | CDI change: med / min |",
-        "|---|---:|---|---:|---|---:|---|---|",
+        "| fused: CDI % med | FP change: max (Results > +0.1) | CDI change: med / min "
+        "| full-level Results: CDI change med / min |",
+        "|---|---:|---|---:|---|---:|---|---|---|",
     ]
     for case, s in per_case.items():
         out.append(
             f"| {case} | {s['results']} | {s['fp_med']:.2f} / {s['fp_worst']:.2f} ({s['fp_over1']}) "
             f"| {s['cdi_med']:.1f} | {s['fp_f_med']:.2f} / {s['fp_f_worst']:.2f} ({s['fp_f_over1']}) "
             f"| {s['cdi_f_med']:.1f} | {s['dfp_max']:+.2f} ({s['dfp_over01']}) "
-            f"| {s['dcdi_med']:+.1f} / {s['dcdi_min']:+.1f} |"
+            f"| {s['dcdi_med']:+.1f} / {s['dcdi_min']:+.1f} "
+            f"| {s['dcdi_full_med']:+.1f} / {s['dcdi_full_min']:+.1f} ({s['full']}) |"
         )
     return "\n".join(out)
 
@@ -139,7 +180,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grids", default="/tmp/fusion_stream_grids_sun", help="cached pipeline grids per stream")
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
     ap.add_argument("--json", help="write per-Result rows and the summary here")
+    ap.add_argument("--levels", default="full", help="comma list of pipeline levels per stream position, cycled")
     args = ap.parse_args(argv)
+    levels = tuple(x.strip() for x in args.levels.split(","))
+    if not levels or any(x not in LEVELS for x in levels):
+        ap.error(f"--levels: each must be one of {LEVELS}, got {args.levels!r}")
 
     from eval_flight import CASES
 
@@ -161,13 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}
     t0 = time.perf_counter()
     for k, (case, seed) in enumerate(streams, 1):
-        res = stream_results(case, seed, Path(args.cache), Path(args.grids))
+        res = stream_results(case, seed, Path(args.cache), Path(args.grids), levels)
         rows[case] += [{"seed": seed, **r} for r in score_stream(res, overrides)]
         print(f"[{k}/{len(streams)}] {case} seed {seed}: {len(res)} pairs ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)  # fmt: skip
     per_case = {c: summary(r) for c, r in rows.items() if r}
     per_case["all"] = summary([x for r in rows.values() for x in r])
-    print(f"\nFusion over streamed descents, {args.set} seeds {seeds}, overrides {overrides or 'none'}\n")
+    print(f"\nFusion over streamed descents, {args.set} seeds {seeds}, levels {','.join(levels)}, "
+          f"overrides {overrides or 'none'}\n")  # fmt: skip
     print(table(per_case))
     if args.json:
         Path(args.json).write_text(json.dumps({"seeds": seeds, "overrides": overrides, "summary": per_case,
