@@ -309,8 +309,11 @@ def classify_calibrated(
     against its uncertainty instead: a point at or above ``a_max`` stays callable while
     ``a + k u < 1`` (the slope is below the limit by k standard uncertainties; issue 9's "judge slope
     against its uncertainty"), which lets well-measured 6-15 deg ground through at low altitude and
-    changes nothing where ``u`` is large. ``cap`` picks the slope the cap reads (:func:`cap_slope`). Unsafe = a cue or
-    ``P(safe) < p_unsafe`` (more likely a hazard than not, for ``p_unsafe = 0.5``); unknown otherwise.
+    changes nothing where ``u`` is large. ``cap`` picks the slope the cap reads (:func:`cap_slope`). Unsafe = a cue or,
+    where the footprint slope was measured, ``P(safe) < p_unsafe`` (more likely a hazard than not, for
+    ``p_unsafe = 0.5``); unknown otherwise. A point without an elevation and without a cue is unknown
+    whatever its P(safe): with no slope, the trees' P(safe) is a context prior (0.09 on every point of an
+    image-only pair), not evidence of a hazard (DESIGN.md: unknown = not enough evidence).
     The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
     """
     cov = np.asarray(covered, bool)
@@ -325,14 +328,15 @@ def classify_calibrated(
         over = a >= a_max
         if a_sigma_k > 0:
             over &= ~(a + np.float32(a_sigma_k) * np.asarray(feats["u"], np.float32)[cov] < 1.0)
-        barred = over | ~np.isfinite(np.asarray(feats["a"], np.float32)[cov])  # no elevation: never called on context
+        unmeasured = ~np.isfinite(np.asarray(feats["a"], np.float32)[cov])
+        barred = over | unmeasured  # no elevation: never called on context
     call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
     psafe = np.full(cov.shape, np.nan, np.float32)
     psafe[cov] = p
     state = np.full(cov.shape, STATE_OUTSIDE, np.uint8)
     st = np.full(p.shape, STATE_UNKNOWN, np.uint8)
     st[call] = STATE_SAFE
-    st[(p < p_unsafe) & ~call] = STATE_UNSAFE
+    st[(((p < p_unsafe) & ~unmeasured) | cue[cov]) & ~call] = STATE_UNSAFE
     state[cov] = st
     with np.errstate(invalid="ignore"):
         h = np.fmax(np.asarray(feats["a"], np.float32), np.asarray(feats["rough"], np.float32))

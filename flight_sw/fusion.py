@@ -11,6 +11,7 @@ the discounting below)::
     l_0  = max(0, logit(prior_p))                           (the prior every P_i holds)
     e    = L - l_0                                          (what earlier results added to the prior)
     L   <- l_i + (w e  if e > 0  else  e)                   (the first result to map a cell: L = l_i)
+    L    = l_0 where no result has had evidence yet         (mapped, but nothing measured: the prior)
 
 **The newest result enters whole.** Lower results are finer and see hazards a higher, coarser one
 blurred away (a 3 m footprint spans 2 cells at 500 m and 10 at 100 m), so the map takes each new
@@ -28,9 +29,12 @@ fitted on) two results that know nothing about a cell would call it 95 % safe. S
 0.5``, ``l_0 = 0``, suits the flat-prior Gaussian P(safe) of :mod:`flight_sw.evidence`). ``l_0`` is
 never below 0: a prior for "unsafe" is not added back, which keeps the rule for hazards below.
 
-**No elevation, no evidence for "safe".** Where a result has no elevation its P(safe) is only a
-context prior; it leaves the cell's evidence as it was (the demo showed FP 10 % when image-only
-results were allowed to add to "safe"), unless it calls the cell unsafe (shadow) or below even.
+**No elevation, no evidence.** Where a result has no elevation its P(safe) is only a context prior;
+it leaves the cell's evidence as it was, unless the result calls the cell unsafe (a hard cue: dark
+shadow). Either way round the prior did harm: added to "safe", the demo showed FP 10 % after an
+image-only result; taken against it (the trees give 0.09 on every point of an image-only pair), one
+image-only result at the top of a snapdragon801 approach descent left the fused map of the
+full-level pairs below it almost nothing safe (CDI 8 % against 66 % alone, docs/hil.md, stop 32).
 
 **Accumulated evidence needs a higher bar, and a call.** A cell the newest result that measured it
 did not call safe by its own decision (the pipeline's P floor, slope cap and FP budget) becomes safe
@@ -185,10 +189,8 @@ def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
     lo = 1.0 / (1.0 + math.exp(params.l_max))
     p = np.clip(np.where(np.isfinite(ps), ps, 0.5), lo, 1.0 - lo)
     out = np.log(p / (1.0 - p))
-    # no elevation, no evidence for "safe": a calibrated P(safe) there is only a context prior, and
-    # counted over results it would call unmeasured ground safe (demo: FP 10 % after an image-only result)
-    no_dem = ~np.isfinite(np.asarray(grid.elevation, np.float64))
-    out[no_dem & (~np.isfinite(ps) | (out >= prior_logodds(params)))] = np.nan
+    # no elevation, no evidence: a calibrated P(safe) there is only a context prior (module doc)
+    out[~np.isfinite(np.asarray(grid.elevation, np.float64))] = np.nan
     out[st == STATE_UNSAFE] = -params.l_unsafe
     out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
     return out.astype(np.float32)
@@ -324,9 +326,12 @@ def fuse(
     mapped = (st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN)
     m_new = resample(mapped.astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape, fill=0.0) > 0.5
     upd = np.isfinite(l_new)  # the result has evidence for the cell
-    e = np.where(base.seen > 0, base.logodds - np.float32(prior_logodds(prm)), np.float32(0.0))
+    l0 = np.float32(prior_logodds(prm))
+    e = np.where(base.seen > 0, base.logodds - l0, np.float32(0.0))
     carried = np.where(e > 0, np.float32(w) * e, e)  # earlier evidence for "safe" discounted, against it whole
-    logodds = np.where(upd, np.nan_to_num(l_new) + carried, base.logodds)
+    # a cell first mapped without evidence holds the prior (e = 0), not log-odds 0: below a calibrated
+    # prior that would read as evidence against "safe" for every later result
+    logodds = np.where(upd, np.nan_to_num(l_new) + carried, np.where(base.seen > 0, base.logodds, l0))
     seen = np.minimum(base.seen.astype(np.int32) + (m_new | upd), 255).astype(np.uint8)
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
     # did the newest result with evidence call the cell safe (a coarser map cell: only if all its parts were)

@@ -21,7 +21,7 @@ from ground_sim.descent import DEFAULT_SUN, render_pair
 from ground_sim.library import scene_sun
 from ground_sim.scene import load_scene
 from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
-from protocol.pairdir import STATE_SAFE
+from protocol.pairdir import STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
 
 def _render(scenario: str, scene: str, seed: int, label: str):
@@ -96,6 +96,18 @@ def test_slope_cap_judged_against_its_uncertainty():
     assert (soft.state[0] == STATE_SAFE).tolist() == [True, True, False, True, False]
     with pytest.raises(FlightInputError, match="call_slope_sigma_k"):
         dataclasses.replace(PRESETS["fast"], call_slope_sigma_k=-1.0).validate()
+
+
+def test_a_point_without_a_slope_is_unknown_unless_a_cue_condemns_it():
+    """DESIGN.md: unknown = not enough evidence. With no elevation the trees' P(safe) is a context prior
+    (0.09 on every point of an image-only pair): below p_unsafe it must not read as a hazard. A hard cue
+    (dark shadow) is unsafe with or without an elevation; a measured slope with a low P(safe) is unsafe."""
+    a = np.array([[np.nan, np.nan, 0.2, 0.2]], np.float32)
+    feats = {"a": a, "u": np.full_like(a, 0.1), "rough": np.zeros_like(a)}
+    cues = np.array([[False, True, False, True]])
+    ev = classify_calibrated(_ConstModel(0.09), feats, cues, np.ones(a.shape, bool), 0.01, 0.97)  # type: ignore[arg-type]
+    assert ev.state[0].tolist() == [STATE_UNKNOWN, STATE_UNSAFE, STATE_UNSAFE, STATE_UNSAFE]
+    assert ev.psafe[0, 1] == 0.0 and ev.psafe[0, 3] == 0.0  # a cue's P(safe) is 0 whatever the model says
 
 
 @pytest.mark.slow

@@ -191,6 +191,28 @@ def test_results_without_an_elevation_never_make_ground_safe():
     assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
 
 
+def test_an_image_only_result_neither_clears_nor_condemns_what_later_pairs_measure():
+    """A slow processor's first pairs come back image-only: no elevation, the trees' context P(safe) (0.09
+    on a snapdragon801 approach) on every cell, and dark shadow called unsafe. Taken against "safe",
+    that left the full-level pairs below it almost nothing safe (docs/hil.md, stop 32). Only the
+    shadow call may count; a later measured result then decides alone."""
+    shape = (12, 12)
+    blind_st = np.full(shape, STATE_UNKNOWN, np.uint8)
+    blind_st[:, :3] = STATE_UNSAFE  # a shadow: P(safe) 0, a hard cue
+    blind = grid_of(blind_st, np.where(blind_st == STATE_UNSAFE, 0.0, 0.09), elevation=np.full(shape, np.nan))
+    measured = uniform(STATE_SAFE, 0.98, shape=shape)  # a full-level pair, safe at its own P floor
+    for prm in (FusionParams(), CALIBRATED):
+        fm = fuse(fuse(None, blind, prm), measured, prm)
+        st, _ = fused_state(fm, prm)
+        assert np.all(st[:, 3:] == STATE_SAFE), "the image-only prior was taken as evidence against safety"
+        assert np.all(st[:, :3] == STATE_UNSAFE), "the shadow it called unsafe was lost"
+        alone = fused_state(fuse(None, measured, prm), prm)[0]
+        assert np.array_equal(st[:, 3:], alone[:, 3:])
+    # the same prior with an elevation is a measurement: against "safe" it still counts
+    fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.09, shape=shape), CALIBRATED), measured, CALIBRATED)
+    assert not (fused_state(fm, CALIBRATED)[0] == STATE_SAFE).any()
+
+
 def test_a_calibrated_prior_is_counted_once():
     """Calibrated P(safe) is a posterior holding the prior share of safe ground; results that add no
     evidence beyond it must leave a cell at the prior, not add it up into "safe"."""
