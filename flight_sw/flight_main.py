@@ -137,8 +137,13 @@ def frame_pose(frame: Frame) -> Pose:
 class FlightProcess:
     """Pairs frames, runs the pipeline under the deadline, reports results and telemetry."""
 
-    def __init__(self, link, faults: FaultPlan, heartbeat_s: float = 0.25, prefault: bool = False) -> None:
+    def __init__(
+        self, link, faults: FaultPlan, heartbeat_s: float = 0.25, prefault: bool = False, probe: bool = False
+    ) -> None:
         self.link = link
+        # on a new Config, measure what the reserved work costs on a synthetic pair of the camera's size while
+        # the first frames are on the line, if there is time (flight_sw.warmup.probe_fits)
+        self.probe = probe
         # touch the heap a new camera's pairs will use when its Config arrives (flight_sw.warmup): the frames
         # are still on the line then, and no deadline runs
         self.prefault = prefault
@@ -194,8 +199,34 @@ class FlightProcess:
                 self.heap_ready_px = cam.width * cam.height
             self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
             self.reserve_ratios = []  # another budget or camera: what the reserves cost is measured anew
+            if self.probe:
+                self._probe(msg, cam.width * cam.height)
         elif isinstance(msg, Frame):
             self._on_frame(msg)
+
+    def _probe(self, cfg: Config, pixels: int) -> None:
+        """Plan the first pair from a measurement too (:func:`flight_sw.warmup.planning_probe`): without one it
+        reserves at the nominal slowdown, which on a snapdragon801 approach left every DEM stage skipped while
+        half the deadline went unused, and image-only pairs never measure what would free it."""
+        from flight_sw.warmup import planning_probe, probe_fits
+
+        time_scale = float(cfg.options.get("time_scale", 1.0))
+        preset = PRESETS.get(cfg.preset or "fast")
+        if preset is None or not probe_fits(pixels, time_scale, float(cfg.options.get("link_baud", 0))):
+            return
+        try:
+            pr = planning_probe(preset, pixels)
+        except (InputError, ValueError) as exc:  # a probe that cannot run plans nothing; the descent goes on
+            print(f"flight: planning probe failed: {exc}", file=sys.stderr, flush=True)
+            return
+        if pr["ratio"] is not None:
+            self.reserve_ratios = [float(pr["ratio"])]
+        print(
+            f"flight: planning probe {pr['size_px']} px pair, level {pr['level']}, {pr['wall_s']:.2f} s: "
+            f"reserved work {pr['ratio'] or float('nan'):.2f} wall s per reserved s (nominal {time_scale:.2f})",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def _on_frame(self, frame: Frame) -> None:
         now = time.monotonic()
@@ -404,7 +435,8 @@ def main(argv: list[str] | None = None) -> int:
         "--no-warm-up",
         dest="warm_up",
         action="store_false",
-        help="skip the boot warm-up (flight_sw.warmup): the first pair then pays the one-off set-up costs",
+        help="skip the boot warm-up and the planning probe on each new Config (flight_sw.warmup): the first pair "
+        "then pays the one-off set-up costs and plans its reserves at the nominal slowdown",
     )
     args = ap.parse_args(argv)
     import cv2
@@ -427,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     link = StreamLink(sock, config=LOCAL_CONFIG, name="supervisor")
     try:
-        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat, prefault).run()
+        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat, prefault, probe=args.warm_up).run()
     except MemoryError:  # the emulated memory ceiling: say so by exit status, not a traceback
         os._exit(EXIT_MEMORY)
     finally:
