@@ -27,9 +27,13 @@ in this process's clock, and ``after_s`` (encoding and handing over the Result,
 ``OUTPUT_RESERVE_S``, plus ``FUSION_RESERVE_S`` for fusing and choosing sites
 when fusion is on; unthrottled seconds) to reserve at the slowdown it measures,
 which at low duty cycles exceeds ``time_scale``. The line time comes from the
-Result's expected size (the largest Result's so far, or a prior from the camera
+Result's expected size (the largest of the last few Results, or a prior from the camera
 and the grid steps for the first) and the rate ``Config.options["link_baud"]``
 announces; a longer measured output time of the last pair is kept back as well.
+The reserves themselves are planned from what the reserved work cost on the last
+pairs with a DEM (``pipeline.measured_reserve_ratio``, the largest of the last
+``RESERVE_HISTORY``), and the Result's line time from the largest of the last
+``RESULT_HISTORY`` Results.
 
 ``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
 to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
@@ -84,6 +88,7 @@ FUSION_RESERVE_S = 0.03
 # the reserves of the next pair are planned from the largest of the last few pairs' measured costs
 # (pipeline.measured_reserve_ratio): one fast pair does not shrink them
 RESERVE_HISTORY = 3
+RESULT_HISTORY = 3  # the next Result's line time is planned from the largest of the last this many Results
 
 
 @dataclass
@@ -137,13 +142,8 @@ def frame_pose(frame: Frame) -> Pose:
 class FlightProcess:
     """Pairs frames, runs the pipeline under the deadline, reports results and telemetry."""
 
-    def __init__(
-        self, link, faults: FaultPlan, heartbeat_s: float = 0.25, prefault: bool = False, probe: bool = False
-    ) -> None:
+    def __init__(self, link, faults: FaultPlan, heartbeat_s: float = 0.25, prefault: bool = False) -> None:
         self.link = link
-        # on a new Config, measure what the reserved work costs on a synthetic pair of the camera's size while
-        # the first frames are on the line, if there is time (flight_sw.warmup.probe_fits)
-        self.probe = probe
         # touch the heap a new camera's pairs will use when its Config arrives (flight_sw.warmup): the frames
         # are still on the line then, and no deadline runs
         self.prefault = prefault
@@ -153,9 +153,9 @@ class FlightProcess:
         self.config: Config | None = None
         self.pending: dict[str, PendingPair] = {}
         self.pairs_seen = 0
-        # wire size (framed) of the largest Result under the current Config, for the next pair's line time: the
-        # largest, since a degraded Result is smaller than the full one the next pair may reach
-        self.max_result_bytes = 0
+        # wire sizes (framed) of the last RESULT_HISTORY Results under the current Config, for the next pair's line
+        # time: the largest of them, since a degraded Result can be smaller than the full one the next pair may reach
+        self.result_bytes: list[int] = []
         self.last_output_s = 0.0  # encoding + handing over the last Result, in this process's clock
         # wall s per reserved unthrottled s of the mapping stages + fusion + output, on the last pairs
         self.reserve_ratios: list[float] = []
@@ -197,36 +197,10 @@ class FlightProcess:
 
                 prefault_heap(heap_mib_for(cam.width, cam.height))
                 self.heap_ready_px = cam.width * cam.height
-            self.max_result_bytes = 0  # other grid steps or maps: the sizes seen so far no longer apply
+            self.result_bytes = []  # other grid steps or maps: the sizes seen so far no longer apply
             self.reserve_ratios = []  # another budget or camera: what the reserves cost is measured anew
-            if self.probe:
-                self._probe(msg, cam.width * cam.height)
         elif isinstance(msg, Frame):
             self._on_frame(msg)
-
-    def _probe(self, cfg: Config, pixels: int) -> None:
-        """Plan the first pair from a measurement too (:func:`flight_sw.warmup.planning_probe`): without one it
-        reserves at the nominal slowdown, which on a snapdragon801 approach left every DEM stage skipped while
-        half the deadline went unused, and image-only pairs never measure what would free it."""
-        from flight_sw.warmup import planning_probe, probe_fits
-
-        time_scale = float(cfg.options.get("time_scale", 1.0))
-        preset = PRESETS.get(cfg.preset or "fast")
-        if preset is None or not probe_fits(pixels, time_scale, float(cfg.options.get("link_baud", 0))):
-            return
-        try:
-            pr = planning_probe(preset, pixels)
-        except (InputError, ValueError) as exc:  # a probe that cannot run plans nothing; the descent goes on
-            print(f"flight: planning probe failed: {exc}", file=sys.stderr, flush=True)
-            return
-        if pr["ratio"] is not None:
-            self.reserve_ratios = [float(pr["ratio"])]
-        print(
-            f"flight: planning probe {pr['size_px']} px pair, level {pr['level']}, {pr['wall_s']:.2f} s: "
-            f"reserved work {pr['ratio'] or float('nan'):.2f} wall s per reserved s (nominal {time_scale:.2f})",
-            file=sys.stderr,
-            flush=True,
-        )
 
     def _on_frame(self, frame: Frame) -> None:
         now = time.monotonic()
@@ -317,7 +291,7 @@ class FlightProcess:
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
-            self.max_result_bytes = max(self.max_result_bytes, int(self._bytes_sent() - sent0))
+            self.result_bytes = [*self.result_bytes, int(self._bytes_sent() - sent0)][-RESULT_HISTORY:]
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -336,14 +310,18 @@ class FlightProcess:
         return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
 
     def expected_result_bytes(self, cfg: Config) -> float:
-        """The next Result's size on the wire: the largest so far (+20 %), at least half the camera prior (bytes).
+        """The next Result's size on the wire: the largest of the last ``RESULT_HISTORY`` (+20 %), at least half
+        the camera prior (bytes).
 
         The floor matters after a degraded Result: an image-only one is a few kB, and planning the next
         full-level Result's line time from it missed the deadline (demo, 300/150: 2.21 s against 2 s).
+        Only the last few count because the size follows the descent: on an approach the fused map of the
+        highest pairs (a large oblique grid, with elevations) was 50-63 kB, the lowest pairs' 5-25 kB, and
+        planning those with 0.87 s of line time kept them image-only (docs/hil.md, stop 32).
         """
         prior = self._prior_result_bytes(cfg)
-        if self.max_result_bytes:
-            return max(1.2 * self.max_result_bytes, PRIOR_FLOOR * prior)
+        if self.result_bytes:
+            return max(1.2 * max(self.result_bytes), PRIOR_FLOOR * prior)
         return prior
 
     @staticmethod
@@ -435,8 +413,7 @@ def main(argv: list[str] | None = None) -> int:
         "--no-warm-up",
         dest="warm_up",
         action="store_false",
-        help="skip the boot warm-up and the planning probe on each new Config (flight_sw.warmup): the first pair "
-        "then pays the one-off set-up costs and plans its reserves at the nominal slowdown",
+        help="skip the boot warm-up (flight_sw.warmup): the first pair then pays the one-off set-up costs",
     )
     args = ap.parse_args(argv)
     import cv2
@@ -459,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     link = StreamLink(sock, config=LOCAL_CONFIG, name="supervisor")
     try:
-        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat, prefault, probe=args.warm_up).run()
+        return FlightProcess(link, FaultPlan.parse(args.fault), args.heartbeat, prefault).run()
     except MemoryError:  # the emulated memory ceiling: say so by exit status, not a traceback
         os._exit(EXIT_MEMORY)
     finally:

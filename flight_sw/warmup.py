@@ -32,7 +32,7 @@ import numpy as np
 from protocol.pairdir import Camera, Pose
 
 from .georef import backproject
-from .pipeline import Params, measured_reserve_ratio, run_pipeline
+from .pipeline import Params, run_pipeline
 
 # glibc mallopt(3) parameters
 M_TRIM_THRESHOLD = -1
@@ -123,58 +123,6 @@ def warm_up(preset: Params, size: int = 128, seed: int = 0) -> dict[str, Any]:
         "cpu_s": time.thread_time() - c0,
         "wall_s": time.monotonic() - w0,
         "size_px": int(size),
-        "level": str(res.level),
-    }
-
-
-# The planning probe (flight_main: on a new Config, while the first pair's frames are still on the line)
-PROBE_REF_S = 0.3  # unthrottled s of a `fast` pair per 512^2 px, with room (0.15-0.25 s measured, BENCHMARKS.md)
-PROBE_LINE_SHARE = 1.0  # the probe must end within this share of one frame's line time (a pair sends two)
-PROBE_MAX_SIZE = 1024  # px on a side: the probe pair is square, with the camera's pixel count up to this
-SERIAL_BITS_PER_BYTE = 10  # a start and a stop bit around each byte
-
-
-def probe_fits(pixels: int, time_scale: float, baud: float) -> bool:
-    """True when a planning probe of a ``pixels``-pixel pair at ``time_scale`` (the emulated slowdown) is over
-    by the time one frame of that size has crossed a ``baud`` line, half of the pair's two:
-    ``PROBE_REF_S x pixels / 512^2 x time_scale <= PROBE_LINE_SHARE x pixels x 10 / baud``.
-
-    The flight process reads a pair's frames when it is done with what came before; a probe still running
-    when the pair's last frame arrived would stamp its arrival late and shorten the pair's real deadline.
-    So no probe without a known line rate (``baud`` 0: a local or zmq link, whose frames arrive at once),
-    nor on a processor so slow that it could not finish in time (rad750 at 921600 baud: 27 s against 2.8 s;
-    snapdragon801: 1.4 s)."""
-    if not (baud > 0 and time_scale > 0 and pixels > 0):
-        return False
-    est = PROBE_REF_S * pixels / 512**2 * time_scale
-    return est <= PROBE_LINE_SHARE * pixels * SERIAL_BITS_PER_BYTE / baud
-
-
-def probe_size(pixels: int) -> int:
-    """The side of the square probe pair with about ``pixels`` pixels, in ``[32, PROBE_MAX_SIZE]``."""
-    return int(min(PROBE_MAX_SIZE, max(32, round(float(max(0, pixels)) ** 0.5))))
-
-
-def planning_probe(preset: Params, pixels: int, seed: int = 0) -> dict[str, Any]:
-    """Run a synthetic pair of about ``pixels`` pixels (:func:`warm_up_pair`, square, at most
-    ``PROBE_MAX_SIZE`` on a side) through ``preset`` and measure what its reserved work cost.
-
-    Returns ``{"ratio", "wall_s", "cpu_s", "size_px", "level"}``; ``ratio`` is
-    :func:`flight_sw.pipeline.measured_reserve_ratio` of the run (wall s per reserved unthrottled s of the
-    mapping stages), None when the preset plans no mapping reserve. Why a pair of the camera's size: on a
-    21 % duty cycle the mapping stages of a 128 px pair last a few throttle periods, and their ratio
-    scattered 0.3-3.0 over five runs; a 512 px synthetic pair gave 2.9-3.0 where the real 512 px pairs
-    of a descent gave 2.4-3.3 (docs/hil.md, stop 32).
-    """
-    size = probe_size(pixels)
-    c0, w0 = time.thread_time(), time.monotonic()
-    cam, p1, p2, i1, i2 = warm_up_pair(size, seed)
-    res = run_pipeline(i1, i2, p1, p2, cam, preset=preset)
-    return {
-        "ratio": measured_reserve_ratio(res.timings, res.info, res.level, 0.0, 0.0),
-        "wall_s": time.monotonic() - w0,
-        "cpu_s": time.thread_time() - c0,
-        "size_px": size,
         "level": str(res.level),
     }
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from flight_sw.pipeline import PRESETS, run_pipeline
-from flight_sw.warmup import boot_warm_up, planning_probe, probe_fits, probe_size, settle_allocator, warm_up_pair
+from flight_sw.warmup import boot_warm_up, settle_allocator, warm_up_pair
 
 
 def test_warm_up_pair_is_seeded_and_its_images_fit_its_poses():
@@ -30,23 +30,6 @@ def test_boot_warm_up_reports_what_it_did():
     w = boot_warm_up(PRESETS["fast"], size=96)
     assert w["level"] == "full" and w["size_px"] == 96 and w["cpu_s"] > 0
     assert w["allocator_settled"] == (sys.platform.startswith("linux") and settle_allocator())
-
-
-def test_planning_probe_runs_only_where_it_ends_before_the_frames_are_in():
-    px = 512 * 512
-    assert probe_fits(px, 1.0 / 0.2107, 921600)  # snapdragon801 on its serial line: ~1.4 s against 2.8 s a frame
-    assert not probe_fits(px, 90.9, 921600)  # rad750: ~27 s, the pair's frames are in long before
-    assert not probe_fits(px, 1.0, 0)  # zmq or a local link: no line rate, frames arrive at once
-    assert probe_fits(px, 1.0, 115200) and not probe_fits(px, 1.0 / 0.2107, 4_000_000)
-    assert not probe_fits(0, 1.0, 921600) and not probe_fits(px, float("nan"), 921600)
-
-
-def test_planning_probe_measures_the_reserved_work_on_a_pair_of_the_cameras_size():
-    pr = planning_probe(PRESETS["fast"], 200 * 150)
-    assert pr["level"] == "full" and pr["size_px"] == 173 and pr["cpu_s"] > 0
-    assert pr["ratio"] is not None and 0 < pr["ratio"] < 50  # unthrottled: a fraction of the reserve, with room
-    assert probe_size(4096 * 4096) == 1024 and probe_size(10) == 32  # bounded both ways
-    assert planning_probe(PRESETS["thesis"], 64 * 64)["ratio"] is None  # the v1 flow plans no mapping reserve
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not ctypes.util.find_library("c"), reason="glibc only")

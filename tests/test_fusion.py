@@ -490,39 +490,24 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
     assert seen[-1] == (None, [])
 
 
-def test_flight_process_plans_the_first_pair_from_a_probe_when_the_line_leaves_time(monkeypatch):
-    """With the probe on, a Config on a line slow enough for it (flight_sw.warmup.probe_fits) seeds the first
-    pair's plan with the probe's measured ratio; on a link without a line rate the first pair plans as before."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
-
+def test_the_next_results_line_time_follows_the_last_few_results():
+    """The line time planned for the next Result: 1.2x the largest of the last RESULT_HISTORY Results, never
+    under half the camera prior; an early large Result (an approach's high, oblique fused map) stops counting."""
     import flight_sw.flight_main as fm
     from protocol.messages import Config
-    from protocol.pairdir import Pose
 
-    cam = camera_fov30(96)
-    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
-    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
-    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
-    told: list = []
-    real = fm.run_pipeline
-
-    def spy(*args, **kw):
-        told.append(kw.get("reserve_measured"))
-        return real(*args, **kw)
-
-    monkeypatch.setattr(fm, "run_pipeline", spy)
-    cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
-    for baud, probed in ((115200, True), (0, False)):
-        fp = fm.FlightProcess(_Link(), fm.FaultPlan(), probe=True)
-        fp.handle(Config(**cfg, options={"time_scale": 1.0, "link_baud": baud}))
-        assert bool(fp.reserve_ratios) is probed
-        for f in _frames("p", 0, list(zip(poses, imgs))):
-            fp.handle(f)
-        assert (told[-1] is not None) is probed and (not probed or told[-1] == fp.reserve_ratios[0])
-    off = fm.FlightProcess(_Link(), fm.FaultPlan())  # tests and --no-warm-up: no probe
-    off.handle(Config(**cfg, options={"time_scale": 1.0, "link_baud": 115200}))
-    assert off.reserve_ratios == []
+    cam = {"width": 512, "height": 512, "fx": 955.0, "fy": 955.0, "cx": 255.5, "cy": 255.5}
+    cfg = Config(camera=cam, budget="host", deadline_s=2.0, preset="fast", options={"link_baud": 921600})
+    fp = fm.FlightProcess(_Link(), fm.FaultPlan())
+    fp.handle(cfg)
+    prior = fp.expected_result_bytes(cfg)
+    assert prior == fp._prior_result_bytes(cfg) > 0
+    for size in (63_000, 5_000, 6_000):
+        fp.result_bytes = [*fp.result_bytes, size][-fm.RESULT_HISTORY :]
+    assert fp.expected_result_bytes(cfg) == pytest.approx(1.2 * 63_000)  # still among the last three
+    fp.result_bytes = [*fp.result_bytes, 25_000][-fm.RESULT_HISTORY :]
+    assert fp.expected_result_bytes(cfg) == pytest.approx(max(1.2 * 25_000, fm.PRIOR_FLOOR * prior))
+    fp.result_bytes = [1_000]
+    assert fp.expected_result_bytes(cfg) == pytest.approx(fm.PRIOR_FLOOR * prior)  # the floor
+    fp.handle(Config(camera=cam, budget="host", deadline_s=3.0, preset="fast", options={"link_baud": 921600}))
+    assert fp.result_bytes == [] and fp.expected_result_bytes(cfg) == prior  # a new Config starts again
