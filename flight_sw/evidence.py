@@ -312,7 +312,7 @@ def classify_calibrated(
     changes nothing where ``u`` is large. ``cap`` picks the slope the cap reads (:func:`cap_slope`). Unsafe = a cue or,
     where the footprint slope was measured, ``P(safe) < p_unsafe`` (more likely a hazard than not, for
     ``p_unsafe = 0.5``); unknown otherwise. A point without an elevation and without a cue is unknown
-    whatever its P(safe): with no slope, the trees' P(safe) is a context prior (0.09 on every point of an
+    whatever its P(safe): with no slope, the trees' P(safe) is a context prior (0.08-0.13 on the points of an
     image-only pair), not evidence of a hazard (DESIGN.md: unknown = not enough evidence).
     The hazard map keeps DESIGN.md's semantics: a safe point gets ``min(max(a, rough), 0.999)``, the others 1.
     """

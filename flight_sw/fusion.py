@@ -32,7 +32,7 @@ never below 0: a prior for "unsafe" is not added back, which keeps the rule for 
 **No elevation, no evidence.** Where a result has no elevation its P(safe) is only a context prior;
 it leaves the cell's evidence as it was, unless the result calls the cell unsafe (a hard cue: dark
 shadow). Either way round the prior did harm: added to "safe", the demo showed FP 10 % after an
-image-only result; taken against it (the trees give 0.09 on every point of an image-only pair), one
+image-only result; taken against it (the trees give 0.08-0.13 on an image-only pair), one
 image-only result at the top of a snapdragon801 approach descent left the fused map of the
 full-level pairs below it almost nothing safe (CDI 8 % against 66 % alone, docs/hil.md, stop 32).
 

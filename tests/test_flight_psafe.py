@@ -100,7 +100,7 @@ def test_slope_cap_judged_against_its_uncertainty():
 
 def test_a_point_without_a_slope_is_unknown_unless_a_cue_condemns_it():
     """DESIGN.md: unknown = not enough evidence. With no elevation the trees' P(safe) is a context prior
-    (0.09 on every point of an image-only pair): below p_unsafe it must not read as a hazard. A hard cue
+    (0.08-0.13 on an image-only pair): below p_unsafe it must not read as a hazard. A hard cue
     (dark shadow) is unsafe with or without an elevation; a measured slope with a low P(safe) is unsafe."""
     a = np.array([[np.nan, np.nan, 0.2, 0.2]], np.float32)
     feats = {"a": a, "u": np.full_like(a, 0.1), "rough": np.zeros_like(a)}
