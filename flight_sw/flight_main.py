@@ -32,8 +32,7 @@ and the grid steps for the first) and the rate ``Config.options["link_baud"]``
 announces; a longer measured output time of the last pair is kept back as well.
 The reserves themselves are planned from what the reserved work cost on the last
 pairs with a DEM (``pipeline.measured_reserve_ratio``, the largest of the last
-``RESERVE_HISTORY``), and the Result's line time from the largest of the last
-``RESULT_HISTORY`` Results.
+``RESERVE_HISTORY``).
 
 ``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
 to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
