@@ -290,7 +290,7 @@ class FlightProcess:
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
-            self.result_bytes = [*self.result_bytes, int(self._bytes_sent() - sent0)][-RESULT_HISTORY:]
+            self.note_result_bytes(int(self._bytes_sent() - sent0))
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -307,6 +307,10 @@ class FlightProcess:
     def _bytes_sent(self) -> float:
         stats = getattr(self.link, "stats", {})
         return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
+
+    def note_result_bytes(self, nbytes: int) -> None:
+        """Remember a Result's framed size; only the last ``RESULT_HISTORY`` plan the next line time."""
+        self.result_bytes = [*self.result_bytes, int(nbytes)][-RESULT_HISTORY:]
 
     def expected_result_bytes(self, cfg: Config) -> float:
         """The next Result's size on the wire: the largest of the last ``RESULT_HISTORY`` (+20 %), at least half

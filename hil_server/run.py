@@ -407,21 +407,24 @@ class _Signals:
             signal.signal(sig, old)  # type: ignore[arg-type]
 
 
-def _manifest_entries(manifest: Path | None) -> list[dict]:
+def _manifest(manifest: Path | None) -> dict:
+    """A descent's manifest.json as a dict ({} when absent or unreadable: the caller reports what is missing)."""
     if manifest is None or not manifest.is_file():
-        return []
+        return {}
     try:
-        return list(json.loads(manifest.read_text()).get("pairs", []))
+        doc = json.loads(manifest.read_text())
     except (OSError, ValueError):
-        return []
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def _manifest_entries(manifest: Path | None) -> list[dict]:
+    return list(_manifest(manifest).get("pairs", []))
 
 
 def _manifest_scenario(manifest: Path) -> str:
     """The scenario a rendered descent's manifest names; a hand-made one without it is named by its path."""
-    try:
-        name = json.loads(manifest.read_text()).get("scenario")
-    except (OSError, ValueError, AttributeError):
-        name = None
+    name = _manifest(manifest).get("scenario")
     return str(name) if isinstance(name, str) and name else f"pairs of {manifest}"
 
 

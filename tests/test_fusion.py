@@ -503,11 +503,12 @@ def test_the_next_results_line_time_follows_the_last_few_results():
     prior = fp.expected_result_bytes(cfg)
     assert prior == fp._prior_result_bytes(cfg) > 0
     for size in (63_000, 5_000, 6_000):
-        fp.result_bytes = [*fp.result_bytes, size][-fm.RESULT_HISTORY :]
+        fp.note_result_bytes(size)
     assert fp.expected_result_bytes(cfg) == pytest.approx(1.2 * 63_000)  # still among the last three
-    fp.result_bytes = [*fp.result_bytes, 25_000][-fm.RESULT_HISTORY :]
+    fp.note_result_bytes(25_000)
     assert fp.expected_result_bytes(cfg) == pytest.approx(max(1.2 * 25_000, fm.PRIOR_FLOOR * prior))
-    fp.result_bytes = [1_000]
+    for _ in range(fm.RESULT_HISTORY):
+        fp.note_result_bytes(1_000)
     assert fp.expected_result_bytes(cfg) == pytest.approx(fm.PRIOR_FLOOR * prior)  # the floor
     fp.handle(Config(camera=cam, budget="host", deadline_s=3.0, preset="fast", options={"link_baud": 921600}))
     assert fp.result_bytes == [] and fp.expected_result_bytes(cfg) == prior  # a new Config starts again
