@@ -1,10 +1,14 @@
-"""Encoded size of the compact Result per grid step, on the demo's three pairs (docs/benchmarks/protocol.md).
+"""Encoded size of the compact Result per grid step and elevation unit (docs/benchmarks/protocol.md).
 
-Renders the vertical 600/300, 300/150 and 200/100 pairs (thesis scene, seed 0, 512 px) into ``--cache``,
-runs the `fast` pipeline on each and encodes the Result as the flight process builds it, for each
-(P(safe) step, elevation step) the ground can pick (``ground_sim.stream.auto_grid_steps``).
+By default renders the demo's vertical 600/300, 300/150 and 200/100 pairs (thesis scene, seed 0, 512 px)
+into ``--cache``; ``--manifest`` takes any rendered descent instead (``hazard-hil render``). Runs the `fast`
+pipeline on each pair and encodes the Result as the flight process builds it, for each (P(safe) step,
+elevation step) the ground can pick (``ground_sim.stream.auto_grid_steps``) and each elevation unit in cm
+(``auto_elevation_unit_cm``). ``--fused`` folds the pairs into one map, highest first, as the flight
+process does in a HIL run, and encodes the fused map (its Results grow with the area the descent saw).
 
     .venv/bin/python bench/bench_result_size.py [--cache /tmp/demo_pairs]
+    .venv/bin/python bench/bench_result_size.py --manifest DIR/manifest.json --fused --steps 2,2 --units 1,10
 """
 
 from __future__ import annotations
@@ -20,40 +24,63 @@ sys.path.insert(0, str(ROOT))
 STEPS = ((1, 1), (1, 2), (2, 2), (2, 4), (4, 8))
 
 
-def result_bytes(res, camera, kp: int, k: int) -> int:
-    """Encoded size of the Result the flight process builds from pipeline result ``res`` at steps (``kp``, ``k``)."""
+def result_bytes(res, camera, kp: int, k: int, unit: int = 1, grid=None, sites=None, reason=None) -> int:
+    """Encoded size of the Result the flight process builds from pipeline result ``res`` at steps (``kp``, ``k``)
+    and elevation unit ``unit`` cm; ``grid``/``sites``/``reason``: a fused map's instead of the pair's own."""
     from flight_sw.flight_main import FlightProcess
     from protocol.codec import encode_message
     from protocol.messages import Config
 
-    cfg = Config(
-        camera=camera.to_dict(), budget="host", deadline_s=2.0, options={"psafe_step": kp, "elevation_step": k}
-    )
-    msg = FlightProcess._result_message(res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
+    options = {"psafe_step": kp, "elevation_step": k, "elevation_unit_cm": unit}
+    cfg = Config(camera=camera.to_dict(), budget="host", deadline_s=2.0, options=options)
+    if grid is None:
+        grid, sites, reason = res.grid, res.sites, res.info.get("no_site_reason")
+    msg = FlightProcess._result_message(res, (1, 2), cfg, grid, sites, reason)
     return len(encode_message(msg))
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache", default="/tmp/demo_pairs", help="where the demo pairs are rendered (reused)")
+    ap.add_argument("--manifest", type=Path, default=None, help="a rendered descent's manifest.json instead")
+    ap.add_argument("--fused", action="store_true", help="encode the map fused over the descent, as in a HIL run")
+    ap.add_argument("--steps", default=None, help="kp,k pairs such as 2,2;2,4 (default: every auto choice)")
+    ap.add_argument("--units", default="1", help="elevation units in cm, comma-separated (default 1)")
     args = ap.parse_args(argv)
+    from flight_sw.flight_main import FaultPlan, FlightProcess
     from flight_sw.pipeline import run_pipeline
     from ground_sim.descent import render_scenario
     from protocol.pairdir import read_pair
 
-    out = Path(args.cache)
-    if not (out / "manifest.json").is_file():
-        render_scenario("vertical", out, pairs=["600/300", "300/150", "200/100"], progress=False)
+    steps = STEPS if args.steps is None else tuple(tuple(int(v) for v in s.split(",")) for s in args.steps.split(";"))
+    units = [int(u) for u in args.units.split(",")]
+    if args.manifest is not None:
+        out = args.manifest.parent
+    else:
+        out = Path(args.cache)
+        if not (out / "manifest.json").is_file():
+            render_scenario("vertical", out, pairs=["600/300", "300/150", "200/100"], progress=False)
     manifest = json.loads((out / "manifest.json").read_text())
-    print("| pair | " + " | ".join(f"({kp}, {k})" for kp, k in STEPS) + " |")
-    print("|---|" + "---:|" * len(STEPS))
-    for e in manifest["pairs"]:
+    cols = [(kp, k, u) for kp, k in steps for u in units]
+    print("| pair | level | " + " | ".join(f"({kp}, {k}) {u} cm" for kp, k, u in cols) + " |")
+    print("|---|---|" + "---:|" * len(cols))
+    flight = FlightProcess(None, FaultPlan())  # only its fusion: no link
+    for e in sorted(manifest["pairs"], key=lambda e: -e["altitude_m"]):
         pair = read_pair(out / e["path"])
-        res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset="fast")
-        print(
-            f"| {e['label']} | " + " | ".join(f"{result_bytes(res, pair.camera, kp, k):,} B" for kp, k in STEPS) + " |",
-            flush=True,
+        sun = pair.sun
+        res = run_pipeline(
+            pair.images[0],
+            pair.images[-1],
+            pair.poses[0],
+            pair.poses[-1],
+            pair.camera,
+            preset="fast",
+            sun_elevation_deg=sun.elevation_deg if sun else None,
+            sun_azimuth_deg=sun.azimuth_deg if sun else None,
         )
+        fused = flight._fuse(res) if args.fused else (None, None, None)
+        sizes = [result_bytes(res, pair.camera, kp, k, u, *fused) for kp, k, u in cols]
+        print(f"| {e['label']} | {res.level} | " + " | ".join(f"{b:,} B" for b in sizes) + " |", flush=True)
     return 0
 
 

@@ -42,6 +42,7 @@ to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import socket
 import sys
@@ -74,11 +75,16 @@ LINE_LATENCY_S = 0.05
 # grid <= 0.13, P(safe) <= 0.55 / kp^2, int16 elevation <= 1.4 / k^2 (docs/protocol.md measured 72-106 kB at
 # (1, 1), 7-11 kB at (4, 8) on 512 px), sites and fields ~2 kB; the full image maps ~1.6 B per pixel.
 PRIOR_STATE_B, PRIOR_PSAFE_B, PRIOR_ELEV_B, PRIOR_FIXED_B, PRIOR_MAPS_B = 0.13, 0.55, 1.4, 2048, 1.6
+# An elevation unit of u cm drops log2(u) bits of noise per value: the grid shrinks by a factor of about
+# 1 - PRIOR_UNIT_SHRINK log2(u) (measured 0.57-0.69 at u = 10 on held-out fused maps: docs/benchmarks/protocol.md)
+PRIOR_UNIT_SHRINK, PRIOR_UNIT_FLOOR = 0.1, 0.25
 PRIOR_FLOOR = 0.5  # after the first Result, plan for at least this share of the prior (a full-level Result)
 # Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
 # elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md),
+# elevation_unit_cm (u in [1, 1000]: the elevation grid's unit; a coarser unit compresses better),
 # link_baud (the ground link's rate, 0 = none to plan for) and time_scale (the emulated slowdown).
 DEFAULT_ELEVATION_STEP = 1
+DEFAULT_ELEVATION_UNIT_CM = 1
 DEFAULT_PSAFE_STEP = 1
 DEFAULT_FUSION = 1  # fusion (0/1): Results report the map fused over the descent (docs/benchmarks/multiframe.md)
 # Fusing and choosing sites on the fused map happen after the pipeline returns: unthrottled seconds
@@ -181,6 +187,9 @@ class FlightProcess:
                     step = msg.options.get(name, default)
                     if step != int(step) or not 1 <= step <= 1024:
                         raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
+                unit = msg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM)
+                if unit != int(unit) or not 1 <= unit <= 1000:
+                    raise InputError(f"Config option elevation_unit_cm must be an integer in [1, 1000], got {unit}")
                 if not msg.options.get("time_scale", 1.0) > 0 or not msg.options.get("link_baud", 0) >= 0:
                     raise InputError("Config options time_scale must be > 0 and link_baud >= 0")
                 if msg.options.get("fusion", DEFAULT_FUSION) not in (0, 1):
@@ -333,8 +342,10 @@ class FlightProcess:
         cells = int(cam["width"]) * int(cam["height"]) / 4.0
         kp = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
         k = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
+        unit = int(cfg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM))
+        elev = PRIOR_ELEV_B * max(PRIOR_UNIT_FLOOR, 1.0 - PRIOR_UNIT_SHRINK * math.log2(unit))
         maps = PRIOR_MAPS_B * 4 * cells if cfg.options.get("full_maps", 0) else 0.0
-        return cells * (PRIOR_STATE_B + PRIOR_PSAFE_B / kp**2 + PRIOR_ELEV_B / k**2) + PRIOR_FIXED_B + maps
+        return cells * (PRIOR_STATE_B + PRIOR_PSAFE_B / kp**2 + elev / k**2) + PRIOR_FIXED_B + maps
 
     def _fuse(self, res) -> tuple[HazardGrid, list[SiteResult], str | None]:
         """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it."""
@@ -361,7 +372,8 @@ class FlightProcess:
         full = bool(cfg.options.get("full_maps", 0))
         step = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
         pstep = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
-        elevation, offset = elevation_to_wire(grid.elevation, step)
+        unit = int(cfg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM))
+        elevation, offset = elevation_to_wire(grid.elevation, step, unit)
         msg = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),
@@ -372,6 +384,7 @@ class FlightProcess:
             grid_cell_m=float(grid.cell_m),
             elevation_step=step,
             elevation_offset_m=offset,
+            elevation_unit_cm=unit,
             sites=[
                 Site(s.x, s.y, s.z, s.hazard, s.margin, s.distance_m, float(s.p_safe), float(s.clearance_m))
                 for s in sites

@@ -74,6 +74,7 @@ class RunConfig:
     fusion: bool = True  # True: Results report the map fused over the descent (flight_sw.fusion); False: each alone
     elevation_step: int | None = None  # elevation grid decimation; None = by line rate (ground_sim.stream)
     psafe_step: int | None = None  # P(safe) grid decimation; None = by line rate
+    elevation_unit_cm: int | None = None  # elevation grid unit; None = by link (ground_sim.stream)
     insecure: bool = False  # zmq without CURVE (loopback debugging)
     link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
@@ -586,6 +587,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 str(cfg.elevation_step) if cfg.elevation_step else "auto",
                 "--psafe-step",
                 str(cfg.psafe_step) if cfg.psafe_step else "auto",
+                "--elevation-unit-cm",
+                str(cfg.elevation_unit_cm) if cfg.elevation_unit_cm else "auto",
                 *security,
             ]
             if cfg.full_maps:

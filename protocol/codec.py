@@ -6,8 +6,9 @@ Wire body of a message: msgpack ``[type, {field: value}]`` (see
     ext 1 (inline):     dtype:u8 | ndim:u8 | shape:u32[ndim] (big-endian) | raw little-endian bytes
     ext 2 (out of band, ZeroMQ): dtype:u8 | ndim:u8 | shape:u32[ndim] | buffer index:u32
     ext 3 (compressed): dtype:u8 | ndim:u8 | shape:u32[ndim] | filter:u8 | zlib stream (RFC 1950)
-                        filter 0 = none, 1 = delta along the last axis (integer dtypes only,
-                        two's-complement wrap-around; decode = cumulative sum in the same dtype)
+                        filter = how many trailing axes were differenced (integer dtypes only):
+                        0 = none, 1 = the last axis, 2 = the last axis then the one before,
+                        two's-complement wrap-around; decode = cumulative sums in the same dtype
 
 Only the dtypes in :data:`DTYPES` are accepted (never object/void, never
 pickle) and ``prod(shape) * itemsize`` must equal the byte count.
@@ -42,7 +43,8 @@ EXT_INLINE = 1
 EXT_REF = 2
 EXT_ZLIB = 3
 FILTER_NONE = 0
-FILTER_DELTA = 1
+FILTER_DELTA = 1  # difference along the last axis
+FILTER_DELTA2 = 2  # difference along the last axis, then along the one before (a smooth 2-D field's residual)
 ZLIB_LEVEL = 6  # level 9 saves ~12 % on the grids but costs ~10x the CPU: a throttled flight CPU pays that
 _WIRE_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8", "|b1", "<f2")
 DTYPES: dict[int, np.dtype] = {code: np.dtype(s) for code, s in enumerate(_WIRE_DTYPES, start=1)}
@@ -241,13 +243,29 @@ def _make_array(raw: bytes | memoryview, dt: np.dtype, shape: tuple[int, ...]) -
     return arr
 
 
+def delta_encode(arr: np.ndarray, axes: int) -> np.ndarray:
+    """Differences along the last ``axes`` axes, last axis first, in the array's own integer type (wrapping).
+
+    ``d[..., i] = a[..., i] - a[..., i - 1]`` with ``a[..., -1] = 0``; with two axes the rows of ``d`` are
+    then differenced the same way, so ``d[i, j] = a[i, j] - a[i, j-1] - a[i-1, j] + a[i-1, j-1]``: the
+    residual of the planar (gradient) predictor of lossless image coding, zero on a plane. The inverse is
+    a cumulative sum per axis in the reverse order (:func:`_inflate`).
+    """
+    for axis in range(-1, -1 - axes, -1):
+        zero = np.zeros((*arr.shape[: arr.ndim + axis], 1, *arr.shape[arr.ndim + axis + 1 :]), arr.dtype)
+        arr = np.diff(arr, axis=axis, prepend=zero)
+    return arr
+
+
 def _inflate(data: bytes | memoryview, dt: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     """ext 3 payload after the shape: filter byte + zlib stream, inflated to exactly the declared size."""
     if len(data) < 1:
         raise CodecError("compressed array: filter byte missing")
     filt = data[0]
-    if filt not in (FILTER_NONE, FILTER_DELTA) or (filt == FILTER_DELTA and dt.kind not in "iu"):
+    if filt not in (FILTER_NONE, FILTER_DELTA, FILTER_DELTA2) or (filt != FILTER_NONE and dt.kind not in "iu"):
         raise CodecError(f"compressed array: filter {filt} not allowed for dtype {dt.str}")
+    if filt > len(shape):
+        raise CodecError(f"compressed array: filter {filt} needs at least {filt} axes, got {len(shape)}")
     expected = dt.itemsize * _prod(shape)
     d = zlib.decompressobj()
     try:
@@ -257,8 +275,9 @@ def _inflate(data: bytes | memoryview, dt: np.dtype, shape: tuple[int, ...]) -> 
     if len(raw) != expected or not d.eof or d.unconsumed_tail or d.unused_data:
         raise CodecError(f"compressed array {dt.str}{list(shape)} does not inflate to exactly {expected} bytes")
     arr = _make_array(raw, dt, shape)
-    if filt == FILTER_DELTA and arr.size:
-        arr = np.cumsum(arr, axis=-1, dtype=dt)
+    if arr.size:
+        for axis in range(-1, -1 - filt, -1):  # undoes the sender's differences (sums per axis commute)
+            arr = np.cumsum(arr, axis=axis, dtype=dt)
     arr.flags.writeable = False
     return arr
 
@@ -276,11 +295,11 @@ def encode_parts(message: Message, oob_min_bytes: int | None = None) -> tuple[by
         if isinstance(obj, Compressed):
             arr = _wire_array(obj.array)
             head = _array_header(arr)
-            delta = obj.delta and arr.dtype.kind in "iu"
-            if delta and arr.size:
-                arr = np.diff(arr, axis=-1, prepend=np.zeros((*arr.shape[:-1], 1), arr.dtype))
+            filt = min(int(obj.delta), arr.ndim) if arr.dtype.kind in "iu" else FILTER_NONE
+            if arr.size:
+                arr = delta_encode(arr, filt)
             payload = zlib.compress(memoryview(arr.reshape(-1)).cast("B"), ZLIB_LEVEL)  # type: ignore[arg-type]
-            return msgpack.ExtType(EXT_ZLIB, head + bytes((FILTER_DELTA if delta else FILTER_NONE,)) + payload)
+            return msgpack.ExtType(EXT_ZLIB, head + bytes((filt,)) + payload)
         if isinstance(obj, np.ndarray):
             arr = _wire_array(obj)
             head = _array_header(arr)

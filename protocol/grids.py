@@ -4,9 +4,11 @@
   the quantisation step is 1/254, so the error is at most 1/508. Decimated by an
   integer step k, a block's value is the *minimum* P(safe) of its cells (finite
   ones; outside if none): conservative, a block is never safer than its worst cell.
-* Elevation as int16 centimetres above an offset: ``v = round(100 (z - offset))``,
+* Elevation as int16 units of ``u`` centimetres above an offset: ``v = round(100 (z - offset) / u)``,
   saturated to [-32767, 32767], -32768 = no elevation; the offset is the median
-  elevation rounded to a metre, so the grid spans +-327 m around it at 5 mm error.
+  elevation rounded to a metre, so the grid spans +-327 u m around it at u/2 cm error.
+  ``u = 1`` keeps every centimetre; a serial link sends ``u = 10``, well under the DEM's own error
+  (0.17-0.85 m mean on the thesis tables), which halves the compressed grid (docs/benchmarks/protocol.md).
 * Decimation of the elevation grid by an integer step k: the mean of the finite
   values in each k x k block of grid cells (a block with none is "no elevation").
   Block ``[i, j]`` is centred at ``origin + ((k - 1) / 2 + k j) cell`` in x and the
@@ -78,20 +80,21 @@ def decimate_mean(a: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def elevation_to_wire(elevation: np.ndarray, step: int = 1) -> tuple[np.ndarray, float]:
-    """float elevation (m, NaN = none) -> (int16 cm grid decimated by ``step``, offset in m)."""
+def elevation_to_wire(elevation: np.ndarray, step: int = 1, unit_cm: int = 1) -> tuple[np.ndarray, float]:
+    """float elevation (m, NaN = none) -> (int16 grid in ``unit_cm`` cm, decimated by ``step``; offset in m)."""
     z = decimate_mean(elevation, step)
     finite = np.isfinite(z)
     offset = float(round(float(np.median(z[finite])))) if finite.any() else 0.0
-    v = np.clip(np.rint((np.nan_to_num(z, nan=offset) - offset) * ELEVATION_SCALE), -32767, 32767).astype(np.int16)
+    scale = ELEVATION_SCALE / unit_cm
+    v = np.clip(np.rint((np.nan_to_num(z, nan=offset) - offset) * scale), -32767, 32767).astype(np.int16)
     v[~finite] = ELEVATION_NONE
     return v, offset
 
 
-def elevation_from_wire(v: np.ndarray, offset_m: float) -> np.ndarray:
-    """int16 wire elevation -> float32 metres, NaN where none."""
+def elevation_from_wire(v: np.ndarray, offset_m: float, unit_cm: int = 1) -> np.ndarray:
+    """int16 wire elevation in ``unit_cm`` cm -> float32 metres, NaN where none."""
     v = np.asarray(v, np.int16)
-    out = (v.astype(np.float64) / ELEVATION_SCALE + offset_m).astype(np.float32)
+    out = (v.astype(np.float64) * (unit_cm / ELEVATION_SCALE) + offset_m).astype(np.float32)
     out[v == ELEVATION_NONE] = np.nan
     return out
 

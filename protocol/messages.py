@@ -40,10 +40,13 @@ class SchemaError(InputError):
 
 @dataclass(frozen=True)
 class Compressed:
-    """An array the codec sends zlib-compressed (ext 3); ``delta``: difference along the last axis first."""
+    """An array the codec sends zlib-compressed (ext 3) after differencing its last ``delta`` axes (0, 1 or 2).
+
+    The ext 3 filter byte is the number of axes differenced (docs/protocol.md, section 4).
+    """
 
     array: np.ndarray
-    delta: bool = False
+    delta: int = 0
 
 
 Checker = Callable[[Any, str], Any]
@@ -197,7 +200,7 @@ def _wire(
     factory: Callable[[], Any] | None = None,
     *,
     compress: bool = False,
-    delta: bool = False,
+    delta: int = 0,
 ) -> Any:
     meta = {"check": check, "compress": compress, "delta": delta}
     if factory is not None:
@@ -235,7 +238,7 @@ class Message:
             if f.name == "sites":
                 v = [s.to_wire() for s in v]
             elif f.metadata.get("compress") and isinstance(v, np.ndarray):
-                v = Compressed(v, f.metadata.get("delta", False))
+                v = Compressed(v, int(f.metadata.get("delta", 0)))
             out[f.name] = v
         type(self)(**checked).check_consistency()
         return out
@@ -382,9 +385,9 @@ class Result(Message):
     * ``state_grid`` uint8: 0 safe, 1 unsafe, 2 unknown, 255 outside (``protocol.pairdir.STATE_*``);
     * ``psafe_grid`` uint8: P(safe) = v / 254 for v in 0..254, 255 = outside, on the grid decimated
       by ``psafe_step`` (block minimum: conservative);
-    * ``elevation_grid`` int16 centimetres above ``elevation_offset_m`` (-32768 = no elevation), on
-      the grid decimated by ``elevation_step`` k: cell ``[i, j]`` is the mean over grid cells
-      ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``).
+    * ``elevation_grid`` int16 in units of ``elevation_unit_cm`` centimetres above ``elevation_offset_m``
+      (-32768 = no elevation), on the grid decimated by ``elevation_step`` k: cell ``[i, j]`` is the mean
+      over grid cells ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``).
 
     Full-resolution image maps (i1's pixels) only when the Config asked for them (``full_maps``).
     Helpers to build and read these grids: :mod:`protocol.grids`.
@@ -394,11 +397,12 @@ class Result(Message):
     frame_seqs: tuple = _wire(_ints(2))
     state_grid: np.ndarray = _wire(_states(_array("|u1", 2)), compress=True)
     psafe_grid: np.ndarray = _wire(_array("|u1", 2), compress=True)
-    elevation_grid: np.ndarray = _wire(_array("<i2", 2), compress=True, delta=True)
+    elevation_grid: np.ndarray = _wire(_array("<i2", 2), compress=True, delta=2)
     grid_origin_xy: tuple = _wire(_floats(2))
     grid_cell_m: float = _wire(_positive)
     elevation_step: int = _wire(_int(1, 1024), 1)
     elevation_offset_m: float = _wire(_float(), 0.0)
+    elevation_unit_cm: int = _wire(_int(1, 1000), 1)
     psafe_step: int = _wire(_int(1, 1024), 1)
     sites: list = _wire(_sites, factory=list)
     no_site_reason: str | None = _wire(_optional(_str(256)), None)

@@ -512,3 +512,48 @@ def test_the_next_results_line_time_follows_the_last_few_results():
     assert fp.expected_result_bytes(cfg) == pytest.approx(fm.PRIOR_FLOOR * prior)  # the floor
     fp.handle(Config(camera=cam, budget="host", deadline_s=3.0, preset="fast", options={"link_baud": 921600}))
     assert fp.result_bytes == [] and fp.expected_result_bytes(cfg) == prior  # a new Config starts again
+
+
+def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one():
+    """``elevation_unit_cm`` u: the Result says u, its elevations decode within u/2 of the 1 cm ones, the first
+    Result's planned size shrinks with it, and an out-of-range u is a ``bad_config`` Error."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
+
+    import flight_sw.flight_main as fm
+    from protocol.codec import decode_message, encode_message
+    from protocol.grids import elevation_from_wire
+    from protocol.messages import Config, Error, Result
+    from protocol.pairdir import Pose
+
+    cam = camera_fov30(128)
+    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
+    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
+    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
+    elevations, priors = {}, {}
+    for unit in (1, 10):
+        link = _Link()
+        fp = fm.FlightProcess(link, fm.FaultPlan())
+        config = Config(**cfg, options={"elevation_unit_cm": unit, "link_baud": 921600})
+        fp.handle(config)
+        priors[unit] = fp.expected_result_bytes(config)
+        for f in _frames("p", 0, list(zip(poses, imgs))):
+            fp.handle(f)
+        (res,) = [m for m in link.sent if isinstance(m, Result)]
+        back = decode_message(encode_message(res))
+        assert back.elevation_unit_cm == unit
+        elevations[unit] = elevation_from_wire(back.elevation_grid, back.elevation_offset_m, back.elevation_unit_cm)
+    assert np.isfinite(elevations[1]).mean() > 0.5
+    assert np.array_equal(np.isnan(elevations[1]), np.isnan(elevations[10]))
+    assert np.nanmax(np.abs(elevations[10] - elevations[1])) <= 0.05 + 0.005 + 1e-4  # both roundings
+    assert priors[10] < 0.9 * priors[1]
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(Config(**cfg, options={"elevation_unit_cm": 0}))
+    (err,) = link.sent
+    assert isinstance(err, Error) and err.code == "bad_config" and "elevation_unit_cm" in err.text
+    assert fp.config is None

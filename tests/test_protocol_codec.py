@@ -12,7 +12,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from protocol.codec import CodecError, Limits, decode_message, decode_parts, encode_message, encode_parts, scan
+from protocol.codec import (
+    CodecError,
+    Limits,
+    decode_message,
+    decode_parts,
+    delta_encode,
+    encode_message,
+    encode_parts,
+    scan,
+)
 from protocol.fuzz import nested_map_bomb
 from protocol.grids import (
     decimate_mean,
@@ -68,6 +77,7 @@ def results(draw) -> Result:
         grid_cell_m=draw(st.floats(1e-3, 1e3)),
         elevation_step=step,
         elevation_offset_m=draw(finite),
+        elevation_unit_cm=draw(st.integers(1, 1000)),
         sites=draw(sites),
         no_site_reason=draw(st.none() | names),
         degraded=draw(st.booleans()),
@@ -271,11 +281,53 @@ def test_decimated_psafe_is_the_block_minimum():
 
 
 def test_delta_filter_wraps_around_int16():
-    e = np.array([[32767, -32768, 0, 12345, -32767]], np.int16)
+    e = np.array([[32767, -32768, 0, 12345, -32767], [-32768, 32767, -1, 1, 0], [0, 0, 32767, -32768, 5]], np.int16)
     out = decode_message(encode_message(_result(
-        state_grid=np.zeros((1, 5), np.uint8), psafe_grid=np.zeros((1, 5), np.uint8), elevation_grid=e
+        state_grid=np.zeros((3, 5), np.uint8), psafe_grid=np.zeros((3, 5), np.uint8), elevation_grid=e
     )))  # fmt: skip
     assert np.array_equal(out.elevation_grid, e)
+
+
+def test_the_elevation_grid_travels_as_the_residual_of_the_planar_predictor():
+    """Filter 2: a plane's differences along both axes are zero, so it compresses to almost nothing."""
+    yy, xx = np.mgrid[0:200, 0:200]
+    plane = (3 * xx - 7 * yy + 11).astype(np.int16)
+    assert np.all(delta_encode(plane, 2)[1:, 1:] == 0)
+    msg = _result(
+        state_grid=np.zeros((200, 200), np.uint8), psafe_grid=np.zeros((200, 200), np.uint8), elevation_grid=plane
+    )
+    parts = msgpack.unpackb(encode_message(msg), raw=False, strict_map_key=False)
+    ext = parts[1]["elevation_grid"]
+    assert ext.code == 3 and ext.data[2 + 4 * 2] == 2  # filter byte after dtype, ndim and two u32 sides
+    assert len(ext.data) < 800  # raw: 80 kB
+    assert np.array_equal(decode_message(encode_message(msg)).elevation_grid, plane)
+
+
+def test_a_coarser_elevation_unit_rounds_by_half_a_unit_and_shrinks_the_grid():
+    """``elevation_unit_cm`` u: every value decodes within u/2 cm, and noise below u no longer travels."""
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:240, 0:240]
+    z = (np.sin(xx / 20.0) * 4 + yy * 0.05 + rng.normal(0, 0.3, (240, 240))).astype(np.float32)
+    z[100:130, 50:90] = np.nan
+    sizes = {}
+    for unit in (1, 10):
+        v, off = elevation_to_wire(z, 2, unit)
+        msg = _result(
+            state_grid=np.zeros((240, 240), np.uint8),
+            psafe_grid=np.zeros((240, 240), np.uint8),
+            elevation_grid=v,
+            elevation_step=2,
+            elevation_offset_m=off,
+            elevation_unit_cm=unit,
+        )
+        body = encode_message(msg)
+        back = decode_message(body)
+        got = elevation_from_wire(back.elevation_grid, back.elevation_offset_m, back.elevation_unit_cm)
+        want = decimate_mean(z, 2)
+        assert np.array_equal(np.isnan(got), np.isnan(want))
+        assert np.nanmax(np.abs(got - want)) <= unit / 200 + 1e-4
+        sizes[unit] = len(body)
+    assert sizes[10] < 0.75 * sizes[1]
 
 
 def test_big_endian_and_noncontiguous_arrays_are_normalised():
@@ -413,6 +465,9 @@ def _ext3(shape, filt, payload, code=1):
         (_ext3((10, 10), 0, b"not zlib at all"), "compressed array"),
         (_ext3((10, 10), 9, zlib.compress(bytes(100))), "filter"),
         (_ext3((10, 10), 1, zlib.compress(bytes(400)), code=9), "filter"),  # delta on float32
+        (_ext3((10, 10), 2, zlib.compress(bytes(400)), code=9), "filter"),
+        (_ext3((10,), 2, zlib.compress(bytes(20)), code=4), "at least 2 axes"),  # two axes of a 1-D array
+        (_ext3((), 1, zlib.compress(bytes(2)), code=4), "at least 1 axes"),
         (_ext3((8192, 8192), 0, zlib.compress(bytes(10))), "exceeds"),  # over the per-array limit
     ],
 )

@@ -174,6 +174,7 @@ def test_115200_baud_works_end_to_end_and_reports_the_result_line_time(manifest,
     assert s["results"] == 3 and s["errors"] == 0
     for r in s["records"]:
         assert r["elevation_step"] == 8 and r["psafe_step"] == 4  # auto: grids decimated on a slow line
+        assert r["elevation_unit_cm"] == 10  # auto: no elevation noise below 10 cm on a serial line
         assert r["result_bytes"] < 20_000
         line = r["result_bytes"] * 10 / 115200
         assert r["result_line_s"] >= 0.8 * line  # the result really crossed a 115200 baud line
@@ -184,6 +185,7 @@ def test_compact_grid_scores_match_full_map_scores(manifest, tmp_path):
     """The ground's reconstruction (true ground point -> grid cell) must agree with the image-plane scoring."""
     s = run(manifest, tmp_path, link="zmq", full_maps=True)
     for r in s["records"]:
+        assert r["elevation_unit_cm"] == 1  # auto: every centimetre on ZeroMQ
         g, f = r["scores"], r["scores_full"]
         assert g["n"] > 0.8 * f["n"]
         assert abs(g["fp_pct"] - f["fp_pct"]) < 1.5 and abs(g["cdi_pct"] - f["cdi_pct"]) < 12, (g, f)
