@@ -94,7 +94,7 @@ import numpy as np
 
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
-from .mapping import HazardGrid, grid_xy
+from .mapping import HazardGrid
 from .psafe import load_model
 
 
@@ -212,6 +212,12 @@ def _box(origin: tuple[float, float], shape: tuple[int, int], cell: float) -> tu
     return origin[0], origin[0] + (shape[1] - 1) * cell, origin[1] - (shape[0] - 1) * cell, origin[1]
 
 
+def _axis_index(n: int, dst0: float, dst_cell: float, src0: float, src_cell: float, sign: float) -> np.ndarray:
+    """Source index nearest each destination cell centre along one axis (``sign`` -1 for rows toward -Y)."""
+    centre = dst0 + sign * np.arange(n, dtype=np.float64) * dst_cell
+    return np.rint(sign * (centre - src0) / src_cell).astype(np.int64)
+
+
 def resample(
     values: np.ndarray,
     origin: tuple[float, float],
@@ -224,25 +230,33 @@ def resample(
 ) -> np.ndarray:
     """Move a grid layer onto another grid conservatively (module doc): every destination cell takes
     the source cell under its centre and, where the source is finer and ``pool_min``, the minimum of
-    the source cells whose centres fall in it (NaN = no value, ignored by the minimum). float32 out."""
+    the source cells whose centres fall in it (NaN = no value, ignored by the minimum). float32 out.
+
+    Both grids are axis-aligned, so the cell under a centre is a row index times a column index, and
+    the source cells of one destination cell are a contiguous block of rows by a contiguous block of
+    columns: the minimum is two ``fmin.reduceat`` passes, O(1) per cell without per-cell index arrays."""
     src = np.asarray(values, np.float32)
     out = np.full(dst_shape, np.float32(fill), np.float32)
     if src.size == 0 or out.size == 0:
         return out
     h, w = src.shape
-    X, Y = grid_xy(dst_shape, dst_origin, dst_cell)
-    j = np.rint((X - origin[0]) / cell).astype(np.int64)
-    i = np.rint((origin[1] - Y) / cell).astype(np.int64)
-    ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-    out[ok] = src[i[ok], j[ok]]
+    if (h, w) == tuple(dst_shape) and tuple(origin) == tuple(dst_origin) and cell == dst_cell:
+        return src.copy()  # the same grid (a result onto its own grid: the flight's "newest" extent)
+    jj = _axis_index(dst_shape[1], dst_origin[0], dst_cell, origin[0], cell, 1.0)
+    ii = _axis_index(dst_shape[0], dst_origin[1], dst_cell, origin[1], cell, -1.0)
+    cols, rows = (jj >= 0) & (jj < w), (ii >= 0) & (ii < h)
+    out[np.ix_(rows, cols)] = src[np.ix_(ii[rows], jj[cols])]
     if pool_min and cell < dst_cell * (1.0 - 1e-9):  # finer source: several source cells per destination cell
-        Xs, Ys = grid_xy((h, w), origin, cell)
-        dj = np.rint((Xs - dst_origin[0]) / dst_cell).astype(np.int64)
-        di = np.rint((dst_origin[1] - Ys) / dst_cell).astype(np.int64)
-        inside = (di >= 0) & (di < dst_shape[0]) & (dj >= 0) & (dj < dst_shape[1]) & np.isfinite(src)
-        flat = out.ravel()
-        np.fmin.at(flat, di[inside] * dst_shape[1] + dj[inside], src[inside])
-        out = flat.reshape(dst_shape)
+        dj = _axis_index(w, origin[0], cell, dst_origin[0], dst_cell, 1.0)
+        di = _axis_index(h, origin[1], cell, dst_origin[1], dst_cell, -1.0)
+        cols, rows = (dj >= 0) & (dj < dst_shape[1]), (di >= 0) & (di < dst_shape[0])
+        if cols.any() and rows.any():
+            dj, di = dj[cols], di[rows]  # non-decreasing: each destination cell's sources are contiguous
+            c0 = np.flatnonzero(np.r_[True, dj[1:] != dj[:-1]])
+            r0 = np.flatnonzero(np.r_[True, di[1:] != di[:-1]])
+            low = np.fmin.reduceat(np.fmin.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
+            at = np.ix_(di[r0], dj[c0])
+            out[at] = np.fmin(out[at], low)
     return out
 
 
