@@ -92,7 +92,10 @@ def settle_allocator() -> bool:
     return bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_B) == 1 and ok)
 
 
-HEAP_BYTES_PER_PIXEL = 150  # the flight pipeline's working set per camera pixel (~70 MiB peak at 512 px, less the base)
+# the flight pipeline's working set per camera pixel, less the process's base: an oblique approach pair's grid
+# needs ~260 B (66 MiB at 512 px), a nadir pair's ~190 B. At 150 B an approach pair's first slope stage cost 150 ms
+# of CPU instead of 32 (page faults), and every later one 72 ms (docs/hil.md, "Boot warm-up")
+HEAP_BYTES_PER_PIXEL = 250
 
 
 def heap_mib_for(width: int, height: int) -> int:

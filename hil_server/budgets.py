@@ -111,13 +111,16 @@ class Budget:
 
 
 # Peak private resident memory (RssAnon + RssShmem, hil_server.procemu) of our flight process (Python, numpy,
-# OpenCV, the link, the `fast` pipeline at its full level), measured on the host budget (docs/hil.md, "Memory";
-# 2026-11-24, vertical 600/300 and 300/150): 32.6 MiB at 128x128, 35 at 256x256, 70 at 512x512, 200 at
-# 1024x1024, bounded by ~32 MiB + ~170 bytes per pixel. Mapped library code is not counted: how much of it is
-# resident depends on the host's page cache (25-53 MiB for the same `import cv2`), not on the flight software.
+# OpenCV, the link, the `fast` pipeline at its full level; docs/hil.md, "Memory"). An oblique approach pair is the
+# largest: its world grid holds up to 2.5x the cells of a nadir pair's. Measured 2026-12-02 (stop 33) on the
+# held-out approach 1000/500 (seed 1000): 99 MiB at 512x512 and 286 MiB at 1024x1024 (the pair upsampled), from
+# 33 MiB before it; vertical 400/200: 81 and 240 MiB. So ~32 MiB + ~265 bytes per pixel. (Until stop 33 the
+# model was ~170 bytes per pixel, measured on vertical pairs only on 2026-11-24: 70 MiB at 512x512, 200 at 1024.)
+# Mapped library code is not counted: how much of it is resident depends on the host's page cache (25-53 MiB
+# for the same `import cv2`), not on the flight software.
 # A camera is refused when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
 FLIGHT_BASE_MIB = 32.0
-FLIGHT_BYTES_PER_PIXEL = 170.0
+FLIGHT_BYTES_PER_PIXEL = 265.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
 
 
