@@ -59,6 +59,7 @@ from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
+from protocol.codec import encode_message
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, psafe_to_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
@@ -94,6 +95,11 @@ FUSION_RESERVE_S = 0.03
 # (pipeline.measured_reserve_ratio): one fast pair does not shrink them
 RESERVE_HISTORY = 3
 RESULT_HISTORY = 3  # the next Result's line time is planned from the largest of the last this many Results
+# A Result that would still be on the line at its deadline goes out with its elevation grid, then its P(safe) grid,
+# decimated twice as much, up to this step: the size plan is only a plan (a first full-level Result after coarse
+# ones is larger than any before it). Measured only when the time left is under SHRINK_CHECK x the planned line.
+MAX_SHRINK_STEP = 16
+SHRINK_CHECK = 2.0
 
 
 @dataclass
@@ -288,6 +294,8 @@ class FlightProcess:
         sent0 = self._bytes_sent()
         try:
             result = self._result_message(res, seqs, cfg, grid, sites, reason)
+            due = pend.arrival + cfg.deadline_s
+            result, line_s, grown = self._fit_to_line(result, res, seqs, cfg, grid, sites, reason, due, line_s)
             self.link.send(result)  # encodes here, in this thread
         except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
             self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
@@ -299,7 +307,7 @@ class FlightProcess:
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
-            self.note_result_bytes(int(self._bytes_sent() - sent0))
+            self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -364,14 +372,51 @@ class FlightProcess:
         )
         return grid, sites, (reason or None)
 
+    def _fit_to_line(
+        self, result: Result, res, seqs, cfg: Config, grid, sites, reason, due: float, planned_s: float
+    ) -> tuple[Result, float, float]:
+        """``(result, its expected line time, grown)``: the Result with its grids decimated further while it would
+        still be on the line at ``due`` (monotonic s); ``grown`` = the size the Config's steps gave over the size
+        sent (1 when nothing changed), so that the next pair plans for the size its Result will have.
+
+        The elevation step doubles first (up to ``MAX_SHRINK_STEP``), then the P(safe) step; the state grid and
+        the sites are never touched, and the Result carries its own steps, so the ground reads it as sent. A
+        Result that fits with ``SHRINK_CHECK`` x its planned line time to spare is not measured (encoding costs
+        CPU). Without a line rate (``link_baud`` 0) nothing is changed.
+        """
+        baud = float(cfg.options.get("link_baud", 0))
+        if baud <= 0 or due - time.monotonic() > SHRINK_CHECK * planned_s:
+            return result, planned_s, 1.0
+        step, pstep = int(result.elevation_step), int(result.psafe_step)
+        full = nbytes = len(encode_message(result))
+        line_s = expected_line_s(nbytes, baud)
+        while line_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
+            if step < MAX_SHRINK_STEP:
+                step = min(2 * step, MAX_SHRINK_STEP)
+            else:
+                pstep = min(2 * pstep, MAX_SHRINK_STEP)
+            result = self._result_message(res, seqs, cfg, grid, sites, reason, (step, pstep))
+            nbytes = len(encode_message(result))
+            line_s = expected_line_s(nbytes, baud)
+        return result, line_s, full / nbytes
+
     @staticmethod
     def _result_message(
-        res, seqs: tuple[int, int], cfg: Config, grid: HazardGrid, sites: list, reason: str | None
+        res,
+        seqs: tuple[int, int],
+        cfg: Config,
+        grid: HazardGrid,
+        sites: list,
+        reason: str | None,
+        steps: tuple[int, int] | None = None,
     ) -> Result:
-        """The compact Result (docs/protocol.md): uint8 states and P(safe), int16 cm elevation, sites."""
+        """The compact Result (docs/protocol.md): uint8 states and P(safe), int16 elevation, sites; ``steps``
+        (elevation, P(safe)) instead of the Config's."""
         full = bool(cfg.options.get("full_maps", 0))
         step = int(cfg.options.get("elevation_step", DEFAULT_ELEVATION_STEP))
         pstep = int(cfg.options.get("psafe_step", DEFAULT_PSAFE_STEP))
+        if steps is not None:
+            step, pstep = steps
         unit = int(cfg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM))
         elevation, offset = elevation_to_wire(grid.elevation, step, unit)
         msg = Result(

@@ -597,3 +597,48 @@ def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one()
     (err,) = link.sent
     assert isinstance(err, Error) and err.code == "bad_config" and "elevation_unit_cm" in err.text
     assert fp.config is None
+
+
+def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser_grids():
+    """``_fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
+    left; the state grid and the sites are kept; with time to spare the Result is sent as the Config asks."""
+    import sys
+    import time
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
+
+    import flight_sw.flight_main as fm
+    from flight_sw.pipeline import run_pipeline
+    from protocol.codec import encode_message
+    from protocol.messages import Config
+    from protocol.pairdir import Pose
+
+    cam = camera_fov30(128)
+    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
+    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
+    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    res = run_pipeline(imgs[0], imgs[1], poses[0], poses[1], cam, preset="fast")
+    baud = 9600.0  # ~1.1 s per kB: the encoding's own milliseconds do not matter
+    cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast",
+                 options={"link_baud": baud, "elevation_step": 1, "psafe_step": 1})  # fmt: skip
+    fp = fm.FlightProcess(_Link(), fm.FaultPlan())
+    args = (res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
+    full = fp._result_message(*args)
+    full_s = fm.expected_line_s(len(encode_message(full)), baud)
+    out, line_s, grown = fp._fit_to_line(full, *args, time.monotonic() + 3 * full_s, full_s)
+    assert out is full and grown == 1.0 and line_s == full_s  # time to spare: not even measured
+    smallest = fp._result_message(*args, (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP))
+    small_s = fm.expected_line_s(len(encode_message(smallest)), baud)
+    assert small_s < 0.6 * full_s
+    left = 0.5 * (full_s + small_s)
+    out, line_s, grown = fp._fit_to_line(full, *args, time.monotonic() + left, full_s)
+    assert out.elevation_step > 1 and line_s <= left and grown > 1.0
+    assert np.array_equal(out.state_grid, full.state_grid) and out.sites == full.sites
+    assert line_s == pytest.approx(fm.expected_line_s(len(encode_message(out)), baud))
+    out, line_s, _ = fp._fit_to_line(full, *args, time.monotonic(), full_s)  # no time left: the smallest there is
+    assert (out.elevation_step, out.psafe_step) == (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP)
+    zmq = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast", options={"link_baud": 0})
+    out, line_s, grown = fp._fit_to_line(full, res, (1, 2), zmq, res.grid, res.sites, None, time.monotonic(), 0.0)
+    assert out is full and grown == 1.0 and line_s == 0.0  # no line rate (ZeroMQ): sent as it is
