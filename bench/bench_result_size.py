@@ -5,7 +5,8 @@ into ``--cache``; ``--manifest`` takes any rendered descent instead (``hazard-hi
 pipeline on each pair and encodes the Result as the flight process builds it, for each (P(safe) step,
 elevation step) the ground can pick (``ground_sim.stream.auto_grid_steps``) and each elevation unit in cm
 (``auto_elevation_unit_cm``). ``--fused`` folds the pairs into one map, highest first, as the flight
-process does in a HIL run, and encodes the fused map (its Results grow with the area the descent saw).
+process does in a HIL run, and encodes the fused map (its Results grow with the area the descent saw);
+it also times that fold with the sites chosen on it (CPU ms, median of 5 from the same earlier map).
 
     .venv/bin/python bench/bench_result_size.py [--cache /tmp/demo_pairs]
     .venv/bin/python bench/bench_result_size.py --manifest DIR/manifest.json --fused --steps 2,2 --units 1,10
@@ -15,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,8 +65,9 @@ def main(argv: list[str] | None = None) -> int:
             render_scenario("vertical", out, pairs=["600/300", "300/150", "200/100"], progress=False)
     manifest = json.loads((out / "manifest.json").read_text())
     cols = [(kp, k, u) for kp, k in steps for u in units]
-    print("| pair | level | " + " | ".join(f"({kp}, {k}) {u} cm" for kp, k, u in cols) + " |")
-    print("|---|---|" + "---:|" * len(cols))
+    fuse_col = " fuse + sites CPU |" if args.fused else ""
+    print("| pair | level | " + " | ".join(f"({kp}, {k}) {u} cm" for kp, k, u in cols) + " |" + fuse_col)
+    print("|---|---|" + "---:|" * (len(cols) + bool(args.fused)))
     flight = FlightProcess(None, FaultPlan())  # only its fusion: no link
     for e in sorted(manifest["pairs"], key=lambda e: -e["altitude_m"]):
         pair = read_pair(out / e["path"])
@@ -78,9 +82,17 @@ def main(argv: list[str] | None = None) -> int:
             sun_elevation_deg=sun.elevation_deg if sun else None,
             sun_azimuth_deg=sun.azimuth_deg if sun else None,
         )
-        fused = flight._fuse(res) if args.fused else (None, None, None)
+        fused, cpu = (None, None, None), ""
+        if args.fused:
+            before, times = flight.fused, []
+            for _ in range(5):
+                flight.fused = before
+                t0 = time.process_time()
+                fused = flight._fuse(res)
+                times.append(time.process_time() - t0)
+            cpu = f" {1e3 * statistics.median(times):.1f} ms |"
         sizes = [result_bytes(res, pair.camera, kp, k, u, *fused) for kp, k, u in cols]
-        print(f"| {e['label']} | {res.level} | " + " | ".join(f"{b:,} B" for b in sizes) + " |", flush=True)
+        print(f"| {e['label']} | {res.level} | " + " | ".join(f"{b:,} B" for b in sizes) + " |" + cpu, flush=True)
     return 0
 
 

@@ -76,8 +76,9 @@ LINE_LATENCY_S = 0.05
 # grid <= 0.13, P(safe) <= 0.55 / kp^2, int16 elevation <= 1.4 / k^2 (docs/protocol.md measured 72-106 kB at
 # (1, 1), 7-11 kB at (4, 8) on 512 px), sites and fields ~2 kB; the full image maps ~1.6 B per pixel.
 PRIOR_STATE_B, PRIOR_PSAFE_B, PRIOR_ELEV_B, PRIOR_FIXED_B, PRIOR_MAPS_B = 0.13, 0.55, 1.4, 2048, 1.6
-# An elevation unit of u cm drops log2(u) bits of noise per value: the grid shrinks by a factor of about
-# 1 - PRIOR_UNIT_SHRINK log2(u) (measured 0.57-0.69 at u = 10 on held-out fused maps: docs/benchmarks/protocol.md)
+# An elevation unit of u cm drops log2(u) bits of noise per value: the prior takes the grid as shrunk by
+# 1 - PRIOR_UNIT_SHRINK log2(u), 0.67 at u = 10; measured 0.41-0.61 (with filter 2) on the held-out fused maps
+# (docs/benchmarks/protocol.md): a prior on the large side, as a line-time plan should be
 PRIOR_UNIT_SHRINK, PRIOR_UNIT_FLOOR = 0.1, 0.25
 PRIOR_FLOOR = 0.5  # after the first Result, plan for at least this share of the prior (a full-level Result)
 # Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),

@@ -508,8 +508,8 @@ def auto_elevation_unit_cm(link_spec: str) -> int:
     """The elevation grid's unit for the line: 10 cm on a serial link, 1 cm otherwise.
 
     A 10 cm unit rounds by at most 5 cm (RMS 2.9 cm), against a DEM whose own mean error is 0.17-0.85 m
-    (docs/RESULTS.md, Table 6.2), and it shrinks the compressed elevation grid by 35-55 % on the held-out
-    descents' fused maps (docs/benchmarks/protocol.md, "Elevation unit").
+    (docs/RESULTS.md, Table 6.2), and it shrinks the compressed elevation grid by 31-55 % on the held-out
+    descents' fused maps (docs/benchmarks/protocol.md, "Elevation unit and the planar predictor").
     """
     return 10 if link_spec.partition(":")[0] == "serial" else 1
 
