@@ -121,7 +121,7 @@ def score_stream(results: list[dict[str, Any]], overrides: dict[str, Any]) -> li
         pair = read_pair(Path(r["dir"]))
         xy = pixel_world(pair)
         prm = dataclasses.replace(params_for(r["params"], r["info"], FusionParams()), **overrides)
-        fm = fuse(fm, r["grid"], prm)
+        fm = fuse(fm, r["grid"], prm, level=r.get("level", "full"))
         alone = score_grid(pair, r["grid"], r["mask"], xy)
         fused = score_grid(pair, to_hazard_grid(fm, prm), r["mask"], xy)
         rows.append({"alt": r["alt"], "level": r.get("level", "full"), "fp": alone["fp"], "cdi": alone["cdi"],

@@ -361,7 +361,7 @@ class FlightProcess:
         p = res.params
         # the fused map decides at the pipeline's own P floor and counts the model's prior once (fusion.py)
         prm = params_for(p, res.info, self.fusion_params)
-        self.fused = fuse(self.fused, res.grid, prm)
+        self.fused = fuse(self.fused, res.grid, prm, level=str(res.level))
         grid = to_hazard_grid(self.fused, prm)
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))
         n_sites = int(p.get("n_sites", PRESETS["fast"].n_sites))

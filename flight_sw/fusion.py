@@ -36,6 +36,19 @@ image-only result; taken against it (the trees give 0.08-0.13 on an image-only p
 image-only result at the top of a snapdragon801 approach descent left the fused map of the
 full-level pairs below it almost nothing safe (CDI 8 % against 66 % alone, docs/hil.md, stop 32).
 
+**Coarse results.** A result that stopped at the coarse level (a half-resolution DEM over coarse planes: in
+one HIL vertical descent its fused map's DEM error was 0.96-1.35 m, against 0.46-0.66 m at the full level)
+does not replace what a full-level result measured. Where one has had evidence, the cell keeps that
+evidence, its call and its elevation, and the coarse result adds its own evidence against "safe" whole::
+
+    L <- max(L + min(0, l_i - l_0),  l_i + carried)        (a coarse result, where a full one has had evidence)
+
+An unsafe call enters as from any result. Where the coarse result alone says more for "safe", or no
+full-level result has had evidence, it enters as any result does. The hazard bound below still holds:
+both terms of the max satisfy it. Measured on HIL-like streams with coarse results (tuning seeds,
+docs/benchmarks/multiframe.md, stop 33): with "newest enters whole" a coarse Result left the approach's fused
+map 9 points of CDI below what the same pair gave the map as an image-only Result.
+
 **Accumulated evidence needs a higher bar, and a call.** A cell the newest result that measured it
 did not call safe by its own decision (the pipeline's P floor, slope cap and FP budget) becomes safe
 only once the fused P(safe) reaches ``p_accumulate`` *and* at least ``accumulate_calls`` earlier
@@ -147,6 +160,8 @@ class FusedMap:
     origin_xy: tuple[float, float]  # world x, y of the centre of cell [0, 0]
     cell_m: float
     results: int = 0  # results fused so far
+    # uint8 (rows, cols): 1 where a full-level result has had evidence (module doc, "Coarse results"); None: nowhere
+    full: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -282,6 +297,10 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
     seen_u8 = np.where(np.isfinite(seen), seen, 0).astype(np.uint8)
     called_u8 = np.where(np.isfinite(called) & (seen_u8 > 0), called, 0).astype(np.uint8)
     calls_u8 = np.where(np.isfinite(calls) & (seen_u8 > 0), calls, 0).astype(np.uint8)
+    full = None
+    if fm.full is not None:  # like the call: a coarser cell holds full-level evidence only if all its parts did
+        f = resample(fm.full.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
+        full = np.where(np.isfinite(f) & (seen_u8 > 0), f, 0).astype(np.uint8)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
         seen_u8,
@@ -291,6 +310,7 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
         origin,
         cell,
         fm.results,
+        full,
     )
 
 
@@ -301,11 +321,17 @@ def empty_map() -> FusedMap:
 
 
 def fuse(
-    fm: FusedMap | None, grid: HazardGrid, params: FusionParams | None = None, weight: float | None = None
+    fm: FusedMap | None,
+    grid: HazardGrid,
+    params: FusionParams | None = None,
+    weight: float | None = None,
+    level: str = "full",
 ) -> FusedMap:
     """The fused map after one more result (a new object; ``fm`` is not modified).
 
     ``weight`` overrides ``params.weight`` for this result (the share of earlier evidence for "safe" it carries).
+    ``level`` is the result's anytime level (:data:`flight_sw.pipeline.LEVELS`): where a full-level result's
+    evidence stands, a ``coarse`` one adds only its evidence against "safe" (module doc, "Coarse results").
     The map's grid is the result's (``extent="newest"``) or the union of both extents at the finer
     cell (``"union"``), bounded by ``max_cells`` either way.
     """
@@ -353,7 +379,24 @@ def fuse(
     c_bool = np.nan_to_num(c_new) > 0.5
     called = np.where(upd, c_bool, base.called > 0).astype(np.uint8)
     calls = np.minimum(base.calls.astype(np.int32) + (upd & c_bool), 255).astype(np.uint8)
-    return FusedMap(logodds.astype(np.float32), seen, elev, called, calls, origin, cell, fm.results + 1)
+    had_full = base.full if base.full is not None else np.zeros(shape, np.uint8)
+    if level == "coarse":
+        # a coarse DEM (half resolution, coarse planes) does not replace what a full one measured: the
+        # cell keeps its evidence, call and elevation, and takes the coarse result's evidence against "safe";
+        # an unsafe call (log-odds -l_unsafe, beyond what any P(safe) gives) still enters whole, as a hazard
+        keep = upd & (had_full > 0) & (np.nan_to_num(l_new) >= -np.float32(prm.l_max))
+        against = np.minimum(np.nan_to_num(l_new) - l0, np.float32(0.0))
+        kept = base.logodds + against
+        keep &= kept > logodds  # where the coarse result alone says more for "safe", it enters as any result does
+        logodds = np.where(keep, kept, logodds)
+        elev = np.where(keep & np.isfinite(base.elevation), base.elevation, elev).astype(np.float32)
+        called = np.where(keep, base.called, called).astype(np.uint8)
+        full = had_full
+    else:
+        full = (had_full > 0) | (upd & (level == "full"))
+    return FusedMap(
+        logodds.astype(np.float32), seen, elev, called, calls, origin, cell, fm.results + 1, full.astype(np.uint8)
+    )
 
 
 def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.ndarray, np.ndarray]:

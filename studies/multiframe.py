@@ -167,7 +167,7 @@ def run_jobs(
             sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
         )
         prm = replace(params_for(res.params, res.info, FusionParams()), **(overrides or {}))
-        fm = fuse(fm, res.grid, prm)
+        fm = fuse(fm, res.grid, prm, level=str(res.level))
         cpu += time.thread_time() - c0
         results.append(res)
     if fm is None:

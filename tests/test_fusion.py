@@ -83,8 +83,8 @@ def test_fused_safe_cells_respect_the_rule_on_random_sequences():
                 grids.append(g)
                 logs.append(result_logodds(g, prm))
             fm = None
-            for g in grids:
-                fm = fuse(fm, g, prm)
+            for g in grids:  # at random levels: a coarse result's rule must keep the bound as well
+                fm = fuse(fm, g, prm, level=str(rng.choice(["full", "coarse"])))
             assert fm is not None
             st, _ = fused_state(fm, prm)
             L = np.stack(logs)  # NaN: the result did not map the cell
@@ -96,6 +96,28 @@ def test_fused_safe_cells_respect_the_rule_on_random_sequences():
                 assert others[i, j] >= overturn_margin(prm, int(unsafe_calls[i, j])) - 1e-4, (trial, i, j)
             seen = np.any(np.stack([g.state for g in grids]) != STATE_OUTSIDE, axis=0)
             assert np.array_equal(st == STATE_OUTSIDE, ~seen)  # the unseen cells stay outside, the seen ones do not
+
+
+def test_a_coarse_result_does_not_replace_what_a_full_one_measured():
+    """Where a full-level result's evidence stands, a coarse one (a half-resolution DEM, 1 m errors) keeps the
+    cell's evidence, call and elevation, and adds only its evidence against "safe"; elsewhere it enters whole."""
+    prm = CALIBRATED
+    full = grid_of(np.full((6, 6), STATE_SAFE), np.full((6, 6), 0.999), elevation=np.full((6, 6), 2.0))
+    st = np.full((6, 8), STATE_UNKNOWN, np.uint8)  # 2 columns beyond the full result's extent
+    st[0, 0] = STATE_UNSAFE  # and one cell it calls unsafe
+    ps = np.where(st == STATE_UNSAFE, 0.0, 0.6)
+    coarse = grid_of(st, ps, elevation=np.full((6, 8), 3.5))
+    fm = fuse(fuse(None, full, prm), coarse, prm, level="coarse")
+    state, psafe = fused_state(fm, prm)
+    assert state[0, 0] == STATE_UNSAFE  # its hazard counts whole
+    assert np.all(state[1:, :6] == STATE_SAFE) and np.all(fm.elevation[1:, :6] == 2.0)  # the full result stands
+    assert np.all(state[:, 6:] == STATE_UNKNOWN) and np.all(fm.elevation[:, 6:] == 3.5)  # new ground: as it says
+    # the same coarse result at the full level replaces the map: nothing is called safe any more
+    fm = fuse(fuse(None, full, prm), coarse, prm, level="full")
+    assert not (fused_state(fm, prm)[0] == STATE_SAFE).any() and np.all(fm.elevation == 3.5)
+    # and a full-level result after the coarse one enters whole again
+    fm = fuse(fuse(fuse(None, full, prm), coarse, prm, level="coarse"), coarse, prm, level="full")
+    assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
 
 
 def test_newest_result_wins_would_fail_the_rule():
@@ -477,7 +499,7 @@ def test_flight_process_applies_the_relief_guard_to_the_fused_map():
     near_wall = []
     for relief in (0.0, PRESETS["fast"].site_relief_max_m):
         fp = FlightProcess(_Link(), FaultPlan())
-        res = SimpleNamespace(params=params | {"site_relief_max_m": relief}, info={}, grid=grid)
+        res = SimpleNamespace(params=params | {"site_relief_max_m": relief}, info={}, grid=grid, level="full")
         _, sites, reason = fp._fuse(res)
         assert sites and reason is None
         # the wall's top is at x = 0 (column 76); every site's 30 m square must stay clear of it
