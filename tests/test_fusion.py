@@ -553,7 +553,7 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
 
 
 def test_the_next_results_line_time_follows_the_last_few_results():
-    """The line time planned for the next Result: 1.2x the largest of the last RESULT_HISTORY Results, never
+    """The line time planned for the next Result: RESULT_MARGIN x the largest of the last RESULT_HISTORY Results, never
     under half the camera prior; an early large Result (an approach's high, oblique fused map) stops counting."""
     import flight_sw.flight_main as fm
     from protocol.messages import Config
@@ -564,11 +564,11 @@ def test_the_next_results_line_time_follows_the_last_few_results():
     fp.handle(cfg)
     prior = fp.expected_result_bytes(cfg)
     assert prior == fp._prior_result_bytes(cfg) > 0
-    for size in (63_000, 5_000, 6_000):
+    for size in (150_000, 5_000, 6_000):
         fp.note_result_bytes(size)
-    assert fp.expected_result_bytes(cfg) == pytest.approx(1.2 * 63_000)  # still among the last three
+    assert fp.expected_result_bytes(cfg) == pytest.approx(fm.RESULT_MARGIN * 150_000)  # still among the last three
     fp.note_result_bytes(25_000)
-    assert fp.expected_result_bytes(cfg) == pytest.approx(max(1.2 * 25_000, fm.PRIOR_FLOOR * prior))
+    assert fp.expected_result_bytes(cfg) == pytest.approx(max(fm.RESULT_MARGIN * 25_000, fm.PRIOR_FLOOR * prior))
     for _ in range(fm.RESULT_HISTORY):
         fp.note_result_bytes(1_000)
     assert fp.expected_result_bytes(cfg) == pytest.approx(fm.PRIOR_FLOOR * prior)  # the floor
