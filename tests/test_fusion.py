@@ -37,6 +37,22 @@ def uniform(state: int, p: float, shape=(6, 6), **kw) -> HazardGrid:
     return grid_of(np.full(shape, state, np.uint8), np.full(shape, p, np.float32), **kw)
 
 
+def _roof_descent(alts, seed):
+    """``(camera, poses, images)``: nadir views of a roof-shaped terrain (tests/synthetic.py) at ``alts`` m, 128 px."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
+
+    from protocol.pairdir import Pose
+
+    cam = camera_fov30(128)
+    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in alts]
+    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, seed)
+    return cam, poses, [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+
+
 CALIBRATED = FusionParams(p_min=0.97, prior_p=0.8012904944428823)  # what params_for gives fast (checked below)
 
 
@@ -420,23 +436,13 @@ def _frames(pair_id: str, seq0: int, cam_pose_img: list) -> list:
 @pytest.mark.slow
 def test_flight_process_reports_the_fused_map(monkeypatch):
     """Two pairs of a descent: the second Result is the fused map (the first pair's hazards kept), not the pair."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
-
     from flight_sw.flight_main import FaultPlan, FlightProcess
     from flight_sw.pipeline import run_pipeline
     from protocol.grids import psafe_from_wire
     from protocol.messages import Config, Result, Telemetry
-    from protocol.pairdir import Pose
 
-    cam = camera_fov30(128)
     alts = (200.0, 100.0, 150.0, 75.0)
-    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in alts]
-    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 21)
-    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    cam, poses, imgs = _roof_descent(alts, seed=21)
     results = {}
     for fusion in (1, 0):
         link = _Link()
@@ -512,20 +518,10 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
     """The first pair of a Config plans its reserves from the nominal slowdown; each later one from the
     largest measured cost of the reserved work on the last pairs (pipeline.measured_reserve_ratio); a new
     Config measures anew."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
-
     import flight_sw.flight_main as fm
     from protocol.messages import Config, Result
-    from protocol.pairdir import Pose
 
-    cam = camera_fov30(128)
-    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
-    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
-    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
     seen: list = []
     real = fm.run_pipeline
 
@@ -579,22 +575,12 @@ def test_the_next_results_line_time_follows_the_last_few_results():
 def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one():
     """``elevation_unit_cm`` u: the Result says u, its elevations decode within u/2 of the 1 cm ones, the first
     Result's planned size shrinks with it, and an out-of-range u is a ``bad_config`` Error."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
-
     import flight_sw.flight_main as fm
     from protocol.codec import decode_message, encode_message
     from protocol.grids import elevation_from_wire
     from protocol.messages import Config, Error, Result
-    from protocol.pairdir import Pose
 
-    cam = camera_fov30(128)
-    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
-    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
-    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
     cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
     elevations, priors = {}, {}
     for unit in (1, 10):
@@ -624,23 +610,14 @@ def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one()
 def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser_grids():
     """``_fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
     left; the state grid and the sites are kept; with time to spare the Result is sent as the Config asks."""
-    import sys
     import time
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from synthetic import NADIR_R, Texture, camera_fov30, render, roof
 
     import flight_sw.flight_main as fm
     from flight_sw.pipeline import run_pipeline
     from protocol.codec import encode_message
     from protocol.messages import Config
-    from protocol.pairdir import Pose
 
-    cam = camera_fov30(128)
-    poses = [Pose(np.array([0.0, 0.0, h]), NADIR_R) for h in (200.0, 100.0)]
-    tex = Texture.random(130.0, 75.0 / cam.fx / 1.5, 22)
-    imgs = [render(cam, p, roof(18.0, -2.0), tex)[0] for p in poses]
+    cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
     res = run_pipeline(imgs[0], imgs[1], poses[0], poses[1], cam, preset="fast")
     baud = 9600.0  # ~1.1 s per kB: the encoding's own milliseconds do not matter
     cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast",
