@@ -42,12 +42,14 @@ to the test harness, not to hand-edited code): ``crash@N``, ``hang@N``,
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -96,7 +98,7 @@ FUSION_RESERVE_S = 0.03
 # (pipeline.measured_reserve_ratio): one fast pair does not shrink them
 RESERVE_HISTORY = 3
 RESULT_HISTORY = 3  # the next Result's line time is planned from the largest of the last this many Results
-# ... times this. 1.2 until stop 33; since a Result that outgrows its plan is sent with coarser grids (_fit_to_line),
+# ... times this. 1.2 until stop 33; since a Result that outgrows its plan is sent with coarser grids (fit_to_line),
 # no margin: on the held-out approach (5 runs) 12 full-level Results instead of 1.5 per run, 40 of 40 deadlines met
 RESULT_MARGIN = 1.0
 # A Result that would still be on the line at its deadline goes out with its elevation grid, then its P(safe) grid,
@@ -144,6 +146,35 @@ def expected_line_s(nbytes: float, baud: float) -> float:
     if not baud > 0:
         return 0.0
     return nbytes * LINE_OVERHEAD * 10.0 / baud + LINE_LATENCY_S
+
+
+def fit_to_line(
+    result: Result, rebuild: Callable[[tuple[int, int]], Result], baud: float, due: float, planned_s: float
+) -> tuple[Result, float, float]:
+    """``(result, its expected line time, grown)``: the Result with its grids decimated further while it would
+    still be on the line at ``due`` (monotonic s); ``rebuild((elevation step, P(safe) step))`` makes it at
+    other steps. ``grown`` = the size at the Config's steps over the size sent (1 when nothing changed), so
+    that the next pair plans for the size its Result will have.
+
+    The elevation step doubles first (up to ``MAX_SHRINK_STEP``), then the P(safe) step; the state grid and
+    the sites are never touched, and the Result carries its own steps, so the ground reads it as sent. A
+    Result that fits with ``SHRINK_CHECK`` x its planned line time to spare is not measured (encoding costs
+    CPU). Without a line rate (``baud`` 0) nothing is changed.
+    """
+    if baud <= 0 or due - time.monotonic() > SHRINK_CHECK * planned_s:
+        return result, planned_s, 1.0
+    step, pstep = int(result.elevation_step), int(result.psafe_step)
+    full = nbytes = len(encode_message(result))
+    line_s = expected_line_s(nbytes, baud)
+    while line_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
+        if step < MAX_SHRINK_STEP:
+            step = min(2 * step, MAX_SHRINK_STEP)
+        else:
+            pstep = min(2 * pstep, MAX_SHRINK_STEP)
+        result = rebuild((step, pstep))
+        nbytes = len(encode_message(result))
+        line_s = expected_line_s(nbytes, baud)
+    return result, line_s, full / nbytes
 
 
 def frame_pose(frame: Frame) -> Pose:
@@ -261,7 +292,8 @@ class FlightProcess:
         self.pairs_seen += 1
         time_scale = float(cfg.options.get("time_scale", 1.0))
         fusion = bool(cfg.options.get("fusion", DEFAULT_FUSION))
-        line_s = expected_line_s(self.expected_result_bytes(cfg), float(cfg.options.get("link_baud", 0)))
+        baud = float(cfg.options.get("link_baud", 0))
+        line_s = expected_line_s(self.expected_result_bytes(cfg), baud)
         # what follows the pipeline, in unthrottled seconds: the pipeline reserves it at the slowdown it
         # measures (which can exceed time_scale at low duty cycles); a longer last measurement counts too
         after_s = OUTPUT_RESERVE_S + (FUSION_RESERVE_S if fusion else 0.0)  # fusing and sites on the fused map
@@ -297,9 +329,8 @@ class FlightProcess:
         t_out = time.monotonic()
         sent0 = self._bytes_sent()
         try:
-            result = self._result_message(res, seqs, cfg, grid, sites, reason)
-            due = pend.arrival + cfg.deadline_s
-            result, line_s, grown = self._fit_to_line(result, res, seqs, cfg, grid, sites, reason, due, line_s)
+            rebuild = functools.partial(self._result_message, res, seqs, cfg, grid, sites, reason)
+            result, line_s, grown = fit_to_line(rebuild(), rebuild, baud, pend.arrival + cfg.deadline_s, line_s)
             self.link.send(result)  # encodes here, in this thread
         except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
             self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
@@ -375,34 +406,6 @@ class FlightProcess:
             grid, footprint, (0.0, 0.0), n_sites, margin, relief_max_m=relief, relief_window_m=window
         )
         return grid, sites, (reason or None)
-
-    def _fit_to_line(
-        self, result: Result, res, seqs, cfg: Config, grid, sites, reason, due: float, planned_s: float
-    ) -> tuple[Result, float, float]:
-        """``(result, its expected line time, grown)``: the Result with its grids decimated further while it would
-        still be on the line at ``due`` (monotonic s); ``grown`` = the size the Config's steps gave over the size
-        sent (1 when nothing changed), so that the next pair plans for the size its Result will have.
-
-        The elevation step doubles first (up to ``MAX_SHRINK_STEP``), then the P(safe) step; the state grid and
-        the sites are never touched, and the Result carries its own steps, so the ground reads it as sent. A
-        Result that fits with ``SHRINK_CHECK`` x its planned line time to spare is not measured (encoding costs
-        CPU). Without a line rate (``link_baud`` 0) nothing is changed.
-        """
-        baud = float(cfg.options.get("link_baud", 0))
-        if baud <= 0 or due - time.monotonic() > SHRINK_CHECK * planned_s:
-            return result, planned_s, 1.0
-        step, pstep = int(result.elevation_step), int(result.psafe_step)
-        full = nbytes = len(encode_message(result))
-        line_s = expected_line_s(nbytes, baud)
-        while line_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
-            if step < MAX_SHRINK_STEP:
-                step = min(2 * step, MAX_SHRINK_STEP)
-            else:
-                pstep = min(2 * pstep, MAX_SHRINK_STEP)
-            result = self._result_message(res, seqs, cfg, grid, sites, reason, (step, pstep))
-            nbytes = len(encode_message(result))
-            line_s = expected_line_s(nbytes, baud)
-        return result, line_s, full / nbytes
 
     @staticmethod
     def _result_message(

@@ -608,8 +608,9 @@ def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one()
 
 
 def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser_grids():
-    """``_fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
+    """``fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
     left; the state grid and the sites are kept; with time to spare the Result is sent as the Config asks."""
+    import functools
     import time
 
     import flight_sw.flight_main as fm
@@ -626,18 +627,18 @@ def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser
     args = (res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
     full = fp._result_message(*args)
     full_s = fm.expected_line_s(len(encode_message(full)), baud)
-    out, line_s, grown = fp._fit_to_line(full, *args, time.monotonic() + 3 * full_s, full_s)
+    rebuild = functools.partial(fp._result_message, *args)
+    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, time.monotonic() + 3 * full_s, full_s)
     assert out is full and grown == 1.0 and line_s == full_s  # time to spare: not even measured
     smallest = fp._result_message(*args, (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP))
     small_s = fm.expected_line_s(len(encode_message(smallest)), baud)
     assert small_s < 0.6 * full_s
     left = 0.5 * (full_s + small_s)
-    out, line_s, grown = fp._fit_to_line(full, *args, time.monotonic() + left, full_s)
+    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, time.monotonic() + left, full_s)
     assert out.elevation_step > 1 and line_s <= left and grown > 1.0
     assert np.array_equal(out.state_grid, full.state_grid) and out.sites == full.sites
     assert line_s == pytest.approx(fm.expected_line_s(len(encode_message(out)), baud))
-    out, line_s, _ = fp._fit_to_line(full, *args, time.monotonic(), full_s)  # no time left: the smallest there is
+    out, line_s, _ = fm.fit_to_line(full, rebuild, baud, time.monotonic(), full_s)  # no time left: the smallest
     assert (out.elevation_step, out.psafe_step) == (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP)
-    zmq = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast", options={"link_baud": 0})
-    out, line_s, grown = fp._fit_to_line(full, res, (1, 2), zmq, res.grid, res.sites, None, time.monotonic(), 0.0)
+    out, line_s, grown = fm.fit_to_line(full, rebuild, 0.0, time.monotonic(), 0.0)
     assert out is full and grown == 1.0 and line_s == 0.0  # no line rate (ZeroMQ): sent as it is
