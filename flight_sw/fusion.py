@@ -340,6 +340,8 @@ def fuse(
     w = prm.weight if weight is None else float(weight)
     if not (math.isfinite(w) and 0 < w <= 1):
         raise ValueError(f"fusion: weight must be in (0, 1], got {weight!r}")
+    if level not in ("image_only", "coarse", "full"):  # flight_sw.pipeline.LEVELS
+        raise ValueError(f"fusion: level must be image_only, coarse or full, got {level!r}")
     fm = fm if fm is not None else empty_map()
     if grid.hazard.size == 0 or not (grid.state != STATE_OUTSIDE).any():
         return replace(fm, results=fm.results + 1)  # arrays are never modified in place

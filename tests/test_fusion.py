@@ -131,6 +131,8 @@ def test_a_coarse_result_does_not_replace_what_a_full_one_measured():
     # the same coarse result at the full level replaces the map: nothing is called safe any more
     fm = fuse(fuse(None, full, prm), coarse, prm, level="full")
     assert not (fused_state(fm, prm)[0] == STATE_SAFE).any() and np.all(fm.elevation == 3.5)
+    with pytest.raises(ValueError, match="level"):
+        fuse(None, full, prm, level="partial")
     # and a full-level result after the coarse one enters whole again
     fm = fuse(fuse(fuse(None, full, prm), coarse, prm, level="coarse"), coarse, prm, level="full")
     assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
