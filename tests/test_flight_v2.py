@@ -340,6 +340,18 @@ def test_cost_slabs_sum_over_frames_and_mark_the_edge_band(deep_pair):
     assert np.array_equal(combine([a, a]).cost, a.cost)
 
 
+def test_a_sample_that_touches_the_other_images_edge_never_enters_a_cost(deep_pair):
+    cam, p1, p2, i1, i2, z = deep_pair
+    planes = np.linspace(-56.0, -44.0, 13)
+    roi = (0, 0, 256, 256)
+    # two blank images: every cost made of image samples only is exactly zero. A bilinear sample in the
+    # other image's last half pixel blends in the border value; it used to pass as a grey level
+    flat = np.full_like(i1, 100.0)
+    a = cost_slab(flat, flat, cam, p1, p2, planes, roi)
+    assert a.valid.any() and not a.valid.all()
+    assert np.all(a.cost[a.valid] == 0)
+
+
 def test_weighted_plane_fit_and_classification():
     n = 31
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
