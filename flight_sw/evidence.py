@@ -41,8 +41,8 @@ from .psafe import Model, budget_rule
 from .slope import footprint_cells
 
 
-def _box(a: np.ndarray, n: int) -> np.ndarray:
-    return cv2.boxFilter(a, cv2.CV_64F, (n, n), normalize=False, borderType=cv2.BORDER_CONSTANT)
+def _box(a: np.ndarray, n: int, out: np.ndarray | None = None) -> np.ndarray:
+    return cv2.boxFilter(a, cv2.CV_64F, (n, n), dst=out, normalize=False, borderType=cv2.BORDER_CONSTANT)
 
 
 @dataclass
@@ -88,11 +88,12 @@ def _fit_from_products(
     rho: float,
     with_cov: bool,
 ) -> PlaneFit:
-    # Each box sum is overwritten by what is derived from it, in the same operation order as the formulas
-    # (the same floats): an oblique approach grid of 170 k cells peaked at 56 MiB with a new array per term.
+    # Each product is replaced by its box sum, and each box sum by what is derived from it, in the same
+    # operation order as the formulas (the same floats): an oblique approach grid of 170 k cells peaked at
+    # 56 MiB with a new array per term. The products are consumed (cv2's box filter runs in place exactly).
     h, w = okz.shape
     enough = _box(okz.astype(np.float64), n) >= min_fraction * n * n
-    s1, sx, sy, sz, sxx, sxy, syy, sxz, syz = (_box(a, n) for a in prods)
+    s1, sx, sy, sz, sxx, sxy, syy, sxz, syz = (_box(a, n, out=a) for a in prods)
     nan = np.float32(np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.divide(1.0, s1, out=s1)
@@ -166,14 +167,15 @@ def steeper_plane_fit(
 
     SGM over horizontal planes can terrace a steep crater wall into flat steps about a footprint
     wide; the slope over a few footprints still sees the wall. ``z_plane`` stays the footprint's.
-    The two fits share the per-cell products, so this costs less than two calls.
+    Each fit boxes its own per-cell products in place: recomputing them (a few products per cell) is
+    cheaper than holding nine float64 grids through both fits, where an approach pair's memory peaks.
     """
-    okz, prods, xx, yy = _plane_products(z, sigma)
-    fit = _fit_from_products(okz, prods, xx, yy, footprint_cells(footprint_m, cell_m), cell_m, min_fraction, 1.0, False)
+    n = footprint_cells(footprint_m, cell_m)
+    fit = _fit_from_products(*_plane_products(z, sigma), n, cell_m, min_fraction, 1.0, False)
     if wide_m <= footprint_m:
         return fit
     n_w = footprint_cells(wide_m, cell_m)
-    wide = _fit_from_products(okz, prods, xx, yy, n_w, cell_m, min_fraction, 1.0, False)
+    wide = _fit_from_products(*_plane_products(z, sigma), n_w, cell_m, min_fraction, 1.0, False)
     steeper = np.isfinite(wide.grad) & ~(wide.grad <= fit.grad)
     fit.grad = np.where(steeper, wide.grad, fit.grad).astype(np.float32)
     fit.slope_deg = np.where(steeper, wide.slope_deg, fit.slope_deg).astype(np.float32)

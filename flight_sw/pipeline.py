@@ -1544,6 +1544,12 @@ def _run_v2(
         g_sig = remap_with(sigma, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
         cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
         g_cue = remap_with(cues.astype(np.float32), g_maps) > 0.25
+        # the shading stage's ground point, taken now: the float64 X, Y (4 MiB at 512^2) and the grid's
+        # float64 pixel maps are not held through the slope fits, where the pair's memory peaks
+        ground = None
+        if have_dem and sun is not None and (p.shading_slope or p.keep_layers) and covered.any():
+            ground = (float(np.nanmedian(X[covered])), float(np.nanmedian(Y[covered])))
+        del X, Y, z_fill, gu, gv
 
     nan_img = np.full(i1.shape, np.nan, np.float32)
     with _stage(timings, "slope"):
@@ -1562,8 +1568,7 @@ def _run_v2(
             slope_img = remap_with(fit.slope_deg, px_maps)
             grad_img = remap_with(fit.grad, px_maps)
             gsig_img = remap_with(g_gsig, px_maps)
-            plane_img = remap_with(fit.z_plane, px_maps)
-            rough_img = np.abs(elevation - plane_img)
+            rough_img = np.abs(elevation - remap_with(fit.z_plane, px_maps))
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
         else:
             slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
@@ -1589,9 +1594,11 @@ def _run_v2(
                 )
                 pc_img = np.where(covered & seen, shading_gradient(gx, gy, c_meas, sun), np.nan).astype(np.float32)
                 pc_img *= np.float32(cell)  # m per cell, as grad_img
+                del gx, gy, c_meas, seen
                 # what casts each shadow lies sun-ward of it, within about a footprint (a boulder, a rim)
-                ground = (float(np.nanmedian(X[covered])), float(np.nanmedian(Y[covered])))
-                toward = image_direction(camera, pose1, ground, (float(sun[0]), float(sun[1])), z_ref)
+                toward = None
+                if ground is not None:
+                    toward = image_direction(camera, pose1, ground, (float(sun[0]), float(sun[1])), z_ref)
                 if toward is not None:
                     reach = int(min(CASTER_MAX_PX, max(2, round(fp_px))))
                     caster_img = caster_distance(shadow, toward, reach)
@@ -1658,6 +1665,7 @@ def _run_v2(
                 p.rough_limit_m,
                 measured=np.isfinite(g_elev),
             )
+            del feats, ev_c, g_call, g_ps, g_bad
         else:
             ev = classify(grad_img, gsig_img, rough_img, rsig_img, cues, covered, cell, **kw)
             if fit is not None:
@@ -1671,6 +1679,8 @@ def _run_v2(
         grid = HazardGrid(
             gev.hazard, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell), gev.state, gev.psafe
         )
+    # what the site search does not read, dropped before it: 512^2 approach pairs peaked there at 69 MiB
+    del fit, gev, grad_img, gsig_img, rsig_img, pc_img, caster_img, px_maps, g_maps
 
     with _stage(timings, "sites"):
         if clock.ok():
