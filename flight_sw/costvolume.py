@@ -41,7 +41,7 @@ COST_SCALE = 8.0  # uint16 units per grey level of mean absolute difference
 COST_MAX = 2047  # saturation: 256 grey levels; keeps SGM sums of 8 paths inside int16
 # Warped samples that read outside the other image. NaN, not a large sentinel: a bilinear sample in the
 # last half pixel of the image blends its edge with the border value, and a blend of a -1e4 sentinel with
-# a 1/32 weight passed a "> sentinel / 2" test as a grey level of about -300. Near the overlap edge that
+# a 1/32 weight passed a "> sentinel / 2" test as a grey level of about -170 (edge 150). Near the overlap edge that
 # polluted the local mean and made the true plane's cost the worst one (tuning approach 2400/1200: DEM
 # error 3-5 m in a 6 px band, against 1.3-1.5 m inside). NaN survives any blend, so "finite" is "inside".
 _OUTSIDE = float("nan")
