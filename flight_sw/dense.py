@@ -34,8 +34,8 @@ class DenseParams:
     p2_adapt: bool = True
     paths: int = 8
     uniqueness: float = 0.05
-    end_margin: int = 3  # planes: minima this close to a partially seen end of the pixel's interval are dropped
-    min_interval_frac: float = 0.8  # a pixel must see at least this share of the planes
+    end_margin: int = 1  # planes: minima this close to a partially seen end of the pixel's interval are dropped
+    min_interval_frac: float = 0.5  # a pixel must see at least this share of the planes
     speckle_px: int = 30
     speckle_diff: float = 2.0  # planes
     temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
@@ -133,9 +133,10 @@ def dem_from_slab(
         return DenseDEM(nan, nan.copy(), False)
     m = winner(S, C, lo, hi, dp.uniqueness, dp.kappa_radius)
     del S, C
-    # the overlap-edge band: a pixel that sees only part of the planes is kept only if it sees most of
-    # them and its minimum lies well inside them (on tuning pairs the band's matches were 4 m off
-    # otherwise: half of them had their true plane outside the part they see)
+    # the overlap-edge band: a pixel that sees only part of the planes is kept only if it sees half of
+    # them and its minimum is not at the end it sees. (Set to 80 % and 3 planes when the cost volume still
+    # read the other image's border as grey levels, which made this band's matches 4 m off; since stop 34,
+    # on tuning seeds 0-2, 96 pairs: coverage +1.1 points median, DEM error +0.3 %, FP and CDI unchanged)
     em = int(dp.end_margin)
     partial_lo, partial_hi = lo > 0, hi < D - 1
     ok0 = m.ok.copy()

@@ -290,8 +290,8 @@ class Params:
     sgm_paths: int = 8  # 8, 4 or 0 (no aggregation)
     uniqueness: float = 0.05
     speckle_px: int = 30
-    end_margin: int = 3  # planes: minima this close to a partially seen end of a pixel's plane interval are dropped
-    min_interval_frac: float = 0.8  # pixels must see at least this share of the planes
+    end_margin: int = 1  # planes: minima this close to a partially seen end of a pixel's plane interval are dropped
+    min_interval_frac: float = 0.5  # pixels must see at least this share of the planes
     sigma_temperature: float = 4.0  # sigma calibration (sgm.plane_sigma)
     kappa_floor: float = 0.0  # > 0: keep matches with a non-convex raw cost curve at this curvature (sgm.py)
     sigma_uniq_scale: float = 0.2  # ambiguity weight of a second minimum (sgm.plane_sigma)
