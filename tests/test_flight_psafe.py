@@ -11,26 +11,14 @@ from importlib import resources
 
 import numpy as np
 import pytest
+from evalpairs import eval_pair
 
 from flight_sw.evidence import classify_calibrated
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.psafe import PsafeModel, TreeModel, budget_rule, load_model
 from flight_sw.validate import FlightInputError
-from ground_sim import trajectory
-from ground_sim.descent import DEFAULT_SUN, render_pair
-from ground_sim.library import scene_sun
-from ground_sim.scene import load_scene
 from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 from protocol.pairdir import STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
-
-
-def _render(scenario: str, scene: str, seed: int, label: str):
-    """A pair as bench/eval_flight.py renders it: a library scene under its own sun, a preset under the default."""
-    spec = next(s for s in getattr(trajectory, scenario)(None) if s.label == label)
-    if scene == "thesis":
-        sc = load_scene(scene, seed, scenario)
-        return render_pair(sc, spec, scene_sun(sc, scenario, seed), seed=seed)
-    return render_pair(load_scene(scene, seed), spec, DEFAULT_SUN[scenario], seed=seed)
 
 
 def _run(pair, sun: bool = True, **over):
@@ -119,7 +107,7 @@ def test_psafe_is_calibrated_on_a_tuning_scene():
     `default` pair below 0.8: predicted 0.26, observed 0.37 (0.25 / 0.37 fitted on the eval pairs alone;
     stop 25's trees were within 0.04 overall and 0.08 per band). That costs calls, not safety.
     """
-    pair = _render("vertical", "default", TUNING_SEEDS[0], "400/200")
+    pair = eval_pair("vertical", "default", TUNING_SEEDS[0], "400/200")
     res = _run(pair)
     cov = res.covered & np.isfinite(pair.truth["hazard"])
     p = res.psafe[cov].astype(np.float64)
@@ -145,7 +133,7 @@ def _fp_tp(pair, sun: bool = True, **over) -> tuple[float, float]:
 
 @pytest.mark.slow
 def test_fp_budget_holds_on_a_held_out_pair_and_calls_more_safe_ground():
-    pair = _render("approach", "approach", HELD_OUT_SEEDS[0], "600/300")
+    pair = eval_pair("approach", "approach", HELD_OUT_SEEDS[0], "600/300")
     fp, tp = _fp_tp(pair)
     tp_gauss = _fp_tp(pair, psafe_model="gaussian")[1]
     assert fp <= 1.0
@@ -159,7 +147,7 @@ def test_fp_budget_holds_on_the_thesis_scene():
     """The product's default scene (more hazardous than `default`): the model fitted on `default` scenes alone
     gave FP 1.54 % on this held-out pair; refitted on both scene families 0.51 %, with 65 % of the covered
     ground called truly safe."""
-    pair = _render("approach", "thesis", HELD_OUT_SEEDS[1], "250/125")
+    pair = eval_pair("approach", "thesis", HELD_OUT_SEEDS[1], "250/125")
     fp, tp = _fp_tp(pair)
     assert fp <= 1.0 and tp > 50.0
 
@@ -186,7 +174,7 @@ def test_the_shading_slope_calls_more_safe_ground_within_the_fp_limit():
     footprints' sun-ward tilt from the shading (photoclinometry.py) and calls more truly safe ground safe;
     not told, it falls back to the DEM's slope (the trees were fitted with a_pc blanked on a quarter of the
     points), and neither call lets more than 1 % of the pixels through as undetected hazards."""
-    pair = _render("vertical", "thesis", HELD_OUT_SEEDS[0], "600/300")
+    pair = eval_pair("vertical", "thesis", HELD_OUT_SEEDS[0], "600/300")
     fp_sun, tp_sun = _fp_tp(pair)
     fp_blind, tp_blind = _fp_tp(pair, sun=False)
     assert fp_sun <= 1.0 and fp_blind <= 1.0

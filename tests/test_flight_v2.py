@@ -352,6 +352,42 @@ def test_a_sample_that_touches_the_other_images_edge_never_enters_a_cost(deep_pa
     assert np.all(a.cost[a.valid] == 0)
 
 
+def test_the_overlap_edge_band_keeps_a_pixel_that_sees_half_the_planes_around_its_minimum():
+    """``dense.dem_from_slab``'s band rule on a slab whose every pixel has one clear minimum (plane 10 of 21).
+
+    Strips of columns see different plane intervals, as pixels near the overlap edge do. A pixel is kept when
+    it sees at least half the planes (``min_interval_frac``) and its minimum is more than ``end_margin`` planes
+    from an end it sees only in part: there a minimum cannot be told from a cost still falling past the edge.
+    """
+    from flight_sw.dense import DenseParams, dem_from_slab
+
+    D, h, w = 21, 40, 60
+    planes = np.linspace(-10.0, 10.0, D)  # 1 m apart; plane 10 is Z = 0
+    k = np.arange(D, dtype=np.float64)[:, None, None]
+    cost = np.broadcast_to(np.minimum(12.0 * (k - 10.0) ** 2, 1000.0), (D, h, w)).astype(np.uint16).copy()
+    valid = np.ones((D, h, w), bool)
+    # strip -> planes it sees: all; 81 %; 62 %; 38 %; 57 % with the minimum one plane from its end; 52 % ending there
+    seen = [(0, 20), (4, 20), (0, 12), (6, 13), (0, 11), (0, 10)]
+    for strip, (a, b) in enumerate(seen):
+        cols = slice(10 * strip, 10 * strip + 10)
+        valid[:a, :, cols] = False
+        valid[b + 1 :, :, cols] = False
+    cost[~valid] = COST_MAX
+    slab = CostSlab(cost, valid, planes, (0, 0, w, h))
+    ref = np.random.default_rng(0).normal(100.0, 20.0, (h, w)).astype(np.float32)
+
+    def kept(dp: DenseParams) -> list[float]:
+        return np.isfinite(dem_from_slab(slab, ref, (h, w), dp).elevation)[:, 5::10].mean(axis=0).tolist()
+
+    dem = dem_from_slab(slab, ref, (h, w), DenseParams())
+    assert np.allclose(dem.elevation[:, :30], 0.0, atol=0.05)
+    assert kept(DenseParams()) == [1.0, 1.0, 1.0, 0.0, 1.0, 0.0]
+    assert kept(DenseParams(min_interval_frac=0.3)) == [1.0, 1.0, 1.0, 1.0, 1.0, 0.0]  # the share rule drops 38 %
+    assert kept(DenseParams(end_margin=2)) == [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]  # the margin rule
+    # the rule of stop 33 and before (80 %, 3 planes), set while the border samples spoilt this band
+    assert kept(DenseParams(min_interval_frac=0.8, end_margin=3)) == [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+
+
 def test_weighted_plane_fit_and_classification():
     n = 31
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
@@ -516,16 +552,11 @@ def test_an_oblique_512_approach_pair_peaks_under_64_mib():
     peaked at 67 MiB there."""
     import tracemalloc
 
-    from ground_sim import trajectory
-    from ground_sim.descent import render_pair
-    from ground_sim.library import scene_sun
-    from ground_sim.scene import load_scene
+    from evalpairs import eval_pair
+
     from ground_sim.seeds import TUNING_SEEDS
 
-    seed = TUNING_SEEDS[0]
-    spec = next(s for s in trajectory.approach(None) if s.label == "1000/500")
-    scene = load_scene("thesis", seed, "approach")
-    pair = render_pair(scene, spec, scene_sun(scene, "approach", seed), seed=seed)
+    pair = eval_pair("approach", "thesis", TUNING_SEEDS[0], "1000/500")
     sun = {"sun_azimuth_deg": pair.sun.azimuth_deg, "sun_elevation_deg": pair.sun.elevation_deg}
 
     def run():

@@ -1,0 +1,19 @@
+"""Rendered pairs as ``bench/eval_flight.py`` renders them, for tests that need real descent imagery."""
+
+from __future__ import annotations
+
+from ground_sim import trajectory
+from ground_sim.descent import DEFAULT_SUN, render_pair
+from ground_sim.library import scene_sun
+from ground_sim.scene import load_scene
+from protocol.pairdir import Pair
+
+
+def eval_pair(scenario: str, scene: str, seed: int, label: str) -> Pair:
+    """The pair ``label`` (e.g. ``"600/300"``) of ``scenario`` over ``scene``: the `thesis` scene under its
+    own sun (``ground_sim.library.scene_sun``), a preset scene under the scenario's default sun."""
+    spec = next(s for s in getattr(trajectory, scenario)(None) if s.label == label)
+    if scene == "thesis":
+        sc = load_scene(scene, seed, scenario)
+        return render_pair(sc, spec, scene_sun(sc, scenario, seed), seed=seed)
+    return render_pair(load_scene(scene, seed), spec, DEFAULT_SUN[scenario], seed=seed)
