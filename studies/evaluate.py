@@ -34,6 +34,10 @@ PRESETS = ("fast", "thesis", "fast_unrefined")  # fast_unrefined: fast without p
 EPIPOLE_BOX_PX = 80  # Table 6.7: 80x80 px around the epipole
 THESIS_CAMERA_PX = 512
 FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)
+# the packages whose source decides a task's result (studies.executor.code_fingerprint): a saved result
+# of other code is computed again
+RENDER_CODE = ("ground_sim", "protocol")
+EVAL_CODE = ("flight_sw", "ground_sim", "protocol", "studies")
 SENSITIVITY_KINDS = ("altitude", "attitude", "lateral", "rollyaw")
 ALTITUDE_ERROR_M = 0.5  # sec 6.3.1: uniform in +-0.5 m per pose
 ATTITUDE_LEVELS_DEG = (-0.15, -0.10, -0.05, 0.05, 0.10, 0.15)  # Tables 6.16-6.19
@@ -741,7 +745,7 @@ def render_all(
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
-    from studies.executor import Task, run_tasks
+    from studies.executor import Task, code_fingerprint, run_tasks
 
     have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
     alts = have if altitudes is None else sorted({int(a) for a in altitudes})
@@ -778,6 +782,7 @@ def render_all(
         progress=progress,
         desc=f"render {scenario}",
         pool=pool,
+        code=code_fingerprint(RENDER_CODE),
     )
     out = []
     for t in tasks:
@@ -814,7 +819,7 @@ def evaluate_scenario(
     and evaluation share one pool of single-threaded processes.
     """
     from ground_sim.seeds import seed_set_of
-    from studies.executor import Task, local_pool, run_tasks
+    from studies.executor import Task, code_fingerprint, local_pool, run_tasks
 
     _check_choice("scenario", [scenario], SCENARIOS)
     presets = _check_choice("preset", presets, PRESETS)
@@ -871,6 +876,7 @@ def evaluate_scenario(
             progress=progress,
             desc=f"evaluate {scenario}",
             pool=pool,
+            code=code_fingerprint(EVAL_CODE),
         )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     write_metrics_csv(rows, out / "metrics.csv")
@@ -1013,7 +1019,7 @@ def sensitivity_campaign(
     Results go to ``out_dir/runs/sensitivity-<kind>.jsonl`` (resumable) and
     ``out_dir/sensitivity_<kind>.csv``.
     """
-    from studies.executor import Task, run_tasks
+    from studies.executor import Task, code_fingerprint, run_tasks
 
     _check_choice("kind", [kind], SENSITIVITY_KINDS)
     presets = _check_choice("preset", presets, PRESETS)
@@ -1062,6 +1068,7 @@ def sensitivity_campaign(
         workers=workers,
         progress=progress,
         desc=f"sensitivity {kind}",
+        code=code_fingerprint(EVAL_CODE),
     )
     rows = []
     for t in tasks:

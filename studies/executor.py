@@ -7,6 +7,12 @@ interrupted campaign (Ctrl-C, a lost node, a killed job) resumes by skipping
 the ids already in the file. A truncated last line - the write that was cut
 off - is ignored and its task simply runs again.
 
+A record also carries the ``code`` it was computed by (:func:`code_fingerprint`,
+a hash of the source of the packages the task runs). A rerun skips only the
+ids whose record has this run's fingerprint: after the flight software changes,
+a resumed study recomputes its results instead of reporting the old code's,
+and says how many it recomputed.
+
 Backends: ``workers == 1`` runs inline (no process start-up cost, easiest to
 debug); ``workers > 1`` uses a local pool of single-threaded processes
 (:mod:`ground_sim.parallel`: one OpenCV and one BLAS thread each, so N workers
@@ -19,8 +25,10 @@ function of its arguments. A caller with several campaigns in a row passes one
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import sys
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -48,8 +56,39 @@ class CampaignError(RuntimeError):
         super().__init__(f"{len(failures)} task(s) failed, first {first[0]}: {first[1]}")
 
 
-def load_results(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Finished results in a JSON-lines file, by id (unparsable lines, e.g. a cut-off write, are skipped)."""
+SOURCE_SUFFIXES = (".py", ".json", ".c")
+
+
+def code_fingerprint(packages: Iterable[str]) -> str:
+    """SHA-256 (16 hex digits) over the source files (``SOURCE_SUFFIXES``) of the named packages.
+
+    Paths and bytes both count, in sorted order, so a renamed, added or edited module, or a refitted
+    model file, gives another fingerprint; compiled kernels are covered by their C source.
+    """
+    import importlib.util
+
+    h = hashlib.sha256()
+    for name in sorted(set(packages)):
+        spec = importlib.util.find_spec(name)
+        roots = list(spec.submodule_search_locations or []) if spec is not None else []
+        if not roots:
+            raise InputError(f"code fingerprint: {name!r} is not an importable package")
+        root = Path(roots[0])
+        files = sorted(
+            f for f in root.rglob("*") if f.suffix in SOURCE_SUFFIXES and "__pycache__" not in f.parts and f.is_file()
+        )
+        for f in files:
+            h.update(f"{name}/{f.relative_to(root).as_posix()}\0".encode())
+            h.update(f.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def load_results(path: str | Path, code: str | None = None) -> dict[str, dict[str, Any]]:
+    """Finished results in a JSON-lines file, by id (unparsable lines, e.g. a cut-off write, are skipped).
+
+    With ``code``, only records computed by that fingerprint count; the last record of an id wins.
+    """
     p = Path(path)
     out: dict[str, dict[str, Any]] = {}
     if not p.is_file():
@@ -60,7 +99,8 @@ def load_results(path: str | Path) -> dict[str, dict[str, Any]]:
                 rec = json.loads(line)
             except json.JSONDecodeError:
                 continue
-            if isinstance(rec, dict) and "id" in rec and isinstance(rec.get("result"), dict):
+            ok = isinstance(rec, dict) and "id" in rec and isinstance(rec.get("result"), dict)
+            if ok and (code is None or rec.get("code") == code):
                 out[str(rec["id"])] = rec["result"]
     return out
 
@@ -111,8 +151,13 @@ def run_tasks(
     progress: bool = True,
     desc: str = "tasks",
     pool: Any = None,
+    code: str | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
+
+    ``code`` (:func:`code_fingerprint` of what ``fn`` runs) is stored with each result, and a result
+    another fingerprint computed is not reused: the task runs again, and a one-line note on stderr
+    says how many did.
 
     The returned dict follows the order of ``tasks``. ``scheduler`` selects
     Dask (address string or ``distributed.Client``); otherwise ``pool`` (an
@@ -128,8 +173,17 @@ def run_tasks(
         raise InputError(f"duplicate task ids: {dup[:5]}")
     path = Path(results_path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    done = load_results(path)
+    done = load_results(path, code)
     pending = [t for t in tasks if t.id not in done]
+    if code is not None and pending:
+        stale = set(load_results(path)) & {t.id for t in pending}
+        if stale:
+            print(
+                f"note: {desc}: {len(stale)} of {len(tasks)} saved results in {path} were computed by other code;"
+                " computing them again",
+                file=sys.stderr,
+                flush=True,
+            )
     bar = Progress(len(tasks), len(tasks) - len(pending), desc, enabled=progress)
     failures: dict[str, str] = {}
 
@@ -138,7 +192,8 @@ def run_tasks(
             fh.write("\n")  # close a line cut off by an interruption so the next record starts clean
 
         def record(task_id: str, result: dict[str, Any]) -> None:
-            fh.write(json.dumps({"id": task_id, "result": result}, default=_json_default, sort_keys=True) + "\n")
+            rec = {"id": task_id, "result": result, **({"code": code} if code is not None else {})}
+            fh.write(json.dumps(rec, default=_json_default, sort_keys=True) + "\n")
             fh.flush()
             done[task_id] = json.loads(json.dumps(result, default=_json_default))
             bar.update()

@@ -462,7 +462,8 @@ def run_campaign(
 
     ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
     Returns (rows, summary)."""
-    from studies.executor import Task, run_tasks
+    from studies.evaluate import EVAL_CODE
+    from studies.executor import Task, code_fingerprint, run_tasks
 
     out = claim_out_dir(c, out_dir)
     cache = None if cache_dir is None else str(Path(cache_dir).resolve())
@@ -479,6 +480,7 @@ def run_campaign(
         workers=workers,
         progress=progress,
         desc=f"landings ({c.per_render} per render)",
+        code=code_fingerprint(EVAL_CODE),
     )
     wall = time.time() - t0
     rows = [r for t in tasks for r in res[t.id]["rows"]]

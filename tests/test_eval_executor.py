@@ -78,3 +78,47 @@ def test_progress_bar_counts_to_total():
         bar.update()
     last = buf.getvalue().strip().splitlines()[-1]
     assert "4/4" in last and "100%" in last and last.startswith("demo [")
+
+
+def test_a_result_of_other_code_is_computed_again_and_said_so(tmp_path: Path, capsys):
+    log = tmp_path / "calls.txt"
+    out = tmp_path / "r.jsonl"
+    tasks = [Task(t.id, {"seed": t.kwargs["seed"], "log": str(log)}) for t in TASKS]
+    run_tasks(counted, tasks[:3], out, workers=1, progress=False, code="old")
+    log.write_text("")
+    res = run_tasks(counted, tasks, out, workers=1, progress=False, code="old")
+    assert log.read_text().split() == ["3", "4"]  # resumed: the same code's results are kept
+    log.write_text("")
+    capsys.readouterr()
+    res = run_tasks(counted, tasks, out, workers=1, progress=False, code="new")
+    assert log.read_text().split() == ["0", "1", "2", "3", "4"]  # the flight software changed: all again
+    assert "5 of 5 saved results" in capsys.readouterr().err
+    assert res["s02"] == noisy_mean(2, 50)
+    assert sorted(load_results(out, "new")) == [t.id for t in TASKS] and len(load_results(out, "old")) == 5
+    log.write_text("")
+    run_tasks(counted, tasks, out, workers=1, progress=False, code="new")
+    assert log.read_text() == ""
+
+
+def test_the_code_fingerprint_follows_the_source(tmp_path: Path, monkeypatch):
+    import importlib
+
+    from studies.executor import code_fingerprint
+
+    pkg = tmp_path / "fp_probe_pkg"
+    (pkg / "__pycache__").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("X = 1\n")
+    (pkg / "model.json").write_text("{}")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importlib.invalidate_caches()
+    a = code_fingerprint(["fp_probe_pkg"])
+    (pkg / "__pycache__" / "x.cpython-311.pyc").write_bytes(b"\0")  # build products do not count
+    (pkg / "notes.txt").write_text("not source")
+    assert code_fingerprint(["fp_probe_pkg"]) == a
+    (pkg / "model.json").write_text('{"refit": 1}')  # a refitted model is other code
+    b = code_fingerprint(["fp_probe_pkg"])
+    (pkg / "__init__.py").write_text("X = 2\n")
+    assert len({a, b, code_fingerprint(["fp_probe_pkg"])}) == 3
+    assert code_fingerprint(["studies", "flight_sw"]) == code_fingerprint(["flight_sw", "studies"])
+    with pytest.raises(InputError, match="not an importable package"):
+        code_fingerprint(["no_such_package_here"])
