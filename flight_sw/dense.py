@@ -5,8 +5,9 @@ caller combined over several frames), :func:`flight_sw.sgm.aggregate`,
 :func:`flight_sw.sgm.winner` and :func:`flight_sw.sgm.speckle_filter`, then turns the
 sub-plane index into an elevation by interpolating the plane list and the plane-step
 uncertainty into metres with the local plane spacing (:func:`flight_sw.sgm.plane_sigma`).
-Memory: the slab is ``D x h x w`` uint16 plus a bool mask, the aggregation holds one int16
-``h x w x D`` copy of the cost and the int16 sum; nothing else of size D (512^2 pairs: ~30 MB).
+Memory: the slab is ``D x h x w`` uint16 plus a bool mask; the aggregation holds one int16
+``h x w x D`` copy of the cost and the int16 sum, and the slab is freed before it when the caller
+hands it over (``release``); the winner's uniqueness test copies strips of the sum, not all of it.
 """
 
 from __future__ import annotations
@@ -103,8 +104,12 @@ def dem_from_slab(
     prior: np.ndarray | None = None,
     fillable: np.ndarray | None = None,
     gsd_m: float = 0.0,
+    release: bool = False,
 ) -> DenseDEM:
     """Aggregate a (possibly multi-frame) slab and extract the DEM and its uncertainty.
+
+    ``release``: the caller hands the slab over; its ``cost`` and ``valid`` are emptied once read, so
+    the aggregation does not hold them (3 bytes per pixel and plane, a third of this stage's peak).
 
     ``prior`` (elevation, reference size, NaN = none; e.g. the coarse level's DEM) vouches for
     pixels of the overlap-edge band: one that sees only part of the planes is kept when the
@@ -124,8 +129,13 @@ def dem_from_slab(
         return DenseDEM(nan, nan.copy(), False)
     if w == 0 or h == 0 or D < 3:
         return DenseDEM(nan, nan.copy(), True, {"planes": int(D)})
-    C = np.ascontiguousarray(slab.cost.transpose(1, 2, 0)).astype(np.int16)
+    # the aggregation's layout (h, w, D) in one copy; costs <= COST_MAX fit int16
+    C = np.empty((h, w, D), np.int16)
+    np.copyto(C, slab.cost.transpose(1, 2, 0), casting="unsafe")
     lo, hi = valid_interval(slab.valid)
+    if release:  # the slab's arrays are not needed past this point: free them before the aggregation
+        slab.cost = np.empty((0, h, w), slab.cost.dtype)  # not a view: that would keep the array alive
+        slab.valid = np.empty((0, h, w), bool)
     guide = np.asarray(ref, np.float32)[y0 : y0 + h, x0 : x0 + w]
     try:
         S = aggregate(C, guide, dp.p1, dp.p2, dp.p2_g0, dp.paths, dp.p2_adapt, deadline)
@@ -214,4 +224,4 @@ def dense_dem(
         ignore=ignore,
         deadline=deadline,
     )
-    return dem_from_slab(slab, i1, i1.shape, dp, deadline, prior, ignore, gsd_m)
+    return dem_from_slab(slab, i1, i1.shape, dp, deadline, prior, ignore, gsd_m, release=True)

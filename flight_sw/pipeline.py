@@ -1308,7 +1308,7 @@ def _multi_dem(
         deadline=deadline,
         check_every=p.check_every,
     )
-    dem = dem_from_slab(slab, a1, a1.shape, dp, deadline, prior, ignore, _centre_gsd(camera, pose1))
+    dem = dem_from_slab(slab, a1, a1.shape, dp, deadline, prior, ignore, _centre_gsd(camera, pose1), release=True)
     gain_img = np.ones(a1.shape, np.float32)
     if slab.info is not None:
         x0, y0, w, h = roi

@@ -209,6 +209,9 @@ class Match:
     kappa: np.ndarray  # float32 h x w: local curvature of the raw cost at the winner (cost units)
 
 
+UNIQ_STRIP_ELEMENTS = 1 << 20  # cost entries per strip of :func:`winner`'s uniqueness copy (2 MiB)
+
+
 def winner(
     S: np.ndarray,
     C: np.ndarray,
@@ -235,14 +238,19 @@ def winner(
         off = np.where(denom > 0, (sm - sp) / denom, 0.0)
     frac = (k + np.clip(off, -0.5, 0.5)).astype(np.float32)
     ok = (k > lo) & (k < hi) & (lo >= 0)
-    # uniqueness: best cost outside k-1..k+1
-    S2 = S.copy()
+    # uniqueness: best cost outside k-1..k+1, on a copy of a strip of rows at a time (a whole copy of S
+    # was the largest array of the DEM stage: 2 bytes per pixel and plane)
     big = np.int16(np.iinfo(np.int16).max)
-    for kk in (km, k, kp):
-        np.put_along_axis(S2, kk[..., None], big, 2)
-    k2 = S2.argmin(axis=2).astype(np.int32)
-    s2 = np.take_along_axis(S2, k2[..., None], 2)[..., 0].astype(np.float32)
-    del S2
+    k2 = np.empty((h, w), np.int32)
+    s2 = np.empty((h, w), np.float32)
+    rows = max(1, UNIQ_STRIP_ELEMENTS // max(1, w * D))
+    for r0 in range(0, h, rows):
+        r = slice(r0, min(h, r0 + rows))
+        S2 = S[r].copy()
+        for kk in (km[r], k[r], kp[r]):
+            np.put_along_axis(S2, kk[..., None], big, 2)
+        k2[r] = S2.argmin(axis=2)
+        s2[r] = np.take_along_axis(S2, k2[r][..., None], 2)[..., 0]
     uniq = (s2 - s0) / np.maximum(s0, 1.0)
     if uniqueness > 0:
         ok &= uniq >= uniqueness
