@@ -93,9 +93,11 @@ def settle_allocator() -> bool:
 
 
 # the flight pipeline's working set per camera pixel, less the process's base: an oblique approach pair's grid
-# needs ~260 B (66 MiB at 512 px), a nadir pair's ~190 B. At 150 B an approach pair's first slope stage cost 150 ms
-# of CPU instead of 32 (page faults), and every later one 72 ms (docs/hil.md, "Boot warm-up")
-HEAP_BYTES_PER_PIXEL = 250
+# needs ~185 B (45 MiB at 512 px), a nadir pair's ~150 B (bench/bench_flight_memory.py, stop 35; stop 33 measured
+# 260 and 190 B and set 250). At 150 B an approach pair's first slope stage had cost 150 ms of CPU instead of 32
+# (page faults), and every later one 72 ms (docs/hil.md, "Boot warm-up"). More than the pipeline needs is not free:
+# the heap keeps it, and at 1024 px a 250 B prefault raised the process's peak from 219 to 275 MiB
+HEAP_BYTES_PER_PIXEL = 180
 
 
 def heap_mib_for(width: int, height: int) -> int:

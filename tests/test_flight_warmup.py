@@ -45,4 +45,5 @@ def test_heap_touched_for_a_camera_stays_inside_the_hil_memory_model():
 
     for side in (64, 128, 512, 1024, 2048):
         assert heap_mib_for(side, side) * 2**20 <= FLIGHT_BYTES_PER_PIXEL * side * side
-    assert heap_mib_for(512, 512) >= 60  # and it covers most of a 512 px approach pair's working set (~66 MiB)
+    # and it covers most of a 512 px approach pair's working set above the base (45 MiB; bench/bench_flight_memory.py)
+    assert heap_mib_for(512, 512) >= 40

@@ -1,0 +1,164 @@
+"""Peak private memory of the flight process's work per camera size: the figures behind the HIL's memory model.
+
+``hil_server.budgets.flight_peak_rss_mib`` refuses, up front, a camera whose flight process would not fit a
+budget's memory ceiling, and ``flight_sw.warmup.HEAP_BYTES_PER_PIXEL`` is the heap the flight process touches
+before a new camera's first pair. Both are fitted to what this script measures: each case runs in a fresh
+process that does what the flight process does (``boot_warm_up``, then optionally ``prefault_heap`` for the
+camera, then ``fast`` on the pair ``--runs`` times, with the altimeter and the sun as HIL frames carry them), while
+a thread polls ``/proc/self/status`` every 2 ms. Private = ``RssAnon + RssShmem``, the figure the HIL's memory
+watchdog enforces (mapped library code is not counted; docs/hil.md section 4); the peak is also bounded from below
+by ``VmHWM - RssFile`` at the end, which catches a peak between two polls.
+
+``--scale 2`` upsamples both images (bicubic) and the camera, as a 1024^2 camera over the same ground.
+
+    .venv/bin/python bench/bench_flight_memory.py --pair DIR [DIR ...] --scale 1 2 [--no-prefault]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+MIB = 2**20
+
+
+def _status() -> dict[str, int]:
+    out: dict[str, int] = {}
+    with open("/proc/self/status", "rb") as fh:
+        for line in fh:
+            k, _, v = line.partition(b":")
+            if k in (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem"):
+                out[k.decode()] = int(v.split()[0]) * 1024
+    return out
+
+
+def _private(s: dict[str, int]) -> int:
+    return s.get("RssAnon", 0) + s.get("RssShmem", 0)
+
+
+class _Poller:
+    """Largest private RSS seen by a 2 ms polling thread between start and stop."""
+
+    def __init__(self) -> None:
+        self.peak = _private(_status())
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._loop, daemon=True)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(0.002):
+            self.peak = max(self.peak, _private(_status()))
+
+    def __enter__(self) -> _Poller:
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._t.join()
+        s = _status()
+        self.peak = max(self.peak, _private(s), s.get("VmHWM", 0) - s.get("RssFile", 0))
+
+
+def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float | None = None) -> dict:
+    import cv2
+
+    from flight_sw.pipeline import PRESETS, run_pipeline
+    from flight_sw.warmup import HEAP_BYTES_PER_PIXEL, boot_warm_up, prefault_heap
+    from protocol.pairdir import Camera, read_pair
+
+    boot_warm_up(PRESETS["fast"])
+    pair = read_pair(pair_dir)
+    i1, i2 = pair.images[0], pair.images[-1]
+    cam = pair.camera
+    if scale != 1:
+        i1, i2 = (cv2.resize(a, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC) for a in (i1, i2))
+        c = cam
+        cam = Camera(
+            c.width * scale, c.height * scale, c.fx * scale, c.fy * scale,
+            (c.cx + 0.5) * scale - 0.5, (c.cy + 0.5) * scale - 0.5,
+        )  # fmt: skip
+    sun: dict[str, Any] = {}
+    if pair.sun is not None:
+        sun = {"sun_azimuth_deg": pair.sun.azimuth_deg, "sun_elevation_deg": pair.sun.elevation_deg}
+    base = _private(_status())
+    if prefault:
+        bpp = HEAP_BYTES_PER_PIXEL if heap_bpp is None else heap_bpp
+        prefault_heap(int(bpp * cam.width * cam.height / MIB))
+    after_prefault = _private(_status())
+    levels = []
+    t0 = time.process_time()
+    with _Poller() as poll:
+        for _ in range(runs):
+            r = run_pipeline(
+                i1, i2, pair.poses[0], pair.poses[-1], cam, preset="fast", altimeter_m=pair.altimeter_m, **sun
+            )
+            levels.append(r.level)
+            del r
+    return {
+        "pair": Path(pair_dir).name,
+        "px": f"{cam.width}x{cam.height}",
+        "pixels": cam.width * cam.height,
+        "prefault": prefault,
+        "base_mib": base / MIB,
+        "after_prefault_mib": after_prefault / MIB,
+        "peak_mib": poll.peak / MIB,
+        "levels": levels,
+        "cpu_s": time.process_time() - t0,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pair", nargs="+", required=True, help="pair directories")
+    ap.add_argument("--scale", nargs="+", type=int, default=[1, 2], help="upsampling factors (default 1 2)")
+    ap.add_argument("--no-prefault", action="store_true", help="skip the heap prefault (the pipeline's own need)")
+    ap.add_argument("--runs", type=int, default=2, help="pipeline runs per process (default 2)")
+    ap.add_argument("--heap-bytes-per-px", type=float, help="prefault this heap (default: flight_sw.warmup's)")
+    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--child", nargs=3, metavar=("PAIR", "SCALE", "PREFAULT"), help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.child:
+        print(json.dumps(child(a.child[0], int(a.child[1]), a.child[2] == "1", a.runs, a.heap_bytes_per_px)))
+        return 0
+    for d in a.pair:
+        if not (Path(d) / "pair.json").is_file():
+            print(f"error: {d}: not a pair directory (no pair.json)", file=sys.stderr)
+            return 2
+    from hil_server.budgets import flight_peak_rss_mib
+
+    rows = []
+    print("| pair | camera | prefault | base MiB | after prefault | peak MiB | B/px over base | model MiB | levels |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---|")
+    for d in a.pair:
+        for s in a.scale:
+            cmd = [sys.executable, __file__, "--pair", d, "--runs", str(a.runs), "--child", d, str(s)]
+            cmd.append("0" if a.no_prefault else "1")
+            if a.heap_bytes_per_px is not None:
+                cmd += ["--heap-bytes-per-px", str(a.heap_bytes_per_px)]
+            p = subprocess.run(cmd, capture_output=True, text=True)
+            if p.returncode != 0:
+                print(f"error: {d} x{s}: {p.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+                return 1
+            row = json.loads(p.stdout.strip().splitlines()[-1])
+            row["bytes_per_px"] = (row["peak_mib"] - row["base_mib"]) * MIB / row["pixels"]
+            row["model_mib"] = flight_peak_rss_mib(row["pixels"])
+            rows.append(row)
+            print(
+                f"| {row['pair'][:40]} | {row['px']} | {'yes' if row['prefault'] else 'no'} | {row['base_mib']:.1f} | "
+                f"{row['after_prefault_mib']:.1f} | {row['peak_mib']:.1f} | {row['bytes_per_px']:.0f} | "
+                f"{row['model_mib']:.0f} | {','.join(row['levels'])} |",
+                flush=True,
+            )
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
