@@ -1484,6 +1484,7 @@ def _run_v2(
                     elevation = cv2.resize(ez, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
                     u_full = np.where(np.isfinite(ez), u_c, np.nan).astype(np.float32)
                     sigma = cv2.resize(u_full, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
+                    del u_full
                     elevation[~np.isfinite(sigma)] = np.nan
                     level = "coarse"
                 if n_c >= 50:  # coarse-to-fine: the full-resolution range
@@ -1493,7 +1494,8 @@ def _run_v2(
         else:
             info["skipped"].append("coarse_dem")
 
-    dem_out: tuple[np.ndarray, np.ndarray] | None = None  # the DEM as reported, with its filled pixels
+    # the DEM's filled pixels and their values: reported, but the hazard stage reads the matches only
+    dem_fill: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     with _stage(timings, "full_dem"):
         # no match where there is nothing to match: dark shadow (and rocks, if masked)
         ignore = (dark if p.mask_shadow else np.zeros(i1.shape, bool)) | (rocks if p.mask_rocks else False)
@@ -1524,12 +1526,14 @@ def _run_v2(
             info["dense"] = dem.info
             if dem.complete:
                 elevation, sigma, level = dem.elevation, dem.sigma, "full"
-                if dem.filled is not None:  # reported, but the hazard stage reads the matches only
-                    dem_out = (elevation, sigma)
-                    elevation = np.where(dem.filled, np.float32(np.nan), elevation)
-                    sigma = np.where(dem.filled, np.float32(np.nan), sigma)
+                if dem.filled is not None:  # set aside, not copied: two images less through the hazard stage
+                    dem_fill = (dem.filled, elevation[dem.filled], sigma[dem.filled])
+                    elevation[dem.filled] = np.nan
+                    sigma[dem.filled] = np.nan
+            del dem, prior
         else:
             info["skipped"].append("full_dem")
+    del a2  # nothing after the DEM reads the second image
 
     have_dem = level != "image_only"
     with _stage(timings, "georef"):
@@ -1553,7 +1557,6 @@ def _run_v2(
             ground = (float(np.nanmedian(X[covered])), float(np.nanmedian(Y[covered])))
         del X, Y, z_fill, gu, gv
 
-    nan_img = np.full(i1.shape, np.nan, np.float32)
     with _stage(timings, "slope"):
         if have_dem and not clock.ok():
             have_dem = False  # past the deadline: the image cues are all the evidence there is
@@ -1573,11 +1576,11 @@ def _run_v2(
             rough_img = np.abs(elevation - remap_with(fit.z_plane, px_maps))
             rsig_img = (p.rough_sigma_gain * sigma).astype(np.float32)
         else:
-            slope_img = grad_img = gsig_img = rough_img = rsig_img = nan_img
+            slope_img = grad_img = gsig_img = rough_img = rsig_img = np.full(i1.shape, np.nan, np.float32)
             fit = None
 
-    pc_img = nan_img
-    caster_img = nan_img  # NaN: no sun known (the trees' no-sun case, as a_pc)
+    pc_img: np.ndarray | None = None
+    caster_img: np.ndarray | None = None
     if fit is not None and sun is not None and (p.shading_slope or p.keep_layers):
         if not clock.ok((SHADING_SLOPE_S + AFTER_SLOPE_S) * px_scale):
             info["skipped"].append("shading_slope")  # a_pc NaN: the trees' no-sun case, the cap reads a
@@ -1604,6 +1607,10 @@ def _run_v2(
                 if toward is not None:
                     reach = int(min(CASTER_MAX_PX, max(2, round(fp_px))))
                     caster_img = caster_distance(shadow, toward, reach)
+    if pc_img is None or caster_img is None:  # NaN: no sun known (the trees' no-sun case, as a_pc)
+        nan_img = np.full(i1.shape, np.nan, np.float32)  # made only when needed: an image each at 1024^2
+        pc_img = nan_img if pc_img is None else pc_img
+        caster_img = nan_img if caster_img is None else caster_img
 
     with _stage(timings, "hazard"):
         kw = {
@@ -1702,8 +1709,10 @@ def _run_v2(
             info["no_site_reason"] = reason
 
     info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if covered.any() else 0.0
-    if dem_out is not None:
-        elevation, sigma = dem_out
+    if dem_fill is not None:
+        filled, z_filled, s_filled = dem_fill
+        elevation[filled] = z_filled
+        sigma[filled] = s_filled
     return _result(
         p,
         level,
