@@ -113,16 +113,16 @@ class Budget:
 # Peak private resident memory (RssAnon + RssShmem, hil_server.procemu) of our flight process (Python, numpy,
 # OpenCV, the link, the `fast` pipeline at its full level, fusion over the descent; docs/hil.md, "Memory"). An oblique
 # approach is the largest: its world grid holds up to 2.5x the cells of a nadir pair's. Measured 2026-12-03 (stop 35)
-# as the HIL records it (`hazard-hil run --budget host --scenario approach --seed 1000`, the largest `peak_rss_mib`
-# over the descent): 82.2 MiB at 512x512 and 241.4 MiB at 1024x1024 (`--image-size 1024`). So ~32 MiB + ~212 bytes
-# per pixel. Stop 33 measured 99 and 286 MiB and set 32 MiB + 265 B; since then the pipeline holds less (stop 34)
-# and the boot prefault touches 180 B per pixel instead of 250 (flight_sw.warmup.HEAP_BYTES_PER_PIXEL; the heap keeps
-# what it touched, so a larger prefault raised the peak). bench/bench_flight_memory.py gives the pipeline's part.
-# Mapped library code is not counted: how much of it is resident depends on the host's page cache (25-53 MiB
-# for the same `import cv2`), not on the flight software.
+# as the HIL records it (`hazard-hil run --budget host --scenario approach --seed 1000 [--image-size 1024]`, the
+# largest `peak_rss_mib` over the 8-pair descent): 77.5 MiB at 512x512, 219.5-221.7 MiB at 1024x1024 (3 runs; the
+# vertical descent 212.6). So ~32 MiB + ~192 bytes per pixel. Stop 33 measured 99 and 286 MiB and set 32 MiB + 265 B;
+# since then the pipeline holds less (stops 34-35) and the boot prefault touches 180 B per pixel instead of 250
+# (flight_sw.warmup.HEAP_BYTES_PER_PIXEL; the heap keeps what it touched). bench/bench_flight_memory.py measures the
+# pipeline's part. Mapped library code is not counted: how much of it is resident depends on the host's page cache
+# (25-53 MiB for the same `import cv2`), not on the flight software.
 # A camera is refused when this estimate plus FLIGHT_RSS_MARGIN does not fit the budget's memory ceiling.
 FLIGHT_BASE_MIB = 32.0
-FLIGHT_BYTES_PER_PIXEL = 212.0
+FLIGHT_BYTES_PER_PIXEL = 192.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
 
 
