@@ -50,6 +50,7 @@ from protocol.errors import InputError
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
+SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
 
 
 @dataclass
@@ -350,6 +351,38 @@ def _spawn(cmd: list[str], env: dict, **kw) -> subprocess.Popen:
     return subprocess.Popen(cmd, env=env, process_group=0, **kw)
 
 
+def _last_line(path: Path) -> str:
+    """The last non-empty line of a log (``""`` if none or unreadable), for a one-line reason."""
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][:300] if lines else ""
+
+
+def _wait_ground(
+    ground: subprocess.Popen, sup: subprocess.Popen | None, timeout_s: float, sup_log: Path
+) -> tuple[int | None, str | None]:
+    """Wait for the ground simulator; ``(its exit code or None on timeout, a reason or None)``.
+
+    The HIL server (the supervisor) failing on the way is a reason on its own: without it the ground would
+    wait out its link timeout on every pair (8 min for an 8-pair descent whose server failed to start).
+    A server that exits 0 or :data:`EXIT_LINK_LOST` has ended its sessions; the ground then ends by itself.
+    """
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            return ground.wait(timeout=min(SUPERVISOR_POLL_S, max(0.0, end - time.monotonic()))), None
+        except subprocess.TimeoutExpired:
+            pass
+        if time.monotonic() >= end:
+            return None, None
+        code = sup.poll() if sup is not None else None
+        if code is not None and code not in (0, EXIT_LINK_LOST):
+            last = _last_line(sup_log)
+            return None, f"the HIL server (supervisor) exited with {code}" + (f": {last}" if last else "")
+
+
 def _stop(proc: subprocess.Popen | None, grace_s: float = GRACE_S) -> None:
     """SIGCONT + SIGTERM to the child's group; SIGKILL to the group after ``grace_s``."""
     if proc is None:
@@ -625,11 +658,12 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             else:
                 log(f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end")
             ground = _spawn(ground_cmd, env)
-            try:
-                rc = ground.wait(timeout=cfg.timeout_s)
-            except subprocess.TimeoutExpired:
+            rc, sup_reason = _wait_ground(ground, sup, cfg.timeout_s, out / "supervisor.log")
+            if sup_reason is not None:
+                reason = sup_reason
+            elif rc is None:
                 reason = f"the ground simulator did not finish within {cfg.timeout_s:.0f} s"
-            if rc is not None and rc not in (0, EXIT_LINK_LOST):
+            if reason is None and rc is not None and rc not in (0, EXIT_LINK_LOST):
                 reason = f"the ground simulator exited with {rc}" + (
                     f"; see {out / 'supervisor.log'}" if emulated else ""
                 )

@@ -142,3 +142,27 @@ def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
     assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1  # thanks to retransmission
     for r in s["records"]:
         assert np.load(tmp_path / "received" / r["pair_id"] / "state_grid.npy").size > 0
+
+
+def test_a_hil_server_that_fails_ends_the_run_at_once_with_its_reason(manifest, tmp_path, monkeypatch):
+    """A supervisor that dies (here at start, as when its link cannot be opened) used to leave the ground
+    waiting out its link timeout on every pair: minutes, and the reason only in supervisor.log."""
+    import sys
+    import time
+
+    import hil_server.run as run_mod
+
+    spawn = run_mod._spawn
+
+    def failing_supervisor(cmd, env, **kw):
+        if "hil_server.supervisor" in cmd:
+            cmd = [sys.executable, "-c", "import sys; sys.exit('supervisor: error: cannot open the link (test)')"]
+        return spawn(cmd, env, **kw)
+
+    monkeypatch.setattr(run_mod, "_spawn", failing_supervisor)
+    t0 = time.monotonic()
+    s = run(manifest, tmp_path)
+    assert time.monotonic() - t0 < 30  # was 3 x the 60 s session wait
+    assert s["complete"] is False and s["results"] == 0 and s["errors"] == 3
+    assert s["reason"] == "the HIL server (supervisor) exited with 1: supervisor: error: cannot open the link (test)"
+    assert all(r["code"] == "not_run" and "supervisor" in r["text"] for r in s["records"])
