@@ -311,6 +311,10 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
             raise InputError(f"--flight-cmd: program {argv[0]!r} not found (give a path or a command on PATH)")
         if cfg.fault:
             raise InputError("--fault injects faults into our flight software, not into a --flight-cmd program")
+    if cfg.link_fault:  # said now, not by a supervisor that dies at start
+        from hil_server.supervisor import parse_link_fault
+
+        parse_link_fault(cfg.link_fault)
     return kind, None
 
 

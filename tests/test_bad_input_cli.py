@@ -20,6 +20,7 @@ CASES = [
     (["run", "--link-timeout", "nan"], "--link-timeout must be a positive number"),
     (["run", "--scenario", "vertcal"], "unknown scenario 'vertcal'"),
     (["run", "--budget", "nope"], "unknown budget 'nope'"),
+    (["run", "--link-fault", "boom@1"], "--link-fault must be stall@N or exit@N"),
     (["run", "--image-size", "5"], "--image-size must be 16..8192 px"),
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
