@@ -111,3 +111,35 @@ def check_frames(images: list[np.ndarray], poses: list[Pose], camera: Camera, ma
                 f"pose{k + 1} must be below pose{k} (z = {pose.position[2]:.3f} m vs "
                 f"{poses[k - 1].position[2]:.3f} m): frames are ordered by time, i1 the highest"
             )
+
+
+# The pipeline's peak memory per camera pixel over a process's base (bench/bench_flight_memory.py, stop 35: an
+# oblique approach pair, the largest, 169-171 B at 512^2 and 1024^2), plus what each frame costs as read and as
+# float32, and the base of a process that has imported numpy and OpenCV (~34 MiB)
+PIPELINE_BYTES_PER_PIXEL = 180
+FRAME_BYTES_PER_PIXEL = 5
+PROCESS_BASE_BYTES = 34 * 2**20
+
+
+def peak_memory_bytes(width: int, height: int, n_frames: int) -> int:
+    """Expected peak memory (bytes) of running the pipeline on ``n_frames`` frames of ``width x height``:
+    ``base + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL n_frames) width height``. Extra frames add no
+    more than their own images: the cost volume they join is combined plane by plane (measured on a 4-frame
+    descent: 2, 3 and 4 frames peak alike)."""
+    px = max(0, int(width)) * max(0, int(height))
+    return PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
+
+
+def check_memory(width: int, height: int, n_frames: int, available_bytes: int | None = None) -> None:
+    """Refuse, before anything is read, work whose :func:`peak_memory_bytes` exceeds the memory available
+    (``psutil.virtual_memory().available`` unless given): the operating system would kill it part-way."""
+    need = peak_memory_bytes(width, height, n_frames)
+    if available_bytes is None:
+        import psutil
+
+        available_bytes = int(psutil.virtual_memory().available)
+    if need > available_bytes:
+        raise FlightInputError(
+            f"{width}x{height} px x {n_frames} frames needs ~{need / 2**20:.0f} MiB to process, but only "
+            f"{available_bytes / 2**20:.0f} MiB of memory is available (use a smaller camera or fewer frames)"
+        )

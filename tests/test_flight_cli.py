@@ -59,3 +59,29 @@ def test_process_bad_input_is_one_line(tmp_path, capsys):
     (d / "i2.png").unlink()
     assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
     assert "missing image i2.png" in capsys.readouterr().err
+
+
+def test_process_refuses_a_camera_too_large_for_this_machine_before_reading_it(tmp_path, capsys, monkeypatch):
+    from types import SimpleNamespace
+
+    import psutil
+
+    from flight_sw.validate import peak_memory_bytes
+
+    d, _ = _pair(tmp_path)
+    need = peak_memory_bytes(160, 160, 2)
+    assert 34 * 2**20 < need < 40 * 2**20  # 160^2: the process's base and ~5 MiB of work
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: SimpleNamespace(available=need - 1))
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "160x160 px x 2 frames needs ~" in err and "MiB of memory is available" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()  # nothing run, nothing written
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: SimpleNamespace(available=need))
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    # the largest camera the format allows: ~12 GiB for a pair, refused on a machine with 8 GiB free
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: SimpleNamespace(available=8 * 2**30))
+    doc = json.loads((d / "pair.json").read_text())
+    doc["camera"].update(width=8192, height=8192)
+    (d / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(d), "--out", str(tmp_path / "o2")]) == 2
+    assert "8192x8192 px x 2 frames" in capsys.readouterr().err
