@@ -318,6 +318,43 @@ def test_sgm_kernel_equals_numpy_reference():
     assert np.array_equal(L[0, 1], lr + vertical_and_start)
 
 
+def test_the_winners_uniqueness_test_on_strips_equals_one_copy_of_the_sum(monkeypatch):
+    """``sgm.winner`` copies strips of rows of the sum for its second-best search; any strip size gives the
+    result of one whole copy (stop 34's code), by hand here."""
+    from flight_sw import sgm
+
+    rng = np.random.default_rng(5)
+    S = rng.integers(0, 3000, (37, 23, 11)).astype(np.int16)
+    C = rng.integers(0, 2000, S.shape).astype(np.int16)
+    lo, hi = np.zeros((37, 23), np.int32), np.full((37, 23), 10, np.int32)
+    k = S.argmin(axis=2)
+    S2 = S.copy()
+    for kk in (np.clip(k - 1, 0, 10), k, np.clip(k + 1, 0, 10)):
+        np.put_along_axis(S2, kk[..., None], np.int16(32767), 2)
+    k2 = S2.argmin(axis=2)
+    for elements in (1, 23 * 11 * 5, 1 << 20):
+        monkeypatch.setattr(sgm, "UNIQ_STRIP_ELEMENTS", elements)
+        m = sgm.winner(S, C, lo, hi, 0.05, 2)
+        assert np.array_equal(m.k2, k2)
+        s0 = np.take_along_axis(S, k[..., None], 2)[..., 0].astype(np.float32)
+        s2 = np.take_along_axis(S2, k2[..., None], 2)[..., 0].astype(np.float32)
+        assert np.array_equal(m.uniq, (s2 - s0) / np.maximum(s0, 1.0))
+
+
+def test_a_slab_handed_over_gives_the_same_dem_and_is_freed(deep_pair):
+    from flight_sw.dense import DenseParams, dem_from_slab
+
+    cam, p1, p2, i1, i2, z = deep_pair
+    a = cost_slab(i1, i2, cam, p1, p2, np.linspace(-56.0, -44.0, 13), (40, 40, 176, 176))
+    b = CostSlab(a.cost.copy(), a.valid.copy(), a.planes, a.roi)
+    kept = dem_from_slab(a, i1, i1.shape, DenseParams())
+    handed = dem_from_slab(b, i1, i1.shape, DenseParams(), release=True)
+    assert np.array_equal(kept.elevation, handed.elevation, equal_nan=True) and np.isfinite(kept.elevation).any()
+    assert np.array_equal(kept.sigma, handed.sigma, equal_nan=True)
+    assert a.cost.shape == (13, 176, 176) and b.cost.size == 0 and b.valid.size == 0  # nothing kept alive
+    assert b.cost.base is None and b.valid.base is None
+
+
 def test_cost_slabs_sum_over_frames_and_mark_the_edge_band(deep_pair):
     cam, p1, p2, i1, i2, z = deep_pair
     planes = np.linspace(-56.0, -44.0, 13)
