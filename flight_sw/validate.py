@@ -115,7 +115,9 @@ def check_frames(images: list[np.ndarray], poses: list[Pose], camera: Camera, ma
 
 # The pipeline's peak memory per camera pixel over a process's base (bench/bench_flight_memory.py, stop 35: an
 # oblique approach pair, the largest, 169-171 B at 512^2 and 1024^2), plus what each frame costs as read and as
-# float32, and the base of a process that has imported numpy and OpenCV (~34 MiB)
+# float32, and the base of a process that has imported numpy and OpenCV (~34 MiB). The HIL keeps its own model of
+# the whole flight process, measured from outside (hil_server.budgets.flight_peak_rss_mib: fusion and the link too),
+# because a user's flight program can take our pipeline's place there
 PIPELINE_BYTES_PER_PIXEL = 180
 FRAME_BYTES_PER_PIXEL = 5
 PROCESS_BASE_BYTES = 34 * 2**20
