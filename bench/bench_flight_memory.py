@@ -11,7 +11,10 @@ by ``VmHWM - RssFile`` at the end, which catches a peak between two polls.
 
 ``--scale 2`` upsamples both images (bicubic) and the camera, as a 1024^2 camera over the same ground.
 
-    .venv/bin/python bench/bench_flight_memory.py --pair DIR [DIR ...] --scale 1 2 [--no-prefault]
+    .venv/bin/python bench/bench_flight_memory.py [--pair DIR ...] [--scale 1 2] [--no-prefault]
+
+Without ``--pair``: the held-out approach 1000/500 of the `thesis` scene (seed 1000, the largest world grid
+of the eval pairs), rendered once into ``--cache``.
 """
 
 from __future__ import annotations
@@ -113,9 +116,29 @@ def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float 
     }
 
 
+def default_pair(cache: Path) -> Path:
+    """The held-out approach 1000/500 (`thesis` scene, seed 1000, its own sun), rendered once into ``cache``."""
+    from ground_sim import trajectory
+    from ground_sim.descent import render_pair
+    from ground_sim.library import scene_sun
+    from ground_sim.render_cache import reusable
+    from ground_sim.scene import load_scene
+    from ground_sim.seeds import HELD_OUT_SEEDS
+    from protocol.pairdir import write_pair_atomic
+
+    seed = HELD_OUT_SEEDS[0]
+    d = cache / f"approach_thesis_s{seed}_1000_500"
+    if not reusable(d):
+        spec = next(s for s in trajectory.approach(None) if s.label == "1000/500")
+        scene = load_scene("thesis", seed, "approach")
+        write_pair_atomic(d, render_pair(scene, spec, scene_sun(scene, "approach", seed), seed=seed))
+    return d
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--pair", nargs="+", required=True, help="pair directories")
+    ap.add_argument("--pair", nargs="+", help="pair directories (default: the held-out approach 1000/500)")
+    ap.add_argument("--cache", default="/tmp/bench_flight_memory", help="where the default pair is rendered")
     ap.add_argument("--scale", nargs="+", type=int, default=[1, 2], help="upsampling factors (default 1 2)")
     ap.add_argument("--no-prefault", action="store_true", help="skip the heap prefault (the pipeline's own need)")
     ap.add_argument("--runs", type=int, default=2, help="pipeline runs per process (default 2)")
@@ -126,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.child:
         print(json.dumps(child(a.child[0], int(a.child[1]), a.child[2] == "1", a.runs, a.heap_bytes_per_px)))
         return 0
+    if not a.pair:
+        a.pair = [str(default_pair(Path(a.cache)))]
     for d in a.pair:
         if not (Path(d) / "pair.json").is_file():
             print(f"error: {d}: not a pair directory (no pair.json)", file=sys.stderr)
