@@ -165,6 +165,7 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
 
 # why a pixel is where it is, in priority order (the first that applies); see error_causes
 CAUSES = ("shadow", "no_dem", "over_limit", "uncertain", "near_limit", "shading", "other")
+CLEAR_RATIO = 0.5  # a truth hazard ratio (max of slope, roughness, ... over their limits) below this: clearly safe
 
 
 def error_causes(
@@ -187,6 +188,20 @@ def error_causes(
     n = max(1, int(cov.sum()))
     th = np.asarray(hazard_true)[cov] >= 1.0
     called = np.asarray(state)[cov] == 0
+    clear = np.asarray(hazard_true)[cov] < CLEAR_RATIO  # clearly safe: every hazard under half its limit
+    cls = cause_classes(layers, elevation, cov)
+    out: dict[str, float] = {}
+    for i, name in enumerate(CAUSES):
+        m = cls == i
+        out[f"fn_{name}"] = 100.0 * float((m & ~called & ~th).sum()) / n
+        out[f"fn_{name}_clear"] = 100.0 * float((m & ~called & clear).sum()) / n
+        out[f"fp_{name}"] = 100.0 * float((m & called & th).sum()) / n
+    return out
+
+
+def cause_classes(layers: dict[str, np.ndarray], elevation: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Per covered pixel, the index in ``CAUSES`` of the first cause that applies (see :func:`error_causes`)."""
+    cov = np.asarray(covered, bool)
     g = {k: np.asarray(v)[cov] for k, v in layers.items()}
     nodem = ~np.isfinite(np.asarray(elevation)[cov]) | ~np.isfinite(g["a"])
     with np.errstate(invalid="ignore"):
@@ -197,15 +212,10 @@ def error_causes(
             g["u"] >= 1.0,
             g["a"] >= 0.6,
             (np.abs(g["rho"]) > 0.1) | (g["nwall"] > 0.2),
-            np.ones(th.shape, bool),
         ]
-    left = np.ones(th.shape, bool)
-    out: dict[str, float] = {}
-    for name, c in zip(CAUSES, cls, strict=True):
-        m = c & left
-        left &= ~m
-        out[f"fn_{name}"] = 100.0 * float((m & ~called & ~th).sum()) / n
-        out[f"fp_{name}"] = 100.0 * float((m & called & th).sum()) / n
+    out = np.full(nodem.shape, len(CAUSES) - 1, np.int8)  # "other"
+    for i in range(len(cls) - 1, -1, -1):  # the first that applies wins
+        out[cls[i]] = i
     return out
 
 
@@ -231,6 +241,28 @@ def causes_table(rows: list[dict[str, Any]], title: str) -> str:
             + ", ".join(f"{c} {v:.2f}" for v, c in fpc)
             + " |"
         )
+    return "\n".join(out)
+
+
+def clear_ground_table(rows: list[dict[str, Any]], title: str) -> str:
+    """Per case, the mean FN share per cause over its pairs and the part of it on clearly safe ground (truth
+    hazard ratio < ``CLEAR_RATIO``): where more evidence, not a better decision rule, would gain CDI."""
+    if not rows or "fn_other_clear" not in rows[0]:
+        return ""
+    out = [
+        f"\n### {title}\n",
+        f"FN by cause, mean % of the covered pixels over the pairs: all / on clearly safe ground (truth hazard "
+        f"ratio < {CLEAR_RATIO})\n",
+        "| case | pairs | " + " | ".join(CAUSES) + " |",
+        "|---|---:|" + "---|" * len(CAUSES),
+    ]
+    for case in sorted({r["case"] for r in rows}, key=list(CASES).index):
+        rs = [r for r in rows if r["case"] == case]
+        cells = [
+            f"{statistics.mean(r[f'fn_{c}'] for r in rs):.1f} / {statistics.mean(r[f'fn_{c}_clear'] for r in rs):.1f}"
+            for c in CAUSES
+        ]
+        out.append(f"| {case} | {len(rs)} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
@@ -441,6 +473,7 @@ def main(argv: list[str] | None = None) -> int:
         print((library_table if args.library else table)(rows, f"{name} - seeds {seeds}"), flush=True)
         if args.causes and not args.library:
             print(causes_table(rows, f"{name} - where the FN and FP pixels are"), flush=True)
+            print(clear_ground_table(rows, f"{name} - the FN on clearly safe ground"), flush=True)
     if args.ablation:
         print("\n| variant | DEM valid % min / med | FP % med / worst | FN % med | CDI % med | top site safe | CPU s |")
         print("|---|---|---|---:|---:|---:|---:|")
