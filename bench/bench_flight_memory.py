@@ -5,9 +5,8 @@ budget's memory ceiling, and ``flight_sw.warmup.HEAP_BYTES_PER_PIXEL`` is the he
 before a new camera's first pair. Both are fitted to what this script measures: each case runs in a fresh
 process that does what the flight process does (``boot_warm_up``, then optionally ``prefault_heap`` for the
 camera, then ``fast`` on the pair ``--runs`` times, with the altimeter and the sun as HIL frames carry them), while
-a thread polls ``/proc/self/status`` every 2 ms. Private = ``RssAnon + RssShmem``, the figure the HIL's memory
-watchdog enforces (mapped library code is not counted; docs/hil.md section 4); the peak is also bounded from below
-by ``VmHWM - RssFile`` at the end, which catches a peak between two polls.
+a thread polls the private RSS every 2 ms with the HIL watchdog's own reader (``hil_server.procemu.private_rss_bytes``:
+``RssAnon + RssShmem``, mapped library code not counted; docs/hil.md section 4).
 
 ``--scale 2`` upsamples both images (bicubic) and the camera, as a 1024^2 camera over the same ground.
 
@@ -21,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -31,31 +31,27 @@ from typing import Any
 MIB = 2**20
 
 
-def _status() -> dict[str, int]:
-    out: dict[str, int] = {}
-    with open("/proc/self/status", "rb") as fh:
-        for line in fh:
-            k, _, v = line.partition(b":")
-            if k in (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem"):
-                out[k.decode()] = int(v.split()[0]) * 1024
-    return out
+def _private() -> tuple[int, int]:
+    """(private RSS, its peak estimate) of this process, read as the HIL's memory watchdog reads the flight's."""
+    from hil_server.procemu import private_rss_bytes
 
-
-def _private(s: dict[str, int]) -> int:
-    return s.get("RssAnon", 0) + s.get("RssShmem", 0)
+    mem = private_rss_bytes(os.getpid())
+    assert mem is not None  # this process is alive
+    return mem
 
 
 class _Poller:
-    """Largest private RSS seen by a 2 ms polling thread between start and stop."""
+    """Largest private RSS seen by a 2 ms polling thread between start and stop, or the watchdog's peak estimate
+    (``VmHWM - RssFile``) at the end, which catches a peak between two polls."""
 
     def __init__(self) -> None:
-        self.peak = _private(_status())
+        self.peak = _private()[0]
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._loop, daemon=True)
 
     def _loop(self) -> None:
         while not self._stop.wait(0.002):
-            self.peak = max(self.peak, _private(_status()))
+            self.peak = max(self.peak, _private()[0])
 
     def __enter__(self) -> _Poller:
         self._t.start()
@@ -64,8 +60,7 @@ class _Poller:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._t.join()
-        s = _status()
-        self.peak = max(self.peak, _private(s), s.get("VmHWM", 0) - s.get("RssFile", 0))
+        self.peak = max(self.peak, *_private())
 
 
 def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float | None = None) -> dict:
@@ -89,11 +84,11 @@ def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float 
     sun: dict[str, Any] = {}
     if pair.sun is not None:
         sun = {"sun_azimuth_deg": pair.sun.azimuth_deg, "sun_elevation_deg": pair.sun.elevation_deg}
-    base = _private(_status())
+    base = _private()[0]
     if prefault:
         bpp = HEAP_BYTES_PER_PIXEL if heap_bpp is None else heap_bpp
         prefault_heap(int(bpp * cam.width * cam.height / MIB))
-    after_prefault = _private(_status())
+    after_prefault = _private()[0]
     levels = []
     t0 = time.process_time()
     with _Poller() as poll:

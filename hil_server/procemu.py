@@ -9,7 +9,7 @@ the parent side, because flight_sw must not import hil_server:
   OpenMP/MKL/OpenCV read at import. (The flight main should still call
   ``cv2.setNumThreads(1)``; the affinity alone already keeps it on one core.)
 * **Memory ceiling.** ``memory_mib`` caps the private resident set (``RssAnon +
-  RssShmem``; mapped library code is not counted, see :func:`_read_rss_hwm_bytes`):
+  RssShmem``; mapped library code is not counted, see :func:`private_rss_bytes`):
   a watchdog thread polls ``/proc/PID/status`` and kills the child when it exceeds it. The
   hard stop is ``RLIMIT_AS`` = measured address-space baseline of a Python with
   numpy/cv2/zmq/msgpack/serial imported + ``memory_mib`` + headroom; an
@@ -228,7 +228,7 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
 _MEM_FIELDS = (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem")  # /proc/PID/status keys the watchdog reads
 
 
-def _read_rss_hwm_bytes(pid: int) -> tuple[int, int] | None:
+def private_rss_bytes(pid: int) -> tuple[int, int] | None:
     """(private RSS, private RSS peak estimate) in bytes from /proc/PID/status; None once the process is gone.
 
     Private RSS = ``RssAnon + RssShmem``: the memory the flight software itself holds. File-backed
@@ -502,7 +502,7 @@ class EmulatedProcessor:
             )
         if not child.exited.is_set():
             child.sample()
-            mem = _read_rss_hwm_bytes(child.pid)
+            mem = private_rss_bytes(child.pid)
             if mem is not None:
                 child.rss = mem[0]
                 child.peak_rss = max(child.peak_rss, mem[1])
@@ -571,7 +571,7 @@ class EmulatedProcessor:
         limit = self.spec.memory_mib * MIB if self.spec.memory_mib is not None else None
         poll = self.spec.rss_poll_s
         while not child.exited.is_set():
-            mem = _read_rss_hwm_bytes(child.pid)
+            mem = private_rss_bytes(child.pid)
             if mem is not None:
                 child.rss = mem[0]
                 child.peak_rss = max(child.peak_rss, mem[1])
