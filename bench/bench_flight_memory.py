@@ -63,24 +63,32 @@ class _Poller:
         self.peak = max(self.peak, *_private())
 
 
-def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float | None = None) -> dict:
+def upsampled(images: Any, camera: Any, scale: int) -> tuple[list[Any], Any]:
+    """``images`` resized ``scale`` x (bicubic) and the camera that sees them: a finer camera over the same ground
+    (pixel centres: ``u' = (u + 0.5) scale - 0.5``)."""
     import cv2
 
+    from protocol.pairdir import Camera
+
+    c = camera
+    cam = Camera(
+        c.width * scale, c.height * scale, c.fx * scale, c.fy * scale,
+        (c.cx + 0.5) * scale - 0.5, (c.cy + 0.5) * scale - 0.5,
+    )  # fmt: skip
+    return [cv2.resize(a, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC) for a in images], cam
+
+
+def child(pair_dir: str, scale: int, prefault: bool, runs: int, heap_bpp: float | None = None) -> dict:
     from flight_sw.pipeline import PRESETS, run_pipeline
     from flight_sw.warmup import HEAP_BYTES_PER_PIXEL, boot_warm_up, prefault_heap
-    from protocol.pairdir import Camera, read_pair
+    from protocol.pairdir import read_pair
 
     boot_warm_up(PRESETS["fast"])
     pair = read_pair(pair_dir)
     i1, i2 = pair.images[0], pair.images[-1]
     cam = pair.camera
     if scale != 1:
-        i1, i2 = (cv2.resize(a, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC) for a in (i1, i2))
-        c = cam
-        cam = Camera(
-            c.width * scale, c.height * scale, c.fx * scale, c.fy * scale,
-            (c.cx + 0.5) * scale - 0.5, (c.cy + 0.5) * scale - 0.5,
-        )  # fmt: skip
+        (i1, i2), cam = upsampled((i1, i2), cam, scale)
     sun: dict[str, Any] = {}
     if pair.sun is not None:
         sun = {"sun_azimuth_deg": pair.sun.azimuth_deg, "sun_elevation_deg": pair.sun.elevation_deg}

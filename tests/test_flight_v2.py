@@ -591,21 +591,18 @@ def test_an_oblique_approach_pair_peaks_under_issue_9s_bound(scale, bound_mib, m
     the DEM stage's slab, cost copy and uniqueness copy at 185 MiB at 1024^2 (stop 34). Stop 35: 45 / 160 MiB."""
     import tracemalloc
 
-    import cv2
     from evalpairs import eval_pair
 
     from ground_sim.seeds import TUNING_SEEDS
-    from protocol.pairdir import Camera
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from bench_flight_memory import upsampled
 
     pair = eval_pair("approach", "thesis", TUNING_SEEDS[0], "1000/500")
     sun = {"sun_azimuth_deg": pair.sun.azimuth_deg, "sun_elevation_deg": pair.sun.elevation_deg}
     i1, i2, (p1, p2), c = pair.images[0], pair.images[-1], (pair.poses[0], pair.poses[-1]), pair.camera
     if scale != 1:
-        i1, i2 = (cv2.resize(a, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC) for a in (i1, i2))
-        c = Camera(
-            c.width * scale, c.height * scale, c.fx * scale, c.fy * scale,
-            (c.cx + 0.5) * scale - 0.5, (c.cy + 0.5) * scale - 0.5,
-        )  # fmt: skip
+        (i1, i2), c = upsampled((i1, i2), c, scale)
 
     def run():
         return run_pipeline(i1, i2, p1, p2, c, preset="fast", altimeter_m=pair.altimeter_m, **sun)
