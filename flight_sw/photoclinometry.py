@@ -80,12 +80,12 @@ def measured_incidence(
     return np.where(ok, np.clip(c, 0.0, 1.0), np.nan).astype(np.float32)
 
 
-def shading_gradient(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray) -> np.ndarray:
-    """Footprint gradient magnitude ``|(a, b)|`` (m per m): ``a`` (toward the sun) from ``cos_i``, ``b`` from the DEM.
+def sunward_split(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The footprint gradient split along the sun's horizontal direction: ``(a, b)`` in m per m, float32.
 
-    ``gx, gy``: the DEM's world gradient; ``cos_i``: the measured incidence; ``sun``: unit vector (its
-    elevation must be above 0). NaN where any input is. The quadratic of the module doc, solved in
-    float32 on the points where it is defined only.
+    ``a`` (toward the sun) is the root of the module doc's quadratic for the measured incidence ``cos_i``;
+    ``b`` (across the sun, ``h`` turned +90 deg) is the DEM's ``(gx, gy)`` projected on it. NaN where any
+    input is. Solved in float32 on the points where it is defined only.
     """
     sx, sy, sz = (float(v) for v in sun)
     sh = math.hypot(sx, sy)
@@ -94,7 +94,9 @@ def shading_gradient(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.
     gx = np.asarray(gx, np.float32)
     gy = np.asarray(gy, np.float32)
     c = np.asarray(cos_i, np.float32)
-    out = np.full(np.broadcast_shapes(gx.shape, gy.shape, c.shape), np.nan, np.float32)
+    shape = np.broadcast_shapes(gx.shape, gy.shape, c.shape)
+    out_a = np.full(shape, np.nan, np.float32)
+    out_b = np.full(shape, np.nan, np.float32)
     ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(c)
     x, y, c = gx[ok], gy[ok], c[ok]
     a_dem = x * np.float32(hx) + y * np.float32(hy)
@@ -115,5 +117,16 @@ def shading_gradient(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.
     a = np.where(pick1, r1, np.where(facing2, r2, a_dem))
     # no real root: brighter than any tilt makes it; the brightest tilt, -s_h (1 + b^2) / s_z
     a = np.where(disc < 0, np.float32(-sh / max(sz, 1e-6)) * (1.0 + b * b), a)
-    out[ok] = np.hypot(a, b)
-    return out
+    out_a[ok] = a
+    out_b[ok] = b
+    return out_a, out_b
+
+
+def shading_gradient(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """Footprint gradient magnitude ``|(a, b)|`` (m per m): ``a`` (toward the sun) from ``cos_i``, ``b`` from the DEM.
+
+    ``gx, gy``: the DEM's world gradient; ``cos_i``: the measured incidence; ``sun``: unit vector (its
+    elevation must be above 0). NaN where any input is (:func:`sunward_split`).
+    """
+    a, b = sunward_split(gx, gy, cos_i, sun)
+    return np.hypot(a, b, out=a)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from flight_sw.photoclinometry import incidence_cosine, measured_incidence, shading_gradient
+from flight_sw.photoclinometry import incidence_cosine, measured_incidence, shading_gradient, sunward_split
 from protocol.pairdir import Sun
 
 
@@ -45,6 +45,11 @@ def test_exact_incidence_gives_back_the_exact_gradient(elevation: float) -> None
     assert keep.mean() > 0.6
     g = shading_gradient(gx + err * hx, gy + err * hy, c, sun)
     np.testing.assert_allclose(g[keep], np.hypot(gx, gy)[keep], atol=2e-4)
+    # the split itself: the signed sun-ward tilt from the brightness, the across-sun one from the DEM
+    a_s, b_s = sunward_split(gx + err * hx, gy + err * hy, c, sun)
+    # (float32 roots: within 0.002, 0.1 deg, where the two roots are close to each other near a*)
+    np.testing.assert_allclose(a_s[keep], a[keep], atol=2e-3)
+    np.testing.assert_allclose(b_s, b, atol=1e-6)
 
 
 def test_shading_slope_beats_a_noisy_dem_on_a_rendered_surface() -> None:
