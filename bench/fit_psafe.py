@@ -257,6 +257,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ridge", type=float, default=1.0)
     ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
     ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="CV: also repeat it over this many fold partitions (seeded shuffles of the seeds; the first is the "
+        "plain one) and print each budget's worst-pair FP per partition: how much the operating point's rule moves",
+    )
     ap.add_argument("--budgets", type=float, nargs="+", default=[0.003, 0.004, 0.005, 0.006])
     ap.add_argument("--p-min", type=float, nargs="+", default=[0.9])
     ap.add_argument(
@@ -317,31 +324,45 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:
-        folds = [args.seeds[i :: args.folds] for i in range(args.folds)]
         his: list[tuple[float, float] | None] = [None] + [
             (float(x.split(":")[0]), float(x.split(":")[1])) for x in args.cap_hi
         ]
-        res: dict[tuple[float, float, float, str, tuple[float, float] | None], list[dict[str, Any]]] = {
-            (b, a, pm, c, h): []
+        keys = [
+            (b, a, pm, c, h)
             for b in args.budgets
             for a in args.a_max
             for pm in args.p_min
             for c in args.cap
             for h in his
-        }
+        ]
         rel: list[tuple[float, np.ndarray, np.ndarray]] = []
-        for fold in folds:
-            train = [r for r in rows if r["seed"] not in fold]
-            model = fit_rows(
-                train, args.per_pair, args.ridge, trees=trees, names=names, blank_shading=args.blank_shading
+        runs: list[dict[tuple[float, float, float, str, tuple[float, float] | None], list[dict[str, Any]]]] = []
+        for rep in range(max(1, args.repeats)):
+            # partition 0: seeds i, i + folds, ... (the plain one); later ones: seeded shuffles of the seeds
+            order = (
+                list(args.seeds) if rep == 0 else [int(x) for x in np.random.default_rng(rep).permutation(args.seeds)]
             )
-            for r in rows:
-                if r["seed"] not in fold:
-                    continue
-                for (b, a_max, pm, cap, ch), out in res.items():
-                    s = score(model, r, b, pm, a_max, cap, ch)
-                    out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
-                rel.append((float(r["fp_px"]), s["p"], r["safe"]))
+            folds = [order[i :: args.folds] for i in range(args.folds)]
+            res: dict[tuple[float, float, float, str, tuple[float, float] | None], list[dict[str, Any]]] = {
+                key: [] for key in keys
+            }
+            for fold in folds:
+                train = [r for r in rows if r["seed"] not in fold]
+                model = fit_rows(
+                    train, args.per_pair, args.ridge, trees=trees, names=names, blank_shading=args.blank_shading
+                )
+                for r in rows:
+                    if r["seed"] not in fold:
+                        continue
+                    for (b, a_max, pm, cap, ch), out in res.items():
+                        s = score(model, r, b, pm, a_max, cap, ch)
+                        out.append({"name": r["name"], "case": r["case"], "fp": s["fp"], "cdi": s["cdi"]})
+                    if rep == 0:
+                        rel.append((float(r["fp_px"]), s["p"], r["safe"]))
+            runs.append(res)
+            if args.repeats > 1:
+                print(f"  partition {rep + 1}/{args.repeats} done", file=sys.stderr, flush=True)
+        res = runs[0]
         if args.cv:
             cases = list(dict.fromkeys(r["case"] for r in rows))
             print(
@@ -363,6 +384,26 @@ def main(argv: list[str] | None = None) -> int:
                     f"| {max(fps):.2f} / {np.percentile(fps, 90):.2f} / {statistics.median(fps):.2f} "
                     f"| {sum(f > 1.0 for f in fps)}/{len(fps)} | {worst['name']} "
                     f"| {statistics.median(x['cdi'] for x in rs):.1f} | " + " | ".join(per_case) + " |"
+                )
+        if args.cv and len(runs) > 1:
+            print(
+                f"\nThe same over {len(runs)} fold partitions (the first is the table's): worst-pair FP % per "
+                "partition, and the median CDI %"
+            )
+            print(
+                "| FP budget | a_max | cap | p_min | worst-pair FP % per partition | max | pairs > 1 % (max) "
+                "| CDI % med |"
+            )
+            print("|---:|---:|---|---:|---|---:|---:|---:|")
+            for key in keys:
+                b, a_max, pm, cap, ch = key
+                worsts = [max(x["fp"] for x in run[key]) for run in runs]
+                over = max(sum(x["fp"] > 1.0 for x in run[key]) for run in runs)
+                cdis = [statistics.median(x["cdi"] for x in run[key]) for run in runs]
+                print(
+                    f"| {100 * b:.3f} % | {a_max:g}{'' if ch is None else f' ({ch[1]:g} from 2^{ch[0]:g} px)'} | {cap} "
+                    f"| {pm:g} | {', '.join(f'{w:.2f}' for w in worsts)} | {max(worsts):.2f} | {over} "
+                    f"| {statistics.median(cdis):.1f} |"
                 )
         if args.reliability:
             print("\nReliability (cross-validated): observed safe share per predicted-P(safe) bin, by footprint size")
