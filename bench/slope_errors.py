@@ -44,6 +44,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 TAN_LIMIT = math.tan(math.radians(15.0))
 CEILING_SIGMAS = (0.0, 0.1, 0.15, 0.2, 0.25, 0.3)
+TAIL_BIG_FP = 10.0  # a truly steep region of at least this many footprint areas is "big"
 CEILING_K = 1.9  # one-sided 97 %: the P(safe) floor of `fast`
 METRICS = (
     "a |err|",
@@ -55,6 +56,9 @@ METRICS = (
     "dem along",
     "dem across",
     "shading along",
+    "tail a<1.25",
+    "tail big",
+    "tail edge",
     "dem err m",
     "cov",
 )
@@ -141,6 +145,15 @@ def pair_metrics(pair_dir: str, over: dict[str, Any]) -> dict[str, float]:
         out[f"{f} |err|"] = _med_abs(a - a_true, cov)
         out[f"{f} clear<0.4"] = _share(np.where(np.isfinite(a), a < 0.4, np.nan), clear)
         out[f"{f} steep<0.6"] = _share(np.where(np.isfinite(a), a < 0.6, np.nan), steep)
+    # the tail: truly steep points a_pc calls gentle. How steep, in how large a steep region, how near its edge
+    tail = steep & (res.layers["a_pc"] < 0.6)
+    if tail.any():
+        _, lab, stats, _ = cv2.connectedComponentsWithStats(steep.view(np.uint8), connectivity=8)
+        big = stats[lab, cv2.CC_STAT_AREA] >= TAIL_BIG_FP * fp * fp
+        inner = cv2.erode(steep.view(np.uint8), np.ones((k, k), np.uint8)).view(bool)
+        out["tail a<1.25"] = float(np.mean(a_true[tail] < 1.25))
+        out["tail big"] = float(np.mean(big[tail]))
+        out["tail edge"] = float(np.mean(~inner[tail]))
     lit = cov & ~res.layers["dark"]
     if pair.sun is not None:
         sun = pair.sun.direction()
