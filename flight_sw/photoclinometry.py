@@ -80,13 +80,10 @@ def measured_incidence(
     return np.where(ok, np.clip(c, 0.0, 1.0), np.nan).astype(np.float32)
 
 
-def sunward_split(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The footprint gradient split along the sun's horizontal direction: ``(a, b)`` in m per m, float32.
-
-    ``a`` (toward the sun) is the root of the module doc's quadratic for the measured incidence ``cos_i``;
-    ``b`` (across the sun, ``h`` turned +90 deg) is the DEM's ``(gx, gy)`` projected on it. NaN where any
-    input is. Solved in float32 on the points where it is defined only.
-    """
+def _split_on(
+    gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(ok, a, b)``: the points where every input is finite, and the split of the module doc on them (1-D)."""
     sx, sy, sz = (float(v) for v in sun)
     sh = math.hypot(sx, sy)
     # the sun at the zenith: brightness tells the tilt, not its direction; any split of the DEM's will do
@@ -94,9 +91,6 @@ def sunward_split(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.nda
     gx = np.asarray(gx, np.float32)
     gy = np.asarray(gy, np.float32)
     c = np.asarray(cos_i, np.float32)
-    shape = np.broadcast_shapes(gx.shape, gy.shape, c.shape)
-    out_a = np.full(shape, np.nan, np.float32)
-    out_b = np.full(shape, np.nan, np.float32)
     ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(c)
     x, y, c = gx[ok], gy[ok], c[ok]
     a_dem = x * np.float32(hx) + y * np.float32(hy)
@@ -117,6 +111,19 @@ def sunward_split(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.nda
     a = np.where(pick1, r1, np.where(facing2, r2, a_dem))
     # no real root: brighter than any tilt makes it; the brightest tilt, -s_h (1 + b^2) / s_z
     a = np.where(disc < 0, np.float32(-sh / max(sz, 1e-6)) * (1.0 + b * b), a)
+    return ok, a, b
+
+
+def sunward_split(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The footprint gradient split along the sun's horizontal direction: ``(a, b)`` in m per m, float32.
+
+    ``a`` (toward the sun) is the root of the module doc's quadratic for the measured incidence ``cos_i``;
+    ``b`` (across the sun, ``h`` turned +90 deg) is the DEM's ``(gx, gy)`` projected on it. NaN where any
+    input is. Solved in float32 on the points where it is defined only.
+    """
+    ok, a, b = _split_on(gx, gy, cos_i, sun)
+    out_a = np.full(ok.shape, np.nan, np.float32)
+    out_b = np.full(ok.shape, np.nan, np.float32)
     out_a[ok] = a
     out_b[ok] = b
     return out_a, out_b
@@ -126,7 +133,10 @@ def shading_gradient(gx: np.ndarray, gy: np.ndarray, cos_i: np.ndarray, sun: np.
     """Footprint gradient magnitude ``|(a, b)|`` (m per m): ``a`` (toward the sun) from ``cos_i``, ``b`` from the DEM.
 
     ``gx, gy``: the DEM's world gradient; ``cos_i``: the measured incidence; ``sun``: unit vector (its
-    elevation must be above 0). NaN where any input is (:func:`sunward_split`).
+    elevation must be above 0). NaN where any input is (:func:`sunward_split`). The flight path: one output
+    image, the norm taken on the defined points only.
     """
-    a, b = sunward_split(gx, gy, cos_i, sun)
-    return np.hypot(a, b, out=a)
+    ok, a, b = _split_on(gx, gy, cos_i, sun)
+    out = np.full(ok.shape, np.nan, np.float32)
+    out[ok] = np.hypot(a, b)
+    return out
