@@ -68,15 +68,24 @@ def dense_incomplete(on: bool) -> Iterator[None]:
 
 
 def stream_results(
-    case: str, seed: int, cache: Path, grids: Path, levels: tuple[str, ...] = ("full",)
+    case: str,
+    seed: int,
+    cache: Path,
+    grids: Path,
+    levels: tuple[str, ...] = ("full",),
+    set_param: tuple[str, ...] = (),
 ) -> list[dict[str, Any]]:
-    """The case's pairs, highest first, each with its pipeline grid at ``levels[k % len]`` (cached in ``grids``)."""
+    """The case's pairs, highest first, each with its pipeline grid at ``levels[k % len]`` (cached in ``grids``),
+    from ``fast`` with the ``set_param`` (``K=V``) overrides."""
+    from bench_multiframe import build_preset
     from eval_flight import case_key, render_case
 
-    from flight_sw.pipeline import PRESETS, run_pipeline
+    from flight_sw.pipeline import run_pipeline
     from protocol.pairdir import read_pair
 
+    preset = build_preset(argparse.Namespace(preset="fast", set_param=list(set_param)))
     tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
+    tag += "".join(f"-{kv}" for kv in set_param)  # a variant's grids never stand in for another's
     f = grids / f"{case_key(case, seed)}{tag}.pkl"
     if f.is_file():
         return list(pickle.loads(f.read_bytes()))
@@ -92,7 +101,7 @@ def stream_results(
                 pair.poses[0],
                 pair.poses[-1],
                 pair.camera,
-                preset=PRESETS["fast"],
+                preset=preset,
                 sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
                 sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
                 **slow,  # type: ignore[arg-type]
@@ -181,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
     ap.add_argument("--json", help="write per-Result rows and the summary here")
     ap.add_argument("--levels", default="full", help="comma list of pipeline levels per stream position, cycled")
+    ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="fields of the fast preset to override")
     args = ap.parse_args(argv)
     levels = tuple(x.strip() for x in args.levels.split(","))
     if not levels or any(x not in LEVELS for x in levels):
@@ -206,14 +216,14 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}
     t0 = time.perf_counter()
     for k, (case, seed) in enumerate(streams, 1):
-        res = stream_results(case, seed, Path(args.cache), Path(args.grids), levels)
+        res = stream_results(case, seed, Path(args.cache), Path(args.grids), levels, tuple(args.set_param))
         rows[case] += [{"seed": seed, **r} for r in score_stream(res, overrides)]
         print(f"[{k}/{len(streams)}] {case} seed {seed}: {len(res)} pairs ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)  # fmt: skip
     per_case = {c: summary(r) for c, r in rows.items() if r}
     per_case["all"] = summary([x for r in rows.values() for x in r])
     print(f"\nFusion over streamed descents, {args.set} seeds {seeds}, levels {','.join(levels)}, "
-          f"overrides {overrides or 'none'}\n")  # fmt: skip
+          f"overrides {overrides or 'none'}, fast {' '.join(args.set_param) or 'as shipped'}\n")  # fmt: skip
     print(table(per_case))
     if args.json:
         Path(args.json).write_text(json.dumps({"seeds": seeds, "overrides": overrides, "summary": per_case,

@@ -1,8 +1,9 @@
 """Landing campaigns with one site-selection parameter at several values (how `fast`'s site guard
-on relief, 14 m, and its site margin were chosen).
+on relief, 14 m, its site margin and the grid's share of called pixels were chosen).
 
     .venv/bin/python bench/bench_site_guard.py --seed-set tuning --thresholds 0 12 14 [--pose-error none]
     .venv/bin/python bench/bench_site_guard.py --seed-set tuning --param site_margin_m --thresholds 0.5 1 1.5
+    .venv/bin/python bench/bench_site_guard.py --seed-set tuning --param grid_call_share --thresholds 0.999 0.5
 
 Flies the `hazard-hil landings` campaign (the same draws: scenes, seeds, aim points, navigation
 errors; ``studies.landings``) with ``PipelineParams.<param>`` (default ``site_relief_max_m``, 0 = no
@@ -26,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from studies import landings as L  # noqa: E402
 
-PARAMS = ("site_relief_max_m", "site_margin_m")
+PARAMS = ("site_relief_max_m", "site_margin_m", "grid_call_share", "site_reach_cells")
 
 
 def _fly(args: tuple[L.Campaign, int, str, float, str]) -> list[dict[str, Any]]:
@@ -47,7 +48,13 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=1008, help="landings per campaign")
     ap.add_argument("--pose-error", default=L.DEFAULT_POSE_ERROR, help="PoseError syntax, or 'none'")
     ap.add_argument("--param", choices=PARAMS, default=PARAMS[0], help="the fast preset's field to vary")
-    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 12.0, 14.0], help="its values (m)")
+    ap.add_argument(
+        "--thresholds",
+        type=float,
+        nargs="+",
+        default=[0.0, 12.0, 14.0],
+        help="its values (m, or a share)",
+    )
     ap.add_argument("--cache", default=str(ROOT / "out" / "landing_renders"))
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", help="write every campaign's rows here")
@@ -66,7 +73,7 @@ def main() -> int:
             rows = [r for rs in pool.imap(_fly, jobs) for r in rs]
         out[f"{t:g}"] = rows
         k = {o: sum(r["outcome"] == o for r in rows) for o in ("safe", "unsafe", "no_site")}
-        print(f"{a.param} {t:g} m: safe {k['safe']}, unsafe {k['unsafe']}, no site {k['no_site']}")
+        print(f"{a.param} {t:g}: safe {k['safe']}, unsafe {k['unsafe']}, no site {k['no_site']}")
         for r in rows:
             if r["outcome"] == "unsafe":
                 where = f"{r['scene']} seed {r['scene_seed']} {r['scenario']} {r['pair']}"

@@ -375,8 +375,9 @@ def grid_evidence(
     rough_limit_m: float = 0.30,
     measured: np.ndarray | None = None,
 ) -> Evidence:
-    """Grid states from the image's call, pulled onto the grid: safe where every pixel read was called
-    safe (``called``), unsafe where most were unsafe; P(safe) is the pulled pixel probability.
+    """Grid states from the image's call, pulled onto the grid: safe where the pixels read were called
+    safe (``called``: the caller's share of the bilinear weight, ``Params.grid_call_share``), unsafe where
+    most were unsafe; P(safe) is the pulled pixel probability.
 
     ``measured`` (bool, optional): cells with an elevation. A called cell without one stays unknown:
     the pull can read called pixels around a DEM hole, and a safe cell must have the elevation a site

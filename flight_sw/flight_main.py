@@ -402,8 +402,9 @@ class FlightProcess:
         margin = float(p.get("site_margin_m", PRESETS["fast"].site_margin_m))
         relief = float(p.get("site_relief_max_m", PRESETS["fast"].site_relief_max_m))
         window = float(p.get("site_relief_window_m", PRESETS["fast"].site_relief_window_m))
+        reach = float(p.get("site_reach_cells", PRESETS["fast"].site_reach_cells))
         sites, reason = select_safe_sites(
-            grid, footprint, (0.0, 0.0), n_sites, margin, relief_max_m=relief, relief_window_m=window
+            grid, footprint, (0.0, 0.0), n_sites, margin, relief_max_m=relief, relief_window_m=window, reach_cells=reach
         )
         return grid, sites, (reason or None)
 

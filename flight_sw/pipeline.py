@@ -323,6 +323,7 @@ class Params:
     shading_slope: bool = False
     shading_gain_footprints: float = 8.0
     site_margin_m: float = 0.5  # known-safe margin around a site's footprint
+    site_reach_cells: float = 0.0  # ... and this many grid cells more (0.5: every cell the disk reaches into)
     site_relief_max_m: float = 0.0  # > 0: no site where the DEM spans more than this ...
     site_relief_window_m: float = 30.0  # ... in a square this wide around it (sites.local_relief)
     refine_pose: bool = False  # refine the relative pose from the images first (pose_refine.py, issue #10)
@@ -342,6 +343,11 @@ class Params:
     call_slope_sigma_k: float = 0.0  # > 0: the cap spares a slope below the limit by this many sigmas (off)
     call_slope_feature: str = "a"  # the slope the cap reads: "a" (DEM), "a_pc" (shading), "max" (evidence.cap_slope)
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
+    # "calibrated": a grid cell is called safe when more than this share of the bilinear weight of the i1
+    # pixels it reads was called safe (unsafe: more than half was called unsafe). 0.999 (all of them, until
+    # stop 38) eroded the safe ground by half a pixel all round: the grid read back at the pixels called
+    # 4-7 points less of the tuning descents' truly safe ground than the pixel map (docs/benchmarks/pipeline.md)
+    grid_call_share: float = 0.5
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
     def validate(self) -> None:
@@ -391,6 +397,8 @@ class Params:
             raise FlightInputError(f"params: psafe_model must be 'gaussian' or 'calibrated', got {self.psafe_model!r}")
         if not (math.isfinite(self.fp_budget) and 0 <= self.fp_budget <= 0.2):
             raise FlightInputError(f"params: fp_budget must be in [0, 0.2], got {self.fp_budget!r}")
+        if not (math.isfinite(self.grid_call_share) and 0 < self.grid_call_share < 1):
+            raise FlightInputError(f"params: grid_call_share must be in (0, 1), got {self.grid_call_share!r}")
         if not (self.call_slope_max > 0):
             raise FlightInputError(f"params: call_slope_max must be positive, got {self.call_slope_max!r}")
         if not (math.isfinite(self.shading_sun_ref_deg) and 0 <= self.shading_sun_ref_deg < 90):
@@ -413,6 +421,7 @@ class Params:
             "dark_fill_slope",
             "wide_slope_factor",
             "site_margin_m",
+            "site_reach_cells",
             "site_relief_max_m",
             "site_relief_window_m",
             "shading_gain_footprints",
@@ -516,6 +525,11 @@ PRESETS: dict[str, Params] = {
         # navigation 496 / 0, 592 / 0, 636 / 4, 653 / 3. 1.5 m dated from before the relief guard below,
         # when 0.5 m put 2 of 6 tuning crater top sites on terraced wall steps at the edge of the map
         site_margin_m=1.0,
+        # stop 38: the grid takes the pixels' call (grid_call_share 0.5; it had eroded the safe ground by half a
+        # pixel), so a site's disk now holds every cell it reaches into. Tuning landing campaigns, safe / unsafe:
+        # with navigation errors 599 / 4 (eroded grid) -> 603 / 4 (0 cells: 613 / 4); perfect navigation
+        # 594 / 6 -> 602 / 6 (610 / 6). 0 cells put one held-out top site on a 1-pixel hazard at 2400 m
+        site_reach_cells=0.5,
         # no site in a 30 m square whose DEM spans > 14 m: SGM flattens crater walls, and a flattened wall
         # reads as flat, certain ground. Tuning landing campaigns (seeds 0-9, 126 renders x 8 aim points,
         # docs/benchmarks/pipeline.md): unsafe top sites 12 -> 4 with perfect navigation (no safe one lost),
@@ -1659,7 +1673,7 @@ def _run_v2(
                 _uncrop(ev_c.psafe, cs, i1.shape),
                 _uncrop(ev_c.hazard, cs, i1.shape),
             )
-            g_call = remap_with((ev.state == STATE_SAFE).astype(np.float32), g_maps) > 0.999
+            g_call = remap_with((ev.state == STATE_SAFE).astype(np.float32), g_maps) > p.grid_call_share
             g_ps = remap_with(np.nan_to_num(ev.psafe, nan=0.0), g_maps)
             g_bad = remap_with((ev.state == STATE_UNSAFE).astype(np.float32), g_maps) > 0.5
             gev = grid_evidence(
@@ -1701,6 +1715,7 @@ def _run_v2(
                 p.site_margin_m,
                 relief_max_m=p.site_relief_max_m,
                 relief_window_m=p.site_relief_window_m,
+                reach_cells=p.site_reach_cells,
             )
         else:
             sites, reason = [], "deadline reached before site selection"

@@ -154,12 +154,15 @@ def select_safe_sites(
     p_quantum: float = 0.01,
     relief_max_m: float = 0.0,
     relief_window_m: float = 30.0,
+    reach_cells: float = 0.0,
 ) -> tuple[list[Site], str]:
     """Sites whose whole footprint plus ``margin_m`` is known-safe, ranked by P(safe), then distance.
 
     Uses ``grid.state`` / ``grid.psafe`` (uncertainty-aware, :mod:`flight_sw.evidence`). A cell
-    qualifies when every cell within ``footprint_m / 2 + margin_m`` of it is ``STATE_SAFE``
-    (a disk; cells past the grid edge are not known). The site's ``p_safe`` is the smallest
+    qualifies when every cell whose centre lies within ``footprint_m / 2 + margin_m + reach_cells *
+    cell_m`` of it is ``STATE_SAFE`` (a disk; cells past the grid edge are not known). With
+    ``reach_cells = 0.5`` that is about every cell the disk reaches into, not only those whose centre
+    it holds. The site's ``p_safe`` is the smallest
     cell P(safe) over that disk - cell errors are correlated over a footprint, so the minimum
     is used rather than a product - and ``clearance_m`` the distance from its centre to the
     nearest cell not known safe. Candidates are ordered by ``p_safe`` (in steps of
@@ -183,7 +186,7 @@ def select_safe_sites(
         unk = 100.0 * float((grid.state == STATE_UNKNOWN).sum()) / max(1, n_cov)
         return [], f"no cell is known safe ({unk:.0f} % of the mapped area unknown, the rest unsafe)"
     radius = 0.5 * footprint_m + max(0.0, margin_m)
-    rc = radius / grid.cell_m
+    rc = radius / grid.cell_m + max(0.0, reach_cells)
     r = int(np.ceil(rc))
     yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     disk = ((xx * xx + yy * yy) <= rc * rc + 1e-9).astype(np.uint8)
