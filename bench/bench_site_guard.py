@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from studies import landings as L  # noqa: E402
 
-PARAMS = ("site_relief_max_m", "site_margin_m", "grid_call_share", "site_reach_cells")
+PARAMS = ("site_relief_max_m", "site_margin_m", "grid_call_share", "site_reach_cells", "grid_elev_finite")
 
 
 def _fly(args: tuple[L.Campaign, int, str, float, str]) -> list[dict[str, Any]]:

@@ -120,6 +120,20 @@ def remap_with(layer: np.ndarray, maps: tuple[np.ndarray, np.ndarray], interp: i
     return cv2.remap(src, maps[0], maps[1], interp, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 
 
+def remap_valid(layer: np.ndarray, maps: tuple[np.ndarray, np.ndarray], min_weight: float = 0.5) -> np.ndarray:
+    """Bilinear read of ``layer`` over its finite samples only: ``sum w_k z_k / sum w_k`` over the finite
+    ``z_k`` of the four neighbours, where that weight ``sum w_k`` reaches ``min_weight``; NaN elsewhere.
+
+    :func:`remap_with` returns NaN as soon as one neighbour is NaN, which takes a pixel's width off every
+    hole's rim (a DEM's unmatched pixels, say)."""
+    src = np.asarray(layer, np.float32)
+    ok = np.isfinite(src)
+    num = remap_with(np.where(ok, src, np.float32(0.0)), maps)
+    den = remap_with(ok.astype(np.float32), maps)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den >= min_weight, num / den, np.float32(np.nan)).astype(np.float32)
+
+
 def _remap(layer: np.ndarray, mx: np.ndarray, my: np.ndarray, interp: int = cv2.INTER_LINEAR) -> np.ndarray:
     return remap_with(layer, remap_maps(mx, my), interp)
 

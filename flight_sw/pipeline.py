@@ -62,6 +62,7 @@ from .mapping import (
     image_to_grid_coords,
     pull,
     remap_maps,
+    remap_valid,
     remap_with,
     sample_grid,
     three_state,
@@ -348,6 +349,9 @@ class Params:
     # stop 38) eroded the safe ground by half a pixel all round: the grid read back at the pixels called
     # 4-7 points less of the tuning descents' truly safe ground than the pixel map (docs/benchmarks/pipeline.md)
     grid_call_share: float = 0.5
+    # the grid's elevation (what it reports, and what a safe cell needs) read from a cell's finite neighbours
+    # (mapping.remap_valid); False: NaN beside any DEM hole, as the slope fit reads it
+    grid_elev_finite: bool = True
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
     def validate(self) -> None:
@@ -1561,6 +1565,7 @@ def _run_v2(
         g_maps = remap_maps(gu, gv)  # the cells' i1 pixels and the pixels' cells, each read many times
         px_maps = grid_maps(origin, cell, X, Y)
         g_elev = remap_with(elevation, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
+        g_seen = remap_valid(elevation, g_maps) if have_dem and p.grid_elev_finite else g_elev
         g_sig = remap_with(sigma, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
         cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
         g_cue = remap_with(cues.astype(np.float32), g_maps) > 0.25
@@ -1686,7 +1691,7 @@ def _run_v2(
                 g_rough if fit is not None else None,
                 p.slope_limit_deg,
                 p.rough_limit_m,
-                measured=np.isfinite(g_elev),
+                measured=np.isfinite(g_seen),
             )
             del feats, ev_c, g_call, g_ps, g_bad
         else:
@@ -1700,7 +1705,7 @@ def _run_v2(
             ev = widen_unsafe(ev, p.hazard_margin_px)
             gev = widen_unsafe(gev, p.hazard_margin_px)
         grid = HazardGrid(
-            gev.hazard, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell), gev.state, gev.psafe
+            gev.hazard, np.where(g_cov, g_seen, np.nan).astype(np.float32), origin, float(cell), gev.state, gev.psafe
         )
     # what the site search does not read, dropped before it: 512^2 approach pairs peaked there at 69 MiB
     del fit, gev, grad_img, gsig_img, rsig_img, pc_img, caster_img, px_maps, g_maps

@@ -8,7 +8,17 @@ import cv2
 import numpy as np
 import pytest
 
-from flight_sw.mapping import HazardGrid, combine, grid_extent, grid_xy, sample_grid, widen_hazards
+from flight_sw.mapping import (
+    HazardGrid,
+    combine,
+    grid_extent,
+    grid_xy,
+    remap_maps,
+    remap_valid,
+    remap_with,
+    sample_grid,
+    widen_hazards,
+)
 from flight_sw.rocks import rock_mask
 from flight_sw.shadow import shadow_mask, shadow_threshold
 from flight_sw.sites import footprint_stats, select_sites
@@ -143,3 +153,31 @@ def test_sites_avoid_hazards_and_spiral_out():
             if a is not b:
                 assert math.hypot(a.x - b.x, a.y - b.y) >= 3.0
     assert select_sites(HazardGrid(np.ones((20, 20), np.float32), np.zeros((20, 20)), (0, 0), 1.0)) == []
+
+
+def test_remap_valid_reads_a_holes_rim_from_its_finite_neighbours():
+    """A plane with a hole: the plain bilinear read loses a pixel's width around the hole; the finite read is,
+    point by point, the bilinear weights' mean over the finite corners, NaN where they carry under half."""
+    v, u = np.mgrid[0:20, 0:20].astype(np.float32)
+    z = 2.0 * u - 0.5 * v + 3.0
+    z[8:12, 8:12] = np.nan
+    rng = np.random.default_rng(7)
+    mu, mv = rng.uniform(0, 19, 4000).astype(np.float32), rng.uniform(0, 19, 4000).astype(np.float32)
+    maps = remap_maps(mu[None, :], mv[None, :])
+    plain, finite = remap_with(z, maps)[0], remap_valid(z, maps)[0]
+    assert np.allclose(finite[np.isfinite(plain)], plain[np.isfinite(plain)], atol=1e-4)
+    assert (~np.isfinite(plain) & np.isfinite(finite)).sum() > 100  # the rim the plain read lost
+    u0, v0 = np.floor(mu).astype(int), np.floor(mv).astype(int)
+    fu, fv = mu - u0, mv - v0
+    num = np.zeros(mu.shape)
+    den = np.zeros(mu.shape)
+    for du, dv, w in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+        c = z[np.minimum(v0 + dv, 19), np.minimum(u0 + du, 19)]
+        ok = np.isfinite(c)
+        num += np.where(ok, w * np.nan_to_num(c), 0.0)
+        den += np.where(ok, w, 0.0)
+    clear = np.abs(den - 0.5) > 0.01  # OpenCV's fixed-point weights decide the ties
+    want = np.where(den >= 0.5, num / np.maximum(den, 1e-9), np.nan)
+    assert np.array_equal(np.isnan(finite[clear]), np.isnan(want[clear]))
+    ok = clear & np.isfinite(want)
+    assert np.allclose(finite[ok], want[ok], atol=0.02)
