@@ -346,8 +346,8 @@ class Params:
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
     # "calibrated": a grid cell is called safe when more than this share of the bilinear weight of the i1
     # pixels it reads was called safe (unsafe: more than half was called unsafe). 0.999 (all of them, until
-    # stop 38) eroded the safe ground by half a pixel all round: the grid read back at the pixels called
-    # 4-7 points less of the tuning descents' truly safe ground than the pixel map (docs/benchmarks/pipeline.md)
+    # stop 38) eroded the safe ground by half a pixel all round: read back at the pixels, the grid's CDI was
+    # 5-6 points (median) under the pixel map's on the tuning descents (docs/benchmarks/pipeline.md)
     grid_call_share: float = 0.5
     # the grid's elevation (what it reports, and what a safe cell needs) read from a cell's finite neighbours
     # (mapping.remap_valid); False: NaN beside any DEM hole, as the slope fit reads it

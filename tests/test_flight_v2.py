@@ -20,7 +20,7 @@ from synthetic import NADIR_R, Texture, camera_fov30, flattened_wall_grid, make_
 
 from flight_sw.costvolume import COST_MAX, CostSlab, combine, cost_slab, valid_interval
 from flight_sw.evidence import classify, grid_evidence, weighted_plane_fit
-from flight_sw.mapping import HazardGrid
+from flight_sw.mapping import HazardGrid, grid_xy
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.rangefind import altimeter_ground, find_ground, prior_range
 from flight_sw.sgm import aggregate, kernel
@@ -216,6 +216,26 @@ def test_sites_rank_by_psafe_then_distance():
         assert np.all(st[d <= 2.0] == STATE_SAFE) and s.clearance_m >= 2.0
         for t in sites:
             assert s is t or math.hypot(s.x - t.x, s.y - t.y) >= 3.0
+
+
+def test_a_sites_disk_holds_every_cell_it_reaches_into():
+    """One unsafe cell whose centre lies 0.3 cells outside the footprint-plus-margin radius of the only place a
+    site fits: cell centres within the radius allow the site, every cell the disk reaches into does not."""
+    n, cell = 21, 0.5
+    st = np.full((n, n), STATE_UNKNOWN, np.uint8)
+    X, Y = grid_xy((n, n), (0.0, 0.0), cell)
+    d = np.hypot(X - X[10, 10], Y - Y[10, 10])
+    radius = 1.5 + 0.5  # footprint / 2 + margin
+    st[d <= radius + 0.9 * cell] = STATE_SAFE  # the disk and a ring of cells it partly covers ...
+    i, j = np.argwhere((d > radius) & (d <= radius + 0.5 * cell))[0]
+    st[i, j] = STATE_UNSAFE  # ... but for one, its centre just outside the radius
+    g = HazardGrid(np.zeros((n, n), np.float32), np.zeros((n, n), np.float32), (0.0, 0.0), cell, st,
+                   np.where(st == STATE_SAFE, 0.99, 0.2).astype(np.float32))  # fmt: skip
+    centre = (float(X[10, 10]), float(Y[10, 10]))
+    sites, _ = select_safe_sites(g, 3.0, centre, k=1, margin_m=0.5)
+    assert len(sites) == 1 and (sites[0].x, sites[0].y) == pytest.approx(centre)
+    none, why = select_safe_sites(g, 3.0, centre, k=1, margin_m=0.5, reach_cells=0.5)
+    assert none == [] and "entirely known safe" in why
 
 
 def test_sites_need_a_measured_elevation():
