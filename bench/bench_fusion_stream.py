@@ -77,13 +77,13 @@ def stream_results(
 ) -> list[dict[str, Any]]:
     """The case's pairs, highest first, each with its pipeline grid at ``levels[k % len]`` (cached in ``grids``),
     from ``fast`` with the ``set_param`` (``K=V``) overrides."""
-    from bench_multiframe import build_preset
+    from bench_multiframe import preset_with
     from eval_flight import case_key, render_case
 
     from flight_sw.pipeline import run_pipeline
     from protocol.pairdir import read_pair
 
-    preset = build_preset(argparse.Namespace(preset="fast", set_param=list(set_param)))
+    preset = preset_with("fast", set_param)
     tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
     tag += "".join(f"-{kv}" for kv in set_param)  # a variant's grids never stand in for another's
     f = grids / f"{case_key(case, seed)}{tag}.pkl"

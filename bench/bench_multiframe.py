@@ -132,16 +132,21 @@ def table(per_descent: list[dict[str, Any]], names: list[str], title: str) -> st
 
 
 # ----------------------------------------------------------------------------------------------- speed
-def build_preset(args: argparse.Namespace) -> Any:
-    """``--preset`` with the ``--set-param K=V`` overrides (booleans: 1/true/0/false)."""
+def preset_with(name: str, set_param: list[str] | tuple[str, ...]) -> Any:
+    """Preset ``name`` with ``K=V`` overrides, each value parsed as its field's type (booleans: 1/true/0/false)."""
     from flight_sw.pipeline import PRESETS
 
-    preset = PRESETS[args.preset]
-    for kv in args.set_param:
+    preset = PRESETS[name]
+    for kv in set_param:
         k, v = kv.split("=", 1)
         cur = getattr(preset, k)
         preset = dataclasses.replace(preset, **{k: type(cur)(v) if not isinstance(cur, bool) else v in ("1", "true")})
     return preset
+
+
+def build_preset(args: argparse.Namespace) -> Any:
+    """``--preset`` with the ``--set-param K=V`` overrides."""
+    return preset_with(args.preset, args.set_param)
 
 
 def speed(args: argparse.Namespace) -> int:
