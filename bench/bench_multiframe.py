@@ -205,7 +205,12 @@ def accuracy(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"bench_multiframe: --fusion: {exc}", file=sys.stderr)
         return 2
-    which = ["multi", *fused_policies(len(args.altitudes))] if args.policies is None else args.policies
+    known = ["multi", *fused_policies(len(args.altitudes))]
+    which = known if args.policies is None else args.policies
+    unknown = [w for w in which if w not in known]
+    if unknown:  # an unknown name would be skipped without a word
+        print(f"bench_multiframe: --policies: unknown {unknown!r}; one of {', '.join(known)}", file=sys.stderr)
+        return 2
     cache = Path(args.cache)
     per: list[dict[str, Any]] = []
     for case in args.cases:

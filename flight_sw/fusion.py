@@ -7,19 +7,35 @@ occupancy-grid mapping: Moravec & Elfes 1985, Thrun et al. *Probabilistic Roboti
 the discounting below)::
 
     l_i  = logit(P_i(safe)), clipped to [-l_max, +l_max]     (the result's own evidence)
-    l_i  = -l_unsafe                                        where the result says unsafe
+    l_i  = -l_unsafe                                        where the result makes a hazard call (below)
     l_0  = max(0, logit(prior_p))                           (the prior every P_i holds)
     e    = L - l_0                                          (what earlier results added to the prior)
-    L   <- l_i + (w e  if e > 0  else  e)                   (the first result to map a cell: L = l_i)
+    L   <- l_i + c(e)                                       (the first result to map a cell: L = l_i)
+    c(e) = w e    if e > 0
+           w_a e  if e <= 0 and no hazard call has entered the cell
+           e      otherwise
     L    = l_0 where no result has had evidence yet         (mapped, but nothing measured: the prior)
 
 **The newest result enters whole.** Lower results are finer and see hazards a higher, coarser one
 blurred away (a 3 m footprint spans 2 cells at 500 m and 10 at 100 m), so the map takes each new
 result's P(safe) as it is, and adds what the earlier results said beyond the prior: their
-evidence *against* safety whole (a hazard stays a hazard), their evidence *for* it discounted by
-``w < 1``. Successive results share frames and terrain-dependent errors (a crater wall one
-result's DEM smooths, the next one's smooths too), so summing their evidence as if independent
-(``w = 1``) overstates it. A map of one result is that result.
+evidence for and against it discounted by ``w`` and ``w_a`` (``weight``, ``weight_against``, both
+0.3), and a hazard call's evidence whole (a hazard stays a hazard). Successive results share frames
+and terrain-dependent errors (a crater wall one result's DEM smooths, the next one's smooths too),
+so summing their evidence as if independent (``w = 1``) overstates it, either way round. A map of
+one result is that result.
+
+**Hazard calls and soft unsafe calls.** The pipeline calls a point unsafe for a hazard cue (dark
+shadow, rock, wall: P(safe) 0) or where its measured P(safe) is below 0.5 (more likely a hazard
+than not). A grid cell's unsafe call is a *hazard call* where the cell's P(safe) is below
+``hard_unsafe_p`` (0.05, or unknown) and enters at ``-l_unsafe``; above it the call is *soft*: it
+enters as its own P(safe), evidence like any other. Either way the map says what the newest result
+that measured the cell said: a cell that result called unsafe is unsafe (``vetoed``), whatever the
+evidence sums to. Until 2026-12-03 every unsafe call entered at ``-l_unsafe`` and earlier evidence
+against "safe" was carried whole (``hard_unsafe_p = 1``, ``w_a = 1``). A P(safe) of 0.3 from a
+coarse, high pair then weighed more than four results 99.9 % sure of the same ground, and on the
+tuning streams (docs/benchmarks/multiframe.md, stop 39) fusion left the thesis vertical's Results
+0.9 points of CDI below the pair alone (median; 8.2 at worst), with the same FP as now.
 
 **The prior is counted once.** A calibrated P(safe) (:mod:`flight_sw.psafe`) is a posterior: it
 already holds the prior share of safe ground, ``logit(P_i) = l_0 + evidence_i``. Adding
@@ -62,16 +78,20 @@ result's own refusal. ``accumulate_calls = 0`` is the rule before that. The fuse
 
     safe     L >= T  and  (called safe by the newest result that measured it
                            or  (L >= logit(p_accumulate)  and  n_c >= accumulate_calls))
-    unsafe   L <= -(l_max + T)          unknown   otherwise          outside   never mapped
+    unsafe   L <= -(l_max + T)  or  called unsafe by the newest result that measured it
+    unknown  otherwise          outside   never mapped
 
 The unsafe bound lies beyond what one result's P(safe) can say (``|l_i| <= l_max``): a cell is
-unsafe after an unsafe call, or when several results agree that it is very likely unsafe.
+unsafe after a hazard call, or when several results agree that it is very likely unsafe.
 
-**The rule for hazards.** Because ``w e <= e`` for every ``e``, by induction ``L - l_0 <= sum_i
-(l_i - l_0)`` over all the results that mapped the cell. So a cell that results called unsafe
-``n_u`` times is called safe again only once the *other* results' evidence beyond the prior sums
-to at least ``T - l_0 + n_u (l_unsafe + l_0)`` (:func:`overturn_margin`), however they are
-ordered. With the calibrated settings (``p_min = 0.97``, ``prior_p = 0.806``, ``l_max =
+**The rule for hazards.** ``c(e) <= max(e, 0)``, and ``c(e) <= e`` once a hazard call has entered
+the cell. So by induction ``L - l_0 <= S - n_u (l_unsafe + l_0)``, where ``n_u`` counts the hazard
+calls and ``S = sum_j max(0, l_j - l_0)`` the *other* results' evidence for "safe" beyond the prior
+(with ``w_a = 1``, ``c(e) <= e`` always, and the bound holds for their net evidence as well). A cell
+that results called hazardous ``n_u`` times is called safe again only once ``S`` reaches ``T - l_0 +
+n_u (l_unsafe + l_0)`` (:func:`overturn_margin`), however the results are ordered. A soft unsafe call
+is evidence like any other: one later result 99.9 % sure can clear a cell one earlier result gave
+P(safe) 0.3. With the calibrated settings (``p_min = 0.97``, ``prior_p = 0.806``, ``l_max =
 logit(0.999) = 6.9``, ``l_unsafe = 2 l_max``): 17.3 for one unsafe call, i.e. at least four later
 results each 99.9 % sure; with the defaults (``p_min = 0.9``, ``prior_p = 0.5``): 16.0, three such
 results. No single newer result can overturn a hazard (``l_unsafe > l_max + T``, checked).
@@ -92,7 +112,8 @@ never so fine that it exceeds ``max_cells`` (memory is bounded before it is spen
 result's own grid is bounded the same way). Evidence moves between grids conservatively: a
 coarse cell that is resampled onto a finer grid gives every finer cell its log-odds (a hazard
 anywhere in a coarse cell stays a hazard in all of its parts); finer cells that fall into one
-coarser cell give it their minimum (the least safe part decides). Elevations are taken from
+coarser cell give it their minimum (the least safe part decides), and the most unsafe calls and
+hazard calls any of them holds. Elevations are taken from
 the newest result that measured the cell.
 """
 
@@ -124,14 +145,18 @@ class FusionParams:
     prior_p: float = 0.5  # the P(safe) a result's posterior holds with no evidence (counted once)
     p_accumulate: float = 0.995  # a cell the newest measuring result did not call safe needs P(safe) >= this
     accumulate_calls: int = 1  # ... and at least this many earlier results that called it safe (0: no such bar)
+    weight_against: float = 0.3  # the share of earlier evidence against "safe" carried where no hazard call entered
+    hard_unsafe_p: float = 0.05  # an unsafe call with P(safe) below this enters at -l_unsafe; others are soft (1: none)
 
     def validate(self) -> None:
-        for name in ("weight", "l_max", "l_unsafe"):
+        for name in ("weight", "weight_against", "l_max", "l_unsafe"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"fusion: {name} must be a positive number, got {v!r}")
-        if not self.weight <= 1:
-            raise ValueError(f"fusion: weight must be at most 1, got {self.weight!r}")
+        if not (self.weight <= 1 and self.weight_against <= 1):
+            raise ValueError(
+                f"fusion: weight and weight_against must be at most 1, got {self.weight!r}, {self.weight_against!r}"
+            )
         if not 0.5 < self.p_min < 1:
             raise ValueError(f"fusion: p_min must be in (0.5, 1), got {self.p_min!r}")
         if not self.l_unsafe > self.l_max + logit_threshold(self.p_min):
@@ -140,6 +165,8 @@ class FusionParams:
             raise ValueError(f"fusion: prior_p must be in (0, 1), got {self.prior_p!r}")
         if not 0 <= self.p_accumulate < 1:
             raise ValueError(f"fusion: p_accumulate must be in [0, 1), got {self.p_accumulate!r}")
+        if not 0 < self.hard_unsafe_p <= 1:
+            raise ValueError(f"fusion: hard_unsafe_p must be in (0, 1], got {self.hard_unsafe_p!r}")
         if not (isinstance(self.accumulate_calls, int) and 0 <= self.accumulate_calls <= 255):
             raise ValueError(f"fusion: accumulate_calls must be an integer in [0, 255], got {self.accumulate_calls!r}")
         if self.extent not in ("newest", "union"):
@@ -162,6 +189,10 @@ class FusedMap:
     results: int = 0  # results fused so far
     # uint8 (rows, cols): 1 where a full-level result has had evidence (module doc, "Coarse results"); None: nowhere
     full: np.ndarray | None = None
+    # uint8 (rows, cols): 1 if the newest result with evidence there called the cell unsafe; None: nowhere
+    vetoed: np.ndarray | None = None
+    # uint8 (rows, cols): how many hazard calls (an unsafe call at -l_unsafe) entered the cell; None: none anywhere
+    hazards: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -190,8 +221,8 @@ def prior_logodds(params: FusionParams) -> float:
 
 
 def overturn_margin(params: FusionParams, times_unsafe: int = 1) -> float:
-    """The least sum of ``l_i - l_0`` over the *other* results before a cell called unsafe
-    ``times_unsafe`` times can be called safe (module doc): ``T - l_0 + n_u (l_unsafe + l_0)``."""
+    """The least sum of ``max(0, l_j - l_0)`` over the *other* results before a cell given ``times_unsafe``
+    hazard calls can be called safe (module doc): ``T - l_0 + n_u (l_unsafe + l_0)``."""
     l0 = prior_logodds(params)
     return logit_threshold(params.p_min) - l0 + times_unsafe * (params.l_unsafe + l0)
 
@@ -206,7 +237,8 @@ def result_logodds(grid: HazardGrid, params: FusionParams) -> np.ndarray:
     out = np.log(p / (1.0 - p))
     # no elevation, no evidence: a calibrated P(safe) there is only a context prior (module doc)
     out[~np.isfinite(np.asarray(grid.elevation, np.float64))] = np.nan
-    out[st == STATE_UNSAFE] = -params.l_unsafe
+    # a hazard call enters beyond anything a P(safe) can say; a soft one (a P(safe) that only leans unsafe) as itself
+    out[(st == STATE_UNSAFE) & ~(ps >= params.hard_unsafe_p)] = -params.l_unsafe
     out[(st == STATE_OUTSIDE) | ~((st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN))] = np.nan
     return out.astype(np.float32)
 
@@ -275,6 +307,19 @@ def resample(
     return out
 
 
+def _resample_max(
+    values: np.ndarray,
+    origin: tuple[float, float],
+    cell: float,
+    dst_origin: tuple[float, float],
+    dst_cell: float,
+    dst_shape: tuple[int, int],
+) -> np.ndarray:
+    """:func:`resample` with the maximum of a finer source's cells instead of the minimum (0 where unmapped)."""
+    low = resample(-np.asarray(values, np.float32), origin, cell, dst_origin, dst_cell, dst_shape, fill=0.0)
+    return np.nan_to_num(-low)
+
+
 def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:
     """The fused map on another grid (same or different cell), conservatively (module doc)."""
     if fm.results == 0:
@@ -301,6 +346,14 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
     if fm.full is not None:  # like the call: a coarser cell holds full-level evidence only if all its parts did
         f = resample(fm.full.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
         full = np.where(np.isfinite(f) & (seen_u8 > 0), f, 0).astype(np.uint8)
+    vetoed = None
+    if fm.vetoed is not None:  # unlike the call: a coarser cell is vetoed if any of its finer parts was (the max)
+        v = _resample_max(fm.vetoed.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape)
+        vetoed = ((v > 0.5) & (seen_u8 > 0)).astype(np.uint8)
+    hazards = None
+    if fm.hazards is not None:  # a coarser cell holds as many hazard calls as the most any of its parts holds
+        hz = _resample_max(fm.hazards.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape)
+        hazards = np.where(seen_u8 > 0, np.rint(hz), 0).astype(np.uint8)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
         seen_u8,
@@ -311,6 +364,8 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
         cell,
         fm.results,
         full,
+        vetoed,
+        hazards,
     )
 
 
@@ -371,6 +426,11 @@ def fuse(
     l0 = np.float32(prior_logodds(prm))
     e = np.where(base.seen > 0, base.logodds - l0, np.float32(0.0))
     carried = np.where(e > 0, np.float32(w) * e, e)  # earlier evidence for "safe" discounted, against it whole
+    # ... unless no hazard call ever entered the cell: a P(safe) that leans unsafe is discounted like one that
+    # leans safe (the same shared frames and errors), a hazard call never is (module doc, "The rule for hazards")
+    had_hazard = base.hazards if base.hazards is not None else np.zeros(shape, np.uint8)
+    soft = (e < 0) & (had_hazard == 0)
+    carried = np.where(soft, np.float32(prm.weight_against) * e, carried)
     # a cell first mapped without evidence holds the prior (e = 0), not log-odds 0: below a calibrated
     # prior that would read as evidence against "safe" for every later result
     logodds = np.where(upd, np.nan_to_num(l_new) + carried, np.where(base.seen > 0, base.logodds, l0))
@@ -380,6 +440,10 @@ def fuse(
     c_new = resample((st == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
     c_bool = np.nan_to_num(c_new) > 0.5
     called = np.where(upd, c_bool, base.called > 0).astype(np.uint8)
+    # did it call the cell unsafe (a coarser map cell: if any of its parts was)
+    u_new = _resample_max((st == STATE_UNSAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
+    had_veto = base.vetoed if base.vetoed is not None else np.zeros(shape, np.uint8)
+    vetoed = np.where(upd, u_new > 0.5, had_veto > 0)
     calls = np.minimum(base.calls.astype(np.int32) + (upd & c_bool), 255).astype(np.uint8)
     had_full = base.full if base.full is not None else np.zeros(shape, np.uint8)
     if level == "coarse":
@@ -393,11 +457,22 @@ def fuse(
         logodds = np.where(keep, kept, logodds)
         elev = np.where(keep & np.isfinite(base.elevation), base.elevation, elev).astype(np.float32)
         called = np.where(keep, base.called, called).astype(np.uint8)
+        vetoed = np.where(keep, had_veto > 0, vetoed)
         full = had_full
     else:
         full = (had_full > 0) | (upd & (level == "full"))
     return FusedMap(
-        logodds.astype(np.float32), seen, elev, called, calls, origin, cell, fm.results + 1, full.astype(np.uint8)
+        logodds.astype(np.float32),
+        seen,
+        elev,
+        called,
+        calls,
+        origin,
+        cell,
+        fm.results + 1,
+        full.astype(np.uint8),
+        vetoed.astype(np.uint8),
+        np.minimum(had_hazard.astype(np.int32) + (upd & (l_new <= -np.float32(prm.l_unsafe))), 255).astype(np.uint8),
     )
 
 
@@ -411,6 +486,8 @@ def fused_state(fm: FusedMap, params: FusionParams | None = None) -> tuple[np.nd
     state[(lo >= T) & ((fm.called > 0) | accumulated)] = STATE_SAFE
     bound = np.float32(-(prm.l_max + T))
     state[lo <= bound] = STATE_UNSAFE
+    if fm.vetoed is not None:  # the newest result that measured the cell called it unsafe: so is the map
+        state[fm.vetoed > 0] = STATE_UNSAFE
     state[fm.seen == 0] = STATE_OUTSIDE
     with np.errstate(over="ignore"):
         psafe = (1.0 / (1.0 + np.exp(-lo.astype(np.float64)))).astype(np.float32)

@@ -80,10 +80,19 @@ def test_one_hazard_needs_the_documented_evidence_to_be_overturned(prm, need_doc
 
 
 def test_fused_safe_cells_respect_the_rule_on_random_sequences():
-    """Property: a fused-safe cell that results called unsafe n_u times got at least overturn_margin(n_u)
-    of evidence beyond the prior from the other results, whatever the order."""
+    """Property: a fused-safe cell that results called hazardous n_u times got at least overturn_margin(n_u)
+    of evidence for "safe" beyond the prior from the other results, whatever the order. Soft unsafe calls
+    (P(safe) >= hard_unsafe_p) are evidence like any other; with every earlier result's evidence carried
+    whole against "safe" (``weight_against = 1``) the bound holds for the net sum of the others' evidence."""
     rng = np.random.default_rng(7)
-    for prm in (FusionParams(), CALIBRATED, FusionParams(weight=1.0, prior_p=0.7, p_accumulate=0.0)):
+    params = (
+        FusionParams(),
+        CALIBRATED,
+        FusionParams(weight=1.0, prior_p=0.7, p_accumulate=0.0),
+        dataclasses.replace(CALIBRATED, weight_against=1.0),
+        dataclasses.replace(CALIBRATED, hard_unsafe_p=1.0),
+    )
+    for prm in params:
         l0 = prior_logodds(prm)
         for trial in range(40):
             n = int(rng.integers(2, 8))
@@ -94,22 +103,35 @@ def test_fused_safe_cells_respect_the_rule_on_random_sequences():
                     [STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE], size=shape, p=[0.55, 0.1, 0.25, 0.1]
                 )
                 ps = np.where(st == STATE_SAFE, rng.uniform(0.97, 1.0, shape), rng.uniform(0.0, 0.97, shape))
-                ps = np.where(st == STATE_UNSAFE, 0.0, ps)
+                ps = np.where(
+                    st == STATE_UNSAFE, np.where(rng.random(shape) < 0.5, 0.0, rng.uniform(0, 0.5, shape)), ps
+                )
                 g = grid_of(st, ps)
                 grids.append(g)
                 logs.append(result_logodds(g, prm))
             fm = None
-            for g in grids:  # at random levels: a coarse result's rule must keep the bound as well
-                fm = fuse(fm, g, prm, level=str(rng.choice(["full", "coarse"])))
+            levels = [str(rng.choice(["full", "coarse"])) for _ in grids]
+            for g, lvl in zip(grids, levels):  # at random levels: a coarse result's rule must keep the bound as well
+                fm = fuse(fm, g, prm, level=lvl)
             assert fm is not None
             st, _ = fused_state(fm, prm)
             L = np.stack(logs)  # NaN: the result did not map the cell
-            calls = np.stack([g.state for g in grids]) == STATE_UNSAFE
+            calls = -prm.l_unsafe >= L  # the hazard calls
+            assert np.array_equal(
+                calls,
+                (np.stack([g.state for g in grids]) == STATE_UNSAFE)
+                & ~(np.stack([g.psafe for g in grids]) >= prm.hard_unsafe_p),
+            )
             unsafe_calls = calls.sum(axis=0)
-            others = np.nansum(np.where(calls, np.nan, L - l0), axis=0)
+            e = np.where(calls, np.nan, L - l0)
+            others = np.nansum(e if prm.weight_against == 1 else np.fmax(e, 0.0), axis=0)
             flagged = (st == STATE_SAFE) & (unsafe_calls > 0)
             for i, j in zip(*np.nonzero(flagged)):
                 assert others[i, j] >= overturn_margin(prm, int(unsafe_calls[i, j])) - 1e-4, (trial, i, j)
+            newest = np.full(shape, STATE_OUTSIDE, np.uint8)  # the newest full-level call with evidence
+            for g, lg, lvl in zip(grids, logs, levels):
+                newest = np.where(np.isfinite(lg), g.state if lvl == "full" else STATE_OUTSIDE, newest)
+            assert np.all(st[newest == STATE_UNSAFE] == STATE_UNSAFE)  # a newest unsafe call is what the map says
             seen = np.any(np.stack([g.state for g in grids]) != STATE_OUTSIDE, axis=0)
             assert np.array_equal(st == STATE_OUTSIDE, ~seen)  # the unseen cells stay outside, the seen ones do not
 
@@ -136,6 +158,27 @@ def test_a_coarse_result_does_not_replace_what_a_full_one_measured():
     # and a full-level result after the coarse one enters whole again
     fm = fuse(fuse(fuse(None, full, prm), coarse, prm, level="coarse"), coarse, prm, level="full")
     assert not (fused_state(fm, prm)[0] == STATE_SAFE).any()
+
+
+def test_a_soft_unsafe_call_is_evidence_and_a_hazard_call_is_not_overturned_by_one_result():
+    """An unsafe call whose own P(safe) only leans unsafe (no hazard cue, 0.3 here) is that much evidence: alone the
+    map calls the cell unsafe, a newer result that measured it differently replaces the call, and one confident
+    newer result can clear it. An unsafe call at P(safe) < hard_unsafe_p (a cue: 0 on pixels) is a hazard call."""
+    prm = CALIBRATED
+    alone = fused_state(fuse(None, uniform(STATE_UNSAFE, 0.3), prm), prm)[0]
+    assert np.all(alone == STATE_UNSAFE)  # a map of one result is that result
+    doubt = fuse(fuse(None, uniform(STATE_UNSAFE, 0.3), prm), uniform(STATE_UNKNOWN, 0.6), prm)
+    assert np.all(fused_state(doubt, prm)[0] == STATE_UNKNOWN)
+    cleared = fuse(fuse(None, uniform(STATE_UNSAFE, 0.3), prm), uniform(STATE_SAFE, 0.999), prm)
+    assert np.all(fused_state(cleared, prm)[0] == STATE_SAFE)
+    assert np.all(fused_state(fuse(cleared, uniform(STATE_UNSAFE, 0.3), prm), prm)[0] == STATE_UNSAFE)
+    for p_hazard in (0.0, 0.04, float("nan")):  # a cue, a near-certain hazard, and no P(safe) at all
+        fm = fuse(fuse(None, uniform(STATE_UNSAFE, p_hazard), prm), uniform(STATE_SAFE, 0.999), prm)
+        assert not np.any(fused_state(fm, prm)[0] == STATE_SAFE), p_hazard
+    # hard_unsafe_p = 1: every unsafe call is a hazard call (the rule before 2026-12-03)
+    old = dataclasses.replace(prm, hard_unsafe_p=1.0, weight_against=1.0)
+    fm = fuse(fuse(None, uniform(STATE_UNSAFE, 0.3), old), uniform(STATE_SAFE, 0.999), old)
+    assert not np.any(fused_state(fm, old)[0] == STATE_SAFE)
 
 
 def test_newest_result_wins_would_fail_the_rule():
@@ -321,12 +364,22 @@ def test_the_newest_result_enters_whole():
     fm = fuse(fm, uniform(STATE_UNKNOWN, 0.9), prm)
     st, ps = fused_state(fm, prm)
     assert np.all(st == STATE_UNKNOWN) and np.all(ps < prm.p_accumulate)  # not called by the newest: the bar
-    # and evidence for "safe" from the past is discounted by w, evidence against it is not
-    e_safe = math.log(0.999 / 0.001) - prior_logodds(prm)
+    # and evidence from the past is discounted: for "safe" by w, against it by weight_against; a hazard call not at all
+    l0 = prior_logodds(prm)
+    e_safe = math.log(0.999 / 0.001) - l0
     fm = fuse(fuse(None, uniform(STATE_SAFE, 0.999), prm), uniform(STATE_UNKNOWN, 0.5), prm)
     assert np.allclose(fm.logodds, prm.weight * e_safe, atol=1e-4)
-    fm = fuse(fuse(None, uniform(STATE_UNKNOWN, 0.01), prm), uniform(STATE_UNKNOWN, 0.5), prm)
-    assert np.allclose(fm.logodds, math.log(0.01 / 0.99) - prior_logodds(prm), atol=1e-4)
+    for first in (uniform(STATE_UNKNOWN, 0.01), uniform(STATE_UNSAFE, 0.2)):  # doubt, and a soft unsafe call
+        e_doubt = math.log(0.01 / 0.99 if first.state[0, 0] == STATE_UNKNOWN else 0.2 / 0.8) - l0
+        fm = fuse(fuse(None, first, prm), uniform(STATE_UNKNOWN, 0.5), prm)
+        assert np.allclose(fm.logodds, prm.weight_against * e_doubt, atol=1e-4)
+        whole = dataclasses.replace(prm, weight_against=1.0)
+        fm = fuse(fuse(None, first, whole), uniform(STATE_UNKNOWN, 0.5), whole)
+        assert np.allclose(fm.logodds, e_doubt, atol=1e-4)
+    fm = fuse(fuse(None, uniform(STATE_UNSAFE, 0.0), prm), uniform(STATE_UNKNOWN, 0.5), prm)
+    assert np.allclose(fm.logodds, -prm.l_unsafe - l0, atol=1e-4)
+    fm = fuse(fm, uniform(STATE_SAFE, 0.999), prm)  # still whole after later evidence for "safe"
+    assert np.allclose(fm.logodds, math.log(999.0) - prm.l_unsafe - 2 * l0, atol=1e-3)
 
 
 def test_accumulated_evidence_needs_the_higher_bar():
