@@ -14,7 +14,8 @@ its own pair's reference pixels, against that pair's truth, on the pixels the pa
 outside count as not safe). "alone" is the pair's own grid, what a Result reports without fusion.
 
 Per case: pixel FP % (median / worst, Results over 1 %), CDI % (median), and the change fusion makes per
-Result (FP: largest increase and how many Results rise by more than 0.1 points; CDI: median and smallest).
+Result (FP: largest increase and how many Results rise by more than 0.1 points; CDI: median and smallest),
+and the CPU time of fusing each Result and reading out its map (median; one thread).
 Seeds come from ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``; worst cases beside medians.
 Pipeline grids are cached per stream in ``--grids`` so that fusion settings can be compared quickly.
 
@@ -130,11 +131,14 @@ def score_stream(results: list[dict[str, Any]], overrides: dict[str, Any]) -> li
         pair = read_pair(Path(r["dir"]))
         xy = pixel_world(pair)
         prm = dataclasses.replace(params_for(r["params"], r["info"], FusionParams()), **overrides)
+        t0 = time.thread_time()  # what the flight process spends per Result on the map
         fm = fuse(fm, r["grid"], prm, level=r.get("level", "full"))
+        fused_grid = to_hazard_grid(fm, prm)
+        fuse_ms = 1000.0 * (time.thread_time() - t0)
         alone = score_grid(pair, r["grid"], r["mask"], xy)
-        fused = score_grid(pair, to_hazard_grid(fm, prm), r["mask"], xy)
+        fused = score_grid(pair, fused_grid, r["mask"], xy)
         rows.append({"alt": r["alt"], "level": r.get("level", "full"), "fp": alone["fp"], "cdi": alone["cdi"],
-                     "fp_f": fused["fp"], "cdi_f": fused["cdi"]})  # fmt: skip
+                     "fp_f": fused["fp"], "cdi_f": fused["cdi"], "fuse_ms": fuse_ms})  # fmt: skip
     return rows
 
 
@@ -159,6 +163,7 @@ def summary(rows: list[dict[str, float]]) -> dict[str, float]:
         "full": sum(r.get("level", "full") == "full" for r in rows),
         "dcdi_full_med": statistics.median(dcdi_full),
         "dcdi_full_min": min(dcdi_full),
+        "fuse_ms_med": statistics.median(r.get("fuse_ms", math.nan) for r in rows),
     }
 
 
@@ -166,8 +171,8 @@ def table(per_case: dict[str, dict[str, float]]) -> str:
     out = [
         "| case | Results | alone: FP % med / worst (> 1 %) | alone: CDI % med | fused: FP % med / worst (> 1 %) "
         "| fused: CDI % med | FP change: max (Results > +0.1) | CDI change: med / min "
-        "| full-level Results: CDI change med / min |",
-        "|---|---:|---|---:|---|---:|---|---|---|",
+        "| full-level Results: CDI change med / min | fuse + map CPU ms med |",
+        "|---|---:|---|---:|---|---:|---|---|---|---:|",
     ]
     for case, s in per_case.items():
         out.append(
@@ -175,7 +180,7 @@ def table(per_case: dict[str, dict[str, float]]) -> str:
             f"| {s['cdi_med']:.1f} | {s['fp_f_med']:.2f} / {s['fp_f_worst']:.2f} ({s['fp_f_over1']}) "
             f"| {s['cdi_f_med']:.1f} | {s['dfp_max']:+.2f} ({s['dfp_over01']}) "
             f"| {s['dcdi_med']:+.1f} / {s['dcdi_min']:+.1f} "
-            f"| {s['dcdi_full_med']:+.1f} / {s['dcdi_full_min']:+.1f} ({s['full']}) |"
+            f"| {s['dcdi_full_med']:+.1f} / {s['dcdi_full_min']:+.1f} ({s['full']}) | {s['fuse_ms_med']:.1f} |"
         )
     return "\n".join(out)
 

@@ -274,10 +274,12 @@ def resample(
     dst_shape: tuple[int, int],
     fill: float = np.nan,
     pool_min: bool = True,
+    pool_max: bool = False,
 ) -> np.ndarray:
     """Move a grid layer onto another grid conservatively (module doc): every destination cell takes
     the source cell under its centre and, where the source is finer and ``pool_min``, the minimum of
-    the source cells whose centres fall in it (NaN = no value, ignored by the minimum). float32 out.
+    the source cells whose centres fall in it (NaN = no value, ignored by the minimum); with ``pool_max``
+    the maximum instead (a flag that any finer part raised). float32 out.
 
     Both grids are axis-aligned, so the cell under a centre is a row index times a column index, and
     the source cells of one destination cell are a contiguous block of rows by a contiguous block of
@@ -293,7 +295,7 @@ def resample(
     ii = _axis_index(dst_shape[0], dst_origin[1], dst_cell, origin[1], cell, -1.0)
     cols, rows = (jj >= 0) & (jj < w), (ii >= 0) & (ii < h)
     out[np.ix_(rows, cols)] = src[np.ix_(ii[rows], jj[cols])]
-    if pool_min and cell < dst_cell * (1.0 - 1e-9):  # finer source: several source cells per destination cell
+    if (pool_min or pool_max) and cell < dst_cell * (1.0 - 1e-9):  # finer source: several cells per destination
         dj = _axis_index(w, origin[0], cell, dst_origin[0], dst_cell, 1.0)
         di = _axis_index(h, origin[1], cell, dst_origin[1], dst_cell, -1.0)
         cols, rows = (dj >= 0) & (dj < dst_shape[1]), (di >= 0) & (di < dst_shape[0])
@@ -301,9 +303,10 @@ def resample(
             dj, di = dj[cols], di[rows]  # non-decreasing: each destination cell's sources are contiguous
             c0 = np.flatnonzero(np.r_[True, dj[1:] != dj[:-1]])
             r0 = np.flatnonzero(np.r_[True, di[1:] != di[:-1]])
-            low = np.fmin.reduceat(np.fmin.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
+            op = np.fmax if pool_max else np.fmin
+            low = op.reduceat(op.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
             at = np.ix_(di[r0], dj[c0])
-            out[at] = np.fmin(out[at], low)
+            out[at] = op(out[at], low)
     return out
 
 
@@ -316,8 +319,7 @@ def _resample_max(
     dst_shape: tuple[int, int],
 ) -> np.ndarray:
     """:func:`resample` with the maximum of a finer source's cells instead of the minimum (0 where unmapped)."""
-    low = resample(-np.asarray(values, np.float32), origin, cell, dst_origin, dst_cell, dst_shape, fill=0.0)
-    return np.nan_to_num(-low)
+    return resample(values, origin, cell, dst_origin, dst_cell, dst_shape, fill=0.0, pool_max=True)
 
 
 def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:

@@ -181,6 +181,26 @@ def test_a_soft_unsafe_call_is_evidence_and_a_hazard_call_is_not_overturned_by_o
     assert not np.any(fused_state(fm, old)[0] == STATE_SAFE)
 
 
+def test_an_unsafe_call_survives_a_move_to_a_coarser_grid():
+    """Moved onto a coarser grid, a cell holds the unsafe call and the hazard calls of any of its finer parts
+    (the maximum), as its log-odds takes their minimum: a soft call in one fine cell keeps its coarse cell unsafe."""
+    prm = CALIBRATED
+    st = np.full((8, 8), STATE_SAFE, np.uint8)
+    st[2, 4] = STATE_UNSAFE  # centre (4, -2): the coarse cell [1, 2]
+    fine = grid_of(st, np.where(st == STATE_UNSAFE, 0.3, 0.999), cell=1.0)
+    no_evidence = grid_of(
+        np.full((4, 4), STATE_UNKNOWN), np.full((4, 4), 0.5), cell=2.0, elevation=np.full((4, 4), np.nan)
+    )
+    fm = fuse(fuse(None, fine, prm), no_evidence, prm)
+    assert fm.cell_m == 2.0 and fm.vetoed is not None
+    state = fused_state(fm, prm)[0]
+    assert state[1, 2] == STATE_UNSAFE and np.count_nonzero(state == STATE_UNSAFE) == 1
+    assert np.count_nonzero(state == STATE_SAFE) == 15
+    hazard = grid_of(st, np.where(st == STATE_UNSAFE, 0.0, 0.999), cell=1.0)
+    fm = fuse(fuse(None, hazard, prm), no_evidence, prm)
+    assert fm.hazards is not None and fm.hazards[1, 2] == 1 and np.count_nonzero(fm.hazards) == 1
+
+
 def test_newest_result_wins_would_fail_the_rule():
     """The rule test is able to fail: a 'newest result replaces the map' fusion breaks it at once."""
     prm = FusionParams()
@@ -218,7 +238,7 @@ def test_resampling_is_conservative_both_ways():
     assert np.isnan(resample(v, (100.0, 0.0), 0.5, (0.0, 0.0), 2.0, (2, 2))).all()  # no overlap: no value
 
 
-def _resample_by_definition(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min):
+def _resample_by_definition(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min, pool_max=False):
     """``resample`` as its doc defines it, one destination cell at a time (small grids only)."""
     out = np.full(dst_shape, np.float32(fill), np.float32)
     h, w = v.shape
@@ -228,13 +248,13 @@ def _resample_by_definition(v, origin, cell, dst_origin, dst_cell, dst_shape, fi
             j = round(((dst_origin[0] + c * dst_cell) - origin[0]) / cell)
             if 0 <= i < h and 0 <= j < w:
                 out[r, c] = v[i, j]
-    if pool_min and cell < dst_cell * (1 - 1e-9):
+    if (pool_min or pool_max) and cell < dst_cell * (1 - 1e-9):
         for i in range(h):
             for j in range(w):
                 r = round((dst_origin[1] - (origin[1] - i * cell)) / dst_cell)
                 c = round(((origin[0] + j * cell) - dst_origin[0]) / dst_cell)
                 if 0 <= r < dst_shape[0] and 0 <= c < dst_shape[1] and np.isfinite(v[i, j]):
-                    out[r, c] = np.fmin(out[r, c], v[i, j])
+                    out[r, c] = (np.fmax if pool_max else np.fmin)(out[r, c], v[i, j])
     return out
 
 
@@ -252,9 +272,9 @@ def test_resampling_matches_its_definition_cell_by_cell(seed):
     dst_origin = origin if seed % 5 == 0 else (float(rng.uniform(-4, 4)), float(rng.uniform(-4, 4)))
     dst_shape = (int(rng.integers(0, 16)), int(rng.integers(0, 16)))
     for fill in (np.nan, 0.0):
-        for pool_min in (True, False):
-            got = resample(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min)
-            want = _resample_by_definition(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min)
+        for pool_min, pool_max in ((True, False), (False, False), (False, True)):
+            got = resample(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min, pool_max)
+            want = _resample_by_definition(v, origin, cell, dst_origin, dst_cell, dst_shape, fill, pool_min, pool_max)
             assert np.array_equal(got, want, equal_nan=True)
 
 
