@@ -304,22 +304,10 @@ def resample(
             c0 = np.flatnonzero(np.r_[True, dj[1:] != dj[:-1]])
             r0 = np.flatnonzero(np.r_[True, di[1:] != di[:-1]])
             op = np.fmax if pool_max else np.fmin
-            low = op.reduceat(op.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
+            pooled = op.reduceat(op.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
             at = np.ix_(di[r0], dj[c0])
-            out[at] = op(out[at], low)
+            out[at] = op(out[at], pooled)
     return out
-
-
-def _resample_max(
-    values: np.ndarray,
-    origin: tuple[float, float],
-    cell: float,
-    dst_origin: tuple[float, float],
-    dst_cell: float,
-    dst_shape: tuple[int, int],
-) -> np.ndarray:
-    """:func:`resample` with the maximum of a finer source's cells instead of the minimum (0 where unmapped)."""
-    return resample(values, origin, cell, dst_origin, dst_cell, dst_shape, fill=0.0, pool_max=True)
 
 
 def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:
@@ -350,11 +338,15 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
         full = np.where(np.isfinite(f) & (seen_u8 > 0), f, 0).astype(np.uint8)
     vetoed = None
     if fm.vetoed is not None:  # unlike the call: a coarser cell is vetoed if any of its finer parts was (the max)
-        v = _resample_max(fm.vetoed.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape)
+        v = resample(
+            fm.vetoed.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0, pool_max=True
+        )
         vetoed = ((v > 0.5) & (seen_u8 > 0)).astype(np.uint8)
     hazards = None
     if fm.hazards is not None:  # a coarser cell holds as many hazard calls as the most any of its parts holds
-        hz = _resample_max(fm.hazards.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape)
+        hz = resample(
+            fm.hazards.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0, pool_max=True
+        )
         hazards = np.where(seen_u8 > 0, np.rint(hz), 0).astype(np.uint8)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
@@ -443,7 +435,16 @@ def fuse(
     c_bool = np.nan_to_num(c_new) > 0.5
     called = np.where(upd, c_bool, base.called > 0).astype(np.uint8)
     # did it call the cell unsafe (a coarser map cell: if any of its parts was)
-    u_new = _resample_max((st == STATE_UNSAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
+    u_new = resample(
+        (st == STATE_UNSAFE).astype(np.float32),
+        grid.origin_xy,
+        grid.cell_m,
+        origin,
+        cell,
+        shape,
+        fill=0.0,
+        pool_max=True,
+    )
     had_veto = base.vetoed if base.vetoed is not None else np.zeros(shape, np.uint8)
     vetoed = np.where(upd, u_new > 0.5, had_veto > 0)
     calls = np.minimum(base.calls.astype(np.int32) + (upd & c_bool), 255).astype(np.uint8)
