@@ -216,6 +216,12 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--fusion: FusionParams has no field {k!r}")
         overrides[k] = type(getattr(FusionParams(), k))(v)  # the field's own type: str, int or float
     FusionParams(**overrides).validate()
+    from bench_multiframe import preset_with
+
+    try:  # a bad --set-param ends here with one line, not after the first stream's renders
+        preset_with("fast", args.set_param)
+    except (ValueError, AttributeError) as exc:
+        ap.error(f"--set-param: {exc}")
     seeds = list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     streams = [(c, s) for c in args.cases for s in seeds]
     rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}

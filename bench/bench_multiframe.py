@@ -140,13 +140,22 @@ def preset_with(name: str, set_param: list[str] | tuple[str, ...]) -> Any:
     for kv in set_param:
         k, v = kv.split("=", 1)
         cur = getattr(preset, k)
-        preset = dataclasses.replace(preset, **{k: type(cur)(v) if not isinstance(cur, bool) else v in ("1", "true")})
+        if isinstance(cur, bool):  # bool("False") is True, and an unknown word must not pass as False
+            words = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
+            if v.lower() not in words:
+                raise ValueError(f"--set-param {k}: expected true or false, got {v!r}")
+            preset = dataclasses.replace(preset, **{k: words[v.lower()]})
+        else:
+            preset = dataclasses.replace(preset, **{k: type(cur)(v)})
     return preset
 
 
 def build_preset(args: argparse.Namespace) -> Any:
-    """``--preset`` with the ``--set-param K=V`` overrides."""
-    return preset_with(args.preset, args.set_param)
+    """``--preset`` with the ``--set-param K=V`` overrides; a bad one ends the bench with one line."""
+    try:
+        return preset_with(args.preset, args.set_param)
+    except (ValueError, AttributeError, KeyError) as exc:
+        raise SystemExit(f"bench_multiframe: --preset/--set-param: {exc}") from None
 
 
 def speed(args: argparse.Namespace) -> int:

@@ -426,7 +426,7 @@ class FlightProcess:
         if steps is not None:
             step, pstep = steps
         unit = int(cfg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM))
-        elevation, offset = elevation_to_wire(grid.elevation, step, unit)
+        elevation, offset = elevation_to_wire(grid.reported_elevation, step, unit)
         msg = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),

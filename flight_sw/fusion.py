@@ -114,7 +114,9 @@ coarse cell that is resampled onto a finer grid gives every finer cell its log-o
 anywhere in a coarse cell stays a hazard in all of its parts); finer cells that fall into one
 coarser cell give it their minimum (the least safe part decides), and the most unsafe calls and
 hazard calls any of them holds. Elevations are taken from
-the newest result that measured the cell.
+the newest result that measured the cell. A result's gap fills (:attr:`HazardGrid.dem` where it has no
+match: the DEM carried into dark shadow) are only reported, where no result matched the cell (the newest
+fill); they are no evidence, and the sites on the fused map do not read them.
 """
 
 from __future__ import annotations
@@ -193,6 +195,9 @@ class FusedMap:
     vetoed: np.ndarray | None = None
     # uint8 (rows, cols): how many hazard calls (an unsafe call at -l_unsafe) entered the cell; None: none anywhere
     hazards: np.ndarray | None = None
+    # float32 (rows, cols): the newest gap-fill elevation (HazardGrid.dem where no match), reported where no
+    # result matched the cell; None: no result had fills
+    fills: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -348,6 +353,9 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
             fm.hazards.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0, pool_max=True
         )
         hazards = np.where(seen_u8 > 0, np.rint(hz), 0).astype(np.uint8)
+    fills = None
+    if fm.fills is not None:
+        fills = resample(fm.fills, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
         seen_u8,
@@ -360,6 +368,7 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
         full,
         vetoed,
         hazards,
+        fills,
     )
 
 
@@ -430,6 +439,11 @@ def fuse(
     logodds = np.where(upd, np.nan_to_num(l_new) + carried, np.where(base.seen > 0, base.logodds, l0))
     seen = np.minimum(base.seen.astype(np.int32) + (m_new | upd), 255).astype(np.uint8)
     elev = np.where(upd & np.isfinite(e_new), e_new, base.elevation).astype(np.float32)
+    fills = base.fills
+    if grid.dem is not None:  # the result's gap fills: reported where no result matched the cell
+        own = np.where(np.isfinite(np.asarray(grid.elevation)), np.float32(np.nan), grid.dem)
+        f_new = resample(own, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
+        fills = np.where(np.isfinite(f_new), f_new, np.float32(np.nan) if fills is None else fills)
     # did the newest result with evidence call the cell safe (a coarser map cell: only if all its parts were)
     c_new = resample((st == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
     c_bool = np.nan_to_num(c_new) > 0.5
@@ -476,6 +490,7 @@ def fuse(
         full.astype(np.uint8),
         vetoed.astype(np.uint8),
         np.minimum(had_hazard.astype(np.int32) + (upd & (l_new <= -np.float32(prm.l_unsafe))), 255).astype(np.uint8),
+        None if fills is None else fills.astype(np.float32),
     )
 
 
@@ -505,4 +520,7 @@ def to_hazard_grid(fm: FusedMap, params: FusionParams | None = None) -> HazardGr
     hazard = np.where(state == STATE_SAFE, 1.0 - psafe, 1.0).astype(np.float32)
     hazard[state == STATE_OUTSIDE] = np.nan
     elev = np.where(state != STATE_OUTSIDE, fm.elevation, np.nan).astype(np.float32)
-    return HazardGrid(hazard, elev, fm.origin_xy, float(fm.cell_m), state, psafe)
+    dem = None
+    if fm.fills is not None:  # a match beats a fill, whichever is newer
+        dem = np.where(np.isfinite(elev), elev, np.where(state != STATE_OUTSIDE, fm.fills, np.nan)).astype(np.float32)
+    return HazardGrid(hazard, elev, fm.origin_xy, float(fm.cell_m), state, psafe, dem)

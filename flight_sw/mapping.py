@@ -36,10 +36,18 @@ class HazardGrid:
     cell_m: float
     state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))  # uint8 (rows, cols)
     psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32, NaN outside
+    # float32 (rows, cols): the elevation the map reports, the DEM's gap fills too (pipeline.Params.dark_fill_m);
+    # None: ``elevation``. ``elevation`` holds matched elevations only: the evidence and the sites read those
+    dem: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
             self.state, self.psafe = three_state(self.hazard, self.elevation)
+
+    @property
+    def reported_elevation(self) -> np.ndarray:
+        """The elevation a Result and a score read: ``dem`` where given, else ``elevation``."""
+        return self.elevation if self.dem is None else self.dem
 
     def cell_xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World X, Y of every cell centre."""

@@ -352,6 +352,10 @@ class Params:
     # the grid's elevation (what it reports, and what a safe cell needs) read from a cell's finite neighbours
     # (mapping.remap_valid); False: NaN beside any DEM hole, as the slope fit reads it
     grid_elev_finite: bool = True
+    # the grid reports the DEM's gap fills too (dark_fill_m), as the pixel map does (HazardGrid.dem): without
+    # them the fused 4-frame maps' DEM coverage was 2-3 points under the pixel maps'. The evidence and the
+    # sites still read matched elevations only (HazardGrid.elevation)
+    grid_dem_filled: bool = True
     keep_layers: bool = False  # keep the evidence features in PipelineResult.layers (tuning, bench/eval_flight.py)
 
     def validate(self) -> None:
@@ -1566,6 +1570,13 @@ def _run_v2(
         px_maps = grid_maps(origin, cell, X, Y)
         g_elev = remap_with(elevation, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
         g_seen = remap_valid(elevation, g_maps) if have_dem and p.grid_elev_finite else g_elev
+        g_dem = None
+        if have_dem and p.grid_dem_filled and dem_fill is not None:
+            z_rep = elevation.copy()  # one image, for the moment of this read
+            z_rep[dem_fill[0]] = dem_fill[1]
+            g_dem = remap_valid(z_rep, g_maps) if p.grid_elev_finite else remap_with(z_rep, g_maps)
+            g_dem = np.where(np.isfinite(g_seen), g_seen, g_dem)  # a match beats a fill beside it
+            del z_rep
         g_sig = remap_with(sigma, g_maps) if have_dem else np.full(shape, np.nan, np.float32)
         cues = shadow | wall | (rocks if p.rocks_as_hazard else False)
         g_cue = remap_with(cues.astype(np.float32), g_maps) > 0.25
@@ -1705,7 +1716,13 @@ def _run_v2(
             ev = widen_unsafe(ev, p.hazard_margin_px)
             gev = widen_unsafe(gev, p.hazard_margin_px)
         grid = HazardGrid(
-            gev.hazard, np.where(g_cov, g_seen, np.nan).astype(np.float32), origin, float(cell), gev.state, gev.psafe
+            gev.hazard,
+            np.where(g_cov, g_seen, np.nan).astype(np.float32),
+            origin,
+            float(cell),
+            gev.state,
+            gev.psafe,
+            None if g_dem is None else np.where(g_cov, g_dem, np.nan).astype(np.float32),
         )
     # what the site search does not read, dropped before it: 512^2 approach pairs peaked there at 69 MiB
     del fit, gev, grad_img, gsig_img, rsig_img, pc_img, caster_img, px_maps, g_maps

@@ -124,7 +124,7 @@ def score_grid(pair: Any, grid: Any, mask: np.ndarray, xy: tuple[np.ndarray, np.
     st = sample_cells(grid, xy[0], xy[1], grid.state.astype(np.float32), float(STATE_OUTSIDE))
     hz = np.where(st == STATE_SAFE, 0.0, 1.0).astype(np.float32)
     hz[st == STATE_OUTSIDE] = np.nan
-    ez = sample_cells(grid, xy[0], xy[1], grid.elevation, math.nan)
+    ez = sample_cells(grid, xy[0], xy[1], grid.reported_elevation, math.nan)
     return score(pair, hz, ez, mask)
 
 

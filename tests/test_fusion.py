@@ -201,6 +201,36 @@ def test_an_unsafe_call_survives_a_move_to_a_coarser_grid():
     assert fm.hazards is not None and fm.hazards[1, 2] == 1 and np.count_nonzero(fm.hazards) == 1
 
 
+def test_gap_fills_are_reported_where_nothing_matched_and_are_no_evidence():
+    """A result's gap fills (``HazardGrid.dem`` where it has no match) are what the fused map reports where no
+    result matched the cell, the newest fill first; a match, older or newer, beats them. They add no evidence."""
+    prm = CALIBRATED
+    elev = np.full((6, 6), 2.0, np.float32)
+    elev[:, :2] = np.nan  # no match in the first two columns ...
+    dem = np.where(np.isfinite(elev), elev, np.float32(5.0))  # ... where the DEM filled 5 m
+    st = np.full((6, 6), STATE_UNKNOWN, np.uint8)
+    first = replace_dem(grid_of(st, np.full((6, 6), 0.999), elevation=elev), dem)
+    fm = fuse(None, first, prm)
+    g = to_hazard_grid(fm, prm)
+    assert np.all(g.reported_elevation[:, :2] == 5.0) and np.all(g.reported_elevation[:, 2:] == 2.0)
+    assert np.isnan(g.elevation[:, :2]).all()  # the sites read matches only
+    assert np.all(fm.logodds[:, :2] == np.float32(prior_logodds(prm)))  # the prior: no evidence
+    # a newer fill replaces the older one; a newer result's fill never replaces an older match
+    second = replace_dem(grid_of(st, np.full((6, 6), 0.5), elevation=np.full((6, 6), np.nan)), np.full((6, 6), 7.0))
+    g = to_hazard_grid(fuse(fm, second, prm), prm)
+    assert np.all(g.reported_elevation[:, :2] == 7.0) and np.all(g.reported_elevation[:, 2:] == 2.0)
+    # and a result without fills leaves the map's fills as they were
+    assert (
+        to_hazard_grid(fuse(fm, uniform(STATE_UNKNOWN, 0.5, elevation=np.full((6, 6), np.nan)), prm), prm).dem
+        is not None
+    )
+    assert to_hazard_grid(fuse(None, uniform(STATE_SAFE, 0.999), prm), prm).dem is None
+
+
+def replace_dem(g: HazardGrid, dem: np.ndarray) -> HazardGrid:
+    return dataclasses.replace(g, dem=np.asarray(dem, np.float32))
+
+
 def test_newest_result_wins_would_fail_the_rule():
     """The rule test is able to fail: a 'newest result replaces the map' fusion breaks it at once."""
     prm = FusionParams()
