@@ -290,29 +290,61 @@ def resample(
     the source cells of one destination cell are a contiguous block of rows by a contiguous block of
     columns: the minimum is two ``fmin.reduceat`` passes, O(1) per cell without per-cell index arrays."""
     src = np.asarray(values, np.float32)
-    out = np.full(dst_shape, np.float32(fill), np.float32)
-    if src.size == 0 or out.size == 0:
-        return out
-    h, w = src.shape
-    if (h, w) == tuple(dst_shape) and tuple(origin) == tuple(dst_origin) and cell == dst_cell:
-        return src.copy()  # the same grid (a result onto its own grid: the flight's "newest" extent)
-    jj = _axis_index(dst_shape[1], dst_origin[0], dst_cell, origin[0], cell, 1.0)
-    ii = _axis_index(dst_shape[0], dst_origin[1], dst_cell, origin[1], cell, -1.0)
-    cols, rows = (jj >= 0) & (jj < w), (ii >= 0) & (ii < h)
-    out[np.ix_(rows, cols)] = src[np.ix_(ii[rows], jj[cols])]
-    if (pool_min or pool_max) and cell < dst_cell * (1.0 - 1e-9):  # finer source: several cells per destination
-        dj = _axis_index(w, origin[0], cell, dst_origin[0], dst_cell, 1.0)
-        di = _axis_index(h, origin[1], cell, dst_origin[1], dst_cell, -1.0)
-        cols, rows = (dj >= 0) & (dj < dst_shape[1]), (di >= 0) & (di < dst_shape[0])
-        if cols.any() and rows.any():
-            dj, di = dj[cols], di[rows]  # non-decreasing: each destination cell's sources are contiguous
-            c0 = np.flatnonzero(np.r_[True, dj[1:] != dj[:-1]])
-            r0 = np.flatnonzero(np.r_[True, di[1:] != di[:-1]])
+    return _Move(src.shape, origin, cell, dst_origin, dst_cell, dst_shape)(src, fill, pool_min, pool_max)
+
+
+class _Move:
+    """The indices that move layers of one grid onto another (:func:`resample`), worked out once for all the
+    layers of a map."""
+
+    def __init__(
+        self,
+        src_shape: tuple[int, ...],
+        origin: tuple[float, float],
+        cell: float,
+        dst_origin: tuple[float, float],
+        dst_cell: float,
+        dst_shape: tuple[int, int],
+    ) -> None:
+        self.dst_shape = (int(dst_shape[0]), int(dst_shape[1]))
+        h, w = int(src_shape[0]), int(src_shape[1])
+        self.empty = h * w == 0 or self.dst_shape[0] * self.dst_shape[1] == 0
+        self.same = (h, w) == self.dst_shape and tuple(origin) == tuple(dst_origin) and cell == dst_cell
+        self.pools = False
+        if self.empty or self.same:
+            return
+        jj = _axis_index(self.dst_shape[1], dst_origin[0], dst_cell, origin[0], cell, 1.0)
+        ii = _axis_index(self.dst_shape[0], dst_origin[1], dst_cell, origin[1], cell, -1.0)
+        cols, rows = (jj >= 0) & (jj < w), (ii >= 0) & (ii < h)
+        self.at_dst = np.ix_(rows, cols)
+        self.at_src = np.ix_(ii[rows], jj[cols])
+        if cell < dst_cell * (1.0 - 1e-9):  # finer source: several cells per destination
+            dj = _axis_index(w, origin[0], cell, dst_origin[0], dst_cell, 1.0)
+            di = _axis_index(h, origin[1], cell, dst_origin[1], dst_cell, -1.0)
+            cols, rows = (dj >= 0) & (dj < self.dst_shape[1]), (di >= 0) & (di < self.dst_shape[0])
+            if cols.any() and rows.any():
+                dj, di = dj[cols], di[rows]  # non-decreasing: each destination cell's sources are contiguous
+                self.c0 = np.flatnonzero(np.r_[True, dj[1:] != dj[:-1]])
+                self.r0 = np.flatnonzero(np.r_[True, di[1:] != di[:-1]])
+                self.block = np.ix_(rows, cols)
+                self.at_pool = np.ix_(di[self.r0], dj[self.c0])
+                self.pools = True
+
+    def __call__(
+        self, values: np.ndarray, fill: float = np.nan, pool_min: bool = True, pool_max: bool = False
+    ) -> np.ndarray:
+        src = np.asarray(values, np.float32)
+        if self.same and not self.empty:
+            return src.copy()  # the same grid (a result onto its own grid: the flight's "newest" extent)
+        out = np.full(self.dst_shape, np.float32(fill), np.float32)
+        if self.empty:
+            return out
+        out[self.at_dst] = src[self.at_src]
+        if (pool_min or pool_max) and self.pools:
             op = np.fmax if pool_max else np.fmin
-            pooled = op.reduceat(op.reduceat(src[np.ix_(rows, cols)], c0, axis=1), r0, axis=0)
-            at = np.ix_(di[r0], dj[c0])
-            out[at] = op(out[at], pooled)
-    return out
+            pooled = op.reduceat(op.reduceat(src[self.block], self.c0, axis=1), self.r0, axis=0)
+            out[self.at_pool] = op(out[self.at_pool], pooled)
+        return out
 
 
 def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:
@@ -328,34 +360,31 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
             cell,
             0,
         )
-    lo = resample(np.where(fm.seen > 0, fm.logodds, np.nan), fm.origin_xy, fm.cell_m, origin, cell, shape)
-    seen = resample(fm.seen.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
-    elev = resample(fm.elevation, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
+    mv = _Move(fm.shape, fm.origin_xy, fm.cell_m, origin, cell, shape)  # the same indices for every layer
+    lo = mv(np.where(fm.seen > 0, fm.logodds, np.nan))
+    seen = mv(fm.seen.astype(np.float32), fill=0.0)
+    elev = mv(fm.elevation, pool_min=False)
     # a coarser cell counts as called safe only if all of its finer parts were (the minimum)
-    called = resample(fm.called.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
-    calls = resample(fm.calls.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
+    called = mv(fm.called.astype(np.float32), fill=0.0)
+    calls = mv(fm.calls.astype(np.float32), fill=0.0)
     seen_u8 = np.where(np.isfinite(seen), seen, 0).astype(np.uint8)
     called_u8 = np.where(np.isfinite(called) & (seen_u8 > 0), called, 0).astype(np.uint8)
     calls_u8 = np.where(np.isfinite(calls) & (seen_u8 > 0), calls, 0).astype(np.uint8)
     full = None
     if fm.full is not None:  # like the call: a coarser cell holds full-level evidence only if all its parts did
-        f = resample(fm.full.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0)
+        f = mv(fm.full.astype(np.float32), fill=0.0)
         full = np.where(np.isfinite(f) & (seen_u8 > 0), f, 0).astype(np.uint8)
     vetoed = None
     if fm.vetoed is not None:  # unlike the call: a coarser cell is vetoed if any of its finer parts was (the max)
-        v = resample(
-            fm.vetoed.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0, pool_max=True
-        )
+        v = mv(fm.vetoed.astype(np.float32), fill=0.0, pool_max=True)
         vetoed = ((v > 0.5) & (seen_u8 > 0)).astype(np.uint8)
     hazards = None
     if fm.hazards is not None:  # a coarser cell holds as many hazard calls as the most any of its parts holds
-        hz = resample(
-            fm.hazards.astype(np.float32), fm.origin_xy, fm.cell_m, origin, cell, shape, fill=0.0, pool_max=True
-        )
+        hz = mv(fm.hazards.astype(np.float32), fill=0.0, pool_max=True)
         hazards = np.where(seen_u8 > 0, np.rint(hz), 0).astype(np.uint8)
     fills = None
     if fm.fills is not None:
-        fills = resample(fm.fills, fm.origin_xy, fm.cell_m, origin, cell, shape, pool_min=False)
+        fills = mv(fm.fills, pool_min=False)
     return FusedMap(
         np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
         seen_u8,
