@@ -65,7 +65,7 @@ from protocol.codec import encode_message
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, psafe_to_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
-from protocol.pairdir import Camera, Pose
+from protocol.pairdir import STATE_SAFE, Camera, Pose
 
 # Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
 # scaled by time_scale (Config.options, set by the HIL server from the budget) like the pipeline's reserves.
@@ -430,7 +430,7 @@ class FlightProcess:
         msg = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),
-            psafe_grid=psafe_to_wire(grid.psafe, pstep),
+            psafe_grid=psafe_to_wire(grid.psafe, pstep, coarse=np.asarray(grid.state) != STATE_SAFE),
             psafe_step=pstep,
             elevation_grid=elevation,
             grid_origin_xy=tuple(float(v) for v in grid.origin_xy),

@@ -29,8 +29,18 @@ ELEVATION_NONE = -32768
 ELEVATION_SCALE = 100.0  # wire units per metre (centimetres)
 
 
-def psafe_to_wire(psafe: np.ndarray, step: int = 1) -> np.ndarray:
-    """float P(safe), NaN outside -> uint8 (0..254, 255 outside), decimated by ``step`` (block minimum)."""
+def psafe_to_wire(psafe: np.ndarray, step: int = 1, coarse: np.ndarray | None = None, levels: int = 16) -> np.ndarray:
+    """float P(safe), NaN outside -> uint8 (0..254, 255 outside), decimated by ``step`` (block minimum).
+
+    ``coarse`` (bool, the grid's shape): cells whose P(safe) is sent to ``1 / levels`` only, rounded to the
+    nearest level before the block minimum (still ``v / 254`` on the wire). The flight sends the cells it
+    did not call safe so: their state decides, and their P(safe) in 17 values compresses to a smaller Result
+    (docs/protocol.md)."""
+    if coarse is not None:
+        if not 1 <= int(levels) <= PSAFE_SCALE:
+            raise ValueError(f"psafe_to_wire: levels must be in [1, {PSAFE_SCALE}], got {levels!r}")
+        p0 = np.asarray(psafe, np.float32)
+        psafe = np.where(np.asarray(coarse, bool), np.rint(p0 * np.float32(levels)) / np.float32(levels), p0)
     p = decimate_min(psafe, step)
     q = np.rint(np.clip(np.nan_to_num(p, nan=0.0), 0.0, 1.0) * PSAFE_SCALE).astype(np.uint8)
     q[~np.isfinite(p)] = PSAFE_OUTSIDE

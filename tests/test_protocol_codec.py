@@ -280,6 +280,27 @@ def test_decimated_psafe_is_the_block_minimum():
     assert q[1, 0] == 255  # a block with no finite value is outside
 
 
+def test_psafe_of_the_cells_not_called_safe_goes_in_sixteenths():
+    """The cells the flight did not call safe carry P(safe) to 1/16 (their state decides; 17 values compress
+    better), the others to 1/254 as before; the block minimum is taken after the rounding."""
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0.0, 1.0, (16, 16)).astype(np.float32)
+    p[0, 0] = np.nan
+    coarse = rng.random((16, 16)) < 0.6
+    back = psafe_from_wire(psafe_to_wire(p, coarse=coarse))
+    fine = ~coarse & np.isfinite(p)
+    assert np.all(np.abs(back[fine] - p[fine]) <= 0.5 / 254 + 1e-7)  # as without the mask
+    c = coarse & np.isfinite(p)
+    assert np.all(np.abs(back[c] - p[c]) <= 1 / 32 + 0.5 / 254 + 1e-7)
+    assert len(np.unique(psafe_to_wire(p, coarse=coarse)[c])) <= 17 < len(np.unique(psafe_to_wire(p)[c]))
+    assert np.isnan(back[0, 0])
+    q2 = psafe_to_wire(p, 2, coarse=coarse)  # the block minimum of the rounded values
+    rounded = np.where(coarse, np.rint(p * 16) / 16, p)
+    assert np.array_equal(q2, psafe_to_wire(rounded, 2))
+    with pytest.raises(ValueError, match="levels"):
+        psafe_to_wire(p, coarse=coarse, levels=0)
+
+
 def test_delta_filter_wraps_around_int16():
     e = np.array([[32767, -32768, 0, 12345, -32767], [-32768, 32767, -1, 1, 0], [0, 0, 32767, -32768, 5]], np.int16)
     out = decode_message(encode_message(_result(
