@@ -449,11 +449,12 @@ def fuse(
             cell *= math.sqrt(shape[0] * shape[1] / prm.max_cells) * 1.01
     base = _regrid(fm, origin, shape, cell)
     li = result_logodds(grid, prm)
-    l_new = resample(li, grid.origin_xy, grid.cell_m, origin, cell, shape)
-    e_new = resample(grid.elevation, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
+    mv = _Move(grid.hazard.shape, grid.origin_xy, grid.cell_m, origin, cell, shape)  # every layer of the result
+    l_new = mv(li)
+    e_new = mv(grid.elevation, pool_min=False)
     st = np.asarray(grid.state)
     mapped = (st == STATE_SAFE) | (st == STATE_UNSAFE) | (st == STATE_UNKNOWN)
-    m_new = resample(mapped.astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape, fill=0.0) > 0.5
+    m_new = mv(mapped.astype(np.float32), fill=0.0) > 0.5
     upd = np.isfinite(l_new)  # the result has evidence for the cell
     l0 = np.float32(prior_logodds(prm))
     e = np.where(base.seen > 0, base.logodds - l0, np.float32(0.0))
@@ -471,23 +472,14 @@ def fuse(
     fills = base.fills
     if grid.dem is not None:  # the result's gap fills: reported where no result matched the cell
         own = np.where(np.isfinite(np.asarray(grid.elevation)), np.float32(np.nan), grid.dem)
-        f_new = resample(own, grid.origin_xy, grid.cell_m, origin, cell, shape, pool_min=False)
+        f_new = mv(own, pool_min=False)
         fills = np.where(np.isfinite(f_new), f_new, np.float32(np.nan) if fills is None else fills)
     # did the newest result with evidence call the cell safe (a coarser map cell: only if all its parts were)
-    c_new = resample((st == STATE_SAFE).astype(np.float32), grid.origin_xy, grid.cell_m, origin, cell, shape)
+    c_new = mv((st == STATE_SAFE).astype(np.float32))
     c_bool = np.nan_to_num(c_new) > 0.5
     called = np.where(upd, c_bool, base.called > 0).astype(np.uint8)
     # did it call the cell unsafe (a coarser map cell: if any of its parts was)
-    u_new = resample(
-        (st == STATE_UNSAFE).astype(np.float32),
-        grid.origin_xy,
-        grid.cell_m,
-        origin,
-        cell,
-        shape,
-        fill=0.0,
-        pool_max=True,
-    )
+    u_new = mv((st == STATE_UNSAFE).astype(np.float32), fill=0.0, pool_max=True)
     had_veto = base.vetoed if base.vetoed is not None else np.zeros(shape, np.uint8)
     vetoed = np.where(upd, u_new > 0.5, had_veto > 0)
     calls = np.minimum(base.calls.astype(np.int32) + (upd & c_bool), 255).astype(np.uint8)
