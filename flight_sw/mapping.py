@@ -43,6 +43,8 @@ class HazardGrid:
     def __post_init__(self) -> None:
         if self.state.size != self.hazard.size or self.psafe.size != self.hazard.size:
             self.state, self.psafe = three_state(self.hazard, self.elevation)
+        if self.dem is not None and np.shape(self.dem) != np.shape(self.hazard):
+            raise ValueError(f"HazardGrid: dem shape {np.shape(self.dem)} != grid shape {np.shape(self.hazard)}")
 
     @property
     def reported_elevation(self) -> np.ndarray:

@@ -225,6 +225,8 @@ def test_gap_fills_are_reported_where_nothing_matched_and_are_no_evidence():
         is not None
     )
     assert to_hazard_grid(fuse(None, uniform(STATE_SAFE, 0.999), prm), prm).dem is None
+    with pytest.raises(ValueError, match="dem shape"):  # a reported DEM that is not the grid's is refused
+        replace_dem(first, np.zeros((5, 6)))
 
 
 def replace_dem(g: HazardGrid, dem: np.ndarray) -> HazardGrid:
