@@ -209,16 +209,14 @@ def main(argv: list[str] | None = None) -> int:
     bad = [c for c in args.cases if c not in CASES]
     if bad:
         ap.error(f"unknown case(s) {bad}; known: {sorted(CASES)}")
-    overrides: dict[str, Any] = {}
-    for kv in args.fusion:
-        k, _, v = kv.partition("=")
-        if k not in {f.name for f in dataclasses.fields(FusionParams)}:
-            ap.error(f"--fusion: FusionParams has no field {k!r}")
-        overrides[k] = type(getattr(FusionParams(), k))(v)  # the field's own type: str, int or float
-    FusionParams(**overrides).validate()
-    from bench_multiframe import preset_with
+    from bench_multiframe import fusion_overrides, preset_with
 
-    try:  # a bad --set-param ends here with one line, not after the first stream's renders
+    try:  # a bad --fusion ends here with one line, not after the first stream's renders
+        overrides = fusion_overrides(args.fusion)
+        FusionParams(**overrides).validate()
+    except ValueError as exc:
+        ap.error(f"--fusion: {exc}")
+    try:  # and so does a bad --set-param
         preset_with("fast", args.set_param)
     except (ValueError, AttributeError) as exc:
         ap.error(f"--set-param: {exc}")
