@@ -138,7 +138,9 @@ def preset_with(name: str, set_param: list[str] | tuple[str, ...]) -> Any:
 
     preset = PRESETS[name]
     for kv in set_param:
-        k, v = kv.split("=", 1)
+        k, eq, v = kv.partition("=")
+        if not eq or not hasattr(preset, k):
+            raise ValueError(f"expected K=V with K a field of the preset (flight_sw.pipeline.Params), got {kv!r}")
         cur = getattr(preset, k)
         if isinstance(cur, bool):  # bool("False") is True, and an unknown word must not pass as False
             words = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
@@ -146,7 +148,8 @@ def preset_with(name: str, set_param: list[str] | tuple[str, ...]) -> Any:
                 raise ValueError(f"--set-param {k}: expected true or false, got {v!r}")
             preset = dataclasses.replace(preset, **{k: words[v.lower()]})
         else:
-            preset = dataclasses.replace(preset, **{k: type(cur)(v)})
+            kind = float if cur is None else type(cur)  # an unset optional field (cell_m None) takes a number
+            preset = dataclasses.replace(preset, **{k: kind(v)})
     return preset
 
 

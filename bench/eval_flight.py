@@ -434,7 +434,6 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from flight_sw.pipeline import PRESETS
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
@@ -454,14 +453,13 @@ def main(argv: list[str] | None = None) -> int:
         variants = ablation_variants()
     else:
         variants = {}
+        from bench_multiframe import preset_with
+
         for p in args.presets:
-            prm = PRESETS[p]
-            for kv in args.set_param:
-                k, v = kv.split("=", 1)
-                cur = getattr(prm, k)
-                kind = type(0.0 if cur is None else cur)  # a str field ("" by default) stays a str
-                val: Any = (v.lower() in ("1", "true")) if isinstance(cur, bool) else kind(v)
-                prm = dataclasses.replace(prm, **{k: val})
+            try:  # a bad key or value ends the bench with one line (booleans: true/false/1/0/yes/no)
+                prm = preset_with(p, args.set_param)
+            except (ValueError, AttributeError, KeyError) as exc:
+                raise SystemExit(f"eval_flight: --presets/--set-param: {exc}") from None
             variants[p + ("" if not args.set_param else " " + " ".join(args.set_param))] = prm
     all_rows: dict[str, list[dict[str, Any]]] = {}
     for name, prm in variants.items():

@@ -70,19 +70,21 @@ WORSE_LOW = ("a clear<0.4", "a_pc clear<0.4", "cov")
 
 
 def parse_variant(spec: str) -> dict[str, Any]:
-    """``base`` -> {}; ``k=v,k=v`` -> Params overrides (ints stay ints)."""
+    """``base`` -> {}; ``k=v,k=v`` -> Params overrides, each value parsed as its field's type
+    (bench_multiframe.preset_with: booleans true/false/1/0, a path stays a string); a bad one ends with one line."""
     if spec == "base":
         return {}
-    out: dict[str, Any] = {}
-    for kv in spec.split(","):
-        k, _, v = kv.partition("=")
-        if not v:
-            raise SystemExit(f"slope_errors: variant {spec!r}: expected k=v, got {kv!r}")
-        try:
-            out[k] = int(v)
-        except ValueError:
-            out[k] = float(v)
-    return out
+    from bench_multiframe import preset_with
+
+    pairs = spec.split(",")
+    bad = [kv for kv in pairs if not kv.partition("=")[2]]
+    if bad:
+        raise SystemExit(f"slope_errors: variant {spec!r}: expected k=v, got {bad[0]!r}")
+    try:
+        prm = preset_with("fast", pairs)
+    except (ValueError, AttributeError, KeyError) as exc:
+        raise SystemExit(f"slope_errors: variant {spec!r}: {exc}") from None
+    return {k: getattr(prm, k) for k in (kv.partition("=")[0] for kv in pairs)}
 
 
 def window_plane(z: np.ndarray, X: np.ndarray, Y: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
