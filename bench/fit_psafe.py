@@ -52,18 +52,19 @@ ALL_FEATS = (
 SUN_FEATS = ("a_pc", "upsun")  # NaN together when the pipeline is not told the sun (or skips the shading stage)
 
 
-def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
-    """Features (covered pixels, 1-D float32), dark-shadow cue, truth and footprint size of one pair (cached)."""
+def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Features (covered pixels, 1-D float32), dark-shadow cue, truth and footprint size of one pair (cached);
+    ``set_param``: ``K=V`` overrides of ``fast`` (bench_multiframe.preset_with) the layers are made with."""
     if out.is_file():
         with np.load(out) as z:
             return {k: z[k] for k in z.files}
+    from bench_multiframe import preset_with
     from eval_flight import run_pair
 
-    from flight_sw.pipeline import PRESETS
     from protocol.pairdir import read_pair
 
     pair = read_pair(pair_dir)
-    res = run_pair(pair, dataclasses.replace(PRESETS["fast"], psafe_model="gaussian", keep_layers=True))
+    res = run_pair(pair, dataclasses.replace(preset_with("fast", set_param), psafe_model="gaussian", keep_layers=True))
     cov = res.covered
     d: dict[str, Any] = {k: res.layers[k][cov].astype(np.float32) for k in ALL_FEATS}
     d["dark"] = res.layers["dark"][cov]
@@ -76,7 +77,12 @@ def pair_layers(pair_dir: str, out: Path) -> dict[str, Any]:
 
 
 def load_all(
-    seeds: list[int], cases: list[str], cache: Path, layers: Path, raster: str = DEFAULT_RASTER
+    seeds: list[int],
+    cases: list[str],
+    cache: Path,
+    layers: Path,
+    raster: str = DEFAULT_RASTER,
+    set_param: tuple[str, ...] = (),
 ) -> list[dict[str, Any]]:
     from eval_flight import case_key, render_case
 
@@ -85,7 +91,9 @@ def load_all(
         for s in seeds:
             for e in render_case(c, s, cache, raster=raster):
                 name = f"{c}_s{s}_{e['altitude_m']}"
-                d = pair_layers(e["pair_dir"], layers / f"{case_key(c, s, raster=raster)}_{e['altitude_m']}.npz")
+                d = pair_layers(
+                    e["pair_dir"], layers / f"{case_key(c, s, raster=raster)}_{e['altitude_m']}.npz", set_param
+                )
                 if "shape" not in d:
                     from protocol.pairdir import read_pair
 
@@ -94,7 +102,9 @@ def load_all(
     return rows
 
 
-def load_library(roots: list[str], layers: Path, raster: str = DEFAULT_RASTER) -> list[dict[str, Any]]:
+def load_library(
+    roots: list[str], layers: Path, raster: str = DEFAULT_RASTER, set_param: tuple[str, ...] = ()
+) -> list[dict[str, Any]]:
     """Every pair of ``raster`` under ``roots`` (a ``hazard-hil landings --cache`` of library scenes), as rows
     of its scene: the library's scenes, suns and terrain beside the eval cases. A held-out scene seed is refused."""
     from eval_flight import library_pairs
@@ -107,7 +117,7 @@ def load_library(roots: list[str], layers: Path, raster: str = DEFAULT_RASTER) -
             where, seed = e["pair_dir"], e["seed"]
             if seed not in TUNING_SEEDS:
                 raise SystemExit(f"fit_psafe: {where} has scene seed {seed}, not a tuning seed: refusing it")
-            d = pair_layers(where, layers / f"library_{Path(where).name}.npz")
+            d = pair_layers(where, layers / f"library_{Path(where).name}.npz", set_param)
             name = f"{e['case']}_{e['scenario']}_s{e['seed']}_{e['altitude_m']}"
             rows.append({"name": name, "case": f"library:{e['case']}", "seed": e["seed"], "alt": e["altitude_m"], **d})
     return rows
@@ -171,9 +181,12 @@ def fit_rows(
     trees: dict[str, Any] | None = None,
     names: tuple[str, ...] = ALL_FEATS,
     blank_shading: float = 0.0,
+    pipeline: dict[str, Any] | None = None,
 ) -> Any:
     """Fit on ``per_pair`` points of every row. ``blank_shading``: the share of points whose sun-borne features
-    (``SUN_FEATS``) are set to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN then)."""
+    (``SUN_FEATS``) are set to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN then).
+    ``pipeline``: the fast overrides the layers were made with, recorded in the model's info (the pipeline
+    refuses the model where its DEM settings differ: flight_sw.pipeline.MODEL_DEM_PARAMS)."""
     from flight_sw import psafe
 
     rng = np.random.default_rng(rng_seed)
@@ -202,6 +215,8 @@ def fit_rows(
     }
     if blank_shading > 0 and any(k in cat for k in SUN_FEATS):
         info["blank_shading"] = blank_shading
+    if pipeline:
+        info["pipeline"] = dict(pipeline)
     if trees:
         return fit_trees({k: cat[k] for k in names}, cat["safe"], seeds, trees, info)
     return psafe.fit({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
@@ -306,12 +321,41 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="also fit on every pair in these landing render caches (hazard-hil landings --seed-set tuning --cache)",
     )
+    ap.add_argument(
+        "--set-param",
+        nargs="*",
+        default=[],
+        metavar="K=V",
+        help="make the layers with these overrides of fast (a --layers directory of their own); a written model "
+        "records them (info.pipeline) and the pipeline refuses it with other values of the DEM's settings",
+    )
     args = ap.parse_args(argv)
 
     import cv2
 
     cv2.setNumThreads(1)
+    from bench_multiframe import preset_with
+
+    from flight_sw.pipeline import PRESETS
     from ground_sim.seeds import TUNING_SEEDS
+
+    try:
+        over = preset_with("fast", args.set_param)
+    except (ValueError, AttributeError, KeyError) as exc:
+        print(f"error: --set-param: {exc}")
+        return 2
+    pipeline = {k.split("=", 1)[0]: getattr(over, k.split("=", 1)[0]) for k in args.set_param}
+    pipeline = {k: v for k, v in pipeline.items() if v != getattr(PRESETS["fast"], k)}
+    layers_dir = Path(args.layers)
+    stamp = layers_dir / "pipeline.json"  # the overrides the cached layers were made with
+    if stamp.is_file() and json.loads(stamp.read_text()) != pipeline:
+        print(f"error: {layers_dir} holds layers made with {stamp.read_text().strip()}, not {json.dumps(pipeline)}")
+        return 2
+    if not stamp.is_file() and any(layers_dir.glob("*.npz")) and pipeline:
+        print(f"error: {layers_dir} holds layers of unknown settings; give --set-param runs a --layers of their own")
+        return 2
+    layers_dir.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(pipeline) + "\n")
 
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
@@ -319,8 +363,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     names = tuple(args.features)
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
-    rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers), args.raster)
-    rows += load_library(args.library, Path(args.layers), args.raster)
+    set_param = tuple(args.set_param)
+    rows = load_all(args.seeds, args.cases, Path(args.cache), layers_dir, args.raster, set_param)
+    rows += load_library(args.library, layers_dir, args.raster, set_param)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
     if args.cv or args.reliability:
@@ -424,7 +469,15 @@ def main(argv: list[str] | None = None) -> int:
             print("(cells: mean predicted / observed safe share)")
 
     if args.write:
-        model = fit_rows(rows, args.per_pair, args.ridge, trees=trees, names=names, blank_shading=args.blank_shading)
+        model = fit_rows(
+            rows,
+            args.per_pair,
+            args.ridge,
+            trees=trees,
+            names=names,
+            blank_shading=args.blank_shading,
+            pipeline=pipeline,
+        )
         indent = None if trees else 1  # the trees' node arrays are long flat lists: one line keeps the file small
         Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")

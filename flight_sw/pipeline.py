@@ -51,6 +51,7 @@ from .evidence import (
 )
 from .gapfill import fill_small_gaps
 from .georef import backproject
+from .lowerview import average_where_both, lower_view_dem, read_into_reference
 from .mapping import (
     HazardGrid,
     combine,
@@ -91,6 +92,8 @@ from .validate import FlightInputError, check_frames
 from .warping import area_sigma
 
 LEVELS = ("image_only", "coarse", "full")
+# Params that change the DEM the P(safe) trees read: a model fitted with other values is refused (_check_model_dem)
+MODEL_DEM_PARAMS = ("lower_view_dem",)
 
 
 # Flight v2's stage costs for the anytime logic, unthrottled CPU seconds at REF_PIXELS (512^2, this
@@ -328,6 +331,8 @@ class Params:
     site_relief_max_m: float = 0.0  # > 0: no site where the DEM spans more than this ...
     site_relief_window_m: float = 30.0  # ... in a square this wide around it (sites.local_relief)
     refine_pose: bool = False  # refine the relative pose from the images first (pose_refine.py, issue #10)
+    # a second DEM with the lower frame as the reference, averaged with the first where both matched (lowerview.py)
+    lower_view_dem: bool = False
     # ---- multi-frame (issue 10): frames between the reference and the widest-baseline frame (v2 flow only)
     multi_rule: str = "mean"  # costvolume.multi_cost_slab: "mean" | "drop_worst" across frames
     multi_cost_gain: float = 1.0  # combined cost x this (data term vs SGM penalties); N = Okutomi & Kanade's sum
@@ -1263,6 +1268,31 @@ def _dense_params(p: Params) -> DenseParams:
     )
 
 
+def _check_model_dem(p: Params) -> None:
+    """The calibrated P(safe) holds only for the DEM its trees were fitted on: a model records the pipeline
+    settings that change that DEM (``info["pipeline"]``, from ``bench/fit_psafe.py --set-param``; absent: the
+    defaults), and a run with other settings is refused rather than mapped with a miscalibrated P(safe)."""
+    fitted = load_model(p.psafe_model_path or None).info.get("pipeline", {})
+    for name in MODEL_DEM_PARAMS:
+        want = fitted.get(name, getattr(PRESETS["fast"], name))
+        if getattr(p, name) != want:
+            raise FlightInputError(
+                f"params: {name}={getattr(p, name)!r}, but the P(safe) model was fitted with {name}={want!r}; "
+                f"fit one on this DEM (bench/fit_psafe.py --set-param {name}=... --write M) and pass psafe_model_path=M"
+            )
+
+
+def _matching_mask(img: np.ndarray, p: Params) -> np.ndarray:
+    """The pixels of a reference image with nothing to match, as the first DEM's ``ignore``: dark shadow
+    (below ``shadow_dark_frac`` of the image's lit level) and blank support (``texture_min``)."""
+    out = np.zeros(img.shape, bool)
+    if p.mask_shadow and p.shadow_dark_frac > 0:
+        out |= img < np.float32(p.shadow_dark_frac * lit_level(img, p.shadow_mode_ratio))
+    if p.texture_min > 0:
+        out |= local_contrast(img, p.sgm_radius + p.sgm_mean_radius) < p.texture_min
+    return out
+
+
 def _multi_dem(
     a1: np.ndarray,
     a2: np.ndarray,
@@ -1408,6 +1438,8 @@ def _run_v2(
             # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
             calibrated = False
             info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
+        if calibrated:
+            _check_model_dem(p)
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
@@ -1555,6 +1587,35 @@ def _run_v2(
             del dem, prior
         else:
             info["skipped"].append("full_dem")
+    if p.lower_view_dem and level == "full":
+        with _stage(timings, "lower_dem"):
+            if clock.ok(reserve):
+                # i2 is the lowest frame (extra frames lie between): its planes uniform in i1's disparity
+                planes_2 = _bounded_planes(
+                    camera, pose2, pose1, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes
+                )
+                ignore2 = _matching_mask(a2, p)
+                z2, info["lower_view"] = lower_view_dem(
+                    a1,
+                    a2,
+                    camera,
+                    pose1,
+                    pose2,
+                    planes_2,
+                    _dense_params(p),
+                    area_sigma_px=sigma_pf,
+                    ignore2=ignore2,
+                    deadline=clock.before(reserve),
+                )
+                if z2 is not None:
+                    z_mid_dem = float(np.nanmedian(elevation)) if np.isfinite(elevation).any() else z_mid
+                    z_start = np.where(np.isfinite(elevation), elevation, np.float32(z_mid_dem))
+                    z2_1 = read_into_reference(z2, camera, pose1, pose2, z_start)
+                    elevation, both = average_where_both(elevation, z2_1)
+                    info["lower_view"]["averaged"] = float(both.mean())
+                del z2, ignore2
+            else:
+                info["skipped"].append("lower_dem")
     del a2  # nothing after the DEM reads the second image
 
     have_dem = level != "image_only"
