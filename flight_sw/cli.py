@@ -28,8 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset",
         default="fast",
-        choices=("fast", "thesis", "fast_v1"),
-        help="parameter preset: fast (flight v2, default), thesis (the reproduction), fast_v1 (issue-6 fast)",
+        choices=("fast", "accurate", "thesis", "fast_v1"),
+        help="parameter preset: fast (flight v2, default), accurate (fast with a second DEM from the lower frame: "
+        "twice the CPU, docs/benchmarks/pipeline.md), thesis (the reproduction), fast_v1 (issue-6 fast)",
     )
     p.add_argument(
         "--deadline",

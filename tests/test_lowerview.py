@@ -96,3 +96,40 @@ def test_a_psafe_model_is_refused_with_a_dem_it_was_not_fitted_on(tmp_path):
     _check_model_dem(dataclasses.replace(on, psafe_model_path=str(path)))
     with pytest.raises(FlightInputError, match="fitted with lower_view_dem=True"):
         _check_model_dem(dataclasses.replace(PRESETS["fast"], psafe_model_path=str(path)))
+
+
+def test_the_accurate_preset_carries_a_model_fitted_on_its_dem():
+    """`accurate` = fast + the lower view, with trees fitted on that DEM; its fallback is fast's model and budget."""
+    from flight_sw.psafe import load_model
+
+    acc = PRESETS["accurate"]
+    acc.validate()
+    assert acc.lower_view_dem and acc.psafe_model == "calibrated"
+    assert load_model(acc.psafe_model_path).info["pipeline"] == {"lower_view_dem": True}
+    assert acc.lower_view_fallback_model == PRESETS["fast"].psafe_model_path
+    assert acc.lower_view_fallback_budget == PRESETS["fast"].fp_budget
+    _check_model_dem(acc)
+    with pytest.raises(FlightInputError, match="lower_view_fallback_model"):  # a fallback fitted on the lower view
+        _check_model_dem(dataclasses.replace(acc, lower_view_fallback_model=acc.psafe_model_path))
+    with pytest.raises(FlightInputError, match="lower_view_fallback_budget"):
+        dataclasses.replace(acc, lower_view_fallback_budget=0.5).validate()
+
+
+@pytest.mark.slow
+def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch):
+    """When the second sweep does not finish (its deadline), the DEM is the first one alone, so `accurate` must
+    call it with fast's trees and budget: the map is then fast's, pixel for pixel, and the result says why."""
+    import flight_sw.pipeline as pl
+    from synthetic import make_pair, plane
+
+    cam, p1, p2, i1, i2, _ = make_pair(512, 600.0, 300.0, plane(0.0), seed=5, spots_per_km2=2000.0)
+    sun = {"sun_azimuth_deg": 135.0, "sun_elevation_deg": 25.0}
+    fast = run_pipeline(i1, i2, p1, p2, cam, preset="fast", **sun)
+    monkeypatch.setattr(pl, "lower_view_dem", lambda *a, **k: (None, {"complete": False}))
+    acc = run_pipeline(i1, i2, p1, p2, cam, preset="accurate", **sun)
+    assert acc.level == fast.level == "full"
+    assert "lower_view_fallback" in acc.info and acc.info["lower_view"] == {"complete": False}
+    assert acc.params["psafe_model_path"] == "" and acc.params["fp_budget"] == PRESETS["fast"].fp_budget
+    assert not acc.params["lower_view_dem"]
+    np.testing.assert_array_equal(acc.state, fast.state)
+    np.testing.assert_array_equal(acc.psafe, fast.psafe)
