@@ -119,8 +119,9 @@ def test_the_accurate_preset_carries_a_model_fitted_on_its_dem():
 def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch):
     """When the second sweep does not finish (its deadline), the DEM is the first one alone, so `accurate` must
     call it with fast's trees and budget: the map is then fast's, pixel for pixel, and the result says why."""
-    import flight_sw.pipeline as pl
     from synthetic import make_pair, plane
+
+    import flight_sw.pipeline as pl
 
     cam, p1, p2, i1, i2, _ = make_pair(512, 600.0, 300.0, plane(0.0), seed=5, spots_per_km2=2000.0)
     sun = {"sun_azimuth_deg": 135.0, "sun_elevation_deg": 25.0}
