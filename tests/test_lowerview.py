@@ -134,3 +134,24 @@ def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch):
     assert not acc.params["lower_view_dem"]
     np.testing.assert_array_equal(acc.state, fast.state)
     np.testing.assert_array_equal(acc.psafe, fast.psafe)
+
+
+def test_memory_models_count_the_lower_views_sweep():
+    """The second sweep holds a cost volume over all of i2: `process` and `run` refuse a camera by the preset's
+    peak, and the HIL's list of such presets is the pipeline's."""
+    from flight_sw.validate import check_memory, peak_memory_bytes
+    from hil_server.budgets import LOWER_VIEW_PRESETS, flight_peak_rss_mib, get_budget, max_image_side
+    from hil_server.run import check_memory as hil_check
+    from protocol.errors import InputError
+
+    assert {name for name, p in PRESETS.items() if p.lower_view_dem} == LOWER_VIEW_PRESETS
+    assert peak_memory_bytes(1024, 1024, 2, lower_view=True) - peak_memory_bytes(1024, 1024, 2) == 100 * 2**20
+    check_memory(1024, 1024, 2, available_bytes=300 * 2**20)
+    with pytest.raises(FlightInputError, match="needs ~"):
+        check_memory(1024, 1024, 2, available_bytes=300 * 2**20, lower_view=True)
+    b = get_budget("rad750")  # 256 MiB: a 1024^2 camera fits fast, not accurate
+    hil_check(b, 1024, 1024, "fast")
+    with pytest.raises(InputError, match="with the preset accurate"):
+        hil_check(b, 1024, 1024, "accurate")
+    side = max_image_side(b.memory_mib, lower_view=True)
+    assert flight_peak_rss_mib(side * side, True) <= b.memory_mib < flight_peak_rss_mib((side + 1) ** 2, True)
