@@ -28,9 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset",
         default="fast",
-        choices=("fast", "accurate", "thesis", "fast_v1"),
-        help="parameter preset: fast (flight v2, default), accurate (fast with a second DEM from the lower frame: "
-        "twice the CPU, docs/benchmarks/pipeline.md), thesis (the reproduction), fast_v1 (issue-6 fast)",
+        choices=("fast", "thesis", "fast_v1"),
+        help="parameter preset: fast (flight v2, default), thesis (the reproduction), fast_v1 (issue-6 fast)",
     )
     p.add_argument(
         "--deadline",
@@ -63,7 +62,7 @@ def _stats(err) -> dict[str, float]:
     }
 
 
-def _check_memory(pair_dir: Path, widest_pair: bool, lower_view: bool = False) -> None:
+def _check_memory(pair_dir: Path, widest_pair: bool) -> None:
     """The memory check of :func:`flight_sw.validate.check_memory`, from pair.json alone: a camera too large
     for this machine is refused before its frames are read. A pair.json that cannot be read this way is left
     to ``read_pair``, which says what is wrong with it."""
@@ -74,7 +73,7 @@ def _check_memory(pair_dir: Path, widest_pair: bool, lower_view: bool = False) -
         w, h, n = int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
     except (OSError, ValueError, TypeError, KeyError):
         return
-    check_memory(w, h, 2 if widest_pair else n, lower_view=lower_view)
+    check_memory(w, h, 2 if widest_pair else n)
 
 
 def _process(args: argparse.Namespace) -> int:
@@ -91,7 +90,7 @@ def _process(args: argparse.Namespace) -> int:
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a non-negative number of seconds, got {args.deadline}")
-    _check_memory(Path(args.pair_dir), args.widest_pair, PRESETS[args.preset].lower_view_dem)
+    _check_memory(Path(args.pair_dir), args.widest_pair)
     pair = read_pair(args.pair_dir)
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
         print(f"note: {note}", file=sys.stderr)

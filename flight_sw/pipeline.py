@@ -29,7 +29,6 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -592,23 +591,6 @@ PRESETS["fast_gaussian"] = dataclasses.replace(
     fp_budget=0.005,
     call_slope_max=math.inf,
     shading_sun_ref_deg=0.0,
-)
-
-# fast with a second DEM from the lower frame (lowerview.py), for a flight computer with twice the CPU. Its P(safe)
-# trees were fitted on that DEM (bench/fit_psafe.py --set-param lower_view_dem=true). The tuning CV's rule gave a
-# 0.225 % budget (worst pair 0.94 % over 5 fold partitions), which put one held-out library pair at 1.01 % FP; the
-# preset takes 0.2 % (tuning CV worst 0.80 %), chosen after that check: held-out eval pairs (seeds 1000-1005, 192)
-# median CDI 58.7 -> 60.1 %, FP worst 0.61 -> 0.39 %; library (126) 59.8 -> 61.4 %, FP worst 0.51 -> 0.89 %; CPU
-# 0.225 -> 0.455 s per pair. A pair whose lower view did not fit in its deadline is called as fast calls it
-# (docs/benchmarks/pipeline.md, stop 40)
-PRESETS["accurate"] = dataclasses.replace(
-    PRESETS["fast"],
-    name="accurate",
-    lower_view_dem=True,
-    psafe_model_path=str(Path(__file__).with_name("psafe_model_lowerview.json")),
-    fp_budget=0.002,
-    lower_view_fallback_model=PRESETS["fast"].psafe_model_path,
-    lower_view_fallback_budget=PRESETS["fast"].fp_budget,
 )
 
 # fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)

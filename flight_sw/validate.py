@@ -121,28 +121,21 @@ def check_frames(images: list[np.ndarray], poses: list[Pose], camera: Camera, ma
 PIPELINE_BYTES_PER_PIXEL = 180
 FRAME_BYTES_PER_PIXEL = 5
 PROCESS_BASE_BYTES = 34 * 2**20
-# the lower view's sweep (Params.lower_view_dem, the `accurate` preset) holds a cost volume over all of i2, not
-# just the overlap: numpy peak +18 MiB at 512^2 and +94 MiB at 1024^2 on bench_pipeline's synthetic pair (stop 40)
-LOWER_VIEW_BYTES_PER_PIXEL = 100
 
 
-def peak_memory_bytes(width: int, height: int, n_frames: int, lower_view: bool = False) -> int:
+def peak_memory_bytes(width: int, height: int, n_frames: int) -> int:
     """Expected peak memory (bytes) of running the pipeline on ``n_frames`` frames of ``width x height``:
-    ``base + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL n_frames) width height``, plus
-    ``LOWER_VIEW_BYTES_PER_PIXEL`` per pixel with the lower view's DEM. Extra frames add no more than their own
-    images: the cost volume they join is combined plane by plane (measured on a 4-frame descent: 2, 3 and 4
-    frames peak alike)."""
+    ``base + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL n_frames) width height``. Extra frames add no
+    more than their own images: the cost volume they join is combined plane by plane (measured on a 4-frame
+    descent: 2, 3 and 4 frames peak alike)."""
     px = max(0, int(width)) * max(0, int(height))
-    per_px = PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))
-    return PROCESS_BASE_BYTES + (per_px + (LOWER_VIEW_BYTES_PER_PIXEL if lower_view else 0)) * px
+    return PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
 
 
-def check_memory(
-    width: int, height: int, n_frames: int, available_bytes: int | None = None, lower_view: bool = False
-) -> None:
+def check_memory(width: int, height: int, n_frames: int, available_bytes: int | None = None) -> None:
     """Refuse, before anything is read, work whose :func:`peak_memory_bytes` exceeds the memory available
     (``psutil.virtual_memory().available`` unless given): the operating system would kill it part-way."""
-    need = peak_memory_bytes(width, height, n_frames, lower_view)
+    need = peak_memory_bytes(width, height, n_frames)
     if available_bytes is None:
         import psutil
 

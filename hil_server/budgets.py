@@ -124,24 +124,17 @@ class Budget:
 FLIGHT_BASE_MIB = 32.0
 FLIGHT_BYTES_PER_PIXEL = 192.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
-# the `accurate` preset's second sweep over all of the lower frame (flight_sw.validate.LOWER_VIEW_BYTES_PER_PIXEL,
-# measured as the pipeline's numpy peak; not yet as the HIL's private RSS)
-FLIGHT_LOWER_VIEW_BYTES_PER_PIXEL = 100.0
-LOWER_VIEW_PRESETS = frozenset({"accurate"})  # flight_sw.pipeline.PRESETS with lower_view_dem (tests check it)
 
 
-def flight_peak_rss_mib(pixels: int, lower_view: bool = False) -> float:
-    """Expected peak private RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included;
-    ``lower_view``: with the `accurate` preset's second sweep."""
-    per_px = FLIGHT_BYTES_PER_PIXEL + (FLIGHT_LOWER_VIEW_BYTES_PER_PIXEL if lower_view else 0.0)
-    return (FLIGHT_BASE_MIB + per_px * pixels / 2**20) * (1.0 + FLIGHT_RSS_MARGIN)
+def flight_peak_rss_mib(pixels: int) -> float:
+    """Expected peak private RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included."""
+    return (FLIGHT_BASE_MIB + FLIGHT_BYTES_PER_PIXEL * pixels / 2**20) * (1.0 + FLIGHT_RSS_MARGIN)
 
 
-def max_image_side(memory_mib: float, lower_view: bool = False) -> int:
+def max_image_side(memory_mib: float) -> int:
     """The largest square camera side (px) whose expected peak RSS fits ``memory_mib``."""
     room = memory_mib / (1.0 + FLIGHT_RSS_MARGIN) - FLIGHT_BASE_MIB
-    per_px = FLIGHT_BYTES_PER_PIXEL + (FLIGHT_LOWER_VIEW_BYTES_PER_PIXEL if lower_view else 0.0)
-    return int(math.sqrt(room * 2**20 / per_px)) if room > 0 else 0
+    return int(math.sqrt(room * 2**20 / FLIGHT_BYTES_PER_PIXEL)) if room > 0 else 0
 
 
 def default_budgets_path() -> Path:

@@ -254,12 +254,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     )
     p.add_argument("--seed", type=int, default=None, help="terrain and noise seed of the rendered descent (default: 0)")
     p.add_argument("--scene", default=None, help="scene preset or TOML file (default: the scenario's)")
-    p.add_argument(
-        "--preset",
-        choices=("fast", "accurate", "thesis"),
-        default="fast",
-        help="flight software parameter preset (accurate: fast with a second DEM from the lower frame, twice the CPU)",
-    )
+    p.add_argument("--preset", choices=("fast", "thesis"), default="fast", help="flight software parameter preset")
     p.add_argument(
         "--pace",
         choices=("lockstep", "asap"),

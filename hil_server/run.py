@@ -337,18 +337,16 @@ def _image_side(cfg: RunConfig, manifest: Path | None) -> tuple[int, int]:
     return best
 
 
-def check_memory(budget, width: int, height: int, preset: str = "fast") -> None:
+def check_memory(budget, width: int, height: int) -> None:
     """Refuse, before anything runs, a camera whose flight pipeline cannot fit the budget's memory ceiling."""
-    from hil_server.budgets import LOWER_VIEW_PRESETS, flight_peak_rss_mib, max_image_side
+    from hil_server.budgets import flight_peak_rss_mib, max_image_side
 
-    lower_view = preset in LOWER_VIEW_PRESETS
-    need = flight_peak_rss_mib(width * height, lower_view)
+    need = flight_peak_rss_mib(width * height)
     if need > budget.memory_mib:
         raise InputError(
-            f"a {width}x{height} camera needs ~{need:.0f} MiB peak private RSS in the flight process"
-            f"{' with the preset ' + preset if lower_view else ''}, over budget {budget.name}'s {budget.memory_mib} "
-            f"MiB; the largest square camera that fits is {max_image_side(budget.memory_mib, lower_view)} px "
-            "(--image-size), see `hazard-hil budgets`"
+            f"a {width}x{height} camera needs ~{need:.0f} MiB peak private RSS in the flight process, over budget "
+            f"{budget.name}'s {budget.memory_mib} MiB; the largest square camera that fits is "
+            f"{max_image_side(budget.memory_mib)} px (--image-size), see `hazard-hil budgets`"
         )
 
 
@@ -532,7 +530,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         # the report names what was streamed: the manifest's scenario, not the default one
         cfg = replace(cfg, scenario=_manifest_scenario(manifest))
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
-        check_memory(budget, *_image_side(cfg, manifest), cfg.preset)
+        check_memory(budget, *_image_side(cfg, manifest))
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

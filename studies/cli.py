@@ -309,10 +309,7 @@ def register_landings(subparsers: Any) -> None:
     p.add_argument("--n", type=_positive("--n"), required=True, help="landings (rounded up to whole renders)")
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it holds this campaign)")
     p.add_argument(
-        "--preset",
-        choices=["fast", "accurate", "thesis", "both"],
-        default="both",
-        help="flight software preset(s) that land (both: fast and thesis)",
+        "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) that land"
     )
     p.add_argument(
         "--per-render",

@@ -54,7 +54,7 @@ DEFAULT_POSE_ERROR = "alt_sigma=0.15,pitch_sigma=0.03,roll_yaw=0.03,lateral=0.15
 PER_RENDER = 8
 AIM_FRACTION = 0.2
 FOOTPRINT_RADIUS_M = 1.5
-PRESETS = ("fast", "accurate", "thesis")
+PRESETS = ("fast", "thesis")
 CAMPAIGN_KEY = 0x1A4D
 OUTCOMES = ("safe", "unsafe", "no_site")
 Z95 = 1.959963984540054

@@ -98,60 +98,31 @@ def test_a_psafe_model_is_refused_with_a_dem_it_was_not_fitted_on(tmp_path):
         _check_model_dem(dataclasses.replace(PRESETS["fast"], psafe_model_path=str(path)))
 
 
-def test_the_accurate_preset_carries_a_model_fitted_on_its_dem():
-    """`accurate` = fast + the lower view, with trees fitted on that DEM; its fallback is fast's model and budget."""
-    from flight_sw.psafe import load_model
-
-    acc = PRESETS["accurate"]
-    acc.validate()
-    assert acc.lower_view_dem and acc.psafe_model == "calibrated"
-    assert load_model(acc.psafe_model_path).info["pipeline"] == {"lower_view_dem": True}
-    assert acc.lower_view_fallback_model == PRESETS["fast"].psafe_model_path
-    assert acc.lower_view_fallback_budget == PRESETS["fast"].fp_budget
-    _check_model_dem(acc)
-    with pytest.raises(FlightInputError, match="lower_view_fallback_model"):  # a fallback fitted on the lower view
-        _check_model_dem(dataclasses.replace(acc, lower_view_fallback_model=acc.psafe_model_path))
-    with pytest.raises(FlightInputError, match="lower_view_fallback_budget"):
-        dataclasses.replace(acc, lower_view_fallback_budget=0.5).validate()
-
-
 @pytest.mark.slow
-def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch):
-    """When the second sweep does not finish (its deadline), the DEM is the first one alone, so `accurate` must
-    call it with fast's trees and budget: the map is then fast's, pixel for pixel, and the result says why."""
+def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch, tmp_path):
+    """When the second sweep does not finish (its deadline), the DEM is the first one alone, so it must be called
+    with the fallback trees and budget (fast's): the map is then fast's, pixel for pixel, and the result says why."""
     from synthetic import make_pair, plane
 
     import flight_sw.pipeline as pl
 
+    doc = json.loads(Path(MODEL_PATH).read_text())
+    doc["info"]["pipeline"] = {"lower_view_dem": True}  # stands for trees fitted on the lower view's DEM
+    path = tmp_path / "psafe_lv.json"
+    path.write_text(json.dumps(doc))
+    prm = dataclasses.replace(PRESETS["fast"], lower_view_dem=True, psafe_model_path=str(path), fp_budget=0.002)
     cam, p1, p2, i1, i2, _ = make_pair(512, 600.0, 300.0, plane(0.0), seed=5, spots_per_km2=2000.0)
     sun = {"sun_azimuth_deg": 135.0, "sun_elevation_deg": 25.0}
     fast = run_pipeline(i1, i2, p1, p2, cam, preset="fast", **sun)
     monkeypatch.setattr(pl, "lower_view_dem", lambda *a, **k: (None, {"complete": False}))
-    acc = run_pipeline(i1, i2, p1, p2, cam, preset="accurate", **sun)
-    assert acc.level == fast.level == "full"
-    assert "lower_view_fallback" in acc.info and acc.info["lower_view"] == {"complete": False}
-    assert acc.params["psafe_model_path"] == "" and acc.params["fp_budget"] == PRESETS["fast"].fp_budget
-    assert not acc.params["lower_view_dem"]
-    np.testing.assert_array_equal(acc.state, fast.state)
-    np.testing.assert_array_equal(acc.psafe, fast.psafe)
-
-
-def test_memory_models_count_the_lower_views_sweep():
-    """The second sweep holds a cost volume over all of i2: `process` and `run` refuse a camera by the preset's
-    peak, and the HIL's list of such presets is the pipeline's."""
-    from flight_sw.validate import check_memory, peak_memory_bytes
-    from hil_server.budgets import LOWER_VIEW_PRESETS, flight_peak_rss_mib, get_budget, max_image_side
-    from hil_server.run import check_memory as hil_check
-    from protocol.errors import InputError
-
-    assert {name for name, p in PRESETS.items() if p.lower_view_dem} == LOWER_VIEW_PRESETS
-    assert peak_memory_bytes(1024, 1024, 2, lower_view=True) - peak_memory_bytes(1024, 1024, 2) == 100 * 2**20
-    check_memory(1024, 1024, 2, available_bytes=300 * 2**20)
-    with pytest.raises(FlightInputError, match="needs ~"):
-        check_memory(1024, 1024, 2, available_bytes=300 * 2**20, lower_view=True)
-    b = get_budget("rad750")  # 256 MiB: a 1024^2 camera fits fast, not accurate
-    hil_check(b, 1024, 1024, "fast")
-    with pytest.raises(InputError, match="with the preset accurate"):
-        hil_check(b, 1024, 1024, "accurate")
-    side = max_image_side(b.memory_mib, lower_view=True)
-    assert flight_peak_rss_mib(side * side, True) <= b.memory_mib < flight_peak_rss_mib((side + 1) ** 2, True)
+    lv = run_pipeline(i1, i2, p1, p2, cam, preset=prm, **sun)
+    assert lv.level == fast.level == "full"
+    assert "lower_view_fallback" in lv.info and lv.info["lower_view"] == {"complete": False}
+    assert lv.params["psafe_model_path"] == "" and lv.params["fp_budget"] == PRESETS["fast"].fp_budget
+    assert not lv.params["lower_view_dem"]
+    np.testing.assert_array_equal(lv.state, fast.state)
+    np.testing.assert_array_equal(lv.psafe, fast.psafe)
+    with pytest.raises(FlightInputError, match="lower_view_fallback_model"):  # a fallback fitted on the lower view
+        _check_model_dem(dataclasses.replace(prm, lower_view_fallback_model=str(path)))
+    with pytest.raises(FlightInputError, match="lower_view_fallback_budget"):
+        dataclasses.replace(prm, lower_view_fallback_budget=0.5).validate()
