@@ -222,6 +222,16 @@ def fit_rows(
     return psafe.fit({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
 
 
+def barred(r: dict[str, Any], a_max: float, cap: str = "a", cap_hi: tuple[float, float] | None = None) -> np.ndarray:
+    """The points the call never takes (evidence.classify_calibrated): an estimated slope at or over the cap
+    (``cap``, ``cap_hi`` as in :func:`score`), or no elevation."""
+    from flight_sw.evidence import cap_slope
+
+    with np.errstate(invalid="ignore"):
+        lim = a_max if cap_hi is None else np.where(r["scale"] >= cap_hi[0], cap_hi[1], a_max)
+        return (cap_slope(r, cap) >= lim) | ~np.isfinite(r["a"])
+
+
 def score(
     model: Any,
     r: dict[str, Any],
@@ -238,7 +248,6 @@ def score(
     ``cap_hi = (s0, a_hi)``: where the footprint spans ``2^s0`` px or more (feature ``scale``), the cap is
     ``a_hi`` instead (a footprint of many pixels measures its slope well).
     """
-    from flight_sw.evidence import cap_slope
     from flight_sw.psafe import budget_rule
 
     if cap == "nosun":
@@ -246,10 +255,7 @@ def score(
         cap = "a_pc"
     p = model.predict(r, np.ones(r["safe"].shape, bool))
     p[r["dark"]] = 0.0
-    with np.errstate(invalid="ignore"):
-        lim = a_max if cap_hi is None else np.where(r["scale"] >= cap_hi[0], cap_hi[1], a_max)
-        barred = (cap_slope(r, cap) >= lim) | ~np.isfinite(r["a"])
-    call = budget_rule(np.where(barred, np.nan, p), budget, p_min, n=p.size)
+    call = budget_rule(np.where(barred(r, a_max, cap, cap_hi), np.nan, p), budget, p_min, n=p.size)
     th = ~r["safe"]
     n = max(1, th.size)
     fp = 100.0 * float((call & th).sum()) / n

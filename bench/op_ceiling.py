@@ -52,13 +52,6 @@ def out_of_fold(rows: list[dict[str, Any]], seeds: list[int], folds: int) -> lis
     return out
 
 
-def callable_mask(r: dict[str, Any], a_max: float) -> np.ndarray:
-    from flight_sw.evidence import cap_slope
-
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(r["a"]) & ~(cap_slope(r, "a_pc") >= a_max) & ~r["dark"]
-
-
 def scores(call: np.ndarray, safe: np.ndarray) -> tuple[float, float]:
     """(FP %, CDI %) of a call over the covered points."""
     n = max(1, safe.size)
@@ -95,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from fit_psafe import load_all, load_library
+    from fit_psafe import barred, load_all, load_library
 
     from flight_sw.psafe import budget_rule
     from ground_sim.seeds import TUNING_SEEDS
@@ -114,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     scen: list[tuple[bool, np.ndarray, np.ndarray]] = []
     for r, p in zip(rows, ps, strict=True):
         safe = r["safe"]
-        cap = callable_mask(r, 0.4)
+        cap = ~barred(r, 0.4, "a_pc") & ~r["dark"]  # what the rule may call (dark shadow is a hazard cue)
         measured = np.isfinite(r["a"]) & ~r["dark"]
         call = budget_rule(np.where(cap, p, np.nan), args.budget, 0.97, n=p.size)
         fp, cdi = scores(call, safe)
