@@ -135,13 +135,22 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
 
 
 def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
-    s = run(manifest, tmp_path, link="serial", corrupt=1e-4, seed=3)
+    """Every pair's result comes back through a noisy line byte for byte as through a clean one.
+
+    At 1e-4 per byte a fault may miss every data frame of one direction, so this does not ask for
+    retransmissions (test_protocol_hil.py does, at 1e-3); it asks that nothing was lost or altered.
+    """
+    s = run(manifest, tmp_path / "noisy", link="serial", corrupt=1e-4, seed=3)
     faults = s["line_faults"]
     assert sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in faults.values()) > 0  # the line was noisy
     assert s["results"] == 3 and s["errors"] == 0  # ...and every pair still came back
-    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1  # thanks to retransmission
-    for r in s["records"]:
-        assert np.load(tmp_path / "received" / r["pair_id"] / "state_grid.npy").size > 0
+    clean = run(manifest, tmp_path / "clean", link="serial")
+    assert [r["label"] for r in s["records"]] == [r["label"] for r in clean["records"]] == PAIRS
+    for r, c in zip(s["records"], clean["records"]):
+        assert r["level"] == c["level"] == "full"
+        got = np.load(tmp_path / "noisy" / "received" / r["pair_id"] / "state_grid.npy")
+        want = np.load(tmp_path / "clean" / "received" / c["pair_id"] / "state_grid.npy")
+        assert got.size > 0 and np.array_equal(got, want)
 
 
 def test_a_hil_server_that_fails_ends_the_run_at_once_with_its_reason(manifest, tmp_path, monkeypatch):
