@@ -76,6 +76,37 @@ def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = ()) -> di
     return d
 
 
+def layers_code() -> str:
+    """The fingerprint of the code that makes the layers: flight_sw's Python and C source (not its model
+    files: the layers are made with ``psafe_model="gaussian"``, so a refitted model leaves them valid)."""
+    from studies.executor import code_fingerprint
+
+    return code_fingerprint(["flight_sw"], suffixes=(".py", ".c"))
+
+
+def claim_layers(layers_dir: Path, pipeline: dict[str, Any]) -> str | None:
+    """Stamp ``layers_dir`` with the code and the ``--set-param`` overrides its layers are made with, or say
+    (one line) why its cached layers cannot be used: another code's DEM or other settings. Stop 34's trees
+    were fitted on layers made before that stop's band rule changed the DEM, and the stale layers went on
+    being used until stop 41 (docs/benchmarks/pipeline.md), so cached layers are trusted only with this stamp."""
+    stamp = layers_dir / "pipeline.json"  # the overrides the cached layers were made with
+    code = layers_dir / "code.txt"  # and the code that made them
+    cached = any(layers_dir.glob("*.npz"))
+    if stamp.is_file() and json.loads(stamp.read_text()) != pipeline:
+        return f"{layers_dir} holds layers made with {stamp.read_text().strip()}, not {json.dumps(pipeline)}"
+    if cached and not (stamp.is_file() and code.is_file()):
+        return f"{layers_dir} holds layers of unknown settings or code; give a --layers of their own"
+    if cached and code.read_text().strip() != layers_code():
+        return (
+            f"{layers_dir} holds layers made by other flight_sw code ({code.read_text().strip()}, this code "
+            f"{layers_code()}); give a --layers of their own"
+        )
+    layers_dir.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(pipeline) + "\n")
+    code.write_text(layers_code() + "\n")
+    return None
+
+
 def load_all(
     seeds: list[int],
     cases: list[str],
@@ -353,15 +384,10 @@ def main(argv: list[str] | None = None) -> int:
     pipeline = {k.split("=", 1)[0]: getattr(over, k.split("=", 1)[0]) for k in args.set_param}
     pipeline = {k: v for k, v in pipeline.items() if v != getattr(PRESETS["fast"], k)}
     layers_dir = Path(args.layers)
-    stamp = layers_dir / "pipeline.json"  # the overrides the cached layers were made with
-    if stamp.is_file() and json.loads(stamp.read_text()) != pipeline:
-        print(f"error: {layers_dir} holds layers made with {stamp.read_text().strip()}, not {json.dumps(pipeline)}")
+    refused = claim_layers(layers_dir, pipeline)
+    if refused:
+        print(f"error: {refused}")
         return 2
-    if not stamp.is_file() and any(layers_dir.glob("*.npz")) and pipeline:
-        print(f"error: {layers_dir} holds layers of unknown settings; give --set-param runs a --layers of their own")
-        return 2
-    layers_dir.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(pipeline) + "\n")
 
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:

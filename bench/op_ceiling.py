@@ -88,13 +88,17 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from fit_psafe import barred, load_all, load_library
+    from fit_psafe import barred, claim_layers, load_all, load_library
 
     from flight_sw.psafe import budget_rule
     from ground_sim.seeds import TUNING_SEEDS
 
     if any(s not in TUNING_SEEDS for s in args.seeds):
         print("error: --seeds must be tuning seeds (ground_sim.seeds.TUNING_SEEDS)")
+        return 2
+    refused = claim_layers(Path(args.layers), {})
+    if refused:
+        print(f"error: {refused}")
         return 2
     rows = load_all(args.seeds, args.cases, Path(args.cache), Path(args.layers))
     rows += load_library(args.library, Path(args.layers))

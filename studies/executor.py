@@ -59,8 +59,8 @@ class CampaignError(RuntimeError):
 SOURCE_SUFFIXES = (".py", ".json", ".c")
 
 
-def code_fingerprint(packages: Iterable[str]) -> str:
-    """SHA-256 (16 hex digits) over the source files (``SOURCE_SUFFIXES``) of the named packages.
+def code_fingerprint(packages: Iterable[str], suffixes: tuple[str, ...] = SOURCE_SUFFIXES) -> str:
+    """SHA-256 (16 hex digits) over the source files (``suffixes``) of the named packages.
 
     Paths and bytes both count, in sorted order, so a renamed, added or edited module, or a refitted
     model file, gives another fingerprint; compiled kernels are covered by their C source.
@@ -75,7 +75,7 @@ def code_fingerprint(packages: Iterable[str]) -> str:
             raise InputError(f"code fingerprint: {name!r} is not an importable package")
         root = Path(roots[0])
         files = sorted(
-            f for f in root.rglob("*") if f.suffix in SOURCE_SUFFIXES and "__pycache__" not in f.parts and f.is_file()
+            f for f in root.rglob("*") if f.suffix in suffixes and "__pycache__" not in f.parts and f.is_file()
         )
         for f in files:
             h.update(f"{name}/{f.relative_to(root).as_posix()}\0".encode())

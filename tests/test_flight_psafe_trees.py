@@ -147,3 +147,24 @@ def test_library_caches_are_scored_per_scene_and_fitted_on_tuning_seeds_only(tmp
         load_library([str(tmp_path)], tmp_path / "layers")
     with pytest.raises(SystemExit, match="no rendered pair"):
         library_pairs(tmp_path / "layers")
+
+
+def test_cached_layers_of_other_code_or_settings_are_refused(tmp_path, monkeypatch):
+    """bench/fit_psafe.py and bench/op_ceiling.py fit and choose the FP budget on cached per-pixel layers. Stop
+    34's trees were fitted on layers from before that stop's band rule changed the DEM, so a layers directory is
+    stamped with the flight code and the --set-param overrides that made it, and refused for any other."""
+    import fit_psafe
+
+    layers = tmp_path / "layers"
+    assert fit_psafe.claim_layers(layers, {}) is None  # a fresh directory is claimed and stamped
+    np.savez_compressed(layers / "pair.npz", a=np.zeros(3))
+    assert fit_psafe.claim_layers(layers, {}) is None  # the same code and settings: its layers are used
+    refused = fit_psafe.claim_layers(layers, {"lower_view_dem": True})
+    assert refused is not None and "made with {}" in refused
+    monkeypatch.setattr(fit_psafe, "layers_code", lambda: "0123456789abcdef")  # the flight code was edited
+    refused = fit_psafe.claim_layers(layers, {})
+    assert refused is not None and "other flight_sw code" in refused and "0123456789abcdef" in refused
+    (layers / "code.txt").unlink()  # a directory from before the stamp
+    refused = fit_psafe.claim_layers(layers, {})
+    assert refused is not None and "unknown settings or code" in refused
+    assert fit_psafe.claim_layers(tmp_path / "fresh", {}) is None
