@@ -171,10 +171,16 @@ def _parse_anchor(doc: dict, where: str) -> Anchor:
     )
 
 
+BUDGET_KEYS = frozenset({"description", "cpu_dmips", "memory_mib", "deadline_s", "link", "baud", "source"})
+
+
 def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
     w = f"{where} [budget.{name}]"
     if not isinstance(entry, dict):
         raise BudgetError(f"{w}: must be a table")
+    unknown = sorted(set(entry) - BUDGET_KEYS)
+    if unknown:  # a misspelt key would otherwise leave its default in force, unseen
+        raise BudgetError(f"{w}: unknown key(s) {', '.join(unknown)}; a budget has {', '.join(sorted(BUDGET_KEYS))}")
     cpu = entry.get("cpu_dmips")
     cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w)
     memory = _number(entry, "memory_mib", w)
@@ -211,6 +217,8 @@ def load_budgets(path: str | os.PathLike | None = None) -> dict[str, Budget]:
         doc = tomllib.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise BudgetError(f"budget file not found: {p}") from None
+    except (OSError, UnicodeDecodeError) as exc:  # a directory, unreadable, not text
+        raise BudgetError(f"{p}: cannot be read as a budget file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise BudgetError(f"{p}: not valid TOML: {exc}") from None
     anchor = _parse_anchor(doc, str(p))

@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        if getattr(args, "out", None) is not None:
+            check_out_dir(Path(args.out))
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -96,6 +98,17 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def check_out_dir(out: Path) -> None:
+    """Refuse, before any work, an ``--out`` that cannot become a directory: an existing file, or a path under
+    one (every command creates its output directory, some only after minutes of work)."""
+    for q in (out, *out.parents):
+        if q.exists():
+            if not q.is_dir():
+                where = "is a file, not a directory" if q == out else f"is under {q}, which is not a directory"
+                raise InputError(f"--out {out} {where}")
+            return
 
 
 # --------------------------------------------------------------------------- emulation
@@ -324,8 +337,11 @@ def _config(args: argparse.Namespace):
     for name, value in (("--deadline", args.deadline), ("--link-timeout", args.link_timeout)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{name} must be a positive number of seconds, got {value}")
-    if args.baud is not None and args.baud <= 0:
-        raise InputError(f"--baud must be a positive rate, got {args.baud}")
+    if args.baud is not None:
+        from protocol.linkspec import BAUD_MAX, BAUD_MIN
+
+        if not BAUD_MIN <= args.baud <= BAUD_MAX:
+            raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
     if args.image_size is not None and not 16 <= args.image_size <= 8192:
         raise InputError(f"--image-size must be 16..8192 px, got {args.image_size}")
     link = args.link or defaults.get("link")

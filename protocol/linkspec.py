@@ -18,6 +18,7 @@ from protocol.arq import ArqConfig
 from protocol.errors import InputError
 
 DEFAULT_BAUD = 921600
+BAUD_MIN, BAUD_MAX = 50, 100_000_000  # a paced line's rates
 
 
 def parse_serial(rest: str) -> tuple[str, int | None]:
@@ -28,8 +29,8 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
     if not url:
         raise InputError(f"serial link spec {rest!r} has no device")
     b = int(baud)
-    if b and not 50 <= b <= 100_000_000:
-        raise InputError(f"serial baud must be 0 (unpaced) or in [50, 1e8], got {b}")
+    if b and not BAUD_MIN <= b <= BAUD_MAX:
+        raise InputError(f"serial baud must be 0 (unpaced) or in [{BAUD_MIN}, {BAUD_MAX:.0e}], got {b}")
     return url, (b or None)
 
 

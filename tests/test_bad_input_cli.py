@@ -15,7 +15,20 @@ CASES = [
     (["render", "--scenario", "vertical", "--pose-error", "pitch=nan"], "pitch_uniform_deg must be a number in"),
     (["render", "--scenario", "vertical", "--pose-error", "yaw=1"], "bad item 'yaw=1'"),
     (["process", "PAIR", "--deadline", "-1"], "--deadline must be a non-negative"),
-    (["run", "--baud", "-5"], "--baud must be a positive rate"),
+    (["run", "--baud", "-5"], "--baud must be in [50, 1e+08] baud"),
+    (["run", "--baud", "12"], "--baud must be in [50, 1e+08] baud"),  # the ground refused it after rendering
+    (["run", "--link", "zmq", "--baud", "115200"], "--baud applies to serial links"),
+    (["run", "--link", "serial", "--insecure"], "--keys and --insecure apply to ZeroMQ links"),
+    (["run", "--link", "zmq", "--keys", "PAIR"], "client.key_secret does not exist"),
+    (["run", "--manifest", "BAD"], "not JSON"),
+    (["run", "--manifest", "M"], '"pairs" must be a non-empty list'),  # was a 0/0 run, exit 1
+    (["run", "--manifest", "NOPATH"], 'pair 0 has no "path"'),
+    (["run", "--manifest", "ALT"], '"altitude_m" must be a number of metres, got "high"'),
+    (["run", "--manifest", "STR"], 'pair 0 must be an object with a "path"'),
+    (["run", "--manifest", "LIST"], "must be a JSON object"),
+    (["run", "--manifest", "FORMAT"], "format must be 'hazard-hil-descent/1'"),
+    (["budgets", "--file", "PAIR"], "cannot be read as a budget file"),
+    (["budgets", "--file", "TYPO"], "unknown key(s) baudd"),
     (["run", "--deadline", "-1"], "--deadline must be a positive number"),
     (["run", "--link-timeout", "nan"], "--link-timeout must be a positive number"),
     (["run", "--scenario", "vertcal"], "unknown scenario 'vertcal'"),
@@ -31,8 +44,47 @@ CASES = [
 def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     (tmp_path / "manifest.json").write_text('{"pairs": []}')
     subst = {"PAIR": str(tmp_path), "M": str(tmp_path / "manifest.json")}
-    argv = [subst.get(a, a) for a in argv] + ["--out", str(tmp_path / "out")]
+    manifests = {
+        "BAD": "{bad",
+        "NOPATH": '{"pairs": [{"label": "x"}]}',
+        "ALT": '{"pairs": [{"path": "p", "altitude_m": "high"}]}',
+        "STR": '{"pairs": ["ok"]}',
+        "LIST": "[]",
+        "FORMAT": '{"format": "x", "pairs": [{"path": "p"}]}',
+    }
+    for name, text in manifests.items():  # each once crashed `run` with a traceback
+        (tmp_path / f"{name}.json").write_text(text)
+        subst[name] = str(tmp_path / f"{name}.json")
+    from hil_server.budgets import default_budgets_path
+
+    typo = default_budgets_path().read_text().replace("[budget.host]", "[budget.host]\nbaudd = 5", 1)
+    (tmp_path / "typo.toml").write_text(typo)
+    subst["TYPO"] = str(tmp_path / "typo.toml")
+    argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] != "budgets" else [])
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())  # nothing half-made
+
+
+OUT_COMMANDS = [
+    ["render", "--scenario", "vertical"],
+    ["run"],
+    ["demo"],
+    ["regress"],
+    ["landings", "--scenes", "thesis", "--n", "1"],
+    ["evaluate", "--scenario", "vertical"],
+    ["sensitivity", "--kind", "altitude"],
+]
+
+
+@pytest.mark.parametrize("command", OUT_COMMANDS, ids=[c[0] for c in OUT_COMMANDS])
+def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, command):
+    """Every command creates its --out directory; an existing file there (or above it) was a traceback, some
+    of them only after the work was done."""
+    (tmp_path / "afile").write_text("keep me")
+    for out, why in ((tmp_path / "afile", "is a file, not a directory"), (tmp_path / "afile" / "x", "is under")):
+        assert main([*command, "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and why in err, err
+    assert (tmp_path / "afile").read_text() == "keep me"
