@@ -96,6 +96,9 @@ METRIC_COLUMNS = (
 )
 
 
+MAX_SAMPLES = 10_000  # sensitivity samples per seed and altitude (the thesis: 6 levels); more is a typo
+
+
 class EvaluationError(InputError):
     """A scenario, preset, cache or option given to the evaluation is unusable."""
 
@@ -1023,8 +1026,11 @@ def sensitivity_campaign(
 
     _check_choice("kind", [kind], SENSITIVITY_KINDS)
     presets = _check_choice("preset", presets, PRESETS)
-    if not (isinstance(samples, int) and samples >= 1):
-        raise EvaluationError(f"samples must be a positive integer, got {samples!r}")
+    if not (isinstance(samples, int) and 1 <= samples <= MAX_SAMPLES):
+        raise EvaluationError(
+            f"samples must be an integer in [1, {MAX_SAMPLES}] (each is a pipeline run per seed, altitude and "
+            f"preset, its task held in memory), got {samples!r}"
+        )
     seeds = [int(s) for s in seeds]
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"

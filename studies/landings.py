@@ -56,6 +56,7 @@ AIM_FRACTION = 0.2
 FOOTPRINT_RADIUS_M = 1.5
 PRESETS = ("fast", "thesis")
 CAMPAIGN_KEY = 0x1A4D
+MAX_LANDINGS = 1_000_000  # per campaign: ~3 CPU-days; more is a typo, and its plan would not fit in memory
 OUTCOMES = ("safe", "unsafe", "no_site")
 Z95 = 1.959963984540054
 
@@ -133,6 +134,11 @@ class Campaign:
             raise LandingError(f"--scenes: each scene once, got {list(self.scenes)}")
         if self.n < 1 or self.per_render < 1:
             raise LandingError(f"need n >= 1 and per_render >= 1, got n={self.n}, per_render={self.per_render}")
+        if self.n > MAX_LANDINGS or self.per_render > MAX_LANDINGS:
+            raise LandingError(
+                f"need n and per_render <= {MAX_LANDINGS} (a landing is a pipeline run of about 0.3 s, its plan held "
+                f"in memory), got n={self.n}, per_render={self.per_render}"
+            )
         if not self.seeds:
             raise LandingError("no scene seeds")
         bad_p = [p for p in self.presets if p not in PRESETS]

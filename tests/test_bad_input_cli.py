@@ -37,6 +37,8 @@ CASES = [
     (["run", "--image-size", "5"], "--image-size must be 16..8192 px"),
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
+    (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
+    (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),
 ]
 
 
