@@ -89,8 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        if getattr(args, "out", None) is not None:
-            check_out_dir(Path(args.out))
+        for option in ("out", "cache"):  # the directories a command creates
+            if getattr(args, option, None) is not None:
+                check_out_dir(Path(getattr(args, option)), f"--{option}")
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -100,14 +101,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def check_out_dir(out: Path) -> None:
-    """Refuse, before any work, an ``--out`` that cannot become a directory: an existing file, or a path under
-    one (every command creates its output directory, some only after minutes of work)."""
+def check_out_dir(out: Path, option: str = "--out") -> None:
+    """Refuse, before any work, an output directory that cannot become one: an existing file, or a path under
+    one (every command creates its ``--out``, some only after minutes of work)."""
     for q in (out, *out.parents):
         if q.exists():
             if not q.is_dir():
                 where = "is a file, not a directory" if q == out else f"is under {q}, which is not a directory"
-                raise InputError(f"--out {out} {where}")
+                raise InputError(f"{option} {out} {where}")
             return
 
 

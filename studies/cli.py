@@ -10,15 +10,17 @@ from typing import Any
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from protocol.errors import InputError
 
+MAX_CAMERA_PX = 8192  # as `run --image-size`: a larger square camera does not fit any budget's memory
 
-def _positive(kind: str):
+
+def _positive(kind: str, most: int | None = None):
     def conv(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{kind} must be an integer, got {text!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{kind} must be >= 1, got {v}")
+        if v < 1 or (most is not None and v > most):
+            raise argparse.ArgumentTypeError(f"{kind} must be >= 1{f' and <= {most}' if most else ''}, got {v}")
         return v
 
     return conv
@@ -46,6 +48,10 @@ def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], 
     """(seeds, name of the set they come from: 'held-out', 'tuning' or 'explicit ...')."""
     from ground_sim.seeds import SEED_SETS, seed_set_of
 
+    if args.seed_list is not None and getattr(args, "seeds", None) is not None:
+        raise InputError("--seeds N and --seed-list: give one (--seeds takes the first N of --seed-set)")
+    if args.seed_list is not None and not args.seed_list.strip():
+        raise InputError("--seed-list is empty: give comma-separated seeds, e.g. 1000,1003")
     if args.seed_list:
         try:
             seeds = [int(x) for x in args.seed_list.split(",") if x.strip()]
@@ -88,7 +94,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     _executor_options(p)
     p.add_argument(
         "--camera-px",
-        type=_positive("--camera-px"),
+        type=_positive("--camera-px", MAX_CAMERA_PX),
         default=None,
         help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)",
     )
@@ -197,6 +203,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from studies.executor import CampaignError
 
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
+    if args.frames is not None and not args.multi_frame:
+        raise InputError("--frames sets the multi-frame descents' altitudes: it needs --multi-frame")
     frames = _parse_frames(args.scenario, args.frames)
     try:
         rows = ev.evaluate_scenario(
@@ -323,7 +331,7 @@ def register_landings(subparsers: Any) -> None:
         help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
     )
     _executor_options(p)
-    p.add_argument("--camera-px", type=_positive("--camera-px"), default=None, help=argparse.SUPPRESS)
+    p.add_argument("--camera-px", type=_positive("--camera-px", MAX_CAMERA_PX), default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
         type=Path,

@@ -39,6 +39,10 @@ CASES = [
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
     (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),
+    (["evaluate", "--scenario", "vertical", "--cache", "AFILE"], "is a file, not a directory"),  # was a failed task
+    (["evaluate", "--scenario", "vertical", "--seeds", "1", "--seed-list", "1000"], "--seeds N and --seed-list"),
+    (["evaluate", "--scenario", "vertical", "--seed-list", ""], "--seed-list is empty"),  # ran the default seeds
+    (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
 ]
 
 
@@ -62,6 +66,8 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     typo = default_budgets_path().read_text().replace("[budget.host]", "[budget.host]\nbaudd = 5", 1)
     (tmp_path / "typo.toml").write_text(typo)
     subst["TYPO"] = str(tmp_path / "typo.toml")
+    (tmp_path / "afile").write_text("")
+    subst["AFILE"] = str(tmp_path / "afile")
     argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] != "budgets" else [])
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
