@@ -121,6 +121,8 @@ def _process(args: argparse.Namespace) -> int:
     np.save(out / "psafe.npy", res.psafe)
     if res.sigma is not None:  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
         np.save(out / "sigma.npy", res.sigma)
+    else:  # an earlier run's sigma must not pass for this one's
+        (out / "sigma.npy").unlink(missing_ok=True)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "preset": args.preset,

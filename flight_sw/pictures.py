@@ -103,6 +103,7 @@ def write_process_report(
     )
 
     rows: list[dict[str, Any]] = []
+    (out / "confusion.png").unlink(missing_ok=True)  # an earlier run's scores must not pass for this one's
     if gt_h is not None:
         masks = confusion(res.hazard, gt_h, res.covered)
         scored = masks["TP"] | masks["TN"] | masks["FP"] | masks["FN"]

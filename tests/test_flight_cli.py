@@ -43,6 +43,18 @@ def test_process_writes_outputs(tmp_path, capsys):
         assert page.ok and page.images == 3, page  # dem, hazard, confusion: every image loads, no console error
 
 
+def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
+    """`fast` writes sigma.npy and the thesis preset does not: a thesis run after a fast one left the fast
+    run's sigma beside the thesis maps, where a reader would take it for theirs."""
+    d, _ = _pair(tmp_path)
+    out = tmp_path / "out"
+    assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
+    assert (out / "sigma.npy").is_file()
+    assert main(["process", str(d), "--out", str(out), "--preset", "thesis"]) == 0
+    assert json.loads((out / "result.json").read_text())["preset"] == "thesis"
+    assert not (out / "sigma.npy").exists()
+
+
 def test_process_deadline_zero_is_degraded(tmp_path):
     d, _ = _pair(tmp_path)
     out = tmp_path / "out0"
