@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
+from pathlib import Path
+from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 
@@ -91,33 +95,63 @@ def _parse_frames(groups: list[str] | None) -> list[list[float]] | None:
     return out
 
 
+# A scene seed is hashed as a signed 64-bit integer, and Scene adds small offsets to it (its
+# albedo field uses seed + 7919): 2**62 leaves room for them, and is more seeds than anyone runs.
+MAX_SEED = 2**62
+
+
+def check_seed(seed: int, option: str = "--seed") -> None:
+    """Refuse a seed outside [0, MAX_SEED) as one line (beyond it the terrain hash overflows)."""
+    from ground_sim.errors import RenderError
+
+    if not 0 <= seed < MAX_SEED:
+        raise RenderError(f"{option} must be in [0, 2**62), got {seed}")
+
+
+def _parse_sun(text: str) -> tuple[float, float]:
+    """``AZ,EL`` in degrees; a missing, extra or non-finite value is named (render checks the EL range)."""
+    from ground_sim.errors import RenderError
+
+    parts = text.split(",")
+    try:
+        az, el = (float(v) for v in parts)
+    except ValueError:
+        raise RenderError(f"--sun: expected AZ,EL in degrees, got {text!r}") from None
+    for what, v in (("azimuth", az), ("elevation", el)):
+        if not math.isfinite(v):
+            raise RenderError(f"--sun: {what} must be a finite number of degrees, got {v}")
+    return az, el
+
+
 def _run(args: argparse.Namespace) -> int:
     from ground_sim.descent import render_scenario
     from ground_sim.errors import RenderError
     from ground_sim.pose_error import PoseError
     from ground_sim.render import MAX_CELLS
+    from ground_sim.trajectory import check_distinct_dirs
     from protocol.pairdir import Sun
 
+    check_seed(args.seed)
     pe = PoseError.parse(args.pose_error) if args.pose_error else None
-    sun = None
-    if args.sun:
-        try:
-            az, el = (float(v) for v in args.sun.split(","))
-        except ValueError:
-            raise RenderError(f"--sun: expected AZ,EL in degrees, got {args.sun!r}") from None
-        sun = Sun(az, el)
+    sun = Sun(*_parse_sun(args.sun)) if args.sun else None
     if args.frames and args.pairs:
         raise RenderError("--frames and --pairs exclude each other")
     if args.workers is not None and args.workers < 1:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
     pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs else None
+    frames = _parse_frames(args.frames)
+    # two pairs with one directory: the second would overwrite the first, with exit 0
+    if pairs:
+        check_distinct_dirs(pairs, "--pairs")
+    if frames:
+        check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
     out = render_scenario(
         args.scenario,
         args.out,
         scene=args.scene or None,
         seed=args.seed,
         pairs=pairs,
-        frames=_parse_frames(args.frames),
+        frames=frames,
         pose_error=pe,
         progress=not args.no_progress,
         sun=sun,
@@ -138,6 +172,42 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _table_doc(path: Path) -> dict[str, Any]:
+    """The hazard-share table at ``path`` (empty when absent), checked to be one before it is used."""
+    from ground_sim import library as lib
+    from ground_sim.errors import SceneError
+
+    if not path.exists():
+        return {"scenes": {}, "seeds": []}
+    if not path.is_file():
+        raise SceneError(f"--table {path}: not a file")
+    try:
+        doc = lib.load_shares(path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"--table {path}: unreadable ({exc})") from None
+    scenes = doc.get("scenes", {}) if isinstance(doc, dict) else None
+    if (
+        not isinstance(scenes, dict)
+        or not all(isinstance(v, dict) for v in scenes.values())
+        or not isinstance(doc.get("seeds", []), list)
+    ):
+        raise SceneError(f"--table {path}: not a hazard-share table (need an object with 'scenes' and 'seeds')")
+    return doc
+
+
+def _check_writable(path: Path) -> None:
+    """Refuse a table path that cannot be written, before the measurement it would store (minutes of work)."""
+    from ground_sim.errors import SceneError
+
+    parent = path.parent
+    if not parent.is_dir():
+        raise SceneError(f"--table {path}: directory {parent} does not exist")
+    if path.is_dir():
+        raise SceneError(f"--table {path}: is a directory")
+    if not os.access(path if path.exists() else parent, os.W_OK):
+        raise SceneError(f"--table {path}: not writable")
+
+
 def _scenes(args: argparse.Namespace) -> int:
     from ground_sim import library as lib
     from ground_sim.errors import SceneError
@@ -148,17 +218,22 @@ def _scenes(args: argparse.Namespace) -> int:
     bad = [n for n in names if n not in known]
     if bad:
         raise SceneError(f"not library scenes: {bad} (library: {', '.join(known)})")
-    table_path = args.table or lib.SHARES_PATH
+    table_path = Path(args.table or lib.SHARES_PATH)
     if args.measure:
         if not 1 <= args.seeds <= len(HELD_OUT_SEEDS):
             raise SceneError(f"--seeds must be 1..{len(HELD_OUT_SEEDS)}, got {args.seeds}")
+        if args.workers is not None and args.workers < 1:
+            raise SceneError(f"--workers must be >= 1, got {args.workers}")
+        _check_writable(table_path)
+        old = _table_doc(table_path)  # a broken table is refused now, not after the measurement
         seeds = list(HELD_OUT_SEEDS[: args.seeds])
         print(f"measuring {len(names)} scene(s) on held-out seeds {seeds[0]}-{seeds[-1]} ...", file=sys.stderr)
-        doc = lib.merge_shares(lib.load_shares(table_path), lib.measure(names, seeds, workers=args.workers))
-        from pathlib import Path
-
-        Path(table_path).write_text(json.dumps(doc, indent=1) + "\n")
-    table = lib.load_shares(table_path)
+        doc = lib.merge_shares(old, lib.measure(names, seeds, workers=args.workers))
+        table_path.write_text(json.dumps(doc, indent=1) + "\n")
+    elif args.table and not table_path.exists():
+        # without --measure there is nothing to list: every scene would be "not measured", exit 0
+        raise SceneError(f"--table {table_path}: no such file")
+    table = _table_doc(table_path)
     if args.json:
         print(json.dumps(lib.describe(names, table), indent=1))
         return 0

@@ -51,6 +51,7 @@ V_MIN, K_DECEL = 1.0, 0.05
 
 
 MAX_FRAMES = 16
+RENDER_FILES = ("manifest.json", "contact.png")  # render_scenario writes these beside the pair directories
 
 
 @dataclass(frozen=True)
@@ -129,28 +130,84 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
     return PairSpec("/".join(f"{a:g}" for a in alts), alts[-1], poses, cam, scenario)
 
 
-def _frame(fr: dict, where: str) -> Pose:
+def _number(obj: dict, key: str, default: float, where: str) -> float:
+    """``obj[key]`` as a finite float (``default`` when absent); anything else is an error naming the field."""
+    v = obj.get(key, default)
+    # bool is an int to Python, but `true` is no altitude; strings ("600") are refused, not parsed
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TrajectoryError(f"{where}: {key} must be a number, got {v!r:.40}")
+    try:
+        f = float(v)
+    except OverflowError:  # an integer beyond float range (TOML/JSON allow any length)
+        f = math.inf
+    if not math.isfinite(f):
+        raise TrajectoryError(f"{where}: {key} must be finite, got {v!r:.40}")
+    return f
+
+
+def _frame(fr: object, where: str) -> Pose:
+    if not isinstance(fr, dict):
+        raise TrajectoryError(f"{where}: must be an object with position_m and R_world_to_cam or off_nadir_deg")
     try:
         pos = np.array(fr["position_m"], dtype=float).reshape(3)
-        if "R_world_to_cam" in fr:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise TrajectoryError(f"{where}: position_m must be [x, y, z] in metres ({exc})") from None
+    if "R_world_to_cam" in fr:
+        try:
             R = np.array(fr["R_world_to_cam"], dtype=float).reshape(3, 3)
-        else:
-            R = look_rotation(float(fr.get("off_nadir_deg", 0.0)), float(fr.get("heading_deg", 0.0)))
-        pose = Pose(pos, R, float(fr.get("time_s", 0.0)))
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise TrajectoryError(f"{where}: R_world_to_cam must be a 3x3 matrix ({exc})") from None
+    else:
+        R = look_rotation(_number(fr, "off_nadir_deg", 0.0, where), _number(fr, "heading_deg", 0.0, where))
+    pose = Pose(pos, R, _number(fr, "time_s", 0.0, where))
+    try:
         pose.validate(where)
-    except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, InputError):
-            raise TrajectoryError(str(exc)) from None
-        raise TrajectoryError(f"{where}: need position_m [x,y,z] and R_world_to_cam or off_nadir_deg ({exc})") from None
+    except InputError as exc:
+        raise TrajectoryError(str(exc)) from None
     return pose
+
+
+def pair_dir_name(label: str) -> str:
+    """The directory a pair is rendered to under the output directory (``render_scenario``'s rule)."""
+    return label.replace("/", "_")
+
+
+def check_distinct_dirs(labels: list[str], where: str) -> None:
+    """Refuse labels that would be rendered to one directory: the later pair would overwrite the earlier."""
+    seen: dict[str, str] = {}
+    for label in labels:
+        d = pair_dir_name(label)
+        if d in seen:
+            same = f"label {label!r} twice" if seen[d] == label else f"labels {seen[d]!r} and {label!r}"
+            raise TrajectoryError(f"{where}: {same} would be rendered to the same directory {d!r}")
+        seen[d] = label
+
+
+def _check_label(label: object, where: str) -> str:
+    if isinstance(label, int) and not isinstance(label, bool):
+        label = str(label)  # `label = 600` in TOML: the name it always had
+    # the label names the pair's output directory: it must be a plain file name, not the output
+    # directory itself ("", "."), its parent (".."), a file the render writes beside the pairs, or a
+    # name no file system can create
+    if (
+        not isinstance(label, str)
+        or label in ("", ".", "..", *RENDER_FILES)
+        or "\0" in label
+        or len(label.encode()) > 255
+    ):
+        raise TrajectoryError(
+            f"{where}: label must be a non-empty name of at most 255 bytes other than "
+            f"{', '.join(repr(n) for n in ('.', '..', *RENDER_FILES))}, got {label!r:.40}"
+        )
+    return label
 
 
 def from_file(path: Path) -> list[PairSpec]:
     try:
         text = path.read_text()
         doc = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise TrajectoryError(f"trajectory file {path}: unreadable ({exc})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise TrajectoryError(f"trajectory file {path}: unreadable ({exc or 'nested too deeply'})") from None
     pairs = doc.get("pairs") if isinstance(doc, dict) else None
     if not isinstance(pairs, list) or not pairs:
         raise TrajectoryError(f"trajectory file {path}: needs a non-empty 'pairs' list")
@@ -169,9 +226,13 @@ def from_file(path: Path) -> list[PairSpec]:
         for k in range(1, len(poses)):
             if not poses[k].position[2] < poses[k - 1].position[2]:
                 raise TrajectoryError(f"{where}: frame {k} must be below frame {k - 1}")
-        hl = float(p.get("altitude_m", poses[-1].position[2]))
-        label = str(p.get("label", "/".join(f"{round(q.position[2], 1):g}" for q in poses)))
+        hl = _number(p, "altitude_m", float(poses[-1].position[2]), where)
+        if not hl > 0:  # the table row a pair is scored in: an altitude above the reference plane
+            raise TrajectoryError(f"{where}: altitude_m must be positive, got {hl:g}")
+        default_label = "/".join(f"{round(q.position[2], 1):g}" for q in poses)
+        label = _check_label(p.get("label", default_label), where)
         out.append(PairSpec(label, hl, poses, cam, str(doc.get("name", path.stem))))
+    check_distinct_dirs([s.label for s in out], f"trajectory file {path}")
     return out
 
 

@@ -345,6 +345,10 @@ def _config(args: argparse.Namespace):
             raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
     if args.image_size is not None and not 16 <= args.image_size <= 8192:
         raise InputError(f"--image-size must be 16..8192 px, got {args.image_size}")
+    if args.seed is not None:
+        from ground_sim.cli import check_seed
+
+        check_seed(args.seed)  # the render's terrain hash, as `render --seed`
     link = args.link or defaults.get("link")
     if link is None:  # the budget's own link: a host run over ZeroMQ, a flight board over serial
         link = get_budget(args.budget).link if args.flight == "emulated" else "serial"

@@ -48,6 +48,8 @@ MAX_PAIR_JSON_BYTES = 1 << 20  # a pair.json of many frames is a few kB
 MAX_IMAGE_SIDE = 8192
 ORTHONORMAL_TOL = 1e-3  # max |R R^T - I| re-orthonormalised with a note; beyond it: an error
 MIN_DEPRESSION_DEG = 10.0  # the optical axis must point at least this far below the horizon
+# an altimeter reading vs. the range to the datum along the optical axis (check_altimeter)
+ALTIMETER_MAX_RATIO, ALTIMETER_SLACK_M, ALTIMETER_MAX_OFF_M = 2.0, 100.0, 5000.0
 
 # state.npy codes (DESIGN.md): every tool that writes or scores three-state maps uses these
 STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE = 0, 1, 2, 255
@@ -119,7 +121,7 @@ def quaternion_to_matrix(q: Any) -> np.ndarray:
     a = np.asarray(q, dtype=np.float64).reshape(4)
     n = float(np.linalg.norm(a))
     if not math.isfinite(n) or n < 1e-9:
-        raise PairFormatError(f"q_world_to_cam must be a finite non-zero [w, x, y, z], got {list(a)}")
+        raise PairFormatError(f"q_world_to_cam must be a finite non-zero [w, x, y, z], got {a.tolist()}")
     w, x, y, z = a / n
     return np.array(
         [
@@ -270,9 +272,11 @@ class Pair:
                     f"frame {k} must be below frame {k - 1} (z = {z1:.3f} m vs {z0:.3f} m): frames are ordered by "
                     "time through a descent, frame 0 highest"
                 )
-        for k, a in enumerate(self.altimeter_m):
-            if not (math.isnan(a) or (math.isfinite(a) and a > 0)):
-                raise PairFormatError(f"frame {k}: altimeter_m must be a positive range or absent, got {a}")
+            t0, t1 = self.poses[k - 1].time_s, self.poses[k].time_s
+            if t1 < t0:
+                raise PairFormatError(f"frame {k} is earlier than frame {k - 1} (time_s {t1:g} vs {t0:g})")
+        for k, (a, pose) in enumerate(zip(self.altimeter_m, self.poses)):
+            check_altimeter(a, pose, f"frame {k}")
         for name, arr in self.truth.items():
             if name not in TRUTH_FILES:
                 raise PairFormatError(f"unknown ground-truth layer {name!r}")
@@ -296,6 +300,44 @@ class Pair:
                 f"({z0:g} m): there is almost no parallax to recover elevation from"
             )
         return out
+
+
+def check_altimeter(altimeter_m: float, pose: Pose, what: str = "frame") -> None:
+    """Refuse an altimeter reading that is not a positive range, or that no terrain can explain.
+
+    ``altimeter_m`` is the slant range along the optical axis to the ground (NaN: no reading).
+    It is compared with ``D = z / cos(off-nadir)``, the range along that axis to the datum
+    plane (Z = 0) from the camera at height ``z``; ground above or below the datum moves the
+    reading by its height over that cosine. The reading is refused when it differs from ``D``
+
+    * by more than :data:`ALTIMETER_MAX_OFF_M` (5 km: more relief under one descent view than
+      lunar terrain has), or
+    * by more than a factor :data:`ALTIMETER_MAX_RATIO` (2) *and* more than
+      :data:`ALTIMETER_SLACK_M` (100 m): ground half the camera's height above the datum, or as
+      far below it as the camera is above, is a mountain or a pit, not the landing site the
+      datum is at, while near the ground (a camera 20 m up over a 30 m deep crater floor) the
+      factor alone would refuse real terrain.
+
+    The renders of ``ground_sim`` (ranges to the true terrain) differ from ``D`` by tens of metres.
+    A reading in km instead of m, or a 1e9 placeholder, is refused.
+    """
+    a = float(altimeter_m)
+    if math.isnan(a):
+        return
+    if not (math.isfinite(a) and a > 0):
+        raise PairFormatError(f"{what}: altimeter_m must be a positive range or absent, got {a}")
+    z = float(pose.position[2])
+    cos_off = -float(pose.R[2, 2])  # optical axis . down; check_sees_ground keeps it >= sin 10 deg
+    if not (z > 0 and cos_off > 0):
+        return  # check_sees_ground refuses such a pose with its own message
+    d = z / cos_off
+    off = abs(a - d)
+    if off > ALTIMETER_MAX_OFF_M or (max(a / d, d / a) > ALTIMETER_MAX_RATIO and off > ALTIMETER_SLACK_M):
+        raise PairFormatError(
+            f"{what}: altimeter_m {a:g} m is implausible for a camera at z = {z:g} m (the datum is {d:.1f} m away "
+            f"along the optical axis; no terrain puts the ground more than {ALTIMETER_MAX_RATIO:g}x and "
+            f"{ALTIMETER_SLACK_M:g} m, or {ALTIMETER_MAX_OFF_M / 1000:g} km, from it): is the reading in metres?"
+        )
 
 
 def check_sees_ground(pose: Pose, what: str = "pose") -> None:
@@ -366,26 +408,39 @@ def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
 def image_header_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding: PNG, JPEG, PGM/PPM, BMP, TIFF.
 
-    Lets a reader refuse a 65535 x 65535 image before it allocates anything.
+    Lets a reader refuse a 65535 x 65535 image before it allocates anything. A
+    truncated or garbled header is a :class:`PairFormatError` naming the file.
     """
     with path.open("rb") as f:
         head = f.read(64 * 1024)
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        w, h = struct.unpack(">II", head[16:24])
-        return int(w), int(h)
-    if head[:2] == b"\xff\xd8":
-        return _jpeg_size(path)
-    if head[:2] in (b"P2", b"P5", b"P3", b"P6"):
-        tokens: list[bytes] = []
-        for line in head[2:].split(b"\n"):
-            tokens += line.split(b"#", 1)[0].split()
-            if len(tokens) >= 2:
-                return int(tokens[0]), int(tokens[1])
-    if head[:2] == b"BM" and len(head) >= 26:
-        w, h = struct.unpack("<ii", head[18:26])
-        return abs(int(w)), abs(int(h))
-    if head[:4] in (b"II*\x00", b"MM\x00*"):
-        return _tiff_size(head)
+    try:
+        if head[:8] == b"\x89PNG\r\n\x1a\n":
+            if head[12:16] != b"IHDR":
+                raise ValueError("PNG without an IHDR chunk")
+            w, h = struct.unpack(">II", head[16:24])
+            return int(w), int(h)
+        if head[:2] == b"\xff\xd8":
+            return _jpeg_size(path)
+        if head[:2] in (b"P2", b"P5", b"P3", b"P6"):
+            tokens: list[bytes] = []
+            for line in head[2:].split(b"\n"):
+                tokens += line.split(b"#", 1)[0].split()
+                if len(tokens) >= 2:
+                    # int() of bytes also takes b" 1_0" and b"+3": only plain digits are a size
+                    if not (tokens[0].isdigit() and tokens[1].isdigit()):
+                        w_s, h_s = (t.decode("ascii", "replace")[:20] for t in tokens[:2])
+                        raise ValueError(f"PGM/PPM size {w_s!r} x {h_s!r} is not two integers")
+                    return int(tokens[0]), int(tokens[1])
+            raise ValueError("PGM/PPM header without a width and height")
+        if head[:2] == b"BM":
+            w, h = struct.unpack("<ii", head[18:26])
+            return abs(int(w)), abs(int(h))
+        if head[:4] in (b"II*\x00", b"MM\x00*"):
+            return _tiff_size(head)
+    except (struct.error, ValueError) as exc:
+        # a short read leaves struct too few bytes: the file was cut off or is not what its magic says
+        detail = "header cut off" if isinstance(exc, struct.error) else str(exc)
+        raise PairFormatError(f"{path}: not a readable image ({detail})") from None
     raise PairFormatError(f"{path}: not a PNG, JPEG, PGM/PPM, BMP or TIFF image")
 
 
@@ -405,14 +460,15 @@ def _jpeg_size(path: Path) -> tuple[int, int]:
             h, w = struct.unpack(">HH", data[i + 5 : i + 9])
             return int(w), int(h)
         i += 2 + length
-    raise PairFormatError(f"{path}: JPEG without a frame header")
+    raise ValueError("JPEG without a frame header")
 
 
 def _tiff_size(head: bytes) -> tuple[int, int]:
+    """TIFF width and height from the first image directory; ValueError/struct.error when it is not there."""
     e = "<" if head[:2] == b"II" else ">"
     (off,) = struct.unpack(e + "I", head[4:8])
     if off + 2 > len(head):
-        raise PairFormatError("TIFF directory beyond the first 64 kB")
+        raise ValueError("TIFF directory beyond the first 64 kB or the end of the file")
     (n,) = struct.unpack(e + "H", head[off : off + 2])
     size: dict[int, int] = {}
     for k in range(n):
@@ -423,7 +479,7 @@ def _tiff_size(head: bytes) -> tuple[int, int]:
         if tag in (256, 257):
             size[tag] = struct.unpack(e + ("H" if typ == 3 else "I"), head[p + 8 : p + (10 if typ == 3 else 12)])[0]
     if 256 not in size or 257 not in size:
-        raise PairFormatError("TIFF without width/height tags")
+        raise ValueError("TIFF without width/height tags")
     return int(size[256]), int(size[257])
 
 
@@ -476,6 +532,8 @@ def _load_json(path: Path) -> Any:
 def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
     if not isinstance(fr, dict):
         raise PairFormatError(f"{meta_path}: frame {k} must be an object")
+    if "R_world_to_cam" in fr and "q_world_to_cam" in fr:  # one would be ignored, and they may disagree
+        raise PairFormatError(f"{meta_path}: frame {k}: give R_world_to_cam or q_world_to_cam, not both")
     try:
         if "R_world_to_cam" in fr:
             R = np.array(fr["R_world_to_cam"], dtype=float)
@@ -555,8 +613,14 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     if doc.get("sun") is not None:
         try:
             sun = Sun(float(doc["sun"]["azimuth_deg"]), float(doc["sun"]["elevation_deg"]))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"{meta_path}: sun needs azimuth_deg and elevation_deg ({exc})") from None
+        # a NaN angle would make the flight software drop the sun without a word (a different result)
+        if not (math.isfinite(sun.azimuth_deg) and math.isfinite(sun.elevation_deg)):
+            raise PairFormatError(
+                f"{meta_path}: sun angles must be finite, got azimuth_deg {sun.azimuth_deg}, "
+                f"elevation_deg {sun.elevation_deg}"
+            )
     truth: dict[str, np.ndarray] = {}
     if load_truth:
         for name, fname in TRUTH_FILES.items():
@@ -568,6 +632,9 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
                     raise PairFormatError(f"{p}: unreadable ({exc or 'empty file'})") from None
     meta = {k: v for k, v in doc.items() if k not in ("format", "camera", "frames", "sun")}
     pair = Pair(camera, tuple(poses), tuple(images), sun, truth, meta, tuple(alts), notes)
-    pair.validate()
+    try:
+        pair.validate()
+    except PairFormatError as exc:  # validate() speaks of frames; name the file they are in
+        raise PairFormatError(f"{meta_path}: {exc}") from None
     pair.notes += pair.scale_notes()
     return pair

@@ -35,6 +35,7 @@ CASES = [
     (["run", "--budget", "nope"], "unknown budget 'nope'"),
     (["run", "--link-fault", "boom@1"], "--link-fault must be stall@N or exit@N"),
     (["run", "--image-size", "5"], "--image-size must be 16..8192 px"),
+    (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**62)"),  # was an OverflowError
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),

@@ -1,0 +1,284 @@
+"""Input audit of the ground side: each bad input is one line naming the file/option, exit 2, no traceback.
+
+Covers garbled image headers (and a streamed descent going on past such a pair), non-numeric trajectory
+fields, two pairs rendered to one directory, out-of-range seeds, ``scenes --table``/``--workers`` checked
+before measuring, non-finite sun angles, and implausible altimeter readings.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilkit import run_hil, small_descent
+
+from hil_server.cli import main
+from protocol.pairdir import PairFormatError, Pose, check_altimeter, image_header_size, read_pair
+
+NADIR = np.diag([1.0, -1.0, -1.0])  # camera looking straight down
+
+
+@pytest.fixture(scope="module")
+def descent(tmp_path_factory) -> Path:
+    """A 128 px vertical descent of two pairs; returns its manifest."""
+    return small_descent(tmp_path_factory.mktemp("pairs"), ["600/300", "300/150"])
+
+
+def one_line_error(capsys, argv: list[str]) -> str:
+    """Run the CLI, check exit 2 and one line on stderr without a traceback; return that line."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"hazard-hil {argv[0]}: error: "), err
+    return err
+
+
+def copy_pair(descent: Path, tmp_path: Path, label_dir: str = "600_300") -> Path:
+    d = tmp_path / label_dir
+    shutil.copytree(descent.parent / label_dir, d)
+    return d
+
+
+def edit_json(path: Path, change: Callable[[dict], object]) -> None:
+    doc = json.loads(path.read_text())
+    change(doc)
+    path.write_text(json.dumps(doc))
+
+
+# --------------------------------------------------------------------------- 1. image headers
+PNG_SIG = b"\x89PNG\r\n\x1a\n"
+HEADERS = {
+    "png cut in IHDR": PNG_SIG + b"\x00\x00\x00\x0dIHDR\x00\x00",
+    "png without IHDR": PNG_SIG + b"\x00" * 40,
+    "pgm letters for size": b"P5\nabc def\n255\n",
+    "pgm without size": b"P5\n# only a comment\n",
+    "tiff of 4 bytes": b"II*\x00",
+    "tiff directory past the end": b"MM\x00*\x00\x00\xff\xff",
+    "tiff without size tags": b"II*\x00\x08\x00\x00\x00\x00\x00",
+    "bmp cut": b"BM" + b"\x00" * 10,
+    "jpeg without frame header": b"\xff\xd8\xff\xe0\x00\x10" + b"\x00" * 20,
+}
+
+
+@pytest.mark.parametrize("data", HEADERS.values(), ids=HEADERS.keys())
+def test_garbled_image_header_is_a_pair_format_error_naming_the_file(tmp_path, data):
+    p = tmp_path / "img.bin"
+    p.write_bytes(data)
+    with pytest.raises(PairFormatError, match=r"img\.bin: not a readable image \(") as exc:
+        image_header_size(p)
+    assert "\n" not in str(exc.value)
+
+
+def test_process_with_a_truncated_png_is_one_line_and_exit_2(descent, tmp_path, capsys):
+    d = copy_pair(descent, tmp_path)
+    (d / "i2.png").write_bytes((d / "i2.png").read_bytes()[:20])  # `head -c 20`
+    err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert "i2.png: not a readable image" in err
+
+
+def test_streamed_descent_reports_a_pair_with_a_garbled_image_and_goes_on(descent, tmp_path):
+    pairs = tmp_path / "pairs"
+    shutil.copytree(descent.parent, pairs)
+    (pairs / "600_300" / "i2.png").write_bytes(b"P5\nabc def\n255\n")  # garbled header, same name
+    s = run_hil(pairs / "manifest.json", tmp_path / "run", "zmq")
+    got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
+    assert got == [("600/300", "error", "bad_input"), ("300/150", "result", None)]
+    assert "i2.png: not a readable image" in s["records"][0]["text"]
+
+
+# --------------------------------------------------------------------------- 2. trajectory fields
+def trajectory(tmp_path: Path, pair: dict, frame0: dict | None = None) -> Path:
+    frames = [{"position_m": [0, 0, 600], **(frame0 or {})}, {"position_m": [0, 0, 300]}]
+    p = tmp_path / "traj.json"
+    p.write_text(json.dumps({"pairs": [{"label": "x", "frames": frames, **pair}]}))
+    return p
+
+
+BAD_FIELDS = [
+    ({"altitude_m": "abc"}, None, "altitude_m must be a number"),
+    ({"altitude_m": None}, None, "altitude_m must be a number"),
+    ({"altitude_m": True}, None, "altitude_m must be a number"),
+    ({"altitude_m": float("inf")}, None, "altitude_m must be finite"),
+    ({"altitude_m": -300}, None, "altitude_m must be positive"),
+    ({}, {"off_nadir_deg": "x"}, "frame 0: off_nadir_deg must be a number"),
+    ({}, {"heading_deg": None}, "frame 0: heading_deg must be a number"),
+    ({}, {"time_s": "abc"}, "frame 0: time_s must be a number"),
+    ({}, {"time_s": float("nan")}, "frame 0: time_s must be finite"),
+    ({}, {"position_m": [0, 0, "high"]}, "frame 0: position_m must be [x, y, z]"),
+]
+
+
+@pytest.mark.parametrize("pair, frame0, message", BAD_FIELDS, ids=[m for *_, m in BAD_FIELDS])
+def test_non_numeric_trajectory_field_is_one_line_naming_file_pair_and_field(tmp_path, capsys, pair, frame0, message):
+    path = trajectory(tmp_path, pair, frame0)
+    err = one_line_error(capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "out")])
+    assert f"trajectory file {path} pair #0" in err and message in err, err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------- 3. one directory, two pairs
+def test_trajectory_labels_sharing_a_directory_are_refused_up_front(tmp_path, capsys):
+    frames = [[{"position_m": [0, 0, h]}, {"position_m": [0, 0, h / 2]}] for h in (600, 400)]
+    path = tmp_path / "traj.json"
+    path.write_text(
+        json.dumps({"pairs": [{"label": "a/b", "frames": frames[0]}, {"label": "a_b", "frames": frames[1]}]})
+    )
+    err = one_line_error(capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "out")])
+    assert "labels 'a/b' and 'a_b'" in err and "same directory 'a_b'" in err
+    assert not (tmp_path / "out").exists()  # refused before anything is rendered
+
+
+@pytest.mark.parametrize("label", ["..", ".", "", "manifest.json", ["a"]])
+def test_trajectory_label_that_is_no_pair_directory_is_refused(tmp_path, capsys, label):
+    path = trajectory(tmp_path, {"label": label})
+    err = one_line_error(capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "out")])
+    assert "pair #0: label must be a non-empty name" in err
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--pairs", "600/300,600/300"], "--pairs: label '600/300' twice"),
+        (["--frames", "300,150", "--frames", "300.0,150"], "--frames: label '300/150' twice"),
+    ],
+)
+def test_repeated_pairs_or_frames_are_refused(tmp_path, capsys, args, message):
+    err = one_line_error(capsys, ["render", "--scenario", "vertical", *args, "--out", str(tmp_path / "out")])
+    assert message in err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------- 4. seeds
+@pytest.mark.parametrize("seed", ["99999999999999999999999", str(2**62), "-1"])
+def test_render_seed_out_of_range_is_one_line(tmp_path, capsys, seed):
+    err = one_line_error(capsys, ["render", "--scenario", "vertical", "--seed", seed, "--out", str(tmp_path / "out")])
+    assert f"--seed must be in [0, 2**62), got {seed}" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_largest_accepted_seed_renders(tmp_path):
+    from ground_sim.cli import MAX_SEED, check_seed
+    from ground_sim.descent import render_scenario
+    from hil_server.run import scaled_camera
+
+    check_seed(MAX_SEED - 1)
+    # the scene hashes seed + small offsets as int64: the bound leaves room for them
+    out = render_scenario(
+        "vertical", tmp_path, pairs=["100/50"], camera=scaled_camera(32), seed=MAX_SEED - 1, progress=False
+    )
+    assert read_pair(out / "100_50").meta["seed"] == MAX_SEED - 1
+
+
+# --------------------------------------------------------------------------- 5. scenes --table / --workers
+@pytest.fixture
+def no_measuring(monkeypatch):
+    """Fail the test if a measurement starts: every refusal here must come before it."""
+    from ground_sim import library
+
+    def measure(*args, **kw):
+        raise AssertionError("measured before the input was checked")
+
+    monkeypatch.setattr(library, "measure", measure)
+
+
+@pytest.mark.parametrize(
+    "table, extra, message",
+    [
+        ("nodir/x/tab.json", [], "directory {tmp}/nodir/x does not exist"),
+        ("adir", [], "--table {tmp}/adir: is a directory"),
+        ("list.json", [], "--table {tmp}/list.json: not a hazard-share table"),
+        ("broken.json", [], "{tmp}/broken.json: unreadable hazard-share table"),
+        ("tab.json", ["--workers", "0"], "--workers must be >= 1, got 0"),
+        ("tab.json", ["--workers", "-3"], "--workers must be >= 1, got -3"),
+    ],
+)
+def test_scenes_measure_checks_table_and_workers_before_measuring(
+    tmp_path, capsys, no_measuring, table, extra, message
+):
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "list.json").write_text("[1, 2]")
+    (tmp_path / "broken.json").write_text("{")
+    argv = ["scenes", "thesis", "--measure", "--seeds", "1", "--table", str(tmp_path / table), *extra]
+    err = one_line_error(capsys, argv)
+    assert message.format(tmp=tmp_path) in err, err
+
+
+def test_scenes_listing_of_a_missing_table_is_an_error(tmp_path, capsys):
+    err = one_line_error(capsys, ["scenes", "--table", str(tmp_path / "nonexist.json")])
+    assert f"--table {tmp_path / 'nonexist.json'}: no such file" in err
+
+
+# --------------------------------------------------------------------------- 6. sun
+@pytest.mark.parametrize("key", ["elevation_deg", "azimuth_deg"])
+def test_non_finite_sun_in_pair_json_is_an_error_not_a_dropped_sun(descent, tmp_path, capsys, key):
+    d = copy_pair(descent, tmp_path)
+    edit_json(d / "pair.json", lambda doc: doc["sun"].update({key: float("nan")}))
+    err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert f"{d / 'pair.json'}: sun angles must be finite" in err and f"{key} nan" in err
+
+
+@pytest.mark.parametrize(
+    "sun, message",
+    [
+        ("nan,30", "--sun: azimuth must be a finite number of degrees, got nan"),
+        ("30,inf", "elevation must be a finite"),
+    ],
+)
+def test_render_sun_names_the_non_finite_value(tmp_path, capsys, sun, message):
+    err = one_line_error(capsys, ["render", "--scenario", "vertical", "--sun", sun, "--out", str(tmp_path / "out")])
+    assert message in err and "got 30.0" not in err
+
+
+# --------------------------------------------------------------------------- 7. altimeter
+@pytest.mark.parametrize(
+    "reading, message",
+    [
+        (1e9, "frame 0: altimeter_m 1e+09 m is implausible for a camera at z = 600 m"),
+        (0.6, "frame 0: altimeter_m 0.6 m is implausible"),  # km, not m
+        (6000.0, "frame 0: altimeter_m 6000 m is implausible"),  # 5.4 km off
+        (0.0, "frame 0: altimeter_m must be a positive range"),
+        (float("inf"), "frame 0: altimeter_m must be a positive range"),
+    ],
+)
+def test_implausible_altimeter_reading_is_refused(descent, tmp_path, capsys, reading, message):
+    d = copy_pair(descent, tmp_path)
+    edit_json(d / "pair.json", lambda doc: doc["frames"][0].update(altimeter_m=reading))
+    err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert f"{d / 'pair.json'}: {message}" in err, err
+
+
+def test_altimeter_readings_terrain_can_explain_are_accepted(descent):
+    for entry in json.loads(descent.read_text())["pairs"]:  # the renderer's own ranges
+        assert read_pair(descent.parent / entry["path"]).altimeter_m == pytest.approx(entry["altimeter_m"])
+    check_altimeter(50.0, Pose([0, 0, 20.0], NADIR), "low over a 30 m deep crater floor")  # 2.5x, 30 m
+    check_altimeter(12.0, Pose([0, 0, 40.0], NADIR), "over a 28 m hill")
+    check_altimeter(math.nan, Pose([0, 0, 600.0], NADIR), "no reading")
+    from ground_sim.geometry import look_rotation
+
+    # the approach's camera, 49 deg off nadir: the range to the datum is z / cos 49 deg = 1.52 z, not z
+    check_altimeter(1.52 * 2400 - 300, Pose([0, -2400.0, 2400.0], look_rotation(49.0, 0.0)), "approach")
+    with pytest.raises(PairFormatError, match="implausible"):
+        check_altimeter(2 * 600 + 101, Pose([0, 0, 600.0], NADIR), "frame 0")
+
+
+# --------------------------------------------------------------------------- 8. frames
+def test_a_frame_with_both_attitudes_or_earlier_than_the_one_before_is_refused(descent, tmp_path, capsys):
+    """A frame with R_world_to_cam and q_world_to_cam had its q ignored (an upward q too); frames are ordered by
+    time, and a time that runs backwards was accepted."""
+    d = copy_pair(descent, tmp_path)
+    edit_json(d / "pair.json", lambda doc: doc["frames"][1].update({"q_world_to_cam": [1.0, 0.0, 0.0, 0.0]}))
+    err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert "frame 1: give R_world_to_cam or q_world_to_cam, not both" in err
+    d = copy_pair(descent, tmp_path / "t")
+
+    def backwards(doc: dict) -> None:
+        doc["frames"][0]["time_s"], doc["frames"][1]["time_s"] = 5.0, 2.0
+
+    edit_json(d / "pair.json", backwards)
+    err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert "frame 1 is earlier than frame 0 (time_s 2 vs 5)" in err
