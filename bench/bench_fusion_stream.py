@@ -83,10 +83,13 @@ def stream_results(
 
     from flight_sw.pipeline import run_pipeline
     from protocol.pairdir import read_pair
+    from studies.executor import code_fingerprint
 
     preset = preset_with("fast", set_param)
     tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
     tag += "".join(f"-{kv}" for kv in set_param)  # a variant's grids never stand in for another's
+    # nor another code's or model's: a refitted P(safe) model changes every grid (stop 41)
+    tag += "-" + code_fingerprint(["flight_sw"])
     f = grids / f"{case_key(case, seed)}{tag}.pkl"
     if f.is_file():
         return list(pickle.loads(f.read_bytes()))
