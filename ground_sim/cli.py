@@ -138,7 +138,9 @@ def _run(args: argparse.Namespace) -> int:
         raise RenderError("--frames and --pairs exclude each other")
     if args.workers is not None and args.workers < 1:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
-    pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs else None
+    pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs is not None else None
+    if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
+        raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")
     frames = _parse_frames(args.frames)
     # two pairs with one directory: the second would overwrite the first, with exit 0
     if pairs:

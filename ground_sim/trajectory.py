@@ -51,6 +51,7 @@ V_MIN, K_DECEL = 1.0, 0.05
 
 
 MAX_FRAMES = 16
+MAX_ALTITUDE_M = 50_000.0  # a 512 px thesis camera sees 53 m per pixel there; the pair reader stops at 100
 RENDER_FILES = ("manifest.json", "contact.png")  # render_scenario writes these beside the pair directories
 
 
@@ -119,6 +120,8 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
         raise TrajectoryError(f"--frames: need 2-{MAX_FRAMES} altitudes, got {len(alts)}")
     if not all(math.isfinite(a) and a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
         raise TrajectoryError(f"--frames: altitudes must be positive and strictly decreasing, got {alts}")
+    if alts[0] > MAX_ALTITUDE_M:  # the reader refuses pixels over 100 m of ground (protocol.pairdir.scale_notes)
+        raise TrajectoryError(f"--frames: altitudes must be at most {MAX_ALTITUDE_M:g} m, got {alts[0]:g}")
     cam = camera or Camera.thesis()
     if scenario == "vertical":
         s0 = float(max(VERTICAL_UPPER[0], alts[0]))
