@@ -33,7 +33,7 @@ from ground_sim.render import (
     render_view,
 )
 from ground_sim.scene import Scene, SceneParams, load_scene
-from ground_sim.trajectory import PairSpec, frames_at, load_trajectory
+from ground_sim.trajectory import PairSpec, check_distinct_dirs, frames_at, load_trajectory
 from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
 
 __all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
@@ -248,6 +248,7 @@ def render_scenario(
         if missing:
             raise TrajectoryError(f"unknown pair(s) {missing}; this scenario has {list(known)}")
         specs = [known[p] for p in pairs]
+    check_distinct_dirs([s.label for s in specs], "pairs")  # the later pair would overwrite the earlier
     scene_spec = scene if scene is not None else default_scene(name)
     sc = scene_spec if isinstance(scene_spec, Scene) else load_scene(scene_spec, seed, name)
     sun = sun or library.scene_sun(sc, name, seed)

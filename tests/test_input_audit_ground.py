@@ -282,3 +282,13 @@ def test_a_frame_with_both_attitudes_or_earlier_than_the_one_before_is_refused(d
     edit_json(d / "pair.json", backwards)
     err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
     assert "frame 1 is earlier than frame 0 (time_s 2 vs 5)" in err
+
+
+def test_render_scenario_refuses_two_pairs_with_one_directory_before_writing(tmp_path):
+    """The Python entry point as well as the CLI: the later pair would overwrite the earlier."""
+    from ground_sim.descent import render_scenario
+    from protocol.errors import InputError
+
+    with pytest.raises(InputError, match="label '600/300' twice"):
+        render_scenario("vertical", tmp_path / "out", pairs=["600/300", "600/300"])
+    assert not (tmp_path / "out").exists()
