@@ -231,7 +231,9 @@ def _scenes(args: argparse.Namespace) -> int:
         seeds = list(HELD_OUT_SEEDS[: args.seeds])
         print(f"measuring {len(names)} scene(s) on held-out seeds {seeds[0]}-{seeds[-1]} ...", file=sys.stderr)
         doc = lib.merge_shares(old, lib.measure(names, seeds, workers=args.workers))
-        table_path.write_text(json.dumps(doc, indent=1) + "\n")
+        from ground_sim.stream import write_atomic
+
+        write_atomic(table_path, json.dumps(doc, indent=1) + "\n")  # minutes of measuring: never half a table
     elif args.table and not table_path.exists():
         # without --measure there is nothing to list: every scene would be "not measured", exit 0
         raise SceneError(f"--table {table_path}: no such file")
