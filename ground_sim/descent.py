@@ -34,7 +34,7 @@ from ground_sim.render import (
 )
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import PairSpec, check_distinct_dirs, frames_at, load_trajectory
-from protocol.pairdir import Camera, Pair, Pose, Sun, image_name, write_pair
+from protocol.pairdir import MANIFEST_FORMAT, Camera, Pair, Pose, Sun, image_name, write_pair
 
 __all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
 
@@ -286,7 +286,7 @@ def render_scenario(
         _progress(i + 1, len(specs), ps.label, t0, progress)
     e = library.entry(sc)
     manifest = {
-        "format": "hazard-hil-descent/1",
+        "format": MANIFEST_FORMAT,
         "scenario": name,
         "scene": sc.params.name,
         "scene_variant": sc.params.variant,

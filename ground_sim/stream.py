@@ -52,7 +52,7 @@ import numpy as np
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
-from protocol.pairdir import read_pair
+from protocol.pairdir import read_manifest, read_pair
 
 EXIT_LINK_LOST = 3
 LINK_CODES = ("link_down",)
@@ -268,7 +268,7 @@ def stream_descent(
     On :class:`Interrupted` (raised by a signal handler) the records so far are on disk and the
     exception propagates.
     """
-    manifest = json.loads(Path(manifest_path).read_text())
+    manifest = read_manifest(manifest_path)
     base = Path(manifest_path).parent
     entries = manifest["pairs"]
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -554,6 +554,7 @@ def main(argv: list[str] | None = None) -> int:
         unit = auto_elevation_unit_cm(args.link) if args.elevation_unit_cm == "auto" else int(args.elevation_unit_cm)
         if not 1 <= unit <= 1000:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
+        read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
             args.link,
             server=False,

@@ -460,40 +460,6 @@ def _manifest_entries(manifest: Path | None) -> list[dict]:
     return list(_manifest(manifest).get("pairs", []))
 
 
-MANIFEST_FORMAT = "hazard-hil-descent/1"
-
-
-def check_manifest(manifest: Path) -> None:
-    """Refuse, with one line, a manifest the ground could not stream (docs/design.md, "Streaming your own
-    pairs"): not JSON, not an object, another ``format``, no pairs, or an entry without a string ``path``, with
-    a non-string ``label`` or a non-numeric ``altitude_m``. The pair directories themselves are read when their
-    turn comes: a bad pair is that pair's error, and the descent goes on."""
-    try:
-        doc = json.loads(manifest.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"manifest {manifest}: cannot be read ({exc})") from None
-    except ValueError as exc:
-        raise InputError(f"manifest {manifest}: not JSON ({exc})") from None
-    if not isinstance(doc, dict):
-        raise InputError(f'manifest {manifest}: must be a JSON object with "pairs", got {type(doc).__name__}')
-    if doc.get("format", MANIFEST_FORMAT) != MANIFEST_FORMAT:
-        raise InputError(f"manifest {manifest}: format must be {MANIFEST_FORMAT!r}, got {doc['format']!r}")
-    pairs = doc.get("pairs")
-    if not isinstance(pairs, list) or not pairs:
-        raise InputError(f'manifest {manifest}: "pairs" must be a non-empty list of pair entries')
-    for i, e in enumerate(pairs):
-        where = f"manifest {manifest}: pair {i}"
-        if not isinstance(e, dict):
-            raise InputError(f'{where} must be an object with a "path", got {json.dumps(e)[:40]}')
-        if not isinstance(e.get("path"), str) or not e["path"]:
-            raise InputError(f'{where} has no "path" (the pair directory, relative to the manifest)')
-        if "label" in e and not isinstance(e["label"], (str, int)):
-            raise InputError(f'{where}: "label" must be a string, got {json.dumps(e["label"])[:40]}')
-        alt = e.get("altitude_m")
-        if alt is not None and (isinstance(alt, bool) or not isinstance(alt, (int, float))):
-            raise InputError(f'{where}: "altitude_m" must be a number of metres, got {json.dumps(alt)[:40]}')
-
-
 def _manifest_scenario(manifest: Path) -> str:
     """The scenario a rendered descent's manifest names; a hand-made one without it is named by its path."""
     name = _manifest(manifest).get("scenario")
@@ -572,7 +538,9 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         manifest = Path(cfg.manifest)
         if not manifest.is_file():
             raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
-        check_manifest(manifest)
+        from protocol.pairdir import read_manifest
+
+        read_manifest(manifest)  # a malformed one is one line now, not the ground's traceback
         # the report names what was streamed: the manifest's scenario, not the default one
         cfg = replace(cfg, scenario=_manifest_scenario(manifest))
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own

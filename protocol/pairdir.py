@@ -638,3 +638,40 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
         raise PairFormatError(f"{meta_path}: {exc}") from None
     pair.notes += pair.scale_notes()
     return pair
+
+
+MANIFEST_FORMAT = "hazard-hil-descent/1"
+
+
+def read_manifest(path: str | Path) -> dict[str, Any]:
+    """A descent's ``manifest.json`` (docs/design.md, "Streaming your own pairs"), checked: a JSON object whose
+    ``format``, if given, is :data:`MANIFEST_FORMAT`, with a non-empty list ``pairs`` of objects, each with a
+    string ``path`` (the pair directory, relative to the manifest), an optional string ``label`` and an optional
+    numeric ``altitude_m``. One-line :class:`PairFormatError` otherwise. The pair directories themselves are
+    read when their turn comes: a bad pair is that pair's error, and the descent goes on."""
+    manifest = Path(path)
+    try:
+        doc = json.loads(manifest.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PairFormatError(f"manifest {manifest}: cannot be read ({exc})") from None
+    except ValueError as exc:
+        raise PairFormatError(f"manifest {manifest}: not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise PairFormatError(f'manifest {manifest}: must be a JSON object with "pairs", got {type(doc).__name__}')
+    if doc.get("format", MANIFEST_FORMAT) != MANIFEST_FORMAT:
+        raise PairFormatError(f"manifest {manifest}: format must be {MANIFEST_FORMAT!r}, got {doc['format']!r}")
+    pairs = doc.get("pairs")
+    if not isinstance(pairs, list) or not pairs:
+        raise PairFormatError(f'manifest {manifest}: "pairs" must be a non-empty list of pair entries')
+    for i, e in enumerate(pairs):
+        where = f"manifest {manifest}: pair {i}"
+        if not isinstance(e, dict):
+            raise PairFormatError(f'{where} must be an object with a "path", got {json.dumps(e)[:40]}')
+        if not isinstance(e.get("path"), str) or not e["path"]:
+            raise PairFormatError(f'{where} has no "path" (the pair directory, relative to the manifest)')
+        if "label" in e and not isinstance(e["label"], (str, int)):
+            raise PairFormatError(f'{where}: "label" must be a string, got {json.dumps(e["label"])[:40]}')
+        alt = e.get("altitude_m")
+        if alt is not None and (isinstance(alt, bool) or not isinstance(alt, (int, float))):
+            raise PairFormatError(f'{where}: "altitude_m" must be a number of metres, got {json.dumps(alt)[:40]}')
+    return doc

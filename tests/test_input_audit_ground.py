@@ -292,3 +292,16 @@ def test_render_scenario_refuses_two_pairs_with_one_directory_before_writing(tmp
     with pytest.raises(InputError, match="label '600/300' twice"):
         render_scenario("vertical", tmp_path / "out", pairs=["600/300", "600/300"])
     assert not (tmp_path / "out").exists()
+
+
+def test_the_ground_streamer_refuses_a_malformed_manifest_before_opening_its_link(tmp_path, capsys):
+    """`python -m ground_sim.stream` (what `run` starts, and what a user may start against a board) read the
+    manifest without checks: a traceback, after the link was up."""
+    from ground_sim.stream import main as stream_main
+
+    bad = tmp_path / "manifest.json"
+    bad.write_text('{"pairs": [{"label": "x"}]}')
+    argv = ["--link", "serial:/nonexistent/tty@115200", "--manifest", str(bad), "--out", str(tmp_path / "o")]
+    assert stream_main([*argv, "--budget", "host", "--deadline", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("ground: error: manifest") and 'has no "path"' in err, err
