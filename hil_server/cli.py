@@ -343,8 +343,10 @@ def _config(args: argparse.Namespace):
 
         if not BAUD_MIN <= args.baud <= BAUD_MAX:
             raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
-    if args.image_size is not None and not 16 <= args.image_size <= 8192:
-        raise InputError(f"--image-size must be 16..8192 px, got {args.image_size}")
+    from protocol.pairdir import MAX_IMAGE_SIDE
+
+    if args.image_size is not None and not 16 <= args.image_size <= MAX_IMAGE_SIDE:
+        raise InputError(f"--image-size must be 16..{MAX_IMAGE_SIDE} px, got {args.image_size}")
     if args.seed is not None:
         from ground_sim.cli import check_seed
 

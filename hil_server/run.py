@@ -460,12 +460,6 @@ def _manifest_entries(manifest: Path | None) -> list[dict]:
     return list(_manifest(manifest).get("pairs", []))
 
 
-def _manifest_scenario(manifest: Path) -> str:
-    """The scenario a rendered descent's manifest names; a hand-made one without it is named by its path."""
-    name = _manifest(manifest).get("scenario")
-    return str(name) if isinstance(name, str) and name else f"pairs of {manifest}"
-
-
 def _read_records(path: Path) -> list[dict]:
     """The ground's records (a torn last line, impossible with atomic writes, is skipped all the same)."""
     out = []
@@ -540,9 +534,10 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
         from protocol.pairdir import read_manifest
 
-        read_manifest(manifest)  # a malformed one is one line now, not the ground's traceback
-        # the report names what was streamed: the manifest's scenario, not the default one
-        cfg = replace(cfg, scenario=_manifest_scenario(manifest))
+        doc = read_manifest(manifest)  # a malformed one is one line now, not the ground's traceback
+        # the report names what was streamed: the manifest's scenario (a hand-made one: its path), not the default
+        name = doc.get("scenario")
+        cfg = replace(cfg, scenario=name if isinstance(name, str) and name else f"pairs of {manifest}")
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
         check_memory(budget, *_image_side(cfg, manifest))
 

@@ -9,8 +9,7 @@ from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from protocol.errors import InputError
-
-MAX_CAMERA_PX = 8192  # as `run --image-size`: a larger square camera does not fit any budget's memory
+from protocol.pairdir import MAX_IMAGE_SIDE
 
 
 def _positive(kind: str, most: int | None = None):
@@ -94,7 +93,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     _executor_options(p)
     p.add_argument(
         "--camera-px",
-        type=_positive("--camera-px", MAX_CAMERA_PX),
+        type=_positive("--camera-px", MAX_IMAGE_SIDE),
         default=None,
         help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)",
     )
@@ -331,7 +330,7 @@ def register_landings(subparsers: Any) -> None:
         help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
     )
     _executor_options(p)
-    p.add_argument("--camera-px", type=_positive("--camera-px", MAX_CAMERA_PX), default=None, help=argparse.SUPPRESS)
+    p.add_argument("--camera-px", type=_positive("--camera-px", MAX_IMAGE_SIDE), default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
         type=Path,
