@@ -3,8 +3,9 @@
 Every frame of the directory is used (2-16, frame 0 the reference: a multi-baseline sweep,
 :func:`flight_sw.pipeline.run_pipeline_multi`); ``--widest-pair`` uses frames 0 and -1 only.
 
-Writes ``elevation.npy``, ``hazard.npy``, ``state.npy``, ``psafe.npy``,
-``result.json``, pictures (``dem.png``, ``hazard.png``; with a true hazard map
+Writes ``elevation.npy``, ``hazard.npy``, ``state.npy``, ``psafe.npy``, with ``fast`` also
+``sigma.npy`` (the elevation's 1-sigma) and ``filled.npy`` (True where the elevation is a gap fill
+carried into dark shadow, not a match), ``result.json``, pictures (``dem.png``, ``hazard.png``; with a true hazard map
 also ``confusion.png``) and ``report.html``. Ground truth is read here only for
 those pictures and the comparison block of ``result.json`` - never by the pipeline.
 """
@@ -123,6 +124,10 @@ def _process(args: argparse.Namespace) -> int:
         np.save(out / "sigma.npy", res.sigma)
     else:  # an earlier run's sigma must not pass for this one's
         (out / "sigma.npy").unlink(missing_ok=True)
+    if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
+        np.save(out / "filled.npy", res.filled)
+    else:
+        (out / "filled.npy").unlink(missing_ok=True)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "preset": args.preset,
@@ -158,8 +163,10 @@ def _process(args: argparse.Namespace) -> int:
         doc["vs_truth"] = truth
     write_atomic(out / "result.json", json.dumps(doc, indent=1, default=float) + "\n")
     write_process_report(out, pair.images[0], res, pair.truth, doc)
+    fills = res.info.get("dem_filled_fraction")
     line = (
-        f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}, "
+        f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}"
+        f"{'' if fills is None else f' ({fills:.1%} gap fill)'}, "
         f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
     )
     if "dem_error" in truth and truth["dem_error"].get("n"):

@@ -63,7 +63,7 @@ from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
 from protocol.codec import encode_message
 from protocol.errors import EXIT_MEMORY, InputError
-from protocol.grids import elevation_to_wire, psafe_to_wire
+from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
 from protocol.pairdir import STATE_SAFE, Camera, Pose
 
@@ -454,6 +454,8 @@ class FlightProcess:
             hazard_image=np.asarray(res.hazard, dtype=np.float32) if full else None,
             elevation_image=np.asarray(res.elevation, dtype=np.float32) if full else None,
             state_image=np.asarray(res.state, dtype=np.uint8) if full else None,
+            # which elevations are gap fills (all 0 from a back-end or a map without any)
+            elevation_filled=filled_to_wire(grid.filled, step),
         ).validated()
         assert isinstance(msg, Result)
         return msg

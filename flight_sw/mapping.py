@@ -51,6 +51,14 @@ class HazardGrid:
         """The elevation a Result and a score read: ``dem`` where given, else ``elevation``."""
         return self.elevation if self.dem is None else self.dem
 
+    @property
+    def filled(self) -> np.ndarray:
+        """bool (rows, cols): cells whose reported elevation is a gap fill only (``dem`` finite where no
+        match reached the cell); all False without ``dem``."""
+        if self.dem is None:
+            return np.zeros(np.shape(self.hazard), bool)
+        return np.isfinite(self.dem) & ~np.isfinite(self.elevation)
+
     def cell_xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World X, Y of every cell centre."""
         return grid_xy(self.hazard.shape, self.origin_xy, self.cell_m)

@@ -623,6 +623,9 @@ class PipelineResult:
     state: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint8))
     psafe: np.ndarray = field(default_factory=lambda: np.empty(0, np.float32))  # float32 HxW P(safe), NaN outside
     sigma: np.ndarray | None = None  # float32 HxW elevation standard uncertainty (m), NaN where unknown
+    # bool HxW: pixels whose elevation is a gap fill (carried from the nearest matches into dark shadow,
+    # Params.dark_fill_m), not a match there; None: the back-end does not fill (v1, thesis)
+    filled: np.ndarray | None = None
     layers: dict[str, np.ndarray] = field(default_factory=dict)  # evidence features, when Params.keep_layers
 
     def __post_init__(self) -> None:
@@ -1836,10 +1839,14 @@ def _run_v2(
             info["no_site_reason"] = reason
 
     info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if covered.any() else 0.0
+    filled = np.zeros(elevation.shape, bool)
     if dem_fill is not None:
         filled, z_filled, s_filled = dem_fill
         elevation[filled] = z_filled
         sigma[filled] = s_filled
+        filled &= np.isfinite(elevation)
+    # the share of the covered pixels whose reported elevation is a fill: the DEM's coverage counts them
+    info["dem_filled_fraction"] = float(np.count_nonzero(filled & covered) / max(1, int(covered.sum())))
     return _result(
         p,
         level,
@@ -1858,5 +1865,6 @@ def _run_v2(
         state=ev.state,
         psafe=ev.psafe,
         sigma=np.where(np.isfinite(elevation), sigma, np.nan).astype(np.float32),
+        filled=filled,
         layers=layers,
     )

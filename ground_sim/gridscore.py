@@ -84,11 +84,15 @@ def score_grids(
     elevation: np.ndarray | None = None,
     elevation_origin_xy: tuple[float, float] | None = None,
     elevation_cell_m: float | None = None,
+    elevation_filled: np.ndarray | None = None,
 ) -> tuple[dict[str, float], np.ndarray]:
     """Pixel-level scores of a compact Result against ``pair``'s ground truth; also the per-pixel called map.
 
     ``elevation`` is the float grid in metres (NaN = none) on its own geometry (the world grid
-    decimated by the Result's ``elevation_step``: :func:`protocol.grids.decimated_geometry`).
+    decimated by the Result's ``elevation_step``: :func:`protocol.grids.decimated_geometry`);
+    ``elevation_filled`` (bool, its shape; optional) marks its gap fills. The scores then also hold
+    ``dem_coverage_pct`` (scored pixels with an elevation) and ``dem_filled_pct`` (those whose elevation
+    is a fill), both in % of the scored pixels.
     """
     truth = pair.truth
     if "depth" not in truth or "hazard" not in truth:
@@ -106,4 +110,14 @@ def score_grids(
         e_cell = float(cell_m if elevation_cell_m is None else elevation_cell_m)
         est = values_at_pixels(elevation, e_origin, e_cell, x, y)
         out.update({f"dem_{k}": float(v) for k, v in scoring.dem_error_stats(est, truth["elevation"], scored).items()})
+        n = max(1, int(scored.sum()))
+        has = scored & np.isfinite(est)
+        out["dem_coverage_pct"] = float(100.0 * np.count_nonzero(has) / n)
+        if elevation_filled is not None:
+            if np.shape(elevation_filled) != np.shape(elevation):
+                raise scoring.ScoringInputError(
+                    f"elevation_filled shape {np.shape(elevation_filled)} != elevation {np.shape(elevation)}"
+                )
+            fill = values_at_pixels(np.asarray(elevation_filled, np.float32), e_origin, e_cell, x, y) > 0.5
+            out["dem_filled_pct"] = float(100.0 * np.count_nonzero(has & fill) / n)
     return out, called

@@ -150,7 +150,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     ``e2e_latency_s <= deadline_s`` (docs/hil.md).
 
     Grids: ``state_grid.npy`` (uint8 codes), ``psafe_grid.npy`` (float32, NaN outside),
-    ``elevation_grid.npy`` (float32 m, NaN = none; on its own, possibly decimated grid);
+    ``elevation_grid.npy`` (float32 m, NaN = none; on its own, possibly decimated grid),
+    ``elevation_filled_grid.npy`` (bool, that grid's shape: the elevation leans on a gap fill) when sent;
     full-resolution maps when sent: ``hazard.npy``, ``elevation.npy``, ``state.npy``.
     """
     rec: dict = {
@@ -178,6 +179,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         "psafe_grid": psafe_from_wire(r.psafe_grid),  # on its own (decimated) geometry
         "elevation_grid": elevation_from_wire(r.elevation_grid, r.elevation_offset_m, r.elevation_unit_cm),
     }
+    if r.elevation_filled is not None:
+        arrays["elevation_filled_grid"] = np.asarray(r.elevation_filled, bool)
     for name, arr in (("hazard", r.hazard_image), ("elevation", r.elevation_image), ("state", r.state_image)):
         if arr is not None:
             arrays[name] = np.asarray(arr)

@@ -138,6 +138,7 @@ def score_records(records: list[dict]) -> list[dict]:
         truth = pair.truth
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
+            fills = d / "elevation_filled_grid.npy"
             scores, called = score_grids(
                 pair,
                 np.load(d / "state_grid.npy"),
@@ -146,6 +147,7 @@ def score_records(records: list[dict]) -> list[dict]:
                 elev,
                 tuple(rec.get("elevation_origin_xy") or rec["grid_origin_xy"]),
                 float(rec.get("elevation_cell_m") or rec["grid_cell_m"]),
+                np.load(fills) if elev is not None and fills.is_file() else None,
             )
             rec["scores"] = scores
             np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report

@@ -86,6 +86,7 @@ def sample_messages(seed: int, image_side: int = 32) -> list[Message]:
             elevation_step=2,
             sites=[Site(0.0, 1.0, -0.5, 0.1, 0.9, 2.0, 0.97, 1.5), Site(1.0, 1.0, math.nan, 0.2, 0.8, 3.0)],
             no_site_reason=None,
+            elevation_filled=np.array([[0, 1, 0, 0], [0, 0, 0, 0], [1, 1, 0, 0], [0, 0, 0, 1]], np.uint8),
         ),
         Result(
             frame_seqs=(3, 4),

@@ -90,6 +90,16 @@ def decimate_mean(a: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def filled_to_wire(filled: np.ndarray, step: int = 1) -> np.ndarray:
+    """bool cells whose elevation is a gap fill -> uint8 0/1 decimated by ``step``: 1 where any cell of
+    the k x k block is one (the block's mean elevation then leans on a fill)."""
+    f = np.asarray(filled, bool)
+    if step == 1:
+        return f.astype(np.uint8)
+    blocks = _blocks(f.astype(np.float32), step)
+    return (np.nan_to_num(blocks, nan=0.0).max(axis=(1, 3)) > 0).astype(np.uint8)
+
+
 def elevation_to_wire(elevation: np.ndarray, step: int = 1, unit_cm: int = 1) -> tuple[np.ndarray, float]:
     """float elevation (m, NaN = none) -> (int16 grid in ``unit_cm`` cm, decimated by ``step``; offset in m)."""
     z = decimate_mean(elevation, step)

@@ -376,6 +376,16 @@ def _states(inner: Checker) -> Checker:
     return check
 
 
+def _flags(inner: Checker) -> Checker:
+    def check(v: Any, name: str) -> np.ndarray:
+        arr = inner(v, name)
+        if arr.size and int(arr.max()) > 1:
+            raise SchemaError(f"{name}: flags must be 0 or 1")
+        return arr
+
+    return check
+
+
 @dataclass(frozen=True)
 class Result(Message):
     """Hazard-detection output for the pair ``frame_seqs`` (upper, lower): compact, for a serial line.
@@ -387,7 +397,9 @@ class Result(Message):
       by ``psafe_step`` (block minimum: conservative);
     * ``elevation_grid`` int16 in units of ``elevation_unit_cm`` centimetres above ``elevation_offset_m``
       (-32768 = no elevation), on the grid decimated by ``elevation_step`` k: cell ``[i, j]`` is the mean
-      over grid cells ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``).
+      over grid cells ``[k i : k i + k, k j : k j + k]`` (shape ``ceil(rows / k), ceil(cols / k)``);
+    * ``elevation_filled`` uint8 (optional), the elevation grid's shape: 1 where the cell's elevation leans on
+      a gap fill (an elevation carried into dark shadow, not matched there: any grid cell of its block).
 
     Full-resolution image maps (i1's pixels) only when the Config asked for them (``full_maps``).
     Helpers to build and read these grids: :mod:`protocol.grids`.
@@ -411,6 +423,7 @@ class Result(Message):
     hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
     elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
+    elevation_filled: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
 
     def check_consistency(self) -> None:
         shape = np.shape(self.state_grid)
@@ -427,6 +440,10 @@ class Result(Message):
             raise SchemaError(
                 f"Result.elevation_grid: shape {np.shape(self.elevation_grid)} != state_grid {shape} "
                 f"decimated by {k} = {want}"
+            )
+        if self.elevation_filled is not None and np.shape(self.elevation_filled) != want:
+            raise SchemaError(
+                f"Result.elevation_filled: shape {np.shape(self.elevation_filled)} != elevation_grid {want}"
             )
         images = [a for a in (self.hazard_image, self.elevation_image, self.state_image) if a is not None]
         if any(np.shape(a) != np.shape(images[0]) for a in images):

@@ -63,3 +63,45 @@ def test_dark_ground_near_a_match_gets_an_elevation_but_no_safe_call():
         assert np.array_equal(a, b, equal_nan=True)
     assert not np.any(fill.state[got] == STATE_SAFE)
     assert fill.valid_fraction > none.valid_fraction and fill.info["dense"]["filled"] > 0
+    # the outputs say which elevations are fills: exactly those the DEM without fills lacks
+    assert fill.filled is not None and none.filled is not None and not none.filled.any()
+    assert np.array_equal(fill.filled, np.isfinite(fill.elevation) & ~lit)
+    cov = fill.covered
+    assert math.isclose(fill.info["dem_filled_fraction"], (fill.filled & cov).sum() / cov.sum(), rel_tol=1e-6)
+    assert none.info["dem_filled_fraction"] == 0.0
+    # ... and so does the world grid a Result is built from, and the Result itself
+    g = fill.grid
+    assert g.filled.any() and not none.grid.filled.any()
+    assert np.isfinite(g.reported_elevation[g.filled]).all() and not np.isfinite(g.elevation[g.filled]).any()
+    _result_round_trip(g)
+
+
+def _result_round_trip(g) -> None:
+    from protocol.codec import decode_message, encode_message
+    from protocol.grids import filled_to_wire
+    from protocol.messages import Result
+
+    for step in (1, 2, 3):
+        wire = filled_to_wire(g.filled, step)
+        rows, cols = g.filled.shape
+        assert wire.shape == (-(-rows // step), -(-cols // step))
+        for i, j in zip(*np.nonzero(g.filled)):  # a block with any fill is flagged
+            assert wire[i // step, j // step] == 1
+        for i, j in zip(*np.nonzero(wire == 0)):
+            assert not g.filled[i * step : i * step + step, j * step : j * step + step].any()
+    from protocol.grids import elevation_to_wire
+
+    z, off = elevation_to_wire(g.reported_elevation, 2)
+    msg = Result(
+        frame_seqs=(0, 1),
+        state_grid=np.asarray(g.state, np.uint8),
+        psafe_grid=np.zeros(g.state.shape, np.uint8),
+        elevation_grid=z,
+        grid_origin_xy=g.origin_xy,
+        grid_cell_m=g.cell_m,
+        elevation_step=2,
+        elevation_offset_m=off,
+        elevation_filled=filled_to_wire(g.filled, 2),
+    ).validated()
+    back = decode_message(encode_message(msg))
+    assert np.array_equal(back.elevation_filled, filled_to_wire(g.filled, 2))

@@ -50,9 +50,11 @@ def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
     out = tmp_path / "out"
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
     assert (out / "sigma.npy").is_file()
+    filled, elev = np.load(out / "filled.npy"), np.load(out / "elevation.npy")
+    assert filled.dtype == bool and filled.shape == elev.shape and np.isfinite(elev[filled]).all()
     assert main(["process", str(d), "--out", str(out), "--preset", "thesis"]) == 0
     assert json.loads((out / "result.json").read_text())["preset"] == "thesis"
-    assert not (out / "sigma.npy").exists()
+    assert not (out / "sigma.npy").exists() and not (out / "filled.npy").exists()
 
 
 def test_process_deadline_zero_is_degraded(tmp_path):

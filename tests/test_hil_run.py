@@ -48,6 +48,11 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
         assert not (tmp_path / "received" / r["pair_id"] / "hazard.npy").exists()  # no full maps unless asked
         assert 0.0 <= r["scores"]["fp_pct"] <= 100.0 and r["scores"]["n"] > 0
         assert np.isfinite(r["scores"]["dem_mean_abs"])
+        # which elevations are gap fills travels with the grid; a fill always has an elevation
+        d = tmp_path / "received" / r["pair_id"]
+        elev, fills = np.load(d / "elevation_grid.npy"), np.load(d / "elevation_filled_grid.npy")
+        assert fills.dtype == bool and fills.shape == elev.shape and np.isfinite(elev[fills]).all()
+        assert 0.0 <= r["scores"]["dem_filled_pct"] <= r["scores"]["dem_coverage_pct"] <= 100.0
     assert s["deadline_hit_rate"] == 1.0
     assert s["e2e_latency_p50_s"] <= s["e2e_latency_p95_s"] <= s["e2e_latency_max_s"]
     assert s["complete"] is True and s["reason"] is None

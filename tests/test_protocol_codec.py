@@ -197,6 +197,9 @@ def test_compact_result_survives_bitwise_and_arrays_are_read_only():
     assert out.sites == [] and out.degraded is True and out.no_site_reason == "no footprint is known safe"
     for name in ("state_grid", "psafe_grid", "elevation_grid"):
         assert getattr(out, name).tobytes() == getattr(r, name).tobytes() and not getattr(out, name).flags.writeable
+    assert out.elevation_filled is None  # optional: a flight program that does not fill does not send it
+    f = np.array([[0, 1], [0, 0]], np.uint8)
+    assert decode_message(encode_message(_result(elevation_filled=f))).elevation_filled.tobytes() == f.tobytes()
 
 
 def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
@@ -216,6 +219,8 @@ def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
         (dict(state_grid=np.array([[0, 3], [2, 255]], np.uint8)), "state codes"),
         (dict(grid_cell_m=0.0), "> 0"),
         (dict(hazard_image=np.zeros((4, 4), np.float32), state_image=np.zeros((4, 3), np.uint8)), "one shape"),
+        (dict(elevation_filled=np.zeros((3, 2), np.uint8)), "elevation_filled: shape"),
+        (dict(elevation_filled=np.array([[0, 2], [1, 0]], np.uint8)), "0 or 1"),
     ],
 )
 def test_result_grids_must_agree(kw, match):
