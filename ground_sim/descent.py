@@ -21,7 +21,7 @@ import numpy as np
 from ground_sim import library
 from ground_sim.errors import TrajectoryError
 from ground_sim.library import DEFAULT_SUN, covered, share_pct
-from ground_sim.pose_error import PoseError
+from ground_sim.pose_error import PoseDelta, PoseError
 from ground_sim.render import (
     DEFAULT_RASTER,
     MAX_CELLS,
@@ -34,7 +34,18 @@ from ground_sim.render import (
 )
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import PairSpec, check_distinct_dirs, frames_at, load_trajectory
-from protocol.pairdir import MANIFEST_FORMAT, Camera, Pair, Pose, Sun, image_name, write_pair
+from protocol.pairdir import (
+    MANIFEST_FORMAT,
+    Camera,
+    Pair,
+    PairFormatError,
+    Pose,
+    Sun,
+    check_altimeter,
+    check_sees_ground,
+    image_name,
+    write_pair,
+)
 
 __all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
 
@@ -151,13 +162,47 @@ def assemble_pair(
         "render": [v.info | {"raster_origin_m": [float(x) for x in v.info["raster_origin_m"]]} for v in views],
         "render_version": RENDER_VERSION,  # render caches reuse a pair only if this renderer drew it
     }
-    reported = spec.poses
+    reported, deltas = reported_poses(spec, seed, pose_error)
     if pose_error is not None:
-        rng = np.random.default_rng([seed & 0xFFFFFFFF, _key(spec.label), 0xE77])
-        deltas = pose_error.sample_n(rng, len(spec.poses))
-        reported = tuple(d.apply(p) for d, p in zip(deltas, spec.poses))
         meta["pose_error"] = {"distribution": pose_error.to_dict(), "frames": [d.to_dict() for d in deltas]}
     return Pair(spec.camera, reported, images, sun, truth, meta, altimeter_m=tuple(float(v.altimeter_m) for v in views))
+
+
+def reported_poses(
+    spec: PairSpec, seed: int, pose_error: PoseError | None
+) -> tuple[tuple[Pose, ...], tuple[PoseDelta, ...]]:
+    """The poses navigation reports for ``spec``'s frames (the true ones plus ``pose_error``'s draws, seeded by
+    ``seed`` and the pair's label) and the draws."""
+    if pose_error is None:
+        return spec.poses, ()
+    rng = np.random.default_rng([seed & 0xFFFFFFFF, _key(spec.label), 0xE77])
+    deltas = pose_error.sample_n(rng, len(spec.poses))
+    return tuple(d.apply(p) for d, p in zip(deltas, spec.poses)), deltas
+
+
+def check_reported_poses(specs: list[PairSpec], seed: int, pose_error: PoseError | None) -> None:
+    """Refuse, before any rendering, a pose error that puts a reported camera under the ground or so far from
+    its true height that the pair's altimeter check (:func:`protocol.pairdir.check_altimeter`) will refuse the
+    pair when it is written. The true pose's range to the datum stands in for the altimeter reading, which
+    the terrain moves by tens of metres; the check at writing stays the one that decides."""
+    if pose_error is None:
+        return
+    for spec in specs:
+        reported, _ = reported_poses(spec, seed, pose_error)
+        for k, (true, rep) in enumerate(zip(spec.poses, reported)):
+            what = f"pair {spec.label} frame {k} with the injected pose error"
+            check_sees_ground(rep, what)
+            cos_off = -float(true.R[2, 2])
+            if cos_off <= 0:
+                continue
+            try:
+                check_altimeter(float(true.position[2]) / cos_off, rep, what)
+            except PairFormatError:
+                raise PairFormatError(
+                    f"{what}: the camera is reported at z = {rep.position[2]:.1f} m, {true.position[2]:.1f} m truly; "
+                    f"its altimeter reading would contradict that, and the pair would be refused when written "
+                    f"(protocol.pairdir.check_altimeter): use a smaller altitude error"
+                ) from None
 
 
 def render_pair(
@@ -173,6 +218,7 @@ def render_pair(
     raster: str = DEFAULT_RASTER,
 ) -> Pair:
     """Render every frame of ``spec``; reported poses carry the injected errors, truth is for frame 0."""
+    check_reported_poses([spec], seed, pose_error)
     views = render_views(
         scene,
         spec.camera,
@@ -249,6 +295,7 @@ def render_scenario(
             raise TrajectoryError(f"unknown pair(s) {missing}; this scenario has {list(known)}")
         specs = [known[p] for p in pairs]
     check_distinct_dirs([s.label for s in specs], "pairs")  # the later pair would overwrite the earlier
+    check_reported_poses(specs, seed, pose_error)  # not after minutes of rendering, when the pair is written
     scene_spec = scene if scene is not None else default_scene(name)
     sc = scene_spec if isinstance(scene_spec, Scene) else load_scene(scene_spec, seed, name)
     sun = sun or library.scene_sun(sc, name, seed)

@@ -94,8 +94,10 @@ def check_raster(raster: str) -> None:
 
 
 def _check_args(sun: Sun, supersample: int, max_cells: int = MAX_CELLS) -> None:
-    if not (0.0 < sun.elevation_deg <= 90.0) or not math.isfinite(sun.azimuth_deg):
+    if not (0.0 < sun.elevation_deg <= 90.0):
         raise RenderError(f"sun elevation must be in (0, 90] deg, got {sun.elevation_deg}")
+    if not math.isfinite(sun.azimuth_deg):
+        raise RenderError(f"sun azimuth must be a finite angle in deg, got {sun.azimuth_deg}")
     if supersample < 1 or supersample > 8:
         raise RenderError(f"supersample must be 1..8, got {supersample}")
     check_max_cells(max_cells)

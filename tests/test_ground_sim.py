@@ -346,6 +346,11 @@ def test_bad_views_give_clear_errors():
         render_view(sc, CAM, Pose([0, 0, -30.0], look_rotation(0.0)), Sun(135, 25))
     with pytest.raises(RenderError, match="sky"):
         render_view(sc, CAM, Pose([0, 0, 100.0], look_rotation(85.0)), Sun(135, 25))
+    # each sun angle is blamed for its own fault
+    with pytest.raises(RenderError, match=r"sun azimuth must be a finite angle in deg, got nan"):
+        render_view(sc, CAM, Pose([0, 0, 100.0], look_rotation(0.0)), Sun(math.nan, 25))
+    with pytest.raises(RenderError, match=r"sun elevation must be in \(0, 90\] deg, got 95"):
+        render_view(sc, CAM, Pose([0, 0, 100.0], look_rotation(0.0)), Sun(135, 95))
     with pytest.raises(TrajectoryError):
         load_trajectory("nowhere")
     with pytest.raises(InputError):

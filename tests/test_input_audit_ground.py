@@ -305,3 +305,13 @@ def test_the_ground_streamer_refuses_a_malformed_manifest_before_opening_its_lin
     assert stream_main([*argv, "--budget", "host", "--deadline", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("ground: error: manifest") and 'has no "path"' in err, err
+
+
+# --------------------------------------------------------------------------- pose errors, before rendering
+def test_a_pose_error_the_altimeter_check_would_refuse_is_refused_before_rendering(tmp_path, capsys):
+    """The pair's altimeter check refused such a pair when it was written, after the frames were rendered."""
+    out = tmp_path / "r"
+    argv = ["render", "--scenario", "vertical", "--pairs", "600/300", "--pose-error", "alt=2000", "--out", str(out)]
+    err = one_line_error(capsys, argv + ["--no-progress"])
+    assert "pair 600/300 frame 0 with the injected pose error" in err and "600.0 m truly" in err
+    assert not out.exists()  # nothing rendered, nothing written
