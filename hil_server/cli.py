@@ -316,6 +316,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         help="a far end silent or not acknowledging this long ends the link session (s, default 4)",
     )
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
+    p.add_argument("--fault", default=None, help=argparse.SUPPRESS)  # tests: crash@N | hang@N | oom@N (our flight sw)
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
     p.add_argument("--no-progress", action="store_true", help="no render progress bar (per-pair lines still print)")
 
@@ -380,6 +381,7 @@ def _config(args: argparse.Namespace):
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
         link_fault=args.link_fault,
+        fault=args.fault,
         flight=args.flight,
         flight_cmd=args.flight_cmd,
         keys=args.keys,

@@ -415,7 +415,9 @@ class EmulatedProcessor:
                 )
             )
         child.threads = threads
-        for t in threads:
+        # the reaper last: a child that exits at once must not find the stderr pump unstarted (it joins it, and
+        # a join before start raised, leaving the exit unclassified until the heartbeat watchdog caught it)
+        for t in threads[1:] + threads[:1]:
             t.start()
         return popen
 

@@ -41,6 +41,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -51,6 +52,7 @@ from protocol.errors import InputError
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
+SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time to end its session and log its counters
 
 
 @dataclass
@@ -233,6 +235,41 @@ def _fmt(v, spec: str = ".2f") -> str:
     return format(v, spec)
 
 
+FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry")  # supervisor.jsonl events the summary keeps
+MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
+
+
+def flight_note(summary: dict) -> str:
+    """One line on what the HIL server had to do about the flight process ("" when nothing): restarts, refused
+    messages, missing Telemetry, dropped line garbage, with the last reason. Crashes between pairs cost no pair
+    but are reported here; a run whose server counters are missing says so."""
+    c = summary.get("supervisor_counters") or {}
+    if summary.get("budget") is not None and not c and summary.get("complete"):
+        return "the HIL server's counters are missing (see supervisor.log)"
+    parts = []
+    for key, one, many in (
+        ("crashes", "crash", "crashes"),
+        ("hangs", "hang", "hangs"),
+        ("memory_ceiling", "memory ceiling breach", "memory ceiling breaches"),
+        ("restarts", "restart", "restarts"),
+        ("refused_messages", "refused message", "refused messages"),
+        ("missing_telemetry", "Result without Telemetry", "Results without Telemetry"),
+        ("flight_line_errors", "corrupted frame dropped", "corrupted frames dropped"),
+    ):
+        n = int(c.get(key) or 0)
+        if n:
+            parts.append(f"{n} {one if n == 1 else many}")
+    if not parts:
+        return ""
+    events = summary.get("flight_events") or []
+    last = events[-1] if events else None
+    why = ""
+    if last is not None:
+        text = last.get("reason") or last.get("text") or ""
+        why = f" (last: {last.get('event')}: {text})"
+    return "flight process: " + ", ".join(parts) + why
+
+
 def summary_table(summary: dict) -> str:
     rows = [
         "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
@@ -264,6 +301,9 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
+    note = flight_note(s)
+    if note:
+        head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
     return head + "\n\n" + "\n".join(rows) + "\n"
@@ -313,6 +353,10 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
             raise InputError(f"--flight-cmd: program {argv[0]!r} not found (give a path or a command on PATH)")
         if cfg.fault:
             raise InputError("--fault injects faults into our flight software, not into a --flight-cmd program")
+    if cfg.fault:  # a bad spec would fail every flight incarnation at start: said now
+        from flight_sw.flight_main import FaultPlan
+
+        FaultPlan.parse(cfg.fault)
     if cfg.link_fault:  # said now, not by a supervisor that dies at start
         from hil_server.supervisor import parse_link_fault
 
@@ -674,6 +718,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 log(f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end")
             ground = _spawn(ground_cmd, env)
             rc, sup_reason = _wait_ground(ground, sup, cfg.timeout_s, out / "supervisor.log")
+            if sup is not None and rc in (0, EXIT_LINK_LOST):
+                # the ground closed its session: the server ends by itself and writes its counters
+                # (restarts, crashes, refused messages); a SIGTERM at once used to cut them short
+                try:
+                    sup.wait(timeout=SUPERVISOR_EXIT_S)
+                except subprocess.TimeoutExpired:
+                    pass
             if sup_reason is not None:
                 reason = sup_reason
             elif rc is None:
@@ -709,9 +760,12 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         records = _missing(entries, records, manifest.parent if manifest else out, f"not run: {reason}")
     score_records(records)
     counters = {}
+    flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
     for line in _read_records(out / "supervisor.jsonl"):
         if line.get("event") == "summary":
             counters = {k: v for k, v in line.items() if k != "event"}
+        elif line.get("event") in FLIGHT_EVENTS:
+            flight_events.append(line)
     summary = summarize(
         records,
         cfg,
@@ -726,9 +780,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             "memory_mib": budget.memory_mib if emulated else None,
             "wall_s": wall,
             "supervisor_counters": counters,
+            "flight_events": list(flight_events),
             "ground_exit": rc,
         },
     )
+    note = flight_note(summary)
+    if note:
+        log(f"run: {note}")
     table = summary_table(summary)
     from hil_server.run_report import write_run_report
     from reports.html import write_atomic

@@ -51,13 +51,26 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from protocol.errors import InputError
-from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
 EXIT_LINK_LOST = 3
+EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
+MAX_BOOT_FAILURES = 3
+MESSAGE_NAMES = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}
+MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
+# link counters of the flight line that mean "the flight process sent something the HIL server refused":
+# a record over the size limit or of an unknown type (reassembly_errors), a body that fails to decode or the
+# schema, e.g. a wrong-shaped grid (decode_errors); and frames dropped as line garbage
+REFUSED_STATS = ("decode_errors", "reassembly_errors")
+LINE_ERROR_STATS = ("crc_errors", "malformed", "oversize")
+
+
+class FlightFailed(Exception):
+    """The flight program cannot be brought up (it dies before it says Hello, again and again)."""
 
 
 @dataclass
@@ -183,9 +196,35 @@ class FlightHandle:
             self.proc.start(argv, pass_fds=(child.fileno(),))
             child.close()
             self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
+        self.last_refusal: str | None = None  # the latest message refused from this incarnation, for a hang's reason
+        self.seen = dict.fromkeys(REFUSED_STATS + LINE_ERROR_STATS, 0.0)  # link counters already accounted for
         # the flight side answers the ground's Hello (docs/protocol.md section 6); ours says Hello unasked
         self.link.send(Hello(role="hil-server"))
         self.hello = False
+
+    def take_refusals(self) -> list[tuple[int | None, str]]:
+        """(type code, reason) of the messages the link refused from this incarnation since the last call."""
+        arq = getattr(self.link, "arq", None)
+        return list(arq.take_refusals()) if arq is not None else []  # another link: counted from its stats only
+
+    def skipping(self) -> str | None:
+        """Why the link is skipping the record the flight process is sending now (it is over a limit), or None."""
+        arq = getattr(self.link, "arq", None)
+        return arq.refusing if arq is not None else None
+
+    def new_counts(self) -> dict[str, int]:
+        """The refusal and line-error counters of this incarnation's link since the last call."""
+        try:
+            stats = self.link.stats
+            stats = stats() if callable(stats) else stats
+        except Exception:  # a closed link: nothing new
+            return {}
+        out = {}
+        for k, before in self.seen.items():
+            now = float(stats.get(k, before))
+            out[k] = int(now - before)
+            self.seen[k] = now
+        return out
 
     def close(self, reason: str | None = None) -> None:
         if reason and self.proc.alive:
@@ -245,7 +284,12 @@ class Supervisor:
             "hangs": 0,
             "link_errors": 0,
             "stale_results": 0,
+            "refused_messages": 0,  # messages from the flight process the HIL server refused (with reasons)
+            "missing_telemetry": 0,  # Results the flight process sent no Telemetry for
+            "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
         }
+        self.boot_failures = 0  # flight incarnations in a row that died before their Hello
+        self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
         # open for the supervisor's lifetime, closed in serve()'s finally
         self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None  # noqa: SIM115
         self.t_start = time.monotonic()  # telemetry times are seconds since the supervisor started
@@ -273,6 +317,7 @@ class Supervisor:
 
     def _restart_flight(self, reason: str) -> None:
         assert self.flight is not None
+        self._check_refusals()  # what this incarnation sent that was refused is accounted for before it goes
         report = None
         if self.flight.proc.alive:
             self.flight.proc.kill(reason)
@@ -281,7 +326,14 @@ class Supervisor:
             self.flight_reader.stopped.set()
         self.flight.close()
         self.counters["restarts"] += 1
+        self.boot_failures = 0 if self.flight.hello else self.boot_failures + 1
         self.log(f"supervisor: flight process restarted ({reason}; exit {report})")
+        self._write_telemetry({"event": "restart", "reason": reason, "exit": str(report)})
+        if self.boot_failures >= MAX_BOOT_FAILURES:  # a crash loop would go on until the ground's 15 min wait
+            last = getattr(report, "reason", None) or reason
+            raise FlightFailed(
+                f"the flight process died {self.boot_failures} times in a row before it said Hello; last: {last}"
+            )
         self._start_flight()
 
     def _hard_limit(self) -> float:
@@ -554,26 +606,107 @@ class Supervisor:
     def _outstanding(self) -> bool:
         return any(not self.pairs[pid].done for pid in self.order)
 
+    def _check_refusals(self) -> None:
+        """Account for what the HIL server refused from the flight process since the last look.
+
+        Every refused message is counted and logged with its reason. A refused Result (a wrong-shaped grid, a
+        field out of range, an array over the decoder's budget) ends the oldest pair waiting for one at once as
+        ``bad_result`` with that reason: the flight process will not send it again, and waiting for the hard
+        limit would report a hang. A refused Telemetry completes its pair without one (the Result stands).
+        """
+        assert self.flight is not None
+        counts = self.flight.new_counts()
+        reasons = self.flight.take_refusals()
+        # a datagram that failed to decode is counted but not REJECTed (and a flood may outrun the kept reasons)
+        unexplained = sum(counts.get(k, 0) for k in REFUSED_STATS) - len(reasons)
+        if unexplained > 0:
+            reasons.append((None, "a datagram or message that failed to decode (reason not kept)"))
+            self.counters["refused_messages"] += unexplained - 1  # the one appended is counted below
+        for type_code, reason in reasons:
+            self.counters["refused_messages"] += 1
+            what = MESSAGE_NAMES.get(type_code, "message") if type_code is not None else "message"
+            self.flight.last_refusal = f"{what} refused: {reason}"
+            n = self.counters["refused_messages"]
+            if n <= MAX_REFUSAL_LOGS:
+                more = "; further refusals are only counted" if n == MAX_REFUSAL_LOGS else ""
+                self.log(f"supervisor: the flight process sent a {what} the HIL server refused: {reason}{more}")
+                self._write_telemetry({"event": "refused", "type": what, "reason": reason})
+            if type_code == Result.TYPE:
+                st = self._oldest_outstanding()
+                if st is not None:
+                    self._fail_pair(st, "bad_result", f"the flight process's Result was refused: {reason}")
+            elif type_code == Telemetry.TYPE:
+                st = self._oldest_without_telemetry()
+                if st is not None:
+                    self._complete_without_telemetry(st, f"its Telemetry was refused: {reason}")
+        garbage = sum(counts.get(k, 0) for k in LINE_ERROR_STATS)
+        if garbage > 0:
+            if self.counters["flight_line_errors"] == 0:
+                self.log(f"supervisor: corrupted or malformed frames from the flight process dropped ({garbage})")
+            self.counters["flight_line_errors"] += garbage
+
+    def _oldest_without_telemetry(self) -> PairState | None:
+        for pid in self.order:
+            st = self.pairs[pid]
+            if not st.done and st.result is not None and st.flight_telemetry is None:
+                return st
+        return None
+
+    def _complete_without_telemetry(self, st: PairState, why: str) -> None:
+        """A pair whose Result came but whose Telemetry did not: the Result is kept, the timing is the server's."""
+        assert st.result_at is not None
+        self.counters["missing_telemetry"] += 1
+        self.log(f"supervisor: pair {st.pair_id}: no Telemetry from the flight process ({why}); Result kept")
+        self._write_telemetry({"pair_id": st.pair_id, "event": "missing_telemetry", "text": why})
+        deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
+        st.flight_telemetry = Telemetry(
+            frame_seqs=st.fseqs,
+            total_latency_s=max(0.0, st.result_at - (st.complete_at or st.result_at)),
+            deadline_s=deadline,
+            link={"flight_telemetry_missing": 1.0},
+        )
+        self._finish_if_delivered(st)
+
+    def _flight_note(self) -> str:
+        """What the HIL server refused from the current flight incarnation, for a hang's reason (or "")."""
+        assert self.flight is not None
+        skipping = self.flight.skipping()
+        if skipping:
+            return f"; the flight process is sending a message the HIL server refuses ({skipping})"
+        last = self.flight.last_refusal
+        return f"; last refused from the flight process: {last}" if last else ""
+
     def _check_watchdogs(self) -> None:
         assert self.flight is not None
+        self._check_refusals()
         now = time.monotonic()
         st = self._oldest_outstanding()
         if st is not None and st.complete_at is not None and now - st.complete_at > self._hard_limit():
             self.counters["hangs"] += 1
+            skipping = self.flight.skipping()
+            if skipping:  # a record over the limit: the link refuses it only once all its bytes went by
+                self.counters["refused_messages"] += 1
+                self._write_telemetry({"event": "refused", "type": "message", "reason": skipping})
             self._fail_pair(
                 st,
                 "deadline_hang",
                 f"no result {now - st.complete_at:.1f} s after the last frame "
-                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted",
+                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted{self._flight_note()}",
             )
             self._restart_flight("hung past the hard deadline")
             return
+        waiting = self._oldest_without_telemetry()
+        if waiting is not None and waiting.result_at is not None and now - waiting.result_at > self._hard_limit():
+            late = now - waiting.result_at
+            self._complete_without_telemetry(
+                waiting, f"none {late:.1f} s after its Result (hard limit {self._hard_limit():.1f} s)"
+            )
         hb_limit = HEARTBEAT_TIMEOUT_S / max(self.cpu_fraction, 0.01)
         assert self.flight_reader is not None
         if now - self.flight_reader.last_message > hb_limit:
             self.counters["hangs"] += 1
             if st is not None:
-                self._fail_pair(st, "heartbeat_lost", f"no heartbeat for {hb_limit:.1f} s")
+                self._fail_pair(st, "heartbeat_lost", f"no heartbeat for {hb_limit:.1f} s{self._flight_note()}")
             self._restart_flight("heartbeat lost")
             return
         report = self.flight.proc.poll()
@@ -611,14 +744,20 @@ class Supervisor:
                 if not self._check_ground_link():
                     return self._exit_code()
         finally:
+            self.closing = True  # main()'s SIGTERM handler no longer interrupts: the summary must be written
             ground_reader.stopped.set()
             if self.flight_reader:
                 self.flight_reader.stopped.set()
-            if self.flight:
-                self.flight.close("supervisor shutdown")
-            self._write_telemetry({"event": "summary", **self.counters})
-            if self.telemetry_file:
-                self.telemetry_file.close()
+            try:
+                if self.flight:
+                    self._check_refusals()
+            finally:  # the counters first: closing the flight process may take a while
+                self._write_telemetry({"event": "summary", **self.counters})
+                if self.telemetry_file:
+                    self.telemetry_file.close()
+                    self.telemetry_file = None
+                if self.flight:
+                    self.flight.close("supervisor shutdown")
 
     def _exit_code(self) -> int:
         return EXIT_LINK_LOST if self.counters["link_errors"] else 0
@@ -682,7 +821,11 @@ def main(argv: list[str] | None = None) -> int:
         log(f"supervisor: error: {exc}")
         return 2
 
+    sup: Supervisor | None = None
+
     def _term(signum, frame):  # orderly shutdown: the finally blocks kill the flight process
+        if sup is not None and sup.closing:
+            return  # already shutting down: let the summary and the flight process's kill finish
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _term)
@@ -702,13 +845,19 @@ def main(argv: list[str] | None = None) -> int:
         f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
         f"deadline {budget.deadline_s} s; own memory ceiling {limit / 2**20:.0f} MiB address space"
     )
+    failed: str | None = None
     try:
         return sup.serve(idle_timeout_s=args.idle_timeout)
     except KeyboardInterrupt:
         return sup._exit_code()
+    except FlightFailed as exc:
+        failed = str(exc)
+        return EXIT_FLIGHT_FAILED
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # already shutting down: finish closing the link
         link.close()
+        if failed:  # the last line of supervisor.log: `run` reports it as the reason
+            log(f"supervisor: error: {failed}")
 
 
 if __name__ == "__main__":

@@ -188,6 +188,9 @@ class _Seg:
     acked: bool = False
 
 
+REFUSALS_KEPT = 64  # refused messages whose reasons an Arq keeps for its owner (take_refusals)
+
+
 @dataclass
 class _Event:
     kind: str  # "established" | "lost" | "restarted" | "closed"
@@ -243,6 +246,9 @@ class Arq(SessionView):
         self._events: list[_Event] = []
         self._received: list[Received] = []
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
+        # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
+        # tells the owner (a supervisor reports what its flight process sent that was refused); bounded
+        self._refusals: deque[tuple[int, str]] = deque(maxlen=REFUSALS_KEPT)
         self._outcomes: OrderedDict[int, str] = OrderedDict()
         self._times: OrderedDict[int, MessageTimes] = OrderedDict()
         self._pos_id: OrderedDict[int, tuple[int, str]] = OrderedDict()  # record position -> (id, name)
@@ -706,14 +712,30 @@ class Arq(SessionView):
             if self._rgot == self._rlen:
                 if self._rskip is not None:
                     self.stats["reassembly_errors"] += 1
-                    self._reject(self._rpos, self._rskip)
+                    self._reject(self._rpos, self._rskip, self._rtype)
                 else:
                     self._deliver(self._rtype, bytes(self._rbuf), self._rpos, self._rt0, now, self._rlen)
                 self._rlen, self._rbuf, self._rskip = None, bytearray(), None
 
-    def _reject(self, pos: int, reason: str) -> None:
+    def _reject(self, pos: int, reason: str, type_code: int) -> None:
         self.stats["rejected_sent"] += 1
+        self._refusals.append((type_code, reason))
         self._control.append(reject_frame(self.sess.local, self.sess.peer, pos, reason))
+
+    def take_refusals(self) -> list[tuple[int, str]]:
+        """(type code, reason) of each message refused from the peer since the last call (the latest
+        :data:`REFUSALS_KEPT`; ``stats`` counts them all): a record over the size limit or of an unknown type,
+        a body that fails to decode or the schema. Refused datagrams are listed too (they get no REJECT)."""
+        out = []
+        while self._refusals:  # popped one by one: the link's I/O thread may append meanwhile
+            out.append(self._refusals.popleft())
+        return out
+
+    @property
+    def refusing(self) -> str | None:
+        """Why the record arriving now will be refused once its last byte is in (it is over the size limit or of
+        an unknown type: its bytes are skipped as they come), or None."""
+        return self._rskip
 
     def _deliver(self, type_code: int, body: bytes, pos: int, t_first: float, now: float, nbytes: int) -> None:
         try:
@@ -721,7 +743,9 @@ class Arq(SessionView):
         except InputError as exc:
             self.stats["decode_errors"] += 1
             if pos >= 0:
-                self._reject(pos, str(exc))
+                self._reject(pos, str(exc), type_code)
+            else:
+                self._refusals.append((type_code, str(exc)))
             return
         self.stats["messages_received"] += 1
         self._received.append(Received(msg, pos, t_first, now, nbytes, self.epoch))

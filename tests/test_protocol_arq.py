@@ -179,6 +179,10 @@ def test_oversize_record_is_rejected_before_it_is_buffered():
     line.run(line.now + 10, stop=lambda s: str(s.eps[0].outcome(ids[0])).startswith("failed"))
     assert "peer rejected: message of" in line.eps[0].outcome(ids[0])
     assert line.eps[1].held_bytes()["reassembly"] == 0 and line.received[1] == []
+    # the receiver's owner learns the same reason, once, with the refused record's type (a Frame)
+    (refused,) = line.eps[1].take_refusals()
+    assert refused[0] == Frame.TYPE and refused[1].startswith("message of") and "10000-byte limit" in refused[1]
+    assert line.eps[1].take_refusals() == [] and line.eps[1].refusing is None
     ids = send(line, [frame(1, 32)])  # the stream goes on after the refused record
     line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) == "delivered")
     assert [r.message.seq for r in line.received[1]] == [1]

@@ -1,0 +1,186 @@
+"""Fault handling of `hazard-hil run`, end to end through the CLI: each fault is detected, reported with a reason,
+counted, and the run goes on (or ends non-zero at once), with an outcome record for every pair.
+
+The faulty flight programs are examples/minimal_flight.py with one fault each (``--flight-cmd``); the rest runs for
+real: the supervisor, the emulated processor, the ground streamer, a pty pair. Small 128 px pairs, host budget.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+from hilkit import small_descent
+
+from hil_server.cli import main
+
+PAIRS = ["600/300", "300/150", "200/100"]
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+# A flight program from the spec (examples/minimal_flight.py) that misbehaves from the second pair on, per --mode.
+FAULTY_FLIGHT = """
+import argparse, os, struct, sys, time
+sys.path.insert(0, {examples!r})
+import minimal_flight as mf
+import numpy as np, serial
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--port")
+ap.add_argument("--mode")
+args = ap.parse_args()
+link = mf.Link(serial.serial_for_url(args.port, baudrate=921600, timeout=0.02))
+config, pending, answered, next_beat = None, {{}}, 0, 0.0
+
+
+def telemetry(pair):
+    return {{"frame_seqs": [pair[0]["seq"], pair[1]["seq"]], "stages": {{}}, "total_latency_s": 0.0,
+            "deadline_s": float(config["deadline_s"]), "deadline_met": True}}
+
+
+while not link.closed_by_peer:
+    for mtype, msg in link.poll():
+        if mtype == mf.HELLO_MSG:
+            link.send(mf.HELLO_MSG, {{"role": "flight", "session": link.local}})
+        elif mtype == mf.CONFIG:
+            config = msg
+        elif mtype == mf.FRAME_MSG:
+            pair = pending.setdefault(msg["pair_id"], {{}})
+            pair[msg["frame_index"]] = msg
+            if len(pair) < 2:
+                continue
+            del pending[msg["pair_id"]]
+            res = mf.answer(pair[0], pair[1], config)
+            faulty = answered >= 1
+            if faulty and args.mode == "hostile" and answered == 1:
+                res["state_grid"] = mf.array(np.full((3,), 2, np.uint8))  # 1-D: refused by the schema
+            link.send(mf.RESULT, res)
+            if faulty and args.mode == "hostile":  # then a message nested 5000 deep
+                body = b"\\x92\\x01" + b"\\x91" * 5000 + b"\\xc0"
+                link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(body)) + body
+            if not (faulty and args.mode == "no_telemetry"):
+                link.send(mf.TELEMETRY, telemetry(pair))
+            answered += 1
+            if args.mode == "crash_between_pairs":  # exit once the answer is out: no pair is outstanding
+                end = time.monotonic() + 0.3
+                while time.monotonic() < end:
+                    link.poll()
+                os._exit(7)
+    now = time.monotonic()
+    if now >= next_beat:
+        link.datagram(mf.HEARTBEAT, {{"time_s": now, "counter": 1}})
+        next_beat = now + 0.5
+"""
+
+
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory):
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    path = tmp_path_factory.mktemp("flight") / "faulty_flight.py"
+    path.write_text(FAULTY_FLIGHT.format(examples=str(EXAMPLES)))
+    return path
+
+
+def run_cli(manifest, out, *extra) -> tuple[int, dict, str]:
+    """`hazard-hil run` on the host budget over serial: (exit code, summary.json, summary.md)."""
+    argv = ["run", "--manifest", str(manifest), "--budget", "host", "--link", "serial", "--out", str(out), *extra]
+    code = main(argv)
+    return code, json.loads((out / "summary.json").read_text()), (out / "summary.md").read_text()
+
+
+def flight_cmd(flight: Path, mode: str) -> list[str]:
+    return ["--flight-cmd", f"{sys.executable} {flight} --mode {mode} --port {{port}}"]
+
+
+def outcomes(summary: dict) -> list[tuple[str, str, str | None]]:
+    return [(r["label"], r["status"], r.get("code")) for r in summary["records"]]
+
+
+def test_a_refused_result_ends_its_pair_at_once_with_the_schema_reason(manifest, flight, tmp_path):
+    """A wrong-shaped grid used to vanish in the link (refused, reason sent only to the flight program): the pair
+    then waited for the hard limit and was reported as a hang. A hostile message was not reported at all."""
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "hostile"))
+    assert code == 1
+    assert outcomes(s) == [("600/300", "result", None), ("300/150", "error", "bad_result"), ("200/100", "result", None)]
+    text = s["records"][1]["text"]
+    assert "Result was refused" in text and "state_grid" in text and "2-D" in text
+    counters = s["supervisor_counters"]
+    assert counters["refused_messages"] == 3  # the bad Result and two nested messages
+    reasons = [e["reason"] for e in s["flight_events"] if e["event"] == "refused"]
+    assert sum("nesting deeper" in r for r in reasons) == 2
+    assert "3 refused messages" in md
+
+
+def test_crashes_between_pairs_are_counted_and_reported(manifest, flight, tmp_path, capsys):
+    """Every pair is answered, but the program crashes after each: the run passes and says so. The HIL server's
+    counters used to be lost (it was stopped before it could write them), so nothing said it."""
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "crash_between_pairs"))
+    assert code == 0 and s["results"] == 3
+    counters = s["supervisor_counters"]
+    assert counters["crashes"] >= 2 and counters["restarts"] == counters["crashes"]
+    assert any(e["event"] == "restart" and "status 7" in e["reason"] for e in s["flight_events"])
+    assert "crashes" in md and "status 7" in md
+    assert "flight process: " in capsys.readouterr().out
+
+
+def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
+    """The ground used to wait 36 s per pair for the Telemetry and record "no result" although it held the Result."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "no_telemetry"), "--deadline", "1")
+    assert [r["status"] for r in s["records"]] == ["result"] * 3
+    assert s["supervisor_counters"]["missing_telemetry"] == 2
+    assert all(e["event"] == "missing_telemetry" for e in s["flight_events"])
+    assert code == 0
+
+
+def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manifest, tmp_path):
+    """It used to be restarted in a loop while the ground waited up to 15 min for its Hello."""
+    cmd = f"{sys.executable} -c \"import sys; sys.exit('cannot open {{port}}')\""
+    code, s, _ = run_cli(manifest, tmp_path, "--flight-cmd", cmd)
+    assert code == 1 and s["complete"] is False
+    assert "died 3 times in a row before it said Hello" in s["reason"] and "cannot open" in s["reason"]
+    assert [r["label"] for r in s["records"]] == PAIRS  # every pair has an outcome
+    assert all(r["status"] == "error" and r["code"] in ("not_run", "link_down") for r in s["records"])
+    assert s["supervisor_counters"]["restarts"] == 3
+
+
+def test_fault_injection_reaches_our_flight_software_from_the_cli(manifest, tmp_path):
+    code, s, _ = run_cli(manifest, tmp_path, "--fault", "crash@1")
+    assert code == 1
+    want = [("600/300", "result", None), ("300/150", "error", "flight_crash"), ("200/100", "result", None)]
+    assert outcomes(s) == want
+    assert "SIGABRT" in s["records"][1]["text"]
+    assert s["supervisor_counters"]["crashes"] == 1
+    assert main(["run", "--fault", "boom@1", "--out", str(tmp_path / "bad")]) == 2
+
+
+def test_a_child_that_exits_at_once_gets_an_exit_report(monkeypatch):
+    """The reaper joined the stderr pump, which could still be unstarted when the child had exited at once (a
+    RuntimeError in the reaper, no exit report: the supervisor saw the exit only when the heartbeat watchdog fired).
+    Here the pump's start is made slow, which is what a busy supervisor's threads did."""
+    import time
+
+    from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+
+    errors = []
+    monkeypatch.setattr(threading, "excepthook", lambda a: errors.append(a.exc_value))
+    start = threading.Thread.start
+
+    def slow_start(self):
+        if self.name.startswith("procemu-stderr"):
+            time.sleep(0.3)
+        start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", slow_start)
+    for _ in range(3):
+        proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=1.0, memory_mib=256))
+        proc.start([sys.executable, "-c", "import sys; sys.exit(3)"])
+        report = proc.wait(20.0)
+        proc.close()
+        assert report is not None and report.returncode == 3 and "status 3" in report.reason
+    assert errors == []
