@@ -409,7 +409,9 @@ def stream_descent(
         failed = [f for f in link.failures() if f.seq in ids]
         outs = [link.outcome(i) or "" for i in ids]
         if failed or any(x == "pending" for x in outs):
-            why = "; ".join(f"{f.message_type} not delivered: {f.reason}" for f in failed) or "frames still queued"
+            # both frames usually fail for one reason: said once
+            whys = dict.fromkeys(f"{f.message_type} not delivered: {f.reason}" for f in failed)
+            why = "; ".join(whys) or "frames still queued"
             give_up(o, "link_down", why)
             return False
         t_up, t_low = link.times(ids[0]), link.times(ids[1])

@@ -672,6 +672,6 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
         if "label" in e and not isinstance(e["label"], (str, int)):
             raise PairFormatError(f'{where}: "label" must be a string, got {json.dumps(e["label"])[:40]}')
         alt = e.get("altitude_m")
-        if alt is not None and (isinstance(alt, bool) or not isinstance(alt, (int, float))):
+        if alt is not None and (isinstance(alt, bool) or not isinstance(alt, (int, float)) or not math.isfinite(alt)):
             raise PairFormatError(f'{where}: "altitude_m" must be a number of metres, got {json.dumps(alt)[:40]}')
     return doc

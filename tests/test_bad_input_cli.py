@@ -26,6 +26,7 @@ CASES = [
     (["run", "--manifest", "M"], '"pairs" must be a non-empty list'),  # was a 0/0 run, exit 1
     (["run", "--manifest", "NOPATH"], 'pair 0 has no "path"'),
     (["run", "--manifest", "ALT"], '"altitude_m" must be a number of metres, got "high"'),
+    (["run", "--manifest", "ALTNAN"], '"altitude_m" must be a number of metres, got NaN'),  # was taken silently
     (["run", "--manifest", "STR"], 'pair 0 must be an object with a "path"'),
     (["run", "--manifest", "LIST"], "must be a JSON object"),
     (["run", "--manifest", "FORMAT"], "format must be 'hazard-hil-descent/1'"),
@@ -57,6 +58,7 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
         "BAD": "{bad",
         "NOPATH": '{"pairs": [{"label": "x"}]}',
         "ALT": '{"pairs": [{"path": "p", "altitude_m": "high"}]}',
+        "ALTNAN": '{"pairs": [{"path": "p", "altitude_m": NaN}]}',
         "STR": '{"pairs": ["ok"]}',
         "LIST": "[]",
         "FORMAT": '{"format": "x", "pairs": [{"path": "p"}]}',
