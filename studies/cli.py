@@ -12,25 +12,30 @@ from protocol.errors import InputError
 from protocol.pairdir import MAX_IMAGE_SIDE
 
 
-def _positive(kind: str, most: int | None = None):
+def _positive(kind: str, most: int | None = None, least: int = 1):
     def conv(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{kind} must be an integer, got {text!r}") from None
-        if v < 1 or (most is not None and v > most):
-            raise argparse.ArgumentTypeError(f"{kind} must be >= 1{f' and <= {most}' if most else ''}, got {v}")
+        if v < least or (most is not None and v > most):
+            raise argparse.ArgumentTypeError(f"{kind} must be >= {least}{f' and <= {most}' if most else ''}, got {v}")
         return v
 
     return conv
 
 
-def add_seed_options(p: argparse.ArgumentParser, what: str = "scene seeds") -> None:
+MIN_CAMERA_PX = 32  # studies.evaluate.camera_for refuses smaller cameras (in a worker, after the work started)
+
+
+def add_seed_options(
+    p: argparse.ArgumentParser, what: str = "scene seeds", how: str = "results are medians over seeds"
+) -> None:
     """``--seed-set tuning|held-out`` (default held-out), ``--seeds N`` (the first N of it), ``--seed-list``."""
     p.add_argument(
         "--seed-set",
         choices=["held-out", "tuning"],
-        default="held-out",
+        default=None,
         help="which documented seed set to draw from (ground_sim.seeds): held-out 1000-1099 (default; "
         "quote these) or tuning 0-9 (tune on these)",
     )
@@ -38,9 +43,16 @@ def add_seed_options(p: argparse.ArgumentParser, what: str = "scene seeds") -> N
         "--seeds",
         type=_positive("--seeds"),
         default=None,
-        help=f"number of {what}: the first N of the seed set; results are medians over seeds",
+        help=f"number of {what}: the first N of the seed set; {how}",
     )
     p.add_argument("--seed-list", default=None, help="explicit comma-separated seeds instead (e.g. 1000,1003)")
+
+
+def check_backend(args: argparse.Namespace) -> None:
+    """``--workers`` sizes the local pool; with ``--scheduler`` the cluster's workers run it, so both is a
+    contradiction (the count was ignored)."""
+    if getattr(args, "scheduler", None) is not None and getattr(args, "workers", None) is not None:
+        raise InputError("--workers sets local processes; with --scheduler the Dask cluster's workers run: give one")
 
 
 def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], str]:
@@ -59,12 +71,19 @@ def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], 
         if not seeds or len(set(seeds)) != len(seeds):
             raise InputError(f"--seed-list: need distinct seeds, got {args.seed_list!r}")
         sets = sorted({seed_set_of(x) for x in seeds})
+        if args.seed_set is not None and sets != [args.seed_set]:
+            other = [x for x in seeds if seed_set_of(x) != args.seed_set]
+            raise InputError(
+                f"--seed-list {args.seed_list}: seed(s) {other[:5]} are not in the {args.seed_set} set given by "
+                "--seed-set; drop --seed-set or list only its seeds"
+            )
         return seeds, sets[0] if len(sets) == 1 else "mixed"
-    pool = SEED_SETS[args.seed_set]
+    name = args.seed_set or "held-out"
+    pool = SEED_SETS[name]
     n = args.seeds or default_n
     if n > len(pool):
-        raise InputError(f"--seeds {n}: the {args.seed_set} set has only {len(pool)} seeds")
-    return list(pool[:n]), args.seed_set
+        raise InputError(f"--seeds {n}: the {name} set has only {len(pool)} seeds")
+    return list(pool[:n]), name
 
 
 def describe_seeds(seeds: list[int], seed_set: str) -> str:
@@ -93,7 +112,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     _executor_options(p)
     p.add_argument(
         "--camera-px",
-        type=_positive("--camera-px", MAX_IMAGE_SIDE),
+        type=_positive("--camera-px", MAX_IMAGE_SIDE, MIN_CAMERA_PX),
         default=None,
         help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)",
     )
@@ -172,9 +191,12 @@ def _parse_alts(text: str | None) -> list[int] | None:
     if text is None:
         return None
     try:
-        return [int(float(a)) for a in text.split(",") if a.strip()]
-    except ValueError:
+        alts = [int(float(a)) for a in text.split(",") if a.strip()]
+    except (ValueError, OverflowError):
         raise InputError(f"--altitudes: expected comma-separated numbers, got {text!r}") from None
+    if not alts:
+        raise InputError("--altitudes is empty: give comma-separated table altitudes, e.g. 300,150")
+    return alts
 
 
 def _parse_frames(scenario: str, text: str | None) -> list[float]:
@@ -192,6 +214,11 @@ def _parse_frames(scenario: str, text: str | None) -> list[float]:
     return alts
 
 
+def _note(message: str) -> None:
+    """A progress line: on stderr like every progress bar, so stdout keeps the tables alone."""
+    print(message, file=sys.stderr, flush=True)
+
+
 def _presets(choice: str) -> list[str]:
     return {"both": ["fast", "thesis"], "refine": ["fast", "fast_unrefined"]}.get(choice, [choice])
 
@@ -201,6 +228,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from studies import report
     from studies.executor import CampaignError
 
+    check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     if args.frames is not None and not args.multi_frame:
         raise InputError("--frames sets the multi-frame descents' altitudes: it needs --multi-frame")
@@ -234,7 +262,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             frames=frames,
             cache_dir=args.cache,
             camera_px=args.camera_px,
-            progress=None if args.no_progress else print,
+            progress=None if args.no_progress else _note,
             max_cells=args.max_raster_cells,
             raster=args.raster,
         )
@@ -245,6 +273,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         title=f"hazard-hil evaluate: {args.scenario} scenario, {seeds_text}",
         figure_preset=_presets(args.preset)[0],
         multiframe=multi,
+        map_tag=ev.render_tag(args.max_raster_cells, args.raster),
     )
     print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
@@ -260,6 +289,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     from studies import report
     from studies.executor import CampaignError
 
+    check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
     try:
@@ -330,7 +360,8 @@ def register_landings(subparsers: Any) -> None:
         help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
     )
     _executor_options(p)
-    p.add_argument("--camera-px", type=_positive("--camera-px", MAX_IMAGE_SIDE), default=None, help=argparse.SUPPRESS)
+    camera = _positive("--camera-px", MAX_IMAGE_SIDE, MIN_CAMERA_PX)
+    p.add_argument("--camera-px", type=camera, default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
         type=Path,
@@ -338,7 +369,7 @@ def register_landings(subparsers: Any) -> None:
         help="keep rendered pairs here and reuse them (campaigns that differ only in aim points, navigation "
         "errors or presets render once); default: no cache",
     )
-    add_seed_options(p, "scene seeds to cycle through")
+    add_seed_options(p, "scene seeds to cycle through", "the landings of every seed are pooled")
     p.add_argument(
         "--raster",
         choices=list(RASTERS),
@@ -358,6 +389,7 @@ def _landings(args: argparse.Namespace) -> int:
     from studies.executor import CampaignError
 
     scenes = [e.name for e in library.entries()] if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
+    check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error
     c = ld.Campaign(
@@ -372,9 +404,10 @@ def _landings(args: argparse.Namespace) -> int:
         args.raster,
     )
     ld.claim_out_dir(c, args.out)
+    drawn = seeds[: min(len(seeds), -(-c.n_groups // len(scenes)))]  # render g takes seed g // len(scenes)
     print(
         f"landings: {c.n_landings} landings in {c.n_groups} renders over {', '.join(scenes)}; "
-        f"{describe_seeds(seeds, seed_set)}; presets {', '.join(c.presets)}",
+        f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
         file=sys.stderr,
     )
     t0 = time.time()
@@ -389,17 +422,23 @@ def _landings(args: argparse.Namespace) -> int:
         )
     except CampaignError as exc:
         print(f"hazard-hil landings: {exc}; rerun the same command to retry them", file=sys.stderr)
+        print(f"partial summary (complete: false): {args.out / 'landings.json'}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"partial summary (complete: false): {args.out / 'landings.json'}", file=sys.stderr)
+        raise
     for p, st in summary["per_preset"].items():
         lo, hi = st["p_safe_ci95"]
         print(
             f"{p:7s} P(safe) {st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]  P(no site) {st['p_no_site']:.3f}  "
             f"P(unsafe site) {st['p_unsafe']:.3f}  aim point safe {st['p_aim_safe']:.3f}  "
-            f"divert p50 {st['divert_m']['p50'] or float('nan'):.1f} m  (n = {st['n']})"
+            f"divert p50 {'-' if st['divert_m']['p50'] is None else format(st['divert_m']['p50'], '.1f') + ' m'}  "
+            f"(n = {st['n']})"
         )
         for why, k in summary.get("no_site_reasons", {}).get(p, {}).items():
             print(f"{'':7s}   no site x {k}: {why}")
-    print(f"{describe_seeds(seeds, seed_set)}; wall {time.time() - t0:.0f} s")
+    used = [int(x) for x in summary.get("seeds_used") or seeds]  # the landings drew these, not the whole set
+    print(f"{describe_seeds(used, seed_set)}; wall {time.time() - t0:.0f} s")
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0

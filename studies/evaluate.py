@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
+import sys
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -692,6 +693,13 @@ def render_tag(max_cells: int | None, raster: str = DEFAULT_RASTER) -> str:
     return tag + ("" if raster == "view" else f"_{raster}")
 
 
+def task_inputs(camera_px: int | None) -> str:
+    """What a scoring task's result depends on beyond its id (``run_tasks(inputs=...)``): a rerun into the same
+    ``--out`` with another ``--camera-px`` scores its own renders instead of reusing the other camera's results
+    (the ids, which name scenario, preset, seed, altitude and raster, leave the camera out)."""
+    return f"camera_px={camera_px or THESIS_CAMERA_PX}"
+
+
 def scenario_scene(scenario: str) -> str:
     """Scene preset per scenario (:func:`ground_sim.descent.default_scene`, as ``render`` and ``run`` use)."""
     from ground_sim.descent import default_scene
@@ -880,6 +888,7 @@ def evaluate_scenario(
             desc=f"evaluate {scenario}",
             pool=pool,
             code=code_fingerprint(EVAL_CODE),
+            inputs=task_inputs(camera_px),
         )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     write_metrics_csv(rows, out / "metrics.csv")
@@ -1049,12 +1058,13 @@ def sensitivity_campaign(
     )
     tasks: list[Any] = []
     info: dict[str, dict[str, Any]] = {}
+    tag = render_tag(max_cells, raster)
     for preset in presets:
         for e in pairs:
             alt = int(round(e["altitude_m"]))
             for i in range(-1, samples):
                 pe = None if i < 0 else sample_pose_error(kind, e["seed"] * 100003 + alt, i)
-                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{render_tag(max_cells, raster)}"
+                tid = f"{kind}-{preset}-s{e['seed']}-{alt}-{'ref' if i < 0 else i}{tag}"
                 tasks.append(
                     Task(tid, {"pair_dir": e["pair_dir"], "preset": preset, "pose_error": pe, "truth_slope": False})
                 )
@@ -1075,11 +1085,12 @@ def sensitivity_campaign(
         progress=progress,
         desc=f"sensitivity {kind}",
         code=code_fingerprint(EVAL_CODE),
+        inputs=task_inputs(camera_px),
     )
     rows = []
     for t in tasks:
         meta = info[t.id]
-        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{render_tag(max_cells, raster)}"]
+        ref = res[f"{kind}-{meta['preset']}-s{meta['seed']}-{meta['altitude_m']}-ref{tag}"]
         r = res[t.id]
         row = {
             **meta,
@@ -1136,9 +1147,17 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     six thesis levels are reported one by one.
     """
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    no_dem: dict[tuple[str, str, int], int] = {}
     for r in rows:
-        if r["sample"] >= 0 and r.get("dem_mean_rel_pct") is not None:
-            groups.setdefault((r["kind"], r["preset"], int(r["altitude_m"])), []).append(r)
+        if r["sample"] < 0:
+            continue
+        key = (r["kind"], r["preset"], int(r["altitude_m"]))
+        no_dem[key] = no_dem.get(key, 0) + (r.get("dem_mean_rel_pct") is None)
+        if r.get("dem_mean_rel_pct") is not None:
+            groups.setdefault(key, []).append(r)
+    lost = sorted(k for k, v in no_dem.items() if v and k not in groups)
+    if lost:  # every sample without a DEM error: say so rather than leave the row out
+        print(f"note: sensitivity: no sample of {lost} has a DEM error to compare", file=sys.stderr, flush=True)
     out = []
     for (kind, preset, alt), rs in sorted(groups.items()):
         rel = np.array([r["dem_mean_rel_pct"] for r in rs], float)
@@ -1148,6 +1167,8 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "preset": preset,
             "altitude_m": alt,
             "n": len(rs),
+            # samples left out of the statistics: no DEM (or none in the perfect-knowledge reference)
+            "n_no_dem": no_dem.get((kind, preset, alt), 0),
             "median_rel_pct": float(np.median(rel)),
             "max_rel_pct": float(rel.max()),
             "within_15pct": float(np.mean(rel <= 15.0) * 100),

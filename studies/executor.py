@@ -57,6 +57,7 @@ class CampaignError(RuntimeError):
 
 
 SOURCE_SUFFIXES = (".py", ".json", ".c")
+MAX_LISTED_FAILURES = 20  # failed tasks listed one per line on stderr; the rest are counted
 
 
 def code_fingerprint(packages: Iterable[str], suffixes: tuple[str, ...] = SOURCE_SUFFIXES) -> str:
@@ -84,10 +85,11 @@ def code_fingerprint(packages: Iterable[str], suffixes: tuple[str, ...] = SOURCE
     return h.hexdigest()[:16]
 
 
-def load_results(path: str | Path, code: str | None = None) -> dict[str, dict[str, Any]]:
+def load_results(path: str | Path, code: str | None = None, inputs: str | None = None) -> dict[str, dict[str, Any]]:
     """Finished results in a JSON-lines file, by id (unparsable lines, e.g. a cut-off write, are skipped).
 
-    With ``code``, only records computed by that fingerprint count; the last record of an id wins.
+    With ``code``, only records computed by that fingerprint count, and with ``inputs`` only records made
+    from those inputs; the last record of an id wins.
     """
     p = Path(path)
     out: dict[str, dict[str, Any]] = {}
@@ -100,7 +102,7 @@ def load_results(path: str | Path, code: str | None = None) -> dict[str, dict[st
             except json.JSONDecodeError:
                 continue
             ok = isinstance(rec, dict) and "id" in rec and isinstance(rec.get("result"), dict)
-            if ok and (code is None or rec.get("code") == code):
+            if ok and (code is None or rec.get("code") == code) and (inputs is None or rec.get("inputs") == inputs):
                 out[str(rec["id"])] = rec["result"]
     return out
 
@@ -152,12 +154,14 @@ def run_tasks(
     desc: str = "tasks",
     pool: Any = None,
     code: str | None = None,
+    inputs: str | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
 
     ``code`` (:func:`code_fingerprint` of what ``fn`` runs) is stored with each result, and a result
     another fingerprint computed is not reused: the task runs again, and a one-line note on stderr
-    says how many did.
+    says how many did. ``inputs`` (a short text) names what the results depend on beyond their ids, such as
+    the camera: a result saved with other ``inputs`` is not reused either.
 
     The returned dict follows the order of ``tasks``. ``scheduler`` selects
     Dask (address string or ``distributed.Client``); otherwise ``pool`` (an
@@ -173,26 +177,78 @@ def run_tasks(
         raise InputError(f"duplicate task ids: {dup[:5]}")
     path = Path(results_path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    done = load_results(path, code)
+    done = load_results(path, code, inputs)
     pending = [t for t in tasks if t.id not in done]
-    if code is not None and pending:
+    if (code is not None or inputs is not None) and pending:
         stale = set(load_results(path)) & {t.id for t in pending}
         if stale:
+            other = "by other code" if inputs is None else f"by other code or not from {inputs}"
             print(
-                f"note: {desc}: {len(stale)} of {len(tasks)} saved results in {path} were computed by other code;"
+                f"note: {desc}: {len(stale)} of {len(tasks)} saved results in {path} were computed {other};"
                 " computing them again",
                 file=sys.stderr,
                 flush=True,
             )
-    bar = Progress(len(tasks), len(tasks) - len(pending), desc, enabled=progress)
+    reused = len(tasks) - len(pending)
+    if reused:
+        print(
+            f"note: {desc}: reusing {reused} of {len(tasks)} results saved in {path}; computing {len(pending)}",
+            file=sys.stderr,
+            flush=True,
+        )
+    bar = Progress(len(tasks), reused, desc, enabled=progress)
     failures: dict[str, str] = {}
 
+    try:
+        _run_pending(fn, pending, path, done, bar, failures, scheduler, workers, pool, code, inputs)
+    except KeyboardInterrupt:
+        # say what is kept: the finished results are on disk and a rerun of the same command reuses them
+        kept = sum(t.id in done for t in tasks)
+        print(
+            f"{chr(10) if sys.stderr.isatty() else ''}interrupted: {desc}: {kept} of {len(tasks)} results saved "
+            f"in {path}; rerun the same command to resume",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise
+    if failures:
+        # every failure with its reason, one line each (the error names only the first), and the count
+        for task_id, why in sorted(failures.items())[:MAX_LISTED_FAILURES]:
+            print(f"failed: {desc}: {task_id}: {why}", file=sys.stderr, flush=True)
+        if len(failures) > MAX_LISTED_FAILURES:
+            print(f"failed: {desc}: ... and {len(failures) - MAX_LISTED_FAILURES} more", file=sys.stderr, flush=True)
+        print(
+            f"{desc}: {len(tasks) - len(failures)} of {len(tasks)} done, {len(failures)} failed; the finished ones "
+            f"are saved in {path}",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise CampaignError(failures)
+    return {t.id: done[t.id] for t in tasks}
+
+
+def _run_pending(
+    fn: Callable[..., dict[str, Any]],
+    pending: list[Task],
+    path: Path,
+    done: dict[str, dict[str, Any]],
+    bar: Progress,
+    failures: dict[str, str],
+    scheduler: Any,
+    workers: int | None,
+    pool: Any,
+    code: str | None,
+    inputs: str | None = None,
+) -> None:
+    """Run ``pending`` on the chosen backend, appending each result to ``path`` as it arrives."""
     with path.open("a") as fh:
         if path.stat().st_size and not _ends_with_newline(path):
             fh.write("\n")  # close a line cut off by an interruption so the next record starts clean
 
         def record(task_id: str, result: dict[str, Any]) -> None:
             rec = {"id": task_id, "result": result, **({"code": code} if code is not None else {})}
+            if inputs is not None:
+                rec["inputs"] = inputs
             fh.write(json.dumps(rec, default=_json_default, sort_keys=True) + "\n")
             fh.flush()
             done[task_id] = json.loads(json.dumps(result, default=_json_default))
@@ -217,9 +273,6 @@ def run_tasks(
                         failures[t.id] = f"{type(exc).__name__}: {exc}"
                         continue
                     record(t.id, res)
-    if failures:
-        raise CampaignError(failures)
-    return {t.id: done[t.id] for t in tasks}
 
 
 def _run_pool(
@@ -257,7 +310,19 @@ def _drain(
     except KeyboardInterrupt:
         for f in futs:
             f.cancel()
+        _stop_workers(pool)
         raise
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """End the pool's worker processes at once on an interrupt. Their running tasks' results would not be
+    recorded anyway, and a pool left to shut down by itself could hang the interrupted command for good
+    when a second Ctrl-C arrived during its shutdown (seen with ``timeout -s INT``)."""
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        try:
+            p.terminate()
+        except Exception:  # already gone
+            pass
 
 
 def _run_dask(

@@ -469,7 +469,7 @@ def run_campaign(
     ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
     Returns (rows, summary)."""
     from studies.evaluate import EVAL_CODE
-    from studies.executor import Task, code_fingerprint, run_tasks
+    from studies.executor import CampaignError, Task, code_fingerprint, load_results, run_tasks
 
     out = claim_out_dir(c, out_dir)
     cache = None if cache_dir is None else str(Path(cache_dir).resolve())
@@ -478,26 +478,49 @@ def run_campaign(
         for g in range(c.n_groups)
     ]
     t0 = time.time()
-    res = run_tasks(
-        land_group,
-        tasks,
-        out / "runs" / "landings.jsonl",
-        scheduler=scheduler,
-        workers=workers,
-        progress=progress,
-        desc=f"landings ({c.per_render} per render)",
-        code=code_fingerprint(EVAL_CODE),
-    )
-    wall = time.time() - t0
+    code = code_fingerprint(EVAL_CODE)
+    log = out / "runs" / "landings.jsonl"
+    try:
+        res = run_tasks(
+            land_group,
+            tasks,
+            log,
+            scheduler=scheduler,
+            workers=workers,
+            progress=progress,
+            desc=f"landings ({c.per_render} per render)",
+            code=code,
+        )
+    except (KeyboardInterrupt, CampaignError) as exc:
+        # a partial summary of the renders that finished, marked incomplete, then the interruption goes on
+        saved = load_results(log, code)
+        part = [r for t in tasks if t.id in saved for r in saved[t.id]["rows"]]
+        why = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        _write_summary(c, out, part, time.time() - t0, complete=False, reason=why)
+        raise
     rows = [r for t in tasks for r in res[t.id]["rows"]]
+    summary = _write_summary(c, out, rows, time.time() - t0, complete=True)
+    return rows, summary
+
+
+def _write_summary(
+    c: Campaign, out: Path, rows: list[dict[str, Any]], wall: float, *, complete: bool, reason: str = ""
+) -> dict[str, Any]:
+    """``landings.csv``, ``landings.json`` (``complete`` false, with the reason, when renders are missing)
+    and the page; a partial campaign's statistics cover only the landings flown."""
     summary = summarise(rows)
     summary["campaign"] = {**c.identity(), "n": c.n, "n_landings": c.n_landings, "n_renders": c.n_groups}
+    summary["complete"] = complete
+    summary["n_landings_flown"] = len({r["landing"] for r in rows})
+    if not complete:
+        summary["incomplete_reason"] = reason
     summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
     summary["wall_s_this_run"] = wall
     write_rows(rows, out / "landings.csv")
     (out / "landings.json").write_text(json.dumps(summary, indent=1) + "\n")
-    write_report(out, rows, summary)
-    return rows, summary
+    if rows:
+        write_report(out, rows, summary)
+    return summary
 
 
 def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
@@ -571,6 +594,8 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             ax.bar(scenes, v, bottom=bottom, color=colours[o], label=o.replace("_", " "))
             bottom += v
         ax.set_title(f"outcomes, preset {p}")
+        ax.set_ylabel("share of the scene's landings")
+        ax.set_ylim(0, 1.0)
         ax.tick_params(axis="x", rotation=30, labelsize=7)
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -579,12 +604,15 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     for p in presets:
         d = np.sort([r["divert_m"] for r in rows if r["preset"] == p and r.get("site_found")])
-        if d.size:
-            ax.plot(d, np.arange(1, d.size + 1) / d.size, label=p)
+        if d.size:  # an empirical CDF is a step function
+            ax.step(np.r_[0.0, d], np.r_[0.0, np.arange(1, d.size + 1) / d.size], where="post", label=f"{p} ({d.size})")
+        else:  # say so rather than leave the preset out without a word
+            ax.plot([], [], " ", label=f"{p}: no site on any landing")
+    ax.set_xlim(left=0)
+    ax.set_ylim(0, 1.02)
     ax.set_xlabel("divert distance from the aim point [m]")
     ax.set_ylabel("share of landings with a site")
-    if ax.lines:
-        ax.legend(fontsize=8)
+    ax.legend(fontsize=8, title="preset (landings with a site)", title_fontsize=7)
     fig.tight_layout()
     files.append((save(fig, out / "divert_cdf.png").name, "cumulative divert distance"))
     return files
@@ -636,6 +664,12 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
         "top-ranked site is safe; no site is its own outcome and is not safe."
     )
+    if summary.get("complete") is False:
+        intro = (
+            f"INCOMPLETE ({summary.get('incomplete_reason') or 'stopped'}): only {summary['n_landings_flown']} of "
+            f"{camp['n_landings']} landings were flown, and every figure below covers those alone; rerun the same "
+            "command to finish the campaign. " + intro
+        )
     why_rows = [
         {"preset": p, "reason": why, "n": k, "share": k / summary["per_preset"][p]["n"]}
         for p, reasons in summary.get("no_site_reasons", {}).items()

@@ -99,7 +99,7 @@ def plot_vs_altitude(
 
     fig_tab = {"vertical": ("Fig. 6.6", "6.4"), "approach": ("Fig. 6.12", "6.11")}[scenario]
     presets = sorted({k[1] for k in summary if k[0] == scenario})
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.6))
     colors = {"hazards_detected_pct": "tab:red", "safe_detected_pct": "tab:green", "cdi_pct": "tab:blue"}
     names = {"hazards_detected_pct": "TN%", "safe_detected_pct": "TP%", "cdi_pct": "CDI"}
     marks = {p: m for p, m in zip(presets, ("o", "s", "^"))}
@@ -123,10 +123,20 @@ def plot_vs_altitude(
                 color=c,
                 label=f"{names[metric]} ours-{p}",
             )
+            if metric == "cdi_pct" and any("cdi_pct_worst" in summary[k] for k in keys):
+                axes[0].plot(  # the worst seed beside the median
+                    [k[2] for k in keys],
+                    [summary[k].get("cdi_pct_worst", np.nan) for k in keys],
+                    ":",
+                    marker=marks[p],
+                    mfc="none",
+                    color=c,
+                    label=f"CDI ours-{p} worst seed",
+                )
     axes[0].set_xlabel("altitude [m]")
     axes[0].set_ylabel("%")
     axes[0].set_title("correct detection")
-    axes[0].legend(fontsize=6, ncol=3)
+    axes[0].legend(fontsize=6, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below: not over data
     alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[1] and s == scenario and mm == "fp_pct")
     axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="THESIS")
     for p in presets:
@@ -136,13 +146,23 @@ def plot_vs_altitude(
             [summary[k].get("fp_pct", np.nan) for k in keys],
             "-",
             marker=marks[p],
-            label=f"ours-{p}",
+            label=f"ours-{p} median",
         )
+        if any("fp_pct_worst" in summary[k] for k in keys):
+            axes[1].plot(
+                [k[2] for k in keys],
+                [summary[k].get("fp_pct_worst", np.nan) for k in keys],
+                ":",
+                marker=marks[p],
+                mfc="none",
+                color=axes[1].lines[-1].get_color(),
+                label=f"ours-{p} worst seed",
+            )
     axes[1].axhline(1.0, color="tab:red", lw=0.8, label="Table 2.1 limit")
     axes[1].set_xlabel("altitude [m]")
     axes[1].set_ylabel("FP (undetected hazards) %")
     axes[1].set_title("undetected hazards")
-    axes[1].legend(fontsize=7)
+    axes[1].legend(fontsize=6, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     fig.suptitle(f"{scenario} scenario")
     fig.tight_layout()
     return save_figure(fig, path)
@@ -159,25 +179,37 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
     rs = [r for r in rows if r["sample"] >= 0 and r.get("dem_mean_rel_pct") is not None]
     presets = sorted({r["preset"] for r in rs})
     alts = sorted({r["altitude_m"] for r in rs})
-    fig, axes = plt.subplots(1, max(1, len(presets)), figsize=(4.6 * max(1, len(presets)), 3.8), squeeze=False)
+    shapes = dict(zip(alts, "os^vDP*Xh<>p"))
+    fig, axes = plt.subplots(  # one scale for every preset, so the panels compare at a glance
+        1, max(1, len(presets)), figsize=(4.6 * max(1, len(presets)), 3.8), squeeze=False, sharex=True, sharey=True
+    )
     for ax, preset in zip(axes[0], presets):
         sel = [r for r in rs if r["preset"] == preset]
         if kind == "altitude":
-            rel = np.array([r["dem_mean_rel_pct"] for r in sel])
-            sc = ax.scatter(
-                [r["dz_m1"] for r in sel],
-                [r["dz_m2"] for r in sel],
-                c=np.clip(rel, 0, 300),
-                cmap="jet",
-                s=22,
-                vmin=0,
-                vmax=300,
-                edgecolors="none",
-            )
+            sc = None
+            for a in alts:  # one marker per altitude: the altitudes differ, pooled they would mislead
+                ss = [r for r in sel if r["altitude_m"] == a]
+                if not ss:
+                    continue
+                sc = ax.scatter(
+                    [r["dz_m1"] for r in ss],
+                    [r["dz_m2"] for r in ss],
+                    c=np.clip([r["dem_mean_rel_pct"] for r in ss], -100, 300),
+                    cmap="jet",
+                    s=26,
+                    marker=shapes.get(a, "o"),
+                    vmin=-100,
+                    vmax=300,
+                    edgecolors="none",
+                    label=f"{a} m",
+                )
             ax.plot([-0.5, 0.5], [-0.5, 0.5], "k:", lw=0.8)
             ax.set_xlabel("dh1 [m]")
             ax.set_ylabel("dh2 [m]")
-            fig.colorbar(sc, ax=ax, label="DEM mean error increase % (clipped 300)")
+            if len(alts) > 1:
+                ax.legend(fontsize=7, title="altitude", title_fontsize=7)
+            if sc is not None:
+                fig.colorbar(sc, ax=ax, label="DEM mean error increase % (clipped to -100..300)")
         else:
             key = {
                 "attitude": ("pitch_deg1", "pitch error [deg]"),
@@ -193,7 +225,7 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
                 else:
                     x = [math.hypot(r["dx_m1"] - r["dx_m2"], r["dy_m1"] - r["dy_m2"]) for r in ss]
                 ax.plot(x, [r["dem_mean_rel_pct"] for r in ss], "o", ms=4, label=f"{a} m")
-            ax.axhline(15, color="k", lw=0.8, ls="--")
+            ax.axhline(15, color="k", lw=0.8, ls="--", label="+15 %")
             ax.set_xlabel(key[1])
             ax.set_ylabel("DEM mean error increase %")
             ax.legend(fontsize=7)
@@ -242,8 +274,12 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
         ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=7)
         ax.set_ylabel(ylabel)
         ax.grid(axis="y", alpha=0.3)
-    axes[1].axhline(1.0, color="k", lw=0.8, ls="--")
+    axes[1].axhline(1.0, color="k", lw=0.8, ls="--", label="Table 2.1 limit (1 %)")
+    fps = [d["rows"].get(n, {}).get("fp", np.nan) for d in per_descent for n in names]
+    if fps and np.nanmax(np.r_[fps, 0.0]) == 0.0:  # zero-height bars draw nothing: say what the blank means
+        axes[1].text(0.5, 0.5, "FP 0 % on every descent and policy", transform=axes[1].transAxes, ha="center")
     axes[0].legend(fontsize=7)
+    axes[1].legend(fontsize=7, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -357,15 +393,21 @@ def evaluation_report(
     sensitivity: dict[str, list[dict[str, Any]]] | None = None,
     multiframe: list[dict[str, Any]] | None = None,
     title: str = "hazard-hil evaluation",
+    map_tag: str | None = None,
 ) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
 
     Writes ``report/`` under ``out_dir``: per scenario the comparison tables
     (``tables_<scenario>.md``), the altitude plots, and for ``figure_preset``
     the DEM/slope/roughness triptychs and hazard overlays of each altitude in
-    ``figure_altitudes`` (all when None) whose maps were kept.
+    ``figure_altitudes`` (all when None) whose maps were kept. ``map_tag`` ends the kept maps' names (the
+    raster tag of the run's task ids, :func:`studies.evaluate.render_tag`; default: the default raster's, or
+    none).
     """
+    from ground_sim.render import DEFAULT_RASTER
     from studies import evaluate as ev
+
+    tags = [map_tag] if map_tag is not None else ["", ev.render_tag(None, DEFAULT_RASTER)]
 
     out = Path(out_dir)
     rep = out / "report"
@@ -383,7 +425,7 @@ def evaluation_report(
         for alt in sorted({int(r["altitude_m"]) for r in rows if r["scenario"] == scen}):
             if want is not None and alt not in want:
                 continue
-            maps = sorted((out / "maps").glob(f"{scen}-{figure_preset}-s*-{alt}.npz"))
+            maps = sorted(m for t in tags for m in (out / "maps").glob(f"{scen}-{figure_preset}-s*-{alt}{t}.npz"))
             if maps:
                 stem = f"{scen}_{alt}m"
                 done = [rep / f"{stem}_{k}.png" for k in FIGURE_KINDS]

@@ -1,0 +1,175 @@
+"""What a user of ``evaluate``, ``sensitivity`` and ``landings`` relies on, found missing by a user audit:
+
+- a rerun into the same ``--out`` with another ``--camera-px`` scored nothing and reported the other
+  camera's numbers (task ids left the camera out);
+- the evaluation page never showed the map figures of the default (tiled) renders;
+- a resumed run did not say how many results it reused, an interrupted one how many it kept;
+- only the first failed task had its reason printed;
+- an interrupted landing campaign left no summary;
+- contradictory or unusable options ran (or failed in a worker with "rerun to retry") instead of exit 2.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hil_server.cli import main
+from studies import landings as ld
+from studies.executor import CampaignError, Task, run_tasks
+
+
+def square(k: int) -> dict:
+    return {"k": k, "sq": k * k}
+
+
+def square_or_fail(k: int) -> dict:
+    if k in (1, 3):
+        raise ValueError(f"bad input {k}")
+    return square(k)
+
+
+class Stop:
+    """``square`` that raises KeyboardInterrupt (a Ctrl-C) at task ``at``."""
+
+    def __init__(self, at: int):
+        self.at = at
+
+    def __call__(self, k: int) -> dict:
+        if k == self.at:
+            raise KeyboardInterrupt
+        return square(k)
+
+
+TASKS = [Task(f"t{k}", {"k": k}) for k in range(5)]
+
+
+def test_interrupt_says_what_is_kept_and_the_rerun_what_it_reuses(tmp_path, capsys):
+    log = tmp_path / "runs.jsonl"
+    with pytest.raises(KeyboardInterrupt):
+        run_tasks(Stop(2), TASKS, log, workers=1, progress=False, desc="demo")
+    assert "interrupted: demo: 2 of 5 results saved in" in capsys.readouterr().err
+    res = run_tasks(square, TASKS, log, workers=1, progress=False, desc="demo")
+    assert "note: demo: reusing 2 of 5 results saved in" in capsys.readouterr().err
+    assert res == run_tasks(square, TASKS, tmp_path / "fresh.jsonl", workers=1, progress=False)
+    run_tasks(square, TASKS, log, workers=1, progress=False, desc="demo")
+    assert "reusing 5 of 5" in capsys.readouterr().err
+
+
+def test_every_failed_task_is_listed_with_its_reason_and_counted(tmp_path, capsys):
+    with pytest.raises(CampaignError) as exc:
+        run_tasks(square_or_fail, TASKS, tmp_path / "r.jsonl", workers=1, progress=False, desc="demo")
+    err = capsys.readouterr().err
+    assert set(exc.value.failures) == {"t1", "t3"}
+    assert "failed: demo: t1: ValueError: bad input 1" in err and "failed: demo: t3: ValueError: bad input 3" in err
+    assert "demo: 3 of 5 done, 2 failed" in err
+
+
+def _eval(tmp_path: Path, out: str, px: int) -> list[str]:
+    return [
+        "evaluate",
+        "--scenario",
+        "vertical",
+        "--seed-list",
+        "1000",
+        "--altitudes",
+        "300",
+        "--preset",
+        "fast",
+        "--workers",
+        "1",
+        "--no-progress",
+        "--camera-px",
+        str(px),
+        "--cache",
+        str(tmp_path / "cache"),
+        "--out",
+        str(tmp_path / out),
+    ]
+
+
+def _metrics(path: Path) -> dict:
+    from studies.evaluate import read_metrics_csv
+
+    (row,) = read_metrics_csv(path)
+    return {k: v for k, v in row.items() if k not in ("pipeline_s", "pair")}  # timing and the out dir
+
+
+def test_another_camera_into_the_same_out_is_scored_not_reused_and_its_maps_are_on_the_page(tmp_path, capsys):
+    assert main(_eval(tmp_path, "a", 48)) == 0
+    assert main(_eval(tmp_path, "a", 64)) == 0  # same --out, another camera
+    assert main(_eval(tmp_path, "b", 64)) == 0  # fresh
+    capsys.readouterr()
+    assert _metrics(tmp_path / "a" / "metrics.csv") == _metrics(tmp_path / "b" / "metrics.csv")
+    assert len((tmp_path / "a" / "runs" / "evaluate.jsonl").read_text().splitlines()) == 2
+    page = (tmp_path / "b" / "report" / "index.html").read_text()
+    for kind in ("dem", "hazard", "slope", "rough"):  # drawn for the tiled renders, and now shown
+        assert f'src="vertical_300m_{kind}.png"' in page
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["sensitivity", "--kind", "altitude", "--camera-px", "16"], "--camera-px must be >= 32"),  # was exit 1
+        (["evaluate", "--scenario", "vertical", "--seed-set", "tuning", "--seed-list", "1000"], "not in the tuning"),
+        (["evaluate", "--scenario", "vertical", "--altitudes", ","], "--altitudes is empty"),
+        (["landings", "--scenes", "thesis", "--n", "1", "--workers", "2", "--scheduler", "x:1"], "--workers sets"),
+    ],
+)
+def test_unusable_or_contradictory_options_exit_2_before_any_work(tmp_path, capsys, argv, message):
+    try:
+        code = main([*argv, "--out", str(tmp_path / "out")])
+    except SystemExit as exc:  # argparse's own refusal (a bad --camera-px) exits from parse_args
+        code = exc.code
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def _campaign() -> ld.Campaign:
+    return ld.Campaign(("thesis", "mare"), 4, (1000, 1001), "held-out", ("fast",), 1, None, 64)
+
+
+def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to_the_same_numbers(
+    tmp_path, monkeypatch
+):
+    real = ld.land_group
+    calls = []
+
+    def ctrl_c_at_third(plan, presets, cache_dir=None):
+        calls.append(plan["group"])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(plan, presets, cache_dir)
+
+    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    with pytest.raises(KeyboardInterrupt):
+        ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
+    part = json.loads((tmp_path / "a" / "landings.json").read_text())
+    assert part["complete"] is False and part["incomplete_reason"] == "interrupted"
+    assert part["n_landings_flown"] == 2 and part["per_preset"]["fast"]["n"] == 2
+    assert "INCOMPLETE" in (tmp_path / "a" / "report" / "index.html").read_text()
+
+    monkeypatch.setattr(ld, "land_group", real)
+    ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
+    ld.run_campaign(_campaign(), tmp_path / "b", workers=1, progress=False)
+    done, fresh = (json.loads((tmp_path / d / "landings.json").read_text()) for d in ("a", "b"))
+    assert done["complete"] is True and done["n_landings_flown"] == 4
+    for s in (done, fresh):
+        s.pop("wall_s_this_run")
+    assert done == fresh
+
+
+def test_sensitivity_summary_counts_the_samples_without_a_dem_instead_of_dropping_them(capsys):
+    from studies.evaluate import sensitivity_summary
+
+    def row(alt, i, rel):
+        return {"kind": "lateral", "preset": "fast", "altitude_m": alt, "sample": i, "dem_mean_rel_pct": rel}
+
+    rows = [row(300, -1, 0.0), row(300, 0, 10.0), row(300, 1, None), row(300, 2, 30.0)]
+    rows += [row(150, -1, None), row(150, 0, None)]
+    (s,) = sensitivity_summary(rows)
+    assert (s["altitude_m"], s["n"], s["n_no_dem"], s["median_rel_pct"]) == (300, 2, 1, 20.0)
+    assert "no sample of [('lateral', 'fast', 150)] has a DEM error" in capsys.readouterr().err
