@@ -36,10 +36,22 @@ def single_threaded_env() -> Iterator[None]:
 
 
 def worker_init() -> None:
-    """Initialiser of every worker process: one OpenCV thread."""
+    """One OpenCV thread in this worker (a pool's process, or a task on a Dask worker)."""
     import cv2
 
     cv2.setNumThreads(1)
+
+
+def _pool_worker_init() -> None:
+    """Initialiser of :func:`process_pool`'s processes: :func:`worker_init`, and a Ctrl-C left to the parent.
+
+    A terminal's Ctrl-C reaches the whole process group. A worker that took it died in the middle of the pool's
+    protocol, and the parent's shutdown could then wait for it for good (seen with ``evaluate``); the parent
+    decides instead, and :func:`process_pool` ends its workers when it leaves on an exception."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    worker_init()
 
 
 @contextmanager
@@ -67,11 +79,24 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     import multiprocessing as mp
 
     with single_threaded_env():
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=worker_init)
+        ctx = mp.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_worker_init)
         try:
             yield pool
+        except BaseException:  # an interrupt or a failure: the running tasks' results are not wanted
+            stop_workers(pool)
+            raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the pool's worker processes now (the executor has no public way; they ignore SIGINT)."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        try:
+            proc.terminate()
+        except (OSError, ValueError):  # already gone, or closed
+            pass
 
 
 def pool_map(fn: Callable[..., T], items: Iterable[Any], workers: int | None = None) -> list[T]:

@@ -308,21 +308,9 @@ def _drain(
                 else:
                     record(futs[f], f.result())
     except KeyboardInterrupt:
-        for f in futs:
+        for f in futs:  # the pool's context (ground_sim.parallel.process_pool) ends the workers
             f.cancel()
-        _stop_workers(pool)
         raise
-
-
-def _stop_workers(pool: ProcessPoolExecutor) -> None:
-    """End the pool's worker processes at once on an interrupt. Their running tasks' results would not be
-    recorded anyway, and a pool left to shut down by itself could hang the interrupted command for good
-    when a second Ctrl-C arrived during its shutdown (seen with ``timeout -s INT``)."""
-    for p in list((getattr(pool, "_processes", None) or {}).values()):
-        try:
-            p.terminate()
-        except Exception:  # already gone
-            pass
 
 
 def _run_dask(
