@@ -21,6 +21,7 @@ import argparse
 import sys
 from importlib import metadata
 from pathlib import Path
+from typing import NoReturn
 
 from protocol.errors import InputError
 
@@ -55,7 +56,15 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return text
 
 
-class CommandParser(argparse.ArgumentParser):
+class OneLineErrors(argparse.ArgumentParser):
+    """A usage error is one line on stderr, as every other bad input is (argparse prints the whole usage block
+    first), pointing at ``--help``; exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class CommandParser(OneLineErrors):
     """Every subcommand's parser: the shared help format."""
 
     def __init__(self, *args, **kwargs) -> None:
@@ -64,7 +73,7 @@ class CommandParser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrors(
         prog="hazard-hil",
         description="Hardware-in-the-loop emulation of vision-based hazard detection for planetary landing.",
         formatter_class=HelpFormatter,

@@ -101,3 +101,21 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and why in err, err
     assert (tmp_path / "afile").read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["evaluat"], "hazard-hil: error: argument COMMAND: invalid choice: 'evaluat'"),
+        (["render"], "hazard-hil render: error: the following arguments are required: --scenario, --out"),
+        (["evaluate", "--scenario", "vertical", "--camera-px", "16"], "--camera-px must be >= 32"),
+        (["run", "--baud", "fast"], "hazard-hil run: error: argument --baud"),
+    ],
+)
+def test_usage_errors_are_one_line_too(capsys, argv, message):
+    """argparse printed its whole usage block before the error; now only the error, pointing at --help."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and message in err and "--help)" in err, err
