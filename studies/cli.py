@@ -281,6 +281,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"multi-frame descents ({'/'.join(f'{a:g}' for a in frames)} m) against the best pair, preset fast:")
         print((args.out / "report" / f"multiframe_{args.scenario}.md").read_text())
     print(f"metrics: {args.out / 'metrics.csv'}\nreport:  {page}")
+    others = sorted({str(r["scenario"]) for r in ev.read_metrics_csv(args.out / "metrics.csv")} - {args.scenario})
+    if others:
+        print(
+            f"note: metrics.csv also keeps the {', '.join(others)} rows evaluated into this --out before; "
+            f"the page shows {args.scenario}",
+            file=sys.stderr,
+        )
     return 0
 
 

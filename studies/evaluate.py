@@ -891,7 +891,13 @@ def evaluate_scenario(
             inputs=task_inputs(camera_px),
         )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
-    write_metrics_csv(rows, out / "metrics.csv")
+    # another scenario evaluated into the same --out keeps its rows (they were overwritten, without a word)
+    others = (
+        [r for r in read_metrics_csv(out / "metrics.csv") if r.get("scenario") != scenario]
+        if (out / "metrics.csv").is_file()
+        else []
+    )
+    write_metrics_csv(others + rows, out / "metrics.csv")
     return rows
 
 

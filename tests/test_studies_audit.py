@@ -173,3 +173,19 @@ def test_sensitivity_summary_counts_the_samples_without_a_dem_instead_of_droppin
     (s,) = sensitivity_summary(rows)
     assert (s["altitude_m"], s["n"], s["n_no_dem"], s["median_rel_pct"]) == (300, 2, 1, 20.0)
     assert "no sample of [('lateral', 'fast', 150)] has a DEM error" in capsys.readouterr().err
+
+
+def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path, capsys):
+    """metrics.csv was rewritten with the second scenario's rows alone; the first's vanished without a word."""
+    from studies.evaluate import read_metrics_csv
+
+    vertical = _eval(tmp_path, "a", 48)
+    approach = [*vertical]
+    approach[approach.index("vertical")] = "approach"
+    approach[approach.index("300")] = "1000"
+    assert main(vertical) == 0 and main(approach) == 0
+    rows = read_metrics_csv(tmp_path / "a" / "metrics.csv")
+    assert sorted((r["scenario"], r["altitude_m"]) for r in rows) == [("approach", 1000), ("vertical", 300)]
+    assert "metrics.csv also keeps the vertical rows" in capsys.readouterr().err
+    assert main(vertical) == 0  # again: one row per scenario still, nothing doubled
+    assert len(read_metrics_csv(tmp_path / "a" / "metrics.csv")) == 2
