@@ -47,6 +47,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -341,12 +342,13 @@ class Supervisor:
         grace = self.grace_s if self.grace_s is not None else max(MIN_GRACE_S, deadline)
         return deadline + grace
 
+    def _oldest(self, want: Callable[[PairState], bool]) -> PairState | None:
+        """The oldest pair not done yet for which ``want`` holds."""
+        return next((self.pairs[p] for p in self.order if not self.pairs[p].done and want(self.pairs[p])), None)
+
     def _oldest_outstanding(self) -> PairState | None:
-        for pid in self.order:
-            st = self.pairs[pid]
-            if not st.done and st.complete_at is not None and st.result is None:
-                return st
-        return None
+        """The oldest pair with all its frames in and no Result yet."""
+        return self._oldest(lambda st: st.complete_at is not None and st.result is None)
 
     # -- accounting -------------------------------------------------------------------------
     def _to_ground(self, msg) -> int | None:
@@ -646,11 +648,8 @@ class Supervisor:
             self.counters["flight_line_errors"] += garbage
 
     def _oldest_without_telemetry(self) -> PairState | None:
-        for pid in self.order:
-            st = self.pairs[pid]
-            if not st.done and st.result is not None and st.flight_telemetry is None:
-                return st
-        return None
+        """The oldest pair whose Result came and whose Telemetry has not."""
+        return self._oldest(lambda st: st.result is not None and st.flight_telemetry is None)
 
     def _complete_without_telemetry(self, st: PairState, why: str) -> None:
         """A pair whose Result came but whose Telemetry did not: the Result is kept, the timing is the server's."""
