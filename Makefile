@@ -47,6 +47,7 @@ RESULTS_LANDINGS ?= 1008
 # Scores and landings are recomputed (the flight software may have changed); rendered pairs are reused.
 results: $(STAMP)
 	rm -rf $(OUT)/eval_vertical/runs/evaluate.jsonl $(OUT)/eval_approach/runs/evaluate.jsonl
+	rm -rf $(OUT)/eval_vertical/runs/multiframe.jsonl $(OUT)/eval_approach/runs/multiframe.jsonl
 	rm -rf $(OUT)/landings $(OUT)/landings_perfect_nav
 	$(VENV)/bin/hazard-hil evaluate --scenario vertical --seeds $(RESULTS_SEEDS) --multi-frame --out $(OUT)/eval_vertical
 	$(VENV)/bin/hazard-hil evaluate --scenario approach --seeds $(RESULTS_SEEDS) --multi-frame --out $(OUT)/eval_approach

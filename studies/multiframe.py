@@ -296,6 +296,25 @@ def summary_markdown(summary: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def descent_task(
+    scenario: str,
+    seed: int,
+    cache: str,
+    frames: list[float],
+    camera_px: int | None,
+    preset: str,
+    which: list[str],
+    max_cells: int | None,
+    raster: str,
+) -> dict[str, Any]:
+    """One seed's descent rendered (or reused) and scored: a task of :func:`evaluate_multiframe`."""
+    from flight_sw.pipeline import PRESETS
+
+    d = render_descent(scenario, seed, cache, frames, camera_px=camera_px, max_cells=max_cells, raster=raster)
+    rows = evaluate_descent(d, PRESETS[preset], which)
+    return {"scenario": scenario, "seed": seed, "frames": list(frames), "dir": str(d), "rows": rows}
+
+
 def evaluate_multiframe(
     scenario: str,
     out_dir: str | Path,
@@ -311,24 +330,46 @@ def evaluate_multiframe(
     raster: str = DEFAULT_RASTER,
 ) -> list[dict[str, Any]]:
     """Render and score one descent per seed; write ``multiframe_<scenario>.json`` and the summary table
-    ``report/multiframe_<scenario>.md`` under ``out_dir``; return the per-descent records."""
+    ``report/multiframe_<scenario>.md`` under ``out_dir``; return the per-descent records.
+
+    Each seed is a task of :func:`studies.executor.run_tasks` saved in ``runs/multiframe.jsonl``: an
+    interrupted evaluation resumes from the descents it scored (one descent is 1-2 min of CPU)."""
     import json
 
-    from flight_sw.pipeline import PRESETS
+    from studies.evaluate import EVAL_CODE, render_tag, task_inputs
+    from studies.executor import Task, code_fingerprint, run_tasks
 
     out = Path(out_dir)
     cache = Path(cache_dir) if cache_dir is not None else out / "cache"
-    per: list[dict[str, Any]] = []
+    alts = "-".join(f"{a:g}" for a in frames)
+    kw: dict[str, Any] = {
+        "cache": str(cache),
+        "frames": [float(a) for a in frames],
+        "camera_px": camera_px,
+        "preset": preset,
+    }
+    kw |= {"which": list(which), "max_cells": max_cells, "raster": raster, "scenario": scenario}
+    tag = f"{'+'.join(which)}{render_tag(max_cells, raster)}"
+    tasks = [Task(f"mf-{scenario}-{preset}-s{seed}-{alts}-{tag}", {**kw, "seed": int(seed)}) for seed in seeds]
     t0 = time.perf_counter()
-    for i, seed in enumerate(seeds, 1):
-        d = render_descent(scenario, seed, cache, frames, camera_px=camera_px, max_cells=max_cells, raster=raster)
-        rows = evaluate_descent(d, PRESETS[preset], which)
-        per.append({"scenario": scenario, "seed": seed, "frames": list(frames), "dir": str(d), "rows": rows})
+    res = run_tasks(
+        descent_task,
+        tasks,
+        out / "runs" / "multiframe.jsonl",
+        workers=1,  # one descent holds four 512 px frames and their cost volumes: one at a time
+        progress=progress is not None,
+        desc=f"multi-frame {scenario}",
+        code=code_fingerprint(EVAL_CODE),
+        inputs=task_inputs(camera_px),
+    )
+    per = [res[t.id] for t in tasks]
+    for i, rec in enumerate(per, 1):
         if progress:
+            rows = rec["rows"]
             bp = rows["best pair"]
             progress(
-                f"multi-frame {scenario} seed {seed} ({i}/{len(seeds)}, {time.perf_counter() - t0:.0f} s): best pair "
-                f"0-{bp['k']} CDI {bp['cdi']:.1f} FP {bp['fp']:.2f}; "
+                f"multi-frame {scenario} seed {rec['seed']} ({i}/{len(seeds)}, {time.perf_counter() - t0:.0f} s): "
+                f"best pair 0-{bp['k']} CDI {bp['cdi']:.1f} FP {bp['fp']:.2f}; "
                 + "; ".join(f"{w} CDI {rows[w]['cdi']:.1f} FP {rows[w]['fp']:.2f}" for w in which if w in rows)
             )
     (out / "report").mkdir(parents=True, exist_ok=True)

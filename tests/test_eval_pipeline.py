@@ -229,6 +229,22 @@ def test_multiframe_evaluation_scores_every_policy_against_the_best_pair(tmp_pat
     assert all(f"| {name} | 1 |" in md for name in ("best pair", *mf.POLICIES))
 
 
+def test_multiframe_evaluation_resumes_from_the_descents_it_scored(tmp_path: Path, cache: Path, capsys, monkeypatch):
+    """An interrupted ``evaluate --multi-frame`` used to score every descent again (1-2 min of CPU each)."""
+    from studies import multiframe as mf
+
+    kw = {"frames": (300, 200), "cache_dir": cache, "camera_px": PX}
+    (first,) = mf.evaluate_multiframe("vertical", tmp_path, [0], **kw)
+    capsys.readouterr()
+
+    def no_scoring(*a, **k):
+        raise AssertionError("a scored descent was scored again")
+
+    monkeypatch.setattr(mf, "evaluate_descent", no_scoring)
+    (again,) = mf.evaluate_multiframe("vertical", tmp_path, [0], **kw)
+    assert again == first and "reusing 1 of 1 results" in capsys.readouterr().err
+
+
 def test_cli_multi_frame_report_and_bad_frames(tmp_path: Path, cache: Path, capsys):
     from hil_server.cli import main
 
