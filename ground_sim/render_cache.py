@@ -35,26 +35,40 @@ def render_version(pair_dir: str | Path) -> int | None:
     return int(v) if isinstance(v, int) and not isinstance(v, bool) else -1
 
 
+def unreadable(pair_dir: str | Path) -> str | None:
+    """Why the pair in ``pair_dir`` cannot be read (a truncated image, a missing truth file), or None."""
+    from protocol.pairdir import PairFormatError, read_pair
+
+    try:
+        read_pair(pair_dir)
+    except (PairFormatError, OSError, ValueError) as exc:
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return None
+
+
 def reusable(pair_dir: str | Path, *, quiet: bool = False) -> bool:
-    """True when ``pair_dir`` holds a pair this renderer drew. A stale one is removed (so the caller
-    renders it again, e.g. with ``write_pair_atomic``) and a one-line note goes to stderr."""
+    """True when ``pair_dir`` holds a readable pair this renderer drew. A stale or unreadable one is removed
+    (so the caller renders it again, e.g. with ``write_pair_atomic``) and a one-line note goes to stderr: a
+    damaged cache entry would otherwise fail every run that reads it, and "rerun to retry" could not help."""
     d = Path(pair_dir)
     v = render_version(d)
     if v is None:
         return False
+    why = f"rendered by renderer version {v}, this is {RENDER_VERSION}"
     if v == RENDER_VERSION:
-        return True
+        broken = unreadable(d)
+        if broken is None:
+            return True
+        why = f"unreadable ({broken})"
     # aside first, then delete: a concurrent reader never sees a half-deleted pair under the cache key
     aside = d.with_name(f"{d.name}.stale{os.getpid()}")
     try:
         os.replace(d, aside)
     except OSError:
-        if render_version(d) == RENDER_VERSION:  # another process re-rendered it meanwhile
+        if render_version(d) == RENDER_VERSION and unreadable(d) is None:  # another process re-rendered it
             return True
         raise
     shutil.rmtree(aside, ignore_errors=True)
     if not quiet:
-        print(
-            f"note: {d}: rendered by renderer version {v}, this is {RENDER_VERSION}: rendering again", file=sys.stderr
-        )
+        print(f"note: {d}: {why}: rendering again", file=sys.stderr)
     return False

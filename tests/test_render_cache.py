@@ -72,3 +72,14 @@ def test_unversioned_and_unreadable_pairs(tmp_path, small_pair):
     assert render_version(d) == 1
     (d / "pair.json").write_text("{not json")
     assert render_version(d) == -1 and not reusable(d, quiet=True) and not d.exists()
+
+
+def test_a_damaged_pair_is_rendered_again_not_failed_on_every_run(tmp_path, small_pair, capsys):
+    """A truncated image in the cache failed every task that read it, and "rerun to retry" could not help."""
+    d = tmp_path / "cache" / "pair_b"
+    write_pair_atomic(d, small_pair)
+    img = d / "i2.png"
+    img.write_bytes(img.read_bytes()[:100])  # cut in the middle of its data
+    assert not reusable(d)
+    err = capsys.readouterr().err
+    assert "unreadable (" in err and "rendering again" in err and not d.exists()
