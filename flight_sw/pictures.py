@@ -82,23 +82,45 @@ def write_process_report(
 
     dem = dem_panels(res.elevation, gt_z)
     dem[0].cmap = ELEVATION_CMAP
+    filled = getattr(res, "filled", None)
+    if filled is not None and np.any(filled):  # gap fills look like matches on the colour scale: say how many
+        n_dem = max(1, int(np.isfinite(res.elevation).sum()))
+        dem[0].title += f" ({100.0 * np.count_nonzero(filled) / n_dem:.1f} % gap fill)"
     if res.sigma is not None:
         dem.insert(1, Panel("scalar", res.sigma, "elevation uncertainty sigma", "m", "viridis"))
     written.append(save(map_figure(dem, "Elevation (DEM)"), out / "dem.png"))
-    figures.append(Figure("dem.png", "Computed elevation, its uncertainty; with truth, the true one and the error."))
+    figures.append(
+        Figure(
+            "dem.png",
+            "Computed elevation, its uncertainty; with truth, the true one and the error. White: no elevation "
+            "(outside the area both images cover, or not recovered); gap fills carried into dark shadow "
+            "(filled.npy) are drawn like matches, with a larger sigma.",
+        )
+    )
 
     hz = [
         Panel("image", image, "upper image (i1)", sites=marks),
         Panel("state", res.state, "hazard state", sites=marks),
         Panel("scalar", res.psafe, "P(safe)", "probability", PSAFE_CMAP, 0.0, 1.0),
-        Panel("scalar", res.hazard, "hazard score (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+        Panel(
+            "scalar",
+            res.hazard,
+            "hazard score (>= 1 unsafe)",
+            "score",
+            HAZARD_CMAP,
+            0.0,
+            1.0,
+            unknown=np.asarray(res.state) == 2,  # written as 1.0 in hazard.npy; drawn grey, not as a hazard
+        ),
     ]
     written.append(save(map_figure(hz, "Hazards and landing sites"), out / "hazard.png"))
     figures.append(
         Figure(
             "hazard.png",
             "Numbered circles are the ranked landing sites' 3 m footprints "
-            "(green truly clear, red not, black without truth).",
+            "(green truly clear, red not, black without truth; a footprint smaller than 1.5 % of the panel "
+            "is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4). "
+            "Grey in the hazard score: unknown, written as 1.0 in hazard.npy.",
         )
     )
 
@@ -174,7 +196,7 @@ def write_process_report(
             out / "report.html",
             f"process: {Path(doc.get('pair_dir', '')).name}",
             sections,
-            subtitle=f"preset {doc.get('preset', '')}",
+            subtitle=f"preset {doc.get('preset', '')}, {doc.get('frames', 2)} frames",
             headline=headline,
         )
     )

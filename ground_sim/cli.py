@@ -74,8 +74,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     s.add_argument("names", nargs="*", help="scenes to show (default: all)")
     s.add_argument("--measure", action="store_true", help="re-measure the hazard shares and store them")
-    s.add_argument("--seeds", type=int, default=10, help="held-out seeds to measure (default 10: 1000-1009)")
-    s.add_argument("--workers", type=int, default=None, help="measurement processes (default: CPU count)")
+    s.add_argument(
+        "--seeds", type=int, default=None, help="with --measure: held-out seeds to measure (default 10: 1000-1009)"
+    )
+    s.add_argument(
+        "--workers", type=int, default=None, help="with --measure: measurement processes (default: CPU count)"
+    )
+    s.add_argument("--no-progress", action="store_true", help="with --measure: no progress bar on stderr")
     s.add_argument("--table", default=None, help="hazard-share table to read/write (default: the packaged one)")
     s.add_argument("--json", action="store_true", help="print the library as JSON")
     s.set_defaults(func=_scenes)
@@ -138,6 +143,10 @@ def _run(args: argparse.Namespace) -> int:
         raise RenderError("--frames and --pairs exclude each other")
     if args.workers is not None and args.workers < 1:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
+    if not 1 <= args.supersample <= 8:  # the renderer says so too, but only after creating --out
+        raise RenderError(f"--supersample must be 1..8, got {args.supersample}")
+    if sun is not None and not 0.0 < sun.elevation_deg <= 90.0:
+        raise RenderError(f"--sun: elevation must be in (0, 90] deg, got {sun.elevation_deg:g}")
     pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs is not None else None
     if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
         raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")
@@ -221,16 +230,26 @@ def _scenes(args: argparse.Namespace) -> int:
     if bad:
         raise SceneError(f"not library scenes: {bad} (library: {', '.join(known)})")
     table_path = Path(args.table or lib.SHARES_PATH)
+    if not args.measure:  # they only mean something to a measurement: a listing would ignore them, exit 0
+        given = [o for o, v in (("--seeds", args.seeds), ("--workers", args.workers)) if v is not None]
+        given += ["--no-progress"] if args.no_progress else []
+        if given:
+            raise SceneError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} only with --measure")
     if args.measure:
-        if not 1 <= args.seeds <= len(HELD_OUT_SEEDS):
-            raise SceneError(f"--seeds must be 1..{len(HELD_OUT_SEEDS)}, got {args.seeds}")
+        n_seeds = 10 if args.seeds is None else args.seeds
+        if not 1 <= n_seeds <= len(HELD_OUT_SEEDS):
+            raise SceneError(f"--seeds must be 1..{len(HELD_OUT_SEEDS)}, got {n_seeds}")
         if args.workers is not None and args.workers < 1:
             raise SceneError(f"--workers must be >= 1, got {args.workers}")
         _check_writable(table_path)
         old = _table_doc(table_path)  # a broken table is refused now, not after the measurement
-        seeds = list(HELD_OUT_SEEDS[: args.seeds])
+        seeds = list(HELD_OUT_SEEDS[:n_seeds])
+        conflict = lib.merge_conflict(old, names, seeds)  # was: the other scenes silently dropped from the table
+        if conflict:
+            raise SceneError(f"--table {table_path}: {conflict}")
         print(f"measuring {len(names)} scene(s) on held-out seeds {seeds[0]}-{seeds[-1]} ...", file=sys.stderr)
-        doc = lib.merge_shares(old, lib.measure(names, seeds, workers=args.workers))
+        new = lib.measure(names, seeds, workers=args.workers, progress=not args.no_progress)
+        doc = lib.merge_shares(old, new)
         from ground_sim.stream import write_atomic
 
         write_atomic(table_path, json.dumps(doc, indent=1) + "\n")  # minutes of measuring: never half a table

@@ -12,6 +12,7 @@ import json
 import sys
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,8 +105,10 @@ def render_views(
     workers: int | None = 1,
     max_cells: int = MAX_CELLS,
     raster: str = DEFAULT_RASTER,
+    on_view: Callable[[int, int], None] | None = None,
 ) -> list[View]:
-    """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes."""
+    """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes;
+    ``on_view(done, total)`` as each view is drawn (a progress bar)."""
     from ground_sim.parallel import pool_map
 
     check_max_cells(max_cells)  # here, not in a worker: a bad value is one clear error
@@ -119,7 +122,14 @@ def render_views(
             jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells, raster),))
     if workers is None and camera.width * camera.height * len(jobs) <= INLINE_PIXELS:
         workers = 1  # a pool's start-up (spawn + imports, ~1 s) would cost more than it saves
-    views = pool_map(_render_job, jobs, workers)
+    drawn = [0]
+
+    def done(_: int) -> None:
+        drawn[0] += 1
+        if on_view is not None:
+            on_view(drawn[0], len(jobs))
+
+    views = pool_map(_render_job, jobs, workers, on_done=done)
     return [views[uniq[_pose_key(camera, p)]] for p in poses]
 
 
@@ -308,7 +318,16 @@ def render_scenario(
         raise TrajectoryError("all pairs of a scenario must share one camera")
     _progress(0, len(specs), "frames", t0, progress)
     views = render_views(
-        sc, cam, poses, sun, supersample=supersample, workers=workers, max_cells=max_cells, raster=raster
+        sc,
+        cam,
+        poses,
+        sun,
+        supersample=supersample,
+        workers=workers,
+        max_cells=max_cells,
+        raster=raster,
+        # the frames are most of the time: one line each in a log (the pairs' lines follow as they are written)
+        on_view=lambda k, n: _progress(k, n, "frames", t0, progress),
     )
     entries, thumbs = [], []
     k = 0

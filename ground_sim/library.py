@@ -236,17 +236,38 @@ def measure_one(spec: str, scenario: str, seed: int, altitude_m: int) -> float:
     return pair_share(sc, ps.camera, ps.poses[0], ps.poses[-1], scene_sun(spec, scenario, seed))
 
 
-def measure(
-    names: list[str], seeds: list[int], *, scenarios: tuple[str, ...] = SCENARIOS, workers: int | None = None
-) -> dict[str, Any]:
-    """Hazard shares of library scenes on every table pair, per seed: the ``hazard_shares.json`` document."""
+def _measure_jobs(jobs: list[tuple[str, str, int, int]], workers: int | None, progress: bool) -> list[float]:
+    """``measure_one`` over ``jobs`` in order, in a pool, with a progress bar on stderr (a full table takes
+    about 10 min)."""
     from ground_sim.parallel import pool_map
+    from reports.progress import Progress
+
+    bar = Progress(len(jobs), desc="measure", enabled=progress)
+
+    def done(i: int) -> None:
+        name, scenario, seed, alt = jobs[i]
+        bar.update(label=f"{name} {scenario} {alt} m seed {seed}")
+
+    return pool_map(measure_one, jobs, workers, on_done=done)
+
+
+def measure(
+    names: list[str],
+    seeds: list[int],
+    *,
+    scenarios: tuple[str, ...] = SCENARIOS,
+    workers: int | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Hazard shares of library scenes on every table pair, per seed: the ``hazard_shares.json`` document.
+
+    ``progress`` draws a bar on stderr."""
     from ground_sim.render import RENDER_VERSION
     from ground_sim.trajectory import load_trajectory
 
     alts = {s: [int(round(p.altitude_m)) for p in load_trajectory(s)] for s in scenarios}
     jobs = [(n, s, seed, a) for n in names for s in scenarios for a in alts[s] for seed in seeds]
-    vals = pool_map(measure_one, jobs, workers)
+    vals = _measure_jobs(jobs, workers, progress)
     res = dict(zip(jobs, vals))
     doc: dict[str, Any] = {"format": "hazard-hil-scene-shares/1", "seeds": list(seeds), "stride": MEASURE_STRIDE}
     doc["scenes"] = {
@@ -272,10 +293,32 @@ def load_shares(path: str | Path = SHARES_PATH) -> dict[str, Any]:
         raise SceneError(f"{p}: unreadable hazard-share table ({exc})") from None
 
 
+def merge_conflict(old: dict[str, Any], names: list[str], seeds: list[int]) -> str | None:
+    """Why measuring ``names`` on ``seeds`` cannot be merged into ``old`` (None when it can).
+
+    A table is for one seed set: scenes measured on other seeds and not re-measured now would have to go.
+    """
+    kept = [n for n in old.get("scenes", {}) if n not in names]
+    if not kept or old.get("seeds") == list(seeds):
+        return None
+    was = old.get("seeds") or []
+    return (
+        f"the table holds {', '.join(kept)} measured on seeds "
+        f"{f'{was[0]}-{was[-1]}' if was else '(none)'}; measuring on {seeds[0]}-{seeds[-1]} would drop them "
+        f"(measure with --seeds {len(was)}, measure every scene, or write another --table)"
+    )
+
+
 def merge_shares(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
-    """``new``'s scenes replace ``old``'s; the seed list must agree (a table is for one seed set)."""
-    if old.get("scenes") and old.get("seeds") != new.get("seeds"):
-        return new
+    """``new``'s scenes replace ``old``'s; the seed list must agree (a table is for one seed set).
+
+    Scenes of ``old`` that ``new`` does not re-measure are never dropped silently: a different seed set
+    with such scenes left is a :class:`SceneError` (check :func:`merge_conflict` before measuring)."""
+    why = merge_conflict(old, list(new.get("scenes", {})), list(new.get("seeds", [])))
+    if why:
+        raise SceneError(why)
+    if old.get("seeds") != new.get("seeds"):
+        return new  # every scene of old is re-measured in new
     out = dict(new)
     out["scenes"] = {**old.get("scenes", {}), **new["scenes"]}
     return out

@@ -99,13 +99,32 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
             pass
 
 
-def pool_map(fn: Callable[..., T], items: Iterable[Any], workers: int | None = None) -> list[T]:
-    """``[fn(*item) for item in items]`` in order; inline (one OpenCV thread) when one worker suffices."""
+def pool_map(
+    fn: Callable[..., T],
+    items: Iterable[Any],
+    workers: int | None = None,
+    on_done: Callable[[int], None] | None = None,
+) -> list[T]:
+    """``[fn(*item) for item in items]`` in order; inline (one OpenCV thread) when one worker suffices.
+
+    ``on_done(i)`` is called as item ``i`` finishes, in the order the items finish (a progress bar)."""
+    from concurrent.futures import as_completed
+
     items = list(items)
     n = resolve_workers(workers, len(items))
     if n <= 1:
+        out_inline = []
         with one_thread_here():
-            return [fn(*it) for it in items]
+            for i, it in enumerate(items):
+                out_inline.append(fn(*it))
+                if on_done is not None:
+                    on_done(i)
+        return out_inline
     with process_pool(n) as pool:
-        futs = [pool.submit(fn, *it) for it in items]
-        return [f.result() for f in futs]
+        futs = {pool.submit(fn, *it): i for i, it in enumerate(items)}
+        out: list[Any] = [None] * len(items)
+        for f in as_completed(futs):
+            out[futs[f]] = f.result()
+            if on_done is not None:
+                on_done(futs[f])
+        return out

@@ -25,6 +25,7 @@ from reports.style import (
     SAFE,
     STATE_COLOURS,
     STATE_NAMES,
+    UNKNOWN,
 )
 
 
@@ -70,6 +71,9 @@ class Panel:
     vmin: float | None = None
     vmax: float | None = None
     sites: list[Site] = field(default_factory=list)
+    # scalar panels: pixels drawn grey (the unknown state) over the colour scale, with a legend entry - a
+    # hazard score writes unknown as 1.0, which the colour scale alone cannot tell from a measured hazard
+    unknown: np.ndarray | None = None
 
 
 def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -106,6 +110,20 @@ def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dic
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=2, frameon=False)
 
 
+def _unknown_overlay(ax: Any, mask: np.ndarray, n_in: int) -> None:
+    """Grey the ``mask`` pixels over a scalar map and say so in a legend (with their share of the map)."""
+    from matplotlib.colors import to_rgba
+    from matplotlib.patches import Patch
+
+    rgba = np.zeros(mask.shape + (4,), np.float32)
+    rgba[mask] = to_rgba(UNKNOWN)
+    ax.imshow(rgba, interpolation="nearest")
+    pct = 100.0 * mask.sum() / max(1, n_in)
+    label = f"unknown {pct:.1f} % (not enough evidence; scored as not safe)"
+    handle = Patch(facecolor=UNKNOWN, edgecolor="#555", label=label)
+    ax.legend(handles=[handle], loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, frameon=False)
+
+
 def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
     """Footprint circles numbered by rank, with a white halo so they read on dark and light maps alike.
 
@@ -122,8 +140,11 @@ def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
         circle = Circle((s.u, s.v), max(s.radius_px, floor), fill=False, lw=1.6, color=colour)
         circle.set_path_effects(halo)
         ax.add_patch(circle)
+    for group in site_label_groups(sites, 3.0 * floor):
+        s = group[0]  # the best-ranked site of the cluster carries the label
+        colour = "#000000" if s.safe is None else (SAFE if s.safe else MISSED)
         ax.annotate(
-            str(s.rank),
+            ",".join(str(g.rank) for g in group),
             (s.u, s.v),
             xytext=(5, 5),
             textcoords="offset points",
@@ -132,6 +153,23 @@ def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
             weight="bold",
             path_effects=halo,
         )
+
+
+def site_label_groups(sites: Sequence[Site], min_sep: float) -> list[list[Site]]:
+    """Sites whose labels would overprint (centres closer than ``min_sep`` px) share one label, "1,2,4".
+
+    Drawn one label per site, a cluster showed only its worst rank on top of the others (five sites within a
+    few pixels read as one site "5"). Groups are in rank order, each led by its best-ranked site.
+    """
+    groups: list[list[Site]] = []
+    for s in sorted(sites, key=lambda t: t.rank):
+        for g in groups:
+            if (g[0].u - s.u) ** 2 + (g[0].v - s.v) ** 2 < min_sep**2:
+                g.append(s)
+                break
+        else:
+            groups.append([s])
+    return groups
 
 
 def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) -> Any:
@@ -155,6 +193,8 @@ def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) 
             cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
             cb.set_label(p.unit, fontsize=8)
             cb.ax.tick_params(labelsize=7)
+            if p.unknown is not None:
+                _unknown_overlay(ax, np.asarray(p.unknown, bool) & np.isfinite(d), int(np.isfinite(d).sum()))
         elif p.kind == "state":
             _categorical(ax, np.asarray(p.data, np.uint8), STATE_COLOURS, STATE_NAMES, True)
         elif p.kind == "confusion":
