@@ -371,20 +371,26 @@ def render_scenario(
 
 
 def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, tile: int = 200) -> Path:
-    """PNG grid for people: each entry's first and last frames with its label, two entries per row."""
+    """PNG grid for people: each entry's first and last frames with its label, two entries per row (a
+    multi-frame entry says how many frames it has: "i4 of 4"; an odd count ends with a tile that says so)."""
     import cv2
+
+    def labelled(img: np.ndarray, text: str) -> np.ndarray:
+        t = cv2.copyMakeBorder(img, 18, 2, 2, 2, cv2.BORDER_CONSTANT, value=0)
+        cv2.putText(t, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1, cv2.LINE_AA)
+        return t
 
     cells = []
     for label, imgs in items:
+        n = len(imgs)
         row = []
-        for k, img in ((0, imgs[0]), (len(imgs) - 1, imgs[-1])):
-            t = cv2.resize(img, (tile, tile), interpolation=cv2.INTER_AREA)
-            t = cv2.copyMakeBorder(t, 18, 2, 2, 2, cv2.BORDER_CONSTANT, value=0)
-            cv2.putText(t, f"{label} i{k + 1}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1, cv2.LINE_AA)
-            row.append(t)
+        for k, img in ((0, imgs[0]), (n - 1, imgs[-1])):
+            small = cv2.resize(img, (tile, tile), interpolation=cv2.INTER_AREA)
+            row.append(labelled(small, f"{label} i{k + 1}" + (f" of {n}" if n > 2 else "")))
         cells.append(np.hstack(row))
     if len(cells) % 2:
-        cells.append(np.zeros_like(cells[0]))
+        blank = np.full((tile, 2 * tile + 4), 40, np.uint8)
+        cells.append(labelled(blank, "(no more pairs)")[:, : cells[0].shape[1]])
     grid = np.vstack([np.hstack(cells[i : i + 2]) for i in range(0, len(cells), 2)])
     cv2.imwrite(str(path), grid, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return path

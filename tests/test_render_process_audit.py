@@ -187,3 +187,18 @@ def test_result_and_report_have_the_same_permissions_as_the_arrays(processed):
     mode = (out / "elevation.npy").stat().st_mode & 0o777
     assert (out / "result.json").stat().st_mode & 0o777 == mode
     assert (out / "report.html").stat().st_mode & 0o777 == mode
+
+
+def test_contact_sheet_pads_an_odd_count_with_a_tile_that_says_so(tmp_path):
+    """An odd number of entries ended with an all-black tile, which read as a black render."""
+    import cv2
+
+    from ground_sim.descent import contact_sheet
+
+    img = np.full((64, 64), 128, np.uint8)
+    entries = [("a", (img, img)), ("b", (img, img, img)), ("c", (img, img))]
+    sheet = cv2.imread(str(contact_sheet(entries, tmp_path / "c.png")), 0)
+    half = sheet.shape[1] // 2
+    pad = sheet[sheet.shape[0] // 2 :, half:]
+    assert sheet.shape == (2 * 220, 2 * half) and pad.max() == 255  # a label
+    assert pad[30:-3, 3:-3].min() > 0  # and no black tile
