@@ -26,6 +26,7 @@ import math
 import os
 import platform
 import socket
+import sys
 import tomllib
 import warnings
 from dataclasses import asdict, dataclass, field
@@ -33,6 +34,7 @@ from importlib import resources
 from pathlib import Path
 
 from protocol.errors import InputError
+from protocol.linkspec import BAUD_MAX, BAUD_MIN
 
 LINKS = ("zmq", "serial")
 
@@ -141,16 +143,30 @@ def default_budgets_path() -> Path:
     return Path(str(resources.files("hil_server").joinpath("budgets.toml")))
 
 
-def _number(entry: dict, key: str, where: str, positive: bool = True) -> float:
+# Upper bounds a budget's figures must stay under: past them a figure is a typo (a unit slip, an exponent), and a huge
+# memory ceiling would overflow the address-space rlimit the supervisor derives from it.
+MAX_CPU_DMIPS = 1e6  # ~30x this host's core; no single flight core comes near
+MAX_MEMORY_MIB = 2**20  # 1 TiB
+MAX_DEADLINE_S = 3600.0  # an hour per pair
+BAUD_RANGE = (BAUD_MIN, BAUD_MAX)  # the rates a paced line takes
+
+
+def _number(entry: dict, key: str, where: str, positive: bool = True, maximum: float | None = None) -> float:
+    if key not in entry:
+        raise BudgetError(f"{where}: missing '{key}'")
     value = entry.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise BudgetError(f"{where}: '{key}' must be a finite number, got {value!r}")
     if positive and value <= 0:
         raise BudgetError(f"{where}: '{key}' must be > 0, got {value!r}")
+    if maximum is not None and value > maximum:
+        raise BudgetError(f"{where}: '{key}' must be <= {maximum:.0f}, got {value:g}")
     return float(value)
 
 
 def _string(entry: dict, key: str, where: str) -> str:
+    if key not in entry:
+        raise BudgetError(f"{where}: missing '{key}'")
     value = entry.get(key)
     if not isinstance(value, str) or not value.strip():
         raise BudgetError(f"{where}: '{key}' must be a non-empty string, got {value!r}")
@@ -182,8 +198,8 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
     if unknown:  # a misspelt key would otherwise leave its default in force, unseen
         raise BudgetError(f"{w}: unknown key(s) {', '.join(unknown)}; a budget has {', '.join(sorted(BUDGET_KEYS))}")
     cpu = entry.get("cpu_dmips")
-    cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w)
-    memory = _number(entry, "memory_mib", w)
+    cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w, maximum=MAX_CPU_DMIPS)
+    memory = _number(entry, "memory_mib", w, maximum=MAX_MEMORY_MIB)
     if memory != int(memory):
         raise BudgetError(f"{w}: 'memory_mib' must be a whole number of MiB, got {memory}")
     link = _string(entry, "link", w)
@@ -192,8 +208,9 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
     baud = None
     if link == "serial":
         baud_f = _number(entry, "baud", w)
-        if baud_f != int(baud_f):
-            raise BudgetError(f"{w}: 'baud' must be an integer, got {baud_f}")
+        if baud_f != int(baud_f) or not BAUD_RANGE[0] <= baud_f <= BAUD_RANGE[1]:
+            lo, hi = BAUD_RANGE
+            raise BudgetError(f"{w}: 'baud' must be an integer in [{lo}, {hi:.0e}], got {baud_f:g}")
         baud = int(baud_f)
     elif "baud" in entry:
         raise BudgetError(f"{w}: 'baud' only applies to link = \"serial\"")
@@ -202,7 +219,7 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
         description=_string(entry, "description", w),
         cpu_dmips=cpu_dmips,
         memory_mib=int(memory),
-        deadline_s=_number(entry, "deadline_s", w),
+        deadline_s=_number(entry, "deadline_s", w, maximum=MAX_DEADLINE_S),
         link=link,
         baud=baud,
         source=_string(entry, "source", w),
@@ -225,7 +242,29 @@ def load_budgets(path: str | os.PathLike | None = None) -> dict[str, Budget]:
     entries = doc.get("budget")
     if not isinstance(entries, dict) or not entries:
         raise BudgetError(f"{p}: no [budget.NAME] tables")
-    return {name: _parse_budget(name, entry, anchor, str(p)) for name, entry in entries.items()}
+    budgets = {name: _parse_budget(name, entry, anchor, str(p)) for name, entry in entries.items()}
+    if path is not None and p.resolve() != default_budgets_path().resolve():
+        _refuse_redefined(budgets, p)
+    return budgets
+
+
+def _refuse_redefined(budgets: dict[str, Budget], p: Path) -> None:
+    """A user's file may copy a shipped budget, not change it under the same name: summaries and regression
+    baselines name budgets, and ``rad750`` must mean the same processor in all of them."""
+    shipped = load_budgets()
+    for name, b in budgets.items():
+        s = shipped.get(name)
+        if s is None:
+            continue
+        fields = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")
+        changed = [f for f in fields if getattr(b, f) != getattr(s, f)]
+        if b.cpu_dmips is not None and b.anchor.dmips != s.anchor.dmips:
+            changed.append("anchor dmips")
+        if changed:
+            raise BudgetError(
+                f"{p} [budget.{name}]: redefines the shipped budget {name!r} ({', '.join(changed)} differ); "
+                "give your budget another name"
+            )
 
 
 def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
@@ -292,14 +331,32 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
     if entry is None:
         return None
     try:
+        if not isinstance(entry, dict):
+            raise ValueError("not a JSON object")
         cal = HostCalibration(**entry)
-        if not (isinstance(cal.units_per_s, (int, float)) and cal.units_per_s > 0):
+        for name in ("units_per_s", "spread", "seconds"):
+            v = getattr(cal, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if cal.units_per_s <= 0:
             raise ValueError("units_per_s must be > 0")
+        calibration_age_days(cal)  # measured_at must be a timestamp
     except (TypeError, ValueError) as exc:
         raise BudgetError(
             f"calibration file {p}: bad entry for this host ({exc}); run `hazard-hil calibrate`"
         ) from None
     return cal
+
+
+STALE_CALIBRATION_DAYS = 30.0  # a VM's host can change under it (migration, new CPU microcode) in this time
+
+
+def calibration_age_days(cal: HostCalibration, now: _dt.datetime | None = None) -> float:
+    """Days since ``cal`` was measured (ValueError if its ``measured_at`` is not an ISO 8601 time with a zone)."""
+    when = _dt.datetime.fromisoformat(str(cal.measured_at))
+    if when.tzinfo is None:
+        raise ValueError(f"measured_at has no time zone: {cal.measured_at!r}")
+    return ((now or _dt.datetime.now(_dt.UTC)) - when).total_seconds() / 86400.0
 
 
 def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, save: bool = True) -> HostCalibration:
@@ -320,7 +377,13 @@ def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, 
     )
     if save:
         p = Path(path) if path is not None else calibration_path()
-        store = _read_store(p)
+        try:
+            store = _read_store(p)
+        except BudgetError:  # calibrating is the cure for a broken store: keep the old file aside, start afresh
+            kept = p.with_name(p.name + ".corrupt")
+            os.replace(p, kept)
+            print(f"calibrate: {p} was unreadable; kept it as {kept} and started a new one", file=sys.stderr)
+            store = {}
         store[cal.key] = asdict(cal)
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_suffix(".json.tmp")

@@ -440,7 +440,7 @@ def _cmd_regress(args: argparse.Namespace) -> int:
         args.baseline or default_baseline_path(),
         update=args.update,
         out=args.out,
-        cases=_pairs(args.cases),
+        cases=None if args.cases is None else [c.strip() for c in args.cases.split(",") if c.strip()],  # "": none
         min_hit_rate=args.min_hit_rate,
     )
 

@@ -14,7 +14,13 @@ removes the host's own speed.
 A regression is: deadline hit rate below the baseline's minus
 ``hit_rate_drop``, or a latency percentile above the baseline's by more than
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
-so tiny latencies do not flap). ``--update`` rewrites the baseline.
+so tiny latencies do not flap), or more Results cut to a coarser anytime level
+(``degraded``: they are faster because they did less) when the baseline records
+that count. ``--update`` rewrites the baseline and records what its numbers
+rest on (``recorded``: the host's calibration and load); it refuses to rewrite
+the shipped baseline on an uncalibrated host, and says so when the host is
+uncalibrated, stale (``budgets.STALE_CALIBRATION_DAYS``) or loaded. The baseline
+file is checked before anything runs: a malformed one is a one-line error.
 
 The unthrottled ``host`` case is judged on the flight process's CPU seconds per
 pair, not on wall latency: on a busy host the wall clock of an unthrottled
@@ -119,7 +125,13 @@ def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     speed, ref = effective_speed(case["budget"])
     scale = speed / ref
-    cur = {"deadline_hit_rate": summary["deadline_hit_rate"], "errors": summary["errors"], "pairs": summary["pairs"]}
+    cur = {
+        "deadline_hit_rate": summary["deadline_hit_rate"],
+        "errors": summary["errors"],
+        "pairs": summary["pairs"],
+        # Results the flight software cut short (a coarser anytime level): fewer of them is faster, not better
+        "degraded": int(summary.get("degraded") or 0),
+    }
     for m in LATENCY_METRICS:
         cur[m] = summary["flight_" + m.replace("_ref_s", "_s")] * scale
     cur["e2e_latency_max_s"] = summary["e2e_latency_max_s"]  # for people: seconds on this host and link
@@ -147,6 +159,13 @@ def compare(
     if cur.get("errors", 0) > base.get("errors", 0):
         o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
     o.limits["deadline_hit_rate"] = base["deadline_hit_rate"] - tol["hit_rate_drop"]
+    if "degraded" in base:  # baselines recorded before the count was kept cannot judge it (diff_table says so)
+        o.limits["degraded"] = base["degraded"]
+        if cur.get("degraded", 0) > base["degraded"]:
+            o.problems.append(
+                f"degraded {cur['degraded']} > baseline {base['degraded']} (Results cut to a coarser level; "
+                "their latency is lower because they did less)"
+            )
     for k in metrics:
         c, b = cur.get(k, math.nan), base.get(k, math.nan)
         if math.isnan(b):
@@ -165,18 +184,132 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
     """
     lines = [f"{'case':<30} {'metric':<22} {'baseline':>10} {'limit':>10} {'current':>10}  verdict"]
     for o in outcomes:
-        keys = ["deadline_hit_rate", *o.metrics]
+        keys = ["deadline_hit_rate", "degraded", *o.metrics]
         for k in keys:
             b = (o.baseline or {}).get(k, math.nan)
             c = o.current.get(k, math.nan)
             lim = o.limits.get(k, math.nan)
-            bound = ("≥" if k == "deadline_hit_rate" else "≤") + f"{lim:.3f}" if math.isfinite(lim) else "–"
+            fmt = "d" if k == "degraded" else ".3f"
+            bound = ("≥" if k == "deadline_hit_rate" else "≤") + f"{lim:{fmt}}" if math.isfinite(lim) else "–"
             bad = any(p.startswith(k) for p in o.problems)
-            lines.append(f"{o.name:<30} {k:<22} {b:>10.3f} {bound:>10} {c:>10.3f}  {'REGRESSION' if bad else 'ok'}")
+            verdict = "REGRESSION" if bad else "ok"
+            if o.baseline is not None and k not in o.baseline:
+                verdict = "not judged: not in the baseline (record it with --update)"
+            b_txt = f"{b:>10{fmt}}" if isinstance(b, int) or math.isfinite(b) else f"{'–':>10}"
+            c_txt = f"{c:>10{fmt}}" if isinstance(c, int) or math.isfinite(c) else f"{'–':>10}"
+            lines.append(f"{o.name:<30} {k:<22} {b_txt} {bound:>10} {c_txt}  {verdict}")
         for p in o.problems:
             if not any(p.startswith(k) for k in keys):
                 lines.append(f"{o.name:<30} {p}")
     return "\n".join(lines)
+
+
+CASE_KEYS = frozenset({"scenario", "budget", "link", "pairs", "seed", "image_size", "manifest", "metrics"})
+DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
+
+
+def validate_baseline(doc: object, where: str) -> None:
+    """Refuse, before anything runs, a baseline that is not what ``--update`` writes: one line naming the field.
+
+    A hand-edited baseline that slipped through would otherwise fail with a traceback after minutes of runs,
+    or (an empty ``cases``) silently run the default cases instead of the ones asked for.
+    """
+    from hil_server.budgets import load_budgets
+    from protocol.errors import InputError
+
+    def bad(what: str) -> InputError:
+        return InputError(f"latency baseline {where}: {what}")
+
+    def number(v: object) -> bool:
+        return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+
+    if not isinstance(doc, dict):
+        raise bad(f"expected a JSON object with 'cases', got {type(doc).__name__}")
+    unknown = sorted(set(doc) - DOC_KEYS)
+    if unknown:
+        raise bad(f"unknown key(s) {', '.join(unknown)}; a baseline has {', '.join(sorted(DOC_KEYS))}")
+    tol = doc.get("tolerances", {})
+    if not isinstance(tol, dict):
+        raise bad("'tolerances' must be an object")
+    for k, v in tol.items():
+        if k not in DEFAULT_TOLERANCES:
+            raise bad(f"unknown tolerance {k!r}; known: {', '.join(sorted(DEFAULT_TOLERANCES))}")
+        if not number(v) or v < 0 or (k == "hit_rate_drop" and v > 1):
+            raise bad(f"tolerance {k!r} must be a number >= 0{' and <= 1' if k == 'hit_rate_drop' else ''}, got {v!r}")
+    cases = doc.get("cases")
+    if not isinstance(cases, dict) or not cases:
+        raise bad("'cases' must be a non-empty object of named cases")
+    budgets = load_budgets()
+    for name, case in cases.items():
+        w = f"case {name!r}"
+        if not isinstance(case, dict):
+            raise bad(f"{w} must be an object")
+        unknown = sorted(set(case) - CASE_KEYS)
+        if unknown:
+            raise bad(f"{w}: unknown key(s) {', '.join(unknown)}; a case has {', '.join(sorted(CASE_KEYS))}")
+        for k in ("scenario", "budget", "link"):
+            if not isinstance(case.get(k), str) or not case[k]:
+                raise bad(f"{w}: {k!r} must be a non-empty string, got {case.get(k)!r}")
+        if case["budget"] not in budgets:
+            raise bad(f"{w}: unknown budget {case['budget']!r}; choose one of: {', '.join(budgets)}")
+        pairs = case.get("pairs")
+        if pairs is not None and (
+            not isinstance(pairs, list) or not pairs or not all(isinstance(x, str) and x for x in pairs)
+        ):
+            raise bad(f"{w}: 'pairs' must be a non-empty list of pair labels, got {pairs!r}")
+        metrics = case.get("metrics")
+        if metrics is None:
+            continue
+        if not isinstance(metrics, dict):
+            raise bad(f"{w}: 'metrics' must be an object")
+        if "deadline_hit_rate" not in metrics:
+            raise bad(f"{w}: 'metrics' has no 'deadline_hit_rate'")
+        for k, v in metrics.items():
+            if k in ("errors", "pairs", "degraded"):
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise bad(f"{w}: metric {k!r} must be a whole number >= 0, got {v!r}")
+            elif not number(v) or v < 0:  # a hit rate over 1 is allowed: an unreachable bar that always fails
+                raise bad(f"{w}: metric {k!r} must be a finite number >= 0, got {v!r}")
+
+
+def host_conditions() -> tuple[dict, list[str]]:
+    """What this host's numbers rest on (its calibration, its load) and, for people, what is wrong with it."""
+    import os
+
+    from hil_server.budgets import STALE_CALIBRATION_DAYS, calibration_age_days, calibration_path, load_calibration
+
+    cal = load_calibration()
+    notes = []
+    cond: dict = {"calibration": None}
+    if cal is None:
+        notes.append(
+            f"this host is not calibrated ({calibration_path()} has no entry for it): reference seconds assume it is "
+            "as fast as the anchor, so they may be off by the ratio of the two speeds; run `hazard-hil calibrate`"
+        )
+    else:
+        age = calibration_age_days(cal)
+        cond["calibration"] = {"key": cal.key, "measured_at": cal.measured_at, "units_per_s": cal.units_per_s}
+        if age > STALE_CALIBRATION_DAYS:
+            notes.append(
+                f"this host's calibration is {age:.0f} days old ({cal.measured_at}); "
+                "re-run `hazard-hil calibrate` if the host may have changed"
+            )
+    try:
+        load1 = os.getloadavg()[0]
+        cores = os.cpu_count() or 1
+        cond["load_1min"] = round(load1, 2)
+        cond["cpus"] = cores
+        if load1 > LOADED_PER_CPU * cores:
+            notes.append(
+                f"this host is loaded (1-minute load {load1:.1f} on {cores} CPUs): throttled budgets' latencies "
+                "include the other load's share of the core"
+            )
+    except OSError:
+        pass
+    return cond, notes
+
+
+LOADED_PER_CPU = 0.5  # a 1-minute load average above this per CPU: another job shares the core being emulated
 
 
 def check_regression(
@@ -198,22 +331,38 @@ def check_regression(
     if not baseline.is_file() and not update:
         raise InputError(f"no latency baseline at {baseline} (record one with `hazard-hil regress --update`)")
     try:
-        doc = json.loads(baseline.read_text()) if baseline.is_file() else {}
+        doc = json.loads(baseline.read_text(encoding="utf-8")) if baseline.is_file() else None
     except (OSError, ValueError) as exc:
         raise InputError(f"latency baseline {baseline}: unreadable ({exc})") from None
-    all_cases = doc.get("cases") or {k: {**v} for k, v in DEFAULT_CASES.items()}
+    if doc is None:  # --update without a baseline: record the default cases
+        doc = {"cases": {k: {**v} for k, v in DEFAULT_CASES.items()}}
+    validate_baseline(doc, str(baseline))
+    all_cases = doc["cases"]
     tol = {**DEFAULT_TOLERANCES, **doc.get("tolerances", {})}
-    names = cases or list(all_cases)
+    if cases is not None and not cases:
+        raise InputError(f"--cases names no case; known: {', '.join(sorted(all_cases))}")
+    names = list(all_cases) if cases is None else list(dict.fromkeys(cases))
     unknown = [n for n in names if n not in all_cases]
     if unknown:
         raise InputError(f"unknown regression case(s) {unknown}; known: {sorted(all_cases)}")
     if min_hit_rate is not None and not 0.0 <= min_hit_rate <= 1.0:
         raise InputError(f"--min-hit-rate must be in [0, 1], got {min_hit_rate}")
+    cond, notes = host_conditions()
+    if update and cond["calibration"] is None and baseline.resolve() == default_baseline_path().resolve():
+        # the shipped baseline is what every CI job compares against; another file only carries the warning below
+        # (and its "recorded" block says the host was uncalibrated)
+        raise InputError(
+            "refusing to record the shipped baseline on an uncalibrated host: its reference seconds would assume "
+            "the anchor's speed; run `hazard-hil calibrate` first"
+        )
+    for note in notes:
+        print(f"regress: warning: {note}", file=sys.stderr)
     need = 1.0 if min_hit_rate is None else min_hit_rate
     outcomes = []
     missed = False
-    for n in names:
+    for i, n in enumerate(names, 1):
         case = all_cases[n]
+        print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {case['budget']})", file=sys.stderr)
         cur = measure_case(n, case, out, baseline.resolve().parent)
         o = compare(n, cur, None if update else case.get("metrics"), tol, judged_metrics(case["budget"]))
         if update:
@@ -230,8 +379,15 @@ def check_regression(
         "cases": all_cases,
         "note": "latencies in reference seconds; see hil_server/regress.py",
     }
+    if update:  # what the new numbers rest on, for whoever reads the baseline later
+        new_doc["recorded"] = {**cond, "warnings": notes, "cases": names}
+    elif "recorded" in doc:
+        new_doc["recorded"] = doc["recorded"]
     ok = all(not o.problems for o in outcomes) and not missed
-    return ok, diff_table(outcomes), new_doc
+    diff = diff_table(outcomes)
+    if notes:
+        diff += "\n" + "\n".join(f"warning: {n}" for n in notes)
+    return ok, diff, new_doc
 
 
 def run_regression(

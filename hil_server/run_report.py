@@ -134,6 +134,11 @@ def write_run_report(summary: dict, path: Path) -> Path:
         Headline("e2e_latency_s", _first(s, "e2e_latency_p50_s", "latency_p50_s"), label="end-to-end latency p50 [s]"),
         Headline("e2e_max", _first(s, "e2e_latency_max_s", "latency_max_s"), label="end-to-end latency max [s]"),
     ]
+    degraded = sum(bool(r.get("degraded")) for r in records if r.get("status") == "result")
+    if results:  # a met deadline with a Result cut to a coarser level is not the full answer: say how many
+        headline.append(
+            Headline("degraded", f"{degraded}/{results}", "warn" if degraded else "ok", "Results at a coarser level")
+        )
     fps = [r["scores"]["fp_pct"] for r in records if (r.get("scores") or {}).get("fp_pct") is not None]
     if fps:
         worst = max(fps)

@@ -252,7 +252,9 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         for k in r.get("stages", {}) or {}:
             if k != "total" and k not in stage_names:
                 stage_names.append(k)
-    colour = {k: STAGE_COLOURS[i % len(STAGE_COLOURS)] for i, k in enumerate(stage_names)}
+    # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over
+    palette = STAGE_COLOURS if len(stage_names) <= len(STAGE_COLOURS) else [plt.get_cmap("tab20")(i) for i in range(20)]
+    colour = {k: palette[i % len(palette)] for i, k in enumerate(stage_names)}
 
     def once(name: str) -> str | None:
         if name in seen:
@@ -331,7 +333,9 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     if cpu_budget is not None:
         a1.axhline(cpu_budget, color=MISSED, lw=1, ls="--", label="budget")
     a1.set_ylabel("CPU fraction of one core")
-    a1.set_ylim(bottom=0)
+    cpu = [v for r in recs if np.isfinite(v := float(r.get("cpu_fraction", np.nan)))]
+    top = max([*cpu, cpu_budget or 0.0], default=0.0)
+    a1.set_ylim(0, 1.15 * top if top > 0 else None)  # headroom: the achieved line sits on the budget's
     a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak private RSS")
     if memory_mib is not None:
         a2.axhline(memory_mib, color=MISSED, lw=1, ls="--", label="memory ceiling")

@@ -1,0 +1,245 @@
+"""Audit of the CI-facing commands: regress's baseline checks and diff, budget files, calibration.
+
+None of these tests runs a descent: every refusal must happen before anything runs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from hil_server import budgets as B
+from hil_server.cli import main
+from hil_server.regress import DEFAULT_TOLERANCES, compare, default_baseline_path, diff_table
+from protocol.errors import InputError
+
+
+@pytest.fixture()
+def home(tmp_path, monkeypatch):
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "home"))
+    return tmp_path / "home"
+
+
+def _shipped() -> dict:
+    return json.loads(default_baseline_path().read_text())
+
+
+BASE = {"deadline_hit_rate": 1.0, "errors": 0, "latency_p50_ref_s": 1.0, "latency_p95_ref_s": 1.0}
+
+
+# --- regress: what regressed ----------------------------------------------------------------
+
+
+def test_more_degraded_results_is_a_regression_named_in_the_diff():
+    # the same latency or less, but a Result cut to a coarser level: faster because it did less
+    base = {**BASE, "degraded": 0}
+    cur = {**BASE, "degraded": 1, "latency_p50_ref_s": 0.5}
+    o = compare("c", cur, base, DEFAULT_TOLERANCES)
+    assert any(p.startswith("degraded 1 > baseline 0") for p in o.problems)
+    row = next(line for line in diff_table([o]).splitlines() if " degraded " in line)
+    assert row.split()[-1] == "REGRESSION"
+    assert compare("c", {**cur, "degraded": 0}, base, DEFAULT_TOLERANCES).problems == []
+
+
+def test_a_baseline_without_the_degraded_count_says_it_cannot_judge_it():
+    o = compare("c", {**BASE, "degraded": 2}, dict(BASE), DEFAULT_TOLERANCES)
+    assert o.problems == []
+    row = next(line for line in diff_table([o]).splitlines() if " degraded " in line)
+    assert "not judged" in row and "REGRESSION" not in row
+
+
+def test_missing_current_values_print_as_a_dash_not_nan():
+    o = compare(
+        "c", {"deadline_hit_rate": 0.0, "errors": 2, "degraded": 0}, {**BASE, "degraded": 0}, DEFAULT_TOLERANCES
+    )
+    table = diff_table([o])
+    assert "nan" not in table
+    assert "REGRESSION" in next(line for line in table.splitlines() if "latency_p50_ref_s" in line)
+
+
+# --- regress: a malformed baseline is one line, exit 2, before anything runs -----------------
+
+
+def _edit(doc: dict, path: str, value: object) -> dict:
+    *keys, last = path.split("/")
+    d = doc
+    for k in keys:
+        d = d[k]
+    if value is KeyError:
+        del d[last]
+    else:
+        d[last] = value
+    return doc
+
+
+@pytest.mark.parametrize(
+    "path, value, reason",
+    [
+        ("cases", {}, "'cases' must be a non-empty object"),
+        ("cases/vertical-host-zmq/budget", KeyError, "'budget' must be a non-empty string"),
+        ("cases/vertical-host-zmq/budget", "pentium", "unknown budget 'pentium'"),
+        ("cases/vertical-host-zmq/budgett", "host", "unknown key(s) budgett"),
+        ("cases/vertical-host-zmq/metrics/cpu_p50_ref_s", "fast", "metric 'cpu_p50_ref_s' must be a finite number"),
+        ("cases/vertical-host-zmq/metrics/deadline_hit_rate", -0.5, "metric 'deadline_hit_rate' must be"),
+        ("cases/vertical-host-zmq/metrics/deadline_hit_rate", KeyError, "'metrics' has no 'deadline_hit_rate'"),
+        ("cases/vertical-host-zmq/metrics/errors", 0.5, "metric 'errors' must be a whole number"),
+        ("cases/vertical-host-zmq/pairs", "600/300", "'pairs' must be a non-empty list"),
+        ("tolerances/latency_rel", -1, "tolerance 'latency_rel' must be a number >= 0"),
+        ("tolerances/latency_rell", 0.1, "unknown tolerance 'latency_rell'"),
+    ],
+)
+def test_malformed_baseline_is_one_line_exit_2(tmp_path, capsys, path, value, reason):
+    bad = tmp_path / "baseline.json"
+    bad.write_text(json.dumps(_edit(_shipped(), path, value)))
+    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert reason in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()  # refused before any case ran
+
+
+def test_baseline_that_is_not_an_object_is_exit_2(tmp_path, capsys):
+    bad = tmp_path / "baseline.json"
+    bad.write_text("[]")
+    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "expected a JSON object" in capsys.readouterr().err
+
+
+def test_empty_cases_option_is_refused_not_all_cases(tmp_path, capsys):
+    assert main(["regress", "--cases", ",", "--out", str(tmp_path / "o")]) == 2
+    assert "--cases names no case" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_update_of_the_shipped_baseline_refuses_an_uncalibrated_host(home, tmp_path, capsys):
+    before = default_baseline_path().read_bytes()
+    code = main(["regress", "--update", "--cases", "vertical-host-zmq", "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "uncalibrated host" in capsys.readouterr().err
+    assert default_baseline_path().read_bytes() == before and not (tmp_path / "o").exists()
+
+
+def test_host_conditions_report_uncalibrated_and_stale(home):
+    from hil_server.regress import host_conditions
+
+    cond, notes = host_conditions()
+    assert cond["calibration"] is None and any("not calibrated" in n for n in notes)
+    cal = {
+        "key": B.host_key(),
+        "hostname": "h",
+        "cpu_model": "m",
+        "units_per_s": 50.0,
+        "spread": 0.1,
+        "seconds": 1.0,
+        "measured_at": "2020-01-01T00:00:00+00:00",
+    }
+    home.mkdir(parents=True, exist_ok=True)
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): cal}))
+    cond, notes = host_conditions()
+    assert cond["calibration"]["measured_at"] == cal["measured_at"]
+    assert any("days old" in n for n in notes)
+
+
+# --- budget files -----------------------------------------------------------------------------
+
+ANCHOR = '[anchor]\ndescription = "a"\ndmips = 23461\nunits_per_s = 51.0\n'
+GOOD = {
+    "description": '"mine"',
+    "cpu_dmips": "1000",
+    "memory_mib": "512",
+    "deadline_s": "10",
+    "link": '"serial"',
+    "baud": "115200",
+    "source": '"me"',
+}
+
+
+def _budget_file(tmp_path, name: str = "myboard", **changes: str | None) -> str:
+    entry = {**GOOD, **changes}
+    body = "".join(f"{k} = {v}\n" for k, v in entry.items() if v is not None)
+    p = tmp_path / "mine.toml"
+    p.write_text(f"{ANCHOR}\n[budget.{name}]\n{body}")
+    return str(p)
+
+
+@pytest.mark.parametrize(
+    "changes, reason",
+    [
+        ({"deadline_s": None}, "missing 'deadline_s'"),
+        ({"cpu_dmips": "0"}, "'cpu_dmips' must be > 0"),
+        ({"memory_mib": "-5"}, "'memory_mib' must be > 0"),
+        ({"memory_mib": "1e30"}, "'memory_mib' must be <= 1048576"),
+        ({"cpu_dmips": "1e300"}, "'cpu_dmips' must be <="),
+        ({"deadline_s": "1e9"}, "'deadline_s' must be <="),
+        ({"link": '"spacewire"'}, "'link' must be one of"),
+        ({"baud": "1"}, "'baud' must be an integer in"),
+    ],
+)
+def test_bad_user_budget_file_is_one_line_exit_2(tmp_path, capsys, changes, reason):
+    assert main(["budgets", "--file", _budget_file(tmp_path, **changes)]) == 2
+    err = capsys.readouterr().err
+    assert reason in err and len(err.strip().splitlines()) == 1
+
+
+def test_user_budget_may_not_redefine_a_shipped_name(tmp_path, capsys):
+    assert main(["budgets", "--file", _budget_file(tmp_path, name="rad750")]) == 2
+    assert "redefines the shipped budget 'rad750'" in capsys.readouterr().err
+    # a verbatim copy of the shipped file with one more budget is fine
+    mine = tmp_path / "copy.toml"
+    mine.write_text(
+        B.default_budgets_path().read_text() + "\n[budget.myboard]\n" + "".join(f"{k} = {v}\n" for k, v in GOOD.items())
+    )
+    assert set(B.load_budgets(mine)) == {*B.load_budgets(), "myboard"}
+
+
+# --- calibration ------------------------------------------------------------------------------
+
+
+def test_calibrate_replaces_a_corrupt_store_and_keeps_the_old_one(home, monkeypatch, capsys):
+    from hil_server import calibrate as C
+
+    home.mkdir(parents=True)
+    (home / "calibration.json").write_text('{"x": ')
+    monkeypatch.setattr(C, "measure_rate", lambda s: C.WorkloadRate(60.0, 0.01, 6, s, 1))
+    cal = B.calibrate_host(seconds=0.1)
+    assert B.load_calibration() == cal
+    assert (home / "calibration.json.corrupt").read_text() == '{"x": '  # nothing lost
+    assert "kept it as" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "field, value, reason",
+    [("units_per_s", math.inf, "units_per_s"), ("spread", "wide", "spread"), ("measured_at", "yesterday", "isoformat")],
+)
+def test_bad_calibration_entry_is_input_error(home, field, value, reason):
+    home.mkdir(parents=True)
+    entry = {
+        "key": B.host_key(),
+        "hostname": "h",
+        "cpu_model": "m",
+        "units_per_s": 50.0,
+        "spread": 0.1,
+        "seconds": 1.0,
+        "measured_at": "2026-01-01T00:00:00+00:00",
+        field: value,
+    }
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): entry}))
+    with pytest.raises(InputError, match=reason):
+        B.load_calibration()
+
+
+# --- the run report ---------------------------------------------------------------------------
+
+
+def test_run_report_headline_counts_degraded_results(tmp_path):
+    from hil_server.run_report import write_run_report
+
+    records = [
+        {"label": f"{a}/{a // 2}", "status": "result", "degraded": d, "level": lvl, "deadline_met": True}
+        for a, d, lvl in ((600, True, "coarse"), (300, False, "full"))
+    ]
+    summary = {"scenario": "vertical", "link": "zmq", "pairs": 2, "results": 2, "deadline_met": 2}
+    page = write_run_report({**summary, "deadline_hit_rate": 1.0, "records": records}, tmp_path / "r.html")
+    html = page.read_text()
+    assert "Results at a coarser level" in html and "1/2" in html
