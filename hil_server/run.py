@@ -226,6 +226,8 @@ def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
         f"{head}: {s['deadline_met']}/{s['pairs']} pairs returned a result within the "
         f"{_fmt(s.get('deadline_s'), 'g')} s deadline end to end "
         f"({s['deadline_missed']} late, {s['errors']} errors; needed: {need})"
+        # a met deadline with a coarser answer is not the full answer: said beside the verdict, not only in the table
+        + (f"; {s['degraded']} at a coarser level" if s.get("degraded") else "")
     )
 
 

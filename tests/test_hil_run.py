@@ -96,6 +96,9 @@ def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_pa
         assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.02)
         hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
         assert np.isfinite(hz).any()  # image-only hazards (rocks, shadows) still come back
+    from hil_server.run import verdict_line
+
+    assert verdict_line(s).endswith("; 3 at a coarser level")  # beside the verdict, not only in the table
 
 
 def test_crash_mid_pair_is_reported_and_the_run_completes(manifest, tmp_path):
