@@ -120,20 +120,26 @@ def test_update_of_the_shipped_baseline_refuses_an_uncalibrated_host(home, tmp_p
     assert default_baseline_path().read_bytes() == before and not (tmp_path / "o").exists()
 
 
-def test_host_conditions_report_uncalibrated_and_stale(home):
-    from hil_server.regress import host_conditions
-
-    cond, notes = host_conditions()
-    assert cond["calibration"] is None and any("not calibrated" in n for n in notes)
-    cal = {
+def _calibration(**change) -> dict:
+    """A calibration store entry for this host, as `hazard-hil calibrate` writes it, with ``change`` applied."""
+    entry = {
         "key": B.host_key(),
         "hostname": "h",
         "cpu_model": "m",
         "units_per_s": 50.0,
         "spread": 0.1,
         "seconds": 1.0,
-        "measured_at": "2020-01-01T00:00:00+00:00",
+        "measured_at": "2026-01-01T00:00:00+00:00",
     }
+    return {**entry, **change}
+
+
+def test_host_conditions_report_uncalibrated_and_stale(home):
+    from hil_server.regress import host_conditions
+
+    cond, notes = host_conditions()
+    assert cond["calibration"] is None and any("not calibrated" in n for n in notes)
+    cal = _calibration(measured_at="2020-01-01T00:00:00+00:00")
     home.mkdir(parents=True, exist_ok=True)
     (home / "calibration.json").write_text(json.dumps({B.host_key(): cal}))
     cond, notes = host_conditions()
@@ -214,16 +220,7 @@ def test_calibrate_replaces_a_corrupt_store_and_keeps_the_old_one(home, monkeypa
 )
 def test_bad_calibration_entry_is_input_error(home, field, value, reason):
     home.mkdir(parents=True)
-    entry = {
-        "key": B.host_key(),
-        "hostname": "h",
-        "cpu_model": "m",
-        "units_per_s": 50.0,
-        "spread": 0.1,
-        "seconds": 1.0,
-        "measured_at": "2026-01-01T00:00:00+00:00",
-        field: value,
-    }
+    entry = _calibration(**{field: value})
     (home / "calibration.json").write_text(json.dumps({B.host_key(): entry}))
     with pytest.raises(InputError, match=reason):
         B.load_calibration()
