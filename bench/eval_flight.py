@@ -75,8 +75,8 @@ def render_case(
     from ground_sim import trajectory
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
-    from ground_sim.render import MAX_CELLS
-    from ground_sim.render_cache import reusable
+    from ground_sim.render import MAX_CELLS, RENDER_VERSION
+    from ground_sim.render_cache import render_version, reusable
     from ground_sim.scene import load_scene
     from protocol.pairdir import Sun, write_pair_atomic
 
@@ -89,11 +89,10 @@ def render_case(
     entries = []
     for spec in specs:
         d = out / spec.label.replace("/", "_")
-        if reusable(d):  # else none there, or a stale one (another renderer version), now removed
-            have = cached_raster(d)
-            if have != raster:  # an untagged cache of tiled renders from before stop 21: never score it as another
-                raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")
-        else:
+        have = cached_raster(d) if render_version(d) == RENDER_VERSION else raster
+        if have != raster:  # an untagged cache of tiled renders from before stop 21: never score it as another
+            raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")
+        if not reusable(d):  # none there, or a stale or damaged one, now removed
             scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
             mc = MAX_CELLS if max_cells is None else max_cells
