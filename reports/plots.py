@@ -283,7 +283,10 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     ax.axvline(0, color="#888", lw=0.8)
     ax.set_xlabel("seconds since the ground sent the pair's last frame")
     ax.set_title("where each pair's time went")
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    if ax.get_legend_handles_labels()[0]:  # no result with timings: nothing to name
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    else:
+        ax.text(0.5, 0.5, "no Result with timings", transform=ax.transAxes, ha="center", va="center")
     fig.tight_layout()
     return fig
 
