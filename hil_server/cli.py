@@ -270,6 +270,13 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "--budget", default=defaults.get("budget", "host"), help="emulated processor, see `hazard-hil budgets`"
     )
     p.add_argument(
+        "--budget-file",
+        type=Path,
+        default=None,
+        help="a budget file of your own (the packaged budgets.toml's format; `hazard-hil budgets --file FILE` "
+        "lists it) that --budget names a budget of (default: the packaged one)",
+    )
+    p.add_argument(
         "--pairs",
         default=None,
         help="comma-separated pair labels, e.g. 600/300,300/150 "
@@ -363,7 +370,7 @@ def _config(args: argparse.Namespace):
         check_seed(args.seed)  # the render's terrain hash, as `render --seed`
     link = args.link or defaults.get("link")
     if link is None:  # the budget's own link: a host run over ZeroMQ, a flight board over serial
-        link = get_budget(args.budget).link if args.flight == "emulated" else "serial"
+        link = get_budget(args.budget, args.budget_file).link if args.flight == "emulated" else "serial"
     pairs = _pairs(args.pairs) if args.pairs is not None else defaults.get("pairs")
     scenario = args.scenario or defaults.get("scenario", "vertical")
     if args.manifest is None:
@@ -374,6 +381,7 @@ def _config(args: argparse.Namespace):
         scenario=scenario,
         link=link,
         budget=args.budget,
+        budget_file=args.budget_file,
         out=args.out,
         pairs=pairs,
         seed=args.seed or 0,

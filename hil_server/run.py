@@ -60,6 +60,7 @@ class RunConfig:
     scenario: str = "vertical"
     link: str = "serial"  # serial | zmq; with flight="external" a full spec: serial:DEVICE[@BAUD] | zmq:ENDPOINT
     budget: str = "host"
+    budget_file: Path | None = None  # a user's budget file (budgets.toml's format); None: the packaged one
     out: Path = Path("out/run")
     pairs: list[str] | None = None  # labels such as "600/300"; None = all
     seed: int = 0
@@ -179,6 +180,7 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "link": cfg.link,
         "flight": cfg.flight if not cfg.flight_cmd else f"command: {cfg.flight_cmd}",
         "budget": cfg.budget if cfg.flight == "emulated" else None,
+        "budget_file": str(cfg.budget_file) if cfg.budget_file and cfg.flight == "emulated" else None,
         "preset": cfg.preset,
         "pairs": n,
         "results": len(ok),
@@ -554,7 +556,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     from hil_server.budgets import get_budget, load_calibration
 
     kind, spec = _parse_link(cfg)
-    budget = get_budget(cfg.budget)
+    budget = get_budget(cfg.budget, cfg.budget_file)
     emulated = cfg.flight == "emulated"
     fraction = budget.duty_fraction(load_calibration()) if emulated else float("nan")
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
@@ -697,6 +699,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     server_spec,
                     "--budget",
                     cfg.budget,
+                    *(["--budget-file", str(Path(cfg.budget_file).resolve())] if cfg.budget_file else []),
                     "--telemetry",
                     str(out / "supervisor.jsonl"),
                     "--link-timeout",

@@ -781,6 +781,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hil_server.supervisor", description=__doc__.splitlines()[0])
     ap.add_argument("--link", required=True, help="serial:URL[@BAUD] or zmq:ENDPOINT (bound here)")
     ap.add_argument("--budget", required=True)
+    ap.add_argument("--budget-file", default=None, help="the budget file --budget names a budget of")
     ap.add_argument("--telemetry", type=Path, default=None, help="JSON-lines telemetry file")
     ap.add_argument("--fault", default=None, help="fault injection for the first flight incarnation")
     ap.add_argument(
@@ -800,7 +801,7 @@ def main(argv: list[str] | None = None) -> int:
         print(s, file=sys.stderr, flush=True)
 
     try:
-        budget = get_budget(args.budget)
+        budget = get_budget(args.budget, args.budget_file)
         parse_link_fault(args.link_fault)
         if args.flight_cmd:
             flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now

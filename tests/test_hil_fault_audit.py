@@ -184,3 +184,24 @@ def test_a_child_that_exits_at_once_gets_an_exit_report(monkeypatch):
         proc.close()
         assert report is not None and report.returncode == 3 and "status 3" in report.reason
     assert errors == []
+
+
+def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
+    """`budgets --file` listed a user's board, but `run` only knew the packaged budgets."""
+    from hil_server.budgets import default_budgets_path
+
+    shipped = default_budgets_path().read_text()
+    board = (
+        '[budget.myboard]\ndescription = "half a Snapdragon 801 core"\ncpu_dmips = 3830\nmemory_mib = 1024\n'
+        'deadline_s = 6.0\nlink = "serial"\nbaud = 921600\nsource = "test"\n'
+    )
+    path = tmp_path / "boards.toml"
+    path.write_text(shipped[: shipped.index("[budget.")] + board)  # the shipped anchor, one board
+    argv = ["run", "--manifest", str(manifest), "--budget", "myboard", "--budget-file", str(path)]
+    code = main([*argv, "--out", str(tmp_path / "o")])
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert code == 0 and s["budget"] == "myboard" and s["budget_file"] == str(path) and s["deadline_s"] == 6.0
+    assert "budget myboard -> cpu fraction" in (tmp_path / "o" / "supervisor.log").read_text()  # the server's too
+    capsys.readouterr()
+    assert main(["run", "--manifest", str(manifest), "--budget", "myboard", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown budget 'myboard'" in capsys.readouterr().err
