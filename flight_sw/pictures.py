@@ -82,10 +82,9 @@ def write_process_report(
 
     dem = dem_panels(res.elevation, gt_z)
     dem[0].cmap = ELEVATION_CMAP
-    filled = getattr(res, "filled", None)
-    if filled is not None and np.any(filled):  # gap fills look like matches on the colour scale: say how many
-        n_dem = max(1, int(np.isfinite(res.elevation).sum()))
-        dem[0].title += f" ({100.0 * np.count_nonzero(filled) / n_dem:.1f} % gap fill)"
+    fills = res.info.get("dem_filled_fraction")
+    if fills:  # gap fills look like matches on the colour scale: say how many (of the covered pixels, as printed)
+        dem[0].title += f" ({100.0 * fills:.1f} % gap fill)"
     if res.sigma is not None:
         dem.insert(1, Panel("scalar", res.sigma, "elevation uncertainty sigma", "m", "viridis"))
     written.append(save(map_figure(dem, "Elevation (DEM)"), out / "dem.png"))
