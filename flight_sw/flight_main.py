@@ -64,7 +64,7 @@ from flight_sw.sites import select_safe_sites
 from protocol.codec import encode_message
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
-from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
+from protocol.messages import MAX_SKIPPED, Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
 from protocol.pairdir import STATE_SAFE, Camera, Pose
 
 # Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
@@ -451,6 +451,8 @@ class FlightProcess:
             no_site_reason=None if reason is None else str(reason)[:256],
             degraded=bool(res.degraded),
             level=str(res.level),
+            # why a Result at level full can still be degraded: the stages that no longer fit
+            skipped=tuple(str(n) for n in res.info.get("skipped", ()))[:MAX_SKIPPED],
             hazard_image=np.asarray(res.hazard, dtype=np.float32) if full else None,
             elevation_image=np.asarray(res.elevation, dtype=np.float32) if full else None,
             state_image=np.asarray(res.state, dtype=np.uint8) if full else None,

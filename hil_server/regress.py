@@ -14,8 +14,8 @@ removes the host's own speed.
 A regression is: deadline hit rate below the baseline's minus
 ``hit_rate_drop``, or a latency percentile above the baseline's by more than
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
-so tiny latencies do not flap), or more Results cut to a coarser anytime level
-(``degraded``: they are faster because they did less) when the baseline records
+so tiny latencies do not flap), or more degraded Results (``degraded``: cut to a coarser anytime
+level or with stages skipped; they are faster because they did less) when the baseline records
 that count. ``--update`` rewrites the baseline and records what its numbers
 rest on (``recorded``: the host's calibration and load); it refuses to rewrite
 the shipped baseline on an uncalibrated host, and says so when the host is
@@ -129,7 +129,7 @@ def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None)
         "deadline_hit_rate": summary["deadline_hit_rate"],
         "errors": summary["errors"],
         "pairs": summary["pairs"],
-        # Results the flight software cut short (a coarser anytime level): fewer of them is faster, not better
+        # Results the flight software cut short (a coarser anytime level or stages skipped): faster, not better
         "degraded": int(summary.get("degraded") or 0),
     }
     for m in LATENCY_METRICS:
@@ -163,8 +163,8 @@ def compare(
         o.limits["degraded"] = base["degraded"]
         if cur.get("degraded", 0) > base["degraded"]:
             o.problems.append(
-                f"degraded {cur['degraded']} > baseline {base['degraded']} (Results cut to a coarser level; "
-                "their latency is lower because they did less)"
+                f"degraded {cur['degraded']} > baseline {base['degraded']} (Results at a coarser level or with "
+                "stages skipped; their latency is lower because they did less)"
             )
     for k in metrics:
         c, b = cur.get(k, math.nan), base.get(k, math.nan)

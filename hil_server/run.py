@@ -165,6 +165,33 @@ def score_records(records: list[dict]) -> list[dict]:
     return records
 
 
+def skipped_counts(records: list[dict]) -> dict[str, int]:
+    """How many Results skipped each pipeline stage (a Result at level full can be degraded by these alone)."""
+    out: dict[str, int] = {}
+    for r in records:
+        for name in r.get("skipped") or ():
+            out[name] = out.get(name, 0) + 1
+    return dict(sorted(out.items()))
+
+
+def degraded_note(summary: dict) -> str:
+    """'2 at a coarser level, 1 full with stages skipped (rocks, shading_slope)', or '' when none was degraded.
+
+    A Result is degraded when it stopped below the full level or skipped a stage that no longer fitted; the two
+    are told apart, since a full DEM without the rock cue is a different answer from no DEM."""
+    n, coarser = int(summary.get("degraded") or 0), summary.get("coarser")
+    if not n:
+        return ""
+    if coarser is None:  # a summary written before the two were counted apart
+        return f"{n} degraded"
+    parts = [f"{coarser} at a coarser level"] if coarser else []
+    if n - coarser:
+        full = [r for r in summary.get("records") or () if r.get("status") == "result" and r.get("level") == "full"]
+        names = ", ".join(skipped_counts(full)) or "unnamed"
+        parts.append(f"{n - coarser} full with stages skipped ({names})")
+    return ", ".join(parts)
+
+
 def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
     """Counts, deadline hit rate and latency percentiles over the records (the deadline judged on e2e)."""
     ok = [r for r in records if r.get("status") == "result"]
@@ -185,7 +212,10 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "pairs": n,
         "results": len(ok),
         "degraded": sum(bool(r.get("degraded")) for r in ok),
+        "coarser": sum(r.get("level") not in (None, "full") for r in ok),
+        "stages_skipped": skipped_counts(ok),
         "errors": n - len(ok),
+        "not_run": sum(r.get("code") == "not_run" for r in records),  # the run ended before their frames went
         "deadline_met": met,
         "deadline_missed": len(ok) - met,
         "deadline_hit_rate": met / n if n else float("nan"),
@@ -227,10 +257,16 @@ def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
     return (
         f"{head}: {s['deadline_met']}/{s['pairs']} pairs returned a result within the "
         f"{_fmt(s.get('deadline_s'), 'g')} s deadline end to end "
-        f"({s['deadline_missed']} late, {s['errors']} errors; needed: {need})"
-        # a met deadline with a coarser answer is not the full answer: said beside the verdict, not only in the table
-        + (f"; {s['degraded']} at a coarser level" if s.get("degraded") else "")
+        f"({s['deadline_missed']} late, {s['errors']} errors{_not_run(s)}; needed: {need})"
+        # a met deadline with a degraded answer is not the full answer: said beside the verdict, not only in the table
+        + (f"; {degraded_note(s)}" if s.get("degraded") else "")
     )
+
+
+def _not_run(summary: dict) -> str:
+    """': 7 not run' when errors are pairs the run never reached (an interrupt, a lost ground), else ''."""
+    n = int(summary.get("not_run") or 0)
+    return f": {n} not run" if n == summary.get("errors") and n else (f", {n} of them not run" if n else "")
 
 
 def _fmt(v, spec: str = ".2f") -> str:
@@ -285,15 +321,18 @@ def summary_table(summary: dict) -> str:
         if r.get("status") == "result":
             outcome = "degraded" if r.get("degraded") else "result"
             dl = "met" if r.get("deadline_met") else "MISSED"
+            level = str(r.get("level"))
+            if r.get("skipped"):
+                level += f" (skipped {', '.join(r['skipped'])})"
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {r.get('level')} | "
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {level} | "
                 f"{_fmt(r.get('e2e_latency_s'))} | {_fmt(r.get('flight_latency_s'))} | "
                 f"{_fmt(r.get('result_line_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
                 f"{_fmt(sc.get('dem_mean_abs'))} |"
             )
         else:
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | MISSED "
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | no result "
                 "| — | — | — |"
             )
     s = summary
@@ -301,7 +340,7 @@ def summary_table(summary: dict) -> str:
     head = (
         f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']} {where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
-        f"degraded), {s['errors']} errors; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
+        f"degraded), {s['errors']} errors{_not_run(s)}; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )

@@ -57,7 +57,11 @@ def pair_row(r: dict) -> dict[str, Any]:
     return {
         "label": r.get("label"),
         "altitude_m": r.get("altitude_m"),
-        "outcome": (("degraded " if r.get("degraded") else "") + str(r.get("level")))
+        "outcome": (
+            ("degraded " if r.get("degraded") else "")
+            + str(r.get("level"))
+            + (f" (skipped {', '.join(r['skipped'])})" if r.get("skipped") else "")
+        )
         if ok
         else f"error: {r.get('code')}",
         "e2e_latency_s": _first(r, "e2e_latency_s", "latency_s") if ok else None,
@@ -135,9 +139,14 @@ def write_run_report(summary: dict, path: Path) -> Path:
         Headline("e2e_max", _first(s, "e2e_latency_max_s", "latency_max_s"), label="end-to-end latency max [s]"),
     ]
     degraded = sum(bool(r.get("degraded")) for r in records if r.get("status") == "result")
-    if results:  # a met deadline with a Result cut to a coarser level is not the full answer: say how many
+    if results:  # a met deadline with a degraded Result is not the full answer: say how many
         headline.append(
-            Headline("degraded", f"{degraded}/{results}", "warn" if degraded else "ok", "Results at a coarser level")
+            Headline(
+                "degraded",
+                f"{degraded}/{results}",
+                "warn" if degraded else "ok",
+                "Results degraded (a coarser level or stages skipped)",
+            )
         )
     fps = [r["scores"]["fp_pct"] for r in records if (r.get("scores") or {}).get("fp_pct") is not None]
     if fps:

@@ -32,6 +32,7 @@ PROTOCOL_VERSION = 2
 MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
 MAX_DICT_ITEMS = 128  # stages, link statistics, camera
+MAX_SKIPPED = 32  # pipeline stages a Result can name as skipped
 
 
 class SchemaError(InputError):
@@ -88,6 +89,17 @@ def _str(maxlen: int = MAX_TEXT) -> Checker:
         if len(v) > maxlen:
             raise SchemaError(f"{name}: string of {len(v)} chars exceeds {maxlen}")
         return v
+
+    return check
+
+
+def _names(max_items: int, maxlen: int = 64) -> Checker:
+    item = _str(maxlen)
+
+    def check(v: Any, name: str) -> tuple[str, ...]:
+        if not isinstance(v, (list, tuple)) or len(v) > max_items:
+            raise SchemaError(f"{name}: expected a list of at most {max_items} names")
+        return tuple(item(x, f"{name}[{i}]") for i, x in enumerate(v))
 
     return check
 
@@ -420,6 +432,7 @@ class Result(Message):
     no_site_reason: str | None = _wire(_optional(_str(256)), None)
     degraded: bool = _wire(_bool, False)
     level: str = _wire(_str(64), "full")
+    skipped: tuple = _wire(_names(MAX_SKIPPED), factory=tuple)
     hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
     elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)

@@ -93,12 +93,29 @@ def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_pa
     assert s["results"] == 3 and s["errors"] == 0
     for r in s["records"]:
         assert r["degraded"] and r["level"] in ("image_only", "coarse")
+        assert "full_dem" in r["skipped"]  # the Result names what it left out, not only that it is degraded
         assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.02)
         hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
         assert np.isfinite(hz).any()  # image-only hazards (rocks, shadows) still come back
     from hil_server.run import verdict_line
 
     assert verdict_line(s).endswith("; 3 at a coarser level")  # beside the verdict, not only in the table
+
+
+def test_the_verdict_tells_a_coarser_level_from_skipped_stages():
+    from hil_server.run import degraded_note, skipped_counts
+
+    def rec(level: str, skipped: list[str]) -> dict:
+        return {"status": "result", "level": level, "skipped": skipped, "degraded": level != "full" or bool(skipped)}
+
+    records = [rec("coarse", ["full_dem", "slope"]), rec("full", ["rocks", "shading_slope"]), rec("full", ["rocks"])]
+    records += [rec("full", []), {"status": "error", "code": "not_run"}]
+    s = {"degraded": 3, "coarser": 1, "stages_skipped": skipped_counts(records), "records": records}
+    assert s["stages_skipped"] == {"full_dem": 1, "rocks": 2, "shading_slope": 1, "slope": 1}
+    # the full-level Results' own skips only: full_dem belongs to the coarse one
+    assert degraded_note(s) == "1 at a coarser level, 2 full with stages skipped (rocks, shading_slope)"
+    assert degraded_note({**s, "degraded": 0}) == ""
+    assert degraded_note({"degraded": 2}) == "2 degraded"  # a summary from before the split
 
 
 def test_crash_mid_pair_is_reported_and_the_run_completes(manifest, tmp_path):
@@ -183,3 +200,8 @@ def test_a_hil_server_that_fails_ends_the_run_at_once_with_its_reason(manifest, 
     assert s["complete"] is False and s["results"] == 0 and s["errors"] == 3
     assert s["reason"] == "the HIL server (supervisor) exited with 1: supervisor: error: cannot open the link (test)"
     assert all(r["code"] == "not_run" and "supervisor" in r["text"] for r in s["records"])
+    from hil_server.run import summary_table, verdict_line
+
+    # pairs never reached are said to be so, not reported as deadlines missed
+    assert s["not_run"] == 3 and "(0 late, 3 errors: 3 not run; " in verdict_line(s)
+    assert "MISSED" not in summary_table(s) and summary_table(s).count("| no result |") == 3

@@ -82,6 +82,7 @@ def results(draw) -> Result:
         no_site_reason=draw(st.none() | names),
         degraded=draw(st.booleans()),
         level=draw(names),
+        skipped=tuple(draw(st.lists(names, max_size=4))),
         hazard_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
         elevation_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
         state_image=None if img is None else draw(hnp.arrays(np.uint8, img, elements=st.sampled_from([0, 1, 2, 255]))),
@@ -221,6 +222,9 @@ def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
         (dict(hazard_image=np.zeros((4, 4), np.float32), state_image=np.zeros((4, 3), np.uint8)), "one shape"),
         (dict(elevation_filled=np.zeros((3, 2), np.uint8)), "elevation_filled: shape"),
         (dict(elevation_filled=np.array([[0, 2], [1, 0]], np.uint8)), "0 or 1"),
+        (dict(skipped=tuple(f"stage{i}" for i in range(33))), "at most 32 names"),
+        (dict(skipped=("rocks", 3)), r"skipped\[1\]: expected a string"),
+        (dict(skipped=("x" * 65,)), "exceeds 64"),
     ],
 )
 def test_result_grids_must_agree(kw, match):

@@ -239,4 +239,4 @@ def test_run_report_headline_counts_degraded_results(tmp_path):
     summary = {"scenario": "vertical", "link": "zmq", "pairs": 2, "results": 2, "deadline_met": 2}
     page = write_run_report({**summary, "deadline_hit_rate": 1.0, "records": records}, tmp_path / "r.html")
     html = page.read_text()
-    assert "Results at a coarser level" in html and "1/2" in html
+    assert "Results degraded (a coarser level or stages skipped)" in html and "1/2" in html
