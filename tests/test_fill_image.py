@@ -5,10 +5,12 @@ gap fills, compact on the wire, refused when it does not fit, saved by the groun
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import msgpack
 import numpy as np
 import pytest
+from hilkit import run_hil, small_descent
 
 from protocol.codec import decode_message, encode_message
 from protocol.grids import filled_to_wire
@@ -124,3 +126,36 @@ def test_a_received_mask_of_another_shape_is_refused(shape):
         body[k] = None
     with pytest.raises(SchemaError, match="sent without elevation_image"):
         _decode_map(body)
+
+
+@pytest.mark.slow
+def test_a_hil_run_with_full_maps_saves_the_pipelines_fill_mask(tmp_path):
+    """The ground's elevation_filled_image.npy is the flight pipeline's ``filled``, pixel for pixel."""
+    from flight_sw.pipeline import run_pipeline
+    from protocol.pairdir import read_pair
+
+    manifest = small_descent(tmp_path / "pairs", ["200/100"])  # 128 px: this pair has gap fills
+    s = run_hil(manifest, tmp_path / "run", "zmq", full_maps=True, deadline_s=30.0)
+    assert s["results"] == 1 and s["errors"] == 0, [r.get("text") for r in s["records"]]
+    (rec,) = s["records"]
+    assert rec["level"] == "full" and not rec["degraded"]  # a generous deadline: the pipeline's own answer
+    d = tmp_path / "run" / "received" / rec["pair_id"]
+    fills, elev = np.load(d / "elevation_filled_image.npy"), np.load(d / "elevation.npy")
+    assert fills.dtype == bool and fills.shape == elev.shape
+    assert fills.any() and np.isfinite(elev[fills]).all()  # a fill always has an elevation
+    entry = json.loads(manifest.read_text())["pairs"][0]
+    pair = read_pair(manifest.parent / entry["path"])
+    res = run_pipeline(
+        pair.images[0],
+        pair.images[1],
+        pair.poses[0],
+        pair.poses[1],
+        pair.camera,
+        preset="fast",
+        altimeter_m=pair.altimeter_m[0],
+        sun_elevation_deg=pair.sun.elevation_deg,
+        sun_azimuth_deg=pair.sun.azimuth_deg,
+    )
+    assert res.filled is not None and np.array_equal(fills, res.filled)
+    assert np.array_equal(elev, res.elevation, equal_nan=True)  # the same DEM the mask marks
+    assert np.load(d / "elevation_filled_grid.npy").dtype == bool  # the grid's own mask still comes beside it
