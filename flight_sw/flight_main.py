@@ -433,6 +433,9 @@ class FlightProcess:
             step, pstep = steps
         unit = int(cfg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM))
         elevation, offset = elevation_to_wire(grid.reported_elevation, step, unit)
+        fills = None  # the pixels of elevation_image that are gap fills (none from a back-end that does not fill)
+        if full:
+            fills = filled_to_wire(res.filled if res.filled is not None else np.zeros(np.shape(res.elevation), bool))
         msg = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),
@@ -458,6 +461,7 @@ class FlightProcess:
             state_image=np.asarray(res.state, dtype=np.uint8) if full else None,
             # which elevations are gap fills (all 0 from a back-end or a map without any)
             elevation_filled=filled_to_wire(grid.filled, step),
+            elevation_filled_image=fills,
         ).validated()
         assert isinstance(msg, Result)
         return msg

@@ -16,6 +16,12 @@ from typing import Any
 import numpy as np
 
 FOOTPRINT_RADIUS_M = 1.5  # the lander's 3 m footprint (docs/design.md, thesis Table 2.1)
+# Gap fills on the DEM panel: darkened (they lie in dark shadow; no colour of the terrain map is this dark) so that
+# a rim of a few pixels shows, and hatched so that a wide one reads as "not measured" with its colour still seen
+FILL_VEIL = (0.0, 0.0, 0.0, 0.55)
+FILL_HATCH = "////"
+FILL_HATCH_COLOUR = "#1a1a1a"
+FILL_LABEL = "gap fill (not matched)"
 
 
 def confusion(hazard: np.ndarray, truth_hazard: np.ndarray, covered: np.ndarray) -> dict[str, np.ndarray]:
@@ -52,6 +58,57 @@ def site_pixels(world_xy: np.ndarray, sites: list[Any]) -> list[tuple[float, flo
     return out
 
 
+def fill_veil(filled: np.ndarray) -> np.ndarray:
+    """HxWx4 float32 RGBA layer: :data:`FILL_VEIL` on the gap-fill pixels, transparent elsewhere."""
+    m = np.asarray(filled, bool)
+    rgba = np.zeros(m.shape + (4,), np.float32)
+    rgba[m] = FILL_VEIL
+    return rgba
+
+
+def mark_fills(ax: Any, filled: np.ndarray) -> bool:
+    """Darken and hatch the gap-fill pixels over a DEM panel, with a legend entry; nothing at all when there are
+    none (the panel then reads as before). Returns whether anything was drawn."""
+    from matplotlib.patches import Patch
+
+    m = np.asarray(filled, bool)
+    if not m.any():
+        return False
+    ax.imshow(fill_veil(m), interpolation="nearest")
+    if min(m.shape) >= 2:  # the hatch follows the mask's outline (pixel edges); contourf needs 2 x 2 values
+        cs = ax.contourf(m.astype(np.float32), levels=[0.5, 1.5], colors="none", hatches=[FILL_HATCH])
+        cs.set_hatchcolor(FILL_HATCH_COLOUR)
+        cs.set_hatch_linewidth(0.8)
+    handle = Patch(facecolor=FILL_VEIL, edgecolor=FILL_HATCH_COLOUR, hatch=FILL_HATCH, label=FILL_LABEL)
+    ax.legend(handles=[handle], loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, frameon=False)
+    return True
+
+
+def dem_figure(
+    elevation: np.ndarray,
+    truth: np.ndarray | None = None,
+    sigma: np.ndarray | None = None,
+    filled: np.ndarray | None = None,
+    fill_fraction: float | None = None,
+) -> Any:
+    """The DEM picture of ``process``: computed elevation (its gap fills ``filled`` darkened and hatched, their
+    share ``fill_fraction`` in its title), the elevation's ``sigma``, and with ``truth`` the true elevation
+    and the error. Returns the matplotlib figure (:func:`reports.plots.save`)."""
+    from reports.plots import Panel, dem_panels, map_figure
+    from reports.style import ELEVATION_CMAP
+
+    dem = dem_panels(elevation, truth)
+    dem[0].cmap = ELEVATION_CMAP
+    if fill_fraction:  # the pipeline's own share, of the covered pixels, as process prints it
+        dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
+    if sigma is not None:
+        dem.insert(1, Panel("scalar", sigma, "elevation uncertainty sigma", "m", "viridis"))
+    fig = map_figure(dem, "Elevation (DEM)")
+    if filled is not None:  # fig.axes[0] is the computed elevation: the panels' axes come before their colour bars
+        mark_fills(fig.axes[0], np.asarray(filled, bool) & np.isfinite(elevation))
+    return fig
+
+
 def write_process_report(
     out: Path,
     image: np.ndarray,
@@ -66,8 +123,8 @@ def write_process_report(
     Sites are marked safe/unsafe against the true hazard map when there is one.
     """
     from reports.html import Column, Figure, Headline, Section, Table, write_page
-    from reports.plots import Panel, Site, confusion_codes, dem_panels, map_figure, save
-    from reports.style import ELEVATION_CMAP, HAZARD_CMAP, PSAFE_CMAP
+    from reports.plots import Panel, Site, confusion_codes, map_figure, save
+    from reports.style import HAZARD_CMAP, PSAFE_CMAP
 
     gt_z, gt_h = truth.get("elevation"), truth.get("hazard")
     px = site_pixels(res.world_xy, res.sites)
@@ -80,20 +137,14 @@ def write_process_report(
     written: list[Path] = []
     figures: list[Figure] = []
 
-    dem = dem_panels(res.elevation, gt_z)
-    dem[0].cmap = ELEVATION_CMAP
-    fills = res.info.get("dem_filled_fraction")
-    if fills:  # gap fills look like matches on the colour scale: say how many (of the covered pixels, as printed)
-        dem[0].title += f" ({100.0 * fills:.1f} % gap fill)"
-    if res.sigma is not None:
-        dem.insert(1, Panel("scalar", res.sigma, "elevation uncertainty sigma", "m", "viridis"))
-    written.append(save(map_figure(dem, "Elevation (DEM)"), out / "dem.png"))
+    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, res.info.get("dem_filled_fraction"))
+    written.append(save(fig, out / "dem.png"))
     figures.append(
         Figure(
             "dem.png",
             "Computed elevation, its uncertainty; with truth, the true one and the error. White: no elevation "
-            "(outside the area both images cover, or not recovered); gap fills carried into dark shadow "
-            "(filled.npy) are drawn like matches, with a larger sigma.",
+            "(outside the area both images cover, or not recovered). Darkened and hatched in the computed "
+            "elevation: gap fills carried into dark shadow, not matched (filled.npy; they have a larger sigma).",
         )
     )
 

@@ -153,7 +153,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     Grids: ``state_grid.npy`` (uint8 codes), ``psafe_grid.npy`` (float32, NaN outside),
     ``elevation_grid.npy`` (float32 m, NaN = none; on its own, possibly decimated grid),
     ``elevation_filled_grid.npy`` (bool, that grid's shape: the elevation leans on a gap fill) when sent;
-    full-resolution maps when sent: ``hazard.npy``, ``elevation.npy``, ``state.npy``.
+    full-resolution maps when sent: ``hazard.npy``, ``elevation.npy``, ``state.npy`` and
+    ``elevation_filled_image.npy`` (bool, ``elevation.npy``'s shape: that pixel's elevation is a gap fill).
     """
     rec: dict = {
         "pair_id": o.pair_id,
@@ -185,6 +186,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     for name, arr in (("hazard", r.hazard_image), ("elevation", r.elevation_image), ("state", r.state_image)):
         if arr is not None:
             arrays[name] = np.asarray(arr)
+    if r.elevation_filled_image is not None:
+        arrays["elevation_filled_image"] = np.asarray(r.elevation_filled_image, bool)
     for name, arr in arrays.items():  # each file whole or absent
         tmp = d / f".{name}.tmp.npy"
         np.save(tmp, arr)

@@ -413,7 +413,9 @@ class Result(Message):
     * ``elevation_filled`` uint8 (optional), the elevation grid's shape: 1 where the cell's elevation leans on
       a gap fill (an elevation carried into dark shadow, not matched there: any grid cell of its block).
 
-    Full-resolution image maps (i1's pixels) only when the Config asked for them (``full_maps``).
+    Full-resolution image maps (i1's pixels) only when the Config asked for them (``full_maps``);
+    ``elevation_filled_image`` (optional, uint8 0/1, ``elevation_image``'s shape) marks the pixels of
+    ``elevation_image`` that are gap fills, as ``elevation_filled`` does for the grid.
     Helpers to build and read these grids: :mod:`protocol.grids`.
     """
 
@@ -437,6 +439,7 @@ class Result(Message):
     elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
     elevation_filled: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
+    elevation_filled_image: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
 
     def check_consistency(self) -> None:
         shape = np.shape(self.state_grid)
@@ -461,6 +464,14 @@ class Result(Message):
         images = [a for a in (self.hazard_image, self.elevation_image, self.state_image) if a is not None]
         if any(np.shape(a) != np.shape(images[0]) for a in images):
             raise SchemaError("Result: full-resolution image maps must share one shape")
+        if self.elevation_filled_image is not None:  # a fill mask marks pixels of elevation_image: it needs one
+            got = np.shape(self.elevation_filled_image)
+            if self.elevation_image is None:
+                raise SchemaError(f"Result.elevation_filled_image: shape {got} sent without elevation_image")
+            if got != np.shape(self.elevation_image):
+                raise SchemaError(
+                    f"Result.elevation_filled_image: shape {got} != elevation_image {np.shape(self.elevation_image)}"
+                )
 
 
 @dataclass(frozen=True)
