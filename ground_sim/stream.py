@@ -19,6 +19,14 @@ then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
 Config again, and carries on with the next pair. The process exits 3 when a
 session was lost on the way (0 otherwise).
 
+A record from the flight side whose header declares more than the size limit
+(``Limits.max_message_bytes``) cannot be accepted, and nothing behind it in the
+stream can arrive until all its declared bytes have gone by (a board that
+declares 1 GiB and trickles it would hold every later pair). The ground does
+not wait: a Result ends its pair at once as ``bad_result`` with the declared
+size, and the ground gives up that link session (the far end is told) and
+carries on in a new one, as after a lost session.
+
 The deadline (docs/hil.md) is judged here, on ``e2e_latency_s``: from the
 moment the ground finished sending the pair's last frame (its last byte on the
 line) to the moment the ground holds the whole Result. Each record carries it
@@ -51,11 +59,12 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 
 EXIT_LINK_LOST = 3
 LINK_CODES = ("link_down",)
+MESSAGE_NAMES = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
     "pair_id",
@@ -346,10 +355,31 @@ def stream_descent(
                 give_up(o, "link_down", why)
             want.discard(s)
 
+    def held_stream(want: set[tuple[int, int]]) -> bool:
+        """True when the flight side's stream is held by a record declared over the size limit (see the module
+        doc): a Result ends the oldest pair waiting for one as ``bad_result``, and the session is given up."""
+        held = getattr(link, "skipping", None)  # byte-stream links only: ZeroMQ carries whole messages
+        if held is None or not held.oversize:
+            return False
+        what = MESSAGE_NAMES.get(held.type_code, f"message of type {held.type_code}")
+        why = f"the flight computer's {what} was refused from its header: {held.reason}"
+        waiting = [outcomes[k] for k in sorted(want) if outcomes[k].result is None and not outcomes[k].finished]
+        if held.type_code == Result.TYPE and waiting:
+            o = waiting[0]
+            give_up(o, "bad_result", f"{why}; the link session was given up (its stream cannot resynchronise)")
+            want.discard(o.seqs)
+        else:  # no pair to blame: the pairs in flight end with the session, this says why
+            note(f"FLIGHT ERROR: {why}; giving up this link session and starting a new one")
+        link.abandon_session(f"the flight computer's stream is held by a record over the size limit ({why})")
+        return True
+
     def collect(until: float, want: set[tuple[int, int]]) -> None:
         while want and time.monotonic() < until:
             if not session_ok():
                 fail_in_flight(want, f"link session lost: {link.last_error}")
+                return
+            if held_stream(want):
+                fail_in_flight(want, f"link session given up: {link.last_error}")
                 return
             pkt = link.recv_packet(timeout=0.2)
             if pkt is None or pkt.epoch != state.epoch:

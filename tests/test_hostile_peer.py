@@ -10,6 +10,7 @@ that waiting for the hard limit (60 s at the HIL server) or the ground's timeout
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -196,3 +197,25 @@ def test_the_arq_names_the_record_it_skips_and_its_owner_can_give_up_the_session
     assert a.stats["peer_losses"] == 1  # told by the CLOSE: it gave up on the session
     line.run(line.now + 5, stop=lambda s: s.eps[0].established and s.eps[1].established)
     assert a.established and b.established and b.epoch == 2
+
+
+def test_an_external_flight_computer_declaring_a_result_over_the_limit_fails_that_pair_and_the_descent_goes_on(
+    manifest, hostile, tmp_path
+):
+    """With no HIL server in between, the ground's own link skipped the record and waited out its 120 s response
+    timeout; the stream stayed held, so every later pair timed out too."""
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(hostile), "--declare", str(GiB), "--port", bridge.paths[0]])
+        try:
+            code, s = run_cli(manifest, tmp_path, "--flight", "external", "--link", f"serial:{bridge.paths[1]}")
+        finally:
+            board.terminate()
+            board.wait(timeout=10)
+    assert code == 1 and s["complete"] is True
+    assert outcomes(s) == [("600/300", "result", None), ("300/150", "error", "bad_result"), ("200/100", "result", None)]
+    bad = s["records"][1]
+    assert bad["elapsed_s"] < PROMPT_S, bad
+    assert f"Result was refused from its header: message of {GiB} bytes exceeds the {32 << 20}-byte" in bad["text"]
+    assert s["link_errors"] == 0  # the flight computer misbehaved; the link did not fail
