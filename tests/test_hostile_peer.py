@@ -1,5 +1,6 @@
 """A hostile or broken flight side, end to end: a record declared far over the size limit must not hold a pair (or
-the stream behind it) until a hard deadline, at the HIL server or at the ground.
+the stream behind it) until a hard deadline, at the HIL server or at the ground; a flight computer that never says
+Hello must not hold the ground for 15 minutes.
 
 The hostile flight program is examples/minimal_flight.py that, for the second pair it receives, starts a record
 declaring ``--declare`` bytes instead of its Result and trickles its body (64 B every 0.1 s) while its heartbeats go
@@ -37,13 +38,14 @@ ap.add_argument("--port")
 ap.add_argument("--declare", type=int, help="body length the second pair's record declares")
 ap.add_argument("--type", type=int, default=mf.RESULT, help="type code of that record")
 ap.add_argument("--once", help="a file: hostile only if it does not exist yet (created then), not in every incarnation")
+ap.add_argument("--no-hello", action="store_true", help="answer the link's HELLO but never the Hello message")
 args = ap.parse_args()
 link = mf.Link(serial.serial_for_url(args.port, baudrate=921600, timeout=0.02))
 config, pending, answered, next_beat, next_trickle, hostile = None, {{}}, 0, 0.0, 0.0, None
 
 while not link.closed_by_peer:
     for mtype, msg in link.poll():
-        if mtype == mf.HELLO_MSG:
+        if mtype == mf.HELLO_MSG and not args.no_hello:
             link.send(mf.HELLO_MSG, {{"role": "flight", "session": link.local}})
         elif mtype == mf.CONFIG:
             config = msg
@@ -219,3 +221,75 @@ def test_an_external_flight_computer_declaring_a_result_over_the_limit_fails_tha
     assert bad["elapsed_s"] < PROMPT_S, bad
     assert f"Result was refused from its header: message of {GiB} bytes exceeds the {32 << 20}-byte" in bad["text"]
     assert s["link_errors"] == 0  # the flight computer misbehaved; the link did not fail
+
+
+def test_a_flight_computer_that_never_answers_ends_the_run_after_the_hello_timeout(manifest, tmp_path, capfd):
+    """The ground waited 60 s for a link session, then 900 s for the Hello, silently, and again for every pair."""
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:  # nobody on the other end
+        t0 = time.monotonic()
+        code, s = run_cli(
+            manifest, tmp_path, "--flight", "external", "--link", f"serial:{bridge.paths[1]}", "--hello-timeout", "11"
+        )
+        took = time.monotonic() - t0
+    assert code == 1 and s["complete"] is False and s["ground_exit"] == 5
+    assert 11 <= took < 60
+    why = f"no Hello from the flight computer on serial:{bridge.paths[1]} within 11 s: its link never answered"
+    assert s["reason"].startswith(why)
+    assert outcomes(s) == [(label, "error", "not_run") for label in PAIRS]  # every pair, none lost
+    assert all(r["text"] == f"not run: {s['reason']}" for r in s["records"])
+    assert s["results"] == 0 and s["errors"] == 3 and s["link_errors"] == 0
+    out, err = capfd.readouterr()
+    assert f"waiting for the flight computer's Hello on serial:{bridge.paths[1]} (10 s of 11 s)" in err
+    assert f"ground: error: {why}" in err
+    assert err.count("ground: error:") == 1 and "ERROR not_run" not in err  # one line, not one per pair
+    assert f"INCOMPLETE ({why}" in out
+
+
+def test_a_flight_computer_whose_link_answers_but_never_says_hello(manifest, hostile, tmp_path):
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen(
+            [sys.executable, str(hostile), "--declare", "0", "--no-hello", "--port", bridge.paths[0]]
+        )
+        try:
+            code, s = run_cli(
+                manifest,
+                tmp_path,
+                "--flight",
+                "external",
+                "--link",
+                f"serial:{bridge.paths[1]}",
+                "--hello-timeout",
+                "4",
+            )
+        finally:
+            board.terminate()
+            board.wait(timeout=10)
+    assert code == 1 and s["ground_exit"] == 5 and s["complete"] is False
+    assert "within 4 s (its link answers: is its flight software running?)" in s["reason"]
+    assert outcomes(s) == [(label, "error", "not_run") for label in PAIRS]
+
+
+def test_a_zmq_endpoint_nobody_serves_ends_the_run_after_the_hello_timeout(manifest, tmp_path):
+    import socket
+
+    with socket.socket() as sock:  # a loopback port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    link = f"zmq:tcp://127.0.0.1:{port}"
+    args = ("--flight", "external", "--link", link, "--insecure", "--hello-timeout", "3")
+    code, s = run_cli(manifest, tmp_path, *args)
+    assert code == 1 and s["ground_exit"] == 5
+    assert s["reason"].startswith(f"no Hello from the flight computer on {link} within 3 s")
+    assert outcomes(s) == [(label, "error", "not_run") for label in PAIRS]
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan"])
+def test_a_hello_timeout_that_is_no_time_is_refused_up_front(tmp_path, value, capsys):
+    argv = ["run", "--flight", "external", "--link", "serial:/dev/null", "--hello-timeout", value]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "--hello-timeout must be a positive number of seconds" in err and len(err.strip().splitlines()) == 1
