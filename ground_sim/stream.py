@@ -326,39 +326,34 @@ def stream_descent(
 
     def first_hello() -> None:
         """The first session: link session and Hello within ``hello_timeout_s`` in all, a line every 10 s meanwhile
-        (a board that is off, on another port or at another baud, or an emulated processor booting slowly). A
-        session lost on the way (a board that resets while it boots) is waited for again within the same time."""
+        (a board that is off, on another port or at another baud, or an emulated processor booting slowly); raises
+        NoHello. A session lost during the handshake is a LinkDown, as in any session: its pair ends as
+        ``link_down`` and the next pair tries again (a very noisy line loses sessions, it is not a silent peer)."""
         t0 = time.monotonic()
         end = t0 + hello_timeout_s
-        while True:
-            while not link.wait_established(min(HELLO_NOTE_S, max(0.0, end - time.monotonic()))):
-                if link.failed:
-                    raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
-                if time.monotonic() >= end:
-                    check = (
-                        "on this port, at this baud"
-                        if where.startswith("serial")
-                        else "serving this endpoint, with these keys"
-                    )
-                    raise NoHello(
-                        f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: its link never "
-                        f"answered (is it powered, {check}?)"
-                    )
-                waiting(t0)
-            try:
-                handshake(max(0.0, end - time.monotonic()), t0)
-                return
-            except LinkDown as exc:
-                if time.monotonic() >= end:
-                    raise NoHello(str(exc)) from None
-                note(f"LINK ERROR: {exc}; waiting for a new session")
+        while not link.wait_established(min(HELLO_NOTE_S, max(0.0, end - time.monotonic()))):
+            if link.failed:
+                raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
+            if time.monotonic() >= end:
+                check = (
+                    "on this port, at this baud"
+                    if where.startswith("serial")
+                    else "serving this endpoint, with these keys"
+                )
+                raise NoHello(
+                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: its link never "
+                    f"answered (is it powered, {check}?)"
+                )
+            waiting(t0)
+        handshake(max(0.0, end - time.monotonic()), t0, first=True)
 
     def waiting(t0: float) -> None:
         waited = time.monotonic() - t0
         note(f"waiting for the flight computer's Hello on {where} ({waited:.0f} s of {hello_timeout_s:.0f} s)")
 
-    def handshake(hello_s: float, t0: float) -> None:
-        """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown); a line every 10 s."""
+    def handshake(hello_s: float, t0: float, first: bool = False) -> None:
+        """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
+        came in the ``first`` session); a line every 10 s."""
         state.epoch = None
         epoch = link.epoch
         link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
@@ -372,7 +367,7 @@ def stream_descent(
                 raise LinkDown(f"link session lost during the handshake: {link.last_error}")
             now = time.monotonic()
             if now > end:
-                raise LinkDown(
+                raise (NoHello if first else LinkDown)(
                     f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s (its link answers: "
                     "is its flight software running?)"
                 )
