@@ -12,12 +12,23 @@ queueing on a slow processor. Every pair ends in ``results.jsonl`` as
 ground's own timeout is recorded as ``error: no_response`` - nothing is lost.
 
 Link sessions (docs/protocol.md): the ground says Hello (with its link session
-id), waits for the server's Hello, then sends Config. When the session is lost
+id), waits for the server's Hello, then sends Config. The first Hello is awaited
+at most ``hello_timeout_s`` (the link session included), with a progress line
+every 10 s; when it never comes the descent ends at once: every pair is recorded
+as ``not_run`` with the reason and the process exits 5. When the session is lost
 (the far end stopped reading, went silent, closed, or was restarted), the pairs
 in flight end at once as ``link_down`` errors with the link's reason; the ground
 then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
 Config again, and carries on with the next pair. The process exits 3 when a
 session was lost on the way (0 otherwise).
+
+A record from the flight side whose header declares more than the size limit
+(``Limits.max_message_bytes``) cannot be accepted, and nothing behind it in the
+stream can arrive until all its declared bytes have gone by (a board that
+declares 1 GiB and trickles it would hold every later pair). The ground does
+not wait: a Result ends its pair at once as ``bad_result`` with the declared
+size, and the ground gives up that link session (the far end is told) and
+carries on in a new one, as after a lost session.
 
 The deadline (docs/hil.md) is judged here, on ``e2e_latency_s``: from the
 moment the ground finished sending the pair's last frame (its last byte on the
@@ -39,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -51,11 +63,14 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 
 EXIT_LINK_LOST = 3
+EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
+HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
+MESSAGE_NAMES = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
     "pair_id",
@@ -243,6 +258,10 @@ class LinkDown(Exception):
     """The link session is gone and did not come back in time."""
 
 
+class NoHello(LinkDown):
+    """The flight side never said Hello in the first session: nothing can run."""
+
+
 @dataclass
 class _SessionState:
     epoch: int | None = None  # link session the app handshake (Hello both ways) was done in
@@ -261,7 +280,6 @@ def stream_descent(
     pace: str = "lockstep",
     response_timeout_s: float | None = None,
     hello_timeout_s: float = 900.0,
-    connect_timeout_s: float = 60.0,
     reconnect_timeout_s: float = 10.0,
     full_maps: bool = False,
     fusion: bool = True,
@@ -270,11 +288,15 @@ def stream_descent(
     elevation_unit_cm: int = 1,
     progress=None,
     telemetry_path: Path | None = None,
+    where: str = "the link",
 ) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``).
 
+    ``hello_timeout_s`` bounds the wait for the first session's Hello (the link session included); ``where``
+    names the far end in messages (e.g. ``serial:/dev/ttyUSB0``).
+
     On :class:`Interrupted` (raised by a signal handler) the records so far are on disk and the
-    exception propagates.
+    exception propagates. On :class:`NoHello` every pair without a record is recorded as ``not_run`` first.
     """
     manifest = read_manifest(manifest_path)
     base = Path(manifest_path).parent
@@ -294,7 +316,6 @@ def stream_descent(
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
     records: list[dict] = []
-    seq = 0
     config: Config | None = None
     state = _SessionState()
     results_path = out_dir / "results.jsonl"
@@ -308,36 +329,72 @@ def stream_descent(
     def session_ok() -> bool:
         return state.epoch is not None and link.established and link.epoch == state.epoch
 
-    def handshake(wait_s: float) -> None:
-        """Hello both ways in a fresh link session (raises LinkDown)."""
+    def first_hello() -> None:
+        """The first session: link session and Hello within ``hello_timeout_s`` in all, a line every 10 s meanwhile
+        (a board that is off, on another port or at another baud, or an emulated processor booting slowly); raises
+        NoHello. A session lost during the handshake is a LinkDown, as in any session: its pair ends as
+        ``link_down`` and the next pair tries again (a very noisy line loses sessions, it is not a silent peer)."""
+        t0 = time.monotonic()
+        end = t0 + hello_timeout_s
+        while not link.wait_established(min(HELLO_NOTE_S, max(0.0, end - time.monotonic()))):
+            if link.failed:
+                raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
+            if time.monotonic() >= end:
+                check = (
+                    "on this port, at this baud"
+                    if where.startswith("serial")
+                    else "serving this endpoint, with these keys"
+                )
+                raise NoHello(
+                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: its link never "
+                    f"answered (is it powered, {check}?)"
+                )
+            waiting(t0)
+        handshake(max(0.0, end - time.monotonic()), t0, first=True)
+
+    def waiting(t0: float) -> None:
+        waited = time.monotonic() - t0
+        note(f"waiting for the flight computer's Hello on {where} ({waited:.0f} s of {hello_timeout_s:.0f} s)")
+
+    def handshake(hello_s: float, t0: float, first: bool = False) -> None:
+        """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
+        came in the ``first`` session); a line every 10 s."""
         state.epoch = None
-        if not link.wait_established(wait_s):
-            raise LinkDown(f"no link session with the HIL server within {wait_s:g} s ({link.last_error or 'silent'})")
         epoch = link.epoch
         link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
-        t0 = time.monotonic()
-        next_note = t0 + 5.0
-        while True:  # the server answers Hello once its flight process has booted
+        end = time.monotonic() + hello_s
+        next_note = t0 + HELLO_NOTE_S
+        while True:  # the HIL server answers Hello once its flight process has booted
             pkt = link.recv_packet(timeout=0.5)
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
                 break
             if not link.established or link.epoch != epoch:
                 raise LinkDown(f"link session lost during the handshake: {link.last_error}")
             now = time.monotonic()
-            if now - t0 > hello_timeout_s:
-                raise LinkDown(f"no Hello from the HIL server within {hello_timeout_s:.0f} s")
-            if now > next_note:  # a slow emulated processor boots slowly: show that we are waiting
-                note(f"waiting for the flight process to boot ({now - t0:.0f} s)")
-                next_note = now + 10.0
+            if now > end:
+                raise (NoHello if first else LinkDown)(
+                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s (its link answers: "
+                    "is its flight software running?)"
+                )
+            if now > next_note:
+                waiting(t0)
+                next_note = now + HELLO_NOTE_S
         state.epoch = epoch
         state.sessions += 1
         if state.sessions > 1:
             note(f"resynchronised: new link session {link.session_id:08x} <-> {link.peer_session:08x}")
 
-    def ensure_session(first: bool) -> None:
+    def ensure_session() -> None:
         if session_ok():
             return
-        handshake(connect_timeout_s if first else reconnect_timeout_s)
+        if state.sessions == 0:
+            first_hello()
+            return
+        state.epoch = None
+        if not link.wait_established(reconnect_timeout_s):
+            why = link.last_error or "silent"
+            raise LinkDown(f"no link session with the flight computer within {reconnect_timeout_s:g} s ({why})")
+        handshake(hello_timeout_s, time.monotonic())
 
     def send_config() -> None:
         if config is not None and state.config_epoch != state.epoch:
@@ -351,10 +408,31 @@ def stream_descent(
                 give_up(o, "link_down", why)
             want.discard(s)
 
+    def held_stream(want: set[tuple[int, int]]) -> bool:
+        """True when the flight side's stream is held by a record declared over the size limit (see the module
+        doc): a Result ends the oldest pair waiting for one as ``bad_result``, and the session is given up."""
+        held = getattr(link, "skipping", None)  # byte-stream links only: ZeroMQ carries whole messages
+        if held is None or not held.oversize:
+            return False
+        what = MESSAGE_NAMES.get(held.type_code, f"message of type {held.type_code}")
+        why = f"the flight computer's {what} was refused from its header: {held.reason}"
+        waiting = [outcomes[k] for k in sorted(want) if outcomes[k].result is None and not outcomes[k].finished]
+        if held.type_code == Result.TYPE and waiting:
+            o = waiting[0]
+            give_up(o, "bad_result", f"{why}; the link session was given up (its stream cannot resynchronise)")
+            want.discard(o.seqs)
+        else:  # no pair to blame: the pairs in flight end with the session, this says why
+            note(f"FLIGHT ERROR: {why}; giving up this link session and starting a new one")
+        link.abandon_session(f"the flight computer's stream is held by a record over the size limit ({why})")
+        return True
+
     def collect(until: float, want: set[tuple[int, int]]) -> None:
         while want and time.monotonic() < until:
             if not session_ok():
                 fail_in_flight(want, f"link session lost: {link.last_error}")
+                return
+            if held_stream(want):
+                fail_in_flight(want, f"link session given up: {link.last_error}")
                 return
             pkt = link.recv_packet(timeout=0.2)
             if pkt is None or pkt.epoch != state.epoch:
@@ -387,16 +465,16 @@ def stream_descent(
             lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)
             write_atomic(telemetry_path, "".join(json.dumps(x, sort_keys=True) + "\n" for x in lines))
 
-    def record(o: PairOutcome) -> None:
+    def record(o: PairOutcome, show: bool = True) -> None:
         rec = write_outcome(out_dir, o, deadline_s)
         records.append(rec)
         save()
-        if progress:
+        if progress and show:
             progress(rec)
 
-    def give_up(o: PairOutcome, code: str, text: str) -> None:
+    def give_up(o: PairOutcome, code: str, text: str, show: bool = True) -> None:
         o.error = Error(code=code, seq=o.seqs[1], text=text[:4000])
-        record(o)
+        record(o, show)
 
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
@@ -426,20 +504,25 @@ def stream_descent(
         o.link_s = time.monotonic() - o.sent_at
         return True
 
+    def new_outcome(i: int, entry: dict) -> PairOutcome:
+        """The outcome of the manifest's i-th pair (frame seqs 2i, 2i + 1), registered."""
+        pair_id = f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
+        seq = 2 * i
+        o = PairOutcome(
+            pair_id,
+            str(entry.get("label", i)),
+            float(entry.get("altitude_m", float("nan"))),
+            str(base / entry["path"]),
+            (seq, seq + 1),
+        )
+        outcomes[o.seqs] = o
+        by_lower_seq[seq + 1] = o
+        return o
+
     try:
         for i, entry in enumerate(entries):
-            pair_dir = base / entry["path"]
-            pair_id = f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
-            o = PairOutcome(
-                pair_id,
-                str(entry.get("label", i)),
-                float(entry.get("altitude_m", float("nan"))),
-                str(pair_dir),
-                (seq, seq + 1),
-            )
-            outcomes[o.seqs] = o
-            by_lower_seq[seq + 1] = o
-            seq += 2
+            o = new_outcome(i, entry)
+            pair_dir, pair_id = Path(o.pair_dir), o.pair_id
             try:  # a bad pair (NaN pose, wrong size, unreadable file) is reported, the descent goes on
                 pair = read_pair(pair_dir, load_truth=False)
                 frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id) for k in (0, 1)]
@@ -460,7 +543,12 @@ def stream_descent(
                 give_up(o, "link_down", f"link failed: {link.failed}")
                 continue
             try:
-                ensure_session(first=state.sessions == 0)
+                ensure_session()
+            except NoHello as exc:  # nothing can run: every pair left is recorded as not run, the descent ends
+                give_up(o, "not_run", f"not run: {exc}", show=False)  # one error line for all (the caller's)
+                for k in range(i + 1, len(entries)):
+                    give_up(new_outcome(k, entries[k]), "not_run", f"not run: {exc}", show=False)
+                raise
             except LinkDown as exc:
                 note(f"LINK ERROR: {exc}")
                 give_up(o, "link_down", str(exc))
@@ -537,6 +625,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--insecure", action="store_true", help="zmq without CURVE (loopback debugging only)")
     ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
     ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
+    ap.add_argument(
+        "--hello-timeout",
+        type=float,
+        default=900.0,
+        help="wait this long for the flight side's first Hello, link session included (s; default 900: a slow "
+        "emulated processor boots slowly); then every pair is recorded as not run and the exit code is 5",
+    )
     ap.add_argument("--full-maps", action="store_true", help="ask for full-resolution image maps in each Result")
     ap.add_argument(
         "--fusion",
@@ -564,6 +659,8 @@ def main(argv: list[str] | None = None) -> int:
         unit = auto_elevation_unit_cm(args.link) if args.elevation_unit_cm == "auto" else int(args.elevation_unit_cm)
         if not 1 <= unit <= 1000:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
+        if not (math.isfinite(args.hello_timeout) and args.hello_timeout > 0):
+            raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
             args.link,
@@ -611,6 +708,8 @@ def main(argv: list[str] | None = None) -> int:
             preset=args.preset,
             pace=args.pace,
             reconnect_timeout_s=args.reconnect_timeout,
+            hello_timeout_s=args.hello_timeout,
+            where=args.link,
             full_maps=args.full_maps,
             fusion=args.fusion,
             elevation_step=step,
@@ -622,6 +721,9 @@ def main(argv: list[str] | None = None) -> int:
     except Interrupted as exc:
         print(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}", file=sys.stderr)
         return 128 + exc.signum
+    except NoHello as exc:  # every pair is recorded as not run (results.jsonl)
+        print(f"ground: error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_NO_HELLO
     finally:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, signal.SIG_IGN)  # already ending: let the link close

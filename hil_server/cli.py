@@ -331,6 +331,15 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=4.0,
         help="a far end silent or not acknowledging this long ends the link session (s, default 4)",
     )
+    p.add_argument(
+        "--hello-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="how long the ground waits for the flight side's first Hello, link session included, with a line every "
+        "10 s; then every pair is recorded as not run (default: 120 s with --flight external, 900 s emulated: a slow "
+        "budget boots slowly)",
+    )
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)  # tests: crash@N | hang@N | oom@N (our flight sw)
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
@@ -352,7 +361,11 @@ def _config(args: argparse.Namespace):
         given = [f"--{k.replace('_', '-')}" for k in _RENDER_OPTIONS if getattr(args, k) is not None]
         if given:
             raise InputError(f"--manifest streams pairs already rendered; {', '.join(given)} would be ignored")
-    for name, value in (("--deadline", args.deadline), ("--link-timeout", args.link_timeout)):
+    for name, value in (
+        ("--deadline", args.deadline),
+        ("--link-timeout", args.link_timeout),
+        ("--hello-timeout", args.hello_timeout),
+    ):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{name} must be a positive number of seconds, got {value}")
     if args.baud is not None:
@@ -397,6 +410,7 @@ def _config(args: argparse.Namespace):
         fusion=args.fusion,
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
+        hello_timeout_s=args.hello_timeout,
         link_fault=args.link_fault,
         fault=args.fault,
         flight=args.flight,

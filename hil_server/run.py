@@ -50,6 +50,14 @@ import numpy as np
 from protocol.errors import InputError
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
+EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every pair recorded as not_run)
+# How long the ground waits for the flight side's first Hello, link session included. An external board answers
+# within seconds once it is up: 2 min covers its boot. Our emulated flight process boots at the budget's duty
+# cycle: its imports and warm-up, ~0.4 s of CPU, said Hello ~33 s after the start on rad750 (1.3 % duty) and ~68 s
+# on gr740 (0.6 %) on the 2026-12-03 host; a user's program may need more, and the HIL server ends a run whose
+# flight program cannot come up (exit 4), so the long wait is only a backstop there.
+EXTERNAL_HELLO_TIMEOUT_S = 120.0
+EMULATED_HELLO_TIMEOUT_S = 900.0
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
 SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time to end its session and log its counters
@@ -81,6 +89,8 @@ class RunConfig:
     elevation_unit_cm: int | None = None  # elevation grid unit; None = by link (ground_sim.stream)
     insecure: bool = False  # zmq without CURVE (loopback debugging)
     link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
+    # the ground's wait for the flight side's first Hello (s); None: EXTERNAL_/EMULATED_HELLO_TIMEOUT_S
+    hello_timeout_s: float | None = None
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
     flight: str = "emulated"  # emulated (under the supervisor) | external (a flight computer on `link`)
     flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
@@ -561,6 +571,14 @@ def _read_records(path: Path) -> list[dict]:
     return out
 
 
+def _no_hello_reason(results: Path) -> str | None:
+    """The ground's reason for not running any pair (its not_run records' text, less the prefix), or None."""
+    for rec in _read_records(results):
+        if rec.get("code") == "not_run" and isinstance(rec.get("text"), str):
+            return rec["text"].removeprefix("not run: ")
+    return None
+
+
 def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> list[dict]:
     """Records for the manifest's pairs that have none (the run ended before them), in descent order."""
     have = {r["pair_id"] for r in records}
@@ -605,6 +623,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.05]")
     if cfg.min_hit_rate is not None and not 0.0 <= cfg.min_hit_rate <= 1.0:
         raise InputError(f"--min-hit-rate must be in [0, 1], got {cfg.min_hit_rate}")
+    hello = cfg.hello_timeout_s
+    if hello is None:
+        hello = EMULATED_HELLO_TIMEOUT_S if emulated else EXTERNAL_HELLO_TIMEOUT_S
+    if not (math.isfinite(hello) and hello > 0):
+        raise InputError(f"--hello-timeout must be a positive number of seconds, got {hello}")
     # link options the link would ignore, or refuse only once the pairs are rendered: said now
     if cfg.baud is not None and kind != "serial":
         raise InputError(f"--baud applies to serial links, not to --link {cfg.link}")
@@ -718,6 +741,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 cfg.pace,
                 "--link-timeout",
                 str(cfg.link_timeout_s),
+                "--hello-timeout",
+                str(hello),
                 "--elevation-step",
                 str(cfg.elevation_step) if cfg.elevation_step else "auto",
                 "--psafe-step",
@@ -759,9 +784,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 sup_log = open(out / "supervisor.log", "w")  # noqa: SIM115 (closed below)
                 sup = _spawn(sup_cmd, env, stdout=sup_log, stderr=subprocess.STDOUT)
             else:
-                log(f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end")
+                log(
+                    f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end; "
+                    f"waiting up to {hello:g} s for its Hello"
+                )
             ground = _spawn(ground_cmd, env)
-            rc, sup_reason = _wait_ground(ground, sup, cfg.timeout_s, out / "supervisor.log")
+            limit = max(cfg.timeout_s, hello + GRACE_S)  # the first Hello may be awaited longer, when asked to
+            rc, sup_reason = _wait_ground(ground, sup, limit, out / "supervisor.log")
             if sup is not None and rc in (0, EXIT_LINK_LOST):
                 # the ground closed its session: the server ends by itself and writes its counters
                 # (restarts, crashes, refused messages); a SIGTERM at once used to cut them short
@@ -772,7 +801,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             if sup_reason is not None:
                 reason = sup_reason
             elif rc is None:
-                reason = f"the ground simulator did not finish within {cfg.timeout_s:.0f} s"
+                reason = f"the ground simulator did not finish within {limit:.0f} s"
+            if reason is None and rc == EXIT_NO_HELLO:  # the ground's reason is on every pair's not_run record
+                reason = (
+                    _no_hello_reason(received / "results.jsonl") or f"no Hello from the flight side within {hello:g} s"
+                )
             if reason is None and rc is not None and rc not in (0, EXIT_LINK_LOST):
                 reason = f"the ground simulator exited with {rc}" + (
                     f"; see {out / 'supervisor.log'}" if emulated else ""

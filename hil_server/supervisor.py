@@ -51,6 +51,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from protocol.arq import Skipping
 from protocol.errors import InputError
 from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 
@@ -198,6 +199,9 @@ class FlightHandle:
             child.close()
             self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
         self.last_refusal: str | None = None  # the latest message refused from this incarnation, for a hang's reason
+        # (type code, reason) of a record accounted for as refused from its header, before its REJECT: its REJECT,
+        # should all its bytes still come before the restart, is not counted twice
+        self.refused_early: tuple[int, str] | None = None
         self.seen = dict.fromkeys(REFUSED_STATS + LINE_ERROR_STATS, 0.0)  # link counters already accounted for
         # the flight side answers the ground's Hello (docs/protocol.md section 6); ours says Hello unasked
         self.link.send(Hello(role="hil-server"))
@@ -208,10 +212,11 @@ class FlightHandle:
         arq = getattr(self.link, "arq", None)
         return list(arq.take_refusals()) if arq is not None else []  # another link: counted from its stats only
 
-    def skipping(self) -> str | None:
-        """Why the link is skipping the record the flight process is sending now (it is over a limit), or None."""
+    def skipping(self) -> Skipping | None:
+        """The record from the flight process that the link is skipping now (its header says it will be refused:
+        over the size limit or of an unknown type), or None."""
         arq = getattr(self.link, "arq", None)
-        return arq.refusing if arq is not None else None
+        return arq.skipping if arq is not None else None
 
     def new_counts(self) -> dict[str, int]:
         """The refusal and line-error counters of this incarnation's link since the last call."""
@@ -621,31 +626,46 @@ class Supervisor:
         reasons = self.flight.take_refusals()
         # a datagram that failed to decode is counted but not REJECTed (and a flood may outrun the kept reasons)
         unexplained = sum(counts.get(k, 0) for k in REFUSED_STATS) - len(reasons)
+        early = self.flight.refused_early
+        if early is not None and early in reasons:  # its REJECT came after all: it was accounted for from its header
+            reasons.remove(early)
+            self.flight.refused_early = None
         if unexplained > 0:
             reasons.append((None, "a datagram or message that failed to decode (reason not kept)"))
             self.counters["refused_messages"] += unexplained - 1  # the one appended is counted below
         for type_code, reason in reasons:
-            self.counters["refused_messages"] += 1
-            what = MESSAGE_NAMES.get(type_code, "message") if type_code is not None else "message"
-            self.flight.last_refusal = f"{what} refused: {reason}"
-            n = self.counters["refused_messages"]
-            if n <= MAX_REFUSAL_LOGS:
-                more = "; further refusals are only counted" if n == MAX_REFUSAL_LOGS else ""
-                self.log(f"supervisor: the flight process sent a {what} the HIL server refused: {reason}{more}")
-                self._write_telemetry({"event": "refused", "type": what, "reason": reason})
-            if type_code == Result.TYPE:
-                st = self._oldest_outstanding()
-                if st is not None:
-                    self._fail_pair(st, "bad_result", f"the flight process's Result was refused: {reason}")
-            elif type_code == Telemetry.TYPE:
-                st = self._oldest_without_telemetry()
-                if st is not None:
-                    self._complete_without_telemetry(st, f"its Telemetry was refused: {reason}")
+            self._refused(type_code, reason)
         garbage = sum(counts.get(k, 0) for k in LINE_ERROR_STATS)
         if garbage > 0:
             if self.counters["flight_line_errors"] == 0:
                 self.log(f"supervisor: corrupted or malformed frames from the flight process dropped ({garbage})")
             self.counters["flight_line_errors"] += garbage
+
+    def _refused(self, type_code: int | None, reason: str) -> None:
+        """One message refused from the flight process: counted, logged, and its pair ended (see _check_refusals)."""
+        assert self.flight is not None
+        self.counters["refused_messages"] += 1
+        what = MESSAGE_NAMES.get(type_code, "message") if type_code is not None else "message"
+        self.flight.last_refusal = f"{what} refused: {reason}"
+        n = self.counters["refused_messages"]
+        if n <= MAX_REFUSAL_LOGS:
+            more = "; further refusals are only counted" if n == MAX_REFUSAL_LOGS else ""
+            self.log(f"supervisor: the flight process sent a {what} the HIL server refused: {reason}{more}")
+            self._write_telemetry({"event": "refused", "type": what, "reason": reason})
+        if type_code == Result.TYPE:
+            st = self._oldest_outstanding()
+            if st is not None:
+                self._fail_pair(st, "bad_result", f"the flight process's Result was refused: {reason}")
+        elif type_code == Telemetry.TYPE:
+            st = self._oldest_without_telemetry()
+            if st is not None:
+                self._complete_without_telemetry(st, f"its Telemetry was refused: {reason}")
+
+    def _refuse_skipped(self, held: Skipping) -> None:
+        """Account now for the record the link is skipping: its REJECT would come only once its last byte is in."""
+        assert self.flight is not None
+        self.flight.refused_early = (held.type_code, held.reason)
+        self._refused(held.type_code, held.reason)
 
     def _oldest_without_telemetry(self) -> PairState | None:
         """The oldest pair whose Result came and whose Telemetry has not."""
@@ -670,27 +690,48 @@ class Supervisor:
         """What the HIL server refused from the current flight incarnation, for a hang's reason (or "")."""
         assert self.flight is not None
         skipping = self.flight.skipping()
-        if skipping:
-            return f"; the flight process is sending a message the HIL server refuses ({skipping})"
+        if skipping is not None:
+            return f"; the flight process is sending a message the HIL server refuses ({skipping.reason})"
         last = self.flight.last_refusal
         return f"; last refused from the flight process: {last}" if last else ""
+
+    def _check_held_stream(self) -> bool:
+        """Refuse at once a record the flight process declared over the size limit, and restart it; True if so.
+
+        The link skips such a record's bytes as they come and REJECTs it once they have all gone by; nothing behind
+        it in the stream can be read meanwhile. A process that declares 1 GiB and trickles it, heartbeats going on,
+        used to hold its pair until the hard limit (reported as a hang) and every pair after it. Its header is
+        enough: the record is refused now (a Result ends its pair as ``bad_result`` with the declared size, a
+        Telemetry completes its pair without one), and since the stream cannot resynchronise short of all those
+        bytes, the process is restarted and the pairs still outstanding are replayed to the next incarnation.
+        """
+        assert self.flight is not None
+        held = self.flight.skipping()
+        if held is None or not held.oversize:
+            return False  # an unknown type within the size limit: its bytes are bounded, the stream goes on after
+        self._refuse_skipped(held)
+        what = MESSAGE_NAMES.get(held.type_code, "message")
+        self._restart_flight(f"its stream is held by a {what} refused from its header: {held.reason}")
+        return True
 
     def _check_watchdogs(self) -> None:
         assert self.flight is not None
         self._check_refusals()
+        if self._check_held_stream():
+            return
         now = time.monotonic()
         st = self._oldest_outstanding()
         if st is not None and st.complete_at is not None and now - st.complete_at > self._hard_limit():
             self.counters["hangs"] += 1
+            note = self._flight_note()
             skipping = self.flight.skipping()
-            if skipping:  # a record over the limit: the link refuses it only once all its bytes went by
-                self.counters["refused_messages"] += 1
-                self._write_telemetry({"event": "refused", "type": "message", "reason": skipping})
+            if skipping is not None:  # a record of an unknown type still trickling in: never refused otherwise
+                self._refuse_skipped(skipping)
             self._fail_pair(
                 st,
                 "deadline_hang",
                 f"no result {now - st.complete_at:.1f} s after the last frame "
-                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted{self._flight_note()}",
+                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted{note}",
             )
             self._restart_flight("hung past the hard deadline")
             return

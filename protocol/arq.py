@@ -36,8 +36,11 @@ Sending (models: TCP's byte sequence with SACK RFC 2018, RACK RFC 8985, RTO RFC 
 Receiving: bytes are accepted inside ``[cum, cum + window)`` and held out of
 order until the gap fills (at most ``window`` bytes), then parsed into records.
 A record announcing more than ``limits.max_message_bytes`` or an unknown type
-is skipped without keeping a byte of it and refused (REJECT), and every other
-body is decoded under the codec's budget (:func:`protocol.codec.decode_parts`).
+is skipped without keeping a byte of it and refused (REJECT) once it has gone
+by (:attr:`Arq.skipping` says so from its header on: nothing behind it can be
+read meanwhile; an owner that will not wait for a record declared over the
+limit ends the session with :meth:`Arq.abandon`), and every other body is
+decoded under the codec's budget (:func:`protocol.codec.decode_parts`).
 Duplicates and bytes outside the window are dropped and acknowledged again.
 
 Liveness: while a session is up each side sends a HELLO as keepalive when it
@@ -188,6 +191,19 @@ class _Seg:
     acked: bool = False
 
 
+@dataclass(frozen=True)
+class Skipping:
+    """A record whose header says it will be refused (over the size limit or of an unknown type): its bytes are
+    skipped as they come, and it is REJECTed once they have all gone by. Until then nothing behind it in the stream
+    can be read."""
+
+    type_code: int
+    length: int  # the body length its header declares
+    pos: int  # stream position of its header
+    reason: str
+    oversize: bool  # declared over the size limit (else: an unknown type)
+
+
 REFUSALS_KEPT = 64  # refused messages whose reasons an Arq keeps for its owner (take_refusals)
 
 
@@ -298,7 +314,7 @@ class Arq(SessionView):
         self._rlen: int | None = None
         self._rgot = 0
         self._rbuf = bytearray()
-        self._rskip: str | None = None
+        self._rskip: Skipping | None = None  # the record whose bytes are being skipped (to be refused)
         self._rpos = 0
         self._rt0 = now
         self._rlast = now
@@ -700,10 +716,14 @@ class Arq(SessionView):
                 self._rtype, n = RECORD.unpack(self._rhead)
                 self._rhead.clear()
                 self._rlen, self._rgot, self._rbuf, self._rskip = n, 0, bytearray(), None
-                if n > self.cfg.limits.max_message_bytes:
-                    self._rskip = f"message of {n} bytes exceeds the {self.cfg.limits.max_message_bytes}-byte limit"
-                elif self._rtype not in MESSAGE_TYPES:
-                    self._rskip = f"unknown message type code {self._rtype}"
+                limit = self.cfg.limits.max_message_bytes
+                if n > limit or self._rtype not in MESSAGE_TYPES:
+                    why = (
+                        f"message of {n} bytes exceeds the {limit}-byte limit"
+                        if n > limit
+                        else f"unknown message type code {self._rtype}"
+                    )
+                    self._rskip = Skipping(self._rtype, n, self._rpos, why, oversize=n > limit)
             take_n = min(len(data) - i, self._rlen - self._rgot)
             if self._rskip is None:
                 self._rbuf += data[i : i + take_n]
@@ -712,7 +732,7 @@ class Arq(SessionView):
             if self._rgot == self._rlen:
                 if self._rskip is not None:
                     self.stats["reassembly_errors"] += 1
-                    self._reject(self._rpos, self._rskip, self._rtype)
+                    self._reject(self._rpos, self._rskip.reason, self._rtype)
                 else:
                     self._deliver(self._rtype, bytes(self._rbuf), self._rpos, self._rt0, now, self._rlen)
                 self._rlen, self._rbuf, self._rskip = None, bytearray(), None
@@ -735,7 +755,22 @@ class Arq(SessionView):
     def refusing(self) -> str | None:
         """Why the record arriving now will be refused once its last byte is in (it is over the size limit or of
         an unknown type: its bytes are skipped as they come), or None."""
+        skip = self._rskip
+        return skip.reason if skip is not None else None
+
+    @property
+    def skipping(self) -> Skipping | None:
+        """The record arriving now that will be refused once its last byte is in, or None (one read: safe from
+        another thread). Until then nothing behind it in the stream can be read."""
         return self._rskip
+
+    def abandon(self, reason: str, now: float) -> None:
+        """The owner gives up on the session (e.g. the peer's stream is held by a record over the size limit, which
+        cannot be resynchronised short of skipping all of it): the peer is told (CLOSE code 1), every message in
+        flight fails with ``reason``, and a new session starts as after any loss."""
+        if self.closed or not self.sess.established:
+            return
+        self._lose(reason, now)
 
     def _deliver(self, type_code: int, body: bytes, pos: int, t_first: float, now: float, nbytes: int) -> None:
         try:

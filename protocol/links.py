@@ -50,7 +50,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.arq import Arq, ArqConfig, DeliveryFailure, MessageTimes, Received
+from protocol.arq import Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Skipping
 from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
@@ -241,6 +241,18 @@ class ByteStreamLink(Link):
     def wait_established(self, timeout: float | None = None) -> bool:
         with self._cv:
             return self._cv.wait_for(lambda: self.arq.established or self._dead(), timeout) and self.arq.established
+
+    @property
+    def skipping(self) -> Skipping | None:
+        """The refused record whose bytes the stream is skipping now (nothing behind it can arrive meanwhile)."""
+        return self.arq.skipping
+
+    def abandon_session(self, reason: str) -> None:
+        """Give up on the current session (:meth:`protocol.arq.Arq.abandon`): the peer is told, the messages in
+        flight fail with ``reason``, a "lost" event follows and a new session is offered."""
+        with self._cv:
+            self.arq.abandon(reason, time.monotonic())
+            self._cv.notify_all()
 
     def _dead(self) -> bool:
         return self._failed is not None or self._closed.is_set()
