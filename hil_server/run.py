@@ -391,7 +391,10 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
         if kind == "serial":
             from protocol.linkspec import parse_serial
 
-            parse_serial(rest)
+            device, _ = parse_serial(rest)
+            # a device path that is not there fails the ground's open: said now, not after the descent is rendered
+            if device.startswith("/") and not os.path.exists(device):
+                raise InputError(f"--link {cfg.link}: no serial device {device} (is the board connected on this port?)")
         return kind, cfg.link
     if sep:
         raise InputError(

@@ -293,3 +293,12 @@ def test_a_hello_timeout_that_is_no_time_is_refused_up_front(tmp_path, value, ca
     assert main([*argv, "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "--hello-timeout must be a positive number of seconds" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_serial_device_that_is_not_there_is_refused_before_rendering(tmp_path, capsys):
+    out = tmp_path / "o"
+    argv = ["run", "--flight", "external", "--link", "serial:/dev/no-such-board@115200", "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "no serial device /dev/no-such-board" in err and len(err.strip().splitlines()) == 1
+    assert not (out / "pairs").exists()  # nothing rendered for a run that could not start
