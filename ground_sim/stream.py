@@ -63,14 +63,13 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
-MESSAGE_NAMES = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
     "pair_id",

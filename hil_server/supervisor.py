@@ -53,7 +53,7 @@ from pathlib import Path
 
 from protocol.arq import Skipping
 from protocol.errors import InputError
-from protocol.messages import MESSAGE_TYPES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
@@ -62,7 +62,6 @@ MIN_GRACE_S = 2.0
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
-MESSAGE_NAMES = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}
 MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
 # link counters of the flight line that mean "the flight process sent something the HIL server refused":
 # a record over the size limit or of an unknown type (reassembly_errors), a body that fails to decode or the

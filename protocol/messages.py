@@ -510,6 +510,7 @@ class Error(Message):
 MESSAGE_TYPES: dict[int, type[Message]] = {
     cls.TYPE: cls for cls in (Hello, Config, Frame, Result, Telemetry, Heartbeat, Error)
 }
+MESSAGE_NAMES: dict[int, str] = {code: cls.__name__ for code, cls in MESSAGE_TYPES.items()}  # for reasons and logs
 
 
 def message_class(type_code: int) -> type[Message]:
