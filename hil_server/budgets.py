@@ -69,6 +69,9 @@ class HostCalibration:
     spread: float  # (p90 - p10) / median over the measurement batches
     seconds: float  # CPU seconds measured
     measured_at: str  # ISO 8601, UTC
+    # the libraries the reference workload ran on ("" in calibrations stored before they were recorded): the
+    # workload is OpenCV and numpy code, so a new version of either can change the rate on the same core
+    libraries: str = ""
 
     def host_dmips(self, anchor: Anchor) -> float:
         """host_dmips = anchor.dmips * units_per_s / anchor.units_per_s."""
@@ -340,6 +343,8 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         if cal.units_per_s <= 0:
             raise ValueError("units_per_s must be > 0")
+        if not isinstance(cal.libraries, str):
+            raise ValueError(f"libraries must be a string, got {cal.libraries!r}")
         calibration_age_days(cal)  # measured_at must be a timestamp
     except (TypeError, ValueError) as exc:
         raise BudgetError(
@@ -359,6 +364,50 @@ def calibration_age_days(cal: HostCalibration, now: _dt.datetime | None = None) 
     return ((now or _dt.datetime.now(_dt.UTC)) - when).total_seconds() / 86400.0
 
 
+NOISY_CALIBRATION_SPREAD = 0.25  # (p90 - p10) / median of the batches: above this, other work shared the core
+
+
+def workload_libraries() -> str:
+    """The versions the reference workload's rate depends on, e.g. ``python 3.11.2, numpy 2.1.3, opencv 4.10.0``."""
+    import cv2
+    import numpy as np
+
+    return f"python {platform.python_version()}, numpy {np.__version__}, opencv {cv2.__version__}"
+
+
+def calibration_notes(cal: HostCalibration | None, now: _dt.datetime | None = None) -> list[str]:
+    """One line per reason not to trust this host's calibration (none when it is sound).
+
+    A calibration is doubtful when it is missing, older than :data:`STALE_CALIBRATION_DAYS`, measured on other
+    library versions than those installed now, or measured with a batch spread over
+    :data:`NOISY_CALIBRATION_SPREAD`. Each budget's duty cycle is ``budget DMIPS / host DMIPS``, so an error in the
+    host's rate is the same error in every emulated processor's speed.
+    """
+    if cal is None:
+        return [
+            f"this host is not calibrated ({calibration_path()} has no entry for it): duty cycles assume it is as "
+            "fast as the anchor; run `hazard-hil calibrate`"
+        ]
+    notes = []
+    age = calibration_age_days(cal, now)
+    if age > STALE_CALIBRATION_DAYS:
+        notes.append(
+            f"this host's calibration is {age:.0f} days old ({cal.measured_at}); "
+            "re-run `hazard-hil calibrate` if the host may have changed"
+        )
+    if cal.libraries and cal.libraries != workload_libraries():
+        notes.append(
+            f"this host was calibrated with {cal.libraries}, and {workload_libraries()} is installed now: "
+            "re-run `hazard-hil calibrate`"
+        )
+    if cal.spread > NOISY_CALIBRATION_SPREAD:
+        notes.append(
+            f"this host's calibration was noisy (batch spread {cal.spread:.0%} > {NOISY_CALIBRATION_SPREAD:.0%}: "
+            "other work shared the core); re-run `hazard-hil calibrate` on a quiet host"
+        )
+    return notes
+
+
 def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, save: bool = True) -> HostCalibration:
     """Measure this host's single-core reference-workload rate and (by default) store it."""
     from hil_server.calibrate import measure_rate
@@ -374,6 +423,7 @@ def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, 
         spread=rate.spread,
         seconds=rate.cpu_s,
         measured_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        libraries=workload_libraries(),
     )
     if save:
         p = Path(path) if path is not None else calibration_path()

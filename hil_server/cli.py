@@ -152,6 +152,7 @@ def _budgets(args: argparse.Namespace) -> int:
         FLIGHT_BYTES_PER_PIXEL,
         FLIGHT_RSS_MARGIN,
         UncalibratedWarning,
+        calibration_notes,
         calibration_path,
         load_budgets,
         load_calibration,
@@ -161,12 +162,9 @@ def _budgets(args: argparse.Namespace) -> int:
     budgets = load_budgets(args.file)
     cal = load_calibration()
     anchor = next(iter(budgets.values())).anchor
+    for note in calibration_notes(cal):
+        print(f"warning: {note}", file=sys.stderr)
     if cal is None:
-        print(
-            f"warning: this host is not calibrated; assuming the anchor's {anchor.dmips:.0f} DMIPS "
-            "(run `hazard-hil calibrate`)",
-            file=sys.stderr,
-        )
         host_dmips = anchor.dmips
     else:
         host_dmips = cal.host_dmips(anchor)
@@ -211,7 +209,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         f"{cal.units_per_s:.2f} units/s (spread p10-p90 {cal.spread:.0%}); anchor {anchor.units_per_s:g} units/s "
         f"= {anchor.dmips:.0f} DMIPS -> this host {cal.host_dmips(anchor):.0f} DMIPS per core"
     )
-    print(f"stored for {cal.key} in {calibration_path()}")
+    print(f"stored for {cal.key} ({cal.libraries}) in {calibration_path()}")
     return 0
 
 

@@ -276,24 +276,13 @@ def host_conditions() -> tuple[dict, list[str]]:
     """What this host's numbers rest on (its calibration, its load) and, for people, what is wrong with it."""
     import os
 
-    from hil_server.budgets import STALE_CALIBRATION_DAYS, calibration_age_days, calibration_path, load_calibration
+    from hil_server.budgets import calibration_notes, load_calibration
 
     cal = load_calibration()
-    notes = []
+    notes = calibration_notes(cal)
     cond: dict = {"calibration": None}
-    if cal is None:
-        notes.append(
-            f"this host is not calibrated ({calibration_path()} has no entry for it): reference seconds assume it is "
-            "as fast as the anchor, so they may be off by the ratio of the two speeds; run `hazard-hil calibrate`"
-        )
-    else:
-        age = calibration_age_days(cal)
+    if cal is not None:
         cond["calibration"] = {"key": cal.key, "measured_at": cal.measured_at, "units_per_s": cal.units_per_s}
-        if age > STALE_CALIBRATION_DAYS:
-            notes.append(
-                f"this host's calibration is {age:.0f} days old ({cal.measured_at}); "
-                "re-run `hazard-hil calibrate` if the host may have changed"
-            )
     try:
         load1 = os.getloadavg()[0]
         cores = os.cpu_count() or 1

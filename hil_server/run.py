@@ -613,12 +613,15 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
     signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
     """
-    from hil_server.budgets import get_budget, load_calibration
+    from hil_server.budgets import calibration_notes, get_budget, load_calibration
 
     kind, spec = _parse_link(cfg)
     budget = get_budget(cfg.budget, cfg.budget_file)
     emulated = cfg.flight == "emulated"
-    fraction = budget.duty_fraction(load_calibration()) if emulated else float("nan")
+    cal = load_calibration() if emulated else None
+    fraction = budget.duty_fraction(cal) if emulated else float("nan")
+    # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)
+    doubts = calibration_notes(cal) if cal is not None and not budget.is_host else []
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
     if not (math.isfinite(deadline) and deadline > 0):
         raise InputError(f"--deadline must be a positive number of seconds, got {deadline}")
@@ -784,6 +787,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}, memory "
                     f"{budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
                 )
+                for doubt in doubts:
+                    log(f"run: warning: {doubt}")
                 sup_log = open(out / "supervisor.log", "w")  # noqa: SIM115 (closed below)
                 sup = _spawn(sup_cmd, env, stdout=sup_log, stderr=subprocess.STDOUT)
             else:

@@ -151,3 +151,41 @@ def test_cli_budgets_and_calibrate(home, capsys):
     assert f"{B.get_budget('rad750').duty_fraction(cal):.2%}" in rad
     assert main(["calibrate", "--seconds", "-1"]) == 2
     assert "--seconds" in capsys.readouterr().err
+
+
+def test_calibration_notes_say_why_a_host_speed_is_doubtful(home, capsys):
+    import dataclasses
+    import datetime as dt
+
+    now = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
+    fresh = dataclasses.replace(
+        _cal(60.0), measured_at="2026-05-30T00:00:00+00:00", spread=0.05, libraries=B.workload_libraries()
+    )
+    assert B.calibration_notes(fresh, now) == []
+    assert "not calibrated" in B.calibration_notes(None, now)[0]
+    old = dataclasses.replace(fresh, measured_at="2026-01-01T00:00:00+00:00")
+    assert "days old" in " ".join(B.calibration_notes(old, now))
+    other_libs = dataclasses.replace(fresh, libraries="python 3.9.0, numpy 1.0.0, opencv 3.0.0")
+    (note,) = B.calibration_notes(other_libs, now)
+    assert "opencv 3.0.0" in note and B.workload_libraries() in note
+    noisy = dataclasses.replace(fresh, spread=0.6)
+    assert "noisy" in " ".join(B.calibration_notes(noisy, now))
+    # a calibration stored before the libraries were recorded still loads, without a library note
+    entry = {k: v for k, v in dataclasses.asdict(old).items() if k != "libraries"}
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): entry}))
+    loaded = B.load_calibration()
+    assert loaded is not None and loaded.libraries == ""
+    assert not any("installed now" in n for n in B.calibration_notes(loaded))
+    # ... and `budgets` says it is stale, on stderr, beside the table
+    assert main(["budgets"]) == 0
+    out, err = capsys.readouterr()
+    assert "rad750" in out and "warning: this host's calibration is" in err and "days old" in err
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): {**entry, "libraries": 3}}))
+    with pytest.raises(InputError, match="libraries"):
+        B.load_calibration()
+
+
+def test_calibrate_records_the_workload_libraries(home):
+    cal = B.calibrate_host(seconds=0.2)
+    assert cal.libraries == B.workload_libraries() and "opencv" in cal.libraries
+    assert B.load_calibration() == cal
