@@ -268,6 +268,27 @@ class _SessionState:
     sessions: int = 0
 
 
+def _silent_link_reason(link, where: str) -> str:
+    """Why a link never came up, from what its line carried: nothing at all, or bytes that are not this protocol
+    (another device on the port, or the right one at another baud: both look like line noise to the decoder)."""
+    stats = getattr(link, "stats", None) or {}
+    got = int(stats.get("bytes_received", 0) or 0)
+    frames = int(stats.get("frames_received", 0) or 0)
+    if where.startswith("serial") and got > 0:
+        bad = int(stats.get("crc_errors", 0) or 0) + int(stats.get("malformed", 0) or 0)
+        if frames == 0:
+            return (
+                f"its line carried {got} bytes but not one valid frame of this protocol ({bad} failed their checks): "
+                "another device on this port, or another baud?"
+            )
+        return (
+            f"its line carried {frames} frames ({got} bytes) but never a link session: a peer of another protocol "
+            "version, or one that is not answering?"
+        )
+    check = "on this port, at this baud" if where.startswith("serial") else "serving this endpoint, with these keys"
+    return f"its link never answered (is it powered, {check}?)"
+
+
 def stream_descent(
     link,
     manifest_path: Path,
@@ -339,14 +360,9 @@ def stream_descent(
             if link.failed:
                 raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
             if time.monotonic() >= end:
-                check = (
-                    "on this port, at this baud"
-                    if where.startswith("serial")
-                    else "serving this endpoint, with these keys"
-                )
                 raise NoHello(
-                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: its link never "
-                    f"answered (is it powered, {check}?)"
+                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: "
+                    + _silent_link_reason(link, where)
                 )
             waiting(t0)
         handshake(max(0.0, end - time.monotonic()), t0, first=True)
