@@ -17,8 +17,8 @@ Anytime: with a deadline every stage checks the clock; the DEM stages stop
 so the reserve is in unthrottled seconds; flight v2 scales it with the pixel count, as the stages
 after the DEM cost per pixel), an optional stage starts only if its own cost fits before that
 reserve, later stages are skipped once it has passed (listed in
-``info["skipped"]``); the result is built from the best level reached (``image_only`` <
-``coarse`` < ``full``) and flagged ``degraded``. Ground truth is never an input.
+``info["skipped"]``, as is a sweep cut short at the deadline); the result is built from the best
+level reached (``image_only`` < ``coarse`` < ``full``) and flagged ``degraded``. Ground truth is never an input.
 """
 
 from __future__ import annotations
@@ -1111,6 +1111,8 @@ def _run_v1(
                 coarse = cv2.resize(res_c.elevation, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
                 elevation = np.where(rocks & p.mask_rocks, np.nan, coarse).astype(np.float32)
                 level = "coarse"
+            elif not res_c.complete:  # started, cut at the deadline: left out as much as a stage never started
+                info["skipped"].append("coarse_dem")
         else:
             info["skipped"].append("coarse_dem")
 
@@ -1151,7 +1153,9 @@ def _run_v1(
                         elevation, u, p.reject_rel_uncertainty, res_f.curvature, p.sharp_curvature
                     )
                 level = "full"
-        elif res_c is not None and res_c.complete:
+            else:  # cut at the deadline
+                info["skipped"].append("full_dem")
+        else:  # no time left, or no coarse DEM to narrow it from
             info["skipped"].append("full_dem")
 
     with _stage(timings, "gap_fill"):
@@ -1567,6 +1571,8 @@ def _run_v2(
                     pad = 2.0 * float(np.max(np.diff(planes_c)))
                     lo, hi = np.nanpercentile(ez, [p.coarse_range_pct, 100.0 - p.coarse_range_pct])
                     f_lo, f_hi = max(z_lo, float(lo) - pad), min(z_hi, float(hi) + pad)
+            elif not res_c.complete:  # started, cut at the deadline: left out as much as a stage never started
+                info["skipped"].append("coarse_dem")
         else:
             info["skipped"].append("coarse_dem")
 
@@ -1606,6 +1612,8 @@ def _run_v2(
                     dem_fill = (dem.filled, elevation[dem.filled], sigma[dem.filled])
                     elevation[dem.filled] = np.nan
                     sigma[dem.filled] = np.nan
+            else:  # cut at the deadline
+                info["skipped"].append("full_dem")
             del dem, prior
         else:
             info["skipped"].append("full_dem")

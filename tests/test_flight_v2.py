@@ -488,6 +488,12 @@ def test_deadline_gives_a_degraded_result_in_time():
     r = run_pipeline(i1, i2, p1, p2, cam, deadline_s=0.4 * full.timings["total"]["wall_s"])
     assert r.degraded and r.level in ("image_only", "coarse")
     assert time.monotonic() - t0 < full.timings["total"]["wall_s"]
+    # whether a sweep never started or was cut at the deadline, the Result names every DEM it lacks
+    lacks = {"image_only": {"coarse_dem", "full_dem"}, "coarse": {"full_dem"}}
+    assert lacks[r.level] <= set(r.info["skipped"]), r.info["skipped"]
+    for frac in (0.05, 0.15, 0.3):  # v1 flow (thesis) too; where its sweeps stop depends on timing, the rule not
+        t = run_pipeline(i1, i2, p1, p2, cam, preset="thesis", deadline_s=frac * full.timings["total"]["wall_s"])
+        assert t.level == "full" or lacks[t.level] <= set(t.info["skipped"]), (t.level, t.info["skipped"])
     # time_scale: reserves in unthrottled seconds x the slowdown; 1 s at a 100x slower processor leaves
     # no time for any DEM stage (mapping reserve 0.06 s x 100 = 6 s)
     r2 = run_pipeline(i1, i2, p1, p2, cam, deadline_s=1.0, time_scale=100.0)
