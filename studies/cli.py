@@ -185,6 +185,7 @@ def register(subparsers: Any) -> None:
     _common(s)
     s.set_defaults(func=_sensitivity, seeds_default=2)
     register_landings(subparsers)
+    register_score(subparsers)
 
 
 def _parse_alts(text: str | None) -> list[int] | None:
@@ -449,3 +450,102 @@ def _landings(args: argparse.Namespace) -> int:
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0
+
+
+def register_score(subparsers: Any) -> None:
+    from studies.score import FP_LIMIT_PCT
+
+    p = subparsers.add_parser(
+        "score",
+        help="score any detector's output directories against ground truth (FP, CDI, DEM error, sites)",
+        description="Score the output files of any detector (docs/design.md: hazard.npy, and optionally "
+        "elevation.npy, state.npy and result.json's sites) against a pair's ground truth, by the design's "
+        "convention: per pixel FP (undetected hazards), TP/TN/FN, CDI; DEM error; whether each site, and the "
+        "top-ranked one, is truly safe over its 1.5 m footprint. PAIRS is a pair directory and OUTPUTS its output "
+        "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory "
+        "per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit, "
+        "1 when one was over it or had no usable output, 2 on bad usage.",
+    )
+    p.add_argument("pairs", type=Path, help="a pair directory with ground truth, or a descent with manifest.json")
+    p.add_argument("outputs", type=Path, help="the detector's output directory (or one per pair, by pair name)")
+    p.add_argument(
+        "--max-fp",
+        type=float,
+        default=FP_LIMIT_PCT,
+        help=f"FP limit per pair in %% of the scored pixels (default {FP_LIMIT_PCT:g}, thesis Table 2.1)",
+    )
+    p.add_argument("--csv", type=Path, default=None, help="also write one row per pair here")
+    p.add_argument("--json", type=Path, default=None, help="also write the rows and the summary here")
+    p.set_defaults(func=_score)
+
+
+def _score(args: argparse.Namespace) -> int:
+    import json
+    import math
+
+    from protocol.pairdir import read_pair
+    from studies.evaluate import write_metrics_csv
+    from studies.score import ScoreError, pair_jobs, read_output, score_output, summarise
+
+    if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
+        raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
+    jobs = pair_jobs(args.pairs, args.outputs)
+    rows: list[dict[str, Any]] = []
+    for label, pair_dir, out_dir in jobs:
+        row: dict[str, Any] = {"pair": label, "pair_dir": str(pair_dir), "output_dir": str(out_dir), "error": None}
+        pair = read_pair(pair_dir)  # a pair that cannot be read, or has no truth (below), is bad usage: exit 2
+        try:
+            out = read_output(out_dir, pair.images[0].shape)
+        except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
+            row["error"] = str(exc)
+        else:
+            row.update(score_output(pair, out, str(pair_dir)))
+        rows.append(row)
+    summary = summarise(rows, args.max_fp)
+    _print_scores(rows, summary)
+    if args.csv is not None:
+        write_metrics_csv(rows, args.csv)
+        print(f"rows:    {args.csv}")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float) + "\n")
+        print(f"summary: {args.json}")
+    return 0 if summary["failed"] == 0 and summary["pairs_over_fp_limit"] == 0 else 1
+
+
+def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
+    import math
+
+    def f(v: Any, fmt: str = ".2f") -> str:
+        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+    cols = ("pair", "FP %", "CDI %", "hazards detected %", "safe recognised %", "unmapped %", "DEM mean abs m")
+    print("| " + " | ".join(cols) + " | sites safe | top site |")
+    print("|---|" + "---:|" * (len(cols) - 1) + "---:|---|")
+    for r in rows:
+        if r["error"] is not None:
+            print(f"| {r['pair']} | no usable output: {r['error']} |" + " |" * len(cols))
+            continue
+        top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
+        over = " **over**" if r["fp_pct"] > s["fp_limit_pct"] else ""
+        cells = [
+            f"{f(r['fp_pct'])}{over}",
+            f(r["cdi_pct"], ".1f"),
+            f(r["hazards_detected_pct"], ".1f"),
+            f(r["safe_recognised_pct"], ".1f"),
+            f(r["unmapped_pct"], ".1f"),
+            f(r.get("dem_mean_abs_m"), ".3f"),
+            f"{r['sites_truly_safe']}/{r['sites']}",
+            top,
+        ]
+        print(f"| {r['pair']} | " + " | ".join(cells) + " |")
+    failed = f"; {s['failed']} without a usable output" if s["failed"] else ""
+    if s["scored"]:
+        print(
+            f"{s['scored']} of {s['pairs']} pairs scored: FP worst {f(s['fp_worst_pct'])} % "
+            f"({s['pairs_over_fp_limit']} over {s['fp_limit_pct']:g} %), CDI median {f(s['cdi_median_pct'], '.1f')} % "
+            f"(lowest {f(s['cdi_lowest_pct'], '.1f')} %), top site truly safe {s['top_sites_truly_safe']}/"
+            f"{s['top_sites']} ({s['no_site']} without a site){failed}"
+        )
+    else:
+        print(f"no pair scored{failed}")

@@ -1,0 +1,212 @@
+"""Score any detector's output directory against a pair's ground truth (``hazard-hil score``).
+
+The flight software's output files are a contract (docs/design.md, "Flight software output directory"):
+``hazard.npy`` (required), ``elevation.npy``, ``state.npy`` and the sites of ``result.json`` (optional). Our
+``process`` writes them, and so can any other detector. This module reads them, checks them against the pair,
+and scores them by the design's convention (thesis section 2.8, Tables 6.4 and 6.11):
+
+* per pixel, positive = safe; a pixel is *called safe* when ``hazard < 1``. NaN is not called safe:
+  TP = safe called safe, FP = unsafe called safe (an undetected hazard, Table 2.1 asks <= 1 %),
+  FN = safe not called safe (a false alarm), TN = unsafe not called safe; CDI = TP % + TN %;
+* the scored pixels are those of frame 0 whose true ground the last frame sees (from the truth depth and
+  the true poses), where the truth is finite. The detector's own NaN does not shrink that area: a pixel it
+  left unmapped is scored as not called safe and counted as ``unmapped_pct``. (``evaluate`` scores our
+  pipeline over the area it reports covered; the two differ by the overlap's edge band, well under 1 %.)
+* DEM error over the scored pixels where both elevations are finite: mean |error|, median, MAD;
+* a site is truly safe when every truth pixel within the footprint radius (1.5 m at the median ground
+  sample distance) is safe; the first site listed is the top-ranked one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import InputError
+
+STATE_CODES = (0, 1, 2, 255)  # safe, unsafe, unknown, outside (docs/design.md)
+FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
+
+
+class ScoreError(InputError):
+    """An output directory or pair that cannot be scored (one line, says which file and why)."""
+
+
+@dataclass(frozen=True)
+class DetectorOutput:
+    """What a detector wrote for one pair: maps in frame 0's pixels and its ranked sites (world x, y, z)."""
+
+    hazard: np.ndarray
+    elevation: np.ndarray | None
+    state: np.ndarray | None
+    sites_xyz: np.ndarray  # (N, 3), N may be 0; the first is the top-ranked site
+
+
+def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ScoreError(f"{path}: not a readable .npy file ({exc})") from None
+    if not isinstance(a, np.ndarray) or a.shape != shape:
+        got = getattr(a, "shape", type(a).__name__)
+        raise ScoreError(f"{path}: must be {shape[0]}x{shape[1]} (frame 0's pixels), got {got}")
+    return a
+
+
+def read_output(out_dir: str | Path, shape: tuple[int, int]) -> DetectorOutput:
+    """The output files of ``out_dir`` for a frame 0 of ``shape`` (rows, cols), checked; :class:`ScoreError`."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise ScoreError(f"{out}: no such output directory")
+    if not (out / "hazard.npy").is_file():
+        raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area)")
+    hazard = _load(out / "hazard.npy", shape)
+    if hazard.dtype.kind not in "fiu":
+        raise ScoreError(f"{out / 'hazard.npy'}: must hold numbers, got dtype {hazard.dtype}")
+    hazard = hazard.astype(np.float32)
+    if np.isinf(hazard).any() or (np.nan_to_num(hazard, nan=0.0) < 0).any():
+        raise ScoreError(f"{out / 'hazard.npy'}: values must be >= 0 or NaN (no infinities, no negatives)")
+    elevation = None
+    if (out / "elevation.npy").is_file():
+        elevation = _load(out / "elevation.npy", shape)
+        if elevation.dtype.kind != "f":
+            raise ScoreError(f"{out / 'elevation.npy'}: must be float (NaN where not recovered), got {elevation.dtype}")
+        elevation = elevation.astype(np.float32)
+    state = None
+    if (out / "state.npy").is_file():
+        state = _load(out / "state.npy", shape)
+        bad = ~np.isin(state, STATE_CODES)
+        if state.dtype.kind not in "iu" or bad.any():
+            raise ScoreError(f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside")
+        called = np.isfinite(hazard) & (hazard < 1.0)
+        mixed = int(np.count_nonzero((state == 0) != called))
+        if mixed:
+            raise ScoreError(
+                f"{out / 'state.npy'}: says safe on {mixed} pixels where hazard.npy does not call safe (hazard < 1), "
+                "or the reverse; the two must agree"
+            )
+    sites = np.zeros((0, 3))
+    if (out / "result.json").is_file():
+        sites = _read_sites(out / "result.json")
+    return DetectorOutput(hazard, elevation, state, sites)
+
+
+def _read_sites(path: Path) -> np.ndarray:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ScoreError(f"{path}: not readable JSON ({exc})") from None
+    raw = doc.get("sites", []) if isinstance(doc, dict) else None
+    if not isinstance(raw, list):
+        raise ScoreError(f'{path}: "sites" must be a list of {{"x", "y", "z"}} objects')
+    xyz = []
+    for i, s in enumerate(raw):
+        try:
+            xyz.append([float(s["x"]), float(s["y"]), float(s["z"])])
+        except (KeyError, TypeError, ValueError):
+            raise ScoreError(f'{path}: site {i} needs numeric "x", "y" and "z" (world metres)') from None
+    return np.array(xyz, float).reshape(-1, 3)
+
+
+def score_output(pair: Any, output: DetectorOutput, where: str = "the pair") -> dict[str, Any]:
+    """Pixel, DEM and site scores of ``output`` against ``pair``'s ground truth (see the module doc); ``where``
+    names the pair in errors."""
+    from ground_sim import scoring
+    from ground_sim.library import covered
+    from studies.evaluate import _site_radius_px, backproject_depth, project_points, true_poses
+
+    for key in ("hazard", "depth", "elevation"):
+        if key not in pair.truth:
+            raise ScoreError(f"{where}: no ground truth gt_{key}_i1.npy: nothing to score against")
+    true1, true2 = true_poses(pair)
+    depth = pair.truth["depth"].astype(np.float64)
+    world = backproject_depth(pair.camera, true1, depth)
+    gt_h = pair.truth["hazard"].astype(np.float32)
+    seen = covered(pair.camera, true2, world.reshape(-1, 3)).reshape(gt_h.shape)
+    area = seen & np.isfinite(gt_h) & np.isfinite(depth)
+    n = int(np.count_nonzero(area))
+    if n == 0:
+        raise ScoreError(f"{where}: frame 0 and the last frame share no ground: nothing to score")
+    safe = gt_h < 1.0
+    called = np.isfinite(output.hazard) & (output.hazard < 1.0)
+    tp = int(np.count_nonzero(area & safe & called))
+    fp = int(np.count_nonzero(area & ~safe & called))
+    fn = int(np.count_nonzero(area & safe & ~called))
+    tn = n - tp - fp - fn
+    pct = 100.0 / n
+    m: dict[str, Any] = {
+        "pixels": n,
+        "tp_pct": tp * pct,
+        "fp_pct": fp * pct,
+        "fn_pct": fn * pct,
+        "tn_pct": tn * pct,
+        "cdi_pct": (tp + tn) * pct,
+        "hazards_detected_pct": 100.0 * tn / (tn + fp) if tn + fp else math.nan,
+        "safe_recognised_pct": 100.0 * tp / (tp + fn) if tp + fn else math.nan,
+        "hazards_in_scene_pct": 100.0 * (tn + fp) / n,
+        "unmapped_pct": 100.0 * np.count_nonzero(area & ~np.isfinite(output.hazard)) / n,
+    }
+    if output.state is not None:
+        for code, name in ((0, "safe"), (1, "unsafe"), (2, "unknown")):
+            m[f"state_{name}_pct"] = 100.0 * np.count_nonzero(area & (output.state == code)) / n
+    if output.elevation is not None:
+        d = scoring.dem_error_stats(output.elevation, pair.truth["elevation"].astype(np.float32), area)
+        m.update({"dem_mean_abs_m": d["mean_abs"], "dem_median_m": d["median"], "dem_mad_m": d["mad"]})
+        m["dem_coverage_pct"] = 100.0 * np.count_nonzero(area & np.isfinite(output.elevation)) / n
+    radius = _site_radius_px(pair.camera, depth, area)
+    m["sites"] = int(output.sites_xyz.shape[0])
+    if m["sites"]:
+        uv = project_points(pair.camera, true1, output.sites_xyz)
+        each = [scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0 for i in range(len(uv))]
+        m["sites_truly_safe"] = int(sum(each))
+        m["top_site_truly_safe"] = bool(each[0])
+    else:
+        m["sites_truly_safe"] = 0
+        m["top_site_truly_safe"] = None
+    return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
+
+
+def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[tuple[str, Path, Path]]:
+    """(label, pair directory, output directory) to score: one pair directory and its output directory, or a
+    rendered descent (a directory with ``manifest.json``) and a directory holding one output directory per pair,
+    named as the pair directory is (``OUTPUTS/600_300`` for ``PAIRS/600_300``)."""
+    from protocol.pairdir import read_manifest
+
+    p, o = Path(pairs), Path(outputs)
+    if (p / "manifest.json").is_file():
+        doc = read_manifest(p / "manifest.json")
+        jobs = []
+        for e in doc["pairs"]:
+            d = p / e["path"]
+            jobs.append((str(e.get("label", e["path"])), d, o / Path(e["path"]).name))
+        return jobs
+    if (p / "pair.json").is_file():
+        return [(p.name, p, o)]
+    raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
+
+
+def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) -> dict[str, Any]:
+    """Over the scored pairs: worst FP and how many exceed ``fp_limit_pct``, median and lowest CDI, top sites
+    truly safe; pairs that could not be scored are counted apart (``failed``)."""
+    ok = [r for r in rows if r.get("error") is None]
+    fps = [r["fp_pct"] for r in ok]
+    cdis = [r["cdi_pct"] for r in ok]
+    tops = [r["top_site_truly_safe"] for r in ok if r["top_site_truly_safe"] is not None]
+    return {
+        "pairs": len(rows),
+        "scored": len(ok),
+        "failed": len(rows) - len(ok),
+        "fp_worst_pct": max(fps) if fps else None,
+        "pairs_over_fp_limit": sum(f > fp_limit_pct for f in fps),
+        "fp_limit_pct": fp_limit_pct,
+        "cdi_median_pct": float(np.median(cdis)) if cdis else None,
+        "cdi_lowest_pct": min(cdis) if cdis else None,
+        "top_sites": len(tops),
+        "top_sites_truly_safe": sum(tops),
+        "no_site": sum(r["top_site_truly_safe"] is None for r in ok),
+    }

@@ -1,0 +1,163 @@
+"""`hazard-hil score`: any detector's output directory scored against the truth by the design's convention."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilkit import small_descent
+
+from hil_server.cli import main
+from protocol.pairdir import read_pair
+from studies.evaluate import backproject_depth, true_poses
+
+PAIRS = ["600/300", "300/150"]
+
+
+@pytest.fixture(scope="module")
+def descent(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("score")
+    small_descent(root / "pairs", PAIRS, px=128)
+    return root / "pairs"
+
+
+def _write(out: Path, hazard: np.ndarray, *, elevation=None, state=None, sites=None) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "hazard.npy", hazard.astype(np.float32))
+    if elevation is not None:
+        np.save(out / "elevation.npy", elevation.astype(np.float32))
+    if state is not None:
+        np.save(out / "state.npy", state.astype(np.uint8))
+    if sites is not None:
+        (out / "result.json").write_text(json.dumps({"sites": sites}))
+    return out
+
+
+def _score(pairs: Path, outputs: Path, capsys, *extra: str) -> tuple[int, dict]:
+    js = outputs.parent / f"{outputs.name}-score.json"
+    code = main(["score", str(pairs), str(outputs), "--json", str(js), *extra])
+    capsys.readouterr()
+    return code, json.loads(js.read_text()) if js.is_file() else {}
+
+
+def test_perfect_all_unsafe_all_safe_and_blank_detectors(descent, tmp_path, capsys):
+    d = descent / "300_150"
+    pair = read_pair(d)
+    gt = pair.truth["hazard"]
+    truth_z = pair.truth["elevation"]
+    # the oracle: every truth call, the true elevation
+    code, doc = _score(d, _write(tmp_path / "oracle", gt, elevation=truth_z), capsys)
+    (r,) = doc["rows"]
+    assert code == 0 and r["fp_pct"] == 0 and r["fn_pct"] == 0 and r["cdi_pct"] == pytest.approx(100.0)
+    assert r["dem_mean_abs_m"] == 0 and r["unmapped_pct"] == 0
+    hazards = r["hazards_in_scene_pct"]
+    assert 1 < hazards < 99  # the scene has both
+    # everything unsafe: no FP, CDI = the hazards' share
+    code, doc = _score(d, _write(tmp_path / "unsafe", np.ones_like(gt)), capsys)
+    assert code == 0 and doc["rows"][0]["fp_pct"] == 0 and doc["rows"][0]["cdi_pct"] == pytest.approx(hazards)
+    # everything safe: every hazard undetected -> over the 1 % limit, exit 1
+    code, doc = _score(d, _write(tmp_path / "safe", np.zeros_like(gt)), capsys)
+    assert (
+        code == 1 and doc["rows"][0]["fp_pct"] == pytest.approx(hazards) and doc["summary"]["pairs_over_fp_limit"] == 1
+    )
+    code, _ = _score(d, tmp_path / "safe", capsys, "--max-fp", "100")
+    assert code == 0
+    # a detector that writes NaN does not shrink the scored area: not called safe, counted as unmapped
+    code, doc = _score(d, _write(tmp_path / "blank", np.full(gt.shape, np.nan)), capsys)
+    r = doc["rows"][0]
+    assert code == 0 and r["unmapped_pct"] == 100 and r["cdi_pct"] == pytest.approx(hazards)
+    assert r["pixels"] == doc["rows"][0]["pixels"] > 0.2 * gt.size
+
+
+def test_sites_judged_over_their_true_footprint(descent, tmp_path, capsys):
+    d = descent / "300_150"
+    pair = read_pair(d)
+    gt = pair.truth["hazard"]
+    true1, _ = true_poses(pair)
+    world = backproject_depth(pair.camera, true1, pair.truth["depth"].astype(np.float64))
+    world[..., 2] = pair.truth["elevation"]
+    h, w = gt.shape
+    # a pixel deep inside clear ground and one on a hazard, away from the image edge
+    clear = (gt < 1).astype(np.uint8)
+    import cv2
+
+    inner = cv2.erode(clear, np.ones((15, 15), np.uint8)).astype(bool)
+    inner[:20], inner[-20:], inner[:, :20], inner[:, -20:] = False, False, False, False
+    hv, hu = np.argwhere(gt[20:-20, 20:-20] >= 1)[0] + 20
+    sv, su = np.argwhere(inner)[len(np.argwhere(inner)) // 2]
+    site = {k: float(v) for k, v in zip("xyz", world[sv, su])}
+    bad = {k: float(v) for k, v in zip("xyz", world[hv, hu])}
+    code, doc = _score(d, _write(tmp_path / "good", np.ones_like(gt), sites=[site, bad]), capsys)
+    r = doc["rows"][0]
+    assert (r["sites"], r["sites_truly_safe"], r["top_site_truly_safe"]) == (2, 1, True)
+    code, doc = _score(d, _write(tmp_path / "bad", np.ones_like(gt), sites=[bad, site]), capsys)
+    r = doc["rows"][0]
+    assert (r["sites"], r["sites_truly_safe"], r["top_site_truly_safe"]) == (2, 1, False)
+    assert doc["summary"]["top_sites_truly_safe"] == 0 and doc["summary"]["top_sites"] == 1
+
+
+def test_our_process_output_scores_as_process_saw_it(descent, tmp_path, capsys):
+    d = descent / "600_300"
+    assert main(["process", str(d), "--out", str(tmp_path / "p")]) == 0
+    capsys.readouterr()
+    code, doc = _score(d, tmp_path / "p", capsys)
+    r = doc["rows"][0]
+    conf = json.loads((tmp_path / "p" / "result.json").read_text())["vs_truth"]["confusion"]
+    # process scores over the area it covered, score over the truth's overlap: they agree to the edge band
+    assert r["fp_pct"] == pytest.approx(conf["FP_pct"], abs=0.3)
+    assert r["cdi_pct"] == pytest.approx(conf["TP_pct"] + conf["TN_pct"], abs=2.0)
+    assert r["state_safe_pct"] == pytest.approx(r["tp_pct"] + r["fp_pct"])  # state.npy agrees with hazard.npy
+    assert code == (0 if r["fp_pct"] <= 1.0 else 1)
+
+
+def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tmp_path, capsys):
+    outs = tmp_path / "outs"
+    pair = read_pair(descent / "600_300")
+    _write(outs / "600_300", pair.truth["hazard"])
+    code = main(["score", str(descent), str(outs), "--csv", str(tmp_path / "rows.csv")])
+    out, _ = capsys.readouterr()
+    assert code == 1
+    assert "| 300/150 | no usable output: " in out and "no such output directory" in out
+    assert "1 of 2 pairs scored" in out and "1 without a usable output" in out
+    assert len((tmp_path / "rows.csv").read_text().splitlines()) == 3  # header + both pairs, none dropped
+
+
+@pytest.mark.parametrize(
+    "write, message",
+    [
+        (
+            lambda o, s: np.save(o / "hazard.npy", np.zeros((s[0] + 1, s[1]), np.float32)),
+            "hazard.npy: must be 128x128 (frame 0's pixels), got (129, 128)",
+        ),
+        (lambda o, s: np.save(o / "hazard.npy", np.full(s, -1.0, np.float32)), "values must be >= 0"),
+        (lambda o, s: (o / "hazard.npy").write_bytes(b"not npy"), "not a readable .npy"),
+        (lambda o, s: np.save(o / "elevation.npy", np.zeros(s, np.int32)), "elevation.npy: must be float"),
+        (lambda o, s: np.save(o / "state.npy", np.full(s, 7, np.uint8)), "state.npy: must be uint8 codes"),
+        (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "the two must agree"),
+        (lambda o, s: (o / "result.json").write_text('{"sites": [{"x": 1}]}'), 'site 0 needs numeric "x", "y"'),
+    ],
+)
+def test_broken_output_is_that_pairs_one_line_failure(descent, tmp_path, capsys, write, message):
+    d = descent / "300_150"
+    shape = read_pair(d).images[0].shape
+    out = _write(tmp_path / "o", np.ones(shape))
+    write(out, shape)
+    code = main(["score", str(d), str(out)])
+    text, _ = capsys.readouterr()
+    assert code == 1 and message in text and "no pair scored" in text
+
+
+def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
+    assert main(["score", str(tmp_path), str(tmp_path)]) == 2
+    assert "neither a pair directory" in capsys.readouterr().err
+    nogt = tmp_path / "nogt"
+    shutil.copytree(descent / "300_150", nogt)
+    for f in nogt.glob("gt_*"):
+        f.unlink()
+    _write(tmp_path / "o", np.ones((128, 128)))
+    assert main(["score", str(nogt), str(tmp_path / "o")]) == 2
+    assert "no ground truth" in capsys.readouterr().err
+    assert main(["score", str(descent / "300_150"), str(tmp_path / "o"), "--max-fp", "nan"]) == 2
