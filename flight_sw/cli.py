@@ -171,6 +171,9 @@ def _process(args: argparse.Namespace) -> int:
     )
     if "dem_error" in truth and truth["dem_error"].get("n"):
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
+    c = truth.get("confusion", {})
+    if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
+        line += f", FP {c['FP_pct']:.2f} %, CDI {c['TP_pct'] + c['TN_pct']:.1f} %"
     print(f"{out}: {line}")
     print(f"report: {out / 'report.html'}")
     return 0

@@ -102,10 +102,11 @@ def test_sites_judged_over_their_true_footprint(descent, tmp_path, capsys):
 def test_our_process_output_scores_as_process_saw_it(descent, tmp_path, capsys):
     d = descent / "600_300"
     assert main(["process", str(d), "--out", str(tmp_path / "p")]) == 0
-    capsys.readouterr()
+    said, _ = capsys.readouterr()
     code, doc = _score(d, tmp_path / "p", capsys)
     r = doc["rows"][0]
     conf = json.loads((tmp_path / "p" / "result.json").read_text())["vs_truth"]["confusion"]
+    assert f"FP {conf['FP_pct']:.2f} %, CDI {conf['TP_pct'] + conf['TN_pct']:.1f} %" in said  # its one line says it
     # process scores over the area it covered, score over the truth's overlap: they agree to the edge band
     assert r["fp_pct"] == pytest.approx(conf["FP_pct"], abs=0.3)
     assert r["cdi_pct"] == pytest.approx(conf["TP_pct"] + conf["TN_pct"], abs=2.0)
