@@ -1,0 +1,123 @@
+"""Result schema revisions: a newer flight side must not break an older ground (version skew on a real board).
+
+A decoder refuses unknown fields, so a ground announces the highest Result revision it decodes in
+``Config.options["result_rev"]`` and the flight side leaves every newer optional field off the wire; a Config
+without it means the baseline, the Result of stop 41 (protocol.messages.RESULT_FIELD_REV).
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, field, fields, make_dataclass, replace
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol.codec import decode_message, encode_message
+from protocol.messages import MESSAGE_TYPES, RESULT_FIELD_REV, RESULT_REV, Message, Result, SchemaError
+
+# The Result fields a ground of stop 41 (0950b5b) decodes, as `git show 0950b5b:protocol/messages.py` lists them:
+# written out here, not derived, so that a field added without a revision fails the first test.
+STOP41_RESULT_FIELDS = {
+    "frame_seqs",
+    "state_grid",
+    "psafe_grid",
+    "elevation_grid",
+    "grid_origin_xy",
+    "grid_cell_m",
+    "elevation_step",
+    "elevation_offset_m",
+    "elevation_unit_cm",
+    "psafe_step",
+    "sites",
+    "no_site_reason",
+    "degraded",
+    "level",
+    "hazard_image",
+    "elevation_image",
+    "state_image",
+}
+
+
+def _old_result_class(rev: int) -> type[Message]:
+    """The Result class of a ground that decodes revision ``rev``: the same checkers, only the fields it knew, and
+    the same refusal of any other field (Message.from_wire)."""
+    known = [f for f in fields(Result) if RESULT_FIELD_REV.get(f.name, 0) <= rev]
+    spec = []
+    for f in known:
+        if f.default_factory is not MISSING:
+            spec.append((f.name, object, field(default_factory=f.default_factory, metadata=f.metadata)))
+        elif f.default is not MISSING:
+            spec.append((f.name, object, field(default=f.default, metadata=f.metadata)))
+        else:
+            spec.append((f.name, object, field(metadata=f.metadata)))
+    return make_dataclass("Result", spec, bases=(Message,), frozen=True, namespace={"TYPE": Result.TYPE})
+
+
+def old_ground_decode(body: bytes, rev: int = 0) -> Message:
+    """Decode ``body`` as a ground whose Result schema stops at revision ``rev`` would."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(MESSAGE_TYPES, Result.TYPE, _old_result_class(rev))
+        return decode_message(body)
+
+
+def wire_keys(body: bytes) -> set[str]:
+    return set(msgpack.unpackb(body, raw=False, ext_hook=msgpack.ExtType)[1])
+
+
+def _full_result() -> Result:
+    """A Result with every post-baseline field filled."""
+    return Result(
+        frame_seqs=(4, 5),
+        state_grid=np.array([[0, 1], [2, 255]], np.uint8),
+        psafe_grid=np.array([[254, 0], [127, 255]], np.uint8),
+        elevation_grid=np.array([[-32768, 1234], [7, -5]], np.int16),
+        grid_origin_xy=(-10.0, 3.0),
+        grid_cell_m=0.5,
+        degraded=True,
+        skipped=("rocks", "shading_slope"),
+        elevation_image=np.zeros((3, 4), np.float32),
+        elevation_filled=np.array([[0, 1], [0, 0]], np.uint8),
+        elevation_filled_image=np.eye(3, 4, dtype=np.uint8),
+    )
+
+
+def test_the_baseline_is_the_result_of_stop_41_and_every_later_field_has_a_revision():
+    names = {f.name for f in fields(Result)}
+    assert names - set(RESULT_FIELD_REV) == STOP41_RESULT_FIELDS
+    assert set(RESULT_FIELD_REV) <= names
+    assert sorted(set(RESULT_FIELD_REV.values())) == [1, 2, 3] and max(RESULT_FIELD_REV.values()) == RESULT_REV
+    for name in RESULT_FIELD_REV:  # only optional fields can be left out: each has a default the decoder restores
+        f = next(f for f in fields(Result) if f.name == name)
+        assert f.default is not MISSING or f.default_factory is not MISSING
+
+
+def test_an_old_ground_refuses_the_new_fields_and_takes_the_result_at_its_revision():
+    full = _full_result()
+    body = encode_message(full)
+    new_fields = r"unknown fields \['elevation_filled', 'elevation_filled_image', 'skipped'\]"
+    with pytest.raises(SchemaError, match=new_fields):
+        old_ground_decode(body)  # what a stop-41 ground did with every Result of a newer flight side
+    for rev in range(RESULT_REV + 1):
+        cut = full.for_rev(rev)
+        want = STOP41_RESULT_FIELDS | {n for n, r in RESULT_FIELD_REV.items() if r <= rev}
+        assert wire_keys(encode_message(cut)) <= want
+        got = old_ground_decode(encode_message(cut), rev)
+        # the fields that ground knows come through filled; it has no attribute for the others
+        assert {f.name for f in fields(got)} == want  # type: ignore[arg-type]
+        assert getattr(got, "skipped", None) == (full.skipped if rev >= 2 else None)
+        assert (getattr(got, "elevation_filled", None) is not None) == (rev >= 1)
+        assert (getattr(got, "elevation_filled_image", None) is not None) == (rev >= 3)
+        back = decode_message(encode_message(cut))  # today's ground reads it too, the omitted fields at default
+        assert isinstance(back, Result) and back.elevation_image is not None and back.degraded
+    assert full.for_rev(RESULT_REV) is full and full.for_rev(RESULT_REV + 5) is full
+    with pytest.raises(SchemaError, match="unknown fields"):
+        old_ground_decode(encode_message(full.for_rev(2)), 1)  # skipped is newer than revision 1
+
+
+def test_the_encoder_leaves_only_the_newer_fields_off_and_only_at_their_default():
+    r = _full_result().for_rev(0)
+    assert r.skipped == () and r.elevation_filled is None and r.elevation_filled_image is None
+    assert wire_keys(encode_message(r)) == STOP41_RESULT_FIELDS  # the baseline fields always travel, even at default
+    no_fills = replace(r, elevation_filled=np.zeros((2, 2), np.uint8))  # a mask without fills is not "no mask"
+    assert wire_keys(encode_message(no_fills)) == STOP41_RESULT_FIELDS | {"elevation_filled"}
