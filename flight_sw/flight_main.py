@@ -182,6 +182,12 @@ def fit_to_line(
     return result, line_s, full / nbytes
 
 
+def _is_int(v: float) -> bool:
+    """An option value that is a whole number (options are numbers; NaN and infinities are not, and int() of them
+    raised out of the Config's check, ending the flight process instead of answering bad_config)."""
+    return math.isfinite(v) and v == int(v)
+
+
 def frame_pose(frame: Frame) -> Pose:
     return Pose(
         np.asarray(frame.position_m, dtype=float),
@@ -231,10 +237,10 @@ class FlightProcess:
                 cam = Camera.from_dict(msg.camera)
                 for name, default in (("elevation_step", DEFAULT_ELEVATION_STEP), ("psafe_step", DEFAULT_PSAFE_STEP)):
                     step = msg.options.get(name, default)
-                    if step != int(step) or not 1 <= step <= 1024:
+                    if not _is_int(step) or not 1 <= step <= 1024:
                         raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
                 unit = msg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM)
-                if unit != int(unit) or not 1 <= unit <= 1000:
+                if not _is_int(unit) or not 1 <= unit <= 1000:
                     raise InputError(f"Config option elevation_unit_cm must be an integer in [1, 1000], got {unit}")
                 if not msg.options.get("time_scale", 1.0) > 0 or not msg.options.get("link_baud", 0) >= 0:
                     raise InputError("Config options time_scale must be > 0 and link_baud >= 0")

@@ -121,3 +121,50 @@ def test_the_encoder_leaves_only_the_newer_fields_off_and_only_at_their_default(
     assert wire_keys(encode_message(r)) == STOP41_RESULT_FIELDS  # the baseline fields always travel, even at default
     no_fills = replace(r, elevation_filled=np.zeros((2, 2), np.uint8))  # a mask without fills is not "no mask"
     assert wire_keys(encode_message(no_fills)) == STOP41_RESULT_FIELDS | {"elevation_filled"}
+
+
+class _Link:
+    """Collects what the flight process sends."""
+
+    def __init__(self) -> None:
+        self.sent: list = []
+
+    def send(self, msg) -> None:
+        self.sent.append(msg)
+
+    def flush(self, timeout: float | None = None) -> bool:
+        return True
+
+    def stats(self) -> dict:
+        return {"bytes_sent": 0}
+
+
+CAMERA = {"width": 128, "height": 128, "fx": 238.9, "fy": 238.9, "cx": 63.5, "cy": 63.5}
+
+
+def _config(options: dict, deadline_s: float = 30.0):
+    from protocol.messages import Config
+
+    return Config(camera=CAMERA, budget="host", deadline_s=deadline_s, preset="fast", options=options)
+
+
+@pytest.mark.parametrize(
+    "options, name",
+    [
+        ({"elevation_step": float("nan")}, "elevation_step"),
+        ({"psafe_step": float("inf")}, "psafe_step"),
+        ({"elevation_unit_cm": float("nan")}, "elevation_unit_cm"),
+    ],
+)
+def test_a_config_option_that_is_no_number_is_bad_config_not_a_crash(options, name):
+    """A NaN or infinite integer option (the Config's options may carry them) is answered with bad_config; int() of
+    it raised out of the check and ended the flight process."""
+    import flight_sw.flight_main as fm
+    from protocol.messages import Error
+
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(decode_message(encode_message(_config(options))))  # as it arrives
+    (err,) = link.sent
+    assert isinstance(err, Error) and err.code == "bad_config" and name in err.text and "\n" not in err.text
+    assert fp.config is None
