@@ -168,3 +168,92 @@ def test_a_config_option_that_is_no_number_is_bad_config_not_a_crash(options, na
     (err,) = link.sent
     assert isinstance(err, Error) and err.code == "bad_config" and name in err.text and "\n" not in err.text
     assert fp.config is None
+
+
+@pytest.mark.parametrize("rev", [-1, 1.5, float("nan"), float("inf")], ids=["negative", "fraction", "nan", "inf"])
+def test_a_bad_result_rev_is_bad_config(rev):
+    import flight_sw.flight_main as fm
+    from protocol.messages import Error
+
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(decode_message(encode_message(_config({"result_rev": rev}))))
+    (err,) = link.sent
+    assert isinstance(err, Error) and err.code == "bad_config" and "\n" not in err.text
+    assert err.text.startswith("Config option result_rev must be a whole number >= 0") and fp.config is None
+
+
+def test_a_newer_revision_or_an_unknown_option_is_taken():
+    """A ground newer than this flight software (a higher revision, options it does not know) is served with all it
+    has; the flight side ignores options it does not know, as the older flight sides did (they read options by name)."""
+    import flight_sw.flight_main as fm
+
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    cfg = _config({"result_rev": RESULT_REV + 4, "an_option_of_tomorrow": 2.5})
+    fp.handle(cfg)
+    assert link.sent == [] and fp.config == cfg and fm.left_out_note(cfg) == ""
+
+
+def _frames(pair_id: str, seq0: int):
+    """A 128 px nadir pair over a roof (tests/synthetic.py) as the ground sends it; and its camera."""
+    from synthetic import make_pair, roof
+
+    from protocol.messages import Frame
+
+    cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, roof(18.0, -2.0), seed=22)
+    frames = [
+        Frame(
+            seq=seq0 + k,
+            capture_time_s=float(k),
+            position_m=tuple(float(v) for v in pose.position),
+            R_world_to_cam=np.asarray(pose.R, "<f8"),
+            altimeter_m=float("nan"),
+            image=img,
+            pair_id=pair_id,
+            frame_index=k,
+        )
+        for k, (pose, img) in enumerate(((p1, i1), (p2, i2)))
+    ]
+    return cam, frames
+
+
+@pytest.mark.parametrize("rev", [None, 1, RESULT_REV, RESULT_REV + 1], ids=["unsaid", "1", "current", "newer"])
+def test_the_flight_fills_only_the_fields_the_grounds_revision_decodes(rev, capsys):
+    """Full maps asked for and a deadline too short for the full level (so the Result names skipped stages and
+    carries elevation_image with its fill mask): a flight told no revision sends what a stop-41 ground decodes,
+    and says once (not per Result) what its Results go without; told a revision, it fills the fields up to it."""
+    import flight_sw.flight_main as fm
+    from protocol.messages import Config
+
+    cam, frames = _frames("p0", 0)
+    options = {"full_maps": 1} | ({} if rev is None else {"result_rev": rev})
+    cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=0.02, preset="fast", options=options)
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(cfg)
+    for f in frames:
+        fp.handle(f)
+    fp.handle(cfg)  # the same Config again, as after a link reconnection: the same descent
+    for f in _frames("p1", 10)[1]:
+        fp.handle(f)
+    results = [m for m in link.sent if isinstance(m, Result)]
+    assert len(results) == 2, link.sent
+    seen = min(RESULT_REV, 0 if rev is None else rev)
+    for r in results:
+        assert r.degraded and r.level != "full" and r.elevation_image is not None  # what the newer fields are about
+        assert bool(r.skipped) == (seen >= 2) and (r.elevation_filled is not None) == (seen >= 1)
+        assert (r.elevation_filled_image is not None) == (seen >= 3)
+        if seen >= 2:
+            assert "full_dem" in r.skipped
+        body = encode_message(r)
+        assert wire_keys(body) <= STOP41_RESULT_FIELDS | {n for n, v in RESULT_FIELD_REV.items() if v <= seen}
+        old_ground_decode(body, seen)  # a ground of that revision takes it
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("flight: the ground decodes")]
+    if seen >= RESULT_REV:
+        assert notes == []
+    else:
+        (note,) = notes  # once for the descent
+        assert f"Result revision {seen} (this flight software sends {RESULT_REV})" in note
+        assert "elevation_filled_image" in note and "full_maps was asked for" in note
+        assert ("skipped" in note) == (seen < 2)
