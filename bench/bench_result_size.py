@@ -32,9 +32,10 @@ def result_bytes(res, camera, kp: int, k: int, unit: int = 1, grid=None, sites=N
     and elevation unit ``unit`` cm; ``grid``/``sites``/``reason``: a fused map's instead of the pair's own."""
     from flight_sw.flight_main import FlightProcess
     from protocol.codec import encode_message
-    from protocol.messages import Config
+    from protocol.messages import RESULT_REV, Config
 
-    options = {"psafe_step": kp, "elevation_step": k, "elevation_unit_cm": unit}
+    # as the reference ground asks: every field of this schema (a Config without result_rev gets the baseline)
+    options = {"psafe_step": kp, "elevation_step": k, "elevation_unit_cm": unit, "result_rev": RESULT_REV}
     cfg = Config(camera=camera.to_dict(), budget="host", deadline_s=2.0, options=options)
     if grid is None:
         grid, sites, reason = res.grid, res.sites, res.info.get("no_site_reason")

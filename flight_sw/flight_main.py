@@ -64,7 +64,19 @@ from flight_sw.sites import select_safe_sites
 from protocol.codec import encode_message
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
-from protocol.messages import MAX_SKIPPED, Config, Error, Frame, Heartbeat, Hello, Result, Site, Telemetry
+from protocol.messages import (
+    MAX_SKIPPED,
+    RESULT_FIELD_REV,
+    RESULT_REV,
+    Config,
+    Error,
+    Frame,
+    Heartbeat,
+    Hello,
+    Result,
+    Site,
+    Telemetry,
+)
 from protocol.pairdir import STATE_SAFE, Camera, Pose
 
 # Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
@@ -86,7 +98,9 @@ PRIOR_FLOOR = 0.5  # after the first Result, plan for at least this share of the
 # Config.options understood here: full_maps (0/1: add the full-resolution image maps to each Result),
 # elevation_step and psafe_step (k >= 1: that grid is the world grid decimated by k; docs/protocol.md),
 # elevation_unit_cm (u in [1, 1000]: the elevation grid's unit; a coarser unit compresses better),
-# link_baud (the ground link's rate, 0 = none to plan for) and time_scale (the emulated slowdown).
+# link_baud (the ground link's rate, 0 = none to plan for), time_scale (the emulated slowdown) and result_rev (the
+# newest Result schema revision the ground decodes, protocol.messages.RESULT_FIELD_REV; absent = 0, the baseline:
+# every Result leaves the newer optional fields out, so that a ground older than them does not refuse it).
 DEFAULT_ELEVATION_STEP = 1
 DEFAULT_ELEVATION_UNIT_CM = 1
 DEFAULT_PSAFE_STEP = 1
@@ -182,6 +196,34 @@ def fit_to_line(
     return result, line_s, full / nbytes
 
 
+def _is_int(v: float) -> bool:
+    """An option value that is a whole number (options are numbers; NaN and infinities are not, and int() of them
+    raised out of the Config's check, ending the flight process instead of answering bad_config)."""
+    return math.isfinite(v) and v == int(v)
+
+
+def result_rev(cfg: Config) -> int:
+    """The newest Result revision the ground decodes: ``Config.options["result_rev"]`` (0, the baseline, when the
+    ground does not say; one newer than this flight software's gets everything it has)."""
+    return int(cfg.options.get("result_rev", 0))
+
+
+def left_out_note(cfg: Config) -> str:
+    """'' when the ground decodes every Result field; otherwise one line naming the fields its Results go without,
+    and saying so when the Config asked for what they carry (``full_maps``: the image maps' gap-fill mask)."""
+    rev = result_rev(cfg)
+    dropped = [name for name, r in RESULT_FIELD_REV.items() if r > rev]
+    if not dropped:
+        return ""
+    note = (
+        f"the ground decodes Result revision {rev} (this flight software sends {RESULT_REV}): "
+        f"every Result goes without {', '.join(dropped)}"
+    )
+    if cfg.options.get("full_maps", 0) and "elevation_filled_image" in dropped:
+        note += "; full_maps was asked for, but the image maps go without their gap-fill mask"
+    return note
+
+
 def frame_pose(frame: Frame) -> Pose:
     return Pose(
         np.asarray(frame.position_m, dtype=float),
@@ -231,20 +273,29 @@ class FlightProcess:
                 cam = Camera.from_dict(msg.camera)
                 for name, default in (("elevation_step", DEFAULT_ELEVATION_STEP), ("psafe_step", DEFAULT_PSAFE_STEP)):
                     step = msg.options.get(name, default)
-                    if step != int(step) or not 1 <= step <= 1024:
+                    if not _is_int(step) or not 1 <= step <= 1024:
                         raise InputError(f"Config option {name} must be an integer in [1, 1024], got {step}")
                 unit = msg.options.get("elevation_unit_cm", DEFAULT_ELEVATION_UNIT_CM)
-                if unit != int(unit) or not 1 <= unit <= 1000:
+                if not _is_int(unit) or not 1 <= unit <= 1000:
                     raise InputError(f"Config option elevation_unit_cm must be an integer in [1, 1000], got {unit}")
                 if not msg.options.get("time_scale", 1.0) > 0 or not msg.options.get("link_baud", 0) >= 0:
                     raise InputError("Config options time_scale must be > 0 and link_baud >= 0")
                 if msg.options.get("fusion", DEFAULT_FUSION) not in (0, 1):
                     raise InputError(f"Config option fusion must be 0 or 1, got {msg.options.get('fusion')}")
+                rev = msg.options.get("result_rev", 0)
+                if not _is_int(rev) or rev < 0:
+                    raise InputError(
+                        f"Config option result_rev must be a whole number >= 0 (the newest Result revision the "
+                        f"ground decodes), got {rev}"
+                    )
             except InputError as exc:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
             if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
                 self.fused = None
+                note = left_out_note(msg)
+                if note:  # once per descent, not per Result
+                    print(f"flight: {note}", file=sys.stderr, flush=True)
             self.config = msg
             if self.prefault and cam.width * cam.height > self.heap_ready_px:
                 from flight_sw.warmup import heap_mib_for, prefault_heap
@@ -436,7 +487,7 @@ class FlightProcess:
         fills = None  # the pixels of elevation_image that are gap fills (none from a back-end that does not fill)
         if full:
             fills = filled_to_wire(res.filled if res.filled is not None else np.zeros(np.shape(res.elevation), bool))
-        msg = Result(
+        result = Result(
             frame_seqs=seqs,
             state_grid=np.asarray(grid.state, dtype=np.uint8),
             psafe_grid=psafe_to_wire(grid.psafe, pstep, coarse=np.asarray(grid.state) != STATE_SAFE),
@@ -462,7 +513,8 @@ class FlightProcess:
             # which elevations are gap fills (all 0 from a back-end or a map without any)
             elevation_filled=filled_to_wire(grid.filled, step),
             elevation_filled_image=fills,
-        ).validated()
+        ).for_rev(result_rev(cfg))  # only the fields the ground decodes
+        msg = result.validated()
         assert isinstance(msg, Result)
         return msg
 

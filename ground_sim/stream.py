@@ -38,7 +38,10 @@ latency the far end reported (``flight_latency_s``), the frames' and the
 Result's line times (``frames_line_s``, ``result_line_s`` as the sender
 measured it, ``result_rx_s`` first to last frame here) and ``result_bytes``.
 ``Config.options["link_baud"]`` tells the flight side this link's rate (0 =
-none to plan for), so it can leave room for its Result's line time.
+none to plan for), so it can leave room for its Result's line time;
+``Config.options["result_rev"]`` that this ground decodes every Result field
+(``protocol.messages.RESULT_REV``): a flight side told nothing sends only the
+baseline fields an older ground decodes.
 
 Outputs are replaced atomically after every pair (written beside, then
 renamed): ``results.jsonl`` and, with ``--telemetry``, the per-pair timing
@@ -63,7 +66,7 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 
 EXIT_LINK_LOST = 3
@@ -331,6 +334,8 @@ def stream_descent(
         # the line the Result comes back on, so the flight side can plan for its line time (0: no rate)
         "link_baud": int(getattr(link, "baud", None) or 0),
         "fusion": int(bool(fusion)),
+        # the newest Result schema revision this ground decodes (an older flight side ignores the option)
+        "result_rev": RESULT_REV,
     }
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}

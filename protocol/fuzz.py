@@ -55,9 +55,12 @@ RX, PEER = 0x52520001, 0x50500002  # receiver and peer session ids of every fuzz
 
 
 def sample_messages(seed: int, image_side: int = 32) -> list[Message]:
-    """A small, deterministic set of messages of every type."""
+    """A small, deterministic set of messages of every type; each Result field is off its default in one of the two
+    Results (tests/test_protocol_framing.py checks it)."""
     rng = np.random.default_rng(seed)
     state = rng.choice(np.array([0, 1, 2, 255], np.uint8), (8, 8))
+    elevation = rng.normal(0.0, 2.0, (6, 6)).astype(np.float32)
+    elevation[rng.random((6, 6)) < 0.2] = np.nan
     return [
         Hello(role="flight", session=1234),
         Config(
@@ -79,11 +82,14 @@ def sample_messages(seed: int, image_side: int = 32) -> list[Message]:
         Result(
             frame_seqs=(1, 2),
             state_grid=state,
-            psafe_grid=rng.integers(0, 256, (8, 8), dtype=np.uint8),
+            psafe_grid=rng.integers(0, 256, (4, 4), dtype=np.uint8),
+            psafe_step=2,
             elevation_grid=rng.integers(-32768, 32767, (4, 4), dtype=np.int16),
             grid_origin_xy=(-4.0, 4.0),
             grid_cell_m=1.0,
             elevation_step=2,
+            elevation_offset_m=-12.0,
+            elevation_unit_cm=10,
             sites=[Site(0.0, 1.0, -0.5, 0.1, 0.9, 2.0, 0.97, 1.5), Site(1.0, 1.0, math.nan, 0.2, 0.8, 3.0)],
             no_site_reason=None,
             elevation_filled=np.array([[0, 1, 0, 0], [0, 0, 0, 0], [1, 1, 0, 0], [0, 0, 0, 1]], np.uint8),
@@ -98,8 +104,12 @@ def sample_messages(seed: int, image_side: int = 32) -> list[Message]:
             degraded=True,
             level="image_only",
             no_site_reason="no footprint is known safe",
+            skipped=("full_dem", "sites"),
             hazard_image=rng.random((6, 6), dtype=np.float32),
+            elevation_image=elevation,
             state_image=np.zeros((6, 6), np.uint8),
+            # the gap fills among elevation_image's pixels (a fill always has an elevation)
+            elevation_filled_image=((rng.random((6, 6)) < 0.3) & np.isfinite(elevation)).astype(np.uint8),
         ),
         Telemetry(frame_seqs=(1, 2), stages={"dem": {"wall_s": 1.5, "cpu_s": 0.4}}, link={"crc_errors": 3}),
         Heartbeat(time_s=12.0, counter=7),
@@ -241,22 +251,29 @@ def hostile_bodies(rng: np.random.Generator) -> list[bytes]:
         rng.integers(0, 256, int(rng.integers(1, 600)), dtype=np.uint8).tobytes(),
         _result_with(rng, state=np.full((4, 4), 7, np.uint8)),  # invalid state codes
         _result_with(rng, psafe=np.zeros((3, 4), np.uint8)),  # grids that do not agree
+        # a fill mask of another shape than elevation_image, and one with no elevation_image to mark
+        _result_with(
+            rng, elevation_image=np.zeros((6, 6), np.float32), elevation_filled_image=np.ones((6, 5), np.uint8)
+        ),
+        _result_with(rng, elevation_filled_image=np.ones((6, 6), np.uint8)),
     ]
 
 
 def _result_with(rng: np.random.Generator, **over: np.ndarray) -> bytes:
+    """A Result body (inline arrays) with ``state`` / ``psafe`` grids or any other field given in ``over``."""
     body = {
         "frame_seqs": [1, 2],
-        "state_grid": over.get("state", np.zeros((4, 4), np.uint8)),
-        "psafe_grid": over.get("psafe", np.zeros((4, 4), np.uint8)),
+        "state_grid": over.pop("state", np.zeros((4, 4), np.uint8)),
+        "psafe_grid": over.pop("psafe", np.zeros((4, 4), np.uint8)),
         "elevation_grid": np.zeros((4, 4), np.int16),
         "grid_origin_xy": [0.0, 0.0],
         "grid_cell_m": 1.0,
+        **over,
     }
 
     def default(o: object) -> object:
         if isinstance(o, np.ndarray):
-            head = bytes(({np.dtype("u1"): 1, np.dtype("<i2"): 4}[o.dtype], o.ndim))
+            head = bytes(({np.dtype("u1"): 1, np.dtype("<i2"): 4, np.dtype("<f4"): 9}[o.dtype], o.ndim))
             return _ext(1, head + b"".join(int(s).to_bytes(4, "big") for s in o.shape) + o.tobytes())
         raise TypeError
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -222,10 +222,25 @@ def _wire(
     return field(default=default, metadata=meta)
 
 
+def _default_of(f: Any) -> Any:
+    return f.default_factory() if f.default_factory is not MISSING else f.default
+
+
+def _at_default(f: Any, v: Any) -> bool:
+    """``v`` (a checked value of field ``f``) is the field's default: None or an empty container."""
+    default = _default_of(f)
+    if default is None or v is None:
+        return v is None and default is None
+    return not isinstance(v, np.ndarray) and type(v) is type(default) and v == default
+
+
 class Message:
     """Base of all messages: ``TYPE`` code plus generic validate / wire conversion."""
 
     TYPE: ClassVar[int] = 0
+    # fields the encoder leaves off the wire while they hold their default (the decoder restores it), so that a
+    # peer whose schema predates them still decodes the message (Result: RESULT_FIELD_REV)
+    OMIT_AT_DEFAULT: ClassVar[frozenset[str]] = frozenset()
 
     def validated(self) -> Message:
         """Return a copy whose fields passed their checkers (raises :class:`SchemaError`)."""
@@ -247,6 +262,8 @@ class Message:
         for f in fields(self):  # type: ignore[arg-type]
             v = f.metadata["check"](getattr(self, f.name), f"{type(self).__name__}.{f.name}")
             checked[f.name] = v
+            if f.name in self.OMIT_AT_DEFAULT and _at_default(f, v):
+                continue
             if f.name == "sites":
                 v = [s.to_wire() for s in v]
             elif f.metadata.get("compress") and isinstance(v, np.ndarray):
@@ -398,6 +415,21 @@ def _flags(inner: Checker) -> Checker:
     return check
 
 
+# Result schema revisions (docs/protocol.md, section 5.5). Grounds and flight sides are upgraded separately, and a
+# decoder refuses unknown fields, so a ground announces the highest revision it decodes in
+# Config.options["result_rev"] and the flight side leaves every optional Result field newer than that at its
+# default (Result.for_rev), which the encoder keeps off the wire (OMIT_AT_DEFAULT). A Config without the option
+# means revision 0, the baseline: the Result fields of stop 41 (its last commit 0950b5b; `git log -S` on this
+# file), unchanged since elevation_unit_cm (3ba3276, 2026-12-02). A ground from before that commit refuses every
+# Result anyway: psafe_step and elevation_unit_cm travel always, and their values change what the grids mean.
+RESULT_FIELD_REV: dict[str, int] = {
+    "elevation_filled": 1,  # stop 42, ef94408: the elevation grid's gap fills
+    "skipped": 2,  # stop 43, 950eef9 on main: the stages a degraded Result left out
+    "elevation_filled_image": 3,  # stop 43, df0387b on branch h2-fills, in main from c71cc53: elevation_image's fills
+}
+RESULT_REV = max(RESULT_FIELD_REV.values())  # the revision this schema decodes and the reference flight side fills
+
+
 @dataclass(frozen=True)
 class Result(Message):
     """Hazard-detection output for the pair ``frame_seqs`` (upper, lower): compact, for a serial line.
@@ -420,6 +452,7 @@ class Result(Message):
     """
 
     TYPE: ClassVar[int] = 4
+    OMIT_AT_DEFAULT: ClassVar[frozenset[str]] = frozenset(RESULT_FIELD_REV)
     frame_seqs: tuple = _wire(_ints(2))
     state_grid: np.ndarray = _wire(_states(_array("|u1", 2)), compress=True)
     psafe_grid: np.ndarray = _wire(_array("|u1", 2), compress=True)
@@ -440,6 +473,12 @@ class Result(Message):
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
     elevation_filled: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
     elevation_filled_image: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
+
+    def for_rev(self, rev: int) -> Result:
+        """This Result as a ground that decodes revision ``rev`` can take it: every field newer than ``rev``
+        (``RESULT_FIELD_REV``) at its default, hence off the wire."""
+        drop = {f.name: _default_of(f) for f in fields(self) if RESULT_FIELD_REV.get(f.name, 0) > rev}
+        return replace(self, **drop) if drop else self
 
     def check_consistency(self) -> None:
         shape = np.shape(self.state_grid)

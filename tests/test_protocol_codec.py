@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import math
 import zlib
+from dataclasses import fields, replace
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from resultrev import old_ground_decode
 
 from protocol.codec import (
     CodecError,
@@ -32,6 +34,7 @@ from protocol.grids import (
 )
 from protocol.messages import (
     MESSAGE_TYPES,
+    RESULT_REV,
     Config,
     Error,
     Frame,
@@ -60,19 +63,26 @@ def f32_grid(max_side: int = 12) -> st.SearchStrategy[np.ndarray]:
 sites = st.lists(st.builds(Site, finite, finite, anyfloat, finite, finite, finite, anyfloat, anyfloat), max_size=5)
 
 
+def flags(shape: tuple[int, int]) -> st.SearchStrategy[np.ndarray]:
+    return hnp.arrays(np.uint8, shape, elements=st.integers(0, 1))
+
+
 @st.composite
-def results(draw) -> Result:
-    """Compact Results with consistent grid shapes, any elevation step and optional image maps."""
+def results(draw, maps: bool = False) -> Result:
+    """Compact Results with consistent grid shapes, any elevation step, optional fill masks and optional image maps
+    (``maps`` True: always; the gap-fill mask of elevation_image optional beside them)."""
     h, w = draw(st.integers(0, 12)), draw(st.integers(0, 12))
     step, pstep = draw(st.integers(1, 5)), draw(st.integers(1, 5))
     states = draw(hnp.arrays(np.uint8, (h, w), elements=st.sampled_from([0, 1, 2, 255])))
-    img = draw(st.none() | st.tuples(st.integers(0, 9), st.integers(0, 9)))
+    shape = st.tuples(st.integers(0, 9), st.integers(0, 9))
+    img = draw(shape if maps else st.none() | shape)
+    elev_shape = (-(-h // step), -(-w // step))
     return Result(
         frame_seqs=draw(st.tuples(u32, u32)),
         state_grid=states,
         psafe_grid=draw(hnp.arrays(np.uint8, (-(-h // pstep), -(-w // pstep)))),
         psafe_step=pstep,
-        elevation_grid=draw(hnp.arrays(np.int16, (-(-h // step), -(-w // step)))),
+        elevation_grid=draw(hnp.arrays(np.int16, elev_shape)),
         grid_origin_xy=draw(st.tuples(finite, finite)),
         grid_cell_m=draw(st.floats(1e-3, 1e3)),
         elevation_step=step,
@@ -86,6 +96,8 @@ def results(draw) -> Result:
         hazard_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
         elevation_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
         state_image=None if img is None else draw(hnp.arrays(np.uint8, img, elements=st.sampled_from([0, 1, 2, 255]))),
+        elevation_filled=draw(st.none() | flags(elev_shape)),
+        elevation_filled_image=None if img is None else draw(st.none() | flags(img)),
     )
 
 
@@ -177,6 +189,40 @@ def test_roundtrip_out_of_band(msg, threshold):
     body, bufs = encode_parts(msg, threshold)
     copies = [bytes(b) for b in bufs]  # what actually crosses a socket
     assert same(msg.validated(), decode_parts(body, copies))
+
+
+@settings(max_examples=100, deadline=None)
+@given(results(), st.integers(0, RESULT_REV + 1))
+def test_a_result_at_a_revision_is_what_a_ground_of_that_revision_decodes(msg, rev):
+    """``for_rev``: a ground that knows only the fields up to ``rev`` decodes the Result, each field it knows as
+    sent; today's ground reads the same Result with the newer fields at their default."""
+    cut = msg.for_rev(rev).validated()
+    body = encode_message(cut)
+    old = old_ground_decode(body, min(rev, RESULT_REV))
+    assert all(same(getattr(old, f.name), getattr(cut, f.name)) for f in fields(old))  # type: ignore[arg-type]
+    assert same(cut, decode_message(body))
+
+
+@settings(max_examples=100, deadline=None)
+@given(results(maps=True), st.tuples(st.integers(0, 9), st.integers(0, 9)), st.booleans())
+def test_a_fill_mask_that_does_not_fit_elevation_image_is_refused_by_sender_and_receiver(msg, shape, no_image):
+    """A corrupted fill mask: of another shape than ``elevation_image``, or beside no ``elevation_image``."""
+    assume(no_image or shape != msg.elevation_image.shape)
+    mask = np.zeros(shape, np.uint8)
+    bad = replace(msg, elevation_filled_image=mask, elevation_image=None if no_image else msg.elevation_image)
+    match = "sent without elevation_image" if no_image else r"elevation_filled_image: shape \(.*\) != elevation_image"
+    with pytest.raises(SchemaError, match=match):
+        encode_message(bad)
+    # a peer that sends it anyway: the mask (and no elevation_image) spliced into a valid Result's body
+    body = msgpack.unpackb(encode_message(msg), raw=False, ext_hook=msgpack.ExtType)[1]
+    carrier = _result(elevation_image=np.zeros(shape, np.float32), elevation_filled_image=mask)
+    body["elevation_filled_image"] = msgpack.unpackb(encode_message(carrier), ext_hook=msgpack.ExtType)[1][
+        "elevation_filled_image"
+    ]
+    if no_image:
+        del body["elevation_image"]
+    with pytest.raises(SchemaError, match=match):
+        decode_message(msgpack.packb([Result.TYPE, body], use_bin_type=True))
 
 
 def _result(**kw) -> Result:

@@ -143,3 +143,37 @@ def test_hostile_fuzz_bounded(seed):
     assert report["violations"] == 0, report
     assert report["inputs"] == 300 and report["hostile_records"] > 200
     assert report["rejected_sent"] + report["decode_errors"] > 200  # refused, never delivered
+
+
+def test_the_fuzz_samples_fill_every_result_field_and_the_hostile_ones_break_the_fill_mask():
+    """The noise fuzz carries each Result field off its default in some sample (a field added to the schema
+    without a sample fails here), and the hostile bodies include fill masks that do not fit elevation_image."""
+    from dataclasses import MISSING, fields
+
+    from protocol.codec import decode_message
+    from protocol.errors import InputError
+    from protocol.fuzz import hostile_bodies, sample_messages
+    from protocol.messages import Result
+
+    for seed in (0, 1):
+        samples = [m for m in sample_messages(seed) if isinstance(m, Result)]
+        for f in fields(Result):
+            default = f.default_factory() if f.default_factory is not MISSING else f.default
+            if default is MISSING:
+                continue
+            off = [getattr(r, f.name) is not default and not _same(getattr(r, f.name), default) for r in samples]
+            assert any(off), f"no fuzz sample Result sets {f.name}"
+    reasons = []
+    for body in hostile_bodies(np.random.default_rng(0)):
+        try:
+            decode_message(body)
+        except InputError as exc:  # every one is refused, in the codec or the schema
+            reasons.append(str(exc))
+        else:
+            raise AssertionError("a hostile body was accepted")
+    assert any("elevation_filled_image: shape (6, 5) != elevation_image (6, 6)" in r for r in reasons)
+    assert any("elevation_filled_image: shape (6, 6) sent without elevation_image" in r for r in reasons)
+
+
+def _same(a, b) -> bool:
+    return not isinstance(a, np.ndarray) and not isinstance(b, np.ndarray) and a == b

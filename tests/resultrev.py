@@ -1,0 +1,60 @@
+"""Shared by the Result-revision tests: the Result fields of a stop-41 ground and a decoder that knows only the
+fields of a given revision (protocol.messages.RESULT_FIELD_REV), refusing the others as such a ground did."""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, field, fields, make_dataclass
+
+import msgpack
+import pytest
+
+from protocol.codec import decode_message
+from protocol.messages import MESSAGE_TYPES, RESULT_FIELD_REV, Message, Result
+
+# The Result fields a ground of stop 41 (0950b5b) decodes, as `git show 0950b5b:protocol/messages.py` lists them:
+# written out here, not derived, so that a field added without a revision fails tests/test_result_rev.py.
+STOP41_RESULT_FIELDS = {
+    "frame_seqs",
+    "state_grid",
+    "psafe_grid",
+    "elevation_grid",
+    "grid_origin_xy",
+    "grid_cell_m",
+    "elevation_step",
+    "elevation_offset_m",
+    "elevation_unit_cm",
+    "psafe_step",
+    "sites",
+    "no_site_reason",
+    "degraded",
+    "level",
+    "hazard_image",
+    "elevation_image",
+    "state_image",
+}
+
+
+def _old_result_class(rev: int) -> type[Message]:
+    """The Result class of a ground that decodes revision ``rev``: the same checkers, only the fields it knew, and
+    the same refusal of any other field (Message.from_wire); its cross-field shape checks are left out."""
+    known = [f for f in fields(Result) if RESULT_FIELD_REV.get(f.name, 0) <= rev]
+    spec = []
+    for f in known:
+        if f.default_factory is not MISSING:
+            spec.append((f.name, object, field(default_factory=f.default_factory, metadata=f.metadata)))
+        elif f.default is not MISSING:
+            spec.append((f.name, object, field(default=f.default, metadata=f.metadata)))
+        else:
+            spec.append((f.name, object, field(metadata=f.metadata)))
+    return make_dataclass("Result", spec, bases=(Message,), frozen=True, namespace={"TYPE": Result.TYPE})
+
+
+def old_ground_decode(body: bytes, rev: int = 0) -> Message:
+    """Decode ``body`` as a ground whose Result schema stops at revision ``rev`` would."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(MESSAGE_TYPES, Result.TYPE, _old_result_class(rev))
+        return decode_message(body)
+
+
+def wire_keys(body: bytes) -> set[str]:
+    return set(msgpack.unpackb(body, raw=False, ext_hook=msgpack.ExtType)[1])
