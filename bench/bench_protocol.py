@@ -83,7 +83,7 @@ def bench_result() -> None:
     """The compact Result of the real pipeline on the demo pairs: bytes and line time per elevation step."""
     from flight_sw.flight_main import FlightProcess
     from flight_sw.pipeline import run_pipeline
-    from protocol.messages import Config
+    from protocol.messages import RESULT_REV, Config
     from protocol.pairdir import read_pair
 
     rows = []
@@ -92,16 +92,19 @@ def bench_result() -> None:
         res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset="fast")
         row = {"pair": label, "grid": list(res.grid.state.shape)}
         for pstep, step in ((1, 1), (1, 2), (2, 4), (4, 8)):  # ground_sim.stream.auto_grid_steps by line rate
-            opts = {"elevation_step": step, "psafe_step": pstep}
+            opts = {"elevation_step": step, "psafe_step": pstep, "result_rev": RESULT_REV}  # as our ground asks
             cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options=opts)
-            msg = FlightProcess._result_message(res, (0, 1), cfg)
+            msg = FlightProcess._result_message(res, (0, 1), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
             b = encode_message(msg)
             row[f"p{pstep}e{step}_bytes"] = len(b)
             if step == 8:
                 row["encode_ms"] = 1e3 * timeit(lambda m=msg: encode_message(m), 10)[1]
                 row["decode_ms"] = 1e3 * timeit(lambda b=b: decode_message(b), 10)[1]
-        cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options={"full_maps": 1})
-        row["full_maps_bytes"] = len(encode_message(FlightProcess._result_message(res, (0, 1), cfg)))
+        cfg = Config(
+            camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options={"full_maps": 1, "result_rev": RESULT_REV}
+        )
+        full = FlightProcess._result_message(res, (0, 1), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
+        row["full_maps_bytes"] = len(encode_message(full))
         rows.append(row)
         print(
             f"Result {label}: grid {row['grid']}, steps (P(safe), elevation) (1,1) {row['p1e1_bytes']} B, "
