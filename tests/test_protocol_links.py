@@ -314,3 +314,71 @@ def test_zeromq_client_restart_starts_a_new_session(tmp_path):
             assert S.peer_session == C2.session_id and S.epoch == 2
             C2.send(Error(code="again", text=""))
             assert S.recv(5).code == "again"
+
+
+# ------------------------------------------------------------------ refusals: nothing refused goes unsaid
+BAD_BODIES = [  # (type code in the header, body, what the refusal must say)
+    (Result.TYPE, b"\x92\x04\x81\xaaframe_seqs\x92\x00\x01", "Result: missing field 'state_grid'"),
+    (Result.TYPE, b"\x92\x05\x80", "frame header says type 4, body says 5"),
+    (Telemetry.TYPE, b"\xc1", "malformed msgpack"),
+]
+
+
+def _linked_pair(kind: str, tmp_path: Path, limits=None):
+    """(sender, receiver) established over a socket pair or insecure loopback ZeroMQ; ``limits`` on both."""
+    kw = {} if limits is None else {"limits": limits}
+    if kind == "stream":
+        a, b = socket.socketpair()
+        return StreamLink(a, name="A", **kw), StreamLink(b, name="B", **kw)
+    srv = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="A", **kw)
+    return srv, ZmqLink(srv.endpoint, False, insecure=True, name="B", **kw)
+
+
+def _send_raw(link, type_code: int, body: bytes) -> None:
+    """Put a body on the wire as it is, past the sender's encoder (what a broken peer sends)."""
+    from protocol.links import _ZOut
+
+    with link._cv:
+        if isinstance(link, ZmqLink):
+            link._out.append(_ZOut(10_000, "raw", type_code, body, [], time.monotonic(), len(body)))
+        else:
+            link.arq.submit(type_code, body, "raw", time.monotonic())
+        link._cv.notify_all()
+
+
+@pytest.mark.parametrize("kind", ["stream", "zmq"])
+def test_every_link_names_each_message_it_refused(kind, tmp_path):
+    """A ZeroMQ link counted a body that failed to decode (decode_errors) and said nothing else: its owner could not
+    tell a wrong-shaped Result from silence and waited out its timeout."""
+    A, B = _linked_pair(kind, tmp_path)
+    with A, B:
+        assert A.wait_established(5) and B.wait_established(5)
+        for type_code, body, _ in BAD_BODIES:
+            _send_raw(A, type_code, body)
+        A.send(Error(code="after", text="the stream goes on"))
+        assert B.recv(5) == Error(code="after", text="the stream goes on")
+        got = B.take_refusals()
+        assert [t for t, _ in got] == [t for t, _, _ in BAD_BODIES]
+        assert all(why in reason for (_, reason), (_, _, why) in zip(got, BAD_BODIES, strict=True)), got
+        assert B.take_refusals() == [] and B.stats["decode_errors"] == len(BAD_BODIES)
+
+
+@pytest.mark.parametrize("kind", ["stream", "zmq"])
+def test_a_message_over_the_limit_is_refused_at_send_on_every_link(kind, tmp_path):
+    """ZeroMQ sent it: the receiver refused it (or libzmq dropped the connection) and the sender's owner never knew;
+    the byte-stream links refused it in send(). Now both raise the same error and send nothing."""
+    from protocol.codec import Limits, encode_message
+
+    A, B = _linked_pair(kind, tmp_path, Limits(max_message_bytes=4096))
+    with A, B:
+        assert A.wait_established(5) and B.wait_established(5)
+        sent = A.stats["messages_sent"]
+        n = len(encode_message(frame(1, 70)))  # its image inline: the same size on both links
+        with pytest.raises(InputError, match=rf"^message of {n} bytes exceeds the 4096-byte limit$"):
+            A.send(frame(1, 70))
+        with pytest.raises(InputError, match=r"exceeds the 4096-byte limit"):
+            A.send(frame(1, 300))  # its image out of band on ZeroMQ: counted all the same
+        assert A.stats["messages_sent"] == sent and A.failures() == []
+        A.send(frame(2, 32))
+        got = B.recv(5)
+        assert isinstance(got, Frame) and got.seq == 2 and B.recv(0.3) is None and B.take_refusals() == []
