@@ -530,6 +530,9 @@ _ZHEAD = struct.Struct(">BBBBIII")  # version, kind, type, flags, src session, d
 Z_VERSION = 2
 Z_MSG, Z_HELLO, Z_CLOSE = 1, 4, 5
 _LOOPBACK_HOSTS = {"localhost"}
+# libzmq reconnects a connecting socket by itself after a network error (it reports CONNECT_RETRIED at once), never
+# after a protocol error (a message part over MAXMSGSIZE, broken ZMTP): a drop with no retry this long after is one
+REDIAL_AFTER_S = 0.5
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
@@ -642,6 +645,7 @@ class ZmqLink(Link, SessionView):
                 "peers_refused",
                 "auth_failures",
                 "connections",
+                "protocol_drops",
                 "busy_s",
             ),
             0,
@@ -683,6 +687,8 @@ class ZmqLink(Link, SessionView):
         self._owner: int | None = None  # fd of the attached peer
         # (type code, reason) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
         self._refusals: deque[tuple[int | None, str]] = deque(maxlen=REFUSALS_KEPT)
+        self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
+        self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
         self._stop = False
         self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
         self._io.start()
@@ -851,6 +857,8 @@ class ZmqLink(Link, SessionView):
                 raise
             if self._mon in ready:
                 self._monitor()
+            if self._dropped_at is not None and time.monotonic() - self._dropped_at > REDIAL_AFTER_S:
+                self._redial()
             if self._sock in ready:
                 for _ in range(64):
                     try:
@@ -1007,6 +1015,35 @@ class ZmqLink(Link, SessionView):
             self._stats["messages_received"] += 1
         self._put_received(Received(msg, seq, now, now, nbytes, epoch), lambda: not self._stop)
 
+    def _redial(self) -> None:
+        """The connection dropped and libzmq will not retry: it does that after a protocol error, such as a message
+        part from the peer over MAXMSGSIZE (the size limit + 1 MiB), and that message is lost unseen. Left alone the
+        session would time out and the link never connect again. Instead: the drop is a refusal with its likely
+        reason, the session is given up at once (what was in flight fails with that reason, the peer is told), and
+        the link connects anew; a new session follows as after any loss."""
+        zmq = self._zmq
+        self._dropped_at = None
+        reason = (
+            "libzmq dropped the connection: the peer sent a message part over its "
+            f"{self.limits.max_message_bytes + (1 << 20)}-byte maximum (or broke the ZeroMQ protocol); "
+            "that message is lost"
+        )
+        try:
+            self._sock.disconnect(self.endpoint)
+        except zmq.ZMQError:
+            pass  # already forgotten by libzmq
+        try:
+            self._sock.connect(self.endpoint)
+        except zmq.ZMQError as exc:
+            reason += f"; connecting again failed: {exc}"
+        with self._cv:
+            self._stats["protocol_drops"] += 1
+            self._refusals.append((None, reason))
+            if self.sess.established:
+                self._lose(reason)
+            else:
+                self._pending_events.append(("lost", reason, self.sess.epoch))
+
     def _established(self, now: float) -> None:
         self._last_heard = now
         self._control.append(self._hello())
@@ -1030,6 +1067,7 @@ class ZmqLink(Link, SessionView):
             if kind == zmq.EVENT_ACCEPTED:
                 self._accepted.append((value, _peer_address(value)))
             elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self._handshaken, self._dropped_at = not self.bind, None
                 fd, addr = self._accepted.popleft() if self._accepted else (-1, "?")
                 with self._cv:
                     self._stats["connections"] += 1
@@ -1056,6 +1094,10 @@ class ZmqLink(Link, SessionView):
                 if value == self._owner:
                     self._owner = None
                 self._accepted = deque((f, a) for f, a in self._accepted if f != value)
+                if self._handshaken:  # libzmq retries at once, unless the peer broke the protocol (see _redial)
+                    self._handshaken, self._dropped_at = False, time.monotonic()
+            elif kind == zmq.EVENT_CONNECT_RETRIED:
+                self._dropped_at = None
 
     # closing ----------------------------------------------------------------
     def close(self, flush_timeout: float = 5.0) -> None:

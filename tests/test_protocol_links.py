@@ -382,3 +382,29 @@ def test_a_message_over_the_limit_is_refused_at_send_on_every_link(kind, tmp_pat
         A.send(frame(2, 32))
         got = B.recv(5)
         assert isinstance(got, Frame) and got.seq == 2 and B.recv(0.3) is None and B.take_refusals() == []
+
+
+def test_a_zeromq_part_over_maxmsgsize_ends_the_session_with_its_reason_and_the_link_connects_again():
+    """libzmq drops a connection whose peer sends a part over MAXMSGSIZE (limit + 1 MiB) and, after such a protocol
+    error, never reconnects: the connecting side (the ground) lost its session after 4 s of silence, with no
+    reason, and never had another one."""
+    from protocol.codec import Limits
+
+    with (
+        ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="flight") as S,
+        ZmqLink(S.endpoint, False, insecure=True, name="ground", limits=Limits(max_message_bytes=4096)) as C,
+    ):
+        assert C.wait_established(5) and S.wait_established(5)
+        t0 = time.monotonic()
+        S.send(frame(1, 1200))  # one 1.44 MB part: within the sender's limit, over the receiver's maximum
+        while not (C.epoch == 2 and C.established) and time.monotonic() - t0 < 10:
+            time.sleep(0.02)
+        assert C.established and C.epoch == 2, "the link did not connect again"
+        events = C.events()
+        (refusal,) = C.take_refusals()
+        S.send(Error(code="after", text="a new session"))
+        assert C.recv(5) == Error(code="after", text="a new session")
+    (lost,) = [e for e in events if e.kind == "lost"]
+    assert lost.text.startswith("libzmq dropped the connection") and lost.time - t0 < 2.0  # not the 4 s timeout
+    assert refusal == (None, lost.text) and "over its 1052672-byte maximum" in lost.text
+    assert C.stats["protocol_drops"] == 1
