@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilkit import send_raw
 
 from protocol.errors import InputError
 from protocol.faults import CorruptingChannel, PtyBridge, open_pty_pair
@@ -334,18 +335,6 @@ def _linked_pair(kind: str, tmp_path: Path, limits=None):
     return srv, ZmqLink(srv.endpoint, False, insecure=True, name="B", **kw)
 
 
-def _send_raw(link, type_code: int, body: bytes) -> None:
-    """Put a body on the wire as it is, past the sender's encoder (what a broken peer sends)."""
-    from protocol.links import _ZOut
-
-    with link._cv:
-        if isinstance(link, ZmqLink):
-            link._out.append(_ZOut(10_000, "raw", type_code, body, [], time.monotonic(), len(body)))
-        else:
-            link.arq.submit(type_code, body, "raw", time.monotonic())
-        link._cv.notify_all()
-
-
 @pytest.mark.parametrize("kind", ["stream", "zmq"])
 def test_every_link_names_each_message_it_refused(kind, tmp_path):
     """A ZeroMQ link counted a body that failed to decode (decode_errors) and said nothing else: its owner could not
@@ -354,7 +343,7 @@ def test_every_link_names_each_message_it_refused(kind, tmp_path):
     with A, B:
         assert A.wait_established(5) and B.wait_established(5)
         for type_code, body, _ in BAD_BODIES:
-            _send_raw(A, type_code, body)
+            send_raw(A, type_code, body)
         A.send(Error(code="after", text="the stream goes on"))
         assert B.recv(5) == Error(code="after", text="the stream goes on")
         got = B.take_refusals()
