@@ -22,6 +22,18 @@ then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
 Config again, and carries on with the next pair. The process exits 3 when a
 session was lost on the way (0 otherwise).
 
+A message from the flight side that the link refuses although it arrived whole
+(it fails to decode, the decoder's budget or the schema: a wrong-shaped grid, a
+field out of range; :meth:`protocol.links.Link.take_refusals` names it) is acted
+on at once, as the HIL server does for its flight process: a refused Result
+ends the oldest pair waiting for one as ``bad_result`` with the reason (it used
+to wait out the response timeout, 3 x deadline + 30 s, and end as
+``no_response``, the reason lost), a refused Telemetry lets its pair complete
+without it (``telemetry_missing`` in the record), and any other refused message
+is said on stderr. Each is counted; ``ground.json`` beside ``results.jsonl``
+holds ``refused_messages`` and the last one's type and reason. A refusal is
+matched to a pair only once the messages received before it have been taken.
+
 A record from the flight side whose header declares more than the size limit
 (``Limits.max_message_bytes``) cannot be accepted, and nothing behind it in the
 stream can arrive until all its declared bytes have gone by (a board that
@@ -44,9 +56,9 @@ none to plan for), so it can leave room for its Result's line time;
 baseline fields an older ground decodes.
 
 Outputs are replaced atomically after every pair (written beside, then
-renamed): ``results.jsonl`` and, with ``--telemetry``, the per-pair timing
-lines. SIGTERM and SIGINT end the descent between messages: what finished is
-on disk, the process exits 128 + the signal number.
+renamed): ``results.jsonl``, ``ground.json`` and, with ``--telemetry``, the
+per-pair timing lines. SIGTERM and SIGINT end the descent between messages:
+what finished is on disk, the process exits 128 + the signal number.
 """
 
 from __future__ import annotations
@@ -59,7 +71,7 @@ import signal
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +84,8 @@ from protocol.pairdir import read_manifest, read_pair
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
+MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
+REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
@@ -138,11 +152,13 @@ class PairOutcome:
     result_t_first: float | None = None
     result_t_done: float | None = None
     result_bytes: int = 0
-    notes: list[str] = field(default_factory=list)
+    telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
 
     @property
     def finished(self) -> bool:
-        return self.error is not None or (self.result is not None and self.telemetry is not None)
+        return self.error is not None or (
+            self.result is not None and (self.telemetry is not None or self.telemetry_missing is not None)
+        )
 
 
 def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
@@ -172,6 +188,9 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     ``elevation_filled_grid.npy`` (bool, that grid's shape: the elevation leans on a gap fill) when sent;
     full-resolution maps when sent: ``hazard.npy``, ``elevation.npy``, ``state.npy`` and
     ``elevation_filled_image.npy`` (bool, ``elevation.npy``'s shape: that pixel's elevation is a gap fill).
+
+    A Result whose Telemetry was refused is recorded without the far end's figures (``flight_latency_s``,
+    ``stages``, ...), with ``telemetry_missing`` saying why.
     """
     rec: dict = {
         "pair_id": o.pair_id,
@@ -189,7 +208,7 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     if o.error is not None:
         rec.update(status="error", code=o.error.code, text=o.error.text)
         return rec
-    assert o.result is not None and o.telemetry is not None
+    assert o.result is not None and (o.telemetry is not None or o.telemetry_missing is not None)
     d = out_dir / o.pair_id
     d.mkdir(parents=True, exist_ok=True)
     r, t = o.result, o.telemetry
@@ -237,21 +256,27 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         e2e_latency_s=e2e,
         deadline_met=bool(met),
         deadline_margin_s=None if e2e is None else deadline_s - e2e,
+        # the span between the Result's first and last frame here (it misses the first frame's own line time)
+        result_line_s=rx_span,
+        result_rx_s=rx_span,
+        result_bytes=o.result_bytes,
+        out_dir=str(d),
+    )
+    if t is None:
+        rec["telemetry_missing"] = o.telemetry_missing
+        return rec
+    rec.update(
         # what the far end reported: its compute latency (last frame in -> Result out) and its own verdict
         flight_latency_s=t.total_latency_s,
         flight_deadline_met=bool(t.deadline_met),
         server_e2e_s=t.link.get("server_e2e_s"),
-        # the Result's line time as its sender measured it (first byte on the line -> acknowledged); the
-        # span between its first and last frame here misses the first frame's own line time
+        # the Result's line time as its sender measured it (first byte on the line -> acknowledged)
         result_line_s=t.link.get("result_link_s", rx_span),
-        result_rx_s=rx_span,
-        result_bytes=o.result_bytes,
         queue_wait_s=t.queue_wait_s,
         cpu_fraction=t.cpu_fraction,
         peak_rss_mib=t.peak_rss_bytes / 2**20,
         stages=t.stages,
         link=t.link,
-        out_dir=str(d),
     )
     return rec
 
@@ -269,6 +294,8 @@ class _SessionState:
     epoch: int | None = None  # link session the app handshake (Hello both ways) was done in
     config_epoch: int | None = None  # link session Config was sent in
     sessions: int = 0
+    refused_messages: int = 0  # messages from the flight side the ground refused (ground.json)
+    last_refused: dict | None = None  # {"type", "reason"} of the latest
 
 
 def _silent_link_reason(link, where: str) -> str:
@@ -344,7 +371,9 @@ def stream_descent(
     config: Config | None = None
     state = _SessionState()
     results_path = out_dir / "results.jsonl"
+    counters_path = out_dir / "ground.json"
     write_atomic(results_path, "")
+    write_atomic(counters_path, json.dumps({"refused_messages": 0, "last_refused": None}) + "\n")
     if telemetry_path is not None:
         write_atomic(telemetry_path, "")
 
@@ -380,6 +409,8 @@ def stream_descent(
         """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
         came in the ``first`` session); a line every 10 s."""
         state.epoch = None
+        for type_code, reason in link.take_refusals():  # from before this session: its pairs have ended
+            refused(type_code, reason, set())
         epoch = link.epoch
         link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
         end = time.monotonic() + hello_s
@@ -436,6 +467,7 @@ def stream_descent(
             return False
         what = MESSAGE_NAMES.get(held.type_code, f"message of type {held.type_code}")
         why = f"the flight computer's {what} was refused from its header: {held.reason}"
+        count_refusal(held.type_code, held.reason, show=False)  # said below, or in its pair's record
         waiting = [outcomes[k] for k in sorted(want) if outcomes[k].result is None and not outcomes[k].finished]
         if held.type_code == Result.TYPE and waiting:
             o = waiting[0]
@@ -446,6 +478,77 @@ def stream_descent(
         link.abandon_session(f"the flight computer's stream is held by a record over the size limit ({why})")
         return True
 
+    def count_refusal(type_code: int | None, reason: str, show: bool = True) -> str:
+        """Count one message refused from the flight side; a line on stderr for the first MAX_REFUSAL_LOGS."""
+        what = MESSAGE_NAMES.get(type_code, "message") if type_code is not None else "message"
+        state.refused_messages += 1
+        state.last_refused = {"type": what, "reason": reason}
+        n = state.refused_messages
+        if show and n <= MAX_REFUSAL_LOGS:
+            more = "; further refusals are only counted" if n == MAX_REFUSAL_LOGS else ""
+            note(f"the flight computer sent a {what} the ground refused: {reason}{more}")
+        return what
+
+    def refused(type_code: int | None, reason: str, want: set[tuple[int, int]]) -> None:
+        """One message from the flight side that the link refused (a wrong-shaped grid, a field out of range, a
+        body over the decoder's budget): counted and noted. A Result ends the oldest pair of ``want`` waiting for
+        one as ``bad_result`` at once (the flight side will not send it again); a Telemetry lets the oldest pair
+        holding its Result complete without it (``telemetry_missing``)."""
+        count_refusal(type_code, reason)
+        pending = [outcomes[k] for k in sorted(want) if not outcomes[k].finished]
+        if type_code == Result.TYPE:
+            o = next((x for x in pending if x.result is None), None)
+            if o is not None:
+                want.discard(o.seqs)
+                give_up(o, "bad_result", f"the flight computer's Result was refused: {reason}")
+        elif type_code == Telemetry.TYPE:
+            o = next((x for x in pending if x.result is not None and x.telemetry is None), None)
+            if o is not None:
+                o.telemetry_missing = f"its Telemetry was refused: {reason}"
+                want.discard(o.seqs)
+                record(o)
+
+    def take_refusals(want: set[tuple[int, int]]) -> None:
+        """Act on what the link refused from the flight side since the last look. Called when nothing received
+        is waiting; what the link's reader may still be handing over is taken first, so that a refusal is matched
+        to a pair after the messages that came before it on the link."""
+        got = link.take_refusals()
+        if not got:
+            return
+        end = time.monotonic() + REFUSAL_DRAIN_S
+        while time.monotonic() < end:
+            pkt = link.recv_packet(timeout=0.05)
+            if pkt is None:
+                break
+            handle(pkt, want)
+        for type_code, reason in got:
+            refused(type_code, reason, want)
+
+    def handle(pkt, want: set[tuple[int, int]]) -> None:
+        if pkt.epoch != state.epoch:
+            return
+        msg = pkt.message
+        if isinstance(msg, (Heartbeat, Hello)):
+            return
+        key = tuple(getattr(msg, "frame_seqs", ()) or ())
+        o = outcomes.get(key) if key else None
+        if isinstance(msg, Error):
+            o = by_lower_seq.get(msg.seq) if msg.seq is not None else None
+            if o is None:
+                o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
+            if o is None:
+                note(f"unattributed error from flight side: {msg.code}: {msg.text}")
+                return
+            o.error = msg
+        elif isinstance(msg, Result) and o is not None:
+            o.result = msg
+            o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
+        elif isinstance(msg, Telemetry) and o is not None:
+            o.telemetry = msg
+        if o is not None and o.finished and o.seqs in want:
+            want.discard(o.seqs)
+            record(o)
+
     def collect(until: float, want: set[tuple[int, int]]) -> None:
         while want and time.monotonic() < until:
             if not session_ok():
@@ -454,33 +557,19 @@ def stream_descent(
             if held_stream(want):
                 fail_in_flight(want, f"link session given up: {link.last_error}")
                 return
-            pkt = link.recv_packet(timeout=0.2)
-            if pkt is None or pkt.epoch != state.epoch:
-                continue
-            msg = pkt.message
-            if isinstance(msg, (Heartbeat, Hello)):
-                continue
-            key = tuple(getattr(msg, "frame_seqs", ()) or ())
-            o = outcomes.get(key) if key else None
-            if isinstance(msg, Error):
-                o = by_lower_seq.get(msg.seq) if msg.seq is not None else None
-                if o is None:
-                    o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
-                if o is None:
-                    note(f"unattributed error from flight side: {msg.code}: {msg.text}")
-                    continue
-                o.error = msg
-            elif isinstance(msg, Result) and o is not None:
-                o.result = msg
-                o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
-            elif isinstance(msg, Telemetry) and o is not None:
-                o.telemetry = msg
-            if o is not None and o.finished and o.seqs in want:
-                want.discard(o.seqs)
-                record(o)
+            pkt = link.recv_packet(timeout=0.0)
+            if pkt is None:  # nothing received is waiting: refusals are matched to pairs now
+                take_refusals(want)
+                if not want:
+                    return
+                pkt = link.recv_packet(timeout=0.2)
+            if pkt is not None:
+                handle(pkt, want)
 
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+        counters = {"refused_messages": state.refused_messages, "last_refused": state.last_refused}
+        write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
         if telemetry_path is not None:
             lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)
             write_atomic(telemetry_path, "".join(json.dumps(x, sort_keys=True) + "\n" for x in lines))
@@ -584,6 +673,8 @@ def stream_descent(
         }
         if pending:
             collect(time.monotonic() + timeout * max(1, len(pending)), pending)
+        for type_code, reason in link.take_refusals():  # after every pair's end: counted, no pair to blame
+            refused(type_code, reason, set())
         for s, o in outcomes.items():
             if not any(r["frame_seqs"] == list(s) for r in records):
                 if not session_ok() and state.sessions:
@@ -630,6 +721,13 @@ def auto_elevation_unit_cm(link_spec: str) -> int:
     descents' fused maps (docs/benchmarks/protocol.md, "Elevation unit and the planar predictor").
     """
     return 10 if link_spec.partition(":")[0] == "serial" else 1
+
+
+def _refused_count(path: Path) -> int:
+    try:
+        return int(json.loads(path.read_text()).get("refused_messages") or 0)
+    except (OSError, ValueError, AttributeError):
+        return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -702,10 +800,12 @@ def main(argv: list[str] | None = None) -> int:
             flag = "met" if rec["deadline_met"] else "MISSED"
             e2e = rec.get("e2e_latency_s")
             line = rec.get("result_line_s")
+            flight = rec.get("flight_latency_s")
             print(
                 f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
-                + f"  deadline {rec['deadline_s']:g} s {flag}  (flight {rec['flight_latency_s']:.2f} s"
+                + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
+                + (f"{flight:.2f} s" if flight is not None else "? s, no Telemetry")
                 + (f", result line {line:.2f} s)" if line is not None else ")"),
                 file=sys.stderr,
                 flush=True,
@@ -750,7 +850,12 @@ def main(argv: list[str] | None = None) -> int:
         link.close()
     failed = sum(r["status"] != "result" for r in records)
     lost = sum(r.get("code") in LINK_CODES for r in records)
-    print(f"ground: {len(records)} pairs, {len(records) - failed} results, {failed} errors", file=sys.stderr)
+    refused = _refused_count(args.out / "ground.json")
+    print(
+        f"ground: {len(records)} pairs, {len(records) - failed} results, {failed} errors"
+        + (f", {refused} message{'' if refused == 1 else 's'} from the flight side refused" if refused else ""),
+        file=sys.stderr,
+    )
     if lost:
         print(f"ground: LINK ERROR: {lost} pairs lost to link failures ({link.last_error})", file=sys.stderr)
         return EXIT_LINK_LOST

@@ -7,7 +7,8 @@ result against ground truth and writes::
 
     OUT/pairs/...            rendered pair directories + manifest.json
     OUT/keys/                CURVE keys of this run (ZeroMQ; files mode 0600)
-    OUT/received/            what came back: results.jsonl + arrays per pair
+    OUT/received/            what came back: results.jsonl + arrays per pair; ground.json, the ground's counters
+                             (``refused_messages`` from the flight side, the last one's type and reason)
     OUT/telemetry.jsonl      per pair, measured at the ground: e2e_latency_s, the deadline verdict, the flight
                              latency, the frames' and the Result's line times, the flight's stages
     OUT/supervisor.jsonl     the HIL server's own log: its view of each pair, restarts, hangs, counters
@@ -292,8 +293,22 @@ MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: t
 def flight_note(summary: dict) -> str:
     """One line on what the HIL server had to do about the flight process ("" when nothing): restarts, refused
     messages, missing Telemetry, dropped line garbage, with the last reason. Crashes between pairs cost no pair
-    but are reported here; a run whose server counters are missing says so."""
+    but are reported here; a run whose server counters are missing says so. Messages the ground itself refused
+    (from an external flight computer, ``ground_counters``) are said after."""
     c = summary.get("supervisor_counters") or {}
+    g = summary.get("ground_counters") or {}
+    refused = int(g.get("refused_messages") or 0)
+    ground = ""
+    if refused:
+        last = g.get("last_refused") or {}
+        ground = f"the ground refused {refused} message{'' if refused == 1 else 's'} from the flight side" + (
+            f" (last: {last.get('type')}: {last.get('reason')})" if last else ""
+        )
+    server = _server_note(summary, c)
+    return "; ".join(x for x in (server, ground) if x)
+
+
+def _server_note(summary: dict, c: dict) -> str:
     if summary.get("budget") is not None and not c and summary.get("complete"):
         return "the HIL server's counters are missing (see supervisor.log)"
     parts = []
@@ -866,6 +881,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             "wall_s": wall,
             "supervisor_counters": counters,
             "flight_events": list(flight_events),
+            # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
+            "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],
             "ground_exit": rc,
         },
     )

@@ -3,9 +3,13 @@
 Every link has ``send(message, timeout) -> id``, ``recv(timeout) -> Message |
 None``, ``recv_packet(timeout) -> Received | None`` (the message with its
 reception times), ``flush(timeout)``, ``close()``, ``stats`` (a dict
-snapshot), ``failures()``, ``outcome(id)``, ``times(id)`` and the session
-state: ``established``, ``epoch`` (sessions so far), ``wait_established()``,
-``events()``. ``send`` is thread-safe.
+snapshot), ``failures()``, ``outcome(id)``, ``times(id)``,
+``take_refusals()`` (type code and reason of each message refused from the
+peer: over the size limit, of an unknown type, failing to decode or the
+schema) and the session state: ``established``, ``epoch`` (sessions so far),
+``wait_established()``, ``events()``. ``send`` is thread-safe; it raises
+:class:`InputError` for a message over ``limits.max_message_bytes`` (nothing
+is sent).
 
 Every blocking call has a timeout: ``send`` waits for buffer space at most
 ``timeout``, ``recv``/``flush``/``wait_established`` take one, writes time out
@@ -50,7 +54,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.arq import Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Skipping
+from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Skipping
 from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
@@ -141,6 +145,13 @@ class Link:
         """Next received message, or None after ``timeout`` seconds (``None`` waits forever)."""
         p = self.recv_packet(timeout)
         return None if p is None else p.message
+
+    def take_refusals(self) -> list[tuple[int | None, str]]:
+        """(type code, reason) of each message from the peer that this link refused since the last call: over the
+        size limit, of an unknown type, failing to decode or the schema (e.g. a wrong-shaped grid). The latest
+        :data:`protocol.arq.REFUSALS_KEPT` are kept; ``stats["decode_errors"]`` counts them all. The type code is
+        None where the message did not say (a malformed header). Such a message never reaches :meth:`recv`."""
+        return []  # pragma: no cover - every link below implements it
 
     def _put_received(self, item: Received, keep_going: Callable[[], bool]) -> None:
         """Queue a received message; when the application does not keep up, block (backpressure)."""
@@ -265,6 +276,9 @@ class ByteStreamLink(Link):
     def failures(self) -> list[DeliveryFailure]:
         with self._cv:
             return self.arq.failures()
+
+    def take_refusals(self) -> list[tuple[int | None, str]]:
+        return list(self.arq.take_refusals())  # the Arq's deque is safe to pop while the reader appends
 
     def outcome(self, msg_id: int) -> str | None:
         """``"pending"``, ``"delivered"`` (every byte acknowledged), ``"failed: <reason>"`` or None."""
@@ -516,6 +530,9 @@ _ZHEAD = struct.Struct(">BBBBIII")  # version, kind, type, flags, src session, d
 Z_VERSION = 2
 Z_MSG, Z_HELLO, Z_CLOSE = 1, 4, 5
 _LOOPBACK_HOSTS = {"localhost"}
+# libzmq reconnects a connecting socket by itself after a network error (it reports CONNECT_RETRIED at once), never
+# after a protocol error (a message part over MAXMSGSIZE, broken ZMTP): a drop with no retry this long after is one
+REDIAL_AFTER_S = 0.5
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
@@ -628,6 +645,7 @@ class ZmqLink(Link, SessionView):
                 "peers_refused",
                 "auth_failures",
                 "connections",
+                "protocol_drops",
                 "busy_s",
             ),
             0,
@@ -667,6 +685,10 @@ class ZmqLink(Link, SessionView):
         self._closing = False
         self._accepted: deque[tuple[int, str]] = deque()  # (fd, peer address) awaiting their handshake
         self._owner: int | None = None  # fd of the attached peer
+        # (type code, reason) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
+        self._refusals: deque[tuple[int | None, str]] = deque(maxlen=REFUSALS_KEPT)
+        self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
+        self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
         self._stop = False
         self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
         self._io.start()
@@ -711,6 +733,18 @@ class ZmqLink(Link, SessionView):
         with self._cv:
             return list(self._failures)
 
+    def take_refusals(self) -> list[tuple[int | None, str]]:
+        with self._cv:
+            out = list(self._refusals)
+            self._refusals.clear()
+            return out
+
+    def _refuse(self, type_code: int | None, reason: str) -> None:
+        """A message from the peer refused: counted (``decode_errors``) and its reason kept for the owner."""
+        with self._cv:
+            self._stats["decode_errors"] += 1
+            self._refusals.append((type_code, reason))
+
     def outcome(self, msg_id: int) -> str | None:
         """``"pending"``, ``"sent"`` (left this process), ``"failed: <reason>"`` or None."""
         with self._cv:
@@ -732,11 +766,17 @@ class ZmqLink(Link, SessionView):
 
     # sending --------------------------------------------------------------
     def send(self, message: Message, timeout: float | None = None, epoch: int | None = None) -> int:
-        """Queue ``message``; returns its id (never blocks: libzmq's high-water mark is watched instead)."""
+        """Queue ``message``; returns its id (never blocks: libzmq's high-water mark is watched instead).
+
+        A message over ``limits.max_message_bytes`` (body and out-of-band arrays together) raises
+        :class:`InputError` and is not sent, as on the byte-stream links."""
         if self._dead():
             raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
         body, bufs = encode_parts(message, self.oob_min_bytes)
         n = len(body) + sum(b.nbytes for b in bufs)
+        limit = self.limits.max_message_bytes
+        if n > limit:  # as the byte-stream links: the peer would refuse it (or libzmq drop the connection)
+            raise InputError(f"message of {n} bytes exceeds the {limit}-byte limit")
         with self._cv:
             mid = self._next_id
             self._next_id += 1
@@ -817,6 +857,8 @@ class ZmqLink(Link, SessionView):
                 raise
             if self._mon in ready:
                 self._monitor()
+            if self._dropped_at is not None and time.monotonic() - self._dropped_at > REDIAL_AFTER_S:
+                self._redial()
             if self._sock in ready:
                 for _ in range(64):
                     try:
@@ -905,11 +947,13 @@ class ZmqLink(Link, SessionView):
         if self._closing:  # we said CLOSE: whatever the peer says now is not for this link
             return
         if not parts or len(parts[0].buffer) != _ZHEAD.size:
-            self._stats["decode_errors"] += 1
+            n = len(parts[0].buffer) if parts else 0
+            self._refuse(None, f"malformed message header: {n} bytes, not {_ZHEAD.size}")
             return
         version, kind, type_code, flags, src, dst, seq = _ZHEAD.unpack(parts[0].buffer)
         if version != Z_VERSION or flags != 0 or src == 0:
-            self._stats["decode_errors"] += 1
+            what = f"wire version {version}, not {Z_VERSION}" if version != Z_VERSION else f"flags {flags}, src {src}"
+            self._refuse(None if version != Z_VERSION else type_code, f"malformed message header: {what}")
             return
         with self._cv:
             if kind == Z_HELLO:
@@ -947,6 +991,7 @@ class ZmqLink(Link, SessionView):
                     self._lose(f"peer closed the link ({reason})", kind="closed", notify=False)
                 return
             if kind != Z_MSG:
+                self._refusals.append((type_code, f"unknown message kind {kind}"))
                 self._stats["decode_errors"] += 1
                 return
             if seq <= self._peer_seq:
@@ -954,19 +999,50 @@ class ZmqLink(Link, SessionView):
                 return
             self._peer_seq = seq
             epoch = self.sess.epoch
+        nbytes = sum(len(p.buffer) for p in parts)
         try:
             if len(parts) < 2:
                 raise CodecError(f"bad multipart shape ({len(parts)} parts)")
             message_class(type_code)
+            size, limit = nbytes - len(parts[0].buffer), self.limits.max_message_bytes
+            if size > limit:  # body and out-of-band arrays together, as the sender counts them
+                raise CodecError(f"message of {size} bytes exceeds the {limit}-byte limit")
             msg = decode_parts(parts[1].buffer, [p.buffer for p in parts[2:]], self.limits, expect_type=type_code)
-        except InputError:
-            with self._cv:
-                self._stats["decode_errors"] += 1
+        except InputError as exc:
+            self._refuse(type_code, str(exc))
             return
         with self._cv:
             self._stats["messages_received"] += 1
-        nbytes = sum(len(p.buffer) for p in parts)
         self._put_received(Received(msg, seq, now, now, nbytes, epoch), lambda: not self._stop)
+
+    def _redial(self) -> None:
+        """The connection dropped and libzmq will not retry: it does that after a protocol error, such as a message
+        part from the peer over MAXMSGSIZE (the size limit + 1 MiB), and that message is lost unseen. Left alone the
+        session would time out and the link never connect again. Instead: the drop is a refusal with its likely
+        reason, the session is given up at once (what was in flight fails with that reason, the peer is told), and
+        the link connects anew; a new session follows as after any loss."""
+        zmq = self._zmq
+        self._dropped_at = None
+        reason = (
+            "libzmq dropped the connection: the peer sent a message part over its "
+            f"{self.limits.max_message_bytes + (1 << 20)}-byte maximum (or broke the ZeroMQ protocol); "
+            "that message is lost"
+        )
+        try:
+            self._sock.disconnect(self.endpoint)
+        except zmq.ZMQError:
+            pass  # already forgotten by libzmq
+        try:
+            self._sock.connect(self.endpoint)
+        except zmq.ZMQError as exc:
+            reason += f"; connecting again failed: {exc}"
+        with self._cv:
+            self._stats["protocol_drops"] += 1
+            self._refusals.append((None, reason))
+            if self.sess.established:
+                self._lose(reason)
+            else:
+                self._pending_events.append(("lost", reason, self.sess.epoch))
 
     def _established(self, now: float) -> None:
         self._last_heard = now
@@ -991,6 +1067,7 @@ class ZmqLink(Link, SessionView):
             if kind == zmq.EVENT_ACCEPTED:
                 self._accepted.append((value, _peer_address(value)))
             elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self._handshaken, self._dropped_at = not self.bind, None
                 fd, addr = self._accepted.popleft() if self._accepted else (-1, "?")
                 with self._cv:
                     self._stats["connections"] += 1
@@ -1017,6 +1094,10 @@ class ZmqLink(Link, SessionView):
                 if value == self._owner:
                     self._owner = None
                 self._accepted = deque((f, a) for f, a in self._accepted if f != value)
+                if self._handshaken:  # libzmq retries at once, unless the peer broke the protocol (see _redial)
+                    self._handshaken, self._dropped_at = False, time.monotonic()
+            elif kind == zmq.EVENT_CONNECT_RETRIED:
+                self._dropped_at = None
 
     # closing ----------------------------------------------------------------
     def close(self, flush_timeout: float = 5.0) -> None:

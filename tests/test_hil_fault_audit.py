@@ -3,22 +3,30 @@ counted, and the run goes on (or ends non-zero at once), with an outcome record 
 
 The faulty flight programs are examples/minimal_flight.py with one fault each (``--flight-cmd``); the rest runs for
 real: the supervisor, the emulated processor, the ground streamer, a pty pair. Small 128 px pairs, host budget.
+The same programs on the far end of a pty as an external flight computer (``--flight external``), and one on
+ZeroMQ, test the ground on its own: there the ground's link is the one that refuses.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import json
+import subprocess
 import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
-from hilkit import small_descent
+from hilkit import send_raw, small_descent
 
 from hil_server.cli import main
 
 PAIRS = ["600/300", "300/150", "200/100"]
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+DEADLINE_S = 30.0  # external runs: the ground's own response timeout is 3 x 30 + 30 s
+PROMPT_S = 15.0  # a refused message's pair ends well within this, on a loaded 2-core machine
 
 # A flight program from the spec (examples/minimal_flight.py) that misbehaves from the second pair on, per --mode.
 FAULTY_FLIGHT = """
@@ -40,6 +48,11 @@ def telemetry(pair):
             "deadline_s": float(config["deadline_s"]), "deadline_met": True}}
 
 
+def bad_shapes():
+    return {{"state_grid": mf.array(np.full((4, 5), 2, np.uint8)), "psafe_grid": mf.array(np.zeros((4, 6), np.uint8)),
+            "elevation_grid": mf.array(np.full((4, 5), -32768, np.int16))}}
+
+
 while not link.closed_by_peer:
     for mtype, msg in link.poll():
         if mtype == mf.HELLO_MSG:
@@ -56,12 +69,19 @@ while not link.closed_by_peer:
             faulty = answered >= 1
             if faulty and args.mode == "hostile" and answered == 1:
                 res["state_grid"] = mf.array(np.full((3,), 2, np.uint8))  # 1-D: refused by the schema
+            if args.mode == "bad_shape" and answered == 1:  # grids whose shapes disagree: refused by the schema
+                res.update(bad_shapes())
             link.send(mf.RESULT, res)
-            if faulty and args.mode == "hostile":  # then a message nested 5000 deep
-                body = b"\\x92\\x01" + b"\\x91" * 5000 + b"\\xc0"
-                link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(body)) + body
+            nested = b"\\x92\\x01" + b"\\x91" * 5000 + b"\\xc0"  # a message nested 5000 deep
+            if faulty and args.mode == "hostile":
+                link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
+            tel = telemetry(pair)
+            if args.mode == "bad_telemetry" and answered == 1:
+                tel["peak_rss_bytes"] = -1  # out of range: refused by the schema
             if not (faulty and args.mode == "no_telemetry"):
-                link.send(mf.TELEMETRY, telemetry(pair))
+                link.send(mf.TELEMETRY, tel)
+            if args.mode == "bad_telemetry" and answered == 1:  # and a message of another type, refused
+                link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
             answered += 1
             if args.mode == "crash_between_pairs":  # exit once the answer is out: no pair is outstanding
                 end = time.monotonic() + 0.3
@@ -205,3 +225,137 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--manifest", str(manifest), "--budget", "myboard", "--out", str(tmp_path / "x")]) == 2
     assert "unknown budget 'myboard'" in capsys.readouterr().err
+
+
+# ------------------------------------------------ an external flight computer: the ground's own link refuses
+def run_external(manifest: Path, out: Path, link: str, *extra: str) -> tuple[int, dict, str]:
+    """`hazard-hil run --flight external` with a 30 s deadline: (exit code, summary.json, summary.md)."""
+    argv = ["run", "--manifest", str(manifest), "--flight", "external", "--link", link, "--deadline", str(DEADLINE_S)]
+    code = main([*argv, "--out", str(out), *extra])
+    return code, json.loads((out / "summary.json").read_text()), (out / "summary.md").read_text()
+
+
+@contextlib.contextmanager
+def serial_board(flight: Path, mode: str):
+    """The faulty flight program on the far end of a pty pair; yields the ground's link spec."""
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(flight), "--mode", mode, "--port", bridge.paths[0]])
+        try:
+            yield f"serial:{bridge.paths[1]}"
+        finally:
+            board.terminate()
+            board.wait(timeout=10)
+
+
+def test_an_external_flight_computers_result_that_fails_the_schema_ends_its_pair_at_once(manifest, flight, tmp_path):
+    """The ground's link refused the Result (its grids' shapes disagree) and said nothing: the pair waited out the
+    ground's response timeout (3 x 30 + 30 s) and ended as no_response, the reason lost."""
+    with serial_board(flight, "bad_shape") as link:
+        code, s, md = run_external(manifest, tmp_path, link)
+    assert code == 1 and s["complete"] is True
+    assert outcomes(s) == [("600/300", "result", None), ("300/150", "error", "bad_result"), ("200/100", "result", None)]
+    bad = s["records"][1]
+    assert bad["elapsed_s"] < PROMPT_S, bad
+    why = "Result.psafe_grid: shape (4, 6) != state_grid (4, 5) decimated by 1 = (4, 5)"
+    assert bad["text"] == f"the flight computer's Result was refused: {why}"
+    assert s["ground_counters"]["refused_messages"] == 1 and s["link_errors"] == 0
+    assert "The ground refused 1 message from the flight side (last: Result: Result.psafe_grid" in md
+
+
+def test_an_external_flight_computers_refused_telemetry_and_other_messages_are_counted_and_said(
+    manifest, flight, tmp_path, capfd
+):
+    """A refused Telemetry held its pair until the response timeout although its Result was in; a refused message of
+    another type was not said at all."""
+    with serial_board(flight, "bad_telemetry") as link:
+        code, s, _ = run_external(manifest, tmp_path, link)
+    assert code == 0 and [r["status"] for r in s["records"]] == ["result"] * 3
+    held = s["records"][1]
+    assert held["elapsed_s"] < PROMPT_S, held
+    assert held["telemetry_missing"].startswith("its Telemetry was refused: Telemetry.peak_rss_bytes")
+    assert "flight_latency_s" not in held and held["e2e_latency_s"] is not None
+    assert "telemetry_missing" not in s["records"][2]
+    assert s["ground_counters"]["refused_messages"] == 2
+    assert s["ground_counters"]["last_refused"]["type"] == "Hello"
+    err = capfd.readouterr().err
+    assert "ground: the flight computer sent a Telemetry the ground refused: Telemetry.peak_rss_bytes" in err
+    assert err.count("ground: the flight computer sent a Hello the ground refused: ") == 1
+    assert "ground: 3 pairs, 3 results, 0 errors, 2 messages from the flight side refused" in err
+
+
+def _minimal_flight():
+    spec = importlib.util.spec_from_file_location("minimal_flight", EXAMPLES / "minimal_flight.py")
+    assert spec is not None and spec.loader is not None
+    mf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mf)
+    return mf
+
+
+class ZmqBoard(threading.Thread):
+    """A flight computer on ZeroMQ (it binds; insecure loopback) answering as examples/minimal_flight.py does, whose
+    second Result has grids whose shapes disagree (sent as it is, past the encoder that would refuse it)."""
+
+    def __init__(self) -> None:
+        from protocol.links import ZmqLink
+
+        super().__init__(daemon=True)
+        self.link = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board")
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        from protocol.links import LinkClosed
+        from protocol.messages import Config, Frame, Hello, Result, Telemetry
+
+        mf = _minimal_flight()
+        config: dict = {}
+        pending: dict[str, dict[int, dict]] = {}
+        answered = 0
+        while not self.done.is_set():
+            try:
+                msg = self.link.recv(0.1)
+            except LinkClosed:
+                return
+            if isinstance(msg, Hello):
+                self.link.send(Hello(role="flight"))
+            elif isinstance(msg, Config):
+                config = {"camera": dict(msg.camera), "deadline_s": msg.deadline_s}
+            elif isinstance(msg, Frame):
+                pair = pending.setdefault(str(msg.pair_id), {})
+                pair[int(msg.frame_index or 0)] = {
+                    "seq": msg.seq,
+                    "position_m": list(msg.position_m),
+                    "R_world_to_cam": np.asarray(msg.R_world_to_cam),
+                    "altimeter_m": msg.altimeter_m,
+                }
+                if len(pair) < 2:
+                    continue
+                del pending[str(msg.pair_id)]
+                res = mf.answer(pair[0], pair[1], config)
+                if answered == 1:
+                    res["state_grid"] = mf.array(np.full((4, 5), 2, np.uint8))
+                    res["psafe_grid"] = mf.array(np.zeros((4, 6), np.uint8))
+                    res["elevation_grid"] = mf.array(np.full((4, 5), -32768, np.int16))
+                tel = {"frame_seqs": res["frame_seqs"], "stages": {}, "deadline_s": config["deadline_s"]}
+                send_raw(self.link, Result.TYPE, mf.body(Result.TYPE, res))
+                send_raw(self.link, Telemetry.TYPE, mf.body(Telemetry.TYPE, tel))
+                answered += 1
+
+
+def test_over_zeromq_a_result_that_fails_the_schema_ends_its_pair_at_once(manifest, tmp_path):
+    """The ZeroMQ link counted the refused Result (decode_errors) and nothing else: the ground waited out its
+    response timeout, the reason lost."""
+    board = ZmqBoard()
+    board.start()
+    try:
+        code, s, _ = run_external(manifest, tmp_path, f"zmq:{board.link.endpoint}", "--insecure")
+    finally:
+        board.done.set()
+        board.join(timeout=5)
+        board.link.close()
+    assert outcomes(s) == [("600/300", "result", None), ("300/150", "error", "bad_result"), ("200/100", "result", None)]
+    bad = s["records"][1]
+    assert bad["elapsed_s"] < PROMPT_S, bad
+    assert bad["text"].startswith("the flight computer's Result was refused: Result.psafe_grid: shape (4, 6) != ")
+    assert s["ground_counters"]["refused_messages"] == 1 and s["link_errors"] == 0 and code == 1

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilkit import send_raw
 
 from protocol.errors import InputError
 from protocol.faults import CorruptingChannel, PtyBridge, open_pty_pair
@@ -314,3 +315,85 @@ def test_zeromq_client_restart_starts_a_new_session(tmp_path):
             assert S.peer_session == C2.session_id and S.epoch == 2
             C2.send(Error(code="again", text=""))
             assert S.recv(5).code == "again"
+
+
+# ------------------------------------------------------------------ refusals: nothing refused goes unsaid
+BAD_BODIES = [  # (type code in the header, body, what the refusal must say)
+    (Result.TYPE, b"\x92\x04\x81\xaaframe_seqs\x92\x00\x01", "Result: missing field 'state_grid'"),
+    (Result.TYPE, b"\x92\x05\x80", "frame header says type 4, body says 5"),
+    (Telemetry.TYPE, b"\xc1", "malformed msgpack"),
+]
+
+
+def _linked_pair(kind: str, tmp_path: Path, limits=None):
+    """(sender, receiver) established over a socket pair or insecure loopback ZeroMQ; ``limits`` on both."""
+    kw = {} if limits is None else {"limits": limits}
+    if kind == "stream":
+        a, b = socket.socketpair()
+        return StreamLink(a, name="A", **kw), StreamLink(b, name="B", **kw)
+    srv = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="A", **kw)
+    return srv, ZmqLink(srv.endpoint, False, insecure=True, name="B", **kw)
+
+
+@pytest.mark.parametrize("kind", ["stream", "zmq"])
+def test_every_link_names_each_message_it_refused(kind, tmp_path):
+    """A ZeroMQ link counted a body that failed to decode (decode_errors) and said nothing else: its owner could not
+    tell a wrong-shaped Result from silence and waited out its timeout."""
+    A, B = _linked_pair(kind, tmp_path)
+    with A, B:
+        assert A.wait_established(5) and B.wait_established(5)
+        for type_code, body, _ in BAD_BODIES:
+            send_raw(A, type_code, body)
+        A.send(Error(code="after", text="the stream goes on"))
+        assert B.recv(5) == Error(code="after", text="the stream goes on")
+        got = B.take_refusals()
+        assert [t for t, _ in got] == [t for t, _, _ in BAD_BODIES]
+        assert all(why in reason for (_, reason), (_, _, why) in zip(got, BAD_BODIES, strict=True)), got
+        assert B.take_refusals() == [] and B.stats["decode_errors"] == len(BAD_BODIES)
+
+
+@pytest.mark.parametrize("kind", ["stream", "zmq"])
+def test_a_message_over_the_limit_is_refused_at_send_on_every_link(kind, tmp_path):
+    """ZeroMQ sent it: the receiver refused it (or libzmq dropped the connection) and the sender's owner never knew;
+    the byte-stream links refused it in send(). Now both raise the same error and send nothing."""
+    from protocol.codec import Limits, encode_message
+
+    A, B = _linked_pair(kind, tmp_path, Limits(max_message_bytes=4096))
+    with A, B:
+        assert A.wait_established(5) and B.wait_established(5)
+        sent = A.stats["messages_sent"]
+        n = len(encode_message(frame(1, 70)))  # its image inline: the same size on both links
+        with pytest.raises(InputError, match=rf"^message of {n} bytes exceeds the 4096-byte limit$"):
+            A.send(frame(1, 70))
+        with pytest.raises(InputError, match=r"exceeds the 4096-byte limit"):
+            A.send(frame(1, 300))  # its image out of band on ZeroMQ: counted all the same
+        assert A.stats["messages_sent"] == sent and A.failures() == []
+        A.send(frame(2, 32))
+        got = B.recv(5)
+        assert isinstance(got, Frame) and got.seq == 2 and B.recv(0.3) is None and B.take_refusals() == []
+
+
+def test_a_zeromq_part_over_maxmsgsize_ends_the_session_with_its_reason_and_the_link_connects_again():
+    """libzmq drops a connection whose peer sends a part over MAXMSGSIZE (limit + 1 MiB) and, after such a protocol
+    error, never reconnects: the connecting side (the ground) lost its session after 4 s of silence, with no
+    reason, and never had another one."""
+    from protocol.codec import Limits
+
+    with (
+        ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="flight") as S,
+        ZmqLink(S.endpoint, False, insecure=True, name="ground", limits=Limits(max_message_bytes=4096)) as C,
+    ):
+        assert C.wait_established(5) and S.wait_established(5)
+        t0 = time.monotonic()
+        S.send(frame(1, 1200))  # one 1.44 MB part: within the sender's limit, over the receiver's maximum
+        while not (C.epoch == 2 and C.established) and time.monotonic() - t0 < 10:
+            time.sleep(0.02)
+        assert C.established and C.epoch == 2, "the link did not connect again"
+        events = C.events()
+        (refusal,) = C.take_refusals()
+        S.send(Error(code="after", text="a new session"))
+        assert C.recv(5) == Error(code="after", text="a new session")
+    (lost,) = [e for e in events if e.kind == "lost"]
+    assert lost.text.startswith("libzmq dropped the connection") and lost.time - t0 < 2.0  # not the 4 s timeout
+    assert refusal == (None, lost.text) and "over its 1052672-byte maximum" in lost.text
+    assert C.stats["protocol_drops"] == 1
