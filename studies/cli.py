@@ -476,6 +476,12 @@ def register_score(subparsers: Any) -> None:
     )
     p.add_argument("--csv", type=Path, default=None, help="also write one row per pair here")
     p.add_argument("--json", type=Path, default=None, help="also write the rows and the summary here")
+    p.add_argument(
+        "--figures",
+        type=Path,
+        default=None,
+        help="draw one picture per pair here (PAIR_score.png): the sites on frame 0, the pixel scores, the truth",
+    )
     p.set_defaults(func=_score)
 
 
@@ -499,10 +505,15 @@ def _score(args: argparse.Namespace) -> int:
         except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
             row["error"] = str(exc)
         else:
-            row.update(score_output(pair, out, str(pair_dir)))
+            fig = None if args.figures is None else args.figures / f"{Path(pair_dir).name}_score.png"
+            row.update(score_output(pair, out, str(pair_dir), fig))
+            if fig is not None:
+                row["figure"] = str(fig)
         rows.append(row)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)
+    if args.figures is not None:
+        print(f"figures: {args.figures}")
     if args.csv is not None:
         write_metrics_csv(rows, args.csv)
         print(f"rows:    {args.csv}")

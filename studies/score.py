@@ -113,9 +113,12 @@ def _read_sites(path: Path) -> np.ndarray:
     return np.array(xyz, float).reshape(-1, 3)
 
 
-def score_output(pair: Any, output: DetectorOutput, where: str = "the pair") -> dict[str, Any]:
+def score_output(
+    pair: Any, output: DetectorOutput, where: str = "the pair", figure: str | Path | None = None
+) -> dict[str, Any]:
     """Pixel, DEM and site scores of ``output`` against ``pair``'s ground truth (see the module doc); ``where``
-    names the pair in errors."""
+    names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not),
+    the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
     from ground_sim.library import covered
     from studies.evaluate import _site_radius_px, backproject_depth, project_points, true_poses
@@ -160,14 +163,12 @@ def score_output(pair: Any, output: DetectorOutput, where: str = "the pair") -> 
         m["dem_coverage_pct"] = 100.0 * np.count_nonzero(area & np.isfinite(output.elevation)) / n
     radius = _site_radius_px(pair.camera, depth, area)
     m["sites"] = int(output.sites_xyz.shape[0])
-    if m["sites"]:
-        uv = project_points(pair.camera, true1, output.sites_xyz)
-        each = [scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0 for i in range(len(uv))]
-        m["sites_truly_safe"] = int(sum(each))
-        m["top_site_truly_safe"] = bool(each[0])
-    else:
-        m["sites_truly_safe"] = 0
-        m["top_site_truly_safe"] = None
+    uv = project_points(pair.camera, true1, output.sites_xyz) if m["sites"] else np.zeros((0, 2))
+    each = [scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0 for i in range(len(uv))]
+    m["sites_truly_safe"] = int(sum(each))
+    m["top_site_truly_safe"] = bool(each[0]) if each else None
+    if figure is not None:
+        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, uv, radius, each, m)
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
@@ -210,3 +211,32 @@ def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) ->
         "top_sites_truly_safe": sum(tops),
         "no_site": sum(r["top_site_truly_safe"] is None for r in ok),
     }
+
+
+def _figure(
+    path: Path,
+    image: np.ndarray,
+    called: np.ndarray,
+    safe: np.ndarray,
+    area: np.ndarray,
+    gt_h: np.ndarray,
+    uv: np.ndarray,
+    radius: float,
+    each: list[bool],
+    m: dict[str, Any],
+) -> Path:
+    from reports.plots import Panel, Site, confusion_codes, map_figure, save
+    from reports.style import HAZARD_CMAP
+
+    marks = [
+        Site(float(u), float(v), radius, i + 1, ok) for i, ((u, v), ok) in enumerate(zip(uv, each)) if np.isfinite(u)
+    ]
+    panels = [
+        Panel("image", image, "frame 0 and the sites", sites=marks),
+        Panel("confusion", confusion_codes(called, safe, area), "pixel scores", sites=marks),
+        Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+    ]
+    title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site " + (
+        "none" if m["top_site_truly_safe"] is None else "truly safe" if m["top_site_truly_safe"] else "NOT safe"
+    )
+    return save(map_figure(panels, title), path)

@@ -118,9 +118,12 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
     outs = tmp_path / "outs"
     pair = read_pair(descent / "600_300")
     _write(outs / "600_300", pair.truth["hazard"])
-    code = main(["score", str(descent), str(outs), "--csv", str(tmp_path / "rows.csv")])
+    figs = tmp_path / "figs"
+    code = main(["score", str(descent), str(outs), "--csv", str(tmp_path / "rows.csv"), "--figures", str(figs)])
     out, _ = capsys.readouterr()
     assert code == 1
+    assert sorted(p.name for p in figs.iterdir()) == ["600_300_score.png"]  # the scored pair's picture only
+    assert (figs / "600_300_score.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| 300/150 | no usable output: " in out and "no such output directory" in out
     assert "1 of 2 pairs scored" in out and "1 without a usable output" in out
     assert len((tmp_path / "rows.csv").read_text().splitlines()) == 3  # header + both pairs, none dropped
