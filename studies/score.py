@@ -136,22 +136,18 @@ def score_output(
     if n == 0:
         raise ScoreError(f"{where}: frame 0 and the last frame share no ground: nothing to score")
     safe = gt_h < 1.0
-    called = np.isfinite(output.hazard) & (output.hazard < 1.0)
-    tp = int(np.count_nonzero(area & safe & called))
-    fp = int(np.count_nonzero(area & ~safe & called))
-    fn = int(np.count_nonzero(area & safe & ~called))
-    tn = n - tp - fp - fn
-    pct = 100.0 / n
+    called = ~scoring.unsafe_estimate(output.hazard)  # hazard < 1; NaN is not called safe
+    c = scoring.confusion(output.hazard, gt_h, area)  # the thesis's pixel scores (one definition for every tool)
     m: dict[str, Any] = {
-        "pixels": n,
-        "tp_pct": tp * pct,
-        "fp_pct": fp * pct,
-        "fn_pct": fn * pct,
-        "tn_pct": tn * pct,
-        "cdi_pct": (tp + tn) * pct,
-        "hazards_detected_pct": 100.0 * tn / (tn + fp) if tn + fp else math.nan,
-        "safe_recognised_pct": 100.0 * tp / (tp + fn) if tp + fn else math.nan,
-        "hazards_in_scene_pct": 100.0 * (tn + fp) / n,
+        "pixels": c["n"],
+        "tp_pct": c["tp"],
+        "fp_pct": c["fp"],
+        "fn_pct": c["fn"],
+        "tn_pct": c["tn"],
+        "cdi_pct": c["cdi"],
+        "hazards_detected_pct": c["tn_rate"],
+        "safe_recognised_pct": c["tp_rate"],
+        "hazards_in_scene_pct": c["hazards_pct"],
         "unmapped_pct": 100.0 * np.count_nonzero(area & ~np.isfinite(output.hazard)) / n,
     }
     if output.state is not None:
