@@ -48,14 +48,18 @@ class DetectorOutput:
 
 
 def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """The array in ``path``, read only once its header says it has ``shape`` (memory bounded before it is spent:
+    a file claiming a huge array is refused from its header)."""
     try:
-        a = np.load(path, allow_pickle=False)
+        a = np.load(path, allow_pickle=False, mmap_mode="r")
     except (OSError, ValueError) as exc:
         raise ScoreError(f"{path}: not a readable .npy file ({exc})") from None
     if not isinstance(a, np.ndarray) or a.shape != shape:
         got = getattr(a, "shape", type(a).__name__)
         raise ScoreError(f"{path}: must be {shape[0]}x{shape[1]} (frame 0's pixels), got {got}")
-    return a
+    if a.dtype.itemsize > 8:
+        raise ScoreError(f"{path}: dtype {a.dtype} is not a map's")
+    return np.array(a)
 
 
 def read_output(out_dir: str | Path, shape: tuple[int, int]) -> DetectorOutput:

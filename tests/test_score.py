@@ -165,3 +165,14 @@ def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
     assert main(["score", str(nogt), str(tmp_path / "o")]) == 2
     assert "no ground truth" in capsys.readouterr().err
     assert main(["score", str(descent / "300_150"), str(tmp_path / "o"), "--max-fp", "nan"]) == 2
+
+
+def test_an_output_claiming_a_huge_array_is_refused_from_its_header(descent, tmp_path, capsys):
+    """The header says 200 000 x 200 000 float32 (149 GiB); the file holds a few bytes: nothing is allocated."""
+    out = tmp_path / "huge"
+    out.mkdir()
+    with open(out / "hazard.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (200_000, 200_000)})
+    code = main(["score", str(descent / "300_150"), str(out)])
+    text, _ = capsys.readouterr()
+    assert code == 1 and "hazard.npy: " in text and ("must be 128x128" in text or "not a readable" in text)
