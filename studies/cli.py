@@ -497,18 +497,24 @@ def _score(args: argparse.Namespace) -> int:
         raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
     jobs = pair_jobs(args.pairs, args.outputs)
     rows: list[dict[str, Any]] = []
-    for label, pair_dir, out_dir in jobs:
-        row: dict[str, Any] = {"pair": label, "pair_dir": str(pair_dir), "output_dir": str(out_dir), "error": None}
-        pair = read_pair(pair_dir)  # a pair that cannot be read, or has no truth (below), is bad usage: exit 2
-        try:
-            out = read_output(out_dir, pair.images[0].shape)
-        except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
-            row["error"] = str(exc)
-        else:
-            fig = None if args.figures is None else args.figures / f"{Path(pair_dir).name}_score.png"
-            row.update(score_output(pair, out, str(pair_dir), fig))
-            if fig is not None:
-                row["figure"] = str(fig)
+    for job in jobs:
+        row: dict[str, Any] = {
+            "pair": job.label,
+            "pair_dir": str(job.pair_dir),
+            "output_dir": str(job.out_dir),
+            "error": job.missing,
+        }
+        if job.missing is None:
+            pair = read_pair(job.pair_dir)  # a pair that cannot be read, or has no truth (below), is bad usage
+            try:
+                out = read_output(job.out_dir, pair.images[0].shape, job.sites)
+            except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
+                row["error"] = str(exc)
+            else:
+                fig = None if args.figures is None else args.figures / f"{job.pair_dir.name}_score.png"
+                row.update(score_output(pair, out, str(job.pair_dir), fig))
+                if fig is not None:
+                    row["figure"] = str(fig)
         rows.append(row)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)

@@ -62,13 +62,26 @@ def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return np.array(a)
 
 
-def read_output(out_dir: str | Path, shape: tuple[int, int]) -> DetectorOutput:
-    """The output files of ``out_dir`` for a frame 0 of ``shape`` (rows, cols), checked; :class:`ScoreError`."""
+@dataclass(frozen=True)
+class Job:
+    """One pair to score: its directory, the detector's output directory, and where the sites come from."""
+
+    label: str
+    pair_dir: Path
+    out_dir: Path
+    sites: list | None = None  # an HIL run's record carries them (None: result.json in out_dir, if any)
+    missing: str | None = None  # why there is no output to read (an HIL pair that ended in an error)
+
+
+def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None = None) -> DetectorOutput:
+    """The output files of ``out_dir`` for a frame 0 of ``shape`` (rows, cols), checked; :class:`ScoreError`.
+    ``sites``: the ranked sites as ``{"x", "y", "z"}`` objects, instead of ``result.json``'s."""
     out = Path(out_dir)
     if not out.is_dir():
         raise ScoreError(f"{out}: no such output directory")
     if not (out / "hazard.npy").is_file():
-        raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area)")
+        hil = " (an HIL run saves the image maps only with `run --full-maps`)" if sites is not None else ""
+        raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area){hil}")
     hazard = _load(out / "hazard.npy", shape)
     if hazard.dtype.kind not in "fiu":
         raise ScoreError(f"{out / 'hazard.npy'}: must hold numbers, got dtype {hazard.dtype}")
@@ -94,10 +107,12 @@ def read_output(out_dir: str | Path, shape: tuple[int, int]) -> DetectorOutput:
                 f"{out / 'state.npy'}: says safe on {mixed} pixels where hazard.npy does not call safe (hazard < 1), "
                 "or the reverse; the two must agree"
             )
-    sites = np.zeros((0, 3))
-    if (out / "result.json").is_file():
-        sites = _read_sites(out / "result.json")
-    return DetectorOutput(hazard, elevation, state, sites)
+    xyz = np.zeros((0, 3))
+    if sites is not None:
+        xyz = _site_xyz(sites, out / "results.jsonl")
+    elif (out / "result.json").is_file():
+        xyz = _read_sites(out / "result.json")
+    return DetectorOutput(hazard, elevation, state, xyz)
 
 
 def _read_sites(path: Path) -> np.ndarray:
@@ -105,7 +120,10 @@ def _read_sites(path: Path) -> np.ndarray:
         doc = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ScoreError(f"{path}: not readable JSON ({exc})") from None
-    raw = doc.get("sites", []) if isinstance(doc, dict) else None
+    return _site_xyz(doc.get("sites", []) if isinstance(doc, dict) else None, path)
+
+
+def _site_xyz(raw: Any, path: Path) -> np.ndarray:
     if not isinstance(raw, list):
         raise ScoreError(f'{path}: "sites" must be a list of {{"x", "y", "z"}} objects')
     xyz = []
@@ -172,23 +190,48 @@ def score_output(
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
-def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[tuple[str, Path, Path]]:
-    """(label, pair directory, output directory) to score: one pair directory and its output directory, or a
-    rendered descent (a directory with ``manifest.json``) and a directory holding one output directory per pair,
-    named as the pair directory is (``OUTPUTS/600_300`` for ``PAIRS/600_300``)."""
+def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
+    """The pairs to score:
+
+    * one pair directory (``pair.json``) and its output directory;
+    * a rendered descent (``manifest.json``) and a directory with one output directory per pair, named as the
+      pair directory is (``OUTPUTS/600_300`` for ``PAIRS/600_300``);
+    * a rendered descent and an HIL run's ``received/`` (``results.jsonl``): each pair's record names its
+      directory and carries its sites; the image maps are there with ``run --full-maps``.
+    """
     from protocol.pairdir import read_manifest
 
     p, o = Path(pairs), Path(outputs)
-    if (p / "manifest.json").is_file():
-        doc = read_manifest(p / "manifest.json")
-        jobs = []
-        for e in doc["pairs"]:
-            d = p / e["path"]
-            jobs.append((str(e.get("label", e["path"])), d, o / Path(e["path"]).name))
-        return jobs
     if (p / "pair.json").is_file():
-        return [(p.name, p, o)]
-    raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
+        return [Job(p.name, p, o)]
+    if not (p / "manifest.json").is_file():
+        raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
+    entries = read_manifest(p / "manifest.json")["pairs"]
+    if not (o / "results.jsonl").is_file():
+        return [Job(str(e.get("label", e["path"])), p / e["path"], o / Path(e["path"]).name) for e in entries]
+    records: dict[str, dict] = {}
+    try:
+        for line in (o / "results.jsonl").read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                records[Path(r.get("pair_dir", "")).name] = r
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
+        raise ScoreError(f"{o / 'results.jsonl'}: not an HIL run's records ({exc})") from None
+    jobs = []
+    for e in entries:
+        name = Path(e["path"]).name
+        label = str(e.get("label", e["path"]))
+        r = records.get(name)
+        if r is None:
+            jobs.append(Job(label, p / e["path"], o / name, missing=f"{o / 'results.jsonl'}: no record of {name}"))
+        elif r.get("status") != "result":
+            why = f"the run ended this pair as {r.get('code', r.get('status'))}: {r.get('text', '')}"[:300]
+            jobs.append(Job(label, p / e["path"], o / name, missing=why))
+        else:  # the record's own directory, relative to the run's received/ (the run may have moved)
+            jobs.append(
+                Job(label, p / e["path"], o / Path(str(r.get("out_dir", name))).name, sites=r.get("sites") or [])
+            )
+    return jobs
 
 
 def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) -> dict[str, Any]:

@@ -176,3 +176,28 @@ def test_an_output_claiming_a_huge_array_is_refused_from_its_header(descent, tmp
     code = main(["score", str(descent / "300_150"), str(out)])
     text, _ = capsys.readouterr()
     assert code == 1 and "hazard.npy: " in text and ("must be 128x128" in text or "not a readable" in text)
+
+
+def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent, tmp_path, capsys):
+    """`score RUN/pairs RUN/received`: the image maps a flight side sent (`--full-maps`) against the truth; the
+    sites come from the run's records; a pair the run ended in an error is listed with the run's reason."""
+    from hilkit import run_hil
+
+    s = run_hil(descent / "manifest.json", tmp_path / "run", "zmq", full_maps=True, deadline_s=30.0)
+    assert s["results"] == 2
+    received = tmp_path / "run" / "received"
+    code, doc = _score(descent, received, capsys)
+    assert code == 0 and [r["pair"] for r in doc["rows"]] == PAIRS
+    records = [json.loads(x) for x in (received / "results.jsonl").read_text().splitlines()]
+    for r, rec in zip(doc["rows"], records):
+        assert r["error"] is None and r["sites"] == len(rec["sites"])
+        assert r["fp_pct"] <= 1.0 and r["cdi_pct"] > 10
+    # the run ended the second pair in an error: said, not scored, exit 1
+    records[1].update(status="error", code="deadline_hit", text="hard deadline passed")
+    (received / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    code, doc = _score(descent, received, capsys)
+    assert code == 1 and doc["rows"][0]["error"] is None
+    assert doc["rows"][1]["error"].startswith("the run ended this pair as deadline_hit: hard deadline passed")
+    (Path(records[0]["out_dir"]) / "hazard.npy").unlink()  # as a run without --full-maps leaves it
+    code, doc = _score(descent, received, capsys)
+    assert code == 1 and "saves the image maps only with `run --full-maps`" in doc["rows"][0]["error"]
