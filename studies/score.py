@@ -28,8 +28,9 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import InputError
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
 
-STATE_CODES = (0, 1, 2, 255)  # safe, unsafe, unknown, outside (docs/design.md)
+STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
 
 
@@ -52,8 +53,8 @@ def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     a file claiming a huge array is refused from its header)."""
     try:
         a = np.load(path, allow_pickle=False, mmap_mode="r")
-    except (OSError, ValueError) as exc:
-        raise ScoreError(f"{path}: not a readable .npy file ({exc})") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise ScoreError(f"{path}: not a readable .npy file ({exc or 'empty file'})") from None
     if not isinstance(a, np.ndarray) or a.shape != shape:
         got = getattr(a, "shape", type(a).__name__)
         raise ScoreError(f"{path}: must be {shape[0]}x{shape[1]} (frame 0's pixels), got {got}")
@@ -101,7 +102,7 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
         if state.dtype.kind not in "iu" or bad.any():
             raise ScoreError(f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside")
         called = np.isfinite(hazard) & (hazard < 1.0)
-        mixed = int(np.count_nonzero((state == 0) != called))
+        mixed = int(np.count_nonzero((state == STATE_SAFE) != called))
         if mixed:
             raise ScoreError(
                 f"{out / 'state.npy'}: says safe on {mixed} pixels where hazard.npy does not call safe (hazard < 1), "
@@ -173,7 +174,7 @@ def score_output(
         "unmapped_pct": 100.0 * np.count_nonzero(area & ~np.isfinite(output.hazard)) / n,
     }
     if output.state is not None:
-        for code, name in ((0, "safe"), (1, "unsafe"), (2, "unknown")):
+        for code, name in ((STATE_SAFE, "safe"), (STATE_UNSAFE, "unsafe"), (STATE_UNKNOWN, "unknown")):
             m[f"state_{name}_pct"] = 100.0 * np.count_nonzero(area & (output.state == code)) / n
     if output.elevation is not None:
         d = scoring.dem_error_stats(output.elevation, pair.truth["elevation"].astype(np.float32), area)
