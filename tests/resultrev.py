@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import MISSING, field, fields, make_dataclass
 
 import msgpack
+import numpy as np
 import pytest
 
 from protocol.codec import decode_message
@@ -58,3 +59,17 @@ def old_ground_decode(body: bytes, rev: int = 0) -> Message:
 
 def wire_keys(body: bytes) -> set[str]:
     return set(msgpack.unpackb(body, raw=False, ext_hook=msgpack.ExtType)[1])
+
+
+def small_result(**kw) -> Result:
+    """A 2 x 2-cell Result with every baseline field that has no default, plus ``kw``."""
+    base = dict(
+        frame_seqs=(4, 5),
+        state_grid=np.array([[0, 1], [2, 255]], np.uint8),
+        psafe_grid=np.array([[254, 0], [127, 255]], np.uint8),
+        elevation_grid=np.array([[-32768, 1234], [7, -5]], np.int16),
+        grid_origin_xy=(-10.0, 3.0),
+        grid_cell_m=0.5,
+    )
+    base.update(kw)
+    return Result(**base)

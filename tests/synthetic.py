@@ -153,3 +153,22 @@ def flattened_wall_grid(origin_xy: tuple[float, float] = (0.0, 0.0)):
     z[:, 76:80] = np.linspace(-4.0, -16.0, 4, dtype=np.float32)
     st = np.full((n, n), STATE_SAFE, np.uint8)
     return HazardGrid(np.zeros((n, n), np.float32), z, origin_xy, 0.5, st, np.full((n, n), 0.99, np.float32))
+
+
+def frames_of(pair_id: str, seq0: int, pose_img: list) -> list:
+    """The Frames a ground sends for ``pose_img`` [(pose, image), ...] (frame_index 0 first), seqs from ``seq0``."""
+    from protocol.messages import Frame
+
+    return [
+        Frame(
+            seq=seq0 + k,
+            capture_time_s=float(k),
+            position_m=tuple(float(v) for v in pose.position),
+            R_world_to_cam=np.asarray(pose.R, "<f8"),
+            altimeter_m=float("nan"),
+            image=img,
+            pair_id=pair_id,
+            frame_index=k,
+        )
+        for k, (pose, img) in enumerate(pose_img)
+    ]

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from synthetic import frames_of
 
 from flight_sw.fusion import (
     FusionParams,
@@ -522,24 +523,6 @@ class _Link:
         return {"bytes_sent": 0}
 
 
-def _frames(pair_id: str, seq0: int, cam_pose_img: list) -> list:
-    from protocol.messages import Frame
-
-    return [
-        Frame(
-            seq=seq0 + k,
-            capture_time_s=float(k),
-            position_m=tuple(float(v) for v in pose.position),
-            R_world_to_cam=np.asarray(pose.R, "<f8"),
-            altimeter_m=float("nan"),
-            image=img,
-            pair_id=pair_id,
-            frame_index=k,
-        )
-        for k, (pose, img) in enumerate(cam_pose_img)
-    ]
-
-
 @pytest.mark.slow
 def test_flight_process_reports_the_fused_map(monkeypatch):
     """Two pairs of a descent: the second Result is the fused map (the first pair's hazards kept), not the pair."""
@@ -558,7 +541,7 @@ def test_flight_process_reports_the_fused_map(monkeypatch):
             Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast", options={"fusion": fusion})
         )
         for i, (a, b) in enumerate(((0, 1), (2, 3))):
-            for f in _frames(f"p{i}", 10 * i, [(poses[a], imgs[a]), (poses[b], imgs[b])]):
+            for f in frames_of(f"p{i}", 10 * i, [(poses[a], imgs[a]), (poses[b], imgs[b])]):
                 fp.handle(f)
         res = [m for m in link.sent if isinstance(m, Result)]
         tel = [m for m in link.sent if isinstance(m, Telemetry)]
@@ -642,7 +625,7 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
     cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
     fp.handle(Config(**cfg, options={"time_scale": 2.0}))
     for i in range(fm.RESERVE_HISTORY + 1):
-        for f in _frames(f"p{i}", 10 * i, list(zip(poses, imgs))):
+        for f in frames_of(f"p{i}", 10 * i, list(zip(poses, imgs))):
             fp.handle(f)
     assert len([m for m in link.sent if isinstance(m, Result)]) == fm.RESERVE_HISTORY + 1
     assert seen[0] == (None, [])
@@ -650,7 +633,7 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
         assert len(had) == min(k, fm.RESERVE_HISTORY)  # the last few pairs only
         assert all(v > 0 for v in had) and told == max(had)  # planned from the largest of them
     fp.handle(Config(**cfg, options={"time_scale": 4.0}))
-    for f in _frames("q", 100, list(zip(poses, imgs))):
+    for f in frames_of("q", 100, list(zip(poses, imgs))):
         fp.handle(f)
     assert seen[-1] == (None, [])
 
@@ -696,7 +679,7 @@ def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one()
         config = Config(**cfg, options={"elevation_unit_cm": unit, "link_baud": 921600})
         fp.handle(config)
         priors[unit] = fp.expected_result_bytes(config)
-        for f in _frames("p", 0, list(zip(poses, imgs))):
+        for f in frames_of("p", 0, list(zip(poses, imgs))):
             fp.handle(f)
         (res,) = [m for m in link.sent if isinstance(m, Result)]
         back = decode_message(encode_message(res))

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from resultrev import old_ground_decode
+from resultrev import old_ground_decode, small_result
 
 from protocol.codec import (
     CodecError,
@@ -215,7 +215,7 @@ def test_a_fill_mask_that_does_not_fit_elevation_image_is_refused_by_sender_and_
         encode_message(bad)
     # a peer that sends it anyway: the mask (and no elevation_image) spliced into a valid Result's body
     body = msgpack.unpackb(encode_message(msg), raw=False, ext_hook=msgpack.ExtType)[1]
-    carrier = _result(elevation_image=np.zeros(shape, np.float32), elevation_filled_image=mask)
+    carrier = small_result(elevation_image=np.zeros(shape, np.float32), elevation_filled_image=mask)
     body["elevation_filled_image"] = msgpack.unpackb(encode_message(carrier), ext_hook=msgpack.ExtType)[1][
         "elevation_filled_image"
     ]
@@ -225,32 +225,19 @@ def test_a_fill_mask_that_does_not_fit_elevation_image_is_refused_by_sender_and_
         decode_message(msgpack.packb([Result.TYPE, body], use_bin_type=True))
 
 
-def _result(**kw) -> Result:
-    base = dict(
-        frame_seqs=(4, 5),
-        state_grid=np.array([[0, 1], [2, 255]], np.uint8),
-        psafe_grid=np.array([[254, 0], [127, 255]], np.uint8),
-        elevation_grid=np.array([[-32768, 1234], [7, -5]], np.int16),
-        grid_origin_xy=(-10.0, 3.0),
-        grid_cell_m=0.5,
-    )
-    base.update(kw)
-    return Result(**base)
-
-
 def test_compact_result_survives_bitwise_and_arrays_are_read_only():
-    r = _result(sites=[], degraded=True, level="coarse", no_site_reason="no footprint is known safe")
+    r = small_result(sites=[], degraded=True, level="coarse", no_site_reason="no footprint is known safe")
     out = decode_message(encode_message(r))
     assert out.sites == [] and out.degraded is True and out.no_site_reason == "no footprint is known safe"
     for name in ("state_grid", "psafe_grid", "elevation_grid"):
         assert getattr(out, name).tobytes() == getattr(r, name).tobytes() and not getattr(out, name).flags.writeable
     assert out.elevation_filled is None  # optional: a flight program that does not fill does not send it
     f = np.array([[0, 1], [0, 0]], np.uint8)
-    assert decode_message(encode_message(_result(elevation_filled=f))).elevation_filled.tobytes() == f.tobytes()
+    assert decode_message(encode_message(small_result(elevation_filled=f))).elevation_filled.tobytes() == f.tobytes()
 
 
 def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
-    r = _result(sites=[Site(1.0, 2.0, 3.0, 0.1, 0.9, 4.0, 0.97, 1.25), Site(0.0, 0.0, math.nan, 0.0, 1.0, 0.0)])
+    r = small_result(sites=[Site(1.0, 2.0, 3.0, 0.1, 0.9, 4.0, 0.97, 1.25), Site(0.0, 0.0, math.nan, 0.0, 1.0, 0.0)])
     a, b = decode_message(encode_message(r)).sites
     assert (a.p_safe, a.clearance_m) == (0.97, 1.25)
     assert math.isnan(b.p_safe) and math.isnan(b.clearance_m) and math.isnan(b.z)
@@ -275,11 +262,11 @@ def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
 )
 def test_result_grids_must_agree(kw, match):
     with pytest.raises(SchemaError, match=match):
-        encode_message(_result(**kw))
+        encode_message(small_result(**kw))
 
 
 def test_decimated_elevation_grid_has_the_ceiling_shape():
-    r = _result(
+    r = small_result(
         state_grid=np.zeros((5, 7), np.uint8), psafe_grid=np.zeros((5, 7), np.uint8), elevation_step=3,
         elevation_grid=np.zeros((2, 3), np.int16),
     )  # fmt: skip
@@ -358,7 +345,7 @@ def test_psafe_of_the_cells_not_called_safe_goes_in_sixteenths():
 
 def test_delta_filter_wraps_around_int16():
     e = np.array([[32767, -32768, 0, 12345, -32767], [-32768, 32767, -1, 1, 0], [0, 0, 32767, -32768, 5]], np.int16)
-    out = decode_message(encode_message(_result(
+    out = decode_message(encode_message(small_result(
         state_grid=np.zeros((3, 5), np.uint8), psafe_grid=np.zeros((3, 5), np.uint8), elevation_grid=e
     )))  # fmt: skip
     assert np.array_equal(out.elevation_grid, e)
@@ -369,7 +356,7 @@ def test_the_elevation_grid_travels_as_the_residual_of_the_planar_predictor():
     yy, xx = np.mgrid[0:200, 0:200]
     plane = (3 * xx - 7 * yy + 11).astype(np.int16)
     assert np.all(delta_encode(plane, 2)[1:, 1:] == 0)
-    msg = _result(
+    msg = small_result(
         state_grid=np.zeros((200, 200), np.uint8), psafe_grid=np.zeros((200, 200), np.uint8), elevation_grid=plane
     )
     parts = msgpack.unpackb(encode_message(msg), raw=False, strict_map_key=False)
@@ -388,7 +375,7 @@ def test_a_coarser_elevation_unit_rounds_by_half_a_unit_and_shrinks_the_grid():
     sizes = {}
     for unit in (1, 10):
         v, off = elevation_to_wire(z, 2, unit)
-        msg = _result(
+        msg = small_result(
             state_grid=np.zeros((240, 240), np.uint8),
             psafe_grid=np.zeros((240, 240), np.uint8),
             elevation_grid=v,
@@ -499,7 +486,7 @@ def test_unknown_dtype_refused_on_encode():
 def test_site_position_must_be_finite():
     with pytest.raises(SchemaError, match=r"Site\.x"):
         encode_message(
-            _result(sites=[{"x": math.nan, "y": 2.0, "z": 0.0, "hazard": 0.1, "margin": 1.0, "distance_m": 2}])
+            small_result(sites=[{"x": math.nan, "y": 2.0, "z": 0.0, "hazard": 0.1, "margin": 1.0, "distance_m": 2}])
         )
 
 

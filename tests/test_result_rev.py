@@ -11,7 +11,7 @@ from dataclasses import MISSING, fields, replace
 
 import numpy as np
 import pytest
-from resultrev import STOP41_RESULT_FIELDS, old_ground_decode, wire_keys
+from resultrev import STOP41_RESULT_FIELDS, old_ground_decode, small_result, wire_keys
 
 from protocol.codec import decode_message, encode_message
 from protocol.messages import RESULT_FIELD_REV, RESULT_REV, Result, SchemaError
@@ -19,13 +19,7 @@ from protocol.messages import RESULT_FIELD_REV, RESULT_REV, Result, SchemaError
 
 def _full_result() -> Result:
     """A Result with every post-baseline field filled."""
-    return Result(
-        frame_seqs=(4, 5),
-        state_grid=np.array([[0, 1], [2, 255]], np.uint8),
-        psafe_grid=np.array([[254, 0], [127, 255]], np.uint8),
-        elevation_grid=np.array([[-32768, 1234], [7, -5]], np.int16),
-        grid_origin_xy=(-10.0, 3.0),
-        grid_cell_m=0.5,
+    return small_result(
         degraded=True,
         skipped=("rocks", "shading_slope"),
         elevation_image=np.zeros((3, 4), np.float32),
@@ -149,24 +143,10 @@ def test_a_newer_revision_or_an_unknown_option_is_taken():
 
 def _frames(pair_id: str, seq0: int):
     """A 128 px nadir pair over a roof (tests/synthetic.py) as the ground sends it; and its camera."""
-    from synthetic import make_pair, roof
-
-    from protocol.messages import Frame
+    from synthetic import frames_of, make_pair, roof
 
     cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, roof(18.0, -2.0), seed=22)
-    frames = [
-        Frame(
-            seq=seq0 + k,
-            capture_time_s=float(k),
-            position_m=tuple(float(v) for v in pose.position),
-            R_world_to_cam=np.asarray(pose.R, "<f8"),
-            altimeter_m=float("nan"),
-            image=img,
-            pair_id=pair_id,
-            frame_index=k,
-        )
-        for k, (pose, img) in enumerate(((p1, i1), (p2, i2)))
-    ]
+    frames = frames_of(pair_id, seq0, [(p1, i1), (p2, i2)])
     return cam, frames
 
 
