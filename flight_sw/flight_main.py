@@ -24,7 +24,7 @@ Deadline planning (docs/hil.md): the deadline runs from the ground's last frame
 to the ground holding the whole Result, so the Result's own line time counts.
 The anytime pipeline gets ``arrival + deadline_s - expected result line time``
 in this process's clock, and ``after_s`` (encoding and handing over the Result,
-``OUTPUT_RESERVE_S``, plus ``FUSION_RESERVE_S`` for fusing and choosing sites
+``output_reserve_s`` of the Result's expected size, plus ``FUSION_RESERVE_S`` for fusing and choosing sites
 when fusion is on; unthrottled seconds) to reserve at the slowdown it measures,
 which at low duty cycles exceeds ``time_scale``. The line time comes from the
 Result's expected size (the largest of the last few Results, or a prior from the camera
@@ -79,9 +79,13 @@ from protocol.messages import (
 )
 from protocol.pairdir import STATE_SAFE, Camera, Pose
 
-# Encoding and handing over the Result happen after the pipeline returns: unthrottled seconds,
-# scaled by time_scale (Config.options, set by the HIL server from the budget) like the pipeline's reserves.
-OUTPUT_RESERVE_S = 0.04
+# Building, fitting and encoding the Result happen after the pipeline returns: unthrottled seconds, scaled like the
+# pipeline's reserves by the slowdown it measures. They grow with the Result: OUTPUT_BASE_S + OUTPUT_PER_BYTE_S x its
+# expected size, the upper envelope of 18 flight-process Results of 18-193 kB on one core (host budget, approach and
+# vertical descents over serial and ZeroMQ: 8-29 ms, stop 45). A fixed 0.04 s reserved 2.5x the 0.015 s that rad750's
+# 25-40 kB Results took, and with it rad750 returned the first approach pairs image-only with 13 s of 30 unused
+OUTPUT_BASE_S = 0.014
+OUTPUT_PER_BYTE_S = 1.05e-7
 # Line time of the Result = bytes x LINE_OVERHEAD x 10 / baud + LINE_LATENCY_S: framing (26 B per 1 KiB
 # frame) and byte stuffing (~1 % of compressed bytes) on top of the 8N1 bits, plus relay and scheduling slack.
 LINE_OVERHEAD = 1.05
@@ -158,6 +162,12 @@ class FaultPlan:
             hog = []
             while True:
                 hog.append(np.ones(16 << 20, dtype=np.uint8))
+
+
+def output_reserve_s(nbytes: float) -> float:
+    """Unthrottled CPU s to build, fit and encode a Result of ``nbytes`` on the wire:
+    ``OUTPUT_BASE_S + OUTPUT_PER_BYTE_S x nbytes``."""
+    return OUTPUT_BASE_S + OUTPUT_PER_BYTE_S * max(0.0, float(nbytes))
 
 
 def expected_line_s(nbytes: float, baud: float) -> float:
@@ -352,7 +362,8 @@ class FlightProcess:
         line_s = expected_line_s(self.expected_result_bytes(cfg), baud)
         # what follows the pipeline, in unthrottled seconds: the pipeline reserves it at the slowdown it
         # measures (which can exceed time_scale at low duty cycles); a longer last measurement counts too
-        after_s = OUTPUT_RESERVE_S + (FUSION_RESERVE_S if fusion else 0.0)  # fusing and sites on the fused map
+        # building and encoding the Result; fusing and sites on the fused map
+        after_s = output_reserve_s(self.expected_result_bytes(cfg)) + (FUSION_RESERVE_S if fusion else 0.0)
         due = pend.arrival + cfg.deadline_s * (1.0 - DEADLINE_GUARD)  # what the plan aims at
         deadline_at = due - line_s - max(0.0, self.last_output_s - after_s * time_scale)
         try:
@@ -383,7 +394,7 @@ class FlightProcess:
             w0, c0 = time.perf_counter(), time.thread_time()
             grid, sites, reason = self._fuse(res)
             res.timings["fusion"] = {"wall_s": time.perf_counter() - w0, "cpu_s": time.thread_time() - c0}
-        t_out = time.monotonic()
+        t_out, cpu_out = time.monotonic(), time.thread_time()
         sent0 = self._bytes_sent()
         try:
             rebuild = functools.partial(self._result_message, res, seqs, cfg, grid, sites, reason)
@@ -394,6 +405,8 @@ class FlightProcess:
             return
         done = time.monotonic()
         self.last_output_s = done - t_out
+        # building, fitting and encoding the Result: in the telemetry, so that its stages add up to the latency
+        res.timings["output"] = {"wall_s": self.last_output_s, "cpu_s": time.thread_time() - cpu_out}
         fusion_wall = float(res.timings.get("fusion", {}).get("wall_s", 0.0))
         ratio = measured_reserve_ratio(res.timings, res.info, res.level, fusion_wall + self.last_output_s, after_s)
         if ratio is not None:

@@ -111,21 +111,27 @@ MAX_LEARNED_SCALE = 3.0  # the learned slowdown stays within 3x the supervisor's
 # refinement, the DEM and the shadow stage (HIL telemetry against the same pairs unthrottled, 2026-11-24)
 COLD_CACHE_CPU = 0.4
 ROCKS_S = 0.03  # Harris rock mask
-# the shading slope stage (photoclinometry.py, with the caster search): 13-15 ms at 512^2 on the synthetic
-# nadir pair and on held-out vertical and approach pairs; and what still follows it, the hazard call and the
-# sites: 38 + 0.5 ms on the synthetic pair, 50 + 4-7 ms on held-out pairs (one core, quiet host, stop 28)
-SHADING_SLOPE_S = 0.016
+# the shading slope stage (photoclinometry.py, with the caster search) and what still follows it, the hazard call
+# and the sites, at 512^2 on one core: at most 9.1 ms and 46.5 ms on the 64 tuning pairs of
+# bench/fit_mapping_cost.py (8.4 and 49 ms held-out; stop 45), about 1.1x kept. Stop 28's 16 and 65 ms had become
+# 2x the stages' cost: with the mapping reserve refitted, rad750 skipped the shading slope with 5 s unused
+SHADING_SLOPE_S = 0.010
 CASTER_MAX_PX = 16  # the caster search's reach (px): shadow.caster_distance costs O(reach) per pixel
-AFTER_SLOPE_S = 0.065
-REFINE_S = 0.06  # pose refinement, per refined frame pair (docs/benchmarks/pose.md: 51-57 ms CPU, loaded host)
+AFTER_SLOPE_S = 0.050
+# pose refinement, per refined frame pair: 31-39 ms CPU, median 34, on the 32 pairs of tuning seed 0 (one core,
+# quiet host, stop 45). It was 0.06 (stop 20's loaded host): a reference above the stage's real cost hides the
+# slowdown from _Clock.learn, and rad750's reserves were planned at 77x while the mapping ran at 110x
+REFINE_S = 0.035
 
 
 # what the stages after the DEM (georef, grid, slope, shading slope, hazard call, sites) cost on one core,
-# unthrottled s per REF_PIXELS of image, of covered pixels and of world-grid cells: least squares over 64
-# tuning pairs (seeds 0-1, all four eval cases, 50-1200 m; p90 of measured / model 1.06; stop 29)
-MAP_IMAGE_S = 0.052
-MAP_COVERED_S = 0.083
-MAP_CELLS_S = 0.170
+# unthrottled s per REF_PIXELS of image, of covered pixels and of world-grid cells: non-negative least squares
+# over 64 tuning pairs (seeds 0-1, all four eval cases, 50-1200 m; bench/fit_mapping_cost.py, stop 45). Measured /
+# model on 64 held-out pairs: median 1.01, p90 1.06, max 1.17; synthetic pairs of 384-1536 px: 0.59-1.19. Stop 29's
+# constants (0.052, 0.083, 0.170) had become 1.7x the cost, which kept rad750's approach pairs image-only
+MAP_IMAGE_S = 0.027
+MAP_COVERED_S = 0.057
+MAP_CELLS_S = 0.103
 
 # the stages the mapping reserve covers: what runs after the DEM (measured_reserve_ratio sums their wall time)
 MAPPING_STAGES = ("georef", "grid", "slope", "shading_slope", "hazard", "sites")
@@ -516,11 +522,10 @@ PRESETS: dict[str, Params] = {
         # its rho is read as under 25 deg. Never mapped downward: under a low sun the map would weaken the
         # shading cue where Lambert's first order no longer holds (docs/benchmarks/pipeline.md, stop 24)
         shading_sun_ref_deg=25.0,
-        # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.095 s CPU on the
-        # synthetic pair, 0.118-0.158 s on held-out vertical and approach pairs (stop 28), + 15 %: the reserve
-        # before the pose refinement. From the range search on, the pair's own modelled cost + 25 %
-        # (mapping_cost_s: 0.11 s nadir, 0.17-0.20 s oblique; stop 29)
-        mapping_reserve_s=0.18,
+        # georef + grid + slope + shading_slope + hazard + sites at 512^2, one core: 0.065-0.116 s CPU on 128
+        # tuning and held-out pairs (bench/fit_mapping_cost.py, stop 45), + 20 %: the reserve before the pose
+        # refinement. From the range search on, the pair's own modelled cost + 25 % (mapping_cost_s)
+        mapping_reserve_s=0.14,
         mapping_reserve_margin=1.25,
         sgm_p1=16,
         sgm_p2=128,
