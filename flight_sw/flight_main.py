@@ -408,7 +408,14 @@ class FlightProcess:
         # building, fitting and encoding the Result: in the telemetry, so that its stages add up to the latency
         res.timings["output"] = {"wall_s": self.last_output_s, "cpu_s": time.thread_time() - cpu_out}
         fusion_wall = float(res.timings.get("fusion", {}).get("wall_s", 0.0))
-        ratio = measured_reserve_ratio(res.timings, res.info, res.level, fusion_wall + self.last_output_s, after_s)
+        ratio = measured_reserve_ratio(
+            res.timings,
+            res.info,
+            res.level,
+            fusion_wall + self.last_output_s,
+            after_s,
+            int(np.asarray(upper.image).size),
+        )
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair

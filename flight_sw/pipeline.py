@@ -158,26 +158,32 @@ def measured_reserve_ratio(
     level: str,
     after_wall_s: float,
     after_s: float,
+    pixels: int = REF_PIXELS,
 ) -> float | None:
     """Wall seconds the reserved work took per unthrottled second reserved for it, on one pair.
 
-    ``ratio = (sum of the MAPPING_STAGES' wall time + after_wall_s) / (info["mapping_reserve_s"] + after_s)``:
+    ``ratio = (sum of the MAPPING_STAGES' wall time + after_wall_s) / (info["mapping_reserve_s"] + after_s - s)``:
     the pair's planned mapping reserve and what the caller reserved for its own work after the pipeline
     (``after_wall_s``: what that work took). Only a pair with a DEM (full or coarse: the mapping stages map
-    it on the same grid) that skipped none of those stages measures the work its reserve was planned for:
-    None otherwise (an image-only pair's mapping stages have no DEM to map and cost a fraction of it), or
-    when the pair planned no mapping reserve (the v1 flow of ``thesis``). The flight process passes the
-    recent pairs' largest ratio as ``reserve_measured``.
+    it on the same grid) measures the work its reserve was planned for: None for an image-only pair (its
+    mapping stages have no DEM to map and cost a fraction of it), or when the pair planned no mapping reserve
+    (the v1 flow of ``thesis``). A pair that skipped a mapping stage measures nothing either, except the
+    shading slope alone, the stage a tight plan gives up first: ``s`` is then its reserved cost
+    (``SHADING_SLOPE_S`` at ``pixels``), else 0. Without that, slow budgets that skipped it on every pair never
+    measured anything and planned every pair at the first pair's margins (gr740, stop 45). The flight
+    process passes the recent pairs' largest ratio as ``reserve_measured``.
     """
     mapping = float(info.get("mapping_reserve_s", 0.0))
-    skipped = set(info.get("skipped", ()))
+    skipped = set(info.get("skipped", ())) & set(MAPPING_STAGES)
     if (
         level not in ("full", "coarse")
-        or skipped & set(MAPPING_STAGES)
+        or skipped - {"shading_slope"}
         or not (mapping > 0 and after_s >= 0 and after_wall_s >= 0)
     ):
         return None
-    reserved = mapping + after_s
+    reserved = mapping + after_s - (SHADING_SLOPE_S * pixels / REF_PIXELS if skipped else 0.0)
+    if reserved <= 0:
+        return None
     needed = [k for k in MAPPING_STAGES if k != "shading_slope"]  # no sun, no shading slope: not a degradation
     if any(k not in timings for k in needed):
         return None

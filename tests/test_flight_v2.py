@@ -706,7 +706,14 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     """With a measurement of what the reserved work took on earlier pairs, the clock plans from it (x the
     margin, raised by this pair's own slowdown over the nominal one) instead of the nominal slowdown alone;
     without one it plans as before. The measurement is wall s per reserved unthrottled s."""
-    from flight_sw.pipeline import MAPPING_STAGES, MEASURED_RESERVE_MARGIN, _Clock, measured_reserve_ratio
+    from flight_sw.pipeline import (
+        MAPPING_STAGES,
+        MEASURED_RESERVE_MARGIN,
+        REF_PIXELS,
+        SHADING_SLOPE_S,
+        _Clock,
+        measured_reserve_ratio,
+    )
 
     # snapdragon801 on a host faster than the reserves' reference: the work took 3 wall s per reserved s, not 4.75
     nominal = _Clock(deadline=100.0, scale=4.75, after=0.07)
@@ -732,6 +739,12 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     # stages, at a fraction of their cost with a DEM); nor without a reserve
     assert measured_reserve_ratio(timings, info, "image_only", 0.0, 0.0) is None
     assert measured_reserve_ratio(timings, {**info, "skipped": ["sites"]}, "full", 0.0, 0.0) is None
+    # ... except the shading slope alone, the stage a tight plan gives up first: the rest of the reserve measures
+    # the work that ran (else a slow budget that skips it on every pair never plans from a measurement)
+    cut = {**info, "skipped": ["shading_slope"]}
+    expect = (0.05 * (n - 1) + 0.02) / (0.15 - SHADING_SLOPE_S / 4)
+    assert measured_reserve_ratio(no_sun, cut, "coarse", 0.02, 0.05, REF_PIXELS // 4) == pytest.approx(expect)
+    assert measured_reserve_ratio(no_sun, {**info, "skipped": ["shading_slope", "sites"]}, "full", 0.0, 0.0) is None
     assert measured_reserve_ratio({k: v for k, v in timings.items() if k != "hazard"}, info, "full", 0.0, 0.0) is None
     assert measured_reserve_ratio(timings, {}, "full", 0.0, 0.0) is None
     # the v1 flow (thesis preset) plans no mapping reserve: the caller's own reserve alone is not its measure
