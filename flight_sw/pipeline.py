@@ -127,8 +127,8 @@ REFINE_S = 0.035
 # what the stages after the DEM (georef, grid, slope, shading slope, hazard call, sites) cost on one core,
 # unthrottled s per REF_PIXELS of image, of covered pixels and of world-grid cells: non-negative least squares
 # over 64 tuning pairs (seeds 0-1, all four eval cases, 50-1200 m; bench/fit_mapping_cost.py, stop 45). Measured /
-# model on 64 held-out pairs: median 1.01, p90 1.06, max 1.17; synthetic pairs of 384-1536 px: 0.59-1.19. Stop 29's
-# constants (0.052, 0.083, 0.170) had become 1.7x the cost, which kept rad750's approach pairs image-only
+# model on 64 held-out pairs, two runs: median 1.01 / 0.98, p90 1.06 / 1.04, max 1.17 / 1.09; synthetic pairs of
+# 384-1536 px: 0.59-1.19. Stop 29's constants (0.052, 0.083, 0.170) had become 1.7x the cost
 MAP_IMAGE_S = 0.027
 MAP_COVERED_S = 0.057
 MAP_CELLS_S = 0.103
