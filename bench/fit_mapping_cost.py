@@ -23,6 +23,7 @@ import argparse
 import json
 import statistics
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,58 +36,55 @@ sys.path.insert(0, str(ROOT / "bench"))
 CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
 
-def pair_costs(pair_dir: str, runs: int) -> dict[str, Any]:
-    """The planning counts of one pair and the median CPU s of its mapping stages over ``runs`` runs."""
-    from eval_flight import run_pair
-
+def measure(run: Callable[[], Any], camera: Any, pose1: Any, runs: int) -> dict[str, Any]:
+    """Run the pipeline ``runs`` times (``run()``); the planning counts of the pair and the median CPU s of its
+    mapping stages and of every stage."""
     from flight_sw.pipeline import MAPPING_STAGES, PRESETS, grid_cells_estimate
-    from protocol.pairdir import read_pair
 
-    pair = read_pair(pair_dir)
     cpu, res = [], None
     stages: dict[str, list[float]] = {}
     for _ in range(runs):
-        res = run_pair(pair, PRESETS["fast"])
+        res = run()
         cpu.append(sum(float(res.timings[k]["cpu_s"]) for k in MAPPING_STAGES if k in res.timings))
         for k, v in res.timings.items():
             stages.setdefault(k, []).append(float(v["cpu_s"]))
     assert res is not None
-    p = PRESETS["fast"]
     z = float(res.info.get("coverage_z_m", 0.0))
-    cells = grid_cells_estimate(pair.camera, pair.poses[0], res.covered, z, p.cell_m)
     return {
         "level": res.level,
-        "n_image": int(pair.images[0].size),
+        "n_image": int(res.covered.size),
         "n_covered": int(np.count_nonzero(res.covered)),
-        "n_cells": int(cells),
+        "n_cells": int(grid_cells_estimate(camera, pose1, res.covered, z, PRESETS["fast"].cell_m)),
         "mapping_cpu_s": statistics.median(cpu),
         "planned_reserve_s": float(res.info.get("mapping_reserve_s", float("nan"))),
         "stage_cpu_s": {k: statistics.median(v) for k, v in stages.items()},
     }
 
 
+def pair_costs(pair_dir: str, runs: int) -> dict[str, Any]:
+    """:func:`measure` on one rendered pair, run as the flight process runs it."""
+    from eval_flight import run_pair
+
+    from flight_sw.pipeline import PRESETS
+    from protocol.pairdir import read_pair
+
+    pair = read_pair(pair_dir)
+    return measure(lambda: run_pair(pair, PRESETS["fast"]), pair.camera, pair.poses[0], runs)
+
+
 def synthetic_costs(size: int, runs: int) -> dict[str, Any]:
-    """:func:`pair_costs` of ``bench/bench_pipeline.py``'s seeded synthetic 600/300 m pair at ``size`` px: the
+    """:func:`measure` on ``bench/bench_pipeline.py``'s seeded synthetic 600/300 m pair at ``size`` px: the
     rendered pairs are all 512^2, so only these tell the per-image term from the others."""
     from bench_pipeline import synthetic_pair
 
-    from flight_sw.pipeline import MAPPING_STAGES, PRESETS, grid_cells_estimate, run_pipeline
+    from flight_sw.pipeline import run_pipeline
 
     cam, p1, p2, i1, i2, _ = synthetic_pair(size)
-    cpu, res = [], None
-    for _ in range(runs):
-        res = run_pipeline(i1, i2, p1, p2, cam, preset="fast", sun_elevation_deg=25.0, sun_azimuth_deg=135.0)
-        cpu.append(sum(float(res.timings[k]["cpu_s"]) for k in MAPPING_STAGES if k in res.timings))
-    assert res is not None
-    z = float(res.info.get("coverage_z_m", 0.0))
-    return {
-        "case": f"synthetic {size}px",
-        "level": res.level,
-        "n_image": int(i1.size),
-        "n_covered": int(np.count_nonzero(res.covered)),
-        "n_cells": int(grid_cells_estimate(cam, p1, res.covered, z, PRESETS["fast"].cell_m)),
-        "mapping_cpu_s": statistics.median(cpu),
-    }
+
+    def run() -> Any:
+        return run_pipeline(i1, i2, p1, p2, cam, preset="fast", sun_elevation_deg=25.0, sun_azimuth_deg=135.0)
+
+    return {"case": f"synthetic {size}px", **measure(run, cam, p1, runs)}
 
 
 def collect(seeds: list[int], cases: list[str], cache: Path, runs: int, out: Path) -> list[dict[str, Any]]:
