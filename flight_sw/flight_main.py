@@ -68,6 +68,7 @@ from protocol.messages import (
     MAX_SKIPPED,
     RESULT_FIELD_REV,
     RESULT_REV,
+    TELEMETRY_FIELD_REV,
     Config,
     Error,
     Frame,
@@ -223,15 +224,33 @@ def left_out_note(cfg: Config) -> str:
     and saying so when the Config asked for what they carry (``full_maps``: the image maps' gap-fill mask)."""
     rev = result_rev(cfg)
     dropped = [name for name, r in RESULT_FIELD_REV.items() if r > rev]
-    if not dropped:
+    dropped_t = [name for name, r in TELEMETRY_FIELD_REV.items() if r > rev]
+    if not dropped and not dropped_t:
         return ""
-    note = (
-        f"the ground decodes Result revision {rev} (this flight software sends {RESULT_REV}): "
-        f"every Result goes without {', '.join(dropped)}"
-    )
+    without = []
+    if dropped:
+        without.append(f"every Result goes without {', '.join(dropped)}")
+    if dropped_t:
+        without.append(f"every Telemetry without {', '.join(dropped_t)}")
+    note = f"the ground decodes Result revision {rev} (this flight software sends {RESULT_REV}): " + ", ".join(without)
     if cfg.options.get("full_maps", 0) and "elevation_filled_image" in dropped:
         note += "; full_maps was asked for, but the image maps go without their gap-fill mask"
     return note
+
+
+def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, float]:
+    """The Telemetry's ``plan``: what the deadline plan had and decided on, in wall seconds on this processor.
+
+    ``budget_s``: from the pipeline's start to the time it aimed to be done by (the deadline less the Result's
+    planned ``line_s`` and the guard); then, from ``info["plan"]`` (``pipeline._Clock.decide``), for each DEM
+    stage that was weighed, the time left at its start and the time kept for the work after it (the DEM stage
+    runs only while the first exceeds the second), and the slowdown they were planned at (``measured`` 1 when
+    from the previous pairs' measured cost, 0 when from the first stages' slowdown)."""
+    plan = {"budget_s": float(budget_s), "line_s": float(line_s)}
+    for k, v in (info.get("plan") or {}).items():
+        if isinstance(v, (int, float)) and math.isfinite(v):
+            plan[str(k)] = v
+    return plan
 
 
 def frame_pose(frame: Frame) -> Pose:
@@ -430,7 +449,8 @@ class FlightProcess:
                 deadline_s=float(cfg.deadline_s),
                 # the flight side's own view (compute + expected line time); the ground judges the real one
                 deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,
-            )
+                plan=plan_telemetry(res.info, deadline_at - start, line_s),
+            ).for_rev(result_rev(cfg))
         )
 
     def _bytes_sent(self) -> float:

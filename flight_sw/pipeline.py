@@ -739,6 +739,20 @@ class _Clock:
             return True
         return time.monotonic() + (reserve_s + self.after) * self.reserve_scale() < self.deadline
 
+    def decide(self, info: dict[str, Any], stage: str, reserve_s: float) -> bool:
+        """:meth:`ok`, with the figures it was decided on kept in ``info["plan"]`` (wall s, as the flight runs):
+        ``<stage>_left_s`` (to the deadline), ``<stage>_need_s`` (kept for the work after the stage),
+        and the ``scale`` they were planned at (``measured`` 1 when it is :func:`measured_reserve_ratio`'s).
+        A degraded Result's telemetry then says why a stage did not run, not only that it did not."""
+        go = self.ok(reserve_s)
+        if self.deadline is not None:
+            plan = info.setdefault("plan", {})
+            plan[f"{stage}_left_s"] = self.deadline - time.monotonic()
+            plan[f"{stage}_need_s"] = (reserve_s + self.after) * self.reserve_scale()
+            plan["scale"] = self.reserve_scale()
+            plan["measured"] = int(self.measured is not None)
+        return go
+
 
 def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
     """The slant range of i1's altimeter reading (first finite value of a per-frame sequence), or None."""
@@ -1089,7 +1103,7 @@ def _run_v1(
     n_coarse = 0
 
     with _stage(timings, "coarse_dem"):
-        if clock.ok(p.mapping_reserve_s):
+        if clock.decide(info, "coarse_dem", p.mapping_reserve_s):
             cam_c = scaled_camera(camera, 1)
             c1, c2 = cv2.pyrDown(a1), cv2.pyrDown(a2)
             rock_c = cv2.resize(
@@ -1129,7 +1143,7 @@ def _run_v1(
 
     with _stage(timings, "full_dem"):
         # tiny images can leave the half-resolution DEM empty: then sweep the full range
-        if res_c is not None and res_c.complete and clock.ok(p.mapping_reserve_s):
+        if res_c is not None and res_c.complete and clock.decide(info, "full_dem", p.mapping_reserve_s):
             f_lo, f_hi = z_lo, z_hi
             if p.coarse_to_fine and n_coarse >= 50:
                 pad = 2.0 * float(np.max(np.diff(res_c.planes)))
@@ -1548,7 +1562,7 @@ def _run_v2(
     sigma = np.full(i1.shape, np.nan, np.float32)
     f_lo, f_hi = z_lo, z_hi
     with _stage(timings, "coarse_dem"):
-        if clock.ok(reserve):
+        if clock.decide(info, "coarse_dem", reserve):
             cam_c = scaled_camera(camera, 1)
             planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
             res_c = sweep_dem(
@@ -1594,7 +1608,7 @@ def _run_v2(
         ignore = (dark if p.mask_shadow else np.zeros(i1.shape, bool)) | (rocks if p.mask_rocks else False)
         if p.texture_min > 0:  # blank support: nothing to match (its cost curve is flat, whatever SGM says)
             ignore |= local_contrast(a1, p.sgm_radius + p.sgm_mean_radius) < p.texture_min
-        if clock.ok(reserve) and f_hi > f_lo:
+        if clock.decide(info, "full_dem", reserve) and f_hi > f_lo:
             planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]

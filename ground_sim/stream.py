@@ -111,8 +111,32 @@ TELEMETRY_KEYS = (
     "cpu_fraction",
     "peak_rss_mib",
     "stages",
+    "plan",
     "elapsed_s",
 )
+DEM_STAGES = ("coarse_dem", "full_dem")  # the stages whose plan figures say why a Result stopped at its level
+
+
+def plan_note(rec: dict) -> str:
+    """Why a Result stopped below the full level, from its Telemetry's ``plan`` (protocol revision 4); "" when the
+    record has no such figures (an older flight side, a Result at the full level, an unplanned run).
+
+    For the first DEM stage that did not complete: the time left at its start against the time the plan kept for
+    the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
+    3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)". A stage that started with
+    more left than that and still did not finish was cut at its own deadline."""
+    plan = rec.get("plan") or {}
+    skipped = set(rec.get("skipped") or ())
+    for stage in DEM_STAGES:
+        left, need = plan.get(f"{stage}_left_s"), plan.get(f"{stage}_need_s")
+        if stage not in skipped or left is None or need is None:
+            continue
+        how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
+        scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
+        if left <= need:
+            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
+        return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
+    return ""
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -278,6 +302,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         stages=t.stages,
         link=t.link,
     )
+    if t.plan:  # revision 4: the deadline plan's figures
+        rec["plan"] = t.plan
     return rec
 
 
@@ -801,12 +827,14 @@ def main(argv: list[str] | None = None) -> int:
             e2e = rec.get("e2e_latency_s")
             line = rec.get("result_line_s")
             flight = rec.get("flight_latency_s")
+            why = plan_note(rec)
             print(
                 f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
                 + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
                 + (f"{flight:.2f} s" if flight is not None else "? s, no Telemetry")
-                + (f", result line {line:.2f} s)" if line is not None else ")"),
+                + (f", result line {line:.2f} s)" if line is not None else ")")
+                + (f"; {why}" if why else ""),
                 file=sys.stderr,
                 flush=True,
             )

@@ -336,6 +336,8 @@ def _server_note(summary: dict, c: dict) -> str:
 
 
 def summary_table(summary: dict) -> str:
+    from hil_server.run_report import level_text
+
     rows = [
         "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
         "| DEM mean abs m |",
@@ -346,9 +348,7 @@ def summary_table(summary: dict) -> str:
         if r.get("status") == "result":
             outcome = "degraded" if r.get("degraded") else "result"
             dl = "met" if r.get("deadline_met") else "MISSED"
-            level = str(r.get("level"))
-            if r.get("skipped"):
-                level += f" (skipped {', '.join(r['skipped'])})"
+            level = level_text(r)
             rows.append(
                 f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {level} | "
                 f"{_fmt(r.get('e2e_latency_s'))} | {_fmt(r.get('flight_latency_s'))} | "

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.stream import plan_note
 from reports.html import Column, Figure, Headline, Section, Table, write_page
 from reports.plots import (
     Panel,
@@ -50,6 +51,16 @@ def _first(r: dict, *keys: str) -> Any:
     return None
 
 
+def level_text(r: dict) -> str:
+    """A Result's level, the stages it skipped and, when its Telemetry says, why: "coarse (skipped full_dem;
+    full_dem not started: 3.1 s left, 38.0 s kept for the work after it (x254, from the first stages))"."""
+    text = str(r.get("level"))
+    why = plan_note(r)
+    if r.get("skipped"):
+        text += f" (skipped {', '.join(r['skipped'])}" + (f"; {why})" if why else ")")
+    return text
+
+
 def pair_row(r: dict) -> dict[str, Any]:
     """One row of the per-pair table from a run record."""
     sc = r.get("scores", {}) or {}
@@ -57,13 +68,7 @@ def pair_row(r: dict) -> dict[str, Any]:
     return {
         "label": r.get("label"),
         "altitude_m": r.get("altitude_m"),
-        "outcome": (
-            ("degraded " if r.get("degraded") else "")
-            + str(r.get("level"))
-            + (f" (skipped {', '.join(r['skipped'])})" if r.get("skipped") else "")
-        )
-        if ok
-        else f"error: {r.get('code')}",
+        "outcome": ("degraded " if r.get("degraded") else "") + level_text(r) if ok else f"error: {r.get('code')}",
         "e2e_latency_s": _first(r, "e2e_latency_s", "latency_s") if ok else None,
         "flight_latency_s": r.get("flight_latency_s") if ok else None,
         "result_line_s": _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")

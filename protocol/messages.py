@@ -427,7 +427,12 @@ RESULT_FIELD_REV: dict[str, int] = {
     "skipped": 2,  # stop 43, 950eef9 on main: the stages a degraded Result left out
     "elevation_filled_image": 3,  # stop 43, df0387b on branch h2-fills, in main from c71cc53: elevation_image's fills
 }
-RESULT_REV = max(RESULT_FIELD_REV.values())  # the revision this schema decodes and the reference flight side fills
+# The same revisions number the Telemetry's optional fields: a ground of an older revision refuses them too.
+TELEMETRY_FIELD_REV: dict[str, int] = {
+    "plan": 4,  # stop 46: the deadline plan's figures, why a stage did not run
+}
+# the revision this schema decodes and the reference flight side fills
+RESULT_REV = max(*RESULT_FIELD_REV.values(), *TELEMETRY_FIELD_REV.values())
 
 
 @dataclass(frozen=True)
@@ -515,9 +520,14 @@ class Result(Message):
 
 @dataclass(frozen=True)
 class Telemetry(Message):
-    """Timing and resource report for one processed pair (``stages[name] = {wall_s, cpu_s}``)."""
+    """Timing and resource report for one processed pair (``stages[name] = {wall_s, cpu_s}``).
+
+    ``plan`` (revision 4, optional) holds the figures the flight side's deadline plan decided on, numbers only
+    (docs/protocol.md lists the reference flight side's keys: why a DEM stage did not run).
+    """
 
     TYPE: ClassVar[int] = 5
+    OMIT_AT_DEFAULT: ClassVar[frozenset[str]] = frozenset(TELEMETRY_FIELD_REV)
     frame_seqs: tuple = _wire(_ints(2))
     stages: dict = _wire(_stages, factory=dict)
     queue_wait_s: float = _wire(_float(), 0.0)
@@ -527,6 +537,12 @@ class Telemetry(Message):
     deadline_s: float = _wire(_float(finite=False), float("nan"))
     deadline_met: bool = _wire(_bool, True)
     link: dict = _wire(_number_dict, factory=dict)
+    plan: dict = _wire(_number_dict, factory=dict)
+
+    def for_rev(self, rev: int) -> Telemetry:
+        """As :meth:`Result.for_rev`: every field newer than ``rev`` (``TELEMETRY_FIELD_REV``) at its default."""
+        drop = {f.name: _default_of(f) for f in fields(self) if TELEMETRY_FIELD_REV.get(f.name, 0) > rev}
+        return replace(self, **drop) if drop else self
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """Shared by the Result-revision tests: the Result fields of a stop-41 ground and a decoder that knows only the
-fields of a given revision (protocol.messages.RESULT_FIELD_REV), refusing the others as such a ground did."""
+fields of a given revision (protocol.messages.RESULT_FIELD_REV, TELEMETRY_FIELD_REV), refusing the others as such a
+ground did."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from protocol.codec import decode_message
-from protocol.messages import MESSAGE_TYPES, RESULT_FIELD_REV, Message, Result
+from protocol.messages import MESSAGE_TYPES, RESULT_FIELD_REV, TELEMETRY_FIELD_REV, Message, Result, Telemetry
 
 # The Result fields a ground of stop 41 (0950b5b) decodes, as `git show 0950b5b:protocol/messages.py` lists them:
 # written out here, not derived, so that a field added without a revision fails tests/test_result_rev.py.
@@ -35,10 +36,10 @@ STOP41_RESULT_FIELDS = {
 }
 
 
-def _old_result_class(rev: int) -> type[Message]:
-    """The Result class of a ground that decodes revision ``rev``: the same checkers, only the fields it knew, and
+def _old_class(cls: type[Message], field_rev: dict[str, int], rev: int) -> type[Message]:
+    """The class ``cls`` of a ground that decodes revision ``rev``: the same checkers, only the fields it knew, and
     the same refusal of any other field (Message.from_wire); its cross-field shape checks are left out."""
-    known = [f for f in fields(Result) if RESULT_FIELD_REV.get(f.name, 0) <= rev]
+    known = [f for f in fields(cls) if field_rev.get(f.name, 0) <= rev]  # type: ignore[arg-type]
     spec = []
     for f in known:
         if f.default_factory is not MISSING:
@@ -47,13 +48,14 @@ def _old_result_class(rev: int) -> type[Message]:
             spec.append((f.name, object, field(default=f.default, metadata=f.metadata)))
         else:
             spec.append((f.name, object, field(metadata=f.metadata)))
-    return make_dataclass("Result", spec, bases=(Message,), frozen=True, namespace={"TYPE": Result.TYPE})
+    return make_dataclass(cls.__name__, spec, bases=(Message,), frozen=True, namespace={"TYPE": cls.TYPE})
 
 
 def old_ground_decode(body: bytes, rev: int = 0) -> Message:
-    """Decode ``body`` as a ground whose Result schema stops at revision ``rev`` would."""
+    """Decode ``body`` (a Result or a Telemetry) as a ground whose schema stops at revision ``rev`` would."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(MESSAGE_TYPES, Result.TYPE, _old_result_class(rev))
+        mp.setitem(MESSAGE_TYPES, Result.TYPE, _old_class(Result, RESULT_FIELD_REV, rev))
+        mp.setitem(MESSAGE_TYPES, Telemetry.TYPE, _old_class(Telemetry, TELEMETRY_FIELD_REV, rev))
         return decode_message(body)
 
 

@@ -102,9 +102,33 @@ def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_pa
         assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.02)
         hz = np.load(tmp_path / "received" / r["pair_id"] / "hazard.npy")
         assert np.isfinite(hz).any()  # image-only hazards (rocks, shadows) still come back
-    from hil_server.run import verdict_line
+        # and why: the plan's figures came through the HIL server to the ground's records
+        assert r["plan"]["budget_s"] < 0.02 and r["plan"]["coarse_dem_need_s"] > 0
+    from hil_server.run import summary_table, verdict_line
 
     assert verdict_line(s).endswith("; 3 at a coarser level")  # beside the verdict, not only in the table
+    assert summary_table(s).count(" not started: ") == 3  # the table says why each stopped where it did
+
+
+def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
+    from ground_sim.stream import plan_note
+    from hil_server.run_report import level_text
+
+    plan = {"budget_s": 50.0, "coarse_dem_left_s": 41.2, "coarse_dem_need_s": 45.25, "scale": 254.3, "measured": 0}
+    rec = {"level": "image_only", "skipped": ["coarse_dem", "full_dem"], "plan": plan}
+    want = "coarse_dem not started: 41.2 s left, 45.2 s kept for the work after it (x254, from the first stages)"
+    assert plan_note(rec) == want
+    assert level_text(rec) == f"image_only (skipped coarse_dem, full_dem; {want})"
+    # the coarse DEM ran; the full one started with time to spare for what follows, and was cut at its deadline
+    plan = {"coarse_dem_left_s": 30.0, "coarse_dem_need_s": 20.0, "full_dem_left_s": 26.0, "full_dem_need_s": 20.0}
+    rec = {"level": "coarse", "skipped": ["full_dem"], "plan": {**plan, "scale": 4.8, "measured": 1}}
+    assert plan_note(rec) == (
+        "full_dem cut at its deadline: 26.0 s left at its start, 20.0 s kept after it (x5, measured on the previous "
+        "pairs)"
+    )
+    assert plan_note({**rec, "skipped": ["rocks"]}) == ""  # a full-level Result: no DEM stage to explain
+    assert plan_note({"level": "coarse", "skipped": ["full_dem"]}) == ""  # an older flight side: no plan
+    assert level_text({"level": "full", "skipped": []}) == "full"
 
 
 def test_the_verdict_tells_a_coarser_level_from_skipped_stages():

@@ -13,8 +13,22 @@ import numpy as np
 import pytest
 from resultrev import STOP41_RESULT_FIELDS, old_ground_decode, small_result, wire_keys
 
+from ground_sim.stream import plan_note
 from protocol.codec import decode_message, encode_message
-from protocol.messages import RESULT_FIELD_REV, RESULT_REV, Result, SchemaError
+from protocol.messages import RESULT_FIELD_REV, RESULT_REV, TELEMETRY_FIELD_REV, Result, SchemaError, Telemetry
+
+# written out, as STOP41_RESULT_FIELDS: a Telemetry field added without a revision fails the test below
+STOP41_TELEMETRY_FIELDS = {
+    "frame_seqs",
+    "stages",
+    "queue_wait_s",
+    "total_latency_s",
+    "cpu_fraction",
+    "peak_rss_bytes",
+    "deadline_s",
+    "deadline_met",
+    "link",
+}
 
 
 def _full_result() -> Result:
@@ -32,7 +46,9 @@ def test_the_baseline_is_the_result_of_stop_41_and_every_later_field_has_a_revis
     names = {f.name for f in fields(Result)}
     assert names - set(RESULT_FIELD_REV) == STOP41_RESULT_FIELDS
     assert set(RESULT_FIELD_REV) <= names
-    assert sorted(set(RESULT_FIELD_REV.values())) == [1, 2, 3] and max(RESULT_FIELD_REV.values()) == RESULT_REV
+    assert sorted(set(RESULT_FIELD_REV.values())) == [1, 2, 3]
+    assert TELEMETRY_FIELD_REV == {"plan": 4} and RESULT_REV == 4  # revision 4 is the Telemetry's
+    assert {f.name for f in fields(Telemetry)} - set(TELEMETRY_FIELD_REV) == STOP41_TELEMETRY_FIELDS
     for name in RESULT_FIELD_REV:  # only optional fields can be left out: each has a default the decoder restores
         f = next(f for f in fields(Result) if f.name == name)
         assert f.default is not MISSING or f.default_factory is not MISSING
@@ -59,6 +75,24 @@ def test_an_old_ground_refuses_the_new_fields_and_takes_the_result_at_its_revisi
     assert full.for_rev(RESULT_REV) is full and full.for_rev(RESULT_REV + 5) is full
     with pytest.raises(SchemaError, match="unknown fields"):
         old_ground_decode(encode_message(full.for_rev(2)), 1)  # skipped is newer than revision 1
+
+
+def test_an_old_ground_refuses_the_telemetrys_plan_and_takes_it_at_its_revision():
+    """Telemetry.plan (revision 4): a ground of revision 3 refused the whole Telemetry (its pair then completes
+    without the flight's figures), so a flight side told revision 3 leaves it off."""
+    tel = Telemetry(frame_seqs=(4, 5), plan={"budget_s": 41.5, "full_dem_left_s": 3.1, "full_dem_need_s": 38.0})
+    with pytest.raises(SchemaError, match=r"Telemetry: unknown fields \['plan'\]"):
+        old_ground_decode(encode_message(tel), 3)
+    assert old_ground_decode(encode_message(tel), 4).plan == tel.plan  # type: ignore[attr-defined]
+    for rev in range(4):
+        cut = tel.for_rev(rev)
+        assert cut.plan == {} and "plan" not in wire_keys(encode_message(cut))
+        assert old_ground_decode(encode_message(cut), rev).frame_seqs == (4, 5)  # type: ignore[attr-defined]
+    assert tel.for_rev(RESULT_REV) is tel
+    back = decode_message(encode_message(tel))
+    assert isinstance(back, Telemetry) and back.plan == tel.plan
+    with pytest.raises(SchemaError, match="expected a number"):
+        encode_message(replace(tel, plan={"budget_s": "soon"}))
 
 
 def test_the_encoder_leaves_only_the_newer_fields_off_and_only_at_their_default():
@@ -181,6 +215,20 @@ def test_the_flight_fills_only_the_fields_the_grounds_revision_decodes(rev, caps
         body = encode_message(r)
         assert wire_keys(body) <= STOP41_RESULT_FIELDS | {n for n, v in RESULT_FIELD_REV.items() if v <= seen}
         old_ground_decode(body, seen)  # a ground of that revision takes it
+    tels = [m for m in link.sent if isinstance(m, Telemetry)]
+    assert len(tels) == 2
+    for t, r in zip(tels, results):
+        old_ground_decode(encode_message(t), seen)
+        if seen < 4:
+            assert t.plan == {}
+            continue
+        # the figures the plan decided on: the budget it aimed at, and why the full DEM did not run
+        assert 0 < t.plan["budget_s"] < 0.02 and t.plan["line_s"] == 0.0 and t.plan["scale"] > 0
+        assert t.plan["measured"] == 0  # no pair with a DEM yet: planned at the first stages' slowdown
+        why = plan_note({"skipped": r.skipped, "plan": t.plan})
+        assert why.startswith(("coarse_dem not started: ", "full_dem not started: ")), why
+        stage = why.split()[0]
+        assert t.plan[f"{stage}_left_s"] <= t.plan[f"{stage}_need_s"]
     notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("flight: the ground decodes")]
     if seen >= RESULT_REV:
         assert notes == []
@@ -188,4 +236,4 @@ def test_the_flight_fills_only_the_fields_the_grounds_revision_decodes(rev, caps
         (note,) = notes  # once for the descent
         assert f"Result revision {seen} (this flight software sends {RESULT_REV})" in note
         assert "elevation_filled_image" in note and "full_maps was asked for" in note
-        assert ("skipped" in note) == (seen < 2)
+        assert ("skipped" in note) == (seen < 2) and "every Telemetry without plan" in note
