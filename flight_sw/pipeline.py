@@ -122,6 +122,18 @@ AFTER_SLOPE_S = 0.050
 # quiet host, stop 45). It was 0.06 (stop 20's loaded host): a reference above the stage's real cost hides the
 # slowdown from _Clock.learn, and rad750's reserves were planned at 77x while the mapping ran at 110x
 REFINE_S = 0.035
+# the full DEM costs at least this many times the coarse one (CPU, 512^2, one core): 3.60 at least, 4.39 p10, 5.16
+# median on the 64 tuning pairs of the four eval cases (seeds 0-1); held-out seeds 1000-1001: 3.52, 4.42, 5.19
+# (stop 46). Half the least: a full DEM that cannot finish in the time left is not started (gr740 started it with
+# 0.7-6.6 s for a 10-18 s sweep and cut it, and its Results came back that much later)
+FULL_OVER_COARSE_MIN = 2.0
+
+
+def full_dem_fits(room_s: float, coarse_wall_s: float | None) -> bool:
+    """Whether a full DEM can finish in ``room_s`` (wall s before the mapping reserve), knowing that this pair's
+    coarse DEM took ``coarse_wall_s`` (None: no coarse DEM to judge by, so it is tried). The full sweep's cost
+    follows the coarse one's at 3.5-8x (``FULL_OVER_COARSE_MIN``), on the same processor and the same pair."""
+    return coarse_wall_s is None or room_s >= FULL_OVER_COARSE_MIN * coarse_wall_s
 
 
 # what the stages after the DEM (georef, grid, slope, shading slope, hazard call, sites) cost on one core,
@@ -1608,7 +1620,13 @@ def _run_v2(
         ignore = (dark if p.mask_shadow else np.zeros(i1.shape, bool)) | (rocks if p.mask_rocks else False)
         if p.texture_min > 0:  # blank support: nothing to match (its cost curve is flat, whatever SGM says)
             ignore |= local_contrast(a1, p.sgm_radius + p.sgm_mean_radius) < p.texture_min
-        if clock.decide(info, "full_dem", reserve) and f_hi > f_lo:
+        go = clock.decide(info, "full_dem", reserve) and f_hi > f_lo
+        stop_by = clock.before(reserve)
+        if go and stop_by is not None and level == "coarse":
+            coarse_wall = timings["coarse_dem"]["wall_s"]
+            info["plan"]["full_dem_min_s"] = FULL_OVER_COARSE_MIN * coarse_wall
+            go = full_dem_fits(stop_by - time.monotonic(), coarse_wall)
+        if go:
             planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]

@@ -123,8 +123,9 @@ def plan_note(rec: dict) -> str:
 
     For the first DEM stage that did not complete: the time left at its start against the time the plan kept for
     the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
-    3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)". A stage that started with
-    more left than that and still did not finish was cut at its own deadline."""
+    3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)"; or, with ``<stage>_min_s``, the
+    least the stage takes, when the time between the two was shorter than that. A stage that started and still
+    did not finish was cut at its own deadline."""
     plan = rec.get("plan") or {}
     skipped = set(rec.get("skipped") or ())
     for stage in DEM_STAGES:
@@ -135,6 +136,12 @@ def plan_note(rec: dict) -> str:
         scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
         if left <= need:
             return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
+        least = plan.get(f"{stage}_min_s")
+        if least is not None and left - need < least:  # it would have been cut: not started
+            return (
+                f"{stage} not started: {left - need:.1f} s for it ({left:.1f} s left, {need:.1f} s kept after it"
+                f"{scale}), and it takes at least {least:.1f} s"
+            )
         return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
     return ""
 

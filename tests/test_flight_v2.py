@@ -759,3 +759,13 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     assert nominal_r.level == "image_only" and "full_dem" in nominal_r.info["skipped"]
     planned = run_pipeline(i1, i2, p1, p2, cam, deadline_s=10.0, time_scale=1e5, reserve_measured=1e-3)
     assert planned.level == "full" and not planned.degraded
+
+
+def test_a_full_dem_that_cannot_finish_is_not_started():
+    """After a coarse DEM, the full one (3.5-8x its cost on the eval pairs) starts only with twice the coarse DEM's
+    wall time before the mapping reserve; without a coarse DEM to judge by it is tried."""
+    from flight_sw.pipeline import FULL_OVER_COARSE_MIN, full_dem_fits
+
+    assert FULL_OVER_COARSE_MIN == 2.0
+    assert full_dem_fits(7.4, 3.7) and not full_dem_fits(7.3, 3.7)
+    assert not full_dem_fits(0.7, 3.1) and full_dem_fits(0.7, None) and full_dem_fits(-1.0, None)

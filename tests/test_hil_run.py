@@ -126,6 +126,12 @@ def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
         "full_dem cut at its deadline: 26.0 s left at its start, 20.0 s kept after it (x5, measured on the previous "
         "pairs)"
     )
+    # too little time between the two for the least a full DEM takes (2x the coarse one): not started at all
+    rec = {**rec, "plan": {**rec["plan"], "full_dem_min_s": 7.4}}
+    assert plan_note(rec) == (
+        "full_dem not started: 6.0 s for it (26.0 s left, 20.0 s kept after it (x5, measured on the previous pairs)), "
+        "and it takes at least 7.4 s"
+    )
     assert plan_note({**rec, "skipped": ["rocks"]}) == ""  # a full-level Result: no DEM stage to explain
     assert plan_note({"level": "coarse", "skipped": ["full_dem"]}) == ""  # an older flight side: no plan
     assert level_text({"level": "full", "skipped": []}) == "full"
