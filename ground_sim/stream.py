@@ -111,6 +111,7 @@ TELEMETRY_KEYS = (
     "cpu_fraction",
     "peak_rss_mib",
     "stages",
+    "stage_order",
     "plan",
     "elapsed_s",
 )
@@ -307,6 +308,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         cpu_fraction=t.cpu_fraction,
         peak_rss_mib=t.peak_rss_bytes / 2**20,
         stages=t.stages,
+        # the order the flight side listed them in (the reference: the order they ran); the JSON lines sort keys
+        stage_order=list(t.stages),
         link=t.link,
     )
     if t.plan:  # revision 4: the deadline plan's figures

@@ -236,22 +236,35 @@ def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str 
 STAGE_COLOURS = ("#4c78a8", "#72b7b2", "#54a24b", "#eeca3b", "#b279a2", "#ff9da6", "#9d755d", "#bab0ac")
 
 
+def stage_sequence(orders: Sequence[Sequence[str]]) -> list[str]:
+    """One order for the stages of several pairs, each listed in the order it ran (``total`` left out): a stage
+    first seen in a later pair goes right after the stage that preceded it there, so a stage that only some
+    pairs ran (a DEM, the slope fit of a pair that has one) keeps its place in the sequence, not the end."""
+    out: list[str] = []
+    for order in orders:
+        prev: str | None = None
+        for k in order:
+            if k == "total":
+                continue
+            if k not in out:
+                out.insert(0 if prev is None else out.index(prev) + 1, k)
+            prev = k
+    return out
+
+
 def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     """Per pair, left to right from the end of the last frame: the frames' line time (before), compute stages,
     the result's line time, and the deadline as a red tick.
 
     Keys read per record (missing ones are skipped): ``label``, ``frames_link_s``, ``stages``
-    ({name: {"wall_s"}}), ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``.
+    ({name: {"wall_s"}}), ``stage_order`` (the order the stages ran; else the order of ``stages``),
+    ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``.
     """
     plt = _plt()
     recs = [r for r in records if r.get("status", "result") == "result"]
     fig, ax = plt.subplots(figsize=(9, 0.45 * max(3, len(recs)) + 1.2))
     seen: set[str] = set()
-    stage_names: list[str] = []
-    for r in recs:
-        for k in r.get("stages", {}) or {}:
-            if k != "total" and k not in stage_names:
-                stage_names.append(k)
+    stage_names = stage_sequence([r.get("stage_order") or list(r.get("stages") or {}) for r in recs])
     # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over
     palette = STAGE_COLOURS if len(stage_names) <= len(STAGE_COLOURS) else [plt.get_cmap("tab20")(i) for i in range(20)]
     colour = {k: palette[i % len(palette)] for i, k in enumerate(stage_names)}

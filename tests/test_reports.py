@@ -102,3 +102,31 @@ def test_report_opens_in_a_real_browser(tmp_path):
     assert good.images == 4 and good.title == "test report"
     bad = check_page(_page(tmp_path / "b", broken=True))
     assert not bad.ok and bad.broken_images == ["gone.png"]
+
+
+def test_the_timeline_draws_the_stages_in_the_order_they_ran():
+    """The ground's JSON lines sort keys, so ``stages`` reads alphabetically; the record's ``stage_order`` is the
+    order the flight listed them in (pose refinement drew after the output before). A stage only some pairs ran
+    keeps its place in the sequence."""
+    from reports.plots import stage_sequence
+
+    assert stage_sequence([["pose_refine", "coarse_dem", "hazard", "total", "output"]]) == [
+        "pose_refine",
+        "coarse_dem",
+        "hazard",
+        "output",
+    ]
+    image_only = ["validate", "pose_refine", "coarse_dem", "hazard", "fusion", "output"]
+    full = ["validate", "pose_refine", "coarse_dem", "full_dem", "slope", "hazard", "fusion", "output"]
+    assert stage_sequence([image_only, full]) == full
+    assert stage_sequence([]) == []
+    rec = {
+        "label": "1000/500",
+        "stages": {k: {"wall_s": 1.0} for k in sorted(full)},  # as read back from the JSON lines
+        "stage_order": full,
+        "deadline_s": 60.0,
+    }
+    fig = plots.timeline_figure([rec])
+    ax = fig.axes[0]
+    starts = {c.get_label(): c.patches[0].get_x() for c in ax.containers if c.get_label() in full}
+    assert sorted(starts, key=starts.get) == full
