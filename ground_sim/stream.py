@@ -7,7 +7,8 @@ over the link, and records every ``Result``, ``Telemetry`` and ``Error``.
 
 Pacing: ``lockstep`` (default) sends a pair, waits for its outcome, then sends
 the next - clean per-pair latency. ``asap`` sends everything at once and shows
-queueing on a slow processor. Every pair ends in ``results.jsonl`` as
+queueing on a slow processor; each answer is recorded (and shown) as it arrives,
+while the later pairs' frames are still on the line. Every pair ends in ``results.jsonl`` as
 ``result`` or ``error`` with a reason; a pair with no answer within the
 ground's own timeout is recorded as ``error: no_response`` - nothing is lost.
 
@@ -602,6 +603,17 @@ def stream_descent(
             if pkt is not None:
                 handle(pkt, want)
 
+    def drain(want: set[tuple[int, int]]) -> None:
+        """Take what has arrived, without waiting: with ``asap`` pacing the answers to the first pairs come in
+        while the next pairs' frames are still on the line, and are recorded (and shown) then, not after the
+        last pair is sent; so are the refusals among them."""
+        while want and session_ok():
+            pkt = link.recv_packet(timeout=0.0)
+            if pkt is None:
+                take_refusals(want)
+                return
+            handle(pkt, want)
+
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
         counters = {"refused_messages": state.refused_messages, "last_refused": state.last_refused}
@@ -634,6 +646,8 @@ def stream_descent(
             if all(x != "pending" for x in outs):
                 break
             link.flush(timeout=0.2)
+            if pace != "lockstep":  # the earlier pairs' answers, as they come
+                drain(in_flight)
         failed = [f for f in link.failures() if f.seq in ids]
         outs = [link.outcome(i) or "" for i in ids]
         if failed or any(x == "pending" for x in outs):
@@ -664,6 +678,7 @@ def stream_descent(
         by_lower_seq[seq + 1] = o
         return o
 
+    in_flight: set[tuple[int, int]] = set()  # asap pacing: pairs sent and not yet answered
     try:
         for i, entry in enumerate(entries):
             o = new_outcome(i, entry)
@@ -704,6 +719,12 @@ def stream_descent(
                 continue
             if pace == "lockstep":
                 collect(time.monotonic() + timeout + o.link_s, {o.seqs})
+            else:
+                in_flight.add(o.seqs)
+                if o.finished:  # answered while its own frames were on the line (an Error about the first)
+                    in_flight.discard(o.seqs)
+                    record(o)
+                drain(in_flight)
         pending = {
             s for s, o in outcomes.items() if not o.finished and not any(r["frame_seqs"] == list(s) for r in records)
         }

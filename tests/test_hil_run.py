@@ -240,3 +240,17 @@ def test_a_hil_server_that_fails_ends_the_run_at_once_with_its_reason(manifest, 
     # pairs never reached are said to be so, not reported as deadlines missed
     assert s["not_run"] == 3 and "(0 late, 3 errors: 3 not run; " in verdict_line(s)
     assert "MISSED" not in summary_table(s) and summary_table(s).count("| no result |") == 3
+
+
+def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
+    """With ``asap`` the frames of the next pairs are still on the line when the first answers arrive: each is
+    recorded (and shown) then. Before, every answer waited until the last pair was sent (and a refusal among them
+    was matched only then): the first pair's outcome was recorded after all the frames' line time."""
+    s = run(manifest, tmp_path, link="serial", baud=115200, pace="asap")
+    assert s["results"] == 3 and s["errors"] == 0
+    recs = s["records"]
+    assert [r["label"] for r in recs] == PAIRS
+    sending = sum(r["link_s"] for r in recs)  # ~2.9 s per 128 px pair at 115200 baud
+    assert recs[0]["link_s"] > 1.0
+    # recorded while the later pairs' frames were on the line, not after the last was sent
+    assert recs[0]["elapsed_s"] < sending - 0.5 * recs[-1]["link_s"], [(r["elapsed_s"], r["link_s"]) for r in recs]
