@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from ground_sim.descent import render_scenario
+    from ground_sim.stream import plan_note
     from hil_server.budgets import get_budget, load_calibration
     from hil_server.run import RunConfig, run_descent
 
@@ -63,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
                 "p95": s["e2e_latency_p95_s"],
                 "max": s["e2e_latency_max_s"],
                 "flight50": s["flight_latency_p50_s"],
-                "levels": ",".join(sorted({r["level"] for r in recs})) or "-",
+                "levels": ", ".join(r["level"] for r in recs) or "-",  # in descent order
+                # why each degraded pair stopped where it did (the flight's plan telemetry)
+                "why": [f"{r['label']}: {plan_note(r)}" for r in recs if plan_note(r)],
                 "achieved": statistics.median([r["cpu_fraction"] for r in recs]) if recs else float("nan"),
                 "frames_link": statistics.median([r["link_s"] for r in recs]) if recs else float("nan"),
                 "result_link": statistics.median([r["link"].get("result_link_s", 0.0) for r in recs])
@@ -90,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         "Reproduce: `.venv/bin/python bench/bench_hil.py`",
         "",
         "| budget | link | duty | deadline s | results | hit rate | end to end p50 / p95 / max s | flight p50 s "
-        "| level | achieved "
+        "| levels | achieved "
         "| frames link s | result link s |",
         "|---|---|---:|---:|---:|---:|---|---:|---|---:|---:|---:|",
     ]
@@ -101,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['max']:.2f} | {r['flight50']:.2f} | {r['levels']} | {r['achieved']:.3f} | {r['frames_link']:.2f} | "
             f"{r['result_link']:.2f} |"
         )
+    why = [f"- {r['budget']} {w}" for r in rows for w in r["why"]]
+    if why:
+        lines += ["", "Why the degraded pairs stopped where they did (the flight's plan telemetry):", "", *why]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -83,6 +83,7 @@ def _process(args: argparse.Namespace) -> int:
     import numpy as np
 
     from protocol.pairdir import read_pair
+    from protocol.plan import plan_note
     from reports.html import write_atomic
 
     from .pictures import confusion, write_process_report
@@ -175,5 +176,9 @@ def _process(args: argparse.Namespace) -> int:
     if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
         line += f", FP {c['FP_pct']:.2f} %, CDI {c['TP_pct'] + c['TN_pct']:.1f} %"
     print(f"{out}: {line}")
+    if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
+        skipped = list(res.info.get("skipped", ()))
+        why = plan_note(res.info.get("plan"), skipped)
+        print(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
     print(f"report: {out / 'report.html'}")
     return 0

@@ -81,6 +81,7 @@ from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
+from protocol.plan import plan_note as _plan_note
 
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
@@ -116,36 +117,12 @@ TELEMETRY_KEYS = (
     "plan",
     "elapsed_s",
 )
-DEM_STAGES = ("coarse_dem", "full_dem")  # the stages whose plan figures say why a Result stopped at its level
 
 
 def plan_note(rec: dict) -> str:
-    """Why a Result stopped below the full level, from its Telemetry's ``plan`` (protocol revision 4); "" when the
-    record has no such figures (an older flight side, a Result at the full level, an unplanned run).
-
-    For the first DEM stage that did not complete: the time left at its start against the time the plan kept for
-    the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
-    3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)"; or, with ``<stage>_min_s``, the
-    least the stage takes, when the time between the two was shorter than that. A stage that started and still
-    did not finish was cut at its own deadline."""
-    plan = rec.get("plan") or {}
-    skipped = set(rec.get("skipped") or ())
-    for stage in DEM_STAGES:
-        left, need = plan.get(f"{stage}_left_s"), plan.get(f"{stage}_need_s")
-        if stage not in skipped or left is None or need is None:
-            continue
-        how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
-        scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
-        if left <= need:
-            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
-        least = plan.get(f"{stage}_min_s")
-        if least is not None and left - need < least:  # it would have been cut: not started
-            return (
-                f"{stage} not started: {left - need:.1f} s for it ({left:.1f} s left, {need:.1f} s kept after it"
-                f"{scale}), and it takes at least {least:.1f} s"
-            )
-        return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
-    return ""
+    """Why a recorded Result stopped below the full level (:func:`protocol.plan.plan_note` on its ``plan`` and
+    ``skipped``); "" when its Telemetry did not say."""
+    return _plan_note(rec.get("plan"), rec.get("skipped"))
 
 
 def write_atomic(path: Path, text: str) -> None:

@@ -57,12 +57,17 @@ def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
     assert not (out / "sigma.npy").exists() and not (out / "filled.npy").exists()
 
 
-def test_process_deadline_zero_is_degraded(tmp_path):
+def test_process_deadline_zero_is_degraded(tmp_path, capsys):
     d, _ = _pair(tmp_path)
     out = tmp_path / "out0"
     assert main(["process", str(d), "--out", str(out), "--deadline", "0"]) == 0
     doc = json.loads((out / "result.json").read_text())
     assert doc["level"] == "image_only" and doc["degraded"] is True
+    # and why: the plan had no time left for the coarse DEM (result.json keeps the figures)
+    plan = doc["info"]["plan"]
+    assert plan["coarse_dem_left_s"] <= 0 < plan["coarse_dem_need_s"]
+    said = capsys.readouterr().out
+    assert "skipped " in said and "coarse_dem not started: " in said
 
 
 def test_process_bad_input_is_one_line(tmp_path, capsys):

@@ -1,0 +1,43 @@
+"""The Telemetry's ``plan`` (revision 4, docs/protocol.md section 5.4), read for people.
+
+The flight side's deadline plan sends, per DEM stage it weighed, the time left at the stage's start
+(``<stage>_left_s``), the time kept for the work after it (``<stage>_need_s``), optionally the least the stage
+itself takes (``<stage>_min_s``), and the slowdown these were planned at (``scale``, ``measured``). Both the
+ground (its progress lines, run tables and reports) and ``hazard-hil process --deadline`` say with
+:func:`plan_note` why a Result stopped below the full level.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+DEM_STAGES = ("coarse_dem", "full_dem")  # the stages whose plan figures say why a Result stopped at its level
+
+
+def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -> str:
+    """Why a Result stopped below the full level; "" without such figures (an older flight side, a Result at the
+    full level, a run without a deadline).
+
+    For the first DEM stage that did not complete: the time left at its start against the time the plan kept for
+    the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
+    3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)"; or, with ``<stage>_min_s``, the
+    least the stage takes, when the time between the two was shorter than that. A stage that started and still
+    did not finish was cut at its own deadline."""
+    plan = plan or {}
+    skipped = set(skipped or ())
+    for stage in DEM_STAGES:
+        left, need = plan.get(f"{stage}_left_s"), plan.get(f"{stage}_need_s")
+        if stage not in skipped or left is None or need is None:
+            continue
+        how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
+        scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
+        if left <= need:
+            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
+        least = plan.get(f"{stage}_min_s")
+        if least is not None and left - need < least:  # it would have been cut: not started
+            return (
+                f"{stage} not started: {left - need:.1f} s for it ({left:.1f} s left, {need:.1f} s kept after it"
+                f"{scale}), and it takes at least {least:.1f} s"
+            )
+        return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
+    return ""
