@@ -180,7 +180,12 @@ def write_run_report(summary: dict, path: Path) -> Path:
     if any(r.get("status") == "result" for r in records):
         save(timeline_figure(tel), fig_dir / "timeline.png")
         tel_figs.append(
-            Figure("figures/timeline.png", "Per pair: frames on the link, compute stages, result line time.")
+            Figure(
+                "figures/timeline.png",
+                "Per pair: frames on the link, compute stages in the order they ran, result line time; the "
+                "flight's plan: the time it aimed to be done by (filled triangle) and the time its DEM had to stop "
+                "by to leave the reserve for the mapping after it (open triangle).",
+            )
         )
     if records:
         save(latency_figure(tel), fig_dir / "latency.png")

@@ -258,7 +258,9 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
 
     Keys read per record (missing ones are skipped): ``label``, ``frames_link_s``, ``stages``
     ({name: {"wall_s"}}), ``stage_order`` (the order the stages ran; else the order of ``stages``),
-    ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``.
+    ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``, ``plan`` (the flight's deadline plan,
+    docs/protocol.md: two markers, the time it aimed to be done by and the time its DEM had to stop by to leave
+    the reserve for the mapping after it).
     """
     plt = _plt()
     recs = [r for r in records if r.get("status", "result") == "result"]
@@ -285,6 +287,16 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
             w = float(((r.get("stages") or {}).get(k) or {}).get("wall_s", 0.0))
             _bar(ax, y, t, w, colour[k], once(k))
             t += w
+        plan = r.get("plan") or {}
+        if "budget_s" in plan:  # the flight's own plan: the time it aimed to be done by, and the DEM's stop-by
+            end = float(r.get("queue_wait_s") or 0.0) + float(plan["budget_s"])
+            ax.plot([end], [y + 0.38], marker="v", color="#222222", ms=5, ls="none", label=once("plan: done by"))
+            need = next((plan[f"{k}_need_s"] for k in ("full_dem", "coarse_dem") if f"{k}_need_s" in plan), None)
+            if need is not None:
+                ax.plot(
+                    [end - float(need)], [y + 0.38], marker="v", color="#ffffff", mec="#222222", ms=5, ls="none",
+                    label=once("plan: DEM stop-by (then the mapping's reserve)"),
+                )  # fmt: skip
         rl = float(r.get("result_link_s") or 0.0)
         e2e = r.get("e2e_latency_s")
         start = (float(e2e) - rl) if e2e is not None else t

@@ -130,3 +130,8 @@ def test_the_timeline_draws_the_stages_in_the_order_they_ran():
     ax = fig.axes[0]
     starts = {c.get_label(): c.patches[0].get_x() for c in ax.containers if c.get_label() in full}
     assert sorted(starts, key=starts.get) == full
+    # with the flight's plan: when it aimed to be done, and when its DEM had to stop to leave the mapping's reserve
+    rec |= {"queue_wait_s": 0.5, "plan": {"budget_s": 58.0, "coarse_dem_need_s": 44.0, "full_dem_need_s": 40.0}}
+    ax = plots.timeline_figure([rec]).axes[0]
+    marks = {ln.get_label(): ln.get_xdata()[0] for ln in ax.lines if ln.get_label().startswith("plan:")}
+    assert marks == {"plan: done by": 58.5, "plan: DEM stop-by (then the mapping's reserve)": 18.5}
