@@ -766,6 +766,13 @@ class _Clock:
         return go
 
 
+def _note_started(info: dict[str, Any], stage: str) -> None:
+    """``info["plan"][<stage>_started] = 1`` when a DEM stage the plan weighed did start (a planned run only): a
+    stage that was then left out was cut at its deadline, not refused by the plan."""
+    if "plan" in info:
+        info["plan"][f"{stage}_started"] = 1
+
+
 def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
     """The slant range of i1's altimeter reading (first finite value of a per-frame sequence), or None."""
     if altimeter_m is None:
@@ -1575,6 +1582,7 @@ def _run_v2(
     f_lo, f_hi = z_lo, z_hi
     with _stage(timings, "coarse_dem"):
         if clock.decide(info, "coarse_dem", reserve):
+            _note_started(info, "coarse_dem")
             cam_c = scaled_camera(camera, 1)
             planes_c = planes_uniform_disparity(cam_c, pose1, pose2, z_lo, z_hi, p.coarse_step_px)
             res_c = sweep_dem(
@@ -1627,6 +1635,7 @@ def _run_v2(
             info["plan"]["full_dem_min_s"] = FULL_OVER_COARSE_MIN * coarse_wall
             go = full_dem_fits(stop_by - time.monotonic(), coarse_wall)
         if go:
+            _note_started(info, "full_dem")
             planes = _bounded_planes(camera, pose1, pose2, f_lo, f_hi, p.disparity_step_px, p.min_planes, p.max_planes)
             info["full_planes"] = int(planes.size)
             info["full_range_m"] = [f_lo, f_hi]

@@ -2,7 +2,8 @@
 
 The flight side's deadline plan sends, per DEM stage it weighed, the time left at the stage's start
 (``<stage>_left_s``), the time kept for the work after it (``<stage>_need_s``), optionally the least the stage
-itself takes (``<stage>_min_s``), and the slowdown these were planned at (``scale``, ``measured``). Both the
+itself takes (``<stage>_min_s``), ``<stage>_started`` (1) for a stage that did start, and the slowdown these
+were planned at (``scale``, ``measured``). Both the
 ground (its progress lines, run tables and reports) and ``hazard-hil process --deadline`` say with
 :func:`plan_note` why a Result stopped below the full level.
 """
@@ -22,7 +23,7 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
     the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
     3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)"; or, with ``<stage>_min_s``, the
     least the stage takes, when the time between the two was shorter than that. A stage that started and still
-    did not finish was cut at its own deadline."""
+    did not finish was cut at its own deadline (taken as such when the flight side does not say which started)."""
     plan = plan or {}
     skipped = set(skipped or ())
     for stage in DEM_STAGES:
@@ -39,5 +40,8 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
                 f"{stage} not started: {left - need:.1f} s for it ({left:.1f} s left, {need:.1f} s kept after it"
                 f"{scale}), and it takes at least {least:.1f} s"
             )
+        if any(k.endswith("_started") for k in plan) and not plan.get(f"{stage}_started"):
+            # a flight side that says which stages started, and not this one: left out for another reason
+            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
         return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
     return ""

@@ -133,6 +133,10 @@ def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
         "and it takes at least 7.4 s"
     )
     assert plan_note({**rec, "skipped": ["rocks"]}) == ""  # a full-level Result: no DEM stage to explain
+    # a flight side that says which stages started: one that did was cut, one that did not was left out
+    started = {**plan, "coarse_dem_started": 1, "scale": 4.8, "measured": 1}
+    assert plan_note({**rec, "plan": {**started, "full_dem_started": 1}}).startswith("full_dem cut at its deadline")
+    assert plan_note({**rec, "plan": started}).startswith("full_dem not started: 26.0 s left, 20.0 s kept")
     assert plan_note({"level": "coarse", "skipped": ["full_dem"]}) == ""  # an older flight side: no plan
     assert level_text({"level": "full", "skipped": []}) == "full"
 
