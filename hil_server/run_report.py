@@ -196,7 +196,12 @@ def write_run_report(summary: dict, path: Path) -> Path:
             fig_dir / "resources.png",
         )
         tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and private RSS peak vs the budget."))
-    sections.append(Section("Telemetry", figures=tel_figs))
+    from hil_server.run import phase_note
+
+    phases = phase_note(s)
+    sections.append(
+        Section("Telemetry", paragraphs=[phases[0].upper() + phases[1:] + "."] if phases else [], figures=tel_figs)
+    )
     for r in records:
         figs = _pair_figures(r, fig_dir)
         if figs:

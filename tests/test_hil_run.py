@@ -36,6 +36,11 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     s = run(manifest, tmp_path, scenario="approach")  # ignored: the manifest says what was streamed
     assert [r["label"] for r in s["records"]] == PAIRS
     assert s["scenario"] == "vertical" and "**vertical** over **zmq**" in (tmp_path / "summary.md").read_text()
+    # where the flight's time went, by phase: every phase of the reference pipeline timed, nothing unnamed
+    ph = s["flight_phases_p50_s"]
+    assert set(ph) == {"before the DEM", "DEM", "mapping", "fusion", "output"} and min(ph.values()) > 0
+    assert "Flight time per pair (median): before the DEM " in (tmp_path / "summary.md").read_text()
+    assert "Flight time per pair (median): before the DEM " in (tmp_path / "report.html").read_text()
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
@@ -258,3 +263,25 @@ def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
     assert recs[0]["link_s"] > 1.0
     # recorded while the later pairs' frames were on the line, not after the last was sent
     assert recs[0]["elapsed_s"] < sending - 0.5 * recs[-1]["link_s"], [(r["elapsed_s"], r["link_s"]) for r in recs]
+
+
+def test_the_flight_time_is_told_by_phase():
+    from hil_server.run import phase_note, phase_times
+
+    def rec(**walls: float) -> dict:
+        return {"status": "result", "stages": {k: {"wall_s": v, "cpu_s": 0.0} for k, v in walls.items()}}
+
+    records = [
+        rec(pose_refine=9.0, range=2.0, coarse_dem=3.0, hazard=9.0, slope=7.0, fusion=4.0, output=3.0, total=30.0),
+        rec(pose_refine=8.0, range=2.0, coarse_dem=1.0, hazard=7.0, slope=5.0, fusion=2.0, output=1.0, my_stage=0.5),
+        {"status": "error", "code": "no_response"},
+        rec(),  # a Result whose Telemetry was refused: no stages
+    ]
+    ph = phase_times(records)
+    # medians over the two timed Results; "total" is not a phase; a stage the table does not know is "other"
+    assert ph == {"before the DEM": 10.5, "DEM": 2.0, "mapping": 14.0, "fusion": 3.0, "output": 2.0, "other": 0.25}
+    assert phase_note({"flight_phases_p50_s": ph}) == (
+        "flight time per pair (median): before the DEM 10.50 s, DEM 2.00 s, mapping 14.00 s (44 %), fusion 3.00 s, "
+        "output 2.00 s, other 0.25 s"
+    )
+    assert phase_times(records[2:]) == {} and phase_note({"flight_phases_p50_s": {}}) == ""
