@@ -58,10 +58,22 @@ EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every 
 # on gr740 (0.6 %) on the 2026-12-03 host; a user's program may need more, and the HIL server ends a run whose
 # flight program cannot come up (exit 4), so the long wait is only a backstop there.
 EXTERNAL_HELLO_TIMEOUT_S = 120.0
+BOOT_CPU_S = 0.42  # our flight process's imports and warm-up, CPU s (33 s at 1.3 % duty, 68 s at 0.6 %, above)
 EMULATED_HELLO_TIMEOUT_S = 900.0
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
 SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time to end its session and log its counters
+
+
+def boot_hint(fraction: float) -> str:
+    """'; it boots in about 68 s at this duty cycle (...)' when our flight process's boot (``BOOT_CPU_S``) takes
+    long enough at ``fraction`` that the wait for its Hello would otherwise look like a hang; else ''."""
+    if not fraction > 0:
+        return ""
+    boot_s = BOOT_CPU_S / fraction
+    if boot_s < 10.0:
+        return ""
+    return f"; it boots in about {boot_s:.0f} s at this duty cycle (imports and warm-up, ~{BOOT_CPU_S:g} s of CPU)"
 
 
 @dataclass
@@ -846,6 +858,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 log(
                     f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}, memory "
                     f"{budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
+                    + ("" if cfg.flight_cmd else boot_hint(fraction))
                 )
                 for doubt in doubts:
                     log(f"run: warning: {doubt}")

@@ -285,3 +285,16 @@ def test_the_flight_time_is_told_by_phase():
         "output 2.00 s, other 0.25 s"
     )
     assert phase_times(records[2:]) == {} and phase_note({"flight_phases_p50_s": {}}) == ""
+
+
+def test_a_slow_budget_says_how_long_its_flight_process_takes_to_boot():
+    """At 0.6 % duty our flight process's imports and warm-up take about a minute: said up front, so the ground's
+    'waiting for the flight computer's Hello' lines do not read as a hang."""
+    from hil_server.run import BOOT_CPU_S, boot_hint
+
+    assert (
+        boot_hint(0.0063)
+        == f"; it boots in about 67 s at this duty cycle (imports and warm-up, ~{BOOT_CPU_S:g} s of CPU)"
+    )
+    assert boot_hint(0.0129).startswith("; it boots in about 33 s")
+    assert boot_hint(0.25) == "" and boot_hint(1.0) == "" and boot_hint(0.0) == ""
