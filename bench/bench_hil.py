@@ -33,9 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from ground_sim.descent import render_scenario
-    from ground_sim.stream import plan_note
     from hil_server.budgets import get_budget, load_calibration
     from hil_server.run import RunConfig, run_descent
+    from protocol.plan import plan_note
 
     work = Path(tempfile.mkdtemp(prefix="bench_hil_"))
     pairs = args.pairs.split(",")
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                 "flight50": s["flight_latency_p50_s"],
                 "levels": ", ".join(r["level"] for r in recs) or "-",  # in descent order
                 # why each degraded pair stopped where it did (the flight's plan telemetry)
-                "why": [f"{r['label']}: {plan_note(r)}" for r in recs if plan_note(r)],
+                "why": [f"{r['label']}: {w}" for r in recs if (w := plan_note(r.get("plan"), r.get("skipped")))],
                 "achieved": statistics.median([r["cpu_fraction"] for r in recs]) if recs else float("nan"),
                 "frames_link": statistics.median([r["link_s"] for r in recs]) if recs else float("nan"),
                 "result_link": statistics.median([r["link"].get("result_link_s", 0.0) for r in recs])

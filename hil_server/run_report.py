@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ground_sim.stream import plan_note
+from protocol.plan import plan_note
 from reports.html import Column, Figure, Headline, Section, Table, write_page
 from reports.plots import (
     Panel,
@@ -55,7 +55,7 @@ def level_text(r: dict) -> str:
     """A Result's level, the stages it skipped and, when its Telemetry says, why: "coarse (skipped full_dem;
     full_dem not started: 3.1 s left, 38.0 s kept for the work after it (x254, from the first stages))"."""
     text = str(r.get("level"))
-    why = plan_note(r)
+    why = plan_note(r.get("plan"), r.get("skipped"))
     if r.get("skipped"):
         text += f" (skipped {', '.join(r['skipped'])}" + (f"; {why})" if why else ")")
     return text
