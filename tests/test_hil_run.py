@@ -266,7 +266,11 @@ def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
 
 
 def test_the_flight_time_is_told_by_phase():
-    from hil_server.run import phase_note, phase_times
+    from flight_sw.pipeline import MAPPING_STAGES
+    from hil_server.run import STAGE_PHASES, phase_note, phase_times
+
+    # the server names the flight's phases itself (it does not import the pipeline for them): kept in step here
+    assert STAGE_PHASES["mapping"] == MAPPING_STAGES
 
     def rec(**walls: float) -> dict:
         return {"status": "result", "stages": {k: {"wall_s": v, "cpu_s": 0.0} for k, v in walls.items()}}
