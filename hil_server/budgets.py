@@ -12,6 +12,14 @@ where ``host_rate`` is this host's single-core rate on the reference workload
 the same workload was measured (recorded in ``budgets.toml``). So a budget means
 the same on any host; a faster host simply gets a smaller duty cycle.
 
+That ``duty`` is the *effective* fraction of this core the budget stands for. The
+throttle's stop-and-go slices make each CPU-second it grants worth only
+``eta(f) < 1`` of a full-speed one (cold caches after every stop;
+:mod:`hil_server.calibrate`, "Throttle efficiency"), so the duty cycle applied is
+the ``f`` with ``f eta(f) = duty`` (:meth:`Budget.duty`), ``eta`` interpolated in
+log f between the calibration's measured points. The flight is told the
+slowdown ``1 / duty``, what a real computer of that speed would show.
+
 ``hazard-hil calibrate`` measures ``host_rate`` and stores it per host (hostname
 + CPU model) in ``$HAZARD_HIL_HOME/calibration.json`` (default
 ``~/.cache/hazard-hil/``). Without a calibration the host is assumed to be as
@@ -21,6 +29,7 @@ fast as the anchor, with an :class:`UncalibratedWarning`.
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import json
 import math
 import os
@@ -29,6 +38,7 @@ import socket
 import sys
 import tomllib
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -72,10 +82,37 @@ class HostCalibration:
     # the libraries the reference workload ran on ("" in calibrations stored before they were recorded): the
     # workload is OpenCV and numpy code, so a new version of either can change the rate on the same core
     libraries: str = ""
+    # (duty cycle, eta) measured by the calibration, ascending (module doc); () in calibrations stored before
+    # stop 47, which then run slow budgets up to ~1.8x slower than they stand for
+    throttle_efficiency: tuple[tuple[float, float], ...] = ()
 
     def host_dmips(self, anchor: Anchor) -> float:
         """host_dmips = anchor.dmips * units_per_s / anchor.units_per_s."""
         return anchor.dmips * self.units_per_s / anchor.units_per_s
+
+    def efficiency(self, fraction: float) -> float:
+        """eta(fraction): linear in log f between the measured points and (1, 1), the end value beyond them;
+        1 when nothing was measured."""
+        pts = [(f, e) for f, e in self.throttle_efficiency if f < 1.0] + [(1.0, 1.0)]
+        if fraction >= 1.0 or len(pts) == 1:
+            return 1.0
+        if fraction <= pts[0][0]:
+            return pts[0][1]
+        for (f0, e0), (f1, e1) in itertools.pairwise(pts):
+            if fraction <= f1:
+                w = math.log(fraction / f0) / math.log(f1 / f0)
+                return e0 + w * (e1 - e0)
+        return 1.0  # unreachable: the last point is f = 1
+
+
+@dataclass(frozen=True)
+class Duty:
+    """How a budget runs here: ``applied`` is the throttle's duty cycle, ``effective = applied x efficiency``
+    the fraction of this core's full-speed work it delivers (the budget's ``cpu_dmips / host_dmips``)."""
+
+    applied: float
+    effective: float
+    efficiency: float
 
 
 @dataclass(frozen=True)
@@ -108,11 +145,29 @@ class Budget:
         )
         return self.anchor.dmips
 
-    def duty_fraction(self, cal: HostCalibration | None) -> float:
-        """CPU duty cycle in (0, 1]: min(1, cpu_dmips / host_dmips); 'host' budgets -> 1.0."""
+    def duty(self, cal: HostCalibration | None) -> Duty:
+        """The effective fraction ``min(1, cpu_dmips / host_dmips)`` and the duty cycle ``f`` that delivers it,
+        ``f eta(f) = effective`` (module doc; bisection in log f, eta from ``cal``); 'host' budgets -> 1.0."""
         if self.cpu_dmips is None:
-            return 1.0
-        return min(1.0, self.cpu_dmips / self.host_dmips(cal))
+            return Duty(1.0, 1.0, 1.0)
+        want = min(1.0, self.cpu_dmips / self.host_dmips(cal))
+        if cal is None or not cal.throttle_efficiency or want >= 1.0:
+            return Duty(want, want, 1.0)
+        lo, hi = math.log(want), 0.0  # f eta(f) <= want at f = want, and 1 >= want at f = 1
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            f = math.exp(mid)
+            lo, hi = (mid, hi) if f * cal.efficiency(f) < want else (lo, mid)
+        f = math.exp(hi)
+        return Duty(f, want, want / f)
+
+    def duty_fraction(self, cal: HostCalibration | None) -> float:
+        """The duty cycle the throttle applies (:meth:`duty`); 'host' budgets -> 1.0."""
+        return self.duty(cal).applied
+
+    def effective_fraction(self, cal: HostCalibration | None) -> float:
+        """The fraction of this core's full-speed work the budget stands for (:meth:`duty`)."""
+        return self.duty(cal).effective
 
 
 # Peak private resident memory (RssAnon + RssShmem, hil_server.procemu) of our flight process (Python, numpy,
@@ -336,7 +391,17 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
     try:
         if not isinstance(entry, dict):
             raise ValueError("not a JSON object")
-        cal = HostCalibration(**entry)
+        eff = entry.get("throttle_efficiency", ())
+        if not isinstance(eff, (list, tuple)) or not all(
+            isinstance(pt, (list, tuple))
+            and len(pt) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pt)
+            and 0 < pt[0] < 1
+            and 0 < pt[1] <= 1
+            for pt in eff
+        ):
+            raise ValueError(f"throttle_efficiency must be [duty in (0, 1), eta in (0, 1]] pairs, got {eff!r}")
+        cal = HostCalibration(**{**entry, "throttle_efficiency": tuple(sorted((float(f), float(e)) for f, e in eff))})
         for name in ("units_per_s", "spread", "seconds"):
             v = getattr(cal, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -405,16 +470,31 @@ def calibration_notes(cal: HostCalibration | None, now: _dt.datetime | None = No
             f"this host's calibration was noisy (batch spread {cal.spread:.0%} > {NOISY_CALIBRATION_SPREAD:.0%}: "
             "other work shared the core); re-run `hazard-hil calibrate` on a quiet host"
         )
+    if not cal.throttle_efficiency:
+        notes.append(
+            "this host's calibration has no throttle efficiency (stored before it was measured): slow budgets run "
+            "up to ~1.8x slower than they stand for; re-run `hazard-hil calibrate`"
+        )
     return notes
 
 
-def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, save: bool = True) -> HostCalibration:
-    """Measure this host's single-core reference-workload rate and (by default) store it."""
-    from hil_server.calibrate import measure_rate
+def calibrate_host(
+    seconds: float = 3.0,
+    path: str | os.PathLike | None = None,
+    save: bool = True,
+    efficiency_fractions: tuple[float, ...] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> HostCalibration:
+    """Measure this host's single-core reference-workload rate and the throttle's efficiency at
+    ``efficiency_fractions`` (default :data:`hil_server.calibrate.EFFICIENCY_FRACTIONS`; ``()`` skips it), and (by
+    default) store them."""
+    from hil_server.calibrate import EFFICIENCY_FRACTIONS, measure_rate, measure_throttle_efficiency
 
     if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 < seconds <= 600):
         raise BudgetError(f"calibration time must be in (0, 600] s, got {seconds!r}")
     rate = measure_rate(float(seconds))
+    fractions = EFFICIENCY_FRACTIONS if efficiency_fractions is None else efficiency_fractions
+    eff = measure_throttle_efficiency(fractions, progress=progress) if fractions else ()
     cal = HostCalibration(
         key=host_key(),
         hostname=socket.gethostname(),
@@ -424,6 +504,7 @@ def calibrate_host(seconds: float = 3.0, path: str | os.PathLike | None = None, 
         seconds=rate.cpu_s,
         measured_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         libraries=workload_libraries(),
+        throttle_efficiency=eff,
     )
     if save:
         p = Path(path) if path is not None else calibration_path()

@@ -11,12 +11,31 @@ index. The speed of a core is its rate in units per CPU-second on one thread.
 The rate is measured on CPU time (``time.process_time``), not wall time, so
 that other processes sharing the host shift it little; the median over many
 units rejects the odd slow unit (cache eviction, frequency change).
+
+**Throttle efficiency.** The emulated processor delivers a duty cycle of this
+core in stop-and-go slices (:mod:`hil_server.procemu`): about 1 ms running
+after 20-200 ms stopped at the slow budgets' duty cycles. Each slice starts
+with its data evicted from the caches by whatever ran meanwhile, so a
+CPU-second inside the throttle does less work than one at full speed:
+on the 2026-12-04 host the reference workload took 1.20x its CPU at duty 0.2
+with 1 ms slices, 1.51x at 0.05, 1.70x at 0.013 and 1.75x at 0.0063, and the
+flight pipeline 1.43x at 0.05 (docs/benchmarks/throttle.md). A real flight
+computer does not stop every millisecond, so
+:func:`measure_throttle_efficiency` measures ``eta(f)`` = (CPU per unit at
+full speed) / (CPU per unit throttled at duty f) over a grid of duty cycles,
+and a budget's duty cycle is raised until ``f eta(f)`` is the fraction of
+this core it stands for (:meth:`hil_server.budgets.Budget.duty`).
 """
 
 from __future__ import annotations
 
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +44,9 @@ IMAGE_SIZE = 512
 PLANES_PER_UNIT = 8
 SAD_WINDOW = 17
 _SEED = 20240611
+# the duty cycles whose throttle efficiency `hazard-hil calibrate` measures (gr740's raised duty is ~0.011)
+EFFICIENCY_FRACTIONS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+PROBE_UNITS = 3  # units per measurement; about 26 s for the whole grid, most of it at the lowest duty
 
 
 @dataclass(frozen=True)
@@ -111,6 +133,90 @@ def measure_rate(seconds: float = 1.0, batch: int = 2) -> WorkloadRate:
     return WorkloadRate(median, (p90 - p10) / median, units, cpu_s, checksum)
 
 
+def _probe(units: int) -> int:
+    """The probe process: warm up, then time ``units`` units at a time (CPU s each, one JSON list per line):
+    once at once, then once per line read from stdin."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    img1, img2, K = make_inputs()
+    checksum = run_unit(img1, img2, K)
+
+    def batch() -> list[float]:
+        out = []
+        for _ in range(units):
+            t0 = time.process_time()
+            if run_unit(img1, img2, K) != checksum:
+                raise RuntimeError("reference workload is not deterministic")
+            out.append(time.process_time() - t0)
+        return out
+
+    print(json.dumps(batch()), flush=True)
+    for _ in sys.stdin:
+        print(json.dumps(batch()), flush=True)
+    return 0
+
+
+def measure_throttle_efficiency(
+    fractions: Sequence[float] = EFFICIENCY_FRACTIONS,
+    units: int = PROBE_UNITS,
+    period_s: float = 0.02,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[tuple[float, float], ...]:
+    """``(f, eta(f))`` per duty cycle (module doc), eta = median CPU per unit at full speed / median throttled.
+
+    One probe process on the core the emulated processor uses (the highest allowed), warmed up at full speed;
+    each throttled batch is followed by a full-speed one, so a drift of the host's speed cancels. eta is
+    clipped to [0.05, 1]: above 1 is noise (no compensation), and a throttle that wasted 95 % would be broken.
+    """
+    from hil_server.procemu import Throttle, thread_env
+
+    if not fractions or not all(0.0 < f < 1.0 for f in fractions):
+        raise ValueError(f"duty cycles must be in (0, 1), got {fractions!r}")
+    if units < 1:
+        raise ValueError(f"units must be >= 1, got {units}")
+    core = max(os.sched_getaffinity(0))
+    popen = subprocess.Popen(
+        [sys.executable, "-m", "hil_server.calibrate", "--probe", str(units)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        env={**os.environ, **thread_env()},
+        preexec_fn=lambda: os.sched_setaffinity(0, {core}),
+        text=True,
+    )
+    stdin, stdout = popen.stdin, popen.stdout
+    assert stdin is not None and stdout is not None
+
+    def batch(go: bool = True) -> list[float]:
+        if go:
+            stdin.write("go\n")
+            stdin.flush()
+        line = stdout.readline()
+        if not line:
+            raise RuntimeError(f"the throttle-efficiency probe ended (exit {popen.wait()})")
+        return [float(x) for x in json.loads(line)]
+
+    out: list[tuple[float, float]] = []
+    try:
+        full = batch(go=False)
+        for f in sorted(fractions, reverse=True):  # the quick ones first
+            t0 = time.monotonic()
+            with Throttle(popen, f, period_s):
+                throttled = batch()
+            full += batch()
+            eta = min(1.0, max(0.05, statistics.median(full) / statistics.median(throttled)))
+            out.append((float(f), eta))
+            if progress is not None:
+                took = time.monotonic() - t0
+                progress(f"duty {f:g}: a throttled CPU-second does {eta:.2f} of a full-speed one ({took:.0f} s)")
+    finally:
+        popen.kill()
+        popen.wait()
+    return tuple(sorted(out))
+
+
 if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--probe":
+        sys.exit(_probe(int(sys.argv[2])))
     r = measure_rate(3.0)
     print(f"{r.units_per_s:.3f} units/s (spread {r.spread:.1%}, {r.units} units, checksum {r.checksum})")

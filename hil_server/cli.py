@@ -135,11 +135,20 @@ def _register_emulation(subparsers: argparse._SubParsersAction) -> None:
 
     c = subparsers.add_parser(
         "calibrate",
-        help="measure this host's single-core speed and store it",
+        help="measure this host's single-core speed and the throttle's efficiency, and store them",
         description="Run the reference workload (plane-sweep image operations) on one "
-        "thread and store this host's speed for the budgets.",
+        "thread, then under the emulated processor's throttle at a grid of duty cycles, and store this host's "
+        "speed and how much work a throttled CPU-second does, for the budgets.",
     )
     c.add_argument("--seconds", type=float, default=3.0, help="CPU seconds to measure (default 3)")
+    c.add_argument(
+        "--duty-cycles",
+        type=_duty_list,
+        default=None,
+        metavar="F,F,...",
+        help="duty cycles in (0, 1) to measure the throttle's efficiency at (default "
+        "0.005,0.01,0.02,0.05,0.1,0.2,0.5: about 25 s)",
+    )
     c.add_argument("--file", default=None, help="budget file whose anchor to report against")
     c.set_defaults(func=_calibrate)
 
@@ -173,22 +182,26 @@ def _budgets(args: argparse.Namespace) -> int:
             f"(calibrated {cal.measured_at}, {calibration_path()})"
         )
     print(
-        f"{'budget':<15}{'DMIPS':>8}{'duty':>9}{'slower':>8}{'memory':>10}{'max image':>11}{'deadline':>10}  "
-        f"{'link':<16}description"
+        f"{'budget':<15}{'DMIPS':>8}{'share':>9}{'slower':>8}{'duty':>9}{'memory':>10}{'max image':>11}"
+        f"{'deadline':>10}  {'link':<16}description"
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UncalibratedWarning)  # said once above
         for b in budgets.values():
             dmips = "host" if b.is_host else f"{b.cpu_dmips:.0f}"
             link = b.link if b.baud is None else f"{b.link} {b.baud}"
-            duty = b.duty_fraction(cal)
+            duty = b.duty(cal)
             side = max_image_side(b.memory_mib)
             print(
-                f"{b.name:<15}{dmips:>8}{duty:>9.2%}{1 / duty:>7.1f}x{b.memory_mib:>6} MiB{f'{side}x{side}':>11}"
-                f"{b.deadline_s:>9g}s  {link:<16}{b.description}"
+                f"{b.name:<15}{dmips:>8}{duty.effective:>9.2%}{1 / duty.effective:>7.1f}x{duty.applied:>9.2%}"
+                f"{b.memory_mib:>6} MiB{f'{side}x{side}':>11}{b.deadline_s:>9g}s  {link:<16}{b.description}"
             )
             if args.sources:
                 print(f"{'':<15}source: {b.source}")
+    print(
+        "share: the fraction of one host core's full-speed work the budget stands for; duty: the CPU duty cycle "
+        "that delivers it (higher: a throttled CPU-second does less work, `hazard-hil calibrate` measures how much)"
+    )
     print(
         f"max image: the largest square camera whose flight process fits the memory ceiling (peak private RSS ~"
         f"{FLIGHT_BASE_MIB:.0f} MiB + {FLIGHT_BYTES_PER_PIXEL:.0f} B/pixel, +{FLIGHT_RSS_MARGIN:.0%}); "
@@ -197,17 +210,33 @@ def _budgets(args: argparse.Namespace) -> int:
     return 0
 
 
+def _duty_list(text: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected duty cycles like 0.01,0.1, got {text!r}") from None
+    if not out or not all(0.0 < f < 1.0 for f in out):
+        raise argparse.ArgumentTypeError(f"each duty cycle must be in (0, 1), got {text!r}")
+    return out
+
+
 def _calibrate(args: argparse.Namespace) -> int:
     from hil_server.budgets import BudgetError, calibrate_host, calibration_path, load_budgets
 
     if not 0 < args.seconds <= 600:
         raise BudgetError(f"--seconds must be in (0, 600], got {args.seconds:g}")
     anchor = next(iter(load_budgets(args.file).values())).anchor
-    print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread...")
-    cal = calibrate_host(seconds=args.seconds)
+    print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread, then the throttle's")
+    print("efficiency at each duty cycle (about 25 s for the default ones)...")
+    cal = calibrate_host(
+        seconds=args.seconds,
+        efficiency_fractions=args.duty_cycles,
+        progress=lambda line: print(f"  {line}", flush=True),
+    )
     print(
         f"{cal.units_per_s:.2f} units/s (spread p10-p90 {cal.spread:.0%}); anchor {anchor.units_per_s:g} units/s "
-        f"= {anchor.dmips:.0f} DMIPS -> this host {cal.host_dmips(anchor):.0f} DMIPS per core"
+        f"= {anchor.dmips:.0f} DMIPS -> this host {cal.host_dmips(anchor):.0f} DMIPS per core; each budget's duty "
+        "cycle is raised by 1/efficiency (`hazard-hil budgets`)"
     )
     print(f"stored for {cal.key} ({cal.libraries}) in {calibration_path()}")
     return 0

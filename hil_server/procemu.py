@@ -49,6 +49,7 @@ from __future__ import annotations
 import atexit
 import collections
 import ctypes
+import math
 import os
 import resource
 import signal
@@ -271,6 +272,7 @@ class _Child:
         self.exited = threading.Event()
         self.stop_threads = threading.Event()
         self.per_task: dict[int, tuple[int, int]] = {}
+        self.cpu0_ns = self.wait0_ns = 0  # where the throttle's accounting starts
         self.cpu_ns = 0
         self.wait_ns = 0
         self.stopped = False
@@ -310,6 +312,89 @@ class _Child:
             elif sig == signal.SIGCONT:
                 self.stopped = False
             return True
+
+
+def on_slice_s(fraction: float, period_s: float = 0.02) -> tuple[float, float]:
+    """(running slice, stopped time) per duty cycle at ``fraction``: P = max(period_s, MIN_ON_SLICE_S (1 - f) / f)
+    stopped, then f P / (1 - f) running; (inf, 0) when not throttled."""
+    if fraction >= 1.0:
+        return math.inf, 0.0
+    period = max(period_s, MIN_ON_SLICE_S * (1.0 - fraction) / fraction)
+    return fraction * period / (1.0 - fraction), period
+
+
+def duty_cycle(child: _Child, f: float, period_s: float) -> None:
+    """SIGSTOP/SIGCONT ``child`` until it exits or ``child.stop_threads`` is set (module doc: the closed loop).
+
+    CPU and wait time count from ``child.cpu0_ns`` / ``child.wait0_ns`` and wall time from ``child.t0``.
+    """
+    # Stopped time per cycle P, raised so the running slice f P / (1 - f) is >= MIN_ON_SLICE_S.
+    _, period = on_slice_s(f, period_s)
+    cap = f * period
+    # Account from the child's start, not this thread's: CPU it used before the
+    # first sample (exec, interpreter start-up) is paid back by a longer first stop.
+    t0 = child.t0
+    offset = 0.0  # credit dropped by the cap, so idle time is not banked
+    last_avail = last_cpu = 0.0
+    try:
+        while not child.stop_threads.is_set() and not child.exited.is_set():
+            cpu_ns, wait_ns = child.sample()
+            avail = (time.monotonic() - t0) - (wait_ns - child.wait0_ns) / 1e9
+            cpu = (cpu_ns - child.cpu0_ns) / 1e9
+            credit = f * avail - cpu - offset
+            # Cap only credit the child left unused while released and mostly idle; credit
+            # gained by our own late wake-ups while it was stopped is kept (no bias).
+            # (judged over >= 1 ms: right after SIGCONT it has not had time to run yet).
+            span = avail - last_avail
+            idle = not child.stopped and span >= 0.001 and (cpu - last_cpu) < 0.5 * span
+            last_avail, last_cpu = avail, cpu
+            if idle and credit > cap:
+                offset += credit - cap
+                credit = cap
+            if child.stopped:
+                if credit >= cap:
+                    child.signal(signal.SIGCONT)
+                    continue
+                # Stopped: credit grows at f per second.
+                time.sleep(max((cap - credit) / f, 0.0002))
+            else:
+                if credit <= 0.0:
+                    child.signal(signal.SIGSTOP)
+                    continue
+                # Running flat out, credit falls at (1 - f) per second.
+                time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
+    finally:
+        child.signal(signal.SIGCONT)  # never leave it stopped
+
+
+class Throttle:
+    """Duty-cycle a process that is already running, from now on, until the ``with`` block ends.
+
+    :class:`EmulatedProcessor` throttles its child from exec; this is for a probe that must start (import,
+    warm up) at full speed first, as the calibration's throttle-efficiency measurement does
+    (:func:`hil_server.calibrate.measure_throttle_efficiency`). The process is not reaped here.
+    """
+
+    def __init__(self, popen: subprocess.Popen, fraction: float, period_s: float = 0.02) -> None:
+        ProcessorSpec(cpu_fraction=fraction, throttle_period_s=period_s)  # the same checks
+        self.fraction, self.period_s = float(fraction), float(period_s)
+        self._child = _Child(popen, -1, time.monotonic())
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> Throttle:
+        c = self._child
+        c.t0 = time.monotonic()
+        c.cpu0_ns, c.wait0_ns = c.sample()
+        if self.fraction < 1.0:
+            self._thread = threading.Thread(target=duty_cycle, args=(c, self.fraction, self.period_s), daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._child.stop_threads.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._child.signal(signal.SIGCONT)
 
 
 class EmulatedProcessor:
@@ -384,6 +469,8 @@ class EmulatedProcessor:
                 resource.setrlimit(resource.RLIMIT_AS, (as_bytes, as_bytes))
 
         capture = "stderr" not in popen_kwargs
+        if capture and any(popen_kwargs.get(k) for k in ("text", "universal_newlines", "encoding", "errors")):
+            raise ProcessorError("text mode would decode the captured stderr too: read bytes and decode them yourself")
         if capture:
             popen_kwargs["stderr"] = subprocess.PIPE
         try:
@@ -530,44 +617,7 @@ class EmulatedProcessor:
     # --- helper threads -------------------------------------------------------------------
 
     def _throttle(self, child: _Child) -> None:
-        f = self.spec.cpu_fraction
-        # Stopped time per cycle P, raised so the running slice f P / (1 - f) is >= MIN_ON_SLICE_S.
-        period = max(self.spec.throttle_period_s, MIN_ON_SLICE_S * (1.0 - f) / f)
-        cap = f * period
-        # Account from the child's start, not this thread's: CPU it used before the
-        # first sample (exec, interpreter start-up) is paid back by a longer first stop.
-        t0 = child.t0
-        offset = 0.0  # credit dropped by the cap, so idle time is not banked
-        last_avail = last_cpu = 0.0
-        try:
-            while not child.stop_threads.is_set() and not child.exited.is_set():
-                cpu_ns, wait_ns = child.sample()
-                avail = (time.monotonic() - t0) - wait_ns / 1e9
-                cpu = cpu_ns / 1e9
-                credit = f * avail - cpu - offset
-                # Cap only credit the child left unused while released and mostly idle; credit
-                # gained by our own late wake-ups while it was stopped is kept (no bias).
-                # (judged over >= 1 ms: right after SIGCONT it has not had time to run yet).
-                span = avail - last_avail
-                idle = not child.stopped and span >= 0.001 and (cpu - last_cpu) < 0.5 * span
-                last_avail, last_cpu = avail, cpu
-                if idle and credit > cap:
-                    offset += credit - cap
-                    credit = cap
-                if child.stopped:
-                    if credit >= cap:
-                        child.signal(signal.SIGCONT)
-                        continue
-                    # Stopped: credit grows at f per second.
-                    time.sleep(max((cap - credit) / f, 0.0002))
-                else:
-                    if credit <= 0.0:
-                        child.signal(signal.SIGSTOP)
-                        continue
-                    # Running flat out, credit falls at (1 - f) per second.
-                    time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
-        finally:
-            child.signal(signal.SIGCONT)  # never leave it stopped
+        duty_cycle(child, self.spec.cpu_fraction, self.spec.throttle_period_s)
 
     def _watchdog(self, child: _Child) -> None:
         limit = self.spec.memory_mib * MIB if self.spec.memory_mib is not None else None

@@ -94,7 +94,7 @@ def effective_speed(budget_name: str) -> tuple[float, float]:
         warnings.simplefilter("ignore", UncalibratedWarning)  # the run itself already warned
         cal = load_calibration()
         host = b.host_dmips(cal)
-        return host * b.duty_fraction(cal), b.anchor.dmips
+        return host * b.effective_fraction(cal), b.anchor.dmips
 
 
 def _pct(values: list[float], q: float) -> float:

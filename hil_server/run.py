@@ -419,7 +419,10 @@ def summary_table(summary: dict) -> str:
                 "| — | — | — |"
             )
     s = summary
-    where = f"on budget **{s['budget']}** (CPU fraction {_fmt(s.get('cpu_fraction'), '.4f')})" if s["budget"] else ""
+    eff = s.get("effective_fraction")
+    at_full = f", {_fmt(eff, '.4f')} at full speed" if eff is not None and eff < s.get("cpu_fraction", eff) else ""
+    frac = _fmt(s.get("cpu_fraction"), ".4f")
+    where = f"on budget **{s['budget']}** (CPU fraction {frac}{at_full})" if s["budget"] else ""
     head = (
         f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']} {where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
@@ -692,7 +695,9 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     budget = get_budget(cfg.budget, cfg.budget_file)
     emulated = cfg.flight == "emulated"
     cal = load_calibration() if emulated else None
-    fraction = budget.duty_fraction(cal) if emulated else float("nan")
+    duty = budget.duty(cal) if emulated else None
+    fraction = duty.applied if duty is not None else float("nan")
+    effective = duty.effective if duty is not None else float("nan")
     # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)
     doubts = calibration_notes(cal) if cal is not None and not budget.is_host else []
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
@@ -857,9 +862,10 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     sup_cmd += ["--flight-cmd", cfg.flight_cmd]
                 who = f"flight program `{cfg.flight_cmd}`" if cfg.flight_cmd else "our flight software"
                 log(
-                    f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}, memory "
-                    f"{budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
-                    + ("" if cfg.flight_cmd else boot_hint(fraction))
+                    f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}"
+                    + (f" (= {effective:.4f} at full speed)" if effective < fraction else "")
+                    + f", memory {budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
+                    + ("" if cfg.flight_cmd else boot_hint(effective))
                 )
                 for doubt in doubts:
                     log(f"run: warning: {doubt}")
@@ -934,6 +940,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             "interrupted_by": interrupted,
             "started": started,
             "cpu_fraction": fraction,
+            "effective_fraction": effective,
             "deadline_s": deadline,
             "line_faults": {d: ch.stats for d, ch in channels.items()},
             "memory_mib": budget.memory_mib if emulated else None,

@@ -251,6 +251,7 @@ class Supervisor:
         heartbeat_s: float = 0.25,
         grace_s: float | None = None,
         cpu_fraction: float = 1.0,
+        effective_fraction: float | None = None,
         log=print,
     ) -> None:
         self.ground = ground_link
@@ -260,7 +261,9 @@ class Supervisor:
         self.flight_cmd = flight_cmd
         self.link_fault = parse_link_fault(link_fault)
         self.heartbeat_s = heartbeat_s
-        self.cpu_fraction = cpu_fraction
+        self.cpu_fraction = cpu_fraction  # the throttle's duty cycle
+        # the work it delivers (hil_server.budgets.Duty): what the flight's clock runs at
+        self.effective_fraction = cpu_fraction if effective_fraction is None else effective_fraction
         self.grace_s = grace_s
         self.log = log
         self.events: queue.Queue = queue.Queue()
@@ -393,8 +396,9 @@ class Supervisor:
         elif epoch != self.ground_epoch:
             return True  # from a session whose Hello we never saw: nothing to attribute it to
         elif isinstance(msg, Config):
-            # the emulated slowdown, so the flight software can scale reserves it plans in unthrottled seconds
-            self.config = replace(msg, options={**msg.options, "time_scale": 1.0 / self.cpu_fraction})
+            # the emulated slowdown, so the flight software can scale reserves it plans in unthrottled seconds: per
+            # full-speed second, not per throttled CPU-second (those do less work, hil_server.budgets)
+            self.config = replace(msg, options={**msg.options, "time_scale": 1.0 / self.effective_fraction})
             assert self.flight is not None
             self.flight.link.send(self.config)
         elif isinstance(msg, Frame):
@@ -739,7 +743,7 @@ class Supervisor:
             self._complete_without_telemetry(
                 waiting, f"none {late:.1f} s after its Result (hard limit {self._hard_limit():.1f} s)"
             )
-        hb_limit = HEARTBEAT_TIMEOUT_S / max(self.cpu_fraction, 0.01)
+        hb_limit = HEARTBEAT_TIMEOUT_S / max(self.effective_fraction, 0.01)
         assert self.flight_reader is not None
         if now - self.flight_reader.last_message > hb_limit:
             self.counters["hangs"] += 1
@@ -844,7 +848,8 @@ def main(argv: list[str] | None = None) -> int:
         parse_link_fault(args.link_fault)
         if args.flight_cmd:
             flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now
-        fraction = budget.duty_fraction(load_calibration())
+        duty = budget.duty(load_calibration())
+        fraction = duty.applied
         spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
         link = open_link(
             args.link,
@@ -877,11 +882,13 @@ def main(argv: list[str] | None = None) -> int:
         link_fault=args.link_fault,
         flight_cmd=args.flight_cmd,
         cpu_fraction=fraction,
+        effective_fraction=duty.effective,
         log=log,
     )
     limit = apply_memory_ceiling(args.memory_mib)
     log(
-        f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f}, memory {budget.memory_mib} MiB, "
+        f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f} (x{duty.efficiency:.2f} = "
+        f"{duty.effective:.4f} of full speed), memory {budget.memory_mib} MiB, "
         f"deadline {budget.deadline_s} s; own memory ceiling {limit / 2**20:.0f} MiB address space"
     )
     failed: str | None = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -82,8 +83,10 @@ def test_calibrate_stores_per_host_and_round_trips(home):
         }
     }
     (home / "calibration.json").write_text(json.dumps(other))
-    cal = B.calibrate_host(seconds=0.3)
+    cal = B.calibrate_host(seconds=0.3, efficiency_fractions=(0.25,))
     assert cal.units_per_s > 0 and cal.key == B.host_key()
+    ((f, eta),) = cal.throttle_efficiency
+    assert f == 0.25 and 0.05 <= eta <= 1.0
     stored = json.loads((home / "calibration.json").read_text())
     assert set(stored) == {"otherhost|Some CPU", B.host_key()}  # other hosts' entries kept
     assert B.load_calibration() == cal
@@ -140,7 +143,7 @@ def test_cli_budgets_and_calibrate(home, capsys):
     assert "not calibrated" in err
     for name in ("host", "rad750", "gr740", "snapdragon801"):
         assert name in out
-    assert main(["calibrate", "--seconds", "0.3"]) == 0
+    assert main(["calibrate", "--seconds", "0.3", "--duty-cycles", "0.3"]) == 0
     out, _ = capsys.readouterr()
     assert "DMIPS" in out and (home / "calibration.json").exists()
     assert main(["budgets"]) == 0
@@ -148,7 +151,8 @@ def test_cli_budgets_and_calibrate(home, capsys):
     assert "not calibrated" not in err and "calibrated" in out
     rad = next(line for line in out.splitlines() if line.startswith("rad750"))
     cal = B.load_calibration()
-    assert f"{B.get_budget('rad750').duty_fraction(cal):.2%}" in rad
+    duty = B.get_budget("rad750").duty(cal)
+    assert f"{duty.effective:.2%}" in rad and f"{duty.applied:.2%}" in rad
     assert main(["calibrate", "--seconds", "-1"]) == 2
     assert "--seconds" in capsys.readouterr().err
 
@@ -159,9 +163,15 @@ def test_calibration_notes_say_why_a_host_speed_is_doubtful(home, capsys):
 
     now = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
     fresh = dataclasses.replace(
-        _cal(60.0), measured_at="2026-05-30T00:00:00+00:00", spread=0.05, libraries=B.workload_libraries()
+        _cal(60.0),
+        measured_at="2026-05-30T00:00:00+00:00",
+        spread=0.05,
+        libraries=B.workload_libraries(),
+        throttle_efficiency=((0.01, 0.6), (0.1, 0.75)),
     )
     assert B.calibration_notes(fresh, now) == []
+    (note,) = B.calibration_notes(dataclasses.replace(fresh, throttle_efficiency=()), now)
+    assert "throttle efficiency" in note and "hazard-hil calibrate" in note
     assert "not calibrated" in B.calibration_notes(None, now)[0]
     old = dataclasses.replace(fresh, measured_at="2026-01-01T00:00:00+00:00")
     assert "days old" in " ".join(B.calibration_notes(old, now))
@@ -171,10 +181,10 @@ def test_calibration_notes_say_why_a_host_speed_is_doubtful(home, capsys):
     noisy = dataclasses.replace(fresh, spread=0.6)
     assert "noisy" in " ".join(B.calibration_notes(noisy, now))
     # a calibration stored before the libraries were recorded still loads, without a library note
-    entry = {k: v for k, v in dataclasses.asdict(old).items() if k != "libraries"}
+    entry = {k: v for k, v in dataclasses.asdict(old).items() if k not in ("libraries", "throttle_efficiency")}
     (home / "calibration.json").write_text(json.dumps({B.host_key(): entry}))
     loaded = B.load_calibration()
-    assert loaded is not None and loaded.libraries == ""
+    assert loaded is not None and loaded.libraries == "" and loaded.throttle_efficiency == ()
     assert not any("installed now" in n for n in B.calibration_notes(loaded))
     # ... and `budgets` says it is stale, on stderr, beside the table
     assert main(["budgets"]) == 0
@@ -183,9 +193,39 @@ def test_calibration_notes_say_why_a_host_speed_is_doubtful(home, capsys):
     (home / "calibration.json").write_text(json.dumps({B.host_key(): {**entry, "libraries": 3}}))
     with pytest.raises(InputError, match="libraries"):
         B.load_calibration()
+    for bad in ([[0.01, 1.5]], [[1.0, 0.5]], [[0.01]], "x", [[0.01, float("nan")]]):
+        (home / "calibration.json").write_text(json.dumps({B.host_key(): {**entry, "throttle_efficiency": bad}}))
+        with pytest.raises(InputError, match="throttle_efficiency"):
+            B.load_calibration()
 
 
 def test_calibrate_records_the_workload_libraries(home):
-    cal = B.calibrate_host(seconds=0.2)
+    cal = B.calibrate_host(seconds=0.2, efficiency_fractions=())
     assert cal.libraries == B.workload_libraries() and "opencv" in cal.libraries
     assert B.load_calibration() == cal
+
+
+def test_duty_cycle_is_raised_until_the_throttle_delivers_the_budgets_share():
+    """A throttled CPU-second does eta(f) of a full-speed one; the applied duty f solves f eta(f) = share."""
+    import dataclasses
+
+    cal = dataclasses.replace(_cal(60.0), throttle_efficiency=((0.005, 0.6), (0.05, 0.7), (0.5, 0.9)))
+    assert cal.efficiency(0.005) == 0.6 and cal.efficiency(0.001) == 0.6  # the end value beyond the points
+    assert cal.efficiency(0.05) == pytest.approx(0.7) and cal.efficiency(1.0) == 1.0
+    assert cal.efficiency(math.sqrt(0.005 * 0.05)) == pytest.approx(0.65)  # linear in log f
+    for name in ("gr740", "rad750", "snapdragon801"):
+        b = B.get_budget(name)
+        share = b.cpu_dmips / cal.host_dmips(b.anchor)
+        d = b.duty(cal)
+        assert d.effective == pytest.approx(share)
+        assert d.applied * cal.efficiency(d.applied) == pytest.approx(share, rel=1e-6)
+        assert d.applied > 1.1 * share and d.efficiency == pytest.approx(share / d.applied)
+        assert b.duty_fraction(cal) == d.applied and b.effective_fraction(cal) == d.effective
+        # without a measured efficiency the share is applied as it is
+        assert b.duty(_cal(60.0)).applied == pytest.approx(share)
+    assert B.get_budget("host").duty(cal) == B.Duty(1.0, 1.0, 1.0)
+    # near a whole core the raised duty stays within it; a budget faster than this core gets all of it
+    snap = B.get_budget("snapdragon801")
+    host_dmips = cal.host_dmips(snap.anchor)
+    assert 0.95 < dataclasses.replace(snap, cpu_dmips=0.95 * host_dmips).duty(cal).applied <= 1.0
+    assert dataclasses.replace(snap, cpu_dmips=2 * host_dmips).duty(cal) == B.Duty(1.0, 1.0, 1.0)

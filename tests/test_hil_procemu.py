@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -12,7 +13,15 @@ import time
 import psutil
 import pytest
 
-from hil_server.procemu import EmulatedProcessor, ExitReport, ProcessorError, ProcessorSpec, thread_env
+from hil_server.procemu import (
+    EmulatedProcessor,
+    ExitReport,
+    ProcessorError,
+    ProcessorSpec,
+    Throttle,
+    on_slice_s,
+    thread_env,
+)
 from protocol.errors import InputError
 
 PY = sys.executable
@@ -262,3 +271,58 @@ def test_bad_argv_is_input_error():
     with pytest.raises(InputError):
         proc.start([])
     assert proc.stats()["cpu_s"] == 0.0
+
+
+def test_throttle_adopts_a_running_process_from_now_on():
+    """The calibration's probe starts at full speed and is throttled only for its measured batches: the CPU it
+    used before does not count against it, work inside the block runs at the fraction, and it leaves running."""
+    code = textwrap.dedent("""
+        import sys, time
+        t = time.process_time()
+        while time.process_time() - t < 0.3: pass  # start-up at full speed, before the throttle
+        print("ready", flush=True)
+        for line in sys.stdin:
+            w, c = time.monotonic(), time.process_time()
+            while time.process_time() - c < 0.06: pass
+            print(time.monotonic() - w, flush=True)
+    """)
+    core = max(os.sched_getaffinity(0))
+    popen = subprocess.Popen(
+        [PY, "-c", code],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: os.sched_setaffinity(0, {core}),
+    )
+    try:
+        assert popen.stdout.readline().strip() == "ready"
+        with Throttle(popen, 0.2) as th:
+            popen.stdin.write("go\n")
+            popen.stdin.flush()
+            throttled = float(popen.stdout.readline())
+            assert th.fraction == 0.2
+        popen.stdin.write("go\n")
+        popen.stdin.flush()
+        free = float(popen.stdout.readline())
+    finally:
+        popen.kill()
+        popen.wait()
+    # 0.06 s of CPU at 0.2 -> ~0.3 s (not the ~1.8 s that paying back the start-up first would take)
+    assert 0.2 < throttled < 0.6, throttled
+    assert free < 0.15, free  # released at the end of the block
+    with pytest.raises(InputError):
+        Throttle(popen, 0.0)
+
+
+def test_slow_duty_cycles_run_1_ms_slices():
+    assert on_slice_s(1.0) == (math.inf, 0.0)
+    run, stop = on_slice_s(0.25)
+    assert stop == 0.02 and run == pytest.approx(0.02 / 3)
+    run, stop = on_slice_s(0.0063)
+    assert run == pytest.approx(0.001) and stop == pytest.approx(0.001 * 0.9937 / 0.0063)
+
+
+def test_text_mode_is_refused_while_stderr_is_captured():
+    proc = EmulatedProcessor(ProcessorSpec())
+    with pytest.raises(InputError, match="text mode"):
+        proc.start([PY, "-c", "pass"], stdout=subprocess.PIPE, text=True)
