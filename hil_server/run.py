@@ -58,7 +58,8 @@ EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every 
 # on gr740 (0.6 %) on the 2026-12-03 host; a user's program may need more, and the HIL server ends a run whose
 # flight program cannot come up (exit 4), so the long wait is only a backstop there.
 EXTERNAL_HELLO_TIMEOUT_S = 120.0
-BOOT_CPU_S = 0.42  # our flight process's imports and warm-up, CPU s (33 s at 1.3 % duty, 68 s at 0.6 %, above)
+BOOT_CPU_S = 0.26  # our flight process's imports and warm-up in full-speed CPU s: booted in 20-30 s on rad750
+# (0.0111 of full speed) and 40-50 s on gr740 (0.0054), stop 47
 EMULATED_HELLO_TIMEOUT_S = 900.0
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
@@ -66,14 +67,16 @@ SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time t
 
 
 def boot_hint(fraction: float) -> str:
-    """'; it boots in about 68 s at this duty cycle (...)' when our flight process's boot (``BOOT_CPU_S``) takes
-    long enough at ``fraction`` that the wait for its Hello would otherwise look like a hang; else ''."""
+    """'; it boots in about 48 s at this speed (...)' when our flight process's boot (``BOOT_CPU_S``) takes long
+    enough at ``fraction`` (of full speed, :class:`hil_server.budgets.Duty`) that the wait for its Hello would
+    otherwise look like a hang; else ''."""
     if not fraction > 0:
         return ""
     boot_s = BOOT_CPU_S / fraction
     if boot_s < 10.0:
         return ""
-    return f"; it boots in about {boot_s:.0f} s at this duty cycle (imports and warm-up, ~{BOOT_CPU_S:g} s of CPU)"
+    cpu = f"~{BOOT_CPU_S:g} s of full-speed CPU"
+    return f"; it boots in about {boot_s:.0f} s at this speed (imports and warm-up, {cpu})"
 
 
 @dataclass
