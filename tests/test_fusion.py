@@ -732,3 +732,39 @@ def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser
     assert (out.elevation_step, out.psafe_step) == (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP)
     out, line_s, grown = fm.fit_to_line(full, rebuild, 0.0, time.monotonic(), 0.0)
     assert out is full and grown == 1.0 and line_s == 0.0  # no line rate (ZeroMQ): sent as it is
+
+
+def test_a_result_fits_its_line_with_the_time_its_sending_encodes_it(monkeypatch):
+    """The send encodes the Result again after ``fit_to_line`` measured it: on a slow processor that takes as long
+    as the measuring encode (0.09 s at 23 % duty), so a Result whose line time alone just fits is late. Here each
+    encode takes 0.3 s and the line time fits with 0.2 s to spare: the Result must go out coarser (the code before
+    stop 47 sent it as it was and it ended ~0.1 s past the deadline)."""
+    import functools
+    import time
+
+    import flight_sw.flight_main as fm
+    from flight_sw.pipeline import run_pipeline
+    from protocol.codec import encode_message
+    from protocol.messages import Config
+
+    cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
+    res = run_pipeline(imgs[0], imgs[1], poses[0], poses[1], cam, preset="fast")
+    baud = 9600.0
+    cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast",
+                 options={"link_baud": baud, "elevation_step": 1, "psafe_step": 1})  # fmt: skip
+    fp = fm.FlightProcess(_Link(), fm.FaultPlan())
+    args = (res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
+    full = fp._result_message(*args)
+    full_s = fm.expected_line_s(len(encode_message(full)), baud)
+    rebuild = functools.partial(fp._result_message, *args)
+
+    def slow_encode(msg):
+        time.sleep(0.3)
+        return encode_message(msg)
+
+    monkeypatch.setattr(fm, "encode_message", slow_encode)
+    due = time.monotonic() + full_s + 0.5
+    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, due, full_s)
+    slow_encode(out)  # what the link's send then does
+    assert out.elevation_step > 1 and grown > 1.0
+    assert time.monotonic() + line_s <= due + 0.02  # off the line by its due time
