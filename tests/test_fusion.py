@@ -697,11 +697,10 @@ def test_the_flight_sends_elevations_in_the_configs_unit_and_refuses_a_bad_one()
     assert fp.config is None
 
 
-def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser_grids():
-    """``fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
-    left; the state grid and the sites are kept; with time to spare the Result is sent as the Config asks."""
+def _result_to_fit():
+    """A host-budget Result of a roof pair at the Config's finest steps, for ``fit_to_line``: (flight process, the
+    ``_result_message`` arguments, the Result, its line time, a rebuild at other steps, the baud)."""
     import functools
-    import time
 
     import flight_sw.flight_main as fm
     from flight_sw.pipeline import run_pipeline
@@ -717,7 +716,18 @@ def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser
     args = (res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
     full = fp._result_message(*args)
     full_s = fm.expected_line_s(len(encode_message(full)), baud)
-    rebuild = functools.partial(fp._result_message, *args)
+    return fp, args, full, full_s, functools.partial(fp._result_message, *args), baud
+
+
+def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser_grids():
+    """``fit_to_line``: the elevation step doubles, then the P(safe) step, until the Result's line time fits the time
+    left; the state grid and the sites are kept; with time to spare the Result is sent as the Config asks."""
+    import time
+
+    import flight_sw.flight_main as fm
+    from protocol.codec import encode_message
+
+    fp, args, full, full_s, rebuild, baud = _result_to_fit()
     out, line_s, grown = fm.fit_to_line(full, rebuild, baud, time.monotonic() + 3 * full_s, full_s)
     assert out is full and grown == 1.0 and line_s == full_s  # time to spare: not even measured
     smallest = fp._result_message(*args, (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP))
@@ -739,24 +749,12 @@ def test_a_result_fits_its_line_with_the_time_its_sending_encodes_it(monkeypatch
     as the measuring encode (0.09 s at 23 % duty), so a Result whose line time alone just fits is late. Here each
     encode takes 0.3 s and the line time fits with 0.2 s to spare: the Result must go out coarser (the code before
     stop 47 sent it as it was and it ended ~0.1 s past the deadline)."""
-    import functools
     import time
 
     import flight_sw.flight_main as fm
-    from flight_sw.pipeline import run_pipeline
     from protocol.codec import encode_message
-    from protocol.messages import Config
 
-    cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
-    res = run_pipeline(imgs[0], imgs[1], poses[0], poses[1], cam, preset="fast")
-    baud = 9600.0
-    cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=30.0, preset="fast",
-                 options={"link_baud": baud, "elevation_step": 1, "psafe_step": 1})  # fmt: skip
-    fp = fm.FlightProcess(_Link(), fm.FaultPlan())
-    args = (res, (1, 2), cfg, res.grid, res.sites, res.info.get("no_site_reason"))
-    full = fp._result_message(*args)
-    full_s = fm.expected_line_s(len(encode_message(full)), baud)
-    rebuild = functools.partial(fp._result_message, *args)
+    _, _, full, full_s, rebuild, baud = _result_to_fit()
 
     def slow_encode(msg):
         time.sleep(0.3)
