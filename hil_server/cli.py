@@ -472,11 +472,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from hil_server.budgets import calibrate_host, load_calibration
     from hil_server.run import run_descent
 
+    cfg = _config(args)  # bad options are refused before the half-minute calibration below
     if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate, about 30 s)")
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
-    summary = run_descent(_config(args))
+    summary = run_descent(cfg)
     print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
     return _finish(summary, args, "demo")

@@ -208,7 +208,7 @@ def test_calibrate_replaces_a_corrupt_store_and_keeps_the_old_one(home, monkeypa
     home.mkdir(parents=True)
     (home / "calibration.json").write_text('{"x": ')
     monkeypatch.setattr(C, "measure_rate", lambda s: C.WorkloadRate(60.0, 0.01, 6, s, 1))
-    cal = B.calibrate_host(seconds=0.1)
+    cal = B.calibrate_host(seconds=0.1, efficiency_fractions=())
     assert B.load_calibration() == cal
     assert (home / "calibration.json.corrupt").read_text() == '{"x": '  # nothing lost
     assert "kept it as" in capsys.readouterr().err
