@@ -91,9 +91,9 @@ class HostCalibration:
         return anchor.dmips * self.units_per_s / anchor.units_per_s
 
     def efficiency(self, fraction: float) -> float:
-        """eta(fraction): linear in log f between the measured points and (1, 1), the end value beyond them;
-        1 when nothing was measured."""
-        pts = [(f, e) for f, e in self.throttle_efficiency if f < 1.0] + [(1.0, 1.0)]
+        """eta(fraction): linear in log f between the measured points made non-decreasing in f
+        (:func:`monotone_efficiency`) and (1, 1), the end value beyond them; 1 when nothing was measured."""
+        pts = monotone_efficiency([(f, e) for f, e in self.throttle_efficiency if f < 1.0]) + [(1.0, 1.0)]
         if fraction >= 1.0 or len(pts) == 1:
             return 1.0
         if fraction <= pts[0][0]:
@@ -103,6 +103,24 @@ class HostCalibration:
                 w = math.log(fraction / f0) / math.log(f1 / f0)
                 return e0 + w * (e1 - e0)
         return 1.0  # unreachable: the last point is f = 1
+
+
+def monotone_efficiency(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The measured ``(f, eta)`` made non-decreasing in f by pooling adjacent violators (equal weights).
+
+    A slice after a longer stop starts colder, so eta cannot fall as f rises; a measured dip is noise (repeated
+    calibrations on one host spread by about +-5 %, once by 20 %, docs/benchmarks/throttle.md section 5).
+    """
+    pts = sorted(points)
+    blocks: list[list[float]] = []  # [sum of eta, count]
+    for _, e in pts:
+        blocks.append([e, 1.0])
+        while len(blocks) > 1 and blocks[-2][0] / blocks[-2][1] > blocks[-1][0] / blocks[-1][1]:
+            total, n = blocks.pop()
+            blocks[-1][0] += total
+            blocks[-1][1] += n
+    values = [b[0] / b[1] for b in blocks for _ in range(int(b[1]))]
+    return [(f, v) for (f, _), v in zip(pts, values, strict=True)]
 
 
 @dataclass(frozen=True)

@@ -224,6 +224,14 @@ def test_duty_cycle_is_raised_until_the_throttle_delivers_the_budgets_share():
         # without a measured efficiency the share is applied as it is
         assert b.duty(_cal(60.0)).applied == pytest.approx(share)
     assert B.get_budget("host").duty(cal) == B.Duty(1.0, 1.0, 1.0)
+    # a dip in the measured points is noise: a slice after a longer stop cannot start warmer
+    dip = [(0.005, 0.55), (0.01, 0.50), (0.02, 0.57), (0.05, 0.49), (0.1, 0.76)]
+    smooth = B.monotone_efficiency(dip)
+    assert [f for f, _ in smooth] == [f for f, _ in dip]
+    assert [e for _, e in smooth] == pytest.approx([0.525, 0.525, 0.53, 0.53, 0.76])
+    assert B.monotone_efficiency([(0.01, 0.6), (0.1, 0.8)]) == [(0.01, 0.6), (0.1, 0.8)]
+    noisy = dataclasses.replace(cal, throttle_efficiency=tuple(dip))
+    assert noisy.efficiency(0.05) == pytest.approx(0.53) and noisy.efficiency(0.001) == pytest.approx(0.525)
     # near a whole core the raised duty stays within it; a budget faster than this core gets all of it
     snap = B.get_budget("snapdragon801")
     host_dmips = cal.host_dmips(snap.anchor)
