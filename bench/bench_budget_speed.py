@@ -1,6 +1,6 @@
-"""Does an emulated budget run our flight pipeline at the speed it stands for? -> docs/benchmarks/throttle.md.
+"""Does an emulated budget run our flight pipeline at the speed it stands for? -> docs/benchmarks/budget_speed.md.
 
-    .venv/bin/python bench/bench_budget_speed.py [--budgets rad750 gr740] [--runs 2] [--uncompensated]
+    .venv/bin/python bench/bench_budget_speed.py [--budgets rad750 gr740] [--runs 2] [--uncompensated] [--out F]
 
 A budget stands for ``share = cpu_dmips / host_dmips`` of one host core (hil_server/budgets.py), so a pair whose
 `fast` pipeline takes C CPU-seconds at full speed should take ``C / share`` of wall time on it. One probe process,
@@ -54,11 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budgets", nargs="+", default=["snapdragon801", "rad750", "gr740"])
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--uncompensated", action="store_true", help="also run at duty = share (the old rule)")
+    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "budget_speed.md"), help="'' to print only")
     args = ap.parse_args(argv)
     cal = load_calibration()
     if cal is None or not cal.throttle_efficiency:
         print("this host has no throttle efficiency on record: run `hazard-hil calibrate` first", file=sys.stderr)
         return 2
+    load = os.getloadavg()[0]
     core = max(os.sched_getaffinity(0))
     popen = subprocess.Popen(
         [sys.executable, "-c", PROBE.format(root=str(ROOT))],
@@ -107,17 +109,44 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         popen.kill()
         popen.wait()
-    print()
-    print(
+    eff = ", ".join(f"{e:.2f} at {f:g}" for f, e in cal.throttle_efficiency)
+    lines = [
+        "# A budget's speed on our flight pipeline",
+        "",
+        f"Measured {time.strftime('%Y-%m-%d')} on {cal.cpu_model} ({os.cpu_count()} cores, load average at start "
+        f"{load:.2f}), calibrated {cal.measured_at}: {cal.units_per_s:.1f} reference units/s, throttle efficiency "
+        f"eta {eff}. Command: `.venv/bin/python bench/bench_budget_speed.py --runs {args.runs}"
+        f"{' --uncompensated' if args.uncompensated else ''}`.",
+        "",
+        "A budget stands for a share `cpu_dmips / host_dmips` of one host core, so a pair whose `fast` pipeline "
+        "takes C CPU-seconds at full speed should take C / share of wall time on it. One probe process on the "
+        "emulated core warms up at full speed and runs the pipeline on the synthetic 512x512 pair of "
+        "`bench_pipeline.py`, "
+        f"{args.runs} times at full speed, {args.runs} times throttled at the budget's duty cycle, and "
+        f"{args.runs} times at full speed again (medians). `duty = share` is the rule before stop 47; "
+        "`compensated` raises the duty until `f eta(f) = share` (`hil_server.budgets.Budget.duty`, "
+        "[throttle.md](throttle.md) section 5).",
+        "",
         "| budget | duty rule | share of a core | duty applied | pipeline CPU s, full speed | CPU s, throttled "
-        "| wall s | wall s the budget means | slower than the budget |"
-    )
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+        "| wall s | wall s the budget means | slower than the budget |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for name, mode, share, applied, c_full, c_thr, w_thr, want, slow in rows:
-        print(
+        lines.append(
             f"| {name} | {mode} | {share:.4f} | {applied:.4f} | {c_full:.3f} | {c_thr:.3f} | {w_thr:.1f} | "
             f"{want:.1f} | x{slow:.2f} |"
         )
+    lines += [
+        "",
+        "Above x1 the emulated processor is slower than the budget, below x1 faster. eta is measured on the "
+        "reference workload (`hil_server/calibrate.py`), the yardstick for any flight program (`--flight-cmd`); our "
+        "pipeline may lose more or less than it to a throttled slice.",
+        "",
+    ]
+    print("\n".join(lines))
+    if args.out:
+        Path(args.out).write_text("\n".join(lines))
+        print(f"wrote {args.out}")
     return 0
 
 

@@ -9,6 +9,8 @@
    unthrottled and throttled; wall time (minus contention) should scale as 1 / f.
 3. Contention: a competing busy process pinned to the child's core.
 4. Supervisor overhead: CPU the throttle/watchdog threads cost the supervisor.
+5. Work per throttled CPU-second: the reference workload's CPU under the throttle over its full-speed CPU, at
+   several duty cycles and running slices (what `hazard-hil calibrate` measures and pays back).
 Medians of repeats; the machine is shared with other jobs, so raw fractions are noisy.
 """
 
@@ -24,7 +26,21 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+from hil_server.calibrate import PROBE_UNITS, measure_throttle_efficiency
+from hil_server.procemu import MIN_ON_SLICE_S, EmulatedProcessor, ProcessorSpec, on_slice_s
+
+# section 5: (duty cycle, running slice s): the slow budgets' 1 ms slices at several stopped times, then longer ones
+EFFICIENCY_SETTINGS = (
+    (0.2, 0.001),
+    (0.05, 0.001),
+    (0.013, 0.001),
+    (0.0063, 0.001),
+    (0.21, 0.0053),
+    (0.05, 0.0053),
+    (0.05, 0.01),
+    (0.05, 0.03),
+)
+EFFICIENCY_QUICK = ((0.2, 0.001), (0.05, 0.001), (0.05, 0.01))
 
 PY = sys.executable
 BUSY = "import time\nt = time.process_time()\nwhile time.process_time() - t < {cpu}: pass\n"
@@ -46,7 +62,7 @@ def run(f: float, code: str, period: float = 0.02, capture: bool = False) -> tup
         stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
         cwd=str(Path(__file__).resolve().parents[1]),
     )
-    out = popen.stdout.read().decode() if capture else ""
+    out = popen.stdout.read().decode() if capture and popen.stdout is not None else ""
     report = proc.wait(600)
     stats = proc.stats()
     proc.close()
@@ -149,6 +165,34 @@ def main() -> int:
         "",
     ]
     lines += [
+        "## 5. Work per throttled CPU-second",
+        "",
+        "One probe process (`hil_server.calibrate.measure_throttle_efficiency`), warmed up at full speed, times "
+        f"the reference workload ({PROBE_UNITS} units) under the throttle at each duty cycle and running slice, "
+        "with a full-speed batch after each. CPU x = throttled CPU per unit / full-speed CPU per unit (= 1 / eta). "
+        "The slow budgets run 1 ms slices after 50-200 ms stopped (1 ms is the shortest the throttle makes); "
+        "longer slices lose less but make any stage shorter than one cycle jitter by up to a cycle.",
+        "",
+        "| duty f | slice ms | stopped ms | CPU x |",
+        "|---:|---:|---:|---:|",
+    ]
+    settings = EFFICIENCY_QUICK if args.quick else EFFICIENCY_SETTINGS
+    for f, slice_s in settings:
+        stopped = max(MIN_ON_SLICE_S, slice_s) * (1.0 - f) / f
+        ((_, eta),) = measure_throttle_efficiency((f,), period_s=stopped)
+        run_s, stop_s = on_slice_s(f, stopped)
+        row = f"| {f:g} | {1000 * run_s:.1f} | {1000 * stop_s:.0f} | {1 / eta:.2f} |"
+        print(row, flush=True)
+        lines.append(row)
+    lines += [
+        "",
+        "`hazard-hil calibrate` measures eta at f = 0.5 ... 0.005 with the throttle's own slices, and each budget's "
+        "duty cycle is raised until `f eta(f)` is its share of the core (`hil_server.budgets.Budget.duty`). Whether "
+        "that delivers a budget's speed to our flight pipeline: `bench/bench_budget_speed.py`, "
+        "[budget_speed.md](budget_speed.md).",
+        "",
+    ]
+    lines += [
         "## How to read this",
         "",
         "- The throttle is closed loop on the child's own CPU time from `/proc/PID/task/*/schedstat` (ns). "
@@ -156,6 +200,7 @@ def main() -> int:
         "- Each duty cycle is ~P = 20 ms stopped and f P / (1 - f) running; P is raised so that the "
         "running slice is >= 1 ms (RAD750 at f ~ 0.017: ~58 ms stopped, 1 ms running). Any stage "
         "shorter than one cycle sees up to one cycle of jitter; over a whole pair the error averages out.",
+        "- The fraction is one of *CPU time*; section 5 is about the *work* a throttled CPU-second does.",
         "- On a contended host the child is sometimes runnable but not running; that run-queue wait is "
         "excluded from the 'available' wall time, so the emulated processor is paused rather than slowed "
         "(section 3: raw cpu/wall halves, achieved stays on target). `stats()['contention_s']` lets the "
