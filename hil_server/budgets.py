@@ -109,7 +109,7 @@ def monotone_efficiency(points: list[tuple[float, float]]) -> list[tuple[float, 
     """The measured ``(f, eta)`` made non-decreasing in f by pooling adjacent violators (equal weights).
 
     A slice after a longer stop starts colder, so eta cannot fall as f rises; a measured dip is noise (repeated
-    calibrations on one host spread by about +-5 %, once by 20 %, docs/benchmarks/throttle.md section 5).
+    calibrations on one host spread by about +-5 %, once by 20 %, docs/hil.md section 4).
     """
     pts = sorted(points)
     blocks: list[list[float]] = []  # [sum of eta, count]

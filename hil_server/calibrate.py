@@ -19,7 +19,8 @@ with its data evicted from the caches by whatever ran meanwhile, so a
 CPU-second inside the throttle does less work than one at full speed:
 on the 2026-12-04 host the reference workload took 1.20x its CPU at duty 0.2
 with 1 ms slices, 1.51x at 0.05, 1.70x at 0.013 and 1.75x at 0.0063, and the
-flight pipeline 1.43x at 0.05 (docs/benchmarks/throttle.md). A real flight
+flight pipeline 1.43x at 0.05 (one run; the loss at short stops varies with the host's other
+work, docs/hil.md section 4). A real flight
 computer does not stop every millisecond, so
 :func:`measure_throttle_efficiency` measures ``eta(f)`` = (CPU per unit at
 full speed) / (CPU per unit throttled at duty f) over a grid of duty cycles,
