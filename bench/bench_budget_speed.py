@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hil_server.budgets import get_budget, load_calibration  # noqa: E402
-from hil_server.procemu import Throttle, thread_env  # noqa: E402
+from hil_server.procemu import Throttle, start_at_full_speed  # noqa: E402
 
 PROBE = """
 import json, sys, time
@@ -61,14 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         print("this host has no throttle efficiency on record: run `hazard-hil calibrate` first", file=sys.stderr)
         return 2
     load = os.getloadavg()[0]
-    core = max(os.sched_getaffinity(0))
-    popen = subprocess.Popen(
-        [sys.executable, "-c", PROBE.format(root=str(ROOT))],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        env={**os.environ, **thread_env()},
-        preexec_fn=lambda: os.sched_setaffinity(0, {core}),
+    popen = start_at_full_speed(
+        [sys.executable, "-c", PROBE.format(root=str(ROOT))], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
     )
     assert popen.stdin is not None and popen.stdout is not None
     stdin, stdout = popen.stdin, popen.stdout

@@ -31,7 +31,6 @@ this core it stands for (:meth:`hil_server.budgets.Budget.duty`).
 from __future__ import annotations
 
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -170,19 +169,16 @@ def measure_throttle_efficiency(
     each throttled batch is followed by a full-speed one, so a drift of the host's speed cancels. eta is
     clipped to [0.05, 1]: above 1 is noise (no compensation), and a throttle that wasted 95 % would be broken.
     """
-    from hil_server.procemu import Throttle, thread_env
+    from hil_server.procemu import Throttle, start_at_full_speed
 
     if not fractions or not all(0.0 < f < 1.0 for f in fractions):
         raise ValueError(f"duty cycles must be in (0, 1), got {fractions!r}")
     if units < 1:
         raise ValueError(f"units must be >= 1, got {units}")
-    core = max(os.sched_getaffinity(0))
-    popen = subprocess.Popen(
+    popen = start_at_full_speed(
         [sys.executable, "-m", "hil_server.calibrate", "--probe", str(units)],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
-        env={**os.environ, **thread_env()},
-        preexec_fn=lambda: os.sched_setaffinity(0, {core}),
         text=True,
     )
     stdin, stdout = popen.stdin, popen.stdout

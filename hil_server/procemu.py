@@ -331,8 +331,8 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
     # Stopped time per cycle P, raised so the running slice f P / (1 - f) is >= MIN_ON_SLICE_S.
     _, period = on_slice_s(f, period_s)
     cap = f * period
-    # Account from the child's start, not this thread's: CPU it used before the
-    # first sample (exec, interpreter start-up) is paid back by a longer first stop.
+    # Account from the child's start (or from when a Throttle took it over), not this thread's: CPU it used
+    # before the first sample (exec, interpreter start-up) is paid back by a longer first stop.
     t0 = child.t0
     offset = 0.0  # credit dropped by the cap, so idle time is not banked
     last_avail = last_cpu = 0.0
@@ -365,6 +365,15 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
                 time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
     finally:
         child.signal(signal.SIGCONT)  # never leave it stopped
+
+
+def start_at_full_speed(argv: list[str], **popen_kwargs) -> subprocess.Popen:
+    """Start ``argv`` unthrottled on the core :class:`EmulatedProcessor` would use (the highest allowed), with the
+    single-threaded environment of :func:`thread_env`: a probe that warms up at full speed before a
+    :class:`Throttle` takes it over."""
+    core = max(os.sched_getaffinity(0))
+    env = {**os.environ, **thread_env()}
+    return subprocess.Popen(argv, env=env, preexec_fn=lambda: os.sched_setaffinity(0, {core}), **popen_kwargs)
 
 
 class Throttle:

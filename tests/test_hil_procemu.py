@@ -20,6 +20,7 @@ from hil_server.procemu import (
     ProcessorSpec,
     Throttle,
     on_slice_s,
+    start_at_full_speed,
     thread_env,
 )
 from protocol.errors import InputError
@@ -286,14 +287,7 @@ def test_throttle_adopts_a_running_process_from_now_on():
             while time.process_time() - c < 0.06: pass
             print(time.monotonic() - w, flush=True)
     """)
-    core = max(os.sched_getaffinity(0))
-    popen = subprocess.Popen(
-        [PY, "-c", code],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        preexec_fn=lambda: os.sched_setaffinity(0, {core}),
-    )
+    popen = start_at_full_speed([PY, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert popen.stdout.readline().strip() == "ready"
         with Throttle(popen, 0.2) as th:
