@@ -61,7 +61,7 @@ from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
-from protocol.codec import encode_message
+from protocol.codec import Encoded, encode_message
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
 from protocol.messages import (
@@ -180,40 +180,37 @@ def expected_line_s(nbytes: float, baud: float) -> float:
 
 def fit_to_line(
     result: Result, rebuild: Callable[[tuple[int, int]], Result], baud: float, due: float, planned_s: float
-) -> tuple[Result, float, float]:
-    """``(result, its expected line time, grown)``: the Result with its grids decimated further while it would
-    still be on the line at ``due`` (monotonic s); ``rebuild((elevation step, P(safe) step))`` makes it at
+) -> tuple[Result, float, float, Encoded | None]:
+    """``(result, its expected line time, grown, encoded)``: the Result with its grids decimated further while it
+    would still be on the line at ``due`` (monotonic s); ``rebuild((elevation step, P(safe) step))`` makes it at
     other steps. ``grown`` = the size at the Config's steps over the size sent (1 when nothing changed), so
-    that the next pair plans for the size its Result will have.
+    that the next pair plans for the size its Result will have. ``encoded`` is the Result with the body its size
+    was measured on, for the link to send as it is (None when it was not measured).
 
     The elevation step doubles first (up to ``MAX_SHRINK_STEP``), then the P(safe) step; the state grid and
-    the sites are never touched, and the Result carries its own steps, so the ground reads it as sent. It must
-    fit with the time its sending encodes it again (as long as the measuring encode took): at 23 % duty that was
-    0.09 s, and a 56 kB approach Result that fitted the line time alone ended 22 ms past its 2 s deadline (stop
-    47). A Result that fits with ``SHRINK_CHECK`` x its planned line time to spare is not measured (encoding
-    costs CPU). Without a line rate (``baud`` 0) nothing is changed.
+    the sites are never touched, and the Result carries its own steps, so the ground reads it as sent. The line
+    time must fit in what is left once the Result is encoded: at 23 % duty one encoding took 0.09 s, and a 56 kB
+    approach Result that fitted the line time alone ended 22 ms past its 2 s deadline (stop 47). The body is
+    kept, so sending does not encode it again (that took as long once more). A Result that fits with
+    ``SHRINK_CHECK`` x its planned line time to spare is not measured (encoding costs CPU). Without a line rate
+    (``baud`` 0) nothing is changed.
     """
     if baud <= 0 or due - time.monotonic() > SHRINK_CHECK * planned_s:
-        return result, planned_s, 1.0
+        return result, planned_s, 1.0, None
     step, pstep = int(result.elevation_step), int(result.psafe_step)
-
-    def measure(r: Result) -> tuple[int, float]:
-        t0 = time.monotonic()
-        n = len(encode_message(r))
-        return n, time.monotonic() - t0
-
-    full, encode_s = measure(result)
-    nbytes = full
+    encoded = Encoded(result, encode_message(result))
+    full = nbytes = len(encoded.body)
     line_s = expected_line_s(nbytes, baud)
-    while line_s + encode_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
+    while line_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
         if step < MAX_SHRINK_STEP:
             step = min(2 * step, MAX_SHRINK_STEP)
         else:
             pstep = min(2 * pstep, MAX_SHRINK_STEP)
         result = rebuild((step, pstep))
-        nbytes, encode_s = measure(result)
+        encoded = Encoded(result, encode_message(result))
+        nbytes = len(encoded.body)
         line_s = expected_line_s(nbytes, baud)
-    return result, line_s, full / nbytes
+    return result, line_s, full / nbytes, encoded
 
 
 def _is_int(v: float) -> bool:
@@ -426,8 +423,8 @@ class FlightProcess:
         sent0 = self._bytes_sent()
         try:
             rebuild = functools.partial(self._result_message, res, seqs, cfg, grid, sites, reason)
-            result, line_s, grown = fit_to_line(rebuild(), rebuild, baud, due, line_s)
-            self.link.send(result)  # encodes here, in this thread
+            result, line_s, grown, encoded = fit_to_line(rebuild(), rebuild, baud, due, line_s)
+            self.link.send(encoded or result)  # encodes here, in this thread, unless fitting it did
         except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
             self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
             return

@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Skipping
-from protocol.codec import DEFAULT_LIMITS, CodecError, Limits, decode_parts, encode_message, encode_parts
+from protocol.codec import DEFAULT_LIMITS, CodecError, Encoded, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
@@ -170,8 +170,9 @@ class Link:
 
     # implemented by subclasses
     def send(
-        self, message: Message, timeout: float | None = None, epoch: int | None = None
+        self, message: Message | Encoded, timeout: float | None = None, epoch: int | None = None
     ) -> int:  # pragma: no cover - abstract
+        """Queue ``message`` (or an :class:`~protocol.codec.Encoded` one, sent with its body as it is); its id."""
         raise NotImplementedError
 
     def close(self) -> None:  # pragma: no cover - abstract
@@ -291,14 +292,18 @@ class ByteStreamLink(Link):
             return None if t is None else MessageTimes(t.submitted, t.first_tx, t.written, t.delivered)
 
     # sending --------------------------------------------------------------
-    def send(self, message: Message, timeout: float | None = None, epoch: int | None = None) -> int:
+    def send(self, message: Message | Encoded, timeout: float | None = None, epoch: int | None = None) -> int:
         """Queue ``message``; returns its id. Waits at most ``timeout`` s for send-buffer space.
 
-        ``epoch``: send only within that session (see :meth:`protocol.arq.Arq.submit`).
+        ``epoch``: send only within that session (see :meth:`protocol.arq.Arq.submit`). An
+        :class:`~protocol.codec.Encoded` message goes with its body, not encoded again.
         """
         if self._dead():
             raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
-        body = encode_message(message)  # schema errors surface here, in the caller
+        if isinstance(message, Encoded):
+            body, message = message.body, message.message
+        else:
+            body = encode_message(message)  # schema errors surface here, in the caller
         reliable = message.TYPE not in UNRELIABLE_TYPES
         with self._cv:
             if not self._cv.wait_for(lambda: self._dead() or self.arq.can_accept(len(body)), timeout):
@@ -765,14 +770,19 @@ class ZmqLink(Link, SessionView):
         self._stats["failures"] += 1
 
     # sending --------------------------------------------------------------
-    def send(self, message: Message, timeout: float | None = None, epoch: int | None = None) -> int:
+    def send(self, message: Message | Encoded, timeout: float | None = None, epoch: int | None = None) -> int:
         """Queue ``message``; returns its id (never blocks: libzmq's high-water mark is watched instead).
 
         A message over ``limits.max_message_bytes`` (body and out-of-band arrays together) raises
-        :class:`InputError` and is not sent, as on the byte-stream links."""
+        :class:`InputError` and is not sent, as on the byte-stream links. An :class:`~protocol.codec.Encoded`
+        message goes with its body (every array inline), not encoded again."""
         if self._dead():
             raise LinkClosed(f"link {self.name!r} is closed: {self._failed or 'closed'}")
-        body, bufs = encode_parts(message, self.oob_min_bytes)
+        bufs: list[memoryview] = []
+        if isinstance(message, Encoded):
+            body, message = message.body, message.message
+        else:
+            body, bufs = encode_parts(message, self.oob_min_bytes)
         n = len(body) + sum(b.nbytes for b in bufs)
         limit = self.limits.max_message_bytes
         if n > limit:  # as the byte-stream links: the peer would refuse it (or libzmq drop the connection)

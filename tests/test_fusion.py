@@ -514,6 +514,11 @@ class _Link:
         self.sent: list = []
 
     def send(self, msg) -> None:
+        from protocol.codec import Encoded, encode_message
+
+        if isinstance(msg, Encoded):  # sent with the body it was measured on: that body must be the message's
+            assert msg.body == encode_message(msg.message)
+            msg = msg.message
         self.sent.append(msg)
 
     def flush(self, timeout: float | None = None) -> bool:  # everything is handed over at once
@@ -728,41 +733,50 @@ def test_a_result_that_would_miss_its_deadline_on_the_line_goes_out_with_coarser
     from protocol.codec import encode_message
 
     fp, args, full, full_s, rebuild, baud = _result_to_fit()
-    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, time.monotonic() + 3 * full_s, full_s)
-    assert out is full and grown == 1.0 and line_s == full_s  # time to spare: not even measured
+    out, line_s, grown, enc = fm.fit_to_line(full, rebuild, baud, time.monotonic() + 3 * full_s, full_s)
+    assert out is full and grown == 1.0 and line_s == full_s and enc is None  # time to spare: not even measured
     smallest = fp._result_message(*args, (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP))
     small_s = fm.expected_line_s(len(encode_message(smallest)), baud)
     assert small_s < 0.6 * full_s
     left = 0.5 * (full_s + small_s)
-    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, time.monotonic() + left, full_s)
+    out, line_s, grown, enc = fm.fit_to_line(full, rebuild, baud, time.monotonic() + left, full_s)
     assert out.elevation_step > 1 and line_s <= left and grown > 1.0
     assert np.array_equal(out.state_grid, full.state_grid) and out.sites == full.sites
     assert line_s == pytest.approx(fm.expected_line_s(len(encode_message(out)), baud))
-    out, line_s, _ = fm.fit_to_line(full, rebuild, baud, time.monotonic(), full_s)  # no time left: the smallest
+    assert enc is not None and enc.message is out and enc.body == encode_message(out)  # what the link sends
+    out, line_s, _, _ = fm.fit_to_line(full, rebuild, baud, time.monotonic(), full_s)  # no time left: the smallest
     assert (out.elevation_step, out.psafe_step) == (fm.MAX_SHRINK_STEP, fm.MAX_SHRINK_STEP)
-    out, line_s, grown = fm.fit_to_line(full, rebuild, 0.0, time.monotonic(), 0.0)
-    assert out is full and grown == 1.0 and line_s == 0.0  # no line rate (ZeroMQ): sent as it is
+    out, line_s, grown, enc = fm.fit_to_line(full, rebuild, 0.0, time.monotonic(), 0.0)
+    assert out is full and grown == 1.0 and line_s == 0.0 and enc is None  # no line rate (ZeroMQ): sent as it is
 
 
-def test_a_result_fits_its_line_with_the_time_its_sending_encodes_it(monkeypatch):
-    """The send encodes the Result again after ``fit_to_line`` measured it: on a slow processor that takes as long
-    as the measuring encode (0.09 s at 23 % duty), so a Result whose line time alone just fits is late. Here each
-    encode takes 0.3 s and the line time fits with 0.2 s to spare: the Result must go out coarser (the code before
-    stop 47 sent it as it was and it ended ~0.1 s past the deadline)."""
+def test_a_result_fits_its_line_after_its_encoding_and_is_not_encoded_again(monkeypatch):
+    """On a slow processor encoding a Result takes time (0.09 s at 23 % duty). ``fit_to_line`` judges the line
+    time against what is left once the Result is encoded, and hands the link that body, so sending does not
+    encode it again. Here each encoding takes 0.3 s. With 0.2 s to spare over the line time, one encoding does not
+    leave room: the Result goes out coarser (stop 46 sent it as it was, ~0.1 s late). With 0.5 s to spare it goes
+    out at the Config's steps, encoded once (stop 47 encoded it twice, and sent it coarser to make room)."""
     import time
 
     import flight_sw.flight_main as fm
     from protocol.codec import encode_message
 
     _, _, full, full_s, rebuild, baud = _result_to_fit()
+    calls = []
 
     def slow_encode(msg):
+        calls.append(msg)
         time.sleep(0.3)
         return encode_message(msg)
 
     monkeypatch.setattr(fm, "encode_message", slow_encode)
-    due = time.monotonic() + full_s + 0.5
-    out, line_s, grown = fm.fit_to_line(full, rebuild, baud, due, full_s)
-    slow_encode(out)  # what the link's send then does
-    assert out.elevation_step > 1 and grown > 1.0
+    due = time.monotonic() + full_s + 0.2
+    out, line_s, grown, enc = fm.fit_to_line(full, rebuild, baud, due, full_s)
+    assert out.elevation_step > 1 and grown > 1.0 and enc is not None and enc.message is out
     assert time.monotonic() + line_s <= due + 0.02  # off the line by its due time
+    calls.clear()
+    due = time.monotonic() + full_s + 0.5
+    out, line_s, grown, enc = fm.fit_to_line(full, rebuild, baud, due, full_s)
+    assert out is full and grown == 1.0 and calls == [full]
+    assert enc is not None and enc.body == encode_message(full)
+    assert time.monotonic() + line_s <= due + 0.02

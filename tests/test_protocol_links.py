@@ -373,6 +373,31 @@ def test_a_message_over_the_limit_is_refused_at_send_on_every_link(kind, tmp_pat
         assert isinstance(got, Frame) and got.seq == 2 and B.recv(0.3) is None and B.take_refusals() == []
 
 
+@pytest.mark.parametrize("kind", ["stream", "zmq"])
+def test_an_encoded_message_goes_with_its_body_and_is_not_encoded_again(kind, tmp_path, monkeypatch):
+    """The flight software encodes a Result to learn its line time (``flight_main.fit_to_line``); the link sends
+    that body. Encoding it again cost a throttled flight CPU as much once more (7 ms of full-speed CPU for a 37 kB
+    Result, 0.7 s at rad750's share). The limit still holds for such a message."""
+    from protocol import links
+    from protocol.codec import Limits, encode
+
+    A, B = _linked_pair(kind, tmp_path, Limits(max_message_bytes=8192))
+    with A, B:
+        assert A.wait_established(5) and B.wait_established(5)
+        big, small = encode(frame(1, 100)), encode(frame(2, 40))
+
+        def no_encoding(*_a, **_k):
+            raise AssertionError("encoded again")
+
+        monkeypatch.setattr(links, "encode_message", no_encoding)
+        monkeypatch.setattr(links, "encode_parts", no_encoding)
+        with pytest.raises(InputError, match=rf"^message of {len(big.body)} bytes exceeds the 8192-byte limit$"):
+            A.send(big)
+        A.send(small)
+        got = B.recv(5)
+        assert isinstance(got, Frame) and got.seq == 2 and np.array_equal(got.image, small.message.image)
+
+
 def test_a_zeromq_part_over_maxmsgsize_ends_the_session_with_its_reason_and_the_link_connects_again():
     """libzmq drops a connection whose peer sends a part over MAXMSGSIZE (limit + 1 MiB) and, after such a protocol
     error, never reconnects: the connecting side (the ground) lost its session after 4 s of silence, with no

@@ -110,6 +110,11 @@ class _Link:
         self.sent: list = []
 
     def send(self, msg) -> None:
+        from protocol.codec import Encoded, encode_message
+
+        if isinstance(msg, Encoded):  # sent with the body it was measured on: that body must be the message's
+            assert msg.body == encode_message(msg.message)
+            msg = msg.message
         self.sent.append(msg)
 
     def flush(self, timeout: float | None = None) -> bool:
