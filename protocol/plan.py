@@ -26,22 +26,29 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
     did not finish was cut at its own deadline (taken as such when the flight side does not say which started)."""
     plan = plan or {}
     skipped = set(skipped or ())
+
     for stage in DEM_STAGES:
         left, need = plan.get(f"{stage}_left_s"), plan.get(f"{stage}_need_s")
         if stage not in skipped or left is None or need is None:
             continue
+        # in hundredths when both are below 10 s: at a 2 s deadline "1.0 s left, 1.0 s kept" said nothing
+        digits = 2 if max(abs(left), abs(need)) < 10 else 1
+
+        def sec(x: float, digits: int = digits) -> str:
+            return f"{x:.{digits}f}"
+
         how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
         scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
         if left <= need:
-            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
+            return f"{stage} not started: {sec(left)} s left, {sec(need)} s kept for the work after it{scale}"
         least = plan.get(f"{stage}_min_s")
         if least is not None and left - need < least:  # it would have been cut: not started
             return (
-                f"{stage} not started: {left - need:.1f} s for it ({left:.1f} s left, {need:.1f} s kept after it"
-                f"{scale}), and it takes at least {least:.1f} s"
+                f"{stage} not started: {sec(left - need)} s for it ({sec(left)} s left, {sec(need)} s kept after it"
+                f"{scale}), and it takes at least {sec(least)} s"
             )
         if any(k.endswith("_started") for k in plan) and not plan.get(f"{stage}_started"):
             # a flight side that says which stages started, and not this one: left out for another reason
-            return f"{stage} not started: {left:.1f} s left, {need:.1f} s kept for the work after it{scale}"
-        return f"{stage} cut at its deadline: {left:.1f} s left at its start, {need:.1f} s kept after it{scale}"
+            return f"{stage} not started: {sec(left)} s left, {sec(need)} s kept for the work after it{scale}"
+        return f"{stage} cut at its deadline: {sec(left)} s left at its start, {sec(need)} s kept after it{scale}"
     return ""

@@ -137,6 +137,13 @@ def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
         "full_dem not started: 6.0 s for it (26.0 s left, 20.0 s kept after it (x5, measured on the previous pairs)), "
         "and it takes at least 7.4 s"
     )
+    # at a 2 s deadline, tenths said "1.0 s left, 1.0 s kept": below 10 s the figures are in hundredths
+    tight = {"coarse_dem_left_s": 1.31, "coarse_dem_need_s": 0.96, "full_dem_left_s": 1.004, "full_dem_need_s": 0.962}
+    sd = {"level": "coarse", "skipped": ["full_dem"], "plan": {**tight, "full_dem_min_s": 0.133, "scale": 5.0}}
+    assert plan_note(sd) == (
+        "full_dem not started: 0.04 s for it (1.00 s left, 0.96 s kept after it (x5, from the first stages)), "
+        "and it takes at least 0.13 s"
+    )
     assert plan_note({**rec, "skipped": ["rocks"]}) == ""  # a full-level Result: no DEM stage to explain
     # a flight side that says which stages started: one that did was cut, one that did not was left out
     started = {**plan, "coarse_dem_started": 1, "scale": 4.8, "measured": 1}
