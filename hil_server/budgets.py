@@ -39,7 +39,7 @@ import sys
 import tomllib
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -103,6 +103,82 @@ class HostCalibration:
                 w = math.log(fraction / f0) / math.log(f1 / f0)
                 return e0 + w * (e1 - e0)
         return 1.0  # unreachable: the last point is f = 1
+
+    def rescaled(self, fraction: float, eta: float) -> HostCalibration:
+        """This calibration with its efficiency curve scaled so that ``efficiency(fraction) = eta`` (each point
+        x ``eta / efficiency(fraction)``, clipped to [0.05, 1]). What else the host runs changes how cold every
+        slice starts, at every duty cycle alike; :class:`ThrottleCheck` measures it at one. Unchanged when nothing
+        was calibrated."""
+        if not self.throttle_efficiency or not (math.isfinite(eta) and eta > 0):
+            return self
+        k = eta / self.efficiency(fraction)
+        pts = tuple((f, min(1.0, max(0.05, e * k))) for f, e in self.throttle_efficiency)
+        return replace(self, throttle_efficiency=pts)
+
+
+# Below this duty cycle a run checks the throttle's efficiency first (ThrottleCheck): above it a throttled
+# CPU-second loses a few % at most (docs/benchmarks/throttle.md section 5), and the check would cost more than
+# it corrects.
+THROTTLE_CHECK_MAX_DUTY = 0.1
+# Adopted only beyond this relative difference: repeated calibrations of one host spread by about +-5 %.
+THROTTLE_CHECK_TOLERANCE = 0.1
+
+
+@dataclass(frozen=True)
+class ThrottleCheck:
+    """The throttle's efficiency measured again at one duty cycle, just before a run (docs/hil.md section 4).
+
+    The loss a throttled slice suffers depends on what else the host runs, so it drifts: on one idle host the
+    calibration measured eta 0.79-0.83 at 0.5-1 % duty and, 1.5 hours later, 0.62-0.66, and rad750 then ran our
+    pipeline 1.26x slower than it stands for (stop 48). A run on a slow budget measures eta at its duty cycle first
+    and, when it differs from the calibration by more than :data:`THROTTLE_CHECK_TOLERANCE`, runs the budget on
+    the calibration rescaled to it (:meth:`HostCalibration.rescaled`)."""
+
+    duty: float  # the duty cycle checked: the one the calibration gives the budget
+    calibrated: float  # eta there by the stored calibration
+    measured: float  # eta there now
+
+    @property
+    def adopted(self) -> bool:
+        return abs(self.measured / self.calibrated - 1.0) > THROTTLE_CHECK_TOLERANCE
+
+    def calibration(self, cal: HostCalibration) -> HostCalibration:
+        """``cal`` rescaled to the measured efficiency when it is adopted, else ``cal``."""
+        return cal.rescaled(self.duty, self.measured) if self.adopted else cal
+
+    def to_dict(self) -> dict[str, float | bool]:
+        return {"duty": self.duty, "calibrated": self.calibrated, "measured": self.measured, "adopted": self.adopted}
+
+
+def needs_throttle_check(budget: Budget, cal: HostCalibration | None) -> bool:
+    """True when a run on ``budget`` checks the throttle first: a throttled budget below
+    :data:`THROTTLE_CHECK_MAX_DUTY` on a host whose calibration measured the throttle's efficiency."""
+    return (
+        cal is not None
+        and bool(cal.throttle_efficiency)
+        and not budget.is_host
+        and budget.duty(cal).applied < THROTTLE_CHECK_MAX_DUTY
+    )
+
+
+def check_throttle(budget: Budget, cal: HostCalibration, units: int | None = None) -> ThrottleCheck:
+    """Measure the throttle's efficiency now at the duty cycle ``cal`` gives ``budget`` (a probe process on the
+    emulated core, as :func:`hil_server.calibrate.measure_throttle_efficiency` does; about
+    :func:`throttle_check_seconds`)."""
+    from hil_server.calibrate import PROBE_UNITS, measure_throttle_efficiency
+
+    f = budget.duty(cal).applied
+    ((_, eta),) = measure_throttle_efficiency((f,), units=PROBE_UNITS if units is None else units)
+    return ThrottleCheck(f, cal.efficiency(f), eta)
+
+
+def throttle_check_seconds(budget: Budget, cal: HostCalibration, units: int | None = None) -> float:
+    """About how long :func:`check_throttle` takes: the probe's start and warm-up (~2 s) and its throttled units."""
+    from hil_server.calibrate import PROBE_UNITS
+
+    duty = budget.duty(cal)
+    n = PROBE_UNITS if units is None else units
+    return 2.0 + n / cal.units_per_s / max(duty.effective, 1e-6)
 
 
 def monotone_efficiency(points: list[tuple[float, float]]) -> list[tuple[float, float]]:

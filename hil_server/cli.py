@@ -371,6 +371,12 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)  # tests: crash@N | hang@N | oom@N (our flight sw)
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
     p.add_argument("--no-progress", action="store_true", help="no render progress bar (per-pair lines still print)")
+    p.add_argument(
+        "--no-throttle-check",
+        action="store_true",
+        help="run a slow budget on the stored calibration as it is; by default the throttle's efficiency is measured "
+        "again at its duty cycle first (5-10 s; docs/hil.md section 4)",
+    )
 
 
 # what a rendered descent takes, and a manifest already fixes
@@ -445,6 +451,7 @@ def _config(args: argparse.Namespace):
         keys=args.keys,
         min_hit_rate=args.min_hit_rate,
         progress=not args.no_progress,
+        throttle_check=not args.no_throttle_check,
     )
 
 

@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, ThrottleCheck
 from protocol.errors import InputError
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
@@ -64,6 +65,17 @@ EMULATED_HELLO_TIMEOUT_S = 900.0
 GRACE_S = 10.0  # a child asked to stop (SIGTERM) gets this long before SIGKILL
 SUPERVISOR_POLL_S = 0.5  # how often the run checks that the HIL server is still up while the ground streams
 SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time to end its session and log its counters
+
+
+def throttle_note(check: ThrottleCheck, applied: float) -> str:
+    """One line on a run's throttle check: what it measured and whether the duty cycle moved."""
+    what = (
+        f"a throttled CPU-second does {check.measured:.2f} of a full-speed one at {check.duty:.2%} duty "
+        f"(the calibration: {check.calibrated:.2f})"
+    )
+    if check.adopted:
+        return f"{what}; the duty cycle becomes {applied:.2%} for the same share (`hazard-hil calibrate` stores it)"
+    return f"{what}; within {THROTTLE_CHECK_TOLERANCE:.0%}, the calibration stands"
 
 
 def boot_hint(fraction: float) -> str:
@@ -113,6 +125,8 @@ class RunConfig:
     keys: Path | None = None  # external zmq: the ground's CURVE key directory
     min_hit_rate: float | None = None  # exit code: pass at this deadline hit rate instead of every pair
     progress: bool = True  # the render progress bar (off: --no-progress)
+    # measure the throttle's efficiency at a slow budget's duty cycle before the run (budgets.ThrottleCheck)
+    throttle_check: bool = True
 
 
 def _free_tcp_port() -> int:
@@ -433,7 +447,16 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    for note in (phase_note(s), flight_note(s)):
+    check = s.get("throttle_check")
+    throttle = (
+        throttle_note(
+            ThrottleCheck(float(check["duty"]), float(check["calibrated"]), float(check["measured"])),
+            float(s.get("cpu_fraction", math.nan)),
+        )
+        if check
+        else ""
+    )
+    for note in (f"throttle check: {throttle}" if throttle else "", phase_note(s), flight_note(s)):
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):
@@ -692,7 +715,14 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
     signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
     """
-    from hil_server.budgets import calibration_notes, get_budget, load_calibration
+    from hil_server.budgets import (
+        calibration_notes,
+        check_throttle,
+        get_budget,
+        load_calibration,
+        needs_throttle_check,
+        throttle_check_seconds,
+    )
 
     kind, spec = _parse_link(cfg)
     budget = get_budget(cfg.budget, cfg.budget_file)
@@ -758,6 +788,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
 
     reason: str | None = None
     interrupted: int | None = None
+    throttle: ThrottleCheck | None = None
     rc: int | None = None
     channels: dict = {}
     bridge = None
@@ -803,6 +834,21 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     shutil.rmtree(out / "keys", ignore_errors=True)
                     security = ["--keys", str(generate_keys(out / "keys"))]
 
+            if emulated and cfg.throttle_check and cal is not None and needs_throttle_check(budget, cal):
+                # after the render, right before the flight starts: the host as the run will find it
+                log(
+                    f"run: checking the throttle's efficiency at {budget.name}'s duty cycle {fraction:.2%} "
+                    f"(about {throttle_check_seconds(budget, cal):.0f} s; --no-throttle-check skips it)"
+                )
+                try:
+                    throttle = check_throttle(budget, cal)
+                except (OSError, RuntimeError, ValueError) as exc:  # a probe that could not run: the run goes on
+                    log(f"run: warning: the throttle check failed ({exc}); the calibration stands as stored")
+                else:
+                    cal = throttle.calibration(cal)
+                    duty = budget.duty(cal)
+                    log(f"run: {throttle_note(throttle, duty.applied)}")
+                    fraction, effective = duty.applied, duty.effective
             env = dict(os.environ)
             for name in ("telemetry.jsonl", "supervisor.jsonl"):
                 (out / name).unlink(missing_ok=True)
@@ -863,6 +909,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     sup_cmd += ["--link-fault", cfg.link_fault]
                 if cfg.flight_cmd:
                     sup_cmd += ["--flight-cmd", cfg.flight_cmd]
+                if throttle is not None and throttle.adopted:
+                    sup_cmd += ["--throttle-efficiency", f"{throttle.duty!r}:{throttle.measured!r}"]
                 who = f"flight program `{cfg.flight_cmd}`" if cfg.flight_cmd else "our flight software"
                 log(
                     f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}"
@@ -944,6 +992,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             "started": started,
             "cpu_fraction": fraction,
             "effective_fraction": effective,
+            "throttle_check": None if throttle is None else throttle.to_dict(),
             "deadline_s": deadline,
             "line_faults": {d: ch.stats for d, ch in channels.items()},
             "memory_mib": budget.memory_mib if emulated else None,

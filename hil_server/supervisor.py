@@ -815,6 +815,17 @@ def parse_link_fault(spec: str | None) -> tuple[str | None, int]:
     return kind, int(n)
 
 
+def parse_efficiency(text: str) -> tuple[float, float]:
+    """``F:ETA`` -> (duty cycle, efficiency), both in (0, 1]; anything else is an :class:`InputError`."""
+    try:
+        f, eta = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise InputError(f"--throttle-efficiency must be F:ETA (e.g. 0.0163:0.65), got {text!r}") from None
+    if not (0.0 < f <= 1.0 and 0.0 < eta <= 1.0):
+        raise InputError(f"--throttle-efficiency: F and ETA must be in (0, 1], got {text!r}")
+    return f, eta
+
+
 def main(argv: list[str] | None = None) -> int:
     from hil_server.budgets import get_budget, load_calibration
     from hil_server.procemu import EmulatedProcessor, ProcessorSpec
@@ -838,6 +849,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
     ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
     ap.add_argument("--idle-timeout", type=float, default=600.0)
+    ap.add_argument(
+        "--throttle-efficiency",
+        default=None,
+        metavar="F:ETA",
+        help="the throttle's efficiency ETA measured at duty cycle F just before (hazard-hil run's check): the "
+        "budget runs on the host's calibration rescaled to it",
+    )
     args = ap.parse_args(argv)
 
     def log(s: str) -> None:
@@ -848,7 +866,10 @@ def main(argv: list[str] | None = None) -> int:
         parse_link_fault(args.link_fault)
         if args.flight_cmd:
             flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now
-        duty = budget.duty(load_calibration())
+        cal = load_calibration()
+        if args.throttle_efficiency is not None and cal is not None:
+            cal = cal.rescaled(*parse_efficiency(args.throttle_efficiency))
+        duty = budget.duty(cal)
         fraction = duty.applied
         spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
         link = open_link(

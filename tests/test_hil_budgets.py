@@ -237,3 +237,42 @@ def test_duty_cycle_is_raised_until_the_throttle_delivers_the_budgets_share():
     host_dmips = cal.host_dmips(snap.anchor)
     assert 0.95 < dataclasses.replace(snap, cpu_dmips=0.95 * host_dmips).duty(cal).applied <= 1.0
     assert dataclasses.replace(snap, cpu_dmips=2 * host_dmips).duty(cal) == B.Duty(1.0, 1.0, 1.0)
+
+
+def test_a_throttle_check_rescales_the_efficiency_and_moves_the_duty_only_beyond_its_tolerance():
+    """The throttle's loss drifts with what else the host runs (stop 48: eta 0.83 at calibration, 0.62 an hour
+    later, and rad750 ran 1.26x slower than it stands for). A run checks eta at the budget's duty: beyond the
+    tolerance the whole curve is rescaled to it, and the duty that delivers the share follows."""
+    import dataclasses
+
+    cal = dataclasses.replace(_cal(60.0), throttle_efficiency=((0.005, 0.6), (0.05, 0.7), (0.5, 0.95)))
+    rad = B.get_budget("rad750")
+    d0 = rad.duty(cal)
+    assert B.needs_throttle_check(rad, cal) and d0.applied < B.THROTTLE_CHECK_MAX_DUTY
+    high = B.ThrottleCheck(d0.applied, cal.efficiency(d0.applied), 0.9)
+    assert high.adopted and high.to_dict()["adopted"] is True
+    fresh = high.calibration(cal)
+    assert fresh.efficiency(d0.applied) == pytest.approx(0.9)
+    assert fresh.efficiency(0.5) == 1.0 and min(e for _, e in fresh.throttle_efficiency) >= 0.05  # clipped
+    d1 = rad.duty(fresh)
+    assert d1.effective == pytest.approx(d0.effective)  # the same share of a full-speed core
+    assert d1.applied * fresh.efficiency(d1.applied) == pytest.approx(d0.effective, rel=1e-6)
+    assert d1.applied < 0.8 * d0.applied  # a throttled second does more: a lower duty delivers the share
+    low = B.ThrottleCheck(d0.applied, cal.efficiency(d0.applied), 0.3)
+    assert low.adopted and rad.duty(low.calibration(cal)).applied > 1.5 * d0.applied
+    near = B.ThrottleCheck(d0.applied, cal.efficiency(d0.applied), 1.05 * cal.efficiency(d0.applied))
+    assert not near.adopted and near.calibration(cal) is cal  # within the calibrations' own spread
+    # nothing to check: no measured efficiency, the host itself, or a duty where a slice loses a few % at most
+    assert not B.needs_throttle_check(rad, _cal(60.0)) and not B.needs_throttle_check(B.get_budget("host"), cal)
+    fast = dataclasses.replace(rad, cpu_dmips=0.2 * cal.host_dmips(rad.anchor))
+    assert not B.needs_throttle_check(fast, cal)
+    assert _cal(60.0).rescaled(0.01, 0.9) == _cal(60.0)
+
+
+@pytest.mark.parametrize("text", ["0.02", "0.02:x", "0:0.5", "0.02:1.5", "nan:0.5", "0.01:0.5:1"])
+def test_the_supervisor_refuses_a_malformed_throttle_efficiency(text):
+    from hil_server.supervisor import parse_efficiency
+
+    with pytest.raises(InputError, match="--throttle-efficiency"):
+        parse_efficiency(text)
+    assert parse_efficiency("0.0163:0.65") == (0.0163, 0.65)

@@ -227,6 +227,48 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     assert "unknown budget 'myboard'" in capsys.readouterr().err
 
 
+def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(manifest, flight, tmp_path, monkeypatch):
+    """The throttle's loss drifts with what else the host runs: a calibration measured eta 0.79-0.83 and, 1.5 hours
+    later on the same idle host, 0.62-0.66, and rad750 ran our pipeline 1.26x slower than it stands for (stop 48).
+    A run on a slow budget now measures eta at its duty cycle first. Here the stored calibration says a throttled
+    CPU-second does 0.3 of a full-speed one at every duty; the check measures what it really does, the duty falls
+    to deliver the same share, and the HIL server runs the flight at that duty, not the stored one's."""
+    import dataclasses
+
+    from hil_server import budgets as B
+
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path))
+    anchor = B.get_budget("host").anchor
+    cal = B.HostCalibration(
+        key=B.host_key(), hostname="h", cpu_model="m", units_per_s=anchor.units_per_s, spread=0.01, seconds=3.0,
+        measured_at="2026-12-04T08:00:00+00:00", libraries=B.workload_libraries(),
+        throttle_efficiency=((0.005, 0.3), (0.05, 0.3), (0.5, 0.3)),
+    )  # fmt: skip
+    (tmp_path / "calibration.json").write_text(json.dumps({cal.key: dataclasses.asdict(cal)}))
+    board_toml = (
+        '[budget.slowboard]\ndescription = "a slow board"\ncpu_dmips = 600\nmemory_mib = 1024\n'
+        'deadline_s = 60.0\nlink = "serial"\nbaud = 921600\nsource = "test"\n'
+    )
+    shipped = B.default_budgets_path().read_text()
+    path = tmp_path / "boards.toml"
+    path.write_text(shipped[: shipped.index("[budget.")] + board_toml)
+    slow = B.get_budget("slowboard", path)
+    stored = slow.duty(B.load_calibration())
+    assert stored.applied < B.THROTTLE_CHECK_MAX_DUTY  # ~8.5 %: checked
+    argv = ["run", "--manifest", str(manifest), "--budget", "slowboard", "--budget-file", str(path)]
+    code = main([*argv, *flight_cmd(flight, "none"), "--out", str(tmp_path / "o")])
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    check = s["throttle_check"]
+    assert code == 0 and check["adopted"] is True and check["duty"] == pytest.approx(stored.applied)
+    assert check["calibrated"] == pytest.approx(0.3) and check["measured"] > 0.45  # no host loses 70 % at ~8 %
+    assert s["effective_fraction"] == pytest.approx(stored.effective)  # the same share of the core
+    assert s["cpu_fraction"] == pytest.approx(stored.effective / check["measured"], rel=0.02)
+    assert s["cpu_fraction"] < 0.7 * stored.applied
+    server = (tmp_path / "o" / "supervisor.log").read_text()
+    assert f"budget slowboard -> cpu fraction {s['cpu_fraction']:.4f}" in server  # the server runs at it too
+    assert "Throttle check: a throttled CPU-second does" in (tmp_path / "o" / "summary.md").read_text()
+
+
 # ------------------------------------------------ an external flight computer: the ground's own link refuses
 def run_external(manifest: Path, out: Path, link: str, *extra: str) -> tuple[int, dict, str]:
     """`hazard-hil run --flight external` with a 30 s deadline: (exit code, summary.json, summary.md)."""
