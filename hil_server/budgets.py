@@ -129,7 +129,7 @@ class ThrottleCheck:
     """The throttle's efficiency measured again at one duty cycle, just before a run (docs/hil.md section 4).
 
     The loss a throttled slice suffers depends on what else the host runs, so it drifts: on one idle host the
-    calibration measured eta 0.79-0.83 at 0.5-1 % duty and, 1.5 hours later, 0.62-0.66, and rad750 then ran our
+    calibration measured eta 0.79-0.83 at 0.5-1 % duty and, half an hour later, 0.62-0.66, and rad750 then ran our
     pipeline 1.26x slower than it stands for (stop 48). A run on a slow budget measures eta at its duty cycle first
     and, when it differs from the calibration by more than :data:`THROTTLE_CHECK_TOLERANCE`, runs the budget on
     the calibration rescaled to it (:meth:`HostCalibration.rescaled`)."""

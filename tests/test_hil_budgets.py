@@ -240,7 +240,7 @@ def test_duty_cycle_is_raised_until_the_throttle_delivers_the_budgets_share():
 
 
 def test_a_throttle_check_rescales_the_efficiency_and_moves_the_duty_only_beyond_its_tolerance():
-    """The throttle's loss drifts with what else the host runs (stop 48: eta 0.83 at calibration, 0.62 an hour
+    """The throttle's loss drifts with what else the host runs (stop 48: eta 0.83 at calibration, 0.62 half an hour
     later, and rad750 ran 1.26x slower than it stands for). A run checks eta at the budget's duty: beyond the
     tolerance the whole curve is rescaled to it, and the duty that delivers the share follows."""
     import dataclasses

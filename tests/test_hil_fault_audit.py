@@ -228,7 +228,7 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
 
 
 def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(manifest, flight, tmp_path, monkeypatch):
-    """The throttle's loss drifts with what else the host runs: a calibration measured eta 0.79-0.83 and, 1.5 hours
+    """The throttle's loss drifts with what else the host runs: a calibration measured eta 0.79-0.83 and, half an hour
     later on the same idle host, 0.62-0.66, and rad750 ran our pipeline 1.26x slower than it stands for (stop 48).
     A run on a slow budget now measures eta at its duty cycle first. Here the stored calibration says a throttled
     CPU-second does 0.3 of a full-speed one at every duty; the check measures what it really does, the duty falls
