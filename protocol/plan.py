@@ -23,10 +23,10 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
     the mapping, fusion and output after it, and the slowdown that was planned at, e.g. "full_dem not started:
     3.1 s left, 38.0 s kept for the work after it (x254, from the first stages)"; or, with ``<stage>_min_s``, the
     least the stage takes, when the time between the two was shorter than that. A stage that started and still
-    did not finish was cut at its own deadline (taken as such when the flight side does not say which started)."""
+    did not finish was cut at its own deadline (taken as such when the flight side does not say which started).
+    Seconds are in hundredths when the time left and the time kept are both under 10 s."""
     plan = plan or {}
     skipped = set(skipped or ())
-
     for stage in DEM_STAGES:
         left, need = plan.get(f"{stage}_left_s"), plan.get(f"{stage}_need_s")
         if stage not in skipped or left is None or need is None:
