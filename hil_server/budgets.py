@@ -150,6 +150,30 @@ class ThrottleCheck:
         return {"duty": self.duty, "calibrated": self.calibrated, "measured": self.measured, "adopted": self.adopted}
 
 
+def calibration_drift(
+    old: HostCalibration | None, new: HostCalibration, fractions: tuple[float, ...] = (0.01, 0.05)
+) -> str:
+    """One line on what moved since the last calibration of this host, "" when nothing moved beyond
+    :data:`THROTTLE_CHECK_TOLERANCE`: the reference rate, and eta at ``fractions`` (rad750's and gr740's duty cycles
+    lie near 0.01). A user who re-calibrates learns that a stored calibration can be off by that much."""
+    if old is None or old.key != new.key:
+        return ""
+    moved = []
+    if abs(new.units_per_s / old.units_per_s - 1.0) > THROTTLE_CHECK_TOLERANCE:
+        moved.append(f"the reference rate {old.units_per_s:.1f} -> {new.units_per_s:.1f} units/s")
+    if old.throttle_efficiency and new.throttle_efficiency:
+        for f in fractions:
+            e0, e1 = old.efficiency(f), new.efficiency(f)
+            if abs(e1 / e0 - 1.0) > THROTTLE_CHECK_TOLERANCE:
+                moved.append(f"eta at {f:.0%} duty {e0:.2f} -> {e1:.2f}")
+    if not moved:
+        return ""
+    return (
+        f"since the last calibration ({old.measured_at}): {', '.join(moved)}. What else the host runs moves them; "
+        "`run` re-checks eta before a slow budget (docs/hil.md section 4)"
+    )
+
+
 def needs_throttle_check(budget: Budget, cal: HostCalibration | None) -> bool:
     """True when a run on ``budget`` checks the throttle first: a throttled budget below
     :data:`THROTTLE_CHECK_MAX_DUTY` on a host whose calibration measured the throttle's efficiency."""

@@ -221,13 +221,24 @@ def _duty_list(text: str) -> tuple[float, ...]:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from hil_server.budgets import BudgetError, calibrate_host, calibration_path, load_budgets
+    from hil_server.budgets import (
+        BudgetError,
+        calibrate_host,
+        calibration_drift,
+        calibration_path,
+        load_budgets,
+        load_calibration,
+    )
 
     if not 0 < args.seconds <= 600:
         raise BudgetError(f"--seconds must be in (0, 600], got {args.seconds:g}")
     anchor = next(iter(load_budgets(args.file).values())).anchor
     print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread, then the throttle's")
     print("efficiency at each duty cycle (about 25 s for the default ones)...")
+    try:
+        before = load_calibration()
+    except BudgetError:  # an unreadable store: calibrate_host keeps it aside and starts afresh
+        before = None
     cal = calibrate_host(
         seconds=args.seconds,
         efficiency_fractions=args.duty_cycles,
@@ -239,6 +250,9 @@ def _calibrate(args: argparse.Namespace) -> int:
         "cycle is raised by 1/efficiency (`hazard-hil budgets`)"
     )
     print(f"stored for {cal.key} ({cal.libraries}) in {calibration_path()}")
+    drift = calibration_drift(before, cal)
+    if drift:
+        print(drift[0].upper() + drift[1:])
     return 0
 
 

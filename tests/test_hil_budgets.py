@@ -276,3 +276,19 @@ def test_the_supervisor_refuses_a_malformed_throttle_efficiency(text):
     with pytest.raises(InputError, match="--throttle-efficiency"):
         parse_efficiency(text)
     assert parse_efficiency("0.0163:0.65") == (0.0163, 0.65)
+
+
+def test_recalibrating_says_what_moved_since_the_last_calibration():
+    """Stop 48: the day's first calibration measured eta 0.83 at 1 % duty, half an hour later 0.64. Re-calibrating
+    said nothing of it, so a user could not tell that the stored figures had been that far off."""
+    import dataclasses
+
+    old = dataclasses.replace(_cal(81.6), throttle_efficiency=((0.005, 0.79), (0.01, 0.83), (0.05, 0.94), (0.5, 0.98)))
+    new = dataclasses.replace(_cal(82.3), throttle_efficiency=((0.005, 0.62), (0.01, 0.66), (0.05, 0.78), (0.5, 0.99)))
+    line = B.calibration_drift(old, new)
+    assert "eta at 1% duty 0.83 -> 0.66" in line and "eta at 5% duty 0.94 -> 0.78" in line
+    assert "reference rate" not in line and old.measured_at in line  # 81.6 -> 82.3 units/s is within 10 %
+    assert "reference rate 60.0 -> 82.3 units/s" in B.calibration_drift(dataclasses.replace(old, units_per_s=60.0), new)
+    assert B.calibration_drift(new, dataclasses.replace(new, units_per_s=83.0)) == ""  # nothing moved
+    assert B.calibration_drift(None, new) == ""  # the first calibration
+    assert B.calibration_drift(dataclasses.replace(old, key="other|cpu"), new) == ""  # another host's
