@@ -78,6 +78,15 @@ def throttle_note(check: ThrottleCheck, applied: float) -> str:
     return f"{what}; within {THROTTLE_CHECK_TOLERANCE:.0%}, the calibration stands"
 
 
+def throttle_check_note(summary: dict) -> str:
+    """'throttle check: ...' from a run summary's ``throttle_check`` ("" when the run did not check)."""
+    check = summary.get("throttle_check")
+    if not check:
+        return ""
+    c = ThrottleCheck(float(check["duty"]), float(check["calibrated"]), float(check["measured"]))
+    return "throttle check: " + throttle_note(c, float(summary.get("cpu_fraction", math.nan)))
+
+
 def boot_hint(fraction: float) -> str:
     """'; it boots in about 48 s at this speed (...)' when our flight process's boot (``BOOT_CPU_S``) takes long
     enough at ``fraction`` (of full speed, :class:`hil_server.budgets.Duty`) that the wait for its Hello would
@@ -447,16 +456,7 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    check = s.get("throttle_check")
-    throttle = (
-        throttle_note(
-            ThrottleCheck(float(check["duty"]), float(check["calibrated"]), float(check["measured"])),
-            float(s.get("cpu_fraction", math.nan)),
-        )
-        if check
-        else ""
-    )
-    for note in (f"throttle check: {throttle}" if throttle else "", phase_note(s), flight_note(s)):
+    for note in (throttle_check_note(s), phase_note(s), flight_note(s)):
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):

@@ -196,12 +196,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
             fig_dir / "resources.png",
         )
         tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and private RSS peak vs the budget."))
-    from hil_server.run import phase_note
+    from hil_server.run import phase_note, throttle_check_note
 
-    phases = phase_note(s)
-    sections.append(
-        Section("Telemetry", paragraphs=[phases[0].upper() + phases[1:] + "."] if phases else [], figures=tel_figs)
-    )
+    notes = [n[0].upper() + n[1:] + "." for n in (throttle_check_note(s), phase_note(s)) if n]
+    sections.append(Section("Telemetry", paragraphs=notes, figures=tel_figs))
     for r in records:
         figs = _pair_figures(r, fig_dir)
         if figs:

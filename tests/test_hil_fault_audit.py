@@ -267,6 +267,7 @@ def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(m
     server = (tmp_path / "o" / "supervisor.log").read_text()
     assert f"budget slowboard -> cpu fraction {s['cpu_fraction']:.4f}" in server  # the server runs at it too
     assert "Throttle check: a throttled CPU-second does" in (tmp_path / "o" / "summary.md").read_text()
+    assert "Throttle check: a throttled CPU-second does" in (tmp_path / "o" / "report.html").read_text()
 
 
 # ------------------------------------------------ an external flight computer: the ground's own link refuses
