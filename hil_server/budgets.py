@@ -185,24 +185,35 @@ def needs_throttle_check(budget: Budget, cal: HostCalibration | None) -> bool:
     )
 
 
-def check_throttle(budget: Budget, cal: HostCalibration, units: int | None = None) -> ThrottleCheck:
+# What a throttle check's throttled units may take (s): rad750 and gr740 get the calibration's 3 units (3.5 and
+# 7 s on a 82 units/s host); a board slower than gr740 gets fewer, down to 1 (a 10-DMIPS board: ~40 s)
+THROTTLE_CHECK_TARGET_S = 8.0
+
+
+def throttle_check_units(budget: Budget, cal: HostCalibration) -> int:
+    """Reference units the check times under the throttle: the calibration's (``PROBE_UNITS``) while they take
+    at most :data:`THROTTLE_CHECK_TARGET_S` at the budget's share, else fewer, at least 1."""
+    from hil_server.calibrate import PROBE_UNITS
+
+    per_unit_s = 1.0 / cal.units_per_s / max(budget.duty(cal).effective, 1e-9)
+    return max(1, min(PROBE_UNITS, int(THROTTLE_CHECK_TARGET_S / per_unit_s)))
+
+
+def check_throttle(budget: Budget, cal: HostCalibration) -> ThrottleCheck:
     """Measure the throttle's efficiency now at the duty cycle ``cal`` gives ``budget`` (a probe process on the
-    emulated core, as :func:`hil_server.calibrate.measure_throttle_efficiency` does; about
-    :func:`throttle_check_seconds`)."""
-    from hil_server.calibrate import PROBE_UNITS, measure_throttle_efficiency
+    emulated core, as :func:`hil_server.calibrate.measure_throttle_efficiency` does; :func:`throttle_check_units`
+    units, about :func:`throttle_check_seconds`)."""
+    from hil_server.calibrate import measure_throttle_efficiency
 
     f = budget.duty(cal).applied
-    ((_, eta),) = measure_throttle_efficiency((f,), units=PROBE_UNITS if units is None else units)
+    ((_, eta),) = measure_throttle_efficiency((f,), units=throttle_check_units(budget, cal))
     return ThrottleCheck(f, cal.efficiency(f), eta)
 
 
-def throttle_check_seconds(budget: Budget, cal: HostCalibration, units: int | None = None) -> float:
+def throttle_check_seconds(budget: Budget, cal: HostCalibration) -> float:
     """About how long :func:`check_throttle` takes: the probe's start and warm-up (~2 s) and its throttled units."""
-    from hil_server.calibrate import PROBE_UNITS
-
-    duty = budget.duty(cal)
-    n = PROBE_UNITS if units is None else units
-    return 2.0 + n / cal.units_per_s / max(duty.effective, 1e-6)
+    units = throttle_check_units(budget, cal)
+    return 2.0 + units / cal.units_per_s / max(budget.duty(cal).effective, 1e-9)
 
 
 def monotone_efficiency(points: list[tuple[float, float]]) -> list[tuple[float, float]]:

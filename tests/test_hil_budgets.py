@@ -267,6 +267,12 @@ def test_a_throttle_check_rescales_the_efficiency_and_moves_the_duty_only_beyond
     fast = dataclasses.replace(rad, cpu_dmips=0.2 * cal.host_dmips(rad.anchor))
     assert not B.needs_throttle_check(fast, cal)
     assert _cal(60.0).rescaled(0.01, 0.9) == _cal(60.0)
+    # the check times the calibration's 3 units, fewer on a board so slow that they would take minutes
+    from hil_server.calibrate import PROBE_UNITS
+
+    assert B.throttle_check_units(rad, cal) == PROBE_UNITS and B.throttle_check_seconds(rad, cal) < 12.0
+    crawl = dataclasses.replace(rad, cpu_dmips=2.0)
+    assert B.throttle_check_units(crawl, cal) == 1
 
 
 @pytest.mark.parametrize("text", ["0.02", "0.02:x", "0:0.5", "0.02:1.5", "nan:0.5", "0.01:0.5:1"])
