@@ -61,7 +61,7 @@ from flight_sw.mapping import HazardGrid
 from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
-from protocol.codec import Encoded, encode_message
+from protocol.codec import Encoded, encode
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
 from protocol.messages import (
@@ -198,7 +198,7 @@ def fit_to_line(
     if baud <= 0 or due - time.monotonic() > SHRINK_CHECK * planned_s:
         return result, planned_s, 1.0, None
     step, pstep = int(result.elevation_step), int(result.psafe_step)
-    encoded = Encoded(result, encode_message(result))
+    encoded = encode(result)
     full = nbytes = len(encoded.body)
     line_s = expected_line_s(nbytes, baud)
     while line_s > due - time.monotonic() and (step < MAX_SHRINK_STEP or pstep < MAX_SHRINK_STEP):
@@ -207,7 +207,7 @@ def fit_to_line(
         else:
             pstep = min(2 * pstep, MAX_SHRINK_STEP)
         result = rebuild((step, pstep))
-        encoded = Encoded(result, encode_message(result))
+        encoded = encode(result)
         nbytes = len(encoded.body)
         line_s = expected_line_s(nbytes, baud)
     return result, line_s, full / nbytes, encoded

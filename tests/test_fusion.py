@@ -759,7 +759,7 @@ def test_a_result_fits_its_line_after_its_encoding_and_is_not_encoded_again(monk
     import time
 
     import flight_sw.flight_main as fm
-    from protocol.codec import encode_message
+    from protocol.codec import encode, encode_message
 
     _, _, full, full_s, rebuild, baud = _result_to_fit()
     calls = []
@@ -767,9 +767,9 @@ def test_a_result_fits_its_line_after_its_encoding_and_is_not_encoded_again(monk
     def slow_encode(msg):
         calls.append(msg)
         time.sleep(0.3)
-        return encode_message(msg)
+        return encode(msg)
 
-    monkeypatch.setattr(fm, "encode_message", slow_encode)
+    monkeypatch.setattr(fm, "encode", slow_encode)
     due = time.monotonic() + full_s + 0.2
     out, line_s, grown, enc = fm.fit_to_line(full, rebuild, baud, due, full_s)
     assert out.elevation_step > 1 and grown > 1.0 and enc is not None and enc.message is out
