@@ -47,6 +47,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_process)
 
+    f = subparsers.add_parser(
+        "flight",
+        help="run our flight software on a board of your own, serving `run --flight external` over a link",
+        description="Run the flight software (the `fast` pipeline, fusion, the deadline plan) on this machine - a "
+        "board of your own - and serve a ground over a serial line or ZeroMQ: on the ground PC, "
+        "`hazard-hil run --flight external --link serial:DEVICE@BAUD` (docs/hil.md section 6). Serves one ground "
+        "session after another until stopped (exit 128 + the signal) or the link fails (exit 1).",
+    )
+    f.add_argument(
+        "--link",
+        required=True,
+        metavar="SPEC",
+        help="serial:DEVICE[@BAUD] (e.g. serial:/dev/ttyUSB0@921600; BAUD 0: unpaced) or zmq:tcp://*:PORT (binds)",
+    )
+    f.add_argument(
+        "--keys", default=None, metavar="DIR", help="zmq: this board's CURVE key dir (server.key_secret, clients/)"
+    )
+    f.add_argument("--insecure", action="store_true", help="zmq on loopback only: no CURVE authentication")
+    f.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1: one core, as the emulation)")
+    f.add_argument(
+        "--link-timeout", type=float, default=4.0, metavar="S", help="a ground silent this long ends its session"
+    )
+    f.add_argument("--no-warm-up", dest="warm_up", action="store_false", help="skip the boot warm-up")
+    f.set_defaults(func=_flight)
+
+
+def _flight(args: argparse.Namespace) -> int:
+    from .board import serve
+
+    return serve(
+        args.link,
+        keys=args.keys,
+        insecure=args.insecure,
+        warm_up=args.warm_up,
+        threads=args.threads,
+        link_timeout=args.link_timeout,
+    )
+
 
 def _stats(err) -> dict[str, float]:
     import numpy as np

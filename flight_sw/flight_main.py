@@ -291,6 +291,13 @@ class FlightProcess:
         self.fusion_params = FusionParams()
         self._stop = threading.Event()
 
+    def new_ground_session(self) -> None:
+        """A new ground is served (:mod:`flight_sw.board`): nothing of the last one's descent carries over, not
+        even a Config equal to its (the same run reconnected cannot be told from the next run)."""
+        self.pending.clear()
+        self.config = None
+        self.fused = None
+
     # -- heartbeat -------------------------------------------------------------------------
     def _heartbeat_loop(self) -> None:
         n = 0

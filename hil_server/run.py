@@ -448,9 +448,9 @@ def summary_table(summary: dict) -> str:
     eff = s.get("effective_fraction")
     at_full = f", {_fmt(eff, '.4f')} at full speed" if eff is not None and eff < s.get("cpu_fraction", eff) else ""
     frac = _fmt(s.get("cpu_fraction"), ".4f")
-    where = f"on budget **{s['budget']}** (CPU fraction {frac}{at_full})" if s["budget"] else ""
+    where = f" on budget **{s['budget']}** (CPU fraction {frac}{at_full})" if s["budget"] else ""
     head = (
-        f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']} {where}, deadline "
+        f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']}{where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
         f"degraded), {s['errors']} errors{_not_run(s)}; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "

@@ -1,0 +1,175 @@
+"""Our flight software on a board of your own: it serves a ground over a serial line or ZeroMQ directly.
+
+Under ``hazard-hil run`` the flight process talks to the HIL server, which holds the ground's link,
+answers the ground's Hello, and keeps each ground session's pairs apart. On a real board there is no
+HIL server: ``hazard-hil flight --link serial:/dev/ttyUSB0@921600`` runs the same
+:class:`flight_sw.flight_main.FlightProcess` on the link itself, and :class:`GroundSession` does
+the HIL server's part of the protocol (docs/protocol.md section 6; the ground runs
+``hazard-hil run --flight external``):
+
+* it answers each ground's Hello, in that ground's link session, with ``Hello(role="flight")``;
+* a new ground session (another run, or the same ground reconnected) starts the flight software
+  afresh: the pairs half received are dropped and the fused map restarts with the next Config. A
+  reconnected ground has already recorded its pairs in flight as ``link_down`` and goes on with the
+  next pair (:mod:`ground_sim.stream`), so nothing it waits for is dropped here;
+* everything is sent within the session of the ground that said Hello last. The flight software reads
+  the link only between pairs, so a pair's answer belongs to that session; if the link lost it meanwhile
+  (the ground restarted, its new Hello not yet read), the link fails the answer (counted in its
+  ``failures``) instead of handing it to the next ground as a stranger's;
+* messages of a session whose Hello never came are dropped and counted, as the HIL server does.
+
+The board runs at its own speed: no duty cycle, no ``time_scale`` (the deadline plan measures the
+board's own stage costs). The link's sessions, retransmissions and timeouts are
+:mod:`protocol.links`'s.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+from protocol.messages import Frame, Hello, Result, Telemetry
+
+PAIR_IDS_KEPT = 4096  # frame seq -> pair_id: far more than the frames in flight at any time
+
+
+class GroundSession:
+    """A protocol link to a ground, seen by :class:`~flight_sw.flight_main.FlightProcess` as the HIL
+    server's link: ``recv``/``send``/``flush``/``stats`` and the rest pass through, with the sessions
+    handled here (module doc). ``on_new_session()`` is called when a new ground says Hello."""
+
+    def __init__(
+        self, link: Any, on_new_session: Callable[[], None] | None = None, log: Callable[[str], None] | None = None
+    ):
+        self.link = link
+        self.on_new_session = on_new_session
+        self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.epoch: int | None = None  # the link session of the ground we serve
+        self.ground_session: int | None = None  # its Hello.session
+        self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
+        self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
+        self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0}
+
+    def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
+        return getattr(self.link, name)
+
+    def recv(self, timeout: float | None = None) -> Any:
+        """The next message for the flight software, or None (a Hello answered here counts as nothing)."""
+        pkt = self.link.recv_packet(timeout)
+        if pkt is None:
+            return None
+        msg, epoch = pkt.message, pkt.epoch
+        if isinstance(msg, Hello):
+            if epoch != self.epoch or msg.session != self.ground_session:
+                self._new_session(msg, epoch)
+            self.link.send(Hello(role="flight", session=self.link.session_id), epoch=epoch)
+            return None
+        if epoch != self.epoch:
+            self.counters["dropped_no_hello"] += 1
+            return None
+        if isinstance(msg, Frame):
+            self.pair_ids[msg.seq] = str(msg.pair_id)
+            while len(self.pair_ids) > PAIR_IDS_KEPT:
+                self.pair_ids.popitem(last=False)
+        return msg
+
+    def _new_session(self, hello: Hello, epoch: int) -> None:
+        self.counters["sessions"] += 1
+        self.log(
+            f"flight: ground session {hello.session:08x} (link session {epoch}, role {hello.role!r})"
+            + (": the earlier session's pairs and fused map are dropped" if self.epoch is not None else "")
+        )
+        self.epoch, self.ground_session = epoch, hello.session
+        self.pair_ids.clear()
+        self.levels.clear()
+        if self.on_new_session is not None:
+            self.on_new_session()
+
+    def send(self, message: Any, timeout: float | None = None) -> int | None:
+        """Send in the session the message belongs to; nothing before a ground said Hello."""
+        msg = getattr(message, "message", message)  # an Encoded message: its Message decides
+        if isinstance(msg, Hello):
+            return None  # the flight software's Hello at boot: each ground's Hello is answered in recv()
+        if self.epoch is None:
+            return None  # no ground yet: nobody to tell (heartbeats, mostly)
+        mid = int(self.link.send(message, timeout=timeout, epoch=self.epoch))
+        if isinstance(msg, Result):
+            self.levels[int(msg.frame_seqs[0])] = msg.level + (" (degraded)" if msg.degraded else "")
+        elif isinstance(msg, Telemetry):
+            self._pair_line(msg)
+        return mid
+
+    def _pair_line(self, tel: Telemetry) -> None:
+        """One line per pair on the board's console: what the ground will judge, as this side saw it."""
+        seq = int(tel.frame_seqs[0])
+        self.counters["pairs"] += 1
+        pair = self.pair_ids.get(seq, "?")
+        level = self.levels.pop(seq, "no Result")
+        verdict = "met" if tel.deadline_met else "MISSED"
+        self.log(
+            f"flight: pair {pair}: {level}, {tel.total_latency_s:.2f} s from its last frame "
+            f"(deadline {tel.deadline_s:g} s with the Result's line time: {verdict}, as this side expects)"
+        )
+
+
+def serve(
+    spec: str,
+    *,
+    keys: str | None = None,
+    insecure: bool = False,
+    heartbeat_s: float = 0.25,
+    warm_up: bool = True,
+    threads: int = 1,
+    link_timeout: float = 4.0,
+    log: Callable[[str], None] | None = None,
+) -> int:
+    """Serve grounds on the link ``spec`` (``serial:DEVICE[@BAUD]`` or ``zmq:ENDPOINT``, the board binding)
+    until the link fails (exit 1) or a signal stops it (128 + the signal). Bad usage raises InputError."""
+    import signal
+
+    import cv2
+
+    from protocol.errors import InputError
+    from protocol.linkspec import open_link
+
+    from .flight_main import FaultPlan, FlightProcess
+    from .pipeline import PRESETS
+
+    say = log or (lambda text: print(text, file=sys.stderr, flush=True))
+    if not 1 <= threads <= 256:
+        raise InputError(f"--threads must be in [1, 256], got {threads}")
+    if not heartbeat_s > 0:
+        raise InputError(f"--heartbeat must be > 0 s, got {heartbeat_s}")
+    cv2.setNumThreads(threads)  # 1: one core, as the emulated processor; a board may give the pipeline more
+    prefault = False
+    if warm_up:  # before the link opens: no ground waits on it
+        from .warmup import boot_warm_up
+
+        w = boot_warm_up(PRESETS["fast"])
+        prefault = bool(w["allocator_settled"])
+        say(f"flight: boot warm-up {w['cpu_s']:.3f} s CPU ({w['size_px']} px pair, level {w['level']})")
+    stopped: list[int] = []
+
+    def stop(signum: int, _frame: Any) -> None:
+        stopped.append(signum)
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, stop)
+    link = open_link(spec, server=True, keys=keys, insecure=insecure, peer_timeout=link_timeout, connect_timeout=None)
+    ground = GroundSession(link, log=say)
+    flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
+    ground.on_new_session = flight.new_ground_session
+    try:
+        say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
+        flight.run()
+        say(f"flight: the link failed: {link.failed}" if link.failed else "flight: the link closed")
+        return 1
+    except KeyboardInterrupt:
+        sig = stopped[0] if stopped else signal.SIGINT
+        say(f"flight: stopped by {signal.Signals(sig).name}; served {ground.counters['sessions']} ground session(s)")
+        return 128 + sig
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        link.close()

@@ -1,0 +1,235 @@
+"""Our flight software on a board of one's own (``hazard-hil flight``, flight_sw/board.py): it serves
+``hazard-hil run --flight external`` over a serial line or ZeroMQ, one ground session after another."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilkit import run_hil, small_descent
+
+from flight_sw.board import GroundSession
+from hil_server.cli import main as cli
+from hil_server.run import exit_code
+from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+
+ROOT = Path(__file__).resolve().parents[1]
+PAIRS = ["600/300", "300/150"]
+BOARD = [sys.executable, "-m", "hil_server.cli", "flight", "--no-warm-up"]
+
+
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory):
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
+
+
+def _stop(board: subprocess.Popen) -> tuple[int, str]:
+    board.send_signal(signal.SIGTERM)
+    try:
+        _, err = board.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        board.kill()
+        _, err = board.communicate()
+    return board.returncode, err
+
+
+def _scores(s: dict) -> list[tuple]:
+    return [(r["label"], r["level"], r["scores"]["fp_pct"], r["scores"]["cdi_pct"]) for r in s["records"]]
+
+
+def test_our_flight_software_on_a_serial_board_serves_one_ground_after_another(manifest, tmp_path):
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen(
+            [*BOARD, "--link", f"serial:{bridge.paths[0]}@0"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            runs = [
+                run_hil(manifest, tmp_path / f"run{k}", flight="external", link=f"serial:{bridge.paths[1]}@0")
+                for k in range(2)
+            ]
+        finally:
+            rc, err = _stop(board)
+    for s in runs:
+        assert exit_code(s) == 0 and s["complete"] and s["budget"] is None
+        recs = s["records"]
+        assert [r["status"] for r in recs] == ["result", "result"]
+        # the real pipeline answered, not an empty Result: full level, an elevation, FP within the issue's limit
+        assert all(r["level"] == "full" for r in recs)
+        assert all(r["scores"]["dem_coverage_pct"] > 50 and r["scores"]["fp_pct"] <= 1.0 for r in recs)
+    # the second ground started afresh: nothing of the first descent's fused map carried over
+    assert _scores(runs[0]) == _scores(runs[1])
+    assert rc == 128 + signal.SIGTERM
+    assert err.count("flight: ground session ") == 2 and "fused map are dropped" in err
+    assert err.count("flight: pair ") == 4 and "served 2 ground session(s)" in err
+
+
+def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_path):
+    keys = tmp_path / "keys"
+    subprocess.run([sys.executable, "-m", "protocol.zmqauth", str(keys)], cwd=ROOT, check=True, capture_output=True)
+    with socket_port() as port:
+        pass
+    board = subprocess.Popen(
+        [*BOARD, "--link", f"zmq:tcp://127.0.0.1:{port}", "--keys", str(keys)],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        s = run_hil(manifest, tmp_path / "run", flight="external", link=f"zmq:tcp://127.0.0.1:{port}", keys=str(keys))
+    finally:
+        rc, err = _stop(board)
+    assert exit_code(s) == 0 and [r["level"] for r in s["records"]] == ["full", "full"], err
+    assert rc == 128 + signal.SIGTERM
+
+
+class socket_port:
+    """A free TCP port on loopback (bound and released)."""
+
+    def __enter__(self) -> int:
+        import socket
+
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        return int(self.sock.getsockname()[1])
+
+    def __exit__(self, *exc: object) -> None:
+        self.sock.close()
+
+
+@pytest.mark.parametrize(
+    ("link", "says"),
+    [
+        ("bogus", "link spec must be serial:URL[@BAUD] or zmq:ENDPOINT"),
+        ("serial:/dev/no-such-tty@921600", "cannot open serial port"),
+        ("zmq:tcp://0.0.0.0:5599", "CURVE-authenticated"),
+    ],
+)
+def test_a_link_that_cannot_serve_is_one_line_and_exit_2(link, says, capsys):
+    assert cli(["flight", "--no-warm-up", "--link", link]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hazard-hil flight: error: ") and says in err[0]
+
+
+# -- the session rules, on a link that only records ----------------------------------------------------------
+
+
+@dataclass
+class Packet:
+    message: object
+    epoch: int
+
+
+class RecordingLink:
+    session_id = 0xABCD
+
+    def __init__(self, packets: list[Packet]) -> None:
+        self.packets = list(packets)
+        self.sent: list[tuple[object, int | None]] = []
+
+    def recv_packet(self, timeout=None):
+        return self.packets.pop(0) if self.packets else None
+
+    def send(self, message, timeout=None, epoch=None) -> int:
+        self.sent.append((message, epoch))
+        return len(self.sent)
+
+
+def _frame(seq: int, pair: str, k: int) -> Frame:
+    eye = np.eye(3)
+    img = np.zeros((4, 4), np.uint8)
+    return Frame(
+        seq=seq,
+        capture_time_s=0.0,
+        position_m=[0.0, 0.0, 100.0],
+        R_world_to_cam=eye,
+        altimeter_m=float("nan"),
+        image=img,
+        pair_id=pair,
+        frame_index=k,
+    )
+
+
+def _result(seqs: tuple[int, int]) -> Result:
+    return Result(
+        frame_seqs=list(seqs),
+        state_grid=np.full((2, 2), 2, np.uint8),
+        psafe_grid=np.zeros((2, 2), np.uint8),
+        elevation_grid=np.full((2, 2), -32768, np.int16),
+        grid_origin_xy=[0.0, 0.0],
+        grid_cell_m=1.0,
+    )
+
+
+def test_everything_goes_to_the_session_of_the_last_hello_and_strangers_are_dropped():
+    cfg = Config(
+        camera={"width": 4, "height": 4, "fx": 4.0, "fy": 4.0, "cx": 2.0, "cy": 2.0}, budget="", deadline_s=2.0
+    )
+    packets = [
+        Packet(cfg, 1),  # before any Hello: a stranger's
+        Packet(Hello(role="ground", session=11), 1),
+        Packet(cfg, 1),
+        Packet(_frame(1, "a", 0), 1),
+        Packet(_frame(2, "a", 1), 1),
+        Packet(_frame(3, "b", 0), 2),  # the link's next session, its ground's Hello not yet read
+    ]
+    link = RecordingLink(packets)
+    resets = []
+    ground = GroundSession(link, on_new_session=lambda: resets.append(1), log=lambda s: None)
+    got = [ground.recv() for _ in packets]
+    assert got[0] is None and got[1] is None and got[2] == cfg and isinstance(got[3], Frame) and got[5] is None
+    assert ground.counters["dropped_no_hello"] == 2 and ground.counters["sessions"] == 1 and len(resets) == 1
+    # pair "a", answered now: sent within session 1, which the link fails since session 2 is up
+    link.sent.clear()
+    ground.send(_result((1, 2)))
+    ground.send(Telemetry(frame_seqs=[1, 2], total_latency_s=0.5, deadline_s=2.0))
+    ground.send(Error(code="bad_input", text="x", seq=2))
+    ground.send(Heartbeat(time_s=0.0))
+    ground.send(Hello(role="flight"))  # the flight software's own, at boot: each ground's Hello is answered in recv
+    assert [(type(m).__name__, e) for m, e in link.sent] == [
+        ("Result", 1),
+        ("Telemetry", 1),
+        ("Error", 1),
+        ("Heartbeat", 1),
+    ]
+    assert ground.counters["pairs"] == 1
+    # the next ground's Hello: answered in its session, the flight software reset, and from then on session 2
+    link.packets = [Packet(Hello(role="ground", session=22), 2), Packet(Hello(role="ground", session=22), 2)]
+    link.sent.clear()
+    assert ground.recv() is None and ground.recv() is None  # the same ground twice: one new session
+    ground.send(Heartbeat(time_s=1.0))
+    assert [(type(m).__name__, getattr(m, "role", None), e) for m, e in link.sent] == [
+        ("Hello", "flight", 2),
+        ("Hello", "flight", 2),
+        ("Heartbeat", None, 2),
+    ]
+    assert ground.counters["sessions"] == 2 and len(resets) == 2 and ground.pair_ids == {}
+
+
+def test_nothing_is_sent_before_a_ground_said_hello():
+    link = RecordingLink([])
+    ground = GroundSession(link, log=lambda s: None)
+    ground.send(Heartbeat(time_s=0.0))
+    ground.send(Hello(role="flight"))
+    assert link.sent == []
+    assert ground.recv(0.01) is None
+
+
+def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen(
+            [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+        )
+        time.sleep(1.0)
+        rc, err = _stop(board)
+    assert rc == 128 + signal.SIGTERM, err
+    assert "waiting for a ground" in err and "served 0 ground session(s)" in err
