@@ -32,6 +32,7 @@ from typing import Any
 
 from protocol.messages import Frame, Hello, Result, Telemetry
 
+KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where the board has a C compiler
 PAIR_IDS_KEPT = 4096  # frame seq -> pair_id: far more than the frames in flight at any time
 
 
@@ -135,6 +136,7 @@ def serve(
     from protocol.linkspec import open_link
 
     from .flight_main import FaultPlan, FlightProcess
+    from .kernels import load_kernel
     from .pipeline import PRESETS
 
     say = log or (lambda text: print(text, file=sys.stderr, flush=True))
@@ -162,6 +164,9 @@ def serve(
     flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
     ground.on_new_session = flight.new_ground_session
     try:
+        missing = [m for m in KERNELS if load_kernel(m) is None]
+        if missing:  # the install found no C compiler: the numpy references run instead, several times slower
+            say(f"flight: compiled kernels missing ({', '.join(missing)}): their numpy references run instead")
         say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
         flight.run()
         say(f"flight: the link failed: {link.failed}" if link.failed else "flight: the link closed")
