@@ -40,7 +40,8 @@ def _stop(board: subprocess.Popen) -> tuple[int, str]:
 
 
 def _scores(s: dict) -> list[tuple]:
-    return [(r["label"], r["level"], r["scores"]["fp_pct"], r["scores"]["cdi_pct"]) for r in s["records"]]
+    keys = ("fp_pct", "cdi_pct", "dem_mean_abs", "dem_coverage_pct")
+    return [(r["label"], r["level"], *(r["scores"][k] for k in keys)) for r in s["records"]]
 
 
 def test_our_flight_software_on_a_serial_board_serves_one_ground_after_another(manifest, tmp_path):
@@ -69,6 +70,28 @@ def test_our_flight_software_on_a_serial_board_serves_one_ground_after_another(m
     assert rc == 128 + signal.SIGTERM
     assert err.count("flight: ground session ") == 2 and "fused map are dropped" in err
     assert err.count("flight: pair ") == 4 and "served 2 ground session(s)" in err
+
+
+def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(manifest, tmp_path):
+    from protocol.faults import CorruptingChannel, PtyBridge
+
+    down = CorruptingChannel(seed=21, drop=1e-4, flip=1e-4, dup=1e-4)
+    up = CorruptingChannel(seed=22, drop=1e-4, flip=1e-4, dup=1e-4)
+    with PtyBridge(up, down) as bridge:
+        board = subprocess.Popen(
+            [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            s = run_hil(manifest, tmp_path / "board", flight="external", link=f"serial:{bridge.paths[1]}@921600")
+        finally:
+            rc, err = _stop(board)
+    assert sum(ch.stats[k] for ch in (up, down) for k in ("dropped", "flipped", "duplicated")) > 10, "must corrupt"
+    assert exit_code(s) == 0 and s["complete"], err
+    # the same frames through the HIL server to the emulated processor at the same rate (so the ground asks for the
+    # same grid steps and elevation unit): the same Results, byte for byte in effect
+    emulated = run_hil(manifest, tmp_path / "emulated", "serial", baud=921600)
+    assert _scores(s) == _scores(emulated)
+    assert rc == 128 + signal.SIGTERM
 
 
 def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_path):
