@@ -16,7 +16,9 @@ the HIL server's part of the protocol (docs/protocol.md section 6; the ground ru
   the link only between pairs, so a pair's answer belongs to that session; if the link lost it meanwhile
   (the ground restarted, its new Hello not yet read), the link fails the answer (counted in its
   ``failures``) instead of handing it to the next ground as a stranger's;
-* messages of a session whose Hello never came are dropped and counted, as the HIL server does.
+* messages of a session whose Hello never came are dropped and counted, as the HIL server does, and a
+  message the link refuses although it arrived whole (it fails to decode or the schema) is said on the
+  console and counted.
 
 The board runs at its own speed: no duty cycle, no ``time_scale`` (the deadline plan measures the
 board's own stage costs). The link's sessions, retransmissions and timeouts are
@@ -30,9 +32,10 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
-from protocol.messages import Frame, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_NAMES, Frame, Hello, Result, Telemetry
 
 KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where the board has a C compiler
+REFUSALS_SAID = 100  # refused messages said on the console; the rest are counted
 PAIR_IDS_KEPT = 4096  # frame seq -> pair_id: far more than the frames in flight at any time
 
 
@@ -51,7 +54,7 @@ class GroundSession:
         self.ground_session: int | None = None  # its Hello.session
         self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
-        self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0}
+        self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
         return getattr(self.link, name)
@@ -59,6 +62,7 @@ class GroundSession:
     def recv(self, timeout: float | None = None) -> Any:
         """The next message for the flight software, or None (a Hello answered here counts as nothing)."""
         pkt = self.link.recv_packet(timeout)
+        self._say_refusals()
         if pkt is None:
             return None
         msg, epoch = pkt.message, pkt.epoch
@@ -75,6 +79,16 @@ class GroundSession:
             while len(self.pair_ids) > PAIR_IDS_KEPT:
                 self.pair_ids.popitem(last=False)
         return msg
+
+    def _say_refusals(self) -> None:
+        """Messages the link refused although they arrived whole (a stranger's, or a ground's over the limits):
+        said here, as nothing else will (the first ``REFUSALS_SAID``; all are counted)."""
+        for type_code, reason in self.link.take_refusals():
+            self.counters["refused"] += 1
+            if self.counters["refused"] <= REFUSALS_SAID:
+                what = MESSAGE_NAMES.get(type_code, f"type {type_code}") if type_code is not None else "message"
+                more = " (the rest are only counted)" if self.counters["refused"] == REFUSALS_SAID else ""
+                self.log(f"flight: refused a {what} from the link: {reason}{more}")
 
     def _new_session(self, hello: Hello, epoch: int) -> None:
         self.counters["sessions"] += 1
@@ -173,7 +187,11 @@ def serve(
         return 1
     except KeyboardInterrupt:
         sig = stopped[0] if stopped else signal.SIGINT
-        say(f"flight: stopped by {signal.Signals(sig).name}; served {ground.counters['sessions']} ground session(s)")
+        c = ground.counters
+        say(
+            f"flight: stopped by {signal.Signals(sig).name}; served {c['sessions']} ground session(s), {c['pairs']} "
+            f"pair(s); {c['refused']} message(s) refused, {c['dropped_no_hello']} dropped (no Hello in their session)"
+        )
         return 128 + sig
     finally:
         signal.signal(signal.SIGTERM, old)

@@ -69,7 +69,10 @@ def test_our_flight_software_on_a_serial_board_serves_one_ground_after_another(m
     assert _scores(runs[0]) == _scores(runs[1])
     assert rc == 128 + signal.SIGTERM
     assert err.count("flight: ground session ") == 2 and "fused map are dropped" in err
-    assert err.count("flight: pair ") == 4 and "served 2 ground session(s)" in err
+    assert (
+        err.count("flight: pair ") == 4
+        and "served 2 ground session(s), 4 pair(s); 0 message(s) refused, 0 dropped" in err
+    )
 
 
 def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(manifest, tmp_path):
@@ -153,9 +156,14 @@ class Packet:
 class RecordingLink:
     session_id = 0xABCD
 
-    def __init__(self, packets: list[Packet]) -> None:
+    def __init__(self, packets: list[Packet], refusals: list[tuple[int | None, str]] | None = None) -> None:
         self.packets = list(packets)
+        self.refusals = list(refusals or [])
         self.sent: list[tuple[object, int | None]] = []
+
+    def take_refusals(self):
+        out, self.refusals = self.refusals, []
+        return out
 
     def recv_packet(self, timeout=None):
         return self.packets.pop(0) if self.packets else None
@@ -236,13 +244,19 @@ def test_everything_goes_to_the_session_of_the_last_hello_and_strangers_are_drop
     assert ground.counters["sessions"] == 2 and len(resets) == 2 and ground.pair_ids == {}
 
 
-def test_nothing_is_sent_before_a_ground_said_hello():
-    link = RecordingLink([])
-    ground = GroundSession(link, log=lambda s: None)
+def test_nothing_is_sent_before_a_ground_said_hello_and_a_refused_message_is_said():
+    link = RecordingLink([], refusals=[(3, "Frame.image: shape (0, 5) is empty"), (None, "malformed header")])
+    said: list[str] = []
+    ground = GroundSession(link, log=said.append)
     ground.send(Heartbeat(time_s=0.0))
     ground.send(Hello(role="flight"))
     assert link.sent == []
     assert ground.recv(0.01) is None
+    assert ground.counters["refused"] == 2
+    assert said == [
+        "flight: refused a Frame from the link: Frame.image: shape (0, 5) is empty",
+        "flight: refused a message from the link: malformed header",
+    ]
 
 
 def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
@@ -255,4 +269,4 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
         time.sleep(1.0)
         rc, err = _stop(board)
     assert rc == 128 + signal.SIGTERM, err
-    assert "waiting for a ground" in err and "served 0 ground session(s)" in err
+    assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
