@@ -821,7 +821,8 @@ def main(argv: list[str] | None = None) -> int:
             insecure=args.insecure,
             peer_timeout=args.link_timeout,
             connect_timeout=args.reconnect_timeout,
-            name="hil-server",
+            # the far end: the HIL server in front of the emulated processor, or a flight computer of one's own
+            name="flight-computer" if args.budget == "external" else "hil-server",
             log=lambda s: print(f"ground: {s}", file=sys.stderr, flush=True),
         )
     except (InputError, ValueError) as exc:
