@@ -513,6 +513,7 @@ def _cmd_regress(args: argparse.Namespace) -> int:
         out=args.out,
         cases=None if args.cases is None else [c.strip() for c in args.cases.split(",") if c.strip()],  # "": none
         min_hit_rate=args.min_hit_rate,
+        board_link=args.link,
     )
 
 
@@ -559,6 +560,13 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         help="also pass when a case's pairs met the deadline at least this often (default: every pair must)",
     )
     p.add_argument("--out", type=Path, default=Path("out/regress"), help="where the cases' runs are written")
+    p.add_argument(
+        "--link",
+        default=None,
+        metavar="SPEC",
+        help='run the baseline\'s board cases ("flight": "external", a board serving `hazard-hil flight`) on '
+        "this link instead of their own, e.g. serial:/dev/ttyUSB1@921600 (not written back)",
+    )
     p.set_defaults(func=_cmd_regress)
 
 

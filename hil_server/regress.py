@@ -27,6 +27,11 @@ pair, not on wall latency: on a busy host the wall clock of an unthrottled
 process measures the other load, not the flight software. Throttled budgets
 are judged on latency (the emulator's duty cycle sets their wall time).
 
+A case with ``"flight": "external"`` runs against a board of one's own serving ``hazard-hil flight``
+(:mod:`flight_sw.board`) on the case's ``link`` spec, or ``--link``'s; its ``budget`` gives only the
+deadline (``deadline_s`` overrides it). Its latencies are the board's own seconds (scale 1): such a
+baseline holds for that board only, and is judged on latency like a throttled budget.
+
 The baseline shipped with the package (:func:`default_baseline_path`) is used
 unless another is given; relative ``manifest`` paths in a baseline are
 relative to the baseline file.
@@ -68,9 +73,14 @@ def default_baseline_path() -> Path:
     return Path(__file__).with_name("latency_baseline.json")
 
 
-def judged_metrics(budget: str) -> tuple[str, ...]:
-    """CPU seconds for the unthrottled host budget, latency for throttled ones (module doc)."""
-    return CPU_METRICS if budget == "host" else LATENCY_METRICS
+def judged_metrics(budget: str, flight: str = "emulated") -> tuple[str, ...]:
+    """CPU seconds for the unthrottled host budget, latency for throttled ones and for a board (module doc)."""
+    return CPU_METRICS if budget == "host" and flight == "emulated" else LATENCY_METRICS
+
+
+def is_board(case: dict) -> bool:
+    """A case run against a flight computer of one's own (``"flight": "external"``) rather than the emulation."""
+    return case.get("flight", "emulated") == "external"
 
 
 @dataclass
@@ -103,14 +113,18 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else math.nan
 
 
+def _path(value: str | None, base_dir: Path | None) -> Path | None:
+    """A case's path, relative to the baseline file's directory unless absolute."""
+    if not value:
+        return None
+    p = Path(value)
+    return base_dir / p if not p.is_absolute() and base_dir is not None else p
+
+
 def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None) -> dict:
     from hil_server.run import RunConfig, run_descent
 
-    manifest = None
-    if case.get("manifest"):
-        manifest = Path(case["manifest"])
-        if not manifest.is_absolute() and base_dir is not None:
-            manifest = base_dir / manifest
+    manifest = _path(case.get("manifest"), base_dir)
 
     cfg = RunConfig(
         scenario=case["scenario"],
@@ -121,9 +135,13 @@ def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None)
         seed=int(case.get("seed", 0)),
         image_size=case.get("image_size"),
         manifest=manifest,
+        flight=case.get("flight", "emulated"),
+        keys=_path(case.get("keys"), base_dir),
+        deadline_s=case.get("deadline_s"),
     )
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
-    speed, ref = effective_speed(case["budget"])
+    # a board's seconds are its own: no emulated speed to take out (its baseline holds for that board only)
+    speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"])
     scale = speed / ref
     cur = {
         "deadline_hit_rate": summary["deadline_hit_rate"],
@@ -204,7 +222,9 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
     return "\n".join(lines)
 
 
-CASE_KEYS = frozenset({"scenario", "budget", "link", "pairs", "seed", "image_size", "manifest", "metrics"})
+CASE_KEYS = frozenset(
+    {"scenario", "budget", "link", "pairs", "seed", "image_size", "manifest", "metrics", "flight", "keys", "deadline_s"}
+)
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
 
 
@@ -252,6 +272,15 @@ def validate_baseline(doc: object, where: str) -> None:
                 raise bad(f"{w}: {k!r} must be a non-empty string, got {case.get(k)!r}")
         if case["budget"] not in budgets:
             raise bad(f"{w}: unknown budget {case['budget']!r}; choose one of: {', '.join(budgets)}")
+        if case.get("flight", "emulated") not in ("emulated", "external"):
+            raise bad(f"{w}: 'flight' must be 'emulated' or 'external' (a board of one's own), got {case['flight']!r}")
+        if is_board(case) and not case["link"].startswith(("serial:", "zmq:")):
+            raise bad(f"{w}: a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT, got {case['link']!r}")
+        for k in ("keys",):
+            if k in case and (not isinstance(case[k], str) or not case[k]):
+                raise bad(f"{w}: {k!r} must be a non-empty path, got {case[k]!r}")
+        if "deadline_s" in case and (not number(case["deadline_s"]) or not case["deadline_s"] > 0):
+            raise bad(f"{w}: 'deadline_s' must be a positive number of seconds, got {case['deadline_s']!r}")
         pairs = case.get("pairs")
         if pairs is not None and (
             not isinstance(pairs, list) or not pairs or not all(isinstance(x, str) and x for x in pairs)
@@ -308,11 +337,13 @@ def check_regression(
     cases: list[str] | None = None,
     update: bool = False,
     min_hit_rate: float | None = None,
+    board_link: str | None = None,
 ) -> tuple[bool, str, dict]:
     """Run the cases; returns (ok, readable diff, new baseline document).
 
     ok: no case regressed against the baseline (not judged with ``update``) and every case's deadline
-    hit rate reached ``min_hit_rate`` (None: every pair met its deadline end to end).
+    hit rate reached ``min_hit_rate`` (None: every pair met its deadline end to end). ``board_link``: run
+    the board cases (``"flight": "external"``) on this link instead of their own (not written back).
     """
     from protocol.errors import InputError
 
@@ -349,11 +380,16 @@ def check_regression(
     need = 1.0 if min_hit_rate is None else min_hit_rate
     outcomes = []
     missed = False
+    if board_link is not None and not any(is_board(all_cases[n]) for n in names):
+        raise InputError('--link applies to board cases ("flight": "external"); none of these cases is one')
     for i, n in enumerate(names, 1):
         case = all_cases[n]
-        print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {case['budget']})", file=sys.stderr)
-        cur = measure_case(n, case, out, baseline.resolve().parent)
-        o = compare(n, cur, None if update else case.get("metrics"), tol, judged_metrics(case["budget"]))
+        run_case = {**case, "link": board_link} if board_link is not None and is_board(case) else case
+        where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
+        print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
+        cur = measure_case(n, run_case, out, baseline.resolve().parent)
+        metrics = judged_metrics(case["budget"], case.get("flight", "emulated"))
+        o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
             o.problems.clear()  # no baseline to regress against: it is being written
             case["metrics"] = cur
@@ -386,8 +422,11 @@ def run_regression(
     out: Path = Path("out/regress"),
     cases: list[str] | None = None,
     min_hit_rate: float | None = None,
+    board_link: str | None = None,
 ) -> int:
-    ok, diff, new_doc = check_regression(baseline, out=out, cases=cases, update=update, min_hit_rate=min_hit_rate)
+    ok, diff, new_doc = check_regression(
+        baseline, out=out, cases=cases, update=update, min_hit_rate=min_hit_rate, board_link=board_link
+    )
     print(diff)
     if update:
         from reports.html import write_atomic

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -270,3 +271,61 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
         rc, err = _stop(board)
     assert rc == 128 + signal.SIGTERM, err
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
+
+
+def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
+    from protocol.faults import PtyBridge
+
+    base = tmp_path / "board_baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "flight": "external", "pairs": ["600/300"]}
+    case |= {"image_size": 128, "link": "serial:/dev/the-lab-board@0"}  # this machine's device comes with --link
+    base.write_text(json.dumps({"cases": {"board": case}}))
+    with PtyBridge() as bridge:
+        board = subprocess.Popen(
+            [*BOARD, "--link", f"serial:{bridge.paths[0]}@0"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            args = ["regress", "--baseline", str(base), "--out", str(tmp_path / "out"), "--link"]
+            args.append(f"serial:{bridge.paths[1]}@0")
+            assert cli([*args, "--update"]) == 0
+            doc = json.loads(base.read_text())
+            metrics = doc["cases"]["board"]["metrics"]
+            assert doc["cases"]["board"]["link"] == case["link"]  # the override is not written back
+            assert metrics["deadline_hit_rate"] == 1.0 and metrics["pairs"] == 1 and metrics["latency_p50_ref_s"] > 0
+            assert cli(args) == 0
+            # a baseline the board cannot meet: latencies a thousandth of what it takes, no tolerance
+            metrics.update(
+                {k: metrics[k] / 1000 for k in ("latency_p50_ref_s", "latency_p95_ref_s", "latency_max_ref_s")}
+            )
+            doc["tolerances"] = {"latency_rel": 0.0, "latency_abs_s": 0.0}
+            base.write_text(json.dumps(doc))
+            capsys.readouterr()
+            assert cli(args) == 1
+        finally:
+            _stop(board)
+    out = capsys.readouterr().out
+    assert "REGRESSION" in out and "latency_p50_ref_s" in out and "FAIL" in out
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        ({"flight": "board"}, "'flight' must be 'emulated' or 'external'"),
+        ({"flight": "external", "link": "serial"}, "a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT"),
+        ({"deadline_s": -1}, "'deadline_s' must be a positive number"),
+    ],
+)
+def test_a_malformed_board_case_is_one_line_and_exit_2(tmp_path, capsys, change, says):
+    base = tmp_path / "b.json"
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq", **change}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    assert cli(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0]
+
+
+def test_regress_link_needs_a_board_case(tmp_path, capsys):
+    base = tmp_path / "b.json"
+    base.write_text(json.dumps({"cases": {"c": {"scenario": "vertical", "budget": "host", "link": "zmq"}}}))
+    assert cli(["regress", "--baseline", str(base), "--link", "serial:/dev/x@0", "--out", str(tmp_path / "o")]) == 2
+    assert "none of these cases is one" in capsys.readouterr().err
