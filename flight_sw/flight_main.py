@@ -293,7 +293,7 @@ class FlightProcess:
 
     def new_ground_session(self) -> None:
         """A new ground is served (:mod:`flight_sw.board`): nothing of the last one's descent carries over, not
-        even a Config equal to its (the same run reconnected cannot be told from the next run)."""
+        even the fused map under an equal Config (the same run reconnected cannot be told from the next run)."""
         self.pending.clear()
         self.config = None
         self.fused = None
