@@ -182,7 +182,7 @@ def serve(
         if missing:  # the install found no C compiler: the numpy references run instead, several times slower
             say(f"flight: compiled kernels missing ({', '.join(missing)}): their numpy references run instead")
         say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
-        flight.run()
+        flight.run(watch_parent=False)  # detached (nohup, a daemon) it must outlive its parent
         say(f"flight: the link failed: {link.failed}" if link.failed else "flight: the link closed")
         return 1
     except KeyboardInterrupt:

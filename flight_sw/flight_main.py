@@ -571,7 +571,9 @@ class FlightProcess:
         assert isinstance(msg, Result)
         return msg
 
-    def run(self) -> int:
+    def run(self, watch_parent: bool = True) -> int:
+        """Serve until the link closes or, with ``watch_parent``, the supervisor that started this process is gone
+        (a board of one's own, :mod:`flight_sw.board`, serves whoever started it)."""
         parent = os.getppid()
         self.link.send(Hello(role="flight"))
         hb = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
@@ -586,7 +588,7 @@ class FlightProcess:
                     return 0
                 if msg is not None:
                     self.handle(msg)
-                elif os.getppid() != parent:  # the supervisor is gone: nobody to report to
+                elif watch_parent and os.getppid() != parent:  # the supervisor is gone: nobody to report to
                     return 0
         finally:
             self._stop.set()

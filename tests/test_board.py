@@ -330,3 +330,57 @@ def test_regress_link_needs_a_board_case(tmp_path, capsys):
     base.write_text(json.dumps({"cases": {"c": {"scenario": "vertical", "budget": "host", "link": "zmq"}}}))
     assert cli(["regress", "--baseline", str(base), "--link", "serial:/dev/x@0", "--out", str(tmp_path / "o")]) == 2
     assert "none of these cases is one" in capsys.readouterr().err
+
+
+def test_a_board_started_detached_outlives_the_shell_that_started_it(tmp_path):
+    from protocol.faults import PtyBridge
+
+    pidfile, err = tmp_path / "board.pid", tmp_path / "board.err"
+    with PtyBridge() as bridge:
+        cmd = " ".join([*BOARD, "--link", f"serial:{bridge.paths[0]}@0"])
+        # as after `nohup ... &` and a logout
+        # the shell outlives the board's start-up, then exits: the running board is reparented
+        subprocess.run(["bash", "-c", f"{cmd} 2>{err} & echo $! > {pidfile}; sleep 3"], cwd=ROOT, check=True)
+        pid = int(pidfile.read_text())
+        try:
+            time.sleep(1.5)
+            assert Path(f"/proc/{pid}").exists(), err.read_text()
+            s = run_hil(small_descent(tmp_path / "pairs", ["600/300"]), tmp_path / "run", flight="external",
+                        link=f"serial:{bridge.paths[1]}@0")  # fmt: skip
+            assert exit_code(s) == 0
+        finally:
+            subprocess.run(["kill", "-TERM", str(pid)], check=False)
+            for _ in range(100):
+                if not Path(f"/proc/{pid}").exists() or " Z " in Path(f"/proc/{pid}/stat").read_text():
+                    break
+                time.sleep(0.1)
+    assert "stopped by SIGTERM" in err.read_text()
+
+
+def test_regress_update_that_records_nothing_keeps_the_old_baseline(tmp_path, capsys):
+    base = tmp_path / "b.json"
+    case = {"scenario": "vertical", "budget": "host", "flight": "external", "link": "serial:/dev/x@0"}
+    case |= {"pairs": ["600/300"], "image_size": 96, "metrics": {"deadline_hit_rate": 1.0, "latency_p50_ref_s": 0.1}}
+    base.write_text(json.dumps({"cases": {"b": case}}))
+    before = base.read_text()
+    # a pty nobody serves: the hello timeout cannot be set from regress, so a board that is off takes long; a
+    # regular file as the device fails at once instead
+    dev = tmp_path / "not-a-tty"
+    dev.write_text("")
+    assert (
+        cli(["regress", "--baseline", str(base), "--update", "--link", f"serial:{dev}@0", "--out", str(tmp_path / "o")])
+        == 1
+    )
+    assert base.read_text() == before
+    assert "baseline NOT written" in capsys.readouterr().out
+
+
+def test_the_diff_table_marks_a_hit_rate_regression_on_its_row():
+    from hil_server.regress import DEFAULT_TOLERANCES, LATENCY_METRICS, compare, diff_table
+
+    base = {"deadline_hit_rate": 1.0, **dict.fromkeys(LATENCY_METRICS, 1.0)}
+    cur = {**base, "deadline_hit_rate": 0.0}
+    row = [
+        ln for ln in diff_table([compare("b", cur, base, DEFAULT_TOLERANCES)]).splitlines() if "deadline_hit_rate" in ln
+    ]
+    assert len(row) == 1 and row[0].endswith("REGRESSION")
