@@ -19,9 +19,12 @@ every 10 s; when it never comes the descent ends at once: every pair is recorded
 as ``not_run`` with the reason and the process exits 5. When the session is lost
 (the far end stopped reading, went silent, closed, or was restarted), the pairs
 in flight end at once as ``link_down`` errors with the link's reason; the ground
-then waits up to ``reconnect_timeout_s`` for a new session, says Hello and
-Config again, and carries on with the next pair. The process exits 3 when a
-session was lost on the way (0 otherwise).
+then waits for a new session, says Hello and Config again, and carries on with
+the next pair. The wait is ``reconnect_timeout_s`` from the moment the loss was
+seen, not per pair: a flight computer that stays away ends each later pair at
+once as ``link_down`` (it came back if its session is up by then), so a lost
+board ends a descent in seconds rather than in pairs x 10 s. The process exits 3
+when a session was lost on the way (0 otherwise).
 
 A message from the flight side that the link refuses although it arrived whole
 (it fails to decode, the decoder's budget or the schema: a wrong-shaped grid, a
@@ -153,6 +156,7 @@ class PairOutcome:
     pair_dir: str
     seqs: tuple[int, int]
     sent_at: float = 0.0
+    turn_at: float = 0.0  # when the ground took the pair up (it may end before a byte of it is sent)
     result: Result | None = None
     telemetry: Telemetry | None = None
     error: Error | None = None
@@ -210,8 +214,9 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         "frame_seqs": list(o.seqs),
         "link_s": o.link_s,
         "frames_line_s": o.frames_line_s,
-        # from the first byte of the pair queued to its outcome recorded (how long an error took, too)
-        "elapsed_s": time.monotonic() - o.sent_at if o.sent_at else None,
+        # from the first byte of the pair queued (or, for a pair that never went out, from its turn) to its outcome
+        # recorded: how long an error took, too
+        "elapsed_s": time.monotonic() - (o.sent_at or o.turn_at) if (o.sent_at or o.turn_at) else None,
         "deadline_s": deadline_s,
         "deadline_met": False,
     }
@@ -308,6 +313,7 @@ class _SessionState:
     epoch: int | None = None  # link session the app handshake (Hello both ways) was done in
     config_epoch: int | None = None  # link session Config was sent in
     sessions: int = 0
+    lost_since: float | None = None  # monotonic time the ground first went without a session since its last one
     refused_messages: int = 0  # messages from the flight side the ground refused (ground.json)
     last_refused: dict | None = None  # {"type", "reason"} of the latest
 
@@ -456,10 +462,20 @@ def stream_descent(
             first_hello()
             return
         state.epoch = None
-        if not link.wait_established(reconnect_timeout_s):
+        now = time.monotonic()
+        if state.lost_since is None:
+            state.lost_since = now
+        # one wait per loss, shared by the pairs whose turn comes meanwhile: a board that stays away must not
+        # cost every remaining pair the whole timeout
+        if not link.wait_established(max(0.0, state.lost_since + reconnect_timeout_s - now)):
             why = link.last_error or "silent"
-            raise LinkDown(f"no link session with the flight computer within {reconnect_timeout_s:g} s ({why})")
+            gone = time.monotonic() - state.lost_since
+            raise LinkDown(
+                f"no link session with the flight computer for {gone:.0f} s (the ground waits {reconnect_timeout_s:g} "
+                f"s for one after a loss; {why})"
+            )
         handshake(hello_timeout_s, time.monotonic())
+        state.lost_since = None
 
     def send_config() -> None:
         if config is not None and state.config_epoch != state.epoch:
@@ -650,6 +666,7 @@ def stream_descent(
             float(entry.get("altitude_m", float("nan"))),
             str(base / entry["path"]),
             (seq, seq + 1),
+            turn_at=time.monotonic(),
         )
         outcomes[o.seqs] = o
         by_lower_seq[seq + 1] = o
@@ -776,7 +793,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keys", type=Path, default=None, help="CURVE key directory (zmq links)")
     ap.add_argument("--insecure", action="store_true", help="zmq without CURVE (loopback debugging only)")
     ap.add_argument("--link-timeout", type=float, default=4.0, help="peer silent/stalled this long = link lost (s)")
-    ap.add_argument("--reconnect-timeout", type=float, default=10.0, help="wait this long for a new session (s)")
+    ap.add_argument(
+        "--reconnect-timeout",
+        type=float,
+        default=10.0,
+        help="after a lost session, wait this long for a new one (s; from the loss, not per pair)",
+    )
     ap.add_argument(
         "--hello-timeout",
         type=float,

@@ -79,6 +79,22 @@ def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manife
 
 
 @pytest.mark.slow
+def test_a_far_end_that_stays_away_ends_the_descent_in_one_reconnect_wait(tmp_path):
+    """The wait for a new session runs from the loss, not per pair: the pairs after the first that found no session
+    end at once (each used to wait the whole 10 s, a minute for an 8-pair descent whose board was gone)."""
+    manifest = small_descent(tmp_path / "pairs", ["600/300", "300/150", "200/100", "150/75", "100/50"])
+    cfg = RunConfig(out=tmp_path / "run", manifest=manifest, link="serial", budget="host", link_fault="exit@1")
+    s = run_descent(cfg, log=lambda line: None)
+    recs = s["records"]
+    assert recs[0]["status"] == "result"
+    assert all(r["status"] == "error" and r["code"] == "link_down" for r in recs[1:]), recs
+    assert all("no link session with the flight computer for" in r["text"] for r in recs[2:]), recs
+    # from each pair's turn to its end: the one wait (pair 2), then the rest at once
+    assert 8.0 <= recs[2]["elapsed_s"] <= 12.0 and all(r["elapsed_s"] < 1.0 for r in recs[3:]), recs
+    assert s["link_errors"] == 4 and s["ground_exit"] == 3
+
+
+@pytest.mark.slow
 def test_cli_run_exits_nonzero_on_a_link_error(manifest, tmp_path, capsys):
     args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--out", str(tmp_path)]
     assert _cli(*args, "--link-fault", "exit@1", "--link-timeout", "2") == 1
