@@ -157,7 +157,7 @@ def serve(
     if not 1 <= threads <= 256:
         raise InputError(f"--threads must be in [1, 256], got {threads}")
     if not heartbeat_s > 0:
-        raise InputError(f"--heartbeat must be > 0 s, got {heartbeat_s}")
+        raise InputError(f"the heartbeat period must be > 0 s, got {heartbeat_s}")
     cv2.setNumThreads(threads)  # 1: one core, as the emulated processor; a board may give the pipeline more
     prefault = False
     if warm_up:  # before the link opens: no ground waits on it
@@ -173,6 +173,11 @@ def serve(
         raise KeyboardInterrupt
 
     old = signal.signal(signal.SIGTERM, stop)
+    # a hangup (the terminal or ssh session closed) ends the board like SIGTERM: its last line, a CLOSE to the
+    # ground; under nohup SIGHUP is ignored and stays so
+    old_hup = signal.getsignal(signal.SIGHUP)
+    if old_hup is not signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, stop)
     link = open_link(spec, server=True, keys=keys, insecure=insecure, peer_timeout=link_timeout, connect_timeout=None)
     ground = GroundSession(link, log=say)
     flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
@@ -195,4 +200,6 @@ def serve(
         return 128 + sig
     finally:
         signal.signal(signal.SIGTERM, old)
+        if old_hup is not signal.SIG_IGN:
+            signal.signal(signal.SIGHUP, old_hup)
         link.close()

@@ -51,6 +51,8 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
             "default" not in text
             and action.default not in (None, False, argparse.SUPPRESS)
             and (action.option_strings or action.nargs in ("?", "*"))
+            # a flag that switches something off (store_false) would read "--no-warm-up ... (default: True)"
+            and not isinstance(action, argparse._StoreConstAction)
         ):
             text += " (default: %(default)s)"
         return text
@@ -514,7 +516,15 @@ def _cmd_regress(args: argparse.Namespace) -> int:
         cases=None if args.cases is None else [c.strip() for c in args.cases.split(",") if c.strip()],  # "": none
         min_hit_rate=args.min_hit_rate,
         board_link=args.link,
+        hello_timeout_s=args.hello_timeout,
     )
+
+
+def _cmd_keys(args: argparse.Namespace) -> int:
+    from protocol.zmqauth import generate_keys, where_keys_go
+
+    print(where_keys_go(generate_keys(args.dir)))
+    return 0
 
 
 def _register_runs(sub: argparse._SubParsersAction) -> None:
@@ -567,7 +577,25 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         help='run the baseline\'s board cases ("flight": "external", a board serving `hazard-hil flight`) on '
         "this link instead of their own, e.g. serial:/dev/ttyUSB1@921600 (not written back)",
     )
+    p.add_argument(
+        "--hello-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="give up a case whose flight side has not said Hello after S seconds (default as `run`: 120 s for a "
+        "board, 900 s for the emulated processor); a board that is off then fails its cases sooner",
+    )
     p.set_defaults(func=_cmd_regress)
+
+    p = sub.add_parser(
+        "keys",
+        help="create a CURVE key directory for a ZeroMQ link to your own board",
+        description="Create DIR (new or empty) with a server and a client CURVE key pair, every file mode 0600: "
+        "`hazard-hil flight --keys DIR` on the board and `hazard-hil run --flight external --keys DIR` on the ground "
+        "PC (copy the board its half: server.key_secret and clients/). `run` makes its own per run otherwise.",
+    )
+    p.add_argument("dir", type=Path, metavar="DIR", help="a new or empty directory")
+    p.set_defaults(func=_cmd_keys)
 
 
 if __name__ == "__main__":

@@ -93,7 +93,7 @@ MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-def _libc_prctl():
+def libc_prctl():
     """libc's prctl, loaded before fork (loading a library in the forked child is not safe); None if absent."""
     try:
         return ctypes.CDLL(None, use_errno=True).prctl
@@ -467,7 +467,7 @@ class EmulatedProcessor:
         as_bytes = int(as_mib * MIB) if as_mib else None
         child_env = dict(os.environ if env is None else env)
         child_env.update(thread_env())
-        prctl = _libc_prctl()
+        prctl = libc_prctl()
 
         def preexec() -> None:  # runs in the child between fork and exec: async-signal-safe calls only
             os.setpgid(0, 0)  # its own process group: killed as a whole, untouched by the terminal's Ctrl-C

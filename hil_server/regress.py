@@ -121,7 +121,9 @@ def _path(value: str | None, base_dir: Path | None) -> Path | None:
     return base_dir / p if not p.is_absolute() and base_dir is not None else p
 
 
-def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None) -> dict:
+def measure_case(
+    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
+) -> dict:
     from hil_server.run import RunConfig, run_descent
 
     manifest = _path(case.get("manifest"), base_dir)
@@ -138,6 +140,7 @@ def measure_case(name: str, case: dict, out: Path, base_dir: Path | None = None)
         flight=case.get("flight", "emulated"),
         keys=_path(case.get("keys"), base_dir),
         deadline_s=case.get("deadline_s"),
+        hello_timeout_s=hello_timeout_s,
     )
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     # a board's seconds are its own: no emulated speed to take out (its baseline holds for that board only)
@@ -241,6 +244,7 @@ def validate_baseline(doc: object, where: str) -> None:
     """
     from hil_server.budgets import load_budgets
     from protocol.errors import InputError
+    from protocol.pairdir import MAX_IMAGE_SIDE
 
     def bad(what: str) -> InputError:
         return InputError(f"latency baseline {where}: {what}")
@@ -285,6 +289,15 @@ def validate_baseline(doc: object, where: str) -> None:
             raise bad(f"{w}: 'keys' must be a non-empty path, got {case['keys']!r}")
         if "deadline_s" in case and (not number(case["deadline_s"]) or not case["deadline_s"] > 0):
             raise bad(f"{w}: 'deadline_s' must be a positive number of seconds, got {case['deadline_s']!r}")
+        if "seed" in case and (isinstance(case["seed"], bool) or not isinstance(case["seed"], int) or case["seed"] < 0):
+            raise bad(f"{w}: 'seed' must be an integer >= 0, got {case['seed']!r}")
+        size = case.get("image_size")
+        if size is not None and (
+            isinstance(size, bool) or not isinstance(size, int) or not 16 <= size <= MAX_IMAGE_SIDE
+        ):
+            raise bad(f"{w}: 'image_size' must be an integer number of pixels in 16..{MAX_IMAGE_SIDE}, got {size!r}")
+        if "manifest" in case and (not isinstance(case["manifest"], str) or not case["manifest"]):
+            raise bad(f"{w}: 'manifest' must be a non-empty path, got {case['manifest']!r}")
         pairs = case.get("pairs")
         if pairs is not None and (
             not isinstance(pairs, list) or not pairs or not all(isinstance(x, str) and x for x in pairs)
@@ -342,12 +355,14 @@ def check_regression(
     update: bool = False,
     min_hit_rate: float | None = None,
     board_link: str | None = None,
+    hello_timeout_s: float | None = None,
 ) -> tuple[bool, str, dict]:
     """Run the cases; returns (ok, readable diff, new baseline document).
 
     ok: no case regressed against the baseline (not judged with ``update``) and every case's deadline
     hit rate reached ``min_hit_rate`` (None: every pair met its deadline end to end). ``board_link``: run
     the board cases (``"flight": "external"``) on this link instead of their own (not written back).
+    ``hello_timeout_s``: how long each case waits for its flight side's first Hello (None: ``run``'s default).
     """
     from protocol.errors import InputError
 
@@ -371,6 +386,8 @@ def check_regression(
         raise InputError(f"unknown regression case(s) {unknown}; known: {sorted(all_cases)}")
     if min_hit_rate is not None and not 0.0 <= min_hit_rate <= 1.0:
         raise InputError(f"--min-hit-rate must be in [0, 1], got {min_hit_rate}")
+    if hello_timeout_s is not None and not (math.isfinite(hello_timeout_s) and hello_timeout_s > 0):
+        raise InputError(f"--hello-timeout must be a positive number of seconds, got {hello_timeout_s}")
     cond, notes = host_conditions()
     if all(is_board(all_cases[n]) for n in names):
         notes = []  # this host's calibration and load say nothing about a board's speed
@@ -393,7 +410,7 @@ def check_regression(
         run_case = {**case, "link": board_link} if board_link is not None and is_board(case) else case
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
-        cur = measure_case(n, run_case, out, baseline.resolve().parent)
+        cur = measure_case(n, run_case, out, baseline.resolve().parent, hello_timeout_s)
         metrics = judged_metrics(case["budget"], case.get("flight", "emulated"))
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
@@ -429,9 +446,16 @@ def run_regression(
     cases: list[str] | None = None,
     min_hit_rate: float | None = None,
     board_link: str | None = None,
+    hello_timeout_s: float | None = None,
 ) -> int:
     ok, diff, new_doc = check_regression(
-        baseline, out=out, cases=cases, update=update, min_hit_rate=min_hit_rate, board_link=board_link
+        baseline,
+        out=out,
+        cases=cases,
+        update=update,
+        min_hit_rate=min_hit_rate,
+        board_link=board_link,
+        hello_timeout_s=hello_timeout_s,
     )
     print(diff)
     if update:

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, ThrottleCheck
+from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
@@ -491,12 +492,15 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
                 "docs/protocol.md section 7) or --insecure on loopback"
             )
         if kind == "serial":
-            from protocol.linkspec import parse_serial
+            from protocol.linkspec import check_serial_device, parse_serial
 
             device, _ = parse_serial(rest)
-            # a device path that is not there fails the ground's open: said now, not after the descent is rendered
-            if device.startswith("/") and not os.path.exists(device):
-                raise InputError(f"--link {cfg.link}: no serial device {device} (is the board connected on this port?)")
+            # a device that is not there, not a device, or held would fail the ground's open: said now, not after
+            # the descent is rendered
+            try:
+                check_serial_device(device)
+            except InputError as exc:
+                raise InputError(f"--link {cfg.link}: {exc}") from None
         return kind, cfg.link
     if sep:
         raise InputError(
@@ -555,8 +559,18 @@ def check_memory(budget, width: int, height: int) -> None:
 
 
 def _spawn(cmd: list[str], env: dict, **kw) -> subprocess.Popen:
-    """A child leading its own process group: stopped as a whole, and the terminal's Ctrl-C reaches us only."""
-    return subprocess.Popen(cmd, env=env, process_group=0, **kw)
+    """A child leading its own process group: stopped as a whole, and the terminal's Ctrl-C reaches us only.
+
+    It gets SIGTERM when the thread that started it dies (``PR_SET_PDEATHSIG``): a run killed outright (SIGKILL,
+    the OOM killer) must not leave its ground streamer holding the serial device, or its HIL server the port.
+    SIGTERM, not SIGKILL, so each records what it has and closes its link."""
+    prctl = libc_prctl()
+
+    def preexec() -> None:  # between fork and exec: async-signal-safe calls only
+        if prctl is not None:
+            prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+
+    return subprocess.Popen(cmd, env=env, process_group=0, preexec_fn=preexec, **kw)
 
 
 def _last_line(path: Path) -> str:

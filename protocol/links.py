@@ -501,9 +501,15 @@ class SerialLink(ByteStreamLink):
                 write_timeout=self.write_timeout,
                 dsrdtr=False,
                 rtscts=False,
+                # a device, not a URL handler: an advisory lock (flock), so a second board or a ground left
+                # running on the same device is refused at open instead of both reading half the bytes
+                **({} if "://" in port else {"exclusive": True}),
             )
         except (serial.SerialException, ValueError, OSError) as exc:
-            raise InputError(f"cannot open serial port {port!r}: {exc}") from None
+            held = (
+                " (another process holds it: a second board, or a ground still running?)" if "lock" in str(exc) else ""
+            )
+            raise InputError(f"cannot open serial port {port!r}: {exc}{held}") from None
         self.port = port
         self._timeout_exc = serial.SerialTimeoutException
         self._start()
@@ -607,7 +613,7 @@ class ZmqLink(Link, SessionView):
         super().__init__(name, log)
         if keys is None and not insecure:
             raise InputError(
-                "ZeroMQ links are CURVE-authenticated: give a key directory (python -m protocol.zmqauth DIR "
+                "ZeroMQ links are CURVE-authenticated: give a key directory (`hazard-hil keys DIR` "
                 "creates one) or insecure=True (--insecure) for loopback debugging"
             )
         if insecure and not is_loopback_endpoint(endpoint):

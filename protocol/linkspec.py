@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from protocol.arq import ArqConfig
@@ -32,6 +33,43 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
     if b and not BAUD_MIN <= b <= BAUD_MAX:
         raise InputError(f"serial baud must be 0 (unpaced) or in [{BAUD_MIN}, {BAUD_MAX:.0e}], got {b}")
     return url, (b or None)
+
+
+def _lock_holder(st) -> int | None:
+    """The pid holding a flock on the file ``st`` describes (Linux ``/proc/locks``), or None: seen without opening
+    the device, which on a USB serial adapter would pulse DTR and can reset the board behind it."""
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    try:
+        text = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        f = line.split()
+        if len(f) >= 6 and f[1] == "FLOCK" and f[5] == key and f[4].isdigit():
+            return int(f[4])
+    return None
+
+
+def check_serial_device(device: str) -> None:
+    """Refuse, before minutes of rendering, a serial device that cannot be this link: missing, not a character
+    device (a regular file, a directory), or held by another process (our links lock their device). A
+    pyserial URL (``socket://``, ``rfc2217://``, ``loop://``) passes: only opening it can tell."""
+    import stat
+
+    if "://" in device:
+        return
+    try:
+        st = os.stat(device)
+    except FileNotFoundError:
+        raise InputError(f"no serial device {device} (is the board connected on this port?)") from None
+    except OSError as exc:
+        raise InputError(f"serial device {device}: {exc.strerror or exc}") from None
+    if not stat.S_ISCHR(st.st_mode):
+        what = "a directory, " if stat.S_ISDIR(st.st_mode) else "a regular file, " if stat.S_ISREG(st.st_mode) else ""
+        raise InputError(f"{device} is not a serial device ({what}not a character device)")
+    holder = _lock_holder(st)
+    if holder is not None:
+        raise InputError(f"serial device {device} is held by process {holder} (a ground or board still running on it?)")
 
 
 def open_link(

@@ -11,7 +11,7 @@ directory with 0700::
 
 :func:`generate_keys` writes a fresh directory (``hazard-hil run`` does this
 once per run, under the run's output directory). Generate keys with
-``python -m protocol.zmqauth DIR`` to connect your own peer.
+``hazard-hil keys DIR`` (or ``python -m protocol.zmqauth DIR``) to connect your own peer.
 """
 
 from __future__ import annotations
@@ -39,11 +39,16 @@ def generate_keys(directory: str | Path) -> Path:
     import zmq
 
     d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise InputError(f"key directory {d} is a file, not a directory")
     if d.exists() and any(d.iterdir()):
         raise InputError(f"key directory {d} is not empty; refusing to overwrite keys")
-    d.mkdir(mode=0o700, parents=True, exist_ok=True)
-    os.chmod(d, 0o700)
-    (d / "clients").mkdir(mode=0o700, exist_ok=True)
+    try:
+        d.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.chmod(d, 0o700)
+        (d / "clients").mkdir(mode=0o700, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create key directory {d}: {exc.strerror or exc}") from None
     s_pub, s_sec = zmq.curve_keypair()
     c_pub, c_sec = zmq.curve_keypair()
     _write(d / "server.key_secret", s_pub, s_sec)
@@ -57,7 +62,7 @@ def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     import zmq.auth
 
     if not path.is_file():
-        raise InputError(f"CURVE key file {path} does not exist (create keys with `python -m protocol.zmqauth DIR`)")
+        raise InputError(f"CURVE key file {path} does not exist (create keys with `hazard-hil keys DIR`)")
     try:
         pub, sec = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as exc:
@@ -86,17 +91,29 @@ def client_keys(directory: str | Path) -> tuple[bytes, bytes, bytes]:
     return pub, sec, server_pub
 
 
+def where_keys_go(d: Path) -> str:
+    """Which files of a key directory each side needs, for the line printed after :func:`generate_keys`."""
+    return (
+        f"CURVE keys written to {d} (mode 0600). The binding side (`hazard-hil flight --keys`, a HIL server) needs "
+        "server.key_secret and clients/; the connecting side (`hazard-hil run --flight external --keys`) needs "
+        "client.key_secret and server.key. A directory with all four serves both."
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1:
-        print("usage: python -m protocol.zmqauth DIR   (creates DIR with a server and a client CURVE key pair)")
-        return 2
+    import argparse
+
+    ap = argparse.ArgumentParser(
+        prog="python -m protocol.zmqauth", description="Create DIR with a server and a client CURVE key pair."
+    )
+    ap.add_argument("dir", type=Path, metavar="DIR", help="a new or empty directory")
+    args = ap.parse_args(argv)
     try:
-        d = generate_keys(args[0])
+        d = generate_keys(args.dir)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"CURVE keys written to {d} (mode 0600)")
+    print(where_keys_go(d))
     return 0
 
 

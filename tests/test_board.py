@@ -30,8 +30,8 @@ def manifest(tmp_path_factory):
     return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
 
 
-def _stop(board: subprocess.Popen) -> tuple[int, str]:
-    board.send_signal(signal.SIGTERM)
+def _stop(board: subprocess.Popen, sig: int = signal.SIGTERM) -> tuple[int, str]:
+    board.send_signal(sig)
     try:
         _, err = board.communicate(timeout=20)
     except subprocess.TimeoutExpired:
@@ -100,7 +100,10 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
 
 def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_path):
     keys = tmp_path / "keys"
-    subprocess.run([sys.executable, "-m", "protocol.zmqauth", str(keys)], cwd=ROOT, check=True, capture_output=True)
+    made = subprocess.run([sys.executable, "-m", "hil_server.cli", "keys", str(keys)], cwd=ROOT, check=True,
+                          capture_output=True, text=True)  # fmt: skip
+    assert "server.key_secret and clients/" in made.stdout
+    assert {f.stat().st_mode & 0o777 for f in keys.rglob("*") if f.is_file()} == {0o600}
     with socket_port() as port:
         pass
     board = subprocess.Popen(
@@ -115,6 +118,44 @@ def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_pat
         rc, err = _stop(board)
     assert exit_code(s) == 0 and [r["level"] for r in s["records"]] == ["full", "full"], err
     assert rc == 128 + signal.SIGTERM
+
+
+@pytest.mark.parametrize("what", ["regular file", "directory", "held"])
+def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_path, capsys, what):
+    """A "device" that is a file or a directory, or a device another process holds (a board or a ground still
+    running on it), is one line and exit 2 at once; it used to fail the ground's open after the descent was rendered
+    (exit 1)."""
+    from protocol.faults import PtyBridge
+    from protocol.links import SerialLink
+
+    (tmp_path / "file").write_text("")
+    with PtyBridge() as bridge:
+        device = {"regular file": str(tmp_path / "file"), "directory": str(tmp_path)}.get(what, bridge.paths[1])
+        holder = SerialLink(device, 921600) if what == "held" else None
+        try:
+            args = ["run", "--flight", "external", "--link", f"serial:{device}@921600", "--out", str(tmp_path / "o")]
+            assert cli(args) == 2
+        finally:
+            if holder is not None:
+                holder.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    says = {"held": "is held by process", "directory": "a directory, not a character device"}
+    assert len(err) == 1 and says.get(what, "a regular file, not a character device") in err[0], err
+    assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
+
+
+def test_keys_refuses_a_directory_it_cannot_make_or_would_overwrite(tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "server.key_secret").write_text("mine")
+    for d, says in (("file", "is a file"), ("file/sub", "cannot create"), ("full", "not empty")):
+        assert cli(["keys", str(tmp_path / d)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], err
+    assert (tmp_path / "full" / "server.key_secret").read_text() == "mine"
+    # --help is help, not a directory named --help
+    ran = subprocess.run([sys.executable, "-m", "protocol.zmqauth", "--help"], cwd=tmp_path, capture_output=True)
+    assert ran.returncode == 0 and not (tmp_path / "--help").exists()
 
 
 class socket_port:
@@ -260,7 +301,9 @@ def test_nothing_is_sent_before_a_ground_said_hello_and_a_refused_message_is_sai
     ]
 
 
-def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
+    """A hangup (its terminal or ssh session closed) ends the board as SIGTERM does: its last line, the link closed."""
     from protocol.faults import PtyBridge
 
     with PtyBridge() as bridge:
@@ -268,8 +311,9 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path):
             [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
         )
         time.sleep(1.0)
-        rc, err = _stop(board)
-    assert rc == 128 + signal.SIGTERM, err
+        rc, err = _stop(board, sig)
+    assert rc == 128 + sig, err
+    assert f"stopped by {signal.Signals(sig).name}" in err
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
 
 
@@ -314,6 +358,11 @@ def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
         ({"flight": "board"}, "'flight' must be 'emulated' or 'external'"),
         ({"flight": "external", "link": "serial"}, "a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT"),
         ({"deadline_s": -1}, "'deadline_s' must be a positive number"),
+        ({"image_size": "128"}, "'image_size' must be an integer number of pixels in 16..8192, got '128'"),
+        ({"image_size": 8}, "'image_size' must be an integer number of pixels"),
+        ({"seed": -1}, "'seed' must be an integer >= 0"),
+        ({"seed": 1.5}, "'seed' must be an integer >= 0"),
+        ({"manifest": ""}, "'manifest' must be a non-empty path"),
     ],
 )
 def test_a_malformed_board_case_is_one_line_and_exit_2(tmp_path, capsys, change, says):
@@ -323,6 +372,23 @@ def test_a_malformed_board_case_is_one_line_and_exit_2(tmp_path, capsys, change,
     assert cli(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]
+
+
+def test_regress_gives_up_on_a_board_that_is_off_after_its_hello_timeout(tmp_path, capsys):
+    """A board that is off (nobody on the device) costs a case the hello timeout, which regress now takes."""
+    from protocol.faults import PtyBridge
+
+    base = tmp_path / "b.json"
+    case = {"scenario": "vertical", "budget": "host", "flight": "external", "pairs": ["600/300"], "image_size": 64}
+    base.write_text(json.dumps({"cases": {"c": {**case, "link": "serial:/dev/the-lab-board@0"}}}))
+    args = ["regress", "--baseline", str(base), "--out", str(tmp_path / "o"), "--hello-timeout"]
+    assert cli([*args, "0"]) == 2 and "--hello-timeout must be a positive" in capsys.readouterr().err
+    with PtyBridge() as bridge:
+        t0 = time.monotonic()
+        assert cli([*args, "2", "--link", f"serial:{bridge.paths[1]}@0", "--update"]) == 1
+        took = time.monotonic() - t0
+    assert "no Hello from the flight computer" in capsys.readouterr().err
+    assert took < 60, took  # rendering the 64 px pair, then 2 s of waiting (the default is 120 s)
 
 
 def test_regress_link_needs_a_board_case(tmp_path, capsys):
@@ -363,14 +429,11 @@ def test_regress_update_that_records_nothing_keeps_the_old_baseline(tmp_path, ca
     case |= {"pairs": ["600/300"], "image_size": 96, "metrics": {"deadline_hit_rate": 1.0, "latency_p50_ref_s": 0.1}}
     base.write_text(json.dumps({"cases": {"b": case}}))
     before = base.read_text()
-    # a pty nobody serves: the hello timeout cannot be set from regress, so a board that is off takes long; a
-    # regular file as the device fails at once instead
-    dev = tmp_path / "not-a-tty"
-    dev.write_text("")
-    assert (
-        cli(["regress", "--baseline", str(base), "--update", "--link", f"serial:{dev}@0", "--out", str(tmp_path / "o")])
-        == 1
-    )
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:  # a board that is off
+        args = ["regress", "--baseline", str(base), "--update", "--link", f"serial:{bridge.paths[1]}@0"]
+        assert cli([*args, "--hello-timeout", "1", "--out", str(tmp_path / "o")]) == 1
     assert base.read_text() == before
     assert "baseline NOT written" in capsys.readouterr().out
 
@@ -384,3 +447,34 @@ def test_the_diff_table_marks_a_hit_rate_regression_on_its_row():
         ln for ln in diff_table([compare("b", cur, base, DEFAULT_TOLERANCES)]).splitlines() if "deadline_hit_rate" in ln
     ]
     assert len(row) == 1 and row[0].endswith("REGRESSION")
+
+
+def test_a_run_killed_outright_leaves_no_ground_streamer_holding_the_device(manifest, tmp_path):
+    """``kill -9`` on ``hazard-hil run``: its ground streamer (a child in its own process group, so the terminal's
+    Ctrl-C does not reach it) used to keep running, holding the serial device; the next ground on it then failed."""
+    import psutil
+
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:  # no board on the far end: the ground waits for its Hello
+        run = subprocess.Popen(
+            [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--flight", "external",
+             "--link", f"serial:{bridge.paths[1]}@0", "--out", str(tmp_path / "run")],
+            cwd=ROOT, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            children: list = []
+            for _ in range(200):
+                children = psutil.Process(run.pid).children()
+                if children:
+                    break
+                time.sleep(0.1)
+            assert children, "the run never started its ground streamer"
+            time.sleep(1.0)  # the streamer is up and waiting
+            run.kill()
+            run.communicate(timeout=10)
+            _, alive = psutil.wait_procs(children, timeout=10)
+            assert not alive, [p.cmdline() for p in alive]
+        finally:
+            if run.poll() is None:
+                run.kill()

@@ -26,7 +26,10 @@ def test_every_command_and_option_explains_itself(name):
     ]
     assert not missing, f"{name}: options without help: {missing}"
     text = cmd.format_help()
-    for a in cmd._actions:  # a default that matters is shown
+    for a in cmd._actions:  # a default that matters is shown (a flag's is that it is off: never "(default: True)")
+        if isinstance(a, argparse._StoreConstAction):
+            assert "%(default)" not in cmd.formatter_class(prog=name)._get_help_string(a), (name, a.dest)
+            continue
         if a.option_strings and a.default not in (None, False, argparse.SUPPRESS) and a.help != argparse.SUPPRESS:
             assert "default" in (a.help or "") or f"default: {a.default}" in " ".join(text.split()), (name, a.dest)
 
