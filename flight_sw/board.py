@@ -178,7 +178,18 @@ def serve(
     old_hup = signal.getsignal(signal.SIGHUP)
     if old_hup is not signal.SIG_IGN:
         signal.signal(signal.SIGHUP, stop)
-    link = open_link(spec, server=True, keys=keys, insecure=insecure, peer_timeout=link_timeout, connect_timeout=None)
+    # the link's own events on the console: sessions up and lost, a ground with the wrong CURVE key, a second ground
+    # refused while one is served (a repeating one is said once per 10 s with a count)
+    link = open_link(
+        spec,
+        server=True,
+        keys=keys,
+        insecure=insecure,
+        peer_timeout=link_timeout,
+        connect_timeout=None,
+        name="ground",
+        log=lambda text: say(f"flight: {text}"),
+    )
     ground = GroundSession(link, log=say)
     flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
     ground.on_new_session = flight.new_ground_session

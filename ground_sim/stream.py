@@ -92,6 +92,7 @@ LINK_CODES = ("link_down",)
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
+AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
     "pair_id",
@@ -335,7 +336,11 @@ def _silent_link_reason(link, where: str) -> str:
             f"its line carried {frames} frames ({got} bytes) but never a link session: a peer of another protocol "
             "version, or one that is not answering?"
         )
-    check = "on this port, at this baud" if where.startswith("serial") else "serving this endpoint, with these keys"
+    check = (
+        "on this port, at this baud"
+        if where.startswith("serial")
+        else "serving this endpoint, with these keys, and not busy with another ground (a board serves one at a time)"
+    )
     return f"its link never answered (is it powered, {check}?)"
 
 
@@ -409,16 +414,31 @@ def stream_descent(
         NoHello. A session lost during the handshake is a LinkDown, as in any session: its pair ends as
         ``link_down`` and the next pair tries again (a very noisy line loses sessions, it is not a silent peer)."""
         t0 = time.monotonic()
-        end = t0 + hello_timeout_s
-        while not link.wait_established(min(HELLO_NOTE_S, max(0.0, end - time.monotonic()))):
+        end, next_note = t0 + hello_timeout_s, t0 + HELLO_NOTE_S
+        refused_since: float | None = None  # when the far end first refused our CURVE key
+        while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
+            now = time.monotonic()
             if link.failed:
                 raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
-            if time.monotonic() >= end:
+            failures = int((getattr(link, "stats", None) or {}).get("auth_failures", 0) or 0)
+            if failures and refused_since is None:
+                refused_since = now
+            # a key is not refused by chance and libzmq redials ~10 times a second: waiting out the hello timeout
+            # (120 s for a board) would only repeat the refusal
+            if refused_since is not None and now - refused_since >= AUTH_GIVE_UP_S:
+                raise NoHello(
+                    f"the flight computer on {where} refused this ground's CURVE key ({failures} handshakes failed in "
+                    f"{now - t0:.0f} s): the board's key directory must hold this ground's public key in clients/, "
+                    "and this ground's server.key must be the board's (`hazard-hil keys DIR` makes a matching set)"
+                )
+            if now >= end:
                 raise NoHello(
                     f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: "
                     + _silent_link_reason(link, where)
                 )
-            waiting(t0)
+            if now >= next_note:
+                waiting(t0)
+                next_note = now + HELLO_NOTE_S
         handshake(max(0.0, end - time.monotonic()), t0, first=True)
 
     def waiting(t0: float) -> None:

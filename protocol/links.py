@@ -41,6 +41,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import ipaddress
+import math
 import os
 import queue
 import select
@@ -67,6 +68,10 @@ UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=5.0)
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
+# events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per
+# REPEAT_QUIET_S with a count; every one is still an event and a stat
+REPEATING_EVENTS = frozenset({"auth_failed", "refused"})
+REPEAT_QUIET_S = 10.0
 
 __all__ = [
     "BITS_PER_BYTE",
@@ -108,13 +113,24 @@ class Link:
         self._closed = threading.Event()
         self._failed: str | None = None  # transport failure: permanent
         self.last_error: str | None = None  # the most recent session loss / failure reason
+        self._quiet: dict[str, tuple[float, int]] = {}  # repeating kind -> (when last said, repeats not said)
 
     def _event(self, kind: str, text: str, epoch: int) -> None:
-        self._events.append(LinkEvent(time.monotonic(), kind, text, epoch))
+        now = time.monotonic()
+        self._events.append(LinkEvent(now, kind, text, epoch))
         if kind in ("lost", "closed", "restarted", "refused", "auth_failed", "transport"):
             self.last_error = text
-        if self._log is not None:
-            self._log(f"link {self.name or '?'}: {kind}: {text}")
+        if self._log is None:
+            return
+        if kind in REPEATING_EVENTS:  # a peer that retries (libzmq redials ~10 times a second) must not flood the log
+            said, quiet = self._quiet.get(kind, (-math.inf, 0))
+            if now - said < REPEAT_QUIET_S:
+                self._quiet[kind] = (said, quiet + 1)
+                return
+            self._quiet[kind] = (now, 0)
+            if quiet:
+                text += f" ({quiet} more like it in the last {now - said:.0f} s)"
+        self._log(f"link {self.name or '?'}: {kind}: {text}")
 
     def events(self) -> list[LinkEvent]:
         """Session events so far (and clears them): established, lost, restarted, closed, refused, ..."""

@@ -144,6 +144,32 @@ def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_pat
     assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
 
 
+def test_a_ground_whose_curve_key_the_board_refuses_gives_up_at_once_and_both_say_why(manifest, tmp_path):
+    """Wrong keys used to cost the ground its whole hello timeout (120 s), printing the handshake failure ten times
+    a second, while the board said nothing."""
+    for side in ("board", "ground"):
+        assert cli(["keys", str(tmp_path / side)]) == 0
+    with socket_port() as port:
+        pass
+    board = subprocess.Popen(
+        [*BOARD, "--link", f"zmq:tcp://127.0.0.1:{port}", "--keys", str(tmp_path / "board")],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        t0 = time.monotonic()
+        s = run_hil(manifest, tmp_path / "run", flight="external", link=f"zmq:tcp://127.0.0.1:{port}",
+                    keys=str(tmp_path / "ground"), hello_timeout_s=60.0)  # fmt: skip
+        took = time.monotonic() - t0
+    finally:
+        rc, err = _stop(board)
+    assert exit_code(s) == 1 and not s["complete"] and "refused this ground's CURVE key" in s["reason"], s["reason"]
+    assert all(r["code"] == "not_run" for r in s["records"])
+    assert took < 20, took  # about 5 s of refusals, not the 60 s hello timeout
+    said = [line for line in err.splitlines() if "auth_failed" in line]
+    assert 1 <= len(said) <= 2 and "CURVE handshake failed" in said[0], err  # said, not repeated ~10 times a second
+    assert rc == 128 + signal.SIGTERM
+
+
 def test_keys_refuses_a_directory_it_cannot_make_or_would_overwrite(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     (tmp_path / "full").mkdir()
