@@ -8,10 +8,11 @@ the HIL server's part of the protocol (docs/protocol.md section 6; the ground ru
 ``hazard-hil run --flight external``):
 
 * it answers each ground's Hello, in that ground's link session, with ``Hello(role="flight")``;
-* a new ground session (another run, or the same ground reconnected) starts the flight software
-  afresh: the pairs half received are dropped and the fused map restarts with the next Config. A
+* a new ground session (another run, or the same ground reconnected) drops the pairs half received. A
   reconnected ground has already recorded its pairs in flight as ``link_down`` and goes on with the
-  next pair (:mod:`ground_sim.stream`), so nothing it waits for is dropped here;
+  next pair (:mod:`ground_sim.stream`), so nothing it waits for is dropped here. The fused map goes on
+  when the session's Config carries the last one's ``descent_id`` (the same descent reconnected) and
+  restarts otherwise (:meth:`~flight_sw.flight_main.FlightProcess.new_ground_session`);
 * everything is sent within the session of the ground that said Hello last. The flight software reads
   the link only between pairs, so a pair's answer belongs to that session; if the link lost it meanwhile
   (the ground restarted, its new Hello not yet read), the link fails the answer (counted in its
@@ -55,6 +56,7 @@ class GroundSession:
         self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
         self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
+        self.fused_results: Callable[[], int | None] = lambda: None  # results in the fused map (None: no fusion)
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
         return getattr(self.link, name)
@@ -123,9 +125,11 @@ class GroundSession:
         pair = self.pair_ids.get(seq, "?")
         level = self.levels.pop(seq, "no Result")
         verdict = "met" if tel.deadline_met else "MISSED"
+        fused = self.fused_results()
         self.log(
             f"flight: pair {pair}: {level}, {tel.total_latency_s:.2f} s from its last frame "
             f"(deadline {tel.deadline_s:g} s with the Result's line time: {verdict}, as this side expects)"
+            + (f"; the fused map holds {fused} result(s)" if fused else "")
         )
 
 
@@ -193,6 +197,7 @@ def serve(
     ground = GroundSession(link, log=say)
     flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
     ground.on_new_session = flight.new_ground_session
+    ground.fused_results = lambda: flight.fused.results if flight.fused is not None else None
     try:
         missing = [m for m in KERNELS if load_kernel(m) is None]
         if missing:  # the install found no C compiler: the numpy references run instead, several times slower

@@ -288,13 +288,19 @@ class FlightProcess:
         # wall s per reserved unthrottled s of the mapping stages + fusion + output, on the last pairs
         self.reserve_ratios: list[float] = []
         self.fused: FusedMap | None = None  # the map fused over the descent so far
+        # the last ground session's Config and fused map, until the new session's Config says whether it goes on
+        self.resumable: tuple[Config, FusedMap | None] | None = None
         self.fusion_params = FusionParams()
         self._stop = threading.Event()
 
     def new_ground_session(self) -> None:
-        """A new ground is served (:mod:`flight_sw.board`): nothing of the last one's descent carries over, not
-        even the fused map under an equal Config (the same run reconnected cannot be told from the next run)."""
+        """A new ground session (:mod:`flight_sw.board`): the pairs half received are dropped. The fused map goes
+        on only if the session's Config is the last one's with the same ``descent_id`` (the same descent
+        reconnected, e.g. after a noisy line lost the session); a ground that sends no ``descent_id`` cannot be
+        told from the next run, so its descent starts afresh."""
         self.pending.clear()
+        if self.config is not None:
+            self.resumable = (self.config, self.fused)
         self.config = None
         self.fused = None
 
@@ -333,6 +339,9 @@ class FlightProcess:
             except InputError as exc:
                 self.link.send(Error(code="bad_config", text=str(exc)))
                 return
+            resumed, self.resumable = self.resumable, None
+            if resumed is not None and "descent_id" in msg.options and msg == resumed[0]:
+                self.config, self.fused = resumed  # the same descent in a new ground session
             if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
                 self.fused = None
                 note = left_out_note(msg)

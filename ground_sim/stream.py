@@ -55,6 +55,7 @@ Result's line times (``frames_line_s``, ``result_line_s`` as the sender
 measured it, ``result_rx_s`` first to last frame here) and ``result_bytes``.
 ``Config.options["link_baud"]`` tells the flight side this link's rate (0 =
 none to plan for), so it can leave room for its Result's line time;
+``Config.options["descent_id"]`` identifies this descent in every session it resends Config in;
 ``Config.options["result_rev"]`` that this ground decodes every Result field
 (``protocol.messages.RESULT_REV``): a flight side told nothing sends only the
 baseline fields an older ground decodes.
@@ -388,6 +389,10 @@ def stream_descent(
         "fusion": int(bool(fusion)),
         # the newest Result schema revision this ground decodes (an older flight side ignores the option)
         "result_rev": RESULT_REV,
+        # this descent's identity, resent unchanged with Config in every link session: a flight side that outlives
+        # grounds (a board) keeps its fused map for the same descent reconnected and starts afresh for the next
+        # (a nonce, as the link's session ids are; 31 bits, exact in any number type)
+        "descent_id": int.from_bytes(os.urandom(4), "big") >> 1,
     }
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}

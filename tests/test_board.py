@@ -98,6 +98,51 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     assert rc == 128 + signal.SIGTERM
 
 
+class Blackout:
+    """Both directions of a line (one instance each, sharing the clock) go silent for ``seconds`` once the
+    ground -> board direction carries ``trigger`` (e.g. the second pair's id, in its first Frame): a session lost
+    at a known point of the descent."""
+
+    def __init__(self, until: list[float], trigger: bytes | None = None, seconds: float = 6.0) -> None:
+        self.until, self.trigger, self.seconds, self.tail = until, trigger, seconds, b""  # until: both directions'
+
+    def apply(self, data: bytes) -> bytes:
+        now = time.monotonic()
+        if self.trigger is not None and self.trigger in self.tail + data:
+            self.until[0], self.trigger = now + self.seconds, None
+        self.tail = data[-64:]
+        return b"" if now < self.until[0] else data
+
+
+def test_a_descent_reconnected_mid_way_keeps_its_fused_map_on_the_board(tmp_path):
+    """The line goes silent for 6 s from the second pair's first Frame: both ends lose the session (4 s),
+    that pair ends as link_down, and the ground reconnects and goes on. Its Config in the new session carries the
+    same descent_id, so the board's fused map goes on (it restarted at every new session: a noisy line cost the
+    descent its history). The next run, with its own descent_id, starts afresh."""
+    from protocol.faults import PtyBridge
+
+    manifest = small_descent(tmp_path / "pairs", ["600/300", "300/150", "200/100"])
+    until = [0.0]
+    with PtyBridge(Blackout(until), Blackout(until, trigger=b"p001-")) as bridge:  # type: ignore[arg-type]
+        board = subprocess.Popen(
+            [*BOARD, "--link", f"serial:{bridge.paths[0]}@0"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            s = run_hil(manifest, tmp_path / "run", flight="external", link=f"serial:{bridge.paths[1]}@0")
+            again = run_hil(manifest, tmp_path / "again", flight="external", link=f"serial:{bridge.paths[1]}@0")
+        finally:
+            rc, err = _stop(board)
+    assert [r["status"] for r in s["records"]] == ["result", "error", "result"], s["records"]
+    assert s["records"][1]["code"] == "link_down"
+    assert err.count("flight: ground session ") == 3, err  # the first run's two sessions, the second run's one
+    held = [int(x.split("the fused map holds ")[1].split()[0]) for x in err.splitlines() if "fused map holds" in x]
+    # the first run's last pair was fused onto the first (the second pair never reached the board whole); the
+    # next run started afresh
+    assert held == [1, 2, 1, 2, 3], err
+    assert [r["status"] for r in again["records"]] == ["result"] * 3
+    assert rc == 128 + signal.SIGTERM
+
+
 def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_path):
     keys = tmp_path / "keys"
     made = subprocess.run([sys.executable, "-m", "hil_server.cli", "keys", str(keys)], cwd=ROOT, check=True,

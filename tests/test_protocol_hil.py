@@ -182,6 +182,11 @@ def test_restarted_ground_resynchronises_and_gets_results(manifest, tmp_path):
     assert sum(e.get("event") == "result" for e in events) >= 4  # 1 for the first ground, 3 for the second
     dropped = [e for e in events if e.get("event") == "error"]
     assert all(e["code"] in ("link_down", "ground_restarted") for e in dropped)
+    # the new ground's descent started afresh: its first fused map is the first ground's (the same pair alone), not
+    # that pair fused twice (an equal Config used to carry the old descent's map over; now each descent has its id)
+    first = next((tmp_path / "g1").glob("p000-*"))
+    for grid in ("state_grid.npy", "psafe_grid.npy"):
+        assert np.array_equal(np.load(first / grid), np.load(tmp_path / "g2" / first.name / grid), equal_nan=True)
 
 
 @pytest.mark.slow
