@@ -96,7 +96,12 @@ class GroundSession:
         self.counters["sessions"] += 1
         self.log(
             f"flight: ground session {hello.session:08x} (link session {epoch}, role {hello.role!r})"
-            + (": the earlier session's pairs and fused map are dropped" if self.epoch is not None else "")
+            + (
+                ": the earlier session's pairs half received are dropped; its fused map goes on if this is the same "
+                "descent (its Config's descent_id)"
+                if self.epoch is not None
+                else ""
+            )
         )
         self.epoch, self.ground_session = epoch, hello.session
         self.pair_ids.clear()
@@ -151,7 +156,7 @@ def serve(
     import cv2
 
     from protocol.errors import InputError
-    from protocol.linkspec import open_link
+    from protocol.linkspec import MAX_LINK_TIMEOUT_S, check_link_spec, open_link
 
     from .flight_main import FaultPlan, FlightProcess
     from .kernels import load_kernel
@@ -162,6 +167,12 @@ def serve(
         raise InputError(f"--threads must be in [1, 256], got {threads}")
     if not heartbeat_s > 0:
         raise InputError(f"the heartbeat period must be > 0 s, got {heartbeat_s}")
+    if not 0 < link_timeout <= MAX_LINK_TIMEOUT_S:
+        raise InputError(
+            f"--link-timeout must be a number of seconds in (0, {MAX_LINK_TIMEOUT_S:g}], got {link_timeout}"
+        )
+    # a link that cannot be (a missing or held device, a bad endpoint) is said before the warm-up's seconds
+    check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout)
     cv2.setNumThreads(threads)  # 1: one core, as the emulated processor; a board may give the pipeline more
     prefault = False
     if warm_up:  # before the link opens: no ground waits on it
@@ -182,23 +193,24 @@ def serve(
     old_hup = signal.getsignal(signal.SIGHUP)
     if old_hup is not signal.SIG_IGN:
         signal.signal(signal.SIGHUP, stop)
-    # the link's own events on the console: sessions up and lost, a ground with the wrong CURVE key, a second ground
-    # refused while one is served (a repeating one is said once per 10 s with a count)
-    link = open_link(
-        spec,
-        server=True,
-        keys=keys,
-        insecure=insecure,
-        peer_timeout=link_timeout,
-        connect_timeout=None,
-        name="ground",
-        log=lambda text: say(f"flight: {text}"),
-    )
-    ground = GroundSession(link, log=say)
-    flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
-    ground.on_new_session = flight.new_ground_session
-    ground.fused_results = lambda: flight.fused.results if flight.fused is not None else None
+    link = None
+    ground = GroundSession(None, log=say)  # its link is set below: a signal while the link opens finds it
     try:
+        # the link's own events on the console: sessions up and lost, a ground with the wrong CURVE key, a second
+        # ground refused while one is served (a repeating one is said once per 10 s with a count)
+        link = ground.link = open_link(
+            spec,
+            server=True,
+            keys=keys,
+            insecure=insecure,
+            peer_timeout=link_timeout,
+            connect_timeout=None,
+            name="ground",
+            log=lambda text: say(f"flight: {text}"),
+        )
+        flight = FlightProcess(ground, FaultPlan(), heartbeat_s, prefault)
+        ground.on_new_session = flight.new_ground_session
+        ground.fused_results = lambda: flight.fused.results if flight.fused is not None else None
         missing = [m for m in KERNELS if load_kernel(m) is None]
         if missing:  # the install found no C compiler: the numpy references run instead, several times slower
             say(f"flight: compiled kernels missing ({', '.join(missing)}): their numpy references run instead")
@@ -206,7 +218,7 @@ def serve(
         flight.run(watch_parent=False)  # detached (nohup, a daemon) it must outlive its parent
         say(f"flight: the link failed: {link.failed}" if link.failed else "flight: the link closed")
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # stop() above, or a Ctrl-C (a signal in the warm-up is hazard-hil's own: 128 + N)
         sig = stopped[0] if stopped else signal.SIGINT
         c = ground.counters
         say(
@@ -218,4 +230,5 @@ def serve(
         signal.signal(signal.SIGTERM, old)
         if old_hup is not signal.SIG_IGN:
             signal.signal(signal.SIGHUP, old_hup)
-        link.close()
+        if link is not None:
+            link.close()

@@ -42,7 +42,7 @@ def worker_init() -> None:
     cv2.setNumThreads(1)
 
 
-def _pool_worker_init() -> None:
+def _pool_worker_init(parent: int) -> None:
     """Initialiser of :func:`process_pool`'s processes: :func:`worker_init`, and a Ctrl-C left to the parent.
 
     A terminal's Ctrl-C reaches the whole process group. A worker that took it died in the middle of the pool's
@@ -51,7 +51,23 @@ def _pool_worker_init() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent(parent)
     worker_init()
+
+
+def _die_with_parent(parent: int) -> None:
+    """SIGKILL this worker when the process that started it dies (Linux ``PR_SET_PDEATHSIG``; elsewhere nothing).
+
+    A pool's workers wait on its queue for good once their parent is gone (a ``kill -9``, the OOM killer): they
+    went on rendering, then idled, holding their memory. If the parent is already gone, exit now."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, 9, 0, 0, 0)  # PR_SET_PDEATHSIG, SIGKILL
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the prctl could take effect
+        os._exit(1)
 
 
 @contextmanager
@@ -80,7 +96,9 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 
     with single_threaded_env():
         ctx = mp.get_context("spawn")
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_worker_init)
+        pool = ProcessPoolExecutor(
+            max_workers=workers, mp_context=ctx, initializer=_pool_worker_init, initargs=(os.getpid(),)
+        )
         try:
             yield pool
         except BaseException:  # an interrupt or a failure: the running tasks' results are not wanted

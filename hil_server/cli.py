@@ -93,34 +93,107 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, handled as a Ctrl-C is: worker pools ended, partial results saved, then exit 128 + N.
+
+    Without it a plain ``kill PID`` ended the process at once, and its pool's workers (spawned, each its own
+    process) went on rendering, then waited for work for good."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _terminate(signum: int, _frame: object) -> NoReturn:
+    raise Terminated(signum)
+
+
+def _stop_signals() -> dict[int, object]:
+    """Install :func:`_terminate` for SIGTERM and SIGHUP (a hangup left ignored, as under nohup, stays so);
+    returns the handlers replaced. Commands with their own handling (``run``, ``flight``) install theirs."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    saved: dict[int, object] = {}
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        old = signal.getsignal(sig)
+        if old is not signal.SIG_IGN:
+            saved[sig] = signal.signal(sig, _terminate)
+    return saved
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    saved = _stop_signals()
     try:
-        for option in ("out", "cache"):  # the directories a command creates
+        _no_empty_paths(sys.argv[1:] if argv is None else argv)
+        for option in ("out", "cache", "figures"):  # the directories a command creates
             if getattr(args, option, None) is not None:
                 check_out_dir(Path(getattr(args, option)), f"--{option}")
+        for option in ("csv", "json"):  # files a command writes at its end (`score`), after all its work
+            value = getattr(args, option, None)
+            if isinstance(value, Path):
+                if value.is_dir():
+                    raise InputError(f"--{option} {value} is a directory, not a file")
+                check_out_dir(value.parent, f"--{option}'s directory")
         return int(args.func(args) or 0)
+    except Terminated as exc:
+        print(f"stopped by {signal.Signals(exc.signum).name}", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except InputError as exc:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        for sig, old in saved.items():
+            signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+PATH_OPTIONS = ("--out", "--cache", "--figures", "--csv", "--json")
+
+
+def _no_empty_paths(argv: list[str]) -> None:
+    """``--out ''`` is an empty path, which pathlib reads as the current directory: ``process`` wrote its files
+    among the user's. Refused, as any other path that names nothing."""
+    for i, a in enumerate(argv):
+        name, eq, value = a.partition("=")
+        if name in PATH_OPTIONS and (
+            (eq and not value.strip()) or (not eq and i + 1 < len(argv) and not argv[i + 1].strip())
+        ):
+            raise InputError(f"{name} must name a path, got an empty one")
 
 
 def check_out_dir(out: Path, option: str = "--out") -> None:
-    """Refuse, before any work, an output directory that cannot become one: an existing file, or a path under
-    one (every command creates its ``--out``, some only after minutes of work)."""
+    """Refuse, before any work, an output directory that cannot become one: an empty path, an existing file, a
+    path under one, or one that cannot be created or written (every command creates its ``--out``, some only
+    after minutes of work). It is created here, empty, which proves both."""
     for q in (out, *out.parents):
         if q.exists():
             if not q.is_dir():
                 where = "is a file, not a directory" if q == out else f"is under {q}, which is not a directory"
                 raise InputError(f"{option} {out} {where}")
-            return
+            break
+    import tempfile
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{option} {out} cannot be created: {exc.strerror or exc}") from None
+    try:  # a file made and dropped: the only proof for root, whom permission bits do not stop (/proc, a read-only fs)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise InputError(f"{option} {out} is not writable: {exc.strerror or exc}") from None
 
 
 # --------------------------------------------------------------------------- emulation
@@ -410,22 +483,24 @@ def _config(args: argparse.Namespace):
         given = [f"--{k.replace('_', '-')}" for k in _RENDER_OPTIONS if getattr(args, k) is not None]
         if given:
             raise InputError(f"--manifest streams pairs already rendered; {', '.join(given)} would be ignored")
-    for name, value in (
-        ("--deadline", args.deadline),
-        ("--link-timeout", args.link_timeout),
-        ("--hello-timeout", args.hello_timeout),
+    from protocol.linkspec import MAX_LINK_TIMEOUT_S
+
+    for name, value, most in (
+        ("--deadline", args.deadline, 3600.0),  # a pair an hour: past any flight computer's
+        ("--link-timeout", args.link_timeout, MAX_LINK_TIMEOUT_S),
+        ("--hello-timeout", args.hello_timeout, 86400.0),
     ):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise InputError(f"{name} must be a positive number of seconds, got {value}")
+        if value is not None and not (math.isfinite(value) and 0 < value <= most):
+            raise InputError(f"{name} must be a number of seconds in (0, {most:g}], got {value}")
     if args.baud is not None:
         from protocol.linkspec import BAUD_MAX, BAUD_MIN
 
         if not BAUD_MIN <= args.baud <= BAUD_MAX:
             raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
-    from protocol.pairdir import MAX_IMAGE_SIDE
+    from hil_server.run import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
-    if args.image_size is not None and not 16 <= args.image_size <= MAX_IMAGE_SIDE:
-        raise InputError(f"--image-size must be 16..{MAX_IMAGE_SIDE} px, got {args.image_size}")
+    if args.image_size is not None and not IMAGE_SIZE_MIN <= args.image_size <= IMAGE_SIZE_MAX:
+        raise InputError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {args.image_size}")
     if args.seed is not None:
         from ground_sim.cli import check_seed
 

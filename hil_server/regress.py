@@ -243,8 +243,8 @@ def validate_baseline(doc: object, where: str) -> None:
     or (an empty ``cases``) silently run the default cases instead of the ones asked for.
     """
     from hil_server.budgets import load_budgets
+    from hil_server.run import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
     from protocol.errors import InputError
-    from protocol.pairdir import MAX_IMAGE_SIDE
 
     def bad(what: str) -> InputError:
         return InputError(f"latency baseline {where}: {what}")
@@ -293,9 +293,12 @@ def validate_baseline(doc: object, where: str) -> None:
             raise bad(f"{w}: 'seed' must be an integer >= 0, got {case['seed']!r}")
         size = case.get("image_size")
         if size is not None and (
-            isinstance(size, bool) or not isinstance(size, int) or not 16 <= size <= MAX_IMAGE_SIDE
+            isinstance(size, bool) or not isinstance(size, int) or not IMAGE_SIZE_MIN <= size <= IMAGE_SIZE_MAX
         ):
-            raise bad(f"{w}: 'image_size' must be an integer number of pixels in 16..{MAX_IMAGE_SIDE}, got {size!r}")
+            raise bad(
+                f"{w}: 'image_size' must be an integer number of pixels in {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX}, "
+                f"got {size!r}"
+            )
         if "manifest" in case and (not isinstance(case["manifest"], str) or not case["manifest"]):
             raise bad(f"{w}: 'manifest' must be a non-empty path, got {case['manifest']!r}")
         pairs = case.get("pairs")
@@ -386,8 +389,8 @@ def check_regression(
         raise InputError(f"unknown regression case(s) {unknown}; known: {sorted(all_cases)}")
     if min_hit_rate is not None and not 0.0 <= min_hit_rate <= 1.0:
         raise InputError(f"--min-hit-rate must be in [0, 1], got {min_hit_rate}")
-    if hello_timeout_s is not None and not (math.isfinite(hello_timeout_s) and hello_timeout_s > 0):
-        raise InputError(f"--hello-timeout must be a positive number of seconds, got {hello_timeout_s}")
+    if hello_timeout_s is not None and not (math.isfinite(hello_timeout_s) and 0 < hello_timeout_s <= 86400):
+        raise InputError(f"--hello-timeout must be a number of seconds in (0, 86400], got {hello_timeout_s}")
     cond, notes = host_conditions()
     if all(is_board(all_cases[n]) for n in names):
         notes = []  # this host's calibration and load say nothing about a board's speed

@@ -158,12 +158,15 @@ def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
     )
 
 
+IMAGE_SIZE_MIN, IMAGE_SIZE_MAX = 32, 4096  # the square cameras `run --image-size` renders
+
+
 def scaled_camera(size: int):
     """The thesis camera's 30 deg FOV on a ``size`` x ``size`` sensor."""
     from protocol.pairdir import Camera
 
-    if not 32 <= size <= 4096:
-        raise InputError(f"--image-size must be in [32, 4096], got {size}")
+    if not IMAGE_SIZE_MIN <= size <= IMAGE_SIZE_MAX:
+        raise InputError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {size}")
     f = Camera.thesis().fx * size / 512.0
     return Camera(size, size, f, f, (size - 1) / 2.0, (size - 1) / 2.0)
 
@@ -491,16 +494,14 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
                 "zmq to an external flight computer needs --keys DIR (client.key_secret and server.key, "
                 "docs/protocol.md section 7) or --insecure on loopback"
             )
-        if kind == "serial":
-            from protocol.linkspec import check_serial_device, parse_serial
+        from protocol.linkspec import check_link_spec
 
-            device, _ = parse_serial(rest)
-            # a device that is not there, not a device, or held would fail the ground's open: said now, not after
-            # the descent is rendered
-            try:
-                check_serial_device(device)
-            except InputError as exc:
-                raise InputError(f"--link {cfg.link}: {exc}") from None
+        # a device that is not there, not a device or held, an endpoint libzmq would refuse, --insecure off
+        # loopback: each would fail the ground's open, said now and not after the descent is rendered
+        try:
+            check_link_spec(cfg.link, server=False, insecure=cfg.insecure, peer_timeout=cfg.link_timeout_s)
+        except InputError as exc:
+            raise InputError(f"--link {cfg.link}: {exc}") from None
         return kind, cfg.link
     if sep:
         raise InputError(
@@ -674,6 +675,20 @@ def _manifest(manifest: Path | None) -> dict:
     return doc if isinstance(doc, dict) else {}
 
 
+def _planned_entries(cfg: RunConfig) -> list[dict]:
+    """The pairs a run meant to render, as manifest entries, for a run that ended before its manifest was written
+    (interrupted while rendering): each is then recorded as not run with the reason, none vanishes."""
+    from ground_sim.trajectory import load_trajectory
+
+    try:
+        specs = load_trajectory(cfg.scenario, None)
+    except (InputError, OSError, ValueError):  # a scenario that cannot be read ended the run before rendering
+        return []
+    if cfg.pairs:
+        specs = [s for p in cfg.pairs for s in specs if s.label == p]
+    return [{"label": s.label, "path": s.label.replace("/", "_"), "altitude_m": s.altitude_m} for s in specs]
+
+
 def _manifest_entries(manifest: Path | None) -> list[dict]:
     return list(_manifest(manifest).get("pairs", []))
 
@@ -762,6 +777,10 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     # link options the link would ignore, or refuse only once the pairs are rendered: said now
     if cfg.baud is not None and kind != "serial":
         raise InputError(f"--baud applies to serial links, not to --link {cfg.link}")
+    if kind == "serial" and emulated:
+        from protocol.linkspec import check_baud
+
+        check_baud((cfg.baud if cfg.baud is not None else budget.baud) or None, cfg.link_timeout_s)
     if (cfg.insecure or cfg.keys is not None) and kind != "zmq":
         raise InputError(f"--keys and --insecure apply to ZeroMQ links, not to --link {cfg.link}")
     if cfg.keys is not None:
@@ -984,7 +1003,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             reason = f"interrupted by {signal.Signals(interrupted).name}"
     wall = time.monotonic() - t0
 
-    entries = _manifest_entries(manifest)
+    entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
     records = _read_records(received / "results.jsonl")
     if reason is not None:
         records = _missing(entries, records, manifest.parent if manifest else out, f"not run: {reason}")

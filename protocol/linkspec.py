@@ -12,11 +12,13 @@
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 from protocol.arq import ArqConfig
 from protocol.errors import InputError
+from protocol.framing import DEFAULT_MAX_FRAME
 
 DEFAULT_BAUD = 921600
 BAUD_MIN, BAUD_MAX = 50, 100_000_000  # a paced line's rates
@@ -25,6 +27,8 @@ BAUD_MIN, BAUD_MAX = 50, 100_000_000  # a paced line's rates
 def parse_serial(rest: str) -> tuple[str, int | None]:
     """``URL[@BAUD]`` -> (url, baud or None for unpaced)."""
     url, sep, baud = rest.rpartition("@")
+    if sep and url and baud and "/" not in baud and not baud.isdigit():  # serial:/dev/ttyS0@fast: a baud meant
+        raise InputError(f"serial link spec {rest!r}: the baud after '@' must be a whole number, got {baud!r}")
     if not sep or not baud.isdigit():
         return rest, DEFAULT_BAUD
     if not url:
@@ -33,6 +37,68 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
     if b and not BAUD_MIN <= b <= BAUD_MAX:
         raise InputError(f"serial baud must be 0 (unpaced) or in [{BAUD_MIN}, {BAUD_MAX:.0e}], got {b}")
     return url, (b or None)
+
+
+MAX_LINK_TIMEOUT_S = 3600.0  # a peer silent longer than an hour is gone; beyond this the timers overflow
+# one link frame (DEFAULT_MAX_FRAME bytes, byte stuffing and a margin: x1.5) must take well under the link timeout,
+# or a healthy but slow line reads as a peer that stopped acknowledging (measured: 2400 baud with the 4 s timeout
+# lost every session; 4800 worked)
+FRAME_TIME_MARGIN = 1.5
+
+
+def check_baud(baud: int | None, peer_timeout: float | None) -> None:
+    """Refuse a paced rate at which one link frame takes longer than the link timeout allows (``None``: unpaced
+    or no timeout, nothing to check): the session would be lost on every frame, after the descent was rendered."""
+    if baud is None or peer_timeout is None:
+        return
+    frame_s = FRAME_TIME_MARGIN * DEFAULT_MAX_FRAME * 10 / baud
+    if frame_s >= peer_timeout:
+        need = math.ceil(FRAME_TIME_MARGIN * DEFAULT_MAX_FRAME * 10 / peer_timeout)
+        raise InputError(
+            f"at {baud} baud one link frame takes up to {frame_s:.1f} s, past the {peer_timeout:g} s link timeout: "
+            f"use at least {need} baud, or a longer link timeout (--link-timeout {math.ceil(frame_s * 2):d})"
+        )
+
+
+def check_zmq_endpoint(endpoint: str, *, bind: bool) -> None:
+    """Refuse an endpoint libzmq would refuse only at connect time, or take wrongly: ``tcp://HOST:PORT`` with a
+    port in 1..65535 (``*`` for any host or port where binding), ``ipc://PATH`` or ``inproc://NAME``. A port
+    out of range was taken modulo 65536 (``tcp://*:99999`` listened on 34463)."""
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep or scheme not in ("tcp", "ipc", "inproc"):
+        raise InputError(f"ZeroMQ endpoint must be tcp://HOST:PORT, ipc://PATH or inproc://NAME, got {endpoint!r}")
+    if scheme != "tcp":
+        if not rest:
+            raise InputError(f"ZeroMQ endpoint {endpoint!r} names no {'path' if scheme == 'ipc' else 'name'}")
+        return
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host:
+        raise InputError(f"ZeroMQ endpoint {endpoint!r} needs a host and a port: tcp://HOST:PORT")
+    if host == "*" and not bind:
+        raise InputError(f"ZeroMQ endpoint {endpoint!r}: '*' is for the binding side; connect to the board's address")
+    if port == "*" and bind:
+        return
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise InputError(f"ZeroMQ endpoint {endpoint!r}: the port must be a number in 1..65535, got {port!r}")
+
+
+def check_link_spec(spec: str, *, server: bool, insecure: bool = False, peer_timeout: float | None = None) -> None:
+    """What can be known of a link spec without opening it, said before any work (a board's warm-up, a ground's
+    rendering): its form, a serial device's state (:func:`check_serial_device`), a ZeroMQ endpoint
+    (:func:`check_zmq_endpoint`) and ``--insecure`` off loopback."""
+    from protocol.links import is_loopback_endpoint
+
+    kind, _, rest = spec.partition(":")
+    if kind == "serial" and rest:
+        device, baud = parse_serial(rest)
+        check_baud(baud, peer_timeout)
+        check_serial_device(device)
+    elif kind == "zmq" and rest:
+        check_zmq_endpoint(rest, bind=server)
+        if insecure and not is_loopback_endpoint(rest):
+            raise InputError(f"--insecure is for loopback debugging only; {rest!r} is not a loopback endpoint")
+    else:
+        raise InputError(f"link spec must be serial:URL[@BAUD] or zmq:ENDPOINT, got {spec!r}")
 
 
 def _lock_holder(st) -> int | None:
@@ -61,7 +127,7 @@ def check_serial_device(device: str) -> None:
     try:
         st = os.stat(device)
     except FileNotFoundError:
-        raise InputError(f"no serial device {device} (is the board connected on this port?)") from None
+        raise InputError(f"no serial device {device} (is it plugged in, and is the name right?)") from None
     except OSError as exc:
         raise InputError(f"serial device {device}: {exc.strerror or exc}") from None
     if not stat.S_ISCHR(st.st_mode):
@@ -85,14 +151,16 @@ def open_link(
 ):
     from protocol.links import SerialLink, ZmqLink
 
-    if peer_timeout is not None and not peer_timeout > 0:
-        raise InputError(f"link timeout must be > 0 s, got {peer_timeout}")
+    if peer_timeout is not None and not 0 < peer_timeout <= MAX_LINK_TIMEOUT_S:
+        raise InputError(f"link timeout must be in (0, {MAX_LINK_TIMEOUT_S:g}] s, got {peer_timeout}")
     kind, _, rest = spec.partition(":")
     if kind == "serial" and rest:
         url, baud = parse_serial(rest)
+        check_baud(baud, peer_timeout)
         cfg = ArqConfig(peer_timeout=peer_timeout, connect_timeout=connect_timeout)
         return SerialLink(url, baud=baud, device_baud=baud or DEFAULT_BAUD, config=cfg, name=name, log=log)
     if kind == "zmq" and rest:
+        check_zmq_endpoint(rest, bind=server)
         return ZmqLink(
             rest,
             bind=server,

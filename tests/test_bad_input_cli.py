@@ -6,6 +6,8 @@ are in tests/test_pairdir.py; these are the ones only the CLI sees.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from hil_server.cli import main
@@ -32,12 +34,19 @@ CASES = [
     (["run", "--manifest", "FORMAT"], "format must be 'hazard-hil-descent/1'"),
     (["budgets", "--file", "PAIR"], "cannot be read as a budget file"),
     (["budgets", "--file", "TYPO"], "unknown key(s) baudd"),
-    (["run", "--deadline", "-1"], "--deadline must be a positive number"),
-    (["run", "--link-timeout", "nan"], "--link-timeout must be a positive number"),
+    (["run", "--deadline", "-1"], "--deadline must be a number of seconds in (0, 3600]"),
+    (["run", "--link-timeout", "nan"], "--link-timeout must be a number of seconds in (0, 3600]"),
+    (
+        ["run", "--link", "serial", "--baud", "2400"],
+        "at 2400 baud one link frame takes up to 6.4 s, past the 4 s link timeout",
+    ),
     (["run", "--scenario", "vertcal"], "unknown scenario 'vertcal'"),
     (["run", "--budget", "nope"], "unknown budget 'nope'"),
     (["run", "--link-fault", "boom@1"], "--link-fault must be stall@N or exit@N"),
-    (["run", "--image-size", "5"], "--image-size must be 16..8192 px"),
+    (["run", "--image-size", "5"], "--image-size must be 32..4096 px"),
+    (["run", "--image-size", "20"], "--image-size must be 32..4096 px"),
+    (["run", "--link-timeout", "1e12"], "--link-timeout must be a number of seconds in (0, 3600]"),
+    (["run", "--deadline", "1e308"], "--deadline must be a number of seconds in (0, 3600]"),
     (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**62)"),  # was an OverflowError
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
@@ -48,6 +57,9 @@ CASES = [
     (["evaluate", "--scenario", "vertical", "--seed-list", ""], "--seed-list is empty"),  # ran the default seeds
     (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
 ]
+
+
+NO_OUT = ("budgets", "flight")  # commands without an --out
 
 
 @pytest.mark.parametrize("argv, message", CASES, ids=[" ".join(a[:1] + a[-2:]) for a, _ in CASES])
@@ -73,7 +85,7 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     subst["TYPO"] = str(tmp_path / "typo.toml")
     (tmp_path / "afile").write_text("")
     subst["AFILE"] = str(tmp_path / "afile")
-    argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] != "budgets" else [])
+    argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] not in NO_OUT else [])
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
@@ -96,11 +108,33 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
     """Every command creates its --out directory; an existing file there (or above it) was a traceback, some
     of them only after the work was done."""
     (tmp_path / "afile").write_text("keep me")
-    for out, why in ((tmp_path / "afile", "is a file, not a directory"), (tmp_path / "afile" / "x", "is under")):
+    cases = [(tmp_path / "afile", "is a file, not a directory"), (tmp_path / "afile" / "x", "is under")]
+    # one that cannot be created or written, root or not (was a traceback after the work, `process` aside)
+    cases.append((Path("/proc/hazard-hil-out"), "cannot be created"))
+    for out, why in cases:
         assert main([*command, "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and why in err, err
     assert (tmp_path / "afile").read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["process", "PAIR", "--out", ""], "--out must name a path, got an empty one"),  # wrote into the cwd
+        (["process", "PAIR", "--out="], "--out must name a path, got an empty one"),
+        (["score", "PAIR", "PAIR", "--csv", "/proc/x.csv"], "--csv's directory /proc is not writable"),
+        (["score", "PAIR", "PAIR", "--json", "AFILE/x.json"], "--json's directory"),
+        (["score", "PAIR", "PAIR", "--json", "PAIR"], "is a directory, not a file"),
+    ],
+)
+def test_output_paths_that_cannot_be_written_are_refused_first(tmp_path, capsys, argv, message):
+    """`score` wrote its --csv/--json after scoring every pair: a path it could not write was a traceback then."""
+    (tmp_path / "afile").write_text("")
+    subst = {"PAIR": str(tmp_path), "AFILE": str(tmp_path / "afile")}
+    assert main([a.replace("AFILE", subst["AFILE"]) if a.startswith("AFILE") else subst.get(a, a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
 
 
 @pytest.mark.parametrize(

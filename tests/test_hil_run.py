@@ -309,3 +309,28 @@ def test_a_slow_budget_says_how_long_its_flight_process_takes_to_boot():
     )
     assert boot_hint(0.013).startswith("; it boots in about 20 s")
     assert boot_hint(0.25) == "" and boot_hint(1.0) == "" and boot_hint(0.0) == ""
+
+
+def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp_path):
+    """SIGTERM before the manifest exists: the summary said 0 pairs (0/0), the pairs asked for vanished."""
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, "-m", "hil_server.cli", "run", "--pairs", "600/300,300/150", "--budget", "host"]
+    proc = subprocess.Popen(
+        [*cmd, "--out", str(tmp_path)], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    assert proc.stdout is not None
+    for line in proc.stdout:  # the 512 px frames take seconds: stopped in the middle of them
+        if "run: rendering" in line:
+            proc.send_signal(signal.SIGTERM)
+            break
+    proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert not s["complete"] and s["reason"] == "interrupted by SIGTERM"
+    assert s["pairs"] == 2 and s["not_run"] == 2
+    assert [(r["label"], r["code"]) for r in s["records"]] == [("600/300", "not_run"), ("300/150", "not_run")]

@@ -292,7 +292,7 @@ def test_a_hello_timeout_that_is_no_time_is_refused_up_front(tmp_path, value, ca
     argv = ["run", "--flight", "external", "--link", "serial:/dev/null", "--hello-timeout", value]
     assert main([*argv, "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
-    assert "--hello-timeout must be a positive number of seconds" in err and len(err.strip().splitlines()) == 1
+    assert "--hello-timeout must be a number of seconds in (0, 86400]" in err and len(err.strip().splitlines()) == 1
 
 
 def test_a_serial_device_that_is_not_there_is_refused_before_rendering(tmp_path, capsys):

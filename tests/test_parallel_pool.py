@@ -55,3 +55,59 @@ def test_pool_workers_leave_ctrl_c_to_the_parent():
     from ground_sim.parallel import pool_map
 
     assert pool_map(_sigint_handler, [(0,), (1,)], workers=2) == [str(signal.SIG_IGN)] * 2
+
+
+def test_sigterm_to_a_pool_command_ends_it_and_its_workers(tmp_path):
+    """`kill PID` on `hazard-hil render` (or `evaluate`, `landings`): the process died at once and its spawned
+    workers rendered on, then waited on the pool's queue for good. Now it ends like a Ctrl-C, exit 128 + 15."""
+    import psutil
+
+    cmd = [sys.executable, "-m", "hil_server.cli", "render", "--scenario", "vertical", "--workers", "2"]
+    proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "r")], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        workers: list = []
+        for _ in range(300):
+            workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "spawn" in " ".join(c.cmdline())]
+            if len(workers) >= 2:
+                break
+            time.sleep(0.1)
+        assert len(workers) >= 2, "the pool never started"
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)  # the main process only, as `kill PID` does
+        _, err = proc.communicate(timeout=30)
+        _, alive = psutil.wait_procs(workers, timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in workers:  # never leave a pool behind, even when the test fails
+            if w.is_running():
+                w.kill()
+    assert proc.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in err, err[-2000:]
+    assert not alive, [p.cmdline() for p in alive]
+
+
+def test_pool_workers_die_with_a_parent_killed_outright(tmp_path):
+    """SIGKILL leaves no handler to run: the workers go with their parent (PR_SET_PDEATHSIG)."""
+    import psutil
+
+    cmd = [sys.executable, "-m", "hil_server.cli", "render", "--scenario", "vertical", "--workers", "2"]
+    proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "r")], cwd=ROOT, stderr=subprocess.DEVNULL)
+    try:
+        workers: list = []
+        for _ in range(300):
+            workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "spawn" in " ".join(c.cmdline())]
+            if len(workers) >= 2:
+                break
+            time.sleep(0.1)
+        assert len(workers) >= 2, "the pool never started"
+        time.sleep(1.0)
+        proc.kill()
+        proc.wait(timeout=10)
+        _, alive = psutil.wait_procs(workers, timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in workers:  # never leave a pool behind, even when the test fails
+            if w.is_running():
+                w.kill()
+    assert not alive, [p.cmdline() for p in alive]
