@@ -218,5 +218,27 @@ def _process(args: argparse.Namespace) -> int:
         skipped = list(res.info.get("skipped", ()))
         why = plan_note(res.info.get("plan"), skipped)
         print(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
+    for k, why in _unverified_poses(res.info.get("pose_refinement")):
+        # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
+        # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
+        print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
+              "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
     print(f"report: {out / 'report.html'}")
     return 0
+
+
+UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC found no model", "no ground-plane")
+
+
+def _unverified_poses(info: Any) -> list[tuple[int, str]]:
+    """(frame, reason) where pose refinement could not match the images and kept the navigation pose
+    (:func:`flight_sw.pose_refine.refine_pair`'s fallbacks that mean "no evidence", not "navigation agreed"), from
+    ``info["pose_refinement"]``."""
+    if not isinstance(info, dict):
+        return []
+    frames = info.get("frames") or [{"frame": 1, **info}]
+    return [
+        (int(f.get("frame", i + 1)), str(f["reason"]))
+        for i, f in enumerate(frames)
+        if isinstance(f, dict) and not f.get("refined") and str(f.get("reason", "")).startswith(UNVERIFIED)
+    ]

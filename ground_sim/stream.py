@@ -93,6 +93,7 @@ LINK_CODES = ("link_down",)
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
+UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
 TELEMETRY_KEYS = (
@@ -659,10 +660,15 @@ def stream_descent(
         baud = getattr(link, "baud", None)
         line_s = 2.0 * sum(f.image.nbytes for f in frames) * 10 / baud if baud else 0.0
         deadline = time.monotonic() + timeout + line_s
+        next_note = o.sent_at + UPLINK_NOTE_S
         while time.monotonic() < deadline:  # both frames on the far side: their line time is the link time
             outs = [link.outcome(i) or "" for i in ids]
             if all(x != "pending" for x in outs):
                 break
+            if baud and progress is not None and time.monotonic() >= next_note:  # a slow line, not a hung ground
+                note(f"pair {o.pair_id}: its frames on the line for {time.monotonic() - o.sent_at:.0f} s of about "
+                     f"{line_s / 2:.0f} s at {baud} baud")  # fmt: skip
+                next_note += UPLINK_NOTE_S
             link.flush(timeout=0.2)
             if pace != "lockstep":  # the earlier pairs' answers, as they come
                 drain(in_flight)

@@ -174,26 +174,26 @@ def _no_empty_paths(argv: list[str]) -> None:
 
 
 def check_out_dir(out: Path, option: str = "--out") -> None:
-    """Refuse, before any work, an output directory that cannot become one: an empty path, an existing file, a
-    path under one, or one that cannot be created or written (every command creates its ``--out``, some only
-    after minutes of work). It is created here, empty, which proves both."""
+    """Refuse, before any work, an output directory that cannot become one: an existing file, a path under one,
+    or one whose nearest existing directory cannot be written (every command creates its ``--out``, some only
+    after minutes of work). Nothing is created here: a command refused later leaves nothing half-made."""
+    import tempfile
+
     for q in (out, *out.parents):
         if q.exists():
             if not q.is_dir():
                 where = "is a file, not a directory" if q == out else f"is under {q}, which is not a directory"
                 raise InputError(f"{option} {out} {where}")
             break
-    import tempfile
-
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"{option} {out} cannot be created: {exc.strerror or exc}") from None
-    try:  # a file made and dropped: the only proof for root, whom permission bits do not stop (/proc, a read-only fs)
-        with tempfile.TemporaryFile(dir=out):
+    else:
+        q = Path(".")
+    try:  # a nameless file made and dropped in the nearest existing directory: the only proof for root, whom
+        # permission bits do not stop (/proc, a read-only file system)
+        with tempfile.TemporaryFile(dir=q):
             pass
     except OSError as exc:
-        raise InputError(f"{option} {out} is not writable: {exc.strerror or exc}") from None
+        why = exc.strerror or str(exc)
+        raise InputError(f"{option} {out} cannot be written: no file can be made in {q} ({why})") from None
 
 
 # --------------------------------------------------------------------------- emulation

@@ -546,16 +546,22 @@ def _image_side(cfg: RunConfig, manifest: Path | None) -> tuple[int, int]:
     return best
 
 
-def check_memory(budget, width: int, height: int) -> None:
-    """Refuse, before anything runs, a camera whose flight pipeline cannot fit the budget's memory ceiling."""
+def check_memory(budget, width: int, height: int, rendered: bool = False) -> None:
+    """Refuse, before anything runs, a camera whose flight pipeline cannot fit the budget's memory ceiling.
+    ``rendered``: the pairs exist already (``--manifest``), so ``--image-size`` is no remedy."""
     from hil_server.budgets import flight_peak_rss_mib, max_image_side
 
     need = flight_peak_rss_mib(width * height)
     if need > budget.memory_mib:
+        side = max_image_side(budget.memory_mib)
+        remedy = (
+            f"stream pairs of at most {side} x {side} px, or a budget with more memory"
+            if rendered
+            else f"the largest square camera that fits is {side} px (--image-size)"
+        )
         raise InputError(
             f"a {width}x{height} camera needs ~{need:.0f} MiB peak private RSS in the flight process, over budget "
-            f"{budget.name}'s {budget.memory_mib} MiB; the largest square camera that fits is "
-            f"{max_image_side(budget.memory_mib)} px (--image-size), see `hazard-hil budgets`"
+            f"{budget.name}'s {budget.memory_mib} MiB; {remedy}, see `hazard-hil budgets`"
         )
 
 
@@ -765,8 +771,10 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
     if not (math.isfinite(deadline) and deadline > 0):
         raise InputError(f"--deadline must be a positive number of seconds, got {deadline}")
-    if cfg.corrupt and (kind != "serial" or not 0 <= cfg.corrupt <= 0.05):
-        raise InputError("--corrupt applies to the serial link only, as a per-byte rate in [0, 0.05]")
+    if cfg.corrupt and kind != "serial":
+        raise InputError(f"--corrupt applies to the serial link only, not to --link {cfg.link}")
+    if cfg.corrupt and not 0 <= cfg.corrupt <= 0.05:
+        raise InputError(f"--corrupt is a per-byte fault rate in [0, 0.05], got {cfg.corrupt}")
     if cfg.min_hit_rate is not None and not 0.0 <= cfg.min_hit_rate <= 1.0:
         raise InputError(f"--min-hit-rate must be in [0, 1], got {cfg.min_hit_rate}")
     hello = cfg.hello_timeout_s
@@ -801,7 +809,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         name = doc.get("scenario")
         cfg = replace(cfg, scenario=name if isinstance(name, str) and name else f"pairs of {manifest}")
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
-        check_memory(budget, *_image_side(cfg, manifest))
+        check_memory(budget, *_image_side(cfg, manifest), rendered=manifest is not None)
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

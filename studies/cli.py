@@ -70,6 +70,10 @@ def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], 
             raise InputError(f"--seed-list: expected comma-separated integers, got {args.seed_list!r}") from None
         if not seeds or len(set(seeds)) != len(seeds):
             raise InputError(f"--seed-list: need distinct seeds, got {args.seed_list!r}")
+        from ground_sim.cli import check_seed
+
+        for x in seeds:  # as `run` and `render` refuse them (a negative seed read as "other seeds")
+            check_seed(x, "--seed-list seeds")
         sets = sorted({seed_set_of(x) for x in seeds})
         if args.seed_set is not None and sets != [args.seed_set]:
             other = [x for x in seeds if seed_set_of(x) != args.seed_set]

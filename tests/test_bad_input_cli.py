@@ -55,6 +55,10 @@ CASES = [
     (["evaluate", "--scenario", "vertical", "--cache", "AFILE"], "is a file, not a directory"),  # was a failed task
     (["evaluate", "--scenario", "vertical", "--seeds", "1", "--seed-list", "1000"], "--seeds N and --seed-list"),
     (["evaluate", "--scenario", "vertical", "--seed-list", ""], "--seed-list is empty"),  # ran the default seeds
+    (["evaluate", "--scenario", "vertical", "--seed-list", "1000,-5"], "--seed-list seeds must be in [0, 2**62)"),
+    (["landings", "--scenes", "thesis", "--n", "2", "--seed-list", "-5"], "--seed-list seeds must be in [0, 2**62)"),
+    (["run", "--link", "serial", "--corrupt", "2"], "--corrupt is a per-byte fault rate in [0, 0.05], got 2"),
+    (["run", "--link", "zmq", "--corrupt", "0.01"], "--corrupt applies to the serial link only"),
     (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
 ]
 
@@ -110,7 +114,7 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
     (tmp_path / "afile").write_text("keep me")
     cases = [(tmp_path / "afile", "is a file, not a directory"), (tmp_path / "afile" / "x", "is under")]
     # one that cannot be created or written, root or not (was a traceback after the work, `process` aside)
-    cases.append((Path("/proc/hazard-hil-out"), "cannot be created"))
+    cases.append((Path("/proc/hazard-hil-out"), "cannot be written"))
     for out, why in cases:
         assert main([*command, "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip()
@@ -123,7 +127,7 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
     [
         (["process", "PAIR", "--out", ""], "--out must name a path, got an empty one"),  # wrote into the cwd
         (["process", "PAIR", "--out="], "--out must name a path, got an empty one"),
-        (["score", "PAIR", "PAIR", "--csv", "/proc/x.csv"], "--csv's directory /proc is not writable"),
+        (["score", "PAIR", "PAIR", "--csv", "/proc/x.csv"], "--csv's directory /proc cannot be written"),
         (["score", "PAIR", "PAIR", "--json", "AFILE/x.json"], "--json's directory"),
         (["score", "PAIR", "PAIR", "--json", "PAIR"], "is a directory, not a file"),
     ],

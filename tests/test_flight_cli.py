@@ -104,3 +104,24 @@ def test_process_refuses_a_camera_too_large_for_this_machine_before_reading_it(t
     (d / "pair.json").write_text(json.dumps(doc))
     assert main(["process", str(d), "--out", str(tmp_path / "o2")]) == 2
     assert "8192x8192 px x 2 frames" in capsys.readouterr().err
+
+
+def test_process_warns_when_the_images_cannot_check_the_navigation_poses(tmp_path, capsys):
+    """Frames swapped (or mislabelled): the DEM was 46 m off and the run said "full" like any other; the reason sat
+    in result.json only. A clean pair says nothing."""
+    import shutil
+
+    from hilkit import small_descent
+
+    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
+    assert main(["process", str(pair), "--out", str(tmp_path / "ok")]) == 0
+    assert "warning" not in capsys.readouterr().err
+    swapped = tmp_path / "swapped"
+    shutil.copytree(pair, swapped)
+    (swapped / "i1.png").write_bytes((pair / "i2.png").read_bytes())
+    (swapped / "i2.png").write_bytes((pair / "i1.png").read_bytes())
+    assert main(["process", str(swapped), "--out", str(tmp_path / "bad")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 1: the images could not check its navigation pose" in err, err
+    info = json.loads((tmp_path / "bad" / "result.json").read_text())["info"]["pose_refinement"]
+    assert info["refined"] is False and info["reason"] in err
