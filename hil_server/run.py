@@ -641,7 +641,8 @@ class _Interrupted(Exception):
 
 
 class _Signals:
-    """SIGINT/SIGTERM raise :class:`_Interrupted` in the main thread while armed; later ones are only noted."""
+    """SIGINT/SIGTERM/SIGHUP raise :class:`_Interrupted` in the main thread while armed; later ones are only
+    noted (a closed terminal or ssh session ends a run with its summary, as Ctrl-C does)."""
 
     def __init__(self) -> None:
         self.armed = False
@@ -651,7 +652,9 @@ class _Signals:
     def __enter__(self) -> _Signals:
         if threading.current_thread() is threading.main_thread():
             self.armed = True
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # under nohup a hangup stays ignored
                 self.saved[sig] = signal.signal(sig, self._handle)
         return self
 

@@ -59,6 +59,7 @@ CASES = [
     (["landings", "--scenes", "thesis", "--n", "2", "--seed-list", "-5"], "--seed-list seeds must be in [0, 2**62)"),
     (["run", "--link", "serial", "--corrupt", "2"], "--corrupt is a per-byte fault rate in [0, 0.05], got 2"),
     (["run", "--link", "zmq", "--corrupt", "0.01"], "--corrupt applies to the serial link only"),
+    (["run", "--bogus"], "hazard-hil run: error: unrecognized arguments: --bogus (see hazard-hil run --help)"),
     (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
 ]
 

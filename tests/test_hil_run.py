@@ -311,8 +311,10 @@ def test_a_slow_budget_says_how_long_its_flight_process_takes_to_boot():
     assert boot_hint(0.25) == "" and boot_hint(1.0) == "" and boot_hint(0.0) == ""
 
 
-def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp_path):
-    """SIGTERM before the manifest exists: the summary said 0 pairs (0/0), the pairs asked for vanished."""
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp_path, signame):
+    """A signal before the manifest exists: the summary said 0 pairs (0/0), the pairs asked for vanished. A
+    hangup (the terminal closed) ended the run with no summary at all."""
     import signal
     import subprocess
     import sys
@@ -326,11 +328,11 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
     assert proc.stdout is not None
     for line in proc.stdout:  # the 512 px frames take seconds: stopped in the middle of them
         if "run: rendering" in line:
-            proc.send_signal(signal.SIGTERM)
+            proc.send_signal(getattr(signal, signame))
             break
     proc.communicate(timeout=60)
-    assert proc.returncode == 128 + signal.SIGTERM
+    assert proc.returncode == 128 + getattr(signal, signame)
     s = json.loads((tmp_path / "summary.json").read_text())
-    assert not s["complete"] and s["reason"] == "interrupted by SIGTERM"
+    assert not s["complete"] and s["reason"] == f"interrupted by {signame}"
     assert s["pairs"] == 2 and s["not_run"] == 2
     assert [(r["label"], r["code"]) for r in s["records"]] == [("600/300", "not_run"), ("300/150", "not_run")]
