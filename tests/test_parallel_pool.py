@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = """
@@ -57,15 +59,18 @@ def test_pool_workers_leave_ctrl_c_to_the_parent():
     assert pool_map(_sigint_handler, [(0,), (1,)], workers=2) == [str(signal.SIG_IGN)] * 2
 
 
-def test_sigterm_to_a_pool_command_ends_it_and_its_workers(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_pool_command_stopped_from_outside_leaves_no_worker(tmp_path, sig):
     """`kill PID` on `hazard-hil render` (or `evaluate`, `landings`): the process died at once and its spawned
-    workers rendered on, then waited on the pool's queue for good. Now it ends like a Ctrl-C, exit 128 + 15."""
+    workers rendered on, then waited on the pool's queue for good. Now SIGTERM ends it as a Ctrl-C does (exit
+    128 + 15, the workers stopped), and after a SIGKILL, which runs no handler, the workers go with their parent
+    (PR_SET_PDEATHSIG)."""
     import psutil
 
     cmd = [sys.executable, "-m", "hil_server.cli", "render", "--scenario", "vertical", "--workers", "2"]
     proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "r")], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    workers: list = []
     try:
-        workers: list = []
         for _ in range(300):
             workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "spawn" in " ".join(c.cmdline())]
             if len(workers) >= 2:
@@ -73,7 +78,7 @@ def test_sigterm_to_a_pool_command_ends_it_and_its_workers(tmp_path):
             time.sleep(0.1)
         assert len(workers) >= 2, "the pool never started"
         time.sleep(1.0)
-        proc.send_signal(signal.SIGTERM)  # the main process only, as `kill PID` does
+        proc.send_signal(sig)  # the main process only, as `kill PID` does
         _, err = proc.communicate(timeout=30)
         _, alive = psutil.wait_procs(workers, timeout=10)
     finally:
@@ -82,32 +87,6 @@ def test_sigterm_to_a_pool_command_ends_it_and_its_workers(tmp_path):
         for w in workers:  # never leave a pool behind, even when the test fails
             if w.is_running():
                 w.kill()
-    assert proc.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in err, err[-2000:]
     assert not alive, [p.cmdline() for p in alive]
-
-
-def test_pool_workers_die_with_a_parent_killed_outright(tmp_path):
-    """SIGKILL leaves no handler to run: the workers go with their parent (PR_SET_PDEATHSIG)."""
-    import psutil
-
-    cmd = [sys.executable, "-m", "hil_server.cli", "render", "--scenario", "vertical", "--workers", "2"]
-    proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "r")], cwd=ROOT, stderr=subprocess.DEVNULL)
-    try:
-        workers: list = []
-        for _ in range(300):
-            workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "spawn" in " ".join(c.cmdline())]
-            if len(workers) >= 2:
-                break
-            time.sleep(0.1)
-        assert len(workers) >= 2, "the pool never started"
-        time.sleep(1.0)
-        proc.kill()
-        proc.wait(timeout=10)
-        _, alive = psutil.wait_procs(workers, timeout=10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        for w in workers:  # never leave a pool behind, even when the test fails
-            if w.is_running():
-                w.kill()
-    assert not alive, [p.cmdline() for p in alive]
+    if sig == signal.SIGTERM:
+        assert proc.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in err, err[-2000:]
