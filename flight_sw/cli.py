@@ -218,7 +218,8 @@ def _process(args: argparse.Namespace) -> int:
         skipped = list(res.info.get("skipped", ()))
         why = plan_note(res.info.get("plan"), skipped)
         print(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
-    for k, why in _unverified_poses(res.info.get("pose_refinement")):
+    side = min(pair.camera.width, pair.camera.height)
+    for k, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
         print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
@@ -230,11 +231,16 @@ def _process(args: argparse.Namespace) -> int:
 UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC found no model", "no ground-plane")
 
 
-def _unverified_poses(info: Any) -> list[tuple[int, str]]:
+WARN_MIN_SIDE = 256  # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px)
+
+
+def _unverified_poses(info: Any, side: int) -> list[tuple[int, str]]:
     """(frame, reason) where pose refinement could not match the images and kept the navigation pose
     (:func:`flight_sw.pose_refine.refine_pair`'s fallbacks that mean "no evidence", not "navigation agreed"), from
-    ``info["pose_refinement"]``."""
-    if not isinstance(info, dict):
+    ``info["pose_refinement"]``. None for images narrower than ``WARN_MIN_SIDE``: there the refinement cannot
+    check clean pairs either (too few matches, an overlap under its four track windows), so a warning would say
+    nothing about these frames."""
+    if not isinstance(info, dict) or side < WARN_MIN_SIDE:
         return []
     frames = info.get("frames") or [{"frame": 1, **info}]
     return [

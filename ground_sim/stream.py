@@ -93,6 +93,7 @@ LINK_CODES = ("link_down",)
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
+LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -431,6 +432,15 @@ def stream_descent(
                 refused_since = now
             # a key is not refused by chance and libzmq redials ~10 times a second: waiting out the hello timeout
             # (120 s for a board) would only repeat the refusal
+            if (
+                refused_since is not None
+                and now - refused_since >= AUTH_GIVE_UP_S
+                and not getattr(link, "secure", True)
+            ):
+                raise NoHello(
+                    f"the flight computer on {where} requires CURVE authentication and this ground has none "
+                    "(--insecure): give it --keys DIR with a key the board accepts"
+                )
             if refused_since is not None and now - refused_since >= AUTH_GIVE_UP_S:
                 raise NoHello(
                     f"the flight computer on {where} refused this ground's CURVE key ({failures} handshakes failed in "
@@ -667,7 +677,7 @@ def stream_descent(
                 break
             if baud and progress is not None and time.monotonic() >= next_note:  # a slow line, not a hung ground
                 note(f"pair {o.pair_id}: its frames on the line for {time.monotonic() - o.sent_at:.0f} s of about "
-                     f"{line_s / 2:.0f} s at {baud} baud")  # fmt: skip
+                     f"{line_s / 2 * LINE_OVERHEAD:.0f} s at {baud} baud")  # fmt: skip
                 next_note += UPLINK_NOTE_S
             link.flush(timeout=0.2)
             if pace != "lockstep":  # the earlier pairs' answers, as they come

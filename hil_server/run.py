@@ -1017,7 +1017,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
     records = _read_records(received / "results.jsonl")
     if reason is not None:
-        records = _missing(entries, records, manifest.parent if manifest else out, f"not run: {reason}")
+        records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
     score_records(records)
     counters = {}
     flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)

@@ -27,6 +27,8 @@ BAUD_MIN, BAUD_MAX = 50, 100_000_000  # a paced line's rates
 def parse_serial(rest: str) -> tuple[str, int | None]:
     """``URL[@BAUD]`` -> (url, baud or None for unpaced)."""
     url, sep, baud = rest.rpartition("@")
+    if sep and url and not baud:
+        raise InputError(f"serial link spec {rest!r}: nothing after '@' (the baud, e.g. @921600, or @0 for unpaced)")
     if sep and url and baud and "/" not in baud and not baud.isdigit():  # serial:/dev/ttyS0@fast: a baud meant
         raise InputError(f"serial link spec {rest!r}: the baud after '@' must be a whole number, got {baud!r}")
     if not sep or not baud.isdigit():
@@ -56,7 +58,7 @@ def check_baud(baud: int | None, peer_timeout: float | None) -> None:
         need = math.ceil(FRAME_TIME_MARGIN * DEFAULT_MAX_FRAME * 10 / peer_timeout)
         raise InputError(
             f"at {baud} baud one link frame takes up to {frame_s:.1f} s, past the {peer_timeout:g} s link timeout: "
-            f"use at least {need} baud, or a longer link timeout (--link-timeout {math.ceil(frame_s * 2):d})"
+            f"use at least {need} baud, or a much longer --link-timeout on both ends"
         )
 
 

@@ -524,13 +524,18 @@ def _score(args: argparse.Namespace) -> int:
     _print_scores(rows, summary)
     if args.figures is not None:
         print(f"figures: {args.figures}")
-    if args.csv is not None:
-        write_metrics_csv(rows, args.csv)
-        print(f"rows:    {args.csv}")
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float) + "\n")
-        print(f"summary: {args.json}")
+    try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
+        if args.csv is not None:
+            write_metrics_csv(rows, args.csv)
+            print(f"rows:    {args.csv}")
+        if args.json is not None:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float) + "\n")
+            print(f"summary: {args.json}")
+    except OSError as exc:
+        print(f"hazard-hil score: error: cannot write {exc.filename or 'the output'}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0 if summary["failed"] == 0 and summary["pairs_over_fp_limit"] == 0 else 1
 
 
