@@ -156,7 +156,7 @@ def serve(
     import cv2
 
     from protocol.errors import InputError
-    from protocol.linkspec import MAX_LINK_TIMEOUT_S, check_link_spec, open_link
+    from protocol.linkspec import check_link_spec, check_link_timeout, open_link
 
     from .flight_main import FaultPlan, FlightProcess
     from .kernels import load_kernel
@@ -167,10 +167,7 @@ def serve(
         raise InputError(f"--threads must be in [1, 256], got {threads}")
     if not heartbeat_s > 0:
         raise InputError(f"the heartbeat period must be > 0 s, got {heartbeat_s}")
-    if not 0 < link_timeout <= MAX_LINK_TIMEOUT_S:
-        raise InputError(
-            f"--link-timeout must be a number of seconds in (0, {MAX_LINK_TIMEOUT_S:g}], got {link_timeout}"
-        )
+    check_link_timeout(link_timeout)
     # a link that cannot be (a missing or held device, a bad endpoint) is said before the warm-up's seconds
     check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout)
     if spec.startswith("zmq:") and not insecure:

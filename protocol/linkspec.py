@@ -42,6 +42,19 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
 
 
 MAX_LINK_TIMEOUT_S = 3600.0  # a peer silent longer than an hour is gone; beyond this the timers overflow
+# an idle but healthy peer speaks once per keepalive (1 s): a shorter silence is no sign of a lost peer
+MIN_LINK_TIMEOUT_S = 2.0
+
+
+def check_link_timeout(seconds: float, option: str = "--link-timeout") -> None:
+    """Refuse a link timeout a healthy link cannot keep (under two keepalives) or the timers cannot hold."""
+    if not MIN_LINK_TIMEOUT_S <= seconds <= MAX_LINK_TIMEOUT_S:  # NaN fails too
+        raise InputError(
+            f"{option} must be a number of seconds in [{MIN_LINK_TIMEOUT_S:g}, {MAX_LINK_TIMEOUT_S:g}] (a healthy "
+            f"peer speaks once a second), got {seconds}"
+        )
+
+
 # one link frame (DEFAULT_MAX_FRAME bytes, byte stuffing and a margin: x1.5) must take well under the link timeout,
 # or a healthy but slow line reads as a peer that stopped acknowledging (measured: 2400 baud with the 4 s timeout
 # lost every session; 4800 worked)
@@ -153,8 +166,8 @@ def open_link(
 ):
     from protocol.links import SerialLink, ZmqLink
 
-    if peer_timeout is not None and not 0 < peer_timeout <= MAX_LINK_TIMEOUT_S:
-        raise InputError(f"link timeout must be in (0, {MAX_LINK_TIMEOUT_S:g}] s, got {peer_timeout}")
+    if peer_timeout is not None:
+        check_link_timeout(peer_timeout, "link timeout")
     kind, _, rest = spec.partition(":")
     if kind == "serial" and rest:
         url, baud = parse_serial(rest)

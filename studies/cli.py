@@ -522,8 +522,9 @@ def _score(args: argparse.Namespace) -> int:
         rows.append(row)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)
-    if args.figures is not None:
-        print(f"figures: {args.figures}")
+    drawn = sum("figure" in r for r in rows)
+    if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
+        print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
     try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
         if args.csv is not None:
             write_metrics_csv(rows, args.csv)

@@ -35,7 +35,8 @@ CASES = [
     (["budgets", "--file", "PAIR"], "cannot be read as a budget file"),
     (["budgets", "--file", "TYPO"], "unknown key(s) baudd"),
     (["run", "--deadline", "-1"], "--deadline must be a number of seconds in (0, 3600]"),
-    (["run", "--link-timeout", "nan"], "--link-timeout must be a number of seconds in (0, 3600]"),
+    (["run", "--link-timeout", "nan"], "--link-timeout must be a number of seconds in [2, 3600]"),
+    (["run", "--link-timeout", "0.5"], "--link-timeout must be a number of seconds in [2, 3600]"),
     (
         ["run", "--link", "serial", "--baud", "2400"],
         "at 2400 baud one link frame takes up to 6.4 s, past the 4 s link timeout",
@@ -45,8 +46,20 @@ CASES = [
     (["run", "--link-fault", "boom@1"], "--link-fault must be stall@N or exit@N"),
     (["run", "--image-size", "5"], "--image-size must be 32..4096 px"),
     (["run", "--image-size", "20"], "--image-size must be 32..4096 px"),
-    (["run", "--link-timeout", "1e12"], "--link-timeout must be a number of seconds in (0, 3600]"),
+    (["run", "--link-timeout", "1e12"], "--link-timeout must be a number of seconds in [2, 3600]"),
     (["run", "--deadline", "1e308"], "--deadline must be a number of seconds in (0, 3600]"),
+    # a ZeroMQ board's endpoint, refused before rendering (the ground refused it after, exit 1)
+    (["run", "--flight", "external", "--link", "zmq:tcp://127.0.0.1:abc", "--insecure"], "1..65535, got 'abc'"),
+    (["run", "--flight", "external", "--link", "zmq:tcp://127.0.0.1", "--insecure"], "needs a host and a port"),
+    (["run", "--flight", "external", "--link", "zmq:foo", "--insecure"], "must be tcp://HOST:PORT, ipc://PATH"),
+    (["run", "--flight", "external", "--link", "zmq:tcp://10.1.2.3:5555", "--insecure"], "loopback debugging only"),
+    (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@fast"], "must be a whole number, got 'fast'"),
+    (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@"], "nothing after '@'"),
+    # the board: before its warm-up
+    (["flight", "--link", "zmq:tcp://*:99999", "--insecure"], "1..65535, got '99999'"),
+    (["flight", "--link", "zmq:tcp://127.0.0.1:5999", "--insecure", "--link-timeout", "1e12"], "in [2, 3600]"),
+    (["flight", "--link", "zmq:tcp://*:5999"], "ZeroMQ links are CURVE-authenticated: give --keys DIR"),
+    (["flight", "--link", "zmq:tcp://*:5999", "--keys", "PAIR"], "server.key_secret does not exist"),
     (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**62)"),  # was an OverflowError
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
