@@ -169,16 +169,7 @@ def serve(
         raise InputError(f"the heartbeat period must be > 0 s, got {heartbeat_s}")
     check_link_timeout(link_timeout)
     # a link that cannot be (a missing or held device, a bad endpoint) is said before the warm-up's seconds
-    check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout)
-    if spec.startswith("zmq:") and not insecure:
-        if keys is None:
-            raise InputError(
-                "ZeroMQ links are CURVE-authenticated: give --keys DIR (`hazard-hil keys DIR` makes one; the board "
-                "needs server.key_secret and clients/) or --insecure on loopback"
-            )
-        from protocol.zmqauth import server_keys
-
-        server_keys(keys)  # a missing or unreadable key file: said now, not after the warm-up
+    check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout, keys=keys, check_keys=True)
     cv2.setNumThreads(threads)  # 1: one core, as the emulated processor; a board may give the pipeline more
     prefault = False
     if warm_up:  # before the link opens: no ground waits on it

@@ -578,6 +578,18 @@ def is_loopback_endpoint(endpoint: str) -> bool:
         return False
 
 
+def check_zmq_security(endpoint: str, keys: str | Path | None, insecure: bool) -> None:
+    """CURVE keys, or ``insecure`` on a loopback endpoint only (docs/protocol.md section 7); said before any work
+    by :func:`protocol.linkspec.check_link_spec` and again when a link opens."""
+    if keys is None and not insecure:
+        raise InputError(
+            "ZeroMQ links are CURVE-authenticated: give --keys DIR (`hazard-hil keys DIR` makes one) or "
+            "--insecure on loopback"
+        )
+    if insecure and not is_loopback_endpoint(endpoint):
+        raise InputError(f"--insecure is for loopback debugging only; {endpoint!r} is not a loopback endpoint")
+
+
 @dataclass
 class _ZOut:
     id: int
@@ -627,13 +639,7 @@ class ZmqLink(Link, SessionView):
         import zmq
 
         super().__init__(name, log)
-        if keys is None and not insecure:
-            raise InputError(
-                "ZeroMQ links are CURVE-authenticated: give a key directory (`hazard-hil keys DIR` "
-                "creates one) or insecure=True (--insecure) for loopback debugging"
-            )
-        if insecure and not is_loopback_endpoint(endpoint):
-            raise InputError(f"--insecure is for loopback debugging only; {endpoint!r} is not a loopback endpoint")
+        check_zmq_security(endpoint, keys, insecure)
         self._zmq = zmq
         self.limits = limits
         self.oob_min_bytes = oob_min_bytes

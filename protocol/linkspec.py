@@ -97,11 +97,20 @@ def check_zmq_endpoint(endpoint: str, *, bind: bool) -> None:
         raise InputError(f"ZeroMQ endpoint {endpoint!r}: the port must be a number in 1..65535, got {port!r}")
 
 
-def check_link_spec(spec: str, *, server: bool, insecure: bool = False, peer_timeout: float | None = None) -> None:
+def check_link_spec(
+    spec: str,
+    *,
+    server: bool,
+    insecure: bool = False,
+    peer_timeout: float | None = None,
+    keys: str | Path | None = None,
+    check_keys: bool = False,
+) -> None:
     """What can be known of a link spec without opening it, said before any work (a board's warm-up, a ground's
     rendering): its form, a serial device's state (:func:`check_serial_device`), a ZeroMQ endpoint
-    (:func:`check_zmq_endpoint`) and ``--insecure`` off loopback."""
-    from protocol.links import is_loopback_endpoint
+    (:func:`check_zmq_endpoint`), ``--insecure`` off loopback and, with ``check_keys``, a ZeroMQ link's key
+    files for its side (:func:`protocol.links.check_zmq_security`)."""
+    from protocol.links import check_zmq_security, is_loopback_endpoint
 
     kind, _, rest = spec.partition(":")
     if kind == "serial" and rest:
@@ -110,7 +119,13 @@ def check_link_spec(spec: str, *, server: bool, insecure: bool = False, peer_tim
         check_serial_device(device)
     elif kind == "zmq" and rest:
         check_zmq_endpoint(rest, bind=server)
-        if insecure and not is_loopback_endpoint(rest):
+        if check_keys:
+            check_zmq_security(rest, keys, insecure)
+            if keys is not None and not insecure:
+                from protocol.zmqauth import client_keys, server_keys
+
+                (server_keys if server else client_keys)(keys)  # a missing or unreadable key file
+        elif insecure and not is_loopback_endpoint(rest):
             raise InputError(f"--insecure is for loopback debugging only; {rest!r} is not a loopback endpoint")
     else:
         raise InputError(f"link spec must be serial:URL[@BAUD] or zmq:ENDPOINT, got {spec!r}")
