@@ -876,6 +876,10 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
         if not (math.isfinite(args.hello_timeout) and args.hello_timeout > 0):
             raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
+        if not 0 < args.reconnect_timeout <= 3600:  # NaN fails too
+            raise InputError(
+                f"--reconnect-timeout must be a number of seconds in (0, 3600], got {args.reconnect_timeout}"
+            )
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
             args.link,

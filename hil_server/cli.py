@@ -460,6 +460,14 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "10 s; then every pair is recorded as not run (default: 120 s with --flight external, 900 s emulated: a slow "
         "budget boots slowly)",
     )
+    p.add_argument(
+        "--reconnect-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="after a lost link session, how long the ground waits for the flight side to come back, from the loss "
+        "(not per pair); pairs due meanwhile wait, later ones are recorded as link_down (default 10 s)",
+    )
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)  # tests: crash@N | hang@N | oom@N (our flight sw)
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
@@ -492,6 +500,7 @@ def _config(args: argparse.Namespace):
     for name, value, most in (
         ("--deadline", args.deadline, 3600.0),  # a pair an hour: past any flight computer's
         ("--hello-timeout", args.hello_timeout, 86400.0),
+        ("--reconnect-timeout", args.reconnect_timeout, 3600.0),
     ):
         if value is not None and not (math.isfinite(value) and 0 < value <= most):
             raise InputError(f"{name} must be a number of seconds in (0, {most:g}], got {value}")
@@ -540,6 +549,7 @@ def _config(args: argparse.Namespace):
         insecure=args.insecure,
         link_timeout_s=args.link_timeout,
         hello_timeout_s=args.hello_timeout,
+        reconnect_timeout_s=args.reconnect_timeout,
         link_fault=args.link_fault,
         fault=args.fault,
         flight=args.flight,
@@ -573,9 +583,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from hil_server.budgets import calibrate_host, load_calibration
-    from hil_server.run import run_descent
+    from hil_server.run import check_run_config, run_descent
 
-    cfg = _config(args)  # bad options are refused before the half-minute calibration below
+    cfg = _config(args)
+    check_run_config(cfg)  # bad options are refused before the half-minute calibration below
     if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate, about 30 s)")
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, ThrottleCheck
+from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, Budget, ThrottleCheck
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
 
@@ -129,6 +129,8 @@ class RunConfig:
     link_timeout_s: float = 4.0  # a peer silent or stalled this long ends the link session
     # the ground's wait for the flight side's first Hello (s); None: EXTERNAL_/EMULATED_HELLO_TIMEOUT_S
     hello_timeout_s: float | None = None
+    # after a lost session, the ground's wait for a new one, from the loss (ground_sim.stream)
+    reconnect_timeout_s: float = 10.0
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
     flight: str = "emulated"  # emulated (under the supervisor) | external (a flight computer on `link`)
     flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
@@ -747,30 +749,27 @@ def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> 
     return full + list(by_id.values())
 
 
-def run_descent(cfg: RunConfig, log=print) -> dict:
-    """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``).
+@dataclass(frozen=True)
+class CheckedRun:
+    """What :func:`check_run_config` read from a run's options: the link, the budget, the two timeouts and the
+    manifest (``cfg`` names the manifest's scenario when there is one)."""
 
-    Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
-    signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
-    """
-    from hil_server.budgets import (
-        calibration_notes,
-        check_throttle,
-        get_budget,
-        load_calibration,
-        needs_throttle_check,
-        throttle_check_seconds,
-    )
+    cfg: RunConfig
+    kind: str
+    spec: str | None
+    budget: Budget
+    deadline: float
+    hello: float
+    manifest: Path | None
 
+
+def check_run_config(cfg: RunConfig) -> CheckedRun:
+    """Refuse bad options with one line (:class:`InputError`) before anything is calibrated, rendered or run."""
+    from hil_server.budgets import get_budget
+
+    emulated = cfg.flight == "emulated"
     kind, spec = _parse_link(cfg)
     budget = get_budget(cfg.budget, cfg.budget_file)
-    emulated = cfg.flight == "emulated"
-    cal = load_calibration() if emulated else None
-    duty = budget.duty(cal) if emulated else None
-    fraction = duty.applied if duty is not None else float("nan")
-    effective = duty.effective if duty is not None else float("nan")
-    # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)
-    doubts = calibration_notes(cal) if cal is not None and not budget.is_host else []
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
     if not (math.isfinite(deadline) and deadline > 0):
         raise InputError(f"--deadline must be a positive number of seconds, got {deadline}")
@@ -785,6 +784,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         hello = EMULATED_HELLO_TIMEOUT_S if emulated else EXTERNAL_HELLO_TIMEOUT_S
     if not (math.isfinite(hello) and hello > 0):
         raise InputError(f"--hello-timeout must be a positive number of seconds, got {hello}")
+    if not 0 < cfg.reconnect_timeout_s <= 3600:  # NaN fails too
+        raise InputError(f"--reconnect-timeout must be a number of seconds in (0, 3600], got {cfg.reconnect_timeout_s}")
     # link options the link would ignore, or refuse only once the pairs are rendered: said now
     if cfg.baud is not None and kind != "serial":
         raise InputError(f"--baud applies to serial links, not to --link {cfg.link}")
@@ -813,6 +814,33 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         cfg = replace(cfg, scenario=name if isinstance(name, str) and name else f"pairs of {manifest}")
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
         check_memory(budget, *_image_side(cfg, manifest), rendered=manifest is not None)
+    return CheckedRun(cfg, kind, spec, budget, deadline, hello, manifest)
+
+
+def run_descent(cfg: RunConfig, log=print) -> dict:
+    """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``).
+
+    Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
+    signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
+    """
+    from hil_server.budgets import (
+        calibration_notes,
+        check_throttle,
+        load_calibration,
+        needs_throttle_check,
+        throttle_check_seconds,
+    )
+
+    checked = check_run_config(cfg)
+    cfg, kind, spec, budget = checked.cfg, checked.kind, checked.spec, checked.budget
+    deadline, hello, manifest = checked.deadline, checked.hello, checked.manifest
+    emulated = cfg.flight == "emulated"
+    cal = load_calibration() if emulated else None
+    duty = budget.duty(cal) if emulated else None
+    fraction = duty.applied if duty is not None else float("nan")
+    effective = duty.effective if duty is not None else float("nan")
+    # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)
+    doubts = calibration_notes(cal) if cal is not None and not budget.is_host else []
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -920,6 +948,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 str(cfg.link_timeout_s),
                 "--hello-timeout",
                 str(hello),
+                "--reconnect-timeout",
+                str(cfg.reconnect_timeout_s),
                 "--elevation-step",
                 str(cfg.elevation_step) if cfg.elevation_step else "auto",
                 "--psafe-step",

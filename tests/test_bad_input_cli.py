@@ -62,7 +62,9 @@ CASES = [
     (["flight", "--link", "zmq:tcp://*:5999", "--keys", "PAIR"], "server.key_secret does not exist"),
     (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**62)"),  # was an OverflowError
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
+    # refused before the demo's half-minute calibration of a new host (it used to calibrate first)
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
+    (["run", "--reconnect-timeout", "0"], "--reconnect-timeout must be a number of seconds in (0, 3600]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
     (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),
     (["evaluate", "--scenario", "vertical", "--cache", "AFILE"], "is a file, not a directory"),  # was a failed task
@@ -81,7 +83,8 @@ NO_OUT = ("budgets", "flight")  # commands without an --out
 
 
 @pytest.mark.parametrize("argv, message", CASES, ids=[" ".join(a[:1] + a[-2:]) for a, _ in CASES])
-def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
+def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "home"))  # an uncalibrated host: nothing calibrates first
     (tmp_path / "manifest.json").write_text('{"pairs": []}')
     subst = {"PAIR": str(tmp_path), "M": str(tmp_path / "manifest.json")}
     manifests = {
@@ -105,8 +108,10 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     subst["AFILE"] = str(tmp_path / "afile")
     argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] not in NO_OUT else [])
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
+    cap = capsys.readouterr()
+    err = cap.err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
+    assert "calibrat" not in cap.out, cap.out
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())  # nothing half-made
 
 
