@@ -123,6 +123,7 @@ def _process(args: argparse.Namespace) -> int:
     from protocol.pairdir import read_pair
     from protocol.plan import plan_note
     from reports.html import write_atomic
+    from reports.jsondoc import json_text
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
@@ -200,7 +201,7 @@ def _process(args: argparse.Namespace) -> int:
         truth["confusion"] = {**counts, **({k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {})}
     if truth:
         doc["vs_truth"] = truth
-    write_atomic(out / "result.json", json.dumps(doc, indent=1, default=float) + "\n")
+    write_atomic(out / "result.json", json_text(doc))
     write_process_report(out, pair.images[0], res, pair.truth, doc)
     fills = res.info.get("dem_filled_fraction")
     line = (

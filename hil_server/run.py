@@ -472,8 +472,9 @@ def summary_table(summary: dict) -> str:
 
 def _write_json(path: Path, doc: dict) -> None:
     from reports.html import write_atomic
+    from reports.jsondoc import json_text
 
-    write_atomic(path, json.dumps(doc, indent=1, sort_keys=True, default=float) + "\n")
+    write_atomic(path, json_text(doc, sort_keys=True))  # strict: NaN as null
 
 
 def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:

@@ -490,7 +490,6 @@ def register_score(subparsers: Any) -> None:
 
 
 def _score(args: argparse.Namespace) -> int:
-    import json
     import math
 
     from protocol.pairdir import read_pair
@@ -530,8 +529,10 @@ def _score(args: argparse.Namespace) -> int:
             write_metrics_csv(rows, args.csv)
             print(f"rows:    {args.csv}")
         if args.json is not None:
+            from reports.jsondoc import json_text
+
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float) + "\n")
+            args.json.write_text(json_text({"summary": summary, "rows": rows}))
             print(f"summary: {args.json}")
     except OSError as exc:
         print(f"hazard-hil score: error: cannot write {exc.filename or 'the output'}: {exc.strerror or exc}",

@@ -38,6 +38,7 @@ import numpy as np
 
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
+from reports.jsondoc import json_text
 
 LANDING_PAIRS: tuple[tuple[str, str], ...] = (
     ("vertical", "400/200"),
@@ -517,7 +518,7 @@ def _write_summary(
     summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
     summary["wall_s_this_run"] = wall
     write_rows(rows, out / "landings.csv")
-    (out / "landings.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (out / "landings.json").write_text(json_text(summary))
     if rows:
         write_report(out, rows, summary)
     return summary

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from ground_sim.render import DEFAULT_RASTER
+from reports.jsondoc import json_text
 
 DEFAULT_FRAMES = (300.0, 250.0, 200.0, 150.0)
 POLICIES = ("multi", "fused refs->last", "fused window 2")
@@ -334,7 +335,6 @@ def evaluate_multiframe(
 
     Each seed is a task of :func:`studies.executor.run_tasks` saved in ``runs/multiframe.jsonl``: an
     interrupted evaluation resumes from the descents it scored (one descent is 1-2 min of CPU)."""
-    import json
 
     from studies.evaluate import EVAL_CODE, render_tag, task_inputs
     from studies.executor import Task, code_fingerprint, run_tasks
@@ -373,6 +373,6 @@ def evaluate_multiframe(
                 + "; ".join(f"{w} CDI {rows[w]['cdi']:.1f} FP {rows[w]['fp']:.2f}" for w in which if w in rows)
             )
     (out / "report").mkdir(parents=True, exist_ok=True)
-    (out / f"multiframe_{scenario}.json").write_text(json.dumps(per, indent=1, default=float) + "\n")
+    (out / f"multiframe_{scenario}.json").write_text(json_text(per))
     (out / "report" / f"multiframe_{scenario}.md").write_text(summary_markdown(summary_rows(per, list(which))))
     return per

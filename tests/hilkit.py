@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
+from typing import Any
 
 from ground_sim.descent import render_scenario
 from hil_server.run import RunConfig, run_descent, scaled_camera
+
+
+def _not_json(token: str) -> Any:
+    raise ValueError(f"{token} is not JSON: a browser's JSON.parse or jq would refuse the file")
+
+
+def strict_json(path: Path) -> Any:
+    """``path`` read as strict JSON (RFC 8259): a bare NaN or Infinity, which Python writes by default, fails."""
+    return json.loads(path.read_text(), parse_constant=_not_json)
 
 
 def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:

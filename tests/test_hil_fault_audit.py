@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hilkit import send_raw, small_descent
+from hilkit import send_raw, small_descent, strict_json
 
 from hil_server.cli import main
 
@@ -111,7 +111,7 @@ def run_cli(manifest, out, *extra) -> tuple[int, dict, str]:
     """`hazard-hil run` on the host budget over serial: (exit code, summary.json, summary.md)."""
     argv = ["run", "--manifest", str(manifest), "--budget", "host", "--link", "serial", "--out", str(out), *extra]
     code = main(argv)
-    return code, json.loads((out / "summary.json").read_text()), (out / "summary.md").read_text()
+    return code, strict_json(out / "summary.json"), (out / "summary.md").read_text()
 
 
 def flight_cmd(flight: Path, mode: str) -> list[str]:
@@ -275,7 +275,7 @@ def run_external(manifest: Path, out: Path, link: str, *extra: str) -> tuple[int
     """`hazard-hil run --flight external` with a 30 s deadline: (exit code, summary.json, summary.md)."""
     argv = ["run", "--manifest", str(manifest), "--flight", "external", "--link", link, "--deadline", str(DEADLINE_S)]
     code = main([*argv, "--out", str(out), *extra])
-    return code, json.loads((out / "summary.json").read_text()), (out / "summary.md").read_text()
+    return code, strict_json(out / "summary.json"), (out / "summary.md").read_text()
 
 
 @contextlib.contextmanager

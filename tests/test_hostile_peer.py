@@ -10,14 +10,13 @@ that waiting for the hard limit (60 s at the HIL server) or the ground's timeout
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
-from hilkit import small_descent
+from hilkit import small_descent, strict_json
 
 from hil_server.cli import main
 
@@ -93,7 +92,7 @@ def run_cli(manifest: Path, out: Path, *extra: str) -> tuple[int, dict]:
     """`hazard-hil run` with a 30 s deadline: (exit code, summary.json)."""
     argv = ["run", "--manifest", str(manifest), "--deadline", str(DEADLINE_S), "--out", str(out), *extra]
     code = main(argv)
-    return code, json.loads((out / "summary.json").read_text())
+    return code, strict_json(out / "summary.json")
 
 
 def outcomes(summary: dict) -> list[tuple[str, str, str | None]]:
