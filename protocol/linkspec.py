@@ -146,9 +146,20 @@ def _lock_holder(st) -> int | None:
     return None
 
 
+def _char_device_class(st: os.stat_result) -> str | None:
+    """The kernel's class of a character device (``tty`` for serial ports and terminals, ``mem`` for
+    /dev/null...), read from sysfs without opening it; None where sysfs does not list it (pty slaves)."""
+    link = Path(f"/sys/dev/char/{os.major(st.st_rdev)}:{os.minor(st.st_rdev)}/subsystem")
+    try:
+        return Path(os.readlink(link)).name or None
+    except OSError:
+        return None
+
+
 def check_serial_device(device: str) -> None:
     """Refuse, before minutes of rendering, a serial device that cannot be this link: missing, not a character
-    device (a regular file, a directory), or held by another process (our links lock their device). A
+    device (a regular file, a directory), a character device of another class than tty (``/dev/null``), or held
+    by another process (our links lock their device). A
     pyserial URL (``socket://``, ``rfc2217://``, ``loop://``) passes: only opening it can tell."""
     import stat
 
@@ -163,6 +174,11 @@ def check_serial_device(device: str) -> None:
     if not stat.S_ISCHR(st.st_mode):
         what = "a directory, " if stat.S_ISDIR(st.st_mode) else "a regular file, " if stat.S_ISREG(st.st_mode) else ""
         raise InputError(f"{device} is not a serial device ({what}not a character device)")
+    kind = _char_device_class(st)
+    if kind is not None and kind != "tty":
+        raise InputError(
+            f"{device} is not a serial device (a character device of the kernel's {kind!r} class, not 'tty')"
+        )
     holder = _lock_holder(st)
     if holder is not None:
         raise InputError(f"serial device {device} is held by process {holder} (a ground or board still running on it?)")

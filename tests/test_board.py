@@ -165,17 +165,19 @@ def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_pat
     assert rc == 128 + signal.SIGTERM
 
 
-@pytest.mark.parametrize("what", ["regular file", "directory", "held"])
+@pytest.mark.parametrize("what", ["regular file", "directory", "held", "not a tty"])
 def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_path, capsys, what):
-    """A "device" that is a file or a directory, or a device another process holds (a board or a ground still
-    running on it), is one line and exit 2 at once; it used to fail the ground's open after the descent was rendered
-    (exit 1)."""
+    """A "device" that is a file, a directory or a character device that is not a tty (/dev/null), or a device
+    another process holds (a board or a ground still running on it), is one line and exit 2 at once; it used to fail
+    the ground's open after the descent was rendered (exit 1)."""
     from protocol.faults import PtyBridge
     from protocol.links import SerialLink
 
     (tmp_path / "file").write_text("")
     with PtyBridge() as bridge:
-        device = {"regular file": str(tmp_path / "file"), "directory": str(tmp_path)}.get(what, bridge.paths[1])
+        device = {"regular file": str(tmp_path / "file"), "directory": str(tmp_path), "not a tty": "/dev/null"}.get(
+            what, bridge.paths[1]
+        )
         holder = SerialLink(device, 921600) if what == "held" else None
         try:
             args = ["run", "--flight", "external", "--link", f"serial:{device}@921600", "--out", str(tmp_path / "o")]
@@ -185,6 +187,7 @@ def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_pat
                 holder.close()
     err = capsys.readouterr().err.strip().splitlines()
     says = {"held": "is held by process", "directory": "a directory, not a character device"}
+    says["not a tty"] = "/dev/null is not a serial device (a character device of the kernel's 'mem' class"
     assert len(err) == 1 and says.get(what, "a regular file, not a character device") in err[0], err
     assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
 
