@@ -238,3 +238,30 @@ def test_a_gap_after_a_long_idle_is_not_a_stall():
     ids = send(line, [frame(0, 64)])
     line.run(line.now + 10, stop=lambda s: s.eps[0].outcome(ids[0]) != "pending")
     assert dropped and line.eps[0].outcome(ids[0]) == "delivered" and line.eps[1].stats["peer_losses"] == 0
+
+
+def test_heartbeats_on_a_slow_line_do_not_starve_a_message():
+    """At 2400 baud a heartbeat every 0.25 s fills 80 % of the line. The heartbeats queued while one DATA frame was
+    on the line (4 s) used to go first, each in turn, and the next DATA frame waited until the peer gave the session
+    up (a board at 2400 baud with a 20 s link timeout lost every Result). A newer heartbeat now replaces a queued
+    one, and heartbeats take turns with DATA."""
+    rate = 2400 / 10
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02, peer_timeout=20.0)
+    line = pair(rate=rate, cfg=cfg)
+    a = line.eps[0]
+    body = encode_message(frame(0, 48))  # about 2.4 kB: three DATA frames
+    (mid,) = send(line, [frame(0, 48)])
+    beats = 0
+    t0 = line.now
+    while a.outcome(mid) == "pending" and line.now - t0 < 60:
+        beats += 1
+        a.submit(
+            Heartbeat.TYPE, encode_message(Heartbeat(time_s=line.now, counter=beats)), "Heartbeat", line.now, False
+        )
+        line.run(line.now + 0.25)
+    assert a.outcome(mid) == "delivered" and a.established, a.take_events()
+    # the message's own line time plus one heartbeat per DATA frame, not a minute of heartbeats
+    assert line.now - t0 <= 1.3 * len(body) / rate + 2.0, line.now - t0
+    assert a.stats["dgrams_superseded"] > 0
+    got = [r.message for r in line.received[1]]
+    assert any(isinstance(m, Heartbeat) for m in got)  # the peer still hears them: liveness is kept
