@@ -725,6 +725,19 @@ def _no_hello_reason(results: Path) -> str | None:
     return None
 
 
+def _blame_server(records: list[dict], why: str) -> list[dict]:
+    """The ground's ``link_down`` records after the last Result, re-coded ``server_failed`` with the HIL server's
+    own reason when it failed: its link closed because it exited, not because the line failed (a flight program
+    that died before its Hello read as a link error). The ground's words are kept in the text."""
+    last = max((i for i, r in enumerate(records) if r.get("status") == "result"), default=-1)
+    return [
+        {**r, "code": "server_failed", "text": f"{why} (the ground saw: {r.get('text', '')})"}
+        if i > last and r.get("code") == "link_down"
+        else r
+        for i, r in enumerate(records)
+    ]
+
+
 def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> list[dict]:
     """Records for the manifest's pairs that have none (the run ended before them), in descent order."""
     have = {r["pair_id"] for r in records}
@@ -861,6 +874,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
 
     reason: str | None = None
     interrupted: int | None = None
+    sup_reason: str | None = None  # the HIL server failed: its reason
     throttle: ThrottleCheck | None = None
     rc: int | None = None
     channels: dict = {}
@@ -1012,6 +1026,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     sup.wait(timeout=SUPERVISOR_EXIT_S)
                 except subprocess.TimeoutExpired:
                     pass
+                # the server may have failed first and the ground ended on its closed link before that was seen
+                code = sup.poll()
+                if sup_reason is None and code not in (None, 0, EXIT_LINK_LOST):
+                    last = _last_line(out / "supervisor.log")
+                    sup_reason = f"the HIL server (supervisor) exited with {code}" + (f": {last}" if last else "")
             if sup_reason is not None:
                 reason = sup_reason
             elif rc is None:
@@ -1047,6 +1066,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
 
     entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
     records = _read_records(received / "results.jsonl")
+    if sup_reason is not None:
+        records = _blame_server(records, sup_reason)
     if reason is not None:
         records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
     score_records(records)
