@@ -156,7 +156,14 @@ def serve(
     import cv2
 
     from protocol.errors import InputError
-    from protocol.linkspec import check_link_spec, check_link_timeout, open_link
+    from protocol.linkspec import (
+        HEARTBEAT_LINE_SHARE,
+        check_link_spec,
+        check_link_timeout,
+        heartbeat_period,
+        open_link,
+        parse_serial,
+    )
 
     from .flight_main import FaultPlan, FlightProcess
     from .kernels import load_kernel
@@ -170,6 +177,13 @@ def serve(
     check_link_timeout(link_timeout)
     # a link that cannot be (a missing or held device, a bad endpoint) is said before the warm-up's seconds
     check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout, keys=keys, check_keys=True)
+    kind, _, rest = spec.partition(":")
+    if kind == "serial":  # on a slow line the heartbeats would crowd out the Results
+        beat = heartbeat_period(parse_serial(rest)[1], heartbeat_s)
+        if beat > heartbeat_s:
+            share = f"{HEARTBEAT_LINE_SHARE:.0%}"
+            say(f"flight: a heartbeat every {beat:.1f} s, not {heartbeat_s:g} s: at most {share} of this line")
+        heartbeat_s = beat
     cv2.setNumThreads(threads)  # 1: one core, as the emulated processor; a board may give the pipeline more
     prefault = False
     if warm_up:  # before the link opens: no ground waits on it

@@ -41,6 +41,24 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
     return url, (b or None)
 
 
+# a board's heartbeats may take at most this share of a paced serial line (the link's own keepalive keeps the
+# session alive; the heartbeat says the flight software is): at 2400 baud one every 0.25 s took 80 % of it
+HEARTBEAT_LINE_SHARE = 0.02
+
+
+def heartbeat_period(baud: int | None, period_s: float) -> float:
+    """The heartbeat period on a line of ``baud`` (None: unpaced): ``period_s``, or longer where one heartbeat's
+    frame would otherwise take more than :data:`HEARTBEAT_LINE_SHARE` of the line (10 bits per byte)."""
+    if baud is None:
+        return period_s
+    from protocol.codec import encode_message
+    from protocol.framing import dgram_frame
+    from protocol.messages import Heartbeat
+
+    frame = dgram_frame(0xFFFFFFFF, 0xFFFFFFFF, Heartbeat.TYPE, encode_message(Heartbeat(time_s=0.0, counter=2**31)))
+    return max(period_s, len(frame) * 10 / baud / HEARTBEAT_LINE_SHARE)
+
+
 MAX_LINK_TIMEOUT_S = 3600.0  # a peer silent longer than an hour is gone; beyond this the timers overflow
 # an idle but healthy peer speaks once per keepalive (1 s): a shorter silence is no sign of a lost peer
 MIN_LINK_TIMEOUT_S = 2.0

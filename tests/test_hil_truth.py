@@ -58,15 +58,35 @@ def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manif
     assert min(r["flight_latency_s"] for r in recs) < 0.1  # computed in time, late only on the line
 
 
-@pytest.mark.slow  # ~30 s: the flight process's Python imports alone take ~25 s at rad750's 1.9 % duty
-def test_rad750_deadline_the_full_level_cannot_meet_returns_a_degraded_result_in_time(tmp_path):
+@pytest.mark.slow  # ~13 s: the flight process's Python imports take ~10 s at a 4 % duty
+def test_a_slow_budgets_deadline_the_full_level_cannot_meet_returns_a_degraded_result_in_time(tmp_path):
+    """A board of 1000 DMIPS (x23 slower than the anchor; rad750 is x59 and was this test until it took 28 s of
+    every CI run: `hazard-hil regress` keeps a rad750 case). The full level of a 96 px pair takes ~1.0 s end to end
+    there; the reserves are in emulated seconds and every stage checks the clock, so the anytime pipeline answers
+    a 0.7 s deadline in time with a coarser level (measured: image-only at 0.21-0.25 s)."""
+    from hil_server.budgets import default_budgets_path
+
+    shipped = default_budgets_path().read_text()
+    board = (
+        '[budget.slowboard]\ndescription = "a slow board"\ncpu_dmips = 1000\nmemory_mib = 256\ndeadline_s = 30.0\n'
+        'link = "serial"\nbaud = 921600\nsource = "test"\n'
+    )
+    budgets = tmp_path / "boards.toml"
+    budgets.write_text(shipped[: shipped.index("[budget.")] + board)
     pairs = render_scenario("vertical", tmp_path / "pairs", pairs=["300/150"], camera=scaled_camera(96), progress=False)
-    # the full level of a 96 px pair takes ~0.1 s of host CPU, ~5 s at rad750's 1.9 % duty; the reserves are in
-    # emulated seconds (x 52 here) and every stage checks the clock, so the anytime pipeline stops in time
-    s = run(pairs / "manifest.json", tmp_path / "run", budget="rad750", link="serial", deadline_s=3.0)
+    s = run(
+        pairs / "manifest.json",
+        tmp_path / "run",
+        budget="slowboard",
+        budget_file=budgets,
+        link="serial",
+        deadline_s=0.7,
+        throttle_check=False,
+    )
     (r,) = s["records"]
+    assert s["cpu_fraction"] < 0.1  # truly throttled
     assert r["status"] == "result" and r["degraded"] and r["level"] != "full", r
-    assert r["deadline_met"] and r["e2e_latency_s"] <= 3.0
+    assert r["deadline_met"] and r["e2e_latency_s"] <= 0.7
     assert exit_code(s) == 0
 
 

@@ -422,3 +422,19 @@ def test_a_zeromq_part_over_maxmsgsize_ends_the_session_with_its_reason_and_the_
     assert lost.text.startswith("libzmq dropped the connection") and lost.time - t0 < 2.0  # not the 4 s timeout
     assert refusal == (None, lost.text) and "over its 1052672-byte maximum" in lost.text
     assert C.stats["protocol_drops"] == 1
+
+
+def test_a_boards_heartbeats_take_at_most_their_share_of_a_slow_line():
+    """At 2400 baud a heartbeat every 0.25 s took 80 % of the line; a board now spaces them to 2 % at most, and
+    keeps its own period where that is already less (unpaced links, 115200 baud and up)."""
+    from protocol.codec import encode_message
+    from protocol.framing import dgram_frame
+    from protocol.linkspec import HEARTBEAT_LINE_SHARE, heartbeat_period
+    from protocol.messages import Heartbeat
+
+    beat = dgram_frame(1, 2, Heartbeat.TYPE, encode_message(Heartbeat(time_s=123.456, counter=99999)))
+    for baud in (2400, 9600, 115200, 921600):
+        period = heartbeat_period(baud, 0.25)
+        assert period >= 0.25 and len(beat) * 10 / baud / period <= HEARTBEAT_LINE_SHARE
+    assert heartbeat_period(None, 0.25) == heartbeat_period(115200, 0.25) == 0.25
+    assert heartbeat_period(2400, 0.25) > 8.0
