@@ -35,14 +35,15 @@ def run(manifest, tmp_path, **kw):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("corrupt", [1e-4, 1e-3])
-def test_noisy_serial_line_returns_every_result(manifest, tmp_path, corrupt):
-    s = run(manifest, tmp_path, corrupt=corrupt, seed=1)
+def test_noisy_serial_line_returns_every_result(manifest, tmp_path):
+    """At 1e-3 per byte (1e-4, where a fault may miss every data frame, is tests/test_hil_run.py's: byte for byte
+    as through a clean line)."""
+    s = run(manifest, tmp_path, corrupt=1e-3, seed=1)
     hit = sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in s["line_faults"].values())
     assert hit > 30  # the line really was noisy (drop, flip and duplicate, both directions)
     assert s["results"] == 3 and s["errors"] == 0, [r.get("text") for r in s["records"]]
-    if corrupt >= 1e-3:  # ~100 faults on the ground's 30 kB: some hit its data frames (at 1e-4 maybe none do)
-        assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1
+    # ~100 faults on the ground's 30 kB: some hit its data frames
+    assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1
     for r in s["records"]:
         assert np.load(Path(r["out_dir"]) / "state_grid.npy").size > 0 and "fp_pct" in r["scores"]
 
