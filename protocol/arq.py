@@ -511,17 +511,17 @@ class Arq(SessionView):
         else:
             bisect.insort(self._keys, seg.start)
 
-    def _data_ready(self) -> bool:
-        """A DATA frame could go now: a retransmission is due, or new bytes wait and the window has room."""
-        if self._retx:
-            return True
+    def _sendable(self) -> int:
+        """How many new stream bytes may go now: those waiting, within the window; 0 when closed or at the
+        segment limit."""
+        if self.closed or len(self._segs) >= self.cfg.max_segments:
+            return 0
         room = min(self.cfg.window, self.peer_window) - (self._nxt - self._una)
-        return (
-            not self.closed
-            and self._nxt < self._una + len(self._sbuf)
-            and room > 0
-            and len(self._segs) < self.cfg.max_segments
-        )
+        return max(0, min(room, self._una + len(self._sbuf) - self._nxt))
+
+    def _data_ready(self) -> bool:
+        """A DATA frame could go now: a retransmission is due, or new bytes may go."""
+        return bool(self._retx) or self._sendable() > 0
 
     def next_frame(self, now: float) -> tuple[bytes, int | None] | None:
         """The next frame to write and a token for :meth:`written` (a DATA transmission number, or None)."""
@@ -550,14 +550,13 @@ class Arq(SessionView):
                 self._retx.appendleft(tail.start)
             self.stats["retransmits"] += 1
             return self._transmit(seg, now), self._txid
-        end = self._una + len(self._sbuf)
-        room = min(self.cfg.window, self.peer_window) - (self._nxt - self._una)
-        if self.closed or self._nxt >= end or room <= 0 or len(self._segs) >= self.cfg.max_segments:
+        sendable = self._sendable()
+        if sendable <= 0:
             return None
         if self._nxt >= SEQ_LIMIT:
             self._lose("stream positions exhausted", now)
             return None
-        n = min(k, end - self._nxt, room)
+        n = min(k, sendable)
         seg = _Seg(self._nxt, self._nxt + n)
         self._insert_seg(seg)
         self._nxt += n
