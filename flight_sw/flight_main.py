@@ -440,7 +440,7 @@ class FlightProcess:
         try:
             rebuild = functools.partial(self._result_message, res, seqs, cfg, grid, sites, reason)
             result, line_s, grown, encoded = fit_to_line(rebuild(), rebuild, baud, due, line_s)
-            self.link.send(encoded or result)  # encodes here, in this thread, unless fitting it did
+            result_id = self.link.send(encoded or result)  # encodes here, in this thread, unless fitting it did
         except InputError as exc:  # e.g. a value the schema refuses: report it, keep flying
             self.link.send(Error(code="result_encoding", text=str(exc), seq=lower.seq))
             return
@@ -459,8 +459,14 @@ class FlightProcess:
         )
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
+        link_info: dict[str, float] = {}
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
+            # a board: the Result's own line time on the ground link, first byte out -> acknowledged (under the HIL
+            # server the link is the local one, and the server reports the ground link's time in its place)
+            times = self.link.times(result_id) if result_id is not None and hasattr(self.link, "times") else None
+            if times is not None and times.line_s is not None:
+                link_info["result_link_s"] = float(times.line_s)
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,
@@ -472,6 +478,7 @@ class FlightProcess:
                 # the flight side's own view (compute + expected line time); the ground judges the real one
                 deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,
                 plan=plan_telemetry(res.info, deadline_at - start, line_s),
+                link=link_info,
             ).for_rev(result_rev(cfg))
         )
 

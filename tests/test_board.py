@@ -96,6 +96,11 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     emulated = run_hil(manifest, tmp_path / "emulated", "serial", baud=921600)
     assert _scores(s) == _scores(emulated)
     assert rc == 128 + signal.SIGTERM
+    # the board reports its Result's own line time (first byte out -> acknowledged), as the HIL server does: the
+    # ground's own span from the first to the last frame misses the first frame (a one-frame Result read 0.00 s)
+    for runs in (s, emulated):
+        for r in runs["records"]:
+            assert r["result_line_s"] > r["result_rx_s"] and r["result_line_s"] >= 0.8 * r["result_bytes"] * 10 / 921600
 
 
 class Blackout:
