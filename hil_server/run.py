@@ -497,15 +497,22 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
                 "zmq to an external flight computer needs --keys DIR (client.key_secret and server.key, "
                 "docs/protocol.md section 7) or --insecure on loopback"
             )
-        from protocol.linkspec import check_link_spec
+        from protocol.linkspec import check_link_spec, parse_serial
 
+        spec = cfg.link
+        if kind == "serial" and cfg.baud is not None:  # the rate goes into the spec: checked and reported with it
+            url, named = parse_serial(rest)
+            if url != rest and named != cfg.baud:  # rest named a rate of its own
+                raise InputError(f"--baud {cfg.baud} and --link {cfg.link} name two rates: give one")
+            spec = f"serial:{url}@{cfg.baud}"
         # a device that is not there, not a device or held, an endpoint libzmq would refuse, --insecure off
-        # loopback: each would fail the ground's open, said now and not after the descent is rendered
+        # loopback, a rate too slow for the link timeout: each would fail the ground's open, said now and not after
+        # the descent is rendered
         try:
-            check_link_spec(cfg.link, server=False, insecure=cfg.insecure, peer_timeout=cfg.link_timeout_s)
+            check_link_spec(spec, server=False, insecure=cfg.insecure, peer_timeout=cfg.link_timeout_s)
         except InputError as exc:
-            raise InputError(f"--link {cfg.link}: {exc}") from None
-        return kind, cfg.link
+            raise InputError(f"--link {spec}: {exc}") from None
+        return kind, spec
     if sep:
         raise InputError(
             f"--link {cfg.link}: a device or endpoint needs --flight external; the emulated flight processor "
@@ -783,6 +790,8 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
 
     emulated = cfg.flight == "emulated"
     kind, spec = _parse_link(cfg)
+    if spec is not None and spec != cfg.link:  # --baud folded into an external serial link's spec
+        cfg = replace(cfg, link=spec)
     budget = get_budget(cfg.budget, cfg.budget_file)
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
     if not (math.isfinite(deadline) and deadline > 0):
@@ -826,6 +835,17 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
         # the report names what was streamed: the manifest's scenario (a hand-made one: its path), not the default
         name = doc.get("scenario")
         cfg = replace(cfg, scenario=name if isinstance(name, str) and name else f"pairs of {manifest}")
+    if manifest is None:  # what will be rendered: an unknown scenario, pair or scene is one line before any work
+        from ground_sim.scene import load_scene_params
+        from ground_sim.trajectory import load_trajectory
+
+        specs = load_trajectory(cfg.scenario)
+        known = [s.label for s in specs]
+        missing = [p for p in cfg.pairs or [] if p not in known]
+        if missing:
+            raise InputError(f"unknown pair(s) {missing}; the {cfg.scenario} scenario has {known}")
+        if cfg.scene:
+            load_scene_params(cfg.scene, specs[0].scenario)
     if emulated and not cfg.flight_cmd:  # our pipeline's memory is known; a user's program is on its own
         check_memory(budget, *_image_side(cfg, manifest), rendered=manifest is not None)
     return CheckedRun(cfg, kind, spec, budget, deadline, hello, manifest)

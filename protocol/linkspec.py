@@ -197,6 +197,12 @@ def check_serial_device(device: str) -> None:
         raise InputError(
             f"{device} is not a serial device (a character device of the kernel's {kind!r} class, not 'tty')"
         )
+    major, minor = os.major(st.st_rdev), os.minor(st.st_rdev)
+    if major == 5 or (major == 4 and minor < 64):  # Linux devices.txt: 5 = tty, console, ptmx; 4/0-63 = consoles
+        raise InputError(
+            f"{device} is not a serial device (a terminal, console or the pty multiplexer: use a port such as "
+            "/dev/ttyUSB0, /dev/ttyACM0 or /dev/ttyS0, or a pty's slave)"
+        )
     holder = _lock_holder(st)
     if holder is not None:
         raise InputError(f"serial device {device} is held by process {holder} (a ground or board still running on it?)")

@@ -64,6 +64,8 @@ CASES = [
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     # refused before the demo's half-minute calibration of a new host (it used to calibrate first)
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
+    (["demo", "--pairs", "50/25"], "unknown pair(s) ['50/25']; the vertical scenario has"),
+    (["demo", "--scene", "nosuch"], "unknown scene preset 'nosuch'"),
     (["run", "--reconnect-timeout", "0"], "--reconnect-timeout must be a number of seconds in (0, 3600]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
     (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),

@@ -170,30 +170,46 @@ def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_pat
     assert rc == 128 + signal.SIGTERM
 
 
-@pytest.mark.parametrize("what", ["regular file", "directory", "held", "not a tty"])
+SAYS = {
+    "regular file": "a regular file, not a character device",
+    "directory": "a directory, not a character device",
+    "held": "is held by process",
+    "not a tty": "/dev/null is not a serial device (a character device of the kernel's 'mem' class",
+    "pty multiplexer": "/dev/ptmx is not a serial device (a terminal, console or the pty multiplexer",
+    "--baud too slow": "at 2400 baud one link frame takes up to 6.4 s, past the 4 s link timeout",
+    "two rates": "--baud 2400 and --link",
+}
+
+
+@pytest.mark.parametrize("what", list(SAYS))
 def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_path, capsys, what):
-    """A "device" that is a file, a directory or a character device that is not a tty (/dev/null), or a device
-    another process holds (a board or a ground still running on it), is one line and exit 2 at once; it used to fail
-    the ground's open after the descent was rendered (exit 1)."""
+    """A "device" that is a file, a directory or a character device that is not a serial port (/dev/null, the
+    pty multiplexer), a device another process holds (a board or a ground still running on it), or a rate given
+    with --baud that the link timeout cannot carry, is one line and exit 2 at once; each used to fail the
+    ground's open after the descent was rendered (exit 1); /dev/ptmx even waited out the hello timeout."""
     from protocol.faults import PtyBridge
     from protocol.links import SerialLink
 
     (tmp_path / "file").write_text("")
     with PtyBridge() as bridge:
-        device = {"regular file": str(tmp_path / "file"), "directory": str(tmp_path), "not a tty": "/dev/null"}.get(
-            what, bridge.paths[1]
-        )
+        device = {
+            "regular file": str(tmp_path / "file"),
+            "directory": str(tmp_path),
+            "not a tty": "/dev/null",
+            "pty multiplexer": "/dev/ptmx",
+        }.get(what, bridge.paths[1])
         holder = SerialLink(device, 921600) if what == "held" else None
+        link = {"--baud too slow": f"serial:{device}", "two rates": f"serial:{device}@9600"}.get(
+            what, f"serial:{device}@921600"
+        )
+        baud = ["--baud", "2400"] if what in ("--baud too slow", "two rates") else []
         try:
-            args = ["run", "--flight", "external", "--link", f"serial:{device}@921600", "--out", str(tmp_path / "o")]
-            assert cli(args) == 2
+            assert cli(["run", "--flight", "external", "--link", link, *baud, "--out", str(tmp_path / "o")]) == 2
         finally:
             if holder is not None:
                 holder.close()
     err = capsys.readouterr().err.strip().splitlines()
-    says = {"held": "is held by process", "directory": "a directory, not a character device"}
-    says["not a tty"] = "/dev/null is not a serial device (a character device of the kernel's 'mem' class"
-    assert len(err) == 1 and says.get(what, "a regular file, not a character device") in err[0], err
+    assert len(err) == 1 and SAYS[what] in err[0], err
     assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
 
 
