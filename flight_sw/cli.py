@@ -130,7 +130,7 @@ def _process(args: argparse.Namespace) -> int:
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
-        raise FlightInputError(f"--deadline must be a non-negative number of seconds, got {args.deadline}")
+        raise FlightInputError(f"--deadline must be a finite, non-negative number of seconds, got {args.deadline}")
     _check_memory(Path(args.pair_dir), args.widest_pair)
     pair = read_pair(args.pair_dir)
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
