@@ -863,7 +863,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--telemetry", type=Path, default=None, help="per-pair timing lines (JSON) written here")
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
-    from protocol.linkspec import open_link
+    from protocol.linkspec import check_reconnect_timeout, open_link
 
     try:
         auto_p, auto_e = auto_grid_steps(args.link)
@@ -876,10 +876,7 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
         if not (math.isfinite(args.hello_timeout) and args.hello_timeout > 0):
             raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
-        if not 0 < args.reconnect_timeout <= 3600:  # NaN fails too
-            raise InputError(
-                f"--reconnect-timeout must be a number of seconds in (0, 3600], got {args.reconnect_timeout}"
-            )
+        check_reconnect_timeout(args.reconnect_timeout)
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
             args.link,

@@ -500,7 +500,6 @@ def _config(args: argparse.Namespace):
     for name, value, most in (
         ("--deadline", args.deadline, 3600.0),  # a pair an hour: past any flight computer's
         ("--hello-timeout", args.hello_timeout, 86400.0),
-        ("--reconnect-timeout", args.reconnect_timeout, 3600.0),
     ):
         if value is not None and not (math.isfinite(value) and 0 < value <= most):
             raise InputError(f"{name} must be a number of seconds in (0, {most:g}], got {value}")

@@ -59,6 +59,17 @@ def heartbeat_period(baud: int | None, period_s: float) -> float:
     return max(period_s, len(frame) * 10 / baud / HEARTBEAT_LINE_SHARE)
 
 
+MAX_RECONNECT_TIMEOUT_S = 3600.0  # the ground's wait for a lost flight side to come back
+
+
+def check_reconnect_timeout(seconds: float) -> None:
+    """Refuse a reconnect wait outside (0, :data:`MAX_RECONNECT_TIMEOUT_S`] s (NaN too)."""
+    if not 0 < seconds <= MAX_RECONNECT_TIMEOUT_S:
+        raise InputError(
+            f"--reconnect-timeout must be a number of seconds in (0, {MAX_RECONNECT_TIMEOUT_S:g}], got {seconds}"
+        )
+
+
 MAX_LINK_TIMEOUT_S = 3600.0  # a peer silent longer than an hour is gone; beyond this the timers overflow
 # an idle but healthy peer speaks once per keepalive (1 s): a shorter silence is no sign of a lost peer
 MIN_LINK_TIMEOUT_S = 2.0
