@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -342,6 +343,16 @@ def _sensitivity(args: argparse.Namespace) -> int:
     return 0
 
 
+def _summary_state(path: Path) -> str:
+    """What an interrupted campaign left in ``path``: the signal can land before, during or after the final
+    summary, so the file (written whole or not at all) is read rather than assumed partial."""
+    try:
+        complete = json.loads(path.read_text()).get("complete")
+    except (OSError, ValueError, AttributeError):
+        return f"no summary written: {path}"
+    return f"{'summary' if complete else 'partial summary'} (complete: {str(bool(complete)).lower()}): {path}"
+
+
 def register_landings(subparsers: Any) -> None:
     from studies.landings import DEFAULT_POSE_ERROR, PER_RENDER
 
@@ -437,7 +448,7 @@ def _landings(args: argparse.Namespace) -> int:
         print(f"partial summary (complete: false): {args.out / 'landings.json'}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"partial summary (complete: false): {args.out / 'landings.json'}", file=sys.stderr)
+        print(_summary_state(args.out / "landings.json"), file=sys.stderr)
         raise
     for p, st in summary["per_preset"].items():
         lo, hi = st["p_safe_ci95"]

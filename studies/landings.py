@@ -26,6 +26,7 @@ distance (aim point to site) and whether the aim point itself was safe (the
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import time
@@ -38,6 +39,7 @@ import numpy as np
 
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
+from reports.html import write_atomic
 from reports.jsondoc import json_text
 
 LANDING_PAIRS: tuple[tuple[str, str], ...] = (
@@ -517,8 +519,9 @@ def _write_summary(
         summary["incomplete_reason"] = reason
     summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
     summary["wall_s_this_run"] = wall
+    # each file whole or not at all: a signal in the last instant must not leave a truncated landings.json
     write_rows(rows, out / "landings.csv")
-    (out / "landings.json").write_text(json_text(summary))
+    write_atomic(out / "landings.json", json_text(summary))
     if rows:
         write_report(out, rows, summary)
     return summary
@@ -526,12 +529,12 @@ def _write_summary(
 
 def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
     cols = list(ROW_COLUMNS) + sorted({k for r in rows for k in r} - set(ROW_COLUMNS))
-    with path.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
-        for r in sorted(rows, key=lambda r: (r["landing"], r["preset"])):
-            w.writerow({k: _cell(r.get(k)) for k in cols})
-    return path
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    for r in sorted(rows, key=lambda r: (r["landing"], r["preset"])):
+        w.writerow({k: _cell(r.get(k)) for k in cols})
+    return write_atomic(path, buf.getvalue())
 
 
 def _cell(v: Any) -> Any:

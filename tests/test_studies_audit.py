@@ -162,6 +162,30 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
     assert done == fresh
 
 
+def test_a_signal_during_the_final_summary_leaves_whole_files_and_says_which(tmp_path, monkeypatch):
+    """The signal can land after every landing is flown: the summary it leaves is whole, and the message says
+    what the file holds (it said "partial" whatever the file held)."""
+    from studies.cli import _summary_state
+
+    out = tmp_path / "a"
+    assert _summary_state(out / "landings.json").startswith("no summary written")
+
+    def signal_in_the_report(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ld, "write_report", signal_in_the_report)
+    with pytest.raises(KeyboardInterrupt):
+        ld.run_campaign(_campaign(), out, workers=1, progress=False)
+    done = json.loads((out / "landings.json").read_text())
+    assert done["complete"] is True and done["n_landings_flown"] == 4
+    assert _summary_state(out / "landings.json") == f"summary (complete: true): {out / 'landings.json'}"
+    assert len((out / "landings.csv").read_text().splitlines()) == 1 + 4
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary file left behind
+
+    (out / "landings.json").write_text('{"complete": false}')
+    assert _summary_state(out / "landings.json").startswith("partial summary (complete: false)")
+
+
 def test_sensitivity_summary_counts_the_samples_without_a_dem_instead_of_dropping_them(capsys):
     from studies.evaluate import sensitivity_summary
 
