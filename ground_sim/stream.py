@@ -92,6 +92,10 @@ EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair r
 LINK_CODES = ("link_down",)
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
+UNANSWERED_TEXT = (
+    "its ZeroMQ connection is up but the board never answered on it: a board serves one ground at a time and this "
+    "one is busy with another (its console says 'second peer ... refused'), or its program is not reading"
+)
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
@@ -339,6 +343,8 @@ def _silent_link_reason(link, where: str) -> str:
             f"its line carried {frames} frames ({got} bytes) but never a link session: a peer of another protocol "
             "version, or one that is not answering?"
         )
+    if getattr(link, "answered", None) is False:
+        return UNANSWERED_TEXT
     check = (
         "on this port, at this baud"
         if where.startswith("serial")
@@ -423,8 +429,13 @@ def stream_descent(
         t0 = time.monotonic()
         end, next_note = t0 + hello_timeout_s, t0 + HELLO_NOTE_S
         refused_since: float | None = None  # when the far end first refused our CURVE key
+        said_unanswered = False
         while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
             now = time.monotonic()
+            if getattr(link, "answered", None) is False and not said_unanswered:
+                # said at once, not after the whole wait: the other ground's descent may end, and this one go on
+                said_unanswered = True
+                note(f"{UNANSWERED_TEXT}; waiting up to {hello_timeout_s:g} s in all")
             if link.failed:
                 raise NoHello(f"the link to the flight computer on {where} failed: {link.failed}")
             failures = int((getattr(link, "stats", None) or {}).get("auth_failures", 0) or 0)

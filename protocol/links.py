@@ -97,7 +97,7 @@ class LinkClosed(InputError):
 @dataclass(frozen=True)
 class LinkEvent:
     time: float  # monotonic
-    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport
+    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport | relisten
     text: str
     epoch: int
 
@@ -560,6 +560,9 @@ _LOOPBACK_HOSTS = {"localhost"}
 # libzmq reconnects a connecting socket by itself after a network error (it reports CONNECT_RETRIED at once), never
 # after a protocol error (a message part over MAXMSGSIZE, broken ZMTP): a drop with no retry this long after is one
 REDIAL_AFTER_S = 0.5
+RELISTEN_S = 2.0  # how long the binding side tries to bind its endpoint again after dropping its connections
+SESSIONLESS_OWNER_S = 10.0  # binding side, no peer timeout: the attached peer's time to open a session
+UNANSWERED_S = 2.0  # a connection up this long with no link session on it: the peer does not answer (ZmqLink.answered)
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
@@ -679,6 +682,7 @@ class ZmqLink(Link, SessionView):
                 "auth_failures",
                 "connections",
                 "protocol_drops",
+                "listener_resets",
                 "busy_s",
             ),
             0,
@@ -699,8 +703,15 @@ class ZmqLink(Link, SessionView):
                 (zmq.LINGER, 1000),
                 (zmq.RECONNECT_IVL, 100),
                 (zmq.RECONNECT_IVL_MAX, 1000),
-                (zmq.HEARTBEAT_IVL, 1000),
-                (zmq.HEARTBEAT_TIMEOUT, int(1000 * (peer_timeout or 30.0))),
+                # A dead peer is found by TCP, not by ZMTP heartbeats: with heartbeats on, libzmq 4.3 aborts the
+                # whole process (stream_engine_base.cpp "!_io_error") when a peer that PAIR refused goes away.
+                # Keepalive probes an idle connection; TCP_MAXRT ends one whose data goes unacknowledged (our
+                # own keepalive HELLOs make sure there is some).
+                (zmq.TCP_KEEPALIVE, 1),
+                (zmq.TCP_KEEPALIVE_IDLE, max(1, math.ceil((peer_timeout or 30.0) / 2))),
+                (zmq.TCP_KEEPALIVE_INTVL, 1),
+                (zmq.TCP_KEEPALIVE_CNT, 3),
+                (zmq.TCP_MAXRT, int(2000 * (peer_timeout or 30.0))),
             ):
                 self._sock.setsockopt(opt, val)
             self._sock.copy_threshold = 0  # track every frame, so flush() covers small messages too
@@ -721,6 +732,10 @@ class ZmqLink(Link, SessionView):
         # (type code, reason) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
         self._refusals: deque[tuple[int | None, str]] = deque(maxlen=REFUSALS_KEPT)
         self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
+        self._handshaken_at: float | None = None  # connecting side: since when, with no link session on it yet
+        self._relisten: str | None = None  # binding side: why every connection is to be dropped (listen anew)
+        self._unheard: set[int] = set()  # binding side: fds of connections PAIR refused, still open
+        self._sessionless_since = time.monotonic()  # binding side: the attached peer has had no session since
         self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
         self._stop = False
         self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
@@ -855,6 +870,9 @@ class ZmqLink(Link, SessionView):
                 ]
             )
         self._drop_all(f"session lost: {reason}")
+        if self._handshaken_at is not None:
+            self._handshaken_at = time.monotonic()  # the connection may stay up: unanswered from now on
+        self._sessionless_since = time.monotonic()
         self.sess.lose()
         self._pending_events.append((kind, reason, self.sess.epoch))
 
@@ -887,6 +905,8 @@ class ZmqLink(Link, SessionView):
                 except zmq.Again:
                     pass  # a HELLO or CLOSE is best effort
             self._send_pending(now)
+            if self._relisten is not None:
+                self._listen_anew(self._relisten)
             try:
                 ready = dict(poller.poll(20))
             except zmq.ZMQError:
@@ -916,6 +936,13 @@ class ZmqLink(Link, SessionView):
             if now - self._last_hello >= self.hello_interval:
                 self._control.append(self._hello())
                 self._last_hello = now
+            wait = self.peer_timeout if self.peer_timeout is not None else SESSIONLESS_OWNER_S
+            idle = now - self._sessionless_since
+            # a stranger, or a frozen peer, holds the one place while others wait
+            if self._owner is not None and self._unheard and self._relisten is None and idle > wait:
+                self._relisten = (
+                    f"the attached peer opened no session in {idle:.1f} s while {len(self._unheard)} other(s) waited"
+                )
             if self.connect_timeout is not None:
                 while self._out and now - self._out[0].submitted > self.connect_timeout:
                     m = self._out.popleft()
@@ -925,12 +952,19 @@ class ZmqLink(Link, SessionView):
             self._control.append(self._hello())
             self._last_hello = now
         if self.peer_timeout is not None:
-            if now - self._last_heard > self.peer_timeout:
-                self._lose(
-                    f"no message from the peer for {now - self._last_heard:.1f} s (timeout {self.peer_timeout:g} s)"
-                )
+            quiet = now - self._last_heard
+            if quiet > self.peer_timeout:
+                reason = f"no message from the peer for {quiet:.1f} s (timeout {self.peer_timeout:g} s)"
             elif self._stall_since is not None and now - self._stall_since > self.peer_timeout:
-                self._lose(f"peer not draining: sends blocked for {now - self._stall_since:.1f} s (high-water mark)")
+                reason = f"peer not draining: sends blocked for {now - self._stall_since:.1f} s (high-water mark)"
+            else:
+                return
+            if self.bind:
+                # PAIR keeps the silent peer's connection attached (a frozen ground's kernel still acknowledges),
+                # and refuses every other ground meanwhile: drop them all, and whoever dials first is served
+                self._relisten = "the silent peer's connection held the one place"
+                reason += "; its connection is dropped so that another peer can attach"
+            self._lose(reason)
 
     def _retire_trackers(self, now: float) -> None:
         """Caller holds the lock: messages whose frames libzmq has released are ``sent``."""
@@ -1082,6 +1116,47 @@ class ZmqLink(Link, SessionView):
             else:
                 self._pending_events.append(("lost", reason, self.sess.epoch))
 
+    def _listen_anew(self, why: str) -> None:
+        """Binding side: unbind the endpoint, which closes every connection accepted on it, and bind it again.
+        The rebind is retried for a while (the listener closes in libzmq's I/O thread); when the address has been
+        taken meanwhile the link fails with that reason."""
+        zmq = self._zmq
+        self._relisten = None
+        try:
+            self._sock.unbind(self.endpoint)
+        except zmq.ZMQError:
+            pass  # not bound (a failed rebind before): bind below says why if it cannot
+        end = time.monotonic() + RELISTEN_S
+        while True:
+            try:
+                self._sock.bind(self.endpoint)
+                break
+            except zmq.ZMQError as exc:
+                if time.monotonic() >= end:
+                    with self._cv:
+                        self._failed = f"cannot listen on {self.endpoint} again: {exc}"
+                        self._pending_events.append(("transport", self._failed, self.sess.epoch))
+                    return
+                time.sleep(0.02)
+        with self._cv:
+            self._stats["listener_resets"] += 1
+            self._owner = None
+            self._accepted.clear()
+            self._unheard.clear()
+            text = f"dropped every connection and listening again: {why}"
+            self._pending_events.append(("relisten", text, self.sess.epoch))
+
+    @property
+    def answered(self) -> bool | None:
+        """Connecting side: False while a connection is up (its ZeroMQ handshake done) but the peer has not
+        answered on it for :data:`UNANSWERED_S` - a board that serves another ground (PAIR attaches one peer and
+        leaves the others connected and unheard) or whose program does not read; True otherwise; None on the
+        binding side."""
+        if self.bind:
+            return None
+        at = self._handshaken_at
+        return not (at is not None and not self.sess.established and time.monotonic() - at >= UNANSWERED_S)
+
     def _established(self, now: float) -> None:
         self._last_heard = now
         self._control.append(self._hello())
@@ -1106,16 +1181,18 @@ class ZmqLink(Link, SessionView):
                 self._accepted.append((value, _peer_address(value)))
             elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
                 self._handshaken, self._dropped_at = not self.bind, None
+                self._handshaken_at = None if self.bind else time.monotonic()
                 fd, addr = self._accepted.popleft() if self._accepted else (-1, "?")
                 with self._cv:
                     self._stats["connections"] += 1
                     if self.bind and self._owner is not None:
+                        self._unheard.add(fd)
                         self._stats["peers_refused"] += 1
                         self._pending_events.append(
                             ("refused", f"second peer from {addr} refused: this session already has one", self.epoch)
                         )
                     elif self.bind:
-                        self._owner = fd
+                        self._owner, self._sessionless_since = fd, time.monotonic()
             elif kind in (
                 zmq.EVENT_HANDSHAKE_FAILED_AUTH,
                 zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL,
@@ -1129,9 +1206,15 @@ class ZmqLink(Link, SessionView):
                         ("auth_failed", f"{who}: CURVE handshake failed (wrong or missing key?)", self.epoch)
                     )
             elif kind == zmq.EVENT_DISCONNECTED:
+                self._unheard.discard(value)
                 if value == self._owner:
                     self._owner = None
+                    # PAIR never attaches a connection it refused, even once the slot is free: the waiting
+                    # peers would wait forever. Dropping them makes them dial again, and the first is served.
+                    if self._unheard and self._relisten is None:
+                        self._relisten = f"the peer left while {len(self._unheard)} other(s) waited unheard"
                 self._accepted = deque((f, a) for f, a in self._accepted if f != value)
+                self._handshaken_at = None
                 if self._handshaken:  # libzmq retries at once, unless the peer broke the protocol (see _redial)
                     self._handshaken, self._dropped_at = False, time.monotonic()
             elif kind == zmq.EVENT_CONNECT_RETRIED:

@@ -298,6 +298,72 @@ def test_second_zeromq_peer_is_refused_and_a_peer_without_the_key_gets_nothing(t
     assert any("CURVE handshake failed" in line for line in log)
 
 
+_REFUSED_PEER_LEAVES = """
+import time
+from protocol.links import ZmqLink
+from protocol.messages import Error
+with ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board") as S:
+    with ZmqLink(S.endpoint, bind=False, insecure=True, name="owner") as C1:
+        assert C1.wait_established(5) and S.wait_established(5)
+        C2 = ZmqLink(S.endpoint, bind=False, insecure=True, name="second")
+        time.sleep(1.0)
+        C2.close()  # the refused peer goes away
+        time.sleep(4.0)  # the abort came 1-3 s after, from a heartbeat timer
+        C1.send(Error(code="owner", text="still here"))
+        assert S.recv(5) == Error(code="owner", text="still here")
+print("served")
+"""
+
+
+def test_a_refused_zeromq_peer_that_leaves_does_not_bring_the_board_down():
+    """With ZMTP heartbeats on, libzmq 4.3 aborted the binding process ("Assertion failed: !_io_error") when a
+    peer that PAIR had refused went away: any second ground that gave up killed the board in mid-descent. Run in
+    a child process, since the abort takes the whole process."""
+    proc = subprocess.run([sys.executable, "-c", _REFUSED_PEER_LEAVES], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "served" in proc.stdout, proc.stderr[-2000:]
+
+
+def test_a_waiting_zeromq_peer_is_served_once_the_attached_one_leaves():
+    """PAIR never attaches a connection it refused: the second ground waited out its whole hello timeout even
+    after the first one had gone. The board now drops the waiting connections when the slot frees, and they dial
+    again; meanwhile the waiting side knows it is connected but unanswered."""
+    with ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board") as S:
+        C1 = ZmqLink(S.endpoint, bind=False, insecure=True, name="first")
+        assert C1.wait_established(5) and S.wait_established(5)
+        with ZmqLink(S.endpoint, bind=False, insecure=True, name="second") as C2:
+            assert C1.answered is True and S.answered is None
+            time.sleep(2.6)
+            assert not C2.established and C2.answered is False
+            C1.close()
+            assert C2.wait_established(5) and C2.answered is True
+            C2.send(Error(code="second", text="served"))
+            assert S.recv(5) == Error(code="second", text="served")
+            kinds = [e.kind for e in S.events()]
+            assert "relisten" in kinds and S.stats["listener_resets"] >= 1
+
+
+def test_a_silent_stranger_holding_the_board_is_dropped_for_a_waiting_ground():
+    """A connection that never opens a session (a stranger on an --insecure loopback port, or a frozen ground)
+    held PAIR's one place for good, and every ground after it waited unheard."""
+    import zmq
+
+    ctx = zmq.Context()
+    stranger = ctx.socket(zmq.PAIR)
+    stranger.linger = 0
+    stranger.setsockopt(zmq.RECONNECT_IVL, 5000)  # it dials again too, but slower than a ground
+    with ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board", peer_timeout=1.0) as S:
+        stranger.connect(S.endpoint)
+        time.sleep(0.5)
+        with ZmqLink(S.endpoint, bind=False, insecure=True, name="ground") as G:
+            assert G.wait_established(8), "the ground was never served"
+            G.send(Error(code="ground", text="served"))
+            assert S.recv(5) == Error(code="ground", text="served")
+            texts = [e.text for e in S.events() if e.kind == "relisten"]
+            assert texts and "opened no session" in texts[0]
+    stranger.close()
+    ctx.term()
+
+
 def test_zeromq_client_restart_starts_a_new_session(tmp_path):
     keys = generate_keys(tmp_path / "keys")
     with ZmqLink("tcp://127.0.0.1:*", bind=True, keys=keys, name="server") as S:
