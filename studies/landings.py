@@ -26,6 +26,7 @@ distance (aim point to site) and whether the aim point itself was safe (the
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import math
@@ -458,6 +459,12 @@ def claim_out_dir(c: Campaign, out_dir: str | Path) -> Path:
     return out
 
 
+def campaign_key(c: Campaign) -> str:
+    """A short digest of the campaign's identity (:meth:`Campaign.identity`): what its saved landings depend on."""
+    text = json.dumps(c.identity(), sort_keys=True, separators=(",", ":"))
+    return "campaign-" + hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def run_campaign(
     c: Campaign,
     out_dir: str | Path,
@@ -482,6 +489,9 @@ def run_campaign(
     ]
     t0 = time.time()
     code = code_fingerprint(EVAL_CODE)
+    # the task ids (g00000, ...) say nothing of the campaign: a record is reused only by the campaign that made it,
+    # whatever campaign.json says (a lost or edited one let another campaign's landings pass as this one's)
+    inputs = campaign_key(c)
     log = out / "runs" / "landings.jsonl"
     try:
         res = run_tasks(
@@ -493,10 +503,11 @@ def run_campaign(
             progress=progress,
             desc=f"landings ({c.per_render} per render)",
             code=code,
+            inputs=inputs,
         )
     except (KeyboardInterrupt, CampaignError) as exc:
         # a partial summary of the renders that finished, marked incomplete, then the interruption goes on
-        saved = load_results(log, code)
+        saved = load_results(log, code, inputs)
         part = [r for t in tasks if t.id in saved for r in saved[t.id]["rows"]]
         why = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
         _write_summary(c, out, part, time.time() - t0, complete=False, reason=why)

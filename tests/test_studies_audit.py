@@ -162,6 +162,24 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
     assert done == fresh
 
 
+def test_a_lost_campaign_json_does_not_let_another_campaigns_landings_pass_as_this_ones(tmp_path):
+    """The task ids (g00000, ...) name no scene: with campaign.json gone, a `mare` campaign into the same --out
+    reused a `thesis` landing and reported it as its own."""
+    other = ld.Campaign(("thesis",), 1, (1000,), "held-out", ("fast",), 1, None, 64)
+    mine = ld.Campaign(("mare",), 1, (1000,), "held-out", ("fast",), 1, None, 64)
+    ld.run_campaign(other, tmp_path / "a", workers=1, progress=False)
+    (tmp_path / "a" / "campaign.json").unlink()
+    rows, summary = ld.run_campaign(mine, tmp_path / "a", workers=1, progress=False)
+    assert {r["scene"] for r in rows} == {"mare"}
+    fresh_rows, _ = ld.run_campaign(mine, tmp_path / "b", workers=1, progress=False)
+    untimed = [[{k: v for k, v in r.items() if k != "pipeline_s"} for r in rs] for rs in (rows, fresh_rows)]
+    assert untimed[0] == untimed[1]
+    assert ld.campaign_key(mine) != ld.campaign_key(other)
+    assert ld.campaign_key(mine) == ld.campaign_key(
+        ld.Campaign(("mare",), 7, (1000,), "held-out", ("fast",), 1, None, 64)
+    )
+
+
 def test_a_signal_during_the_final_summary_leaves_whole_files_and_says_which(tmp_path, monkeypatch):
     """The signal can land after every landing is flown: the summary it leaves is whole, and the message says
     what the file holds (it said "partial" whatever the file held)."""
