@@ -97,10 +97,22 @@ def describe_seeds(seeds: list[int], seed_set: str) -> str:
     return f"{seed_set} seeds {span} ({len(seeds)})"
 
 
+def _scheduler(text: str) -> str:
+    from studies.executor import check_scheduler_address
+
+    try:
+        return check_scheduler_address(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--scheduler ")) from None
+
+
 def _executor_options(p: argparse.ArgumentParser) -> None:
     """--scheduler and --workers: where the tasks of a study run."""
     p.add_argument(
-        "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)"
+        "--scheduler",
+        type=_scheduler,
+        default=None,
+        help="Dask scheduler address, e.g. tcp://host:8786 (default: local processes)",
     )
     p.add_argument(
         "--workers",

@@ -143,6 +143,26 @@ def local_pool(workers: int | None, n_tasks: int | None = None) -> Any:
     return process_pool(n) if n > 1 else nullcontext(None)
 
 
+def check_scheduler_address(address: str) -> str:
+    """``address`` if Dask can read it as a scheduler address (``tcp://host:8786``, ``host:8786``, ``tls://...``);
+    :class:`InputError` otherwise. Only its form: whether a scheduler answers there is found when connecting."""
+    try:
+        from distributed.comm.addressing import parse_address, parse_host_port
+    except ImportError:
+        return address  # refused when used, with the install hint
+    try:
+        scheme, loc = parse_address(str(address))
+        if scheme in ("tcp", "tls"):
+            _, port = parse_host_port(loc)
+            if not 0 < int(port) < 65536:
+                raise ValueError(f"port {port} out of range")
+    except (ValueError, TypeError) as exc:
+        raise InputError(
+            f"--scheduler {address!r} is not a Dask scheduler address such as tcp://host:8786: {exc}"
+        ) from None
+    return address
+
+
 def run_tasks(
     fn: Callable[..., dict[str, Any]],
     tasks: Iterable[Task],
@@ -325,6 +345,8 @@ def _run_dask(
     except ImportError:
         raise InputError("--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'") from None
     own = not isinstance(scheduler, Client)
+    if own:
+        check_scheduler_address(scheduler)
     try:
         client = Client(scheduler, timeout="20s") if own else scheduler
     except OSError as exc:
