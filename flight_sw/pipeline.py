@@ -1266,8 +1266,26 @@ def _run_v1(
             info["skipped"].append("sites")
             info["no_site_reason"] = "deadline reached before site selection"
 
+    # the states follow the DEM the hazards were mapped on: a small gap filled for the mapping is called as the map
+    # calls it (state.npy said unknown where hazard.npy said safe, and `score` refused the pair)
+    state, psafe = three_state(hazard, elev_map)
     return _result(
-        p, level, timings, info, grid, sites, elevation, hazard, slope_img, rough_img, rocks, shadow, covered, world_xy
+        p,
+        level,
+        timings,
+        info,
+        grid,
+        sites,
+        elevation,
+        hazard,
+        slope_img,
+        rough_img,
+        rocks,
+        shadow,
+        covered,
+        world_xy,
+        state=state,
+        psafe=psafe,
     )
 
 
