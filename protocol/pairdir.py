@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -559,13 +560,66 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
     return pose, img_name, alt
 
 
+def _file_kind(mode: int) -> str:
+    """What a non-regular file is, in words, from its ``st_mode``."""
+    for test, kind in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+    ):
+        if test(mode):
+            return kind
+    return "not a file"
+
+
+def _check_regular(path: Path, what: str, d: Path) -> None:
+    """Refuse ``path`` (``what`` in pair directory ``d``) unless it is an existing regular file.
+
+    Reading a FIFO would block and a directory cannot be read, so both are refused by name rather than
+    reported as missing.
+    """
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        raise PairFormatError(f"{d}: missing {what}") from None
+    except OSError as exc:  # a name too long, a symlink loop, no permission: say which
+        raise PairFormatError(f"{d}: {what} cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
+        raise PairFormatError(f"{d}: {what} exists but is not a regular file ({_file_kind(mode)})")
+
+
 def _image_path(d: Path, name: str) -> Path:
-    p = (d / name).resolve()
+    """The path of image ``name`` named in ``d``'s pair.json: inside ``d``, and a regular file."""
+    if "\0" in name:  # no file system can name it; os calls raise ValueError on it
+        raise PairFormatError(f"{d / 'pair.json'}: image name {name!r} contains a NUL character")
+    shown = name if len(name) <= 80 else f"{name[:60]}... ({len(name)} characters)"  # one readable line
+    try:
+        p = (d / name).resolve()
+    except (RuntimeError, OSError) as exc:  # a symlink loop: RuntimeError up to Python 3.12, OSError after
+        raise PairFormatError(f"{d}: image {shown!r} cannot be resolved ({str(exc)[:200]})") from None
     if not p.is_relative_to(d.resolve()):
-        raise PairFormatError(f"{d}: image {name!r} lies outside the pair directory")
-    if not p.is_file():
-        raise PairFormatError(f"{d}: missing image {name}")
+        raise PairFormatError(f"{d}: image {shown!r} lies outside the pair directory")
+    _check_regular(p, f"image {shown}", d)
     return p
+
+
+def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """Ground-truth layer ``name`` from ``p``, refused unless numeric (bool or integer for the shadow mask)
+    and of the images' ``shape``; both are read from the header (memory-mapped) before any data is copied."""
+    try:
+        a = np.load(p, allow_pickle=False, mmap_mode="r")  # never pickle: a .npy from a user can run code
+    except (ValueError, EOFError, OSError) as exc:
+        raise PairFormatError(f"{p}: unreadable ({exc or 'empty file'})") from None
+    if not isinstance(a, np.ndarray):  # an .npz archive under a .npy name
+        raise PairFormatError(f"{p}: not a single array (.npy), got {type(a).__name__}")
+    kinds, need = ("biu", "bool (or integer 0/1)") if name == "shadow" else ("fiu", "numbers (float32)")
+    if a.dtype.kind not in kinds:  # strings, complex, structured, dates: the scores would fail or mean nothing
+        raise PairFormatError(f"{p}: ground truth {name} must hold {need}, got dtype {a.dtype}")
+    if a.shape != shape:
+        raise PairFormatError(f"{p}: ground truth {name}: shape {a.shape} != image shape {shape}")
+    return np.array(a != 0) if name == "shadow" and a.dtype.kind != "b" else np.array(a)
 
 
 def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
@@ -576,8 +630,7 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     if not d.is_dir():
         raise PairFormatError(f"{d}: not a directory")
     meta_path = d / "pair.json"
-    if not meta_path.is_file():
-        raise PairFormatError(f"{d}: missing pair.json")
+    _check_regular(meta_path, "pair.json", d)
     doc = _load_json(meta_path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
@@ -625,11 +678,9 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     if load_truth:
         for name, fname in TRUTH_FILES.items():
             p = d / fname
-            if p.is_file():
-                try:
-                    truth[name] = np.load(p, allow_pickle=False)
-                except (ValueError, EOFError, OSError) as exc:
-                    raise PairFormatError(f"{p}: unreadable ({exc or 'empty file'})") from None
+            if os.path.lexists(p):  # optional; but one that is there must be a readable array
+                _check_regular(p, fname, d)
+                truth[name] = _load_truth(p, name, (camera.height, camera.width))
     meta = {k: v for k, v in doc.items() if k not in ("format", "camera", "frames", "sun")}
     pair = Pair(camera, tuple(poses), tuple(images), sun, truth, meta, tuple(alts), notes)
     try:
@@ -656,6 +707,8 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
         raise PairFormatError(f"manifest {manifest}: cannot be read ({exc})") from None
     except ValueError as exc:
         raise PairFormatError(f"manifest {manifest}: not JSON ({exc})") from None
+    except RecursionError:  # json's parser recurses once per nested list or object
+        raise PairFormatError(f"manifest {manifest}: JSON nested too deeply") from None
     if not isinstance(doc, dict):
         raise PairFormatError(f'manifest {manifest}: must be a JSON object with "pairs", got {type(doc).__name__}')
     if doc.get("format", MANIFEST_FORMAT) != MANIFEST_FORMAT:

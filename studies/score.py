@@ -32,6 +32,8 @@ from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNS
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
+# |x|, |y|, |z| of a site (world m): 1000 km is beyond any descent's view; larger overflows the projection
+MAX_SITE_COORD_M = 1e6
 
 
 class ScoreError(InputError):
@@ -121,19 +123,46 @@ def _read_sites(path: Path) -> np.ndarray:
         doc = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ScoreError(f"{path}: not readable JSON ({exc})") from None
+    except RecursionError:  # json's parser recurses once per nested list or object
+        raise ScoreError(f"{path}: JSON nested too deeply") from None
     return _site_xyz(doc.get("sites", []) if isinstance(doc, dict) else None, path)
 
 
 def _site_xyz(raw: Any, path: Path) -> np.ndarray:
     if not isinstance(raw, list):
         raise ScoreError(f'{path}: "sites" must be a list of {{"x", "y", "z"}} objects')
-    xyz = []
-    for i, s in enumerate(raw):
-        try:
-            xyz.append([float(s["x"]), float(s["y"]), float(s["z"])])
-        except (KeyError, TypeError, ValueError):
-            raise ScoreError(f'{path}: site {i} needs numeric "x", "y" and "z" (world metres)') from None
+    xyz = [_site_point(s, i, path) for i, s in enumerate(raw)]
     return np.array(xyz, float).reshape(-1, 3)
+
+
+def _site_point(site: Any, i: int, path: Path) -> list[float]:
+    """World ``[x, y, z]`` of site ``i`` of ``path``: JSON numbers, finite and within :data:`MAX_SITE_COORD_M`.
+
+    float() would take "1" and true, and an infinite or huge coordinate made the site "NOT safe" with numpy
+    warnings instead of an error: a site the detector could not place is the detector's bug, said here.
+    """
+    if not isinstance(site, dict) or not all(k in site for k in "xyz"):
+        raise ScoreError(f'{path}: site {i} needs numeric "x", "y" and "z" (world metres)')
+    out = []
+    for k in "xyz":
+        v = site[k]
+        if not _coord_ok(v):
+            got = "a list or object" if isinstance(v, (list, dict)) else repr(v)[:40]
+            raise ScoreError(
+                f'{path}: site {i}: "{k}" must be a finite number of world metres within '
+                f"+-{MAX_SITE_COORD_M:g}, got {got}"
+            )
+        out.append(float(v))
+    return out
+
+
+def _coord_ok(v: Any) -> bool:
+    """A JSON (or numpy) number, not a bool, with ``|v| <= MAX_SITE_COORD_M``."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        return abs(v) <= MAX_SITE_COORD_M  # exact: a 400-digit int would overflow float()
+    if isinstance(v, (float, np.integer, np.floating)):
+        return abs(float(v)) <= MAX_SITE_COORD_M  # False for NaN
+    return False
 
 
 def score_output(
@@ -182,13 +211,30 @@ def score_output(
         m["dem_coverage_pct"] = 100.0 * np.count_nonzero(area & np.isfinite(output.elevation)) / n
     radius = _site_radius_px(pair.camera, depth, area)
     m["sites"] = int(output.sites_xyz.shape[0])
-    uv = project_points(pair.camera, true1, output.sites_xyz) if m["sites"] else np.zeros((0, 2))
-    each = [scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0 for i in range(len(uv))]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a site in camera 1's plane: _in_view drops it
+        uv = project_points(pair.camera, true1, output.sites_xyz) if m["sites"] else np.zeros((0, 2))
+    seen_site = _in_view(pair.camera, true1, output.sites_xyz, uv)
+    each = [
+        bool(seen_site[i]) and scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0
+        for i in range(len(uv))
+    ]
     m["sites_truly_safe"] = int(sum(each))
     m["top_site_truly_safe"] = bool(each[0]) if each else None
     if figure is not None:
         _figure(Path(figure), pair.images[0], called, safe, area, gt_h, uv, radius, each, m)
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
+
+
+def _in_view(camera: Any, pose: Any, xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Per site: in front of the true camera 1 and inside its image. Only there does the truth say anything; the
+    scorer would otherwise judge a site off the image by the edge pixel nearest to it (and one behind the
+    camera by its mirror image)."""
+    if len(uv) == 0:
+        return np.zeros(0, bool)
+    front = (xyz - pose.position) @ pose.R[2] > 0
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (u >= -0.5) & (u <= camera.width - 0.5) & (v >= -0.5) & (v <= camera.height - 0.5)
+    return front & inside
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
@@ -218,6 +264,8 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
                 records[Path(r.get("pair_dir", "")).name] = r
     except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
         raise ScoreError(f"{o / 'results.jsonl'}: not an HIL run's records ({exc})") from None
+    except RecursionError:  # json's parser recurses once per nested list or object
+        raise ScoreError(f"{o / 'results.jsonl'}: JSON nested too deeply") from None
     jobs = []
     for e in entries:
         name = Path(e["path"]).name

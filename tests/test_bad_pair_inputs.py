@@ -1,0 +1,198 @@
+"""Hostile pair directories and detector outputs at `process` and `score`: one line naming the file, never a
+traceback.
+
+Each case once ended in a Python traceback (exit 1) or was silently accepted: a NUL in an image name, a
+symlink loop, a FIFO or directory in place of an image, a non-numeric or pickled truth array, a deeply nested
+result.json or manifest.json, sites at infinite, huge or non-numeric coordinates.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilkit import small_descent
+
+from hil_server.cli import main
+from protocol.pairdir import PairFormatError, read_pair
+from studies.evaluate import backproject_depth, true_poses
+
+PX = 64  # small images: the whole module runs in a few seconds
+DEEP = "[" * 5000 + "]" * 5000  # deeper than Python's recursion limit
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory) -> tuple[Path, Path]:
+    """A rendered pair and an output directory for it (the true hazard: every pixel scores)."""
+    root = tmp_path_factory.mktemp("badpair")
+    small_descent(root / "pairs", ["600/300"], px=PX)
+    pair_dir = root / "pairs" / "600_300"
+    out = root / "out"
+    out.mkdir()
+    np.save(out / "hazard.npy", read_pair(pair_dir).truth["hazard"].astype(np.float32))
+    return pair_dir, out
+
+
+@pytest.fixture(autouse=True)
+def _home(tmp_path, monkeypatch):
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "home"))  # never calibrate this host first
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, symlinks=True)
+    return dst
+
+
+def _rewrite(d: Path, fn) -> None:
+    doc = json.loads((d / "pair.json").read_text())
+    fn(doc)
+    (d / "pair.json").write_text(json.dumps(doc))
+
+
+def _refused(argv: list[str], capsys, *parts: str) -> str:
+    """Run ``argv``; it must exit 2 with one error line holding every one of ``parts``."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and all(p in err for p in parts), err
+    assert err.startswith(f"hazard-hil {argv[0]}: error: ")
+    return err
+
+
+def _both_refuse(bad: Path, good_out: Path, tmp_path: Path, capsys, *parts: str) -> None:
+    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, *parts)
+    _refused(["score", str(bad), str(good_out)], capsys, *parts)
+
+
+def _score_rows(pair_dir: Path, out: Path, capsys) -> list[dict]:
+    js = out.parent / f"{out.name}-score.json"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's RuntimeWarnings used to leak from the site projection
+        main(["score", str(pair_dir), str(out), "--json", str(js)])
+    capsys.readouterr()
+    return json.loads(js.read_text())["rows"]
+
+
+def test_nul_in_an_image_name(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    _rewrite(bad, lambda doc: doc["frames"][1].update(image="i2\x00.png"))
+    _both_refuse(bad, good[1], tmp_path, capsys, str(bad / "pair.json"), "NUL character")
+
+
+def test_image_symlink_loop(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    (bad / "i2.png").unlink()
+    (bad / "i2.png").symlink_to("i2.png")
+    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "cannot be resolved")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory"])
+def test_image_that_is_not_a_regular_file(good, tmp_path, capsys, kind):
+    bad = _copy(good[0], tmp_path / "bad")
+    (bad / "i2.png").unlink()
+    if kind == "fifo":
+        os.mkfifo(bad / "i2.png")
+    else:
+        (bad / "i2.png").mkdir()
+    what = "a FIFO" if kind == "fifo" else "a directory"
+    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "exists but is not a regular file", what)
+
+
+def test_missing_image_is_still_called_missing(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    (bad / "i2.png").unlink()
+    _both_refuse(bad, good[1], tmp_path, capsys, "missing image i2.png")
+
+
+def test_image_name_too_long_for_the_file_system(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    _rewrite(bad, lambda doc: doc["frames"][1].update(image="a" * 5000))
+    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "(5000 characters) cannot be read")
+
+
+def test_deeply_nested_pair_json_is_refused_by_the_reader(good, tmp_path):
+    bad = _copy(good[0], tmp_path / "bad")
+    text = (bad / "pair.json").read_text().rstrip().removesuffix("}") + f', "meta": {DEEP}}}'
+    (bad / "pair.json").write_text(text)
+    with pytest.raises(PairFormatError, match=r"pair\.json: JSON nested too deeply"):
+        read_pair(bad)
+
+
+def test_deeply_nested_pair_json_at_process(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    text = (bad / "pair.json").read_text().rstrip().removesuffix("}") + f', "meta": {DEEP}}}'
+    (bad / "pair.json").write_text(text)
+    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, "pair.json", "nested too deeply")
+
+
+def _save_object(p: Path) -> None:
+    np.save(p, np.full((PX, PX), None, dtype=object), allow_pickle=True)
+
+
+@pytest.mark.parametrize(
+    "fname, write, says",
+    [
+        ("gt_hazard_i1.npy", lambda p: np.save(p, np.full((PX, PX), "x")), "must hold numbers"),
+        ("gt_depth_i1.npy", lambda p: np.save(p, np.full((PX, PX), 1j)), "must hold numbers"),
+        ("gt_elevation_i1.npy", _save_object, "unreadable"),  # never unpickled
+        ("gt_shadow_i1.npy", lambda p: np.save(p, np.full((PX, PX), 0.5)), "must hold bool"),
+        ("gt_hazard_i1.npy", lambda p: np.save(p, np.zeros((3, 3), np.float32)), "shape (3, 3) != image shape"),
+    ],
+    ids=["string", "complex", "object", "float-shadow", "shape"],
+)
+def test_truth_arrays_that_are_not_numeric_maps(good, tmp_path, capsys, fname, write, says):
+    bad = _copy(good[0], tmp_path / "bad")
+    write(bad / fname)
+    _both_refuse(bad, good[1], tmp_path, capsys, str(bad / fname), says)
+
+
+def test_truth_file_that_is_a_fifo(good, tmp_path, capsys):
+    bad = _copy(good[0], tmp_path / "bad")
+    (bad / "gt_shadow_i1.npy").unlink()
+    os.mkfifo(bad / "gt_shadow_i1.npy")
+    _both_refuse(bad, good[1], tmp_path, capsys, "gt_shadow_i1.npy", "not a regular file (a FIFO)")
+
+
+def test_deeply_nested_result_json(good, tmp_path, capsys):
+    out = _copy(good[1], tmp_path / "out")
+    (out / "result.json").write_text('{"sites": ' + DEEP + "}")
+    (row,) = _score_rows(good[0], out, capsys)
+    assert row["error"] == f"{out / 'result.json'}: JSON nested too deeply"
+
+
+def test_deeply_nested_manifest_json(good, tmp_path, capsys):
+    (tmp_path / "descent").mkdir()
+    (tmp_path / "descent" / "manifest.json").write_text('{"pairs": ' + DEEP + "}")
+    _refused(["score", str(tmp_path / "descent"), str(good[1])], capsys, "manifest.json", "nested too deeply")
+
+
+@pytest.mark.parametrize("x", ["Infinity", "-Infinity", "NaN", "1e300", '"1"', "true", "null", "[1]"])
+def test_sites_at_coordinates_that_are_not_finite_numbers(good, tmp_path, capsys, x):
+    out = _copy(good[1], tmp_path / "out")
+    ok = '{"x": 0, "y": 0, "z": 0, "distance_m": 0}'
+    (out / "result.json").write_text(f'{{"sites": [{ok}, {{"x": {x}, "y": 0, "z": 0, "distance_m": 0}}]}}')
+    (row,) = _score_rows(good[0], out, capsys)
+    assert row["error"] is not None and row["error"].startswith(f'{out / "result.json"}: site 1: "x" must be a finite')
+
+
+def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
+    """A site far off frame 0's image used to be judged by the edge pixel nearest to it."""
+    pair = read_pair(good[0])
+    true1, _ = true_poses(pair)
+    world = backproject_depth(pair.camera, true1, pair.truth["depth"].astype(np.float64))
+    gt = pair.truth["hazard"]
+    rows = [v for v in range(PX) if np.all(gt[max(0, v - 3) : v + 4, PX - 4 :] < 1.0)]
+    assert rows, "the scene has no safe stretch of the right edge to place the site against"
+    edge = world[rows[len(rows) // 2], PX - 1]
+    far = edge + 1000.0 * true1.R[0]  # along camera 1's x axis: far right of the image, same row
+    sites = [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for p in (edge, far)]
+    out = _copy(good[1], tmp_path / "out")
+    (out / "result.json").write_text(json.dumps({"sites": sites}))
+    (row,) = _score_rows(good[0], out, capsys)
+    assert row["error"] is None and row["sites"] == 2
+    assert row["top_site_truly_safe"] is True  # the edge site itself is safe: the far one only borrowed that
+    assert row["sites_truly_safe"] == 1
