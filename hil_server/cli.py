@@ -142,6 +142,9 @@ def main(argv: list[str] | None = None) -> int:
         for option in ("out", "cache", "figures"):  # the directories a command creates
             if getattr(args, option, None) is not None:
                 check_out_dir(Path(getattr(args, option)), f"--{option}")
+        csv_path, json_path = getattr(args, "csv", None), getattr(args, "json", None)
+        if isinstance(csv_path, Path) and isinstance(json_path, Path) and csv_path.resolve() == json_path.resolve():
+            raise InputError(f"--csv and --json name the same file ({csv_path}): the second would overwrite the first")
         for option in ("csv", "json"):  # files a command writes at its end (`score`), after all its work
             value = getattr(args, option, None)
             if isinstance(value, Path):

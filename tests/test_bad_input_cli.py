@@ -152,6 +152,8 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
         (["score", "PAIR", "PAIR", "--csv", "/proc/x.csv"], "--csv's directory /proc cannot be written"),
         (["score", "PAIR", "PAIR", "--json", "AFILE/x.json"], "--json's directory"),
         (["score", "PAIR", "PAIR", "--json", "PAIR"], "is a directory, not a file"),
+        # the JSON silently replaced the CSV
+        (["score", "PAIR", "PAIR", "--csv", "AFILE", "--json", "AFILE"], "--csv and --json name the same file"),
     ],
 )
 def test_output_paths_that_cannot_be_written_are_refused_first(tmp_path, capsys, argv, message):
