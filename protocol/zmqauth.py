@@ -38,6 +38,8 @@ def generate_keys(directory: str | Path) -> Path:
     """Create ``directory`` (must not exist or be empty) with a server and a client key pair."""
     import zmq
 
+    if not str(directory).strip():  # Path("") is the current directory: the keys would land among the user's files
+        raise InputError("key directory must name a path, got an empty one")
     d = Path(directory)
     if d.exists() and not d.is_dir():
         raise InputError(f"key directory {d} is a file, not a directory")

@@ -152,6 +152,7 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, comm
         (["score", "PAIR", "PAIR", "--csv", "/proc/x.csv"], "--csv's directory /proc cannot be written"),
         (["score", "PAIR", "PAIR", "--json", "AFILE/x.json"], "--json's directory"),
         (["score", "PAIR", "PAIR", "--json", "PAIR"], "is a directory, not a file"),
+        (["keys", ""], "key directory must name a path, got an empty one"),  # wrote keys into the cwd
         # the JSON silently replaced the CSV
         (["score", "PAIR", "PAIR", "--csv", "AFILE", "--json", "AFILE"], "--csv and --json name the same file"),
     ],
