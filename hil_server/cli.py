@@ -687,7 +687,7 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         "`hazard-hil flight --keys DIR` on the board and `hazard-hil run --flight external --keys DIR` on the ground "
         "PC (copy the board its half: server.key_secret and clients/). `run` makes its own per run otherwise.",
     )
-    p.add_argument("dir", type=Path, metavar="DIR", help="a new or empty directory")
+    p.add_argument("dir", metavar="DIR", help="a new or empty directory")  # a str: Path('') would read as '.'
     p.set_defaults(func=_cmd_keys)
 
 
