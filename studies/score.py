@@ -249,6 +249,8 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     from protocol.pairdir import read_manifest
 
     p, o = Path(pairs), Path(outputs)
+    if not o.is_dir():  # a mistyped path: usage, not a detector that wrote nothing for every pair
+        raise ScoreError(f"{o}: {'not a directory' if o.exists() else 'no such directory'} (OUTPUTS)")
     if (p / "pair.json").is_file():
         return [Job(p.name, p, o)]
     if not (p / "manifest.json").is_file():

@@ -202,3 +202,13 @@ def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent,
     (Path(records[0]["out_dir"]) / "hazard.npy").unlink()  # as a run without --full-maps leaves it
     code, doc = _score(descent, received, capsys)
     assert code == 1 and "saves the image maps only with `run --full-maps`" in doc["rows"][0]["error"]
+
+
+def test_outputs_that_are_not_a_directory_are_a_usage_error(descent, tmp_path, capsys):
+    """A mistyped OUTPUTS listed every pair as "no such output directory" and exited 1, as if the detector had
+    failed on each."""
+    (tmp_path / "afile").write_text("")
+    for outs, says in ((tmp_path / "nosuch", "no such directory"), (tmp_path / "afile", "not a directory")):
+        assert main(["score", str(descent), str(outs)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and says in err and str(outs) in err, err
