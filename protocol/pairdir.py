@@ -97,7 +97,8 @@ class Camera:
         if not isinstance(d, dict):
             raise PairFormatError(f"camera: expected an object with width, height, fx, fy, cx, cy, got {d!r:.60}")
         try:
-            cam = cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
+            w, h = (_whole(d[k], k) for k in ("width", "height"))
+            cam = cls(w, h, *(float(_number(d[k], k)) for k in ("fx", "fy", "cx", "cy")))
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"camera: need width, height, fx, fy, cx, cy ({exc})") from None
         cam.validate()
@@ -111,6 +112,36 @@ class Camera:
             )
         if not all(math.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
             raise PairFormatError(f"camera: focal lengths must be finite and positive, got {vals}")
+
+
+def _number(v: Any, name: str) -> Any:
+    """``v`` if it is a JSON number; ValueError for a string, a bool or anything else (float() took "150" and true
+    for a position, so a hand-edited pair.json with quoted numbers passed unnoticed)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number, got {v!r:.40}")
+    return v
+
+
+def _whole(v: Any, name: str) -> int:
+    """``v`` as an int if it is a whole JSON number (512 or 512.0); ValueError otherwise (128.5 px was truncated)."""
+    x = _number(v, name)
+    if isinstance(x, (float, np.floating)) and not float(x).is_integer():
+        raise ValueError(f"{name} must be a whole number, got {x!r}")
+    return int(x)
+
+
+def _numbers(v: Any, name: str) -> np.ndarray:
+    """A (nested) list of JSON numbers as a float array; ValueError naming ``name`` for anything else."""
+    if not isinstance(v, (list, tuple)):
+        raise ValueError(f"{name} must be a list of numbers, got {v!r:.40}")
+    flat: list[Any] = []
+    stack = [v]
+    while stack:
+        for item in stack.pop():
+            (stack.append if isinstance(item, (list, tuple)) else flat.append)(item)
+    for item in flat:
+        _number(item, f"{name} entries")
+    return np.array(v, dtype=float)
 
 
 def quaternion_to_matrix(q: Any) -> np.ndarray:
@@ -537,22 +568,22 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
         raise PairFormatError(f"{meta_path}: frame {k}: give R_world_to_cam or q_world_to_cam, not both")
     try:
         if "R_world_to_cam" in fr:
-            R = np.array(fr["R_world_to_cam"], dtype=float)
+            R = _numbers(fr["R_world_to_cam"], "R_world_to_cam")
             if R.shape != (3, 3):
                 raise ValueError(f"R_world_to_cam has shape {R.shape}, need 3x3")
         elif "q_world_to_cam" in fr:
-            R = quaternion_to_matrix(fr["q_world_to_cam"])
+            R = quaternion_to_matrix(_numbers(fr["q_world_to_cam"], "q_world_to_cam"))
         else:
             raise KeyError("R_world_to_cam or q_world_to_cam")
-        pos = np.array(fr["position_m"], dtype=float)
+        pos = _numbers(fr["position_m"], "position_m")
         if pos.shape != (3,):
             raise ValueError(f"position_m has shape {pos.shape}, need 3")
-        pose = Pose(pos, R, float(fr.get("time_s", 0.0)))
+        pose = Pose(pos, R, float(_number(fr.get("time_s", 0.0), "time_s")))
         img_name = fr["image"]
         if not isinstance(img_name, str) or not img_name:
             raise ValueError("image must be a file name")
         alt = fr.get("altimeter_m")
-        alt = math.nan if alt is None else float(alt)
+        alt = math.nan if alt is None else float(_number(alt, "altimeter_m"))
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise PairFormatError(
             f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] or q_world_to_cam[4] ({exc})"
@@ -635,7 +666,10 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
         raise PairFormatError(f"{meta_path}: format must be {FORMAT!r}, got {got!r:.60}")
-    camera = Camera.from_dict(doc.get("camera") or {})
+    try:
+        camera = Camera.from_dict(doc.get("camera") or {})
+    except PairFormatError as exc:  # the camera's checks speak of its fields; name the file they are in
+        raise PairFormatError(f"{meta_path}: {exc}") from None
     frames = doc.get("frames")
     if not isinstance(frames, list) or not MIN_FRAMES <= len(frames) <= MAX_FRAMES:
         n = len(frames) if isinstance(frames, list) else "no"

@@ -196,3 +196,21 @@ def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
     assert row["error"] is None and row["sites"] == 2
     assert row["top_site_truly_safe"] is True  # the edge site itself is safe: the far one only borrowed that
     assert row["sites_truly_safe"] == 1
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (lambda doc: doc["camera"].update(width=PX + 0.5), "width must be a whole number"),  # was truncated
+        (lambda doc: doc["frames"][1].update(position_m=["0", "0", "150"]), "position_m entries must be a number"),
+        (lambda doc: doc["frames"][1].update(position_m=[True, False, 150]), "position_m entries must be a number"),
+        (lambda doc: doc["frames"][1].update(altimeter_m="150"), "altimeter_m must be a number"),
+        (lambda doc: doc["frames"][0].update(time_s="0"), "time_s must be a number"),
+    ],
+)
+def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
+    """float() took "150" and true as numbers and int() cut 64.5 px to 64: a hand-edited pair.json with quoted or
+    fractional values ran as if it were fine."""
+    bad = _copy(good[0], tmp_path / "bad")
+    _rewrite(bad, edit)
+    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
