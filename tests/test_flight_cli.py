@@ -125,3 +125,24 @@ def test_process_warns_when_the_images_cannot_check_the_navigation_poses(tmp_pat
     assert "warning: frame 1: the images could not check its navigation pose" in err, err
     info = json.loads((tmp_path / "bad" / "result.json").read_text())["info"]["pose_refinement"]
     assert info["refined"] is False and info["reason"] in err
+
+
+def test_process_warns_when_the_images_disagree_with_the_navigation_pose(tmp_path, capsys):
+    """A 30 m lateral navigation error at 150 m: the refinement matched the images, found they need a 5 deg
+    correction - beyond any navigation error - and kept the pose, and the run said nothing about its 21 m DEM
+    error."""
+    import shutil
+
+    from hilkit import small_descent
+
+    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
+    gross = tmp_path / "gross"
+    shutil.copytree(pair, gross)
+    doc = json.loads((gross / "pair.json").read_text())
+    doc["frames"][1]["position_m"][0] += 30.0
+    (gross / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(gross), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 1: the images disagree with its navigation pose (attitude correction" in err, err
+    info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["pose_refinement"]
+    assert info["refined"] is False and info["reason"].startswith("attitude correction")
