@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
+from ground_sim.trajectory import MAX_ALTITUDE_M, MIN_ALTITUDE_M
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="ALT,ALT,...",
         help="one multi-frame directory (2-16 frames, highest first) at these altitudes along the "
-        "scenario's path, e.g. 300,250,200,150; repeat for several",
+        f"scenario's path ({MIN_ALTITUDE_M:g} m - {MAX_ALTITUDE_M / 1000:g} km), e.g. 300,250,200,150; "
+        "repeat for several",
     )
     p.add_argument("--seed", type=int, default=0, help="scene and noise seed (default 0)")
     p.add_argument(
@@ -132,21 +134,21 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.descent import render_scenario
     from ground_sim.errors import RenderError
     from ground_sim.pose_error import PoseError
-    from ground_sim.render import MAX_CELLS
+    from ground_sim.render import MAX_CELLS, check_sun
     from ground_sim.trajectory import check_distinct_dirs
     from protocol.pairdir import Sun
 
     check_seed(args.seed)
     pe = PoseError.parse(args.pose_error) if args.pose_error else None
     sun = Sun(*_parse_sun(args.sun)) if args.sun else None
+    if sun is not None:  # an azimuth of -400 was rendered, then the pair refused by process
+        check_sun(sun, "--sun")
     if args.frames and args.pairs:
         raise RenderError("--frames and --pairs exclude each other")
     if args.workers is not None and args.workers < 1:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
     if not 1 <= args.supersample <= 8:  # the renderer says so too, but only after creating --out
         raise RenderError(f"--supersample must be 1..8, got {args.supersample}")
-    if sun is not None and not 0.0 < sun.elevation_deg <= 90.0:
-        raise RenderError(f"--sun: elevation must be in (0, 90] deg, got {sun.elevation_deg:g}")
     pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs is not None else None
     if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
         raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")
@@ -196,13 +198,9 @@ def _table_doc(path: Path) -> dict[str, Any]:
         doc = lib.load_shares(path)
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"--table {path}: unreadable ({exc})") from None
-    scenes = doc.get("scenes", {}) if isinstance(doc, dict) else None
-    if (
-        not isinstance(scenes, dict)
-        or not all(isinstance(v, dict) for v in scenes.values())
-        or not isinstance(doc.get("seeds", []), list)
-    ):
-        raise SceneError(f"--table {path}: not a hazard-share table (need an object with 'scenes' and 'seeds')")
+    problem = lib.table_problem(doc)  # a bad entry was a traceback of the listing (zero-size array, ...)
+    if problem:
+        raise SceneError(f"--table {path}: {problem}")
     return doc
 
 
@@ -251,14 +249,17 @@ def _scenes(args: argparse.Namespace) -> int:
         new = lib.measure(names, seeds, workers=args.workers, progress=not args.no_progress)
         doc = lib.merge_shares(old, new)
         from ground_sim.stream import write_atomic
+        from reports.jsondoc import json_text
 
-        write_atomic(table_path, json.dumps(doc, indent=1) + "\n")  # minutes of measuring: never half a table
+        write_atomic(table_path, json_text(doc))  # minutes of measuring: never half a table; NaN as null
     elif args.table and not table_path.exists():
         # without --measure there is nothing to list: every scene would be "not measured", exit 0
         raise SceneError(f"--table {table_path}: no such file")
     table = _table_doc(table_path)
     if args.json:
-        print(json.dumps(lib.describe(names, table), indent=1))
+        from reports.jsondoc import json_text
+
+        print(json_text(lib.describe(names, table)), end="")  # strict JSON: a share without a value is null
         return 0
     print(lib.format_listing(names, table))
     problems = [p for n in names for p in lib.check(known[n], table.get("scenes", {}).get(n))]

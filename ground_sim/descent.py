@@ -8,7 +8,6 @@ noise, so the bytes do not depend on the pool or on the sharing.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 import zlib
@@ -30,6 +29,7 @@ from ground_sim.render import (
     View,
     check_max_cells,
     check_raster,
+    check_sun,
     noisy_image,
     render_view,
 )
@@ -47,6 +47,7 @@ from protocol.pairdir import (
     image_name,
     write_pair,
 )
+from reports.jsondoc import finite_or_null, json_text
 
 __all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
 
@@ -175,6 +176,7 @@ def assemble_pair(
     reported, deltas = reported_poses(spec, seed, pose_error)
     if pose_error is not None:
         meta["pose_error"] = {"distribution": pose_error.to_dict(), "frames": [d.to_dict() for d in deltas]}
+    meta = finite_or_null(meta)  # pair.json is strict JSON: a pair without shared ground has no share (null)
     return Pair(spec.camera, reported, images, sun, truth, meta, altimeter_m=tuple(float(v.altimeter_m) for v in views))
 
 
@@ -306,6 +308,8 @@ def render_scenario(
         specs = [known[p] for p in pairs]
     check_distinct_dirs([s.label for s in specs], "pairs")  # the later pair would overwrite the earlier
     check_reported_poses(specs, seed, pose_error)  # not after minutes of rendering, when the pair is written
+    if sun is not None:
+        check_sun(sun)  # an azimuth the pair reader refuses, before rendering
     scene_spec = scene if scene is not None else default_scene(name)
     sc = scene_spec if isinstance(scene_spec, Scene) else load_scene(scene_spec, seed, name)
     sun = sun or library.scene_sun(sc, name, seed)
@@ -349,6 +353,8 @@ def render_scenario(
             }
         )
         thumbs.append((ps.label, pair.images))
+        if pair.meta["hazards_in_scene_pct"] is None:
+            _warn_no_overlap(ps.label)
         _progress(i + 1, len(specs), ps.label, t0, progress)
     e = library.entry(sc)
     manifest = {
@@ -365,9 +371,17 @@ def render_scenario(
         "pose_error": pose_error.to_dict() if pose_error else None,
         "pairs": entries,
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    (out / "manifest.json").write_text(json_text(manifest))  # strict JSON: NaN as null
     contact_sheet(thumbs, out / "contact.png")
     return out
+
+
+def _warn_no_overlap(label: str) -> None:
+    """One line on stderr: the pair's last frame sees none of frame 0's ground (no DEM, no hazards in scene)."""
+    sys.stderr.write(
+        f"warning: pair {label}: its frames share no ground (the last frame sees none of what frame 0 sees): "
+        "hazards_in_scene_pct is null and no elevation can be recovered from it\n"
+    )
 
 
 def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, tile: int = 200) -> Path:

@@ -47,6 +47,7 @@ from protocol.pairdir import Camera, Pose, Sun
 DEFAULT_SUN = {"vertical": Sun(135.0, 25.0), "approach": Sun(120.0, 25.0)}
 FALLBACK_SUN = Sun(135.0, 25.0)
 SHARES_PATH = PRESET_DIR / "hazard_shares.json"
+SHARES_FORMAT = "hazard-hil-scene-shares/1"
 SUN_STREAM = 0x5A11
 SCENARIOS = ("vertical", "approach")
 MEASURE_STRIDE = 2
@@ -89,8 +90,8 @@ class Entry:
     def band(self, scenario: str, altitude_m: int) -> tuple[float, float] | None:
         """The documented hazard-share band (%) at a table altitude, or None."""
         t = self.targets.get(scenario)
-        if t is not None:
-            return t.band(altitude_m)
+        if t is not None:  # a table altitude the targets do not list has no band (was a ValueError)
+            return t.band(altitude_m) if int(altitude_m) in t.altitudes_m else None
         return self.bands.get(scenario, self.band_pct)
 
     def sun(self, scenario: str, seed: int) -> Sun:
@@ -269,7 +270,7 @@ def measure(
     jobs = [(n, s, seed, a) for n in names for s in scenarios for a in alts[s] for seed in seeds]
     vals = _measure_jobs(jobs, workers, progress)
     res = dict(zip(jobs, vals))
-    doc: dict[str, Any] = {"format": "hazard-hil-scene-shares/1", "seeds": list(seeds), "stride": MEASURE_STRIDE}
+    doc: dict[str, Any] = {"format": SHARES_FORMAT, "seeds": list(seeds), "stride": MEASURE_STRIDE}
     doc["scenes"] = {
         n: {
             "digest": params_digest(n),
@@ -291,6 +292,48 @@ def load_shares(path: str | Path = SHARES_PATH) -> dict[str, Any]:
         return json.loads(p.read_text())
     except json.JSONDecodeError as exc:
         raise SceneError(f"{p}: unreadable hazard-share table ({exc})") from None
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def table_problem(doc: Any) -> str | None:
+    """What makes ``doc`` no hazard-share table (None when it is one): the first bad entry, by its path.
+
+    A share is a number or null (a pair without covered ground); NaN, which Python's json reads, counts as null.
+    A table without "format" is accepted (older tables); another format is not.
+    """
+    if not isinstance(doc, dict):
+        return f"not a hazard-share table (need an object with 'scenes' and 'seeds'), got {type(doc).__name__}"
+    if "format" in doc and doc["format"] != SHARES_FORMAT:
+        return f"format must be {SHARES_FORMAT!r}, got {doc['format']!r:.60}"
+    seeds, scenes = doc.get("seeds", []), doc.get("scenes", {})
+    if not isinstance(seeds, list) or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+        return f"seeds must be a list of integers, got {seeds!r:.60}"
+    if not isinstance(scenes, dict):
+        return "not a hazard-share table (need an object with 'scenes' and 'seeds')"
+    for name, rec in scenes.items():
+        if not isinstance(rec, dict):
+            return f"scenes.{name} must be an object, got {rec!r:.60}"
+        scenarios = rec.get("scenarios", {})
+        if not isinstance(scenarios, dict):
+            return f"scenes.{name}.scenarios must be an object of scenarios, got {scenarios!r:.60}"
+        for scen, per_alt in scenarios.items():
+            where = f"scenes.{name}.scenarios.{scen}"
+            if not isinstance(per_alt, dict):
+                return f"{where} must be an object of altitudes, got {per_alt!r:.60}"
+            for alt, vals in per_alt.items():
+                if not str(alt).isdigit():
+                    return f"{where}: altitude {alt!r:.60} is not a whole number of metres"
+                if not isinstance(vals, list) or not vals or not all(v is None or _is_number(v) for v in vals):
+                    return f"{where}.{alt} must be a non-empty list of shares (numbers or null), got {vals!r:.60}"
+    return None
+
+
+def finite_shares(vals: list[Any]) -> list[float]:
+    """The measured shares of one table entry (null and NaN are pairs without covered ground)."""
+    return [float(v) for v in vals if v is not None and math.isfinite(float(v))]
 
 
 def merge_conflict(old: dict[str, Any], names: list[str], seeds: list[int]) -> str | None:
@@ -341,7 +384,11 @@ def check(e: Entry, rec: dict[str, Any] | None) -> list[str]:
     for scen, per_alt in rec.get("scenarios", {}).items():
         for alt, vals in per_alt.items():
             band = e.band(scen, int(alt))
-            med = float(np.median(vals))
+            fin = finite_shares(vals)
+            if not fin:
+                out.append(f"{e.name} {scen} {alt} m: no finite share measured")
+                continue
+            med = float(np.median(fin))
             if band is not None and not band[0] <= med <= band[1]:
                 out.append(f"{e.name} {scen} {alt} m: median {med:.1f} % outside [{band[0]:.1f}, {band[1]:.1f}]")
     return out
@@ -368,6 +415,20 @@ def summary_params(name: str) -> dict[str, Any]:
     }
 
 
+def _stats(vals: list[float]) -> dict[str, float | None]:
+    """Median, min and max of the finite shares (None when there are none: strict JSON, no NaN)."""
+    if not vals:
+        return {"median": None, "min": None, "max": None}
+    return {"median": float(np.median(vals)), "min": float(np.min(vals)), "max": float(np.max(vals))}
+
+
+def _cell(stats: dict[str, Any], key: str) -> str:
+    """An 11-character listing cell: the median, or the min-max range ("-" when nothing was measured)."""
+    if stats["median"] is None:
+        return f"{'-':>11}"
+    return f"{stats['median']:11.1f}" if key == "median" else f"{stats['min']:5.1f}-{stats['max']:<5.1f}"
+
+
 def describe(names: list[str], table: dict[str, Any]) -> list[dict[str, Any]]:
     """JSON-able listing: metadata, parameters, stored shares (median, min, max) and bands."""
     known = {e.name: e for e in entries()}
@@ -378,13 +439,7 @@ def describe(names: list[str], table: dict[str, Any]) -> list[dict[str, Any]]:
         shares: dict[str, Any] = {}
         for scen, per_alt in (rec or {}).get("scenarios", {}).items():
             shares[scen] = {
-                alt: {
-                    "median": float(np.median(v)),
-                    "min": float(np.min(v)),
-                    "max": float(np.max(v)),
-                    "band": e.band(scen, int(alt)),
-                }
-                for alt, v in per_alt.items()
+                alt: {**_stats(finite_shares(v)), "band": e.band(scen, int(alt))} for alt, v in per_alt.items()
             }
         sun: Any = (
             {"azimuth_deg": e.sun_azimuth_deg, "elevation_deg": e.sun_elevation_deg}
@@ -432,10 +487,8 @@ def format_listing(names: list[str], table: dict[str, Any]) -> str:
             alts = sorted(per_alt, key=lambda a: -int(a))
             lines.append(f"  hazards in scene % ({scen}, {which}):")
             lines.append("    altitude m " + "".join(f"{a:>11}" for a in alts))
-            lines.append("    median     " + "".join(f"{per_alt[a]['median']:11.1f}" for a in alts))
-            lines.append(
-                "    range      " + "".join(f"{per_alt[a]['min']:5.1f}-{per_alt[a]['max']:<5.1f}" for a in alts)
-            )
+            lines.append("    median     " + "".join(_cell(per_alt[a], "median") for a in alts))
+            lines.append("    range      " + "".join(_cell(per_alt[a], "range") for a in alts))
             if any(per_alt[a]["band"] for a in alts):
                 lines.append(
                     "    band       "

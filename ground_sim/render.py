@@ -93,6 +93,23 @@ def check_raster(raster: str) -> None:
         raise RenderError(f"raster must be one of {', '.join(RASTERS)}, got {raster!r}")
 
 
+# `hazard-hil process` refuses a pair whose sun azimuth is outside [-360, 360] deg (flight_sw.pipeline, which
+# ground_sim may not import) or whose elevation is outside (0, 90]: render refuses such a sun before drawing
+SUN_AZIMUTH_LIMIT_DEG = 360.0
+
+
+def check_sun(sun: Sun, where: str = "sun") -> None:
+    """Refuse a sun that the renderer cannot draw or that the pair's reader would refuse (one line)."""
+    for what, v in (("azimuth", sun.azimuth_deg), ("elevation", sun.elevation_deg)):
+        if not math.isfinite(v):
+            raise RenderError(f"{where}: {what} must be a finite number of degrees, got {v}")
+    if not -SUN_AZIMUTH_LIMIT_DEG <= sun.azimuth_deg <= SUN_AZIMUTH_LIMIT_DEG:
+        lim = SUN_AZIMUTH_LIMIT_DEG
+        raise RenderError(f"{where}: azimuth must be in [{-lim:g}, {lim:g}] deg, got {sun.azimuth_deg:g}")
+    if not 0.0 < sun.elevation_deg <= 90.0:
+        raise RenderError(f"{where}: elevation must be in (0, 90] deg, got {sun.elevation_deg:g}")
+
+
 def _check_args(sun: Sun, supersample: int, max_cells: int = MAX_CELLS) -> None:
     if not (0.0 < sun.elevation_deg <= 90.0):
         raise RenderError(f"sun elevation must be in (0, 90] deg, got {sun.elevation_deg}")

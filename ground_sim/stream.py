@@ -137,9 +137,17 @@ def plan_note(rec: dict) -> str:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    """Write beside ``path``, then rename over it: a reader never sees half a file."""
+    """Write beside ``path``, then rename over it: a reader never sees half a file. The file keeps the mode
+    of the one it replaces (a new one gets 0666 & ~umask), not mkstemp's 0600."""
+    from reports.html import current_umask
+
+    try:
+        mode = path.stat().st_mode & 0o7777
+    except OSError:
+        mode = 0o666 & ~current_umask()
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "w") as f:
             f.write(text)
         os.replace(tmp, path)

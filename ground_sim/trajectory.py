@@ -53,6 +53,15 @@ V_MIN, K_DECEL = 1.0, 0.05
 MAX_FRAMES = 16
 MAX_ALTITUDE_M = 50_000.0  # a 512 px thesis camera sees 53 m per pixel there; the pair reader stops at 100
 RENDER_FILES = ("manifest.json", "contact.png")  # render_scenario writes these beside the pair directories
+# `hazard-hil process` refuses a pair with a coordinate beyond this (flight_sw.validate.MAX_POSITION_M, which
+# ground_sim may not import: DESIGN.md); render refuses it first instead of writing a pair no one can process
+MAX_POSITION_M = 1.0e7
+# The renderer pads its terrain height bounds by 6+ m around the ground (render.plan_raster): a camera only a
+# few metres up sees those bounds within centimetres, so the finest raster cell and the tile count explode
+# (2,1 ran for minutes, growing memory). Measured 2026-12 on 2 cores, one 512 px nadir view of `thesis`, seed 0,
+# supersample 2, tiles: 30 m 2.7 s, 25 m 3.2 s, 22 m 18 s, 20 m 13 s, 18 m and 15 m over 60 s (a cliff); at 30 m
+# highland 16 s and the approach's 40 deg view 29 s. The floor sits at 30 m, above the cliff with margin.
+MIN_ALTITUDE_M = 30.0
 
 
 @dataclass(frozen=True)
@@ -120,6 +129,8 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
         raise TrajectoryError(f"--frames: need 2-{MAX_FRAMES} altitudes, got {len(alts)}")
     if not all(math.isfinite(a) and a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
         raise TrajectoryError(f"--frames: altitudes must be positive and strictly decreasing, got {alts}")
+    if alts[-1] < MIN_ALTITUDE_M:  # a render below it takes minutes to hours (see MIN_ALTITUDE_M)
+        raise TrajectoryError(f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got {alts[-1]:g}")
     if alts[0] > MAX_ALTITUDE_M:  # the reader refuses pixels over 100 m of ground (protocol.pairdir.scale_notes)
         raise TrajectoryError(f"--frames: altitudes must be at most {MAX_ALTITUDE_M:g} m, got {alts[0]:g}")
     cam = camera or Camera.thesis()
@@ -162,12 +173,30 @@ def _frame(fr: object, where: str) -> Pose:
             raise TrajectoryError(f"{where}: R_world_to_cam must be a 3x3 matrix ({exc})") from None
     else:
         R = look_rotation(_number(fr, "off_nadir_deg", 0.0, where), _number(fr, "heading_deg", 0.0, where))
+    check_position(pos, where)
     pose = Pose(pos, R, _number(fr, "time_s", 0.0, where))
     try:
         pose.validate(where)
     except InputError as exc:
         raise TrajectoryError(str(exc)) from None
     return pose
+
+
+def check_position(pos: np.ndarray, where: str) -> None:
+    """Refuse a camera position that cannot be rendered in reasonable time or processed afterwards: a
+    coordinate beyond :data:`MAX_POSITION_M`, or a height under :data:`MIN_ALTITUDE_M` above the datum."""
+    if not np.all(np.isfinite(pos)):
+        return  # Pose.validate names non-finite values
+    if float(np.abs(pos).max()) > MAX_POSITION_M:
+        raise TrajectoryError(
+            f"{where}: position_m {[float(v) for v in pos]} is over {MAX_POSITION_M:g} m from the origin "
+            "(hazard-hil process refuses such a pair): positions are in metres"
+        )
+    if float(pos[2]) < MIN_ALTITUDE_M:
+        raise TrajectoryError(
+            f"{where}: position_m z = {float(pos[2]):g} m is below the lowest altitude render supports "
+            f"({MIN_ALTITUDE_M:g} m above the datum)"
+        )
 
 
 def pair_dir_name(label: str) -> str:

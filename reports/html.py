@@ -97,7 +97,7 @@ def _environment() -> Any:
     return env
 
 
-def _umask() -> int:
+def current_umask() -> int:
     """The process umask, read without setting it (os.umask would change it for every thread meanwhile)."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -114,7 +114,8 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp's 0600 would make result.json/report.html private to their writer
+        # mkstemp's 0600 would make result.json/report.html private to their writer
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
         os.replace(tmp, p)

@@ -1,0 +1,197 @@
+"""Render and scene-library inputs refused up front, and the JSON render and ``scenes`` write kept strict.
+
+QA findings B5-B7, R1, R10: pairs without shared ground wrote bare NaN tokens; positions, sun angles and
+altitudes that ``process`` (or the renderer's run time) cannot take were accepted; a malformed hazard-share
+table gave tracebacks; ``scenes --measure`` left the table 0600.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import stat
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from ground_sim import descent
+from ground_sim import library as lib
+from ground_sim.trajectory import MIN_ALTITUDE_M
+from hil_server.cli import main
+
+F128 = 64 / math.tan(math.radians(15))  # 128 px, the thesis's 30 deg field of view
+CAM128 = {"width": 128, "height": 128, "fx": F128, "fy": F128, "cx": 63.5, "cy": 63.5}
+NADIR = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+SHARES_FORMAT = "hazard-hil-scene-shares/1"  # the packaged table's format
+
+
+def _frame(z: float, t: float, x: float = 0.0) -> dict[str, Any]:
+    return {"position_m": [x, 0, z], "R_world_to_cam": NADIR, "time_s": t}
+
+
+def trajectory(tmp_path: Path, frames: list[dict[str, Any]], label: str = "p") -> Path:
+    """A 128 px trajectory file of one pair."""
+    p = tmp_path / "traj.json"
+    p.write_text(json.dumps({"camera": CAM128, "pairs": [{"label": label, "frames": frames}]}))
+    return p
+
+
+def strict_json(path: Path) -> Any:
+    """``path`` parsed as RFC 8259 JSON: a NaN or Infinity token fails the test."""
+
+    def refuse(token: str) -> None:
+        raise AssertionError(f"{path}: {token} is not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def one_line_error(capsys, argv: list[str]) -> str:
+    """Run the CLI, check exit 2 and one line on stderr without a traceback; return that line."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"hazard-hil {argv[0]}: error: "), err
+    return err
+
+
+@pytest.fixture
+def no_rendering(monkeypatch):
+    """Fail the test as soon as a view would be drawn: each refusal here must come before it (an altitude of
+    1 m rendered for minutes)."""
+
+    def render_views(*args, **kw):
+        raise AssertionError("rendered before the input was checked")
+
+    monkeypatch.setattr(descent, "render_views", render_views)
+
+
+# --------------------------------------------------------------------------- B6: no shared ground, far positions
+def test_pair_without_shared_ground_writes_strict_json_and_warns(tmp_path, capsys):
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(150, 10, x=600)], "nooverlap")
+    out = tmp_path / "out"
+    assert main(["render", "--scenario", str(traj), "--out", str(out), "--no-progress", "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    warnings = [line for line in err.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "nooverlap" in warnings[0] and "share no ground" in warnings[0], err
+    manifest = strict_json(out / "manifest.json")
+    assert manifest["pairs"][0]["hazards_in_scene_pct"] is None
+    assert strict_json(out / "nooverlap" / "pair.json")["hazards_in_scene_pct"] is None
+
+
+def test_position_the_pair_reader_refuses_is_refused_before_rendering(tmp_path, capsys, no_rendering):
+    traj = trajectory(tmp_path, [_frame(1e12, 0), _frame(150, 10)])
+    err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "out")])
+    assert f"trajectory file {traj} pair #0 frame 0" in err and "over 1e+07 m from the origin" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------- B7: sun angles
+@pytest.mark.parametrize(
+    "sun, message",
+    [
+        ("-400,25", "--sun: azimuth must be in [-360, 360] deg, got -400"),
+        ("1e9,25", "--sun: azimuth must be in [-360, 360] deg, got 1e+09"),
+        ("10,95", "--sun: elevation must be in (0, 90] deg, got 95"),
+    ],
+)
+def test_sun_the_pair_reader_refuses_is_refused_before_rendering(tmp_path, capsys, no_rendering, sun, message):
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(150, 10)])
+    err = one_line_error(capsys, ["render", "--scenario", str(traj), f"--sun={sun}", "--out", str(tmp_path / "o")])
+    assert message in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_sun_azimuth_at_the_limit_renders(tmp_path, capsys):
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(150, 10)])
+    argv = ["render", "--scenario", str(traj), "--sun=-360,25", "--out", str(tmp_path / "o"), "--no-progress"]
+    assert main([*argv, "--workers", "1"]) == 0
+    assert strict_json(tmp_path / "o" / "p" / "pair.json")["sun"]["azimuth_deg"] == -360.0
+
+
+# --------------------------------------------------------------------------- R1: implausibly low altitudes
+def test_low_frames_are_refused_before_rendering(tmp_path, capsys, no_rendering):
+    argv = ["render", "--scenario", "vertical", "--frames", "2,1", "--out", str(tmp_path / "low"), "--workers", "1"]
+    err = one_line_error(capsys, argv)
+    assert f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got 1" in err, err
+    assert not (tmp_path / "low").exists()
+
+
+def test_low_trajectory_frame_is_refused_before_rendering(tmp_path, capsys, no_rendering):
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(MIN_ALTITUDE_M / 2, 10)])
+    err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "out")])
+    assert f"trajectory file {traj} pair #0 frame 1" in err and f"{MIN_ALTITUDE_M:g} m" in err, err
+
+
+# --------------------------------------------------------------------------- B5: malformed tables
+def _bad_table(tmp_path: Path, name: str, edit) -> Path:
+    doc = copy.deepcopy(lib.load_shares())
+    edit(doc)
+    p = tmp_path / f"tab_{name}.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def _set_500(value: Any):
+    def edit(doc: dict[str, Any]) -> None:
+        doc["scenes"]["thesis"]["scenarios"]["vertical"]["500"] = value
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    "name, edit, entry",
+    [
+        ("emp", _set_500([]), "scenes.thesis.scenarios.vertical.500"),
+        ("str", _set_500("abc"), "scenes.thesis.scenarios.vertical.500"),
+        ("item", _set_500([1.0, "x"]), "scenes.thesis.scenarios.vertical.500"),
+        ("scen", lambda d: d["scenes"]["thesis"].update(scenarios="x"), "scenes.thesis.scenarios"),
+        ("alt", lambda d: d["scenes"]["thesis"]["scenarios"]["vertical"].update(high=[1.0]), "altitude 'high'"),
+        ("format", lambda d: d.update(format="other/9"), "format must be 'hazard-hil-scene-shares/1'"),
+        ("seeds", lambda d: d.update(seeds="1000"), "seeds must be a list of integers"),
+    ],
+)
+def test_malformed_table_is_one_line_naming_file_and_entry(tmp_path, capsys, name, edit, entry):
+    table = _bad_table(tmp_path, name, edit)
+    for extra in ([], ["--json"]):
+        err = one_line_error(capsys, ["scenes", "thesis", "--table", str(table), *extra])
+        assert f"--table {table}: " in err and entry in err, err
+
+
+def test_table_altitude_without_a_target_band_is_listed(tmp_path, capsys):
+    table = _bad_table(tmp_path, "alt", lambda d: d["scenes"]["thesis"]["scenarios"]["vertical"].update({"123": [9.0]}))
+    assert main(["scenes", "thesis", "--table", str(table)]) == 0  # was a ValueError (no target at 123 m)
+    assert "123" in capsys.readouterr().out
+
+
+def test_table_share_without_value_lists_as_strict_json(tmp_path, capsys):
+    table = _bad_table(tmp_path, "nan", _set_500([float("nan")]))
+    assert main(["scenes", "thesis", "--json", "--table", str(table)]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads(out, parse_constant=lambda t: pytest.fail(f"{t} in --json output"))
+    assert doc[0]["hazards_in_scene_pct"]["vertical"]["500"]["median"] is None
+    assert main(["scenes", "thesis", "--table", str(table)]) == 0  # the text listing shows "-", no traceback
+
+
+# --------------------------------------------------------------------------- R10: the table's mode
+def test_measure_keeps_the_table_mode(tmp_path, capsys, monkeypatch):
+    table = tmp_path / "t.json"
+    table.write_text(json.dumps({"format": SHARES_FORMAT, "seeds": [1000], "scenes": {}}))
+    os.chmod(table, 0o644)
+
+    def measure(names, seeds, **kw):  # the table's write is under test, not minutes of measuring
+        return {"format": SHARES_FORMAT, "seeds": seeds, "scenes": {n: {"scenarios": {}} for n in names}}
+
+    monkeypatch.setattr(lib, "measure", measure)
+    main(["scenes", "thesis", "--measure", "--seeds", "1", "--no-progress", "--table", str(table)])
+    assert stat.S_IMODE(table.stat().st_mode) == 0o644
+    assert set(strict_json(table)["scenes"]) == {"thesis"}
+    new = tmp_path / "new.json"
+    old_umask = os.umask(0o027)
+    try:
+        main(["scenes", "thesis", "--measure", "--seeds", "1", "--no-progress", "--table", str(new)])
+    finally:
+        os.umask(old_umask)
+    assert stat.S_IMODE(new.stat().st_mode) == 0o640  # 0666 & ~umask, as any new file
