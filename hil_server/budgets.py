@@ -333,12 +333,15 @@ def default_budgets_path() -> Path:
 # Upper bounds a budget's figures must stay under: past them a figure is a typo (a unit slip, an exponent), and a huge
 # memory ceiling would overflow the address-space rlimit the supervisor derives from it.
 MAX_CPU_DMIPS = 1e6  # ~30x this host's core; no single flight core comes near
+MIN_CPU_DMIPS = 1.0  # an 8-bit microcontroller; below it the duty rounds to 0 % and the listing misaligns
 MAX_MEMORY_MIB = 2**20  # 1 TiB
 MAX_DEADLINE_S = 3600.0  # an hour per pair
 BAUD_RANGE = (BAUD_MIN, BAUD_MAX)  # the rates a paced line takes
 
 
-def _number(entry: dict, key: str, where: str, positive: bool = True, maximum: float | None = None) -> float:
+def _number(
+    entry: dict, key: str, where: str, positive: bool = True, maximum: float | None = None, minimum: float | None = None
+) -> float:
     if key not in entry:
         raise BudgetError(f"{where}: missing '{key}'")
     value = entry.get(key)
@@ -348,6 +351,8 @@ def _number(entry: dict, key: str, where: str, positive: bool = True, maximum: f
         raise BudgetError(f"{where}: '{key}' must be > 0, got {value!r}")
     if maximum is not None and value > maximum:
         raise BudgetError(f"{where}: '{key}' must be <= {maximum:.0f}, got {value:g}")
+    if minimum is not None and value < minimum:
+        raise BudgetError(f"{where}: '{key}' must be >= {minimum:g}, got {value:g}")
     return float(value)
 
 
@@ -385,7 +390,7 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
     if unknown:  # a misspelt key would otherwise leave its default in force, unseen
         raise BudgetError(f"{w}: unknown key(s) {', '.join(unknown)}; a budget has {', '.join(sorted(BUDGET_KEYS))}")
     cpu = entry.get("cpu_dmips")
-    cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w, maximum=MAX_CPU_DMIPS)
+    cpu_dmips = None if cpu == "host" else _number(entry, "cpu_dmips", w, maximum=MAX_CPU_DMIPS, minimum=MIN_CPU_DMIPS)
     memory = _number(entry, "memory_mib", w, maximum=MAX_MEMORY_MIB)
     if memory != int(memory):
         raise BudgetError(f"{w}: 'memory_mib' must be a whole number of MiB, got {memory}")

@@ -115,6 +115,7 @@ def test_corrupt_calibration_is_input_error(home):
     "edit, message",
     [
         (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
+        (("cpu_dmips = 400", "cpu_dmips = 1e-30"), "'cpu_dmips' must be >= 1"),  # a 0 % duty, listed misaligned
         (('link = "serial"\nbaud = 921600\nsource = "opf', 'link = "can"\nbaud = 921600\nsource = "opf'), "link"),
         (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
         (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),
