@@ -90,3 +90,18 @@ def test_a_pool_command_stopped_from_outside_leaves_no_worker(tmp_path, sig):
     assert not alive, [p.cmdline() for p in alive]
     if sig == signal.SIGTERM:
         assert proc.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in err, err[-2000:]
+
+
+def test_an_inline_worker_runs_one_blas_thread_too():
+    """numpy's BLAS pool starts at import, before any environment variable could cap it: `render --workers 1` spent
+    twice its CPU time in spinning BLAS threads."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    from ground_sim.parallel import one_thread_here
+
+    before = [i["num_threads"] for i in threadpool_info()]
+    with one_thread_here():
+        assert cv2.getNumThreads() == 1
+        assert all(i["num_threads"] == 1 for i in threadpool_info())
+    assert [i["num_threads"] for i in threadpool_info()] == before
