@@ -158,21 +158,25 @@ def _run(args: argparse.Namespace) -> int:
         check_distinct_dirs(pairs, "--pairs")
     if frames:
         check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
-    out = render_scenario(
-        args.scenario,
-        args.out,
-        scene=args.scene or None,
-        seed=args.seed,
-        pairs=pairs,
-        frames=frames,
-        pose_error=pe,
-        progress=not args.no_progress,
-        sun=sun,
-        supersample=args.supersample,
-        workers=args.workers,
-        max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
-        raster=args.raster,
-    )
+    try:
+        out = render_scenario(
+            args.scenario,
+            args.out,
+            scene=args.scene or None,
+            seed=args.seed,
+            pairs=pairs,
+            frames=frames,
+            pose_error=pe,
+            progress=not args.no_progress,
+            sun=sun,
+            supersample=args.supersample,
+            workers=args.workers,
+            max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
+            raster=args.raster,
+        )
+    except KeyboardInterrupt:
+        print(_kept_after_interrupt(Path(args.out)), file=sys.stderr)
+        raise
     worst = max(e.get("raster_cell_over_target", 1.0) for e in json.loads((out / "manifest.json").read_text())["pairs"])
     if worst > 1.05:
         print(
@@ -183,6 +187,16 @@ def _run(args: argparse.Namespace) -> int:
         )
     print(out / "manifest.json")
     return 0
+
+
+def _kept_after_interrupt(out: Path) -> str:
+    """What a stopped render left in ``out``: the frames are rendered first and the pairs written after (each
+    whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again."""
+    done = sorted(p.parent.name for p in out.glob("*/pair.json")) if out.is_dir() else []
+    if not done:
+        return f"render: stopped before any pair was written (frames are rendered first): nothing kept in {out}"
+    manifest = "" if (out / "manifest.json").is_file() else "; no manifest.json (it is written last)"
+    return f"render: stopped; {len(done)} pair(s) written whole in {out}: {', '.join(done)}{manifest}"
 
 
 def _table_doc(path: Path) -> dict[str, Any]:

@@ -195,3 +195,15 @@ def test_measure_keeps_the_table_mode(tmp_path, capsys, monkeypatch):
     finally:
         os.umask(old_umask)
     assert stat.S_IMODE(new.stat().st_mode) == 0o640  # 0666 & ~umask, as any new file
+
+
+def test_a_stopped_render_says_what_it_kept(tmp_path, capsys, monkeypatch):
+    """A render stopped after 6 of 7 frames ended "stopped by SIGTERM" and left an empty --out without a word."""
+
+    def ctrl_c(*args, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(descent, "render_views", ctrl_c)
+    assert main(["render", "--scenario", "vertical", "--pairs", "600/300", "--out", str(tmp_path / "o")]) == 130
+    err = capsys.readouterr().err
+    assert "stopped before any pair was written" in err and "nothing kept" in err, err
