@@ -224,12 +224,12 @@ def _check_label(label: object, where: str) -> str:
     if (
         not isinstance(label, str)
         or label in ("", ".", "..", *RENDER_FILES)
-        or "\0" in label
+        or any(ord(c) < 32 or ord(c) == 127 for c in label)  # NUL, and a newline in a directory name
         or len(label.encode()) > 255
     ):
         raise TrajectoryError(
-            f"{where}: label must be a non-empty name of at most 255 bytes other than "
-            f"{', '.join(repr(n) for n in ('.', '..', *RENDER_FILES))}, got {label!r:.40}"
+            f"{where}: label must be a non-empty name of at most 255 bytes, without control characters, other "
+            f"than {', '.join(repr(n) for n in ('.', '..', *RENDER_FILES))}, got {label!r:.40}"
         )
     return label
 

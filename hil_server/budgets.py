@@ -383,6 +383,8 @@ BUDGET_KEYS = frozenset({"description", "cpu_dmips", "memory_mib", "deadline_s",
 
 
 def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
+    if not name or any(ord(c) < 32 or ord(c) == 127 for c in name):  # printed raw in tables and errors
+        raise BudgetError(f"{where}: a budget name must be printable text, got {name!r:.40}")
     w = f"{where} [budget.{name}]"
     if not isinstance(entry, dict):
         raise BudgetError(f"{w}: must be a table")

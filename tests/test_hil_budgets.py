@@ -116,6 +116,7 @@ def test_corrupt_calibration_is_input_error(home):
     [
         (("cpu_dmips = 400", "cpu_dmips = -4"), "cpu_dmips"),
         (("cpu_dmips = 400", "cpu_dmips = 1e-30"), "'cpu_dmips' must be >= 1"),  # a 0 % duty, listed misaligned
+        (("[budget.rad750]", '[budget."rad\\u001b[31m750"]'), "budget name must be printable"),  # ESC to a terminal
         (('link = "serial"\nbaud = 921600\nsource = "opf', 'link = "can"\nbaud = 921600\nsource = "opf'), "link"),
         (("memory_mib = 256             # Perseverance", "memory_mib = 'lots' # "), "memory_mib"),
         (("deadline_s = 30.0", "deadline_x = 30.0"), "deadline_s"),

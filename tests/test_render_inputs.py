@@ -207,3 +207,10 @@ def test_a_stopped_render_says_what_it_kept(tmp_path, capsys, monkeypatch):
     assert main(["render", "--scenario", "vertical", "--pairs", "600/300", "--out", str(tmp_path / "o")]) == 130
     err = capsys.readouterr().err
     assert "stopped before any pair was written" in err and "nothing kept" in err, err
+
+
+def test_a_label_with_a_control_character_is_refused(tmp_path, capsys, no_rendering):
+    """A newline in a trajectory file's label made a directory with a newline in its name."""
+    traj = trajectory(tmp_path, [_frame(300.0, 0.0), _frame(150.0, 10.0)], label="p\n1")
+    err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "o")])
+    assert "without control characters" in err
