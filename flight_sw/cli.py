@@ -22,7 +22,11 @@ from typing import Any
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "process", help="DEM, hazard map and safe sites from a pair directory", description=__doc__.split("\n\n")[0]
+        "process",
+        help="DEM, hazard map and safe sites from a pair directory",
+        description="Run the flight pipeline offline on a pair directory (every frame: 2-16, frame 0 the "
+        "reference) and write elevation.npy, hazard.npy, state.npy, psafe.npy, result.json, pictures and "
+        "report.html in OUT_DIR (docs/design.md). Ground truth in the directory is read only to score the run.",
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")

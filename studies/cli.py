@@ -423,7 +423,10 @@ def _landings(args: argparse.Namespace) -> int:
     from studies import landings as ld
     from studies.executor import CampaignError
 
-    scenes = [e.name for e in library.entries()] if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
+    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    if "all" in names and len(names) > 1:
+        raise InputError(f"--scenes: 'all' already names every library scene; give it alone, got {args.scenes!r}")
+    scenes = [e.name for e in library.entries()] if names == ["all"] else names
     check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error

@@ -116,6 +116,7 @@ def test_another_camera_into_the_same_out_is_scored_not_reused_and_its_maps_are_
         (["evaluate", "--scenario", "vertical", "--seed-set", "tuning", "--seed-list", "1000"], "not in the tuning"),
         (["evaluate", "--scenario", "vertical", "--altitudes", ","], "--altitudes is empty"),
         (["landings", "--scenes", "thesis", "--n", "1", "--workers", "2", "--scheduler", "x:1"], "--workers sets"),
+        (["landings", "--scenes", "all,mare", "--n", "1"], "'all' already names every library scene"),
         # was a traceback from distributed after the work had begun
         (["evaluate", "--scenario", "vertical", "--scheduler", "garbage"], "not a Dask scheduler address"),
         (["sensitivity", "--kind", "altitude", "--scheduler", ""], "not a Dask scheduler address"),
