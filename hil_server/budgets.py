@@ -505,6 +505,8 @@ def host_key() -> str:
 
 
 def _read_store(path: Path) -> dict:
+    if path.parent.exists() and not path.parent.is_dir():  # e.g. $HAZARD_HIL_HOME set to a file
+        raise BudgetError(f"calibration directory {path.parent} is a file, not a directory (HAZARD_HIL_HOME?)")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

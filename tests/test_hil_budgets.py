@@ -300,3 +300,11 @@ def test_recalibrating_says_what_moved_since_the_last_calibration():
     assert B.calibration_drift(new, dataclasses.replace(new, units_per_s=83.0)) == ""  # nothing moved
     assert B.calibration_drift(None, new) == ""  # the first calibration
     assert B.calibration_drift(dataclasses.replace(old, key="other|cpu"), new) == ""  # another host's
+
+
+def test_a_home_that_is_a_file_is_named_as_such(tmp_path, monkeypatch):
+    """The message said to delete calibration.json, a file that cannot exist under a file."""
+    (tmp_path / "afile").write_text("")
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "afile"))
+    with pytest.raises(InputError, match="is a file, not a directory"):
+        B.load_calibration()
