@@ -220,7 +220,7 @@ def _process(args: argparse.Namespace) -> int:
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
     c = truth.get("confusion", {})
     if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
-        line += f", FP {c['FP_pct']:.2f} %, CDI {c['TP_pct'] + c['TN_pct']:.1f} %"
+        line += f", FP {c['FP_pct']:.2f} %, CDI {c['TP_pct'] + c['TN_pct']:.1f} % of the map's covered pixels"
     print(f"{out}: {line}")
     if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
         skipped = list(res.info.get("skipped", ()))
