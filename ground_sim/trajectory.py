@@ -244,6 +244,8 @@ def from_file(path: Path) -> list[PairSpec]:
     if not isinstance(pairs, list) or not pairs:
         raise TrajectoryError(f"trajectory file {path}: needs a non-empty 'pairs' list")
     cam = Camera.thesis()
+    if "camera" in doc and not isinstance(doc["camera"], dict):  # was ignored: the 512 px camera rendered instead
+        raise TrajectoryError(f"trajectory file {path}: 'camera' must be an object (width, height, fx, fy, cx, cy)")
     if isinstance(doc.get("camera"), dict):
         try:
             cam = Camera.from_dict(doc["camera"])

@@ -214,3 +214,13 @@ def test_a_label_with_a_control_character_is_refused(tmp_path, capsys, no_render
     traj = trajectory(tmp_path, [_frame(300.0, 0.0), _frame(150.0, 10.0)], label="p\n1")
     err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "o")])
     assert "without control characters" in err
+
+
+def test_a_camera_that_is_not_an_object_is_refused(tmp_path, capsys, no_rendering):
+    """`"camera": "x"` was ignored and the 512 px camera rendered in its place."""
+    traj = trajectory(tmp_path, [_frame(300.0, 0.0), _frame(150.0, 10.0)])
+    doc = json.loads(traj.read_text())
+    doc["camera"] = "x"
+    traj.write_text(json.dumps(doc))
+    err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "o")])
+    assert "'camera' must be an object" in err and str(traj) in err
