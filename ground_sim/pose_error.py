@@ -129,5 +129,9 @@ class PoseError:
                 v = float(val)
             except ValueError:
                 raise PoseErrorSpecError(f"--pose-error: {key}={val!r} is not a number") from None
+            if names[key.strip()] in kw:  # the last one silently won
+                raise PoseErrorSpecError(f"--pose-error: {key.strip()} is given twice in {text!r}")
+            if key.strip() == "equal_pitch" and v not in (0.0, 1.0):  # a flag: 5 read as "on"
+                raise PoseErrorSpecError(f"--pose-error: equal_pitch is 0 or 1, got {val.strip()!r}")
             kw[names[key.strip()]] = bool(v) if key.strip() == "equal_pitch" else v
         return cls(**kw)

@@ -16,6 +16,8 @@ CASES = [
     (["render", "--scenario", "vertical", "--pose-error", "alt=1e308"], "altitude_uniform_m must be a number in"),
     (["render", "--scenario", "vertical", "--pose-error", "pitch=nan"], "pitch_uniform_deg must be a number in"),
     (["render", "--scenario", "vertical", "--pose-error", "yaw=1"], "bad item 'yaw=1'"),
+    (["render", "--scenario", "vertical", "--pose-error", "alt=0.5,alt=1"], "alt is given twice"),  # last won
+    (["render", "--scenario", "vertical", "--pose-error", "equal_pitch=5"], "equal_pitch is 0 or 1"),
     (["render", "--scenario", "vertical", "--pairs", ""], "--pairs is empty"),  # rendered every pair
     (["render", "--scenario", "vertical", "--frames", "1e6,300"], "must be at most 50000 m"),  # not processable
     (["process", "PAIR", "--deadline", "-1"], "--deadline must be a finite, non-negative"),
