@@ -678,7 +678,7 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     poses, raw, names, alts = [], [], [], []
     for k, fr in enumerate(frames):
         pose, img_name, alt = _frame_pose(fr, k, meta_path)
-        pose, note = pose.orthonormalised(f"frame {k}")
+        pose, note = pose.orthonormalised(f"{meta_path}: frame {k}")
         if note:
             notes.append(note)
         img_path = _image_path(d, img_name)
@@ -708,6 +708,11 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
                 f"{meta_path}: sun angles must be finite, got azimuth_deg {sun.azimuth_deg}, "
                 f"elevation_deg {sun.elevation_deg}"
             )
+        # the flight software's own limits (flight_sw.pipeline), said here with the file's field names
+        if not -360.0 <= sun.azimuth_deg <= 360.0:
+            raise PairFormatError(f"{meta_path}: sun.azimuth_deg must be in [-360, 360], got {sun.azimuth_deg:g}")
+        if not 0.0 < sun.elevation_deg <= 90.0:
+            raise PairFormatError(f"{meta_path}: sun.elevation_deg must be in (0, 90], got {sun.elevation_deg:g}")
     truth: dict[str, np.ndarray] = {}
     if load_truth:
         for name, fname in TRUTH_FILES.items():

@@ -214,3 +214,19 @@ def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, edit)
     _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (lambda doc: doc["frames"][1]["position_m"].__setitem__(0, float("nan")), "frame 1: position, rotation"),
+        (lambda doc: doc.update(sun={"azimuth_deg": 400.0, "elevation_deg": 20.0}), "sun.azimuth_deg must be in"),
+        (lambda doc: doc.update(sun={"azimuth_deg": 40.0, "elevation_deg": -5.0}), "sun.elevation_deg must be in"),
+    ],
+)
+def test_pose_and_sun_errors_name_the_file(good, tmp_path, capsys, edit, says):
+    """The errors for a non-finite pose and a sun out of range named neither the file nor, for the sun, the field
+    as the file spells it (sun_azimuth_deg)."""
+    bad = _copy(good[0], tmp_path / "bad")
+    _rewrite(bad, edit)
+    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
