@@ -222,7 +222,7 @@ def chosen_sites_safe(sites_uv: np.ndarray, hazard_true: np.ndarray, radius_px: 
     ``sites_uv`` is an ``(N, 2)`` array of (u, v) pixel positions in i1. A site
     is truly safe when every finite ground-truth pixel in its footprint has
     hazard < 1 and the footprint holds at least one finite truth pixel; a site at a non-finite
-    position (e.g. one reported without a height) is not safe.
+    position (e.g. one reported without a height) or off the image is not safe.
     Returns ``n`` and ``safe_pct`` (NaN when no site was picked).
     """
     ht = np.asarray(hazard_true, dtype=np.float64)
@@ -234,12 +234,14 @@ def chosen_sites_safe(sites_uv: np.ndarray, hazard_true: np.ndarray, radius_px: 
     unsafe_near = _grow(ht >= 1.0, k.astype(np.uint8))
     known_near = _grow(np.isfinite(ht), k.astype(np.uint8))
     h, w = ht.shape
-    # a site that cannot be placed in the image (NaN or infinite position) is not a safe site
+    # a site that cannot be placed in the image (NaN or infinite position, or off the image, where the truth says
+    # nothing: clipped, it was judged by the edge pixel nearest to it) is not a safe site
     finite = np.all(np.isfinite(uv), axis=1)
     uf = np.where(finite[:, None], uv, 0.0)
+    inside = (uf[:, 0] >= -0.5) & (uf[:, 0] <= w - 0.5) & (uf[:, 1] >= -0.5) & (uf[:, 1] <= h - 0.5)
     u = np.clip(np.rint(uf[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(uf[:, 1]).astype(int), 0, h - 1)
-    safe = finite & known_near[v, u] & ~unsafe_near[v, u]
+    safe = finite & inside & known_near[v, u] & ~unsafe_near[v, u]
     return {"n": int(uv.shape[0]), "safe_pct": 100.0 * float(np.mean(safe))}
 
 

@@ -132,6 +132,9 @@ def test_chosen_sites_safe():
     # a site that cannot be placed is not safe (it used to land on pixel (0, 0) and be judged there)
     nan_site = scoring.chosen_sites_safe(np.array([[np.nan, np.nan], [40, 40]]), truth, 3.0)
     assert nan_site == {"n": 2, "safe_pct": 50.0}
+    # nor one off the image, where the truth says nothing (it was judged by the nearest edge pixel)
+    off = scoring.chosen_sites_safe(np.array([[900.0, 40.0], [40.0, -7.0], [49.4, 0.0]]), truth, 3.0)
+    assert off["n"] == 3 and off["safe_pct"] == pytest.approx(100.0 / 3)
 
 
 def test_epipole_nadir_descent_is_principal_point_and_box_is_thesis_80px():
