@@ -205,6 +205,7 @@ class FlightHandle:
         # the flight side answers the ground's Hello (docs/protocol.md section 6); ours says Hello unasked
         self.link.send(Hello(role="hil-server"))
         self.hello = False
+        self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
 
     def take_refusals(self) -> list[tuple[int | None, str]]:
         """(type code, reason) of the messages the link refused from this incarnation since the last call."""
@@ -321,6 +322,7 @@ class Supervisor:
                 for idx in sorted(st.fframes):
                     self.flight.link.send(st.fframes[idx])
                 st.sent_to = self.generation
+                self.flight.replayed += 1
 
     def _restart_flight(self, reason: str) -> None:
         assert self.flight is not None
@@ -338,8 +340,17 @@ class Supervisor:
         self._write_telemetry({"event": "restart", "reason": reason, "exit": str(report)})
         if self.boot_failures >= MAX_BOOT_FAILURES:  # a crash loop would go on until the ground's 15 min wait
             last = getattr(report, "reason", None) or reason
+            # a program that reads its input before it sends the Hello it queued can die on a replayed frame with
+            # the Hello never out: "before it said Hello" is then true on the wire, but the frames are the suspect
+            frames = (
+                f" (its last start was sent the frames of {self.flight.replayed} pair(s) at once: it may die on a "
+                "frame before its Hello goes out)"
+                if self.flight.replayed
+                else ""
+            )
             raise FlightFailed(
-                f"the flight process died {self.boot_failures} times in a row before it said Hello; last: {last}"
+                f"the flight process died {self.boot_failures} times in a row before its Hello reached the HIL "
+                f"server{frames}; last: {last}"
             )
         self._start_flight()
 

@@ -165,7 +165,7 @@ def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manif
     cmd = f"{sys.executable} -c \"import sys; sys.exit('cannot open {{port}}')\""
     code, s, _ = run_cli(manifest, tmp_path, "--flight-cmd", cmd)
     assert code == 1 and s["complete"] is False
-    assert "died 3 times in a row before it said Hello" in s["reason"] and "cannot open" in s["reason"]
+    assert "died 3 times in a row before its Hello reached the HIL server" in s["reason"] and "cannot open" in s["reason"]
     assert [r["label"] for r in s["records"]] == PAIRS  # every pair has an outcome
     assert all(r["status"] == "error" and r["code"] in ("not_run", "server_failed") for r in s["records"])
     assert s["link_errors"] == 0
