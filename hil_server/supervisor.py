@@ -84,6 +84,9 @@ class PairState:
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
     proc_at_result: dict | None = None
     sent_to: int = -1  # flight generation the frames went to
+    # monotonic time the last frame reached the current generation: complete_at, or its restart's replay. The hang
+    # watchdog counts from here: a pair that waited while earlier generations crashed is not this one's hang
+    sent_at: float | None = None
     result: Result | None = None
     result_at: float | None = None  # monotonic time the Result came from the flight process
     result_mid: int | None = None  # its message id on the ground link
@@ -322,6 +325,8 @@ class Supervisor:
                 for idx in sorted(st.fframes):
                     self.flight.link.send(st.fframes[idx])
                 st.sent_to = self.generation
+                if st.complete_at is not None:
+                    st.sent_at = time.monotonic()
                 self.flight.replayed += 1
 
     def _restart_flight(self, reason: str) -> None:
@@ -429,7 +434,7 @@ class Supervisor:
             st.arrivals[msg.frame_index] = time.monotonic()
             assert self.flight is not None
             if len(st.frames) == 2:
-                st.complete_at = time.monotonic()
+                st.complete_at = st.sent_at = time.monotonic()
                 st.proc_at_complete = self.flight.proc.stats()
             self.flight.link.send(fmsg)
             st.sent_to = self.generation
@@ -734,7 +739,8 @@ class Supervisor:
             return
         now = time.monotonic()
         st = self._oldest_outstanding()
-        if st is not None and st.complete_at is not None and now - st.complete_at > self._hard_limit():
+        since = None if st is None or st.complete_at is None else max(st.complete_at, st.sent_at or st.complete_at)
+        if st is not None and st.complete_at is not None and since is not None and now - since > self._hard_limit():
             self.counters["hangs"] += 1
             note = self._flight_note()
             skipping = self.flight.skipping()
@@ -743,8 +749,9 @@ class Supervisor:
             self._fail_pair(
                 st,
                 "deadline_hang",
-                f"no result {now - st.complete_at:.1f} s after the last frame "
-                f"(hard limit {self._hard_limit():.1f} s): flight process killed and restarted{note}",
+                f"no result {now - st.complete_at:.1f} s after the last frame"
+                + (f" ({now - since:.1f} s after its restart's replay)" if since > st.complete_at else "")
+                + f" (hard limit {self._hard_limit():.1f} s): flight process killed and restarted{note}",
             )
             self._restart_flight("hung past the hard deadline")
             return

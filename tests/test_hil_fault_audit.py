@@ -60,6 +60,9 @@ while not link.closed_by_peer:
         elif mtype == mf.CONFIG:
             config = msg
         elif mtype == mf.FRAME_MSG:
+            if args.mode == "crash_on_frame":  # every incarnation dies on its first frame, after a while
+                time.sleep(1.5)
+                os._exit(9)
             pair = pending.setdefault(msg["pair_id"], {{}})
             pair[msg["frame_index"]] = msg
             if len(pair) < 2:
@@ -149,6 +152,19 @@ def test_crashes_between_pairs_are_counted_and_reported(manifest, flight, tmp_pa
     assert "flight process: " in capsys.readouterr().out
 
 
+def test_pairs_queued_behind_a_crash_are_the_next_process_s_to_answer_not_its_hang(manifest, flight, tmp_path):
+    """With the frames sent at once (--pace asap), the pairs queued while a process crashed were older than the
+    hard limit when its successor got them: the successor was killed at once as "hung", three of those in a row
+    ended the run as a program that "died before it said Hello". Each pair is the crash it met."""
+    code, s, _ = run_cli(
+        manifest, tmp_path, *flight_cmd(flight, "crash_on_frame"), "--pace", "asap", "--deadline", "0.5"
+    )
+    assert code == 1 and s["complete"] is True, s.get("reason")
+    assert outcomes(s) == [(label, "error", "flight_crash") for label in PAIRS]
+    counters = s["supervisor_counters"]
+    assert counters["hangs"] == 0 and counters["crashes"] == len(PAIRS)
+
+
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
     """The ground used to wait 36 s per pair for the Telemetry and record "no result" although it held the Result."""
     code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "no_telemetry"), "--deadline", "1")
@@ -165,7 +181,9 @@ def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manif
     cmd = f"{sys.executable} -c \"import sys; sys.exit('cannot open {{port}}')\""
     code, s, _ = run_cli(manifest, tmp_path, "--flight-cmd", cmd)
     assert code == 1 and s["complete"] is False
-    assert "died 3 times in a row before its Hello reached the HIL server" in s["reason"] and "cannot open" in s["reason"]
+    assert (
+        "died 3 times in a row before its Hello reached the HIL server" in s["reason"] and "cannot open" in s["reason"]
+    )
     assert [r["label"] for r in s["records"]] == PAIRS  # every pair has an outcome
     assert all(r["status"] == "error" and r["code"] in ("not_run", "server_failed") for r in s["records"])
     assert s["link_errors"] == 0
