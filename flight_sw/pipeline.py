@@ -1269,24 +1269,8 @@ def _run_v1(
     # the states follow the DEM the hazards were mapped on: a small gap filled for the mapping is called as the map
     # calls it (state.npy said unknown where hazard.npy said safe, and `score` refused the pair)
     state, psafe = three_state(hazard, elev_map)
-    return _result(
-        p,
-        level,
-        timings,
-        info,
-        grid,
-        sites,
-        elevation,
-        hazard,
-        slope_img,
-        rough_img,
-        rocks,
-        shadow,
-        covered,
-        world_xy,
-        state=state,
-        psafe=psafe,
-    )
+    maps = (elevation, hazard, slope_img, rough_img, rocks, shadow, covered, world_xy)
+    return _result(p, level, timings, info, grid, sites, *maps, state=state, psafe=psafe)
 
 
 def _crop_box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:

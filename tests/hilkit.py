@@ -20,6 +20,17 @@ def strict_json(path: Path) -> Any:
     return json.loads(path.read_text(), parse_constant=_not_json)
 
 
+def one_line_error(capsys, argv: list[str]) -> str:
+    """Run the CLI, check exit 2 and one line on stderr without a traceback; return that line."""
+    from hil_server.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"hazard-hil {argv[0]}: error: "), err
+    return err
+
+
 def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:
     """Render the vertical descent's ``pairs`` at ``px`` x ``px`` into ``out``; returns its manifest."""
     render_scenario("vertical", out, pairs=pairs, camera=scaled_camera(px), progress=False)

@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hilkit import run_hil, small_descent
+from hilkit import one_line_error, run_hil, small_descent
 
-from hil_server.cli import main
 from protocol.pairdir import PairFormatError, Pose, check_altimeter, image_header_size, read_pair
 
 NADIR = np.diag([1.0, -1.0, -1.0])  # camera looking straight down
@@ -27,15 +26,6 @@ NADIR = np.diag([1.0, -1.0, -1.0])  # camera looking straight down
 def descent(tmp_path_factory) -> Path:
     """A 128 px vertical descent of two pairs; returns its manifest."""
     return small_descent(tmp_path_factory.mktemp("pairs"), ["600/300", "300/150"])
-
-
-def one_line_error(capsys, argv: list[str]) -> str:
-    """Run the CLI, check exit 2 and one line on stderr without a traceback; return that line."""
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
-    assert err.startswith(f"hazard-hil {argv[0]}: error: "), err
-    return err
 
 
 def copy_pair(descent: Path, tmp_path: Path, label_dir: str = "600_300") -> Path:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hilkit import one_line_error, strict_json
 
 from ground_sim import descent
 from ground_sim import library as lib
@@ -37,24 +38,6 @@ def trajectory(tmp_path: Path, frames: list[dict[str, Any]], label: str = "p") -
     p = tmp_path / "traj.json"
     p.write_text(json.dumps({"camera": CAM128, "pairs": [{"label": label, "frames": frames}]}))
     return p
-
-
-def strict_json(path: Path) -> Any:
-    """``path`` parsed as RFC 8259 JSON: a NaN or Infinity token fails the test."""
-
-    def refuse(token: str) -> None:
-        raise AssertionError(f"{path}: {token} is not JSON")
-
-    return json.loads(path.read_text(), parse_constant=refuse)
-
-
-def one_line_error(capsys, argv: list[str]) -> str:
-    """Run the CLI, check exit 2 and one line on stderr without a traceback; return that line."""
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
-    assert err.startswith(f"hazard-hil {argv[0]}: error: "), err
-    return err
 
 
 @pytest.fixture
