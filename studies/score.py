@@ -186,6 +186,9 @@ def score_output(
     area = seen & np.isfinite(gt_h) & np.isfinite(depth)
     n = int(np.count_nonzero(area))
     if n == 0:
+        for key, arr in (("hazard", gt_h), ("depth", depth)):
+            if not np.isfinite(arr).any():  # not a geometry problem: say which file holds nothing
+                raise ScoreError(f"{where}: gt_{key}_i1.npy holds no finite value: nothing to score against")
         raise ScoreError(f"{where}: frame 0 and the last frame share no ground: nothing to score")
     safe = gt_h < 1.0
     called = ~scoring.unsafe_estimate(output.hazard)  # hazard < 1; NaN is not called safe

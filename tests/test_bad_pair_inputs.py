@@ -230,3 +230,11 @@ def test_pose_and_sun_errors_name_the_file(good, tmp_path, capsys, edit, says):
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, edit)
     _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
+
+
+def test_an_all_nan_truth_is_named_not_called_a_geometry_problem(good, tmp_path, capsys):
+    """It read "frame 0 and the last frame share no ground"."""
+    bad = _copy(good[0], tmp_path / "bad")
+    np.save(bad / "gt_hazard_i1.npy", np.full((PX, PX), np.nan, np.float32))
+    err = _refused(["score", str(bad), str(good[1])], capsys, "gt_hazard_i1.npy holds no finite value")
+    assert "share no ground" not in err
