@@ -38,6 +38,13 @@ is killed with it) and gets SIGKILL if the thread that started it dies
 (``PR_SET_PDEATHSIG``): a supervisor that is killed outright leaves no flight
 process behind, even one the throttle holds stopped.
 
+**Processes it starts** run on the same budget: the throttle stops and resumes the whole group and counts its
+CPU, the memory ceiling counts their private RSS too, and they die with the flight process. The watchdog finds
+them every ``MEMBER_SCAN_S`` through ``/proc/PID/task/TID/children``, so one that left the group with ``setsid``
+is throttled and killed as well (by PID and start time, after it is reparented). Before stop 52 a flight
+program's worker process ran outside the budget: 400 MiB under a 128 MiB ceiling, and 75 % of the pinned core
+on a 33 % budget.
+
 Exit reports distinguish: normal exit ("ok"), error exit ("error"), crash by
 signal ("crash"), memory-ceiling breach by the watchdog or a failed allocation
 ("memory"), a kill requested through :meth:`EmulatedProcessor.kill` ("killed"),
@@ -88,6 +95,8 @@ _MEMORY_MARKERS = (
 
 # EXIT_MEMORY (protocol.errors): the status a flight main uses to say "allocation failed".
 
+MEMBER_SCAN_S = 0.1  # how often the watchdog rescans the processes a flight process started
+MAX_DESCENDANTS = 256  # a fork bomb is not walked forever; the ceiling catches it by the memory it holds
 MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -226,6 +235,38 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
     return run_ns, wait_ns
 
 
+def descendants(pid: int) -> list[int]:
+    """The processes ``pid`` started, and theirs, from ``/proc/PID/task/TID/children`` (a flight program's worker
+    processes run on its budget too; one that left the process group with ``setsid`` is still found here while
+    its parent lives)."""
+    out: list[int] = []
+    todo = [pid]
+    while todo and len(out) < MAX_DESCENDANTS:
+        p = todo.pop()
+        try:
+            tids = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                with open(f"/proc/{p}/task/{tid}/children", "rb") as fh:
+                    kids = [int(k) for k in fh.read().split()]
+            except (OSError, ValueError):
+                continue
+            out.extend(kids)
+            todo.extend(kids)
+    return out[:MAX_DESCENDANTS]
+
+
+def _start_ticks(pid: int) -> int | None:
+    """The process's start time (clock ticks since boot, /proc/PID/stat field 22): tells it from a reused PID."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            return int(fh.read().rsplit(b")", 1)[1].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 _MEM_FIELDS = (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem")  # /proc/PID/status keys the watchdog reads
 
 
@@ -263,9 +304,13 @@ def private_rss_bytes(pid: int) -> tuple[int, int] | None:
 class _Child:
     """State of one started child; replaced on every start()."""
 
-    def __init__(self, popen: subprocess.Popen, core: int, t0: float) -> None:
+    def __init__(self, popen: subprocess.Popen, core: int, t0: float, group: bool = False) -> None:
         self.popen = popen
         self.pid = popen.pid
+        self.group = group  # the child leads its own process group: signals go to the group
+        # (pid, start ticks) of the processes it started, as the watchdog last saw them: they are throttled, their
+        # memory counts, and they are killed with it (a reparented orphan is found again by its start time)
+        self.members: tuple[tuple[int, int | None], ...] = ()
         self.core = core
         self.t0 = t0
         self.lock = threading.Lock()  # guards signals vs. reaping (no PID reuse races)
@@ -287,6 +332,8 @@ class _Child:
         self.threads: list[threading.Thread] = []
 
     def sample(self) -> tuple[int, int]:
+        for pid, _ in self.members:  # their tasks join per_task; the sum below covers them
+            _read_schedstat(pid, self.per_task)
         run, wait = _read_schedstat(self.pid, self.per_task)
         self.cpu_ns = max(self.cpu_ns, run)
         self.wait_ns = max(self.wait_ns, wait)
@@ -301,17 +348,28 @@ class _Child:
             if self.exited.is_set():
                 return False
             try:
-                if sig == signal.SIGKILL:
-                    os.killpg(self.pid, sig)
+                if sig == signal.SIGKILL or (self.group and sig in (signal.SIGSTOP, signal.SIGCONT)):
+                    os.killpg(self.pid, sig)  # the processes it started stop, run and die with it
                 else:
                     os.kill(self.pid, sig)
             except ProcessLookupError:
                 return False
+            if self.group:
+                self._signal_members(sig)
             if sig == signal.SIGSTOP:
                 self.stopped, self.stops = True, self.stops + 1
             elif sig == signal.SIGCONT:
                 self.stopped = False
             return True
+
+    def _signal_members(self, sig: int) -> None:
+        """``sig`` to the processes it started that left its group (``setsid``); the group got it already."""
+        for pid, ticks in self.members:
+            try:
+                if os.getpgid(pid) != self.pid and _start_ticks(pid) == ticks:
+                    os.kill(pid, sig)
+            except (ProcessLookupError, PermissionError):
+                continue
 
 
 def on_slice_s(fraction: float, period_s: float = 0.02) -> tuple[float, float]:
@@ -488,7 +546,7 @@ class EmulatedProcessor:
             )
         except (OSError, subprocess.SubprocessError) as exc:
             raise ProcessorError(f"cannot start {argv[0]!r}: {exc}") from None
-        child = _Child(popen, core, time.monotonic())
+        child = _Child(popen, core, time.monotonic(), group=True)
         self._child = child
         if not self._atexit_registered:
             atexit.register(self._atexit)
@@ -631,13 +689,21 @@ class EmulatedProcessor:
     def _watchdog(self, child: _Child) -> None:
         limit = self.spec.memory_mib * MIB if self.spec.memory_mib is not None else None
         poll = self.spec.rss_poll_s
+        every = max(1, round(MEMBER_SCAN_S / poll))
+        n = 0
         while not child.exited.is_set():
+            if n % every == 0:  # the process tree changes rarely: rescanned every MEMBER_SCAN_S
+                child.members = tuple((pid, _start_ticks(pid)) for pid in descendants(child.pid))
+            n += 1
             mem = private_rss_bytes(child.pid)
             if mem is not None:
-                child.rss = mem[0]
-                child.peak_rss = max(child.peak_rss, mem[1])
-                if limit is not None and mem[0] > limit:
-                    why = f"memory ceiling: private RSS {mem[0] / MIB:.1f} MiB > {self.spec.memory_mib:g} MiB"
+                # the memory of the processes it started counts against the same ceiling
+                extra = sum((private_rss_bytes(pid) or (0, 0))[0] for pid, _ in child.members)
+                child.rss = mem[0] + extra
+                child.peak_rss = max(child.peak_rss, mem[1] + extra)
+                if limit is not None and child.rss > limit:
+                    who = f" (its {len(child.members)} child process(es) hold {extra / MIB:.1f})" if extra else ""
+                    why = f"memory ceiling: private RSS {child.rss / MIB:.1f} MiB{who} > {self.spec.memory_mib:g} MiB"
                     self._kill(why, "memory")
                     return
             if child.stop_threads.wait(poll):
@@ -692,6 +758,12 @@ class EmulatedProcessor:
             os.killpg(child.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+        for pid, ticks in child.members:  # and what left the group (setsid), reparented by now: by start time
+            try:
+                if _start_ticks(pid) == ticks:
+                    os.kill(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                continue
         for t in child.threads:
             if t is not threading.current_thread() and t.name.startswith("procemu-stderr"):
                 t.join(timeout=2.0)  # the pipe drains once the child is gone

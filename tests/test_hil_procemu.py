@@ -321,3 +321,53 @@ def test_text_mode_is_refused_while_stderr_is_captured():
     proc = EmulatedProcessor(ProcessorSpec())
     with pytest.raises(InputError, match="text mode"):
         proc.start([PY, "-c", "pass"], stdout=subprocess.PIPE, text=True)
+
+
+# a flight program that does its work in a child process: the parent only waits
+_CHILD_WORK = textwrap.dedent("""
+    import subprocess, sys, time
+    kid = subprocess.Popen([sys.executable, "-c", {work!r}], start_new_session={setsid})
+    print(kid.pid, flush=True)
+    kid.wait() if {wait} else time.sleep(1.0)
+""")
+
+
+def test_a_child_process_counts_against_the_memory_ceiling():
+    """A child holding 400 MiB under a 128 MiB budget ran to the end: the watchdog read the parent alone."""
+    work = "import time, numpy as np\nhog = [np.ones(16 << 20, np.uint8) for _ in range(25)]\ntime.sleep(30)"
+    proc = EmulatedProcessor(ProcessorSpec(memory_mib=128))
+    proc.start([PY, "-c", _CHILD_WORK.format(work=work, setsid=False, wait=True)], stdout=subprocess.PIPE)
+    report = proc.wait(60)
+    proc.close()
+    assert report is not None and report.kind == "memory", report
+    assert "child process" in report.reason and report.peak_rss_mib >= 128
+
+
+def test_a_child_process_runs_on_the_budget_too():
+    """On a 25 % budget the child's busy loop took the core it was pinned to: only the parent was stopped."""
+    work = "import time\nt = time.monotonic()\nwhile time.monotonic() - t < 2.0: pass"
+    proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.25))
+    t0 = time.monotonic()
+    proc.start([PY, "-c", _CHILD_WORK.format(work=work, setsid=False, wait=True)], stdout=subprocess.PIPE)
+    report = proc.wait(60)
+    stats = proc.stats()
+    proc.close()
+    assert report is not None and report.kind == "ok", report
+    wall = time.monotonic() - t0
+    assert stats["cpu_s"] / wall < 0.4, (stats, wall)  # the child's CPU is counted, and held to the budget
+    assert stats["cpu_s"] > 0.3  # ... and it is there: the child's 2 s loop is counted
+
+
+def test_a_child_that_left_the_process_group_dies_with_the_flight_process():
+    """A `setsid` child outlived the run (no signal to the group reaches it)."""
+    proc = EmulatedProcessor(ProcessorSpec())
+    popen = proc.start([PY, "-c", _CHILD_WORK.format(work="import time; time.sleep(60)", setsid=True, wait=False)],
+                       stdout=subprocess.PIPE)  # fmt: skip
+    kid = int(popen.stdout.readline())
+    report = proc.wait(30)
+    proc.close()
+    assert report is not None and report.kind == "ok", report
+    deadline = time.monotonic() + 5
+    while not _gone(kid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(kid), "the setsid child outlived its flight process"
