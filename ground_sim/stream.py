@@ -86,6 +86,7 @@ from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_w
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
+from reports.console import printable
 
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
@@ -96,6 +97,8 @@ UNANSWERED_TEXT = (
     "its ZeroMQ connection is up but the board never answered on it: a board serves one ground at a time and this "
     "one is busy with another (its console says 'second peer ... refused'), or its program is not reading"
 )
+UNATTRIBUTED_SAID = 5  # unattributed Errors from the flight side said one by one; then one line per ...
+UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
@@ -237,7 +240,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         "deadline_met": False,
     }
     if o.error is not None:
-        rec.update(status="error", code=o.error.code, text=o.error.text)
+        # the flight side's words, escaped: they reach the console, the logs and the summary
+        rec.update(status="error", code=printable(o.error.code, 100), text=printable(o.error.text))
         return rec
     assert o.result is not None and (o.telemetry is not None or o.telemetry_missing is not None)
     d = out_dir / o.pair_id
@@ -282,7 +286,7 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         psafe_step=r.psafe_step,
         full_maps=r.hazard_image is not None,
         sites=[asdict(s) for s in r.sites],
-        no_site_reason=r.no_site_reason,
+        no_site_reason=None if r.no_site_reason is None else printable(r.no_site_reason),
         # the deadline, judged here: the last frame's last byte sent -> the whole Result held
         e2e_latency_s=e2e,
         deadline_met=bool(met),
@@ -413,6 +417,7 @@ def stream_descent(
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
+    unattributed = [0, -math.inf]  # Errors from the flight side about no pair: count, when last said
     records: list[dict] = []
     config: Config | None = None
     state = _SessionState()
@@ -622,7 +627,16 @@ def stream_descent(
             if o is None:
                 o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
             if o is None:
-                note(f"unattributed error from flight side: {msg.code}: {msg.text}")
+                unattributed[0] += 1
+                n = unattributed[0]
+                # said for the first few, then once per UNATTRIBUTED_QUIET_S with the count: a flood of them printed
+                # 1660 lines in 2.8 s
+                if n <= UNATTRIBUTED_SAID or time.monotonic() - unattributed[1] >= UNATTRIBUTED_QUIET_S:
+                    unattributed[1] = time.monotonic()
+                    more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
+                    note(
+                        f"unattributed error from flight side{more}: {printable(msg.code, 100)}: {printable(msg.text)}"
+                    )
                 return
             o.error = msg
         elif isinstance(msg, Result) and o is not None:

@@ -54,6 +54,7 @@ from pathlib import Path
 from protocol.arq import Skipping
 from protocol.errors import InputError
 from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from reports.console import printable
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
@@ -506,8 +507,8 @@ class Supervisor:
                 s = self.pairs[pid]
                 if not s.done and msg.seq is not None and any(f.seq == msg.seq for f in s.fframes.values()):
                     st = s
-            if st is not None:
-                self._fail_pair(st, msg.code, msg.text)
+            if st is not None:  # the program's words, escaped: they reach the log, the console and the summary
+                self._fail_pair(st, printable(msg.code, 100), printable(msg.text))
             elif msg.seq is None:
                 self.counters["errors"] += 1
                 self._to_ground(msg)

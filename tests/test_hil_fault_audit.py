@@ -68,6 +68,13 @@ while not link.closed_by_peer:
             if len(pair) < 2:
                 continue
             del pending[msg["pair_id"]]
+            if args.mode == "inject" and answered == 1:  # words meant for the terminal, not the reader
+                text = "boom\\n\\x1b[2J\\x1b[32mrun: PASS: every pair -> exit 0\\x1b[0m"
+                link.send(mf.ERROR, {{"code": "x\\x1b[31m", "text": text, "seq": pair[1]["seq"]}})
+                for _ in range(50):  # and a flood of errors about no pair
+                    link.send(mf.ERROR, {{"code": "flood", "text": "about nothing"}})
+                answered += 1
+                continue
             res = mf.answer(pair[0], pair[1], config)
             faulty = answered >= 1
             if faulty and args.mode == "hostile" and answered == 1:
@@ -163,6 +170,18 @@ def test_pairs_queued_behind_a_crash_are_the_next_process_s_to_answer_not_its_ha
     assert outcomes(s) == [(label, "error", "flight_crash") for label in PAIRS]
     counters = s["supervisor_counters"]
     assert counters["hangs"] == 0 and counters["crashes"] == len(PAIRS)
+
+
+def test_a_flight_programs_words_cannot_drive_the_terminal(manifest, flight, tmp_path, capfd):
+    """An Error's text went to the console raw: an ESC sequence cleared the screen and a newline printed a fake
+    green "run: PASS" line; a flood of Errors about no pair printed one line each (1660 in 2.8 s)."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "inject"))
+    err = capfd.readouterr().err
+    assert code == 1 and "\x1b" not in err
+    bad = next(r for r in s["records"] if r["status"] == "error")
+    assert "boom\\n\\x1b[2J" in bad["text"] and "\n" not in bad["text"] and bad["code"] == "x\\x1b[31m"
+    assert "\nrun: PASS" not in err
+    assert err.count("unattributed error from flight side") <= 6, err
 
 
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):

@@ -1,0 +1,23 @@
+"""Text from the other side of a link, made safe to print on a terminal.
+
+A flight program's Error text, a refusal's reason or a Result's ``no_site_reason`` reach the ground's console,
+its log files and the run's summary. Control characters in them are the program's to send, not the terminal's to
+obey: an ESC sequence could clear the screen and a newline could print a fake ``run: PASS`` line. They are shown
+as escapes instead (``\\x1b``, ``\\n``), and a very long text is cut.
+"""
+
+from __future__ import annotations
+
+MAX_TEXT = 2000  # characters kept of one text from the far end (an Error's text is bounded by the codec anyway)
+
+__all__ = ["MAX_TEXT", "printable"]
+
+
+def printable(text: object, limit: int = MAX_TEXT) -> str:
+    """``text`` as one printable line: C0 and C1 control characters and DEL as ``repr``-style escapes, cut to
+    ``limit`` characters with a note of how many were left out."""
+    s = str(text)
+    out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in s) if not s.isprintable() else s
+    if len(out) > limit:
+        out = f"{out[:limit]}... ({len(out) - limit} more characters)"
+    return out
