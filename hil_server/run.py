@@ -376,7 +376,7 @@ def _fmt(v, spec: str = ".2f") -> str:
     return format(v, spec)
 
 
-FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry")  # supervisor.jsonl events the summary keeps
+FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result")  # supervisor.jsonl events the summary keeps
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
@@ -410,6 +410,11 @@ def _server_note(summary: dict, c: dict) -> str:
         ("refused_messages", "refused message", "refused messages"),
         ("missing_telemetry", "Result without Telemetry", "Results without Telemetry"),
         ("flight_line_errors", "corrupted frame dropped", "corrupted frames dropped"),
+        (
+            "stale_results",
+            "Result ignored (a second, or for no open pair)",
+            "Results ignored (seconds, or for no open pair)",
+        ),
     ):
         n = int(c.get(key) or 0)
         if n:

@@ -486,8 +486,15 @@ class Supervisor:
             pass
         elif isinstance(msg, Result):
             st = self._pair_for_fseqs(msg.frame_seqs)
-            if st is None or st.done:
+            if st is None or st.done or st.result is not None:
+                # a pair gets one Result (docs/protocol.md): the first stands. A second one sent at once used to
+                # replace it on its way to the ground; one for a pair not (or no longer) asked for vanished unsaid
+                second = st is not None and not st.done
+                what = "a second Result: the first stands" if second else "a Result for no open pair"
                 self.counters["stale_results"] += 1
+                text = f"ignored {what} (frames {list(msg.frame_seqs)})"
+                self.log(f"supervisor: {text}")
+                self._write_telemetry({"event": "stale_result", "frame_seqs": list(msg.frame_seqs), "text": text})
                 return
             st.result = msg
             st.result_at = time.monotonic()

@@ -82,6 +82,9 @@ while not link.closed_by_peer:
             if args.mode == "bad_shape" and answered == 1:  # grids whose shapes disagree: refused by the schema
                 res.update(bad_shapes())
             link.send(mf.RESULT, res)
+            if args.mode == "dup_result":  # a second, different Result for the same pair, at once: "full", all safe
+                safe = np.zeros(np.shape(mf.ext_hook(3, res["state_grid"].data)), np.uint8)
+                link.send(mf.RESULT, {{**res, "state_grid": mf.array(safe), "level": "full", "degraded": False}})
             nested = b"\\x92\\x01" + b"\\x91" * 5000 + b"\\xc0"  # a message nested 5000 deep
             if faulty and args.mode == "hostile":
                 link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
@@ -182,6 +185,15 @@ def test_a_flight_programs_words_cannot_drive_the_terminal(manifest, flight, tmp
     assert "boom\\n\\x1b[2J" in bad["text"] and "\n" not in bad["text"] and bad["code"] == "x\\x1b[31m"
     assert "\nrun: PASS" not in err
     assert err.count("unattributed error from flight side") <= 6, err
+
+
+def test_a_second_result_for_a_pair_does_not_replace_the_first(manifest, flight, tmp_path):
+    """Sent straight after the first, it replaced the scored answer (an all-unknown map became an all-safe "full"
+    one) without a word; sent later, it was only counted."""
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "dup_result"))
+    assert [r["level"] for r in s["records"]] == ["none"] * len(PAIRS)  # the first Results, minimal_flight's
+    assert s["supervisor_counters"]["stale_results"] == len(PAIRS)
+    assert "Results ignored" in md and any(e["event"] == "stale_result" for e in s["flight_events"])
 
 
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
