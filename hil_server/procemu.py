@@ -95,6 +95,7 @@ _MEMORY_MARKERS = (
 
 # EXIT_MEMORY (protocol.errors): the status a flight main uses to say "allocation failed".
 
+MAX_FORWARDED_BYTES = 4 << 20  # of a flight process's output passed on to the supervisor's log; the rest counted
 MEMBER_SCAN_S = 0.1  # how often the watchdog rescans the processes a flight process started
 MAX_DESCENDANTS = 256  # a fork bomb is not walked forever; the ceiling catches it by the memory it holds
 MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
@@ -507,13 +508,20 @@ class EmulatedProcessor:
         return self._baseline_vms_mib + s.memory_mib + s.as_headroom_mib
 
     def start(
-        self, argv: list[str], env: dict | None = None, pass_fds: tuple[int, ...] = (), **popen_kwargs
+        self,
+        argv: list[str],
+        env: dict | None = None,
+        pass_fds: tuple[int, ...] = (),
+        merge_stdout: bool = False,
+        **popen_kwargs,
     ) -> subprocess.Popen:
         """Start ``argv`` on the emulated processor and return its Popen.
 
         ``env`` (default: this process's environment) is overlaid with
         :func:`thread_env`. stderr is forwarded to ours line by line while its
-        tail is kept to classify failed allocations; pass ``stderr=`` to override.
+        tail is kept to classify failed allocations; pass ``stderr=`` to override. At most
+        :data:`MAX_FORWARDED_BYTES` are forwarded; the rest is counted. ``merge_stdout`` sends the child's stdout
+        the same way (a program of the user's, whose prints would otherwise go unbounded to ours).
         """
         if self.alive:
             raise ProcessorError(f"a flight process (pid {self.pid}) is still running; kill or wait for it first")
@@ -529,6 +537,8 @@ class EmulatedProcessor:
 
         def preexec() -> None:  # runs in the child between fork and exec: async-signal-safe calls only
             os.setpgid(0, 0)  # its own process group: killed as a whole, untouched by the terminal's Ctrl-C
+            if merge_stdout:  # after Popen's own redirections: stdout joins the captured (and bounded) stderr
+                os.dup2(2, 1)
             if prctl is not None:
                 prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
             os.sched_setaffinity(0, {core})
@@ -713,9 +723,14 @@ class EmulatedProcessor:
         stream = child.popen.stderr
         assert stream is not None  # started with stderr=PIPE
         out = getattr(sys.stderr, "buffer", None)
+        budget, dropped = MAX_FORWARDED_BYTES, 0  # a program printing in a loop filled an 82 MB log for two pairs
         try:
             for line in iter(stream.readline, b""):
                 child.stderr_tail.append(line[-2000:])
+                if len(line) > budget:
+                    dropped += len(line)
+                    continue
+                budget -= len(line)
                 if out is not None:
                     try:
                         out.write(line)
@@ -725,6 +740,13 @@ class EmulatedProcessor:
         except (OSError, ValueError):
             pass
         finally:
+            if dropped and out is not None:
+                try:
+                    out.write(f"procemu: {dropped} more bytes of the flight process's output were not logged "
+                              f"(the first {MAX_FORWARDED_BYTES >> 20} MiB were)\n".encode())  # fmt: skip
+                    out.flush()
+                except (OSError, ValueError):
+                    pass
             try:
                 stream.close()
             except OSError:

@@ -180,7 +180,7 @@ class FlightHandle:
             master, port = open_pty_pair()
             env = {**os.environ, "HAZARD_HIL_PORT": port, "HAZARD_HIL_LINK": f"serial:{port}@0"}
             try:
-                self.proc.start(flight_argv(flight_cmd, port), env=env)
+                self.proc.start(flight_argv(flight_cmd, port), env=env, merge_stdout=True)
             except BaseException:
                 os.close(master)
                 raise

@@ -371,3 +371,19 @@ def test_a_child_that_left_the_process_group_dies_with_the_flight_process():
     while not _gone(kid) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert _gone(kid), "the setsid child outlived its flight process"
+
+
+def test_a_flight_programs_output_is_logged_up_to_a_bound(capfd):
+    """A program printing in a loop made an 82 MB supervisor.log of two pairs; its stdout went there unbounded."""
+    from hil_server.procemu import MAX_FORWARDED_BYTES
+
+    code = "import sys\nline = 'x' * 1023 + '\\n'\nfor _ in range(10 << 10): sys.stdout.write(line)\n"
+    proc = EmulatedProcessor(ProcessorSpec())
+    proc.start([PY, "-c", code], merge_stdout=True)
+    report = proc.wait(60)
+    proc.close()
+    assert report is not None and report.kind == "ok", report
+    out, err = capfd.readouterr()
+    assert out == ""  # stdout joined the bounded stream
+    assert MAX_FORWARDED_BYTES - 2048 < len(err) < MAX_FORWARDED_BYTES + 1024
+    assert err.rstrip().endswith(f"were not logged (the first {MAX_FORWARDED_BYTES >> 20} MiB were)")
