@@ -1061,6 +1061,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 reason = sup_reason
             elif rc is None:
                 reason = f"the ground simulator did not finish within {limit:.0f} s"
+            if reason is None and rc == EXIT_NO_HELLO and emulated:
+                # the ground's link is to the HIL server, which answers; it is the program it runs that never said
+                # Hello (the ground's "its link answers: is its flight software running?" pointed at the wrong thing)
+                reason = (
+                    f"the flight process never said Hello to the HIL server within {hello:g} s, while it ran (no "
+                    f"crash, no hang the watchdogs saw): its output is in {out / 'supervisor.log'}"
+                )
             if reason is None and rc == EXIT_NO_HELLO:  # the ground's reason is on every pair's not_run record
                 reason = (
                     _no_hello_reason(received / "results.jsonl") or f"no Hello from the flight side within {hello:g} s"

@@ -55,7 +55,7 @@ def bad_shapes():
 
 while not link.closed_by_peer:
     for mtype, msg in link.poll():
-        if mtype == mf.HELLO_MSG:
+        if mtype == mf.HELLO_MSG and args.mode != "no_hello":  # that one runs, beats, and never says Hello
             link.send(mf.HELLO_MSG, {{"role": "flight", "session": link.local}})
         elif mtype == mf.CONFIG:
             config = msg
@@ -194,6 +194,14 @@ def test_a_second_result_for_a_pair_does_not_replace_the_first(manifest, flight,
     assert [r["level"] for r in s["records"]] == ["none"] * len(PAIRS)  # the first Results, minimal_flight's
     assert s["supervisor_counters"]["stale_results"] == len(PAIRS)
     assert "Results ignored" in md and any(e["event"] == "stale_result" for e in s["flight_events"])
+
+
+def test_a_program_that_runs_but_never_says_hello_is_named(manifest, flight, tmp_path):
+    """The run blamed the HIL server's link ("its link answers: is its flight software running?"): it answers."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "no_hello"), "--hello-timeout", "4")
+    assert code == 1 and s["complete"] is False
+    assert "the flight process never said Hello to the HIL server within 4 s" in s["reason"], s["reason"]
+    assert "supervisor.log" in s["reason"] and "its link answers" not in s["reason"]
 
 
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
