@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from protocol.plan import plan_note
+from reports.console import printable
 from reports.html import Column, Figure, Headline, Section, Table, write_page
 from reports.plots import (
     Panel,
@@ -68,7 +69,10 @@ def pair_row(r: dict) -> dict[str, Any]:
     return {
         "label": r.get("label"),
         "altitude_m": r.get("altitude_m"),
-        "outcome": ("degraded " if r.get("degraded") else "") + level_text(r) if ok else f"error: {r.get('code')}",
+        # an error says why, as the console does (the page showed its code alone); the text is escaped by the page
+        "outcome": ("degraded " if r.get("degraded") else "") + level_text(r)
+        if ok
+        else f"error: {r.get('code')}" + (f": {printable(r['text'], 300)}" if r.get("text") else ""),
         "e2e_latency_s": _first(r, "e2e_latency_s", "latency_s") if ok else None,
         "flight_latency_s": r.get("flight_latency_s") if ok else None,
         "result_line_s": _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")

@@ -148,6 +148,10 @@ def test_a_refused_result_ends_its_pair_at_once_with_the_schema_reason(manifest,
     reasons = [e["reason"] for e in s["flight_events"] if e["event"] == "refused"]
     assert sum("nesting deeper" in r for r in reasons) == 2
     assert "3 refused messages" in md
+    import html
+
+    page = html.unescape((tmp_path / "report.html").read_text())  # the page says why too (it showed the code alone)
+    assert "error: bad_result: " in page and "Result was refused" in page
 
 
 def test_crashes_between_pairs_are_counted_and_reported(manifest, flight, tmp_path, capsys):
