@@ -376,7 +376,8 @@ def _fmt(v, spec: str = ".2f") -> str:
     return format(v, spec)
 
 
-FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result")  # supervisor.jsonl events the summary keeps
+# supervisor.jsonl events the summary keeps
+FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "stale_error")
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
@@ -415,6 +416,7 @@ def _server_note(summary: dict, c: dict) -> str:
             "Result ignored (a second, or for no open pair)",
             "Results ignored (seconds, or for no open pair)",
         ),
+        ("stale_errors", "Error about no open pair ignored", "Errors about no open pair ignored"),
     ):
         n = int(c.get(key) or 0)
         if n:

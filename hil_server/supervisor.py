@@ -296,6 +296,7 @@ class Supervisor:
             "hangs": 0,
             "link_errors": 0,
             "stale_results": 0,
+            "stale_errors": 0,
             "refused_messages": 0,  # messages from the flight process the HIL server refused (with reasons)
             "missing_telemetry": 0,  # Results the flight process sent no Telemetry for
             "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
@@ -519,6 +520,11 @@ class Supervisor:
             elif msg.seq is None:
                 self.counters["errors"] += 1
                 self._to_ground(msg)
+            else:  # about a frame no open pair holds (one already answered, or never sent): it used to vanish
+                self.counters["stale_errors"] += 1
+                text = f"ignored an Error about frame {msg.seq}, which no open pair holds: {printable(msg.text, 200)}"
+                self.log(f"supervisor: {text}")
+                self._write_telemetry({"event": "stale_error", "text": text})
 
     def _finish_if_delivered(self, st: PairState) -> None:
         """Send the pair's Telemetry once the ground holds the whole Result (its line time is then known)."""
