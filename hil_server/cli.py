@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from importlib import metadata
 from pathlib import Path
 from typing import NoReturn
@@ -137,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     saved = _stop_signals()
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warning(shown)
     try:
         _no_empty_paths(sys.argv[1:] if argv is None else argv)
         for option in ("out", "cache", "figures"):  # the directories a command creates
@@ -162,8 +165,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
     finally:
+        warnings.showwarning = shown
         for sig, old in saved.items():
             signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+def _one_line_warning(fallback):
+    """``warnings.showwarning`` that says our own warnings as one line, ``warning: ...``, not as Python's source
+    file, line number and code line; any other warning is shown as Python shows it (``fallback``)."""
+    from hil_server.budgets import UncalibratedWarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, UncalibratedWarning):
+            print(f"warning: {message}", file=file or sys.stderr)
+        else:
+            fallback(message, category, filename, lineno, file, line)
+
+    return show
 
 
 PATH_OPTIONS = ("--out", "--cache", "--figures", "--csv", "--json")

@@ -308,3 +308,21 @@ def test_a_home_that_is_a_file_is_named_as_such(tmp_path, monkeypatch):
     monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "afile"))
     with pytest.raises(InputError, match="is a file, not a directory"):
         B.load_calibration()
+
+
+def test_the_uncalibrated_warning_is_one_line(tmp_path, monkeypatch, capsys):
+    """`run` on an uncalibrated host printed it as Python shows a warning: source file, line number, code line."""
+    import hil_server.run as run_mod
+    from hil_server.cli import main
+
+    def run_descent(cfg, log=print):  # the run's first use of the budget, without the run
+        B.get_budget("snapdragon801").duty(None)
+        raise KeyboardInterrupt
+
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(tmp_path / "fresh"))
+    monkeypatch.setattr(run_mod, "run_descent", run_descent)
+    assert main(["run", "--budget", "snapdragon801", "--out", str(tmp_path / "o")]) == 130
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "no calibration for this host" in line]
+    assert len(said) == 1 and said[0].startswith("warning: no calibration"), err
+    assert ".py:" not in err, err
