@@ -392,6 +392,17 @@ def _positive(v: Any, name: str) -> float:
     return f
 
 
+CELL_M_RANGE = (1e-3, 1e4)  # a grid cell from 1 mm to 10 km: 1e-300 passed, and every score came back empty
+
+
+def _cell_size(v: Any, name: str) -> float:
+    f = _positive(v, name)
+    lo, hi = CELL_M_RANGE
+    if not lo <= f <= hi:
+        raise SchemaError(f"{name}: must be in [{lo:g}, {hi:g}] m, got {f:g}")
+    return f
+
+
 _STATE_CODES = np.array([0, 1, 2, 255], np.uint8)  # protocol.pairdir.STATE_SAFE/UNSAFE/UNKNOWN/OUTSIDE
 
 
@@ -463,7 +474,7 @@ class Result(Message):
     psafe_grid: np.ndarray = _wire(_array("|u1", 2), compress=True)
     elevation_grid: np.ndarray = _wire(_array("<i2", 2), compress=True, delta=2)
     grid_origin_xy: tuple = _wire(_floats(2))
-    grid_cell_m: float = _wire(_positive)
+    grid_cell_m: float = _wire(_cell_size)
     elevation_step: int = _wire(_int(1, 1024), 1)
     elevation_offset_m: float = _wire(_float(), 0.0)
     elevation_unit_cm: int = _wire(_int(1, 1000), 1)

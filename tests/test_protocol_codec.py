@@ -553,3 +553,15 @@ def test_fixext_sized_compressed_array_is_counted_too():
     assert b"\xd8\x03" in body
     with pytest.raises(CodecError, match="in total"):
         decode_message(body, Limits(max_decoded_bytes=1 << 20))
+
+
+@pytest.mark.parametrize("cell", [1e-300, 0.0009, 1.0e5])
+def test_a_result_grid_cell_out_of_range_is_refused(cell):
+    """1e-300 m passed the schema: every score of the pair came back empty, with no reason."""
+    from resultrev import small_result
+
+    from protocol.messages import SchemaError
+
+    with pytest.raises(SchemaError, match=r"grid_cell_m: must be in \[0\.001, 10000\] m"):
+        encode_message(small_result(grid_cell_m=cell))
+    encode_message(small_result(grid_cell_m=0.001))  # the limits themselves are cells
