@@ -54,7 +54,7 @@ def _rewrite(d: Path, fn) -> None:
     (d / "pair.json").write_text(json.dumps(doc))
 
 
-def _refused(argv: list[str], capsys, *parts: str) -> str:
+def assert_refused(argv: list[str], capsys, *parts: str) -> str:
     """Run ``argv``; it must exit 2 with one error line holding every one of ``parts``."""
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
@@ -63,9 +63,9 @@ def _refused(argv: list[str], capsys, *parts: str) -> str:
     return err
 
 
-def _both_refuse(bad: Path, good_out: Path, tmp_path: Path, capsys, *parts: str) -> None:
-    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, *parts)
-    _refused(["score", str(bad), str(good_out)], capsys, *parts)
+def assert_both_refuse(bad: Path, good_out: Path, tmp_path: Path, capsys, *parts: str) -> None:
+    assert_refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, *parts)
+    assert_refused(["score", str(bad), str(good_out)], capsys, *parts)
 
 
 def _score_rows(pair_dir: Path, out: Path, capsys) -> list[dict]:
@@ -80,14 +80,14 @@ def _score_rows(pair_dir: Path, out: Path, capsys) -> list[dict]:
 def test_nul_in_an_image_name(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, lambda doc: doc["frames"][1].update(image="i2\x00.png"))
-    _both_refuse(bad, good[1], tmp_path, capsys, str(bad / "pair.json"), "NUL character")
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad / "pair.json"), "NUL character")
 
 
 def test_image_symlink_loop(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     (bad / "i2.png").unlink()
     (bad / "i2.png").symlink_to("i2.png")
-    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "cannot be resolved")
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "cannot be resolved")
 
 
 @pytest.mark.parametrize("kind", ["fifo", "directory"])
@@ -99,19 +99,19 @@ def test_image_that_is_not_a_regular_file(good, tmp_path, capsys, kind):
     else:
         (bad / "i2.png").mkdir()
     what = "a FIFO" if kind == "fifo" else "a directory"
-    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "exists but is not a regular file", what)
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad), "i2.png", "exists but is not a regular file", what)
 
 
 def test_missing_image_is_still_called_missing(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     (bad / "i2.png").unlink()
-    _both_refuse(bad, good[1], tmp_path, capsys, "missing image i2.png")
+    assert_both_refuse(bad, good[1], tmp_path, capsys, "missing image i2.png")
 
 
 def test_image_name_too_long_for_the_file_system(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, lambda doc: doc["frames"][1].update(image="a" * 5000))
-    _both_refuse(bad, good[1], tmp_path, capsys, str(bad), "(5000 characters) cannot be read")
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad), "(5000 characters) cannot be read")
 
 
 def test_deeply_nested_pair_json_is_refused_by_the_reader(good, tmp_path):
@@ -126,7 +126,7 @@ def test_deeply_nested_pair_json_at_process(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     text = (bad / "pair.json").read_text().rstrip().removesuffix("}") + f', "meta": {DEEP}}}'
     (bad / "pair.json").write_text(text)
-    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, "pair.json", "nested too deeply")
+    assert_refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, "pair.json", "nested too deeply")
 
 
 def _save_object(p: Path) -> None:
@@ -147,14 +147,14 @@ def _save_object(p: Path) -> None:
 def test_truth_arrays_that_are_not_numeric_maps(good, tmp_path, capsys, fname, write, says):
     bad = _copy(good[0], tmp_path / "bad")
     write(bad / fname)
-    _both_refuse(bad, good[1], tmp_path, capsys, str(bad / fname), says)
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad / fname), says)
 
 
 def test_truth_file_that_is_a_fifo(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     (bad / "gt_shadow_i1.npy").unlink()
     os.mkfifo(bad / "gt_shadow_i1.npy")
-    _both_refuse(bad, good[1], tmp_path, capsys, "gt_shadow_i1.npy", "not a regular file (a FIFO)")
+    assert_both_refuse(bad, good[1], tmp_path, capsys, "gt_shadow_i1.npy", "not a regular file (a FIFO)")
 
 
 def test_deeply_nested_result_json(good, tmp_path, capsys):
@@ -167,7 +167,7 @@ def test_deeply_nested_result_json(good, tmp_path, capsys):
 def test_deeply_nested_manifest_json(good, tmp_path, capsys):
     (tmp_path / "descent").mkdir()
     (tmp_path / "descent" / "manifest.json").write_text('{"pairs": ' + DEEP + "}")
-    _refused(["score", str(tmp_path / "descent"), str(good[1])], capsys, "manifest.json", "nested too deeply")
+    assert_refused(["score", str(tmp_path / "descent"), str(good[1])], capsys, "manifest.json", "nested too deeply")
 
 
 @pytest.mark.parametrize("x", ["Infinity", "-Infinity", "NaN", "1e300", '"1"', "true", "null", "[1]"])
@@ -213,7 +213,7 @@ def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
     fractional values ran as if it were fine."""
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, edit)
-    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
+    assert_refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
 
 
 @pytest.mark.parametrize(
@@ -229,12 +229,12 @@ def test_pose_and_sun_errors_name_the_file(good, tmp_path, capsys, edit, says):
     as the file spells it (sun_azimuth_deg)."""
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, edit)
-    _refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
+    assert_refused(["process", str(bad), "--out", str(tmp_path / "po")], capsys, str(bad / "pair.json"), says)
 
 
 def test_an_all_nan_truth_is_named_not_called_a_geometry_problem(good, tmp_path, capsys):
     """It read "frame 0 and the last frame share no ground"."""
     bad = _copy(good[0], tmp_path / "bad")
     np.save(bad / "gt_hazard_i1.npy", np.full((PX, PX), np.nan, np.float32))
-    err = _refused(["score", str(bad), str(good[1])], capsys, "gt_hazard_i1.npy holds no finite value")
+    err = assert_refused(["score", str(bad), str(good[1])], capsys, "gt_hazard_i1.npy holds no finite value")
     assert "share no ground" not in err
