@@ -377,7 +377,7 @@ def _fmt(v, spec: str = ".2f") -> str:
 
 
 # supervisor.jsonl events the summary keeps
-FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "stale_error")
+FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "stale_error", "unexpected_message")
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
@@ -417,6 +417,7 @@ def _server_note(summary: dict, c: dict) -> str:
             "Results ignored (seconds, or for no open pair)",
         ),
         ("stale_errors", "Error about no open pair ignored", "Errors about no open pair ignored"),
+        ("unexpected_messages", "Config or Frame from it ignored", "Configs or Frames from it ignored"),
     ):
         n = int(c.get(key) or 0)
         if n:

@@ -297,6 +297,7 @@ class Supervisor:
             "link_errors": 0,
             "stale_results": 0,
             "stale_errors": 0,
+            "unexpected_messages": 0,
             "refused_messages": 0,  # messages from the flight process the HIL server refused (with reasons)
             "missing_telemetry": 0,  # Results the flight process sent no Telemetry for
             "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
@@ -525,6 +526,11 @@ class Supervisor:
                 text = f"ignored an Error about frame {msg.seq}, which no open pair holds: {printable(msg.text, 200)}"
                 self.log(f"supervisor: {text}")
                 self._write_telemetry({"event": "stale_error", "text": text})
+        else:  # a Config or Frame is the ground's to send: from the flight side it means nothing (it was uncounted)
+            self.counters["unexpected_messages"] += 1
+            text = f"ignored a {type(msg).__name__} from the flight process (the ground's to send)"
+            self.log(f"supervisor: {text}")
+            self._write_telemetry({"event": "unexpected_message", "text": text})
 
     def _finish_if_delivered(self, st: PairState) -> None:
         """Send the pair's Telemetry once the ground holds the whole Result (its line time is then known)."""

@@ -86,6 +86,7 @@ while not link.closed_by_peer:
                 safe = np.zeros(np.shape(mf.ext_hook(3, res["state_grid"].data)), np.uint8)
                 link.send(mf.RESULT, {{**res, "state_grid": mf.array(safe), "level": "full", "degraded": False}})
                 link.send(mf.ERROR, {{"code": "late", "text": "about a frame never sent", "seq": 999999}})
+                link.send(mf.CONFIG, config)  # the ground's message, echoed back
             nested = b"\\x92\\x01" + b"\\x91" * 5000 + b"\\xc0"  # a message nested 5000 deep
             if faulty and args.mode == "hostile":
                 link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
@@ -200,6 +201,7 @@ def test_a_second_result_for_a_pair_does_not_replace_the_first(manifest, flight,
     assert s["supervisor_counters"]["stale_results"] == len(PAIRS)
     assert "Results ignored" in md and any(e["event"] == "stale_result" for e in s["flight_events"])
     assert s["supervisor_counters"]["stale_errors"] == len(PAIRS) and "Errors about no open pair ignored" in md
+    assert s["supervisor_counters"]["unexpected_messages"] == len(PAIRS) and "Configs or Frames from it ignored" in md
 
 
 def test_a_program_that_runs_but_never_says_hello_is_named(manifest, flight, tmp_path):
