@@ -262,7 +262,7 @@ def _scenes(args: argparse.Namespace) -> int:
         print(f"measuring {len(names)} scene(s) on held-out seeds {seeds[0]}-{seeds[-1]} ...", file=sys.stderr)
         new = lib.measure(names, seeds, workers=args.workers, progress=not args.no_progress)
         doc = lib.merge_shares(old, new)
-        from ground_sim.stream import write_atomic
+        from reports.html import write_atomic
         from reports.jsondoc import json_text
 
         write_atomic(table_path, json_text(doc))  # minutes of measuring: never half a table; NaN as null

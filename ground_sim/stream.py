@@ -74,7 +74,6 @@ import math
 import os
 import signal
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -87,6 +86,7 @@ from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, H
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
 from reports.console import printable
+from reports.html import write_atomic
 
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
@@ -137,26 +137,6 @@ def plan_note(rec: dict) -> str:
     """Why a recorded Result stopped below the full level (:func:`protocol.plan.plan_note` on its ``plan`` and
     ``skipped``); "" when its Telemetry did not say."""
     return _plan_note(rec.get("plan"), rec.get("skipped"))
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write beside ``path``, then rename over it: a reader never sees half a file. The file keeps the mode
-    of the one it replaces (a new one gets 0666 & ~umask), not mkstemp's 0600."""
-    from reports.html import current_umask
-
-    try:
-        mode = path.stat().st_mode & 0o7777
-    except OSError:
-        mode = 0o666 & ~current_umask()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        os.fchmod(fd, mode)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class Interrupted(Exception):

@@ -109,13 +109,18 @@ def current_umask() -> int:
 
 
 def write_atomic(path: str | Path, data: str | bytes) -> Path:
-    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``."""
+    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``: a reader never sees half a
+    file. The file keeps the mode of the one it replaces; a new one gets ``0666 & ~umask`` (mkstemp's 0600 would
+    make result.json or report.html private to their writer)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        mode = p.stat().st_mode & 0o7777
+    except OSError:
+        mode = 0o666 & ~current_umask()
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
     try:
-        # mkstemp's 0600 would make result.json/report.html private to their writer
-        os.fchmod(fd, 0o666 & ~current_umask())
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
         os.replace(tmp, p)
