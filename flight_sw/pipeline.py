@@ -34,7 +34,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, Camera, Pose, Sun
+from protocol.pairdir import (
+    STATE_OUTSIDE,
+    STATE_SAFE,
+    STATE_UNKNOWN,
+    STATE_UNSAFE,
+    SUN_AZIMUTH_LIMIT_DEG,
+    Camera,
+    Pose,
+    Sun,
+)
 
 from .confidence import elevation_uncertainty, reject_uncertain
 from .costvolume import RULES, frame_roi, local_contrast, multi_cost_slab, parallax_px
@@ -949,8 +958,9 @@ def _sun_elevation(sun_elevation_deg: float | None) -> float | None:
 def _sun_azimuth(sun_azimuth_deg: float | None) -> float | None:
     """The sun's azimuth in degrees, or None when unknown (None or NaN); anything else is refused."""
     a = _degrees_or_none(sun_azimuth_deg, "sun_azimuth_deg")
-    if a is not None and not -360.0 <= a <= 360.0:
-        raise FlightInputError(f"sun_azimuth_deg must be in [-360, 360], got {a!r}")
+    if a is not None and not abs(a) <= SUN_AZIMUTH_LIMIT_DEG:
+        lim = SUN_AZIMUTH_LIMIT_DEG
+        raise FlightInputError(f"sun_azimuth_deg must be in [{-lim:g}, {lim:g}], got {a!r}")
     return a
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import Camera, PairFormatError, Pose
+from protocol.pairdir import MAX_POSITION_M, Camera, PairFormatError, Pose
 
 
 class FlightInputError(InputError):
@@ -33,7 +33,6 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
     return img
 
 
-MAX_POSITION_M = 1.0e7  # 10,000 km: past any descent (the Moon's radius is 1,737 km)
 MAX_FOCAL_SIDES = 1000.0  # focal length at most 1000 image sides (a 0.06 deg field of view)
 MAX_PRINCIPAL_SIDES = 10.0  # principal point within 10 image sides of the image
 

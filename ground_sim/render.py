@@ -40,7 +40,7 @@ from ground_sim.scene import Scene
 from ground_sim.shading import lunar_lambert, sensor, shadow_level
 from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit, plane_fit_factor
 from protocol.errors import InputError
-from protocol.pairdir import Camera, Pose, Sun
+from protocol.pairdir import SUN_AZIMUTH_LIMIT_DEG, Camera, Pose, Sun
 
 # Bump when a change alters what is rendered (images or truth) for the same inputs: render caches
 # (ground_sim/render_cache.py) then draw their pairs again. tests/test_render_cache.py pins a small
@@ -91,11 +91,6 @@ def check_raster(raster: str) -> None:
     """Refuse an unknown raster layout (``"view"``: one raster per view; ``"tiles"``: one per image tile)."""
     if raster not in RASTERS:
         raise RenderError(f"raster must be one of {', '.join(RASTERS)}, got {raster!r}")
-
-
-# `hazard-hil process` refuses a pair whose sun azimuth is outside [-360, 360] deg (flight_sw.pipeline, which
-# ground_sim may not import) or whose elevation is outside (0, 90]: render refuses such a sun before drawing
-SUN_AZIMUTH_LIMIT_DEG = 360.0
 
 
 def check_sun(sun: Sun, where: str = "sun") -> None:

@@ -34,7 +34,7 @@ import numpy as np
 from ground_sim.errors import TrajectoryError
 from ground_sim.geometry import look_rotation
 from protocol.errors import InputError
-from protocol.pairdir import Camera, Pose
+from protocol.pairdir import MAX_POSITION_M, Camera, Pose
 
 VERTICAL_UPPER = (1000, 800, 600, 400, 300, 200, 150, 100)
 APPROACH_PAIRS = (
@@ -53,9 +53,6 @@ V_MIN, K_DECEL = 1.0, 0.05
 MAX_FRAMES = 16
 MAX_ALTITUDE_M = 50_000.0  # a 512 px thesis camera sees 53 m per pixel there; the pair reader stops at 100
 RENDER_FILES = ("manifest.json", "contact.png")  # render_scenario writes these beside the pair directories
-# `hazard-hil process` refuses a pair with a coordinate beyond this (flight_sw.validate.MAX_POSITION_M, which
-# ground_sim may not import: DESIGN.md); render refuses it first instead of writing a pair no one can process
-MAX_POSITION_M = 1.0e7
 # The renderer pads its terrain height bounds by 6+ m around the ground (render.plan_raster): a camera only a
 # few metres up sees those bounds within centimetres, so the finest raster cell and the tile count explode
 # (2,1 ran for minutes, growing memory). Measured 2026-12 on 2 cores, one 512 px nadir view of `thesis`, seed 0,

@@ -55,6 +55,10 @@ ALTIMETER_MAX_RATIO, ALTIMETER_SLACK_M, ALTIMETER_MAX_OFF_M = 2.0, 100.0, 5000.0
 # state.npy codes (DESIGN.md): every tool that writes or scores three-state maps uses these
 STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE = 0, 1, 2, 255
 
+# The flight software's limits, here so that every tool that writes or reads a pair applies the same ones
+MAX_POSITION_M = 1.0e7  # 10,000 km: past any descent (the Moon's radius is 1,737 km)
+SUN_AZIMUTH_LIMIT_DEG = 360.0  # |azimuth|; the elevation is in (0, 90]
+
 TRUTH_FILES = {
     "elevation": "gt_elevation_i1.npy",
     "depth": "gt_depth_i1.npy",
@@ -708,9 +712,12 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
                 f"{meta_path}: sun angles must be finite, got azimuth_deg {sun.azimuth_deg}, "
                 f"elevation_deg {sun.elevation_deg}"
             )
-        # the flight software's own limits (flight_sw.pipeline), said here with the file's field names
-        if not -360.0 <= sun.azimuth_deg <= 360.0:
-            raise PairFormatError(f"{meta_path}: sun.azimuth_deg must be in [-360, 360], got {sun.azimuth_deg:g}")
+        # the flight software's own limits, said here with the file's field names
+        if not abs(sun.azimuth_deg) <= SUN_AZIMUTH_LIMIT_DEG:
+            lim = SUN_AZIMUTH_LIMIT_DEG
+            raise PairFormatError(
+                f"{meta_path}: sun.azimuth_deg must be in [{-lim:g}, {lim:g}], got {sun.azimuth_deg:g}"
+            )
         if not 0.0 < sun.elevation_deg <= 90.0:
             raise PairFormatError(f"{meta_path}: sun.elevation_deg must be in (0, 90], got {sun.elevation_deg:g}")
     truth: dict[str, np.ndarray] = {}
