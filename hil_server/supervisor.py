@@ -493,10 +493,7 @@ class Supervisor:
                 # replace it on its way to the ground; one for a pair not (or no longer) asked for vanished unsaid
                 second = st is not None and not st.done
                 what = "a second Result: the first stands" if second else "a Result for no open pair"
-                self.counters["stale_results"] += 1
-                text = f"ignored {what} (frames {list(msg.frame_seqs)})"
-                self.log(f"supervisor: {text}")
-                self._write_telemetry({"event": "stale_result", "frame_seqs": list(msg.frame_seqs), "text": text})
+                self._ignore("stale_results", "stale_result", f"ignored {what} (frames {list(msg.frame_seqs)})")
                 return
             st.result = msg
             st.result_at = time.monotonic()
@@ -522,15 +519,18 @@ class Supervisor:
                 self.counters["errors"] += 1
                 self._to_ground(msg)
             else:  # about a frame no open pair holds (one already answered, or never sent): it used to vanish
-                self.counters["stale_errors"] += 1
-                text = f"ignored an Error about frame {msg.seq}, which no open pair holds: {printable(msg.text, 200)}"
-                self.log(f"supervisor: {text}")
-                self._write_telemetry({"event": "stale_error", "text": text})
+                why = f"ignored an Error about frame {msg.seq}, which no open pair holds: {printable(msg.text, 200)}"
+                self._ignore("stale_errors", "stale_error", why)
         else:  # a Config or Frame is the ground's to send: from the flight side it means nothing (it was uncounted)
-            self.counters["unexpected_messages"] += 1
-            text = f"ignored a {type(msg).__name__} from the flight process (the ground's to send)"
-            self.log(f"supervisor: {text}")
-            self._write_telemetry({"event": "unexpected_message", "text": text})
+            why = f"ignored a {type(msg).__name__} from the flight process (the ground's to send)"
+            self._ignore("unexpected_messages", "unexpected_message", why)
+
+    def _ignore(self, counter: str, event: str, text: str) -> None:
+        """A message from the flight process that nothing answers: counted, logged and kept as a flight event
+        (the run's summary sums the counter and shows the last event)."""
+        self.counters[counter] += 1
+        self.log(f"supervisor: {text}")
+        self._write_telemetry({"event": event, "text": text})
 
     def _finish_if_delivered(self, st: PairState) -> None:
         """Send the pair's Telemetry once the ground holds the whole Result (its line time is then known)."""

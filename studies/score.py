@@ -214,9 +214,9 @@ def score_output(
         m["dem_coverage_pct"] = 100.0 * np.count_nonzero(area & np.isfinite(output.elevation)) / n
     radius = _site_radius_px(pair.camera, depth, area)
     m["sites"] = int(output.sites_xyz.shape[0])
-    with np.errstate(divide="ignore", invalid="ignore"):  # a site in camera 1's plane: _in_view drops it
+    with np.errstate(divide="ignore", invalid="ignore"):  # a site in camera 1's plane: _in_front drops it
         uv = project_points(pair.camera, true1, output.sites_xyz) if m["sites"] else np.zeros((0, 2))
-    seen_site = _in_view(pair.camera, true1, output.sites_xyz, uv)
+    seen_site = _in_front(true1, output.sites_xyz)
     each = [
         bool(seen_site[i]) and scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0
         for i in range(len(uv))
@@ -228,16 +228,10 @@ def score_output(
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
-def _in_view(camera: Any, pose: Any, xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Per site: in front of the true camera 1 and inside its image. Only there does the truth say anything; the
-    scorer would otherwise judge a site off the image by the edge pixel nearest to it (and one behind the
-    camera by its mirror image)."""
-    if len(uv) == 0:
-        return np.zeros(0, bool)
-    front = (xyz - pose.position) @ pose.R[2] > 0
-    u, v = uv[:, 0], uv[:, 1]
-    inside = (u >= -0.5) & (u <= camera.width - 0.5) & (v >= -0.5) & (v <= camera.height - 0.5)
-    return front & inside
+def _in_front(pose: Any, xyz: np.ndarray) -> np.ndarray:
+    """Per site: in front of the true camera 1. One behind it projects to a mirror image inside the picture, which
+    the truth would judge; a site off the picture is not safe in :func:`ground_sim.scoring.chosen_sites_safe`."""
+    return np.asarray((xyz - pose.position) @ pose.R[2] > 0, bool).reshape(-1)
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
