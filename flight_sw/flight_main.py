@@ -467,6 +467,9 @@ class FlightProcess:
             times = self.link.times(result_id) if result_id is not None and hasattr(self.link, "times") else None
             if times is not None and times.line_s is not None:
                 link_info["result_link_s"] = float(times.line_s)
+            queued = times.queue_s if times is not None else None
+            if queued is not None:
+                link_info["result_queue_s"] = queued
         self.link.send(
             Telemetry(
                 frame_seqs=seqs,

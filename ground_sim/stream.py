@@ -101,6 +101,7 @@ UNATTRIBUTED_SAID = 5  # unattributed Errors from the flight side said one by on
 UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
+QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the console from this long
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -121,6 +122,7 @@ TELEMETRY_KEYS = (
     "server_e2e_s",
     "frames_line_s",
     "result_line_s",
+    "result_queue_s",
     "result_rx_s",
     "result_bytes",
     "queue_wait_s",
@@ -287,6 +289,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         server_e2e_s=t.link.get("server_e2e_s"),
         # the Result's line time as its sender measured it (first byte on the line -> acknowledged)
         result_line_s=t.link.get("result_link_s", rx_span),
+        # its wait in the sender's queue before that (behind an earlier pair's Result on a slow line); None: not sent
+        result_queue_s=t.link.get("result_queue_s"),
         queue_wait_s=t.queue_wait_s,
         cpu_fraction=t.cpu_fraction,
         peak_rss_mib=t.peak_rss_bytes / 2**20,
@@ -628,8 +632,9 @@ def stream_descent(
             want.discard(o.seqs)
             record(o)
 
-    def collect(until: float, want: set[tuple[int, int]]) -> None:
-        while want and time.monotonic() < until:
+    def collect(until: float, want: set[tuple[int, int]], awaited: tuple[int, int] | None = None) -> None:
+        """Record what comes for the pairs of ``want`` until ``until``, or until ``awaited``'s outcome is in."""
+        while want and (awaited is None or awaited in want) and time.monotonic() < until:
             if not session_ok():
                 fail_in_flight(want, f"link session lost: {link.last_error}")
                 return
@@ -693,8 +698,8 @@ def stream_descent(
                      f"{line_s / 2 * LINE_OVERHEAD:.0f} s at {baud} baud")  # fmt: skip
                 next_note += UPLINK_NOTE_S
             link.flush(timeout=0.2)
-            if pace != "lockstep":  # the earlier pairs' answers, as they come
-                drain(in_flight)
+            # the earlier pairs' answers, as they come (lockstep: those the ground stopped waiting for)
+            drain(late if pace == "lockstep" else in_flight)
         failed = [f for f in link.failures() if f.seq in ids]
         outs = [link.outcome(i) or "" for i in ids]
         if failed or any(x == "pending" for x in outs):
@@ -727,6 +732,7 @@ def stream_descent(
         return o
 
     in_flight: set[tuple[int, int]] = set()  # asap pacing: pairs sent and not yet answered
+    late: set[tuple[int, int]] = set()  # lockstep pacing: pairs the ground stopped waiting for, not yet answered
     try:
         for i, entry in enumerate(entries):
             o = new_outcome(i, entry)
@@ -766,7 +772,15 @@ def stream_descent(
                 note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")
                 continue
             if pace == "lockstep":
-                collect(time.monotonic() + timeout + o.link_s, {o.seqs})
+                want = {o.seqs} | late  # a late answer to an earlier pair is recorded when it comes
+                collect(time.monotonic() + timeout + o.link_s, want, awaited=o.seqs)
+                late.intersection_update(want)
+                if o.seqs in want and i + 1 < len(entries):
+                    late.add(o.seqs)
+                    note(
+                        f"pair {pair_id}: no answer within {timeout:.0f} s; the next pair goes now, and this one's "
+                        "answer is still recorded if it comes"
+                    )
             else:
                 in_flight.add(o.seqs)
                 if o.finished:  # answered while its own frames were on the line (an Error about the first)
@@ -782,7 +796,9 @@ def stream_descent(
             refused(type_code, reason, set())
         for s, o in outcomes.items():
             if not any(r["frame_seqs"] == list(s) for r in records):
-                if not session_ok() and state.sessions:
+                if o.finished:  # answered, but not while a collect wanted it: the answer stands
+                    pass
+                elif not session_ok() and state.sessions:
                     o.error = Error(code="link_down", text=f"link session lost: {link.last_error}", seq=s[1])
                 elif not state.sessions:
                     o.error = Error(code="link_down", text="no session with the HIL server", seq=s[1])
@@ -912,6 +928,7 @@ def main(argv: list[str] | None = None) -> int:
             flag = "met" if rec["deadline_met"] else "MISSED"
             e2e = rec.get("e2e_latency_s")
             line = rec.get("result_line_s")
+            queued = rec.get("result_queue_s")
             flight = rec.get("flight_latency_s")
             why = plan_note(rec)
             print(
@@ -919,6 +936,7 @@ def main(argv: list[str] | None = None) -> int:
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
                 + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
                 + (f"{flight:.2f} s" if flight is not None else "? s, no Telemetry")
+                + (f", result queued {queued:.2f} s" if queued is not None and queued >= QUEUE_SHOWN_S else "")
                 + (f", result line {line:.2f} s)" if line is not None else ")")
                 + (f"; {why}" if why else ""),
                 file=sys.stderr,

@@ -405,6 +405,7 @@ def _server_note(summary: dict, c: dict) -> str:
     parts = []
     for key, one, many in (
         ("crashes", "crash", "crashes"),
+        ("exits", "exit with status 0", "exits with status 0"),
         ("hangs", "hang", "hangs"),
         ("memory_ceiling", "memory ceiling breach", "memory ceiling breaches"),
         ("restarts", "restart", "restarts"),

@@ -93,6 +93,8 @@ class PairState:
     result_mid: int | None = None  # its message id on the ground link
     flight_telemetry: Telemetry | None = None  # held until the Result is acknowledged
     result_link_s: float = 0.0
+    # the Result's wait in the ground link's send queue (behind an earlier pair's Result on a slow line)
+    result_queue_s: float | None = None
     result_acked_at: float | None = None  # monotonic time the ground acknowledged the whole Result
     done: bool = False
 
@@ -292,6 +294,7 @@ class Supervisor:
             "deadline_missed": 0,
             "restarts": 0,
             "crashes": 0,
+            "exits": 0,  # the flight process ended itself with status 0 mid-run (restarted, as after a crash)
             "memory_ceiling": 0,
             "hangs": 0,
             "link_errors": 0,
@@ -547,6 +550,7 @@ class Supervisor:
             return
         times = self.ground.times(st.result_mid)
         st.result_link_s = float(times.line_s) if times is not None and times.line_s is not None else 0.0
+        st.result_queue_s = times.queue_s if times is not None else None
         st.result_acked_at = times.delivered if times is not None and times.delivered is not None else time.monotonic()
         self._complete(st, st.flight_telemetry)
 
@@ -574,6 +578,7 @@ class Supervisor:
                 **self._link_stats(),
                 "flight_latency_s": msg.total_latency_s,
                 "result_link_s": st.result_link_s,
+                **({} if st.result_queue_s is None else {"result_queue_s": st.result_queue_s}),
                 "server_e2e_s": server_e2e,
                 "restarts": float(self.counters["restarts"]),
             },
@@ -598,6 +603,7 @@ class Supervisor:
                 "arrival_s": [round(st.arrivals[k] - self.t_start, 6) for k in sorted(st.arrivals)],
                 "queue_wait_s": msg.queue_wait_s,
                 "result_link_s": st.result_link_s,
+                "result_queue_s": st.result_queue_s,
                 "stages": msg.stages,
                 "cpu_fraction": tel.cpu_fraction,
                 "peak_rss_mib": stats.get("peak_rss_mib"),
@@ -613,11 +619,17 @@ class Supervisor:
         assert self.flight is not None
         report = self.flight.proc.wait(2.0)
         reason = getattr(report, "reason", None) or "flight process exited"
-        code = "memory_ceiling" if "memory" in reason else "flight_crash"
-        self.counters["memory_ceiling" if code == "memory_ceiling" else "crashes"] += 1
+        if "memory" in reason:
+            code, counter, how = "memory_ceiling", "memory_ceiling", "died"
+        elif getattr(report, "kind", None) == "ok":  # it ended itself, with success: not a crash, still a lost pair
+            code, counter, how = "flight_exit", "exits", "exited"
+            reason = "it exited with status 0 while the run was on"
+        else:
+            code, counter, how = "flight_crash", "crashes", "died"
+        self.counters[counter] += 1
         st = self._oldest_outstanding()
         if st is not None:
-            self._fail_pair(st, code, f"flight process died while processing ({reason})")
+            self._fail_pair(st, code, f"flight process {how} while processing ({reason})")
         self._restart_flight(reason)
 
     def _link_stats(self) -> dict[str, float]:

@@ -173,6 +173,11 @@ class MessageTimes:
             return None
         return self.delivered - self.first_tx
 
+    @property
+    def queue_s(self) -> float | None:
+        """Submitted to its first byte on the line: its wait behind the messages queued before it."""
+        return None if self.first_tx is None else max(0.0, self.first_tx - self.submitted)
+
 
 @dataclass
 class _Out:

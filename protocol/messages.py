@@ -516,6 +516,7 @@ class Result(Message):
             raise SchemaError(
                 f"Result.elevation_filled: shape {np.shape(self.elevation_filled)} != elevation_grid {want}"
             )
+        self._check_sites(shape)
         images = [a for a in (self.hazard_image, self.elevation_image, self.state_image) if a is not None]
         if any(np.shape(a) != np.shape(images[0]) for a in images):
             raise SchemaError("Result: full-resolution image maps must share one shape")
@@ -526,6 +527,23 @@ class Result(Message):
             if got != np.shape(self.elevation_image):
                 raise SchemaError(
                     f"Result.elevation_filled_image: shape {got} != elevation_image {np.shape(self.elevation_image)}"
+                )
+
+    def _check_sites(self, shape: tuple[int, ...]) -> None:
+        """A site is a spot of the mapped ground: it lies on the grid (its cells' outer edges, one cell of slack).
+        One far outside was accepted and recorded with a P(safe) no cell of the grid supports."""
+        if not self.sites:
+            return
+        rows, cols = (int(shape[0]), int(shape[1])) if len(shape) == 2 else (0, 0)
+        ox, oy = (float(v) for v in self.grid_origin_xy)
+        c = float(self.grid_cell_m)
+        x0, x1 = ox - 1.5 * c, ox + (cols + 0.5) * c
+        y0, y1 = oy - (rows + 0.5) * c, oy + 1.5 * c
+        for i, s in enumerate(self.sites):
+            if not (x0 <= s.x <= x1 and y0 <= s.y <= y1):
+                raise SchemaError(
+                    f"Result.sites[{i}]: ({s.x:.6g}, {s.y:.6g}) m is off the grid, which spans x {x0:.6g}..{x1:.6g} "
+                    f"and y {y0:.6g}..{y1:.6g} m"
                 )
 
 

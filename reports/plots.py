@@ -258,9 +258,9 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
 
     Keys read per record (missing ones are skipped): ``label``, ``frames_link_s``, ``stages``
     ({name: {"wall_s"}}), ``stage_order`` (the order the stages ran; else the order of ``stages``),
-    ``queue_wait_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``, ``plan`` (the flight's deadline plan,
-    docs/protocol.md: two markers, the time it aimed to be done by and the time its DEM had to stop by to leave
-    the reserve for the mapping after it).
+    ``queue_wait_s``, ``result_queue_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``, ``plan`` (the
+    flight's deadline plan, docs/protocol.md: two markers, the time it aimed to be done by and the time its DEM had
+    to stop by to leave the reserve for the mapping after it).
     """
     plt = _plt()
     recs = [r for r in records if r.get("status", "result") == "result"]
@@ -282,7 +282,8 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         fl = float(r.get("frames_link_s") or 0.0)
         _bar(ax, y, -fl, fl, "#cccccc", once("frames on the link"))
         t = float(r.get("queue_wait_s") or 0.0)
-        _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
+        if t > 0:
+            _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
         for k in stage_names:
             w = float(((r.get("stages") or {}).get(k) or {}).get("wall_s", 0.0))
             _bar(ax, y, t, w, colour[k], once(k))
@@ -300,6 +301,9 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         rl = float(r.get("result_link_s") or 0.0)
         e2e = r.get("e2e_latency_s")
         start = (float(e2e) - rl) if e2e is not None else t
+        rq = float(r.get("result_queue_s") or 0.0)
+        if rq > 0:  # named in the legend only where it happened
+            _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))
         _bar(ax, y, start, rl, "#333333", once("result on the link"))
         if r.get("deadline_s") is not None:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=MISSED, lw=2, label=once("deadline"))

@@ -40,7 +40,7 @@ ap.add_argument("--port")
 ap.add_argument("--mode")
 args = ap.parse_args()
 link = mf.Link(serial.serial_for_url(args.port, baudrate=921600, timeout=0.02))
-config, pending, answered, next_beat = None, {{}}, 0, 0.0
+config, pending, answered, next_beat, backlog = None, {{}}, 0, 0.0, []
 
 
 def telemetry(pair):
@@ -54,7 +54,8 @@ def bad_shapes():
 
 
 while not link.closed_by_peer:
-    for mtype, msg in link.poll():
+    batch, backlog = backlog + link.poll(), []
+    for mtype, msg in batch:
         if mtype == mf.HELLO_MSG and args.mode != "no_hello":  # that one runs, beats, and never says Hello
             link.send(mf.HELLO_MSG, {{"role": "flight", "session": link.local}})
         elif mtype == mf.CONFIG:
@@ -75,6 +76,15 @@ while not link.closed_by_peer:
                     link.send(mf.ERROR, {{"code": "flood", "text": "about nothing"}})
                 answered += 1
                 continue
+            if args.mode == "exit0_mid" and answered == 1:  # ends itself, with success, holding the second pair
+                os._exit(0)
+            if args.mode == "slow_first" and answered == 0:  # the first answer comes 6 s late; the link stays up
+                end = time.monotonic() + 6.0
+                while time.monotonic() < end:
+                    backlog += link.poll()
+                    if time.monotonic() >= next_beat:
+                        link.datagram(mf.HEARTBEAT, {{"time_s": time.monotonic(), "counter": 1}})
+                        next_beat = time.monotonic() + 0.5
             res = mf.answer(pair[0], pair[1], config)
             faulty = answered >= 1
             if faulty and args.mode == "hostile" and answered == 1:
@@ -166,6 +176,20 @@ def test_crashes_between_pairs_are_counted_and_reported(manifest, flight, tmp_pa
     assert any(e["event"] == "restart" and "status 7" in e["reason"] for e in s["flight_events"])
     assert "crashes" in md and "status 7" in md
     assert "flight process: " in capsys.readouterr().out
+
+
+def test_a_program_that_ends_itself_with_status_0_mid_run_is_an_exit_not_a_crash(manifest, flight, tmp_path):
+    """It was counted and reported as a crash ("exited normally")."""
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "exit0_mid"))
+    assert code == 1 and outcomes(s) == [
+        ("600/300", "result", None),
+        ("300/150", "error", "flight_exit"),
+        ("200/100", "result", None),
+    ]
+    assert "exited while processing (it exited with status 0 while the run was on)" in s["records"][1]["text"]
+    counters = s["supervisor_counters"]
+    assert counters["exits"] == 1 and counters["crashes"] == 0 and counters["restarts"] == 1
+    assert "1 exit with status 0, 1 restart" in md and "crash" not in md
 
 
 def test_pairs_queued_behind_a_crash_are_the_next_process_s_to_answer_not_its_hang(manifest, flight, tmp_path):
@@ -394,6 +418,33 @@ def test_an_external_flight_computers_refused_telemetry_and_other_messages_are_c
     assert "ground: the flight computer sent a Telemetry the ground refused: Telemetry.peak_rss_bytes" in err
     assert err.count("ground: the flight computer sent a Hello the ground refused: ") == 1
     assert "ground: 3 pairs, 3 results, 0 errors, 2 messages from the flight side refused" in err
+
+
+def test_lockstep_goes_on_after_its_response_timeout_and_records_the_late_answer(manifest, flight, tmp_path, capfd):
+    """The ground stopped waiting for a pair after its response timeout without a word, and the Result that came
+    later was recorded as ``no_response``: an answer received and lost."""
+    from ground_sim.stream import stream_descent
+    from protocol.linkspec import open_link
+
+    with serial_board(flight, "slow_first") as spec:
+        link = open_link(spec, server=False, name="flight-computer")
+        try:
+            records = stream_descent(
+                link, manifest, tmp_path, budget="external", deadline_s=1.0, response_timeout_s=4.0, where=spec
+            )
+        finally:
+            link.close()
+    by_label = {r["label"]: r for r in records}
+    assert sorted(by_label) == sorted(PAIRS) and len(records) == 3
+    late = by_label["600/300"]
+    assert late["status"] == "result", late
+    assert late["deadline_met"] is False and late["e2e_latency_s"] > 5.0
+    assert [by_label[k]["status"] for k in PAIRS[1:]] == ["result", "result"]
+    err = capfd.readouterr().err
+    assert "ground: pair p000-600/300: no answer within 4 s; the next pair goes now" in err.replace("_", "/"), err
+    assert err.count("no answer within") == 1
+    saved = [json.loads(x) for x in (tmp_path / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["label"] for r in saved) == sorted(PAIRS) and all(r["status"] == "result" for r in saved)
 
 
 def _minimal_flight():

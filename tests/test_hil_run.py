@@ -270,6 +270,8 @@ def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
     assert recs[0]["link_s"] > 1.0
     # recorded while the later pairs' frames were on the line, not after the last was sent
     assert recs[0]["elapsed_s"] < sending - 0.5 * recs[-1]["link_s"], [(r["elapsed_s"], r["link_s"]) for r in recs]
+    # the HIL server says how long each Result waited in its send queue (it read as unexplained end-to-end time)
+    assert all(0.0 <= r["result_queue_s"] <= r["e2e_latency_s"] for r in recs), [r.get("result_queue_s") for r in recs]
 
 
 def test_the_flight_time_is_told_by_phase():

@@ -57,6 +57,10 @@ def test_clean_line_runs_at_over_90_percent_of_line_rate():
     assert line.eps[0].stats["retransmits"] == 0
     t = line.eps[0].times(ids[0])
     assert t is not None and t.line_s == pytest.approx(len(encode_message(msgs[0])) / RATE, rel=0.1)
+    # the last waited in the send queue while the three before it went out (a Result behind an earlier Result)
+    ahead = sum(len(encode_message(m)) for m in msgs[:3]) / RATE
+    queued = [line.eps[0].times(i).queue_s for i in ids]  # type: ignore[union-attr]
+    assert queued[0] == pytest.approx(0.0, abs=0.01) and queued[3] == pytest.approx(ahead, rel=0.1), queued
 
 
 @pytest.mark.parametrize("corrupt", [1e-4, 1e-3])

@@ -77,18 +77,27 @@ def results(draw, maps: bool = False) -> Result:
     shape = st.tuples(st.integers(0, 9), st.integers(0, 9))
     img = draw(shape if maps else st.none() | shape)
     elev_shape = (-(-h // step), -(-w // step))
+    origin, cell = draw(st.tuples(finite, finite)), draw(st.floats(1e-3, 1e3))
+    on_grid = [  # a site is on the grid it was picked from (the schema refuses one off it)
+        replace(
+            s,
+            x=origin[0] + draw(st.integers(0, max(w - 1, 0))) * cell,
+            y=origin[1] - draw(st.integers(0, max(h - 1, 0))) * cell,
+        )
+        for s in draw(sites)
+    ]
     return Result(
         frame_seqs=draw(st.tuples(u32, u32)),
         state_grid=states,
         psafe_grid=draw(hnp.arrays(np.uint8, (-(-h // pstep), -(-w // pstep)))),
         psafe_step=pstep,
         elevation_grid=draw(hnp.arrays(np.int16, elev_shape)),
-        grid_origin_xy=draw(st.tuples(finite, finite)),
-        grid_cell_m=draw(st.floats(1e-3, 1e3)),
+        grid_origin_xy=origin,
+        grid_cell_m=cell,
         elevation_step=step,
         elevation_offset_m=draw(finite),
         elevation_unit_cm=draw(st.integers(1, 1000)),
-        sites=draw(sites),
+        sites=on_grid,
         no_site_reason=draw(st.none() | names),
         degraded=draw(st.booleans()),
         level=draw(names),
@@ -237,7 +246,10 @@ def test_compact_result_survives_bitwise_and_arrays_are_read_only():
 
 
 def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
-    r = small_result(sites=[Site(1.0, 2.0, 3.0, 0.1, 0.9, 4.0, 0.97, 1.25), Site(0.0, 0.0, math.nan, 0.0, 1.0, 0.0)])
+    r = small_result(
+        grid_origin_xy=(0.0, 2.0),
+        sites=[Site(1.0, 2.0, 3.0, 0.1, 0.9, 4.0, 0.97, 1.25), Site(0.0, 1.5, math.nan, 0.0, 1.0, 0.0)],
+    )
     a, b = decode_message(encode_message(r)).sites
     assert (a.p_safe, a.clearance_m) == (0.97, 1.25)
     assert math.isnan(b.p_safe) and math.isnan(b.clearance_m) and math.isnan(b.z)
@@ -565,3 +577,22 @@ def test_a_result_grid_cell_out_of_range_is_refused(cell):
     with pytest.raises(SchemaError, match=r"grid_cell_m: must be in \[0\.001, 10000\] m"):
         encode_message(small_result(grid_cell_m=cell))
     encode_message(small_result(grid_cell_m=0.001))  # the limits themselves are cells
+
+
+def test_a_result_site_off_its_grid_is_refused():
+    """A site at (1e12, -1e12) m, far off a 2 x 2-cell grid, was accepted and recorded with its P(safe)."""
+    from resultrev import small_result
+
+    from protocol.messages import SchemaError, Site
+
+    def site(x: float, y: float) -> Site:
+        return Site(x, y, 0.0, 0.0, 1.0, 0.0, 0.99, 2.0)
+
+    # the grid's cell centres: x -10, -9.5; y 3, 2.5 (cell 0.5 m); its outer edges plus one cell of slack
+    for ok in (site(-10.0, 3.0), site(-9.5, 2.5), site(-10.75, 3.75), site(-8.75, 1.75)):
+        encode_message(small_result(sites=[ok]))
+    for bad in (site(1e12, -1e12), site(-10.8, 3.0), site(-10.0, 1.7)):
+        with pytest.raises(
+            SchemaError, match=r"Result\.sites\[1\]: .* is off the grid, which spans x -10\.75\.\.-8\.75"
+        ):
+            encode_message(small_result(sites=[site(-10.0, 3.0), bad]))
