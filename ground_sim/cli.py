@@ -90,13 +90,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _parse_frames(groups: list[str] | None) -> list[list[float]] | None:
     from ground_sim.errors import TrajectoryError
+    from protocol.errors import comma_items
 
     if not groups:
         return None
     out = []
     for g in groups:
+        items = comma_items(g, "--frames")
         try:
-            out.append([float(a) for a in g.split(",") if a.strip()])
+            out.append([float(a) for a in items])
         except ValueError:
             raise TrajectoryError(f"--frames: expected comma-separated altitudes, got {g!r}") from None
     return out
@@ -136,6 +138,7 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.pose_error import PoseError
     from ground_sim.render import MAX_CELLS, check_sun
     from ground_sim.trajectory import check_distinct_dirs
+    from protocol.errors import comma_items
     from protocol.pairdir import Sun
 
     check_seed(args.seed)
@@ -149,7 +152,7 @@ def _run(args: argparse.Namespace) -> int:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
     if not 1 <= args.supersample <= 8:  # the renderer says so too, but only after creating --out
         raise RenderError(f"--supersample must be 1..8, got {args.supersample}")
-    pairs = [s.strip() for s in args.pairs.split(",") if s.strip()] if args.pairs is not None else None
+    pairs = comma_items(args.pairs, "--pairs") if args.pairs is not None else None
     if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
         raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")
     frames = _parse_frames(args.frames)

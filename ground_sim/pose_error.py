@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ground_sim.errors import PoseErrorSpecError
+from protocol.errors import comma_items
 from protocol.pairdir import Pose
 
 
@@ -121,7 +122,7 @@ class PoseError:
             "equal_pitch": "equal_pitch",
         }
         kw: dict = {}
-        for item in filter(None, (s.strip() for s in text.split(","))):
+        for item in comma_items(text, "--pose-error"):
             key, sep, val = item.partition("=")
             if not sep or key.strip() not in names:
                 raise PoseErrorSpecError(f"--pose-error: bad item {item!r}; use key=value with keys {', '.join(names)}")

@@ -24,7 +24,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import NoReturn
 
-from protocol.errors import InputError
+from protocol.errors import InputError, comma_items
 
 ENTRY_POINT_GROUP = "hazard_hil.commands"
 # help order of the project's own packages; commands of other installed packages follow by name
@@ -368,7 +368,7 @@ DEMO_DEFAULTS = {
 
 
 def _pairs(text: str | None) -> list[str] | None:
-    return [p.strip() for p in text.split(",") if p.strip()] if text else None
+    return comma_items(text, "--pairs") if text else None
 
 
 def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
@@ -624,7 +624,7 @@ def _cmd_regress(args: argparse.Namespace) -> int:
         args.baseline or default_baseline_path(),
         update=args.update,
         out=args.out,
-        cases=None if args.cases is None else [c.strip() for c in args.cases.split(",") if c.strip()],  # "": none
+        cases=None if args.cases is None else comma_items(args.cases, "--cases"),  # "": none
         min_hit_rate=args.min_hit_rate,
         board_link=args.link,
         hello_timeout_s=args.hello_timeout,

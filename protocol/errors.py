@@ -15,3 +15,17 @@ class InputError(ValueError):
 # Exit status of a flight process that ran out of memory (MemoryError or a failed
 # allocation under RLIMIT_AS): the supervisor reports it as a memory-ceiling breach.
 EXIT_MEMORY = 75
+
+
+def comma_items(text: str, option: str) -> list[str]:
+    """The stripped items of a comma-separated option value (``""`` or ``","``: none).
+
+    An empty item (two commas in a row, or a comma at either end) is refused rather than skipped: ``1,,2`` is
+    more likely a value lost in typing than a list of two.
+    """
+    items = [s.strip() for s in text.split(",")]
+    if not any(items):  # "" or ",": no items, which the caller names
+        return []
+    if not all(items):
+        raise InputError(f"{option}: an empty item in {text!r} (two commas in a row, or a comma at an end)")
+    return items

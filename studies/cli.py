@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
-from protocol.errors import InputError
+from protocol.errors import InputError, comma_items
 from protocol.pairdir import MAX_IMAGE_SIDE
 
 
@@ -65,8 +65,9 @@ def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], 
     if args.seed_list is not None and not args.seed_list.strip():
         raise InputError("--seed-list is empty: give comma-separated seeds, e.g. 1000,1003")
     if args.seed_list:
+        items = comma_items(args.seed_list, "--seed-list")
         try:
-            seeds = [int(x) for x in args.seed_list.split(",") if x.strip()]
+            seeds = [int(x) for x in items]
         except ValueError:
             raise InputError(f"--seed-list: expected comma-separated integers, got {args.seed_list!r}") from None
         if not seeds or len(set(seeds)) != len(seeds):
@@ -208,8 +209,9 @@ def register(subparsers: Any) -> None:
 def _parse_alts(text: str | None) -> list[int] | None:
     if text is None:
         return None
+    items = comma_items(text, "--altitudes")
     try:
-        alts = [int(float(a)) for a in text.split(",") if a.strip()]
+        alts = [int(float(a)) for a in items]
     except (ValueError, OverflowError):
         raise InputError(f"--altitudes: expected comma-separated numbers, got {text!r}") from None
     if not alts:
@@ -224,8 +226,9 @@ def _parse_frames(scenario: str, text: str | None) -> list[float]:
 
     if text is None:
         return list(DEFAULT_FRAMES)
+    items = comma_items(text, "--frames")
     try:
-        alts = [float(a) for a in text.split(",") if a.strip()]
+        alts = [float(a) for a in items]
     except ValueError:
         raise InputError(f"--frames: expected comma-separated altitudes, got {text!r}") from None
     frames_at(scenario, alts)  # TrajectoryError (an InputError) with the reason
@@ -387,7 +390,7 @@ def register_landings(subparsers: Any) -> None:
         "--per-render",
         type=_positive("--per-render"),
         default=PER_RENDER,
-        help=f"aim points (landings) sharing one rendered pair (default {PER_RENDER})",
+        help=f"aim points (landings) sharing one rendered pair (default {PER_RENDER}; at most max(--n, {PER_RENDER}))",
     )
     p.add_argument(
         "--pose-error",
@@ -423,7 +426,7 @@ def _landings(args: argparse.Namespace) -> int:
     from studies import landings as ld
     from studies.executor import CampaignError
 
-    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    names = comma_items(args.scenes, "--scenes")
     if "all" in names and len(names) > 1:
         raise InputError(f"--scenes: 'all' already names every library scene; give it alone, got {args.scenes!r}")
     scenes = [e.name for e in library.entries()] if names == ["all"] else names
@@ -444,7 +447,9 @@ def _landings(args: argparse.Namespace) -> int:
     ld.claim_out_dir(c, args.out)
     drawn = seeds[: min(len(seeds), -(-c.n_groups // len(scenes)))]  # render g takes seed g // len(scenes)
     print(
-        f"landings: {c.n_landings} landings in {c.n_groups} renders over {', '.join(scenes)}; "
+        f"landings: {c.n_landings} landings"
+        + (f" (--n {c.n} rounded up to whole renders of {c.per_render})" if c.n_landings != c.n else "")
+        + f" in {c.n_groups} renders over {', '.join(scenes)}; "
         f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
         file=sys.stderr,
     )

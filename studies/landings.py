@@ -143,6 +143,11 @@ class Campaign:
                 f"need n and per_render <= {MAX_LANDINGS} (a landing is a pipeline run of about 0.3 s, its plan held "
                 f"in memory), got n={self.n}, per_render={self.per_render}"
             )
+        if self.per_render > max(self.n, PER_RENDER):  # n is rounded up to whole renders: 1 landing became 1e6
+            raise LandingError(
+                f"--per-render {self.per_render} is more than the {self.n} landings asked for (--n): the landings are "
+                f"rounded up to whole renders, so at most max(--n, {PER_RENDER}) aim points may share one"
+            )
         if not self.seeds:
             raise LandingError("no scene seeds")
         bad_p = [p for p in self.presets if p not in PRESETS]

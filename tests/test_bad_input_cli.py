@@ -81,6 +81,16 @@ CASES = [
     (["run", "--link", "zmq", "--corrupt", "0.01"], "--corrupt applies to the serial link only"),
     (["run", "--bogus"], "hazard-hil run: error: unrecognized arguments: --bogus (see hazard-hil run --help)"),
     (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
+    (["landings", "--scenes", "thesis", "--n", "1", "--per-render", "1000000"], "--per-render 1000000 is more"),
+    # an empty item in a comma-separated list was skipped: 1,,2 is more likely a value lost in typing
+    (["render", "--scenario", "vertical", "--pairs", "600/300,,300/150"], "--pairs: an empty item in"),
+    (["render", "--scenario", "vertical", "--frames", "300,250,"], "--frames: an empty item in '300,250,'"),
+    (["render", "--scenario", "vertical", "--pose-error", "alt=1,,pitch=0"], "--pose-error: an empty item"),
+    (["run", "--pairs", ",600/300"], "--pairs: an empty item in ',600/300'"),
+    (["regress", "--cases", "a,,b"], "--cases: an empty item in 'a,,b'"),
+    (["evaluate", "--scenario", "vertical", "--seed-list", "1000,,1001"], "--seed-list: an empty item in"),
+    (["evaluate", "--scenario", "vertical", "--altitudes", "300,,150"], "--altitudes: an empty item in"),
+    (["landings", "--scenes", "thesis,,mare", "--n", "2"], "--scenes: an empty item in 'thesis,,mare'"),
 ]
 
 

@@ -98,6 +98,16 @@ def test_draws_are_deterministic_and_cover_scenes_seeds_and_the_scene_sun():
         _campaign(scenes=("thesis", "nowhere"))
 
 
+def test_a_render_shared_by_more_aim_points_than_landings_asked_for_is_refused():
+    """--n 1 --per-render 1000000 flew a million landings: n is rounded up to whole renders."""
+    with pytest.raises(LandingError, match=r"--per-render 1000000 is more than the 1 landings asked for \(--n\)"):
+        _campaign(n=1, per_render=1_000_000)
+    assert _campaign(n=1, per_render=ld.PER_RENDER).n_landings == ld.PER_RENDER  # the default rounds, as documented
+    assert _campaign(n=20, per_render=20).n_landings == 20
+    with pytest.raises(LandingError, match="--per-render 21"):
+        _campaign(n=20, per_render=21)
+
+
 @pytest.mark.slow
 def test_a_tiled_campaign_is_its_own_and_old_campaigns_keep_their_identity():
     """Tiled renders (the default since 2026-11-25) are other pairs: the raster is part of the identity; a
