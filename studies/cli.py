@@ -557,7 +557,7 @@ def _score(args: argparse.Namespace) -> int:
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
     try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
         if args.csv is not None:
-            write_metrics_csv(rows, args.csv)
+            write_metrics_csv(rows, args.csv, drop_empty=True)
             print(f"rows:    {args.csv}")
         if args.json is not None:
             from reports.jsondoc import json_text

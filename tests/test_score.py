@@ -127,6 +127,13 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
     assert "| 300/150 | no usable output: " in out and "no such output directory" in out
     assert "1 of 2 pairs scored" in out and "1 without a usable output" in out
     assert len((tmp_path / "rows.csv").read_text().splitlines()) == 3  # header + both pairs, none dropped
+    import csv
+
+    with (tmp_path / "rows.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    # only columns score fills: about 30 of evaluate's (slope_*, epi_*, ...) were always empty
+    assert all(any(r[k] for r in rows) for k in rows[0]), [k for k in rows[0] if not any(r[k] for r in rows)]
+    assert {"pair", "fp_pct", "cdi_pct", "error"} <= set(rows[0]) and "slope_mean_abs_deg" not in rows[0]
 
 
 @pytest.mark.parametrize(
