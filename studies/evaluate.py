@@ -796,8 +796,11 @@ def render_all(
         code=code_fingerprint(RENDER_CODE),
     )
     out = []
+    cache = Path(cache_dir).resolve()
     for t in tasks:
-        if not (Path(res[t.id]["pair_dir"]) / "pair.json").is_file():  # cache wiped since the log was written
+        pair_dir = Path(res[t.id]["pair_dir"])
+        # cache wiped since the log was written, or the log copied with its --out: a copy read the original's pairs
+        if not (pair_dir / "pair.json").is_file() or not pair_dir.resolve().is_relative_to(cache):
             res[t.id] = _render_task(**t.kwargs)
         out.append({**res[t.id], "seed": t.kwargs["seed"]})
     return out

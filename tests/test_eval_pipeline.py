@@ -86,6 +86,19 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert log.read_text() == before and again == rows  # nothing re-ran
 
 
+def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path):
+    """The copy of an --out resumed from the original's pairs (absolute paths in runs/render.jsonl) for as long as
+    the original existed."""
+    import shutil
+
+    kw = dict(presets=["fast"], seeds=[0], camera_px=64, altitudes=[300], workers=1, progress=False)
+    (a,) = ev.evaluate_scenario("vertical", tmp_path / "a", **kw)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    (b,) = ev.evaluate_scenario("vertical", tmp_path / "b", **kw)
+    assert Path(a["pair"]).is_relative_to(tmp_path / "a") and Path(b["pair"]).is_relative_to(tmp_path / "b")
+    assert {k: v for k, v in a.items() if k != "pair"} == {k: v for k, v in b.items() if k != "pair"}
+
+
 def test_pose_knowledge_errors_raise_dem_error(cache: Path):
     (e,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
     perfect = ev.evaluate_pair(e["pair_dir"], "fast", truth_slope=False)
