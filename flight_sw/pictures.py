@@ -95,10 +95,8 @@ def dem_figure(
     share ``fill_fraction`` in its title), the elevation's ``sigma``, and with ``truth`` the true elevation
     and the error. Returns the matplotlib figure (:func:`reports.plots.save`)."""
     from reports.plots import Panel, dem_panels, map_figure
-    from reports.style import ELEVATION_CMAP
 
     dem = dem_panels(elevation, truth)
-    dem[0].cmap = ELEVATION_CMAP
     if fill_fraction:  # the pipeline's own share, of the covered pixels, as process prints it
         dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
     if sigma is not None:
@@ -230,7 +228,14 @@ def write_process_report(
     ]
     if rows:
         keys = ["fp_pct", "fn_pct", "tp_pct", "tn_pct", "cdi_pct", "dem_mean_abs_m", "dem_median_m", "dem_mad_m"]
-        sections.insert(0, Section("Against ground truth", tables=[Table([Column(k) for k in keys], rows)]))
+        scope = (  # the same labels in `score`'s output count other pixels: said where both are read
+            "Scored over the pixels this map covers. `hazard-hil score` scores the same output over the truth's "
+            "overlap of the two frames and counts a pixel the map left out as not called safe, so its figures "
+            "differ by the edge band."
+        )
+        sections.insert(
+            0, Section("Against ground truth", paragraphs=[scope], tables=[Table([Column(k) for k in keys], rows)])
+        )
     total = res.timings.get("total", {})
     headline = [
         Headline("level", res.level + (" (degraded)" * res.degraded), "warn" if res.degraded else "ok", "level"),

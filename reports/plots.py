@@ -19,9 +19,13 @@ import numpy as np
 from reports.style import (
     CONFUSION_COLOURS,
     CONFUSION_NAMES,
+    ELEVATION_CMAP,
+    ELEVATION_RANGE,
     ERROR_CMAP,
     MISSED,
     OUTSIDE,
+    PSAFE_CMAP,
+    PSAFE_COLOURS,
     SAFE,
     STATE_COLOURS,
     STATE_NAMES,
@@ -172,6 +176,18 @@ def site_label_groups(sites: Sequence[Site], min_sep: float) -> list[list[Site]]
     return groups
 
 
+def colormap(name: str) -> Any:
+    """A matplotlib colour map by name, the reports' own (``reports.style``: elevation, P(safe)) included."""
+    plt = _plt()
+    from matplotlib.colors import LinearSegmentedColormap
+
+    if name == ELEVATION_CMAP:
+        return LinearSegmentedColormap.from_list(name, plt.get_cmap("terrain")(np.linspace(*ELEVATION_RANGE, 256)))
+    if name == PSAFE_CMAP:
+        return LinearSegmentedColormap.from_list(name, PSAFE_COLOURS)
+    return plt.get_cmap(name)
+
+
 def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) -> Any:
     """A row of map panels; returns the matplotlib figure (see :func:`save`)."""
     plt = _plt()
@@ -188,7 +204,7 @@ def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) 
             fin = d[np.isfinite(d)]
             vmin = p.vmin if p.vmin is not None else (float(np.percentile(fin, 2)) if fin.size else 0.0)
             vmax = p.vmax if p.vmax is not None else (float(np.percentile(fin, 98)) if fin.size else 1.0)
-            cmap = plt.get_cmap(p.cmap).with_extremes(bad=OUTSIDE)
+            cmap = colormap(p.cmap).with_extremes(bad=OUTSIDE)
             im = ax.imshow(np.ma.masked_invalid(d), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
             cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
             cb.set_label(p.unit, fontsize=8)
@@ -215,13 +231,13 @@ def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elev
     ref = truth if truth is not None else estimate
     fin = ref[np.isfinite(ref)]
     lo, hi = (float(np.percentile(fin, 2)), float(np.percentile(fin, 98))) if fin.size else (0.0, 1.0)
-    panels = [Panel("scalar", estimate, f"computed {what}", unit, "terrain", lo, hi)]
+    panels = [Panel("scalar", estimate, f"computed {what}", unit, ELEVATION_CMAP, lo, hi)]
     if truth is not None:
         err = estimate - truth
         fe = np.abs(err[np.isfinite(err)])
         lim = float(np.percentile(fe, 95)) if fe.size else 1.0
         panels += [
-            Panel("scalar", truth, f"true {what}", unit, "terrain", lo, hi),
+            Panel("scalar", truth, f"true {what}", unit, ELEVATION_CMAP, lo, hi),
             Panel("scalar", err, f"{what} error (computed - true)", unit, ERROR_CMAP, -lim or -1.0, lim or 1.0),
         ]
     return panels
@@ -267,8 +283,11 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     fig, ax = plt.subplots(figsize=(9, 0.45 * max(3, len(recs)) + 1.2))
     seen: set[str] = set()
     stage_names = stage_sequence([r.get("stage_order") or list(r.get("stages") or {}) for r in recs])
-    # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over
-    palette = STAGE_COLOURS if len(stage_names) <= len(STAGE_COLOURS) else [plt.get_cmap("tab20")(i) for i in range(20)]
+    # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over; tab20's
+    # reds (the deadline's colour) and greys (the link's bars) left out, four of tab20b in their place
+    tab20, tab20b = plt.get_cmap("tab20"), plt.get_cmap("tab20b")
+    wide = [tab20(i) for i in range(20) if i not in (6, 7, 14, 15)] + [tab20b(i) for i in (0, 4, 8, 12)]
+    palette = STAGE_COLOURS if len(stage_names) <= len(STAGE_COLOURS) else wide
     colour = {k: palette[i % len(palette)] for i, k in enumerate(stage_names)}
 
     def once(name: str) -> str | None:
@@ -307,6 +326,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         _bar(ax, y, start, rl, "#333333", once("result on the link"))
         if r.get("deadline_s") is not None:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=MISSED, lw=2, label=once("deadline"))
+    ax.set_ylim(-0.6, len(recs) - 0.4 + 0.25)  # room above the top row for its plan markers
     ax.set_yticks(range(len(recs)))
     ax.set_yticklabels([str(r.get("label", i)) for i, r in enumerate(recs)][::-1], fontsize=8)
     ax.axvline(0, color="#888", lw=0.8)

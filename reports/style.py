@@ -35,11 +35,15 @@ CONFUSION_NAMES = {
 STATE_COLOURS = {0: SAFE, 1: HAZARD, 2: UNKNOWN, 255: OUTSIDE}
 STATE_NAMES = {0: "safe", 1: "unsafe", 2: "unknown", 255: "outside"}
 
-# Continuous layers: one colour map per kind of quantity.
-ELEVATION_CMAP = "terrain"
+# Continuous layers: one colour map per kind of quantity. Two are the reports' own (:func:`reports.plots.colormap`):
+# matplotlib's "terrain" ends in white, which is also "no elevation" here, and P(safe) in red-yellow-green put red,
+# the undetected hazard's colour, on ground correctly called unsafe.
+ELEVATION_CMAP = "hh-elevation"  # matplotlib's "terrain" between ELEVATION_RANGE: green lowlands .. brown highs
+ELEVATION_RANGE = (0.22, 0.82)
 ERROR_CMAP = "RdBu_r"  # diverging, symmetric about zero
 HAZARD_CMAP = "magma_r"  # 0 = pale (safe) .. 1 = dark (unsafe)
-PSAFE_CMAP = "RdYlGn"  # 0 = red .. 1 = green
+PSAFE_CMAP = "hh-psafe"  # 0 = the hazard's purple .. a pale khaki .. 1 = the safe green
+PSAFE_COLOURS = (HAZARD, "#e9dc9a", SAFE)
 
 
 @dataclass(frozen=True)
@@ -121,6 +125,16 @@ GLOSSARY: dict[str, Term] = {
     ),
     "deadline_hit_rate": Term(
         "deadline hit rate", "Share of pairs whose Result reached the ground within the deadline."
+    ),
+    "top_site": Term(
+        "top landing site",
+        "The site the flight software ranked first, judged on the truth: clear when every pixel whose true ground "
+        "lies within its 3 m footprint is safe; none offered when the Result says no site qualified (and why).",
+    ),
+    "outcome": Term("outcome", "The Result's level (full, or the coarser level it stopped at), or the error."),
+    "results": Term("results", "Pairs that returned a Result (on time or late), of the pairs asked for."),
+    "degraded": Term(
+        "Results degraded", "Results at a coarser level, or at the full level with pipeline stages skipped."
     ),
     "p_safe": Term(
         "P(safe landing)",

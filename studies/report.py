@@ -18,7 +18,7 @@ import numpy as np
 
 from reports.html import Column, Figure, Section, Table, write_page
 from reports.plots import save as save_figure
-from reports.style import HAZARD_CMAP, term
+from reports.style import HAZARD, HAZARD_CMAP, SAFE, term
 
 PANEL_IN = 3.2  # inches per map panel
 
@@ -91,7 +91,8 @@ def plot_vs_altitude(
     thesis: dict[tuple[str, str, int, str], float],
     path: str | Path,
 ) -> Path:
-    """CDI, TN%, TP% and FP against altitude for each preset, thesis values dashed (Fig. 6.6/6.12)."""
+    """CDI, hazards detected, safe recognised and FP against altitude for each preset, thesis values dashed (Fig.
+    6.6/6.12, which calls the middle two TN% and TP%)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -100,8 +101,10 @@ def plot_vs_altitude(
     fig_tab = {"vertical": ("Fig. 6.6", "6.4"), "approach": ("Fig. 6.12", "6.11")}[scenario]
     presets = sorted({k[1] for k in summary if k[0] == scenario})
     fig, axes = plt.subplots(1, 2, figsize=(9, 4.6))
-    colors = {"hazards_detected_pct": "tab:red", "safe_detected_pct": "tab:green", "cdi_pct": "tab:blue"}
-    names = {"hazards_detected_pct": "TN%", "safe_detected_pct": "TP%", "cdi_pct": "CDI"}
+    # the report's colours (red is only an undetected hazard) and its own names: the thesis's figure calls the first
+    # two "TN%" and "TP%", which on this page are shares of all pixels (Tables 6.3/6.10), not these ratios
+    colors = {"hazards_detected_pct": HAZARD, "safe_detected_pct": SAFE, "cdi_pct": "tab:blue"}
+    names = {"hazards_detected_pct": "hazards detected %", "safe_detected_pct": "safe recognised %", "cdi_pct": "CDI %"}
     marks = {p: m for p, m in zip(presets, ("o", "s", "^"))}
     for metric, c in colors.items():
         alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[0] and s == scenario and mm == metric)
@@ -135,8 +138,8 @@ def plot_vs_altitude(
                 )
     axes[0].set_xlabel("altitude [m]")
     axes[0].set_ylabel("%")
-    axes[0].set_title("correct detection")
-    axes[0].legend(fontsize=6, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below: not over data
+    axes[0].set_title("correct detection (the thesis's TN% = hazards detected, TP% = safe recognised)", fontsize=8)
+    axes[0].legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below: not over data
     alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[1] and s == scenario and mm == "fp_pct")
     axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="THESIS")
     for p in presets:

@@ -140,3 +140,18 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
         check = check_page(page)
         assert check.ok and check.images == 9, check
     assert math.isclose(ev.summarise(_rows())[("vertical", "thesis", 500)]["fp_pct"], 1.0)
+
+
+def test_the_detection_chart_names_its_curves_as_the_page_does(tmp_path, monkeypatch):
+    """Its curves were labelled "TN%" and "TP%", which the page's tables use for shares of all pixels: the chart
+    showed ~100 % and ~10 % beside a CDI of ~42 % defined as TP % + TN %."""
+    seen = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: seen.append(fig) or Path(path))
+    summary = {("vertical", "fast", a): {"hazards_detected_pct": 99.0, "safe_detected_pct": 10.0, "cdi_pct": 42.0,
+                                         "fp_pct": 0.1} for a in (300, 400)}  # fmt: skip
+    report.plot_vs_altitude(summary, "vertical", ev.thesis_index(ev.load_thesis()), tmp_path / "d.png")
+    labels = [t.get_text() for t in seen[0].axes[0].get_legend().get_texts()]
+    assert "hazards detected % ours-fast" in labels and "safe recognised % ours-fast" in labels, labels
+    assert not any(x.startswith(("TN%", "TP%")) for x in labels), labels
+    red = [ln.get_label() for ln in seen[0].axes[0].get_lines() if ln.get_color() in ("tab:red", "#d62728")]
+    assert red == []  # red is only an undetected hazard

@@ -135,3 +135,19 @@ def test_the_timeline_draws_the_stages_in_the_order_they_ran():
     ax = plots.timeline_figure([rec]).axes[0]
     marks = {ln.get_label(): ln.get_xdata()[0] for ln in ax.lines if ln.get_label().startswith("plan:")}
     assert marks == {"plan: done by": 58.5, "plan: DEM stop-by (then the mapping's reserve)": 18.5}
+
+
+def test_the_maps_colours_keep_their_meaning():
+    """Elevation ended in white, the colour of "no elevation"; P(safe) put red, the undetected hazard's colour, on
+    ground correctly called unsafe."""
+    from matplotlib.colors import to_rgb
+
+    from reports.style import ELEVATION_CMAP, MISSED, OUTSIDE, PSAFE_CMAP
+
+    def far(a, b) -> float:
+        return float(np.abs(np.subtract(a[:3], to_rgb(b))).max())
+
+    ramp = np.linspace(0.0, 1.0, 101)
+    assert min(far(c, OUTSIDE) for c in plots.colormap(ELEVATION_CMAP)(ramp)) > 0.25
+    assert min(far(c, MISSED) for c in plots.colormap(PSAFE_CMAP)(ramp)) > 0.3
+    assert plots.colormap("viridis").name == "viridis"  # any other name is matplotlib's
