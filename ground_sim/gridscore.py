@@ -12,6 +12,9 @@ scored. The same true X, Y reads the elevation grid for the DEM error
 (nearest cell of the possibly decimated grid).
 
 Scores come from :mod:`ground_sim.scoring` (confusion, DEM error statistics).
+
+Landing sites (world X, Y) are judged by the design's site rule on the same true ground points
+(:func:`judge_site`): the landing Monte Carlo and the HIL run share it.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ground_sim import scoring
+from ground_sim.truth import FOOTPRINT_M
 from protocol.grids import cells_at
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, Camera, Pose
 
@@ -121,3 +125,43 @@ def score_grids(
             fill = values_at_pixels(np.asarray(elevation_filled, np.float32), e_origin, e_cell, x, y) > 0.5
             out["dem_filled_pct"] = float(100.0 * np.count_nonzero(has & fill) / n)
     return out, called
+
+
+def judge_site(
+    site_xy: tuple[float, float], world_xy: np.ndarray, hazard: np.ndarray, radius_m: float = FOOTPRINT_M / 2
+) -> dict[str, Any]:
+    """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
+    ``radius_m`` of the site has hazard < 1. A footprint that holds no pixel, or reaches the image
+    border (part of it unseen), cannot be confirmed and is judged unsafe.
+
+    ``world_xy`` is (H, W, 2), each pixel's true ground X, Y (:func:`pixel_ground_xy`). Also returns ``uv``,
+    the pixel whose ground is nearest the site (None for a site that is not a finite point), to draw it."""
+    X, Y = world_xy[..., 0], world_xy[..., 1]
+    sx, sy = float(site_xy[0]), float(site_xy[1])
+    if not (np.isfinite(sx) and np.isfinite(sy)):
+        return {"safe": False, "n_px": 0, "n_unsafe": 0, "incomplete": True, "uv": None}
+    d2 = (X - sx) ** 2 + (Y - sy) ** 2
+    near = d2 <= radius_m * radius_m
+    n = int(np.count_nonzero(near))
+    unsafe = int(np.count_nonzero(near & ~(hazard < 1.0)))
+    border = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any())
+    uv = None
+    if n:  # the footprint is on the image: the pixel whose ground is nearest its centre
+        v, u = np.unravel_index(int(np.nanargmin(d2)), d2.shape)
+        uv = (int(u), int(v))
+    return {
+        "safe": n > 0 and unsafe == 0 and not border,
+        "n_px": n,
+        "n_unsafe": unsafe,
+        "incomplete": border or n == 0,
+        "uv": uv,
+    }
+
+
+def judge_sites(pair: Any, sites_xy: list[tuple[float, float]]) -> list[dict[str, Any]]:
+    """:func:`judge_site` for each site, on ``pair``'s truth of frame 0 (its depth and hazard)."""
+    truth = pair.truth
+    if "depth" not in truth or "hazard" not in truth:
+        raise scoring.ScoringInputError("judging sites needs ground-truth depth and hazard (gt_depth_i1.npy, ...)")
+    world = np.stack(pixel_ground_xy(pair.camera, true_pose_upper(pair), truth["depth"]), axis=-1)
+    return [judge_site(xy, world, truth["hazard"]) for xy in sites_xy]

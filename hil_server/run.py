@@ -181,10 +181,12 @@ def score_records(records: list[dict]) -> list[dict]:
     """Add detection and DEM scores (ground truth of each pair) to the received records.
 
     ``scores``: from the compact Result's world grids, per pixel of i1 through its true ground
-    point (:mod:`ground_sim.gridscore`); ``scores_full``: from the full-resolution image maps,
-    when the run asked for them (``--full-maps``).
+    point (:mod:`ground_sim.gridscore`), with the landing sites judged by the design's site rule
+    (``sites_n``, ``sites_truly_clear``, ``top_site_clear`` 1/0; each site's verdict in the record's
+    ``site_truth``); ``scores_full``: from the full-resolution image maps, when the run asked for them
+    (``--full-maps``).
     """
-    from ground_sim.gridscore import score_grids
+    from ground_sim.gridscore import judge_sites, score_grids
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -207,6 +209,13 @@ def score_records(records: list[dict]) -> list[dict]:
                 float(rec.get("elevation_cell_m") or rec["grid_cell_m"]),
                 np.load(fills) if elev is not None and fills.is_file() else None,
             )
+            sites = rec.get("sites") or []
+            judged = judge_sites(pair, [(float(s["x"]), float(s["y"])) for s in sites])
+            scores["sites_n"] = float(len(sites))
+            scores["sites_truly_clear"] = float(sum(j["safe"] for j in judged))
+            if judged:  # the one a lander would take
+                scores["top_site_clear"] = float(judged[0]["safe"])
+            rec["site_truth"] = judged
             rec["scores"] = scores
             np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report
         if (d / "hazard.npy").is_file() and "hazard" in truth:
@@ -281,15 +290,51 @@ def phase_times(records: list[dict]) -> dict[str, float]:
 
 
 def phase_note(summary: dict) -> str:
-    """'flight time per pair (median): before the DEM 12.60 s, DEM 3.10 s, mapping 27.90 s (56 %), ...' (the
-    largest phase with its share) or ''."""
+    """'flight time per pair, each phase's median: before the DEM 12.60 s, DEM 3.10 s, mapping 27.90 s (56 % of
+    their sum), ...' (the largest phase with its share) or ''. Medians of phases need not add up to the median
+    flight time: the note says so."""
     ph: dict[str, float] = summary.get("flight_phases_p50_s") or {}
     total = sum(ph.values())
     if not total > 0:
         return ""
     top = max(ph, key=lambda k: ph[k])
-    parts = [f"{k} {v:.2f} s" + (f" ({100 * v / total:.0f} %)" if k == top else "") for k, v in ph.items()]
-    return "flight time per pair (median): " + ", ".join(parts)
+    parts = [f"{k} {v:.2f} s" + (f" ({100 * v / total:.0f} % of their sum)" if k == top else "") for k, v in ph.items()]
+    return "flight time per pair, each phase's median (they need not add up to the median flight time): " + ", ".join(
+        parts
+    )
+
+
+def site_summary(results: list[dict]) -> dict | None:
+    """The landing sites of the Results judged against the truth (None when none could be): ``pairs`` judged,
+    ``with_site``, ``top_clear`` (the top site's whole footprint truly clear), and the labels of the pairs whose top
+    site was not clear and of those that offered none, with the flight side's reason."""
+    judged = [r for r in results if "sites_n" in (r.get("scores") or {})]
+    if not judged:
+        return None
+    offered = [r for r in judged if r["scores"]["sites_n"] > 0]
+    return {
+        "pairs": len(judged),
+        "with_site": len(offered),
+        "top_clear": sum(r["scores"].get("top_site_clear") == 1.0 for r in offered),
+        "top_not_clear": [r["label"] for r in offered if r["scores"].get("top_site_clear") != 1.0],
+        "no_site": [{"label": r["label"], "reason": r.get("no_site_reason")} for r in judged if r not in offered],
+    }
+
+
+def site_note(summary: dict) -> str:
+    """'landing sites: the top site truly clear on 2 of 2 pairs that offered one; 1 offered none (200/100: ...)'."""
+    s = summary.get("sites")
+    if not s:
+        return ""
+    text = f"landing sites: the top site truly clear on {s['top_clear']} of {s['with_site']} pairs that offered one"
+    if s["top_not_clear"]:
+        text += f" (NOT clear: {', '.join(s['top_not_clear'])})"
+    if s["no_site"]:
+        first = s["no_site"][0]
+        why = f": {first['reason']}" if first.get("reason") else ""
+        more = f", and {len(s['no_site']) - 1} more" if len(s["no_site"]) > 1 else ""
+        text += f"; {len(s['no_site'])} offered none ({first['label']}{why}{more})"
+    return text
 
 
 def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
@@ -328,6 +373,7 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "result_line_max_s": max(line) if line else float("nan"),
         "result_bytes_max": max((r.get("result_bytes", 0) for r in records), default=0),
         "flight_phases_p50_s": phase_times(ok),
+        "sites": site_summary(ok),
         "link_errors": sum(r.get("code") == "link_down" for r in records),
         **extra,
         "records": records,
@@ -434,13 +480,26 @@ def _server_note(summary: dict, c: dict) -> str:
     return "flight process: " + ", ".join(parts) + why
 
 
+def top_site_text(r: dict) -> str:
+    """A Result's landing sites in a word or two: 'clear (3 sites)', 'NOT clear (1 site)', 'none offered', or
+    '3 sites' when the truth could not judge them."""
+    sc = r.get("scores") or {}
+    n = len(r.get("sites") or [])
+    if n == 0:
+        return "none offered"
+    count = f"{n} site{'' if n == 1 else 's'}"
+    if "top_site_clear" not in sc:
+        return count
+    return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count})"
+
+
 def summary_table(summary: dict) -> str:
     from hil_server.run_report import level_text
 
     rows = [
         "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
-        "| DEM mean abs m |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| DEM mean abs m | top site |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in summary["records"]:
         sc = r.get("scores", {})
@@ -452,12 +511,12 @@ def summary_table(summary: dict) -> str:
                 f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {level} | "
                 f"{_fmt(r.get('e2e_latency_s'))} | {_fmt(r.get('flight_latency_s'))} | "
                 f"{_fmt(r.get('result_line_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
-                f"{_fmt(sc.get('dem_mean_abs'))} |"
+                f"{_fmt(sc.get('dem_mean_abs'))} | {top_site_text(r)} |"
             )
         else:
             rows.append(
                 f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | no result "
-                "| — | — | — |"
+                "| — | — | — | — |"
             )
     s = summary
     eff = s.get("effective_fraction")
@@ -471,7 +530,7 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    for note in (throttle_check_note(s), phase_note(s), flight_note(s)):
+    for note in (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s)):
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):

@@ -22,6 +22,7 @@ from reports.console import printable
 from reports.html import Column, Figure, Headline, Section, Table, write_page
 from reports.plots import (
     Panel,
+    Site,
     confusion_codes,
     dem_panels,
     latency_figure,
@@ -42,6 +43,7 @@ PAIR_COLUMNS = [
     Column("fp_pct"),
     Column("cdi_pct"),
     Column("dem_mean_abs_m"),
+    Column("top_site"),
 ]
 
 
@@ -82,7 +84,30 @@ def pair_row(r: dict) -> dict[str, Any]:
         "fp_pct": sc.get("fp_pct"),
         "cdi_pct": sc.get("cdi_pct"),
         "dem_mean_abs_m": _first(sc, "dem_mean_abs", "dem_mean_abs_m"),
+        "top_site": _site_cell(r) if ok else None,
     }
+
+
+def _site_cell(r: dict) -> str:
+    from hil_server.run import top_site_text
+
+    text = top_site_text(r)
+    why = r.get("no_site_reason")
+    return f"{text}: {printable(why, 200)}" if not r.get("sites") and why else text
+
+
+def _site_marks(r: dict, pair: Any) -> list[Site]:
+    """The Result's sites where i1 sees their ground, each a 3 m footprint, coloured by the truth's verdict."""
+    depth = pair.truth.get("depth")
+    out = []
+    for rank, j in enumerate(r.get("site_truth") or [], 1):
+        if j.get("uv") is None or depth is None:
+            continue
+        u, v = j["uv"]
+        z = float(depth[v, u])
+        radius = 1.5 * pair.camera.fx / z if np.isfinite(z) and z > 0 else 2.0
+        out.append(Site(float(u), float(v), radius, rank, bool(j["safe"])))
+    return out
 
 
 def _telemetry_records(records: list[dict]) -> list[dict]:
@@ -111,7 +136,9 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     hazard = np.load(hz_file)
     pid = r["pair_id"]
     figs = []
-    panels = [Panel("image", pair.images[0], "upper image (i1)")]
+    marks = _site_marks(r, pair)
+    title = "upper image (i1)" + (", landing sites by rank" if marks else "")
+    panels = [Panel("image", pair.images[0], title, sites=marks)]
     gt_h = pair.truth.get("hazard")
     if gt_h is not None:
         covered = np.isfinite(hazard) & np.isfinite(gt_h)
@@ -121,7 +148,15 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     else:
         panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", "magma_r", 0.0, 1.0))
     save(map_figure(panels, f"{r.get('label')}: hazards"), fig_dir / f"{pid}_hazard.png")
-    figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, scored against the truth."))
+    sites = (
+        " Circles: the landing sites it offered, numbered by rank; green when the truth says the whole 3 m footprint "
+        "is clear, red when it is not."
+        if marks
+        else ""
+    )
+    figs.append(
+        Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, scored against the truth.{sites}")
+    )
     if (out / "elevation.npy").is_file():
         dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))
         save(map_figure(dem, f"{r.get('label')}: elevation"), fig_dir / f"{pid}_dem.png")
@@ -157,6 +192,16 @@ def write_run_report(summary: dict, path: Path) -> Path:
                 "Results degraded (a coarser level or stages skipped)",
             )
         )
+    judged = s.get("sites")
+    if judged and judged.get("with_site"):  # the answer a lander acts on: red when one is not clear
+        headline.append(
+            Headline(
+                "top_site",
+                f"{judged['top_clear']}/{judged['with_site']}",
+                "ok" if judged["top_clear"] == judged["with_site"] else "bad",
+                "top landing site truly clear",
+            )
+        )
     fps = [r["scores"]["fp_pct"] for r in records if (r.get("scores") or {}).get("fp_pct") is not None]
     if fps:
         worst = max(fps)
@@ -171,6 +216,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
         intro.append(f"INCOMPLETE: {s.get('reason')}. Only the pairs below finished.")
     if met is not None:
         intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
+    from hil_server.run import site_note
+
+    if site_note(s):
+        intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
     sections = [
         Section(
             "Pairs",

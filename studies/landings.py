@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from reports.html import write_atomic
@@ -57,7 +58,6 @@ LANDING_PAIRS: tuple[tuple[str, str], ...] = (
 DEFAULT_POSE_ERROR = "alt_sigma=0.15,pitch_sigma=0.03,roll_yaw=0.03,lateral=0.15,equal_pitch=0"
 PER_RENDER = 8
 AIM_FRACTION = 0.2
-FOOTPRINT_RADIUS_M = 1.5
 PRESETS = ("fast", "thesis")
 CAMPAIGN_KEY = 0x1A4D
 MAX_LANDINGS = 1_000_000  # per campaign: ~3 CPU-days; more is a typo, and its plan would not fit in memory
@@ -236,20 +236,6 @@ def _footprint_width(camera: Any, pose: Any) -> float:
 
 
 # --------------------------------------------------------------------------- judging
-def judge_site(
-    site_xy: tuple[float, float], world_xy: np.ndarray, hazard: np.ndarray, radius_m: float = FOOTPRINT_RADIUS_M
-) -> dict[str, Any]:
-    """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
-    ``radius_m`` of the site has hazard < 1. A footprint that holds no pixel, or reaches the image
-    border (part of it unseen), cannot be confirmed and is judged unsafe."""
-    X, Y = world_xy[..., 0], world_xy[..., 1]
-    near = (X - site_xy[0]) ** 2 + (Y - site_xy[1]) ** 2 <= radius_m * radius_m
-    n = int(np.count_nonzero(near))
-    unsafe = int(np.count_nonzero(near & ~(hazard < 1.0)))
-    border = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any())
-    return {"safe": n > 0 and unsafe == 0 and not border, "n_px": n, "n_unsafe": unsafe, "incomplete": border or n == 0}
-
-
 def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any, Any]:
     """(spec, pair) of a render group: rendered, or read from ``cache_dir`` where an earlier campaign left it.
 

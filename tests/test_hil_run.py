@@ -39,8 +39,13 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     # where the flight's time went, by phase: every phase of the reference pipeline timed, nothing unnamed
     ph = s["flight_phases_p50_s"]
     assert set(ph) == {"before the DEM", "DEM", "mapping", "fusion", "output"} and min(ph.values()) > 0
-    assert "Flight time per pair (median): before the DEM " in (tmp_path / "summary.md").read_text()
-    assert "Flight time per pair (median): before the DEM " in (tmp_path / "report.html").read_text()
+    assert (
+        "Flight time per pair, each phase's median (they need not add up to the median flight time): before the DEM "
+        in (tmp_path / "summary.md").read_text()
+    )
+    import html
+
+    assert "each phase's median (they need not" in html.unescape((tmp_path / "report.html").read_text())
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
@@ -272,6 +277,9 @@ def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
     assert recs[0]["elapsed_s"] < sending - 0.5 * recs[-1]["link_s"], [(r["elapsed_s"], r["link_s"]) for r in recs]
     # the HIL server says how long each Result waited in its send queue (it read as unexplained end-to-end time)
     assert all(0.0 <= r["result_queue_s"] <= r["e2e_latency_s"] for r in recs), [r.get("result_queue_s") for r in recs]
+    # every Result's sites judged on the truth (tests/test_hil_sites.py checks the verdicts)
+    assert s["sites"]["pairs"] == 3 and s["sites"]["with_site"] + len(s["sites"]["no_site"]) == 3
+    assert all(len(r["site_truth"]) == len(r["sites"]) for r in recs)
 
 
 def test_the_flight_time_is_told_by_phase():
@@ -294,8 +302,8 @@ def test_the_flight_time_is_told_by_phase():
     # medians over the two timed Results; "total" is not a phase; a stage the table does not know is "other"
     assert ph == {"before the DEM": 10.5, "DEM": 2.0, "mapping": 14.0, "fusion": 3.0, "output": 2.0, "other": 0.25}
     assert phase_note({"flight_phases_p50_s": ph}) == (
-        "flight time per pair (median): before the DEM 10.50 s, DEM 2.00 s, mapping 14.00 s (44 %), fusion 3.00 s, "
-        "output 2.00 s, other 0.25 s"
+        "flight time per pair, each phase's median (they need not add up to the median flight time): before the DEM "
+        "10.50 s, DEM 2.00 s, mapping 14.00 s (44 % of their sum), fusion 3.00 s, output 2.00 s, other 0.25 s"
     )
     assert phase_times(records[2:]) == {} and phase_note({"flight_phases_p50_s": {}}) == ""
 

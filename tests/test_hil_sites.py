@@ -1,0 +1,103 @@
+"""The HIL run judges the landing sites a Result offers against the truth, and says so in every report.
+
+The run report used to show no site at all: a pair that offered none, or whose top site was on a hazard, looked
+like any other. Sites here are placed by hand on a rendered pair's truth, so each verdict is known in advance.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from hilkit import small_descent
+
+from ground_sim.gridscore import judge_site, pixel_ground_xy, true_pose_upper
+from hil_server.run import score_records, site_note, site_summary, summary_table, top_site_text
+from hil_server.run_report import write_run_report
+from protocol.pairdir import STATE_UNKNOWN, read_pair
+
+
+def _spots(pair) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The ground X, Y of one footprint the truth calls clear and one it does not, both well inside i1."""
+    world = np.stack(pixel_ground_xy(pair.camera, true_pose_upper(pair), pair.truth["depth"]), axis=-1)
+    h, w = pair.truth["hazard"].shape
+    clear = unsafe = None
+    for v in range(h // 4, 3 * h // 4, 3):
+        for u in range(w // 4, 3 * w // 4, 3):
+            xy = (float(world[v, u, 0]), float(world[v, u, 1]))
+            safe = judge_site(xy, world, pair.truth["hazard"])["safe"]
+            if safe and clear is None:
+                clear = xy
+            if not safe and unsafe is None and pair.truth["hazard"][v, u] >= 1.0:
+                unsafe = xy
+    assert clear is not None and unsafe is not None
+    return clear, unsafe
+
+
+def _record(pair_dir, out_dir, label: str, sites: list[tuple[float, float]], reason: str | None = None) -> dict:
+    out_dir.mkdir(parents=True)
+    np.save(out_dir / "state_grid.npy", np.full((4, 4), STATE_UNKNOWN, np.uint8))
+    return {
+        "status": "result",
+        "label": label,
+        "pair_id": label.replace("/", "_"),
+        "altitude_m": 300.0,
+        "pair_dir": str(pair_dir),
+        "out_dir": str(out_dir),
+        "grid_origin_xy": [0.0, 0.0],
+        "grid_cell_m": 1.0,
+        "sites": [{"x": x, "y": y, "z": 0.0} for x, y in sites],
+        "no_site_reason": reason,
+        "deadline_met": True,
+        "deadline_s": 2.0,
+        "e2e_latency_s": 0.5,
+        "level": "full",
+    }
+
+
+def test_each_site_is_judged_on_the_truth_and_the_reports_say_so(tmp_path):
+    manifest = small_descent(tmp_path / "pairs", ["600/300"])
+    pair_dir = manifest.parent / json.loads(manifest.read_text())["pairs"][0]["path"]
+    clear, unsafe = _spots(read_pair(pair_dir))
+    records = [
+        _record(pair_dir, tmp_path / "a", "a", [clear, unsafe]),
+        _record(pair_dir, tmp_path / "b", "b", [unsafe, clear]),
+        _record(pair_dir, tmp_path / "c", "c", [], "no 3 m footprint with a 1 m margin is entirely known safe"),
+    ]
+    score_records(records)
+    a, b, c = records
+    assert [j["safe"] for j in a["site_truth"]] == [True, False] and a["scores"]["top_site_clear"] == 1.0
+    assert b["scores"]["top_site_clear"] == 0.0 and b["scores"]["sites_truly_clear"] == 1.0
+    assert c["scores"]["sites_n"] == 0.0 and "top_site_clear" not in c["scores"] and c["site_truth"] == []
+    assert [top_site_text(r) for r in records] == ["clear (2 sites)", "NOT clear (2 sites)", "none offered"]
+
+    summary = {"records": records, "sites": site_summary(records), "pairs": 3, "results": 3, "deadline_met": 3}
+    assert summary["sites"] == {
+        "pairs": 3,
+        "with_site": 2,
+        "top_clear": 1,
+        "top_not_clear": ["b"],
+        "no_site": [{"label": "c", "reason": "no 3 m footprint with a 1 m margin is entirely known safe"}],
+    }
+    assert site_note(summary) == (
+        "landing sites: the top site truly clear on 1 of 2 pairs that offered one (NOT clear: b); 1 offered none "
+        "(c: no 3 m footprint with a 1 m margin is entirely known safe)"
+    )
+    table = summary_table({**summary, "scenario": "v", "link": "l", "flight": "f", "budget": None, "degraded": 0,
+                           "errors": 0, "e2e_latency_p50_s": 0.5, "e2e_latency_max_s": 0.5,
+                           "flight_latency_p50_s": 0.4, "deadline_hit_rate": 1.0})  # fmt: skip
+    assert "| top site |" in table and "| NOT clear (2 sites) |" in table and "Landing sites: the top site" in table
+
+    page = write_run_report(summary, tmp_path / "report.html").read_text()
+    assert "top landing site truly clear" in page and "NOT clear (2 sites)" in page
+    assert "none offered: no 3 m footprint with a 1 m margin" in page
+    assert (tmp_path / "figures" / "a_hazard.png").is_file()
+    assert "Circles: the landing sites it offered" in page
+
+
+def test_a_site_that_is_not_a_point_on_the_ground_is_not_clear(tmp_path):
+    world = np.zeros((8, 8, 2))
+    assert judge_site((float("nan"), 0.0), world, np.zeros((8, 8)))["safe"] is False
+    assert judge_site((1e12, 0.0), world, np.zeros((8, 8))) == {
+        "safe": False, "n_px": 0, "n_unsafe": 0, "incomplete": True, "uv": None
+    }  # fmt: skip
