@@ -304,7 +304,8 @@ def test_throttle_adopts_a_running_process_from_now_on():
         popen.wait()
     # 0.06 s of CPU at 0.2 -> ~0.3 s (not the ~1.8 s that paying back the start-up first would take)
     assert 0.2 < throttled < 0.6, throttled
-    assert free < 0.15, free  # released at the end of the block
+    # released at the end of the block: well under the throttled time (both stretch alike on a loaded host)
+    assert free < min(0.3, 0.6 * throttled), (free, throttled)
     with pytest.raises(InputError):
         Throttle(popen, 0.0)
 
