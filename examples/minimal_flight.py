@@ -14,7 +14,8 @@ written yet. Replace ``answer()`` with your own and keep the rest.
 Run it under the emulated budget (the HIL server starts it, gives it its line as
 ``{port}`` and ``$HAZARD_HIL_PORT``, and throttles, pins, caps and watches it):
 
-    hazard-hil run --budget snapdragon801 --flight-cmd "python examples/minimal_flight.py --port {port}"
+    .venv/bin/hazard-hil run --budget snapdragon801 \\
+        --flight-cmd ".venv/bin/python examples/minimal_flight.py --port {port}"
 
 or on a board of your own, with the ground streaming to it:
 

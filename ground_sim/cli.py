@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "render",
         help="render a descent (image pairs + ground truth) to pair directories",
-        description="Render a descent scenario: one pair directory per pair (DESIGN.md format, with "
+        description="Render a descent scenario: one pair directory per pair (docs/design.md format, with "
         "gt_*_i1.npy and each frame's altimeter range), manifest.json (scene, sun, hazards in scene per "
         "pair) and contact.png. Frames are rendered in a pool of single-threaded processes.",
     )

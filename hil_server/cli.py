@@ -397,7 +397,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=None,
         metavar="CMD",
         help="run your own flight program under the budget instead of ours, e.g. "
-        '"python examples/minimal_flight.py --port {port}" ({port}: its serial line, also $HAZARD_HIL_PORT; '
+        '".venv/bin/python examples/minimal_flight.py --port {port}" ({port}: its serial line, also $HAZARD_HIL_PORT; '
         "docs/hil.md)",
     )
     p.add_argument("--keys", type=Path, default=None, help="--flight external over zmq: the ground's CURVE key dir")
@@ -436,7 +436,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument(
         "--baud", type=int, default=None, help="serial baud rate (default: the budget's, else 921600; 115200 works)"
     )
-    p.add_argument("--image-size", type=int, default=None, help="render a smaller square camera, same FOV")
+    p.add_argument("--image-size", type=int, default=None, help="render a square camera of this many px (32-4096; default 512), same FOV")
     p.add_argument(
         "--manifest",
         type=Path,
