@@ -764,12 +764,14 @@ def stream_descent(
                     give_up(new_outcome(k, entries[k]), "not_run", f"not run: {exc}", show=False)
                 raise
             except LinkDown as exc:
-                note(f"LINK ERROR: {exc}")
+                if progress is None:  # else the pair's own line says it: two lines per pair with one reason
+                    note(f"LINK ERROR: {exc}")
                 give_up(o, "link_down", str(exc))
                 continue
             send_config()
             if not send_frames(o, frames):
-                note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")
+                if progress is None:
+                    note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")
                 continue
             if pace == "lockstep":
                 want = {o.seqs} | late  # a late answer to an earlier pair is recorded when it comes

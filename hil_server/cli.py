@@ -436,7 +436,12 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument(
         "--baud", type=int, default=None, help="serial baud rate (default: the budget's, else 921600; 115200 works)"
     )
-    p.add_argument("--image-size", type=int, default=None, help="render a square camera of this many px (32-4096; default 512), same FOV")
+    p.add_argument(
+        "--image-size",
+        type=int,
+        default=None,
+        help="render a square camera of this many px (32-4096; default 512), same FOV",
+    )
     p.add_argument(
         "--manifest",
         type=Path,

@@ -71,7 +71,7 @@ def manifest4(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("fault", ["stall@3", "exit@1"])
-def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manifest4, tmp_path, fault):
+def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manifest4, tmp_path, fault, capfd):
     """The supervisor freezes (SIGSTOP: stops reading and writing) or exits without a word at a pair;
     the pty stays open, so only the protocol's timers can tell. The run exits non-zero.
 
@@ -96,6 +96,8 @@ def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manife
         assert 2.5 <= later[0]["elapsed_s"] <= 6.0 and all(r["elapsed_s"] < 1.0 for r in later[1:]), later
         assert "the ground waits 4 s" in later[0]["text"], later
     assert s["link_errors"] == 1 + len(later) and s["ground_exit"] == 3
+    # one console line per pair: each also had a "LINK ERROR" line with the same long reason
+    assert capfd.readouterr().err.count("no link session with the flight computer for") == len(later)
 
 
 @pytest.mark.slow
