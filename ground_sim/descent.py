@@ -386,7 +386,7 @@ def _warn_no_overlap(label: str) -> None:
 
 def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, tile: int = 200) -> Path:
     """PNG grid for people: each entry's first and last frames with its label, two entries per row (a
-    multi-frame entry says how many frames it has: "i4 of 4"; an odd count ends with a tile that says so)."""
+    multi-frame entry says how many frames it has: "i4 of 4"; an odd count above one ends with a tile that says so)."""
     import cv2
 
     def labelled(img: np.ndarray, text: str) -> np.ndarray:
@@ -402,7 +402,7 @@ def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, t
             small = cv2.resize(img, (tile, tile), interpolation=cv2.INTER_AREA)
             row.append(labelled(small, f"{label} i{k + 1}" + (f" of {n}" if n > 2 else "")))
         cells.append(np.hstack(row))
-    if len(cells) % 2:
+    if len(cells) % 2 and len(cells) > 1:  # one entry alone is its own row: a filler would take a third of the sheet
         blank = np.full((tile, 2 * tile + 4), 40, np.uint8)
         cells.append(labelled(blank, "(no more pairs)")[:, : cells[0].shape[1]])
     grid = np.vstack([np.hstack(cells[i : i + 2]) for i in range(0, len(cells), 2)])

@@ -188,10 +188,42 @@ def colormap(name: str) -> Any:
     return plt.get_cmap(name)
 
 
-def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) -> Any:
-    """A row of map panels; returns the matplotlib figure (see :func:`save`)."""
+ZOOM_BELOW = 0.8  # a map that covers less of its frame than this is shown zoomed to what it covers
+ZOOM_PAD = 0.04  # of the frame's side, around the mapped box
+
+
+def mapped_box(panels: Sequence[Panel]) -> tuple[int, int, int, int] | None:
+    """``(row0, row1, col0, col1)`` around the pixels the maps cover, padded; None when they cover most of the frame.
+
+    The maps of a pair cover only where both frames see the ground (a quarter of the upper image for a 300/150
+    pair), and drawn whole they spent three quarters of each panel on white. What a map covers: the pixels not
+    "outside" on its state and confusion panels, else the pixels finite on every scalar panel (a truth panel is
+    finite everywhere; the computed one only where it mapped).
+    """
+    cats = [np.asarray(p.data) != 255 for p in panels if p.kind in ("state", "confusion")]
+    scal = [np.isfinite(np.asarray(p.data, np.float64)) for p in panels if p.kind == "scalar"]
+    masks = cats or scal
+    if not masks or len({m.shape for m in masks}) != 1:
+        return None
+    mask = np.logical_or.reduce(masks) if cats else np.logical_and.reduce(masks)
+    if not mask.any() or mask.mean() >= ZOOM_BELOW:
+        return None
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    pad = int(round(ZOOM_PAD * max(mask.shape)))
+    r0, r1 = max(0, int(rows[0]) - pad), min(mask.shape[0] - 1, int(rows[-1]) + pad)
+    c0, c1 = max(0, int(cols[0]) - pad), min(mask.shape[1] - 1, int(cols[-1]) + pad)
+    if (r1 - r0 + 1) * (c1 - c0 + 1) >= ZOOM_BELOW * mask.size:
+        return None
+    return r0, r1, c0, c1
+
+
+def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4, zoom: bool = True) -> Any:
+    """A row of map panels; returns the matplotlib figure (see :func:`save`). With ``zoom`` every panel shows the
+    box the maps cover (:func:`mapped_box`) when they cover little of the frame, and the title says so."""
     plt = _plt()
     n = len(panels)
+    box = mapped_box(panels) if zoom else None
+    shape = next((np.shape(p.data)[:2] for p in panels if p.kind != "image"), None)  # the maps' frame
     fig, axes = plt.subplots(1, n, figsize=(panel_in * n, panel_in * 1.25), squeeze=False)
     for ax, p in zip(axes[0], panels):
         ax.set_title(p.title, fontsize=9)
@@ -219,7 +251,14 @@ def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4) 
             _categorical(ax, np.asarray(p.data, np.uint8), colours, names, True)
         else:
             raise ValueError(f"unknown panel kind {p.kind!r}")
+        if box is not None and np.shape(p.data)[:2] == shape:
+            ax.set_xlim(box[2] - 0.5, box[3] + 0.5)
+            ax.set_ylim(box[1] + 0.5, box[0] - 0.5)  # rows down, as the image
         _draw_sites(ax, p.sites)
+    if box is not None:
+        title = (
+            title + " " if title else ""
+        ) + f"(zoomed to the mapped area: rows {box[0]}-{box[1]}, columns {box[2]}-{box[3]})"
     if title:
         fig.suptitle(title, fontsize=11)
     fig.tight_layout()

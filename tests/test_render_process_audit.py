@@ -202,3 +202,6 @@ def test_contact_sheet_pads_an_odd_count_with_a_tile_that_says_so(tmp_path):
     pad = sheet[sheet.shape[0] // 2 :, half:]
     assert sheet.shape == (2 * 220, 2 * half) and pad.max() == 255  # a label
     assert pad[30:-3, 3:-3].min() > 0  # and no black tile
+    # one entry alone is its own row: a filler took a third of the sheet in the commonest case
+    one = cv2.imread(str(contact_sheet(entries[:1], tmp_path / "one.png")), 0)
+    assert one.shape == (220, half)

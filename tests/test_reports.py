@@ -151,3 +151,26 @@ def test_the_maps_colours_keep_their_meaning():
     assert min(far(c, OUTSIDE) for c in plots.colormap(ELEVATION_CMAP)(ramp)) > 0.25
     assert min(far(c, MISSED) for c in plots.colormap(PSAFE_CMAP)(ramp)) > 0.3
     assert plots.colormap("viridis").name == "viridis"  # any other name is matplotlib's
+
+
+def test_maps_that_cover_a_quarter_of_the_frame_are_shown_zoomed_to_it():
+    """A 300/150 pair's maps cover the middle quarter of the upper image; drawn whole, three quarters of every
+    panel was white."""
+    state = np.full((100, 100), 255, np.uint8)
+    state[25:75, 30:70] = 0
+    img = np.zeros((100, 100), np.uint8)
+    panels = [plots.Panel("image", img, "i1"), plots.Panel("state", state, "states")]
+    assert plots.mapped_box(panels) == (21, 78, 26, 73)  # padded by 4 % of the side
+    fig = plots.map_figure(panels, "t")
+    for ax in fig.axes[:2]:  # the image too, so the two read side by side
+        assert ax.get_xlim() == (25.5, 73.5) and ax.get_ylim() == (78.5, 20.5)
+    assert "zoomed to the mapped area" in fig._suptitle.get_text()
+    assert plots.mapped_box([plots.Panel("state", np.zeros((100, 100), np.uint8), "all mapped")]) is None
+    # scalars: where every panel is finite (a truth panel is finite everywhere, the computed one where it mapped)
+    dem = np.full((100, 100), np.nan)
+    dem[40:60, 40:60] = 1.0
+    truth = np.ones((100, 100))
+    assert plots.mapped_box([plots.Panel("scalar", dem, "dem"), plots.Panel("scalar", truth, "truth")]) == (
+        36, 63, 36, 63
+    )  # fmt: skip
+    assert plots.map_figure(panels, zoom=False).axes[1].get_xlim() == (-0.5, 99.5)
