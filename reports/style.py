@@ -143,6 +143,14 @@ GLOSSARY: dict[str, Term] = {
     ),
     "p_safe_ci95": Term("95 % interval", "Wilson score interval of P(safe landing)."),
     "p_no_site": Term("P(no site)", "Share of landings for which the flight software offered no site."),
+    "p_unsafe": Term(
+        "P(unsafe site)", "Share of landings whose top-ranked site is not clear over its whole 3 m footprint."
+    ),
+    "p_aim_safe": Term(
+        "P(aim point safe)", "Share of landings whose aim point itself is clear: landing blind, without a detector."
+    ),
+    "n_landings": Term("landings", "Landings behind the row (each a drawn aim point, sun, image pair and pose error)."),
+    "pairs": Term("pairs flown", "The descent pairs (scenario, altitudes) the scene's landings were flown at."),
     "divert_m": Term("divert [m]", "Distance from the aim point to the chosen site.", "m"),
 }
 

@@ -639,10 +639,13 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         head.append(Headline("p_safe", f"{st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]", label=f"P(safe landing), {p}"))
     table_rows = []
     for s, per in summary["per_scene"].items():
+        # which pairs the scene was flown at: two scenes side by side may have been flown at other altitudes
+        flown = ", ".join(sorted({f"{r['scenario']} {r['pair']}" for r in rows if r["scene"] == s}))
         for p, st in per.items():
             table_rows.append(
                 {
                     "scene": s,
+                    "pairs": flown,
                     "preset": p,
                     "n": st["n"],
                     "p_safe": st["p_safe"],
@@ -655,13 +658,14 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
             )
     cols = [
         Column("scene", "scene"),
+        Column("pairs", "pairs flown"),
         Column("preset", "preset"),
-        Column("n", "landings"),
+        Column("n", "landings", term="n_landings"),
         Column("p_safe"),
         Column("p_safe_ci95"),
         Column("p_no_site"),
-        Column("p_unsafe", "P(unsafe site)"),
-        Column("p_aim_safe", "P(aim point safe)"),
+        Column("p_unsafe"),
+        Column("p_aim_safe"),
         Column("divert_m", "median divert [m]"),
     ]
     intro = (
