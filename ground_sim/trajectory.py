@@ -275,6 +275,10 @@ def load_trajectory(spec: str | Path, camera: Camera | None = None) -> list[Pair
         return approach(camera)
     path = Path(spec)
     if not path.is_file():
+        if path.suffix.lower() in (".toml", ".json"):  # meant as a file: say it is not there
+            raise TrajectoryError(
+                f"scenario file {str(spec)!r} not found ({'a directory' if path.is_dir() else 'no such file'})"
+            )
         raise TrajectoryError(f"unknown scenario {str(spec)!r}: use vertical, approach or a .toml/.json file")
     specs = from_file(path)
     return [replace(s, camera=camera) for s in specs] if camera is not None else specs

@@ -6,8 +6,11 @@ Installed with the package (entry point ``pytest11``), it adds the option
     def test_flight_software_keeps_its_deadlines(hil_regression):
         hil_regression(cases=["vertical-snapdragon-serial"])   # fails with the diff table
 
-The fixture runs the cases of the baseline (see :mod:`hil_server.regress`) and
-fails the test with the readable diff when any case regresses.
+``hil_regression(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None)`` runs the
+cases of the baseline (``baseline``, else ``--hil-baseline``, else the shipped one; see
+:mod:`hil_server.regress`), as ``hazard-hil regress`` does with the same options, and returns the diff table.
+It fails the test with that table when any case regresses, and with one line on bad usage (an unknown case, a
+malformed baseline), as the command's exit 2 does.
 """
 
 from __future__ import annotations
@@ -23,13 +26,35 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 @pytest.fixture
 def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
-    def check(baseline: str | Path | None = None, cases: list[str] | None = None) -> str:
-        from hil_server.regress import check_regression, default_baseline_path
+    """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None) -> diff``: run the
+    baseline's cases (all, or ``cases``, a list of names); fail the test with the diff when one regresses."""
 
+    def check(
+        baseline: str | Path | None = None,
+        cases: list[str] | None = None,
+        min_hit_rate: float | None = None,
+        link: str | None = None,
+        hello_timeout_s: float | None = None,
+    ) -> str:
+        from hil_server.regress import check_regression, default_baseline_path
+        from protocol.errors import InputError
+
+        if isinstance(cases, str):  # a lone name was split into its letters
+            pytest.fail(f"hil_regression(cases=...) takes a list of case names, got the string {cases!r}", False)
         path = Path(baseline or request.config.getoption("--hil-baseline") or default_baseline_path())
         if not path.is_file():
             pytest.fail(f"no latency baseline at {path} (create it with `hazard-hil regress --update`)", pytrace=False)
-        ok, diff, _ = check_regression(path, out=tmp_path / "regress", cases=cases)
+        try:
+            ok, diff, _ = check_regression(
+                path,
+                out=tmp_path / "regress",
+                cases=cases,
+                min_hit_rate=min_hit_rate,
+                board_link=link,
+                hello_timeout_s=hello_timeout_s,
+            )
+        except InputError as exc:  # bad usage: one line, not a traceback from inside the library
+            pytest.fail(f"hil_regression: {exc}", pytrace=False)
         if not ok:
             pytest.fail("latency regression:\n" + diff, pytrace=False)
         return diff

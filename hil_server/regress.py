@@ -39,7 +39,9 @@ relative to the baseline file.
 Exit codes (``hazard-hil regress``): 0 when no case regressed and every pair of
 every case met its deadline end to end (``--min-hit-rate`` relaxes the latter);
 1 otherwise (also after ``--update``, which writes the baseline either way, when
-a pair missed); 2 on bad usage (missing baseline, unknown case).
+a pair missed); 2 on bad usage (missing baseline, unknown case, a case `run` would refuse: every case is
+checked before the first runs); 128 + N when signal N cut a case short (no later case runs, the baseline
+is not written).
 """
 
 from __future__ import annotations
@@ -121,14 +123,22 @@ def _path(value: str | None, base_dir: Path | None) -> Path | None:
     return base_dir / p if not p.is_absolute() and base_dir is not None else p
 
 
-def measure_case(
-    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
-) -> dict:
-    from hil_server.run import RunConfig, run_descent
+class RegressInterrupted(Exception):
+    """A signal cut a case short: regress stops there (exit 128 + N), the cases after it are not run."""
+
+    def __init__(self, signum: int, case: str) -> None:
+        import signal
+
+        super().__init__(f"interrupted by {signal.Signals(signum).name} during case {case}")
+        self.signum = signum
+
+
+def case_config(name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None):
+    """The :class:`hil_server.run.RunConfig` a case runs with."""
+    from hil_server.run import RunConfig
 
     manifest = _path(case.get("manifest"), base_dir)
-
-    cfg = RunConfig(
+    return RunConfig(
         scenario=case["scenario"],
         link=case["link"],
         budget=case["budget"],
@@ -142,7 +152,32 @@ def measure_case(
         deadline_s=case.get("deadline_s"),
         hello_timeout_s=hello_timeout_s,
     )
+
+
+def check_cases(
+    names: list[str], cases: dict[str, dict], out: Path, base_dir: Path | None, hello: float | None
+) -> None:
+    """Every case's run options checked as `run` checks its own (link, memory ceiling, scenario, pairs), before
+    the first case runs: a bad later case used to be found after the earlier ones had run, and their results lost."""
+    from hil_server.run import check_run_config
+    from protocol.errors import InputError
+
+    for n in names:
+        try:
+            check_run_config(case_config(n, cases[n], out, base_dir, hello))
+        except InputError as exc:
+            raise InputError(f"case {n!r}: {exc}") from None
+
+
+def measure_case(
+    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
+) -> dict:
+    from hil_server.run import run_descent
+
+    cfg = case_config(name, case, out, base_dir, hello_timeout_s)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
+    if summary.get("interrupted_by"):  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
+        raise RegressInterrupted(int(summary["interrupted_by"]), name)
     # a board's seconds are its own: no emulated speed to take out (its baseline holds for that board only)
     speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"])
     scale = speed / ref
@@ -271,6 +306,9 @@ def validate_baseline(doc: object, where: str) -> None:
     budgets = load_budgets()
     for name, case in cases.items():
         w = f"case {name!r}"
+        # a case's name names its output directory under --out and a row of the diff table
+        if not (0 < len(name) <= 100 and name.isprintable() and name not in (".", "..") and not set(name) & set("/\\")):
+            raise bad(f"{w}: a case name is 1-100 printable characters without '/' or '\\' (it names a directory)")
         if not isinstance(case, dict):
             raise bad(f"{w} must be an object")
         unknown = sorted(set(case) - CASE_KEYS)
@@ -317,7 +355,9 @@ def validate_baseline(doc: object, where: str) -> None:
             if k in ("errors", "pairs", "degraded"):
                 if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                     raise bad(f"{w}: metric {k!r} must be a whole number >= 0, got {v!r}")
-            elif not number(v) or v < 0:  # a hit rate over 1 is allowed: an unreachable bar that always fails
+            elif k == "deadline_hit_rate" and not (number(v) and 0 <= v <= 1):
+                raise bad(f"{w}: metric 'deadline_hit_rate' is a share of pairs in [0, 1], got {v!r}")
+            elif not number(v) or v < 0:
                 raise bad(f"{w}: metric {k!r} must be a finite number >= 0, got {v!r}")
 
 
@@ -370,13 +410,22 @@ def check_regression(
     from protocol.errors import InputError
 
     baseline = Path(baseline)
+    if baseline.is_dir():
+        raise InputError(f"latency baseline {baseline} is a directory: give the baseline's JSON file")
     if not baseline.is_file() and not update:
         raise InputError(f"no latency baseline at {baseline} (record one with `hazard-hil regress --update`)")
-    try:
-        doc = json.loads(baseline.read_text(encoding="utf-8")) if baseline.is_file() else None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"latency baseline {baseline}: unreadable ({exc})") from None
-    if doc is None:  # --update without a baseline: record the default cases
+    if update:  # the runs must not be lost to a baseline that cannot be written
+        _check_writable(baseline)
+    if baseline.is_file():
+        try:
+            doc = json.loads(baseline.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise InputError(f"latency baseline {baseline}: unreadable ({exc})") from None
+    else:  # --update without a baseline: record the default cases, and say so
+        print(
+            f"regress: no baseline at {baseline}: recording the shipped cases ({', '.join(DEFAULT_CASES)}) into it",
+            file=sys.stderr,
+        )
         doc = {"cases": {k: {**v} for k, v in DEFAULT_CASES.items()}}
     validate_baseline(doc, str(baseline))
     all_cases = doc["cases"]
@@ -401,19 +450,21 @@ def check_regression(
             "refusing to record the shipped baseline on an uncalibrated host: its reference seconds would assume "
             "the anchor's speed; run `hazard-hil calibrate` first"
         )
+    if board_link is not None and not any(is_board(all_cases[n]) for n in names):
+        raise InputError('--link applies to board cases ("flight": "external"); none of these cases is one')
+    base_dir = baseline.resolve().parent
+    check_cases(names, {n: _with_link(all_cases[n], board_link) for n in names}, out, base_dir, hello_timeout_s)
     for note in notes:
         print(f"regress: warning: {note}", file=sys.stderr)
     need = 1.0 if min_hit_rate is None else min_hit_rate
     outcomes = []
     missed = False
-    if board_link is not None and not any(is_board(all_cases[n]) for n in names):
-        raise InputError('--link applies to board cases ("flight": "external"); none of these cases is one')
     for i, n in enumerate(names, 1):
         case = all_cases[n]
-        run_case = {**case, "link": board_link} if board_link is not None and is_board(case) else case
+        run_case = _with_link(case, board_link)
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
-        cur = measure_case(n, run_case, out, baseline.resolve().parent, hello_timeout_s)
+        cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
         metrics = judged_metrics(case["budget"], case.get("flight", "emulated"))
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
@@ -441,6 +492,27 @@ def check_regression(
     return ok, diff, new_doc
 
 
+def _check_writable(baseline: Path) -> None:
+    """Refuse a baseline file ``--update`` could not write, before its cases run (minutes of work)."""
+    import tempfile
+
+    from protocol.errors import InputError
+
+    parent = baseline.parent if str(baseline.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"latency baseline {baseline}: directory {parent} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise InputError(f"latency baseline {baseline} cannot be written ({exc.strerror or exc})") from None
+
+
+def _with_link(case: dict, board_link: str | None) -> dict:
+    """A board case on ``--link`` instead of its own (not written back)."""
+    return {**case, "link": board_link} if board_link is not None and is_board(case) else case
+
+
 def run_regression(
     baseline: Path,
     *,
@@ -451,15 +523,20 @@ def run_regression(
     board_link: str | None = None,
     hello_timeout_s: float | None = None,
 ) -> int:
-    ok, diff, new_doc = check_regression(
-        baseline,
-        out=out,
-        cases=cases,
-        update=update,
-        min_hit_rate=min_hit_rate,
-        board_link=board_link,
-        hello_timeout_s=hello_timeout_s,
-    )
+    try:
+        ok, diff, new_doc = check_regression(
+            baseline,
+            out=out,
+            cases=cases,
+            update=update,
+            min_hit_rate=min_hit_rate,
+            board_link=board_link,
+            hello_timeout_s=hello_timeout_s,
+        )
+    except RegressInterrupted as exc:
+        print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
+        print("INTERRUPTED")
+        return 128 + exc.signum
     print(diff)
     if update:
         from reports.html import write_atomic

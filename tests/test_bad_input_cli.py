@@ -45,6 +45,7 @@ CASES = [
         "at 2400 baud one link frame takes up to 6.4 s, past the 4 s link timeout",
     ),
     (["run", "--scenario", "vertcal"], "unknown scenario 'vertcal'"),
+    (["run", "--scenario", "nosuch.toml"], "scenario file 'nosuch.toml' not found (no such file)"),
     (["run", "--budget", "nope"], "unknown budget 'nope'"),
     (["run", "--link-fault", "boom@1"], "--link-fault must be stall@N or exit@N"),
     (["run", "--image-size", "5"], "--image-size must be 32..4096 px"),

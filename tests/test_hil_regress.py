@@ -72,10 +72,16 @@ def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regr
     _, _, doc = check_regression(tiny_baseline, out=tmp_path / "u", update=True)
     tiny_baseline.write_text(json.dumps(doc))
     assert "tiny" in hil_regression(baseline=tiny_baseline)
-    doc["cases"]["tiny"]["metrics"]["deadline_hit_rate"] = 2.0  # unreachable: must fail
+    doc["cases"]["tiny"]["metrics"]["cpu_p50_ref_s"] = 1e-9  # unreachable: must fail
+    doc["tolerances"] = {"hit_rate_drop": 0.0, "latency_rel": 0.0, "latency_abs_s": 0.0}
     tiny_baseline.write_text(json.dumps(doc))
-    with pytest.raises(pytest.fail.Exception, match="deadline_hit_rate"):
+    with pytest.raises(pytest.fail.Exception, match="cpu_p50_ref_s"):
         hil_regression(baseline=tiny_baseline)
+    # bad usage fails in one line, as the command's exit 2 (it was a traceback from inside the library)
+    with pytest.raises(pytest.fail.Exception, match=r"^hil_regression: unknown regression case\(s\) \['nope'\]"):
+        hil_regression(baseline=tiny_baseline, cases=["nope"])
+    with pytest.raises(pytest.fail.Exception, match="takes a list of case names, got the string 'tiny'"):
+        hil_regression(baseline=tiny_baseline, cases="tiny")  # type: ignore[arg-type]
 
 
 def test_host_case_is_judged_on_cpu_seconds_not_wall_latency():

@@ -82,7 +82,12 @@ def _edit(doc: dict, path: str, value: object) -> dict:
         ("cases/vertical-host-zmq/budget", "pentium", "unknown budget 'pentium'"),
         ("cases/vertical-host-zmq/budgett", "host", "unknown key(s) budgett"),
         ("cases/vertical-host-zmq/metrics/cpu_p50_ref_s", "fast", "metric 'cpu_p50_ref_s' must be a finite number"),
-        ("cases/vertical-host-zmq/metrics/deadline_hit_rate", -0.5, "metric 'deadline_hit_rate' must be"),
+        (
+            "cases/vertical-host-zmq/metrics/deadline_hit_rate",
+            -0.5,
+            "metric 'deadline_hit_rate' is a share of pairs in",
+        ),
+        ("cases/vertical-host-zmq/metrics/deadline_hit_rate", 1.5, "metric 'deadline_hit_rate' is a share of pairs in"),
         ("cases/vertical-host-zmq/metrics/deadline_hit_rate", KeyError, "'metrics' has no 'deadline_hit_rate'"),
         ("cases/vertical-host-zmq/metrics/errors", 0.5, "metric 'errors' must be a whole number"),
         ("cases/vertical-host-zmq/pairs", "600/300", "'pairs' must be a non-empty list"),
@@ -104,6 +109,87 @@ def test_baseline_that_is_not_an_object_is_exit_2(tmp_path, capsys):
     bad.write_text("[]")
     assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "expected a JSON object" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "text, reason",
+    [("null", "expected a JSON object"), ('"x"', "expected a JSON object")],  # null ran the shipped cases
+)
+def test_a_baseline_of_json_null_is_refused_not_the_shipped_cases(tmp_path, capsys, text, reason):
+    bad = tmp_path / "baseline.json"
+    bad.write_text(text)
+    for extra in ([], ["--update"]):
+        assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o"), *extra]) == 2
+        assert reason in capsys.readouterr().err
+    assert bad.read_text() == text and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("name", ["evil\x1b[2J\nPASS", "/tmp/elsewhere", "..", "a/b"])
+def test_a_case_name_that_could_drive_the_terminal_or_leave_out_is_refused(tmp_path, capsys, name):
+    """It went raw into the diff table (an ESC sequence cleared the screen) and named a directory: an absolute
+    one ran the whole case outside --out."""
+    doc = _shipped()
+    doc["cases"] = {name: doc["cases"]["vertical-host-zmq"]}
+    bad = tmp_path / "baseline.json"
+    bad.write_text(json.dumps(doc))
+    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "a case name is 1-100 printable characters without '/'" in err and len(err.strip().splitlines()) == 1
+
+
+def test_update_into_a_directory_is_refused_before_the_cases_run(tmp_path, capsys, monkeypatch):
+    from hil_server import run
+
+    monkeypatch.setattr(run, "run_descent", lambda *a, **k: pytest.fail("a case ran"))
+    (tmp_path / "dir.json").mkdir()
+    assert main(["regress", "--baseline", str(tmp_path / "dir.json"), "--update", "--out", str(tmp_path / "o")]) == 2
+    assert "is a directory" in capsys.readouterr().err
+
+
+def test_every_case_is_checked_before_the_first_runs(tmp_path, capsys, monkeypatch):
+    """A later case that could not run (a camera over its budget's memory, a scenario file that is not there)
+    was found after the earlier cases had run, and their results were lost."""
+    from hil_server import run
+
+    monkeypatch.setattr(run, "run_descent", lambda *a, **k: pytest.fail("a case ran"))
+    doc = _shipped()
+    good = doc["cases"]["vertical-host-zmq"]
+    for later, reason in (
+        ({**good, "budget": "rad750", "link": "serial", "image_size": 4096}, "needs ~"),
+        ({**good, "scenario": str(tmp_path / "missing.toml")}, "missing.toml"),
+    ):
+        doc["cases"] = {"first": good, "second": later}
+        bad = tmp_path / "baseline.json"
+        bad.write_text(json.dumps(doc))
+        assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert "case 'second': " in err and reason in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_signal_stops_regress_at_its_case_and_exits_128_plus_n(tmp_path, capsys, monkeypatch):
+    """Ctrl-C (or a cancelled CI job's SIGTERM) ended the case it cut short, then regress ran the next cases and
+    exited 1, the cancellation reported as a regression."""
+    from hil_server import run
+
+    ran = []
+
+    def interrupted(cfg, log=print):
+        ran.append(cfg.out.name)
+        return {"interrupted_by": 15, "complete": False}
+
+    monkeypatch.setattr(run, "run_descent", interrupted)
+    doc = _shipped()
+    good = doc["cases"]["vertical-host-zmq"]
+    doc["cases"] = {"first": good, "second": good}
+    base = tmp_path / "baseline.json"
+    base.write_text(json.dumps(doc))
+    before = base.read_bytes()
+    for extra in ([], ["--update"]):
+        assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o"), *extra]) == 128 + 15
+        out, err = capsys.readouterr()
+        assert "interrupted by SIGTERM during case first; the cases after it were not run" in err
+        assert "REGRESSION" not in out and "INTERRUPTED" in out
+    assert ran == ["first", "first"] and base.read_bytes() == before
 
 
 def test_empty_cases_option_is_refused_not_all_cases(tmp_path, capsys):
