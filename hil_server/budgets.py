@@ -362,6 +362,8 @@ def _string(entry: dict, key: str, where: str) -> str:
     value = entry.get(key)
     if not isinstance(value, str) or not value.strip():
         raise BudgetError(f"{where}: '{key}' must be a non-empty string, got {value!r}")
+    if not value.isprintable():  # printed raw in `budgets` and the summaries: no terminal escapes, one line
+        raise BudgetError(f"{where}: '{key}' must be printable text on one line, got {value!r:.60}")
     return value
 
 
@@ -544,8 +546,11 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
             v = getattr(cal, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        if cal.units_per_s <= 0:
-            raise ValueError("units_per_s must be > 0")
+        if not MIN_UNITS_PER_S <= cal.units_per_s <= MAX_UNITS_PER_S:  # 1e300 passed: the throttle then died
+            raise ValueError(
+                f"units_per_s must be in [{MIN_UNITS_PER_S:g}, {MAX_UNITS_PER_S:g}] (this machine type does ~50), "
+                f"got {cal.units_per_s!r}"
+            )
         if not isinstance(cal.libraries, str):
             raise ValueError(f"libraries must be a string, got {cal.libraries!r}")
         calibration_age_days(cal)  # measured_at must be a timestamp
@@ -556,6 +561,10 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
     return cal
 
 
+# A host's reference-workload rate, units per CPU-second: this machine type does ~50 (budgets.toml's anchor). A rate
+# 1000x either way is no host anyone runs on; 1e300 made every duty cycle 1e-299 and killed the throttle thread.
+MIN_UNITS_PER_S = 0.05
+MAX_UNITS_PER_S = 5e4
 STALE_CALIBRATION_DAYS = 30.0  # a VM's host can change under it (migration, new CPU microcode) in this time
 
 

@@ -46,6 +46,7 @@ SAD_WINDOW = 17
 _SEED = 20240611
 # the duty cycles whose throttle efficiency `hazard-hil calibrate` measures (gr740's raised duty is ~0.011)
 EFFICIENCY_FRACTIONS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+MIN_EFFICIENCY_DUTY = 0.001  # a probe's wall time grows as 1 / duty: about a minute here, 1e-9 would never end
 PROBE_UNITS = 3  # units per measurement; about 26 s for the whole grid, most of it at the lowest duty
 
 
@@ -171,8 +172,8 @@ def measure_throttle_efficiency(
     """
     from hil_server.procemu import Throttle, start_at_full_speed
 
-    if not fractions or not all(0.0 < f < 1.0 for f in fractions):
-        raise ValueError(f"duty cycles must be in (0, 1), got {fractions!r}")
+    if not fractions or not all(MIN_EFFICIENCY_DUTY <= f < 1.0 for f in fractions):
+        raise ValueError(f"duty cycles must be in [{MIN_EFFICIENCY_DUTY:g}, 1), got {fractions!r}")
     if units < 1:
         raise ValueError(f"units must be >= 1, got {units}")
     popen = start_at_full_speed(
@@ -214,6 +215,9 @@ def measure_throttle_efficiency(
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--probe":
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the parent's to act on: it ends us
         sys.exit(_probe(int(sys.argv[2])))
     r = measure_rate(3.0)
     print(f"{r.units_per_s:.3f} units/s (spread {r.spread:.1%}, {r.units} units, checksum {r.checksum})")

@@ -246,7 +246,7 @@ def _register_emulation(subparsers: argparse._SubParsersAction) -> None:
         type=_duty_list,
         default=None,
         metavar="F,F,...",
-        help="duty cycles in (0, 1) to measure the throttle's efficiency at (default "
+        help="duty cycles in [0.001, 1) to measure the throttle's efficiency at (default "
         "0.005,0.01,0.02,0.05,0.1,0.2,0.5: about 25 s)",
     )
     c.add_argument("--file", default=None, help="budget file whose anchor to report against")
@@ -315,8 +315,13 @@ def _duty_list(text: str) -> tuple[float, ...]:
         out = tuple(float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected duty cycles like 0.01,0.1, got {text!r}") from None
-    if not out or not all(0.0 < f < 1.0 for f in out):
-        raise argparse.ArgumentTypeError(f"each duty cycle must be in (0, 1), got {text!r}")
+    from hil_server.calibrate import MIN_EFFICIENCY_DUTY
+
+    if not out or not all(MIN_EFFICIENCY_DUTY <= f < 1.0 for f in out):  # 1e-9 ran for ever, deaf to Ctrl-C
+        raise argparse.ArgumentTypeError(
+            f"each duty cycle must be in [{MIN_EFFICIENCY_DUTY:g}, 1) (a probe at 0.1 % takes about a minute), "
+            f"got {text!r}"
+        )
     return out
 
 

@@ -177,8 +177,8 @@ class ProcessorSpec:
 
     def __post_init__(self) -> None:
         f = self.cpu_fraction
-        if isinstance(f, bool) or not isinstance(f, (int, float)) or not (0.0 < f <= 1.0):
-            raise ProcessorError(f"cpu_fraction must be in (0, 1], got {f!r}")
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not (MIN_CPU_FRACTION <= f <= 1.0):
+            raise ProcessorError(f"cpu_fraction must be in [{MIN_CPU_FRACTION:g}, 1], got {f!r}")
         if self.memory_mib is not None and not (self.memory_mib > 0):
             raise ProcessorError(f"memory_mib must be > 0 or None, got {self.memory_mib!r}")
         if not (0.001 <= self.throttle_period_s <= 1.0):
@@ -382,6 +382,11 @@ def on_slice_s(fraction: float, period_s: float = 0.02) -> tuple[float, float]:
     return fraction * period / (1.0 - fraction), period
 
 
+# 1/10000 of a core: 100x slower than gr740 on this host. Far below it the throttle's stops (1/f of a slice) outgrow
+# what time.sleep takes, and a duty of 1e-299 (from an absurd calibration) killed the throttle thread.
+MIN_CPU_FRACTION = 1e-4
+
+
 def duty_cycle(child: _Child, f: float, period_s: float) -> None:
     """SIGSTOP/SIGCONT ``child`` until it exits or ``child.stop_threads`` is set (module doc: the closed loop).
 
@@ -422,6 +427,11 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
                     continue
                 # Running flat out, credit falls at (1 - f) per second.
                 time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
+    except Exception as exc:  # a dead throttle would let the child run at full speed: a false pass on its budget
+        if child.kill_reason is None:
+            child.kill_reason, child.kill_kind = f"the CPU throttle failed ({type(exc).__name__}: {exc})", "crash"
+        child.stop_threads.set()
+        child.signal(signal.SIGKILL)
     finally:
         child.signal(signal.SIGCONT)  # never leave it stopped
 

@@ -388,3 +388,19 @@ def test_a_flight_programs_output_is_logged_up_to_a_bound(capfd):
     assert out == ""  # stdout joined the bounded stream
     assert MAX_FORWARDED_BYTES - 2048 < len(err) < MAX_FORWARDED_BYTES + 1024
     assert err.rstrip().endswith(f"were not logged (the first {MAX_FORWARDED_BYTES >> 20} MiB were)")
+
+
+def test_a_throttle_that_fails_kills_its_process_with_the_reason(monkeypatch):
+    """A throttle thread that died (an absurd calibration made its sleep overflow) left the flight process running
+    at full speed, and the run PASSed on a budget it never ran on."""
+    from hil_server import procemu
+
+    monkeypatch.setattr(procemu, "on_slice_s", lambda f, period_s=0.02: (math.inf, math.inf))  # sleep(inf) overflows
+    report, _, _ = _run(ProcessorSpec(cpu_fraction=0.5), "import time\ntime.sleep(20)\n", timeout=15)
+    assert report.signal == signal.SIGKILL and report.kind == "crash", report
+    assert report.reason.startswith("the CPU throttle failed (OverflowError"), report.reason
+
+
+def test_a_duty_far_below_any_budget_is_refused():
+    with pytest.raises(ProcessorError, match=r"cpu_fraction must be in \[0.0001, 1\]"):
+        ProcessorSpec(cpu_fraction=2.5e-299)

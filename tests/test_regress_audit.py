@@ -302,7 +302,14 @@ def test_calibrate_replaces_a_corrupt_store_and_keeps_the_old_one(home, monkeypa
 
 @pytest.mark.parametrize(
     "field, value, reason",
-    [("units_per_s", math.inf, "units_per_s"), ("spread", "wide", "spread"), ("measured_at", "yesterday", "isoformat")],
+    [
+        ("units_per_s", math.inf, "units_per_s"),
+        ("spread", "wide", "spread"),
+        ("measured_at", "yesterday", "isoformat"),
+        # accepted, it made every duty 1e-299: the throttle thread died and the flight ran at full speed, PASS
+        ("units_per_s", 1e300, r"units_per_s must be in \[0.05, 50000\]"),
+        ("units_per_s", 1e-6, r"units_per_s must be in \[0.05, 50000\]"),
+    ],
 )
 def test_bad_calibration_entry_is_input_error(home, field, value, reason):
     home.mkdir(parents=True)
@@ -326,3 +333,23 @@ def test_run_report_headline_counts_degraded_results(tmp_path):
     page = write_run_report({**summary, "deadline_hit_rate": 1.0, "records": records}, tmp_path / "r.html")
     html = page.read_text()
     assert "Results degraded (a coarser level or stages skipped)" in html and "1/2" in html
+
+
+def test_a_budget_description_that_could_drive_the_terminal_is_refused(tmp_path):
+    """The name was checked, the description and source printed raw (an ESC sequence cleared the screen)."""
+    text = (
+        B.default_budgets_path()
+        .read_text()
+        .replace('description = "one unthrottled core', 'description = "evil\\u001b[2J\\nline" # "', 1)
+    )
+    (tmp_path / "b.toml").write_text(text)
+    with pytest.raises(B.BudgetError, match="'description' must be printable text on one line"):
+        B.load_budgets(tmp_path / "b.toml")
+
+
+@pytest.mark.parametrize("value", ["1e-9", "0.0005"])
+def test_calibrate_refuses_a_duty_cycle_it_could_not_finish(capsys, value):
+    """1e-9 was accepted and the probe never ended, deaf to Ctrl-C."""
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", "--duty-cycles", value])
+    assert exc.value.code == 2 and "each duty cycle must be in [0.001, 1)" in capsys.readouterr().err
