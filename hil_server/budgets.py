@@ -448,8 +448,14 @@ def _refuse_redefined(budgets: dict[str, Budget], p: Path) -> None:
     """A user's file may copy a shipped budget, not change it under the same name: summaries and regression
     baselines name budgets, and ``rad750`` must mean the same processor in all of them."""
     shipped = load_budgets()
+    folded = {k.casefold(): k for k in shipped}
     for name, b in budgets.items():
         s = shipped.get(name)
+        if s is None and name.casefold() in folded:  # RAD750 beside rad750 in one summary: two processors or one?
+            raise BudgetError(
+                f"{p} [budget.{name}]: differs from the shipped budget {folded[name.casefold()]!r} only in case; "
+                "give your budget another name"
+            )
         if s is None:
             continue
         fields = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")

@@ -688,7 +688,8 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         "--min-hit-rate",
         type=float,
         default=None,
-        help="also pass when a case's pairs met the deadline at least this often (default: every pair must)",
+        help="also pass when a case's pairs met the deadline at least this often (default: every pair must); "
+        "the baseline's own hit rate still holds (hit_rate_drop)",
     )
     p.add_argument("--out", type=Path, default=Path("out/regress"), help="where the cases' runs are written")
     p.add_argument(

@@ -95,13 +95,13 @@ class CaseOutcome:
     limits: dict[str, float] = field(default_factory=dict)  # the bound each metric was held to
 
 
-def effective_speed(budget_name: str) -> tuple[float, float]:
+def effective_speed(budget_name: str, budget_file: Path | None = None) -> tuple[float, float]:
     """(DMIPS the flight process had, the anchor's DMIPS): see budgets.toml for the unit."""
     import warnings
 
     from hil_server.budgets import UncalibratedWarning, get_budget, load_calibration
 
-    b = get_budget(budget_name)
+    b = get_budget(budget_name, budget_file)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UncalibratedWarning)  # the run itself already warned
         cal = load_calibration()
@@ -142,6 +142,7 @@ def case_config(name: str, case: dict, out: Path, base_dir: Path | None = None, 
         scenario=case["scenario"],
         link=case["link"],
         budget=case["budget"],
+        budget_file=_path(case.get("budget_file"), base_dir),
         out=out / name,
         pairs=case.get("pairs"),
         seed=int(case.get("seed", 0)),
@@ -179,7 +180,7 @@ def measure_case(
     if summary.get("interrupted_by"):  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
         raise RegressInterrupted(int(summary["interrupted_by"]), name)
     # a board's seconds are its own: no emulated speed to take out (its baseline holds for that board only)
-    speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"])
+    speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"], cfg.budget_file)
     scale = speed / ref
     cur = {
         "deadline_hit_rate": summary["deadline_hit_rate"],
@@ -266,12 +267,25 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
 
 
 CASE_KEYS = frozenset(
-    {"scenario", "budget", "link", "pairs", "seed", "image_size", "manifest", "metrics", "flight", "keys", "deadline_s"}
+    {
+        "scenario",
+        "budget",
+        "budget_file",
+        "link",
+        "pairs",
+        "seed",
+        "image_size",
+        "manifest",
+        "metrics",
+        "flight",
+        "keys",
+        "deadline_s",
+    }
 )
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
 
 
-def validate_baseline(doc: object, where: str) -> None:
+def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> None:
     """Refuse, before anything runs, a baseline that is not what ``--update`` writes: one line naming the field.
 
     A hand-edited baseline that slipped through would otherwise fail with a traceback after minutes of runs,
@@ -317,8 +331,14 @@ def validate_baseline(doc: object, where: str) -> None:
         for k in ("scenario", "budget", "link"):
             if not isinstance(case.get(k), str) or not case[k]:
                 raise bad(f"{w}: {k!r} must be a non-empty string, got {case.get(k)!r}")
-        if case["budget"] not in budgets:
-            raise bad(f"{w}: unknown budget {case['budget']!r}; choose one of: {', '.join(budgets)}")
+        own = case.get("budget_file")
+        if own is not None and (not isinstance(own, str) or not own):
+            raise bad(f"{w}: 'budget_file' must be a non-empty path, got {own!r}")
+        # a budget of one's own comes from its file (relative to the baseline), as `run --budget-file` takes it
+        choices = budgets if own is None else _own_budgets(_path(own, base_dir), w, bad)
+        if case["budget"] not in choices:
+            where_from = "" if own is None else f" in {own}"
+            raise bad(f"{w}: unknown budget {case['budget']!r}{where_from}; choose one of: {', '.join(choices)}")
         if case.get("flight", "emulated") not in ("emulated", "external"):
             raise bad(f"{w}: 'flight' must be 'emulated' or 'external' (a board of one's own), got {case['flight']!r}")
         if is_board(case) and not case["link"].startswith(("serial:", "zmq:")):
@@ -359,6 +379,15 @@ def validate_baseline(doc: object, where: str) -> None:
                 raise bad(f"{w}: metric 'deadline_hit_rate' is a share of pairs in [0, 1], got {v!r}")
             elif not number(v) or v < 0:
                 raise bad(f"{w}: metric {k!r} must be a finite number >= 0, got {v!r}")
+
+
+def _own_budgets(path: Path | None, w: str, bad) -> dict:
+    from hil_server.budgets import BudgetError, load_budgets
+
+    try:
+        return load_budgets(path)
+    except BudgetError as exc:
+        raise bad(f"{w}: {exc}") from None
 
 
 def host_conditions() -> tuple[dict, list[str]]:
@@ -427,7 +456,7 @@ def check_regression(
             file=sys.stderr,
         )
         doc = {"cases": {k: {**v} for k, v in DEFAULT_CASES.items()}}
-    validate_baseline(doc, str(baseline))
+    validate_baseline(doc, str(baseline), baseline.resolve().parent)
     all_cases = doc["cases"]
     tol = {**DEFAULT_TOLERANCES, **doc.get("tolerances", {})}
     if cases is not None and not cases:

@@ -119,3 +119,51 @@ def test_packaged_baseline_exists_and_names_its_cases():
 
     doc = json.loads(default_baseline_path().read_text())
     assert set(doc["cases"]) >= {"vertical-host-zmq", "vertical-snapdragon-serial"}
+
+
+OWN_BUDGETS = """
+[anchor]
+description = "the reference machine"
+dmips = 23461
+units_per_s = 51.0
+
+[budget.fastboard]
+description = "a board of one's own, in a file"
+cpu_dmips = 20000
+memory_mib = 512
+deadline_s = 5.0
+link = "zmq"
+source = "test"
+"""
+
+
+def test_a_case_on_a_budget_of_ones_own_runs_from_its_file(tmp_path, tiny_baseline):
+    """A budget from one's own file could not be a regression case ("unknown key(s) budget_file"): a swapped-in
+    processor could not be gated in CI."""
+    from protocol.errors import InputError
+
+    (tmp_path / "mine.toml").write_text(OWN_BUDGETS)
+    doc = json.loads(tiny_baseline.read_text())
+    doc["cases"]["tiny"].update(budget="fastboard", budget_file="mine.toml")  # relative to the baseline file
+    tiny_baseline.write_text(json.dumps(doc))
+    ok, diff, new = check_regression(tiny_baseline, out=tmp_path / "r", update=True)
+    assert ok, diff
+    assert (
+        new["cases"]["tiny"]["budget_file"] == "mine.toml" and new["cases"]["tiny"]["metrics"]["latency_p50_ref_s"] > 0
+    )
+    summary = json.loads((tmp_path / "r" / "tiny" / "summary.json").read_text())
+    assert summary["budget"] == "fastboard" and summary["budget_file"].endswith("mine.toml")
+    doc["cases"]["tiny"]["budget"] = "rad750"  # not in that file
+    tiny_baseline.write_text(json.dumps(doc))
+    with pytest.raises(
+        InputError, match=r"case 'tiny': unknown budget 'rad750' in mine.toml; choose one of: fastboard"
+    ):
+        check_regression(tiny_baseline, out=tmp_path / "r2")
+
+
+def test_a_budget_named_as_a_shipped_one_in_other_case_is_refused(tmp_path):
+    from hil_server.budgets import BudgetError, load_budgets
+
+    (tmp_path / "b.toml").write_text(OWN_BUDGETS.replace("[budget.fastboard]", "[budget.RAD750]"))
+    with pytest.raises(BudgetError, match="differs from the shipped budget 'rad750' only in case"):
+        load_budgets(tmp_path / "b.toml")
