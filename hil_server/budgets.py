@@ -28,6 +28,7 @@ fast as the anchor, with an :class:`UncalibratedWarning`.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import itertools
 import json
@@ -547,11 +548,24 @@ def load_calibration(path: str | os.PathLike | None = None) -> HostCalibration |
             for pt in eff
         ):
             raise ValueError(f"throttle_efficiency must be [duty in (0, 1), eta in (0, 1]] pairs, got {eff!r}")
+        # named, not as the dataclass's "__init__() missing 7 required positional arguments"
+        need = {f.name for f in dataclasses.fields(HostCalibration) if f.default is dataclasses.MISSING}
+        missing, unknown = (
+            sorted(need - set(entry)),
+            sorted(set(entry) - {f.name for f in dataclasses.fields(HostCalibration)}),
+        )
+        if missing or unknown:
+            raise ValueError(
+                ", ".join(
+                    ([f"missing {', '.join(missing)}"] if missing else [])
+                    + ([f"unknown {', '.join(unknown)}"] if unknown else [])
+                )
+            )
         cal = HostCalibration(**{**entry, "throttle_efficiency": tuple(sorted((float(f), float(e)) for f, e in eff))})
         for name in ("units_per_s", "spread", "seconds"):
             v = getattr(cal, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")  # units_per_s: bounds below
         if not MIN_UNITS_PER_S <= cal.units_per_s <= MAX_UNITS_PER_S:  # 1e300 passed: the throttle then died
             raise ValueError(
                 f"units_per_s must be in [{MIN_UNITS_PER_S:g}, {MAX_UNITS_PER_S:g}] (this machine type does ~50), "

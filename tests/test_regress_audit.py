@@ -353,3 +353,13 @@ def test_calibrate_refuses_a_duty_cycle_it_could_not_finish(capsys, value):
     with pytest.raises(SystemExit) as exc:
         main(["calibrate", "--duty-cycles", value])
     assert exc.value.code == 2 and "each duty cycle must be in [0.001, 1)" in capsys.readouterr().err
+
+
+def test_a_calibration_entry_missing_fields_names_them(home):
+    """It said "HostCalibration.__init__() missing 7 required positional arguments: 'key', 'hostname', ..."."""
+    home.mkdir(parents=True)
+    entry = _calibration()
+    del entry["hostname"], entry["seconds"]
+    (home / "calibration.json").write_text(json.dumps({B.host_key(): {**entry, "colour": "red"}}))
+    with pytest.raises(InputError, match=r"bad entry for this host \(missing hostname, seconds, unknown colour\)"):
+        B.load_calibration()
