@@ -58,6 +58,7 @@ LANDING_PAIRS: tuple[tuple[str, str], ...] = (
 DEFAULT_POSE_ERROR = "alt_sigma=0.15,pitch_sigma=0.03,roll_yaw=0.03,lateral=0.15,equal_pitch=0"
 PER_RENDER = 8
 AIM_FRACTION = 0.2
+PRESET_COLOURS = {"fast": "#4c78a8", "thesis": "#9d755d"}  # the report's: neither an outcome's colour nor red
 PRESETS = ("fast", "thesis")
 CAMPAIGN_KEY = 0x1A4D
 MAX_LANDINGS = 1_000_000  # per campaign: ~3 CPU-days; more is a typo, and its plan would not fit in memory
@@ -570,9 +571,9 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             st = [summary["per_scene"][s][p] for s in scenes]
             val = [s["p_safe"] for s in st]
             ci = [s["p_safe_ci95"] for s in st]
-            colour = None
+            colour = PRESET_COLOURS.get(p, "#4c78a8")  # not the outcome colours (orange is "no site")
         err = np.clip(np.array([[v - c[0] for v, c in zip(val, ci)], [c[1] - v for v, c in zip(val, ci)]]), 0, None)
-        ax.bar(
+        bars = ax.bar(
             x + (i - len(presets) / 2) * w,
             val,
             w,
@@ -581,6 +582,8 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             label=p if p != "blind" else "aim point (blind)",
             color=colour,
         )
+        # each bar says its value: a P(safe) of 0 drew no bar at all, only a whisker no one could place
+        ax.bar_label(bars, labels=[f"{v:.2f}" for v in val], fontsize=7, padding=1)
     ax.set_xticks(x, scenes, rotation=15)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("P(safe landing)")
@@ -602,8 +605,8 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
         ax.set_title(f"outcomes, preset {p}")
         ax.set_ylabel("share of the scene's landings")
         ax.set_ylim(0, 1.0)
-        ax.tick_params(axis="x", rotation=30, labelsize=7)
-        ax.legend(fontsize=7)
+        ax.tick_params(axis="x", rotation=30, labelsize=8)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside, not over a bar
     fig.tight_layout()
     files.append((save(fig, out / "outcomes.png").name, "outcome shares per scene: safe, unsafe site, no site"))
 
@@ -611,11 +614,18 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     for p in presets:
         d = np.sort([r["divert_m"] for r in rows if r["preset"] == p and r.get("site_found")])
         if d.size:  # an empirical CDF is a step function
-            ax.step(np.r_[0.0, d], np.r_[0.0, np.arange(1, d.size + 1) / d.size], where="post", label=f"{p} ({d.size})")
+            ax.step(
+                np.r_[0.0, d],
+                np.r_[0.0, np.arange(1, d.size + 1) / d.size],
+                where="post",
+                label=f"{p} ({d.size})",
+                color=PRESET_COLOURS.get(p),
+            )
         else:  # say so rather than leave the preset out without a word
             ax.plot([], [], " ", label=f"{p}: no site on any landing")
     ax.set_xlim(left=0)
     ax.set_ylim(0, 1.02)
+    ax.set_title("how far the chosen site is from the aim point")
     ax.set_xlabel("divert distance from the aim point [m]")
     ax.set_ylabel("share of landings with a site")
     ax.legend(fontsize=8, title="preset (landings with a site)", title_fontsize=7)
