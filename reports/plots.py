@@ -283,6 +283,9 @@ def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elev
 
 
 # --------------------------------------------------------------------------- telemetry
+LIMIT = "#111111"  # a deadline, a budget, a ceiling: one colour in every telemetry figure (red is a miss)
+
+
 def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str | None) -> None:
     if width > 0:
         ax.barh(y, width, left=start, height=0.6, color=colour, edgecolor="none", label=label)
@@ -364,7 +367,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
             _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))
         _bar(ax, y, start, rl, "#333333", once("result on the link"))
         if r.get("deadline_s") is not None:
-            ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=MISSED, lw=2, label=once("deadline"))
+            ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
     ax.set_ylim(-0.6, len(recs) - 0.4 + 0.25)  # room above the top row for its plan markers
     ax.set_yticks(range(len(recs)))
     ax.set_yticklabels([str(r.get("label", i)) for i, r in enumerate(recs)][::-1], fontsize=8)
@@ -400,7 +403,7 @@ def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
             range(len(records)),
             [np.nan if d is None else d for d in dl],
             where="mid",
-            color="#000",
+            color=LIMIT,
             lw=1.2,
             label="deadline",
         )
@@ -422,14 +425,14 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     labels = [str(r.get("label", i)) for i, r in enumerate(recs)]
     a1.plot(x, [r.get("cpu_fraction", np.nan) for r in recs], "o-", color="#4c78a8", label="achieved")
     if cpu_budget is not None:
-        a1.axhline(cpu_budget, color=MISSED, lw=1, ls="--", label="budget")
+        a1.axhline(cpu_budget, color=LIMIT, lw=1, ls="--", label="budget")
     a1.set_ylabel("CPU fraction of one core")
     cpu = [v for r in recs if np.isfinite(v := float(r.get("cpu_fraction", np.nan)))]
     top = max([*cpu, cpu_budget or 0.0], default=0.0)
     a1.set_ylim(0, 1.15 * top if top > 0 else None)  # headroom: the achieved line sits on the budget's
     a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak private RSS")
     if memory_mib is not None:
-        a2.axhline(memory_mib, color=MISSED, lw=1, ls="--", label="memory ceiling")
+        a2.axhline(memory_mib, color=LIMIT, lw=1, ls="--", label="memory ceiling")
     a2.set_ylabel("MiB")
     a2.set_ylim(bottom=0)
     for a in (a1, a2):
