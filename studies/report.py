@@ -364,9 +364,12 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
     alts = sorted({c["altitude_m"] for c in cells})
     tables = []
     for table, metrics in groups.items():
+        parts = -(-len(metrics) // max_metrics)
         for i in range(0, len(metrics), max_metrics):
             ms = metrics[i : i + max_metrics]
             title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
+            if parts > 1:  # one table split in several: each caption says which part it is
+                title += f" ({i // max_metrics + 1} of {parts})"
             cols = [Column("altitude_m", digits=0)]
             for m in ms:
                 digits = 2 if "kurtosis" in m or "skewness" in m else 3
@@ -382,6 +385,8 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
                     c = by.get((table, m, a), {})
                     row[f"{m}|reference"] = c.get("thesis")
                     row.update({f"{m}|{p}": c.get(f"ours_{p}") for p in presets})
+                    if m.startswith("chosen_sites_safe_pct"):  # no value there means no site was offered, not "-"
+                        row.update({f"{m}|{p}": "no site" for p in presets if row[f"{m}|{p}"] is None})
                 rows.append(row)
             tables.append(Table(cols, rows, title))
     return tables

@@ -155,3 +155,15 @@ def test_the_detection_chart_names_its_curves_as_the_page_does(tmp_path, monkeyp
     assert not any(x.startswith(("TN%", "TP%")) for x in labels), labels
     red = [ln.get_label() for ln in seen[0].axes[0].get_lines() if ln.get_color() in ("tab:red", "#d62728")]
     assert red == []  # red is only an undetected hazard
+
+
+def test_a_split_table_says_which_part_and_no_site_is_not_a_dash():
+    """Three tables were captioned "Table 6.2" alike, and "-" meant both "the thesis has no value" and "no site
+    was offered"."""
+    cells = [
+        {"table": "6.2", "metric": m, "altitude_m": 300, "thesis": 1.0, "ours_fast": 0.5}
+        for m in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "dem_kurtosis")
+    ] + [{"table": "-", "metric": "chosen_sites_safe_pct", "altitude_m": 300, "thesis": None, "ours_fast": None}]
+    tables = report.comparison_tables(cells)
+    assert [t.caption for t in tables] == ["Table 6.2 (1 of 2)", "Table 6.2 (2 of 2)", "Not in the thesis"]
+    assert tables[-1].rows[0]["chosen_sites_safe_pct|fast"] == "no site"
