@@ -62,6 +62,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "view, capped, so 512 px views are drawn 1.2-4.2x coarser (the renders before 2026-11-25; "
         "docs/scenes.md)",
     )
+    p.add_argument(
+        "--image-size",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="a square camera of this many px (32-4096; default 512), the thesis camera's 30 deg FOV, as `run "
+        "--image-size` renders: smaller is quicker",
+    )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: CPU count)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--out", required=True, help="output directory")
@@ -139,7 +147,7 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.render import MAX_CELLS, check_sun
     from ground_sim.trajectory import check_distinct_dirs
     from protocol.errors import comma_items
-    from protocol.pairdir import Sun
+    from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, Camera, Sun
 
     check_seed(args.seed)
     pe = PoseError.parse(args.pose_error) if args.pose_error else None
@@ -152,6 +160,11 @@ def _run(args: argparse.Namespace) -> int:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
     if not 1 <= args.supersample <= 8:  # the renderer says so too, but only after creating --out
         raise RenderError(f"--supersample must be 1..8, got {args.supersample}")
+    camera = None
+    if args.image_size is not None:
+        if not IMAGE_SIZE_MIN <= args.image_size <= IMAGE_SIZE_MAX:
+            raise RenderError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {args.image_size}")
+        camera = Camera.thesis(args.image_size)
     pairs = comma_items(args.pairs, "--pairs") if args.pairs is not None else None
     if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
         raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")
@@ -176,6 +189,7 @@ def _run(args: argparse.Namespace) -> int:
             workers=args.workers,
             max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
             raster=args.raster,
+            camera=camera,
         )
     except KeyboardInterrupt:
         print(_kept_after_interrupt(Path(args.out)), file=sys.stderr)

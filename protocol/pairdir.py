@@ -47,6 +47,7 @@ FORMAT = "sfm-hd-pair/1"
 MIN_FRAMES, MAX_FRAMES = 2, 16
 MAX_PAIR_JSON_BYTES = 1 << 20  # a pair.json of many frames is a few kB
 MAX_IMAGE_SIDE = 8192
+IMAGE_SIZE_MIN, IMAGE_SIZE_MAX = 32, 4096  # the square cameras `render` and `run --image-size` make
 ORTHONORMAL_TOL = 1e-3  # max |R R^T - I| re-orthonormalised with a note; beyond it: an error
 MIN_DEPRESSION_DEG = 10.0  # the optical axis must point at least this far below the horizon
 # an altimeter reading vs. the range to the datum along the optical axis (check_altimeter)
@@ -84,10 +85,13 @@ class Camera:
     cy: float
 
     @classmethod
-    def thesis(cls) -> Camera:
-        """The thesis camera (Table 2.2, eq. 3.16): 512x512, 30 deg FOV."""
-        f = 256.0 / math.tan(math.radians(15.0))  # 955.405 px
-        return cls(512, 512, f, f, 255.5, 255.5)
+    def thesis(cls, size: int = 512) -> Camera:
+        """The thesis camera (Table 2.2, eq. 3.16): 512x512, 30 deg FOV; ``size``: that FOV on a size x size sensor
+        (``f = size / 2 / tan 15 deg``, the principal point at the centre), as `run --image-size` and `evaluate
+        --camera-px` render."""
+        f = (size / 2.0) / math.tan(math.radians(15.0))  # 955.405 px at 512
+        c = (size - 1) / 2.0
+        return cls(size, size, f, f, c, c)
 
     @property
     def K(self) -> np.ndarray:

@@ -613,9 +613,7 @@ def camera_for(size_px: int | None) -> Camera | None:
         return None
     if size_px < 32:
         raise EvaluationError(f"camera size must be >= 32 px, got {size_px}")
-    f = (size_px / 2) / math.tan(math.radians(15.0))  # same 30 deg FOV as the thesis camera
-    c = (size_px - 1) / 2
-    return Camera(size_px, size_px, f, f, c, c)
+    return Camera.thesis(size_px)  # the same 30 deg FOV
 
 
 def render_cache(

@@ -19,6 +19,7 @@ CASES = [
     (["render", "--scenario", "vertical", "--pose-error", "alt=0.5,alt=1"], "alt is given twice"),  # last won
     (["render", "--scenario", "vertical", "--pose-error", "equal_pitch=5"], "equal_pitch is 0 or 1"),
     (["render", "--scenario", "vertical", "--pairs", ""], "--pairs is empty"),  # rendered every pair
+    (["render", "--scenario", "vertical", "--image-size", "20"], "--image-size must be 32..4096 px, got 20"),
     (["render", "--scenario", "vertical", "--frames", "1e6,300"], "must be at most 50000 m"),  # not processable
     (["process", "PAIR", "--deadline", "-1"], "--deadline must be a finite, non-negative"),
     (["process", "PAIR", "--deadline", "inf"], "--deadline must be a finite, non-negative"),

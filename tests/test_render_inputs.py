@@ -207,3 +207,18 @@ def test_a_camera_that_is_not_an_object_is_refused(tmp_path, capsys, no_renderin
     traj.write_text(json.dumps(doc))
     err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "o")])
     assert "'camera' must be an object" in err and str(traj) in err
+
+
+def test_render_takes_a_small_camera_as_run_does(tmp_path, capsys):
+    """`run --image-size` and `evaluate --camera-px` rendered small cameras; `render` could not, so the
+    render -> process -> score walk-through always drew 512 px frames."""
+    from protocol.pairdir import Camera, read_pair
+
+    out = tmp_path / "r"
+    assert main(["render", "--scenario", "vertical", "--pairs", "300/150", "--image-size", "64", "--no-progress",
+                 "--out", str(out)]) == 0  # fmt: skip
+    pair = read_pair(out / "300_150")
+    assert pair.camera == Camera.thesis(64) and pair.images[0].shape == (64, 64)
+    assert pair.truth["hazard"].shape == (64, 64)
+    # the thesis camera's field of view at every size (run and evaluate build theirs the same way)
+    assert Camera.thesis(512) == Camera.thesis() and Camera.thesis(64).fx * 8 == Camera.thesis().fx
