@@ -283,6 +283,7 @@ def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elev
 
 
 # --------------------------------------------------------------------------- telemetry
+QUEUE_DRAWN_S = 0.01  # a wait shorter than this is no bar and no legend entry (a millisecond read as a cause)
 LIMIT = "#111111"  # a deadline, a budget, a ceiling: one colour in every telemetry figure (red is a miss)
 
 
@@ -322,9 +323,15 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     """
     plt = _plt()
     recs = [r for r in records if r.get("status", "result") == "result"]
-    fig, ax = plt.subplots(figsize=(9, 0.45 * max(3, len(recs)) + 1.2))
-    seen: set[str] = set()
     stage_names = stage_sequence([r.get("stage_order") or list(r.get("stages") or {}) for r in recs])
+    # the legend (a ~17-stage pipeline and the link's entries) in two columns, and tall enough a figure to hold it:
+    # in one column it squeezed three pairs' bars into a strip
+    entries = len(stage_names) + 8
+    ncol = 2 if entries > 12 else 1
+    fig, ax = plt.subplots(
+        figsize=(11 if ncol == 2 else 9, max(0.45 * max(3, len(recs)) + 1.2, 0.2 * entries / ncol + 1))
+    )
+    seen: set[str] = set()
     # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over; tab20's
     # reds (the deadline's colour) and greys (the link's bars) left out, four of tab20b in their place
     tab20, tab20b = plt.get_cmap("tab20"), plt.get_cmap("tab20b")
@@ -343,7 +350,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         fl = float(r.get("frames_link_s") or 0.0)
         _bar(ax, y, -fl, fl, "#cccccc", once("frames on the link"))
         t = float(r.get("queue_wait_s") or 0.0)
-        if t > 0:
+        if t >= QUEUE_DRAWN_S:
             _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
         for k in stage_names:
             w = float(((r.get("stages") or {}).get(k) or {}).get("wall_s", 0.0))
@@ -363,11 +370,24 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         e2e = r.get("e2e_latency_s")
         start = (float(e2e) - rl) if e2e is not None else t
         rq = float(r.get("result_queue_s") or 0.0)
-        if rq > 0:  # named in the legend only where it happened
+        if rq >= QUEUE_DRAWN_S:  # named in the legend only where it happened
             _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))
         _bar(ax, y, start, rl, "#333333", once("result on the link"))
         if r.get("deadline_s") is not None:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
+    # the frames' uplink (6 s at 921600 baud against ~1 s of compute) took most of the axis: shown up to half the
+    # span after 0, and a longer one is cut there with its length written on it
+    after = max(
+        [float(r.get("e2e_latency_s") or 0.0) for r in recs] + [float(r.get("deadline_s") or 0.0) for r in recs]
+    )
+    longest = max([float(r.get("frames_link_s") or 0.0) for r in recs], default=0.0)
+    if after > 0 and longest > 0.5 * after:
+        left = -0.5 * after
+        ax.set_xlim(left=left * 1.02)
+        for i, r in enumerate(recs):
+            fl = float(r.get("frames_link_s") or 0.0)
+            if fl > -left:
+                ax.text(left, len(recs) - 1 - i, f" frames {fl:.1f} s \u2190", va="center", ha="left", fontsize=7)
     ax.set_ylim(-0.6, len(recs) - 0.4 + 0.25)  # room above the top row for its plan markers
     ax.set_yticks(range(len(recs)))
     ax.set_yticklabels([str(r.get("label", i)) for i, r in enumerate(recs)][::-1], fontsize=8)
@@ -375,7 +395,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     ax.set_xlabel("seconds since the ground sent the pair's last frame")
     ax.set_title("where each pair's time went")
     if ax.get_legend_handles_labels()[0]:  # no result with timings: nothing to name
-        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False, ncol=ncol)
     else:
         ax.text(0.5, 0.5, "no Result with timings", transform=ax.transAxes, ha="center", va="center")
     fig.tight_layout()
