@@ -174,3 +174,17 @@ def test_maps_that_cover_a_quarter_of_the_frame_are_shown_zoomed_to_it():
         36, 63, 36, 63
     )  # fmt: skip
     assert plots.map_figure(panels, zoom=False).axes[1].get_xlim() == (-0.5, 99.5)
+
+
+def test_a_long_uplink_does_not_take_the_timeline():
+    """6 s of frames at 921600 baud against ~1 s of compute took 70 % of the axis."""
+    recs = [
+        {"label": "600/300", "frames_link_s": 6.0, "stages": {"sweep": {"wall_s": 0.8}}, "result_link_s": 0.2,
+         "e2e_latency_s": 1.1, "deadline_s": 2.0, "result_queue_s": 0.001},
+    ]  # fmt: skip
+    fig = plots.timeline_figure(recs)
+    ax = fig.axes[0]
+    assert ax.get_xlim()[0] == pytest.approx(-1.02)
+    assert any(t.get_text().strip().startswith("frames 6.0 s") for t in ax.texts)
+    labels = ax.get_legend_handles_labels()[1]
+    assert "result queued behind earlier messages" not in labels  # a millisecond is no cause
