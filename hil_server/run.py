@@ -349,7 +349,7 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "link": cfg.link,
         "flight": cfg.flight if not cfg.flight_cmd else f"command: {cfg.flight_cmd}",
         "budget": cfg.budget if cfg.flight == "emulated" else None,
-        "budget_file": str(cfg.budget_file) if cfg.budget_file and cfg.flight == "emulated" else None,
+        "budget_file": str(Path(cfg.budget_file).resolve()) if cfg.budget_file and cfg.flight == "emulated" else None,
         "preset": cfg.preset,
         "pairs": n,
         "results": len(ok),
