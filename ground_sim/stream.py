@@ -773,7 +773,9 @@ def stream_descent(
                 if progress is None:
                     note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")
                 continue
-            if pace == "lockstep":
+            if pace == "lockstep" and o.finished:  # answered while its frames were on the line (an Error about
+                record(o)  # the first, taken with the late pairs' answers): recorded now, not after the timeout
+            elif pace == "lockstep":
                 want = {o.seqs} | late  # a late answer to an earlier pair is recorded when it comes
                 collect(time.monotonic() + timeout + o.link_s, want, awaited=o.seqs)
                 late.intersection_update(want)

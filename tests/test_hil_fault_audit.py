@@ -40,7 +40,7 @@ ap.add_argument("--port")
 ap.add_argument("--mode")
 args = ap.parse_args()
 link = mf.Link(serial.serial_for_url(args.port, baudrate=921600, timeout=0.02))
-config, pending, answered, next_beat, backlog = None, {{}}, 0, 0.0, []
+config, pending, answered, next_beat, backlog, refused = None, {{}}, 0, 0.0, [], set()
 
 
 def telemetry(pair):
@@ -78,10 +78,16 @@ while not link.closed_by_peer:
                 continue
             if args.mode == "exit0_mid" and answered == 1:  # ends itself, with success, holding the second pair
                 os._exit(0)
-            if args.mode == "slow_first" and answered == 0:  # the first answer comes 6 s late; the link stays up
-                end = time.monotonic() + 6.0
-                while time.monotonic() < end:
-                    backlog += link.poll()
+            if args.mode in ("slow_first", "slow_then_err") and answered == 0:  # the first answer comes late
+                end = time.monotonic() + (7.0 if args.mode == "slow_first" else 12.0)  # the latter at 115200 baud
+                while time.monotonic() < end:  # the link stays up meanwhile
+                    for mt, m in link.poll():
+                        if args.mode == "slow_then_err" and mt == mf.FRAME_MSG and m["frame_index"] == 0:
+                            # a later pair refused at once, while the first is still being worked on
+                            link.send(mf.ERROR, {{"code": "bad_frame", "text": "refused at once", "seq": m["seq"]}})
+                            refused.add(m["pair_id"])
+                        elif not (mt == mf.FRAME_MSG and m["pair_id"] in refused):
+                            backlog.append((mt, m))
                     if time.monotonic() >= next_beat:
                         link.datagram(mf.HEARTBEAT, {{"time_s": time.monotonic(), "counter": 1}})
                         next_beat = time.monotonic() + 0.5
@@ -423,28 +429,46 @@ def test_an_external_flight_computers_refused_telemetry_and_other_messages_are_c
 def test_lockstep_goes_on_after_its_response_timeout_and_records_the_late_answer(manifest, flight, tmp_path, capfd):
     """The ground stopped waiting for a pair after its response timeout without a word, and the Result that came
     later was recorded as ``no_response``: an answer received and lost."""
-    from ground_sim.stream import stream_descent
-    from protocol.linkspec import open_link
 
-    with serial_board(flight, "slow_first") as spec:
-        link = open_link(spec, server=False, name="flight-computer")
-        try:
-            records = stream_descent(
-                link, manifest, tmp_path, budget="external", deadline_s=1.0, response_timeout_s=4.0, where=spec
-            )
-        finally:
-            link.close()
+    records = _lockstep(flight, "slow_first", manifest, tmp_path)
     by_label = {r["label"]: r for r in records}
     assert sorted(by_label) == sorted(PAIRS) and len(records) == 3
     late = by_label["600/300"]
     assert late["status"] == "result", late
-    assert late["deadline_met"] is False and late["e2e_latency_s"] > 5.0
+    assert late["deadline_met"] is False and late["e2e_latency_s"] > 6.0
     assert [by_label[k]["status"] for k in PAIRS[1:]] == ["result", "result"]
     err = capfd.readouterr().err
-    assert "ground: pair p000-600/300: no answer within 4 s; the next pair goes now" in err.replace("_", "/"), err
+    assert "ground: pair p000-600/300: no answer within 5 s; the next pair goes now" in err.replace("_", "/"), err
     assert err.count("no answer within") == 1
     saved = [json.loads(x) for x in (tmp_path / "results.jsonl").read_text().splitlines()]
     assert sorted(r["label"] for r in saved) == sorted(PAIRS) and all(r["status"] == "result" for r in saved)
+
+
+def _lockstep(flight: Path, mode: str, manifest: Path, out: Path, baud: int | None = None) -> list[dict]:
+    """The ground alone, lockstep, a 5 s response timeout, against the faulty program on a pty."""
+    from ground_sim.stream import stream_descent
+    from protocol.linkspec import open_link
+
+    with serial_board(flight, mode) as spec:
+        link = open_link(spec + (f"@{baud}" if baud else ""), server=False, name="flight-computer")
+        try:
+            return stream_descent(
+                link, manifest, out, budget="external", deadline_s=1.0, response_timeout_s=5.0, where=spec
+            )
+        finally:
+            link.close()
+
+
+def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(manifest, flight, tmp_path, capfd):
+    """With a pair given up on, the ground reads answers while the next pair's frames go out: an Error about that
+    pair's first frame, taken then, was recorded only after the whole response timeout, with a false "no answer"
+    (review of stop 53's first fix). 115200 baud: each pair's frames are a while on the line."""
+    records = _lockstep(flight, "slow_then_err", manifest, tmp_path, baud=115200)
+    by_label = {r["label"]: r for r in records}
+    assert by_label["600/300"]["status"] == "result" and len(records) == 3
+    r = by_label["300/150"]  # its frames take ~3 s at 115200 baud; the Error came after the first of them
+    assert (r["status"], r["code"]) == ("error", "bad_frame") and r["elapsed_s"] < r["link_s"] + 2.0, r
+    assert capfd.readouterr().err.count("no answer within") == 1  # the first pair's, and only it
 
 
 def _minimal_flight():
