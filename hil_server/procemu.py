@@ -382,9 +382,10 @@ def on_slice_s(fraction: float, period_s: float = 0.02) -> tuple[float, float]:
     return fraction * period / (1.0 - fraction), period
 
 
-# 1/10000 of a core: 100x slower than gr740 on this host. Far below it the throttle's stops (1/f of a slice) outgrow
-# what time.sleep takes, and a duty of 1e-299 (from an absurd calibration) killed the throttle thread.
-MIN_CPU_FRACTION = 1e-4
+# A 1-DMIPS budget (budgets.MIN_CPU_DMIPS) on the fastest host a calibration may claim (budgets.MAX_UNITS_PER_S) is
+# a duty of ~4e-8; its stops (a slice / f, ~1e5 s) are still far inside what time.sleep takes. A duty of 1e-299 (from
+# an absurd calibration, refused now) overflowed it and killed the throttle thread.
+MIN_CPU_FRACTION = 1e-8
 
 
 def duty_cycle(child: _Child, f: float, period_s: float) -> None:
@@ -707,6 +708,14 @@ class EmulatedProcessor:
         duty_cycle(child, self.spec.cpu_fraction, self.spec.throttle_period_s)
 
     def _watchdog(self, child: _Child) -> None:
+        """The memory ceiling's watch (and the member scan); if it fails, the child is killed with the reason: running
+        on without its ceiling would pass a budget it never ran on, as a dead throttle would."""
+        try:
+            self._watch_memory(child)
+        except Exception as exc:
+            self._kill(f"the memory ceiling's watch failed ({type(exc).__name__}: {exc})", "crash")
+
+    def _watch_memory(self, child: _Child) -> None:
         limit = self.spec.memory_mib * MIB if self.spec.memory_mib is not None else None
         poll = self.spec.rss_poll_s
         every = max(1, round(MEMBER_SCAN_S / poll))

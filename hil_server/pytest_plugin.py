@@ -36,7 +36,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
         link: str | None = None,
         hello_timeout_s: float | None = None,
     ) -> str:
-        from hil_server.regress import check_regression, default_baseline_path
+        from hil_server.regress import RegressInterrupted, check_regression, default_baseline_path
         from protocol.errors import InputError
 
         if isinstance(cases, str):  # a lone name was split into its letters
@@ -55,6 +55,8 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
             )
         except InputError as exc:  # bad usage: one line, not a traceback from inside the library
             pytest.fail(f"hil_regression: {exc}", pytrace=False)
+        except RegressInterrupted as exc:  # Ctrl-C or a cancelled job stops the session, not this test alone
+            pytest.exit(f"hil_regression: {exc}", returncode=128 + exc.signum)
         if not ok:
             pytest.fail("latency regression:\n" + diff, pytrace=False)
         return diff

@@ -574,7 +574,8 @@ class Supervisor:
             cpu_fraction=pair_cpu_fraction(st.proc_at_complete, st.proc_at_result or stats),
             peak_rss_bytes=int(stats.get("peak_rss_mib", 0.0) * 1024 * 1024),
             link={
-                **msg.link,
+                # the flight process's own result_queue_s is its local link's: the ground link's, or none, is ours
+                **{k: v for k, v in msg.link.items() if k != "result_queue_s"},
                 **self._link_stats(),
                 "flight_latency_s": msg.total_latency_s,
                 "result_link_s": st.result_link_s,

@@ -167,3 +167,13 @@ def test_a_budget_named_as_a_shipped_one_in_other_case_is_refused(tmp_path):
     (tmp_path / "b.toml").write_text(OWN_BUDGETS.replace("[budget.fastboard]", "[budget.RAD750]"))
     with pytest.raises(BudgetError, match="differs from the shipped budget 'rad750' only in case"):
         load_budgets(tmp_path / "b.toml")
+
+
+def test_a_signal_under_the_fixture_stops_the_session(hil_regression, tiny_baseline, monkeypatch):
+    """The fixture turned regress's interrupt into a traceback in one test, and pytest went on with the next ones."""
+    from hil_server import run
+
+    monkeypatch.setattr(run, "run_descent", lambda cfg, log=print: {"interrupted_by": 2, "complete": False})
+    with pytest.raises(pytest.exit.Exception) as exc:
+        hil_regression(baseline=tiny_baseline)
+    assert exc.value.returncode == 130 and "interrupted by SIGINT during case tiny" in str(exc.value)

@@ -363,3 +363,14 @@ def test_a_calibration_entry_missing_fields_names_them(home):
     (home / "calibration.json").write_text(json.dumps({B.host_key(): {**entry, "colour": "red"}}))
     with pytest.raises(InputError, match=r"bad entry for this host \(missing hostname, seconds, unknown colour\)"):
         B.load_calibration()
+
+
+def test_runs_throttle_check_may_measure_below_the_calibration_grids_floor():
+    """The floor meant for `calibrate --duty-cycles` was put in the shared probe, and `run`'s check of a budget
+    below 0.1 % duty (a 10-DMIPS board) then always failed (review, stop 53)."""
+    from hil_server.calibrate import measure_throttle_efficiency
+
+    with pytest.raises(ValueError, match="units must be >= 1"):  # the duty passed its check; units are next
+        measure_throttle_efficiency((0.0005,), units=0)
+    with pytest.raises(ValueError, match=r"duty cycles must be in \(0, 1\)"):
+        measure_throttle_efficiency((0.0,), units=1)
