@@ -179,8 +179,9 @@ def score_records(records: list[dict]) -> list[dict]:
 
     ``scores``: from the compact Result's world grids, per pixel of i1 through its true ground
     point (:mod:`ground_sim.gridscore`), with the landing sites judged by the design's site rule
-    (``sites_n``, ``sites_truly_clear``, ``top_site_clear`` 1/0; each site's verdict in the record's
-    ``site_truth``); ``scores_full``: from the full-resolution image maps, when the run asked for them
+    (``sites_n``, ``sites_truly_clear``, ``top_site_clear`` 1/0, absent when the upper image does not hold the
+    top site's whole footprint and sees no hazard in it: a fused site from an earlier pair; each site's verdict in
+    the record's ``site_truth``); ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
     from ground_sim.gridscore import judge_sites, score_grids
@@ -210,8 +211,11 @@ def score_records(records: list[dict]) -> list[dict]:
             judged = judge_sites(pair, [(float(s["x"]), float(s["y"])) for s in sites])
             scores["sites_n"] = float(len(sites))
             scores["sites_truly_clear"] = float(sum(j["safe"] for j in judged))
-            if judged:  # the one a lander would take
-                scores["top_site_clear"] = float(judged[0]["safe"])
+            top = judged[0] if judged else None
+            # the one a lander would take; one this image cannot judge (not wholly in view, nothing unsafe seen) is
+            # neither clear nor not: the fused map's site may lie on ground an earlier pair saw
+            if top is not None and (top["n_unsafe"] > 0 or not top["incomplete"]):
+                scores["top_site_clear"] = float(top["safe"])
             rec["site_truth"] = judged
             rec["scores"] = scores
             np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report
@@ -313,7 +317,8 @@ def site_summary(results: list[dict]) -> dict | None:
         "pairs": len(judged),
         "with_site": len(offered),
         "top_clear": sum(r["scores"].get("top_site_clear") == 1.0 for r in offered),
-        "top_not_clear": [r["label"] for r in offered if r["scores"].get("top_site_clear") != 1.0],
+        "top_not_clear": [r["label"] for r in offered if r["scores"].get("top_site_clear") == 0.0],
+        "top_not_judged": [r["label"] for r in offered if "top_site_clear" not in r["scores"]],
         "no_site": [{"label": r["label"], "reason": r.get("no_site_reason")} for r in judged if r not in offered],
     }
 
@@ -323,9 +328,15 @@ def site_note(summary: dict) -> str:
     s = summary.get("sites")
     if not s:
         return ""
-    text = f"landing sites: the top site truly clear on {s['top_clear']} of {s['with_site']} pairs that offered one"
+    judged = s["with_site"] - len(s.get("top_not_judged", []))
+    text = f"landing sites: the top site truly clear on {s['top_clear']} of {judged} pairs that offered one"
     if s["top_not_clear"]:
         text += f" (NOT clear: {', '.join(s['top_not_clear'])})"
+    if s.get("top_not_judged"):
+        text += (
+            f"; {len(s['top_not_judged'])} not judged, its footprint not wholly in the pair's upper image "
+            f"({', '.join(s['top_not_judged'])})"
+        )
     if s["no_site"]:
         first = s["no_site"][0]
         why = f": {first['reason']}" if first.get("reason") else ""
@@ -486,7 +497,7 @@ def top_site_text(r: dict) -> str:
         return "none offered"
     count = f"{n} site{'' if n == 1 else 's'}"
     if "top_site_clear" not in sc:
-        return count
+        return f"not judged ({count})" if r.get("site_truth") else count
     return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count})"
 
 

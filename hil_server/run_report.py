@@ -193,12 +193,13 @@ def write_run_report(summary: dict, path: Path) -> Path:
             )
         )
     judged = s.get("sites")
-    if judged and judged.get("with_site"):  # the answer a lander acts on: red when one is not clear
+    n_judged = judged["with_site"] - len(judged.get("top_not_judged", [])) if judged else 0
+    if judged and n_judged:  # the answer a lander acts on: red when one is not clear
         headline.append(
             Headline(
                 "top_site",
-                f"{judged['top_clear']}/{judged['with_site']}",
-                "ok" if judged["top_clear"] == judged["with_site"] else "bad",
+                f"{judged['top_clear']}/{n_judged}",
+                "ok" if judged["top_clear"] == n_judged else "bad",
                 "top landing site truly clear",
             )
         )

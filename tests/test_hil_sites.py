@@ -63,25 +63,37 @@ def test_each_site_is_judged_on_the_truth_and_the_reports_say_so(tmp_path):
         _record(pair_dir, tmp_path / "a", "a", [clear, unsafe]),
         _record(pair_dir, tmp_path / "b", "b", [unsafe, clear]),
         _record(pair_dir, tmp_path / "c", "c", [], "no 3 m footprint with a 1 m margin is entirely known safe"),
+        # a fused site on ground an earlier, higher pair saw: this image cannot judge it (it called it NOT clear)
+        _record(pair_dir, tmp_path / "d", "d", [(1e4, 1e4), clear]),
     ]
     score_records(records)
-    a, b, c = records
+    a, b, c, d = records
+    assert (
+        "top_site_clear" not in d["scores"] and d["site_truth"][0]["incomplete"] and not d["site_truth"][0]["n_unsafe"]
+    )
     assert [j["safe"] for j in a["site_truth"]] == [True, False] and a["scores"]["top_site_clear"] == 1.0
     assert b["scores"]["top_site_clear"] == 0.0 and b["scores"]["sites_truly_clear"] == 1.0
     assert c["scores"]["sites_n"] == 0.0 and "top_site_clear" not in c["scores"] and c["site_truth"] == []
-    assert [top_site_text(r) for r in records] == ["clear (2 sites)", "NOT clear (2 sites)", "none offered"]
+    assert [top_site_text(r) for r in records] == [
+        "clear (2 sites)",
+        "NOT clear (2 sites)",
+        "none offered",
+        "not judged (2 sites)",
+    ]
 
-    summary = {"records": records, "sites": site_summary(records), "pairs": 3, "results": 3, "deadline_met": 3}
+    summary = {"records": records, "sites": site_summary(records), "pairs": 4, "results": 4, "deadline_met": 4}
     assert summary["sites"] == {
-        "pairs": 3,
-        "with_site": 2,
+        "pairs": 4,
+        "with_site": 3,
         "top_clear": 1,
         "top_not_clear": ["b"],
+        "top_not_judged": ["d"],
         "no_site": [{"label": "c", "reason": "no 3 m footprint with a 1 m margin is entirely known safe"}],
     }
     assert site_note(summary) == (
-        "landing sites: the top site truly clear on 1 of 2 pairs that offered one (NOT clear: b); 1 offered none "
-        "(c: no 3 m footprint with a 1 m margin is entirely known safe)"
+        "landing sites: the top site truly clear on 1 of 2 pairs that offered one (NOT clear: b); 1 not judged, its "
+        "footprint not wholly in the pair's upper image (d); 1 offered none (c: no 3 m footprint with a 1 m margin is "
+        "entirely known safe)"
     )
     table = summary_table({**summary, "scenario": "v", "link": "l", "flight": "f", "budget": None, "degraded": 0,
                            "errors": 0, "e2e_latency_p50_s": 0.5, "e2e_latency_max_s": 0.5,
