@@ -509,7 +509,9 @@ def register_score(subparsers: Any) -> None:
         default=FP_LIMIT_PCT,
         help=f"FP limit per pair in %% of the scored pixels (default {FP_LIMIT_PCT:g}, thesis Table 2.1)",
     )
-    p.add_argument("--csv", type=Path, default=None, help="also write one row per pair here")
+    p.add_argument(
+        "--csv", type=Path, default=None, help="also write one row per pair here (the columns some pair fills)"
+    )
     p.add_argument("--json", type=Path, default=None, help="also write the rows and the summary here")
     p.add_argument(
         "--figures",
