@@ -329,20 +329,24 @@ def site_note(summary: dict) -> str:
     if not s:
         return ""
     judged = s["with_site"] - len(s.get("top_not_judged", []))
-    text = f"landing sites: the top site truly clear on {s['top_clear']} of {judged} pairs that offered one"
-    if s["top_not_clear"]:
-        text += f" (NOT clear: {', '.join(s['top_not_clear'])})"
+    parts = []
+    if judged:
+        clear = f"the top site truly clear on {s['top_clear']} of {judged} pairs that offered one"
+        parts.append(clear + (f" (NOT clear: {', '.join(s['top_not_clear'])})" if s["top_not_clear"] else ""))
     if s.get("top_not_judged"):
-        text += (
-            f"; {len(s['top_not_judged'])} not judged, its footprint not wholly in the pair's upper image "
+        parts.append(
+            f"{len(s['top_not_judged'])} not judged, its footprint not wholly in the pair's upper image "
             f"({', '.join(s['top_not_judged'])})"
         )
     if s["no_site"]:
         first = s["no_site"][0]
         why = f": {first['reason']}" if first.get("reason") else ""
         more = f", and {len(s['no_site']) - 1} more" if len(s["no_site"]) > 1 else ""
-        text += f"; {len(s['no_site'])} offered none ({first['label']}{why}{more})"
-    return text
+        n = len(s["no_site"])
+        parts.append(
+            f"{'no pair offered a site' if n == s['pairs'] else f'{n} offered none'} ({first['label']}{why}{more})"
+        )
+    return "landing sites: " + "; ".join(parts)
 
 
 def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:

@@ -113,3 +113,12 @@ def test_a_site_that_is_not_a_point_on_the_ground_is_not_clear(tmp_path):
     assert judge_site((1e12, 0.0), world, np.zeros((8, 8))) == {
         "safe": False, "n_px": 0, "n_unsafe": 0, "incomplete": True, "uv": None
     }  # fmt: skip
+
+
+def test_a_run_where_no_pair_offered_a_site_says_so_plainly():
+    """It read "the top site truly clear on 0 of 0 pairs that offered one; 2 offered none"."""
+    none = [{"label": "600/300", "reason": "every cell is unknown"}, {"label": "300/150", "reason": None}]
+    s = {"pairs": 2, "with_site": 0, "top_clear": 0, "top_not_clear": [], "top_not_judged": [], "no_site": none}
+    assert (
+        site_note({"sites": s}) == "landing sites: no pair offered a site (600/300: every cell is unknown, and 1 more)"
+    )
