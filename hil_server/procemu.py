@@ -386,6 +386,7 @@ def on_slice_s(fraction: float, period_s: float = 0.02) -> tuple[float, float]:
 # a duty of ~4e-8; its stops (a slice / f, ~1e5 s) are still far inside what time.sleep takes. A duty of 1e-299 (from
 # an absurd calibration, refused now) overflowed it and killed the throttle thread.
 MIN_CPU_FRACTION = 1e-8
+LONG_STOP_S = 0.5  # a throttle stop longer than this ends early when the throttle is asked to stop
 
 
 def duty_cycle(child: _Child, f: float, period_s: float) -> None:
@@ -420,8 +421,13 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
                 if credit >= cap:
                     child.signal(signal.SIGCONT)
                     continue
-                # Stopped: credit grows at f per second.
-                time.sleep(max((cap - credit) / f, 0.0002))
+                # Stopped: credit grows at f per second. A long stop (a very slow budget: ~1 ms / f) waits on the
+                # stop request, so that leaving the throttle does not take it whole (53 s at f = 1e-4)
+                pause = max((cap - credit) / f, 0.0002)
+                if pause > LONG_STOP_S:
+                    child.stop_threads.wait(pause)
+                else:
+                    time.sleep(pause)
             else:
                 if credit <= 0.0:
                     child.signal(signal.SIGSTOP)

@@ -415,3 +415,19 @@ def test_a_memory_watch_that_fails_kills_its_process_with_the_reason(monkeypatch
     monkeypatch.setattr(procemu, "private_rss_bytes", broken)
     report, _, _ = _run(ProcessorSpec(cpu_fraction=1.0, memory_mib=512), "import time\ntime.sleep(20)\n", timeout=15)
     assert report.kind == "crash" and report.reason.startswith("the memory ceiling's watch failed (OSError"), report
+
+
+def test_leaving_a_very_slow_throttle_does_not_wait_out_its_stop():
+    """At a duty of 1e-4 each stop lasts ~10 s or more: leaving the throttle (a run's throttle check cut short by
+    Ctrl-C) waited for the whole stop, 53 s in the review's measurement."""
+    popen = start_at_full_speed([PY, "-c", "import time\ntime.sleep(60)"])
+    try:
+        th = Throttle(popen, 1e-4)
+        th.__enter__()
+        time.sleep(0.3)  # the throttle is inside a long stop now
+        t0 = time.monotonic()
+        th.__exit__(None, None, None)
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        popen.kill()
+        popen.wait()

@@ -188,3 +188,4 @@ def test_a_long_uplink_does_not_take_the_timeline():
     assert any(t.get_text().strip().startswith("frames 6.0 s") for t in ax.texts)
     labels = ax.get_legend_handles_labels()[1]
     assert "result queued behind earlier messages" not in labels  # a millisecond is no cause
+    plots.timeline_figure([{"label": "x", "status": "error"}])  # no Result: no cut, no error (review)
