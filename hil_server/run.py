@@ -45,6 +45,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -179,15 +180,18 @@ def score_records(records: list[dict]) -> list[dict]:
 
     ``scores``: from the compact Result's world grids, per pixel of i1 through its true ground
     point (:mod:`ground_sim.gridscore`), with the landing sites judged by the design's site rule
-    (``sites_n``, ``sites_truly_clear``, ``top_site_clear`` 1/0, absent when the upper image does not hold the
-    top site's whole footprint and sees no hazard in it: a fused site from an earlier pair; each site's verdict in
-    the record's ``site_truth``); ``scores_full``: from the full-resolution image maps, when the run asked for them
+    (``sites_n``, ``sites_truly_clear``, ``top_site_clear`` 1/0; each site's verdict in the record's
+    ``site_truth``). A top site the pair's own upper image cannot judge (its footprint not wholly in view, no hazard
+    seen: the fused map's site may lie on ground only an earlier pair saw) is judged on the truth of another pair of
+    the same rendered scene that holds it (``top_site_judged_on``, that pair's label), else left without
+    ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
     from ground_sim.gridscore import judge_sites, score_grids
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
+    scored: list[tuple[dict, Any]] = []  # (record, its pair) of the Results judged, for the sites of the others
     for rec in records:
         if rec.get("status") != "result" or "out_dir" not in rec:
             continue
@@ -218,6 +222,7 @@ def score_records(records: list[dict]) -> list[dict]:
                 scores["top_site_clear"] = float(top["safe"])
             rec["site_truth"] = judged
             rec["scores"] = scores
+            scored.append((rec, pair))
             np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report
         if (d / "hazard.npy").is_file() and "hazard" in truth:
             hazard = np.load(d / "hazard.npy")
@@ -227,7 +232,31 @@ def score_records(records: list[dict]) -> list[dict]:
                 st = dem_error_stats(np.load(d / "elevation.npy"), truth["elevation"])
                 full.update({f"dem_{k}": float(v) for k, v in st.items()})
             rec["scores_full"] = full
+    _judge_elsewhere(scored)
     return records
+
+
+def _judge_elsewhere(scored: list[tuple[dict, Any]]) -> None:
+    """Judge each top site its own pair could not on another pair of the same scene render (see score_records)."""
+    from ground_sim.gridscore import judge_sites
+
+    def scene(pair: Any) -> tuple | None:
+        meta = pair.meta if isinstance(pair.meta, dict) else {}
+        key = (meta.get("scene_spec"), meta.get("scene_seed"), meta.get("render_version"))
+        return key if None not in key else None  # a hand-made pair: no other pair is known to share its ground
+
+    for rec, pair in scored:
+        if not rec.get("sites") or "top_site_clear" in rec["scores"] or scene(pair) is None:
+            continue
+        top = rec["sites"][0]
+        for other, other_pair in scored:
+            if other is rec or scene(other_pair) != scene(pair):
+                continue
+            (j,) = judge_sites(other_pair, [(float(top["x"]), float(top["y"]))])
+            if j["n_unsafe"] > 0 or not j["incomplete"]:
+                rec["scores"]["top_site_clear"] = float(j["safe"])
+                rec["top_site_judged_on"] = other["label"]
+                break
 
 
 def skipped_counts(records: list[dict]) -> dict[str, int]:
@@ -502,7 +531,8 @@ def top_site_text(r: dict) -> str:
     count = f"{n} site{'' if n == 1 else 's'}"
     if "top_site_clear" not in sc:
         return f"not judged ({count})" if r.get("site_truth") else count
-    return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count})"
+    on = f", judged on {r['top_site_judged_on']}" if r.get("top_site_judged_on") else ""
+    return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count}{on})"
 
 
 def summary_table(summary: dict) -> str:

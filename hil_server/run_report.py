@@ -106,7 +106,9 @@ def _site_marks(r: dict, pair: Any) -> list[Site]:
         u, v = j["uv"]
         z = float(depth[v, u])
         radius = 1.5 * pair.camera.fx / z if np.isfinite(z) and z > 0 else 2.0
-        out.append(Site(float(u), float(v), radius, rank, bool(j["safe"])))
+        # what this image cannot judge (its footprint not wholly in view, nothing unsafe seen) is drawn black, not red
+        verdict = None if j.get("incomplete") and not j.get("n_unsafe") else bool(j["safe"])
+        out.append(Site(float(u), float(v), radius, rank, verdict))
     return out
 
 
@@ -150,7 +152,7 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     save(map_figure(panels, f"{r.get('label')}: hazards"), fig_dir / f"{pid}_hazard.png")
     sites = (
         " Circles: the landing sites it offered, numbered by rank; green when the truth says the whole 3 m footprint "
-        "is clear, red when it is not."
+        "is clear, red when it is not, black when this image does not hold the whole footprint."
         if marks
         else ""
     )
@@ -193,13 +195,15 @@ def write_run_report(summary: dict, path: Path) -> Path:
             )
         )
     judged = s.get("sites")
-    n_judged = judged["with_site"] - len(judged.get("top_not_judged", [])) if judged else 0
-    if judged and n_judged:  # the answer a lander acts on: red when one is not clear
+    unjudged = len(judged.get("top_not_judged", [])) if judged else 0
+    n_judged = judged["with_site"] - unjudged if judged else 0
+    if judged and judged["with_site"]:  # the answer a lander acts on: red when one is not clear, amber when unjudged
+        status = "bad" if judged["top_not_clear"] else ("warn" if unjudged else "ok")
         headline.append(
             Headline(
                 "top_site",
-                f"{judged['top_clear']}/{n_judged}",
-                "ok" if judged["top_clear"] == n_judged else "bad",
+                f"{judged['top_clear']}/{n_judged}" + (f" ({unjudged} not judged)" if unjudged else ""),
+                status,
                 "top landing site truly clear",
             )
         )

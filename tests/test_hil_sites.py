@@ -122,3 +122,28 @@ def test_a_run_where_no_pair_offered_a_site_says_so_plainly():
     assert (
         site_note({"sites": s}) == "landing sites: no pair offered a site (600/300: every cell is unknown, and 1 more)"
     )
+
+
+def test_a_fused_site_the_pair_cannot_see_is_judged_on_a_pair_of_the_same_render_that_does(tmp_path):
+    """The fused map's top site may lie on ground only an earlier, higher pair saw: the HIL called it NOT clear,
+    then 'not judged'; another pair of the same render holds its footprint, and its truth can judge it."""
+    manifest = small_descent(tmp_path / "pairs", ["600/300", "300/150"])
+    dirs = [manifest.parent / e["path"] for e in json.loads(manifest.read_text())["pairs"]]
+    high, low = read_pair(dirs[0]), read_pair(dirs[1])
+    world_low = np.stack(pixel_ground_xy(low.camera, true_pose_upper(low), low.truth["depth"]), axis=-1)
+    world_high = np.stack(pixel_ground_xy(high.camera, true_pose_upper(high), high.truth["depth"]), axis=-1)
+    h, w = high.truth["hazard"].shape
+    spot = next(  # a clear footprint of the high pair that the low pair's upper image does not hold
+        xy
+        for v in range(4, h - 4, 2)
+        for u in range(4, w - 4, 2)
+        if judge_site(xy := (float(world_high[v, u, 0]), float(world_high[v, u, 1])), world_high, high.truth["hazard"])[
+            "safe"
+        ]
+        and judge_site(xy, world_low, low.truth["hazard"])["n_px"] == 0
+    )
+    records = [_record(dirs[0], tmp_path / "a", "600/300", []), _record(dirs[1], tmp_path / "b", "300/150", [spot])]
+    score_records(records)
+    low_rec = records[1]
+    assert low_rec["site_truth"][0]["incomplete"] and low_rec["top_site_judged_on"] == "600/300"
+    assert low_rec["scores"]["top_site_clear"] == 1.0 and top_site_text(low_rec) == "clear (1 site, judged on 600/300)"
