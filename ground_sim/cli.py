@@ -67,8 +67,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         metavar="PX",
-        help="a square camera of this many px (32-4096; default 512), the thesis camera's 30 deg FOV, as `run "
-        "--image-size` renders: smaller is quicker",
+        help="a square camera of this many px (32-4096) with the thesis camera's 30 deg FOV, in place of the "
+        "scenario's camera (a trajectory file's own too; default: the scenario's, 512 px for vertical and approach), "
+        "as `run --image-size` renders: smaller is quicker",
     )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: CPU count)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")

@@ -445,7 +445,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "--image-size",
         type=int,
         default=None,
-        help="render a square camera of this many px (32-4096; default 512), same FOV",
+        help="render a square camera of this many px (32-4096) with the thesis camera's 30 deg FOV, in place of the "
+        "scenario's (a trajectory file's own too; default: the scenario's, 512 px for vertical and approach)",
     )
     p.add_argument(
         "--manifest",

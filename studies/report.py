@@ -362,6 +362,8 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
             ms.append(c["metric"])
     by = {(c["table"], c["metric"], c["altitude_m"]): c for c in cells}
     alts = sorted({c["altitude_m"] for c in cells})
+    # (altitude, preset) pairs that have any figure: only there does an empty chosen-sites cell mean "no site"
+    ran = {(c["altitude_m"], p) for c in cells for p in presets if c.get(f"ours_{p}") is not None}
     tables = []
     for table, metrics in groups.items():
         parts = -(-len(metrics) // max_metrics)
@@ -385,8 +387,10 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
                     c = by.get((table, m, a), {})
                     row[f"{m}|reference"] = c.get("thesis")
                     row.update({f"{m}|{p}": c.get(f"ours_{p}") for p in presets})
-                    if m.startswith("chosen_sites_safe_pct"):  # no value there means no site was offered, not "-"
-                        row.update({f"{m}|{p}": "no site" for p in presets if row[f"{m}|{p}"] is None})
+                    if m.startswith("chosen_sites_safe_pct"):  # no value where the preset ran: no site was offered
+                        row.update(
+                            {f"{m}|{p}": "no site" for p in presets if row[f"{m}|{p}"] is None and (a, p) in ran}
+                        )
                 rows.append(row)
             tables.append(Table(cols, rows, title))
     return tables

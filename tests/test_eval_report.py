@@ -163,7 +163,12 @@ def test_a_split_table_says_which_part_and_no_site_is_not_a_dash():
     cells = [
         {"table": "6.2", "metric": m, "altitude_m": 300, "thesis": 1.0, "ours_fast": 0.5}
         for m in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "dem_kurtosis")
-    ] + [{"table": "-", "metric": "chosen_sites_safe_pct", "altitude_m": 300, "thesis": None, "ours_fast": None}]
+    ] + [
+        {"table": "-", "metric": "chosen_sites_safe_pct", "altitude_m": a, "thesis": None, "ours_fast": None}
+        for a in (300, 400)
+    ]
     tables = report.comparison_tables(cells)
     assert [t.caption for t in tables] == ["Table 6.2 (1 of 2)", "Table 6.2 (2 of 2)", "Not in the thesis"]
-    assert tables[-1].rows[0]["chosen_sites_safe_pct|fast"] == "no site"
+    rows = {r["altitude_m"]: r for r in tables[-1].rows}
+    assert rows[300]["chosen_sites_safe_pct|fast"] == "no site"
+    assert rows[400]["chosen_sites_safe_pct|fast"] is None  # nothing ran there: no site is not the answer
