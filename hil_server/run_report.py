@@ -19,7 +19,7 @@ import numpy as np
 
 from protocol.plan import plan_note
 from reports.console import printable
-from reports.html import Column, Figure, Headline, Section, Table, write_page
+from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
 from reports.plots import (
     Panel,
     Site,
@@ -262,4 +262,15 @@ def write_run_report(summary: dict, path: Path) -> Path:
         figs = _pair_figures(r, fig_dir)
         if figs:
             sections.append(Section(f"Pair {r.get('label')}", figures=figs))
+    files = [
+        ("summary.json", "every figure of this page, per pair and for the run"),
+        ("summary.md", "the pairs' table as text"),
+        ("telemetry.jsonl", "a line per pair: the timings, as the ground measured them"),
+        ("received/results.jsonl", "the ground's record of each pair, as it came back"),
+        ("supervisor.jsonl", "the HIL server's log: each pair, restart and refusal"),
+        ("supervisor.log", "the HIL server's and the flight process's output"),
+    ]
+    links = file_links(path.parent, files)
+    if links:
+        sections.append(Section("Files", links=links))
     return write_page(path, "HIL run", sections, subtitle=subtitle, headline=headline)

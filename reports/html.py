@@ -55,6 +55,9 @@ class Section:
     tables: list[Table] = field(default_factory=list)
     figures: list[Figure] = field(default_factory=list)
     status: str = ""  # "", "ok", "warn" or "bad": a coloured marker beside the title
+    # (href relative to the page, what it holds): the data files beside the page, so that checking a number
+    # against its file does not mean leaving the page to look for it
+    links: list[tuple[str, str]] = field(default_factory=list)
 
 
 @dataclass
@@ -128,6 +131,11 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return p
+
+
+def file_links(page_dir: Path, files: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """``(href, what)`` for the ``files`` (paths relative to ``page_dir``) that exist: a page's "Files" section."""
+    return [(href, what) for href, what in files if (Path(page_dir) / href).exists()]
 
 
 def render_page(

@@ -636,7 +636,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
 
 def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> Path:
     """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page)."""
-    from reports.html import Column, Figure, Headline, Section, Table, write_page
+    from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
 
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
@@ -706,6 +706,15 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         Section("Why no site", [], [Table(why_cols, why_rows)] if why_rows else []),
         Section("Figures", [], [], [Figure(f, cap) for f, cap in figs]),
     ]
+    links = file_links(
+        rep,
+        [
+            ("../landings.csv", "a row per landing and preset: the draws, the site and its verdict"),
+            ("../landings.json", "the figures of this page"),
+        ],
+    )
+    if links:
+        sections.append(Section("Files", links=links))
     return write_page(
         rep / "index.html", "hazard-hil landings: landing Monte Carlo", sections, headline=head, legends=()
     )

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from reports.html import Column, Figure, Section, Table, write_page
+from reports.html import Column, Figure, Section, Table, file_links, write_page
 from reports.plots import save as save_figure
 from reports.style import HAZARD, HAZARD_CMAP, SAFE, term
 
@@ -333,6 +333,13 @@ def write_html(
                 figures=[Figure(name, _caption(name)) for name in images],
             )
         )
+    files = [  # the report lives in OUT/report; the data beside it
+        ("../metrics.csv", "a row per preset, seed and pair: every figure of these tables"),
+        ("../runs/", "the logs a rerun resumes from"),
+    ] + [(f"../multiframe_{s}.json", f"the {s} multi-frame descents, scored") for s in ("vertical", "approach")]
+    links = file_links(d, files)
+    if links:
+        page.append(Section("Files", links=links))
     return write_page(d / "index.html", title, page, subtitle=subtitle)
 
 

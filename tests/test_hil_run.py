@@ -45,7 +45,11 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     )
     import html
 
-    assert "each phase's median (they need not" in html.unescape((tmp_path / "report.html").read_text())
+    page = html.unescape((tmp_path / "report.html").read_text())
+    assert "each phase's median (they need not" in page
+    # the data beside the page, linked from it (checking a figure meant leaving the page to look for its file)
+    for name in ("summary.json", "summary.md", "telemetry.jsonl", "received/results.jsonl", "supervisor.jsonl"):
+        assert f'<a href="{name}">' in page and (tmp_path / name).is_file(), name
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]

@@ -189,3 +189,13 @@ def test_a_long_uplink_does_not_take_the_timeline():
     labels = ax.get_legend_handles_labels()[1]
     assert "result queued behind earlier messages" not in labels  # a millisecond is no cause
     plots.timeline_figure([{"label": "x", "status": "error"}])  # no Result: no cut, no error (review)
+
+
+def test_a_page_links_the_data_files_beside_it_that_exist(tmp_path):
+    from reports.html import file_links
+
+    (tmp_path / "summary.json").write_text("{}")
+    links = file_links(tmp_path, [("summary.json", "the figures"), ("gone.csv", "never written")])
+    assert links == [("summary.json", "the figures")]
+    page = render_page("t", [Section("Files", links=links)])
+    assert '<li><a href="summary.json">summary.json</a>: the figures</li>' in page and "gone.csv" not in page
