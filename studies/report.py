@@ -61,9 +61,14 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     def masked(a: np.ndarray) -> np.ndarray:
         return np.where(cov, a, np.nan)
 
+    # the picture names its pair (scenario, preset, seed, altitude): a saved PNG was anonymous without its page
+    name = Path(maps_path).stem
+
     files = [
         save(
-            map_figure(dem_panels(masked(m["est_elevation"]), masked(m["true_elevation"])), panel_in=PANEL_IN),
+            map_figure(
+                dem_panels(masked(m["est_elevation"]), masked(m["true_elevation"])), f"{name}: elevation", PANEL_IN
+            ),
             out / f"{stem}_dem.png",
         )
     ]
@@ -75,13 +80,13 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
         Panel("confusion", confusion_codes(called_safe, truly_safe, scored), "pixel scores"),
         Panel("scalar", masked(m["true_hazard"]), "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
     ]
-    files.append(save(map_figure(hz, panel_in=PANEL_IN), out / f"{stem}_hazard.png"))
+    files.append(save(map_figure(hz, f"{name}: hazards", PANEL_IN), out / f"{stem}_hazard.png"))
     if np.isfinite(m["true_slope"]).any():
         for key, what, unit, limit in (("slope", "slope", "deg", 15.0), ("rough", "roughness", "m", 0.3)):
             panels = dem_panels(masked(m[f"est_{key}"]), masked(m[f"true_{key}"]), what, unit)
             for p in panels[:2]:  # estimate and truth on 0..2x the hazard threshold
                 p.cmap, p.vmin, p.vmax = HAZARD_CMAP, 0.0, 2.0 * limit
-            files.append(save(map_figure(panels, panel_in=PANEL_IN), out / f"{stem}_{key}.png"))
+            files.append(save(map_figure(panels, f"{name}: {what}", PANEL_IN), out / f"{stem}_{key}.png"))
     return files
 
 
