@@ -141,7 +141,8 @@ def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
     floor = 0.015 * abs(x1 - x0)
     for s in sites:
         colour = "#000000" if s.safe is None else (SAFE if s.safe else MISSED)
-        circle = Circle((s.u, s.v), max(s.radius_px, floor), fill=False, lw=1.6, color=colour)
+        # the top-ranked site, the one a lander would take, drawn heavier than the others
+        circle = Circle((s.u, s.v), max(s.radius_px, floor), fill=False, lw=2.8 if s.rank == 1 else 1.4, color=colour)
         circle.set_path_effects(halo)
         ax.add_patch(circle)
     for group in site_label_groups(sites, 3.0 * floor):
