@@ -148,7 +148,7 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.render import MAX_CELLS, check_sun
     from ground_sim.trajectory import check_distinct_dirs
     from protocol.errors import comma_items
-    from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, Camera, Sun
+    from protocol.pairdir import Sun, square_camera
 
     check_seed(args.seed)
     pe = PoseError.parse(args.pose_error) if args.pose_error else None
@@ -161,11 +161,7 @@ def _run(args: argparse.Namespace) -> int:
         raise RenderError(f"--workers must be >= 1, got {args.workers}")
     if not 1 <= args.supersample <= 8:  # the renderer says so too, but only after creating --out
         raise RenderError(f"--supersample must be 1..8, got {args.supersample}")
-    camera = None
-    if args.image_size is not None:
-        if not IMAGE_SIZE_MIN <= args.image_size <= IMAGE_SIZE_MAX:
-            raise RenderError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {args.image_size}")
-        camera = Camera.thesis(args.image_size)
+    camera = square_camera(args.image_size) if args.image_size is not None else None
     pairs = comma_items(args.pairs, "--pairs") if args.pairs is not None else None
     if pairs is not None and not pairs:  # an empty list would have rendered every pair of the scenario
         raise RenderError(f"--pairs is empty: give pairs like 600/300,300/150, got {args.pairs!r}")

@@ -542,10 +542,10 @@ def _config(args: argparse.Namespace):
 
         if not BAUD_MIN <= args.baud <= BAUD_MAX:
             raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
-    from hil_server.run import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
+    if args.image_size is not None:
+        from protocol.pairdir import square_camera
 
-    if args.image_size is not None and not IMAGE_SIZE_MIN <= args.image_size <= IMAGE_SIZE_MAX:
-        raise InputError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {args.image_size}")
+        square_camera(args.image_size)  # checked before anything is calibrated or rendered
     if args.seed is not None:
         from ground_sim.cli import check_seed
 

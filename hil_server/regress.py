@@ -292,8 +292,8 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
     or (an empty ``cases``) silently run the default cases instead of the ones asked for.
     """
     from hil_server.budgets import load_budgets
-    from hil_server.run import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
     from protocol.errors import InputError
+    from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
     def bad(what: str) -> InputError:
         return InputError(f"latency baseline {where}: {what}")

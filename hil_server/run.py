@@ -52,7 +52,6 @@ import numpy as np
 from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, Budget, ThrottleCheck
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
-from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every pair recorded as not_run)
@@ -163,12 +162,10 @@ def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
 
 
 def scaled_camera(size: int):
-    """The thesis camera's 30 deg FOV on a ``size`` x ``size`` sensor."""
-    from protocol.pairdir import Camera
+    """The thesis camera's 30 deg FOV on a ``size`` x ``size`` sensor (``--image-size``)."""
+    from protocol.pairdir import square_camera
 
-    if not IMAGE_SIZE_MIN <= size <= IMAGE_SIZE_MAX:
-        raise InputError(f"--image-size must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {size}")
-    return Camera.thesis(size)
+    return square_camera(size)
 
 
 def percentile(values: list[float], q: float) -> float:

@@ -778,3 +778,10 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
         if alt is not None and (isinstance(alt, bool) or not isinstance(alt, (int, float)) or not math.isfinite(alt)):
             raise PairFormatError(f'{where}: "altitude_m" must be a number of metres, got {json.dumps(alt)[:40]}')
     return doc
+
+
+def square_camera(size: int, option: str = "--image-size") -> Camera:
+    """:meth:`Camera.thesis` at ``size`` px, after one check of the size every command that makes one shares."""
+    if isinstance(size, bool) or not isinstance(size, int) or not IMAGE_SIZE_MIN <= size <= IMAGE_SIZE_MAX:
+        raise InputError(f"{option} must be {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX} px, got {size}")
+    return Camera.thesis(size)
