@@ -332,6 +332,14 @@ class _Child:
         self.stderr_tail: collections.deque[bytes] = collections.deque(maxlen=64)
         self.threads: list[threading.Thread] = []
 
+    def kill(self, reason: str, kind: str) -> None:
+        """SIGKILL the child (resumed first, so it never stays stopped); the first reason given is its exit's."""
+        if self.kill_reason is None:
+            self.kill_reason, self.kill_kind = reason, kind
+        self.stop_threads.set()
+        self.signal(signal.SIGCONT)
+        self.signal(signal.SIGKILL)
+
     def sample(self) -> tuple[int, int]:
         for pid, _ in self.members:  # their tasks join per_task; the sum below covers them
             _read_schedstat(pid, self.per_task)
@@ -435,10 +443,7 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
                 # Running flat out, credit falls at (1 - f) per second.
                 time.sleep(min(max(credit / (1.0 - f), 0.0002), period))
     except Exception as exc:  # a dead throttle would let the child run at full speed: a false pass on its budget
-        if child.kill_reason is None:
-            child.kill_reason, child.kill_kind = f"the CPU throttle failed ({type(exc).__name__}: {exc})", "crash"
-        child.stop_threads.set()
-        child.signal(signal.SIGKILL)
+        child.kill(f"the CPU throttle failed ({type(exc).__name__}: {exc})", "crash")
     finally:
         child.signal(signal.SIGCONT)  # never leave it stopped
 
@@ -610,11 +615,7 @@ class EmulatedProcessor:
         child = self._child
         if child is None or child.exited.is_set():
             return
-        if child.kill_reason is None:
-            child.kill_reason, child.kill_kind = reason, kind
-        child.stop_threads.set()
-        child.signal(signal.SIGCONT)
-        child.signal(signal.SIGKILL)
+        child.kill(reason, kind)
 
     def wait(self, timeout: float | None = None) -> ExitReport | None:
         """Wait up to ``timeout`` s for the child to end; its report, or None if still running."""
