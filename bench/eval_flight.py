@@ -13,7 +13,7 @@ datum); ``lowsun`` the vertical scenario under a 10 deg sun; ``tilted`` the appr
 Renders go to ``--cache`` (default ``/tmp/flight_eval_cache``; a case's directory carries its raster's
 tag, ``_tiles`` by default) and are reused. Every pair is scored
 against its ground truth with ``studies.evaluate.score_arrays`` (pixel FP/FN/CDI, DEM error) plus the
-top-ranked site's footprint (``ground_sim.scoring.chosen_sites_safe``). Seeds come from
+top-ranked site's footprint (``ground_sim.gridscore.judge_site``, DESIGN.md's rule). Seeds come from
 ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``.
 """
 
@@ -121,9 +121,9 @@ def run_pair(pair: Any, preset: Any) -> Any:
 
 def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
-    from ground_sim import scoring
+    from ground_sim.gridscore import judge_site
     from protocol.pairdir import read_pair
-    from studies.evaluate import _site_radius_px, project_points, score_arrays, true_poses
+    from studies.evaluate import _site_radius_px, backproject_depth, score_arrays, true_poses
 
     pair = read_pair(pair_dir)
     t1, t2 = true_poses(pair)
@@ -140,11 +140,11 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     truth = {"elevation": tz, "hazard": pair.truth["hazard"]}
     box = np.zeros(tz.shape, bool)
     m = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
-    top = math.nan
-    if res.sites:
-        s = res.sites[0]
-        uv = project_points(pair.camera, t1, np.array([[s.x, s.y, s.z]]))
-        top = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)["safe_pct"]
+    top, top_unseen = math.nan, 0
+    if res.sites:  # DESIGN.md's rule: every pixel whose true ground lies in the footprint, which frame 0 must hold
+        world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
+        j = judge_site((res.sites[0].x, res.sites[0].y), world[..., :2], pair.truth["hazard"])
+        top, top_unseen = 100.0 * j["safe"], int(j["incomplete"])
     st = res.state[res.covered]
     return {
         "fp": m["fp_pct"],
@@ -156,6 +156,7 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
         "unknown": 100.0 * float(np.mean(st == 2)) if st.size else math.nan,
         "n_sites": len(res.sites),
         "top_safe": top,
+        "top_unseen": top_unseen,  # its footprint leaves frame 0 (not confirmed, so not safe)
         "no_site": res.info.get("no_site_reason", ""),
         "cpu_s": cpu,
         "level": res.level,

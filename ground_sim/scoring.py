@@ -216,35 +216,6 @@ def site_scores(
     return out
 
 
-def chosen_sites_safe(sites_uv: np.ndarray, hazard_true: np.ndarray, radius_px: float) -> dict[str, float]:
-    """How many of the sites a detector picked are truly safe over their whole footprint.
-
-    ``sites_uv`` is an ``(N, 2)`` array of (u, v) pixel positions in i1. A site
-    is truly safe when every finite ground-truth pixel in its footprint has
-    hazard < 1 and the footprint holds at least one finite truth pixel; a site at a non-finite
-    position (e.g. one reported without a height) or off the image is not safe.
-    Returns ``n`` and ``safe_pct`` (NaN when no site was picked).
-    """
-    ht = np.asarray(hazard_true, dtype=np.float64)
-    _same_shape(hazard_true=ht)
-    uv = np.asarray(sites_uv, dtype=np.float64).reshape(-1, 2)
-    if uv.size == 0:
-        return {"n": 0, "safe_pct": float("nan")}
-    k = disk_kernel(radius_px).astype(bool)
-    unsafe_near = _grow(ht >= 1.0, k.astype(np.uint8))
-    known_near = _grow(np.isfinite(ht), k.astype(np.uint8))
-    h, w = ht.shape
-    # a site that cannot be placed in the image (NaN or infinite position, or off the image, where the truth says
-    # nothing: clipped, it was judged by the edge pixel nearest to it) is not a safe site
-    finite = np.all(np.isfinite(uv), axis=1)
-    uf = np.where(finite[:, None], uv, 0.0)
-    inside = (uf[:, 0] >= -0.5) & (uf[:, 0] <= w - 0.5) & (uf[:, 1] >= -0.5) & (uf[:, 1] <= h - 0.5)
-    u = np.clip(np.rint(uf[:, 0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(uf[:, 1]).astype(int), 0, h - 1)
-    safe = finite & inside & known_near[v, u] & ~unsafe_near[v, u]
-    return {"n": int(uv.shape[0]), "safe_pct": 100.0 * float(np.mean(safe))}
-
-
 def epipole_px(camera: Camera, pose1: Pose, pose2: Pose) -> tuple[float, float] | None:
     """Epipole in i1: the image of camera centre 2, ``e ~ K R1 (C2 - C1)`` (H&Z eq. 9.1).
 

@@ -588,6 +588,8 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             print(f"| {r['pair']} | no usable output: {r['error']} |" + " |" * len(cols))
             continue
         top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
+        if r.get("top_site_confirmed") is False:  # scored as not safe: the truth cannot vouch for all of it
+            top = "**not confirmed** (footprint off frame 0)"
         over = " **over**" if r["fp_pct"] > s["fp_limit_pct"] else ""
         cells = [
             f"{f(r['fp_pct'])}{over}",
@@ -601,12 +603,14 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
         ]
         print(f"| {r['pair']} | " + " | ".join(cells) + " |")
     failed = f"; {s['failed']} without a usable output" if s["failed"] else ""
+    n_unconf = s.get("top_sites_unconfirmed", 0)
+    unconfirmed = f"{n_unconf} not confirmed: footprint off frame 0; " if n_unconf else ""
     if s["scored"]:
         print(
             f"{s['scored']} of {s['pairs']} pairs scored: FP worst {f(s['fp_worst_pct'])} % "
             f"({s['pairs_over_fp_limit']} over {s['fp_limit_pct']:g} %), CDI median {f(s['cdi_median_pct'], '.1f')} % "
             f"(lowest {f(s['cdi_lowest_pct'], '.1f')} %), top site truly safe {s['top_sites_truly_safe']}/"
-            f"{s['top_sites']} ({s['no_site']} without a site){failed}"
+            f"{s['top_sites']} ({unconfirmed}{s['no_site']} without a site){failed}"
         )
     else:
         print(f"no pair scored{failed}")

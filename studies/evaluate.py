@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, read_pair
@@ -494,11 +495,9 @@ def evaluate_pair(
 
     true_cov = covered(pair.camera, true2, world.reshape(-1, 3)).reshape(truth_elev.shape)
     m["hazards_in_scene_pct"] = share_pct(pair.truth["hazard"], true_cov & np.isfinite(pair.truth["hazard"]))
-    if res.sites:
-        uv = project_points(pair.camera, true1, np.array([[s.x, s.y, s.z] for s in res.sites]))
-        ch = scoring.chosen_sites_safe(uv, pair.truth["hazard"], radius)
-    else:
-        ch = {"n": 0, "safe_pct": math.nan}
+    # DESIGN.md's site rule (ground_sim.gridscore.judge_site), as `score`, the landings and the HIL judge a site
+    safe_sites = [judge_site((s.x, s.y), world[..., :2], pair.truth["hazard"])["safe"] for s in res.sites]
+    ch = {"n": len(safe_sites), "safe_pct": 100.0 * float(np.mean(safe_sites)) if safe_sites else math.nan}
     m.update(
         error_causes(est, truth, covered=res.covered, rocks=res.rock_mask, shadow=res.shadow_mask, epipole_box=box)
     )

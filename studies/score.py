@@ -13,8 +13,9 @@ and scores them by the design's convention (thesis section 2.8, Tables 6.4 and 6
   left unmapped is scored as not called safe and counted as ``unmapped_pct``. (``evaluate`` scores our
   pipeline over the area it reports covered; the two differ by the overlap's edge band, well under 1 %.)
 * DEM error over the scored pixels where both elevations are finite: mean |error|, median, MAD;
-* a site is truly safe when every truth pixel within the footprint radius (1.5 m at the median ground
-  sample distance) is safe; the first site listed is the top-ranked one.
+* a site is truly safe when every truth pixel whose true ground (X, Y) lies within the footprint radius
+  (1.5 m) of the site is safe (DESIGN.md, :func:`ground_sim.gridscore.judge_site`); a footprint that frame 0
+  does not wholly see is not confirmed, and scored as not safe. The first site listed is the top-ranked one.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNS
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
-# |x|, |y|, |z| of a site (world m): 1000 km is beyond any descent's view; larger overflows the projection
+# |x|, |y|, |z| of a site (world m): 1000 km is beyond any descent's view
 MAX_SITE_COORD_M = 1e6
 
 
@@ -169,11 +170,12 @@ def score_output(
     pair: Any, output: DetectorOutput, where: str = "the pair", figure: str | Path | None = None
 ) -> dict[str, Any]:
     """Pixel, DEM and site scores of ``output`` against ``pair``'s ground truth (see the module doc); ``where``
-    names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not),
-    the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
+    names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
+    black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
+    from ground_sim.gridscore import judge_site
     from ground_sim.library import covered
-    from studies.evaluate import _site_radius_px, backproject_depth, project_points, true_poses
+    from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
     for key in ("hazard", "depth", "elevation"):
         if key not in pair.truth:
@@ -212,26 +214,19 @@ def score_output(
         d = scoring.dem_error_stats(output.elevation, pair.truth["elevation"].astype(np.float32), area)
         m.update({"dem_mean_abs_m": d["mean_abs"], "dem_median_m": d["median"], "dem_mad_m": d["mad"]})
         m["dem_coverage_pct"] = 100.0 * np.count_nonzero(area & np.isfinite(output.elevation)) / n
-    radius = _site_radius_px(pair.camera, depth, area)
     m["sites"] = int(output.sites_xyz.shape[0])
-    with np.errstate(divide="ignore", invalid="ignore"):  # a site in camera 1's plane: _in_front drops it
-        uv = project_points(pair.camera, true1, output.sites_xyz) if m["sites"] else np.zeros((0, 2))
-    seen_site = _in_front(true1, output.sites_xyz)
-    each = [
-        bool(seen_site[i]) and scoring.chosen_sites_safe(uv[i : i + 1], gt_h, radius)["safe_pct"] == 100.0
-        for i in range(len(uv))
-    ]
+    # DESIGN.md's site rule, as the landing Monte Carlo and the HIL judge it: every pixel whose true ground lies
+    # within the footprint radius must be safe, and a footprint frame 0 does not wholly see is not confirmed
+    judged = [judge_site((x, y), world[..., :2], gt_h) for x, y in output.sites_xyz[:, :2]]
+    each = [bool(j["safe"]) for j in judged]
     m["sites_truly_safe"] = int(sum(each))
+    m["sites_unconfirmed"] = sum(_site_colour(j) is None for j in judged)
     m["top_site_truly_safe"] = bool(each[0]) if each else None
+    m["top_site_confirmed"] = _site_colour(judged[0]) is not None if judged else None
     if figure is not None:
-        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, uv, radius, each, m)
+        radius = _site_radius_px(pair.camera, depth, area)
+        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m)
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
-
-
-def _in_front(pose: Any, xyz: np.ndarray) -> np.ndarray:
-    """Per site: in front of the true camera 1. One behind it projects to a mirror image inside the picture, which
-    the truth would judge; a site off the picture is not safe in :func:`ground_sim.scoring.chosen_sites_safe`."""
-    return np.asarray((xyz - pose.position) @ pose.R[2] > 0, bool).reshape(-1)
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
@@ -300,8 +295,17 @@ def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) ->
         "cdi_lowest_pct": min(cdis) if cdis else None,
         "top_sites": len(tops),
         "top_sites_truly_safe": sum(tops),
+        "top_sites_unconfirmed": sum(r.get("top_site_confirmed") is False for r in ok),
         "no_site": sum(r["top_site_truly_safe"] is None for r in ok),
     }
+
+
+def _site_colour(judged: dict[str, Any]) -> bool | None:
+    """True truly safe, False not (an unsafe pixel in its footprint), None not confirmed: frame 0 does not hold
+    the whole footprint and sees no hazard in it (scored as not safe, drawn black)."""
+    if judged["safe"]:
+        return True
+    return None if judged["incomplete"] and judged["n_unsafe"] == 0 else False
 
 
 def _figure(
@@ -311,23 +315,25 @@ def _figure(
     safe: np.ndarray,
     area: np.ndarray,
     gt_h: np.ndarray,
-    uv: np.ndarray,
+    judged: list[dict[str, Any]],
     radius: float,
-    each: list[bool],
     m: dict[str, Any],
 ) -> Path:
     from reports.plots import Panel, Site, confusion_codes, map_figure, save
     from reports.style import HAZARD_CMAP
 
+    # drawn at the pixel whose true ground is nearest the site; black where frame 0 does not hold the footprint
     marks = [
-        Site(float(u), float(v), radius, i + 1, ok) for i, ((u, v), ok) in enumerate(zip(uv, each)) if np.isfinite(u)
+        Site(float(j["uv"][0]), float(j["uv"][1]), radius, i + 1, _site_colour(j))
+        for i, j in enumerate(judged)
+        if j["uv"] is not None
     ]
     panels = [
         Panel("image", image, "frame 0 and the sites", sites=marks),
         Panel("confusion", confusion_codes(called, safe, area), "pixel scores", sites=marks),
         Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
     ]
-    title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site " + (
-        "none" if m["top_site_truly_safe"] is None else "truly safe" if m["top_site_truly_safe"] else "NOT safe"
-    )
+    verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
+    top = verdicts[_site_colour(judged[0])] if judged else "none"
+    title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
     return save(map_figure(panels, title), path)

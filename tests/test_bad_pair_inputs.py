@@ -180,22 +180,26 @@ def test_sites_at_coordinates_that_are_not_finite_numbers(good, tmp_path, capsys
 
 
 def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
-    """A site far off frame 0's image used to be judged by the edge pixel nearest to it."""
+    """A site far off frame 0's image used to be judged by the edge pixel nearest to it; one on the image's edge
+    was judged by the half of its footprint the image holds. DESIGN.md's rule cannot confirm either."""
     pair = read_pair(good[0])
     true1, _ = true_poses(pair)
     world = backproject_depth(pair.camera, true1, pair.truth["depth"].astype(np.float64))
     gt = pair.truth["hazard"]
     rows = [v for v in range(PX) if np.all(gt[max(0, v - 3) : v + 4, PX - 4 :] < 1.0)]
     assert rows, "the scene has no safe stretch of the right edge to place the site against"
-    edge = world[rows[len(rows) // 2], PX - 1]
+    inner, edge = world[rows[len(rows) // 2], PX - 3], world[rows[len(rows) // 2], PX - 1]
     far = edge + 1000.0 * true1.R[0]  # along camera 1's x axis: far right of the image, same row
-    sites = [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for p in (edge, far)]
+    sites = [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for p in (inner, edge, far)]
     out = _copy(good[1], tmp_path / "out")
     (out / "result.json").write_text(json.dumps({"sites": sites}))
     (row,) = _score_rows(good[0], out, capsys)
-    assert row["error"] is None and row["sites"] == 2
-    assert row["top_site_truly_safe"] is True  # the edge site itself is safe: the far one only borrowed that
-    assert row["sites_truly_safe"] == 1
+    assert row["error"] is None and row["sites"] == 3
+    assert row["top_site_truly_safe"] is True and row["top_site_confirmed"] is True  # wholly seen, all safe
+    assert (row["sites_truly_safe"], row["sites_unconfirmed"]) == (1, 2)  # the edge and the far one
+    (out / "result.json").write_text(json.dumps({"sites": sites[1:]}))
+    (row,) = _score_rows(good[0], out, capsys)
+    assert row["top_site_truly_safe"] is False and row["top_site_confirmed"] is False
 
 
 @pytest.mark.parametrize(

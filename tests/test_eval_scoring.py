@@ -123,20 +123,6 @@ def test_site_scores_missed_rock_spoils_every_site_around_it():
     assert scoring.site_scores(est, truth, None, r)["fp"] == 0.0
 
 
-def test_chosen_sites_safe():
-    truth = np.zeros((50, 50), np.float32)
-    truth[10, 10] = 1.0
-    res = scoring.chosen_sites_safe(np.array([[12, 10], [40, 40]]), truth, 3.0)
-    assert res == {"n": 2, "safe_pct": 50.0}
-    assert math.isnan(scoring.chosen_sites_safe(np.zeros((0, 2)), truth, 3.0)["safe_pct"])
-    # a site that cannot be placed is not safe (it used to land on pixel (0, 0) and be judged there)
-    nan_site = scoring.chosen_sites_safe(np.array([[np.nan, np.nan], [40, 40]]), truth, 3.0)
-    assert nan_site == {"n": 2, "safe_pct": 50.0}
-    # nor one off the image, where the truth says nothing (it was judged by the nearest edge pixel)
-    off = scoring.chosen_sites_safe(np.array([[900.0, 40.0], [40.0, -7.0], [49.4, 0.0]]), truth, 3.0)
-    assert off["n"] == 3 and off["safe_pct"] == pytest.approx(100.0 / 3)
-
-
 def test_epipole_nadir_descent_is_principal_point_and_box_is_thesis_80px():
     cam = Camera.thesis()
     p1 = Pose(np.array([0.0, 0, 600]), NADIR)
