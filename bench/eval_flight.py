@@ -310,7 +310,8 @@ def table(rows: list[dict[str, Any]], title: str) -> str:
         f"\nall: {len(rows)} pairs, FP worst {max(r['fp'] for r in rows):.2f} %, median CDI "
         f"{_med([r['cdi'] for r in rows]):.1f} %, DEM valid min {min(r['valid'] for r in rows):.1f} % "
         f"(matched, without gap fills: {min(r['valid'] - r.get('filled', 0.0) for r in rows):.1f} %), top site "
-        f"truly safe {sum(t >= 100 for t in tops)}/{len(tops)}, no site {sum(1 for r in rows if r['n_sites'] == 0)}, "
+        f"truly safe {sum(t >= 100 for t in tops)}/{len(tops)} ({sum(r.get('top_unseen', 0) for r in rows)} "
+        f"not confirmed: footprint off frame 0), no site {sum(1 for r in rows if r['n_sites'] == 0)}, "
         f"CPU median {_med([r['cpu_s'] for r in rows]):.3f} s"
     )
     return "\n".join(out)
