@@ -977,7 +977,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     cfg, kind, spec, budget = checked.cfg, checked.kind, checked.spec, checked.budget
     deadline, hello, manifest = checked.deadline, checked.hello, checked.manifest
     emulated = cfg.flight == "emulated"
-    cal = load_calibration() if emulated else None
+    cal = load_calibration() if emulated and not budget.is_host else None  # full speed needs no host speed
     duty = budget.duty(cal) if emulated else None
     fraction = duty.applied if duty is not None else float("nan")
     effective = duty.effective if duty is not None else float("nan")

@@ -917,7 +917,7 @@ def main(argv: list[str] | None = None) -> int:
         parse_link_fault(args.link_fault)
         if args.flight_cmd:
             flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now
-        cal = load_calibration()
+        cal = None if budget.is_host else load_calibration()  # full speed needs no host speed
         if args.throttle_efficiency is not None and cal is not None:
             cal = cal.rescaled(*parse_efficiency(args.throttle_efficiency))
         duty = budget.duty(cal)

@@ -326,3 +326,15 @@ def test_the_uncalibrated_warning_is_one_line(tmp_path, monkeypatch, capsys):
     said = [line for line in err.splitlines() if "no calibration for this host" in line]
     assert len(said) == 1 and said[0].startswith("warning: no calibration"), err
     assert ".py:" not in err, err
+
+
+def test_a_corrupt_calibration_blocks_only_the_budgets_that_need_it(home, tmp_path):
+    """`run --budget host` (no throttle, no host speed) used to stop on an unreadable calibration file."""
+    from hilkit import run_hil, small_descent
+
+    (home / "calibration.json").write_text("{garbage")
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+    s = run_hil(manifest, tmp_path / "run", "serial")
+    assert s["results"] == 1 and s["errors"] == 0 and s["complete"] is True, s["reason"]
+    with pytest.raises(InputError, match=r"calibration\.json is unreadable"):
+        run_hil(manifest, tmp_path / "run2", "serial", budget="rad750")
