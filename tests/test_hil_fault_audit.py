@@ -109,6 +109,8 @@ while not link.closed_by_peer:
             tel = telemetry(pair)
             if args.mode == "bad_telemetry" and answered == 1:
                 tel["peak_rss_bytes"] = -1  # out of range: refused by the schema
+            if args.mode == "queue_lie":  # its own link's figure, which is not the ground link's
+                tel["link"] = {{"result_queue_s": 500.0, "own_figure": 1.0}}
             if not (faulty and args.mode == "no_telemetry"):
                 link.send(mf.TELEMETRY, tel)
             if args.mode == "bad_telemetry" and answered == 1:  # and a message of another type, refused
@@ -545,3 +547,14 @@ def test_over_zeromq_a_result_that_fails_the_schema_ends_its_pair_at_once(manife
     assert bad["elapsed_s"] < PROMPT_S, bad
     assert bad["text"].startswith("the flight computer's Result was refused: Result.psafe_grid: shape (4, 6) != ")
     assert s["ground_counters"]["refused_messages"] == 1 and s["link_errors"] == 0 and code == 1
+
+
+def test_the_result_queue_figure_is_the_ground_links_not_the_flight_programs(manifest, flight, tmp_path):
+    """A flight program's Telemetry may carry its own link's ``result_queue_s``: the supervisor measures the wait
+    on the link to the ground itself, and passes the program's other link figures on."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "queue_lie"))
+    assert code == 0 and s["results"] == 3
+    queued = [r.get("result_queue_s") for r in s["records"]]
+    assert all(q is not None and 0.0 <= q < 5.0 for q in queued), queued
+    lines = [json.loads(x) for x in (tmp_path / "received" / "results.jsonl").read_text().splitlines()]
+    assert all(rec["link"]["own_figure"] == 1.0 and rec["link"]["result_queue_s"] < 5.0 for rec in lines), lines
