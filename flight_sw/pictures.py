@@ -90,10 +90,11 @@ def dem_figure(
     sigma: np.ndarray | None = None,
     filled: np.ndarray | None = None,
     fill_fraction: float | None = None,
+    m_per_px: float | None = None,
 ) -> Any:
     """The DEM picture of ``process``: computed elevation (its gap fills ``filled`` darkened and hatched, their
     share ``fill_fraction`` in its title), the elevation's ``sigma``, and with ``truth`` the true elevation
-    and the error. Returns the matplotlib figure (:func:`reports.plots.save`)."""
+    and the error; a scale bar of ``m_per_px``. Returns the matplotlib figure (:func:`reports.plots.save`)."""
     from reports.plots import Panel, dem_panels, map_figure
 
     dem = dem_panels(elevation, truth)
@@ -101,7 +102,7 @@ def dem_figure(
         dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
     if sigma is not None:
         dem.insert(1, Panel("scalar", sigma, "elevation uncertainty sigma", "m", "viridis"))
-    fig = map_figure(dem, "Elevation (DEM)")
+    fig = map_figure(dem, "Elevation (DEM)", m_per_px=m_per_px)
     if filled is not None:  # fig.axes[0] is the computed elevation: the panels' axes come before their colour bars
         mark_fills(fig.axes[0], np.asarray(filled, bool) & np.isfinite(elevation))
     return fig
@@ -121,7 +122,7 @@ def write_process_report(
     Sites are marked safe/unsafe against the true hazard map when there is one.
     """
     from reports.html import Column, Figure, Headline, Section, Table, write_page
-    from reports.plots import Panel, Site, confusion_codes, map_figure, save
+    from reports.plots import Panel, Site, confusion_codes, ground_step_m, map_figure, save
     from reports.style import HAZARD_CMAP, PSAFE_CMAP
 
     gt_z, gt_h = truth.get("elevation"), truth.get("hazard")
@@ -135,7 +136,8 @@ def write_process_report(
     written: list[Path] = []
     figures: list[Figure] = []
 
-    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, res.info.get("dem_filled_fraction"))
+    gsd = ground_step_m(res.world_xy)
+    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, res.info.get("dem_filled_fraction"), gsd)
     written.append(save(fig, out / "dem.png"))
     figures.append(
         Figure(
@@ -161,7 +163,7 @@ def write_process_report(
             unknown=np.asarray(res.state) == 2,  # written as 1.0 in hazard.npy; drawn grey, not as a hazard
         ),
     ]
-    written.append(save(map_figure(hz, "Hazards and landing sites"), out / "hazard.png"))
+    written.append(save(map_figure(hz, "Hazards and landing sites", m_per_px=gsd), out / "hazard.png"))
     figures.append(
         Figure(
             "hazard.png",
@@ -182,7 +184,7 @@ def write_process_report(
             Panel("confusion", codes, "pixel scores", sites=marks),
             Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
         ]
-        written.append(save(map_figure(conf, "Against ground truth"), out / "confusion.png"))
+        written.append(save(map_figure(conf, "Against ground truth", m_per_px=gsd), out / "confusion.png"))
         figures.append(Figure("confusion.png", "Pixel scores against the true hazard map (positive = safe)."))
         c = doc.get("vs_truth", {}).get("confusion", {})
         d = doc.get("vs_truth", {}).get("dem_error", {})

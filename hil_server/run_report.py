@@ -112,6 +112,18 @@ def _site_marks(r: dict, pair: Any) -> list[Site]:
     return out
 
 
+def _ground_step(pair: Any) -> float | None:
+    """i1's median ground step between neighbouring pixels (a scale bar's metres per pixel), from the truth
+    depth and the true pose; None without a truth depth."""
+    from ground_sim.gridscore import pixel_ground_xy, true_pose_upper
+    from reports.plots import ground_step_m
+
+    depth = pair.truth.get("depth")
+    if depth is None:
+        return None
+    return ground_step_m(np.stack(pixel_ground_xy(pair.camera, true_pose_upper(pair), depth), axis=-1))
+
+
 def _telemetry_records(records: list[dict]) -> list[dict]:
     """Records with the key names the telemetry figures read (line times under either name)."""
     out = []
@@ -149,7 +161,8 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
         panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), "pixel scores"))
     else:
         panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", "magma_r", 0.0, 1.0))
-    save(map_figure(panels, f"{r.get('label')}: hazards"), fig_dir / f"{pid}_hazard.png")
+    gsd = _ground_step(pair)
+    save(map_figure(panels, f"{r.get('label')}: hazards", m_per_px=gsd), fig_dir / f"{pid}_hazard.png")
     sites = (
         " Circles: the landing sites it offered, numbered by rank; green when the truth says the whole 3 m footprint "
         "is clear, red when it is not, black when this image does not hold the whole footprint."
@@ -161,7 +174,7 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     )
     if (out / "elevation.npy").is_file():
         dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))
-        save(map_figure(dem, f"{r.get('label')}: elevation"), fig_dir / f"{pid}_dem.png")
+        save(map_figure(dem, f"{r.get('label')}: elevation", m_per_px=gsd), fig_dir / f"{pid}_dem.png")
         figs.append(Figure(f"figures/{pid}_dem.png", f"{r.get('label')}: the returned DEM and its error."))
     return figs
 

@@ -218,9 +218,64 @@ def mapped_box(panels: Sequence[Panel]) -> tuple[int, int, int, int] | None:
     return r0, r1, c0, c1
 
 
-def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4, zoom: bool = True) -> Any:
+def ground_step_m(world_xy: np.ndarray) -> float | None:
+    """Median ground distance between horizontally neighbouring pixels, ``|(X, Y)[v, u+1] - (X, Y)[v, u]|``, of
+    an (H, W, 2) map of each pixel's ground X, Y; None when no two neighbours have one. It is what a horizontal
+    scale bar measures (on an oblique view it varies over the image, so the median stands for it)."""
+    xy = np.asarray(world_xy, np.float64)
+    if xy.ndim != 3 or xy.shape[2] < 2 or xy.shape[1] < 2:
+        return None
+    step = np.hypot(*(xy[:, 1:, :2] - xy[:, :-1, :2]).transpose(2, 0, 1))
+    step = step[np.isfinite(step) & (step > 0)]
+    return float(np.median(step)) if step.size else None
+
+
+def scale_bar_m(visible_m: float) -> float:
+    """A round length (1, 2 or 5 x 10^k m) no longer than a fifth of ``visible_m``, the panel's width in metres."""
+    target = visible_m / 5.0
+    if not (np.isfinite(target) and target > 0):
+        raise ValueError(f"a scale bar needs a positive width in metres, got {visible_m!r}")
+    unit = 10.0 ** np.floor(np.log10(target))
+    return float(next(m * unit for m in (5.0, 2.0, 1.0) if m * unit <= target * (1 + 1e-9)))
+
+
+def _scale_bar(ax: Any, m_per_px: float) -> None:
+    """A bar of :func:`scale_bar_m` metres in the panel's lower left, on a dark backing that reads on any map."""
+    from matplotlib.font_manager import FontProperties
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    x0, x1 = ax.get_xlim()
+    width_px = abs(x1 - x0)
+    length = scale_bar_m(width_px * m_per_px)
+    label = f"{length:g} m"
+    bar = AnchoredSizeBar(
+        ax.transData,
+        length / m_per_px,
+        label,
+        "lower left",
+        pad=0.25,
+        borderpad=0.4,
+        sep=2,
+        color="white",
+        frameon=True,
+        size_vertical=0.012 * width_px,
+        fontproperties=FontProperties(size=7),
+    )
+    bar.patch.set(facecolor="black", alpha=0.55, edgecolor="none")
+    ax.add_artist(bar)
+
+
+def map_figure(
+    panels: Sequence[Panel],
+    title: str = "",
+    panel_in: float = 3.4,
+    zoom: bool = True,
+    m_per_px: float | None = None,
+) -> Any:
     """A row of map panels; returns the matplotlib figure (see :func:`save`). With ``zoom`` every panel shows the
-    box the maps cover (:func:`mapped_box`) when they cover little of the frame, and the title says so."""
+    box the maps cover (:func:`mapped_box`) when they cover little of the frame, and the title says so. With
+    ``m_per_px`` (the ground sample distance of the maps' frame; its median for an oblique view) each panel of
+    that frame gets a scale bar."""
     plt = _plt()
     n = len(panels)
     box = mapped_box(panels) if zoom else None
@@ -256,6 +311,8 @@ def map_figure(panels: Sequence[Panel], title: str = "", panel_in: float = 3.4, 
             ax.set_xlim(box[2] - 0.5, box[3] + 0.5)
             ax.set_ylim(box[1] + 0.5, box[0] - 0.5)  # rows down, as the image
         _draw_sites(ax, p.sites)
+        if m_per_px is not None and np.isfinite(m_per_px) and m_per_px > 0 and np.shape(p.data)[:2] == shape:
+            _scale_bar(ax, float(m_per_px))
     if box is not None:
         title = (
             title + " " if title else ""

@@ -493,13 +493,13 @@ def register_score(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "score",
         help="score any detector's output directories against ground truth (FP, CDI, DEM error, sites)",
-        description="Score the output files of any detector (docs/design.md: hazard.npy, and optionally "
-        "elevation.npy, state.npy and result.json's sites) against a pair's ground truth, by the design's "
-        "convention: per pixel FP (undetected hazards), TP/TN/FN, CDI; DEM error; whether each site, and the "
-        "top-ranked one, is truly safe over its 1.5 m footprint. PAIRS is a pair directory and OUTPUTS its output "
-        "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory "
-        "per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit, "
-        "1 when one was over it or had no usable output, 2 on bad usage.",
+        description="Score the output files of any detector (docs/design.md: hazard.npy, and optionally elevation.npy, "
+        "state.npy and result.json's sites) against a pair's ground truth, by the design's convention: per pixel "
+        "FP (undetected hazards), TP/TN/FN, CDI; DEM error; whether each site, and the top-ranked one, is truly "
+        "safe over its whole 3 m footprint (DESIGN.md). PAIRS is a pair directory and OUTPUTS its output "
+        "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory"
+        " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
+        " 1 when one was over it or had no usable output, 2 on bad usage.",
     )
     p.add_argument("pairs", type=Path, help="a pair directory with ground truth, or a descent with manifest.json")
     p.add_argument("outputs", type=Path, help="the detector's output directory (or one per pair, by pair name)")

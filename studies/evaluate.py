@@ -30,6 +30,7 @@ from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, read_pair
+from reports.plots import ground_step_m
 
 SCENARIOS = ("vertical", "approach")
 PRESETS = ("fast", "thesis", "fast_unrefined")  # fast_unrefined: fast without pose refinement
@@ -518,6 +519,7 @@ def evaluate_pair(
         np.savez_compressed(
             maps_path,
             image=pair.images[0],
+            m_per_px=np.float64(ground_step_m(world[..., :2]) or np.nan),  # the pictures' scale bar
             est_elevation=res.elevation,
             true_elevation=truth_elev,
             est_hazard=res.hazard,

@@ -55,7 +55,8 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
         sl = (slice(rows_.min(), rows_.max() + 1), slice(cols_.min(), cols_.max() + 1))
     else:
         sl = (slice(None), slice(None))
-    m = {k: z[k][sl] for k in z.files}
+    gsd = float(z["m_per_px"]) if "m_per_px" in z.files else None  # maps saved before stop 54 have none
+    m = {k: z[k][sl] for k in z.files if z[k].ndim == 2}
     cov = m["covered"]
 
     def masked(a: np.ndarray) -> np.ndarray:
@@ -67,7 +68,10 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     files = [
         save(
             map_figure(
-                dem_panels(masked(m["est_elevation"]), masked(m["true_elevation"])), f"{name}: elevation", PANEL_IN
+                dem_panels(masked(m["est_elevation"]), masked(m["true_elevation"])),
+                f"{name}: elevation",
+                PANEL_IN,
+                m_per_px=gsd,
             ),
             out / f"{stem}_dem.png",
         )
@@ -80,13 +84,13 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
         Panel("confusion", confusion_codes(called_safe, truly_safe, scored), "pixel scores"),
         Panel("scalar", masked(m["true_hazard"]), "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
     ]
-    files.append(save(map_figure(hz, f"{name}: hazards", PANEL_IN), out / f"{stem}_hazard.png"))
+    files.append(save(map_figure(hz, f"{name}: hazards", PANEL_IN, m_per_px=gsd), out / f"{stem}_hazard.png"))
     if np.isfinite(m["true_slope"]).any():
         for key, what, unit, limit in (("slope", "slope", "deg", 15.0), ("rough", "roughness", "m", 0.3)):
             panels = dem_panels(masked(m[f"est_{key}"]), masked(m[f"true_{key}"]), what, unit)
             for p in panels[:2]:  # estimate and truth on 0..2x the hazard threshold
                 p.cmap, p.vmin, p.vmax = HAZARD_CMAP, 0.0, 2.0 * limit
-            files.append(save(map_figure(panels, f"{name}: {what}", PANEL_IN), out / f"{stem}_{key}.png"))
+            files.append(save(map_figure(panels, f"{name}: {what}", PANEL_IN, m_per_px=gsd), out / f"{stem}_{key}.png"))
     return files
 
 

@@ -175,6 +175,7 @@ def score_output(
     from ground_sim import scoring
     from ground_sim.gridscore import judge_site
     from ground_sim.library import covered
+    from reports.plots import ground_step_m
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
     for key in ("hazard", "depth", "elevation"):
@@ -225,7 +226,8 @@ def score_output(
     m["top_site_confirmed"] = _site_colour(judged[0]) is not None if judged else None
     if figure is not None:
         radius = _site_radius_px(pair.camera, depth, area)
-        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m)
+        gsd = ground_step_m(world[..., :2])
+        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m, gsd)
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
@@ -318,6 +320,7 @@ def _figure(
     judged: list[dict[str, Any]],
     radius: float,
     m: dict[str, Any],
+    m_per_px: float | None = None,
 ) -> Path:
     from reports.plots import Panel, Site, confusion_codes, map_figure, save
     from reports.style import HAZARD_CMAP
@@ -336,4 +339,4 @@ def _figure(
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
     top = verdicts[_site_colour(judged[0])] if judged else "none"
     title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
-    return save(map_figure(panels, title), path)
+    return save(map_figure(panels, title, m_per_px=m_per_px), path)

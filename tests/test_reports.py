@@ -199,3 +199,25 @@ def test_a_page_links_the_data_files_beside_it_that_exist(tmp_path):
     assert links == [("summary.json", "the figures")]
     page = render_page("t", [Section("Files", links=links)])
     assert '<li><a href="summary.json">summary.json</a>: the figures</li>' in page and "gone.csv" not in page
+
+
+def test_scale_bar_is_a_round_length_of_the_panels_ground():
+    """A scale bar of 1, 2 or 5 x 10^k m, at most a fifth of the panel's width in metres."""
+    assert [plots.scale_bar_m(w) for w in (3.0, 10.0, 100.0, 160.5, 999.0, 0.7)] == [0.5, 2, 20, 20, 100, 0.1]
+    with pytest.raises(ValueError):
+        plots.scale_bar_m(float("nan"))
+    # a ground 0.5 m per pixel along u (and 0.8 along v, which a horizontal bar does not measure), one hole
+    v, u = np.mgrid[0:40, 0:60].astype(np.float64)
+    xy = np.stack([0.5 * u, 0.8 * v], axis=-1)
+    xy[3, 3] = np.nan
+    assert plots.ground_step_m(xy) == pytest.approx(0.5)
+    assert plots.ground_step_m(np.full((4, 4, 2), np.nan)) is None
+    state = np.zeros((60, 60), np.uint8)
+    fig = plots.map_figure([plots.Panel("image", state, "i1"), plots.Panel("state", state, "s")], m_per_px=0.5)
+    # 60 px x 0.5 m = 30 m wide: a 5 m bar, 10 px long, on both panels of the maps' frame
+    bars = [a for ax in fig.axes for a in ax.artists if type(a).__name__ == "AnchoredSizeBar"]
+    assert len(bars) == 2
+    texts = {t.get_text() for b in bars for t in b.findobj(lambda o: hasattr(o, "get_text"))}
+    assert texts == {"5 m"}, texts
+    assert [b.size_bar.get_children()[0].get_width() for b in bars] == [10.0, 10.0]  # 5 m at 0.5 m per px
+    assert not [a for ax in plots.map_figure([plots.Panel("state", state, "s")]).axes for a in ax.artists]
