@@ -6,6 +6,8 @@ with a message naming the argument, so callers never see a bare numpy traceback.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from protocol.errors import InputError
@@ -131,16 +133,51 @@ def peak_memory_bytes(width: int, height: int, n_frames: int) -> int:
     return PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
 
 
-def check_memory(width: int, height: int, n_frames: int, available_bytes: int | None = None) -> None:
-    """Refuse, before anything is read, work whose :func:`peak_memory_bytes` exceeds the memory available
-    (``psutil.virtual_memory().available`` unless given): the operating system would kill it part-way."""
-    need = peak_memory_bytes(width, height, n_frames)
-    if available_bytes is None:
-        import psutil
+def memory_room() -> tuple[int, str]:
+    """The bytes this process can still spend, and what bounds them: the least of the host's free memory
+    (``psutil.virtual_memory().available``), the address space left under ``RLIMIT_AS`` (``ulimit -v``,
+    ``prlimit --as``: its current mappings already count) and the room left under its cgroup v2
+    ``memory.max`` (a container's limit)."""
+    import resource
 
-        available_bytes = int(psutil.virtual_memory().available)
+    import psutil
+
+    room = (int(psutil.virtual_memory().available), "of memory is available")
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        left = max(0, int(soft) - int(psutil.Process().memory_info().vms))
+        if left < room[0]:
+            room = (left, "of address space is left under this process's limit (ulimit -v)")
+    group = _cgroup_room()
+    if group is not None and group < room[0]:
+        room = (group, "is left under this process's cgroup memory limit (memory.max)")
+    return room
+
+
+def _cgroup_room() -> int | None:
+    """``memory.max - memory.current`` of this process's cgroup v2, None where there is no such limit."""
+    try:
+        lines = Path("/proc/self/cgroup").read_text().splitlines()
+        rel = next(line[3:] for line in lines if line.startswith("0::"))
+        base = Path("/sys/fs/cgroup") / rel.lstrip("/")
+        limit = (base / "memory.max").read_text().strip()
+        if limit == "max":
+            return None
+        return max(0, int(limit) - int((base / "memory.current").read_text()))
+    except (OSError, StopIteration, ValueError):
+        return None
+
+
+def check_memory(width: int, height: int, n_frames: int, available_bytes: int | None = None) -> None:
+    """Refuse, before anything is read, work whose :func:`peak_memory_bytes` exceeds the memory this process can
+    spend (:func:`memory_room` unless given): the operating system, or the allocator under a limit, would end it
+    part-way."""
+    need = peak_memory_bytes(width, height, n_frames)
+    what = "of memory is available"
+    if available_bytes is None:
+        available_bytes, what = memory_room()
     if need > available_bytes:
         raise FlightInputError(
             f"{width}x{height} px x {n_frames} frames needs ~{need / 2**20:.0f} MiB to process, but only "
-            f"{available_bytes / 2**20:.0f} MiB of memory is available (use a smaller camera or fewer frames)"
+            f"{available_bytes / 2**20:.0f} MiB {what} (use a smaller camera or fewer frames)"
         )

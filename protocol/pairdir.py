@@ -563,10 +563,10 @@ def _load_json(path: Path) -> Any:
         raise PairFormatError(f"{path}: {size} bytes is more than a pair.json can be ({MAX_PAIR_JSON_BYTES} bytes)")
     try:
         return json.loads(path.read_bytes())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise PairFormatError(f"{path}: not valid JSON ({exc})") from None
     except RecursionError:
         raise PairFormatError(f"{path}: JSON nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, an integer of more than 4300 digits
+        raise PairFormatError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
 
 
 def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:

@@ -122,6 +122,15 @@ def test_deeply_nested_pair_json_is_refused_by_the_reader(good, tmp_path):
         read_pair(bad)
 
 
+def test_an_integer_of_more_digits_than_python_reads_in_pair_json(good, tmp_path, capsys):
+    """A 4301-digit width ended process and score with a traceback; manifest.json and result.json refused it."""
+    bad = _copy(good[0], tmp_path / "bad")
+    doc = json.loads((bad / "pair.json").read_text())
+    text = json.dumps(doc).replace(f'"width": {doc["camera"]["width"]}', '"width": ' + "1" * 4301, 1)
+    (bad / "pair.json").write_text(text)
+    assert_both_refuse(bad, good[1], tmp_path, capsys, "pair.json: not valid JSON", "4300 digits")
+
+
 def test_deeply_nested_pair_json_at_process(good, tmp_path, capsys):
     bad = _copy(good[0], tmp_path / "bad")
     text = (bad / "pair.json").read_text().rstrip().removesuffix("}") + f', "meta": {DEEP}}}'

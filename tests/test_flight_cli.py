@@ -106,6 +106,24 @@ def test_process_refuses_a_camera_too_large_for_this_machine_before_reading_it(t
     assert "8192x8192 px x 2 frames" in capsys.readouterr().err
 
 
+def test_the_memory_room_counts_an_address_space_limit():
+    """Under `ulimit -v` (`prlimit --as`) a 4096 px pair was started with 23 GiB free, and numpy ran out of address
+    space 14 s later with a traceback. The room is now the least of free memory and what the limit leaves."""
+    import subprocess
+    import sys
+
+    code = (
+        "import resource, psutil\n"
+        "from flight_sw.validate import memory_room\n"
+        "vms = psutil.Process().memory_info().vms\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (vms + 64 * 2**20, resource.RLIM_INFINITY))\n"
+        "room, what = memory_room()\n"
+        "print(room <= 64 * 2**20, what)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True).stdout
+    assert out.strip() == "True of address space is left under this process's limit (ulimit -v)", out
+
+
 def test_process_warns_when_the_images_cannot_check_the_navigation_poses(tmp_path, capsys):
     """Frames swapped (or mislabelled): the DEM was 46 m off and the run said "full" like any other; the reason sat
     in result.json only. A clean pair says nothing."""
