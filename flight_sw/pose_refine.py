@@ -377,14 +377,24 @@ def _detector(name: str, n: int) -> Any:
     )
 
 
+def _strongest(found: tuple[Any, np.ndarray | None], n: int) -> tuple[Any, np.ndarray | None]:
+    """The ``n`` keypoints of highest response. ORB keeps more than ``nfeatures`` when responses tie (a regular
+    dot grid gave 8192^2 / 35 of them), and a matcher refuses more than 2^18 rows with an assertion."""
+    keys, desc = found
+    if desc is None or len(keys) <= n:
+        return keys, desc
+    keep = np.argsort([-k.response for k in keys], kind="stable")[:n]
+    return [keys[i] for i in keep], desc[keep]
+
+
 def descriptor_matches(
     a: np.ndarray, b: np.ndarray, mask: np.ndarray, detector: str, n: int, ratio: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Detector matches ``a -> b`` inside ``mask``: Lowe's ratio test and a mutual (cross) check. Nx2 each."""
     det = _detector(detector, n)
     m8 = mask.astype(np.uint8) * 255
-    ka, da = det.detectAndCompute(a, m8)
-    kb, db = det.detectAndCompute(b, m8)
+    ka, da = _strongest(det.detectAndCompute(a, m8), n)
+    kb, db = _strongest(det.detectAndCompute(b, m8), n)
     if da is None or db is None or len(ka) < 2 or len(kb) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
     norm = cv2.NORM_L2 if detector == "sift" else cv2.NORM_HAMMING
