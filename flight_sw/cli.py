@@ -205,7 +205,16 @@ def _process(args: argparse.Namespace) -> int:
         masks = confusion(res.hazard, gt_h, res.covered)
         counts = {k: int(v.sum()) for k, v in masks.items()}
         n = sum(counts.values())
-        truth["confusion"] = {**counts, **({k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {})}
+        # TP_pct ... FN_pct: shares of the scored pixels (thesis Tables 6.4/6.11; CDI = TP_pct + TN_pct). DESIGN.md's
+        # TN% and TP% are rates, TN/(TN+FP) and TP/(TP+FN): TN_rate_pct (hazards detected), TP_rate_pct
+        shares = {k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {}
+        rates = {
+            k: 100.0 * counts[a] / (counts[a] + counts[b])
+            for k, a, b in (("TN_rate_pct", "TN", "FP"), ("TP_rate_pct", "TP", "FN"))
+            if counts[a] + counts[b]
+        }
+        cdi = {"CDI_pct": shares["TP_pct"] + shares["TN_pct"]} if shares else {}
+        truth["confusion"] = {**counts, **shares, **cdi, **rates}
     if truth:
         doc["vs_truth"] = truth
     write_atomic(out / "result.json", json_text(doc))
@@ -220,7 +229,7 @@ def _process(args: argparse.Namespace) -> int:
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
     c = truth.get("confusion", {})
     if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
-        line += f", FP {c['FP_pct']:.2f} %, CDI {c['TP_pct'] + c['TN_pct']:.1f} % of the map's covered pixels"
+        line += f", FP {c['FP_pct']:.2f} %, CDI {c['CDI_pct']:.1f} % of the map's covered pixels"
     print(f"{out}: {line}")
     if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
         skipped = list(res.info.get("skipped", ()))

@@ -194,7 +194,7 @@ def write_process_report(
                 "fn_pct": c.get("FN_pct"),
                 "tp_pct": c.get("TP_pct"),
                 "tn_pct": c.get("TN_pct"),
-                "cdi_pct": (c.get("TP_pct", np.nan) + c.get("TN_pct", np.nan)) if c else None,
+                "cdi_pct": c.get("CDI_pct"),
                 "dem_mean_abs_m": d.get("mean_abs_m"),
                 "dem_median_m": d.get("median_m"),
                 "dem_mad_m": d.get("mad_m"),

@@ -110,6 +110,11 @@ def test_our_process_output_scores_as_process_saw_it(descent, tmp_path, capsys):
     # process scores over the area it covered, score over the truth's overlap: they agree to the edge band
     assert r["fp_pct"] == pytest.approx(conf["FP_pct"], abs=0.3)
     assert r["cdi_pct"] == pytest.approx(conf["TP_pct"] + conf["TN_pct"], abs=2.0)
+    assert conf["CDI_pct"] == pytest.approx(conf["TP_pct"] + conf["TN_pct"])
+    # DESIGN.md's TN% and TP% are rates: hazards detected and safe ground recognised, under their own names
+    assert conf["TN_rate_pct"] == pytest.approx(100.0 * conf["TN"] / (conf["TN"] + conf["FP"]))
+    assert r["hazards_detected_pct"] == pytest.approx(conf["TN_rate_pct"], abs=2.0)
+    assert r["safe_recognised_pct"] == pytest.approx(conf["TP_rate_pct"], abs=2.0)
     assert r["state_safe_pct"] == pytest.approx(r["tp_pct"] + r["fp_pct"])  # state.npy agrees with hazard.npy
     assert code == (0 if r["fp_pct"] <= 1.0 else 1)
 
