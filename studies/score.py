@@ -66,6 +66,22 @@ def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return np.array(a)
 
 
+def _check_state(path: Path, state: np.ndarray, hazard: np.ndarray) -> None:
+    """``state.npy`` must agree with ``hazard.npy`` pixel by pixel (DESIGN.md): 255 exactly where the hazard is
+    NaN, 0 (safe) exactly where it is < 1, 1 or 2 (unsafe, unknown) where it is >= 1. The first disagreement is
+    named with its direction and count."""
+    outside, nan = state == STATE_OUTSIDE, np.isnan(hazard)
+    safe, called = state == STATE_SAFE, ~nan & (np.nan_to_num(hazard, nan=1.0) < 1.0)
+    for n, what in (
+        (np.count_nonzero(outside & ~nan), "255 (outside) where hazard.npy has a value"),
+        (np.count_nonzero(~outside & nan), "a code other than 255 (outside) where hazard.npy is NaN"),
+        (np.count_nonzero(safe & ~called & ~nan), "0 (safe) where hazard.npy is >= 1"),
+        (np.count_nonzero(~safe & ~outside & called), "1 or 2 (not safe) where hazard.npy is < 1 (called safe)"),
+    ):
+        if n:
+            raise ScoreError(f"{path}: says {what} on {n} pixels; the two files must agree")
+
+
 @dataclass(frozen=True)
 class Job:
     """One pair to score: its directory, the detector's output directory, and where the sites come from."""
@@ -86,31 +102,28 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
     if not (out / "hazard.npy").is_file():
         hil = " (an HIL run saves the image maps only with `run --full-maps`)" if sites is not None else ""
         raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area){hil}")
+    # DESIGN.md's dtypes exactly: other tools read these files as it says they are
     hazard = _load(out / "hazard.npy", shape)
-    if hazard.dtype.kind not in "fiu":
-        raise ScoreError(f"{out / 'hazard.npy'}: must hold numbers, got dtype {hazard.dtype}")
-    hazard = hazard.astype(np.float32)
-    if np.isinf(hazard).any() or (np.nan_to_num(hazard, nan=0.0) < 0).any():
-        raise ScoreError(f"{out / 'hazard.npy'}: values must be >= 0 or NaN (no infinities, no negatives)")
+    if hazard.dtype != np.float32:
+        raise ScoreError(f"{out / 'hazard.npy'}: must be float32 (DESIGN.md), got dtype {hazard.dtype}")
+    if np.isinf(hazard).any() or (np.nan_to_num(hazard, nan=0.0) < 0).any() or (hazard > 1.0).any():
+        raise ScoreError(
+            f"{out / 'hazard.npy'}: values must lie in [0, 1] or be NaN outside the covered area "
+            "(an unknown pixel is written as 1.0)"
+        )
     elevation = None
     if (out / "elevation.npy").is_file():
         elevation = _load(out / "elevation.npy", shape)
-        if elevation.dtype.kind != "f":
-            raise ScoreError(f"{out / 'elevation.npy'}: must be float (NaN where not recovered), got {elevation.dtype}")
-        elevation = elevation.astype(np.float32)
+        if elevation.dtype != np.float32:
+            raise ScoreError(
+                f"{out / 'elevation.npy'}: must be float32 (NaN where not recovered), got dtype {elevation.dtype}"
+            )
     state = None
     if (out / "state.npy").is_file():
         state = _load(out / "state.npy", shape)
-        bad = ~np.isin(state, STATE_CODES)
-        if state.dtype.kind not in "iu" or bad.any():
+        if state.dtype != np.uint8 or not np.isin(state, STATE_CODES).all():
             raise ScoreError(f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside")
-        called = np.isfinite(hazard) & (hazard < 1.0)
-        mixed = int(np.count_nonzero((state == STATE_SAFE) != called))
-        if mixed:
-            raise ScoreError(
-                f"{out / 'state.npy'}: says safe on {mixed} pixels where hazard.npy does not call safe (hazard < 1), "
-                "or the reverse; the two must agree"
-            )
+        _check_state(out / "state.npy", state, hazard)
     xyz = np.zeros((0, 3))
     if sites is not None:
         xyz = _site_xyz(sites, out / "results.jsonl")
@@ -147,6 +160,9 @@ def _site_point(site: Any, i: int, path: Path) -> list[float]:
     out = []
     for k in "xyz":
         v = site[k]
+        if k == "z" and (v is None or (isinstance(v, float) and math.isnan(v))):
+            out.append(math.nan)  # a degraded Result's site may have no height: judged by its x, y alone
+            continue
         if not _coord_ok(v):
             got = "a list or object" if isinstance(v, (list, dict)) else repr(v)[:40]
             raise ScoreError(

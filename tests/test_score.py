@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -148,12 +149,21 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
             lambda o, s: np.save(o / "hazard.npy", np.zeros((s[0] + 1, s[1]), np.float32)),
             "hazard.npy: must be 128x128 (frame 0's pixels), got (129, 128)",
         ),
-        (lambda o, s: np.save(o / "hazard.npy", np.full(s, -1.0, np.float32)), "values must be >= 0"),
+        (lambda o, s: np.save(o / "hazard.npy", np.full(s, -1.0, np.float32)), "values must lie in [0, 1] or be NaN"),
+        (lambda o, s: np.save(o / "hazard.npy", np.full(s, 2.0, np.float32)), "values must lie in [0, 1] or be NaN"),
+        (
+            lambda o, s: np.save(o / "hazard.npy", np.ones(s)),
+            "hazard.npy: must be float32 (DESIGN.md), got dtype float64",
+        ),
+        (lambda o, s: np.save(o / "hazard.npy", np.ones(s, np.int64)), "must be float32 (DESIGN.md), got dtype int64"),
         (lambda o, s: (o / "hazard.npy").write_bytes(b"not npy"), "not a readable .npy"),
         (lambda o, s: (o / "hazard.npy").write_bytes(b""), "not a readable .npy file (No data left in file)"),
-        (lambda o, s: np.save(o / "elevation.npy", np.zeros(s, np.int32)), "elevation.npy: must be float"),
+        (lambda o, s: np.save(o / "elevation.npy", np.zeros(s, np.int32)), "elevation.npy: must be float32"),
         (lambda o, s: np.save(o / "state.npy", np.full(s, 7, np.uint8)), "state.npy: must be uint8 codes"),
-        (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "the two must agree"),
+        (lambda o, s: np.save(o / "state.npy", np.ones(s, np.int64)), "state.npy: must be uint8 codes"),
+        # hazard.npy is 1.0 everywhere (not called safe): each disagreement is named with its direction
+        (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "says 0 (safe) where hazard.npy is >= 1 on"),
+        (lambda o, s: np.save(o / "state.npy", np.full(s, 255, np.uint8)), "says 255 (outside) where hazard.npy has"),
         (lambda o, s: (o / "result.json").write_text('{"sites": [{"x": 1}]}'), 'site 0 needs numeric "x", "y"'),
     ],
 )
@@ -224,3 +234,29 @@ def test_outputs_that_are_not_a_directory_are_a_usage_error(descent, tmp_path, c
         assert main(["score", str(descent), str(outs)]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and says in err and str(outs) in err, err
+
+
+def test_state_and_hazard_disagreements_are_named_by_direction():
+    """A state 1 on a pixel hazard.npy calls safe was reported as "says safe ... or the reverse"."""
+    from studies.score import ScoreError, _check_state
+
+    hazard = np.array([[0.2, 1.0, np.nan]], np.float32)
+    _check_state(Path("s.npy"), np.array([[0, 2, 255]], np.uint8), hazard)  # agrees: nothing raised
+    for state, what in (
+        ([[1, 2, 255]], "1 or 2 (not safe) where hazard.npy is < 1 (called safe) on 1 pixels"),
+        ([[0, 1, 0]], "a code other than 255 (outside) where hazard.npy is NaN on 1 pixels"),
+        ([[0, 255, 255]], "255 (outside) where hazard.npy has a value on 1 pixels"),
+    ):
+        with pytest.raises(ScoreError, match=re.escape(what)):
+            _check_state(Path("s.npy"), np.array(state, np.uint8), hazard)
+
+
+def test_a_site_without_a_height_is_judged_by_its_x_y(descent, tmp_path, capsys):
+    """A degraded Result's site may carry z NaN (docs/protocol.md); one such site threw the pair's scores away."""
+    d = descent / "300_150"
+    gt = read_pair(d).truth["hazard"]
+    out = _write(tmp_path / "o", np.ones_like(gt))
+    (out / "result.json").write_text('{"sites": [{"x": 0.0, "y": 0.0, "z": NaN}, {"x": 1.0, "y": 1.0, "z": null}]}')
+    code, doc = _score(d, out, capsys)
+    r = doc["rows"][0]
+    assert r["error"] is None and r["sites"] == 2 and r["cdi_pct"] is not None
