@@ -152,6 +152,9 @@ def _numbers(v: Any, name: str) -> np.ndarray:
     return np.array(v, dtype=float)
 
 
+QUATERNION_NORM_TOL = 1e-3  # a quaternion written with four decimals is normalised; further off is an error
+
+
 def quaternion_to_matrix(q: Any) -> np.ndarray:
     """Rotation matrix of a unit quaternion ``[w, x, y, z]`` (Hamilton, scalar first).
 
@@ -580,18 +583,30 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
             if R.shape != (3, 3):
                 raise ValueError(f"R_world_to_cam has shape {R.shape}, need 3x3")
         elif "q_world_to_cam" in fr:
-            R = quaternion_to_matrix(_numbers(fr["q_world_to_cam"], "q_world_to_cam"))
+            q = _numbers(fr["q_world_to_cam"], "q_world_to_cam")
+            norm = float(np.linalg.norm(q)) if q.shape == (4,) else math.nan
+            if math.isfinite(norm) and abs(norm - 1.0) > QUATERNION_NORM_TOL:  # as a matrix off orthonormal
+                raise PairFormatError(
+                    f"{meta_path}: frame {k}: q_world_to_cam has norm {norm:.6g}; a unit quaternion is "
+                    f"[w, x, y, z] with norm 1 (within {QUATERNION_NORM_TOL:g})"
+                )
+            R = quaternion_to_matrix(q)
         else:
             raise KeyError("R_world_to_cam or q_world_to_cam")
         pos = _numbers(fr["position_m"], "position_m")
         if pos.shape != (3,):
             raise ValueError(f"position_m has shape {pos.shape}, need 3")
-        pose = Pose(pos, R, float(_number(fr.get("time_s", 0.0), "time_s")))
+        if "time_s" not in fr:  # frames are ordered by time (DESIGN.md): without one, order cannot be checked
+            raise PairFormatError(f"{meta_path}: frame {k}: time_s missing (seconds; frames are ordered by time)")
+        pose = Pose(pos, R, float(_number(fr["time_s"], "time_s")))
         img_name = fr["image"]
         if not isinstance(img_name, str) or not img_name:
             raise ValueError("image must be a file name")
         alt = fr.get("altimeter_m")
         alt = math.nan if alt is None else float(_number(alt, "altimeter_m"))
+    except PairFormatError as exc:  # the frame's own checks: name the file and the frame once
+        text = str(exc)
+        raise PairFormatError(text if text.startswith(str(meta_path)) else f"{meta_path}: frame {k}: {text}") from None
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise PairFormatError(
             f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] or q_world_to_cam[4] ({exc})"

@@ -219,6 +219,20 @@ def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
         (lambda doc: doc["frames"][1].update(position_m=[True, False, 150]), "position_m entries must be a number"),
         (lambda doc: doc["frames"][1].update(altimeter_m="150"), "altimeter_m must be a number"),
         (lambda doc: doc["frames"][0].update(time_s="0"), "time_s must be a number"),
+        # a missing time read as 0: "frame 1 is earlier than frame 0 (time_s 0 vs 9.96)", or no check at all
+        (lambda doc: doc["frames"][1].pop("time_s"), "frame 1: time_s missing"),
+        # a quaternion of norm 2 was normalised without a word, where a matrix that far off is an error
+        (
+            lambda doc: (
+                doc["frames"][1].update(q_world_to_cam=[0, 2, 0, 0], R_world_to_cam=None)
+                or doc["frames"][1].pop("R_world_to_cam")
+            ),
+            "frame 1: q_world_to_cam has norm 2; a unit quaternion",
+        ),
+        (
+            lambda doc: doc["frames"][1].update(q_world_to_cam=[0, 0, 0, 0]) or doc["frames"][1].pop("R_world_to_cam"),
+            "frame 1: q_world_to_cam has norm 0",
+        ),
     ],
 )
 def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
