@@ -57,7 +57,8 @@ def check_geometry(camera: Camera, poses: list[Pose]) -> None:
     for k, pose in enumerate(poses):
         if float(np.abs(pose.position).max()) > MAX_POSITION_M:
             raise FlightInputError(
-                f"pose{k + 1}: position {[float(v) for v in pose.position]} m is over {MAX_POSITION_M:g} m from "
+                f"pose{k + 1}: position [{', '.join(f'{float(v):.4g}' for v in pose.position)}] m is over "
+                f"{MAX_POSITION_M:g} m from "
                 "the origin"
             )
 

@@ -596,6 +596,9 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
         pos = _numbers(fr["position_m"], "position_m")
         if pos.shape != (3,):
             raise ValueError(f"position_m has shape {pos.shape}, need 3")
+        if np.isfinite(pos).all() and float(np.abs(pos).max()) > MAX_POSITION_M:  # before any arithmetic on it
+            shown = ", ".join(f"{v:.4g}" for v in pos)
+            raise PairFormatError(f"position_m [{shown}] m is over {MAX_POSITION_M:g} m from the origin")
         if "time_s" not in fr:  # frames are ordered by time (DESIGN.md): without one, order cannot be checked
             raise PairFormatError(f"{meta_path}: frame {k}: time_s missing (seconds; frames are ordered by time)")
         pose = Pose(pos, R, float(_number(fr["time_s"], "time_s")))

@@ -221,6 +221,11 @@ def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
         (lambda doc: doc["frames"][0].update(time_s="0"), "time_s must be a number"),
         # a missing time read as 0: "frame 1 is earlier than frame 0 (time_s 0 vs 9.96)", or no check at all
         (lambda doc: doc["frames"][1].pop("time_s"), "frame 1: time_s missing"),
+        # numpy's overflow warning and "pose2: position [-1e+300, ...]" (no file) came first
+        (
+            lambda doc: doc["frames"][1]["position_m"].__setitem__(0, -1e300),
+            "frame 1: position_m [-1e+300, 0, 300] m is over 1e+07 m from the origin",
+        ),
         # a quaternion of norm 2 was normalised without a word, where a matrix that far off is an error
         (
             lambda doc: (
