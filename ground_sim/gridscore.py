@@ -131,8 +131,10 @@ def judge_site(
     site_xy: tuple[float, float], world_xy: np.ndarray, hazard: np.ndarray, radius_m: float = FOOTPRINT_M / 2
 ) -> dict[str, Any]:
     """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
-    ``radius_m`` of the site has hazard < 1. A footprint that holds no pixel, or reaches the image
-    border (part of it unseen), cannot be confirmed and is judged unsafe.
+    ``radius_m`` of the site has hazard < 1. A footprint that falls between pixel centres (ground sampled
+    coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
+    A footprint that holds no pixel (off the image), or reaches the image border (part of it unseen),
+    cannot be confirmed and is judged unsafe.
 
     ``world_xy`` is (H, W, 2), each pixel's true ground X, Y (:func:`pixel_ground_xy`). Also returns ``uv``,
     the pixel whose ground is nearest the site (None for a site that is not a finite point), to draw it."""
@@ -142,6 +144,8 @@ def judge_site(
         return {"safe": False, "n_px": 0, "n_unsafe": 0, "incomplete": True, "uv": None}
     d2 = (X - sx) ** 2 + (Y - sy) ** 2
     near = d2 <= radius_m * radius_m
+    if not near.any():
+        near = _cell_holding(world_xy, d2)
     n = int(np.count_nonzero(near))
     unsafe = int(np.count_nonzero(near & ~(hazard < 1.0)))
     border = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any())
@@ -156,6 +160,26 @@ def judge_site(
         "incomplete": border or n == 0,
         "uv": uv,
     }
+
+
+def _cell_holding(world_xy: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """The pixel whose ground cell holds a footprint that falls between pixel centres (a ground sample coarser
+    than the footprint, 3-5 m at 2000 m on an approach, where no centre lies within 1.5 m and the rule would be
+    vacuous): the nearest pixel, when the site lies within half its cell's diagonal. Else no pixel (off the
+    image)."""
+    near = np.zeros(d2.shape, bool)
+    if not np.isfinite(d2).any():
+        return near
+    v, u = np.unravel_index(int(np.nanargmin(d2)), d2.shape)
+    h, w = d2.shape
+    steps = []
+    for dv, du in ((0, 1), (1, 0)):  # the cell's sides from the neighbours (either side, at an image edge)
+        vv, uu = (v + dv, u + du) if v + dv < h and u + du < w else (v - dv, u - du)
+        if 0 <= vv < h and 0 <= uu < w:
+            steps.append(float(np.hypot(*(world_xy[vv, uu, :2] - world_xy[v, u, :2]))))
+    if len(steps) == 2 and np.isfinite(steps).all() and d2[v, u] <= 0.25 * (steps[0] ** 2 + steps[1] ** 2):
+        near[v, u] = True
+    return near
 
 
 def judge_sites(pair: Any, sites_xy: list[tuple[float, float]]) -> list[dict[str, Any]]:

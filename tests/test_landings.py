@@ -66,6 +66,22 @@ def test_site_rule_uses_every_truth_pixel_within_the_footprint():
     assert not judge_site((0.0, 0.0), world, hazard)["safe"]
 
 
+def test_a_footprint_smaller_than_the_ground_sample_is_judged_by_the_pixel_that_holds_it():
+    """At 2000 m on an approach a pixel's ground is 3-5 m: a 1.5 m radius around a site between pixel centres held
+    no pixel, so every top site there read "not confirmed" (18 of 166 held-out pairs)."""
+    world = _grid(n=11, cell=4.0)  # centres every 4 m: a site at (1.8, 1.8) is 2.5 m from the nearest
+    hazard = np.zeros(world.shape[:2], np.float32)
+    j = judge_site((1.8, 1.8), world, hazard)
+    assert j["safe"] and j["n_px"] == 1 and j["uv"] == (5, 5)
+    hazard[5, 5] = 1.0  # the pixel whose cell holds the footprint is a hazard
+    assert not judge_site((1.8, 1.8), world, hazard)["safe"]
+    # beyond the last pixel's cell (the grid ends at 20 m): off the image, not confirmed
+    off = judge_site((23.5, 0.0), world, np.zeros_like(hazard))
+    assert not off["safe"] and off["incomplete"] and off["n_px"] == 0
+    # in the edge pixel's cell: that pixel is on the border, so part of the footprint may be unseen
+    assert judge_site((21.0, 0.0), world, np.zeros_like(hazard))["incomplete"]
+
+
 def _campaign(**kw):
     base = dict(
         scenes=("thesis", "mare"),
