@@ -510,7 +510,10 @@ def register_score(subparsers: Any) -> None:
         help=f"FP limit per pair in %% of the scored pixels (default {FP_LIMIT_PCT:g}, thesis Table 2.1)",
     )
     p.add_argument(
-        "--csv", type=Path, default=None, help="also write one row per pair here (the columns some pair fills)"
+        "--csv",
+        type=Path,
+        default=None,
+        help="also write one row per pair here (fixed columns, empty where a pair has no value)",
     )
     p.add_argument("--json", type=Path, default=None, help="also write the rows and the summary here")
     p.add_argument(
@@ -526,8 +529,7 @@ def _score(args: argparse.Namespace) -> int:
     import math
 
     from protocol.pairdir import read_pair
-    from studies.evaluate import write_metrics_csv
-    from studies.score import ScoreError, pair_jobs, read_output, score_output, summarise
+    from studies.score import ScoreError, pair_jobs, read_output, score_output, summarise, write_csv
 
     if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
         raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
@@ -559,7 +561,7 @@ def _score(args: argparse.Namespace) -> int:
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
     try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
         if args.csv is not None:
-            write_metrics_csv(rows, args.csv, drop_empty=True)
+            write_csv(rows, args.csv)
             print(f"rows:    {args.csv}")
         if args.json is not None:
             from reports.jsondoc import json_text

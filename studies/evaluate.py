@@ -903,19 +903,14 @@ def evaluate_scenario(
     return rows
 
 
-def write_metrics_csv(rows: list[dict[str, Any]], path: str | Path, drop_empty: bool = False) -> Path:
-    """``metrics.csv``: :data:`METRIC_COLUMNS` first, then any other scalar keys; empty cell = not available.
-
-    ``drop_empty``: leave out the columns no row has a value in (``score`` fills few of evaluate's columns).
-    """
+def write_metrics_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    """``metrics.csv``: :data:`METRIC_COLUMNS` first, then any other scalar keys; empty cell = not available."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     extra = sorted(
         {k for r in rows for k, v in r.items() if k not in METRIC_COLUMNS and not isinstance(v, (dict, list))}
     )
     cols = list(METRIC_COLUMNS) + extra
-    if drop_empty:
-        cols = [k for k in cols if any(_fmt_csv(r.get(k)) != "" for r in rows)]
     with p.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
         w.writeheader()

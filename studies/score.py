@@ -37,6 +37,39 @@ FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under
 MAX_SITE_COORD_M = 1e6
 
 
+# `score --csv`'s columns, always these and in this order, empty where a pair has no value: a table another tool
+# reads needs one schema, whatever files each detector wrote
+CSV_COLUMNS = (
+    "pair",
+    "error",
+    "pixels",
+    "fp_pct",
+    "fn_pct",
+    "tp_pct",
+    "tn_pct",
+    "cdi_pct",
+    "hazards_detected_pct",
+    "safe_recognised_pct",
+    "hazards_in_scene_pct",
+    "unmapped_pct",
+    "state_safe_pct",
+    "state_unsafe_pct",
+    "state_unknown_pct",
+    "dem_mean_abs_m",
+    "dem_median_m",
+    "dem_mad_m",
+    "dem_coverage_pct",
+    "sites",
+    "sites_truly_safe",
+    "sites_unconfirmed",
+    "top_site_truly_safe",
+    "top_site_confirmed",
+    "pair_dir",
+    "output_dir",
+    "figure",
+)
+
+
 class ScoreError(InputError):
     """An output directory or pair that cannot be scored (one line, says which file and why)."""
 
@@ -356,3 +389,25 @@ def _figure(
     top = verdicts[_site_colour(judged[0])] if judged else "none"
     title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
     return save(map_figure(panels, title, m_per_px=m_per_px), path)
+
+
+def write_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    """One row per pair with :data:`CSV_COLUMNS` (empty cell = no value; booleans as true/false)."""
+    import csv
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+
+    def cell(v: Any) -> Any:
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            return ""
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        return f"{v:.6g}" if isinstance(v, float) else v
+
+    with p.open("w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(CSV_COLUMNS)
+        for r in rows:
+            w.writerow([cell(r.get(k)) for k in CSV_COLUMNS])
+    return p
