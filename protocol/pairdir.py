@@ -631,6 +631,21 @@ def _file_kind(mode: int) -> str:
     return "not a file"
 
 
+def file_present(path: Path) -> bool:
+    """Whether an optional file is there: False when nothing has its name, True for a regular file, and
+    :class:`PairFormatError` for anything else by that name (a FIFO would block a read; a directory is not a
+    missing file)."""
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    except OSError as exc:
+        raise PairFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
+        raise PairFormatError(f"{path}: exists but is not a regular file ({_file_kind(mode)})")
+    return True
+
+
 def _check_regular(path: Path, what: str, d: Path) -> None:
     """Refuse ``path`` (``what`` in pair directory ``d``) unless it is an existing regular file.
 

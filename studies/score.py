@@ -29,12 +29,13 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, PairFormatError, file_present
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
 # |x|, |y|, |z| of a site (world m): 1000 km is beyond any descent's view
 MAX_SITE_COORD_M = 1e6
+MAX_RESULT_JSON_BYTES = 16 * 2**20  # a Result's parameters, timings and sites are a few kB
 
 
 # `score --csv`'s columns, always these and in this order, empty where a pair has no value: a table another tool
@@ -90,7 +91,7 @@ def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     try:
         a = np.load(path, allow_pickle=False, mmap_mode="r")
     except (OSError, ValueError, EOFError) as exc:
-        raise ScoreError(f"{path}: not a readable .npy file ({exc or 'empty file'})") from None
+        raise ScoreError(f"{path}: not a readable .npy file ({_npy_fault(exc)})") from None
     if not isinstance(a, np.ndarray) or a.shape != shape:
         got = getattr(a, "shape", type(a).__name__)
         raise ScoreError(f"{path}: must be {shape[0]}x{shape[1]} (frame 0's pixels), got {got}")
@@ -115,6 +116,16 @@ def _check_state(path: Path, state: np.ndarray, hazard: np.ndarray) -> None:
             raise ScoreError(f"{path}: says {what} on {n} pixels; the two files must agree")
 
 
+def _npy_fault(exc: BaseException) -> str:
+    """numpy's reason in a detector author's words: its own advice to unpickle a file is not for a map."""
+    text = str(exc)
+    if "pickle" in text or "can't be memory-mapped" in text:
+        return "not a numeric array: a text file, or Python objects"
+    if "mmap length is greater than file size" in text:
+        return "truncated: shorter than its header says"
+    return text or "empty file"
+
+
 @dataclass(frozen=True)
 class Job:
     """One pair to score: its directory, the detector's output directory, and where the sites come from."""
@@ -132,7 +143,14 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
     out = Path(out_dir)
     if not out.is_dir():
         raise ScoreError(f"{out}: no such output directory")
-    if not (out / "hazard.npy").is_file():
+
+    def present(name: str) -> bool:  # a FIFO or a directory by a file's name is named, not taken for no file
+        try:
+            return file_present(out / name)
+        except PairFormatError as exc:
+            raise ScoreError(str(exc)) from None
+
+    if not present("hazard.npy"):
         hil = " (an HIL run saves the image maps only with `run --full-maps`)" if sites is not None else ""
         raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area){hil}")
     # DESIGN.md's dtypes exactly: other tools read these files as it says they are
@@ -145,14 +163,14 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
             "(an unknown pixel is written as 1.0)"
         )
     elevation = None
-    if (out / "elevation.npy").is_file():
+    if present("elevation.npy"):
         elevation = _load(out / "elevation.npy", shape)
         if elevation.dtype != np.float32:
             raise ScoreError(
                 f"{out / 'elevation.npy'}: must be float32 (NaN where not recovered), got dtype {elevation.dtype}"
             )
     state = None
-    if (out / "state.npy").is_file():
+    if present("state.npy"):
         state = _load(out / "state.npy", shape)
         if state.dtype != np.uint8 or not np.isin(state, STATE_CODES).all():
             raise ScoreError(f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside")
@@ -160,12 +178,15 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
     xyz = np.zeros((0, 3))
     if sites is not None:
         xyz = _site_xyz(sites, out / "results.jsonl")
-    elif (out / "result.json").is_file():
+    elif present("result.json"):
         xyz = _read_sites(out / "result.json")
     return DetectorOutput(hazard, elevation, state, xyz)
 
 
 def _read_sites(path: Path) -> np.ndarray:
+    size = path.stat().st_size
+    if size > MAX_RESULT_JSON_BYTES:  # read whole, a 200 MB file took 450 MB: refused from its size
+        raise ScoreError(f"{path}: {size} bytes is more than a result.json can be ({MAX_RESULT_JSON_BYTES} bytes)")
     try:
         doc = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
@@ -294,7 +315,7 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     p, o = Path(pairs), Path(outputs)
     if not o.is_dir():  # a mistyped path: usage, not a detector that wrote nothing for every pair
         raise ScoreError(f"{o}: {'not a directory' if o.exists() else 'no such directory'} (OUTPUTS)")
-    if (p / "pair.json").is_file():
+    if (p / "pair.json").exists():  # a FIFO or a directory by that name: read_pair says which
         return [Job(p.name, p, o)]
     if not (p / "manifest.json").is_file():
         raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -167,6 +168,11 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "says 0 (safe) where hazard.npy is >= 1 on"),
         (lambda o, s: np.save(o / "state.npy", np.full(s, 255, np.uint8)), "says 255 (outside) where hazard.npy has"),
         (lambda o, s: (o / "result.json").write_text('{"sites": [{"x": 1}]}'), 'site 0 needs numeric "x", "y"'),
+        # by name but not a file: a FIFO state.npy was taken for no state.npy, and the pair scored without it
+        (lambda o, s: os.mkfifo(o / "state.npy"), "state.npy: exists but is not a regular file (a FIFO)"),
+        (lambda o, s: (o / "result.json").mkdir(), "result.json: exists but is not a regular file (a directory)"),
+        (lambda o, s: (o / "result.json").write_bytes(b" " * (17 * 2**20)), "bytes is more than a result.json can be"),
+        (lambda o, s: (o / "hazard.npy").write_text("0.5\n" * 99), "not a numeric array: a text file"),
     ],
 )
 def test_broken_output_is_that_pairs_one_line_failure(descent, tmp_path, capsys, write, message):
