@@ -235,6 +235,9 @@ def _process(args: argparse.Namespace) -> int:
         skipped = list(res.info.get("skipped", ()))
         why = plan_note(res.info.get("plan"), skipped)
         print(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
+    if "psafe_fallback" in res.info:  # the trees' calibration does not hold here: FP 1.6-5 % at 128 px
+        print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
+              "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     side = min(pair.camera.width, pair.camera.height)
     for k, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,

@@ -91,6 +91,7 @@ def dem_figure(
     filled: np.ndarray | None = None,
     fill_fraction: float | None = None,
     m_per_px: float | None = None,
+    title: str = "Elevation (DEM)",
 ) -> Any:
     """The DEM picture of ``process``: computed elevation (its gap fills ``filled`` darkened and hatched, their
     share ``fill_fraction`` in its title), the elevation's ``sigma``, and with ``truth`` the true elevation
@@ -102,7 +103,7 @@ def dem_figure(
         dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
     if sigma is not None:
         dem.insert(1, Panel("scalar", sigma, "elevation uncertainty sigma", "m", "viridis"))
-    fig = map_figure(dem, "Elevation (DEM)", m_per_px=m_per_px)
+    fig = map_figure(dem, title, m_per_px=m_per_px)
     if filled is not None:  # fig.axes[0] is the computed elevation: the panels' axes come before their colour bars
         mark_fills(fig.axes[0], np.asarray(filled, bool) & np.isfinite(elevation))
     return fig
@@ -137,7 +138,11 @@ def write_process_report(
     figures: list[Figure] = []
 
     gsd = ground_step_m(res.world_xy)
-    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, res.info.get("dem_filled_fraction"), gsd)
+    # a saved PNG names its pair: only its folder did
+    name = Path(str(doc.get("pair_dir", ""))).name
+    head = f"{name}: " if name else ""
+    fills = res.info.get("dem_filled_fraction")
+    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, fills, gsd, f"{head}Elevation (DEM)")
     written.append(save(fig, out / "dem.png"))
     figures.append(
         Figure(
@@ -163,7 +168,7 @@ def write_process_report(
             unknown=np.asarray(res.state) == 2,  # written as 1.0 in hazard.npy; drawn grey, not as a hazard
         ),
     ]
-    written.append(save(map_figure(hz, "Hazards and landing sites", m_per_px=gsd), out / "hazard.png"))
+    written.append(save(map_figure(hz, f"{head}Hazards and landing sites", m_per_px=gsd), out / "hazard.png"))
     figures.append(
         Figure(
             "hazard.png",
@@ -184,7 +189,7 @@ def write_process_report(
             Panel("confusion", codes, "pixel scores", sites=marks),
             Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
         ]
-        written.append(save(map_figure(conf, "Against ground truth", m_per_px=gsd), out / "confusion.png"))
+        written.append(save(map_figure(conf, f"{head}Against ground truth", m_per_px=gsd), out / "confusion.png"))
         figures.append(Figure("confusion.png", "Pixel scores against the true hazard map (positive = safe)."))
         c = doc.get("vs_truth", {}).get("confusion", {})
         d = doc.get("vs_truth", {}).get("dem_error", {})

@@ -184,7 +184,7 @@ def select_safe_sites(
     n_cov = int((grid.state != STATE_OUTSIDE).sum())
     if not safe.any():
         unk = 100.0 * float((grid.state == STATE_UNKNOWN).sum()) / max(1, n_cov)
-        return [], f"no cell is known safe ({unk:.0f} % of the mapped area unknown, the rest unsafe)"
+        return [], f"no cell is known safe ({unk:.0f} % of the mapped grid cells unknown, the rest unsafe)"
     radius = 0.5 * footprint_m + max(0.0, margin_m)
     rc = radius / grid.cell_m + max(0.0, reach_cells)
     r = int(np.ceil(rc))

@@ -313,9 +313,9 @@ def map_figure(
         _draw_sites(ax, p.sites)
         if m_per_px is not None and np.isfinite(m_per_px) and m_per_px > 0 and np.shape(p.data)[:2] == shape:
             _scale_bar(ax, float(m_per_px))
-    if box is not None:
+    if box is not None:  # on a line of its own: after a long title it ran off the figure's edge
         title = (
-            title + " " if title else ""
+            title + "\n" if title else ""
         ) + f"(zoomed to the mapped area: rows {box[0]}-{box[1]}, columns {box[2]}-{box[3]})"
     if title:
         fig.suptitle(title, fontsize=11)

@@ -408,7 +408,7 @@ def _figure(
     ]
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
     top = verdicts[_site_colour(judged[0])] if judged else "none"
-    title = f"FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
+    title = f"{path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
     return save(map_figure(panels, title, m_per_px=m_per_px), path)
 
 
