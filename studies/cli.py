@@ -576,6 +576,9 @@ def _score(args: argparse.Namespace) -> int:
     return 0 if summary["failed"] == 0 and summary["pairs_over_fp_limit"] == 0 else 1
 
 
+UNMAPPED_WARN_PCT = 50.0  # a detector that leaves over half the overlap NaN is said to, whatever its FP
+
+
 def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
     import math
 
@@ -604,6 +607,10 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             top,
         ]
         print(f"| {r['pair']} | " + " | ".join(cells) + " |")
+    for r in rows:  # an all-NaN map "passes" with FP 0: it called nothing, which the exit code does not say
+        if r["error"] is None and (r.get("unmapped_pct") or 0.0) >= UNMAPPED_WARN_PCT:
+            print(f"warning: {r['pair']}: {r['unmapped_pct']:.0f} % of the scored pixels have no hazard value "
+                  "(NaN in hazard.npy, counted as not called safe)", file=sys.stderr)  # fmt: skip
     failed = f"; {s['failed']} without a usable output" if s["failed"] else ""
     n_unconf = s.get("top_sites_unconfirmed", 0)
     unconfirmed = f"{n_unconf} not confirmed: footprint off frame 0; " if n_unconf else ""

@@ -69,7 +69,10 @@ def test_perfect_all_unsafe_all_safe_and_blank_detectors(descent, tmp_path, caps
     code, _ = _score(d, tmp_path / "safe", capsys, "--max-fp", "100")
     assert code == 0
     # a detector that writes NaN does not shrink the scored area: not called safe, counted as unmapped
-    code, doc = _score(d, _write(tmp_path / "blank", np.full(gt.shape, np.nan)), capsys)
+    js = tmp_path / "blank-score.json"
+    code = main(["score", str(d), str(_write(tmp_path / "blank", np.full(gt.shape, np.nan))), "--json", str(js)])
+    assert "warning: 300_150: 100 % of the scored pixels have no hazard value" in capsys.readouterr().err
+    doc = json.loads(js.read_text())
     r = doc["rows"][0]
     assert code == 0 and r["unmapped_pct"] == 100 and r["cdi_pct"] == pytest.approx(hazards)
     assert r["pixels"] == doc["rows"][0]["pixels"] > 0.2 * gt.size
