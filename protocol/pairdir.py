@@ -193,7 +193,7 @@ class Pose:
             raise PairFormatError(f"{what}: position, rotation and time must be finite (got NaN/inf)")
         err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
         if err > tol:
-            raise PairFormatError(f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.2e})")
+            raise PairFormatError(f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.4g})")
         if np.linalg.det(self.R) < 0:
             raise PairFormatError(f"{what}: R_world_to_cam is a reflection (det < 0)")
 
@@ -210,7 +210,7 @@ class Pose:
             return self, None
         if err > tol:
             raise PairFormatError(
-                f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.2e} > {tol:g}); "
+                f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.4g} > {tol:g}); "
                 "give a rotation matrix or q_world_to_cam"
             )
         u, _, vt = np.linalg.svd(self.R)
@@ -713,7 +713,8 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
         raise PairFormatError(f"{meta_path}: {exc}") from None
     frames = doc.get("frames")
     if not isinstance(frames, list) or not MIN_FRAMES <= len(frames) <= MAX_FRAMES:
-        n = len(frames) if isinstance(frames, list) else "no"
+        kinds = {dict: "an object", str: "a string", bool: "true or false", int: "a number", float: "a number"}
+        n = len(frames) if isinstance(frames, list) else "none" if frames is None else kinds.get(type(frames), "?")
         raise PairFormatError(f"{meta_path}: 'frames' must list {MIN_FRAMES} to {MAX_FRAMES} frames, got {n}")
     notes: list[str] = []
     poses, raw, names, alts = [], [], [], []
