@@ -389,10 +389,22 @@ def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, t
     multi-frame entry says how many frames it has: "i4 of 4"; an odd count above one ends with a tile that says so)."""
     import cv2
 
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.45
+
+    def fits(text: str) -> bool:
+        return cv2.getTextSize(text, font, scale, 1)[0][0] <= tile - 6
+
     def labelled(img: np.ndarray, text: str) -> np.ndarray:
         t = cv2.copyMakeBorder(img, 18, 2, 2, 2, cv2.BORDER_CONSTANT, value=0)
-        cv2.putText(t, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 255, 1, cv2.LINE_AA)
+        cv2.putText(t, text, (4, 14), font, scale, 255, 1, cv2.LINE_AA)
         return t
+
+    def short(label: str, suffix: str) -> str:
+        """A 16-frame label (600/570/.../150) ran into the next tile and lost its "i1 of 16": keep the ends."""
+        parts = label.split("/")
+        if fits(label + suffix) or len(parts) < 3:
+            return label + suffix
+        return f"{parts[0]}/.../{parts[-1]}{suffix}"
 
     cells = []
     for label, imgs in items:
@@ -400,7 +412,7 @@ def contact_sheet(items: list[tuple[str, tuple[np.ndarray, ...]]], path: Path, t
         row = []
         for k, img in ((0, imgs[0]), (n - 1, imgs[-1])):
             small = cv2.resize(img, (tile, tile), interpolation=cv2.INTER_AREA)
-            row.append(labelled(small, f"{label} i{k + 1}" + (f" of {n}" if n > 2 else "")))
+            row.append(labelled(small, short(label, f" i{k + 1}" + (f" of {n}" if n > 2 else ""))))
         cells.append(np.hstack(row))
     if len(cells) % 2 and len(cells) > 1:  # one entry alone is its own row: a filler would take a third of the sheet
         blank = np.full((tile, 2 * tile + 4), 40, np.uint8)
