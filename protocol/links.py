@@ -712,6 +712,9 @@ class ZmqLink(Link, SessionView):
                 (zmq.TCP_KEEPALIVE_INTVL, 1),
                 (zmq.TCP_KEEPALIVE_CNT, 3),
                 (zmq.TCP_MAXRT, int(2000 * (peer_timeout or 30.0))),
+                # libzmq takes an IPv6 address ("tcp://[::1]:5555") only on a socket told it may; off, binding
+                # one fails with a bare EAGAIN and connecting to one never happens
+                (zmq.IPV6, 1 if "://[" in endpoint else 0),
             ):
                 self._sock.setsockopt(opt, val)
             self._sock.copy_threshold = 0  # track every frame, so flush() covers small messages too

@@ -257,6 +257,24 @@ def test_zeromq_needs_keys_or_an_explicit_insecure_loopback():
         assert S.recv(5) == Error(code="a", text="b")
 
 
+def test_zeromq_over_ipv6_loopback():
+    """protocol.md names tcp://[::1] as a loopback endpoint, but the socket was never told it may use IPv6: the
+    board failed to bind ("Resource temporarily unavailable") and a ground waited out its hello timeout."""
+    import socket
+
+    try:
+        socket.socket(socket.AF_INET6).bind(("::1", 0))
+    except OSError:
+        pytest.skip("no IPv6 loopback on this host")
+    with (
+        ZmqLink("tcp://[::1]:*", bind=True, insecure=True) as S,
+        ZmqLink(S.endpoint, False, insecure=True) as C,
+    ):
+        assert S.endpoint.startswith("tcp://[::1]:") and C.wait_established(5)
+        C.send(Error(code="a", text="over IPv6"))
+        assert S.recv(5) == Error(code="a", text="over IPv6")
+
+
 def test_second_zeromq_peer_is_refused_and_a_peer_without_the_key_gets_nothing(tmp_path):
     import zmq
 
