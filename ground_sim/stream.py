@@ -418,6 +418,15 @@ def stream_descent(
     def session_ok() -> bool:
         return state.epoch is not None and link.established and link.epoch == state.epoch
 
+    def lost_why() -> str:
+        """Why the session is gone: the link's last loss, else what its state shows (a new session can be up
+        before the loss of the old one is told: the reason read "None")."""
+        if link.last_error:
+            return link.last_error
+        if link.established:
+            return "the link started a new session (the flight side, or this side's link, restarted it)"
+        return "the link is down"
+
     def first_hello() -> None:
         """The first session: link session and Hello within ``hello_timeout_s`` in all, a line every 10 s meanwhile
         (a board that is off, on another port or at another baud, or an emulated processor booting slowly); raises
@@ -484,7 +493,7 @@ def stream_descent(
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
                 break
             if not link.established or link.epoch != epoch:
-                raise LinkDown(f"link session lost during the handshake: {link.last_error}")
+                raise LinkDown(f"link session lost during the handshake: {lost_why()}")
             now = time.monotonic()
             if now > end:
                 raise (NoHello if first else LinkDown)(
@@ -636,10 +645,10 @@ def stream_descent(
         """Record what comes for the pairs of ``want`` until ``until``, or until ``awaited``'s outcome is in."""
         while want and (awaited is None or awaited in want) and time.monotonic() < until:
             if not session_ok():
-                fail_in_flight(want, f"link session lost: {link.last_error}")
+                fail_in_flight(want, f"link session lost: {lost_why()}")
                 return
             if held_stream(want):
-                fail_in_flight(want, f"link session given up: {link.last_error}")
+                fail_in_flight(want, f"link session given up: {lost_why()}")
                 return
             pkt = link.recv_packet(timeout=0.0)
             if pkt is None:  # nothing received is waiting: refusals are matched to pairs now
@@ -803,7 +812,7 @@ def stream_descent(
                 if o.finished:  # answered, but not while a collect wanted it: the answer stands
                     pass
                 elif not session_ok() and state.sessions:
-                    o.error = Error(code="link_down", text=f"link session lost: {link.last_error}", seq=s[1])
+                    o.error = Error(code="link_down", text=f"link session lost: {lost_why()}", seq=s[1])
                 elif not state.sessions:
                     o.error = Error(code="link_down", text="no session with the HIL server", seq=s[1])
                 else:
@@ -988,14 +997,22 @@ def main(argv: list[str] | None = None) -> int:
     lost = sum(r.get("code") in LINK_CODES for r in records)
     refused = _refused_count(args.out / "ground.json")
     print(
-        f"ground: {len(records)} pairs, {len(records) - failed} results, {failed} errors"
-        + (f", {refused} message{'' if refused == 1 else 's'} from the flight side refused" if refused else ""),
+        f"ground: {_count(len(records), 'pair')}, {_count(len(records) - failed, 'result')}, "
+        f"{_count(failed, 'error')}"
+        + (f", {_count(refused, 'message')} from the flight side refused" if refused else ""),
         file=sys.stderr,
     )
     if lost:
-        print(f"ground: LINK ERROR: {lost} pairs lost to link failures ({link.last_error})", file=sys.stderr)
+        # the reason that cost the first lost pair, not the link's latest event (a new session's "X -> Y")
+        first = next(str(r.get("text") or "") for r in records if r.get("code") in LINK_CODES)
+        print(f"ground: LINK ERROR: {_count(lost, 'pair')} lost to link failures (first: {first})", file=sys.stderr)
         return EXIT_LINK_LOST
     return 0
+
+
+def _count(n: int, noun: str) -> str:
+    """'1 pair', '3 pairs'."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 if __name__ == "__main__":

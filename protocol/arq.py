@@ -473,7 +473,7 @@ class Arq(SessionView):
         self.closed = True
         self._events.clear()
 
-    def close(self, reason: str = "closed by the application") -> None:
+    def close(self, reason: str = "its program closed the link (it ended, or was stopped)") -> None:
         """Queue a CLOSE for the peer (if any) and stop accepting messages."""
         if self.closed:
             return
@@ -639,7 +639,9 @@ class Arq(SessionView):
                 self._drop_all(
                     f"peer started a new session {f.src:08x} (it restarted, or gave up on session {replaced:08x})", now
                 )
-                self._events.append(_Event("restarted", f"peer session {replaced:08x} -> {f.src:08x}", ended))
+                self._events.append(
+                    _Event("restarted", f"the peer restarted its link (session {replaced:08x} -> {f.src:08x})", ended)
+                )
             self.peer_max_frame = f.max_frame
             self.peer_window = max(f.window, MIN_FRAME)
             self._last_heard = now

@@ -1040,7 +1040,9 @@ class ZmqLink(Link, SessionView):
                 if replaced is not None:
                     self._stats["peer_restarts"] += 1
                     self._drop_all(f"peer started a new session {src:08x} (it restarted, or gave up on {replaced:08x})")
-                    self._pending_events.append(("restarted", f"peer session {replaced:08x} -> {src:08x}", ended))
+                    self._pending_events.append(
+                        ("restarted", f"the peer restarted its link (session {replaced:08x} -> {src:08x})", ended)
+                    )
                 self._last_heard = now
                 if newly:
                     self._established(now)
@@ -1236,7 +1238,7 @@ class ZmqLink(Link, SessionView):
                 self._control.append(
                     [
                         _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
-                        bytes((CLOSE_APP,)) + b"closed by the application",
+                        bytes((CLOSE_APP,)) + b"its program closed the link (it ended, or was stopped)",
                     ]
                 )
             self._cv.wait_for(lambda: not self._control, 0.5)
