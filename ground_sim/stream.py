@@ -644,18 +644,22 @@ def stream_descent(
     def collect(until: float, want: set[tuple[int, int]], awaited: tuple[int, int] | None = None) -> None:
         """Record what comes for the pairs of ``want`` until ``until``, or until ``awaited``'s outcome is in."""
         while want and (awaited is None or awaited in want) and time.monotonic() < until:
+            # what has arrived is read before the session is judged: an answer that came in before the session
+            # was lost stands (after this side was stopped for 8 s, one was thrown away as link_down)
+            pkt = link.recv_packet(timeout=0.0)
+            if pkt is not None:
+                handle(pkt, want)
+                continue
             if not session_ok():
                 fail_in_flight(want, f"link session lost: {lost_why()}")
                 return
             if held_stream(want):
                 fail_in_flight(want, f"link session given up: {lost_why()}")
                 return
-            pkt = link.recv_packet(timeout=0.0)
-            if pkt is None:  # nothing received is waiting: refusals are matched to pairs now
-                take_refusals(want)
-                if not want:
-                    return
-                pkt = link.recv_packet(timeout=0.2)
+            take_refusals(want)  # nothing received is waiting: refusals are matched to pairs now
+            if not want:
+                return
+            pkt = link.recv_packet(timeout=0.2)
             if pkt is not None:
                 handle(pkt, want)
 
@@ -663,10 +667,11 @@ def stream_descent(
         """Take what has arrived, without waiting: with ``asap`` pacing the answers to the first pairs come in
         while the next pairs' frames are still on the line, and are recorded (and shown) then, not after the
         last pair is sent; so are the refusals among them."""
-        while want and session_ok():
+        while want:  # what has arrived counts even when the session has since been lost
             pkt = link.recv_packet(timeout=0.0)
             if pkt is None:
-                take_refusals(want)
+                if session_ok():
+                    take_refusals(want)
                 return
             handle(pkt, want)
 

@@ -97,9 +97,12 @@ class LinkClosed(InputError):
 @dataclass(frozen=True)
 class LinkEvent:
     time: float  # monotonic
-    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport | relisten
+    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport | relisten | stalled
     text: str
     epoch: int
+
+
+OWN_STALL_S = 1.0  # an I/O loop that polls every 20 ms and saw this gap was itself stopped, not its peer
 
 
 class Link:
@@ -895,9 +898,13 @@ class ZmqLink(Link, SessionView):
         poller = zmq.Poller()
         poller.register(self._sock, zmq.POLLIN)
         poller.register(self._mon, zmq.POLLIN)
+        prev = time.monotonic()
         while not self._stop:
             now = time.monotonic()
             with self._cv:
+                if now - prev > OWN_STALL_S:
+                    self._forgive(now - prev)
+                prev = now
                 self._timers(now)
                 control: list[Any] = list(self._control)
                 self._control.clear()
@@ -932,6 +939,19 @@ class ZmqLink(Link, SessionView):
                 self._cv.notify_all()
             for kind, text, epoch in events:
                 self._event(kind, text, epoch)
+
+    def _forgive(self, gap: float) -> None:
+        """Caller holds the lock. This loop was not scheduled for ``gap`` s (the process stopped: SIGSTOP, a
+        suspended laptop, a VM paused): the peer's silence meanwhile is this side's, and what it sent is still
+        in libzmq's queue. The silence clocks restart, so a Result that arrived during the stop is read before
+        the peer is judged silent (after an 8 s stop it was dropped and the peer blamed)."""
+        self._last_heard += gap
+        if self._stall_since is not None:
+            self._stall_since += gap
+        self._sessionless_since += gap
+        if self.peer_timeout is not None and gap > self.peer_timeout / 2:  # said where it could have cost a session
+            text = f"this side was not scheduled for {gap:.1f} s; the peer's silence is counted from now"
+            self._pending_events.append(("stalled", text, self.sess.epoch))
 
     def _timers(self, now: float) -> None:
         self._retire_trackers(now)
