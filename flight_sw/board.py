@@ -175,6 +175,8 @@ def serve(
     if not heartbeat_s > 0:
         raise InputError(f"the heartbeat period must be > 0 s, got {heartbeat_s}")
     check_link_timeout(link_timeout)
+    if insecure and keys is not None:  # the ground settled it the other way, and the two disagreed
+        raise InputError("--keys and --insecure exclude each other: CURVE with the key directory, or none")
     # a link that cannot be (a missing or held device, a bad endpoint) is said before the warm-up's seconds
     check_link_spec(spec, server=True, insecure=insecure, peer_timeout=link_timeout, keys=keys, check_keys=True)
     kind, _, rest = spec.partition(":")

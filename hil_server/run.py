@@ -926,6 +926,8 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
         check_baud((cfg.baud if cfg.baud is not None else budget.baud) or None, cfg.link_timeout_s)
     if (cfg.insecure or cfg.keys is not None) and kind != "zmq":
         raise InputError(f"--keys and --insecure apply to ZeroMQ links, not to --link {cfg.link}")
+    if cfg.insecure and cfg.keys is not None:  # each side used to settle it its own way, and disagree
+        raise InputError("--keys and --insecure exclude each other: CURVE with the key directory, or none")
     if cfg.keys is not None:
         from protocol.zmqauth import client_keys, server_keys
 

@@ -28,6 +28,9 @@ CASES = [
     (["run", "--link", "zmq", "--baud", "115200"], "--baud applies to serial links"),
     (["run", "--link", "serial", "--insecure"], "--keys and --insecure apply to ZeroMQ links"),
     (["run", "--link", "zmq", "--keys", "PAIR"], "client.key_secret does not exist"),
+    # each side settled --keys with --insecure its own way (the board CURVE, the ground none), and they disagreed
+    (["run", "--link", "zmq", "--keys", "PAIR", "--insecure"], "--keys and --insecure exclude each other"),
+    (["flight", "--link", "zmq:tcp://127.0.0.1:5599", "--keys", "PAIR", "--insecure"], "exclude each other"),
     (["run", "--manifest", "BAD"], "not JSON"),
     (["run", "--manifest", "M"], '"pairs" must be a non-empty list'),  # was a 0/0 run, exit 1
     (["run", "--manifest", "NOPATH"], 'pair 0 has no "path"'),
