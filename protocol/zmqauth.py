@@ -63,6 +63,8 @@ def generate_keys(directory: str | Path) -> Path:
 def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     import zmq.auth
 
+    if path.exists() and not path.is_file():  # a directory, a FIFO: not "missing"
+        raise InputError(f"CURVE key file {path} is not a regular file")
     if not path.is_file():
         raise InputError(f"CURVE key file {path} does not exist (create keys with `hazard-hil keys DIR`)")
     try:
@@ -79,9 +81,19 @@ def server_keys(directory: str | Path) -> tuple[bytes, bytes, Path]:
     d = Path(directory)
     pub, sec = _load(d / "server.key_secret", True)
     assert sec is not None
-    if not (d / "clients").is_dir():
+    clients = d / "clients"
+    if not clients.is_dir():
         raise InputError(f"CURVE key directory {d} has no clients/ directory of accepted keys")
-    return pub, sec, d / "clients"
+    # libzmq's authenticator reads clients/*.key itself, logs a bad one and serves on: no ground could connect
+    accepted = sorted(clients.glob("*.key"))
+    if not accepted:
+        raise InputError(
+            f"{clients} holds no accepted public key (*.key): no ground could connect; copy the ground's "
+            "client.key there (hazard-hil keys DIR writes one)"
+        )
+    for path in accepted:
+        _load(path, False)
+    return pub, sec, clients
 
 
 def client_keys(directory: str | Path) -> tuple[bytes, bytes, bytes]:

@@ -562,3 +562,22 @@ def test_a_side_that_was_stopped_restarts_its_silence_clock():
         finally:
             child.kill()
     assert out.split() == ["got", "result", "False", "True", "True"], out
+
+
+def test_a_board_refuses_a_clients_directory_no_ground_could_pass(tmp_path):
+    """libzmq's authenticator logged a corrupt clients/*.key and served on; an empty clients/ served silently.
+    Either way no ground could ever connect, and the ground learnt it only after its handshakes failed."""
+    from protocol.zmqauth import server_keys
+
+    keys = generate_keys(tmp_path / "keys")
+    assert server_keys(keys)[2] == keys / "clients"
+    (keys / "clients" / "client.key").write_text("garbage\n")
+    with pytest.raises(InputError, match=r"clients/client\.key is unreadable"):
+        server_keys(keys)
+    (keys / "clients" / "client.key").unlink()
+    with pytest.raises(InputError, match=r"holds no accepted public key"):
+        server_keys(keys)
+    (keys / "server.key_secret").unlink()
+    (keys / "server.key_secret").mkdir()
+    with pytest.raises(InputError, match=r"server\.key_secret is not a regular file"):
+        server_keys(keys)
