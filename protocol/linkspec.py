@@ -126,6 +126,19 @@ def check_zmq_endpoint(endpoint: str, *, bind: bool) -> None:
         raise InputError(f"ZeroMQ endpoint {endpoint!r}: the port must be a number in 1..65535, got {port!r}")
 
 
+def _check_resolves(endpoint: str) -> None:
+    """A host name that does not resolve is said now: libzmq retried it silently until the hello timeout
+    (120 s), which then read as a board that never answered."""
+    import socket
+
+    host, _, port = endpoint[len("tcp://") :].rpartition(":")
+    host = host.strip("[]")
+    try:
+        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError, ValueError) as exc:
+        raise InputError(f"ZeroMQ endpoint {endpoint!r}: host {host!r} does not resolve ({exc})") from None
+
+
 def check_link_spec(
     spec: str,
     *,
@@ -148,6 +161,13 @@ def check_link_spec(
         check_serial_device(device)
     elif kind == "zmq" and rest:
         check_zmq_endpoint(rest, bind=server)
+        if rest.startswith("inproc://"):  # the ground, the HIL server and a board are separate processes
+            raise InputError(
+                f"ZeroMQ endpoint {rest!r}: inproc:// joins threads of one process; another process needs "
+                "tcp://HOST:PORT or ipc://PATH"
+            )
+        if not server and rest.startswith("tcp://"):
+            _check_resolves(rest)
         if check_keys:
             check_zmq_security(rest, keys, insecure)
             if keys is not None and not insecure:

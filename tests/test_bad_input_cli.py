@@ -61,6 +61,9 @@ CASES = [
     (["run", "--flight", "external", "--link", "zmq:tcp://127.0.0.1", "--insecure"], "needs a host and a port"),
     (["run", "--flight", "external", "--link", "zmq:foo", "--insecure"], "must be tcp://HOST:PORT, ipc://PATH"),
     (["run", "--flight", "external", "--link", "zmq:tcp://10.1.2.3:5555", "--insecure"], "loopback debugging only"),
+    # both waited out the 120 s hello timeout, then read as a board that never answered
+    (["run", "--flight", "external", "--link", "zmq:tcp://no-such-host.invalid:5555", "--insecure"], "not resolve"),
+    (["run", "--flight", "external", "--link", "zmq:inproc://board", "--insecure"], "inproc:// joins threads"),
     (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@fast"], "must be a whole number, got 'fast'"),
     (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@"], "nothing after '@'"),
     # the board: before its warm-up
