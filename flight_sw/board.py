@@ -29,6 +29,7 @@ board's own stage costs). The link's sessions, retransmissions and timeouts are
 from __future__ import annotations
 
 import sys
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
@@ -36,7 +37,8 @@ from typing import Any
 from protocol.messages import MESSAGE_NAMES, Frame, Hello, Result, Telemetry
 
 KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where the board has a C compiler
-REFUSALS_SAID = 100  # refused messages said on the console; the rest are counted
+REFUSALS_SAID = 5  # refused messages said one by one on the console; then one line per REFUSALS_QUIET_S with a count
+REFUSALS_QUIET_S = 10.0
 PAIR_IDS_KEPT = 4096  # frame seq -> pair_id: far more than the frames in flight at any time
 
 
@@ -56,6 +58,7 @@ class GroundSession:
         self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
         self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
+        self._refusals_said_at, self._refusals_unsaid, self._last_refusal = 0.0, 0, ""
         self.fused_results: Callable[[], int | None] = lambda: None  # results in the fused map (None: no fusion)
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
@@ -84,13 +87,25 @@ class GroundSession:
 
     def _say_refusals(self) -> None:
         """Messages the link refused although they arrived whole (a stranger's, or a ground's over the limits):
-        said here, as nothing else will (the first ``REFUSALS_SAID``; all are counted)."""
+        said here, as nothing else will: the first ``REFUSALS_SAID`` each, then one line per ``REFUSALS_QUIET_S``
+        with how many came meanwhile (a stranger's garbage printed 100 identical lines in seconds); all counted."""
+        now = time.monotonic()
         for type_code, reason in self.link.take_refusals():
             self.counters["refused"] += 1
+            what = MESSAGE_NAMES.get(type_code, f"type {type_code}") if type_code is not None else "message"
             if self.counters["refused"] <= REFUSALS_SAID:
-                what = MESSAGE_NAMES.get(type_code, f"type {type_code}") if type_code is not None else "message"
-                more = " (the rest are only counted)" if self.counters["refused"] == REFUSALS_SAID else ""
+                more = " (the rest are summed every 10 s)" if self.counters["refused"] == REFUSALS_SAID else ""
                 self.log(f"flight: refused a {what} from the link: {reason}{more}")
+                self._refusals_said_at = now
+            else:
+                self._refusals_unsaid += 1
+                self._last_refusal = f"{what}: {reason}"
+        if self._refusals_unsaid and now - self._refusals_said_at >= REFUSALS_QUIET_S:
+            self.log(
+                f"flight: refused {self._refusals_unsaid} more message(s) from the link in the last "
+                f"{now - self._refusals_said_at:.0f} s (the latest a {self._last_refusal})"
+            )
+            self._refusals_said_at, self._refusals_unsaid = now, 0
 
     def _new_session(self, hello: Hello, epoch: int) -> None:
         self.counters["sessions"] += 1

@@ -576,3 +576,21 @@ def test_a_run_killed_outright_leaves_no_ground_streamer_holding_the_device(mani
         finally:
             if run.poll() is None:
                 run.kill()
+
+
+def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypatch):
+    """Raw garbage on an insecure board's port printed 100 identical lines within seconds."""
+    import flight_sw.board as board
+
+    clock = [1000.0]
+    monkeypatch.setattr(board.time, "monotonic", lambda: clock[0])
+    link = RecordingLink([], refusals=[(None, "malformed message header: 238 bytes, not 16")] * 40)
+    said: list[str] = []
+    ground = GroundSession(link, log=said.append)
+    assert ground.recv(0.01) is None
+    assert ground.counters["refused"] == 40 and len(said) == board.REFUSALS_SAID
+    assert said[-1].endswith("(the rest are summed every 10 s)")
+    clock[0] += board.REFUSALS_QUIET_S
+    link.refusals = [(None, "malformed message header: 238 bytes, not 16")]
+    assert ground.recv(0.01) is None
+    assert said[-1].startswith("flight: refused 36 more message(s) from the link in the last 10 s"), said[-1]
