@@ -729,12 +729,13 @@ def _wait_ground(
             return None, f"the HIL server (supervisor) exited with {code}" + (f": {last}" if last else "")
 
 
-def _stop(proc: subprocess.Popen | None, grace_s: float = GRACE_S) -> None:
-    """SIGCONT + SIGTERM to the child's group; SIGKILL to the group after ``grace_s``."""
+def _stop(proc: subprocess.Popen | None, grace_s: float = GRACE_S, how: int = signal.SIGTERM) -> None:
+    """SIGCONT + ``how`` (SIGTERM; the run's own interrupting signal, which each child says it was stopped by)
+    to the child's group; SIGKILL to the group after ``grace_s``."""
     if proc is None:
         return
     if proc.poll() is None:
-        for sig in (signal.SIGCONT, signal.SIGTERM):  # a child frozen by a stall test must wake to terminate
+        for sig in (signal.SIGCONT, how):  # a child frozen by a stall test must wake to terminate
             try:
                 os.killpg(proc.pid, sig)
             except ProcessLookupError:
@@ -1190,7 +1191,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             sigs.disarm()
             if interrupted is not None or reason is not None:
                 log(f"run: stopping ({reason})")
-            _stop(ground)
+            # a Ctrl-C reaches the ground as SIGINT (it handles both), so it says "interrupted by SIGINT"
+            _stop(ground, how=signal.SIGINT if interrupted == signal.SIGINT else signal.SIGTERM)
             _stop(sup)
             if bridge is not None:
                 bridge.close()

@@ -580,7 +580,7 @@ def test_a_run_killed_outright_leaves_no_ground_streamer_holding_the_device(mani
 
 def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypatch):
     """Raw garbage on an insecure board's port printed 100 identical lines within seconds."""
-    import flight_sw.board as board
+    from flight_sw import board
 
     clock = [1000.0]
     monkeypatch.setattr(board.time, "monotonic", lambda: clock[0])

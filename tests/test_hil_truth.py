@@ -214,7 +214,7 @@ def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, t
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
     cmd += ["--budget", "snapdragon801", "--baud", "115200", "--out", str(out)]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen: set[int] = set()
     t0 = time.monotonic()
     try:
@@ -225,12 +225,14 @@ def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, t
         time.sleep(0.5)
         seen |= _descendants(proc.pid)
         proc.send_signal(sig)
-        stdout, _ = proc.communicate(timeout=30)
+        stdout, stderr = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 128 + sig
     assert "INCOMPLETE" in stdout
+    # the ground says the signal the run got: a Ctrl-C read "ground: interrupted by SIGTERM"
+    assert f"ground: interrupted by {sig.name}" in stderr, stderr[-2000:]
     left = [p for p in seen if _alive(p)]
     assert not left, [Path(f"/proc/{p}/cmdline").read_bytes() for p in left]
     s = json.loads((out / "summary.json").read_text())
