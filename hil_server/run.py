@@ -534,6 +534,7 @@ def top_site_text(r: dict) -> str:
 
 def summary_table(summary: dict) -> str:
     from hil_server.run_report import level_text
+    from reports.console import printable
 
     rows = [
         "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
@@ -553,8 +554,10 @@ def summary_table(summary: dict) -> str:
                 f"{_fmt(sc.get('dem_mean_abs'))} | {top_site_text(r)} |"
             )
         else:
+            # the reason in the row: the file said only "error: link_down", the reason was in summary.json alone
+            why = printable(str(r.get("text") or "no result"), 160).replace("|", "/")
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | no result "
+                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | {why} "
                 "| — | — | — | — |"
             )
     s = summary
