@@ -82,6 +82,7 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
+from protocol.links import MECHANISM_MISMATCH_TEXT
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
@@ -457,6 +458,15 @@ def stream_descent(
                 raise NoHello(
                     f"the flight computer on {where} requires CURVE authentication and this ground has none "
                     "(--insecure): give it --keys DIR with a key the board accepts"
+                )
+            if (
+                refused_since is not None
+                and now - refused_since >= AUTH_GIVE_UP_S
+                and MECHANISM_MISMATCH_TEXT in (link.last_error or "")
+            ):
+                raise NoHello(
+                    f"the flight computer on {where} runs without CURVE (--insecure) and this ground has keys: "
+                    "start the board with --keys DIR, or give both --insecure on loopback"
                 )
             if refused_since is not None and now - refused_since >= AUTH_GIVE_UP_S:
                 raise NoHello(

@@ -102,6 +102,8 @@ class LinkEvent:
     epoch: int
 
 
+# the ZMTP handshake's own word for one side with CURVE and the other without (--insecure)
+MECHANISM_MISMATCH_TEXT = "security mechanisms differ: one side has CURVE keys, the other runs --insecure"
 OWN_STALL_S = 1.0  # an I/O loop that polls every 20 ms and saw this gap was itself stopped, not its peer
 
 
@@ -1224,12 +1226,15 @@ class ZmqLink(Link, SessionView):
                 zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
             ):
                 fd, addr = self._accepted.popleft() if self._accepted and self.bind else (-1, "the server")
+                # one side with CURVE keys and the other --insecure is no key problem: say which it is
+                mismatch = kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL and value == getattr(
+                    zmq, "PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH", -1
+                )
                 with self._cv:
                     self._stats["auth_failures"] += 1
                     who = f"connection from {addr}" if self.bind else "the server"
-                    self._pending_events.append(
-                        ("auth_failed", f"{who}: CURVE handshake failed (wrong or missing key?)", self.epoch)
-                    )
+                    why = MECHANISM_MISMATCH_TEXT if mismatch else "CURVE handshake failed (wrong or missing key?)"
+                    self._pending_events.append(("auth_failed", f"{who}: {why}", self.epoch))
             elif kind == zmq.EVENT_DISCONNECTED:
                 self._unheard.discard(value)
                 if value == self._owner:

@@ -581,3 +581,20 @@ def test_a_board_refuses_a_clients_directory_no_ground_could_pass(tmp_path):
     (keys / "server.key_secret").mkdir()
     with pytest.raises(InputError, match=r"server\.key_secret is not a regular file"):
         server_keys(keys)
+
+
+def test_curve_against_insecure_is_named_as_such_not_as_a_wrong_key(tmp_path):
+    """A ground with keys against an --insecure board was told its key was refused, and to fix the board's
+    clients/ directory: the board has no keys at all."""
+    from protocol.links import MECHANISM_MISMATCH_TEXT
+
+    keys = generate_keys(tmp_path / "keys")
+    with (
+        ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board") as S,
+        ZmqLink(S.endpoint, bind=False, keys=keys, name="ground") as C,
+    ):
+        end = time.monotonic() + 10
+        while time.monotonic() < end and MECHANISM_MISMATCH_TEXT not in (C.last_error or ""):
+            C.recv(0.2)
+        assert MECHANISM_MISMATCH_TEXT in (C.last_error or ""), C.last_error
+        assert not C.established
