@@ -594,3 +594,16 @@ def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypa
     link.refusals = [(None, "malformed message header: 238 bytes, not 16")]
     assert ground.recv(0.01) is None
     assert said[-1].startswith("flight: refused 36 more message(s) from the link in the last 10 s"), said[-1]
+
+
+def test_a_zeromq_port_where_nothing_listens_is_named_as_such(tmp_path):
+    """libzmq retries a refused port in silence: the run read "its link never answered (is it powered ...?)"."""
+    import socket
+
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens on it
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+    s = run_hil(manifest, tmp_path / "run", f"zmq:tcp://127.0.0.1:{port}", flight="external", insecure=True,
+                hello_timeout_s=2.0)  # fmt: skip
+    assert not s["complete"] and f"nothing listens on 127.0.0.1:{port} (connection refused)" in s["reason"], s
