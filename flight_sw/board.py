@@ -146,9 +146,15 @@ class GroundSession:
         level = self.levels.pop(seq, "no Result")
         verdict = "met" if tel.deadline_met else "MISSED"
         fused = self.fused_results()
+        # computed for a ground whose session has since gone: it read as "met" while the ground recorded link_down
+        gone = not (getattr(self.link, "established", True) and getattr(self.link, "epoch", self.epoch) == self.epoch)
         self.log(
             f"flight: pair {pair}: {level}, {tel.total_latency_s:.2f} s from its last frame "
-            f"(deadline {tel.deadline_s:g} s with the Result's line time: {verdict}, as this side expects)"
+            + (
+                "(not delivered: the ground's session ended before the answer went out)"
+                if gone
+                else f"(deadline {tel.deadline_s:g} s with the Result's line time: {verdict}, as this side expects)"
+            )
             + (f"; the fused map holds {fused} result(s)" if fused else "")
         )
 

@@ -607,3 +607,19 @@ def test_a_zeromq_port_where_nothing_listens_is_named_as_such(tmp_path):
     s = run_hil(manifest, tmp_path / "run", f"zmq:tcp://127.0.0.1:{port}", flight="external", insecure=True,
                 hello_timeout_s=2.0)  # fmt: skip
     assert not s["complete"] and f"nothing listens on 127.0.0.1:{port} (connection refused)" in s["reason"], s
+
+
+def test_a_pair_whose_ground_left_is_not_called_met_on_the_board():
+    """The board printed "met, as this side expects" for a pair computed after its ground's session had ended;
+    the ground had recorded it as link_down."""
+    link = RecordingLink([Packet(Hello(role="ground", session=7), 1)])
+    said: list[str] = []
+    ground = GroundSession(link, log=said.append)
+    assert ground.recv() is None
+    tel = Telemetry(frame_seqs=[0, 1], stages={}, total_latency_s=0.27, deadline_s=2.0, deadline_met=True)
+    link.established, link.epoch = True, 1
+    ground.send(tel)
+    assert "met, as this side expects" in said[-1]
+    link.established = False  # the session is gone: the answer cannot reach that ground
+    ground.send(tel)
+    assert "not delivered: the ground's session ended" in said[-1] and "met" not in said[-1], said[-1]
