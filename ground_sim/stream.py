@@ -459,6 +459,8 @@ def stream_descent(
         said_unanswered = False
         while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
             now = time.monotonic()
+            for type_code, reason in link.take_refusals():  # before any session: a stranger's, counted and said
+                count_refusal(type_code, f"before any session: {reason}")
             if getattr(link, "answered", None) is False and not said_unanswered:
                 # said at once, not after the whole wait: the other ground's descent may end, and this one go on
                 said_unanswered = True
@@ -495,10 +497,13 @@ def stream_descent(
                     "and this ground's server.key must be the board's (`hazard-hil keys DIR` makes a matching set)"
                 )
             if now >= end:
-                raise NoHello(
-                    f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: "
-                    + _silent_link_reason(link, where)
+                stranger = (
+                    f"something there answers, but not in this protocol ({state.refused_messages} messages "
+                    f"refused, the latest: {state.last_refused['reason']})"
+                    if state.refused_messages and state.last_refused
+                    else _silent_link_reason(link, where)
                 )
+                raise NoHello(f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: {stranger}")
             if now >= next_note:
                 waiting(t0)
                 next_note = now + HELLO_NOTE_S

@@ -623,3 +623,37 @@ def test_a_pair_whose_ground_left_is_not_called_met_on_the_board():
     link.established = False  # the session is gone: the answer cannot reach that ground
     ground.send(tel)
     assert "not delivered: the ground's session ended" in said[-1] and "met" not in said[-1], said[-1]
+
+
+def test_a_stranger_speaking_zeromq_on_the_boards_port_is_counted_and_named(tmp_path):
+    """Before a session the ground neither said nor counted what it refused: 160 malformed messages from a rogue
+    on the port ended as "the board never answered", with refused_messages 0."""
+    import threading
+
+    import zmq
+
+    ctx = zmq.Context()
+    rogue = ctx.socket(zmq.PAIR)
+    rogue.linger = 0
+    port = rogue.bind_to_random_port("tcp://127.0.0.1")
+    stop = threading.Event()
+
+    def babble() -> None:
+        while not stop.is_set():
+            rogue.send(b"\x02\x01", zmq.NOBLOCK) if rogue.poll(0, zmq.POLLOUT) else None
+            time.sleep(0.05)
+
+    t = threading.Thread(target=babble, daemon=True)
+    t.start()
+    try:
+        manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+        s = run_hil(manifest, tmp_path / "run", f"zmq:tcp://127.0.0.1:{port}", flight="external", insecure=True,
+                    hello_timeout_s=3.0)  # fmt: skip
+    finally:
+        stop.set()
+        t.join(2)
+        rogue.close()
+        ctx.term()
+    assert not s["complete"] and "answers, but not in this protocol" in s["reason"], s["reason"]
+    counters = json.loads((tmp_path / "run" / "received" / "ground.json").read_text())
+    assert counters["refused_messages"] > 0 and "before any session" in counters["last_refused"]["reason"]
