@@ -134,7 +134,7 @@ class Link:
                 return
             self._quiet[kind] = (now, 0)
             if quiet:
-                text += f" ({quiet} more like it in the last {now - said:.0f} s)"
+                text += f" ({quiet} more like it, not shown, after the one said {now - said:.0f} s ago)"
         self._log(f"link {self.name or '?'}: {kind}: {text}")
 
     def events(self) -> list[LinkEvent]:
