@@ -144,7 +144,7 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     if res.sites:  # DESIGN.md's rule: every pixel whose true ground lies in the footprint, which frame 0 must hold
         world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
         j = judge_site((res.sites[0].x, res.sites[0].y), world[..., :2], pair.truth["hazard"])
-        top, top_unseen = 100.0 * j["safe"], int(j["incomplete"])
+        top, top_unseen = 100.0 * j["safe"], int(j["incomplete"] and j["n_unsafe"] == 0)  # as `score` counts it
     st = res.state[res.covered]
     return {
         "fp": m["fp_pct"],

@@ -134,6 +134,9 @@ def peak_memory_bytes(width: int, height: int, n_frames: int) -> int:
     return PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
 
 
+ADDRESS_SPACE_SLACK_BYTES = 256 * 2**20  # mapped, not resident: OpenCV's thread stacks, glibc arenas
+
+
 def memory_room() -> tuple[int, str]:
     """The bytes this process can still spend, and what bounds them: the least of the host's free memory
     (``psutil.virtual_memory().available``), the address space left under ``RLIMIT_AS`` (``ulimit -v``,
@@ -146,9 +149,11 @@ def memory_room() -> tuple[int, str]:
     room = (int(psutil.virtual_memory().available), "of memory is available")
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     if soft != resource.RLIM_INFINITY:
-        left = max(0, int(soft) - int(psutil.Process().memory_info().vms))
+        # the process's base is mapped already (counted in vms and in the need alike: added back), and the work
+        # maps more than it touches (thread stacks, allocator arenas): a necessary bound, not a sufficient one
+        left = int(soft) - int(psutil.Process().memory_info().vms) + PROCESS_BASE_BYTES - ADDRESS_SPACE_SLACK_BYTES
         if left < room[0]:
-            room = (left, "of address space is left under this process's limit (ulimit -v)")
+            room = (max(0, left), "of address space is left under this process's limit (ulimit -v)")
     group = _cgroup_room()
     if group is not None and group < room[0]:
         room = (group, "is left under this process's cgroup memory limit (memory.max)")
@@ -164,7 +169,11 @@ def _cgroup_room() -> int | None:
         limit = (base / "memory.max").read_text().strip()
         if limit == "max":
             return None
-        return max(0, int(limit) - int((base / "memory.current").read_text()))
+        # memory.current counts page cache the kernel would reclaim first: the working set is current minus
+        # inactive_file (as container runtimes count it), else a container that just read its renders refused
+        stat = dict(line.split() for line in (base / "memory.stat").read_text().splitlines() if " " in line)
+        used = int((base / "memory.current").read_text()) - int(stat.get("inactive_file", 0))
+        return max(0, int(limit) - max(0, used))
     except (OSError, StopIteration, ValueError):
         return None
 

@@ -165,19 +165,26 @@ def judge_site(
 def _cell_holding(world_xy: np.ndarray, d2: np.ndarray) -> np.ndarray:
     """The pixel whose ground cell holds a footprint that falls between pixel centres (a ground sample coarser
     than the footprint, 3-5 m at 2000 m on an approach, where no centre lies within 1.5 m and the rule would be
-    vacuous): the nearest pixel, when the site lies within half its cell's diagonal. Else no pixel (off the
-    image)."""
+    vacuous): the nearest pixel, when the site lies within half its cell's diagonal. Each side of the cell is
+    the shorter step to the pixel's two neighbours on that axis; neighbours whose steps differ by more than 2x
+    (a rim hiding ground behind it) or that have no ground (a hole) leave the site unconfirmed, as does a site
+    past the last pixel's cell (off the image)."""
     near = np.zeros(d2.shape, bool)
     if not np.isfinite(d2).any():
         return near
     v, u = np.unravel_index(int(np.nanargmin(d2)), d2.shape)
     h, w = d2.shape
-    steps = []
-    for dv, du in ((0, 1), (1, 0)):  # the cell's sides from the neighbours (either side, at an image edge)
-        vv, uu = (v + dv, u + du) if v + dv < h and u + du < w else (v - dv, u - du)
-        if 0 <= vv < h and 0 <= uu < w:
-            steps.append(float(np.hypot(*(world_xy[vv, uu, :2] - world_xy[v, u, :2]))))
-    if len(steps) == 2 and np.isfinite(steps).all() and d2[v, u] <= 0.25 * (steps[0] ** 2 + steps[1] ** 2):
+    sides = []
+    for dv, du in ((0, 1), (1, 0)):
+        steps = [
+            float(np.hypot(*(world_xy[vv, uu, :2] - world_xy[v, u, :2])))
+            for vv, uu in ((v + dv, u + du), (v - dv, u - du))
+            if 0 <= vv < h and 0 <= uu < w
+        ]
+        if not steps or not np.isfinite(steps).all() or max(steps) > 2.0 * min(steps):
+            return near
+        sides.append(min(steps))
+    if d2[v, u] <= 0.25 * (sides[0] ** 2 + sides[1] ** 2):
         near[v, u] = True
     return near
 

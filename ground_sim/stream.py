@@ -323,23 +323,6 @@ class _SessionState:
     last_refused: dict | None = None  # {"type", "reason"} of the latest
 
 
-def _refuses_connections(where: str) -> str | None:
-    """For ``zmq:tcp://HOST:PORT``: whether a plain TCP connection there is refused, i.e. nothing listens
-    (libzmq retries a refused port in silence, which read like a board that is on but mute)."""
-    import socket
-
-    if not where.startswith("zmq:tcp://"):
-        return None
-    host, _, port = where[len("zmq:tcp://") :].rpartition(":")
-    try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=2.0):
-            return None
-    except ConnectionRefusedError:
-        return f"nothing listens on {host}:{port} (connection refused): is the board's `hazard-hil flight` running?"
-    except (OSError, ValueError):
-        return None
-
-
 def _silent_link_reason(link, where: str) -> str:
     """Why a link never came up, from what its line carried: nothing at all, or bytes that are not this protocol
     (another device on the port, or the right one at another baud: both look like line noise to the decoder)."""
@@ -359,9 +342,9 @@ def _silent_link_reason(link, where: str) -> str:
         )
     if getattr(link, "answered", None) is False:
         return UNANSWERED_TEXT
-    refused = _refuses_connections(where)
-    if refused:
-        return refused
+    if getattr(link, "refused_only", False) and where.startswith("zmq:tcp://"):
+        hostport = where[len("zmq:tcp://") :]
+        return f"nothing listens on {hostport} (connection refused): is the board's `hazard-hil flight` running?"
     check = (
         "on this port, at this baud"
         if where.startswith("serial")

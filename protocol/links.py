@@ -745,6 +745,7 @@ class ZmqLink(Link, SessionView):
         self._unheard: set[int] = set()  # binding side: fds of connections PAIR refused, still open
         self._sessionless_since = time.monotonic()  # binding side: the attached peer has had no session since
         self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
+        self._connect_retries, self._connected_ever = 0, False  # connecting side: TCP attempts refused, any made
         self._stop = False
         self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
         self._io.start()
@@ -951,6 +952,8 @@ class ZmqLink(Link, SessionView):
         if self._stall_since is not None:
             self._stall_since += gap
         self._sessionless_since += gap
+        if self._handshaken_at is not None:  # "up but unanswered" is timed from the connection, not the stop
+            self._handshaken_at += gap
         if self.peer_timeout is not None and gap > self.peer_timeout / 2:  # said where it could have cost a session
             text = f"this side was not scheduled for {gap:.1f} s; the peer's silence is counted from now"
             self._pending_events.append(("stalled", text, self.sess.epoch))
@@ -1174,6 +1177,12 @@ class ZmqLink(Link, SessionView):
             self._pending_events.append(("relisten", text, self.sess.epoch))
 
     @property
+    def refused_only(self) -> bool:
+        """Connecting side: every attempt so far was turned away at the TCP level (connection refused: nothing
+        listens on that port), none ever connected. libzmq retries such a port in silence."""
+        return not self.bind and self._connect_retries > 0 and not self._connected_ever
+
+    @property
     def answered(self) -> bool | None:
         """Connecting side: False while a connection is up (its ZeroMQ handshake done) but the peer has not
         answered on it for :data:`UNANSWERED_S` - a board that serves another ground (PAIR attaches one peer and
@@ -1249,6 +1258,9 @@ class ZmqLink(Link, SessionView):
                     self._handshaken, self._dropped_at = False, time.monotonic()
             elif kind == zmq.EVENT_CONNECT_RETRIED:
                 self._dropped_at = None
+                self._connect_retries += 1
+            elif kind == zmq.EVENT_CONNECTED:
+                self._connected_ever = True
 
     # closing ----------------------------------------------------------------
     def close(self, flush_timeout: float = 5.0) -> None:

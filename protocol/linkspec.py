@@ -106,8 +106,9 @@ def check_baud(baud: int | None, peer_timeout: float | None) -> None:
 
 def check_zmq_endpoint(endpoint: str, *, bind: bool) -> None:
     """Refuse an endpoint libzmq would refuse only at connect time, or take wrongly: ``tcp://HOST:PORT`` with a
-    port in 1..65535 (``*`` for any host or port where binding), ``ipc://PATH`` or ``inproc://NAME``. A port
-    out of range was taken modulo 65536 (``tcp://*:99999`` listened on 34463)."""
+    port in 1..65535 (``*`` for any host or port where binding), ``ipc://PATH`` or ``inproc://NAME`` (which
+    :func:`check_link_spec` then refuses for a link between processes). A port out of range was taken modulo
+    65536 (``tcp://*:99999`` listened on 34463)."""
     scheme, sep, rest = endpoint.partition("://")
     if not sep or scheme not in ("tcp", "ipc", "inproc"):
         raise InputError(f"ZeroMQ endpoint must be tcp://HOST:PORT, ipc://PATH or inproc://NAME, got {endpoint!r}")
@@ -131,7 +132,8 @@ def _check_resolves(endpoint: str) -> None:
     (120 s), which then read as a board that never answered."""
     import socket
 
-    host, _, port = endpoint[len("tcp://") :].rpartition(":")
+    # libzmq's "tcp://SOURCE;HOST:PORT" binds the source address: the host to resolve is after the ';'
+    host, _, port = endpoint[len("tcp://") :].rpartition(";")[2].rpartition(":")
     host = host.strip("[]")
     try:
         socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)

@@ -597,7 +597,7 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
         if pos.shape != (3,):
             raise ValueError(f"position_m has shape {pos.shape}, need 3")
         if np.isfinite(pos).all() and float(np.abs(pos).max()) > MAX_POSITION_M:  # before any arithmetic on it
-            shown = ", ".join(f"{v:.4g}" for v in pos)
+            shown = ", ".join(f"{v:.10g}" for v in pos)  # 10 figures: 1.0000001e7 must not read as the limit
             raise PairFormatError(f"position_m [{shown}] m is over {MAX_POSITION_M:g} m from the origin")
         if "time_s" not in fr:  # frames are ordered by time (DESIGN.md): without one, order cannot be checked
             raise PairFormatError(f"{meta_path}: frame {k}: time_s missing (seconds; frames are ordered by time)")

@@ -100,6 +100,11 @@ def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return np.array(a)
 
 
+def _float32(a: np.ndarray) -> bool:
+    """float32 in either byte order (a MATLAB or Java writer's ``>f4`` is DESIGN.md's float32 too)."""
+    return a.dtype.kind == "f" and a.dtype.itemsize == 4
+
+
 def _check_state(path: Path, state: np.ndarray, hazard: np.ndarray) -> None:
     """``state.npy`` must agree with ``hazard.npy`` pixel by pixel (DESIGN.md): 255 exactly where the hazard is
     NaN, 0 (safe) exactly where it is < 1, 1 or 2 (unsafe, unknown) where it is >= 1. The first disagreement is
@@ -155,8 +160,9 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
         raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area){hil}")
     # DESIGN.md's dtypes exactly: other tools read these files as it says they are
     hazard = _load(out / "hazard.npy", shape)
-    if hazard.dtype != np.float32:
+    if not _float32(hazard):
         raise ScoreError(f"{out / 'hazard.npy'}: must be float32 (DESIGN.md), got dtype {hazard.dtype}")
+    hazard = hazard.astype(np.float32)  # a big-endian file (>f4) is float32 too
     if np.isinf(hazard).any() or (np.nan_to_num(hazard, nan=0.0) < 0).any() or (hazard > 1.0).any():
         raise ScoreError(
             f"{out / 'hazard.npy'}: values must lie in [0, 1] or be NaN outside the covered area "
@@ -165,10 +171,11 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
     elevation = None
     if present("elevation.npy"):
         elevation = _load(out / "elevation.npy", shape)
-        if elevation.dtype != np.float32:
+        if not _float32(elevation):
             raise ScoreError(
                 f"{out / 'elevation.npy'}: must be float32 (NaN where not recovered), got dtype {elevation.dtype}"
             )
+        elevation = elevation.astype(np.float32)
     state = None
     if present("state.npy"):
         state = _load(out / "state.npy", shape)

@@ -78,8 +78,16 @@ def test_a_footprint_smaller_than_the_ground_sample_is_judged_by_the_pixel_that_
     # beyond the last pixel's cell (the grid ends at 20 m): off the image, not confirmed
     off = judge_site((23.5, 0.0), world, np.zeros_like(hazard))
     assert not off["safe"] and off["incomplete"] and off["n_px"] == 0
-    # in the edge pixel's cell: that pixel is on the border, so part of the footprint may be unseen
-    assert judge_site((21.0, 0.0), world, np.zeros_like(hazard))["incomplete"]
+    # in the edge pixel's cell (2.2 m from its centre: only the cell rule reaches it): that pixel is on the
+    # border, so part of the footprint may be unseen
+    edge = judge_site((22.0, 1.0), world, np.zeros_like(hazard))
+    assert edge["incomplete"] and edge["n_px"] == 1 and not edge["safe"]
+    # ground hidden behind a rim: 20 m of it between rows 6 and 7, which frame 0 never saw. A site there is
+    # 2.5 m from the last seen row; the cell rule sized that row's cell from the gap and called it safe
+    hidden = world.copy()
+    hidden[7:, :, 1] += 20.0
+    j = judge_site((1.0, 6.5), hidden, np.zeros_like(hazard))
+    assert not j["safe"] and j["incomplete"] and j["n_px"] == 0, j
 
 
 def _campaign(**kw):

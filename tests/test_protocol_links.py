@@ -527,7 +527,7 @@ def test_a_boards_heartbeats_take_at_most_their_share_of_a_slow_line():
 _STOPPED_SIDE = """
 import sys, time
 from protocol.links import ZmqLink
-with ZmqLink(sys.argv[1], bind=False, insecure=True, name="ground", peer_timeout=1.0) as C:
+with ZmqLink(sys.argv[1], bind=False, insecure=True, name="ground", peer_timeout=2.0) as C:
     assert C.wait_established(5)
     print("up", flush=True)
     got = C.recv(10)  # sent while this process was stopped
@@ -556,7 +556,7 @@ def test_a_side_that_was_stopped_restarts_its_silence_clock():
             child.send_signal(signal.SIGSTOP)
             time.sleep(0.5)
             S.send(Error(code="result", text="computed while the ground was stopped"))
-            time.sleep(3.0)  # 3x the stopped side's peer timeout
+            time.sleep(5.0)  # 2.5x the stopped side's peer timeout
             child.send_signal(signal.SIGCONT)
             out, _ = child.communicate(timeout=30)
         finally:

@@ -271,3 +271,14 @@ def test_a_site_without_a_height_is_judged_by_its_x_y(descent, tmp_path, capsys)
     code, doc = _score(d, out, capsys)
     r = doc["rows"][0]
     assert r["error"] is None and r["sites"] == 2 and r["cdi_pct"] is not None
+
+
+def test_a_big_endian_float32_map_is_float32(descent, tmp_path, capsys):
+    """DESIGN.md's float32 in the other byte order (MATLAB, Java) was refused as 'not float32'."""
+    d = descent / "300_150"
+    gt = read_pair(d).truth["hazard"]
+    out = tmp_path / "be"
+    out.mkdir()
+    np.save(out / "hazard.npy", gt.astype(">f4"))
+    code, doc = _score(d, out, capsys)
+    assert doc["rows"][0]["error"] is None and doc["rows"][0]["fp_pct"] == 0 and code == 0
