@@ -148,16 +148,19 @@ def _process(args: argparse.Namespace) -> int:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
         params = dataclasses.replace(params, n_sites=args.sites)
     frames = [0, pair.n_frames - 1] if args.widest_pair else list(range(pair.n_frames))
-    res = run_pipeline_multi(
-        [pair.images[k] for k in frames],
-        [pair.poses[k] for k in frames],
-        pair.camera,
-        preset=params,
-        deadline_s=args.deadline,
-        altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
-        sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
-        sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
-    )
+    try:
+        res = run_pipeline_multi(
+            [pair.images[k] for k in frames],
+            [pair.poses[k] for k in frames],
+            pair.camera,
+            preset=params,
+            deadline_s=args.deadline,
+            altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
+            sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
+            sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
+        )
+    except FlightInputError as exc:  # the pipeline's checks of the camera and poses: name the file they came from
+        raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import MAX_POSITION_M, Camera, PairFormatError, Pose
+from protocol.pairdir import MAX_FOCAL_SIDES, MAX_POSITION_M, MAX_PRINCIPAL_SIDES, Camera, PairFormatError, Pose
 
 
 class FlightInputError(InputError):
@@ -33,10 +33,6 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
     if np.issubdtype(img.dtype, np.floating) and not np.all(np.isfinite(img)):
         raise FlightInputError(f"{name}: contains NaN or inf")
     return img
-
-
-MAX_FOCAL_SIDES = 1000.0  # focal length at most 1000 image sides (a 0.06 deg field of view)
-MAX_PRINCIPAL_SIDES = 10.0  # principal point within 10 image sides of the image
 
 
 def check_geometry(camera: Camera, poses: list[Pose]) -> None:

@@ -57,6 +57,8 @@ ALTIMETER_MAX_RATIO, ALTIMETER_SLACK_M, ALTIMETER_MAX_OFF_M = 2.0, 100.0, 5000.0
 STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE = 0, 1, 2, 255
 
 # The flight software's limits, here so that every tool that writes or reads a pair applies the same ones
+MAX_FOCAL_SIDES = 1000.0  # focal length at most 1000 image sides (a 0.06 deg field of view)
+MAX_PRINCIPAL_SIDES = 10.0  # principal point within 10 image sides of the image
 MAX_POSITION_M = 1.0e7  # 10,000 km: past any descent (the Moon's radius is 1,737 km)
 SUN_AZIMUTH_LIMIT_DEG = 360.0  # |azimuth|; the elevation is in (0, 90]
 
@@ -120,6 +122,18 @@ class Camera:
             )
         if not all(math.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
             raise PairFormatError(f"camera: focal lengths must be finite and positive, got {vals}")
+        # bounds past any real camera, said by the reader before a note blames the positions' units for them
+        side = float(max(self.width, self.height))
+        if max(self.fx, self.fy) > MAX_FOCAL_SIDES * side:
+            raise PairFormatError(
+                f"camera: focal length {max(self.fx, self.fy):.4g} px is over {MAX_FOCAL_SIDES:g} image sides"
+            )
+        lim = MAX_PRINCIPAL_SIDES * side
+        if not (-lim <= self.cx <= self.width + lim and -lim <= self.cy <= self.height + lim):
+            raise PairFormatError(
+                f"camera: principal point ({self.cx:.4g}, {self.cy:.4g}) lies more than {MAX_PRINCIPAL_SIDES:g} "
+                "image sides outside the image"
+            )
 
 
 def _number(v: Any, name: str) -> Any:

@@ -254,6 +254,8 @@ def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
         (lambda doc: doc["frames"][1]["position_m"].__setitem__(0, float("nan")), "frame 1: position, rotation"),
         (lambda doc: doc.update(sun={"azimuth_deg": 400.0, "elevation_deg": 20.0}), "sun.azimuth_deg must be in"),
         (lambda doc: doc.update(sun={"azimuth_deg": 40.0, "elevation_deg": -5.0}), "sun.elevation_deg must be in"),
+        # the pipeline's own checks of the camera named no file ("camera: focal length 1e+300 px ...")
+        (lambda doc: doc["camera"].update(fx=1e300, fy=1e300), "pair.json: camera: focal length 1e+300 px"),
     ],
 )
 def test_pose_and_sun_errors_name_the_file(good, tmp_path, capsys, edit, says):
