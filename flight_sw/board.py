@@ -148,6 +148,7 @@ class GroundSession:
         fused = self.fused_results()
         # computed for a ground whose session has since gone: it read as "met" while the ground recorded link_down
         gone = not (getattr(self.link, "established", True) and getattr(self.link, "epoch", self.epoch) == self.epoch)
+        gone = gone or seq not in self.pair_ids  # its frames came in a session a newer ground's Hello replaced
         self.log(
             f"flight: pair {pair}: {level}, {tel.total_latency_s:.2f} s from its last frame "
             + (

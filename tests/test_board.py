@@ -618,11 +618,18 @@ def test_a_pair_whose_ground_left_is_not_called_met_on_the_board():
     assert ground.recv() is None
     tel = Telemetry(frame_seqs=[0, 1], stages={}, total_latency_s=0.27, deadline_s=2.0, deadline_met=True)
     link.established, link.epoch = True, 1
+    ground.pair_ids[0] = "p000-600_300"  # its frames came in this session
     ground.send(tel)
     assert "met, as this side expects" in said[-1]
     link.established = False  # the session is gone: the answer cannot reach that ground
     ground.send(tel)
     assert "not delivered: the ground's session ended" in said[-1] and "met" not in said[-1], said[-1]
+    # a newer ground's Hello replaced the session while the pair was computed: not that ground's pair either
+    link.established = True
+    link.packets = [Packet(Hello(role="ground", session=8), 1)]
+    assert ground.recv() is None and ground.pair_ids == {}
+    ground.send(tel)
+    assert "not delivered" in said[-1], said[-1]
 
 
 def test_a_stranger_speaking_zeromq_on_the_boards_port_is_counted_and_named(tmp_path):
