@@ -954,6 +954,8 @@ class ZmqLink(Link, SessionView):
         self._sessionless_since += gap
         if self._handshaken_at is not None:  # "up but unanswered" is timed from the connection, not the stop
             self._handshaken_at += gap
+        for m in self._out:  # the connect timeout of what waits to be sent: the stop was not the peer's
+            m.submitted += gap
         if self.peer_timeout is not None and gap > self.peer_timeout / 2:  # said where it could have cost a session
             text = f"this side was not scheduled for {gap:.1f} s; the peer's silence is counted from now"
             self._pending_events.append(("stalled", text, self.sess.epoch))
