@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import MAX_FOCAL_SIDES, MAX_POSITION_M, MAX_PRINCIPAL_SIDES, Camera, PairFormatError, Pose
+from protocol.pairdir import MAX_POSITION_M, Camera, PairFormatError, Pose
 
 
 class FlightInputError(InputError):
@@ -37,19 +37,13 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
 
 def check_geometry(camera: Camera, poses: list[Pose]) -> None:
     """Finite is not enough: values far outside any descent make the geometry overflow (a pose at 1e308 m
-    gave NaN parallax deep in the sweep). Bounds: ``|position| <= MAX_POSITION_M``, focal lengths up to
-    ``MAX_FOCAL_SIDES`` image sides, the principal point within ``MAX_PRINCIPAL_SIDES`` sides of the image."""
-    side = float(max(camera.width, camera.height))
-    if max(camera.fx, camera.fy) > MAX_FOCAL_SIDES * side:
-        raise FlightInputError(
-            f"camera: focal length {max(camera.fx, camera.fy):.4g} px is over {MAX_FOCAL_SIDES:g} image sides"
-        )
-    lim = MAX_PRINCIPAL_SIDES * side
-    if not (-lim <= camera.cx <= camera.width + lim and -lim <= camera.cy <= camera.height + lim):
-        raise FlightInputError(
-            f"camera: principal point ({camera.cx:.4g}, {camera.cy:.4g}) lies more than {MAX_PRINCIPAL_SIDES:g} "
-            "image sides outside the image"
-        )
+    gave NaN parallax deep in the sweep). Bounds: the camera's of the pair format (:meth:`Camera.validate`:
+    focal lengths up to ``MAX_FOCAL_SIDES`` image sides, the principal point within ``MAX_PRINCIPAL_SIDES``
+    sides of the image), ``|position| <= MAX_POSITION_M``."""
+    try:
+        camera.validate()  # one statement of the camera's bounds, the reader's, for callers of the API too
+    except PairFormatError as exc:
+        raise FlightInputError(str(exc)) from None
     for k, pose in enumerate(poses):
         if float(np.abs(pose.position).max()) > MAX_POSITION_M:
             raise FlightInputError(
