@@ -24,6 +24,9 @@ def slow(k):
 
 
 if __name__ == "__main__":
+    # what this process inherited, said when the test fails (a Ctrl-C ignored or blocked by its parent is not one)
+    print(f"SIGINT {{signal.getsignal(signal.SIGINT)}}, blocked {{signal.pthread_sigmask(signal.SIG_BLOCK, [])}}",
+          file=sys.stderr, flush=True)
     threading.Timer(4.0, lambda: os.killpg(0, signal.SIGINT)).start()  # Ctrl-C: the parent and its workers
     try:
         pool_map(slow, [(1,), (2,)], workers=2)
@@ -39,7 +42,14 @@ def test_ctrl_c_ends_a_pool_at_once_with_its_workers(tmp_path):
     script.write_text(SCRIPT.format(root=str(ROOT)))
     t0 = time.monotonic()
     done = subprocess.run(
-        [sys.executable, str(script)], capture_output=True, text=True, timeout=120, start_new_session=True
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        start_new_session=True,
+        # a terminal's foreground job takes Ctrl-C; a job started in the background by a non-interactive shell
+        # (a CI runner's `./.ci/run &`) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     took = time.monotonic() - t0
     assert done.returncode == 130 and done.stdout.strip() == "interrupted", done.stderr[-2000:]
