@@ -121,7 +121,7 @@ def run_pair(pair: Any, preset: Any) -> Any:
 
 def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
-    from ground_sim.gridscore import judge_site
+    from ground_sim.gridscore import judge_site, site_verdict
     from protocol.pairdir import read_pair
     from studies.evaluate import _site_radius_px, backproject_depth, score_arrays, true_poses
 
@@ -144,7 +144,7 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     if res.sites:  # DESIGN.md's rule: every pixel whose true ground lies in the footprint, which frame 0 must hold
         world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
         j = judge_site((res.sites[0].x, res.sites[0].y), world[..., :2], pair.truth["hazard"])
-        top, top_unseen = 100.0 * j["safe"], int(j["incomplete"] and j["n_unsafe"] == 0)  # as `score` counts it
+        top, top_unseen = 100.0 * j["safe"], int(site_verdict(j) is None)
     st = res.state[res.covered]
     return {
         "fp": m["fp_pct"],

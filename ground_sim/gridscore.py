@@ -189,6 +189,16 @@ def _cell_holding(world_xy: np.ndarray, d2: np.ndarray) -> np.ndarray:
     return near
 
 
+def site_verdict(judged: dict[str, Any]) -> bool | None:
+    """A :func:`judge_site` result in one word: True truly clear, False not (an unsafe pixel in the footprint, or
+    a wholly seen footprint that is not clear), None not confirmed (the image does not hold the whole footprint
+    and sees no hazard in it). Scores count None as not safe; the HIL judges it on another pair, pictures draw it
+    black."""
+    if judged["safe"]:
+        return True
+    return None if judged["incomplete"] and judged["n_unsafe"] == 0 else False
+
+
 def judge_sites(pair: Any, sites_xy: list[tuple[float, float]]) -> list[dict[str, Any]]:
     """:func:`judge_site` for each site, on ``pair``'s truth of frame 0 (its depth and hazard)."""
     truth = pair.truth

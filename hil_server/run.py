@@ -184,7 +184,7 @@ def score_records(records: list[dict]) -> list[dict]:
     ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
-    from ground_sim.gridscore import judge_sites, score_grids
+    from ground_sim.gridscore import judge_sites, score_grids, site_verdict
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -215,7 +215,7 @@ def score_records(records: list[dict]) -> list[dict]:
             top = judged[0] if judged else None
             # the one a lander would take; one this image cannot judge (not wholly in view, nothing unsafe seen) is
             # neither clear nor not: the fused map's site may lie on ground an earlier pair saw
-            if top is not None and (top["n_unsafe"] > 0 or not top["incomplete"]):
+            if top is not None and site_verdict(top) is not None:
                 scores["top_site_clear"] = float(top["safe"])
             rec["site_truth"] = judged
             rec["scores"] = scores
@@ -235,7 +235,7 @@ def score_records(records: list[dict]) -> list[dict]:
 
 def _judge_elsewhere(scored: list[tuple[dict, Any]]) -> None:
     """Judge each top site its own pair could not on another pair of the same scene render (see score_records)."""
-    from ground_sim.gridscore import judge_sites
+    from ground_sim.gridscore import judge_sites, site_verdict
 
     def scene(pair: Any) -> tuple | None:
         meta = pair.meta if isinstance(pair.meta, dict) else {}
@@ -250,7 +250,7 @@ def _judge_elsewhere(scored: list[tuple[dict, Any]]) -> None:
             if other is rec or scene(other_pair) != scene(pair):
                 continue
             (j,) = judge_sites(other_pair, [(float(top["x"]), float(top["y"]))])
-            if j["n_unsafe"] > 0 or not j["incomplete"]:
+            if site_verdict(j) is not None:
                 rec["scores"]["top_site_clear"] = float(j["safe"])
                 rec["top_site_judged_on"] = other["label"]
                 break

@@ -98,6 +98,8 @@ def _site_cell(r: dict) -> str:
 
 def _site_marks(r: dict, pair: Any) -> list[Site]:
     """The Result's sites where i1 sees their ground, each a 3 m footprint, coloured by the truth's verdict."""
+    from ground_sim.gridscore import site_verdict
+
     depth = pair.truth.get("depth")
     out = []
     for rank, j in enumerate(r.get("site_truth") or [], 1):
@@ -107,8 +109,7 @@ def _site_marks(r: dict, pair: Any) -> list[Site]:
         z = float(depth[v, u])
         radius = 1.5 * pair.camera.fx / z if np.isfinite(z) and z > 0 else 2.0
         # what this image cannot judge (its footprint not wholly in view, nothing unsafe seen) is drawn black, not red
-        verdict = None if j.get("incomplete") and not j.get("n_unsafe") else bool(j["safe"])
-        out.append(Site(float(u), float(v), radius, rank, verdict))
+        out.append(Site(float(u), float(v), radius, rank, site_verdict(j)))
     return out
 
 

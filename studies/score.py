@@ -250,7 +250,7 @@ def score_output(
     names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
     black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
-    from ground_sim.gridscore import judge_site
+    from ground_sim.gridscore import judge_site, site_verdict
     from ground_sim.library import covered
     from reports.plots import ground_step_m
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
@@ -298,9 +298,9 @@ def score_output(
     judged = [judge_site((x, y), world[..., :2], gt_h) for x, y in output.sites_xyz[:, :2]]
     each = [bool(j["safe"]) for j in judged]
     m["sites_truly_safe"] = int(sum(each))
-    m["sites_unconfirmed"] = sum(_site_colour(j) is None for j in judged)
+    m["sites_unconfirmed"] = sum(site_verdict(j) is None for j in judged)
     m["top_site_truly_safe"] = bool(each[0]) if each else None
-    m["top_site_confirmed"] = _site_colour(judged[0]) is not None if judged else None
+    m["top_site_confirmed"] = site_verdict(judged[0]) is not None if judged else None
     if figure is not None:
         radius = _site_radius_px(pair.camera, depth, area)
         gsd = ground_step_m(world[..., :2])
@@ -379,14 +379,6 @@ def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) ->
     }
 
 
-def _site_colour(judged: dict[str, Any]) -> bool | None:
-    """True truly safe, False not (an unsafe pixel in its footprint), None not confirmed: frame 0 does not hold
-    the whole footprint and sees no hazard in it (scored as not safe, drawn black)."""
-    if judged["safe"]:
-        return True
-    return None if judged["incomplete"] and judged["n_unsafe"] == 0 else False
-
-
 def _figure(
     path: Path,
     image: np.ndarray,
@@ -399,12 +391,13 @@ def _figure(
     m: dict[str, Any],
     m_per_px: float | None = None,
 ) -> Path:
+    from ground_sim.gridscore import site_verdict
     from reports.plots import Panel, Site, confusion_codes, map_figure, save
     from reports.style import HAZARD_CMAP
 
     # drawn at the pixel whose true ground is nearest the site; black where frame 0 does not hold the footprint
     marks = [
-        Site(float(j["uv"][0]), float(j["uv"][1]), radius, i + 1, _site_colour(j))
+        Site(float(j["uv"][0]), float(j["uv"][1]), radius, i + 1, site_verdict(j))
         for i, j in enumerate(judged)
         if j["uv"] is not None
     ]
@@ -414,7 +407,7 @@ def _figure(
         Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
     ]
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
-    top = verdicts[_site_colour(judged[0])] if judged else "none"
+    top = verdicts[site_verdict(judged[0])] if judged else "none"
     title = f"{path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
     return save(map_figure(panels, title, m_per_px=m_per_px), path)
 
