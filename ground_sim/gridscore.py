@@ -43,13 +43,18 @@ def true_pose_upper(pair: Any) -> Pose:
     return pair.poses[0]
 
 
-def pixel_ground_xy(camera: Camera, pose: Pose, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """True world X, Y of every pixel from its camera z-depth: ``X = C + z R^T K^-1 [u, v, 1]``."""
+def pixel_ground(camera: Camera, pose: Pose, depth: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) of every pixel from its camera z-depth: ``X = C + z R^T K^-1 [u, v, 1]``."""
     h, w = depth.shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     d = np.asarray(depth, np.float64)
     rays = np.stack([(u - camera.cx) / camera.fx * d, (v - camera.cy) / camera.fy * d, d], axis=-1)
-    world = pose.position + rays @ pose.R
+    return pose.position + rays @ pose.R
+
+
+def pixel_ground_xy(camera: Camera, pose: Pose, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """True world X, Y of every pixel from its camera z-depth (:func:`pixel_ground`)."""
+    world = pixel_ground(camera, pose, depth)
     return world[..., 0], world[..., 1]
 
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ground_sim.gridscore import judge_site
+from ground_sim.gridscore import judge_site, pixel_ground
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, read_pair
@@ -240,12 +240,7 @@ _THESIS_METRIC = {
 
 
 # --------------------------------------------------------------------------- geometry helpers
-def backproject_depth(camera: Camera, pose: Pose, depth: np.ndarray) -> np.ndarray:
-    """World points (H, W, 3) of each pixel at camera z-depth ``depth``: ``X = C + z R^T K^-1 [u, v, 1]``."""
-    h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], axis=-1)
-    return pose.position + (rays * depth[..., None]) @ pose.R
+backproject_depth = pixel_ground  # world points (H, W, 3) of each pixel at its camera z-depth (ground_sim.gridscore)
 
 
 def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
