@@ -118,7 +118,8 @@ class Link:
         self._closed = threading.Event()
         self._failed: str | None = None  # transport failure: permanent
         self.last_error: str | None = None  # the most recent session loss / failure reason
-        self._quiet: dict[str, tuple[float, int]] = {}  # repeating kind -> (when last said, repeats not said)
+        # (repeating kind, reason) -> (when last said, repeats not said)
+        self._quiet: dict[tuple[str, str], tuple[float, int]] = {}
 
     def _event(self, kind: str, text: str, epoch: int) -> None:
         now = time.monotonic()
@@ -128,11 +129,14 @@ class Link:
         if self._log is None:
             return
         if kind in REPEATING_EVENTS:  # a peer that retries (libzmq redials ~10 times a second) must not flood the log
-            said, quiet = self._quiet.get(kind, (-math.inf, 0))
+            # keyed by the reason, not the sender (its port changes with every redial): a wrong key hidden
+            # behind a mechanism mismatch said a moment earlier would be news lost
+            key = (kind, text.rsplit(": ", 1)[-1])
+            said, quiet = self._quiet.get(key, (-math.inf, 0))
             if now - said < REPEAT_QUIET_S:
-                self._quiet[kind] = (said, quiet + 1)
+                self._quiet[key] = (said, quiet + 1)
                 return
-            self._quiet[kind] = (now, 0)
+            self._quiet[key] = (now, 0)
             if quiet:
                 text += f" ({quiet} more like it, not shown, after the one said {now - said:.0f} s ago)"
         self._log(f"link {self.name or '?'}: {kind}: {text}")

@@ -598,3 +598,25 @@ def test_curve_against_insecure_is_named_as_such_not_as_a_wrong_key(tmp_path):
             C.recv(0.2)
         assert MECHANISM_MISMATCH_TEXT in (C.last_error or ""), C.last_error
         assert not C.established
+
+
+def test_a_repeating_event_is_said_once_per_reason_and_a_different_reason_is_still_said(monkeypatch):
+    from protocol import links
+
+    clock = [100.0]
+    monkeypatch.setattr(links.time, "monotonic", lambda: clock[0])
+    log: list[str] = []
+    link = links.Link(name="board", log=log.append)
+    link._event("auth_failed", f"connection from 127.0.0.1:5001: {links.MECHANISM_MISMATCH_TEXT}", 0)
+    # another reason within the quiet time: news, said at once (a race between two strangers once hid it)
+    link._event("auth_failed", "connection from 127.0.0.1:5002: CURVE handshake failed (wrong or missing key?)", 0)
+    for port in range(5003, 5008):  # the same stranger redialling from new ports: counted, not said
+        clock[0] += 1.0
+        link._event(
+            "auth_failed", f"connection from 127.0.0.1:{port}: CURVE handshake failed (wrong or missing key?)", 0
+        )
+    assert len(log) == 2 and "security mechanisms differ" in log[0] and "CURVE handshake failed" in log[1]
+    clock[0] += links.REPEAT_QUIET_S
+    link._event("auth_failed", "connection from 127.0.0.1:5009: CURVE handshake failed (wrong or missing key?)", 0)
+    assert len(log) == 3 and "(5 more like it, not shown" in log[2]
+    assert len(link.events()) == 8  # every one is still an event
