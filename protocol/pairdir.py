@@ -462,6 +462,9 @@ def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
 
 
 # --------------------------------------------------------------------------- image headers
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
 def image_header_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding: PNG, JPEG, PGM/PPM, BMP, TIFF.
 
@@ -471,7 +474,7 @@ def image_header_size(path: Path) -> tuple[int, int]:
     with path.open("rb") as f:
         head = f.read(64 * 1024)
     try:
-        if head[:8] == b"\x89PNG\r\n\x1a\n":
+        if head[:8] == PNG_MAGIC:
             if head[12:16] != b"IHDR":
                 raise ValueError("PNG without an IHDR chunk")
             w, h = struct.unpack(">II", head[16:24])
@@ -499,6 +502,76 @@ def image_header_size(path: Path) -> tuple[int, int]:
         detail = "header cut off" if isinstance(exc, struct.error) else str(exc)
         raise PairFormatError(f"{path}: not a readable image ({detail})") from None
     raise PairFormatError(f"{path}: not a PNG, JPEG, PGM/PPM, BMP or TIFF image")
+
+
+PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel (PNG spec, sec 11.2.2)
+ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def png_pixel_bytes(width: int, height: int, bits_per_pixel: int, interlaced: bool) -> int:
+    """Bytes a PNG's pixel stream inflates to: ``sum over passes of rows * (1 + ceil(cols * bpp / 8))``, one
+    pass for a plain image, Adam7's seven (PNG spec sec 8.2) for an interlaced one; a pass with no pixels
+    has no rows at all."""
+    passes = ADAM7 if interlaced else ((0, 0, 1, 1),)
+    total = 0
+    for x0, y0, dx, dy in passes:
+        cols, rows = max(0, -(-(width - x0) // dx)), max(0, -(-(height - y0) // dy))
+        if cols and rows:
+            total += rows * (1 + (cols * bits_per_pixel + 7) // 8)
+    return total
+
+
+def png_damage(path: Path) -> str | None:
+    """Why the PNG at ``path`` cannot decode whole; None when it is intact or is not a PNG.
+
+    Checked as a decoder meets it (PNG spec, W3C 2003, sec 5 and 10): every chunk's CRC-32 over its type and
+    data, IHDR first, IEND present, and the IDAT data one complete zlib stream that inflates to exactly
+    :func:`png_pixel_bytes`, each row of a plain image led by a filter type 0-4. libpng meets the same damage
+    by writing its own line to the C stderr before OpenCV returns nothing; checked here first, the reader's
+    one-line error is the only one. Inflation stops one byte past the expected size: a zlib bomb costs no
+    more memory than the image it claims to be."""
+    import zlib
+
+    data = path.read_bytes()
+    if data[:8] != PNG_MAGIC:
+        return None
+    pos, z, expect, out, rows = 8, zlib.decompressobj(), -1, bytearray(), 0
+    while True:
+        if pos + 12 > len(data):
+            return "no IEND chunk: the file is truncated"
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind = data[pos + 4 : pos + 8]
+        name = kind.decode("latin-1")
+        if pos + 12 + length > len(data):
+            return f"chunk {name!r} cut off: the file is truncated"
+        body = data[pos + 8 : pos + 8 + length]
+        if zlib.crc32(kind + body) != struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])[0]:
+            return f"chunk {name!r} fails its CRC: the file is damaged"
+        pos += 12 + length
+        if expect < 0:
+            if kind != b"IHDR" or length != 13:
+                return "the first chunk is not IHDR"
+            w, h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", body)
+            if colour not in PNG_CHANNELS or interlace > 1:
+                return f"colour type {colour} / interlace {interlace} is not PNG's"
+            expect = png_pixel_bytes(w, h, PNG_CHANNELS[colour] * depth, bool(interlace))
+            rows = 0 if interlace else h
+        elif kind == b"IDAT":
+            try:
+                out += z.decompress(z.unconsumed_tail + body, max(expect + 1 - len(out), 1))
+            except zlib.error as exc:
+                return f"the pixel data does not inflate: {exc}"
+            if len(out) > expect:
+                return f"the pixel data holds more than the {expect} bytes the header's size needs"
+        elif kind == b"IEND":
+            break
+    if not z.eof:
+        return "the pixel data stops short: its zlib stream is not complete"
+    if len(out) != expect:
+        return f"the pixel data holds {len(out)} bytes, the header's size needs {expect}"
+    if rows and max(out[:: expect // rows]) > 4:
+        return "a pixel row has an unknown filter type"
+    return None
 
 
 def _jpeg_size(path: Path) -> tuple[int, int]:
@@ -743,6 +816,9 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
             raise PairFormatError(
                 f"{img_path}: size {w}x{h} does not match the camera's {camera.width}x{camera.height}"
             )
+        damage = png_damage(img_path)
+        if damage:
+            raise PairFormatError(f"{img_path}: not a readable image ({damage})")
         img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise PairFormatError(f"{img_path}: not a readable image")

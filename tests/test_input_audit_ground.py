@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import struct
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +19,7 @@ import numpy as np
 import pytest
 from hilkit import one_line_error, run_hil, small_descent
 
-from protocol.pairdir import PairFormatError, Pose, check_altimeter, image_header_size, read_pair
+from protocol.pairdir import PairFormatError, Pose, check_altimeter, image_header_size, png_damage, read_pair
 
 NADIR = np.diag([1.0, -1.0, -1.0])  # camera looking straight down
 
@@ -69,6 +71,66 @@ def test_process_with_a_truncated_png_is_one_line_and_exit_2(descent, tmp_path, 
     (d / "i2.png").write_bytes((d / "i2.png").read_bytes()[:20])  # `head -c 20`
     err = one_line_error(capsys, ["process", str(d), "--out", str(tmp_path / "out")])
     assert "i2.png: not a readable image" in err
+
+
+def test_process_with_a_damaged_png_says_why_in_one_line_and_libpng_says_nothing(descent, tmp_path, capfd):
+    d = copy_pair(descent, tmp_path)
+    data = bytearray((d / "i2.png").read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 40] = bytes(40)  # a burst of zeros inside the pixel data
+    (d / "i2.png").write_bytes(data)
+    # capfd, not capsys: libpng writes to the C stderr, which capsys never sees
+    err = one_line_error(capfd, ["process", str(d), "--out", str(tmp_path / "out")])
+    assert "i2.png: not a readable image (chunk 'IDAT' fails its CRC: the file is damaged)" in err
+
+
+def png(width: int, height: int, idat: bytes, colour: int = 0, interlace: int = 0) -> bytes:
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, colour, 0, 0, interlace)
+    return PNG_SIG + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def adam7(img: np.ndarray) -> bytes:
+    """An 8-bit grey image's interlaced pixel stream, filter 0 on every row (PNG spec sec 8.2)."""
+    passes = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+    return b"".join(b"\0" + row.tobytes() for x0, y0, dx, dy in passes for row in img[y0::dy, x0::dx] if row.size)
+
+
+def test_a_png_is_checked_whole_before_it_is_decoded(tmp_path):
+    import cv2
+
+    img = np.random.default_rng(3).integers(0, 256, (11, 13), dtype=np.uint8)
+    plain = b"".join(b"\0" + row.tobytes() for row in img)
+    good = {  # each decodes to img: a damage check must never refuse a sound file
+        "plain": png(13, 11, zlib.compress(plain)),
+        "interlaced": png(13, 11, zlib.compress(adam7(img)), interlace=1),
+    }
+    for name, data in good.items():
+        (tmp_path / f"{name}.png").write_bytes(data)
+        assert png_damage(tmp_path / f"{name}.png") is None, name
+        assert np.array_equal(cv2.imread(str(tmp_path / f"{name}.png"), cv2.IMREAD_UNCHANGED), img), name
+    cv2.imwrite(str(tmp_path / "rgb16.png"), np.random.default_rng(4).integers(0, 65535, (9, 7, 3), dtype=np.uint16))
+    assert png_damage(tmp_path / "rgb16.png") is None
+    garbled = bytearray(zlib.compress(plain))
+    garbled[8:16] = b"\xff" * 8
+    bad = {
+        "fails its CRC": good["plain"][:40] + bytes([good["plain"][40] ^ 1]) + good["plain"][41:],
+        "cut off: the file is truncated": good["plain"][:-30],
+        "no IEND chunk": good["plain"][:-12],
+        "does not inflate": png(13, 11, bytes(garbled)),
+        "holds more than the 154 bytes": png(13, 11, zlib.compress(bytes(100 << 20))),  # a zlib bomb, not inflated
+        "stops short": png(13, 11, zlib.compress(plain)[:-9]),
+        "holds 140 bytes, the header's size needs 154": png(13, 11, zlib.compress(plain[:140])),
+        "unknown filter type": png(13, 11, zlib.compress(b"\7" + plain[1:])),
+        "colour type 5": png(13, 11, zlib.compress(plain), colour=5),
+    }
+    for why, data in bad.items():
+        (tmp_path / "bad.png").write_bytes(data)
+        got = png_damage(tmp_path / "bad.png")
+        assert got is not None and why in got, (why, got)
+    (tmp_path / "img.pgm").write_bytes(b"P5\n1 1\n255\n\0")
+    assert png_damage(tmp_path / "img.pgm") is None  # not a PNG: left to its own decoder
 
 
 def test_streamed_descent_reports_a_pair_with_a_garbled_image_and_goes_on(descent, tmp_path):
