@@ -887,7 +887,32 @@ def _refused_count(path: Path) -> int:
         return 0
 
 
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The ground streamer's process entry. SIGINT and SIGTERM end it with what finished recorded.
+
+    ``hazard-hil run`` starts it with both signals blocked: one sent while the interpreter imports (before any
+    handler exists; a Ctrl-C there was a KeyboardInterrupt traceback in ground.log) waits, pending, until the
+    handler below is in place, and then stops the ground as cleanly as one sent later."""
+    before = {sig: signal.signal(sig, _interrupt) for sig in HELD_SIGNALS}
+    try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)  # a held one is raised here, as Interrupted
+        return _main(argv)
+    except Interrupted as exc:  # before the descent began: the descent's own stop says what finished
+        print(f"ground: {exc} before the descent began", file=sys.stderr)
+        return 128 + exc.signum
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
+def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ground_sim.stream", description=__doc__.splitlines()[0])
     ap.add_argument("--link", required=True, help="serial:URL[@BAUD] or zmq:ENDPOINT (connect)")
     ap.add_argument("--manifest", type=Path, required=True)
@@ -981,11 +1006,6 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}", file=sys.stderr, flush=True)
 
-    def _interrupt(signum, frame):
-        raise Interrupted(signum)
-
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, _interrupt)
     try:
         records = stream_descent(
             link,
@@ -1013,7 +1033,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ground: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_NO_HELLO
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in HELD_SIGNALS:
             signal.signal(sig, signal.SIG_IGN)  # already ending: let the link close
         link.close()
     failed = sum(r["status"] != "result" for r in records)

@@ -685,17 +685,21 @@ def check_memory(budget, width: int, height: int, rendered: bool = False) -> Non
         )
 
 
-def _spawn(cmd: list[str], env: dict, **kw) -> subprocess.Popen:
+def _spawn(cmd: list[str], env: dict, *, hold_interrupts: bool = False, **kw) -> subprocess.Popen:
     """A child leading its own process group: stopped as a whole, and the terminal's Ctrl-C reaches us only.
 
     It gets SIGTERM when the thread that started it dies (``PR_SET_PDEATHSIG``): a run killed outright (SIGKILL,
     the OOM killer) must not leave its ground streamer holding the serial device, or its HIL server the port.
-    SIGTERM, not SIGKILL, so each records what it has and closes its link."""
+    SIGTERM, not SIGKILL, so each records what it has and closes its link. With ``hold_interrupts`` the child
+    starts with SIGINT and SIGTERM blocked (the mask survives exec): one sent before it has a handler stays
+    pending until the child unblocks them (``ground_sim.stream.main``)."""
     prctl = libc_prctl()
 
     def preexec() -> None:  # between fork and exec: async-signal-safe calls only
         if prctl is not None:
             prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        if hold_interrupts:
+            signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
 
     return subprocess.Popen(cmd, env=env, process_group=0, preexec_fn=preexec, **kw)
 
@@ -1150,7 +1154,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end; "
                     f"waiting up to {hello:g} s for its Hello"
                 )
-            ground = _spawn(ground_cmd, env)
+            ground = _spawn(ground_cmd, env, hold_interrupts=True)
             limit = max(cfg.timeout_s, hello + GRACE_S)  # the first Hello may be awaited longer, when asked to
             rc, sup_reason = _wait_ground(ground, sup, limit, out / "supervisor.log")
             if sup is not None and rc in (0, EXIT_LINK_LOST):

@@ -353,3 +353,29 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
     assert not s["complete"] and s["reason"] == f"interrupted by {signame}"
     assert s["pairs"] == 2 and s["not_run"] == 2
     assert [(r["label"], r["code"]) for r in s["records"]] == [("600/300", "not_run"), ("300/150", "not_run")]
+
+
+def test_a_ctrl_c_while_the_ground_starts_is_a_clean_stop_not_a_traceback(tmp_path):
+    """A SIGINT that reached the ground while Python imported its modules (no handler yet) wrote a
+    KeyboardInterrupt traceback into ground.log; `run` now starts the ground with the signal held."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from hil_server.run import _spawn
+
+    cmd = [sys.executable, "-m", "ground_sim.stream", "--link", "zmq:tcp://127.0.0.1:9", "--insecure"]
+    cmd += ["--manifest", str(tmp_path / "none.json"), "--out", str(tmp_path / "g"), "--budget", "host"]
+    cmd += ["--deadline", "2"]
+
+    def start_and_interrupt(hold: bool) -> tuple[int, str]:
+        p = _spawn([*cmd], dict(os.environ), hold_interrupts=hold, stderr=subprocess.PIPE, text=True)
+        os.killpg(p.pid, signal.SIGINT)  # at once: the child is still starting its interpreter
+        _, err = p.communicate(timeout=60)
+        return p.returncode, err
+
+    rc, err = start_and_interrupt(hold=True)
+    assert rc == 130 and err.strip() == "ground: interrupted by SIGINT before the descent began", err
+    rc, err = start_and_interrupt(hold=False)  # unheld, the same signal meets no handler of ours
+    assert not (rc == 130 and "before the descent began" in err), err
