@@ -698,6 +698,7 @@ class ZmqLink(Link, SessionView):
         )
         now = time.monotonic()
         self._last_heard = now
+        self._forgave_at: float | None = None  # _last_heard as a stop's forgiveness left it (see _forgive)
         self._last_sent = -1e9
         self._last_hello = -1e9
         self._stall_since: float | None = None
@@ -951,8 +952,15 @@ class ZmqLink(Link, SessionView):
         """Caller holds the lock. This loop was not scheduled for ``gap`` s (the process stopped: SIGSTOP, a
         suspended laptop, a VM paused): the peer's silence meanwhile is this side's, and what it sent is still
         in libzmq's queue. The silence clocks restart, so a Result that arrived during the stop is read before
-        the peer is judged silent (after an 8 s stop it was dropped and the peer blamed)."""
+        the peer is judged silent (after an 8 s stop it was dropped and the peer blamed).
+
+        One stop is forgiven between two hearings of the peer: what a live peer sent is read within a poll
+        after the stop, so a second stop with nothing heard in between is counted. Forgiven every time, a
+        loop starved for over a second again and again would never time out a dead peer."""
+        if self._forgave_at is not None and self._last_heard == self._forgave_at:
+            return
         self._last_heard += gap
+        self._forgave_at = self._last_heard
         if self._stall_since is not None:
             self._stall_since += gap
         self._sessionless_since += gap

@@ -620,3 +620,17 @@ def test_a_repeating_event_is_said_once_per_reason_and_a_different_reason_is_sti
     link._event("auth_failed", "connection from 127.0.0.1:5009: CURVE handshake failed (wrong or missing key?)", 0)
     assert len(log) == 3 and "(5 more like it, not shown" in log[2]
     assert len(link.events()) == 8  # every one is still an event
+
+
+def test_a_stop_is_forgiven_once_until_the_peer_is_heard_again():
+    """A loop starved for over a second again and again had every stop forgiven and never timed out a dead
+    peer. One stop is forgiven; a second with nothing heard from the peer in between is counted."""
+    with ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board", peer_timeout=4.0) as S, S._cv:
+        heard = S._last_heard
+        S._forgive(3.0)
+        assert S._last_heard == heard + 3.0  # the stop was this side's, not the peer's silence
+        S._forgive(3.0)
+        assert S._last_heard == heard + 3.0  # nothing heard since: this one counts against the peer
+        S._last_heard = time.monotonic()  # the peer is heard
+        S._forgive(3.0)
+        assert S._last_heard > heard + 3.0
