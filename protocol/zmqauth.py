@@ -67,6 +67,12 @@ def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
         raise InputError(f"CURVE key file {path} is not a regular file")
     if not path.is_file():
         raise InputError(f"CURVE key file {path} does not exist (create keys with `hazard-hil keys DIR`)")
+    mode = path.stat().st_mode & 0o777
+    if need_secret and mode & 0o077:  # as ssh refuses an unprotected private key: anyone who reads it is us
+        raise InputError(
+            f"CURVE secret key file {path} is readable or writable by others (mode {mode:04o}); "
+            f"make it private: chmod 600 {path}"
+        )
     try:
         pub, sec = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as exc:

@@ -244,6 +244,20 @@ def test_keys_are_private_files(tmp_path):
     assert len(files) == 4 and all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in files)
     with pytest.raises(InputError, match="not empty"):
         generate_keys(d)
+    from protocol.zmqauth import client_keys, server_keys
+
+    server_keys(d), client_keys(d)
+    # a secret key others can read is refused, as ssh refuses one; public keys may be shared
+    (d / "server.key").chmod(0o644)
+    client_keys(d)
+    (d / "client.key_secret").chmod(0o640)
+    with pytest.raises(
+        InputError, match=r"client\.key_secret is readable or writable by others \(mode 0640\).*chmod 600"
+    ):
+        client_keys(d)
+    (d / "server.key_secret").chmod(0o606)
+    with pytest.raises(InputError, match=r"mode 0606"):
+        server_keys(d)
 
 
 def test_zeromq_needs_keys_or_an_explicit_insecure_loopback():
