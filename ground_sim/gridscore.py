@@ -26,21 +26,12 @@ import numpy as np
 from ground_sim import scoring
 from ground_sim.truth import FOOTPRINT_M
 from protocol.grids import cells_at
-from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, Camera, Pose
+from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, Camera, Pose, true_poses
 
 
 def true_pose_upper(pair: Any) -> Pose:
-    """The true pose of frame 0: ``meta["true_frames"][0]`` (written by ground_sim.descent), else the reported one."""
-    tp = pair.meta.get("true_frames") if isinstance(pair.meta, dict) else None
-    if isinstance(tp, list) and tp:
-        try:
-            p = tp[0]
-            return Pose(
-                np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float), float(p.get("time_s", 0))
-            )
-        except (KeyError, TypeError, ValueError):
-            pass
-    return pair.poses[0]
+    """The true pose of frame 0 (:func:`protocol.pairdir.true_poses`)."""
+    return true_poses(pair)[0]
 
 
 def pixel_ground(camera: Camera, pose: Pose, depth: np.ndarray) -> np.ndarray:

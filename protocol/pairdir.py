@@ -704,6 +704,27 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
     return pose, img_name, alt
 
 
+def true_poses(pair: Any, where: str | Path = "pair.json") -> tuple[Pose, ...]:
+    """Each frame's true pose: ``meta["true_frames"]`` (the renderer keeps there the poses that injected
+    navigation errors hide, docs/design.md), else the reported poses. Entries are read as the frames are
+    (:func:`_frame_pose`), one per frame; anything else is a :class:`PairFormatError` naming ``where``:
+    scoring against the reported pose instead would hide the very error a study injected."""
+    tp = pair.meta.get("true_frames") if isinstance(pair.meta, dict) else None
+    if tp is None:
+        return tuple(pair.poses)
+    if not isinstance(tp, list) or len(tp) != len(pair.poses):
+        n = len(tp) if isinstance(tp, list) else type(tp).__name__
+        raise PairFormatError(f"{where}: true_frames must list one pose per frame ({len(pair.poses)}), got {n}")
+    poses = []
+    for k, fr in enumerate(tp):
+        try:
+            pose, _, _ = _frame_pose(fr, k, Path(where))
+        except PairFormatError as exc:
+            raise PairFormatError(str(exc).replace(f": frame {k}", f": true_frames[{k}]", 1)) from None
+        poses.append(pose.orthonormalised(f"{where}: true_frames[{k}]")[0])
+    return tuple(poses)
+
+
 def _file_kind(mode: int) -> str:
     """What a non-regular file is, in words, from its ``st_mode``."""
     for test, kind in (
@@ -857,6 +878,7 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
                 truth[name] = _load_truth(p, name, (camera.height, camera.width))
     meta = {k: v for k, v in doc.items() if k not in ("format", "camera", "frames", "sun")}
     pair = Pair(camera, tuple(poses), tuple(images), sun, truth, meta, tuple(alts), notes)
+    true_poses(pair, meta_path)  # a study's truth that cannot be read is refused here, not met mid-score
     try:
         pair.validate()
     except PairFormatError as exc:  # validate() speaks of frames; name the file they are in

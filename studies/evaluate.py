@@ -29,7 +29,8 @@ import numpy as np
 from ground_sim.gridscore import judge_site, pixel_ground
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
-from protocol.pairdir import Camera, Pose, read_pair
+from protocol.pairdir import Camera, PairFormatError, Pose, read_pair
+from protocol.pairdir import true_poses as pairdir_true_poses
 from reports.plots import ground_step_m
 
 SCENARIOS = ("vertical", "approach")
@@ -544,19 +545,12 @@ def _scene_of(meta: dict[str, Any], scene: str | None, seed: int | None) -> tupl
 
 
 def true_poses(pair: Any) -> tuple[Pose, Pose]:
-    """True poses of frames 0 and -1: ``meta["true_frames"]`` (written by ground_sim.descent), else the frames."""
-    tp = pair.meta.get("true_frames")
-    if isinstance(tp, list) and len(tp) >= 2:
-        try:
-            return tuple(
-                Pose(
-                    np.array(p["position_m"], float), np.array(p["R_world_to_cam"], float), float(p.get("time_s", 0.0))
-                )
-                for p in (tp[0], tp[-1])
-            )  # type: ignore[return-value]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise EvaluationError(f"pair meta true_frames unreadable ({exc})") from None
-    return pair.poses[0], pair.poses[-1]
+    """True poses of frames 0 and -1 (:func:`protocol.pairdir.true_poses`)."""
+    try:
+        every = pairdir_true_poses(pair)
+    except PairFormatError as exc:
+        raise EvaluationError(str(exc)) from None
+    return every[0], every[-1]
 
 
 # --------------------------------------------------------------------------- pose perturbation

@@ -272,3 +272,22 @@ def test_an_all_nan_truth_is_named_not_called_a_geometry_problem(good, tmp_path,
     np.save(bad / "gt_hazard_i1.npy", np.full((PX, PX), np.nan, np.float32))
     err = assert_refused(["score", str(bad), str(good[1])], capsys, "gt_hazard_i1.npy holds no finite value")
     assert "share no ground" not in err
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (lambda doc: doc["true_frames"].pop(), "true_frames must list one pose per frame (2), got 1"),
+        (lambda doc: doc.update(true_frames="x"), "true_frames must list one pose per frame (2), got str"),
+        (lambda doc: doc["true_frames"][1].pop("position_m"), "true_frames[1]: need image, position_m"),
+        (lambda doc: doc["true_frames"][0]["position_m"].__setitem__(2, float("nan")), "true_frames[0]: position"),
+    ],
+)
+def test_true_poses_that_cannot_be_read_are_refused_not_replaced_by_the_reported_ones(
+    good, tmp_path, capsys, edit, says
+):
+    """The site judge fell back to the reported pose when true_frames was unreadable: a pair with injected
+    navigation errors was then scored against the very poses the errors were in, without a word."""
+    bad = _copy(good[0], tmp_path / "bad")
+    _rewrite(bad, edit)
+    assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad / "pair.json"), says)
