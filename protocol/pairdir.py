@@ -739,35 +739,38 @@ def _file_kind(mode: int) -> str:
     return "not a file"
 
 
-def file_present(path: Path) -> bool:
-    """Whether an optional file is there: False when nothing has its name, True for a regular file, and
-    :class:`PairFormatError` for anything else by that name (a FIFO would block a read; a directory is not a
-    missing file)."""
+MISSING = "missing"
+
+
+def _not_regular(path: Path) -> str | None:
+    """Why ``path`` cannot be read as a regular file (:data:`MISSING`, "cannot be read (why)", "exists but is
+    not a regular file (a FIFO)"), or None when it can. Reading a FIFO would block and a directory cannot be
+    read: both are named, never taken for a missing file."""
     try:
         mode = path.stat().st_mode
     except (FileNotFoundError, NotADirectoryError):
-        return False
-    except OSError as exc:
-        raise PairFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(mode):
-        raise PairFormatError(f"{path}: exists but is not a regular file ({_file_kind(mode)})")
-    return True
+        return MISSING
+    except OSError as exc:  # a name too long, a symlink loop, no permission: say which
+        return f"cannot be read ({exc.strerror or exc})"
+    return None if stat.S_ISREG(mode) else f"exists but is not a regular file ({_file_kind(mode)})"
+
+
+def file_present(path: Path) -> bool:
+    """Whether an optional file is there: False when nothing has its name, True for a regular file, and
+    :class:`PairFormatError` for anything else by that name (:func:`_not_regular`)."""
+    why = _not_regular(path)
+    if why is not None and why != MISSING:
+        raise PairFormatError(f"{path}: {why}")
+    return why is None
 
 
 def _check_regular(path: Path, what: str, d: Path) -> None:
-    """Refuse ``path`` (``what`` in pair directory ``d``) unless it is an existing regular file.
-
-    Reading a FIFO would block and a directory cannot be read, so both are refused by name rather than
-    reported as missing.
-    """
-    try:
-        mode = path.stat().st_mode
-    except (FileNotFoundError, NotADirectoryError):
-        raise PairFormatError(f"{d}: missing {what}") from None
-    except OSError as exc:  # a name too long, a symlink loop, no permission: say which
-        raise PairFormatError(f"{d}: {what} cannot be read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(mode):
-        raise PairFormatError(f"{d}: {what} exists but is not a regular file ({_file_kind(mode)})")
+    """Refuse ``path`` (``what`` in pair directory ``d``) unless it is an existing regular file."""
+    why = _not_regular(path)
+    if why == MISSING:
+        raise PairFormatError(f"{d}: missing {what}")
+    if why is not None:
+        raise PairFormatError(f"{d}: {what} {why}")
 
 
 def _image_path(d: Path, name: str) -> Path:
