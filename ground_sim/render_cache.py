@@ -16,9 +16,7 @@ import json
 import math
 import os
 import shutil
-import struct
 import sys
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +26,6 @@ from ground_sim.render import RENDER_VERSION
 
 # pairs written before the version was recorded were drawn by the renderer of version 1
 UNVERSIONED = 1
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def _read_meta(pair_dir: Path) -> tuple[int | None, Any]:
@@ -52,32 +49,6 @@ def render_version(pair_dir: str | Path) -> int | None:
 
 class _OtherLayout(Exception):
     """A file the renderer does not write this way: the decoder judges it (:func:`_read_whole`)."""
-
-
-def _png_damage(data: bytes, size: tuple[int, int]) -> str | None:
-    """Why the PNG bytes ``data`` would not decode to a ``size`` (width, height) image, or None: a chunk cut
-    off, a critical chunk but IEND failing its CRC (libpng refuses those), no image data or IEND, another size. Checks
-    the bytes without inflating them; raises :class:`_OtherLayout` when they are not a PNG."""
-    if data[:8] != PNG_SIGNATURE:
-        raise _OtherLayout
-    pos, seen_idat = 8, False
-    while pos + 12 <= len(data):
-        length, kind = struct.unpack_from(">I4s", data, pos)
-        end = pos + 12 + length
-        name = kind.decode("latin-1")
-        if end > len(data):
-            return f"cut off in chunk {name}"
-        # libpng only warns about a bad CRC in an ancillary chunk (lower-case first letter) or in IEND
-        checked = not kind[0] & 0x20 and kind != b"IEND"
-        if checked and zlib.crc32(memoryview(data)[pos + 4 : end - 4]) != struct.unpack_from(">I", data, end - 4)[0]:
-            return f"chunk {name} fails its CRC"
-        if pos == 8 and (kind != b"IHDR" or length < 8 or struct.unpack_from(">II", data, pos + 8) != size):
-            return f"header is not IHDR of {size[0]}x{size[1]}"
-        seen_idat |= kind == b"IDAT"
-        if kind == b"IEND":
-            return None if seen_idat else "no image data"
-        pos = end
-    return "cut off (no IEND)"
 
 
 def _npy_damage(path: Path, shape: tuple[int, int]) -> str | None:
@@ -112,7 +83,7 @@ def _damage(pair_dir: Path, doc: Any) -> str | None:
     them once, when the caller loads the pair. Anything else is read whole (:func:`protocol.pairdir.read_pair`).
     pair.json's own content is the renderer's: ``write_pair`` validated the pair before writing it.
     """
-    from protocol.pairdir import FORMAT, MAX_FRAMES, MIN_FRAMES, TRUTH_FILES
+    from protocol.pairdir import FORMAT, MAX_FRAMES, MIN_FRAMES, PNG_MAGIC, TRUTH_FILES, png_damage
 
     try:
         if doc["format"] != FORMAT:
@@ -127,9 +98,13 @@ def _damage(pair_dir: Path, doc: Any) -> str | None:
             if not name or not path.is_relative_to(root) or not path.is_file():
                 raise _OtherLayout  # read_pair says which and how
             try:
-                why = _png_damage(path.read_bytes(), size)
+                data = path.read_bytes()
             except OSError as exc:
                 return f"{path}: not a readable image ({exc.strerror or exc})"
+            if data[:8] != PNG_MAGIC:
+                raise _OtherLayout
+            # its structure, not its pixels: a cache hit decodes them once, in the caller's read
+            why = png_damage(data, size=size, inflate=False)
             if why is not None:
                 return f"{path}: not a readable image ({why})"
         for fname in TRUTH_FILES.values():

@@ -521,50 +521,63 @@ def png_pixel_bytes(width: int, height: int, bits_per_pixel: int, interlaced: bo
     return total
 
 
-def png_damage(path: Path) -> str | None:
-    """Why the PNG at ``path`` cannot decode whole; None when it is intact or is not a PNG.
+def png_damage(data: bytes, *, size: tuple[int, int] | None = None, inflate: bool = True) -> str | None:
+    """Why the PNG bytes ``data`` cannot decode whole; None when they can, or are not a PNG.
 
-    Checked as a decoder meets it (PNG spec, W3C 2003, sec 5 and 10): every chunk's CRC-32 over its type and
-    data, IHDR first, IEND present, and the IDAT data one complete zlib stream that inflates to exactly
-    :func:`png_pixel_bytes`, each row of a plain image led by a filter type 0-4. libpng meets the same damage
-    by writing its own line to the C stderr before OpenCV returns nothing; checked here first, the reader's
-    one-line error is the only one. Inflation stops one byte past the expected size: a zlib bomb costs no
-    more memory than the image it claims to be."""
+    Checked as libpng meets them (PNG spec, W3C 2003, sec 5 and 10): IHDR first (of ``size``, width and
+    height, when given), each critical chunk's CRC-32 over its type and data (libpng only warns about an
+    ancillary chunk's or IEND's, and decodes on), an IDAT, and IEND. With ``inflate``, the IDAT data must also
+    be one complete zlib stream of exactly :func:`png_pixel_bytes`, each row of a plain image led by a filter
+    type 0-4; inflation stops one byte past that size, so a zlib bomb costs no more memory than the image it
+    claims to be. libpng meets the same damage by writing its own line to the C stderr before OpenCV returns
+    nothing: checked here first, the reader's one-line error is the only one."""
     import zlib
 
-    data = path.read_bytes()
     if data[:8] != PNG_MAGIC:
         return None
-    pos, z, expect, out, rows = 8, zlib.decompressobj(), -1, bytearray(), 0
+    pos, z, expect, out, rows, seen_idat = 8, zlib.decompressobj(), -1, bytearray(), 0, False
     while True:
         if pos + 12 > len(data):
             return "no IEND chunk: the file is truncated"
-        (length,) = struct.unpack(">I", data[pos : pos + 4])
-        kind = data[pos + 4 : pos + 8]
+        length, kind = struct.unpack_from(">I4s", data, pos)
         name = kind.decode("latin-1")
-        if pos + 12 + length > len(data):
+        end = pos + 12 + length
+        if end > len(data):
             return f"chunk {name!r} cut off: the file is truncated"
-        body = data[pos + 8 : pos + 8 + length]
-        if zlib.crc32(kind + body) != struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])[0]:
+        body = memoryview(data)[pos + 8 : end - 4]
+        critical = not kind[0] & 0x20
+        if (
+            critical
+            and kind != b"IEND"
+            and zlib.crc32(memoryview(data)[pos + 4 : end - 4]) != struct.unpack_from(">I", data, end - 4)[0]
+        ):
             return f"chunk {name!r} fails its CRC: the file is damaged"
-        pos += 12 + length
+        pos = end
         if expect < 0:
             if kind != b"IHDR" or length != 13:
                 return "the first chunk is not IHDR"
             w, h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", body)
+            if size is not None and (w, h) != tuple(size):
+                return f"its IHDR says {w}x{h}, not {size[0]}x{size[1]}"
             if colour not in PNG_CHANNELS or interlace > 1:
                 return f"colour type {colour} / interlace {interlace} is not PNG's"
             expect = png_pixel_bytes(w, h, PNG_CHANNELS[colour] * depth, bool(interlace))
             rows = 0 if interlace else h
         elif kind == b"IDAT":
-            try:
-                out += z.decompress(z.unconsumed_tail + body, max(expect + 1 - len(out), 1))
-            except zlib.error as exc:
-                return f"the pixel data does not inflate: {exc}"
-            if len(out) > expect:
-                return f"the pixel data holds more than the {expect} bytes the header's size needs"
+            seen_idat = True
+            if inflate:
+                try:
+                    out += z.decompress(z.unconsumed_tail + body, max(expect + 1 - len(out), 1))
+                except zlib.error as exc:
+                    return f"the pixel data does not inflate: {exc}"
+                if len(out) > expect:
+                    return f"the pixel data holds more than the {expect} bytes the header's size needs"
         elif kind == b"IEND":
             break
+    if not seen_idat:
+        return "no IDAT chunk: the file holds no pixels"
+    if not inflate:
+        return None
     if not z.eof:
         return "the pixel data stops short: its zlib stream is not complete"
     if len(out) != expect:
@@ -840,7 +853,7 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
             raise PairFormatError(
                 f"{img_path}: size {w}x{h} does not match the camera's {camera.width}x{camera.height}"
             )
-        damage = png_damage(img_path)
+        damage = png_damage(img_path.read_bytes())
         if damage:
             raise PairFormatError(f"{img_path}: not a readable image ({damage})")
         img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
