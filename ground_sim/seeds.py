@@ -21,3 +21,11 @@ def seed_set_of(seed: int) -> str:
         if seed in seeds:
             return name
     return "other"
+
+
+def describe_seeds(seeds: list[int] | tuple[int, ...], seed_set: str) -> str:
+    """``held-out seeds 1000-1005 (6)``: a run of consecutive seeds as a range, a single one alone, any others
+    listed."""
+    lo, hi = min(seeds), max(seeds)
+    span = f"{lo}" if lo == hi else (f"{lo}-{hi}" if len(seeds) == hi - lo + 1 else ",".join(map(str, seeds)))
+    return f"{seed_set} seeds {span} ({len(seeds)})"

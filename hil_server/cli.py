@@ -164,10 +164,21 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the system refused a read or write the command needed: a full disk, a file in the way
+        print(f"hazard-hil {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        return 1
     finally:
         warnings.showwarning = shown
         for sig, old in saved.items():
             signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an OSError: the file and the system's reason (``cannot use X: No space left on device``), not
+    Python's ``[Errno 28]`` repr; what was done before it is on disk and said above it."""
+    where = " and ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+    why = exc.strerror or str(exc) or type(exc).__name__
+    return f"cannot use {where}: {why}" if where else why
 
 
 def _one_line_warning(fallback):

@@ -9,8 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
+from ground_sim.seeds import describe_seeds
 from protocol.errors import InputError, comma_items
-from protocol.pairdir import MAX_IMAGE_SIDE
+from protocol.pairdir import IMAGE_SIZE_MAX
 
 
 def _positive(kind: str, most: int | None = None, least: int = 1):
@@ -26,13 +27,18 @@ def _positive(kind: str, most: int | None = None, least: int = 1):
     return conv
 
 
+THESIS_CAMERA_PX = 512
 MIN_CAMERA_PX = 32  # studies.evaluate.camera_for refuses smaller cameras (in a worker, after the work started)
 
 
 def add_seed_options(
-    p: argparse.ArgumentParser, what: str = "scene seeds", how: str = "results are medians over seeds"
+    p: argparse.ArgumentParser,
+    default_n: int,
+    what: str = "scene seeds",
+    how: str = "results are medians over seeds",
 ) -> None:
-    """``--seed-set tuning|held-out`` (default held-out), ``--seeds N`` (the first N of it), ``--seed-list``."""
+    """``--seed-set tuning|held-out`` (default held-out), ``--seeds N`` (the first N of it, default ``default_n``
+    or the whole set when it is smaller), ``--seed-list``."""
     p.add_argument(
         "--seed-set",
         choices=["held-out", "tuning"],
@@ -44,8 +50,9 @@ def add_seed_options(
         "--seeds",
         type=_positive("--seeds"),
         default=None,
-        help=f"number of {what}: the first N of the seed set; {how}",
+        help=f"number of {what}: the first N of the seed set (default {default_n}, or all of a smaller set); {how}",
     )
+    p.set_defaults(seeds_default=default_n)
     p.add_argument("--seed-list", default=None, help="explicit comma-separated seeds instead (e.g. 1000,1003)")
 
 
@@ -54,6 +61,39 @@ def check_backend(args: argparse.Namespace) -> None:
     contradiction (the count was ignored)."""
     if getattr(args, "scheduler", None) is not None and getattr(args, "workers", None) is not None:
         raise InputError("--workers sets local processes; with --scheduler the Dask cluster's workers run: give one")
+
+
+def camera_note(camera_px: int | None) -> str:
+    """Said beside the seeds wherever a study's tables sit next to the thesis's: another camera than its 512 px
+    one changes the ground sample distance, and so every figure."""
+    if camera_px is None or camera_px == THESIS_CAMERA_PX:
+        return ""
+    return f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
+
+
+def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
+    """Local workers each run the pipeline on a ``--camera-px`` camera at once: refuse, before any rendering,
+    a pool whose peaks together (:func:`flight_sw.validate.peak_memory_bytes`) exceed the memory this process
+    can spend, as ``process`` refuses one pair (an 8192 px camera started and would have needed ~12 GiB per
+    worker). More workers than cores is allowed, and said: each task is single-threaded, so they share them."""
+    import os
+
+    from flight_sw.validate import memory_room, peak_memory_bytes
+
+    if getattr(args, "scheduler", None) is not None:  # the cluster's workers: their memory is theirs to judge
+        return
+    cores = os.cpu_count() or 1
+    workers = args.workers or cores
+    if workers > cores:
+        _note(f"note: --workers {workers} on {cores} core(s): the workers share them, none runs faster")
+    px = args.camera_px or THESIS_CAMERA_PX
+    need = peak_memory_bytes(px, px, n_frames) * workers
+    room, what = memory_room()
+    if need > room:
+        raise InputError(
+            f"{workers} worker(s) on a {px} px camera need ~{need / 2**20:.0f} MiB at once, but only "
+            f"{room / 2**20:.0f} MiB {what}: use fewer --workers or a smaller --camera-px"
+        )
 
 
 def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], str]:
@@ -86,16 +126,10 @@ def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], 
         return seeds, sets[0] if len(sets) == 1 else "mixed"
     name = args.seed_set or "held-out"
     pool = SEED_SETS[name]
-    n = args.seeds or default_n
+    n = args.seeds or min(default_n, len(pool))  # a default the set cannot fill means all of it, not an error
     if n > len(pool):
         raise InputError(f"--seeds {n}: the {name} set has only {len(pool)} seeds")
     return list(pool[:n]), name
-
-
-def describe_seeds(seeds: list[int], seed_set: str) -> str:
-    lo, hi = min(seeds), max(seeds)
-    span = f"{lo}" if lo == hi else (f"{lo}-{hi}" if len(seeds) == hi - lo + 1 else ",".join(map(str, seeds)))
-    return f"{seed_set} seeds {span} ({len(seeds)})"
 
 
 def _scheduler(text: str) -> str:
@@ -123,16 +157,17 @@ def _executor_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    add_seed_options(p)
+def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
+    add_seed_options(p, seeds_default)
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
     p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
     _executor_options(p)
     p.add_argument(
         "--camera-px",
-        type=_positive("--camera-px", MAX_IMAGE_SIDE, MIN_CAMERA_PX),
+        type=_positive("--camera-px", IMAGE_SIZE_MAX, MIN_CAMERA_PX),
         default=None,
-        help="square camera size with the thesis's 30 deg FOV (default 512, the thesis camera)",
+        help=f"square camera size with the thesis's 30 deg FOV, {MIN_CAMERA_PX}-{IMAGE_SIZE_MAX} (default 512, the "
+        "thesis camera; the tables then say they are not the thesis's)",
     )
     p.add_argument("--altitudes", default=None, help="comma-separated subset of table altitudes [m]")
     p.add_argument(
@@ -177,8 +212,8 @@ def register(subparsers: Any) -> None:
         default=None,
         help="with --multi-frame: comma-separated frame altitudes [m], decreasing, 2-16 (default 300,250,200,150)",
     )
-    _common(p)
-    p.set_defaults(func=_evaluate, seeds_default=3)
+    _common(p, seeds_default=3)
+    p.set_defaults(func=_evaluate)
 
     s = subparsers.add_parser(
         "sensitivity",
@@ -200,8 +235,8 @@ def register(subparsers: Any) -> None:
         help="flight software preset(s) to study; both: fast and thesis; refine: fast with and without pose "
         "refinement (fast_unrefined)",
     )
-    _common(s)
-    s.set_defaults(func=_sensitivity, seeds_default=2)
+    _common(s, seeds_default=2)
+    s.set_defaults(func=_sensitivity)
     register_landings(subparsers)
     register_score(subparsers)
 
@@ -211,9 +246,13 @@ def _parse_alts(text: str | None) -> list[int] | None:
         return None
     items = comma_items(text, "--altitudes")
     try:
-        alts = [int(float(a)) for a in items]
+        values = [float(a) for a in items]
+        alts = [int(v) for v in values]
     except (ValueError, OverflowError):
         raise InputError(f"--altitudes: expected comma-separated numbers, got {text!r}") from None
+    cut = [f"{v:g}" for v, a in zip(values, alts, strict=True) if v != a]
+    if cut:  # 300.9 was read as 300 without a word: the tables' altitudes are whole metres
+        raise InputError(f"--altitudes: the table altitudes are whole metres, got {', '.join(cut)}")
     if not alts:
         raise InputError("--altitudes is empty: give comma-separated table altitudes, e.g. 300,150")
     return alts
@@ -254,6 +293,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.frames is not None and not args.multi_frame:
         raise InputError("--frames sets the multi-frame descents' altitudes: it needs --multi-frame")
     frames = _parse_frames(args.scenario, args.frames)
+    check_local_room(args, len(frames) if args.multi_frame else 2)
     try:
         rows = ev.evaluate_scenario(
             args.scenario,
@@ -276,18 +316,22 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.multi_frame:
         from studies import multiframe as mf
 
-        multi = mf.evaluate_multiframe(
-            args.scenario,
-            args.out,
-            seeds,
-            frames=frames,
-            cache_dir=args.cache,
-            camera_px=args.camera_px,
-            progress=None if args.no_progress else _note,
-            max_cells=args.max_raster_cells,
-            raster=args.raster,
-        )
-    seeds_text = describe_seeds(seeds, seed_set)
+        try:
+            multi = mf.evaluate_multiframe(
+                args.scenario,
+                args.out,
+                seeds,
+                frames=frames,
+                cache_dir=args.cache,
+                camera_px=args.camera_px,
+                progress=None if args.no_progress else _note,
+                max_cells=args.max_raster_cells,
+                raster=args.raster,
+            )
+        except CampaignError as exc:
+            print(f"hazard-hil evaluate: multi-frame: {exc}; rerun the same command to retry them", file=sys.stderr)
+            return 1
+    seeds_text = describe_seeds(seeds, seed_set) + camera_note(args.camera_px)
     page = report.evaluation_report(
         args.out,
         rows,
@@ -320,6 +364,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
+    check_local_room(args)
     try:
         rows = ev.sensitivity_campaign(
             args.kind,
@@ -352,8 +397,9 @@ def _sensitivity(args: argparse.Namespace) -> int:
         plot = report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png")
         table = report.Table([report.Column(k) for k in (ks[0] if ks else {})], ks)
         sections.append((f"sensitivity: {kind}", [table], [plot.name]))
-    page = report.write_html(args.out / "report", "hazard-hil sensitivity (thesis sec 6.3)", sections)
-    print(f"{describe_seeds(seeds, seed_set)}")
+    note = camera_note(args.camera_px)
+    page = report.write_html(args.out / "report", f"hazard-hil sensitivity (thesis sec 6.3){note}", sections)
+    print(f"{describe_seeds(seeds, seed_set)}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     return 0
 
@@ -398,7 +444,7 @@ def register_landings(subparsers: Any) -> None:
         help=f"navigation errors per frame, PoseError syntax, or 'none' (default {DEFAULT_POSE_ERROR})",
     )
     _executor_options(p)
-    camera = _positive("--camera-px", MAX_IMAGE_SIDE, MIN_CAMERA_PX)
+    camera = _positive("--camera-px", IMAGE_SIZE_MAX, MIN_CAMERA_PX)
     p.add_argument("--camera-px", type=camera, default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
@@ -407,7 +453,7 @@ def register_landings(subparsers: Any) -> None:
         help="keep rendered pairs here and reuse them (campaigns that differ only in aim points, navigation "
         "errors or presets render once); default: no cache",
     )
-    add_seed_options(p, "scene seeds to cycle through", "the landings of every seed are pooled")
+    add_seed_options(p, 100, "scene seeds to cycle through", "the landings of every seed are pooled")
     p.add_argument(
         "--raster",
         choices=list(RASTERS),
@@ -416,7 +462,7 @@ def register_landings(subparsers: Any) -> None:
         "raster per view (docs/scenes.md); each raster's renders are cached apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_landings, seeds_default=100)
+    p.set_defaults(func=_landings)
 
 
 def _landings(args: argparse.Namespace) -> int:
@@ -432,6 +478,9 @@ def _landings(args: argparse.Namespace) -> int:
     scenes = [e.name for e in library.entries()] if names == ["all"] else names
     check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
+    check_local_room(args)
+    if not args.pose_error.strip():  # an unset shell variable would have meant perfect navigation, without a word
+        raise InputError("--pose-error is empty: give PoseError syntax (e.g. alt=0.5,pitch=0.05) or 'none'")
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error
     c = ld.Campaign(
         tuple(scenes),

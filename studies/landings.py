@@ -40,6 +40,7 @@ import numpy as np
 
 from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
+from ground_sim.seeds import describe_seeds
 from protocol.errors import InputError
 from reports.html import write_atomic
 from reports.jsondoc import json_text
@@ -680,7 +681,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
     ]
     intro = (
         f"{camp['n_landings']} landings ({camp['n_renders']} renders, {camp['per_render']} aim points each) over "
-        f"{', '.join(camp['scenes'])}; {camp['seed_set']} scene seeds {min(seeds)}-{max(seeds)}; pose errors "
+        f"{', '.join(camp['scenes'])}; {describe_seeds(seeds, camp['seed_set'])}; pose errors "
         f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
         "top-ranked site is safe; no site is its own outcome and is not safe."
     )

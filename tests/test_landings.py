@@ -245,7 +245,7 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
     s["campaign"] |= {"seed_set": "held-out", "seeds": [1000, 1001], "pose_error": None}
     page = ld.write_report(tmp_path, rows, s)
     text = page.read_text()
-    assert "0.625" in text and "P(safe landing)" in text and "held-out scene seeds 1000-1001" in text
+    assert "0.625" in text and "P(safe landing)" in text and "held-out seeds 1000-1001 (2)" in text
     assert "Why no site" in text and "no cell is known safe" in text and "(33 % unknown)" not in text
     sys.path.insert(0, str(Path(__file__).parent))
     from browser import check_page, chromium_path

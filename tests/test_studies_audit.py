@@ -11,12 +11,14 @@
 
 from __future__ import annotations
 
+import html
 import json
 from pathlib import Path
 
 import pytest
 
 from hil_server.cli import main
+from protocol.errors import InputError
 from studies import landings as ld
 from studies.executor import CampaignError, Task, run_tasks
 
@@ -121,6 +123,18 @@ def test_another_camera_into_the_same_out_is_scored_not_reused_and_its_maps_are_
         (["evaluate", "--scenario", "vertical", "--scheduler", "garbage"], "not a Dask scheduler address"),
         (["sensitivity", "--kind", "altitude", "--scheduler", ""], "not a Dask scheduler address"),
         (["landings", "--scenes", "mare", "--n", "1", "--scheduler", "tcp://h:99999"], "port 99999 out of range"),
+        # sized before the renders: 8 M pipeline runs were accepted, and their tasks would not have fitted in memory
+        (
+            ["sensitivity", "--kind", "attitude", "--seeds", "100", "--samples", "10000", "--preset", "both"],
+            "8000800 pipeline runs (2 preset(s) x 100 seed(s) x 4 altitude(s) x 10000 samples + 1 reference)",
+        ),
+        (
+            ["evaluate", "--scenario", "vertical", "--camera-px", "8192"],
+            "--camera-px must be >= 32 and <= 4096, got 8192",
+        ),
+        (["evaluate", "--scenario", "vertical", "--camera-px", "4096", "--workers", "64"], "use fewer --workers"),
+        (["landings", "--scenes", "thesis", "--n", "1", "--pose-error", " "], "--pose-error is empty"),
+        (["evaluate", "--scenario", "vertical", "--altitudes", "300.9"], "whole metres, got 300.9"),
     ],
 )
 def test_unusable_or_contradictory_options_exit_2_before_any_work(tmp_path, capsys, argv, message):
@@ -236,3 +250,50 @@ def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path,
     assert "metrics.csv also keeps the vertical rows" in capsys.readouterr().err
     assert main(vertical) == 0  # again: one row per scenario still, nothing doubled
     assert len(read_metrics_csv(tmp_path / "a" / "metrics.csv")) == 2
+
+
+def test_a_tuning_campaign_takes_the_whole_set_when_the_default_count_is_larger():
+    """landings' default of 100 seeds refused --seed-set tuning (10 seeds) as "--seeds 100", an option never
+    given; a default the set cannot fill now means all of it."""
+    import argparse
+
+    from studies.cli import resolve_seeds
+
+    args = argparse.Namespace(seed_list=None, seeds=None, seed_set="tuning")
+    assert resolve_seeds(args, 100) == (list(range(10)), "tuning")
+    args.seeds = 11  # asked for by name: still refused
+    with pytest.raises(InputError, match="--seeds 11: the tuning set has only 10 seeds"):
+        resolve_seeds(args, 100)
+
+
+def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys):
+    """A full disk or a directory where metrics.csv goes ended evaluate, sensitivity and landings in tracebacks."""
+    out = tmp_path / "out"
+    (out / "metrics.csv").mkdir(parents=True)  # in the way of the study's last write
+    argv = _eval(tmp_path, "out", 48)
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "".join(err)
+    assert err[-1].startswith("hazard-hil evaluate: error: cannot use ") and "metrics.csv" in err[-1], err[-1]
+    assert err[-1].endswith("Is a directory"), err[-1]
+
+
+def test_a_failed_multi_frame_descent_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
+    from studies import multiframe
+
+    def fails(*args, **kwargs):
+        raise CampaignError({"mf-vertical-fast-s1000": "ValueError: no room"})
+
+    monkeypatch.setattr(multiframe, "evaluate_multiframe", fails)
+    assert main([*_eval(tmp_path, "out", 48), "--multi-frame", "--frames", "300,250"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "hazard-hil evaluate: multi-frame: 1 task(s) failed" in err and "rerun the same command" in err
+
+
+def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
+    assert main(_eval(tmp_path, "out", 48)) == 0
+    out = capsys.readouterr().out
+    page = html.unescape((tmp_path / "out" / "report" / "index.html").read_text())
+    for text in (out, page):
+        assert "a 48 px camera, not the thesis's 512 px: not its setup" in text
