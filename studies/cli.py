@@ -205,7 +205,8 @@ def register(subparsers: Any) -> None:
         "--multi-frame",
         action="store_true",
         help="also render one multi-frame descent per seed and compare the fast preset's multi-baseline run and "
-        "fused maps against the best single pair (chosen with the truth; issue 10)",
+        "fused maps against the best single pair (chosen with the truth; issue 10); the descents run in this "
+        "process, one after another: --workers and --scheduler size the pair stage only",
     )
     p.add_argument(
         "--frames",

@@ -176,6 +176,8 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
                 f"{out / 'elevation.npy'}: must be float32 (NaN where not recovered), got dtype {elevation.dtype}"
             )
         elevation = elevation.astype(np.float32)
+        if np.isinf(elevation).any():  # scored as "-" without a word; a float32 overflow is no elevation
+            raise ScoreError(f"{out / 'elevation.npy'}: holds inf; write NaN where no elevation was recovered")
     state = None
     if present("state.npy"):
         state = _load(out / "state.npy", shape)

@@ -165,6 +165,7 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         (lambda o, s: (o / "hazard.npy").write_bytes(b"not npy"), "not a readable .npy"),
         (lambda o, s: (o / "hazard.npy").write_bytes(b""), "not a readable .npy file (No data left in file)"),
         (lambda o, s: np.save(o / "elevation.npy", np.zeros(s, np.int32)), "elevation.npy: must be float32"),
+        (lambda o, s: np.save(o / "elevation.npy", np.full(s, np.inf, np.float32)), "elevation.npy: holds inf"),
         (lambda o, s: np.save(o / "state.npy", np.full(s, 7, np.uint8)), "state.npy: must be uint8 codes"),
         (lambda o, s: np.save(o / "state.npy", np.ones(s, np.int64)), "state.npy: must be uint8 codes"),
         # hazard.npy is 1.0 everywhere (not called safe): each disagreement is named with its direction
