@@ -186,17 +186,40 @@ def _rng(*keys: int) -> np.random.Generator:
     return np.random.default_rng([CAMPAIGN_KEY, *[int(k) & 0xFFFFFFFF for k in keys]])
 
 
-def plan_group(c: Campaign, g: int) -> dict[str, Any]:
-    """The draws of render group ``g``: scene, seed, pair, sun, and per landing an aim point and pose errors."""
-    from ground_sim import library
-    from ground_sim.pose_error import PoseError
-    from ground_sim.trajectory import load_trajectory
+@dataclass(frozen=True)
+class PlanContext:
+    """What every group of a campaign draws from, read once (the library's scene files, the landing pairs'
+    trajectories, the navigation errors): read per group, planning 125 000 groups took 4 minutes unannounced."""
 
+    entries: dict[str, Any]  # scene -> its library entry (or None)
+    aim_radius_m: dict[tuple[str, str], float]  # (scenario, pair label) -> aim-point disc radius
+    pose_error: Any  # ground_sim.pose_error.PoseError or None
+
+    @classmethod
+    def of(cls, c: Campaign) -> PlanContext:
+        from ground_sim import library
+        from ground_sim.pose_error import PoseError
+        from ground_sim.trajectory import load_trajectory
+
+        radii = {}
+        for scenario, label in LANDING_PAIRS:
+            spec = next(s for s in load_trajectory(scenario) if s.label == label)
+            radii[scenario, label] = AIM_FRACTION * _footprint_width(spec.camera, spec.poses[-1])
+        pe = PoseError.parse(c.pose_error) if c.pose_error else None
+        return cls({scene: library.entry(scene) for scene in c.scenes}, radii, pe)
+
+
+def plan_group(c: Campaign, g: int, ctx: PlanContext | None = None) -> dict[str, Any]:
+    """The draws of render group ``g``: scene, seed, pair, sun, and per landing an aim point and pose errors;
+    ``ctx`` (:meth:`PlanContext.of`, read here when not given) is the same for every group of ``c``."""
+    from ground_sim import library
+
+    ctx = ctx or PlanContext.of(c)
     scene = c.scenes[g % len(c.scenes)]
     seed = c.seeds[(g // len(c.scenes)) % len(c.seeds)]
     rng = _rng(g, zlib.crc32(scene.encode()))
     scenario, label = LANDING_PAIRS[int(rng.integers(len(LANDING_PAIRS)))]
-    e = library.entry(scene)
+    e = ctx.entries[scene]
     if e is not None and e.sun_varies:
         az0, az1 = e.sun_azimuth_deg or (135.0, 135.0)
         el0, el1 = e.sun_elevation_deg or (25.0, 25.0)
@@ -204,9 +227,7 @@ def plan_group(c: Campaign, g: int) -> dict[str, Any]:
     else:
         s = library.DEFAULT_SUN[scenario]
         sun = [s.azimuth_deg, s.elevation_deg]
-    spec = next(s for s in load_trajectory(scenario) if s.label == label)
-    radius = AIM_FRACTION * _footprint_width(spec.camera, spec.poses[-1])
-    pe = PoseError.parse(c.pose_error) if c.pose_error else None
+    radius, pe = ctx.aim_radius_m[scenario, label], ctx.pose_error
     landings = []
     for j in range(c.per_render):
         lr = _rng(g, j, 0xA1)
@@ -476,8 +497,9 @@ def run_campaign(
 
     out = claim_out_dir(c, out_dir)
     cache = None if cache_dir is None else str(Path(cache_dir).resolve())
+    ctx = PlanContext.of(c)
     tasks = [
-        Task(f"g{g:05d}", {"plan": plan_group(c, g), "presets": list(c.presets), "cache_dir": cache})
+        Task(f"g{g:05d}", {"plan": plan_group(c, g, ctx), "presets": list(c.presets), "cache_dir": cache})
         for g in range(c.n_groups)
     ]
     t0 = time.time()
