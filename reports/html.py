@@ -188,6 +188,20 @@ def render_page(
     )
 
 
+def page_title(path: str | Path) -> str | None:
+    """The ``<title>`` of a page written here (None when there is none, or no readable page)."""
+    import html
+    import re
+
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            head = f.read(8192)
+    except OSError:
+        return None
+    m = re.search(r"<title>(.*?)</title>", head, re.S)
+    return html.unescape(m.group(1)).strip() if m else None
+
+
 def write_page(path: str | Path, title: str, sections: list[Section], **kwargs: Any) -> Path:
     """Render and write a report page atomically; returns its path."""
     p = Path(path)

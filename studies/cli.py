@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +71,32 @@ def camera_note(camera_px: int | None) -> str:
     if camera_px is None or camera_px == THESIS_CAMERA_PX:
         return ""
     return f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
+
+
+@contextlib.contextmanager
+def writing_report(out: Path) -> Iterator[None]:
+    """A Ctrl-C while the page and tables are written ended in a bare "interrupted", the page missing: every
+    result is already saved, so say that a rerun only writes the report."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        _note(f"interrupted while writing the report; every result is saved in {out / 'runs'}: rerun the same "
+              "command to write it (nothing is computed again)")  # fmt: skip
+        raise
+
+
+def note_page_owner(out: Path, command: str) -> None:
+    """Each study writes ``OUT/report/index.html``: say so when this one replaces another study's page (its
+    results stay in OUT; only the page that showed them goes), rather than replacing it without a word."""
+    from reports.html import page_title
+
+    old = page_title(out / "report" / "index.html") or ""
+    if old.startswith("hazard-hil ") and not old.startswith(f"hazard-hil {command}"):
+        other = old.split()[1].rstrip(":")
+        _note(
+            f"note: {out / 'report' / 'index.html'} was the {other} page and is now {command}'s; give each study "
+            f"its own --out (rerun {other} into its own directory to see its page again)"
+        )
 
 
 def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
@@ -286,7 +314,6 @@ def _presets(choice: str) -> list[str]:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from studies import evaluate as ev
-    from studies import report
     from studies.executor import CampaignError
 
     check_backend(args)
@@ -332,7 +359,16 @@ def _evaluate(args: argparse.Namespace) -> int:
         except CampaignError as exc:
             print(f"hazard-hil evaluate: multi-frame: {exc}; rerun the same command to retry them", file=sys.stderr)
             return 1
-    seeds_text = describe_seeds(seeds, seed_set) + camera_note(args.camera_px)
+    with writing_report(args.out):
+        return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set))
+
+
+def _evaluation_page(args: argparse.Namespace, rows: list, multi: Any, frames: list[float], seeds_text: str) -> int:
+    from studies import evaluate as ev
+    from studies import report
+
+    seeds_text += camera_note(args.camera_px)
+    note_page_owner(args.out, "evaluate")
     page = report.evaluation_report(
         args.out,
         rows,
@@ -359,7 +395,6 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 def _sensitivity(args: argparse.Namespace) -> int:
     from studies import evaluate as ev
-    from studies import report
     from studies.executor import CampaignError
 
     check_backend(args)
@@ -385,6 +420,14 @@ def _sensitivity(args: argparse.Namespace) -> int:
     except CampaignError as exc:
         print(f"hazard-hil sensitivity: {exc}; rerun the same command to retry them", file=sys.stderr)
         return 1
+    with writing_report(args.out):
+        return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set))
+
+
+def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> int:
+    from studies import evaluate as ev
+    from studies import report
+
     summ = ev.sensitivity_summary(rows)
     print(report.rows_markdown(summ, list(summ[0]) if summ else []))
     # one page for every study run into this directory, so kinds do not overwrite each other
@@ -399,8 +442,9 @@ def _sensitivity(args: argparse.Namespace) -> int:
         table = report.Table([report.Column(k) for k in (ks[0] if ks else {})], ks)
         sections.append((f"sensitivity: {kind}", [table], [plot.name]))
     note = camera_note(args.camera_px)
+    note_page_owner(args.out, "sensitivity")
     page = report.write_html(args.out / "report", f"hazard-hil sensitivity (thesis sec 6.3){note}", sections)
-    print(f"{describe_seeds(seeds, seed_set)}{note}")
+    print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     return 0
 
@@ -504,6 +548,7 @@ def _landings(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     t0 = time.time()
+    note_page_owner(args.out, "landings")
     try:
         _, summary = ld.run_campaign(
             c,

@@ -292,8 +292,24 @@ def test_a_failed_multi_frame_descent_is_one_line_and_exit_1(tmp_path, capsys, m
 
 
 def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
+    """... and a study that replaces another's page in a shared --out says so (it replaced it without a word)."""
+    (tmp_path / "out" / "report").mkdir(parents=True)
+    (tmp_path / "out" / "report" / "index.html").write_text("<title>hazard-hil sensitivity (thesis sec 6.3)</title>")
     assert main(_eval(tmp_path, "out", 48)) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "index.html was the sensitivity page and is now evaluate's; give each study its own --out" in err
     page = html.unescape((tmp_path / "out" / "report" / "index.html").read_text())
     for text in (out, page):
         assert "a 48 px camera, not the thesis's 512 px: not its setup" in text
+
+
+def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_path, capsys, monkeypatch):
+    from studies import report
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "evaluation_report", interrupted)
+    assert main(_eval(tmp_path, "out", 48)) == 130
+    err = capsys.readouterr().err
+    assert "interrupted while writing the report; every result is saved in" in err and "nothing is computed" in err
