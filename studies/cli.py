@@ -256,7 +256,13 @@ def register(subparsers: Any) -> None:
         choices=["altitude", "attitude", "lateral", "rollyaw"],
         help="which navigation error to inject (thesis sec 6.3)",
     )
-    s.add_argument("--samples", type=_positive("--samples"), default=20, help="samples per seed and altitude")
+    s.add_argument(
+        "--samples",
+        type=_positive("--samples"),
+        default=20,
+        help="samples per seed and altitude (default 20, at most 10000); attitude's first six are the thesis's "
+        "levels -0.15 ... +0.15 deg in order, the rest drawn",
+    )
     s.add_argument(
         "--preset",
         choices=["fast", "thesis", "fast_unrefined", "both", "refine"],

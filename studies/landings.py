@@ -466,8 +466,15 @@ def claim_out_dir(c: Campaign, out_dir: str | Path) -> Path:
         except json.JSONDecodeError:
             old = None
         if old is not None and old != c.identity():
+            new = c.identity()
+            keys = sorted(set(old) | set(new)) if isinstance(old, dict) else []
+            differ = [
+                f"{k} {old.get(k)!r:.40} there, {new.get(k)!r:.40} here" for k in keys if old.get(k) != new.get(k)
+            ]
             raise LandingError(
-                f"{out} holds a campaign with other settings ({cfg}); use another --out or the same options"
+                f"{out} holds a campaign with other settings ({cfg}"
+                + (f": {'; '.join(differ[:3])}" if differ else "")
+                + "); use another --out or the same options"
             )
     cfg.write_text(json.dumps(c.identity(), indent=1) + "\n")
     return out

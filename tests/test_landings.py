@@ -171,7 +171,7 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_pa
     lines = (tmp_path / "landings.csv").read_text().splitlines()
     assert len(lines) == 4 and lines[0].startswith("landing,group,preset,outcome,safe")
     assert (tmp_path / "report" / "index.html").stat().st_size > 1000
-    with pytest.raises(LandingError, match="other settings"):
+    with pytest.raises(LandingError, match=r"other settings \(.*: per_render 1 there, 2 here\)"):
         ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False)
 
 
