@@ -730,8 +730,8 @@ def true_poses(pair: Any, where: str | Path = "pair.json") -> tuple[Pose, ...]:
         raise PairFormatError(f"{where}: true_frames must list one pose per frame ({len(pair.poses)}), got {n}")
     poses = []
     for k, fr in enumerate(tp):
-        try:
-            pose, _, _ = _frame_pose(fr, k, Path(where))
+        try:  # the renderer writes each frame's image name here too; a pose needs none
+            pose, _, _ = _frame_pose({"image": "-", **fr} if isinstance(fr, dict) else fr, k, Path(where))
         except PairFormatError as exc:
             raise PairFormatError(str(exc).replace(f": frame {k}", f": true_frames[{k}]", 1)) from None
         poses.append(pose.orthonormalised(f"{where}: true_frames[{k}]")[0])
