@@ -80,6 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.arq import ECHO_TEXT
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.links import MECHANISM_MISMATCH_TEXT
@@ -329,6 +330,9 @@ def _silent_link_reason(link, where: str) -> str:
     stats = getattr(link, "stats", None) or {}
     got = int(stats.get("bytes_received", 0) or 0)
     frames = int(stats.get("frames_received", 0) or 0)
+    echoed = int(stats.get("echoed_frames", 0) or 0)
+    if echoed and echoed == frames:
+        return f"{ECHO_TEXT} ({echoed} of them came back)"
     if where.startswith("serial") and got > 0:
         bad = int(stats.get("crc_errors", 0) or 0) + int(stats.get("malformed", 0) or 0)
         if frames == 0:

@@ -219,10 +219,15 @@ REFUSALS_KEPT = 64  # refused messages whose reasons an Arq keeps for its owner 
 
 @dataclass
 class _Event:
-    kind: str  # "established" | "lost" | "restarted" | "closed"
+    kind: str  # "established" | "lost" | "restarted" | "closed" | "echo"
     text: str
     epoch: int
 
+
+ECHO_TEXT = (
+    "the line returns this side's own frames (a loopback plug, serial:loop://, or a device that echoes): "
+    "no peer answers on it"
+)
 
 STAT_KEYS = (
     "bytes_sent",
@@ -253,6 +258,7 @@ STAT_KEYS = (
     "reassembly_errors",
     "old_session_frames",
     "foreign_frames",
+    "echoed_frames",
     "sessions",
     "peer_restarts",
     "peer_losses",
@@ -627,6 +633,10 @@ class Arq(SessionView):
     def _on_frame(self, f: WireFrame, now: float) -> None:
         self.stats["frames_received"] += 1
         if self.closed:  # we said CLOSE: whatever the peer says now is not for this link
+            return
+        if f.src == self.sess.local:  # our own frame came back: the line echoes; a HELLO taken would be a session
+            self.stats["echoed_frames"] += 1  # with ourselves (a ground then waited out deadlines on its own frames)
+            self._events.append(_Event("echo", ECHO_TEXT, self.sess.epoch))
             return
         if f.kind == HELLO:
             if self.sess.retired(f.src):

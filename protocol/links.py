@@ -70,7 +70,7 @@ BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
 # events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per
 # REPEAT_QUIET_S with a count; every one is still an event and a stat
-REPEATING_EVENTS = frozenset({"auth_failed", "refused"})
+REPEATING_EVENTS = frozenset({"auth_failed", "refused", "echo"})
 REPEAT_QUIET_S = 10.0
 
 __all__ = [
@@ -97,7 +97,7 @@ class LinkClosed(InputError):
 @dataclass(frozen=True)
 class LinkEvent:
     time: float  # monotonic
-    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport | relisten | stalled
+    kind: str  # established | lost | restarted | closed | refused | auth_failed | transport | relisten | stalled | echo
     text: str
     epoch: int
 

@@ -269,3 +269,19 @@ def test_heartbeats_on_a_slow_line_do_not_starve_a_message():
     assert a.stats["dgrams_superseded"] > 0
     got = [r.message for r in line.received[1]]
     assert any(isinstance(m, Heartbeat) for m in got)  # the peer still hears them: liveness is kept
+
+
+def test_a_line_that_echoes_our_own_frames_is_no_session():
+    """On a loopback plug (serial:loop://) a ground took its own HELLO for a peer's, "established" a session with
+    itself and waited out a deadline per pair on its own frames. An echoed frame is counted and said instead."""
+    a = Arq(CFG, session_id=0x1234)
+    t = 0.0
+    for _ in range(20):  # whatever it sends comes straight back
+        t += 0.1
+        a.poll(t)
+        while (out := a.next_frame(t)) is not None:
+            a.written(out[1], len(out[0]), t)
+            a.receive(out[0], t)
+    assert not a.established and a.stats["echoed_frames"] > 0 and a.sess.peer == 0
+    kinds = {e.kind for e in a.take_events()}
+    assert kinds == {"echo"}

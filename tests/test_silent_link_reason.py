@@ -47,3 +47,16 @@ def test_frames_without_a_session_and_zmq_wording():
     assert why.startswith("its line carried 12 frames (900 bytes) but never a link session")
     why = _silent_link_reason(Fake({"bytes_received": 0}), "zmq:tcp://10.0.0.2:5555")
     assert why.startswith("its link never answered (is it powered, serving this endpoint, with these keys, and not")
+
+
+def test_a_line_that_echoes_is_named_and_no_session_is_made_with_ourselves():
+    """serial:loop:// (a loopback plug) gave the ground a session with itself: it took its own Hello, and each pair
+    waited out a full answer timeout (a 1-pair run took 77 s). Now nothing is established and the reason says so."""
+    with SerialLink("loop://", baud=None, name="ground") as link:
+        deadline = time.monotonic() + 5
+        while link.stats.get("echoed_frames", 0) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not link.wait_established(0.5)
+        why = _silent_link_reason(link, "serial:loop://")
+    assert why.startswith("the line returns this side's own frames (a loopback plug, serial:loop://"), why
+    assert any(e.kind == "echo" for e in link.events())
