@@ -704,6 +704,32 @@ def _spawn(cmd: list[str], env: dict, *, hold_interrupts: bool = False, **kw) ->
     return subprocess.Popen(cmd, env=env, process_group=0, preexec_fn=preexec, **kw)
 
 
+class _Tee(threading.Thread):
+    """A child's stderr, shown on this run's stderr as it comes and kept in ``path``: the ground's reason for
+    failing was printed once on the console, while summary.md said only "exited with 2"."""
+
+    def __init__(self, stream: Any, path: Path) -> None:
+        super().__init__(name=f"tee {path.name}", daemon=True)
+        self.stream, self.path = stream, path
+
+    def run(self) -> None:
+        try:
+            f = open(self.path, "w", encoding="utf-8", errors="replace")  # noqa: SIM115 (closed below)
+        except OSError:
+            f = None
+        # read to the end whatever fails to take a line: a child whose stderr pipe fills blocks on its next line
+        for line in iter(self.stream.readline, ""):
+            for sink in (f, sys.stderr):
+                try:
+                    if sink is not None:
+                        sink.write(line)
+                        sink.flush()
+                except (OSError, ValueError):  # a full disk, a closed terminal: the other sink still has it
+                    pass
+        if f is not None:
+            f.close()
+
+
 def _last_line(path: Path) -> str:
     """The last non-empty line of a log (``""`` if none or unreadable), for a one-line reason."""
     try:
@@ -1018,6 +1044,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     channels: dict = {}
     bridge = None
     sup = ground = None
+    ground_tee: _Tee | None = None
     sup_log = None
     t0 = time.monotonic()
     with _Signals() as sigs:
@@ -1154,7 +1181,11 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end; "
                     f"waiting up to {hello:g} s for its Hello"
                 )
-            ground = _spawn(ground_cmd, env, hold_interrupts=True)
+            ground = _spawn(
+                ground_cmd, env, hold_interrupts=True, stderr=subprocess.PIPE, text=True, errors="replace", bufsize=1
+            )
+            ground_tee = _Tee(ground.stderr, out / "ground.log")
+            ground_tee.start()
             limit = max(cfg.timeout_s, hello + GRACE_S)  # the first Hello may be awaited longer, when asked to
             rc, sup_reason = _wait_ground(ground, sup, limit, out / "supervisor.log")
             if sup is not None and rc in (0, EXIT_LINK_LOST):
@@ -1185,8 +1216,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     _no_hello_reason(received / "results.jsonl") or f"no Hello from the flight side within {hello:g} s"
                 )
             if reason is None and rc is not None and rc not in (0, EXIT_LINK_LOST):
-                reason = f"the ground simulator exited with {rc}" + (
-                    f"; see {out / 'supervisor.log'}" if emulated else ""
+                if ground_tee is not None:
+                    ground_tee.join(timeout=2.0)  # its last words, which say why
+                last = _last_line(out / "ground.log")
+                reason = (
+                    f"the ground simulator exited with {rc}"
+                    + (f": {last}" if last else "")
+                    + (f" (see {out / 'ground.log'})")
                 )
         except _Interrupted as exc:
             interrupted, reason = exc.signum, str(exc)
@@ -1200,6 +1236,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 log(f"run: stopping ({reason})")
             # a Ctrl-C reaches the ground as SIGINT (it handles both), so it says "interrupted by SIGINT"
             _stop(ground, how=signal.SIGINT if interrupted == signal.SIGINT else signal.SIGTERM)
+            if ground_tee is not None:
+                ground_tee.join(timeout=2.0)  # its last lines before the run's verdict
             _stop(sup)
             if bridge is not None:
                 bridge.close()

@@ -664,3 +664,19 @@ def test_a_stranger_speaking_zeromq_on_the_boards_port_is_counted_and_named(tmp_
     assert not s["complete"] and "answers, but not in this protocol" in s["reason"], s["reason"]
     counters = json.loads((tmp_path / "run" / "received" / "ground.json").read_text())
     assert counters["refused_messages"] > 0 and "before any session" in counters["last_refused"]["reason"]
+
+
+def test_a_ground_that_fails_after_its_checks_gives_the_run_its_reason_and_a_log(tmp_path):
+    """A device that refuses at open time (a socket:// port where nothing listens) ended the ground with exit 2: its
+    reason went to the console once, while summary.md and every pair said only "the ground simulator exited with 2"."""
+    import socket
+
+    with socket.socket() as s:  # a port that was free a moment ago
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+    s = run_hil(manifest, tmp_path / "run", f"serial:socket://127.0.0.1:{port}", flight="external")
+    assert not s["complete"] and s["reason"].startswith("the ground simulator exited with 2: ground: error: ")
+    assert "Connection refused" in s["reason"] and str(tmp_path / "run" / "ground.log") in s["reason"], s["reason"]
+    assert "Connection refused" in (tmp_path / "run" / "ground.log").read_text()
+    assert all("Connection refused" in r["text"] for r in s["records"])
