@@ -846,7 +846,17 @@ def stream_descent(
                     o.error = Error(code="no_response", text=f"no result or error within {timeout:.0f} s", seq=s[1])
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
-    except Interrupted:
+    except Interrupted as exc:
+        # a pair whose frames went is not "not run": recorded with what came, or as interrupted while in flight
+        for s, o in outcomes.items():
+            if o.sent_at and not any(r["frame_seqs"] == list(s) for r in records):
+                if not o.finished and o.result is not None:  # the answer came, its Telemetry not yet
+                    o.telemetry_missing = f"{exc} before its Telemetry came"
+                elif not o.finished:
+                    o.error = Error(
+                        code="interrupted", text=f"{exc} after its frames went; its answer was not awaited", seq=s[1]
+                    )
+                records.append(write_outcome(out_dir, o, deadline_s))
         save()
         raise
     return records

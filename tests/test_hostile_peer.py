@@ -301,3 +301,37 @@ def test_a_serial_device_that_is_not_there_is_refused_before_rendering(tmp_path,
     err = capsys.readouterr().err
     assert "no serial device /dev/no-such-board" in err and len(err.strip().splitlines()) == 1
     assert not (out / "pairs").exists()  # nothing rendered for a run that could not start
+
+
+def test_a_pair_in_flight_when_the_run_is_stopped_is_interrupted_not_not_run(manifest, hostile, tmp_path):
+    """A Ctrl-C while a pair's answer was on its way recorded that pair as not_run, which means "the run ended
+    before its frames went"; the board had computed it. It is now `interrupted`, with the signal."""
+    import json
+    import signal
+
+    out = tmp_path / "run"
+    # the second pair's answer trickles (a record of 1 MB, 640 B/s): it is in flight when the signal comes
+    cmd = f"{sys.executable} {hostile} --declare {1 << 20} --port {{port}}"
+    argv = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--deadline", "30"]
+    argv += ["--out", str(out), "--budget", "host", "--link", "serial", "--flight-cmd", cmd]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        results = out / "received" / "results.jsonl"
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 60 and not (results.is_file() and results.read_text().strip()):
+            time.sleep(0.1)
+        time.sleep(1.0)  # the second pair's frames go, its answer starts to trickle
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    s = json.loads((out / "summary.json").read_text())
+    assert outcomes(s) == [
+        ("600/300", "result", None),
+        ("300/150", "error", "interrupted"),
+        ("200/100", "error", "not_run"),
+    ]
+    assert s["records"][1]["text"] == "interrupted by SIGINT after its frames went; its answer was not awaited"
+    assert s["not_run"] == 1
