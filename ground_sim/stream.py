@@ -93,6 +93,8 @@ from reports.html import write_atomic
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
+# the ground's link counters kept in ground.json (protocol.arq.STAT_KEYS; a ZeroMQ link has the first two only)
+LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "echoed_frames")
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 UNANSWERED_TEXT = (
@@ -700,6 +702,9 @@ def stream_descent(
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
         counters = {"refused_messages": state.refused_messages, "last_refused": state.last_refused}
+        stats = getattr(link, "stats", None) or {}
+        # what the line did meanwhile: noise the framing dropped and the retransmissions that mended it
+        counters["line"] = {k: int(stats.get(k, 0) or 0) for k in LINE_COUNTERS if k in stats}
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
         if telemetry_path is not None:
             lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)

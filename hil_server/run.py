@@ -8,7 +8,8 @@ result against ground truth and writes::
     OUT/pairs/...            rendered pair directories + manifest.json
     OUT/keys/                CURVE keys of this run (ZeroMQ; files mode 0600)
     OUT/received/            what came back: results.jsonl + arrays per pair; ground.json, the ground's counters
-                             (``refused_messages`` from the flight side, the last one's type and reason)
+                             (``refused_messages`` from the flight side, the last one's type and reason, and
+                             ``line``: the damaged frames its link dropped and its retransmissions)
     OUT/telemetry.jsonl      per pair, measured at the ground: e2e_latency_s, the deadline verdict, the flight
                              latency, the frames' and the Result's line times, the flight's stages
     OUT/supervisor.jsonl     the HIL server's own log: its view of each pair, restarts, hangs, counters
@@ -480,7 +481,20 @@ def flight_note(summary: dict) -> str:
             f" (last: {last.get('type')}: {last.get('reason')})" if last else ""
         )
     server = _server_note(summary, c)
-    return "; ".join(x for x in (server, ground) if x)
+    return "; ".join(x for x in (server, ground, _line_note(g.get("line") or {})) if x)
+
+
+def _line_note(line: dict) -> str:
+    """What the ground's line carried besides the descent ("" when nothing): frames that failed their checks (noise,
+    a stranger's bytes) and the retransmissions that mended them; every pair's outcome says whether they did."""
+    bad = int(line.get("crc_errors") or 0) + int(line.get("malformed") or 0)
+    if not bad:
+        return ""
+    noise, again = int(line.get("bytes_discarded") or 0), int(line.get("retransmits") or 0)
+    return (
+        f"the ground's line dropped {bad} damaged frame{'' if bad == 1 else 's'} ({noise} bytes of noise); "
+        f"{again} retransmission{'' if again == 1 else 's'} on the ground's side"
+    )
 
 
 def _server_note(summary: dict, c: dict) -> str:
