@@ -342,6 +342,13 @@ class FlightProcess:
             resumed, self.resumable = self.resumable, None
             if resumed is not None and "descent_id" in msg.options and msg == resumed[0]:
                 self.config, self.fused = resumed  # the same descent in a new ground session
+                print("flight: the same descent (its descent_id): its fused map goes on", file=sys.stderr, flush=True)
+            elif resumed is not None and resumed[1] is not None:  # said: the ground's summary cannot know it
+                print(
+                    "flight: another descent (or a ground that names none): its fused map starts afresh",
+                    file=sys.stderr,
+                    flush=True,
+                )
             if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
                 self.fused = None
                 note = left_out_note(msg)

@@ -150,6 +150,9 @@ def test_a_descent_reconnected_mid_way_keeps_its_fused_map_on_the_board(tmp_path
     # the first run's last pair was fused onto the first (the second pair never reached the board whole); the
     # next run started afresh
     assert held == [1, 2, 1, 2, 3], err
+    # and the board says which it did at each new session's Config
+    kept = [x for x in err.splitlines() if x.startswith(("flight: the same descent", "flight: another descent"))]
+    assert ["goes on" in x for x in kept] == [True, False], err
     assert [r["status"] for r in again["records"]] == ["result"] * 3
     assert rc == 128 + signal.SIGTERM
 
