@@ -139,8 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     saved = _stop_signals()
     shown = warnings.showwarning
-    warnings.showwarning = _one_line_warning(shown)
-    try:
+    try:  # from the moment the handlers are in: a stop while modules still import is a clean exit 128 + N too
+        warnings.showwarning = _one_line_warning(shown)
         _no_empty_paths(sys.argv[1:] if argv is None else argv)
         for option in ("out", "cache", "figures"):  # the directories a command creates
             if getattr(args, option, None) is not None:

@@ -414,8 +414,14 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
         board = subprocess.Popen(
             [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
         )
-        time.sleep(1.0)
-        rc, err = _stop(board, sig)
+        assert board.stderr is not None
+        first = []
+        t0 = time.monotonic()
+        # waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there
+        while time.monotonic() - t0 < 60 and not any("waiting for a ground" in x for x in first):
+            first.append(board.stderr.readline())
+        rc, rest = _stop(board, sig)
+    err = "".join(first) + rest
     assert rc == 128 + sig, err
     assert f"stopped by {signal.Signals(sig).name}" in err
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
