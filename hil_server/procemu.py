@@ -236,6 +236,25 @@ def _read_schedstat(pid: int, per_task: dict[int, tuple[int, int]]) -> tuple[int
     return run_ns, wait_ns
 
 
+def _runnable(pid: int) -> bool:
+    """Whether a thread of ``pid`` is running or waiting for a CPU (state ``R`` in ``/proc/PID/task/TID/stat``).
+
+    schedstat's run-queue wait grows only when a waiting task gets the CPU back: a child queued behind other
+    jobs shows neither CPU nor wait progress for a while, as an idle one does; its state tells them apart."""
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return False
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as fh:
+                if fh.read().rsplit(b")", 1)[1].split()[0] == b"R":
+                    return True
+        except (OSError, IndexError):
+            continue
+    return False
+
+
 def descendants(pid: int) -> list[int]:
     """The processes ``pid`` started, and theirs, from ``/proc/PID/task/TID/children`` (a flight program's worker
     processes run on its budget too; one that left the process group with ``setsid`` is still found here while
@@ -348,6 +367,10 @@ class _Child:
         self.wait_ns = max(self.wait_ns, wait)
         return self.cpu_ns, self.wait_ns
 
+    def runnable(self) -> bool:
+        """Whether the child or a process it started has a thread running or queued for the CPU (:func:`_runnable`)."""
+        return any(_runnable(pid) for pid in (self.pid, *(p for p, _ in self.members)))
+
     def signal(self, sig: int) -> bool:
         """Send ``sig`` unless the child has been reaped (its PID may be reused then).
 
@@ -416,13 +439,15 @@ def duty_cycle(child: _Child, f: float, period_s: float) -> None:
             avail = (time.monotonic() - t0) - (wait_ns - child.wait0_ns) / 1e9
             cpu = (cpu_ns - child.cpu0_ns) / 1e9
             credit = f * avail - cpu - offset
-            # Cap only credit the child left unused while released and mostly idle; credit
+            # Cap only credit the child left unused while released and idle; credit
             # gained by our own late wake-ups while it was stopped is kept (no bias).
             # (judged over >= 1 ms: right after SIGCONT it has not had time to run yet).
             span = avail - last_avail
             idle = not child.stopped and span >= 0.001 and (cpu - last_cpu) < 0.5 * span
             last_avail, last_cpu = avail, cpu
-            if idle and credit > cap:
+            # a child queued behind other jobs looks idle by its counters (the kernel adds its wait only when it runs
+            # again): its lost credit made it run under its budget on a busy host; its thread state tells
+            if idle and credit > cap and not child.runnable():
                 offset += credit - cap
                 credit = cap
             if child.stopped:
