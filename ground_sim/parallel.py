@@ -51,8 +51,26 @@ def _pool_worker_init(parent: int) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # started with SIGINT blocked (_Pool.submit): a Ctrl-C sent while it started is discarded here, ignored
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT,))
     _die_with_parent(parent)
     worker_init()
+
+
+class _Pool(ProcessPoolExecutor):
+    """A pool whose workers start with SIGINT blocked until their initialiser ignores it: a Ctrl-C that reached
+    a worker still starting its interpreter (a loaded host takes seconds) was a KeyboardInterrupt traceback in
+    the middle of the pool's start-up. Workers are started by ``submit``, in the submitting thread, whose mask
+    they inherit; the parent's own Ctrl-C waits, pending, for the few milliseconds of a submit."""
+
+    def submit(self, fn, /, *args, **kwargs):  # type: ignore[no-untyped-def]
+        import signal
+
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT,))
+        try:
+            return super().submit(fn, *args, **kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def _die_with_parent(parent: int) -> None:
@@ -100,9 +118,7 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 
     with single_threaded_env():
         ctx = mp.get_context("spawn")
-        pool = ProcessPoolExecutor(
-            max_workers=workers, mp_context=ctx, initializer=_pool_worker_init, initargs=(os.getpid(),)
-        )
+        pool = _Pool(max_workers=workers, mp_context=ctx, initializer=_pool_worker_init, initargs=(os.getpid(),))
         try:
             yield pool
         except BaseException:  # an interrupt or a failure: the running tasks' results are not wanted

@@ -494,13 +494,14 @@ def stream_descent(
                 )
                 raise NoHello(f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: {stranger}")
             if now >= next_note:
-                waiting(t0)
-                next_note = now + HELLO_NOTE_S
+                waiting(next_note - t0)
+                next_note += HELLO_NOTE_S
         handshake(max(0.0, end - time.monotonic()), t0, first=True)
 
-    def waiting(t0: float) -> None:
-        waited = time.monotonic() - t0
-        note(f"waiting for the flight computer's Hello on {where} ({waited:.0f} s of {hello_timeout_s:.0f} s)")
+    def waiting(mark_s: float) -> None:
+        """Said every HELLO_NOTE_S: the mark it stands for (10 s, 20 s, ...), not the measured time, which a late
+        loop rounded up past it ("11 s of 11 s")."""
+        note(f"waiting for the flight computer's Hello on {where} ({mark_s:.0f} s of {hello_timeout_s:.0f} s)")
 
     def handshake(hello_s: float, t0: float, first: bool = False) -> None:
         """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
@@ -511,7 +512,7 @@ def stream_descent(
         epoch = link.epoch
         link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
         end = time.monotonic() + hello_s
-        next_note = t0 + HELLO_NOTE_S
+        next_note = t0 + HELLO_NOTE_S * (1 + (time.monotonic() - t0) // HELLO_NOTE_S)  # the next mark from now
         while True:  # the HIL server answers Hello once its flight process has booted
             pkt = link.recv_packet(timeout=0.5)
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
@@ -525,8 +526,8 @@ def stream_descent(
                     "is its flight software running?)"
                 )
             if now > next_note:
-                waiting(t0)
-                next_note = now + HELLO_NOTE_S
+                waiting(next_note - t0)
+                next_note += HELLO_NOTE_S
         state.epoch = epoch
         state.sessions += 1
         if state.sessions > 1:

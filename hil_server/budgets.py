@@ -683,8 +683,8 @@ def calibrate_host(
             print(f"calibrate: {p} was unreadable; kept it as {kept} and started a new one", file=sys.stderr)
             store = {}
         store[cal.key] = asdict(cal)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(store, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(tmp, p)  # atomic: a concurrent reader never sees half a file
+        from reports.html import write_atomic
+
+        # a temporary file of its own (two calibrations at once shared one name), renamed over the store
+        write_atomic(p, json.dumps(store, indent=2, sort_keys=True) + "\n")
     return cal
