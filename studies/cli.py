@@ -13,7 +13,7 @@ from typing import Any
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from ground_sim.seeds import describe_seeds
 from protocol.errors import InputError, comma_items
-from protocol.pairdir import IMAGE_SIZE_MAX
+from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
 
 def _positive(kind: str, most: int | None = None, least: int = 1):
@@ -30,7 +30,9 @@ def _positive(kind: str, most: int | None = None, least: int = 1):
 
 
 THESIS_CAMERA_PX = 512
-MIN_CAMERA_PX = 32  # studies.evaluate.camera_for refuses smaller cameras (in a worker, after the work started)
+MIN_CAMERA_PX = (
+    IMAGE_SIZE_MIN  # studies.evaluate.camera_for refuses smaller cameras (in a worker, after the work started)
+)
 
 
 def add_seed_options(
@@ -100,10 +102,11 @@ def note_page_owner(out: Path, command: str) -> None:
 
 
 def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
-    """Local workers each run the pipeline on a ``--camera-px`` camera at once: refuse, before any rendering,
-    a pool whose peaks together (:func:`flight_sw.validate.peak_memory_bytes`) exceed the memory this process
+    """Before any rendering: each local worker runs the pipeline on a ``--camera-px`` pair
+    (:func:`flight_sw.validate.peak_memory_bytes`); refuse a camera one run cannot fit in the memory this process
     can spend, as ``process`` refuses one pair (an 8192 px camera started and would have needed ~12 GiB per
-    worker). More workers than cores is allowed, and said: each task is single-threaded, so they share them."""
+    worker), and run only as many workers at once as fit (said). ``n_frames`` > 2: the multi-frame descents,
+    which run one at a time in this process. More workers than cores is allowed, and said."""
     import os
 
     from flight_sw.validate import memory_room, peak_memory_bytes
@@ -115,13 +118,22 @@ def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
     if workers > cores:
         _note(f"note: --workers {workers} on {cores} core(s): the workers share them, none runs faster")
     px = args.camera_px or THESIS_CAMERA_PX
-    need = peak_memory_bytes(px, px, n_frames) * workers
     room, what = memory_room()
-    if need > room:
-        raise InputError(
-            f"{workers} worker(s) on a {px} px camera need ~{need / 2**20:.0f} MiB at once, but only "
-            f"{room / 2**20:.0f} MiB {what}: use fewer --workers or a smaller --camera-px"
+    for frames in sorted({2, n_frames}):
+        need = peak_memory_bytes(px, px, frames)
+        if need > room:
+            raise InputError(
+                f"a {px} px camera needs ~{need / 2**20:.0f} MiB per pipeline run ({frames} frames), but only "
+                f"{room / 2**20:.0f} MiB {what}: use a smaller --camera-px"
+            )
+    each = peak_memory_bytes(px, px, 2)
+    fit = max(1, room // each)
+    if workers > fit:  # the executor starts a worker per pending task up to this count: as many as fit at once
+        _note(
+            f"note: {workers} workers on a {px} px camera would need ~{workers * each / 2**20:.0f} MiB at once, but "
+            f"{room / 2**20:.0f} MiB {what}: running {fit}"
         )
+        args.workers = fit
 
 
 def resolve_seeds(args: argparse.Namespace, default_n: int) -> tuple[list[int], str]:

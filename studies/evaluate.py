@@ -1046,7 +1046,7 @@ def sensitivity_campaign(
     if runs > MAX_SENSITIVITY_RUNS:  # said before the renders, not after them as the memory runs out
         raise EvaluationError(
             f"{runs} pipeline runs ({len(presets)} preset(s) x {len(seeds)} seed(s) x {len(altitudes)} altitude(s) "
-            f"x {samples} samples + 1 reference) is over {MAX_SENSITIVITY_RUNS}: use fewer --samples or --seeds, "
+            f"x ({samples} samples + 1 reference)) is over {MAX_SENSITIVITY_RUNS}: use fewer --samples or --seeds, "
             "or split the study over several --out directories"
         )
     out = Path(out_dir)

@@ -126,13 +126,12 @@ def test_another_camera_into_the_same_out_is_scored_not_reused_and_its_maps_are_
         # sized before the renders: 8 M pipeline runs were accepted, and their tasks would not have fitted in memory
         (
             ["sensitivity", "--kind", "attitude", "--seeds", "100", "--samples", "10000", "--preset", "both"],
-            "8000800 pipeline runs (2 preset(s) x 100 seed(s) x 4 altitude(s) x 10000 samples + 1 reference)",
+            "8000800 pipeline runs (2 preset(s) x 100 seed(s) x 4 altitude(s) x (10000 samples + 1 reference))",
         ),
         (
             ["evaluate", "--scenario", "vertical", "--camera-px", "8192"],
             "--camera-px must be >= 32 and <= 4096, got 8192",
         ),
-        (["evaluate", "--scenario", "vertical", "--camera-px", "4096", "--workers", "64"], "use fewer --workers"),
         (["landings", "--scenes", "thesis", "--n", "1", "--pose-error", " "], "--pose-error is empty"),
         (["evaluate", "--scenario", "vertical", "--altitudes", "300.9"], "whole metres, got 300.9"),
     ],
@@ -313,3 +312,25 @@ def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_pa
     assert main(_eval(tmp_path, "out", 48)) == 130
     err = capsys.readouterr().err
     assert "interrupted while writing the report; every result is saved in" in err and "nothing is computed" in err
+
+
+def test_local_workers_are_sized_to_the_memory_before_any_work(monkeypatch, capsys):
+    """An 8192 px camera started rendering and would have needed ~12 GiB per worker: a camera one run cannot fit
+    is refused, and no more workers run at once than fit."""
+    import argparse
+
+    from flight_sw import validate
+    from flight_sw.validate import peak_memory_bytes
+    from studies.cli import check_local_room
+
+    each = peak_memory_bytes(512, 512, 2)
+    monkeypatch.setattr(validate, "memory_room", lambda: (int(2.5 * each), "of memory is available"))
+    args = argparse.Namespace(scheduler=None, workers=8, camera_px=None)
+    check_local_room(args)
+    assert args.workers == 2 and "8 workers on a 512 px camera would need" in capsys.readouterr().err
+    with pytest.raises(InputError, match=r"a 4096 px camera needs ~\d+ MiB per pipeline run \(2 frames\)"):
+        check_local_room(argparse.Namespace(scheduler=None, workers=1, camera_px=4096))
+    room = peak_memory_bytes(1024, 1024, 2) + 2**20  # one pair fits, a 16-frame descent does not
+    monkeypatch.setattr(validate, "memory_room", lambda: (room, "of memory is available"))
+    with pytest.raises(InputError, match=r"\(16 frames\)"):  # a multi-frame descent runs in this process
+        check_local_room(argparse.Namespace(scheduler=None, workers=1, camera_px=1024), n_frames=16)
