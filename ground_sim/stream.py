@@ -93,7 +93,7 @@ from reports.html import write_atomic
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
-# the ground's link counters kept in ground.json (protocol.arq.STAT_KEYS; a ZeroMQ link has the first two only)
+# the ground's link counters kept in ground.json (protocol.arq.STAT_KEYS: a serial link's; a ZeroMQ link has none)
 LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "echoed_frames")
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
@@ -334,7 +334,7 @@ def _silent_link_reason(link, where: str) -> str:
     frames = int(stats.get("frames_received", 0) or 0)
     echoed = int(stats.get("echoed_frames", 0) or 0)
     if echoed and echoed == frames:
-        return f"{ECHO_TEXT} ({echoed} of them came back)"
+        return f"{ECHO_TEXT}, and nothing else came: no peer answers on it ({echoed} of them came back)"
     if where.startswith("serial") and got > 0:
         bad = int(stats.get("crc_errors", 0) or 0) + int(stats.get("malformed", 0) or 0)
         if frames == 0:

@@ -225,9 +225,10 @@ class _Event:
 
 
 ECHO_TEXT = (
-    "the line returns this side's own frames (a loopback plug, serial:loop://, or a device that echoes): "
-    "no peer answers on it"
+    "the line returns this side's own frames (a loopback plug, serial:loop://, or a device that echoes); "
+    "they are dropped"
 )
+ECHO_EVENT_S = 10.0  # echoes are counted each, and said as an event once per this many seconds
 
 STAT_KEYS = (
     "bytes_sent",
@@ -277,6 +278,7 @@ class Arq(SessionView):
         self.peer_window = self.cfg.max_frame
         self.closed = False
         self._events: list[_Event] = []
+        self._echo_said = -math.inf
         self._received: list[Received] = []
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
         # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
@@ -636,7 +638,9 @@ class Arq(SessionView):
             return
         if f.src == self.sess.local:  # our own frame came back: the line echoes; a HELLO taken would be a session
             self.stats["echoed_frames"] += 1  # with ourselves (a ground then waited out deadlines on its own frames)
-            self._events.append(_Event("echo", ECHO_TEXT, self.sess.epoch))
+            if now - self._echo_said >= ECHO_EVENT_S:  # an event per frame would push others out of the event queue
+                self._echo_said = now
+                self._events.append(_Event("echo", ECHO_TEXT, self.sess.epoch))
             return
         if f.kind == HELLO:
             if self.sess.retired(f.src):

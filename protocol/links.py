@@ -954,22 +954,28 @@ class ZmqLink(Link, SessionView):
         in libzmq's queue. The silence clocks restart, so a Result that arrived during the stop is read before
         the peer is judged silent (after an 8 s stop it was dropped and the peer blamed).
 
-        One stop is forgiven between two hearings of the peer: what a live peer sent is read within a poll
-        after the stop, so a second stop with nothing heard in between is counted. Forgiven every time, a
-        loop starved for over a second again and again would never time out a dead peer."""
-        if self._forgave_at is not None and self._last_heard == self._forgave_at:
-            return
-        self._last_heard += gap
-        self._forgave_at = self._last_heard
-        if self._stall_since is not None:
-            self._stall_since += gap
+        The peer's silence is forgiven for one stop between two hearings of it: what a live peer sent is read
+        within a poll after the stop, so a second stop with nothing heard in between counts against it. Forgiven
+        every time, a loop starved for over a second again and again would never time out a dead peer. This
+        side's own clocks (no session yet, a handshake unanswered, a connect timeout) are its own and always
+        move with the stop."""
+        forgiven = self._forgave_at is None or self._last_heard != self._forgave_at
+        if forgiven:
+            self._last_heard += gap
+            self._forgave_at = self._last_heard
+            if self._stall_since is not None:
+                self._stall_since += gap
         self._sessionless_since += gap
         if self._handshaken_at is not None:  # "up but unanswered" is timed from the connection, not the stop
             self._handshaken_at += gap
         for m in self._out:  # the connect timeout of what waits to be sent: the stop was not the peer's
             m.submitted += gap
         if self.peer_timeout is not None and gap > self.peer_timeout / 2:  # said where it could have cost a session
-            text = f"this side was not scheduled for {gap:.1f} s; the peer's silence is counted from now"
+            text = f"this side was not scheduled for {gap:.1f} s; " + (
+                "the peer's silence is counted from now"
+                if forgiven
+                else "the peer, not heard since the last such stop, is judged by its silence meanwhile"
+            )
             self._pending_events.append(("stalled", text, self.sess.epoch))
 
     def _timers(self, now: float) -> None:
