@@ -7,7 +7,7 @@ score the flight software against stale images and truth without a word. Each pa
 :data:`ground_sim.render.RENDER_VERSION` in its ``pair.json`` meta; a cached pair with another
 version is removed and rendered again, and the caller is told. So is a damaged one (an image or a
 truth array cut off or corrupt): that check reads the files' structure, not their pixels, so a cache
-hit costs one read of the pair, the caller's.
+hit costs one decode of the pair, the caller's.
 """
 
 from __future__ import annotations
@@ -78,9 +78,10 @@ def _damage(pair_dir: Path, doc: Any) -> str | None:
     """Why the cached pair in ``pair_dir`` (``doc`` its parsed pair.json) cannot be read, or None.
 
     The layout the renderer writes (PNG frames, .npy truth) is checked from the files' structure: each
-    image whole, its chunks' CRCs right and its size the camera's, each truth file's header against its
-    length and the camera. The images are not decoded nor the truth arrays loaded, so a cache hit reads
-    them once, when the caller loads the pair. Anything else is read whole (:func:`protocol.pairdir.read_pair`).
+    image whole as the reader checks it (:func:`protocol.pairdir.png_damage`: its chunks, its pixel stream
+    inflated) and its size the camera's, each truth file's header against its length and the camera. The
+    images are not decoded nor the truth arrays loaded, so a cache hit decodes them once, when the caller
+    loads the pair. Anything else is read whole (:func:`protocol.pairdir.read_pair`).
     pair.json's own content is the renderer's: ``write_pair`` validated the pair before writing it.
     """
     from protocol.pairdir import FORMAT, MAX_FRAMES, MIN_FRAMES, PNG_MAGIC, TRUTH_FILES, png_damage
@@ -103,8 +104,8 @@ def _damage(pair_dir: Path, doc: Any) -> str | None:
                 return f"{path}: not a readable image ({exc.strerror or exc})"
             if data[:8] != PNG_MAGIC:
                 raise _OtherLayout
-            # its structure, not its pixels: a cache hit decodes them once, in the caller's read
-            why = png_damage(data, size=size, inflate=False)
+            # inflated as the reader does (so both refuse the same files), not decoded: a hit decodes once, later
+            why = png_damage(data, size=size)
             if why is not None:
                 return f"{path}: not a readable image ({why})"
         for fname in TRUTH_FILES.values():

@@ -731,9 +731,10 @@ def true_poses(pair: Any, where: str | Path = "pair.json") -> tuple[Pose, ...]:
     poses = []
     for k, fr in enumerate(tp):
         try:  # the renderer writes each frame's image name here too; a pose needs none
-            pose, _, _ = _frame_pose({"image": "-", **fr} if isinstance(fr, dict) else fr, k, Path(where))
+            pose, _, _ = _frame_pose({**fr, "image": "-"} if isinstance(fr, dict) else fr, k, Path(where))
         except PairFormatError as exc:
-            raise PairFormatError(str(exc).replace(f": frame {k}", f": true_frames[{k}]", 1)) from None
+            text = str(exc).replace(f": frame {k}", f": true_frames[{k}]", 1).replace("need image, ", "need ", 1)
+            raise PairFormatError(text) from None
         poses.append(pose.orthonormalised(f"{where}: true_frames[{k}]")[0])
     return tuple(poses)
 

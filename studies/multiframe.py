@@ -82,13 +82,9 @@ def render_descent(
 def pixel_world(pair: Any) -> tuple[np.ndarray, np.ndarray]:
     """True world X, Y of frame 0's pixels (true pose where the directory records it, true elevation)."""
     from flight_sw.georef import backproject
-    from protocol.pairdir import Pose
+    from protocol.pairdir import true_poses
 
-    tf = pair.meta.get("true_frames")
-    pose = pair.poses[0]
-    if isinstance(tf, list) and tf:
-        pose = Pose(np.array(tf[0]["position_m"], float), np.array(tf[0]["R_world_to_cam"], float))
-    return backproject(pair.camera, pose, pair.truth["elevation"].astype(np.float64))
+    return backproject(pair.camera, true_poses(pair)[0], pair.truth["elevation"].astype(np.float64))
 
 
 def sample_cells(grid: Any, X: np.ndarray, Y: np.ndarray, layer: np.ndarray, fill: float) -> np.ndarray:

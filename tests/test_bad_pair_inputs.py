@@ -279,7 +279,7 @@ def test_an_all_nan_truth_is_named_not_called_a_geometry_problem(good, tmp_path,
     [
         (lambda doc: doc["true_frames"].pop(), "true_frames must list one pose per frame (2), got 1"),
         (lambda doc: doc.update(true_frames="x"), "true_frames must list one pose per frame (2), got str"),
-        (lambda doc: doc["true_frames"][1].pop("position_m"), "true_frames[1]: need image, position_m"),
+        (lambda doc: doc["true_frames"][1].pop("position_m"), "true_frames[1]: need position_m"),
         (lambda doc: doc["true_frames"][0]["position_m"].__setitem__(2, float("nan")), "true_frames[0]: position"),
     ],
 )
