@@ -494,14 +494,15 @@ def stream_descent(
                 )
                 raise NoHello(f"no Hello from the flight computer on {where} within {hello_timeout_s:g} s: {stranger}")
             if now >= next_note:
-                waiting(next_note - t0)
-                next_note += HELLO_NOTE_S
+                next_note = note_mark(t0, now)
         handshake(max(0.0, end - time.monotonic()), t0, first=True)
 
-    def waiting(mark_s: float) -> None:
-        """Said every HELLO_NOTE_S: the mark it stands for (10 s, 20 s, ...), not the measured time, which a late
-        loop rounded up past it ("11 s of 11 s")."""
-        note(f"waiting for the flight computer's Hello on {where} ({mark_s:.0f} s of {hello_timeout_s:.0f} s)")
+    def note_mark(t0: float, now: float) -> float:
+        """Say the latest HELLO_NOTE_S mark passed (10 s, 20 s, ...), not the measured time, which a late loop
+        rounded up past it ("11 s of 11 s"); after a stall, that mark alone. Returns when the next one is due."""
+        mark = HELLO_NOTE_S * ((now - t0) // HELLO_NOTE_S)
+        note(f"waiting for the flight computer's Hello on {where} ({mark:.0f} s of {hello_timeout_s:.0f} s)")
+        return t0 + mark + HELLO_NOTE_S
 
     def handshake(hello_s: float, t0: float, first: bool = False) -> None:
         """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
@@ -526,8 +527,7 @@ def stream_descent(
                     "is its flight software running?)"
                 )
             if now > next_note:
-                waiting(next_note - t0)
-                next_note += HELLO_NOTE_S
+                next_note = note_mark(t0, now)
         state.epoch = epoch
         state.sessions += 1
         if state.sessions > 1:
@@ -853,7 +853,9 @@ def stream_descent(
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
     except Interrupted as exc:
-        # a pair whose frames went is not "not run": recorded with what came, or as interrupted while in flight
+        # a pair whose frames went is not "not run": recorded with what came, or as interrupted while in flight;
+        # written whole, a second signal waiting meanwhile (it would leave half the records, temporary files)
+        signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
         for s, o in outcomes.items():
             if o.sent_at and not any(r["frame_seqs"] == list(s) for r in records):
                 if not o.finished and o.result is not None:  # the answer came, its Telemetry not yet
@@ -864,6 +866,7 @@ def stream_descent(
                     )
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
         raise
     return records
 
@@ -914,12 +917,14 @@ def _interrupt(signum: int, frame: object) -> None:
     raise Interrupted(signum)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, restore_handlers: bool = True) -> int:
     """The ground streamer's process entry. SIGINT and SIGTERM end it with what finished recorded.
 
     ``hazard-hil run`` starts it with both signals blocked: one sent while the interpreter imports (before any
     handler exists; a Ctrl-C there was a KeyboardInterrupt traceback in ground.log) waits, pending, until the
-    handler below is in place, and then stops the ground as cleanly as one sent later."""
+    handler below is in place, and then stops the ground as cleanly as one sent later. ``restore_handlers``:
+    put the caller's handlers back at the end (in-process callers); the process entry leaves the ones its end
+    set (ignored: a late Ctrl-C must not be a traceback while the interpreter exits)."""
     before = {sig: signal.signal(sig, _interrupt) for sig in HELD_SIGNALS}
     try:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)  # a held one is raised here, as Interrupted
@@ -928,7 +933,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ground: {exc} before the descent began", file=sys.stderr)
         return 128 + exc.signum
     finally:
-        for sig, handler in before.items():
+        for sig, handler in before.items() if restore_handlers else ():
             signal.signal(sig, handler)
 
 
@@ -1079,4 +1084,4 @@ def _count(n: int, noun: str) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(restore_handlers=False))
