@@ -342,7 +342,10 @@ class FlightProcess:
             resumed, self.resumable = self.resumable, None
             if resumed is not None and "descent_id" in msg.options and msg == resumed[0]:
                 self.config, self.fused = resumed  # the same descent in a new ground session
-                print("flight: the same descent (its descent_id): its fused map goes on", file=sys.stderr, flush=True)
+                if self.fused is not None:
+                    print(
+                        "flight: the same descent (its descent_id): its fused map goes on", file=sys.stderr, flush=True
+                    )
             elif resumed is not None and resumed[1] is not None:  # said: the ground's summary cannot know it
                 print(
                     "flight: another descent (or a ground that names none): its fused map starts afresh",

@@ -7,6 +7,7 @@ result against ground truth and writes::
 
     OUT/pairs/...            rendered pair directories + manifest.json
     OUT/keys/                CURVE keys of this run (ZeroMQ; files mode 0600)
+    OUT/ground.log           the ground simulator's console lines (its last one is the reason if it fails)
     OUT/received/            what came back: results.jsonl + arrays per pair; ground.json, the ground's counters
                              (``refused_messages`` from the flight side, the last one's type and reason, and
                              ``line``: the damaged frames its link dropped and its retransmissions)
@@ -718,9 +719,13 @@ def _spawn(cmd: list[str], env: dict, *, hold_interrupts: bool = False, **kw) ->
     return subprocess.Popen(cmd, env=env, process_group=0, preexec_fn=preexec, **kw)
 
 
+GROUND_LOG_MAX_BYTES = 16 << 20  # a ground that says more (a flood of refusals) keeps its first 16 MiB, and says so
+
+
 class _Tee(threading.Thread):
-    """A child's stderr, shown on this run's stderr as it comes and kept in ``path``: the ground's reason for
-    failing was printed once on the console, while summary.md said only "exited with 2"."""
+    """A child's stderr, shown on this run's stderr as it comes and kept in ``path`` (up to
+    GROUND_LOG_MAX_BYTES): the ground's reason for failing was printed once on the console, while summary.md
+    said only "exited with 2". The pipe is read to its end whatever fails, and closed."""
 
     def __init__(self, stream: Any, path: Path) -> None:
         super().__init__(name=f"tee {path.name}", daemon=True)
@@ -732,7 +737,13 @@ class _Tee(threading.Thread):
         except OSError:
             f = None
         # read to the end whatever fails to take a line: a child whose stderr pipe fills blocks on its next line
+        kept = 0
         for line in iter(self.stream.readline, ""):
+            if f is not None and kept + len(line) > GROUND_LOG_MAX_BYTES:
+                line_f, f = f, None
+                line_f.write(f"... (the rest not kept: over {GROUND_LOG_MAX_BYTES >> 20} MiB)\n")
+                line_f.close()
+            kept += len(line)
             for sink in (f, sys.stderr):
                 try:
                     if sink is not None:
@@ -742,6 +753,7 @@ class _Tee(threading.Thread):
                     pass
         if f is not None:
             f.close()
+        self.stream.close()
 
 
 def _last_line(path: Path) -> str:

@@ -415,13 +415,18 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
             [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
         )
         assert board.stderr is not None
-        first = []
+        import os
+        import select
+
+        first = b""
         t0 = time.monotonic()
-        # waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there
-        while time.monotonic() - t0 < 60 and not any("waiting for a ground" in x for x in first):
-            first.append(board.stderr.readline())
+        # waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there; raw reads under select
+        # never block for good, nor leave the line in a buffer select cannot see
+        while time.monotonic() - t0 < 60 and b"waiting for a ground" not in first:
+            if select.select([board.stderr], [], [], 1.0)[0]:
+                first += os.read(board.stderr.fileno(), 65536)
         rc, rest = _stop(board, sig)
-    err = "".join(first) + rest
+    err = first.decode(errors="replace") + rest
     assert rc == 128 + sig, err
     assert f"stopped by {signal.Signals(sig).name}" in err
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
