@@ -75,6 +75,12 @@ def camera_note(camera_px: int | None) -> str:
     return f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
 
 
+def _campaign_failed(what: str, exc: Exception) -> int:
+    """Some tasks failed (each said above with its reason); the rest are saved: exit 1."""
+    print(f"hazard-hil {what}: {exc}; rerun the same command to retry them", file=sys.stderr)
+    return 1
+
+
 @contextlib.contextmanager
 def writing_report(out: Path) -> Iterator[None]:
     """A Ctrl-C while the page and tables are written ended in a bare "interrupted", the page missing: every
@@ -356,8 +362,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             raster=args.raster,
         )
     except CampaignError as exc:
-        print(f"hazard-hil evaluate: {exc}; rerun the same command to retry them", file=sys.stderr)
-        return 1
+        return _campaign_failed("evaluate", exc)
     multi = None
     if args.multi_frame:
         from studies import multiframe as mf
@@ -375,8 +380,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                 raster=args.raster,
             )
         except CampaignError as exc:
-            print(f"hazard-hil evaluate: multi-frame: {exc}; rerun the same command to retry them", file=sys.stderr)
-            return 1
+            return _campaign_failed("evaluate: multi-frame", exc)
     with writing_report(args.out):
         return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set))
 
@@ -436,8 +440,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
             raster=args.raster,
         )
     except CampaignError as exc:
-        print(f"hazard-hil sensitivity: {exc}; rerun the same command to retry them", file=sys.stderr)
-        return 1
+        return _campaign_failed("sensitivity", exc)
     with writing_report(args.out):
         return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set))
 
@@ -577,9 +580,9 @@ def _landings(args: argparse.Namespace) -> int:
             cache_dir=args.cache,
         )
     except CampaignError as exc:
-        print(f"hazard-hil landings: {exc}; rerun the same command to retry them", file=sys.stderr)
+        code = _campaign_failed("landings", exc)
         print(f"partial summary (complete: false): {args.out / 'landings.json'}", file=sys.stderr)
-        return 1
+        return code
     except KeyboardInterrupt:
         print(_summary_state(args.out / "landings.json"), file=sys.stderr)
         raise
