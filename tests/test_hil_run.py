@@ -379,3 +379,14 @@ def test_a_ctrl_c_while_the_ground_starts_is_a_clean_stop_not_a_traceback(tmp_pa
     assert rc == 130 and err.strip() == "ground: interrupted by SIGINT before the descent began", err
     rc, err = start_and_interrupt(hold=False)  # unheld, the same signal meets no handler of ours
     assert not (rc == 130 and "before the descent began" in err), err
+
+
+def test_the_noise_a_ground_line_dropped_is_said_in_the_run_notes():
+    from hil_server.run import flight_note
+
+    line = {"crc_errors": 3, "malformed": 1, "bytes_discarded": 2683, "retransmits": 5, "echoed_frames": 0}
+    assert flight_note({"ground_counters": {"line": line}}) == (
+        "the ground's line dropped 4 damaged frames (2683 bytes of noise); 5 retransmissions on the ground's side"
+    )
+    clean = {"crc_errors": 0, "malformed": 0, "bytes_discarded": 0, "retransmits": 2, "echoed_frames": 0}
+    assert flight_note({"ground_counters": {"line": clean}}) == ""  # retransmissions alone are no noise
