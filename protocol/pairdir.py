@@ -854,10 +854,12 @@ def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
             raise PairFormatError(
                 f"{img_path}: size {w}x{h} does not match the camera's {camera.width}x{camera.height}"
             )
-        damage = png_damage(img_path.read_bytes())
+        data = img_path.read_bytes()  # read once: checked (a PNG), then decoded from these bytes
+        damage = png_damage(data)
         if damage:
             raise PairFormatError(f"{img_path}: not a readable image ({damage})")
-        img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        del data
         if img is None:
             raise PairFormatError(f"{img_path}: not a readable image")
         poses.append(pose)

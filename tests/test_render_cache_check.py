@@ -37,23 +37,23 @@ def _decodes(d) -> bool:
 def test_a_cache_hit_decodes_each_file_once(tmp_path, small_pair, monkeypatch):
     d = tmp_path / "pair"
     write_pair_atomic(d, small_pair)
-    calls = {"imread": 0, "load": 0}
-    imread, load = cv2.imread, np.load
+    calls = {"imdecode": 0, "load": 0}
+    imdecode, load = cv2.imdecode, np.load
 
-    def counted_imread(*a, **k):
-        calls["imread"] += 1
-        return imread(*a, **k)
+    def counted_imdecode(*a, **k):
+        calls["imdecode"] += 1
+        return imdecode(*a, **k)
 
     def counted_load(*a, **k):
         calls["load"] += 1
         return load(*a, **k)
 
-    monkeypatch.setattr(cv2, "imread", counted_imread)
+    monkeypatch.setattr(cv2, "imdecode", counted_imdecode)
     monkeypatch.setattr(np, "load", counted_load)
     assert reusable(d)
-    assert calls == {"imread": 0, "load": 0}  # the check decodes nothing ...
+    assert calls == {"imdecode": 0, "load": 0}  # the check decodes nothing ...
     pair = read_pair(d)  # ... so the caller's load is the only read: one per image, one per truth array
-    assert calls == {"imread": pair.n_frames, "load": len(pair.truth)} and len(pair.truth) == 4
+    assert calls == {"imdecode": pair.n_frames, "load": len(pair.truth)} and len(pair.truth) == 4
 
 
 def test_the_check_refuses_exactly_what_the_decoder_refuses(tmp_path, small_pair):
