@@ -674,7 +674,23 @@ def calibrate_host(
         throttle_efficiency=eff,
     )
     if save:
-        p = Path(path) if path is not None else calibration_path()
+        _store_calibration(Path(path) if path is not None else calibration_path(), cal)
+    return cal
+
+
+def _store_calibration(p: Path, cal: HostCalibration) -> None:
+    """Add ``cal`` to the store at ``p``, under an exclusive lock beside it: two calibrations at once (two hosts
+    sharing a home directory, two terminals) each keep their entry, the second reading what the first wrote. The
+    store is replaced whole (a temporary file of its own, renamed over it): a reader never sees half of it."""
+    import fcntl
+
+    from reports.html import write_atomic
+
+    if p.parent.exists() and not p.parent.is_dir():
+        _read_store(p)  # its one-line error: the directory is a file (HAZARD_HIL_HOME?)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with open(p.with_name(p.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             store = _read_store(p)
         except BudgetError:  # calibrating is the cure for a broken store: keep the old file aside, start afresh
@@ -683,8 +699,4 @@ def calibrate_host(
             print(f"calibrate: {p} was unreadable; kept it as {kept} and started a new one", file=sys.stderr)
             store = {}
         store[cal.key] = asdict(cal)
-        from reports.html import write_atomic
-
-        # a temporary file of its own (two calibrations at once shared one name), renamed over the store
         write_atomic(p, json.dumps(store, indent=2, sort_keys=True) + "\n")
-    return cal

@@ -338,3 +338,24 @@ def test_a_corrupt_calibration_blocks_only_the_budgets_that_need_it(home, tmp_pa
     assert s["results"] == 1 and s["errors"] == 0 and s["complete"] is True, s["reason"]
     with pytest.raises(InputError, match=r"calibration\.json is unreadable"):
         run_hil(manifest, tmp_path / "run2", "serial", budget="rad750")
+
+
+def test_calibrations_stored_at_once_each_keep_their_entry(tmp_path):
+    """Two calibrations writing one store at once: each read the store, added its host and wrote it back, so one
+    entry could be lost (and they shared one temporary file). The store is now updated under a lock."""
+    import dataclasses
+    import threading
+
+    cal = B.HostCalibration(key="k", hostname="h", cpu_model="c", units_per_s=1.0, spread=0.0, seconds=1.0,
+                            measured_at="x")  # fmt: skip
+    path = tmp_path / "calibration.json"
+    threads = [
+        threading.Thread(target=B._store_calibration, args=(path, dataclasses.replace(cal, key=f"host{i}")))
+        for i in range(12)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert set(json.loads(path.read_text())) == {f"host{i}" for i in range(12)}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "calibration.json.lock"]
