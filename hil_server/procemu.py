@@ -245,14 +245,7 @@ def _runnable(pid: int) -> bool:
         tids = os.listdir(f"/proc/{pid}/task")
     except OSError:
         return False
-    for tid in tids:
-        try:
-            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as fh:
-                if fh.read().rsplit(b")", 1)[1].split()[0] == b"R":
-                    return True
-        except (OSError, IndexError):
-            continue
-    return False
+    return any(_stat_fields(f"/proc/{pid}/task/{tid}/stat")[:1] == [b"R"] for tid in tids)
 
 
 def descendants(pid: int) -> list[int]:
@@ -278,12 +271,22 @@ def descendants(pid: int) -> list[int]:
     return out[:MAX_DESCENDANTS]
 
 
+def _stat_fields(path: str) -> list[bytes]:
+    """The fields of a ``/proc/.../stat`` file after the command name (field 3, the state, first); [] when it is
+    gone. The name sits in parentheses and may hold spaces and ')': the fields follow the last ')'."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return []
+
+
 def _start_ticks(pid: int) -> int | None:
     """The process's start time (clock ticks since boot, /proc/PID/stat field 22): tells it from a reused PID."""
+    fields = _stat_fields(f"/proc/{pid}/stat")
     try:
-        with open(f"/proc/{pid}/stat", "rb") as fh:
-            return int(fh.read().rsplit(b")", 1)[1].split()[19])
-    except (OSError, ValueError, IndexError):
+        return int(fields[19])
+    except (ValueError, IndexError):
         return None
 
 
