@@ -24,7 +24,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import NoReturn
 
-from protocol.errors import InputError, comma_items
+from protocol.errors import InputError, comma_items, os_error_text
 
 ENTRY_POINT_GROUP = "hazard_hil.commands"
 # help order of the project's own packages; commands of other installed packages follow by name
@@ -171,14 +171,6 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = shown
         for sig, old in saved.items():
             signal.signal(sig, old)  # type: ignore[arg-type]
-
-
-def os_error_text(exc: OSError) -> str:
-    """One line for an OSError: the file and the system's reason (``cannot use X: No space left on device``), not
-    Python's ``[Errno 28]`` repr; what was done before it is on disk and said above it."""
-    where = " and ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
-    why = exc.strerror or str(exc) or type(exc).__name__
-    return f"cannot use {where}: {why}" if where else why
 
 
 def _one_line_warning(fallback):

@@ -29,3 +29,11 @@ def comma_items(text: str, option: str) -> list[str]:
     if not all(items):
         raise InputError(f"{option}: an empty item in {text!r} (two commas in a row, or a comma at an end)")
     return items
+
+
+def os_error_text(exc: OSError, verb: str = "use") -> str:
+    """One line for an OSError the system raised: the file and its reason (``cannot write X: No space left on
+    device``), not Python's ``[Errno 28]`` form."""
+    where = " and ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+    why = exc.strerror or str(exc) or type(exc).__name__
+    return f"cannot {verb} {where}: {why}" if where else why

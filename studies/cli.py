@@ -12,7 +12,7 @@ from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from ground_sim.seeds import describe_seeds
-from protocol.errors import InputError, comma_items
+from protocol.errors import InputError, comma_items, os_error_text
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
 
@@ -685,9 +685,8 @@ def _score(args: argparse.Namespace) -> int:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json_text({"summary": summary, "rows": rows}))
             print(f"summary: {args.json}")
-    except OSError as exc:
-        print(f"hazard-hil score: error: cannot write {exc.filename or 'the output'}: {exc.strerror or exc}",
-              file=sys.stderr)  # fmt: skip
+    except OSError as exc:  # after the scores above: said as main() says any other, as a write
+        print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)
         return 1
     return 0 if summary["failed"] == 0 and summary["pairs_over_fp_limit"] == 0 else 1
 
