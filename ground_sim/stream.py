@@ -706,6 +706,8 @@ def stream_descent(
         stats = getattr(link, "stats", None) or {}
         # what the line did meanwhile: noise the framing dropped and the retransmissions that mended it
         counters["line"] = {k: int(stats.get(k, 0) or 0) for k in LINE_COUNTERS if k in stats}
+        if hasattr(link, "baud"):  # a serial line's pace, as the Config told the flight side (0: unpaced)
+            counters["line_baud"] = int(link.baud or 0)
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
         if telemetry_path is not None:
             lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)

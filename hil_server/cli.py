@@ -442,7 +442,10 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     )
     p.add_argument("--deadline", type=float, default=None, help="override the budget's deadline (s, end to end)")
     p.add_argument(
-        "--baud", type=int, default=None, help="serial baud rate (default: the budget's, else 921600; 115200 works)"
+        "--baud",
+        type=int,
+        default=None,
+        help="serial baud rate (default: the budget's, else 921600; 115200 works; 0: unpaced)",
     )
     p.add_argument(
         "--image-size",
@@ -543,8 +546,8 @@ def _config(args: argparse.Namespace):
     if args.baud is not None:
         from protocol.linkspec import BAUD_MAX, BAUD_MIN
 
-        if not BAUD_MIN <= args.baud <= BAUD_MAX:
-            raise InputError(f"--baud must be in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
+        if args.baud and not BAUD_MIN <= args.baud <= BAUD_MAX:  # 0: unpaced, as serial:DEV@0
+            raise InputError(f"--baud must be 0 (unpaced) or in [{BAUD_MIN}, {BAUD_MAX:.0e}] baud, got {args.baud}")
     if args.image_size is not None:
         from protocol.pairdir import square_camera
 

@@ -580,8 +580,10 @@ def summary_table(summary: dict) -> str:
     at_full = f", {_fmt(eff, '.4f')} at full speed" if eff is not None and eff < s.get("cpu_fraction", eff) else ""
     frac = _fmt(s.get("cpu_fraction"), ".4f")
     where = f" on budget **{s['budget']}** (CPU fraction {frac}{at_full})" if s["budget"] else ""
+    baud = (s.get("ground_counters") or {}).get("line_baud")
+    pace = "" if baud is None else f" ({baud} baud)" if baud else " (unpaced)"
     head = (
-        f"**{s['scenario']}** over **{s['link']}**, flight {s['flight']}{where}, deadline "
+        f"**{s['scenario']}** over **{s['link']}**{pace}, flight {s['flight']}{where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
         f"degraded), {s['errors']} errors{_not_run(s)}; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
@@ -627,7 +629,7 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
         spec = cfg.link
         if kind == "serial" and cfg.baud is not None:  # the rate goes into the spec: checked and reported with it
             url, named = parse_serial(rest)
-            if url != rest and named != cfg.baud:  # rest named a rate of its own
+            if url != rest and (named or 0) != cfg.baud:  # rest named a rate of its own (None: @0, unpaced)
                 raise InputError(f"--baud {cfg.baud} and --link {cfg.link} name two rates: give one")
             spec = f"serial:{url}@{cfg.baud}"
         # a device that is not there, not a device or held, an endpoint libzmq would refuse, --insecure off
@@ -1092,7 +1094,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                         for k, d in enumerate(("a_to_b", "b_to_a"))
                     }
                 bridge = PtyBridge(**channels)
-                suffix = f"@{baud}" if baud else ""
+                suffix = "" if baud is None else f"@{baud}"  # @0: unpaced; none: the default rate
                 server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
             elif spec is None:
                 port = _free_tcp_port()

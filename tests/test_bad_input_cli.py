@@ -23,8 +23,8 @@ CASES = [
     (["render", "--scenario", "vertical", "--frames", "1e6,300"], "must be at most 50000 m"),  # not processable
     (["process", "PAIR", "--deadline", "-1"], "--deadline must be a finite, non-negative"),
     (["process", "PAIR", "--deadline", "inf"], "--deadline must be a finite, non-negative"),
-    (["run", "--baud", "-5"], "--baud must be in [50, 1e+08] baud"),
-    (["run", "--baud", "12"], "--baud must be in [50, 1e+08] baud"),  # the ground refused it after rendering
+    (["run", "--baud", "-5"], "--baud must be 0 (unpaced) or in [50, 1e+08] baud"),
+    (["run", "--baud", "12"], "--baud must be 0 (unpaced) or in [50, 1e+08] baud"),  # refused after rendering
     (["run", "--link", "zmq", "--baud", "115200"], "--baud applies to serial links"),
     (["run", "--link", "serial", "--insecure"], "--keys and --insecure apply to ZeroMQ links"),
     (["run", "--link", "zmq", "--keys", "PAIR"], "client.key_secret does not exist"),

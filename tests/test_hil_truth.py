@@ -56,6 +56,18 @@ def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manif
         assert r["deadline_margin_s"] == pytest.approx(0.1 - r["e2e_latency_s"])
     assert not any(r["deadline_met"] for r in recs) and s["deadline_hit_rate"] == 0.0
     assert min(r["flight_latency_s"] for r in recs) < 0.1  # computed in time, late only on the line
+    assert "over **serial** (115200 baud)" in (out / "summary.md").read_text()
+
+
+def test_baud_0_runs_the_loopback_line_unpaced_as_serial_dev_at_0_does(manifest, tmp_path):
+    # `--baud 0` was refused while `serial:DEV@0` meant unpaced; an unset --baud is the default 921600
+    for baud, said in (["0"], "(unpaced)"), ([], "(921600 baud)"):
+        out = tmp_path / f"run{len(baud)}"
+        args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host"]
+        assert cli([*args, *(["--baud", *baud] if baud else []), "--out", str(out)]) == 0
+        assert f"over **serial** {said}" in (out / "summary.md").read_text()
+        ground = json.loads((out / "received" / "ground.json").read_text())
+        assert ground["line_baud"] == (0 if baud else 921600)
 
 
 @pytest.mark.slow  # ~13 s: the flight process's Python imports take ~10 s at a 4 % duty
