@@ -472,7 +472,7 @@ class FlightProcess:
         link_info: dict[str, float] = {}
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
-            # a board: the Result's own line time on the ground link, first byte out -> acknowledged (under the HIL
+            # a board: the Result's own line time on the ground link, first byte out -> last (under the HIL
             # server the link is the local one, and the server reports the ground link's time in its place)
             times = self.link.times(result_id) if result_id is not None and hasattr(self.link, "times") else None
             if times is not None and times.line_s is not None:

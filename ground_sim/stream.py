@@ -291,7 +291,7 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         flight_latency_s=t.total_latency_s,
         flight_deadline_met=bool(t.deadline_met),
         server_e2e_s=t.link.get("server_e2e_s"),
-        # the Result's line time as its sender measured it (first byte on the line -> acknowledged)
+        # the Result's line time as its sender measured it (first byte on the line -> last, MessageTimes.line_s)
         result_line_s=t.link.get("result_link_s", rx_span),
         # its wait in the sender's queue before that (behind an earlier pair's Result on a slow line); None: not sent
         result_queue_s=t.link.get("result_queue_s"),

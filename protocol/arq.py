@@ -165,13 +165,18 @@ class MessageTimes:
     first_tx: float | None = None  # first byte of its first segment handed to the line
     written: float | None = None  # its last segment written for the first time
     delivered: float | None = None  # every segment acknowledged
+    last_tx: float | None = None  # the last write of any of its bytes, a retransmission's included
 
     @property
     def line_s(self) -> float | None:
-        """First transmission to the last acknowledgement: the message's line time."""
+        """Its first byte on the line to its last (retransmissions included), once every segment is acknowledged.
+
+        Not to the acknowledgement: on a busy line the ACK waits behind the peer's own data (a ground streaming the
+        next pair), which is no part of this message's line time. A link that cannot see its writes (ZeroMQ) ends
+        it at ``delivered``."""
         if self.first_tx is None or self.delivered is None:
             return None
-        return self.delivered - self.first_tx
+        return max(0.0, (self.delivered if self.last_tx is None else self.last_tx) - self.first_tx)
 
     @property
     def queue_s(self) -> float | None:
@@ -582,6 +587,7 @@ class Arq(SessionView):
         seg.order = self._txid
         seg.tx += 1
         seg.sent_at = now  # provisional until written()
+        self._last_write(seg, now)  # likewise: the ack may beat written()
         self._txmap[self._txid] = seg
         if len(self._txmap) > 8192:
             self._txmap.popitem(last=False)
@@ -600,6 +606,16 @@ class Arq(SessionView):
             if seg.start < m.end <= seg.end:
                 t.written = now
 
+    def _last_write(self, seg: _Seg, now: float) -> None:
+        """Any write of ``seg``: the latest line time of the messages it carries bytes of."""
+        for m in self._msgs:
+            if m.start >= seg.end:
+                break
+            if m.end > seg.start:
+                t = self._times.get(m.id)
+                if t is not None:
+                    t.last_tx = now
+
     def written(
         self, token: int | None, nbytes: int, now: float, ok: bool = True, started: float | None = None
     ) -> None:
@@ -617,6 +633,7 @@ class Arq(SessionView):
         if seg is None or seg.order != token:
             return  # acknowledged already, or transmitted again since
         seg.sent_at = now if ok else now - self._rto * self._backoff  # a timed-out write counts as lost at once
+        self._last_write(seg, now)
         if seg.acked:
             return
         seg.queued = False

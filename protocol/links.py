@@ -314,7 +314,7 @@ class ByteStreamLink(Link):
     def times(self, msg_id: int) -> MessageTimes | None:
         with self._cv:
             t = self.arq.times(msg_id)
-            return None if t is None else MessageTimes(t.submitted, t.first_tx, t.written, t.delivered)
+            return None if t is None else MessageTimes(t.submitted, t.first_tx, t.written, t.delivered, t.last_tx)
 
     # sending --------------------------------------------------------------
     def send(self, message: Message | Encoded, timeout: float | None = None, epoch: int | None = None) -> int:

@@ -63,6 +63,23 @@ def test_clean_line_runs_at_over_90_percent_of_line_rate():
     assert queued[0] == pytest.approx(0.0, abs=0.01) and queued[3] == pytest.approx(ahead, rel=0.1), queued
 
 
+def test_line_time_ends_at_the_last_byte_written_not_at_its_late_acknowledgement():
+    # A Result's "line s" read first byte -> acknowledged, and the ACK can wait behind the far end's own data (a
+    # ground streaming the next pair): the HIL showed a Result's line time above its whole end-to-end latency.
+    # Here the ACK's delay is the line's latency, 0.5 s each way, which is no part of the message's line time.
+    rate, latency = 57600 / 10, 0.5
+    cfg = ArqConfig(rto_min=1.5, rto_initial=2.0)
+    line = SimLine(Arq(cfg, session_id=0xA), Arq(cfg, session_id=0xB), rate, latency=latency)
+    line.run(10.0, stop=lambda s: s.eps[0].established and s.eps[1].established)
+    msg = Heartbeat(time_s=1.0, counter=7)
+    (i,) = send(line, [msg])
+    line.run(line.now + 10, stop=lambda s: s.eps[0].outcome(i) == "delivered")
+    t = line.eps[0].times(i)
+    assert t is not None and t.delivered is not None and t.first_tx is not None and t.line_s is not None
+    assert t.delivered - t.first_tx > 2 * latency  # acknowledged a round trip later ...
+    assert t.line_s == pytest.approx(len(encode_message(msg)) / rate, rel=0.25, abs=0.02)  # ... on the line for this
+
+
 @pytest.mark.parametrize("corrupt", [1e-4, 1e-3])
 def test_noisy_line_loses_nothing(corrupt):
     """drop, flip and duplicate each at ``corrupt`` per byte, both directions: all delivered, once, in order."""
