@@ -664,12 +664,16 @@ class Arq(SessionView):
                 self.stats["old_session_frames"] += 1
                 return
             ended = self.epoch  # the "restarted" event names the session that ended, not the one starting
+            was_up = self.sess.established
             replaced, reply, newly = self.sess.on_hello(f.src, f.dst)
             if replaced is not None:
-                self.stats["peer_restarts"] += 1
                 self._drop_all(
                     f"peer started a new session {f.src:08x} (it restarted, or gave up on session {replaced:08x})", now
                 )
+            # a session that never completed its handshake is no restart: a board opening a line that still held a
+            # dead ground's HELLOs said "the peer restarted" before it served anything
+            if replaced is not None and was_up:
+                self.stats["peer_restarts"] += 1
                 self._events.append(
                     _Event("restarted", f"the peer restarted its link (session {replaced:08x} -> {f.src:08x})", ended)
                 )

@@ -1081,10 +1081,12 @@ class ZmqLink(Link, SessionView):
                     self._stats["old_session_frames"] += 1
                     return
                 ended = self.sess.epoch  # the "restarted" event names the session that ended
+                was_up = self.sess.established
                 replaced, reply, newly = self.sess.on_hello(src, dst)
                 if replaced is not None:
-                    self._stats["peer_restarts"] += 1
                     self._drop_all(f"peer started a new session {src:08x} (it restarted, or gave up on {replaced:08x})")
+                if replaced is not None and was_up:  # a handshake never completed is no restart (SerialLink's too)
+                    self._stats["peer_restarts"] += 1
                     self._pending_events.append(
                         ("restarted", f"the peer restarted its link (session {replaced:08x} -> {src:08x})", ended)
                     )

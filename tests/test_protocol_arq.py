@@ -14,7 +14,7 @@ import pytest
 from protocol.arq import Arq, ArqConfig
 from protocol.codec import encode_message
 from protocol.faults import CorruptingChannel
-from protocol.framing import data_frame
+from protocol.framing import data_frame, hello_frame
 from protocol.fuzz import same_message
 from protocol.linesim import SimLine
 from protocol.messages import Frame, Heartbeat
@@ -176,6 +176,18 @@ def test_restarted_sender_resynchronises():
     ids = send(line, [frame(5)])
     line.run(line.now + 10, stop=lambda s: a2.outcome(ids[0]) == "delivered")
     assert [r.message.seq for r in line.received[1]] == [5]  # the half-sent message of the old session is gone
+
+
+def test_a_peer_that_never_completed_its_handshake_is_replaced_without_a_restart_event():
+    # a board opening a line that still held a dead ground's HELLOs said "the peer restarted" before serving anything
+    b = Arq(CFG, session_id=0xB)
+    b.receive(hello_frame(0x51, 0, 1024, 1 << 20), 0.0)  # the dead ground's, never answered
+    b.receive(hello_frame(0x52, 0, 1024, 1 << 20), 0.1)  # the live ground's
+    b.receive(hello_frame(0x52, 0xB, 1024, 1 << 20), 0.2)  # ... which completes the handshake
+    assert b.established and b.peer_session == 0x52
+    assert b.stats["peer_restarts"] == 0 and not [e for e in b.take_events() if e.kind == "restarted"]
+    b.receive(hello_frame(0x53, 0, 1024, 1 << 20), 0.3)  # an established peer that starts afresh did restart
+    assert b.stats["peer_restarts"] == 1 and [e.kind for e in b.take_events()].count("restarted") == 1
 
 
 def test_both_sides_recover_after_a_long_stall():
