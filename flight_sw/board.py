@@ -35,6 +35,7 @@ from collections.abc import Callable
 from typing import Any
 
 from protocol.messages import MESSAGE_NAMES, Frame, Hello, Result, Telemetry
+from protocol.quiet import Quieter
 
 KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where the board has a C compiler
 REFUSALS_SAID = 5  # refused messages said one by one on the console; then one line per REFUSALS_QUIET_S with a count
@@ -58,7 +59,7 @@ class GroundSession:
         self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
         self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
-        self._refusals_said_at, self._refusals_unsaid, self._last_refusal = 0.0, 0, ""
+        self._refusals = Quieter(first=REFUSALS_SAID, quiet_s=REFUSALS_QUIET_S)
         self.fused_results: Callable[[], int | None] = lambda: None  # results in the fused map (None: no fusion)
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
@@ -93,19 +94,15 @@ class GroundSession:
         for type_code, reason in self.link.take_refusals():
             self.counters["refused"] += 1
             what = MESSAGE_NAMES.get(type_code, f"type {type_code}") if type_code is not None else "message"
-            if self.counters["refused"] <= REFUSALS_SAID:
-                more = " (the rest are summed every 10 s)" if self.counters["refused"] == REFUSALS_SAID else ""
-                self.log(f"flight: refused a {what} from the link: {reason}{more}")
-                self._refusals_said_at = now
-            else:
-                self._refusals_unsaid += 1
-                self._last_refusal = f"{what}: {reason}"
-        if self._refusals_unsaid and now - self._refusals_said_at >= REFUSALS_QUIET_S:
-            self.log(
-                f"flight: refused {self._refusals_unsaid} more message(s) from the link in the last "
-                f"{now - self._refusals_said_at:.0f} s (the latest a {self._last_refusal})"
-            )
-            self._refusals_said_at, self._refusals_unsaid = now, 0
+            say, unsaid, _ = self._refusals.offer("refused", now, f"{what}: {reason}")
+            if say:
+                n = self._refusals.seen("refused")
+                more = " (the rest are summed every 10 s)" if n == REFUSALS_SAID else ""
+                before = f" ({unsaid} more refused before it, not shown)" if unsaid else ""
+                self.log(f"flight: refused a {what} from the link: {reason}{before}{more}")
+        for _, unsaid, since, latest in self._refusals.due(now):
+            self.log(f"flight: refused {unsaid} more message(s) from the link in the last {since:.0f} s "
+                     f"(the latest a {latest})")  # fmt: skip
 
     def _new_session(self, hello: Hello, epoch: int) -> None:
         self.counters["sessions"] += 1

@@ -87,6 +87,7 @@ from protocol.links import MECHANISM_MISMATCH_TEXT
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
+from protocol.quiet import Quieter
 from reports.console import printable
 from reports.html import write_atomic
 
@@ -411,7 +412,7 @@ def stream_descent(
 
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
-    unattributed = [0, -math.inf]  # Errors from the flight side about no pair: count, when last said
+    unattributed = Quieter(first=UNATTRIBUTED_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # Errors about no pair
     records: list[dict] = []
     config: Config | None = None
     state = _SessionState()
@@ -645,12 +646,10 @@ def stream_descent(
             if o is None:
                 o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
             if o is None:
-                unattributed[0] += 1
-                n = unattributed[0]
                 # said for the first few, then once per UNATTRIBUTED_QUIET_S with the count: a flood of them printed
                 # 1660 lines in 2.8 s
-                if n <= UNATTRIBUTED_SAID or time.monotonic() - unattributed[1] >= UNATTRIBUTED_QUIET_S:
-                    unattributed[1] = time.monotonic()
+                if unattributed.offer("error", time.monotonic())[0]:
+                    n = unattributed.seen("error")
                     more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
                     note(
                         f"unattributed error from flight side{more}: {printable(msg.code, 100)}: {printable(msg.text)}"

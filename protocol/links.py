@@ -60,6 +60,7 @@ from protocol.codec import DEFAULT_LIMITS, CodecError, Encoded, Limits, decode_p
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
+from protocol.quiet import Quieter
 from protocol.session import SessionState, SessionView
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
@@ -118,8 +119,7 @@ class Link:
         self._closed = threading.Event()
         self._failed: str | None = None  # transport failure: permanent
         self.last_error: str | None = None  # the most recent session loss / failure reason
-        # (repeating kind, reason) -> (when last said, repeats not said)
-        self._quiet: dict[tuple[str, str], tuple[float, int]] = {}
+        self._quiet = Quieter(first=1, quiet_s=REPEAT_QUIET_S)  # keyed by (repeating kind, reason)
 
     def _event(self, kind: str, text: str, epoch: int) -> None:
         now = time.monotonic()
@@ -131,14 +131,11 @@ class Link:
         if kind in REPEATING_EVENTS:  # a peer that retries (libzmq redials ~10 times a second) must not flood the log
             # keyed by the reason, not the sender (its port changes with every redial): a wrong key hidden
             # behind a mechanism mismatch said a moment earlier would be news lost
-            key = (kind, text.rsplit(": ", 1)[-1])
-            said, quiet = self._quiet.get(key, (-math.inf, 0))
-            if now - said < REPEAT_QUIET_S:
-                self._quiet[key] = (said, quiet + 1)
+            say, quiet, since = self._quiet.offer((kind, text.rsplit(": ", 1)[-1]), now)
+            if not say:
                 return
-            self._quiet[key] = (now, 0)
             if quiet:
-                text += f" ({quiet} more like it, not shown, after the one said {now - said:.0f} s ago)"
+                text += f" ({quiet} more like it, not shown, after the one said {since:.0f} s ago)"
         self._log(f"link {self.name or '?'}: {kind}: {text}")
 
     def events(self) -> list[LinkEvent]:

@@ -613,10 +613,17 @@ def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypa
     assert ground.recv(0.01) is None
     assert ground.counters["refused"] == 40 and len(said) == board.REFUSALS_SAID
     assert said[-1].endswith("(the rest are summed every 10 s)")
+    clock[0] += board.REFUSALS_QUIET_S  # the quiet time is over: the sum is said, on a timer ...
+    assert ground.recv(0.01) is None
+    assert said[-1].startswith("flight: refused 35 more message(s) from the link in the last 10 s"), said[-1]
+    link.refusals = [(None, "malformed message header: 238 bytes, not 16")] * 3
+    clock[0] += 1.0
+    assert ground.recv(0.01) is None and len(said) == board.REFUSALS_SAID + 1  # ... and quiet again
     clock[0] += board.REFUSALS_QUIET_S
     link.refusals = [(None, "malformed message header: 238 bytes, not 16")]
-    assert ground.recv(0.01) is None
-    assert said[-1].startswith("flight: refused 36 more message(s) from the link in the last 10 s"), said[-1]
+    assert ground.recv(0.01) is None  # or with the next one, once the quiet time is over
+    assert said[-1].endswith("16 (3 more refused before it, not shown)"), said[-1]
+    assert ground.counters["refused"] == 44 and len(said) == board.REFUSALS_SAID + 2
 
 
 def test_a_zeromq_port_where_nothing_listens_is_named_as_such(tmp_path):
