@@ -774,37 +774,18 @@ class EmulatedProcessor:
                 return
 
     def _stderr_pump(self, child: _Child) -> None:
+        """The flight program's lines to this process's stderr, the first :data:`MAX_FORWARDED_BYTES` of them (a
+        program printing in a loop filled an 82 MB log for two pairs), and their tail kept for the report."""
+        from hil_server.pump import Sink, pump
+
         stream = child.popen.stderr
         assert stream is not None  # started with stderr=PIPE
         out = getattr(sys.stderr, "buffer", None)
-        budget, dropped = MAX_FORWARDED_BYTES, 0  # a program printing in a loop filled an 82 MB log for two pairs
-        try:
-            for line in iter(stream.readline, b""):
-                child.stderr_tail.append(line[-2000:])
-                if len(line) > budget:
-                    dropped += len(line)
-                    continue
-                budget -= len(line)
-                if out is not None:
-                    try:
-                        out.write(line)
-                        out.flush()
-                    except (OSError, ValueError):
-                        out = None
-        except (OSError, ValueError):
-            pass
-        finally:
-            if dropped and out is not None:
-                try:
-                    out.write(f"procemu: {dropped} more bytes of the flight process's output were not logged "
-                              f"(the first {MAX_FORWARDED_BYTES >> 20} MiB were)\n".encode())  # fmt: skip
-                    out.flush()
-                except (OSError, ValueError):
-                    pass
-            try:
-                stream.close()
-            except OSError:
-                pass
+        cap = MAX_FORWARDED_BYTES
+        note = f"procemu: {{}} more bytes of the flight process's output were not logged (the first {cap >> 20} MiB "
+        note += "were)\n"
+        sinks = [] if out is None else [Sink(out.write, cap, lambda n: note.format(n).encode(), out.flush)]
+        pump(stream, sinks, on_line=lambda line: child.stderr_tail.append(line[-2000:]))
 
     def _reaper(self, child: _Child) -> None:
         # Wait without reaping, so no signal can hit a reused PID; then reap under the lock.

@@ -727,35 +727,33 @@ GROUND_LOG_MAX_BYTES = 16 << 20  # a ground that says more (a flood of refusals)
 class _Tee(threading.Thread):
     """A child's stderr, shown on this run's stderr as it comes and kept in ``path`` (up to
     GROUND_LOG_MAX_BYTES): the ground's reason for failing was printed once on the console, while summary.md
-    said only "exited with 2". The pipe is read to its end whatever fails, and closed."""
+    said only "exited with 2". The pipe is read to its end whatever fails (:func:`hil_server.pump.pump`)."""
 
     def __init__(self, stream: Any, path: Path) -> None:
         super().__init__(name=f"tee {path.name}", daemon=True)
         self.stream, self.path = stream, path
 
     def run(self) -> None:
+        from hil_server.pump import Sink, pump
+
+        def show(line: bytes) -> None:  # sys.stderr looked up per line: a test's capture may replace it meanwhile
+            sys.stderr.write(line.decode("utf-8", "replace"))
+            sys.stderr.flush()
+
+        sinks = [Sink(show)]
         try:
-            f = open(self.path, "w", encoding="utf-8", errors="replace")  # noqa: SIM115 (closed below)
+            f = open(self.path, "wb")  # noqa: SIM115 (closed below)
         except OSError:
             f = None
-        # read to the end whatever fails to take a line: a child whose stderr pipe fills blocks on its next line
-        kept = 0
-        for line in iter(self.stream.readline, ""):
-            if f is not None and kept + len(line) > GROUND_LOG_MAX_BYTES:
-                line_f, f = f, None
-                line_f.write(f"... (the rest not kept: over {GROUND_LOG_MAX_BYTES >> 20} MiB)\n")
-                line_f.close()
-            kept += len(line)
-            for sink in (f, sys.stderr):
-                try:
-                    if sink is not None:
-                        sink.write(line)
-                        sink.flush()
-                except (OSError, ValueError):  # a full disk, a closed terminal: the other sink still has it
-                    pass
         if f is not None:
-            f.close()
-        self.stream.close()
+            cap = GROUND_LOG_MAX_BYTES
+            note = f"... (the rest, {{}} bytes, not kept: over {cap >> 20} MiB)\n"
+            sinks.append(Sink(f.write, cap, lambda n: note.format(n).encode(), f.flush))
+        try:
+            pump(self.stream, sinks)
+        finally:
+            if f is not None:
+                f.close()
 
 
 def _last_line(path: Path) -> str:
@@ -1209,9 +1207,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                     f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end; "
                     f"waiting up to {hello:g} s for its Hello"
                 )
-            ground = _spawn(
-                ground_cmd, env, hold_interrupts=True, stderr=subprocess.PIPE, text=True, errors="replace", bufsize=1
-            )
+            ground = _spawn(ground_cmd, env, hold_interrupts=True, stderr=subprocess.PIPE)
             ground_tee = _Tee(ground.stderr, out / "ground.log")
             ground_tee.start()
             limit = max(cfg.timeout_s, hello + GRACE_S)  # the first Hello may be awaited longer, when asked to
