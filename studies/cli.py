@@ -251,8 +251,8 @@ def register(subparsers: Any) -> None:
         "--multi-frame",
         action="store_true",
         help="also render one multi-frame descent per seed and compare the fast preset's multi-baseline run and "
-        "fused maps against the best single pair (chosen with the truth; issue 10); the descents run in this "
-        "process, one after another: --workers and --scheduler size the pair stage only",
+        "fused maps against the best single pair (chosen with the truth; issue 10); locally the descents run in "
+        "this process, one after another (--workers sizes the pair stage only); --scheduler runs them on the cluster",
     )
     p.add_argument(
         "--frames",
@@ -378,6 +378,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                 progress=None if args.no_progress else _note,
                 max_cells=args.max_raster_cells,
                 raster=args.raster,
+                scheduler=args.scheduler,
             )
         except CampaignError as exc:
             return _campaign_failed("evaluate: multi-frame", exc)

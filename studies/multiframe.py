@@ -325,12 +325,15 @@ def evaluate_multiframe(
     progress: Callable[[str], None] | None = None,
     max_cells: int | None = None,
     raster: str = DEFAULT_RASTER,
+    scheduler: Any = None,
 ) -> list[dict[str, Any]]:
     """Render and score one descent per seed; write ``multiframe_<scenario>.json`` and the summary table
     ``report/multiframe_<scenario>.md`` under ``out_dir``; return the per-descent records.
 
     Each seed is a task of :func:`studies.executor.run_tasks` saved in ``runs/multiframe.jsonl``: an
-    interrupted evaluation resumes from the descents it scored (one descent is 1-2 min of CPU)."""
+    interrupted evaluation resumes from the descents it scored (one descent is 1-2 min of CPU). Locally the
+    descents run one after another in this process; ``scheduler`` (a Dask address or client) spreads them
+    over the cluster's workers."""
 
     from studies.evaluate import EVAL_CODE, render_tag, task_inputs
     from studies.executor import Task, code_fingerprint, run_tasks
@@ -352,7 +355,8 @@ def evaluate_multiframe(
         descent_task,
         tasks,
         out / "runs" / "multiframe.jsonl",
-        workers=1,  # one descent holds four 512 px frames and their cost volumes: one at a time
+        scheduler=scheduler,
+        workers=1,  # locally one descent holds four 512 px frames and their cost volumes: one at a time
         progress=progress is not None,
         desc=f"multi-frame {scenario}",
         code=code_fingerprint(EVAL_CODE),

@@ -258,6 +258,39 @@ def test_multiframe_evaluation_resumes_from_the_descents_it_scored(tmp_path: Pat
     assert again == first and "reusing 1 of 1 results" in capsys.readouterr().err
 
 
+def test_multiframe_descents_run_on_a_dask_cluster_as_they_do_locally(tmp_path: Path, cache: Path):
+    """``evaluate --multi-frame --scheduler`` ran its descents in the calling process whatever --scheduler said."""
+    from distributed import Client, LocalCluster
+
+    from studies import multiframe as mf
+
+    kw = {"frames": (300, 200), "cache_dir": cache, "camera_px": PX}
+    (local,) = mf.evaluate_multiframe("vertical", tmp_path / "local", [0], **kw)
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    class TaskNames(SchedulerPlugin):
+        def __init__(self) -> None:
+            self.keys: list[str] = []
+
+        def update_graph(self, scheduler, *, keys=(), **kw):
+            self.keys.extend(str(k) for k in keys)
+
+    seen = TaskNames()
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, Client(cl):
+        cl.scheduler.add_plugin(seen)
+        (dask,) = mf.evaluate_multiframe("vertical", tmp_path / "dask", [0], scheduler=cl.scheduler_address, **kw)
+    assert any("descent_task" in k for k in seen.keys), seen.keys  # the cluster ran it, not this process
+
+    def strip(rec):
+        return {
+            **rec,
+            "dir": None,
+            "rows": {k: {m: v for m, v in r.items() if m != "cpu_s"} for k, r in rec["rows"].items()},
+        }
+
+    assert strip(local) == strip(dask)
+
+
 def test_cli_multi_frame_report_and_bad_frames(tmp_path: Path, cache: Path, capsys):
     from hil_server.cli import main
 
