@@ -316,6 +316,24 @@ FLIGHT_BYTES_PER_PIXEL = 192.0
 FLIGHT_RSS_MARGIN = 0.10  # run-to-run spread of the peak and scenes busier than the measured ones
 
 
+# The slowest share of this core `run` emulates: below it one host-second of flight work takes over 17 min, the
+# flight process's start-up (~0.5 s of a core: Python, numpy, OpenCV) as long as the heartbeat watchdog's 500 s,
+# and a descent hours (a 1-DMIPS budget ran 100 s without its first Hello)
+MIN_RUN_SHARE = 1e-3
+
+
+def check_runnable(name: str, budget: Budget, duty: Duty) -> None:
+    """Refuse a budget too slow to emulate here (:data:`MIN_RUN_SHARE`), naming the slowest one that runs."""
+    if duty.effective >= MIN_RUN_SHARE or budget.cpu_dmips is None:
+        return
+    floor = budget.cpu_dmips * MIN_RUN_SHARE / duty.effective
+    raise BudgetError(
+        f"budget {name} ({budget.cpu_dmips:g} DMIPS) is {100 * duty.effective:.2g} % of this host's core: one "
+        f"host-second of flight work would take {1 / duty.effective / 3600:.1f} h; the slowest budget this host "
+        f"emulates is about {math.ceil(floor)} DMIPS ({100 * MIN_RUN_SHARE:g} %)"
+    )
+
+
 def flight_peak_rss_mib(pixels: int) -> float:
     """Expected peak private RSS (MiB) of our flight process for a camera of ``pixels`` pixels, margin included."""
     return (FLIGHT_BASE_MIB + FLIGHT_BYTES_PER_PIXEL * pixels / 2**20) * (1.0 + FLIGHT_RSS_MARGIN)

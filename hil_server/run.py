@@ -1029,6 +1029,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     """
     from hil_server.budgets import (
         calibration_notes,
+        check_runnable,
         check_throttle,
         load_calibration,
         needs_throttle_check,
@@ -1041,6 +1042,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
     emulated = cfg.flight == "emulated"
     cal = load_calibration() if emulated and not budget.is_host else None  # full speed needs no host speed
     duty = budget.duty(cal) if emulated else None
+    if duty is not None:
+        check_runnable(cfg.budget, budget, duty)
     fraction = duty.applied if duty is not None else float("nan")
     effective = duty.effective if duty is not None else float("nan")
     # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)

@@ -134,6 +134,25 @@ def test_malformed_budget_file_is_input_error(tmp_path, edit, message):
         B.load_budgets(bad)
 
 
+def test_a_budget_too_slow_to_emulate_is_refused_before_anything_runs(home, tmp_path, capsys):
+    # a 1-DMIPS budget ran 100 s without its flight process's first Hello: hours per descent, not a run
+    text = B.default_budgets_path().read_text().replace("cpu_dmips = 194", "cpu_dmips = 1", 1)
+    text = text.replace("[budget.gr740]", "[budget.toy]")
+    assert "cpu_dmips = 1 " in text
+    (tmp_path / "b.toml").write_text(text)
+    out = tmp_path / "run"
+    args = ["run", "--budget", "toy", "--budget-file", str(tmp_path / "b.toml"), "--image-size", "64"]
+    assert main([*args, "--pairs", "600/300", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (
+        len(err) <= 2 and "budget toy (1 DMIPS)" in err[-1]
+    )  # (and the no-calibration warning) and "the slowest budget this host emulates" in err[-1]
+    assert not out.exists()  # nothing rendered
+    floor = B.MIN_RUN_SHARE * B.load_budgets(tmp_path / "b.toml")["toy"].host_dmips(None)
+    assert floor > 1  # and the floor it names runs
+    B.check_runnable("x", B.get_budget("gr740"), B.get_budget("gr740").duty(None))
+
+
 def test_unknown_budget_names_choices():
     with pytest.raises(InputError, match="rad750"):
         B.get_budget("pentium")
