@@ -171,6 +171,7 @@ def _run(args: argparse.Namespace) -> int:
         check_distinct_dirs(pairs, "--pairs")
     if frames:
         check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
+    written: list[str] = []
     try:
         out = render_scenario(
             args.scenario,
@@ -187,9 +188,10 @@ def _run(args: argparse.Namespace) -> int:
             max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
             raster=args.raster,
             camera=camera,
+            written=written,
         )
     except KeyboardInterrupt:
-        print(_kept_after_interrupt(Path(args.out)), file=sys.stderr)
+        print(_kept_after_interrupt(Path(args.out), written), file=sys.stderr)
         raise
     worst = max(e.get("raster_cell_over_target", 1.0) for e in json.loads((out / "manifest.json").read_text())["pairs"])
     if worst > 1.05:
@@ -203,14 +205,15 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _kept_after_interrupt(out: Path) -> str:
+def _kept_after_interrupt(out: Path, written: list[str]) -> str:
     """What a stopped render left in ``out``: the frames are rendered first and the pairs written after (each
     whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again."""
-    done = sorted(p.parent.name for p in out.glob("*/pair.json")) if out.is_dir() else []
-    if not done:
-        return f"render: stopped before any pair was written (frames are rendered first): nothing kept in {out}"
-    manifest = "" if (out / "manifest.json").is_file() else "; no manifest.json (it is written last)"
-    return f"render: stopped; {len(done)} pair(s) written whole in {out}: {', '.join(done)}{manifest}"
+    if not written:
+        return f"render: stopped before any pair was written (frames are rendered first): nothing new in {out}"
+    return (
+        f"render: stopped; {len(written)} pair(s) written whole in {out}: {', '.join(written)}; "
+        "no manifest.json (it is written last)"
+    )
 
 
 def _table_doc(path: Path) -> dict[str, Any]:

@@ -8,6 +8,7 @@ noise, so the bytes do not depend on the pool or on the sharing.
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 import zlib
@@ -45,8 +46,9 @@ from protocol.pairdir import (
     check_altimeter,
     check_sees_ground,
     image_name,
-    write_pair,
+    write_pair_atomic,
 )
+from reports.html import write_atomic
 from reports.jsondoc import finite_or_null, json_text
 
 __all__ = ["DEFAULT_SUN", "default_scene", "render_pair", "render_scenario", "render_views"]
@@ -253,7 +255,7 @@ def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
     line = f"render [{'#' * fill}{'.' * (w - fill)}] {i}/{n} {label:<12} {time.time() - t0:6.1f} s"
     if sys.stderr.isatty():
         sys.stderr.write("\r" + line + ("\n" if i == n else ""))
-    elif i > 0:
+    else:  # the first line too: a log said nothing until the first frame was done
         sys.stderr.write(line + "\n")
     sys.stderr.flush()
 
@@ -283,8 +285,13 @@ def render_scenario(
     workers: int | None = None,
     max_cells: int = MAX_CELLS,
     raster: str = DEFAULT_RASTER,
+    written: list[str] | None = None,
 ) -> Path:
     """Render a scenario to ``out_dir/<label with / -> _>/`` plus ``manifest.json`` and ``contact.png``.
+
+    Each pair directory appears whole or not at all, replacing one an earlier render left there (named in one
+    line on stderr, as are its pairs this render leaves in place); ``manifest.json`` is written last, so a
+    stopped render has none. ``written`` collects the pair directories written so far (what a stop kept).
 
     ``frames`` (lists of altitudes, highest first) renders multi-frame directories of the
     scenario instead of its pairs. ``camera`` replaces the scenario's camera (e.g. a smaller
@@ -320,7 +327,7 @@ def render_scenario(
     cam = specs[0].camera
     if any(ps.camera != cam for ps in specs):
         raise TrajectoryError("all pairs of a scenario must share one camera")
-    _progress(0, len(specs), "frames", t0, progress)
+    _progress(0, len(poses), "frames", t0, progress)
     views = render_views(
         sc,
         cam,
@@ -334,11 +341,16 @@ def render_scenario(
         on_view=lambda k, n: _progress(k, n, "frames", t0, progress),
     )
     entries, thumbs = [], []
+    earlier = _earlier_render(out)
+    # an earlier render's manifest would list a mix of its pairs and ours if this one stopped half-way
+    (out / "manifest.json").unlink(missing_ok=True)
     k = 0
     for i, ps in enumerate(specs):
         vs, k = views[k : k + len(ps.poses)], k + len(ps.poses)
         pair = assemble_pair(sc, ps, sun, vs, seed=seed, pose_error=pose_error)
-        d = write_pair(out / ps.label.replace("/", "_"), pair)
+        d = write_pair_atomic(out / ps.label.replace("/", "_"), pair, replace=True)
+        if written is not None:
+            written.append(d.name)
         entries.append(
             {
                 "label": ps.label,
@@ -371,9 +383,32 @@ def render_scenario(
         "pose_error": pose_error.to_dict() if pose_error else None,
         "pairs": entries,
     }
-    (out / "manifest.json").write_text(json_text(manifest))  # strict JSON: NaN as null
     contact_sheet(thumbs, out / "contact.png")
+    write_atomic(out / "manifest.json", json_text(manifest))  # strict JSON: NaN as null; last: the render is whole
+    _say_replaced(out, earlier, [e["path"] for e in entries])
     return out
+
+
+def _earlier_render(out: Path) -> list[str]:
+    """The pair directories an earlier render left in ``out`` (its manifest's, else any with a pair.json)."""
+    try:
+        doc = json.loads((out / "manifest.json").read_text())
+        return [str(e["path"]) for e in doc["pairs"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return sorted(p.parent.name for p in out.glob("*/pair.json"))
+
+
+def _say_replaced(out: Path, earlier: list[str], ours: list[str]) -> None:
+    """One line when ``out`` held an earlier render: which pairs this one replaced, and which it left in place
+    (kept, nothing deleted, but no longer in manifest.json)."""
+    replaced = [p for p in ours if p in earlier]
+    left = [p for p in earlier if p not in ours and (out / p / "pair.json").is_file()]
+    if not replaced and not left:
+        return
+    parts = [f"replaced {len(replaced)} pair(s) of an earlier render in {out}"] if replaced else []
+    if left:
+        parts.append(f"left {len(left)} of its pair(s) in place, no longer in manifest.json: {', '.join(left[:8])}")
+    sys.stderr.write("note: render: " + "; ".join(parts) + ("" if len(left) <= 8 else ", ...") + "\n")
 
 
 def _warn_no_overlap(label: str) -> None:

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import InputError
+from protocol.errors import InputError, os_error_text
 
 FORMAT = "sfm-hd-pair/1"
 MIN_FRAMES, MAX_FRAMES = 2, 16
@@ -413,16 +413,25 @@ def check_sees_ground(pose: Pose, what: str = "pose") -> None:
 
 
 def write_pair(directory: str | Path, pair: Pair) -> Path:
-    """Write ``pair`` in the DESIGN.md layout; returns the directory."""
-    import cv2
-
+    """Write ``pair`` in the DESIGN.md layout, ``pair.json`` last; returns the directory. A failed write is one
+    OSError naming the file (:func:`write_pair_atomic` leaves nothing half-written)."""
     pair.validate()
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
+    try:
+        _write_files(d, pair)
+    except OSError as exc:
+        raise OSError(os_error_text(exc, "write")) from None
+    return d
+
+
+def _write_files(d: Path, pair: Pair) -> None:
+    import cv2
+
     names = [image_name(k) for k in range(pair.n_frames)]
     for name, img in zip(names, pair.images):
         if not cv2.imwrite(str(d / name), img):
-            raise OSError(f"could not write {d / name}")
+            raise OSError(f"could not write {d / name} (no space left on the device?)")
     frames = []
     for p, n, a in zip(pair.poses, names, pair.altimeter_m):
         fr = p.to_dict(n)
@@ -436,28 +445,45 @@ def write_pair(directory: str | Path, pair: Pair) -> Path:
         if key in doc:
             raise PairFormatError(f"meta key {key!r} collides with a format key")
         doc[key] = value
-    (d / "pair.json").write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n")
     for name, arr in pair.truth.items():
-        np.save(d / TRUTH_FILES[name], np.asarray(arr, dtype=_TRUTH_DTYPES[name]))
-    return d
+        path = d / TRUTH_FILES[name]
+        try:
+            np.save(path, np.asarray(arr, dtype=_TRUTH_DTYPES[name]))
+        except OSError as exc:  # numpy's short write names neither the file nor the cause
+            if exc.filename is not None:
+                raise
+            raise OSError(f"cannot write {path}: {exc} (no space left on the device?)") from None
+    (d / "pair.json").write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n")  # last: the pair is whole
 
 
-def write_pair_atomic(directory: str | Path, pair: Pair) -> Path:
+def write_pair_atomic(directory: str | Path, pair: Pair, *, replace: bool = False) -> Path:
     """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
-    half-written directory, and when another process finished the same directory first (two studies
-    rendering into one cache) its copy is kept and ours dropped. Returns the directory."""
+    half-written directory. When the directory exists already, ``replace`` puts ours in its place (the old
+    one is renamed aside first and removed after: a stop between the two renames leaves the old one beside,
+    never a mix of both); otherwise the one there is kept and ours dropped (another process finished the
+    same directory first: two studies rendering into one cache). A failed write (a full disk) leaves nothing
+    and names the file. Returns the directory."""
     import shutil
 
     d = Path(directory)
     tmp = d.with_name(f"{d.name}.partial{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
-    write_pair(tmp, pair)
+    try:
+        write_pair(tmp, pair)
+    except BaseException:  # a full disk or a Ctrl-C: no half-written sibling left behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = d.with_name(f"{d.name}.old{os.getpid()}")
+    if replace and d.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(d, old)
     try:
         os.replace(tmp, d)
     except OSError:
         shutil.rmtree(tmp, ignore_errors=True)
         if not (d / "pair.json").is_file():
             raise
+    shutil.rmtree(old, ignore_errors=True)
     return d
 
 

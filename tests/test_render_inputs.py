@@ -189,7 +189,50 @@ def test_a_stopped_render_says_what_it_kept(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(descent, "render_views", ctrl_c)
     assert main(["render", "--scenario", "vertical", "--pairs", "600/300", "--out", str(tmp_path / "o")]) == 130
     err = capsys.readouterr().err
-    assert "stopped before any pair was written" in err and "nothing kept" in err, err
+    assert "stopped before any pair was written" in err and "nothing new" in err, err
+
+
+def test_a_render_stopped_while_writing_a_pair_leaves_no_half_pair_and_no_mixed_render(tmp_path, capsys, monkeypatch):
+    """A stop between pair.json and the truth files left a pair without truth that `process` took as whole, and
+    over an earlier render a pair with new images beside the old truth, which `score` then blamed on the detector."""
+    import numpy as np
+
+    from protocol.pairdir import read_pair
+
+    out = tmp_path / "o"
+    args = ["render", "--scenario", "vertical", "--pairs", "600/300,300/150", "--image-size", "32", "--no-progress"]
+    assert main([*args, "--seed", "0", "--out", str(out)]) == 0
+    before = {p: (out / p / "gt_hazard_i1.npy").read_bytes() for p in ("600_300", "300_150")}
+    saves = []
+    real_save = np.save
+
+    def stop_in_the_second_pair(path, arr):  # the second pair's second truth file
+        saves.append(path)
+        if len(saves) == len(before) * 2 + 2:
+            raise KeyboardInterrupt
+        real_save(path, arr)
+
+    monkeypatch.setattr(np, "save", stop_in_the_second_pair)
+    assert main([*args, "--seed", "1", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert "1 pair(s) written whole" in err and "600_300;" in err and "no manifest.json" in err, err
+    assert not (out / "manifest.json").exists()  # the old one listed a mix of both renders
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["300_150", "600_300"]  # no partial siblings
+    new, old = read_pair(out / "600_300"), read_pair(out / "300_150")
+    assert new.meta["seed"] == 1 and old.meta["seed"] == 0  # each pair whole: all new, or all as it was
+    assert (out / "300_150" / "gt_hazard_i1.npy").read_bytes() == before["300_150"]
+    assert (out / "600_300" / "gt_hazard_i1.npy").read_bytes() != before["600_300"]
+
+
+def test_a_render_over_an_earlier_one_says_what_it_replaced_and_what_it_left(tmp_path, capsys):
+    out = tmp_path / "o"
+    args = ["render", "--scenario", "vertical", "--image-size", "32", "--no-progress", "--out", str(out)]
+    assert main([*args, "--pairs", "600/300,300/150"]) == 0
+    capsys.readouterr()
+    assert main([*args, "--pairs", "600/300", "--seed", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "replaced 1 pair(s) of an earlier render" in err and "no longer in manifest.json: 300_150" in err, err
+    assert (out / "300_150" / "pair.json").is_file()  # nothing deleted
 
 
 def test_a_label_with_a_control_character_is_refused(tmp_path, capsys, no_rendering):
