@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ground_sim.render import RENDER_VERSION
+from protocol.pairdir import NPY_FAULTS, npy_fault
 
 # pairs written before the version was recorded were drawn by the renderer of version 1
 UNVERSIONED = 1
@@ -63,8 +64,8 @@ def _npy_damage(path: Path, shape: tuple[int, int]) -> str | None:
             read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
             got, _, dtype = read(f)
             start = f.tell()
-    except (OSError, ValueError, EOFError) as exc:
-        return f"header unreadable ({exc or 'empty file'})"
+    except NPY_FAULTS as exc:
+        return f"header unreadable ({npy_fault(exc)})"
     if dtype.hasobject:
         return "holds Python objects"  # np.load(allow_pickle=False) refuses it
     if tuple(got) != shape:

@@ -33,8 +33,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import stat
 import struct
+import tokenize
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -828,15 +830,44 @@ def _image_path(d: Path, name: str) -> Path:
     return p
 
 
+# what numpy's .npy header parser raises on a damaged header: an unterminated string reaches the tokenizer
+# (TokenError), a negative shape the memory map (OverflowError); each was a traceback
+NPY_FAULTS = (ValueError, EOFError, OSError, SyntaxError, OverflowError, TypeError, MemoryError, tokenize.TokenError)
+
+
+def npy_fault(exc: BaseException) -> str:
+    """numpy's reason in a reader's words: its advice to unpickle a file is not for a map, and a memory address
+    in a parser's message would make the same error differ from run to run."""
+    text = re.sub(r" at 0x[0-9a-fA-F]+", "", str(exc))
+    if "pickle" in text or "can't be memory-mapped" in text:
+        return "not a numeric array: a text file, or Python objects"
+    if "mmap length is greater than file size" in text:
+        return "truncated: shorter than its header says"
+    if isinstance(exc, (SyntaxError, OverflowError, TypeError, tokenize.TokenError)) or "header" in text:
+        return f"damaged header ({text[:120]})" if text else "damaged header"
+    return text[:200] or "empty file"
+
+
+def open_npy(path: Path) -> np.ndarray:
+    """The array in a ``.npy`` file, memory-mapped: only its header is read, so its shape and dtype can be
+    refused before any data is copied; never unpickled (a file from a user can run code). Any fault is one
+    :class:`PairFormatError` naming the file."""
+    try:
+        a = np.load(path, allow_pickle=False, mmap_mode="r")
+    except NPY_FAULTS as exc:
+        raise PairFormatError(f"{path}: not a readable .npy file ({npy_fault(exc)})") from None
+    if not isinstance(a, np.ndarray):  # an .npz archive under a .npy name
+        close = getattr(a, "close", None)
+        if close is not None:
+            close()
+        raise PairFormatError(f"{path}: not a single array (.npy) but an .npz archive of several")
+    return a
+
+
 def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
     """Ground-truth layer ``name`` from ``p``, refused unless numeric (bool or integer for the shadow mask)
     and of the images' ``shape``; both are read from the header (memory-mapped) before any data is copied."""
-    try:
-        a = np.load(p, allow_pickle=False, mmap_mode="r")  # never pickle: a .npy from a user can run code
-    except (ValueError, EOFError, OSError) as exc:
-        raise PairFormatError(f"{p}: unreadable ({exc or 'empty file'})") from None
-    if not isinstance(a, np.ndarray):  # an .npz archive under a .npy name
-        raise PairFormatError(f"{p}: not a single array (.npy), got {type(a).__name__}")
+    a = open_npy(p)
     kinds, need = ("biu", "bool (or integer 0/1)") if name == "shadow" else ("fiu", "numbers (float32)")
     if a.dtype.kind not in kinds:  # strings, complex, structured, dates: the scores would fail or mean nothing
         raise PairFormatError(f"{p}: ground truth {name} must hold {need}, got dtype {a.dtype}")

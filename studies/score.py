@@ -88,11 +88,13 @@ class DetectorOutput:
 def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """The array in ``path``, read only once its header says it has ``shape`` (memory bounded before it is spent:
     a file claiming a huge array is refused from its header)."""
+    from protocol.pairdir import PairFormatError, open_npy
+
     try:
-        a = np.load(path, allow_pickle=False, mmap_mode="r")
-    except (OSError, ValueError, EOFError) as exc:
-        raise ScoreError(f"{path}: not a readable .npy file ({_npy_fault(exc)})") from None
-    if not isinstance(a, np.ndarray) or a.shape != shape:
+        a = open_npy(path)
+    except PairFormatError as exc:
+        raise ScoreError(str(exc)) from None
+    if a.shape != shape:
         got = getattr(a, "shape", type(a).__name__)
         raise ScoreError(f"{path}: must be {shape[0]}x{shape[1]} (frame 0's pixels), got {got}")
     if a.dtype.itemsize > 8:
@@ -119,16 +121,6 @@ def _check_state(path: Path, state: np.ndarray, hazard: np.ndarray) -> None:
     ):
         if n:
             raise ScoreError(f"{path}: says {what} on {n} pixels; the two files must agree")
-
-
-def _npy_fault(exc: BaseException) -> str:
-    """numpy's reason in a detector author's words: its own advice to unpickle a file is not for a map."""
-    text = str(exc)
-    if "pickle" in text or "can't be memory-mapped" in text:
-        return "not a numeric array: a text file, or Python objects"
-    if "mmap length is greater than file size" in text:
-        return "truncated: shorter than its header says"
-    return text or "empty file"
 
 
 @dataclass(frozen=True)

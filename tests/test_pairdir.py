@@ -152,7 +152,7 @@ def _png_header(w: int, h: int) -> bytes:
         (lambda d: (d / "pair.json").write_text(" " * (2 << 20)), "more than a pair.json can be"),
         (lambda d: (d / "pair.json").write_text("[" * 100_000 + "]" * 100_000), "nested too deeply"),
         (lambda d: _rewrite(d, lambda doc: doc["frames"][1].update(image="../../etc/passwd")), "outside the pair"),
-        (lambda d: (d / "gt_elevation_i1.npy").write_bytes(b""), "gt_elevation_i1.npy: unreadable"),
+        (lambda d: (d / "gt_elevation_i1.npy").write_bytes(b""), "gt_elevation_i1.npy: not a readable .npy file"),
         (lambda d: _rewrite(d, lambda doc: doc["frames"][0].update(R_world_to_cam=np.eye(3).tolist())), "cannot see"),
         (lambda d: _rewrite(d, lambda doc: doc["frames"][1].update(altimeter_m=-3)), "altimeter_m"),
         (lambda d: _rewrite(d, lambda doc: doc["camera"].update(width=65535)), "1..8192"),

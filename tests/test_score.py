@@ -177,6 +177,9 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         (lambda o, s: (o / "result.json").mkdir(), "result.json: exists but is not a regular file (a directory)"),
         (lambda o, s: (o / "result.json").write_bytes(b" " * (17 * 2**20)), "bytes is more than a result.json can be"),
         (lambda o, s: (o / "hazard.npy").write_text("0.5\n" * 99), "not a numeric array: a text file"),
+        # damaged headers were tracebacks: an unterminated bracket reached the tokenizer, a negative shape the mmap
+        (lambda o, s: _damage_header(o / "hazard.npy", b"(128, 128)", b"(128, 128 "), "damaged header"),
+        (lambda o, s: _damage_header(o / "hazard.npy", b"(128, 128)", b"(-12, 128)"), "not a readable .npy file"),
     ],
 )
 def test_broken_output_is_that_pairs_one_line_failure(descent, tmp_path, capsys, write, message):
@@ -187,6 +190,23 @@ def test_broken_output_is_that_pairs_one_line_failure(descent, tmp_path, capsys,
     code = main(["score", str(d), str(out)])
     text, _ = capsys.readouterr()
     assert code == 1 and message in text and "no pair scored" in text
+
+
+def _damage_header(path, old: bytes, new: bytes) -> None:
+    data = path.read_bytes()
+    assert old in data[:128]
+    path.write_bytes(data.replace(old, new, 1))
+
+
+@pytest.mark.parametrize("old, new", [(b"(128, 128)", b"(128, 128 "), (b"(128, 128)", b"(-12, 128)")])
+def test_a_damaged_truth_header_is_one_line_exit_2(descent, tmp_path, capsys, old, new):
+    d = tmp_path / "pair"
+    shutil.copytree(descent / "300_150", d)
+    _damage_header(d / "gt_hazard_i1.npy", old, new)
+    _write(tmp_path / "o", np.ones((128, 128)))
+    assert main(["score", str(d), str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gt_hazard_i1.npy: not a readable .npy file" in err[0], err
 
 
 def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
