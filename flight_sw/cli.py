@@ -127,7 +127,7 @@ def _process(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from protocol.pairdir import read_pair
+    from protocol.pairdir import pair_fingerprint, read_pair
     from protocol.plan import plan_note
     from reports.html import write_atomic
     from reports.jsondoc import json_text
@@ -180,6 +180,7 @@ def _process(args: argparse.Namespace) -> int:
         (out / "filled.npy").unlink(missing_ok=True)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
+        "pair_fingerprint": pair_fingerprint(pair.images),  # `score` refuses this output against another pair
         "preset": args.preset,
         "frames": len(frames),
         "params": res.params,

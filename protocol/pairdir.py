@@ -37,6 +37,7 @@ import re
 import stat
 import struct
 import tokenize
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -412,6 +413,18 @@ def check_sees_ground(pose: Pose, what: str = "pose") -> None:
             f"in world coordinates): it cannot see the ground; need >= {MIN_DEPRESSION_DEG:g} deg "
             "(is R_world_to_cam transposed?)"
         )
+
+
+def pair_fingerprint(images: Sequence[np.ndarray]) -> str:
+    """A short hash of a pair's frames (their shapes and pixels): an output directory that records it can be
+    told apart from one made from another pair, wherever either was moved."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for img in images:
+        h.update(repr((img.shape, img.dtype.str)).encode())
+        h.update(np.ascontiguousarray(img).tobytes())
+    return h.hexdigest()[:20]
 
 
 def write_pair(directory: str | Path, pair: Pair) -> Path:

@@ -645,7 +645,7 @@ def register_score(subparsers: Any) -> None:
 def _score(args: argparse.Namespace) -> int:
     import math
 
-    from protocol.pairdir import read_pair
+    from protocol.pairdir import pair_fingerprint, read_pair
     from studies.score import ScoreError, pair_jobs, read_output, score_output, summarise, write_csv
 
     if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
@@ -662,7 +662,7 @@ def _score(args: argparse.Namespace) -> int:
         if job.missing is None:
             pair = read_pair(job.pair_dir)  # a pair that cannot be read, or has no truth (below), is bad usage
             try:
-                out = read_output(job.out_dir, pair.images[0].shape, job.sites)
+                out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
             except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
                 row["error"] = str(exc)
             else:

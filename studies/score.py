@@ -30,6 +30,7 @@ import numpy as np
 
 from protocol.errors import InputError
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, PairFormatError, file_present
+from reports.console import printable
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
@@ -134,9 +135,13 @@ class Job:
     missing: str | None = None  # why there is no output to read (an HIL pair that ended in an error)
 
 
-def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None = None) -> DetectorOutput:
+def read_output(
+    out_dir: str | Path, shape: tuple[int, int], sites: list | None = None, fingerprint: str | None = None
+) -> DetectorOutput:
     """The output files of ``out_dir`` for a frame 0 of ``shape`` (rows, cols), checked; :class:`ScoreError`.
-    ``sites``: the ranked sites as ``{"x", "y", "z"}`` objects, instead of ``result.json``'s."""
+    ``sites``: the ranked sites as ``{"x", "y", "z"}`` objects, instead of ``result.json``'s. ``fingerprint``
+    (:func:`protocol.pairdir.pair_fingerprint` of the pair scored): a ``result.json`` that records another
+    pair's is refused (an output of another pair of the same size was scored without a word)."""
     out = Path(out_dir)
     if not out.is_dir():
         raise ScoreError(f"{out}: no such output directory")
@@ -180,11 +185,19 @@ def read_output(out_dir: str | Path, shape: tuple[int, int], sites: list | None 
     if sites is not None:
         xyz = _site_xyz(sites, out / "results.jsonl")
     elif present("result.json"):
-        xyz = _read_sites(out / "result.json")
+        doc = _read_result(out / "result.json")
+        made_from = doc.get("pair_fingerprint") if isinstance(doc, dict) else None
+        if fingerprint is not None and isinstance(made_from, str) and made_from != fingerprint:
+            where = printable(str(doc.get("pair_dir", "?")), 200)
+            raise ScoreError(
+                f"{out}: made from another pair ({where}: result.json's pair_fingerprint {printable(made_from, 40)}, "
+                f"this pair's {fingerprint}); score it against the pair it was made from"
+            )
+        xyz = _site_xyz(doc.get("sites", []) if isinstance(doc, dict) else None, out / "result.json")
     return DetectorOutput(hazard, elevation, state, xyz)
 
 
-def _read_sites(path: Path) -> np.ndarray:
+def _read_result(path: Path) -> Any:
     size = path.stat().st_size
     if size > MAX_RESULT_JSON_BYTES:  # read whole, a 200 MB file took 450 MB: refused from its size
         raise ScoreError(f"{path}: {size} bytes is more than a result.json can be ({MAX_RESULT_JSON_BYTES} bytes)")
@@ -194,7 +207,7 @@ def _read_sites(path: Path) -> np.ndarray:
         raise ScoreError(f"{path}: not readable JSON ({exc})") from None
     except RecursionError:  # json's parser recurses once per nested list or object
         raise ScoreError(f"{path}: JSON nested too deeply") from None
-    return _site_xyz(doc.get("sites", []) if isinstance(doc, dict) else None, path)
+    return doc
 
 
 def _site_xyz(raw: Any, path: Path) -> np.ndarray:

@@ -209,6 +209,20 @@ def test_a_damaged_truth_header_is_one_line_exit_2(descent, tmp_path, capsys, ol
     assert len(err) == 1 and "gt_hazard_i1.npy: not a readable .npy file" in err[0], err
 
 
+def test_process_output_scored_against_another_pair_is_refused(descent, tmp_path, capsys):
+    """`process` records the pair it read; `score` quietly scored that output against another pair of the same size
+    (and blamed the detector for the other pair's hazards)."""
+    a, b = sorted(p for p in descent.iterdir() if (p / "pair.json").is_file())[:2]
+    out = tmp_path / "p"
+    assert main(["process", str(a), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["score", str(a), str(out)]) in (0, 1)  # its own pair: scored (1 only if FP is over the limit)
+    assert "made from another pair" not in capsys.readouterr().out
+    assert main(["score", str(b), str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "made from another pair" in text and a.name in text and "no pair scored" in text, text
+
+
 def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
     assert main(["score", str(tmp_path), str(tmp_path)]) == 2
     assert "neither a pair directory" in capsys.readouterr().err
