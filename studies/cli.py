@@ -646,11 +646,22 @@ def _score(args: argparse.Namespace) -> int:
     import math
 
     from protocol.pairdir import pair_fingerprint, read_pair
-    from studies.score import ScoreError, pair_jobs, read_output, score_output, summarise, write_csv
+    from studies.score import (
+        ScoreError,
+        check_not_an_input,
+        pair_jobs,
+        read_output,
+        score_output,
+        summarise,
+        write_csv,
+    )
 
     if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
         raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
     jobs = pair_jobs(args.pairs, args.outputs)
+    for option in ("csv", "json"):
+        if getattr(args, option) is not None:
+            check_not_an_input(getattr(args, option), jobs, args.pairs, args.outputs, f"--{option}")
     rows: list[dict[str, Any]] = []
     for job in jobs:
         row: dict[str, Any] = {

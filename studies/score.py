@@ -315,6 +315,20 @@ def score_output(
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
+# the files `score` reads, by name: a --csv or --json on one of them destroyed it (ground truth included)
+_READ_NAMES = frozenset({"pair.json", "result.json", "manifest.json", "results.jsonl"})
+
+
+def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, option: str) -> None:
+    """Refuse a file ``score`` writes (``option``) that is one of the files it reads: a pair's or an output's
+    ``.npy``, image or JSON, the descent's manifest or an HIL run's records."""
+    target = path.resolve()
+    read_dirs = {d.resolve() for j in jobs for d in (j.pair_dir, j.out_dir)} | {pairs.resolve(), outputs.resolve()}
+    read = target.suffix in (".npy", ".png") or target.name in _READ_NAMES
+    if target.parent in read_dirs and read and target.exists():
+        raise ScoreError(f"{option} {path} is one of the files this scoring reads: it would be overwritten")
+
+
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     """The pairs to score:
 

@@ -223,6 +223,20 @@ def test_process_output_scored_against_another_pair_is_refused(descent, tmp_path
     assert "made from another pair" in text and a.name in text and "no pair scored" in text, text
 
 
+@pytest.mark.parametrize("option, victim", [("--json", "gt_hazard_i1.npy"), ("--csv", "pair.json"), ("--csv", "OUT")])
+def test_a_report_file_that_is_one_of_the_inputs_is_refused(descent, tmp_path, capsys, option, victim):
+    """`score --json PAIR/gt_hazard_i1.npy` replaced the ground truth with the scores, exit 0."""
+    d = tmp_path / "pair"
+    shutil.copytree(descent / "300_150", d)
+    out = _write(tmp_path / "o", np.ones((128, 128)))
+    path = out / "hazard.npy" if victim == "OUT" else d / victim
+    before = path.read_bytes()
+    assert main(["score", str(d), str(out), option, str(path)]) == 2
+    assert "is one of the files this scoring reads" in capsys.readouterr().err
+    assert path.read_bytes() == before
+    assert main(["score", str(d), str(out), option, str(out / "scores.json")]) in (0, 1)  # a new file there is fine
+
+
 def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
     assert main(["score", str(tmp_path), str(tmp_path)]) == 2
     assert "neither a pair directory" in capsys.readouterr().err
