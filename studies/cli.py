@@ -616,7 +616,8 @@ def register_score(subparsers: Any) -> None:
         "safe over its whole 3 m footprint (DESIGN.md). PAIRS is a pair directory and OUTPUTS its output "
         "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory"
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
-        " 1 when one was over it or had no usable output, 2 on bad usage.",
+        " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
+        " scored), 2 on bad usage. An output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
     p.add_argument("pairs", type=Path, help="a pair directory with ground truth, or a descent with manifest.json")
     p.add_argument("outputs", type=Path, help="the detector's output directory (or one per pair, by pair name)")
@@ -684,6 +685,9 @@ def _score(args: argparse.Namespace) -> int:
         rows.append(row)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)
+    for r in rows:  # in the table on stdout, and here: a CI log that keeps stderr says which and why
+        if r.get("error"):
+            print(f"hazard-hil score: {r['pair']}: no usable output: {r['error']}", file=sys.stderr)
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
@@ -700,9 +704,12 @@ def _score(args: argparse.Namespace) -> int:
     except OSError as exc:  # after the scores above: said as main() says any other, as a write
         print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)
         return 1
-    return 0 if summary["failed"] == 0 and summary["pairs_over_fp_limit"] == 0 else 1
+    if summary["failed"]:  # a broken submission is not a detector over its FP budget: a code of its own
+        return EXIT_NO_OUTPUT
+    return 0 if summary["pairs_over_fp_limit"] == 0 else 1
 
 
+EXIT_NO_OUTPUT = 3  # `score`: a pair had no usable output (missing or broken files)
 UNMAPPED_WARN_PCT = 50.0  # a detector that leaves over half the overlap NaN is said to, whatever its FP
 
 

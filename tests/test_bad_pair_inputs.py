@@ -147,7 +147,7 @@ def _save_object(p: Path) -> None:
     [
         ("gt_hazard_i1.npy", lambda p: np.save(p, np.full((PX, PX), "x")), "must hold numbers"),
         ("gt_depth_i1.npy", lambda p: np.save(p, np.full((PX, PX), 1j)), "must hold numbers"),
-        ("gt_elevation_i1.npy", _save_object, "unreadable"),  # never unpickled
+        ("gt_elevation_i1.npy", _save_object, "Python objects"),  # never unpickled
         ("gt_shadow_i1.npy", lambda p: np.save(p, np.full((PX, PX), 0.5)), "must hold bool"),
         ("gt_hazard_i1.npy", lambda p: np.save(p, np.zeros((3, 3), np.float32)), "shape (3, 3) != image shape"),
     ],

@@ -132,7 +132,7 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
     figs = tmp_path / "figs"
     code = main(["score", str(descent), str(outs), "--csv", str(tmp_path / "rows.csv"), "--figures", str(figs)])
     out, _ = capsys.readouterr()
-    assert code == 1
+    assert code == 3
     assert sorted(p.name for p in figs.iterdir()) == ["600_300_score.png"]  # the scored pair's picture only
     assert (figs / "600_300_score.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| 300/150 | no usable output: " in out and "no such output directory" in out
@@ -188,8 +188,9 @@ def test_broken_output_is_that_pairs_one_line_failure(descent, tmp_path, capsys,
     out = _write(tmp_path / "o", np.ones(shape))
     write(out, shape)
     code = main(["score", str(d), str(out)])
-    text, _ = capsys.readouterr()
-    assert code == 1 and message in text and "no pair scored" in text
+    text, err = capsys.readouterr()
+    assert code == 3 and message in text and "no pair scored" in text  # exit 1 is a detector over its FP budget
+    assert err.startswith("hazard-hil score: 300_150: no usable output: ") and message in err, err  # for a CI log
 
 
 def _damage_header(path, old: bytes, new: bytes) -> None:
@@ -218,7 +219,7 @@ def test_process_output_scored_against_another_pair_is_refused(descent, tmp_path
     capsys.readouterr()
     assert main(["score", str(a), str(out)]) in (0, 1)  # its own pair: scored (1 only if FP is over the limit)
     assert "made from another pair" not in capsys.readouterr().out
-    assert main(["score", str(b), str(out)]) == 1
+    assert main(["score", str(b), str(out)]) == 3
     text = capsys.readouterr().out
     assert "made from another pair" in text and a.name in text and "no pair scored" in text, text
 
@@ -258,7 +259,7 @@ def test_an_output_claiming_a_huge_array_is_refused_from_its_header(descent, tmp
         np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (200_000, 200_000)})
     code = main(["score", str(descent / "300_150"), str(out)])
     text, _ = capsys.readouterr()
-    assert code == 1 and "hazard.npy: " in text and ("must be 128x128" in text or "not a readable" in text)
+    assert code == 3 and "hazard.npy: " in text and ("must be 128x128" in text or "not a readable" in text)
 
 
 def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent, tmp_path, capsys):
@@ -275,15 +276,15 @@ def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent,
     for r, rec in zip(doc["rows"], records):
         assert r["error"] is None and r["sites"] == len(rec["sites"])
         assert r["fp_pct"] <= 1.0 and r["cdi_pct"] > 10
-    # the run ended the second pair in an error: said, not scored, exit 1
+    # the run ended the second pair in an error: said, not scored, exit 3 (no usable output)
     records[1].update(status="error", code="deadline_hit", text="hard deadline passed")
     (received / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
     code, doc = _score(descent, received, capsys)
-    assert code == 1 and doc["rows"][0]["error"] is None
+    assert code == 3 and doc["rows"][0]["error"] is None
     assert doc["rows"][1]["error"].startswith("the run ended this pair as deadline_hit: hard deadline passed")
     (Path(records[0]["out_dir"]) / "hazard.npy").unlink()  # as a run without --full-maps leaves it
     code, doc = _score(descent, received, capsys)
-    assert code == 1 and "saves the image maps only with `run --full-maps`" in doc["rows"][0]["error"]
+    assert code == 3 and "saves the image maps only with `run --full-maps`" in doc["rows"][0]["error"]
 
 
 def test_outputs_that_are_not_a_directory_are_a_usage_error(descent, tmp_path, capsys):
