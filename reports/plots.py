@@ -207,6 +207,10 @@ def mapped_box(panels: Sequence[Panel]) -> tuple[int, int, int, int] | None:
     if not masks or len({m.shape for m in masks}) != 1:
         return None
     mask = np.logical_or.reduce(masks) if cats else np.logical_and.reduce(masks)
+    for s in [s for p in panels for s in p.sites]:  # a site outside the mapped area (the top one, too) was cut off
+        u, v = int(round(s.u)), int(round(s.v))
+        if 0 <= v < mask.shape[0] and 0 <= u < mask.shape[1]:
+            mask[v, u] = True
     if not mask.any() or mask.mean() >= ZOOM_BELOW:
         return None
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
@@ -319,7 +323,13 @@ def map_figure(
         ) + f"(zoomed to the mapped area: rows {box[0]}-{box[1]}, columns {box[2]}-{box[3]})"
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
+    sites = [s for p in panels for s in p.sites]
+    if sites:  # the circles' colours and weights were explained nowhere
+        key = "circles: landing sites, numbered by rank (the top one drawn heaviest)"
+        if any(s.safe is not None for s in sites):
+            key += "; green truly safe, red not, black not confirmed (its footprint leaves frame 0)"
+        fig.text(0.5, 0.005, key, ha="center", va="bottom", fontsize=7.5, color="#333333")
+    fig.tight_layout(rect=(0, 0.03, 1, 1) if sites else (0, 0, 1, 1))
     return fig
 
 

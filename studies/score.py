@@ -422,14 +422,23 @@ def _figure(
         for i, j in enumerate(judged)
         if j["uv"] is not None
     ]
+    # NaN (unmapped) pixels are scored as not called safe, so they read as TN/FN: say how many there are
+    unmapped = f" ({m['unmapped_pct']:.0f} % unmapped: NaN, not called safe)" if m.get("unmapped_pct") else ""
     panels = [
         Panel("image", image, "frame 0 and the sites", sites=marks),
-        Panel("confusion", confusion_codes(called, safe, area), "pixel scores", sites=marks),
-        Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+        Panel("confusion", confusion_codes(called, safe, area), f"pixel scores{unmapped}", sites=marks),
+        Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
     ]
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
+    if len(judged) > len(marks):
+        title_sites = f"; {len(judged) - len(marks)} site(s) off frame 0 not drawn"
+    else:
+        title_sites = ""
     top = verdicts[site_verdict(judged[0])] if judged else "none"
-    title = f"{path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, top site {top}"
+    title = (
+        f"{path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, "
+        f"top site {top}{title_sites}"
+    )
     return save(map_figure(panels, title, m_per_px=m_per_px), path)
 
 

@@ -221,3 +221,16 @@ def test_scale_bar_is_a_round_length_of_the_panels_ground():
     assert texts == {"5 m"}, texts
     assert [b.size_bar.get_children()[0].get_width() for b in bars] == [10.0, 10.0]  # 5 m at 0.5 m per px
     assert not [a for ax in plots.map_figure([plots.Panel("state", state, "s")]).axes for a in ax.artists]
+
+
+def test_the_zoomed_box_keeps_every_site_in_view():
+    """A score figure zoomed to the mapped area left out the sites outside it, the top one included."""
+    from reports.plots import Panel, Site, mapped_box
+
+    codes = np.full((200, 200), 255, np.uint8)
+    codes[80:120, 80:120] = 0
+    inside = mapped_box([Panel("confusion", codes, "")])
+    far = Site(10.0, 190.0, 2.0, 1, True)
+    box = mapped_box([Panel("confusion", codes, "", sites=[far])])
+    assert inside is not None and inside[2] > 10 and box is not None
+    assert box[0] <= 190 <= box[1] and box[2] <= 10 <= box[3]
