@@ -413,6 +413,7 @@ def stream_descent(
     outcomes: dict[tuple[int, int], PairOutcome] = {}
     by_lower_seq: dict[int, PairOutcome] = {}
     unattributed = Quieter(first=UNATTRIBUTED_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # Errors about no pair
+    ignored = Quieter(first=UNATTRIBUTED_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # answers that are no pair's answer
     records: list[dict] = []
     config: Config | None = None
     state = _SessionState()
@@ -645,6 +646,8 @@ def stream_descent(
             o = by_lower_seq.get(msg.seq) if msg.seq is not None else None
             if o is None:
                 o = next((x for x in outcomes.values() if msg.seq in x.seqs), None)
+            if o is not None and (not o.sent_at or pkt.t_done < o.sent_at):
+                o = None  # about a pair whose frames had not gone: no answer to them
             if o is None:
                 # said for the first few, then once per UNATTRIBUTED_QUIET_S with the count: a flood of them printed
                 # 1660 lines in 2.8 s
@@ -656,11 +659,21 @@ def stream_descent(
                     )
                 return
             o.error = msg
-        elif isinstance(msg, Result) and o is not None:
-            o.result = msg
-            o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
-        elif isinstance(msg, Telemetry) and o is not None:
-            o.telemetry = msg
+        elif isinstance(msg, (Result, Telemetry)):
+            why = _not_an_answer(msg, o, pkt.t_done)
+            if why is not None:  # counted in ground.json and said, as the HIL server does for its flight process
+                name = type(msg).__name__
+                if ignored.offer(name, time.monotonic())[0]:
+                    n = ignored.seen(name)
+                    more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
+                    note(f"ignored a {name} from the flight side{more} for frames {list(key)}: {why}")
+                return
+            assert o is not None
+            if isinstance(msg, Result):
+                o.result = msg
+                o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
+            else:
+                o.telemetry = msg
         if o is not None and o.finished and o.seqs in want:
             want.discard(o.seqs)
             record(o)
@@ -702,6 +715,11 @@ def stream_descent(
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
         counters = {"refused_messages": state.refused_messages, "last_refused": state.last_refused}
+        counters |= {
+            "ignored_results": ignored.seen("Result"),
+            "ignored_telemetry": ignored.seen("Telemetry"),
+            "unattributed_errors": unattributed.seen("error"),
+        }
         stats = getattr(link, "stats", None) or {}
         # what the line did meanwhile: noise the framing dropped and the retransmissions that mended it
         counters["line"] = {k: int(stats.get(k, 0) or 0) for k in LINE_COUNTERS if k in stats}
@@ -870,6 +888,19 @@ def stream_descent(
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
         raise
     return records
+
+
+def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float) -> str | None:
+    """Why a Result or Telemetry is no answer to a pair sent (None: it is ``o``'s): for frames no pair has, or
+    a pair whose frames had not gone when it came (a board that guessed the next seqs read as answering with a
+    negative latency, "met"), or a second one for its pair (the first stands, as under the HIL server)."""
+    if o is None:
+        return "no pair was sent with them"
+    if not o.sent_at or t_done < o.sent_at:
+        return f"it came before pair {o.pair_id}'s frames were sent"
+    if (o.result if isinstance(msg, Result) else o.telemetry) is not None:
+        return f"pair {o.pair_id} has one already; the first stands"
+    return None
 
 
 def auto_grid_steps(link_spec: str) -> tuple[int, int]:

@@ -481,8 +481,20 @@ def flight_note(summary: dict) -> str:
         ground = f"the ground refused {refused} message{'' if refused == 1 else 's'} from the flight side" + (
             f" (last: {last.get('type')}: {last.get('reason')})" if last else ""
         )
+    ignored = [
+        f"{n} {one if n == 1 else many}"
+        for key, one, many in (
+            ("ignored_results", "Result", "Results"),
+            ("ignored_telemetry", "Telemetry", "Telemetry messages"),
+            ("unattributed_errors", "Error about no pair", "Errors about no pair"),
+        )
+        if (n := int(g.get(key) or 0))
+    ]
+    if ignored:  # an external flight computer's answers that answer no pair sent (the console said which)
+        ignored[0] = "the ground ignored " + ignored[0]
+        ignored[-1] += " (a second answer, for no pair sent, or before its pair's frames were sent)"
     server = _server_note(summary, c)
-    return "; ".join(x for x in (server, ground, _line_note(g.get("line") or {})) if x)
+    return "; ".join(x for x in (server, ground, ", ".join(ignored), _line_note(g.get("line") or {})) if x)
 
 
 def _line_note(line: dict) -> str:
@@ -513,8 +525,8 @@ def _server_note(summary: dict, c: dict) -> str:
         ("flight_line_errors", "corrupted frame dropped", "corrupted frames dropped"),
         (
             "stale_results",
-            "Result ignored (a second, or for no open pair)",
-            "Results ignored (seconds, or for no open pair)",
+            "Result ignored (a second one, or for no open pair)",
+            "Results ignored (second ones, or for no open pair)",
         ),
         ("stale_errors", "Error about no open pair ignored", "Errors about no open pair ignored"),
         ("unexpected_messages", "Config or Frame from it ignored", "Configs or Frames from it ignored"),

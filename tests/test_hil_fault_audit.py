@@ -69,6 +69,9 @@ while not link.closed_by_peer:
             if len(pair) < 2:
                 continue
             del pending[msg["pair_id"]]
+            if args.mode == "future" and answered == 1:  # it answered this pair before its frames came (below)
+                answered += 1
+                continue
             if args.mode == "inject" and answered == 1:  # words meant for the terminal, not the reader
                 text = "boom\\n\\x1b[2J\\x1b[32mrun: PASS: every pair -> exit 0\\x1b[0m"
                 link.send(mf.ERROR, {{"code": "x\\x1b[31m", "text": text, "seq": pair[1]["seq"]}})
@@ -115,6 +118,10 @@ while not link.closed_by_peer:
                 link.send(mf.TELEMETRY, tel)
             if args.mode == "bad_telemetry" and answered == 1:  # and a message of another type, refused
                 link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
+            if args.mode == "future" and answered == 0:  # guesses the next pair's seqs and answers it at once
+                guess = [pair[1]["seq"] + 1, pair[1]["seq"] + 2]
+                link.send(mf.RESULT, {{**res, "frame_seqs": guess}})
+                link.send(mf.TELEMETRY, {{**tel, "frame_seqs": guess}})
             answered += 1
             if args.mode == "crash_between_pairs":  # exit once the answer is out: no pair is outstanding
                 end = time.monotonic() + 0.3
@@ -460,6 +467,32 @@ def _lockstep(flight: Path, mode: str, manifest: Path, out: Path, baud: int | No
             )
         finally:
             link.close()
+
+
+def test_an_answer_that_came_before_its_pairs_frames_is_no_answer(manifest, flight, tmp_path, capfd):
+    """A board that guessed the next pair's frame seqs and answered before they were sent: the ground took that
+    Result as the pair's answer, recorded a negative end-to-end latency as "met", and the run passed."""
+    records = _lockstep(flight, "future", manifest, tmp_path)
+    by_label = {r["label"]: r for r in records}
+    assert by_label["600/300"]["status"] == "result" and by_label["200/100"]["status"] == "result"
+    r = by_label["300/150"]
+    assert (r["status"], r["code"]) == ("error", "no_response"), r
+    assert all((x.get("e2e_latency_s") or 0.0) >= 0.0 for x in records)
+    ground = json.loads((tmp_path / "ground.json").read_text())
+    assert ground["ignored_results"] == 1 and ground["ignored_telemetry"] == 1
+    err = capfd.readouterr().err
+    assert "ignored a Result from the flight side for frames [2, 3]: it came before pair p001" in err, err
+
+
+def test_an_external_flight_computers_second_result_is_ignored_and_the_first_stands(manifest, flight, tmp_path):
+    """Over `--flight external` a second Result for a pair replaced the first without a word (under the HIL server
+    the first stands, as hil.md says)."""
+    records = _lockstep(flight, "dup_result", manifest, tmp_path)
+    assert [r["status"] for r in records] == ["result"] * 3
+    # the first says "none", all unknown; the second "full", all safe
+    assert [(r["level"], r["degraded"]) for r in records] == [("none", True)] * 3
+    ground = json.loads((tmp_path / "ground.json").read_text())
+    assert ground["ignored_results"] == 3 and ground["unattributed_errors"] == 3
 
 
 def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(manifest, flight, tmp_path, capfd):
