@@ -856,7 +856,13 @@ def stream_descent(
             s for s, o in outcomes.items() if not o.finished and not any(r["frame_seqs"] == list(s) for r in records)
         }
         if pending:
-            collect(time.monotonic() + timeout * max(1, len(pending)), pending)
+            if pace == "lockstep":  # each waited its own response timeout already: no second one for each
+                until = max(outcomes[k].sent_at + outcomes[k].link_s + timeout for k in pending)
+            else:  # asap: answered one after another, the last behind all the others
+                until = time.monotonic() + timeout * max(1, len(pending))
+            if progress is not None and until - time.monotonic() >= UPLINK_NOTE_S:
+                note(f"waiting up to {until - time.monotonic():.0f} s for the answers to {len(pending)} pair(s)")
+            collect(until, pending)
         for type_code, reason in link.take_refusals():  # after every pair's end: counted, no pair to blame
             refused(type_code, reason, set())
         for s, o in outcomes.items():
@@ -868,7 +874,9 @@ def stream_descent(
                 elif not state.sessions:
                     o.error = Error(code="link_down", text="no session with the HIL server", seq=s[1])
                 else:
-                    o.error = Error(code="no_response", text=f"no result or error within {timeout:.0f} s", seq=s[1])
+                    waited = time.monotonic() - o.sent_at
+                    text = f"no result or error {waited:.0f} s after its frames went (response timeout {timeout:.0f} s)"
+                    o.error = Error(code="no_response", text=text, seq=s[1])
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
     except Interrupted as exc:
