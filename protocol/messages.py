@@ -416,6 +416,31 @@ def _states(inner: Checker) -> Checker:
     return check
 
 
+def _unit_or_nan(inner: Checker) -> Checker:
+    """A hazard map: values in [0, 1], NaN outside the covered area (a -1 read as called safe, an inf or a 5
+    passed the HIL and `score` then refused the saved map)."""
+
+    def check(v: Any, name: str) -> np.ndarray:
+        arr = inner(v, name)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isnan(arr) & ~((arr >= 0.0) & (arr <= 1.0))
+        if bad.any():
+            raise SchemaError(f"{name}: values must lie in [0, 1] or be NaN outside the covered area")
+        return arr
+
+    return check
+
+
+def _finite_or_nan(inner: Checker) -> Checker:
+    def check(v: Any, name: str) -> np.ndarray:
+        arr = inner(v, name)
+        if np.isinf(arr).any():
+            raise SchemaError(f"{name}: holds inf; NaN marks a pixel without a value")
+        return arr
+
+    return check
+
+
 def _flags(inner: Checker) -> Checker:
     def check(v: Any, name: str) -> np.ndarray:
         arr = inner(v, name)
@@ -484,8 +509,8 @@ class Result(Message):
     degraded: bool = _wire(_bool, False)
     level: str = _wire(_str(64), "full")
     skipped: tuple = _wire(_names(MAX_SKIPPED), factory=tuple)
-    hazard_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
-    elevation_image: np.ndarray | None = _wire(_optional(_array("<f4", 2)), None, compress=True)
+    hazard_image: np.ndarray | None = _wire(_optional(_unit_or_nan(_array("<f4", 2))), None, compress=True)
+    elevation_image: np.ndarray | None = _wire(_optional(_finite_or_nan(_array("<f4", 2))), None, compress=True)
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
     elevation_filled: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
     elevation_filled_image: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)

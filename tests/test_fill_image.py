@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hilkit import run_hil, small_descent
 
-from protocol.codec import decode_message, encode_message
+from protocol.codec import EXT_INLINE, _array_header, decode_message, encode_message
 from protocol.grids import filled_to_wire
 from protocol.messages import Result, SchemaError
 
@@ -160,3 +160,27 @@ def test_a_hil_run_with_full_maps_saves_the_pipelines_fill_mask(tmp_path):
     assert res.filled is not None and np.array_equal(fills, res.filled)
     assert np.array_equal(elev, res.elevation, equal_nan=True)  # the same DEM the mask marks
     assert np.load(d / "elevation_filled_grid.npy").dtype == bool  # the grid's own mask still comes beside it
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(hazard_image=np.full((6, 7), 5.0, np.float32)), r"hazard_image: values must lie in \[0, 1\]"),
+        (dict(hazard_image=np.full((6, 7), -1.0, np.float32)), r"hazard_image: values must lie in \[0, 1\]"),
+        (dict(hazard_image=np.full((6, 7), np.inf, np.float32)), r"hazard_image: values must lie in \[0, 1\]"),
+        (dict(elevation_image=np.full((6, 7), -np.inf, np.float32)), "elevation_image: holds inf"),
+    ],
+)
+def test_image_maps_out_of_their_range_are_refused_on_both_sides(kw, match):
+    """A hazard_image of 5, -1 or inf passed the HIL (a -1 reads as called safe) and `score` then refused the map
+    the run had saved; a state_image out of its codes was refused all along."""
+    bad = _result(6, 7, **kw)
+    with pytest.raises(SchemaError, match=match):
+        bad.validated()
+    good = _result(6, 7, hazard_image=np.full((6, 7), np.nan, np.float32))  # NaN: outside, allowed
+    assert np.isnan(decode_message(encode_message(good)).hazard_image).all()  # type: ignore[attr-defined]
+    body = _wire_map(_result(6, 7))
+    key, value = next(iter(kw.items()))
+    body[key] = msgpack.ExtType(EXT_INLINE, _array_header(value) + value.tobytes())  # as a peer could send it
+    with pytest.raises(SchemaError, match=match):
+        _decode_map(body)  # the receiver's check

@@ -60,6 +60,9 @@ def f32_grid(max_side: int = 12) -> st.SearchStrategy[np.ndarray]:
     )  # includes NaN and +-inf
 
 
+# a hazard map's values (NaN outside the covered area) and an elevation map's (NaN where none was recovered)
+unit_or_nan = st.one_of(st.floats(0.0, 1.0, width=32), st.just(float("nan")))
+finite_or_nan = st.one_of(st.floats(width=32, allow_infinity=False), st.just(float("nan")))
 sites = st.lists(st.builds(Site, finite, finite, anyfloat, finite, finite, finite, anyfloat, anyfloat), max_size=5)
 
 
@@ -102,8 +105,8 @@ def results(draw, maps: bool = False) -> Result:
         degraded=draw(st.booleans()),
         level=draw(names),
         skipped=tuple(draw(st.lists(names, max_size=4))),
-        hazard_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
-        elevation_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=st.floats(width=32))),
+        hazard_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=unit_or_nan)),
+        elevation_image=None if img is None else draw(hnp.arrays(np.float32, img, elements=finite_or_nan)),
         state_image=None if img is None else draw(hnp.arrays(np.uint8, img, elements=st.sampled_from([0, 1, 2, 255]))),
         elevation_filled=draw(st.none() | flags(elev_shape)),
         elevation_filled_image=None if img is None else draw(st.none() | flags(img)),
