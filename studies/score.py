@@ -264,7 +264,13 @@ def score_output(
 
     for key in ("hazard", "depth", "elevation"):
         if key not in pair.truth:
-            raise ScoreError(f"{where}: no ground truth gt_{key}_i1.npy: nothing to score against")
+            extra = (
+                " (the true hazard per pixel, 1 = unsafe, docs/design.md; render writes it, and DESIGN.md's "
+                "gt_elevation and gt_shadow alone do not give it)"
+                if key == "hazard"
+                else ""
+            )
+            raise ScoreError(f"{where}: no ground truth gt_{key}_i1.npy{extra}: nothing to score against")
     true1, true2 = true_poses(pair)
     depth = pair.truth["depth"].astype(np.float64)
     world = backproject_depth(pair.camera, true1, depth)
