@@ -1285,53 +1285,59 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         if interrupted is None and sigs.received is not None:  # arrived during the cleanup
             interrupted = sigs.received
             reason = f"interrupted by {signal.Signals(interrupted).name}"
-    wall = time.monotonic() - t0
+    # a Ctrl-C while the records are scored and the pages written (up to ~3 s) left summary.json saying "in
+    # progress" and no report.html: noted, not raised, and said once they are written whole
+    with _Signals() as late:
+        late.disarm()
+        wall = time.monotonic() - t0
 
-    entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
-    records = _read_records(received / "results.jsonl")
-    if sup_reason is not None:
-        records = _blame_server(records, sup_reason)
-    if reason is not None:
-        records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
-    score_records(records)
-    counters = {}
-    flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
-    for line in _read_records(out / "supervisor.jsonl"):
-        if line.get("event") == "summary":
-            counters = {k: v for k, v in line.items() if k != "event"}
-        elif line.get("event") in FLIGHT_EVENTS:
-            flight_events.append(line)
-    summary = summarize(
-        records,
-        cfg,
-        {
-            "complete": reason is None,
-            "reason": reason,
-            "interrupted_by": interrupted,
-            "started": started,
-            "cpu_fraction": fraction,
-            "effective_fraction": effective,
-            "throttle_check": None if throttle is None else throttle.to_dict(),
-            "deadline_s": deadline,
-            "line_faults": {d: ch.stats for d, ch in channels.items()},
-            "memory_mib": budget.memory_mib if emulated else None,
-            "wall_s": wall,
-            "supervisor_counters": counters,
-            "flight_events": list(flight_events),
-            # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
-            "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],
-            "ground_exit": rc,
-        },
-    )
-    note = flight_note(summary)
-    if note:
-        log(f"run: {note}")
-    table = summary_table(summary)
-    from hil_server.run_report import write_run_report
-    from reports.html import write_atomic
+        entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
+        records = _read_records(received / "results.jsonl")
+        if sup_reason is not None:
+            records = _blame_server(records, sup_reason)
+        if reason is not None:
+            records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
+        score_records(records)
+        counters = {}
+        flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
+        for line in _read_records(out / "supervisor.jsonl"):
+            if line.get("event") == "summary":
+                counters = {k: v for k, v in line.items() if k != "event"}
+            elif line.get("event") in FLIGHT_EVENTS:
+                flight_events.append(line)
+        summary = summarize(
+            records,
+            cfg,
+            {
+                "complete": reason is None,
+                "reason": reason,
+                "interrupted_by": interrupted,
+                "started": started,
+                "cpu_fraction": fraction,
+                "effective_fraction": effective,
+                "throttle_check": None if throttle is None else throttle.to_dict(),
+                "deadline_s": deadline,
+                "line_faults": {d: ch.stats for d, ch in channels.items()},
+                "memory_mib": budget.memory_mib if emulated else None,
+                "wall_s": wall,
+                "supervisor_counters": counters,
+                "flight_events": list(flight_events),
+                # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
+                "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],
+                "ground_exit": rc,
+            },
+        )
+        note = flight_note(summary)
+        if note:
+            log(f"run: {note}")
+        table = summary_table(summary)
+        from hil_server.run_report import write_run_report
+        from reports.html import write_atomic
 
-    write_atomic(out / "summary.md", table)
-    write_run_report(summary, out / "report.html")
-    _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
-    log(table)
+        write_atomic(out / "summary.md", table)
+        write_run_report(summary, out / "report.html")
+        _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
+        log(table)
+    if late.received is not None:
+        log(f"run: {signal.Signals(late.received).name} came while the summary was written: it was finished first")
     return summary

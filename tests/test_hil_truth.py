@@ -261,3 +261,26 @@ def test_regress_from_another_directory_uses_the_packaged_baseline(tmp_path, mon
     assert cli(["regress", "--cases", "nope", "--out", "o"]) == 2  # found the packaged baseline, named the case
     err = capsys.readouterr().err
     assert "unknown regression case" in err and "vertical-host-zmq" in err
+
+
+def test_a_signal_while_the_summary_is_written_lets_it_finish(manifest, tmp_path, monkeypatch):
+    """A Ctrl-C in the ~3 s after the ground finished left summary.json saying "run in progress" and no report.html;
+    the pairs survived only in received/."""
+    import os
+
+    from hil_server import run_report
+    from hil_server.run import RunConfig, run_descent
+
+    real = run_report.write_run_report
+
+    def interrupted_while_writing(*a, **kw):
+        os.kill(os.getpid(), signal.SIGINT)  # delivered to the main thread at once: the write goes on
+        return real(*a, **kw)
+
+    monkeypatch.setattr(run_report, "write_run_report", interrupted_while_writing)
+    said: list[str] = []
+    cfg = RunConfig(out=tmp_path / "o", manifest=manifest, link="zmq", budget="host", pairs=None)
+    summary = run_descent(cfg, log=said.append)
+    assert summary["complete"] is True and (tmp_path / "o" / "report.html").is_file()
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["complete"] is True
+    assert any("SIGINT came while the summary was written: it was finished first" in x for x in said), said[-3:]
