@@ -58,6 +58,7 @@ from reports.console import printable
 
 # After a kill the flight process needs a moment to come back; frames that
 # arrive meanwhile are queued and replayed.
+OWN_STALL_S = 1.0  # a loop that polls every 50 ms and saw this gap was itself stopped
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
 EXIT_LINK_LOST = 3
@@ -97,6 +98,9 @@ class PairState:
     result_queue_s: float | None = None
     result_acked_at: float | None = None  # monotonic time the ground acknowledged the whole Result
     done: bool = False
+    # seconds this process itself was not scheduled while the pair was open (SIGSTOP, a paused VM): not the
+    # flight process's silence; the watchdogs leave it out (a stopped server killed a healthy flight process)
+    stopped_s: float = 0.0
 
     @property
     def seqs(self) -> tuple[int, int]:
@@ -307,6 +311,7 @@ class Supervisor:
         }
         self.boot_failures = 0  # flight incarnations in a row that died before their Hello
         self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
+        self._last_tick = time.monotonic()  # the watchdogs' last look: a longer gap was this process stopped
         # open for the supervisor's lifetime, closed in serve()'s finally
         self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None  # noqa: SIM115
         self.t_start = time.monotonic()  # telemetry times are seconds since the supervisor started
@@ -767,13 +772,21 @@ class Supervisor:
 
     def _check_watchdogs(self) -> None:
         assert self.flight is not None
+        now = time.monotonic()
+        if now - self._last_tick > OWN_STALL_S:  # first: the stop is not the flight process's silence
+            self._forgive_own_stop(now - self._last_tick)
+        self._last_tick = now
         self._check_refusals()
         if self._check_held_stream():
             return
-        now = time.monotonic()
         st = self._oldest_outstanding()
         since = None if st is None or st.complete_at is None else max(st.complete_at, st.sent_at or st.complete_at)
-        if st is not None and st.complete_at is not None and since is not None and now - since > self._hard_limit():
+        if (
+            st is not None
+            and st.complete_at is not None
+            and since is not None
+            and (now - since - st.stopped_s > self._hard_limit())
+        ):
             self.counters["hangs"] += 1
             note = self._flight_note()
             skipping = self.flight.skipping()
@@ -789,7 +802,11 @@ class Supervisor:
             self._restart_flight("hung past the hard deadline")
             return
         waiting = self._oldest_without_telemetry()
-        if waiting is not None and waiting.result_at is not None and now - waiting.result_at > self._hard_limit():
+        if (
+            waiting is not None
+            and waiting.result_at is not None
+            and (now - waiting.result_at - waiting.stopped_s > self._hard_limit())
+        ):
             late = now - waiting.result_at
             self._complete_without_telemetry(
                 waiting, f"none {late:.1f} s after its Result (hard limit {self._hard_limit():.1f} s)"
@@ -814,7 +831,7 @@ class Supervisor:
         self._start_flight()
         ground_reader = Reader(self.ground, "ground", self.events)
         ground_reader.start()
-        last_activity = time.monotonic()
+        last_activity = self._last_tick = time.monotonic()
         try:
             while True:
                 try:
@@ -851,6 +868,17 @@ class Supervisor:
                     self.telemetry_file = None
                 if self.flight:
                     self.flight.close("supervisor shutdown")
+
+    def _forgive_own_stop(self, gap: float) -> None:
+        """This loop was not scheduled for ``gap`` s: the flight process's answers and heartbeats meanwhile wait
+        in the queue, unread. The open pairs' watchdogs and the heartbeat clock leave the gap out, so what came is
+        read before anyone is judged silent (an 8 s stop of the server killed a healthy flight process as hung)."""
+        for st in self.pairs.values():
+            if not st.done and st.complete_at is not None:
+                st.stopped_s += gap
+        if self.flight_reader is not None:
+            self.flight_reader.last_message += gap
+        self.log(f"supervisor: this process was not scheduled for {gap:.1f} s; the flight process is not blamed for it")
 
     def _exit_code(self) -> int:
         return EXIT_LINK_LOST if self.counters["link_errors"] else 0
@@ -909,8 +937,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
 
-    def log(s: str) -> None:
-        print(s, file=sys.stderr, flush=True)
+    def log(s: str) -> None:  # one write per line: print's two let another thread's line in before the newline
+        sys.stderr.write(s + "\n")
+        sys.stderr.flush()
 
     try:
         budget = get_budget(args.budget, args.budget_file)
