@@ -107,6 +107,7 @@ UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the console from this long
+OWN_STALL_S = 1.0  # a 0.2 s wait this much longer: this process was stopped, not its peer
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -173,6 +174,7 @@ class PairOutcome:
     result_t_done: float | None = None
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
+    ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
 
     @property
     def finished(self) -> bool:
@@ -226,6 +228,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         "deadline_s": deadline_s,
         "deadline_met": False,
     }
+    if o.ground_stopped_s:  # its latency includes it: an answer that came in time may read as late
+        rec["ground_stopped_s"] = o.ground_stopped_s
     if o.error is not None:
         # the flight side's words, escaped: they reach the console, the logs and the summary
         rec.update(status="error", code=printable(o.error.code, 100), text=printable(o.error.text))
@@ -696,9 +700,24 @@ def stream_descent(
             take_refusals(want)  # nothing received is waiting: refusals are matched to pairs now
             if not want:
                 return
+            t0 = time.monotonic()
             pkt = link.recv_packet(timeout=0.2)
+            stopped(time.monotonic() - t0 - 0.2)  # before the answer is taken: its latency includes a stop
             if pkt is not None:
                 handle(pkt, want)
+
+    def stopped(gap: float) -> None:
+        """A 0.2 s wait that took ``gap`` s longer: this process was not scheduled (SIGSTOP, a paused VM). The
+        pairs in flight meanwhile are marked, as their latency, measured here, includes the stop (an answer that
+        came in time read as MISSED at 8 s without a word)."""
+        if gap <= OWN_STALL_S:
+            return
+        hit = [o for o in outcomes.values() if o.sent_at and not o.finished]
+        for o in hit:
+            o.ground_stopped_s += gap
+        if hit:
+            note(f"this process was not scheduled for {gap:.1f} s: the latency of {len(hit)} pair(s) in flight "
+                 "includes it")  # fmt: skip
 
     def drain(want: set[tuple[int, int]]) -> None:
         """Take what has arrived, without waiting: with ``asap`` pacing the answers to the first pairs come in
@@ -1057,6 +1076,11 @@ def _main(argv: list[str] | None) -> int:
             queued = rec.get("result_queue_s")
             flight = rec.get("flight_latency_s")
             why = plan_note(rec)
+            stopped = rec.get("ground_stopped_s")
+            if stopped:
+                why = f"this process was stopped {stopped:.1f} s meanwhile, which the latency includes" + (
+                    f"; {why}" if why else ""
+                )
             print(
                 f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")

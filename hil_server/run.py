@@ -467,6 +467,19 @@ FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "sta
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
+def ground_stop_note(summary: dict) -> str:
+    """The pairs whose latency includes a stop of the ground process itself ("" when none): measured at the
+    ground, an answer that came in time then reads as late."""
+    hit = [r for r in summary.get("records", []) if r.get("ground_stopped_s")]
+    if not hit:
+        return ""
+    most = max(float(r["ground_stopped_s"]) for r in hit)
+    return (
+        f"the ground process itself was not scheduled for up to {most:.1f} s while {len(hit)} pair(s) were in "
+        f"flight ({', '.join(str(r.get('label')) for r in hit[:5])}): their end-to-end latency includes it"
+    )
+
+
 def flight_note(summary: dict) -> str:
     """One line on what the HIL server had to do about the flight process ("" when nothing): restarts, refused
     messages, missing Telemetry, dropped line garbage, with the last reason. Crashes between pairs cost no pair
@@ -601,7 +614,7 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    for note in (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s)):
+    for note in (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s), ground_stop_note(s)):
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):
