@@ -83,7 +83,7 @@ import numpy as np
 from protocol.arq import ECHO_TEXT
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.links import MECHANISM_MISMATCH_TEXT
+from protocol.links import MECHANISM_MISMATCH_TEXT, ZmqLink
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
@@ -107,6 +107,7 @@ UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the console from this long
+ZMQ_RELEASE_SLACK_S = 0.05  # a ZeroMQ frame released later than this after libzmq took it: a slow path
 OWN_STALL_S = 1.0  # a 0.2 s wait this much longer: this process was stopped, not its peer
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
@@ -790,6 +791,17 @@ def stream_descent(
             return False
         t_up, t_low = link.times(ids[0]), link.times(ids[1])
         o.frames_written_at = t_low.written if t_low is not None else None
+        # ZeroMQ: "written" is libzmq taking the frame, "delivered" its release of the bytes to the kernel, seen at
+        # the link's next poll (20 ms). Through a 500 kB/s path the release came seconds later and the uplink
+        # counted against the deadline; on a fast path the poll's lag would count in the deadline's favour
+        released = t_low.delivered if isinstance(link, ZmqLink) and t_low is not None else None
+        if (
+            released is not None
+            and t_low is not None
+            and t_low.written
+            and released - t_low.written > ZMQ_RELEASE_SLACK_S
+        ):
+            o.frames_written_at = released
         if t_up is not None and t_low is not None and t_up.first_tx is not None and t_low.delivered is not None:
             o.frames_line_s = t_low.delivered - t_up.first_tx
         o.link_s = time.monotonic() - o.sent_at
