@@ -82,9 +82,26 @@ def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     return pub, sec
 
 
+def _private_to_its_owner(path: Path, what: str) -> None:
+    """Refuse ``path`` when group or others may write it: whoever can drop a public key into ``clients/`` (or
+    swap the ground's ``server.key``) is let in, as ssh's StrictModes refuses a writable ``authorized_keys``."""
+    try:
+        mode = path.stat().st_mode & 0o777
+    except OSError:
+        return  # missing: the loader says so
+    if mode & 0o022:
+        fix = "chmod go-w" if path.is_dir() else "chmod 600"
+        raise InputError(
+            f"{what} {path} can be written by others (mode {mode:04o}): anyone could add or swap a key; "
+            f"make it private: {fix} {path}"
+        )
+
+
 def server_keys(directory: str | Path) -> tuple[bytes, bytes, Path]:
     """(public, secret, directory of accepted client public keys) for the binding side."""
     d = Path(directory)
+    _private_to_its_owner(d, "CURVE key directory")
+    _private_to_its_owner(d / "clients", "CURVE key directory")
     pub, sec = _load(d / "server.key_secret", True)
     assert sec is not None
     clients = d / "clients"
@@ -98,6 +115,7 @@ def server_keys(directory: str | Path) -> tuple[bytes, bytes, Path]:
             "client.key there (hazard-hil keys DIR writes one)"
         )
     for path in accepted:
+        _private_to_its_owner(path, "accepted CURVE key")
         _load(path, False)
     return pub, sec, clients
 
@@ -105,6 +123,8 @@ def server_keys(directory: str | Path) -> tuple[bytes, bytes, Path]:
 def client_keys(directory: str | Path) -> tuple[bytes, bytes, bytes]:
     """(public, secret, server public) for the connecting side."""
     d = Path(directory)
+    _private_to_its_owner(d, "CURVE key directory")
+    _private_to_its_owner(d / "server.key", "the board's public CURVE key")
     pub, sec = _load(d / "client.key_secret", True)
     server_pub, _ = _load(d / "server.key", False)
     assert sec is not None

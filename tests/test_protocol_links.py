@@ -258,6 +258,21 @@ def test_keys_are_private_files(tmp_path):
     (d / "server.key_secret").chmod(0o606)
     with pytest.raises(InputError, match=r"mode 0606"):
         server_keys(d)
+    (d / "server.key_secret").chmod(0o600)
+    (d / "client.key_secret").chmod(0o600)
+    # whoever may write clients/ (or a key in it, or the ground's server.key) could let themselves in
+    for path, mode, side in (
+        (d / "clients", 0o777, server_keys),
+        (d / "clients" / "client.key", 0o666, server_keys),
+        (d, 0o775, server_keys),
+        (d / "server.key", 0o646, client_keys),
+    ):
+        before = stat.S_IMODE(path.stat().st_mode)
+        path.chmod(mode)
+        with pytest.raises(InputError, match=rf"can be written by others \(mode {mode:04o}\).*(chmod go-w|chmod 600)"):
+            side(d)
+        path.chmod(before)
+    server_keys(d), client_keys(d)
 
 
 def test_zeromq_needs_keys_or_an_explicit_insecure_loopback():
