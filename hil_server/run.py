@@ -781,6 +781,19 @@ class _Tee(threading.Thread):
                 f.close()
 
 
+def _ended(who: str, code: int, log_path: Path) -> str:
+    """Why a child of the run ended: its exit status and its log's last line, or the signal that killed it (its
+    last line is then no reason: "exited with -9: flight: boot warm-up ..." read as if the warm-up had failed)."""
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"{who} was killed by {name} (its log: {log_path})"
+    last = _last_line(log_path)
+    return f"{who} exited with {code}" + (f": {last}" if last else "")
+
+
 def _last_line(path: Path) -> str:
     """The last non-empty line of a log (``""`` if none or unreadable), for a one-line reason."""
     try:
@@ -809,8 +822,7 @@ def _wait_ground(
             return None, None
         code = sup.poll() if sup is not None else None
         if code is not None and code not in (0, EXIT_LINK_LOST):
-            last = _last_line(sup_log)
-            return None, f"the HIL server (supervisor) exited with {code}" + (f": {last}" if last else "")
+            return None, _ended("the HIL server (supervisor)", code, sup_log)
 
 
 def _stop(proc: subprocess.Popen | None, grace_s: float = GRACE_S, how: int = signal.SIGTERM) -> None:
@@ -929,11 +941,15 @@ def _blame_server(records: list[dict], why: str) -> list[dict]:
     own reason when it failed: its link closed because it exited, not because the line failed (a flight program
     that died before its Hello read as a link error). The ground's words are kept in the text."""
     last = max((i for i, r in enumerate(records) if r.get("status") == "result"), default=-1)
+
+    # "interrupted" too: the run stops its ground once the server is gone, and the pair in flight then read
+    # "interrupted by SIGTERM", a signal nobody but the run sent
+    def blamed(r: dict) -> dict:
+        seen = "its answer was not awaited" if r.get("code") == "interrupted" else f"the ground saw: {r.get('text')}"
+        return {**r, "code": "server_failed", "text": f"{why} ({seen})"}
+
     return [
-        {**r, "code": "server_failed", "text": f"{why} (the ground saw: {r.get('text', '')})"}
-        if i > last and r.get("code") == "link_down"
-        else r
-        for i, r in enumerate(records)
+        blamed(r) if i > last and r.get("code") in ("link_down", "interrupted") else r for i, r in enumerate(records)
     ]
 
 
@@ -1250,8 +1266,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 # the server may have failed first and the ground ended on its closed link before that was seen
                 code = sup.poll()
                 if sup_reason is None and code not in (None, 0, EXIT_LINK_LOST):
-                    last = _last_line(out / "supervisor.log")
-                    sup_reason = f"the HIL server (supervisor) exited with {code}" + (f": {last}" if last else "")
+                    sup_reason = _ended("the HIL server (supervisor)", code, out / "supervisor.log")
             if sup_reason is not None:
                 reason = sup_reason
             elif rc is None:
@@ -1270,12 +1285,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             if reason is None and rc is not None and rc not in (0, EXIT_LINK_LOST):
                 if ground_tee is not None:
                     ground_tee.join(timeout=2.0)  # its last words, which say why
-                last = _last_line(out / "ground.log")
-                reason = (
-                    f"the ground simulator exited with {rc}"
-                    + (f": {last}" if last else "")
-                    + (f" (see {out / 'ground.log'})")
-                )
+                reason = _ended("the ground simulator", rc, out / "ground.log") + f" (see {out / 'ground.log'})"
         except _Interrupted as exc:
             interrupted, reason = exc.signum, str(exc)
         except InputError as exc:  # e.g. a scene file the renderer refuses: bad usage, after the placeholder

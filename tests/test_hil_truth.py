@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -284,3 +285,40 @@ def test_a_signal_while_the_summary_is_written_lets_it_finish(manifest, tmp_path
     assert summary["complete"] is True and (tmp_path / "o" / "report.html").is_file()
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["complete"] is True
     assert any("SIGINT came while the summary was written: it was finished first" in x for x in said), said[-3:]
+
+
+def test_a_killed_hil_server_is_named_as_killed_and_blamed_for_the_pair_in_flight(manifest, tmp_path):
+    """A SIGKILLed server read "exited with -9: flight: boot warm-up ..." (its log's last, unrelated line), and the
+    pair in flight "interrupted by SIGTERM", a signal only the run itself had sent (to its ground)."""
+    slow = tmp_path / "slow.py"  # answers each pair after 3 s: the kill lands while one is in flight
+    slow.write_text(
+        f"import sys, time\nsys.path.insert(0, {str(MINIMAL.parent)!r})\nimport minimal_flight as mf\n"
+        "real = mf.answer\nmf.answer = lambda *a: (time.sleep(3.0), real(*a))[1]\nsys.exit(mf.main())\n"
+    )
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
+    cmd += ["--budget", "host", "--deadline", "10", "--flight-cmd", f"{sys.executable} {slow} --port {{port}}"]
+    proc = subprocess.Popen([*cmd, "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        t0 = time.monotonic()
+        server = None
+        while server is None and time.monotonic() - t0 < 60:
+            for pid in _descendants(proc.pid):
+                try:
+                    if b"hil_server.supervisor" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                        server = pid
+                except OSError:
+                    pass
+            time.sleep(0.1)
+        assert server is not None
+        time.sleep(2.5)  # its flight process up, the first pair in flight
+        os.kill(server, signal.SIGKILL)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    s = json.loads((out / "summary.json").read_text())
+    assert proc.returncode == 1 and s["complete"] is False
+    assert s["reason"].startswith("the HIL server (supervisor) was killed by SIGKILL"), s["reason"]
+    assert not any("interrupted by SIGTERM" in str(r.get("text")) for r in s["records"]), s["records"]
+    assert s["records"][0]["code"] == "server_failed" and "killed by SIGKILL" in s["records"][0]["text"]
