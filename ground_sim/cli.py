@@ -254,10 +254,10 @@ def _scenes(args: argparse.Namespace) -> int:
     from ground_sim.seeds import HELD_OUT_SEEDS
 
     known = {e.name: e for e in lib.entries()}
-    names = args.names or list(known)
+    names = list(dict.fromkeys(args.names)) or list(known)  # `scenes mare mare` listed mare twice
     bad = [n for n in names if n not in known]
     if bad:
-        raise SceneError(f"not library scenes: {bad} (library: {', '.join(known)})")
+        raise SceneError(f"not library scenes: {', '.join(bad)} (library: {', '.join(known)})")
     table_path = Path(args.table or lib.SHARES_PATH)
     if not args.measure:  # they only mean something to a measurement: a listing would ignore them, exit 0
         given = [o for o, v in (("--seeds", args.seeds), ("--workers", args.workers)) if v is not None]

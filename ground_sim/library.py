@@ -42,6 +42,7 @@ from ground_sim.errors import SceneError
 from ground_sim.geometry import ground_footprint, project
 from ground_sim.hashing import uniform
 from ground_sim.scene import PRESET_DIR, Scene, load_scene, preset_names, scene_document
+from ground_sim.seeds import describe_seeds
 from protocol.pairdir import Camera, Pose, Sun
 
 DEFAULT_SUN = {"vertical": Sun(135.0, 25.0), "approach": Sun(120.0, 25.0)}
@@ -464,7 +465,7 @@ def format_listing(names: list[str], table: dict[str, Any]) -> str:
     """The ``hazard-hil scenes`` text: one block per scene."""
     lines = []
     seeds = table.get("seeds", [])
-    which = f"held-out seeds {seeds[0]}-{seeds[-1]}" if seeds else "not measured"
+    which = describe_seeds(seeds, "held-out") if seeds else "not measured"  # one seed read "1000-1000"
     for d in describe(names, table):
         p = d["parameters"]
         lines.append(f"{d['name']}: {d['description']}")

@@ -838,7 +838,11 @@ def _image_path(d: Path, name: str) -> Path:
     except (RuntimeError, OSError) as exc:  # a symlink loop: RuntimeError up to Python 3.12, OSError after
         raise PairFormatError(f"{d}: image {shown!r} cannot be resolved ({str(exc)[:200]})") from None
     if not p.is_relative_to(d.resolve()):
-        raise PairFormatError(f"{d}: image {shown!r} lies outside the pair directory")
+        link = d / name
+        if link.is_symlink() and not link.exists():  # "outside" named the wrong fault
+            raise PairFormatError(f"{d}: image {shown!r} is a broken symlink (its target {p} does not exist)")
+        via = " (through a symlink)" if p != (d / name).absolute() else ""
+        raise PairFormatError(f"{d}: image {shown!r} lies outside the pair directory{via}: a pair holds its images")
     _check_regular(p, f"image {shown}", d)
     return p
 

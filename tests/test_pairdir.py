@@ -156,6 +156,8 @@ def _png_header(w: int, h: int) -> bytes:
         (lambda d: _rewrite(d, lambda doc: doc["frames"][0].update(R_world_to_cam=np.eye(3).tolist())), "cannot see"),
         (lambda d: _rewrite(d, lambda doc: doc["frames"][1].update(altimeter_m=-3)), "altimeter_m"),
         (lambda d: _rewrite(d, lambda doc: doc["camera"].update(width=65535)), "1..8192"),
+        # a dangling symlink read "lies outside the pair directory"
+        (lambda d: ((d / "i2.png").unlink(), (d / "i2.png").symlink_to("/nonexistent/x.png")), "a broken symlink"),
     ],
 )
 def test_hostile_or_broken_input_is_one_clear_error(tmp_path, attack, message):
