@@ -364,8 +364,15 @@ class Supervisor:
                 if self.flight.replayed
                 else ""
             )
+            # a program that never opened its line was killed for its silence: "died" sent its author looking
+            # for a crash
+            how = (
+                "was killed for its silence (nothing on its line, not even a heartbeat)"
+                if reason.startswith("heartbeat")
+                else "died"
+            )
             raise FlightFailed(
-                f"the flight process died {self.boot_failures} times in a row before its Hello reached the HIL "
+                f"the flight process {how} {self.boot_failures} times in a row before its Hello reached the HIL "
                 f"server{frames}; last: {last}"
             )
         self._start_flight()
