@@ -467,6 +467,19 @@ FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "sta
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
+def off_map_note(summary: dict) -> str:
+    """Results whose world grid covers none of the upper image ("" when none): nothing of them could be scored (a
+    flight program's grid origin with a sign error passed without a word)."""
+    off = [r for r in summary.get("records", []) if r.get("scores") is not None and not r["scores"].get("n")]
+    if not off:
+        return ""
+    which = ", ".join(str(r.get("label")) for r in off[:5])
+    return (
+        f"{len(off)} Result(s) mapped none of the upper image's ground ({which}): their grid lies elsewhere (its "
+        "origin, cell size or axes?), so nothing of them was scored"
+    )
+
+
 def ground_stop_note(summary: dict) -> str:
     """The pairs whose latency includes a stop of the ground process itself ("" when none): measured at the
     ground, an answer that came in time then reads as late."""
@@ -614,7 +627,8 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    for note in (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s), ground_stop_note(s)):
+    notes = (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s), ground_stop_note(s), off_map_note(s))
+    for note in notes:
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):

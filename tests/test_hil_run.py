@@ -390,3 +390,13 @@ def test_the_noise_a_ground_line_dropped_is_said_in_the_run_notes():
     )
     clean = {"crc_errors": 0, "malformed": 0, "bytes_discarded": 0, "retransmits": 2, "echoed_frames": 0}
     assert flight_note({"ground_counters": {"line": clean}}) == ""  # retransmissions alone are no noise
+
+
+def test_results_whose_grid_covers_none_of_the_image_are_said():
+    """A flight program whose grid origin had a sign error passed with every score empty and no word."""
+    from hil_server.run import off_map_note
+
+    recs = [{"label": "600/300", "scores": {"n": 0.0}}, {"label": "300/150", "scores": {"n": 812.0}}, {"label": "x"}]
+    note = off_map_note({"records": recs})
+    assert note.startswith("1 Result(s) mapped none of the upper image's ground (600/300)"), note
+    assert off_map_note({"records": recs[1:]}) == ""
