@@ -60,6 +60,9 @@ class GroundSession:
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
         self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
         self._refusals = Quieter(first=REFUSALS_SAID, quiet_s=REFUSALS_QUIET_S)
+        # Results sent and not yet known delivered: message id -> pair id. The pair's line says "met" when its
+        # Telemetry goes; a Result the link then failed to deliver (the session lost) was never corrected
+        self.unconfirmed: OrderedDict[int, str] = OrderedDict()
         self.fused_results: Callable[[], int | None] = lambda: None  # results in the fused map (None: no fusion)
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
@@ -69,6 +72,7 @@ class GroundSession:
         """The next message for the flight software, or None (a Hello answered here counts as nothing)."""
         pkt = self.link.recv_packet(timeout)
         self._say_refusals()
+        self._confirm_results()
         if pkt is None:
             return None
         msg, epoch = pkt.message, pkt.epoch
@@ -131,9 +135,27 @@ class GroundSession:
         mid = int(self.link.send(message, timeout=timeout, epoch=self.epoch))
         if isinstance(msg, Result):
             self.levels[int(msg.frame_seqs[0])] = msg.level + (" (degraded)" if msg.degraded else "")
+            self.unconfirmed[mid] = self.pair_ids.get(int(msg.frame_seqs[0]), "?")
+            while len(self.unconfirmed) > PAIR_IDS_KEPT:
+                self.unconfirmed.popitem(last=False)
         elif isinstance(msg, Telemetry):
             self._pair_line(msg)
         return mid
+
+    def _confirm_results(self) -> None:
+        """Say a Result the link failed to deliver after its pair's line was printed (forget the delivered)."""
+        ask = getattr(self.link, "outcome", None)
+        if ask is None:  # a link that does not track its messages
+            self.unconfirmed.clear()
+            return
+        for mid, pair in list(self.unconfirmed.items()):
+            outcome = str(ask(mid) or "")
+            if outcome == "pending":
+                continue
+            del self.unconfirmed[mid]
+            if outcome.startswith("failed"):
+                why = outcome.removeprefix("failed: ")
+                self.log(f"flight: pair {pair}: its Result was not delivered after all ({why})")
 
     def _pair_line(self, tel: Telemetry) -> None:
         """One line per pair on the board's console: what the ground will judge, as this side saw it."""

@@ -710,3 +710,26 @@ def test_a_ground_that_fails_after_its_checks_gives_the_run_its_reason_and_a_log
     assert "Connection refused" in s["reason"] and str(tmp_path / "run" / "ground.log") in s["reason"], s["reason"]
     assert "Connection refused" in (tmp_path / "run" / "ground.log").read_text()
     assert all("Connection refused" in r["text"] for r in s["records"])
+
+
+def test_a_result_the_link_failed_to_deliver_after_its_line_said_met_is_corrected():
+    """The board printed "met" when the Telemetry went, while the Result still waited in its link; the session was
+    lost before it left (a board frozen 25 s), and nothing ever said so."""
+    link = RecordingLink([Packet(Hello(role="ground", session=7), 1)])
+    outcomes: dict[int, str] = {}
+    link.outcome = outcomes.get  # type: ignore[attr-defined]
+    said: list[str] = []
+    ground = GroundSession(link, log=said.append)
+    assert ground.recv() is None
+    link.established, link.epoch = True, 1
+    ground.pair_ids[0] = "p000-600_300"
+    mid = ground.send(_result((0, 1)))
+    ground.send(Telemetry(frame_seqs=[0, 1], stages={}, total_latency_s=0.2, deadline_s=2.0, deadline_met=True))
+    assert "met, as this side expects" in said[-1]
+    outcomes[mid] = "pending"
+    assert ground.recv() is None and len(said) == 2  # nothing known yet
+    outcomes[mid] = "failed: session lost: no frame from the peer for 4.0 s"
+    assert ground.recv() is None
+    want = "flight: pair p000-600_300: its Result was not delivered after all (session lost: no frame from the peer"
+    assert said[-1] == want + " for 4.0 s)", said[-1]
+    assert ground.recv() is None and len(said) == 3  # said once
