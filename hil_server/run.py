@@ -556,6 +556,11 @@ def _server_note(summary: dict, c: dict) -> str:
         ),
         ("stale_errors", "Error about no open pair ignored", "Errors about no open pair ignored"),
         ("unexpected_messages", "Config or Frame from it ignored", "Configs or Frames from it ignored"),
+        (
+            "port_refused",
+            "connection refused on the HIL server's port (a wrong key or a second peer; supervisor.log)",
+            "connections refused on the HIL server's port (wrong keys or second peers; supervisor.log)",
+        ),
     ):
         n = int(c.get(key) or 0)
         if n:

@@ -869,7 +869,10 @@ class Supervisor:
                 if self.flight:
                     self._check_refusals()
             finally:  # the counters first: closing the flight process may take a while
-                self._write_telemetry({"event": "summary", **self.counters})
+                # strangers on the HIL server's port (a wrong key, a second peer): in its log only, the run read PASS
+                stats = getattr(self.ground, "stats", None) or {}  # a property of every Link
+                port = int(stats.get("auth_failures", 0) or 0) + int(stats.get("peers_refused", 0) or 0)
+                self._write_telemetry({"event": "summary", **self.counters, "port_refused": port})
                 if self.telemetry_file:
                     self.telemetry_file.close()
                     self.telemetry_file = None

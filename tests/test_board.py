@@ -733,3 +733,53 @@ def test_a_result_the_link_failed_to_deliver_after_its_line_said_met_is_correcte
     want = "flight: pair p000-600_300: its Result was not delivered after all (session lost: no frame from the peer"
     assert said[-1] == want + " for 4.0 s)", said[-1]
     assert ground.recv() is None and len(said) == 3  # said once
+
+
+def test_strangers_knocking_on_the_hil_servers_port_reach_the_runs_summary(tmp_path):
+    """Clients without the run's CURVE keys knocked on the emulated run's ZeroMQ port: supervisor.log said so,
+    while the summary read PASS as if nobody had."""
+    import threading
+
+    import zmq
+
+    manifest = small_descent(tmp_path / "pairs", ["600/300", "300/150"], px=64)
+    stop = threading.Event()
+    knocked: list[int] = []
+
+    def knock() -> None:  # find the server's port on its command line, then knock without keys
+        ctx = zmq.Context()
+        try:
+            while not stop.is_set():
+                for d in Path("/proc").iterdir():
+                    try:
+                        cmd = (d / "cmdline").read_bytes().split(b"\0") if d.name.isdigit() else []
+                    except OSError:
+                        continue
+                    if b"hil_server.supervisor" in b" ".join(cmd) and str(tmp_path).encode() in b" ".join(cmd):
+                        link = next((c for c in cmd if c.startswith(b"zmq:tcp://")), None)
+                        if link is not None and not knocked:
+                            for _ in range(3):
+                                s = ctx.socket(zmq.PAIR)
+                                s.linger = 0
+                                s.connect(link.decode()[4:])
+                                s.send(b"hello?", zmq.NOBLOCK) if s.poll(200, zmq.POLLOUT) else None
+                                time.sleep(0.3)
+                                s.close()
+                            knocked.append(1)
+                time.sleep(0.1)
+        finally:
+            ctx.term()
+
+    t = threading.Thread(target=knock, daemon=True)
+    t.start()
+    try:
+        s = run_hil(manifest, tmp_path / "run", "zmq")
+    finally:
+        stop.set()
+        t.join(5)
+    assert knocked, "the HIL server's port was never found"
+    counters = s["supervisor_counters"]
+    assert counters.get("port_refused", 0) >= 1, counters
+    from hil_server.run import flight_note
+
+    assert "refused on the HIL server's port" in flight_note(s), flight_note(s)
