@@ -27,6 +27,7 @@ max_objects * ~100 B``, and decoding time by the same quantities.
 
 from __future__ import annotations
 
+import re
 import struct
 import zlib
 from collections.abc import Sequence
@@ -386,6 +387,11 @@ def decode_parts(
     except InputError:
         raise
     except Exception as exc:  # msgpack raises ValueError/FormatError/StackError/ExtraData/UnicodeError
+        m = re.fullmatch(r"(\d+) exceeds max_(ext|bin)_len\(\d+\)", str(exc))
+        if m:  # msgpack's own words named its option, not the rule (protocol.md 5.3)
+            raise CodecError(
+                f"an array of {int(m.group(1))} bytes exceeds the {limits.max_array_bytes}-byte per-array limit"
+            ) from None
         raise CodecError(f"malformed msgpack: {type(exc).__name__}: {exc}") from None
     if not (isinstance(obj, list) and len(obj) == 2 and isinstance(obj[0], int) and not isinstance(obj[0], bool)):
         raise CodecError("message must be [type, body]")

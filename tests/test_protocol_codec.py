@@ -599,3 +599,14 @@ def test_a_result_site_off_its_grid_is_refused():
             SchemaError, match=r"Result\.sites\[1\]: .* is off the grid, which spans x -10\.75\.\.-8\.75"
         ):
             encode_message(small_result(sites=[site(-10.0, 3.0), bad]))
+
+
+def test_an_array_over_the_per_array_limit_is_named_by_the_rule_not_by_msgpack():
+    """A Result carrying one 20 MiB array was refused as "20971531 exceeds max_ext_len(16778240)"."""
+    import msgpack
+
+    from protocol.codec import CodecError, decode_message
+
+    body = msgpack.packb([4, {"hazard_image": msgpack.ExtType(1, b"x" * (20 << 20))}], use_bin_type=True)
+    with pytest.raises(CodecError, match=r"^an array of \d+ bytes exceeds the 16777216-byte per-array limit$"):
+        decode_message(body)
