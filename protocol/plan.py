@@ -35,7 +35,8 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
         digits = 2 if max(abs(left), abs(need)) < 10 else 1
 
         def sec(x: float, digits: int = digits) -> str:
-            return f"{x:.{digits}f}"
+            t = f"{x:.{digits}f}"
+            return t[1:] if t.startswith("-") and float(t) == 0 else t  # "-0.00 s left" said nothing more
 
         how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
         scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
