@@ -894,7 +894,15 @@ def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
 
 
 def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
-    """Read and validate a pair directory; every problem raises :class:`PairFormatError`."""
+    """Read and validate a pair directory; every problem raises :class:`PairFormatError`, a file the system
+    will not let us read too (it was an OSError: exit 1 where every other bad pair is exit 2)."""
+    try:
+        return _read_pair(directory, load_truth=load_truth)
+    except OSError as exc:
+        raise PairFormatError(os_error_text(exc, "read")) from None
+
+
+def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     import cv2
 
     d = Path(directory)

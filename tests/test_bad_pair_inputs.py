@@ -291,3 +291,23 @@ def test_true_poses_that_cannot_be_read_are_refused_not_replaced_by_the_reported
     bad = _copy(good[0], tmp_path / "bad")
     _rewrite(bad, edit)
     assert_both_refuse(bad, good[1], tmp_path, capsys, str(bad / "pair.json"), says)
+
+
+def test_a_pair_file_the_system_will_not_let_us_read_is_bad_input_exit_2(good, tmp_path, capsys, monkeypatch):
+    """An unreadable image, pair.json or directory was exit 1 (an OSError) where every other bad pair is exit 2."""
+    from pathlib import Path as _Path
+
+    bad = _copy(good[0], tmp_path / "bad")
+    real = _Path.open
+
+    def refuse(self, *a, **kw):
+        if self.name == "i1.png":
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(_Path, "open", refuse)
+    from hil_server.cli import main
+
+    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"cannot read {bad / 'i1.png'}: Permission denied"), err
