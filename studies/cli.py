@@ -719,12 +719,15 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
     def f(v: Any, fmt: str = ".2f") -> str:
         return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
+    def md(text: Any) -> str:  # a '|' in a path split the table's row; a newline ended it
+        return str(text).replace("|", "\\|").replace("\n", " ")
+
     cols = ("pair", "FP %", "CDI %", "hazards detected %", "safe recognised %", "unmapped %", "DEM mean abs m")
     print("| " + " | ".join(cols) + " | sites safe | top site |")
     print("|---|" + "---:|" * (len(cols) - 1) + "---:|---|")
     for r in rows:
         if r["error"] is not None:
-            print(f"| {r['pair']} | no usable output: {r['error']} |" + " |" * len(cols))
+            print(f"| {md(r['pair'])} | no usable output: {md(r['error'])} |" + " |" * len(cols))
             continue
         top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
         if r.get("top_site_confirmed") is False:  # scored as not safe: the truth cannot vouch for all of it
@@ -740,7 +743,7 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             f"{r['sites_truly_safe']}/{r['sites']}",
             top,
         ]
-        print(f"| {r['pair']} | " + " | ".join(cells) + " |")
+        print(f"| {md(r['pair'])} | " + " | ".join(cells) + " |")
     for r in rows:  # an all-NaN map "passes" with FP 0: it called nothing, which the exit code does not say
         if r["error"] is None and (r.get("unmapped_pct") or 0.0) >= UNMAPPED_WARN_PCT:
             print(f"warning: {r['pair']}: {r['unmapped_pct']:.0f} % of the scored pixels have no hazard value "
