@@ -1261,7 +1261,14 @@ class ZmqLink(Link, SessionView):
                 with self._cv:
                     self._stats["auth_failures"] += 1
                     who = f"connection from {addr}" if self.bind else "the server"
-                    why = MECHANISM_MISMATCH_TEXT if mismatch else "CURVE handshake failed (wrong or missing key?)"
+                    if mismatch:
+                        why = MECHANISM_MISMATCH_TEXT
+                    elif kind == zmq.EVENT_HANDSHAKE_FAILED_AUTH:  # the authenticator said no: the key itself
+                        why = "CURVE handshake failed: its key is not accepted (not in clients/)"
+                    elif kind == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:  # a peer that left mid-handshake, too
+                        why = "CURVE handshake failed (wrong or missing key, or the peer left during it)"
+                    else:
+                        why = "CURVE handshake failed (wrong or missing key?)"
                     self._pending_events.append(("auth_failed", f"{who}: {why}", self.epoch))
             elif kind == zmq.EVENT_DISCONNECTED:
                 self._unheard.discard(value)
@@ -1328,14 +1335,15 @@ class ZmqLink(Link, SessionView):
 
 def _peer_address(fd: int) -> str:
     """``host:port`` of an accepted TCP connection (from the monitor's fd), for the log."""
+    gone = "a peer whose connection had already closed"  # an fd number meant nothing to a reader
     try:
         s = socket.socket(fileno=os.dup(fd))
     except OSError:
-        return f"fd {fd}"
+        return gone
     try:
         host, port = s.getpeername()[:2]
         return f"{host}:{port}"
     except (OSError, ValueError):
-        return f"fd {fd}"
+        return gone
     finally:
         s.close()
