@@ -160,12 +160,17 @@ def check_cases(
 ) -> None:
     """Every case's run options checked as `run` checks its own (link, memory ceiling, scenario, pairs), before
     the first case runs: a bad later case used to be found after the earlier ones had run, and their results lost."""
+    from hil_server.budgets import check_runnable, load_calibration
     from hil_server.run import check_run_config
     from protocol.errors import InputError
 
+    cal = None
     for n in names:
         try:
-            check_run_config(case_config(n, cases[n], out, base_dir, hello))
+            checked = check_run_config(case_config(n, cases[n], out, base_dir, hello))
+            if checked.cfg.flight == "emulated" and not checked.budget.is_host:  # too slow to emulate: now, too
+                cal = cal if cal is not None else load_calibration()
+                check_runnable(checked.cfg.budget, checked.budget, checked.budget.duty(cal))
         except InputError as exc:
             raise InputError(f"case {n!r}: {exc}") from None
 

@@ -1380,6 +1380,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         write_run_report(summary, out / "report.html")
         _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
         log(table)
-    if late.received is not None:
+    if late.received is not None:  # written whole; then the signal does what it would have (exit 128 + N)
         log(f"run: {signal.Signals(late.received).name} came while the summary was written: it was finished first")
+        signal.raise_signal(late.received)
     return summary

@@ -176,7 +176,9 @@ class MessageTimes:
         it at ``delivered``."""
         if self.first_tx is None or self.delivered is None:
             return None
-        return max(0.0, (self.delivered if self.last_tx is None else self.last_tx) - self.first_tx)
+        if self.last_tx is None or self.last_tx <= self.first_tx:  # the ACK beat the writer's own record of its
+            return self.delivered - self.first_tx  # write: no later write is known, the acknowledgement bounds it
+        return self.last_tx - self.first_tx
 
     @property
     def queue_s(self) -> float | None:

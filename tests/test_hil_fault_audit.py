@@ -479,7 +479,9 @@ def test_an_answer_that_came_before_its_pairs_frames_is_no_answer(manifest, flig
     assert (r["status"], r["code"]) == ("error", "no_response"), r
     # it waited its 5 s response timeout once, not once more at the descent's end (a record read "within 36 s"
     # after 145 s); old: >= 10 s
-    assert r["elapsed_s"] < 10.0 and "s after its frames went (response timeout 5 s)" in r["text"], r
+    # old: 5 s + the next pair's time + 5 s more; now 5 s + the next pair's time (whatever the load makes it)
+    assert r["elapsed_s"] - by_label["200/100"]["elapsed_s"] < 8.0, (r, by_label["200/100"])
+    assert "s after its frames went (response timeout 5 s)" in r["text"], r
     assert all((x.get("e2e_latency_s") or 0.0) >= 0.0 for x in records)
     ground = json.loads((tmp_path / "ground.json").read_text())
     assert ground["ignored_results"] == 1 and ground["ignored_telemetry"] == 1
