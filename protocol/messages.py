@@ -416,26 +416,16 @@ def _states(inner: Checker) -> Checker:
     return check
 
 
-def _unit_or_nan(inner: Checker) -> Checker:
-    """A hazard map: values in [0, 1], NaN outside the covered area (a -1 read as called safe, an inf or a 5
-    passed the HIL and `score` then refused the saved map)."""
+def _values_or_nan(inner: Checker, lo: float, hi: float, rule: str) -> Checker:
+    """An image map: finite values in [lo, hi], NaN where the pixel has none. A hazard of -1 read as called safe,
+    and a 5 or an inf passed the HIL for `score` to refuse the saved map."""
 
     def check(v: Any, name: str) -> np.ndarray:
         arr = inner(v, name)
         with np.errstate(invalid="ignore"):
-            bad = ~np.isnan(arr) & ~((arr >= 0.0) & (arr <= 1.0))
+            bad = ~np.isnan(arr) & ~(np.isfinite(arr) & (arr >= lo) & (arr <= hi))
         if bad.any():
-            raise SchemaError(f"{name}: values must lie in [0, 1] or be NaN outside the covered area")
-        return arr
-
-    return check
-
-
-def _finite_or_nan(inner: Checker) -> Checker:
-    def check(v: Any, name: str) -> np.ndarray:
-        arr = inner(v, name)
-        if np.isinf(arr).any():
-            raise SchemaError(f"{name}: holds inf; NaN marks a pixel without a value")
+            raise SchemaError(f"{name}: {rule}")
         return arr
 
     return check
@@ -509,8 +499,18 @@ class Result(Message):
     degraded: bool = _wire(_bool, False)
     level: str = _wire(_str(64), "full")
     skipped: tuple = _wire(_names(MAX_SKIPPED), factory=tuple)
-    hazard_image: np.ndarray | None = _wire(_optional(_unit_or_nan(_array("<f4", 2))), None, compress=True)
-    elevation_image: np.ndarray | None = _wire(_optional(_finite_or_nan(_array("<f4", 2))), None, compress=True)
+    hazard_image: np.ndarray | None = _wire(
+        _optional(
+            _values_or_nan(_array("<f4", 2), 0.0, 1.0, "values must lie in [0, 1] or be NaN outside the covered area")
+        ),
+        None,
+        compress=True,
+    )
+    elevation_image: np.ndarray | None = _wire(
+        _optional(_values_or_nan(_array("<f4", 2), -np.inf, np.inf, "holds inf; NaN marks a pixel without a value")),
+        None,
+        compress=True,
+    )
     state_image: np.ndarray | None = _wire(_optional(_states(_array("|u1", 2))), None, compress=True)
     elevation_filled: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
     elevation_filled_image: np.ndarray | None = _wire(_optional(_flags(_array("|u1", 2))), None, compress=True)
