@@ -841,7 +841,7 @@ def _image_path(d: Path, name: str) -> Path:
         link = d / name
         if link.is_symlink() and not link.exists():  # "outside" named the wrong fault
             raise PairFormatError(f"{d}: image {shown!r} is a broken symlink (its target {p} does not exist)")
-        via = " (through a symlink)" if p != (d / name).absolute() else ""
+        via = " (through a symlink)" if p != Path(os.path.normpath((d / name).absolute())) else ""  # not "../"
         raise PairFormatError(f"{d}: image {shown!r} lies outside the pair directory{via}: a pair holds its images")
     _check_regular(p, f"image {shown}", d)
     return p
