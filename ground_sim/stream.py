@@ -176,7 +176,7 @@ class PairOutcome:
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
-    last_frame_written: float | None = None  # the lower frame's last byte handed to the line (never adjusted)
+    last_frame_started: float | None = None  # the lower frame's first byte handed to the line
 
     @property
     def finished(self) -> bool:
@@ -792,7 +792,8 @@ def stream_descent(
             return False
         t_up, t_low = link.times(ids[0]), link.times(ids[1])
         o.frames_written_at = t_low.written if t_low is not None else None
-        o.last_frame_written = o.frames_written_at
+        # not its "written" time: a paced writer records it after the line time, and a fast answer can beat that
+        o.last_frame_started = (t_low.first_tx if t_low is not None else None) or o.sent_at
         # ZeroMQ: "written" is libzmq taking the frame, "delivered" its release of the bytes to the kernel, seen at
         # the link's next poll (20 ms). Through a 500 kB/s path the release came seconds later and the uplink
         # counted against the deadline; on a fast path the poll's lag would count in the deadline's favour
@@ -937,8 +938,8 @@ def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float
     negative latency, "met"), or a second one for its pair (the first stands, as under the HIL server)."""
     if o is None:
         return "no pair was sent with them"
-    # an answer needs both frames: whole before the last one was written (a slow line), it answers no sending
-    if not o.sent_at or o.last_frame_written is None or t_done < o.last_frame_written:
+    # an answer needs both frames: whole before the last one started on the line (a slow line), it answers no sending
+    if not o.sent_at or o.last_frame_started is None or t_done < o.last_frame_started:
         return f"it came before pair {o.pair_id}'s frames were sent"
     if (o.result if isinstance(msg, Result) else o.telemetry) is not None:
         return f"pair {o.pair_id} has one already; the first stands"
