@@ -177,6 +177,7 @@ class PairOutcome:
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
     last_frame_started: float | None = None  # the lower frame's first byte handed to the line
+    frame_ids: tuple[int, ...] = ()  # its Frames' message ids on the link
 
     @property
     def finished(self) -> bool:
@@ -666,6 +667,9 @@ def stream_descent(
                 return
             o.error = msg
         elif isinstance(msg, (Result, Telemetry)):
+            if o is not None and o.last_frame_started is None and o.frame_ids:  # its frames still being confirmed
+                t = link.times(o.frame_ids[-1])
+                o.last_frame_started = t.first_tx if t is not None else None
             why = _not_an_answer(msg, o, pkt.t_done)
             if why is not None:  # counted in ground.json and said, as the HIL server does for its flight process
                 name = type(msg).__name__
@@ -765,6 +769,7 @@ def stream_descent(
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
         ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
+        o.frame_ids = tuple(ids)
         # the frames' own line time (a 512x512 pair is ~46 s at 115200 baud) on top of the response timeout;
         # a stalled link ends sooner anyway (its peer timeout fails them)
         baud = getattr(link, "baud", None)
