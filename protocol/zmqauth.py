@@ -82,14 +82,30 @@ def _load(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     return pub, sec
 
 
+def _private_group(uid: int, gid: int) -> bool:
+    """Whether ``gid`` is ``uid``'s user-private group (same name, no other member): under umask 002 (Debian's
+    default for such users) a key directory made by hand is group-writable, yet only its owner can write it.
+    Debian's sshd accepts the same case."""
+    import grp
+    import pwd
+
+    try:
+        user, group = pwd.getpwuid(uid), grp.getgrgid(gid)
+    except KeyError:
+        return False
+    return user.pw_gid == gid and group.gr_name == user.pw_name and set(group.gr_mem) <= {user.pw_name}
+
+
 def _private_to_its_owner(path: Path, what: str) -> None:
     """Refuse ``path`` when group or others may write it: whoever can drop a public key into ``clients/`` (or
     swap the ground's ``server.key``) is let in, as ssh's StrictModes refuses a writable ``authorized_keys``."""
     try:
-        mode = path.stat().st_mode & 0o777
+        st = path.stat()
     except OSError:
         return  # missing: the loader says so
-    if mode & 0o022:
+    mode = st.st_mode & 0o777
+    writable = mode & 0o002 or (mode & 0o020 and not _private_group(st.st_uid, st.st_gid))
+    if writable:
         fix = "chmod go-w" if path.is_dir() else "chmod 600"
         raise InputError(
             f"{what} {path} can be written by others (mode {mode:04o}): anyone could add or swap a key; "

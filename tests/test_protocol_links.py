@@ -237,7 +237,10 @@ def test_two_processes_over_zeromq_with_curve(tmp_path):
     assert telem.link["messages_received"] == 21 and telem.link["decode_errors"] == 0
 
 
-def test_keys_are_private_files(tmp_path):
+def test_keys_are_private_files(tmp_path, monkeypatch):
+    from protocol import zmqauth
+
+    monkeypatch.setattr(zmqauth, "_private_group", lambda uid, gid: False)  # a shared group: group-write is others'
     d = generate_keys(tmp_path / "keys")
     assert stat.S_IMODE(d.stat().st_mode) == 0o700
     files = [p for p in d.rglob("*") if p.is_file()]
@@ -273,6 +276,22 @@ def test_keys_are_private_files(tmp_path):
             side(d)
         path.chmod(before)
     server_keys(d), client_keys(d)
+
+
+def test_a_key_directory_writable_by_its_owners_private_group_only_is_accepted(tmp_path, monkeypatch):
+    """Under umask 002 (Debian's default for users with a private group) a key directory made by hand is 0775, yet
+    only its owner may write it: refused since stop 56. Others' write, or a shared group's, still is."""
+    from protocol import zmqauth
+    from protocol.zmqauth import client_keys, server_keys
+
+    d = generate_keys(tmp_path / "keys")
+    monkeypatch.setattr(zmqauth, "_private_group", lambda uid, gid: True)
+    d.chmod(0o775)
+    (d / "clients").chmod(0o775)
+    server_keys(d), client_keys(d)
+    d.chmod(0o777)
+    with pytest.raises(InputError, match=r"can be written by others \(mode 0777\)"):
+        server_keys(d)
 
 
 def test_zeromq_needs_keys_or_an_explicit_insecure_loopback():
