@@ -326,12 +326,16 @@ _READ_NAMES = frozenset({"pair.json", "result.json", "manifest.json", "results.j
 
 
 def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, option: str) -> None:
-    """Refuse a file ``score`` writes (``option``) that is one of the files it reads: a pair's or an output's
-    ``.npy``, image or JSON, the descent's manifest or an HIL run's records."""
+    """Refuse a file ``score`` writes (``option``) that is one of the files it reads: any file already inside a
+    pair directory (its pair.json may name images in subdirectories, with any extension), an output's ``.npy``,
+    image or JSON, the descent's manifest or an HIL run's records."""
     target = path.resolve()
-    read_dirs = {d.resolve() for j in jobs for d in (j.pair_dir, j.out_dir)} | {pairs.resolve(), outputs.resolve()}
+    if not target.exists():
+        return
+    pair_dirs = {j.pair_dir.resolve() for j in jobs}
+    read_dirs = {j.out_dir.resolve() for j in jobs} | {pairs.resolve(), outputs.resolve()} | pair_dirs
     read = target.suffix in (".npy", ".png") or target.name in _READ_NAMES
-    if target.parent in read_dirs and read and target.exists():
+    if any(target.is_relative_to(d) for d in pair_dirs) or (target.parent in read_dirs and read):
         raise ScoreError(f"{option} {path} is one of the files this scoring reads: it would be overwritten")
 
 

@@ -238,6 +238,25 @@ def test_a_report_file_that_is_one_of_the_inputs_is_refused(descent, tmp_path, c
     assert main(["score", str(d), str(out), option, str(out / "scores.json")]) in (0, 1)  # a new file there is fine
 
 
+def test_an_image_the_pair_keeps_in_a_subdirectory_is_not_overwritten_by_a_report(descent, tmp_path, capsys):
+    """pair.json may name its images anywhere inside the pair directory: `--csv PAIR/img/frame0.png` replaced the
+    image with the table, exit 0."""
+    import json
+
+    d = tmp_path / "pair"
+    shutil.copytree(descent / "300_150", d)
+    (d / "img").mkdir()
+    (d / "i1.png").rename(d / "img" / "frame0.png")
+    doc = json.loads((d / "pair.json").read_text())
+    doc["frames"][0]["image"] = "img/frame0.png"
+    (d / "pair.json").write_text(json.dumps(doc))
+    out = _write(tmp_path / "o", np.ones((128, 128)))
+    before = (d / "img" / "frame0.png").read_bytes()
+    assert main(["score", str(d), str(out), "--csv", str(d / "img" / "frame0.png")]) == 2
+    assert "is one of the files this scoring reads" in capsys.readouterr().err
+    assert (d / "img" / "frame0.png").read_bytes() == before
+
+
 def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
     assert main(["score", str(tmp_path), str(tmp_path)]) == 2
     assert "neither a pair directory" in capsys.readouterr().err
