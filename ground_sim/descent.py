@@ -46,6 +46,7 @@ from protocol.pairdir import (
     check_altimeter,
     check_sees_ground,
     image_name,
+    is_write_leftover,
     write_pair_atomic,
 )
 from reports.html import write_atomic
@@ -395,7 +396,7 @@ def _earlier_render(out: Path) -> list[str]:
         doc = json.loads((out / "manifest.json").read_text())
         return [str(e["path"]) for e in doc["pairs"]]
     except (OSError, ValueError, KeyError, TypeError):
-        return sorted(p.parent.name for p in out.glob("*/pair.json"))
+        return sorted(p.parent.name for p in out.glob("*/pair.json") if not is_write_leftover(p.parent.name))
 
 
 def _say_replaced(out: Path, earlier: list[str], ours: list[str]) -> None:

@@ -471,13 +471,25 @@ def _write_files(d: Path, pair: Pair) -> None:
     (d / "pair.json").write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n")  # last: the pair is whole
 
 
+def is_render_file(name: str) -> bool:
+    """Whether a file name is one :func:`write_pair` writes (``pair.json``, ``iK.png``, the truth files)."""
+    return name == "pair.json" or name in TRUTH_FILES.values() or re.fullmatch(r"i[1-9][0-9]*\.png", name) is not None
+
+
+def is_write_leftover(name: str) -> bool:
+    """Whether a directory name is the sibling a :func:`write_pair_atomic` stopped midway left (``X.partialPID``,
+    ``X.oldPID``): not a pair of the render, though it may hold a ``pair.json``."""
+    return re.fullmatch(r".+\.(partial|old)[0-9]+", name) is not None
+
+
 def write_pair_atomic(directory: str | Path, pair: Pair, *, replace: bool = False) -> Path:
     """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
     half-written directory. When the directory exists already, ``replace`` puts ours in its place (the old
     one is renamed aside first and removed after: a stop between the two renames leaves the old one beside,
     never a mix of both); otherwise the one there is kept and ours dropped (another process finished the
-    same directory first: two studies rendering into one cache). A failed write (a full disk) leaves nothing
-    and names the file. Returns the directory."""
+    same directory first: two studies rendering into one cache). Files of the old directory that are not
+    a render's own (:func:`is_render_file`: a user's notes, a ``process --out PAIR/out``) are moved into the new
+    one, not deleted. A failed write (a full disk) leaves nothing and names the file. Returns the directory."""
     import shutil
 
     d = Path(directory)
@@ -489,16 +501,26 @@ def write_pair_atomic(directory: str | Path, pair: Pair, *, replace: bool = Fals
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     old = d.with_name(f"{d.name}.old{os.getpid()}")
+    moved_aside = False
     if replace and d.exists():
         shutil.rmtree(old, ignore_errors=True)
         os.replace(d, old)
+        moved_aside = True
     try:
         os.replace(tmp, d)
     except OSError:
         shutil.rmtree(tmp, ignore_errors=True)
+        if moved_aside and not d.exists():  # put the old one back: never neither
+            os.replace(old, d)
+            raise
         if not (d / "pair.json").is_file():
             raise
-    shutil.rmtree(old, ignore_errors=True)
+    if moved_aside:
+        # the user's own files come along; a stop before the old one is removed leaves them in it, beside
+        for entry in sorted(old.iterdir()):
+            if not is_render_file(entry.name) and not (d / entry.name).exists():
+                os.replace(entry, d / entry.name)
+        shutil.rmtree(old, ignore_errors=True)
     return d
 
 

@@ -191,3 +191,47 @@ def test_atomic_write_keeps_a_concurrent_copy_and_leaves_no_partial(tmp_path):
     with pytest.raises(OSError):  # a non-empty directory that is not a pair is not silently kept
         write_pair_atomic(junk, make_pair(2))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300", "not_a_pair"]
+
+
+def test_a_replaced_pair_keeps_the_users_own_files_and_drops_the_old_renders(tmp_path, monkeypatch):
+    """Re-rendering over a pair directory removed it whole: a user's notes and a `process --out PAIR/out` went with
+    it, silently. A render's own files (an earlier 3-frame pair's i3.png) go; a failed swap puts the old one back."""
+    import os
+
+    from protocol import pairdir
+    from protocol.pairdir import is_render_file, is_write_leftover, write_pair_atomic
+
+    dest = tmp_path / "600_300"
+    write_pair_atomic(dest, make_pair(0))
+    (dest / "notes.txt").write_text("mine")
+    (dest / "out").mkdir()
+    (dest / "out" / "state.npy").write_bytes(b"x")
+    (dest / "i3.png").write_bytes(b"an earlier render's frame")
+    write_pair_atomic(dest, make_pair(1), replace=True)
+    assert (dest / "notes.txt").read_text() == "mine" and (dest / "out" / "state.npy").read_bytes() == b"x"
+    assert not (dest / "i3.png").exists() and (dest / "pair.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300"]
+    assert is_render_file("i12.png") and is_render_file("gt_hazard_i1.npy") and not is_render_file("i0.png")
+    assert is_write_leftover("600_300.old123") and is_write_leftover("600_300.partial9") and not is_write_leftover("a")
+
+    real_replace = os.replace
+
+    def refuse_the_swap(src, dst):
+        if ".partial" in str(src):
+            raise PermissionError(13, "Permission denied")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(pairdir.os, "replace", refuse_the_swap)
+    with pytest.raises(PermissionError):
+        write_pair_atomic(dest, make_pair(2), replace=True)
+    assert (dest / "pair.json").is_file() and (dest / "notes.txt").read_text() == "mine"  # never neither
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300"]
+
+
+def test_a_stopped_writes_leftover_is_not_taken_for_an_earlier_renders_pair(tmp_path):
+    from ground_sim.descent import _earlier_render
+
+    for name in ("600_300", "600_300.old41", "300_150.partial7"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "pair.json").write_text("{}")
+    assert _earlier_render(tmp_path) == ["600_300"]  # no manifest: the directories with a pair.json
