@@ -360,7 +360,43 @@ def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str 
         ax.barh(y, width, left=start, height=0.6, color=colour, edgecolor="none", label=label)
 
 
-STAGE_COLOURS = ("#4c78a8", "#72b7b2", "#54a24b", "#eeca3b", "#b279a2", "#ff9da6", "#9d755d", "#bab0ac")
+# The stages our flight software reports, in the order they run (its telemetry's ``stage_order``). Each keeps one
+# colour whatever else ran: colours handed out by position among the stages present made brown `full_dem` in a full
+# report and `georef` in a degraded one (stop 56's budget QA). Stages of a flight program of one's own take the
+# colours left, in the order they appear.
+KNOWN_STAGES = (
+    "validate",
+    "pose_refine",
+    "prepare",
+    "rocks",
+    "shadow",
+    "range",
+    "coverage",
+    "coarse_dem",
+    "full_dem",
+    "georef",
+    "grid",
+    "slope",
+    "shading_slope",
+    "hazard",
+    "sites",
+    "fusion",
+    "output",
+)
+
+
+def stage_colours(stage_names: Sequence[str]) -> dict[str, Any]:
+    """A colour per stage: :data:`KNOWN_STAGES` each its own fixed one of 20 distinct colours, other stages the rest
+    in turn. tab20's reds (the deadline's colour) and greys (the link's bars) are left out, four of tab20b in their
+    place."""
+    plt = _plt()
+    tab20, tab20b = plt.get_cmap("tab20"), plt.get_cmap("tab20b")
+    wide = [tab20(i) for i in range(20) if i not in (6, 7, 14, 15)] + [tab20b(i) for i in (0, 4, 8, 12)]
+    colour = {k: wide[i] for i, k in enumerate(KNOWN_STAGES) if k in stage_names}
+    spare = [c for i, c in enumerate(wide) if i >= len(KNOWN_STAGES)] + wide[: len(KNOWN_STAGES)]
+    others = [k for k in stage_names if k not in colour]
+    colour |= {k: spare[i % len(spare)] for i, k in enumerate(others)}
+    return colour
 
 
 def stage_sequence(orders: Sequence[Sequence[str]]) -> list[str]:
@@ -400,12 +436,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         figsize=(11 if ncol == 2 else 9, max(0.45 * max(3, len(recs)) + 1.2, 0.2 * entries / ncol + 1))
     )
     seen: set[str] = set()
-    # more stages than the palette (the v2 pipeline has ~17): 20 distinct colours, not the palette twice over; tab20's
-    # reds (the deadline's colour) and greys (the link's bars) left out, four of tab20b in their place
-    tab20, tab20b = plt.get_cmap("tab20"), plt.get_cmap("tab20b")
-    wide = [tab20(i) for i in range(20) if i not in (6, 7, 14, 15)] + [tab20b(i) for i in (0, 4, 8, 12)]
-    palette = STAGE_COLOURS if len(stage_names) <= len(STAGE_COLOURS) else wide
-    colour = {k: palette[i % len(palette)] for i, k in enumerate(stage_names)}
+    colour = stage_colours(stage_names)
 
     def once(name: str) -> str | None:
         if name in seen:
@@ -429,7 +460,8 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
             end = float(r.get("queue_wait_s") or 0.0) + float(plan["budget_s"])
             ax.plot([end], [y + 0.38], marker="v", color="#222222", ms=5, ls="none", label=once("plan: done by"))
             need = next((plan[f"{k}_need_s"] for k in ("full_dem", "coarse_dem") if f"{k}_need_s" in plan), None)
-            if need is not None:
+            # a stop-by before the frames were in (a DEM that could not start: the table says why) is not drawn
+            if need is not None and end - float(need) >= 0.0:
                 ax.plot(
                     [end - float(need)], [y + 0.38], marker="v", color="#ffffff", mec="#222222", ms=5, ls="none",
                     label=once("plan: DEM stop-by (then the mapping's reserve)"),
@@ -514,7 +546,7 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     labels = [str(r.get("label", i)) for i, r in enumerate(recs)]
     a1.plot(x, [r.get("cpu_fraction", np.nan) for r in recs], "o-", color="#4c78a8", label="achieved")
     if cpu_budget is not None:
-        a1.axhline(cpu_budget, color=LIMIT, lw=1, ls="--", label="budget")
+        a1.axhline(cpu_budget, color=LIMIT, lw=1, ls="--", label="duty applied")
     a1.set_ylabel("CPU fraction of one core")
     cpu = [v for r in recs if np.isfinite(v := float(r.get("cpu_fraction", np.nan)))]
     top = max([*cpu, cpu_budget or 0.0], default=0.0)
@@ -528,7 +560,7 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
         a.set_xticks(list(x))
         a.set_xticklabels(labels, rotation=30, fontsize=8)
         a.legend(fontsize=8)
-    a1.set_title("CPU against the budget")
+    a1.set_title("CPU against the throttle's duty cycle")
     a2.set_title("memory against the ceiling")
     fig.tight_layout()
     return fig

@@ -137,6 +137,26 @@ def test_the_timeline_draws_the_stages_in_the_order_they_ran():
     assert marks == {"plan: done by": 58.5, "plan: DEM stop-by (then the mapping's reserve)": 18.5}
 
 
+def test_a_stage_keeps_its_colour_whatever_else_ran():
+    """Colours were handed out by position among the stages present: brown was `full_dem` in a full run's timeline
+    and `georef` in a degraded one's. A DEM stop-by before the frames were in was drawn left of 0."""
+    full = list(plots.KNOWN_STAGES)
+    degraded = [k for k in full if k not in ("pose_refine", "coarse_dem", "full_dem")]
+
+    def colours(order, plan=None):
+        rec = {"label": "p", "stages": {k: {"wall_s": 0.1} for k in order}, "stage_order": order, "deadline_s": 9.0}
+        ax = plots.timeline_figure([rec | ({"plan": plan} if plan else {})]).axes[0]
+        return {c.get_label(): c.patches[0].get_facecolor() for c in ax.containers if c.get_label() in order}, ax
+
+    a, _ = colours(full)
+    b, _ = colours(degraded + ["my_stage"])
+    assert all(a[k] == b[k] for k in degraded)
+    assert len(set(a.values())) == len(full)  # each stage its own colour
+    assert b["my_stage"] not in [a[k] for k in degraded]  # a stage of one's own takes one no known stage shown has
+    _, ax = colours(degraded, {"budget_s": 1.0, "coarse_dem_need_s": 3.8})
+    assert [ln.get_label() for ln in ax.lines if ln.get_label().startswith("plan:")] == ["plan: done by"]
+
+
 def test_the_maps_colours_keep_their_meaning():
     """Elevation ended in white, the colour of "no elevation"; P(safe) put red, the undetected hazard's colour, on
     ground correctly called unsafe."""
