@@ -31,6 +31,7 @@ this core it stands for (:meth:`hil_server.budgets.Budget.duty`).
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -135,27 +136,103 @@ def measure_rate(seconds: float = 1.0, batch: int = 2) -> WorkloadRate:
 
 
 def _probe(units: int) -> int:
-    """The probe process: warm up, then time ``units`` units at a time (CPU s each, one JSON list per line):
-    once at once, then once per line read from stdin."""
+    """The probe process: warm up, then time units (CPU s each, one JSON list per line): ``units`` at once, then
+    as many as each line read from stdin says (``units`` when it says none)."""
     import cv2
 
     cv2.setNumThreads(1)
     img1, img2, K = make_inputs()
     checksum = run_unit(img1, img2, K)
 
-    def batch() -> list[float]:
+    def batch(n: int) -> list[float]:
         out = []
-        for _ in range(units):
+        for _ in range(n):
             t0 = time.process_time()
             if run_unit(img1, img2, K) != checksum:
                 raise RuntimeError("reference workload is not deterministic")
             out.append(time.process_time() - t0)
         return out
 
-    print(json.dumps(batch()), flush=True)
-    for _ in sys.stdin:
-        print(json.dumps(batch()), flush=True)
+    print(json.dumps(batch(units)), flush=True)
+    for line in sys.stdin:
+        words = line.split()
+        print(json.dumps(batch(int(words[1]) if len(words) > 1 else units)), flush=True)
     return 0
+
+
+# `calibrate` times at least this much throttled wall time per duty cycle: at the high duty cycles the calibration's
+# 3 units last 0.1-0.9 s, and one batch that short read eta 0.82-0.95 at f = 0.5 on one idle host (stop 57)
+MIN_BATCH_WALL_S = 1.0
+MAX_UNITS = 40
+
+
+class EfficiencyProbe:
+    """A probe process for eta, the work a throttled CPU-second does (module doc), as a context manager.
+
+    It runs on the core the emulated processor uses (the highest allowed) and warms up at full speed on entry.
+    Each :meth:`eta` is one round: a batch under the throttle, then one at full speed; eta = median CPU per unit at
+    full speed (the batches before and after) / median throttled, clipped to [0.05, 1] (above 1 is noise: no
+    compensation; a throttle that wasted 95 % would be broken). A drift of the host's speed cancels. The probe is
+    killed on exit.
+    """
+
+    def __init__(self, units: int = PROBE_UNITS, period_s: float = 0.02) -> None:
+        if units < 1:
+            raise ValueError(f"units must be >= 1, got {units}")
+        self.units, self.period_s = int(units), float(period_s)
+        self._popen: subprocess.Popen | None = None
+        self._full: list[float] = []
+
+    def __enter__(self) -> EfficiencyProbe:
+        from hil_server.procemu import start_at_full_speed
+
+        self._popen = start_at_full_speed(
+            [sys.executable, "-m", "hil_server.calibrate", "--probe", str(self.units)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            self._full = self._batch(None)
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._popen is not None:
+            self._popen.kill()
+            self._popen.wait()
+
+    def _batch(self, n: int | None) -> list[float]:
+        popen = self._popen
+        assert popen is not None and popen.stdin is not None and popen.stdout is not None
+        if n is not None:
+            popen.stdin.write(f"go {n}\n")
+            popen.stdin.flush()
+        line = popen.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the throttle-efficiency probe ended (exit {popen.wait()})")
+        return [float(x) for x in json.loads(line)]
+
+    def eta(self, fraction: float, min_wall_s: float = 0.0) -> float:
+        """One round at duty cycle ``fraction`` in (0, 1): batches of ``units`` units, more when they would take
+        less than ``min_wall_s`` under the throttle (at most :data:`MAX_UNITS`)."""
+        from hil_server.procemu import Throttle
+
+        # any duty in (0, 1): `run`'s check of a very slow budget measures at its own duty with few units
+        # (budgets.throttle_check_units); MIN_EFFICIENCY_DUTY bounds only `calibrate --duty-cycles`' grid
+        if not 0.0 < fraction < 1.0:
+            raise ValueError(f"duty cycles must be in (0, 1), got {fraction!r}")
+        assert self._popen is not None, "use the probe in a with block"
+        per_unit = max(statistics.median(self._full), 1e-6)
+        n = max(self.units, min(MAX_UNITS, math.ceil(min_wall_s * fraction / per_unit)))
+        with Throttle(self._popen, fraction, self.period_s):
+            throttled = self._batch(n)
+        after = self._batch(n)
+        eta = statistics.median(self._full + after) / statistics.median(throttled)
+        self._full = after
+        return min(1.0, max(0.05, eta))
 
 
 def measure_throttle_efficiency(
@@ -163,55 +240,23 @@ def measure_throttle_efficiency(
     units: int = PROBE_UNITS,
     period_s: float = 0.02,
     progress: Callable[[str], None] | None = None,
+    min_wall_s: float = MIN_BATCH_WALL_S,
 ) -> tuple[tuple[float, float], ...]:
-    """``(f, eta(f))`` per duty cycle (module doc), eta = median CPU per unit at full speed / median throttled.
-
-    One probe process on the core the emulated processor uses (the highest allowed), warmed up at full speed;
-    each throttled batch is followed by a full-speed one, so a drift of the host's speed cancels. eta is
-    clipped to [0.05, 1]: above 1 is noise (no compensation), and a throttle that wasted 95 % would be broken.
-    """
-    from hil_server.procemu import Throttle, start_at_full_speed
-
-    # any duty in (0, 1): `run`'s check of a very slow budget measures at its own duty with few units
-    # (budgets.throttle_check_units); MIN_EFFICIENCY_DUTY bounds only `calibrate --duty-cycles`' grid
+    """``(f, eta(f))`` per duty cycle (module doc): one :meth:`EfficiencyProbe.eta` round each on one probe, the
+    quick ones first, each timing at least ``min_wall_s`` under the throttle."""
     if not fractions or not all(0.0 < f < 1.0 for f in fractions):
         raise ValueError(f"duty cycles must be in (0, 1), got {fractions!r}")
     if units < 1:
         raise ValueError(f"units must be >= 1, got {units}")
-    popen = start_at_full_speed(
-        [sys.executable, "-m", "hil_server.calibrate", "--probe", str(units)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    stdin, stdout = popen.stdin, popen.stdout
-    assert stdin is not None and stdout is not None
-
-    def batch(go: bool = True) -> list[float]:
-        if go:
-            stdin.write("go\n")
-            stdin.flush()
-        line = stdout.readline()
-        if not line:
-            raise RuntimeError(f"the throttle-efficiency probe ended (exit {popen.wait()})")
-        return [float(x) for x in json.loads(line)]
-
     out: list[tuple[float, float]] = []
-    try:
-        full = batch(go=False)
-        for f in sorted(fractions, reverse=True):  # the quick ones first
+    with EfficiencyProbe(units, period_s) as probe:
+        for f in sorted(fractions, reverse=True):
             t0 = time.monotonic()
-            with Throttle(popen, f, period_s):
-                throttled = batch()
-            full += batch()
-            eta = min(1.0, max(0.05, statistics.median(full) / statistics.median(throttled)))
+            eta = probe.eta(f, min_wall_s)
             out.append((float(f), eta))
             if progress is not None:
                 took = time.monotonic() - t0
                 progress(f"duty {f:g}: a throttled CPU-second does {eta:.2f} of a full-speed one ({took:.0f} s)")
-    finally:
-        popen.kill()
-        popen.wait()
     return tuple(sorted(out))
 
 

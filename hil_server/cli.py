@@ -284,8 +284,9 @@ def _budgets(args: argparse.Namespace) -> int:
             f"host: {cal.cpu_model} on {cal.hostname}, {host_dmips:.0f} DMIPS per core "
             f"(calibrated {cal.measured_at}, {calibration_path()})"
         )
+    width = max(15, *(len(n) + 2 for n in budgets))
     print(
-        f"{'budget':<15}{'DMIPS':>8}{'share':>9}{'slower':>8}{'duty':>9}{'memory':>10}{'max image':>11}"
+        f"{'budget':<{width}}{'DMIPS':>8}{'share':>9}{'slower':>10}{'duty':>9}{'memory':>10}{'max image':>11}"
         f"{'deadline':>10}  {'link':<16}description"
     )
     with warnings.catch_warnings():
@@ -295,12 +296,16 @@ def _budgets(args: argparse.Namespace) -> int:
             link = b.link if b.baud is None else f"{b.link} {b.baud}"
             duty = b.duty(cal)
             side = max_image_side(b.memory_mib)
+            camera = f"{side}x{side}" if side > 0 else "none"
+            share, applied = f"{100 * duty.effective:.3g}%", f"{100 * duty.applied:.3g}%"
             print(
-                f"{b.name:<15}{dmips:>8}{duty.effective:>9.2%}{1 / duty.effective:>7.1f}x{duty.applied:>9.2%}"
-                f"{b.memory_mib:>6} MiB{f'{side}x{side}':>11}{b.deadline_s:>9g}s  {link:<16}{b.description}"
+                f"{b.name:<{width}}{dmips:>8}{share:>9}{f'{1 / duty.effective:.1f}x':>10}{applied:>9}"
+                f"{b.memory_mib:>6} MiB{camera:>11}{b.deadline_s:>9g}s  {link:<16}{b.description}"
             )
             if args.sources:
-                print(f"{'':<15}source: {b.source}")
+                print(f"{'':<{width}}source: {b.source}")
+            for why in _unrunnable(b, duty, host_dmips):
+                print(f"{'':<{width}}note: {why}")
     print(
         "share: the fraction of one host core's full-speed work the budget stands for; duty: the CPU duty cycle "
         "that delivers it (higher: a throttled CPU-second does less work, `hazard-hil calibrate` measures how much)"
@@ -311,6 +316,28 @@ def _budgets(args: argparse.Namespace) -> int:
         "`run` refuses larger ones"
     )
     return 0
+
+
+def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
+    """What `run` would say of ``budget`` on this host, said in `budgets`' listing before anyone waits for it."""
+    from hil_server.budgets import FLIGHT_BASE_MIB, FLIGHT_RSS_MARGIN, BudgetError, check_runnable, max_image_side
+
+    out = []
+    try:
+        check_runnable(budget.name, budget, duty)
+    except BudgetError as exc:
+        out.append(f"`run` refuses it here: {str(exc).split(': ', 1)[-1]}")
+    if budget.cpu_dmips is not None and budget.cpu_dmips > host_dmips:
+        out.append(
+            f"faster than this host's core ({host_dmips:.0f} DMIPS): it runs at this core's full speed, so its "
+            "verdict is pessimistic"
+        )
+    if max_image_side(budget.memory_mib) <= 0:
+        out.append(
+            f"no camera fits: our flight process alone needs ~{FLIGHT_BASE_MIB * (1 + FLIGHT_RSS_MARGIN):.0f} MiB "
+            f"of its {budget.memory_mib} MiB (a flight program of your own may need less: `run --flight-cmd`)"
+        )
+    return out
 
 
 def _duty_list(text: str) -> tuple[float, ...]:
@@ -614,7 +641,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil_server.run import run_descent
 
     summary = run_descent(_config(args))
-    print(f"report: {Path(args.out) / 'report.html'}")
+    report = Path(args.out) / ("summary.md" if summary.get("report_error") else "report.html")
+    print(f"report: {report}")
     return _finish(summary, args, "run")
 
 
@@ -629,7 +657,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
     summary = run_descent(cfg)
-    print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
+    if not summary.get("report_error"):
+        print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
     return _finish(summary, args, "demo")
 

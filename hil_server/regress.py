@@ -16,7 +16,8 @@ A regression is: deadline hit rate below the baseline's minus
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
 so tiny latencies do not flap), or more degraded Results (``degraded``: cut to a coarser anytime
 level or with stages skipped; they are faster because they did less) when the baseline records
-that count. ``--update`` rewrites the baseline and records what its numbers
+that count, or a budget whose figures changed since ``--update`` recorded them
+(``budget_recorded``). ``--update`` rewrites the baseline and records what its numbers
 rest on (``recorded``: the host's calibration and load); it refuses to rewrite
 the shipped baseline on an uncalibrated host, and says so when the host is
 uncalibrated, stale (``budgets.STALE_CALIBRATION_DAYS``) or loaded. The baseline
@@ -285,8 +286,12 @@ CASE_KEYS = frozenset(
         "flight",
         "keys",
         "deadline_s",
+        "budget_recorded",
     }
 )
+# What a case's budget stood for when its metrics were recorded (`--update` writes it): a board file edited since
+# (2760 -> 400 DMIPS) read exactly as before, since latencies are in reference seconds (stop 56's budget QA)
+BUDGET_FIELDS = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
 
 
@@ -296,7 +301,7 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
     A hand-edited baseline that slipped through would otherwise fail with a traceback after minutes of runs,
     or (an empty ``cases``) silently run the default cases instead of the ones asked for.
     """
-    from hil_server.budgets import load_budgets
+    from hil_server.budgets import MAX_DEADLINE_S, load_budgets
     from protocol.errors import InputError
     from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
@@ -350,8 +355,14 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
             raise bad(f"{w}: a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT, got {case['link']!r}")
         if "keys" in case and (not isinstance(case["keys"], str) or not case["keys"]):
             raise bad(f"{w}: 'keys' must be a non-empty path, got {case['keys']!r}")
-        if "deadline_s" in case and (not number(case["deadline_s"]) or not case["deadline_s"] > 0):
-            raise bad(f"{w}: 'deadline_s' must be a positive number of seconds, got {case['deadline_s']!r}")
+        if "deadline_s" in case and (not number(case["deadline_s"]) or not 0 < case["deadline_s"] <= MAX_DEADLINE_S):
+            raise bad(
+                f"{w}: 'deadline_s' must be a number of seconds in (0, {MAX_DEADLINE_S:g}] (as `run --deadline`), "
+                f"got {case['deadline_s']!r}"
+            )
+        rec = case.get("budget_recorded")
+        if rec is not None and (not isinstance(rec, dict) or set(rec) - set(BUDGET_FIELDS)):
+            raise bad(f"{w}: 'budget_recorded' is what --update writes: an object of {', '.join(BUDGET_FIELDS)}")
         if "seed" in case and (isinstance(case["seed"], bool) or not isinstance(case["seed"], int) or case["seed"] < 0):
             raise bad(f"{w}: 'seed' must be an integer >= 0, got {case['seed']!r}")
         size = case.get("image_size")
@@ -393,6 +404,29 @@ def _own_budgets(path: Path | None, w: str, bad) -> dict:
         return load_budgets(path)
     except BudgetError as exc:
         raise bad(f"{w}: {exc}") from None
+
+
+def budget_record(case: dict, base_dir: Path | None) -> dict:
+    """The figures of a case's budget (:data:`BUDGET_FIELDS`), from its file or the shipped ones."""
+    from hil_server.budgets import get_budget
+
+    b = get_budget(case["budget"], _path(case.get("budget_file"), base_dir))
+    return {k: getattr(b, k) for k in BUDGET_FIELDS}
+
+
+def budget_change(case: dict, base_dir: Path | None) -> str:
+    """'budget X changed since the baseline (cpu_dmips 2760 -> 400)', or '' (unchanged, or not recorded)."""
+    old = case.get("budget_recorded")
+    if not old:
+        return ""
+    new = budget_record(case, base_dir)
+    moved = [f"{k} {old.get(k)!r} -> {new[k]!r}" for k in BUDGET_FIELDS if old.get(k) != new[k]]
+    if not moved:
+        return ""
+    return (
+        f"budget {case['budget']} changed since the baseline ({', '.join(moved)}): its reference seconds no longer "
+        "measure the same computer; re-record the case with --update"
+    )
 
 
 def host_conditions() -> tuple[dict, list[str]]:
@@ -488,6 +522,10 @@ def check_regression(
         raise InputError('--link applies to board cases ("flight": "external"); none of these cases is one')
     base_dir = baseline.resolve().parent
     check_cases(names, {n: _with_link(all_cases[n], board_link) for n in names}, out, base_dir, hello_timeout_s)
+    changed = {} if update else {n: budget_change(all_cases[n], base_dir) for n in names}
+    for n, what in changed.items():
+        if what:
+            print(f"regress: case {n}: {what}", file=sys.stderr)
     for note in notes:
         print(f"regress: warning: {note}", file=sys.stderr)
     need = 1.0 if min_hit_rate is None else min_hit_rate
@@ -504,6 +542,9 @@ def check_regression(
         if update:
             o.problems.clear()  # no baseline to regress against: it is being written
             case["metrics"] = cur
+            case["budget_recorded"] = budget_record(case, base_dir)
+        elif changed.get(n):
+            o.problems.append(changed[n])
         if not cur["deadline_hit_rate"] >= need - 1e-12:
             missed = True
             o.problems.append(

@@ -44,6 +44,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -51,7 +52,14 @@ from typing import Any
 
 import numpy as np
 
-from hil_server.budgets import THROTTLE_CHECK_TOLERANCE, Budget, ThrottleCheck
+from hil_server.budgets import (
+    THROTTLE_CHECK_TOLERANCE,
+    Budget,
+    Duty,
+    HostCalibration,
+    ThrottleCheck,
+    UncalibratedWarning,
+)
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
 
@@ -72,14 +80,69 @@ SUPERVISOR_EXIT_S = 3.0  # after the ground's clean end, the HIL server's time t
 
 
 def throttle_note(check: ThrottleCheck, applied: float) -> str:
-    """One line on a run's throttle check: what it measured and whether the duty cycle moved."""
+    """One line on a run's throttle check: what each round measured and whether the duty cycle moved."""
+    etas = ", then ".join(f"{e:.2f}" for e in check.rounds)
     what = (
-        f"a throttled CPU-second does {check.measured:.2f} of a full-speed one at {check.duty:.2%} duty "
+        f"a throttled CPU-second does {etas} of a full-speed one at {check.duty:.2%} duty "
         f"(the calibration: {check.calibrated:.2f})"
     )
+    tol = f"{THROTTLE_CHECK_TOLERANCE:.0%}"
     if check.adopted:
-        return f"{what}; the duty cycle becomes {applied:.2%} for the same share (`hazard-hil calibrate` stores it)"
-    return f"{what}; within {THROTTLE_CHECK_TOLERANCE:.0%}, the calibration stands"
+        return (
+            f"{what}, beyond {tol} in each round: the duty cycle becomes {applied:.2%} for the same share in this "
+            "run (the stored calibration is unchanged; `hazard-hil calibrate` measures it again)"
+        )
+    if len(check.rounds) > 1:
+        return f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
+    return f"{what}; within {tol}, the calibration stands"
+
+
+def budget_speed(budget: Budget, cal: HostCalibration | None, duty: Duty) -> dict:
+    """What a budget stands for on this host, for the summary (``budget_speed``): its DMIPS, this core's, the share
+    and slowdown, and the calibration they rest on (``calibrated_at`` None: an uncalibrated host, taken as fast as
+    the anchor)."""
+    if budget.is_host:
+        return {"cpu_dmips": None, "share": 1.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UncalibratedWarning)  # said on the console already
+        host = budget.host_dmips(cal)
+    return {
+        "cpu_dmips": budget.cpu_dmips,
+        "host_dmips": host,
+        "share": duty.effective,
+        "slowdown": 1.0 / duty.effective,
+        "duty": duty.applied,
+        "faster_than_host": bool(budget.cpu_dmips is not None and budget.cpu_dmips > host),
+        "calibrated_at": None if cal is None else cal.measured_at,
+        "calibration_key": None if cal is None else cal.key,
+    }
+
+
+def budget_note(summary: dict) -> str:
+    """One sentence on what the run's budget stood for here, from a summary's ``budget_speed`` ("" without one)."""
+    b = summary.get("budget_speed")
+    name = summary.get("budget")
+    if not b or not name:
+        return ""
+    own = f" (from {summary['budget_file']})" if summary.get("budget_file") else ""
+    if b.get("cpu_dmips") is None:
+        return f"budget {name}{own}: one core of this host at full speed"
+    dmips, host = float(b["cpu_dmips"]), float(b["host_dmips"])
+    when = (
+        f"by the calibration of {b['calibrated_at']}"
+        if b.get("calibrated_at")
+        else "UNCALIBRATED: this host was taken as fast as the anchor; `hazard-hil calibrate` measures it"
+    )
+    if b.get("faster_than_host"):
+        return (
+            f"budget {name}{own} ({dmips:,.0f} DMIPS) is faster than this host's core ({host:,.0f} DMIPS, {when}): "
+            "it ran at this core's full speed, so its verdict is pessimistic"
+        )
+    return (
+        f"budget {name}{own}: {dmips:,.0f} DMIPS = {100 * float(b['share']):.3g} % of this host's core "
+        f"({host:,.0f} DMIPS, {when}), {float(b['slowdown']):.3g}x slower than it; the throttle's duty cycle "
+        f"{100 * float(b['duty']):.3g} % delivers that share"
+    )
 
 
 def throttle_check_note(summary: dict) -> str:
@@ -87,7 +150,7 @@ def throttle_check_note(summary: dict) -> str:
     check = summary.get("throttle_check")
     if not check:
         return ""
-    c = ThrottleCheck(float(check["duty"]), float(check["calibrated"]), float(check["measured"]))
+    c = ThrottleCheck.from_dict(check)
     return "throttle check: " + throttle_note(c, float(summary.get("cpu_fraction", math.nan)))
 
 
@@ -632,7 +695,15 @@ def summary_table(summary: dict) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    notes = (throttle_check_note(s), phase_note(s), site_note(s), flight_note(s), ground_stop_note(s), off_map_note(s))
+    notes = (
+        budget_note(s),
+        throttle_check_note(s),
+        phase_note(s),
+        site_note(s),
+        flight_note(s),
+        ground_stop_note(s),
+        off_map_note(s),
+    )
     for note in notes:
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
@@ -736,7 +807,10 @@ def check_memory(budget, width: int, height: int, rendered: bool = False) -> Non
     if need > budget.memory_mib:
         side = max_image_side(budget.memory_mib)
         remedy = (
-            f"stream pairs of at most {side} x {side} px, or a budget with more memory"
+            f"no camera fits: the flight process alone needs ~{flight_peak_rss_mib(0):.0f} MiB; give the budget more "
+            "memory"
+            if side <= 0
+            else f"stream pairs of at most {side} x {side} px, or a budget with more memory"
             if rendered
             else f"the largest square camera that fits is {side} px (--image-size)"
         )
@@ -1179,7 +1253,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 # after the render, right before the flight starts: the host as the run will find it
                 log(
                     f"run: checking the throttle's efficiency at {budget.name}'s duty cycle {fraction:.2%} "
-                    f"(about {throttle_check_seconds(budget, cal):.0f} s; --no-throttle-check skips it)"
+                    f"(about {throttle_check_seconds(budget, cal):.0f} s, twice that when a second round must confirm "
+                    "the first; --no-throttle-check skips it)"
                 )
                 try:
                     throttle = check_throttle(budget, cal)
@@ -1263,6 +1338,9 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 )
                 for doubt in doubts:
                     log(f"run: warning: {doubt}")
+                speed = budget_speed(budget, cal, budget.duty(cal))
+                if speed.get("faster_than_host"):
+                    log(f"run: warning: {budget_note({'budget': budget.name, 'budget_speed': speed})}")
                 sup_log = open(out / "supervisor.log", "w")  # noqa: SIM115 (closed below)
                 sup = _spawn(sup_cmd, env, stdout=sup_log, stderr=subprocess.STDOUT)
             else:
@@ -1357,6 +1435,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 "started": started,
                 "cpu_fraction": fraction,
                 "effective_fraction": effective,
+                "budget_speed": None if duty is None else budget_speed(budget, cal, budget.duty(cal)),
                 "throttle_check": None if throttle is None else throttle.to_dict(),
                 "deadline_s": deadline,
                 "line_faults": {d: ch.stats for d, ch in channels.items()},
@@ -1377,7 +1456,14 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         from reports.html import write_atomic
 
         write_atomic(out / "summary.md", table)
-        write_run_report(summary, out / "report.html")
+        try:
+            write_run_report(summary, out / "report.html")
+        except Exception as exc:  # a page that fails must not cost the run its summary (it stayed "in progress")
+            summary["report_error"] = f"{type(exc).__name__}: {exc}"
+            log(
+                f"run: warning: report.html could not be written ({summary['report_error']}); summary.md and "
+                "summary.json hold the run"
+            )
         _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
         log(table)
     if late.received is not None:  # written whole; then the signal does what it would have (exit 128 + N)

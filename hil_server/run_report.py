@@ -235,8 +235,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
         intro.append(f"INCOMPLETE: {s.get('reason')}. Only the pairs below finished.")
     if met is not None:
         intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
-    from hil_server.run import site_note
+    from hil_server.run import budget_note, site_note
 
+    if budget_note(s):
+        intro.append(budget_note(s)[0].upper() + budget_note(s)[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
     sections = [
@@ -267,7 +269,13 @@ def write_run_report(summary: dict, path: Path) -> Path:
             resources_figure(tel, s.get("cpu_fraction"), s.get("memory_mib")),
             fig_dir / "resources.png",
         )
-        tel_figs.append(Figure("figures/resources.png", "Achieved CPU fraction and private RSS peak vs the budget."))
+        tel_figs.append(
+            Figure(
+                "figures/resources.png",
+                "Achieved CPU fraction against the duty cycle the throttle applied, and the private RSS peak "
+                "against the budget's memory ceiling.",
+            )
+        )
     from hil_server.run import phase_note, throttle_check_note
 
     notes = [n[0].upper() + n[1:] + "." for n in (throttle_check_note(s), phase_note(s)) if n]

@@ -288,6 +288,27 @@ def test_a_signal_while_the_summary_is_written_lets_it_finish(manifest, tmp_path
     assert any("SIGINT came while the summary was written: it was finished first" in x for x in said), said[-3:]
 
 
+def test_a_report_page_that_fails_does_not_cost_the_run_its_summary(manifest, tmp_path, monkeypatch):
+    """A failure while report.html was drawn ended the run in a traceback, summary.json saying "in progress". The
+    summary also says what the budget stood for here (stop 56's budget QA: only supervisor.log did)."""
+    from hil_server import run_report
+    from hil_server.run import RunConfig, run_descent
+
+    def broken(*a, **kw):
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(run_report, "write_run_report", broken)
+    said: list[str] = []
+    cfg = RunConfig(out=tmp_path / "o", manifest=manifest, link="zmq", budget="host", pairs=None)
+    summary = run_descent(cfg, log=said.append)
+    on_disk = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert on_disk["complete"] is True and on_disk["report_error"] == "RuntimeError: no display"
+    assert summary["results"] == summary["pairs"] > 0
+    assert any("report.html could not be written (RuntimeError: no display)" in x for x in said), said[-3:]
+    assert on_disk["budget_speed"] == {"cpu_dmips": None, "share": 1.0}
+    assert "Budget host: one core of this host at full speed" in (tmp_path / "o" / "summary.md").read_text()
+
+
 def test_a_killed_hil_server_is_named_as_killed_and_blamed_for_the_pair_in_flight(manifest, tmp_path):
     """A SIGKILLed server read "exited with -9: flight: boot warm-up ..." (its log's last, unrelated line), and the
     pair in flight "interrupted by SIGTERM", a signal only the run itself had sent (to its ground)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -92,6 +93,8 @@ def _edit(doc: dict, path: str, value: object) -> dict:
         ("cases/vertical-host-zmq/metrics/errors", 0.5, "metric 'errors' must be a whole number"),
         ("cases/vertical-host-zmq/pairs", "600/300", "'pairs' must be a non-empty list"),
         ("tolerances/latency_rel", -1, "tolerance 'latency_rel' must be a number >= 0"),
+        ("cases/vertical-host-zmq/deadline_s", 1e9, "'deadline_s' must be a number of seconds in (0, 3600]"),
+        ("cases/vertical-host-zmq/budget_recorded", {"dmips": 1}, "'budget_recorded' is what --update writes"),
         ("tolerances/latency_rell", 0.1, "unknown tolerance 'latency_rell'"),
     ],
 )
@@ -272,6 +275,68 @@ def test_bad_user_budget_file_is_one_line_exit_2(tmp_path, capsys, changes, reas
     assert main(["budgets", "--file", _budget_file(tmp_path, **changes)]) == 2
     err = capsys.readouterr().err
     assert reason in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_budget_file_changed_since_the_baseline_is_named_and_fails_the_case(tmp_path, capsys, monkeypatch):
+    """Latencies are in reference seconds, so a board made 7x slower in its file read exactly as before and the
+    baseline held nothing to notice it (stop 56's budget QA). --update records the budget's figures; a later run
+    names what moved and fails the case."""
+    from hil_server import regress
+
+    board = _budget_file(tmp_path, cpu_dmips="2760")
+    metrics = {**BASE, "pairs": 2, "degraded": 0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(metrics))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "myboard", "budget_file": board, "link": "serial"}
+    base.write_text(json.dumps({"cases": {"mine": case}}))
+    assert main(["regress", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]) == 0
+    recorded = json.loads(base.read_text())["cases"]["mine"]["budget_recorded"]
+    assert recorded["cpu_dmips"] == 2760 and recorded["deadline_s"] == 10 and recorded["baud"] == 115200
+    capsys.readouterr()
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 0  # unchanged: passes
+    _budget_file(tmp_path, cpu_dmips="400")
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
+    out, err = capsys.readouterr()
+    said = "budget myboard changed since the baseline (cpu_dmips 2760.0 -> 400.0)"
+    assert said in out and said in err and "--update" in out
+
+
+def test_a_budget_file_that_would_mislead_a_table_or_a_summary_is_refused(tmp_path, capsys):
+    """Found by stop 56's budget QA, each accepted with exit 0: a 300-character name (it broke every table), two
+    names that differ only in case, an [anchor] of its own (dmips = 1 made every board faster than the host), and a
+    fractional baud whose message showed the valid-looking 115200."""
+    long_name = _budget_file(tmp_path, name="b" * 41)
+    assert main(["budgets", "--file", long_name]) == 2
+    assert "at most 40 characters, got 41" in capsys.readouterr().err
+    twins = tmp_path / "twins.toml"
+    body = "".join(f"{k} = {v}\n" for k, v in GOOD.items())
+    twins.write_text(f"{ANCHOR}\n[budget.myboard]\n{body}\n[budget.MyBoard]\n{body}")
+    assert main(["budgets", "--file", str(twins)]) == 2
+    assert "'myboard' and 'MyBoard' differ only in case" in capsys.readouterr().err
+    own_anchor = tmp_path / "anchor.toml"
+    own_anchor.write_text(Path(_budget_file(tmp_path)).read_text().replace("dmips = 23461", "dmips = 1"))
+    assert main(["budgets", "--file", str(own_anchor)]) == 2
+    assert "differs from the shipped anchor (dmips = 1, shipped 23461)" in capsys.readouterr().err
+    assert main(["budgets", "--file", _budget_file(tmp_path, baud="115200.5")]) == 2
+    assert "got 115200.5" in capsys.readouterr().err
+
+
+def test_budgets_says_which_boards_run_will_refuse_or_cap(tmp_path, capsys):
+    """A board too slow to emulate, one faster than this host's core, and one no camera fits were listed like any
+    other; `run` refused the first and the last, and ran the second at host speed without a word."""
+    p = tmp_path / "boards.toml"
+    boards = {"crawl": {"cpu_dmips": "1"}, "rocket": {"cpu_dmips": "1e6"}, "tiny": {"memory_mib": "16"}}
+    p.write_text(
+        ANCHOR
+        + "".join(
+            f"\n[budget.{n}]\n" + "".join(f"{k} = {v}\n" for k, v in {**GOOD, **c}.items()) for n, c in boards.items()
+        )
+    )
+    assert main(["budgets", "--file", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "note: `run` refuses it here: one host-second of flight work would take" in out
+    assert "note: faster than this host's core" in out and "pessimistic" in out
+    assert "note: no camera fits" in out and " none " in out
 
 
 def test_user_budget_may_not_redefine_a_shipped_name(tmp_path, capsys):
