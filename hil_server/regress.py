@@ -53,7 +53,10 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-DEFAULT_TOLERANCES = {"hit_rate_drop": 0.0, "latency_rel": 0.35, "latency_abs_s": 0.25}
+# The absolute term keeps tiny latencies from flapping; at 0.25 reference s it dominated every shipped case (the host
+# case could grow +95 %, a 256 px snapdragon801 case 4x, before it was flagged: stop 56's budget QA). At 0.1 the
+# 35 % governs the shipped cases (host: +38 %).
+DEFAULT_TOLERANCES = {"hit_rate_drop": 0.0, "latency_rel": 0.35, "latency_abs_s": 0.1}
 
 # The cases `regress` runs when the baseline does not exist yet (`--update`).
 DEFAULT_CASES: dict[str, dict] = {
