@@ -93,8 +93,11 @@ def test_host_case_is_judged_on_cpu_seconds_not_wall_latency():
     assert compare("h", busy_host, base, DEFAULT_TOLERANCES, judged_metrics("host")).problems == []
     slower_code = {**base, "cpu_p50_ref_s": 0.9}
     o = compare("h", slower_code, base, DEFAULT_TOLERANCES, judged_metrics("host"))
-    assert o.problems and o.limits["cpu_p50_ref_s"] == pytest.approx(0.4)
-    assert "≤0.400" in diff_table([o]) and "REGRESSION" in diff_table([o])
+    assert o.problems and o.limits["cpu_p50_ref_s"] == pytest.approx(0.25)  # 0.15 + 0.1 reference s
+    assert "≤0.250" in diff_table([o]) and "REGRESSION" in diff_table([o])
+    # a 0.3 s case is held to its 35 %, not to the absolute term's: +95 % went unflagged at 0.25
+    o = compare("h", {**base, "cpu_p50_ref_s": 0.45}, {**base, "cpu_p50_ref_s": 0.3}, DEFAULT_TOLERANCES, CPU_METRICS)
+    assert o.limits["cpu_p50_ref_s"] == pytest.approx(0.405) and o.problems
 
 
 def test_regress_from_another_directory_and_bad_names(tmp_path, tiny_baseline, monkeypatch):
