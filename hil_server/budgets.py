@@ -557,6 +557,10 @@ def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
     try:
         return budgets[name]
     except KeyError:
+        if path is not None:  # `run --budget-file F` alone asked for the default 'host', which F need not define
+            raise BudgetError(
+                f"budget {name!r} is not in {path}, which defines {', '.join(budgets)}: name one with --budget"
+            ) from None
         raise BudgetError(f"unknown budget {name!r}; choose one of: {', '.join(budgets)}") from None
 
 
@@ -592,6 +596,18 @@ def cpu_model() -> str:
 
 def host_key() -> str:
     return f"{socket.gethostname()}|{cpu_model()}"
+
+
+def check_store_writable(path: Path | None = None) -> None:
+    """Refuse, before half a minute of measuring, a calibration store that could not be written: its directory a
+    file (``HAZARD_HIL_HOME`` set to one), or under a directory this user may not write."""
+    p = Path(path) if path is not None else calibration_path()
+    if p.parent.exists() and not p.parent.is_dir():
+        _read_store(p)  # its one-line error
+    existing = next(a for a in (p.parent, *p.parent.parents) if a.exists())
+    target = p if p.exists() else existing
+    if not os.access(target, os.W_OK):
+        raise BudgetError(f"cannot write the calibration store {p}: {target} is not writable (HAZARD_HIL_HOME?)")
 
 
 def _read_store(path: Path) -> dict:

@@ -361,12 +361,14 @@ def _calibrate(args: argparse.Namespace) -> int:
         calibrate_host,
         calibration_drift,
         calibration_path,
+        check_store_writable,
         load_budgets,
         load_calibration,
     )
 
     if not 0 < args.seconds <= 600:
         raise BudgetError(f"--seconds must be in (0, 600], got {args.seconds:g}")
+    check_store_writable()
     anchor = next(iter(load_budgets(args.file).values())).anchor
     print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread, then the throttle's")
     print("efficiency at each duty cycle (about 25 s for the default ones)...")
@@ -653,6 +655,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = _config(args)
     check_run_config(cfg)  # bad options are refused before the half-minute calibration below
     if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
+        from hil_server.budgets import check_store_writable
+
+        check_store_writable()
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate, about 30 s)")
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")

@@ -439,3 +439,20 @@ def test_runs_throttle_check_may_measure_below_the_calibration_grids_floor():
         measure_throttle_efficiency((0.0005,), units=0)
     with pytest.raises(ValueError, match=r"duty cycles must be in \(0, 1\)"):
         measure_throttle_efficiency((0.0,), units=1)
+
+
+def test_calibrate_refuses_a_store_it_could_not_write_before_measuring(tmp_path, monkeypatch, capsys):
+    """HAZARD_HIL_HOME set to a regular file: `calibrate` measured for half a minute, then failed to store."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    monkeypatch.setenv("HAZARD_HIL_HOME", str(afile))
+    monkeypatch.setattr(B, "calibrate_host", lambda *a, **k: pytest.fail("measured before the store was checked"))
+    assert main(["calibrate"]) == 2
+    assert "is a file, not a directory" in capsys.readouterr().err
+
+
+def test_a_budget_file_without_budget_names_what_it_defines(tmp_path, capsys):
+    """`run --budget-file F` alone said "unknown budget 'host'": a name the user never typed."""
+    assert main(["run", "--budget-file", _budget_file(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "is not in" in err and "which defines myboard: name one with --budget" in err
