@@ -63,7 +63,7 @@ import bisect
 import math
 import struct
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from protocol.codec import DEFAULT_LIMITS, Limits, decode_parts
 from protocol.errors import InputError
@@ -206,6 +206,9 @@ class _Seg:
     order: int = 0  # transmission number of its latest transmission
     queued: bool = True  # waiting for (re)transmission or being written
     acked: bool = False
+    # (start, end, times) of the messages it carries bytes of, from its first transmission: an ACK that beats the
+    # writer's written() delivers them (they leave _msgs), and their line times must still see the write's end
+    msgs: list[tuple[int, int, MessageTimes]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -595,28 +598,29 @@ class Arq(SessionView):
             self._txmap.popitem(last=False)
         return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end), self._txid)
 
+    def _carried(self, seg: _Seg) -> list[tuple[int, int, MessageTimes]]:
+        """(start, end, times) of the messages ``seg`` carries bytes of, remembered on it at its first call."""
+        if not seg.msgs:
+            for m in self._msgs:
+                if m.start >= seg.end:
+                    break
+                t = self._times.get(m.id)
+                if m.end > seg.start and t is not None:
+                    seg.msgs.append((m.start, m.end, t))
+        return seg.msgs
+
     def _stamp(self, seg: _Seg, started: float, now: float) -> None:
         """First transmission of ``seg``: the line times of the messages it starts or ends."""
-        for m in self._msgs:
-            if m.start >= seg.end:
-                break
-            t = self._times.get(m.id)
-            if t is None:
-                continue
-            if seg.start <= m.start and (t.first_tx is None or t.first_tx < started):
+        for m_start, m_end, t in self._carried(seg):
+            if seg.start <= m_start and (t.first_tx is None or t.first_tx < started):
                 t.first_tx = started
-            if seg.start < m.end <= seg.end:
+            if seg.start < m_end <= seg.end:
                 t.written = now
 
     def _last_write(self, seg: _Seg, now: float) -> None:
         """Any write of ``seg``: the latest line time of the messages it carries bytes of."""
-        for m in self._msgs:
-            if m.start >= seg.end:
-                break
-            if m.end > seg.start:
-                t = self._times.get(m.id)
-                if t is not None:
-                    t.last_tx = now
+        for _, _, t in self._carried(seg):
+            t.last_tx = now
 
     def written(
         self, token: int | None, nbytes: int, now: float, ok: bool = True, started: float | None = None
@@ -636,11 +640,11 @@ class Arq(SessionView):
             return  # acknowledged already, or transmitted again since
         seg.sent_at = now if ok else now - self._rto * self._backoff  # a timed-out write counts as lost at once
         self._last_write(seg, now)
+        if seg.tx == 1:  # even when the ACK beat this call: the messages' line times end with the write
+            self._stamp(seg, now if started is None else started, now)
         if seg.acked:
             return
         seg.queued = False
-        if seg.tx == 1:
-            self._stamp(seg, now if started is None else started, now)
 
     # ------------------------------------------------------------------ receiving
     def receive(self, data: bytes, now: float) -> None:

@@ -80,6 +80,30 @@ def test_line_time_ends_at_the_last_byte_written_not_at_its_late_acknowledgement
     assert t.line_s == pytest.approx(len(encode_message(msg)) / rate, rel=0.25, abs=0.02)  # ... on the line for this
 
 
+def test_line_time_ends_at_the_write_even_when_its_ack_came_first():
+    """Under load the reader thread took the peer's ACK before the writer recorded its write's end: the message was
+    delivered (and left the queue the line times were looked up in), and its "line s" ended at the moment the last
+    segment was handed to the writer, before that segment's own line time (0.54 s read for 0.83 s; a CI run failed
+    on it). The write's end now reaches the message's times whatever came first."""
+    line = pair()
+    a, b = line.eps
+    msg = Heartbeat(time_s=1.0, counter=3)
+    (i,) = send(line, [msg])
+    t0 = line.now
+    out = a.next_frame(t0)
+    assert out is not None
+    data, token = out
+    b.receive(data, t0 + 0.5)  # the bytes arrived; the peer acknowledges at once
+    ack = b.next_frame(t0 + 0.5)
+    assert ack is not None
+    a.receive(ack[0], t0 + 0.6)
+    assert a.outcome(i) == "delivered"
+    a.written(token, len(data), t0 + 0.55, started=t0 + 0.05)  # the writer's record comes last
+    t = a.times(i)
+    assert t is not None and t.first_tx == pytest.approx(t0 + 0.05) and t.written == pytest.approx(t0 + 0.55)
+    assert t.line_s == pytest.approx(0.5)
+
+
 @pytest.mark.parametrize("corrupt", [1e-4, 1e-3])
 def test_noisy_line_loses_nothing(corrupt):
     """drop, flip and duplicate each at ``corrupt`` per byte, both directions: all delivered, once, in order."""
