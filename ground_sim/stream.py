@@ -88,6 +88,7 @@ from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, H
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
 from protocol.quiet import Quieter
+from protocol.stall import StallClock
 from reports.console import printable
 from reports.html import write_atomic
 
@@ -107,8 +108,6 @@ UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the console from this long
-ZMQ_RELEASE_SLACK_S = 0.05  # a ZeroMQ frame released later than this after libzmq took it: a slow path
-OWN_STALL_S = 1.0  # a 0.2 s wait this much longer: this process was stopped, not its peer
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -706,19 +705,20 @@ def stream_descent(
             take_refusals(want)  # nothing received is waiting: refusals are matched to pairs now
             if not want:
                 return
-            t0 = time.monotonic()
             pkt = link.recv_packet(timeout=0.2)
-            stopped(time.monotonic() - t0 - 0.2)  # before the answer is taken: its latency includes a stop
+            stopped()  # before the answer is taken: its latency includes a stop
             if pkt is not None:
                 handle(pkt, want)
 
-    def stopped(gap: float) -> None:
-        """A 0.2 s wait that took ``gap`` s longer: this process was not scheduled (SIGSTOP, a paused VM). The
-        pairs in flight meanwhile are marked, as their latency, measured here, includes the stop (an answer that
-        came in time read as MISSED at 8 s without a word)."""
-        if gap <= OWN_STALL_S:
+    def stopped() -> None:
+        """What :class:`protocol.stall.StallClock` saw since the last look: this process was not scheduled
+        (SIGSTOP, a paused VM), while it waited, sent or drained. The pairs awaiting their Result meanwhile are
+        marked, as their latency, measured here, includes the stop (an answer that came in time read as MISSED
+        at 8 s without a word); a pair whose Result is in has its latency already."""
+        gap = stall.take()
+        if not gap:
             return
-        hit = [o for o in outcomes.values() if o.sent_at and not o.finished]
+        hit = [o for o in outcomes.values() if o.sent_at and o.result is None and not o.finished]
         for o in hit:
             o.ground_stopped_s += gap
         if hit:
@@ -729,6 +729,7 @@ def stream_descent(
         """Take what has arrived, without waiting: with ``asap`` pacing the answers to the first pairs come in
         while the next pairs' frames are still on the line, and are recorded (and shown) then, not after the
         last pair is sent; so are the refusals among them."""
+        stopped()
         while want:  # what has arrived counts even when the session has since been lost
             pkt = link.recv_packet(timeout=0.0)
             if pkt is None:
@@ -799,16 +800,11 @@ def stream_descent(
         o.frames_written_at = t_low.written if t_low is not None else None
         # not its "written" time: a paced writer records it after the line time, and a fast answer can beat that
         o.last_frame_started = (t_low.first_tx if t_low is not None else None) or o.sent_at
-        # ZeroMQ: "written" is libzmq taking the frame, "delivered" its release of the bytes to the kernel, seen at
-        # the link's next poll (20 ms). Through a 500 kB/s path the release came seconds later and the uplink
-        # counted against the deadline; on a fast path the poll's lag would count in the deadline's favour
+        # ZeroMQ: "written" is libzmq taking the frame, "delivered" its release of the bytes to the kernel (the
+        # earliest it can have been, protocol.links). Through a 500 kB/s path the release came seconds later and
+        # the uplink counted against the deadline
         released = t_low.delivered if isinstance(link, ZmqLink) and t_low is not None else None
-        if (
-            released is not None
-            and t_low is not None
-            and t_low.written
-            and released - t_low.written > ZMQ_RELEASE_SLACK_S
-        ):
+        if released is not None and t_low is not None and t_low.written and released > t_low.written:
             o.frames_written_at = released
         if t_up is not None and t_low is not None and t_up.first_tx is not None and t_low.delivered is not None:
             o.frames_line_s = t_low.delivered - t_up.first_tx
@@ -833,6 +829,7 @@ def stream_descent(
 
     in_flight: set[tuple[int, int]] = set()  # asap pacing: pairs sent and not yet answered
     late: set[tuple[int, int]] = set()  # lockstep pacing: pairs the ground stopped waiting for, not yet answered
+    stall = StallClock()
     try:
         for i, entry in enumerate(entries):
             o = new_outcome(i, entry)
@@ -901,6 +898,7 @@ def stream_descent(
                 until = time.monotonic() + timeout * max(1, len(pending))
             if progress is not None and until - time.monotonic() >= UPLINK_NOTE_S:
                 note(f"waiting up to {until - time.monotonic():.0f} s for the answers to {len(pending)} pair(s)")
+            drain(pending)  # what has arrived already: in lockstep `until` is often past, and collect reads nothing
             collect(until, pending)
         for type_code, reason in link.take_refusals():  # after every pair's end: counted, no pair to blame
             refused(type_code, reason, set())
@@ -934,6 +932,8 @@ def stream_descent(
         save()
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
         raise
+    finally:
+        stall.close()
     return records
 
 

@@ -62,6 +62,7 @@ from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
 from protocol.quiet import Quieter
 from protocol.session import SessionState, SessionView
+from protocol.stall import OWN_STALL_S
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 # A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
@@ -105,7 +106,6 @@ class LinkEvent:
 
 # the ZMTP handshake's own word for one side with CURVE and the other without (--insecure)
 MECHANISM_MISMATCH_TEXT = "security mechanisms differ: one side has CURVE keys, the other runs --insecure"
-OWN_STALL_S = 1.0  # an I/O loop that polls every 20 ms and saw this gap was itself stopped, not its peer
 
 
 class Link:
@@ -662,6 +662,7 @@ class ZmqLink(Link, SessionView):
         self._cv = threading.Condition()
         self._out: deque[_ZOut] = deque()
         self._trackers: deque[tuple[int, str, Any]] = deque()
+        self._head_pending_at = 0.0  # when the oldest tracker was last seen not done: its release came after
         self._outcomes: OrderedDict[int, str] = OrderedDict()
         self._times: OrderedDict[int, MessageTimes] = OrderedDict()
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
@@ -1012,14 +1013,19 @@ class ZmqLink(Link, SessionView):
             self._lose(reason)
 
     def _retire_trackers(self, now: float) -> None:
-        """Caller holds the lock: messages whose frames libzmq has released are ``sent``."""
+        """Caller holds the lock: messages whose frames libzmq has released are ``sent``. Their ``delivered`` is
+        the last time they were seen unreleased (or taken): the release came after it, by up to a poll and the
+        loop's lag. This earliest bound errs against the deadline; ``now``, up to a loaded loop's lag later,
+        erred in its favour."""
         while self._trackers and self._trackers[0][2].done:
             mid, _, _ = self._trackers.popleft()
             if self._outcomes.get(mid) == "pending":
                 self._remember(self._outcomes, mid, "sent")
                 t = self._times.get(mid)
                 if t is not None:
-                    t.delivered = now
+                    t.delivered = max(t.written or 0.0, self._head_pending_at)
+        if self._trackers:
+            self._head_pending_at = now
 
     def _send_pending(self, now: float) -> None:
         zmq = self._zmq

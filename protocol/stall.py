@@ -1,0 +1,63 @@
+"""Stops of this whole process (SIGSTOP, a paused VM, a starved host), told apart from a loop's own busy time.
+
+A watchdog that reads a peer's silence from the wall clock blames the peer for the time its own process was not
+scheduled: an 8 s SIGSTOP of the HIL server killed a healthy flight process as hung. Measuring the gap between
+two turns of the watchdog's own loop also counts the loop's work (a flight restart, encoding a 1024² Result:
+0.4 s), and called that a stop. :class:`StallClock` ticks on a thread of its own every ``tick_s``: every thread
+of a process stops together, so a tick that came ``threshold_s`` late is a stop of the process, and a busy
+loop elsewhere is not one (the ticker needs the GIL only for a moment; Python hands it over every 5 ms).
+
+The HIL server's watchdogs and the ground's latency notes read it; the ZeroMQ link's I/O loop, which does
+nothing but poll, measures its own turns (:mod:`protocol.links`) with the same threshold.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+OWN_STALL_S = 1.0  # a 50 ms tick this much late: the process was stopped (a loaded host delays a tick by ms)
+TICK_S = 0.05
+
+
+class StallClock:
+    """Sums the stops of this process that a ticker thread sees; :meth:`take` hands over what it saw since the
+    last call. A context manager; the thread is a daemon and ends with :meth:`close`."""
+
+    def __init__(self, threshold_s: float = OWN_STALL_S, tick_s: float = TICK_S) -> None:
+        if not (0 < tick_s < threshold_s):
+            raise ValueError(f"need 0 < tick_s < threshold_s, got {tick_s!r}, {threshold_s!r}")
+        self.threshold_s, self.tick_s = float(threshold_s), float(tick_s)
+        self._lock = threading.Lock()
+        self._pending = 0.0
+        self.total_s = 0.0  # every stop seen, taken or not
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._tick, name="stall-clock", daemon=True)
+        self._thread.start()
+
+    def _tick(self) -> None:
+        last = time.monotonic()
+        while not self._closed.wait(self.tick_s):
+            now = time.monotonic()
+            late = now - last - self.tick_s
+            if late > self.threshold_s:
+                with self._lock:
+                    self._pending += late
+                    self.total_s += late
+            last = now
+
+    def take(self) -> float:
+        """Seconds this process was stopped since the last call (0.0: none beyond ``threshold_s``)."""
+        with self._lock:
+            gap, self._pending = self._pending, 0.0
+        return gap
+
+    def close(self) -> None:
+        self._closed.set()
+        self._thread.join(timeout=1.0)
+
+    def __enter__(self) -> StallClock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
