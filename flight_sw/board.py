@@ -101,7 +101,7 @@ class GroundSession:
             say, unsaid, _ = self._refusals.offer("refused", now, f"{what}: {reason}")
             if say:
                 n = self._refusals.seen("refused")
-                more = " (the rest are summed every 10 s)" if n == REFUSALS_SAID else ""
+                more = " (from now on at most one line per 10 s, with a count)" if n == REFUSALS_SAID else ""
                 before = f" ({unsaid} more refused before it, not shown)" if unsaid else ""
                 self.log(f"flight: refused a {what} from the link: {reason}{before}{more}")
         for _, unsaid, since, latest in self._refusals.due(now):

@@ -538,8 +538,8 @@ def off_map_note(summary: dict) -> str:
         return ""
     which = ", ".join(str(r.get("label")) for r in off[:5])
     return (
-        f"{len(off)} Result(s) mapped none of the upper image's ground ({which}): their grid lies elsewhere (its "
-        "origin, cell size or axes?), so nothing of them was scored"
+        f"{len(off)} Result(s) mapped none of the upper image's ground ({which}): every cell is marked outside, or "
+        "the grid lies elsewhere (its origin, cell size or axes?), so nothing of them was scored"
     )
 
 
@@ -951,14 +951,15 @@ class _Signals:
     """SIGINT/SIGTERM/SIGHUP raise :class:`_Interrupted` in the main thread while armed; later ones are only
     noted (a closed terminal or ssh session ends a run with its summary, as Ctrl-C does)."""
 
-    def __init__(self) -> None:
+    def __init__(self, armed: bool = True) -> None:
+        self.arm_on_enter = armed  # False: only noted from the start (a signal between arming and disarming raised)
         self.armed = False
         self.received: int | None = None
         self.saved: dict[int, object] = {}
 
     def __enter__(self) -> _Signals:
         if threading.current_thread() is threading.main_thread():
-            self.armed = True
+            self.armed = self.arm_on_enter
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
                     continue  # under nohup a hangup stays ignored
@@ -1407,8 +1408,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             reason = f"interrupted by {signal.Signals(interrupted).name}"
     # a Ctrl-C while the records are scored and the pages written (up to ~3 s) left summary.json saying "in
     # progress" and no report.html: noted, not raised, and said once they are written whole
-    with _Signals() as late:
-        late.disarm()
+    with _Signals(armed=False) as late:
         wall = time.monotonic() - t0
 
         entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)

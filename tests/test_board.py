@@ -475,7 +475,7 @@ def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
     [
         ({"flight": "board"}, "'flight' must be 'emulated' or 'external'"),
         ({"flight": "external", "link": "serial"}, "a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT"),
-        ({"deadline_s": -1}, "'deadline_s' must be a positive number"),
+        ({"deadline_s": -1}, "'deadline_s' must be a number of seconds in (0, 3600]"),
         ({"image_size": "128"}, "'image_size' must be an integer number of pixels in 32..4096, got '128'"),
         ({"image_size": 8}, "'image_size' must be an integer number of pixels"),
         ({"seed": -1}, "'seed' must be an integer >= 0"),
@@ -612,7 +612,7 @@ def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypa
     ground = GroundSession(link, log=said.append)
     assert ground.recv(0.01) is None
     assert ground.counters["refused"] == 40 and len(said) == board.REFUSALS_SAID
-    assert said[-1].endswith("(the rest are summed every 10 s)")
+    assert said[-1].endswith("(from now on at most one line per 10 s, with a count)")
     clock[0] += board.REFUSALS_QUIET_S  # the quiet time is over: the sum is said, on a timer ...
     assert ground.recv(0.01) is None
     assert said[-1].startswith("flight: refused 35 more message(s) from the link in the last 10 s"), said[-1]
