@@ -658,8 +658,8 @@ def summary_table(summary: dict) -> str:
     from reports.console import printable
 
     rows = [
-        "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % | CDI % "
-        "| DEM mean abs m | top site |",
+        "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % (grid) "
+        "| CDI % (grid) | DEM mean abs m (grid) | top site |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in summary["records"]:
@@ -709,7 +709,14 @@ def summary_table(summary: dict) -> str:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
-    return head + "\n\n" + "\n".join(rows) + "\n"
+    return head + "\n\n" + "\n".join(rows) + "\n\n" + GRID_SCORES_NOTE + "\n"
+
+
+# the run's and `score`'s figures for the same pair differ a little (CDI 25.97 against 25.2): said where both are read
+GRID_SCORES_NOTE = (
+    "(grid): scored from each Result's world grids, read at each pixel's true ground point; `hazard-hil score PAIRS "
+    "OUT/received` scores the full-resolution image maps (`run --full-maps`), so its figures differ a little."
+)
 
 
 def _write_json(path: Path, doc: dict) -> None:

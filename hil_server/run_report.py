@@ -239,6 +239,9 @@ def write_run_report(summary: dict, path: Path) -> Path:
 
     if budget_note(s):
         intro.append(budget_note(s)[0].upper() + budget_note(s)[1:] + ".")
+    from hil_server.run import GRID_SCORES_NOTE
+
+    intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
     sections = [

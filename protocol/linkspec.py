@@ -141,6 +141,35 @@ def _check_resolves(endpoint: str) -> None:
         raise InputError(f"ZeroMQ endpoint {endpoint!r}: host {host!r} does not resolve ({exc})") from None
 
 
+def _check_bindable(endpoint: str) -> None:
+    """The binding side's host and port, tried now with a socket of our own: a name that does not resolve, an
+    address not this machine's or a port in use was said by libzmq only after a board's warm-up (``cannot bind
+    ...: Resource temporarily unavailable``). A port taken between this check and the bind is still said then."""
+    import errno
+    import socket
+
+    host, _, port = endpoint[len("tcp://") :].rpartition(";")[2].rpartition(":")
+    host = host.strip("[]")
+    if port == "*":
+        return
+    try:
+        infos = socket.getaddrinfo(None if host == "*" else host, int(port), type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError, ValueError) as exc:
+        raise InputError(f"ZeroMQ endpoint {endpoint!r}: host {host!r} does not resolve ({exc})") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as libzmq's listener: TIME_WAIT is no bar
+        try:
+            probe.bind(addr)
+        except OSError as exc:
+            why = {
+                errno.EADDRINUSE: f"port {port} is in use (another board or run?)",
+                errno.EADDRNOTAVAIL: f"{host!r} is not an address of this machine",
+                errno.EACCES: f"port {port} needs privileges",
+            }.get(exc.errno or 0, exc.strerror or str(exc))
+            raise InputError(f"ZeroMQ endpoint {endpoint!r}: cannot bind: {why}") from None
+
+
 def check_link_spec(
     spec: str,
     *,
@@ -168,8 +197,8 @@ def check_link_spec(
                 f"ZeroMQ endpoint {rest!r}: inproc:// joins threads of one process; another process needs "
                 "tcp://HOST:PORT or ipc://PATH"
             )
-        if not server and rest.startswith("tcp://"):
-            _check_resolves(rest)
+        if rest.startswith("tcp://"):
+            (_check_bindable if server else _check_resolves)(rest)
         if check_keys:
             check_zmq_security(rest, keys, insecure)
             if keys is not None and not insecure:

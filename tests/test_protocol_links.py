@@ -687,3 +687,22 @@ def test_a_stop_is_forgiven_once_until_the_peer_is_heard_again():
         S._last_heard = time.monotonic()  # the peer is heard
         S._forgive(3.0)
         assert S._last_heard > heard + 3.0
+
+
+def test_a_board_endpoint_it_could_not_bind_is_said_before_any_work():
+    """`flight --link zmq:tcp://nosuchhost...` and a port in use failed only after the board's warm-up, in libzmq's
+    words ("Resource temporarily unavailable")."""
+    from protocol.linkspec import check_link_spec
+
+    with pytest.raises(InputError, match=r"host 'nosuchhost\.invalid' does not resolve"):
+        check_link_spec("zmq:tcp://nosuchhost.invalid:47031", server=True, insecure=True)
+    with pytest.raises(InputError, match=r"'192\.0\.2\.7' is not an address of this machine"):
+        check_link_spec("zmq:tcp://192.0.2.7:47031", server=True, insecure=True)  # TEST-NET-1: no host has it
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        with pytest.raises(InputError, match=f"cannot bind: port {port} is in use"):
+            check_link_spec(f"zmq:tcp://127.0.0.1:{port}", server=True, insecure=True)
+    check_link_spec(f"zmq:tcp://127.0.0.1:{port}", server=True, insecure=True)  # free again
+    check_link_spec("zmq:tcp://127.0.0.1:*", server=True, insecure=True)
