@@ -64,6 +64,22 @@ def test_pair_without_shared_ground_writes_strict_json_and_warns(tmp_path, capsy
     assert strict_json(out / "nooverlap" / "pair.json")["hazards_in_scene_pct"] is None
 
 
+def test_a_pair_with_almost_no_baseline_or_shared_ground_is_rendered_with_a_warning(tmp_path, capsys):
+    """`--frames 300,299.9999` rendered a "300/300" pair with a 0.1 mm baseline, and a pair whose frames share under
+    1 % of the ground, each without a word; the pair reader's own notes knew the first."""
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(299.9999, 10)], "flat")
+    argv = ["render", "--scenario", str(traj), "--out", str(tmp_path / "a"), "--no-progress", "--workers", "1"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "warning: pair flat: the baseline between the first and last frame is 0.0001 m, under 1 %" in err, err
+    traj = trajectory(tmp_path, [_frame(300, 0), _frame(150, 10, x=115)], "edge")
+    argv = ["render", "--scenario", str(traj), "--out", str(tmp_path / "b"), "--no-progress", "--workers", "1"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    share = strict_json(tmp_path / "b" / "edge" / "pair.json")["overlap_pct"]
+    assert 0 < share < 2 and f"its last frame sees only {share:.2g} % of frame 0's pixels' ground" in err, err
+
+
 def test_position_the_pair_reader_refuses_is_refused_before_rendering(tmp_path, capsys, no_rendering):
     traj = trajectory(tmp_path, [_frame(1e12, 0), _frame(150, 10)])
     err = one_line_error(capsys, ["render", "--scenario", str(traj), "--out", str(tmp_path / "out")])
