@@ -37,6 +37,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -599,6 +600,19 @@ def _line_note(line: dict) -> str:
     )
 
 
+UNLOGGED_LINE = re.compile(rb"procemu: (\d+) more bytes of the flight process's output were not logged")
+
+
+def unlogged_output_bytes(log: Path) -> int:
+    """The flight process's output the emulated processor counted but did not log (its 4 MiB cap), summed over the
+    incarnations in the HIL server's log; 0 when none or no log."""
+    try:
+        data = log.read_bytes()
+    except OSError:
+        return 0
+    return sum(int(m.group(1)) for m in UNLOGGED_LINE.finditer(data))
+
+
 def _server_note(summary: dict, c: dict) -> str:
     if summary.get("budget") is not None and not c and summary.get("complete"):
         return "the HIL server's counters are missing (see supervisor.log)"
@@ -628,6 +642,9 @@ def _server_note(summary: dict, c: dict) -> str:
         n = int(c.get(key) or 0)
         if n:
             parts.append(f"{n} {one if n == 1 else many}")
+    unlogged = int(summary.get("flight_output_unlogged_bytes") or 0)
+    if unlogged:  # a program printing in a loop: said only at supervisor.log's end before
+        parts.append(f"{unlogged / 2**20:.1f} MiB of its output past supervisor.log's cap, counted, not logged")
     if not parts:
         return ""
     events = summary.get("flight_events") or []
@@ -1449,6 +1466,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 "memory_mib": budget.memory_mib if emulated else None,
                 "wall_s": wall,
                 "supervisor_counters": counters,
+                "flight_output_unlogged_bytes": unlogged_output_bytes(out / "supervisor.log"),
                 "flight_events": list(flight_events),
                 # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
                 "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],
