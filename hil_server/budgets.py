@@ -693,6 +693,11 @@ def calibration_age_days(cal: HostCalibration, now: _dt.datetime | None = None) 
     return ((now or _dt.datetime.now(_dt.UTC)) - when).total_seconds() / 86400.0
 
 
+# `calibrate` measures the rate again (at most REMEASURE_TRIES times) while its batches spread more than this:
+# `make demo`'s first-time calibration read 53.7 units/s at a spread of 24.7 %, just under the noisy mark, where
+# the same host measured 68-79 at 3-7 % (stop 56's budget QA), and every budget's speed rested on it
+REMEASURE_SPREAD = 0.15
+REMEASURE_TRIES = 2
 NOISY_CALIBRATION_SPREAD = 0.25  # (p90 - p10) / median of the batches: above this, other work shared the core
 
 
@@ -757,6 +762,12 @@ def calibrate_host(
     if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 < seconds <= 600):
         raise BudgetError(f"calibration time must be in (0, 600] s, got {seconds!r}")
     rate = measure_rate(float(seconds))
+    for _ in range(REMEASURE_TRIES):  # a noisy one is measured again, the least noisy kept
+        if rate.spread <= REMEASURE_SPREAD:
+            break
+        if progress is not None:
+            progress(f"the reference rate's batches spread {rate.spread:.0%} (other work on the core?): once more")
+        rate = min(rate, measure_rate(float(seconds)), key=lambda r: r.spread)
     fractions = EFFICIENCY_FRACTIONS if efficiency_fractions is None else efficiency_fractions
     eff = measure_throttle_efficiency(fractions, progress=progress) if fractions else ()
     cal = HostCalibration(

@@ -450,3 +450,15 @@ def test_a_runs_summary_says_what_its_budget_stood_for_and_on_what_calibration()
     )
     assert "faster than this host's core" in said and "pessimistic" in said and "(from /b.toml)" in said
     assert budget_note({"budget": None, "budget_speed": None}) == ""
+
+
+def test_a_noisy_rate_is_measured_again_and_the_least_noisy_kept(home, monkeypatch):
+    """`make demo`'s first calibration read 53.7 units/s at a 24.7 % batch spread, just under the noisy mark, where
+    the same host measured 68-79 at 3-7 %: every budget's speed rested on it."""
+    from hil_server import calibrate
+
+    rates = iter([calibrate.WorkloadRate(53.7, 0.247, 10, 2.0, 1), calibrate.WorkloadRate(72.0, 0.04, 10, 2.0, 1)])
+    monkeypatch.setattr(calibrate, "measure_rate", lambda seconds: next(rates))
+    said: list[str] = []
+    cal = B.calibrate_host(seconds=2.0, efficiency_fractions=(), progress=said.append)
+    assert cal.units_per_s == 72.0 and cal.spread == 0.04 and "once more" in said[0]
