@@ -903,10 +903,10 @@ class Supervisor:
         for st in self.pairs.values():
             if not st.done and st.complete_at is not None:
                 st.stopped_s += gap
-        if reader is not None:
-            # a read-modify-write racing the reader's store of a new message: at worst a message's time is lost
-            # to the gap, which only delays a verdict of silence
-            reader.last_message += gap
+        if reader is not None and heard is not None:
+            # the reader thread may store a newer message's time meanwhile: the later of the two stands (a plain
+            # += could put back an older time and make the silence look longer)
+            reader.last_message = max(reader.last_message, heard + gap)
             self._forgave_at = reader.last_message
         self.log(f"supervisor: this process was not scheduled for {gap:.1f} s; the flight process is not blamed for it")
 

@@ -4,8 +4,9 @@ A watchdog that reads a peer's silence from the wall clock blames the peer for t
 scheduled: an 8 s SIGSTOP of the HIL server killed a healthy flight process as hung. Measuring the gap between
 two turns of the watchdog's own loop also counts the loop's work (a flight restart, encoding a 1024² Result:
 0.4 s), and called that a stop. :class:`StallClock` ticks on a thread of its own every ``tick_s``: every thread
-of a process stops together, so a tick that came ``threshold_s`` late is a stop of the process, and a busy
-loop elsewhere is not one (the ticker needs the GIL only for a moment; Python hands it over every 5 ms).
+of a process stops together, so a tick that came ``threshold_s`` late is a stop of the process, and a loop busy
+in Python bytecode elsewhere is not one (the ticker needs the GIL only for a moment; Python hands it over every
+5 ms). A C call that holds the GIL for over ``threshold_s`` (a huge ``json.dumps``) is still taken for a stop.
 
 The HIL server's watchdogs and the ground's latency notes read it; the ZeroMQ link's I/O loop, which does
 nothing but poll, measures its own turns (:mod:`protocol.links`) with the same threshold.
@@ -29,26 +30,32 @@ class StallClock:
             raise ValueError(f"need 0 < tick_s < threshold_s, got {tick_s!r}, {threshold_s!r}")
         self.threshold_s, self.tick_s = float(threshold_s), float(tick_s)
         self._lock = threading.Lock()
+        self._last = time.monotonic()  # the last look at the clock, the ticker's or take()'s
         self._pending = 0.0
         self.total_s = 0.0  # every stop seen, taken or not
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._tick, name="stall-clock", daemon=True)
         self._thread.start()
 
+    def _look(self, now: float) -> None:
+        """Caller holds the lock: a stop since the last look (the ticker's or :meth:`take`'s) is counted, once."""
+        late = now - self._last - self.tick_s
+        if late > self.threshold_s:
+            self._pending += late
+            self.total_s += late
+        self._last = now
+
     def _tick(self) -> None:
-        last = time.monotonic()
         while not self._closed.wait(self.tick_s):
-            now = time.monotonic()
-            late = now - last - self.tick_s
-            if late > self.threshold_s:
-                with self._lock:
-                    self._pending += late
-                    self.total_s += late
-            last = now
+            with self._lock:
+                self._look(time.monotonic())
 
     def take(self) -> float:
-        """Seconds this process was stopped since the last call (0.0: none beyond ``threshold_s``)."""
+        """Seconds this process was stopped since the last call (0.0: none beyond ``threshold_s``). A stop the
+        ticker has not ticked after yet is counted here: after SIGCONT the caller's loop may run first (a watchdog
+        then judged a healthy flight process silent in 3 of 6 stops)."""
         with self._lock:
+            self._look(time.monotonic())
             gap, self._pending = self._pending, 0.0
         return gap
 

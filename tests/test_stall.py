@@ -18,8 +18,9 @@ from protocol.stall import StallClock
 with StallClock() as clock:
     print("ready", flush=True)
     sys.stdin.readline()          # the parent stops us meanwhile, then says go
-    time.sleep(0.2)               # a tick after the stop
-    print(f"{clock.take():.3f} {clock.take():.3f}", flush=True)
+    first = clock.take()          # at once: the ticker need not have ticked since the stop
+    time.sleep(0.2)
+    print(f"{first:.3f} {clock.take():.3f}", flush=True)
 """
 
 
@@ -37,6 +38,20 @@ def test_a_stop_of_the_whole_process_is_measured_once():
         p.kill()
         p.wait()
     assert 1.5 < first < 4.0 and second == 0.0  # the stop, minus a tick; taken once
+
+
+def test_a_stop_the_ticker_has_not_ticked_after_is_taken_by_the_caller(monkeypatch):
+    """After SIGCONT the caller's loop may run before the ticker thread: a take() then read 0 and the watchdog judged a
+    healthy flight process silent (3 of 6 stops in a copy of the HIL server's loop)."""
+    from protocol import stall
+
+    clock = StallClock()
+    clock.close()  # no ticker: only take() looks
+    now = [time.monotonic() + 5.0]  # 5 s since the last look: a stop
+    monkeypatch.setattr(stall.time, "monotonic", lambda: now[0])
+    assert clock.take() == pytest.approx(5.0 - clock.tick_s, abs=0.01) and clock.take() == 0.0  # counted once
+    now[0] += 0.5
+    assert clock.take() == 0.0  # a busy half second is no stop
 
 
 def test_a_busy_or_blocked_loop_is_not_a_stop():
