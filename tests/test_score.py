@@ -255,6 +255,10 @@ def test_an_image_the_pair_keeps_in_a_subdirectory_is_not_overwritten_by_a_repor
     assert main(["score", str(d), str(out), "--csv", str(d / "img" / "frame0.png")]) == 2
     assert "is one of the files this scoring reads" in capsys.readouterr().err
     assert (d / "img" / "frame0.png").read_bytes() == before
+    # a report of one's own beside the pair is written, and written again (any file in it was refused at first)
+    for _ in range(2):
+        assert main(["score", str(d), str(out), "--csv", str(d / "scores.csv")]) in (0, 1)
+    assert (d / "scores.csv").read_text().startswith("pair,")
 
 
 def test_bad_usage_is_exit_2(descent, tmp_path, capsys):
