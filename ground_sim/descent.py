@@ -350,7 +350,14 @@ def render_scenario(
     for i, ps in enumerate(specs):
         vs, k = views[k : k + len(ps.poses)], k + len(ps.poses)
         pair = assemble_pair(sc, ps, sun, vs, seed=seed, pose_error=pose_error)
-        d = write_pair_atomic(out / ps.label.replace("/", "_"), pair, replace=True)
+        kept: list[str] = []
+        d = write_pair_atomic(out / ps.label.replace("/", "_"), pair, replace=True, kept=kept)
+        if kept:  # a `process --out PAIR/out` was made from the frames this render replaced
+            names = ", ".join(kept[:5]) + (", ..." if len(kept) > 5 else "")
+            sys.stderr.write(
+                f"note: render: kept {len(kept)} file(s) of your own in {d}: {names} (made from the frames this "
+                "render replaced, if outputs)\n"
+            )
         if written is not None:
             written.append(d.name)
         entries.append(

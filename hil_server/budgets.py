@@ -442,6 +442,8 @@ def _parse_anchor(doc: dict, where: str) -> Anchor:
 
 
 MAX_BUDGET_NAME = 40
+# what a budget stands for: a user's file may not change them under a shipped name, and regress records them
+BUDGET_FIGURES = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")
 BUDGET_KEYS = frozenset({"description", "cpu_dmips", "memory_mib", "deadline_s", "link", "baud", "source"})
 
 
@@ -540,10 +542,7 @@ def _refuse_redefined(budgets: dict[str, Budget], p: Path) -> None:
             )
         if s is None:
             continue
-        fields = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")
-        changed = [f for f in fields if getattr(b, f) != getattr(s, f)]
-        if b.cpu_dmips is not None and b.anchor.dmips != s.anchor.dmips:
-            changed.append("anchor dmips")
+        changed = [f for f in BUDGET_FIGURES if getattr(b, f) != getattr(s, f)]  # the anchor: _refuse_other_anchor
         if changed:
             raise BudgetError(
                 f"{p} [budget.{name}]: redefines the shipped budget {name!r} ({', '.join(changed)} differ); "
@@ -604,10 +603,11 @@ def check_store_writable(path: Path | None = None) -> None:
     p = Path(path) if path is not None else calibration_path()
     if p.parent.exists() and not p.parent.is_dir():
         _read_store(p)  # its one-line error
+    # the store is replaced by a temporary file renamed over it, beside a lock file: its directory (or the nearest
+    # one that exists, where it will be made) must be writable; the file's own mode does not matter
     existing = next(a for a in (p.parent, *p.parent.parents) if a.exists())
-    target = p if p.exists() else existing
-    if not os.access(target, os.W_OK):
-        raise BudgetError(f"cannot write the calibration store {p}: {target} is not writable (HAZARD_HIL_HOME?)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise BudgetError(f"cannot write the calibration store {p}: {existing} is not writable (HAZARD_HIL_HOME?)")
 
 
 def _read_store(path: Path) -> dict:

@@ -250,7 +250,7 @@ def _register_emulation(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="F,F,...",
         help="duty cycles in [0.001, 1) to measure the throttle's efficiency at (default "
-        "0.005,0.01,0.02,0.05,0.1,0.2,0.5: about 25 s)",
+        "0.005,0.01,0.02,0.05,0.1,0.2,0.5: about 30 s)",
     )
     c.add_argument("--file", default=None, help="budget file whose anchor to report against")
     c.set_defaults(func=_calibrate)
@@ -371,7 +371,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     check_store_writable()
     anchor = next(iter(load_budgets(args.file).values())).anchor
     print(f"measuring the reference workload for ~{args.seconds:g} CPU seconds on one thread, then the throttle's")
-    print("efficiency at each duty cycle (about 25 s for the default ones)...")
+    print("efficiency at each duty cycle (about 30 s for the default ones)...")
     try:
         before = load_calibration()
     except BudgetError:  # an unreadable store: calibrate_host keeps it aside and starts afresh

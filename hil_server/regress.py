@@ -53,6 +53,8 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hil_server.budgets import BUDGET_FIGURES
+
 # The absolute term keeps tiny latencies from flapping; at 0.25 reference s it dominated every shipped case (the host
 # case could grow +95 %, a 256 px snapdragon801 case 4x, before it was flagged: stop 56's budget QA). At 0.1 the
 # 35 % governs the shipped cases (host: +38 %).
@@ -294,7 +296,7 @@ CASE_KEYS = frozenset(
 )
 # What a case's budget stood for when its metrics were recorded (`--update` writes it): a board file edited since
 # (2760 -> 400 DMIPS) read exactly as before, since latencies are in reference seconds (stop 56's budget QA)
-BUDGET_FIELDS = ("cpu_dmips", "memory_mib", "deadline_s", "link", "baud")
+BUDGET_FIELDS = BUDGET_FIGURES
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
 
 

@@ -644,7 +644,8 @@ def _server_note(summary: dict, c: dict) -> str:
             parts.append(f"{n} {one if n == 1 else many}")
     unlogged = int(summary.get("flight_output_unlogged_bytes") or 0)
     if unlogged:  # a program printing in a loop: said only at supervisor.log's end before
-        parts.append(f"{unlogged / 2**20:.1f} MiB of its output past supervisor.log's cap, counted, not logged")
+        size = f"{unlogged / 2**20:.1f} MiB" if unlogged >= 2**20 else f"{unlogged / 1024:.1f} kB"
+        parts.append(f"{size} of its output past supervisor.log's cap, counted, not logged")
     if not parts:
         return ""
     events = summary.get("flight_events") or []
@@ -1278,8 +1279,8 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 # after the render, right before the flight starts: the host as the run will find it
                 log(
                     f"run: checking the throttle's efficiency at {budget.name}'s duty cycle {fraction:.2%} "
-                    f"(about {throttle_check_seconds(budget, cal):.0f} s, twice that when a second round must confirm "
-                    "the first; --no-throttle-check skips it)"
+                    f"(about {throttle_check_seconds(budget, cal):.0f} s, more when a second round must confirm the "
+                    "first; --no-throttle-check skips it)"
                 )
                 try:
                     throttle = check_throttle(budget, cal)

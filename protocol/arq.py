@@ -599,7 +599,8 @@ class Arq(SessionView):
         return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end), self._txid)
 
     def _carried(self, seg: _Seg) -> list[tuple[int, int, MessageTimes]]:
-        """(start, end, times) of the messages ``seg`` carries bytes of, remembered on it at its first call."""
+        """(start, end, times) of the messages ``seg`` carries bytes of, remembered on it at its first call and
+        kept to its current range (a split for retransmission or a partial ACK narrows it)."""
         if not seg.msgs:
             for m in self._msgs:
                 if m.start >= seg.end:
@@ -607,7 +608,7 @@ class Arq(SessionView):
                 t = self._times.get(m.id)
                 if m.end > seg.start and t is not None:
                     seg.msgs.append((m.start, m.end, t))
-        return seg.msgs
+        return [m for m in seg.msgs if m[0] < seg.end and m[1] > seg.start]
 
     def _stamp(self, seg: _Seg, started: float, now: float) -> None:
         """First transmission of ``seg``: the line times of the messages it starts or ends."""

@@ -150,10 +150,13 @@ def _check_bindable(endpoint: str) -> None:
 
     host, _, port = endpoint[len("tcp://") :].rpartition(";")[2].rpartition(":")
     host = host.strip("[]")
-    if port == "*":
-        return
+    if port == "*" or host in {name for _, name in socket.if_nameindex()}:
+        return  # any port; or an interface name (tcp://eth0:PORT), which libzmq binds and getaddrinfo does not know
     try:
-        infos = socket.getaddrinfo(None if host == "*" else host, int(port), type=socket.SOCK_STREAM)
+        if host == "*":  # libzmq's wildcard: IPv4's, unless its IPv6 option is on (ours is not)
+            infos = socket.getaddrinfo(None, int(port), socket.AF_INET, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
+        else:
+            infos = socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
     except (OSError, UnicodeError, ValueError) as exc:
         raise InputError(f"ZeroMQ endpoint {endpoint!r}: host {host!r} does not resolve ({exc})") from None
     family, kind, proto, _, addr = infos[0]

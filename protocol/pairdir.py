@@ -482,14 +482,17 @@ def is_write_leftover(name: str) -> bool:
     return re.fullmatch(r".+\.(partial|old)[0-9]+", name) is not None
 
 
-def write_pair_atomic(directory: str | Path, pair: Pair, *, replace: bool = False) -> Path:
+def write_pair_atomic(
+    directory: str | Path, pair: Pair, *, replace: bool = False, kept: list[str] | None = None
+) -> Path:
     """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
     half-written directory. When the directory exists already, ``replace`` puts ours in its place (the old
     one is renamed aside first and removed after: a stop between the two renames leaves the old one beside,
     never a mix of both); otherwise the one there is kept and ours dropped (another process finished the
     same directory first: two studies rendering into one cache). Files of the old directory that are not
     a render's own (:func:`is_render_file`: a user's notes, a ``process --out PAIR/out``) are moved into the new
-    one, not deleted. A failed write (a full disk) leaves nothing and names the file. Returns the directory."""
+    one, not deleted, and their names added to ``kept``. A failed write (a full disk) leaves nothing and names the
+    file. Returns the directory."""
     import shutil
 
     d = Path(directory)
@@ -520,6 +523,8 @@ def write_pair_atomic(directory: str | Path, pair: Pair, *, replace: bool = Fals
         for entry in sorted(old.iterdir()):
             if not is_render_file(entry.name) and not (d / entry.name).exists():
                 os.replace(entry, d / entry.name)
+                if kept is not None:
+                    kept.append(entry.name)
         shutil.rmtree(old, ignore_errors=True)
     return d
 

@@ -93,7 +93,10 @@ def _private_group(uid: int, gid: int) -> bool:
         user, group = pwd.getpwuid(uid), grp.getgrgid(gid)
     except KeyError:
         return False
-    return user.pw_gid == gid and group.gr_name == user.pw_name and set(group.gr_mem) <= {user.pw_name}
+    if user.pw_gid != gid or group.gr_name != user.pw_name or not set(group.gr_mem) <= {user.pw_name}:
+        return False
+    # a member by another account's primary group is not in gr_mem
+    return not any(a.pw_gid == gid and a.pw_uid != uid for a in pwd.getpwall())
 
 
 def _private_to_its_owner(path: Path, what: str) -> None:

@@ -409,19 +409,19 @@ def test_calibrations_stored_at_once_each_keep_their_entry(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "calibration.json.lock"]
 
 
-def test_a_real_throttle_check_ends_confirmed_on_a_probe_process(home):
-    """The check runs the reference workload under the throttle on a probe process and stops at a verdict: one
-    round within the tolerance, or two."""
+def test_a_real_throttle_check_confirms_a_deviation_before_it_adopts_it(home):
+    """On a probe process: a calibration that says a throttled CPU-second does 0.2 of a full-speed one (no host loses
+    80 % at ~8 % duty) is measured beyond the tolerance, measured again, and adopted at the rounds' mean."""
     import dataclasses
 
-    cal = dataclasses.replace(_cal(60.0), throttle_efficiency=((0.05, 0.8), (0.2, 0.9)))
+    cal = dataclasses.replace(_cal(60.0), throttle_efficiency=((0.02, 0.2), (0.2, 0.2)))
     rad = B.get_budget("rad750")
-    quick = dataclasses.replace(rad, cpu_dmips=0.07 * cal.host_dmips(rad.anchor))  # ~0.09 duty: ~0.5 s a round
+    quick = dataclasses.replace(rad, cpu_dmips=0.015 * cal.host_dmips(rad.anchor))  # ~7.5 % duty: ~0.5 s a round
     assert B.needs_throttle_check(quick, cal)
     check = B.check_throttle(quick, cal)
-    assert check.confirmed and 1 <= len(check.rounds) <= B.THROTTLE_CHECK_ROUNDS
-    assert all(0.05 <= e <= 1.0 for e in check.rounds)
-    assert check.duty == pytest.approx(quick.duty(cal).applied) and check.calibrated == cal.efficiency(check.duty)
+    assert len(check.rounds) == B.THROTTLE_CHECK_ROUNDS and check.adopted, check
+    assert min(check.rounds) > 0.4 and check.measured == pytest.approx(sum(check.rounds) / len(check.rounds))
+    assert check.duty == pytest.approx(quick.duty(cal).applied) and check.calibrated == pytest.approx(0.2)
 
 
 def test_a_runs_summary_says_what_its_budget_stood_for_and_on_what_calibration():

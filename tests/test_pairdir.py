@@ -207,7 +207,9 @@ def test_a_replaced_pair_keeps_the_users_own_files_and_drops_the_old_renders(tmp
     (dest / "out").mkdir()
     (dest / "out" / "state.npy").write_bytes(b"x")
     (dest / "i3.png").write_bytes(b"an earlier render's frame")
-    write_pair_atomic(dest, make_pair(1), replace=True)
+    kept: list[str] = []
+    write_pair_atomic(dest, make_pair(1), replace=True, kept=kept)
+    assert kept == ["notes.txt", "out"]  # said by render
     assert (dest / "notes.txt").read_text() == "mine" and (dest / "out" / "state.npy").read_bytes() == b"x"
     assert not (dest / "i3.png").exists() and (dest / "pair.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300"]

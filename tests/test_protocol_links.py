@@ -281,8 +281,25 @@ def test_keys_are_private_files(tmp_path, monkeypatch):
 def test_a_key_directory_writable_by_its_owners_private_group_only_is_accepted(tmp_path, monkeypatch):
     """Under umask 002 (Debian's default for users with a private group) a key directory made by hand is 0775, yet
     only its owner may write it: refused since stop 56. Others' write, or a shared group's, still is."""
+    import grp
+    import pwd
+
     from protocol import zmqauth
     from protocol.zmqauth import client_keys, server_keys
+
+    def account(name, uid, gid):
+        return pwd.struct_passwd((name, "x", uid, gid, "", "/", "/bin/sh"))
+
+    users = [account("ann", 1000, 1000), account("bob", 1001, 1001)]
+    groups = {1000: grp.struct_group(("ann", "x", 1000, [])), 1001: grp.struct_group(("bob", "x", 1001, ["ann"]))}
+    monkeypatch.setattr(pwd, "getpwuid", lambda uid: next(u for u in users if u.pw_uid == uid))
+    monkeypatch.setattr(pwd, "getpwall", lambda: list(users))
+    monkeypatch.setattr(grp, "getgrgid", lambda gid: groups[gid])
+    assert zmqauth._private_group(1000, 1000)  # ann's own group, nobody else in it
+    assert not zmqauth._private_group(1001, 1001)  # bob's group lists ann
+    assert not zmqauth._private_group(1000, 1001)  # not ann's primary group
+    users.append(account("eve", 1002, 1000))  # eve's primary group is ann's: no gr_mem entry, a member all the same
+    assert not zmqauth._private_group(1000, 1000)
 
     d = generate_keys(tmp_path / "keys")
     monkeypatch.setattr(zmqauth, "_private_group", lambda uid, gid: True)
@@ -704,5 +721,12 @@ def test_a_board_endpoint_it_could_not_bind_is_said_before_any_work():
         port = held.getsockname()[1]
         with pytest.raises(InputError, match=f"cannot bind: port {port} is in use"):
             check_link_spec(f"zmq:tcp://127.0.0.1:{port}", server=True, insecure=True)
+    with socket.socket() as held:  # the wildcard is IPv4's, as libzmq binds it (it was tried on [::1])
+        held.bind(("0.0.0.0", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        with pytest.raises(InputError, match=f"cannot bind: port {port} is in use"):
+            check_link_spec(f"zmq:tcp://*:{port}", server=True)
+    check_link_spec(f"zmq:tcp://lo:{port}", server=True)  # an interface name libzmq binds
     check_link_spec(f"zmq:tcp://127.0.0.1:{port}", server=True, insecure=True)  # free again
     check_link_spec("zmq:tcp://127.0.0.1:*", server=True, insecure=True)
