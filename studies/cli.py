@@ -494,7 +494,9 @@ def register_landings(subparsers: Any) -> None:
         "P(no site), divert percentiles; overall, per scene, per preset) and report/index.html. Resumable.",
     )
     p.add_argument("--scenes", required=True, help="comma-separated library scenes, or 'all'")
-    p.add_argument("--n", type=_positive("--n"), required=True, help="landings (rounded up to whole renders)")
+    p.add_argument(
+        "--n", type=_positive("--n"), required=True, help="landings (rounded up to whole renders, as many per scene)"
+    )
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it holds this campaign)")
     p.add_argument(
         "--preset", choices=["fast", "thesis", "both"], default="both", help="flight software preset(s) that land"
@@ -564,7 +566,12 @@ def _landings(args: argparse.Namespace) -> int:
     drawn = seeds[: min(len(seeds), -(-c.n_groups // len(scenes)))]  # render g takes seed g // len(scenes)
     print(
         f"landings: {c.n_landings} landings"
-        + (f" (--n {c.n} rounded up to whole renders of {c.per_render})" if c.n_landings != c.n else "")
+        + (
+            f" (--n {c.n} rounded up to whole renders of {c.per_render}, the same number for each of the "
+            f"{len(scenes)} scenes)"
+            if c.n_landings != c.n
+            else ""
+        )
         + f" in {c.n_groups} renders over {', '.join(scenes)}; "
         f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
         file=sys.stderr,

@@ -162,11 +162,15 @@ class Campaign:
 
     @property
     def n_groups(self) -> int:
-        return -(-self.n // self.per_render)
+        """Renders: ``n`` in whole renders of ``per_render``, rounded up to a multiple of the scenes (render g flies
+        scene g mod S): 8 landings over the six library scenes flew one render of one scene, and the campaign's
+        P(safe landing) was said over all six; 7 renders over 6 scenes counted one twice."""
+        renders = -(-self.n // self.per_render)
+        return -(-renders // len(self.scenes)) * len(self.scenes)
 
     @property
     def n_landings(self) -> int:
-        """Landings actually flown: whole groups (``n`` rounded up to a multiple of ``per_render``)."""
+        """Landings actually flown: whole groups (``n`` rounded up to whole renders, and to every scene alike)."""
         return self.n_groups * self.per_render
 
     def identity(self) -> dict[str, Any]:
@@ -712,7 +716,9 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         f"{camp['n_landings']} landings ({camp['n_renders']} renders, {camp['per_render']} aim points each) over "
         f"{', '.join(camp['scenes'])}; {describe_seeds(seeds, camp['seed_set'])}; pose errors "
         f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
-        "top-ranked site is safe; no site is its own outcome and is not safe."
+        "top-ranked site is safe; no site is its own outcome and is not safe. The 95 % Wilson intervals take the "
+        f"landings as independent draws; the {camp['per_render']} aim points of a render share its terrain, sun "
+        "and pair, so the true uncertainty is wider, more so the fewer the renders."
     )
     if summary.get("complete") is False:
         intro = (

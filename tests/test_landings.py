@@ -122,12 +122,23 @@ def test_draws_are_deterministic_and_cover_scenes_seeds_and_the_scene_sun():
         _campaign(scenes=("thesis", "nowhere"))
 
 
+def test_every_scene_of_a_campaign_gets_the_same_number_of_renders():
+    """`landings --scenes all --n 8` flew one render of `thesis` and said its P(safe landing) over all six scenes;
+    7 renders over 6 scenes counted one scene twice in the pooled figure."""
+    six = ("thesis", "highland", "mare", "polar-low-sun", "deep-crater", "boulder-field")
+    c = _campaign(scenes=six, n=8, per_render=8)
+    assert c.n_groups == 6 and c.n_landings == 48
+    assert sorted(ld.plan_group(c, g)["scene"] for g in range(c.n_groups)) == sorted(six)
+    assert _campaign(scenes=six, n=56, per_render=8).n_groups == 12  # 7 renders -> 2 per scene
+
+
 def test_a_render_shared_by_more_aim_points_than_landings_asked_for_is_refused():
     """--n 1 --per-render 1000000 flew a million landings: n is rounded up to whole renders."""
     with pytest.raises(LandingError, match=r"--per-render 1000000 is more than the 1 landings asked for \(--n\)"):
         _campaign(n=1, per_render=1_000_000)
-    assert _campaign(n=1, per_render=ld.PER_RENDER).n_landings == ld.PER_RENDER  # the default rounds, as documented
-    assert _campaign(n=20, per_render=20).n_landings == 20
+    # the default rounds up to whole renders, one per scene at least (two scenes here), as documented
+    assert _campaign(n=1, per_render=ld.PER_RENDER).n_landings == 2 * ld.PER_RENDER
+    assert _campaign(n=40, per_render=20).n_landings == 40
     with pytest.raises(LandingError, match="--per-render 21"):
         _campaign(n=20, per_render=21)
 
@@ -158,18 +169,18 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_pa
     monkeypatch.setattr(ld, "land_group", counting)
     rows1, s1 = ld.run_campaign(_campaign(n=2), tmp_path, workers=1, progress=False)
     assert calls == [0, 1] and len(rows1) == 2
-    rows2, _ = ld.run_campaign(_campaign(n=3), tmp_path, workers=1, progress=False)
-    assert calls == [0, 1, 2]  # only the new group ran
+    rows2, _ = ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False)  # 4: each of the 2 scenes alike
+    assert calls == [0, 1, 2, 3]  # only the new groups ran
     assert rows2[:2] == rows1
-    ld.run_campaign(_campaign(n=3), tmp_path, workers=1, progress=False)
-    assert calls == [0, 1, 2]  # nothing left to do
+    ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False)
+    assert calls == [0, 1, 2, 3]  # nothing left to do
     doc = json.loads((tmp_path / "landings.json").read_text())
-    assert doc["per_preset"]["fast"]["n"] == 3 and set(doc["per_scene"]) == {"thesis", "mare"}
+    assert doc["per_preset"]["fast"]["n"] == 4 and set(doc["per_scene"]) == {"thesis", "mare"}
     st = doc["per_preset"]["fast"]
-    assert st["n_safe"] + st["n_unsafe"] + st["n_no_site"] == 3
-    assert st["p_safe_ci95"] == list(wilson(st["n_safe"], 3))
+    assert st["n_safe"] + st["n_unsafe"] + st["n_no_site"] == 4
+    assert st["p_safe_ci95"] == list(wilson(st["n_safe"], 4))
     lines = (tmp_path / "landings.csv").read_text().splitlines()
-    assert len(lines) == 4 and lines[0].startswith("landing,group,preset,outcome,safe")
+    assert len(lines) == 5 and lines[0].startswith("landing,group,preset,outcome,safe")
     assert (tmp_path / "report" / "index.html").stat().st_size > 1000
     with pytest.raises(LandingError, match=r"other settings \(.*: per_render 1 there, 2 here\)"):
         ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False)
