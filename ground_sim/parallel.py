@@ -118,6 +118,7 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 
     with single_threaded_env():
         ctx = mp.get_context("spawn")
+        _tracker_deaf_to_hangup()
         pool = _Pool(max_workers=workers, mp_context=ctx, initializer=_pool_worker_init, initargs=(os.getpid(),))
         try:
             yield pool
@@ -126,6 +127,25 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
             raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _tracker_deaf_to_hangup() -> None:
+    """Start multiprocessing's resource tracker with SIGHUP ignored, as it ignores SIGINT and SIGTERM itself. In the
+    terminal's process group a closed terminal killed it, and the workers' shared-memory bookkeeping then printed
+    "resource_tracker: process died unexpectedly" and five KeyError tracebacks after the run's own clean stop. An
+    ignored signal stays ignored across the tracker's exec."""
+    import signal
+    import threading
+    from multiprocessing import resource_tracker
+
+    if threading.current_thread() is not threading.main_thread():  # signal.signal: the main thread's only
+        resource_tracker.ensure_running()
+        return
+    old = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.signal(signal.SIGHUP, old)
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:

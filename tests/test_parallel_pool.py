@@ -57,6 +57,51 @@ def test_ctrl_c_ends_a_pool_at_once_with_its_workers(tmp_path):
     assert "Traceback" not in done.stderr, done.stderr[-2000:]  # no worker died printing one
 
 
+HUP_SCRIPT = """
+import os, signal, sys, threading, time
+sys.path.insert(0, {root!r})
+from ground_sim.parallel import pool_map
+
+
+def slow(k):
+    time.sleep(40)
+    return k
+
+
+def hung_up(signum, frame):
+    raise KeyboardInterrupt
+
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGHUP, hung_up)  # as the studies' commands end on a closed terminal
+    threading.Timer(4.0, lambda: os.killpg(0, signal.SIGHUP)).start()  # the terminal closes: the whole group
+    try:
+        pool_map(slow, [(1,), (2,)], workers=2)
+    except KeyboardInterrupt:
+        print("hung up", flush=True)
+        time.sleep(1.0)  # the resource tracker's complaints came while the process exited
+        sys.exit(129)
+"""
+
+
+def test_a_closed_terminal_ends_a_pool_without_the_resource_trackers_tracebacks(tmp_path):
+    """SIGHUP to the group also killed multiprocessing's resource tracker, which ignores only SIGINT and SIGTERM:
+    after the command's own clean stop, "resource_tracker: process died unexpectedly" and five KeyError
+    tracebacks (stop 57's studies QA)."""
+    script = tmp_path / "pool_hup.py"
+    script.write_text(HUP_SCRIPT.format(root=str(ROOT)))
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
+    )
+    assert done.returncode == 129 and done.stdout.strip() == "hung up", done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and "resource_tracker" not in done.stderr, done.stderr[-2000:]
+
+
 def _sigint_handler(_: int) -> str:
     return str(signal.getsignal(signal.SIGINT))
 
