@@ -107,6 +107,12 @@ def note_page_owner(out: Path, command: str) -> None:
         )
 
 
+# A study's worker also imports and runs the renderer, the scoring and the studies: measured 130 MiB resident per
+# worker at a 128 px camera (stop 57's studies QA), where the pipeline's model alone says 37: `--workers 1000`
+# would have started 637 of them, ~80 GiB, on a 23 GiB host
+STUDY_WORKER_EXTRA_BYTES = 96 * 2**20
+
+
 def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
     """Before any rendering: each local worker runs the pipeline on a ``--camera-px`` pair
     (:func:`flight_sw.validate.peak_memory_bytes`); refuse a camera one run cannot fit in the memory this process
@@ -132,7 +138,7 @@ def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
                 f"a {px} px camera needs ~{need / 2**20:.0f} MiB per pipeline run ({frames} frames), but only "
                 f"{room / 2**20:.0f} MiB {what}: use a smaller --camera-px"
             )
-    each = peak_memory_bytes(px, px, 2)
+    each = peak_memory_bytes(px, px, 2) + STUDY_WORKER_EXTRA_BYTES
     fit = max(1, room // each)
     if workers > fit:  # the executor starts a worker per pending task up to this count: as many as fit at once
         _note(
