@@ -471,7 +471,10 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> 
         sections.append((f"sensitivity: {kind}", [table], [plot.name]))
     note = camera_note(args.camera_px)
     note_page_owner(args.out, "sensitivity")
-    page = report.write_html(args.out / "report", f"hazard-hil sensitivity (thesis sec 6.3){note}", sections)
+    # which seeds, on the page itself: a tuning-seed study's page could not be told from a held-out one's
+    page = report.write_html(
+        args.out / "report", f"hazard-hil sensitivity (thesis sec 6.3); {seeds_text}{note}", sections
+    )
     print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     return 0

@@ -1031,6 +1031,7 @@ def sensitivity_campaign(
     Results go to ``out_dir/runs/sensitivity-<kind>.jsonl`` (resumable) and
     ``out_dir/sensitivity_<kind>.csv``.
     """
+    from ground_sim.seeds import seed_set_of
     from studies.executor import Task, code_fingerprint, run_tasks
 
     _check_choice("kind", [kind], SENSITIVITY_KINDS)
@@ -1102,6 +1103,7 @@ def sensitivity_campaign(
         r = res[t.id]
         row = {
             **meta,
+            "seed_set": seed_set_of(meta["seed"]),  # held-out or tuning, in the file itself
             **{
                 k: r.get(k)
                 for k in (

@@ -166,6 +166,7 @@ def test_sensitivity_dask_matches_local(tmp_path: Path, cache: Path):
         return [{k: v for k, v in r.items() if k != "pipeline_s"} for r in rows]
 
     assert len(local) == 3 and [r["sample"] for r in local] == [-1, 0, 1]
+    assert {r["seed_set"] for r in local} == {"tuning"}  # the CSV says which set, as evaluate's metrics do
     assert strip(local) == strip(dask)
     assert local[0]["dem_mean_rel_pct"] == 0.0
     assert all(math.isfinite(r["dem_mean_rel_pct"]) for r in local)
