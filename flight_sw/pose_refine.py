@@ -637,8 +637,15 @@ def refine_pair(
     b2 = cv2.GaussianBlur(a2, (0, 0), sig, borderType=cv2.BORDER_REPLICATE) if sig > 0 else a2
     margin = p.track_window // 2 + 2
     mask, roi, w2 = _prewarp(b2, H_nav, camera, margin)
-    if roi[2] < 4 * p.track_window or roi[3] < 4 * p.track_window:
-        return _fallback(pose1, pose2, info, "the images hardly overlap by the navigation poses", t0)
+    if roi[2] < 4 * p.track_window or roi[3] < 4 * p.track_window:  # small images: a 128 px 2:1 pair shares ~46 px
+        return _fallback(
+            pose1,
+            pose2,
+            info,
+            f"the images hardly overlap by the navigation poses ({roi[2]}x{roi[3]} px in common, under four "
+            f"{p.track_window} px tracking windows a side)",
+            t0,
+        )
     x0, y0, w, h = roi
     pa, pb = descriptor_matches(a1[y0 : y0 + h, x0 : x0 + w], w2, mask, p.detector, p.n_features, p.ratio)
     info["coarse_matches"] = len(pa)

@@ -72,7 +72,20 @@ def camera_note(camera_px: int | None) -> str:
     one changes the ground sample distance, and so every figure."""
     if camera_px is None or camera_px == THESIS_CAMERA_PX:
         return ""
-    return f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
+    from flight_sw.psafe import load_model
+
+    note = f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
+    # what `process` warns of per pair, said once for the study: a smaller camera tests another detector
+    if not load_model(None).fits_image((camera_px, camera_px)):
+        note += "; `fast`'s calibrated P(safe) is not fitted for it: the Gaussian rule stands in, with a higher FP"
+    if camera_px < SMALL_FOR_REFINEMENT_PX:
+        note += "; pose refinement is skipped on most pairs (too little shared image to track)"
+    return note
+
+
+# under this a 2:1 pair's shared area is under four of pose refinement's 15 px tracking windows a side: at 128 px
+# `sensitivity --preset refine` printed identical rows for fast and fast_unrefined (stop 57's studies QA)
+SMALL_FOR_REFINEMENT_PX = 200
 
 
 def _campaign_failed(what: str, exc: Exception) -> int:

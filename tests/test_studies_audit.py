@@ -300,6 +300,8 @@ def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
     page = html.unescape((tmp_path / "out" / "report" / "index.html").read_text())
     for text in (out, page):
         assert "a 48 px camera, not the thesis's 512 px: not its setup" in text
+        # what that camera changes in the detector, said once for the study (`process` says it per pair)
+        assert "calibrated P(safe) is not fitted for it" in text and "pose refinement is skipped" in text
 
 
 def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_path, capsys, monkeypatch):
