@@ -296,12 +296,16 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
     return spec, read_pair(d)
 
 
+REFUSED_REASON = "the flight software refused its navigation inputs (see refused_because)"
+
+
 def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None = None) -> dict[str, Any]:
     """Render one group's pair and fly every landing of it with every preset (a pure function: any backend).
 
     Truth is read from the pair as written (float32 depth backprojected with the true pose), so a cached
     and a fresh render give the same rows."""
     from flight_sw.pipeline import run_pipeline
+    from flight_sw.validate import FlightInputError
     from ground_sim.library import covered, share_pct
     from studies.evaluate import backproject_depth
 
@@ -319,18 +323,23 @@ def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None =
         fly = _perturb(spec.poses, ld["errors"])
         for preset in presets:
             t0 = time.process_time()
-            res = run_pipeline(
-                pair.images[0],
-                pair.images[-1],
-                fly[0],
-                fly[-1],
-                spec.camera,
-                preset=preset,
-                nominal_site_xy=aim,
-                altimeter_m=pair.altimeter_m,  # the reading the flight process gets in HIL runs
-                sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
-                sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
-            )
+            try:
+                res = run_pipeline(
+                    pair.images[0],
+                    pair.images[-1],
+                    fly[0],
+                    fly[-1],
+                    spec.camera,
+                    preset=preset,
+                    nominal_site_xy=aim,
+                    altimeter_m=pair.altimeter_m,  # the reading the flight process gets in HIL runs
+                    sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,
+                    sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
+                )
+            except FlightInputError as exc:
+                # navigation data the flight software refuses (a pose error that puts frame 2 above frame 1): the
+                # lander gets no map and no site, as under the HIL; it failed the whole group, and so the campaign
+                res, refused = None, str(exc)
             cpu = time.process_time() - t0
             row: dict[str, Any] = {
                 "landing": ld["landing"],
@@ -349,13 +358,17 @@ def land_group(plan: dict[str, Any], presets: list[str], cache_dir: str | None =
                 "aim_safe": bool(aim_j["safe"]),
                 "hazards_in_scene_pct": share,
                 "pipeline_s": cpu,
-                "level": res.level,
-                "no_site_reason": str(res.info.get("no_site_reason", "")) if not res.sites else "",
+                "level": res.level if res is not None else "refused",
+                "no_site_reason": (
+                    REFUSED_REASON if res is None else str(res.info.get("no_site_reason", "")) if not res.sites else ""
+                ),
             }
+            if res is None:
+                row["refused_because"] = refused
             for k, d in enumerate(ld["errors"][:2]):
                 row[f"dz{k + 1}_m"] = float(d.get("dz_m", 0.0))
                 row[f"pitch{k + 1}_deg"] = float(d.get("pitch_deg", 0.0))
-            if res.sites:
+            if res is not None and res.sites:
                 top = res.sites[0]
                 j = judge_site((top.x, top.y), world, hazard)
                 row.update(

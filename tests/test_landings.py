@@ -265,3 +265,17 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
         return
     res = check_page(page)
     assert res.ok and res.images == 3, res
+
+
+def test_a_landing_whose_navigation_the_flight_software_refuses_is_a_no_site_landing(tmp_path: Path):
+    """`--pose-error alt_sigma=10000` (a valid spec) put frame 2 above frame 1 on some draws: the flight software's
+    refusal failed the whole render group, the campaign exited 1, and "rerun to retry" failed the same way. Now such
+    a landing gets no site, with the reason, as under the HIL."""
+    c = _campaign(n=4, per_render=4, scenes=("mare",), pose_error="alt_sigma=10000")
+    plan = ld.plan_group(c, 0)
+    rows = ld.land_group(plan, ["fast"], cache_dir=str(tmp_path))["rows"]
+    refused = [r for r in rows if r["level"] == "refused"]
+    assert len(rows) == 4 and refused, [r["level"] for r in rows]  # seeded: at least one draw breaks the order
+    for r in refused:
+        assert r["outcome"] == "no_site" and r["safe"] is False and r["no_site_reason"] == ld.REFUSED_REASON
+        assert r["refused_because"] and "\n" not in r["refused_because"]  # the flight software's one-line reason
