@@ -29,6 +29,7 @@ import hashlib
 import json
 import os
 import sys
+import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -351,6 +352,9 @@ def _run_dask(
         client = Client(scheduler, timeout="20s") if own else scheduler
     except OSError as exc:
         raise InputError(f"cannot reach Dask scheduler {scheduler!r}: {exc}") from None
+    done = threading.Event()
+    watcher = threading.Thread(target=_say_when_workerless, args=(client, str(scheduler), done), daemon=True)
+    watcher.start()
     try:
         futs = {}
         for t in pending:
@@ -365,5 +369,28 @@ def _run_dask(
                 record(task_id, f.result())
             f.release()
     finally:
+        done.set()
+        watcher.join(timeout=2.0)
         if own:
             client.close()
+
+
+def _say_when_workerless(client: Any, where: str, done: threading.Event) -> None:
+    """A scheduler with no workers (none started, or the only one died) held the tasks at 0 % for good, without a
+    word: said after ~5 s without one, then every ~30 s while it lasts."""
+    zero = 0  # looks in a row that found none: a worker still joining is not said
+    while True:
+        try:
+            workers = len(client.scheduler_info().get("workers", {}))
+        except Exception:  # the client closing under us: nothing to say
+            return
+        zero = zero + 1 if workers == 0 else 0
+        if zero == 2 or (zero > 2 and zero % 6 == 2):  # after ~5 s without one, then every ~30 s
+            print(
+                f"note: the Dask scheduler {where} has no workers: the tasks wait until one joins "
+                f"(`dask worker {where}`; Ctrl-C keeps what finished)",
+                file=sys.stderr,
+                flush=True,
+            )
+        if done.wait(5.0):
+            return

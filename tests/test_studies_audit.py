@@ -338,3 +338,33 @@ def test_local_workers_are_sized_to_the_memory_before_any_work(monkeypatch, caps
     monkeypatch.setattr(validate, "memory_room", lambda: (room, "of memory is available"))
     with pytest.raises(InputError, match=r"\(16 frames\)"):  # a multi-frame descent runs in this process
         check_local_room(argparse.Namespace(scheduler=None, workers=1, camera_px=1024), n_frames=16)
+
+
+def test_a_dask_scheduler_without_workers_is_said_not_waited_on_in_silence(capsys):
+    """A scheduler with no workers, or whose only worker died, held `evaluate --scheduler` at 0 % for good without a
+    word. A worker still joining (one look without any) is not said; none for ~5 s is, then every ~30 s."""
+    import threading
+
+    from studies.executor import _say_when_workerless
+
+    class Looks(threading.Event):  # each wait is one ~5 s look; the run ends after `n`
+        def __init__(self, n: int) -> None:
+            super().__init__()
+            self.left = n
+
+        def wait(self, timeout=None) -> bool:
+            self.left -= 1
+            return self.left <= 0
+
+    class Client:
+        def __init__(self, counts):
+            self.counts = iter(counts)
+
+        def scheduler_info(self):
+            return {"workers": {f"w{i}": {} for i in range(next(self.counts))}}
+
+    _say_when_workerless(Client([0, 1, 1, 1]), "tcp://s:8786", Looks(4))  # joined at the second look
+    assert capsys.readouterr().err == ""
+    _say_when_workerless(Client([0] * 15), "tcp://s:8786", Looks(15))
+    err = capsys.readouterr().err
+    assert err.count("note: the Dask scheduler tcp://s:8786 has no workers") == 3, err  # at looks 2, 8 and 14
