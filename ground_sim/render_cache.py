@@ -145,7 +145,11 @@ def reusable(pair_dir: str | Path, *, quiet: bool = False) -> bool:
     v, doc = _read_meta(d)  # read once: its version, then what it names
     if v is None:
         return False
-    why = f"rendered by renderer version {v}, this is {RENDER_VERSION}"
+    why = (
+        f"rendered by renderer version {v}, this is {RENDER_VERSION}"
+        if v >= 0
+        else "its pair.json is unreadable or records no renderer version"  # "version -1" read as a real one
+    )
     if v == RENDER_VERSION:
         broken = _damage(d, doc)
         if broken is None:

@@ -74,6 +74,16 @@ def test_unversioned_and_unreadable_pairs(tmp_path, small_pair):
     assert render_version(d) == -1 and not reusable(d, quiet=True) and not d.exists()
 
 
+def test_a_cached_pair_json_that_does_not_parse_is_said_as_such(tmp_path, small_pair, capsys):
+    """It was "rendered by renderer version -1, this is 2": a version no renderer had."""
+    d = tmp_path / "bad"
+    write_pair_atomic(d, small_pair)
+    (d / "pair.json").write_text("{bad")
+    assert not reusable(d)
+    err = capsys.readouterr().err
+    assert "its pair.json is unreadable or records no renderer version" in err and "version -1" not in err
+
+
 def test_a_damaged_pair_is_rendered_again_not_failed_on_every_run(tmp_path, small_pair, capsys):
     """A truncated image in the cache failed every task that read it, and "rerun to retry" could not help."""
     d = tmp_path / "cache" / "pair_b"
