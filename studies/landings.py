@@ -30,6 +30,7 @@ import hashlib
 import io
 import json
 import math
+import signal
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -548,7 +549,13 @@ def run_campaign(
         # a partial summary of the renders that finished, marked incomplete, then the interruption goes on
         saved = load_results(log, code, inputs)
         part = [r for t in tasks if t.id in saved for r in saved[t.id]["rows"]]
-        why = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        # the signal by name, as the console says it ("stopped by SIGTERM"); a Ctrl-C is "interrupted"
+        signum = getattr(exc, "signum", None)
+        why = (
+            (f"stopped by {signal.Signals(signum).name}" if signum else "interrupted")
+            if isinstance(exc, KeyboardInterrupt)
+            else str(exc)
+        )
         _write_summary(c, out, part, time.time() - t0, complete=False, reason=why)
         raise
     rows = [r for t in tasks for r in res[t.id]["rows"]]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import html
 import json
+import signal
 from pathlib import Path
 
 import pytest
@@ -169,6 +170,16 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
     assert part["complete"] is False and part["incomplete_reason"] == "interrupted"
     assert part["n_landings_flown"] == 2 and part["per_preset"]["fast"]["n"] == 2
     assert "INCOMPLETE" in (tmp_path / "a" / "report" / "index.html").read_text()
+    # a `kill PID` is named as the console names it ("stopped by SIGTERM"), not as a Ctrl-C
+    from hil_server.cli import Terminated
+
+    def killed(plan, presets, cache_dir=None):
+        raise Terminated(signal.SIGTERM)
+
+    monkeypatch.setattr(ld, "land_group", killed)
+    with pytest.raises(Terminated):
+        ld.run_campaign(_campaign(), tmp_path / "k", workers=1, progress=False)
+    assert json.loads((tmp_path / "k" / "landings.json").read_text())["incomplete_reason"] == "stopped by SIGTERM"
 
     monkeypatch.setattr(ld, "land_group", real)
     ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
