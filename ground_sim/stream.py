@@ -108,6 +108,9 @@ UNATTRIBUTED_QUIET_S = 10.0  # ... this many seconds, with the count
 HELLO_NOTE_S = 10.0  # a progress line this often while the first Hello is awaited
 LINE_OVERHEAD = 1.15  # framing, byte stuffing and acknowledgements over the images' bytes (9600 baud: 22 s for 19)
 QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the console from this long
+# a Result's Telemetry follows it at once (the HIL server sends both together); a board that sends none had its
+# Results dropped after the response timeout, as "no result or error"
+TELEMETRY_GRACE_S = 10.0
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -571,9 +574,24 @@ def stream_descent(
     def fail_in_flight(want: set[tuple[int, int]], why: str) -> None:
         for s in list(want):
             o = outcomes[s]
-            if not o.finished:
+            if o.result is not None and not o.finished:  # its Result came: it stands, without Telemetry
+                o.telemetry_missing = f"{why} before its Telemetry came"
+                record(o)
+            elif not o.finished:
                 give_up(o, "link_down", why)
             want.discard(s)
+
+    def overdue_telemetry(want: set[tuple[int, int]]) -> None:
+        """A pair whose Result came :data:`TELEMETRY_GRACE_S` ago without its Telemetry completes without it: a
+        board that sends none lost every Result it sent, each after the whole response timeout (36 s)."""
+        now = time.monotonic()
+        for s in sorted(want):
+            o = outcomes[s]
+            came = o.result_t_done
+            if o.result is not None and not o.finished and came is not None and now - came > TELEMETRY_GRACE_S:
+                o.telemetry_missing = f"no Telemetry came within {TELEMETRY_GRACE_S:g} s of its Result"
+                want.discard(s)
+                record(o)
 
     def held_stream(want: set[tuple[int, int]]) -> bool:
         """True when the flight side's stream is held by a record declared over the size limit (see the module
@@ -703,6 +721,7 @@ def stream_descent(
                 fail_in_flight(want, f"link session given up: {lost_why()}")
                 return
             take_refusals(want)  # nothing received is waiting: refusals are matched to pairs now
+            overdue_telemetry(want)
             if not want:
                 return
             pkt = link.recv_packet(timeout=0.2)
@@ -730,6 +749,7 @@ def stream_descent(
         while the next pairs' frames are still on the line, and are recorded (and shown) then, not after the
         last pair is sent; so are the refusals among them."""
         stopped()
+        overdue_telemetry(want)
         while want:  # what has arrived counts even when the session has since been lost
             pkt = link.recv_packet(timeout=0.0)
             if pkt is None:
@@ -906,6 +926,10 @@ def stream_descent(
             if not any(r["frame_seqs"] == list(s) for r in records):
                 if o.finished:  # answered, but not while a collect wanted it: the answer stands
                     pass
+                elif o.result is not None:  # its Result came, its Telemetry never did: the Result stands
+                    o.telemetry_missing = "no Telemetry came" + (
+                        f" (link session lost: {lost_why()})" if not session_ok() and state.sessions else ""
+                    )
                 elif not session_ok() and state.sessions:
                     o.error = Error(code="link_down", text=f"link session lost: {lost_why()}", seq=s[1])
                 elif not state.sessions:
@@ -914,7 +938,10 @@ def stream_descent(
                     waited = time.monotonic() - o.sent_at
                     text = f"no result or error {waited:.0f} s after its frames went (response timeout {timeout:.0f} s)"
                     o.error = Error(code="no_response", text=text, seq=s[1])
-                records.append(write_outcome(out_dir, o, deadline_s))
+                rec = write_outcome(out_dir, o, deadline_s)
+                records.append(rec)
+                if progress is not None:  # each said, as the pairs before them were
+                    progress(rec)
         save()
     except Interrupted as exc:
         # a pair whose frames went is not "not run": recorded with what came, or as interrupted while in flight;
@@ -1098,6 +1125,7 @@ def _main(argv: list[str] | None) -> int:
             flight = rec.get("flight_latency_s")
             why = plan_note(rec)
             stopped = rec.get("ground_stopped_s")
+            missing = rec.get("telemetry_missing") or "no Telemetry"
             if stopped:
                 why = f"this process was stopped {stopped:.1f} s meanwhile, which the latency includes" + (
                     f"; {why}" if why else ""
@@ -1106,7 +1134,7 @@ def _main(argv: list[str] | None) -> int:
                 f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
                 + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
-                + (f"{flight:.2f} s" if flight is not None else "? s, no Telemetry")
+                + (f"{flight:.2f} s" if flight is not None else f"? s: {missing}")
                 + (f", result queued {queued:.2f} s" if queued is not None and queued >= QUEUE_SHOWN_S else "")
                 + (f", result line {line:.2f} s)" if line is not None else ")")
                 + (f"; {why}" if why else ""),
