@@ -83,7 +83,7 @@ import numpy as np
 from protocol.arq import ECHO_TEXT
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.links import MECHANISM_MISMATCH_TEXT, ZmqLink
+from protocol.links import MECHANISM_MISMATCH_TEXT, LinkClosed, ZmqLink
 from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
@@ -522,11 +522,22 @@ def stream_descent(
         for type_code, reason in link.take_refusals():  # from before this session: its pairs have ended
             refused(type_code, reason, set())
         epoch = link.epoch
-        link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
+
+        def closed(exc: LinkClosed) -> Exception:  # the device failed between the link session and the Hello
+            why = f"the link to the flight computer on {where} failed: {link.failed or exc}"
+            return NoHello(why) if first else LinkDown(why)
+
+        try:
+            link.send(Hello(role="ground", session=link.session_id), epoch=epoch)
+        except LinkClosed as exc:
+            raise closed(exc) from None
         end = time.monotonic() + hello_s
         next_note = t0 + HELLO_NOTE_S * (1 + (time.monotonic() - t0) // HELLO_NOTE_S)  # the next mark from now
         while True:  # the HIL server answers Hello once its flight process has booted
-            pkt = link.recv_packet(timeout=0.5)
+            try:
+                pkt = link.recv_packet(timeout=0.5)
+            except LinkClosed as exc:  # was a traceback (stop 57's board QA)
+                raise closed(exc) from None
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
                 break
             if not link.established or link.epoch != epoch:

@@ -401,6 +401,28 @@ def serial_board(flight: Path, mode: str):
             board.wait(timeout=10)
 
 
+def test_a_line_that_fails_between_the_link_session_and_the_boards_hello_is_said_not_a_traceback(
+    manifest, flight, tmp_path
+):
+    """A board still booting (its link answers, its Hello not yet) whose device went away: the ground's handshake
+    let the link's LinkClosed out as a traceback, and the run's reason was the exception's repr."""
+    from protocol.faults import PtyBridge
+
+    bridge = PtyBridge()
+    board = subprocess.Popen([sys.executable, str(flight), "--mode", "no_hello", "--port", bridge.paths[0]])
+    threading.Timer(5.0, bridge.close).start()  # the link session is up by then; the Hello never comes
+    try:
+        code, s, md = run_external(manifest, tmp_path, f"serial:{bridge.paths[1]}", "--hello-timeout", "60")
+    finally:
+        board.terminate()
+        board.wait(timeout=10)
+        bridge.close()
+    log = (tmp_path / "ground.log").read_text()
+    assert code == 1 and s["complete"] is False, md
+    assert "Traceback" not in log and "LinkClosed" not in s["reason"], (s["reason"], log[-1500:])
+    assert "the link to the flight computer on" in s["reason"] and "failed" in s["reason"], s["reason"]
+
+
 def test_an_external_flight_computers_result_without_its_telemetry_stands(manifest, flight, tmp_path):
     """A board that sent a Result and no Telemetry had the Result thrown away: the pair waited out the response
     timeout (3 x 30 + 30 s here) and was recorded as "no result or error" (stop 57's board QA)."""
