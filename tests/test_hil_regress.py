@@ -84,6 +84,21 @@ def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regr
         hil_regression(baseline=tiny_baseline, cases="tiny")  # type: ignore[arg-type]
 
 
+def test_a_board_is_judged_on_the_end_to_end_latency_the_ground_measures_too():
+    """A board judged on its own Telemetry's compute time alone passed a 12x slower end to end (0.044 -> 0.53 s:
+    its Result's line was slower); one that reports no compute time had a baseline of 0 s for good."""
+    from hil_server.regress import E2E_METRICS, LATENCY_METRICS, judged_metrics
+
+    assert judged_metrics("rad750", "external") == LATENCY_METRICS + E2E_METRICS
+    assert judged_metrics("rad750") == LATENCY_METRICS  # an emulated budget's e2e includes its own line: not judged
+    lat = {"latency_p50_ref_s": 0.02, "latency_p95_ref_s": 0.022, "latency_max_ref_s": 0.022}
+    base = {"deadline_hit_rate": 1.0, "errors": 0, **lat, "e2e_latency_p50_s": 0.04, "e2e_latency_max_s": 0.044}
+    slower_line = {**base, "e2e_latency_p50_s": 0.5, "e2e_latency_max_s": 0.53}
+    o = compare("board", slower_line, base, DEFAULT_TOLERANCES, judged_metrics("rad750", "external"))
+    assert [p.split()[0] for p in o.problems] == ["e2e_latency_p50_s", "e2e_latency_max_s"]
+    assert "e2e_latency_max_s" in diff_table([o]) and "REGRESSION" in diff_table([o])
+
+
 def test_host_case_is_judged_on_cpu_seconds_not_wall_latency():
     from hil_server.regress import CPU_METRICS, judged_metrics
 
