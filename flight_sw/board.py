@@ -179,6 +179,14 @@ class GroundSession:
         )
 
 
+def _served(c: dict) -> str:
+    """The board's last words: what it served."""
+    return (
+        f"served {c['sessions']} ground session(s), {c['pairs']} pair(s); {c['refused']} message(s) refused, "
+        f"{c['dropped_no_hello']} dropped (no Hello in their session)"
+    )
+
+
 def serve(
     spec: str,
     *,
@@ -270,15 +278,12 @@ def serve(
             say(f"flight: compiled kernels missing ({', '.join(missing)}): their numpy references run instead")
         say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
         flight.run(watch_parent=False)  # detached (nohup, a daemon) it must outlive its parent
-        say(f"flight: the link failed: {link.failed}" if link.failed else "flight: the link closed")
+        why = f"the link failed: {link.failed}" if link.failed else "the link closed"
+        say(f"flight: {why}; {_served(ground.counters)}")  # the last line sums what it did, however it ends
         return 1
     except KeyboardInterrupt:  # stop() above, or a Ctrl-C (a signal in the warm-up is hazard-hil's own: 128 + N)
         sig = stopped[0] if stopped else signal.SIGINT
-        c = ground.counters
-        say(
-            f"flight: stopped by {signal.Signals(sig).name}; served {c['sessions']} ground session(s), {c['pairs']} "
-            f"pair(s); {c['refused']} message(s) refused, {c['dropped_no_hello']} dropped (no Hello in their session)"
-        )
+        say(f"flight: stopped by {signal.Signals(sig).name}; {_served(ground.counters)}")
         return 128 + sig
     finally:
         signal.signal(signal.SIGTERM, old)

@@ -435,6 +435,36 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
 
 
+def test_a_board_whose_line_fails_ends_with_what_it_served(tmp_path):
+    """A line that failed under the board (a second reader, the other end closed) ended it without the last line
+    hil.md promises, the sum of what it served."""
+    import os
+    import select
+
+    from protocol.faults import PtyBridge
+
+    bridge = PtyBridge()
+    board = subprocess.Popen(
+        [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+    )
+    assert board.stderr is not None
+    first = b""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 60 and b"waiting for a ground" not in first:
+        if select.select([board.stderr], [], [], 1.0)[0]:
+            first += os.read(board.stderr.fileno(), 65536)
+    bridge.close()  # the line goes away under it
+    try:
+        rest = board.stderr.read()
+        rc = board.wait(timeout=60)
+    finally:
+        board.kill()
+    err = first.decode(errors="replace") + rest
+    assert rc == 1, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("flight: the link failed") and "served 0 ground session(s), 0 pair(s)" in last, err
+
+
 def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
     from protocol.faults import PtyBridge
 
