@@ -225,6 +225,18 @@ def result_rev(cfg: Config) -> int:
     return int(cfg.options.get("result_rev", 0))
 
 
+def baud_mismatch_note(ground_baud: float, own_baud: int | None) -> str:
+    """A board's port set to another rate than the ground paces its line at ("" when they agree, or either side is
+    unpaced). A real UART garbles the bytes then, and the ground says "another baud?"; a pty or a USB gadget that
+    ignores the rate carries them, and the board planned for the ground's rate and called its own miss "met"."""
+    if not ground_baud or not own_baud or int(ground_baud) == int(own_baud):
+        return ""
+    return (
+        f"the ground paces this line at {int(ground_baud)} baud, this side's port is set to {own_baud}: on a real "
+        "UART the two must match; the deadline plan follows the ground's rate"
+    )
+
+
 def left_out_note(cfg: Config) -> str:
     """'' when the ground decodes every Result field; otherwise one line naming the fields its Results go without,
     and saying so when the Config asked for what they carry (``full_maps``: the image maps' gap-fill mask)."""
@@ -357,6 +369,9 @@ class FlightProcess:
                 note = left_out_note(msg)
                 if note:  # once per descent, not per Result
                     print(f"flight: {note}", file=sys.stderr, flush=True)
+                mismatch = baud_mismatch_note(msg.options.get("link_baud", 0), getattr(self.link, "baud", None))
+                if mismatch:
+                    print(f"flight: {mismatch}", file=sys.stderr, flush=True)
             self.config = msg
             if self.prefault and cam.width * cam.height > self.heap_ready_px:
                 from flight_sw.warmup import heap_mib_for, prefault_heap

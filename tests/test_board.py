@@ -816,3 +816,14 @@ def test_strangers_knocking_on_the_hil_servers_port_reach_the_runs_summary(tmp_p
     from hil_server.run import flight_note
 
     assert "refused on the HIL server's port" in flight_note(s), flight_note(s)
+
+
+def test_a_board_says_when_its_port_rate_is_not_the_grounds():
+    """A board at 9600 baud under a ground pacing 921600 planned for the ground's rate and called its own miss
+    "met"; a pty carries the bytes whatever the rates, so nothing else noticed."""
+    from flight_sw.flight_main import baud_mismatch_note
+
+    said = baud_mismatch_note(921600, 9600)
+    assert "921600 baud" in said and "set to 9600" in said and "must match" in said
+    assert baud_mismatch_note(921600, 921600) == "" and baud_mismatch_note(0, 9600) == ""
+    assert baud_mismatch_note(921600, None) == ""  # an unpaced side: nothing to compare
