@@ -202,6 +202,9 @@ def measure_case(
     speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"], cfg.budget_file)
     scale = speed / ref
     cur = {
+        # not a metric: the run's own reason when it did not finish (a board that never answered read as a latency
+        # regression, its reason only in the captured stderr); taken out before the baseline is written
+        "incomplete_reason": None if summary.get("complete", True) else str(summary.get("reason") or "unknown"),
         "deadline_hit_rate": summary["deadline_hit_rate"],
         "errors": summary["errors"],
         "pairs": summary["pairs"],
@@ -551,6 +554,7 @@ def check_regression(
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
         cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
+        incomplete = cur.pop("incomplete_reason", None)
         metrics = judged_metrics(case["budget"], case.get("flight", "emulated"))
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
@@ -559,6 +563,8 @@ def check_regression(
             case["budget_recorded"] = budget_record(case, base_dir)
         elif changed.get(n):
             o.problems.append(changed[n])
+        if incomplete:
+            o.problems.append(f"the run did not finish: {incomplete}")
         if not cur["deadline_hit_rate"] >= need - 1e-12:
             missed = True
             o.problems.append(

@@ -78,8 +78,9 @@ def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regr
     with pytest.raises(pytest.fail.Exception, match="cpu_p50_ref_s"):
         hil_regression(baseline=tiny_baseline)
     # bad usage fails in one line, as the command's exit 2 (it was a traceback from inside the library)
-    with pytest.raises(pytest.fail.Exception, match=r"^hil_regression: unknown regression case\(s\) \['nope'\]"):
+    with pytest.raises(pytest.fail.Exception, match=r"^hil_regression: unknown regression case\(s\) \['nope'\]") as e:
         hil_regression(baseline=tiny_baseline, cases=["nope"])
+    assert e.value.__context__ is None  # said once, not twice with "During handling of the above exception"
     with pytest.raises(pytest.fail.Exception, match="takes a list of case names, got the string 'tiny'"):
         hil_regression(baseline=tiny_baseline, cases="tiny")  # type: ignore[arg-type]
 

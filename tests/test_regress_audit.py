@@ -339,6 +339,21 @@ def test_budgets_says_which_boards_run_will_refuse_or_cap(tmp_path, capsys):
     assert "note: no camera fits" in out and " none " in out
 
 
+def test_a_case_whose_run_did_not_finish_says_why_in_the_table(tmp_path, capsys, monkeypatch):
+    """A board that was off read as a "latency regression" whose rows were all REGRESSION; the reason (no Hello
+    from the flight computer) was only in the captured stderr."""
+    from hil_server import regress
+
+    why = "no Hello from the flight computer on serial:/dev/ttyE@921600 within 8 s: its link never answered"
+    metrics = {**BASE, "pairs": 2, "degraded": 0, "deadline_hit_rate": 0.0, "errors": 2}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: {**metrics, "incomplete_reason": why})
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": {**BASE, "pairs": 2, "degraded": 0}}
+    base.write_text(json.dumps({"cases": {"board": case}}))
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
+    assert f"board                          the run did not finish: {why}" in capsys.readouterr().out
+
+
 def test_user_budget_may_not_redefine_a_shipped_name(tmp_path, capsys):
     assert main(["budgets", "--file", _budget_file(tmp_path, name="rad750")]) == 2
     assert "redefines the shipped budget 'rad750'" in capsys.readouterr().err
