@@ -434,7 +434,7 @@ def stream_descent(
         write_atomic(telemetry_path, "")
 
     def note(text: str) -> None:
-        print(f"ground: {text}", file=sys.stderr, flush=True)
+        _say(f"ground: {text}")
 
     def session_ok() -> bool:
         return state.epoch is not None and link.established and link.epoch == state.epoch
@@ -963,9 +963,9 @@ def stream_descent(
                 if not o.finished and o.result is not None:  # the answer came, its Telemetry not yet
                     o.telemetry_missing = f"{exc} before its Telemetry came"
                 elif not o.finished:
-                    o.error = Error(
-                        code="interrupted", text=f"{exc} after its frames went; its answer was not awaited", seq=s[1]
-                    )
+                    # frames_written_at is set once both frames are on the far side: before that, mid-uplink
+                    when = "after its frames went" if o.frames_written_at is not None else "while its frames went"
+                    o.error = Error(code="interrupted", text=f"{exc} {when}; its answer was not awaited", seq=s[1])
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
@@ -973,6 +973,13 @@ def stream_descent(
     finally:
         stall.close()
     return records
+
+
+def _say(*parts: object) -> None:
+    """A console line in one write: print's two (the text, then its newline) let the link's event thread put its
+    own line between them, and two lines ran together on the console and in ground.log (stop 57's board QA)."""
+    sys.stderr.write(" ".join(str(x) for x in parts) + "\n")
+    sys.stderr.flush()
 
 
 def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float) -> str | None:
@@ -1048,7 +1055,7 @@ def main(argv: list[str] | None = None, *, restore_handlers: bool = True) -> int
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)  # a held one is raised here, as Interrupted
         return _main(argv)
     except Interrupted as exc:  # before the descent began: the descent's own stop says what finished
-        print(f"ground: {exc} before the descent began", file=sys.stderr)
+        _say(f"ground: {exc} before the descent began")
         return 128 + exc.signum
     finally:
         for sig, handler in before.items() if restore_handlers else ():
@@ -1120,10 +1127,10 @@ def _main(argv: list[str] | None) -> int:
             connect_timeout=args.reconnect_timeout,
             # the far end: the HIL server in front of the emulated processor, or a flight computer of one's own
             name="flight-computer" if args.budget == "external" else "hil-server",
-            log=lambda s: print(f"ground: {s}", file=sys.stderr, flush=True),
+            log=lambda s: _say(f"ground: {s}"),
         )
     except (InputError, ValueError) as exc:
-        print(f"ground: error: {exc}", file=sys.stderr)
+        _say(f"ground: error: {exc}")
         return 2
     apply_memory_ceiling(args.memory_mib)
 
@@ -1141,19 +1148,17 @@ def _main(argv: list[str] | None) -> int:
                 why = f"this process was stopped {stopped:.1f} s meanwhile, which the latency includes" + (
                     f"; {why}" if why else ""
                 )
-            print(
+            _say(
                 f"ground: {rec['label']:>10}  {rec['level']:<10} end to end "
                 + (f"{e2e:6.2f} s" if e2e is not None else "     ? s")
                 + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
                 + (f"{flight:.2f} s" if flight is not None else f"? s: {missing}")
                 + (f", result queued {queued:.2f} s" if queued is not None and queued >= QUEUE_SHOWN_S else "")
                 + (f", result line {line:.2f} s)" if line is not None else ")")
-                + (f"; {why}" if why else ""),
-                file=sys.stderr,
-                flush=True,
+                + (f"; {why}" if why else "")
             )
         else:
-            print(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}", file=sys.stderr, flush=True)
+            _say(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}")
 
     try:
         records = stream_descent(
@@ -1176,10 +1181,10 @@ def _main(argv: list[str] | None) -> int:
             telemetry_path=args.telemetry,
         )
     except Interrupted as exc:
-        print(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}", file=sys.stderr)
+        _say(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}")
         return 128 + exc.signum
     except NoHello as exc:  # every pair is recorded as not run (results.jsonl)
-        print(f"ground: error: {exc}", file=sys.stderr, flush=True)
+        _say(f"ground: error: {exc}")
         return EXIT_NO_HELLO
     finally:
         for sig in HELD_SIGNALS:
@@ -1188,16 +1193,15 @@ def _main(argv: list[str] | None) -> int:
     failed = sum(r["status"] != "result" for r in records)
     lost = sum(r.get("code") in LINK_CODES for r in records)
     refused = _refused_count(args.out / "ground.json")
-    print(
+    _say(
         f"ground: {_count(len(records), 'pair')}, {_count(len(records) - failed, 'result')}, "
         f"{_count(failed, 'error')}"
-        + (f", {_count(refused, 'message')} from the flight side refused" if refused else ""),
-        file=sys.stderr,
+        + (f", {_count(refused, 'message')} from the flight side refused" if refused else "")
     )
     if lost:
         # the reason that cost the first lost pair, not the link's latest event (a new session's "X -> Y")
         first = next(str(r.get("text") or "") for r in records if r.get("code") in LINK_CODES)
-        print(f"ground: LINK ERROR: {_count(lost, 'pair')} lost to link failures (first: {first})", file=sys.stderr)
+        _say(f"ground: LINK ERROR: {_count(lost, 'pair')} lost to link failures (first: {first})")
         return EXIT_LINK_LOST
     return 0
 

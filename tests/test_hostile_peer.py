@@ -307,6 +307,7 @@ def test_a_pair_in_flight_when_the_run_is_stopped_is_interrupted_not_not_run(man
     """A Ctrl-C while a pair's answer was on its way recorded that pair as not_run, which means "the run ended
     before its frames went"; the board had computed it. It is now `interrupted`, with the signal."""
     import json
+    import re
     import signal
 
     out = tmp_path / "run"
@@ -333,5 +334,8 @@ def test_a_pair_in_flight_when_the_run_is_stopped_is_interrupted_not_not_run(man
         ("300/150", "error", "interrupted"),
         ("200/100", "error", "not_run"),
     ]
-    assert s["records"][1]["text"] == "interrupted by SIGINT after its frames went; its answer was not awaited"
+    # "while" when the interrupt came before both frames were confirmed on the far side (a loaded host)
+    assert re.fullmatch(
+        r"interrupted by SIGINT (after|while) its frames went; its answer was not awaited", s["records"][1]["text"]
+    )
     assert s["not_run"] == 1
