@@ -493,7 +493,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "--corrupt",
         type=float,
         default=0.0,
-        help="serial only: per-byte drop/flip/duplicate rate injected on the line (e.g. 1e-6)",
+        help="serial only, the emulated flight processor only: per-byte drop/flip/duplicate rate injected on the line "
+        "(e.g. 1e-6; a board of your own: docs/hil.md section 6, a noisy line)",
     )
     p.add_argument(
         "--full-maps",
