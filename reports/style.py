@@ -233,6 +233,9 @@ GLOSSARY.update(
             "FP % worst seed", "The highest FP % (undetected hazard) of any seed at this altitude.", "%"
         ),
         "cdi_pct_worst": Term("CDI % worst seed", "The lowest CDI % of any seed at this altitude.", "%"),
+        "dem_mean_abs_m_worst": Term(
+            "DEM mean abs err worst seed", "The largest DEM mean absolute error of any seed at this altitude.", "m"
+        ),
         "hazards_in_scene_pct_worst": Term(
             "hazards in scene % most hazardous seed",
             "The highest hazards in scene % of any seed at this altitude.",

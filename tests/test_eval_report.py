@@ -72,6 +72,7 @@ def test_summary_is_median_over_seeds_and_comparison_pairs_thesis_cells():
     assert s[("vertical", "fast", 300)]["dem_mean_abs_m"] == pytest.approx(2.0)  # median of 1.5, 2.5
     fps = [r["fp_pct"] for r in _rows() if (r["scenario"], r["preset"], r["altitude_m"]) == ("vertical", "fast", 300)]
     assert s[("vertical", "fast", 300)]["fp_pct_worst"] == max(fps)  # the worst seed beside the median
+    assert s[("vertical", "fast", 300)]["dem_mean_abs_m_worst"] == pytest.approx(2.5)  # and the DEM's
     cells = ev.comparison(s, "vertical")
     c = next(c for c in cells if c["metric"] == "dem_mean_abs_m" and c["altitude_m"] == 500)
     assert c["thesis"] == 3.8769 and c["ours_fast"] == pytest.approx(3.0) and c["ours_thesis"] == pytest.approx(5.5)
