@@ -616,14 +616,23 @@ def _landings(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(_summary_state(args.out / "landings.json"), file=sys.stderr)
         raise
+    per_scene = summary.get("per_scene") or {}
     for p, st in summary["per_preset"].items():
         lo, hi = st["p_safe_ci95"]
         print(
             f"{p:7s} P(safe) {st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]  P(no site) {st['p_no_site']:.3f}  "
             f"P(unsafe site) {st['p_unsafe']:.3f}  aim point safe {st['p_aim_safe']:.3f}  "
-            f"divert p50 {'-' if st['divert_m']['p50'] is None else format(st['divert_m']['p50'], '.1f') + ' m'}  "
-            f"(n = {st['n']})"
+            f"divert p50 / p90 {_metres(st['divert_m']['p50'])} / {_metres(st['divert_m']['p90'])}  (n = {st['n']})"
         )
+        if len(per_scene) > 1:  # a campaign over several scenes: each one's figure too, as the report has
+            for scene, by_preset in per_scene.items():
+                sc = by_preset.get(p)
+                if sc:
+                    slo, shi = sc["p_safe_ci95"]
+                    print(
+                        f"{'':7s}   {scene:<14s} P(safe) {sc['p_safe']:.3f} [{slo:.3f}, {shi:.3f}]  "
+                        f"P(no site) {sc['p_no_site']:.3f}  (n = {sc['n']})"
+                    )
         for why, k in summary.get("no_site_reasons", {}).get(p, {}).items():
             print(f"{'':7s}   no site x {k}: {why}")
     used = [int(x) for x in summary.get("seeds_used") or seeds]  # the landings drew these, not the whole set
@@ -631,6 +640,10 @@ def _landings(args: argparse.Namespace) -> int:
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0
+
+
+def _metres(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f} m"
 
 
 def register_score(subparsers: Any) -> None:
