@@ -682,7 +682,12 @@ class Arq(SessionView):
             if replaced is not None and was_up:
                 self.stats["peer_restarts"] += 1
                 self._events.append(
-                    _Event("restarted", f"the peer restarted its link (session {replaced:08x} -> {f.src:08x})", ended)
+                    _Event(
+                        "restarted",
+                        f"the peer started a new link session (it restarted, or gave up the last one) "
+                        f"(session {replaced:08x} -> {f.src:08x})",
+                        ended,
+                    )
                 )
             self.peer_max_frame = f.max_frame
             self.peer_window = max(f.window, MIN_FRAME)

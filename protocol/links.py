@@ -1091,7 +1091,12 @@ class ZmqLink(Link, SessionView):
                 if replaced is not None and was_up:  # a handshake never completed is no restart (SerialLink's too)
                     self._stats["peer_restarts"] += 1
                     self._pending_events.append(
-                        ("restarted", f"the peer restarted its link (session {replaced:08x} -> {src:08x})", ended)
+                        (
+                            "restarted",
+                            f"the peer started a new link session (it restarted, or gave up the last one) "
+                            f"(session {replaced:08x} -> {src:08x})",
+                            ended,
+                        )
                     )
                 self._last_heard = now
                 if newly:
