@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.arq import ECHO_TEXT
+from protocol.arq import ECHO_TEXT, Received
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.links import MECHANISM_MISMATCH_TEXT, LinkClosed, ZmqLink
@@ -437,11 +437,22 @@ def stream_descent(
         _say(f"ground: {text}")
 
     def session_ok() -> bool:
-        return state.epoch is not None and link.established and link.epoch == state.epoch
+        return state.epoch is not None and not link.failed and link.established and link.epoch == state.epoch
+
+    def recv(timeout: float) -> Received | None:
+        """The link's next packet, or None; None too once its transport has failed (the device gone, EOF): the
+        callers then find the session lost and say why. A LinkClosed let out of collect or drain was a traceback
+        that lost the Result already in and every later pair's record."""
+        try:
+            return link.recv_packet(timeout=timeout)
+        except LinkClosed:
+            return None
 
     def lost_why() -> str:
         """Why the session is gone: the link's last loss, else what its state shows (a new session can be up
         before the loss of the old one is told: the reason read "None")."""
+        if link.failed:
+            return f"the link failed: {link.failed}"
         if link.last_error:
             return link.last_error
         if link.established:
@@ -662,7 +673,7 @@ def stream_descent(
             return
         end = time.monotonic() + REFUSAL_DRAIN_S
         while time.monotonic() < end:
-            pkt = link.recv_packet(timeout=0.05)
+            pkt = recv(0.05)
             if pkt is None:
                 break
             handle(pkt, want)
@@ -721,7 +732,7 @@ def stream_descent(
         while want and (awaited is None or awaited in want) and time.monotonic() < until:
             # what has arrived is read before the session is judged: an answer that came in before the session
             # was lost stands (after this side was stopped for 8 s, one was thrown away as link_down)
-            pkt = link.recv_packet(timeout=0.0)
+            pkt = recv(0.0)
             if pkt is not None:
                 handle(pkt, want)
                 continue
@@ -735,7 +746,7 @@ def stream_descent(
             overdue_telemetry(want)
             if not want:
                 return
-            pkt = link.recv_packet(timeout=0.2)
+            pkt = recv(0.2)
             stopped()  # before the answer is taken: its latency includes a stop
             if pkt is not None:
                 handle(pkt, want)
@@ -762,7 +773,7 @@ def stream_descent(
         stopped()
         overdue_telemetry(want)
         while want:  # what has arrived counts even when the session has since been lost
-            pkt = link.recv_packet(timeout=0.0)
+            pkt = recv(0.0)
             if pkt is None:
                 if session_ok():
                     take_refusals(want)
@@ -800,7 +811,11 @@ def stream_descent(
 
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
-        ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
+        try:
+            ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
+        except LinkClosed as exc:  # the transport failed as the pair went: its pair is lost to the link
+            give_up(o, "link_down", lost_why() if link.failed else str(exc))
+            return False
         o.frame_ids = tuple(ids)
         # the frames' own line time (a 512x512 pair is ~46 s at 115200 baud) on top of the response timeout;
         # a stalled link ends sooner anyway (its peer timeout fails them)
@@ -896,7 +911,11 @@ def stream_descent(
                     note(f"LINK ERROR: {exc}")
                 give_up(o, "link_down", str(exc))
                 continue
-            send_config()
+            try:
+                send_config()
+            except LinkClosed as exc:
+                give_up(o, "link_down", lost_why() if link.failed else str(exc))
+                continue
             if not send_frames(o, frames):
                 if progress is None:
                     note(f"LINK ERROR: pair {pair_id}: {o.error.text if o.error else ''}")

@@ -423,6 +423,28 @@ def test_a_line_that_fails_between_the_link_session_and_the_boards_hello_is_said
     assert "the link to the flight computer on" in s["reason"] and "failed" in s["reason"], s["reason"]
 
 
+def test_a_line_that_fails_mid_descent_ends_its_pairs_as_link_down_not_a_traceback(manifest, flight, tmp_path):
+    """The device went away while a pair awaited its answer: the link's LinkClosed left the ground's wait as a
+    traceback, the pairs after it got no record, and the run's reason was the exception's repr (stop 57's review)."""
+    from protocol.faults import PtyBridge
+
+    bridge = PtyBridge()
+    board = subprocess.Popen([sys.executable, str(flight), "--mode", "slow_first", "--port", bridge.paths[0]])
+    closer = threading.Timer(3.0, bridge.close)  # the first pair's answer takes 7 s: the line fails meanwhile
+    closer.start()
+    try:
+        code, s, md = run_external(manifest, tmp_path, f"serial:{bridge.paths[1]}")
+    finally:
+        closer.cancel()
+        board.terminate()
+        board.wait(timeout=10)
+        bridge.close()
+    log = (tmp_path / "ground.log").read_text()
+    assert "Traceback" not in log and "LinkClosed" not in str(s.get("reason")), log[-1500:]
+    assert code != 0 and [r["label"] for r in s["records"]] == ["600/300", "300/150", "200/100"], md
+    assert all(r.get("code") == "link_down" and "link failed: read failed" in r["text"] for r in s["records"]), md
+
+
 def test_an_external_flight_computers_result_without_its_telemetry_stands(manifest, flight, tmp_path):
     """A board that sent a Result and no Telemetry had the Result thrown away: the pair waited out the response
     timeout (3 x 30 + 30 s here) and was recorded as "no result or error" (stop 57's board QA)."""
