@@ -178,6 +178,7 @@ class PairOutcome:
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
+    telemetry_wait_stopped_s: float = 0.0  # ... and while its Result was in and its Telemetry awaited
     last_frame_started: float | None = None  # the lower frame's first byte handed to the line
     frame_ids: tuple[int, ...] = ()  # its Frames' message ids on the link
 
@@ -610,7 +611,8 @@ def stream_descent(
         for s in sorted(want):
             o = outcomes[s]
             came = o.result_t_done
-            if o.result is not None and not o.finished and came is not None and now - came > TELEMETRY_GRACE_S:
+            waited = None if came is None else now - came - o.telemetry_wait_stopped_s
+            if o.result is not None and not o.finished and waited is not None and waited > TELEMETRY_GRACE_S:
                 o.telemetry_missing = f"no Telemetry came within {TELEMETRY_GRACE_S:g} s of its Result"
                 want.discard(s)
                 record(o)
@@ -762,6 +764,9 @@ def stream_descent(
         hit = [o for o in outcomes.values() if o.sent_at and o.result is None and not o.finished]
         for o in hit:
             o.ground_stopped_s += gap
+        for o in outcomes.values():  # the Telemetry grace is this process's running time, as the server's watchdog
+            if o.result is not None and not o.finished:
+                o.telemetry_wait_stopped_s += gap
         if hit:
             note(f"this process was not scheduled for {gap:.1f} s: the latency of {len(hit)} pair(s) in flight "
                  "includes it")  # fmt: skip
@@ -771,14 +776,14 @@ def stream_descent(
         while the next pairs' frames are still on the line, and are recorded (and shown) then, not after the
         last pair is sent; so are the refusals among them."""
         stopped()
-        overdue_telemetry(want)
         while want:  # what has arrived counts even when the session has since been lost
             pkt = recv(0.0)
             if pkt is None:
                 if session_ok():
                     take_refusals(want)
-                return
+                break
             handle(pkt, want)
+        overdue_telemetry(want)  # after what has arrived: a Telemetry in the queue is no missing one
 
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
@@ -928,8 +933,9 @@ def stream_descent(
                 late.intersection_update(want)
                 if o.seqs in want and i + 1 < len(entries):
                     late.add(o.seqs)
+                    what = "its Result came, its Telemetry not" if o.result is not None else "no answer"
                     note(
-                        f"pair {pair_id}: no answer within {timeout:.0f} s; the next pair goes now, and this one's "
+                        f"pair {pair_id}: {what} within {timeout:.0f} s; the next pair goes now, and this one's "
                         "answer is still recorded if it comes"
                     )
             else:
@@ -982,8 +988,8 @@ def stream_descent(
                 if not o.finished and o.result is not None:  # the answer came, its Telemetry not yet
                     o.telemetry_missing = f"{exc} before its Telemetry came"
                 elif not o.finished:
-                    # frames_written_at is set once both frames are on the far side: before that, mid-uplink
-                    when = "after its frames went" if o.frames_written_at is not None else "while its frames went"
+                    # link_s is set once both frames are on the far side (send_frames' end): before that, mid-uplink
+                    when = "after its frames went" if o.link_s > 0 else "while its frames went"
                     o.error = Error(code="interrupted", text=f"{exc} {when}; its answer was not awaited", seq=s[1])
                 records.append(write_outcome(out_dir, o, deadline_s))
         save()
@@ -1012,6 +1018,8 @@ def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float
         return f"it came before pair {o.pair_id}'s frames were sent"
     if (o.result if isinstance(msg, Result) else o.telemetry) is not None:
         return f"pair {o.pair_id} has one already; the first stands"
+    if isinstance(msg, Telemetry) and o.telemetry_missing is not None:  # too late: its pair is recorded
+        return f"pair {o.pair_id} was recorded without it ({o.telemetry_missing})"
     return None
 
 

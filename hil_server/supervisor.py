@@ -906,8 +906,8 @@ class Supervisor:
         if reader is not None and heard is not None:
             # the reader thread may store a newer message's time meanwhile: the later of the two stands (a plain
             # += could put back an older time and make the silence look longer)
-            reader.last_message = max(reader.last_message, heard + gap)
-            self._forgave_at = reader.last_message
+            forgiven = max(reader.last_message, heard + gap)
+            reader.last_message = self._forgave_at = forgiven  # not read again: a message meanwhile is a hearing
         self.log(f"supervisor: this process was not scheduled for {gap:.1f} s; the flight process is not blamed for it")
 
     def _exit_code(self) -> int:

@@ -132,9 +132,12 @@ class PtyBridge:
         self.relays = (ByteRelay(m_a, m_b, a_to_b), ByteRelay(m_b, m_a, b_to_a))
 
     def close(self) -> None:
+        """Stop the relays and close the ptys; again is a no-op. A second close closed the same descriptor numbers
+        again, by then another file's (a font matplotlib was reading: "Illegal seek", and no report page)."""
         for r in self.relays:
             r.stop()
-        for fd in self._fds:
+        fds, self._fds = self._fds, []
+        for fd in fds:
             try:
                 os.close(fd)
             except OSError:

@@ -353,7 +353,8 @@ def _run_dask(
     except OSError as exc:
         raise InputError(f"cannot reach Dask scheduler {scheduler!r}: {exc}") from None
     done = threading.Event()
-    watcher = threading.Thread(target=_say_when_workerless, args=(client, str(scheduler), done), daemon=True)
+    where = scheduler if isinstance(scheduler, str) else getattr(getattr(client, "scheduler", None), "address", "")
+    watcher = threading.Thread(target=_say_when_workerless, args=(client, str(where), done), daemon=True)
     watcher.start()
     try:
         futs = {}

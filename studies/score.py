@@ -326,9 +326,9 @@ _READ_NAMES = frozenset({"pair.json", "result.json", "manifest.json", "results.j
 
 
 def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, option: str) -> None:
-    """Refuse a file ``score`` writes (``option``) that is one of the files it reads: any file already inside a
-    pair directory (its pair.json may name images in subdirectories, with any extension), an output's ``.npy``,
-    image or JSON, the descent's manifest or an HIL run's records."""
+    """Refuse a file ``score`` writes (``option``) that is one of the files it reads: a pair's images as its
+    pair.json names them (in subdirectories too, with any extension), a pair's or an output's ``.npy``, image or
+    JSON, the descent's manifest or an HIL run's records. A new file of one's own beside them is fine."""
     target = path.resolve()
     if not target.exists():
         return
@@ -347,8 +347,8 @@ def _pair_images(pair_dirs: set[Path]) -> set[Path]:
         try:
             frames = json.loads((d / "pair.json").read_text(encoding="utf-8"))["frames"]
             out |= {(d / str(f["image"])).resolve() for f in frames}
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
+        except (OSError, ValueError, KeyError, TypeError, RuntimeError, RecursionError):
+            continue  # a symlink loop (RuntimeError on 3.11) or a pair.json nested past recursion: read_pair says why
     return out
 
 

@@ -410,7 +410,16 @@ def test_a_line_that_fails_between_the_link_session_and_the_boards_hello_is_said
 
     bridge = PtyBridge()
     board = subprocess.Popen([sys.executable, str(flight), "--mode", "no_hello", "--port", bridge.paths[0]])
-    threading.Timer(5.0, bridge.close).start()  # the link session is up by then; the Hello never comes
+
+    def close_once_the_session_is_up() -> None:  # the handshake's own path, not the one before any session
+        t0 = time.monotonic()
+        log = tmp_path / "ground.log"
+        while time.monotonic() - t0 < 30 and not (log.is_file() and "established: session" in log.read_text()):
+            time.sleep(0.1)
+        time.sleep(0.5)
+        bridge.close()
+
+    threading.Thread(target=close_once_the_session_is_up, daemon=True).start()
     try:
         code, s, md = run_external(manifest, tmp_path, f"serial:{bridge.paths[1]}", "--hello-timeout", "60")
     finally:
@@ -421,6 +430,7 @@ def test_a_line_that_fails_between_the_link_session_and_the_boards_hello_is_said
     assert code == 1 and s["complete"] is False, md
     assert "Traceback" not in log and "LinkClosed" not in s["reason"], (s["reason"], log[-1500:])
     assert "the link to the flight computer on" in s["reason"] and "failed" in s["reason"], s["reason"]
+    assert "established: session" in log  # the line failed inside the handshake, as the test means
 
 
 def test_a_line_that_fails_mid_descent_ends_its_pairs_as_link_down_not_a_traceback(manifest, flight, tmp_path):

@@ -730,3 +730,17 @@ def test_a_board_endpoint_it_could_not_bind_is_said_before_any_work():
     check_link_spec(f"zmq:tcp://lo:{port}", server=True)  # an interface name libzmq binds
     check_link_spec(f"zmq:tcp://127.0.0.1:{port}", server=True, insecure=True)  # free again
     check_link_spec("zmq:tcp://127.0.0.1:*", server=True, insecure=True)
+
+
+def test_a_pty_bridge_closed_twice_closes_nothing_the_second_time(tmp_path):
+    """A second close closed the same descriptor numbers again, by then another file's (a font matplotlib was
+    reading: "Illegal seek" and no report page, in a test that closed its bridge from a timer and a finally)."""
+    from protocol.faults import PtyBridge
+
+    bridge = PtyBridge()
+    bridge.close()
+    other = tmp_path / "other.txt"
+    other.write_text("still mine")
+    with open(other) as f:  # very likely gets one of the numbers the bridge just freed
+        bridge.close()
+        assert f.read() == "still mine"
