@@ -408,28 +408,32 @@ def test_nothing_is_sent_before_a_ground_said_hello_and_a_refused_message_is_sai
     ]
 
 
+def _board_waiting_for_a_ground(port: str) -> tuple[subprocess.Popen, str]:
+    """`hazard-hil flight` on ``port``, once it says it waits for a ground: (the process, what it said so far).
+    Waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there; raw reads under select never
+    block for good, nor leave the line in a buffer select cannot see."""
+    import os
+    import select
+
+    board = subprocess.Popen([*BOARD, "--link", f"serial:{port}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    assert board.stderr is not None
+    first = b""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 60 and b"waiting for a ground" not in first:
+        if select.select([board.stderr], [], [], 1.0)[0]:
+            first += os.read(board.stderr.fileno(), 65536)
+    return board, first.decode(errors="replace")
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
     """A hangup (its terminal or ssh session closed) ends the board as SIGTERM does: its last line, the link closed."""
     from protocol.faults import PtyBridge
 
     with PtyBridge() as bridge:
-        board = subprocess.Popen(
-            [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
-        )
-        assert board.stderr is not None
-        import os
-        import select
-
-        first = b""
-        t0 = time.monotonic()
-        # waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there; raw reads under select
-        # never block for good, nor leave the line in a buffer select cannot see
-        while time.monotonic() - t0 < 60 and b"waiting for a ground" not in first:
-            if select.select([board.stderr], [], [], 1.0)[0]:
-                first += os.read(board.stderr.fileno(), 65536)
+        board, first = _board_waiting_for_a_ground(bridge.paths[0])
         rc, rest = _stop(board, sig)
-    err = first.decode(errors="replace") + rest
+    err = first + rest
     assert rc == 128 + sig, err
     assert f"stopped by {signal.Signals(sig).name}" in err
     assert "waiting for a ground" in err and "served 0 ground session(s), 0 pair(s); 0 message(s) refused" in err
@@ -438,28 +442,18 @@ def test_a_signal_stops_a_board_waiting_for_its_first_ground(tmp_path, sig):
 def test_a_board_whose_line_fails_ends_with_what_it_served(tmp_path):
     """A line that failed under the board (a second reader, the other end closed) ended it without the last line
     hil.md promises, the sum of what it served."""
-    import os
-    import select
-
     from protocol.faults import PtyBridge
 
     bridge = PtyBridge()
-    board = subprocess.Popen(
-        [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
-    )
-    assert board.stderr is not None
-    first = b""
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 60 and b"waiting for a ground" not in first:
-        if select.select([board.stderr], [], [], 1.0)[0]:
-            first += os.read(board.stderr.fileno(), 65536)
+    board, first = _board_waiting_for_a_ground(bridge.paths[0])
     bridge.close()  # the line goes away under it
     try:
+        assert board.stderr is not None
         rest = board.stderr.read()
         rc = board.wait(timeout=60)
     finally:
         board.kill()
-    err = first.decode(errors="replace") + rest
+    err = first + rest
     assert rc == 1, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("flight: the link failed") and "served 0 ground session(s), 0 pair(s)" in last, err

@@ -36,21 +36,26 @@ if __name__ == "__main__":
 """
 
 
-def test_ctrl_c_ends_a_pool_at_once_with_its_workers(tmp_path):
-    """Workers took the Ctrl-C too and died inside the pool's protocol; the parent could then wait for good."""
-    script = tmp_path / "pool_ctrl_c.py"
-    script.write_text(SCRIPT.format(root=str(ROOT)))
-    t0 = time.monotonic()
-    done = subprocess.run(
+def _run_in_own_session(script: Path, text: str, sig: signal.Signals) -> subprocess.CompletedProcess:
+    """``text`` (formatted with the repository root) run as a script in a session of its own, ``sig`` at its
+    default disposition whatever this process inherited; its output captured."""
+    script.write_text(text.format(root=str(ROOT)))
+    return subprocess.run(
         [sys.executable, str(script)],
         capture_output=True,
         text=True,
         timeout=120,
         start_new_session=True,
-        # a terminal's foreground job takes Ctrl-C; a job started in the background by a non-interactive shell
-        # (a CI runner's `./.ci/run &`) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=lambda: signal.signal(sig, signal.SIG_DFL),
     )
+
+
+def test_ctrl_c_ends_a_pool_at_once_with_its_workers(tmp_path):
+    """Workers took the Ctrl-C too and died inside the pool's protocol; the parent could then wait for good."""
+    t0 = time.monotonic()
+    # a terminal's foreground job takes Ctrl-C; a job started in the background by a non-interactive shell
+    # (a CI runner's `./.ci/run &`) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+    done = _run_in_own_session(tmp_path / "pool_ctrl_c.py", SCRIPT, signal.SIGINT)
     took = time.monotonic() - t0
     assert done.returncode == 130 and done.stdout.strip() == "interrupted", done.stderr[-2000:]
     assert took < 30, f"the interrupted pool waited for its 40 s tasks ({took:.0f} s)"  # the workers were ended
@@ -88,16 +93,7 @@ def test_a_closed_terminal_ends_a_pool_without_the_resource_trackers_tracebacks(
     """SIGHUP to the group also killed multiprocessing's resource tracker, which ignores only SIGINT and SIGTERM:
     after the command's own clean stop, "resource_tracker: process died unexpectedly" and five KeyError
     tracebacks (stop 57's studies QA)."""
-    script = tmp_path / "pool_hup.py"
-    script.write_text(HUP_SCRIPT.format(root=str(ROOT)))
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
-    )
+    done = _run_in_own_session(tmp_path / "pool_hup.py", HUP_SCRIPT, signal.SIGHUP)
     assert done.returncode == 129 and done.stdout.strip() == "hung up", done.stderr[-2000:]
     assert "Traceback" not in done.stderr and "resource_tracker" not in done.stderr, done.stderr[-2000:]
 
