@@ -610,9 +610,7 @@ def stream_descent(
         now = time.monotonic()
         for s in sorted(want):
             o = outcomes[s]
-            came = o.result_t_done
-            waited = None if came is None else now - came - o.telemetry_wait_stopped_s
-            if o.result is not None and not o.finished and waited is not None and waited > TELEMETRY_GRACE_S:
+            if telemetry_overdue(o, now):
                 o.telemetry_missing = f"no Telemetry came within {TELEMETRY_GRACE_S:g} s of its Result"
                 want.discard(s)
                 record(o)
@@ -998,6 +996,15 @@ def stream_descent(
     finally:
         stall.close()
     return records
+
+
+def telemetry_overdue(o: PairOutcome, now: float, grace_s: float = TELEMETRY_GRACE_S) -> bool:
+    """Whether ``o``'s Result came over ``grace_s`` of this process's running time ago and its Telemetry has not:
+    the ground's own stops meanwhile (``telemetry_wait_stopped_s``) are left out, as the HIL server's watchdog
+    leaves out its own (a Telemetry that came during an 11 s stop of the ground was taken for missing)."""
+    if o.result is None or o.finished or o.result_t_done is None:
+        return False
+    return now - o.result_t_done - o.telemetry_wait_stopped_s > grace_s
 
 
 def _say(*parts: object) -> None:

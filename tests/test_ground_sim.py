@@ -355,3 +355,22 @@ def test_bad_views_give_clear_errors():
         load_trajectory("nowhere")
     with pytest.raises(InputError):
         load_scene("nope")
+
+
+def test_a_results_telemetry_is_overdue_on_the_grounds_running_time_and_a_late_one_is_no_answer():
+    """The 10 s wait for a Result's Telemetry counted the ground's own stops: a Telemetry that came during an 11 s
+    stop was taken for missing, then taken in silence when it was read (stop 57's second review)."""
+    from ground_sim.stream import PairOutcome, _not_an_answer, telemetry_overdue
+    from protocol.messages import Telemetry
+
+    o = PairOutcome("p000", "600/300", 300.0, "d", (0, 1), sent_at=1.0)
+    assert not telemetry_overdue(o, 1000.0)  # no Result yet
+    o.result, o.result_t_done = object(), 100.0  # type: ignore[assignment]
+    assert not telemetry_overdue(o, 109.0) and telemetry_overdue(o, 111.0)
+    o.telemetry_wait_stopped_s = 11.0  # the ground was stopped for 11 of those seconds
+    assert not telemetry_overdue(o, 111.0) and telemetry_overdue(o, 122.0)
+    o.telemetry_missing = "no Telemetry came within 10 s of its Result"
+    assert not telemetry_overdue(o, 1000.0)  # recorded already
+    o.last_frame_started = 2.0
+    late = Telemetry(frame_seqs=(0, 1))
+    assert "was recorded without it (no Telemetry came within 10 s" in (_not_an_answer(late, o, 130.0) or "")
