@@ -320,7 +320,7 @@ def _budgets(args: argparse.Namespace) -> int:
 
 def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
     """What `run` would say of ``budget`` on this host, said in `budgets`' listing before anyone waits for it."""
-    from hil_server.budgets import FLIGHT_BASE_MIB, FLIGHT_RSS_MARGIN, BudgetError, check_runnable, max_image_side
+    from hil_server.budgets import BudgetError, check_runnable, flight_peak_rss_mib, max_image_side
 
     out = []
     try:
@@ -334,7 +334,7 @@ def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
         )
     if max_image_side(budget.memory_mib) <= 0:
         out.append(
-            f"no camera fits: our flight process alone needs ~{FLIGHT_BASE_MIB * (1 + FLIGHT_RSS_MARGIN):.0f} MiB "
+            f"no camera fits: our flight process alone needs ~{flight_peak_rss_mib(0):.0f} MiB "
             f"of its {budget.memory_mib} MiB (a flight program of your own may need less: `run --flight-cmd`)"
         )
     return out

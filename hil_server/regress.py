@@ -306,9 +306,6 @@ CASE_KEYS = frozenset(
         "budget_recorded",
     }
 )
-# What a case's budget stood for when its metrics were recorded (`--update` writes it): a board file edited since
-# (2760 -> 400 DMIPS) read exactly as before, since latencies are in reference seconds (stop 56's budget QA)
-BUDGET_FIELDS = BUDGET_FIGURES
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
 
 
@@ -378,8 +375,8 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
                 f"got {case['deadline_s']!r}"
             )
         rec = case.get("budget_recorded")
-        if rec is not None and (not isinstance(rec, dict) or set(rec) - set(BUDGET_FIELDS)):
-            raise bad(f"{w}: 'budget_recorded' is what --update writes: an object of {', '.join(BUDGET_FIELDS)}")
+        if rec is not None and (not isinstance(rec, dict) or set(rec) - set(BUDGET_FIGURES)):
+            raise bad(f"{w}: 'budget_recorded' is what --update writes: an object of {', '.join(BUDGET_FIGURES)}")
         if "seed" in case and (isinstance(case["seed"], bool) or not isinstance(case["seed"], int) or case["seed"] < 0):
             raise bad(f"{w}: 'seed' must be an integer >= 0, got {case['seed']!r}")
         size = case.get("image_size")
@@ -424,11 +421,13 @@ def _own_budgets(path: Path | None, w: str, bad) -> dict:
 
 
 def budget_record(case: dict, base_dir: Path | None) -> dict:
-    """The figures of a case's budget (:data:`BUDGET_FIELDS`), from its file or the shipped ones."""
+    """The figures of a case's budget (:data:`hil_server.budgets.BUDGET_FIGURES`), from its file or the shipped
+    ones: what it stood for when its metrics were recorded (``budget_recorded``, written by ``--update``). A board
+    file edited since (2760 -> 400 DMIPS) read exactly as before, latencies being in reference seconds."""
     from hil_server.budgets import get_budget
 
     b = get_budget(case["budget"], _path(case.get("budget_file"), base_dir))
-    return {k: getattr(b, k) for k in BUDGET_FIELDS}
+    return {k: getattr(b, k) for k in BUDGET_FIGURES}
 
 
 def budget_change(case: dict, base_dir: Path | None) -> str:
@@ -437,7 +436,7 @@ def budget_change(case: dict, base_dir: Path | None) -> str:
     if not old:
         return ""
     new = budget_record(case, base_dir)
-    moved = [f"{k} {old.get(k)!r} -> {new[k]!r}" for k in BUDGET_FIELDS if old.get(k) != new[k]]
+    moved = [f"{k} {old.get(k)!r} -> {new[k]!r}" for k in BUDGET_FIGURES if old.get(k) != new[k]]
     if not moved:
         return ""
     return (

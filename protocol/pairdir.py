@@ -855,6 +855,18 @@ def _check_regular(path: Path, what: str, d: Path) -> None:
         raise PairFormatError(f"{d}: {what} {why}")
 
 
+def named_images(directory: str | Path) -> list[Path]:
+    """The images a pair directory's pair.json names, resolved, without reading them: they may lie in
+    subdirectories, with any extension (a `score --csv` over `img/frame0.png` replaced a frame). An unreadable
+    pair.json names none (a symlink loop is a RuntimeError on 3.11; :func:`read_pair` says what is wrong)."""
+    d = Path(directory)
+    try:
+        frames = json.loads((d / "pair.json").read_text(encoding="utf-8"))["frames"]
+        return [(d / str(f["image"])).resolve() for f in frames]
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError, RecursionError):
+        return []
+
+
 def _image_path(d: Path, name: str) -> Path:
     """The path of image ``name`` named in ``d``'s pair.json: inside ``d``, and a regular file."""
     if "\0" in name:  # no file system can name it; os calls raise ValueError on it

@@ -29,7 +29,15 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, PairFormatError, file_present
+from protocol.pairdir import (
+    STATE_OUTSIDE,
+    STATE_SAFE,
+    STATE_UNKNOWN,
+    STATE_UNSAFE,
+    PairFormatError,
+    file_present,
+    named_images,
+)
 from reports.console import printable
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
@@ -335,21 +343,9 @@ def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, 
     pair_dirs = {j.pair_dir.resolve() for j in jobs}
     read_dirs = {j.out_dir.resolve() for j in jobs} | {pairs.resolve(), outputs.resolve()} | pair_dirs
     read = target.suffix in (".npy", ".png") or target.name in _READ_NAMES
-    if (target.parent in read_dirs and read) or target in _pair_images(pair_dirs):
+    named = {img for d in pair_dirs for img in named_images(d)}  # in subdirectories too, any extension
+    if (target.parent in read_dirs and read) or target in named:
         raise ScoreError(f"{option} {path} is one of the files this scoring reads: it would be overwritten")
-
-
-def _pair_images(pair_dirs: set[Path]) -> set[Path]:
-    """The images the pairs' pair.json name, resolved: they may lie in subdirectories, with any extension (a table
-    written over `img/frame0.png` replaced a frame). An unreadable pair.json names none: reading it fails anyway."""
-    out: set[Path] = set()
-    for d in pair_dirs:
-        try:
-            frames = json.loads((d / "pair.json").read_text(encoding="utf-8"))["frames"]
-            out |= {(d / str(f["image"])).resolve() for f in frames}
-        except (OSError, ValueError, KeyError, TypeError, RuntimeError, RecursionError):
-            continue  # a symlink loop (RuntimeError on 3.11) or a pair.json nested past recursion: read_pair says why
-    return out
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
