@@ -396,7 +396,21 @@ MAX_CPU_DMIPS = 1e6  # ~30x this host's core; no single flight core comes near
 MIN_CPU_DMIPS = 1.0  # an 8-bit microcontroller; below it the duty rounds to 0 % and the listing misaligns
 MAX_MEMORY_MIB = 2**20  # 1 TiB
 MAX_DEADLINE_S = 3600.0  # an hour per pair
+# a Result cannot cross even a local link sooner: a shorter deadline is a unit slip (ms for s), not a budget
+MIN_DEADLINE_S = 0.001
 BAUD_RANGE = (BAUD_MIN, BAUD_MAX)  # the rates a paced line takes
+
+
+def deadline_problem(value: object) -> str | None:
+    """Why ``value`` is no deadline in seconds (``None``: it is one), for `run --deadline`, a regress case and
+    :class:`~hil_server.run.RunConfig` alike."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and MIN_DEADLINE_S <= value <= MAX_DEADLINE_S:  # type: ignore[operator]
+        return None
+    return (
+        f"must be a number of seconds in [{MIN_DEADLINE_S:g}, {MAX_DEADLINE_S:g}] (a Result cannot cross even a "
+        f"local link in less), got {value!r}"
+    )
 
 
 def _number(
@@ -480,7 +494,7 @@ def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
         description=_string(entry, "description", w),
         cpu_dmips=cpu_dmips,
         memory_mib=int(memory),
-        deadline_s=_number(entry, "deadline_s", w, maximum=MAX_DEADLINE_S),
+        deadline_s=_number(entry, "deadline_s", w, maximum=MAX_DEADLINE_S, minimum=MIN_DEADLINE_S),
         link=link,
         baud=baud,
         source=_string(entry, "source", w),

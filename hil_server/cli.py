@@ -563,14 +563,13 @@ def _config(args: argparse.Namespace):
         given = [f"--{k.replace('_', '-')}" for k in _RENDER_OPTIONS if getattr(args, k) is not None]
         if given:
             raise InputError(f"--manifest streams pairs already rendered; {', '.join(given)} would be ignored")
+    from hil_server.budgets import deadline_problem
     from protocol.linkspec import check_link_timeout
 
-    for name, value, most in (
-        ("--deadline", args.deadline, 3600.0),  # a pair an hour: past any flight computer's
-        ("--hello-timeout", args.hello_timeout, 86400.0),
-    ):
-        if value is not None and not (math.isfinite(value) and 0 < value <= most):
-            raise InputError(f"{name} must be a number of seconds in (0, {most:g}], got {value}")
+    if args.deadline is not None and (why := deadline_problem(args.deadline)):
+        raise InputError(f"--deadline {why}")
+    if args.hello_timeout is not None and not (math.isfinite(args.hello_timeout) and 0 < args.hello_timeout <= 86400):
+        raise InputError(f"--hello-timeout must be a number of seconds in (0, 86400], got {args.hello_timeout}")
     if args.link_timeout is not None:
         check_link_timeout(args.link_timeout)
     if args.baud is not None:

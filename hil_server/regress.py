@@ -315,7 +315,7 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
     A hand-edited baseline that slipped through would otherwise fail with a traceback after minutes of runs,
     or (an empty ``cases``) silently run the default cases instead of the ones asked for.
     """
-    from hil_server.budgets import MAX_DEADLINE_S, load_budgets
+    from hil_server.budgets import deadline_problem, load_budgets
     from protocol.errors import InputError
     from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
@@ -369,11 +369,8 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
             raise bad(f"{w}: a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT, got {case['link']!r}")
         if "keys" in case and (not isinstance(case["keys"], str) or not case["keys"]):
             raise bad(f"{w}: 'keys' must be a non-empty path, got {case['keys']!r}")
-        if "deadline_s" in case and (not number(case["deadline_s"]) or not 0 < case["deadline_s"] <= MAX_DEADLINE_S):
-            raise bad(
-                f"{w}: 'deadline_s' must be a number of seconds in (0, {MAX_DEADLINE_S:g}] (as `run --deadline`), "
-                f"got {case['deadline_s']!r}"
-            )
+        if "deadline_s" in case and (why := deadline_problem(case["deadline_s"])):
+            raise bad(f"{w}: 'deadline_s' (as `run --deadline`) {why}")
         rec = case.get("budget_recorded")
         if rec is not None and (not isinstance(rec, dict) or set(rec) - set(BUDGET_FIGURES)):
             raise bad(f"{w}: 'budget_recorded' is what --update writes: an object of {', '.join(BUDGET_FIGURES)}")

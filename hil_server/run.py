@@ -1113,16 +1113,16 @@ class CheckedRun:
 
 def check_run_config(cfg: RunConfig) -> CheckedRun:
     """Refuse bad options with one line (:class:`InputError`) before anything is calibrated, rendered or run."""
-    from hil_server.budgets import get_budget
+    from hil_server.budgets import deadline_problem, get_budget
 
     emulated = cfg.flight == "emulated"
     kind, spec = _parse_link(cfg)
     if spec is not None and spec != cfg.link:  # --baud folded into an external serial link's spec
         cfg = replace(cfg, link=spec)
     budget = get_budget(cfg.budget, cfg.budget_file)
+    if cfg.deadline_s is not None and (why := deadline_problem(cfg.deadline_s)):
+        raise InputError(f"--deadline {why}")
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)
-    if not (math.isfinite(deadline) and deadline > 0):
-        raise InputError(f"--deadline must be a positive number of seconds, got {deadline}")
     if cfg.corrupt and kind != "serial":
         raise InputError(f"--corrupt applies to the serial link only, not to --link {cfg.link}")
     if cfg.corrupt and not 0 <= cfg.corrupt <= 0.05:

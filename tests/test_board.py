@@ -499,7 +499,8 @@ def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
     [
         ({"flight": "board"}, "'flight' must be 'emulated' or 'external'"),
         ({"flight": "external", "link": "serial"}, "a board's 'link' is serial:DEVICE[@BAUD] or zmq:ENDPOINT"),
-        ({"deadline_s": -1}, "'deadline_s' must be a number of seconds in (0, 3600]"),
+        ({"deadline_s": -1}, "'deadline_s' (as `run --deadline`) must be a number of seconds in [0.001, 3600]"),
+        ({"deadline_s": 1e-5}, "'deadline_s' (as `run --deadline`) must be a number of seconds in [0.001, 3600]"),
         ({"image_size": "128"}, "'image_size' must be an integer number of pixels in 32..4096, got '128'"),
         ({"image_size": 8}, "'image_size' must be an integer number of pixels"),
         ({"seed": -1}, "'seed' must be an integer >= 0"),
