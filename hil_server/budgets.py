@@ -316,6 +316,11 @@ class Budget:
         )
         return self.anchor.dmips
 
+    def outruns(self, host_dmips: float) -> bool:
+        """True when the budget stands for a core faster than this host's: it can only run at full speed, and its
+        verdict is then pessimistic."""
+        return self.cpu_dmips is not None and self.cpu_dmips > host_dmips
+
     def duty(self, cal: HostCalibration | None) -> Duty:
         """The effective fraction ``min(1, cpu_dmips / host_dmips)`` and the duty cycle ``f`` that delivers it,
         ``f eta(f) = effective`` (module doc; bisection in log f, eta from ``cal``); 'host' budgets -> 1.0."""

@@ -327,7 +327,7 @@ def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
         check_runnable(budget.name, budget, duty)
     except BudgetError as exc:
         out.append(f"`run` refuses it here: {str(exc).split(': ', 1)[-1]}")
-    if budget.cpu_dmips is not None and budget.cpu_dmips > host_dmips:
+    if budget.outruns(host_dmips):
         out.append(
             f"faster than this host's core ({host_dmips:.0f} DMIPS): it runs at this core's full speed, so its "
             "verdict is pessimistic"

@@ -531,6 +531,7 @@ class EmulatedProcessor:
         self._child: _Child | None = None
         self._baseline_vms_mib: float | None = None
         self._atexit_registered = False
+        self.unlogged_bytes = 0  # the children's output past the log's cap, known once each one's pipe ended
 
     # --- lifecycle -----------------------------------------------------------------------
 
@@ -784,7 +785,12 @@ class EmulatedProcessor:
         cap = MAX_FORWARDED_BYTES
         note = f"procemu: {{}} more bytes of the flight process's output were not logged (the first {cap >> 20} MiB "
         note += "were)\n"
-        sinks = [] if out is None else [Sink(out.write, cap, lambda n: note.format(n).encode(), out.flush)]
+
+        def over(n: int) -> bytes:
+            self.unlogged_bytes += n  # counted here, not read back from the log a flight program writes into
+            return note.format(n).encode()
+
+        sinks = [] if out is None else [Sink(out.write, cap, over, out.flush)]
         pump(stream, sinks, on_line=lambda line: child.stderr_tail.append(line[-2000:]))
 
     def _reaper(self, child: _Child) -> None:

@@ -37,7 +37,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import shutil
 import signal
 import socket
@@ -113,7 +112,7 @@ def budget_speed(budget: Budget, cal: HostCalibration | None, duty: Duty) -> dic
         "share": duty.effective,
         "slowdown": 1.0 / duty.effective,
         "duty": duty.applied,
-        "faster_than_host": bool(budget.cpu_dmips is not None and budget.cpu_dmips > host),
+        "faster_than_host": budget.outruns(host),
         "calibrated_at": None if cal is None else cal.measured_at,
         "calibration_key": None if cal is None else cal.key,
     }
@@ -598,19 +597,6 @@ def _line_note(line: dict) -> str:
         f"the ground's line dropped {bad} damaged frame{'' if bad == 1 else 's'} ({noise} bytes of noise); "
         f"{again} retransmission{'' if again == 1 else 's'} on the ground's side"
     )
-
-
-UNLOGGED_LINE = re.compile(rb"procemu: (\d+) more bytes of the flight process's output were not logged")
-
-
-def unlogged_output_bytes(log: Path) -> int:
-    """The flight process's output the emulated processor counted but did not log (its 4 MiB cap), summed over the
-    incarnations in the HIL server's log; 0 when none or no log."""
-    try:
-        data = log.read_bytes()
-    except OSError:
-        return 0
-    return sum(int(m.group(1)) for m in UNLOGGED_LINE.finditer(data))
 
 
 def _server_note(summary: dict, c: dict) -> str:
@@ -1444,10 +1430,13 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
             records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
         score_records(records)
         counters = {}
+        unlogged = 0
         flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
         for line in _read_records(out / "supervisor.jsonl"):
             if line.get("event") == "summary":
                 counters = {k: v for k, v in line.items() if k != "event"}
+            elif line.get("event") == "flight_output":
+                unlogged = int(line.get("unlogged_bytes") or 0)
             elif line.get("event") in FLIGHT_EVENTS:
                 flight_events.append(line)
         summary = summarize(
@@ -1467,7 +1456,7 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
                 "memory_mib": budget.memory_mib if emulated else None,
                 "wall_s": wall,
                 "supervisor_counters": counters,
-                "flight_output_unlogged_bytes": unlogged_output_bytes(out / "supervisor.log"),
+                "flight_output_unlogged_bytes": unlogged,
                 "flight_events": list(flight_events),
                 # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
                 "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],

@@ -310,6 +310,7 @@ class Supervisor:
             "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
         }
         self.boot_failures = 0  # flight incarnations in a row that died before their Hello
+        self.unlogged_bytes = 0  # the flight incarnations' output past the log's cap (procemu), closed ones
         self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
         self._stall: StallClock | None = None  # this process's own stops (serve() runs it)
         self._forgave_at: float | None = None  # the flight's last message as the last forgiven stop left it
@@ -352,6 +353,7 @@ class Supervisor:
         if self.flight_reader:
             self.flight_reader.stopped.set()
         self.flight.close()
+        self.unlogged_bytes += getattr(self.flight.proc, "unlogged_bytes", 0)
         self.counters["restarts"] += 1
         self.boot_failures = 0 if self.flight.hello else self.boot_failures + 1
         self.log(f"supervisor: flight process restarted ({reason}; exit {report})")
@@ -877,11 +879,16 @@ class Supervisor:
                 stats = getattr(self.ground, "stats", None) or {}  # a property of every Link
                 port = int(stats.get("auth_failures", 0) or 0) + int(stats.get("peers_refused", 0) or 0)
                 self._write_telemetry({"event": "summary", **self.counters, "port_refused": port})
-                if self.telemetry_file:
-                    self.telemetry_file.close()
-                    self.telemetry_file = None
-                if self.flight:
-                    self.flight.close("supervisor shutdown")
+                try:
+                    if self.flight:
+                        self.flight.close("supervisor shutdown")
+                        self.unlogged_bytes += getattr(self.flight.proc, "unlogged_bytes", 0)
+                    # after the close: the last incarnation's count is known once its output pipe ended
+                    self._write_telemetry({"event": "flight_output", "unlogged_bytes": self.unlogged_bytes})
+                finally:
+                    if self.telemetry_file:
+                        self.telemetry_file.close()
+                        self.telemetry_file = None
 
     def _forgive_own_stop(self, gap: float) -> None:
         """This process was not scheduled for ``gap`` s (:class:`protocol.stall.StallClock`: its own busy work does

@@ -95,6 +95,11 @@ while not link.closed_by_peer:
                     if time.monotonic() >= next_beat:
                         link.datagram(mf.HEARTBEAT, {{"time_s": time.monotonic(), "counter": 1}})
                         next_beat = time.monotonic() + 0.5
+            if args.mode == "chatty" and answered == 0:  # 6 MiB of output, its first line the emulator's own note
+                sys.stderr.write("procemu: 999999999 more bytes of the flight process's output were not logged\\n")
+                for _ in range(6 << 10):
+                    sys.stderr.write("x" * 1023 + "\\n")
+                sys.stderr.flush()
             res = mf.answer(pair[0], pair[1], config)
             faulty = answered >= 1
             if faulty and args.mode == "hostile" and answered == 1:
@@ -666,3 +671,17 @@ def test_the_result_queue_figure_is_the_ground_links_not_the_flight_programs(man
     assert all(q is not None and 0.0 <= q < 5.0 for q in queued), queued
     lines = [json.loads(x) for x in (tmp_path / "received" / "results.jsonl").read_text().splitlines()]
     assert all(rec["link"]["own_figure"] == 1.0 and rec["link"]["result_queue_s"] < 5.0 for rec in lines), lines
+
+
+def test_a_flight_programs_output_past_the_log_cap_is_counted_by_the_emulator(manifest, flight, tmp_path):
+    """The count of output not logged was read back from supervisor.log, where the flight program writes too: a
+    line of its own in the emulator's words added to it. The emulator counts it; the summary and the report say
+    it."""
+    from hil_server.procemu import MAX_FORWARDED_BYTES
+
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "chatty"))
+    assert code == 0, s.get("reason")
+    n = s["flight_output_unlogged_bytes"]
+    assert (6 << 20) - MAX_FORWARDED_BYTES - (64 << 10) < n < (6 << 20) - MAX_FORWARDED_BYTES + (64 << 10), n
+    log = (tmp_path / "supervisor.log").read_text()
+    assert "999999999 more bytes" in log  # the forged line was logged as the program's output, and not counted

@@ -93,7 +93,11 @@ def _edit(doc: dict, path: str, value: object) -> dict:
         ("cases/vertical-host-zmq/metrics/errors", 0.5, "metric 'errors' must be a whole number"),
         ("cases/vertical-host-zmq/pairs", "600/300", "'pairs' must be a non-empty list"),
         ("tolerances/latency_rel", -1, "tolerance 'latency_rel' must be a number >= 0"),
-        ("cases/vertical-host-zmq/deadline_s", 1e9, "'deadline_s' (as `run --deadline`) must be a number of seconds in [0.001, 3600]"),
+        (
+            "cases/vertical-host-zmq/deadline_s",
+            1e9,
+            "'deadline_s' (as `run --deadline`) must be a number of seconds in [0.001, 3600]",
+        ),
         ("cases/vertical-host-zmq/budget_recorded", {"dmips": 1}, "'budget_recorded' is what --update writes"),
         ("tolerances/latency_rell", 0.1, "unknown tolerance 'latency_rell'"),
     ],
