@@ -873,6 +873,16 @@ def evaluate_scenario(
                     "scene": scene_spec,
                     "pair": e["pair_dir"],
                 }
+        maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
+        stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}
+        gone = prune_other_runs(out, scenario, maps, stems)
+        if gone and progress:
+            print(
+                f"evaluate: removed {len(gone)} maps and figures of {scenario} that an earlier run with other settings "
+                f"left in {out}",
+                file=sys.stderr,
+                flush=True,
+            )
         res = run_tasks(
             evaluate_pair,
             tasks,
@@ -884,6 +894,8 @@ def evaluate_scenario(
             pool=pool,
             code=code_fingerprint(EVAL_CODE),
             inputs=task_inputs(camera_px),
+            # a saved result whose maps are gone (pruned above, or deleted) is scored again to draw them
+            redo=[t.id for t in tasks if t.kwargs["maps_path"] and not Path(t.kwargs["maps_path"]).is_file()],
         )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     # another scenario evaluated into the same --out keeps its rows (they were overwritten, without a word)
@@ -894,6 +906,27 @@ def evaluate_scenario(
     )
     write_metrics_csv(others + rows, out / "metrics.csv")
     return rows
+
+
+def prune_other_runs(out: Path, scenario: str, maps: set[str], stems: set[str]) -> list[Path]:
+    """Remove ``scenario``'s maps (``out/maps``) and figures (``out/report``) that this run will not write: an
+    earlier run into ``out`` with other seeds, altitudes or presets left them, and the report took the first map
+    of an altitude it found, another seed's among them. ``maps``: this run's map file names; ``stems``: its
+    figure stems. Other scenarios' files, and every other file, are kept. Returns what was removed."""
+    import re
+
+    from studies.report import FIGURE_KINDS
+
+    figure = re.compile(rf"^({re.escape(scenario)}_\d+m)_({'|'.join(FIGURE_KINDS)})\.png$")
+    gone = [p for p in sorted((out / "maps").glob(f"{scenario}-*.npz")) if p.name not in maps]
+    gone += [
+        p
+        for p in sorted((out / "report").glob(f"{scenario}_*.png"))
+        if (m := figure.match(p.name)) and m[1] not in stems
+    ]
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 def write_metrics_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:

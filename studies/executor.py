@@ -176,8 +176,10 @@ def run_tasks(
     pool: Any = None,
     code: str | None = None,
     inputs: str | None = None,
+    redo: Iterable[str] = (),
 ) -> dict[str, dict[str, Any]]:
-    """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``; return all results by id.
+    """Run ``fn(**task.kwargs)`` for every task not yet in ``results_path``, and those of ``redo`` (ids whose
+    saved result lacks a file the caller needs); return all results by id.
 
     ``code`` (:func:`code_fingerprint` of what ``fn`` runs) is stored with each result, and a result
     another fingerprint computed is not reused: the task runs again, and a one-line note on stderr
@@ -199,6 +201,8 @@ def run_tasks(
     path = Path(results_path)
     path.parent.mkdir(parents=True, exist_ok=True)
     done = load_results(path, code, inputs)
+    for i in redo:
+        done.pop(i, None)
     pending = [t for t in tasks if t.id not in done]
     if (code is not None or inputs is not None) and pending:
         stale = set(load_results(path)) & {t.id for t in pending}

@@ -306,3 +306,24 @@ def test_cli_multi_frame_report_and_bad_frames(tmp_path: Path, cache: Path, caps
     page = (tmp_path / "ok" / "report" / "index.html").read_text()
     assert "multi-frame descents" in page and "vertical_multiframe.png" in page
     assert (tmp_path / "ok" / "report" / "vertical_multiframe.png").stat().st_size > 5000
+
+
+def test_a_rerun_with_other_seeds_leaves_no_map_or_figure_of_the_earlier_one(tmp_path: Path, cache: Path):
+    """An --out reused with other seeds kept the earlier seed's maps and figures, and the report drew the first
+    map of an altitude it found: another seed's than the rows it showed (stop 57's studies QA)."""
+    kw = dict(presets=["fast"], cache_dir=cache, camera_px=PX, altitudes=[300], workers=1, progress=False)
+    ev.evaluate_scenario("vertical", tmp_path, seeds=[0, 1], **kw)  # maps of seed 0 only (maps_seeds=1)
+    maps = tmp_path / "maps"
+    (mine,) = maps.glob("vertical-fast-s0-*.npz")
+    other = maps / "approach-fast-s0-300.npz"  # another scenario's, kept
+    other.write_bytes(b"x")
+    stale_figure = tmp_path / "report" / "vertical_150m_dem.png"  # an altitude this run does not evaluate
+    stale_figure.parent.mkdir(exist_ok=True)
+    stale_figure.write_bytes(b"x")
+    keep = tmp_path / "report" / "notes.png"
+    keep.write_bytes(b"x")
+    (row,) = ev.evaluate_scenario("vertical", tmp_path, seeds=[1], **kw)
+    assert not mine.exists() and not stale_figure.exists() and other.exists() and keep.exists()
+    # seed 1 was scored in the first run without maps: scored again, so its maps exist for the report
+    (new,) = maps.glob("vertical-fast-s1-*.npz")
+    assert row["seed"] == 1 and (tmp_path / "report" / "vertical_300m_hazard.png").is_file()
