@@ -229,6 +229,8 @@ def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
     _executor_options(p)
     p.add_argument(
         "--camera-px",
+        "--image-size",  # render's and run's name for it
+        dest="camera_px",
         type=_positive("--camera-px", IMAGE_SIZE_MAX, MIN_CAMERA_PX),
         default=None,
         help=f"square camera size with the thesis's 30 deg FOV, {MIN_CAMERA_PX}-{IMAGE_SIZE_MAX} (default 512, the "
@@ -536,7 +538,7 @@ def register_landings(subparsers: Any) -> None:
     )
     _executor_options(p)
     camera = _positive("--camera-px", IMAGE_SIZE_MAX, MIN_CAMERA_PX)
-    p.add_argument("--camera-px", type=camera, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--camera-px", "--image-size", dest="camera_px", type=camera, default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--cache",
         type=Path,

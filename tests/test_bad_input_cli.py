@@ -193,6 +193,9 @@ def test_output_paths_that_cannot_be_written_are_refused_first(tmp_path, capsys,
         (["evaluat"], "hazard-hil: error: argument COMMAND: invalid choice: 'evaluat'"),
         (["render"], "hazard-hil render: error: the following arguments are required: --scenario, --out"),
         (["evaluate", "--scenario", "vertical", "--camera-px", "16"], "--camera-px must be >= 32"),
+        # render's and run's name for it, taken too
+        (["evaluate", "--scenario", "vertical", "--image-size", "16"], "--camera-px must be >= 32"),
+        (["sensitivity", "--kind", "altitude", "--image-size", "9999"], "--camera-px must be >= 32 and <= 4096"),
         (["run", "--baud", "fast"], "hazard-hil run: error: argument --baud"),
     ],
 )
