@@ -195,6 +195,29 @@ def site_verdict(judged: dict[str, Any]) -> bool | None:
     return None if judged["incomplete"] and judged["n_unsafe"] == 0 else False
 
 
+def complete_truth(pair: Any) -> str | None:
+    """Give ``pair.truth`` a ``hazard`` when the pair has none but DESIGN.md's truth files give one: the rules
+    applied to each pixel's true ground point (:func:`ground_sim.truth.hazard_from_points`), its X, Y from
+    ``gt_depth`` through frame 0's true pose, its Z from ``gt_elevation``, with ``gt_shadow`` when present.
+
+    Returns a note saying so (for the scores' reader: such a truth sees only the relief the camera resolves),
+    None when the pair carries ``gt_hazard_i1.npy`` or lacks the files to derive one (left without)."""
+    truth = pair.truth
+    if "hazard" in truth or "depth" not in truth or "elevation" not in truth:
+        return None
+    from ground_sim.truth import hazard_from_points
+
+    points = pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"])
+    points[..., 2] = truth["elevation"]
+    truth["hazard"] = hazard_from_points(points, truth.get("shadow"))
+    shadow = "" if "shadow" in truth else " (no gt_shadow_i1.npy: shadow not counted)"
+    known = float(np.mean(np.isfinite(truth["hazard"])))
+    return (
+        f"no gt_hazard_i1.npy: the true hazard was derived from gt_elevation and gt_depth{shadow} by DESIGN.md's "
+        f"rules at the camera's resolution ({100 * known:.0f} % of frame 0 resolved; docs/design.md)"
+    )
+
+
 def judge_sites(pair: Any, sites_xy: list[tuple[float, float]]) -> list[dict[str, Any]]:
     """:func:`judge_site` for each site, on ``pair``'s truth of frame 0 (its depth and hazard)."""
     truth = pair.truth

@@ -249,7 +249,7 @@ def score_records(records: list[dict]) -> list[dict]:
     ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
-    from ground_sim.gridscore import judge_sites, score_grids, site_verdict
+    from ground_sim.gridscore import complete_truth, judge_sites, score_grids, site_verdict
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -259,6 +259,8 @@ def score_records(records: list[dict]) -> list[dict]:
             continue
         d = Path(rec["out_dir"])
         pair = read_pair(rec["pair_dir"])
+        if note := complete_truth(pair):
+            rec["truth_note"] = note
         truth = pair.truth
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
@@ -707,6 +709,7 @@ def summary_table(summary: dict) -> str:
         flight_note(s),
         ground_stop_note(s),
         off_map_note(s),
+        truth_note(s),
     )
     for note in notes:
         if note:
@@ -714,6 +717,18 @@ def summary_table(summary: dict) -> str:
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
     return head + "\n\n" + "\n".join(rows) + "\n\n" + GRID_SCORES_NOTE + "\n"
+
+
+def truth_note(summary: dict) -> str:
+    """Which pairs were scored against a truth hazard derived from DESIGN.md's files ("" when none)."""
+    labels = [str(r.get("label", r.get("pair_id"))) for r in summary.get("records") or [] if r.get("truth_note")]
+    if not labels:
+        return ""
+    shown = ", ".join(labels[:6]) + (f" and {len(labels) - 6} more" if len(labels) > 6 else "")
+    return (
+        f"the scores of {shown} are against a truth hazard derived from gt_elevation and gt_depth (no "
+        "gt_hazard_i1.npy): it sees only the relief the camera resolves (docs/design.md, Ground-truth hazard)"
+    )
 
 
 # the run's and `score`'s figures for the same pair differ a little (CDI 25.97 against 25.2): said where both are read
@@ -1170,9 +1185,18 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
 def run_descent(cfg: RunConfig, log=print) -> dict:
     """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``).
 
-    Bad usage raises :class:`InputError` before anything runs. Anything that cuts the run short (a
-    signal, a child that fails, a timeout) still ends in a summary, with ``complete`` false and the reason.
+    Bad usage raises :class:`InputError` before anything runs, and so does an ``out`` another command is
+    writing (:func:`protocol.outdir.claim_out`). Anything that cuts the run short (a signal, a child that fails,
+    a timeout) still ends in a summary, with ``complete`` false and the reason.
     """
+    from protocol.outdir import claim_out
+
+    checked = check_run_config(cfg)
+    with claim_out(checked.cfg.out, "run"):
+        return _descend(checked, log)
+
+
+def _descend(checked: CheckedRun, log) -> dict:
     from hil_server.budgets import (
         calibration_notes,
         check_runnable,
@@ -1182,7 +1206,6 @@ def run_descent(cfg: RunConfig, log=print) -> dict:
         throttle_check_seconds,
     )
 
-    checked = check_run_config(cfg)
     cfg, kind, spec, budget = checked.cfg, checked.kind, checked.spec, checked.budget
     deadline, hello, manifest = checked.deadline, checked.hello, checked.manifest
     emulated = cfg.flight == "emulated"

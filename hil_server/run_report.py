@@ -140,6 +140,7 @@ def _telemetry_records(records: list[dict]) -> list[dict]:
 
 
 def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
+    from ground_sim.gridscore import complete_truth
     from protocol.pairdir import read_pair
 
     out = Path(r.get("out_dir", ""))
@@ -148,6 +149,7 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     if r.get("status") != "result" or hz_file is None:
         return []
     pair = read_pair(r["pair_dir"])
+    complete_truth(pair)  # DESIGN.md's truth files without gt_hazard_i1.npy: as the scores derived it
     hazard = np.load(hz_file)
     pid = r["pair_id"]
     figs = []
@@ -242,6 +244,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
     from hil_server.run import GRID_SCORES_NOTE
 
     intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
+    from hil_server.run import truth_note
+
+    if truth_note(s):
+        intro.append(truth_note(s)[0].upper() + truth_note(s)[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
     sections = [

@@ -929,7 +929,17 @@ def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
         raise PairFormatError(f"{p}: ground truth {name} must hold {need}, got dtype {a.dtype}")
     if a.shape != shape:
         raise PairFormatError(f"{p}: ground truth {name}: shape {a.shape} != image shape {shape}")
-    return np.array(a != 0) if name == "shadow" and a.dtype.kind != "b" else np.array(a)
+    if name == "shadow" and a.dtype.kind != "b":
+        return np.array(a != 0)
+    out = np.array(a)
+    if name == "hazard":  # a 5.0 (a slope in degrees?) was read as merely unsafe, without a word
+        bad = ~np.isnan(out) & ~((out >= 0) & (out <= 1))
+        if bad.any():
+            raise PairFormatError(
+                f"{p}: ground truth hazard must lie in [0, 1] (1 = unsafe) or be NaN where unknown; "
+                f"{int(bad.sum())} pixels hold other values, e.g. {out[bad].flat[0]:g}"
+            )
+    return out
 
 
 def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:

@@ -6,7 +6,7 @@ import argparse
 import contextlib
 import json
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +86,19 @@ def camera_note(camera_px: int | None) -> str:
 # under this a 2:1 pair's shared area is under four of pose refinement's 15 px tracking windows a side: at 128 px
 # `sensitivity --preset refine` printed identical rows for fast and fast_unrefined (stop 57's studies QA)
 SMALL_FOR_REFINEMENT_PX = 200
+
+
+def holding_out(command: str, fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``fn`` with its ``--out`` held for it (:func:`protocol.outdir.claim_out`): two studies writing one directory
+    at once computed everything twice, and merged ``metrics.csv`` over each other's rows."""
+
+    def run(args: argparse.Namespace) -> int:
+        from protocol.outdir import claim_out
+
+        with claim_out(args.out, command):
+            return fn(args)
+
+    return run
 
 
 def _campaign_failed(what: str, exc: Exception) -> int:
@@ -281,7 +294,7 @@ def register(subparsers: Any) -> None:
         help="with --multi-frame: comma-separated frame altitudes [m], decreasing, 2-16 (default 300,250,200,150)",
     )
     _common(p, seeds_default=3)
-    p.set_defaults(func=_evaluate)
+    p.set_defaults(func=holding_out("evaluate", _evaluate))
 
     s = subparsers.add_parser(
         "sensitivity",
@@ -310,7 +323,7 @@ def register(subparsers: Any) -> None:
         "refinement (fast_unrefined)",
     )
     _common(s, seeds_default=2)
-    s.set_defaults(func=_sensitivity)
+    s.set_defaults(func=holding_out("sensitivity", _sensitivity))
     register_landings(subparsers)
     register_score(subparsers)
 
@@ -555,7 +568,7 @@ def register_landings(subparsers: Any) -> None:
         "raster per view (docs/scenes.md); each raster's renders are cached apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_landings)
+    p.set_defaults(func=holding_out("landings", _landings))
 
 
 def _landings(args: argparse.Namespace) -> int:
@@ -661,7 +674,9 @@ def register_score(subparsers: Any) -> None:
         "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory"
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
-        " scored), 2 on bad usage. An output that maps nothing (all NaN) is usable: it calls nothing safe.",
+        " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored)."
+        " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
+        " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
     p.add_argument("pairs", type=Path, help="a pair directory with ground truth, or a descent with manifest.json")
     p.add_argument("outputs", type=Path, help="the detector's output directory (or one per pair, by pair name)")
@@ -716,22 +731,38 @@ def _score(args: argparse.Namespace) -> int:
             "error": job.missing,
         }
         if job.missing is None:
-            pair = read_pair(job.pair_dir)  # a pair that cannot be read, or has no truth (below), is bad usage
+            try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
+                pair = read_pair(job.pair_dir)
+            except InputError as exc:
+                if len(jobs) == 1:
+                    raise
+                row["error"], row["pair_error"] = str(exc), True  # in a descent: named, and the others scored
+                rows.append(row)
+                continue
             try:
                 out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
             except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
                 row["error"] = str(exc)
             else:
                 fig = None if args.figures is None else args.figures / f"{job.pair_dir.name}_score.png"
-                row.update(score_output(pair, out, str(job.pair_dir), fig))
-                if fig is not None:
+                try:
+                    row.update(score_output(pair, out, str(job.pair_dir), fig))
+                except ScoreError as exc:  # the pair's truth, not the output
+                    if len(jobs) == 1:
+                        raise
+                    row["error"], row["pair_error"] = str(exc), True
+                if fig is not None and not row.get("pair_error"):
                     row["figure"] = str(fig)
         rows.append(row)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)
     for r in rows:  # in the table on stdout, and here: a CI log that keeps stderr says which and why
-        if r.get("error"):
+        if r.get("pair_error"):
+            print(f"hazard-hil score: {r['pair']}: cannot be scored: {r['error']}", file=sys.stderr)
+        elif r.get("error"):
             print(f"hazard-hil score: {r['pair']}: no usable output: {r['error']}", file=sys.stderr)
+        elif r.get("truth_note"):
+            print(f"note: {r['pair']}: {r['truth_note']}", file=sys.stderr)
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
@@ -748,6 +779,8 @@ def _score(args: argparse.Namespace) -> int:
     except OSError as exc:  # after the scores above: said as main() says any other, as a write
         print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)
         return 1
+    if any(r.get("pair_error") for r in rows):  # the descent's own input, not the detector: as bad usage
+        return 2
     if summary["failed"]:  # a broken submission is not a detector over its FP budget: a code of its own
         return EXIT_NO_OUTPUT
     return 0 if summary["pairs_over_fp_limit"] == 0 else 1
@@ -771,7 +804,8 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
     print("|---|" + "---:|" * (len(cols) - 1) + "---:|---|")
     for r in rows:
         if r["error"] is not None:
-            print(f"| {md(r['pair'])} | no usable output: {md(r['error'])} |" + " |" * len(cols))
+            what = "cannot be scored" if r.get("pair_error") else "no usable output"
+            print(f"| {md(r['pair'])} | {what}: {md(r['error'])} |" + " |" * len(cols))
             continue
         top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
         if r.get("top_site_confirmed") is False:  # scored as not safe: the truth cannot vouch for all of it
@@ -792,7 +826,14 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
         if r["error"] is None and (r.get("unmapped_pct") or 0.0) >= UNMAPPED_WARN_PCT:
             print(f"warning: {r['pair']}: {r['unmapped_pct']:.0f} % of the scored pixels have no hazard value "
                   "(NaN in hazard.npy, counted as not called safe)", file=sys.stderr)  # fmt: skip
-    failed = f"; {s['failed']} without a usable output" if s["failed"] else ""
+    no_truth = sum(bool(r.get("pair_error")) for r in rows)
+    failed = "".join(
+        f"; {n} {what}"
+        for n, what in ((s["failed"] - no_truth, "without a usable output"), (no_truth, "that cannot be scored"))
+        if n
+    )
+    if s.get("truth_derived"):
+        failed += f"; {s['truth_derived']} against a truth hazard derived from gt_elevation (see the notes)"
     n_unconf = s.get("top_sites_unconfirmed", 0)
     unconfirmed = f"{n_unconf} not confirmed: footprint off frame 0; " if n_unconf else ""
     if s["scored"]:

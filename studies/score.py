@@ -77,6 +77,7 @@ CSV_COLUMNS = (
     "pair_dir",
     "output_dir",
     "figure",
+    "truth",
 )
 
 
@@ -265,20 +266,19 @@ def score_output(
     names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
     black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
-    from ground_sim.gridscore import judge_site, site_verdict
+    from ground_sim.gridscore import complete_truth, judge_site, site_verdict
     from ground_sim.library import covered
     from reports.plots import ground_step_m
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
-    for key in ("hazard", "depth", "elevation"):
+    derived = complete_truth(pair)  # DESIGN.md's files without gt_hazard_i1.npy: the rules give it
+    for key in ("depth", "elevation", "hazard"):
         if key not in pair.truth:
-            extra = (
-                " (the true hazard per pixel, 1 = unsafe, docs/design.md; render writes it, and DESIGN.md's "
-                "gt_elevation and gt_shadow alone do not give it)"
-                if key == "hazard"
-                else ""
+            raise ScoreError(
+                f"{where}: no ground truth gt_{key}_i1.npy (scoring needs gt_depth_i1.npy and gt_elevation_i1.npy, "
+                "and takes gt_hazard_i1.npy, else derives it from those two and gt_shadow_i1.npy): nothing to score "
+                "against"
             )
-            raise ScoreError(f"{where}: no ground truth gt_{key}_i1.npy{extra}: nothing to score against")
     true1, true2 = true_poses(pair)
     depth = pair.truth["depth"].astype(np.float64)
     world = backproject_depth(pair.camera, true1, depth)
@@ -287,6 +287,15 @@ def score_output(
     area = seen & np.isfinite(gt_h) & np.isfinite(depth)
     n = int(np.count_nonzero(area))
     if n == 0:
+        if derived and np.isfinite(depth).any() and not np.isfinite(gt_h).any():
+            from ground_sim.truth import coarser_step_m
+
+            step = coarser_step_m(world[..., 0], world[..., 1])
+            raise ScoreError(
+                f"{where}: no gt_hazard_i1.npy, and frame 0 samples the ground every {step:.2g} m (its coarser "
+                "direction), over half the 3 m footprint: its slope cannot be derived from gt_elevation; give "
+                "gt_hazard_i1.npy"
+            )
         for key, arr in (("hazard", gt_h), ("depth", depth)):
             if not np.isfinite(arr).any():  # not a geometry problem: say which file holds nothing
                 raise ScoreError(f"{where}: gt_{key}_i1.npy holds no finite value: nothing to score against")
@@ -295,6 +304,8 @@ def score_output(
     called = ~scoring.unsafe_estimate(output.hazard)  # hazard < 1; NaN is not called safe
     c = scoring.confusion(output.hazard, gt_h, area)  # the thesis's pixel scores (one definition for every tool)
     m: dict[str, Any] = {
+        "truth": "derived" if derived else "gt_hazard_i1.npy",
+        "truth_note": derived,
         "pixels": c["n"],
         "tp_pct": c["tp"],
         "fp_pct": c["fp"],
@@ -416,6 +427,7 @@ def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) ->
         "top_sites_truly_safe": sum(tops),
         "top_sites_unconfirmed": sum(r.get("top_site_confirmed") is False for r in ok),
         "no_site": sum(r["top_site_truly_safe"] is None for r in ok),
+        "truth_derived": sum(r.get("truth") == "derived" for r in ok),
     }
 
 

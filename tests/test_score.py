@@ -355,3 +355,80 @@ def test_a_big_endian_float32_map_is_float32(descent, tmp_path, capsys):
     np.save(out / "hazard.npy", gt.astype(">f4"))
     code, doc = _score(d, out, capsys)
     assert doc["rows"][0]["error"] is None and doc["rows"][0]["fp_pct"] == 0 and code == 0
+
+
+@pytest.fixture(scope="module")
+def fine_descent(tmp_path_factory) -> Path:
+    """A pair whose ground is sampled finely enough (0.4 m at 256 px, 200 m) for a truth from pixels."""
+    root = tmp_path_factory.mktemp("fine")
+    small_descent(root / "pairs", ["200/100"], px=256)
+    return root / "pairs"
+
+
+def test_a_pair_with_only_designs_truth_files_is_scored_against_a_derived_truth(fine_descent, tmp_path, capsys):
+    """DESIGN.md's truth files are gt_elevation, gt_depth and gt_shadow; score refused a pair without the
+    renderer's gt_hazard_i1.npy, so no one's own data could be scored (stop 58's QA). The rules now derive it;
+    on the renderer's pair both truths must give nearly the same scores to the same detector."""
+    d = fine_descent / "200_100"
+    pair = read_pair(d)
+    gt = pair.truth["hazard"]
+    mine = tmp_path / "nogt"
+    shutil.copytree(d, mine)
+    (mine / "gt_hazard_i1.npy").unlink()
+    # a detector that gets the truth right but for a band of mistakes: what both truths score
+    rng = np.random.default_rng(5)
+    called = np.where(rng.random(gt.shape) < 0.1, 1.0 - (gt >= 1), gt).astype(np.float32)
+    out = _write(tmp_path / "o", called)
+    _, given = _score(d, out, capsys)
+    code = main(["score", str(mine), str(out), "--json", str(tmp_path / "derived.json")])
+    err = capsys.readouterr().err
+    derived = json.loads((tmp_path / "derived.json").read_text())
+    (a,), (b,) = given["rows"], derived["rows"]
+    assert code in (0, 1) and a["truth"] == "gt_hazard_i1.npy" and b["truth"] == "derived"
+    assert "the true hazard was derived from gt_elevation and gt_depth" in err
+    assert b["pixels"] > 0.9 * a["pixels"]  # nearly all of the overlap resolved
+    assert abs(a["fp_pct"] - b["fp_pct"]) < 1.0 and abs(a["cdi_pct"] - b["cdi_pct"]) < 3.0
+    assert abs(a["hazards_in_scene_pct"] - b["hazards_in_scene_pct"]) < 3.0
+    assert derived["summary"]["truth_derived"] == 1
+
+
+def test_a_descent_scores_its_other_pairs_when_one_has_no_truth(descent, tmp_path, capsys):
+    """One pair without ground truth stopped the whole descent with exit 2, the others unscored."""
+    root = tmp_path / "descent"
+    shutil.copytree(descent, root)
+    for f in (root / "300_150").glob("gt_*"):
+        f.unlink()
+    outs = tmp_path / "outs"
+    for name in ("600_300", "300_150"):
+        _write(outs / name, np.ones((128, 128)))
+    code, doc = _score(root, outs, capsys)
+    rows = {r["pair"]: r for r in doc["rows"]}
+    assert code == 2 and doc["summary"]["scored"] == 1
+    assert rows["600/300"]["error"] is None and rows["600/300"]["fp_pct"] == 0  # all unsafe: no FP
+    assert rows["300/150"]["pair_error"] and "no ground truth gt_depth_i1.npy" in rows["300/150"]["error"]
+
+
+def test_a_truth_hazard_outside_0_1_is_refused(descent, tmp_path, capsys):
+    d = tmp_path / "p"
+    shutil.copytree(descent / "300_150", d)
+    gt = np.load(d / "gt_hazard_i1.npy")
+    np.save(d / "gt_hazard_i1.npy", np.where(gt >= 1, 5.0, gt).astype(np.float32))  # degrees, not a hazard
+    _write(tmp_path / "o", np.ones((128, 128)))
+    assert main(["score", str(d), str(tmp_path / "o")]) == 2
+    assert "ground truth hazard must lie in [0, 1]" in capsys.readouterr().err
+
+
+def test_an_hil_run_scores_a_pair_without_gt_hazard_against_the_derived_truth(fine_descent, tmp_path):
+    from hilkit import run_hil
+
+    from hil_server.run import truth_note
+
+    root = tmp_path / "pairs"
+    shutil.copytree(fine_descent, root)
+    (root / "200_100" / "gt_hazard_i1.npy").unlink()
+    s = run_hil(root / "manifest.json", tmp_path / "run", "zmq")
+    (rec,) = s["records"]
+    assert rec["status"] == "result" and "derived from gt_elevation" in rec["truth_note"]
+    assert 0 <= rec["scores"]["fp_pct"] <= 100 and rec["scores"]["cdi_pct"] > 0
+    assert "the scores of 200/100 are against a truth hazard derived" in truth_note(s)
+    assert "truth hazard derived from gt_elevation" in (tmp_path / "run" / "summary.md").read_text()
