@@ -564,7 +564,7 @@ def image_header_size(path: Path) -> tuple[int, int]:
             w, h = struct.unpack("<ii", head[18:26])
             return abs(int(w)), abs(int(h))
         if head[:4] in (b"II*\x00", b"MM\x00*"):
-            return _tiff_size(head)
+            return _tiff_size(path, head)
     except (struct.error, ValueError) as exc:
         # a short read leaves struct too few bytes: the file was cut off or is not what its magic says
         detail = "header cut off" if isinstance(exc, struct.error) else str(exc)
@@ -674,21 +674,28 @@ def _jpeg_size(path: Path) -> tuple[int, int]:
     raise ValueError("JPEG without a frame header")
 
 
-def _tiff_size(head: bytes) -> tuple[int, int]:
-    """TIFF width and height from the first image directory; ValueError/struct.error when it is not there."""
+def _tiff_size(path: Path, head: bytes) -> tuple[int, int]:
+    """TIFF width and height from the first image directory, wherever in the file it is (libtiff, and so OpenCV,
+    writes it after the pixels: one seek, at most 4096 tags read); ValueError/struct.error when it is not there."""
     e = "<" if head[:2] == b"II" else ">"
     (off,) = struct.unpack(e + "I", head[4:8])
-    if off + 2 > len(head):
-        raise ValueError("TIFF directory beyond the first 64 kB or the end of the file")
-    (n,) = struct.unpack(e + "H", head[off : off + 2])
+    if off + 2 <= len(head):
+        ifd = head[off:]
+    else:
+        with path.open("rb") as f:
+            f.seek(off)
+            ifd = f.read(2 + 12 * 4096)
+        if len(ifd) < 2:
+            raise ValueError("TIFF directory beyond the end of the file")
+    (n,) = struct.unpack(e + "H", ifd[:2])
     size: dict[int, int] = {}
     for k in range(n):
-        p = off + 2 + 12 * k
-        if p + 12 > len(head):
+        p = 2 + 12 * k
+        if p + 12 > len(ifd):
             break
-        tag, typ = struct.unpack(e + "HH", head[p : p + 4])
+        tag, typ = struct.unpack(e + "HH", ifd[p : p + 4])
         if tag in (256, 257):
-            size[tag] = struct.unpack(e + ("H" if typ == 3 else "I"), head[p + 8 : p + (10 if typ == 3 else 12)])[0]
+            size[tag] = struct.unpack(e + ("H" if typ == 3 else "I"), ifd[p + 8 : p + (10 if typ == 3 else 12)])[0]
     if 256 not in size or 257 not in size:
         raise ValueError("TIFF without width/height tags")
     return int(size[256]), int(size[257])

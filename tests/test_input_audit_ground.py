@@ -66,6 +66,19 @@ def test_garbled_image_header_is_a_pair_format_error_naming_the_file(tmp_path, d
     assert "\n" not in str(exc.value)
 
 
+@pytest.mark.parametrize("depth", [np.uint8, np.uint16])
+def test_a_tiff_whose_directory_follows_its_pixels_is_read(tmp_path, depth):
+    """libtiff (OpenCV, GDAL, ImageMagick) writes the image directory after the pixels: every such TIFF over
+    64 kB, a 512 x 512 one among them, was refused as "not a readable image" (stop 58's QA)."""
+    import cv2
+
+    p = tmp_path / "i1.tif"
+    img = (np.arange(300 * 512) % 251).reshape(300, 512).astype(depth)
+    assert cv2.imwrite(str(p), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed: the directory far out
+    assert int.from_bytes(p.read_bytes()[4:8], "little") > 64 * 1024
+    assert image_header_size(p) == (512, 300)
+
+
 def test_process_with_a_truncated_png_is_one_line_and_exit_2(descent, tmp_path, capsys):
     d = copy_pair(descent, tmp_path)
     (d / "i2.png").write_bytes((d / "i2.png").read_bytes()[:20])  # `head -c 20`
