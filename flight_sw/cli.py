@@ -122,6 +122,38 @@ def _check_memory(pair_dir: Path, widest_pair: bool) -> None:
     check_memory(w, h, 2 if widest_pair else n)
 
 
+# what `process` writes in --out, or removes there when this run has none of it (an earlier run's must not stay)
+PROCESS_OUTPUTS = (
+    "elevation.npy",
+    "hazard.npy",
+    "state.npy",
+    "psafe.npy",
+    "sigma.npy",
+    "filled.npy",
+    "result.json",
+    "dem.png",
+    "hazard.png",
+    "confusion.png",
+    "report.html",
+)
+
+
+def _check_out(pair_dir: Path, out: Path) -> None:
+    """Refuse an --out where an output would replace one of the pair's own files (its pair.json, a frame image
+    it names, its truth): `process PAIR --out PAIR` with frames named hazard.png lost them."""
+    from protocol.pairdir import TRUTH_FILES, named_images
+
+    from .validate import FlightInputError
+
+    inputs = set(named_images(pair_dir))
+    inputs |= {(pair_dir / n).resolve() for n in ("pair.json", *TRUTH_FILES.values())}
+    hit = [n for n in PROCESS_OUTPUTS if (out / n).resolve() in inputs]
+    if hit:
+        raise FlightInputError(
+            f"--out {out}: process would replace the pair's own {', '.join(hit)}; give an output directory of its own"
+        )
+
+
 def _process(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -139,6 +171,7 @@ def _process(args: argparse.Namespace) -> int:
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a finite, non-negative number of seconds, got {args.deadline}")
     _check_memory(Path(args.pair_dir), args.widest_pair)
+    _check_out(Path(args.pair_dir), Path(args.out))
     pair = read_pair(args.pair_dir)
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
         print(f"note: {note}", file=sys.stderr)

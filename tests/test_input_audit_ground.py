@@ -385,3 +385,17 @@ def test_a_pose_error_the_altimeter_check_would_refuse_is_refused_before_renderi
     err = one_line_error(capsys, argv + ["--no-progress"])
     assert "pair 600/300 frame 0 with the injected pose error" in err and "600.0 m truly" in err
     assert not out.exists()  # nothing rendered, nothing written
+
+
+def test_process_refuses_an_out_where_it_would_replace_the_pairs_own_files(descent, tmp_path, capsys):
+    """`process PAIR --out PAIR` wrote hazard.png and dem.png over frames of those names."""
+    d = copy_pair(descent, tmp_path)
+    (d / "i1.png").rename(d / "hazard.png")
+    (d / "i2.png").rename(d / "dem.png")
+    edit_json(
+        d / "pair.json", lambda doc: [f.update(image=n) for f, n in zip(doc["frames"], ("hazard.png", "dem.png"))]
+    )
+    before = {n: (d / n).read_bytes() for n in ("hazard.png", "dem.png")}
+    err = one_line_error(capsys, ["process", str(d), "--out", str(d)])
+    assert "would replace the pair's own dem.png, hazard.png" in err
+    assert {n: (d / n).read_bytes() for n in before} == before
