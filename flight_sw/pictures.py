@@ -186,7 +186,7 @@ def write_process_report(
         scored = masks["TP"] | masks["TN"] | masks["FP"] | masks["FN"]
         codes = confusion_codes(masks["TP"] | masks["FP"], masks["TP"] | masks["FN"], scored)
         conf = [
-            Panel("confusion", codes, "pixel scores", sites=marks),
+            Panel("confusion", codes, "pixel scores, % of the map's covered pixels", sites=marks),
             Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
         ]
         written.append(save(map_figure(conf, f"{head}Against ground truth", m_per_px=gsd), out / "confusion.png"))
