@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -145,9 +146,16 @@ def _check_out(pair_dir: Path, out: Path) -> None:
 
     from .validate import FlightInputError
 
-    inputs = set(named_images(pair_dir))
-    inputs |= {(pair_dir / n).resolve() for n in ("pair.json", *TRUTH_FILES.values())}
-    hit = [n for n in PROCESS_OUTPUTS if (out / n).resolve() in inputs]
+    inputs = [*named_images(pair_dir), *(pair_dir / n for n in ("pair.json", *TRUTH_FILES.values()))]
+    existing = [p for p in inputs if p.is_file()]
+
+    def same(a: Path, b: Path) -> bool:  # one file under two names: a case-folding file system, a hard link
+        try:
+            return os.path.samefile(a, b)
+        except OSError:
+            return False
+
+    hit = [n for n in PROCESS_OUTPUTS if (out / n).exists() and any(same(out / n, p) for p in existing)]
     if hit:
         raise FlightInputError(
             f"--out {out}: process would replace the pair's own {', '.join(hit)}; give an output directory of its own"

@@ -205,13 +205,25 @@ def complete_truth(pair: Any) -> str | None:
     truth = pair.truth
     if "hazard" in truth or "depth" not in truth or "elevation" not in truth:
         return None
-    from ground_sim.truth import hazard_from_points
+    from ground_sim.truth import FOOTPRINT_M, hazard_from_points, truth_grid
 
     points = pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"])
     points[..., 2] = truth["elevation"]
     truth["hazard"] = hazard_from_points(points, truth.get("shadow"))
-    shadow = "" if "shadow" in truth else " (no gt_shadow_i1.npy: shadow not counted)"
     known = float(np.mean(np.isfinite(truth["hazard"])))
+    if known == 0.0:  # why none could be derived, from what the derivation itself used
+        cell = truth_grid(points)[0]
+        if not np.isfinite(points).all(axis=-1).any():
+            why = "gt_depth_i1.npy and gt_elevation_i1.npy give no pixel a finite ground point"
+        elif cell > FOOTPRINT_M / 2:
+            why = (
+                f"frame 0 samples the ground every {cell:.2g} m (its coarser direction), over half the 3 m "
+                "footprint: its slope cannot be told"
+            )
+        else:
+            why = "no 3 m footprint of frame 0 is half seen"
+        return f"no gt_hazard_i1.npy, and none can be derived from gt_elevation and gt_depth: {why}"
+    shadow = "" if "shadow" in truth else " (no gt_shadow_i1.npy: shadow not counted)"
     return (
         f"no gt_hazard_i1.npy: the true hazard was derived from gt_elevation and gt_depth{shadow} by DESIGN.md's "
         f"rules at the camera's resolution ({100 * known:.0f} % of frame 0 resolved; docs/design.md)"

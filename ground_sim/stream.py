@@ -97,6 +97,9 @@ EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair r
 LINK_CODES = ("link_down",)
 # the ground's link counters kept in ground.json (protocol.arq.STAT_KEYS: a serial link's; a ZeroMQ link has none)
 LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "echoed_frames")
+# a ZeroMQ link's frames dropped by the session rules (docs/protocol.md section 7): a seq that did not rise, a frame
+# of a past or unknown session
+SESSION_DROPS = ("duplicates_dropped", "old_session_frames", "foreign_frames")
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 UNANSWERED_TEXT = (
@@ -133,6 +136,7 @@ TELEMETRY_KEYS = (
     "result_line_s",
     "result_queue_s",
     "result_rx_s",
+    "outside_flight_s",
     "result_bytes",
     "queue_wait_s",
     "cpu_fraction",
@@ -314,6 +318,9 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         stage_order=list(t.stages),
         link=t.link,
     )
+    if rec["result_line_s"] is None and e2e is not None:  # ZeroMQ and a sender that did not measure it
+        # what the end-to-end latency holds besides the flight's own compute: the link both ways and any queue
+        rec["outside_flight_s"] = max(0.0, e2e - float(t.total_latency_s))
     if t.plan:  # revision 4: the deadline plan's figures
         rec["plan"] = t.plan
     return rec
@@ -667,6 +674,8 @@ def stream_descent(
         """Act on what the link refused from the flight side since the last look. Called when nothing received
         is waiting; what the link's reader may still be handing over is taken first, so that a refusal is matched
         to a pair after the messages that came before it on the link."""
+        for text in link.take_drop_notes():  # frames the session layer drops are no refusal: said once each
+            note(f"the link dropped the flight side's {text}; more such are only counted (ground.json)")
         got = link.take_refusals()
         if not got:
             return
@@ -720,6 +729,8 @@ def stream_descent(
             if isinstance(msg, Result):
                 o.result = msg
                 o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
+                if isinstance(link, ZmqLink):  # a ZeroMQ message arrives whole: its line time is not seen here
+                    o.result_t_first = None
             else:
                 o.telemetry = msg
         if o is not None and o.finished and o.seqs in want:
@@ -784,15 +795,19 @@ def stream_descent(
 
     def save() -> None:
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
-        counters = {"refused_messages": state.refused_messages, "last_refused": state.last_refused}
+        stats = getattr(link, "stats", None) or {}
+        # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
+        refused = max(state.refused_messages, int(stats.get("decode_errors", 0) or 0))
+        counters = {"refused_messages": refused, "last_refused": state.last_refused}
         counters |= {
             "ignored_results": ignored.seen("Result"),
             "ignored_telemetry": ignored.seen("Telemetry"),
             "unattributed_errors": unattributed.seen("error"),
         }
-        stats = getattr(link, "stats", None) or {}
         # what the line did meanwhile: noise the framing dropped and the retransmissions that mended it
         counters["line"] = {k: int(stats.get(k, 0) or 0) for k in LINE_COUNTERS if k in stats}
+        if isinstance(link, ZmqLink):  # TCP repeats nothing: a frame dropped here is one the flight side meant
+            counters["session_drops"] = {k: int(stats.get(k, 0) or 0) for k in SESSION_DROPS}
         if hasattr(link, "baud"):  # a serial line's pace, as the Config told the flight side (0: unpaced)
             counters["line_baud"] = int(link.baud or 0)
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
@@ -970,6 +985,10 @@ def stream_descent(
                 else:
                     waited = time.monotonic() - o.sent_at
                     text = f"no result or error {waited:.0f} s after its frames went (response timeout {timeout:.0f} s)"
+                    stats = link.stats if isinstance(link, ZmqLink) else {}
+                    dropped = sum(int(stats.get(k, 0) or 0) for k in SESSION_DROPS)
+                    if dropped:  # answers the session rules threw away read as none at all
+                        text += f"; the link dropped {dropped} of the flight side's messages by the session rules"
                     o.error = Error(code="no_response", text=text, seq=s[1])
                 rec = write_outcome(out_dir, o, deadline_s)
                 records.append(rec)
@@ -1187,7 +1206,13 @@ def _main(argv: list[str] | None) -> int:
                 + f"  deadline {rec['deadline_s']:g} s {flag}  (flight "
                 + (f"{flight:.2f} s" if flight is not None else f"? s: {missing}")
                 + (f", result queued {queued:.2f} s" if queued is not None and queued >= QUEUE_SHOWN_S else "")
-                + (f", result line {line:.2f} s)" if line is not None else ")")
+                + (
+                    f", result line {line:.2f} s)"
+                    if line is not None
+                    else f", link and queues {outside:.2f} s: ZeroMQ shows no line time)"
+                    if (outside := rec.get("outside_flight_s")) is not None
+                    else ")"
+                )
                 + (f"; {why}" if why else "")
             )
         else:

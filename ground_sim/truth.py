@@ -63,21 +63,27 @@ def hazard_layers(z: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, sh
 
 # a pixel's ground grid has at most this many cells per image pixel: an oblique view's far field spreads its
 # pixels over a wide area, and the grid is coarsened rather than allocated without bound
-MAX_GRID_CELLS_PER_PIXEL = 4.0
+MAX_GRID_CELLS_PER_PIXEL = 2.0
 MIN_DISK_SHARE = 0.5  # a footprint disk less than half seen has no truth (its plane is an extrapolation)
+# the grid spans the points between these percentiles of X and of Y (plus a footprint): a few stray points (a
+# far-plane depth written for the sky) made it so wide that every cell grew past the footprint
+EXTENT_PCT = (0.5, 99.5)
+BAND_ROWS = 128  # the plane fit runs over bands of this many grid rows (plus the disk's halo): memory stays bounded
 
 
 def weighted_plane_fit(
     Z: np.ndarray, W: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, min_share: float = MIN_DISK_SHARE
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(a, b, c) rasters of the weighted LSQ plane ``z = a + b dx + c dy`` over a disk of diameter ``footprint``
-    around each cell of a grid where only some cells hold a height (``W`` > 0; ``Z`` is ignored elsewhere).
+    """(a, b, c) rasters (float32) of the weighted LSQ plane ``z = a + b dx + c dy`` over a disk of diameter
+    ``footprint`` around each cell of a grid where only some cells hold a height (``W`` > 0; ``Z`` is ignored
+    elsewhere).
 
     The disk is no longer symmetric about the cell once some of it is missing, so the normal equations do not
     decouple as in :func:`plane_fit`: with sums over the disk's cells q, S_fg = sum W(q) f(q) g(q) for f, g in
     {1, dx, dy, z}, each one correlation (``cv2.filter2D``, O(1) per cell for a fixed disk),
     ``[[S_11, S_1x, S_1y], [S_1x, S_xx, S_xy], [S_1y, S_xy, S_yy]] (a, b, c) = (S_1z, S_xz, S_yz)``,
-    solved per cell by Cramer's rule. NaN where the disk holds less than ``min_share`` of its cells or the
+    solved per cell by Cramer's rule, over bands of :data:`BAND_ROWS` rows with the disk's halo (exact: outside
+    the grid counts as no data either way). NaN where the disk holds less than ``min_share`` of its cells or the
     system is singular (a line of cells), and everywhere when the footprint spans under ~2 cells (unlike
     :func:`plane_fit`, which then takes the 3x3 neighbourhood of a raster finer than any pixel: here the cells
     are the camera's, and a wider plane would be truth at another scale than DESIGN.md's)."""
@@ -85,28 +91,40 @@ def weighted_plane_fit(
     off = np.arange(-n, n + 1) * cell
     dx, dy = np.meshgrid(off, off)
     disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
-    nan = np.full(np.shape(Z), np.nan)
+    shape = np.shape(Z)
+    out: tuple[np.ndarray, np.ndarray, np.ndarray] = (
+        np.full(shape, np.nan, np.float32),
+        np.full(shape, np.nan, np.float32),
+        np.full(shape, np.nan, np.float32),
+    )
     if disk.sum() < 5:  # a footprint of under ~2 cells: the grid cannot tell its slope
-        return nan, nan.copy(), nan.copy()
-    w = np.where(W > 0, W, 0.0).astype(np.float64)
-    zref = float(np.sum(w * np.nan_to_num(Z)) / max(np.sum(w), 1e-12))
-    wz = w * np.where(w > 0, np.nan_to_num(Z) - zref, 0.0)
+        return out
+    seen = W > 0
+    zref = float(np.mean(Z[seen])) if seen.any() else 0.0
+    # a plane needs a disk seen in two directions: det relative to a full disk's (scale-free)
+    full = disk.sum() * np.sum(disk * dx * dx) * np.sum(disk * dy * dy)
+    kernels = [disk, disk * dx, disk * dy, disk * dx * dx, disk * dx * dy, disk * dy * dy]
 
     def corr(img: np.ndarray, k: np.ndarray) -> np.ndarray:
         return cv2.filter2D(img, cv2.CV_64F, k, borderType=cv2.BORDER_CONSTANT)  # outside the grid: no data
 
-    s1, sx, sy = corr(w, disk), corr(w, disk * dx), corr(w, disk * dy)
-    sxx, sxy, syy = corr(w, disk * dx * dx), corr(w, disk * dx * dy), corr(w, disk * dy * dy)
-    sz, sxz, syz = corr(wz, disk), corr(wz, disk * dx), corr(wz, disk * dy)
-    det = s1 * (sxx * syy - sxy * sxy) - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
-    # a plane needs a disk seen in two directions: det relative to a full disk's (scale-free)
-    full = disk.sum() * np.sum(disk * dx * dx) * np.sum(disk * dy * dy)
-    ok = (s1 >= min_share * disk.sum()) & (det > 1e-6 * full)
-    det = np.where(ok, det, 1.0)
-    a = (sz * (sxx * syy - sxy * sxy) - sx * (sxz * syy - sxy * syz) + sy * (sxz * sxy - sxx * syz)) / det
-    b = (s1 * (sxz * syy - syz * sxy) - sz * (sx * syy - sxy * sy) + sy * (sx * syz - sxz * sy)) / det
-    c = (s1 * (sxx * syz - sxy * sxz) - sx * (sx * syz - sxz * sy) + sz * (sx * sxy - sxx * sy)) / det
-    return np.where(ok, a + zref, np.nan), np.where(ok, b, np.nan), np.where(ok, c, np.nan)
+    for r0 in range(0, shape[0], BAND_ROWS):
+        r1 = min(shape[0], r0 + BAND_ROWS)
+        h0, h1 = max(0, r0 - n), min(shape[0], r1 + n)  # the halo the disk reaches into
+        w = np.where(seen[h0:h1], W[h0:h1], 0.0).astype(np.float64)
+        wz = w * np.where(seen[h0:h1], Z[h0:h1] - zref, 0.0)
+        s1, sx, sy, sxx, sxy, syy = (corr(w, k)[r0 - h0 : r1 - h0] for k in kernels)
+        sz, sxz, syz = (corr(wz, k)[r0 - h0 : r1 - h0] for k in kernels[:3])
+        m11, m12, m13 = sxx * syy - sxy * sxy, sx * syy - sxy * sy, sx * sxy - sxx * sy  # cofactors of row 1
+        det = s1 * m11 - sx * m12 + sy * m13
+        ok = (s1 >= min_share * disk.sum()) & (det > 1e-6 * full)
+        det = np.where(ok, det, 1.0)
+        a = (sz * m11 - sx * (sxz * syy - sxy * syz) + sy * (sxz * sxy - sxx * syz)) / det
+        b = (s1 * (sxz * syy - syz * sxy) - sz * m12 + sy * (sx * syz - sxz * sy)) / det
+        c = (s1 * (sxx * syz - sxy * sxz) - sx * (sx * syz - sxz * sy) + sz * m13) / det
+        for dst, v in zip(out, (a + zref, b, c)):
+            dst[r0:r1][ok] = v[ok]
+    return out
 
 
 def coarser_step_m(X: np.ndarray, Y: np.ndarray) -> float:
@@ -119,6 +137,46 @@ def coarser_step_m(X: np.ndarray, Y: np.ndarray) -> float:
     )
 
 
+def truth_grid(points: np.ndarray) -> tuple[float, float, float, int, int, np.ndarray]:
+    """The ground grid :func:`hazard_from_points` bins ``points`` on: (cell m, x0, y0, columns, rows, and the
+    pixels it holds). The cell is the coarser-direction ground sample distance (:func:`coarser_step_m`), grown
+    when the grid would pass :data:`MAX_GRID_CELLS_PER_PIXEL`; the grid spans the points within
+    :data:`EXTENT_PCT` of X and Y plus a footprint, and the points beyond are left out."""
+    X, Y, Z = points[..., 0], points[..., 1], points[..., 2]
+    valid = np.isfinite(X) & np.isfinite(Y) & np.isfinite(Z)
+    if np.count_nonzero(valid) < 3:
+        return math.inf, 0.0, 0.0, 0, 0, np.zeros(X.shape, bool)
+    (x0, x1), (y0, y1) = (np.percentile(v[valid], EXTENT_PCT) for v in (X, Y))
+    x0, y0, x1, y1 = x0 - FOOTPRINT_M, y0 - FOOTPRINT_M, x1 + FOOTPRINT_M, y1 + FOOTPRINT_M
+    held = valid & (np.abs(X - (x0 + x1) / 2) <= (x1 - x0) / 2) & (np.abs(Y - (y0 + y1) / 2) <= (y1 - y0) / 2)
+    cell = max(coarser_step_m(np.where(held, X, np.nan), np.where(held, Y, np.nan)), FOOTPRINT_M / 24)
+    budget = MAX_GRID_CELLS_PER_PIXEL * X.size
+    cell = max(cell, math.sqrt((x1 - x0 + cell) * (y1 - y0 + cell) / budget))
+    return cell, float(x0), float(y0), int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1, held
+
+
+def _bilinear(grids: tuple[np.ndarray, ...], fx: np.ndarray, fy: np.ndarray) -> list[np.ndarray]:
+    """Each grid at fractional (column, row) positions, bilinear, clamped at the edges; NaN spreads to the four
+    cells' neighbourhood (numpy: ``cv2.remap`` refuses grids of 32767 or more cells a side)."""
+    gh, gw = grids[0].shape
+    fx = np.clip(fx, 0.0, gw - 1.0)
+    fy = np.clip(fy, 0.0, gh - 1.0)
+    i0 = np.minimum(fx.astype(np.int64), max(gw - 2, 0))
+    j0 = np.minimum(fy.astype(np.int64), max(gh - 2, 0))
+    tx, ty = (fx - i0).astype(np.float32), (fy - j0).astype(np.float32)
+    k00 = j0 * gw + i0
+    k01, k10 = k00 + (1 if gw > 1 else 0), k00 + (gw if gh > 1 else 0)
+    k11 = k10 + (1 if gw > 1 else 0)
+    out = []
+    for g in grids:
+        f = g.ravel()
+        out.append((f[k00] * (1 - tx) + f[k01] * tx) * (1 - ty) + (f[k10] * (1 - tx) + f[k11] * tx) * ty)
+    return out
+
+
+POINTS_PER_CHUNK = 1 << 20  # the pixels are sampled and judged this many at a time: their temporaries stay bounded
+
+
 def hazard_from_points(points: np.ndarray, shadow: np.ndarray | None = None) -> np.ndarray:
     """Ground-truth hazard (float32 HxW in [0, 1], NaN where unknown) from each pixel's true ground point
     (``points``, H x W x 3 world X, Y, Z; NaN where none), by DESIGN.md's rules as :func:`hazard_layers`
@@ -126,43 +184,36 @@ def hazard_from_points(points: np.ndarray, shadow: np.ndarray | None = None) -> 
     |z - plane|, and the true shadow.
 
     For a pair whose truth is only DESIGN.md's files (``gt_elevation`` / ``gt_depth`` / ``gt_shadow``): the
-    pixels' points are binned on a horizontal grid of about the ground sample distance (each cell their mean
-    height), and the plane is fitted on the cells seen (:func:`weighted_plane_fit`). It sees the relief the
-    camera resolves, not the finer relief a renderer's own raster holds, and no ground the view hides; where
-    the ground is sampled coarser than about half the footprint, it is NaN (the camera cannot resolve it)."""
+    pixels' points are binned on a horizontal grid of about the ground sample distance (:func:`truth_grid`, each
+    cell their mean height), and the plane is fitted on the cells seen (:func:`weighted_plane_fit`). It sees the
+    relief the camera resolves, not the finer relief a renderer's own raster holds, and no ground the view
+    hides; where the ground is sampled coarser than about half the footprint, it is NaN (the camera cannot
+    resolve it)."""
     P = np.asarray(points, np.float64)
     h, w = P.shape[:2]
-    X, Y, Zp = P[..., 0], P[..., 1], P[..., 2]
-    valid = np.isfinite(X) & np.isfinite(Y) & np.isfinite(Zp)
     out = np.full((h, w), np.nan, np.float32)
-    if np.count_nonzero(valid) < 3:
+    cell, x0, y0, gw, gh, held = truth_grid(P)
+    if not held.any() or cell > FOOTPRINT_M / 2:  # no disk of two cells: nothing to fit (and no grid to build)
         return out
-    cell = max(coarser_step_m(X, Y), FOOTPRINT_M / 24)
-    x0, y0 = float(X[valid].min()), float(Y[valid].min())
-    span_x, span_y = float(X[valid].max()) - x0, float(Y[valid].max()) - y0
-    budget = MAX_GRID_CELLS_PER_PIXEL * h * w
-    cell = max(cell, math.sqrt((span_x + cell) * (span_y + cell) / budget))
-    gw, gh = int(span_x / cell) + 1, int(span_y / cell) + 1
-    ix = np.minimum(((X[valid] - x0) / cell).astype(np.int64), gw - 1)
-    iy = np.minimum(((Y[valid] - y0) / cell).astype(np.int64), gh - 1)
+    X, Y, Zp = P[..., 0][held], P[..., 1][held], P[..., 2][held]
+    ix = np.clip(((X - x0) / cell).astype(np.int64), 0, gw - 1)
+    iy = np.clip(((Y - y0) / cell).astype(np.int64), 0, gh - 1)
     idx = iy * gw + ix
-    count = np.bincount(idx, minlength=gw * gh).reshape(gh, gw).astype(np.float64)
-    total = np.bincount(idx, weights=Zp[valid], minlength=gw * gh).reshape(gh, gw)
-    Zg = np.where(count > 0, total / np.maximum(count, 1), np.nan)
-    a, b, c = weighted_plane_fit(Zg, (count > 0).astype(np.float64), cell)
-    # each pixel's coefficients at its own ground point (cell centres at x0 + (i + 0.5) cell)
-    mx = ((X - x0) / cell - 0.5).astype(np.float32)
-    my = ((Y - y0) / cell - 0.5).astype(np.float32)
-    mx[~valid] = -10.0
-    my[~valid] = -10.0
-
-    def at(g: np.ndarray) -> np.ndarray:
-        return cv2.remap(g.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-    pa, pb, pc = at(a), at(b), at(c)
-    sh = np.zeros((h, w), bool) if shadow is None else np.asarray(shadow, bool)
-    known = valid & np.isfinite(pa) & np.isfinite(pb) & np.isfinite(pc)
-    hz = hazard_layers(np.where(known, Zp, 0.0), np.where(known, pa, 0.0), np.where(known, pb, 0.0),
-                       np.where(known, pc, 0.0), sh)  # fmt: skip
-    out[known] = hz[known]  # a shadowed pixel without a plane stays unknown: scoring only those would skew
+    count = np.bincount(idx, minlength=gw * gh).reshape(gh, gw).astype(np.float32)
+    total = np.bincount(idx, weights=Zp, minlength=gw * gh).reshape(gh, gw)
+    Zg = (total / np.maximum(count, 1)).astype(np.float64)
+    del total
+    a, b, c = weighted_plane_fit(Zg, (count > 0).astype(np.float32), cell)  # one weight per cell seen
+    del Zg, count
+    del ix, iy, idx
+    sh = np.zeros(X.shape, bool) if shadow is None else np.asarray(shadow, bool)[held]
+    values = np.full(X.shape, np.nan, np.float32)
+    for k0 in range(0, X.size, POINTS_PER_CHUNK):
+        k = slice(k0, k0 + POINTS_PER_CHUNK)
+        # each pixel's coefficients at its own ground point (cell centres at x0 + (i + 0.5) cell)
+        pa, pb, pc = _bilinear((a, b, c), (X[k] - x0) / cell - 0.5, (Y[k] - y0) / cell - 0.5)
+        known = np.isfinite(pa) & np.isfinite(pb) & np.isfinite(pc)
+        # a shadowed pixel without a plane stays unknown: scoring only those would skew
+        values[k][known] = hazard_layers(Zp[k][known], pa[known], pb[known], pc[known], sh[k][known])
+    out[held] = values
     return out

@@ -614,16 +614,19 @@ def run_regression(
     board_link: str | None = None,
     hello_timeout_s: float | None = None,
 ) -> int:
+    from protocol.outdir import claim_out
+
     try:
-        ok, diff, new_doc = check_regression(
-            baseline,
-            out=out,
-            cases=cases,
-            update=update,
-            min_hit_rate=min_hit_rate,
-            board_link=board_link,
-            hello_timeout_s=hello_timeout_s,
-        )
+        with claim_out(out, "regress"):  # each case's run holds its own OUT/<case> too
+            ok, diff, new_doc = check_regression(
+                baseline,
+                out=out,
+                cases=cases,
+                update=update,
+                min_hit_rate=min_hit_rate,
+                board_link=board_link,
+                hello_timeout_s=hello_timeout_s,
+            )
     except RegressInterrupted as exc:
         print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
         print("INTERRUPTED")

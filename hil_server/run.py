@@ -259,8 +259,13 @@ def score_records(records: list[dict]) -> list[dict]:
             continue
         d = Path(rec["out_dir"])
         pair = read_pair(rec["pair_dir"])
-        if note := complete_truth(pair):
-            rec["truth_note"] = note
+        try:  # after the whole descent flew: a derivation that fails costs this pair's scores, not the summary
+            if note := complete_truth(pair):
+                rec["truth_note"] = note
+                if np.isfinite(pair.truth["hazard"]).any():
+                    rec["truth"] = "derived"
+        except (MemoryError, ValueError, ArithmeticError) as exc:
+            rec["truth_note"] = f"no gt_hazard_i1.npy, and deriving one failed ({type(exc).__name__}: {exc})"
         truth = pair.truth
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
@@ -585,7 +590,27 @@ def flight_note(summary: dict) -> str:
         ignored[0] = "the ground ignored " + ignored[0]
         ignored[-1] += " (a second answer, for no pair sent, or before its pair's frames were sent)"
     server = _server_note(summary, c)
-    return "; ".join(x for x in (server, ground, ", ".join(ignored), _line_note(g.get("line") or {})) if x)
+    parts = (server, ground, ", ".join(ignored), _line_note(g.get("line") or {}), _drops_note(g))
+    return "; ".join(x for x in parts if x)
+
+
+def _drops_note(g: dict) -> str:
+    """The flight side's ZeroMQ frames the ground's link dropped by the session rules ("" when none): each
+    one a message meant for it (TCP repeats nothing), which the console named when it first came."""
+    d = g.get("session_drops") or {}
+    seq, old, foreign = (int(d.get(k) or 0) for k in ("duplicates_dropped", "old_session_frames", "foreign_frames"))
+    if not seq + old + foreign:
+        return ""
+    parts = [
+        f"{n} {what}"
+        for n, what in (
+            (seq, "with a seq that did not rise"),
+            (old, "addressed to another or a past session"),
+            (foreign, "from a session that said no HELLO"),
+        )
+        if n
+    ]
+    return f"the ground's link dropped messages from the flight side: {', '.join(parts)} (ground.log says why)"
 
 
 def _line_note(line: dict) -> str:
@@ -721,14 +746,23 @@ def summary_table(summary: dict) -> str:
 
 def truth_note(summary: dict) -> str:
     """Which pairs were scored against a truth hazard derived from DESIGN.md's files ("" when none)."""
-    labels = [str(r.get("label", r.get("pair_id"))) for r in summary.get("records") or [] if r.get("truth_note")]
-    if not labels:
-        return ""
-    shown = ", ".join(labels[:6]) + (f" and {len(labels) - 6} more" if len(labels) > 6 else "")
-    return (
-        f"the scores of {shown} are against a truth hazard derived from gt_elevation and gt_depth (no "
-        "gt_hazard_i1.npy): it sees only the relief the camera resolves (docs/design.md, Ground-truth hazard)"
-    )
+    recs = summary.get("records") or []
+
+    def names(rs: list[dict]) -> str:
+        labels = [str(r.get("label", r.get("pair_id"))) for r in rs]
+        return ", ".join(labels[:6]) + (f" and {len(labels) - 6} more" if len(labels) > 6 else "")
+
+    derived = [r for r in recs if r.get("truth") == "derived"]
+    without = [r for r in recs if r.get("truth_note") and r.get("truth") != "derived"]
+    parts = []
+    if derived:
+        parts.append(
+            f"the scores of {names(derived)} are against a truth hazard derived from gt_elevation and gt_depth (no "
+            "gt_hazard_i1.npy): it sees only the relief the camera resolves (docs/design.md, Ground-truth hazard)"
+        )
+    if without:
+        parts.append(f"{names(without)} could not be scored: {without[0]['truth_note']}")
+    return "; ".join(parts)
 
 
 # the run's and `score`'s figures for the same pair differ a little (CDI 25.97 against 25.2): said where both are read

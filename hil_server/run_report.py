@@ -250,6 +250,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
         intro.append(truth_note(s)[0].upper() + truth_note(s)[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
+    from hil_server.run import flight_note
+
+    if flight := flight_note(s):  # refusals, ignored answers, dropped frames: the page said a clean PASS without
+        intro.append(flight[0].upper() + flight[1:] + ".")
     sections = [
         Section(
             "Pairs",

@@ -168,6 +168,12 @@ class Link:
         p = self.recv_packet(timeout)
         return None if p is None else p.message
 
+    def take_drop_notes(self) -> list[str]:
+        """What the session layer dropped from the peer since the last call that the peer most likely meant to
+        deliver, once per kind of mistake and session (a ZeroMQ seq that did not rise, a wrong dst_session): such
+        frames are only counted in ``stats``, and a peer of one's own making them saw its answers vanish."""
+        return []
+
     def take_refusals(self) -> list[tuple[int | None, str]]:
         """(type code, reason) of each message from the peer that this link refused since the last call: over the
         size limit, of an unknown type, failing to decode or the schema (e.g. a wrong-shaped grid). The latest
@@ -742,6 +748,8 @@ class ZmqLink(Link, SessionView):
         self._owner: int | None = None  # fd of the attached peer
         # (type code, reason) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
         self._refusals: deque[tuple[int | None, str]] = deque(maxlen=REFUSALS_KEPT)
+        self._drop_notes: list[str] = []
+        self._drop_said: set[tuple[str, int]] = set()  # (kind, peer session) said once
         self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
         self._handshaken_at: float | None = None  # connecting side: since when, with no link session on it yet
         self._relisten: str | None = None  # binding side: why every connection is to be dropped (listen anew)
@@ -798,6 +806,17 @@ class ZmqLink(Link, SessionView):
             out = list(self._refusals)
             self._refusals.clear()
             return out
+
+    def take_drop_notes(self) -> list[str]:
+        with self._cv:
+            out, self._drop_notes = self._drop_notes, []
+            return out
+
+    def _drop_note(self, kind: str, src: int, text: str) -> None:
+        """Keep ``text`` for :meth:`take_drop_notes`, once per ``kind`` and peer session (under ``_cv``)."""
+        if (kind, src) not in self._drop_said and len(self._drop_said) < 64:
+            self._drop_said.add((kind, src))
+            self._drop_notes.append(text)
 
     def _refuse(self, type_code: int | None, reason: str) -> None:
         """A message from the peer refused: counted (``decode_errors``) and its reason kept for the owner."""
@@ -1110,6 +1129,14 @@ class ZmqLink(Link, SessionView):
                 self._stats["old_session_frames" if verdict == "old" else "foreign_frames"] += 1
                 if verdict == "old" and src == self.sess.peer:
                     self._control.append(self._hello())
+                    self._drop_note(
+                        "dst",
+                        src,
+                        f"messages addressed to session {dst:08x}, not this link's {self.sess.local:08x} (the peer's "
+                        "dst_session must be the session its HELLO named, docs/protocol.md section 7)",
+                    )
+                elif verdict == "foreign":
+                    self._drop_note("foreign", src, f"messages from session {src:08x}, which said no HELLO first")
                 return
             self._last_heard = now
             if self.sess.confirm():
@@ -1126,8 +1153,14 @@ class ZmqLink(Link, SessionView):
                 self._refusals.append((type_code, f"unknown message kind {kind}"))
                 self._stats["decode_errors"] += 1
                 return
-            if seq <= self._peer_seq:
+            if seq <= self._peer_seq:  # TCP neither repeats nor reorders: the peer's seq did not rise
                 self._stats["duplicates_dropped"] += 1
+                self._drop_note(
+                    "seq",
+                    src,
+                    f"messages whose seq ({seq}) is not above the last one taken ({self._peer_seq}), as repeats "
+                    "(each message's seq must rise, docs/protocol.md section 7)",
+                )
                 return
             self._peer_seq = seq
             epoch = self.sess.epoch

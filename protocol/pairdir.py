@@ -679,7 +679,8 @@ def _tiff_size(path: Path, head: bytes) -> tuple[int, int]:
     writes it after the pixels: one seek, at most 4096 tags read); ValueError/struct.error when it is not there."""
     e = "<" if head[:2] == b"II" else ">"
     (off,) = struct.unpack(e + "I", head[4:8])
-    if off + 2 <= len(head):
+    count = struct.unpack(e + "H", head[off : off + 2])[0] if off + 2 <= len(head) else None
+    if count is not None and off + 2 + 12 * count <= len(head):  # the whole directory within the head read
         ifd = head[off:]
     else:
         with path.open("rb") as f:

@@ -420,8 +420,10 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     the result's line time, and the deadline as a red tick.
 
     Keys read per record (missing ones are skipped): ``label``, ``frames_link_s``, ``stages``
-    ({name: {"wall_s"}}), ``stage_order`` (the order the stages ran; else the order of ``stages``),
-    ``queue_wait_s``, ``result_queue_s``, ``result_link_s``, ``e2e_latency_s``, ``deadline_s``, ``plan`` (the
+    ({name: {"wall_s"}}; ``total`` drawn only when a flight reports nothing else), ``stage_order`` (the order the
+    stages ran; else the order of ``stages``), ``queue_wait_s``, ``result_queue_s``, ``result_link_s``
+    (None with ``outside_flight_s``: e2e less the flight's compute, drawn unsplit), ``e2e_latency_s``,
+    ``deadline_s``, ``plan`` (the
     flight's deadline plan, docs/protocol.md: two markers, the time it aimed to be done by and the time its DEM had
     to stop by to leave the reserve for the mapping after it).
     """
@@ -451,9 +453,14 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         t = float(r.get("queue_wait_s") or 0.0)
         if t >= QUEUE_DRAWN_S:
             _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
+        stages = r.get("stages") or {}
         for k in stage_names:
-            w = float(((r.get("stages") or {}).get(k) or {}).get("wall_s", 0.0))
+            w = float((stages.get(k) or {}).get("wall_s", 0.0))
             _bar(ax, y, t, w, colour[k], once(k))
+            t += w
+        if not any(k in stages for k in stage_names) and "total" in stages:  # a flight that reports one figure
+            w = float((stages["total"] or {}).get("wall_s", 0.0))
+            _bar(ax, y, t, w, "#6a8fb5", once("flight compute (its total only)"))
             t += w
         plan = r.get("plan") or {}
         if "budget_s" in plan:  # the flight's own plan: the time it aimed to be done by, and the DEM's stop-by
@@ -469,6 +476,9 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         rl = float(r.get("result_link_s") or 0.0)
         e2e = r.get("e2e_latency_s")
         start = (float(e2e) - rl) if e2e is not None else t
+        outside = r.get("outside_flight_s")  # ZeroMQ, its sender measured no line time: the rest of e2e, unsplit
+        if r.get("result_link_s") is None and outside is not None and e2e is not None:
+            _bar(ax, y, float(e2e) - float(outside), float(outside), "#bbbbbb", once("link and queues (not split)"))
         rq = float(r.get("result_queue_s") or 0.0)
         if rq >= QUEUE_DRAWN_S:  # named in the legend only where it happened
             _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))

@@ -761,8 +761,10 @@ def _score(args: argparse.Namespace) -> int:
             print(f"hazard-hil score: {r['pair']}: cannot be scored: {r['error']}", file=sys.stderr)
         elif r.get("error"):
             print(f"hazard-hil score: {r['pair']}: no usable output: {r['error']}", file=sys.stderr)
-        elif r.get("truth_note"):
-            print(f"note: {r['pair']}: {r['truth_note']}", file=sys.stderr)
+    derived = [r for r in rows if r.get("truth_note") and not r.get("error")]
+    if derived:  # one note for the descent, not one per pair
+        more = f" (and {len(derived) - 1} more pairs likewise)" if len(derived) > 1 else ""
+        print(f"note: {derived[0]['pair']}: {derived[0]['truth_note']}{more}", file=sys.stderr)
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")

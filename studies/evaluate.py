@@ -912,19 +912,20 @@ def prune_other_runs(out: Path, scenario: str, maps: set[str], stems: set[str]) 
     """Remove ``scenario``'s maps (``out/maps``) and figures (``out/report``) that this run will not write: an
     earlier run into ``out`` with other seeds, altitudes or presets left them, and the report took the first map
     of an altitude it found, another seed's among them. ``maps``: this run's map file names; ``stems``: its
-    figure stems. Other scenarios' files, and every other file, are kept. Returns what was removed."""
+    figure stems. The figures of this run's stems go too (redrawn: their names hold no preset or seed). Other
+    scenarios' files, and every other file, are kept. Returns what an earlier run left (this run's own figures
+    not counted)."""
     import re
 
     from studies.report import FIGURE_KINDS
 
     figure = re.compile(rf"^({re.escape(scenario)}_\d+m)_({'|'.join(FIGURE_KINDS)})\.png$")
     gone = [p for p in sorted((out / "maps").glob(f"{scenario}-*.npz")) if p.name not in maps]
-    gone += [
-        p
-        for p in sorted((out / "report").glob(f"{scenario}_*.png"))
-        if (m := figure.match(p.name)) and m[1] not in stems
-    ]
-    for p in gone:
+    figures = {p: m[1] for p in sorted((out / "report").glob(f"{scenario}_*.png")) if (m := figure.match(p.name))}
+    gone += [p for p, stem in figures.items() if stem not in stems]
+    # this run's own stems too, unsaid: a name says no preset or seed, so an earlier run's first preset could pass
+    # for this one's; the workers, or the report from this run's maps, draw them again
+    for p in [*gone, *figures]:
         p.unlink(missing_ok=True)
     return gone
 

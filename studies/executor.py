@@ -201,11 +201,17 @@ def run_tasks(
     path = Path(results_path)
     path.parent.mkdir(parents=True, exist_ok=True)
     done = load_results(path, code, inputs)
-    for i in redo:
-        done.pop(i, None)
+    again = {i for i in redo if done.pop(i, None) is not None}  # saved and current, but lacking their files
     pending = [t for t in tasks if t.id not in done]
+    if again:
+        print(
+            f"note: {desc}: {len(again)} saved results in {path} lack files this run needs (their maps); "
+            "computing them again",
+            file=sys.stderr,
+            flush=True,
+        )
     if (code is not None or inputs is not None) and pending:
-        stale = set(load_results(path)) & {t.id for t in pending}
+        stale = (set(load_results(path)) & {t.id for t in pending}) - again
         if stale:
             other = "by other code" if inputs is None else f"by other code or not from {inputs}"
             print(

@@ -78,6 +78,7 @@ CSV_COLUMNS = (
     "output_dir",
     "figure",
     "truth",
+    "pair_error",
 )
 
 
@@ -287,15 +288,8 @@ def score_output(
     area = seen & np.isfinite(gt_h) & np.isfinite(depth)
     n = int(np.count_nonzero(area))
     if n == 0:
-        if derived and np.isfinite(depth).any() and not np.isfinite(gt_h).any():
-            from ground_sim.truth import coarser_step_m
-
-            step = coarser_step_m(world[..., 0], world[..., 1])
-            raise ScoreError(
-                f"{where}: no gt_hazard_i1.npy, and frame 0 samples the ground every {step:.2g} m (its coarser "
-                "direction), over half the 3 m footprint: its slope cannot be derived from gt_elevation; give "
-                "gt_hazard_i1.npy"
-            )
+        if derived and not np.isfinite(gt_h).any():  # the derivation says why it gave nothing
+            raise ScoreError(f"{where}: {derived}; give gt_hazard_i1.npy")
         for key, arr in (("hazard", gt_h), ("depth", depth)):
             if not np.isfinite(arr).any():  # not a geometry problem: say which file holds nothing
                 raise ScoreError(f"{where}: gt_{key}_i1.npy holds no finite value: nothing to score against")

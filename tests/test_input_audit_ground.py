@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import struct
 import zlib
@@ -77,6 +78,21 @@ def test_a_tiff_whose_directory_follows_its_pixels_is_read(tmp_path, depth):
     assert cv2.imwrite(str(p), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed: the directory far out
     assert int.from_bytes(p.read_bytes()[4:8], "little") > 64 * 1024
     assert image_header_size(p) == (512, 300)
+
+
+@pytest.mark.parametrize("off", [1000, 65000, 65520, 70000])
+def test_a_tiff_directory_is_read_wherever_it_starts(tmp_path, off):
+    """One whose directory began just inside the first 64 kB read, its size tags past them, had "no width/height
+    tags" (stop 58's review)."""
+    tags = [(256, 3, 16), (257, 3, 12), (258, 3, 8), (259, 3, 1), (262, 3, 1), (273, 4, 8), (277, 3, 1),
+            (278, 3, 12), (279, 4, 192), (284, 3, 1)]  # fmt: skip
+    b = bytearray(b"II*\x00" + struct.pack("<I", off))
+    b += bytes(off - len(b)) + struct.pack("<H", len(tags))
+    for tag, typ, v in tags:
+        b += struct.pack("<HHI", tag, typ, 1) + (struct.pack("<HH", v, 0) if typ == 3 else struct.pack("<I", v))
+    p = tmp_path / "i.tif"
+    p.write_bytes(bytes(b + struct.pack("<I", 0)))
+    assert image_header_size(p) == (16, 12)
 
 
 def test_process_with_a_truncated_png_is_one_line_and_exit_2(descent, tmp_path, capsys):
@@ -399,3 +415,14 @@ def test_process_refuses_an_out_where_it_would_replace_the_pairs_own_files(desce
     err = one_line_error(capsys, ["process", str(d), "--out", str(d)])
     assert "would replace the pair's own dem.png, hazard.png" in err
     assert {n: (d / n).read_bytes() for n in before} == before
+
+
+def test_process_refuses_to_write_through_a_hard_link_to_a_pair_file(descent, tmp_path, capsys):
+    """Another directory whose hazard.png is a hard link to frame 0: the same file under another name."""
+    d = copy_pair(descent, tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    os.link(d / "i1.png", out / "hazard.png")
+    before = (d / "i1.png").read_bytes()
+    err = one_line_error(capsys, ["process", str(d), "--out", str(out)])
+    assert "would replace the pair's own hazard.png" in err and (d / "i1.png").read_bytes() == before

@@ -65,7 +65,7 @@ def test_a_directory_the_claim_made_and_nobody_wrote_in_is_removed(tmp_path: Pat
     assert not out.exists()
     with claim_out(out, "evaluate"):
         (out / "metrics.csv").write_text("x\n")
-    assert [p.name for p in out.iterdir()] == ["metrics.csv"]  # what was written stays, the lock file goes
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME, "metrics.csv"]  # what was written stays
 
 
 @pytest.mark.parametrize(
@@ -74,6 +74,7 @@ def test_a_directory_the_claim_made_and_nobody_wrote_in_is_removed(tmp_path: Pat
         ["evaluate", "--scenario", "vertical", "--seeds", "1", "--out", "OUT"],
         ["landings", "--scenes", "mare", "--n", "8", "--out", "OUT"],
         ["run", "--budget", "host", "--out", "OUT"],
+        ["regress", "--cases", "", "--out", "OUT"],
     ],
 )
 def test_commands_refuse_an_out_being_written_with_one_line_exit_2(held, capsys, argv):

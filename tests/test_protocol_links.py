@@ -471,6 +471,37 @@ def test_zeromq_client_restart_starts_a_new_session(tmp_path):
             assert S.recv(5).code == "again"
 
 
+def test_zeromq_frames_the_session_rules_drop_are_said_once_each_and_counted():
+    """A peer of one's own whose seq did not rise, or that addressed another session, saw every answer vanish:
+    the link only counted them, and the ground read the pair as never answered (stop 58's QA)."""
+    G = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="ground")
+    with G, ZmqLink(G.endpoint, bind=False, insecure=True, name="board") as B:
+        assert G.wait_established(5) and B.wait_established(5)
+        B.send(Error(code="first", text=""))
+        assert G.recv(5).code == "first"
+        deadline = time.monotonic() + 10
+        for k in range(3):
+            with B._cv:
+                B._seq -= 1  # the next message repeats the last seq (the I/O thread numbers it as it goes)
+            B.send(Error(code=f"repeat{k}", text=""))
+            while G.stats["duplicates_dropped"] < k + 1 and time.monotonic() < deadline:
+                time.sleep(0.02)
+        assert G.stats["duplicates_dropped"] == 3 and G.recv(0.2) is None
+        (note,) = G.take_drop_notes()  # three drops, one kind: said once
+        assert "seq (1) is not above the last one taken (1)" in note and "section 7" in note
+        real = B.sess.peer
+        with B._cv:
+            B.sess.peer = 0x1234  # addresses a session the ground never had
+        B.send(Error(code="astray", text=""))
+        while G.stats["old_session_frames"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with B._cv:
+            B.sess.peer = real
+        notes = G.take_drop_notes()
+        assert len(notes) == 1 and "addressed to session 00001234" in notes[0], notes
+        assert G.take_drop_notes() == []
+
+
 # ------------------------------------------------------------------ refusals: nothing refused goes unsaid
 BAD_BODIES = [  # (type code in the header, body, what the refusal must say)
     (Result.TYPE, b"\x92\x04\x81\xaaframe_seqs\x92\x00\x01", "Result: missing field 'state_grid'"),
