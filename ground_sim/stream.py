@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.arq import ECHO_TEXT, Received
+from protocol.arq import ECHO_TEXT, Received, Refusal
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.links import MECHANISM_MISMATCH_TEXT, LinkClosed, ZmqLink
@@ -478,7 +478,7 @@ def stream_descent(
         said_unanswered = False
         while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
             now = time.monotonic()
-            for type_code, reason in link.take_refusals():  # before any session: a stranger's, counted and said
+            for type_code, reason, _ in link.take_refusals():  # before any session: a stranger's, counted and said
                 count_refusal(type_code, f"before any session: {reason}")
             if getattr(link, "answered", None) is False and not said_unanswered:
                 # said at once, not after the whole wait: the other ground's descent may end, and this one go on
@@ -538,8 +538,8 @@ def stream_descent(
         """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
         came in the ``first`` session); a line every 10 s."""
         state.epoch = None
-        for type_code, reason in link.take_refusals():  # from before this session: its pairs have ended
-            refused(type_code, reason, set())
+        for r in link.take_refusals():  # from before this session: its pairs have ended
+            refused(r, set())
         epoch = link.epoch
 
         def closed(exc: Exception) -> Exception:  # the device failed between the link session and the Hello
@@ -651,16 +651,26 @@ def stream_descent(
             note(f"the flight computer sent a {what} the ground refused: {reason}{more}")
         return what
 
-    def refused(type_code: int | None, reason: str, want: set[tuple[int, int]]) -> None:
+    def refused(r: Refusal, want: set[tuple[int, int]]) -> None:
         """One message from the flight side that the link refused (a wrong-shaped grid, a field out of range, a
-        body over the decoder's budget): counted and noted. A Result ends the oldest pair of ``want`` waiting for
-        one as ``bad_result`` at once (the flight side will not send it again); a Telemetry lets the oldest pair
+        body over the decoder's budget): counted and noted. A Result ends as ``bad_result`` at once (the flight
+        side will not send it again) the oldest pair of ``want`` that had no Result when it was refused: one
+        whose Result came after the refused one was answered after all, and keeps its answer (the refusal reached
+        the ground apart from the messages, and ended the next pair instead). A Telemetry lets the oldest pair
         holding its Result complete without it (``telemetry_missing``)."""
+        type_code, reason = r.type_code, r.reason
         count_refusal(type_code, reason)
         pending = [outcomes[k] for k in sorted(want) if not outcomes[k].finished]
         if type_code == Result.TYPE:
-            o = next((x for x in pending if x.result is None), None)
-            if o is not None:
+            answered_after = [  # sent before the refusal, its Result held only after it
+                x
+                for x in outcomes.values()
+                if x.sent_at and x.sent_at <= r.t and x.result is not None and (x.result_t_done or 0.0) > r.t
+            ]
+            o = next((x for x in pending if x.result is None and x.sent_at and x.sent_at <= r.t), None)
+            if answered_after and (o is None or answered_after[0].sent_at <= o.sent_at):
+                note(f"pair {answered_after[0].pair_id}: a Result of it was refused, and a good one came after it")
+            elif o is not None:
                 want.discard(o.seqs)
                 give_up(o, "bad_result", f"the flight computer's Result was refused: {reason}")
         elif type_code == Telemetry.TYPE:
@@ -685,8 +695,8 @@ def stream_descent(
             if pkt is None:
                 break
             handle(pkt, want)
-        for type_code, reason in got:
-            refused(type_code, reason, want)
+        for r in got:
+            refused(r, want)
 
     def handle(pkt, want: set[tuple[int, int]]) -> None:
         if pkt.epoch != state.epoch:
@@ -968,8 +978,8 @@ def stream_descent(
                 note(f"waiting up to {until - time.monotonic():.0f} s for the answers to {len(pending)} pair(s)")
             drain(pending)  # what has arrived already: in lockstep `until` is often past, and collect reads nothing
             collect(until, pending)
-        for type_code, reason in link.take_refusals():  # after every pair's end: counted, no pair to blame
-            refused(type_code, reason, set())
+        for r in link.take_refusals():  # after every pair's end: counted, no pair to blame
+            refused(r, set())
         for s, o in outcomes.items():
             if not any(r["frame_seqs"] == list(s) for r in records):
                 if o.finished:  # answered, but not while a collect wanted it: the answer stands
@@ -1043,6 +1053,8 @@ def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float
         return f"it came before pair {o.pair_id}'s frames were sent"
     if (o.result if isinstance(msg, Result) else o.telemetry) is not None:
         return f"pair {o.pair_id} has one already; the first stands"
+    if isinstance(msg, Result) and o.error is not None:  # a refused Result or an Error ended it: recorded
+        return f"pair {o.pair_id} was recorded already ({o.error.code}); this came after"
     if isinstance(msg, Telemetry) and o.telemetry_missing is not None:  # too late: its pair is recorded
         return f"pair {o.pair_id} was recorded without it ({o.telemetry_missing})"
     return None

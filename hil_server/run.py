@@ -588,7 +588,9 @@ def flight_note(summary: dict) -> str:
     ]
     if ignored:  # an external flight computer's answers that answer no pair sent (the console said which)
         ignored[0] = "the ground ignored " + ignored[0]
-        ignored[-1] += " (a second answer, for no pair sent, or before its pair's frames were sent)"
+        ignored[-1] += (
+            " (a second answer, for no pair sent, before its pair's frames were sent, or after its pair was recorded)"
+        )
     server = _server_note(summary, c)
     parts = (server, ground, ", ".join(ignored), _line_note(g.get("line") or {}), _drops_note(g))
     return "; ".join(x for x in parts if x)

@@ -51,7 +51,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from protocol.arq import Skipping
+from protocol.arq import Refusal, Skipping
 from protocol.errors import InputError
 from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.stall import StallClock
@@ -217,8 +217,8 @@ class FlightHandle:
         self.hello = False
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
 
-    def take_refusals(self) -> list[tuple[int | None, str]]:
-        """(type code, reason) of the messages the link refused from this incarnation since the last call."""
+    def take_refusals(self) -> list[Refusal]:
+        """The messages the link refused from this incarnation since the last call."""
         return self.link.take_refusals()
 
     def skipping(self) -> Skipping | None:
@@ -690,7 +690,7 @@ class Supervisor:
         """
         assert self.flight is not None
         counts = self.flight.new_counts()
-        reasons = self.flight.take_refusals()
+        reasons = [(r.type_code, r.reason) for r in self.flight.take_refusals()]
         # a datagram that failed to decode is counted but not REJECTed (and a flood may outrun the kept reasons)
         unexplained = sum(counts.get(k, 0) for k in REFUSED_STATS) - len(reasons)
         early = self.flight.refused_early

@@ -64,6 +64,7 @@ import math
 import struct
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from protocol.codec import DEFAULT_LIMITS, Limits, decode_parts
 from protocol.errors import InputError
@@ -138,6 +139,16 @@ class DeliveryFailure:
     seq: int  # the message id returned by send()
     message_type: str
     reason: str
+
+
+class Refusal(NamedTuple):
+    """A message from the peer this side refused: its type code (None where its header did not say), the reason,
+    and when (``time.monotonic()``, as :class:`Received`'s ``t_done``): its owner can tell which answers came
+    before it and which after, though refusals and messages reach it apart."""
+
+    type_code: int | None
+    reason: str
+    t: float
 
 
 @dataclass(frozen=True)
@@ -293,7 +304,7 @@ class Arq(SessionView):
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
         # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
         # tells the owner (a supervisor reports what its flight process sent that was refused); bounded
-        self._refusals: deque[tuple[int, str]] = deque(maxlen=REFUSALS_KEPT)
+        self._refusals: deque[Refusal] = deque(maxlen=REFUSALS_KEPT)
         self._outcomes: OrderedDict[int, str] = OrderedDict()
         self._times: OrderedDict[int, MessageTimes] = OrderedDict()
         self._pos_id: OrderedDict[int, tuple[int, str]] = OrderedDict()  # record position -> (id, name)
@@ -810,18 +821,18 @@ class Arq(SessionView):
             if self._rgot == self._rlen:
                 if self._rskip is not None:
                     self.stats["reassembly_errors"] += 1
-                    self._reject(self._rpos, self._rskip.reason, self._rtype)
+                    self._reject(self._rpos, self._rskip.reason, self._rtype, now)
                 else:
                     self._deliver(self._rtype, bytes(self._rbuf), self._rpos, self._rt0, now, self._rlen)
                 self._rlen, self._rbuf, self._rskip = None, bytearray(), None
 
-    def _reject(self, pos: int, reason: str, type_code: int) -> None:
+    def _reject(self, pos: int, reason: str, type_code: int, now: float) -> None:
         self.stats["rejected_sent"] += 1
-        self._refusals.append((type_code, reason))
+        self._refusals.append(Refusal(type_code, reason, now))
         self._control.append(reject_frame(self.sess.local, self.sess.peer, pos, reason))
 
-    def take_refusals(self) -> list[tuple[int, str]]:
-        """(type code, reason) of each message refused from the peer since the last call (the latest
+    def take_refusals(self) -> list[Refusal]:
+        """Each message refused from the peer since the last call (the latest
         :data:`REFUSALS_KEPT`; ``stats`` counts them all): a record over the size limit or of an unknown type,
         a body that fails to decode or the schema. Refused datagrams are listed too (they get no REJECT)."""
         out = []
@@ -856,9 +867,9 @@ class Arq(SessionView):
         except InputError as exc:
             self.stats["decode_errors"] += 1
             if pos >= 0:
-                self._reject(pos, str(exc), type_code)
+                self._reject(pos, str(exc), type_code, now)
             else:
-                self._refusals.append((type_code, str(exc)))
+                self._refusals.append(Refusal(type_code, str(exc), now))
             return
         self.stats["messages_received"] += 1
         self._received.append(Received(msg, pos, t_first, now, nbytes, self.epoch))

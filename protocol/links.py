@@ -4,7 +4,7 @@ Every link has ``send(message, timeout) -> id``, ``recv(timeout) -> Message |
 None``, ``recv_packet(timeout) -> Received | None`` (the message with its
 reception times), ``flush(timeout)``, ``close()``, ``stats`` (a dict
 snapshot), ``failures()``, ``outcome(id)``, ``times(id)``,
-``take_refusals()`` (type code and reason of each message refused from the
+``take_refusals()`` (type code, reason and time of each message refused from the
 peer: over the size limit, of an unknown type, failing to decode or the
 schema) and the session state: ``established``, ``epoch`` (sessions so far),
 ``wait_established()``, ``events()``. ``send`` is thread-safe; it raises
@@ -55,7 +55,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Skipping
+from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Refusal, Skipping
 from protocol.codec import DEFAULT_LIMITS, CodecError, Encoded, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
@@ -174,11 +174,12 @@ class Link:
         frames are only counted in ``stats``, and a peer of one's own making them saw its answers vanish."""
         return []
 
-    def take_refusals(self) -> list[tuple[int | None, str]]:
-        """(type code, reason) of each message from the peer that this link refused since the last call: over the
-        size limit, of an unknown type, failing to decode or the schema (e.g. a wrong-shaped grid). The latest
-        :data:`protocol.arq.REFUSALS_KEPT` are kept; ``stats["decode_errors"]`` counts them all. The type code is
-        None where the message did not say (a malformed header). Such a message never reaches :meth:`recv`."""
+    def take_refusals(self) -> list[Refusal]:
+        """Each message from the peer that this link refused since the last call (:class:`protocol.arq.Refusal`:
+        type code, reason, when): over the size limit, of an unknown type, failing to decode or the schema (e.g. a
+        wrong-shaped grid). The latest :data:`protocol.arq.REFUSALS_KEPT` are kept; ``stats["decode_errors"]``
+        counts them all. The type code is None where the message did not say (a malformed header). Such a message
+        never reaches :meth:`recv`."""
         return []  # pragma: no cover - every link below implements it
 
     def _put_received(self, item: Received, keep_going: Callable[[], bool]) -> None:
@@ -306,7 +307,7 @@ class ByteStreamLink(Link):
         with self._cv:
             return self.arq.failures()
 
-    def take_refusals(self) -> list[tuple[int | None, str]]:
+    def take_refusals(self) -> list[Refusal]:
         return list(self.arq.take_refusals())  # the Arq's deque is safe to pop while the reader appends
 
     def outcome(self, msg_id: int) -> str | None:
@@ -746,8 +747,8 @@ class ZmqLink(Link, SessionView):
         self._closing = False
         self._accepted: deque[tuple[int, str]] = deque()  # (fd, peer address) awaiting their handshake
         self._owner: int | None = None  # fd of the attached peer
-        # (type code, reason) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
-        self._refusals: deque[tuple[int | None, str]] = deque(maxlen=REFUSALS_KEPT)
+        # (type code, reason, when) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
+        self._refusals: deque[Refusal] = deque(maxlen=REFUSALS_KEPT)
         self._drop_notes: list[str] = []
         self._drop_said: set[tuple[str, int]] = set()  # (kind, peer session) said once
         self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
@@ -801,7 +802,7 @@ class ZmqLink(Link, SessionView):
         with self._cv:
             return list(self._failures)
 
-    def take_refusals(self) -> list[tuple[int | None, str]]:
+    def take_refusals(self) -> list[Refusal]:
         with self._cv:
             out = list(self._refusals)
             self._refusals.clear()
@@ -822,7 +823,7 @@ class ZmqLink(Link, SessionView):
         """A message from the peer refused: counted (``decode_errors``) and its reason kept for the owner."""
         with self._cv:
             self._stats["decode_errors"] += 1
-            self._refusals.append((type_code, reason))
+            self._refusals.append(Refusal(type_code, reason, time.monotonic()))
 
     def outcome(self, msg_id: int) -> str | None:
         """``"pending"``, ``"sent"`` (left this process), ``"failed: <reason>"`` or None."""
@@ -1150,7 +1151,7 @@ class ZmqLink(Link, SessionView):
                     self._lose(f"peer closed the link ({reason})", kind="closed", notify=False)
                 return
             if kind != Z_MSG:
-                self._refusals.append((type_code, f"unknown message kind {kind}"))
+                self._refusals.append(Refusal(type_code, f"unknown message kind {kind}", now))
                 self._stats["decode_errors"] += 1
                 return
             if seq <= self._peer_seq:  # TCP neither repeats nor reorders: the peer's seq did not rise
@@ -1203,7 +1204,7 @@ class ZmqLink(Link, SessionView):
             reason += f"; connecting again failed: {exc}"
         with self._cv:
             self._stats["protocol_drops"] += 1
-            self._refusals.append((None, reason))
+            self._refusals.append(Refusal(None, reason, time.monotonic()))
             if self.sess.established:
                 self._lose(reason)
             else:

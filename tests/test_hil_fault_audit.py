@@ -106,6 +106,11 @@ while not link.closed_by_peer:
                 res["state_grid"] = mf.array(np.full((3,), 2, np.uint8))  # 1-D: refused by the schema
             if args.mode == "bad_shape" and answered == 1:  # grids whose shapes disagree: refused by the schema
                 res.update(bad_shapes())
+            if args.mode == "bad_then_good" and faulty:  # a refused Result, then the good one a moment later
+                link.send(mf.RESULT, {{**res, **bad_shapes()}})
+                end = time.monotonic() + 0.3
+                while time.monotonic() < end:
+                    backlog += link.poll()
             link.send(mf.RESULT, res)
             if args.mode == "dup_result":  # a second, different Result for the same pair, at once: "full", all safe
                 safe = np.zeros(np.shape(mf.ext_hook(3, res["state_grid"].data)), np.uint8)
@@ -685,3 +690,43 @@ def test_a_flight_programs_output_past_the_log_cap_is_counted_by_the_emulator(ma
     assert (6 << 20) - MAX_FORWARDED_BYTES - (64 << 10) < n < (6 << 20) - MAX_FORWARDED_BYTES + (64 << 10), n
     log = (tmp_path / "supervisor.log").read_text()
     assert "999999999 more bytes" in log  # the forged line was logged as the program's output, and not counted
+
+
+def test_a_refused_result_then_the_good_one_blames_no_other_pair_and_loses_no_answer(manifest, flight, tmp_path):
+    """The refusal reaches the ground apart from the messages: acted on after its pair's good Result had been
+    taken, it ended the next pair as bad_result; a good Result after its pair was ended vanished uncounted
+    (stop 58's QA). Each pair now either keeps its good answer or is bad_result with that answer counted."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "bad_then_good"))
+    got = outcomes(s)
+    assert got[0] == ("600/300", "result", None)
+    assert all(st == "result" or c == "bad_result" for _, st, c in got[1:]), got
+    g = s["ground_counters"]
+    c = s["supervisor_counters"]
+    refused = int(g.get("refused_messages") or 0) + int(c.get("refused_messages") or 0)
+    bad = sum(c == "bad_result" for _, _, c in got)
+    assert refused == 2, (g, c)  # one bad Result for each of the two faulty pairs
+    # every good Result of a pair ended as bad_result was counted as ignored, unless the run had ended
+    ignored = int(g.get("ignored_results") or 0) + int(c.get("stale_results") or 0)
+    assert bad - 1 <= ignored <= bad, (got, g, c)
+
+
+def test_an_external_boards_refused_result_then_the_good_one_at_the_ground(manifest, flight, tmp_path):
+    """The same board of one's own on a serial line, the ground judging it: its refusals reach the ground apart
+    from its messages, and are placed among them by when they came."""
+    from hilkit import run_hil
+
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(flight), "--mode", "bad_then_good", "--port", bridge.paths[0]])
+        try:
+            s = run_hil(manifest, tmp_path / "ext", flight="external", link=f"serial:{bridge.paths[1]}@0")
+        finally:
+            board.kill()
+            board.wait()
+    got = outcomes(s)
+    g = s["ground_counters"]
+    assert got[0] == ("600/300", "result", None) and g["refused_messages"] == 2, (got, g)
+    assert all(st == "result" or c == "bad_result" for _, st, c in got[1:]), got
+    bad = sum(c == "bad_result" for _, _, c in got)
+    assert bad - 1 <= g["ignored_results"] <= bad, (got, g)  # a good Result after its pair ended: counted

@@ -139,7 +139,7 @@ def test_a_record_refused_from_its_header_is_not_counted_again_when_its_reject_c
     from types import SimpleNamespace
 
     from hil_server.supervisor import PairState, Supervisor
-    from protocol.arq import Skipping
+    from protocol.arq import Refusal, Skipping
     from protocol.messages import Result
 
     class Flight:  # the link's view of one flight incarnation, as FlightHandle gives it
@@ -152,7 +152,7 @@ def test_a_record_refused_from_its_header_is_not_counted_again_when_its_reject_c
             out, self.counts = self.counts, {}
             return out
 
-        def take_refusals(self) -> list[tuple[int, str]]:
+        def take_refusals(self) -> list[Refusal]:
             out, self.refusals = self.refusals, []
             return out
 
@@ -165,10 +165,16 @@ def test_a_record_refused_from_its_header_is_not_counted_again_when_its_reject_c
     why = f"message of {GiB} bytes exceeds the {32 << 20}-byte limit"
     sup._refuse_skipped(Skipping(Result.TYPE, GiB, 0, why, oversize=True))
     assert sup.pairs["a"].done and not sup.pairs["b"].done and sup.counters["refused_messages"] == 1
-    sup.flight.counts, sup.flight.refusals = {"reassembly_errors": 1}, [(Result.TYPE, why)]  # its REJECT, late
+    sup.flight.counts, sup.flight.refusals = (
+        {"reassembly_errors": 1},
+        [Refusal(Result.TYPE, why, 0.0)],
+    )  # its REJECT, late
     sup._check_refusals()
     assert not sup.pairs["b"].done and sup.counters["refused_messages"] == 1 and sup.counters["errors"] == 1
-    sup.flight.counts, sup.flight.refusals = {"reassembly_errors": 1}, [(Result.TYPE, why)]  # another such record
+    sup.flight.counts, sup.flight.refusals = (
+        {"reassembly_errors": 1},
+        [Refusal(Result.TYPE, why, 0.0)],
+    )  # another such record
     sup._check_refusals()
     assert sup.pairs["b"].done and sup.counters["refused_messages"] == 2
     assert sum("Result the HIL server refused" in line for line in logs) == 2
