@@ -64,13 +64,15 @@ def _int(lo: int = 0, hi: int = 2**63 - 1) -> Checker:
     return check
 
 
-def _float(finite: bool = True) -> Checker:
+def _float(finite: bool = True, lo: float | None = None) -> Checker:
     def check(v: Any, name: str) -> float:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
             raise SchemaError(f"{name}: expected a number, got {type(v).__name__}")
         f = float(v)
         if finite and not math.isfinite(f):
             raise SchemaError(f"{name}: must be finite, got {f}")
+        if lo is not None and f < lo:  # a duration below 0 was shown as it came ("flight -5.00 s")
+            raise SchemaError(f"{name}: must be >= {lo:g}, got {f:g}")
         return f
 
     return check
@@ -200,8 +202,8 @@ def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
         if not isinstance(t, dict) or set(t) != {"wall_s", "cpu_s"}:
             raise SchemaError(f"{name}[{k!r}]: expected {{'wall_s', 'cpu_s'}}")
         out[k] = {
-            "wall_s": _float()(t["wall_s"], f"{name}[{k!r}].wall_s"),
-            "cpu_s": _float()(t["cpu_s"], f"{name}[{k!r}].cpu_s"),
+            "wall_s": _float(lo=0.0)(t["wall_s"], f"{name}[{k!r}].wall_s"),
+            "cpu_s": _float(lo=0.0)(t["cpu_s"], f"{name}[{k!r}].cpu_s"),
         }
     return out
 
@@ -572,6 +574,9 @@ class Result(Message):
                 )
 
 
+MAX_RSS_BYTES = 1 << 50  # 1 PiB: a peak memory past it is no measurement (2**62 was printed as it came)
+
+
 @dataclass(frozen=True)
 class Telemetry(Message):
     """Timing and resource report for one processed pair (``stages[name] = {wall_s, cpu_s}``).
@@ -584,10 +589,10 @@ class Telemetry(Message):
     OMIT_AT_DEFAULT: ClassVar[frozenset[str]] = frozenset(TELEMETRY_FIELD_REV)
     frame_seqs: tuple = _wire(_ints(2))
     stages: dict = _wire(_stages, factory=dict)
-    queue_wait_s: float = _wire(_float(), 0.0)
-    total_latency_s: float = _wire(_float(), 0.0)
+    queue_wait_s: float = _wire(_float(lo=0.0), 0.0)
+    total_latency_s: float = _wire(_float(lo=0.0), 0.0)
     cpu_fraction: float = _wire(_float(finite=False), float("nan"))
-    peak_rss_bytes: int = _wire(_int(), 0)
+    peak_rss_bytes: int = _wire(_int(0, MAX_RSS_BYTES), 0)
     deadline_s: float = _wire(_float(finite=False), float("nan"))
     deadline_met: bool = _wire(_bool, True)
     link: dict = _wire(_number_dict, factory=dict)

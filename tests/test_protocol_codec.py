@@ -47,6 +47,7 @@ from protocol.messages import (
 )
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+duration = st.floats(min_value=0.0, allow_nan=False, allow_infinity=False, width=64)
 anyfloat = st.floats(width=64)
 names = st.text(max_size=20)
 u32 = st.integers(0, 2**32 - 1)
@@ -148,10 +149,10 @@ messages = st.one_of(
         Telemetry,
         frame_seqs=st.tuples(u32, u32),
         stages=st.dictionaries(
-            st.text(max_size=10), st.fixed_dictionaries({"wall_s": finite, "cpu_s": finite}), max_size=5
+            st.text(max_size=10), st.fixed_dictionaries({"wall_s": duration, "cpu_s": duration}), max_size=5
         ),
-        queue_wait_s=finite,
-        total_latency_s=finite,
+        queue_wait_s=duration,
+        total_latency_s=duration,
         cpu_fraction=anyfloat,
         peak_rss_bytes=st.integers(0, 2**40),
         deadline_s=anyfloat,
@@ -256,6 +257,21 @@ def test_site_p_safe_and_clearance_travel_and_may_be_unknown():
     a, b = decode_message(encode_message(r)).sites
     assert (a.p_safe, a.clearance_m) == (0.97, 1.25)
     assert math.isnan(b.p_safe) and math.isnan(b.clearance_m) and math.isnan(b.z)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(total_latency_s=-5.0), r"total_latency_s: must be >= 0"),
+        (dict(queue_wait_s=-0.1), r"queue_wait_s: must be >= 0"),
+        (dict(stages={"dem": {"wall_s": -1.0, "cpu_s": 0.0}}), r"wall_s: must be >= 0"),
+        (dict(peak_rss_bytes=2**62), r"peak_rss_bytes: \d+ outside"),
+    ],
+)
+def test_telemetry_figures_no_clock_or_memory_can_read_are_refused(kw, match):
+    """A flight latency of -5 s and a peak memory of 2**62 bytes were shown as they came (stop 58's QA)."""
+    with pytest.raises(SchemaError, match=match):
+        encode_message(Telemetry(frame_seqs=(1, 2), **kw))
 
 
 @pytest.mark.parametrize(
