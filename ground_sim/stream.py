@@ -312,7 +312,7 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         result_queue_s=t.link.get("result_queue_s"),
         queue_wait_s=t.queue_wait_s,
         cpu_fraction=t.cpu_fraction,
-        peak_rss_mib=t.peak_rss_bytes / 2**20,
+        peak_rss_mib=t.peak_rss_bytes / 2**20 if t.peak_rss_bytes else None,  # 0: the flight side did not say
         stages=t.stages,
         # the order the flight side listed them in (the reference: the order they ran); the JSON lines sort keys
         stage_order=list(t.stages),

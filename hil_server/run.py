@@ -375,7 +375,7 @@ def phase_times(records: list[dict]) -> dict[str, float]:
     per_pair = []
     for r in records:
         stages = r.get("stages") if r.get("status") == "result" else None
-        if not stages:
+        if not stages or set(stages) <= {"total"}:  # a flight that timed no stage: no phase to make up zeros for
             continue
         t = dict.fromkeys([*STAGE_PHASES, "other"], 0.0)
         for name, v in stages.items():

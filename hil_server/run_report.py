@@ -277,9 +277,14 @@ def write_run_report(summary: dict, path: Path) -> Path:
     if records:
         save(latency_figure(tel), fig_dir / "latency.png")
         tel_figs.append(Figure("figures/latency.png", "End-to-end latency over the descent; red bars missed."))
-    if any(r.get("cpu_fraction") is not None for r in records):
+    said = [r.get(k) for r in records for k in ("cpu_fraction", "peak_rss_mib")]
+    if any(v is not None and math.isfinite(float(v)) for v in said):  # an external board may say neither
         save(
-            resources_figure(tel, s.get("cpu_fraction"), s.get("memory_mib")),
+            resources_figure(
+                tel,
+                duty if (duty := s.get("cpu_fraction")) is not None and math.isfinite(duty) else None,
+                s.get("memory_mib"),
+            ),
             fig_dir / "resources.png",
         )
         tel_figs.append(

@@ -561,7 +561,8 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     cpu = [v for r in recs if np.isfinite(v := float(r.get("cpu_fraction", np.nan)))]
     top = max([*cpu, cpu_budget or 0.0], default=0.0)
     a1.set_ylim(0, 1.15 * top if top > 0 else None)  # headroom: the achieved line sits on the budget's
-    a2.plot(x, [r.get("peak_rss_mib", np.nan) for r in recs], "o-", color="#54a24b", label="peak private RSS")
+    rss = [np.nan if r.get("peak_rss_mib") is None else float(r["peak_rss_mib"]) for r in recs]  # None: not said
+    a2.plot(x, rss, "o-", color="#54a24b", label="peak private RSS")
     if memory_mib is not None:
         a2.axhline(memory_mib, color=LIMIT, lw=1, ls="--", label="memory ceiling")
     a2.set_ylabel("MiB")
@@ -570,7 +571,8 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
         a.set_xticks(list(x))
         a.set_xticklabels(labels, rotation=30, fontsize=8)
         a.legend(fontsize=8)
-    a1.set_title("CPU against the throttle's duty cycle")
-    a2.set_title("memory against the ceiling")
+    # a board of one's own has no throttle and no ceiling here: its own figures, titled as such
+    a1.set_title("CPU against the throttle's duty cycle" if cpu_budget is not None else "CPU, as the flight side said")
+    a2.set_title("memory against the ceiling" if memory_mib is not None else "memory, as the flight side said")
     fig.tight_layout()
     return fig
