@@ -368,7 +368,10 @@ def _silent_link_reason(link, where: str) -> str:
         return UNANSWERED_TEXT
     if getattr(link, "refused_only", False) and where.startswith("zmq:tcp://"):
         hostport = where[len("zmq:tcp://") :]
-        return f"nothing listens on {hostport} (connection refused): is the board's `hazard-hil flight` running?"
+        return (
+            f"nothing listens on {hostport} (connection refused): is the board's flight program (`hazard-hil "
+            "flight`, or your own) running?"
+        )
     check = (
         "on this port, at this baud"
         if where.startswith("serial")

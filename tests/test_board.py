@@ -822,3 +822,30 @@ def test_a_board_says_when_its_port_rate_is_not_the_grounds():
     assert "921600 baud" in said and "set to 9600" in said and "must match" in said
     assert baud_mismatch_note(921600, 921600) == "" and baud_mismatch_note(0, 9600) == ""
     assert baud_mismatch_note(921600, None) == ""  # an unpaced side: nothing to compare
+
+
+def test_the_zeromq_example_flight_program_serves_a_ground_with_curve(manifest, tmp_path):
+    """examples/minimal_flight_zmq.py, written from docs/protocol.md alone: the session layer of section 7 (the
+    header, the HELLO handshake, rising message numbers), ext 2 arrays, and CURVE with `hazard-hil keys`. A user
+    writing a ZeroMQ flight side had only the serial example to start from (stop 58's QA)."""
+    from hil_server.run import _free_tcp_port
+    from protocol.zmqauth import generate_keys
+
+    keys = generate_keys(tmp_path / "keys")
+    endpoint = f"tcp://127.0.0.1:{_free_tcp_port()}"
+    board = subprocess.Popen(
+        [sys.executable, str(ROOT / "examples" / "minimal_flight_zmq.py"), "--endpoint", endpoint, "--keys", str(keys)],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        s = run_hil(manifest, tmp_path / "run", flight="external", link=f"zmq:{endpoint}", keys=keys)
+    finally:
+        board.terminate()
+        _, err = board.communicate(timeout=10)
+    assert exit_code(s) == 0 and s["complete"], s.get("reason")
+    assert [r["status"] for r in s["records"]] == ["result", "result"] and f"listening on {endpoint}" in err
+    # its answer: every cell unknown, no site; and the ground saw nothing to drop or refuse
+    assert all(r["level"] == "none" and not r["sites"] for r in s["records"])
+    g = s["ground_counters"]
+    assert g["refused_messages"] == 0 and not any(g["session_drops"].values()), g

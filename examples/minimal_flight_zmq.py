@@ -1,0 +1,172 @@
+#!/usr/bin/env python3
+"""The minimal flight program of ``minimal_flight.py`` over ZeroMQ, written from docs/protocol.md alone.
+
+It binds a ZeroMQ PAIR socket (section 7), with CURVE when given a key directory, runs the session layer (the
+16-byte header, the HELLO handshake and its 1 s keepalive, rising message numbers, CLOSE) and answers every
+pair with ``minimal_flight.answer()``: everything unknown. Replace that function with your own detector.
+
+    hazard-hil keys keys/                                                     # one key set for both ends
+    python examples/minimal_flight_zmq.py --endpoint tcp://*:5555 --keys keys/       # on the board
+    hazard-hil run --flight external --link zmq:tcp://BOARD:5555 --keys keys/        # on the ground PC
+
+On one machine, without keys: ``--endpoint tcp://127.0.0.1:5555 --insecure`` on both ends.
+
+It imports nothing from hazard-hil (only the message helpers of ``minimal_flight.py`` beside it): pyzmq,
+msgpack and numpy are all it needs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import struct
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import minimal_flight as mf  # the message layer is the serial program's, unchanged
+
+HEAD = struct.Struct(">BBBBIII")  # version, kind, type, flags, src_session, dst_session, seq (section 7)
+MSG, HELLO, CLOSE = 1, 4, 5
+KEEPALIVE_S = 1.0  # a HELLO at least this often keeps the session (section 2 rule 4)
+PEER_TIMEOUT_S = 4.0  # nothing from the peer for this long: the session is lost (section 2 rule 7)
+
+
+def ext_hook(parts: list[bytes]):
+    """Section 5.2 arrays: ext 1 and 3 as on the serial line, and ext 2, the array in ZeroMQ frame 2 + index."""
+
+    def hook(code: int, data: bytes):
+        if code != 2:
+            return mf.ext_hook(code, data)
+        dt = np.dtype(mf.DTYPES[data[0]])
+        ndim = data[1]
+        shape = struct.unpack(f">{ndim}I", data[2 : 2 + 4 * ndim])
+        (index,) = struct.unpack(">I", data[2 + 4 * ndim : 6 + 4 * ndim])
+        return np.frombuffer(parts[2 + index], dt).reshape(shape)
+
+    return hook
+
+
+class Session:
+    """One ground at a time: its session id, ours, and the numbers of the messages both ways."""
+
+    def __init__(self, sock: zmq.Socket) -> None:
+        self.sock = sock
+        self.local = random.randint(1, 2**32 - 1)  # never 0: 0 means "no session yet"
+        self.peer = 0
+        self.seq = 0  # the last message number we used (each message: one more, from 1)
+        self.peer_seq = 0  # the last one we took from the peer
+        self.heard = time.monotonic()
+        self.said = 0.0
+
+    def hello(self) -> None:  # type and seq 0: a HELLO numbers no message
+        self.sock.send(HEAD.pack(2, HELLO, 0, 0, self.local, self.peer, 0))
+        self.said = time.monotonic()
+
+    def send(self, mtype: int, fields: dict) -> None:
+        self.seq += 1
+        self.sock.send_multipart([HEAD.pack(2, MSG, mtype, 0, self.local, self.peer, self.seq), mf.body(mtype, fields)])
+
+    def receive(self, parts: list[bytes]) -> tuple[int, dict] | None:
+        """A message of the session, or None (a HELLO, a CLOSE, another session's frame, a repeat)."""
+        if len(parts[0]) != HEAD.size:
+            return None
+        version, kind, mtype, _, src, dst, seq = HEAD.unpack(parts[0])
+        if version != 2:
+            return None
+        if kind == HELLO:
+            if src != self.peer:  # a new ground (or the same one restarted): a new session
+                self.peer, self.peer_seq, self.seq = src, 0, 0
+            self.heard = time.monotonic()
+            if dst != self.local:  # it does not know us yet: answer at once
+                self.hello()
+            return None
+        if src != self.peer or dst != self.local:
+            return None
+        self.heard = time.monotonic()
+        if kind == CLOSE:
+            self.peer = 0
+            return None
+        if kind != MSG or seq <= self.peer_seq:
+            return None
+        self.peer_seq = seq
+        got = msgpack.unpackb(parts[1], ext_hook=ext_hook(parts), raw=False, strict_map_key=False)
+        return int(got[0]), got[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--endpoint", default="tcp://*:5555", help="where to bind (default tcp://*:5555)")
+    ap.add_argument("--keys", type=Path, help="key directory of `hazard-hil keys`: CURVE, clients/ allowed")
+    ap.add_argument("--insecure", action="store_true", help="no CURVE (loopback only)")
+    args = ap.parse_args(argv)
+    if (args.keys is None) == (not args.insecure):
+        ap.error("give --keys DIR (CURVE) or --insecure (loopback only)")
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.PAIR)
+    sock.linger = 0
+    auth = None
+    if args.keys is not None:
+        auth = ThreadAuthenticator(ctx)
+        auth.start()
+        auth.configure_curve(domain="*", location=str(args.keys / "clients"))
+        public, secret = zmq.auth.load_certificate(str(args.keys / "server.key_secret"))
+        sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
+    sock.bind(args.endpoint)
+    print(f"minimal_flight_zmq: listening on {args.endpoint}", file=sys.stderr, flush=True)
+    s = Session(sock)
+    config: dict | None = None
+    pending: dict[str, dict] = {}
+    try:
+        while True:
+            if sock.poll(50):
+                got = s.receive(sock.recv_multipart())
+                mtype, msg = got if got is not None else (0, {})
+                if mtype == mf.HELLO_MSG:  # the ground's Hello message: ours in reply
+                    s.send(mf.HELLO_MSG, {"role": "flight", "software": "minimal_flight_zmq", "session": s.local})
+                elif mtype == mf.CONFIG:
+                    config = msg
+                elif mtype == mf.FRAME_MSG and config is None:
+                    s.send(mf.ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
+                elif mtype == mf.FRAME_MSG:
+                    pair = pending.setdefault(msg["pair_id"], {})
+                    pair[msg["frame_index"]] = msg
+                    if len(pair) == 2:
+                        t0, c0 = time.monotonic(), time.process_time()
+                        del pending[msg["pair_id"]]
+                        s.send(mf.RESULT, mf.answer(pair[0], pair[1], config))
+                        wall, cpu = time.monotonic() - t0, time.process_time() - c0
+                        s.send(
+                            mf.TELEMETRY,
+                            {
+                                "frame_seqs": [pair[0]["seq"], pair[1]["seq"]],
+                                "stages": {"total": {"wall_s": wall, "cpu_s": cpu}},
+                                "total_latency_s": wall,
+                                "cpu_fraction": float("nan"),
+                                "deadline_s": float(config["deadline_s"]),
+                                "deadline_met": wall <= config["deadline_s"],
+                            },
+                        )
+            now = time.monotonic()
+            if s.peer and now - s.heard > PEER_TIMEOUT_S:  # the ground went away: wait for the next one
+                s.peer, config, pending = 0, None, {}
+            if s.peer and now - s.said >= KEEPALIVE_S:
+                s.hello()
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        sock.close()
+        if auth is not None:
+            auth.stop()
+        ctx.term()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
