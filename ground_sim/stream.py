@@ -84,7 +84,18 @@ from protocol.arq import ECHO_TEXT, Received, Refusal
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.links import MECHANISM_MISMATCH_TEXT, LinkClosed, ZmqLink
-from protocol.messages import MESSAGE_NAMES, RESULT_REV, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
+from protocol.messages import (
+    MESSAGE_NAMES,
+    PROTOCOL_VERSION,
+    RESULT_REV,
+    Config,
+    Error,
+    Frame,
+    Heartbeat,
+    Hello,
+    Result,
+    Telemetry,
+)
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
 from protocol.quiet import Quieter
@@ -342,6 +353,7 @@ class _SessionState:
     lost_since: float | None = None  # monotonic time the ground first went without a session since its last one
     refused_messages: int = 0  # messages from the flight side the ground refused (ground.json)
     last_refused: dict | None = None  # {"type", "reason"} of the latest
+    flight_hello: dict | None = None  # what the flight side said it is: role, software, protocol_version
 
 
 def _silent_link_reason(link, where: str) -> str:
@@ -558,6 +570,7 @@ def stream_descent(
         while True:  # the HIL server answers Hello once its flight process has booted
             pkt = recv(0.5)  # a failed transport reads as nothing: said below (it was a traceback)
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
+                said_hello(pkt.message)
                 break
             if link.failed:
                 raise closed(LinkClosed(link.failed))
@@ -575,6 +588,24 @@ def stream_descent(
         state.sessions += 1
         if state.sessions > 1:
             note(f"resynchronised: new link session {link.session_id:08x} <-> {link.peer_session:08x}")
+
+    def said_hello(h: Hello) -> None:
+        """Keep who the flight side says it is (ground.json, the summary); say what this ground cannot vouch for."""
+        new = {
+            "role": printable(h.role, 64),
+            "software": printable(h.software, 128),
+            "protocol_version": h.protocol_version,
+        }
+        if new == state.flight_hello:
+            return
+        state.flight_hello = new
+        if h.protocol_version != PROTOCOL_VERSION:
+            note(
+                f"the flight side says it speaks protocol version {h.protocol_version}; this ground speaks "
+                f"{PROTOCOL_VERSION} (docs/protocol.md): what it sends may be refused or read wrongly"
+            )
+        if h.role not in ("flight", "hil-server"):
+            note(f"the flight side's Hello says role {new['role']!r}, not 'flight'")
 
     def ensure_session() -> None:
         if session_ok():
@@ -811,7 +842,7 @@ def stream_descent(
         stats = getattr(link, "stats", None) or {}
         # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
         refused = max(state.refused_messages, int(stats.get("decode_errors", 0) or 0))
-        counters = {"refused_messages": refused, "last_refused": state.last_refused}
+        counters = {"refused_messages": refused, "last_refused": state.last_refused, "flight_hello": state.flight_hello}
         counters |= {
             "ignored_results": ignored.seen("Result"),
             "ignored_telemetry": ignored.seen("Telemetry"),

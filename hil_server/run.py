@@ -737,6 +737,7 @@ def summary_table(summary: dict) -> str:
         ground_stop_note(s),
         off_map_note(s),
         truth_note(s),
+        hello_note(s),
     )
     for note in notes:
         if note:
@@ -744,6 +745,15 @@ def summary_table(summary: dict) -> str:
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
     return head + "\n\n" + "\n".join(rows) + "\n\n" + GRID_SCORES_NOTE + "\n"
+
+
+def hello_note(summary: dict) -> str:
+    """Who a flight computer of one's own said it is in its Hello ("" under the HIL server, or when unknown)."""
+    h = (summary.get("ground_counters") or {}).get("flight_hello") or {}
+    if summary.get("flight") != "external" or not h:
+        return ""
+    who, role, version = h.get("software"), h.get("role"), h.get("protocol_version")
+    return f"the flight side says it is {who!r} (role {role!r}, protocol {version})"
 
 
 def truth_note(summary: dict) -> str:

@@ -244,10 +244,11 @@ def write_run_report(summary: dict, path: Path) -> Path:
     from hil_server.run import GRID_SCORES_NOTE
 
     intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
-    from hil_server.run import truth_note
+    from hil_server.run import hello_note, truth_note
 
-    if truth_note(s):
-        intro.append(truth_note(s)[0].upper() + truth_note(s)[1:] + ".")
+    for extra in (truth_note(s), hello_note(s)):
+        if extra:
+            intro.append(extra[0].upper() + extra[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
     from hil_server.run import flight_note

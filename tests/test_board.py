@@ -849,3 +849,6 @@ def test_the_zeromq_example_flight_program_serves_a_ground_with_curve(manifest, 
     assert all(r["level"] == "none" and not r["sites"] for r in s["records"])
     g = s["ground_counters"]
     assert g["refused_messages"] == 0 and not any(g["session_drops"].values()), g
+    # who it said it is, kept for the reader of the summary
+    assert g["flight_hello"] == {"role": "flight", "software": "minimal_flight_zmq", "protocol_version": 2}
+    assert "The flight side says it is 'minimal_flight_zmq'" in (tmp_path / "run" / "summary.md").read_text()
