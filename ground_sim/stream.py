@@ -526,9 +526,10 @@ def stream_descent(
                 )
             if refused_since is not None and now - refused_since >= AUTH_GIVE_UP_S:
                 raise NoHello(
-                    f"the flight computer on {where} refused this ground's CURVE key ({failures} handshakes failed in "
-                    f"{now - t0:.0f} s): the board's key directory must hold this ground's public key in clients/, "
-                    "and this ground's server.key must be the board's (`hazard-hil keys DIR` makes a matching set)"
+                    f"the CURVE handshake with the flight computer on {where} failed ({failures} "
+                    f"handshake{'' if failures == 1 else 's'} in {now - t0:.0f} s): either the board's key directory "
+                    "does not hold this ground's public key in clients/, or this ground's server.key is not the "
+                    "board's (`hazard-hil keys DIR` makes a matching set)"
                 )
             if now >= end:
                 stranger = (
