@@ -778,6 +778,13 @@ def stream_descent(
                     o.result_t_first = None
             else:
                 o.telemetry = msg
+        else:  # a Config or a Frame: the ground's own messages, which the flight side has no cause to send
+            name = type(msg).__name__
+            if ignored.offer(name, time.monotonic())[0]:
+                n = ignored.seen(name)
+                more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
+                note(f"ignored a {name} from the flight side{more}: the ground sends those, it takes none")
+            return
         if o is not None and o.finished and o.seqs in want:
             want.discard(o.seqs)
             record(o)
@@ -847,6 +854,7 @@ def stream_descent(
         counters |= {
             "ignored_results": ignored.seen("Result"),
             "ignored_telemetry": ignored.seen("Telemetry"),
+            "ignored_other": ignored.seen("Config") + ignored.seen("Frame"),
             "unattributed_errors": unattributed.seen("error"),
         }
         # what the line did meanwhile: noise the framing dropped and the retransmissions that mended it
@@ -1088,7 +1096,7 @@ def _not_an_answer(msg: Result | Telemetry, o: PairOutcome | None, t_done: float
         return f"it came before pair {o.pair_id}'s frames were sent"
     if (o.result if isinstance(msg, Result) else o.telemetry) is not None:
         return f"pair {o.pair_id} has one already; the first stands"
-    if isinstance(msg, Result) and o.error is not None:  # a refused Result or an Error ended it: recorded
+    if o.error is not None:  # a refused Result or an Error ended it: recorded
         return f"pair {o.pair_id} was recorded already ({o.error.code}); this came after"
     if isinstance(msg, Telemetry) and o.telemetry_missing is not None:  # too late: its pair is recorded
         return f"pair {o.pair_id} was recorded without it ({o.telemetry_missing})"

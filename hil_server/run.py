@@ -591,6 +591,9 @@ def flight_note(summary: dict) -> str:
         ignored[-1] += (
             " (a second answer, for no pair sent, before its pair's frames were sent, or after its pair was recorded)"
         )
+    if other := int(g.get("ignored_other") or 0):  # the ground's own kinds of message, sent to it
+        what = "Config or Frame" if other == 1 else "Configs or Frames"
+        ignored.append(("and " if ignored else "the ground ignored ") + f"{other} {what} from the flight side")
     server = _server_note(summary, c)
     parts = (server, ground, ", ".join(ignored), _line_note(g.get("line") or {}), _drops_note(g))
     return "; ".join(x for x in parts if x)

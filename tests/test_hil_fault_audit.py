@@ -730,3 +730,22 @@ def test_an_external_boards_refused_result_then_the_good_one_at_the_ground(manif
     assert all(st == "result" or c == "bad_result" for _, st, c in got[1:]), got
     bad = sum(c == "bad_result" for _, _, c in got)
     assert bad - 1 <= g["ignored_results"] <= bad, (got, g)  # a good Result after its pair ended: counted
+
+
+def test_an_external_boards_config_echo_and_second_result_are_ignored_said_and_counted(manifest, flight, tmp_path):
+    """A Config the board sent back was dropped without a word at the ground (the HIL server counted it)."""
+    from hilkit import run_hil
+
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(flight), "--mode", "dup_result", "--port", bridge.paths[0]])
+        try:
+            s = run_hil(manifest, tmp_path / "ext", flight="external", link=f"serial:{bridge.paths[1]}@0")
+        finally:
+            board.kill()
+            board.wait()
+    g = s["ground_counters"]
+    assert [st for _, st, _ in outcomes(s)] == ["result"] * 3
+    assert g["ignored_results"] == 3 and g["ignored_other"] == 3 and g["unattributed_errors"] == 3, g
+    assert "and 3 Configs or Frames from the flight side" in (tmp_path / "ext" / "summary.md").read_text()
