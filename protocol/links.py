@@ -757,6 +757,7 @@ class ZmqLink(Link, SessionView):
         self._unheard: set[int] = set()  # binding side: fds of connections PAIR refused, still open
         self._sessionless_since = time.monotonic()  # binding side: the attached peer has had no session since
         self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
+        self._disconnected_at: float | None = None  # the attached peer's connection closed (said in a loss's reason)
         self._connect_retries, self._connected_ever = 0, False  # connecting side: TCP attempts refused, any made
         self._stop = False
         self._io = threading.Thread(target=self._io_loop, name=f"{name or 'zmq'}-io", daemon=True)
@@ -905,7 +906,8 @@ class ZmqLink(Link, SessionView):
         if self._handshaken_at is not None:
             self._handshaken_at = time.monotonic()  # the connection may stay up: unanswered from now on
         self._sessionless_since = time.monotonic()
-        self.sess.lose()
+        self.last_error = reason  # now, with the session: its event is told later, and a reader asking why
+        self.sess.lose()  # in between got "the link is down"
         self._pending_events.append((kind, reason, self.sess.epoch))
 
     def _drop_all(self, reason: str) -> None:
@@ -1021,6 +1023,9 @@ class ZmqLink(Link, SessionView):
             quiet = now - self._last_heard
             if quiet > self.peer_timeout:
                 reason = f"no message from the peer for {quiet:.1f} s (timeout {self.peer_timeout:g} s)"
+                gone = self._disconnected_at
+                if gone is not None and gone >= self._last_heard:  # TCP told: the far program, not a slow line
+                    reason += f"; its connection closed {now - gone:.1f} s ago (its program ended or crashed?)"
             elif self._stall_since is not None and now - self._stall_since > self.peer_timeout:
                 reason = f"peer not draining: sends blocked for {now - self._stall_since:.1f} s (high-water mark)"
             else:
@@ -1282,6 +1287,7 @@ class ZmqLink(Link, SessionView):
             elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
                 self._handshaken, self._dropped_at = not self.bind, None
                 self._handshaken_at = None if self.bind else time.monotonic()
+                self._disconnected_at = None
                 fd, addr = self._accepted.popleft() if self._accepted else (-1, "?")
                 with self._cv:
                     self._stats["connections"] += 1
@@ -1316,6 +1322,8 @@ class ZmqLink(Link, SessionView):
                         why = "CURVE handshake failed (wrong or missing key?)"
                     self._pending_events.append(("auth_failed", f"{who}: {why}", self.epoch))
             elif kind == zmq.EVENT_DISCONNECTED:
+                if self._handshaken or value == self._owner:
+                    self._disconnected_at = time.monotonic()
                 self._unheard.discard(value)
                 if value == self._owner:
                     self._owner = None

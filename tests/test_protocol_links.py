@@ -502,6 +502,20 @@ def test_zeromq_frames_the_session_rules_drop_are_said_once_each_and_counted():
         assert G.take_drop_notes() == []
 
 
+def test_a_peer_whose_connection_closed_is_named_so_when_its_session_times_out():
+    """A crashed board read as "no message from the peer for 4.0 s", as if the line were slow (stop 58's QA)."""
+    S = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board")
+    with ZmqLink(S.endpoint, bind=False, insecure=True, name="ground", peer_timeout=1.0) as G:
+        assert G.wait_established(5) and S.wait_established(5)
+        S._stop = True  # the board dies without CLOSE, as a killed process
+        S._io.join(2)
+        S._teardown()
+        deadline = time.monotonic() + 8
+        while G.established and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not G.established and "its connection closed" in (G.last_error or ""), G.last_error
+
+
 # ------------------------------------------------------------------ refusals: nothing refused goes unsaid
 BAD_BODIES = [  # (type code in the header, body, what the refusal must say)
     (Result.TYPE, b"\x92\x04\x81\xaaframe_seqs\x92\x00\x01", "Result: missing field 'state_grid'"),
