@@ -147,7 +147,13 @@ def _check_out(pair_dir: Path, out: Path) -> None:
     from .validate import FlightInputError
 
     inputs = [*named_images(pair_dir), *(pair_dir / n for n in ("pair.json", *TRUTH_FILES.values()))]
-    existing = [p for p in inputs if p.is_file()]
+    existing = []
+    for p in inputs:
+        try:
+            if p.is_file():
+                existing.append(p)
+        except OSError:  # a name the file system cannot hold: no file of the pair's to overwrite
+            continue
 
     def same(a: Path, b: Path) -> bool:  # one file under two names: a case-folding file system, a hard link
         try:
@@ -179,8 +185,8 @@ def _process(args: argparse.Namespace) -> int:
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a finite, non-negative number of seconds, got {args.deadline}")
     _check_memory(Path(args.pair_dir), args.widest_pair)
+    pair = read_pair(args.pair_dir)  # a pair it cannot read is said as such first
     _check_out(Path(args.pair_dir), Path(args.out))
-    pair = read_pair(args.pair_dir)
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
         print(f"note: {note}", file=sys.stderr)
     params = PRESETS[args.preset]
