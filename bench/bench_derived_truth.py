@@ -1,0 +1,109 @@
+"""The truth hazard derived from DESIGN.md's own truth files against the renderer's (docs/design.md,
+"Ground-truth hazard").
+
+    .venv/bin/python bench/bench_derived_truth.py [--out /tmp/derived_truth] [--seed 0] [--image-size 512]
+
+Renders the vertical descent's 600/300, 300/150 and 200/100 pairs and the approach's 600/300, 300/150 and
+250/125 (seed ``--seed``), runs `fast` on each (`hazard-hil process`), and compares per pair:
+
+- the two truths pixel by pixel: agreement on unsafe (hazard >= 1) over the pixels both know, the share the
+  derived truth calls safe where the renderer's raster calls it unsafe, and how much of frame 0 it resolves;
+- `hazard-hil score` of the same output against each: FP, CDI, pixels scored and the top site's verdict;
+- the derivation's time (median of 3).
+
+Nothing here is tuned: the derivation has no free parameter but the footprint (3 m) and the half-seen disk rule.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ground_sim.gridscore import complete_truth  # noqa: E402
+from protocol.pairdir import read_pair  # noqa: E402
+
+CASES = {"vertical": ["600/300", "300/150", "200/100"], "approach": ["600/300", "300/150", "250/125"]}
+
+
+def hh(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hil_server.cli", *args], cwd=ROOT, capture_output=True, text=True)
+
+
+def score(pair: Path, out: Path, js: Path) -> dict:
+    hh("score", str(pair), str(out), "--json", str(js))
+    (row,) = json.loads(js.read_text())["rows"]
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("/tmp/derived_truth"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--image-size", type=int, default=512)
+    args = ap.parse_args()
+    rows = []
+    for scenario, pairs in CASES.items():
+        d = args.out / scenario
+        if not (d / "manifest.json").is_file():
+            r = hh("render", "--scenario", scenario, "--pairs", ",".join(pairs), "--seed", str(args.seed),
+                   "--image-size", str(args.image_size), "--out", str(d))  # fmt: skip
+            if r.returncode:
+                sys.exit(r.stderr)
+        for label in pairs:
+            pair = d / label.replace("/", "_")
+            out = args.out / "outputs" / f"{scenario}_{pair.name}"
+            if not (out / "hazard.npy").is_file():
+                hh("process", str(pair), "--out", str(out))
+            mine = args.out / "nogt" / f"{scenario}_{pair.name}"
+            shutil.rmtree(mine, ignore_errors=True)
+            shutil.copytree(pair, mine)
+            (mine / "gt_hazard_i1.npy").unlink()
+            p = read_pair(mine)
+            times = []
+            for _ in range(3):
+                p.truth.pop("hazard", None)
+                t0 = time.perf_counter()
+                complete_truth(p)
+                times.append(time.perf_counter() - t0)
+            g, h = read_pair(pair).truth["hazard"], p.truth["hazard"]
+            both = np.isfinite(g) & np.isfinite(h)
+            a = score(pair, out, args.out / "a.json")
+            b = score(mine, out, args.out / "b.json")
+            rows.append(
+                {
+                    "pair": f"{scenario} {label}",
+                    "resolved_pct": 100 * float(np.mean(np.isfinite(h))),
+                    "agree_pct": 100 * float(np.mean((g[both] >= 1) == (h[both] >= 1))),
+                    "missed_pct": 100 * float(np.mean((g[both] >= 1) & (h[both] < 1))),
+                    "fp": (a["fp_pct"], b["fp_pct"]),
+                    "cdi": (a["cdi_pct"], b["cdi_pct"]),
+                    "pixels": (a["pixels"], b["pixels"]),
+                    "top": (a["top_site_truly_safe"], b["top_site_truly_safe"]),
+                    "s": statistics.median(times),
+                }
+            )
+    head = ("pair", "resolved %", "agree %", "derived safe, raster unsafe %", "FP % raster / derived", "CDI %")
+    print("| " + " | ".join(head) + " | top site | s |")
+    print("|---|---:|---:|---:|---|---|---|---:|")
+    for r in rows:
+        print(
+            f"| {r['pair']} | {r['resolved_pct']:.1f} | {r['agree_pct']:.1f} | {r['missed_pct']:.2f} | "
+            f"{r['fp'][0]:.2f} / {r['fp'][1]:.2f} | {r['cdi'][0]:.1f} / {r['cdi'][1]:.1f} | "
+            f"{r['top'][0]} / {r['top'][1]} | {r['s']:.3f} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
