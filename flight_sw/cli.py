@@ -213,6 +213,9 @@ def _process(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise FlightInputError(f"--out {out}: cannot create ({exc.strerror})") from None
+    earlier = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
+    if earlier:  # a user's hazard.png of their own went without a word; other files there are kept
+        print(f"note: {out}: replacing {', '.join(earlier[:4])}{' ...' if len(earlier) > 4 else ''}", file=sys.stderr)
     np.save(out / "elevation.npy", res.elevation)
     np.save(out / "hazard.npy", res.hazard)
     np.save(out / "state.npy", res.state)
