@@ -95,7 +95,8 @@ class GroundSession:
         said here, as nothing else will: the first ``REFUSALS_SAID`` each, then one line per ``REFUSALS_QUIET_S``
         with how many came meanwhile (a stranger's garbage printed 100 identical lines in seconds); all counted."""
         now = time.monotonic()
-        for type_code, reason, _ in self.link.take_refusals():
+        for refusal in self.link.take_refusals():
+            type_code, reason = refusal.type_code, refusal.reason
             self.counters["refused"] += 1
             what = MESSAGE_NAMES.get(type_code, f"type {type_code}") if type_code is not None else "message"
             say, unsaid, _ = self._refusals.offer("refused", now, f"{what}: {reason}")

@@ -190,6 +190,7 @@ class PairOutcome:
     frames_line_s: float | None = None
     result_t_first: float | None = None
     result_t_done: float | None = None
+    result_order: int = 0  # its Result's place among the messages the link received (Received.order)
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
@@ -493,8 +494,8 @@ def stream_descent(
         said_unanswered = False
         while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
             now = time.monotonic()
-            for type_code, reason, _ in link.take_refusals():  # before any session: a stranger's, counted and said
-                count_refusal(type_code, f"before any session: {reason}")
+            for r in link.take_refusals():  # before any session: a stranger's, counted and said
+                count_refusal(r.type_code, f"before any session: {r.reason}")
             if getattr(link, "answered", None) is False and not said_unanswered:
                 # said at once, not after the whole wait: the other ground's descent may end, and this one go on
                 said_unanswered = True
@@ -688,20 +689,26 @@ def stream_descent(
 
     def refused(r: Refusal, want: set[tuple[int, int]]) -> None:
         """One message from the flight side that the link refused (a wrong-shaped grid, a field out of range, a
-        body over the decoder's budget): counted and noted. A Result ends as ``bad_result`` at once (the flight
-        side will not send it again) the oldest pair of ``want`` that had no Result when it was refused: one
-        whose Result came after the refused one was answered after all, and keeps its answer (the refusal reached
-        the ground apart from the messages, and ended the next pair instead). A Telemetry lets the oldest pair
+        body over the decoder's budget): counted and noted. A refused Result ends its pair as ``bad_result`` at
+        once (the flight side will not send it again): the pair its body names when it got that far (a schema
+        failure), else, in ``want``, the oldest pair that had no Result when it was refused, unless an older
+        pair's Result came after it (``Refusal.order``: that pair was answered after all; answers are taken to
+        come in pair order). A refusal reaches the ground apart from the messages: taken in arrival order, one
+        acted on after its pair's good Result had ended the next pair instead. A Telemetry lets the oldest pair
         holding its Result complete without it (``telemetry_missing``)."""
         type_code, reason = r.type_code, r.reason
         count_refusal(type_code, reason)
         pending = [outcomes[k] for k in sorted(want) if not outcomes[k].finished]
-        if type_code == Result.TYPE:
-            answered_after = [  # sent before the refusal, its Result held only after it
-                x
-                for x in outcomes.values()
-                if x.sent_at and x.sent_at <= r.t and x.result is not None and (x.result_t_done or 0.0) > r.t
-            ]
+        if type_code == Result.TYPE and r.frame_seqs is not None:  # it said which pair it answered
+            o = outcomes.get(r.frame_seqs)
+            if o is not None and o.seqs in want and o.result is None:
+                want.discard(o.seqs)
+                give_up(o, "bad_result", f"the flight computer's Result was refused: {reason}")
+            elif o is not None and o.sent_at:
+                note(f"pair {o.pair_id}: a Result of it was refused ({'it has one' if o.result else 'recorded'})")
+        elif type_code == Result.TYPE and want:
+            sent = [x for x in outcomes.values() if x.sent_at and x.sent_at <= r.t]
+            answered_after = [x for x in sent if x.result is not None and x.result_order > r.order]
             o = next((x for x in pending if x.result is None and x.sent_at and x.sent_at <= r.t), None)
             if answered_after and (o is None or answered_after[0].sent_at <= o.sent_at):
                 note(f"pair {answered_after[0].pair_id}: a Result of it was refused, and a good one came after it")
@@ -774,6 +781,7 @@ def stream_descent(
             if isinstance(msg, Result):
                 o.result = msg
                 o.result_t_first, o.result_t_done, o.result_bytes = pkt.t_first, pkt.t_done, pkt.nbytes
+                o.result_order = pkt.order
                 if isinstance(link, ZmqLink):  # a ZeroMQ message arrives whole: its line time is not seen here
                     o.result_t_first = None
             else:

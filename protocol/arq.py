@@ -143,12 +143,16 @@ class DeliveryFailure:
 
 class Refusal(NamedTuple):
     """A message from the peer this side refused: its type code (None where its header did not say), the reason,
-    and when (``time.monotonic()``, as :class:`Received`'s ``t_done``): its owner can tell which answers came
-    before it and which after, though refusals and messages reach it apart."""
+    when (``time.monotonic()``), its place among the messages received (``order``, as :class:`Received`'s: one
+    count per message, taken or refused; times tie within one read) and the frame seqs it answered when its
+    body said them (a Result that failed the schema, not the decoder: ``None`` otherwise). Its owner can tell
+    which answer it was, or which answers came before it, though refusals and messages reach it apart."""
 
     type_code: int | None
     reason: str
     t: float
+    order: int = 0
+    frame_seqs: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -161,6 +165,7 @@ class Received:
     t_done: float
     nbytes: int
     epoch: int
+    order: int = 0  # its place among the messages received, refused ones counted too (:class:`Refusal`)
 
     @property
     def line_s(self) -> float:
@@ -305,6 +310,7 @@ class Arq(SessionView):
         # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
         # tells the owner (a supervisor reports what its flight process sent that was refused); bounded
         self._refusals: deque[Refusal] = deque(maxlen=REFUSALS_KEPT)
+        self._arrivals = 0  # messages received, taken or refused: their order (Received.order, Refusal.order)
         self._outcomes: OrderedDict[int, str] = OrderedDict()
         self._times: OrderedDict[int, MessageTimes] = OrderedDict()
         self._pos_id: OrderedDict[int, tuple[int, str]] = OrderedDict()  # record position -> (id, name)
@@ -826,9 +832,10 @@ class Arq(SessionView):
                     self._deliver(self._rtype, bytes(self._rbuf), self._rpos, self._rt0, now, self._rlen)
                 self._rlen, self._rbuf, self._rskip = None, bytearray(), None
 
-    def _reject(self, pos: int, reason: str, type_code: int, now: float) -> None:
+    def _reject(self, pos: int, reason: str, type_code: int, now: float, seqs: tuple[int, int] | None = None) -> None:
         self.stats["rejected_sent"] += 1
-        self._refusals.append(Refusal(type_code, reason, now))
+        self._arrivals += 1
+        self._refusals.append(Refusal(type_code, reason, now, self._arrivals, seqs))
         self._control.append(reject_frame(self.sess.local, self.sess.peer, pos, reason))
 
     def take_refusals(self) -> list[Refusal]:
@@ -866,13 +873,16 @@ class Arq(SessionView):
             msg = decode_parts(body, (), self.cfg.limits, expect_type=type_code)
         except InputError as exc:
             self.stats["decode_errors"] += 1
+            seqs = getattr(exc, "frame_seqs", None)
             if pos >= 0:
-                self._reject(pos, str(exc), type_code, now)
+                self._reject(pos, str(exc), type_code, now, seqs)
             else:
-                self._refusals.append(Refusal(type_code, str(exc), now))
+                self._arrivals += 1
+                self._refusals.append(Refusal(type_code, str(exc), now, self._arrivals, seqs))
             return
         self.stats["messages_received"] += 1
-        self._received.append(Received(msg, pos, t_first, now, nbytes, self.epoch))
+        self._arrivals += 1
+        self._received.append(Received(msg, pos, t_first, now, nbytes, self.epoch, self._arrivals))
 
     def _on_ack(self, f: WireFrame, now: float) -> None:
         self.stats["acks_received"] += 1

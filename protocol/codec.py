@@ -38,7 +38,7 @@ import msgpack
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.messages import Compressed, Message, message_class
+from protocol.messages import Compressed, Message, SchemaError, message_class
 
 EXT_INLINE = 1
 EXT_REF = 2
@@ -399,7 +399,19 @@ def decode_parts(
         raise CodecError(f"frame header says type {expect_type}, body says {obj[0]}")
     if len(used) != len(buffers):
         raise CodecError(f"{len(buffers) - len(used)} unreferenced out-of-band buffers")
-    return message_class(obj[0]).from_wire(obj[1])
+    try:
+        return message_class(obj[0]).from_wire(obj[1])
+    except SchemaError as exc:  # decoded, but not a valid message: which pair it answered, if it says
+        exc.frame_seqs = _said_seqs(obj[1])  # type: ignore[attr-defined]
+        raise
+
+
+def _said_seqs(fields: Any) -> tuple[int, int] | None:
+    """A refused message's ``frame_seqs`` when its decoded body holds two plain u32 there (else None)."""
+    v = fields.get("frame_seqs") if isinstance(fields, dict) else None
+    if isinstance(v, (list, tuple)) and len(v) == 2 and all(type(x) is int and 0 <= x < 2**32 for x in v):
+        return int(v[0]), int(v[1])
+    return None
 
 
 def decode_message(body: bytes | memoryview, limits: Limits = DEFAULT_LIMITS) -> Message:

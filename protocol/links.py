@@ -750,6 +750,7 @@ class ZmqLink(Link, SessionView):
         # (type code, reason, when) of the latest messages refused from the peer (take_refusals); bounded like the Arq's
         self._refusals: deque[Refusal] = deque(maxlen=REFUSALS_KEPT)
         self._drop_notes: list[str] = []
+        self._arrivals = 0  # messages received, taken or refused: their order (Received.order, Refusal.order)
         self._drop_said: set[tuple[str, int]] = set()  # (kind, peer session) said once
         self._handshaken = False  # connecting side: a connection is up (its ZMTP handshake succeeded)
         self._handshaken_at: float | None = None  # connecting side: since when, with no link session on it yet
@@ -820,11 +821,12 @@ class ZmqLink(Link, SessionView):
             self._drop_said.add((kind, src))
             self._drop_notes.append(text)
 
-    def _refuse(self, type_code: int | None, reason: str) -> None:
+    def _refuse(self, type_code: int | None, reason: str, seqs: tuple[int, int] | None = None) -> None:
         """A message from the peer refused: counted (``decode_errors``) and its reason kept for the owner."""
         with self._cv:
             self._stats["decode_errors"] += 1
-            self._refusals.append(Refusal(type_code, reason, time.monotonic()))
+            self._arrivals += 1
+            self._refusals.append(Refusal(type_code, reason, time.monotonic(), self._arrivals, seqs))
 
     def outcome(self, msg_id: int) -> str | None:
         """``"pending"``, ``"sent"`` (left this process), ``"failed: <reason>"`` or None."""
@@ -1156,7 +1158,8 @@ class ZmqLink(Link, SessionView):
                     self._lose(f"peer closed the link ({reason})", kind="closed", notify=False)
                 return
             if kind != Z_MSG:
-                self._refusals.append(Refusal(type_code, f"unknown message kind {kind}", now))
+                self._arrivals += 1
+                self._refusals.append(Refusal(type_code, f"unknown message kind {kind}", now, self._arrivals))
                 self._stats["decode_errors"] += 1
                 return
             if seq <= self._peer_seq:  # TCP neither repeats nor reorders: the peer's seq did not rise
@@ -1180,11 +1183,13 @@ class ZmqLink(Link, SessionView):
                 raise CodecError(f"message of {size} bytes exceeds the {limit}-byte limit")
             msg = decode_parts(parts[1].buffer, [p.buffer for p in parts[2:]], self.limits, expect_type=type_code)
         except InputError as exc:
-            self._refuse(type_code, str(exc))
+            self._refuse(type_code, str(exc), getattr(exc, "frame_seqs", None))
             return
         with self._cv:
             self._stats["messages_received"] += 1
-        self._put_received(Received(msg, seq, now, now, nbytes, epoch), lambda: not self._stop)
+            self._arrivals += 1
+            order = self._arrivals
+        self._put_received(Received(msg, seq, now, now, nbytes, epoch, order), lambda: not self._stop)
 
     def _redial(self) -> None:
         """The connection dropped and libzmq will not retry: it does that after a protocol error, such as a message
@@ -1209,7 +1214,8 @@ class ZmqLink(Link, SessionView):
             reason += f"; connecting again failed: {exc}"
         with self._cv:
             self._stats["protocol_drops"] += 1
-            self._refusals.append(Refusal(None, reason, time.monotonic()))
+            self._arrivals += 1
+            self._refusals.append(Refusal(None, reason, time.monotonic(), self._arrivals))
             if self.sess.established:
                 self._lose(reason)
             else:

@@ -18,6 +18,7 @@ from hilkit import run_hil, small_descent
 from flight_sw.board import GroundSession
 from hil_server.cli import main as cli
 from hil_server.run import exit_code
+from protocol.arq import Refusal
 from protocol.messages import Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -306,7 +307,7 @@ class Packet:
 class RecordingLink:
     session_id = 0xABCD
 
-    def __init__(self, packets: list[Packet], refusals: list[tuple[int | None, str, float]] | None = None) -> None:
+    def __init__(self, packets: list[Packet], refusals: list[Refusal] | None = None) -> None:
         self.packets = list(packets)
         self.refusals = list(refusals or [])
         self.sent: list[tuple[object, int | None]] = []
@@ -395,7 +396,9 @@ def test_everything_goes_to_the_session_of_the_last_hello_and_strangers_are_drop
 
 
 def test_nothing_is_sent_before_a_ground_said_hello_and_a_refused_message_is_said():
-    link = RecordingLink([], refusals=[(3, "Frame.image: shape (0, 5) is empty", 0.0), (None, "malformed header", 0.0)])
+    link = RecordingLink(
+        [], refusals=[Refusal(3, "Frame.image: shape (0, 5) is empty", 0.0), Refusal(None, "malformed header", 0.0)]
+    )
     said: list[str] = []
     ground = GroundSession(link, log=said.append)
     ground.send(Heartbeat(time_s=0.0))
@@ -633,7 +636,7 @@ def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypa
 
     clock = [1000.0]
     monkeypatch.setattr(board.time, "monotonic", lambda: clock[0])
-    link = RecordingLink([], refusals=[(None, "malformed message header: 238 bytes, not 16", 0.0)] * 40)
+    link = RecordingLink([], refusals=[Refusal(None, "malformed message header: 238 bytes, not 16", 0.0)] * 40)
     said: list[str] = []
     ground = GroundSession(link, log=said.append)
     assert ground.recv(0.01) is None
@@ -642,11 +645,11 @@ def test_a_flood_of_refused_messages_is_summed_not_printed_line_by_line(monkeypa
     clock[0] += board.REFUSALS_QUIET_S  # the quiet time is over: the sum is said, on a timer ...
     assert ground.recv(0.01) is None
     assert said[-1].startswith("flight: refused 35 more message(s) from the link in the last 10 s"), said[-1]
-    link.refusals = [(None, "malformed message header: 238 bytes, not 16", 0.0)] * 3
+    link.refusals = [Refusal(None, "malformed message header: 238 bytes, not 16", 0.0)] * 3
     clock[0] += 1.0
     assert ground.recv(0.01) is None and len(said) == board.REFUSALS_SAID + 1  # ... and quiet again
     clock[0] += board.REFUSALS_QUIET_S
-    link.refusals = [(None, "malformed message header: 238 bytes, not 16", 0.0)]
+    link.refusals = [Refusal(None, "malformed message header: 238 bytes, not 16", 0.0)]
     assert ground.recv(0.01) is None  # or with the next one, once the quiet time is over
     assert said[-1].endswith("16 (3 more refused before it, not shown)"), said[-1]
     assert ground.counters["refused"] == 44 and len(said) == board.REFUSALS_SAID + 2

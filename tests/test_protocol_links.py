@@ -548,6 +548,10 @@ def test_every_link_names_each_message_it_refused(kind, tmp_path):
         got = B.take_refusals()
         assert [r.type_code for r in got] == [t for t, _, _ in BAD_BODIES]
         assert all(why in r.reason for r, (_, _, why) in zip(got, BAD_BODIES, strict=True)), got
+        # which pair a refused Result answered, when its body got as far as saying it (the schema refused it), and
+        # its place among what came: times tie within one read, the order does not
+        assert [r.frame_seqs for r in got] == [(0, 1), None, None]
+        assert [r.order for r in got] == sorted({r.order for r in got}) and got[0].order >= 1
         assert B.take_refusals() == [] and B.stats["decode_errors"] == len(BAD_BODIES)
 
 
