@@ -12,7 +12,9 @@ pair with ``minimal_flight.answer()``: everything unknown. Replace that function
 On one machine, without keys: ``--endpoint tcp://127.0.0.1:5555 --insecure`` on both ends.
 
 It imports nothing from hazard-hil (only the message helpers of ``minimal_flight.py`` beside it): pyzmq,
-msgpack and numpy are all it needs.
+msgpack and numpy are all it needs. It is single-threaded: while ``answer()`` runs it says nothing, so a
+detector that takes longer than the ground's link timeout (4 s by default) must keep the session up meanwhile
+(a HELLO each second, from a thread or between its stages).
 """
 
 from __future__ import annotations
@@ -66,6 +68,15 @@ class Session:
         self.heard = time.monotonic()
         self.said = 0.0
 
+    def give_up(self, reason: str) -> None:
+        """End this session (section 2 rule 7): CLOSE code 1 to the peer, and a new session id for the next one,
+        so that a ground that was only stalled starts afresh rather than meet numbers it has already seen."""
+        if self.peer:
+            self.sock.send_multipart(
+                [HEAD.pack(2, CLOSE, 0, 0, self.local, self.peer, 0), bytes((1,)) + reason.encode()[:255]]
+            )
+        self.local, self.peer, self.seq, self.peer_seq = random.randint(1, 2**32 - 1), 0, 0, 0
+
     def hello(self) -> None:  # type and seq 0: a HELLO numbers no message
         self.sock.send(HEAD.pack(2, HELLO, 0, 0, self.local, self.peer, 0))
         self.said = time.monotonic()
@@ -91,8 +102,9 @@ class Session:
         if src != self.peer or dst != self.local:
             return None
         self.heard = time.monotonic()
-        if kind == CLOSE:
+        if kind == CLOSE:  # the ground ended the session: the next one is new on both sides
             self.peer = 0
+            self.give_up("")
             return None
         if kind != MSG or seq <= self.peer_seq:
             return None
@@ -156,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                         )
             now = time.monotonic()
             if s.peer and now - s.heard > PEER_TIMEOUT_S:  # the ground went away: wait for the next one
-                s.peer, config, pending = 0, None, {}
+                s.give_up(f"no message from the ground for {now - s.heard:.1f} s")
+                config, pending = None, {}
             if s.peer and now - s.said >= KEEPALIVE_S:
                 s.hello()
     except KeyboardInterrupt:

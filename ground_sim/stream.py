@@ -857,7 +857,8 @@ def stream_descent(
         write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
         stats = getattr(link, "stats", None) or {}
         # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
-        refused = max(state.refused_messages, int(stats.get("decode_errors", 0) or 0))
+        counted = sum(int(stats.get(k, 0) or 0) for k in ("decode_errors", "reassembly_errors", "protocol_drops"))
+        refused = max(state.refused_messages, counted)
         counters = {"refused_messages": refused, "last_refused": state.last_refused, "flight_hello": state.flight_hello}
         counters |= {
             "ignored_results": ignored.seen("Result"),
