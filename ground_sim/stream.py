@@ -110,7 +110,7 @@ LINK_CODES = ("link_down",)
 LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "echoed_frames")
 # a ZeroMQ link's frames dropped by the session rules (docs/protocol.md section 7): a seq that did not rise, a frame
 # of a past or unknown session
-SESSION_DROPS = ("duplicates_dropped", "old_session_frames", "foreign_frames")
+SESSION_DROPS = ("duplicates_dropped", "misaddressed_frames", "foreign_frames")
 MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 UNANSWERED_TEXT = (
@@ -191,6 +191,7 @@ class PairOutcome:
     result_t_first: float | None = None
     result_t_done: float | None = None
     result_order: int = 0  # its Result's place among the messages the link received (Received.order)
+    drops_at_send: int = 0  # the link's session drops (SESSION_DROPS) when its frames went
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
@@ -459,6 +460,11 @@ def stream_descent(
 
     def note(text: str) -> None:
         _say(f"ground: {text}")
+
+    def session_drops() -> int:
+        """The flight side's ZeroMQ messages the link dropped by the session rules so far (0 on a serial line)."""
+        stats = link.stats if isinstance(link, ZmqLink) else {}
+        return sum(int(stats.get(k, 0) or 0) for k in SESSION_DROPS)
 
     def session_ok() -> bool:
         return state.epoch is not None and not link.failed and link.established and link.epoch == state.epoch
@@ -890,6 +896,7 @@ def stream_descent(
 
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
+        o.drops_at_send = session_drops()
         try:
             ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
         except LinkClosed as exc:  # the transport failed as the pair went: its pair is lost to the link
@@ -1047,10 +1054,12 @@ def stream_descent(
                 else:
                     waited = time.monotonic() - o.sent_at
                     text = f"no result or error {waited:.0f} s after its frames went (response timeout {timeout:.0f} s)"
-                    stats = link.stats if isinstance(link, ZmqLink) else {}
-                    dropped = sum(int(stats.get(k, 0) or 0) for k in SESSION_DROPS)
+                    dropped = session_drops() - o.drops_at_send
                     if dropped:  # answers the session rules threw away read as none at all
-                        text += f"; the link dropped {dropped} of the flight side's messages by the session rules"
+                        text += (
+                            f"; meanwhile the link dropped {dropped} of the flight side's messages by the session "
+                            "rules (said above)"
+                        )
                     o.error = Error(code="no_response", text=text, seq=s[1])
                 rec = write_outcome(out_dir, o, deadline_s)
                 records.append(rec)

@@ -603,19 +603,22 @@ def _drops_note(g: dict) -> str:
     """The flight side's ZeroMQ frames the ground's link dropped by the session rules ("" when none): each
     one a message meant for it (TCP repeats nothing), which the console named when it first came."""
     d = g.get("session_drops") or {}
-    seq, old, foreign = (int(d.get(k) or 0) for k in ("duplicates_dropped", "old_session_frames", "foreign_frames"))
-    if not seq + old + foreign:
+    seq, wrong, foreign = (int(d.get(k) or 0) for k in ("duplicates_dropped", "misaddressed_frames", "foreign_frames"))
+    if not seq + wrong + foreign:
         return ""
     parts = [
         f"{n} {what}"
         for n, what in (
             (seq, "with a seq that did not rise"),
-            (old, "addressed to another or a past session"),
+            (wrong, "addressed to a session not the ground's"),
             (foreign, "from a session that said no HELLO"),
         )
         if n
     ]
-    return f"the ground's link dropped messages from the flight side: {', '.join(parts)} (ground.log says why)"
+    return (
+        f"the ground's link dropped messages from the flight side: {', '.join(parts)} (ground.log names the first "
+        "of each kind)"
+    )
 
 
 def _line_note(line: dict) -> str:

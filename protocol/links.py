@@ -688,6 +688,7 @@ class ZmqLink(Link, SessionView):
                 "decode_errors",
                 "duplicates_dropped",
                 "old_session_frames",
+                "misaddressed_frames",  # of them, from the peer's own session to another of ours (its mistake)
                 "foreign_frames",
                 "failures",
                 "peer_restarts",
@@ -1137,6 +1138,7 @@ class ZmqLink(Link, SessionView):
                 self._stats["old_session_frames" if verdict == "old" else "foreign_frames"] += 1
                 if verdict == "old" and src == self.sess.peer:
                     self._control.append(self._hello())
+                    self._stats["misaddressed_frames"] += 1
                     self._drop_note(
                         "dst",
                         src,

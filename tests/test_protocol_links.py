@@ -493,7 +493,7 @@ def test_zeromq_frames_the_session_rules_drop_are_said_once_each_and_counted():
         with B._cv:
             B.sess.peer = 0x1234  # addresses a session the ground never had
         B.send(Error(code="astray", text=""))
-        while G.stats["old_session_frames"] < 1 and time.monotonic() < deadline:
+        while G.stats["misaddressed_frames"] < 1 and time.monotonic() < deadline:
             time.sleep(0.02)
         with B._cv:
             B.sess.peer = real
