@@ -155,17 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                         del pending[msg["pair_id"]]
                         s.send(mf.RESULT, mf.answer(pair[0], pair[1], config))
                         wall, cpu = time.monotonic() - t0, time.process_time() - c0
-                        s.send(
-                            mf.TELEMETRY,
-                            {
-                                "frame_seqs": [pair[0]["seq"], pair[1]["seq"]],
-                                "stages": {"total": {"wall_s": wall, "cpu_s": cpu}},
-                                "total_latency_s": wall,
-                                "cpu_fraction": float("nan"),
-                                "deadline_s": float(config["deadline_s"]),
-                                "deadline_met": wall <= config["deadline_s"],
-                            },
-                        )
+                        s.send(mf.TELEMETRY, mf.telemetry(pair[0], pair[1], config, wall, cpu))
             now = time.monotonic()
             if s.peer and now - s.heard > PEER_TIMEOUT_S:  # the ground went away: wait for the next one
                 s.give_up(f"no message from the ground for {now - s.heard:.1f} s")

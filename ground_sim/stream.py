@@ -746,6 +746,13 @@ def stream_descent(
         for r in got:
             refused(r, want)
 
+    def ignore(name: str, why: str) -> None:
+        """A message from the flight side that answers nothing: counted, and said for the first few of its kind."""
+        if ignored.offer(name, time.monotonic())[0]:
+            n = ignored.seen(name)
+            more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
+            note(f"ignored a {name} from the flight side{more}{why}")
+
     def handle(pkt, want: set[tuple[int, int]]) -> None:
         if pkt.epoch != state.epoch:
             return
@@ -777,11 +784,7 @@ def stream_descent(
                 o.last_frame_started = t.first_tx if t is not None else None
             why = _not_an_answer(msg, o, pkt.t_done)
             if why is not None:  # counted in ground.json and said, as the HIL server does for its flight process
-                name = type(msg).__name__
-                if ignored.offer(name, time.monotonic())[0]:
-                    n = ignored.seen(name)
-                    more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
-                    note(f"ignored a {name} from the flight side{more} for frames {list(key)}: {why}")
+                ignore(type(msg).__name__, f" for frames {list(key)}: {why}")
                 return
             assert o is not None
             if isinstance(msg, Result):
@@ -793,11 +796,7 @@ def stream_descent(
             else:
                 o.telemetry = msg
         else:  # a Config or a Frame: the ground's own messages, which the flight side has no cause to send
-            name = type(msg).__name__
-            if ignored.offer(name, time.monotonic())[0]:
-                n = ignored.seen(name)
-                more = f" ({n} so far)" if n > UNATTRIBUTED_SAID else ""
-                note(f"ignored a {name} from the flight side{more}: the ground sends those, it takes none")
+            ignore(type(msg).__name__, ": the ground sends those, it takes none")
             return
         if o is not None and o.finished and o.seqs in want:
             want.discard(o.seqs)

@@ -169,6 +169,21 @@ def flight_cmd(flight: Path, mode: str) -> list[str]:
     return ["--flight-cmd", f"{sys.executable} {flight} --mode {mode} --port {{port}}"]
 
 
+def external_run(manifest: Path, flight: Path, mode: str, out: Path) -> dict:
+    """The faulty flight program as a board of one's own on a serial line (a pty pair), the ground judging it."""
+    from hilkit import run_hil
+
+    from protocol.faults import PtyBridge
+
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(flight), "--mode", mode, "--port", bridge.paths[0]])
+        try:
+            return run_hil(manifest, out, flight="external", link=f"serial:{bridge.paths[1]}@0")
+        finally:
+            board.kill()
+            board.wait()
+
+
 def outcomes(summary: dict) -> list[tuple[str, str, str | None]]:
     return [(r["label"], r["status"], r.get("code")) for r in summary["records"]]
 
@@ -713,17 +728,7 @@ def test_a_refused_result_then_the_good_one_blames_no_other_pair_and_loses_no_an
 def test_an_external_boards_refused_result_then_the_good_one_at_the_ground(manifest, flight, tmp_path):
     """The same board of one's own on a serial line, the ground judging it: its refusals reach the ground apart
     from its messages, and are placed among them by when they came."""
-    from hilkit import run_hil
-
-    from protocol.faults import PtyBridge
-
-    with PtyBridge() as bridge:
-        board = subprocess.Popen([sys.executable, str(flight), "--mode", "bad_then_good", "--port", bridge.paths[0]])
-        try:
-            s = run_hil(manifest, tmp_path / "ext", flight="external", link=f"serial:{bridge.paths[1]}@0")
-        finally:
-            board.kill()
-            board.wait()
+    s = external_run(manifest, flight, "bad_then_good", tmp_path / "ext")
     got = outcomes(s)
     g = s["ground_counters"]
     assert got[0] == ("600/300", "result", None) and g["refused_messages"] == 2, (got, g)
@@ -734,17 +739,7 @@ def test_an_external_boards_refused_result_then_the_good_one_at_the_ground(manif
 
 def test_an_external_boards_config_echo_and_second_result_are_ignored_said_and_counted(manifest, flight, tmp_path):
     """A Config the board sent back was dropped without a word at the ground (the HIL server counted it)."""
-    from hilkit import run_hil
-
-    from protocol.faults import PtyBridge
-
-    with PtyBridge() as bridge:
-        board = subprocess.Popen([sys.executable, str(flight), "--mode", "dup_result", "--port", bridge.paths[0]])
-        try:
-            s = run_hil(manifest, tmp_path / "ext", flight="external", link=f"serial:{bridge.paths[1]}@0")
-        finally:
-            board.kill()
-            board.wait()
+    s = external_run(manifest, flight, "dup_result", tmp_path / "ext")
     g = s["ground_counters"]
     assert [st for _, st, _ in outcomes(s)] == ["result"] * 3
     assert g["ignored_results"] == 3 and g["ignored_other"] == 3 and g["unattributed_errors"] == 3, g
