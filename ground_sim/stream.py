@@ -711,7 +711,8 @@ def stream_descent(
                 want.discard(o.seqs)
                 give_up(o, "bad_result", f"the flight computer's Result was refused: {reason}")
             elif o is not None and o.sent_at:
-                note(f"pair {o.pair_id}: a Result of it was refused ({'it has one' if o.result else 'recorded'})")
+                had = "it has its Result already" if o.result is not None else "its record stands"
+                note(f"pair {o.pair_id}: a Result of it was refused; {had}")
         elif type_code == Result.TYPE and want:
             sent = [x for x in outcomes.values() if x.sent_at and x.sent_at <= r.t]
             answered_after = [x for x in sent if x.result is not None and x.result_order > r.order]
