@@ -12,9 +12,9 @@ pair with ``minimal_flight.answer()``: everything unknown. Replace that function
 On one machine, without keys: ``--endpoint tcp://127.0.0.1:5555 --insecure`` on both ends.
 
 It imports nothing from hazard-hil (only the message helpers of ``minimal_flight.py`` beside it): pyzmq,
-msgpack and numpy are all it needs. It is single-threaded: while ``answer()`` runs it says nothing, so a
-detector that takes longer than the ground's link timeout (4 s by default) must keep the session up meanwhile
-(a HELLO each second, from a thread or between its stages).
+msgpack and numpy are all it needs. The detector runs in a thread of its own, one pair at a time, while the
+main loop keeps the session up (a HELLO each second): a detector slower than the ground's link timeout (4 s)
+does not lose the session, though its pairs miss their deadlines.
 """
 
 from __future__ import annotations
@@ -24,6 +24,9 @@ import random
 import struct
 import sys
 import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import msgpack
@@ -59,31 +62,44 @@ def ext_hook(parts: list[bytes]):
 class Session:
     """One ground at a time: its session id, ours, and the numbers of the messages both ways."""
 
-    def __init__(self, sock: zmq.Socket) -> None:
-        self.sock = sock
+    def __init__(self, listen: Callable[[], zmq.Socket]) -> None:
+        self.listen = listen
+        self.sock = listen()
         self.local = random.randint(1, 2**32 - 1)  # never 0: 0 means "no session yet"
         self.peer = 0
         self.seq = 0  # the last message number we used (each message: one more, from 1)
         self.peer_seq = 0  # the last one we took from the peer
         self.heard = time.monotonic()
         self.said = 0.0
+        self.epoch = 0  # sessions so far: a new one starts with no Config and no frames held
 
     def give_up(self, reason: str) -> None:
         """End this session (section 2 rule 7): CLOSE code 1 to the peer, and a new session id for the next one,
         so that a ground that was only stalled starts afresh rather than meet numbers it has already seen."""
         if self.peer:
-            self.sock.send_multipart(
-                [HEAD.pack(2, CLOSE, 0, 0, self.local, self.peer, 0), bytes((1,)) + reason.encode()[:255]]
-            )
+            self.put([HEAD.pack(2, CLOSE, 0, 0, self.local, self.peer, 0), bytes((1,)) + reason.encode()[:255]])
         self.local, self.peer, self.seq, self.peer_seq = random.randint(1, 2**32 - 1), 0, 0, 0
+        self.epoch += 1
+        # a PAIR socket keeps the old ground's connection, and never attaches one it refused meanwhile: listen
+        # anew, so that whoever dials next is served
+        self.sock.close()
+        self.sock = self.listen()
+
+    def put(self, parts: list[bytes]) -> None:
+        """Send without waiting: a PAIR socket whose ground has gone blocks a send for good (the board then never
+        read again). What cannot go now is lost, and the session times out as section 2 says."""
+        try:
+            self.sock.send_multipart(parts, flags=zmq.NOBLOCK)
+        except zmq.Again:
+            pass
 
     def hello(self) -> None:  # type and seq 0: a HELLO numbers no message
-        self.sock.send(HEAD.pack(2, HELLO, 0, 0, self.local, self.peer, 0))
+        self.put([HEAD.pack(2, HELLO, 0, 0, self.local, self.peer, 0)])
         self.said = time.monotonic()
 
     def send(self, mtype: int, fields: dict) -> None:
         self.seq += 1
-        self.sock.send_multipart([HEAD.pack(2, MSG, mtype, 0, self.local, self.peer, self.seq), mf.body(mtype, fields)])
+        self.put([HEAD.pack(2, MSG, mtype, 0, self.local, self.peer, self.seq), mf.body(mtype, fields)])
 
     def receive(self, parts: list[bytes]) -> tuple[int, dict] | None:
         """A message of the session, or None (a HELLO, a CLOSE, another session's frame, a repeat)."""
@@ -95,6 +111,7 @@ class Session:
         if kind == HELLO:
             if src != self.peer:  # a new ground (or the same one restarted): a new session
                 self.peer, self.peer_seq, self.seq = src, 0, 0
+                self.epoch += 1
             self.heard = time.monotonic()
             if dst != self.local:  # it does not know us yet: answer at once
                 self.hello()
@@ -113,6 +130,13 @@ class Session:
         return int(got[0]), got[1]
 
 
+def timed_answer(pair: dict, config: dict) -> tuple[dict, float]:
+    """``minimal_flight.answer`` (replace it with your detector) and the CPU seconds of the thread that ran it."""
+    c0 = time.thread_time()
+    result = mf.answer(pair[0], pair[1], config)
+    return result, time.thread_time() - c0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--endpoint", default="tcp://*:5555", help="where to bind (default tcp://*:5555)")
@@ -122,24 +146,41 @@ def main(argv: list[str] | None = None) -> int:
     if (args.keys is None) == (not args.insecure):
         ap.error("give --keys DIR (CURVE) or --insecure (loopback only)")
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.PAIR)
-    sock.linger = 0
     auth = None
     if args.keys is not None:
         auth = ThreadAuthenticator(ctx)
         auth.start()
         auth.configure_curve(domain="*", location=str(args.keys / "clients"))
         public, secret = zmq.auth.load_certificate(str(args.keys / "server.key_secret"))
-        sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
-    sock.bind(args.endpoint)
+
+    def listen() -> zmq.Socket:
+        sock = ctx.socket(zmq.PAIR)
+        sock.linger = 0
+        if args.keys is not None:
+            sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
+        for _ in range(50):  # the port of a socket just closed is free again within moments
+            try:
+                sock.bind(args.endpoint)
+                return sock
+            except zmq.ZMQError:
+                time.sleep(0.05)
+        sock.bind(args.endpoint)  # still taken: say why
+        return sock
+
+    s = Session(listen)
     print(f"minimal_flight_zmq: listening on {args.endpoint}", file=sys.stderr, flush=True)
-    s = Session(sock)
     config: dict | None = None
     pending: dict[str, dict] = {}
+    epoch = 0
+    ready: deque[tuple[dict, dict, int]] = deque()  # pairs whose frames are all in, with their Config and session
+    work = None  # the pair the detector is on: (pair, config, session, start, future)
+    detector = ThreadPoolExecutor(max_workers=1)
     try:
         while True:
-            if sock.poll(50):
-                got = s.receive(sock.recv_multipart())
+            if s.sock.poll(50):
+                got = s.receive(s.sock.recv_multipart())
+                if s.epoch != epoch:  # another session: what the last one sent is not this one's
+                    config, pending, epoch = None, {}, s.epoch
                 mtype, msg = got if got is not None else (0, {})
                 if mtype == mf.HELLO_MSG:  # the ground's Hello message: ours in reply
                     s.send(mf.HELLO_MSG, {"role": "flight", "software": "minimal_flight_zmq", "session": s.local})
@@ -151,21 +192,28 @@ def main(argv: list[str] | None = None) -> int:
                     pair = pending.setdefault(msg["pair_id"], {})
                     pair[msg["frame_index"]] = msg
                     if len(pair) == 2:
-                        t0, c0 = time.monotonic(), time.process_time()
                         del pending[msg["pair_id"]]
-                        s.send(mf.RESULT, mf.answer(pair[0], pair[1], config))
-                        wall, cpu = time.monotonic() - t0, time.process_time() - c0
-                        s.send(mf.TELEMETRY, mf.telemetry(pair[0], pair[1], config, wall, cpu))
+                        ready.append((pair, config, epoch))
+            if work is None and ready:  # the detector runs beside the link, which keeps the session up meanwhile
+                pair, cfg, of = ready.popleft()
+                work = (pair, cfg, of, time.monotonic(), detector.submit(timed_answer, pair, cfg))
+            if work is not None and work[4].done():
+                pair, cfg, of, t0, future = work
+                work = None
+                result, cpu = future.result()
+                if of == s.epoch:  # its ground is still the one attached
+                    s.send(mf.RESULT, result)
+                    s.send(mf.TELEMETRY, mf.telemetry(pair[0], pair[1], cfg, time.monotonic() - t0, cpu))
             now = time.monotonic()
             if s.peer and now - s.heard > PEER_TIMEOUT_S:  # the ground went away: wait for the next one
                 s.give_up(f"no message from the ground for {now - s.heard:.1f} s")
-                config, pending = None, {}
             if s.peer and now - s.said >= KEEPALIVE_S:
                 s.hello()
     except KeyboardInterrupt:
         return 0
     finally:
-        sock.close()
+        detector.shutdown(wait=False, cancel_futures=True)
+        s.sock.close()
         if auth is not None:
             auth.stop()
         ctx.term()

@@ -856,3 +856,43 @@ def test_the_zeromq_example_flight_program_serves_a_ground_with_curve(manifest, 
     # who it said it is, kept for the reader of the summary
     assert g["flight_hello"] == {"role": "flight", "software": "minimal_flight_zmq", "protocol_version": 2}
     assert "The flight side says it is 'minimal_flight_zmq'" in (tmp_path / "run" / "summary.md").read_text()
+
+
+SLOW_ZMQ_FLIGHT = """
+import sys, time
+sys.path.insert(0, {examples!r})
+import minimal_flight as mf
+import minimal_flight_zmq as z
+
+plain = mf.answer
+mf.answer = lambda *a: (time.sleep(5.0), plain(*a))[1]  # a detector that takes its time
+sys.exit(z.main(sys.argv[1:]))
+"""
+
+
+def test_the_zeromq_example_serves_the_next_ground_after_one_left_while_it_computed(manifest, tmp_path):
+    """A ground stopped (Ctrl-C) while the example was inside answer(): its next send blocked for good on the PAIR
+    socket, and every later ground got no Hello (stop 58's QA). It sends without waiting now."""
+    from hil_server.run import _free_tcp_port
+
+    script = tmp_path / "slow_flight.py"
+    script.write_text(SLOW_ZMQ_FLIGHT.format(examples=str(ROOT / "examples")))
+    endpoint = f"tcp://127.0.0.1:{_free_tcp_port()}"
+    board = subprocess.Popen(
+        [sys.executable, str(script), "--endpoint", endpoint, "--insecure"], stderr=subprocess.PIPE
+    )
+    try:
+        first = subprocess.Popen(
+            [sys.executable, "-m", "hil_server.cli", "run", "--flight", "external", "--link", f"zmq:{endpoint}",
+             "--insecure", "--manifest", str(manifest), "--out", str(tmp_path / "first"), "--no-progress"],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        time.sleep(4.0)  # its Hello, Config and the first pair's frames went: the board is inside answer()
+        first.send_signal(signal.SIGINT)
+        assert first.wait(30) == 130
+        s = run_hil(manifest, tmp_path / "second", flight="external", link=f"zmq:{endpoint}", insecure=True)
+    finally:
+        board.terminate()
+        board.communicate(timeout=10)
+    # served: both answered (late, a 5 s detector against a 2 s deadline, which is the board's business)
+    assert s["complete"] and [r["status"] for r in s["records"]] == ["result", "result"], s.get("reason")
