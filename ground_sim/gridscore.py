@@ -129,8 +129,9 @@ def judge_site(
     """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
     ``radius_m`` of the site has hazard < 1. A footprint that falls between pixel centres (ground sampled
     coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
-    A footprint that holds no pixel (off the image), or reaches the image border (part of it unseen),
-    cannot be confirmed and is judged unsafe.
+    A footprint that holds no pixel (off the image), reaches the image border (part of it unseen) or holds a
+    pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) cannot be confirmed
+    and is judged unsafe (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
 
     ``world_xy`` is (H, W, 2), each pixel's true ground X, Y (:func:`pixel_ground_xy`). Also returns ``uv``,
     the pixel whose ground is nearest the site (None for a site that is not a finite point), to draw it."""
@@ -143,17 +144,18 @@ def judge_site(
     if not near.any():
         near = _cell_holding(world_xy, d2)
     n = int(np.count_nonzero(near))
-    unsafe = int(np.count_nonzero(near & ~(hazard < 1.0)))
-    border = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any())
+    unknown = near & np.isnan(hazard)  # truth that cannot say (a derived one, where too little ground is seen)
+    unsafe = int(np.count_nonzero(near & ~unknown & ~(hazard < 1.0)))
+    partial = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any() or unknown.any())
     uv = None
     if n:  # the footprint is on the image: the pixel whose ground is nearest its centre
         v, u = np.unravel_index(int(np.nanargmin(d2)), d2.shape)
         uv = (int(u), int(v))
     return {
-        "safe": n > 0 and unsafe == 0 and not border,
+        "safe": n > 0 and unsafe == 0 and not partial,
         "n_px": n,
         "n_unsafe": unsafe,
-        "incomplete": border or n == 0,
+        "incomplete": partial or n == 0,
         "uv": uv,
     }
 

@@ -811,7 +811,7 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             continue
         top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
         if r.get("top_site_confirmed") is False:  # scored as not safe: the truth cannot vouch for all of it
-            top = "**not confirmed** (footprint off frame 0)"
+            top = "**not confirmed** (footprint off frame 0, or its truth unknown)"
         over = " **over**" if r["fp_pct"] > s["fp_limit_pct"] else ""
         cells = [
             f"{f(r['fp_pct'])}{over}",
@@ -820,7 +820,8 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             f(r["safe_recognised_pct"], ".1f"),
             f(r["unmapped_pct"], ".1f"),
             f(r.get("dem_mean_abs_m"), ".3f"),
-            f"{r['sites_truly_safe']}/{r['sites']}",
+            f"{r['sites_truly_safe']}/{r['sites']}"
+            + (f" ({u} not confirmed)" if (u := r.get("sites_unconfirmed")) else ""),
             top,
         ]
         print(f"| {md(r['pair'])} | " + " | ".join(cells) + " |")

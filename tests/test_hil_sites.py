@@ -147,3 +147,21 @@ def test_a_fused_site_the_pair_cannot_see_is_judged_on_a_pair_of_the_same_render
     low_rec = records[1]
     assert low_rec["site_truth"][0]["incomplete"] and low_rec["top_site_judged_on"] == "600/300"
     assert low_rec["scores"]["top_site_clear"] == 1.0 and top_site_text(low_rec) == "clear (1 site, judged on 600/300)"
+
+
+def test_a_footprint_with_unknown_truth_is_not_confirmed_and_one_truly_unsafe_pixel_still_decides():
+    """A derived truth is NaN where too little ground was seen: such a footprint was judged NOT safe (drawn red, a
+    detector's good site counted as an unsafe landing) instead of not confirmed (stop 58's QA)."""
+    from ground_sim.gridscore import site_verdict
+
+    g = np.arange(20, dtype=float) * 0.5
+    world = np.stack(np.meshgrid(g, g), axis=-1)  # 0.5 m pixels
+    hazard = np.zeros((20, 20), np.float32)
+    hazard[9:11, 9:11] = np.nan
+    j = judge_site((5.0, 5.0), world, hazard)
+    assert not j["safe"] and j["incomplete"] and j["n_unsafe"] == 0 and site_verdict(j) is None
+    hazard[10, 8] = 1.0  # and a truly unsafe pixel in the same footprint: NOT safe, known
+    assert site_verdict(judge_site((5.0, 5.0), world, hazard)) is False
+    hazard[9:11, 9:11] = 0.0
+    hazard[10, 8] = 0.0
+    assert site_verdict(judge_site((5.0, 5.0), world, hazard)) is True
