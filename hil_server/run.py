@@ -267,6 +267,8 @@ def score_records(records: list[dict]) -> list[dict]:
         except (MemoryError, ValueError, ArithmeticError) as exc:
             rec["truth_note"] = f"no gt_hazard_i1.npy, and deriving one failed ({type(exc).__name__}: {exc})"
         truth = pair.truth
+        if "hazard" in truth and not np.isfinite(truth["hazard"]).any():  # a truth that says nothing: no scores
+            truth = {k: v for k, v in truth.items() if k != "hazard"}  # (all-zero ones read as a Result off-map)
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
             fills = d / "elevation_filled_grid.npy"

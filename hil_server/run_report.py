@@ -157,11 +157,14 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     title = "upper image (i1)" + (", landing sites by rank" if marks else "")
     panels = [Panel("image", pair.images[0], title, sites=marks)]
     gt_h = pair.truth.get("hazard")
+    if gt_h is not None and not np.isfinite(gt_h).any():  # no truth could be derived: nothing to score against
+        gt_h = None
     if gt_h is not None:
         covered = np.isfinite(hazard) & np.isfinite(gt_h)
         called_safe = covered & (np.nan_to_num(hazard, nan=1.0) < 1)
         truly_safe = np.nan_to_num(gt_h, nan=1.0) < 1
-        panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), "pixel scores"))
+        derived = " (truth derived from gt_elevation)" if r.get("truth") == "derived" else ""
+        panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), f"pixel scores{derived}"))
     else:
         panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", "magma_r", 0.0, 1.0))
     gsd = _ground_step(pair)
@@ -172,9 +175,8 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
         if marks
         else ""
     )
-    figs.append(
-        Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, scored against the truth.{sites}")
-    )
+    scored = "scored against the truth" if gt_h is not None else "not scored: the pair has no truth hazard"
+    figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, {scored}.{sites}"))
     if (out / "elevation.npy").is_file():
         dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))
         save(map_figure(dem, f"{r.get('label')}: elevation", m_per_px=gsd), fig_dir / f"{pid}_dem.png")

@@ -876,7 +876,7 @@ def evaluate_scenario(
         maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
         stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}
         gone = prune_other_runs(out, scenario, maps, stems)
-        if gone and progress:
+        if gone:  # said with --no-progress too: scripts are where a silent deletion hurts
             print(
                 f"evaluate: removed {len(gone)} maps and figures of {scenario} that an earlier run with other settings "
                 f"left in {out}",

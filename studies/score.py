@@ -437,6 +437,7 @@ def _figure(
     m: dict[str, Any],
     m_per_px: float | None = None,
 ) -> Path:
+    """The picture of one scored pair (see :func:`score_output`); a derived truth (``m["truth"]``) is titled so."""
     from ground_sim.gridscore import site_verdict
     from reports.plots import Panel, Site, confusion_codes, map_figure, save
     from reports.style import HAZARD_CMAP
@@ -447,14 +448,19 @@ def _figure(
         for i, j in enumerate(judged)
         if j["uv"] is not None
     ]
+    truth_title = (
+        "true hazard, derived from gt_elevation (>= 1 unsafe; white: unknown)"
+        if m.get("truth") == "derived"
+        else "true hazard (>= 1 unsafe)"
+    )
     # NaN (unmapped) pixels are scored as not called safe, so they read as TN/FN: say how many there are
     unmapped = f" ({m['unmapped_pct']:.0f} % unmapped: NaN, not called safe)" if m.get("unmapped_pct") else ""
     panels = [
         Panel("image", image, "frame 0 and the sites", sites=marks),
         Panel("confusion", confusion_codes(called, safe, area), f"pixel scores{unmapped}", sites=marks),
-        Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
+        Panel("scalar", gt_h, truth_title, "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
     ]
-    verdicts = {True: "truly safe", None: "not confirmed (off frame 0)", False: "NOT safe"}
+    verdicts = {True: "truly safe", None: "not confirmed (off frame 0, or truth unknown)", False: "NOT safe"}
     if len(judged) > len(marks):
         title_sites = f"; {len(judged) - len(marks)} site(s) off frame 0 not drawn"
     else:

@@ -432,3 +432,18 @@ def test_an_hil_run_scores_a_pair_without_gt_hazard_against_the_derived_truth(fi
     assert 0 <= rec["scores"]["fp_pct"] <= 100 and rec["scores"]["cdi_pct"] > 0
     assert "the scores of 200/100 are against a truth hazard derived" in truth_note(s)
     assert "truth hazard derived from gt_elevation" in (tmp_path / "run" / "summary.md").read_text()
+
+
+def test_an_hil_run_says_a_pair_without_derivable_truth_is_unscored_and_blames_no_grid(descent, tmp_path):
+    """A truth that could not be derived (128 px at 600 m: 2.5 m per pixel) gave the Result zero scores, and the
+    summary said it 'mapped none of the upper image's ground (its origin, cell size or axes?)' (stop 58's QA)."""
+    from hilkit import run_hil
+
+    root = tmp_path / "pairs"
+    shutil.copytree(descent, root)
+    (root / "600_300" / "gt_hazard_i1.npy").unlink()
+    s = run_hil(root / "manifest.json", tmp_path / "run", "zmq")
+    rec = next(r for r in s["records"] if r["label"] == "600/300")
+    assert rec["status"] == "result" and "scores" not in rec and "none can be derived" in rec["truth_note"]
+    md = (tmp_path / "run" / "summary.md").read_text()
+    assert "mapped none of the upper image" not in md and "600/300 could not be scored" in md
