@@ -148,6 +148,7 @@ def _run(args: argparse.Namespace) -> int:
     from ground_sim.render import MAX_CELLS, check_sun
     from ground_sim.trajectory import check_distinct_dirs
     from protocol.errors import comma_items
+    from protocol.outdir import claim_out
     from protocol.pairdir import Sun, square_camera
 
     check_seed(args.seed)
@@ -173,23 +174,24 @@ def _run(args: argparse.Namespace) -> int:
         check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
     written: list[str] = []
     try:
-        out = render_scenario(
-            args.scenario,
-            args.out,
-            scene=args.scene or None,
-            seed=args.seed,
-            pairs=pairs,
-            frames=frames,
-            pose_error=pe,
-            progress=not args.no_progress,
-            sun=sun,
-            supersample=args.supersample,
-            workers=args.workers,
-            max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
-            raster=args.raster,
-            camera=camera,
-            written=written,
-        )
+        with claim_out(args.out, "render"):  # two renders into one --out replaced each other's pairs, both exit 0
+            out = render_scenario(
+                args.scenario,
+                args.out,
+                scene=args.scene or None,
+                seed=args.seed,
+                pairs=pairs,
+                frames=frames,
+                pose_error=pe,
+                progress=not args.no_progress,
+                sun=sun,
+                supersample=args.supersample,
+                workers=args.workers,
+                max_cells=MAX_CELLS if args.max_raster_cells is None else args.max_raster_cells,
+                raster=args.raster,
+                camera=camera,
+                written=written,
+            )
     except KeyboardInterrupt:
         print(_kept_after_interrupt(Path(args.out), written), file=sys.stderr)
         raise
