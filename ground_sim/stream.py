@@ -148,6 +148,7 @@ TELEMETRY_KEYS = (
     "result_queue_s",
     "result_rx_s",
     "outside_flight_s",
+    "ground_stopped_s",
     "result_bytes",
     "queue_wait_s",
     "cpu_fraction",

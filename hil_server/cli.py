@@ -633,7 +633,8 @@ def _finish(summary: dict, args: argparse.Namespace, name: str) -> int:
     from hil_server.run import exit_code, verdict_line
 
     if summary.get("link_errors"):
-        print(f"{name}: LINK ERROR: {summary['link_errors']} pairs lost to link failures", file=sys.stderr)
+        n = summary["link_errors"]
+        print(f"{name}: LINK ERROR: {n} pair{'' if n == 1 else 's'} lost to link failures", file=sys.stderr)
     code = exit_code(summary, args.min_hit_rate)
     print(f"{name}: {verdict_line(summary, args.min_hit_rate)} -> exit {code}")
     return code

@@ -1286,7 +1286,11 @@ def _descend(checked: CheckedRun, log) -> dict:
     for stale in ("summary.md", "report.html"):
         (out / stale).unlink(missing_ok=True)
     received = out / "received"
-    shutil.rmtree(received, ignore_errors=True)  # a previous run's records must not pass for this one's
+    if received.is_dir():  # a previous run's records must not pass for this one's: cleared, and said
+        n = sum(1 for p in received.rglob("*") if p.is_file())
+        if n:
+            log(f"run: clearing {received}: {n} file(s) of an earlier run (received/ is this run's own)")
+    shutil.rmtree(received, ignore_errors=True)
 
     reason: str | None = None
     interrupted: int | None = None
@@ -1471,7 +1475,9 @@ def _descend(checked: CheckedRun, log) -> dict:
             if reason is None and rc is not None and rc not in (0, EXIT_LINK_LOST):
                 if ground_tee is not None:
                     ground_tee.join(timeout=2.0)  # its last words, which say why
-                reason = _ended("the ground simulator", rc, out / "ground.log") + f" (see {out / 'ground.log'})"
+                reason = _ended("the ground simulator", rc, out / "ground.log")
+                if "its log:" not in reason:
+                    reason += f" (see {out / 'ground.log'})"
         except _Interrupted as exc:
             interrupted, reason = exc.signum, str(exc)
         except InputError as exc:  # e.g. a scene file the renderer refuses: bad usage, after the placeholder

@@ -674,7 +674,8 @@ def register_score(subparsers: Any) -> None:
         "directory, or PAIRS a rendered descent (manifest.json) and OUTPUTS a directory with one output directory"
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
-        " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored)."
+        " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored);"
+        " when several apply, 2 wins over 3, and 3 over 1."
         " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
