@@ -203,7 +203,9 @@ def complete_truth(pair: Any) -> str | None:
     ``gt_depth`` through frame 0's true pose, its Z from ``gt_elevation``, with ``gt_shadow`` when present.
 
     Returns a note saying so (for the scores' reader: such a truth sees only the relief the camera resolves),
-    None when the pair carries ``gt_hazard_i1.npy`` or lacks the files to derive one (left without)."""
+    None when the pair carries ``gt_hazard_i1.npy`` or lacks the files to derive one. When the files give no
+    footprint's hazard at all, ``pair.truth`` is left without one and the note says why (every caller then has
+    no truth to score against, as without the files)."""
     truth = pair.truth
     if "hazard" in truth or "depth" not in truth or "elevation" not in truth:
         return None
@@ -211,8 +213,8 @@ def complete_truth(pair: Any) -> str | None:
 
     points = pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"])
     points[..., 2] = truth["elevation"]
-    truth["hazard"] = hazard_from_points(points, truth.get("shadow"))
-    known = float(np.mean(np.isfinite(truth["hazard"])))
+    hazard = hazard_from_points(points, truth.get("shadow"))
+    known = float(np.mean(np.isfinite(hazard)))
     if known == 0.0:  # why none could be derived, from what the derivation itself used
         cell = truth_grid(points)[0]
         if not np.isfinite(points).all(axis=-1).any():
@@ -225,6 +227,7 @@ def complete_truth(pair: Any) -> str | None:
         else:
             why = "no 3 m footprint of frame 0 is half seen"
         return f"no gt_hazard_i1.npy, and none can be derived from gt_elevation and gt_depth: {why}"
+    truth["hazard"] = hazard
     shadow = "" if "shadow" in truth else " (no gt_shadow_i1.npy: shadow not counted)"
     return (
         f"no gt_hazard_i1.npy: the true hazard was derived from gt_elevation and gt_depth{shadow} by DESIGN.md's "

@@ -237,6 +237,9 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
+DERIVED_TRUTH_FILE = "truth_hazard_derived.npy"  # in a pair's received/ directory: the truth its scores used
+
+
 def score_records(records: list[dict]) -> list[dict]:
     """Add detection and DEM scores (ground truth of each pair) to the received records.
 
@@ -262,13 +265,13 @@ def score_records(records: list[dict]) -> list[dict]:
         try:  # after the whole descent flew: a derivation that fails costs this pair's scores, not the summary
             if note := complete_truth(pair):
                 rec["truth_note"] = note
-                if np.isfinite(pair.truth["hazard"]).any():
+                if "hazard" in pair.truth:
                     rec["truth"] = "derived"
+                    # kept for the report's figures, which would otherwise derive it again
+                    np.save(d / DERIVED_TRUTH_FILE, pair.truth["hazard"])
         except (MemoryError, ValueError, ArithmeticError) as exc:
             rec["truth_note"] = f"no gt_hazard_i1.npy, and deriving one failed ({type(exc).__name__}: {exc})"
         truth = pair.truth
-        if "hazard" in truth and not np.isfinite(truth["hazard"]).any():  # a truth that says nothing: no scores
-            truth = {k: v for k, v in truth.items() if k != "hazard"}  # (all-zero ones read as a Result off-map)
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
             fills = d / "elevation_filled_grid.npy"

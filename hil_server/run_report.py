@@ -140,7 +140,7 @@ def _telemetry_records(records: list[dict]) -> list[dict]:
 
 
 def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
-    from ground_sim.gridscore import complete_truth
+    from hil_server.run import DERIVED_TRUTH_FILE
     from protocol.pairdir import read_pair
 
     out = Path(r.get("out_dir", ""))
@@ -149,7 +149,8 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     if r.get("status") != "result" or hz_file is None:
         return []
     pair = read_pair(r["pair_dir"])
-    complete_truth(pair)  # DESIGN.md's truth files without gt_hazard_i1.npy: as the scores derived it
+    if (out / DERIVED_TRUTH_FILE).is_file() and "hazard" not in pair.truth:  # as the scores derived it
+        pair.truth["hazard"] = np.load(out / DERIVED_TRUTH_FILE)
     hazard = np.load(hz_file)
     pid = r["pair_id"]
     figs = []
@@ -157,8 +158,6 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     title = "upper image (i1)" + (", landing sites by rank" if marks else "")
     panels = [Panel("image", pair.images[0], title, sites=marks)]
     gt_h = pair.truth.get("hazard")
-    if gt_h is not None and not np.isfinite(gt_h).any():  # no truth could be derived: nothing to score against
-        gt_h = None
     if gt_h is not None:
         covered = np.isfinite(hazard) & np.isfinite(gt_h)
         called_safe = covered & (np.nan_to_num(hazard, nan=1.0) < 1)

@@ -273,6 +273,8 @@ def score_output(
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
     derived = complete_truth(pair)  # DESIGN.md's files without gt_hazard_i1.npy: the rules give it
+    if derived and "hazard" not in pair.truth:  # the derivation says why it gave nothing
+        raise ScoreError(f"{where}: {derived}; give gt_hazard_i1.npy")
     for key in ("depth", "elevation", "hazard"):
         if key not in pair.truth:
             raise ScoreError(
@@ -288,8 +290,6 @@ def score_output(
     area = seen & np.isfinite(gt_h) & np.isfinite(depth)
     n = int(np.count_nonzero(area))
     if n == 0:
-        if derived and not np.isfinite(gt_h).any():  # the derivation says why it gave nothing
-            raise ScoreError(f"{where}: {derived}; give gt_hazard_i1.npy")
         for key, arr in (("hazard", gt_h), ("depth", depth)):
             if not np.isfinite(arr).any():  # not a geometry problem: say which file holds nothing
                 raise ScoreError(f"{where}: gt_{key}_i1.npy holds no finite value: nothing to score against")

@@ -432,6 +432,8 @@ def test_an_hil_run_scores_a_pair_without_gt_hazard_against_the_derived_truth(fi
     assert 0 <= rec["scores"]["fp_pct"] <= 100 and rec["scores"]["cdi_pct"] > 0
     assert "the scores of 200/100 are against a truth hazard derived" in truth_note(s)
     assert "truth hazard derived from gt_elevation" in (tmp_path / "run" / "summary.md").read_text()
+    kept = Path(rec["out_dir"]) / "truth_hazard_derived.npy"  # the truth the scores used, for the report too
+    assert kept.is_file() and np.isfinite(np.load(kept)).any()
 
 
 def test_an_hil_run_says_a_pair_without_derivable_truth_is_unscored_and_blames_no_grid(descent, tmp_path):
