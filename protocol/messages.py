@@ -64,7 +64,12 @@ def _int(lo: int = 0, hi: int = 2**63 - 1) -> Checker:
     return check
 
 
-def _float(finite: bool = True, lo: float | None = None) -> Checker:
+DURATION_SLACK_S = 1e-6  # a difference of two clock reads can land a rounding below 0; a whole report is not lost for it
+
+
+def _float(finite: bool = True, lo: float | None = None, slack: float = 0.0) -> Checker:
+    """A number; with ``lo``, one in ``[lo - slack, lo)`` is taken as ``lo`` and one below that is refused."""
+
     def check(v: Any, name: str) -> float:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
             raise SchemaError(f"{name}: expected a number, got {type(v).__name__}")
@@ -72,10 +77,15 @@ def _float(finite: bool = True, lo: float | None = None) -> Checker:
         if finite and not math.isfinite(f):
             raise SchemaError(f"{name}: must be finite, got {f}")
         if lo is not None and f < lo:  # a duration below 0 was shown as it came ("flight -5.00 s")
-            raise SchemaError(f"{name}: must be >= {lo:g}, got {f:g}")
+            if f < lo - slack:
+                raise SchemaError(f"{name}: must be >= {lo:g}, got {f:g}")
+            return lo
         return f
 
     return check
+
+
+_duration = _float(lo=0.0, slack=DURATION_SLACK_S)
 
 
 def _bool(v: Any, name: str) -> bool:
@@ -202,8 +212,8 @@ def _stages(v: Any, name: str) -> dict[str, dict[str, float]]:
         if not isinstance(t, dict) or set(t) != {"wall_s", "cpu_s"}:
             raise SchemaError(f"{name}[{k!r}]: expected {{'wall_s', 'cpu_s'}}")
         out[k] = {
-            "wall_s": _float(lo=0.0)(t["wall_s"], f"{name}[{k!r}].wall_s"),
-            "cpu_s": _float(lo=0.0)(t["cpu_s"], f"{name}[{k!r}].cpu_s"),
+            "wall_s": _duration(t["wall_s"], f"{name}[{k!r}].wall_s"),
+            "cpu_s": _duration(t["cpu_s"], f"{name}[{k!r}].cpu_s"),
         }
     return out
 
@@ -589,8 +599,8 @@ class Telemetry(Message):
     OMIT_AT_DEFAULT: ClassVar[frozenset[str]] = frozenset(TELEMETRY_FIELD_REV)
     frame_seqs: tuple = _wire(_ints(2))
     stages: dict = _wire(_stages, factory=dict)
-    queue_wait_s: float = _wire(_float(lo=0.0), 0.0)
-    total_latency_s: float = _wire(_float(lo=0.0), 0.0)
+    queue_wait_s: float = _wire(_duration, 0.0)
+    total_latency_s: float = _wire(_duration, 0.0)
     cpu_fraction: float = _wire(_float(finite=False), float("nan"))
     peak_rss_bytes: int = _wire(_int(0, MAX_RSS_BYTES), 0)
     deadline_s: float = _wire(_float(finite=False), float("nan"))

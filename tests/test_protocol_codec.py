@@ -274,6 +274,15 @@ def test_telemetry_figures_no_clock_or_memory_can_read_are_refused(kw, match):
         encode_message(Telemetry(frame_seqs=(1, 2), **kw))
 
 
+def test_a_duration_a_rounding_below_zero_is_taken_as_zero():
+    """Two clock reads subtracted can land at -1e-12 s; the whole Telemetry was refused for it (stop 58's note)."""
+    t = Telemetry(frame_seqs=(1, 2), total_latency_s=-1e-12, stages={"dem": {"wall_s": -1e-9, "cpu_s": 0.25}})
+    got = decode_message(encode_message(t))
+    assert got.total_latency_s == 0.0 and got.stages["dem"] == {"wall_s": 0.0, "cpu_s": 0.25}
+    with pytest.raises(SchemaError, match=r"queue_wait_s: must be >= 0, got -2e-06"):
+        encode_message(Telemetry(frame_seqs=(1, 2), queue_wait_s=-2e-6))
+
+
 @pytest.mark.parametrize(
     "kw, match",
     [
