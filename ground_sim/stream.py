@@ -600,14 +600,21 @@ def stream_descent(
 
     def said_hello(h: Hello) -> None:
         """Keep who the flight side says it is (ground.json, the summary); say what this ground cannot vouch for."""
-        new = {
+        new: dict = {
             "role": printable(h.role, 64),
-            "software": printable(h.software, 128),
+            "software": None if "software" in h.omitted else printable(h.software, 128),
             "protocol_version": h.protocol_version,
         }
+        if h.omitted:  # read as their documented defaults: said apart from what the flight side did say
+            new["omitted"] = list(h.omitted)
         if new == state.flight_hello:
             return
         state.flight_hello = new
+        if h.omitted:
+            note(
+                f"the flight side's Hello leaves out {', '.join(h.omitted)}: read as the defaults of docs/protocol.md "
+                f"section 5 (protocol_version {h.protocol_version})"
+            )
         if h.protocol_version != PROTOCOL_VERSION:
             note(
                 f"the flight side says it speaks protocol version {h.protocol_version}; this ground speaks "

@@ -764,7 +764,10 @@ def hello_note(summary: dict) -> str:
     if summary.get("flight") != "external" or not h:
         return ""
     who, role, version = h.get("software"), h.get("role"), h.get("protocol_version")
-    return f"the flight side says it is {who!r} (role {role!r}, protocol {version})"
+    omitted = h.get("omitted") or []
+    said = f"it is {who!r}" if who is not None else "no name (its Hello has no software)"
+    proto = f"protocol {version}" + (" by default: its Hello leaves it out" if "protocol_version" in omitted else "")
+    return f"the flight side says {said} (role {role!r}, {proto})"
 
 
 def truth_note(summary: dict) -> str:

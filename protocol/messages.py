@@ -64,7 +64,7 @@ def _int(lo: int = 0, hi: int = 2**63 - 1) -> Checker:
     return check
 
 
-DURATION_SLACK_S = 1e-6  # a difference of two clock reads can land a rounding below 0; a whole report is not lost for it
+DURATION_SLACK_S = 1e-6  # two clock reads subtracted can land a rounding below 0: no report is lost for it
 
 
 def _float(finite: bool = True, lo: float | None = None, slack: float = 0.0) -> Checker:
@@ -363,6 +363,17 @@ class Hello(Message):
     protocol_version: int = _wire(_int(0, 255), PROTOCOL_VERSION)
     software: str = _wire(_str(128), "hazard-hil")
     session: int = _wire(_int(0, 2**32 - 1), 0)  # the sender's link session id (0: not given)
+    # the optional fields a decoded Hello left out (they read as their defaults): a board that names nobody must
+    # not be reported as "hazard-hil" speaking this ground's version
+    omitted: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def from_wire(cls, d: Any) -> Message:
+        msg = super().from_wire(d)
+        left_out = tuple(f.name for f in fields(cls) if f.name not in d and f.name != "session")  # type: ignore[arg-type]
+        if left_out:
+            object.__setattr__(msg, "omitted", left_out)
+        return msg
 
 
 @dataclass(frozen=True)

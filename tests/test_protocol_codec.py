@@ -635,3 +635,20 @@ def test_an_array_over_the_per_array_limit_is_named_by_the_rule_not_by_msgpack()
     body = msgpack.packb([4, {"hazard_image": msgpack.ExtType(1, b"x" * (20 << 20))}], use_bin_type=True)
     with pytest.raises(CodecError, match=r"^an array of \d+ bytes exceeds the 16777216-byte per-array limit$"):
         decode_message(body)
+
+
+def test_a_hello_that_leaves_out_its_name_and_version_is_not_reported_as_ours():
+    """A Hello of {"role": "flight"} decoded to software 'hazard-hil', protocol 2, and the ground reported a board
+    of one's own as "hazard-hil" (stop 58's review)."""
+    from hil_server.run import hello_note
+
+    bare = decode_message(msgpack.packb([Hello.TYPE, {"role": "flight"}]))
+    assert bare.omitted == ("protocol_version", "software")
+    full = decode_message(encode_message(Hello(role="flight", software="board-7")))
+    assert full.omitted == () and Hello(role="x").omitted == ()
+    run = {"flight": "external", "ground_counters": {}}
+    run["ground_counters"]["flight_hello"] = {
+        "role": "flight", "software": None, "protocol_version": 2, "omitted": ["protocol_version", "software"]
+    }  # fmt: skip
+    said = hello_note(run)
+    assert "no name" in said and "'hazard-hil'" not in said and "protocol 2 by default" in said
