@@ -654,11 +654,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from hil_server.run import check_run_config, run_descent
 
     cfg = _config(args)
-    check_run_config(cfg)  # bad options are refused before the half-minute calibration below
+    checked = check_run_config(cfg)  # bad options are refused before the half-minute calibration below
     if load_calibration() is None:  # a budget means an absolute speed only on a calibrated host
         from hil_server.budgets import check_store_writable
 
         check_store_writable()
+        _refuse_hopeless_budget(checked.cfg.budget, checked.budget)
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate, about 30 s)")
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
@@ -667,6 +668,33 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")
     return _finish(summary, args, "demo")
+
+
+# How much slower than the anchor this host may measure: a budget too slow to emulate even then is hopeless
+HOST_SPEED_SLACK = 2.0
+
+
+def _refuse_hopeless_budget(name: str, budget) -> None:
+    """Refuse, before the demo spends half a minute calibrating this host, a budget that `run` would refuse even
+    if the host measured :data:`HOST_SPEED_SLACK` times slower than the anchor (stop 56's QA: a budget of 0.04 %
+    of the core was refused only after the calibration)."""
+    from hil_server.budgets import MIN_RUN_SHARE, BudgetError
+
+    if budget.cpu_dmips is None:
+        return
+    import warnings
+
+    from hil_server.budgets import UncalibratedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UncalibratedWarning)  # the demo says so itself
+        share = budget.duty(None).effective  # at the anchor's speed: no calibration yet
+    if share * HOST_SPEED_SLACK < MIN_RUN_SHARE:
+        raise BudgetError(
+            f"budget {name} ({budget.cpu_dmips:g} DMIPS) is about {100 * share:.2g} % of a core at the anchor's "
+            f"speed, under the {100 * MIN_RUN_SHARE:g} % that `run` emulates even on a host {HOST_SPEED_SLACK:g}x "
+            "slower (refused before calibrating this host)"
+        )
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:

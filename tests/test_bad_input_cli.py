@@ -78,6 +78,7 @@ CASES = [
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
     (["demo", "--pairs", "50/25"], "unknown pair(s) ['50/25']; the vertical scenario has"),
     (["demo", "--scene", "nosuch"], "unknown scene preset 'nosuch'"),
+    (["demo", "--budget", "slow10", "--budget-file", "SLOW"], "refused before calibrating this host"),
     (["run", "--reconnect-timeout", "0"], "--reconnect-timeout must be a number of seconds in (0, 3600]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
     (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),
@@ -127,6 +128,10 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, arg
 
     typo = default_budgets_path().read_text().replace("[budget.host]", "[budget.host]\nbaudd = 5", 1)
     (tmp_path / "typo.toml").write_text(typo)
+    rad750 = default_budgets_path().read_text().split("[budget.rad750]", 1)[1].split("\n[", 1)[0]
+    slow10 = "\n[budget.slow10]" + rad750.replace("cpu_dmips = 400", "cpu_dmips = 10", 1)  # 0.04 % of the anchor
+    (tmp_path / "slow.toml").write_text(default_budgets_path().read_text() + slow10)
+    subst["SLOW"] = str(tmp_path / "slow.toml")
     subst["TYPO"] = str(tmp_path / "typo.toml")
     (tmp_path / "afile").write_text("")
     subst["AFILE"] = str(tmp_path / "afile")
