@@ -766,6 +766,14 @@ def _score(args: argparse.Namespace) -> int:
     if derived:  # one note for the descent, not one per pair
         more = f" (and {len(derived) - 1} more pairs likewise)" if len(derived) > 1 else ""
         print(f"note: {derived[0]['pair']}: {derived[0]['truth_note']}{more}", file=sys.stderr)
+    posed = [r for r in rows if r.get("truth_poses") == "reported" and not r.get("error")]
+    if posed:
+        more = f" (and {len(posed) - 1} more pairs likewise)" if len(posed) > 1 else ""
+        print(
+            f"note: {posed[0]['pair']}: pair.json has no true_frames, so its frames' reported poses are taken as "
+            f"true: the sites are placed on the ground through them, and an error in them is not seen{more}",
+            file=sys.stderr,
+        )
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")

@@ -300,6 +300,9 @@ def score_output(
     m: dict[str, Any] = {
         "truth": "derived" if derived else "gt_hazard_i1.npy",
         "truth_note": derived,
+        # DESIGN.md: scoring judges against the true poses; without them the reported ones stand in, and a navigation
+        # error in them goes unseen (the sites are placed on the ground through frame 0's pose)
+        "truth_poses": "true_frames" if isinstance(pair.meta, dict) and "true_frames" in pair.meta else "reported",
         "pixels": c["n"],
         "tp_pct": c["tp"],
         "fp_pct": c["fp"],

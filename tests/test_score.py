@@ -408,6 +408,23 @@ def test_a_descent_scores_its_other_pairs_when_one_has_no_truth(descent, tmp_pat
     assert rows["300/150"]["pair_error"] and "no ground truth gt_depth_i1.npy" in rows["300/150"]["error"]
 
 
+def test_a_pair_without_true_frames_is_said_to_be_scored_on_its_reported_poses(descent, tmp_path, capsys):
+    """DESIGN.md: scoring judges against the true poses. A pair of one's own without `true_frames` was scored on
+    its reported poses, the sites placed on the ground through them, without a word (stop 58's QA, L3)."""
+    mine = tmp_path / "p"
+    shutil.copytree(descent / "300_150", mine)
+    doc = json.loads((mine / "pair.json").read_text())
+    meta = doc.get("meta", doc)
+    assert meta.pop("true_frames")
+    (mine / "pair.json").write_text(json.dumps(doc))
+    out = _write(tmp_path / "o", np.ones((128, 128)))
+    _, given = _score(descent / "300_150", out, capsys)
+    assert given["rows"][0]["truth_poses"] == "true_frames"
+    assert main(["score", str(mine), str(out), "--json", str(tmp_path / "s.json")]) == 0
+    assert "has no true_frames, so its frames' reported poses are taken as true" in capsys.readouterr().err
+    assert json.loads((tmp_path / "s.json").read_text())["rows"][0]["truth_poses"] == "reported"
+
+
 def test_a_truth_hazard_outside_0_1_is_refused(descent, tmp_path, capsys):
     d = tmp_path / "p"
     shutil.copytree(descent / "300_150", d)
