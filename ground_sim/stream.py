@@ -207,15 +207,29 @@ class PairOutcome:
         )
 
 
+def camera_mismatch(camera: dict, descent: dict) -> str:
+    """Why a pair whose camera is not the descent's cannot be streamed in it (the Config says it once)."""
+
+    def said(c: dict) -> str:
+        return f"{c['width']}x{c['height']} px, fx {c['fx']:.6g}, cx {c['cx']:.6g}, cy {c['cy']:.6g}"
+
+    return (
+        f"its camera ({said(camera)}) is not the descent's ({said(descent)}): the Config names the camera once per "
+        "descent (docs/protocol.md); stream it in a run of its own"
+    )
+
+
 def _frame_from_pair(pair, index: int, seq: int, pair_id: str) -> Frame:
-    pose = pair.poses[index]
+    """The Frame of ``frame_index`` 0 (the pair's frame 0) or 1 (its last frame: DESIGN.md's pair of a directory
+    of more frames; frame 1 of a four-frame descent was streamed, a baseline a third as long)."""
+    pose = pair.poses[-1 if index else 0]
     return Frame(
         seq=seq,
         capture_time_s=float(pose.time_s),
         position_m=tuple(float(v) for v in pose.position),
         R_world_to_cam=np.asarray(pose.R, dtype="<f8"),
-        altimeter_m=float(pair.altimeter_m[index]),
-        image=np.ascontiguousarray(pair.images[index]),
+        altimeter_m=float(pair.altimeter_m[-1 if index else 0]),
+        image=np.ascontiguousarray(pair.images[-1 if index else 0]),
         pair_id=pair_id,
         frame_index=index,
         sun_azimuth_deg=None if pair.sun is None else float(pair.sun.azimuth_deg),
@@ -357,6 +371,7 @@ class _SessionState:
     refused_messages: int = 0  # messages from the flight side the ground refused (ground.json)
     last_refused: dict | None = None  # {"type", "reason"} of the latest
     flight_hello: dict | None = None  # what the flight side said it is: role, software, protocol_version
+    said_middle_frames: bool = False  # a pair directory of more than two frames was said to be streamed as a pair
 
 
 def _silent_link_reason(link, where: str) -> str:
@@ -979,9 +994,18 @@ def stream_descent(
                 frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id) for k in (0, 1)]
                 for f in frames:
                     f.validated()
+                if config is not None and pair.camera.to_dict() != config.camera:
+                    raise InputError(camera_mismatch(pair.camera.to_dict(), config.camera))
             except InputError as exc:
                 give_up(o, "bad_input", str(exc))
                 continue
+            if len(pair.images) > 2 and not state.said_middle_frames:
+                state.said_middle_frames = True
+                note(
+                    f"{o.label}: {len(pair.images)} frames; the HIL streams a pair: frames 0 and "
+                    f"{len(pair.images) - 1} (DESIGN.md), not the {len(pair.images) - 2} between (the flight side "
+                    "fuses its Results over the descent; `process` uses every frame)"
+                )
             if config is None:
                 config = Config(
                     camera=pair.camera.to_dict(),

@@ -487,7 +487,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "--manifest",
         type=Path,
         default=None,
-        help="stream pairs already rendered by `hazard-hil render` (their manifest.json)",
+        help="stream pairs already rendered by `hazard-hil render` (their manifest.json); of a directory of more "
+        "than two frames, frames 0 and the last; every pair must share the first pair's camera",
     )
     p.add_argument(
         "--corrupt",

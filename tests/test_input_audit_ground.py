@@ -426,3 +426,54 @@ def test_process_refuses_to_write_through_a_hard_link_to_a_pair_file(descent, tm
     before = (d / "i1.png").read_bytes()
     err = one_line_error(capsys, ["process", str(d), "--out", str(out)])
     assert "would replace the pair's own hazard.png" in err and (d / "i1.png").read_bytes() == before
+
+
+def three_frames(descent: Path, d: Path) -> Path:
+    """600_300's frames and 300_150's lower one as a third frame (150 m): a three-frame directory."""
+    shutil.copytree(descent.parent / "600_300", d)
+    low = json.loads((descent.parent / "300_150" / "pair.json").read_text())
+    shutil.copy(descent.parent / "300_150" / low["frames"][1]["image"], d / "i3.png")
+    doc = json.loads((d / "pair.json").read_text())
+    doc["frames"].append({**low["frames"][1], "image": "i3.png", "time_s": doc["frames"][1]["time_s"] + 10.0})
+    doc["true_frames"].append({**low["true_frames"][1], "image": "i3.png"})
+    (d / "pair.json").write_text(json.dumps(doc))
+    return d
+
+
+def test_the_hil_streams_a_directory_of_more_frames_as_frames_0_and_last(descent, tmp_path):
+    """DESIGN.md: tools that need a pair use frames 0 and the last. The ground streamed frames 0 and 1 of a
+    four-frame directory: the Result of 300/250 m labelled 300/250/200/150 (stop 59's QA)."""
+    from ground_sim.stream import _frame_from_pair
+
+    pair = read_pair(three_frames(descent, tmp_path / "three"), load_truth=False)
+    lower = _frame_from_pair(pair, 1, 1, "p")
+    assert lower.frame_index == 1 and lower.position_m[2] == pytest.approx(150.0, abs=1.0)
+    assert np.array_equal(lower.image, pair.images[2])
+    assert _frame_from_pair(pair, 0, 0, "p").position_m[2] == pytest.approx(600.0, abs=1.0)
+
+
+def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descent_goes_on(descent, tmp_path):
+    """The Config names the camera once per descent. A 96 px pair after 128 px ones got the flight side's error
+    unattributed and waited 63 s for `no_response` (stop 59's QA)."""
+    import time
+
+    pairs = tmp_path / "pairs"
+    shutil.copytree(descent.parent, pairs)
+    small_descent(tmp_path / "small", ["600/300"], px=96)
+    shutil.copytree(tmp_path / "small" / "600_300", pairs / "small")
+    three_frames(descent, pairs / "three")
+    doc = json.loads((pairs / "manifest.json").read_text())
+    doc["pairs"] = [
+        doc["pairs"][0],
+        {**doc["pairs"][0], "path": "small", "label": "96px"},
+        {**doc["pairs"][0], "path": "three", "label": "600/300/150"},
+    ]
+    (pairs / "manifest.json").write_text(json.dumps(doc))
+    t0 = time.monotonic()
+    s = run_hil(pairs / "manifest.json", tmp_path / "run", "zmq")
+    got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
+    assert got == [("600/300", "result", None), ("96px", "error", "bad_input"), ("600/300/150", "result", None)]
+    assert (
+        "its camera (96x96 px" in s["records"][1]["text"] and "not the descent's (128x128 px" in s["records"][1]["text"]
+    )
+    assert time.monotonic() - t0 < 60.0
