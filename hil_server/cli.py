@@ -502,13 +502,15 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         action="store_true",
         help="Results also carry full-resolution image maps (hazard, elevation, state: MBs per pair on the line)",
     )
-    p.add_argument(
+    fusion = p.add_mutually_exclusive_group()  # both given: the last won, and nothing said which
+    fusion.add_argument(
         "--fusion",
-        action=argparse.BooleanOptionalAction,
+        action="store_true",
         default=True,
         help="Results report the map fused over the descent (flight_sw.fusion, the default; held-out figures in "
-        "docs/benchmarks/multiframe.md); --no-fusion: each Result reports its pair alone",
+        "docs/benchmarks/multiframe.md)",
     )
+    fusion.add_argument("--no-fusion", dest="fusion", action="store_false", help="each Result reports its pair alone")
     p.add_argument(
         "--insecure",
         action="store_true",

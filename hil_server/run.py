@@ -469,6 +469,7 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "budget": cfg.budget if cfg.flight == "emulated" else None,
         "budget_file": str(Path(cfg.budget_file).resolve()) if cfg.budget_file and cfg.flight == "emulated" else None,
         "preset": cfg.preset,
+        "fusion": cfg.fusion,  # asked of the flight side (Config option): the scores are of what it reported
         "pairs": n,
         "results": len(ok),
         "degraded": sum(bool(r.get("degraded")) for r in ok),
@@ -749,6 +750,7 @@ def summary_table(summary: dict) -> str:
         off_map_note(s),
         truth_note(s),
         hello_note(s),
+        fusion_note(s),
     )
     for note in notes:
         if note:
@@ -756,6 +758,36 @@ def summary_table(summary: dict) -> str:
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
     return head + "\n\n" + "\n".join(rows) + "\n\n" + GRID_SCORES_NOTE + "\n"
+
+
+def fusion_sources(entries: list[dict]) -> list[str]:
+    """The distinct scenes and seeds of a descent's pairs (their manifest entries' ``scene``/``seed``, where
+    given), in order: more than one means pairs of other ground are fused as one descent."""
+    seen: list[str] = []
+    for e in entries:
+        if "seed" in e or "scene" in e:
+            tag = " ".join(f"{k} {e[k]}" for k in ("scene", "seed") if k in e)
+            if tag not in seen:
+                seen.append(tag)
+    return seen
+
+
+def fusion_note(summary: dict) -> str:
+    """Whether the Results were fused over the descent, which the scores and sites are of."""
+    if summary.get("fusion") is None:
+        return ""
+    if not summary["fusion"]:
+        return "each Result reports its pair alone (`--no-fusion`)"
+    if summary.get("flight") == "external":  # the board decides: ours fuses, a program of one's own may not
+        said = "fusion was asked of the flight side (Config option `fusion` 1): where it fuses, a pair's scores are "
+    else:
+        said = "the Results report the map fused over the descent (flight_sw.fusion; `--no-fusion` reports each "
+        said += "pair alone): each pair's scores and sites are "
+    said += "of the map fused over the descent so far, which the pair's own evidence refines"
+    sources = summary.get("fusion_sources") or []
+    if len(sources) > 1:
+        said += f"; its pairs come from {len(sources)} scenes or seeds ({', '.join(sources[:4])}), fused as one descent"
+    return said
 
 
 def hello_note(summary: dict) -> str:
@@ -1542,6 +1574,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "throttle_check": None if throttle is None else throttle.to_dict(),
                 "deadline_s": deadline,
                 "line_faults": {d: ch.stats for d, ch in channels.items()},
+                "fusion_sources": fusion_sources(entries),
                 "memory_mib": budget.memory_mib if emulated else None,
                 "wall_s": wall,
                 "supervisor_counters": counters,

@@ -245,9 +245,9 @@ def write_run_report(summary: dict, path: Path) -> Path:
     from hil_server.run import GRID_SCORES_NOTE
 
     intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
-    from hil_server.run import hello_note, truth_note
+    from hil_server.run import fusion_note, hello_note, truth_note
 
-    for extra in (truth_note(s), hello_note(s)):
+    for extra in (fusion_note(s), truth_note(s), hello_note(s)):
         if extra:
             intro.append(extra[0].upper() + extra[1:] + ".")
     if site_note(s):

@@ -202,6 +202,8 @@ def test_output_paths_that_cannot_be_written_are_refused_first(tmp_path, capsys,
         (["evaluate", "--scenario", "vertical", "--image-size", "16"], "--camera-px must be >= 32"),
         (["sensitivity", "--kind", "altitude", "--image-size", "9999"], "--camera-px must be >= 32 and <= 4096"),
         (["run", "--baud", "fast"], "hazard-hil run: error: argument --baud"),
+        # both were taken, the last one winning, and nothing said which
+        (["run", "--fusion", "--no-fusion"], "argument --no-fusion: not allowed with argument --fusion"),
     ],
 )
 def test_usage_errors_are_one_line_too(capsys, argv, message):

@@ -477,3 +477,18 @@ def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descen
         "its camera (96x96 px" in s["records"][1]["text"] and "not the descent's (128x128 px" in s["records"][1]["text"]
     )
     assert time.monotonic() - t0 < 60.0
+    # the scores are of the fused map, and the summary says so (it said nothing of fusion)
+    assert s["fusion"] is True and s["fusion_sources"] == ["seed 0"]
+    md = (tmp_path / "run" / "summary.md").read_text()
+    assert "The Results report the map fused over the descent" in md and "fused as one descent" not in md
+
+
+def test_the_summary_says_when_pairs_of_other_ground_are_fused_as_one_descent():
+    from hil_server.run import fusion_note, fusion_sources
+
+    sources = fusion_sources([{"seed": 0}, {"seed": 0}, {"seed": 1}, {"label": "no seed"}])
+    assert sources == ["seed 0", "seed 1"]
+    said = fusion_note({"fusion": True, "fusion_sources": sources})
+    assert "its pairs come from 2 scenes or seeds (seed 0, seed 1), fused as one descent" in said
+    assert fusion_note({"fusion": False}) == "each Result reports its pair alone (`--no-fusion`)"
+    assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "external"})
