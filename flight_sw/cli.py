@@ -38,6 +38,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="parameter preset: fast (flight v2, default), thesis (the reproduction), fast_v1 (issue-6 fast)",
     )
     p.add_argument(
+        "--no-refine-pose",
+        dest="refine_pose",
+        action="store_false",
+        help="take the frames' navigation poses as they are (fast refines them from the images first: "
+        "docs/benchmarks/pose.md); to see what the refinement does",
+    )
+    p.add_argument(
         "--deadline",
         type=float,
         default=None,
@@ -190,6 +197,8 @@ def _process(args: argparse.Namespace) -> int:
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
         print(f"note: {note}", file=sys.stderr)
     params = PRESETS[args.preset]
+    if not args.refine_pose:
+        params = dataclasses.replace(params, refine_pose=False)
     if args.sites is not None:
         if args.sites < 0:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
@@ -298,6 +307,9 @@ def _process(args: argparse.Namespace) -> int:
         print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     side = min(pair.camera.width, pair.camera.height)
+    refined = _refined_poses(res.info.get("pose_refinement"))
+    if refined:  # a correction was said only in result.json (stop 59's QA)
+        print(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")
     for k, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
@@ -317,6 +329,20 @@ UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC
 # error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
 # not the pair they claim to be. Clean pairs do not reach these (docs/benchmarks/pose.md: none in 260 refinements)
 DISAGREE = ("attitude correction", "baseline direction change", "inlier residual", "refined geometry puts")
+
+
+def _refined_poses(info: Any) -> list[str]:
+    """Say "frame k (relative rotation r deg[, baseline direction d deg])" for each frame the images refined."""
+    if not isinstance(info, dict):
+        return []
+    out = []
+    for i, f in enumerate(info.get("frames") or [{"frame": 1, **info}]):
+        if isinstance(f, dict) and f.get("refined"):
+            said = [f"relative rotation {float(f.get('relative_rotation_correction_deg') or 0.0):.2f} deg"]
+            if f.get("translation_dir_change_deg") is not None:  # a pair's own; a descent's frames keep less
+                said.append(f"baseline direction {float(f['translation_dir_change_deg']):.2f} deg")
+            out.append(f"frame {int(f.get('frame', i + 1))} ({', '.join(said)})")
+    return out
 
 
 WARN_MIN_SIDE = 256  # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px)

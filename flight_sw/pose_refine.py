@@ -136,6 +136,13 @@ class RefineParams:
     # ~0.4 px of the truth from poses 2.7 px off, and moves exact poses by 0.05-0.20 px (tuning renders'
     # vertical pairs, p10-p90), so a smaller correction is not evidence and navigation is kept
     min_held_change_px: float = 0.5
+    # ... and a held fit that corrects either attitude, or the baseline direction, by more than this many sds of
+    # the navigation's declared accuracy (nav_att_sigma_deg; sqrt(2) nav_pos_sigma_m / baseline) is refused:
+    # holding the relative rotation, the fit pours a relative rotation error into a common tilt and a baseline
+    # change, and the DEM follows. A 3 deg pitch of a 300/150 pair's last frame came out as 1.34 deg of both
+    # attitudes and 1.56 deg of direction, "ok", with a DEM 2.7 m off (stop 59's QA); 0.3 deg as 0.12-0.25 and
+    # 0.13-0.29 deg. 3 sd keeps the issue's 0.5 deg envelope inside
+    max_held_correction_sd: float = 3.0
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -162,6 +169,7 @@ class RefineParams:
             "max_rel_rot_sd_deg",
             "min_depth_spread",
             "min_held_change_px",
+            "max_held_correction_sd",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -943,6 +951,18 @@ def _refine_matches(
         reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
     elif info["translation_dir_change_deg"] > p.max_direction_deg:
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
+    elif held and max(info["rotation_correction_deg"]) > p.max_held_correction_sd * p.nav_att_sigma_deg:
+        reason = (
+            f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_held_correction_sd:g} sd "
+            f"of the navigation's ({p.max_held_correction_sd * p.nav_att_sigma_deg:.2f}) on a near-nadir pair, whose "
+            "images cannot tell a relative rotation from a baseline change"
+        )
+    elif held and info["translation_dir_change_deg"] > p.max_held_correction_sd * math.degrees(s_dir):
+        reason = (
+            f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_held_correction_sd:g} sd"
+            f" of the navigation's ({p.max_held_correction_sd * math.degrees(s_dir):.2f}) on a near-nadir pair, "
+            "whose images cannot tell a relative rotation from a baseline change"
+        )
     elif rms > p.max_rms_px:
         reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
     elif info["depth_spread"] < p.min_depth_spread and not held:

@@ -169,3 +169,28 @@ def test_process_warns_when_the_images_disagree_with_the_navigation_pose(tmp_pat
     assert "warning: frame 1: the images disagree with its navigation pose (attitude correction" in err, err
     info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["pose_refinement"]
     assert info["refined"] is False and info["reason"].startswith("attitude correction")
+
+
+def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(tmp_path, capsys):
+    """A correction was said only in result.json, and `process` had no way to run without it (stop 59's QA)."""
+    import math
+    import shutil
+
+    from hilkit import small_descent
+
+    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
+    off = tmp_path / "off"
+    shutil.copytree(pair, off)
+    doc = json.loads((off / "pair.json").read_text())
+    a = math.radians(0.3)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    doc["frames"][1]["R_world_to_cam"] = (rx @ np.array(doc["frames"][1]["R_world_to_cam"])).tolist()
+    (off / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(off), "--out", str(tmp_path / "on")]) == 0
+    said = capsys.readouterr().out
+    assert "navigation poses refined from the images: frame 1 (relative rotation" in said, said
+    assert main(["process", str(off), "--out", str(tmp_path / "raw"), "--no-refine-pose"]) == 0
+    said = capsys.readouterr().out
+    raw = json.loads((tmp_path / "raw" / "result.json").read_text())
+    assert "refined from the images" not in said and raw["params"]["refine_pose"] is False
+    assert "pose_refinement" not in raw["info"]
