@@ -187,6 +187,7 @@ def _process(args: argparse.Namespace) -> int:
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
+    from .pose_refine import DISAGREE
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -313,22 +314,19 @@ def _process(args: argparse.Namespace) -> int:
     for k, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
-        if why.startswith(DISAGREE):
+        if why.startswith(DISAGREE):  # matched, and the images ask for more than a navigation error
+            rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
             print(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
-                  "error should be, so the refinement kept the pose); the maps rest on it (result.json "
+                  f"error should be, so the refinement kept the pose); {rest} (result.json "
                   "info.pose_refinement)", file=sys.stderr)  # fmt: skip
+        elif k in res.info.get("frames_dropped", ()):
+            print(f"warning: frame {k}: the images could not check its navigation pose ({why}); it is left out of "
+                  "the maps (result.json info.pose_refinement, frames_dropped)", file=sys.stderr)  # fmt: skip
         else:
             print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
     print(f"report: {out / 'report.html'}")
     return 0
-
-
-UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC found no model", "no ground-plane")
-# the images matched, but the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
-# error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
-# not the pair they claim to be. Clean pairs do not reach these (docs/benchmarks/pose.md: none in 260 refinements)
-DISAGREE = ("attitude correction", "baseline direction change", "inlier residual", "refined geometry puts")
 
 
 def _refined_poses(info: Any) -> list[str]:
@@ -345,21 +343,20 @@ def _refined_poses(info: Any) -> list[str]:
     return out
 
 
-WARN_MIN_SIDE = 256  # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px)
-
-
 def _unverified_poses(info: Any, side: int) -> list[tuple[int, str]]:
     """(frame, reason) where pose refinement kept the navigation pose because it could not match the images, or
     because they ask for a correction no navigation error explains (:func:`flight_sw.pose_refine.refine_pair`'s
     fallbacks that mean "no evidence" or "evidence against", not "navigation agreed"), from
-    ``info["pose_refinement"]``. None for images narrower than ``WARN_MIN_SIDE``: there the refinement cannot
-    check clean pairs either (too few matches, an overlap under its four track windows), so a warning would say
-    nothing about these frames."""
-    if not isinstance(info, dict) or side < WARN_MIN_SIDE:
+    ``info["pose_refinement"]``. None for images narrower than ``pose_refine.CHECK_MIN_SIDE``: there the
+    refinement cannot check clean pairs either (too few matches, an overlap under its four track windows), so a
+    warning would say nothing about these frames."""
+    from .pose_refine import unchecked
+
+    if not isinstance(info, dict):
         return []
     frames = info.get("frames") or [{"frame": 1, **info}]
     return [
         (int(f.get("frame", i + 1)), str(f["reason"]))
         for i, f in enumerate(frames)
-        if isinstance(f, dict) and not f.get("refined") and str(f.get("reason", "")).startswith(UNVERIFIED + DISAGREE)
+        if isinstance(f, dict) and not f.get("refined") and unchecked(str(f.get("reason", "")), side)
     ]

@@ -78,7 +78,7 @@ from .mapping import (
     three_state,
 )
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
-from .pose_refine import refine_descent
+from .pose_refine import refine_descent, unchecked
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
@@ -914,13 +914,26 @@ def run_pipeline_multi(
     if p.refine_pose:
         # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
         px_scale = images[0].size / REF_PIXELS
-        if clock.ok((p.mapping_reserve_s + REFINE_S * (len(images) - 1)) * px_scale):
+        # its features and tracks are fixed counts, its warps scale with the pixels: 0.022-0.026 s per pair at 256
+        # px against 0.047-0.049 s at 512 (stop 59), about the square root of the pixel ratio. Scaled with the
+        # pixels, a 16-frame 256 px descent planned 0.13 s, took 0.39 s and left a 0.3 s deadline image-only
+        pair_s = REFINE_S * math.sqrt(px_scale)
+        if clock.ok(p.mapping_reserve_s * px_scale + pair_s):  # the widest pair: the others as time allows
+            # the middle frames take at most half the time left before the reserve: the DEM needs the rest (all
+            # 15 of a 16-frame descent ran past a 0.3 s deadline and left it image-only)
+            end = clock.before(p.mapping_reserve_s * px_scale)
+            stop_by = None if end is None else time.monotonic() + 0.5 * (end - time.monotonic())
             with _stage(timings, "pose_refine"):
-                poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames)
+                poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames, stop_by=stop_by)
             t = timings["pose_refine"]
-            clock.learn(REFINE_S * (len(images) - 1) * px_scale, t["wall_s"], t["cpu_s"])
+            done = sum(1 for f in pose_info.get("frames", ()) if not str(f.get("reason", "")).startswith("skipped"))
+            clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
             pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
+    dropped = _unchecked_frames(pose_info, len(images), min(camera.width, camera.height))
+    if dropped:
+        images = [im for k, im in enumerate(images) if k not in dropped]
+        poses = [ps for k, ps in enumerate(poses) if k not in dropped]
     i1, i2, pose1, pose2 = images[0], images[-1], poses[0], poses[-1]
     if p.dem == "sgm":
         extra = list(zip(images[1:-1], poses[1:-1]))
@@ -930,11 +943,29 @@ def run_pipeline_multi(
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
         if len(images) > 2:
             res.info["frames_used"] = [0, len(images) - 1]
+    if dropped:
+        res.info["frames_dropped"] = dropped  # the input's frame numbers
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:
             res.info.setdefault("skipped", []).insert(0, "pose_refine")
     return res
+
+
+def _unchecked_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
+    """The later frames (1 to ``n - 1``) whose pose the images could not check or contradicted
+    (:func:`flight_sw.pose_refine.unchecked`), to leave out of the sweep, where each adds its error to every
+    plane's cost: a noise image as the last of four frames, refused by the refinement and swept all the same,
+    left the DEM 7.9 m off (0.34 m without it). None when that would leave frame 0 alone: then the pair stands,
+    with the warning its reason gives."""
+    if not pose_info or n <= 2:
+        return []
+    bad = sorted(
+        int(f["frame"])
+        for f in pose_info.get("frames") or ()
+        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and unchecked(str(f.get("reason", "")), side)
+    )
+    return bad if len(bad) < n - 1 else []
 
 
 def _degrees_or_none(value: float | None, name: str) -> float | None:

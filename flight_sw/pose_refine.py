@@ -83,6 +83,21 @@ from .warping import area_sigma
 
 DETECTORS = ("orb", "sift", "akaze")
 
+# fallback reasons that mean "no evidence": the images could not check the navigation pose
+UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC found no model", "no ground-plane")
+# the images matched, but the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
+# error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
+# not the pair they claim to be. Clean pairs do not reach these (docs/benchmarks/pose.md: none in 260 refinements)
+DISAGREE = ("attitude correction", "baseline direction change", "inlier residual", "refined geometry puts")
+# px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px), so a fallback says nothing
+CHECK_MIN_SIDE = 256
+
+
+def unchecked(reason: str, side: int) -> bool:
+    """True when a frame's fallback ``reason`` means its pose is unchecked or contradicted by the images
+    (:data:`UNVERIFIED`, :data:`DISAGREE`), on images of at least :data:`CHECK_MIN_SIDE` px a side."""
+    return side >= CHECK_MIN_SIDE and str(reason).startswith(UNVERIFIED + DISAGREE)
+
 
 @dataclass(frozen=True)
 class RefineParams:
@@ -1009,6 +1024,7 @@ def refine_descent(
     *,
     altimeter_m: Sequence[float] | None = None,
     params: RefineParams | None = None,
+    stop_by: float | None = None,
 ) -> tuple[list[Pose], dict[str, Any]]:
     """Refine 2-16 descent frames against frame 0; returns the poses and the telemetry.
 
@@ -1018,6 +1034,9 @@ def refine_descent(
     (re-attached the same way) and says why in ``info["frames"]``. ``info`` is the widest pair's
     telemetry plus ``frames``: per frame k >= 1 ``refined``, ``reason``, ``inliers``,
     ``relative_rotation_correction_deg``.
+
+    ``stop_by`` (``time.monotonic()``): a middle frame is refined only while the widest pair's own cost still
+    fits before it; the others keep their navigation relative pose, with the reason "skipped".
     """
     n = len(images)
     if n < 2 or len(poses) != n:
@@ -1025,7 +1044,9 @@ def refine_descent(
     alt = [math.nan] * n if altimeter_m is None else [math.nan if a is None else float(a) for a in altimeter_m]
     if len(alt) != n:
         raise FlightInputError(f"pose refinement: altimeter_m has {len(alt)} entries for {n} frames")
+    t_wide = time.monotonic()
     wide = refine_pair(images[0], images[-1], poses[0], poses[-1], camera, altimeter_m=(alt[0], alt[-1]), params=params)
+    cost = time.monotonic() - t_wide  # what one more pair will take, about
     out = [wide.pose1] + [poses[k] for k in range(1, n - 1)] + [wide.pose2]
     info = dict(wide.info)
 
@@ -1040,6 +1061,11 @@ def refine_descent(
 
     frames = []
     for k in range(1, n - 1):
+        if stop_by is not None and time.monotonic() + cost > stop_by:
+            out[k] = transfer_relative(out[0], poses[0], poses[k])
+            why = "skipped: the deadline leaves no time to refine it (its navigation pose is kept)"
+            frames.append({"frame": k, "refined": False, "reason": why, "inliers": 0})
+            continue
         r = refine_pair(images[0], images[k], poses[0], poses[k], camera, altimeter_m=(alt[0], alt[k]), params=params)
         out[k] = transfer_relative(out[0], r.pose1, r.pose2)
         frames.append(summary(r, k))

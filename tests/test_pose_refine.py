@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -312,6 +313,12 @@ def test_descent_frames_are_refined_against_frame_0(synth):
     assert f1["refined"] is False and f1["reason"] != "ok" and info["frames"][1]["refined"]
     want = transfer_relative(poses[0], nav[0], nav[1])
     assert np.allclose(poses[1].R, want.R) and np.allclose(poses[1].position, want.position)
+    assert rel_rot_err(poses[0], poses[1], nav[0], nav[1]) < 1e-9
+    # no time left: the widest pair is refined, the middle frame keeps its navigation pose and says why (all 15
+    # of a 16-frame descent ran past a 0.3 s deadline, stop 59's QA)
+    poses, info = refine_descent([i1, im, i2], nav, cam, params=FRAME2_ONLY, stop_by=time.monotonic())
+    f1, f2 = info["frames"]
+    assert not f1["refined"] and f1["reason"].startswith("skipped: the deadline") and f2["refined"]
     assert rel_rot_err(poses[0], poses[1], nav[0], nav[1]) < 1e-9
 
 
