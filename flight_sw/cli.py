@@ -307,6 +307,8 @@ def _process(args: argparse.Namespace) -> int:
     if "psafe_fallback" in res.info:  # the trees' calibration does not hold here: FP 1.6-5 % at 128 px
         print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
+    if "altimeter_disagreement" in res.info:
+        print(f"warning: {res.info['altimeter_disagreement']} (result.json info)", file=sys.stderr)
     side = min(pair.camera.width, pair.camera.height)
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)

@@ -441,7 +441,8 @@ class FlightProcess:
                 Camera.from_dict(cfg.camera),
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
-                altimeter_m=float(upper.altimeter_m),  # NaN: no reading
+                # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
+                altimeter_m=[float(upper.altimeter_m), float(lower.altimeter_m)],
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
@@ -455,6 +456,8 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
+        if "altimeter_disagreement" in res.info:  # the Result has no words for it: the flight log does
+            print(f"flight: frames {list(seqs)}: {res.info['altimeter_disagreement']}", file=sys.stderr, flush=True)
         grid, sites, reason = res.grid, res.sites, res.info.get("no_site_reason")
         if fusion:
             w0, c0 = time.perf_counter(), time.thread_time()

@@ -82,7 +82,7 @@ from .pose_refine import refine_descent, unchecked
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
-from .rangefind import find_ground, prior_range
+from .rangefind import altimeter_disagreement, find_ground, prior_range
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask, speck_contrast
@@ -911,6 +911,7 @@ def run_pipeline_multi(
         measured = None if reserve_measured is None else float(reserve_measured)
         clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s), measured)
     pose_info: dict[str, Any] | None = None
+    poses_in = tuple(poses)  # as reported: what the altimeters are checked against
     if p.refine_pose:
         # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
         px_scale = images[0].size / REF_PIXELS
@@ -930,6 +931,9 @@ def run_pipeline_multi(
             clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
             pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
+    alt_note = altimeter_disagreement(list(poses_in), alt_frames) if alt_frames is not None else ""
+    if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
+        alt_range = None
     dropped = _unchecked_frames(pose_info, len(images), min(camera.width, camera.height))
     if dropped:
         images = [im for k, im in enumerate(images) if k not in dropped]
@@ -945,6 +949,8 @@ def run_pipeline_multi(
             res.info["frames_used"] = [0, len(images) - 1]
     if dropped:
         res.info["frames_dropped"] = dropped  # the input's frame numbers
+    if alt_note:
+        res.info["altimeter_disagreement"] = alt_note
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:

@@ -769,3 +769,25 @@ def test_a_full_dem_that_cannot_finish_is_not_started():
     assert FULL_OVER_COARSE_MIN == 2.0
     assert full_dem_fits(7.4, 3.7) and not full_dem_fits(7.3, 3.7)
     assert not full_dem_fits(0.7, 3.1) and full_dem_fits(0.7, None) and full_dem_fits(-1.0, None)
+
+
+def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_the_range():
+    """Each frame's altimeter and position put the ground at ``C_z + r R[2, 2]``. A frame reported at 200 m whose
+    altimeter read 151 m gave a DEM 24 m off and "kept" poses; a frame-0 reading 50 m long cut the ground above
+    the datum out of the sweep (stop 59's QA). Relief between the axes' ground points stays within the rule."""
+    from flight_sw.rangefind import altimeter_disagreement
+
+    up, low = Pose(np.array([0.0, 0.0, 300.0]), NADIR_R), Pose(np.array([0.0, 0.0, 150.0]), NADIR_R, 10.0)
+    assert altimeter_disagreement([up, low], [301.0, 151.0]) == ""
+    assert altimeter_disagreement([up, low], [301.0, 158.0]) == ""  # 7 m of relief between the two points
+    assert altimeter_disagreement([up, low], [301.0, math.nan]) == ""  # one reading: nothing to compare
+    wrong = Pose(np.array([0.0, 0.0, 200.0]), NADIR_R, 10.0)
+    said = altimeter_disagreement([up, wrong], [301.0, 151.0])
+    assert "frame 0 puts it at -1.0 m, frame 1 at 49.0 m (50.0 m apart, more than the 10.0 m" in said, said
+    # in the pipeline: said, and the ground is searched without the altimeter (its prior would hold -50 m)
+    cam, p1, p2, i1, i2, _ = make_pair(128, 300.0, 150.0, plane(0.0), seed=3)
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast", altimeter_m=[350.0, 150.0])
+    assert "disagree on the ground's elevation" in res.info["altimeter_disagreement"]
+    assert res.info["range_search"]["source"] == "wide"
+    ok = run_pipeline(i1, i2, p1, p2, cam, preset="fast", altimeter_m=[300.0, 150.0])
+    assert "altimeter_disagreement" not in ok.info and ok.info["range_search"]["source"] == "altimeter"
