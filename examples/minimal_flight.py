@@ -89,6 +89,7 @@ def parse(piece: bytes) -> tuple[int, int, int, bytes] | None:
 
 # --- section 5: messages ------------------------------------------------------------------------------------
 HELLO_MSG, CONFIG, FRAME_MSG, RESULT, TELEMETRY, HEARTBEAT, ERROR = 1, 2, 3, 4, 5, 6, 7
+PROTOCOL = 2  # the messages' version (section 5), said in our Hello
 DTYPES = {1: "|u1", 2: "|i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<u8", 8: "<i8", 9: "<f4", 10: "<f8"}
 DTYPES.update({11: "|b1", 12: "<f2"})
 CODES = {np.dtype(v): k for k, v in DTYPES.items()}
@@ -319,7 +320,15 @@ def main(argv: list[str] | None = None) -> int:
         while not link.closed_by_peer:
             for mtype, msg in link.poll():
                 if mtype == HELLO_MSG:  # the ground (or the HIL server) says Hello: answer once ready
-                    link.send(HELLO_MSG, {"role": "flight", "software": "minimal_flight", "session": link.local})
+                    link.send(
+                        HELLO_MSG,
+                        {
+                            "role": "flight",
+                            "protocol_version": PROTOCOL,
+                            "software": "minimal_flight",
+                            "session": link.local,
+                        },
+                    )
                 elif mtype == CONFIG:
                     config = msg
                 elif mtype == FRAME_MSG and config is None:

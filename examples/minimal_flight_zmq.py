@@ -36,7 +36,10 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import minimal_flight as mf  # the message layer is the serial program's, unchanged
+try:
+    import minimal_flight as mf  # the message layer is the serial program's, unchanged
+except ImportError as exc:  # copied to a board alone: say what is missing, not a traceback
+    sys.exit(f"minimal_flight_zmq.py: needs minimal_flight.py beside it, for its messages ({exc})")
 
 HEAD = struct.Struct(">BBBBIII")  # version, kind, type, flags, src_session, dst_session, seq (section 7)
 MSG, HELLO, CLOSE = 1, 4, 5
@@ -183,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
                     config, pending, epoch = None, {}, s.epoch
                 mtype, msg = got if got is not None else (0, {})
                 if mtype == mf.HELLO_MSG:  # the ground's Hello message: ours in reply
-                    s.send(mf.HELLO_MSG, {"role": "flight", "software": "minimal_flight_zmq", "session": s.local})
+                    hello = {"role": "flight", "protocol_version": mf.PROTOCOL, "software": "minimal_flight_zmq"}
+                    s.send(mf.HELLO_MSG, {**hello, "session": s.local})
                 elif mtype == mf.CONFIG:
                     config = msg
                 elif mtype == mf.FRAME_MSG and config is None:
