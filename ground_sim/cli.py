@@ -43,7 +43,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--pose-error",
         default=None,
-        help="inject pose errors, e.g. alt=0.5,pitch=0.05,roll_yaw=0,lateral=0,equal_pitch=1",
+        help="inject navigation errors into the reported poses (the true ones are kept as true_frames), drawn "
+        "with the seed per frame: alt=B and pitch=B uniform in +-B (m, deg), alt_sigma, pitch_sigma, roll_yaw and "
+        "lateral Gaussian sds (m, deg); equal_pitch=1 (the default, as thesis 6.3.2) gives every frame frame 0's "
+        "pitch draw, which the images cannot see; equal_pitch=0 draws each frame's own. "
+        "E.g. alt=0.5,pitch=0.15,equal_pitch=0",
     )
     p.add_argument("--sun", default=None, help="AZ,EL in degrees (default: the scene's sun for this seed)")
     p.add_argument("--supersample", type=int, default=2, help="sub-pixels per axis (default 2)")

@@ -124,7 +124,9 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
     alts = [float(a) for a in altitudes]
     if not 2 <= len(alts) <= MAX_FRAMES:
         raise TrajectoryError(f"--frames: need 2-{MAX_FRAMES} altitudes, got {len(alts)}")
-    if not all(math.isfinite(a) and a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
+    if not all(math.isfinite(a) for a in alts):  # NaN failed the order test and was called "not decreasing"
+        raise TrajectoryError(f"--frames: altitudes must be finite numbers of metres, got {alts}")
+    if not all(a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
         raise TrajectoryError(f"--frames: altitudes must be positive and strictly decreasing, got {alts}")
     if alts[-1] < MIN_ALTITUDE_M:  # a render below it takes minutes to hours (see MIN_ALTITUDE_M)
         raise TrajectoryError(f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got {alts[-1]:g}")

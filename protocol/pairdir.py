@@ -227,7 +227,7 @@ class Pose:
             return self, None
         if err > tol:
             raise PairFormatError(
-                f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.4g} > {tol:g}); "
+                f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.6g} > {tol:g}); "
                 "give a rotation matrix or q_world_to_cam"
             )
         u, _, vt = np.linalg.svd(self.R)
@@ -347,12 +347,15 @@ class Pair:
         """Warnings for geometry that is legal but implausible (e.g. positions in km, not m)."""
         out = []
         z0 = float(self.poses[0].position[2])
-        gsd = z0 / max(1e-9, -float(self.poses[0].R[2, 2])) / self.camera.fx
-        if gsd < 1e-3 or gsd > 100.0:
-            out.append(
-                f"frame 0 sees {gsd:.2g} m per pixel at {z0:g} m altitude: positions must be in metres "
-                "(expected 1 mm - 100 m per pixel)"
-            )
+        for k, pose in enumerate(self.poses):  # frame 0 alone let km positions pass at 256 px (its 1.3 mm)
+            z = float(pose.position[2])
+            gsd = z / max(1e-9, -float(pose.R[2, 2])) / self.camera.fx
+            if gsd < 1e-3 or gsd > 100.0:
+                out.append(
+                    f"frame {k} sees {gsd:.2g} m per pixel at {z:g} m altitude: positions must be in metres "
+                    "(expected 1 mm - 100 m per pixel)"
+                )
+                break
         base = float(np.linalg.norm(self.poses[0].position - self.poses[-1].position))
         if base < 0.01 * z0:
             out.append(
@@ -760,6 +763,8 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
                 raise ValueError(f"R_world_to_cam has shape {R.shape}, need 3x3")
         elif "q_world_to_cam" in fr:
             q = _numbers(fr["q_world_to_cam"], "q_world_to_cam")
+            if q.shape != (4,):
+                raise ValueError(f"q_world_to_cam has shape {q.shape}, need 4 numbers [w, x, y, z]")
             norm = float(np.linalg.norm(q)) if q.shape == (4,) else math.nan
             if math.isfinite(norm) and abs(norm - 1.0) > QUATERNION_NORM_TOL:  # as a matrix off orthonormal
                 raise PairFormatError(
@@ -786,10 +791,13 @@ def _frame_pose(fr: Any, k: int, meta_path: Path) -> tuple[Pose, str, float]:
     except PairFormatError as exc:  # the frame's own checks: name the file and the frame once
         text = str(exc)
         raise PairFormatError(text if text.startswith(str(meta_path)) else f"{meta_path}: frame {k}: {text}") from None
-    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+    except KeyError as exc:  # a field left out: say what a frame needs
         raise PairFormatError(
-            f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] or q_world_to_cam[4] ({exc})"
+            f"{meta_path}: frame {k}: need image, position_m[3], R_world_to_cam[3][3] or q_world_to_cam[4] "
+            f"(missing {exc})"
         ) from None
+    except (TypeError, ValueError, OverflowError) as exc:  # a field of the wrong kind: that field, by name
+        raise PairFormatError(f"{meta_path}: frame {k}: {exc}") from None
     return pose, img_name, alt
 
 

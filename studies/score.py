@@ -356,6 +356,23 @@ def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, 
         raise ScoreError(f"{option} {path} is one of the files this scoring reads: it would be overwritten")
 
 
+def _records(path: Path) -> list[dict]:
+    """An HIL run's records (``received/results.jsonl``), in order; :class:`ScoreError` when it is not one."""
+    out = []
+    try:
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                if not isinstance(r, dict):
+                    raise ValueError(f"a record is a {type(r).__name__}, not an object")
+                out.append(r)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ScoreError(f"{path}: not an HIL run's records ({exc})") from None
+    except RecursionError:  # json's parser recurses once per nested list or object
+        raise ScoreError(f"{path}: JSON nested too deeply") from None
+    return out
+
+
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     """The pairs to score:
 
@@ -371,22 +388,20 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     if not o.is_dir():  # a mistyped path: usage, not a detector that wrote nothing for every pair
         raise ScoreError(f"{o}: {'not a directory' if o.exists() else 'no such directory'} (OUTPUTS)")
     if (p / "pair.json").exists():  # a FIFO or a directory by that name: read_pair says which
+        # one pair of an HIL run's received/: its sites are in the run's record, not in a result.json (scored as
+        # "no site" when the Result had one, stop 59's QA)
+        ran = o.parent / "results.jsonl"
+        if not (o / "result.json").exists() and ran.is_file():
+            mine = [r for r in _records(ran) if Path(str(r.get("out_dir", r.get("pair_id", "")))).name == o.name]
+            if mine and mine[-1].get("status") == "result":
+                return [Job(p.name, p, o, sites=mine[-1].get("sites") or [])]
         return [Job(p.name, p, o)]
     if not (p / "manifest.json").is_file():
         raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
     entries = read_manifest(p / "manifest.json")["pairs"]
     if not (o / "results.jsonl").is_file():
         return [Job(str(e.get("label", e["path"])), p / e["path"], o / Path(e["path"]).name) for e in entries]
-    records: dict[str, dict] = {}
-    try:
-        for line in (o / "results.jsonl").read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                records[Path(r.get("pair_dir", "")).name] = r
-    except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
-        raise ScoreError(f"{o / 'results.jsonl'}: not an HIL run's records ({exc})") from None
-    except RecursionError:  # json's parser recurses once per nested list or object
-        raise ScoreError(f"{o / 'results.jsonl'}: JSON nested too deeply") from None
+    records = {Path(str(r.get("pair_dir", ""))).name: r for r in _records(o / "results.jsonl")}
     jobs = []
     for e in entries:
         name = Path(e["path"]).name

@@ -95,6 +95,7 @@ CASES = [
     # an empty item in a comma-separated list was skipped: 1,,2 is more likely a value lost in typing
     (["render", "--scenario", "vertical", "--pairs", "600/300,,300/150"], "--pairs: an empty item in"),
     (["render", "--scenario", "vertical", "--frames", "300,250,"], "--frames: an empty item in '300,250,'"),
+    (["render", "--scenario", "vertical", "--frames", "300,nan"], "--frames: altitudes must be finite numbers"),
     (["render", "--scenario", "vertical", "--pose-error", "alt=1,,pitch=0"], "--pose-error: an empty item"),
     (["run", "--pairs", ",600/300"], "--pairs: an empty item in ',600/300'"),
     (["regress", "--cases", "a,,b"], "--cases: an empty item in 'a,,b'"),

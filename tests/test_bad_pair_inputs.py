@@ -217,7 +217,13 @@ def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
         (lambda doc: doc["camera"].update(width=PX + 0.5), "width must be a whole number"),  # was truncated
         (lambda doc: doc["frames"][1].update(position_m=["0", "0", "150"]), "position_m entries must be a number"),
         (lambda doc: doc["frames"][1].update(position_m=[True, False, 150]), "position_m entries must be a number"),
-        (lambda doc: doc["frames"][1].update(altimeter_m="150"), "altimeter_m must be a number"),
+        # the field at fault alone: the message listed the fields a frame needs, which were all there
+        (lambda doc: doc["frames"][1].update(altimeter_m="150"), "frame 1: altimeter_m must be a number, got '150'"),
+        (  # numpy's "cannot reshape array of size 3 into shape (4,)"
+            lambda doc: doc["frames"][1].update(q_world_to_cam=[1, 0, 0]) or doc["frames"][1].pop("R_world_to_cam"),
+            "frame 1: q_world_to_cam has shape (3,), need 4 numbers [w, x, y, z]",
+        ),
+        (lambda doc: doc["frames"][1].pop("position_m"), "need image, position_m[3], R_world_to_cam[3][3] or"),
         (lambda doc: doc["frames"][0].update(time_s="0"), "time_s must be a number"),
         # a missing time read as 0: "frame 1 is earlier than frame 0 (time_s 0 vs 9.96)", or no check at all
         (lambda doc: doc["frames"][1].pop("time_s"), "frame 1: time_s missing"),

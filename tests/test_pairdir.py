@@ -237,3 +237,17 @@ def test_a_stopped_writes_leftover_is_not_taken_for_an_earlier_renders_pair(tmp_
         (tmp_path / name).mkdir()
         (tmp_path / name / "pair.json").write_text("{}")
     assert _earlier_render(tmp_path) == ["600_300"]  # no manifest: the directories with a pair.json
+
+
+def test_positions_in_km_are_noted_on_whichever_frame_shows_it():
+    """Only frame 0 was checked: a 256 px pair at 0.6 / 0.3 "m" (km written as m) sees 1.3 mm per pixel from frame
+    0, within the bounds, and 0.63 mm from frame 1, and went without a note (stop 59's QA)."""
+    f = 128 / np.tan(np.radians(15.0))
+    cam = Camera(256, 256, f, f, 127.5, 127.5)
+    nadir = np.diag([1.0, -1.0, -1.0])
+    img = np.zeros((256, 256), np.uint8)
+    km = Pair(cam, (Pose([0, 0, 0.6], nadir), Pose([0, 0, 0.3], nadir, 1.0)), (img, img))
+    notes = km.scale_notes()
+    assert any(n.startswith("frame 1 sees 0.00063 m per pixel") and "metres" in n for n in notes), notes
+    m = Pair(cam, (Pose([0, 0, 600.0], nadir), Pose([0, 0, 300.0], nadir, 1.0)), (img, img))
+    assert m.scale_notes() == []

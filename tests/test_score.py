@@ -299,6 +299,12 @@ def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent,
     for r, rec in zip(doc["rows"], records):
         assert r["error"] is None and r["sites"] == len(rec["sites"])
         assert r["fp_pct"] <= 1.0 and r["cdi_pct"] > 10
+    # one pair of it alone: its sites from the run's record too (it read "no site", stop 59's QA). At 128 px
+    # the flight side offers none: one is written into the record, as a Result would carry it
+    records[0]["sites"] = [{"x": 0.0, "y": 0.0, "z": 0.0, "slope_deg": 1.0, "roughness_m": 0.0, "clearance_m": 3.0}]
+    (received / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    code, single = _score(descent / Path(records[0]["pair_dir"]).name, Path(records[0]["out_dir"]), capsys)
+    assert code in (0, 1) and single["rows"][0]["sites"] == 1, single["rows"][0]
     # the run ended the second pair in an error: said, not scored, exit 3 (no usable output)
     records[1].update(status="error", code="deadline_hit", text="hard deadline passed")
     (received / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
