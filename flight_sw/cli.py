@@ -295,10 +295,15 @@ def _process(args: argparse.Namespace) -> int:
     if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
         line += f", FP {c['FP_pct']:.2f} %, CDI {c['CDI_pct']:.1f} % of the map's covered pixels"
     elif gt_z is not None:  # DESIGN.md's truth files without ours: the elevation alone is scored, said
-        line += (
-            " (no gt_hazard_i1.npy, the truth hazard map of docs/design.md: FP and CDI not scored here; "
-            "`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth)"
-        )
+        line += " (no gt_hazard_i1.npy, the truth hazard map of docs/design.md: FP and CDI not scored here; "
+        half = params.footprint_m / 2
+        if res.grid is not None and res.grid.cell_m > half:  # `score` refuses such a pair: no hint that fails
+            line += (
+                f"the ground is sampled every ~{res.grid.cell_m:.2g} m, coarser than half the {params.footprint_m:g} m "
+                "footprint, too coarse to derive one from gt_elevation: give gt_hazard_i1.npy to score it)"
+            )
+        else:
+            line += "`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth)"
     print(f"{out}: {line}")
     if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
         skipped = list(res.info.get("skipped", ()))

@@ -232,3 +232,23 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     assert _unchecked_frames(info, 3, 128) == []
     both = {"frames": [dict(info["frames"][0]), {"frame": 2, "refined": False, "reason": "too few inliers"}]}
     assert _unchecked_frames(both, 3, 256) == []
+
+
+def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):
+    """Without gt_hazard_i1.npy `process` pointed to `score`, which then refused a pair whose ground is sampled
+    coarser than half the footprint (stop 59's QA)."""
+    import shutil
+
+    from hilkit import small_descent
+
+    root = small_descent(tmp_path / "pairs", ["600/300", "200/100"], px=128).parent
+    for label in ("600_300", "200_100"):
+        d = tmp_path / label
+        shutil.copytree(root / label, d)
+        (d / "gt_hazard_i1.npy").unlink()
+        assert main(["process", str(d), "--out", str(tmp_path / f"o{label}")]) == 0
+    said = capsys.readouterr().out
+    coarse, fine = (ln for ln in said.splitlines() if "no gt_hazard_i1.npy" in ln)
+    assert "coarser than half the 3 m footprint" in coarse and "hazard-hil score" not in coarse, coarse
+    assert "`hazard-hil score PAIR OUT` derives it" in fine, fine
+    assert main(["score", str(tmp_path / "600_300"), str(tmp_path / "o600_300")]) == 2  # as the hint says
