@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "process",
         help="DEM, hazard map and safe sites from a pair directory",
         description="Run the flight pipeline offline on a pair directory (every frame: 2-16, frame 0 the "
-        "reference) and write elevation.npy, hazard.npy, state.npy, psafe.npy, result.json, pictures and "
+        "reference) and write elevation.npy, hazard.npy, state.npy, psafe.npy, sigma.npy and filled.npy (fast), "
+        "result.json, pictures and "
         "report.html in OUT_DIR (docs/design.md). Ground truth in the directory is read only to score the run.",
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")

@@ -728,8 +728,8 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         description="Render a descent (or stream --manifest pairs), send each pair's frames over a serial line or "
         "ZeroMQ to flight software on an emulated flight processor, and score what comes back against the "
         "deadline (end to end, docs/hil.md) and the truth. Writes summary.json, summary.md, telemetry.jsonl, "
-        "ground.log and report.html in --out. Exit 0 only when every pair met its deadline, 1 otherwise, 2 on bad "
-        "usage.",
+        "supervisor.jsonl, ground.log, received/ (each pair's Result) and report.html in --out. Exit 0 only "
+        "when every pair met its deadline, 1 otherwise, 2 on bad usage.",
     )
     _add_run_options(p, {})
     p.set_defaults(func=_cmd_run)

@@ -933,7 +933,9 @@ def check_memory(budget, width: int, height: int, rendered: bool = False) -> Non
             else f"the largest square camera that fits is {side} px (--image-size)"
         )
         raise InputError(
-            f"a {width}x{height} camera needs ~{need:.0f} MiB peak private RSS in the flight process, over budget "
+            # one decimal where whole MiB would read "~256 MiB, over 256 MiB"
+            f"a {width}x{height} camera needs ~{need:.{0 if need - budget.memory_mib >= 0.5 else 1}f} MiB peak "
+            "private RSS in the flight process, over budget "
             f"{budget.name}'s {budget.memory_mib} MiB; {remedy}, see `hazard-hil budgets`"
         )
 
