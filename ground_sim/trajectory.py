@@ -140,7 +140,7 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
         poses = tuple(_approach_pose(h) for h in alts)
     else:
         raise TrajectoryError(f"--frames needs the vertical or approach scenario, got {scenario!r}")
-    return PairSpec("/".join(f"{a:g}" for a in alts), alts[-1], poses, cam, scenario)
+    return PairSpec("/".join(f"{a:.10g}" for a in alts), alts[-1], poses, cam, scenario)
 
 
 def _number(obj: dict, key: str, default: float, where: str) -> float:
