@@ -778,7 +778,7 @@ def fusion_note(summary: dict) -> str:
         return ""
     if not summary["fusion"]:
         return "each Result reports its pair alone (`--no-fusion`)"
-    if summary.get("flight") == "external":  # the board decides: ours fuses, a program of one's own may not
+    if summary.get("flight") not in (None, "emulated"):  # a board or a --flight-cmd program decides for itself
         said = "fusion was asked of the flight side (Config option `fusion` 1): where it fuses, a pair's scores are "
     else:
         said = "the Results report the map fused over the descent (flight_sw.fusion; `--no-fusion` reports each "

@@ -492,3 +492,5 @@ def test_the_summary_says_when_pairs_of_other_ground_are_fused_as_one_descent():
     assert "its pairs come from 2 scenes or seeds (seed 0, seed 1), fused as one descent" in said
     assert fusion_note({"fusion": False}) == "each Result reports its pair alone (`--no-fusion`)"
     assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "external"})
+    assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "command: ./mine {port}"})
+    assert fusion_note({"fusion": True, "flight": "emulated"}).startswith("the Results report the map fused")
