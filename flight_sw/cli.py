@@ -297,11 +297,18 @@ def _process(args: argparse.Namespace) -> int:
         line += f", FP {c['FP_pct']:.2f} %, CDI {c['CDI_pct']:.1f} % of the map's covered pixels"
     elif gt_z is not None:  # DESIGN.md's truth files without ours: the elevation alone is scored, said
         line += " (no gt_hazard_i1.npy, the truth hazard map of docs/design.md: FP and CDI not scored here; "
-        half = params.footprint_m / 2
-        if res.grid is not None and res.grid.cell_m > half:  # `score` refuses such a pair: no hint that fails
+        half, cell = params.footprint_m / 2, res.grid.cell_m
+        # `score` refuses a pair whose frame 0 samples the ground coarser than half the footprint in its coarser
+        # direction; the grid's cell is the median spacing, which an oblique view exceeds by up to 1.5x there
+        if cell > half:  # no hint that then fails
             line += (
-                f"the ground is sampled every ~{res.grid.cell_m:.2g} m, coarser than half the {params.footprint_m:g} m "
+                f"the ground is sampled every ~{cell:.2g} m, coarser than half the {params.footprint_m:g} m "
                 "footprint, too coarse to derive one from gt_elevation: give gt_hazard_i1.npy to score it)"
+            )
+        elif cell > half / 1.5:
+            line += (
+                f"`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth if frame 0 samples the ground "
+                f"finer than {half:g} m in its coarser direction: here ~{cell:.2g} m at the median)"
             )
         else:
             line += "`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth)"
@@ -338,16 +345,14 @@ def _process(args: argparse.Namespace) -> int:
 
 
 def _refined_poses(info: Any) -> list[str]:
-    """Say "frame k (relative rotation r deg[, baseline direction d deg])" for each frame the images refined."""
+    """Say "frame k (relative rotation corrected by r deg)" for each frame the images refined."""
     if not isinstance(info, dict):
         return []
     out = []
     for i, f in enumerate(info.get("frames") or [{"frame": 1, **info}]):
         if isinstance(f, dict) and f.get("refined"):
-            said = [f"relative rotation {float(f.get('relative_rotation_correction_deg') or 0.0):.2f} deg"]
-            if f.get("translation_dir_change_deg") is not None:  # a pair's own; a descent's frames keep less
-                said.append(f"baseline direction {float(f['translation_dir_change_deg']):.2f} deg")
-            out.append(f"frame {int(f.get('frame', i + 1))} ({', '.join(said)})")
+            rot = float(f.get("relative_rotation_correction_deg") or 0.0)
+            out.append(f"frame {int(f.get('frame', i + 1))} (relative rotation corrected by {rot:.2f} deg)")
     return out
 
 

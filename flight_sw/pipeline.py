@@ -78,11 +78,17 @@ from .mapping import (
     three_state,
 )
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
-from .pose_refine import refine_descent, unchecked
+from .pose_refine import contradicted, refine_descent
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
-from .rangefind import altimeter_disagreement, find_ground, prior_range
+from .rangefind import (
+    altimeter_dem_disagreement,
+    altimeter_dem_gap,
+    altimeter_disagreement,
+    find_ground,
+    prior_range,
+)
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask, speck_contrast
@@ -783,7 +789,7 @@ def _note_started(info: dict[str, Any], stage: str) -> None:
 
 
 def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
-    """The slant range of i1's altimeter reading (first finite value of a per-frame sequence), or None."""
+    """The slant range of i1's altimeter reading (a per-frame sequence's first entry: frame 0's), or None."""
     if altimeter_m is None:
         return None
     vals = [altimeter_m] if isinstance(altimeter_m, (int, float)) else list(altimeter_m)[:1]
@@ -877,7 +883,9 @@ def run_pipeline_multi(
     (frame 0, frame k) pair robustly (multi-baseline plane sweep, :func:`flight_sw.costvolume.multi_cost_slab`,
     ``Params.multi_*``) before the same SGM, sigma and evidence stages. Two frames give exactly
     :func:`run_pipeline`'s result. The v1 flow (``dem="sweep"``) uses frames 0 and -1 only
-    (``info["frames_used"]``). Other arguments as :func:`run_pipeline`.
+    (``info["frames_used"]``). With ``refine_pose``, a later frame the images contradict is left out first
+    (``info["frames_dropped"]``, the input's numbers), and the widest pair is frame 0 and the last frame kept.
+    Other arguments as :func:`run_pipeline`.
     """
     t_start = time.monotonic()
     timings: dict[str, dict[str, float]] = {}
@@ -934,7 +942,7 @@ def run_pipeline_multi(
     alt_note = altimeter_disagreement(list(poses_in), alt_frames) if alt_frames is not None else ""
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
-    dropped = _unchecked_frames(pose_info, len(images), min(camera.width, camera.height))
+    dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
     if dropped:
         images = [im for k, im in enumerate(images) if k not in dropped]
         poses = [ps for k, ps in enumerate(poses) if k not in dropped]
@@ -949,6 +957,12 @@ def run_pipeline_multi(
             res.info["frames_used"] = [0, len(images) - 1]
     if dropped:
         res.info["frames_dropped"] = dropped  # the input's frame numbers
+    alt0 = _altimeter(altimeter_m)
+    if alt0 is not None and p.dem == "sgm" and np.isfinite(res.elevation).any():
+        matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)
+        gap = altimeter_dem_gap(matched, camera, pose1, alt0)
+        res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
+        alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note
     if pose_info is not None:
@@ -958,18 +972,18 @@ def run_pipeline_multi(
     return res
 
 
-def _unchecked_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
-    """The later frames (1 to ``n - 1``) whose pose the images could not check or contradicted
-    (:func:`flight_sw.pose_refine.unchecked`), to leave out of the sweep, where each adds its error to every
-    plane's cost: a noise image as the last of four frames, refused by the refinement and swept all the same,
-    left the DEM 7.9 m off (0.34 m without it). None when that would leave frame 0 alone: then the pair stands,
-    with the warning its reason gives."""
+def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
+    """The later frames (1 to ``n - 1``) whose pose the images contradict (:func:`flight_sw.pose_refine.contradicted`:
+    matched and inconsistent, not merely a small overlap), to leave out of the sweep, where each adds its error to
+    every plane's cost: a noise image as the last of four frames, refused by the refinement and swept all the
+    same, left the DEM 7.9 m off (0.34 m without it). None when that would leave frame 0 alone: then the pair
+    stands, with the warning its reason gives."""
     if not pose_info or n <= 2:
         return []
     bad = sorted(
         int(f["frame"])
         for f in pose_info.get("frames") or ()
-        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and unchecked(str(f.get("reason", "")), side)
+        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("reason", "")), side)
     )
     return bad if len(bad) < n - 1 else []
 

@@ -93,10 +93,22 @@ DISAGREE = ("attitude correction", "baseline direction change", "inlier residual
 CHECK_MIN_SIDE = 256
 
 
+# fallbacks where the images matched and contradict the frame's pose, or match nothing consistent: evidence
+# against the frame, not its geometry (a small overlap, "too few matches", "hardly overlap", is geometry: a clean
+# 100 m frame of a 1000 m descent reaches it)
+CONTRADICTED = DISAGREE + ("images disagree", "RANSAC found no model", "too few RANSAC inliers", "too few inliers")
+
+
 def unchecked(reason: str, side: int) -> bool:
     """True when a frame's fallback ``reason`` means its pose is unchecked or contradicted by the images
     (:data:`UNVERIFIED`, :data:`DISAGREE`), on images of at least :data:`CHECK_MIN_SIDE` px a side."""
     return side >= CHECK_MIN_SIDE and str(reason).startswith(UNVERIFIED + DISAGREE)
+
+
+def contradicted(reason: str, side: int) -> bool:
+    """True when a frame's fallback ``reason`` is evidence against it (:data:`CONTRADICTED`), on images of at
+    least :data:`CHECK_MIN_SIDE` px a side: such a frame is left out of a multi-frame sweep."""
+    return side >= CHECK_MIN_SIDE and str(reason).startswith(CONTRADICTED)
 
 
 @dataclass(frozen=True)

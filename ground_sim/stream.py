@@ -211,7 +211,7 @@ def camera_mismatch(camera: dict, descent: dict) -> str:
     """Why a pair whose camera is not the descent's cannot be streamed in it (the Config says it once)."""
 
     def said(c: dict) -> str:
-        return f"{c['width']}x{c['height']} px, fx {c['fx']:.6g}, cx {c['cx']:.6g}, cy {c['cy']:.6g}"
+        return f"{c['width']}x{c['height']} px, fx {c['fx']:.6g}, fy {c['fy']:.6g}, cx {c['cx']:.6g}, cy {c['cy']:.6g}"
 
     return (
         f"its camera ({said(camera)}) is not the descent's ({said(descent)}): the Config names the camera once per "
@@ -1003,8 +1003,8 @@ def stream_descent(
                 state.said_middle_frames = True
                 note(
                     f"{o.label}: {len(pair.images)} frames; the HIL streams a pair: frames 0 and "
-                    f"{len(pair.images) - 1} (DESIGN.md), not the {len(pair.images) - 2} between (the flight side "
-                    "fuses its Results over the descent; `process` uses every frame)"
+                    f"{len(pair.images) - 1} (DESIGN.md), not the {len(pair.images) - 2} between (`process` uses "
+                    "every frame)"
                 )
             if config is None:
                 config = Config(

@@ -392,7 +392,11 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
         # "no site" when the Result had one, stop 59's QA)
         ran = o.parent / "results.jsonl"
         if not (o / "result.json").exists() and ran.is_file():
-            mine = [r for r in _records(ran) if Path(str(r.get("out_dir", r.get("pair_id", "")))).name == o.name]
+            try:
+                runs = _records(ran)
+            except ScoreError:  # a file of that name that is no HIL run's: the directory is scored as it is
+                runs = []
+            mine = [r for r in runs if Path(str(r.get("out_dir", r.get("pair_id", "")))).name == o.name]
             if mine and mine[-1].get("status") == "result":
                 return [Job(p.name, p, o, sites=mine[-1].get("sites") or [])]
         return [Job(p.name, p, o)]

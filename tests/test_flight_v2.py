@@ -791,3 +791,10 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     assert res.info["range_search"]["source"] == "wide"
     ok = run_pipeline(i1, i2, p1, p2, cam, preset="fast", altimeter_m=[300.0, 150.0])
     assert "altimeter_disagreement" not in ok.info and ok.info["range_search"]["source"] == "altimeter"
+    assert abs(ok.info["altimeter_dem_gap_m"]) < 2.0
+    # one reading only, and the lower frame reported 20 m high: the images scale the DEM with it (the ground
+    # comes out 40 m up); the altimeter under frame 0's axis says so
+    high = Pose(p2.position + np.array([0.0, 0.0, 20.0]), p2.R, p2.time_s)
+    res = run_pipeline(i1, i2, p1, high, cam, preset="fast", altimeter_m=[300.0, math.nan])
+    assert "the DEM puts the ground under frame 0's optical axis" in res.info["altimeter_disagreement"]
+    assert abs(res.info["altimeter_dem_gap_m"]) > 10.0
