@@ -955,8 +955,9 @@ def run_pipeline_multi(
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
         if len(images) > 2:
             res.info["frames_used"] = [0, len(images) - 1]
-    if dropped:
-        res.info["frames_dropped"] = dropped  # the input's frame numbers
+    if dropped:  # the input's frame numbers; info.multi_frame lists the swept ones in frames_swept's order
+        res.info["frames_dropped"] = dropped
+        res.info["frames_swept"] = [k for k in range(len(images) + len(dropped)) if k not in dropped]
     alt0 = _altimeter(altimeter_m)
     if alt0 is not None and p.dem == "sgm" and np.isfinite(res.elevation).any():
         matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)

@@ -263,3 +263,15 @@ def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tm
     assert "coarser than half the 3 m footprint" in coarse and "hazard-hil score" not in coarse, coarse
     assert "`hazard-hil score PAIR OUT` derives it" in fine, fine
     assert main(["score", str(tmp_path / "600_300"), str(tmp_path / "o600_300")]) == 2  # as the hint says
+
+
+def test_widest_pair_messages_name_the_directorys_frames():
+    """`process --widest-pair` runs frames 0 and n - 1 as a pair: its warnings named the last frame "frame 1"."""
+    from flight_sw.cli import _directory_numbers
+
+    info = {"pose_refinement": {"frames": [{"frame": 1, "refined": True}]}, "frames_dropped": [1]}
+    _directory_numbers(info, [0, 3])
+    assert info["pose_refinement"]["frames"][0]["frame"] == 3 and info["frames_dropped"] == [3]
+    same = {"pose_refinement": {"frames": [{"frame": 2}]}}
+    _directory_numbers(same, [0, 1, 2])
+    assert same["pose_refinement"]["frames"][0]["frame"] == 2
