@@ -207,6 +207,11 @@ class PairOutcome:
         )
 
 
+def same_camera(a: dict, b: dict) -> bool:
+    """The same intrinsics, but for the last bits of a float written by another tool (relative 1e-9)."""
+    return set(a) == set(b) and all(math.isclose(float(a[k]), float(b[k]), rel_tol=1e-9) for k in a)
+
+
 def camera_mismatch(camera: dict, descent: dict) -> str:
     """Why a pair whose camera is not the descent's cannot be streamed in it (the Config says it once)."""
 
@@ -994,7 +999,7 @@ def stream_descent(
                 frames = [_frame_from_pair(pair, k, o.seqs[k], pair_id) for k in (0, 1)]
                 for f in frames:
                     f.validated()
-                if config is not None and pair.camera.to_dict() != config.camera:
+                if config is not None and not same_camera(pair.camera.to_dict(), config.camera):
                     raise InputError(camera_mismatch(pair.camera.to_dict(), config.camera))
             except InputError as exc:
                 give_up(o, "bad_input", str(exc))
