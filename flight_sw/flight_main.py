@@ -271,6 +271,13 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
     return plan
 
 
+def _reading(altimeter_m: float) -> float:
+    """A later frame's altimeter reading, or NaN ("none") where it is no range: the lower frame's reading only
+    checks the positions (flight_sw.rangefind), and a 0 there refused the whole pair as bad input."""
+    a = float(altimeter_m)
+    return a if math.isfinite(a) and a > 0 else math.nan
+
+
 def frame_pose(frame: Frame) -> Pose:
     return Pose(
         np.asarray(frame.position_m, dtype=float),
@@ -442,7 +449,7 @@ class FlightProcess:
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
-                altimeter_m=[float(upper.altimeter_m), float(lower.altimeter_m)],
+                altimeter_m=[float(upper.altimeter_m), _reading(lower.altimeter_m)],
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it

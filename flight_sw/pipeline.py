@@ -939,10 +939,13 @@ def run_pipeline_multi(
             clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
             pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
-    alt_note = altimeter_disagreement(list(poses_in), alt_frames) if alt_frames is not None else ""
+    dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
+    alt_note = ""
+    if alt_frames is not None and p.dem == "sgm":  # the v1 flow reads no altimeter: nothing to distrust
+        kept = [k for k in range(len(images)) if k not in dropped]  # a frame left out does not outvote frame 0
+        alt_note = altimeter_disagreement([poses_in[k] for k in kept], [alt_frames[k] for k in kept])
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
-    dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
     if dropped:
         images = [im for k, im in enumerate(images) if k not in dropped]
         poses = [ps for k, ps in enumerate(poses) if k not in dropped]

@@ -84,7 +84,14 @@ from .warping import area_sigma
 DETECTORS = ("orb", "sift", "akaze")
 
 # fallback reasons that mean "no evidence": the images could not check the navigation pose
-UNVERIFIED = ("images disagree", "too few", "the images hardly overlap", "RANSAC found no model", "no ground-plane")
+UNVERIFIED = (
+    "images disagree",
+    "too few",
+    "the images hardly overlap",
+    "the images do not track",
+    "RANSAC found no model",
+    "no ground-plane",
+)
 # the images matched, but the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
 # error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
 # not the pair they claim to be. Clean pairs do not reach these (docs/benchmarks/pose.md: none in 260 refinements)
@@ -96,7 +103,13 @@ CHECK_MIN_SIDE = 256
 # fallbacks where the images matched and contradict the frame's pose, or match nothing consistent: evidence
 # against the frame, not its geometry (a small overlap, "too few matches", "hardly overlap", is geometry: a clean
 # 100 m frame of a 1000 m descent reaches it)
-CONTRADICTED = DISAGREE + ("images disagree", "RANSAC found no model", "too few RANSAC inliers", "too few inliers")
+CONTRADICTED = DISAGREE + (
+    "images disagree",
+    "the images do not track",
+    "RANSAC found no model",
+    "too few RANSAC inliers",
+    "too few inliers",
+)
 
 
 def unchecked(reason: str, side: int) -> bool:
@@ -726,6 +739,7 @@ def refine_pair(
         u1 = sel[ok]
         u2 = _apply_h(H_tot, uw[ok] + [x0, y0]) if ok.any() else np.zeros((0, 2))
     info["tracks"] = len(u1)
+    info["corners"] = 0 if pts is None else len(sel)  # tried in the last pass: texture there, and what tracked
     spread_cells = (mask, roi)
     return _refine_matches(u1, u2, pose1, pose2, camera, alt, p, info, t0, spread_cells)
 
@@ -877,6 +891,10 @@ def _refine_matches(
     if not L_nav > 1e-6:
         return _fallback(pose1, pose2, info, "navigation reports no baseline: translation direction undefined", t0)
     if len(u1) < p.min_inliers:
+        tried = int(info.get("corners", 0))
+        if tried >= 2 * p.min_inliers:  # texture enough in the overlap, and it does not follow: another image
+            why = f"the images do not track: {len(u1)} of {tried} corners (< {p.min_inliers})"
+            return _fallback(pose1, pose2, info, why, t0)
         return _fallback(pose1, pose2, info, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
 
     # -- 2. model selection (GRIC) and outliers

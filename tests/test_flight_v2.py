@@ -784,6 +784,22 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     wrong = Pose(np.array([0.0, 0.0, 200.0]), NADIR_R, 10.0)
     said = altimeter_disagreement([up, wrong], [301.0, 151.0])
     assert "frame 0 puts it at -1.0 m, frame 1 at 49.0 m (50.0 m apart, more than the 10.0 m" in said, said
+    # oblique frames (the approach, 49 deg off nadir) on a ground sloping 20 deg across: their beams hit points
+    # 75 m apart and 27 m apart in height, which the relief allows; the lower one 80 m too high does not
+    from ground_sim.geometry import look_rotation
+
+    tilt = look_rotation(49.0)
+    hi, lo = Pose(np.array([0.0, -1000.0, 1000.0]), tilt), Pose(np.array([0.0, -500.0, 500.0]), tilt, 10.0)
+    axis = tilt[2]  # the optical axis in world: R's third row (R is world -> camera)
+    slope = math.tan(math.radians(20.0))
+
+    def reading(pose: Pose) -> float:  # the slant range to the ground z = slope * y along the axis
+        c = pose.position
+        return float((slope * c[1] - c[2]) / (axis[2] - slope * axis[1]))
+
+    assert altimeter_disagreement([hi, lo], [reading(hi), reading(lo)]) == ""
+    moved = Pose(lo.position + np.array([0.0, 0.0, 80.0]), tilt, 10.0)
+    assert "disagree on the ground's elevation" in altimeter_disagreement([hi, moved], [reading(hi), reading(lo)])
     # in the pipeline: said, and the ground is searched without the altimeter (its prior would hold -50 m)
     cam, p1, p2, i1, i2, _ = make_pair(128, 300.0, 150.0, plane(0.0), seed=3)
     res = run_pipeline(i1, i2, p1, p2, cam, preset="fast", altimeter_m=[350.0, 150.0])
