@@ -233,6 +233,12 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     assert main(["process", str(pair), "--out", str(tmp_path / "pair")]) == 0
     alone = json.loads((tmp_path / "pair" / "result.json").read_text())["vs_truth"]["dem_error"]["mean_abs_m"]
     assert res["vs_truth"]["dem_error"]["mean_abs_m"] <= 1.2 * alone + 0.05
+    # a noise image there: its corners track nothing (it read "too few matches", as a small overlap does, and was
+    # swept: a DEM 6.9 m off, stop 59's review)
+    cv2.imwrite(str(three / "i2.png"), (np.random.default_rng(1).random((256, 256)) * 255).astype(np.uint8))
+    assert main(["process", str(three), "--out", str(tmp_path / "noise")]) == 0
+    noisy = json.loads((tmp_path / "noise" / "result.json").read_text())["info"]
+    assert noisy["frames_dropped"] == [1], noisy["pose_refinement"]["frames"]
     # frame 0 is never left alone, and small images (whose clean frames fail the checks too) drop nothing
     info = {"frames": [{"frame": 1, "refined": False, "reason": "too few RANSAC inliers (37 < 40)"}]}
     assert _contradicted_frames(info, 3, 256) == [1] and _contradicted_frames(info, 2, 256) == []
