@@ -964,9 +964,15 @@ def run_pipeline_multi(
     alt0 = _altimeter(altimeter_m)
     if alt0 is not None and p.dem == "sgm" and np.isfinite(res.elevation).any():
         matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)
-        gap = altimeter_dem_gap(matched, camera, pose1, alt0)
+        # along the axis navigation reports: the beam follows the camera, and a refinement that took an altitude
+        # error in as attitude (up to 3 sd) moved the point and halved the gap
+        gap = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
         res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
-        alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
+        dem_note = altimeter_dem_disagreement(gap, alt0)
+        if dem_note and res.sites:  # a map two sensors disagree on is no ground to land on (issue 9: say so)
+            res.sites = []
+            res.info["no_site_reason"] = f"no site is offered on this map: {dem_note}"
+        alt_note = "; ".join(n for n in (alt_note, dem_note) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note
     if pose_info is not None:

@@ -176,8 +176,9 @@ class RefineParams:
     # ~0.4 px of the truth from poses 2.7 px off, and moves exact poses by 0.05-0.20 px (tuning renders'
     # vertical pairs, p10-p90), so a smaller correction is not evidence and navigation is kept
     min_held_change_px: float = 0.5
-    # ... and a held fit that corrects either attitude, or the baseline direction, by more than this many sds of
-    # the navigation's declared accuracy (nav_att_sigma_deg; sqrt(2) nav_pos_sigma_m / baseline) is refused:
+    # ... and a fit that corrects either attitude (any fit), or the baseline direction (a held one), by more than
+    # this many sds of the navigation's declared accuracy (nav_att_sigma_deg; sqrt(2) nav_pos_sigma_m / baseline)
+    # is refused:
     # holding the relative rotation, the fit pours a relative rotation error into a common tilt and a baseline
     # change, and the DEM follows. A 3 deg pitch of a 300/150 pair's last frame came out as 1.34 deg of both
     # attitudes and 1.56 deg of direction, "ok", with a DEM 2.7 m off (stop 59's QA); 0.3 deg as 0.12-0.25 and
@@ -996,11 +997,17 @@ def _refine_matches(
         reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
     elif info["translation_dir_change_deg"] > p.max_direction_deg:
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
-    elif held and max(info["rotation_correction_deg"]) > p.max_held_correction_sd * p.nav_att_sigma_deg:
+    elif max(info["rotation_correction_deg"]) > p.max_held_correction_sd * p.nav_att_sigma_deg:
+        # held or not: on the approach a lower frame reported 20 m high came out as 1.1-1.7 deg of both attitudes,
+        # under the 2 deg limit, and a DEM 40 m off with sites on it (stop 59's QA)
         reason = (
             f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_held_correction_sd:g} sd "
-            f"of the navigation's ({p.max_held_correction_sd * p.nav_att_sigma_deg:.2f}) on a near-nadir pair, whose "
-            "images cannot tell a relative rotation from a baseline change"
+            f"of the navigation's ({p.max_held_correction_sd * p.nav_att_sigma_deg:.2f})"
+            + (
+                " on a near-nadir pair, whose images cannot tell a relative rotation from a baseline change"
+                if held
+                else ": a position or attitude the images cannot follow"
+            )
         )
     elif held and info["translation_dir_change_deg"] > p.max_held_correction_sd * math.degrees(s_dir):
         reason = (

@@ -814,3 +814,4 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     res = run_pipeline(i1, i2, p1, high, cam, preset="fast", altimeter_m=[300.0, math.nan])
     assert "the DEM puts the ground under frame 0's optical axis" in res.info["altimeter_disagreement"]
     assert abs(res.info["altimeter_dem_gap_m"]) > 10.0
+    assert res.sites == [] and res.info["no_site_reason"].startswith("no site is offered on this map: the DEM")
