@@ -94,7 +94,7 @@ UNVERIFIED = (
 )
 # the images matched, but the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
 # error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
-# not the pair they claim to be. Clean pairs do not reach these (docs/benchmarks/pose.md: none in 260 refinements)
+# not the pair they claim to be. Clean pairs hardly reach these (docs/benchmarks/pose.md: a polar low sun did)
 DISAGREE = ("attitude correction", "baseline direction change", "inlier residual", "refined geometry puts")
 # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px), so a fallback says nothing
 CHECK_MIN_SIDE = 256
