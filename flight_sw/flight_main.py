@@ -470,6 +470,8 @@ class FlightProcess:
             w0, c0 = time.perf_counter(), time.thread_time()
             grid, sites, reason = self._fuse(res)
             res.timings["fusion"] = {"wall_s": time.perf_counter() - w0, "cpu_s": time.thread_time() - c0}
+            if res.info.get("sites_withheld"):  # the altimeter contradicts this pair's DEM: nor on the fused map
+                sites, reason = [], str(res.info["sites_withheld"])
         t_out, cpu_out = time.monotonic(), time.thread_time()
         sent0 = self._bytes_sent()
         try:

@@ -921,7 +921,8 @@ def run_pipeline_multi(
     pose_info: dict[str, Any] | None = None
     poses_in = tuple(poses)  # as reported: what the altimeters are checked against
     if p.refine_pose:
-        # it cannot stop part-way: it starts only when its cost (one pair per later frame) fits before the reserve
+        # a pair's refinement cannot stop part-way: the widest pair's must fit before the reserve, the others follow
+        # while time allows (refine_descent's stop_by)
         px_scale = images[0].size / REF_PIXELS
         # its features and tracks are fixed counts, its warps scale with the pixels: 0.022-0.026 s per pair at 256
         # px against 0.047-0.049 s at 512 (stop 59), about the square root of the pixel ratio. Scaled with the
@@ -968,13 +969,13 @@ def run_pipeline_multi(
         # error in as attitude (up to 3 sd) moved the point and halved the gap
         gap = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
         res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
-        dem_note = altimeter_dem_disagreement(gap, alt0)
-        if dem_note and res.sites:  # a map two sensors disagree on is no ground to land on (issue 9: say so)
-            res.sites = []
-            res.info["no_site_reason"] = f"no site is offered on this map: {dem_note}"
-        alt_note = "; ".join(n for n in (alt_note, dem_note) if n)
+        alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note
+        # which sensor is wrong is unknown, and a map two of them disagree on is no ground to land on: said, with
+        # no site rather than a bad one (issue 9)
+        res.sites = []
+        res.info["no_site_reason"] = res.info["sites_withheld"] = f"no site is offered on this map: {alt_note}"
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:

@@ -997,17 +997,13 @@ def _refine_matches(
         reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
     elif info["translation_dir_change_deg"] > p.max_direction_deg:
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
-    elif max(info["rotation_correction_deg"]) > p.max_held_correction_sd * p.nav_att_sigma_deg:
+    elif beyond := _beyond_navigation(info["rotation_correction_deg"], p):
         # held or not: on the approach a lower frame reported 20 m high came out as 1.1-1.7 deg of both attitudes,
         # under the 2 deg limit, and a DEM 40 m off with sites on it (stop 59's QA)
-        reason = (
-            f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_held_correction_sd:g} sd "
-            f"of the navigation's ({p.max_held_correction_sd * p.nav_att_sigma_deg:.2f})"
-            + (
-                " on a near-nadir pair, whose images cannot tell a relative rotation from a baseline change"
-                if held
-                else ": a position or attitude the images cannot follow"
-            )
+        reason = beyond + (
+            " on a near-nadir pair, whose images cannot tell a relative rotation from a baseline change"
+            if held
+            else ": a position or attitude the images cannot follow"
         )
     elif held and info["translation_dir_change_deg"] > p.max_held_correction_sd * math.degrees(s_dir):
         reason = (
@@ -1040,6 +1036,21 @@ def _refine_matches(
     out2 = Pose(C2, s.R2, pose2.time_s)
     info.update(refined=True, reason="ok", wall_s=time.perf_counter() - t0[0], cpu_s=time.thread_time() - t0[1])
     return PoseRefinement(out1, out2, True, info)
+
+
+def _beyond_navigation(corrections_deg: Sequence[float], p: RefineParams) -> str:
+    """Why an attitude correction is more than ``p.max_held_correction_sd`` sds of the navigation's declared error
+    of that frame ("" if neither is): frame 1's ``nav_att_sigma_deg``, frame 2's with ``nav_rel_att_sigma_deg``
+    on top, ``sqrt(s_att^2 + s_rel^2)``."""
+    sds = (p.nav_att_sigma_deg, math.hypot(p.nav_att_sigma_deg, p.nav_rel_att_sigma_deg))
+    for k, (c, sd) in enumerate(zip(corrections_deg, sds)):
+        limit = p.max_held_correction_sd * sd
+        if c > limit:
+            return (
+                f"attitude correction {c:.2f} deg of frame {k + 1} of the pair > {p.max_held_correction_sd:g} sd of "
+                f"the navigation's ({limit:.2f})"
+            )
+    return ""
 
 
 def transfer_relative(ref: Pose, rel_from: Pose, rel_to: Pose) -> Pose:

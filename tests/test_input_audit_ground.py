@@ -494,3 +494,16 @@ def test_the_summary_says_when_pairs_of_other_ground_are_fused_as_one_descent():
     assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "external"})
     assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "command: ./mine {port}"})
     assert fusion_note({"fusion": True, "flight": "emulated"}).startswith("the Results report the map fused")
+
+
+def test_an_hil_pair_whose_dem_the_altimeter_contradicts_offers_no_site_even_fused(descent, tmp_path):
+    """The lower frame reported 40 m high: the images scale the DEM with it, and frame 0's altimeter says the
+    ground is elsewhere. No site is offered on that map, nor on the map it is fused into (the flight process
+    chose sites on the fused map whatever the pair's own said)."""
+    pairs = tmp_path / "pairs"
+    shutil.copytree(descent.parent, pairs)
+    edit_json(pairs / "300_150" / "pair.json", lambda d: d["frames"][1]["position_m"].__setitem__(2, 190.0))
+    s = run_hil(pairs / "manifest.json", tmp_path / "run", "zmq", deadline_s=30.0)
+    rec = {r["label"]: r for r in s["records"]}["300/150"]
+    assert rec["status"] == "result" and rec["sites"] == [], rec.get("sites")
+    assert rec["no_site_reason"].startswith("no site is offered on this map: the frames' altimeters"), rec
