@@ -940,10 +940,12 @@ def run_pipeline_multi(
             clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
             pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
+    alt0 = alt_range  # frame 0's reading, for the DEM's check even when the range search does without it
     dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
+    kept = [k for k in range(len(images)) if k not in dropped]  # the input's numbers of the frames swept
     alt_note = ""
     if alt_frames is not None and p.dem == "sgm":  # the v1 flow reads no altimeter: nothing to distrust
-        kept = [k for k in range(len(images)) if k not in dropped]  # a frame left out does not outvote frame 0
+        # a frame left out does not outvote frame 0
         alt_note = altimeter_disagreement([poses_in[k] for k in kept], [alt_frames[k] for k in kept])
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
@@ -961,8 +963,7 @@ def run_pipeline_multi(
             res.info["frames_used"] = [0, len(images) - 1]
     if dropped:  # the input's frame numbers; info.multi_frame lists the swept ones in frames_swept's order
         res.info["frames_dropped"] = dropped
-        res.info["frames_swept"] = [k for k in range(len(images) + len(dropped)) if k not in dropped]
-    alt0 = _altimeter(altimeter_m)
+        res.info["frames_swept"] = kept
     if alt0 is not None and p.dem == "sgm" and np.isfinite(res.elevation).any():
         matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)
         # along the axis navigation reports: the beam follows the camera, and a refinement that took an altitude

@@ -42,9 +42,14 @@ class GroundRange:
     median_z: float = math.nan
 
 
+def altimeter_point(pose: Pose, slant_range_m: float) -> np.ndarray:
+    """The altimeter's ground point ``C + r a`` in world, ``a = R^T e_z`` the optical axis (R's third row)."""
+    return np.asarray(pose.position, float) + slant_range_m * np.asarray(pose.R, float)[2]
+
+
 def altimeter_ground(pose: Pose, slant_range_m: float) -> float:
-    """World Z of the altimeter's ground point: ``C_z + r * R[2, 2]`` (optical axis in world = R^T e_z)."""
-    return float(pose.position[2] + slant_range_m * pose.R[2, 2])
+    """World Z of the altimeter's ground point: ``C_z + r * R[2, 2]`` (:func:`altimeter_point`)."""
+    return float(altimeter_point(pose, slant_range_m)[2])
 
 
 # How far apart the ground elevations that two frames' altimeters and positions imply may lie: relief between the
@@ -70,7 +75,7 @@ def altimeter_disagreement(poses: list[Pose], ranges: list[float]) -> str:
     got = []
     for k, (p, r) in enumerate(zip(poses, ranges)):
         if math.isfinite(r) and r > 0:
-            got.append((k, np.asarray(p.position, float) + r * np.asarray(p.R, float)[2], r))  # R^T e_z: row 2
+            got.append((k, altimeter_point(p, r), r))
     worst: tuple[float, int, int, float] | None = None
     for i, (ki, gi, ri) in enumerate(got):
         for kj, gj, rj in got[i + 1 :]:
