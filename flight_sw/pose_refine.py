@@ -183,7 +183,7 @@ class RefineParams:
     # change, and the DEM follows. A 3 deg pitch of a 300/150 pair's last frame came out as 1.34 deg of both
     # attitudes and 1.56 deg of direction, "ok", with a DEM 2.7 m off (stop 59's QA); 0.3 deg as 0.12-0.25 and
     # 0.13-0.29 deg. 3 sd keeps the issue's 0.5 deg envelope inside
-    max_held_correction_sd: float = 3.0
+    max_correction_sd: float = 3.0
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -210,7 +210,7 @@ class RefineParams:
             "max_rel_rot_sd_deg",
             "min_depth_spread",
             "min_held_change_px",
-            "max_held_correction_sd",
+            "max_correction_sd",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -1005,10 +1005,10 @@ def _refine_matches(
             if held
             else ": a position or attitude the images cannot follow"
         )
-    elif held and info["translation_dir_change_deg"] > p.max_held_correction_sd * math.degrees(s_dir):
+    elif held and info["translation_dir_change_deg"] > p.max_correction_sd * math.degrees(s_dir):
         reason = (
-            f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_held_correction_sd:g} sd"
-            f" of the navigation's ({p.max_held_correction_sd * math.degrees(s_dir):.2f}) on a near-nadir pair, "
+            f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_correction_sd:g} sd"
+            f" of the navigation's ({p.max_correction_sd * math.degrees(s_dir):.2f}) on a near-nadir pair, "
             "whose images cannot tell a relative rotation from a baseline change"
         )
     elif rms > p.max_rms_px:
@@ -1039,15 +1039,15 @@ def _refine_matches(
 
 
 def _beyond_navigation(corrections_deg: Sequence[float], p: RefineParams) -> str:
-    """Why an attitude correction is more than ``p.max_held_correction_sd`` sds of the navigation's declared error
+    """Why an attitude correction is more than ``p.max_correction_sd`` sds of the navigation's declared error
     of that frame ("" if neither is): frame 1's ``nav_att_sigma_deg``, frame 2's with ``nav_rel_att_sigma_deg``
     on top, ``sqrt(s_att^2 + s_rel^2)``."""
     sds = (p.nav_att_sigma_deg, math.hypot(p.nav_att_sigma_deg, p.nav_rel_att_sigma_deg))
     for k, (c, sd) in enumerate(zip(corrections_deg, sds)):
-        limit = p.max_held_correction_sd * sd
+        limit = p.max_correction_sd * sd
         if c > limit:
             return (
-                f"attitude correction {c:.2f} deg of frame {k + 1} of the pair > {p.max_held_correction_sd:g} sd of "
+                f"attitude correction {c:.2f} deg of frame {k + 1} of the pair > {p.max_correction_sd:g} sd of "
                 f"the navigation's ({limit:.2f})"
             )
     return ""
