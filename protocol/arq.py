@@ -182,6 +182,9 @@ class MessageTimes:
     written: float | None = None  # its last segment written for the first time
     delivered: float | None = None  # every segment acknowledged
     last_tx: float | None = None  # the last write of any of its bytes, a retransmission's included
+    # last_tx is the moment that write was handed to the writer, not yet its end on the line (the writer's record,
+    # written(), had not come: under load the peer's ACK can be read first)
+    last_tx_pending: bool = False
 
     @property
     def line_s(self) -> float | None:
@@ -189,11 +192,12 @@ class MessageTimes:
 
         Not to the acknowledgement: on a busy line the ACK waits behind the peer's own data (a ground streaming the
         next pair), which is no part of this message's line time. A link that cannot see its writes (ZeroMQ) ends
-        it at ``delivered``."""
+        it at ``delivered``, and so does a message whose last write the writer has not recorded yet (the peer's ACK
+        was read first): that write ended before the ACK came, which bounds it."""
         if self.first_tx is None or self.delivered is None:
             return None
-        if self.last_tx is None or self.last_tx <= self.first_tx:  # the ACK beat the writer's own record of its
-            return self.delivered - self.first_tx  # write: no later write is known, the acknowledgement bounds it
+        if self.last_tx is None or self.last_tx <= self.first_tx or self.last_tx_pending:
+            return self.delivered - self.first_tx
         return self.last_tx - self.first_tx
 
     @property
@@ -609,7 +613,7 @@ class Arq(SessionView):
         seg.order = self._txid
         seg.tx += 1
         seg.sent_at = now  # provisional until written()
-        self._last_write(seg, now)  # likewise: the ack may beat written()
+        self._last_write(seg, now, pending=True)  # likewise: the ack may beat written()
         self._txmap[self._txid] = seg
         if len(self._txmap) > 8192:
             self._txmap.popitem(last=False)
@@ -635,10 +639,12 @@ class Arq(SessionView):
             if seg.start < m_end <= seg.end:
                 t.written = now
 
-    def _last_write(self, seg: _Seg, now: float) -> None:
-        """Any write of ``seg``: the latest line time of the messages it carries bytes of."""
+    def _last_write(self, seg: _Seg, now: float, pending: bool = False) -> None:
+        """Any write of ``seg``: the latest line time of the messages it carries bytes of (``pending``: handed to
+        the writer, which has not recorded the write's end yet)."""
         for _, _, t in self._carried(seg):
             t.last_tx = now
+            t.last_tx_pending = pending
 
     def written(
         self, token: int | None, nbytes: int, now: float, ok: bool = True, started: float | None = None

@@ -38,6 +38,7 @@ How two processes connect over a pty (no socat needed)::
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import fcntl
 import ipaddress
@@ -318,7 +319,7 @@ class ByteStreamLink(Link):
     def times(self, msg_id: int) -> MessageTimes | None:
         with self._cv:
             t = self.arq.times(msg_id)
-            return None if t is None else MessageTimes(t.submitted, t.first_tx, t.written, t.delivered, t.last_tx)
+            return None if t is None else dataclasses.replace(t)  # a snapshot: the writer updates the original
 
     # sending --------------------------------------------------------------
     def send(self, message: Message | Encoded, timeout: float | None = None, epoch: int | None = None) -> int:

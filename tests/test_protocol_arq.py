@@ -104,6 +104,31 @@ def test_line_time_ends_at_the_write_even_when_its_ack_came_first():
     assert t.line_s == pytest.approx(0.5)
 
 
+def test_line_time_read_before_the_writer_records_its_last_write_is_bounded_by_the_ack():
+    """Read in that window (a ground reading its Result's times as soon as it is delivered), a two-frame message's
+    line time ended when its last frame was handed to the writer, before that frame's own line time: 0.54 s for
+    0.83 s under CPU load. Until the writer's record comes, the acknowledgement bounds it; then the write's end."""
+    line = pair()
+    a, b = line.eps
+    (i,) = send(line, [frame(1, 40)])  # 1.8 kB: two DATA frames
+    t0 = line.now
+    first = a.next_frame(t0)
+    assert first is not None
+    a.written(first[1], len(first[0]), t0 + 0.4, started=t0)
+    second = a.next_frame(t0 + 0.4)
+    assert second is not None
+    for data in (first[0], second[0]):
+        b.receive(data, t0 + 0.8)
+    ack = b.next_frame(t0 + 0.8)
+    assert ack is not None
+    a.receive(ack[0], t0 + 0.9)
+    assert a.outcome(i) == "delivered"
+    t = a.times(i)
+    assert t is not None and t.line_s == pytest.approx(0.9)  # not 0.4: the last frame's 0.4 s are in it
+    a.written(second[1], len(second[0]), t0 + 0.8, started=t0 + 0.4)
+    assert t.line_s == pytest.approx(0.8)
+
+
 @pytest.mark.parametrize("corrupt", [1e-4, 1e-3])
 def test_noisy_line_loses_nothing(corrupt):
     """drop, flip and duplicate each at ``corrupt`` per byte, both directions: all delivered, once, in order."""
