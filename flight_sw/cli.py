@@ -188,7 +188,7 @@ def _process(args: argparse.Namespace) -> int:
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
-    from .pose_refine import DISAGREE
+    from .pose_refine import DISAGREES
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -327,10 +327,10 @@ def _process(args: argparse.Namespace) -> int:
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)
         print(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")
-    for k, why in _unverified_poses(res.info.get("pose_refinement"), side):
+    for k, verdict, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
-        if why.startswith(DISAGREE):  # matched, and the images ask for more than a navigation error
+        if verdict == DISAGREES:  # matched, and the images ask for more than a navigation error
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
             print(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
                   f"error should be, so the refinement kept the pose); {rest} (result.json "
@@ -371,8 +371,8 @@ def _refined_poses(info: Any) -> list[str]:
     return out
 
 
-def _unverified_poses(info: Any, side: int) -> list[tuple[int, str]]:
-    """(frame, reason) where pose refinement kept the navigation pose because it could not match the images, or
+def _unverified_poses(info: Any, side: int) -> list[tuple[int, str, str]]:
+    """(frame, verdict, reason) where pose refinement kept the navigation pose because it could not match the images, or
     because they ask for a correction no navigation error explains (:func:`flight_sw.pose_refine.refine_pair`'s
     fallbacks that mean "no evidence" or "evidence against", not "navigation agreed"), from
     ``info["pose_refinement"]``. None for images narrower than ``pose_refine.CHECK_MIN_SIDE``: there the
@@ -384,7 +384,7 @@ def _unverified_poses(info: Any, side: int) -> list[tuple[int, str]]:
         return []
     frames = info.get("frames") or [{"frame": 1, **info}]
     return [
-        (int(f.get("frame", i + 1)), str(f["reason"]))
+        (int(f.get("frame", i + 1)), str(f["verdict"]), str(f.get("reason", "")))
         for i, f in enumerate(frames)
-        if isinstance(f, dict) and not f.get("refined") and unchecked(str(f.get("reason", "")), side)
+        if isinstance(f, dict) and not f.get("refined") and unchecked(str(f.get("verdict", "")), side)
     ]

@@ -78,7 +78,7 @@ from .mapping import (
     three_state,
 )
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
-from .pose_refine import contradicted, refine_descent
+from .pose_refine import SKIPPED, contradicted, refine_descent
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
@@ -936,10 +936,14 @@ def run_pipeline_multi(
             with _stage(timings, "pose_refine"):
                 poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames, stop_by=stop_by)
             t = timings["pose_refine"]
-            done = sum(1 for f in pose_info.get("frames", ()) if not str(f.get("reason", "")).startswith("skipped"))
+            done = sum(1 for f in pose_info.get("frames", ()) if f.get("verdict") != SKIPPED)
             clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
-            pose_info = {"refined": False, "reason": "skipped: its cost does not fit before the deadline"}
+            pose_info = {
+                "refined": False,
+                "verdict": SKIPPED,
+                "reason": "skipped: its cost does not fit before the deadline",
+            }
     alt0 = alt_range  # frame 0's reading, for the DEM's check even when the range search does without it
     dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
     kept = [k for k in range(len(images)) if k not in dropped]  # the input's numbers of the frames swept
@@ -995,7 +999,7 @@ def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) ->
     bad = sorted(
         int(f["frame"])
         for f in pose_info.get("frames") or ()
-        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("reason", "")), side)
+        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("verdict", "")), side)
     )
     return bad if len(bad) < n - 1 else []
 

@@ -83,45 +83,37 @@ from .warping import area_sigma
 
 DETECTORS = ("orb", "sift", "akaze")
 
-# fallback reasons that mean "no evidence": the images could not check the navigation pose
-UNVERIFIED = (
-    "images disagree",
-    "too few",
-    "the images hardly overlap",
-    "the images do not track",
-    "RANSAC found no model",
-    "no ground-plane",
-)
-# the images matched, but the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
+# What a refinement's outcome says about the navigation pose (``info["verdict"]``, beside the human ``reason``);
+# the pipeline and `process` decide by it, never by the reason's words.
+REFINED = "refined"  # the images refined the pose
+KEPT = "kept"  # the images agree with navigation within a fraction of a pixel on the ground: kept as it is
+DEGENERATE = "degenerate"  # matched, but the geometry cannot fix the pose (little parallax or depth, no convergence)
+# the images hardly share ground by the navigation poses, or too little of it matched: geometry, not a fault (a
+# clean 100 m frame of a 1000 m descent reaches it), so the pose stays unchecked
+NO_OVERLAP = "no_overlap"
+# texture enough, and it matches nothing consistent: another image, or a pose far from the one declared
+UNMATCHED = "unmatched"
+# the images matched, and the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
 # error at 300 m asked for 4.4 deg and gave a 37 m DEM error with no word): the pose is wrong, or the frames are
-# not the pair they claim to be. Clean pairs hardly reach these (docs/benchmarks/pose.md: a polar low sun did)
-DISAGREE = ("attitude correction", "baseline direction change", "inlier residual", "refined geometry puts")
+# not the pair they claim to be. Clean pairs hardly reach it (docs/benchmarks/pose.md: a polar low sun did)
+DISAGREES = "disagrees"
+SKIPPED = "skipped"  # not tried: the deadline left no time for it
+VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, UNMATCHED, DISAGREES, SKIPPED)
 # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px), so a fallback says nothing
 CHECK_MIN_SIDE = 256
 
 
-# fallbacks where the images matched and contradict the frame's pose, or match nothing consistent: evidence
-# against the frame, not its geometry (a small overlap, "too few matches", "hardly overlap", is geometry: a clean
-# 100 m frame of a 1000 m descent reaches it)
-CONTRADICTED = DISAGREE + (
-    "images disagree",
-    "the images do not track",
-    "RANSAC found no model",
-    "too few RANSAC inliers",
-    "too few inliers",
-)
+def unchecked(verdict: str, side: int) -> bool:
+    """True when a frame's ``verdict`` means its pose is unchecked or contradicted by the images
+    (:data:`NO_OVERLAP`, :data:`UNMATCHED`, :data:`DISAGREES`), on images of at least :data:`CHECK_MIN_SIDE` px
+    a side."""
+    return side >= CHECK_MIN_SIDE and verdict in (NO_OVERLAP, UNMATCHED, DISAGREES)
 
 
-def unchecked(reason: str, side: int) -> bool:
-    """True when a frame's fallback ``reason`` means its pose is unchecked or contradicted by the images
-    (:data:`UNVERIFIED`, :data:`DISAGREE`), on images of at least :data:`CHECK_MIN_SIDE` px a side."""
-    return side >= CHECK_MIN_SIDE and str(reason).startswith(UNVERIFIED + DISAGREE)
-
-
-def contradicted(reason: str, side: int) -> bool:
-    """True when a frame's fallback ``reason`` is evidence against it (:data:`CONTRADICTED`), on images of at
-    least :data:`CHECK_MIN_SIDE` px a side: such a frame is left out of a multi-frame sweep."""
-    return side >= CHECK_MIN_SIDE and str(reason).startswith(CONTRADICTED)
+def contradicted(verdict: str, side: int) -> bool:
+    """True when a frame's ``verdict`` is evidence against it (:data:`UNMATCHED`, :data:`DISAGREES`), on images
+    of at least :data:`CHECK_MIN_SIDE` px a side: such a frame is left out of a multi-frame sweep."""
+    return side >= CHECK_MIN_SIDE and verdict in (UNMATCHED, DISAGREES)
 
 
 @dataclass(frozen=True)
@@ -639,9 +631,12 @@ def _spread(u: np.ndarray, mask: np.ndarray, roi: tuple[int, int, int, int]) -> 
     return float((hit & cells).sum() / n) if n else 0.0
 
 
-def _fallback(pose1: Pose, pose2: Pose, info: dict[str, Any], reason: str, t0: tuple[float, float]) -> PoseRefinement:
+def _fallback(
+    pose1: Pose, pose2: Pose, info: dict[str, Any], verdict: str, reason: str, t0: tuple[float, float]
+) -> PoseRefinement:
     info.update(
         refined=False,
+        verdict=verdict,
         reason=reason,
         wall_s=time.perf_counter() - t0[0],
         cpu_s=time.thread_time() - t0[1],
@@ -678,7 +673,7 @@ def refine_pair(
     try:
         H_nav = plane_homography(camera, pose1, pose2, 0.0)
     except ValueError as exc:
-        return _fallback(pose1, pose2, info, f"no ground-plane homography ({exc})", t0)
+        return _fallback(pose1, pose2, info, NO_OVERLAP, f"no ground-plane homography ({exc})", t0)
     d1 = pose1.position[2] / max(1e-9, -pose1.R[2, 2])
     d2 = pose2.position[2] / max(1e-9, -pose2.R[2, 2])
     gsd_ratio = float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
@@ -691,6 +686,7 @@ def refine_pair(
             pose1,
             pose2,
             info,
+            NO_OVERLAP,
             f"the images hardly overlap by the navigation poses ({roi[2]}x{roi[3]} px in common, under four "
             f"{p.track_window} px tracking windows a side)",
             t0,
@@ -711,7 +707,12 @@ def refine_pair(
     info["prewarp_shift_px"] = shift
     if shift > p.max_prewarp_shift_px:
         return _fallback(
-            pose1, pose2, info, f"images disagree with navigation by {shift:.0f} px (> {p.max_prewarp_shift_px:g})", t0
+            pose1,
+            pose2,
+            info,
+            UNMATCHED,
+            f"images disagree with navigation by {shift:.0f} px (> {p.max_prewarp_shift_px:g})",
+            t0,
         )
     H_tot = H_nav @ H_c  # i1 px -> i2 px
     hp1 = highpass(a1, p.track_highpass_sigma)
@@ -890,19 +891,21 @@ def _refine_matches(
     base = pose2.position - pose1.position
     L_nav = float(np.linalg.norm(base))
     if not L_nav > 1e-6:
-        return _fallback(pose1, pose2, info, "navigation reports no baseline: translation direction undefined", t0)
+        return _fallback(
+            pose1, pose2, info, DEGENERATE, "navigation reports no baseline: translation direction undefined", t0
+        )
     if len(u1) < p.min_inliers:
         tried = int(info.get("corners", 0))
         if tried >= 2 * p.min_inliers:  # texture enough in the overlap, and it does not follow: another image
             why = f"the images do not track: {len(u1)} of {tried} corners (< {p.min_inliers})"
-            return _fallback(pose1, pose2, info, why, t0)
-        return _fallback(pose1, pose2, info, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
+            return _fallback(pose1, pose2, info, UNMATCHED, why, t0)
+        return _fallback(pose1, pose2, info, NO_OVERLAP, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
 
     # -- 2. model selection (GRIC) and outliers
     E, inl_e = cv2.findEssentialMat(u1, u2, K, cv2.RANSAC, 0.999, p.ransac_px)
     Hm, inl_h = cv2.findHomography(u1, u2, cv2.RANSAC, p.ransac_px, maxIters=2000, confidence=0.999)
     if E is None or Hm is None or E.shape != (3, 3):
-        return _fallback(pose1, pose2, info, "RANSAC found no model (degenerate matches)", t0)
+        return _fallback(pose1, pose2, info, UNMATCHED, "RANSAC found no model (degenerate matches)", t0)
     Ki = np.linalg.inv(K)
     e_err = np.abs(sampson_px(Ki.T @ E @ Ki, u1, u2))
     h_err = homography_sampson_px(Hm, u1, u2)
@@ -913,7 +916,9 @@ def _refine_matches(
     keep = ih if model == "H" else ie
     info.update(model=model, gric_e=g_e, gric_h=g_h, ransac_inliers=int(keep.sum()))
     if keep.sum() < p.min_inliers:
-        return _fallback(pose1, pose2, info, f"too few RANSAC inliers ({int(keep.sum())} < {p.min_inliers})", t0)
+        return _fallback(
+            pose1, pose2, info, UNMATCHED, f"too few RANSAC inliers ({int(keep.sum())} < {p.min_inliers})", t0
+        )
     v1, v2 = u1[keep], u2[keep]
 
     # -- 3. MAP refinement of R1, R2 and the baseline direction
@@ -984,9 +989,10 @@ def _refine_matches(
     )
 
     # -- 5. degeneracy checks
-    reason = ""
+    reason, verdict = "", DEGENERATE
     if inl.sum() < p.min_inliers:
         reason = f"too few inliers ({int(inl.sum())} < {p.min_inliers})"
+        verdict = UNMATCHED
     elif parallax < p.min_parallax_px:  # before convergence: without parallax the translation wanders
         reason = f"too little parallax ({parallax:.2f} px < {p.min_parallax_px:g}): translation unobservable"
     elif not info["converged"]:
@@ -995,8 +1001,10 @@ def _refine_matches(
         reason = f"inliers poorly spread over the overlap ({info['spread']:.2f} < {p.min_spread:g})"
     elif max(info["rotation_correction_deg"]) > p.max_rotation_deg:
         reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
+        verdict = DISAGREES
     elif info["translation_dir_change_deg"] > p.max_direction_deg:
         reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
+        verdict = DISAGREES
     elif beyond := _beyond_navigation(info["rotation_correction_deg"], p):
         # held or not: on the approach a lower frame reported 20 m high came out as 1.1-1.7 deg of both attitudes,
         # under the 2 deg limit, and a DEM 40 m off with sites on it (stop 59's QA)
@@ -1005,14 +1013,17 @@ def _refine_matches(
             if held
             else ": a position or attitude the images cannot follow"
         )
+        verdict = DISAGREES
     elif held and info["translation_dir_change_deg"] > p.max_correction_sd * math.degrees(s_dir):
         reason = (
             f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_correction_sd:g} sd"
             f" of the navigation's ({p.max_correction_sd * math.degrees(s_dir):.2f}) on a near-nadir pair, "
             "whose images cannot tell a relative rotation from a baseline change"
         )
+        verdict = DISAGREES
     elif rms > p.max_rms_px:
         reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
+        verdict = DISAGREES
     elif info["depth_spread"] < p.min_depth_spread and not held:
         reason = (
             f"too little depth variation over the inliers ({info['depth_spread']:.3f} < {p.min_depth_spread:g}):"
@@ -1025,16 +1036,20 @@ def _refine_matches(
         )
     elif not (C2[2] < C1[2] and L > 0):
         reason = "refined geometry puts frame 2 above frame 1"
+        verdict = DISAGREES
     elif held and info["ground_change_px"] < p.min_held_change_px:
         reason = (
             f"navigation already maps the ground within {info['ground_change_px']:.2f} px of the held-rotation"
             f" fit (< {p.min_held_change_px:g}): kept"
         )
+        verdict = KEPT
     if reason:
-        return _fallback(pose1, pose2, info, reason, t0)
+        return _fallback(pose1, pose2, info, verdict, reason, t0)
     out1 = Pose(C1, s.R1, pose1.time_s)
     out2 = Pose(C2, s.R2, pose2.time_s)
-    info.update(refined=True, reason="ok", wall_s=time.perf_counter() - t0[0], cpu_s=time.thread_time() - t0[1])
+    info.update(
+        refined=True, verdict=REFINED, reason="ok", wall_s=time.perf_counter() - t0[0], cpu_s=time.thread_time() - t0[1]
+    )
     return PoseRefinement(out1, out2, True, info)
 
 
@@ -1102,6 +1117,7 @@ def refine_descent(
         return {
             "frame": k,
             "refined": r.refined,
+            "verdict": r.info.get("verdict", ""),
             "reason": r.info.get("reason", ""),
             "inliers": r.info.get("inliers", 0),
             "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
@@ -1112,7 +1128,7 @@ def refine_descent(
         if stop_by is not None and time.monotonic() + cost > stop_by:
             out[k] = transfer_relative(out[0], poses[0], poses[k])
             why = "skipped: the deadline leaves no time to refine it (its navigation pose is kept)"
-            frames.append({"frame": k, "refined": False, "reason": why, "inliers": 0})
+            frames.append({"frame": k, "refined": False, "verdict": SKIPPED, "reason": why, "inliers": 0})
             continue
         r = refine_pair(images[0], images[k], poses[0], poses[k], camera, altimeter_m=(alt[0], alt[k]), params=params)
         out[k] = transfer_relative(out[0], r.pose1, r.pose2)

@@ -205,6 +205,7 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     from hilkit import small_descent
 
     from flight_sw.pipeline import _contradicted_frames
+    from flight_sw.pose_refine import DEGENERATE, DISAGREES, KEPT, NO_OVERLAP, SKIPPED, UNMATCHED
 
     root = small_descent(tmp_path / "pairs", ["600/300", "300/150"], px=256).parent
     three = tmp_path / "three"
@@ -240,15 +241,16 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     noisy = json.loads((tmp_path / "noise" / "result.json").read_text())["info"]
     assert noisy["frames_dropped"] == [1], noisy["pose_refinement"]["frames"]
     # frame 0 is never left alone, and small images (whose clean frames fail the checks too) drop nothing
-    info = {"frames": [{"frame": 1, "refined": False, "reason": "too few RANSAC inliers (37 < 40)"}]}
+    info = {"frames": [{"frame": 1, "refined": False, "verdict": UNMATCHED, "reason": "too few RANSAC inliers"}]}
     assert _contradicted_frames(info, 3, 256) == [1] and _contradicted_frames(info, 2, 256) == []
     assert _contradicted_frames(info, 3, 128) == []
-    both = {"frames": [dict(info["frames"][0]), {"frame": 2, "refined": False, "reason": "too few inliers"}]}
+    both = {"frames": [dict(info["frames"][0]), {"frame": 2, "refined": False, "verdict": DISAGREES}]}
     assert _contradicted_frames(both, 3, 256) == []
     # a small overlap is the frames' geometry, not evidence against one: a clean 100 m frame of a 1000 m descent
-    # was left out, and the map became the 1000/500 pair's (stop 59's review)
-    for why in ("the images hardly overlap (46x46 px)", "too few matches (12 < 40)"):
-        assert _contradicted_frames({"frames": [{"frame": 1, "refined": False, "reason": why}]}, 3, 256) == []
+    # was left out, and the map became the 1000/500 pair's (stop 59's review); nor is a degenerate geometry, a pose
+    # the images confirmed, or one the deadline left untried
+    for verdict in (NO_OVERLAP, DEGENERATE, KEPT, SKIPPED):
+        assert _contradicted_frames({"frames": [{"frame": 1, "refined": False, "verdict": verdict}]}, 3, 256) == []
 
 
 def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):

@@ -22,7 +22,13 @@ from synthetic import Texture, camera_fov30, crater, render, tilted_R
 
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.pose_refine import (
+    DEGENERATE,
+    DISAGREES,
+    KEPT,
+    NO_OVERLAP,
+    REFINED,
     RefineParams,
+    contradicted,
     refine_from_matches,
     refine_pair,
     relative_pose,
@@ -211,7 +217,7 @@ def test_featureless_images_fall_back(synth):
     for a, b in ((flat, flat), (ramp, ramp)):
         r = refine_pair(a, b, p1, p2, cam)
         assert not r.refined and r.pose2 is p2
-        assert "too few" in r.info["reason"]
+        assert "too few" in r.info["reason"] and r.info["verdict"] == NO_OVERLAP  # bland: unchecked, not refuted
 
 
 def test_pure_rotation_falls_back(synth):
@@ -221,7 +227,7 @@ def test_pure_rotation_falls_back(synth):
     nav2 = Pose(p_rot.position - [0.0, 0.0, 1.0], p_rot.R, 1.0)
     r = refine_pair(i1, i_rot, p1, nav2, cam)
     assert not r.refined
-    assert "parallax" in r.info["reason"]
+    assert "parallax" in r.info["reason"] and r.info["verdict"] == DEGENERATE
     assert r.info["parallax_px"] < 2.0
 
 
@@ -373,6 +379,7 @@ def test_nadir_view_of_flat_ground_holds_the_rotation_and_maps_the_ground():
     # navigation is kept as it is
     re = refine_pair(i1, i2, p1, p2, cam)
     assert not re.refined and "kept" in re.info["reason"] and re.info["ground_change_px"] < 0.5
+    assert re.info["verdict"] == KEPT
     assert re.pose2 is p2 and re.pose1 is p1
 
     r0 = refine_pair(i1, i2, p1, nav2, cam, params=RefineParams(held_rel_att_sigma_deg=0.0))
@@ -490,7 +497,8 @@ def test_a_nadir_pair_refuses_a_held_fit_beyond_the_navigations_accuracy(deg):
     r = refine_pair(i1, i2, p1, rotated(p2, deg, np.array([1.0, 0.0, 0.0])), cam)
     assert r.info["relative_rotation_held"]
     if deg < 1.0:
-        assert r.refined and r.info["reason"] == "ok"
+        assert r.refined and r.info["reason"] == "ok" and r.info["verdict"] == REFINED
     else:
         assert not r.refined and "sd of the navigation's" in r.info["reason"], r.info["reason"]
+        assert r.info["verdict"] == DISAGREES and contradicted(r.info["verdict"], PX)
         assert "cannot tell a relative rotation from a baseline change" in r.info["reason"]
