@@ -323,6 +323,8 @@ def _process(args: argparse.Namespace) -> int:
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
         print(f"warning: {res.info['altimeter_disagreement']} (result.json info)", file=sys.stderr)
+    if res.info.get("altimeter_dem_unchecked"):  # not a fault: too little DEM where the beam lands
+        print(f"{out}: {res.info['altimeter_dem_unchecked']}")
     side = min(pair.camera.width, pair.camera.height)
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)

@@ -85,6 +85,7 @@ from .psafe import load_model
 from .rangefind import (
     altimeter_dem_disagreement,
     altimeter_dem_gap,
+    altimeter_dem_unchecked,
     altimeter_disagreement,
     find_ground,
     prior_range,
@@ -974,6 +975,8 @@ def run_pipeline_multi(
         # error in as attitude (up to 3 sd) moved the point and halved the gap
         gap = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
         res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
+        if math.isnan(gap):
+            res.info["altimeter_dem_unchecked"] = altimeter_dem_unchecked(matched, camera)
         alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note
