@@ -216,10 +216,10 @@ def _process(args: argparse.Namespace) -> int:
             altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
             sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
             sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
+            frame_numbers=frames,  # --widest-pair: its messages name the directory's frames
         )
     except FlightInputError as exc:  # the pipeline's checks of the camera and poses: name the file they came from
         raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
-    _directory_numbers(res.info, frames)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -345,20 +345,6 @@ def _process(args: argparse.Namespace) -> int:
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
     print(f"report: {out / 'report.html'}")
     return 0
-
-
-def _directory_numbers(info: dict[str, Any], frames: list[int]) -> None:
-    """The pipeline numbers the frames it was given; ``--widest-pair`` gives it the directory's frames 0 and n - 1:
-    its refinement's and dropped frames' numbers become the directory's (warnings named "frame 1" for frame 3)."""
-    if frames == list(range(len(frames))):
-        return
-    for key in ("frames_dropped", "frames_swept"):
-        if key in info:
-            info[key] = [frames[k] for k in info[key]]
-    pr = info.get("pose_refinement")
-    for f in (pr.get("frames") or ()) if isinstance(pr, dict) else ():
-        if isinstance(f, dict) and isinstance(f.get("frame"), int) and 0 <= f["frame"] < len(frames):
-            f["frame"] = frames[f["frame"]]
 
 
 def _refined_poses(info: Any) -> list[str]:

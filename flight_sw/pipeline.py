@@ -876,6 +876,7 @@ def run_pipeline_multi(
     sun_elevation_deg: float | None = None,
     sun_azimuth_deg: float | None = None,
     reserve_measured: float | None = None,
+    frame_numbers: Sequence[int] | None = None,
 ) -> PipelineResult:
     """Hazard detection from 2-16 descent frames ordered by time (``images[0]`` the highest: the reference).
 
@@ -886,7 +887,8 @@ def run_pipeline_multi(
     :func:`run_pipeline`'s result. The v1 flow (``dem="sweep"``) uses frames 0 and -1 only
     (``info["frames_used"]``). With ``refine_pose``, a later frame the images contradict is left out first
     (``info["frames_dropped"]``, the input's numbers), and the widest pair is frame 0 and the last frame kept.
-    Other arguments as :func:`run_pipeline`.
+    ``frame_numbers``: what ``info`` and its messages call the frames (default 0 to n - 1), e.g. a directory's
+    frames 0 and 3 given as a pair. Other arguments as :func:`run_pipeline`.
     """
     t_start = time.monotonic()
     timings: dict[str, dict[str, float]] = {}
@@ -908,6 +910,7 @@ def run_pipeline_multi(
             raise FlightInputError(f"time_scale must be a positive number, got {time_scale!r}")
         alt_range = _altimeter(altimeter_m)
         alt_frames = _altimeter_frames(altimeter_m, len(images))
+        numbers = _frame_numbers(frame_numbers, len(images))
         ends = [t for t in (None if deadline_s is None else t_start + float(deadline_s), deadline_at) if t is not None]
         if not (isinstance(after_s, (int, float)) and math.isfinite(after_s) and after_s >= 0):
             raise FlightInputError(f"after_s must be a non-negative number of seconds, got {after_s!r}")
@@ -951,7 +954,9 @@ def run_pipeline_multi(
     alt_note = ""
     if alt_frames is not None and p.dem == "sgm":  # the v1 flow reads no altimeter: nothing to distrust
         # a frame left out does not outvote frame 0
-        alt_note = altimeter_disagreement([poses_in[k] for k in kept], [alt_frames[k] for k in kept])
+        alt_note = altimeter_disagreement(
+            [poses_in[k] for k in kept], [alt_frames[k] for k in kept], [numbers[k] for k in kept]
+        )
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
     if dropped:
@@ -965,7 +970,7 @@ def run_pipeline_multi(
     else:
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
         if len(images) > 2:
-            res.info["frames_used"] = [0, len(images) - 1]
+            res.info["frames_used"] = [kept[0], kept[-1]]  # the input's numbers
     if dropped:  # the input's frame numbers; info.multi_frame lists the swept ones in frames_swept's order
         res.info["frames_dropped"] = dropped
         res.info["frames_swept"] = kept
@@ -988,7 +993,34 @@ def run_pipeline_multi(
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:
             res.info.setdefault("skipped", []).insert(0, "pose_refine")
+    _renumber(res.info, numbers)
     return res
+
+
+def _frame_numbers(frame_numbers: Sequence[int] | None, n: int) -> list[int]:
+    if frame_numbers is None:
+        return list(range(n))
+    try:
+        out = [int(k) for k in frame_numbers]
+    except (TypeError, ValueError):
+        raise FlightInputError(f"frame_numbers must be {n} whole numbers, got {frame_numbers!r}") from None
+    if len(out) != n or len(set(out)) != n or any(k < 0 for k in out):
+        raise FlightInputError(f"frame_numbers must be {n} distinct non-negative numbers, got {frame_numbers!r}")
+    return out
+
+
+def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
+    """The pipeline's frame numbers in ``info`` (its input's positions) become ``numbers``: `process
+    --widest-pair` gives it a directory's frames 0 and n - 1, whose warnings named frame 3 "frame 1"."""
+    if numbers == list(range(len(numbers))):
+        return
+    for key in ("frames_dropped", "frames_swept", "frames_used"):
+        if key in info:
+            info[key] = [numbers[k] for k in info[key]]
+    pr = info.get("pose_refinement")
+    for f in (pr.get("frames") or ()) if isinstance(pr, dict) else ():
+        if isinstance(f, dict) and isinstance(f.get("frame"), int) and 0 <= f["frame"] < len(numbers):
+            f["frame"] = numbers[f["frame"]]
 
 
 def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:

@@ -63,7 +63,7 @@ ALT_AGREE_FRAC = 0.03
 ALT_AGREE_SLOPE = 0.5
 
 
-def altimeter_disagreement(poses: list[Pose], ranges: list[float]) -> str:
+def altimeter_disagreement(poses: list[Pose], ranges: list[float], numbers: list[int] | None = None) -> str:
     """Why the frames' altimeter readings and reported positions cannot both be right ("" when they agree).
 
     Each reading puts the ground point its beam hits at ``C_k + r_k a_k`` (``a_k`` the optical axis in world,
@@ -71,11 +71,12 @@ def altimeter_disagreement(poses: list[Pose], ranges: list[float]) -> str:
     ``max(ALT_AGREE_MIN_M, ALT_AGREE_FRAC min r) + ALT_AGREE_SLOPE d`` with ``d`` their horizontal distance.
     More means a wrong position (a frame reported at 200 m whose altimeter read 151 m: the DEM 24 m off, unsaid)
     or a wrong reading (50 m long on frame 0: its prior cut off the ground above the datum, FP 1.4 %).
+    ``numbers``: what the message calls the frames (default their positions).
     """
     got = []
     for k, (p, r) in enumerate(zip(poses, ranges)):
         if math.isfinite(r) and r > 0:
-            got.append((k, altimeter_point(p, r), r))
+            got.append((k if numbers is None else numbers[k], altimeter_point(p, r), r))
     worst: tuple[float, int, int, float] | None = None
     for i, (ki, gi, ri) in enumerate(got):
         for kj, gj, rj in got[i + 1 :]:

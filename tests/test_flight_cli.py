@@ -13,7 +13,7 @@ from browser import browser_available, check_page
 from synthetic import crater, make_pair
 
 from hil_server.cli import main
-from protocol.pairdir import Pair, write_pair
+from protocol.pairdir import Pair, Pose, write_pair
 
 
 def _pair(tmp_path):
@@ -274,12 +274,31 @@ def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tm
 
 
 def test_widest_pair_messages_name_the_directorys_frames():
-    """`process --widest-pair` runs frames 0 and n - 1 as a pair: its warnings named the last frame "frame 1"."""
-    from flight_sw.cli import _directory_numbers
+    """`process --widest-pair` runs frames 0 and n - 1 as a pair: its warnings named the last frame "frame 1", and
+    so did the altimeter's (stop 59's note)."""
+    from flight_sw.pipeline import _renumber
+    from flight_sw.rangefind import altimeter_disagreement
 
     info = {"pose_refinement": {"frames": [{"frame": 1, "refined": True}]}, "frames_dropped": [1]}
-    _directory_numbers(info, [0, 3])
+    _renumber(info, [0, 3])
     assert info["pose_refinement"]["frames"][0]["frame"] == 3 and info["frames_dropped"] == [3]
     same = {"pose_refinement": {"frames": [{"frame": 2}]}}
-    _directory_numbers(same, [0, 1, 2])
+    _renumber(same, [0, 1, 2])
     assert same["pose_refinement"]["frames"][0]["frame"] == 2
+    up = Pose(np.array([0.0, 0.0, 300.0]), np.diag([1.0, -1.0, -1.0]))
+    low = Pose(np.array([0.0, 0.0, 150.0]), np.diag([1.0, -1.0, -1.0]), 1.0)
+    said = altimeter_disagreement([up, low], [300.0, 200.0], [0, 3])
+    assert "frame 0 puts it at 0.0 m, frame 3 at -50.0 m" in said, said
+    assert "frame 1 at -50.0 m" in altimeter_disagreement([up, low], [300.0, 200.0])
+
+
+def test_process_widest_pair_names_the_directorys_frame_in_the_altimeter_warning(tmp_path, capsys):
+    assert main(["render", "--scenario", "vertical", "--frames", "300,250,200,150", "--image-size", "96",
+                 "--out", str(tmp_path), "--no-progress"]) == 0  # fmt: skip
+    d = tmp_path / "300_250_200_150"
+    doc = json.loads((d / "pair.json").read_text())
+    doc["frames"][3]["altimeter_m"] += 50.0  # 50 m long: frame 3's beam puts the ground 50 m down
+    (d / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(d), "--widest-pair", "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "frame 3 at" in err and "frame 1 at" not in err, err
