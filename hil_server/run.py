@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from ground_sim.results_file import read_results
 from hil_server.budgets import (
     THROTTLE_CHECK_TOLERANCE,
     Budget,
@@ -1130,21 +1131,9 @@ def _manifest_entries(manifest: Path | None) -> list[dict]:
     return list(_manifest(manifest).get("pairs", []))
 
 
-def _read_records(path: Path) -> list[dict]:
-    """The ground's records (a torn last line, impossible with atomic writes, is skipped all the same)."""
-    out = []
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                out.append(json.loads(line))
-            except ValueError:
-                continue
-    return out
-
-
 def _no_hello_reason(results: Path) -> str | None:
     """The ground's reason for not running any pair (its not_run records' text, less the prefix), or None."""
-    for rec in _read_records(results):
+    for rec in read_results(results, strict=False):
         if rec.get("code") == "not_run" and isinstance(rec.get("text"), str):
             return rec["text"].removeprefix("not run: ")
     return None
@@ -1546,7 +1535,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         wall = time.monotonic() - t0
 
         entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
-        records = _read_records(received / "results.jsonl")
+        records = read_results(received / "results.jsonl", strict=False)
         if sup_reason is not None:
             records = _blame_server(records, sup_reason)
         if reason is not None:
@@ -1555,7 +1544,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         counters = {}
         unlogged = 0
         flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
-        for line in _read_records(out / "supervisor.jsonl"):
+        for line in read_results(out / "supervisor.jsonl", strict=False):
             if line.get("event") == "summary":
                 counters = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") == "flight_output":
@@ -1583,7 +1572,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "flight_output_unlogged_bytes": unlogged,
                 "flight_events": list(flight_events),
                 # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
-                "ground_counters": (_read_records(received / "ground.json") or [{}])[-1],
+                "ground_counters": (read_results(received / "ground.json", strict=False) or [{}])[-1],
                 "ground_exit": rc,
             },
         )

@@ -358,19 +358,12 @@ def check_not_an_input(path: Path, jobs: list[Job], pairs: Path, outputs: Path, 
 
 def _records(path: Path) -> list[dict]:
     """An HIL run's records (``received/results.jsonl``), in order; :class:`ScoreError` when it is not one."""
-    out = []
+    from ground_sim.results_file import read_results
+
     try:
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                if not isinstance(r, dict):
-                    raise ValueError(f"a record is a {type(r).__name__}, not an object")
-                out.append(r)
+        return read_results(path)
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ScoreError(f"{path}: not an HIL run's records ({exc})") from None
-    except RecursionError:  # json's parser recurses once per nested list or object
-        raise ScoreError(f"{path}: JSON nested too deeply") from None
-    return out
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
