@@ -188,7 +188,7 @@ def _process(args: argparse.Namespace) -> int:
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
-    from .pose_refine import DISAGREES
+    from .pose_refine import DISAGREES, NO_OVERLAP
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -332,7 +332,12 @@ def _process(args: argparse.Namespace) -> int:
     for k, verdict, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
-        if verdict == DISAGREES:  # matched, and the images ask for more than a navigation error
+        if verdict == NO_OVERLAP and k not in res.info.get("frames_dropped", ()):
+            # the navigation poses say the frames share too little ground to compare: nothing in the images is
+            # against the pose, and a warning on every clean deep descent (29 in one QA pass) taught users to
+            # skip warnings
+            print(f"{out}: frame {k}: its pose is not checked by the images: {why}; the maps rest on it")
+        elif verdict == DISAGREES:  # matched, and the images ask for more than a navigation error
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
             print(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
                   f"error should be, so the refinement kept the pose); {rest} (result.json "

@@ -88,9 +88,11 @@ DETECTORS = ("orb", "sift", "akaze")
 REFINED = "refined"  # the images refined the pose
 KEPT = "kept"  # the images agree with navigation within a fraction of a pixel on the ground: kept as it is
 DEGENERATE = "degenerate"  # matched, but the geometry cannot fix the pose (little parallax or depth, no convergence)
-# the images hardly share ground by the navigation poses, or too little of it matched: geometry, not a fault (a
-# clean 100 m frame of a 1000 m descent reaches it), so the pose stays unchecked
+# by the navigation poses the images hardly share ground: geometry, not a fault (a clean 100 m frame of a 1000 m
+# descent), so the pose stays unchecked, and nothing in the images is against it
 NO_OVERLAP = "no_overlap"
+# too few matches in what they share: a small overlap again, or a blank image; unchecked
+FEW_MATCHES = "few_matches"
 # texture enough, and it matches nothing consistent: another image, or a pose far from the one declared
 UNMATCHED = "unmatched"
 # the images matched, and the correction they ask for is beyond the navigation's error envelope (a 30 m lateral
@@ -98,16 +100,16 @@ UNMATCHED = "unmatched"
 # not the pair they claim to be. Clean pairs hardly reach it (docs/benchmarks/pose.md: a polar low sun did)
 DISAGREES = "disagrees"
 SKIPPED = "skipped"  # not tried: the deadline left no time for it
-VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, UNMATCHED, DISAGREES, SKIPPED)
+VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES, SKIPPED)
 # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px), so a fallback says nothing
 CHECK_MIN_SIDE = 256
 
 
 def unchecked(verdict: str, side: int) -> bool:
     """True when a frame's ``verdict`` means its pose is unchecked or contradicted by the images
-    (:data:`NO_OVERLAP`, :data:`UNMATCHED`, :data:`DISAGREES`), on images of at least :data:`CHECK_MIN_SIDE` px
-    a side."""
-    return side >= CHECK_MIN_SIDE and verdict in (NO_OVERLAP, UNMATCHED, DISAGREES)
+    (:data:`NO_OVERLAP`, :data:`FEW_MATCHES`, :data:`UNMATCHED`, :data:`DISAGREES`), on images of at least
+    :data:`CHECK_MIN_SIDE` px a side."""
+    return side >= CHECK_MIN_SIDE and verdict in (NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES)
 
 
 def contradicted(verdict: str, side: int) -> bool:
@@ -899,7 +901,7 @@ def _refine_matches(
         if tried >= 2 * p.min_inliers:  # texture enough in the overlap, and it does not follow: another image
             why = f"the images do not track: {len(u1)} of {tried} corners (< {p.min_inliers})"
             return _fallback(pose1, pose2, info, UNMATCHED, why, t0)
-        return _fallback(pose1, pose2, info, NO_OVERLAP, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
+        return _fallback(pose1, pose2, info, FEW_MATCHES, f"too few matches ({len(u1)} < {p.min_inliers})", t0)
 
     # -- 2. model selection (GRIC) and outliers
     E, inl_e = cv2.findEssentialMat(u1, u2, K, cv2.RANSAC, 0.999, p.ransac_px)

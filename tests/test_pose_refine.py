@@ -24,8 +24,8 @@ from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.pose_refine import (
     DEGENERATE,
     DISAGREES,
+    FEW_MATCHES,
     KEPT,
-    NO_OVERLAP,
     REFINED,
     RefineParams,
     contradicted,
@@ -217,7 +217,7 @@ def test_featureless_images_fall_back(synth):
     for a, b in ((flat, flat), (ramp, ramp)):
         r = refine_pair(a, b, p1, p2, cam)
         assert not r.refined and r.pose2 is p2
-        assert "too few" in r.info["reason"] and r.info["verdict"] == NO_OVERLAP  # bland: unchecked, not refuted
+        assert "too few" in r.info["reason"] and r.info["verdict"] == FEW_MATCHES  # bland: unchecked, not refuted
 
 
 def test_pure_rotation_falls_back(synth):
