@@ -78,7 +78,7 @@ from .mapping import (
     three_state,
 )
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
-from .pose_refine import SKIPPED, contradicted, refine_descent
+from .pose_refine import CHECK_MIN_SIDE, SKIPPED, contradicted, refine_descent
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
@@ -957,6 +957,19 @@ def run_pipeline_multi(
         alt_note = altimeter_disagreement(
             [poses_in[k] for k in kept], [alt_frames[k] for k in kept], [numbers[k] for k in kept]
         )
+        # a frame swept whose images scale the ground unlike frame 0's altimeter (pose_refine's ground gap): the
+        # map rests on one of them, wrong
+        scale = (
+            [
+                f"frame {numbers[int(f['frame'])]}'s images put the ground {float(f['ground_gap_m']):+.0f} m from where "
+                "frame 0's altimeter reads it (an image from another altitude, or a wrong position or reading)"
+                for f in (pose_info or {}).get("frames") or ()
+                if f.get("scale_disagrees") and int(f.get("frame", 0)) in kept and f.get("ground_gap_m") is not None
+            ]
+            if min(camera.width, camera.height) >= CHECK_MIN_SIDE
+            else []
+        )  # smaller: clean fits fail checks too
+        alt_note = "; ".join([alt_note, *scale] if alt_note else scale)
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
     if dropped:

@@ -78,6 +78,7 @@ import numpy as np
 from protocol.pairdir import Camera, Pose
 
 from .homography import plane_homography
+from .rangefind import altimeter_ground
 from .validate import FlightInputError
 from .warping import area_sigma
 
@@ -178,6 +179,14 @@ class RefineParams:
     # attitudes and 1.56 deg of direction, "ok", with a DEM 2.7 m off (stop 59's QA); 0.3 deg as 0.12-0.25 and
     # 0.13-0.29 deg. 3 sd keeps the issue's 0.5 deg envelope inside
     max_correction_sd: float = 3.0
+    # the ground the fit triangulates (median inlier height) may lie this far from where frame 1's altimeter reads
+    # it: max(m, frac x its range). Beyond, the images scale the scene unlike the positions say: a frame's image
+    # from another altitude (two images swapped in a descent put it 150-200 m off, 16-25 % of the range, and were
+    # swept unsaid, DEMs 29-42 m off; stop 59's QA), a position or the reading wrong. Clean renders (323 QA
+    # directories and descents, 6 scenes, 256 and 512 px, 394 fits; stop 60): at most 4.7 % (a deep crater's
+    # rim against the floor its altimeter reads, 1200 m) but a 2-deg sun at 100 m (12 %, refused already)
+    max_ground_gap_m: float = 10.0
+    max_ground_gap_frac: float = 0.08
     max_iterations: int = 30
 
     def validate(self) -> None:
@@ -205,6 +214,8 @@ class RefineParams:
             "min_depth_spread",
             "min_held_change_px",
             "max_correction_sd",
+            "max_ground_gap_m",
+            "max_ground_gap_frac",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -796,8 +807,9 @@ def _ground_change_px(
     x1n: np.ndarray,
     x2n: np.ndarray,
     u1: np.ndarray,
-) -> float:
-    """How far the refined poses move the ground's image in i2 against navigation, in pixels.
+) -> tuple[float, float]:
+    """How far the refined poses move the ground's image in i2 against navigation, in pixels, and the ground's
+    elevation (m; NaN when too few inliers triangulate).
 
     The ground is the horizontal plane through the median world height of the triangulated inliers
     (``X = C1 + R1^T z1 x1``); the change is the largest ``|H_ref u - H_nav u|`` over the inliers' i1
@@ -806,7 +818,7 @@ def _ground_change_px(
     z1 = triangulate_depths(R21, t_unit, x1n, x2n) * L
     ok = np.isfinite(z1) & (z1 > 0)
     if ok.sum() < 3:
-        return math.inf
+        return math.inf, math.nan
     p1 = refined[0]
     zw = p1.position[2] + ((x1n[ok] * z1[ok, None]) @ p1.R)[:, 2]  # R^T x as x @ R
     z_ground = float(np.median(zw))
@@ -814,8 +826,8 @@ def _ground_change_px(
         h_ref = plane_homography(camera, refined[0], refined[1], z_ground)
         h_nav = plane_homography(camera, nav[0], nav[1], z_ground)
     except ValueError:
-        return math.inf
-    return float(np.max(np.linalg.norm(_apply_h(h_ref, u1) - _apply_h(h_nav, u1), axis=1)))
+        return math.inf, z_ground
+    return float(np.max(np.linalg.norm(_apply_h(h_ref, u1) - _apply_h(h_nav, u1), axis=1))), z_ground
 
 
 def _map_solve(
@@ -986,9 +998,15 @@ def _refine_matches(
         baseline_m=L,
         position_change_m=[float(np.linalg.norm(C1 - pose1.position)), float(np.linalg.norm(C2 - pose2.position))],
     )
-    info["ground_change_px"] = _ground_change_px(
+    info["ground_change_px"], z_ground = _ground_change_px(
         camera, (pose1, pose2), (Pose(C1, s.R1), Pose(C2, s.R2)), R21, t_unit, L, x1n, x2n, v1[inl]
     )
+    info["ground_z_m"] = None if math.isnan(z_ground) else z_ground
+    ground_gap, gap_tol = math.nan, math.inf
+    if math.isfinite(z_ground) and math.isfinite(alt[0]):
+        ground_gap = z_ground - altimeter_ground(pose1, alt[0])
+        gap_tol = max(p.max_ground_gap_m, p.max_ground_gap_frac * alt[0])
+        info["ground_gap_m"] = ground_gap
 
     # -- 5. degeneracy checks
     reason, verdict = "", DEGENERATE
@@ -1039,6 +1057,13 @@ def _refine_matches(
     elif not (C2[2] < C1[2] and L > 0):
         reason = "refined geometry puts frame 2 above frame 1"
         verdict = DISAGREES
+    elif abs(ground_gap) > gap_tol:
+        reason = (
+            f"the images put the ground {ground_gap:+.0f} m from where the first frame's altimeter reads it, more "
+            f"than {gap_tol:.0f} m"
+        )
+        verdict = DISAGREES
+        info["scale_disagrees"] = True  # the altimeter against the images: a map resting on it offers no site
     elif held and info["ground_change_px"] < p.min_held_change_px:
         reason = (
             f"navigation already maps the ground within {info['ground_change_px']:.2f} px of the held-rotation"
@@ -1122,6 +1147,8 @@ def refine_descent(
             "verdict": r.info.get("verdict", ""),
             "reason": r.info.get("reason", ""),
             "inliers": r.info.get("inliers", 0),
+            "ground_gap_m": r.info.get("ground_gap_m"),
+            "scale_disagrees": bool(r.info.get("scale_disagrees")),
             "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
         }
 

@@ -305,6 +305,34 @@ def test_a_clean_frame_that_hardly_overlaps_frame_0_is_a_note_not_a_warning(tmp_
     assert "warning: frame" not in said.err, said.err
 
 
+def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimeter_gives(tmp_path, capsys):
+    """Two images swapped in a descent, the altimeters staying with their entries: the frame whose image came from
+    lower matched and was "kept" (a swap scales the ground, which the poses alone cannot see) and was swept unsaid,
+    DEM 29 m off (stop 59's QA). The ground it triangulates lies 150 m from where frame 0's altimeter reads it."""
+    assert main(["render", "--scenario", "vertical", "--frames", "600,450,300,200", "--image-size", "256",
+                 "--out", str(tmp_path), "--no-progress"]) == 0  # fmt: skip
+    d = tmp_path / "600_450_300_200"
+    doc = json.loads((d / "pair.json").read_text())
+    doc["frames"][2]["image"], doc["frames"][3]["image"] = doc["frames"][3]["image"], doc["frames"][2]["image"]
+    (d / "pair.json").write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    res = json.loads((tmp_path / "o" / "result.json").read_text())
+    f2 = res["info"]["pose_refinement"]["frames"][1]
+    assert f2["verdict"] == "disagrees" and f2["scale_disagrees"] and f2["ground_gap_m"] > 100.0, f2
+    assert "warning: frame 2: the images disagree" in err and "from where the first frame's altimeter" in err, err
+    assert res["info"]["frames_dropped"] == [2, 3] and res["vs_truth"]["dem_error"]["mean_abs_m"] < 2.0
+    # as a pair, frame 2 cannot be left out: said, and no site on a map resting on it
+    doc["frames"], doc["true_frames"] = [doc["frames"][0], doc["frames"][2]], [doc["true_frames"][k] for k in (0, 2)]
+    (d / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(d), "--out", str(tmp_path / "p")]) == 0
+    err = capsys.readouterr().err
+    info = json.loads((tmp_path / "p" / "result.json").read_text())["info"]
+    assert "frame 1's images put the ground +" in info["altimeter_disagreement"], info
+    assert info["no_site_reason"].startswith("no site is offered on this map") and "warning: frame 1" in err
+
+
 def test_process_widest_pair_names_the_directorys_frame_in_the_altimeter_warning(tmp_path, capsys):
     assert main(["render", "--scenario", "vertical", "--frames", "300,250,200,150", "--image-size", "96",
                  "--out", str(tmp_path), "--no-progress"]) == 0  # fmt: skip
