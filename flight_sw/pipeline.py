@@ -949,7 +949,8 @@ def run_pipeline_multi(
                 "reason": "skipped: its cost does not fit before the deadline",
             }
     alt0 = alt_range  # frame 0's reading, for the DEM's check even when the range search does without it
-    dropped = _contradicted_frames(pose_info, len(images), min(camera.width, camera.height))
+    camera_side = min(camera.width, camera.height)
+    dropped = _contradicted_frames(pose_info, len(images), camera_side)
     kept = [k for k in range(len(images)) if k not in dropped]  # the input's numbers of the frames swept
     alt_note = ""
     if alt_frames is not None and p.dem == "sgm":  # the v1 flow reads no altimeter: nothing to distrust
@@ -958,17 +959,15 @@ def run_pipeline_multi(
             [poses_in[k] for k in kept], [alt_frames[k] for k in kept], [numbers[k] for k in kept]
         )
         # a frame swept whose images scale the ground unlike frame 0's altimeter (pose_refine's ground gap): the
-        # map rests on one of them, wrong
-        scale = (
-            [
-                f"frame {numbers[int(f['frame'])]}'s images put the ground {float(f['ground_gap_m']):+.0f} m from where "
-                "frame 0's altimeter reads it (an image from another altitude, or a wrong position or reading)"
-                for f in (pose_info or {}).get("frames") or ()
-                if f.get("scale_disagrees") and int(f.get("frame", 0)) in kept and f.get("ground_gap_m") is not None
-            ]
-            if min(camera.width, camera.height) >= CHECK_MIN_SIDE
-            else []
-        )  # smaller: clean fits fail checks too
+        # map rests on one of them, wrong. Not under CHECK_MIN_SIDE, where clean fits fail the checks too
+        scale = []
+        for f in (pose_info or {}).get("frames") or () if camera_side >= CHECK_MIN_SIDE else ():
+            k, gap = int(f.get("frame", 0)), f.get("ground_gap_m")
+            if f.get("scale_disagrees") and k in kept and gap is not None:
+                scale.append(
+                    f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame 0's altimeter "
+                    "reads it (an image from another altitude, or a wrong position or reading)"
+                )
         alt_note = "; ".join([alt_note, *scale] if alt_note else scale)
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
         alt_range = None
@@ -1002,6 +1001,16 @@ def run_pipeline_multi(
         # no site rather than a bad one (issue 9)
         res.sites = []
         res.info["no_site_reason"] = res.info["sites_withheld"] = f"no site is offered on this map: {alt_note}"
+    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side, among=kept)]
+    if doubted and "sites_withheld" not in res.info:
+        # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
+        # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
+        frames = ", ".join(str(k) for k in doubted)
+        res.sites = []
+        res.info["no_site_reason"] = res.info["sites_withheld"] = (
+            f"no site is offered on this map: it rests on frame {frames}, whose navigation pose the images "
+            "contradict (info.pose_refinement)"
+        )
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:
@@ -1036,19 +1045,25 @@ def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
             f["frame"] = numbers[f["frame"]]
 
 
-def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
+def _contradicted_frames(
+    pose_info: dict[str, Any] | None, n: int, side: int, among: Sequence[int] | None = None
+) -> list[int]:
     """The later frames (1 to ``n - 1``) whose pose the images contradict (:func:`flight_sw.pose_refine.contradicted`:
     matched and inconsistent, not merely a small overlap), to leave out of the sweep, where each adds its error to
     every plane's cost: a noise image as the last of four frames, refused by the refinement and swept all the
     same, left the DEM 7.9 m off (0.34 m without it). None when that would leave frame 0 alone: then the pair
-    stands, with the warning its reason gives."""
-    if not pose_info or n <= 2:
+    stands, with the warning its reason gives.
+
+    ``among``: the contradicted frames of these (the frames swept), whatever is left."""
+    if not pose_info or (n <= 2 and among is None):
         return []
     bad = sorted(
         int(f["frame"])
         for f in pose_info.get("frames") or ()
         if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("verdict", "")), side)
     )
+    if among is not None:
+        return [k for k in bad if k in among]
     return bad if len(bad) < n - 1 else []
 
 

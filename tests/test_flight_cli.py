@@ -167,8 +167,39 @@ def test_process_warns_when_the_images_disagree_with_the_navigation_pose(tmp_pat
     assert main(["process", str(gross), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: the images disagree with its navigation pose (attitude correction" in err, err
-    info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["pose_refinement"]
+    res = json.loads((tmp_path / "o" / "result.json").read_text())
+    info = res["info"]["pose_refinement"]
     assert info["refined"] is False and info["reason"].startswith("attitude correction")
+    assert res["sites"] == [] and res["info"]["no_site_reason"].startswith("no site is offered on this map")
+
+
+def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp_path, capsys):
+    """A 2 deg pitch of a 300/150 pair's lower frame: refused and warned, and a pair cannot leave its frame out, so
+    the map rests on it (DEM 27 m off); no altimeter check fires. Sites on such a map had been offered all the
+    same (a 3 deg pitch, stop 59's QA: FP 2.07 %, the top site unsafe)."""
+    import math
+    import shutil
+
+    from hilkit import small_descent
+
+    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
+    off = tmp_path / "off"
+    shutil.copytree(pair, off)
+    doc = json.loads((off / "pair.json").read_text())
+    a = math.radians(2.0)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    doc["frames"][1]["R_world_to_cam"] = (rx @ np.array(doc["frames"][1]["R_world_to_cam"])).tolist()
+    (off / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(off), "--out", str(tmp_path / "o")]) == 0
+    assert "warning: frame 1: the images disagree with its navigation pose" in capsys.readouterr().err
+    res = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert "altimeter_disagreement" not in res["info"] and res["sites"] == []
+    assert "rests on frame 1, whose navigation pose the images contradict" in res["info"]["no_site_reason"]
+    assert res["info"]["sites_withheld"] == res["info"]["no_site_reason"]  # the HIL's fused map withholds on it
+    # the clean pair offers its sites
+    assert main(["process", str(pair), "--out", str(tmp_path / "clean")]) == 0
+    clean = json.loads((tmp_path / "clean" / "result.json").read_text())["info"]
+    assert "sites_withheld" not in clean
 
 
 def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(tmp_path, capsys):
