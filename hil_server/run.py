@@ -1576,10 +1576,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "ground_exit": rc,
             },
         )
-        note = flight_note(summary)
-        if note:
-            log(f"run: {note}")
-        table = summary_table(summary)
+        table = summary_table(summary)  # says flight_note's line itself: logged once, with the table below
         from hil_server.run_report import write_run_report
         from reports.html import write_atomic
 
