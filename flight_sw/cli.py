@@ -322,7 +322,8 @@ def _process(args: argparse.Namespace) -> int:
         print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
-        print(f"warning: {res.info['altimeter_disagreement']} (result.json info)", file=sys.stderr)
+        print(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",
+              file=sys.stderr)  # fmt: skip
     if res.info.get("altimeter_dem_unchecked"):  # not a fault: too little DEM where the beam lands
         print(f"{out}: {res.info['altimeter_dem_unchecked']}")
     side = min(pair.camera.width, pair.camera.height)
@@ -332,7 +333,7 @@ def _process(args: argparse.Namespace) -> int:
     for k, verdict, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
-        if verdict == NO_OVERLAP and k not in res.info.get("frames_dropped", ()):
+        if verdict == NO_OVERLAP:  # never left out: geometry, not evidence against the frame
             # the navigation poses say the frames share too little ground to compare: nothing in the images is
             # against the pose, and a warning on every clean deep descent (29 in one QA pass) taught users to
             # skip warnings
@@ -348,6 +349,8 @@ def _process(args: argparse.Namespace) -> int:
         else:
             print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
+    if res.info.get("sites_withheld") and "altimeter_disagreement" not in res.info:  # the pose warnings above
+        print(f"warning: {res.info['sites_withheld']}", file=sys.stderr)  # do not say what it costs the sites
     print(f"report: {out / 'report.html'}")
     return 0
 

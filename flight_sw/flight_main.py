@@ -463,15 +463,18 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
-        if "altimeter_disagreement" in res.info:  # the Result has no words for it: the flight log does
-            print(f"flight: frames {list(seqs)}: {res.info['altimeter_disagreement']}", file=sys.stderr, flush=True)
+        withheld = res.info.get("sites_withheld")
+        if withheld:  # the Result has no words for why: the flight log does
+            print(
+                f"flight: frames {list(seqs)}: {withheld}" + ("; it is not fused into the descent's map" * fusion),
+                file=sys.stderr,
+                flush=True,
+            )
         grid, sites, reason = res.grid, res.sites, res.info.get("no_site_reason")
         if fusion:
             w0, c0 = time.perf_counter(), time.thread_time()
             grid, sites, reason = self._fuse(res)
             res.timings["fusion"] = {"wall_s": time.perf_counter() - w0, "cpu_s": time.thread_time() - c0}
-            if res.info.get("sites_withheld"):  # the altimeter contradicts this pair's DEM: nor on the fused map
-                sites, reason = [], str(res.info["sites_withheld"])
         t_out, cpu_out = time.monotonic(), time.thread_time()
         sent0 = self._bytes_sent()
         try:
@@ -557,10 +560,17 @@ class FlightProcess:
         return cells * (PRIOR_STATE_B + PRIOR_PSAFE_B / kp**2 + elev / k**2) + PRIOR_FIXED_B + maps
 
     def _fuse(self, res) -> tuple[HazardGrid, list[SiteResult], str | None]:
-        """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it."""
+        """Fold one pair's result into the descent's map; the fused grid and the sites chosen on it.
+
+        A pair whose own map offers no site because its sensors disagree or its images contradict a pose
+        (``info["sites_withheld"]``) is not folded in: its evidence would stay in the map every later site is
+        chosen on. Its Result reports the map fused so far (its own if there is none yet), with no site."""
         p = res.params
         # the fused map decides at the pipeline's own P floor and counts the model's prior once (fusion.py)
         prm = params_for(p, res.info, self.fusion_params)
+        withheld = res.info.get("sites_withheld")
+        if withheld:
+            return (res.grid if self.fused is None else to_hazard_grid(self.fused, prm)), [], str(withheld)
         self.fused = fuse(self.fused, res.grid, prm, level=str(res.level))
         grid = to_hazard_grid(self.fused, prm)
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))

@@ -965,8 +965,8 @@ def run_pipeline_multi(
             k, gap = int(f.get("frame", 0)), f.get("ground_gap_m")
             if f.get("scale_disagrees") and k in kept and gap is not None:
                 scale.append(
-                    f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame 0's altimeter "
-                    "reads it (an image from another altitude, or a wrong position or reading)"
+                    f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame {numbers[0]}'s "
+                    "altimeter reads it (an image from another altitude, or a wrong position or reading)"
                 )
         alt_note = "; ".join([alt_note, *scale] if alt_note else scale)
     if alt_note:  # which of them is wrong is unknown: the ground's range is found from the images alone
@@ -981,8 +981,8 @@ def run_pipeline_multi(
         res = _run_v2(i1, i2, pose1, pose2, camera, p, clock, nominal, alt_range, timings, extra, sun_e, sun)
     else:
         res = _run_v1(i1, i2, pose1, pose2, camera, p, clock, nominal, timings)
-        if len(images) > 2:
-            res.info["frames_used"] = [kept[0], kept[-1]]  # the input's numbers
+        if len(numbers) > 2:  # the input's numbers (with the frames left out, if any)
+            res.info["frames_used"] = [kept[0], kept[-1]]
     if dropped:  # the input's frame numbers; info.multi_frame lists the swept ones in frames_swept's order
         res.info["frames_dropped"] = dropped
         res.info["frames_swept"] = kept
@@ -1001,7 +1001,8 @@ def run_pipeline_multi(
         # no site rather than a bad one (issue 9)
         res.sites = []
         res.info["no_site_reason"] = res.info["sites_withheld"] = f"no site is offered on this map: {alt_note}"
-    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side, among=kept)]
+    swept = kept if p.dem == "sgm" else [kept[0], kept[-1]]  # the v1 flow sweeps the widest pair only
+    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side, among=swept)]
     if doubted and "sites_withheld" not in res.info:
         # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
         # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
@@ -1022,10 +1023,10 @@ def run_pipeline_multi(
 def _frame_numbers(frame_numbers: Sequence[int] | None, n: int) -> list[int]:
     if frame_numbers is None:
         return list(range(n))
-    try:
-        out = [int(k) for k in frame_numbers]
-    except (TypeError, ValueError):
-        raise FlightInputError(f"frame_numbers must be {n} whole numbers, got {frame_numbers!r}") from None
+    out = list(frame_numbers)
+    if not all(isinstance(k, (int, np.integer)) and not isinstance(k, bool) for k in out):
+        raise FlightInputError(f"frame_numbers must be {n} whole numbers, got {frame_numbers!r}")
+    out = [int(k) for k in out]
     if len(out) != n or len(set(out)) != n or any(k < 0 for k in out):
         raise FlightInputError(f"frame_numbers must be {n} distinct non-negative numbers, got {frame_numbers!r}")
     return out

@@ -50,9 +50,13 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    a correction beyond the plausible, a large residual, no convergence, or a
    relative rotation the images do not pin down (posterior sd above
    ``max_rel_rot_sd_deg``: a near-planar scene in a narrow field of view, where
-   a rotation and a baseline-direction change move the plane's image alike):
-   the navigation poses are returned unchanged with ``refined = False`` and
-   the reason.
+   a rotation and a baseline-direction change move the plane's image alike),
+   or a ground the fit triangulates (median inlier height) more than
+   ``max(max_ground_gap_m, max_ground_gap_frac r)`` from where frame 1's
+   altimeter reads it (an image from another altitude: the poses alone cannot
+   see a scale; checked after the degeneracy reasons, which it does not
+   override): the navigation poses are returned unchanged with
+   ``refined = False``, the reason, and a ``verdict`` for the callers.
 6. **Confounded nadir pairs.** With too little depth variation over the
    matches (``min_depth_spread``: a lateral change of the baseline moves points
    by ~1/depth, a rotation does not, so on a near-nadir view of flat ground the

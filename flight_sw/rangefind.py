@@ -117,6 +117,8 @@ def altimeter_ring(elevation: np.ndarray, camera: Camera) -> np.ndarray:
     r0, r1 = ALT_DEM_RING[0] * side, ALT_DEM_RING[1] * side
     y0, y1 = max(0, int(camera.cy - r1)), min(z.shape[0], int(camera.cy + r1) + 1)
     x0, x1 = max(0, int(camera.cx - r1)), min(z.shape[1], int(camera.cx + r1) + 1)
+    if y1 <= y0 or x1 <= x0:  # a principal point off the image (the camera check allows it): no ring
+        return np.empty(0, z.dtype)
     v, u = np.mgrid[y0:y1, x0:x1]
     d = np.hypot(u - camera.cx, v - camera.cy)
     return z[y0:y1, x0:x1][(d >= r0) & (d <= r1)]
@@ -136,12 +138,14 @@ def altimeter_dem_unchecked(elevation: np.ndarray, camera: Camera) -> str:
     """Why frame 0's altimeter could not be checked against the DEM ("" when it could): too little elevation on
     the ring. Said rather than passed over: on 21 of 315 clean directories the check was silently not made."""
     ring = altimeter_ring(elevation, camera)
-    share = float(np.count_nonzero(np.isfinite(ring))) / max(1, ring.size)
-    if ring.size and share >= ALT_DEM_MIN_SHARE:
+    if ring.size == 0:
+        return "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off the image"
+    share = float(np.count_nonzero(np.isfinite(ring))) / ring.size
+    if share >= ALT_DEM_MIN_SHARE:
         return ""
-    return (
-        f"frame 0's altimeter was not checked against the DEM: {100 * share:.0f} % of the ring about its optical "
-        f"axis has a matched elevation (it needs {100 * ALT_DEM_MIN_SHARE:.0f} %)"
+    return (  # floored: 24.6 % is not "25 % (it needs 25 %)"
+        f"frame 0's altimeter was not checked against the DEM: {math.floor(100 * share)} % of the ring about its "
+        f"optical axis has a matched elevation (it needs {100 * ALT_DEM_MIN_SHARE:.0f} %)"
     )
 
 

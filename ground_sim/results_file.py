@@ -1,6 +1,7 @@
 """The ground's ``results.jsonl``: one JSON object per line, one line per pair, written by
 :func:`ground_sim.stream.run_ground` (atomically, the whole file at a time) and read by the HIL run's summary
-and by `hazard-hil score`.
+and by `hazard-hil score`. The run reads its other JSON-lines files (the HIL server's ``supervisor.jsonl``,
+the ground's one-line ``ground.json``) the same lenient way.
 """
 
 from __future__ import annotations

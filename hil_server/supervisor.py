@@ -65,6 +65,9 @@ EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
 MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
+# a Result acknowledged before the ground link's writer recorded its last write: its line time waits this long for
+# the record (microseconds after the write, unless that thread was preempted), else it ends at the ACK
+WRITE_RECORD_WAIT_S = 0.2
 # link counters of the flight line that mean "the flight process sent something the HIL server refused":
 # a record over the size limit or of an unknown type (reassembly_errors), a body that fails to decode or the
 # schema, e.g. a wrong-shaped grid (decode_errors); and frames dropped as line garbage
@@ -97,6 +100,9 @@ class PairState:
     # the Result's wait in the ground link's send queue (behind an earlier pair's Result on a slow line)
     result_queue_s: float | None = None
     result_acked_at: float | None = None  # monotonic time the ground acknowledged the whole Result
+    # when it was first seen acknowledged before the writer had recorded its last write (its line time then ends
+    # at the ACK): the Telemetry waits up to WRITE_RECORD_WAIT_S for the write's own end
+    result_write_wait: float | None = None
     done: bool = False
     # seconds this process itself was not scheduled while the pair was open (SIGSTOP, a paused VM): not the
     # flight process's silence; the watchdogs leave it out (a stopped server killed a healthy flight process)
@@ -565,6 +571,11 @@ class Supervisor:
             self._fail_pair(st, "link_down", f"result not delivered: {outcome[8:]}", tell_ground=False)
             return
         times = self.ground.times(st.result_mid)
+        if times is not None and times.last_tx_pending:
+            now = time.monotonic()
+            st.result_write_wait = now if st.result_write_wait is None else st.result_write_wait
+            if now - st.result_write_wait < WRITE_RECORD_WAIT_S:
+                return  # the next poll reads it
         st.result_link_s = float(times.line_s) if times is not None and times.line_s is not None else 0.0
         st.result_queue_s = times.queue_s if times is not None else None
         st.result_acked_at = times.delivered if times is not None and times.delivered is not None else time.monotonic()

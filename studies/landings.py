@@ -30,6 +30,7 @@ import hashlib
 import io
 import json
 import math
+import re
 import signal
 import time
 import zlib
@@ -445,13 +446,19 @@ def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+WITHHELD = "no site is offered on this map"  # flight_sw.pipeline's sites_withheld reasons begin so
+
+
 def no_site_reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
     """Landings without a site, counted by the flight software's reason (its leading clause: the figures
-    in brackets differ per landing), most frequent first."""
+    in brackets differ per landing; a withheld map's reason is cut at its first figure, as frame numbers and
+    metres differ too), most frequent first."""
     counts: dict[str, int] = {}
     for r in rows:
         if r["outcome"] == "no_site":
             why = str(r.get("no_site_reason") or "").split(" (")[0].strip() or "no reason given"
+            if why.startswith(WITHHELD):  # "... frame 0's optical axis +17.5 m from ...": one group, not one each
+                why = re.split(r"[+-]?\d", why, maxsplit=1)[0].rstrip(" :,") + " ..."
             counts[why] = counts.get(why, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 

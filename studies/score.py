@@ -362,8 +362,12 @@ def _records(path: Path) -> list[dict]:
 
     try:
         return read_results(path)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except UnicodeDecodeError as exc:  # a ValueError whose text does not name the file
         raise ScoreError(f"{path}: not an HIL run's records ({exc})") from None
+    except ValueError as exc:  # read_results names the file and the line
+        raise ScoreError(f"not an HIL run's records: {exc}") from None
+    except OSError as exc:
+        raise ScoreError(f"{path}: not an HIL run's records ({exc.strerror or exc})") from None
 
 
 def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:

@@ -191,7 +191,9 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     doc["frames"][1]["R_world_to_cam"] = (rx @ np.array(doc["frames"][1]["R_world_to_cam"])).tolist()
     (off / "pair.json").write_text(json.dumps(doc))
     assert main(["process", str(off), "--out", str(tmp_path / "o")]) == 0
-    assert "warning: frame 1: the images disagree with its navigation pose" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "warning: frame 1: the images disagree with its navigation pose" in err
+    assert "warning: no site is offered on this map: it rests on frame 1" in err, err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     assert "altimeter_disagreement" not in res["info"] and res["sites"] == []
     assert "rests on frame 1, whose navigation pose the images contradict" in res["info"]["no_site_reason"]
@@ -200,6 +202,15 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     assert main(["process", str(pair), "--out", str(tmp_path / "clean")]) == 0
     clean = json.loads((tmp_path / "clean" / "result.json").read_text())["info"]
     assert "sites_withheld" not in clean
+    # a principal point off the image: the DEM-altimeter check cannot be made, and says so (it crashed once)
+    doc = json.loads((pair / "pair.json").read_text())
+    doc["camera"]["cx"] = doc["camera"]["width"] + 40.0
+    (off / "pair.json").write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["process", str(off), "--out", str(tmp_path / "cx")]) == 0
+    said = capsys.readouterr().out
+    assert "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off" in said
+    assert json.loads((tmp_path / "cx" / "result.json").read_text())["info"]["altimeter_dem_unchecked"]
 
 
 def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(tmp_path, capsys):
@@ -282,6 +293,13 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     # the images confirmed, or one the deadline left untried
     for verdict in (NO_OVERLAP, FEW_MATCHES, DEGENERATE, KEPT, SKIPPED):
         assert _contradicted_frames({"frames": [{"frame": 1, "refined": False, "verdict": verdict}]}, 3, 256) == []
+    # among the frames swept (sites are withheld on them): whatever is left, a pair included
+    assert _contradicted_frames(both, 3, 256, among=[0, 1, 2]) == [1, 2]
+    assert _contradicted_frames(both, 3, 256, among=[0, 2]) == [2]
+    assert (
+        _contradicted_frames(info, 2, 256, among=[0, 1]) == [1]
+        and _contradicted_frames(info, 2, 128, among=[0, 1]) == []
+    )
 
 
 def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):

@@ -814,6 +814,10 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     assert math.isnan(altimeter_dem_gap(hole, cam, p1, 300.0))
     assert "was not checked against the DEM: 0 % of the ring" in altimeter_dem_unchecked(hole, cam)
     assert altimeter_dem_unchecked(ok.elevation, cam) == ""
+    # a principal point off the image (the camera check allows it): no ring, said; it crashed (stop 60's review)
+    off = dataclasses.replace(cam, cx=cam.width + 40.0)
+    assert math.isnan(altimeter_dem_gap(ok.elevation, off, p1, 300.0))
+    assert "off the image" in altimeter_dem_unchecked(ok.elevation, off)
     # one reading only, and the lower frame reported 20 m high: the images scale the DEM with it (the ground
     # comes out 40 m up); the altimeter under frame 0's axis says so
     high = Pose(p2.position + np.array([0.0, 0.0, 20.0]), p2.R, p2.time_s)

@@ -609,6 +609,40 @@ def test_flight_process_applies_the_relief_guard_to_the_fused_map():
     assert near_wall[1] >= 14.0
 
 
+def test_a_pair_whose_sites_are_withheld_is_not_fused_into_the_descents_map():
+    """A pair whose altimeter or images contradict its poses offers no site; its map had still been folded into the
+    descent's, where every later pair's sites were chosen (stop 60's review). It is now left out of the fused map,
+    and its Result reports the map fused so far with no site."""
+    import sys
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic import flattened_wall_grid
+
+    from flight_sw.flight_main import FaultPlan, FlightProcess
+    from flight_sw.pipeline import PRESETS
+
+    grid = flattened_wall_grid((-38.0, 40.0))
+    params = dataclasses.asdict(PRESETS["fast"]) | {"psafe_model": "gaussian"}
+    fp = FlightProcess(_Link(), FaultPlan())
+    why = "no site is offered on this map: it rests on frame 1, whose navigation pose the images contradict"
+    bad = SimpleNamespace(params=params, info={"sites_withheld": why}, grid=grid, level="full")
+    g0, sites, reason = fp._fuse(bad)  # first pair: nothing fused yet, its own map reported, no site
+    assert fp.fused is None and g0 is grid and sites == [] and reason == why
+    good = SimpleNamespace(params=params, info={}, grid=grid, level="full")
+    g1, sites, _ = fp._fuse(good)
+    assert sites and fp.fused is not None and fp.fused.results == 1
+    before = fp.fused.logodds.copy()
+    unsafe = dataclasses.replace(grid, state=np.full_like(grid.state, STATE_UNSAFE))
+    g2, sites, reason = fp._fuse(
+        SimpleNamespace(params=params, info={"sites_withheld": why}, grid=unsafe, level="full")
+    )
+    assert sites == [] and reason == why
+    assert fp.fused.results == 1 and np.array_equal(fp.fused.logodds, before)  # the pair left no trace
+    assert np.array_equal(g2.state, g1.state) and np.any(g2.state == STATE_SAFE)  # the map fused so far
+
+
 def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_cost(monkeypatch):
     """The first pair of a Config plans its reserves from the nominal slowdown; each later one from the
     largest measured cost of the reserved work on the last pairs (pipeline.measured_reserve_ratio); a new

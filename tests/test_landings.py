@@ -238,9 +238,13 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
         row = {"landing": i, "group": i // 8, "preset": "fast", "outcome": outcome, "safe": outcome == "safe"}
         row |= {"site_found": outcome != "no_site", "scene": scene, "aim_safe": i < 20, "scenario": "vertical"}
         row |= {"pair": "200/100", "divert_m": float(i) if outcome != "no_site" else None}
-        if outcome == "no_site":  # two reasons, the figures in brackets differing per landing
+        if outcome == "no_site":  # three reasons, the figures in brackets differing per landing
             why = "no cell is known safe" if i < 33 else "no 3 m footprint with a 1.5 m margin is entirely known safe"
             row["no_site_reason"] = f"{why} ({i} % unknown)"
+            if i >= 38:  # a withheld map's figures differ before any bracket
+                row["no_site_reason"] = (
+                    f"no site is offered on this map: the DEM puts the ground under frame 0's axis +{i}.5 m"
+                )
         rows.append(row)
     s = ld.summarise(rows)
     st = s["per_preset"]["fast"]
@@ -249,8 +253,9 @@ def test_summary_and_report_page_from_known_rows(tmp_path: Path):
     assert st["divert_m"]["p50"] == pytest.approx(np.percentile(np.arange(30.0), 50)) and st["p_aim_safe"] == 0.5
     assert s["per_scene"]["mare"]["fast"]["n"] == 20
     assert s["no_site_reasons"]["fast"] == {
-        "no 3 m footprint with a 1.5 m margin is entirely known safe": 7,
+        "no 3 m footprint with a 1.5 m margin is entirely known safe": 5,
         "no cell is known safe": 3,
+        "no site is offered on this map: the DEM puts the ground under frame ...": 2,
     }
     s["campaign"] = {"n_landings": 40, "n_renders": 5, "per_render": 8, "scenes": ["thesis", "mare"]}
     s["campaign"] |= {"seed_set": "held-out", "seeds": [1000, 1001], "pose_error": None}

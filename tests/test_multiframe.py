@@ -190,3 +190,13 @@ def test_process_uses_every_frame_and_keeps_the_deadline(tmp_path):
     res = run_pipeline_multi(imgs, poses, cam, deadline_s=0.005)
     assert time.monotonic() - t0 < 1.0 and res.degraded
     assert math.isfinite(res.valid_fraction)
+
+
+def test_frame_numbers_must_be_one_whole_number_per_frame():
+    from flight_sw.pipeline import _frame_numbers
+    from flight_sw.validate import FlightInputError
+
+    assert _frame_numbers(None, 3) == [0, 1, 2] and _frame_numbers([0, np.int64(5)], 2) == [0, 5]
+    for bad in ([0, 2.7], [0, True], [0, 0], [0, -1], [0, 1, 2]):
+        with pytest.raises(FlightInputError, match="frame_numbers"):
+            _frame_numbers(bad, 2)

@@ -67,6 +67,11 @@ def test_baud_pacing_costs_real_line_time():
         line_time = 1600 * 10 / 19200
         assert elapsed >= 0.95 * line_time and A.times(mid).line_s >= 0.95 * line_time
         assert pkt.line_s > 0.5 * line_time  # the receiver saw it arrive over the line time, not at once
+        end = time.monotonic() + 2.0
+        while A.arq.times(mid).last_tx_pending and time.monotonic() < end:  # the writer's record, then no change
+            time.sleep(0.01)
+        snap, live = A.times(mid), A.arq.times(mid)
+        assert snap == live and snap is not live  # a copy, every field (last_tx_pending too: it was dropped)
 
 
 def test_serial_link_over_one_pty_pair_with_master_as_stream():
