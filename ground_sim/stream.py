@@ -125,6 +125,17 @@ QUEUE_SHOWN_S = 0.05  # a Result's wait in the sender's queue is shown on the co
 # a Result's Telemetry follows it at once (the HIL server sends both together); a board that sends none had its
 # Results dropped after the response timeout, as "no result or error"
 TELEMETRY_GRACE_S = 10.0
+# ... plus twice the line time of this many bytes on a paced line: the Telemetry goes once the Result is
+# acknowledged, and at 1200 baud its ~1-2 kB took longer than the 10 s alone (the Result's line time then read
+# 0.00 s and the flight latency was lost, stop 60's QA)
+TELEMETRY_LINE_BYTES = 4096
+
+
+def telemetry_grace_s(baud: float | None) -> float:
+    """How long a Result's Telemetry is awaited on a line of ``baud`` (None or 0: unpaced, ZeroMQ)."""
+    return TELEMETRY_GRACE_S + (2.0 * TELEMETRY_LINE_BYTES * 10 / baud if baud else 0.0)
+
+
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
 AUTH_GIVE_UP_S = 5.0  # the far end refused our CURVE key for this long: the first Hello will not come
 # timing fields of a record that also go to the telemetry lines
@@ -325,8 +336,9 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         e2e_latency_s=e2e,
         deadline_met=bool(met),
         deadline_margin_s=None if e2e is None else deadline_s - e2e,
-        # the span between the Result's first and last frame here (it misses the first frame's own line time)
-        result_line_s=rx_span,
+        # the sender's line time comes with its Telemetry: without one it is unknown, not the span between the
+        # Result's first and last frame here (0.00 s for a one-frame Result that took 4.7 s at 1200 baud)
+        result_line_s=None,
         result_rx_s=rx_span,
         result_bytes=o.result_bytes,
         out_dir=str(d),
@@ -681,13 +693,14 @@ def stream_descent(
             want.discard(s)
 
     def overdue_telemetry(want: set[tuple[int, int]]) -> None:
-        """A pair whose Result came :data:`TELEMETRY_GRACE_S` ago without its Telemetry completes without it: a
+        """A pair whose Result came :func:`telemetry_grace_s` ago without its Telemetry completes without it: a
         board that sends none lost every Result it sent, each after the whole response timeout (36 s)."""
         now = time.monotonic()
+        grace = telemetry_grace_s(getattr(link, "baud", None))
         for s in sorted(want):
             o = outcomes[s]
-            if telemetry_overdue(o, now):
-                o.telemetry_missing = f"no Telemetry came within {TELEMETRY_GRACE_S:g} s of its Result"
+            if telemetry_overdue(o, now, grace):
+                o.telemetry_missing = f"no Telemetry came within {grace:.0f} s of its Result"
                 want.discard(s)
                 record(o)
 

@@ -879,6 +879,9 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
             f"--link {cfg.link}: a device or endpoint needs --flight external; the emulated flight processor "
             "takes --link serial or zmq"
         )
+    if cfg.flight_cmd is not None and not cfg.flight_cmd.strip():
+        # an unset $FLIGHT_CMD in CI ran our flight software and passed, testing the wrong program
+        raise InputError("--flight-cmd is empty (an unset variable?): give the program to run, or leave it out")
     if cfg.flight_cmd:
         from hil_server.supervisor import flight_argv
 

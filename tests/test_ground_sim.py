@@ -374,3 +374,13 @@ def test_a_results_telemetry_is_overdue_on_the_grounds_running_time_and_a_late_o
     o.last_frame_started = 2.0
     late = Telemetry(frame_seqs=(0, 1))
     assert "was recorded without it (no Telemetry came within 10 s" in (_not_an_answer(late, o, 130.0) or "")
+
+
+def test_a_slow_lines_telemetry_is_awaited_for_its_own_line_time():
+    """At 1200 baud the Telemetry, sent once the Result is acknowledged, took longer than the fixed 10 s: the pair
+    was recorded without it, its flight latency lost and its Result's line time printed as 0.00 s (it was 4.7 s;
+    stop 60's QA). The wait grows with the line time, and an unknown line time is no 0."""
+    from ground_sim.stream import TELEMETRY_GRACE_S, telemetry_grace_s
+
+    assert telemetry_grace_s(None) == telemetry_grace_s(0) == TELEMETRY_GRACE_S
+    assert telemetry_grace_s(921600) < TELEMETRY_GRACE_S + 1.0 and telemetry_grace_s(1200) > 60.0

@@ -314,6 +314,14 @@ def test_fault_injection_reaches_our_flight_software_from_the_cli(manifest, tmp_
     assert main(["run", "--fault", "boom@1", "--out", str(tmp_path / "bad")]) == 2
 
 
+@pytest.mark.parametrize("cmd", ["", "   "])
+def test_an_empty_flight_cmd_is_refused_not_replaced_by_ours(tmp_path, capsys, cmd):
+    """`--flight-cmd "$FLIGHT_CMD"` with the variable unset ran our flight software and passed (stop 60's QA)."""
+    assert main(["run", "--flight-cmd", cmd, "--out", str(tmp_path / "x")]) == 2
+    assert "--flight-cmd is empty" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "summary.json").exists()
+
+
 def test_a_child_that_exits_at_once_gets_an_exit_report(monkeypatch):
     """The reaper joined the stderr pump, which could still be unstarted when the child had exited at once (a
     RuntimeError in the reaper, no exit report: the supervisor saw the exit only when the heartbeat watchdog fired).
