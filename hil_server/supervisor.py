@@ -117,6 +117,13 @@ class PairState:
         return (self.fframes[0].seq, self.fframes[1].seq)
 
 
+def to_replay(pairs: list[PairState]) -> list[PairState]:
+    """The pairs a restarted flight process is sent again: every one not finished, but those answered in full (their
+    Result and Telemetry in, the ground's acknowledgement awaited). Under asap a restarted process was sent such a
+    pair, computed it again, and its Result was ignored "for no open pair", the next pair behind it (stop 60's QA)."""
+    return [st for st in pairs if not st.done and (st.result is None or st.flight_telemetry is None)]
+
+
 def pair_cpu_fraction(before: dict | None, after: dict) -> float:
     """CPU the flight process got while a pair was outstanding, over the wall time it could run.
 
@@ -338,16 +345,14 @@ class Supervisor:
         self.flight_reader.start()
         if self.config is not None:
             self.flight.link.send(self.config)
-        for pid in self.order:  # replay what the dead incarnation never answered
-            st = self.pairs[pid]
-            if not st.done:
-                for idx in sorted(st.fframes):
-                    self.flight.link.send(st.fframes[idx])
-                st.sent_to = self.generation
-                if st.complete_at is not None:
-                    st.sent_at = time.monotonic()
-                    st.stopped_s = 0.0  # its clock starts at the replay: earlier stops are not its slack
-                self.flight.replayed += 1
+        for st in to_replay([self.pairs[pid] for pid in self.order]):  # what the dead incarnation never answered
+            for idx in sorted(st.fframes):
+                self.flight.link.send(st.fframes[idx])
+            st.sent_to = self.generation
+            if st.complete_at is not None:
+                st.sent_at = time.monotonic()
+                st.stopped_s = 0.0  # its clock starts at the replay: earlier stops are not its slack
+            self.flight.replayed += 1
 
     def _restart_flight(self, reason: str) -> None:
         assert self.flight is not None

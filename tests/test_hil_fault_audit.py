@@ -314,6 +314,21 @@ def test_fault_injection_reaches_our_flight_software_from_the_cli(manifest, tmp_
     assert main(["run", "--fault", "boom@1", "--out", str(tmp_path / "bad")]) == 2
 
 
+def test_a_restarted_flight_process_is_not_sent_a_pair_already_answered_in_full():
+    """Under --pace asap the next pair's frames are in before the ground acknowledges the last Result: a process
+    that died then had that answered pair replayed to its successor, which computed it again for a Result the
+    HIL server ignored ("for no open pair"), the next pair waiting behind it (stop 60's QA: 3 of 3 runs)."""
+    from hil_server.supervisor import PairState, to_replay
+    from protocol.messages import Result, Telemetry
+
+    done, answered, half, waiting, fresh = (PairState(f"p{i}") for i in range(5))
+    done.done = True
+    answered.result, answered.flight_telemetry = Result.__new__(Result), Telemetry.__new__(Telemetry)
+    half.result = Result.__new__(Result)  # its Telemetry died with the process: computed again for one
+    waiting.complete_at = 1.0  # all its frames in, no answer
+    assert to_replay([done, answered, half, waiting, fresh]) == [half, waiting, fresh]
+
+
 @pytest.mark.parametrize("cmd", ["", "   "])
 def test_an_empty_flight_cmd_is_refused_not_replaced_by_ours(tmp_path, capsys, cmd):
     """`--flight-cmd "$FLIGHT_CMD"` with the variable unset ran our flight software and passed (stop 60's QA)."""
