@@ -570,6 +570,28 @@ def ground_stop_note(summary: dict) -> str:
     )
 
 
+def session_note(summary: dict) -> str:
+    """One line on the link sessions with the flight side ("" when there was one and nothing lost it): a session
+    lost or restarted mid-descent (a board stalled, killed and restarted, a line down) was said on the console as it
+    happened and nowhere in the outputs, the run a PASS (stop 60's QA)."""
+    g = (summary.get("ground_counters") or {}).get("link_sessions") or {}
+    sessions, restarts, losses = (int(g.get(k) or 0) for k in ("sessions", "peer_restarts", "peer_losses"))
+    server = int((summary.get("supervisor_counters") or {}).get("link_errors") or 0)
+    if sessions <= 1 and not (restarts or losses or server):
+        return ""
+    parts = [f"{sessions} link sessions with the flight side (one per descent when nothing fails)"]
+    if restarts:
+        parts.append(
+            f"the flight side started {restarts} of them anew (it restarted, or gave up the last one: a restarted "
+            "flight process fuses the later pairs into a new map)"
+        )
+    if losses:
+        parts.append(f"{losses} lost (the peer stopped answering)")
+    if server:
+        parts.append(f"the HIL server saw {server} link error{'' if server == 1 else 's'} on its ground link")
+    return "; ".join(parts)
+
+
 def flight_note(summary: dict) -> str:
     """One line on what the HIL server had to do about the flight process ("" when nothing): restarts, refused
     messages, missing Telemetry, dropped line garbage, with the last reason. Crashes between pairs cost no pair
@@ -747,6 +769,7 @@ def summary_table(summary: dict) -> str:
         phase_note(s),
         site_note(s),
         flight_note(s),
+        session_note(s),
         ground_stop_note(s),
         off_map_note(s),
         truth_note(s),

@@ -252,10 +252,12 @@ def write_run_report(summary: dict, path: Path) -> Path:
             intro.append(extra[0].upper() + extra[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
-    from hil_server.run import flight_note
+    from hil_server.run import flight_note, session_note
 
     if flight := flight_note(s):  # refusals, ignored answers, dropped frames: the page said a clean PASS without
         intro.append(flight[0].upper() + flight[1:] + ".")
+    if sessions := session_note(s):  # a session lost or restarted: said at the time, and in no output
+        intro.append(sessions[0].upper() + sessions[1:] + ".")
     sections = [
         Section(
             "Pairs",

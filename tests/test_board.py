@@ -159,6 +159,12 @@ def test_a_descent_reconnected_mid_way_keeps_its_fused_map_on_the_board(tmp_path
     assert ["goes on" in x for x in kept] == [True, False], err
     assert [r["status"] for r in again["records"]] == ["result"] * 3
     assert rc == 128 + signal.SIGTERM
+    # said in the outputs, not only on the console as it happened (stop 60's QA: a restarted board read "PASS")
+    from hil_server.run import session_note
+
+    assert s["ground_counters"]["link_sessions"]["sessions"] == 2 and "2 link sessions" in session_note(s)
+    assert "2 link sessions" in (tmp_path / "run" / "summary.md").read_text()
+    assert again["ground_counters"]["link_sessions"]["sessions"] == 1 and session_note(again) == ""
 
 
 def test_our_flight_software_on_a_zeromq_board_with_curve_keys(manifest, tmp_path):

@@ -392,6 +392,16 @@ def test_the_noise_a_ground_line_dropped_is_said_in_the_run_notes():
     assert flight_note({"ground_counters": {"line": clean}}) == ""  # retransmissions alone are no noise
 
 
+def test_session_note_says_sessions_lost_or_restarted():
+    from hil_server.run import session_note
+
+    assert session_note({}) == "" and session_note({"ground_counters": {"link_sessions": {"sessions": 1}}}) == ""
+    s = {"ground_counters": {"link_sessions": {"sessions": 3, "peer_restarts": 1, "peer_losses": 1}}}
+    said = session_note(s)
+    assert said.startswith("3 link sessions") and "started 1 of them anew" in said and "1 lost" in said
+    assert "1 link error" in session_note({"supervisor_counters": {"link_errors": 1}})
+
+
 def test_results_whose_grid_covers_none_of_the_image_are_said():
     """A flight program whose grid origin had a sign error passed with every score empty and no word."""
     from hil_server.run import off_map_note
