@@ -384,3 +384,18 @@ def test_a_slow_lines_telemetry_is_awaited_for_its_own_line_time():
 
     assert telemetry_grace_s(None) == telemetry_grace_s(0) == TELEMETRY_GRACE_S
     assert telemetry_grace_s(921600) < TELEMETRY_GRACE_S + 1.0 and telemetry_grace_s(1200) > 60.0
+
+
+def test_a_results_line_time_is_at_most_what_the_end_to_end_latency_leaves():
+    """On a noisy line the sender retransmits what the ground holds already (its ACKs lost): "end to end 1.92 s
+    (flight 0.02 s, result line 3.27 s)" (stop 60's QA). Cut to e2e - flight - queue, the sender's figure kept."""
+    from types import SimpleNamespace
+
+    from ground_sim.stream import _line_within
+
+    t = SimpleNamespace(total_latency_s=0.02, link={"result_queue_s": 0.1})
+    rec: dict = {}
+    assert _line_within(3.27, 1.92, t, rec) == pytest.approx(1.80) and rec["result_line_sender_s"] == 3.27
+    rec = {}
+    assert _line_within(0.5, 1.92, t, rec) == 0.5 and rec == {}  # within: as measured
+    assert _line_within(None, 1.92, t, rec) is None and _line_within(0.5, None, t, rec) == 0.5
