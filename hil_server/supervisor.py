@@ -221,6 +221,7 @@ class FlightHandle:
             child.close()
             self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
         self.last_refusal: str | None = None  # the latest message refused from this incarnation, for a hang's reason
+        self.last_ignored: str | None = None  # ... and the latest Result it sent for no open pair
         # (type code, reason) of a record accounted for as refused from its header, before its REJECT: its REJECT,
         # should all its bytes still come before the restart, is not counted twice
         self.refused_early: tuple[int, str] | None = None
@@ -524,6 +525,8 @@ class Supervisor:
                 second = st is not None and not st.done
                 what = "a second Result: the first stands" if second else "a Result for no open pair"
                 self._ignore("stale_results", "stale_result", f"ignored {what} (frames {list(msg.frame_seqs)})")
+                if not second:  # a pair that then hangs says it: its answer may have named the wrong frames
+                    self.flight.last_ignored = f"a Result for frames {list(msg.frame_seqs)}, of no open pair"
                 return
             st.result = msg
             st.result_at = time.monotonic()
@@ -775,8 +778,10 @@ class Supervisor:
         skipping = self.flight.skipping()
         if skipping is not None:
             return f"; the flight process is sending a message the HIL server refuses ({skipping.reason})"
-        last = self.flight.last_refusal
-        return f"; last refused from the flight process: {last}" if last else ""
+        last, ignored = self.flight.last_refusal, self.flight.last_ignored
+        return (f"; last refused from the flight process: {last}" if last else "") + (
+            f"; it sent {ignored}, which was ignored (its frame_seqs wrong?)" if ignored else ""
+        )
 
     def _check_held_stream(self) -> bool:
         """Refuse at once a record the flight process declared over the size limit, and restart it; True if so.

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -106,6 +107,8 @@ while not link.closed_by_peer:
                 res["state_grid"] = mf.array(np.full((3,), 2, np.uint8))  # 1-D: refused by the schema
             if args.mode == "bad_shape" and answered == 1:  # grids whose shapes disagree: refused by the schema
                 res.update(bad_shapes())
+            if args.mode == "wrong_seqs" and answered == 1:  # answers the pair under frame numbers 100 off
+                res["frame_seqs"] = [q + 100 for q in res["frame_seqs"]]
             if args.mode == "bad_then_good" and faulty:  # a refused Result, then the good one a moment later
                 link.send(mf.RESULT, {{**res, **bad_shapes()}})
                 end = time.monotonic() + 0.3
@@ -327,6 +330,17 @@ def test_a_restarted_flight_process_is_not_sent_a_pair_already_answered_in_full(
     half.result = Result.__new__(Result)  # its Telemetry died with the process: computed again for one
     waiting.complete_at = 1.0  # all its frames in, no answer
     assert to_replay([done, answered, half, waiting, fresh]) == [half, waiting, fresh]
+
+
+def test_a_pair_answered_under_the_wrong_frame_seqs_says_so_when_it_hangs(manifest, flight, tmp_path):
+    """The pair's reason read "no result 4.0 s after the last frame": the Result that came, and was ignored for
+    naming frames no pair has, was only counted in the run's flight-process line (stop 60's QA)."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "wrong_seqs"))
+    assert code == 1 and outcomes(s)[1][2] == "deadline_hang", s["records"]
+    # the flight side's own frame numbers (the HIL server numbers what it forwards), 100 off
+    assert re.search(
+        r"it sent a Result for frames \[1\d\d, 1\d\d\], of no open pair, which was ignored", s["records"][1]["text"]
+    )
 
 
 @pytest.mark.parametrize("cmd", ["", "   "])
