@@ -249,7 +249,7 @@ REFUSALS_KEPT = 64  # refused messages whose reasons an Arq keeps for its owner 
 
 @dataclass
 class _Event:
-    kind: str  # "established" | "lost" | "restarted" | "closed" | "echo"
+    kind: str  # "established" | "lost" | "restarted" | "closed" | "echo" | "foreign"
     text: str
     epoch: int
 
@@ -259,6 +259,10 @@ ECHO_TEXT = (
     "they are dropped"
 )
 ECHO_EVENT_S = 10.0  # echoes are counted each, and said as an event once per this many seconds
+FOREIGN_HELLO_TEXT = (
+    "a HELLO of another session ({:08x}) while the peer of this one is still talking: ignored (another device on "
+    "the line?); a restarted peer's old session falls silent, and its HELLO is then taken"
+)
 
 STAT_KEYS = (
     "bytes_sent",
@@ -290,6 +294,7 @@ STAT_KEYS = (
     "old_session_frames",
     "foreign_frames",
     "echoed_frames",
+    "foreign_hellos",
     "sessions",
     "peer_restarts",
     "peer_losses",
@@ -309,6 +314,7 @@ class Arq(SessionView):
         self.closed = False
         self._events: list[_Event] = []
         self._echo_said = -math.inf
+        self._foreign_said = -math.inf
         self._received: list[Received] = []
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
         # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
@@ -693,6 +699,15 @@ class Arq(SessionView):
             if self.sess.retired(f.src):
                 self.stats["old_session_frames"] += 1
                 return
+            if self.sess.established and f.src != self.sess.peer and now - self._last_heard < self._live_peer_s():
+                # a new session's HELLO while the peer of this one still talks: not a restart (a restarted peer's
+                # old session falls silent, and it repeats its HELLO until answered), another device on the line.
+                # One such frame took the session over, cost the pair in flight and blamed the board (stop 60's QA)
+                self.stats["foreign_hellos"] += 1
+                if now - self._foreign_said >= ECHO_EVENT_S:
+                    self._foreign_said = now
+                    self._events.append(_Event("foreign", FOREIGN_HELLO_TEXT.format(f.src), self.sess.epoch))
+                return
             ended = self.epoch  # the "restarted" event names the session that ended, not the one starting
             was_up = self.sess.established
             replaced, reply, newly = self.sess.on_hello(f.src, f.dst)
@@ -750,6 +765,11 @@ class Arq(SessionView):
                 self._remember(self._outcomes, hit[0], f"failed: peer rejected: {f.reason}")
                 self._failures.append(DeliveryFailure(hit[0], hit[1], f"peer rejected: {f.reason}"))
                 self.stats["failures"] += 1
+
+    def _live_peer_s(self) -> float:
+        """How recently the peer must have been heard for another session's HELLO to be a stranger's: it sends a
+        keepalive HELLO whenever it has sent nothing for ``keepalive`` s."""
+        return 1.5 * self.cfg.keepalive
 
     def _on_established(self, now: float) -> None:
         self.stats["sessions"] = self.sess.epoch

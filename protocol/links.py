@@ -73,7 +73,7 @@ BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
 # events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per
 # REPEAT_QUIET_S with a count; every one is still an event and a stat
-REPEATING_EVENTS = frozenset({"auth_failed", "refused", "echo"})
+REPEATING_EVENTS = frozenset({"auth_failed", "refused", "echo", "foreign"})
 REPEAT_QUIET_S = 10.0
 
 __all__ = [

@@ -235,8 +235,27 @@ def test_a_peer_that_never_completed_its_handshake_is_replaced_without_a_restart
     b.receive(hello_frame(0x52, 0xB, 1024, 1 << 20), 0.2)  # ... which completes the handshake
     assert b.established and b.peer_session == 0x52
     assert b.stats["peer_restarts"] == 0 and not [e for e in b.take_events() if e.kind == "restarted"]
-    b.receive(hello_frame(0x53, 0, 1024, 1 << 20), 0.3)  # an established peer that starts afresh did restart
-    assert b.stats["peer_restarts"] == 1 and [e.kind for e in b.take_events()].count("restarted") == 1
+    # a new session's HELLO while this peer still talks is a stranger's (stop 60's QA: one such frame took the
+    # session over); once the old session has fallen silent, a peer that starts afresh did restart
+    b.receive(hello_frame(0x53, 0, 1024, 1 << 20), 0.3)
+    assert b.peer_session == 0x52 and b.stats["foreign_hellos"] == 1 and b.stats["peer_restarts"] == 0
+    assert [e.kind for e in b.take_events()] == ["foreign"]
+    b.receive(hello_frame(0x53, 0, 1024, 1 << 20), 0.2 + 1.6 * CFG.keepalive)
+    assert b.peer_session == 0x53 and b.stats["peer_restarts"] == 1
+    assert [e.kind for e in b.take_events()].count("restarted") == 1
+
+
+def test_a_strangers_hello_on_a_live_line_changes_nothing():
+    """One valid HELLO of another session, written onto a line whose two ends talk: the session stays, and the
+    traffic goes on (it had taken the session over, lost the pair in flight and stalled the real peer for 8 s)."""
+    line = pair()
+    a, b = line.eps
+    before = (a.peer_session, b.peer_session, a.epoch, b.epoch)
+    b.receive(hello_frame(0x99, 0, 1024, 1 << 20), line.now)
+    ids = send(line, [frame(4)])
+    line.run(line.now + 5, stop=lambda s: s.eps[0].outcome(ids[0]) == "delivered")
+    assert a.outcome(ids[0]) == "delivered" and line.received[1][-1].message.seq == 4
+    assert (a.peer_session, b.peer_session, a.epoch, b.epoch) == before and b.stats["foreign_hellos"] == 1
 
 
 def test_both_sides_recover_after_a_long_stall():
