@@ -368,6 +368,25 @@ def test_heartbeats_on_a_slow_line_do_not_starve_a_message():
     assert any(isinstance(m, Heartbeat) for m in got)  # the peer still hears them: liveness is kept
 
 
+def test_keepalives_do_not_starve_a_message_on_a_very_slow_line():
+    """At 300 baud a 1 kB DATA frame is on the line for 34 s; a keepalive HELLO was queued every second meanwhile,
+    each 0.8 s on the line and ahead of DATA, and the stream stopped: "peer stopped acknowledging: no progress for
+    100 s (0 bytes unacknowledged, 2018 in the stream)" (stop 60's QA). A keepalive goes only on an idle line."""
+    rate = 300 / 10
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02, rto_initial=3 * 1024 / rate + 0.02, peer_timeout=100.0)
+    line = SimLine(Arq(cfg, session_id=0xA), Arq(cfg, session_id=0xB), rate)
+    line.run(10.0, stop=lambda s: s.eps[0].established and s.eps[1].established)  # the handshake alone: 4 s
+    a = line.eps[0]
+    body = encode_message(frame(0, 40))  # about 1.9 kB: two DATA frames, 62 s on the line
+    (mid,) = send(line, [frame(0, 40)])
+    t0, others = line.now, a.stats["frames_sent"] - a.stats["data_frames_sent"]
+    line.run(t0 + 300, stop=lambda s: s.eps[0].outcome(mid) != "pending")
+    assert a.outcome(mid) == "delivered" and a.established, a.take_events()
+    assert line.now - t0 <= 1.3 * len(body) / rate + 5.0, line.now - t0
+    # besides its DATA frames, keepalives while it waits for an ACK (the old code: 102 in 100 s, and no DATA)
+    assert a.stats["frames_sent"] - a.stats["data_frames_sent"] - others <= 20, a.stats
+
+
 def test_a_line_that_echoes_our_own_frames_is_no_session():
     """On a loopback plug (serial:loop://) a ground took its own HELLO for a peer's, "established" a session with
     itself and waited out a deadline per pair on its own frames. An echoed frame is counted and said instead."""
