@@ -173,10 +173,8 @@ def test_process_warns_when_the_images_disagree_with_the_navigation_pose(tmp_pat
     assert res["sites"] == [] and res["info"]["no_site_reason"].startswith("no site is offered on this map")
 
 
-def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp_path, capsys):
-    """A 2 deg pitch of a 300/150 pair's lower frame: refused and warned, and a pair cannot leave its frame out, so
-    the map rests on it (DEM 27 m off); no altimeter check fires. Sites on such a map had been offered all the
-    same (a 3 deg pitch, stop 59's QA: FP 2.07 %, the top site unsafe)."""
+def _pitched_pair(tmp_path: Path, deg: float) -> tuple[Path, Path]:
+    """A rendered 256 px 300/150 pair, and a copy whose lower frame's navigation attitude is pitched ``deg``."""
     import math
     import shutil
 
@@ -186,10 +184,18 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     off = tmp_path / "off"
     shutil.copytree(pair, off)
     doc = json.loads((off / "pair.json").read_text())
-    a = math.radians(2.0)
+    a = math.radians(deg)
     rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
     doc["frames"][1]["R_world_to_cam"] = (rx @ np.array(doc["frames"][1]["R_world_to_cam"])).tolist()
     (off / "pair.json").write_text(json.dumps(doc))
+    return pair, off
+
+
+def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp_path, capsys):
+    """A 2 deg pitch of a 300/150 pair's lower frame: refused and warned, and a pair cannot leave its frame out, so
+    the map rests on it (DEM 27 m off); no altimeter check fires. Sites on such a map had been offered all the
+    same (a 3 deg pitch, stop 59's QA: FP 2.07 %, the top site unsafe)."""
+    pair, off = _pitched_pair(tmp_path, 2.0)
     assert main(["process", str(off), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: the images disagree with its navigation pose" in err
@@ -215,19 +221,7 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
 
 def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(tmp_path, capsys):
     """A correction was said only in result.json, and `process` had no way to run without it (stop 59's QA)."""
-    import math
-    import shutil
-
-    from hilkit import small_descent
-
-    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
-    off = tmp_path / "off"
-    shutil.copytree(pair, off)
-    doc = json.loads((off / "pair.json").read_text())
-    a = math.radians(0.3)
-    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    doc["frames"][1]["R_world_to_cam"] = (rx @ np.array(doc["frames"][1]["R_world_to_cam"])).tolist()
-    (off / "pair.json").write_text(json.dumps(doc))
+    _, off = _pitched_pair(tmp_path, 0.3)
     assert main(["process", str(off), "--out", str(tmp_path / "on")]) == 0
     said = capsys.readouterr().out
     assert "navigation poses refined from the images: frame 1 (relative rotation" in said, said
