@@ -326,6 +326,7 @@ class Arq(SessionView):
         self._pos_id: OrderedDict[int, tuple[int, str]] = OrderedDict()  # record position -> (id, name)
         self._next_id = 1
         self._control: deque[bytes] = deque()
+        self._queued_hello: bytes | None = None  # the HELLO in _control, if one is (at most one waits)
         self._dgrams: deque[tuple[int, bytes]] = deque()
         self._dgram_turn = True  # datagrams and DATA alternate while both wait
         self._pending: deque[_Out] = deque()  # reliable messages waiting for a session
@@ -529,7 +530,16 @@ class Arq(SessionView):
 
     # ------------------------------------------------------------------ transmitting
     def _queue_hello(self) -> None:
-        self._control.append(hello_frame(self.sess.local, self.sess.peer, self.cfg.max_frame, self.cfg.window))
+        """Queue a HELLO, or bring the one still queued up to date: at most one waits. Below ~1040 baud a HELLO takes
+        longer than the 0.25 s between them while a side waits for its peer, and the queue grew without bound; once
+        the session was up, the stale HELLOs went ahead of ACKs and DATA and lost it (stop 60's review)."""
+        frame = hello_frame(self.sess.local, self.sess.peer, self.cfg.max_frame, self.cfg.window)
+        for i, queued in enumerate(self._control):
+            if queued is self._queued_hello:
+                self._control[i] = self._queued_hello = frame
+                return
+        self._control.append(frame)
+        self._queued_hello = frame
 
     def _ack(self) -> bytes:
         ranges: list[tuple[int, int]] = []

@@ -387,6 +387,26 @@ def test_keepalives_do_not_starve_a_message_on_a_very_slow_line():
     assert a.stats["frames_sent"] - a.stats["data_frames_sent"] - others <= 20, a.stats
 
 
+def test_hellos_do_not_pile_up_while_a_side_waits_on_a_very_slow_line():
+    """Below ~1040 baud a HELLO takes longer than the 0.25 s between them while a side waits for its peer: a board
+    that waited 30 s at 300 baud held 83, which once the session was up went ahead of ACKs and DATA and lost it
+    (stop 60's review). At most one waits."""
+    rate = 300 / 10
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02, rto_initial=3 * 1024 / rate + 0.02, peer_timeout=60.0)
+    ground, board = Arq(cfg, session_id=0xA), Arq(cfg, session_id=0xB)
+    line = SimLine(ground, board, rate)
+    line.stopped[0] = True  # the ground is not running yet
+    line.run(30.0)
+    assert len(board._control) <= 1
+    line.stopped[0] = False
+    line.run(90.0, stop=lambda s: ground.established and board.established)
+    (mid,) = send(line, [frame(0, 16)])  # one DATA frame
+    t0 = line.now
+    line.run(t0 + 120, stop=lambda s: ground.outcome(mid) != "pending")
+    assert ground.outcome(mid) == "delivered" and line.now - t0 < 40, (ground.outcome(mid), line.now - t0)
+    assert [e.kind for e in ground.take_events()] == ["established"]
+
+
 def test_a_line_that_echoes_our_own_frames_is_no_session():
     """On a loopback plug (serial:loop://) a ground took its own HELLO for a peer's, "established" a session with
     itself and waited out a deadline per pair on its own frames. An echoed frame is counted and said instead."""
