@@ -180,7 +180,8 @@ class Link:
     def poll(self, timeout: float = 0.02) -> list[tuple[int, dict]]:
         """Read the port, run the timers; returns the messages (type, fields) that arrived."""
         now = time.monotonic()
-        if now >= self.next_hello:  # rule 6: HELLO every 0.25 s until established, keepalive every 1 s
+        if now >= self.next_hello:  # rule 6: HELLO every 0.25 s until established, then a keepalive every 1 s
+            # (the reference sends one only on an idle line: this side sends little, so every 1 s does no harm)
             self.hello(self.peer)
             self.next_hello = now + (1.0 if self.established else 0.25)
         self._pump(now)
@@ -203,7 +204,7 @@ class Link:
             return False
         if kind == HELLO and len(payload) == 8:
             max_frame, window = struct.unpack(">II", payload)
-            if src != self.peer:  # rule 2: a new peer (or a restarted one)
+            if src != self.peer:  # rule 2: a new peer, or a restarted one (the stranger clause is left out here)
                 if self.peer:
                     self.retired.add(self.peer)
                     self.new_session()

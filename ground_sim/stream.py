@@ -129,6 +129,7 @@ TELEMETRY_GRACE_S = 10.0
 # acknowledged, and at 1200 baud its ~1-2 kB took longer than the 10 s alone (the Result's line time then read
 # 0.00 s and the flight latency was lost, stop 60's QA)
 TELEMETRY_LINE_BYTES = 4096
+WRITE_RECORD_WAIT_S = 0.2  # a frame acknowledged before the writer recorded its write: its times wait this long
 
 
 def telemetry_grace_s(baud: float | None) -> float:
@@ -995,6 +996,12 @@ def stream_descent(
             give_up(o, "link_down", why)
             return False
         t_up, t_low = link.times(ids[0]), link.times(ids[1])
+        settle = time.monotonic() + WRITE_RECORD_WAIT_S
+        while t_low is not None and t_low.last_tx_pending and time.monotonic() < settle:
+            # the peer's ACK was read before the writer recorded the frame's last write: its "written" is still the
+            # moment it was handed over, a frame's line time early (1 s at 9600 baud; stop 60's review)
+            time.sleep(0.005)
+            t_low = link.times(ids[1])
         o.frames_written_at = t_low.written if t_low is not None else None
         # not its "written" time: a paced writer records it after the line time, and a fast answer can beat that
         o.last_frame_started = (t_low.first_tx if t_low is not None else None) or o.sent_at
@@ -1114,6 +1121,13 @@ def stream_descent(
                 note(f"waiting up to {until - time.monotonic():.0f} s for the answers to {len(pending)} pair(s)")
             drain(pending)  # what has arrived already: in lockstep `until` is often past, and collect reads nothing
             collect(until, pending)
+            # a Result in and its Telemetry on its way: awaited for its own line time, as mid-descent (the last pair
+            # at 300 baud lost its Telemetry to the response timeout's end; stop 60's review)
+            grace = telemetry_grace_s(getattr(link, "baud", None))
+            owed = [outcomes[k].result_t_done for k in pending if outcomes[k].result is not None]
+            later = max((t + grace for t in owed if t is not None), default=0.0)
+            if pending and later > time.monotonic():
+                collect(later, pending)
         for r in link.take_refusals():  # after every pair's end: counted, no pair to blame
             refused(r, set())
         for s, o in outcomes.items():

@@ -525,9 +525,12 @@ class Supervisor:
                 second = st is not None and not st.done
                 what = "a second Result: the first stands" if second else "a Result for no open pair"
                 self._ignore("stale_results", "stale_result", f"ignored {what} (frames {list(msg.frame_seqs)})")
-                if not second:  # a pair that then hangs says it: its answer may have named the wrong frames
-                    self.flight.last_ignored = f"a Result for frames {list(msg.frame_seqs)}, of no open pair"
+                if not second and any(q > self.fseq or q < 1 for q in msg.frame_seqs):
+                    # frames never forwarded: a pair that then hangs says so (its answer named the wrong frames).
+                    # A late Result of a pair closed already (an old ground session's) is no such hint
+                    self.flight.last_ignored = f"a Result for frames {list(msg.frame_seqs)}, never sent to it"
                 return
+            self.flight.last_ignored = None  # answers match again
             st.result = msg
             st.result_at = time.monotonic()
             st.proc_at_result = self.flight.proc.stats()

@@ -7,7 +7,9 @@ handshake:
 
 * A HELLO from a session we do not know replaces the peer: if we had one, it
   is *retired* (the peer restarted) and our sequence/reassembly state is reset
-  by the caller. We answer with HELLO(dst = the new peer).
+  by the caller. We answer with HELLO(dst = the new peer). (A byte-stream
+  link's Arq first drops such a HELLO while the current peer still talks: a
+  stranger's, docs/protocol.md rule 2.)
 * A HELLO or any valid frame with ``dst`` = our id from the current peer
   establishes the session (the peer knows us). On establishing we send one
   HELLO so the other side establishes too (it stops there: an established

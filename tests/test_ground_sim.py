@@ -386,6 +386,21 @@ def test_a_slow_lines_telemetry_is_awaited_for_its_own_line_time():
     assert telemetry_grace_s(921600) < TELEMETRY_GRACE_S + 1.0 and telemetry_grace_s(1200) > 60.0
 
 
+def test_a_result_recorded_without_its_telemetry_has_no_line_time(tmp_path):
+    """Its line time comes with the Telemetry; the span between its first and last frame here is kept apart (it
+    was the line time, 0.00 s for a one-frame Result that took 4.7 s at 1200 baud; stop 60's QA)."""
+    from resultrev import small_result
+
+    from ground_sim.stream import PairOutcome, write_outcome
+
+    o = PairOutcome("p000", "600/300", 300.0, str(tmp_path), (0, 1), sent_at=1.0)
+    o.result, o.frames_written_at, o.result_t_first, o.result_t_done = small_result(), 2.0, 5.0, 6.5
+    o.telemetry_missing = "no Telemetry came within 78 s of its Result"
+    rec = write_outcome(tmp_path, o, 10.0)
+    assert rec["result_line_s"] is None and rec["result_rx_s"] == pytest.approx(1.5)
+    assert rec["e2e_latency_s"] == pytest.approx(4.5) and rec["telemetry_missing"].startswith("no Telemetry")
+
+
 def test_a_results_line_time_is_at_most_what_the_end_to_end_latency_leaves():
     """On a noisy line the sender retransmits what the ground holds already (its ACKs lost): "end to end 1.92 s
     (flight 0.02 s, result line 3.27 s)" (stop 60's QA). Cut to e2e - flight - queue, the sender's figure kept."""

@@ -339,7 +339,7 @@ def test_a_pair_answered_under_the_wrong_frame_seqs_says_so_when_it_hangs(manife
     assert code == 1 and outcomes(s)[1][2] == "deadline_hang", s["records"]
     # the flight side's own frame numbers (the HIL server numbers what it forwards), 100 off
     assert re.search(
-        r"it sent a Result for frames \[1\d\d, 1\d\d\], of no open pair, which was ignored", s["records"][1]["text"]
+        r"it sent a Result for frames \[1\d\d, 1\d\d\], never sent to it, which was ignored", s["records"][1]["text"]
     )
 
 

@@ -54,6 +54,7 @@ def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manif
     for r in recs:
         assert r["deadline_met"] == (r["e2e_latency_s"] <= 0.1)
         assert r["e2e_latency_s"] >= r["result_line_s"] > 0.1  # the line alone is past the deadline
+        assert "result_line_sender_s" not in r  # the sender's own figure, not one cut to the end to end
         assert r["deadline_margin_s"] == pytest.approx(0.1 - r["e2e_latency_s"])
     assert not any(r["deadline_met"] for r in recs) and s["deadline_hit_rate"] == 0.0
     assert min(r["flight_latency_s"] for r in recs) < 0.1  # computed in time, late only on the line
@@ -194,6 +195,7 @@ def test_external_flight_computer_on_a_serial_device(manifest, tmp_path):
     _check_minimal_results(s, tmp_path)
     assert s["budget"] is None and s["memory_mib"] is None and exit_code(s) == 0
     assert all(r["e2e_latency_s"] >= r["result_line_s"] >= 0 for r in s["records"])  # measured at the ground
+    assert not any("result_line_sender_s" in r for r in s["records"])  # no cut needed on a clean line
     assert not (tmp_path / "supervisor.log").exists()  # no supervisor
 
 
