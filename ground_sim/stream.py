@@ -944,7 +944,9 @@ def stream_descent(
             counters["line_baud"] = int(link.baud or 0)
         # sessions the link had with the flight side: a lost or restarted one was said on the console and in no
         # output (a board killed and restarted mid-descent, its fused map started afresh: "PASS", stop 60's QA)
-        counters["link_sessions"] = {k: int(stats.get(k, 0) or 0) for k in ("sessions", "peer_restarts", "peer_losses")}
+        counters["link_sessions"] = {
+            k: int(stats.get(k, 0) or 0) for k in ("sessions", "peer_restarts", "peer_losses", "foreign_hellos")
+        }
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
         if telemetry_path is not None:
             lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)

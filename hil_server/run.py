@@ -577,7 +577,8 @@ def session_note(summary: dict) -> str:
     g = (summary.get("ground_counters") or {}).get("link_sessions") or {}
     sessions, restarts, losses = (int(g.get(k) or 0) for k in ("sessions", "peer_restarts", "peer_losses"))
     server = int((summary.get("supervisor_counters") or {}).get("link_errors") or 0)
-    if sessions <= 1 and not (restarts or losses or server):
+    foreign = int(g.get("foreign_hellos") or 0)
+    if sessions <= 1 and not (restarts or losses or server or foreign):
         return ""
     parts = [f"{sessions} link sessions with the flight side (one per descent when nothing fails)"]
     if restarts:
@@ -586,7 +587,10 @@ def session_note(summary: dict) -> str:
             "flight process fuses the later pairs into a new map)"
         )
     if losses:
-        parts.append(f"{losses} lost (the peer stopped answering)")
+        parts.append(f"{losses} ended early (the peer fell silent, closed or gave up, or this side did)")
+    if foreign:
+        parts.append(f"{foreign} HELLO(s) of another session came while the flight side talked, and were ignored "
+                     "(another device on the line?)")  # fmt: skip
     if server:
         parts.append(f"the HIL server saw {server} link error{'' if server == 1 else 's'} on its ground link")
     return "; ".join(parts)
@@ -868,6 +872,9 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
     kind, sep, rest = cfg.link.partition(":")
     if kind not in ("serial", "zmq") or (sep and not rest):
         raise InputError(f"--link must be serial, zmq, serial:DEVICE[@BAUD] or zmq:ENDPOINT, got {cfg.link!r}")
+    if cfg.flight_cmd is not None and not cfg.flight_cmd.strip():
+        # an unset $FLIGHT_CMD in CI ran our flight software and passed, testing the wrong program
+        raise InputError("--flight-cmd is empty (an unset variable?): give the program to run, or leave it out")
     if cfg.flight == "external":
         if not sep:
             raise InputError(
@@ -902,9 +909,6 @@ def _parse_link(cfg: RunConfig) -> tuple[str, str | None]:
             f"--link {cfg.link}: a device or endpoint needs --flight external; the emulated flight processor "
             "takes --link serial or zmq"
         )
-    if cfg.flight_cmd is not None and not cfg.flight_cmd.strip():
-        # an unset $FLIGHT_CMD in CI ran our flight software and passed, testing the wrong program
-        raise InputError("--flight-cmd is empty (an unset variable?): give the program to run, or leave it out")
     if cfg.flight_cmd:
         from hil_server.supervisor import flight_argv
 

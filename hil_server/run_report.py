@@ -48,9 +48,12 @@ PAIR_COLUMNS = [
 
 
 def _first(r: dict, *keys: str) -> Any:
+    """The first of ``keys`` that ``r`` holds (not None); "" names ``r["link"]["result_link_s"]``, the sender's
+    figure in an old record. A 0.0 is a figure: the Result's line time cut to 0 is not replaced by the uncut one."""
     for k in keys:
-        if r.get(k) is not None:
-            return r[k]
+        v = (r.get("link") or {}).get("result_link_s") if k == "" else r.get(k)
+        if v is not None:
+            return v
     return None
 
 
@@ -77,9 +80,7 @@ def pair_row(r: dict) -> dict[str, Any]:
         else f"error: {r.get('code')}" + (f": {printable(r['text'], 300)}" if r.get("text") else ""),
         "e2e_latency_s": _first(r, "e2e_latency_s", "latency_s") if ok else None,
         "flight_latency_s": r.get("flight_latency_s") if ok else None,
-        "result_line_s": _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")
-        if ok
-        else None,
+        "result_line_s": _first(r, "result_line_s", "result_link_s", "") if ok else None,
         "deadline_verdict": ("met" if r.get("deadline_met") else "MISSED") if ok else "no result",
         "fp_pct": sc.get("fp_pct"),
         "cdi_pct": sc.get("cdi_pct"),
@@ -131,7 +132,7 @@ def _telemetry_records(records: list[dict]) -> list[dict]:
     for r in records:
         t = dict(r)
         t.setdefault("frames_link_s", r.get("frames_line_s"))
-        t["result_link_s"] = _first(r, "result_line_s", "result_link_s") or (r.get("link") or {}).get("result_link_s")
+        t["result_link_s"] = _first(r, "result_line_s", "result_link_s", "")
         if t.get("e2e_latency_s") is None and r.get("status") == "result":
             t["e2e_latency_s"] = r.get("latency_s")
         t.setdefault("deadline_s", r.get("deadline_s"))

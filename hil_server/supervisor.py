@@ -1005,6 +1005,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         budget = get_budget(args.budget, args.budget_file)
         parse_link_fault(args.link_fault)
+        if args.flight_cmd is not None and not args.flight_cmd.strip():
+            raise InputError("--flight-cmd is empty (an unset variable?): give the program to run, or leave it out")
         if args.flight_cmd:
             flight_argv(args.flight_cmd, "PORT")  # a command that cannot be split is bad usage, said now
         cal = None if budget.is_host else load_calibration()  # full speed needs no host speed

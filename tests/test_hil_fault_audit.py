@@ -348,6 +348,9 @@ def test_an_empty_flight_cmd_is_refused_not_replaced_by_ours(tmp_path, capsys, c
     """`--flight-cmd "$FLIGHT_CMD"` with the variable unset ran our flight software and passed (stop 60's QA)."""
     assert main(["run", "--flight-cmd", cmd, "--out", str(tmp_path / "x")]) == 2
     assert "--flight-cmd is empty" in capsys.readouterr().err
+    external = ["run", "--flight", "external", "--link", "serial:/dev/null", "--flight-cmd", cmd]
+    assert main([*external, "--out", str(tmp_path / "y")]) == 2  # refused there too, not taken for unset
+    assert "--flight-cmd is empty" in capsys.readouterr().err
     assert not (tmp_path / "x" / "summary.json").exists()
 
 

@@ -398,7 +398,9 @@ def test_session_note_says_sessions_lost_or_restarted():
     assert session_note({}) == "" and session_note({"ground_counters": {"link_sessions": {"sessions": 1}}}) == ""
     s = {"ground_counters": {"link_sessions": {"sessions": 3, "peer_restarts": 1, "peer_losses": 1}}}
     said = session_note(s)
-    assert said.startswith("3 link sessions") and "started 1 of them anew" in said and "1 lost" in said
+    assert said.startswith("3 link sessions") and "started 1 of them anew" in said and "1 ended early" in said
+    stranger = session_note({"ground_counters": {"link_sessions": {"sessions": 1, "foreign_hellos": 2}}})
+    assert "2 HELLO(s) of another session came while the flight side talked" in stranger
     assert "1 link error" in session_note({"supervisor_counters": {"link_errors": 1}})
 
 
