@@ -963,7 +963,7 @@ def run_pipeline_multi(
         scale = []
         for f in (pose_info or {}).get("frames") or () if camera_side >= CHECK_MIN_SIDE else ():
             k, gap = int(f.get("frame", 0)), f.get("ground_gap_m")
-            if f.get("scale_disagrees") and k in kept and gap is not None:
+            if f.get("scale_disagrees") and k in kept and gap is not None and f.get("ground_gap_from") != "frames":
                 scale.append(
                     f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame {numbers[0]}'s "
                     "altimeter reads it (an image from another altitude, or a wrong position or reading)"

@@ -1151,12 +1151,14 @@ def refine_descent(
             "verdict": r.info.get("verdict", ""),
             "reason": r.info.get("reason", ""),
             "inliers": r.info.get("inliers", 0),
+            "ground_z_m": r.info.get("ground_z_m"),
             "ground_gap_m": r.info.get("ground_gap_m"),
             "scale_disagrees": bool(r.info.get("scale_disagrees")),
             "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
         }
 
     frames = []
+    relative = {k: (poses[0], poses[k]) for k in range(1, n - 1)}  # each middle frame's pose relative to frame 0
     for k in range(1, n - 1):
         if stop_by is not None and time.monotonic() + cost > stop_by:
             out[k] = transfer_relative(out[0], poses[0], poses[k])
@@ -1164,8 +1166,47 @@ def refine_descent(
             frames.append({"frame": k, "refined": False, "verdict": SKIPPED, "reason": why, "inliers": 0})
             continue
         r = refine_pair(images[0], images[k], poses[0], poses[k], camera, altimeter_m=(alt[0], alt[k]), params=params)
+        relative[k] = (r.pose1, r.pose2)
         out[k] = transfer_relative(out[0], r.pose1, r.pose2)
         frames.append(summary(r, k))
     frames.append(summary(wide, n - 1))
+    for f in _scale_outliers(frames, poses[0], params or RefineParams()):
+        if f["frame"] == n - 1:  # the widest pair fixed frame 0's pose: back to navigation, the others re-attached
+            out[0], out[-1] = poses[0], poses[-1]
+            info.update(refined=False, verdict=DISAGREES, reason=f["reason"], scale_disagrees=True)
+            for k in range(1, n - 1):
+                out[k] = transfer_relative(out[0], *relative[k])
+        else:
+            out[f["frame"]] = transfer_relative(out[0], poses[0], poses[f["frame"]])
     info["frames"] = frames
     return out, info
+
+
+def _scale_outliers(frames: list[dict[str, Any]], pose0: Pose, p: RefineParams) -> list[dict[str, Any]]:
+    """Frames whose fit puts the ground off where the others' put it, marked ``disagrees`` (``scale_disagrees``,
+    ``ground_gap_m`` from the median) in place and returned.
+
+    Without an altimeter the scale check of :func:`refine_pair` has no reference, and two images swapped in a
+    descent came out "kept", the DEM 202 m off with an unsafe site (stop 60's QA). Every (frame 0, frame k) fit
+    triangulates the same ground, so with three or more fits a frame more than ``max(max_ground_gap_m,
+    max_ground_gap_frac r)`` from their median (``r`` frame 0's height above it) is the odd one. Clean descents
+    with three or more fits (40 of stop 59's and 60's QA renders, six scenes, 256 and 512 px): at most 0.69 of that
+    limit (a deep-crater approach, the rim against the floor), median 0.01."""
+    fits = [f for f in frames if f.get("verdict") in (REFINED, KEPT) and f.get("ground_z_m") is not None]
+    if len(fits) < 3:
+        return []
+    z = float(np.median([float(f["ground_z_m"]) for f in fits]))
+    tol = max(p.max_ground_gap_m, p.max_ground_gap_frac * (float(pose0.position[2]) - z))
+    odd = [f for f in fits if abs(float(f["ground_z_m"]) - z) > tol]
+    for f in odd:
+        gap = float(f["ground_z_m"]) - z
+        f.update(
+            refined=False,
+            verdict=DISAGREES,
+            scale_disagrees=True,
+            ground_gap_m=gap,
+            ground_gap_from="frames",  # not the altimeter: the pipeline's altimeter note leaves it out
+            reason=f"the images put the ground {gap:+.0f} m from where the other frames' images put it, more than "
+            f"{tol:.0f} m",
+        )
+    return odd

@@ -366,6 +366,19 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     assert f2["verdict"] == "disagrees" and f2["scale_disagrees"] and f2["ground_gap_m"] > 100.0, f2
     assert "warning: frame 2: the images disagree" in err and "from where the first frame's altimeter" in err, err
     assert res["info"]["frames_dropped"] == [2, 3] and res["vs_truth"]["dem_error"]["mean_abs_m"] < 2.0
+    # without altimeters (they are optional): the fits' grounds against one another. Frame 2's and 3's were
+    # "kept", DEM 202 m off, an unsafe site offered (stop 60's QA)
+    blind = json.loads(json.dumps(doc))
+    for f in blind["frames"]:
+        f.pop("altimeter_m", None)
+    (d / "pair.json").write_text(json.dumps(blind))
+    assert main(["process", str(d), "--out", str(tmp_path / "blind")]) == 0
+    res = json.loads((tmp_path / "blind" / "result.json").read_text())
+    odd = res["info"]["pose_refinement"]["frames"][1:]
+    assert [f["verdict"] for f in odd] == ["disagrees", "disagrees"] and all(f["scale_disagrees"] for f in odd), odd
+    assert "from where the other frames' images put it" in odd[0]["reason"]
+    assert res["info"]["frames_dropped"] == [2, 3] and res["vs_truth"]["dem_error"]["mean_abs_m"] < 2.0
+    assert "altimeter_disagreement" not in res["info"]
     # as a pair, frame 2 cannot be left out: said, and no site on a map resting on it
     doc["frames"], doc["true_frames"] = [doc["frames"][0], doc["frames"][2]], [doc["true_frames"][k] for k in (0, 2)]
     (d / "pair.json").write_text(json.dumps(doc))

@@ -502,3 +502,26 @@ def test_a_nadir_pair_refuses_a_held_fit_beyond_the_navigations_accuracy(deg):
         assert not r.refined and "sd of the navigation's" in r.info["reason"], r.info["reason"]
         assert r.info["verdict"] == DISAGREES and contradicted(r.info["verdict"], PX)
         assert "cannot tell a relative rotation from a baseline change" in r.info["reason"]
+
+
+def test_a_frame_whose_ground_is_off_the_others_is_the_odd_one():
+    """Without an altimeter a fit's scale has no reference but the other fits': the odd one out by more than
+    max(10 m, 8 % of frame 0's height above the median ground) disagrees (swapped images, stop 60's QA)."""
+    from synthetic import NADIR_R
+
+    from flight_sw.pose_refine import _scale_outliers
+
+    pose0 = Pose(np.array([0.0, 0.0, 600.0]), NADIR_R)
+    frames = [
+        {"frame": 1, "verdict": REFINED, "ground_z_m": 1.0},
+        {"frame": 2, "verdict": KEPT, "ground_z_m": 152.0},
+        {"frame": 3, "verdict": KEPT, "ground_z_m": -3.0},
+        {"frame": 4, "verdict": DEGENERATE, "ground_z_m": 400.0},  # no verdict on the pose: not counted
+    ]
+    odd = _scale_outliers(frames, pose0, RefineParams())
+    assert [f["frame"] for f in odd] == [2] and frames[1]["verdict"] == DISAGREES and frames[1]["scale_disagrees"]
+    assert frames[1]["ground_gap_m"] == pytest.approx(151.0) and frames[1]["ground_gap_from"] == "frames"
+    assert frames[0]["verdict"] == REFINED and frames[3]["verdict"] == DEGENERATE
+    assert _scale_outliers(frames[:2], pose0, RefineParams()) == []  # two fits: no majority
+    near = [dict(f, ground_z_m=z) for f, z in zip(frames[:3], (1.0, 40.0, -3.0))]  # 39 m off at 600 m: within 48
+    assert _scale_outliers(near, pose0, RefineParams()) == []
