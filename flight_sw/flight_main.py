@@ -621,7 +621,7 @@ class FlightProcess:
                 Site(s.x, s.y, s.z, s.hazard, s.margin, s.distance_m, float(s.p_safe), float(s.clearance_m))
                 for s in sites
             ],
-            no_site_reason=None if reason is None else str(reason)[:256],
+            no_site_reason=None if reason is None else _clip(str(reason), 256),
             degraded=bool(res.degraded),
             level=str(res.level),
             # why a Result at level full can still be degraded: the stages that no longer fit
@@ -701,3 +701,10 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _clip(text: str, n: int) -> str:
+    """``text`` in at most ``n`` characters, cut at a word with an ellipsis (one read "... where its al")."""
+    if len(text) <= n:
+        return text
+    return text[: n - 1].rsplit(" ", 1)[0].rstrip(",;:") + "…"

@@ -427,6 +427,9 @@ def site_summary(results: list[dict]) -> dict | None:
     }
 
 
+WITHHELD = "no site is offered on this map"  # flight_sw.pipeline's sites_withheld reasons begin so
+
+
 def site_note(summary: dict) -> str:
     """'landing sites: the top site truly clear on 2 of 2 pairs that offered one; 1 offered none (200/100: ...)'."""
     s = summary.get("sites")
@@ -441,6 +444,14 @@ def site_note(summary: dict) -> str:
         parts.append(
             f"{len(s['top_not_judged'])} not judged, its footprint not wholly in the pair's upper image "
             f"({', '.join(s['top_not_judged'])})"
+        )
+    withheld = [x for x in s["no_site"] if str(x.get("reason") or "").startswith(WITHHELD)]
+    if withheld:  # a safety refusal is named first, each pair: it hid behind "and 2 more" (stop 60's QA)
+        parts.append(
+            f"the flight side withheld the sites of {len(withheld)} map(s) its own checks doubt ("
+            + "; ".join(f"{x['label']}: {str(x['reason'])[len(WITHHELD) :].lstrip(': ')}" for x in withheld[:3])
+            + (f"; and {len(withheld) - 3} more" if len(withheld) > 3 else "")
+            + ")"
         )
     if s["no_site"]:
         first = s["no_site"][0]

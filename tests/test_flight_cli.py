@@ -344,7 +344,8 @@ def test_a_clean_frame_that_hardly_overlaps_frame_0_is_a_note_not_a_warning(tmp_
     capsys.readouterr()
     assert main(["process", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o")]) == 0
     said = capsys.readouterr()
-    assert "frame 2: its pose is not checked by the images: the images hardly overlap" in said.out, said.out
+    assert "frame 2: its pose is not checked by the images (the images hardly overlap" in said.out, said.out
+    assert "a fault in it would go unseen" in said.out
     assert "warning: frame" not in said.err, said.err
 
 

@@ -124,6 +124,25 @@ def test_a_run_where_no_pair_offered_a_site_says_so_plainly():
     )
 
 
+def test_a_map_whose_sites_the_flight_side_withheld_is_named_first():
+    """A safety refusal hid behind "and 2 more" in the run's summary (stop 60's QA)."""
+    from flight_sw.flight_main import _clip
+
+    why = "no site is offered on this map: it rests on frame 1, whose navigation pose the images contradict"
+    none = [
+        {"label": "600/300", "reason": "no 3 m footprint with a 1 m margin is entirely known safe"},
+        {"label": "300/150", "reason": why},
+        {"label": "200/100", "reason": None},
+    ]
+    s = {"pairs": 3, "with_site": 0, "top_clear": 0, "top_not_clear": [], "top_not_judged": [], "no_site": none}
+    said = site_note({"sites": s})
+    assert "withheld the sites of 1 map(s) its own checks doubt (300/150: it rests on frame 1, whose" in said, said
+    long = "no site is offered on this map: " + "the DEM puts the ground under frame 0's axis " * 8
+    cut = _clip(long, 256)
+    assert len(cut) <= 256 and cut.endswith("…") and long.startswith(cut[:-1]) and cut[-2] != " "
+    assert _clip(why, 256) == why
+
+
 def test_a_fused_site_the_pair_cannot_see_is_judged_on_a_pair_of_the_same_render_that_does(tmp_path):
     """The fused map's top site may lie on ground only an earlier, higher pair saw: the HIL called it NOT clear,
     then 'not judged'; another pair of the same render holds its footprint, and its truth can judge it."""
