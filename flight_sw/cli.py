@@ -327,6 +327,10 @@ def _process(args: argparse.Namespace) -> int:
     if res.info.get("altimeter_dem_unchecked"):  # not a fault: too little DEM where the beam lands
         print(f"{out}: {res.info['altimeter_dem_unchecked']}")
     side = min(pair.camera.width, pair.camera.height)
+    cam = pair.camera
+    if not (0.0 <= cam.cx <= cam.width and 0.0 <= cam.cy <= cam.height):  # allowed (a cropped sensor), rarely meant
+        print(f"warning: the camera's principal point ({cam.cx:g}, {cam.cy:g}) lies off its {cam.width}x{cam.height} "
+              "image: check pair.json's camera (a wrong one gave a DEM 23 m off)", file=sys.stderr)  # fmt: skip
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)
         print(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")

@@ -214,8 +214,9 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     (off / "pair.json").write_text(json.dumps(doc))
     capsys.readouterr()
     assert main(["process", str(off), "--out", str(tmp_path / "cx")]) == 0
-    said = capsys.readouterr().out
-    assert "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off" in said
+    said = capsys.readouterr()
+    assert "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off" in said.out
+    assert "warning: the camera's principal point (296, " in said.err, said.err
     assert json.loads((tmp_path / "cx" / "result.json").read_text())["info"]["altimeter_dem_unchecked"]
 
 
