@@ -699,12 +699,12 @@ def main(argv: list[str] | None = None) -> int:
         link.close()
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _clip(text: str, n: int) -> str:
     """``text`` in at most ``n`` characters, cut at a word with an ellipsis (one read "... where its al")."""
     if len(text) <= n:
         return text
     return text[: n - 1].rsplit(" ", 1)[0].rstrip(",;:") + "…"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
