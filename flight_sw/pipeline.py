@@ -34,6 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from protocol.messages import SITES_WITHHELD
 from protocol.pairdir import (
     STATE_OUTSIDE,
     STATE_SAFE,
@@ -950,7 +951,7 @@ def run_pipeline_multi(
             }
     alt0 = alt_range  # frame 0's reading, for the DEM's check even when the range search does without it
     camera_side = min(camera.width, camera.height)
-    dropped = _contradicted_frames(pose_info, len(images), camera_side)
+    dropped = _frames_to_leave_out(pose_info, len(images), camera_side)
     kept = [k for k in range(len(images)) if k not in dropped]  # the input's numbers of the frames swept
     alt_note = ""
     if alt_frames is not None and p.dem == "sgm":  # the v1 flow reads no altimeter: nothing to distrust
@@ -999,18 +1000,15 @@ def run_pipeline_multi(
         res.info["altimeter_disagreement"] = alt_note
         # which sensor is wrong is unknown, and a map two of them disagree on is no ground to land on: said, with
         # no site rather than a bad one (issue 9)
-        res.sites = []
-        res.info["no_site_reason"] = res.info["sites_withheld"] = f"no site is offered on this map: {alt_note}"
+        _withhold_sites(res, alt_note)
     swept = kept if p.dem == "sgm" else [kept[0], kept[-1]]  # the v1 flow sweeps the widest pair only
-    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side, among=swept)]
+    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side) if k in swept]
     if doubted and "sites_withheld" not in res.info:
         # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
         # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
         frames = ", ".join(str(k) for k in doubted)
-        res.sites = []
-        res.info["no_site_reason"] = res.info["sites_withheld"] = (
-            f"no site is offered on this map: it rests on frame {frames}, whose navigation pose the images "
-            "contradict (info.pose_refinement)"
+        _withhold_sites(
+            res, f"it rests on frame {frames}, whose navigation pose the images contradict (info.pose_refinement)"
         )
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
@@ -1046,26 +1044,32 @@ def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
             f["frame"] = numbers[f["frame"]]
 
 
-def _contradicted_frames(
-    pose_info: dict[str, Any] | None, n: int, side: int, among: Sequence[int] | None = None
-) -> list[int]:
+def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
     """The later frames (1 to ``n - 1``) whose pose the images contradict (:func:`flight_sw.pose_refine.contradicted`:
-    matched and inconsistent, not merely a small overlap), to leave out of the sweep, where each adds its error to
-    every plane's cost: a noise image as the last of four frames, refused by the refinement and swept all the
-    same, left the DEM 7.9 m off (0.34 m without it). None when that would leave frame 0 alone: then the pair
-    stands, with the warning its reason gives.
-
-    ``among``: the contradicted frames of these (the frames swept), whatever is left."""
-    if not pose_info or (n <= 2 and among is None):
+    matched and inconsistent, not merely a small overlap). A multi-frame sweep leaves them out, where each adds its
+    error to every plane's cost (a noise image as the last of four frames, refused by the refinement and swept all
+    the same, left the DEM 7.9 m off; 0.34 m without it), unless that would leave frame 0 alone; a map that still
+    rests on one offers no site."""
+    if not pose_info:
         return []
-    bad = sorted(
+    return sorted(
         int(f["frame"])
         for f in pose_info.get("frames") or ()
         if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("verdict", "")), side)
     )
-    if among is not None:
-        return [k for k in bad if k in among]
+
+
+def _frames_to_leave_out(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
+    """:func:`_contradicted_frames`, unless they are all the later frames: frame 0 is never left alone (then the
+    pair stands, with the warning its reason gives, and no site)."""
+    bad = _contradicted_frames(pose_info, n, side)
     return bad if len(bad) < n - 1 else []
+
+
+def _withhold_sites(res: PipelineResult, why: str) -> None:
+    """No site on ``res``'s map, and why (``sites_withheld``, which the HIL flight process reads too)."""
+    res.sites = []
+    res.info["no_site_reason"] = res.info["sites_withheld"] = f"{SITES_WITHHELD}: {why}"
 
 
 def _degrees_or_none(value: float | None, name: str) -> float | None:

@@ -63,6 +63,7 @@ from hil_server.budgets import (
 )
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
+from protocol.messages import SITES_WITHHELD
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every pair recorded as not_run)
@@ -427,9 +428,6 @@ def site_summary(results: list[dict]) -> dict | None:
     }
 
 
-WITHHELD = "no site is offered on this map"  # flight_sw.pipeline's sites_withheld reasons begin so
-
-
 def site_note(summary: dict) -> str:
     """'landing sites: the top site truly clear on 2 of 2 pairs that offered one; 1 offered none (200/100: ...)'."""
     s = summary.get("sites")
@@ -445,11 +443,11 @@ def site_note(summary: dict) -> str:
             f"{len(s['top_not_judged'])} not judged, its footprint not wholly in the pair's upper image "
             f"({', '.join(s['top_not_judged'])})"
         )
-    withheld = [x for x in s["no_site"] if str(x.get("reason") or "").startswith(WITHHELD)]
+    withheld = [x for x in s["no_site"] if str(x.get("reason") or "").startswith(SITES_WITHHELD)]
     if withheld:  # a safety refusal is named first, each pair: it hid behind "and 2 more" (stop 60's QA)
         parts.append(
             f"the flight side withheld the sites of {len(withheld)} map(s) its own checks doubt ("
-            + "; ".join(f"{x['label']}: {str(x['reason'])[len(WITHHELD) :].lstrip(': ')}" for x in withheld[:3])
+            + "; ".join(f"{x['label']}: {str(x['reason'])[len(SITES_WITHHELD) :].lstrip(': ')}" for x in withheld[:3])
             + (f"; and {len(withheld) - 3} more" if len(withheld) > 3 else "")
             + ")"
         )

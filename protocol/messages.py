@@ -33,6 +33,9 @@ MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
 MAX_DICT_ITEMS = 128  # stages, link statistics, camera
 MAX_SKIPPED = 32  # pipeline stages a Result can name as skipped
+# a Result's no_site_reason that begins so: the flight side withheld the sites of a map its own checks doubt (sensors
+# that disagree, a pose the images contradict), not "nothing known safe"; the ground names such maps first
+SITES_WITHHELD = "no site is offered on this map"
 
 
 class SchemaError(InputError):

@@ -44,6 +44,7 @@ from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
 from ground_sim.seeds import describe_seeds
 from protocol.errors import InputError
+from protocol.messages import SITES_WITHHELD
 from reports.html import write_atomic
 from reports.jsondoc import json_text
 
@@ -446,9 +447,6 @@ def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-WITHHELD = "no site is offered on this map"  # flight_sw.pipeline's sites_withheld reasons begin so
-
-
 def no_site_reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
     """Landings without a site, counted by the flight software's reason (its leading clause: the figures
     in brackets differ per landing; a withheld map's reason is cut at its first figure, as frame numbers and
@@ -457,7 +455,7 @@ def no_site_reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
     for r in rows:
         if r["outcome"] == "no_site":
             why = str(r.get("no_site_reason") or "").split(" (")[0].strip() or "no reason given"
-            if why.startswith(WITHHELD):  # "... frame 0's optical axis +17.5 m from ...": one group, not one each
+            if why.startswith(SITES_WITHHELD):  # "... frame 0's optical axis +17.5 m from ...": one group, not one each
                 why = re.split(r"[+-]?\d", why, maxsplit=1)[0].rstrip(" :,") + " ..."
             counts[why] = counts.get(why, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))

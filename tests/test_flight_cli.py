@@ -241,7 +241,7 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
 
     from hilkit import small_descent
 
-    from flight_sw.pipeline import _contradicted_frames
+    from flight_sw.pipeline import _contradicted_frames, _frames_to_leave_out
     from flight_sw.pose_refine import DEGENERATE, DISAGREES, FEW_MATCHES, KEPT, NO_OVERLAP, SKIPPED, UNMATCHED
 
     root = small_descent(tmp_path / "pairs", ["600/300", "300/150"], px=256).parent
@@ -279,22 +279,18 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     assert noisy["frames_dropped"] == [1], noisy["pose_refinement"]["frames"]
     # frame 0 is never left alone, and small images (whose clean frames fail the checks too) drop nothing
     info = {"frames": [{"frame": 1, "refined": False, "verdict": UNMATCHED, "reason": "too few RANSAC inliers"}]}
-    assert _contradicted_frames(info, 3, 256) == [1] and _contradicted_frames(info, 2, 256) == []
-    assert _contradicted_frames(info, 3, 128) == []
+    assert _frames_to_leave_out(info, 3, 256) == [1] and _frames_to_leave_out(info, 2, 256) == []
+    assert _frames_to_leave_out(info, 3, 128) == []
     both = {"frames": [dict(info["frames"][0]), {"frame": 2, "refined": False, "verdict": DISAGREES}]}
-    assert _contradicted_frames(both, 3, 256) == []
+    assert _frames_to_leave_out(both, 3, 256) == []
     # a small overlap is the frames' geometry, not evidence against one: a clean 100 m frame of a 1000 m descent
     # was left out, and the map became the 1000/500 pair's (stop 59's review); nor is a degenerate geometry, a pose
     # the images confirmed, or one the deadline left untried
     for verdict in (NO_OVERLAP, FEW_MATCHES, DEGENERATE, KEPT, SKIPPED):
-        assert _contradicted_frames({"frames": [{"frame": 1, "refined": False, "verdict": verdict}]}, 3, 256) == []
-    # among the frames swept (sites are withheld on them): whatever is left, a pair included
-    assert _contradicted_frames(both, 3, 256, among=[0, 1, 2]) == [1, 2]
-    assert _contradicted_frames(both, 3, 256, among=[0, 2]) == [2]
-    assert (
-        _contradicted_frames(info, 2, 256, among=[0, 1]) == [1]
-        and _contradicted_frames(info, 2, 128, among=[0, 1]) == []
-    )
+        assert _frames_to_leave_out({"frames": [{"frame": 1, "refined": False, "verdict": verdict}]}, 3, 256) == []
+    # every contradicted frame, for the sites of a map that still rests on one: whatever is left, a pair included
+    assert _contradicted_frames(both, 3, 256) == [1, 2]
+    assert _contradicted_frames(info, 2, 256) == [1] and _contradicted_frames(info, 2, 128) == []
 
 
 def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):
