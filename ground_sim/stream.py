@@ -997,13 +997,9 @@ def stream_descent(
             why = "; ".join(whys) or "frames still queued"
             give_up(o, "link_down", why)
             return False
-        t_up, t_low = link.times(ids[0]), link.times(ids[1])
-        settle = time.monotonic() + WRITE_RECORD_WAIT_S
-        while t_low is not None and t_low.last_tx_pending and time.monotonic() < settle:
-            # the peer's ACK was read before the writer recorded the frame's last write: its "written" is still the
-            # moment it was handed over, a frame's line time early (1 s at 9600 baud; stop 60's review)
-            time.sleep(0.005)
-            t_low = link.times(ids[1])
+        # the peer's ACK can be read before the writer recorded the frame's last write: "written" would be the
+        # moment it was handed over, a frame's line time early (1 s at 9600 baud; stop 60's review)
+        t_up, t_low = link.times(ids[0]), link.times(ids[1], settle_s=WRITE_RECORD_WAIT_S)
         o.frames_written_at = t_low.written if t_low is not None else None
         # not its "written" time: a paced writer records it after the line time, and a fast answer can beat that
         o.last_frame_started = (t_low.first_tx if t_low is not None else None) or o.sent_at

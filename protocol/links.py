@@ -316,8 +316,11 @@ class ByteStreamLink(Link):
         with self._cv:
             return self.arq.outcome(msg_id)
 
-    def times(self, msg_id: int) -> MessageTimes | None:
+    def times(self, msg_id: int, settle_s: float = 0.0) -> MessageTimes | None:
+        """A snapshot of the message's times; ``settle_s``: wait up to that long for the writer's record of its
+        last write, when the peer's ACK was read first (its times then end at the hand-over, a frame early)."""
         with self._cv:
+            self._cv.wait_for(lambda: not getattr(self.arq.times(msg_id), "last_tx_pending", False), settle_s)
             t = self.arq.times(msg_id)
             return None if t is None else dataclasses.replace(t)  # a snapshot: the writer updates the original
 
@@ -835,7 +838,8 @@ class ZmqLink(Link, SessionView):
         with self._cv:
             return self._outcomes.get(msg_id)
 
-    def times(self, msg_id: int) -> MessageTimes | None:
+    def times(self, msg_id: int, settle_s: float = 0.0) -> MessageTimes | None:
+        """The message's times (``settle_s`` as :meth:`StreamLink.times`: nothing to wait for here)."""
         with self._cv:
             return self._times.get(msg_id)
 
