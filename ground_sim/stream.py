@@ -83,7 +83,7 @@ import numpy as np
 from protocol.arq import ECHO_TEXT, Received, Refusal
 from protocol.errors import InputError
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
-from protocol.links import MECHANISM_MISMATCH_TEXT, LinkClosed, ZmqLink
+from protocol.links import MECHANISM_MISMATCH_TEXT, WRITE_RECORD_WAIT_S, LinkClosed, ZmqLink
 from protocol.messages import (
     MESSAGE_NAMES,
     PROTOCOL_VERSION,
@@ -129,7 +129,6 @@ TELEMETRY_GRACE_S = 10.0
 # acknowledged, and at 1200 baud its ~1-2 kB took longer than the 10 s alone (the Result's line time then read
 # 0.00 s and the flight latency was lost, stop 60's QA)
 TELEMETRY_LINE_BYTES = 4096
-WRITE_RECORD_WAIT_S = 0.2  # a frame acknowledged before the writer recorded its write: its times wait this long
 
 
 def telemetry_grace_s(baud: float | None) -> float:

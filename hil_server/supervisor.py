@@ -53,6 +53,7 @@ from pathlib import Path
 
 from protocol.arq import Refusal, Skipping
 from protocol.errors import InputError
+from protocol.links import WRITE_RECORD_WAIT_S
 from protocol.messages import MESSAGE_NAMES, Config, Error, Frame, Heartbeat, Hello, Result, Telemetry
 from protocol.stall import StallClock
 from reports.console import printable
@@ -65,9 +66,6 @@ EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
 MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
-# a Result acknowledged before the ground link's writer recorded its last write: its line time waits this long for
-# the record (microseconds after the write, unless that thread was preempted), else it ends at the ACK
-WRITE_RECORD_WAIT_S = 0.2
 # link counters of the flight line that mean "the flight process sent something the HIL server refused":
 # a record over the size limit or of an unknown type (reassembly_errors), a body that fails to decode or the
 # schema, e.g. a wrong-shaped grid (decode_errors); and frames dropped as line garbage
@@ -585,7 +583,7 @@ class Supervisor:
         if times is not None and times.last_tx_pending:
             now = time.monotonic()
             st.result_write_wait = now if st.result_write_wait is None else st.result_write_wait
-            if now - st.result_write_wait < WRITE_RECORD_WAIT_S:
+            if now - st.result_write_wait < WRITE_RECORD_WAIT_S:  # protocol.links: polled, not waited in this loop
                 return  # the next poll reads it
         st.result_link_s = float(times.line_s) if times is not None and times.line_s is not None else 0.0
         st.result_queue_s = times.queue_s if times is not None else None

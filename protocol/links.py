@@ -73,6 +73,9 @@ BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
 # events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per
 # REPEAT_QUIET_S with a count; every one is still an event and a stat
+# how long a reader of a message's times may wait for the writer's record of its last write, when the peer's ACK
+# was read first (microseconds after the write, unless that thread was preempted): StreamLink.times(settle_s)
+WRITE_RECORD_WAIT_S = 0.2
 REPEATING_EVENTS = frozenset({"auth_failed", "refused", "echo", "foreign"})
 REPEAT_QUIET_S = 10.0
 
