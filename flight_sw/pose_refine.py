@@ -193,6 +193,10 @@ class RefineParams:
     max_ground_gap_frac: float = 0.08
     max_iterations: int = 30
 
+    def ground_gap_limit(self, range_m: float) -> float:
+        """How far a fit's ground may lie from the reference ground ``range_m`` below frame 0 (module doc, 5)."""
+        return max(self.max_ground_gap_m, self.max_ground_gap_frac * range_m)
+
     def validate(self) -> None:
         if self.detector not in DETECTORS:
             raise FlightInputError(f"pose refinement: detector must be one of {DETECTORS}, got {self.detector!r}")
@@ -1009,7 +1013,7 @@ def _refine_matches(
     ground_gap, gap_tol = math.nan, math.inf
     if math.isfinite(z_ground) and math.isfinite(alt[0]):
         ground_gap = z_ground - altimeter_ground(pose1, alt[0])
-        gap_tol = max(p.max_ground_gap_m, p.max_ground_gap_frac * alt[0])
+        gap_tol = p.ground_gap_limit(alt[0])
         info["ground_gap_m"] = ground_gap
 
     # -- 5. degeneracy checks
@@ -1196,7 +1200,7 @@ def _scale_outliers(frames: list[dict[str, Any]], pose0: Pose, p: RefineParams) 
     if len(fits) < 3:
         return []
     z = float(np.median([float(f["ground_z_m"]) for f in fits]))
-    tol = max(p.max_ground_gap_m, p.max_ground_gap_frac * (float(pose0.position[2]) - z))
+    tol = p.ground_gap_limit(float(pose0.position[2]) - z)
     odd = [f for f in fits if abs(float(f["ground_z_m"]) - z) > tol]
     for f in odd:
         gap = float(f["ground_z_m"]) - z
