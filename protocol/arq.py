@@ -378,6 +378,7 @@ class Arq(SessionView):
         self._rlast = now
         # liveness
         self._last_heard = now
+        self._peer_writing = -math.inf  # the last bytes of a peer's frame not (yet) whole: only a stranger's test
         self._last_sent = now
         self._writing = False  # a frame from next_frame is being written (its written() has not come)
         self._last_hello = -math.inf
@@ -697,7 +698,10 @@ class Arq(SessionView):
     def receive(self, data: bytes, now: float) -> None:
         """Feed bytes read from the line."""
         self.stats["bytes_received"] += len(data)
-        for f in self.decoder.feed(data):
+        frames = self.decoder.feed(data)
+        if self.sess.peer and self.sess.peer in self.decoder.claimed:
+            self._peer_writing = now  # a frame of the peer's on the line, not whole yet (or garbled by noise)
+        for f in frames:
             self._on_frame(f, now)
         for k in ("crc_errors", "malformed", "oversize", "resyncs", "bytes_discarded"):
             self.stats[k] = self.decoder.stats[k]
@@ -716,7 +720,8 @@ class Arq(SessionView):
             if self.sess.retired(f.src):
                 self.stats["old_session_frames"] += 1
                 return
-            if self.sess.established and f.src != self.sess.peer and now - self._last_heard < self._live_peer_s():
+            heard = max(self._last_heard, self._peer_writing)
+            if self.sess.established and f.src != self.sess.peer and now - heard < self._live_peer_s():
                 # a new session's HELLO while the peer of this one still talks: not a restart (a restarted peer's
                 # old session falls silent, and it repeats its HELLO until answered), another device on the line.
                 # One such frame took the session over, cost the pair in flight and blamed the board (stop 60's QA)
@@ -785,7 +790,8 @@ class Arq(SessionView):
 
     def _live_peer_s(self) -> float:
         """How recently the peer must have been heard for another session's HELLO to be a stranger's: it sends a
-        keepalive HELLO whenever it has sent nothing for ``keepalive`` s."""
+        keepalive HELLO whenever it has sent nothing for ``keepalive`` s. "Heard" counts the bytes of a frame still
+        arriving that names the peer (``StreamDecoder.claimed``): on a slow line one frame outlasts this."""
         return 1.5 * self.cfg.keepalive
 
     def _on_established(self, now: float) -> None:

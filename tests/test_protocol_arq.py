@@ -258,6 +258,25 @@ def test_a_strangers_hello_on_a_live_line_changes_nothing():
     assert (a.peer_session, b.peer_session, a.epoch, b.epoch) == before and b.stats["foreign_hellos"] == 1
 
 
+def test_a_strangers_hello_while_the_peer_writes_one_long_frame_changes_nothing():
+    """At 2400 baud a 1 kB frame is on the line 3.5 s, longer than the 1.5 keepalives after which a silent peer is
+    taken for restarted: a stranger's HELLO in that time took the session over. The frame's bytes arriving count."""
+    b = Arq(CFG, session_id=0xB)
+    b.receive(hello_frame(0x52, 0xB, 1024, 1 << 20), 0.0)
+    assert b.established and b.peer_session == 0x52
+    long = data_frame(0x52, 0xB, 0, bytes(900))
+    t = 0.0
+    for k in range(0, len(long) - 50, 50):  # 50 bytes every 0.2 s: 250 B/s
+        t += 0.2
+        b.receive(long[k : k + 50], t)
+    assert t > 1.5 * CFG.keepalive
+    b.receive(hello_frame(0x99, 0, 1024, 1 << 20), t)  # its flag ends the long frame: garbled, and still the peer's
+    assert b.peer_session == 0x52 and b.stats["foreign_hellos"] == 1 and b.stats["peer_restarts"] == 0
+    # a peer that has really gone quiet is still replaced
+    b.receive(hello_frame(0x99, 0, 1024, 1 << 20), t + 1.6 * CFG.keepalive)
+    assert b.peer_session == 0x99 and b.stats["peer_restarts"] == 1
+
+
 def test_both_sides_recover_after_a_long_stall():
     """A frozen peer that wakes up after both sides gave up: a new session, new ids, and traffic flows."""
     line = pair()

@@ -97,6 +97,21 @@ def test_truncated_frame_then_intact_frame_recovers_immediately():
     assert d.stats["crc_errors"] + d.stats["malformed"] == 1 and d.pending_bytes == 0
 
 
+def test_the_decoder_names_the_sender_of_a_frame_still_arriving_or_garbled():
+    """``claimed``: the src id of a frame whose head is in and whose tail is not (or whose CRC failed), so that a
+    slow line's long frame counts as its sender talking; nothing for a piece too short to hold a header."""
+    f = data_frame(0x1234ABCD, 2, 0, bytes(range(256)) * 3)
+    d = StreamDecoder()
+    assert d.feed(f[:5]) == [] and d.claimed == set()  # flag + 4 bytes: no header yet
+    assert d.feed(f[5:40]) == [] and d.claimed == {0x1234ABCD}
+    assert d.feed(f[40:41]) == [] and d.claimed == {0x1234ABCD}  # every feed while it arrives
+    assert [x.src for x in d.feed(f[41:])] == [0x1234ABCD] and d.claimed == set()  # whole: a frame, not a claim
+    garbled = bytearray(f)
+    garbled[100] ^= 0x01
+    assert d.feed(bytes(garbled)) == [] and d.claimed == {0x1234ABCD} and d.stats["crc_errors"] == 1
+    assert d.feed(b"\x7e" + bytes(60)) == [] and d.claimed == set()  # a piece of another wire version
+
+
 def test_every_single_bit_flip_is_caught():
     body = b"\x92\x06\x81\xa6time_s\xcb" + bytes(8)
     frame = dgram_frame(3, 4, 6, body)
