@@ -368,7 +368,9 @@ def _refined_poses(info: Any) -> list[str]:
     for i, f in enumerate(info.get("frames") or [{"frame": 1, **info}]):
         if isinstance(f, dict) and f.get("refined"):
             rot = float(f.get("relative_rotation_correction_deg") or 0.0)
-            out.append(f"frame {int(f.get('frame', i + 1))} (relative rotation corrected by {rot:.2f} deg)")
+            # against: a frame too far below frame 0 to share its ground, checked with one above it (pose_refine._chain)
+            rel = f"against frame {f['against']}, " if f.get("against") else ""
+            out.append(f"frame {int(f.get('frame', i + 1))} ({rel}relative rotation corrected by {rot:.2f} deg)")
     return out
 
 
@@ -385,7 +387,11 @@ def _unverified_poses(info: Any, side: int) -> list[tuple[int, str, str]]:
         return []
     frames = info.get("frames") or [{"frame": 1, **info}]
     return [
-        (int(f.get("frame", i + 1)), str(f["verdict"]), str(f.get("reason", "")))
+        (
+            int(f.get("frame", i + 1)),
+            str(f["verdict"]),
+            (f"against frame {f['against']}: " if f.get("against") else "") + str(f.get("reason", "")),
+        )
         for i, f in enumerate(frames)
         if isinstance(f, dict) and not f.get("refined") and unchecked(str(f.get("verdict", "")), side)
     ]

@@ -942,6 +942,7 @@ def run_pipeline_multi(
                 poses, pose_info = refine_descent(images, poses, camera, altimeter_m=alt_frames, stop_by=stop_by)
             t = timings["pose_refine"]
             done = sum(1 for f in pose_info.get("frames", ()) if f.get("verdict") != SKIPPED)
+            done += int(pose_info.get("chain_fits", 0))  # frames checked again against one above them
             clock.learn(pair_s * max(1, done), t["wall_s"], t["cpu_s"])
         else:
             pose_info = {
@@ -965,8 +966,9 @@ def run_pipeline_multi(
         for f in (pose_info or {}).get("frames") or () if camera_side >= CHECK_MIN_SIDE else ():
             k, gap = int(f.get("frame", 0)), f.get("ground_gap_m")
             if f.get("scale_disagrees") and k in kept and gap is not None and f.get("ground_gap_from") != "frames":
+                j = int(f.get("against") or 0)  # a frame checked against a frame above it (pose_refine._chain)
                 scale.append(
-                    f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame {numbers[0]}'s "
+                    f"frame {numbers[k]}'s images put the ground {float(gap):+.0f} m from where frame {numbers[j]}'s "
                     "altimeter reads it (an image from another altitude, or a wrong position or reading)"
                 )
         alt_note = "; ".join([alt_note, *scale] if alt_note else scale)
@@ -1039,9 +1041,10 @@ def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
         if key in info:
             info[key] = [numbers[k] for k in info[key]]
     pr = info.get("pose_refinement")
-    for f in (pr.get("frames") or ()) if isinstance(pr, dict) else ():
-        if isinstance(f, dict) and isinstance(f.get("frame"), int) and 0 <= f["frame"] < len(numbers):
-            f["frame"] = numbers[f["frame"]]
+    for f in [pr, *(pr.get("frames") or ())] if isinstance(pr, dict) else ():
+        for key in ("frame", "against") if isinstance(f, dict) else ():  # against: pose_refine._chain
+            if isinstance(f.get(key), int) and 0 <= f[key] < len(numbers):
+                f[key] = numbers[f[key]]
 
 
 def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:

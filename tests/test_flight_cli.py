@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -293,6 +294,32 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     assert _contradicted_frames(info, 2, 256) == [1] and _contradicted_frames(info, 2, 128) == []
 
 
+def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_out_when_wrong(tmp_path, capsys):
+    """The last frame of a 256 px 1000/600/300 approach shares too little ground with frame 0 to be checked, and a
+    2 deg pitch fault in it left the DEM 52 m off with a note (stop 60's QA). Against the 600 m frame the images
+    refuse it: warned, left out, and the map is the 1000/600 pair's."""
+    rc = main(["render", "--scenario", "approach", "--frames", "1000,600,300", "--image-size", "256", "--seed", "0",
+               "--workers", "1", "--no-progress", "--out", str(tmp_path / "r")])  # fmt: skip
+    assert rc == 0
+    d = tmp_path / "r" / "1000_600_300"
+    assert main(["process", str(d), "--out", str(tmp_path / "clean")]) == 0
+    clean = json.loads((tmp_path / "clean" / "result.json").read_text())
+    capsys.readouterr()
+    doc = json.loads((d / "pair.json").read_text())
+    c, s = math.cos(math.radians(2.0)), math.sin(math.radians(2.0))
+    doc["frames"][2]["R_world_to_cam"] = (
+        np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ doc["frames"][2]["R_world_to_cam"]
+    ).tolist()
+    (d / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    res = json.loads((tmp_path / "o" / "result.json").read_text())
+    last = res["info"]["pose_refinement"]["frames"][-1]
+    assert last["against"] == 1 and last["verdict"] == "disagrees" and res["info"]["frames_dropped"] == [2]
+    assert "warning: frame 2: the images disagree with its navigation pose (against frame 1:" in err, err
+    assert res["vs_truth"]["dem_error"]["mean_abs_m"] < 2 * clean["vs_truth"]["dem_error"]["mean_abs_m"] + 0.5
+
+
 def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):
     """Without gt_hazard_i1.npy `process` pointed to `score`, which then refused a pair whose ground is sampled
     coarser than half the footprint (stop 59's QA)."""
@@ -322,6 +349,10 @@ def test_widest_pair_messages_name_the_directorys_frames():
     info = {"pose_refinement": {"frames": [{"frame": 1, "refined": True}]}, "frames_dropped": [1]}
     _renumber(info, [0, 3])
     assert info["pose_refinement"]["frames"][0]["frame"] == 3 and info["frames_dropped"] == [3]
+    chained = {"pose_refinement": {"against": 1, "frames": [{"frame": 1}, {"frame": 2, "against": 1}]}}
+    _renumber(chained, [0, 2, 5])  # a frame checked against the one above it names that one as the directory does
+    assert chained["pose_refinement"]["frames"][1] == {"frame": 5, "against": 2}
+    assert chained["pose_refinement"]["against"] == 2
     same = {"pose_refinement": {"frames": [{"frame": 2}]}}
     _renumber(same, [0, 1, 2])
     assert same["pose_refinement"]["frames"][0]["frame"] == 2

@@ -525,3 +525,42 @@ def test_a_frame_whose_ground_is_off_the_others_is_the_odd_one():
     assert _scale_outliers(frames[:2], pose0, RefineParams()) == []  # two fits: no majority
     near = [dict(f, ground_z_m=z) for f, z in zip(frames[:3], (1.0, 40.0, -3.0))]  # 39 m off at 600 m: within 48
     assert _scale_outliers(near, pose0, RefineParams()) == []
+
+
+@pytest.fixture(scope="module")
+def deep():
+    """ground_sim approach frames at 1000, 600 and 300 m (seed 0, 256 px): the last shares 62x52 px with frame 0."""
+    from ground_sim.descent import DEFAULT_SUN, render_pair
+    from ground_sim.scene import load_scene
+    from ground_sim.trajectory import frames_at
+    from studies.evaluate import camera_for
+
+    cam = camera_for(PX)
+    spec = frames_at("approach", [1000.0, 600.0, 300.0], cam)
+    pair = render_pair(load_scene("approach", 0), spec, DEFAULT_SUN["approach"], seed=0)
+    return cam, list(spec.poses), list(pair.images), list(pair.altimeter_m)
+
+
+@pytest.mark.parametrize("deg", [0.0, 1.0, 2.0])
+def test_a_frame_too_deep_to_share_frame_0s_ground_is_checked_against_the_frame_above(deep, deg):
+    """Stop 60's QA: the last frame of a deep descent was swept unchecked (too little overlap with frame 0), and a
+    pitch fault in it moved the DEM 15-52 m with a note. Checked against frame 1 instead: a 1 deg pitch is corrected
+    (its rotation to frame 0 comes back within 0.1 deg, through frame 1's), a 2 deg one is refused."""
+    from flight_sw.pose_refine import NO_OVERLAP, refine_descent, refine_pair
+
+    cam, truth, images, alt = deep
+    wide = refine_pair(images[0], images[2], truth[0], truth[2], cam)
+    assert wide.info["verdict"] == NO_OVERLAP  # what the chain is for
+    nav = truth[:2] + [rotated(truth[2], deg, np.array([1.0, 0.0, 0.0]))]
+    poses, info = refine_descent(images, nav, cam, altimeter_m=alt)
+    last = info["frames"][-1]
+    assert info["chain_fits"] == 1 and last["frame"] == 2 and last["against"] == 1
+    if deg < 1.5:
+        assert last["verdict"] in (REFINED, KEPT) and info["verdict"] == last["verdict"] and info["against"] == 1
+        assert rel_rot_err(poses[0], poses[2], truth[0], truth[2]) < 0.1
+    else:
+        assert last["verdict"] == DISAGREES and contradicted(last["verdict"], PX)
+        assert "sd of the navigation's" in last["reason"]
+    # no time left for it: the frame keeps its first verdict, unchecked
+    poses, info = refine_descent(images, nav, cam, altimeter_m=alt, stop_by=time.monotonic())
+    assert info["frames"][-1]["verdict"] == NO_OVERLAP and "against" not in info["frames"][-1]
