@@ -86,7 +86,6 @@ from .psafe import load_model
 from .rangefind import (
     altimeter_dem_disagreement,
     altimeter_dem_gap,
-    altimeter_dem_unchecked,
     altimeter_disagreement,
     find_ground,
     prior_range,
@@ -993,10 +992,10 @@ def run_pipeline_multi(
         matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)
         # along the axis navigation reports: the beam follows the camera, and a refinement that took an altitude
         # error in as attitude (up to 3 sd) moved the point and halved the gap
-        gap = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
+        gap, unchecked = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
         res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
-        if math.isnan(gap):
-            res.info["altimeter_dem_unchecked"] = altimeter_dem_unchecked(matched, camera)
+        if unchecked:
+            res.info["altimeter_dem_unchecked"] = unchecked
         alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note

@@ -124,29 +124,24 @@ def altimeter_ring(elevation: np.ndarray, camera: Camera) -> np.ndarray:
     return z[y0:y1, x0:x1][(d >= r0) & (d <= r1)]
 
 
-def altimeter_dem_gap(elevation: np.ndarray, camera: Camera, pose: Pose, slant_range_m: float) -> float:
-    """``z_DEM - Z_alt``: the DEM's median elevation on a ring about frame 0's principal point (the beam lands at
-    its centre, DESIGN.md; :func:`altimeter_ring`) less the altimeter's ground point (:func:`altimeter_ground`);
-    NaN where the DEM has too little there (under :data:`ALT_DEM_MIN_SHARE` of the ring)."""
-    ring = altimeter_ring(elevation, camera)
-    if ring.size == 0 or np.count_nonzero(np.isfinite(ring)) < ALT_DEM_MIN_SHARE * ring.size:
-        return math.nan
-    return float(np.nanmedian(ring)) - altimeter_ground(pose, slant_range_m)
-
-
-def altimeter_dem_unchecked(elevation: np.ndarray, camera: Camera) -> str:
-    """Why frame 0's altimeter could not be checked against the DEM ("" when it could): too little elevation on
-    the ring. Said rather than passed over: on 21 of 315 clean directories the check was silently not made."""
+def altimeter_dem_gap(elevation: np.ndarray, camera: Camera, pose: Pose, slant_range_m: float) -> tuple[float, str]:
+    """``(z_DEM - Z_alt, "")``: the DEM's median elevation on a ring about frame 0's principal point (the beam lands
+    at its centre, DESIGN.md; :func:`altimeter_ring`) less the altimeter's ground point (:func:`altimeter_ground`).
+    ``(NaN, why)`` where the DEM has too little there (under :data:`ALT_DEM_MIN_SHARE` of the ring) or the ring
+    is off the image: said rather than passed over (on 21 of 315 clean directories the check was silently not
+    made)."""
     ring = altimeter_ring(elevation, camera)
     if ring.size == 0:
-        return "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off the image"
+        return math.nan, (
+            "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off the image"
+        )
     share = float(np.count_nonzero(np.isfinite(ring))) / ring.size
-    if share >= ALT_DEM_MIN_SHARE:
-        return ""
-    return (  # floored: 24.6 % is not "25 % (it needs 25 %)"
-        f"frame 0's altimeter was not checked against the DEM: {math.floor(100 * share)} % of the ring about its "
-        f"optical axis has a matched elevation (it needs {100 * ALT_DEM_MIN_SHARE:.0f} %)"
-    )
+    if share < ALT_DEM_MIN_SHARE:
+        return math.nan, (  # floored: 24.6 % is not "25 % (it needs 25 %)"
+            f"frame 0's altimeter was not checked against the DEM: {math.floor(100 * share)} % of the ring about "
+            f"its optical axis has a matched elevation (it needs {100 * ALT_DEM_MIN_SHARE:.0f} %)"
+        )
+    return float(np.nanmedian(ring)) - altimeter_ground(pose, slant_range_m), ""
 
 
 def altimeter_dem_disagreement(gap_m: float, slant_range_m: float) -> str:

@@ -775,7 +775,7 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     """Each frame's altimeter and position put the ground at ``C_z + r R[2, 2]``. A frame reported at 200 m whose
     altimeter read 151 m gave a DEM 24 m off and "kept" poses; a frame-0 reading 50 m long cut the ground above
     the datum out of the sweep (stop 59's QA). Relief between the axes' ground points stays within the rule."""
-    from flight_sw.rangefind import altimeter_dem_gap, altimeter_dem_unchecked, altimeter_disagreement
+    from flight_sw.rangefind import altimeter_dem_gap, altimeter_disagreement
 
     up, low = Pose(np.array([0.0, 0.0, 300.0]), NADIR_R), Pose(np.array([0.0, 0.0, 150.0]), NADIR_R, 10.0)
     assert altimeter_disagreement([up, low], [301.0, 151.0]) == ""
@@ -811,13 +811,14 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
     # too little DEM where the beam lands: the check is not made, and that is said (it was passed over silently)
     hole = ok.elevation.copy()
     hole[48:80, 48:80] = np.nan
-    assert math.isnan(altimeter_dem_gap(hole, cam, p1, 300.0))
-    assert "was not checked against the DEM: 0 % of the ring" in altimeter_dem_unchecked(hole, cam)
-    assert altimeter_dem_unchecked(ok.elevation, cam) == ""
+    gap, why = altimeter_dem_gap(hole, cam, p1, 300.0)
+    assert math.isnan(gap) and "was not checked against the DEM: 0 % of the ring" in why
+    gap, why = altimeter_dem_gap(ok.elevation, cam, p1, 300.0)
+    assert why == "" and gap == pytest.approx(ok.info["altimeter_dem_gap_m"])
     # a principal point off the image (the camera check allows it): no ring, said; it crashed (stop 60's review)
     off = dataclasses.replace(cam, cx=cam.width + 40.0)
-    assert math.isnan(altimeter_dem_gap(ok.elevation, off, p1, 300.0))
-    assert "off the image" in altimeter_dem_unchecked(ok.elevation, off)
+    gap, why = altimeter_dem_gap(ok.elevation, off, p1, 300.0)
+    assert math.isnan(gap) and "off the image" in why
     # one reading only, and the lower frame reported 20 m high: the images scale the DEM with it (the ground
     # comes out 40 m up); the altimeter under frame 0's axis says so
     high = Pose(p2.position + np.array([0.0, 0.0, 20.0]), p2.R, p2.time_s)
