@@ -243,6 +243,8 @@ def _table_doc(path: Path) -> dict[str, Any]:
 
 def _check_writable(path: Path) -> None:
     """Refuse a table path that cannot be written, before the measurement it would store (minutes of work)."""
+    import tempfile
+
     from ground_sim.errors import SceneError
 
     parent = path.parent
@@ -252,6 +254,13 @@ def _check_writable(path: Path) -> None:
         raise SceneError(f"--table {path}: is a directory")
     if not os.access(path if path.exists() else parent, os.W_OK):
         raise SceneError(f"--table {path}: not writable")
+    try:  # the table is written beside itself and renamed over: a file must be creatable in its directory, which
+        # os.access does not prove to root (/sys, a read-only file system), as hil_server.cli.check_out_dir does
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+        raise SceneError(f"--table {path} cannot be written: no file can be made in {parent} ({why})") from None
 
 
 def _scenes(args: argparse.Namespace) -> int:

@@ -35,7 +35,14 @@ from ground_sim.render import (
     render_view,
 )
 from ground_sim.scene import Scene, SceneParams, load_scene
-from ground_sim.trajectory import PairSpec, check_distinct_dirs, frames_at, load_trajectory
+from ground_sim.trajectory import (
+    MAX_ALTITUDE_M,
+    MIN_ALTITUDE_M,
+    PairSpec,
+    check_distinct_dirs,
+    frames_at,
+    load_trajectory,
+)
 from protocol.pairdir import (
     MANIFEST_FORMAT,
     Camera,
@@ -377,7 +384,7 @@ def render_scenario(
         if pair.meta["hazards_in_scene_pct"] is None:
             _warn_no_overlap(ps.label)
         else:
-            _warn_degenerate(ps.label, pair)
+            _warn_degenerate(ps.label, pair, [float(q.position[2]) for q in ps.poses])
         _progress(i + 1, len(specs), ps.label, t0, progress)
     e = library.entry(sc)
     manifest = {
@@ -427,10 +434,20 @@ def _say_replaced(out: Path, earlier: list[str], ours: list[str]) -> None:
 LOW_OVERLAP_PCT = 2.0
 
 
-def _warn_degenerate(label: str, pair: Pair) -> None:
+# protocol.pairdir.Pair.scale_notes's note on the metres per pixel (its text: the reader gives no code)
+SCALE_NOTE = "m per pixel at"
+
+
+def _warn_degenerate(label: str, pair: Pair, true_z: list[float] | None = None) -> None:
     """One line on stderr per implausible geometry of a rendered pair: a baseline under 1 % of the altitude
-    (``--frames 300,299.9999`` rendered "300/300" without a word), frames sharing under :data:`LOW_OVERLAP_PCT`."""
+    (``--frames 300,299.9999`` rendered "300/300" without a word), frames sharing under :data:`LOW_OVERLAP_PCT`.
+    ``true_z``: the frames' true heights; within render's range, no "positions must be in metres" hint."""
+    ours = true_z is not None and all(MIN_ALTITUDE_M <= z <= MAX_ALTITUDE_M for z in true_z)
     for note in pair.scale_notes():
+        # the reader's pixel-size note tells a user's pair file in km from one in m: this render placed its own
+        # frames in metres within the documented altitudes, where a small camera's pixel is simply coarse
+        if ours and SCALE_NOTE in note:
+            continue
         sys.stderr.write(f"warning: pair {label}: {note}\n")
     share = pair.meta.get("overlap_pct")
     if share is not None and share < LOW_OVERLAP_PCT:

@@ -56,6 +56,16 @@ class PoseDelta:
         return asdict(self)
 
 
+def _limit(field: str) -> float:
+    """The largest value of a :class:`PoseError` field: beyond it the "error" is no longer a navigation error (and
+    1e308 overflows the sampler)."""
+    return MAX_ANGLE_DEG if field.endswith("_deg") else MAX_OFFSET_M
+
+
+def _in_range(field: str, v: float) -> bool:
+    return math.isfinite(v) and 0 <= v <= _limit(field)
+
+
 @dataclass(frozen=True)
 class PoseError:
     """Distribution of pose errors (all zero = perfect knowledge)."""
@@ -72,10 +82,8 @@ class PoseError:
         for k, v in asdict(self).items():
             if k == "equal_pitch":
                 continue
-            # beyond these the "error" is no longer a navigation error (and 1e308 overflows the sampler)
-            limit = MAX_ANGLE_DEG if k.endswith("_deg") else MAX_OFFSET_M
-            if not math.isfinite(v) or not 0 <= v <= limit:
-                raise PoseErrorSpecError(f"pose error {k} must be a number in [0, {limit:g}], got {v}")
+            if not _in_range(k, v):
+                raise PoseErrorSpecError(f"pose error {k} must be a number in [0, {_limit(k):g}], got {v}")
 
     def _one(self, rng: np.random.Generator, pitch: float) -> PoseDelta:
         dz = rng.normal(0.0, self.altitude_sigma_m) if self.altitude_sigma_m else 0.0
@@ -134,5 +142,11 @@ class PoseError:
                 raise PoseErrorSpecError(f"--pose-error: {key.strip()} is given twice in {text!r}")
             if key.strip() == "equal_pitch" and v not in (0.0, 1.0):  # a flag: 5 read as "on"
                 raise PoseErrorSpecError(f"--pose-error: equal_pitch is 0 or 1, got {val.strip()!r}")
+            field = names[key.strip()]
+            if field != "equal_pitch" and not _in_range(field, v):  # named as typed, not by the field behind it
+                unit = "deg" if field.endswith("_deg") else "m"
+                raise PoseErrorSpecError(
+                    f"--pose-error: {key.strip()}={val.strip()} must be a number in [0, {_limit(field):g}] {unit}"
+                )
             kw[names[key.strip()]] = bool(v) if key.strip() == "equal_pitch" else v
         return cls(**kw)

@@ -22,6 +22,7 @@ from reports.style import (
     ELEVATION_CMAP,
     ELEVATION_RANGE,
     ERROR_CMAP,
+    ERROR_COLOURS,
     MISSED,
     OUTSIDE,
     PSAFE_CMAP,
@@ -178,7 +179,7 @@ def site_label_groups(sites: Sequence[Site], min_sep: float) -> list[list[Site]]
 
 
 def colormap(name: str) -> Any:
-    """A matplotlib colour map by name, the reports' own (``reports.style``: elevation, P(safe)) included."""
+    """A matplotlib colour map by name, the reports' own (``reports.style``: elevation, P(safe), error) included."""
     plt = _plt()
     from matplotlib.colors import LinearSegmentedColormap
 
@@ -186,6 +187,8 @@ def colormap(name: str) -> Any:
         return LinearSegmentedColormap.from_list(name, plt.get_cmap("terrain")(np.linspace(*ELEVATION_RANGE, 256)))
     if name == PSAFE_CMAP:
         return LinearSegmentedColormap.from_list(name, PSAFE_COLOURS)
+    if name == ERROR_CMAP:
+        return LinearSegmentedColormap.from_list(name, ERROR_COLOURS)
     return plt.get_cmap(name)
 
 

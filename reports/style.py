@@ -10,6 +10,9 @@ Colours (DESIGN.md scoring: positive = safe):
 * grey   — unknown (not enough evidence; scored as not called safe);
 * white  — outside the area both images cover.
 
+Anything else (a preset, a policy, a signed error) takes colours none of these mean: :data:`SERIES_COLOURS` for
+series, blue-white-brown for a signed error (:data:`ERROR_CMAP`).
+
 Metric labels are unique; :data:`GLOSSARY` explains each one, and every page
 lists the entries it uses.
 """
@@ -40,10 +43,15 @@ STATE_NAMES = {0: "safe", 1: "unsafe", 2: "unknown", 255: "outside"}
 # the undetected hazard's colour, on ground correctly called unsafe.
 ELEVATION_CMAP = "hh-elevation"  # matplotlib's "terrain" between ELEVATION_RANGE: green lowlands .. brown highs
 ELEVATION_RANGE = (0.22, 0.82)
-ERROR_CMAP = "RdBu_r"  # diverging, symmetric about zero
+# diverging, symmetric about zero: negative blue, positive brown (RdBu's red end read as undetected hazards)
+ERROR_CMAP = "hh-error"
+ERROR_COLOURS = ("#2166ac", "#f7f7f7", "#8c510a")
 HAZARD_CMAP = "magma_r"  # 0 = pale (safe) .. 1 = dark (unsafe)
 PSAFE_CMAP = "hh-psafe"  # 0 = the hazard's purple .. a pale khaki .. 1 = the safe green
 PSAFE_COLOURS = (HAZARD, "#e9dc9a", SAFE)
+# series of a chart (presets, policies): blue, brown, teal, navy, mustard; matplotlib's default cycle puts the
+# undetected hazard's red fourth, the false alarm's orange second and the safe green third
+SERIES_COLOURS = ("#4c78a8", "#9d755d", "#72b7b2", "#2f3e6e", "#b8a21f")
 
 
 @dataclass(frozen=True)

@@ -480,14 +480,28 @@ def _sensitivity(args: argparse.Namespace) -> int:
         return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set))
 
 
+def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
+    """The seeds and camera of one kind's sensitivity rows (``held-out seeds 1000-1001 (2), a 128 px camera``), as
+    its section of the shared page states them; rows written before the CSVs named the camera say so."""
+    seeds = sorted({int(r["seed"]) for r in rows})
+    sets = sorted({str(r["seed_set"]) for r in rows if r.get("seed_set")})
+    said = describe_seeds(seeds, sets[0] if len(sets) == 1 else "mixed") if seeds else "no seeds"
+    cams = sorted({int(r["camera_px"]) for r in rows if r.get("camera_px") is not None})
+    if not cams:
+        return f"{said}, camera not recorded"
+    return f"{said}, {'a ' if len(cams) == 1 else ''}{'/'.join(map(str, cams))} px camera{'s' if len(cams) > 1 else ''}"
+
+
 def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> int:
     from studies import evaluate as ev
     from studies import report
 
     summ = ev.sensitivity_summary(rows)
     print(report.rows_markdown(summ, list(summ[0]) if summ else []))
-    # one page for every study run into this directory, so kinds do not overwrite each other
-    sections = []
+    # one page for every study run into this directory, so kinds do not overwrite each other; each section
+    # states its own seeds and camera: the headline's are this run's, and earlier kinds' may differ
+    sections, other = [], []
+    mine = sensitivity_setting(rows)
     for kind in ev.SENSITIVITY_KINDS:
         csv_path = args.out / f"sensitivity_{kind}.csv"
         if not csv_path.is_file():
@@ -496,15 +510,27 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> 
         ks = ev.sensitivity_summary(krows)
         plot = report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png")
         table = report.Table([report.Column(k) for k in (ks[0] if ks else {})], ks)
-        sections.append((f"sensitivity: {kind}", [table], [plot.name]))
+        setting = sensitivity_setting(krows)
+        sections.append((f"sensitivity: {kind} ({setting})", [table], [plot.name]))
+        if kind != args.kind and setting != mine:
+            other.append(f"{kind} ({setting})")
     note = camera_note(args.camera_px)
     note_page_owner(args.out, "sensitivity")
     # which seeds, on the page itself: a tuning-seed study's page could not be told from a held-out one's
-    page = report.write_html(
-        args.out / "report", f"hazard-hil sensitivity (thesis sec 6.3); {seeds_text}{note}", sections
-    )
+    title = f"hazard-hil sensitivity (thesis sec 6.3); {seeds_text}{note}"
+    if other:
+        title = (
+            f"hazard-hil sensitivity (thesis sec 6.3); {args.kind}: {seeds_text}{note}; the other sections are "
+            "earlier runs into this --out with other settings, each stated in its heading"
+        )
+    page = report.write_html(args.out / "report", title, sections)
     print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
+    if other:
+        _note(
+            f"note: the page also shows {'; '.join(other)}: run into this --out before, with other settings than "
+            f"this {args.kind} run's ({mine}); each section's heading states its own"
+        )
     return 0
 
 
@@ -602,14 +628,14 @@ def _landings(args: argparse.Namespace) -> int:
     ld.claim_out_dir(c, args.out)
     drawn = seeds[: min(len(seeds), -(-c.n_groups // len(scenes)))]  # render g takes seed g // len(scenes)
     print(
-        f"landings: {c.n_landings} landings"
+        f"landings: {ld.counted(c.n_landings, 'landing')}"
         + (
             f" (--n {c.n} rounded up to whole renders of {c.per_render}, the same number for each of the "
             f"{len(scenes)} scenes)"
             if c.n_landings != c.n
             else ""
         )
-        + f" in {c.n_groups} renders over {', '.join(scenes)}; "
+        + f" in {ld.counted(c.n_groups, 'render')} over {', '.join(scenes)}; "
         f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
         file=sys.stderr,
     )
@@ -707,12 +733,15 @@ def _score(args: argparse.Namespace) -> int:
     import math
 
     from protocol.pairdir import pair_fingerprint, read_pair
+    from reports.console import printable
     from studies.score import (
         ScoreError,
         check_not_an_input,
+        json_row,
         pair_jobs,
         read_output,
         score_output,
+        stray_outputs,
         summarise,
         write_csv,
     )
@@ -743,7 +772,7 @@ def _score(args: argparse.Namespace) -> int:
             try:
                 out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
             except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
-                row["error"] = str(exc)
+                row["error"] = str(exc) + job.hint
             else:
                 fig = None if args.figures is None else args.figures / f"{job.pair_dir.name}_score.png"
                 try:
@@ -762,6 +791,16 @@ def _score(args: argparse.Namespace) -> int:
             print(f"hazard-hil score: {r['pair']}: cannot be scored: {r['error']}", file=sys.stderr)
         elif r.get("error"):
             print(f"hazard-hil score: {r['pair']}: no usable output: {r['error']}", file=sys.stderr)
+    stray = stray_outputs(args.pairs, args.outputs, jobs)
+    if stray:  # skipped without a word: a typo'd name left its pair "no such output directory" and no hint why
+        more = f" and {len(stray) - 8} more" if len(stray) > 8 else ""
+        names = ", ".join(printable(n, 80) for n in stray[:8]) + more
+        expected = ", ".join(printable(j.out_dir.name, 80) for j in jobs[:4]) + (", ..." if len(jobs) > 4 else "")
+        print(
+            f"note: {args.outputs} also holds {names}, which {'is' if len(stray) == 1 else 'are'} no pair of the "
+            f"manifest (an output directory is named as its pair directory: {expected})",
+            file=sys.stderr,
+        )
     derived = [r for r in rows if r.get("truth_note") and not r.get("error")]
     if derived:  # one note for the descent, not one per pair
         more = f" (and {len(derived) - 1} more pairs likewise)" if len(derived) > 1 else ""
@@ -785,7 +824,7 @@ def _score(args: argparse.Namespace) -> int:
             from reports.jsondoc import json_text
 
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json_text({"summary": summary, "rows": rows}))
+            args.json.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
             print(f"summary: {args.json}")
     except OSError as exc:  # after the scores above: said as main() says any other, as a write
         print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)

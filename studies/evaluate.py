@@ -1166,6 +1166,9 @@ def sensitivity_campaign(
         ):
             a, b = r.get(k), ref.get(k)
             row[name] = 100.0 * (a - b) / b if a is not None and b else None
+        # last, the columns before it in place for readers: the kinds studied into one --out share its page, and
+        # may come from runs with other cameras (the seeds are in the rows already)
+        row["camera_px"] = camera_px or THESIS_CAMERA_PX
         rows.append(row)
     _write_rows(rows, out / f"sensitivity_{kind}.csv")
     return rows

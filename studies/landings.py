@@ -47,6 +47,7 @@ from protocol.errors import InputError
 from protocol.messages import SITES_WITHHELD
 from reports.html import write_atomic
 from reports.jsondoc import json_text
+from reports.style import SERIES_COLOURS
 
 LANDING_PAIRS: tuple[tuple[str, str], ...] = (
     ("vertical", "400/200"),
@@ -62,7 +63,8 @@ LANDING_PAIRS: tuple[tuple[str, str], ...] = (
 DEFAULT_POSE_ERROR = "alt_sigma=0.15,pitch_sigma=0.03,roll_yaw=0.03,lateral=0.15,equal_pitch=0"
 PER_RENDER = 8
 AIM_FRACTION = 0.2
-PRESET_COLOURS = {"fast": "#4c78a8", "thesis": "#9d755d"}  # the report's: neither an outcome's colour nor red
+# the report's series colours: neither an outcome's colour nor red
+PRESET_COLOURS = {"fast": SERIES_COLOURS[0], "thesis": SERIES_COLOURS[1]}
 PRESETS = ("fast", "thesis")
 CAMPAIGN_KEY = 0x1A4D
 MAX_LANDINGS = 1_000_000  # per campaign: ~3 CPU-days; more is a typo, and its plan would not fit in memory
@@ -630,7 +632,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             st = [summary["per_scene"][s][p] for s in scenes]
             val = [s["p_safe"] for s in st]
             ci = [s["p_safe_ci95"] for s in st]
-            colour = PRESET_COLOURS.get(p, "#4c78a8")  # not the outcome colours (orange is "no site")
+            colour = PRESET_COLOURS.get(p, SERIES_COLOURS[0])  # not the outcome colours (orange is "no site")
         err = np.clip(np.array([[v - c[0] for v, c in zip(val, ci)], [c[1] - v for v, c in zip(val, ci)]]), 0, None)
         bars = ax.bar(
             x + (i - len(presets) / 2) * w,
@@ -693,6 +695,11 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     return files
 
 
+def counted(n: int, noun: str) -> str:
+    """``1 render``, ``2 renders``: a count and its noun, plural but for one."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> Path:
     """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page)."""
     from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
@@ -738,7 +745,8 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         Column("divert_m", "median divert [m]"),
     ]
     intro = (
-        f"{camp['n_landings']} landings ({camp['n_renders']} renders, {camp['per_render']} aim points each) over "
+        f"{counted(camp['n_landings'], 'landing')} ({counted(camp['n_renders'], 'render')}, "
+        f"{counted(camp['per_render'], 'aim point')} each) over "
         f"{', '.join(camp['scenes'])}; {describe_seeds(seeds, camp['seed_set'])}; pose errors "
         f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
         "top-ranked site is safe; no site is its own outcome and is not safe. The 95 % Wilson intervals take the "
@@ -759,12 +767,13 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
     why_cols = [
         Column("preset", "preset"),
         Column("reason", "why the flight software offered no site"),
-        Column("n", "landings"),
+        Column("n", "landings", term="n_landings"),  # "n" alone is the glossary's Monte Carlo "samples"
         Column("share", "share of the preset's landings"),
     ]
     sections = [
         Section("Per scene", [intro], [Table(cols, table_rows)]),
-        Section("Why no site", [], [Table(why_cols, why_rows)] if why_rows else []),
+        # a heading over nothing when every landing had a site
+        *([Section("Why no site", [], [Table(why_cols, why_rows)])] if why_rows else []),
         Section("Figures", [], [], [Figure(f, cap) for f, cap in figs]),
     ]
     links = file_links(

@@ -18,7 +18,7 @@ import numpy as np
 
 from reports.html import Column, Figure, Section, Table, file_links, write_page
 from reports.plots import save as save_figure
-from reports.style import HAZARD, HAZARD_CMAP, SAFE, term
+from reports.style import HAZARD, HAZARD_CMAP, SAFE, SERIES_COLOURS, term
 
 PANEL_IN = 3.2  # inches per map panel
 
@@ -280,6 +280,9 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
                 [d["rows"].get(name, {}).get(key, np.nan) for d in per_descent],
                 width,
                 label=name,
+                # the report's series colours: matplotlib's cycle drew the fourth policy in red, the undetected
+                # hazard's colour alone
+                color=SERIES_COLOURS[k % len(SERIES_COLOURS)],
             )
     labels = [f"{d['scenario'][:4]} {d['seed']}" for d in per_descent]
     for ax, ylabel in zip(axes, ("CDI %", "undetected hazards (FP) %"), strict=True):

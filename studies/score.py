@@ -82,6 +82,17 @@ CSV_COLUMNS = (
 )
 
 
+# `score --json` rows also carry these (the CSV leaves them out); every row has every key, null where a pair has no
+# value: a consumer reading row["dem_mean_abs_m"] got a KeyError on a detector without elevation.npy
+JSON_ONLY_KEYS = ("truth_poses", "truth_note")
+
+
+def json_row(row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` with :data:`CSV_COLUMNS` and :data:`JSON_ONLY_KEYS` in that order, None where it has no value."""
+    keys = (*CSV_COLUMNS, *JSON_ONLY_KEYS)
+    return {k: row.get(k) for k in keys} | {k: v for k, v in row.items() if k not in keys}
+
+
 class ScoreError(InputError):
     """An output directory or pair that cannot be scored (one line, says which file and why)."""
 
@@ -143,6 +154,7 @@ class Job:
     out_dir: Path
     sites: list | None = None  # an HIL run's record carries them (None: result.json in out_dir, if any)
     missing: str | None = None  # why there is no output to read (an HIL pair that ended in an error)
+    hint: str = ""  # said after the output's error: where the output may be instead
 
 
 def read_output(
@@ -234,7 +246,11 @@ def _site_point(site: Any, i: int, path: Path) -> list[float]:
     warnings instead of an error: a site the detector could not place is the detector's bug, said here.
     """
     if not isinstance(site, dict) or not all(k in site for k in "xyz"):
-        raise ScoreError(f'{path}: site {i} needs numeric "x", "y" and "z" (world metres)')
+        # DESIGN.md's sites carry x, y and z (z is not "where known"); protocol.md lets a degraded Result's z be NaN
+        raise ScoreError(
+            f'{path}: site {i} needs "x", "y" and "z" (world metres, DESIGN.md); "z" may be null or NaN where the '
+            "height is unknown (the verdict uses x and y)"
+        )
     out = []
     for k in "xyz":
         v = site[k]
@@ -396,7 +412,7 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
             mine = [r for r in runs if Path(str(r.get("out_dir", r.get("pair_id", "")))).name == o.name]
             if mine and mine[-1].get("status") == "result":
                 return [Job(p.name, p, o, sites=mine[-1].get("sites") or [])]
-        return [Job(p.name, p, o)]
+        return [Job(p.name, p, o, hint=_one_level_down(o, p.name))]
     if not (p / "manifest.json").is_file():
         raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
     entries = read_manifest(p / "manifest.json")["pairs"]
@@ -418,6 +434,28 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
                 Job(label, p / e["path"], o / Path(str(r.get("out_dir", name))).name, sites=r.get("sites") or [])
             )
     return jobs
+
+
+def _one_level_down(o: Path, name: str) -> str:
+    """For ``score PAIR OUTPUTS`` with OUTPUTS one level too high (the per-pair directories' parent): where the
+    output is, said after the "no hazard.npy" error; "" when OUTPUTS holds one itself or its ``name`` holds none."""
+    if (o / "hazard.npy").exists() or not (o / name / "hazard.npy").is_file():
+        return ""
+    return f"; {o / name} holds one: give that as OUTPUTS"
+
+
+def stray_outputs(pairs: str | Path, outputs: str | Path, jobs: list[Job]) -> list[str]:
+    """The directories in OUTPUTS that no pair of the descent reads (a typo, ``600-300`` for ``600_300``), which
+    were skipped without a word; [] when PAIRS is one pair or OUTPUTS an HIL run's records (the run names its
+    own directories)."""
+    p, o = Path(pairs), Path(outputs)
+    if (p / "pair.json").exists() or (o / "results.jsonl").is_file():
+        return []
+    read = {j.out_dir.name for j in jobs}
+    try:
+        return sorted(d.name for d in o.iterdir() if d.is_dir() and d.name not in read and not d.name.startswith("."))
+    except OSError:  # a directory that cannot be listed: the pairs' own errors say what is missing
+        return []
 
 
 def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) -> dict[str, Any]:

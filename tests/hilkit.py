@@ -53,3 +53,11 @@ def send_raw(link, type_code: int, body: bytes) -> None:
         else:
             link.arq.submit(type_code, body, "raw", time.monotonic())
         link._cv.notify_all()
+
+
+def reddish(rgb) -> bool:
+    """A saturated colour of red's hue (within 25 degrees): what the reports keep for undetected hazards."""
+    import colorsys
+
+    h, s, v = colorsys.rgb_to_hsv(*(float(c) for c in rgb[:3]))
+    return s > 0.5 and v > 0.3 and min(h, 1.0 - h) * 360 < 25

@@ -13,8 +13,8 @@ import pytest
 from hil_server.cli import main
 
 CASES = [
-    (["render", "--scenario", "vertical", "--pose-error", "alt=1e308"], "altitude_uniform_m must be a number in"),
-    (["render", "--scenario", "vertical", "--pose-error", "pitch=nan"], "pitch_uniform_deg must be a number in"),
+    (["render", "--scenario", "vertical", "--pose-error", "alt=1e308"], "--pose-error: alt=1e308 must be a number in"),
+    (["render", "--scenario", "vertical", "--pose-error", "pitch=nan"], "--pose-error: pitch=nan must be a number in"),
     (["render", "--scenario", "vertical", "--pose-error", "yaw=1"], "bad item 'yaw=1'"),
     (["render", "--scenario", "vertical", "--pose-error", "alt=0.5,alt=1"], "alt is given twice"),  # last won
     (["render", "--scenario", "vertical", "--pose-error", "equal_pitch=5"], "equal_pitch is 0 or 1"),

@@ -173,3 +173,21 @@ def test_a_split_table_says_which_part_and_no_site_is_not_a_dash():
     rows = {r["altitude_m"]: r for r in tables[-1].rows}
     assert rows[300]["chosen_sites_safe_pct|fast"] == "no site"
     assert rows[400]["chosen_sites_safe_pct|fast"] is None  # nothing ran there: no site is not the answer
+
+
+def test_the_multiframe_chart_draws_no_policy_in_red(tmp_path):
+    """QA 61a: matplotlib's colour cycle drew "fused window 2", the fourth series, in red (the undetected hazard's)."""
+    from hilkit import reddish
+    from matplotlib.image import imread
+
+    from studies import multiframe as mf
+
+    names = ["best pair", *mf.POLICIES]
+    per_descent = [
+        {"scenario": "vertical", "seed": s, "rows": {n: {"cdi": 40.0 + k, "fp": 0.5 + 0.1 * k} for k, n in
+                                                      enumerate(names)}}
+        for s in (1000, 1001)
+    ]  # fmt: skip
+    png = imread(report.plot_multiframe(per_descent, mf.POLICIES, tmp_path / "m.png"))
+    red = sum(reddish(px) for px in png.reshape(-1, png.shape[-1])[::3])
+    assert red == 0, red

@@ -284,3 +284,28 @@ def test_a_landing_whose_navigation_the_flight_software_refuses_is_a_no_site_lan
     for r in refused:
         assert r["outcome"] == "no_site" and r["safe"] is False and r["no_site_reason"] == ld.REFUSED_REASON
         assert r["refused_because"] and "\n" not in r["refused_because"]  # the flight software's one-line reason
+
+
+@pytest.mark.parametrize("no_site", [False, True])
+def test_report_wording_one_render_no_empty_heading_no_unused_glossary_entry(tmp_path: Path, no_site: bool):
+    """QA 61a: "1 renders"; a "Why no site" heading over nothing when every landing had a site; the glossary's
+    "samples" (the why table's "n" column) on a page that counts landings."""
+    import re
+
+    rows = []
+    for i in range(8):
+        outcome = "no_site" if no_site and i == 7 else "safe"
+        row = {"landing": i, "group": 0, "preset": "fast", "outcome": outcome, "safe": outcome == "safe"}
+        row |= {"site_found": outcome != "no_site", "scene": "mare", "aim_safe": True, "scenario": "vertical"}
+        row |= {"pair": "200/100", "divert_m": None if outcome == "no_site" else float(i)}
+        if outcome == "no_site":
+            row["no_site_reason"] = "no cell is known safe"
+        rows.append(row)
+    s = ld.summarise(rows)
+    s["campaign"] = {"n_landings": 8, "n_renders": 1, "per_render": 8, "scenes": ["mare"]}
+    s["campaign"] |= {"seed_set": "held-out", "seeds": [1000], "pose_error": None}
+    text = ld.write_report(tmp_path, rows, s).read_text()
+    assert "8 landings (1 render, 8 aim points each)" in text
+    assert ("Why no site" in text) == no_site
+    glossary = text[text.index('<dl class="glossary">') :]
+    assert not re.search(r"<dt>\s*samples\s*</dt>", glossary), glossary[:2000]

@@ -281,3 +281,33 @@ def test_render_takes_a_small_camera_as_run_does(tmp_path, capsys):
     assert pair.truth["hazard"].shape == (64, 64)
     # the thesis camera's field of view at every size (run and evaluate build theirs the same way)
     assert Camera.thesis(512) == Camera.thesis() and Camera.thesis(64).fx * 8 == Camera.thesis().fx
+
+
+# --------------------------------------------------------------------------- QA 61a
+@pytest.mark.skipif(not Path("/sys").is_dir(), reason="needs /sys, where no file can be made")
+def test_measure_into_a_directory_where_no_file_can_be_made_is_refused_before_measuring(capsys, monkeypatch):
+    """os.access says yes to root on /sys: the table's directory passed, the scenes were measured for minutes,
+    then the write failed naming an internal temp file (/sys/.x.json.dqp42k_4), exit 1."""
+
+    def measure(*args, **kw):
+        raise AssertionError("measured before --table was checked")
+
+    monkeypatch.setattr(lib, "measure", measure)
+    monkeypatch.setattr(os, "access", lambda *a, **k: True)  # as root sees it, whoever runs the test
+    err = one_line_error(capsys, ["scenes", "mare", "--measure", "--seeds", "1", "--table", "/sys/x.json"])
+    assert "--table /sys/x.json cannot be written" in err and "/sys/." not in err, err
+
+
+def test_a_render_at_a_documented_altitude_gives_no_metres_hint(tmp_path, capsys):
+    """45 km at 64 px sees 380 m per pixel: the pair reader's "positions must be in metres" (meant for a user's
+    pair files) was said of the tool's own render within its documented 30 m - 50 km."""
+    argv = ["render", "--scenario", "vertical", "--frames", "45000,40000", "--image-size", "64"]
+    assert main([*argv, "--out", str(tmp_path / "o"), "--workers", "1", "--no-progress"]) == 0
+    assert "metres" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("spec, said", [("alt=-1", "alt=-1"), ("pitch_sigma=1e9", "pitch_sigma=1e9")])
+def test_a_pose_error_out_of_range_is_named_as_typed(tmp_path, capsys, no_rendering, spec, said):
+    """`--pose-error alt=-1` was refused as "pose error altitude_uniform_m must be ...", a name the user never saw."""
+    err = one_line_error(capsys, ["render", "--scenario", "vertical", "--pose-error", spec, "--out", str(tmp_path)])
+    assert f"--pose-error: {said}" in err and "_uniform_" not in err and "_sigma_" not in err, err

@@ -254,3 +254,16 @@ def test_the_zoomed_box_keeps_every_site_in_view():
     box = mapped_box([Panel("confusion", codes, "", sites=[far])])
     assert inside is not None and inside[2] > 10 and box is not None
     assert box[0] <= 190 <= box[1] and box[2] <= 10 <= box[3]
+
+
+def test_the_error_maps_and_series_colours_are_not_red():
+    """QA 61a: the DEM error map's RdBu put red on the positive errors, red being only an undetected hazard."""
+    from hilkit import reddish
+    from matplotlib.colors import to_rgb
+
+    from reports.style import ERROR_CMAP, MISSED, SERIES_COLOURS
+
+    assert reddish(to_rgb(MISSED)) and reddish(to_rgb("#d62728"))  # the check sees matplotlib's red
+    ramp = np.linspace(0.0, 1.0, 101)
+    assert not [c for c in plots.colormap(ERROR_CMAP)(ramp) if reddish(c)]
+    assert not [c for c in SERIES_COLOURS if reddish(to_rgb(c))]

@@ -171,7 +171,7 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         # hazard.npy is 1.0 everywhere (not called safe): each disagreement is named with its direction
         (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "says 0 (safe) where hazard.npy is >= 1 on"),
         (lambda o, s: np.save(o / "state.npy", np.full(s, 255, np.uint8)), "says 255 (outside) where hazard.npy has"),
-        (lambda o, s: (o / "result.json").write_text('{"sites": [{"x": 1}]}'), 'site 0 needs numeric "x", "y"'),
+        (lambda o, s: (o / "result.json").write_text('{"sites": [{"x": 1}]}'), 'site 0 needs "x", "y" and "z"'),
         # by name but not a file: a FIFO state.npy was taken for no state.npy, and the pair scored without it
         (lambda o, s: os.mkfifo(o / "state.npy"), "state.npy: exists but is not a regular file (a FIFO)"),
         (lambda o, s: (o / "result.json").mkdir(), "result.json: exists but is not a regular file (a directory)"),
@@ -472,3 +472,56 @@ def test_an_hil_run_says_a_pair_without_derivable_truth_is_unscored_and_blames_n
     assert rec["status"] == "result" and "scores" not in rec and "none can be derived" in rec["truth_note"]
     md = (tmp_path / "run" / "summary.md").read_text()
     assert "mapped none of the upper image" not in md and "600/300 could not be scored" in md
+
+
+# --------------------------------------------------------------------------- QA 61a
+def test_output_directories_of_no_pair_are_named(descent, tmp_path, capsys):
+    """An output directory named as no pair (a typo, `600-300` for `600_300`) was skipped without a word."""
+    outs = tmp_path / "outs"
+    gt = read_pair(descent / "600_300").truth["hazard"]
+    _write(outs / "600_300", gt)
+    _write(outs / "typo_dir", np.zeros_like(gt))
+    (outs / "not_a_dir.txt").write_text("x")
+    assert main(["score", str(descent), str(outs)]) == 3  # 300_150 has no output
+    err = capsys.readouterr().err
+    assert f"note: {outs} also holds typo_dir, which is no pair of the manifest" in err, err
+    assert "600_300, 300_150" in err and "not_a_dir" not in err, err
+    shutil.rmtree(outs / "typo_dir")
+    _write(outs / "300_150", read_pair(descent / "300_150").truth["hazard"])
+    assert main(["score", str(descent), str(outs)]) == 0
+    assert "also holds" not in capsys.readouterr().err
+
+
+def test_outputs_one_level_too_high_says_where_the_output_is(descent, tmp_path, capsys):
+    """`score PAIR OUTPUTS` given the per-pair directories' parent said only "OUTPUTS: no hazard.npy"."""
+    outs = tmp_path / "outs"
+    _write(outs / "600_300", read_pair(descent / "600_300").truth["hazard"])
+    assert main(["score", str(descent / "600_300"), str(outs)]) == 3
+    err = capsys.readouterr().err
+    assert f"{outs}: no hazard.npy" in err and f"{outs / '600_300'} holds one: give that as OUTPUTS" in err, err
+
+
+def test_a_site_without_z_is_refused_saying_z_may_be_null(descent, tmp_path, capsys):
+    """A site with no "z" was refused as needing a numeric z, while "z": null was scored: DESIGN.md lists z for
+    every site (only p_safe is "where known"), and protocol.md lets a degraded Result's z be NaN."""
+    d = descent / "300_150"
+    out = _write(tmp_path / "o", np.ones_like(read_pair(d).truth["hazard"]))
+    (out / "result.json").write_text('{"sites": [{"x": 0.0, "y": 0.0}]}')
+    assert main(["score", str(d), str(out)]) == 3
+    err = capsys.readouterr().err
+    assert 'site 0 needs "x", "y" and "z"' in err and '"z" may be null or NaN where the height is unknown' in err, err
+
+
+def test_json_rows_have_the_csv_keys_with_null_where_no_value(descent, tmp_path, capsys):
+    """A detector without elevation.npy or state.npy had no dem_* or state_* keys in --json rows at all, where
+    the CSV keeps empty columns: row["dem_mean_abs_m"] was a KeyError on some rows."""
+    outs = tmp_path / "outs"
+    for name in ("600_300", "300_150"):
+        gt = read_pair(descent / name).truth["hazard"]
+        extra = {"elevation": np.zeros_like(gt), "state": np.where(gt < 1, 0, 1)} if name == "600_300" else {}
+        _write(outs / name, gt, **extra)
+    code, doc = _score(descent, outs, capsys)
+    full, bare = doc["rows"]
+    assert code == 0 and list(full) == list(bare), (list(full), list(bare))
+    assert set(CSV_COLUMNS) <= set(bare) and bare["dem_mean_abs_m"] is None and bare["state_safe_pct"] is None
+    assert full["dem_mean_abs_m"] is not None

@@ -379,3 +379,37 @@ def test_a_dask_scheduler_without_workers_is_said_not_waited_on_in_silence(capsy
     _say_when_workerless(Client([0] * 15), "tcp://s:8786", Looks(15))
     err = capsys.readouterr().err
     assert err.count("note: the Dask scheduler tcp://s:8786 has no workers") == 3, err  # at looks 2, 8 and 14
+
+
+def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(tmp_path, monkeypatch, capsys):
+    """QA 61a (M1): kinds studied into one --out share its page, whose headline (seeds, camera) was the last run's
+    while an earlier kind's section came from another camera and seeds; the CSVs named no camera."""
+    import csv
+
+    import studies.executor as ex
+    from studies import evaluate as ev
+
+    def render_all(scenario, seeds, cache, **kw):  # the page under test, not the renders or the pipeline
+        return [{"pair_dir": str(tmp_path), "seed": s, "altitude_m": 300.0} for s in seeds]
+
+    def run_tasks(fn, tasks, *a, **kw):
+        return {t.id: {"dem_mean_abs_m": 1.0 + 0.01 * len(t.id), "dem_mad_m": 0.5} for t in tasks}
+
+    monkeypatch.setattr(ev, "render_all", render_all)
+    monkeypatch.setattr(ex, "run_tasks", run_tasks)
+    out = tmp_path / "se"
+    common = ["--samples", "2", "--preset", "fast", "--altitudes", "300", "--workers", "1", "--no-progress"]
+    argv = ["sensitivity", "--kind", "rollyaw", *common, "--seed-list", "1001", "--camera-px", "128"]
+    assert main([*argv, "--out", str(out)]) == 0
+    capsys.readouterr()
+    with (out / "sensitivity_rollyaw.csv").open() as fh:
+        header = next(csv.reader(fh))
+    assert header[:4] == ["kind", "preset", "seed", "altitude_m"] and header[-1] == "camera_px"  # appended
+    argv = ["sensitivity", "--kind", "altitude", *common, "--seeds", "1", "--camera-px", "64"]
+    assert main([*argv, "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    page = html.unescape((out / "report" / "index.html").read_text())
+    assert "sensitivity: altitude (held-out seeds 1000 (1), a 64 px camera)" in page
+    assert "sensitivity: rollyaw (held-out seeds 1001 (1), a 128 px camera)" in page
+    assert "the other sections are earlier runs into this --out with other settings" in page
+    assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
