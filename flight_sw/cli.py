@@ -188,7 +188,7 @@ def _process(args: argparse.Namespace) -> int:
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
-    from .pose_refine import DISAGREES, NO_OVERLAP
+    from .pose_refine import DISAGREES, NO_OVERLAP, UNMATCHED
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -348,9 +348,11 @@ def _process(args: argparse.Namespace) -> int:
             print(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
                   f"error should be, so the refinement kept the pose); {rest} (result.json "
                   "info.pose_refinement)", file=sys.stderr)  # fmt: skip
-        elif k in res.info.get("frames_dropped", ()):
-            print(f"warning: frame {k}: the images could not check its navigation pose ({why}); it is left out of "
-                  "the maps (result.json info.pose_refinement, frames_dropped)", file=sys.stderr)  # fmt: skip
+        elif verdict == UNMATCHED:  # texture, and nothing consistent where the pose says: not "could not check"
+            rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
+            print(f"warning: frame {k}: its image does not match where its navigation pose says ({why}: another or a "
+                  f"damaged image, or a pose far from the one declared); {rest} (result.json "
+                  "info.pose_refinement)", file=sys.stderr)  # fmt: skip
         else:
             print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip

@@ -79,7 +79,17 @@ from .mapping import (
     three_state,
 )
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
-from .pose_refine import CHECK_MIN_SIDE, SKIPPED, contradicted, refine_descent
+from .pose_refine import (
+    CHECK_MIN_SIDE,
+    DEGENERATE,
+    DISAGREES,
+    KEPT,
+    REFINED,
+    SKIPPED,
+    UNMATCHED,
+    contradicted,
+    refine_descent,
+)
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
 from .psafe import load_model
@@ -1007,9 +1017,25 @@ def run_pipeline_multi(
     if doubted and "sites_withheld" not in res.info:
         # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
         # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
-        frames = ", ".join(str(k) for k in doubted)
+        verdicts = {int(f.get("frame", 0)): f.get("verdict") for f in (pose_info or {}).get("frames") or ()}
+        why = []
+        for verdict, text in ((DISAGREES, "whose navigation pose the images contradict"), (UNMATCHED, _NO_MATCH)):
+            ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
+            if ks:
+                why.append(f"frame{'s' if len(ks) > 1 else ''} {', '.join(ks)}, {text}")
+        _withhold_sites(res, f"it rests on {' and on '.join(why)} (info.pose_refinement)")
+    if dropped and "sites_withheld" not in res.info and not _confirmed_frames(pose_info, swept[1:]):
+        # what is left rests on frame 0 and frames the images could not check: nothing confirms frame 0's pose, and
+        # the frames that could check it contradicted it (frame 0 pitched 1 deg in a 1000/600/300/100 descent: the
+        # two frames that see its ground dropped, the map 51-362 m off on frame 0 and the unchecked 100 m frame;
+        # frame 0 and 1's images swapped: 5 sites on a map 89 m low; stop 61's QA)
+        left = ", ".join(str(numbers[k]) for k in dropped)
+        were = f"frames {left} were" if len(dropped) > 1 else f"frame {left} was"
+        ref, theirs = numbers[0], "their poses" if len(dropped) > 1 else "its pose"
         _withhold_sites(
-            res, f"it rests on frame {frames}, whose navigation pose the images contradict (info.pose_refinement)"
+            res,
+            f"{were} left out (the images do not bear out {theirs} against frame {ref}'s), and no frame left "
+            f"confirms frame {ref}'s pose: it may be frame {ref}'s that is wrong (info.pose_refinement)",
         )
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
@@ -1059,6 +1085,19 @@ def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) ->
         for f in pose_info.get("frames") or ()
         if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("verdict", "")), side)
     )
+
+
+# an UNMATCHED frame: texture, and no consistent match where its pose says it overlaps frame 0 (a blank or another
+# image, or a pose far off): the images do not bear its pose out, which is not "contradict" (a fit that asks for a
+# correction beyond the navigation's accuracy); stop 61's QA found the two said alike
+_NO_MATCH = "whose image does not match frame 0's where its navigation pose says"
+
+
+def _confirmed_frames(pose_info: dict[str, Any] | None, among: Sequence[int]) -> list[int]:
+    """The frames of ``among`` whose fit with frame 0 (or a frame chained to it) matched without contradicting
+    either pose: ``refined``, ``kept`` or ``degenerate`` (matched, the geometry too weak to fix the pose)."""
+    verdicts = {int(f.get("frame", 0)): str(f.get("verdict", "")) for f in (pose_info or {}).get("frames") or ()}
+    return [k for k in among if verdicts.get(k) in (REFINED, KEPT, DEGENERATE)]
 
 
 def _frames_to_leave_out(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:

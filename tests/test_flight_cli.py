@@ -146,7 +146,10 @@ def test_process_warns_when_the_images_cannot_check_the_navigation_poses(tmp_pat
     (swapped / "i2.png").write_bytes((pair / "i1.png").read_bytes())
     assert main(["process", str(swapped), "--out", str(tmp_path / "bad")]) == 0
     err = capsys.readouterr().err
-    assert "warning: frame 1: the images could not check its navigation pose" in err, err
+    # texture, and no consistent match: the image does not bear the pose out (said as "could not check" until the
+    # withheld sites' reason said "contradict" of the same frame, stop 61's QA)
+    assert "warning: frame 1: its image does not match where its navigation pose says" in err, err
+    assert "whose image does not match frame 0's where its navigation pose says" in err, err
     info = json.loads((tmp_path / "bad" / "result.json").read_text())["info"]["pose_refinement"]
     assert info["refined"] is False and info["reason"] in err
 
@@ -262,7 +265,9 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     err = capsys.readouterr().err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     assert res["info"]["frames_dropped"] == [1], res["info"].get("pose_refinement")
-    assert "warning: frame 1: the images" in err and "left out of the maps" in err, err
+    assert "warning: frame 1: its image does not match" in err and "left out of the maps" in err, err
+    # and frame 2 (150 m) shares too little with frame 0 to be checked: nothing left confirms frame 0's pose
+    assert "no frame left confirms frame 0's pose" in res["info"]["sites_withheld"]
     # what is left is a 600/150 pair, whose DEM is as good as that pair's alone
     pair = tmp_path / "pair"
     shutil.copytree(three, pair)
@@ -305,12 +310,16 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     assert main(["process", str(d), "--out", str(tmp_path / "clean")]) == 0
     clean = json.loads((tmp_path / "clean" / "result.json").read_text())
     capsys.readouterr()
-    doc = json.loads((d / "pair.json").read_text())
-    c, s = math.cos(math.radians(2.0)), math.sin(math.radians(2.0))
-    doc["frames"][2]["R_world_to_cam"] = (
-        np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ doc["frames"][2]["R_world_to_cam"]
-    ).tolist()
-    (d / "pair.json").write_text(json.dumps(doc))
+    original = json.loads((d / "pair.json").read_text())
+
+    def pitched(k: int, deg: float) -> None:
+        doc = json.loads(json.dumps(original))
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        R = np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ doc["frames"][k]["R_world_to_cam"]
+        doc["frames"][k]["R_world_to_cam"] = R.tolist()
+        (d / "pair.json").write_text(json.dumps(doc))
+
+    pitched(2, 2.0)
     assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
@@ -318,6 +327,15 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     assert last["against"] == 1 and last["verdict"] == "disagrees" and res["info"]["frames_dropped"] == [2]
     assert "warning: frame 2: the images disagree with its navigation pose (against frame 1:" in err, err
     assert res["vs_truth"]["dem_error"]["mean_abs_m"] < 2 * clean["vs_truth"]["dem_error"]["mean_abs_m"] + 0.5
+    # frame 0 pitched instead: the one frame that can check it contradicts it and is left out, and what is left
+    # (frame 0 and the unchecked 300 m frame) offers no site, saying frame 0 may be the wrong one; it had been
+    # mapped 51-362 m off with nothing withheld (stop 61's QA)
+    pitched(0, 1.5)
+    assert main(["process", str(d), "--out", str(tmp_path / "f0")]) == 0
+    err = capsys.readouterr().err
+    info = json.loads((tmp_path / "f0" / "result.json").read_text())["info"]
+    assert info["frames_dropped"] == [1] and "no frame left confirms frame 0's pose" in info["sites_withheld"]
+    assert "it may be frame 0's that is wrong" in err, err
 
 
 def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):
