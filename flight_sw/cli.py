@@ -323,6 +323,12 @@ def _process(args: argparse.Namespace) -> int:
     if "psafe_fallback" in res.info:  # the trees' calibration does not hold here: FP 1.6-5 % at 128 px
         print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
+    for f in res.info.get("noisy_frames", ()):  # nothing else tells a noisy image: the DEM 3-5x worse, unsaid
+        others, k, dn = [f"{v:.1f}" for v in f["others_dn"]], f["frame"], f["noise_dn"]
+        print(f"warning: frame {k}'s image is noisy: its pixel noise reads ~{dn:.0f} grey levels against "
+              f"{', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a sensor fault or a damaged "
+              "image); the maps rest on it, and their elevations are the worse for it (result.json "
+              "info.noisy_frames)", file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
         print(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",
               file=sys.stderr)  # fmt: skip

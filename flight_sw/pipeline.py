@@ -78,6 +78,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .noise import noise_sigma, noisy_frames
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
 from .pose_refine import (
     CHECK_MIN_SIDE,
@@ -932,6 +933,10 @@ def run_pipeline_multi(
             raise FlightInputError(f"reserve_measured must be a positive number, got {reserve_measured!r}")
         measured = None if reserve_measured is None else float(reserve_measured)
         clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s), measured)
+    # a frame far noisier than the others (a sensor fault, a damaged image) is mapped like any other: said
+    # (flight_sw.noise; 2 ms a 512 px pair)
+    noise = [noise_sigma(im) for im in images]
+    noisy = noisy_frames(noise)
     pose_info: dict[str, Any] | None = None
     poses_in = tuple(poses)  # as reported: what the altimeters are checked against
     if p.refine_pose:
@@ -1037,6 +1042,16 @@ def run_pipeline_multi(
             f"{were} left out (the images do not bear out {theirs} against frame {ref}'s), and no frame left "
             f"confirms frame {ref}'s pose: it may be frame {ref}'s that is wrong (info.pose_refinement)",
         )
+    res.info["image_noise_dn"] = [round(v, 2) for v in noise]
+    if noisy:  # the directory's frame numbers, each with its reading and the others'
+        res.info["noisy_frames"] = [
+            {
+                "frame": numbers[k],
+                "noise_dn": round(noise[k], 2),
+                "others_dn": [round(v, 2) for j, v in enumerate(noise) if j != k],
+            }
+            for k in noisy
+        ]
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:
