@@ -380,7 +380,14 @@ def _refined_poses(info: Any) -> list[str]:
             rot = float(f.get("relative_rotation_correction_deg") or 0.0)
             # against: a frame too far below frame 0 to share its ground, checked with one above it (pose_refine._chain)
             rel = f"against frame {f['against']}, " if f.get("against") else ""
-            out.append(f"frame {int(f.get('frame', i + 1))} ({rel}relative rotation corrected by {rot:.2f} deg)")
+            what = f"relative rotation corrected by {rot:.2f} deg"
+            turn = f.get("translation_dir_change_deg")
+            if f.get("relative_rotation_held") and turn is not None:  # the rest of an attitude error went here
+                what = (
+                    f"near-nadir: relative rotation held, corrected by {rot:.2f} deg, the baseline turned "
+                    f"{float(turn):.2f} deg, which the images cannot tell from a rotation"
+                )
+            out.append(f"frame {int(f.get('frame', i + 1))} ({rel}{what})")
     return out
 
 

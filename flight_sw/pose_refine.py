@@ -1192,6 +1192,11 @@ def _summary(r: PoseRefinement, k: int) -> dict[str, Any]:
         "ground_gap_m": r.info.get("ground_gap_m"),
         "scale_disagrees": bool(r.info.get("scale_disagrees")),
         "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
+        # a near-nadir fit holds the relative rotation and moves the baseline instead (module doc, 6): a 1 deg
+        # pitch read "corrected by 0.10 deg" with the rest of it unsaid (stop 61's QA)
+        "relative_rotation_held": bool(r.info.get("relative_rotation_held")),
+        "translation_dir_change_deg": r.info.get("translation_dir_change_deg"),
+        "ground_change_px": r.info.get("ground_change_px"),
     }
 
 
