@@ -15,7 +15,7 @@ median is taken here instead, ``s = median|I * N| / (0.6745 * 6)``, so that the 
 which are sparse, weigh less than the noise, which is everywhere.
 
 Clean renders still read texture as noise: 1.0-15.8 grey levels over the scenes of the library (a bright
-highland the most), and frames of one descent differ by up to 2.8x (tuning renders, stop 61). A frame more
+highland the most), and frames of one descent differ by up to 2.9x (tuning renders, stop 61). A frame more
 than :data:`NOISY_RATIO` times the median of the others' is called noisy.
 """
 
@@ -28,8 +28,8 @@ import numpy as np
 
 _KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 _MAD_TO_SD = 0.6745  # median |x| of a zero-mean Gaussian, in sds
-# clean descents (tuning renders of the six library scenes, 256 and 512 px, stop 61): at most 2.8x between
-# frames; a frame with Gaussian noise of 30 grey levels reads 5.5x or more over the others'
+# clean descents (tuning renders of the six library scenes, 256 and 512 px, stop 61): at most 2.9x between
+# frames; a frame with Gaussian noise of 30 grey levels reads 5.9x or more over the others'
 NOISY_RATIO = 4.0
 # the quietest clean frames read 1.0-1.2 (a polar low sun, a mare); a uniform image reads 0
 MIN_REFERENCE = 0.75
@@ -37,10 +37,14 @@ MIN_REFERENCE = 0.75
 
 def noise_sigma(image: np.ndarray, step: int = 2) -> float:
     """The image's white-noise sd in grey levels, ``median|I * N| / (0.6745 * 6)`` (module doc), read on every
-    ``step``-th row and column of the response (the median needs no more). NaN for an image under 3x3."""
+    ``step``-th row and column of the response (the median needs no more). A float image in [0, 1] is taken as
+    0..255, as the pose refinement takes it (:data:`MIN_REFERENCE` is in 8-bit levels). NaN for an image under
+    3x3."""
     a = np.asarray(image, np.float32)
     if a.ndim != 2 or min(a.shape) < 3:
         return float("nan")
+    if np.issubdtype(np.asarray(image).dtype, np.floating) and float(a.max()) <= 1.0:
+        a = a * 255.0
     r = cv2.filter2D(a, -1, _KERNEL, borderType=cv2.BORDER_REFLECT)[1:-1:step, 1:-1:step]
     return float(np.median(np.abs(r))) / (_MAD_TO_SD * 6.0)
 

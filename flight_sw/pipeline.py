@@ -82,7 +82,6 @@ from .noise import noise_sigma, noisy_frames
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
 from .pose_refine import (
     CHECK_MIN_SIDE,
-    DEGENERATE,
     DISAGREES,
     KEPT,
     REFINED,
@@ -1030,7 +1029,7 @@ def run_pipeline_multi(
                 why.append(f"frame{'s' if len(ks) > 1 else ''} {', '.join(ks)}, {text}")
         _withhold_sites(res, f"it rests on {' and on '.join(why)} (info.pose_refinement)")
     if dropped and "sites_withheld" not in res.info and not _confirmed_frames(pose_info, swept[1:]):
-        # what is left rests on frame 0 and frames the images could not check: nothing confirms frame 0's pose, and
+        # what is left rests on frame 0 and frames the images could not confirm: nothing confirms frame 0's pose, and
         # the frames that could check it contradicted it (frame 0 pitched 1 deg in a 1000/600/300/100 descent: the
         # two frames that see its ground dropped, the map 51-362 m off on frame 0 and the unchecked 100 m frame;
         # frame 0 and 1's images swapped: 5 sites on a map 89 m low; stop 61's QA)
@@ -1109,10 +1108,11 @@ _NO_MATCH = "whose image does not match frame 0's where its navigation pose says
 
 
 def _confirmed_frames(pose_info: dict[str, Any] | None, among: Sequence[int]) -> list[int]:
-    """The frames of ``among`` whose fit with frame 0 (or a frame chained to it) matched without contradicting
-    either pose: ``refined``, ``kept`` or ``degenerate`` (matched, the geometry too weak to fix the pose)."""
+    """The frames of ``among`` whose fit with frame 0 (or with a frame chained to it) confirmed both poses:
+    ``refined`` or ``kept``, as ``pose_refine._chain``'s anchors. Not ``degenerate``: that verdict comes before
+    the checks that would see a fault (stop 61's review)."""
     verdicts = {int(f.get("frame", 0)): str(f.get("verdict", "")) for f in (pose_info or {}).get("frames") or ()}
-    return [k for k in among if verdicts.get(k) in (REFINED, KEPT, DEGENERATE)]
+    return [k for k in among if verdicts.get(k) in (REFINED, KEPT)]
 
 
 def _frames_to_leave_out(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:

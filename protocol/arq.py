@@ -700,7 +700,7 @@ class Arq(SessionView):
         self.stats["bytes_received"] += len(data)
         frames = self.decoder.feed(data)
         if self.sess.peer and self.sess.peer in self.decoder.claimed:
-            self._peer_writing = now  # a frame of the peer's on the line, not whole yet (or garbled by noise)
+            self._peer_writing = now  # a frame of the peer's on the line, not whole yet
         for f in frames:
             self._on_frame(f, now)
         for k in ("crc_errors", "malformed", "oversize", "resyncs", "bytes_discarded"):

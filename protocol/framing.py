@@ -195,10 +195,11 @@ class StreamDecoder:
     (bad escape / runt / bad header), ``oversize``, ``resyncs`` (pieces
     dropped), ``bytes_discarded``, ``bytes_in``.
 
-    ``claimed`` holds, after each :meth:`feed`, the ``src_session`` that the headers of pieces which did not
-    become frames claim: those that failed their CRC, and the frame still arriving. Unverified, but a 32-bit id
-    written by noise is no risk: it says a peer is writing to us while its frame is on the line (a 1 kB frame
-    takes 3.5 s at 2400 baud) or being garbled by noise.
+    ``claimed`` holds, after each :meth:`feed`, the ``src_session`` that the header of the frame still arriving
+    claims (its CRC not yet in): a peer is writing to us while its frame is on the line (a 1 kB frame takes
+    3.5 s at 2400 baud). Unverified, but a 32-bit id is no risk from noise. Pieces that failed their CRC claim
+    nothing: the bytes of one closed by a new session's HELLO arrived before it, and were claimed as they came
+    (counting them again at the close made a peer that died mid-frame and restarted wait 1.5 s more).
     """
 
     def __init__(self, max_frame: int = DEFAULT_MAX_FRAME) -> None:
@@ -267,11 +268,24 @@ class StreamDecoder:
             start = i + 1
 
     def _claim(self, piece: bytes | bytearray) -> None:
-        """Note the ``src_session`` a piece's header claims, when its first bytes read as one (see ``claimed``)."""
-        head = bytes(piece[: 2 * HEADER.size])
-        raw = unstuff(head[:-1] if head.endswith(b"\x7d") else head)  # an escape cut at the end of the prefix
-        if raw is not None and len(raw) >= HEADER.size:
-            version, kind, _flags, src, _dst = HEADER.unpack_from(raw)
+        """Note the ``src_session`` a piece's header claims, when its first bytes read as one (see ``claimed``).
+        Only the header's bytes are unstuffed: a bad escape in the body after it (noise) does not hide it."""
+        raw = bytearray()
+        i, n = 0, len(piece)
+        while len(raw) < HEADER.size and i < n:
+            b = piece[i]
+            if b == ESC:
+                if i + 1 >= n:  # an escape cut at the end of what has arrived
+                    return
+                if piece[i + 1] not in (0x5D, 0x5E):
+                    return
+                raw.append(piece[i + 1] ^ 0x20)
+                i += 2
+            else:
+                raw.append(b)
+                i += 1
+        if len(raw) == HEADER.size:
+            version, kind, _flags, src, _dst = HEADER.unpack(raw)
             if version == WIRE_VERSION and kind in KIND_NAMES:
                 self.claimed.add(src)
 
@@ -291,8 +305,6 @@ class StreamDecoder:
             return
         f = parse_body(raw)
         if isinstance(f, str):
-            if f == "crc":
-                self._claim(piece)
             self.stats["crc_errors" if f == "crc" else "malformed"] += 1
             self._discard(len(piece))
             return

@@ -485,7 +485,12 @@ def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
     its section of the shared page states them; rows written before the CSVs named the camera say so."""
     seeds = sorted({int(r["seed"]) for r in rows})
     sets = sorted({str(r["seed_set"]) for r in rows if r.get("seed_set")})
-    said = describe_seeds(seeds, sets[0] if len(sets) == 1 else "mixed") if seeds else "no seeds"
+    if not seeds:
+        said = "no seeds"
+    elif sets:
+        said = describe_seeds(seeds, sets[0] if len(sets) == 1 else "mixed")
+    else:  # rows written before they carried their seed set
+        said = describe_seeds(seeds, "").strip() + ", seed set not recorded"
     cams = sorted({int(r["camera_px"]) for r in rows if r.get("camera_px") is not None})
     if not cams:
         return f"{said}, camera not recorded"
@@ -752,6 +757,7 @@ def _score(args: argparse.Namespace) -> int:
     for option in ("csv", "json"):
         if getattr(args, option) is not None:
             check_not_an_input(getattr(args, option), jobs, args.pairs, args.outputs, f"--{option}")
+    stray = stray_outputs(args.pairs, args.outputs, jobs, ours=[args.figures])
     rows: list[dict[str, Any]] = []
     for job in jobs:
         row: dict[str, Any] = {
@@ -791,7 +797,6 @@ def _score(args: argparse.Namespace) -> int:
             print(f"hazard-hil score: {r['pair']}: cannot be scored: {r['error']}", file=sys.stderr)
         elif r.get("error"):
             print(f"hazard-hil score: {r['pair']}: no usable output: {r['error']}", file=sys.stderr)
-    stray = stray_outputs(args.pairs, args.outputs, jobs)
     if stray:  # skipped without a word: a typo'd name left its pair "no such output directory" and no hint why
         more = f" and {len(stray) - 8} more" if len(stray) > 8 else ""
         names = ", ".join(printable(n, 80) for n in stray[:8]) + more

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -444,16 +445,23 @@ def _one_level_down(o: Path, name: str) -> str:
     return f"; {o / name} holds one: give that as OUTPUTS"
 
 
-def stray_outputs(pairs: str | Path, outputs: str | Path, jobs: list[Job]) -> list[str]:
+def stray_outputs(
+    pairs: str | Path, outputs: str | Path, jobs: list[Job], ours: Sequence[Path | None] = ()
+) -> list[str]:
     """The directories in OUTPUTS that no pair of the descent reads (a typo, ``600-300`` for ``600_300``), which
     were skipped without a word; [] when PAIRS is one pair or OUTPUTS an HIL run's records (the run names its
-    own directories)."""
+    own directories). ``ours``: directories the command writes (``--figures``), not strays."""
     p, o = Path(pairs), Path(outputs)
     if (p / "pair.json").exists() or (o / "results.jsonl").is_file():
         return []
     read = {j.out_dir.name for j in jobs}
+    mine = {Path(d).resolve() for d in ours if d is not None}
     try:
-        return sorted(d.name for d in o.iterdir() if d.is_dir() and d.name not in read and not d.name.startswith("."))
+        return sorted(
+            d.name
+            for d in o.iterdir()
+            if d.is_dir() and d.name not in read and not d.name.startswith(".") and d.resolve() not in mine
+        )
     except OSError:  # a directory that cannot be listed: the pairs' own errors say what is missing
         return []
 

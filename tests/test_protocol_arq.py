@@ -275,6 +275,15 @@ def test_a_strangers_hello_while_the_peer_writes_one_long_frame_changes_nothing(
     # a peer that has really gone quiet is still replaced
     b.receive(hello_frame(0x99, 0, 1024, 1 << 20), t + 1.6 * CFG.keepalive)
     assert b.peer_session == 0x99 and b.stats["peer_restarts"] == 1
+    # a peer that dies part-way through a frame and restarts: its first HELLO closes the dead frame, which is not
+    # taken for the old session talking, so it is taken 1.5 keepalives after the dead frame's last bytes
+    b.receive(hello_frame(0x99, 0xB, 1024, 1 << 20), t + 2.0)
+    assert b.established
+    b.receive(data_frame(0x99, 0xB, 0, bytes(900))[:300], t + 3.0)  # ... and dies here
+    b.receive(hello_frame(0x77, 0, 1024, 1 << 20), t + 3.5)  # too soon: it may be a stranger's
+    assert b.peer_session == 0x99 and b.stats["foreign_hellos"] == 2
+    b.receive(hello_frame(0x77, 0, 1024, 1 << 20), t + 3.0 + 1.6 * CFG.keepalive)
+    assert b.peer_session == 0x77 and b.stats["peer_restarts"] == 2
 
 
 def test_both_sides_recover_after_a_long_stall():
