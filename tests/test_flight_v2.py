@@ -779,11 +779,15 @@ def test_altimeters_that_contradict_the_positions_are_said_and_not_trusted_for_t
 
     up, low = Pose(np.array([0.0, 0.0, 300.0]), NADIR_R), Pose(np.array([0.0, 0.0, 150.0]), NADIR_R, 10.0)
     assert altimeter_disagreement([up, low], [301.0, 151.0]) == ""
-    assert altimeter_disagreement([up, low], [301.0, 158.0]) == ""  # 7 m of relief between the two points
+    # nadir frames' beams hit one ground point: no relief between them, so 3 m (readings, navigation's +-0.5 m a
+    # frame) passes and 5 m does not (a lower frame reported 5 m high had passed: the DEM 10 m off with sites,
+    # stop 61's QA)
+    assert altimeter_disagreement([up, low], [301.0, 154.0]) == ""
+    assert "(5.0 m apart, more than the 4.0 m" in altimeter_disagreement([up, low], [301.0, 156.0])
     assert altimeter_disagreement([up, low], [301.0, math.nan]) == ""  # one reading: nothing to compare
     wrong = Pose(np.array([0.0, 0.0, 200.0]), NADIR_R, 10.0)
     said = altimeter_disagreement([up, wrong], [301.0, 151.0])
-    assert "frame 0 puts it at -1.0 m, frame 1 at 49.0 m (50.0 m apart, more than the 10.0 m" in said, said
+    assert "frame 0 puts it at -1.0 m, frame 1 at 49.0 m (50.0 m apart, more than the 4.0 m" in said, said
     # oblique frames (the approach, 49 deg off nadir) on a ground sloping 20 deg across: their beams hit points
     # 75 m apart and 27 m apart in height, which the relief allows; the lower one 80 m too high does not
     from ground_sim.geometry import look_rotation
