@@ -1021,7 +1021,7 @@ def run_pipeline_multi(
     if doubted and "sites_withheld" not in res.info:
         # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
         # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
-        verdicts = {int(f.get("frame", 0)): f.get("verdict") for f in (pose_info or {}).get("frames") or ()}
+        verdicts = _verdicts(pose_info)
         why = []
         for verdict, text in ((DISAGREES, "whose navigation pose the images contradict"), (UNMATCHED, _NO_MATCH)):
             ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
@@ -1111,8 +1111,13 @@ def _confirmed_frames(pose_info: dict[str, Any] | None, among: Sequence[int]) ->
     """The frames of ``among`` whose fit with frame 0 (or with a frame chained to it) confirmed both poses:
     ``refined`` or ``kept``, as ``pose_refine._chain``'s anchors. Not ``degenerate``: that verdict comes before
     the checks that would see a fault (stop 61's review)."""
-    verdicts = {int(f.get("frame", 0)): str(f.get("verdict", "")) for f in (pose_info or {}).get("frames") or ()}
+    verdicts = _verdicts(pose_info)
     return [k for k in among if verdicts.get(k) in (REFINED, KEPT)]
+
+
+def _verdicts(pose_info: dict[str, Any] | None) -> dict[int, str]:
+    """Each later frame's pose-refinement verdict (``info["frames"]``), by its position in the input."""
+    return {int(f.get("frame", 0)): str(f.get("verdict", "")) for f in (pose_info or {}).get("frames") or ()}
 
 
 def _frames_to_leave_out(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:

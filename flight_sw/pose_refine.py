@@ -1256,15 +1256,7 @@ def _chain(
             tol = p.ground_gap_limit(float(poses[j].position[2]) - z_ref)
             if abs(gap) > tol:
                 verdict = DISAGREES
-                g.update(
-                    refined=False,
-                    verdict=DISAGREES,
-                    scale_disagrees=True,
-                    ground_gap_m=gap,
-                    ground_gap_from="frames",
-                    reason=f"the images put the ground {gap:+.0f} m from where the other frames' images put it, "
-                    f"more than {tol:.0f} m",
-                )
+                _off_the_others(g, gap, tol)
         if verdict in (REFINED, KEPT):
             out[k] = transfer_relative(out[j], r.pose1, r.pose2)
             confirmed[k] = g
@@ -1291,14 +1283,18 @@ def _scale_outliers(frames: list[dict[str, Any]], pose0: Pose, p: RefineParams) 
     tol = p.ground_gap_limit(float(pose0.position[2]) - z)
     odd = [f for f in fits if abs(float(f["ground_z_m"]) - z) > tol]
     for f in odd:
-        gap = float(f["ground_z_m"]) - z
-        f.update(
-            refined=False,
-            verdict=DISAGREES,
-            scale_disagrees=True,
-            ground_gap_m=gap,
-            ground_gap_from="frames",  # not the altimeter: the pipeline's altimeter note leaves it out
-            reason=f"the images put the ground {gap:+.0f} m from where the other frames' images put it, more than "
-            f"{tol:.0f} m",
-        )
+        _off_the_others(f, float(f["ground_z_m"]) - z, tol)
     return odd
+
+
+def _off_the_others(entry: dict[str, Any], gap: float, tol: float) -> None:
+    """Mark a frame's entry ``disagrees``: its fit puts the ground ``gap`` m from where the other fits put it."""
+    entry.update(
+        refined=False,
+        verdict=DISAGREES,
+        scale_disagrees=True,
+        ground_gap_m=gap,
+        ground_gap_from="frames",  # not the altimeter: the pipeline's altimeter note leaves it out
+        reason=f"the images put the ground {gap:+.0f} m from where the other frames' images put it, more than "
+        f"{tol:.0f} m",
+    )
