@@ -1017,30 +1017,9 @@ def run_pipeline_multi(
         # no site rather than a bad one (issue 9)
         _withhold_sites(res, alt_note)
     swept = kept if p.dem == "sgm" else [kept[0], kept[-1]]  # the v1 flow sweeps the widest pair only
-    doubted = [numbers[k] for k in _contradicted_frames(pose_info, len(numbers), camera_side) if k in swept]
-    if doubted and "sites_withheld" not in res.info:
-        # the map rests on a pose the images contradict (a pair cannot leave its frame out): warned, and its sites
-        # had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP 2.07 %, top site unsafe)
-        verdicts = _verdicts(pose_info)
-        why = []
-        for verdict, text in ((DISAGREES, "whose navigation pose the images contradict"), (UNMATCHED, _NO_MATCH)):
-            ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
-            if ks:
-                why.append(f"frame{'s' if len(ks) > 1 else ''} {', '.join(ks)}, {text}")
-        _withhold_sites(res, f"it rests on {' and on '.join(why)} (info.pose_refinement)")
-    if dropped and "sites_withheld" not in res.info and not _confirmed_frames(pose_info, swept[1:]):
-        # what is left rests on frame 0 and frames the images could not confirm: nothing confirms frame 0's pose, and
-        # the frames that could check it contradicted it (frame 0 pitched 1 deg in a 1000/600/300/100 descent: the
-        # two frames that see its ground dropped, the map 51-362 m off on frame 0 and the unchecked 100 m frame;
-        # frame 0 and 1's images swapped: 5 sites on a map 89 m low; stop 61's QA)
-        left = ", ".join(str(numbers[k]) for k in dropped)
-        were = f"frames {left} were" if len(dropped) > 1 else f"frame {left} was"
-        ref, theirs = numbers[0], "their poses" if len(dropped) > 1 else "its pose"
-        _withhold_sites(
-            res,
-            f"{were} left out (the images do not bear out {theirs} against frame {ref}'s), and no frame left "
-            f"confirms frame {ref}'s pose: it may be frame {ref}'s that is wrong (info.pose_refinement)",
-        )
+    doubt = _pose_doubt(pose_info, swept, dropped, numbers, camera_side)
+    if doubt and "sites_withheld" not in res.info:
+        _withhold_sites(res, doubt)
     res.info["image_noise_dn"] = [round(v, 2) for v in noise]
     if noisy:  # the directory's frame numbers, each with its reading and the others'
         res.info["noisy_frames"] = [
@@ -1086,33 +1065,50 @@ def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
                 f[key] = numbers[f[key]]
 
 
+def _pose_doubt(
+    pose_info: dict[str, Any] | None, swept: list[int], dropped: list[int], numbers: list[int], side: int
+) -> str:
+    """Why the poses leave a map no ground to land on ("" when they do not): it rests on a frame the images
+    contradict (a pair cannot leave its frame out), or frames were left out and no swept frame confirms frame
+    0's pose. ``swept`` and ``dropped`` are input positions, ``numbers`` what the reason calls them."""
+    verdicts = _verdicts(pose_info)
+    if any(k in swept for k in _contradicted_frames(pose_info, len(numbers), side)):
+        # warned, and its sites had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP
+        # 2.07 %, top site unsafe)
+        why = []
+        for verdict, text in ((DISAGREES, "whose navigation pose the images contradict"), (UNMATCHED, _NO_MATCH)):
+            ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
+            if ks:
+                why.append(f"frame{'s' if len(ks) > 1 else ''} {', '.join(ks)}, {text}")
+        return f"it rests on {' and on '.join(why)} (info.pose_refinement)"
+    if dropped and not [k for k in swept[1:] if verdicts.get(k) in (REFINED, KEPT)]:
+        # what is left rests on frame 0 and frames the images could not confirm (not `degenerate`, which comes
+        # before the checks that would see a fault), and the frames that could check frame 0 contradicted it:
+        # frame 0 pitched 1 deg in a 1000/600/300/100 descent dropped the two frames that see its ground, the map
+        # 51-362 m off; frame 0 and 1's images swapped gave 5 sites on a map 89 m low (stop 61's QA)
+        left = ", ".join(str(numbers[k]) for k in dropped)
+        were = f"frames {left} were" if len(dropped) > 1 else f"frame {left} was"
+        ref, theirs = numbers[0], "their poses" if len(dropped) > 1 else "its pose"
+        return (
+            f"{were} left out (the images do not bear out {theirs} against frame {ref}'s), and no frame left "
+            f"confirms frame {ref}'s pose: it may be frame {ref}'s that is wrong (info.pose_refinement)"
+        )
+    return ""
+
+
 def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) -> list[int]:
     """The later frames (1 to ``n - 1``) whose pose the images contradict (:func:`flight_sw.pose_refine.contradicted`:
     matched and inconsistent, not merely a small overlap). A multi-frame sweep leaves them out, where each adds its
     error to every plane's cost (a noise image as the last of four frames, refused by the refinement and swept all
     the same, left the DEM 7.9 m off; 0.34 m without it), unless that would leave frame 0 alone; a map that still
     rests on one offers no site."""
-    if not pose_info:
-        return []
-    return sorted(
-        int(f["frame"])
-        for f in pose_info.get("frames") or ()
-        if 0 < int(f.get("frame", 0)) < n and not f.get("refined") and contradicted(str(f.get("verdict", "")), side)
-    )
+    return sorted(k for k, v in _verdicts(pose_info).items() if 0 < k < n and contradicted(v, side))
 
 
 # an UNMATCHED frame: texture, and no consistent match where its pose says it overlaps frame 0 (a blank or another
 # image, or a pose far off): the images do not bear its pose out, which is not "contradict" (a fit that asks for a
 # correction beyond the navigation's accuracy); stop 61's QA found the two said alike
 _NO_MATCH = "whose image does not match frame 0's where its navigation pose says"
-
-
-def _confirmed_frames(pose_info: dict[str, Any] | None, among: Sequence[int]) -> list[int]:
-    """The frames of ``among`` whose fit with frame 0 (or with a frame chained to it) confirmed both poses:
-    ``refined`` or ``kept``, as ``pose_refine._chain``'s anchors. Not ``degenerate``: that verdict comes before
-    the checks that would see a fault (stop 61's review)."""
-    verdicts = _verdicts(pose_info)
-    return [k for k in among if verdicts.get(k) in (REFINED, KEPT)]
 
 
 def _verdicts(pose_info: dict[str, Any] | None) -> dict[int, str]:
