@@ -122,6 +122,7 @@ class Link:
         self._events: deque[LinkEvent] = deque(maxlen=256)
         self._closed = threading.Event()
         self._failed: str | None = None  # transport failure: permanent
+        self._failing = False  # a transport failure is being said: said before it is seen, so it is never said last
         self.last_error: str | None = None  # the most recent session loss / failure reason
         self._quiet = Quieter(first=1, quiet_s=REPEAT_QUIET_S)  # keyed by (repeating kind, reason)
 
@@ -425,12 +426,15 @@ class ByteStreamLink(Link):
 
     def _fail_transport(self, reason: str) -> None:
         with self._cv:
-            if self._failed is not None:
+            if self._failed is not None or self._failing:
                 return
+            self._failing = True
+        # said before anyone can see `failed`: a board that ends on it says its summary after this, as its last line
+        self._event("transport", reason, self.arq.epoch)
+        with self._cv:
             self._failed = reason
             self.arq.transport_failed(reason, time.monotonic())
             self._cv.notify_all()
-        self._event("transport", reason, self.arq.epoch)
 
     def close(self, flush_timeout: float = 1.0) -> None:
         """Flush (bounded), tell the peer (CLOSE), stop the threads, fail what is left, close the transport."""
@@ -1248,9 +1252,11 @@ class ZmqLink(Link, SessionView):
                 break
             except zmq.ZMQError as exc:
                 if time.monotonic() >= end:
+                    reason = f"cannot listen on {self.endpoint} again: {exc}"
+                    self._event("transport", reason, self.sess.epoch)  # said before `failed` is seen, as above
                     with self._cv:
-                        self._failed = f"cannot listen on {self.endpoint} again: {exc}"
-                        self._pending_events.append(("transport", self._failed, self.sess.epoch))
+                        self._failed = reason
+                        self._cv.notify_all()
                     return
                 time.sleep(0.02)
         with self._cv:

@@ -130,6 +130,29 @@ def test_closed_peer_socket_is_a_clear_error_at_once():
     A.close()
 
 
+def test_a_transport_failure_is_said_before_anyone_can_see_it():
+    """The board sums what it served as its last line once it sees ``failed``; the link's own line about the
+    failure, said from its reader thread, came after it now and then (a CI run): it must be said first."""
+    lines: list[str] = []
+    seen_failed_before_said: list[bool] = []
+
+    def slow_log(text: str) -> None:
+        time.sleep(0.3)  # a slow console widens the window the race needs
+        lines.append(text)
+
+    a, b = socket.socketpair()
+    A = StreamLink(a, name="A", log=slow_log)
+    with StreamLink(b, name="B"):
+        assert A.wait_established(5)
+    t0 = time.monotonic()
+    while A.failed is None and time.monotonic() - t0 < 5:
+        time.sleep(0.001)
+    seen_failed_before_said.append(not any(": transport: " in line for line in lines))
+    A.close()
+    assert A.failed is not None
+    assert seen_failed_before_said == [False], lines
+
+
 def test_send_waits_for_buffer_space_at_most_its_timeout():
     a, b = socket.socketpair()
     from protocol.arq import ArqConfig
