@@ -140,6 +140,8 @@ def render_views(
         if on_view is not None:
             on_view(drawn[0], len(jobs))
 
+    if on_view is not None:  # 0 of the views drawn, not of the poses: a frame two pairs share is drawn once
+        on_view(0, len(jobs))
     views = pool_map(_render_job, jobs, workers, on_done=done)
     return [views[uniq[_pose_key(camera, p)]] for p in poses]
 
@@ -336,7 +338,6 @@ def render_scenario(
     cam = specs[0].camera
     if any(ps.camera != cam for ps in specs):
         raise TrajectoryError("all pairs of a scenario must share one camera")
-    _progress(0, len(poses), "frames", t0, progress)
     views = render_views(
         sc,
         cam,

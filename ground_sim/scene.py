@@ -344,7 +344,11 @@ def load_scene_params(spec: str | Path = "default", scenario: str | None = None)
         variant = text.split(":", 1)[1]
         doc, name, _ = scene_document(text)
         if variant not in doc.get("variant", {}):
-            raise SceneError(f"scene {name} has no variant {variant!r} (it has {sorted(doc.get('variant', {}))})")
+            have = sorted(doc.get("variant", {}))
+            raise SceneError(
+                f"scene {name} has no variant {variant!r} "
+                + (f"(it has {', '.join(have)})" if have else f"(it has none: give {name} alone)")
+            )
     else:
         doc, name, _ = scene_document(spec)
     return parse_scene(doc, name, variant)

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from protocol.errors import InputError, comma_items, os_error_text
+from protocol.outdir import refuse_if_held
 
 ENTRY_POINT_GROUP = "hazard_hil.commands"
 # help order of the project's own packages; commands of other installed packages follow by name
@@ -154,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                 if value.is_dir():
                     raise InputError(f"--{option} {value} is a directory, not a file")
                 check_out_dir(value.parent, f"--{option}'s directory")
+                refuse_if_held(value.parent, f"--{option}'s directory")
         return int(args.func(args) or 0)
     except Terminated as exc:
         print(f"stopped by {signal.Signals(exc.signum).name}", file=sys.stderr)

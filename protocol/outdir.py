@@ -93,3 +93,28 @@ def claim_out(out: str | Path, command: str) -> Iterator[Path]:
                         path.rmdir()
         finally:
             os.close(fd)  # releases the lock
+
+
+def refuse_if_held(path: str | Path, what: str) -> None:
+    """:class:`InputError` when another command holds the directory ``path`` (see :func:`claim_out`), for a
+    command that writes one file there and claims nothing (``score --csv``): it wrote into a directory a running
+    ``evaluate`` was rewriting. No lock file is made where there is none."""
+    lock = Path(path) / LOCK_NAME
+    try:
+        fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return  # no lock file (or none readable): nobody claimed it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        try:
+            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another command"
+        except OSError:
+            holder = "another command"
+        raise InputError(
+            f"{what} {path} is being written by {holder}: wait for it to end, or write elsewhere"
+        ) from None
+    except OSError:
+        return  # a file system with no locks: used unguarded, as claim_out does
+    finally:
+        os.close(fd)

@@ -737,15 +737,12 @@ def register_score(subparsers: Any) -> None:
 def _score(args: argparse.Namespace) -> int:
     import math
 
-    from protocol.pairdir import pair_fingerprint, read_pair
+    from protocol.outdir import claim_out
     from reports.console import printable
     from studies.score import (
-        ScoreError,
         check_not_an_input,
         json_row,
         pair_jobs,
-        read_output,
-        score_output,
         stray_outputs,
         summarise,
         write_csv,
@@ -758,38 +755,16 @@ def _score(args: argparse.Namespace) -> int:
         if getattr(args, option) is not None:
             check_not_an_input(getattr(args, option), jobs, args.pairs, args.outputs, f"--{option}")
     stray = stray_outputs(args.pairs, args.outputs, jobs, ours=[args.figures])
-    rows: list[dict[str, Any]] = []
-    for job in jobs:
-        row: dict[str, Any] = {
-            "pair": job.label,
-            "pair_dir": str(job.pair_dir),
-            "output_dir": str(job.out_dir),
-            "error": job.missing,
-        }
-        if job.missing is None:
-            try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
-                pair = read_pair(job.pair_dir)
-            except InputError as exc:
-                if len(jobs) == 1:
-                    raise
-                row["error"], row["pair_error"] = str(exc), True  # in a descent: named, and the others scored
-                rows.append(row)
-                continue
-            try:
-                out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
-            except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
-                row["error"] = str(exc) + job.hint
-            else:
-                fig = None if args.figures is None else args.figures / f"{job.pair_dir.name}_score.png"
-                try:
-                    row.update(score_output(pair, out, str(job.pair_dir), fig))
-                except ScoreError as exc:  # the pair's truth, not the output
-                    if len(jobs) == 1:
-                        raise
-                    row["error"], row["pair_error"] = str(exc), True
-                if fig is not None and not row.get("pair_error"):
-                    row["figure"] = str(fig)
-        rows.append(row)
+    if args.figures is not None:  # a --csv named as a pair's figure held CSV text under a .png name
+        drawn_names = {f"{j.pair_dir.name}_score.png" for j in jobs}
+        for option in ("csv", "json"):
+            value = getattr(args, option)
+            if value is not None and value.name in drawn_names and value.parent.resolve() == args.figures.resolve():
+                raise InputError(f"--{option} {value} is the picture --figures draws for its pair: name another file")
+    with contextlib.ExitStack() as held:
+        if args.figures is not None:  # another command writing there (an evaluate) and this one undid each other
+            held.enter_context(claim_out(args.figures, "score"))
+        rows = _score_rows(jobs, args.figures)
     summary = summarise(rows, args.max_fp)
     _print_scores(rows, summary)
     for r in rows:  # in the table on stdout, and here: a CI log that keeps stderr says which and why
@@ -839,6 +814,50 @@ def _score(args: argparse.Namespace) -> int:
     if summary["failed"]:  # a broken submission is not a detector over its FP budget: a code of its own
         return EXIT_NO_OUTPUT
     return 0 if summary["pairs_over_fp_limit"] == 0 else 1
+
+
+def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
+    """One row per pair job of ``score``: its scores, or why it has none (``error``; ``pair_error`` when the
+    pair itself, not the detector's output, is at fault)."""
+    from protocol.pairdir import pair_fingerprint, read_pair
+    from studies.score import ScoreError, read_output, score_output, truth_problem
+
+    rows: list[dict[str, Any]] = []
+    for job in jobs:
+        row: dict[str, Any] = {
+            "pair": job.label,
+            "pair_dir": str(job.pair_dir),
+            "output_dir": str(job.out_dir),
+            "error": job.missing,
+        }
+        if job.missing is None:
+            try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
+                pair = read_pair(job.pair_dir)
+            except InputError as exc:
+                if len(jobs) == 1:
+                    raise
+                row["error"], row["pair_error"] = str(exc), True  # in a descent: named, and the others scored
+                rows.append(row)
+                continue
+            try:
+                out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
+            except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
+                row["error"] = str(exc) + job.hint
+                problem = truth_problem(pair, str(job.pair_dir))[1]
+                if problem:  # said now, not once an output is given (then as usage, exit 2)
+                    row["error"], row["pair_error"] = f"{problem}; and no usable output: {row['error']}", True
+            else:
+                fig = None if figures is None else figures / f"{job.pair_dir.name}_score.png"
+                try:
+                    row.update(score_output(pair, out, str(job.pair_dir), fig))
+                except ScoreError as exc:  # the pair's truth, not the output
+                    if len(jobs) == 1:
+                        raise
+                    row["error"], row["pair_error"] = str(exc), True
+                if fig is not None and not row.get("pair_error"):
+                    row["figure"] = str(fig)
+        rows.append(row)
+    return rows
 
 
 EXIT_NO_OUTPUT = 3  # `score`: a pair had no usable output (missing or broken files)

@@ -277,6 +277,24 @@ def _coord_ok(v: Any) -> bool:
     return False
 
 
+def truth_problem(pair: Any, where: str) -> tuple[str | None, str | None]:
+    """Completes ``pair.truth`` where DESIGN.md allows (the hazard derived from depth, elevation and shadow) and
+    says (note, problem): the derivation's note, and why the pair cannot be scored (None: it can)."""
+    from ground_sim.gridscore import complete_truth
+
+    derived = complete_truth(pair)  # DESIGN.md's files without gt_hazard_i1.npy: the rules give it
+    if derived and "hazard" not in pair.truth:  # the derivation says why it gave nothing
+        return derived, f"{where}: {derived}; give gt_hazard_i1.npy"
+    for key in ("depth", "elevation", "hazard"):
+        if key not in pair.truth:
+            return derived, (
+                f"{where}: no ground truth gt_{key}_i1.npy (scoring needs gt_depth_i1.npy and gt_elevation_i1.npy, "
+                "and takes gt_hazard_i1.npy, else derives it from those two and gt_shadow_i1.npy): nothing to score "
+                "against"
+            )
+    return derived, None
+
+
 def score_output(
     pair: Any, output: DetectorOutput, where: str = "the pair", figure: str | Path | None = None
 ) -> dict[str, Any]:
@@ -284,21 +302,14 @@ def score_output(
     names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
     black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
-    from ground_sim.gridscore import complete_truth, judge_site, site_verdict
+    from ground_sim.gridscore import judge_site, site_verdict
     from ground_sim.library import covered
     from reports.plots import ground_step_m
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
-    derived = complete_truth(pair)  # DESIGN.md's files without gt_hazard_i1.npy: the rules give it
-    if derived and "hazard" not in pair.truth:  # the derivation says why it gave nothing
-        raise ScoreError(f"{where}: {derived}; give gt_hazard_i1.npy")
-    for key in ("depth", "elevation", "hazard"):
-        if key not in pair.truth:
-            raise ScoreError(
-                f"{where}: no ground truth gt_{key}_i1.npy (scoring needs gt_depth_i1.npy and gt_elevation_i1.npy, "
-                "and takes gt_hazard_i1.npy, else derives it from those two and gt_shadow_i1.npy): nothing to score "
-                "against"
-            )
+    derived, problem = truth_problem(pair, where)
+    if problem:
+        raise ScoreError(problem)
     true1, true2 = true_poses(pair)
     depth = pair.truth["depth"].astype(np.float64)
     world = backproject_depth(pair.camera, true1, depth)

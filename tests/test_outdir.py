@@ -83,3 +83,18 @@ def test_commands_refuse_an_out_being_written_with_one_line_exit_2(held, capsys,
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"being written by hazard-hil evaluate (pid {proc.pid})" in err, err
     assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # nothing was written or removed there
+
+
+def test_score_refuses_to_write_its_rows_into_an_out_being_written(held, tmp_path, capsys):
+    """`score --csv` into a directory a running `evaluate` held wrote there anyway (QA 61a L7); nothing is made
+    in a directory nobody holds."""
+    out, proc = held
+    argv = ["score", str(tmp_path / "pairs"), str(tmp_path / "outs")]
+    assert main([*argv, "--csv", str(out / "rows.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--csv's directory {out} is being written by hazard-hil evaluate (pid {proc.pid})" in err, err
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+    free = tmp_path / "free"
+    free.mkdir()
+    assert main([*argv, "--csv", str(free / "rows.csv")]) == 2  # on to the missing pairs: no lock file left
+    assert "being written" not in capsys.readouterr().err and list(free.iterdir()) == []

@@ -114,8 +114,10 @@ def test_variants_and_specs():
     assert load_scene_params("thesis:approach") == app
     assert load_scene_params("thesis", "custom") == base  # no such variant: the base scene
     assert app.features == () and len(base.features) > 5
-    with pytest.raises(SceneError, match="no variant"):
+    with pytest.raises(SceneError, match=r"no variant 'polar' \(it has approach"):
         load_scene_params("thesis:polar")
+    with pytest.raises(SceneError, match=r"no variant 'polar' \(it has none: give mare alone\)"):  # was "[]"
+        load_scene_params("mare:polar")
 
 
 def test_radial_profile_thins_the_population_and_fields_are_window_independent():

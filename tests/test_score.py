@@ -133,7 +133,7 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
     code = main(["score", str(descent), str(outs), "--csv", str(tmp_path / "rows.csv"), "--figures", str(figs)])
     out, _ = capsys.readouterr()
     assert code == 3
-    assert sorted(p.name for p in figs.iterdir()) == ["600_300_score.png"]  # the scored pair's picture only
+    assert sorted(p.name for p in figs.glob("*.png")) == ["600_300_score.png"]  # the scored pair's picture only
     assert (figs / "600_300_score.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| 300/150 | no usable output: " in out and "no such output directory" in out
     assert "1 of 2 pairs scored" in out and "1 without a usable output" in out
@@ -529,3 +529,46 @@ def test_json_rows_have_the_csv_keys_with_null_where_no_value(descent, tmp_path,
     assert code == 0 and list(full) == list(bare), (list(full), list(bare))
     assert set(CSV_COLUMNS) <= set(bare) and bare["dem_mean_abs_m"] is None and bare["state_safe_pct"] is None
     assert full["dem_mean_abs_m"] is not None
+
+
+def test_figures_into_an_out_being_written_are_refused_and_a_csv_is_not_a_figure(descent, tmp_path, capsys):
+    """`score --figures` drew into a directory a running `evaluate` held (QA 61a L7), and a --csv named as a
+    pair's picture left CSV text under a .png name (L4)."""
+    import subprocess
+    import sys
+
+    d = descent / "300_150"
+    out = _write(tmp_path / "outs" / "300_150", np.ones((128, 128)))
+    figs = tmp_path / "figs"
+    hold = "import sys\nfrom protocol.outdir import claim_out\nwith claim_out(sys.argv[1], 'evaluate'):\n"
+    hold += "    print('held', flush=True)\n    sys.stdin.readline()\n"
+    proc = subprocess.Popen([sys.executable, "-c", hold, str(figs)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == b"held"
+        assert main(["score", str(d), str(out), "--figures", str(figs)]) == 2
+        assert f"being written by hazard-hil evaluate (pid {proc.pid})" in capsys.readouterr().err
+        assert not list(figs.glob("*.png"))
+    finally:
+        proc.kill()
+        proc.wait()
+    assert main(["score", str(d), str(out), "--figures", str(figs), "--csv", str(figs / "300_150_score.png")]) == 2
+    assert "is the picture --figures draws for its pair" in capsys.readouterr().err
+    assert main(["score", str(d), str(out), "--figures", str(figs), "--csv", str(figs / "rows.csv")]) == 0
+    assert (figs / "300_150_score.png").read_bytes()[:4] == b"\x89PNG"
+    capsys.readouterr()
+
+
+def test_a_pair_with_neither_truth_nor_output_says_both(descent, tmp_path, capsys):
+    """A pair with no truth and no output was said only to have no output (exit 3), its truth problem hidden
+    until an output was given (QA 61a L6)."""
+    root = tmp_path / "descent"
+    shutil.copytree(descent, root)
+    for f in (root / "300_150").glob("gt_*"):
+        f.unlink()
+    outs = tmp_path / "outs"
+    _write(outs / "600_300", np.ones((128, 128)))
+    code, doc = _score(root, outs, capsys)
+    rows = {r["pair"]: r for r in doc["rows"]}
+    assert code == 2 and doc["summary"]["scored"] == 1
+    err = rows["300/150"]["error"]
+    assert rows["300/150"]["pair_error"] and "no ground truth gt_depth_i1.npy" in err and "output" in err, err
