@@ -318,7 +318,12 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     e2e = None
     rx_span = None if o.result_t_first is None or o.result_t_done is None else o.result_t_done - o.result_t_first
     if o.result_t_done is not None and o.frames_written_at is not None:
-        e2e = o.result_t_done - o.frames_written_at
+        # the writer stamps "written" once it runs again after its write returned; under load a fast answer
+        # arrived before that stamp (e2e -0.00 s), and no answer can start before the frames are out (ZeroMQ: a
+        # message arrives whole, its first byte unseen)
+        answer_began = o.result_t_first if o.result_t_first is not None else o.result_t_done
+        written = min(o.frames_written_at, answer_began)
+        e2e = o.result_t_done - written
     met = e2e is not None and e2e <= deadline_s
     if e2e is not None:
         rec["frames_retx_s"] = min(float(rec["frames_retx_s"]), max(0.0, e2e))

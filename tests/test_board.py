@@ -488,6 +488,10 @@ def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
             metrics = doc["cases"]["board"]["metrics"]
             assert doc["cases"]["board"]["link"] == case["link"]  # the override is not written back
             assert metrics["deadline_hit_rate"] == 1.0 and metrics["pairs"] == 1 and metrics["latency_p50_ref_s"] > 0
+            # timing belongs in the benchmarks: this host under a loaded CI took 0.15 then 0.27 s, past the default
+            # 0.1 s, so the gate is shown passing with room, then failing with none
+            doc["tolerances"] = {"latency_rel": 20.0, "latency_abs_s": 5.0}
+            base.write_text(json.dumps(doc))
             assert cli(args) == 0
             # a baseline the board cannot meet: latencies a thousandth of what it takes, no tolerance
             metrics.update(

@@ -401,6 +401,25 @@ def test_a_result_recorded_without_its_telemetry_has_no_line_time(tmp_path):
     assert rec["e2e_latency_s"] == pytest.approx(4.5) and rec["telemetry_missing"].startswith("no Telemetry")
 
 
+def test_an_answer_that_beat_its_frames_written_stamp_has_no_negative_latency(tmp_path):
+    """Under load the writer stamps a frame "written" late, after a fast flight side's Result had arrived: the
+    end-to-end latency read -0.00 s (a CI run with 4 workers on 2 cores). No answer starts before the frames are
+    out, so the stamp is at most the answer's first byte (a ZeroMQ message's arrival: its first byte is unseen)."""
+    from resultrev import small_result
+
+    from ground_sim.stream import PairOutcome, write_outcome
+
+    o = PairOutcome("p000", "600/300", 300.0, str(tmp_path), (0, 1), sent_at=1.0)
+    o.result, o.frames_written_at, o.result_t_first, o.result_t_done = small_result(), 5.2, 5.0, 5.1
+    o.telemetry_missing = "no Telemetry came within 10 s of its Result"
+    rec = write_outcome(tmp_path, o, 10.0)
+    assert rec["e2e_latency_s"] == pytest.approx(0.1) and rec["deadline_met"]
+    o.result_t_first = None  # ZeroMQ
+    assert write_outcome(tmp_path, o, 10.0)["e2e_latency_s"] == 0.0
+    o.frames_written_at = 2.0  # as measured whenever the stamp is before the answer
+    assert write_outcome(tmp_path, o, 10.0)["e2e_latency_s"] == pytest.approx(3.1)
+
+
 def test_a_results_line_time_is_at_most_what_the_end_to_end_latency_leaves():
     """On a noisy line the sender retransmits what the ground holds already (its ACKs lost): "end to end 1.92 s
     (flight 0.02 s, result line 3.27 s)" (stop 60's QA). Cut to e2e - flight - queue, the sender's figure kept."""
