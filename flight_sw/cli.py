@@ -364,6 +364,11 @@ def _process(args: argparse.Namespace) -> int:
         else:
             print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
+    for k, why in _degenerate_poses(res.info.get("pose_refinement"), side):  # a fallback is said (issue 10)
+        # not a warning: matched, nothing against the pose, but the geometry cannot fix it (a 1 deg pitch of a
+        # highland approach 250/125 pair went by in silence with its DEM 10.6 m off; stop 60's QA F7)
+        print(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
+              "navigation reports it")  # fmt: skip
     if res.info.get("sites_withheld") and "altimeter_disagreement" not in res.info:  # the pose warnings above
         print(f"warning: {res.info['sites_withheld']}", file=sys.stderr)  # do not say what it costs the sites
     print(f"report: {out / 'report.html'}")
@@ -389,6 +394,24 @@ def _refined_poses(info: Any) -> list[str]:
                 )
             out.append(f"frame {int(f.get('frame', i + 1))} ({rel}{what})")
     return out
+
+
+def _degenerate_poses(info: Any, side: int) -> list[tuple[int, str]]:
+    """(frame, reason) where pose refinement fell back to the navigation pose on geometry that cannot fix it
+    (:data:`flight_sw.pose_refine.DEGENERATE`), on images of at least ``pose_refine.CHECK_MIN_SIDE`` px."""
+    from .pose_refine import CHECK_MIN_SIDE, DEGENERATE
+
+    if not isinstance(info, dict) or side < CHECK_MIN_SIDE:
+        return []
+    frames = info.get("frames") or [{"frame": 1, **info}]
+    return [
+        (
+            int(f.get("frame", i + 1)),
+            (f"against frame {f['against']}: " if f.get("against") else "") + str(f.get("reason", "")),
+        )
+        for i, f in enumerate(frames)
+        if isinstance(f, dict) and f.get("verdict") == DEGENERATE
+    ]
 
 
 def _unverified_poses(info: Any, side: int) -> list[tuple[int, str, str]]:

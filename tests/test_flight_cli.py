@@ -449,3 +449,17 @@ def test_process_widest_pair_names_the_directorys_frame_in_the_altimeter_warning
     assert main(["process", str(d), "--widest-pair", "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "frame 3 at" in err and "frame 1 at" not in err, err
+
+
+def test_a_pose_the_images_matched_but_cannot_fix_is_said():
+    """A `degenerate` fallback (matched, but parallax, depth or spread cannot fix the pose) was said only in
+    result.json: a 1 deg pitch of a highland approach pair went by with its DEM 10.6 m off (stop 60's QA F7)."""
+    from flight_sw.cli import _degenerate_poses
+
+    pair_info = {"verdict": "degenerate", "reason": "too little parallax (0.20 px < 0.5)"}
+    assert _degenerate_poses(pair_info, 512) == [(1, "too little parallax (0.20 px < 0.5)")]
+    assert _degenerate_poses(pair_info, 128) == []  # under CHECK_MIN_SIDE clean pairs cannot be checked either
+    multi = {"frames": [{"frame": 1, "verdict": "refined"}, {"frame": 2, "verdict": "degenerate", "reason": "r",
+                                                              "against": 1}]}  # fmt: skip
+    assert _degenerate_poses(multi, 256) == [(2, "against frame 1: r")]
+    assert _degenerate_poses({"verdict": "kept"}, 512) == [] and _degenerate_poses(None, 512) == []
