@@ -16,7 +16,8 @@ which are sparse, weigh less than the noise, which is everywhere.
 
 Clean renders still read texture as noise: 1.0-15.8 grey levels over the scenes of the library (a bright
 highland the most), and frames of one descent differ by up to 2.9x (tuning renders, stop 61). A frame more
-than :data:`NOISY_RATIO` times the median of the others' is called noisy.
+than :data:`NOISY_RATIO` times the median of the others' is called noisy; one under :data:`MIN_REFERENCE` and
+under ``1 / NOISY_RATIO`` of theirs is called blank (a uniform image reads 0: a black, saturated or lost frame).
 """
 
 from __future__ import annotations
@@ -58,5 +59,19 @@ def noisy_frames(sigmas: Sequence[float], ratio: float = NOISY_RATIO) -> list[in
     for k, v in enumerate(s):
         others = [o for j, o in enumerate(s) if j != k and np.isfinite(o) and o >= MIN_REFERENCE]
         if others and np.isfinite(v) and v > ratio * float(np.median(others)):
+            out.append(k)
+    return out
+
+
+def blank_frames(sigmas: Sequence[float], ratio: float = NOISY_RATIO) -> list[int]:
+    """The frames with next to no pixel-scale detail: under :data:`MIN_REFERENCE` grey levels and under
+    ``1 / ratio`` of the median of the other frames' that read at least that (a black, saturated or lost image
+    reads 0; the quietest clean frames 1.0-1.2). Frame 0 blank left every other frame "could not check", the
+    maps empty, and nothing named it (stop 62)."""
+    s = [float(v) for v in sigmas]
+    out = []
+    for k, v in enumerate(s):
+        others = [o for j, o in enumerate(s) if j != k and np.isfinite(o) and o >= MIN_REFERENCE]
+        if others and np.isfinite(v) and v < MIN_REFERENCE and v * ratio < float(np.median(others)):
             out.append(k)
     return out

@@ -78,7 +78,7 @@ from .mapping import (
     sample_grid,
     three_state,
 )
-from .noise import noise_sigma, noisy_frames
+from .noise import blank_frames, noise_sigma, noisy_frames
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
 from .pose_refine import (
     CHECK_MIN_SIDE,
@@ -935,7 +935,7 @@ def run_pipeline_multi(
     # a frame far noisier than the others (a sensor fault, a damaged image) is mapped like any other: said
     # (flight_sw.noise; 2 ms a 512 px pair)
     noise = [noise_sigma(im) for im in images]
-    noisy = noisy_frames(noise)
+    noisy, blank = noisy_frames(noise), blank_frames(noise)
     pose_info: dict[str, Any] | None = None
     poses_in = tuple(poses)  # as reported: what the altimeters are checked against
     if p.refine_pose:
@@ -1021,15 +1021,16 @@ def run_pipeline_multi(
     if doubt and "sites_withheld" not in res.info:
         _withhold_sites(res, doubt)
     res.info["image_noise_dn"] = [round(v, 2) for v in noise]
-    if noisy:  # the directory's frame numbers, each with its reading and the others'
-        res.info["noisy_frames"] = [
-            {
-                "frame": numbers[k],
-                "noise_dn": round(noise[k], 2),
-                "others_dn": [round(v, 2) for j, v in enumerate(noise) if j != k],
-            }
-            for k in noisy
-        ]
+    for key, ks in (("noisy_frames", noisy), ("blank_frames", blank)):
+        if ks:  # the directory's frame numbers, each with its reading and the others'
+            res.info[key] = [
+                {
+                    "frame": numbers[k],
+                    "noise_dn": round(noise[k], 2),
+                    "others_dn": [round(v, 2) for j, v in enumerate(noise) if j != k],
+                }
+                for k in ks
+            ]
     if pose_info is not None:
         res.info["pose_refinement"] = pose_info
         if "pose_refine" not in timings:

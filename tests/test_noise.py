@@ -14,7 +14,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from flight_sw.noise import noise_sigma, noisy_frames
+from flight_sw.noise import blank_frames, noise_sigma, noisy_frames
 from hil_server.cli import main
 
 
@@ -36,13 +36,21 @@ def test_a_frame_far_noisier_than_the_others_is_named_and_a_blank_is_no_referenc
     assert noisy_frames([4.0, float("nan")]) == [] and noisy_frames([5.0]) == []
 
 
+def test_a_blank_frame_is_named_and_the_quietest_clean_frames_are_not():
+    assert blank_frames([0.0, 2.0]) == [0] and blank_frames([4.0, 3.5, 3.2, 0.0]) == [3]
+    assert blank_frames([1.0, 2.9]) == [] and blank_frames([1.0, 1.2, 1.1]) == []  # a polar low sun, a mare
+    assert blank_frames([0.0, 0.0]) == [] and blank_frames([0.5, 0.6]) == []  # no frame to judge against
+    assert blank_frames([0.7, 2.0]) == []  # dim, but over a quarter of the other's
+
+
 def test_process_warns_of_a_noisy_frame(tmp_path, capsys):
     from hilkit import small_descent
 
     pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
     assert main(["process", str(pair), "--out", str(tmp_path / "ok")]) == 0
     assert "noisy" not in capsys.readouterr().err
-    assert "noisy_frames" not in json.loads((tmp_path / "ok" / "result.json").read_text())["info"]
+    info = json.loads((tmp_path / "ok" / "result.json").read_text())["info"]
+    assert "noisy_frames" not in info and "blank_frames" not in info
     bad = tmp_path / "bad"
     shutil.copytree(pair, bad)
     img = cv2.imread(str(bad / "i2.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
@@ -53,3 +61,19 @@ def test_process_warns_of_a_noisy_frame(tmp_path, capsys):
     assert "warning: frame 1's image is noisy: its pixel noise reads ~" in err, err
     (f,) = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["noisy_frames"]
     assert f["frame"] == 1 and f["noise_dn"] > 20 and f["others_dn"][0] < 8
+
+
+def test_process_names_a_blank_frame_0(tmp_path, capsys):
+    """A blank frame 0 left every other frame "could not check" and the maps empty, and nothing named it."""
+    from hilkit import small_descent
+
+    pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
+    bad = tmp_path / "bad"
+    shutil.copytree(pair, bad)
+    img = cv2.imread(str(bad / "i1.png"), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(bad / "i1.png"), np.zeros_like(img))
+    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 0's image is blank: its pixel-scale detail reads 0.0 grey levels against" in err, err
+    (f,) = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["blank_frames"]
+    assert f["frame"] == 0 and f["noise_dn"] == 0 and f["others_dn"][0] >= 1.0
