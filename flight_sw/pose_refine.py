@@ -156,6 +156,9 @@ class RefineParams:
     min_inliers: int = 40
     min_spread: float = 0.4  # share of the overlap's 4x4 cells holding an inlier
     min_parallax_px: float = 2.0  # median rotation-compensated motion (i2 px): below it, translation is unobservable
+    # ... but where the navigation poses predict more than this many times that (a repeated image: 0.00 px against
+    # ~30 px on a 512 px 300/250 pair), the images contradict the poses: `unmatched`, not `degenerate`
+    nav_parallax_factor: float = 4.0
     max_rotation_deg: float = 2.0  # a larger correction of either attitude is refused
     max_direction_deg: float = 5.0  # a larger change of the baseline direction is refused
     max_rms_px: float = 1.0  # inlier Sampson RMS above this: refused
@@ -215,6 +218,7 @@ class RefineParams:
             "nav_rel_att_sigma_deg",
             "nav_pos_sigma_m",
             "min_parallax_px",
+            "nav_parallax_factor",
             "max_rotation_deg",
             "max_direction_deg",
             "max_rms_px",
@@ -879,6 +883,24 @@ def _map_solve(
     return s, inl, _depth_spread(R21, t_unit, v1[inl], v2[inl], Ki)
 
 
+def _nav_parallax_px(camera: Camera, pose1: Pose, pose2: Pose, altimeter_m: float, u1: np.ndarray) -> float:
+    """The parallax the navigation poses predict at ``u1`` (i1 px): the median of ``|H_g u - H_inf u|``, with
+    ``H_g`` the ground plane's homography (at frame 0's altimeter ground, else the datum) and
+    ``H_inf = K R21 K^-1`` the rotation's, i.e. the motion their baseline adds to the rotation's
+    (Hartley & Zisserman 2004, sec. 13.3, the plane-induced parallax). 0 where no plane homography exists."""
+    z = altimeter_ground(pose1, altimeter_m) if math.isfinite(altimeter_m) else 0.0
+    try:
+        H_g = plane_homography(camera, pose1, pose2, z)
+    except ValueError:
+        return 0.0
+    R21, _ = relative_pose(pose1, pose2)
+    K = camera.K
+    H_inf = K @ R21 @ np.linalg.inv(K)
+    if len(u1) == 0:
+        return 0.0
+    return float(np.median(np.linalg.norm(_apply_h(H_g, u1) - _apply_h(H_inf, u1), axis=1)))
+
+
 def _depth_spread(R21: np.ndarray, t21: np.ndarray, v1: np.ndarray, v2: np.ndarray, Ki: np.ndarray) -> float:
     """``(p90 - p10) / median`` of the matches' triangulated camera-1 depths under ``(R21, t21)``.
 
@@ -1020,6 +1042,19 @@ def _refine_matches(
     reason, verdict = "", DEGENERATE
     if inl.sum() < p.min_inliers:
         reason = f"too few inliers ({int(inl.sum())} < {p.min_inliers})"
+        verdict = UNMATCHED
+    elif (
+        parallax < p.min_parallax_px
+        and (expected := _nav_parallax_px(camera, pose1, pose2, alt[0], v1[inl]))
+        > p.nav_parallax_factor * p.min_parallax_px
+    ):
+        # the navigation's baseline would show as parallax the images do not have: a camera that sent its last
+        # image again, or an image from where frame 0 was taken (a 300/250 pair with i2 a copy of i1 was refined
+        # as `degenerate`, unwarned, its DEM 21 m off and "full"; stop 62's QA H1)
+        reason = (
+            f"no parallax between the images ({parallax:.2f} px) where the navigation poses predict "
+            f"{expected:.0f} px: the same image twice, or frames taken from one place"
+        )
         verdict = UNMATCHED
     elif parallax < p.min_parallax_px:  # before convergence: without parallax the translation wanders
         reason = f"too little parallax ({parallax:.2f} px < {p.min_parallax_px:g}): translation unobservable"

@@ -463,3 +463,24 @@ def test_a_pose_the_images_matched_but_cannot_fix_is_said():
                                                               "against": 1}]}  # fmt: skip
     assert _degenerate_poses(multi, 256) == [(2, "against frame 1: r")]
     assert _degenerate_poses({"verdict": "kept"}, 512) == [] and _degenerate_poses(None, 512) == []
+
+
+def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
+    """i2 a copy of i1 (a camera that repeated its last image) was refined as `degenerate` and said nothing:
+    the DEM 21 m off, "full", exit 0 (stop 62's QA H1). The images have no parallax where the navigation's
+    baseline predicts tens of pixels: warned, and no site on that map."""
+    import shutil
+
+    # a 2:1 pair's copy does not even track through the navigation's 2x scale (`unmatched` already): 6:5 does
+    assert main(["render", "--scenario", "vertical", "--frames", "300,250", "--image-size", "256", "--no-progress",
+                 "--out", str(tmp_path / "pairs")]) == 0  # fmt: skip
+    pair = tmp_path / "pairs" / "300_250"
+    bad = tmp_path / "bad"
+    shutil.copytree(pair, bad)
+    shutil.copy(bad / "i1.png", bad / "i2.png")
+    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 1: its image does not match where its navigation pose says (no parallax between" in err
+    assert "warning: no site is offered on this map: it rests on frame 1" in err, err
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert doc["sites"] == [] and doc["info"]["pose_refinement"]["verdict"] == "unmatched"

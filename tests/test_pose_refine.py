@@ -27,6 +27,7 @@ from flight_sw.pose_refine import (
     FEW_MATCHES,
     KEPT,
     REFINED,
+    UNMATCHED,
     RefineParams,
     contradicted,
     refine_from_matches,
@@ -203,11 +204,15 @@ def test_attitude_and_altitude_errors_are_handled(gsim, frames):
 
 # --------------------------------------------------------------------------- degeneracy
 def test_identical_frames_fall_back(synth):
+    """The same image twice (a camera that sent its last frame again) has no parallax where the navigation's
+    150 m baseline predicts tens of pixels: evidence against the frame (`unmatched`), not `degenerate`, which went
+    unwarned with the DEM 21 m off (stop 62's QA H1)."""
     cam, p1, p2, i1, _, _, _ = synth
     r = refine_pair(i1, i1.copy(), p1, p2, cam)
     assert not r.refined
     assert r.pose1 is p1 and r.pose2 is p2
-    assert r.info["refined"] is False and r.info["reason"] != "ok"
+    assert r.info["refined"] is False and r.info["verdict"] == UNMATCHED, r.info["reason"]
+    assert "no parallax between the images" in r.info["reason"] and "the same image twice" in r.info["reason"]
 
 
 def test_featureless_images_fall_back(synth):
