@@ -478,7 +478,7 @@ def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descen
     )
     assert time.monotonic() - t0 < 60.0
     # the scores are of the fused map, and the summary says so (it said nothing of fusion)
-    assert s["fusion"] is True and s["fusion_sources"] == ["seed 0"]
+    assert s["fusion"] is True and s["fusion_sources"] == ["scene thesis seed 0"]  # the scene from pair.json
     md = (tmp_path / "run" / "summary.md").read_text()
     assert "The Results report the map fused over the descent" in md and "fused as one descent" not in md
 
@@ -494,6 +494,25 @@ def test_the_summary_says_when_pairs_of_other_ground_are_fused_as_one_descent():
     assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "external"})
     assert "asked of the flight side" in fusion_note({"fusion": True, "flight": "command: ./mine {port}"})
     assert fusion_note({"fusion": True, "flight": "emulated"}).startswith("the Results report the map fused")
+
+
+def test_fusion_sources_read_what_the_manifest_leaves_out_from_each_pair(tmp_path):
+    """render's manifest names the scene once, at its top: a thesis and a mare pair merged into one manifest read
+    as one "seed 0", and a manifest in DESIGN.md's minimal form (label, path, altitude_m) said nothing at all
+    (stop 62's QA M1). What an entry leaves out is read from its pair.json."""
+    from hil_server.run import fusion_sources
+
+    for name, scene, seed in (("a", "thesis", 0), ("b", "mare", 0), ("c", "thesis", 5)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "pair.json").write_text(json.dumps({"scene_spec": scene, "scene_seed": seed}))
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "pair.json").write_text("{not json")
+    merged = [{"path": "a", "seed": 0}, {"path": "b", "seed": 0}]
+    assert fusion_sources(merged, tmp_path) == ["scene thesis seed 0", "scene mare seed 0"]
+    minimal = [{"label": "x", "path": "a", "altitude_m": 300}, {"label": "y", "path": "c", "altitude_m": 150}]
+    assert fusion_sources(minimal, tmp_path) == ["scene thesis seed 0", "scene thesis seed 5"]
+    assert fusion_sources([{"path": "d"}, {"path": "missing"}, {"path": "a"}], tmp_path) == ["scene thesis seed 0"]
+    assert fusion_sources([{"scene": "mine", "seed": 7, "path": "a"}], tmp_path) == ["scene mine seed 7"]  # given
 
 
 def test_an_hil_pair_whose_dem_the_altimeter_contradicts_offers_no_site_even_fused(descent, tmp_path):
