@@ -433,3 +433,12 @@ def test_a_results_line_time_is_at_most_what_the_end_to_end_latency_leaves():
     rec = {}
     assert _line_within(0.5, 1.92, t, rec) == 0.5 and rec == {}  # within: as measured
     assert _line_within(None, 1.92, t, rec) is None and _line_within(0.5, None, t, rec) == 0.5
+
+
+def test_a_latency_is_printed_with_the_decimals_that_tell_it_from_its_deadline():
+    """0.0208 s against a 0.02 s deadline printed "0.02 s  deadline 0.02 s MISSED" (stop 62's QA L3)."""
+    from ground_sim.stream import _places
+
+    assert _places(0.0208, 0.02) == 3 and f"{0.0208:.{_places(0.0208, 0.02)}f}" == "0.021"
+    assert _places(1.5, 2.0) == 2 and _places(2.0, 2.0) == 2  # apart, or equal: two as before
+    assert _places(2.0004, 2.0) == 4
