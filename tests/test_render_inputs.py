@@ -311,3 +311,23 @@ def test_a_pose_error_out_of_range_is_named_as_typed(tmp_path, capsys, no_render
     """`--pose-error alt=-1` was refused as "pose error altitude_uniform_m must be ...", a name the user never saw."""
     err = one_line_error(capsys, ["render", "--scenario", "vertical", "--pose-error", spec, "--out", str(tmp_path)])
     assert f"--pose-error: {said}" in err and "_uniform_" not in err and "_sigma_" not in err, err
+
+
+def test_the_trajectory_file_design_md_shows_is_one(tmp_path):
+    """design.md documents the --scenario FILE format with an example (it had none; stop 62's QA L2): the example
+    loads as written, and its frames are where it says."""
+    import re
+
+    import numpy as np
+
+    from ground_sim.trajectory import load_trajectory
+
+    text = (Path(__file__).parents[1] / "docs" / "design.md").read_text()
+    (block,) = re.findall(r"```toml\n(.*?)```", text, re.S)
+    f = tmp_path / "steep.toml"
+    f.write_text(block)
+    (spec,) = load_trajectory(f)
+    assert spec.label == "400/200" and spec.altitude_m == 200 and spec.camera.width == 256
+    assert [float(p.position[2]) for p in spec.poses] == [400.0, 200.0] and spec.poses[1].time_s == 4.0
+    axis = spec.poses[0].R[2]  # the optical axis in world: 30 deg off nadir toward +Y
+    assert axis[1] > 0 and abs(float(np.degrees(np.arccos(-axis[2]))) - 30.0) < 1e-6
