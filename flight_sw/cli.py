@@ -364,9 +364,14 @@ def _process(args: argparse.Namespace) -> int:
                   "info.pose_refinement)", file=sys.stderr)  # fmt: skip
         elif verdict == UNMATCHED:  # texture, and nothing consistent where the pose says: not "could not check"
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
-            print(f"warning: frame {k}: its image does not match where its navigation pose says ({why}: another or a "
-                  f"damaged image, or a pose far from the one declared); {rest} (result.json "
-                  "info.pose_refinement)", file=sys.stderr)  # fmt: skip
+            # a reason that names its cause (the same image twice) is not followed by the list of causes
+            causes = (
+                ""
+                if "the same image twice" in why
+                else ": another or a damaged image, or a pose far from the one declared"
+            )
+            print(f"warning: frame {k}: its image does not match where its navigation pose says ({why}{causes}); "
+                  f"{rest} (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
         else:
             print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip

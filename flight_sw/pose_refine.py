@@ -70,6 +70,7 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from collections.abc import Sequence
@@ -82,7 +83,7 @@ import numpy as np
 from protocol.pairdir import Camera, Pose
 
 from .homography import plane_homography
-from .rangefind import altimeter_ground
+from .rangefind import altimeter_ground, prior_range
 from .validate import FlightInputError
 from .warping import area_sigma
 
@@ -884,11 +885,14 @@ def _map_solve(
 
 
 def _nav_parallax_px(camera: Camera, pose1: Pose, pose2: Pose, altimeter_m: float, u1: np.ndarray) -> float:
-    """The parallax the navigation poses predict at ``u1`` (i1 px): the median of ``|H_g u - H_inf u|``, with
-    ``H_g`` the ground plane's homography (at frame 0's altimeter ground, else the datum) and
-    ``H_inf = K R21 K^-1`` the rotation's, i.e. the motion their baseline adds to the rotation's
-    (Hartley & Zisserman 2004, sec. 13.3, the plane-induced parallax). 0 where no plane homography exists."""
-    z = altimeter_ground(pose1, altimeter_m) if math.isfinite(altimeter_m) else 0.0
+    """The motion the navigation's baseline adds to the rotation's at ``u1`` (i1 px), as the ground would show
+    it: the median of ``|H_g u - H_inf u|``, with ``H_g`` the ground plane's homography and ``H_inf = K R21 K^-1``
+    the infinite one (Hartley & Zisserman 2004, ch. 13, the homography a plane induces: ``H_g = K (R - t n^T / d)
+    K^-1``). The ground is
+    frame 0's altimeter ground; without an altimeter, the deepest the range search looks
+    (:func:`flight_sw.rangefind.prior_range`), which predicts the least: at the datum, a clean pair over ground
+    260 m below it was called a repeat (stop 62's review). 0 where no plane homography exists."""
+    z = altimeter_ground(pose1, altimeter_m) if math.isfinite(altimeter_m) else prior_range(pose1, pose2, None)[0]
     try:
         H_g = plane_homography(camera, pose1, pose2, z)
     except ValueError:
@@ -1203,6 +1207,21 @@ def refine_descent(
         frames.append(_summary(r, k))
     frames.append(_summary(wide, n - 1))
     p = params or RefineParams()
+    for k, j in repeated_images(images).items():  # before the checks and the chain that read the verdicts
+        frames[k - 1].update(
+            refined=False,
+            verdict=UNMATCHED,
+            repeat_of=j,
+            reason=f"its image is frame {j}'s, pixel for pixel: the same image twice (a camera that sent an image "
+            "again)",
+        )
+        if k == n - 1:  # the widest pair fixed frame 0's pose from it: back to navigation, the others re-attached
+            out[0], out[-1] = poses[0], poses[-1]
+            info.update(refined=False, verdict=UNMATCHED, reason=frames[k - 1]["reason"], repeat_of=j)
+            for m in range(1, n - 1):
+                out[m] = transfer_relative(out[0], *relative[m])
+        else:
+            out[k] = transfer_relative(out[0], poses[0], poses[k])
     for f in _scale_outliers(frames, poses[0], p):
         if f["frame"] == n - 1:  # the widest pair fixed frame 0's pose: back to navigation, the others re-attached
             out[0], out[-1] = poses[0], poses[-1]
@@ -1215,6 +1234,23 @@ def refine_descent(
     info["chain_fits"] = _chain(images, poses, camera, alt, p, stop_by, cost, out, frames)
     info["frames"] = frames
     return out, info
+
+
+def repeated_images(images: Sequence[np.ndarray]) -> dict[int, int]:
+    """``{k: j}`` for each frame ``k`` whose image equals an earlier frame ``j``'s pixel for pixel. Two exposures
+    never do (sensor noise, the camera moved); a camera that sent its last image again does. A descent's frame 2
+    a copy of frame 1 was "kept" against frame 0, unwarned, the DEM 32 m off (stop 62's review): its motion
+    from frame 0 is frame 1's, which no fit against frame 0 alone can tell from its own."""
+    seen: dict[bytes, int] = {}
+    out: dict[int, int] = {}
+    for k, im in enumerate(images):
+        a = np.ascontiguousarray(im)
+        key = hashlib.blake2b(a.tobytes(), digest_size=16, person=str((a.shape, a.dtype.str)).encode()[:16]).digest()
+        if key in seen:
+            out[k] = seen[key]
+        else:
+            seen[key] = k
+    return out
 
 
 def _summary(r: PoseRefinement, k: int, upper: str = "the reference frame") -> dict[str, Any]:

@@ -811,7 +811,8 @@ def fusion_sources(entries: list[dict], base: Path | None = None) -> list[str]:
         if base is not None and len(got) < 2 and isinstance(e.get("path"), str):
             doc = _pair_doc(base / e["path"] / "pair.json")
             for k, keys in (("scene", ("scene_spec", "scene")), ("seed", ("scene_seed", "seed"))):
-                v = next((doc[n] for n in keys if isinstance(doc.get(n), (str, int)) and doc[n] != ""), None)
+                ok = [doc[n] for n in keys if isinstance(doc.get(n), (str, int)) and not isinstance(doc[n], bool)]
+                v = next((x for x in ok if x != ""), None)
                 if k not in got and v is not None:
                     got[k] = printable(str(v), 80)
         if got:
@@ -822,13 +823,29 @@ def fusion_sources(entries: list[dict], base: Path | None = None) -> list[str]:
 
 
 def _pair_doc(path: Path) -> dict:
-    """A pair.json's top level, or {} where it cannot be read (the pair's own error is said where it is run)."""
+    """A pair.json's top level, or {} where it cannot be read (the pair's own error is said where it is run):
+    a regular file only, read up to the pair reader's cap (a FIFO blocked the summary, a link to /dev/zero
+    read until memory ran out; stop 62's review)."""
+    import stat
+
+    from protocol.pairdir import MAX_PAIR_JSON_BYTES
+
     try:
-        if path.stat().st_size > 1 << 20:  # the pair reader's own cap
-            return {}
-        doc = json.loads(path.read_text())
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except (OSError, ValueError):
         return {}
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return {}
+        with os.fdopen(os.dup(fd), "rb") as f:
+            raw = f.read(MAX_PAIR_JSON_BYTES + 1)
+        if len(raw) > MAX_PAIR_JSON_BYTES:
+            return {}
+        doc = json.loads(raw)
+    except (OSError, ValueError, RecursionError):
+        return {}
+    finally:
+        os.close(fd)
     return doc if isinstance(doc, dict) else {}
 
 

@@ -429,12 +429,15 @@ class ByteStreamLink(Link):
             if self._failed is not None or self._failing:
                 return
             self._failing = True
-        # said before anyone can see `failed`: a board that ends on it says its summary after this, as its last line
-        self._event("transport", reason, self.arq.epoch)
-        with self._cv:
-            self._failed = reason
-            self.arq.transport_failed(reason, time.monotonic())
-            self._cv.notify_all()
+        try:  # said before anyone can see `failed`: a board that ends on it says its summary after this, last
+            self._event("transport", reason, self.arq.epoch)
+        except OSError:
+            pass  # a log that cannot write (stderr a closed pipe) has nowhere to say so; the link fails all the same
+        finally:  # a log that raised had left the link failing and never failed
+            with self._cv:
+                self._failed = reason
+                self.arq.transport_failed(reason, time.monotonic())
+                self._cv.notify_all()
 
     def close(self, flush_timeout: float = 1.0) -> None:
         """Flush (bounded), tell the peer (CLOSE), stop the threads, fail what is left, close the transport."""
@@ -1253,10 +1256,17 @@ class ZmqLink(Link, SessionView):
             except zmq.ZMQError as exc:
                 if time.monotonic() >= end:
                     reason = f"cannot listen on {self.endpoint} again: {exc}"
-                    self._event("transport", reason, self.sess.epoch)  # said before `failed` is seen, as above
-                    with self._cv:
-                        self._failed = reason
-                        self._cv.notify_all()
+                    with self._cv:  # what led here (the peer lost) first, then this, before `failed` is seen
+                        events, self._pending_events = self._pending_events, []
+                    try:
+                        for kind, text, epoch in [*events, ("transport", reason, self.sess.epoch)]:
+                            self._event(kind, text, epoch)
+                    except OSError:
+                        pass  # as in ByteStreamLink._fail_transport: nowhere to say it, the link fails all the same
+                    finally:
+                        with self._cv:
+                            self._failed = reason
+                            self._cv.notify_all()
                     return
                 time.sleep(0.02)
         with self._cv:

@@ -101,7 +101,7 @@ def refuse_if_held(path: str | Path, what: str) -> None:
     ``evaluate`` was rewriting. No lock file is made where there is none."""
     lock = Path(path) / LOCK_NAME
     try:
-        fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+        fd = os.open(lock, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO by that name must not block
     except OSError:
         return  # no lock file (or none readable): nobody claimed it
     try:

@@ -830,7 +830,12 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
             "output_dir": str(job.out_dir),
             "error": job.missing,
         }
-        if job.missing is None:
+        if job.missing is not None:  # an HIL run's pair with no Result: its truth is judged now too
+            with contextlib.suppress(InputError):  # an unreadable pair is said once it has an output to score
+                problem = truth_problem(read_pair(job.pair_dir), str(job.pair_dir))[1]
+                if problem:
+                    row["error"], row["pair_error"] = f"{problem}; and no usable output: {job.missing}", True
+        else:
             try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
                 pair = read_pair(job.pair_dir)
             except InputError as exc:

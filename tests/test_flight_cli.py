@@ -480,7 +480,46 @@ def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
     shutil.copy(bad / "i1.png", bad / "i2.png")
     assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
-    assert "warning: frame 1: its image does not match where its navigation pose says (no parallax between" in err
+    assert "warning: frame 1: its image does not match where its navigation pose says (its image is frame 0's" in err
     assert "warning: no site is offered on this map: it rests on frame 1" in err, err
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
     assert doc["sites"] == [] and doc["info"]["pose_refinement"]["verdict"] == "unmatched"
+    # not the same bytes (another exposure from the same place: its own noise): no parallax where the baseline
+    # predicts some
+    import cv2
+
+    img = cv2.imread(str(bad / "i1.png"), cv2.IMREAD_GRAYSCALE).astype(np.int16)
+    img += np.random.default_rng(0).integers(-1, 2, img.shape).astype(np.int16)
+    cv2.imwrite(str(bad / "i2.png"), np.clip(img, 0, 255).astype(np.uint8))
+    assert main(["process", str(bad), "--out", str(tmp_path / "o2")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 1: its image does not match where its navigation pose says (no parallax between" in err
+    assert "warning: no site is offered on this map: it rests on frame 1" in err, err
+
+
+def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsys):
+    """Frame 2 a copy of frame 1: against frame 0 its motion is frame 1's, which no fit of that pair alone can tell
+    from its own, so it was "kept", unwarned, the DEM 32 m off without altimeters (stop 62's review). Two
+    exposures are never equal pixel for pixel: named as the same image twice, and left out."""
+    import shutil
+
+    from flight_sw.pose_refine import repeated_images
+
+    a, b = np.zeros((4, 4), np.uint8), np.ones((4, 4), np.uint8)
+    assert repeated_images([a, b, a.copy(), b, b.astype(np.uint16)]) == {2: 0, 3: 1}  # the dtype counts
+    assert main(["render", "--scenario", "vertical", "--frames", "300,250,200", "--image-size", "256", "--no-progress",
+                 "--out", str(tmp_path / "pairs")]) == 0  # fmt: skip
+    bad = tmp_path / "bad"
+    shutil.copytree(tmp_path / "pairs" / "300_250_200", bad)
+    shutil.copy(bad / "i2.png", bad / "i3.png")
+    doc = json.loads((bad / "pair.json").read_text())
+    for f in doc["frames"]:
+        f.pop("altimeter_m", None)  # the altimeters' own check would see it
+    (bad / "pair.json").write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 2: its image does not match where its navigation pose says (its image is frame 1's" in err
+    assert "the same image twice (a camera that sent an image again)); it is left out of the maps" in err, err
+    info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]
+    assert info["frames_dropped"] == [2] and info["pose_refinement"]["frames"][1]["repeat_of"] == 1

@@ -513,6 +513,18 @@ def test_fusion_sources_read_what_the_manifest_leaves_out_from_each_pair(tmp_pat
     assert fusion_sources(minimal, tmp_path) == ["scene thesis seed 0", "scene thesis seed 5"]
     assert fusion_sources([{"path": "d"}, {"path": "missing"}, {"path": "a"}], tmp_path) == ["scene thesis seed 0"]
     assert fusion_sources([{"scene": "mine", "seed": 7, "path": "a"}], tmp_path) == ["scene mine seed 7"]  # given
+    # a hostile pair.json is read as nothing, never waited on or read whole (the summary is written meanwhile)
+    import os
+
+    for name in ("fifo", "zero", "big", "flag"):
+        (tmp_path / name).mkdir()
+    os.mkfifo(tmp_path / "fifo" / "pair.json")
+    (tmp_path / "zero" / "pair.json").symlink_to("/dev/zero")
+    (tmp_path / "big" / "pair.json").write_text(json.dumps({"scene_spec": "x", "pad": "y" * (1 << 21)}))
+    (tmp_path / "flag" / "pair.json").write_text(json.dumps({"scene_spec": "", "scene": "mare", "scene_seed": True}))
+    hostile = [{"path": n} for n in ("fifo", "zero", "big")]
+    assert fusion_sources(hostile, tmp_path) == []
+    assert fusion_sources([{"path": "flag"}], tmp_path) == ["scene mare"]  # no "seed True", no empty scene
 
 
 def test_an_hil_pair_whose_dem_the_altimeter_contradicts_offers_no_site_even_fused(descent, tmp_path):

@@ -153,6 +153,27 @@ def test_a_transport_failure_is_said_before_anyone_can_see_it():
     assert seen_failed_before_said == [False], lines
 
 
+def test_a_link_whose_log_raises_still_fails():
+    """Said first, then failed: a log that raised (stderr a closed pipe) must not leave the link failing for ever,
+    its recv never raising LinkClosed (stop 62's review)."""
+
+    def broken_log(text: str) -> None:
+        if ": transport: " in text:
+            raise BrokenPipeError("stderr is gone")
+
+    a, b = socket.socketpair()
+    A = StreamLink(a, name="A", log=broken_log)
+    with StreamLink(b, name="B"):
+        assert A.wait_established(5)
+    t0 = time.monotonic()
+    while A.failed is None and time.monotonic() - t0 < 5:
+        time.sleep(0.01)
+    assert A.failed is not None
+    with pytest.raises(LinkClosed):
+        A.recv(0.1)
+    A.close()
+
+
 def test_send_waits_for_buffer_space_at_most_its_timeout():
     a, b = socket.socketpair()
     from protocol.arq import ArqConfig

@@ -311,6 +311,15 @@ def test_an_hil_runs_full_maps_are_scored_with_the_sites_of_its_records(descent,
     code, doc = _score(descent, received, capsys)
     assert code == 3 and doc["rows"][0]["error"] is None
     assert doc["rows"][1]["error"].startswith("the run ended this pair as deadline_hit: hard deadline passed")
+    # ... and without truth either: both said, as bad input (exit 2), not only the missing Result (stop 62's review)
+    bare = tmp_path / "bare"
+    shutil.copytree(descent, bare)
+    for f in (bare / "300_150").glob("gt_*"):
+        f.unlink()
+    code, doc = _score(bare, received, capsys)
+    err = doc["rows"][1]["error"]
+    assert code == 2 and doc["rows"][1]["pair_error"] and "no ground truth gt_depth_i1.npy" in err, err
+    assert "no usable output: the run ended this pair as deadline_hit" in err
     (Path(records[0]["out_dir"]) / "hazard.npy").unlink()  # as a run without --full-maps leaves it
     code, doc = _score(descent, received, capsys)
     assert code == 3 and "saves the image maps only with `run --full-maps`" in doc["rows"][0]["error"]
