@@ -42,6 +42,14 @@ def _open(path: Path) -> int:
         raise InputError(f"cannot write in {path}: {exc.strerror or exc}") from None
 
 
+def _holder(fd: int) -> str:
+    """Who holds the lock file open on ``fd``, as its holder wrote it ("hazard-hil evaluate (pid N)")."""
+    try:
+        return os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another command"
+    except OSError:
+        return "another command"
+
+
 def _lock(path: Path) -> tuple[int, bool]:
     """An open descriptor of ``path / LOCK_NAME`` holding its flock, and whether a lock was had (False: the file
     system has none)."""
@@ -50,9 +58,7 @@ def _lock(path: Path) -> tuple[int, bool]:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         try:
-            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another command"
-        except OSError:
-            holder = "another command"
+            holder = _holder(fd)
         finally:
             os.close(fd)
         raise InputError(
@@ -107,12 +113,8 @@ def refuse_if_held(path: str | Path, what: str) -> None:
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
-        try:
-            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another command"
-        except OSError:
-            holder = "another command"
         raise InputError(
-            f"{what} {path} is being written by {holder}: wait for it to end, or write elsewhere"
+            f"{what} {path} is being written by {_holder(fd)}: wait for it to end, or write elsewhere"
         ) from None
     except OSError:
         return  # a file system with no locks: used unguarded, as claim_out does

@@ -130,6 +130,18 @@ def test_closed_peer_socket_is_a_clear_error_at_once():
     A.close()
 
 
+def _a_link_whose_peer_closed(log) -> StreamLink:
+    """A link with ``log``, established, whose peer then closed: returned once it is seen failed (or after 5 s)."""
+    a, b = socket.socketpair()
+    A = StreamLink(a, name="A", log=log)
+    with StreamLink(b, name="B"):
+        assert A.wait_established(5)
+    t0 = time.monotonic()
+    while A.failed is None and time.monotonic() - t0 < 5:
+        time.sleep(0.001)
+    return A
+
+
 def test_a_transport_failure_is_said_before_anyone_can_see_it():
     """The board sums what it served as its last line once it sees ``failed``; the link's own line about the
     failure, said from its reader thread, came after it now and then (a CI run): it must be said first."""
@@ -140,13 +152,7 @@ def test_a_transport_failure_is_said_before_anyone_can_see_it():
         time.sleep(0.3)  # a slow console widens the window the race needs
         lines.append(text)
 
-    a, b = socket.socketpair()
-    A = StreamLink(a, name="A", log=slow_log)
-    with StreamLink(b, name="B"):
-        assert A.wait_established(5)
-    t0 = time.monotonic()
-    while A.failed is None and time.monotonic() - t0 < 5:
-        time.sleep(0.001)
+    A = _a_link_whose_peer_closed(slow_log)
     seen_failed_before_said.append(not any(": transport: " in line for line in lines))
     A.close()
     assert A.failed is not None
@@ -161,13 +167,7 @@ def test_a_link_whose_log_raises_still_fails():
         if ": transport: " in text:
             raise BrokenPipeError("stderr is gone")
 
-    a, b = socket.socketpair()
-    A = StreamLink(a, name="A", log=broken_log)
-    with StreamLink(b, name="B"):
-        assert A.wait_established(5)
-    t0 = time.monotonic()
-    while A.failed is None and time.monotonic() - t0 < 5:
-        time.sleep(0.01)
+    A = _a_link_whose_peer_closed(broken_log)
     assert A.failed is not None
     with pytest.raises(LinkClosed):
         A.recv(0.1)
