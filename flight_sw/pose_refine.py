@@ -888,8 +888,7 @@ def _nav_parallax_px(camera: Camera, pose1: Pose, pose2: Pose, altimeter_m: floa
     """The motion the navigation's baseline adds to the rotation's at ``u1`` (i1 px), as the ground would show
     it: the median of ``|H_g u - H_inf u|``, with ``H_g`` the ground plane's homography and ``H_inf = K R21 K^-1``
     the infinite one (Hartley & Zisserman 2004, ch. 13, the homography a plane induces: ``H_g = K (R - t n^T / d)
-    K^-1``). The ground is
-    frame 0's altimeter ground; without an altimeter, the deepest the range search looks
+    K^-1``). The ground is frame 0's altimeter ground; without an altimeter, the deepest the range search looks
     (:func:`flight_sw.rangefind.prior_range`), which predicts the least: at the datum, a clean pair over ground
     260 m below it was called a repeat (stop 62's review). 0 where no plane homography exists."""
     z = altimeter_ground(pose1, altimeter_m) if math.isfinite(altimeter_m) else prior_range(pose1, pose2, None)[0]
@@ -1245,7 +1244,9 @@ def repeated_images(images: Sequence[np.ndarray]) -> dict[int, int]:
     out: dict[int, int] = {}
     for k, im in enumerate(images):
         a = np.ascontiguousarray(im)
-        key = hashlib.blake2b(a.tobytes(), digest_size=16, person=str((a.shape, a.dtype.str)).encode()[:16]).digest()
+        h = hashlib.blake2b(str((a.shape, a.dtype.str)).encode(), digest_size=16)
+        h.update(a.data.cast("B"))  # the pixels, not copied
+        key = h.digest()
         if key in seen:
             out[k] = seen[key]
         else:
