@@ -333,7 +333,7 @@ def _process(args: argparse.Namespace) -> int:
         others, k = [f"{v:.1f}" for v in f["others_dn"]], f["frame"]
         print(f"warning: frame {k}'s image is blank: its pixel-scale detail reads {f['noise_dn']:.1f} grey levels "
               f"against {', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a black, saturated "
-              "or lost image); nothing in it can be matched (result.json info.blank_frames)",
+              "or lost image, or mostly so); little or nothing in it can be matched (result.json info.blank_frames)",
               file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
         print(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",

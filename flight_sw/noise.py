@@ -34,6 +34,8 @@ _MAD_TO_SD = 0.6745  # median |x| of a zero-mean Gaussian, in sds
 NOISY_RATIO = 4.0
 # the quietest clean frames read 1.0-1.2 (a polar low sun, a mare); a uniform image reads 0
 MIN_REFERENCE = 0.75
+# ... and a frame under this reads as uniform even with no other frame to compare (a lost or black frame)
+UNIFORM_DN = 0.05
 
 
 def noise_sigma(image: np.ndarray, step: int = 2) -> float:
@@ -72,6 +74,10 @@ def blank_frames(sigmas: Sequence[float], ratio: float = NOISY_RATIO) -> list[in
     out = []
     for k, v in enumerate(s):
         others = [o for j, o in enumerate(s) if j != k and np.isfinite(o) and o >= MIN_REFERENCE]
-        if others and np.isfinite(v) and v < MIN_REFERENCE and v * ratio < float(np.median(others)):
+        if not np.isfinite(v) or v >= MIN_REFERENCE:
+            continue
+        # with no frame to judge against, only a frame with next to no detail at all (a uniform image reads 0):
+        # an all-black pair named no frame (stop 62's review)
+        if (v * ratio < float(np.median(others))) if others else v < UNIFORM_DN:
             out.append(k)
     return out

@@ -731,7 +731,8 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         "ZeroMQ to flight software on an emulated flight processor, and score what comes back against the "
         "deadline (end to end, docs/hil.md) and the truth. Writes summary.json, summary.md, telemetry.jsonl, "
         "supervisor.jsonl, ground.log, received/ (each pair's Result) and report.html in --out. Exit 0 only "
-        "when every pair met its deadline, 1 otherwise, 2 on bad usage, 128 + N when signal N stopped it "
+        "when every pair met its deadline (or --min-hit-rate of them), 1 otherwise, 2 on bad usage, 128 + N when "
+        "signal N stopped it "
         "(SIGINT, SIGTERM, SIGHUP: every process stopped, summary.json marked incomplete).",
     )
     _add_run_options(p, {})
@@ -751,7 +752,8 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         help="re-run fixed scenario x budget cases and compare to a baseline",
         description="Re-run the baseline's scenario x budget cases and compare deadline hit rate and latency "
         "percentiles (host-independent reference seconds; the unthrottled host case on CPU seconds) with "
-        "tolerances. Exit 0 when nothing regressed and every pair met its deadline, 1 with a diff table that shows "
+        "tolerances. Exit 0 when nothing regressed and every pair met its deadline (or --min-hit-rate of them), 1 "
+        "with a diff table that shows "
         "each crossed limit (or the deadlines a case missed), 2 on bad usage, 128 + N when signal N stopped it.",
     )
     p.add_argument(

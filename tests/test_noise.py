@@ -39,7 +39,7 @@ def test_a_frame_far_noisier_than_the_others_is_named_and_a_blank_is_no_referenc
 def test_a_blank_frame_is_named_and_the_quietest_clean_frames_are_not():
     assert blank_frames([0.0, 2.0]) == [0] and blank_frames([4.0, 3.5, 3.2, 0.0]) == [3]
     assert blank_frames([1.0, 2.9]) == [] and blank_frames([1.0, 1.2, 1.1]) == []  # a polar low sun, a mare
-    assert blank_frames([0.0, 0.0]) == [] and blank_frames([0.5, 0.6]) == []  # no frame to judge against
+    assert blank_frames([0.0, 0.0]) == [0, 1] and blank_frames([0.5, 0.6]) == []  # nothing to judge against: uniform
     assert blank_frames([0.7, 2.0]) == []  # dim, but over a quarter of the other's
 
 
@@ -75,5 +75,6 @@ def test_process_names_a_blank_frame_0(tmp_path, capsys):
     assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 0's image is blank: its pixel-scale detail reads 0.0 grey levels against" in err, err
+    assert "little or nothing in it can be matched" in err
     (f,) = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["blank_frames"]
     assert f["frame"] == 0 and f["noise_dn"] == 0 and f["others_dn"][0] >= 1.0
