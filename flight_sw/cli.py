@@ -407,22 +407,31 @@ def _refined_poses(info: Any) -> list[str]:
     return out
 
 
-def _degenerate_poses(info: Any, side: int) -> list[tuple[int, str]]:
-    """(frame, reason) where pose refinement fell back to the navigation pose on geometry that cannot fix it
-    (:data:`flight_sw.pose_refine.DEGENERATE`), on images of at least ``pose_refine.CHECK_MIN_SIDE`` px."""
-    from .pose_refine import CHECK_MIN_SIDE, DEGENERATE
-
-    if not isinstance(info, dict) or side < CHECK_MIN_SIDE:
+def _pose_entries(info: Any) -> list[tuple[int, dict[str, Any], str]]:
+    """(frame, entry, reason) for each frame of ``info["pose_refinement"]`` (a pair's own fit as frame 1), the
+    reason prefixed with the frame a chained fit was checked against."""
+    if not isinstance(info, dict):
         return []
     frames = info.get("frames") or [{"frame": 1, **info}]
     return [
         (
             int(f.get("frame", i + 1)),
+            f,
             (f"against frame {f['against']}: " if f.get("against") else "") + str(f.get("reason", "")),
         )
         for i, f in enumerate(frames)
-        if isinstance(f, dict) and f.get("verdict") == DEGENERATE
+        if isinstance(f, dict)
     ]
+
+
+def _degenerate_poses(info: Any, side: int) -> list[tuple[int, str]]:
+    """(frame, reason) where pose refinement fell back to the navigation pose on geometry that cannot fix it
+    (:data:`flight_sw.pose_refine.DEGENERATE`), on images of at least ``pose_refine.CHECK_MIN_SIDE`` px."""
+    from .pose_refine import CHECK_MIN_SIDE, DEGENERATE
+
+    if side < CHECK_MIN_SIDE:
+        return []
+    return [(k, why) for k, f, why in _pose_entries(info) if f.get("verdict") == DEGENERATE]
 
 
 def _unverified_poses(info: Any, side: int) -> list[tuple[int, str, str]]:
@@ -434,15 +443,8 @@ def _unverified_poses(info: Any, side: int) -> list[tuple[int, str, str]]:
     warning would say nothing about these frames."""
     from .pose_refine import unchecked
 
-    if not isinstance(info, dict):
-        return []
-    frames = info.get("frames") or [{"frame": 1, **info}]
     return [
-        (
-            int(f.get("frame", i + 1)),
-            str(f["verdict"]),
-            (f"against frame {f['against']}: " if f.get("against") else "") + str(f.get("reason", "")),
-        )
-        for i, f in enumerate(frames)
-        if isinstance(f, dict) and not f.get("refined") and unchecked(str(f.get("verdict", "")), side)
+        (k, str(f["verdict"]), why)
+        for k, f, why in _pose_entries(info)
+        if not f.get("refined") and unchecked(str(f.get("verdict", "")), side)
     ]

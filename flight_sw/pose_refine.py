@@ -1214,25 +1214,30 @@ def refine_descent(
             reason=f"its image is frame {j}'s, pixel for pixel: the same image twice (a camera that sent an image "
             "again)",
         )
-        if k == n - 1:  # the widest pair fixed frame 0's pose from it: back to navigation, the others re-attached
-            out[0], out[-1] = poses[0], poses[-1]
+        _back_to_navigation(k, out, poses, relative)
+        if k == n - 1:
             info.update(refined=False, verdict=UNMATCHED, reason=frames[k - 1]["reason"], repeat_of=j)
-            for m in range(1, n - 1):
-                out[m] = transfer_relative(out[0], *relative[m])
-        else:
-            out[k] = transfer_relative(out[0], poses[0], poses[k])
     for f in _scale_outliers(frames, poses[0], p):
-        if f["frame"] == n - 1:  # the widest pair fixed frame 0's pose: back to navigation, the others re-attached
-            out[0], out[-1] = poses[0], poses[-1]
+        _back_to_navigation(f["frame"], out, poses, relative)
+        if f["frame"] == n - 1:
             info.update(refined=False, verdict=DISAGREES, reason=f["reason"], scale_disagrees=True)
-            for k in range(1, n - 1):
-                out[k] = transfer_relative(out[0], *relative[k])
-        else:
-            out[f["frame"]] = transfer_relative(out[0], poses[0], poses[f["frame"]])
     # info stays the widest pair's own fit; a last frame checked against a frame above says so in its entry
     info["chain_fits"] = _chain(images, poses, camera, alt, p, stop_by, cost, out, frames)
     info["frames"] = frames
     return out, info
+
+
+def _back_to_navigation(k: int, out: list[Pose], poses: Sequence[Pose], relative: dict[int, tuple[Pose, Pose]]) -> None:
+    """Frame ``k``'s refined pose in ``out`` back to its navigation pose relative to frame 0. The last frame's
+    (the widest pair's) fit had fixed frame 0's pose too: then frame 0 and it go back to navigation, and every
+    middle frame is re-attached to frame 0 by its own fit (``relative``)."""
+    n = len(out)
+    if k == n - 1:
+        out[0], out[-1] = poses[0], poses[-1]
+        for m in range(1, n - 1):
+            out[m] = transfer_relative(out[0], *relative[m])
+    else:
+        out[k] = transfer_relative(out[0], poses[0], poses[k])
 
 
 def repeated_images(images: Sequence[np.ndarray]) -> dict[int, int]:

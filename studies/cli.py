@@ -820,7 +820,7 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
     """One row per pair job of ``score``: its scores, or why it has none (``error``; ``pair_error`` when the
     pair itself, not the detector's output, is at fault)."""
     from protocol.pairdir import pair_fingerprint, read_pair
-    from studies.score import ScoreError, read_output, score_output, truth_problem
+    from studies.score import ScoreError, read_output, score_output
 
     rows: list[dict[str, Any]] = []
     for job in jobs:
@@ -832,9 +832,7 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
         }
         if job.missing is not None:  # an HIL run's pair with no Result: its truth is judged now too
             with contextlib.suppress(InputError):  # an unreadable pair is said once it has an output to score
-                problem = truth_problem(read_pair(job.pair_dir), str(job.pair_dir))[1]
-                if problem:
-                    row["error"], row["pair_error"] = f"{problem}; and no usable output: {job.missing}", True
+                _no_truth_either(row, read_pair(job.pair_dir), str(job.pair_dir))
         else:
             try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
                 pair = read_pair(job.pair_dir)
@@ -848,9 +846,7 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
                 out = read_output(job.out_dir, pair.images[0].shape, job.sites, pair_fingerprint(pair.images))
             except ScoreError as exc:  # the detector's missing or broken output: that pair's failure, the rest go on
                 row["error"] = str(exc) + job.hint
-                problem = truth_problem(pair, str(job.pair_dir))[1]
-                if problem:  # said now, not once an output is given (then as usage, exit 2)
-                    row["error"], row["pair_error"] = f"{problem}; and no usable output: {row['error']}", True
+                _no_truth_either(row, pair, str(job.pair_dir))
             else:
                 fig = None if figures is None else figures / f"{job.pair_dir.name}_score.png"
                 try:
@@ -863,6 +859,16 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
                     row["figure"] = str(fig)
         rows.append(row)
     return rows
+
+
+def _no_truth_either(row: dict[str, Any], pair: Any, where: str) -> None:
+    """A row without a usable output (``row["error"]``) whose pair has no truth either says both, as bad input
+    (``pair_error``): the truth problem was hidden until an output was given (QA 61a L6)."""
+    from studies.score import truth_problem
+
+    problem = truth_problem(pair, where)[1]
+    if problem:
+        row["error"], row["pair_error"] = f"{problem}; and no usable output: {row['error']}", True
 
 
 EXIT_NO_OUTPUT = 3  # `score`: a pair had no usable output (missing or broken files)
