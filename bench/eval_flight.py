@@ -49,12 +49,16 @@ CASES: dict[str, tuple[str, str, tuple[float, float] | None]] = {
 }
 
 
-def case_key(case: str, seed: int, max_cells: int | None = None, raster: str = DEFAULT_RASTER) -> str:
-    """``<case>_s<seed>`` plus ``studies.evaluate.render_tag`` (``_tiles``, ``_cells<N>``): renders, P(safe)
-    layers and fusion grids of one raster are named apart from another's in any cache directory."""
-    from studies.evaluate import render_tag
+def case_key(
+    case: str, seed: int, max_cells: int | None = None, raster: str = DEFAULT_RASTER, image_px: int | None = None
+) -> str:
+    """``<case>_s<seed>`` plus ``studies.evaluate.render_tag`` (``_tiles``, ``_cells<N>``) and ``_px<N>`` for a
+    camera other than the thesis's 512 px: renders, P(safe) layers and fusion grids of one raster and camera are
+    named apart from another's in any cache directory."""
+    from studies.evaluate import THESIS_CAMERA_PX, render_tag
 
-    return f"{case}_s{seed}{render_tag(max_cells, raster)}"
+    px = "" if image_px is None or image_px == THESIS_CAMERA_PX else f"_px{image_px}"
+    return f"{case}_s{seed}{render_tag(max_cells, raster)}{px}"
 
 
 def cached_raster(pair_dir: Path) -> str:
@@ -70,21 +74,23 @@ def render_case(
     altitudes: list[int] | None = None,
     max_cells: int | None = None,
     raster: str = DEFAULT_RASTER,
+    image_px: int | None = None,
 ) -> list[dict[str, Any]]:
-    """Render (or reuse) every pair of a case for one scene seed (``max_cells``, ``raster``: the terrain raster)."""
+    """Render (or reuse) every pair of a case for one scene seed (``max_cells``, ``raster``: the terrain raster;
+    ``image_px``: a square thesis camera of this size, default the scenario's 512 px)."""
     from ground_sim import trajectory
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
     from ground_sim.render import MAX_CELLS, RENDER_VERSION
     from ground_sim.render_cache import render_version, reusable
     from ground_sim.scene import load_scene
-    from protocol.pairdir import Sun, write_pair_atomic
+    from protocol.pairdir import Sun, square_camera, write_pair_atomic
 
     traj, scene_spec, sun = CASES[case]
-    specs = getattr(trajectory, traj)(None)
+    specs = getattr(trajectory, traj)(None if image_px is None else square_camera(image_px))
     if altitudes:
         specs = [s for s in specs if int(round(s.altitude_m)) in altitudes]
-    out = cache / case_key(case, seed, max_cells, raster)
+    out = cache / case_key(case, seed, max_cells, raster, image_px)
     scene = None
     entries = []
     for spec in specs:
@@ -424,6 +430,12 @@ def main(argv: list[str] | None = None) -> int:
         help="render with this raster cap (docs/scenes.md); use a cache of its own, renders are reused by path",
     )
     ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER, help="terrain rasters (docs/scenes.md)")
+    ap.add_argument(
+        "--image-size",
+        type=int,
+        default=None,
+        help="a square camera of this many px with the thesis camera's field of view (default: its 512 px)",
+    )
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--json", help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
@@ -447,7 +459,10 @@ def main(argv: list[str] | None = None) -> int:
         seeds = sorted({e["seed"] for e in pairs})
     else:
         pairs = [
-            e for c in args.cases for s in seeds for e in render_case(c, s, cache, args.altitudes, mc, args.raster)
+            e
+            for c in args.cases
+            for s in seeds
+            for e in render_case(c, s, cache, args.altitudes, mc, args.raster, args.image_size)
         ]
     if args.render_only:
         print(f"{len(pairs)} pairs in {cache}")

@@ -114,17 +114,17 @@ def load_all(
     layers: Path,
     raster: str = DEFAULT_RASTER,
     set_param: tuple[str, ...] = (),
+    image_px: int | None = None,
 ) -> list[dict[str, Any]]:
     from eval_flight import case_key, render_case
 
     rows = []
     for c in cases:
         for s in seeds:
-            for e in render_case(c, s, cache, raster=raster):
+            for e in render_case(c, s, cache, raster=raster, image_px=image_px):
                 name = f"{c}_s{s}_{e['altitude_m']}"
-                d = pair_layers(
-                    e["pair_dir"], layers / f"{case_key(c, s, raster=raster)}_{e['altitude_m']}.npz", set_param
-                )
+                key = case_key(c, s, raster=raster, image_px=image_px)
+                d = pair_layers(e["pair_dir"], layers / f"{key}_{e['altitude_m']}.npz", set_param)
                 if "shape" not in d:
                     from protocol.pairdir import read_pair
 
@@ -324,10 +324,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reliability", action="store_true")
     ap.add_argument("--kind", choices=("gam", "trees"), default="gam", help="additive model or boosted trees")
     ap.add_argument("--raster", choices=RASTERS, default=DEFAULT_RASTER, help="the renders' terrain rasters")
+    ap.add_argument(
+        "--image-size",
+        type=int,
+        default=None,
+        help="the eval cases with a square camera of this many px (thesis FOV; default its 512 px); the model "
+        "records the sizes it was fitted on, and the pipeline uses it on those only",
+    )
     ap.add_argument("--iters", type=int, default=30, help="trees: boosting iterations (shipped: 30)")
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
     ap.add_argument("--write", help="fit on all the seeds and write the model here")
+    ap.add_argument(
+        "--call",
+        nargs="*",
+        default=[],
+        metavar="K=V",
+        help="with --write: the operating point the CV chose for this model (fp_budget, psafe_min, call_slope_max), "
+        "recorded in its info.call; fast calls with it in place of its own (Params.psafe_call)",
+    )
     ap.add_argument(
         "--features",
         nargs="+",
@@ -374,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     from bench_multiframe import preset_with
 
     from flight_sw.pipeline import PRESETS
+    from flight_sw.psafe import CALL_KEYS, model_call
     from ground_sim.seeds import TUNING_SEEDS
 
     try:
@@ -396,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     names = tuple(args.features)
     trees = {"iters": args.iters, "leaves": args.leaves, "lr": args.lr} if args.kind == "trees" else None
     set_param = tuple(args.set_param)
-    rows = load_all(args.seeds, args.cases, Path(args.cache), layers_dir, args.raster, set_param)
+    rows = load_all(args.seeds, args.cases, Path(args.cache), layers_dir, args.raster, set_param, args.image_size)
     rows += load_library(args.library, layers_dir, args.raster, set_param)
     print(f"{len(rows)} pairs, {sum(r['safe'].size for r in rows)} covered points", flush=True)
 
@@ -500,6 +516,13 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"| {lo:g}-{hi:g} | " + " | ".join(cells) + " |")
             print("(cells: mean predicted / observed safe share)")
 
+    call: dict[str, float] = {}
+    for item in args.call:
+        k, _, v = item.partition("=")
+        if k not in CALL_KEYS or not v:
+            print(f"error: --call {item!r}: give K=V with K one of {CALL_KEYS}")
+            return 2
+        call[k] = float(v)
     if args.write:
         model = fit_rows(
             rows,
@@ -510,6 +533,9 @@ def main(argv: list[str] | None = None) -> int:
             blank_shading=args.blank_shading,
             pipeline=pipeline,
         )
+        if call:
+            model = dataclasses.replace(model, info={**model.info, "call": call})
+            model_call(model)  # the bounds the pipeline checks, before anything is written
         indent = None if trees else 1  # the trees' node arrays are long flat lists: one line keeps the file small
         Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")

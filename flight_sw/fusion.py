@@ -211,13 +211,16 @@ def logit_threshold(p_min: float) -> float:
 
 def params_for(pipeline_params: Mapping[str, Any], info: Mapping[str, Any], base: FusionParams) -> FusionParams:
     """``base`` set to decide as the pipeline run that made a result (``PipelineResult.params`` / ``.info``):
-    its P(safe) floor, and with the calibrated P(safe) in effect the model's prior (``info["safe_share"]``
-    of the model file: the share of safe points it was fitted on); the Gaussian P(safe) has a flat prior."""
-    p_min = float(pipeline_params.get("psafe_min", base.p_min))
+    its P(safe) floor, and with the calibrated P(safe) in effect the model's prior (``info["psafe_safe_share"]``:
+    the share of safe points the model that called it was fitted on); the Gaussian P(safe) has a flat prior."""
+    # the floor the result was called with: its model's own (info.psafe_call, a 256 px camera's) or the params'
+    p_min = float((info.get("psafe_call") or {}).get("psafe_min", pipeline_params.get("psafe_min", base.p_min)))
     if pipeline_params.get("psafe_model") != "calibrated" or "psafe_fallback" in info:
         return replace(base, p_min=p_min, prior_p=0.5)
-    model = load_model(str(pipeline_params.get("psafe_model_path") or "") or None)
-    return replace(base, p_min=p_min, prior_p=float(model.info.get("safe_share", 0.5)))
+    share = info.get("psafe_safe_share")  # the model that called it (one per image size: psafe.model_for_image)
+    if share is None:  # a result from before that record: the model file its params name
+        share = load_model(str(pipeline_params.get("psafe_model_path") or "") or None).info.get("safe_share", 0.5)
+    return replace(base, p_min=p_min, prior_p=float(share))
 
 
 def prior_logodds(params: FusionParams) -> float:

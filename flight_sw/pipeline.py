@@ -92,7 +92,7 @@ from .pose_refine import (
 )
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import features as psafe_features
-from .psafe import load_model
+from .psafe import model_call, model_for_image
 from .rangefind import (
     altimeter_dem_disagreement,
     altimeter_dem_gap,
@@ -403,6 +403,10 @@ class Params:
     call_slope_sigma_k: float = 0.0  # > 0: the cap spares a slope below the limit by this many sigmas (off)
     call_slope_feature: str = "a"  # the slope the cap reads: "a" (DEM), "a_pc" (shading), "max" (evidence.cap_slope)
     psafe_model_path: str = ""  # "calibrated": a model file other than flight_sw/psafe_model.json
+    # "calibrated": "model" calls with the operating point the model records (info.call: fp_budget, psafe_min,
+    # call_slope_max, chosen by the tuning CV for that model; psafe.model_call) where it records one, and with
+    # these params where it does not (the 512 px model); "params": always with these params
+    psafe_call: str = "model"
     # "calibrated": a grid cell is called safe when more than this share of the bilinear weight of the i1
     # pixels it reads was called safe (unsafe: more than half was called unsafe). 0.999 (all of them, until
     # stop 38) eroded the safe ground by half a pixel all round: read back at the pixels, the grid's CDI was
@@ -462,6 +466,8 @@ class Params:
             raise FlightInputError("params: need 0 <= psafe_min < 1 and sigma_k >= 0")
         if self.psafe_model not in ("gaussian", "calibrated"):
             raise FlightInputError(f"params: psafe_model must be 'gaussian' or 'calibrated', got {self.psafe_model!r}")
+        if self.psafe_call not in ("model", "params"):
+            raise FlightInputError(f"params: psafe_call must be 'model' or 'params', got {self.psafe_call!r}")
         for name in ("fp_budget", "lower_view_fallback_budget"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 0.2):
@@ -1532,14 +1538,18 @@ def _dense_params(p: Params) -> DenseParams:
     )
 
 
-def _check_model_dem(p: Params) -> None:
+def _check_model_dem(p: Params, shape: tuple[int, ...] = (512, 512)) -> None:
     """The calibrated P(safe) holds only for the DEM its trees were fitted on: a model records the pipeline
     settings that change that DEM (``info["pipeline"]``, from ``bench/fit_psafe.py --set-param``; absent: the
     defaults), and a run with other settings is refused rather than mapped with a miscalibrated P(safe).
+    ``shape``: the images', which pick the shipped model (:func:`flight_sw.psafe.model_for_image`).
     With ``lower_view_dem`` the fallback model (:func:`_without_lower_view`) is checked too."""
     runs = [p] + ([_without_lower_view(p)] if p.lower_view_dem else [])
     for q in runs:
-        fitted = load_model(q.psafe_model_path or None).info.get("pipeline", {})
+        got = model_for_image(q.psafe_model_path or None, shape)
+        if got is None:  # not fitted on this size: the Gaussian rule stands in, and no DEM setting matters
+            continue
+        fitted = got[0].info.get("pipeline", {})
         for name in MODEL_DEM_PARAMS:
             want = fitted.get(name, getattr(PRESETS["fast"], name))
             if getattr(q, name) != want:
@@ -1708,13 +1718,25 @@ def _run_v2(
         fp_px = p.footprint_m / _centre_gsd(camera, pose1)
         info["footprint_px"] = fp_px
         calibrated = p.psafe_model == "calibrated"
-        if calibrated and not load_model(p.psafe_model_path or None).fits_image(i1.shape):
-            # outside the image size it was fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
+        fitted = model_for_image(p.psafe_model_path or None, i1.shape) if calibrated else None
+        if calibrated and fitted is None:
+            # outside the image sizes the models were fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
             # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
             calibrated = False
             info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
-        if calibrated:
-            _check_model_dem(p)
+        if fitted is not None:
+            _check_model_dem(p, i1.shape)
+            # the model's prior (the share of safe points it was fitted on), which fusion takes out once
+            info["psafe_safe_share"] = float(fitted[0].info.get("safe_share", 0.5))
+            own = model_call(fitted[0]) if p.psafe_call == "model" else {}
+            if own:  # the operating point the CV chose for this model (a 256 px camera's): said, and used
+                info["psafe_call"] = own
+                p = dataclasses.replace(
+                    p,
+                    fp_budget=own.get("fp_budget", p.fp_budget),
+                    psafe_min=own.get("psafe_min", p.psafe_min),
+                    call_slope_max=own.get("call_slope_max", p.call_slope_max),
+                )
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
@@ -2027,9 +2049,9 @@ def _run_v2(
             if p.keep_layers:
                 layers = {k: _uncrop(v, cs, i1.shape) for k, v in feats.items()}
                 layers["dark"] = shadow
-        if calibrated:
+        if fitted is not None:
             # calibrated P(safe) per pixel and the FP-budget call (psafe.py); the grid takes the pixels' call
-            model = load_model(p.psafe_model_path or None)
+            model = fitted[0]
             ev_c = classify_calibrated(
                 model,
                 feats,

@@ -74,6 +74,9 @@ import numpy as np
 from .kernels import load_kernel
 
 MODEL_PATH = Path(__file__).with_name("psafe_model.json")
+# the models shipped, each fitted on one camera size (its ``info.image_px``): the one fitted on an image's size
+# calls it (:func:`model_for_image`); on other sizes the calibration does not hold (docs/benchmarks/pipeline.md)
+SHIPPED_MODELS = (MODEL_PATH, MODEL_PATH.with_name("psafe_model_256.json"))
 
 # bin edges per feature (a value equal to an edge goes to the upper bin; NaN contributes nothing)
 DEFAULT_EDGES: dict[str, tuple[float, ...]] = {
@@ -448,6 +451,35 @@ def load_model(path: str | None = None) -> Model:
     p = Path(path) if path else MODEL_PATH
     d = json.loads(p.read_text())
     return TreeModel.from_json(d) if d.get("format") == "psafe-trees/1" else PsafeModel.from_json(d)
+
+
+def model_for_image(path: str | None, shape: tuple[int, ...]) -> tuple[Model, str] | None:
+    """The P(safe) model that calls images of ``shape`` (rows, cols) and its file: the one at ``path`` when
+    given, else the first of :data:`SHIPPED_MODELS` fitted on that size; ``None`` when that model (or every
+    shipped one) was fitted on other sizes."""
+    for f in [Path(path)] if path else [m for m in SHIPPED_MODELS if m.is_file()]:
+        model = load_model(str(f))
+        if model.fits_image(shape):
+            return model, str(f)
+    return None
+
+
+CALL_KEYS = ("fp_budget", "psafe_min", "call_slope_max")
+
+
+def model_call(model: Model) -> dict[str, float]:
+    """The operating point a model records (``info["call"]``: any of :data:`CALL_KEYS`, chosen by the tuning CV
+    of ``bench/fit_psafe.py`` for that model), ``{}`` when it records none. A value outside the pipeline's own
+    bounds (``Params.validate``) is refused: a model file that would call everything safe must not load."""
+    call = model.info.get("call") or {}
+    if not isinstance(call, Mapping) or set(call) - set(CALL_KEYS):
+        raise ValueError(f"P(safe) model: info.call must hold only {CALL_KEYS}, got {call!r}")
+    out = {k: float(v) for k, v in call.items()}
+    if not (0 <= out.get("fp_budget", 0) <= 0.2 and 0 <= out.get("psafe_min", 0) < 1):
+        raise ValueError(f"P(safe) model: info.call out of bounds: {out!r}")
+    if not out.get("call_slope_max", 1.0) > 0:
+        raise ValueError(f"P(safe) model: info.call call_slope_max must be positive: {out!r}")
+    return out
 
 
 def budget_rule(p: np.ndarray, budget: float, p_min: float = 0.0, n: int | None = None) -> np.ndarray:

@@ -72,11 +72,11 @@ def camera_note(camera_px: int | None) -> str:
     one changes the ground sample distance, and so every figure."""
     if camera_px is None or camera_px == THESIS_CAMERA_PX:
         return ""
-    from flight_sw.psafe import load_model
+    from flight_sw.psafe import model_for_image
 
     note = f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
     # what `process` warns of per pair, said once for the study: a smaller camera tests another detector
-    if not load_model(None).fits_image((camera_px, camera_px)):
+    if model_for_image(None, (camera_px, camera_px)) is None:
         note += "; `fast`'s calibrated P(safe) is not fitted for it: the Gaussian rule stands in, with a higher FP"
     if camera_px < SMALL_FOR_REFINEMENT_PX:
         note += "; pose refinement is skipped on most pairs (too little shared image to track)"

@@ -6,13 +6,15 @@ from ground_sim import trajectory
 from ground_sim.descent import DEFAULT_SUN, render_pair
 from ground_sim.library import scene_sun
 from ground_sim.scene import load_scene
-from protocol.pairdir import Pair
+from protocol.pairdir import Camera, Pair
 
 
-def eval_pair(scenario: str, scene: str, seed: int, label: str) -> Pair:
+def eval_pair(scenario: str, scene: str, seed: int, label: str, image_px: int | None = None) -> Pair:
     """The pair ``label`` (e.g. ``"600/300"``) of ``scenario`` over ``scene``: the `thesis` scene under its
-    own sun (``ground_sim.library.scene_sun``), a preset scene under the scenario's default sun."""
-    spec = next(s for s in getattr(trajectory, scenario)(None) if s.label == label)
+    own sun (``ground_sim.library.scene_sun``), a preset scene under the scenario's default sun; ``image_px``:
+    a square thesis camera of that size (default the scenario's 512 px)."""
+    camera = None if image_px is None else Camera.thesis(image_px)
+    spec = next(s for s in getattr(trajectory, scenario)(camera) if s.label == label)
     if scene == "thesis":
         sc = load_scene(scene, seed, scenario)
         return render_pair(sc, spec, scene_sun(sc, scenario, seed), seed=seed)

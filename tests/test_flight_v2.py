@@ -76,6 +76,16 @@ def test_altimeter_finds_a_highland_above_the_datum():
     assert np.nanmean(np.abs(res.elevation - z)) < 0.15
 
 
+@pytest.fixture
+def no_256_model(monkeypatch):
+    """These 256 px synthetic scenes (a random albedo, no sun) are no lunar render: the trees fitted on 256 px
+    renders (stop 63) call none of their flat ground safe. The pipeline's mechanics are tested as before that
+    model shipped, with the Gaussian rule that stands in where no model fits the image size."""
+    from flight_sw import psafe
+
+    monkeypatch.setattr(psafe, "SHIPPED_MODELS", (psafe.MODEL_PATH,))
+
+
 def _blank_texture_pair(size=256, seed=32):
     """Textured plane at -2 m with a square of uniform albedo (no texture at all) in the middle."""
     cam = camera_fov30(size)
@@ -96,7 +106,7 @@ def _blank_texture_pair(size=256, seed=32):
     return cam, p1, p2, i1, i2, z1, blank, textured
 
 
-def test_sigma_grows_where_texture_vanishes():
+def test_sigma_grows_where_texture_vanishes(no_256_model):
     cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair()
     res = run_pipeline(i1, i2, p1, p2, cam)
     assert res.sigma is not None and res.sigma.dtype == np.float32
@@ -119,7 +129,7 @@ def _three_state_pair(tmp_path):
     return cam, p1, p2, i1, i2, z
 
 
-def test_three_states_reach_the_result_and_process_outputs(tmp_path):
+def test_three_states_reach_the_result_and_process_outputs(tmp_path, no_256_model):
     from hil_server.cli import main
 
     cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair(seed=34)
@@ -255,7 +265,7 @@ def test_sites_need_a_measured_elevation():
     assert none == [] and "measured elevation" in why
 
 
-def test_grid_cells_without_elevation_are_not_safe():
+def test_grid_cells_without_elevation_are_not_safe(no_256_model):
     """The grid pulls the pixels' call around a DEM hole; a cell there has no height, so it stays unknown."""
     n = 30
     called = np.ones((n, n), bool)

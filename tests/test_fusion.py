@@ -500,6 +500,8 @@ def test_params_for_follow_the_pipeline_that_made_the_result():
     prm.validate()
     assert prm.p_min == fast["psafe_min"] and prm.p_accumulate > prm.p_min
     assert prm.prior_p == load_model().info["safe_share"] and 0.5 < prm.prior_p < 1
+    # the prior of the model that called the result (one per image size), as the result records it
+    assert params_for(fast, {"psafe_safe_share": 0.7}, FusionParams()).prior_p == 0.7
     fallback = params_for(fast, {"psafe_fallback": "not fitted for 128x128"}, FusionParams())
     assert fallback == dataclasses.replace(FusionParams(), p_min=fast["psafe_min"])  # the Gaussian's flat prior
     thesis = params_for(dataclasses.asdict(PRESETS["thesis"]), {}, FusionParams())
