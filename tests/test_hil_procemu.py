@@ -234,6 +234,30 @@ def test_supervisor_exit_kills_throttled_child():
     assert _gone(pid), "child outlived its supervisor"
 
 
+def test_a_probe_stopped_by_its_throttle_dies_with_the_process_that_started_it():
+    """A probe started at full speed and then duty-cycled (the throttle check of `run`) is stopped half the
+    time; its starter killed outright (SIGKILL, the OOM killer) must not leave it stopped and orphaned
+    (stop 63's QA: state T under PID 1, for good when the run had its own session)."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys, time
+        from hil_server.procemu import start_at_full_speed
+        p = start_at_full_speed([sys.executable, "-c", {BUSY.format(cpu=100)!r}])
+        time.sleep(0.3)
+        os.kill(p.pid, signal.SIGSTOP)
+        print(p.pid, flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    out = subprocess.run([PY, "-c", script], capture_output=True, text=True, timeout=60, cwd=os.getcwd(),
+                         start_new_session=True)  # fmt: skip
+    pid = int(out.stdout.split()[-1])
+    deadline = time.monotonic() + 3
+    while not _gone(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not _gone(pid):
+        os.kill(pid, signal.SIGKILL)
+        pytest.fail("a stopped probe outlived the process that started it")
+
+
 def test_close_kills_and_pass_fds_reach_child():
     r, w = os.pipe()
     proc = EmulatedProcessor(ProcessorSpec(cpu_fraction=0.5))
