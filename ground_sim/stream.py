@@ -95,6 +95,7 @@ from protocol.messages import (
     Hello,
     Result,
     Telemetry,
+    without_arrays,
 )
 from protocol.pairdir import read_manifest, read_pair
 from protocol.plan import plan_note as _plan_note
@@ -969,6 +970,8 @@ def stream_descent(
 
     def record(o: PairOutcome, show: bool = True) -> None:
         rec = write_outcome(out_dir, o, deadline_s)
+        if o.result is not None:  # its grids are saved: a long descent held every pair's (stop 63's soak QA)
+            o.result = without_arrays(o.result)
         records.append(rec)
         save()
         if progress and show:

@@ -466,3 +466,17 @@ def test_leaving_a_very_slow_throttle_does_not_wait_out_its_stop():
     finally:
         popen.kill()
         popen.wait()
+
+
+def test_a_pairs_cpu_fraction_cannot_pass_one_core():
+    """The run-queue wait is summed over the flight process's threads, which add up while they queue together: a
+    contended host read 5.59 of one core for 0.166 s CPU in 1.165 s (stop 63's soak QA). The wait taken out is
+    capped at the wall time the process did not run."""
+    from hil_server.supervisor import pair_cpu_fraction
+
+    before = {"cpu_s": 1.0, "wall_s": 10.0, "contention_s": 0.5}
+    crowded = {"cpu_s": 1.166, "wall_s": 11.165, "contention_s": 0.5 + 1.135}
+    assert pair_cpu_fraction(before, crowded) == pytest.approx(1.0)
+    throttled = {"cpu_s": 1.05, "wall_s": 11.0, "contention_s": 0.6}  # 0.05 s CPU of 0.9 s it could run
+    assert pair_cpu_fraction(before, throttled) == pytest.approx(0.05 / 0.9)
+    assert math.isnan(pair_cpu_fraction(None, throttled))
