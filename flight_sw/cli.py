@@ -28,7 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Run the flight pipeline offline on a pair directory (every frame: 2-16, frame 0 the "
         "reference) and write elevation.npy, hazard.npy, state.npy, psafe.npy, sigma.npy and filled.npy (fast), "
         "result.json, pictures and "
-        "report.html in OUT_DIR (docs/design.md). Ground truth in the directory is read only to score the run.",
+        "report.html in OUT_DIR (docs/design.md). Ground truth in the directory is read only to score the run. "
+        "Exit 0 when the outputs are written, 1 when the system refused a read or write, 2 on bad input (the pair, "
+        "its poses, the options), 128 + N when signal N stopped it (130: Ctrl-C): an earlier run's outputs are "
+        "removed first, so what is left is this run's alone.",
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
@@ -147,6 +150,19 @@ PROCESS_OUTPUTS = (
 )
 
 
+def _save_npy(path: Path, arr: Any) -> None:
+    """``np.save`` to a file beside ``path``, then renamed over it: a reader never sees a half-written array."""
+    import numpy as np
+
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def _check_out(pair_dir: Path, out: Path) -> None:
     """Refuse an --out where an output would replace one of the pair's own files (its pair.json, a frame image
     it names, its truth): `process PAIR --out PAIR` with frames named hazard.png lost them."""
@@ -228,18 +244,19 @@ def _process(args: argparse.Namespace) -> int:
     earlier = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
     if earlier:  # a user's hazard.png of their own went without a word; other files there are kept
         print(f"note: {out}: replacing {', '.join(earlier[:4])}{' ...' if len(earlier) > 4 else ''}", file=sys.stderr)
-    np.save(out / "elevation.npy", res.elevation)
-    np.save(out / "hazard.npy", res.hazard)
-    np.save(out / "state.npy", res.state)
-    np.save(out / "psafe.npy", res.psafe)
+    # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
+    # it, result.json last: an interrupted run leaves only its own files, never a mix of two runs that `score`
+    # took for one (a kill mid-write left the old result.json and pictures beside new maps; stop 63's QA)
+    for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
+        (out / name).unlink(missing_ok=True)
+    _save_npy(out / "elevation.npy", res.elevation)
+    _save_npy(out / "hazard.npy", res.hazard)
+    _save_npy(out / "state.npy", res.state)
+    _save_npy(out / "psafe.npy", res.psafe)
     if res.sigma is not None:  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
-        np.save(out / "sigma.npy", res.sigma)
-    else:  # an earlier run's sigma must not pass for this one's
-        (out / "sigma.npy").unlink(missing_ok=True)
+        _save_npy(out / "sigma.npy", res.sigma)
     if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
-        np.save(out / "filled.npy", res.filled)
-    else:
-        (out / "filled.npy").unlink(missing_ok=True)
+        _save_npy(out / "filled.npy", res.filled)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "pair_fingerprint": pair_fingerprint(pair.images),  # `score` refuses this output against another pair
