@@ -46,6 +46,7 @@ import threading
 import time
 import warnings
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -64,6 +65,7 @@ from hil_server.budgets import (
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError
 from protocol.messages import SITES_WITHHELD
+from protocol.stall import StallClock
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every pair recorded as not_run)
@@ -480,6 +482,8 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "budget_file": str(Path(cfg.budget_file).resolve()) if cfg.budget_file and cfg.flight == "emulated" else None,
         "preset": cfg.preset,
         "fusion": cfg.fusion,  # asked of the flight side (Config option): the scores are of what it reported
+        # --corrupt: the per-byte drop, flip and duplicate rate injected on the line (0: a clean line)
+        "line_corrupt_rate": cfg.corrupt,
         "pairs": n,
         "results": len(ok),
         "degraded": sum(bool(r.get("degraded")) for r in ok),
@@ -563,6 +567,46 @@ def off_map_note(summary: dict) -> str:
     return (
         f"{len(off)} Result(s) mapped none of the upper image's ground ({which}): every cell is marked outside, or "
         "the grid lies elsewhere (its origin, cell size or axes?), so nothing of them was scored"
+    )
+
+
+def _relay_holds_tstp(log: Callable[[str], None]) -> Callable[[int, Any], None]:
+    """A SIGTSTP handler for a run that relays its loopback serial line itself: a Ctrl-Z would stop the line with
+    the run, and every pair then on it failed as link_down, the run recorded complete and FAIL (stop 63's QA)."""
+
+    def hold(signum: int, frame: Any) -> None:
+        log(
+            "run: Ctrl-Z ignored: this run relays its loopback serial line itself, and stopped it would cut the "
+            "line (Ctrl-C ends the run; a stalled ground: stop the ground_sim.stream process)"
+        )
+
+    return hold
+
+
+def noise_note(summary: dict) -> str:
+    """Said when the run injected line noise (``--corrupt``): nothing in the outputs recorded the rate, and the
+    retransmissions and refused frames it caused read as a bad line (stop 63's soak QA). "" on a clean line."""
+    rate = float(summary.get("line_corrupt_rate") or 0.0)
+    if rate <= 0:
+        return ""
+    faults = summary.get("line_faults") or {}
+    kinds = ("dropped", "flipped", "duplicated")
+    hit = sum(int(d.get(k) or 0) for d in faults.values() if isinstance(d, dict) for k in kinds)
+    return (
+        f"line noise was injected (--corrupt {rate:g}: each byte dropped, flipped or duplicated at that rate, both "
+        f"ways; {hit} faults): the retransmissions and refused frames are its doing"
+    )
+
+
+def relay_stop_note(summary: dict) -> str:
+    """Said when the run process was stopped (SIGSTOP, a paused VM) while it relayed the loopback serial line:
+    the line stopped with it, so a link failure then is that stop's, not the line's ("" otherwise)."""
+    stopped = float(summary.get("relay_stopped_s") or 0.0)
+    if stopped <= 0:
+        return ""
+    return (
+        f"the run process itself was not scheduled for {stopped:.1f} s while it relayed the loopback serial line "
+        "(SIGSTOP, a paused VM): the line stopped with it, and pairs lost to the link meanwhile are that stop's"
     )
 
 
@@ -783,6 +827,8 @@ def summary_table(summary: dict) -> str:
         site_note(s),
         flight_note(s),
         session_note(s),
+        noise_note(s),
+        relay_stop_note(s),
         ground_stop_note(s),
         off_map_note(s),
         truth_note(s),
@@ -1407,6 +1453,8 @@ def _descend(checked: CheckedRun, log) -> dict:
     rc: int | None = None
     channels: dict = {}
     bridge = None
+    relay_stall: StallClock | None = None  # this process's own stops while it relays the loopback line
+    held_tstp: Any = None
     sup = ground = None
     ground_tee: _Tee | None = None
     sup_log = None
@@ -1430,6 +1478,10 @@ def _descend(checked: CheckedRun, log) -> dict:
                         for k, d in enumerate(("a_to_b", "b_to_a"))
                     }
                 bridge = PtyBridge(**channels)
+                # the relay is this process: stopped, it stops the line, and the pairs then on it fail as link_down
+                relay_stall = StallClock()
+                if threading.current_thread() is threading.main_thread():
+                    held_tstp = signal.signal(signal.SIGTSTP, _relay_holds_tstp(log))
                 suffix = "" if baud is None else f"@{baud}"  # @0: unpaced; none: the default rate
                 server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
             elif spec is None:
@@ -1603,6 +1655,10 @@ def _descend(checked: CheckedRun, log) -> dict:
             _stop(sup)
             if bridge is not None:
                 bridge.close()
+            if held_tstp is not None:
+                signal.signal(signal.SIGTSTP, held_tstp)
+            if relay_stall is not None:
+                relay_stall.close()
             if sup_log is not None:
                 sup_log.close()
         if interrupted is None and sigs.received is not None:  # arrived during the cleanup
@@ -1653,6 +1709,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                 # what the ground refused from the flight side (an external flight computer; via the HIL server, none)
                 "ground_counters": (read_results(received / "ground.json", strict=False) or [{}])[-1],
                 "ground_exit": rc,
+                # SIGSTOP cannot be held: the line stopped with this process, and the summary says so
+                "relay_stopped_s": None if relay_stall is None else round(relay_stall.total_s, 3),
             },
         )
         table = summary_table(summary)  # says flight_note's line itself: logged once, with the table below

@@ -41,6 +41,7 @@ def test_noisy_serial_line_returns_every_result(manifest, tmp_path):
     s = run(manifest, tmp_path, corrupt=1e-3, seed=1)
     hit = sum(d["flipped"] + d["dropped"] + d["duplicated"] for d in s["line_faults"].values())
     assert hit > 30  # the line really was noisy (drop, flip and duplicate, both directions)
+    assert s["line_corrupt_rate"] == 1e-3  # and the summary says it was injected
     assert s["results"] == 3 and s["errors"] == 0, [r.get("text") for r in s["records"]]
     # ~100 faults on the ground's 30 kB: some hit its data frames
     assert max(r["link"]["ground_retransmits"] for r in s["records"]) >= 1
@@ -218,3 +219,42 @@ def test_compact_grid_scores_match_full_map_scores(manifest, tmp_path):
         assert g["n"] > 0.8 * f["n"]
         assert abs(g["fp_pct"] - f["fp_pct"]) < 1.5 and abs(g["cdi_pct"] - f["cdi_pct"]) < 12, (g, f)
         assert abs(g["dem_mean_abs"] - f["dem_mean_abs"]) < 0.5 * f["dem_mean_abs"] + 0.2
+
+
+def test_ctrl_z_does_not_stop_a_run_that_relays_its_own_serial_line(manifest, tmp_path):
+    """The loopback serial line is relayed by `run` itself: a Ctrl-Z stopped the line with it, and every pair then
+    on it failed as link_down, the run recorded complete and FAIL (stop 63's QA). The SIGTSTP is now held and said;
+    a SIGSTOP cannot be, and the summary says the line stopped with the run."""
+    cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--budget", "host",
+           "--link", "serial", "--out", str(tmp_path / "out")]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if line.startswith("ground:"):  # the descent is on the line
+            proc.send_signal(signal.SIGTSTP)
+            break
+    lines += proc.stdout.readlines()
+    assert proc.wait(timeout=120) == 0, "".join(lines)
+    said = "".join(lines)
+    assert "Ctrl-Z ignored" in said and "PASS" in said
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["results"] == len(PAIRS) and s["relay_stopped_s"] == 0.0
+
+
+def test_a_stop_of_the_relaying_run_is_said_in_the_summary():
+    from hil_server.run import relay_stop_note
+
+    assert relay_stop_note({"relay_stopped_s": 0.0}) == "" and relay_stop_note({}) == ""
+    assert "not scheduled for 14.0 s" in relay_stop_note({"relay_stopped_s": 14.0})
+
+
+def test_injected_line_noise_is_said_in_the_summary():
+    """--corrupt was recorded nowhere: the retransmissions it caused read as a bad line (stop 63's soak QA)."""
+    from hil_server.run import noise_note
+
+    assert noise_note({"line_corrupt_rate": 0.0}) == "" and noise_note({}) == ""
+    faults = {"a_to_b": {"bytes_in": 10**6, "dropped": 40, "flipped": 50, "duplicated": 10}, "b_to_a": {"dropped": 1}}
+    said = noise_note({"line_corrupt_rate": 1e-4, "line_faults": faults})
+    assert "--corrupt 0.0001" in said and "101 faults" in said
