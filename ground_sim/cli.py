@@ -7,6 +7,7 @@ import json
 import math
 import os
 import sys
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="render a descent (image pairs + ground truth) to pair directories",
         description="Render a descent scenario: one pair directory per pair (docs/design.md format, with "
         "gt_*_i1.npy and each frame's altimeter range), manifest.json (scene, sun, hazards in scene per "
-        "pair) and contact.png. Frames are rendered in a pool of single-threaded processes.",
+        "pair) and contact.png. Frames are rendered in a pool of single-threaded processes. Exit 0 when every pair "
+        "is written, 1 when a worker died or the system refused a read or write, 2 on bad input, 128 + N when "
+        "signal N stopped it (130: Ctrl-C); the pairs written whole are kept and said.",
     )
     p.add_argument("--scenario", required=True, help="vertical, approach, or a .toml/.json trajectory file")
     p.add_argument("--pairs", default=None, help="comma-separated pair labels, e.g. 600/300,400/200")
@@ -199,6 +202,13 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(_kept_after_interrupt(Path(args.out), written), file=sys.stderr)
         raise
+    except BrokenProcessPool:  # a worker killed outright (the OOM killer): one line, as evaluate and landings say it
+        print(
+            "render: a worker process died (killed, or out of memory): run it again, with fewer --workers if memory "
+            f"is short; {_kept_after_interrupt(Path(args.out), written).split(': ', 1)[1]}",
+            file=sys.stderr,
+        )
+        return 1
     worst = max(e.get("raster_cell_over_target", 1.0) for e in json.loads((out / "manifest.json").read_text())["pairs"])
     if worst > 1.05:
         print(

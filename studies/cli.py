@@ -273,7 +273,9 @@ def register(subparsers: Any) -> None:
         "evaluate",
         help="score the pipeline against ground truth; thesis tables side by side",
         description="Render (or reuse) a scenario, run the pipeline, score it against "
-        "ground truth and print/write the thesis's ch. 6 tables next to ours.",
+        "ground truth and print/write the thesis's ch. 6 tables next to ours. "
+        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
+        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
     )
     p.add_argument(
         "--scenario", required=True, choices=["vertical", "approach"], help="the thesis scenario whose tables to fill"
@@ -300,7 +302,9 @@ def register(subparsers: Any) -> None:
         "sensitivity",
         help="pose-error Monte Carlo (thesis sec 6.3)",
         description="DEM error increase under pose-knowledge errors on the approach "
-        "scenario (Tables 6.12-6.19), relative to perfect knowledge.",
+        "scenario (Tables 6.12-6.19), relative to perfect knowledge. "
+        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
+        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
     )
     s.add_argument(
         "--kind",
@@ -559,7 +563,9 @@ def register_landings(subparsers: Any) -> None:
         "point, the sun (where the scene allows), an image pair and navigation errors, runs the pipeline, and "
         "judges its top-ranked site against ground truth (every truth pixel within 1.5 m safe). Writes "
         "landings.csv (one row per landing and preset), landings.json (P(safe) with a Wilson interval, "
-        "P(no site), divert percentiles; overall, per scene, per preset) and report/index.html. Resumable.",
+        "P(no site), divert percentiles; overall, per scene, per preset) and report/index.html. Resumable. "
+        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
+        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
     )
     p.add_argument("--scenes", required=True, help="comma-separated library scenes, or 'all'")
     p.add_argument(

@@ -748,6 +748,7 @@ def render_all(
 ) -> list[dict[str, Any]]:
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
+    from ground_sim.render_cache import reusable
     from studies.executor import Task, code_fingerprint, run_tasks
 
     have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
@@ -791,8 +792,10 @@ def render_all(
     cache = Path(cache_dir).resolve()
     for t in tasks:
         pair_dir = Path(res[t.id]["pair_dir"])
-        # cache wiped since the log was written, or the log copied with its --out: a copy read the original's pairs
-        if not (pair_dir / "pair.json").is_file() or not pair_dir.resolve().is_relative_to(cache):
+        # cache wiped since the log was written, or the log copied with its --out: a copy read the original's pairs;
+        # or damaged since (removed and said by reusable): every rerun failed on it, "rerun to retry" (stop 63's QA)
+        here = (pair_dir / "pair.json").is_file() and pair_dir.resolve().is_relative_to(cache)
+        if not here or not reusable(pair_dir):
             res[t.id] = _render_task(**t.kwargs)
         out.append({**res[t.id], "seed": t.kwargs["seed"]})
     return out

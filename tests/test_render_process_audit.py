@@ -205,3 +205,20 @@ def test_contact_sheet_pads_an_odd_count_with_a_tile_that_says_so(tmp_path):
     # one entry alone is its own row: a filler took a third of the sheet in the commonest case
     one = cv2.imread(str(contact_sheet(entries[:1], tmp_path / "one.png")), 0)
     assert one.shape == (220, half)
+
+
+def test_a_render_worker_that_dies_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """A worker killed outright (the OOM killer) ended `render` with an 18-line BrokenProcessPool traceback (stop 63's
+    QA); it is now one line that says what died and what was kept, exit 1, as `evaluate` and `landings` say it."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ground_sim import descent
+
+    def dies(*args, **kw):
+        raise BrokenProcessPool("A process in the process pool was terminated abruptly")
+
+    monkeypatch.setattr(descent, "render_scenario", dies)
+    assert main(["render", "--scenario", "vertical", "--pairs", "600/300", "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1
+    assert "a worker process died" in err and "nothing new in" in err

@@ -413,3 +413,19 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     assert "sensitivity: rollyaw (held-out seeds 1001 (1), a 128 px camera)" in page
     assert "the other sections are earlier runs into this --out with other settings" in page
     assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
+
+
+def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(tmp_path, capsys):
+    """runs/render.jsonl vouched for a cached pair whose image was truncated since: every rerun failed on it, though
+    the error said "rerun the same command to retry them" (stop 63's QA). It is now found, removed and rendered
+    again, and said."""
+    assert main(_eval(tmp_path, "out", 48)) == 0
+    images = sorted((tmp_path / "cache").rglob("i2.png"))
+    assert images
+    data = images[0].read_bytes()
+    images[0].write_bytes(data[: len(data) // 2])
+    capsys.readouterr()
+    assert main(_eval(tmp_path, "out", 48)) == 0
+    err = capsys.readouterr().err
+    assert "rendering again" in err and "failed" not in err
+    assert images[0].read_bytes() == data  # the same render again, byte for byte
