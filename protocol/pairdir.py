@@ -30,10 +30,12 @@ one :class:`PairFormatError` line naming the file.
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
 import re
+import shutil
 import stat
 import struct
 import tokenize
@@ -485,6 +487,25 @@ def is_write_leftover(name: str) -> bool:
     return re.fullmatch(r".+\.(partial|old)[0-9]+", name) is not None
 
 
+def _drop_dead_partials(d: Path) -> None:
+    """Remove the ``.partialPID`` siblings of ``d`` whose writer is dead (killed outright mid-write: a rerun neither
+    removed nor named them; stop 63's QA). A live writer's stays; ``.oldPID`` ones may hold a user's files, kept."""
+    try:
+        siblings = list(d.parent.glob(f"{glob.escape(d.name)}.partial*"))
+    except OSError:
+        return
+    for stale in siblings:
+        m = re.fullmatch(re.escape(d.name) + r"\.partial([0-9]+)", stale.name)
+        if m is None or int(m.group(1)) == os.getpid():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:  # no such process: its writer is gone
+            shutil.rmtree(stale, ignore_errors=True)
+        except (PermissionError, OverflowError):  # another user's live process; a PID no process can have
+            continue
+
+
 def write_pair_atomic(
     directory: str | Path, pair: Pair, *, replace: bool = False, kept: list[str] | None = None
 ) -> Path:
@@ -496,11 +517,10 @@ def write_pair_atomic(
     a render's own (:func:`is_render_file`: a user's notes, a ``process --out PAIR/out``) are moved into the new
     one, not deleted, and their names added to ``kept``. A failed write (a full disk) leaves nothing and names the
     file. Returns the directory."""
-    import shutil
-
     d = Path(directory)
     tmp = d.with_name(f"{d.name}.partial{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
+    _drop_dead_partials(d)
     try:
         write_pair(tmp, pair)
     except BaseException:  # a full disk or a Ctrl-C: no half-written sibling left behind

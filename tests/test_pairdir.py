@@ -193,6 +193,24 @@ def test_atomic_write_keeps_a_concurrent_copy_and_leaves_no_partial(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300", "not_a_pair"]
 
 
+def test_a_partial_pair_a_killed_writer_left_goes_with_the_next_write(tmp_path):
+    """A render killed outright mid-write left `<pair>.partialPID` beside the pair, and a rerun neither removed nor
+    named it (stop 63's QA). The next write of that pair removes it when its writer is dead, not when it lives."""
+    import os
+    import subprocess
+
+    from protocol.pairdir import write_pair_atomic
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale, live = tmp_path / f"600_300.partial{dead.pid}", tmp_path / f"600_300.partial{os.getppid()}"
+    for d in (stale, live):
+        d.mkdir()
+        (d / "i1.png").write_bytes(b"half")
+    write_pair_atomic(tmp_path / "600_300", make_pair(0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300", live.name]
+
+
 def test_a_replaced_pair_keeps_the_users_own_files_and_drops_the_old_renders(tmp_path, monkeypatch):
     """Re-rendering over a pair directory removed it whole: a user's notes and a `process --out PAIR/out` went with
     it, silently. A render's own files (an earlier 3-frame pair's i3.png) go; a failed swap puts the old one back."""
