@@ -9,6 +9,7 @@ deadline and its processor budget.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -516,6 +517,16 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
     return fig
 
 
+PAIR_TICKS_MAX = 16  # pair labels drawn on a per-pair axis: at 32 pairs they ran into one band (stop 63's soak QA)
+
+
+def _pair_ticks(ax: Any, labels: Sequence[str]) -> None:
+    """Every pair's tick, and every k-th its label (k such that at most :data:`PAIR_TICKS_MAX` are written)."""
+    k = max(1, math.ceil(len(labels) / PAIR_TICKS_MAX))
+    ax.set_xticks(range(len(labels)))
+    ax.set_xticklabels([lab if i % k == 0 else "" for i, lab in enumerate(labels)], rotation=30, fontsize=8)
+
+
 def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
     """End-to-end latency of each pair against its deadline, in descent order; misses in red."""
     plt = _plt()
@@ -542,8 +553,7 @@ def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
             label="deadline",
         )
         ax.legend(fontsize=8)
-    ax.set_xticks(range(len(records)))
-    ax.set_xticklabels(labels, rotation=30, fontsize=8)
+    _pair_ticks(ax, labels)
     ax.set_ylabel("end-to-end latency [s]")
     ax.set_title("latency against the deadline over the descent (x: no result)")
     fig.tight_layout()
@@ -571,8 +581,7 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     a2.set_ylabel("MiB")
     a2.set_ylim(bottom=0)
     for a in (a1, a2):
-        a.set_xticks(list(x))
-        a.set_xticklabels(labels, rotation=30, fontsize=8)
+        _pair_ticks(a, labels)
         a.legend(fontsize=8)
     # a board of one's own has no throttle and no ceiling here: its own figures, titled as such
     a1.set_title("CPU against the throttle's duty cycle" if cpu_budget is not None else "CPU, as the flight side said")

@@ -267,3 +267,18 @@ def test_the_error_maps_and_series_colours_are_not_red():
     ramp = np.linspace(0.0, 1.0, 101)
     assert not [c for c in plots.colormap(ERROR_CMAP)(ramp) if reddish(c)]
     assert not [c for c in SERIES_COLOURS if reddish(to_rgb(c))]
+
+
+def test_a_long_descents_pair_labels_are_thinned_to_stay_legible():
+    """At 32 pairs the per-pair labels ran into one band, at 200 a smear (stop 63's soak QA): every pair keeps its
+    tick, and at most PAIR_TICKS_MAX of them a label."""
+    recs = [
+        {"label": f"r{i}-300/150", "e2e_latency_s": 0.5, "deadline_s": 2.0, "deadline_met": True, "cpu_fraction": 0.3}
+        for i in range(200)
+    ]
+    for fig in (plots.latency_figure(recs), plots.resources_figure(recs, 0.35, 256)):
+        for ax in fig.axes:
+            said = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+            assert len(ax.get_xticks()) == 200 and 0 < len(said) <= plots.PAIR_TICKS_MAX and said[0] == "r0-300/150"
+    short = plots.latency_figure(recs[:8])
+    assert [t.get_text() for t in short.axes[0].get_xticklabels()] == [r["label"] for r in recs[:8]]
