@@ -479,6 +479,16 @@ def main(argv: list[str] | None = None) -> int:
             except (ValueError, AttributeError, KeyError) as exc:
                 raise SystemExit(f"eval_flight: --presets/--set-param: {exc}") from None
             variants[p + ("" if not args.set_param else " " + " ".join(args.set_param))] = prm
+            swept = [
+                k
+                for k in ("fp_budget", "psafe_min", "call_slope_max")
+                if any(x.startswith(k + "=") for x in args.set_param)
+            ]
+            if swept and prm.psafe_call == "model" and args.image_size not in (None, 512):
+                # the 256 px model records its own operating point, which replaces these (Params.psafe_call)
+                said = ", ".join(swept)
+                print(f"note: {said} set, but a model's own operating point replaces them where it records one "
+                      "(the 256 px model does): add psafe_call=params to sweep them", file=sys.stderr)  # fmt: skip
     all_rows: dict[str, list[dict[str, Any]]] = {}
     for name, prm in variants.items():
         rows = []

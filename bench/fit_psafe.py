@@ -405,6 +405,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {refused}")
         return 2
 
+    call: dict[str, float] = {}  # checked before hours of renders and layers, not after
+    for item in args.call:
+        k, _, v = item.partition("=")
+        try:
+            if k not in CALL_KEYS:
+                raise ValueError
+            call[k] = float(v)
+        except ValueError:
+            print(f"error: --call {item!r}: give K=V with K one of {CALL_KEYS} and V a number")
+            return 2
+    if call and not args.write:
+        print("error: --call is recorded in the model --write writes; give --write")
+        return 2
+    if args.image_size is not None and args.library:
+        print("error: --library renders are the thesis camera's 512 px: not with --image-size")
+        return 2
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
         print(f"error: seeds {bad} are not tuning seeds (ground_sim.seeds.TUNING_SEEDS); refusing to fit on them")
@@ -516,13 +532,6 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"| {lo:g}-{hi:g} | " + " | ".join(cells) + " |")
             print("(cells: mean predicted / observed safe share)")
 
-    call: dict[str, float] = {}
-    for item in args.call:
-        k, _, v = item.partition("=")
-        if k not in CALL_KEYS or not v:
-            print(f"error: --call {item!r}: give K=V with K one of {CALL_KEYS}")
-            return 2
-        call[k] = float(v)
     if args.write:
         model = fit_rows(
             rows,

@@ -245,10 +245,14 @@ def _process(args: argparse.Namespace) -> int:
     if earlier:  # a user's hazard.png of their own went without a word; other files there are kept
         print(f"note: {out}: replacing {', '.join(earlier[:4])}{' ...' if len(earlier) > 4 else ''}", file=sys.stderr)
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
-    # it, result.json last: an interrupted run leaves only its own files, never a mix of two runs that `score`
-    # took for one (a kill mid-write left the old result.json and pictures beside new maps; stop 63's QA)
+    # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
+    # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
+    # beside new maps; stop 63's QA)
     for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
         (out / name).unlink(missing_ok=True)
+    for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target
+        for tmp in out.glob(f".{name}.*.tmp"):
+            tmp.unlink(missing_ok=True)
     _save_npy(out / "elevation.npy", res.elevation)
     _save_npy(out / "hazard.npy", res.hazard)
     _save_npy(out / "state.npy", res.state)

@@ -91,8 +91,8 @@ from .pose_refine import (
     refine_descent,
 )
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
+from .psafe import Model, model_call, model_for_image
 from .psafe import features as psafe_features
-from .psafe import model_call, model_for_image
 from .rangefind import (
     altimeter_dem_disagreement,
     altimeter_dem_gap,
@@ -1560,6 +1560,29 @@ def _check_model_dem(p: Params, shape: tuple[int, ...] = (512, 512)) -> None:
                 )
 
 
+def _model_and_call(p: Params, shape: tuple[int, ...], info: dict[str, Any]) -> tuple[tuple[Model, str] | None, Params]:
+    """The P(safe) model that calls images of ``shape`` under ``p`` (:func:`flight_sw.psafe.model_for_image`; None:
+    none fits) and ``p`` with that model's own operating point where it records one and ``p.psafe_call`` is
+    "model". ``info`` gets the model's prior (``psafe_safe_share``, which fusion takes out once) and the point
+    used (``psafe_call``)."""
+    fitted = model_for_image(p.psafe_model_path or None, shape)
+    info.pop("psafe_call", None)
+    if fitted is None:
+        info.pop("psafe_safe_share", None)
+        return None, p
+    info["psafe_safe_share"] = float(fitted[0].info.get("safe_share", 0.5))
+    own = model_call(fitted[0]) if p.psafe_call == "model" else {}
+    if own:  # the operating point the CV chose for this model (a 256 px camera's): said, and used
+        info["psafe_call"] = own
+        p = dataclasses.replace(
+            p,
+            fp_budget=own.get("fp_budget", p.fp_budget),
+            psafe_min=own.get("psafe_min", p.psafe_min),
+            call_slope_max=own.get("call_slope_max", p.call_slope_max),
+        )
+    return fitted, p
+
+
 def _without_lower_view(p: Params) -> Params:
     """``p`` as a pair without the lower view's DEM is called: the fallback P(safe) model and FP budget."""
     return dataclasses.replace(
@@ -1718,25 +1741,16 @@ def _run_v2(
         fp_px = p.footprint_m / _centre_gsd(camera, pose1)
         info["footprint_px"] = fp_px
         calibrated = p.psafe_model == "calibrated"
-        fitted = model_for_image(p.psafe_model_path or None, i1.shape) if calibrated else None
+        p_asked = p  # before a model's own operating point: what a lower view's fallback starts from
+        fitted = None
+        if calibrated:
+            _check_model_dem(p, i1.shape)
+            fitted, p = _model_and_call(p, i1.shape, info)
         if calibrated and fitted is None:
             # outside the image sizes the models were fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
             # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
             calibrated = False
             info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
-        if fitted is not None:
-            _check_model_dem(p, i1.shape)
-            # the model's prior (the share of safe points it was fitted on), which fusion takes out once
-            info["psafe_safe_share"] = float(fitted[0].info.get("safe_share", 0.5))
-            own = model_call(fitted[0]) if p.psafe_call == "model" else {}
-            if own:  # the operating point the CV chose for this model (a 256 px camera's): said, and used
-                info["psafe_call"] = own
-                p = dataclasses.replace(
-                    p,
-                    fp_budget=own.get("fp_budget", p.fp_budget),
-                    psafe_min=own.get("psafe_min", p.psafe_min),
-                    call_slope_max=own.get("call_slope_max", p.call_slope_max),
-                )
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
@@ -1932,8 +1946,14 @@ def _run_v2(
             else:
                 info["skipped"].append("lower_dem")
     if p.lower_view_dem and "averaged" not in info.get("lower_view", {}):
-        # no lower view in this DEM: the P(safe) trees fitted on the first DEM alone call it
-        p = _without_lower_view(p)
+        # no lower view in this DEM: the P(safe) trees fitted on the first DEM alone call it, with their own
+        # prior and operating point (picked again: the model resolved above was the lower view's)
+        p = _without_lower_view(p_asked)
+        if fitted is not None:
+            fitted, p = _model_and_call(p, i1.shape, info)
+            if fitted is None:
+                calibrated = False
+                info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
         info["lower_view_fallback"] = f"no lower view in the {level} DEM: P(safe) model and budget of the first DEM"
     del a2  # nothing after the DEM reads the second image
 

@@ -970,10 +970,10 @@ def stream_descent(
 
     def record(o: PairOutcome, show: bool = True) -> None:
         rec = write_outcome(out_dir, o, deadline_s)
-        if o.result is not None:  # its grids are saved: a long descent held every pair's (stop 63's soak QA)
-            o.result = without_arrays(o.result)
         records.append(rec)
         save()
+        if o.result is not None:  # recorded and saved: a long descent held every pair's grids (stop 63's soak QA)
+            o.result = without_arrays(o.result)
         if progress and show:
             progress(rec)
 

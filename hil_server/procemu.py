@@ -483,12 +483,15 @@ def start_at_full_speed(argv: list[str], **popen_kwargs) -> subprocess.Popen:
     core = max(os.sched_getaffinity(0))
     env = {**os.environ, **thread_env()}
     prctl = libc_prctl()
+    starter = os.getpid()
 
     def preexec() -> None:  # between fork and exec: async-signal-safe calls only
         # SIGKILL when its starter dies: a throttled probe is stopped half the time, and a SIGTERM would wait on
         # a SIGCONT that never comes (a `run` killed during its throttle check left it stopped, orphaned; stop 63)
         if prctl is not None:
             prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+            if os.getppid() != starter:  # it died before the death signal was set: nothing would send it
+                os._exit(1)
         os.sched_setaffinity(0, {core})
 
     return subprocess.Popen(argv, env=env, preexec_fn=preexec, **popen_kwargs)

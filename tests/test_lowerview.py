@@ -108,6 +108,9 @@ def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch, t
 
     doc = json.loads(Path(MODEL_PATH).read_text())
     doc["info"]["pipeline"] = {"lower_view_dem": True}  # stands for trees fitted on the lower view's DEM
+    # ... and other trees, prior and operating point than fast's: the fallback must call with none of them
+    doc["base"] += 2.0
+    doc["info"]["safe_share"], doc["info"]["call"] = 0.6, {"psafe_min": 0.9}
     path = tmp_path / "psafe_lv.json"
     path.write_text(json.dumps(doc))
     prm = dataclasses.replace(PRESETS["fast"], lower_view_dem=True, psafe_model_path=str(path), fp_budget=0.002)
@@ -119,6 +122,8 @@ def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch, t
     assert lv.level == fast.level == "full"
     assert "lower_view_fallback" in lv.info and lv.info["lower_view"] == {"complete": False}
     assert lv.params["psafe_model_path"] == "" and lv.params["fp_budget"] == PRESETS["fast"].fp_budget
+    assert lv.params["psafe_min"] == PRESETS["fast"].psafe_min and "psafe_call" not in lv.info
+    assert lv.info["psafe_safe_share"] == fast.info["psafe_safe_share"] != 0.6
     assert not lv.params["lower_view_dem"]
     np.testing.assert_array_equal(lv.state, fast.state)
     np.testing.assert_array_equal(lv.psafe, fast.psafe)
