@@ -337,7 +337,7 @@ def test_a_finished_pair_keeps_its_seqs_and_scalars_not_its_images_and_grids():
     bound over a 32-200-pair descent (stop 63's soak QA). A finished pair now keeps what the run still reads."""
     from resultrev import small_result
 
-    from hil_server.supervisor import PairState
+    from hil_server.supervisor import PairState, Supervisor
     from protocol.messages import Frame, without_arrays
 
     st = PairState("p0")
@@ -348,7 +348,11 @@ def test_a_finished_pair_keeps_its_seqs_and_scalars_not_its_images_and_grids():
                   image=img, pair_id="p0", frame_index=k)  # fmt: skip
         st.frames[k], st.fframes[k] = f, f
     st.result = small_result(frame_seqs=(10, 11), elevation_image=None)
-    st.release()
+    # as the server finishes a pair: a failed one here (a finished one, _complete, releases it the same way)
+    sup = Supervisor.__new__(Supervisor)
+    sup.counters, sup.telemetry_file = {"errors": 0}, None
+    sup._fail_pair(st, "deadline_hang", "no answer", tell_ground=False)
+    assert st.done and sup.counters["errors"] == 1
     assert st.seqs == (10, 11) and st.fseqs == (10, 11) and st.result.frame_seqs == (10, 11)
     assert all(f.image.size == 0 and f.image.dtype == np.uint8 for f in (*st.frames.values(), *st.fframes.values()))
     assert st.result.state_grid.size == 0 and st.result.grid_cell_m == 0.5 and st.result.level == "full"
