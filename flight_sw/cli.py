@@ -150,6 +150,18 @@ PROCESS_OUTPUTS = (
 )
 
 
+def _left_after_stop(out: Path) -> str:
+    """What a `process` stopped while writing left in ``out``: its own outputs only (the earlier run's went first)."""
+    have = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
+    if not have:
+        return f"process: stopped while writing {out}: nothing of this run is in it yet; run it again"
+    return (
+        f"process: stopped while writing {out}: it holds this run's {', '.join(have)} only"
+        + ("" if "result.json" in have else " (no result.json: incomplete)")
+        + "; run it again for the rest"
+    )
+
+
 def _save_npy(path: Path, arr: Any) -> None:
     """``np.save`` to a file beside ``path``, then renamed over it: a reader never sees a half-written array."""
     import numpy as np
@@ -244,23 +256,6 @@ def _process(args: argparse.Namespace) -> int:
     earlier = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
     if earlier:  # a user's hazard.png of their own went without a word; other files there are kept
         print(f"note: {out}: replacing {', '.join(earlier[:4])}{' ...' if len(earlier) > 4 else ''}", file=sys.stderr)
-    # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
-    # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
-    # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
-    # beside new maps; stop 63's QA)
-    for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
-        (out / name).unlink(missing_ok=True)
-    for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target
-        for tmp in out.glob(f".{name}.*.tmp"):
-            tmp.unlink(missing_ok=True)
-    _save_npy(out / "elevation.npy", res.elevation)
-    _save_npy(out / "hazard.npy", res.hazard)
-    _save_npy(out / "state.npy", res.state)
-    _save_npy(out / "psafe.npy", res.psafe)
-    if res.sigma is not None:  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
-        _save_npy(out / "sigma.npy", res.sigma)
-    if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
-        _save_npy(out / "filled.npy", res.filled)
     doc: dict[str, Any] = {
         "pair_dir": str(Path(args.pair_dir).resolve()),
         "pair_fingerprint": pair_fingerprint(pair.images),  # `score` refuses this output against another pair
@@ -306,8 +301,29 @@ def _process(args: argparse.Namespace) -> int:
         truth["confusion"] = {**counts, **shares, **cdi, **rates}
     if truth:
         doc["vs_truth"] = truth
-    write_atomic(out / "result.json", json_text(doc))
-    write_process_report(out, pair.images[0], res, pair.truth, doc)
+    # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
+    # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
+    # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
+    # beside new maps; stop 63's QA)
+    try:
+        for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
+            (out / name).unlink(missing_ok=True)
+        for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target
+            for tmp in out.glob(f".{name}.*.tmp"):
+                tmp.unlink(missing_ok=True)
+        _save_npy(out / "elevation.npy", res.elevation)
+        _save_npy(out / "hazard.npy", res.hazard)
+        _save_npy(out / "state.npy", res.state)
+        _save_npy(out / "psafe.npy", res.psafe)
+        if res.sigma is not None:  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
+            _save_npy(out / "sigma.npy", res.sigma)
+        if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
+            _save_npy(out / "filled.npy", res.filled)
+        write_atomic(out / "result.json", json_text(doc))
+        write_process_report(out, pair.images[0], res, pair.truth, doc)
+    except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
+        print(_left_after_stop(out), file=sys.stderr)
+        raise
     fills = res.info.get("dem_filled_fraction")
     line = (
         f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}"

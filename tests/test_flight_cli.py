@@ -61,7 +61,7 @@ def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
     assert not (out / "sigma.npy").exists() and not (out / "filled.npy").exists()
 
 
-def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_path, monkeypatch):
+def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_path, monkeypatch, capsys):
     """A kill mid-write left the earlier run's result.json, sigma and pictures beside the new maps, and `score`
     took the mix for one run (stop 63's QA). The earlier outputs go first; each new one is renamed into place."""
     from flight_sw import cli
@@ -82,6 +82,8 @@ def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 130  # said as interrupted
     left = {p.name for p in out.iterdir()}
     assert left == {"elevation.npy", "hazard.npy", "state.npy"}, left  # this run's, whole; none of the thesis run's
+    said = capsys.readouterr().err
+    assert "it holds this run's elevation.npy, hazard.npy, state.npy only (no result.json: incomplete)" in said
 
 
 def test_process_deadline_zero_is_degraded(tmp_path, capsys):
