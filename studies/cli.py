@@ -110,12 +110,16 @@ def _campaign_failed(what: str, exc: Exception) -> int:
 @contextlib.contextmanager
 def writing_report(out: Path) -> Iterator[None]:
     """A Ctrl-C while the page and tables are written ended in a bare "interrupted", the page missing: every
-    result is already saved, so say that a rerun only writes the report."""
+    result is already saved, so say that a rerun only writes the report. The page goes: an earlier run's page
+    beside this run's tables read as theirs (2 seeds on the page, 1 in metrics.csv; stop 63's QA)."""
     try:
         yield
-    except KeyboardInterrupt:
-        _note(f"interrupted while writing the report; every result is saved in {out / 'runs'}: rerun the same "
-              "command to write it (nothing is computed again)")  # fmt: skip
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            (out / "report" / "index.html").unlink(missing_ok=True)
+        how = "interrupted" if isinstance(exc, KeyboardInterrupt) else "stopped"
+        _note(f"{how} while writing the report, whose page is removed; every result is saved in {out / 'runs'}: "
+              "rerun the same command to write it (nothing is computed again)")  # fmt: skip
         raise
 
 

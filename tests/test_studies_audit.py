@@ -321,10 +321,15 @@ def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_pa
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
+    page = tmp_path / "out" / "report" / "index.html"
+    page.parent.mkdir(parents=True)
+    page.write_text("<title>hazard-hil evaluate</title> an earlier run's page")
     monkeypatch.setattr(report, "evaluation_report", interrupted)
     assert main(_eval(tmp_path, "out", 48)) == 130
     err = capsys.readouterr().err
-    assert "interrupted while writing the report; every result is saved in" in err and "nothing is computed" in err
+    assert "interrupted while writing the report, whose page is removed; every result is saved in" in err
+    assert "nothing is computed" in err
+    assert not page.exists()  # an earlier run's page beside this run's tables read as theirs (stop 63's QA)
 
 
 def test_local_workers_are_sized_to_the_memory_before_any_work(monkeypatch, capsys):
