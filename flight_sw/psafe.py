@@ -76,7 +76,11 @@ from .kernels import load_kernel
 MODEL_PATH = Path(__file__).with_name("psafe_model.json")
 # the models shipped, each fitted on one camera size (its ``info.image_px``): the one fitted on an image's size
 # calls it (:func:`model_for_image`); on other sizes the calibration does not hold (docs/benchmarks/pipeline.md)
-SHIPPED_MODELS = (MODEL_PATH, MODEL_PATH.with_name("psafe_model_256.json"))
+SHIPPED_MODELS = (
+    MODEL_PATH,
+    MODEL_PATH.with_name("psafe_model_256.json"),
+    MODEL_PATH.with_name("psafe_model_128.json"),
+)
 
 # bin edges per feature (a value equal to an edge goes to the upper bin; NaN contributes nothing)
 DEFAULT_EDGES: dict[str, tuple[float, ...]] = {

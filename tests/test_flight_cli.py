@@ -40,7 +40,7 @@ def test_process_writes_outputs(tmp_path, capsys):
     assert c["FP"] + c["TN"] > 0  # the truth's unsafe strip is scored
     said = capsys.readouterr()
     assert "full" in said.out
-    # the trees are calibrated for 512 and 256 px: at 160 px P(safe) falls back, which only result.json used to say
+    # the trees are calibrated for 512, 256 and 128 px: at 160 px P(safe) falls back, which only result.json used to say
     assert doc["info"]["psafe_fallback"] in said.err and said.err.startswith("warning: calibrated P(safe)"), said.err
     if browser_available():
         page = check_page(out / "report.html")
