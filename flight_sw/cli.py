@@ -163,16 +163,16 @@ def _left_after_stop(out: Path) -> str:
 
 
 def _save_npy(path: Path, arr: Any) -> None:
-    """``np.save`` to a file beside ``path``, then renamed over it: a reader never sees a half-written array."""
+    """``arr`` as a .npy file, through :func:`reports.html.write_atomic`: a reader never sees a half-written array."""
+    import io
+
     import numpy as np
 
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, arr)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    from reports.html import write_atomic
+
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    write_atomic(path, buf.getvalue())
 
 
 def _check_out(pair_dir: Path, out: Path) -> None:
@@ -308,8 +308,8 @@ def _process(args: argparse.Namespace) -> int:
     try:
         for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
             (out / name).unlink(missing_ok=True)
-        for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target
-            for tmp in out.glob(f".{name}.*.tmp"):
+        for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target (write_atomic's)
+            for tmp in out.glob(f".{name}.*"):
                 tmp.unlink(missing_ok=True)
         _save_npy(out / "elevation.npy", res.elevation)
         _save_npy(out / "hazard.npy", res.hazard)

@@ -1564,11 +1564,14 @@ def _model_and_call(p: Params, shape: tuple[int, ...], info: dict[str, Any]) -> 
     """The P(safe) model that calls images of ``shape`` under ``p`` (:func:`flight_sw.psafe.model_for_image`; None:
     none fits) and ``p`` with that model's own operating point where it records one and ``p.psafe_call`` is
     "model". ``info`` gets the model's prior (``psafe_safe_share``, which fusion takes out once) and the point
-    used (``psafe_call``)."""
+    used (``psafe_call``), or, when none fits, why the Gaussian rule calls it (``psafe_fallback``)."""
     fitted = model_for_image(p.psafe_model_path or None, shape)
     info.pop("psafe_call", None)
     if fitted is None:
+        # outside the image sizes the models were fitted on (the 512 px trees on a 128 px camera: FP 1.6-5 % vs
+        # 0-3 %), the calibration does not hold: the caller falls back to the Gaussian rule, at the preset's floor
         info.pop("psafe_safe_share", None)
+        info["psafe_fallback"] = f"calibrated P(safe) not fitted for {shape[1]}x{shape[0]} images"
         return None, p
     info["psafe_safe_share"] = float(fitted[0].info.get("safe_share", 0.5))
     own = model_call(fitted[0]) if p.psafe_call == "model" else {}
@@ -1746,11 +1749,7 @@ def _run_v2(
         if calibrated:
             _check_model_dem(p, i1.shape)
             fitted, p = _model_and_call(p, i1.shape, info)
-        if calibrated and fitted is None:
-            # outside the image sizes the models were fitted on (a 128 px demo camera: FP 1.6-5 % vs 0-3 %), the
-            # calibration does not hold: fall back to the Gaussian rule, at the preset's P floor
-            calibrated = False
-            info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
+            calibrated = fitted is not None
         rho = np.full(i1.shape, np.nan, np.float32)  # calibrated model: NaN = no shading evidence
         need_rho = p.shading_limit > 0 or calibrated or p.keep_layers
         rho_sigma = max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px)
@@ -1951,9 +1950,7 @@ def _run_v2(
         p = _without_lower_view(p_asked)
         if fitted is not None:
             fitted, p = _model_and_call(p, i1.shape, info)
-            if fitted is None:
-                calibrated = False
-                info["psafe_fallback"] = f"calibrated P(safe) not fitted for {i1.shape[1]}x{i1.shape[0]} images"
+            calibrated = fitted is not None
         info["lower_view_fallback"] = f"no lower view in the {level} DEM: P(safe) model and budget of the first DEM"
     del a2  # nothing after the DEM reads the second image
 

@@ -67,6 +67,13 @@ def check_backend(args: argparse.Namespace) -> None:
         raise InputError("--workers sets local processes; with --scheduler the Dask cluster's workers run: give one")
 
 
+# the exit codes of evaluate, sensitivity and landings, said in their help
+STUDY_EXIT_CODES = (
+    "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry them), "
+    "2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable)."
+)
+
+
 def camera_note(camera_px: int | None) -> str:
     """Said beside the seeds wherever a study's tables sit next to the thesis's: another camera than its 512 px
     one changes the ground sample distance, and so every figure."""
@@ -277,9 +284,7 @@ def register(subparsers: Any) -> None:
         "evaluate",
         help="score the pipeline against ground truth; thesis tables side by side",
         description="Render (or reuse) a scenario, run the pipeline, score it against "
-        "ground truth and print/write the thesis's ch. 6 tables next to ours. "
-        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
-        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
+        "ground truth and print/write the thesis's ch. 6 tables next to ours. " + STUDY_EXIT_CODES,
     )
     p.add_argument(
         "--scenario", required=True, choices=["vertical", "approach"], help="the thesis scenario whose tables to fill"
@@ -306,9 +311,7 @@ def register(subparsers: Any) -> None:
         "sensitivity",
         help="pose-error Monte Carlo (thesis sec 6.3)",
         description="DEM error increase under pose-knowledge errors on the approach "
-        "scenario (Tables 6.12-6.19), relative to perfect knowledge. "
-        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
-        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
+        "scenario (Tables 6.12-6.19), relative to perfect knowledge. " + STUDY_EXIT_CODES,
     )
     s.add_argument(
         "--kind",
@@ -568,8 +571,7 @@ def register_landings(subparsers: Any) -> None:
         "judges its top-ranked site against ground truth (every truth pixel within 1.5 m safe). Writes "
         "landings.csv (one row per landing and preset), landings.json (P(safe) with a Wilson interval, "
         "P(no site), divert percentiles; overall, per scene, per preset) and report/index.html. Resumable. "
-        "Exit 0 when every task is done, 1 when some failed (the rest are saved: rerun the same command to retry "
-        "them), 2 on bad input, 128 + N when signal N stopped it (130: Ctrl-C; resumable).",
+        + STUDY_EXIT_CODES,
     )
     p.add_argument("--scenes", required=True, help="comma-separated library scenes, or 'all'")
     p.add_argument(
