@@ -60,9 +60,9 @@ none to plan for), so it can leave room for its Result's line time;
 (``protocol.messages.RESULT_REV``): a flight side told nothing sends only the
 baseline fields an older ground decodes.
 
-Outputs are replaced atomically after every pair (written beside, then
-renamed): ``results.jsonl``, ``ground.json`` and, with ``--telemetry``, the
-per-pair timing lines. SIGTERM and SIGINT end the descent between messages:
+After every pair, its line is appended to ``results.jsonl`` and, with
+``--telemetry``, to the timing lines (one ``write`` each), and ``ground.json``
+is replaced atomically. SIGTERM and SIGINT end the descent between messages:
 what finished is on disk, the process exits 128 + the signal number.
 """
 
@@ -103,6 +103,8 @@ from protocol.quiet import Quieter
 from protocol.stall import StallClock
 from reports.console import printable
 from reports.html import write_atomic
+
+from .results_file import append_records
 
 EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
@@ -428,6 +430,7 @@ class _SessionState:
     last_refused: dict | None = None  # {"type", "reason"} of the latest
     flight_hello: dict | None = None  # what the flight side said it is: role, software, protocol_version
     said_middle_frames: bool = False  # a pair directory of more than two frames was said to be streamed as a pair
+    saved: int = 0  # records already appended to results.jsonl (and telemetry.jsonl)
 
 
 def _silent_link_reason(link, where: str) -> str:
@@ -940,7 +943,8 @@ def stream_descent(
         overdue_telemetry(want)  # after what has arrived: a Telemetry in the queue is no missing one
 
     def save() -> None:
-        write_atomic(results_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+        new = records[state.saved :]  # appended, not rewritten: a long descent wrote O(n^2) bytes (soak QA)
+        append_records(results_path, new)
         stats = getattr(link, "stats", None) or {}
         # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
         counted = sum(int(stats.get(k, 0) or 0) for k in ("decode_errors", "reassembly_errors", "protocol_drops"))
@@ -965,8 +969,8 @@ def stream_descent(
         }
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
         if telemetry_path is not None:
-            lines = ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in records)
-            write_atomic(telemetry_path, "".join(json.dumps(x, sort_keys=True) + "\n" for x in lines))
+            append_records(telemetry_path, ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in new))
+        state.saved = len(records)
 
     def record(o: PairOutcome, show: bool = True) -> None:
         rec = write_outcome(out_dir, o, deadline_s)

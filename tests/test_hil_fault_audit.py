@@ -616,7 +616,31 @@ def test_lockstep_goes_on_after_its_response_timeout_and_records_the_late_answer
     assert sorted(r["label"] for r in saved) == sorted(PAIRS) and all(r["status"] == "result" for r in saved)
 
 
-def _lockstep(flight: Path, mode: str, manifest: Path, out: Path, baud: int | None = None) -> list[dict]:
+def test_the_grounds_records_are_appended_once_not_rewritten_after_every_pair(manifest, flight, tmp_path, monkeypatch):
+    """results.jsonl and the timing lines were rewritten whole after every pair: O(n^2) bytes over a descent
+    (200 pairs wrote ~110 MB for a 1.1 MB file, stop 63's soak QA). Now every byte written is a byte of the file."""
+    from ground_sim import stream
+    from ground_sim.results_file import append_records
+
+    written: dict[str, int] = {}
+
+    def counting(path, records):
+        n = append_records(path, records)
+        written[Path(path).name] = written.get(Path(path).name, 0) + n
+        return n
+
+    monkeypatch.setattr(stream, "append_records", counting)
+    records = _lockstep(flight, "plain", manifest, tmp_path, telemetry=tmp_path / "telemetry.jsonl")
+    assert [r["status"] for r in records] == ["result"] * 3
+    for name in ("results.jsonl", "telemetry.jsonl"):
+        assert written[name] == (tmp_path / name).stat().st_size > 0, (name, written)
+    saved = [json.loads(x) for x in (tmp_path / "results.jsonl").read_text().splitlines()]
+    assert [r["label"] for r in saved] == [r["label"] for r in records]
+
+
+def _lockstep(
+    flight: Path, mode: str, manifest: Path, out: Path, baud: int | None = None, telemetry: Path | None = None
+) -> list[dict]:
     """The ground alone, lockstep, a 5 s response timeout, against the faulty program on a pty."""
     from ground_sim.stream import stream_descent
     from protocol.linkspec import open_link
@@ -625,7 +649,14 @@ def _lockstep(flight: Path, mode: str, manifest: Path, out: Path, baud: int | No
         link = open_link(spec + (f"@{baud}" if baud else ""), server=False, name="flight-computer")
         try:
             return stream_descent(
-                link, manifest, out, budget="external", deadline_s=1.0, response_timeout_s=5.0, where=spec
+                link,
+                manifest,
+                out,
+                budget="external",
+                deadline_s=1.0,
+                response_timeout_s=5.0,
+                where=spec,
+                telemetry_path=telemetry,
             )
         finally:
             link.close()
