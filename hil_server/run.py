@@ -301,7 +301,9 @@ def score_records(records: list[dict]) -> list[dict]:
             rec["site_truth"] = judged
             rec["scores"] = scores
             scored.append((rec, pair))
-            np.save(d / "called_i1.npy", called)  # per-pixel call (0 safe, 1 not, NaN unscored) for the report
+            # the call per pixel for the report: 0 safe, 1 not, CALLED_UNSCORED unscored; uint8 where float32 was
+            # 1 MiB at 512², most of a pair's output (stop 63's soak QA)
+            np.save(d / CALLED_FILE, np.where(np.isnan(called), CALLED_UNSCORED, called).astype(np.uint8))
         if (d / "hazard.npy").is_file() and "hazard" in truth:
             hazard = np.load(d / "hazard.npy")
             c = confusion(hazard, truth["hazard"], ~np.isnan(hazard))
@@ -550,6 +552,19 @@ def _fmt(v, spec: str = ".2f") -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "—"
     return format(v, spec)
+
+
+CALLED_FILE = "called_i1.npy"
+CALLED_UNSCORED = 255  # called_i1.npy's value where the grid scores no pixel
+
+
+def read_called(path: Path) -> np.ndarray:
+    """``called_i1.npy`` as the float map the scores used: 0 safe, 1 not, NaN unscored (runs before stop 64 saved
+    that float32 map itself)."""
+    a = np.load(path)
+    if a.dtype == np.uint8:
+        return np.where(a == CALLED_UNSCORED, np.float32(np.nan), a.astype(np.float32))
+    return a
 
 
 # supervisor.jsonl events the summary keeps

@@ -16,6 +16,10 @@ import pytest
 from browser import browser_available, check_page
 from hilkit import run_hil, small_descent
 
+from ground_sim.scoring import confusion
+from hil_server.run import read_called
+from protocol.pairdir import read_pair
+
 PAIRS = ["600/300", "300/150", "200/100"]
 
 
@@ -72,6 +76,11 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
         elev, fills = np.load(d / "elevation_grid.npy"), np.load(d / "elevation_filled_grid.npy")
         assert fills.dtype == bool and fills.shape == elev.shape and np.isfinite(elev[fills]).all()
         assert 0.0 <= r["scores"]["dem_filled_pct"] <= r["scores"]["dem_coverage_pct"] <= 100.0
+        # the call the report draws is the one scored, in a quarter of float32's bytes (soak QA: 1 MiB a pair)
+        assert np.load(d / "called_i1.npy").dtype == np.uint8
+        called = read_called(d / "called_i1.npy")
+        again = confusion(called, read_pair(r["pair_dir"]).truth["hazard"], np.isfinite(called))
+        assert (again["fp"], again["cdi"]) == pytest.approx((r["scores"]["fp_pct"], r["scores"]["cdi_pct"]))
     assert s["deadline_hit_rate"] == 1.0
     assert s["e2e_latency_p50_s"] <= s["e2e_latency_p95_s"] <= s["e2e_latency_max_s"]
     assert s["complete"] is True and s["reason"] is None
