@@ -110,7 +110,7 @@ EXIT_LINK_LOST = 3
 EXIT_NO_HELLO = 5  # the flight side never said Hello: nothing ran (every pair recorded as not_run)
 LINK_CODES = ("link_down",)
 # the ground's link counters kept in ground.json (protocol.arq.STAT_KEYS: a serial link's; a ZeroMQ link has none)
-LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "echoed_frames")
+LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "retransmit_bytes", "echoed_frames")
 # a ZeroMQ link's frames dropped by the session rules (docs/protocol.md section 7): a seq that did not rise, a frame
 # of a past or unknown session
 SESSION_DROPS = ("duplicates_dropped", "misaddressed_frames", "foreign_frames")

@@ -729,9 +729,11 @@ def _line_note(line: dict) -> str:
     if not bad:
         return ""
     noise, again = int(line.get("bytes_discarded") or 0), int(line.get("retransmits") or 0)
+    # frames shrink as the line gets noisier: the count alone read as far more than the bytes resent (soak QA)
+    resent = f" ({int(line['retransmit_bytes'])} bytes resent)" if again and "retransmit_bytes" in line else ""
     return (
         f"the ground's line dropped {bad} damaged frame{'' if bad == 1 else 's'} ({noise} bytes of noise); "
-        f"{again} retransmission{'' if again == 1 else 's'} on the ground's side"
+        f"{again} retransmission{'' if again == 1 else 's'}{resent} on the ground's side"
     )
 
 

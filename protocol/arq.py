@@ -271,6 +271,7 @@ STAT_KEYS = (
     "frames_received",
     "data_frames_sent",
     "retransmits",
+    "retransmit_bytes",  # payload bytes resent: the frames shrink on a noisy line, so a count alone reads large
     "timeouts",
     "crc_errors",
     "malformed",
@@ -616,6 +617,7 @@ class Arq(SessionView):
                 self._insert_seg(tail)
                 self._retx.appendleft(tail.start)
             self.stats["retransmits"] += 1
+            self.stats["retransmit_bytes"] += seg.end - seg.start
             return self._transmit(seg, now), self._txid
         sendable = self._sendable()
         if sendable <= 0:

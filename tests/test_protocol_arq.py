@@ -142,8 +142,11 @@ def test_noisy_line_loses_nothing(corrupt):
     assert len(got) == 6 and all(same_message(g, m) for g, m in zip(got, msgs))
     hit = sum(ch.stats["flipped"] + ch.stats["dropped"] + ch.stats["duplicated"] for ch in line.channels if ch)
     assert hit > 20 and a.stats["retransmits"] > 0
-    if corrupt >= 1e-3:  # the frame size adapted to the line
+    # what was resent, in bytes: each retransmission is one DATA frame's payload, at most a whole frame
+    assert 0 < a.stats["retransmit_bytes"] <= a.stats["retransmits"] * a.cfg.max_frame
+    if corrupt >= 1e-3:  # the frame size adapted to the line, and so did what each retransmission resends
         assert a.snapshot()["frame_bytes"] < 400
+        assert a.stats["retransmit_bytes"] / a.stats["retransmits"] < 0.5 * a.cfg.max_frame
 
 
 def test_very_noisy_line_ends_every_message_delivered_or_failed_with_a_reason():
