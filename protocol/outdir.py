@@ -72,12 +72,58 @@ def _lock(path: Path) -> tuple[int, bool]:
     return fd, True
 
 
+def _holder_pid(holder: str) -> int | None:
+    """The pid in a holder's name ("hazard-hil run (pid 19932)"), if it has one."""
+    head, _, tail = holder.rpartition("(pid ")
+    return int(tail.rstrip(")")) if head and tail.rstrip(")").isdigit() else None
+
+
+def _our_line() -> set[int]:
+    """This process and its ancestors: a claim under a directory one of them holds is theirs to make (``regress``
+    holds OUT while each case's run claims OUT/<case>)."""
+    pids, pid = {os.getpid()}, os.getppid()
+    while pid > 1 and pid not in pids:
+        pids.add(pid)
+        try:  # field 4 of /proc/PID/stat, after the parenthesised name (which may hold spaces)
+            pid = int(Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[1])
+        except (OSError, ValueError, IndexError):
+            break
+    return pids
+
+
+def _refuse_if_held_above(path: Path) -> None:
+    """:class:`InputError` when a directory above ``path`` is held by a command outside this process's line: a
+    ``render --out RUN/pairs`` replaced the pairs a live ``run --out RUN`` was streaming (stop 63's interrupt QA)."""
+    line: set[int] | None = None
+    for above in path.resolve().parents:
+        try:
+            fd = os.open(above / LOCK_NAME, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            line = _our_line() if line is None else line
+            if _holder_pid(holder) not in line:
+                raise InputError(
+                    f"{path} is inside {above}, which is being written by {holder}: wait for it to end, or give "
+                    "this one another --out"
+                ) from None
+        except OSError:
+            pass  # a file system with no locks
+        finally:
+            os.close(fd)
+
+
 @contextmanager
 def claim_out(out: str | Path, command: str) -> Iterator[Path]:
     """Hold ``out`` (created if missing) for ``command`` until the block ends; :class:`InputError` when another
-    process holds it. Within one process, a second claim of a directory already held is refused too. A
+    process holds it, or a directory above it (unless that is this process or one it descends from). Within one
+    process, a second claim of a directory already held is refused too. A
     directory this claim created that nothing else was written in is removed at the end (bad input, refused)."""
     path = Path(out)
+    _refuse_if_held_above(path)
     created = not path.exists()
     try:
         path.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,21 @@ def test_a_second_claim_in_one_process_is_refused_too(tmp_path: Path):
         pass
 
 
+def test_a_directory_inside_one_another_process_writes_is_refused_and_nothing_is_made(held, capsys):
+    """`render --out RUN/pairs` replaced the pairs of a live `run --out RUN` (stop 63's interrupt QA, L13)."""
+    out, proc = held
+    assert main(["render", "--scenario", "vertical", "--pairs", "600/300", "--out", str(out / "pairs")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"out/pairs is inside {out}, which is being written by hazard-hil evaluate (pid {proc.pid})" in err, err
+    assert len(err.splitlines()) == 1 and sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+
+
+def test_a_directory_inside_one_this_process_holds_is_claimed(tmp_path: Path):
+    """`regress` holds OUT while each case's run claims OUT/<case>; so may any command below its holder."""
+    with claim_out(tmp_path / "out", "regress"), claim_out(tmp_path / "out" / "case", "run") as p:
+        assert (p / LOCK_NAME).is_file()
+
+
 def test_a_directory_the_claim_made_and_nobody_wrote_in_is_removed(tmp_path: Path):
     out = tmp_path / "new" / "out"
     with pytest.raises(ValueError), claim_out(out, "evaluate"):
