@@ -1298,8 +1298,25 @@ def _blame_server(records: list[dict], why: str) -> list[dict]:
     ]
 
 
-def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> list[dict]:
-    """Records for the manifest's pairs that have none (the run ended before them), in descent order."""
+def _server_saw(events: list[dict]) -> dict[str, str]:
+    """What the HIL server had of each pair (``supervisor.jsonl``): "result", "error" or "frames", the furthest."""
+    order = {"frames": 0, "error": 1, "result": 2}
+    seen: dict[str, str] = {}
+    for e in events:
+        got = {"frame": "frames"}.get(str(e.get("event")), str(e.get("event")))
+        pid = e.get("pair_id")
+        if got in order and isinstance(pid, str) and order[got] >= order.get(seen.get(pid, ""), -1):
+            seen[pid] = got
+    return seen
+
+
+def _missing(
+    entries: list[dict], records: list[dict], base: Path, why: str, server: dict[str, str] | None = None
+) -> list[dict]:
+    """Records for the manifest's pairs that have none, in descent order: ``not_run`` when the run ended before
+    them; ``interrupted`` when the HIL server had their frames (``server``, :func:`_server_saw`) and the ground
+    did not record them (killed: a pair on the line read "not run", stop 63's interrupt QA)."""
+    server = server or {}
     have = {r["pair_id"] for r in records}
     full = []
     by_id = {r["pair_id"]: r for r in records}
@@ -1308,6 +1325,11 @@ def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> 
         if pid in have:
             full.append(by_id.pop(pid))
             continue
+        code, text = "not_run", why
+        if (had := server.get(pid)) is not None:
+            what = {"frames": "its frames", "error": "its frames and reported an error on it"}.get(had, "its Result")
+            code = "interrupted"
+            text = f"{why.removeprefix('not run: ')}; the HIL server had {what}, the ground recorded nothing of it"
         full.append(
             {
                 "pair_id": pid,
@@ -1315,8 +1337,8 @@ def _missing(entries: list[dict], records: list[dict], base: Path, why: str) -> 
                 "altitude_m": float(e.get("altitude_m", float("nan"))),
                 "pair_dir": str(base / e["path"]),
                 "status": "error",
-                "code": "not_run",
-                "text": why,
+                "code": code,
+                "text": text,
                 "deadline_met": False,
             }
         )
@@ -1688,15 +1710,17 @@ def _descend(checked: CheckedRun, log) -> dict:
 
         entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
         records = read_results(received / "results.jsonl", strict=False)
+        server_events = read_results(out / "supervisor.jsonl", strict=False)
         if sup_reason is not None:
             records = _blame_server(records, sup_reason)
         if reason is not None:
-            records = _missing(entries, records, manifest.parent if manifest else out / "pairs", f"not run: {reason}")
+            base = manifest.parent if manifest else out / "pairs"
+            records = _missing(entries, records, base, f"not run: {reason}", _server_saw(server_events))
         score_records(records)
         counters = {}
         unlogged = 0
         flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
-        for line in read_results(out / "supervisor.jsonl", strict=False):
+        for line in server_events:
             if line.get("event") == "summary":
                 counters = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") == "flight_output":

@@ -477,6 +477,8 @@ class Supervisor:
             st.frames[msg.frame_index] = msg
             st.fframes[msg.frame_index] = fmsg
             st.arrivals[msg.frame_index] = time.monotonic()
+            # the run's record of a pair the ground never recorded (the ground killed): its frames had come
+            self._write_telemetry({"pair_id": msg.pair_id, "event": "frame", "frame_index": msg.frame_index})
             assert self.flight is not None
             if len(st.frames) == 2:
                 st.complete_at = st.sent_at = time.monotonic()

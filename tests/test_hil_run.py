@@ -404,6 +404,34 @@ def test_the_noise_a_ground_line_dropped_is_said_in_the_run_notes():
     assert flight_note({"ground_counters": {"line": clean}}) == ""  # retransmissions alone are no noise
 
 
+def test_a_pair_the_server_had_and_the_ground_never_recorded_is_interrupted_not_not_run(tmp_path):
+    """The ground SIGKILLed while a pair's frames were on the line: the run called that pair `not_run`, "the run
+    ended before their frames went" (stop 63's interrupt QA, L14). The HIL server's log says how far it got."""
+    from hil_server.run import _missing, _server_saw
+
+    events = [
+        {"event": "frame", "pair_id": "p000-600_300", "frame_index": 0},
+        {"event": "frame", "pair_id": "p000-600_300", "frame_index": 1},
+        {"event": "result", "pair_id": "p000-600_300"},
+        {"event": "frame", "pair_id": "p001-300_150", "frame_index": 0},
+        {"event": "frame", "pair_id": "p002-200_100", "frame_index": 0},
+        {"event": "frame", "pair_id": "p002-200_100", "frame_index": 1},
+        {"event": "result", "pair_id": "p002-200_100"},
+        {"event": "frame", "pair_id": "p002-200_100", "frame_index": 0},  # resent after: still had its Result
+        {"event": "restart", "reason": "x"},
+    ]
+    seen = _server_saw(events)
+    assert seen == {"p000-600_300": "result", "p001-300_150": "frames", "p002-200_100": "result"}
+    entries = [{"label": x, "path": x.replace("/", "_")} for x in [*PAIRS, "100/50"]]
+    kept = [{"pair_id": "p000-600_300", "status": "result"}]
+    got = _missing(entries, kept, tmp_path, "not run: the ground simulator exited with -9", seen)
+    assert [r.get("code") for r in got] == [None, "interrupted", "interrupted", "not_run"]
+    assert got[1]["text"] == (
+        "the ground simulator exited with -9; the HIL server had its frames, the ground recorded nothing of it"
+    )
+    assert "the HIL server had its Result" in got[2]["text"] and got[3]["text"].startswith("not run: ")
+
+
 def test_session_note_says_sessions_lost_or_restarted():
     from hil_server.run import session_note
 
