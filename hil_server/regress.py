@@ -192,12 +192,13 @@ def check_cases(
 def measure_case(
     name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
 ) -> dict:
-    from hil_server.run import run_descent
+    from hil_server.run import LATE_SIGNAL, run_descent
 
     cfg = case_config(name, case, out, base_dir, hello_timeout_s)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
-    if summary.get("interrupted_by"):  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
-        raise RegressInterrupted(int(summary["interrupted_by"]), name)
+    stop = summary.get("interrupted_by") or summary.get(LATE_SIGNAL)
+    if stop:  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
+        raise RegressInterrupted(int(stop), name)
     # a board's seconds are its own: no emulated speed to take out (its baseline holds for that board only)
     speed, ref = (1.0, 1.0) if is_board(case) else effective_speed(case["budget"], cfg.budget_file)
     scale = speed / ref

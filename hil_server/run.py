@@ -512,11 +512,16 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
     }
 
 
+# the returned summary's key (not in summary.json) for signal N that came while the summary was written
+LATE_SIGNAL = "late_signal"
+
+
 def exit_code(summary: dict, min_hit_rate: float | None = None) -> int:
     """0 only when every pair returned a result within its deadline (or the hit rate reaches ``min_hit_rate``);
-    1 when a pair missed, was lost or failed, or the run did not complete; 128 + N when signal N cut it short."""
-    if summary.get("interrupted_by"):
-        return 128 + int(summary["interrupted_by"])
+    1 when a pair missed, was lost or failed, or the run did not complete; 128 + N when signal N cut it short or
+    came while its summary was written (:data:`LATE_SIGNAL`)."""
+    if summary.get("interrupted_by") or summary.get(LATE_SIGNAL):
+        return 128 + int(summary.get("interrupted_by") or summary[LATE_SIGNAL])
     if not summary.get("complete") or not summary.get("pairs"):
         return 1
     if min_hit_rate is None:
@@ -528,7 +533,7 @@ def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
     s = summary
     if not s.get("complete"):
         head = f"INCOMPLETE ({s.get('reason')})"
-    elif exit_code(s, min_hit_rate) == 0:
+    elif exit_code({k: v for k, v in s.items() if k != LATE_SIGNAL}, min_hit_rate) == 0:  # the run's own verdict
         head = "PASS"
     else:
         head = "FAIL"
@@ -1769,7 +1774,8 @@ def _descend(checked: CheckedRun, log) -> dict:
             )
         _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
         log(table)
-    if late.received is not None:  # written whole; then the signal does what it would have (exit 128 + N)
+    if late.received is not None:  # written whole; the caller says its verdict, then exits 128 + N
         log(f"run: {signal.Signals(late.received).name} came while the summary was written: it was finished first")
-        signal.raise_signal(late.received)
+        # returned, not raised: raised, it cost a second Ctrl-C the verdict and report lines (interrupt QA L11)
+        summary = {**summary, LATE_SIGNAL: int(late.received)}
     return summary
