@@ -1951,6 +1951,10 @@ def _run_v2(
         if fitted is not None:
             fitted, p = _model_and_call(p, i1.shape, info)
             calibrated = fitted is not None
+            if not calibrated and p.shading_limit > 0 and "wall_cue" not in info["skipped"]:
+                # now called by the Gaussian rule, which needs the wall cue the calibrated path left out (review
+                # of stop 63: ~500 px a pair called safe that `fast` calls unsafe)
+                wall = shading_mask(rho, p.shading_limit)
         info["lower_view_fallback"] = f"no lower view in the {level} DEM: P(safe) model and budget of the first DEM"
     del a2  # nothing after the DEM reads the second image
 

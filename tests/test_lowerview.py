@@ -131,3 +131,32 @@ def test_a_pair_without_its_lower_view_is_called_as_fast_calls_it(monkeypatch, t
         _check_model_dem(dataclasses.replace(prm, lower_view_fallback_model=str(path)))
     with pytest.raises(FlightInputError, match="lower_view_fallback_budget"):
         dataclasses.replace(prm, lower_view_fallback_budget=0.5).validate()
+
+
+def test_a_pair_whose_fallback_has_no_model_for_its_size_keeps_fasts_wall_cue(monkeypatch, tmp_path):
+    """A lower-view model fitted on 160 px and no shipped model for that size: without its lower view the pair
+    drops to the Gaussian rule, which needs the wall cue the calibrated path had left out; ~500 crater-wall
+    pixels a pair were called safe that `fast` calls unsafe (review of stop 63)."""
+    from synthetic import crater, make_pair
+
+    import flight_sw.pipeline as pl
+
+    doc = json.loads(Path(MODEL_PATH).read_text())
+    doc["info"]["pipeline"] = {"lower_view_dem": True}
+    doc["info"]["image_px"] = [[160, 160]]
+    path = tmp_path / "psafe_lv160.json"
+    path.write_text(json.dumps(doc))
+    prm = dataclasses.replace(
+        PRESETS["fast"],
+        lower_view_dem=True,
+        psafe_model_path=str(path),
+        lower_view_fallback_budget=PRESETS["fast"].fp_budget,
+    )
+    cam, p1, p2, i1, i2, _ = make_pair(160, 150.0, 75.0, crater(20.0, 4.0), seed=5)
+    sun = {"sun_azimuth_deg": 135.0, "sun_elevation_deg": 25.0}
+    fast = run_pipeline(i1, i2, p1, p2, cam, preset="fast", **sun)
+    monkeypatch.setattr(pl, "lower_view_dem", lambda *a, **k: (None, {"complete": False}))
+    lv = run_pipeline(i1, i2, p1, p2, cam, preset=prm, **sun)
+    assert "lower_view_fallback" in lv.info and "psafe_fallback" in lv.info and "psafe_fallback" in fast.info
+    assert (fast.state == 1).sum() > 1000  # the wall cue's unsafe ground, to keep
+    np.testing.assert_array_equal(lv.state, fast.state)
