@@ -38,6 +38,7 @@ import re
 import shutil
 import stat
 import struct
+import time
 import tokenize
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -487,9 +488,24 @@ def is_write_leftover(name: str) -> bool:
     return re.fullmatch(r".+\.(partial|old)[0-9]+", name) is not None
 
 
+# a ``.partialPID`` untouched this long is no live write (a pair is written in seconds): the PID alone cannot say,
+# since a writer in another PID namespace or on another host sharing the cache has a PID meaningless here
+PARTIAL_STALE_S = 600.0
+
+
+def _last_touched(d: Path) -> float:
+    """The latest mtime of ``d`` and the files in it (``inf`` when it cannot be read: kept)."""
+    try:
+        return max([d.stat().st_mtime, *(f.stat().st_mtime for f in d.iterdir())])
+    except OSError:
+        return math.inf
+
+
 def _drop_dead_partials(d: Path) -> None:
     """Remove the ``.partialPID`` siblings of ``d`` whose writer is dead (killed outright mid-write: a rerun neither
-    removed nor named them; stop 63's QA). A live writer's stays; ``.oldPID`` ones may hold a user's files, kept."""
+    removed nor named them; stop 63's QA): no process here has that PID and nothing in it was written for
+    :data:`PARTIAL_STALE_S` (a live writer elsewhere, another container or host on a shared cache, has a PID that
+    names nothing here: review of stop 63). ``.oldPID`` ones may hold a user's files, kept."""
     try:
         siblings = list(d.parent.glob(f"{glob.escape(d.name)}.partial*"))
     except OSError:
@@ -500,8 +516,9 @@ def _drop_dead_partials(d: Path) -> None:
             continue
         try:
             os.kill(int(m.group(1)), 0)
-        except ProcessLookupError:  # no such process: its writer is gone
-            shutil.rmtree(stale, ignore_errors=True)
+        except ProcessLookupError:  # no such process here: its writer is gone, unless it writes from elsewhere
+            if time.time() - _last_touched(stale) > PARTIAL_STALE_S:
+                shutil.rmtree(stale, ignore_errors=True)
         except (PermissionError, OverflowError):  # another user's live process; a PID no process can have
             continue
 

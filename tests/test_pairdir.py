@@ -1,6 +1,7 @@
 """The pair-directory format (shared/DESIGN.md) round-trips and rejects bad input."""
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -199,16 +200,23 @@ def test_a_partial_pair_a_killed_writer_left_goes_with_the_next_write(tmp_path):
     import os
     import subprocess
 
-    from protocol.pairdir import write_pair_atomic
+    from protocol.pairdir import PARTIAL_STALE_S, write_pair_atomic
 
     dead = subprocess.Popen(["true"])
     dead.wait()
     stale, live = tmp_path / f"600_300.partial{dead.pid}", tmp_path / f"600_300.partial{os.getppid()}"
-    for d in (stale, live):
+    # a PID that names nothing here, its files still being written: a writer in another container or on another
+    # host sharing the cache (review of stop 63: its directory was removed mid-write)
+    elsewhere = tmp_path / "600_300.partial999999999"
+    for d in (stale, live, elsewhere):
         d.mkdir()
         (d / "i1.png").write_bytes(b"half")
+    old = time.time() - PARTIAL_STALE_S - 60
+    for d in (stale, live):
+        os.utime(d / "i1.png", (old, old))
+        os.utime(d, (old, old))
     write_pair_atomic(tmp_path / "600_300", make_pair(0))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300", live.name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["600_300", elsewhere.name, live.name])
 
 
 def test_a_replaced_pair_keeps_the_users_own_files_and_drops_the_old_renders(tmp_path, monkeypatch):
