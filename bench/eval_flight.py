@@ -33,6 +33,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from flight_sw.psafe import model_call, model_for_image  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
 SCENES = ROOT / "bench" / "scenes"
@@ -484,11 +485,13 @@ def main(argv: list[str] | None = None) -> int:
                 for k in ("fp_budget", "psafe_min", "call_slope_max")
                 if any(x.startswith(k + "=") for x in args.set_param)
             ]
-            if swept and prm.psafe_call == "model" and args.image_size not in (None, 512):
-                # the 256 px model records its own operating point, which replaces these (Params.psafe_call)
+            size = args.image_size or 512
+            fitted = model_for_image(prm.psafe_model_path or None, (size, size)) if swept else None
+            if fitted is not None and prm.psafe_call == "model" and model_call(fitted[0]):
+                # that model records its own operating point, which replaces these (Params.psafe_call)
                 said = ", ".join(swept)
-                print(f"note: {said} set, but a model's own operating point replaces them where it records one "
-                      "(the 256 px model does): add psafe_call=params to sweep them", file=sys.stderr)  # fmt: skip
+                print(f"note: {said} set, but {Path(fitted[1]).name}'s own operating point replaces them: add "
+                      "psafe_call=params to sweep them", file=sys.stderr)  # fmt: skip
     all_rows: dict[str, list[dict[str, Any]]] = {}
     for name, prm in variants.items():
         rows = []

@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     from bench_multiframe import preset_with
 
     from flight_sw.pipeline import PRESETS
-    from flight_sw.psafe import CALL_KEYS, model_call
+    from flight_sw.psafe import CALL_KEYS, checked_call, model_call
     from ground_sim.seeds import TUNING_SEEDS
 
     try:
@@ -399,12 +399,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     pipeline = {k.split("=", 1)[0]: getattr(over, k.split("=", 1)[0]) for k in args.set_param}
     pipeline = {k: v for k, v in pipeline.items() if v != getattr(PRESETS["fast"], k)}
-    layers_dir = Path(args.layers)
-    refused = claim_layers(layers_dir, pipeline)
-    if refused:
-        print(f"error: {refused}")
-        return 2
-
     call: dict[str, float] = {}  # checked before hours of renders and layers, not after
     for item in args.call:
         k, _, v = item.partition("=")
@@ -415,6 +409,17 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             print(f"error: --call {item!r}: give K=V with K one of {CALL_KEYS} and V a number")
             return 2
+    try:  # the pipeline's bounds too (fp_budget=0.5 or nan passed here, and failed only after the fit)
+        checked_call(call)
+    except ValueError as exc:
+        print(f"error: --call: {exc}")
+        return 2
+    layers_dir = Path(args.layers)
+    refused = claim_layers(layers_dir, pipeline)
+    if refused:
+        print(f"error: {refused}")
+        return 2
+
     if call and not args.write:
         print("error: --call is recorded in the model --write writes; give --write")
         return 2

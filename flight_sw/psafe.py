@@ -475,7 +475,12 @@ def model_call(model: Model) -> dict[str, float]:
     """The operating point a model records (``info["call"]``: any of :data:`CALL_KEYS`, chosen by the tuning CV
     of ``bench/fit_psafe.py`` for that model), ``{}`` when it records none. A value outside the pipeline's own
     bounds (``Params.validate``) is refused: a model file that would call everything safe must not load."""
-    call = model.info.get("call") or {}
+    return checked_call(model.info.get("call") or {})
+
+
+def checked_call(call: object) -> dict[str, float]:
+    """An operating point (:data:`CALL_KEYS` to numbers) within the pipeline's own bounds, as floats;
+    ``ValueError`` naming what is wrong (``bench/fit_psafe.py --call`` checks it before it fits)."""
     if not isinstance(call, Mapping) or set(call) - set(CALL_KEYS):
         raise ValueError(f"P(safe) model: info.call must hold only {CALL_KEYS}, got {call!r}")
     out = {k: float(v) for k, v in call.items()}

@@ -168,3 +168,15 @@ def test_cached_layers_of_other_code_or_settings_are_refused(tmp_path, monkeypat
     refused = fit_psafe.claim_layers(layers, {})
     assert refused is not None and "unknown settings or code" in refused
     assert fit_psafe.claim_layers(tmp_path / "fresh", {}) is None
+
+
+@pytest.mark.parametrize("value", ["fp_budget=0.5", "psafe_min=nan", "call_slope_max=-1", "fp_budget=x"])
+def test_fit_psafe_refuses_an_operating_point_out_of_bounds_before_it_fits(value, tmp_path, capsys):
+    """An out-of-bounds --call passed the first check and failed after the renders, layers and fit, in a traceback
+    (review of stop 63)."""
+    from fit_psafe import main
+
+    layers = tmp_path / "layers"
+    argv = ["--seeds", "0", "--cases", "vertical", "--layers", str(layers), "--write", str(tmp_path / "m.json")]
+    assert main([*argv, "--call", value]) == 2
+    assert "error: --call" in capsys.readouterr().out and not layers.exists()
