@@ -150,9 +150,14 @@ PROCESS_OUTPUTS = (
 )
 
 
-def _left_after_stop(out: Path) -> str:
-    """What a `process` stopped while writing left in ``out``: its own outputs only (the earlier run's went first)."""
+def _left_after_stop(out: Path, removing: bool = False) -> str:
+    """What a `process` stopped while writing left in ``out``: its own outputs only (the earlier run's went first);
+    ``removing``: stopped while the earlier run's were removed, so what is left is that run's (review of stop 63:
+    they were called this run's)."""
     have = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
+    if removing:
+        left = f"; it still holds the earlier run's {', '.join(have)} (no result.json: incomplete)" if have else ""
+        return f"process: stopped while removing an earlier run's outputs from {out}{left}; run it again"
     if not have:
         return f"process: stopped while writing {out}: nothing of this run is in it yet; run it again"
     return (
@@ -305,12 +310,14 @@ def _process(args: argparse.Namespace) -> int:
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
     # beside new maps; stop 63's QA)
+    removing = True
     try:
         for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
             (out / name).unlink(missing_ok=True)
         for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target (write_atomic's)
             for tmp in out.glob(f".{name}.*"):
                 tmp.unlink(missing_ok=True)
+        removing = False
         _save_npy(out / "elevation.npy", res.elevation)
         _save_npy(out / "hazard.npy", res.hazard)
         _save_npy(out / "state.npy", res.state)
@@ -322,7 +329,7 @@ def _process(args: argparse.Namespace) -> int:
         write_atomic(out / "result.json", json_text(doc))
         write_process_report(out, pair.images[0], res, pair.truth, doc)
     except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
-        print(_left_after_stop(out), file=sys.stderr)
+        print(_left_after_stop(out, removing), file=sys.stderr)
         raise
     fills = res.info.get("dem_filled_fraction")
     line = (

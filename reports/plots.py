@@ -44,14 +44,21 @@ def _plt() -> Any:
     return plt
 
 
-def save(fig: Any, path: str | Path, dpi: int = 100) -> Path:
-    """Write ``fig`` as a PNG (creating the folder) and release it."""
+def save(fig: Any, path: str | Path, dpi: int = 100, **kw: Any) -> Path:
+    """Write ``fig`` as a PNG (creating the folder) and release it. Rendered in memory, then written beside and
+    renamed (:func:`reports.html.write_atomic`): a stop inside ``savefig`` left a truncated picture under its
+    final name, listed as the run's (review of stop 63). ``kw`` goes to ``savefig`` (default: a tight box)."""
+    import io
+
+    from reports.html import write_atomic
+
     plt = _plt()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
-    return p
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=dpi, **({"bbox_inches": "tight"} | kw))
+    finally:
+        plt.close(fig)
+    return write_atomic(path, buf.getvalue())
 
 
 @dataclass

@@ -296,9 +296,7 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
     axes[0].legend(fontsize=7)
     axes[1].legend(fontsize=7, loc="upper right")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=110, bbox_inches=None)
 
 
 def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:

@@ -84,6 +84,21 @@ def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_
     assert left == {"elevation.npy", "hazard.npy", "state.npy"}, left  # this run's, whole; none of the thesis run's
     said = capsys.readouterr().err
     assert "it holds this run's elevation.npy, hazard.npy, state.npy only (no result.json: incomplete)" in said
+    monkeypatch.setattr(cli, "_save_npy", saved)
+    assert main(["process", str(d), "--out", str(out), "--preset", "thesis"]) == 0
+    capsys.readouterr()
+    real_unlink = Path.unlink
+
+    def dies_at_the_second(self, *a, **kw):  # a stop while the earlier run's outputs are removed
+        if self.name != "result.json" and self.parent == out:
+            raise KeyboardInterrupt
+        real_unlink(self, *a, **kw)
+
+    monkeypatch.setattr(Path, "unlink", dies_at_the_second)
+    assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 130
+    said = capsys.readouterr().err  # they are the thesis run's, and said so (review of stop 63: "this run's")
+    assert f"stopped while removing an earlier run's outputs from {out}; it still holds the earlier run's " in said
+    assert "this run's" not in said
 
 
 def test_process_deadline_zero_is_degraded(tmp_path, capsys):

@@ -282,3 +282,24 @@ def test_a_long_descents_pair_labels_are_thinned_to_stay_legible():
             assert len(ax.get_xticks()) == 200 and 0 < len(said) <= plots.PAIR_TICKS_MAX and said[0] == "r0-300/150"
     short = plots.latency_figure(recs[:8])
     assert [t.get_text() for t in short.axes[0].get_xticklabels()] == [r["label"] for r in recs[:8]]
+
+
+def test_a_picture_stopped_mid_write_leaves_the_one_before_whole(tmp_path):
+    """`savefig` wrote onto the final name: a stop inside it left a truncated PNG there (review of stop 63)."""
+    from reports.plots import _plt, save
+
+    plt = _plt()
+    path = tmp_path / "dem.png"
+    save(plt.figure(figsize=(2, 2)), path)
+    before = path.read_bytes()
+    assert before.startswith(b"\x89PNG")
+    fig = plt.figure(figsize=(3, 3))
+
+    def half_then_stop(target, **kw):
+        target.write(before[: len(before) // 2])
+        raise KeyboardInterrupt
+
+    fig.savefig = half_then_stop
+    with pytest.raises(KeyboardInterrupt):
+        save(fig, path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["dem.png"]
