@@ -118,15 +118,32 @@ def _campaign_failed(what: str, exc: Exception) -> int:
 def writing_report(out: Path) -> Iterator[None]:
     """A Ctrl-C while the page and tables are written ended in a bare "interrupted", the page missing: every
     result is already saved, so say that a rerun only writes the report. The page goes: an earlier run's page
-    beside this run's tables read as theirs (2 seeds on the page, 1 in metrics.csv; stop 63's QA)."""
+    beside this run's tables read as theirs (2 seeds on the page, 1 in metrics.csv; stop 63's QA). This run's own
+    page, written whole before the stop (a broken pipe as the tables print), stays (review of stop 63)."""
+    page = out / "report" / "index.html"
+
+    def identity() -> tuple[int, int] | None:  # the page is written beside and renamed: a new page, a new inode
+        try:
+            st = page.stat()
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
+
+    earlier = identity()
     try:
         yield
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            (out / "report" / "index.html").unlink(missing_ok=True)
-        how = "interrupted" if isinstance(exc, KeyboardInterrupt) else "stopped"
-        _note(f"{how} while writing the report, whose page is removed; every result is saved in {out / 'runs'}: "
-              "rerun the same command to write it (nothing is computed again)")  # fmt: skip
+        now = identity()
+        ours = now is not None and now != earlier
+        if not ours:
+            with contextlib.suppress(OSError):
+                page.unlink(missing_ok=True)
+        what = "its page is this run's" if ours else "whose page is removed"
+        if isinstance(exc, KeyboardInterrupt):  # Terminated too
+            _note(f"interrupted while writing the report, {what}; every result is saved in {out / 'runs'}: rerun "
+                  "the same command to write it (nothing is computed again)")  # fmt: skip
+        else:
+            _note(f"stopped while writing the report, {what}; every result is saved in {out / 'runs'}")
         raise
 
 

@@ -330,6 +330,18 @@ def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_pa
     assert "interrupted while writing the report, whose page is removed; every result is saved in" in err
     assert "nothing is computed" in err
     assert not page.exists()  # an earlier run's page beside this run's tables read as theirs (stop 63's QA)
+    monkeypatch.undo()
+    real = report.evaluation_report
+
+    def written_then_pipe_breaks(*args, **kwargs):  # `evaluate ... | head`: the page is whole, the print fails
+        real(*args, **kwargs)
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(report, "evaluation_report", written_then_pipe_breaks)
+    assert main(_eval(tmp_path, "out", 48)) == 1
+    err = capsys.readouterr().err
+    assert "stopped while writing the report, its page is this run's; every result is saved in" in err
+    assert "rerun" not in err and page.is_file()  # this run's page was removed too (review of stop 63)
 
 
 def test_local_workers_are_sized_to_the_memory_before_any_work(monkeypatch, capsys):
