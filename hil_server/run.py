@@ -34,6 +34,7 @@ false until the run has ended normally).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -590,15 +591,21 @@ def off_map_note(summary: dict) -> str:
     )
 
 
-def _relay_holds_tstp(log: Callable[[str], None]) -> Callable[[int, Any], None]:
+TSTP_NOTE = (
+    "run: Ctrl-Z ignored: this run relays its loopback serial line itself, and stopped it would cut the line "
+    "(Ctrl-C ends the run; a stalled ground: stop the ground_sim.stream process)\n"
+)
+
+
+def _relay_holds_tstp() -> Callable[[int, Any], None]:
     """A SIGTSTP handler for a run that relays its loopback serial line itself: a Ctrl-Z would stop the line with
-    the run, and every pair then on it failed as link_down, the run recorded complete and FAIL (stop 63's QA)."""
+    the run, and every pair then on it failed as link_down, the run recorded complete and FAIL (stop 63's QA).
+    It says so on stderr with one ``os.write`` per Ctrl-Z: a ``print`` from the handler re-entered a print the
+    main thread was blocked in (stdout piped to a stopped ``tee``) and raised there (review of stop 63)."""
 
     def hold(signum: int, frame: Any) -> None:
-        log(
-            "run: Ctrl-Z ignored: this run relays its loopback serial line itself, and stopped it would cut the "
-            "line (Ctrl-C ends the run; a stalled ground: stop the ground_sim.stream process)"
-        )
+        with contextlib.suppress(OSError):
+            os.write(2, TSTP_NOTE.encode())
 
     return hold
 
@@ -1525,7 +1532,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 # the relay is this process: stopped, it stops the line, and the pairs then on it fail as link_down
                 relay_stall = StallClock()
                 if threading.current_thread() is threading.main_thread():
-                    held_tstp = signal.signal(signal.SIGTSTP, _relay_holds_tstp(log))
+                    held_tstp = signal.signal(signal.SIGTSTP, _relay_holds_tstp())
                 suffix = "" if baud is None else f"@{baud}"  # @0: unpaced; none: the default rate
                 server_spec, ground_spec = f"serial:{bridge.paths[0]}{suffix}", f"serial:{bridge.paths[1]}{suffix}"
             elif spec is None:
