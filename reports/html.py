@@ -113,8 +113,10 @@ def current_umask() -> int:
 
 def write_atomic(path: str | Path, data: str | bytes) -> Path:
     """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``: a reader never sees half a
-    file. The file keeps the mode of the one it replaces; a new one gets ``0666 & ~umask`` (mkstemp's 0600 would
-    make result.json or report.html private to their writer)."""
+    file, and a process killed at any point leaves the old file or the new one. No ``fsync``: after a host crash
+    or power loss the renamed file may be empty (a bench of output files, not a database). The file keeps the mode
+    of the one it replaces; a new one gets ``0666 & ~umask`` (mkstemp's 0600 would make result.json or
+    report.html private to their writer)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     try:
