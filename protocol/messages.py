@@ -152,6 +152,14 @@ def _array(dtype: str, ndim: int, shape: tuple[int, ...] | None = None, max_side
         if v.dtype != dt:
             if v.dtype.kind not in "biuf" or (dt.kind in "iu" and v.dtype.kind == "f"):
                 raise SchemaError(f"{name}: expected dtype {dt}, got {v.dtype}")
+            if dt.kind in "iu" and not np.can_cast(v.dtype, dt) and v.size:
+                # astype wraps: a state grid of int16 256 read as 0, "safe", and an elevation of 40000 cm as
+                # -255 m (QA 64a, H1); a value of another integer type is taken only when it fits
+                lo, hi, info = int(v.min()), int(v.max()), np.iinfo(dt)
+                if lo < info.min or hi > info.max:
+                    raise SchemaError(
+                        f"{name}: expected dtype {dt}, got {v.dtype} with values {lo}..{hi} outside its range"
+                    )
             v = v.astype(dt)
         if v.ndim != ndim:
             raise SchemaError(f"{name}: expected {ndim}-D, got shape {v.shape}")

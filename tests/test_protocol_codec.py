@@ -652,3 +652,18 @@ def test_a_hello_that_leaves_out_its_name_and_version_is_not_reported_as_ours():
     }  # fmt: skip
     said = hello_note(run)
     assert "no name" in said and "'hazard-hil'" not in said and "protocol 2 by default" in said
+
+
+def test_an_integer_grid_of_another_type_is_taken_only_when_its_values_fit():
+    """Another integer dtype was cast with wrap-around: a state grid of int16 256 arrived as 0, "safe" (FP 22 %,
+    PASS), and an elevation of int32 40000 as -25536 (QA 64a, H1). Values that fit are still taken."""
+    fits = small_result(state_grid=np.array([[0, 1], [2, 255]], np.int16))
+    out = decode_message(encode_message(fits))
+    assert out.state_grid.dtype == np.uint8 and out.state_grid.tolist() == [[0, 1], [2, 255]]
+    for kw, match in (
+        (dict(state_grid=np.full((2, 2), 256, np.int16)), r"state_grid: expected dtype uint8, got int16 with values "),
+        (dict(psafe_grid=np.full((2, 2), -1, np.int8)), r"psafe_grid: .* values -1..-1 outside its range"),
+        (dict(elevation_grid=np.full((2, 2), 40000, np.int32)), r"elevation_grid: .* values 40000..40000 outside"),
+    ):
+        with pytest.raises(SchemaError, match=match):
+            encode_message(small_result(**kw))
