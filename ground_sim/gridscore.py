@@ -6,10 +6,15 @@ ground point it truly sees: ``X = C + z R^T K^-1 [u, v, 1]`` with the *true*
 pose of frame 0 (``pair.json`` meta ``true_frames``, else the reported one) and
 the true depth ``z`` (``gt_depth_i1.npy``); its true X, Y selects the grid cell
 (nearest cell centre; rows toward -Y, :mod:`protocol.grids`). The pixel is
-*called safe* when that cell's state is SAFE - unknown and unsafe are not
-called safe, and a pixel whose ground point is off the grid or OUTSIDE is not
-scored. The same true X, Y reads the elevation grid for the DEM error
-(nearest cell of the possibly decimated grid).
+*called safe* when that cell's state is SAFE; unknown, unsafe, OUTSIDE and off
+the grid are not called safe. The scored pixels are those whose true ground the
+last frame sees, where the truth is finite: the area `hazard-hil score` scores
+(DESIGN.md's covered area). Until stop 64 a pixel off the grid or OUTSIDE left
+the count, so a Result that mapped less scored a higher CDI (an all-unknown
+answer on an 8x8 corner: 69 % against 22 % on the whole grid; QA 64a). The
+share of the scored pixels the grid maps is ``mapped_pct``. The same true X, Y
+reads the elevation grid for the DEM error (nearest cell of the possibly
+decimated grid).
 
 Scores come from :mod:`ground_sim.scoring` (confusion, DEM error statistics).
 
@@ -69,11 +74,22 @@ def values_at_pixels(
     return out
 
 
-def called_map(states: np.ndarray) -> np.ndarray:
-    """Per-pixel hazard-like map for :func:`ground_sim.scoring.confusion`: 0 called safe, 1 not, NaN not scored."""
+def called_map(states: np.ndarray, scored: np.ndarray) -> np.ndarray:
+    """Per-pixel hazard-like map for :func:`ground_sim.scoring.confusion`: 0 called safe, 1 not (OUTSIDE and off the
+    grid too), NaN not ``scored``."""
     out = np.where(states == STATE_SAFE, 0.0, 1.0).astype(np.float32)
-    out[states == STATE_OUTSIDE] = np.nan
+    out[~scored] = np.nan
     return out
+
+
+def scored_area(pair: Any, world: np.ndarray) -> np.ndarray:
+    """The pixels of frame 0 scored: their true ground (``world``, H x W x 3) is in the last frame's view and the
+    truth is finite there (DESIGN.md's covered area; ``hazard-hil score`` scores the same)."""
+    from ground_sim.library import covered
+
+    h, w = world.shape[:2]
+    seen = covered(pair.camera, true_poses(pair)[-1], world.reshape(-1, 3)).reshape(h, w)
+    return seen & np.isfinite(pair.truth["hazard"]) & np.isfinite(pair.truth["depth"])
 
 
 def score_grids(
@@ -97,14 +113,18 @@ def score_grids(
     truth = pair.truth
     if "depth" not in truth or "hazard" not in truth:
         raise scoring.ScoringInputError("grid scoring needs ground-truth depth and hazard (gt_depth_i1.npy, ...)")
-    x, y = pixel_ground_xy(pair.camera, true_pose_upper(pair), truth["depth"])
+    world = pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"])
+    x, y = world[..., 0], world[..., 1]
     origin = (float(origin_xy[0]), float(origin_xy[1]))
     states = states_at_pixels(state_grid, origin, float(cell_m), x, y)
-    called = called_map(states)
-    scored = states != STATE_OUTSIDE
+    scored = scored_area(pair, world)
+    del world
+    called = called_map(states, scored)
     c = scoring.confusion(called, truth["hazard"], scored)
     out = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
-    out["unknown_pct"] = float(100.0 * np.count_nonzero(scored & (states == STATE_UNKNOWN)) / max(1, int(scored.sum())))
+    n_scored = max(1, int(scored.sum()))
+    out["unknown_pct"] = float(100.0 * np.count_nonzero(scored & (states == STATE_UNKNOWN)) / n_scored)
+    out["mapped_pct"] = float(100.0 * np.count_nonzero(scored & (states != STATE_OUTSIDE)) / n_scored)
     if "elevation" in truth and elevation is not None:
         e_origin = origin if elevation_origin_xy is None else elevation_origin_xy
         e_cell = float(cell_m if elevation_cell_m is None else elevation_cell_m)
