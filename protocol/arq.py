@@ -259,6 +259,7 @@ ECHO_TEXT = (
     "they are dropped"
 )
 ECHO_EVENT_S = 10.0  # echoes are counted each, and said as an event once per this many seconds
+HELD_HELLO_IDS = 16  # session ids whose held-back HELLOs are counted apart (a stranger may send any number of ids)
 FOREIGN_HELLO_TEXT = (
     "a HELLO of another session ({:08x}) while the peer of this one is still talking: ignored (another device on "
     "the line?); a restarted peer's old session falls silent, and its HELLO is then taken"
@@ -316,6 +317,9 @@ class Arq(SessionView):
         self._events: list[_Event] = []
         self._echo_said = -math.inf
         self._foreign_said = -math.inf
+        # HELLOs held back per session id: a restarted peer's first ones come while its old session still reads as
+        # alive, and were counted as "another device on the line?" once the restart was taken (QA 64a)
+        self._held_hellos: dict[int, int] = {}
         self._received: list[Received] = []
         self._failures: deque[DeliveryFailure] = deque(maxlen=4096)
         # (type code, reason) of the latest messages refused from the peer: the REJECT tells the peer why, this
@@ -728,6 +732,8 @@ class Arq(SessionView):
                 # old session falls silent, and it repeats its HELLO until answered), another device on the line.
                 # One such frame took the session over, cost the pair in flight and blamed the board (stop 60's QA)
                 self.stats["foreign_hellos"] += 1
+                if f.src in self._held_hellos or len(self._held_hellos) < HELD_HELLO_IDS:  # bounded: ids are free
+                    self._held_hellos[f.src] = self._held_hellos.get(f.src, 0) + 1
                 if now - self._foreign_said >= ECHO_EVENT_S:
                     self._foreign_said = now
                     self._events.append(_Event("foreign", FOREIGN_HELLO_TEXT.format(f.src), self.sess.epoch))
@@ -741,13 +747,19 @@ class Arq(SessionView):
                 )
             # a session that never completed its handshake is no restart: a board opening a line that still held a
             # dead ground's HELLOs said "the peer restarted" before it served anything
+            held = self._held_hellos.pop(f.src, 0) if replaced is not None else 0
+            self._held_hellos.clear()
+            if held:  # they were this restart's, not a stranger's: no longer counted as foreign
+                self.stats["foreign_hellos"] -= held
             if replaced is not None and was_up:
                 self.stats["peer_restarts"] += 1
+                waited = f"; the {held} HELLO(s) held back as the old session's last seconds ran were its own"
+                waited = waited if held else ""
                 self._events.append(
                     _Event(
                         "restarted",
                         f"the peer started a new link session (it restarted, or gave up the last one) "
-                        f"(session {replaced:08x} -> {f.src:08x})",
+                        f"(session {replaced:08x} -> {f.src:08x}){waited}",
                         ended,
                     )
                 )
