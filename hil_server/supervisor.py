@@ -62,6 +62,7 @@ from reports.console import printable
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
+EXIT_DRAIN_S = 1.0  # a flight process found exited by a poll: its Reader has this long to pass on its last words
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
@@ -240,6 +241,7 @@ class FlightHandle:
         self.link.send(Hello(role="hil-server"))
         self.hello = False
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
+        self.exit_seen: float | None = None  # when a poll first found it exited (its Reader's EOF may be behind)
 
     def take_refusals(self) -> list[Refusal]:
         """The messages the link refused from this incarnation since the last call."""
@@ -870,7 +872,13 @@ class Supervisor:
             return
         report = self.flight.proc.poll()
         if report is not None:
-            self._on_flight_exit()
+            # its last messages may still be on their way through its Reader, which says EOF after them: taken at
+            # the poll, a pair whose Telemetry was still queued was sent to the next incarnation again, and the
+            # pair after it missed its deadline (QA 64a, M1). The EOF decides; the poll only after EXIT_DRAIN_S.
+            if self.flight.exit_seen is None:
+                self.flight.exit_seen = now
+            elif now - self.flight.exit_seen > EXIT_DRAIN_S:
+                self._on_flight_exit()
 
     def serve(self, idle_timeout_s: float = 600.0) -> int:
         """Run until the ground closes its session, the link fails, or nothing happens for ``idle_timeout_s``.
