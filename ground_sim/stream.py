@@ -1121,7 +1121,7 @@ def stream_descent(
                     what = "its Result came, its Telemetry not" if o.result is not None else "no answer"
                     note(
                         f"pair {pair_id}: {what} within {timeout:.0f} s; the next pair goes now, and this one's "
-                        "answer is still recorded if it comes"
+                        "answer is still recorded if it comes before the descent ends"  # no later (QA 64a, M4)
                     )
             else:
                 in_flight.add(o.seqs)

@@ -487,6 +487,7 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "fusion": cfg.fusion,  # asked of the flight side (Config option): the scores are of what it reported
         # --corrupt: the per-byte drop, flip and duplicate rate injected on the line (0: a clean line)
         "line_corrupt_rate": cfg.corrupt,
+        "full_maps_asked": bool(cfg.full_maps),
         "pairs": n,
         "results": len(ok),
         "degraded": sum(bool(r.get("degraded")) for r in ok),
@@ -578,17 +579,47 @@ FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "sta
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
-def off_map_note(summary: dict) -> str:
-    """Results whose world grid covers none of the upper image ("" when none): nothing of them could be scored (a
-    flight program's grid origin with a sign error passed without a word)."""
-    off = [r for r in summary.get("records", []) if r.get("scores") is not None and not r["scores"].get("n")]
-    if not off:
+def full_maps_note(summary: dict) -> str:
+    """Said when ``--full-maps`` asked for the image maps and Results came without them ("" otherwise): a flight
+    program that sends none passed without a word, and `score` on received/ then told the user to give the option
+    already given (QA 64a, M3)."""
+    if not summary.get("full_maps_asked"):
         return ""
-    which = ", ".join(str(r.get("label")) for r in off[:5])
+    got = [r for r in summary.get("records", []) if r.get("status") == "result"]
+    without = [r for r in got if not r.get("full_maps")]
+    if not without:
+        return ""
     return (
-        f"{len(off)} Result(s) mapped none of the upper image's ground ({which}): every cell is marked outside, or "
-        "the grid lies elsewhere (its origin, cell size or axes?), so nothing of them was scored"
+        f"--full-maps asked for the full-resolution image maps, and {len(without)} of {len(got)} Result(s) came "
+        "without them (the flight program sends none?): `hazard-hil score` has no image map of those pairs"
     )
+
+
+# a Result whose grid maps less of the scored ground than this (%) is said: the rest counts as not called safe
+MAPPED_SAID_PCT = 99.0
+
+
+def off_map_note(summary: dict) -> str:
+    """Results whose world grid maps none, or only part, of the scored ground ("" when every one maps it all): a
+    flight program's grid origin with a sign error passed without a word, and a grid over part of the ground
+    scored only that part until stop 64 (QA 64a); the unmapped rest now counts as not called safe."""
+    scored = [r for r in summary.get("records", []) if r.get("scores") is not None]
+    off = [r for r in scored if not r["scores"].get("mapped_pct", r["scores"].get("n"))]
+    part = [r for r in scored if r not in off and r["scores"].get("mapped_pct", 100.0) < MAPPED_SAID_PCT]
+    said = []
+    if off:
+        which = ", ".join(str(r.get("label")) for r in off[:5])
+        said.append(
+            f"{len(off)} Result(s) mapped none of the scored ground ({which}): every cell is marked outside, or the "
+            "grid lies elsewhere (its origin, cell size or axes?), so all of it counts as not called safe"
+        )
+    if part:
+        low = min(part, key=lambda r: r["scores"]["mapped_pct"])
+        said.append(
+            f"{len(part)} Result(s) mapped only part of the scored ground (least: {low.get('label')}, "
+            f"{low['scores']['mapped_pct']:.1f} %); the rest counts as not called safe"
+        )
+    return "; ".join(said)
 
 
 TSTP_NOTE = (
@@ -660,7 +691,8 @@ def session_note(summary: dict) -> str:
     foreign = int(g.get("foreign_hellos") or 0)
     if sessions <= 1 and not (restarts or losses or server or foreign):
         return ""
-    parts = [f"{sessions} link sessions with the flight side (one per descent when nothing fails)"]
+    many = "" if sessions == 1 else "s"
+    parts = [f"{sessions} link session{many} with the flight side (one per descent when nothing fails)"]
     if restarts:
         parts.append(
             f"the flight side started {restarts} of them anew (it restarted, or gave up the last one: a restarted "
@@ -860,6 +892,7 @@ def summary_table(summary: dict) -> str:
         relay_stop_note(s),
         ground_stop_note(s),
         off_map_note(s),
+        full_maps_note(s),
         truth_note(s),
         hello_note(s),
         fusion_note(s),

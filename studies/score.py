@@ -176,7 +176,12 @@ def read_output(
             raise ScoreError(str(exc)) from None
 
     if not present("hazard.npy"):
-        hil = " (an HIL run saves the image maps only with `run --full-maps`)" if sites is not None else ""
+        hil = (
+            " (an HIL run saves the image maps only with `run --full-maps`, and only when its flight program sends "
+            "them)"
+            if sites is not None
+            else ""
+        )
         raise ScoreError(f"{out}: no hazard.npy (float HxW in [0, 1], NaN outside the covered area){hil}")
     # DESIGN.md's dtypes exactly: other tools read these files as it says they are
     hazard = _load(out / "hazard.npy", shape)
@@ -202,7 +207,10 @@ def read_output(
     if present("state.npy"):
         state = _load(out / "state.npy", shape)
         if state.dtype != np.uint8 or not np.isin(state, STATE_CODES).all():
-            raise ScoreError(f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside")
+            got = f"dtype {state.dtype}" if state.dtype != np.uint8 else "other values"  # said, as hazard.npy's is
+            raise ScoreError(
+                f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside; got {got}"
+            )
         _check_state(out / "state.npy", state, hazard)
     xyz = np.zeros((0, 3))
     if sites is not None:
@@ -410,6 +418,8 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     from protocol.pairdir import read_manifest
 
     p, o = Path(pairs), Path(outputs)
+    if p.name in ("manifest.json", "pair.json") and p.is_file():  # the file `run --manifest` takes: its directory
+        p = p.parent
     if not o.is_dir():  # a mistyped path: usage, not a detector that wrote nothing for every pair
         raise ScoreError(f"{o}: {'not a directory' if o.exists() else 'no such directory'} (OUTPUTS)")
     if (p / "pair.json").exists():  # a FIFO or a directory by that name: read_pair says which

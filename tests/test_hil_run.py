@@ -448,7 +448,27 @@ def test_results_whose_grid_covers_none_of_the_image_are_said():
     """A flight program whose grid origin had a sign error passed with every score empty and no word."""
     from hil_server.run import off_map_note
 
-    recs = [{"label": "600/300", "scores": {"n": 0.0}}, {"label": "300/150", "scores": {"n": 812.0}}, {"label": "x"}]
+    recs = [
+        {"label": "600/300", "scores": {"n": 812.0, "mapped_pct": 0.0}},
+        {"label": "300/150", "scores": {"n": 812.0, "mapped_pct": 100.0}},
+        {"label": "x"},
+    ]
     note = off_map_note({"records": recs})
-    assert note.startswith("1 Result(s) mapped none of the upper image's ground (600/300)"), note
+    assert note.startswith("1 Result(s) mapped none of the scored ground (600/300)"), note
     assert off_map_note({"records": recs[1:]}) == ""
+    # a grid over part of the ground scored only that part, and said nothing (QA 64a: CDI 69 % against 22 %)
+    part = [*recs[1:], {"label": "200/100", "scores": {"n": 812.0, "mapped_pct": 1.4}}]
+    assert off_map_note({"records": part}) == (
+        "1 Result(s) mapped only part of the scored ground (least: 200/100, 1.4 %); the rest counts as not called safe"
+    )
+
+
+def test_full_maps_asked_and_not_sent_is_said():
+    """A flight program that sends no image maps under --full-maps passed without a word (QA 64a, M3)."""
+    from hil_server.run import full_maps_note
+
+    recs = [{"status": "result", "full_maps": True}, {"status": "result", "full_maps": False}, {"status": "error"}]
+    said = full_maps_note({"full_maps_asked": True, "records": recs})
+    assert said.startswith("--full-maps asked for the full-resolution image maps, and 1 of 2 Result(s) came without")
+    assert full_maps_note({"full_maps_asked": False, "records": recs}) == ""
+    assert full_maps_note({"full_maps_asked": True, "records": recs[:1]}) == ""
