@@ -62,7 +62,6 @@ from reports.console import printable
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
-EXIT_DRAIN_S = 1.0  # a flight process found exited by a poll: its Reader has this long to pass on its last words
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
@@ -88,6 +87,8 @@ class PairState:
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
     proc_at_result: dict | None = None
     sent_to: int = -1  # flight generation the frames went to
+    frame_mids: dict[int, int] = field(default_factory=dict)  # frame_index -> message id on that generation's link
+    unreached: int = 0  # incarnations that died before acknowledging its frames (one is forgiven, not a loop)
     # monotonic time the last frame reached the current generation: complete_at, or its restart's replay. The hang
     # watchdog counts from here: a pair that waited while earlier generations crashed is not this one's hang
     sent_at: float | None = None
@@ -241,7 +242,6 @@ class FlightHandle:
         self.link.send(Hello(role="hil-server"))
         self.hello = False
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
-        self.exit_seen: float | None = None  # when a poll first found it exited (its Reader's EOF may be behind)
 
     def take_refusals(self) -> list[Refusal]:
         """The messages the link refused from this incarnation since the last call."""
@@ -359,8 +359,7 @@ class Supervisor:
         if self.config is not None:
             self.flight.link.send(self.config)
         for st in to_replay([self.pairs[pid] for pid in self.order]):  # what the dead incarnation never answered
-            for idx in sorted(st.fframes):
-                self.flight.link.send(st.fframes[idx])
+            st.frame_mids = {idx: self.flight.link.send(st.fframes[idx]) for idx in sorted(st.fframes)}
             st.sent_to = self.generation
             if st.complete_at is not None:
                 st.sent_at = time.monotonic()
@@ -485,7 +484,9 @@ class Supervisor:
             if len(st.frames) == 2:
                 st.complete_at = st.sent_at = time.monotonic()
                 st.proc_at_complete = self.flight.proc.stats()
-            self.flight.link.send(fmsg)
+            if st.sent_to != self.generation:
+                st.frame_mids.clear()
+            st.frame_mids[msg.frame_index] = self.flight.link.send(fmsg)
             st.sent_to = self.generation
         return True
 
@@ -670,8 +671,39 @@ class Supervisor:
             self.ground_waiting_hello = False
             self._to_ground(Hello(role="hil-server", session=self.ground.session_id))
 
+    def _take_last_words(self) -> None:
+        """Handle what the flight incarnation that just ended sent and this loop has not read yet: its Reader's
+        queued events and what is still in its link. Taken after the restart, they were a dead incarnation's and
+        dropped: a pair answered in full whose Telemetry was still queued was sent to the next incarnation again,
+        answered twice and the pair after it missed its deadline (QA 64a, M1)."""
+        from protocol.links import LinkClosed
+
+        assert self.flight is not None
+        gen = self.flight.generation
+        if self.flight_reader is not None:
+            self.flight_reader.stopped.set()
+            self.flight_reader.join(timeout=1.0)  # one recv cycle (0.2 s) at most: it stops reading for good
+        with self.events.mutex:  # the ground's events stay queued, in their order
+            mine = [e for e in self.events.queue if e[0] == "flight" and e[1] == gen]
+            rest = [e for e in self.events.queue if not (e[0] == "flight" and e[1] == gen)]
+            self.events.queue.clear()
+            self.events.queue.extend(rest)
+        msgs = [e[2] for e in mine]
+        while True:
+            try:
+                pkt = self.flight.link.recv_packet(timeout=0.0)
+            except (EOFError, OSError, LinkClosed):  # a closed or failed link has nothing more to say
+                break
+            if pkt is None:
+                break
+            msgs.append(pkt.message)
+        for msg in msgs:
+            if not isinstance(msg, EOFError):
+                self._on_flight(gen, msg)
+
     def _on_flight_exit(self) -> None:
         assert self.flight is not None
+        self._take_last_words()
         report = self.flight.proc.wait(2.0)
         reason = getattr(report, "reason", None) or "flight process exited"
         if "memory" in reason:
@@ -683,9 +715,23 @@ class Supervisor:
             code, counter, how = "flight_crash", "crashes", "died"
         self.counters[counter] += 1
         st = self._oldest_outstanding()
-        if st is not None:
+        if st is not None and (st.unreached or self._reached_flight(st)):  # a second time: its crash, not a loop
             self._fail_pair(st, code, f"flight process {how} while processing ({reason})")
+        elif st is not None:  # a crash between two pairs costs no pair: the next incarnation is sent it
+            st.unreached += 1
+            self.log(f"supervisor: pair {st.pair_id}: its frames never reached the flight process that {how}; "
+                     "sent to the next one")  # fmt: skip
         self._restart_flight(reason)
+
+    def _reached_flight(self, st: PairState) -> bool:
+        """Whether the flight incarnation ``st`` was sent to acknowledged any of its frames: it had (part of) the
+        pair when it died, and the pair is its crash (one that dies on a frame dies on it again). Frames forwarded as
+        it died, none acknowledged (its Reader's EOF is awaited: the pair after its last answer came meanwhile),
+        never reached it, and the pair is not its crash (QA 64a)."""
+        assert self.flight is not None
+        if st.sent_to != self.flight.generation or not st.frame_mids:
+            return True  # not known otherwise: as before, the incarnation's
+        return any(self.flight.link.outcome(mid) == "delivered" for mid in st.frame_mids.values())
 
     def _link_stats(self) -> dict[str, float]:
         stats = getattr(self.ground, "stats", {})
@@ -872,13 +918,7 @@ class Supervisor:
             return
         report = self.flight.proc.poll()
         if report is not None:
-            # its last messages may still be on their way through its Reader, which says EOF after them: taken at
-            # the poll, a pair whose Telemetry was still queued was sent to the next incarnation again, and the
-            # pair after it missed its deadline (QA 64a, M1). The EOF decides; the poll only after EXIT_DRAIN_S.
-            if self.flight.exit_seen is None:
-                self.flight.exit_seen = now
-            elif now - self.flight.exit_seen > EXIT_DRAIN_S:
-                self._on_flight_exit()
+            self._on_flight_exit()
 
     def serve(self, idle_timeout_s: float = 600.0) -> int:
         """Run until the ground closes its session, the link fails, or nothing happens for ``idle_timeout_s``.
