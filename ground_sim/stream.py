@@ -378,7 +378,9 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         flight_deadline_met=bool(t.deadline_met),
         server_e2e_s=t.link.get("server_e2e_s"),
         # the Result's line time as its sender measured it (first byte on the line -> last, MessageTimes.line_s)
-        result_line_s=_line_within(t.link.get("result_link_s", rx_span), e2e, t, rec),
+        # ... and only as it measured it: a Telemetry without it (a user's program) read 0.00 s, the span between a
+        # one-frame Result's first and last frame here (QA 64a); that span stays result_rx_s
+        result_line_s=_line_within(t.link.get("result_link_s"), e2e, t, rec),
         # its wait in the sender's queue before that (behind an earlier pair's Result on a slow line); None: not sent
         result_queue_s=t.link.get("result_queue_s"),
         queue_wait_s=t.queue_wait_s,

@@ -38,6 +38,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -1343,6 +1344,13 @@ def _blame_server(records: list[dict], why: str) -> list[dict]:
     ]
 
 
+def _descent_order(record: dict) -> tuple[int, str]:
+    """A record's place in the descent: the index in its pair id (``p001-300_150``, ground_sim.stream's)."""
+    pid = str(record.get("pair_id", ""))
+    m = re.match(r"p([0-9]+)-", pid)
+    return (int(m.group(1)) if m else 10**9, pid)
+
+
 def _server_saw(events: list[dict]) -> dict[str, str]:
     """What the HIL server had of each pair (``supervisor.jsonl``): "result", "error" or "frames", the furthest."""
     order = {"frames": 0, "error": 1, "result": 2}
@@ -1754,7 +1762,8 @@ def _descend(checked: CheckedRun, log) -> dict:
         wall = time.monotonic() - t0
 
         entries = _manifest_entries(manifest) if manifest is not None else _planned_entries(cfg)
-        records = read_results(received / "results.jsonl", strict=False)
+        # in descent order: the ground records a pair when it ends, so one given up on came after the next (QA 64a)
+        records = sorted(read_results(received / "results.jsonl", strict=False), key=_descent_order)
         server_events = read_results(out / "supervisor.jsonl", strict=False)
         if sup_reason is not None:
             records = _blame_server(records, sup_reason)

@@ -445,3 +445,19 @@ def test_a_latency_is_printed_with_the_decimals_that_tell_it_from_its_deadline()
     assert _places(0.0208, 0.02) == 3 and f"{0.0208:.{_places(0.0208, 0.02)}f}" == "0.021"
     assert _places(1.5, 2.0) == 2 and _places(2.0, 2.0) == 2  # apart, or equal: two as before
     assert _places(2.0004, 2.0) == 4 and _places(0.02004, 0.02) == 5
+
+
+def test_a_telemetry_that_does_not_measure_the_results_line_time_leaves_it_unknown(tmp_path):
+    """A user's program sends no `link.result_link_s`: its Result's line time read 0.00 s over serial, the span
+    between a one-frame Result's first and last frame at the ground (QA 64a)."""
+    from resultrev import small_result
+
+    from ground_sim.stream import PairOutcome, write_outcome
+    from protocol.messages import Telemetry
+
+    o = PairOutcome("p000", "600/300", 300.0, str(tmp_path), (0, 1), sent_at=1.0)
+    o.result, o.frames_written_at, o.result_t_first, o.result_t_done = small_result(), 2.0, 2.5, 2.5
+    o.telemetry = Telemetry(frame_seqs=(0, 1), total_latency_s=0.3, deadline_met=True, stages={}, link={})
+    rec = write_outcome(tmp_path, o, 10.0)
+    assert rec["result_line_s"] is None and rec["result_rx_s"] == 0.0
+    assert rec["outside_flight_s"] == pytest.approx(0.2)  # what is known: the end to end less the compute

@@ -472,3 +472,12 @@ def test_full_maps_asked_and_not_sent_is_said():
     assert said.startswith("--full-maps asked for the full-resolution image maps, and 1 of 2 Result(s) came without")
     assert full_maps_note({"full_maps_asked": False, "records": recs}) == ""
     assert full_maps_note({"full_maps_asked": True, "records": recs[:1]}) == ""
+
+
+def test_records_are_in_descent_order_whatever_order_the_ground_ended_them():
+    """A pair given up on is recorded after the next one ends: the table listed 300/150 above 600/300 (QA 64a)."""
+    from hil_server.run import _descent_order
+
+    ids = ["p001-300_150", "p000-600_300", "p1000-1_0", "p002-200_100", "odd"]
+    got = [r["pair_id"] for r in sorted(({"pair_id": x} for x in ids), key=_descent_order)]
+    assert got == ["p000-600_300", "p001-300_150", "p002-200_100", "p1000-1_0", "odd"]
