@@ -114,7 +114,7 @@ LINE_COUNTERS = ("crc_errors", "malformed", "bytes_discarded", "retransmits", "r
 # a ZeroMQ link's frames dropped by the session rules (docs/protocol.md section 7): a seq that did not rise, a frame
 # of a past or unknown session
 SESSION_DROPS = ("duplicates_dropped", "misaddressed_frames", "foreign_frames")
-MAX_REFUSAL_LOGS = 100  # refusals noted one by one per descent; past that only counted (as the HIL server does)
+REFUSALS_SAID = 5  # refusals of one message type said one by one; then one line per quiet period, with the count
 REFUSAL_DRAIN_S = 0.2  # before acting on a refusal: what the link's reader still holds is taken first (in order)
 UNANSWERED_TEXT = (
     "its ZeroMQ connection is up but the board never answered on it: a board serves one ground at a time and this "
@@ -525,6 +525,7 @@ def stream_descent(
     by_lower_seq: dict[int, PairOutcome] = {}
     unattributed = Quieter(first=UNATTRIBUTED_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # Errors about no pair
     ignored = Quieter(first=UNATTRIBUTED_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # answers that are no pair's answer
+    refusals_said = Quieter(first=REFUSALS_SAID, quiet_s=UNATTRIBUTED_QUIET_S)  # messages refused, per type
     records: list[dict] = []
     config: Config | None = None
     state = _SessionState()
@@ -768,14 +769,16 @@ def stream_descent(
         return True
 
     def count_refusal(type_code: int | None, reason: str, show: bool = True) -> str:
-        """Count one message refused from the flight side; a line on stderr for the first MAX_REFUSAL_LOGS."""
+        """Count one message refused from the flight side; a line on stderr as :data:`REFUSALS_SAID` allows."""
         what = MESSAGE_NAMES.get(type_code, "message") if type_code is not None else "message"
         state.refused_messages += 1
         state.last_refused = {"type": what, "reason": reason}
-        n = state.refused_messages
-        if show and n <= MAX_REFUSAL_LOGS:
-            more = "; further refusals are only counted" if n == MAX_REFUSAL_LOGS else ""
-            note(f"the flight computer sent a {what} the ground refused: {reason}{more}")
+        if show:  # the first few one by one, then one line per quiet period with the count since (a ZeroMQ peer
+            # speaking garbage printed 100 near-identical lines; QA 64a)
+            say, unsaid, since = refusals_said.offer(what, time.monotonic(), reason)
+            if say:
+                more = f" ({unsaid} more refused in the last {since:.0f} s)" if unsaid else ""
+                note(f"the flight computer sent a {what} the ground refused: {reason}{more}")
         return what
 
     def refused(r: Refusal, want: set[tuple[int, int]]) -> None:
