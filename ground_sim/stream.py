@@ -211,6 +211,7 @@ class PairOutcome:
     result_t_done: float | None = None
     result_order: int = 0  # its Result's place among the messages the link received (Received.order)
     drops_at_send: int = 0  # the link's session drops (SESSION_DROPS) when its frames went
+    ignored_at_send: int = 0  # Results the ground had ignored (for no pair sent) when its frames went
     result_bytes: int = 0
     telemetry_missing: str | None = None  # why the pair completes without Telemetry (it was refused)
     ground_stopped_s: float = 0.0  # this process was not scheduled for so long while the pair was in flight
@@ -993,6 +994,7 @@ def stream_descent(
     def send_frames(o: PairOutcome, frames: list[Frame]) -> bool:
         o.sent_at = time.monotonic()
         o.drops_at_send = session_drops()
+        o.ignored_at_send = ignored.seen("Result")
         try:
             ids = [link.send(f, timeout=timeout, epoch=state.epoch) for f in frames]
         except LinkClosed as exc:  # the transport failed as the pair went: its pair is lost to the link
@@ -1175,6 +1177,12 @@ def stream_descent(
                         text += (
                             f"; meanwhile the link dropped {dropped} of the flight side's messages by the session "
                             "rules (said above)"
+                        )
+                    stray = ignored.seen("Result") - o.ignored_at_send
+                    if stray:  # an answer under other frame numbers read as none at all (QA 64a)
+                        text += (
+                            f"; meanwhile {stray} Result(s) came for frames no open pair has, and were ignored "
+                            "(said above: wrong frame_seqs?)"
                         )
                     o.error = Error(code="no_response", text=text, seq=s[1])
                 rec = write_outcome(out_dir, o, deadline_s)

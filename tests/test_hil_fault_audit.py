@@ -665,6 +665,16 @@ def _lockstep(
             link.close()
 
 
+def test_an_external_pair_answered_under_the_wrong_frame_seqs_says_so_when_it_times_out(manifest, flight, tmp_path):
+    """Over `--flight external` its reason read only "no result or error 34 s after its frames went": the Result
+    that came under other frame numbers, ignored, was said once on the console (QA 64a)."""
+    records = _lockstep(flight, "wrong_seqs", manifest, tmp_path)
+    r = next(x for x in records if x["label"] == "300/150")
+    assert (r["status"], r["code"]) == ("error", "no_response"), r
+    assert "meanwhile 1 Result(s) came for frames no open pair has, and were ignored" in r["text"], r["text"]
+    assert "Result(s) came for frames" not in next(x for x in records if x["label"] == "200/100").get("text", "")
+
+
 def test_an_answer_that_came_before_its_pairs_frames_is_no_answer(manifest, flight, tmp_path, capfd):
     """A board that guessed the next pair's frame seqs and answered before they were sent: the ground took that
     Result as the pair's answer, recorded a negative end-to-end latency as "met", and the run passed."""
