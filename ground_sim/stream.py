@@ -1178,6 +1178,8 @@ def stream_descent(
                             f"; meanwhile the link dropped {dropped} of the flight side's messages by the session "
                             "rules (said above)"
                         )
+                    if o.telemetry is not None:  # kept with nothing to say it came (QA 64a)
+                        text += "; its Telemetry came, its Result did not"
                     stray = ignored.seen("Result") - o.ignored_at_send
                     if stray:  # an answer under other frame numbers read as none at all (QA 64a)
                         text += (

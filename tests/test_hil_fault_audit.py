@@ -672,6 +672,7 @@ def test_an_external_pair_answered_under_the_wrong_frame_seqs_says_so_when_it_ti
     r = next(x for x in records if x["label"] == "300/150")
     assert (r["status"], r["code"]) == ("error", "no_response"), r
     assert "meanwhile 1 Result(s) came for frames no open pair has, and were ignored" in r["text"], r["text"]
+    assert "its Telemetry came, its Result did not" in r["text"]  # it came under the pair's own frames
     assert "Result(s) came for frames" not in next(x for x in records if x["label"] == "200/100").get("text", "")
 
 
