@@ -433,7 +433,8 @@ class _SessionState:
     last_refused: dict | None = None  # {"type", "reason"} of the latest
     flight_hello: dict | None = None  # what the flight side said it is: role, software, protocol_version
     said_middle_frames: bool = False  # a pair directory of more than two frames was said to be streamed as a pair
-    saved: int = 0  # records already appended to results.jsonl (and telemetry.jsonl)
+    saved: int = 0  # records already appended to results.jsonl
+    telemetry_saved: int = 0  # ... and to the timing lines
 
 
 def _silent_link_reason(link, where: str) -> str:
@@ -949,8 +950,22 @@ def stream_descent(
         overdue_telemetry(want)  # after what has arrived: a Telemetry in the queue is no missing one
 
     def save() -> None:
+        # whole, a signal held meanwhile: one that came between an append and its count was followed by a second
+        # save that appended the same records again (review of stop 64); the interrupted path holds them already
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
+        try:
+            write_records()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+    def write_records() -> None:
         new = records[state.saved :]  # appended, not rewritten: a long descent wrote O(n^2) bytes (soak QA)
         append_records(results_path, new)
+        state.saved = len(records)
+        if telemetry_path is not None:
+            lines = records[state.telemetry_saved :]
+            append_records(telemetry_path, ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in lines))
+            state.telemetry_saved = len(records)
         stats = getattr(link, "stats", None) or {}
         # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
         counted = sum(int(stats.get(k, 0) or 0) for k in ("decode_errors", "reassembly_errors", "protocol_drops"))
@@ -974,9 +989,6 @@ def stream_descent(
             k: int(stats.get(k, 0) or 0) for k in ("sessions", "peer_restarts", "peer_losses", "foreign_hellos")
         }
         write_atomic(counters_path, json.dumps(counters, sort_keys=True) + "\n")
-        if telemetry_path is not None:
-            append_records(telemetry_path, ({k: r[k] for k in TELEMETRY_KEYS if k in r} for r in new))
-        state.saved = len(records)
 
     def record(o: PairOutcome, show: bool = True) -> None:
         rec = write_outcome(out_dir, o, deadline_s)

@@ -641,6 +641,28 @@ def test_the_grounds_records_are_appended_once_not_rewritten_after_every_pair(ma
     assert [r["label"] for r in saved] == [r["label"] for r in records]
 
 
+def test_a_stop_inside_a_save_does_not_append_the_same_records_twice(manifest, flight, tmp_path, monkeypatch):
+    """Appended records were counted only at the end of save(): a stop after the append (here: as the counters
+    are written) was followed by the interrupted path's save(), which appended them again (review of stop 64)."""
+    from ground_sim import stream
+
+    real, calls = stream.write_atomic, {"n": 0}
+
+    def counters_then_stop(path, text, *a, **k):
+        real(path, text, *a, **k)
+        if Path(path).name == "ground.json":
+            calls["n"] += 1
+            if calls["n"] == 3:  # the second pair's save (the first write is the empty file's)
+                raise stream.Interrupted(2)
+
+    monkeypatch.setattr(stream, "write_atomic", counters_then_stop)
+    with pytest.raises(stream.Interrupted):
+        _lockstep(flight, "plain", manifest, tmp_path, telemetry=tmp_path / "telemetry.jsonl")
+    ids = [json.loads(x)["pair_id"] for x in (tmp_path / "results.jsonl").read_text().splitlines()]
+    timing = [json.loads(x)["pair_id"] for x in (tmp_path / "telemetry.jsonl").read_text().splitlines()]
+    assert len(ids) == len(set(ids)) >= 2 and timing == ids, (ids, timing)
+
+
 def _lockstep(
     flight: Path, mode: str, manifest: Path, out: Path, baud: int | None = None, telemetry: Path | None = None
 ) -> list[dict]:
