@@ -1531,7 +1531,9 @@ def _descend(checked: CheckedRun, log) -> dict:
             "started": started,
         },
     )
-    for stale in ("summary.md", "report.html"):
+    # an earlier run's logs went only once the ground started: a stop before that read its supervisor.jsonl as
+    # this run's, and its answered pairs as this run's interrupted ones (review of stop 64)
+    for stale in ("summary.md", "report.html", "telemetry.jsonl", "supervisor.jsonl"):
         (out / stale).unlink(missing_ok=True)
     received = out / "received"
     if received.is_dir():  # a previous run's records must not pass for this one's: cleared, and said
@@ -1613,8 +1615,6 @@ def _descend(checked: CheckedRun, log) -> dict:
                     log(f"run: {throttle_note(throttle, duty.applied)}")
                     fraction, effective = duty.applied, duty.effective
             env = dict(os.environ)
-            for name in ("telemetry.jsonl", "supervisor.jsonl"):
-                (out / name).unlink(missing_ok=True)
             ground_cmd = [
                 sys.executable,
                 "-m",

@@ -347,6 +347,10 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
+    # an earlier run's log in the same --out: its answered pairs read as this run's interrupted ones (review of
+    # stop 64)
+    earlier = [{"pair_id": p, "event": e} for p in ("p000-600_300", "p001-300_150") for e in ("frame", "result")]
+    (tmp_path / "supervisor.jsonl").write_text("".join(json.dumps(x) + "\n" for x in earlier))
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--pairs", "600/300,300/150", "--budget", "host"]
     proc = subprocess.Popen(
         [*cmd, "--out", str(tmp_path)], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
