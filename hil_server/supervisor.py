@@ -62,6 +62,8 @@ from reports.console import printable
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
+LAST_WORDS_S = 1.0  # a dead flight process's link is read to its end for at most this long ...
+LAST_WORDS_QUIET_S = 0.2  # ... or until it has been quiet this long (a pty gives no end of stream)
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
@@ -216,6 +218,7 @@ class FlightHandle:
                 os.close(master)
                 raise
             self.link = StreamLink(master, config=LOCAL_CONFIG, name=f"flight{generation}")
+            self.says_eof = False  # a pty's master reads EIO, which the link takes for "not open yet"
         else:
             parent, child = socket.socketpair()
             argv = [
@@ -232,6 +235,7 @@ class FlightHandle:
             self.proc.start(argv, pass_fds=(child.fileno(),))
             child.close()
             self.link = StreamLink(parent, config=LOCAL_CONFIG, name=f"flight{generation}")
+            self.says_eof = True  # a socket's end of stream comes after everything the process sent
         self.last_refusal: str | None = None  # the latest message refused from this incarnation, for a hang's reason
         self.last_ignored: str | None = None  # ... and the latest Result it sent for no open pair
         # (type code, reason) of a record accounted for as refused from its header, before its REJECT: its REJECT,
@@ -689,14 +693,19 @@ class Supervisor:
             self.events.queue.clear()
             self.events.queue.extend(rest)
         msgs = [e[2] for e in mine]
-        while True:
+        # to the link's end (a socket's EOF), or a quiet spell (a pty says none): what its reader thread had not yet
+        # parsed came after a drain that stopped at the first empty read, and was dropped (review of stop 64)
+        end, quiet = time.monotonic() + LAST_WORDS_S, time.monotonic() + LAST_WORDS_QUIET_S
+        while time.monotonic() < end:
             try:
-                pkt = self.flight.link.recv_packet(timeout=0.0)
+                pkt = self.flight.link.recv_packet(timeout=0.05)
             except (EOFError, OSError, LinkClosed):  # a closed or failed link has nothing more to say
                 break
-            if pkt is None:
+            if pkt is not None:
+                msgs.append(pkt.message)
+                quiet = time.monotonic() + LAST_WORDS_QUIET_S
+            elif time.monotonic() >= quiet and not getattr(self.flight, "says_eof", False):
                 break
-            msgs.append(pkt.message)
         for msg in msgs:
             if not isinstance(msg, EOFError):
                 self._on_flight(gen, msg)

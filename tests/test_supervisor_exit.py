@@ -1,0 +1,68 @@
+"""The HIL server when a flight process ends: its last messages are taken before its exit is judged, and a pair
+whose frames never reached it is the next process's, not its crash (QA 64a M1, review of stop 64)."""
+
+from __future__ import annotations
+
+import socket
+import time
+from types import SimpleNamespace
+
+from hil_server.supervisor import PairState, Reader, Supervisor
+from protocol.links import LOCAL_CONFIG, StreamLink
+from protocol.messages import Error
+
+
+def test_a_dead_processs_last_messages_are_taken_before_its_exit_is_judged():
+    """Taken after the restart, they were a dead incarnation's and dropped: a pair answered in full whose Telemetry
+    was still in the link was sent to the next process again. Here the link's reader thread is late to parse the
+    last message (a loaded host): it is still taken, and the ground's events stay queued in their order."""
+    a_sock, b_sock = socket.socketpair()
+    server = StreamLink(a_sock, config=LOCAL_CONFIG, name="server-side")
+    slow = {"on": False}
+    read = server._read
+
+    def late_read(timeout):
+        data = read(timeout)
+        if data and slow["on"]:
+            time.sleep(0.4)  # read, not yet parsed
+        return data
+
+    server._read = late_read  # type: ignore[method-assign]
+    time.sleep(0.2)  # its reader thread is in the patched read from now on
+    flight = StreamLink(b_sock, config=LOCAL_CONFIG, name="flight-side")
+    try:
+        assert server.wait_established(5) and flight.wait_established(5)
+        sup = Supervisor(None, SimpleNamespace(deadline_s=2.0), None, log=lambda s: None)
+        sup.flight = SimpleNamespace(generation=1, link=server, says_eof=True)  # type: ignore[assignment]
+        sup.flight_reader = Reader(server, "flight", sup.events, 1)
+        sup.flight_reader.start()
+        sup.events.put(("ground", 0, "a ground message", 1))
+        taken: list[str] = []
+        sup._on_flight = lambda gen, msg: taken.append(msg.text)  # type: ignore[method-assign]
+        flight.send(Error(code="m", text="Result"))
+        time.sleep(0.5)
+        slow["on"] = True
+        flight.send(Error(code="m", text="Telemetry"))  # its last words, then it ends
+        time.sleep(0.05)
+        b_sock.shutdown(socket.SHUT_RDWR)
+        time.sleep(0.05)
+        sup._take_last_words()
+        assert taken == ["Result", "Telemetry"]
+        assert list(sup.events.queue) == [("ground", 0, "a ground message", 1)]
+    finally:
+        server.close()
+        flight.close()
+
+
+def test_a_pair_none_of_whose_frames_reached_the_dead_process_is_not_its_crash():
+    """Frames forwarded as a process died (the pair after its last answer) were failed as "died while processing";
+    a pair it had any frame of is its crash, and a second death on the same pair is one too (no crash loop)."""
+    outcomes = {5: "pending", 6: "pending", 7: "delivered", 8: "pending"}
+    sup = Supervisor(None, SimpleNamespace(deadline_s=2.0), None, log=lambda s: None)
+    link = SimpleNamespace(outcome=outcomes.get)
+    sup.flight = SimpleNamespace(generation=3, link=link)  # type: ignore[assignment]
+    never = PairState("a", sent_to=3, frame_mids={0: 5, 1: 6})
+    half = PairState("b", sent_to=3, frame_mids={0: 7, 1: 8})
+    earlier = PairState("c", sent_to=2, frame_mids={0: 5, 1: 6})  # sent to another incarnation: not known here
+    assert not sup._reached_flight(never)
+    assert sup._reached_flight(half) and sup._reached_flight(earlier)
