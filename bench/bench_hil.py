@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from ground_sim.descent import render_scenario
     from hil_server.budgets import get_budget, load_calibration
-    from hil_server.run import RunConfig, run_descent
+    from hil_server.run import LATE_SIGNAL, RunConfig, run_descent
     from protocol.plan import plan_note
 
     work = Path(tempfile.mkdtemp(prefix="bench_hil_"))
@@ -49,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
             RunConfig(scenario=args.scenario, link=b.link, budget=name, out=work / name, manifest=manifest),
             log=lambda m: print(m, file=sys.stderr),
         )
+        stop = s.get("interrupted_by") or s.get(LATE_SIGNAL)
+        if stop:  # a Ctrl-C, also one while the summary was written (returned, not raised): no more budgets
+            raise SystemExit(f"bench_hil: stopped by signal {stop} during budget {name}; no table written")
         recs = [r for r in s["records"] if r["status"] == "result"]
         rows.append(
             {

@@ -156,7 +156,7 @@ def _left_after_stop(out: Path, removing: bool = False) -> str:
     they were called this run's)."""
     have = [n for n in PROCESS_OUTPUTS if (out / n).is_file()]
     if removing:
-        left = f"; it still holds the earlier run's {', '.join(have)} (no result.json: incomplete)" if have else ""
+        left = f"; it still holds the earlier run's {', '.join(have)}" if have else ""
         return f"process: stopped while removing an earlier run's outputs from {out}{left}; run it again"
     if not have:
         return f"process: stopped while writing {out}: nothing of this run is in it yet; run it again"

@@ -118,7 +118,6 @@ def score_grids(
     origin = (float(origin_xy[0]), float(origin_xy[1]))
     states = states_at_pixels(state_grid, origin, float(cell_m), x, y)
     scored = scored_area(pair, world)
-    del world
     called = called_map(states, scored)
     c = scoring.confusion(called, truth["hazard"], scored)
     out = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}

@@ -258,7 +258,15 @@ def score_records(records: list[dict]) -> list[dict]:
     ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
-    from ground_sim.gridscore import complete_truth, judge_sites, score_grids, site_verdict
+    from ground_sim.gridscore import (
+        complete_truth,
+        judge_sites,
+        pixel_ground,
+        score_grids,
+        scored_area,
+        site_verdict,
+        true_pose_upper,
+    )
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -308,10 +316,17 @@ def score_records(records: list[dict]) -> list[dict]:
             np.save(d / CALLED_FILE, np.where(np.isnan(called), CALLED_UNSCORED, called).astype(np.uint8))
         if (d / "hazard.npy").is_file() and "hazard" in truth:
             hazard = np.load(d / "hazard.npy")
-            c = confusion(hazard, truth["hazard"], ~np.isnan(hazard))
+            # over the ground the last frame sees, a NaN not called safe, as the grid's scores and `score` (it was
+            # over the map's own coverage: a map of less scored a higher CDI; review of stop 64)
+            area = (
+                scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"]))
+                if ("depth" in truth)
+                else ~np.isnan(hazard)
+            )
+            c = confusion(hazard, truth["hazard"], area)
             full = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
             if (d / "elevation.npy").is_file() and "elevation" in truth:
-                st = dem_error_stats(np.load(d / "elevation.npy"), truth["elevation"])
+                st = dem_error_stats(np.load(d / "elevation.npy"), truth["elevation"], area)
                 full.update({f"dem_{k}": float(v) for k, v in st.items()})
             rec["scores_full"] = full
     _judge_elsewhere(scored)
