@@ -61,7 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="use frames 0 and -1 only (default: every frame of the directory, multi-baseline)",
     )
-    p.set_defaults(func=_process)
+    p.set_defaults(func=_process_held)
 
     f = subparsers.add_parser(
         "flight",
@@ -209,6 +209,15 @@ def _check_out(pair_dir: Path, out: Path) -> None:
         )
 
 
+def _process_held(args: argparse.Namespace) -> int:
+    """:func:`_process` with its ``--out`` held (:func:`protocol.outdir.claim_out`): it wrote into a live run's
+    directory, and replaced what another command was writing there (QA 64b)."""
+    from protocol.outdir import claim_out
+
+    with claim_out(args.out, "process"):
+        return _process(args)
+
+
 def _process(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -335,7 +344,9 @@ def _process(args: argparse.Namespace) -> int:
     line = (
         f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}"
         f"{'' if fills is None else f' ({fills:.1%} gap fill)'}, "
-        f"{len(res.sites)} sites, {res.timings['total']['wall_s']:.3f} s"
+        f"{len(res.sites)} sites"
+        + (f" ({res.info['no_site_reason']})" if not res.sites and res.info.get("no_site_reason") else "")
+        + f", {res.timings['total']['wall_s']:.3f} s"
     )
     if "dem_error" in truth and truth["dem_error"].get("n"):
         line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"

@@ -97,7 +97,19 @@ def _environment() -> Any:
         lstrip_blocks=True,
     )
     env.filters["fmt"] = fmt_value
+    env.filters["code"] = inline_code
     return env
+
+
+def inline_code(text: object) -> Any:
+    """``text`` escaped for HTML with its `backtick` spans as ``<code>``: the notes shared with summary.md are
+    Markdown, and the pages showed their backticks as they are (QA 64b)."""
+    import re
+
+    import markupsafe
+
+    escaped = str(markupsafe.escape(str(text)))
+    return markupsafe.Markup(re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped))
 
 
 def current_umask() -> int:

@@ -14,6 +14,7 @@ from browser import browser_available, check_page
 from synthetic import crater, make_pair
 
 from hil_server.cli import main
+from protocol.outdir import LOCK_NAME
 from protocol.pairdir import Pair, Pose, write_pair
 
 
@@ -61,6 +62,30 @@ def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
     assert not (out / "sigma.npy").exists() and not (out / "filled.npy").exists()
 
 
+def test_process_holds_its_out_as_the_other_commands_do(tmp_path, capsys):
+    """It wrote into a directory a live run was writing (QA 64b)."""
+    import subprocess
+
+    d, _ = _pair(tmp_path)
+    out = tmp_path / "out"
+    hold = (
+        "import sys\nfrom protocol.outdir import claim_out\nwith claim_out(sys.argv[1], 'run'):\n"
+        "    print('held', flush=True)\n    sys.stdin.readline()"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", hold, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+        assert main(["process", str(d), "--out", str(out)]) == 2
+        assert f"is being written by hazard-hil run (pid {proc.pid})" in capsys.readouterr().err
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+    finally:
+        proc.kill()
+        proc.wait()
+    assert main(["process", str(d), "--out", str(out)]) == 0
+
+
 def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_path, monkeypatch, capsys):
     """A kill mid-write left the earlier run's result.json, sigma and pictures beside the new maps, and `score`
     took the mix for one run (stop 63's QA). The earlier outputs go first; each new one is renamed into place."""
@@ -80,7 +105,7 @@ def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_
 
     monkeypatch.setattr(cli, "_save_npy", dies_at_psafe)
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 130  # said as interrupted
-    left = {p.name for p in out.iterdir()}
+    left = {p.name for p in out.iterdir()} - {LOCK_NAME}  # process holds its --out (QA 64b)
     assert left == {"elevation.npy", "hazard.npy", "state.npy"}, left  # this run's, whole; none of the thesis run's
     said = capsys.readouterr().err
     assert "it holds this run's elevation.npy, hazard.npy, state.npy only (no result.json: incomplete)" in said

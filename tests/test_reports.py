@@ -303,3 +303,14 @@ def test_a_picture_stopped_mid_write_leaves_the_one_before_whole(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         save(fig, path)
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["dem.png"]
+
+
+def test_a_pages_markdown_code_spans_are_code_and_its_text_stays_escaped(tmp_path):
+    """The notes shared with summary.md are Markdown: the pages showed `hazard-hil score` with its backticks."""
+    from reports.html import Section, write_page
+
+    page = write_page(
+        tmp_path / "p.html", "t", sections=[Section("s", paragraphs=["run `hazard-hil score` <now> & `--full-maps`"])]
+    )
+    text = page.read_text()
+    assert "run <code>hazard-hil score</code> &lt;now&gt; &amp; <code>--full-maps</code>" in text and "`" not in text
