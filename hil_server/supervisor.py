@@ -735,8 +735,8 @@ class Supervisor:
     def _reached_flight(self, st: PairState) -> bool:
         """Whether the flight incarnation ``st`` was sent to acknowledged any of its frames: it had (part of) the
         pair when it died, and the pair is its crash (one that dies on a frame dies on it again). Frames forwarded as
-        it died, none acknowledged (its Reader's EOF is awaited: the pair after its last answer came meanwhile),
-        never reached it, and the pair is not its crash (QA 64a)."""
+        it died, none acknowledged (the pair after its last answer, come before its exit was seen), never reached
+        it, and the pair is not its crash (QA 64a)."""
         assert self.flight is not None
         if st.sent_to != self.flight.generation or not st.frame_mids:
             return True  # not known otherwise: as before, the incarnation's
