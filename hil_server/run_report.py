@@ -31,6 +31,7 @@ from reports.plots import (
     save,
     timeline_figure,
 )
+from reports.style import HAZARD_CMAP
 
 PAIR_COLUMNS = [
     Column("label", "pair", 0),
@@ -166,7 +167,7 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
         derived = " (truth derived from gt_elevation)" if r.get("truth") == "derived" else ""
         panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), f"pixel scores{derived}"))
     else:
-        panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", "magma_r", 0.0, 1.0))
+        panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0))
     gsd = _ground_step(pair)
     save(map_figure(panels, f"{r.get('label')}: hazards", m_per_px=gsd), fig_dir / f"{pid}_hazard.png")
     sites = (

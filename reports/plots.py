@@ -24,6 +24,8 @@ from reports.style import (
     ELEVATION_RANGE,
     ERROR_CMAP,
     ERROR_COLOURS,
+    HAZARD_CMAP,
+    HAZARD_COLOURS,
     MISSED,
     OUTSIDE,
     PSAFE_CMAP,
@@ -197,6 +199,8 @@ def colormap(name: str) -> Any:
         return LinearSegmentedColormap.from_list(name, PSAFE_COLOURS)
     if name == ERROR_CMAP:
         return LinearSegmentedColormap.from_list(name, ERROR_COLOURS)
+    if name == HAZARD_CMAP:
+        return LinearSegmentedColormap.from_list(name, HAZARD_COLOURS)
     return plt.get_cmap(name)
 
 

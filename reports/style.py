@@ -46,7 +46,10 @@ ELEVATION_RANGE = (0.22, 0.82)
 # diverging, symmetric about zero: negative blue, positive brown (RdBu's red end read as undetected hazards)
 ERROR_CMAP = "hh-error"
 ERROR_COLOURS = ("#2166ac", "#f7f7f7", "#8c510a")
-HAZARD_CMAP = "magma_r"  # 0 = pale (safe) .. 1 = dark (unsafe)
+# 0 = pale (clear) .. the hazard's purple .. 1 = dark (unsafe): magma_r put red and orange, the undetected hazard's
+# and the false alarm's colours, on hazard scores of 0.4-0.8 (QA 64b)
+HAZARD_CMAP = "hh-hazard"
+HAZARD_COLOURS = ("#f7f3e8", "#cdb3df", HAZARD, "#2a0d3a")
 PSAFE_CMAP = "hh-psafe"  # 0 = the hazard's purple .. a pale khaki .. 1 = the safe green
 PSAFE_COLOURS = (HAZARD, "#e9dc9a", SAFE)
 # series of a chart (presets, policies): blue, brown, teal, navy, mustard; matplotlib's default cycle puts the

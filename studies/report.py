@@ -151,13 +151,14 @@ def plot_vs_altitude(
     axes[0].legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below: not over data
     alts = sorted(a for (t, s, a, mm) in thesis if t == fig_tab[1] and s == scenario and mm == "fp_pct")
     axes[1].plot(alts, [thesis[(fig_tab[1], scenario, a, "fp_pct")] for a in alts], "k--", label="THESIS")
-    for p in presets:
+    for i, p in enumerate(presets):
         keys = sorted(k for k in summary if k[0] == scenario and k[1] == p)
         axes[1].plot(
             [k[2] for k in keys],
             [summary[k].get("fp_pct", np.nan) for k in keys],
             "-",
             marker=marks[p],
+            color=SERIES_COLOURS[i % len(SERIES_COLOURS)],  # matplotlib's second colour is the false alarm's orange
             label=f"ours-{p} median",
         )
         if any("fp_pct_worst" in summary[k] for k in keys):

@@ -314,3 +314,15 @@ def test_a_pages_markdown_code_spans_are_code_and_its_text_stays_escaped(tmp_pat
     )
     text = page.read_text()
     assert "run <code>hazard-hil score</code> &lt;now&gt; &amp; <code>--full-maps</code>" in text and "`" not in text
+
+
+def test_hazard_scores_are_drawn_without_the_undetected_hazards_red_or_the_false_alarms_orange():
+    """magma_r put red and orange on hazard scores of 0.4-0.8, against the rule that red only ever means an
+    undetected hazard (QA 64b)."""
+    from reports.plots import colormap
+    from reports.style import HAZARD_CMAP
+
+    rgb = colormap(HAZARD_CMAP)(np.linspace(0.0, 1.0, 256))[:, :3]
+    r, g, b = rgb.T
+    assert not ((r > 0.55) & (g < 0.6) & (b < 0.45)).any()  # no red, orange or brown anywhere on the scale
+    assert (np.diff(rgb.sum(axis=1)) <= 1e-9).all()  # pale to dark: a higher score never reads lighter
