@@ -326,3 +326,15 @@ def test_hazard_scores_are_drawn_without_the_undetected_hazards_red_or_the_false
     r, g, b = rgb.T
     assert not ((r > 0.55) & (g < 0.6) & (b < 0.45)).any()  # no red, orange or brown anywhere on the scale
     assert (np.diff(rgb.sum(axis=1)) <= 1e-9).all()  # pale to dark: a higher score never reads lighter
+
+
+def test_a_memory_ceiling_far_above_the_peak_is_said_not_drawn_flat():
+    """The run report's memory chart scaled its axis to a 2048 MiB ceiling, and the 74 MiB line lay on the floor."""
+    from reports.plots import _plt, resources_figure
+
+    recs = [{"label": f"p{i}", "cpu_fraction": 0.3, "peak_rss_mib": 70.0 + i} for i in range(3)]
+    far = resources_figure(recs, 0.276, 2048.0).axes[1]
+    assert far.get_ylim()[1] < 100.0 and "2048 MiB, is 28x the peak: off the scale" in far.get_title()
+    near = resources_figure(recs, 0.276, 256.0).axes[1]
+    assert near.get_ylim()[1] >= 256.0 and near.get_title() == "memory against the ceiling"
+    _plt().close("all")
