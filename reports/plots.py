@@ -497,7 +497,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         rq = float(r.get("result_queue_s") or 0.0)
         if rq >= QUEUE_DRAWN_S:  # named in the legend only where it happened
             _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))
-        _bar(ax, y, start, rl, "#333333", once("result on the link"))
+        _bar(ax, y, start, rl, "#7a93ad", once("result on the link"))  # not the deadline line's near-black (QA 64b)
         if r.get("deadline_s") is not None:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
     # the frames' uplink (6 s at 921600 baud against ~1 s of compute) took most of the axis: shown up to half the
