@@ -302,7 +302,9 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
 
 def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
     cols = list(columns)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---:|" * len(cols)]
+    # numbers right, words left (kind and preset read right-aligned; QA 64b)
+    words = {c for c in cols if any(isinstance(r.get(c), str) for r in rows)}
+    lines = ["| " + " | ".join(cols) + " |", "|" + "".join("---|" if c in words else "---:|" for c in cols)]
     for r in rows:
         lines.append("| " + " | ".join(fmt_number(r.get(c)) for c in cols) + " |")
     return "\n".join(lines) + "\n"
