@@ -619,7 +619,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     presets = list(summary["per_preset"])
     scenes = list(summary["per_scene"])
     files = []
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    fig, ax = plt.subplots(figsize=(9.5, 3.6))
     w = 0.8 / (len(presets) + 1)
     x = np.arange(len(scenes))
     for i, p in enumerate(presets + ["blind"]):
@@ -649,7 +649,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("P(safe landing)")
     ax.set_title("top-ranked site truly safe (95 % Wilson interval); grey: landing blind at the aim point")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside: it hid a bar (QA 64b)
     fig.tight_layout()
     files.append((save(fig, out / "p_safe_by_scene.png").name, "P(safe landing) per scene and preset"))
 
