@@ -96,24 +96,14 @@ def _refuse_if_held_above(path: Path) -> None:
     ``render --out RUN/pairs`` replaced the pairs a live ``run --out RUN`` was streaming (stop 63's interrupt QA)."""
     line: set[int] | None = None
     for above in path.resolve().parents:
-        try:
-            fd = os.open(above / LOCK_NAME, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
-        except OSError:
+        if (holder := held_by(above)) is None:
             continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = _holder(fd)
-            line = _our_line() if line is None else line
-            if _holder_pid(holder) not in line:
-                raise InputError(
-                    f"{path} is inside {above}, which is being written by {holder}: wait for it to end, or give "
-                    "this one another --out"
-                ) from None
-        except OSError:
-            pass  # a file system with no locks
-        finally:
-            os.close(fd)
+        line = _our_line() if line is None else line
+        if _holder_pid(holder) not in line:
+            raise InputError(
+                f"{path} is inside {above}, which is being written by {holder}: wait for it to end, or give this "
+                "one another --out"
+            )
 
 
 @contextmanager
@@ -147,22 +137,27 @@ def claim_out(out: str | Path, command: str) -> Iterator[Path]:
             os.close(fd)  # releases the lock
 
 
+def held_by(path: str | Path) -> str | None:
+    """Who holds the directory ``path`` (see :func:`claim_out`), as its holder wrote it, or None: nobody, no lock
+    file (none is made), or a file system with no locks (used unguarded, as claim_out does)."""
+    try:
+        fd = os.open(Path(path) / LOCK_NAME, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO must not block
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _holder(fd)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    return None
+
+
 def refuse_if_held(path: str | Path, what: str) -> None:
     """:class:`InputError` when another command holds the directory ``path`` (see :func:`claim_out`), for a
     command that writes one file there and claims nothing (``score --csv``): it wrote into a directory a running
     ``evaluate`` was rewriting. No lock file is made where there is none."""
-    lock = Path(path) / LOCK_NAME
-    try:
-        fd = os.open(lock, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO by that name must not block
-    except OSError:
-        return  # no lock file (or none readable): nobody claimed it
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        raise InputError(
-            f"{what} {path} is being written by {_holder(fd)}: wait for it to end, or write elsewhere"
-        ) from None
-    except OSError:
-        return  # a file system with no locks: used unguarded, as claim_out does
-    finally:
-        os.close(fd)
+    if (holder := held_by(path)) is not None:
+        raise InputError(f"{what} {path} is being written by {holder}: wait for it to end, or write elsewhere")
