@@ -258,15 +258,7 @@ def score_records(records: list[dict]) -> list[dict]:
     ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
-    from ground_sim.gridscore import (
-        complete_truth,
-        judge_sites,
-        pixel_ground,
-        score_grids,
-        scored_area,
-        site_verdict,
-        true_pose_upper,
-    )
+    from ground_sim.gridscore import complete_truth, judge_sites, score_grids, site_verdict
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -286,6 +278,7 @@ def score_records(records: list[dict]) -> list[dict]:
         except (MemoryError, ValueError, ArithmeticError) as exc:
             rec["truth_note"] = f"no gt_hazard_i1.npy, and deriving one failed ({type(exc).__name__}: {exc})"
         truth = pair.truth
+        area = None  # the pixels scored (score_grids'): the full maps are scored over the same
         if (d / "state_grid.npy").is_file() and "depth" in truth and "hazard" in truth:
             elev = np.load(d / "elevation_grid.npy") if (d / "elevation_grid.npy").is_file() else None
             fills = d / "elevation_filled_grid.npy"
@@ -314,15 +307,13 @@ def score_records(records: list[dict]) -> list[dict]:
             # the call per pixel for the report: 0 safe, 1 not, CALLED_UNSCORED unscored; uint8 where float32 was
             # 1 MiB at 512², most of a pair's output (stop 63's soak QA)
             np.save(d / CALLED_FILE, np.where(np.isnan(called), CALLED_UNSCORED, called).astype(np.uint8))
+            area = np.isfinite(called)  # called_map: NaN exactly off the scored area
         if (d / "hazard.npy").is_file() and "hazard" in truth:
             hazard = np.load(d / "hazard.npy")
             # over the ground the last frame sees, a NaN not called safe, as the grid's scores and `score` (it was
             # over the map's own coverage: a map of less scored a higher CDI; review of stop 64)
-            area = (
-                scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"]))
-                if ("depth" in truth)
-                else ~np.isnan(hazard)
-            )
+            if area is None:  # no grid scored (or no truth depth): the map's own coverage, as before
+                area = ~np.isnan(hazard)
             c = confusion(hazard, truth["hazard"], area)
             full = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
             if (d / "elevation.npy").is_file() and "elevation" in truth:
