@@ -415,6 +415,18 @@ def _line_within(line_s: float | None, e2e: float | None, t: Telemetry, rec: dic
     return bound
 
 
+def descent_pair_id(i: int, entry: dict) -> str:
+    """The id of the ``i``-th pair of a descent (its manifest ``entry``): ``p001-300_150``, its place first, so
+    that records sort in descent order (:func:`descent_index`)."""
+    return f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
+
+
+def descent_index(pair_id: str) -> int | None:
+    """The place in its descent of a pair id :func:`descent_pair_id` made, or None."""
+    head, sep, _ = pair_id.partition("-")
+    return int(head[1:]) if sep and head[:1] == "p" and head[1:].isdigit() else None
+
+
 class LinkDown(Exception):
     """The link session is gone and did not come back in time."""
 
@@ -1059,7 +1071,7 @@ def stream_descent(
 
     def new_outcome(i: int, entry: dict) -> PairOutcome:
         """The outcome of the manifest's i-th pair (frame seqs 2i, 2i + 1), registered."""
-        pair_id = f"p{i:03d}-{entry.get('label', i)}".replace("/", "_")
+        pair_id = descent_pair_id(i, entry)
         seq = 2 * i
         o = PairOutcome(
             pair_id,

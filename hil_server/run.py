@@ -38,7 +38,6 @@ import contextlib
 import json
 import math
 import os
-import re
 import shutil
 import signal
 import socket
@@ -1353,10 +1352,12 @@ def _blame_server(records: list[dict], why: str) -> list[dict]:
 
 
 def _descent_order(record: dict) -> tuple[int, str]:
-    """A record's place in the descent: the index in its pair id (``p001-300_150``, ground_sim.stream's)."""
+    """A record's place in the descent, from its pair id (:func:`ground_sim.stream.descent_index`)."""
+    from ground_sim.stream import descent_index
+
     pid = str(record.get("pair_id", ""))
-    m = re.match(r"p([0-9]+)-", pid)
-    return (int(m.group(1)) if m else 10**9, pid)
+    i = descent_index(pid)
+    return (10**9 if i is None else i, pid)
 
 
 def _server_saw(events: list[dict]) -> dict[str, str]:
@@ -1377,12 +1378,14 @@ def _missing(
     """Records for the manifest's pairs that have none, in descent order: ``not_run`` when the run ended before
     them; ``interrupted`` when the HIL server had their frames (``server``, :func:`_server_saw`) and the ground
     did not record them (killed: a pair on the line read "not run", stop 63's interrupt QA)."""
+    from ground_sim.stream import descent_pair_id
+
     server = server or {}
     have = {r["pair_id"] for r in records}
     full = []
     by_id = {r["pair_id"]: r for r in records}
     for i, e in enumerate(entries):
-        pid = f"p{i:03d}-{e.get('label', i)}".replace("/", "_")  # ground_sim.stream's pair ids
+        pid = descent_pair_id(i, e)
         if pid in have:
             full.append(by_id.pop(pid))
             continue
