@@ -1,8 +1,9 @@
 """Score any detector's output directory against a pair's ground truth (``hazard-hil score``).
 
 The flight software's output files are a contract (docs/design.md, "Flight software output directory"):
-``hazard.npy`` (required), ``elevation.npy``, ``state.npy`` and the sites of ``result.json`` (optional). Our
-``process`` writes them, and so can any other detector. This module reads them, checks them against the pair,
+``hazard.npy`` (required), ``elevation.npy``, ``state.npy`` and the sites of ``result.json`` (optional;
+``psafe.npy`` is checked, not scored). Our ``process`` writes them, and so can any other detector. This module
+reads them, checks them against the pair,
 and scores them by the design's convention (thesis section 2.8, Tables 6.4 and 6.11):
 
 * per pixel, positive = safe; a pixel is *called safe* when ``hazard < 1``. NaN is not called safe:
@@ -212,6 +213,12 @@ def read_output(
                 f"{out / 'state.npy'}: must be uint8 codes 0 safe, 1 unsafe, 2 unknown, 255 outside; got {got}"
             )
         _check_state(out / "state.npy", state, hazard)
+    if present("psafe.npy"):  # not scored, but a file that breaks DESIGN.md's type is named, not passed over
+        psafe = _load(out / "psafe.npy", shape)
+        if not _float32(psafe):
+            raise ScoreError(f"{out / 'psafe.npy'}: must be float32 (DESIGN.md), got dtype {psafe.dtype}")
+        if np.isinf(psafe).any() or (np.nan_to_num(psafe, nan=0.0) < 0).any() or (psafe > 1.0).any():
+            raise ScoreError(f"{out / 'psafe.npy'}: a probability: values must lie in [0, 1], or be NaN outside")
     xyz = np.zeros((0, 3))
     if sites is not None:
         xyz = _site_xyz(sites, out / "results.jsonl")
