@@ -333,9 +333,11 @@ def map_figure(
         if m_per_px is not None and np.isfinite(m_per_px) and m_per_px > 0 and np.shape(p.data)[:2] == shape:
             _scale_bar(ax, float(m_per_px))
     if box is not None:  # on a line of its own: after a long title it ran off the figure's edge
+        # a score's confusion panel covers the scored pixels, which a detector may have mapped beyond
+        area = "scored" if any(p.kind == "confusion" for p in panels) else "mapped"
         title = (
             title + "\n" if title else ""
-        ) + f"(zoomed to the mapped area: rows {box[0]}-{box[1]}, columns {box[2]}-{box[3]})"
+        ) + f"(zoomed to the {area} area: rows {box[0]}-{box[1]}, columns {box[2]}-{box[3]})"
     if title:
         fig.suptitle(title, fontsize=11)
     sites = [s for p in panels for s in p.sites]

@@ -185,6 +185,10 @@ def test_maps_that_cover_a_quarter_of_the_frame_are_shown_zoomed_to_it():
     for ax in fig.axes[:2]:  # the image too, so the two read side by side
         assert ax.get_xlim() == (25.5, 73.5) and ax.get_ylim() == (78.5, 20.5)
     assert "zoomed to the mapped area" in fig._suptitle.get_text()
+    # a score's confusion panel shows the scored pixels, whatever the detector mapped beyond them
+    conf = np.where(state == 0, 0, 255).astype(np.uint8)
+    fig = plots.map_figure([plots.Panel("image", img, "i1"), plots.Panel("confusion", conf, "scores")], "t")
+    assert "zoomed to the scored area" in fig._suptitle.get_text()
     assert plots.mapped_box([plots.Panel("state", np.zeros((100, 100), np.uint8), "all mapped")]) is None
     # scalars: where every panel is finite (a truth panel is finite everywhere, the computed one where it mapped)
     dem = np.full((100, 100), np.nan)
