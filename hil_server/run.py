@@ -168,7 +168,8 @@ def boot_hint(fraction: float) -> str:
     boot_s = BOOT_CPU_S / fraction
     if boot_s < 10.0:
         return ""
-    cpu = f"~{BOOT_CPU_S:g} s of full-speed CPU"
+    # a process busy on the same core halves what the duty cycle buys: the QA's loaded host took 2x this
+    cpu = f"~{BOOT_CPU_S:g} s of full-speed CPU; longer when another process shares its core"
     return f"; it boots in about {boot_s:.0f} s at this speed (imports and warm-up, {cpu})"
 
 

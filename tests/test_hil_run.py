@@ -331,7 +331,8 @@ def test_a_slow_budget_says_how_long_its_flight_process_takes_to_boot():
 
     assert (
         boot_hint(0.0052)
-        == f"; it boots in about 50 s at this speed (imports and warm-up, ~{BOOT_CPU_S:g} s of full-speed CPU)"
+        == f"; it boots in about 50 s at this speed (imports and warm-up, ~{BOOT_CPU_S:g} s of full-speed CPU; "
+        "longer when another process shares its core)"
     )
     assert boot_hint(0.013).startswith("; it boots in about 20 s")
     assert boot_hint(0.25) == "" and boot_hint(1.0) == "" and boot_hint(0.0) == ""
