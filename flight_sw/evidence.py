@@ -346,7 +346,8 @@ def classify_calibrated(
         if a_sigma_k > 0:
             over &= ~(a + np.float32(a_sigma_k) * np.asarray(feats["u"], np.float32)[cov] < 1.0)
         unmeasured = ~np.isfinite(np.asarray(feats["a"], np.float32)[cov])
-        barred = over | unmeasured  # no elevation: never called on context
+        # no elevation: never called on context; a cue never, whatever p_min lets the budget take
+        barred = over | unmeasured | cue[cov]
     call = budget_rule(np.where(barred, np.float32(np.nan), p), fp_budget, p_min, n=int(cov.sum()))
     psafe = np.full(cov.shape, np.nan, np.float32)
     psafe[cov] = p

@@ -109,6 +109,10 @@ def test_a_point_without_a_slope_is_unknown_unless_a_cue_condemns_it():
     ev = classify_calibrated(_ConstModel(0.09), feats, cues, np.ones(a.shape, bool), 0.01, 0.97)  # type: ignore[arg-type]
     assert ev.state[0].tolist() == [STATE_UNKNOWN, STATE_UNSAFE, STATE_UNSAFE, STATE_UNSAFE]
     assert ev.psafe[0, 1] == 0.0 and ev.psafe[0, 3] == 0.0  # a cue's P(safe) is 0 whatever the model says
+    # with p_min 0 (Params.validate allows it) a budget large enough took a cue's P(safe) 0 and called it safe
+    ev = classify_calibrated(_ConstModel(0.9999), feats, cues, np.ones(a.shape, bool), 0.5, 0.0)  # type: ignore[arg-type]
+    assert ev.state[0].tolist() == [STATE_UNKNOWN, STATE_UNSAFE, STATE_SAFE, STATE_UNSAFE]
+    assert ev.hazard[0, 1] == 1.0 and ev.hazard[0, 3] == 1.0
 
 
 @pytest.mark.slow
