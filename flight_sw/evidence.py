@@ -403,3 +403,38 @@ def grid_evidence(
     hazard = np.where(state == STATE_SAFE, np.clip(np.nan_to_num(h), 0.0, 0.999), np.float32(1.0)).astype(np.float32)
     hazard[~cov] = np.nan
     return Evidence(state, ps, hazard)
+
+
+def hold_unsafe_pixels(
+    grid: Evidence, unsafe: np.ndarray, psafe: np.ndarray, px_maps: tuple[np.ndarray, np.ndarray]
+) -> tuple[Evidence, int]:
+    """The grid with every cell that holds the ground point of a pixel called unsafe made unsafe; and how many
+    cells that changed.
+
+    The grid reads the image bilinearly at its cells' centres (:func:`grid_evidence`), so a cell is unsafe
+    only where unsafe pixels carry more than half of its four weights. An unsafe pixel with no cell centre
+    within ~0.3 px (a one-pixel shadow or rock; on an oblique view's near field, where cells are wider than
+    pixels, any pixel between the centres) left every cell around it safe, and the site search, which reads
+    only the grid, could centre a footprint on it. Here each unsafe pixel ``(u, v)`` marks the cell
+    ``(round(my[v, u]), round(mx[v, u]))`` its ground falls in (``px_maps``: :func:`flight_sw.mapping.grid_maps`),
+    a scatter-max of the pixel call, and that cell's P(safe) becomes ``min(P_cell, P_pixel)``. Along an
+    unsafe region's edge the cell holding an unsafe pixel is already mostly unsafe, so the safe ground is not
+    eroded there; only isolated and thin hazards change cells.
+    """
+    rows, cols = grid.state.shape
+    vs, us = np.nonzero(np.asarray(unsafe, bool))
+    gc = np.rint(px_maps[0][vs, us])
+    gr = np.rint(px_maps[1][vs, us])
+    inside = (gc >= 0) & (gc < cols) & (gr >= 0) & (gr < rows)  # -1e4 where a pixel has no ground point
+    flat = gr[inside].astype(np.intp) * cols + gc[inside].astype(np.intp)
+    held = grid.state.ravel()[flat] == STATE_SAFE  # the only cells it can change
+    if not held.any():
+        return grid, 0
+    flat = flat[held]
+    state = grid.state.copy()
+    ps = grid.psafe.copy()
+    hazard = grid.hazard.copy()
+    np.fmin.at(ps.ravel(), flat, np.asarray(psafe, np.float32)[vs[inside][held], us[inside][held]])
+    state.ravel()[flat] = STATE_UNSAFE
+    hazard.ravel()[flat] = np.float32(1.0)
+    return Evidence(state, ps, hazard), int(np.unique(flat).size)

@@ -56,6 +56,7 @@ from .evidence import (
     classify_calibrated,
     footprint_mean,
     grid_evidence,
+    hold_unsafe_pixels,
     steeper_plane_fit,
     widen_unsafe,
 )
@@ -412,6 +413,10 @@ class Params:
     # stop 38) eroded the safe ground by half a pixel all round: read back at the pixels, the grid's CDI was
     # 5-6 points (median) under the pixel map's on the tuning descents (docs/benchmarks/pipeline.md)
     grid_call_share: float = 0.5
+    # every cell that holds the ground point of a pixel called unsafe is unsafe (evidence.hold_unsafe_pixels):
+    # the bilinear pull alone lost a one-pixel hazard with no cell centre near it, and the site search reads
+    # only the grid (review of stop 64). False: the pull alone, as before
+    grid_hold_unsafe: bool = True
     # the grid's elevation (what it reports, and what a safe cell needs) read from a cell's finite neighbours
     # (mapping.remap_valid); False: NaN beside any DEM hole, as the slope fit reads it
     grid_elev_finite: bool = True
@@ -2113,6 +2118,8 @@ def _run_v2(
             else:
                 nan_g = np.full(shape, np.nan, np.float32)
                 gev = classify(nan_g, nan_g, nan_g, nan_g, g_cue, g_cov, cell, **kw)
+        if p.grid_hold_unsafe:
+            gev, info["grid_held_unsafe"] = hold_unsafe_pixels(gev, ev.state == STATE_UNSAFE, ev.psafe, px_maps)
         if p.hazard_margin_px > 0:
             ev = widen_unsafe(ev, p.hazard_margin_px)
             gev = widen_unsafe(gev, p.hazard_margin_px)
