@@ -128,7 +128,7 @@ def run_pair(pair: Any, preset: Any) -> Any:
 
 def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
-    from ground_sim.gridscore import judge_site, site_verdict
+    from ground_sim.gridscore import judge_site, scored_area, site_verdict
     from protocol.pairdir import read_pair
     from studies.evaluate import _site_radius_px, backproject_depth, score_arrays, true_poses
 
@@ -142,14 +142,17 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
         lay = run_pair(pair, dataclasses.replace(preset, keep_layers=True))
         causes = error_causes(lay.layers, lay.state, lay.elevation, pair.truth["hazard"], res.covered)
     tz = pair.truth["elevation"].astype(np.float32)
-    radius = _site_radius_px(pair.camera, pair.truth["depth"], res.covered)
+    world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
+    # DESIGN.md's covered area, as `score` takes it (frame-0 pixels whose true ground the last frame sees); the
+    # pipeline's own `covered` left out its unmapped rim, and figures before stop 65 were scored over that
+    area = scored_area(pair, world)
+    radius = _site_radius_px(pair.camera, pair.truth["depth"], area)
     est = {"elevation": res.elevation, "hazard": res.hazard, "slope_deg": None, "roughness_m": None}
     truth = {"elevation": tz, "hazard": pair.truth["hazard"]}
     box = np.zeros(tz.shape, bool)
-    m = score_arrays(est, truth, covered=res.covered, epipole_box=box, site_radius_px=radius)
+    m = score_arrays(est, truth, covered=area, epipole_box=box, site_radius_px=radius)
     top, top_unseen = math.nan, 0
     if res.sites:  # DESIGN.md's rule: every pixel whose true ground lies in the footprint, which frame 0 must hold
-        world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
         j = judge_site((res.sites[0].x, res.sites[0].y), world[..., :2], pair.truth["hazard"])
         top, top_unseen = 100.0 * j["safe"], int(site_verdict(j) is None)
     st = res.state[res.covered]
@@ -159,6 +162,8 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
         "cdi": m["cdi_pct"],
         "dem": m["dem_mean_abs_m"],
         "valid": 100.0 * res.valid_fraction,
+        # the DEM's coverage of the true overlap (issue 9's "covers >= 90 % of the overlap"); "valid" is of its own
+        "dem_cov": 100.0 * float(np.isfinite(res.elevation[area]).mean()) if area.any() else math.nan,
         "filled": 100.0 * float(res.info.get("dem_filled_fraction", 0.0)),  # of "valid": gap fills, not matches
         "unknown": 100.0 * float(np.mean(st == 2)) if st.size else math.nan,
         "n_sites": len(res.sites),
@@ -316,7 +321,8 @@ def table(rows: list[dict[str, Any]], title: str) -> str:
     out.append(
         f"\nall: {len(rows)} pairs, FP worst {max(r['fp'] for r in rows):.2f} %, median CDI "
         f"{_med([r['cdi'] for r in rows]):.1f} %, DEM valid min {min(r['valid'] for r in rows):.1f} % "
-        f"(matched, without gap fills: {min(r['valid'] - r.get('filled', 0.0) for r in rows):.1f} %), top site "
+        f"(matched, without gap fills: {min(r['valid'] - r.get('filled', 0.0) for r in rows):.1f} %; of the true "
+        f"overlap: {min(r.get('dem_cov', math.nan) for r in rows):.1f} %), top site "
         f"truly safe {sum(t >= 100 for t in tops)}/{len(tops)} ({sum(r.get('top_unseen', 0) for r in rows)} "
         f"not confirmed: footprint off frame 0), no site {sum(1 for r in rows if r['n_sites'] == 0)}, "
         f"CPU median {_med([r['cpu_s'] for r in rows]):.3f} s"

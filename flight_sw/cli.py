@@ -295,7 +295,8 @@ def _process(args: argparse.Namespace) -> int:
     truth: dict[str, Any] = {}
     gt_z = pair.truth.get("elevation")
     if gt_z is not None:
-        # over the map's covered pixels, as FP and CDI and `hazard-hil score`: over every elevation it read 5.7 m
+        # over the map's covered pixels, as FP and CDI here (a quick look: the flight side does not know the true
+        # overlap, which `hazard-hil score` and `evaluate` score over): over every elevation it read 5.7 m
         # where the map was 41 m off (a deep descent's outer ring, which only frame 0 and one frame see; stop 61's QA)
         truth["dem_error"] = _stats(np.where(res.covered, res.elevation - gt_z, np.nan))
     gt_h = pair.truth.get("hazard")

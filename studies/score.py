@@ -11,8 +11,8 @@ and scores them by the design's convention (thesis section 2.8, Tables 6.4 and 6
   FN = safe not called safe (a false alarm), TN = unsafe not called safe; CDI = TP % + TN %;
 * the scored pixels are those of frame 0 whose true ground the last frame sees (from the truth depth and
   the true poses), where the truth is finite. The detector's own NaN does not shrink that area: a pixel it
-  left unmapped is scored as not called safe and counted as ``unmapped_pct``. (``evaluate`` scores our
-  pipeline over the area it reports covered; the two differ by the overlap's edge band, well under 1 %.)
+  left unmapped is scored as not called safe and counted as ``unmapped_pct``. ``evaluate``, the HIL run's grid
+  scores and ``bench/eval_flight.py`` score the same area (:func:`ground_sim.gridscore.scored_area`).
 * DEM error over the scored pixels where both elevations are finite: mean |error|, median, MAD;
 * a site is truly safe when every truth pixel whose true ground (X, Y) lies within the footprint radius
   (1.5 m) of the site is safe (DESIGN.md, :func:`ground_sim.gridscore.judge_site`); a footprint that frame 0
