@@ -244,6 +244,8 @@ def fit_rows(
         "image_px": [list(t) for t in sizes],  # the pipeline falls back to the Gaussian rule on other sizes
         "safe_share": float(cat["safe"].mean()),  # the prior P(safe) holds (fusion counts it once: fusion.py)
     }
+    if all("fp_px" in r for r in rows):  # below it the pipeline calls nothing safe: the trees would extrapolate
+        info["footprint_px_min"] = math.floor(100 * min(float(r["fp_px"]) for r in rows)) / 100
     if blank_shading > 0 and any(k in cat for k in SUN_FEATS):
         info["blank_shading"] = blank_shading
     if pipeline:

@@ -2090,6 +2090,21 @@ def _run_v2(
                 p.call_slope_sigma_k,
                 p.call_slope_feature,
             )
+            fp_min = float(model.info.get("footprint_px_min", 0.0))
+            if fp_px < fp_min:
+                # below the footprint scale the trees were fitted down to, their P(safe) is an extrapolation: a 128 px
+                # camera at 5000 m (0.14 px against 0.19) called 17 points safe at >= 0.99, one a hazard, and put the
+                # top site on it (review of stop 64). No evidence for "safe" there: unknown
+                was = ev_c.state == STATE_SAFE
+                ev_c = Evidence(
+                    np.where(was, STATE_UNKNOWN, ev_c.state).astype(np.uint8),
+                    ev_c.psafe,
+                    np.where(was, np.float32(1.0), ev_c.hazard).astype(np.float32),
+                )
+                info["psafe_beyond_scale"] = (
+                    f"the {p.footprint_m:g} m footprint is {fp_px:.2f} px here, below the {fp_min:g} px the P(safe) "
+                    "model was fitted down to: nothing is called safe"
+                )
             ev = Evidence(
                 _uncrop(ev_c.state, cs, i1.shape, STATE_OUTSIDE),
                 _uncrop(ev_c.psafe, cs, i1.shape),
@@ -2151,7 +2166,8 @@ def _run_v2(
             sites, reason = [], "deadline reached before site selection"
             info["skipped"].append("sites")
         if not sites:
-            info["no_site_reason"] = reason
+            beyond = info.get("psafe_beyond_scale")
+            info["no_site_reason"] = f"{beyond} ({reason})" if beyond else reason
 
     info["unknown_fraction"] = float(np.mean(ev.state[covered] == STATE_UNKNOWN)) if covered.any() else 0.0
     filled = np.zeros(elevation.shape, bool)

@@ -28,7 +28,7 @@ from flight_sw.psafe import (
 )
 from flight_sw.validate import FlightInputError
 from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
-from protocol.pairdir import STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE
+from protocol.pairdir import STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE, read_pair
 
 
 def _run(pair, sun: bool = True, **over):
@@ -305,3 +305,22 @@ def test_a_models_own_operating_point_is_used_and_said(tmp_path):
             model_call(TreeModel.from_json(doc))
     with pytest.raises(FlightInputError, match="psafe_call"):
         dataclasses.replace(PRESETS["fast"], psafe_call="mine").validate()
+
+
+def test_a_footprint_finer_than_the_models_fitted_scale_is_called_unknown_and_offers_no_site(tmp_path):
+    """A 128 px camera at 5000 m sees the 3 m footprint as 0.14 px, below the 0.19 px its trees were fitted down to:
+    they called 17 points safe at P >= 0.99, one a hazard, and the top site sat on it (review of stop 64). Below the
+    fitted scale nothing is called safe, and the no-site reason says why; at 1000 m (0.72 px) the call is as before."""
+    from hilkit import scaled_camera
+
+    from ground_sim.descent import render_scenario
+
+    render_scenario(
+        "vertical", tmp_path, frames=[[5000.0, 2500.0], [1000.0, 500.0]], camera=scaled_camera(128), progress=False
+    )
+    high, low = (_run(read_pair(tmp_path / d)) for d in ("5000_2500", "1000_500"))
+    assert high.info["footprint_px"] < 0.19 < low.info["footprint_px"]
+    assert not (high.state == STATE_SAFE).any() and not high.sites
+    assert "below the 0.19 px the P(safe) model was fitted down to" in high.info["no_site_reason"]
+    assert (high.state == STATE_UNKNOWN).any() and np.all(high.hazard[high.state == STATE_UNKNOWN] == 1.0)
+    assert (low.state == STATE_SAFE).any() and "psafe_beyond_scale" not in low.info
