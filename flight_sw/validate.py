@@ -32,6 +32,20 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
         raise FlightInputError(f"{name}: must be real-valued, got dtype {img.dtype}")
     if np.issubdtype(img.dtype, np.floating) and not np.all(np.isfinite(img)):
         raise FlightInputError(f"{name}: contains NaN or inf")
+    if img.dtype != np.uint8 and img.size:
+        # the costs, texture floors and shadow levels are in 8-bit grey levels (DESIGN.md's images): a [0, 1] float
+        # image gave an empty DEM reported as level "full", a 16-bit one 9 % of it (review of stop 64)
+        lo, hi = float(img.min()), float(img.max())
+        if lo < 0 or hi > 255:
+            raise FlightInputError(
+                f"{name}: grey levels must lie in 0-255 (8-bit, DESIGN.md), got {lo:g}-{hi:g} ({img.dtype}); "
+                "scale the image to 0-255"
+            )
+        if np.issubdtype(img.dtype, np.floating) and 0 < hi <= 1.0:
+            raise FlightInputError(
+                f"{name}: a {img.dtype} image in 0-{hi:g} reads as 0-1 intensities; grey levels are 0-255 "
+                "(8-bit, DESIGN.md): multiply by 255"
+            )
     return img
 
 

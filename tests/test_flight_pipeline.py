@@ -131,6 +131,17 @@ def test_bad_inputs_raise_clear_errors(plane_scene):
     assert "deadline" in _bad(plane_scene, deadline_s=float("nan"))
     assert "half_window" in _bad(plane_scene, preset=Params(half_window=0))
     assert "NaN" in _bad(plane_scene, i1=np.full(i1.shape, np.nan))
+    # grey levels are 8-bit: a 0-1 float image gave an empty DEM called "full", a 16-bit one 9 % of it
+    assert "multiply by 255" in _bad(plane_scene, i1=i1.astype(np.float32) / 255.0)
+    assert "must lie in 0-255" in _bad(plane_scene, i2=i2.astype(np.uint16) * 257)
+    assert "must lie in 0-255" in _bad(plane_scene, i2=i2.astype(np.float32) - 10.0)
+
+
+def test_an_image_of_grey_levels_in_another_dtype_gives_the_uint8_result(plane_scene):
+    cam, p1, p2, i1, i2, _ = plane_scene
+    a = run_pipeline(i1, i2, p1, p2, cam)
+    b = run_pipeline(i1.astype(np.float32), i2.astype(np.uint16), p1, p2, cam)
+    assert np.array_equal(a.state, b.state) and np.allclose(a.elevation, b.elevation, equal_nan=True)
 
 
 def test_deterministic(plane_scene):
