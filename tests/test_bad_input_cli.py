@@ -72,7 +72,7 @@ CASES = [
     (["flight", "--link", "zmq:tcp://127.0.0.1:5999", "--insecure", "--link-timeout", "1e12"], "in [2, 3600]"),
     (["flight", "--link", "zmq:tcp://*:5999"], "ZeroMQ links are CURVE-authenticated: give --keys DIR"),
     (["flight", "--link", "zmq:tcp://*:5999", "--keys", "PAIR"], "server.key_secret does not exist"),
-    (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**62)"),  # was an OverflowError
+    (["run", "--seed", "99999999999999999999999"], "--seed must be in [0, 2**32)"),  # was an OverflowError
     (["run", "--manifest", "M", "--pairs", "600/300", "--seed", "3"], "--pairs, --seed would be ignored"),
     # refused before the demo's half-minute calibration of a new host (it used to calibrate first)
     (["demo", "--min-hit-rate", "2"], "--min-hit-rate must be in [0, 1]"),
@@ -85,8 +85,8 @@ CASES = [
     (["evaluate", "--scenario", "vertical", "--cache", "AFILE"], "is a file, not a directory"),  # was a failed task
     (["evaluate", "--scenario", "vertical", "--seeds", "1", "--seed-list", "1000"], "--seeds N and --seed-list"),
     (["evaluate", "--scenario", "vertical", "--seed-list", ""], "--seed-list is empty"),  # ran the default seeds
-    (["evaluate", "--scenario", "vertical", "--seed-list", "1000,-5"], "--seed-list seeds must be in [0, 2**62)"),
-    (["landings", "--scenes", "thesis", "--n", "2", "--seed-list", "-5"], "--seed-list seeds must be in [0, 2**62)"),
+    (["evaluate", "--scenario", "vertical", "--seed-list", "1000,-5"], "--seed-list seeds must be in [0, 2**32)"),
+    (["landings", "--scenes", "thesis", "--n", "2", "--seed-list", "-5"], "--seed-list seeds must be in [0, 2**32)"),
     (["run", "--link", "serial", "--corrupt", "2"], "--corrupt is a per-byte fault rate in [0, 0.05], got 2"),
     (["run", "--link", "zmq", "--corrupt", "0.01"], "--corrupt applies to the serial link only"),
     (["run", "--bogus"], "hazard-hil run: error: unrecognized arguments: --bogus (see hazard-hil run --help)"),
