@@ -1576,7 +1576,7 @@ def _descend(checked: CheckedRun, log) -> dict:
 
                 # Two raw ptys joined by a relay: each process opens a real serial device path.
                 baud = cfg.baud if cfg.baud is not None else budget.baud
-                if cfg.corrupt > 0:  # a noisy line in both directions, seeded: retransmission must hide it
+                if cfg.corrupt > 0:  # noisy both ways (seeded rates; the bytes hit vary): ARQ must hide it
                     from protocol.faults import CorruptingChannel
 
                     channels = {
