@@ -121,6 +121,20 @@ def image_direction(
     return du / m, dv / m
 
 
+def from_pyramid(layer: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A ``cv2.pyrDown`` level's layer read back at full resolution (``size`` = (width, height)), bilinear.
+
+    pyrDown's level has its pixel ``j`` at full pixel ``2 j`` (:func:`flight_sw.sweep.scaled_camera`), so full
+    pixel ``u`` reads the level at ``u / 2``. ``cv2.resize`` assumes pixel areas instead (``u / 2 - 0.25``): the
+    coarse DEM came back half a full pixel off on an even width, and up to 0.43 px either way on an odd one
+    (review of stop 64). Beyond the level's last centre the edge value stands, as resize's does; NaN spreads to the
+    four pixels it touches, as resize's does.
+    """
+    m = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    return cv2.warpAffine(np.asarray(layer, np.float32), m, size, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+
+
 def remap_maps(mx: np.ndarray, my: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """float32 copies of source coordinates for ``cv2.remap``, NaN (no source) at -1e4: outside, so NaN out.
     (Half the cost of ``nan_to_num`` then ``astype``, with the same values: +-inf stay +-inf.)"""

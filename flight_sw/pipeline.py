@@ -66,6 +66,7 @@ from .lowerview import average_where_both, lower_view_dem, read_into_reference
 from .mapping import (
     HazardGrid,
     combine,
+    from_pyramid,
     grid_extent,
     grid_maps,
     grid_xy,
@@ -1851,9 +1852,9 @@ def _run_v2(
                 n_c = int(np.isfinite(ez).sum())
                 if n_c > 0:
                     size = (camera.width, camera.height)
-                    elevation = cv2.resize(ez, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
+                    elevation = from_pyramid(ez, size)
                     u_full = np.where(np.isfinite(ez), u_c, np.nan).astype(np.float32)
-                    sigma = cv2.resize(u_full, size, interpolation=cv2.INTER_LINEAR).astype(np.float32)
+                    sigma = from_pyramid(u_full, size)
                     del u_full
                     elevation[~np.isfinite(sigma)] = np.nan
                     level = "coarse"
