@@ -18,10 +18,12 @@ directory (:func:`ground_sim.trajectory.frames_at`, ground truth of frame 0). On
   lander; the time order did better on the held-out thesis-scene descents (docs/benchmarks/multiframe.md,
   stop 39).
 
-Every policy is scored in frame 0's pixels against frame 0's truth, on the same pixels: those the widest
-pair (frames 0 and N-1) covers. Pixel FP / FN / CDI (:func:`ground_sim.scoring.confusion`; unknown counts
-as unsafe), DEM mean |error| and coverage. World-grid results (fused maps) are read at each pixel's true
-ground point. Timing is CPU seconds (``time.thread_time``).
+Every policy is scored in frame 0's pixels against frame 0's truth, on the same pixels: DESIGN.md's covered
+area of the widest pair, frame 0's pixels whose true ground frame N-1 sees
+(:func:`ground_sim.gridscore.scored_area`, as ``score`` takes it; until stop 65 the pixels the widest pair's
+run covered). Pixel FP / FN / CDI (:func:`ground_sim.scoring.confusion`; unknown counts as unsafe), DEM mean
+|error| and coverage. World-grid results (fused maps) are read at each pixel's true ground point. Timing is
+CPU seconds (``time.thread_time``).
 """
 
 from __future__ import annotations
@@ -79,6 +81,13 @@ def render_descent(
 
 
 # ----------------------------------------------------------------------------------------------- scoring
+def world_of(pair: Any) -> np.ndarray:
+    """True world X, Y, Z (H x W x 3) of frame 0's pixels from the truth depth and frame 0's true pose."""
+    from studies.evaluate import backproject_depth, true_poses
+
+    return backproject_depth(pair.camera, true_poses(pair)[0], pair.truth["depth"].astype(np.float64))
+
+
 def pixel_world(pair: Any) -> tuple[np.ndarray, np.ndarray]:
     """True world X, Y of frame 0's pixels (true pose where the directory records it, true elevation)."""
     from flight_sw.georef import backproject
@@ -194,6 +203,7 @@ def evaluate_descent(
 ) -> dict[str, dict[str, float]]:
     """Every pair (0, k), the best of them, and the policies in ``which``, scored alike (module doc)."""
     from flight_sw.pipeline import run_pipeline, run_pipeline_multi
+    from ground_sim.gridscore import scored_area
     from protocol.pairdir import read_pair
 
     pair = read_pair(pair_dir)
@@ -216,7 +226,7 @@ def evaluate_descent(
             sun_azimuth_deg=sun_az,
         )
         results[k].info["cpu_s"] = time.thread_time() - c0
-    mask = results[n - 1].covered & np.isfinite(pair.truth["hazard"])  # the widest pair's overlap
+    mask = scored_area(pair, world_of(pair))  # the widest pair's true overlap, whatever a run maps of it
     for k in range(1, n):
         res = results[k]
         rows[f"pair 0-{k}"] = {**score(pair, res.hazard, res.elevation, mask), "cpu_s": res.info["cpu_s"]}
