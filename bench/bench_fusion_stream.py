@@ -42,8 +42,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
@@ -82,8 +80,10 @@ def stream_results(
     from eval_flight import case_key, render_case
 
     from flight_sw.pipeline import run_pipeline
+    from ground_sim.gridscore import scored_area
     from protocol.pairdir import read_pair
     from studies.executor import code_fingerprint
+    from studies.multiframe import world_of
 
     preset = preset_with("fast", set_param)
     tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
@@ -112,7 +112,7 @@ def stream_results(
             )
         if r.level != want:
             raise RuntimeError(f"{e['pair_dir']}: asked for level {want}, the pipeline gave {r.level}")
-        mask = r.covered & np.isfinite(pair.truth["hazard"])
+        mask = scored_area(pair, world_of(pair))  # DESIGN.md's covered area, as `score` takes it (stop 65)
         out.append({"dir": e["pair_dir"], "alt": e["altitude_m"], "grid": r.grid, "params": r.params,
                     "info": r.info, "mask": mask, "level": r.level})  # fmt: skip
     grids.mkdir(parents=True, exist_ok=True)
