@@ -271,12 +271,13 @@ def _footprint_width(camera: Any, pose: Any) -> float:
 def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any, Any]:
     """(spec, pair) of a render group: rendered, or read from ``cache_dir`` where an earlier campaign left it.
 
-    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera), so
+    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera) but the scene's
+    parameters and the render code, which the pair records and :func:`ground_sim.render_cache.reusable` checks;
     campaigns that differ only in aim points, navigation errors or presets share their renders."""
 
     from ground_sim.descent import render_pair
     from ground_sim.render_cache import reusable
-    from ground_sim.scene import load_scene
+    from ground_sim.scene import load_scene, load_scene_params
     from ground_sim.trajectory import load_trajectory
     from protocol.pairdir import Sun, read_pair, write_pair_atomic
     from studies.evaluate import camera_for
@@ -294,7 +295,9 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
         + ("" if raster == "view" else f"_{raster}")
     )
     d = Path(cache_dir) / key
-    if not reusable(d):  # none there, or a stale one (another renderer version), now removed
+    # none there, or a stale one (another renderer, render code or scene parameters: the key names the scene
+    # only), now removed
+    if not reusable(d, scene=load_scene_params(plan["scene"], scenario)):
         sc = load_scene(plan["scene"], plan["seed"], scenario)
         # a concurrent writer's copy is kept
         write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"], raster=raster))

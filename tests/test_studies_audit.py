@@ -446,3 +446,38 @@ def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(t
     err = capsys.readouterr().err
     assert "rendering again" in err and "failed" not in err
     assert images[0].read_bytes() == data  # the same render again, byte for byte
+
+
+def _scene_eval(tmp_path: Path, scene: Path, out: str) -> dict:
+    from studies import evaluate as ev
+
+    kw = {"seeds": [1000], "altitudes": [300], "camera_px": 48, "workers": 1, "progress": False}
+    (row,) = ev.evaluate_scenario("vertical", tmp_path / out, scene=str(scene), cache_dir=tmp_path / "cache", **kw)
+    return {k: v for k, v in row.items() if k not in ("pipeline_s", "pair", "timings")}
+
+
+def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(tmp_path, capsys, monkeypatch):
+    """QA 65b H2: the render cache is keyed by the scene's name, so an edited preset (a) or truth rule (b) was
+    scored on the old renders: "reusing 4 of 4", or "computing them again" while the renders were reused. Each
+    change now draws the pairs again and scores them: the rerun gives what a fresh --out gives."""
+    from ground_sim import render_cache
+    from ground_sim.scene import PRESET_DIR
+
+    scene = tmp_path / "thesis_copy.toml"
+    text = (PRESET_DIR / "thesis.toml").read_text()
+    scene.write_text(text)
+    first = _scene_eval(tmp_path, scene, "out")
+    scene.write_text(text.replace("rms_relief_m = 9.0", "rms_relief_m = 30.0"))  # (a) the preset edited
+    capsys.readouterr()
+    again = _scene_eval(tmp_path, scene, "out")
+    err = capsys.readouterr().err
+    assert "drawn from other scene parameters" in err and "rendering again" in err
+    assert again != first and again == _scene_eval(tmp_path, scene, "fresh_a")
+
+    monkeypatch.setattr(render_cache, "render_code_fingerprint", lambda: "0123456789abcdef")  # (b) truth.py edited
+    capsys.readouterr()
+    _scene_eval(tmp_path, scene, "out")
+    err = capsys.readouterr().err
+    assert "drawn by other render or truth code" in err and "computing them again" in err
+    (pair_json,) = (tmp_path / "cache").rglob("pair.json")
+    assert json.loads(pair_json.read_text())["render_code"] == "0123456789abcdef"  # drawn again, not reused
