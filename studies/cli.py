@@ -12,7 +12,7 @@ from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from ground_sim.seeds import describe_seeds
-from protocol.errors import InputError, comma_items, os_error_text
+from protocol.errors import InputError, comma_items
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
 
@@ -735,7 +735,8 @@ def register_score(subparsers: Any) -> None:
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
         " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored);"
-        " when several apply, 2 wins over 3, and 3 over 1."
+        " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv or --json could not be written (named on"
+        " stderr; the scores are printed), which wins over the others."
         " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
@@ -768,14 +769,7 @@ def _score(args: argparse.Namespace) -> int:
 
     from protocol.outdir import claim_out
     from reports.console import printable
-    from studies.score import (
-        check_not_an_input,
-        json_row,
-        pair_jobs,
-        stray_outputs,
-        summarise,
-        write_csv,
-    )
+    from studies.score import check_not_an_input, pair_jobs, stray_outputs, summarise
 
     if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
         raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
@@ -825,24 +819,36 @@ def _score(args: argparse.Namespace) -> int:
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
-    try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
-        if args.csv is not None:
-            write_csv(rows, args.csv)
-            print(f"rows:    {args.csv}")
-        if args.json is not None:
-            from reports.jsondoc import json_text
-
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
-            print(f"summary: {args.json}")
-    except OSError as exc:  # after the scores above: said as main() says any other, as a write
-        print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)
-        return 1
+    if not _write_score_files(args, rows, summary):
+        return EXIT_WRITE_FAILED
     if any(r.get("pair_error") for r in rows):  # the descent's own input, not the detector: as bad usage
         return 2
     if summary["failed"]:  # a broken submission is not a detector over its FP budget: a code of its own
         return EXIT_NO_OUTPUT
     return 0 if summary["pairs_over_fp_limit"] == 0 else 1
+
+
+def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], summary: dict[str, Any]) -> bool:
+    """Write ``--csv`` and ``--json``; False, said in one line naming the file, when the system refuses one (a full
+    disk): exit 1 said "FP over the limit" for a detector that passed, and the message named no file (QA 65b L4)."""
+    from reports.jsondoc import json_text
+    from studies.score import json_row, write_csv
+
+    for option, path, label in (("--csv", args.csv, "rows:   "), ("--json", args.json, "summary:")):
+        if path is None:
+            continue
+        try:
+            if option == "--csv":
+                write_csv(rows, path)
+            else:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
+        except OSError as exc:  # after the scores above, which stand: only the file is missing
+            why = exc.strerror or str(exc) or type(exc).__name__
+            print(f"hazard-hil score: error: cannot write {option} {path}: {why}", file=sys.stderr)
+            return False
+        print(f"{label} {path}")
+    return True
 
 
 def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
@@ -901,6 +907,9 @@ def _no_truth_either(row: dict[str, Any], pair: Any, where: str) -> None:
 
 
 EXIT_NO_OUTPUT = 3  # `score`: a pair had no usable output (missing or broken files)
+# `score`: --csv or --json could not be written. The other commands exit 1 on a refused write (hil_server.cli.main),
+# but score's 1 is its verdict, "FP over the limit", which a CI job must be able to tell from a full disk
+EXIT_WRITE_FAILED = 4
 UNMAPPED_WARN_PCT = 50.0  # a detector that leaves over half the overlap NaN is said to, whatever its FP
 
 

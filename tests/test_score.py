@@ -612,3 +612,16 @@ def test_the_runs_grid_scores_are_the_score_commands_whatever_part_of_the_ground
     assert (by_score["cdi_pct"], by_score["pixels"]) == pytest.approx((whole["cdi_pct"], whole["n"]))
     safe, _ = score_grids(pair, np.full(shape, STATE_SAFE, np.uint8), origin, cell)  # FP = the hazard share
     assert safe["fp_pct"] == pytest.approx(by_score["hazards_in_scene_pct"]) and safe["fp_pct"] > 5.0
+
+
+def test_a_report_file_the_system_refuses_is_exit_4_naming_it_not_the_fp_verdict(descent, tmp_path, capsys):
+    """``--json /dev/full`` exited 1, "FP over the limit", for a detector that passed, and named no file (QA 65b L4)."""
+    d = descent / "300_150"
+    out = _write(tmp_path / "unsafe", np.ones_like(read_pair(d).truth["hazard"]))  # FP 0: passes
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    for option in ("--json", "--csv"):
+        assert main(["score", str(d), str(out), option, "/dev/full"]) == 4
+        captured = capsys.readouterr()
+        assert f"hazard-hil score: error: cannot write {option} /dev/full: No space left on device" in captured.err
+        assert "| 300_150 |" in captured.out  # the scores stand, printed before
