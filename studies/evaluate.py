@@ -169,7 +169,7 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("6.2", "rough_median_m", "rough median m"),
         ("6.2", "rough_mad_m", "rough MAD m"),
         ("6.3", "dem_skewness", "DEM skewness"),
-        ("6.3", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.3", "dem_kurtosis", "DEM excess kurtosis (not the thesis's)"),
         ("6.4", "fp_pct", "FP %"),
         ("6.4", "fn_pct", "FN %"),
         ("6.4", "tp_pct", "TP %"),
@@ -197,7 +197,7 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("6.9", "rough_median_m", "rough median m"),
         ("6.9", "rough_mad_m", "rough MAD m"),
         ("6.10", "dem_skewness", "DEM skewness"),
-        ("6.10", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.10", "dem_kurtosis", "DEM excess kurtosis (not the thesis's)"),
         ("6.11", "fp_pct", "FP %"),
         ("6.11", "fn_pct", "FN %"),
         ("6.11", "tp_pct", "TP %"),
@@ -206,6 +206,12 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("Fig. 6.12", "safe_detected_pct", "TP% (safe found)"),
         ("Fig. 6.12", "cdi_pct", "CDI %"),
     ],
+}
+# Metrics of a thesis table whose thesis column measures something else: ours is shown alone, and the table says
+# why. The thesis's "kurtosis" equals its skewness minus 3 in every row (ground_sim.scoring.dem_error_stats).
+NOT_COMPARABLE = {
+    "dem_kurtosis": "ours is the excess kurtosis (0 for a normal distribution); the thesis's kurtosis column equals "
+    "its skewness minus 3 in every row, not a kurtosis of any definition, so it is not comparable and not shown",
 }
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (
@@ -1041,7 +1047,7 @@ def comparison(
     for table, metric, label in COMPARISON_TABLES[scenario]:
         tmetric = _THESIS_METRIC.get(metric, metric)
         for a in alts:
-            tv = idx.get((table, scenario, a, tmetric))
+            tv = None if metric in NOT_COMPARABLE else idx.get((table, scenario, a, tmetric))
             ours = {p: summary.get((scenario, p, a), {}).get(metric) for p in presets}
             cells.append(
                 {

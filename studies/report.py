@@ -373,7 +373,10 @@ def _caption(name: str) -> str:
 
 def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list[Table]:
     """Page tables, one per thesis table (split every ``max_metrics`` metrics): rows = altitude, per metric
-    the thesis's value then ours per preset. Labels come from the glossary, so they are unique and explained."""
+    the thesis's value then ours per preset (ours alone for :data:`studies.evaluate.NOT_COMPARABLE`, the caption
+    saying why). Labels come from the glossary, so they are unique and explained."""
+    from studies import evaluate as ev
+
     presets = [k[5:] for k in (cells[0] if cells else {}) if k.startswith("ours_")]
     groups: dict[str, list[str]] = {}
     for c in cells:
@@ -392,10 +395,12 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
             title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
             if parts > 1:  # one table split in several: each caption says which part it is
                 title += f" ({i // max_metrics + 1} of {parts})"
+            # in the caption, which the page and the Markdown both show: a footnote mark was lost on the way
+            title += "".join(f"; {term(m).label}: {ev.NOT_COMPARABLE[m]}" for m in ms if m in ev.NOT_COMPARABLE)
             cols = [Column("altitude_m", digits=0)]
             for m in ms:
                 digits = 2 if "kurtosis" in m or "skewness" in m else 3
-                if table != "-":
+                if table != "-" and m not in ev.NOT_COMPARABLE:
                     cols.append(Column(f"{m}|reference", f"{term(m).label}: thesis", digits, term=m))
                 cols += [Column(f"{m}|{p}", f"{term(m).label}: ours ({p})", digits, term=m) for p in presets]
             rows = []
