@@ -903,6 +903,14 @@ def evaluate_scenario(
                 }
         maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
         stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}
+        retired = retire_page(out, scenario)
+        if retired:  # before any figure changes: an interrupted or failed run left the old page over new figures
+            print(
+                f"evaluate: removed the earlier {scenario} page ({', '.join(p.name for p in retired)}) from "
+                f"{out / 'report'}: this run's figures replace its figures, and this run writes it when it finishes",
+                file=sys.stderr,
+                flush=True,
+            )
         gone = prune_other_runs(out, scenario, maps, stems)
         if gone:  # said with --no-progress too: scripts are where a silent deletion hurts
             print(
@@ -934,6 +942,25 @@ def evaluate_scenario(
     )
     write_metrics_csv(others + rows, out / "metrics.csv")
     return rows
+
+
+def retire_page(out: Path, scenario: str) -> list[Path]:
+    """Remove ``scenario``'s page (``report/index.html`` when it is evaluate's page of ``scenario``) and its
+    ``tables_<scenario>.md``, and return them: this run deletes and redraws the scenario's figures as its tasks
+    finish, so a run stopped or failed before its report left the old page and tables, presented as complete,
+    over a mix of old and new figures, some missing (QA 65b M1). The page of another study or scenario is kept:
+    none of its figures change until this run writes its own page. ``metrics.csv`` stays: its rows name their
+    seeds and presets and match the maps of the run that wrote them."""
+    from reports.html import page_title
+
+    rep = out / "report"
+    mine = [rep / f"tables_{scenario}.md"]
+    if (page_title(rep / "index.html") or "").startswith(f"hazard-hil evaluate: {scenario} scenario"):
+        mine.append(rep / "index.html")
+    gone = [p for p in mine if p.is_file()]
+    for p in gone:
+        p.unlink()
+    return gone
 
 
 def prune_other_runs(out: Path, scenario: str, maps: set[str], stems: set[str]) -> list[Path]:

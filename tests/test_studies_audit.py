@@ -481,3 +481,30 @@ def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(
     assert "drawn by other render or truth code" in err and "computing them again" in err
     (pair_json,) = (tmp_path / "cache").rglob("pair.json")
     assert json.loads(pair_json.read_text())["render_code"] == "0123456789abcdef"  # drawn again, not reused
+
+
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), (ValueError("worker lost"), 1)])
+def test_a_rerun_stopped_before_its_report_leaves_no_page_that_reads_as_complete(
+    tmp_path, capsys, monkeypatch, stop, code
+):
+    """A rerun into an existing --out redrew the figures as its tasks ran: stopped (or failed) before its report,
+    it left the old page and tables, presented as complete, over the new run's figures, some deleted (QA 65b M1).
+    The old page and tables go when the run starts; a rerun writes them."""
+    from studies import evaluate as ev
+
+    argv = _eval(tmp_path, "out", 48)
+    assert main(argv) == 0
+    rep = tmp_path / "out" / "report"
+    assert (rep / "index.html").is_file() and (rep / "tables_vertical.md").is_file()
+
+    def stopped(**kwargs):
+        raise stop
+
+    monkeypatch.setattr(ev, "evaluate_pair", stopped)
+    capsys.readouterr()
+    assert main([*argv[:-2], "--preset", "thesis", *argv[-2:]]) == code  # a task to run: the other preset
+    err = capsys.readouterr().err
+    assert "removed the earlier vertical page (tables_vertical.md, index.html)" in err
+    assert not (rep / "index.html").exists() and not (rep / "tables_vertical.md").exists()
+    monkeypatch.undo()
+    assert main(argv) == 0 and (rep / "index.html").is_file()  # the rerun writes it again
