@@ -90,6 +90,16 @@ def camera_note(camera_px: int | None) -> str:
     return note
 
 
+def warn_not_held_out(seeds: list[int], seed_set: str) -> str:
+    """:func:`ground_sim.seeds.not_held_out`, said once on stderr as a warning; returns it for the page."""
+    from ground_sim.seeds import not_held_out
+
+    why = not_held_out(seeds, seed_set)
+    if why:
+        _note(f"warning: {why}")
+    return why
+
+
 # under this a 2:1 pair's shared area is under four of pose refinement's 15 px tracking windows a side: at 128 px
 # `sensitivity --preset refine` printed identical rows for fast and fast_unrefined (stop 57's studies QA)
 SMALL_FOR_REFINEMENT_PX = 200
@@ -408,6 +418,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise InputError("--frames sets the multi-frame descents' altitudes: it needs --multi-frame")
     frames = _parse_frames(args.scenario, args.frames)
     check_local_room(args, len(frames) if args.multi_frame else 2)
+    warning = warn_not_held_out(seeds, seed_set)
     try:
         rows = ev.evaluate_scenario(
             args.scenario,
@@ -445,13 +456,27 @@ def _evaluate(args: argparse.Namespace) -> int:
         except CampaignError as exc:
             return _campaign_failed("evaluate: multi-frame", exc)
     with writing_report(args.out):
-        return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set))
+        return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set), warning)
 
 
-def _evaluation_page(args: argparse.Namespace, rows: list, multi: Any, frames: list[float], seeds_text: str) -> int:
+def tables_setting(scenario: str, scene: str, seeds_text: str, camera_px: int | None, warning: str = "") -> str:
+    """The first line of ``tables_<scenario>.md``, the file pasted into RESULTS.md: its seeds, scene, scenario and
+    camera, which it did not carry (a tuning-seed or 128 px table read as the thesis setup's held-out one)."""
+    px = camera_px or THESIS_CAMERA_PX
+    camera = "the thesis's 512 px camera" if px == THESIS_CAMERA_PX else f"a {px} px camera, not the thesis's 512 px"
+    return f"*{scenario} scenario, scene {scene}; {seeds_text}; {camera}*" + (
+        f" **WARNING: {warning}**" if warning else ""
+    )
+
+
+def _evaluation_page(
+    args: argparse.Namespace, rows: list, multi: Any, frames: list[float], seeds_text: str, warning: str = ""
+) -> int:
     from studies import evaluate as ev
     from studies import report
 
+    scene = rows[0]["scene"] if rows else "?"
+    setting = tables_setting(args.scenario, scene, seeds_text, args.camera_px, warning)
     seeds_text += camera_note(args.camera_px)
     note_page_owner(args.out, "evaluate")
     page = report.evaluation_report(
@@ -461,6 +486,8 @@ def _evaluation_page(args: argparse.Namespace, rows: list, multi: Any, frames: l
         figure_preset=_presets(args.preset)[0],
         multiframe=multi,
         map_tag=ev.render_tag(args.max_raster_cells, args.raster),
+        setting=setting,
+        subtitle=f"WARNING: {warning}" if warning else "",
     )
     print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
@@ -486,6 +513,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
     check_local_room(args)
+    warning = warn_not_held_out(seeds, seed_set)
     try:
         rows = ev.sensitivity_campaign(
             args.kind,
@@ -505,7 +533,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     except CampaignError as exc:
         return _campaign_failed("sensitivity", exc)
     with writing_report(args.out):
-        return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set))
+        return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set), warning)
 
 
 def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
@@ -525,7 +553,7 @@ def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
     return f"{said}, {'a ' if len(cams) == 1 else ''}{'/'.join(map(str, cams))} px camera{'s' if len(cams) > 1 else ''}"
 
 
-def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> int:
+def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, warning: str = "") -> int:
     from studies import evaluate as ev
     from studies import report
 
@@ -556,7 +584,9 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> 
             f"hazard-hil sensitivity (thesis sec 6.3); {args.kind}: {seeds_text}{note}; the other sections are "
             "earlier runs into this --out with other settings, each stated in its heading"
         )
-    page = report.write_html(args.out / "report", title, sections)
+    page = report.write_html(
+        args.out / "report", title, sections, subtitle=f"WARNING ({args.kind}): {warning}" if warning else ""
+    )
     print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     if other:
@@ -645,6 +675,7 @@ def _landings(args: argparse.Namespace) -> int:
     check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     check_local_room(args)
+    warn_not_held_out(seeds, seed_set)  # the page says it from the campaign's seeds
     if not args.pose_error.strip():  # an unset shell variable would have meant perfect navigation, without a word
         raise InputError("--pose-error is empty: give PoseError syntax (e.g. alt=0.5,pitch=0.05) or 'none'")
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error

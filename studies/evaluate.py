@@ -96,6 +96,7 @@ METRIC_COLUMNS = (
     "level",
     "degraded",
     "pipeline_s",
+    "camera_px",  # last, the columns before it in place: rows of another run's camera may share the file
 )
 
 
@@ -900,6 +901,7 @@ def evaluate_scenario(
                     "seed_set": seed_set_of(e["seed"]),
                     "scene": scene_spec,
                     "pair": e["pair_dir"],
+                    "camera_px": camera_px or THESIS_CAMERA_PX,  # as the sensitivity CSV states it
                 }
         maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
         stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}

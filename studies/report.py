@@ -431,6 +431,8 @@ def evaluation_report(
     multiframe: list[dict[str, Any]] | None = None,
     title: str = "hazard-hil evaluation",
     map_tag: str | None = None,
+    setting: str = "",
+    subtitle: str = "",
 ) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
 
@@ -439,7 +441,8 @@ def evaluation_report(
     the DEM/slope/roughness triptychs and hazard overlays of each altitude in
     ``figure_altitudes`` (all when None) whose maps were kept. ``map_tag`` ends the kept maps' names (the
     raster tag of the run's task ids, :func:`studies.evaluate.render_tag`; default: the default raster's, or
-    none).
+    none). ``setting`` (seeds, scene, scenario, camera) is the first line of each ``tables_<scenario>.md``;
+    ``subtitle`` goes under the page's title (a warning that the seeds are not held-out).
     """
     from ground_sim.render import DEFAULT_RASTER
     from studies import evaluate as ev
@@ -455,7 +458,7 @@ def evaluation_report(
     want = None if figure_altitudes is None else {int(a) for a in figure_altitudes}
     for scen in [s for s in ev.SCENARIOS if any(r["scenario"] == s for r in rows)]:
         cells = ev.comparison(summary, scen, thesis)
-        (rep / f"tables_{scen}.md").write_text(comparison_markdown(cells))
+        (rep / f"tables_{scen}.md").write_text((f"{setting}\n\n" if setting else "") + comparison_markdown(cells))
         plot = plot_vs_altitude(summary, scen, thesis, rep / f"{scen}_detection.png")
         sections.append((f"{scen}: ours vs thesis (medians over seeds)", comparison_tables(cells), [plot.name]))
         imgs: list[str] = []
@@ -487,4 +490,4 @@ def evaluation_report(
         summ = ev.sensitivity_summary(srows)
         cols = [k for k in (summ[0] if summ else {})]
         sections.append((f"sensitivity: {kind}", rows_markdown(summ, cols), [plot.name]))
-    return write_html(rep, title, sections)
+    return write_html(rep, title, sections, subtitle=subtitle)

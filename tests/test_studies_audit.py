@@ -508,3 +508,27 @@ def test_a_rerun_stopped_before_its_report_leaves_no_page_that_reads_as_complete
     assert not (rep / "index.html").exists() and not (rep / "tables_vertical.md").exists()
     monkeypatch.undo()
     assert main(argv) == 0 and (rep / "index.html").is_file()  # the rerun writes it again
+
+
+@pytest.mark.parametrize(
+    "seeds, said",
+    [(["--seed-set", "tuning", "--seeds", "1"], "tuning seeds: "), (["--seed-list", "5,1000"], "seed(s) 5 (not held")],
+)
+def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(tmp_path, capsys, seeds, said):
+    """QA 65b M3: --seed-set tuning, or a --seed-list pooling tuning and held-out seeds, was only named; the pasted
+    tables_<scenario>.md named neither seeds nor scene nor camera, and metrics.csv had no camera column."""
+    from studies.evaluate import read_metrics_csv
+
+    argv = _eval(tmp_path, "out", 48)
+    i = argv.index("--seed-list")
+    argv[i : i + 2] = seeds
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    warning = [ln for ln in err.splitlines() if ln.startswith("warning: ") and "not held-out results" in ln]
+    assert len(warning) == 1 and said in warning[0]
+    rep = tmp_path / "out" / "report"
+    assert "WARNING: " + said in html.unescape((rep / "index.html").read_text())
+    first = (rep / "tables_vertical.md").read_text().splitlines()[0]
+    for text in ("vertical scenario", "scene thesis", "seeds", "a 48 px camera", "not held-out results"):
+        assert text in first, first
+    assert {r["camera_px"] for r in read_metrics_csv(tmp_path / "out" / "metrics.csv")} == {48}
