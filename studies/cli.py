@@ -701,7 +701,7 @@ def _landings(args: argparse.Namespace) -> int:
             else ""
         )
         + f" in {ld.counted(c.n_groups, 'render')} over {', '.join(scenes)}; "
-        f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
+        f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}{camera_note(args.camera_px)}",
         file=sys.stderr,
     )
     t0 = time.time()
@@ -741,8 +741,10 @@ def _landings(args: argparse.Namespace) -> int:
                     )
         for why, k in summary.get("no_site_reasons", {}).get(p, {}).items():
             print(f"{'':7s}   no site x {k}: {why}")
+    # the interval's caveat with the numbers, not only on the page (QA 65b L3)
+    print(f"{'':7s}   [lo, hi]: {summary.get('ci95_note') or ''}")
     used = [int(x) for x in summary.get("seeds_used") or seeds]  # the landings drew these, not the whole set
-    print(f"{describe_seeds(used, seed_set)}; wall {time.time() - t0:.0f} s")
+    print(f"{describe_seeds(used, seed_set)}{camera_note(args.camera_px)}; wall {time.time() - t0:.0f} s")
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0

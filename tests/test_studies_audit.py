@@ -510,6 +510,78 @@ def test_a_rerun_stopped_before_its_report_leaves_no_page_that_reads_as_complete
     assert main(argv) == 0 and (rep / "index.html").is_file()  # the rerun writes it again
 
 
+def test_a_partial_landings_page_says_incomplete_in_its_title_headline_figures_and_csv(tmp_path, monkeypatch):
+    """The INCOMPLETE notice sat below a title and headline that read as the whole campaign's, the figures were
+    unmarked and landings.csv had no marker (QA 65b L2); the interval's caveat was on the page only (L3)."""
+    import csv
+
+    from reports.html import page_title
+
+    real, calls = ld.land_group, []
+
+    def ctrl_c_at_third(plan, presets, cache_dir=None):
+        calls.append(plan["group"])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(plan, presets, cache_dir)
+
+    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    seen: list[str] = []
+    monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: seen.append(summary["complete"]) or [])
+    with pytest.raises(KeyboardInterrupt):
+        ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
+    out = tmp_path / "a"
+    assert page_title(out / "report" / "index.html") == (
+        "hazard-hil landings: INCOMPLETE landing Monte Carlo (2 of 4 landings flown)"
+    )
+    page = html.unescape((out / "report" / "index.html").read_text())
+    assert "P(safe landing), fast, INCOMPLETE: 2 of 4 landings flown" in page
+    assert "2 of 4 landings (4 renders" in page  # not "4 landings", as if all were flown
+    assert "a 64 px camera, not the thesis's 512 px" in page  # L1: the camera, said as evaluate says it
+    with (out / "landings.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))  # still plain CSV
+    assert len(rows) == 2 and {r["campaign_complete"] for r in rows} == {"false"}
+    part = json.loads((out / "landings.json").read_text())
+    assert "aim points of a render share" in part["ci95_note"] and "wider" in part["ci95_note"]
+    assert seen == [False]
+
+    monkeypatch.setattr(ld, "land_group", real)
+    ld.run_campaign(_campaign(), out, workers=1, progress=False)
+    assert page_title(out / "report" / "index.html") == "hazard-hil landings: landing Monte Carlo"
+    with (out / "landings.csv").open(newline="") as fh:
+        assert {r["campaign_complete"] for r in csv.DictReader(fh)} == {"true"}
+
+
+def test_the_partial_figures_are_titled_incomplete(tmp_path, monkeypatch):
+    """A figure is shown and passed on without its page: a partial campaign's says so in its title (QA 65b L2)."""
+    from reports import plots
+
+    rows = [
+        {"landing": 0, "group": 0, "preset": "fast", "outcome": "safe", "safe": True, "site_found": True,
+         "scene": "mare", "scene_seed": 1000, "aim_safe": True, "divert_m": 2.0, "scenario": "vertical",
+         "pair": "300/150"},
+    ]  # fmt: skip
+    titles: list[str] = []
+    monkeypatch.setattr(plots, "save", lambda fig, path, **_: titles.extend(a.get_title() for a in fig.axes) or path)
+    summary = ld.summarise(rows)
+    ld._plots(tmp_path, rows, summary)
+    assert titles and not any("INCOMPLETE" in t for t in titles)
+    titles.clear()
+    ld._plots(tmp_path, rows, {**summary, "complete": False})
+    assert len(titles) == 3 and all(t.startswith("INCOMPLETE: ") for t in titles)
+
+
+def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, capsys):
+    """L1/L3: `landings --camera-px 64` said nothing of the camera on the console, and its interval's caveat was
+    on the page only."""
+    argv = ["landings", "--scenes", "mare", "--n", "1", "--per-render", "1", "--preset", "fast", "--camera-px", "64"]
+    assert main([*argv, "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
+    out, err = capsys.readouterr()
+    assert "a 64 px camera, not the thesis's 512 px: not its setup" in err  # the campaign's opening line
+    assert "a 64 px camera, not the thesis's 512 px" in out
+    assert "[lo, hi]: 95 % Wilson interval taking the landings as independent draws; the 1 aim points" in out
+
+
 @pytest.mark.parametrize(
     "seeds, said",
     [(["--seed-set", "tuning", "--seeds", "1"], "tuning seeds: "), (["--seed-list", "5,1000"], "seed(s) 5 (not held")],
