@@ -13,9 +13,9 @@ without a word. Each pair therefore records in its ``pair.json`` meta:
 
 A cached pair whose record differs from today's is removed and rendered again, and the caller is told in one
 line. A pair from before the fingerprints were recorded is rendered again too, except where the caller
-trusts such pairs (``trust_unrecorded``, ``bench/`` only: hours of renders there), said once per cache
-directory. So is a damaged one (an image or a truth array cut off or corrupt): that check reads the files'
-structure, not their pixels, so a cache hit costs one decode of the pair, the caller's.
+trusts such pairs (``trust_unrecorded``, ``bench/`` only: hours of renders there), said once per process. So
+is a damaged one (an image or a truth array cut off or corrupt): that check reads the files' structure, not
+their pixels, so a cache hit costs one decode of the pair, the caller's.
 """
 
 from __future__ import annotations
@@ -55,7 +55,8 @@ RENDER_SOURCES = (
     "trajectory.py",
     "truth.py",
 )
-_TRUSTED_SAID: set[Path] = set()  # cache directories whose unfingerprinted pairs were trusted, said once each
+# the first directory whose unfingerprinted pairs were trusted: said once per process (a bench run reads dozens)
+_TRUSTED_SAID: list[Path] = []
 
 
 @functools.cache
@@ -200,11 +201,12 @@ def _stale(doc: Any, v: int, scene: str | None, trust_unrecorded: bool, where: P
     if code is None or (scene is not None and params is None):
         if not trust_unrecorded:
             return "rendered before pairs recorded their scene and render-code fingerprints"
-        if where not in _TRUSTED_SAID:
-            _TRUSTED_SAID.add(where)
+        if not _TRUSTED_SAID:
+            _TRUSTED_SAID.append(where)
             print(
-                f"warning: {where}: pairs rendered before render fingerprints were recorded are reused unchecked "
-                "(a scene preset or the render code changed since would not be seen; delete them to render again)",
+                f"warning: {where}: pairs rendered before render fingerprints were recorded are reused unchecked, "
+                "here and in any other cache directory of this run (a scene preset or the render code changed since "
+                "would not be seen; delete them to render again)",
                 file=sys.stderr,
                 flush=True,
             )
@@ -223,7 +225,7 @@ def reusable(pair_dir: str | Path, *, quiet: bool = False, scene: Any = None, tr
     or unreadable one is removed (so the caller renders it again, e.g. with ``write_pair_atomic``) and a one-line
     note goes to stderr: a damaged cache entry would otherwise fail every run that reads it, and "rerun to retry"
     could not help. ``trust_unrecorded``: reuse a pair from before the fingerprints were recorded, with a one-line
-    warning per cache directory (``bench/`` only)."""
+    warning per process (``bench/`` only)."""
     d = Path(pair_dir)
     want = scene if scene is None or isinstance(scene, str) else scene_fingerprint(scene)
     v, doc = _read_meta(d)  # read once: its version, then what it names

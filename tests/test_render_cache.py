@@ -122,11 +122,14 @@ def test_a_pair_of_other_scene_parameters_or_render_code_is_drawn_again(tmp_path
 
 
 def test_pairs_from_before_the_fingerprints_are_drawn_again_or_trusted_by_bench_with_one_warning(
-    tmp_path, small_pair, capsys
+    tmp_path, small_pair, capsys, monkeypatch
 ):
     """A study cache without fingerprints cannot vouch for its scene: drawn again, said. bench/'s caches (hours of
-    renders) may trust theirs: reused, with one warning per cache directory, not one per pair."""
+    renders) may trust theirs: reused, with one warning for the run, not one per pair or directory."""
+    from ground_sim import render_cache
     from ground_sim.scene import load_scene_params
+
+    monkeypatch.setattr(render_cache, "_TRUSTED_SAID", [])
 
     params = load_scene_params("default", "vertical")
 
@@ -141,9 +144,10 @@ def test_pairs_from_before_the_fingerprints_are_drawn_again_or_trusted_by_bench_
     assert "rendered before pairs recorded their scene and render-code fingerprints: rendering again" in (
         capsys.readouterr().err
     )
-    for name in ("a", "b"):
+    for name in ("a", "b", "other/c"):
         unrecorded(tmp_path / "bench" / name)
-    assert all(reusable(tmp_path / "bench" / n, scene=params, trust_unrecorded=True) for n in ("a", "b", "a"))
+    names = ("a", "b", "a", "other/c")
+    assert all(reusable(tmp_path / "bench" / n, scene=params, trust_unrecorded=True) for n in names)
     err = capsys.readouterr().err.splitlines()
     assert (
         len(err) == 1
