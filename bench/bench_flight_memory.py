@@ -125,13 +125,14 @@ def default_pair(cache: Path) -> Path:
     from ground_sim.descent import render_pair
     from ground_sim.library import scene_sun
     from ground_sim.render_cache import reusable
-    from ground_sim.scene import load_scene
+    from ground_sim.scene import load_scene, load_scene_params
     from ground_sim.seeds import HELD_OUT_SEEDS
     from protocol.pairdir import write_pair_atomic
 
     seed = HELD_OUT_SEEDS[0]
     d = cache / f"approach_thesis_s{seed}_1000_500"
-    if not reusable(d):
+    # renders from before the fingerprints are trusted (said); a changed scene or render code is drawn again
+    if not reusable(d, scene=load_scene_params("thesis", "approach"), trust_unrecorded=True):
         spec = next(s for s in trajectory.approach(None) if s.label == "1000/500")
         scene = load_scene("thesis", seed, "approach")
         write_pair_atomic(d, render_pair(scene, spec, scene_sun(scene, "approach", seed), seed=seed))

@@ -74,16 +74,18 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     """Render (or reuse) one multi-frame pair directory; ground truth is frame 0's."""
     from ground_sim.descent import DEFAULT_SUN
     from ground_sim.render import RENDER_VERSION, render_view
-    from ground_sim.render_cache import reusable
-    from ground_sim.scene import load_scene
+    from ground_sim.render_cache import render_fingerprints, reusable
+    from ground_sim.scene import Scene, load_scene_params
     from protocol.pairdir import Camera, Pair, write_pair_atomic
 
     label = "_".join(f"{a:g}" for a in altitudes)
     out = cache / f"{case}_{label}_s{seed}"
-    if reusable(out):  # else none there, or a stale one (another renderer version), now removed
+    params = load_scene_params(SCENE[case])
+    # else none there, or a stale one, now removed; renders from before the fingerprints are trusted (said)
+    if reusable(out, scene=params, trust_unrecorded=True):
         return out
     poses = descent_poses(case, altitudes)
-    scene = load_scene(SCENE[case], seed)
+    scene = Scene(params, seed)
     sun = DEFAULT_SUN[case]
     cam = Camera.thesis()
     views = [render_view(scene, cam, p, sun, seed=seed * 7919 + 104729 * k + 17) for k, p in enumerate(poses)]
@@ -94,6 +96,7 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
         "scene": scene.params.name,
         "scene_seed": seed,
         "render_version": RENDER_VERSION,
+        **render_fingerprints(scene.params),
     }
     meta["true_frames"] = [p.to_dict(f"i{k + 1}.png") for k, p in enumerate(poses)]
     pair = Pair(cam, tuple(poses), tuple(v.image for v in views), sun, truth, meta)

@@ -84,7 +84,7 @@ def render_case(
     from ground_sim.library import scene_sun
     from ground_sim.render import MAX_CELLS, RENDER_VERSION
     from ground_sim.render_cache import render_version, reusable
-    from ground_sim.scene import load_scene
+    from ground_sim.scene import Scene, load_scene_params
     from protocol.pairdir import Sun, square_camera, write_pair_atomic
 
     traj, scene_spec, sun = CASES[case]
@@ -92,6 +92,7 @@ def render_case(
     if altitudes:
         specs = [s for s in specs if int(round(s.altitude_m)) in altitudes]
     out = cache / case_key(case, seed, max_cells, raster, image_px)
+    params = load_scene_params(scene_spec, traj)  # the scenario's variant, where the scene has one
     scene = None
     entries = []
     for spec in specs:
@@ -99,8 +100,10 @@ def render_case(
         have = cached_raster(d) if render_version(d) == RENDER_VERSION else raster
         if have != raster:  # an untagged cache of tiled renders from before stop 21: never score it as another
             raise SystemExit(f"eval_flight: {d} holds raster={have} renders, not {raster}: use another --cache")
-        if not reusable(d):  # none there, or a stale or damaged one, now removed
-            scene = scene or load_scene(scene_spec, seed, traj)  # the scenario's variant, where the scene has one
+        # none there, or a stale or damaged one, now removed; a cache from before pairs recorded their scene and
+        # render-code fingerprints is trusted, with a warning (hours of renders), and later changes are seen
+        if not reusable(d, scene=params, trust_unrecorded=True):
+            scene = scene or Scene(params, seed)  # the scenario's variant, where the scene has one
             s = Sun(*sun) if sun else scene_sun(scene, traj, seed)  # a library scene's own sun, else the default
             mc = MAX_CELLS if max_cells is None else max_cells
             write_pair_atomic(d, render_pair(scene, spec, s, seed=seed, max_cells=mc, raster=raster))

@@ -34,6 +34,7 @@ from ground_sim.render import (
     noisy_image,
     render_view,
 )
+from ground_sim.render_cache import render_fingerprints
 from ground_sim.scene import Scene, SceneParams, load_scene
 from ground_sim.trajectory import (
     MAX_ALTITUDE_M,
@@ -185,6 +186,8 @@ def assemble_pair(
         "true_frames": _true_frames(spec.poses),
         "render": [v.info | {"raster_origin_m": [float(x) for x in v.info["raster_origin_m"]]} for v in views],
         "render_version": RENDER_VERSION,  # render caches reuse a pair only if this renderer drew it
+        # ... from these scene parameters, with this render code (ground_sim.render_cache)
+        **render_fingerprints(scene.params),
     }
     reported, deltas = reported_poses(spec, seed, pose_error)
     if pose_error is not None:

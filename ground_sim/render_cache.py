@@ -1,17 +1,28 @@
-"""Render caches: reuse a rendered pair directory only if this renderer drew it.
+"""Render caches: reuse a rendered pair directory only if what defines it is unchanged.
 
 Studies keep renders between runs (``hazard-hil landings --cache``, ``evaluate``'s ``OUT/*/cache``,
-``bench/eval_flight.py --cache``), keyed by everything the render depends on: scene, seed, scenario,
-pair, sun, camera, raster. The renderer's own code is not in that key, so a renderer change would
-score the flight software against stale images and truth without a word. Each pair records
-:data:`ground_sim.render.RENDER_VERSION` in its ``pair.json`` meta; a cached pair with another
-version is removed and rendered again, and the caller is told. So is a damaged one (an image or a
-truth array cut off or corrupt): that check reads the files' structure, not their pixels, so a cache
-hit costs one decode of the pair, the caller's.
+``bench/eval_flight.py --cache``), keyed by scene *name*, seed, scenario, pair, sun, camera, raster. Neither
+the scene's parameters (a preset edited under the same name) nor the code that draws the images and the
+truth is in that key, so either change would score the flight software against stale images and truth
+without a word. Each pair therefore records in its ``pair.json`` meta:
+
+* :data:`ground_sim.render.RENDER_VERSION` (bumped by hand when the output changes),
+* ``render_code``: :func:`render_code_fingerprint`, a hash of the ground_sim modules that make renders and
+  truth (:data:`RENDER_SOURCES`; not the whole package, so editing e.g. ``stream.py`` keeps every cache),
+* ``scene_params``: :func:`scene_fingerprint` of the resolved scene parameters it was drawn from.
+
+A cached pair whose record differs from today's is removed and rendered again, and the caller is told in one
+line. A pair from before the fingerprints were recorded is rendered again too, except where the caller
+trusts such pairs (``trust_unrecorded``, ``bench/`` only: hours of renders there), said once per process. So
+is a damaged one (an image or a truth array cut off or corrupt): that check reads the files' structure, not
+their pixels, so a cache hit costs one decode of the pair, the caller's.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import hashlib
 import json
 import math
 import os
@@ -27,6 +38,48 @@ from protocol.pairdir import NPY_FAULTS, npy_fault
 
 # pairs written before the version was recorded were drawn by the renderer of version 1
 UNVERSIONED = 1
+# the ground_sim modules whose code decides a render's images and truth (the renderer, terrain, scene, shading,
+# truth, trajectories and the pair's assembly); the presets count through the resolved scene parameters
+RENDER_SOURCES = (
+    "descent.py",
+    "features.py",
+    "fbm.py",
+    "geometry.py",
+    "hashing.py",
+    "heightfield.py",
+    "library.py",
+    "render.py",
+    "scene.py",
+    "shading.py",
+    "stamp.py",
+    "trajectory.py",
+    "truth.py",
+)
+# the first directory whose unfingerprinted pairs were trusted: said once per process (a bench run reads dozens)
+_TRUSTED_SAID: list[Path] = []
+
+
+@functools.cache
+def render_code_fingerprint() -> str:
+    """SHA-256 (16 hex digits) of :data:`RENDER_SOURCES`: a pair drawn by other code is drawn again."""
+    root = Path(__file__).parent
+    h = hashlib.sha256()
+    for name in RENDER_SOURCES:
+        h.update(name.encode() + b"\0" + (root / name).read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def scene_fingerprint(params: Any) -> str:
+    """SHA-256 (16 hex digits) of resolved scene parameters (a :class:`ground_sim.scene.SceneParams`): the same
+    scene name with other parameters (its preset edited) is another render."""
+    doc = params.to_dict() if hasattr(params, "to_dict") else dataclasses.asdict(params)
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def render_fingerprints(params: Any) -> dict[str, str]:
+    """What a pair drawn today from ``params`` records in its meta (``render_code``, ``scene_params``)."""
+    return {"render_code": render_code_fingerprint(), "scene_params": scene_fingerprint(params)}
 
 
 def _read_meta(pair_dir: Path) -> tuple[int | None, Any]:
@@ -137,20 +190,49 @@ def unreadable(pair_dir: str | Path) -> str | None:
     return _read_whole(d) if doc is None else _damage(d, doc)
 
 
-def reusable(pair_dir: str | Path, *, quiet: bool = False) -> bool:
-    """True when ``pair_dir`` holds a readable pair this renderer drew. A stale or unreadable one is removed
-    (so the caller renders it again, e.g. with ``write_pair_atomic``) and a one-line note goes to stderr: a
-    damaged cache entry would otherwise fail every run that reads it, and "rerun to retry" could not help."""
+def _stale(doc: Any, v: int, scene: str | None, trust_unrecorded: bool, where: Path) -> str | None:
+    """Why the pair whose meta is ``doc`` (renderer version ``v``) is not today's render, or None. ``scene``: the
+    :func:`scene_fingerprint` it must record (None: not checked)."""
+    if v != RENDER_VERSION:
+        if v < 0:  # "version -1" read as a real one
+            return "its pair.json is unreadable or records no renderer version"
+        return f"rendered by renderer version {v}, this is {RENDER_VERSION}"
+    code, params = doc.get("render_code"), doc.get("scene_params")
+    if code is None or (scene is not None and params is None):
+        if not trust_unrecorded:
+            return "rendered before pairs recorded their scene and render-code fingerprints"
+        if not _TRUSTED_SAID:
+            _TRUSTED_SAID.append(where)
+            print(
+                f"warning: {where}: pairs rendered before render fingerprints were recorded are reused unchecked, "
+                "here and in any other cache directory of this run (a scene preset or the render code changed since "
+                "would not be seen; delete them to render again)",
+                file=sys.stderr,
+                flush=True,
+            )
+        return None
+    if code != render_code_fingerprint():
+        now = render_code_fingerprint()
+        return f"drawn by other render or truth code (ground_sim render code {code}, this is {now})"
+    if scene is not None and params != scene:
+        return f"drawn from other scene parameters ({params}, now {scene}: the scene preset changed)"
+    return None
+
+
+def reusable(pair_dir: str | Path, *, quiet: bool = False, scene: Any = None, trust_unrecorded: bool = False) -> bool:
+    """True when ``pair_dir`` holds a readable pair drawn by this renderer and render code (and, with ``scene``,
+    a :class:`ground_sim.scene.SceneParams` or its :func:`scene_fingerprint`, from these scene parameters). A stale
+    or unreadable one is removed (so the caller renders it again, e.g. with ``write_pair_atomic``) and a one-line
+    note goes to stderr: a damaged cache entry would otherwise fail every run that reads it, and "rerun to retry"
+    could not help. ``trust_unrecorded``: reuse a pair from before the fingerprints were recorded, with a one-line
+    warning per process (``bench/`` only)."""
     d = Path(pair_dir)
+    want = scene if scene is None or isinstance(scene, str) else scene_fingerprint(scene)
     v, doc = _read_meta(d)  # read once: its version, then what it names
     if v is None:
         return False
-    why = (
-        f"rendered by renderer version {v}, this is {RENDER_VERSION}"
-        if v >= 0
-        else "its pair.json is unreadable or records no renderer version"  # "version -1" read as a real one
-    )
-    if v == RENDER_VERSION:
+    why = _stale(doc, v, want, trust_unrecorded, d.parent)
+    if why is None:
         broken = _damage(d, doc)
         if broken is None:
             return True
@@ -161,8 +243,8 @@ def reusable(pair_dir: str | Path, *, quiet: bool = False) -> bool:
         os.replace(d, aside)
     except OSError:
         v, doc = _read_meta(d)
-        if v == RENDER_VERSION and _damage(d, doc) is None:  # another process re-rendered it
-            return True
+        if v is not None and _stale(doc, v, want, trust_unrecorded, d.parent) is None and _damage(d, doc) is None:
+            return True  # another process re-rendered it
         raise
     shutil.rmtree(aside, ignore_errors=True)
     if not quiet:

@@ -23,6 +23,21 @@ def seed_set_of(seed: int) -> str:
     return "other"
 
 
+def not_held_out(seeds: list[int] | tuple[int, ...], seed_set: str) -> str:
+    """Why figures over ``seeds`` (drawn as ``seed_set``) are not held-out results, or "" when they are: tuning
+    seeds, or a list that pools them with held-out ones, were only named ("tuning seeds 0 (1)"), and their
+    figures read as quotable (QA 65b M3)."""
+    other = [x for x in seeds if seed_set_of(x) != "held-out"]
+    if seed_set == "held-out" and not other:
+        return ""
+    what = (
+        f"{seed_set} seeds"
+        if len(other) == len(seeds)
+        else f"seed(s) {','.join(map(str, other[:5]))} (not held-out) pooled with held-out ones"
+    )
+    return f"{what}: these figures are not held-out results (quote --seed-set held-out, the default)"
+
+
 def describe_seeds(seeds: list[int] | tuple[int, ...], seed_set: str) -> str:
     """``held-out seeds 1000-1005 (6)``: a run of consecutive seeds as a range, a single one alone, any others
     listed."""

@@ -105,8 +105,9 @@ GLOSSARY: dict[str, Term] = {
         "DEM MAD [m]", "Median absolute deviation of the signed elevation error: its spread, blind to an offset.", "m"
     ),
     "dem_kurtosis": Term(
-        "DEM error kurtosis",
-        "Fourth standardised moment of the signed error (3 for a normal distribution): heavy tails score high.",
+        "DEM error excess kurtosis",
+        "Fourth standardised moment of the signed error minus 3 (0 for a normal distribution): heavy tails score "
+        "high. Not comparable with the thesis's kurtosis column, which equals its skewness minus 3.",
     ),
     "dem_skewness": Term("DEM error skewness", "Third standardised moment of the signed error."),
     "epi_fp_pct": Term(

@@ -12,7 +12,7 @@ from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from ground_sim.seeds import describe_seeds
-from protocol.errors import InputError, comma_items, os_error_text
+from protocol.errors import InputError, comma_items
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
 
 
@@ -88,6 +88,16 @@ def camera_note(camera_px: int | None) -> str:
     if camera_px < SMALL_FOR_REFINEMENT_PX:
         note += "; pose refinement is skipped on most pairs (too little shared image to track)"
     return note
+
+
+def warn_not_held_out(seeds: list[int], seed_set: str) -> str:
+    """:func:`ground_sim.seeds.not_held_out`, said once on stderr as a warning; returns it for the page."""
+    from ground_sim.seeds import not_held_out
+
+    why = not_held_out(seeds, seed_set)
+    if why:
+        _note(f"warning: {why}")
+    return why
 
 
 # under this a 2:1 pair's shared area is under four of pose refinement's 15 px tracking windows a side: at 128 px
@@ -408,6 +418,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise InputError("--frames sets the multi-frame descents' altitudes: it needs --multi-frame")
     frames = _parse_frames(args.scenario, args.frames)
     check_local_room(args, len(frames) if args.multi_frame else 2)
+    warning = warn_not_held_out(seeds, seed_set)
     try:
         rows = ev.evaluate_scenario(
             args.scenario,
@@ -445,13 +456,27 @@ def _evaluate(args: argparse.Namespace) -> int:
         except CampaignError as exc:
             return _campaign_failed("evaluate: multi-frame", exc)
     with writing_report(args.out):
-        return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set))
+        return _evaluation_page(args, rows, multi, frames, describe_seeds(seeds, seed_set), warning)
 
 
-def _evaluation_page(args: argparse.Namespace, rows: list, multi: Any, frames: list[float], seeds_text: str) -> int:
+def tables_setting(scenario: str, scene: str, seeds_text: str, camera_px: int | None, warning: str = "") -> str:
+    """The first line of ``tables_<scenario>.md``, the file pasted into RESULTS.md: its seeds, scene, scenario and
+    camera, which it did not carry (a tuning-seed or 128 px table read as the thesis setup's held-out one)."""
+    px = camera_px or THESIS_CAMERA_PX
+    camera = "the thesis's 512 px camera" if px == THESIS_CAMERA_PX else f"a {px} px camera, not the thesis's 512 px"
+    return f"*{scenario} scenario, scene {scene}; {seeds_text}; {camera}*" + (
+        f" **WARNING: {warning}**" if warning else ""
+    )
+
+
+def _evaluation_page(
+    args: argparse.Namespace, rows: list, multi: Any, frames: list[float], seeds_text: str, warning: str = ""
+) -> int:
     from studies import evaluate as ev
     from studies import report
 
+    scene = rows[0]["scene"] if rows else "?"
+    setting = tables_setting(args.scenario, scene, seeds_text, args.camera_px, warning)
     seeds_text += camera_note(args.camera_px)
     note_page_owner(args.out, "evaluate")
     page = report.evaluation_report(
@@ -461,6 +486,8 @@ def _evaluation_page(args: argparse.Namespace, rows: list, multi: Any, frames: l
         figure_preset=_presets(args.preset)[0],
         multiframe=multi,
         map_tag=ev.render_tag(args.max_raster_cells, args.raster),
+        setting=setting,
+        subtitle=f"WARNING: {warning}" if warning else "",
     )
     print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
@@ -486,6 +513,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     alts = _parse_alts(args.altitudes) or list(ev.SENSITIVITY_ALTITUDES)
     check_local_room(args)
+    warning = warn_not_held_out(seeds, seed_set)
     try:
         rows = ev.sensitivity_campaign(
             args.kind,
@@ -505,7 +533,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     except CampaignError as exc:
         return _campaign_failed("sensitivity", exc)
     with writing_report(args.out):
-        return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set))
+        return _sensitivity_page(args, rows, describe_seeds(seeds, seed_set), warning)
 
 
 def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
@@ -525,7 +553,7 @@ def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
     return f"{said}, {'a ' if len(cams) == 1 else ''}{'/'.join(map(str, cams))} px camera{'s' if len(cams) > 1 else ''}"
 
 
-def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> int:
+def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, warning: str = "") -> int:
     from studies import evaluate as ev
     from studies import report
 
@@ -556,7 +584,9 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str) -> 
             f"hazard-hil sensitivity (thesis sec 6.3); {args.kind}: {seeds_text}{note}; the other sections are "
             "earlier runs into this --out with other settings, each stated in its heading"
         )
-    page = report.write_html(args.out / "report", title, sections)
+    page = report.write_html(
+        args.out / "report", title, sections, subtitle=f"WARNING ({args.kind}): {warning}" if warning else ""
+    )
     print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     if other:
@@ -645,6 +675,7 @@ def _landings(args: argparse.Namespace) -> int:
     check_backend(args)
     seeds, seed_set = resolve_seeds(args, args.seeds_default)
     check_local_room(args)
+    warn_not_held_out(seeds, seed_set)  # the page says it from the campaign's seeds
     if not args.pose_error.strip():  # an unset shell variable would have meant perfect navigation, without a word
         raise InputError("--pose-error is empty: give PoseError syntax (e.g. alt=0.5,pitch=0.05) or 'none'")
     pe = None if args.pose_error.strip().lower() == "none" else args.pose_error
@@ -670,7 +701,7 @@ def _landings(args: argparse.Namespace) -> int:
             else ""
         )
         + f" in {ld.counted(c.n_groups, 'render')} over {', '.join(scenes)}; "
-        f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}",
+        f"{describe_seeds(drawn, seed_set)}; presets {', '.join(c.presets)}{camera_note(args.camera_px)}",
         file=sys.stderr,
     )
     t0 = time.time()
@@ -710,8 +741,10 @@ def _landings(args: argparse.Namespace) -> int:
                     )
         for why, k in summary.get("no_site_reasons", {}).get(p, {}).items():
             print(f"{'':7s}   no site x {k}: {why}")
+    # the interval's caveat with the numbers, not only on the page (QA 65b L3)
+    print(f"{'':7s}   [lo, hi]: {summary.get('ci95_note') or ''}")
     used = [int(x) for x in summary.get("seeds_used") or seeds]  # the landings drew these, not the whole set
-    print(f"{describe_seeds(used, seed_set)}; wall {time.time() - t0:.0f} s")
+    print(f"{describe_seeds(used, seed_set)}{camera_note(args.camera_px)}; wall {time.time() - t0:.0f} s")
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0
@@ -735,7 +768,8 @@ def register_score(subparsers: Any) -> None:
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
         " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored);"
-        " when several apply, 2 wins over 3, and 3 over 1."
+        " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv or --json could not be written (named on"
+        " stderr; the scores are printed), which wins over the others."
         " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
@@ -768,14 +802,7 @@ def _score(args: argparse.Namespace) -> int:
 
     from protocol.outdir import claim_out
     from reports.console import printable
-    from studies.score import (
-        check_not_an_input,
-        json_row,
-        pair_jobs,
-        stray_outputs,
-        summarise,
-        write_csv,
-    )
+    from studies.score import check_not_an_input, pair_jobs, stray_outputs, summarise
 
     if not (math.isfinite(args.max_fp) and 0 <= args.max_fp <= 100):
         raise InputError(f"--max-fp must be a percentage in [0, 100], got {args.max_fp:g}")
@@ -825,24 +852,36 @@ def _score(args: argparse.Namespace) -> int:
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
-    try:  # a full disk or a device that refuses writes: one line, after the scores above were printed
-        if args.csv is not None:
-            write_csv(rows, args.csv)
-            print(f"rows:    {args.csv}")
-        if args.json is not None:
-            from reports.jsondoc import json_text
-
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
-            print(f"summary: {args.json}")
-    except OSError as exc:  # after the scores above: said as main() says any other, as a write
-        print(f"hazard-hil score: error: {os_error_text(exc, 'write')}", file=sys.stderr)
-        return 1
+    if not _write_score_files(args, rows, summary):
+        return EXIT_WRITE_FAILED
     if any(r.get("pair_error") for r in rows):  # the descent's own input, not the detector: as bad usage
         return 2
     if summary["failed"]:  # a broken submission is not a detector over its FP budget: a code of its own
         return EXIT_NO_OUTPUT
     return 0 if summary["pairs_over_fp_limit"] == 0 else 1
+
+
+def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], summary: dict[str, Any]) -> bool:
+    """Write ``--csv`` and ``--json``; False, said in one line naming the file, when the system refuses one (a full
+    disk): exit 1 said "FP over the limit" for a detector that passed, and the message named no file (QA 65b L4)."""
+    from reports.jsondoc import json_text
+    from studies.score import json_row, write_csv
+
+    for option, path, label in (("--csv", args.csv, "rows:   "), ("--json", args.json, "summary:")):
+        if path is None:
+            continue
+        try:
+            if option == "--csv":
+                write_csv(rows, path)
+            else:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
+        except OSError as exc:  # after the scores above, which stand: only the file is missing
+            why = exc.strerror or str(exc) or type(exc).__name__
+            print(f"hazard-hil score: error: cannot write {option} {path}: {why}", file=sys.stderr)
+            return False
+        print(f"{label} {path}")
+    return True
 
 
 def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
@@ -901,6 +940,9 @@ def _no_truth_either(row: dict[str, Any], pair: Any, where: str) -> None:
 
 
 EXIT_NO_OUTPUT = 3  # `score`: a pair had no usable output (missing or broken files)
+# `score`: --csv or --json could not be written. The other commands exit 1 on a refused write (hil_server.cli.main),
+# but score's 1 is its verdict, "FP over the limit", which a CI job must be able to tell from a full disk
+EXIT_WRITE_FAILED = 4
 UNMAPPED_WARN_PCT = 50.0  # a detector that leaves over half the overlap NaN is said to, whatever its FP
 
 

@@ -39,8 +39,7 @@ EPIPOLE_BOX_PX = 80  # Table 6.7: 80x80 px around the epipole
 THESIS_CAMERA_PX = 512
 FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)
 # the packages whose source decides a task's result (studies.executor.code_fingerprint): a saved result
-# of other code is computed again
-RENDER_CODE = ("ground_sim", "protocol")
+# of other code is computed again (a render task's code is ground_sim.render_cache's render fingerprint)
 EVAL_CODE = ("flight_sw", "ground_sim", "protocol", "studies")
 SENSITIVITY_KINDS = ("altitude", "attitude", "lateral", "rollyaw")
 ALTITUDE_ERROR_M = 0.5  # sec 6.3.1: uniform in +-0.5 m per pose
@@ -98,6 +97,7 @@ METRIC_COLUMNS = (
     "level",
     "degraded",
     "pipeline_s",
+    "camera_px",  # last, the columns before it in place: rows of another run's camera may share the file
 )
 
 
@@ -171,7 +171,7 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("6.2", "rough_median_m", "rough median m"),
         ("6.2", "rough_mad_m", "rough MAD m"),
         ("6.3", "dem_skewness", "DEM skewness"),
-        ("6.3", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.3", "dem_kurtosis", "DEM excess kurtosis (not the thesis's)"),
         ("6.4", "fp_pct", "FP %"),
         ("6.4", "fn_pct", "FN %"),
         ("6.4", "tp_pct", "TP %"),
@@ -199,7 +199,7 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("6.9", "rough_median_m", "rough median m"),
         ("6.9", "rough_mad_m", "rough MAD m"),
         ("6.10", "dem_skewness", "DEM skewness"),
-        ("6.10", "dem_kurtosis", "DEM kurtosis*"),
+        ("6.10", "dem_kurtosis", "DEM excess kurtosis (not the thesis's)"),
         ("6.11", "fp_pct", "FP %"),
         ("6.11", "fn_pct", "FN %"),
         ("6.11", "tp_pct", "TP %"),
@@ -208,6 +208,12 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
         ("Fig. 6.12", "safe_detected_pct", "TP% (safe found)"),
         ("Fig. 6.12", "cdi_pct", "CDI %"),
     ],
+}
+# Metrics of a thesis table whose thesis column measures something else: ours is shown alone, and the table says
+# why. The thesis's "kurtosis" equals its skewness minus 3 in every row (ground_sim.scoring.dem_error_stats).
+NOT_COMPARABLE = {
+    "dem_kurtosis": "ours is the excess kurtosis (0 for a normal distribution); the thesis's kurtosis column equals "
+    "its skewness minus 3 in every row, not a kurtosis of any definition, so it is not comparable and not shown",
 }
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (
@@ -648,13 +654,15 @@ def render_cache(
             )
         specs = [s for s in specs if int(round(s.altitude_m)) in want]
     scene_spec = scene or scenario_scene(scenario)
-    tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
+    params = load_scene_params(scene_spec, scenario)
+    tag = params.spec.replace(":", "-")
     out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{camera_px or THESIS_CAMERA_PX}px{render_tag(max_cells, raster)}"
     sc = None
     entries = []
     for k, spec in enumerate(specs):
         d = out / spec.label.replace("/", "_")
-        if not reusable(d):  # none there, or a stale one (another renderer version), now removed
+        # none there, or a stale one (another renderer, render code or scene parameters), now removed
+        if not reusable(d, scene=params):
             if sc is None:
                 sc = load_scene(scene_spec, seed, scenario)
             if progress:
@@ -683,11 +691,24 @@ def render_tag(max_cells: int | None, raster: str = DEFAULT_RASTER) -> str:
     return tag + ("" if raster == "view" else f"_{raster}")
 
 
-def task_inputs(camera_px: int | None) -> str:
+def task_inputs(camera_px: int | None, renders: str | None = None) -> str:
     """What a scoring task's result depends on beyond its id (``run_tasks(inputs=...)``): a rerun into the same
     ``--out`` with another ``--camera-px`` scores its own renders instead of reusing the other camera's results
-    (the ids, which name scenario, preset, seed, altitude and raster, leave the camera out)."""
-    return f"camera_px={camera_px or THESIS_CAMERA_PX}"
+    (the ids, which name scenario, preset, seed, altitude and raster, leave the camera out); ``renders``
+    (:func:`render_identity`) likewise for renders drawn from other scene parameters or render code."""
+    text = f"camera_px={camera_px or THESIS_CAMERA_PX}"
+    return text if renders is None else f"{text}, renders {renders}"
+
+
+def render_identity(scenario: str, scene: str | None = None) -> str:
+    """The render code and scene-parameter fingerprints (:mod:`ground_sim.render_cache`) of a scenario's renders:
+    the task ids and cache keys name the scene, not what it holds, so a preset edited under the same name, or
+    the render or truth code changed, would have reused the old renders and their scores."""
+    from ground_sim.render_cache import render_code_fingerprint, scene_fingerprint
+    from ground_sim.scene import load_scene_params
+
+    params = load_scene_params(scene or scenario_scene(scenario), scenario)
+    return f"{render_code_fingerprint()}-{scene_fingerprint(params)}"
 
 
 def scenario_scene(scenario: str) -> str:
@@ -747,7 +768,8 @@ def render_all(
     """Render every (seed, pair) in parallel through the executor; entries carry ``seed``."""
     from ground_sim import trajectory
     from ground_sim.render_cache import reusable
-    from studies.executor import Task, code_fingerprint, run_tasks
+    from ground_sim.scene import load_scene_params
+    from studies.executor import Task, run_tasks
 
     have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
     alts = have if altitudes is None else sorted({int(a) for a in altitudes})
@@ -757,6 +779,8 @@ def render_all(
         )
     seeds = [int(s) for s in seeds]
     tag = (scene or scenario_scene(scenario)).replace(":", "-")
+    identity = render_identity(scenario, scene)
+    scene_params = load_scene_params(scene or scenario_scene(scenario), scenario)
     tasks = [
         Task(
             f"{scenario}-{tag}-s{s}-{camera_px or THESIS_CAMERA_PX}px-{a}{render_tag(max_cells, raster)}",
@@ -784,7 +808,9 @@ def render_all(
         progress=progress,
         desc=f"render {scenario}",
         pool=pool,
-        code=code_fingerprint(RENDER_CODE),
+        # what decides the renders, not all of ground_sim: "computing them again" is then said only when the
+        # cached renders are drawn again (render_cache, reusable), not when an unrelated module changed
+        code=identity,
     )
     out = []
     cache = Path(cache_dir).resolve()
@@ -793,7 +819,7 @@ def render_all(
         # cache wiped since the log was written, or the log copied with its --out: a copy read the original's pairs;
         # or damaged since (removed and said by reusable): every rerun failed on it, "rerun to retry" (stop 63's QA)
         here = (pair_dir / "pair.json").is_file() and pair_dir.resolve().is_relative_to(cache)
-        if not here or not reusable(pair_dir):
+        if not here or not reusable(pair_dir, scene=scene_params):
             res[t.id] = _render_task(**t.kwargs)
         out.append({**res[t.id], "seed": t.kwargs["seed"]})
     return out
@@ -873,9 +899,18 @@ def evaluate_scenario(
                     "seed_set": seed_set_of(e["seed"]),
                     "scene": scene_spec,
                     "pair": e["pair_dir"],
+                    "camera_px": camera_px or THESIS_CAMERA_PX,  # as the sensitivity CSV states it
                 }
         maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
         stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}
+        retired = retire_page(out, scenario)
+        if retired:  # before any figure changes: an interrupted or failed run left the old page over new figures
+            print(
+                f"evaluate: removed the earlier {scenario} page ({', '.join(p.name for p in retired)}) from "
+                f"{out / 'report'}: this run's figures replace its figures, and this run writes it when it finishes",
+                file=sys.stderr,
+                flush=True,
+            )
         gone = prune_other_runs(out, scenario, maps, stems)
         if gone:  # said with --no-progress too: scripts are where a silent deletion hurts
             print(
@@ -894,7 +929,7 @@ def evaluate_scenario(
             desc=f"evaluate {scenario}",
             pool=pool,
             code=code_fingerprint(EVAL_CODE),
-            inputs=task_inputs(camera_px),
+            inputs=task_inputs(camera_px, render_identity(scenario, scene)),
             # a saved result whose maps are gone (pruned above, or deleted) is scored again to draw them
             redo=[t.id for t in tasks if t.kwargs["maps_path"] and not Path(t.kwargs["maps_path"]).is_file()],
         )
@@ -907,6 +942,25 @@ def evaluate_scenario(
     )
     write_metrics_csv(others + rows, out / "metrics.csv")
     return rows
+
+
+def retire_page(out: Path, scenario: str) -> list[Path]:
+    """Remove ``scenario``'s page (``report/index.html`` when it is evaluate's page of ``scenario``) and its
+    ``tables_<scenario>.md``, and return them: this run deletes and redraws the scenario's figures as its tasks
+    finish, so a run stopped or failed before its report left the old page and tables, presented as complete,
+    over a mix of old and new figures, some missing (QA 65b M1). The page of another study or scenario is kept:
+    none of its figures change until this run writes its own page. ``metrics.csv`` stays: its rows name their
+    seeds and presets and match the maps of the run that wrote them."""
+    from reports.html import page_title
+
+    rep = out / "report"
+    mine = [rep / f"tables_{scenario}.md"]
+    if (page_title(rep / "index.html") or "").startswith(f"hazard-hil evaluate: {scenario} scenario"):
+        mine.append(rep / "index.html")
+    gone = [p for p in mine if p.is_file()]
+    for p in gone:
+        p.unlink()
+    return gone
 
 
 def prune_other_runs(out: Path, scenario: str, maps: set[str], stems: set[str]) -> list[Path]:
@@ -1020,7 +1074,7 @@ def comparison(
     for table, metric, label in COMPARISON_TABLES[scenario]:
         tmetric = _THESIS_METRIC.get(metric, metric)
         for a in alts:
-            tv = idx.get((table, scenario, a, tmetric))
+            tv = None if metric in NOT_COMPARABLE else idx.get((table, scenario, a, tmetric))
             ours = {p: summary.get((scenario, p, a), {}).get(metric) for p in presets}
             cells.append(
                 {
@@ -1136,7 +1190,7 @@ def sensitivity_campaign(
         progress=progress,
         desc=f"sensitivity {kind}",
         code=code_fingerprint(EVAL_CODE),
-        inputs=task_inputs(camera_px),
+        inputs=task_inputs(camera_px, render_identity("approach")),
     )
     rows = []
     for t in tasks:

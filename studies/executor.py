@@ -57,7 +57,7 @@ class CampaignError(RuntimeError):
         super().__init__(f"{len(failures)} task(s) failed, first {first[0]}: {first[1]}")
 
 
-SOURCE_SUFFIXES = (".py", ".json", ".c")
+SOURCE_SUFFIXES = (".py", ".json", ".c", ".toml")  # .toml: the scene presets decide the renders
 MAX_LISTED_FAILURES = 20  # failed tasks listed one per line on stderr; the rest are counted
 
 
@@ -65,7 +65,7 @@ def code_fingerprint(packages: Iterable[str], suffixes: tuple[str, ...] = SOURCE
     """SHA-256 (16 hex digits) over the source files (``suffixes``) of the named packages.
 
     Paths and bytes both count, in sorted order, so a renamed, added or edited module, or a refitted
-    model file, gives another fingerprint; compiled kernels are covered by their C source.
+    model file or scene preset (.toml), gives another fingerprint; compiled kernels are covered by their C source.
     """
     import importlib.util
 

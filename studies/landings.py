@@ -42,7 +42,7 @@ import numpy as np
 
 from ground_sim.gridscore import judge_site
 from ground_sim.render import DEFAULT_RASTER
-from ground_sim.seeds import describe_seeds
+from ground_sim.seeds import describe_seeds, not_held_out
 from protocol.errors import InputError
 from protocol.messages import SITES_WITHHELD
 from reports.html import write_atomic
@@ -104,6 +104,13 @@ ROW_COLUMNS = (
     "dz2_m",
     "pitch1_deg",
     "pitch2_deg",
+    # last, the columns before it in place: false on every row of a campaign stopped before all its renders flew
+    "campaign_complete",
+)
+# beside every P(safe) interval (console, landings.json, page): the landings of one render are not independent
+CI_NOTE = (
+    "95 % Wilson interval taking the landings as independent draws; the {per_render} aim points of a render share "
+    "its terrain, sun and image pair, so the true uncertainty is wider, more so the fewer the renders"
 )
 
 
@@ -271,12 +278,13 @@ def _footprint_width(camera: Any, pose: Any) -> float:
 def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any, Any]:
     """(spec, pair) of a render group: rendered, or read from ``cache_dir`` where an earlier campaign left it.
 
-    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera), so
+    The cache key is everything the render depends on (scene, seed, scenario, pair, sun, camera) but the scene's
+    parameters and the render code, which the pair records and :func:`ground_sim.render_cache.reusable` checks;
     campaigns that differ only in aim points, navigation errors or presets share their renders."""
 
     from ground_sim.descent import render_pair
     from ground_sim.render_cache import reusable
-    from ground_sim.scene import load_scene
+    from ground_sim.scene import load_scene, load_scene_params
     from ground_sim.trajectory import load_trajectory
     from protocol.pairdir import Sun, read_pair, write_pair_atomic
     from studies.evaluate import camera_for
@@ -294,7 +302,9 @@ def group_pair(plan: dict[str, Any], cache_dir: str | None = None) -> tuple[Any,
         + ("" if raster == "view" else f"_{raster}")
     )
     d = Path(cache_dir) / key
-    if not reusable(d):  # none there, or a stale one (another renderer version), now removed
+    # none there, or a stale one (another renderer, render code or scene parameters: the key names the scene
+    # only), now removed
+    if not reusable(d, scene=load_scene_params(plan["scene"], scenario)):
         sc = load_scene(plan["scene"], plan["seed"], scenario)
         # a concurrent writer's copy is kept
         write_pair_atomic(d, render_pair(sc, spec, sun, seed=plan["seed"], raster=raster))
@@ -582,22 +592,25 @@ def _write_summary(
     if not complete:
         summary["incomplete_reason"] = reason
     summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
+    summary["ci95_note"] = CI_NOTE.format(per_render=c.per_render)  # travels with the numbers (QA 65b L3)
     summary["wall_s_this_run"] = wall
     # each file whole or not at all: a signal in the last instant must not leave a truncated landings.json
-    write_rows(rows, out / "landings.csv")
+    write_rows(rows, out / "landings.csv", complete=complete)
     write_atomic(out / "landings.json", json_text(summary))
     if rows:
         write_report(out, rows, summary)
     return summary
 
 
-def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
+def write_rows(rows: list[dict[str, Any]], path: Path, *, complete: bool = True) -> Path:
+    """``landings.csv``: a row per landing and preset, each saying whether its campaign is complete (a partial
+    campaign's file could not be told from a whole one's, and a comment line would break CSV readers)."""
     cols = list(ROW_COLUMNS) + sorted({k for r in rows for k in r} - set(ROW_COLUMNS))
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
     w.writeheader()
     for r in sorted(rows, key=lambda r: (r["landing"], r["preset"])):
-        w.writerow({k: _cell(r.get(k)) for k in cols})
+        w.writerow({k: _cell(r.get(k)) for k in cols} | {"campaign_complete": str(complete).lower()})
     return write_atomic(path, buf.getvalue())
 
 
@@ -611,11 +624,13 @@ def _cell(v: Any) -> Any:
 
 # --------------------------------------------------------------------------- report
 def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> list[tuple[str, str]]:
-    """The page's figures: P(safe) per scene with Wilson bars and the blind baseline; outcomes; divert CDF."""
+    """The page's figures: P(safe) per scene with Wilson bars and the blind baseline; outcomes; divert CDF. A
+    partial campaign's are titled INCOMPLETE: a figure is shown and passed on without its page."""
     from reports.plots import _plt, save
     from reports.style import FALSE_ALARM, MISSED, SAFE, UNKNOWN
 
     plt = _plt()
+    mark = "" if summary.get("complete") is not False else "INCOMPLETE: "
     presets = list(summary["per_preset"])
     scenes = list(summary["per_scene"])
     files = []
@@ -648,7 +663,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     ax.set_xticks(x, scenes, rotation=15)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("P(safe landing)")
-    ax.set_title("top-ranked site truly safe (95 % Wilson interval); grey: landing blind at the aim point")
+    ax.set_title(f"{mark}top-ranked site truly safe (95 % Wilson interval); grey: landing blind at the aim point")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside: it hid a bar (QA 64b)
     fig.tight_layout()
     files.append((save(fig, out / "p_safe_by_scene.png").name, "P(safe landing) per scene and preset"))
@@ -663,7 +678,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             )
             ax.bar(scenes, v, bottom=bottom, color=colours[o], label=o.replace("_", " "))
             bottom += v
-        ax.set_title(f"outcomes, preset {p}")
+        ax.set_title(f"{mark}outcomes, preset {p}")
         ax.set_ylabel("share of the scene's landings")
         ax.set_ylim(0, 1.0)
         ax.tick_params(axis="x", rotation=30, labelsize=8)
@@ -686,7 +701,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
             ax.plot([], [], " ", label=f"{p}: no site on any landing")
     ax.set_xlim(left=0)
     ax.set_ylim(0, 1.02)
-    ax.set_title("how far the chosen site is from the aim point")
+    ax.set_title(f"{mark}how far the chosen site is from the aim point")
     ax.set_xlabel("divert distance from the aim point [m]")
     ax.set_ylabel("share of landings with a site")
     ax.legend(fontsize=8, title="preset (landings with a site)", title_fontsize=7)
@@ -709,10 +724,14 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
     figs = _plots(rep, rows, summary)
     camp = summary["campaign"]
     seeds = summary.get("seeds_used") or camp["seeds"]
+    partial = summary.get("complete") is False
+    # in the title and each headline, not only below them (QA 65b L2)
+    so_far = f"{summary.get('n_landings_flown')} of {camp['n_landings']} landings flown" if partial else ""
     head = []
     for p, st in summary["per_preset"].items():
         lo, hi = st["p_safe_ci95"]
-        head.append(Headline("p_safe", f"{st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]", label=f"P(safe landing), {p}"))
+        label = f"P(safe landing), {p}" + (f", INCOMPLETE: {so_far}" if partial else "")
+        head.append(Headline("p_safe", f"{st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]", label=label))
     table_rows = []
     for s, per in summary["per_scene"].items():
         # which pairs the scene was flown at: two scenes side by side may have been flown at other altitudes
@@ -744,16 +763,22 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         Column("p_aim_safe"),
         Column("divert_m", "median divert [m]"),
     ]
+    planned = f"{counted(camp['n_landings'], 'landing')} ({counted(camp['n_renders'], 'render')}, "
+    px = camp.get("camera_px") or 512
+    camera = "" if px == 512 else f"; a {px} px camera, not the thesis's 512 px: not its setup"
     intro = (
-        f"{counted(camp['n_landings'], 'landing')} ({counted(camp['n_renders'], 'render')}, "
-        f"{counted(camp['per_render'], 'aim point')} each) over "
+        (f"{summary['n_landings_flown']} of {planned}" if partial else planned)
+        + f"{counted(camp['per_render'], 'aim point')} each) over "
         f"{', '.join(camp['scenes'])}; {describe_seeds(seeds, camp['seed_set'])}; pose errors "
-        f"{camp['pose_error'] or 'none'}. A landing is safe when every ground-truth pixel within 1.5 m of the "
-        "top-ranked site is safe; no site is its own outcome and is not safe. The 95 % Wilson intervals take the "
-        f"landings as independent draws; the {camp['per_render']} aim points of a render share its terrain, sun "
-        "and pair, so the true uncertainty is wider, more so the fewer the renders."
+        f"{camp['pose_error'] or 'none'}{camera}. A landing is safe when every ground-truth pixel within 1.5 m of "
+        "the top-ranked site is safe; no site is its own outcome and is not safe. The intervals: "
+        + summary.get("ci95_note", CI_NOTE.format(per_render=camp["per_render"]))
+        + "."
     )
-    if summary.get("complete") is False:
+    warning = not_held_out(seeds, camp["seed_set"])
+    if warning:
+        intro = f"WARNING: {warning}. " + intro
+    if partial:
         intro = (
             f"INCOMPLETE ({summary.get('incomplete_reason') or 'stopped'}): only {summary['n_landings_flown']} of "
             f"{camp['n_landings']} landings were flown, and every figure below covers those alone; rerun the same "
@@ -785,6 +810,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
     )
     if links:
         sections.append(Section("Files", links=links))
-    return write_page(
-        rep / "index.html", "hazard-hil landings: landing Monte Carlo", sections, headline=head, legends=()
+    title = "hazard-hil landings: " + (
+        f"INCOMPLETE landing Monte Carlo ({so_far})" if partial else "landing Monte Carlo"
     )
+    return write_page(rep / "index.html", title, sections, headline=head, legends=())

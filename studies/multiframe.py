@@ -69,10 +69,12 @@ def render_descent(
     cam = camera_for(camera_px) or Camera.thesis()
     spec = trajectory.frames_at(scenario, [float(a) for a in frames], cam)
     scene_spec = scene or default_scene(scenario)
-    tag = load_scene_params(scene_spec, scenario).spec.replace(":", "-")
+    params = load_scene_params(scene_spec, scenario)
+    tag = params.spec.replace(":", "-")
     label = "_".join(f"{a:g}" for a in frames)
     out = Path(cache_dir) / f"{scenario}_{tag}_s{seed}_{cam.width}px{render_tag(max_cells, raster)}" / f"frames_{label}"
-    if reusable(out):  # else none there, or a stale one (another renderer version), now removed
+    # else none there, or a stale one (another renderer, render code or scene parameters), now removed
+    if reusable(out, scene=params):
         return out
     sc = load_scene(scene_spec, seed, scenario)
     sun = library.scene_sun(scene_spec, scenario, seed)
@@ -345,7 +347,7 @@ def evaluate_multiframe(
     descents run one after another in this process; ``scheduler`` (a Dask address or client) spreads them
     over the cluster's workers."""
 
-    from studies.evaluate import EVAL_CODE, render_tag, task_inputs
+    from studies.evaluate import EVAL_CODE, render_identity, render_tag, task_inputs
     from studies.executor import Task, code_fingerprint, run_tasks
 
     out = Path(out_dir)
@@ -370,7 +372,7 @@ def evaluate_multiframe(
         progress=progress is not None,
         desc=f"multi-frame {scenario}",
         code=code_fingerprint(EVAL_CODE),
-        inputs=task_inputs(camera_px),
+        inputs=task_inputs(camera_px, render_identity(scenario)),
     )
     per = [res[t.id] for t in tasks]
     for i, rec in enumerate(per, 1):

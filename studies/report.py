@@ -373,7 +373,10 @@ def _caption(name: str) -> str:
 
 def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list[Table]:
     """Page tables, one per thesis table (split every ``max_metrics`` metrics): rows = altitude, per metric
-    the thesis's value then ours per preset. Labels come from the glossary, so they are unique and explained."""
+    the thesis's value then ours per preset (ours alone for :data:`studies.evaluate.NOT_COMPARABLE`, the caption
+    saying why). Labels come from the glossary, so they are unique and explained."""
+    from studies import evaluate as ev
+
     presets = [k[5:] for k in (cells[0] if cells else {}) if k.startswith("ours_")]
     groups: dict[str, list[str]] = {}
     for c in cells:
@@ -392,10 +395,12 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
             title = f"Table {table}" if table[0].isdigit() else (table if table != "-" else "Not in the thesis")
             if parts > 1:  # one table split in several: each caption says which part it is
                 title += f" ({i // max_metrics + 1} of {parts})"
+            # in the caption, which the page and the Markdown both show: a footnote mark was lost on the way
+            title += "".join(f"; {term(m).label}: {ev.NOT_COMPARABLE[m]}" for m in ms if m in ev.NOT_COMPARABLE)
             cols = [Column("altitude_m", digits=0)]
             for m in ms:
                 digits = 2 if "kurtosis" in m or "skewness" in m else 3
-                if table != "-":
+                if table != "-" and m not in ev.NOT_COMPARABLE:
                     cols.append(Column(f"{m}|reference", f"{term(m).label}: thesis", digits, term=m))
                 cols += [Column(f"{m}|{p}", f"{term(m).label}: ours ({p})", digits, term=m) for p in presets]
             rows = []
@@ -426,6 +431,8 @@ def evaluation_report(
     multiframe: list[dict[str, Any]] | None = None,
     title: str = "hazard-hil evaluation",
     map_tag: str | None = None,
+    setting: str = "",
+    subtitle: str = "",
 ) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
 
@@ -434,7 +441,8 @@ def evaluation_report(
     the DEM/slope/roughness triptychs and hazard overlays of each altitude in
     ``figure_altitudes`` (all when None) whose maps were kept. ``map_tag`` ends the kept maps' names (the
     raster tag of the run's task ids, :func:`studies.evaluate.render_tag`; default: the default raster's, or
-    none).
+    none). ``setting`` (seeds, scene, scenario, camera) is the first line of each ``tables_<scenario>.md``;
+    ``subtitle`` goes under the page's title (a warning that the seeds are not held-out).
     """
     from ground_sim.render import DEFAULT_RASTER
     from studies import evaluate as ev
@@ -450,7 +458,7 @@ def evaluation_report(
     want = None if figure_altitudes is None else {int(a) for a in figure_altitudes}
     for scen in [s for s in ev.SCENARIOS if any(r["scenario"] == s for r in rows)]:
         cells = ev.comparison(summary, scen, thesis)
-        (rep / f"tables_{scen}.md").write_text(comparison_markdown(cells))
+        (rep / f"tables_{scen}.md").write_text((f"{setting}\n\n" if setting else "") + comparison_markdown(cells))
         plot = plot_vs_altitude(summary, scen, thesis, rep / f"{scen}_detection.png")
         sections.append((f"{scen}: ours vs thesis (medians over seeds)", comparison_tables(cells), [plot.name]))
         imgs: list[str] = []
@@ -482,4 +490,4 @@ def evaluation_report(
         summ = ev.sensitivity_summary(srows)
         cols = [k for k in (summ[0] if summ else {})]
         sections.append((f"sensitivity: {kind}", rows_markdown(summ, cols), [plot.name]))
-    return write_html(rep, title, sections)
+    return write_html(rep, title, sections, subtitle=subtitle)

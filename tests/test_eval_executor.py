@@ -118,7 +118,10 @@ def test_the_code_fingerprint_follows_the_source(tmp_path: Path, monkeypatch):
     (pkg / "model.json").write_text('{"refit": 1}')  # a refitted model is other code
     b = code_fingerprint(["fp_probe_pkg"])
     (pkg / "__init__.py").write_text("X = 2\n")
-    assert len({a, b, code_fingerprint(["fp_probe_pkg"])}) == 3
+    c = code_fingerprint(["fp_probe_pkg"])
+    (pkg / "presets").mkdir()
+    (pkg / "presets" / "scene.toml").write_text("rms_relief_m = 30\n")  # a scene preset decides the renders (QA 65b H2)
+    assert len({a, b, c, code_fingerprint(["fp_probe_pkg"])}) == 4
     assert code_fingerprint(["studies", "flight_sw"]) == code_fingerprint(["flight_sw", "studies"])
     with pytest.raises(InputError, match="not an importable package"):
         code_fingerprint(["no_such_package_here"])

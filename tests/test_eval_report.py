@@ -134,7 +134,7 @@ def test_html_report_from_synthetic_rows_and_maps(tmp_path: Path):
         assert cv2.imread(str(page.parent / name)) is not None
     assert "3.88" in text and "<table>" in text
     # labels from the glossary: unique, explained, no Markdown left on the page
-    assert "FP % (undetected hazard): thesis" in text and "DEM error kurtosis" in text and "**" not in text
+    assert "FP % (undetected hazard): thesis" in text and "DEM error excess kurtosis" in text and "**" not in text
     assert "kurtosis*" not in text and "TN% excl" not in text
     assert "_worst" not in text  # the worst-seed metrics have glossary labels too
     if browser_available():
@@ -163,7 +163,7 @@ def test_a_split_table_says_which_part_and_no_site_is_not_a_dash():
     was offered"."""
     cells = [
         {"table": "6.2", "metric": m, "altitude_m": 300, "thesis": 1.0, "ours_fast": 0.5}
-        for m in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "dem_kurtosis")
+        for m in ("dem_mean_abs_m", "dem_median_m", "dem_mad_m", "slope_mean_abs_deg")
     ] + [
         {"table": "-", "metric": "chosen_sites_safe_pct", "altitude_m": a, "thesis": None, "ours_fast": None}
         for a in (300, 400)
@@ -191,3 +191,25 @@ def test_the_multiframe_chart_draws_no_policy_in_red(tmp_path):
     png = imread(report.plot_multiframe(per_descent, mf.POLICIES, tmp_path / "m.png"))
     red = sum(reddish(px) for px in png.reshape(-1, png.shape[-1])[::3])
     assert red == 0, red
+
+
+def test_the_kurtosis_is_called_excess_and_set_beside_no_thesis_value_with_the_reason_in_the_caption():
+    """The glossary said "3 for a normal distribution" of an excess kurtosis (0 for one), and Table 6.3 set the
+    thesis's "kurtosis" (its skewness minus 3) beside ours with no note, which RESULTS.md says are not comparable
+    (QA 65b M2)."""
+    from reports.style import term
+
+    assert (
+        "0 for a normal distribution" in term("dem_kurtosis").explanation
+        and "3 for a normal" not in term("dem_kurtosis").explanation
+    )
+    assert "excess" in term("dem_kurtosis").label
+    cells = ev.comparison(ev.summarise(_rows()), "vertical")
+    assert all(c["thesis"] is None for c in cells if c["metric"] == "dem_kurtosis")
+    (t63,) = [t for t in report.comparison_tables(cells) if t.caption.startswith("Table 6.3")]
+    keys = [c.key for c in t63.columns]
+    assert "dem_skewness|reference" in keys and "dem_kurtosis|reference" not in keys and "dem_kurtosis|fast" in keys
+    assert "not comparable" in t63.caption
+    md = report.comparison_markdown(cells)
+    (block,) = [b for b in md.split("\n\n") if b.startswith("**Table 6.3")]
+    assert "not comparable" in block.splitlines()[0] and "kurtosis: thesis" not in block

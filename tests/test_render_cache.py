@@ -93,3 +93,87 @@ def test_a_damaged_pair_is_rendered_again_not_failed_on_every_run(tmp_path, smal
     assert not reusable(d)
     err = capsys.readouterr().err
     assert "unreadable (" in err and "rendering again" in err and not d.exists()
+
+
+def test_a_pair_of_other_scene_parameters_or_render_code_is_drawn_again(tmp_path, small_pair, capsys, monkeypatch):
+    """The cache key names the scene, not its parameters, and reuse checked only RENDER_VERSION: an edited preset
+    or truth rule served the old renders (and their numbers) with a note that said they were computed again (QA
+    65b H2). Each pair now records both fingerprints and is drawn again when either differs."""
+    from dataclasses import replace
+
+    from ground_sim import render_cache
+    from ground_sim.scene import load_scene_params
+
+    params = load_scene_params("default", "vertical")
+    d = tmp_path / "cache" / "pair_c"
+    write_pair_atomic(d, small_pair)
+    assert reusable(d, scene=params) and capsys.readouterr().err == ""
+
+    edited = replace(params, terrain=replace(params.terrain, rms_relief_m=params.terrain.rms_relief_m * 3))
+    assert not reusable(d, scene=edited) and not d.exists()
+    err = capsys.readouterr().err
+    assert "drawn from other scene parameters" in err and "rendering again" in err and len(err.splitlines()) == 1
+
+    write_pair_atomic(d, small_pair)
+    monkeypatch.setattr(render_cache, "render_code_fingerprint", lambda: "0123456789abcdef")  # truth.py edited
+    assert not reusable(d, scene=params) and not d.exists()
+    err = capsys.readouterr().err
+    assert "drawn by other render or truth code" in err and "this is 0123456789abcdef" in err
+
+
+def test_pairs_from_before_the_fingerprints_are_drawn_again_or_trusted_by_bench_with_one_warning(
+    tmp_path, small_pair, capsys, monkeypatch
+):
+    """A study cache without fingerprints cannot vouch for its scene: drawn again, said. bench/'s caches (hours of
+    renders) may trust theirs: reused, with one warning for the run, not one per pair or directory."""
+    from ground_sim import render_cache
+    from ground_sim.scene import load_scene_params
+
+    monkeypatch.setattr(render_cache, "_TRUSTED_SAID", [])
+
+    params = load_scene_params("default", "vertical")
+
+    def unrecorded(d):
+        write_pair_atomic(d, small_pair)
+        doc = json.loads((d / "pair.json").read_text())
+        del doc["render_code"], doc["scene_params"]
+        (d / "pair.json").write_text(json.dumps(doc))
+
+    unrecorded(tmp_path / "study" / "p")
+    assert not reusable(tmp_path / "study" / "p", scene=params)
+    assert "rendered before pairs recorded their scene and render-code fingerprints: rendering again" in (
+        capsys.readouterr().err
+    )
+    for name in ("a", "b", "other/c"):
+        unrecorded(tmp_path / "bench" / name)
+    names = ("a", "b", "a", "other/c")
+    assert all(reusable(tmp_path / "bench" / n, scene=params, trust_unrecorded=True) for n in names)
+    err = capsys.readouterr().err.splitlines()
+    assert (
+        len(err) == 1
+        and err[0].startswith(f"warning: {tmp_path / 'bench'}: pairs rendered before")
+        and ("reused unchecked" in err[0])
+    )
+
+
+def test_the_render_fingerprint_covers_every_module_a_render_runs():
+    """A module the renderer, the scene or the truth imports but the fingerprint leaves out would serve stale
+    renders after it changed: the list is checked against their imports (those deliberately left out named)."""
+    import ast
+    from pathlib import Path
+
+    from ground_sim.render_cache import RENDER_SOURCES
+
+    root = Path(__file__).resolve().parents[1] / "ground_sim"
+    # messages, pools, seed sets, the cache itself, and pose errors (never applied to a cached render)
+    outside = {"errors", "parallel", "seeds", "render_cache", "pose_error"}
+    seen, todo = set(), ["descent", "render", "truth", "scene"]
+    while todo:
+        mod = todo.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        for n in ast.walk(ast.parse((root / f"{mod}.py").read_text())):
+            if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("ground_sim."):
+                todo.append(n.module.split(".")[1])
+    assert {f"{m}.py" for m in seen - outside} == set(RENDER_SOURCES)

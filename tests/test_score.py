@@ -630,3 +630,16 @@ def test_evaluate_and_score_give_one_figure_for_one_map(descent, tmp_path, capsy
     assert r["unmapped_pct"] > 0.5  # the case that told the two apart: the map leaves part of the overlap NaN
     for key in ("fp_pct", "fn_pct", "cdi_pct", "unmapped_pct"):
         assert m[key] == pytest.approx(r[key], abs=1e-9), key
+
+
+def test_a_report_file_the_system_refuses_is_exit_4_naming_it_not_the_fp_verdict(descent, tmp_path, capsys):
+    """``--json /dev/full`` exited 1, "FP over the limit", for a detector that passed, and named no file (QA 65b L4)."""
+    d = descent / "300_150"
+    out = _write(tmp_path / "unsafe", np.ones_like(read_pair(d).truth["hazard"]))  # FP 0: passes
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    for option in ("--json", "--csv"):
+        assert main(["score", str(d), str(out), option, "/dev/full"]) == 4
+        captured = capsys.readouterr()
+        assert f"hazard-hil score: error: cannot write {option} /dev/full: No space left on device" in captured.err
+        assert "| 300_150 |" in captured.out  # the scores stand, printed before

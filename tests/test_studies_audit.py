@@ -446,3 +446,161 @@ def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(t
     err = capsys.readouterr().err
     assert "rendering again" in err and "failed" not in err
     assert images[0].read_bytes() == data  # the same render again, byte for byte
+
+
+def _scene_eval(tmp_path: Path, scene: Path, out: str) -> dict:
+    from studies import evaluate as ev
+
+    kw = {"seeds": [1000], "altitudes": [300], "camera_px": 48, "workers": 1, "progress": False}
+    (row,) = ev.evaluate_scenario("vertical", tmp_path / out, scene=str(scene), cache_dir=tmp_path / "cache", **kw)
+    return {k: v for k, v in row.items() if k not in ("pipeline_s", "pair", "timings")}
+
+
+def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(tmp_path, capsys, monkeypatch):
+    """QA 65b H2: the render cache is keyed by the scene's name, so an edited preset (a) or truth rule (b) was
+    scored on the old renders: "reusing 4 of 4", or "computing them again" while the renders were reused. Each
+    change now draws the pairs again and scores them: the rerun gives what a fresh --out gives."""
+    from ground_sim import render_cache
+    from ground_sim.scene import PRESET_DIR
+
+    scene = tmp_path / "thesis_copy.toml"
+    text = (PRESET_DIR / "thesis.toml").read_text()
+    scene.write_text(text)
+    first = _scene_eval(tmp_path, scene, "out")
+    scene.write_text(text.replace("rms_relief_m = 9.0", "rms_relief_m = 30.0"))  # (a) the preset edited
+    capsys.readouterr()
+    again = _scene_eval(tmp_path, scene, "out")
+    err = capsys.readouterr().err
+    assert "drawn from other scene parameters" in err and "rendering again" in err
+    assert again != first and again == _scene_eval(tmp_path, scene, "fresh_a")
+
+    monkeypatch.setattr(render_cache, "render_code_fingerprint", lambda: "0123456789abcdef")  # (b) truth.py edited
+    capsys.readouterr()
+    _scene_eval(tmp_path, scene, "out")
+    err = capsys.readouterr().err
+    assert "drawn by other render or truth code" in err and "computing them again" in err
+    (pair_json,) = (tmp_path / "cache").rglob("pair.json")
+    assert json.loads(pair_json.read_text())["render_code"] == "0123456789abcdef"  # drawn again, not reused
+
+
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), (ValueError("worker lost"), 1)])
+def test_a_rerun_stopped_before_its_report_leaves_no_page_that_reads_as_complete(
+    tmp_path, capsys, monkeypatch, stop, code
+):
+    """A rerun into an existing --out redrew the figures as its tasks ran: stopped (or failed) before its report,
+    it left the old page and tables, presented as complete, over the new run's figures, some deleted (QA 65b M1).
+    The old page and tables go when the run starts; a rerun writes them."""
+    from studies import evaluate as ev
+
+    argv = _eval(tmp_path, "out", 48)
+    assert main(argv) == 0
+    rep = tmp_path / "out" / "report"
+    assert (rep / "index.html").is_file() and (rep / "tables_vertical.md").is_file()
+
+    def stopped(**kwargs):
+        raise stop
+
+    monkeypatch.setattr(ev, "evaluate_pair", stopped)
+    capsys.readouterr()
+    assert main([*argv[:-2], "--preset", "thesis", *argv[-2:]]) == code  # a task to run: the other preset
+    err = capsys.readouterr().err
+    assert "removed the earlier vertical page (tables_vertical.md, index.html)" in err
+    assert not (rep / "index.html").exists() and not (rep / "tables_vertical.md").exists()
+    monkeypatch.undo()
+    assert main(argv) == 0 and (rep / "index.html").is_file()  # the rerun writes it again
+
+
+def test_a_partial_landings_page_says_incomplete_in_its_title_headline_figures_and_csv(tmp_path, monkeypatch):
+    """The INCOMPLETE notice sat below a title and headline that read as the whole campaign's, the figures were
+    unmarked and landings.csv had no marker (QA 65b L2); the interval's caveat was on the page only (L3)."""
+    import csv
+
+    from reports.html import page_title
+
+    real, calls = ld.land_group, []
+
+    def ctrl_c_at_third(plan, presets, cache_dir=None):
+        calls.append(plan["group"])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(plan, presets, cache_dir)
+
+    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    seen: list[str] = []
+    monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: seen.append(summary["complete"]) or [])
+    with pytest.raises(KeyboardInterrupt):
+        ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
+    out = tmp_path / "a"
+    assert page_title(out / "report" / "index.html") == (
+        "hazard-hil landings: INCOMPLETE landing Monte Carlo (2 of 4 landings flown)"
+    )
+    page = html.unescape((out / "report" / "index.html").read_text())
+    assert "P(safe landing), fast, INCOMPLETE: 2 of 4 landings flown" in page
+    assert "2 of 4 landings (4 renders" in page  # not "4 landings", as if all were flown
+    assert "a 64 px camera, not the thesis's 512 px" in page  # L1: the camera, said as evaluate says it
+    with (out / "landings.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))  # still plain CSV
+    assert len(rows) == 2 and {r["campaign_complete"] for r in rows} == {"false"}
+    part = json.loads((out / "landings.json").read_text())
+    assert "aim points of a render share" in part["ci95_note"] and "wider" in part["ci95_note"]
+    assert seen == [False]
+
+    monkeypatch.setattr(ld, "land_group", real)
+    ld.run_campaign(_campaign(), out, workers=1, progress=False)
+    assert page_title(out / "report" / "index.html") == "hazard-hil landings: landing Monte Carlo"
+    with (out / "landings.csv").open(newline="") as fh:
+        assert {r["campaign_complete"] for r in csv.DictReader(fh)} == {"true"}
+
+
+def test_the_partial_figures_are_titled_incomplete(tmp_path, monkeypatch):
+    """A figure is shown and passed on without its page: a partial campaign's says so in its title (QA 65b L2)."""
+    from reports import plots
+
+    rows = [
+        {"landing": 0, "group": 0, "preset": "fast", "outcome": "safe", "safe": True, "site_found": True,
+         "scene": "mare", "scene_seed": 1000, "aim_safe": True, "divert_m": 2.0, "scenario": "vertical",
+         "pair": "300/150"},
+    ]  # fmt: skip
+    titles: list[str] = []
+    monkeypatch.setattr(plots, "save", lambda fig, path, **_: titles.extend(a.get_title() for a in fig.axes) or path)
+    summary = ld.summarise(rows)
+    ld._plots(tmp_path, rows, summary)
+    assert titles and not any("INCOMPLETE" in t for t in titles)
+    titles.clear()
+    ld._plots(tmp_path, rows, {**summary, "complete": False})
+    assert len(titles) == 3 and all(t.startswith("INCOMPLETE: ") for t in titles)
+
+
+def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, capsys):
+    """L1/L3: `landings --camera-px 64` said nothing of the camera on the console, and its interval's caveat was
+    on the page only."""
+    argv = ["landings", "--scenes", "mare", "--n", "1", "--per-render", "1", "--preset", "fast", "--camera-px", "64"]
+    assert main([*argv, "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
+    out, err = capsys.readouterr()
+    assert "a 64 px camera, not the thesis's 512 px: not its setup" in err  # the campaign's opening line
+    assert "a 64 px camera, not the thesis's 512 px" in out
+    assert "[lo, hi]: 95 % Wilson interval taking the landings as independent draws; the 1 aim points" in out
+
+
+@pytest.mark.parametrize(
+    "seeds, said",
+    [(["--seed-set", "tuning", "--seeds", "1"], "tuning seeds: "), (["--seed-list", "5,1000"], "seed(s) 5 (not held")],
+)
+def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(tmp_path, capsys, seeds, said):
+    """QA 65b M3: --seed-set tuning, or a --seed-list pooling tuning and held-out seeds, was only named; the pasted
+    tables_<scenario>.md named neither seeds nor scene nor camera, and metrics.csv had no camera column."""
+    from studies.evaluate import read_metrics_csv
+
+    argv = _eval(tmp_path, "out", 48)
+    i = argv.index("--seed-list")
+    argv[i : i + 2] = seeds
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    warning = [ln for ln in err.splitlines() if ln.startswith("warning: ") and "not held-out results" in ln]
+    assert len(warning) == 1 and said in warning[0]
+    rep = tmp_path / "out" / "report"
+    assert "WARNING: " + said in html.unescape((rep / "index.html").read_text())
+    first = (rep / "tables_vertical.md").read_text().splitlines()[0]
+    for text in ("vertical scenario", "scene thesis", "seeds", "a 48 px camera", "not held-out results"):
+        assert text in first, first
+    assert {r["camera_px"] for r in read_metrics_csv(tmp_path / "out" / "metrics.csv")} == {48}
