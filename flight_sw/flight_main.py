@@ -132,6 +132,11 @@ MAX_SHRINK_STEP = 16
 SHRINK_CHECK = 2.0
 
 
+# half-received pairs held at once: a pair whose other frame never comes (a ground reconnected mid-pair, a frame
+# refused as bad_frame) was held for good, 256 KiB a 512 px frame (review of stop 64: 200 held 50 MiB)
+MAX_PENDING_PAIRS = 8
+
+
 @dataclass
 class PendingPair:
     frames: dict[int, Frame] = field(default_factory=dict)
@@ -371,8 +376,20 @@ class FlightProcess:
                     file=sys.stderr,
                     flush=True,
                 )
-            if self.config is None or msg != self.config:  # a new descent (not a resend after a reconnect)
+            # the same descent only when the Config is the same and names it: a ground that names none and flies
+            # a second descent with the same camera and budget had its map fused onto the first's (another
+            # world frame; review of stop 64), and its half-received pairs paired with the new descent's frames
+            same = self.config is not None and msg == self.config and "descent_id" in msg.options
+            if not same:
+                if self.fused is not None and self.config is not None and msg == self.config:
+                    print(
+                        "flight: a Config again, naming no descent_id: its fused map starts afresh (a second descent "
+                        "cannot be told from a resend)",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 self.fused = None
+                self.pending.clear()
                 note = left_out_note(msg)
                 if note:  # once per descent, not per Result
                     print(f"flight: {note}", file=sys.stderr, flush=True)
@@ -412,6 +429,16 @@ class FlightProcess:
                 )
             )
             return
+        if frame.pair_id not in self.pending and len(self.pending) >= MAX_PENDING_PAIRS:
+            oldest = min(self.pending, key=lambda k: self.pending[k].arrival)
+            gone = self.pending.pop(oldest)
+            self.link.send(
+                Error(
+                    code="frame_dropped",
+                    seq=next(iter(gone.frames.values())).seq,
+                    text=f"pair {oldest!r}: its other frame did not come before {MAX_PENDING_PAIRS} newer pairs began",
+                )
+            )
         pend = self.pending.setdefault(frame.pair_id, PendingPair())
         pend.frames[frame.frame_index] = frame
         pend.arrival = now

@@ -350,8 +350,18 @@ class _Move:
         return out
 
 
-def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> FusedMap:
-    """The fused map on another grid (same or different cell), conservatively (module doc)."""
+def _regrid(
+    fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float, prior: float = 0.0
+) -> FusedMap:
+    """The fused map on another grid (same or different cell), conservatively (module doc). ``prior``: the
+    log-odds a cell holds before any evidence (:func:`prior_logodds`), which a never-mapped part of a coarser cell
+    brings into its minimum.
+
+    A coarser cell is mapped if any of its parts was (the maximum of ``seen``). With the minimum, one never-mapped
+    part (the previous footprint's edge) made it unmapped and wiped its hazard calls, veto and log-odds, so one
+    later result 99.9 % sure could call a hazard safe where the rule asks three (review of stop 64). Its log-odds
+    are the minimum over its parts, a never-mapped part counting at the prior: evidence against "safe" carries
+    whole, evidence for it only where every part holds it."""
     if fm.results == 0:
         return FusedMap(
             np.zeros(shape, np.float32),
@@ -364,8 +374,8 @@ def _regrid(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], c
             0,
         )
     mv = _Move(fm.shape, fm.origin_xy, fm.cell_m, origin, cell, shape)  # the same indices for every layer
-    lo = mv(np.where(fm.seen > 0, fm.logodds, np.nan))
-    seen = mv(fm.seen.astype(np.float32), fill=0.0)
+    lo = mv(np.where(fm.seen > 0, fm.logodds, np.float32(prior)))
+    seen = mv(fm.seen.astype(np.float32), fill=0.0, pool_max=True)
     elev = mv(fm.elevation, pool_min=False)
     # a coarser cell counts as called safe only if all of its finer parts were (the minimum)
     called = mv(fm.called.astype(np.float32), fill=0.0)
@@ -450,7 +460,7 @@ def fuse(
             if shape[0] * shape[1] <= prm.max_cells:
                 break
             cell *= math.sqrt(shape[0] * shape[1] / prm.max_cells) * 1.01
-    base = _regrid(fm, origin, shape, cell)
+    base = _regrid(fm, origin, shape, cell, prior_logodds(prm))
     li = result_logodds(grid, prm)
     mv = _Move(grid.hazard.shape, grid.origin_xy, grid.cell_m, origin, cell, shape)  # every layer of the result
     l_new = mv(li)

@@ -816,3 +816,99 @@ def test_a_result_fits_its_line_after_its_encoding_and_is_not_encoded_again(monk
     assert out is full and grown == 1.0 and calls == [full]
     assert enc is not None and enc.body == encode_message(full)
     assert time.monotonic() + line_s <= due + 0.02
+
+
+def test_a_hazard_beside_the_footprints_edge_survives_a_move_onto_a_coarser_grid():
+    """A coarser cell was unmapped if any finer part was never mapped, which wiped its hazard call: one later
+    result 99.9 % sure then called the hazard safe where the rule asks three (review of stop 64)."""
+    prm = FusionParams()
+    st = np.full((8, 8), STATE_SAFE, np.uint8)
+    ps = np.full((8, 8), 0.999, np.float32)
+    st[:, 2:] = STATE_OUTSIDE  # the footprint's edge
+    st[3, 1], ps[3, 1] = STATE_UNSAFE, 0.0  # a hazard call beside it
+    fm = fuse(None, grid_of(st, ps, origin=(0.0, 7.0)), prm)
+    later = uniform(STATE_SAFE, 0.999, shape=(6, 6), origin=(0.0, 7.5), cell=1.5)
+    cell = (2, 1)  # the 1.5 m cell holding the hazard's ground (x 1, y 4)
+    for n in (1, 2):  # the rule's margin takes three such results (overturn_margin); one did it
+        fm = fuse(fm, later, prm)
+        state, _ = fused_state(fm, prm)
+        assert fm.hazards[cell] == 1 and state[cell] != STATE_SAFE, n
+        assert to_hazard_grid(fm, prm).hazard[cell] >= 1.0
+
+
+def _stub_flight(monkeypatch):
+    """A FlightProcess on a collecting link whose pipeline maps a 16 x 16 grid from the upper image alone: dark
+    (DN < 100) all hazard calls, bright all safe at 0.999; ``calls`` gets each pair's (upper, lower) mean DN."""
+    import types
+
+    import flight_sw.flight_main as fmn
+
+    calls: list[tuple[int, int]] = []
+
+    def pipeline(i1, i2, pose1, pose2, camera, **kw):
+        calls.append((int(i1.mean()), int(i2.mean())))
+        dark = i1.mean() < 100
+        st = np.full((16, 16), STATE_UNSAFE if dark else STATE_SAFE, np.uint8)
+        ps = np.full((16, 16), 0.0 if dark else 0.999, np.float32)
+        g = HazardGrid(np.where(dark, 1.0, 0.001) * np.ones((16, 16), np.float32), np.zeros((16, 16), np.float32),
+                       (0.0, 0.0), 1.0, st, ps)  # fmt: skip
+        h, w = i1.shape
+        z = np.zeros((h, w), np.float32)
+        out = {"info": {}, "grid": g, "sites": [], "params": {"psafe_min": 0.9}, "level": "full", "timings": {}}
+        return types.SimpleNamespace(
+            **out, degraded=False, hazard=z, elevation=z, state=z.astype(np.uint8), filled=None
+        )
+
+    monkeypatch.setattr(fmn, "run_pipeline", pipeline)
+    monkeypatch.setattr(fmn, "measured_reserve_ratio", lambda *a, **k: None)
+    link = _Link()
+    return fmn, fmn.FlightProcess(link, fmn.FaultPlan()), link, calls
+
+
+def _frame(seq: int, pid: str, idx: int, dn: int, z: float, px: int = 64):
+    from protocol.messages import Frame
+
+    R = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    return Frame(seq=seq, capture_time_s=float(seq), position_m=(0.0, 0.0, z), R_world_to_cam=R, altimeter_m=z,
+                 image=np.full((px, px), dn, np.uint8), pair_id=pid, frame_index=idx)  # fmt: skip
+
+
+CAM = {"width": 64, "height": 64, "fx": 100.0, "fy": 100.0, "cx": 31.5, "cy": 31.5}
+
+
+def test_a_second_descent_that_names_no_descent_id_starts_its_own_map(monkeypatch):
+    """A ground naming no descent_id flew a second descent with the same Config in one session: its map was fused
+    onto the first descent's (another world frame), and a bright descent's first Result read the dark one's
+    hazards, or the reverse its safe ground (review of stop 64). The map goes on only under the same descent_id."""
+    from protocol.messages import Config, Result
+
+    for options, carried in (({}, False), ({"descent_id": 7}, True)):
+        _, fp, link, _ = _stub_flight(monkeypatch)
+        fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options=options))
+        fp.handle(_frame(1, "00-400_200", 0, 20, 400.0))
+        fp.handle(_frame(2, "00-400_200", 1, 20, 200.0))
+        fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options=options))  # B, or A resent
+        fp.handle(_frame(3, "00-400_200", 0, 200, 400.0))
+        fp.handle(_frame(4, "00-400_200", 1, 200, 200.0))
+        last = [m for m in link.sent if isinstance(m, Result)][-1]
+        assert (fp.fused.results == 2) is carried
+        assert np.all(np.asarray(last.state_grid) == STATE_SAFE) is not carried
+
+
+def test_half_received_pairs_are_dropped_on_a_new_descent_and_bounded_and_said(monkeypatch):
+    """A new descent's Config left the old one's half-received pair, and the next descent's frame completed it:
+    the pipeline ran on frames of two descents. A pair whose other frame never came was held for good (200 held
+    50 MiB). Both now go, the second with an Error the ground records (review of stop 64)."""
+    from protocol.messages import Config, Error
+
+    fmn, fp, link, calls = _stub_flight(monkeypatch)
+    fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options={"descent_id": 1}))
+    fp.handle(_frame(1, "01-300_150", 0, 20, 300.0))  # its lower frame never comes
+    fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options={"descent_id": 2}))
+    fp.handle(_frame(2, "01-300_150", 1, 200, 150.0))
+    assert calls == [] and list(fp.pending) == ["01-300_150"]  # the lower frame alone, waiting for its own upper
+    for k in range(3 * fmn.MAX_PENDING_PAIRS):
+        fp.handle(_frame(10 + k, f"p{k}", 0, 200, 300.0))
+    assert len(fp.pending) == fmn.MAX_PENDING_PAIRS
+    dropped = [m for m in link.sent if isinstance(m, Error) and m.code == "frame_dropped"]
+    assert len(dropped) == 2 * fmn.MAX_PENDING_PAIRS + 1 and dropped[0].seq == 2
