@@ -154,16 +154,7 @@ def _campaign() -> ld.Campaign:
 def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to_the_same_numbers(
     tmp_path, monkeypatch
 ):
-    real = ld.land_group
-    calls = []
-
-    def ctrl_c_at_third(plan, presets, cache_dir=None):
-        calls.append(plan["group"])
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real(plan, presets, cache_dir)
-
-    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    real = _ctrl_c_at_third_group(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
     part = json.loads((tmp_path / "a" / "landings.json").read_text())
@@ -517,15 +508,7 @@ def test_a_partial_landings_page_says_incomplete_in_its_title_headline_figures_a
 
     from reports.html import page_title
 
-    real, calls = ld.land_group, []
-
-    def ctrl_c_at_third(plan, presets, cache_dir=None):
-        calls.append(plan["group"])
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real(plan, presets, cache_dir)
-
-    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    real = _ctrl_c_at_third_group(monkeypatch)
     seen: list[str] = []
     monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: seen.append(summary["complete"]) or [])
     with pytest.raises(KeyboardInterrupt):
@@ -604,3 +587,17 @@ def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and
     for text in ("vertical scenario", "scene thesis", "seeds", "a 48 px camera", "not held-out results"):
         assert text in first, first
     assert {r["camera_px"] for r in read_metrics_csv(tmp_path / "out" / "metrics.csv")} == {48}
+
+
+def _ctrl_c_at_third_group(monkeypatch):
+    """A landings campaign whose third group is stopped by Ctrl-C; returns the real ``land_group``."""
+    real, calls = ld.land_group, []
+
+    def ctrl_c_at_third(plan, presets, cache_dir=None):
+        calls.append(plan["group"])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(plan, presets, cache_dir)
+
+    monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
+    return real
