@@ -114,7 +114,11 @@ coarse cell that is resampled onto a finer grid gives every finer cell its log-o
 anywhere in a coarse cell stays a hazard in all of its parts); finer cells that fall into one
 coarser cell give it their minimum (the least safe part decides), and the most unsafe calls and
 hazard calls any of them holds. Elevations are taken from
-the newest result that measured the cell. A result's gap fills (:attr:`HazardGrid.dem` where it has no
+the newest result that measured the cell. A hazard call the newest grid leaves out (a divert, or a pair
+whose map is narrower than the one before) is kept as a world point, up to :data:`MAX_KEPT_HAZARDS`
+(the oldest go first), and put back into the first later grid that covers it: with ``"newest"`` a hazard
+outside one grid was dropped, and a later result back over it called it safe alone (review of stop 64).
+A result's gap fills (:attr:`HazardGrid.dem` where it has no
 match: the DEM carried into dark shadow) are only reported, where no result matched the cell (the newest
 fill); they are no evidence, and the sites on the fused map do not read them.
 """
@@ -198,6 +202,9 @@ class FusedMap:
     # float32 (rows, cols): the newest gap-fill elevation (HazardGrid.dem where no match), reported where no
     # result matched the cell; None: no result had fills
     fills: np.ndarray | None = None
+    # float64 (N, 4): world x, y, hazard calls and log-odds of hazard-call cells the map's grid has left (module doc,
+    # "Extent and resampling"), put back when a later grid covers them; None: none
+    kept: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -350,6 +357,23 @@ class _Move:
         return out
 
 
+MAX_KEPT_HAZARDS = 65536  # hazard-call cells kept off the map's grid: 2 MiB
+
+
+def _left_out(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> np.ndarray:
+    """World x, y, hazard calls and log-odds (N x 4, float64) of the map's hazard-call cells whose centres the grid
+    ``origin``, ``shape``, ``cell`` does not hold (the cells a move drops). Per axis: both grids are axis-aligned."""
+    if fm.hazards is None or not fm.hazards.size:
+        return np.zeros((0, 4), np.float64)
+    rows, cols = fm.shape
+    x = fm.origin_xy[0] + np.arange(cols) * fm.cell_m
+    y = fm.origin_xy[1] - np.arange(rows) * fm.cell_m
+    jn, i_n = np.rint((x - origin[0]) / cell), np.rint((origin[1] - y) / cell)
+    held = ((i_n >= 0) & (i_n < shape[0]))[:, None] & ((jn >= 0) & (jn < shape[1]))[None, :]
+    i, j = np.nonzero((fm.hazards > 0) & ~held)
+    return np.column_stack([x[j], y[i], fm.hazards[i, j], fm.logodds[i, j]]).astype(np.float64)
+
+
 def _regrid(
     fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float, prior: float = 0.0
 ) -> FusedMap:
@@ -398,8 +422,30 @@ def _regrid(
     fills = None
     if fm.fills is not None:
         fills = mv(fm.fills, pool_min=False)
+    logodds = np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32)
+    # kept points this grid covers are put back; hazard calls it leaves out are kept as points
+    kept = None
+    if fm.kept is not None:
+        pts = fm.kept
+        j = np.rint((pts[:, 0] - origin[0]) / cell)
+        i = np.rint((origin[1] - pts[:, 1]) / cell)
+        inside = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+        if inside.any():
+            at = (i[inside].astype(np.intp), j[inside].astype(np.intp))
+            hazards = np.zeros(shape, np.uint8) if hazards is None else hazards
+            np.maximum.at(hazards, at, np.minimum(pts[inside, 2], 255).astype(np.uint8))
+            fresh = seen_u8[at] == 0
+            logodds[at[0][fresh], at[1][fresh]] = np.float32(prior)  # a cell first mapped here: from the prior
+            np.minimum.at(logodds, at, pts[inside, 3].astype(np.float32))
+            seen_u8[at] = np.maximum(seen_u8[at], 1)
+        kept = pts[~inside]
+    gone = _left_out(fm, origin, shape, cell)
+    if gone.size:
+        kept = gone if kept is None else np.concatenate([kept, gone])
+    if kept is not None:
+        kept = kept[-MAX_KEPT_HAZARDS:] if kept.size else None  # the newest last: the oldest go first
     return FusedMap(
-        np.where(seen_u8 > 0, np.nan_to_num(lo), 0.0).astype(np.float32),
+        logodds,
         seen_u8,
         elev,
         called_u8,
@@ -411,6 +457,7 @@ def _regrid(
         vetoed,
         hazards,
         fills,
+        kept,
     )
 
 
@@ -525,6 +572,7 @@ def fuse(
         vetoed.astype(np.uint8),
         np.minimum(had_hazard.astype(np.int32) + (upd & (l_new <= -np.float32(prm.l_unsafe))), 255).astype(np.uint8),
         None if fills is None else fills.astype(np.float32),
+        base.kept,
     )
 
 

@@ -912,3 +912,24 @@ def test_half_received_pairs_are_dropped_on_a_new_descent_and_bounded_and_said(m
     assert len(fp.pending) == fmn.MAX_PENDING_PAIRS
     dropped = [m for m in link.sent if isinstance(m, Error) and m.code == "frame_dropped"]
     assert len(dropped) == 2 * fmn.MAX_PENDING_PAIRS + 1 and dropped[0].seq == 2
+
+
+def test_a_hazard_outside_one_pairs_grid_is_kept_until_a_later_grid_covers_it():
+    """The map follows the newest grid: a hazard outside one narrower grid was dropped with it, and one later result
+    back over it called it safe, where the rule asks three (review of stop 64)."""
+    prm = FusionParams()
+    st = np.full((10, 10), STATE_SAFE, np.uint8)
+    ps = np.full((10, 10), 0.999, np.float32)
+    st[5, 8], ps[5, 8] = STATE_UNSAFE, 0.0  # a hazard call at x 8, y 4
+    wide = grid_of(st, ps, origin=(0.0, 9.0))
+    narrow = uniform(STATE_SAFE, 0.999, shape=(10, 6), origin=(0.0, 9.0))  # x 0-5: leaves it out
+    again = uniform(STATE_SAFE, 0.999, shape=(10, 10), origin=(0.0, 9.0))
+    fm = fuse(fuse(None, wide, prm), narrow, prm)
+    assert fm.kept is not None and fm.kept.shape == (1, 4) and tuple(fm.kept[0, :2]) == (8.0, 4.0)
+    for n in (1, 2):  # as many as with the narrow grid left out
+        fm = fuse(fm, again, prm)
+        state, _ = fused_state(fm, prm)
+        assert fm.hazards[5, 8] == 1 and state[5, 8] != STATE_SAFE, n
+    assert fm.kept is None  # put back, not kept twice
+    direct = fuse(fuse(fuse(None, wide, prm), again, prm), again, prm)
+    assert fm.logodds[5, 8] == pytest.approx(direct.logodds[5, 8], abs=1e-5)  # as if never left out

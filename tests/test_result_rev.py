@@ -198,7 +198,8 @@ def test_the_flight_fills_only_the_fields_the_grounds_revision_decodes(rev, caps
     from protocol.messages import Config
 
     cam, frames = _frames("p0", 0)
-    options = {"full_maps": 1} | ({} if rev is None else {"result_rev": rev})
+    # named, as every descent of the reference ground is: a Config naming none starts a new descent's map
+    options = {"full_maps": 1, "descent_id": 5} | ({} if rev is None else {"result_rev": rev})
     cfg = Config(camera=cam.to_dict(), budget="host", deadline_s=0.02, preset="fast", options=options)
     link = _Link()
     fp = fm.FlightProcess(link, fm.FaultPlan())
