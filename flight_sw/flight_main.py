@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flight_sw.fusion import FusedMap, FusionParams, fuse, params_for, to_hazard_grid
+from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
 
 # loaded at boot, before Hello: not inside the first deadline
@@ -598,7 +598,15 @@ class FlightProcess:
         withheld = res.info.get("sites_withheld")
         if withheld:
             return (res.grid if self.fused is None else to_hazard_grid(self.fused, prm)), [], str(withheld)
+        before = 0 if self.fused is None else self.fused.kept_dropped
         self.fused = fuse(self.fused, res.grid, prm, level=str(res.level))
+        if self.fused.kept_dropped > before:  # said, not dropped silently: the map forgets these hazards
+            print(
+                f"flight: {self.fused.kept_dropped - before} hazard calls kept off the map's grid were dropped, the "
+                f"oldest first (at most {MAX_KEPT_HAZARDS} are kept)",
+                file=sys.stderr,
+                flush=True,
+            )
         grid = to_hazard_grid(self.fused, prm)
         footprint = float(p.get("footprint_m", PRESETS["fast"].footprint_m))
         n_sites = int(p.get("n_sites", PRESETS["fast"].n_sites))

@@ -116,7 +116,8 @@ coarser cell give it their minimum (the least safe part decides), and the most u
 hazard calls any of them holds. Elevations are taken from
 the newest result that measured the cell. A hazard call the newest grid leaves out (a divert, or a pair
 whose map is narrower than the one before) is kept as a world point, up to :data:`MAX_KEPT_HAZARDS`
-(the oldest go first), and put back into the first later grid that covers it: with ``"newest"`` a hazard
+(the oldest go first, and counted: ``kept_dropped``), and put back into the first later grid that covers it,
+into every cell inside its old cell as a move would (:func:`_put_back`): with ``"newest"`` a hazard
 outside one grid was dropped, and a later result back over it called it safe alone (review of stop 64).
 A result's gap fills (:attr:`HazardGrid.dem` where it has no
 match: the DEM carried into dark shadow) are only reported, where no result matched the cell (the newest
@@ -202,9 +203,10 @@ class FusedMap:
     # float32 (rows, cols): the newest gap-fill elevation (HazardGrid.dem where no match), reported where no
     # result matched the cell; None: no result had fills
     fills: np.ndarray | None = None
-    # float64 (N, 4): world x, y, hazard calls and log-odds of hazard-call cells the map's grid has left (module doc,
-    # "Extent and resampling"), put back when a later grid covers them; None: none
+    # float64 (N, 5): world x, y, hazard calls, log-odds and cell size of hazard-call cells the map's grid has left
+    # (module doc, "Extent and resampling"), put back when a later grid covers them; None: none
     kept: np.ndarray | None = None
+    kept_dropped: int = 0  # kept points dropped, the oldest first, to stay within MAX_KEPT_HAZARDS
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -361,17 +363,71 @@ MAX_KEPT_HAZARDS = 65536  # hazard-call cells kept off the map's grid: 2 MiB
 
 
 def _left_out(fm: FusedMap, origin: tuple[float, float], shape: tuple[int, int], cell: float) -> np.ndarray:
-    """World x, y, hazard calls and log-odds (N x 4, float64) of the map's hazard-call cells whose centres the grid
-    ``origin``, ``shape``, ``cell`` does not hold (the cells a move drops). Per axis: both grids are axis-aligned."""
+    """World x, y, hazard calls, log-odds and cell size (N x 5, float64) of the map's hazard-call cells whose centres
+    the grid ``origin``, ``shape``, ``cell`` does not hold (the cells a move drops). Per axis: both grids are
+    axis-aligned."""
     if fm.hazards is None or not fm.hazards.size:
-        return np.zeros((0, 4), np.float64)
+        return np.zeros((0, 5), np.float64)
     rows, cols = fm.shape
     x = fm.origin_xy[0] + np.arange(cols) * fm.cell_m
     y = fm.origin_xy[1] - np.arange(rows) * fm.cell_m
     jn, i_n = np.rint((x - origin[0]) / cell), np.rint((origin[1] - y) / cell)
     held = ((i_n >= 0) & (i_n < shape[0]))[:, None] & ((jn >= 0) & (jn < shape[1]))[None, :]
     i, j = np.nonzero((fm.hazards > 0) & ~held)
-    return np.column_stack([x[j], y[i], fm.hazards[i, j], fm.logodds[i, j]]).astype(np.float64)
+    size = np.full(i.size, fm.cell_m)
+    return np.column_stack([x[j], y[i], fm.hazards[i, j], fm.logodds[i, j], size]).astype(np.float64)
+
+
+MAX_KEPT_RASTER = 1 << 22  # cells of one kept group's raster (20 MiB): past it, a group is put back by its centres
+
+
+def _put_back(
+    pts: np.ndarray, origin: tuple[float, float], shape: tuple[int, int], cell: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kept hazard points (:func:`_left_out`'s rows) moved onto a grid as the layers they left are: each group of
+    points on one lattice (one source grid's cell size and phase) is rasterised on that lattice and moved with
+    :class:`_Move`, so a finer grid gives every cell inside a kept cell its call, and a coarser one pools them.
+    Returns the hazard calls (uint8) and log-odds (float32, NaN where none) on the grid, and per point whether its
+    cell lies wholly inside the grid (it can go from the kept list)."""
+    hz = np.zeros(shape, np.float32)
+    lo = np.full(shape, np.nan, np.float32)
+    half = pts[:, 4] / 2
+    x0, x1, y0, y1 = _box(origin, shape, cell)
+    e = cell / 2
+    x, y = pts[:, 0], pts[:, 1]
+    over = (x + half > x0 - e) & (x - half < x1 + e) & (y + half > y0 - e) & (y - half < y1 + e)
+    whole = (x - half >= x0 - e) & (x + half <= x1 + e) & (y - half >= y0 - e) & (y + half <= y1 + e)
+    if not over.any():
+        return hz.astype(np.uint8), lo, whole
+    c = pts[:, 4]
+    # one integer per lattice (cell size to the micrometre, phase to 0.1 mm): a 1-D unique, not a row-wise one
+    key = (np.rint(c * 1e6).astype(np.int64) << 32) ^ (np.rint((x - c * np.rint(x / c)) * 1e4).astype(np.int64) << 16)
+    key ^= np.rint((y - c * np.rint(y / c)) * 1e4).astype(np.int64)
+    sel = np.flatnonzero(over)
+    groups, which = np.unique(key[sel], return_inverse=True)
+    for k in range(len(groups)):
+        g = pts[sel if len(groups) == 1 else sel[which.ravel() == k]]
+        gc, gx0, gy1 = float(g[0, 4]), float(g[:, 0].min()), float(g[:, 1].max())
+        jj = np.rint((g[:, 0] - gx0) / gc).astype(np.intp)
+        ii = np.rint((gy1 - g[:, 1]) / gc).astype(np.intp)
+        rshape = (int(ii.max()) + 1, int(jj.max()) + 1)
+        if rshape[0] * rshape[1] > MAX_KEPT_RASTER:  # scattered far apart: the cell under each centre
+            jc = np.rint((g[:, 0] - origin[0]) / cell)
+            ic = np.rint((origin[1] - g[:, 1]) / cell)
+            ok = (ic >= 0) & (ic < shape[0]) & (jc >= 0) & (jc < shape[1])
+            at = (ic[ok].astype(np.intp), jc[ok].astype(np.intp))
+            np.maximum.at(hz, at, g[ok, 2].astype(np.float32))
+            np.fmin.at(lo, at, g[ok, 3].astype(np.float32))
+            continue
+        hr = np.zeros(rshape, np.float32)
+        np.maximum.at(hr, (ii, jj), g[:, 2].astype(np.float32))
+        lr = np.full(rshape, np.nan, np.float32)
+        np.fmin.at(lr, (ii, jj), g[:, 3].astype(np.float32))
+        mv = _Move(rshape, (gx0, gy1), gc, origin, cell, shape)
+        h_on = np.nan_to_num(mv(hr, fill=0.0, pool_max=True))
+        hz = np.fmax(hz, h_on)
+        lo = np.fmin(lo, np.where(h_on > 0, mv(lr), np.float32(np.nan)))
+    return np.minimum(hz, 255).astype(np.uint8), lo, whole
 
 
 def _regrid(
@@ -426,23 +482,22 @@ def _regrid(
     # kept points this grid covers are put back; hazard calls it leaves out are kept as points
     kept = None
     if fm.kept is not None:
-        pts = fm.kept
-        j = np.rint((pts[:, 0] - origin[0]) / cell)
-        i = np.rint((origin[1] - pts[:, 1]) / cell)
-        inside = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
-        if inside.any():
-            at = (i[inside].astype(np.intp), j[inside].astype(np.intp))
+        h_back, l_back, whole = _put_back(fm.kept, origin, shape, cell)
+        back = h_back > 0
+        if back.any():
             hazards = np.zeros(shape, np.uint8) if hazards is None else hazards
-            np.maximum.at(hazards, at, np.minimum(pts[inside, 2], 255).astype(np.uint8))
-            fresh = seen_u8[at] == 0
-            logodds[at[0][fresh], at[1][fresh]] = np.float32(prior)  # a cell first mapped here: from the prior
-            np.minimum.at(logodds, at, pts[inside, 3].astype(np.float32))
-            seen_u8[at] = np.maximum(seen_u8[at], 1)
-        kept = pts[~inside]
+            hazards = np.maximum(hazards, h_back)
+            fresh = back & (seen_u8 == 0)
+            logodds = np.where(fresh, np.float32(prior), logodds)  # a cell first mapped here: from the prior
+            logodds = np.where(back, np.fmin(logodds, l_back), logodds).astype(np.float32)
+            seen_u8 = np.where(back, np.maximum(seen_u8, 1), seen_u8).astype(np.uint8)
+        kept = fm.kept[~whole]
     gone = _left_out(fm, origin, shape, cell)
     if gone.size:
         kept = gone if kept is None else np.concatenate([kept, gone])
+    dropped = fm.kept_dropped
     if kept is not None:
+        dropped += max(0, len(kept) - MAX_KEPT_HAZARDS)
         kept = kept[-MAX_KEPT_HAZARDS:] if kept.size else None  # the newest last: the oldest go first
     return FusedMap(
         logodds,
@@ -458,6 +513,7 @@ def _regrid(
         hazards,
         fills,
         kept,
+        dropped,
     )
 
 
@@ -573,6 +629,7 @@ def fuse(
         np.minimum(had_hazard.astype(np.int32) + (upd & (l_new <= -np.float32(prm.l_unsafe))), 255).astype(np.uint8),
         None if fills is None else fills.astype(np.float32),
         base.kept,
+        base.kept_dropped,
     )
 
 

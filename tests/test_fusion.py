@@ -925,7 +925,7 @@ def test_a_hazard_outside_one_pairs_grid_is_kept_until_a_later_grid_covers_it():
     narrow = uniform(STATE_SAFE, 0.999, shape=(10, 6), origin=(0.0, 9.0))  # x 0-5: leaves it out
     again = uniform(STATE_SAFE, 0.999, shape=(10, 10), origin=(0.0, 9.0))
     fm = fuse(fuse(None, wide, prm), narrow, prm)
-    assert fm.kept is not None and fm.kept.shape == (1, 4) and tuple(fm.kept[0, :2]) == (8.0, 4.0)
+    assert fm.kept is not None and fm.kept.shape == (1, 5) and tuple(fm.kept[0, :2]) == (8.0, 4.0)
     for n in (1, 2):  # as many as with the narrow grid left out
         fm = fuse(fm, again, prm)
         state, _ = fused_state(fm, prm)
@@ -933,3 +933,39 @@ def test_a_hazard_outside_one_pairs_grid_is_kept_until_a_later_grid_covers_it():
     assert fm.kept is None  # put back, not kept twice
     direct = fuse(fuse(fuse(None, wide, prm), again, prm), again, prm)
     assert fm.logodds[5, 8] == pytest.approx(direct.logodds[5, 8], abs=1e-5)  # as if never left out
+
+
+@pytest.mark.parametrize("ratio", [1, 2, 8])
+def test_a_kept_hazard_goes_back_into_every_finer_cell_it_covers(ratio):
+    """Put back at its centre alone, a kept 2 m hazard cell gave one cell of a later 0.25 m grid its call, and one
+    result 99.9 % sure called the other 63 safe (review of stop 65). Each part gets it, as a move gives it."""
+    prm = FusionParams()
+    st = np.full((12, 12), STATE_SAFE, np.uint8)
+    ps = np.full((12, 12), 0.999, np.float32)
+    st[4, 8], ps[4, 8] = STATE_UNSAFE, 0.0  # a 2 m hazard cell centred at x 16, y 14
+    wide = grid_of(st, ps, origin=(0.0, 22.0), cell=2.0)
+    narrow = uniform(STATE_SAFE, 0.999, shape=(12, 6), origin=(0.0, 22.0), cell=2.0)  # x 0-10: leaves it out
+    c = 2.0 / ratio
+    n = int(round(24 / c))
+    fine = uniform(STATE_SAFE, 0.999, shape=(n, n), origin=(0.0, 22.0 + 1.0 - c / 2), cell=c)
+    fine = dataclasses.replace(fine, origin_xy=(-1.0 + c / 2, 23.0 - c / 2))
+    for path in ((wide, fine), (wide, narrow, fine)):
+        fm = None
+        for g in path:
+            fm = fuse(fm, g, prm)
+        state, _ = fused_state(fm, prm)
+        X = fm.origin_xy[0] + np.arange(fm.shape[1]) * fm.cell_m
+        Y = fm.origin_xy[1] - np.arange(fm.shape[0]) * fm.cell_m
+        inside = (np.abs(Y - 14.0) < 1.0)[:, None] & (np.abs(X - 16.0) < 1.0)[None, :]
+        assert inside.sum() == ratio * ratio
+        assert np.all(fm.hazards[inside] > 0) and not np.any(state[inside] == STATE_SAFE), (len(path), ratio)
+
+
+def test_kept_hazards_past_the_cap_are_counted_not_dropped_silently(monkeypatch):
+    import flight_sw.fusion as fu
+
+    monkeypatch.setattr(fu, "MAX_KEPT_HAZARDS", 2)
+    st = np.full((6, 6), STATE_UNSAFE, np.uint8)
+    fm = fuse(None, grid_of(st, np.zeros((6, 6), np.float32)), FusionParams())
+    fm = fuse(fm, uniform(STATE_SAFE, 0.999, origin=(100.0, 0.0)), FusionParams())  # a divert: all 36 left out
+    assert fm.kept is not None and len(fm.kept) == 2 and fm.kept_dropped == 34
