@@ -418,8 +418,9 @@ def hold_unsafe_pixels(
     only the grid, could centre a footprint on it. Here each unsafe pixel ``(u, v)`` marks the cell
     ``(round(my[v, u]), round(mx[v, u]))`` its ground falls in (``px_maps``: :func:`flight_sw.mapping.grid_maps`),
     a scatter-max of the pixel call, and that cell's P(safe) becomes ``min(P_cell, P_pixel)``. Along an
-    unsafe region's edge the cell holding an unsafe pixel is already mostly unsafe, so the safe ground is not
-    eroded there; only isolated and thin hazards change cells.
+    unsafe region's edge the cell holding an unsafe pixel is mostly unsafe already where the grid runs with the
+    pixels; where it is turned against them or coarser, the edge can move up to about half a cell into the safe
+    side (review of stop 65: 0-1.3 px on synthetic grids turned 30-45 deg; none on the real pairs it tried).
     """
     rows, cols = grid.state.shape
     vs, us = np.nonzero(np.asarray(unsafe, bool))

@@ -2096,10 +2096,12 @@ def _run_v2(
                 # below the footprint scale the trees were fitted down to, their P(safe) is an extrapolation: a 128 px
                 # camera at 5000 m (0.14 px against 0.19) called 17 points safe at >= 0.99, one a hazard, and put the
                 # top site on it (review of stop 64). No evidence for "safe" there: unknown
+                # and its P(safe) no more than the prior: fusion read the 0.99 as evidence (review of stop 65)
                 was = ev_c.state == STATE_SAFE
+                p_prior = np.float32(model.info.get("safe_share", 0.5))
                 ev_c = Evidence(
                     np.where(was, STATE_UNKNOWN, ev_c.state).astype(np.uint8),
-                    ev_c.psafe,
+                    np.minimum(ev_c.psafe, p_prior).astype(np.float32),  # NaN outside stays NaN
                     np.where(was, np.float32(1.0), ev_c.hazard).astype(np.float32),
                 )
                 info["psafe_beyond_scale"] = (

@@ -43,8 +43,8 @@ def check_image(img: np.ndarray, name: str, camera: Camera) -> np.ndarray:
             )
         if np.issubdtype(img.dtype, np.floating) and 0 < hi <= 1.0:
             raise FlightInputError(
-                f"{name}: a {img.dtype} image in 0-{hi:g} reads as 0-1 intensities; grey levels are 0-255 "
-                "(8-bit, DESIGN.md): multiply by 255"
+                f"{name}: a {img.dtype} image in 0-{hi:g} reads as 0-1 intensities (or is all but black); grey "
+                "levels are 0-255 (8-bit, DESIGN.md): multiply by 255"
             )
     return img
 

@@ -66,8 +66,9 @@ def error_stats(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = No
     valid pixel every statistic is NaN and ``n`` is 0.
 
     Note: the thesis's kurtosis column (Tables 6.3, 6.10) equals its skewness
-    minus 3 in every row, so it is not a kurtosis of any definition; ours is
-    not comparable to it.
+    minus 3 in every row but Table 6.3's 50 m one (whose skewness repeats Table
+    6.2's MAD), so it is not a kurtosis of any definition; ours is not
+    comparable to it.
     """
     _same_shape(est=est, truth=truth, mask=mask)
     e = np.asarray(est, dtype=np.float64)

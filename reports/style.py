@@ -107,7 +107,8 @@ GLOSSARY: dict[str, Term] = {
     "dem_kurtosis": Term(
         "DEM error excess kurtosis",
         "Fourth standardised moment of the signed error minus 3 (0 for a normal distribution): heavy tails score "
-        "high. Not comparable with the thesis's kurtosis column, which equals its skewness minus 3.",
+        "high. Not comparable with the thesis's kurtosis column, which equals its skewness minus 3 (in every "
+        "row but one).",
     ),
     "dem_skewness": Term("DEM error skewness", "Third standardised moment of the signed error."),
     "epi_fp_pct": Term(
@@ -198,6 +199,11 @@ GLOSSARY.update(
             "%",
         ),
         "pipeline_s": Term("pipeline time [s]", "Wall time of the flight pipeline for the pair on one core.", "s"),
+        "fn_unmapped_pct": Term(
+            "false alarm: outside the map %",
+            "False alarms on ground both images see that the detector left unmapped (NaN): not called safe.",
+            "%",
+        ),
         "fn_dem_invalid_pct": Term("false alarm: no DEM %", "False alarms where no elevation was recovered.", "%"),
         "fn_rock_pct": Term("false alarm: rock %", "False alarms caused by a detected rock.", "%"),
         "fn_slope_pct": Term("false alarm: slope %", "False alarms caused by the estimated slope.", "%"),

@@ -867,6 +867,7 @@ def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], sum
     from reports.jsondoc import json_text
     from studies.score import json_row, write_csv
 
+    ok = True  # each file is tried: a refused --csv left a good --json unwritten (review of stop 65)
     for option, path, label in (("--csv", args.csv, "rows:   "), ("--json", args.json, "summary:")):
         if path is None:
             continue
@@ -879,9 +880,10 @@ def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], sum
         except OSError as exc:  # after the scores above, which stand: only the file is missing
             why = exc.strerror or str(exc) or type(exc).__name__
             print(f"hazard-hil score: error: cannot write {option} {path}: {why}", file=sys.stderr)
-            return False
+            ok = False
+            continue
         print(f"{label} {path}")
-    return True
+    return ok
 
 
 def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:

@@ -210,10 +210,11 @@ COMPARISON_TABLES: dict[str, list[tuple[str, str, str]]] = {
     ],
 }
 # Metrics of a thesis table whose thesis column measures something else: ours is shown alone, and the table says
-# why. The thesis's "kurtosis" equals its skewness minus 3 in every row (ground_sim.scoring.dem_error_stats).
+# why. The thesis's "kurtosis" equals its skewness minus 3 in every row but one (ground_sim.scoring.dem_error_stats).
 NOT_COMPARABLE = {
     "dem_kurtosis": "ours is the excess kurtosis (0 for a normal distribution); the thesis's kurtosis column equals "
-    "its skewness minus 3 in every row, not a kurtosis of any definition, so it is not comparable and not shown",
+    "its skewness minus 3 in every row but Table 6.3's 50 m one (whose skewness repeats Table 6.2's MAD), not a "
+    "kurtosis of any definition, so it is not comparable and not shown",
 }
 # Metrics without a thesis counterpart that we still show per altitude.
 EXTRA_METRICS = (
@@ -228,6 +229,7 @@ EXTRA_METRICS = (
     ("chosen_sites_safe_pct_worst", "chosen sites truly safe % worst seed"),
     ("valid_pct", "DEM valid %"),
     ("pipeline_s", "pipeline s"),
+    ("fn_unmapped_pct", "FN: outside the map %"),
     ("fn_dem_invalid_pct", "FN: DEM not recovered %"),
     ("fn_rock_pct", "FN: rock %"),
     ("fn_slope_pct", "FN: est. slope %"),
@@ -376,7 +378,8 @@ def error_causes(
 ) -> dict[str, float]:
     """Where the FP and FN pixels come from, in % of the scored pixels (so they add up to fp_pct / fn_pct).
 
-    FN (false alarms) by the first estimated cause in the order: DEM not
+    FN (false alarms) by the first estimated cause in the order: outside the map
+    (the detector left the pixel NaN: the scored area is the true overlap), DEM not
     recovered (hazard forced to 1, not a rock), detected rock, estimated slope
     >= 15 deg, estimated roughness >= 0.30 m, detected shadow. FP (undetected
     hazards) by the first true cause: slope >= 15 deg, roughness >= 0.30 m,
@@ -393,6 +396,7 @@ def error_causes(
     out: dict[str, float] = {}
     left = fn.copy()
     for name, cause in (
+        ("unmapped", ~np.isfinite(np.asarray(est["hazard"], np.float64))),
         ("dem_invalid", ~np.isfinite(est["elevation"]) & ~rocks),
         ("rock", rocks),
         ("slope", np.nan_to_num(est["slope_deg"]) >= 15.0),

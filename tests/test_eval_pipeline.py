@@ -47,7 +47,15 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert 0 < r["hazards_in_scored_pct"] < 100
     fn_parts = [
         r[k]
-        for k in ("fn_dem_invalid_pct", "fn_rock_pct", "fn_slope_pct", "fn_rough_pct", "fn_shadow_pct", "fn_other_pct")
+        for k in (
+            "fn_unmapped_pct",
+            "fn_dem_invalid_pct",
+            "fn_rock_pct",
+            "fn_slope_pct",
+            "fn_rough_pct",
+            "fn_shadow_pct",
+            "fn_other_pct",
+        )
     ]
     assert sum(fn_parts) == pytest.approx(r["fn_pct"])
     assert r["fp_steep_pct"] + r["fp_rough_pct"] + r["fp_other_pct"] == pytest.approx(r["fp_pct"])

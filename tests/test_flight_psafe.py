@@ -323,4 +323,8 @@ def test_a_footprint_finer_than_the_models_fitted_scale_is_called_unknown_and_of
     assert not (high.state == STATE_SAFE).any() and not high.sites
     assert "below the 0.19 px the P(safe) model was fitted down to" in high.info["no_site_reason"]
     assert (high.state == STATE_UNKNOWN).any() and np.all(high.hazard[high.state == STATE_UNKNOWN] == 1.0)
+    # and no P(safe) above the model's prior, which fusion would read as evidence for "safe"
+    prior = load_model(SHIPPED_MODELS[2]).info["safe_share"]
+    assert np.nanmax(high.psafe) <= prior + 1e-6 and np.nanmax(high.grid.psafe) <= prior + 1e-6
+    assert np.array_equal(np.isnan(high.psafe), ~high.covered)  # NaN outside, as ever
     assert (low.state == STATE_SAFE).any() and "psafe_beyond_scale" not in low.info

@@ -643,3 +643,7 @@ def test_a_report_file_the_system_refuses_is_exit_4_naming_it_not_the_fp_verdict
         captured = capsys.readouterr()
         assert f"hazard-hil score: error: cannot write {option} /dev/full: No space left on device" in captured.err
         assert "| 300_150 |" in captured.out  # the scores stand, printed before
+    # a refused --csv does not keep a good --json from being written
+    js = tmp_path / "s.json"
+    assert main(["score", str(d), str(out), "--csv", "/dev/full", "--json", str(js)]) == 4
+    assert json.loads(js.read_text())["rows"][0]["pair"] == "300_150"
