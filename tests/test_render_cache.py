@@ -177,3 +177,14 @@ def test_the_render_fingerprint_covers_every_module_a_render_runs():
             if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("ground_sim."):
                 todo.append(n.module.split(".")[1])
     assert {f"{m}.py" for m in seen - outside} == set(RENDER_SOURCES)
+
+
+def test_the_render_fingerprint_follows_code_not_its_docstrings_or_comments():
+    """Whole files redrew every cache for a reworded message or comment in descent.py or library.py (review of
+    stop 65); a changed constant or statement still changes it."""
+    from ground_sim.render_cache import code_text
+
+    base = 'def f(x):\n    """Doc."""\n    # why\n    return x + 1\n'
+    assert code_text(base) == code_text('def f(x):\n    """Other words."""\n    return x+1  # another why\n')
+    assert code_text(base) != code_text('def f(x):\n    """Doc."""\n    return x + 2\n')
+    assert code_text(base) != code_text('def f(x):\n    """Doc."""\n    return x - 1\n')
