@@ -1251,8 +1251,33 @@ def _write_rows(rows: list[dict[str, Any]], path: Path) -> None:
             w.writerow({k: _fmt_csv(r.get(k)) for k in cols})
 
 
+def thesis_sensitivity(kind: str, altitude_m: int) -> dict[str, float | None]:
+    """The thesis's own figures for one sensitivity row (Tables 6.12-6.19, approach pairs at 125-300 m): for
+    ``altitude`` the median over its 20 samples of the relative DEM mean-error increase (``sNN.dem_mean_rel_pct``),
+    for ``attitude`` that increase at each of its six pitch levels and their median (None at an altitude it did not
+    study); {} for the other kinds, which it did not study. It drew its samples one way, we another (module doc):
+    medians, not sample by sample."""
+    idx = thesis_index(load_thesis())
+    pre = {"altitude": "s", "attitude": "dev"}.get(kind)
+    vals = {
+        m: v
+        for (t, sc, a, m), v in idx.items()
+        if sc == "approach" and a == altitude_m and t.startswith("6.1") and m.endswith(".dem_mean_rel_pct")
+        and pre is not None and m.startswith(pre)
+    }  # fmt: skip
+    if pre is None:
+        return {}
+    # the same keys on every row of a kind (None where the thesis has no such altitude): one table, one header
+    out: dict[str, float | None] = {"thesis_median_rel_pct": float(np.median(list(vals.values()))) if vals else None}
+    if kind == "attitude":
+        for lv in ATTITUDE_LEVELS_DEG:
+            out[f"thesis_rel_pct@{lv:+.2f}"] = vals.get(f"dev{lv:+.2f}.dem_mean_rel_pct")
+    return out
+
+
 def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per (kind, preset, altitude): medians of the relative DEM error increase and the share within +15 %.
+    """Per (kind, preset, altitude): medians of the relative DEM error increase and the share within +15 %,
+    with the thesis's own figure beside it where it studied that kind and altitude (:func:`thesis_sensitivity`).
 
     For ``altitude`` the samples are also split like the thesis's Fig. 6.13
     reading: near the diagonal (|dh1 - dh2| <= 0.15 m, both poses off by about
@@ -1298,5 +1323,6 @@ def sensitivity_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             for lv in ATTITUDE_LEVELS_DEG:
                 sel = rel[np.isclose([r["pitch_deg1"] for r in rs], lv)]
                 s[f"rel_pct@{lv:+.2f}"] = float(np.median(sel)) if sel.size else None
+        s.update(thesis_sensitivity(kind, alt))
         out.append(s)
     return out

@@ -14,6 +14,7 @@ from __future__ import annotations
 import html
 import json
 import signal
+import statistics
 from pathlib import Path
 
 import pytest
@@ -601,3 +602,26 @@ def _ctrl_c_at_third_group(monkeypatch):
 
     monkeypatch.setattr(ld, "land_group", ctrl_c_at_third)
     return real
+
+
+def test_the_sensitivity_summary_sets_the_thesiss_own_figures_beside_ours():
+    """The help promised Tables 6.12-6.19, but the summary and page showed our numbers alone (QA 65b L5)."""
+    from studies.evaluate import ATTITUDE_LEVELS_DEG, load_thesis, sensitivity_summary, thesis_index
+
+    idx = thesis_index(load_thesis())
+    base = {"preset": "fast", "pitch_deg1": 0.05, "dz_m1": 0.1, "dz_m2": 0.1}
+    rows = [
+        {**base, "kind": kind, "altitude_m": alt, "sample": i, "dem_mean_rel_pct": 10.0 * i}
+        for kind in ("altitude", "attitude", "lateral")
+        for alt in (125, 400)
+        for i in (-1, 0, 1)
+    ]
+    by = {(s["kind"], s["altitude_m"]): s for s in sensitivity_summary(rows)}
+    samples = [v for (t, sc, a, m), v in idx.items() if t == "6.12" and m.endswith(".dem_mean_rel_pct")]
+    assert len(samples) == 20
+    assert by[("altitude", 125)]["thesis_median_rel_pct"] == pytest.approx(statistics.median(samples))
+    att = by[("attitude", 125)]
+    assert att["thesis_rel_pct@+0.05"] == idx[("6.16", "approach", 125, "dev+0.05.dem_mean_rel_pct")]
+    assert all(f"thesis_rel_pct@{lv:+.2f}" in att for lv in ATTITUDE_LEVELS_DEG)
+    assert by[("altitude", 400)]["thesis_median_rel_pct"] is None  # no such table: said as none, same columns
+    assert "thesis_median_rel_pct" not in by[("lateral", 125)]  # a study the thesis did not make
