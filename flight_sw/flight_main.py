@@ -389,6 +389,14 @@ class FlightProcess:
                         flush=True,
                     )
                 self.fused = None
+                for pid, gone in self.pending.items():  # each said: a ground waiting on them would time out blind
+                    self.link.send(
+                        Error(
+                            code="frame_dropped",
+                            seq=next(iter(gone.frames.values())).seq,
+                            text=f"pair {pid!r}: a new descent's Config came before its other frame",
+                        )
+                    )
                 self.pending.clear()
                 note = left_out_note(msg)
                 if note:  # once per descent, not per Result

@@ -1437,7 +1437,7 @@ def _main(argv: list[str] | None) -> int:
                 + (
                     f", result line {line:.2f} s)"
                     if line is not None
-                    else f", link and queues {outside:.2f} s: ZeroMQ shows no line time)"
+                    else f", link and queues {outside:.2f} s: no line time measured)"
                     if (outside := rec.get("outside_flight_s")) is not None
                     else ")"
                 )
