@@ -49,6 +49,7 @@ import socket
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -304,6 +305,9 @@ class FlightProcess:
         self.heartbeat_s = heartbeat_s
         self.config: Config | None = None
         self.pending: dict[str, PendingPair] = {}
+        # the pairs dropped half received, newest last: a late frame of one is said as dropped, not held as a new
+        # half pair to be dropped and said a second time (QA of stop 65)
+        self.dropped: deque[str] = deque(maxlen=4 * MAX_PENDING_PAIRS)
         self.pairs_seen = 0
         # wire sizes (framed) of the last RESULT_HISTORY Results under the current Config, for the next pair's line
         # time: the largest of them, since a degraded Result can be smaller than the full one the next pair may reach
@@ -323,6 +327,7 @@ class FlightProcess:
         reconnected, e.g. after a noisy line lost the session); a ground that sends no ``descent_id`` cannot be
         told from the next run, so its descent starts afresh."""
         self.pending.clear()
+        self.dropped.clear()  # the new session may send those pairs again, whole
         if self.config is not None:
             self.resumable = (self.config, self.fused)
         self.config = None
@@ -389,6 +394,7 @@ class FlightProcess:
                         flush=True,
                     )
                 self.fused = None
+                self.dropped.clear()  # a new descent may use the old one's pair ids
                 for pid, gone in self.pending.items():  # each said: a ground waiting on them would time out blind
                     self.link.send(
                         Error(
@@ -437,9 +443,17 @@ class FlightProcess:
                 )
             )
             return
+        if frame.pair_id in self.dropped:
+            self.link.send(
+                Error(
+                    code="frame_dropped", seq=frame.seq, text=f"pair {frame.pair_id!r}: dropped earlier, half received"
+                )
+            )
+            return
         if frame.pair_id not in self.pending and len(self.pending) >= MAX_PENDING_PAIRS:
             oldest = min(self.pending, key=lambda k: self.pending[k].arrival)
             gone = self.pending.pop(oldest)
+            self.dropped.append(oldest)
             self.link.send(
                 Error(
                     code="frame_dropped",
