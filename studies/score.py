@@ -317,20 +317,18 @@ def score_output(
     names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
     black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
     from ground_sim import scoring
-    from ground_sim.gridscore import judge_site, site_verdict
-    from ground_sim.library import covered
+    from ground_sim.gridscore import judge_site, scored_area, site_verdict
     from reports.plots import ground_step_m
     from studies.evaluate import _site_radius_px, backproject_depth, true_poses
 
     derived, problem = truth_problem(pair, where)
     if problem:
         raise ScoreError(problem)
-    true1, true2 = true_poses(pair)
+    true1, _ = true_poses(pair)  # its errors said here, as evaluate says them
     depth = pair.truth["depth"].astype(np.float64)
     world = backproject_depth(pair.camera, true1, depth)
     gt_h = pair.truth["hazard"].astype(np.float32)
-    seen = covered(pair.camera, true2, world.reshape(-1, 3)).reshape(gt_h.shape)
-    area = seen & np.isfinite(gt_h) & np.isfinite(depth)
+    area = scored_area(pair, world)  # the one definition evaluate and the HIL's grid scores take too
     n = int(np.count_nonzero(area))
     if n == 0:
         for key, arr in (("hazard", gt_h), ("depth", depth)):
