@@ -396,13 +396,7 @@ class FlightProcess:
                 self.fused = None
                 self.dropped.clear()  # a new descent may use the old one's pair ids
                 for pid, gone in self.pending.items():  # each said: a ground waiting on them would time out blind
-                    self.link.send(
-                        Error(
-                            code="frame_dropped",
-                            seq=next(iter(gone.frames.values())).seq,
-                            text=f"pair {pid!r}: a new descent's Config came before its other frame",
-                        )
-                    )
+                    self._say_dropped(pid, gone, "a new descent's Config came before its other frame")
                 self.pending.clear()
                 note = left_out_note(msg)
                 if note:  # once per descent, not per Result
@@ -444,29 +438,24 @@ class FlightProcess:
             )
             return
         if frame.pair_id in self.dropped:
-            self.link.send(
-                Error(
-                    code="frame_dropped", seq=frame.seq, text=f"pair {frame.pair_id!r}: dropped earlier, half received"
-                )
-            )
+            self._say_dropped(frame.pair_id, PendingPair({frame.frame_index: frame}), "dropped earlier, half received")
             return
         if frame.pair_id not in self.pending and len(self.pending) >= MAX_PENDING_PAIRS:
             oldest = min(self.pending, key=lambda k: self.pending[k].arrival)
-            gone = self.pending.pop(oldest)
             self.dropped.append(oldest)
-            self.link.send(
-                Error(
-                    code="frame_dropped",
-                    seq=next(iter(gone.frames.values())).seq,
-                    text=f"pair {oldest!r}: its other frame did not come before {MAX_PENDING_PAIRS} newer pairs began",
-                )
-            )
+            why = f"its other frame did not come before {MAX_PENDING_PAIRS} newer pairs began"
+            self._say_dropped(oldest, self.pending.pop(oldest), why)
         pend = self.pending.setdefault(frame.pair_id, PendingPair())
         pend.frames[frame.frame_index] = frame
         pend.arrival = now
         if len(pend.frames) == 2:
             del self.pending[frame.pair_id]
             self._process(pend)
+
+    def _say_dropped(self, pair_id: str, pend: PendingPair, why: str) -> None:
+        """The Error ``frame_dropped`` for a pair dropped half received, about a frame of it the ground sent."""
+        seq = next(iter(pend.frames.values())).seq
+        self.link.send(Error(code="frame_dropped", seq=seq, text=f"pair {pair_id!r}: {why}"))
 
     def _process(self, pend: PendingPair) -> None:
         cfg = self.config
