@@ -80,8 +80,9 @@ def camera_note(camera_px: int | None) -> str:
     if camera_px is None or camera_px == THESIS_CAMERA_PX:
         return ""
     from flight_sw.psafe import model_for_image
+    from studies.evaluate import other_camera
 
-    note = f"; a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px: not its setup"
+    note = f"; {other_camera(camera_px)}: not its setup"
     # what `process` warns of per pair, said once for the study: a smaller camera tests another detector
     if model_for_image(None, (camera_px, camera_px)) is None:
         note += "; `fast`'s calibrated P(safe) is not fitted for it: the Gaussian rule stands in, with a higher FP"
@@ -462,8 +463,9 @@ def _evaluate(args: argparse.Namespace) -> int:
 def tables_setting(scenario: str, scene: str, seeds_text: str, camera_px: int | None, warning: str = "") -> str:
     """The first line of ``tables_<scenario>.md``, the file pasted into RESULTS.md: its seeds, scene, scenario and
     camera, which it did not carry (a tuning-seed or 128 px table read as the thesis setup's held-out one)."""
-    px = camera_px or THESIS_CAMERA_PX
-    camera = "the thesis's 512 px camera" if px == THESIS_CAMERA_PX else f"a {px} px camera, not the thesis's 512 px"
+    from studies.evaluate import other_camera
+
+    camera = other_camera(camera_px) or f"the thesis's {THESIS_CAMERA_PX} px camera"
     return f"*{scenario} scenario, scene {scene}; {seeds_text}; {camera}*" + (
         f" **WARNING: {warning}**" if warning else ""
     )

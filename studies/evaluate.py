@@ -121,6 +121,13 @@ class ThesisValue:
     value: float
 
 
+def other_camera(camera_px: int | None) -> str:
+    """'a 256 px camera, not the thesis's 512 px' for a camera other than the thesis's; '' for its own (or None)."""
+    if camera_px is None or camera_px == THESIS_CAMERA_PX:
+        return ""
+    return f"a {camera_px} px camera, not the thesis's {THESIS_CAMERA_PX} px"
+
+
 def thesis_csv_path() -> Path:
     return Path(__file__).with_name("data") / "thesis_tables.csv"
 

@@ -764,8 +764,10 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         Column("divert_m", "median divert [m]"),
     ]
     planned = f"{counted(camp['n_landings'], 'landing')} ({counted(camp['n_renders'], 'render')}, "
-    px = camp.get("camera_px") or 512
-    camera = "" if px == 512 else f"; a {px} px camera, not the thesis's 512 px: not its setup"
+    from studies.evaluate import other_camera
+
+    other = other_camera(camp.get("camera_px"))
+    camera = f"; {other}: not its setup" if other else ""
     intro = (
         (f"{summary['n_landings_flown']} of {planned}" if partial else planned)
         + f"{counted(camp['per_render'], 'aim point')} each) over "
