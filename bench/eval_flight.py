@@ -133,10 +133,10 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
     """Run the pipeline on one rendered pair; pixel scores, DEM error, coverage, top-site safety, CPU time."""
     from ground_sim.gridscore import judge_site, scored_area, site_verdict
     from protocol.pairdir import read_pair
-    from studies.evaluate import _site_radius_px, backproject_depth, score_arrays, true_poses
+    from studies.evaluate import _site_radius_px, score_arrays
+    from studies.multiframe import world_of
 
     pair = read_pair(pair_dir)
-    t1, t2 = true_poses(pair)
     c0 = time.thread_time()
     res = run_pair(pair, preset)
     cpu = time.thread_time() - c0
@@ -145,7 +145,7 @@ def score_pair(pair_dir: str, preset: Any) -> dict[str, Any]:
         lay = run_pair(pair, dataclasses.replace(preset, keep_layers=True))
         causes = error_causes(lay.layers, lay.state, lay.elevation, pair.truth["hazard"], res.covered)
     tz = pair.truth["elevation"].astype(np.float32)
-    world = backproject_depth(pair.camera, t1, pair.truth["depth"].astype(np.float64))
+    world = world_of(pair)
     # DESIGN.md's covered area, as `score` takes it (frame-0 pixels whose true ground the last frame sees); the
     # pipeline's own `covered` left out its unmapped rim, and figures before stop 65 were scored over that
     area = scored_area(pair, world)
