@@ -6,7 +6,7 @@ the supervisor over an inherited socket using the protocol's framing.
 
 Message flow (one pair = two ``Frame``s sharing a ``pair_id``)::
 
-    supervisor -> flight : Config, Frame, Frame, Frame, ...
+    supervisor -> flight : Config, Frame, Frame, Frame, ...; Hello when a new ground session begins
     flight -> supervisor : Hello, Heartbeat (periodic), Result + Telemetry per pair,
                            Error (bad frame, pipeline failure) - never silence
 
@@ -17,8 +17,9 @@ Fusion over the descent (issue 10, :mod:`flight_sw.fusion`): the process keeps o
 map that every pair's result refines (log-odds of "safe", a hazard is only overturned by the
 documented amount of later evidence); each Result reports the fused map on the newest pair's
 grid and the sites chosen on it. ``Config.options["fusion"] = 0`` reports each pair alone.
-The map starts afresh when a Config with different content arrives (a new descent); the
-same Config re-sent after a link reconnection keeps it.
+The map starts afresh with a new descent; a new ground session (a Hello passed on by the
+HIL server, or a board's own) whose Config is the last one's, naming the same ``descent_id``,
+keeps it, and drops the old session's half-received pairs.
 
 Deadline planning (docs/hil.md): the deadline runs from the ground's last frame
 to the ground holding the whole Result, so the Result's own line time counts.
@@ -414,6 +415,10 @@ class FlightProcess:
             self.reserve_ratios = []  # another budget or camera: what the reserves cost is measured anew
         elif isinstance(msg, Frame):
             self._on_frame(msg)
+        elif isinstance(msg, Hello):
+            # the HIL server passes on a new ground's Hello: the old session's half pairs can never complete (their
+            # ids carry the old session), and the server has recorded them already (QA 65f L1)
+            self.new_ground_session()
 
     def _on_frame(self, frame: Frame) -> None:
         now = time.monotonic()

@@ -516,6 +516,10 @@ class Supervisor:
         self._end_ground_session("ground_restarted", "a new ground session replaced this one")
         self.ground_epoch, self.ground_session = epoch, hello.session
         self.ground_gen += 1
+        if self.flight is not None:
+            # the flight process drops the old session's half pairs (recorded here already): held, they came back
+            # after 8 more pairs as a stale frame_dropped (QA 65f L1). A board is told the same way (flight_sw.board)
+            self.flight.link.send(Hello(role="hil-server", session=hello.session))
 
     def _end_ground_session(self, code: str, text: str) -> None:
         """The pairs of the ending ground session can no longer be answered: record them, clear the tables."""

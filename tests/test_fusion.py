@@ -921,6 +921,29 @@ def test_half_received_pairs_are_dropped_on_a_new_descent_and_bounded_and_said(m
     assert len(fp.pending) == n and last.code == "frame_dropped" and last.seq == 99 and "dropped earlier" in last.text
 
 
+def test_a_new_ground_session_drops_the_old_half_pairs_unsaid_and_keeps_the_descent(monkeypatch):
+    """Under ``run`` the flight process was not told of a new ground session: the old session's half pair stayed, and
+    8 pairs later came back as a ``frame_dropped`` about a pair the server had closed (a stale error; QA 65f L1).
+    The server now passes the new ground's Hello on, as a board's link does."""
+    from protocol.messages import Config, Error, Hello, Result
+
+    fmn, fp, link, calls = _stub_flight(monkeypatch)
+    cfg = Config(camera=CAM, budget="host", deadline_s=30.0, options={"descent_id": 3})
+    fp.handle(cfg)
+    fp.handle(_frame(1, "g1:00-400_200", 0, 200, 400.0))
+    fp.handle(_frame(2, "g1:00-400_200", 1, 200, 200.0))
+    fp.handle(_frame(3, "g1:01-300_150", 0, 200, 300.0))  # the ground is lost before its lower frame
+    fp.handle(Hello(role="hil-server", session=9))
+    assert fp.pending == {} and fp.config is None
+    fp.handle(cfg)  # the same descent in the new session
+    for k in range(fmn.MAX_PENDING_PAIRS + 1):
+        fp.handle(_frame(10 + 2 * k, f"g2:{k:02d}", 0, 200, 300.0))
+        fp.handle(_frame(11 + 2 * k, f"g2:{k:02d}", 1, 200, 150.0))
+    assert not [m for m in link.sent if isinstance(m, Error)]
+    assert len([m for m in link.sent if isinstance(m, Result)]) == fmn.MAX_PENDING_PAIRS + 2
+    assert fp.fused is not None and fp.fused.results == fmn.MAX_PENDING_PAIRS + 2  # the map went on
+
+
 def test_a_hazard_outside_one_pairs_grid_is_kept_until_a_later_grid_covers_it():
     """The map follows the newest grid: a hazard outside one narrower grid was dropped with it, and one later result
     back over it called it safe, where the rule asks three (review of stop 64)."""

@@ -66,3 +66,19 @@ def test_a_pair_none_of_whose_frames_reached_the_dead_process_is_not_its_crash()
     earlier = PairState("c", sent_to=2, frame_mids={0: 5, 1: 6})  # sent to another incarnation: not known here
     assert not sup._reached_flight(never)
     assert sup._reached_flight(half) and sup._reached_flight(earlier)
+
+
+def test_a_new_ground_session_is_passed_on_to_the_flight_process():
+    """Under ``run`` the flight process was not told of a new ground session, so it held the old session's half
+    pair and 8 pairs later said it dropped it, about a pair the server had closed (QA 65f L1). The server now passes
+    each new ground's Hello on, and a repeated Hello of the same session is not."""
+    from protocol.messages import Hello
+
+    sent: list = []
+    sup = Supervisor(None, SimpleNamespace(deadline_s=2.0), None, log=lambda s: None)
+    sup.flight = SimpleNamespace(generation=1, link=SimpleNamespace(send=sent.append))  # type: ignore[assignment]
+    sup._new_ground_session(Hello(role="ground", session=11), epoch=1)
+    sup._new_ground_session(Hello(role="ground", session=11), epoch=1)  # the same ground again
+    sup._new_ground_session(Hello(role="ground", session=12), epoch=2)
+    assert [(type(m).__name__, m.session) for m in sent] == [("Hello", 11), ("Hello", 12)]
+    assert sup.ground_gen == 2
