@@ -364,6 +364,26 @@ def classify_calibrated(
     return Evidence(state, psafe, hazard)
 
 
+def below_model_scale(ev: Evidence, footprint_px: float, footprint_px_min: float, prior: float) -> Evidence:
+    """The calibrated call where the footprint is smaller, in pixels, than the P(safe) model was fitted down to.
+
+    Below ``footprint_px_min`` (recorded with each model by ``bench/fit_psafe.py``) the trees' P(safe) is an
+    extrapolation: a 128 px camera at 5000 m (a 0.14 px footprint against 0.19) called 17 points safe at >= 0.99,
+    one of them a hazard, and put the top site on it (review of stop 64). There, nothing is evidence for "safe":
+    a point called safe becomes unknown, and ``P = min(P, prior)`` (``prior``: the model's share of safe
+    training points), since fusion reads a 0.99 as evidence (review of stop 65). Unsafe calls and NaN (not
+    covered) stay. At or above the scale ``ev`` is returned as it is.
+    """
+    if not footprint_px < footprint_px_min:
+        return ev
+    was = ev.state == STATE_SAFE
+    return Evidence(
+        np.where(was, STATE_UNKNOWN, ev.state).astype(np.uint8),
+        np.minimum(ev.psafe, np.float32(prior)).astype(np.float32),
+        np.where(was, np.float32(1.0), ev.hazard).astype(np.float32),
+    )
+
+
 def grid_evidence(
     called: np.ndarray,
     unsafe: np.ndarray,

@@ -52,6 +52,7 @@ from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
 from .evidence import (
     CAP_SLOPES,
     Evidence,
+    below_model_scale,
     classify,
     classify_calibrated,
     footprint_mean,
@@ -2092,18 +2093,8 @@ def _run_v2(
                 p.call_slope_feature,
             )
             fp_min = float(model.info.get("footprint_px_min", 0.0))
-            if fp_px < fp_min:
-                # below the footprint scale the trees were fitted down to, their P(safe) is an extrapolation: a 128 px
-                # camera at 5000 m (0.14 px against 0.19) called 17 points safe at >= 0.99, one a hazard, and put the
-                # top site on it (review of stop 64). No evidence for "safe" there: unknown
-                # and its P(safe) no more than the prior: fusion read the 0.99 as evidence (review of stop 65)
-                was = ev_c.state == STATE_SAFE
-                p_prior = np.float32(model.info.get("safe_share", 0.5))
-                ev_c = Evidence(
-                    np.where(was, STATE_UNKNOWN, ev_c.state).astype(np.uint8),
-                    np.minimum(ev_c.psafe, p_prior).astype(np.float32),  # NaN outside stays NaN
-                    np.where(was, np.float32(1.0), ev_c.hazard).astype(np.float32),
-                )
+            if fp_px < fp_min:  # the trees' P(safe) would be an extrapolation there: nothing is called safe
+                ev_c = below_model_scale(ev_c, fp_px, fp_min, float(model.info.get("safe_share", 0.5)))
                 info["psafe_beyond_scale"] = (
                     f"the {p.footprint_m:g} m footprint is {fp_px:.2f} px here, below the {fp_min:g} px the P(safe) "
                     "model was fitted down to: nothing is called safe"

@@ -328,3 +328,17 @@ def test_a_footprint_finer_than_the_models_fitted_scale_is_called_unknown_and_of
     assert np.nanmax(high.psafe) <= prior + 1e-6 and np.nanmax(high.grid.psafe) <= prior + 1e-6
     assert np.array_equal(np.isnan(high.psafe), ~high.covered)  # NaN outside, as ever
     assert (low.state == STATE_SAFE).any() and "psafe_beyond_scale" not in low.info
+
+
+def test_below_model_scale_turns_safe_calls_unknown_caps_psafe_and_keeps_the_rest():
+    """The evidence stage's footprint-scale guard on its own: safe -> unknown with hazard 1, P(safe) capped at the
+    prior, unsafe and uncovered (NaN) points unchanged; at or above the fitted scale nothing changes."""
+    from flight_sw.evidence import Evidence, below_model_scale
+
+    state = np.array([[STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN]], np.uint8)
+    ev = Evidence(state, np.array([[0.99, 0.0, np.nan]], np.float32), np.array([[0.1, 1.0, np.nan]], np.float32))
+    assert below_model_scale(ev, 0.19, 0.19, 0.6) is ev
+    out = below_model_scale(ev, 0.14, 0.19, 0.6)
+    assert out.state.tolist() == [[STATE_UNKNOWN, STATE_UNSAFE, STATE_UNKNOWN]]
+    assert np.allclose(out.psafe[0, :2], [0.6, 0.0]) and np.isnan(out.psafe[0, 2])
+    assert out.hazard[0, :2].tolist() == [1.0, 1.0] and np.isnan(out.hazard[0, 2])
