@@ -54,6 +54,7 @@ MIN_FRAMES, MAX_FRAMES = 2, 16
 MAX_PAIR_JSON_BYTES = 1 << 20  # a pair.json of many frames is a few kB
 MAX_IMAGE_SIDE = 8192
 IMAGE_SIZE_MIN, IMAGE_SIZE_MAX = 32, 4096  # the square cameras `render` and `run --image-size` make
+THESIS_CAMERA_PX = 512  # the thesis camera's side (Table 2.2)
 ORTHONORMAL_TOL = 1e-3  # max |R R^T - I| re-orthonormalised with a note; beyond it: an error
 MIN_DEPRESSION_DEG = 10.0  # the optical axis must point at least this far below the horizon
 # an altimeter reading vs. the range to the datum along the optical axis (check_altimeter)
@@ -93,7 +94,7 @@ class Camera:
     cy: float
 
     @classmethod
-    def thesis(cls, size: int = 512) -> Camera:
+    def thesis(cls, size: int = THESIS_CAMERA_PX) -> Camera:
         """The thesis camera (Table 2.2, eq. 3.16): 512x512, 30 deg FOV; ``size``: that FOV on a size x size sensor
         (``f = size / 2 / tan 15 deg``, the principal point at the centre), as `run --image-size` and `evaluate
         --camera-px` render."""

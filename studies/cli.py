@@ -13,7 +13,7 @@ from typing import Any
 from ground_sim.render import DEFAULT_RASTER, RASTERS
 from ground_sim.seeds import describe_seeds
 from protocol.errors import InputError, comma_items
-from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN
+from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, THESIS_CAMERA_PX
 
 
 def _positive(kind: str, most: int | None = None, least: int = 1):
@@ -29,7 +29,6 @@ def _positive(kind: str, most: int | None = None, least: int = 1):
     return conv
 
 
-THESIS_CAMERA_PX = 512
 MIN_CAMERA_PX = (
     IMAGE_SIZE_MIN  # studies.evaluate.camera_for refuses smaller cameras (in a worker, after the work started)
 )

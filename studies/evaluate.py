@@ -29,14 +29,13 @@ import numpy as np
 from ground_sim.gridscore import judge_site, pixel_ground, scored_area
 from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
-from protocol.pairdir import Camera, PairFormatError, Pose, read_pair
+from protocol.pairdir import THESIS_CAMERA_PX, Camera, PairFormatError, Pose, read_pair
 from protocol.pairdir import true_poses as pairdir_true_poses
 from reports.plots import ground_step_m
 
 SCENARIOS = ("vertical", "approach")
 PRESETS = ("fast", "thesis", "fast_unrefined")  # fast_unrefined: fast without pose refinement
 EPIPOLE_BOX_PX = 80  # Table 6.7: 80x80 px around the epipole
-THESIS_CAMERA_PX = 512
 FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)
 # the packages whose source decides a task's result (studies.executor.code_fingerprint): a saved result
 # of other code is computed again (a render task's code is ground_sim.render_cache's render fingerprint)
