@@ -842,3 +842,35 @@ def test_a_pty_bridge_closed_twice_closes_nothing_the_second_time(tmp_path):
     with open(other) as f:  # very likely gets one of the numbers the bridge just freed
         bridge.close()
         assert f.read() == "still mine"
+
+
+def test_a_log_that_raises_or_a_bug_in_the_reader_never_leaves_the_link_open_and_deaf():
+    """A link's events are logged from its reader thread. A log to a broken pipe (``flight ... | tee`` with tee gone)
+    raised there and killed the thread: the link stayed established, read nothing more, and its board never learned
+    why the ground gave up on it (review of stop 66). The log's failure is now counted, and any other exception in
+    the reader fails the link with the reason, for the owner to see."""
+    from protocol.arq import ArqConfig
+
+    def broken_log(text: str) -> None:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    cfg = ArqConfig(peer_timeout=4.0)
+    a_sock, b_sock = socket.socketpair()
+    with StreamLink(a_sock, config=cfg, name="board", log=broken_log) as a, StreamLink(b_sock, config=cfg) as b:
+        assert a.wait_established(3) and b.wait_established(3)
+        b.send(Hello(role="ground"))
+        assert isinstance(a.recv(3), Hello)
+        assert a.stats["log_failures"] >= 1 and a.failed is None
+        assert any(e.kind == "established" for e in a.events())  # the event is kept though the log failed
+
+        def bug(data, now):
+            raise RuntimeError("a bug")
+
+        a.arq.receive = bug  # type: ignore[method-assign]
+        b.send(Hello(role="ground"))
+        end = time.monotonic() + 3
+        while a.failed is None and time.monotonic() < end:
+            time.sleep(0.02)
+        assert a.failed is not None and "internal error in the link's reader" in a.failed and "a bug" in a.failed
+        with pytest.raises(LinkClosed):
+            a.send(Hello(role="flight"))
