@@ -100,12 +100,26 @@ def hello_frame(src: int, dst: int, max_frame: int, window: int) -> bytes:
 CLOSE_APP, CLOSE_LOST = 0, 1  # the application closed the link / the sender gave up on this session
 
 
-def close_frame(src: int, dst: int, cum: int, reason: str, code: int = CLOSE_APP) -> bytes:
-    return _frame(CLOSE, src, dst, _U32.pack(cum) + bytes((code,)) + reason.encode("utf-8", "replace")[:MAX_REASON])
+def _reason(reason: str, room: int) -> bytes:
+    """``reason`` in UTF-8, cut to ``room`` bytes (and :data:`MAX_REASON`)."""
+    return reason.encode("utf-8", "replace")[: max(0, min(MAX_REASON, room))]
 
 
-def reject_frame(src: int, dst: int, pos: int, reason: str) -> bytes:
-    return _frame(REJECT, src, dst, _U32.pack(pos) + reason.encode("utf-8", "replace")[:MAX_REASON])
+def close_frame(
+    src: int, dst: int, cum: int, reason: str, code: int = CLOSE_APP, max_frame: int = OVERHEAD + 5 + MAX_REASON
+) -> bytes:
+    """A CLOSE no longer than ``max_frame`` (the peer's announced value: section 1), the reason cut to fit."""
+    return _frame(CLOSE, src, dst, _U32.pack(cum) + bytes((code,)) + _reason(reason, max_frame - OVERHEAD - 5))
+
+
+def reject_frame(src: int, dst: int, pos: int, reason: str, max_frame: int = OVERHEAD + 4 + MAX_REASON) -> bytes:
+    """A REJECT no longer than ``max_frame`` (the peer's announced value), the reason cut to fit."""
+    return _frame(REJECT, src, dst, _U32.pack(pos) + _reason(reason, max_frame - OVERHEAD - 4))
+
+
+def ack_sack_room(max_frame: int) -> int:
+    """How many SACK ranges an ACK may carry within ``max_frame`` bytes (at most :data:`MAX_SACK_RANGES`)."""
+    return max(0, min(MAX_SACK_RANGES, (max_frame - OVERHEAD - ACK_HEAD.size) // SACK_RANGE.size))
 
 
 @dataclass

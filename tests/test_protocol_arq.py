@@ -455,3 +455,56 @@ def test_a_line_that_echoes_our_own_frames_is_no_session():
     assert not a.established and a.stats["echoed_frames"] > 0 and a.sess.peer == 0
     kinds = {e.kind for e in a.take_events()}
     assert kinds == {"echo"}
+
+
+def test_acks_closes_and_rejects_fit_a_small_frame_peers_announced_size():
+    """Section 1: a side never sends a frame longer than the peer announced (64 bytes allowed). Only DATA and DGRAM
+    kept to it: ACKs with 3+ SACK ranges, CLOSE and REJECT with their reasons were longer, and a 64-byte peer
+    dropped them as oversize; on a lossy line its messages then failed with the session (review of stop 66)."""
+    from protocol.framing import StreamDecoder, close_frame, reject_frame
+    from protocol.messages import Error
+
+    big = Arq(ArqConfig(peer_timeout=4.0), now=0.0)
+    small = Arq(ArqConfig(max_frame=64, min_frame=64, window=4096, peer_timeout=4.0), now=0.0)
+    line = SimLine(small, big, rate=9600, channels=(CorruptingChannel(1, drop=1.5e-2), None))
+    line.run(1.0)
+    assert big.peer_max_frame == 64
+    body = encode_message(Error(code="x", text="y" * 3000))
+    ids = [small.submit(Error.TYPE, body, "Error", 1.0) for _ in range(5)]
+    line.run(200.0, stop=lambda L: small.idle)
+    assert small.decoder.stats["oversize"] == 0 and big.stats["acks_sent"] > 0
+    assert [small.outcome(i) for i in ids] == ["delivered"] * 5
+    long = "session lost: " + "é" * 300
+    for f in (close_frame(1, 2, 0, long, max_frame=64), reject_frame(1, 2, 0, long, 64)):
+        assert len(f) <= 64 + 2 + 2 * 64  # the stuffed frame of at most 64 unstuffed bytes
+        (got,) = StreamDecoder(64).feed(f)
+        assert got.reason.startswith("session lost: ")
+
+
+def test_a_rejected_message_is_a_failure_not_also_delivered_and_a_bad_ack_is_counted():
+    """A message the peer REJECTed was counted delivered as well as failed; an ACK of what was never sent was
+    counted malformed, then the count was overwritten by the decoder's in the same call (review of stop 66)."""
+    from protocol.framing import ack_frame
+
+    a, b = Arq(ArqConfig(), now=0.0), Arq(ArqConfig(), now=0.0)
+    line = SimLine(a, b, rate=1e5)
+    line.run(1.0)
+    mid = a.submit(99, b"\x00" * 10, "Bogus", 1.0)  # an unknown type: b skips it and REJECTs it
+    line.run(3.0)
+    assert a.outcome(mid).startswith("failed: peer rejected")
+    assert (a.stats["delivered"], a.stats["failures"]) == (0, 1)
+    a.receive(ack_frame(b.session_id, a.session_id, cum=10**6, window=32768, sacks=[], echo=0), 3.5)
+    assert a.stats["malformed"] == 1
+
+
+def test_a_heartbeat_with_no_session_to_hear_it_is_dropped_not_a_delivery_failure():
+    """Section 4: a heartbeat with no session is dropped. Bound to an ended session (a board between grounds), each
+    was a delivery failure: 4 a second, pushing real failures out of failures() (review of stop 66)."""
+    a, b = Arq(ArqConfig(), now=0.0), Arq(ArqConfig(), now=0.0)
+    line = SimLine(a, b, rate=1e5)
+    line.run(1.0)
+    epoch = a.epoch
+    a.abandon("the ground went", 1.5)
+    for i in range(40):
+        a.submit(Heartbeat.TYPE, encode_message(Heartbeat(time_s=float(i), counter=i)), "Heartbeat", 2.0, False, epoch)
+    assert a.stats["failures"] == 0 and a.stats["dgrams_dropped"] == 40 and a.failures() == []
