@@ -148,9 +148,9 @@ def judge_site(
     """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
     ``radius_m`` of the site has hazard < 1. A footprint that falls between pixel centres (ground sampled
     coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
-    A footprint that holds no pixel (off the image), reaches the image border (part of it unseen) or holds a
-    pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) cannot be confirmed
-    and is judged unsafe (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
+    A footprint that holds no pixel (off the image), reaches the image border (part of it unseen), holds a
+    pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) or whose pixels touch
+    one without a ground point (NaN depth: where it lies is unknown) cannot be confirmed and is judged unsafe (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
 
     ``world_xy`` is (H, W, 2), each pixel's true ground X, Y (:func:`pixel_ground_xy`). Also returns ``uv``,
     the pixel whose ground is nearest the site (None for a site that is not a finite point), to draw it."""
@@ -166,6 +166,13 @@ def judge_site(
     unknown = near & np.isnan(hazard)  # truth that cannot say (a derived one, where too little ground is seen)
     unsafe = int(np.count_nonzero(near & ~unknown & ~(hazard < 1.0)))
     partial = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any() or unknown.any())
+    if n:
+        # a pixel without a ground point (NaN depth) has no place in the world, so it is never "near": one beside
+        # the footprint's pixels may hide part of it. A rock's pixels with NaN depth left a site over it judged
+        # clear (review of stop 66); such a footprint is not confirmed
+        vs, us = np.nonzero(near)
+        ring = world_xy[max(0, vs.min() - 1) : vs.max() + 2, max(0, us.min() - 1) : us.max() + 2]
+        partial = partial or not bool(np.isfinite(ring).all())
     uv = None
     if n:  # the footprint is on the image: the pixel whose ground is nearest its centre
         v, u = np.unravel_index(int(np.nanargmin(d2)), d2.shape)

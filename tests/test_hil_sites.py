@@ -184,3 +184,26 @@ def test_a_footprint_with_unknown_truth_is_not_confirmed_and_one_truly_unsafe_pi
     hazard[9:11, 9:11] = 0.0
     hazard[10, 8] = 0.0
     assert site_verdict(judge_site((5.0, 5.0), world, hazard)) is True
+
+
+def test_a_footprint_beside_pixels_without_a_ground_point_is_not_confirmed():
+    """A pixel with NaN true depth has no ground point, so it was never in the footprint: a rock whose pixels had no
+    depth left the site over it judged clear (review of stop 66). Such a footprint is now not confirmed."""
+    from ground_sim.geometry import look_rotation
+    from ground_sim.gridscore import site_verdict
+    from protocol.pairdir import Camera, Pose
+
+    cam = Camera(64, 64, 640.0, 640.0, 31.5, 31.5)  # 0.156 m a pixel at 100 m
+    pose = Pose(np.array([0.0, 0.0, 100.0]), look_rotation(0.0))
+    depth = np.full((64, 64), 100.0)
+    hazard = np.zeros((64, 64), np.float32)
+    hazard[28:36, 28:36] = 1.0  # a 1.25 m rock under the site
+    whole = np.stack(pixel_ground_xy(cam, pose, depth), -1)
+    site = tuple(whole[32, 32])
+    assert site_verdict(judge_site(site, whole, hazard)) is False
+    depth[28:36, 28:36] = np.nan  # the truth has no depth where the rock is
+    holed = np.stack(pixel_ground_xy(cam, pose, depth), -1)
+    j = judge_site(site, holed, hazard)
+    assert j["incomplete"] and not j["safe"] and site_verdict(j) is None
+    far = tuple(whole[48, 16])  # a footprint clear of the hole is judged as before
+    assert site_verdict(judge_site(far, holed, hazard)) is True
