@@ -150,7 +150,8 @@ def judge_site(
     coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
     A footprint that holds no pixel (off the image), reaches the image border (part of it unseen), holds a
     pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) or whose pixels touch
-    one without a ground point (NaN depth: where it lies is unknown) cannot be confirmed and is judged unsafe (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
+    one without a ground point (NaN depth: where it lies is unknown) cannot be confirmed and is judged unsafe
+    (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
 
     ``world_xy`` is (H, W, 2), each pixel's true ground X, Y (:func:`pixel_ground_xy`). Also returns ``uv``,
     the pixel whose ground is nearest the site (None for a site that is not a finite point), to draw it."""

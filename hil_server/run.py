@@ -258,7 +258,15 @@ def score_records(records: list[dict]) -> list[dict]:
     ``top_site_clear`` (not judged). ``scores_full``: from the full-resolution image maps, when the run asked for them
     (``--full-maps``).
     """
-    from ground_sim.gridscore import complete_truth, judge_sites, score_grids, site_verdict
+    from ground_sim.gridscore import (
+        complete_truth,
+        judge_sites,
+        pixel_ground,
+        score_grids,
+        scored_area,
+        site_verdict,
+        true_pose_upper,
+    )
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import read_pair
 
@@ -312,8 +320,13 @@ def score_records(records: list[dict]) -> list[dict]:
             hazard = np.load(d / "hazard.npy")
             # over the ground the last frame sees, a NaN not called safe, as the grid's scores and `score` (it was
             # over the map's own coverage: a map of less scored a higher CDI; review of stop 64)
-            if area is None:  # no grid scored (or no truth depth): the map's own coverage, as before
-                area = ~np.isnan(hazard)
+            if area is None and "depth" in truth:  # no grid scored: the same true overlap, from the truth
+                area = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), truth["depth"]))
+            if area is None:
+                # without a true depth the overlap is unknown; the map's own coverage in its place scored a map of
+                # less ground higher (review of stop 66), so nothing is scored, and the record says why
+                rec["scores_full_note"] = "not scored: the pair has no true depth, so the area to score is unknown"
+                continue
             c = confusion(hazard, truth["hazard"], area)
             full = {f"{k}_pct" if k in ("tp", "tn", "fp", "fn", "cdi") else k: float(v) for k, v in c.items()}
             if (d / "elevation.npy").is_file() and "elevation" in truth:

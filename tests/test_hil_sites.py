@@ -207,3 +207,28 @@ def test_a_footprint_beside_pixels_without_a_ground_point_is_not_confirmed():
     assert j["incomplete"] and not j["safe"] and site_verdict(j) is None
     far = tuple(whole[48, 16])  # a footprint clear of the hole is judged as before
     assert site_verdict(judge_site(far, holed, hazard)) is True
+
+
+def test_full_maps_without_grids_are_scored_over_the_true_overlap_and_not_at_all_without_depth(tmp_path):
+    """The full image maps of a Result without grids were scored over the map's own coverage: a map of less ground
+    scored a higher CDI (review of stop 66). They are scored over the true overlap, as the grids are; a pair with no
+    true depth, whose overlap is unknown, is not scored, and its record says so."""
+    from ground_sim.gridscore import pixel_ground, scored_area
+
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+    pair_dir = manifest.parent / json.loads(manifest.read_text())["pairs"][0]["path"]
+    pair = read_pair(pair_dir)
+    truth = np.asarray(pair.truth["hazard"], np.float32)
+    half = np.where(np.arange(64)[None, :] < 32, np.where(np.isfinite(truth), np.minimum(truth, 1.0), 1.0), np.nan)
+    out = tmp_path / "out"
+    out.mkdir()
+    np.save(out / "hazard.npy", half.astype(np.float32))  # right where it maps, and only half of the image mapped
+    rec = {"status": "result", "out_dir": str(out), "pair_dir": str(pair_dir), "sites": []}
+    score_records([rec])
+    area = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), pair.truth["depth"]))
+    f = rec["scores_full"]
+    assert f["n"] == area.sum() and f["fp_pct"] == 0.0 and f["fn_pct"] > 10  # the unmapped half is not called safe
+    (pair_dir / "gt_depth_i1.npy").unlink()
+    rec = {"status": "result", "out_dir": str(out), "pair_dir": str(pair_dir), "sites": []}
+    score_records([rec])
+    assert "scores_full" not in rec and "no true depth" in rec["scores_full_note"]
