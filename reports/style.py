@@ -188,11 +188,12 @@ for _key in ("fn_pct", "tp_pct", "tn_pct", "hazards_detected_pct", "safe_detecte
 GLOSSARY.update(
     {
         "site_fp_pct": Term(
-            "site FP % (3 m footprint)",
-            "Share of candidate site centres called safe whose whole 3 m footprint is not truly safe.",
+            "site FP % (1.5 m radius at the median GSD)",
+            "Share of candidate site centres called safe whose footprint disk is not truly safe. The disk is 1.5 m "
+            "at the image's median ground sample: on an oblique view wider than 3 m in the far field.",
             "%",
         ),
-        "site_cdi_pct": Term("site CDI %", "CDI computed on whole 3 m footprints instead of pixels.", "%"),
+        "site_cdi_pct": Term("site CDI %", "CDI computed on footprint disks (as site FP) instead of pixels.", "%"),
         "chosen_sites_safe_pct": Term(
             "chosen sites truly clear %",
             "Share of the offered sites whose footprint is truly clear.",
