@@ -281,6 +281,8 @@ STAT_KEYS = (
     "bytes_discarded",
     "duplicates_dropped",
     "out_of_window",
+    "rx_full_drops",  # stream bytes refused while this side's application was not taking messages
+    "peer_full",  # times the peer said window 0 (its application not taking messages)
     "acks_sent",
     "acks_received",
     "messages_sent",
@@ -314,6 +316,10 @@ class Arq(SessionView):
         self.peer_max_frame = MIN_FRAME
         self.peer_window = self.cfg.max_frame
         self._bad_acks = 0  # ACKs beyond what was sent, which the decoder's malformed count does not hold
+        # flow control (section 3.2): this side's application is not taking messages (the link's queue is full):
+        # new stream bytes are refused and every ACK says window 0, while ACKs, HELLOs and keepalives go on
+        self.rx_full = False
+        self.peer_full = False  # the peer's last ACK said window 0: one probe at a time, and no stall is its fault
         self.closed = False
         self._events: list[_Event] = []
         self._echo_said = -math.inf
@@ -366,6 +372,7 @@ class Arq(SessionView):
         self._txmap: OrderedDict[int, _Seg] = OrderedDict()  # transmission number -> segment
         self._last_progress = now
         self._was_busy = False
+        self.peer_full = False  # a new peer (or session) has said nothing of its window yet
         # receiving
         self._cum = 0
         self._ooo: dict[int, bytes] = {}
@@ -573,7 +580,17 @@ class Arq(SessionView):
             ranges.insert(0, recent)
         self.stats["acks_sent"] += 1
         sacks = ranges[: ack_sack_room(self.peer_max_frame)]  # a small-frame peer drops a longer ACK (section 1)
-        return ack_frame(self.sess.local, self.sess.peer, self._cum, self.cfg.window, sacks, self._echo)
+        window = 0 if self.rx_full else self.cfg.window
+        return ack_frame(self.sess.local, self.sess.peer, self._cum, window, sacks, self._echo)
+
+    def set_rx_full(self, full: bool, now: float) -> None:
+        """The owner's receive queue is full (True) or has room again (False). While full, new stream bytes are
+        dropped unread and acknowledged with window 0 (the peer holds its data and probes, and does not take the
+        pause for a stalled session); when room returns, an ACK with the window goes at once."""
+        if full != self.rx_full:
+            self.rx_full = full
+            self._ack_due = True
+            self._rlast = now  # a record held half read meanwhile waited on this side: its clock starts again
 
     def _payload_size(self) -> int:
         return max(self.cfg.min_frame, min(self._frame, self.cfg.max_frame, self.peer_max_frame)) - DATA_OVERHEAD
@@ -593,7 +610,10 @@ class Arq(SessionView):
         segment limit."""
         if self.closed or len(self._segs) >= self.cfg.max_segments:
             return 0
-        room = min(self.cfg.window, self.peer_window) - (self._nxt - self._una)
+        inflight = self._nxt - self._una
+        room = min(self.cfg.window, self.peer_window) - inflight
+        if self.peer_full:  # a zero window: one small probe in flight, whose ACK says when the peer has room
+            room = self._payload_size() if inflight == 0 else 0
         return max(0, min(room, self._una + len(self._sbuf) - self._nxt))
 
     def _data_ready(self) -> bool:
@@ -798,7 +818,10 @@ class Arq(SessionView):
         elif f.kind == ACK:
             self._on_ack(f, now)
         elif f.kind == DGRAM:
-            self._deliver(f.type_code, f.payload, -1, now, now, f.wire_bytes)
+            if self.rx_full:  # unreliable by definition: not held while the application takes nothing
+                self.stats["dgrams_dropped"] += 1
+            else:
+                self._deliver(f.type_code, f.payload, -1, now, now, f.wire_bytes)
         elif f.kind == CLOSE:  # its cum acknowledges what the peer received before closing
             self._on_ack(WireFrame(ACK, f.src, f.dst, cum=max(f.cum, self._una), window=self.peer_window), now)
             if f.code == CLOSE_LOST:  # it gave up on this session and will start a new one
@@ -840,9 +863,9 @@ class Arq(SessionView):
         if e <= self._cum:
             self.stats["duplicates_dropped"] += 1
             return
-        lo, hi = max(s, self._cum), min(e, self._cum + self.cfg.window)
+        lo, hi = max(s, self._cum), min(e, self._cum + (0 if self.rx_full else self.cfg.window))
         if lo >= hi:
-            self.stats["out_of_window"] += 1
+            self.stats["rx_full_drops" if self.rx_full else "out_of_window"] += 1
             return
         data = f.payload[lo - s : hi - s]
         if lo == self._cum:
@@ -964,7 +987,20 @@ class Arq(SessionView):
             self._bad_acks += 1  # acknowledges what was never sent: counted as malformed (receive())
             self.stats["malformed"] += 1
             return
-        self.peer_window = max(MIN_FRAME, f.window)
+        if f.window == 0:  # its application is not reading: a pause, not a stall (set_rx_full)
+            if not self.peer_full:
+                self.stats["peer_full"] += 1
+            self.peer_full = True
+            self._last_progress = now
+        else:
+            if self.peer_full:  # the window reopens: what went while it was shut was dropped unread, so it goes
+                self.peer_full = False  # again now, not after a backed-off timeout
+                self._backoff = 1.0
+                self._last_progress = now  # the stall clock starts with the window, not at the last probe
+                for seg in self._segs.values():
+                    if not seg.acked and not seg.queued and seg.sent_at is not None:
+                        self._retransmit(seg)
+            self.peer_window = max(MIN_FRAME, f.window)
         newly: list[_Seg] = []
         if f.cum > self._una:
             n = 0
@@ -1026,7 +1062,8 @@ class Arq(SessionView):
     def _retransmit(self, seg: _Seg) -> None:
         seg.queued = True
         self._retx.append(seg.start)
-        self._loss_sample(1.0, seg.end - seg.start + DATA_OVERHEAD)
+        if not self.peer_full:  # refused by a full peer is not lost on the line: the frame size stays
+            self._loss_sample(1.0, seg.end - seg.start + DATA_OVERHEAD)
 
     def _rtt(self, r: float) -> None:
         if self._srtt is None:
@@ -1082,7 +1119,7 @@ class Arq(SessionView):
             if now - self._last_heard > pt:
                 self._lose(f"no frame from the peer for {now - self._last_heard:.1f} s (timeout {pt:g} s)", now)
                 return
-            if busy and now - self._last_progress > pt:
+            if busy and not self.peer_full and now - self._last_progress > pt:
                 self._lose(
                     f"peer stopped acknowledging: no progress for {now - self._last_progress:.1f} s "
                     f"({self._nxt - self._una} bytes unacknowledged, {len(self._sbuf)} in the stream; "
@@ -1092,7 +1129,7 @@ class Arq(SessionView):
                 return
             partial = self._rlen is not None or bool(self._rhead) or bool(self._ooo)
             # a noisy line may hold a gap for a few RTOs; a sender that stopped is caught by silence anyway
-            if partial and now - self._rlast > 2 * pt:
+            if partial and not self.rx_full and now - self._rlast > 2 * pt:
                 held = sum(len(v) for v in self._ooo.values())
                 what = (
                     f"record at {self._rpos}: {self._rgot} of {self._rlen} bytes"

@@ -51,7 +51,7 @@ import struct
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,6 +129,9 @@ class Link:
         self.name = name
         self._log = log
         self._rx: queue.Queue[Received] = queue.Queue(maxsize=RX_QUEUE_MESSAGES)
+        # taken off the line while the queue above was full, in order: the I/O thread never waits for the
+        # application (it went deaf, and its peer timed the session out: review of stop 66); flow control bounds it
+        self._held: deque[Received] = deque()
         self._events: deque[LinkEvent] = deque(maxlen=256)
         self._closed = threading.Event()
         self._failed: str | None = None  # transport failure: permanent
@@ -202,14 +205,18 @@ class Link:
         never reaches :meth:`recv`."""
         return []  # pragma: no cover - every link below implements it
 
-    def _put_received(self, item: Received, keep_going: Callable[[], bool]) -> None:
-        """Queue a received message; when the application does not keep up, block (backpressure)."""
-        while keep_going():
+    def _offer_received(self, items: Iterable[Received] = ()) -> bool:
+        """Queue received messages for :meth:`recv` without waiting; True while some are held because the
+        application is not taking them (the queue holds :data:`RX_QUEUE_MESSAGES`): the caller then stops taking
+        more from the peer (flow control), and keeps its session alive meanwhile."""
+        self._held.extend(items)
+        while self._held:
             try:
-                self._rx.put(item, timeout=0.05)
-                return
+                self._rx.put_nowait(self._held[0])
             except queue.Full:
-                continue
+                return True
+            self._held.popleft()
+        return False
 
     def __enter__(self) -> Link:
         return self
@@ -443,8 +450,11 @@ class ByteStreamLink(Link):
                 self._cv.notify_all()
             for ev in events:
                 self._event(ev.kind, ev.text, ev.epoch)
-            for item in got:
-                self._put_received(item, lambda: not self._stop)
+            full = self._offer_received(got)
+            if full != self.arq.rx_full:
+                with self._cv:
+                    self.arq.set_rx_full(full, time.monotonic())  # its ACK (window 0, or the window again) goes now
+                    self._cv.notify_all()
 
     def _fail_transport(self, reason: str) -> None:
         with self._cv:
@@ -736,6 +746,8 @@ class ZmqLink(Link, SessionView):
                 "listener_resets",
                 "busy_s",
                 "dgrams_dropped",  # heartbeats sent with no session to hear them
+                "rx_full",  # times this side stopped reading: its application was not taking messages
+                "peer_busy",  # times the peer took no messages for a peer timeout while it was heard (not a loss)
             ),
             0,
         )
@@ -745,6 +757,7 @@ class ZmqLink(Link, SessionView):
         self._last_sent = -1e9
         self._last_hello = -1e9
         self._stall_since: float | None = None
+        self._peer_busy_said = False  # this spell of blocked sends to a peer that answers was said
         self._auth: Any = None
         self._ctx = zmq.Context(io_threads=1)
         self._sock = self._ctx.socket(zmq.PAIR)
@@ -993,12 +1006,25 @@ class ZmqLink(Link, SessionView):
         poller.register(self._sock, zmq.POLLIN)
         poller.register(self._mon, zmq.POLLIN)
         prev = time.monotonic()
+        reading = True
         while not self._stop:
             now = time.monotonic()
+            # flow control: while the application takes nothing, this side reads nothing more (libzmq's high-water
+            # marks hold the rest, and the peer's sends wait), and the peer's silence meanwhile is not the peer's
+            full = self._offer_received()
+            if full == reading:
+                reading = not full
+                if reading:
+                    poller.register(self._sock, zmq.POLLIN)
+                else:
+                    poller.unregister(self._sock)  # a readable socket would wake the poll at once, a busy loop
+                    self._stats["rx_full"] += 1
             with self._cv:
                 if now - prev > OWN_STALL_S:
                     self._forgive(now - prev)
                 prev = now
+                if full:
+                    self._last_heard = max(self._last_heard, now)
                 self._timers(now)
                 control: list[Any] = list(self._control)
                 self._control.clear()
@@ -1021,13 +1047,14 @@ class ZmqLink(Link, SessionView):
                 self._monitor()
             if self._dropped_at is not None and time.monotonic() - self._dropped_at > REDIAL_AFTER_S:
                 self._redial()
-            if self._sock in ready:
+            if reading and self._sock in ready:
                 for _ in range(64):
                     try:
                         parts = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
                     except zmq.Again:
                         break
                     self._on_parts(parts, time.monotonic())
+                self._offer_received()
             with self._cv:
                 events, self._pending_events = self._pending_events, []
                 self._cv.notify_all()
@@ -1092,9 +1119,24 @@ class ZmqLink(Link, SessionView):
                 gone = self._disconnected_at
                 if gone is not None and gone >= self._last_heard:  # TCP told: the far program, not a slow line
                     reason += f"; its connection closed {now - gone:.1f} s ago (its program ended or crashed?)"
-            elif self._stall_since is not None and now - self._stall_since > self.peer_timeout:
-                reason = f"peer not draining: sends blocked for {now - self._stall_since:.1f} s (high-water mark)"
             else:
+                # sends blocked at the high-water mark while the peer is heard: its application is busy and not
+                # reading (flow control), not a lost session; said once a spell. Losing it failed every pair in
+                # flight, where the peer's own deadlines judge the pairs (review of stop 66)
+                blocked = self._stall_since is not None and now - self._stall_since > self.peer_timeout
+                if blocked and not self._peer_busy_said:
+                    self._peer_busy_said = True
+                    self._stats["peer_busy"] += 1
+                    self._pending_events.append(
+                        (
+                            "peer_busy",
+                            f"the peer has taken no message for {now - (self._stall_since or now):.1f} s while it "
+                            "answers (its application busy, not reading): what waits goes when it reads",
+                            self.sess.epoch,
+                        )
+                    )
+                elif self._stall_since is None:
+                    self._peer_busy_said = False
                 return
             if self.bind:
                 # PAIR keeps the silent peer's connection attached (a frozen ground's kernel still acknowledges),
@@ -1254,7 +1296,7 @@ class ZmqLink(Link, SessionView):
             self._stats["messages_received"] += 1
             self._arrivals += 1
             order = self._arrivals
-        self._put_received(Received(msg, seq, now, now, nbytes, epoch, order), lambda: not self._stop)
+        self._held.append(Received(msg, seq, now, now, nbytes, epoch, order))
 
     def _redial(self) -> None:
         """The connection dropped and libzmq will not retry: it does that after a protocol error, such as a message

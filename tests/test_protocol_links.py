@@ -874,3 +874,34 @@ def test_a_log_that_raises_or_a_bug_in_the_reader_never_leaves_the_link_open_and
         assert a.failed is not None and "internal error in the link's reader" in a.failed and "a bug" in a.failed
         with pytest.raises(LinkClosed):
             a.send(Hello(role="flight"))
+
+
+@pytest.mark.parametrize("kind", ["serial", "zmq"])
+def test_an_application_that_reads_nothing_for_a_while_keeps_its_session(kind):
+    """A flight program reads its link between pairs. With more messages waiting than the receive queue holds, the
+    link's I/O thread used to wait for the application: it stopped reading, acknowledging and keeping alive, and the
+    healthy peer declared the session lost after its timeout, failing every pair in flight (review of stop 66). Now
+    the receiver holds the rest back by flow control (window 0 on a byte stream; libzmq's high-water marks), the
+    session stays up, and every message arrives, in order, once the application reads."""
+    from protocol.arq import ArqConfig
+    from protocol.links import RX_QUEUE_MESSAGES
+
+    n = 3 * RX_QUEUE_MESSAGES
+    if kind == "serial":
+        a_sock, b_sock = socket.socketpair()
+        cfg = ArqConfig(peer_timeout=1.0, keepalive=0.25)
+        board, ground = StreamLink(a_sock, config=cfg, name="board"), StreamLink(b_sock, config=cfg, name="ground")
+    else:
+        board = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board", peer_timeout=1.0, keepalive=0.25)
+        ground = ZmqLink(board.endpoint, bind=False, insecure=True, name="ground", peer_timeout=1.0, keepalive=0.25)
+    with board, ground:
+        assert board.wait_established(5) and ground.wait_established(5)
+        ids = [ground.send(Error(code="frame", text="x" * 200 + str(i))) for i in range(n)]
+        time.sleep(3.0)  # three peer timeouts: the board's application is busy with a pair
+        got = []
+        while (m := board.recv(0.5)) is not None:
+            got.append(m.text)
+        assert got == ["x" * 200 + str(i) for i in range(n)]
+        assert board.stats["peer_losses"] == 0 and ground.stats["peer_losses"] == 0
+        assert not any(str(ground.outcome(i)).startswith("failed") for i in ids)
+        assert board.stats["rx_full_drops" if kind == "serial" else "rx_full"] > 0  # it did hold the peer back
