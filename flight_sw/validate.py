@@ -67,6 +67,9 @@ def check_geometry(camera: Camera, poses: list[Pose]) -> None:
             )
 
 
+MIN_IMAGE_SIDE = 8  # the smallest camera the pipeline maps (an 8 px camera runs; 1 and 2 px ones crashed)
+
+
 def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camera: Camera) -> None:
     """Validate the pipeline's inputs: camera, images, poses, and i2 taken below i1."""
     if not isinstance(camera, Camera):
@@ -80,6 +83,11 @@ def check_inputs(i1: np.ndarray, i2: np.ndarray, pose1: Pose, pose2: Pose, camer
         pose2.validate("pose2")
     except PairFormatError as exc:
         raise FlightInputError(str(exc)) from None
+    if min(camera.width, camera.height) < MIN_IMAGE_SIDE:  # 1 and 2 px cameras crashed the sweep (QA 66b)
+        raise FlightInputError(
+            f"camera: images of {camera.width}x{camera.height} px are too small to map: the pipeline needs at least "
+            f"{MIN_IMAGE_SIDE} px a side"
+        )
     check_geometry(camera, [pose1, pose2])
     check_image(i1, "i1", camera)
     check_image(i2, "i2", camera)

@@ -34,7 +34,7 @@ import numpy as np
 from ground_sim.errors import TrajectoryError
 from ground_sim.geometry import look_rotation
 from protocol.errors import InputError
-from protocol.pairdir import MAX_POSITION_M, Camera, Pose
+from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, MAX_POSITION_M, Camera, Pose
 
 VERTICAL_UPPER = (1000, 800, 600, 400, 300, 200, 150, 100)
 APPROACH_PAIRS = (
@@ -233,8 +233,16 @@ def _check_label(label: object, where: str) -> str:
     return label
 
 
+MAX_TRAJECTORY_BYTES = 4 << 20  # a trajectory of a thousand pairs is about 200 kB
+
+
 def from_file(path: Path) -> list[PairSpec]:
     try:
+        size = path.stat().st_size
+        if size > MAX_TRAJECTORY_BYTES:  # read whole, a 200 MB one cost 470 MB before it was refused (QA 66b)
+            raise TrajectoryError(
+                f"trajectory file {path}: {size} bytes is more than a trajectory can be ({MAX_TRAJECTORY_BYTES} bytes)"
+            )
         text = path.read_text()
         doc = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
@@ -250,6 +258,12 @@ def from_file(path: Path) -> list[PairSpec]:
             cam = Camera.from_dict(doc["camera"])
         except InputError as exc:
             raise TrajectoryError(f"trajectory file {path}: {exc}") from None
+        lo, hi = IMAGE_SIZE_MIN, IMAGE_SIZE_MAX
+        if not (lo <= cam.width <= hi and lo <= cam.height <= hi):  # as `--image-size`: a 2 px camera rendered a
+            # pair `process` crashed on, and an 8192 px one ran for minutes towards 9 GB (QA 66b)
+            raise TrajectoryError(
+                f"trajectory file {path}: camera of {cam.width}x{cam.height} px; render draws {lo}..{hi} px a side"
+            )
     out = []
     for i, p in enumerate(pairs):
         where = f"trajectory file {path} pair #{i}"

@@ -915,6 +915,8 @@ def named_images(directory: str | Path) -> list[Path]:
     pair.json names none (a symlink loop is a RuntimeError on 3.11; :func:`read_pair` says what is wrong)."""
     d = Path(directory)
     try:
+        if (d / "pair.json").stat().st_size > MAX_PAIR_JSON_BYTES:  # read whole, a huge one cost its size (QA 66b)
+            return []
         frames = json.loads((d / "pair.json").read_text(encoding="utf-8"))["frames"]
         return [(d / str(f["image"])).resolve() for f in frames]
     except (OSError, ValueError, KeyError, TypeError, RuntimeError, RecursionError):

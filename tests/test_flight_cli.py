@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from browser import browser_available, check_page
@@ -589,3 +590,42 @@ def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsy
     assert "the same image twice (a camera that sent an image again)); it is left out of the maps" in err, err
     info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]
     assert info["frames_dropped"] == [2] and info["pose_refinement"]["frames"][1]["repeat_of"] == 1
+
+
+def test_tiny_cameras_infinite_widths_and_huge_pair_files_are_refused_in_one_line(tmp_path, capsys):
+    """QA of stop 66: a 1 or 2 px camera crashed `process` with a traceback (and `render --scenario FILE` made such
+    pairs); a width of 1e400 did too; a 200 MB pair.json or trajectory file cost its size in memory to refuse."""
+    from ground_sim.trajectory import TrajectoryError, from_file
+    from protocol.pairdir import MAX_PAIR_JSON_BYTES
+
+    d, _ = _pair(tmp_path)
+    doc = json.loads((d / "pair.json").read_text())
+    for name, cam in (("tiny", {"width": 2, "height": 2, "cx": 1.0, "cy": 1.0}), ("inf", {"width": 1e400})):
+        bad = tmp_path / name
+        bad.mkdir()
+        for f in d.iterdir():
+            if not f.name.startswith("gt_"):
+                (bad / f.name).write_bytes(f.read_bytes())
+        (bad / "pair.json").write_text(json.dumps({**doc, "camera": {**doc["camera"], **cam}}))
+        if name == "tiny":  # images of the camera's size, so only the size is wrong
+            from PIL import Image
+
+            for f in ("i1.png", "i2.png"):
+                Image.fromarray(np.full((2, 2), 120, np.uint8)).save(bad / f)
+        assert main(["process", str(bad), "--out", str(tmp_path / f"o_{name}")]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and err.count("\n") <= 2, err
+        assert ("too small to map" if name == "tiny" else "whole number") in err, err
+    huge = tmp_path / "huge"
+    huge.mkdir()
+    (huge / "pair.json").write_text(json.dumps({**doc, "pad": "x" * MAX_PAIR_JSON_BYTES}))
+    assert main(["process", str(huge), "--out", str(tmp_path / "o_huge")]) == 2
+    assert "more than a pair.json can be" in capsys.readouterr().err
+    traj = tmp_path / "t.json"
+    traj.write_text(json.dumps({"camera": {"width": 2, "height": 2, "fx": 4.0, "fy": 4.0, "cx": 1.0, "cy": 1.0},
+                                "pairs": [{"frames": [[0, 0, 200], [0, 0, 100]]}]}))  # fmt: skip
+    with pytest.raises(TrajectoryError, match=r"render draws 32\.\.4096 px"):
+        from_file(traj)
+    traj.write_text(" " * (5 << 20))
+    with pytest.raises(TrajectoryError, match="more than a trajectory can be"):
+        from_file(traj)
