@@ -1470,6 +1470,9 @@ def _run_v1(
         g_haz = combine(
             g_slope, g_rough, g_shadow, g_rock, g_cov, p.slope_limit_deg, p.rough_limit_m, p.hazard_margin_px
         )
+        # a cell with no elevation is not known safe: at the image-only level the cues alone left it safe, and the
+        # site search offered sites with no elevation on them (QA of stop 66)
+        g_haz = np.where(g_cov & ~np.isfinite(g_elev), np.float32(1.0), g_haz).astype(np.float32)
         grid = HazardGrid(g_haz, np.where(g_cov, g_elev, np.nan).astype(np.float32), origin, float(cell))
 
     with _stage(timings, "sites"):
@@ -1485,6 +1488,9 @@ def _run_v1(
     # the states follow the DEM the hazards were mapped on: a small gap filled for the mapping is called as the map
     # calls it (state.npy said unknown where hazard.npy said safe, and `score` refused the pair)
     state, psafe = three_state(hazard, elev_map)
+    # DESIGN.md: an unknown pixel is written as 1.0 (not called safe); the image-only level wrote 0 there, which
+    # `score` refused as a state/hazard mismatch (QA of stop 66)
+    hazard = np.where(state == STATE_UNKNOWN, np.float32(1.0), hazard).astype(np.float32)
     maps = (elevation, hazard, slope_img, rough_img, rocks, shadow, covered, world_xy)
     return _result(p, level, timings, info, grid, sites, *maps, state=state, psafe=psafe)
 

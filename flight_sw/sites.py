@@ -100,8 +100,10 @@ def select_sites(
 
 def no_site_reason(grid: HazardGrid, footprint_m: float) -> str:
     """Why :func:`select_sites` found no site on ``grid`` (the v1 hazard map has no states to cite)."""
-    if grid.hazard.size == 0 or not np.isfinite(grid.elevation).any():
+    if grid.hazard.size == 0 or not np.isfinite(grid.hazard).any():
         return "nothing was mapped"
+    if not np.isfinite(grid.elevation).any():
+        return "no elevation was recovered (the image cues alone vouch for no ground)"
     return f"no {footprint_m:g} m footprint of the hazard map is clear of hazards"
 
 

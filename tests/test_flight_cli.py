@@ -140,6 +140,28 @@ def test_process_deadline_zero_is_degraded(tmp_path, capsys):
     assert "skipped " in said and "coarse_dem not started: " in said
 
 
+def test_an_image_only_map_of_every_preset_calls_no_ground_safe_and_offers_no_site(tmp_path, capsys, monkeypatch):
+    """The v1 flow (`thesis`, `fast_v1`) at the image-only level wrote 0 (safe) on ground it marked unknown, offered
+    sites with no elevation under them (2 of 5 not truly clear), and `score` refused its own output (QA of stop 66).
+    DESIGN.md: an unknown pixel is written as 1.0."""
+    from hilkit import small_descent
+
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=96)
+    d = manifest.parent / json.loads(manifest.read_text())["pairs"][0]["path"]
+    import flight_sw.pipeline as pipeline
+
+    # no time for a DEM, and time for the rest (a deadline of 0.02 s did so on a quiet machine only)
+    monkeypatch.setattr(pipeline._Clock, "decide", lambda self, info, stage, reserve_s: not stage.endswith("_dem"))
+    for preset in ("fast", "thesis", "fast_v1"):
+        out = tmp_path / preset
+        assert main(["process", str(d), "--out", str(out), "--preset", preset]) == 0
+        doc = json.loads((out / "result.json").read_text())
+        assert doc["level"] == "image_only" and doc["sites"] == [], (preset, doc["sites"])
+        hazard, state = np.load(out / "hazard.npy"), np.load(out / "state.npy")
+        assert np.all(hazard[state == 2] == 1.0) and not np.any(state == 0), preset
+        assert main(["score", str(d), str(out)]) == 0, capsys.readouterr().err
+
+
 def test_process_bad_input_is_one_line(tmp_path, capsys):
     assert main(["process", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
