@@ -52,6 +52,7 @@ from protocol.errors import InputError, os_error_text
 FORMAT = "sfm-hd-pair/1"
 MIN_FRAMES, MAX_FRAMES = 2, 16
 MAX_PAIR_JSON_BYTES = 1 << 20  # a pair.json of many frames is a few kB
+MAX_MANIFEST_BYTES = 16 << 20  # a manifest of 10000 pairs is about 1 MB
 MAX_IMAGE_SIDE = 8192
 IMAGE_SIZE_MIN, IMAGE_SIZE_MAX = 32, 4096  # the square cameras `render` and `run --image-size` make
 THESIS_CAMERA_PX = 512  # the thesis camera's side (Table 2.2)
@@ -1104,6 +1105,11 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
     read when their turn comes: a bad pair is that pair's error, and the descent goes on."""
     manifest = Path(path)
     try:
+        if manifest.stat().st_size > MAX_MANIFEST_BYTES:  # read whole below: its size in memory before a word
+            raise PairFormatError(
+                f"manifest {manifest}: {manifest.stat().st_size} bytes is more than a manifest can be "
+                f"({MAX_MANIFEST_BYTES} bytes)"
+            )
         doc = json.loads(manifest.read_text())
     except (OSError, UnicodeDecodeError) as exc:
         raise PairFormatError(f"manifest {manifest}: cannot be read ({exc})") from None

@@ -891,7 +891,7 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
     """One row per pair job of ``score``: its scores, or why it has none (``error``; ``pair_error`` when the
     pair itself, not the detector's output, is at fault)."""
     from protocol.pairdir import pair_fingerprint, read_pair
-    from studies.score import ScoreError, read_output, score_output
+    from studies.score import ScoreError, check_read_memory, read_output, score_output
 
     rows: list[dict[str, Any]] = []
     for job in jobs:
@@ -903,9 +903,11 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
         }
         if job.missing is not None:  # an HIL run's pair with no Result: its truth is judged now too
             with contextlib.suppress(InputError):  # an unreadable pair is said once it has an output to score
+                check_read_memory(job.pair_dir)
                 _no_truth_either(row, read_pair(job.pair_dir), str(job.pair_dir))
         else:
             try:  # a pair that cannot be read, or has no truth (below), is bad input: alone, said as usage is
+                check_read_memory(job.pair_dir)
                 pair = read_pair(job.pair_dir)
             except InputError as exc:
                 if len(jobs) == 1:

@@ -443,6 +443,13 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     if not (p / "manifest.json").is_file():
         raise ScoreError(f"{p}: neither a pair directory (pair.json) nor a rendered descent (manifest.json)")
     entries = read_manifest(p / "manifest.json")["pairs"]
+    seen: dict[str, int] = {}
+    for i, e in enumerate(entries):  # one pair scored twice weighed twice in the medians (QA of stop 66)
+        for key in {(p / e["path"]).resolve().as_posix(), f"label {e.get('label', e['path'])}"}:
+            if key in seen:
+                what = "names the same pair directory" if not key.startswith("label ") else "has the same label"
+                raise ScoreError(f"{p / 'manifest.json'}: pair {i} {what} as pair {seen[key]} ({e['path']!r})")
+            seen[key] = i
     if not (o / "results.jsonl").is_file():
         return [Job(str(e.get("label", e["path"])), p / e["path"], o / Path(e["path"]).name) for e in entries]
     records = {Path(str(r.get("pair_dir", ""))).name: r for r in _records(o / "results.jsonl")}
@@ -461,6 +468,38 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
                 Job(label, p / e["path"], o / Path(str(r.get("out_dir", name))).name, sites=r.get("sites") or [])
             )
     return jobs
+
+
+# bytes per pixel and frame read_pair may hold while it decodes (a 16-bit RGB PNG: 6 B, and its grey copy), and per
+# pixel of the truth layers (float32 elevation, depth, hazard, shadow and their checks)
+READ_BYTES_PER_FRAME_PX = 10
+READ_BYTES_PER_TRUTH_PX = 32
+
+
+def check_read_memory(pair_dir: Path) -> None:
+    """Refuse, from pair.json alone, a pair whose frames and truth would not fit in the memory this process can
+    spend: ``score`` decodes every frame, and 16 frames of 4096^2 16-bit RGB took 2.2 GB and 15 s to say "no ground
+    truth" (QA of stop 66). A pair.json that cannot be read this way is left to ``read_pair``, which says why."""
+    from flight_sw.validate import memory_room
+    from protocol.pairdir import MAX_PAIR_JSON_BYTES
+
+    meta = Path(pair_dir) / "pair.json"
+    try:
+        if not meta.is_file() or meta.stat().st_size > MAX_PAIR_JSON_BYTES:
+            return
+        doc = json.loads(meta.read_text())
+        w, h, n = int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
+    except (OSError, ValueError, TypeError, KeyError, RecursionError, OverflowError):
+        return
+    if w <= 0 or h <= 0:
+        return
+    need = w * h * (n * READ_BYTES_PER_FRAME_PX + READ_BYTES_PER_TRUTH_PX)
+    room, what = memory_room()
+    if need > room:
+        raise ScoreError(
+            f"{pair_dir}: {w}x{h} px x {n} frames needs ~{need / 2**20:.0f} MiB to read, but only "
+            f"{room / 2**20:.0f} MiB {what}"
+        )
 
 
 def _one_level_down(o: Path, name: str) -> str:

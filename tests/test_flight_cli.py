@@ -148,7 +148,7 @@ def test_an_image_only_map_of_every_preset_calls_no_ground_safe_and_offers_no_si
 
     manifest = small_descent(tmp_path / "pairs", ["600/300"], px=96)
     d = manifest.parent / json.loads(manifest.read_text())["pairs"][0]["path"]
-    import flight_sw.pipeline as pipeline
+    from flight_sw import pipeline
 
     # no time for a DEM, and time for the rest (a deadline of 0.02 s did so on a quiet machine only)
     monkeypatch.setattr(pipeline._Clock, "decide", lambda self, info, stage, reserve_s: not stage.endswith("_dem"))

@@ -647,3 +647,37 @@ def test_a_report_file_the_system_refuses_is_exit_4_naming_it_not_the_fp_verdict
     js = tmp_path / "s.json"
     assert main(["score", str(d), str(out), "--csv", "/dev/full", "--json", str(js)]) == 4
     assert json.loads(js.read_text())["rows"][0]["pair"] == "300_150"
+
+
+def test_a_manifest_naming_one_pair_twice_is_refused_not_weighed_twice(descent, tmp_path, capsys):
+    """Entries naming the same pair directory, or with the same label, were each scored and counted in the medians
+    (QA of stop 66: "CDI median 27.9 %" where the two pairs gave 37.2 %)."""
+    outs = tmp_path / "outs"
+    for name in ("600_300", "300_150"):
+        _write(outs / name, read_pair(descent / name).truth["hazard"])
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    for name in ("600_300", "300_150"):
+        (twin / name).symlink_to(descent / name)
+    for pairs, what in (
+        ([{"path": "600_300"}, {"path": "./600_300"}], "names the same pair directory as pair 0"),
+        ([{"path": "600_300"}, {"path": "300_150", "label": "600_300"}], "has the same label as pair 0"),
+    ):
+        (twin / "manifest.json").write_text(json.dumps({"pairs": pairs}))
+        assert main(["score", str(twin), str(outs)]) == 2
+        assert what in capsys.readouterr().err
+    (twin / "manifest.json").write_text(json.dumps({"pairs": [{"path": "600_300"}, {"path": "300_150"}]}))
+    assert main(["score", str(twin), str(outs)]) == 0
+
+
+def test_a_pair_too_large_to_read_is_refused_before_its_frames_are_decoded(descent, tmp_path, monkeypatch, capsys):
+    """`score` decoded every frame with no memory check: 16 frames of 4096^2 16-bit RGB took 2.2 GB and 15 s to say
+    "no ground truth" (QA of stop 66). The room is now checked from pair.json first, as `process` does."""
+    from flight_sw import validate
+
+    outs = tmp_path / "o"
+    _write(outs, read_pair(descent / "600_300").truth["hazard"])
+    monkeypatch.setattr(validate, "memory_room", lambda: (100 << 10, "of memory is available"))  # a 100 kB machine
+    assert main(["score", str(descent / "600_300"), str(outs)]) == 2
+    err = capsys.readouterr().err
+    assert "128x128 px x 2 frames needs ~1 MiB to read, but only 0 MiB of memory is available" in err, err
