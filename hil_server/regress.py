@@ -86,12 +86,16 @@ def default_baseline_path() -> Path:
     return Path(__file__).with_name("latency_baseline.json")
 
 
-def judged_metrics(budget: str, flight: str = "emulated") -> tuple[str, ...]:
-    """CPU seconds for the unthrottled host budget, latency for throttled ones, and for a board its own latency
-    and the end-to-end latency the ground measured (module doc)."""
+def judged_metrics(budget: str, flight: str = "emulated", unthrottled: bool | None = None) -> tuple[str, ...]:
+    """CPU seconds for an unthrottled budget (``host``, or a user's with ``cpu_dmips = "host"``: ``unthrottled``),
+    latency for throttled ones, and for a board its own latency and the end-to-end latency the ground measured
+    (module doc). An emulated case's end-to-end latency is recorded, not judged: it holds the case's own line time,
+    and the deadline hit rate judges it already."""
     if flight == "external":
         return LATENCY_METRICS + E2E_METRICS
-    return CPU_METRICS if budget == "host" else LATENCY_METRICS
+    if unthrottled is None:
+        unthrottled = budget == "host"
+    return CPU_METRICS if unthrottled else LATENCY_METRICS
 
 
 def is_board(case: dict) -> bool:
@@ -177,10 +181,16 @@ def check_cases(
     from hil_server.budgets import check_runnable, load_calibration
     from hil_server.run import check_run_config
     from protocol.errors import InputError
+    from protocol.outdir import refuse_if_held
 
     cal = None
     for n in names:
         try:
+            where = out / n  # each case's run claims it: a file there, or a command holding it, ended regress after
+            if where.exists() and not where.is_dir():  # the cases before it had run (QA 66a)
+                raise InputError(f"its output {where} is a file, not a directory")
+            if where.is_dir():
+                refuse_if_held(where, "its output")
             checked = check_run_config(case_config(n, cases[n], out, base_dir, hello))
             if checked.cfg.flight == "emulated" and not checked.budget.is_host:  # too slow to emulate: now, too
                 cal = cal if cal is not None else load_calibration()
@@ -239,6 +249,11 @@ def compare(
         )
     if cur.get("errors", 0) > base.get("errors", 0):
         o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
+    if "pairs" in base and cur.get("pairs") != base["pairs"]:  # half the workload passed as a whole (QA 66a)
+        o.problems.append(
+            f"pairs: {cur.get('pairs')} ran, the baseline recorded {base['pairs']} (the case's workload changed: "
+            "record it again with --update)"
+        )
     o.limits["deadline_hit_rate"] = base["deadline_hit_rate"] - tol["hit_rate_drop"]
     if "degraded" in base:  # baselines recorded before the count was kept cannot judge it (diff_table says so)
         o.limits["degraded"] = base["degraded"]
@@ -552,7 +567,11 @@ def check_regression(
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
         cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
         incomplete = cur.pop("incomplete_reason", None)
-        metrics = judged_metrics(case["budget"], case.get("flight", "emulated"))
+        from hil_server.budgets import get_budget
+
+        # a user's host-speed budget is unthrottled too: its wall latency measures the host's other load (QA 66a)
+        unthrottled = get_budget(case["budget"], _path(case.get("budget_file"), base_dir)).is_host
+        metrics = judged_metrics(case["budget"], case.get("flight", "emulated"), unthrottled)
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
             o.problems.clear()  # no baseline to regress against: it is being written
@@ -637,10 +656,16 @@ def run_regression(
         from reports.html import write_atomic
 
         # a case without a single result has no latency to record (NaN): such a baseline could never be read back,
-        # and writing it would lose the one that was there
-        empty = [
-            n for n, c in new_doc["cases"].items() if any(_not_finite(v) for v in (c.get("metrics") or {}).values())
-        ]
+        # and writing it would lose the one that was there. A metric a case cannot measure (a board whose Telemetry
+        # leaves out its stages has no CPU seconds) is left out, and read back as "not judged" (QA 66a)
+        timed = (*LATENCY_METRICS, *CPU_METRICS, *E2E_METRICS)
+        empty = []
+        for n, c in new_doc["cases"].items():
+            m = c.get("metrics") or {}
+            if _not_finite(m.get("deadline_hit_rate")) or all(_not_finite(m.get(k, math.nan)) for k in timed):
+                empty.append(n)
+            else:
+                c["metrics"] = {k: v for k, v in m.items() if not _not_finite(v)}
         if empty:
             print(f"baseline NOT written: no result to record for case(s) {', '.join(empty)}; {baseline} is unchanged")
             print("FAIL")

@@ -196,3 +196,58 @@ def test_a_signal_under_the_fixture_stops_the_session(hil_regression, tiny_basel
     with pytest.raises(pytest.exit.Exception) as exc:
         hil_regression(baseline=tiny_baseline)
     assert exc.value.returncode == 130 and "interrupted by SIGINT during case tiny" in str(exc.value)
+
+
+def test_a_case_that_ran_fewer_pairs_than_recorded_is_a_regression():
+    """The pair count was recorded but never compared: a manifest that lost half its pairs passed (QA of stop 66)."""
+    base = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "latency_p50_ref_s": 0.2}
+    o = compare("m", {**base, "pairs": 1}, base, DEFAULT_TOLERANCES)
+    assert o.problems == ["pairs: 1 ran, the baseline recorded 2 (the case's workload changed: record it again with "
+                          "--update)"]  # fmt: skip
+    assert "pairs: 1 ran" in diff_table([o])
+    assert compare("m", base, base, DEFAULT_TOLERANCES).problems == []
+
+
+def test_an_unthrottled_budget_of_ones_own_is_judged_on_cpu_seconds_like_host():
+    """A user's budget with cpu_dmips = "host" was judged on wall latency, which a busy host ruins (QA of stop 66)."""
+    from hil_server.regress import CPU_METRICS, LATENCY_METRICS, judged_metrics
+
+    assert judged_metrics("mine", "emulated", unthrottled=True) == CPU_METRICS
+    assert judged_metrics("mine", "emulated", unthrottled=False) == LATENCY_METRICS
+
+
+def test_case_outputs_that_cannot_be_written_are_refused_before_any_case_runs(tmp_path, tiny_baseline):
+    """A file at OUT/<case>, or another command holding it, ended regress only once the cases before it had run,
+    their work lost with no diff table (QA of stop 66)."""
+    from protocol.errors import InputError
+    from protocol.outdir import claim_out
+
+    out = tmp_path / "rout"
+    out.mkdir()
+    (out / "tiny").write_text("x")
+    with pytest.raises(InputError, match=r"case 'tiny': its output .*tiny is a file"):
+        check_regression(tiny_baseline, out=out, update=True)
+    (out / "tiny").unlink()
+    with claim_out(out / "tiny", "run"), pytest.raises(InputError, match="is being written by hazard-hil run"):
+        check_regression(tiny_baseline, out=out, update=True)
+
+
+def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metric_out(tmp_path, monkeypatch):
+    """A board whose Telemetry leaves out its stages (the protocol allows it) has no CPU seconds: `--update` refused
+    the whole baseline as "no result to record" though every pair met its deadline (QA of stop 66)."""
+    import math
+
+    from hil_server import regress
+
+    nan = math.nan
+    m = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "latency_p50_ref_s": 0.2,
+         "e2e_latency_p50_s": 0.3, "cpu_p50_ref_s": nan, "cpu_max_ref_s": nan}  # fmt: skip
+    doc = {"cases": {"board": {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}}}
+    monkeypatch.setattr(regress, "check_regression", lambda *a, **k: (True, "", json.loads(json.dumps(doc))))
+    baseline = tmp_path / "b.json"
+    assert regress.run_regression(baseline, update=True, out=tmp_path / "o") == 0
+    kept = json.loads(baseline.read_text())["cases"]["board"]["metrics"]
+    assert "cpu_p50_ref_s" not in kept and kept["latency_p50_ref_s"] == 0.2
+    doc["cases"]["board"]["metrics"] = {**m, "latency_p50_ref_s": nan, "e2e_latency_p50_s": nan}  # no Result at all
+    assert regress.run_regression(tmp_path / "c.json", update=True, out=tmp_path / "o") == 1
+    assert not (tmp_path / "c.json").exists()
