@@ -237,6 +237,30 @@ def throttle_check_units(budget: Budget, cal: HostCalibration) -> int:
     return max(1, min(PROBE_UNITS, int(THROTTLE_CHECK_TARGET_S / per_unit_s)))
 
 
+# the slowest shipped budget's duty cycle is ~0.75 %: a curve that stops above this leaves it extrapolated
+LOWEST_CALIBRATED_DUTY = 0.01
+LOADED_PER_CPU = 0.5  # a 1-minute load average above this per CPU: another job shares the core being emulated
+
+
+def host_load_note() -> str | None:
+    """A warning when this host is loaded, for a run about to emulate a throttled budget; None when it is quiet.
+    The throttle's efficiency follows the other load: on a host at a 1-minute load of 1.3-4.6 on 2 CPUs, rad750
+    ran a 256 px pair 1.3-1.9x slower than it stands for, and eleven throttle checks within 6 minutes read
+    0.48-0.92 (QA of stop 66; docs/hil.md section 4)."""
+    import os
+
+    try:
+        load1, cores = os.getloadavg()[0], os.cpu_count() or 1
+    except OSError:
+        return None
+    if load1 <= LOADED_PER_CPU * cores:
+        return None
+    return (
+        f"this host is loaded (1-minute load {load1:.1f} on {cores} CPUs): a throttled budget's emulated speed "
+        "follows the other load (up to 1.9x slower in stop 66's QA); emulate slow budgets on a quiet host"
+    )
+
+
 def check_throttle(budget: Budget, cal: HostCalibration) -> ThrottleCheck:
     """Measure the throttle's efficiency now at the duty cycle ``cal`` gives ``budget``: one round on a probe process
     on the emulated core (:class:`hil_server.calibrate.EfficiencyProbe`, :func:`throttle_check_units` units), a
@@ -762,6 +786,15 @@ def calibration_notes(cal: HostCalibration | None, now: _dt.datetime | None = No
         notes.append(
             "this host's calibration has no throttle efficiency (stored before it was measured): slow budgets run "
             "up to ~1.8x slower than they stand for; re-run `hazard-hil calibrate`"
+        )
+    elif min(f for f, _ in cal.throttle_efficiency) > LOWEST_CALIBRATED_DUTY:
+        # a `calibrate --duty-cycles 0.5` replaced the whole curve: rad750's 1.6 % then read eta 0.94 from 0.5,
+        # where about 0.7 holds, and ran ~1.3x slower than listed without a word (QA of stop 66)
+        low = min(f for f, _ in cal.throttle_efficiency)
+        notes.append(
+            f"this host's throttle efficiency was measured down to {low:.1%} duty only: slower budgets' duty cycles "
+            "extrapolate it, and run slower than they stand for; re-run `hazard-hil calibrate` with its default "
+            "duty cycles"
         )
     return notes
 

@@ -462,7 +462,7 @@ def host_conditions() -> tuple[dict, list[str]]:
     """What this host's numbers rest on (its calibration, its load) and, for people, what is wrong with it."""
     import os
 
-    from hil_server.budgets import calibration_notes, load_calibration
+    from hil_server.budgets import LOADED_PER_CPU, calibration_notes, load_calibration
 
     cal = load_calibration()
     notes = calibration_notes(cal)
@@ -482,9 +482,6 @@ def host_conditions() -> tuple[dict, list[str]]:
     except OSError:
         pass
     return cond, notes
-
-
-LOADED_PER_CPU = 0.5  # a 1-minute load average above this per CPU: another job shares the core being emulated
 
 
 def check_regression(

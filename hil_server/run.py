@@ -1526,6 +1526,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         calibration_notes,
         check_runnable,
         check_throttle,
+        host_load_note,
         load_calibration,
         needs_throttle_check,
         throttle_check_seconds,
@@ -1621,6 +1622,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                     shutil.rmtree(out / "keys", ignore_errors=True)
                     security = ["--keys", str(generate_keys(out / "keys"))]
 
+            if emulated and not budget.is_host and (load_note := host_load_note()):
+                log(f"run: warning: {load_note}")
             if emulated and cfg.throttle_check and cal is not None and needs_throttle_check(budget, cal):
                 # after the render, right before the flight starts: the host as the run will find it
                 log(

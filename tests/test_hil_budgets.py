@@ -462,3 +462,24 @@ def test_a_noisy_rate_is_measured_again_and_the_least_noisy_kept(home, monkeypat
     said: list[str] = []
     cal = B.calibrate_host(seconds=2.0, efficiency_fractions=(), progress=said.append)
     assert cal.units_per_s == 72.0 and cal.spread == 0.04 and "once more" in said[0]
+
+
+def test_a_curve_measured_at_high_duty_only_and_a_loaded_host_are_said(home, monkeypatch):
+    """`calibrate --duty-cycles 0.5` replaced the whole efficiency curve: rad750's duty then extrapolated eta 0.94
+    where ~0.7 holds, without a word; and a run on a loaded host emulated rad750 1.3-1.9x slow unsaid (QA 66a)."""
+    import dataclasses
+    import datetime as dt
+    import os
+
+    now = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
+    fresh = dataclasses.replace(
+        _cal(60.0), measured_at="2026-05-30T00:00:00+00:00", spread=0.05, libraries=B.workload_libraries()
+    )
+    (note,) = B.calibration_notes(dataclasses.replace(fresh, throttle_efficiency=((0.5, 0.94),)), now)
+    assert "measured down to 50.0% duty only" in note
+    assert B.calibration_notes(dataclasses.replace(fresh, throttle_efficiency=((0.005, 0.7), (0.5, 0.9))), now) == []
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "getloadavg", lambda: (4.6, 3.0, 2.0))
+    assert "1-minute load 4.6 on 2 CPUs" in (B.host_load_note() or "")
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.4, 0.3, 0.2))
+    assert B.host_load_note() is None
