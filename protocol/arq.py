@@ -90,7 +90,7 @@ from protocol.framing import (
     hello_frame,
     reject_frame,
 )
-from protocol.messages import MESSAGE_TYPES, Message
+from protocol.messages import MESSAGE_TYPES, Heartbeat, Message
 from protocol.session import SessionState, SessionView
 
 SEQ_LIMIT = 2**32 - (1 << 26)  # a session ends (and a new one starts) before stream positions could wrap
@@ -361,6 +361,8 @@ class Arq(SessionView):
     def _reset_session_state(self, now: float) -> None:
         # sending: the stream [una, end) is in _sbuf; [una, nxt) has been transmitted
         self._sbuf = bytearray()
+        # positions start at 0 again: a REJECT of this session must not name a record of an earlier one
+        self._pos_id.clear()
         self._una = 0
         self._nxt = 0
         self._msgs: deque[_Out] = deque()  # in the stream, not yet delivered
@@ -820,6 +822,12 @@ class Arq(SessionView):
         elif f.kind == DGRAM:
             if self.rx_full:  # unreliable by definition: not held while the application takes nothing
                 self.stats["dgrams_dropped"] += 1
+            elif f.type_code != Heartbeat.TYPE:  # section 4: only a Heartbeat travels so; a Result as a datagram
+                # would reach the application out of order with the stream (review of stop 66)
+                self.stats["decode_errors"] += 1
+                self._arrivals += 1
+                why = f"a datagram of message type {f.type_code}: only Heartbeats (type {Heartbeat.TYPE}) go so"
+                self._refusals.append(Refusal(f.type_code, why, now, self._arrivals, None))
             else:
                 self._deliver(f.type_code, f.payload, -1, now, now, f.wire_bytes)
         elif f.kind == CLOSE:  # its cum acknowledges what the peer received before closing

@@ -508,3 +508,30 @@ def test_a_heartbeat_with_no_session_to_hear_it_is_dropped_not_a_delivery_failur
     for i in range(40):
         a.submit(Heartbeat.TYPE, encode_message(Heartbeat(time_s=float(i), counter=i)), "Heartbeat", 2.0, False, epoch)
     assert a.stats["failures"] == 0 and a.stats["dgrams_dropped"] == 40 and a.failures() == []
+
+
+def test_only_heartbeats_are_taken_as_datagrams_and_a_reject_names_a_record_of_its_own_session():
+    """Section 4: only a Heartbeat travels as a DGRAM; a Result sent so reached the application out of order with the
+    stream. And a REJECT whose position named a record of an earlier session failed a message delivered then (review
+    of stop 66)."""
+    from protocol.framing import dgram_frame, reject_frame
+    from protocol.messages import Error
+
+    a, b = Arq(ArqConfig(), now=0.0), Arq(ArqConfig(), now=0.0)
+    line = SimLine(a, b, rate=1e5)
+    line.run(1.0)
+    body = encode_message(Error(code="x", text="as a datagram"))
+    b.receive(dgram_frame(a.session_id, b.session_id, Error.TYPE, body), 1.5)
+    assert b.take_received() == [] and b.stats["decode_errors"] == 1
+    assert "only Heartbeats" in b.take_refusals()[0].reason
+    hb = encode_message(Heartbeat(time_s=1.0, counter=1))
+    b.receive(dgram_frame(a.session_id, b.session_id, Heartbeat.TYPE, hb), 1.6)
+    assert [type(r.message).__name__ for r in b.take_received()] == ["Heartbeat"]
+    mid = a.submit(Error.TYPE, body, "Error", 2.0)
+    line.run(3.0)
+    assert a.outcome(mid) == "delivered"
+    a.abandon("a new session", 3.0)
+    line.run(5.0)
+    assert a.established
+    a.receive(reject_frame(b.session_id, a.session_id, 0, "late"), 5.1)  # position 0: the old session's record
+    assert a.outcome(mid) == "delivered" and a.stats["failures"] == 0
