@@ -969,6 +969,8 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             print(f"| {md(r['pair'])} | {what}: {md(r['error'])} |" + " |" * len(cols))
             continue
         top = {True: "truly safe", False: "**NOT safe**", None: "no site"}[r["top_site_truly_safe"]]
+        if r.get("sites_unknown"):  # not "no site": the output cannot say (an interrupted `process`)
+            top = r["sites_unknown"]
         if r.get("top_site_confirmed") is False:  # scored as not safe: the truth cannot vouch for all of it
             top = "**not confirmed** (footprint off frame 0, or its truth unknown)"
         over = " **over**" if r["fp_pct"] > s["fp_limit_pct"] else ""
@@ -1003,7 +1005,9 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
             f"{s['scored']} of {s['pairs']} pairs scored: FP worst {f(s['fp_worst_pct'])} % "
             f"({s['pairs_over_fp_limit']} over {s['fp_limit_pct']:g} %), CDI median {f(s['cdi_median_pct'], '.1f')} % "
             f"(lowest {f(s['cdi_lowest_pct'], '.1f')} %), top site truly safe {s['top_sites_truly_safe']}/"
-            f"{s['top_sites']} ({unconfirmed}{s['no_site']} without a site){failed}"
+            f"{s['top_sites']} ({unconfirmed}{s['no_site']} without a site"
+            + (f", {s['sites_unknown']} whose sites are unknown" if s.get("sites_unknown") else "")
+            + f"){failed}"
         )
     else:
         print(f"no pair scored{failed}")

@@ -86,7 +86,7 @@ CSV_COLUMNS = (
 
 # `score --json` rows also carry these (the CSV leaves them out); every row has every key, null where a pair has no
 # value: a consumer reading row["dem_mean_abs_m"] got a KeyError on a detector without elevation.npy
-JSON_ONLY_KEYS = ("truth_poses", "truth_note")
+JSON_ONLY_KEYS = ("truth_poses", "truth_note", "sites_unknown")
 
 
 def json_row(row: dict[str, Any]) -> dict[str, Any]:
@@ -107,6 +107,9 @@ class DetectorOutput:
     elevation: np.ndarray | None
     state: np.ndarray | None
     sites_xyz: np.ndarray  # (N, 3), N may be 0; the first is the top-ranked site
+    # why no site is known, when the output cannot say (no result.json, or one without "sites"): an interrupted
+    # `process` was scored as "no site", as if its detector had found none (QA of stop 66)
+    sites_unknown: str | None = None
 
 
 def _load(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -220,9 +223,12 @@ def read_output(
         if np.isinf(psafe).any() or (np.nan_to_num(psafe, nan=0.0) < 0).any() or (psafe > 1.0).any():
             raise ScoreError(f"{out / 'psafe.npy'}: a probability: values must lie in [0, 1], or be NaN outside")
     xyz = np.zeros((0, 3))
+    unknown = None
     if sites is not None:
         xyz = _site_xyz(sites, out / "results.jsonl")
-    elif present("result.json"):
+    elif not present("result.json"):
+        unknown = "no result.json: its sites are unknown"
+    else:
         doc = _read_result(out / "result.json")
         made_from = doc.get("pair_fingerprint") if isinstance(doc, dict) else None
         if fingerprint is not None and isinstance(made_from, str) and made_from != fingerprint:
@@ -231,8 +237,10 @@ def read_output(
                 f"{out}: made from another pair ({where}: result.json's pair_fingerprint {printable(made_from, 40)}, "
                 f"this pair's {fingerprint}); score it against the pair it was made from"
             )
+        if isinstance(doc, dict) and "sites" not in doc:
+            unknown = 'result.json names no "sites": its sites are unknown'
         xyz = _site_xyz(doc.get("sites", []) if isinstance(doc, dict) else None, out / "result.json")
-    return DetectorOutput(hazard, elevation, state, xyz)
+    return DetectorOutput(hazard, elevation, state, xyz, unknown)
 
 
 def _read_result(path: Path) -> Any:
@@ -370,6 +378,8 @@ def score_output(
     m["sites_truly_safe"] = int(sum(each))
     m["sites_unconfirmed"] = sum(site_verdict(j) is None for j in judged)
     m["top_site_truly_safe"] = bool(each[0]) if each else None
+    if output.sites_unknown is not None:
+        m["sites_unknown"] = output.sites_unknown
     m["top_site_confirmed"] = site_verdict(judged[0]) is not None if judged else None
     if figure is not None:
         radius = _site_radius_px(pair.camera, depth, area)
@@ -550,7 +560,8 @@ def summarise(rows: list[dict[str, Any]], fp_limit_pct: float = FP_LIMIT_PCT) ->
         "top_sites": len(tops),
         "top_sites_truly_safe": sum(tops),
         "top_sites_unconfirmed": sum(r.get("top_site_confirmed") is False for r in ok),
-        "no_site": sum(r["top_site_truly_safe"] is None for r in ok),
+        "no_site": sum(r["top_site_truly_safe"] is None and not r.get("sites_unknown") for r in ok),
+        "sites_unknown": sum(bool(r.get("sites_unknown")) for r in ok),
         "truth_derived": sum(r.get("truth") == "derived" for r in ok),
     }
 

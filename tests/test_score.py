@@ -681,3 +681,19 @@ def test_a_pair_too_large_to_read_is_refused_before_its_frames_are_decoded(desce
     assert main(["score", str(descent / "600_300"), str(outs)]) == 2
     err = capsys.readouterr().err
     assert "128x128 px x 2 frames needs ~1 MiB to read, but only 0 MiB of memory is available" in err, err
+
+
+def test_an_output_without_result_json_has_unknown_sites_not_no_site(descent, tmp_path, capsys):
+    """An interrupted `process` (hazard.npy, no result.json) was scored "no site", as if its detector had found none
+    (QA of stop 66). Its sites are now unknown, and said so."""
+    out = tmp_path / "o"
+    _write(out, read_pair(descent / "600_300").truth["hazard"])
+    assert main(["score", str(descent / "600_300"), str(out), "--json", str(tmp_path / "s.json")]) == 0
+    said = capsys.readouterr().out
+    assert "no result.json: its sites are unknown" in said and "1 whose sites are unknown" in said, said
+    (row,) = json.loads((tmp_path / "s.json").read_text())["rows"]
+    assert row["sites_unknown"].startswith("no result.json")
+    (out / "result.json").write_text(json.dumps({"sites": []}))
+    assert main(["score", str(descent / "600_300"), str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "| no site |" in said and "unknown" not in said, said
