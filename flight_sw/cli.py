@@ -358,6 +358,8 @@ def _process(args: argparse.Namespace) -> int:
     c = truth.get("confusion", {})
     if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
         line += f", FP {c['FP_pct']:.2f} %, CDI {c['CDI_pct']:.1f} % of the map's covered pixels"
+    elif "hazard" in pair.truth:  # it was said as missing (QA of stop 66)
+        line += " (gt_hazard_i1.npy holds no value on the covered pixels: FP and CDI not scored here)"
     elif gt_z is not None:  # DESIGN.md's truth files without ours: the elevation alone is scored, said
         line += " (no gt_hazard_i1.npy, the truth hazard map of docs/design.md: FP and CDI not scored here; "
         half, cell = params.footprint_m / 2, res.grid.cell_m

@@ -356,9 +356,17 @@ class Pair:
             z = float(pose.position[2])
             gsd = z / max(1e-9, -float(pose.R[2, 2])) / self.camera.fx
             if gsd < 1e-3 or gsd > 100.0:
+                # a focal length of 0.5 px (in mm? a fraction of the width?) was blamed on the positions (QA 66)
+                f = self.camera.fx
+                odd_f = not 0.1 * self.camera.width <= f <= 100.0 * self.camera.width
                 out.append(
-                    f"frame {k} sees {gsd:.2g} m per pixel at {z:g} m altitude: positions must be in metres "
-                    "(expected 1 mm - 100 m per pixel)"
+                    f"frame {k} sees {gsd:.2g} m per pixel at {z:g} m altitude (expected 1 mm - 100 m per pixel): "
+                    + (
+                        f"the focal length fx = {f:g} px is implausible for a {self.camera.width} px wide image "
+                        "(it must be in pixels)"
+                        if odd_f
+                        else "positions must be in metres"
+                    )
                 )
                 break
         base = float(np.linalg.norm(self.poses[0].position - self.poses[-1].position))
@@ -989,6 +997,15 @@ def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
     if name == "shadow" and a.dtype.kind != "b":
         return np.array(a != 0)
     out = np.array(a)
+    if name in ("depth", "elevation"):  # NaN where unknown; an inf was taken as ground, a negative depth as a
+        # scene with no common ground (QA of stop 66)
+        bad = np.isinf(out) | ((out <= 0) if name == "depth" else np.zeros(out.shape, bool))
+        if bad.any():
+            what = "a finite z-depth > 0 (in front of the camera)" if name == "depth" else "a finite Z"
+            raise PairFormatError(
+                f"{p}: ground truth {name} must be {what}, or NaN where unknown; {int(bad.sum())} pixels hold "
+                f"other values, e.g. {out[bad].flat[0]:g}"
+            )
     if name == "hazard":  # a 5.0 (a slope in degrees?) was read as merely unsafe, without a word
         bad = ~np.isnan(out) & ~((out >= 0) & (out <= 1))
         if bad.any():

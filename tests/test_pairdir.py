@@ -277,3 +277,29 @@ def test_positions_in_km_are_noted_on_whichever_frame_shows_it():
     assert any(n.startswith("frame 1 sees 0.00063 m per pixel") and "metres" in n for n in notes), notes
     m = Pair(cam, (Pose([0, 0, 600.0], nadir), Pose([0, 0, 300.0], nadir, 1.0)), (img, img))
     assert m.scale_notes() == []
+
+
+def test_truth_depth_and_elevation_must_be_finite_and_a_focal_length_in_mm_is_named(tmp_path):
+    """A negative gt_depth was read, and `score` then said the frames share no ground; an inf in either truth passed
+    without a word; a focal length of 0.5 px was blamed on the positions' units (QA of stop 66)."""
+    import dataclasses
+
+    for name, value, what in (("depth", -600.0, "finite z-depth > 0"), ("depth", np.inf, "finite z-depth > 0"),
+                              ("elevation", np.inf, "finite Z")):  # fmt: skip
+        pair = make_pair()
+        layer = np.full((512, 512), 600.0 if name == "depth" else 0.0, np.float32)
+        layer[3, 4] = value
+        pair.truth = {**pair.truth, name: layer}
+        d = tmp_path / f"{name}{value}"
+        write_pair(d, pair)
+        with pytest.raises(PairFormatError, match=f"ground truth {name} must be a {what}.*1 pixels"):
+            read_pair(d)
+    pair = make_pair()
+    pair.truth["depth"] = np.where(np.eye(512, dtype=bool), np.nan, 600.0).astype(np.float32)  # NaN: unknown, fine
+    write_pair(tmp_path / "nan", pair)
+    assert np.isnan(read_pair(tmp_path / "nan").truth["depth"]).sum() == 512
+    pair = make_pair()
+    pair.camera = dataclasses.replace(pair.camera, fx=0.5, fy=0.5)
+    write_pair(tmp_path / "f", pair)
+    (note,) = [n for n in read_pair(tmp_path / "f").notes if "per pixel" in n]
+    assert "focal length fx = 0.5 px is implausible" in note and "metres" not in note
