@@ -534,7 +534,17 @@ def check_regression(
         raise InputError(f"--min-hit-rate must be in [0, 1], got {min_hit_rate}")
     if hello_timeout_s is not None and not (math.isfinite(hello_timeout_s) and 0 < hello_timeout_s <= 86400):
         raise InputError(f"--hello-timeout must be a number of seconds in (0, 86400], got {hello_timeout_s}")
+    from reports.console import printable
+
     cond, notes = host_conditions()
+    rec = (doc.get("recorded") or {}).get("calibration") if isinstance(doc.get("recorded"), dict) else None
+    now_cal = cond.get("calibration")
+    if not update and isinstance(rec, dict) and now_cal is not None and rec.get("key") != now_cal.get("key"):
+        # reference seconds compare across hosts only as far as each host's calibration holds (QA 66a): said
+        notes.append(
+            f"the baseline was recorded on another host ({printable(str(rec.get('key')), 60)}); this one is "
+            f"{printable(str(now_cal.get('key')), 60)}: its reference seconds rest on both hosts' calibrations"
+        )
     if all(is_board(all_cases[n]) for n in names):
         notes = []  # this host's calibration and load say nothing about a board's speed
     if update and cond["calibration"] is None and baseline.resolve() == default_baseline_path().resolve():

@@ -251,3 +251,17 @@ def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metr
     doc["cases"]["board"]["metrics"] = {**m, "latency_p50_ref_s": nan, "e2e_latency_p50_s": nan}  # no Result at all
     assert regress.run_regression(tmp_path / "c.json", update=True, out=tmp_path / "o") == 1
     assert not (tmp_path / "c.json").exists()
+
+
+def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, monkeypatch):
+    """Reference seconds compare across hosts only as far as both calibrations hold; the shipped baseline was
+    recorded on a Xeon and CI ran it on an EPYC without a word (QA of stop 66)."""
+    from hil_server import regress
+
+    doc = json.loads(tiny_baseline.read_text())
+    doc["recorded"] = {"calibration": {"key": "vm|elsewhere", "measured_at": "2026-12-01", "units_per_s": 70.0}}
+    tiny_baseline.write_text(json.dumps(doc))
+    here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-06", "units_per_s": 71.0}}
+    monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
+    _, diff, _ = check_regression(tiny_baseline, out=tmp_path / "o")
+    assert "warning: the baseline was recorded on another host (vm|elsewhere); this one is vm|here" in diff, diff
