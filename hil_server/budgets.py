@@ -470,11 +470,18 @@ def _string(entry: dict, key: str, where: str) -> str:
     return value
 
 
+ANCHOR_KEYS = frozenset({"description", "dmips", "units_per_s", "coremark", "coremark_per_dmips"})
+TOP_TABLES = frozenset({"anchor", "budget"})
+
+
 def _parse_anchor(doc: dict, where: str) -> Anchor:
     a = doc.get("anchor")
     if not isinstance(a, dict):
         raise BudgetError(f"{where}: missing [anchor] table")
     w = f"{where} [anchor]"
+    unknown = sorted(set(a) - ANCHOR_KEYS)
+    if unknown:  # a misspelt key was ignored without a word (QA 66a)
+        raise BudgetError(f"{w}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(ANCHOR_KEYS))}")
     return Anchor(
         description=_string(a, "description", w),
         dmips=_number(a, "dmips", w),
@@ -491,7 +498,8 @@ BUDGET_KEYS = frozenset({"description", "cpu_dmips", "memory_mib", "deadline_s",
 
 
 def _parse_budget(name: str, entry: dict, anchor: Anchor, where: str) -> Budget:
-    if not name or any(ord(c) < 32 or ord(c) == 127 for c in name):  # printed raw in tables and errors
+    # printed raw in tables and errors; "   " named a budget nobody could see in a table (QA 66a)
+    if not name.strip() or name != name.strip() or any(ord(c) < 32 or ord(c) == 127 for c in name):
         raise BudgetError(f"{where}: a budget name must be printable text, got {name!r:.40}")
     if len(name) > MAX_BUDGET_NAME:  # a 300-character name broke every table that lists it
         raise BudgetError(f"{where}: a budget name has at most {MAX_BUDGET_NAME} characters, got {len(name)}")
@@ -542,6 +550,10 @@ def load_budgets(path: str | os.PathLike | None = None) -> dict[str, Budget]:
         raise BudgetError(f"{p}: cannot be read as a budget file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise BudgetError(f"{p}: not valid TOML: {exc}") from None
+    extra = sorted(set(doc) - TOP_TABLES)
+    if extra:  # [budgets.x] for [budget.x] was ignored, and the file then had no budget of that name (QA 66a)
+        raise BudgetError(f"{p}: unknown table(s) or key(s) {', '.join(extra)}; a budget file has [anchor] and "
+                          "[budget.NAME] tables")  # fmt: skip
     anchor = _parse_anchor(doc, str(p))
     entries = doc.get("budget")
     if not isinstance(entries, dict) or not entries:

@@ -483,3 +483,25 @@ def test_a_curve_measured_at_high_duty_only_and_a_loaded_host_are_said(home, mon
     assert "1-minute load 4.6 on 2 CPUs" in (B.host_load_note() or "")
     monkeypatch.setattr(os, "getloadavg", lambda: (0.4, 0.3, 0.2))
     assert B.host_load_note() is None
+
+
+def test_a_blank_budget_name_and_unknown_tables_or_anchor_keys_are_refused(tmp_path):
+    """A budget named "   " ran and showed blank in every table; [budgets.x] for [budget.x] and a misspelt anchor key
+    were ignored without a word (QA of stop 66)."""
+    shipped = B.default_budgets_path().read_text()
+    anchor = shipped[shipped.index("[anchor]") : shipped.index("[budget.host]")]
+    body = (
+        '\n[budget."mine"]\ndescription = "mine"\ncpu_dmips = 1000\nmemory_mib = 256\ndeadline_s = 10\n'
+        'link = "zmq"\nsource = "a test"\n'
+    )
+    for text, message in (
+        (anchor + body.replace('"mine"', '"   "'), "a budget name must be printable text"),
+        (anchor + body.replace("[budget.", "[budgets."), r"unknown table\(s\) or key\(s\) budgets"),
+        (anchor.replace("[anchor]", "[anchor]\ndmps = 3") + body, r"\[anchor\]: unknown key\(s\) dmps"),
+    ):
+        f = tmp_path / "b.toml"
+        f.write_text(text)
+        with pytest.raises(B.BudgetError, match=message):
+            B.load_budgets(f)
+    f.write_text(anchor + body)
+    assert "mine" in B.load_budgets(f)
