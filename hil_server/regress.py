@@ -574,11 +574,8 @@ def check_regression(
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
         cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
         incomplete = cur.pop("incomplete_reason", None)
-        from hil_server.budgets import get_budget
-
         # a user's host-speed budget is unthrottled too: its wall latency measures the host's other load (QA 66a)
-        unthrottled = get_budget(case["budget"], _path(case.get("budget_file"), base_dir)).is_host
-        metrics = judged_metrics(case["budget"], case.get("flight", "emulated"), unthrottled)
+        metrics = _judged_for(case, baseline)
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
         if update:
             o.problems.clear()  # no baseline to regress against: it is being written
@@ -665,22 +662,36 @@ def run_regression(
         # a case without a single result has no latency to record (NaN): such a baseline could never be read back,
         # and writing it would lose the one that was there. A metric a case cannot measure (a board whose Telemetry
         # leaves out its stages has no CPU seconds) is left out, and read back as "not judged" (QA 66a)
-        timed = (*LATENCY_METRICS, *CPU_METRICS, *E2E_METRICS)
         empty = []
         for n, c in new_doc["cases"].items():
             m = c.get("metrics") or {}
-            if _not_finite(m.get("deadline_hit_rate")) or all(_not_finite(m.get(k, math.nan)) for k in timed):
-                empty.append(n)
+            # the metrics the case is judged on must be there, or it could never fail again (review of stop 66);
+            # a board's own latency alone may be missing (its Telemetry need not report one): its end-to-end is judged
+            must = E2E_METRICS if is_board(c) else _judged_for(c, baseline)
+            missing = [k for k in ("deadline_hit_rate", *must) if _not_finite(m.get(k, math.nan))]
+            if missing:
+                empty.append(f"{n} ({', '.join(missing)})")
             else:
                 c["metrics"] = {k: v for k, v in m.items() if not _not_finite(v)}
         if empty:
-            print(f"baseline NOT written: no result to record for case(s) {', '.join(empty)}; {baseline} is unchanged")
+            print(
+                f"baseline NOT written: case(s) {', '.join(empty)} measured none of the metrics named, which they are "
+                f"judged on (no Result, or a flight program whose Telemetry leaves them out); {baseline} is unchanged"
+            )
             print("FAIL")
             return 1
         write_atomic(Path(baseline), json.dumps(new_doc, indent=1, sort_keys=True) + "\n")
         print(f"baseline written: {baseline}")
     print(("PASS" if ok else "FAIL") + (" (baseline recorded)" if update else f" against {baseline}"))
     return 0 if ok else 1
+
+
+def _judged_for(case: dict, baseline: Path) -> tuple[str, ...]:
+    """The metrics an emulated ``case`` of ``baseline`` is judged on."""
+    from hil_server.budgets import get_budget
+
+    own = _path(case.get("budget_file"), Path(baseline).resolve().parent)
+    return judged_metrics(case["budget"], case.get("flight", "emulated"), get_budget(case["budget"], own).is_host)
 
 
 def _not_finite(v: object) -> bool:

@@ -320,6 +320,8 @@ class Arq(SessionView):
         # new stream bytes are refused and every ACK says window 0, while ACKs, HELLOs and keepalives go on
         self.rx_full = False
         self.peer_full = False  # the peer's last ACK said window 0: one probe at a time, and no stall is its fault
+        self._last_ack_at = -math.inf  # when the last ACK was built (re-said while full)
+        self._reopened = False  # the window reopened and no in-order byte has come since
         self.closed = False
         self._events: list[_Event] = []
         self._echo_said = -math.inf
@@ -591,6 +593,7 @@ class Arq(SessionView):
         pause for a stalled session); when room returns, an ACK with the window goes at once."""
         if full != self.rx_full:
             self.rx_full = full
+            self._reopened = not full  # re-said until in-order bytes come again (poll)
             self._ack_due = True
             self._rlast = now  # a record held half read meanwhile waited on this side: its clock starts again
 
@@ -635,6 +638,7 @@ class Arq(SessionView):
             return None
         if self._ack_due:
             self._ack_due = False
+            self._last_ack_at = now
             return self._ack(), None
         if self._dgrams and (self._dgram_turn or not self._data_ready()):
             self._dgram_turn = False
@@ -900,6 +904,7 @@ class Arq(SessionView):
 
     def _consume(self, data: bytes, now: float) -> None:
         """In-order stream bytes -> records -> messages (bounded: a record over the limit is skipped)."""
+        self._reopened = False
         pos = self._cum
         self._cum += len(data)
         self._rlast = now
@@ -1002,12 +1007,14 @@ class Arq(SessionView):
             self._last_progress = now
         else:
             if self.peer_full:  # the window reopens: what went while it was shut was dropped unread, so it goes
-                self.peer_full = False  # again now, not after a backed-off timeout
-                self._backoff = 1.0
-                self._last_progress = now  # the stall clock starts with the window, not at the last probe
+                # again now, not after a backed-off timeout; still as refused, not lost: the frame size stays
+                # (cleared after the loop, it fell 1024 -> 229 B on a clean line; review of stop 66)
                 for seg in self._segs.values():
                     if not seg.acked and not seg.queued and seg.sent_at is not None:
                         self._retransmit(seg)
+                self.peer_full = False
+                self._backoff = 1.0
+                self._last_progress = now  # the stall clock starts with the window, not at the last probe
             self.peer_window = max(MIN_FRAME, f.window)
         newly: list[_Seg] = []
         if f.cum > self._una:
@@ -1054,10 +1061,13 @@ class Arq(SessionView):
             self._last_progress = now
             self._backoff = 1.0
         # RACK with exact ordering: a segment whose latest transmission went out before the frame the
-        # receiver just reported (a serial line does not reorder) and is still unacknowledged was lost
-        for seg in self._segs.values():
-            if not seg.acked and not seg.queued and seg.order < f.echo:
-                self._retransmit(seg)
+        # receiver just reported (a serial line does not reorder) and is still unacknowledged was lost. Not while
+        # the window is 0: the receiver refused them, and resending each on every ACK kept the line 65-95 % busy
+        # (review of stop 66); one probe goes on its timer (poll)
+        if not self.peer_full:
+            for seg in self._segs.values():
+                if not seg.acked and not seg.queued and seg.order < f.echo:
+                    self._retransmit(seg)
 
     def _delivered(self, m: _Out, now: float) -> None:
         if not str(self._outcomes.get(m.id, "")).startswith("failed"):  # a REJECTed one is a failure, not both
@@ -1115,7 +1125,15 @@ class Arq(SessionView):
         # a second queued meanwhile, each 0.8 s on the line and ahead of DATA, starved the stream ("peer stopped
         # acknowledging ... 0 bytes unacknowledged", stop 60's QA)
         idle = not self._writing and not self._control
-        if idle and now - max(self._last_keepalive, self._last_sent) >= cfg.keepalive:
+        if (self.rx_full or self._reopened) and now - self._last_ack_at >= cfg.keepalive / 2:
+            # while full, and after until the stream moves again, the window is said twice a keepalive: the peer's
+            # probes slow to one per 2 s, and on a noisy line a pause must not read as silence to it, nor a lost
+            # window update hold it (review of stop 66)
+            self._ack_due = True
+        # during a pause little else goes either way: keepalives twice as often, so that a noisy line's lost frames
+        # do not add up to a peer's silence
+        keepalive = cfg.keepalive / 2 if (self.rx_full or self.peer_full) else cfg.keepalive
+        if idle and now - max(self._last_keepalive, self._last_sent) >= keepalive:
             self._last_keepalive = now
             self._queue_hello()
         busy = bool(self._sbuf)
@@ -1156,6 +1174,9 @@ class Arq(SessionView):
             for s in self._segs.values()
             if not s.acked and not s.queued and s.sent_at is not None and now - s.sent_at > rto
         ]
+        if self.peer_full:  # window 0: the lowest unacknowledged segment alone is the probe, on its own timer
+            lowest = min((seg for seg in self._segs.values() if not seg.acked), key=lambda seg: seg.start, default=None)
+            expired = [lowest] if lowest is not None and lowest in expired else []
         if expired:
             self.stats["timeouts"] += 1
             for seg in expired:

@@ -758,6 +758,7 @@ class ZmqLink(Link, SessionView):
         self._last_hello = -1e9
         self._stall_since: float | None = None
         self._peer_busy_said = False  # this spell of blocked sends to a peer that answers was said
+        self._paused_at: float | None = None  # since when this side reads nothing: its application takes nothing
         self._auth: Any = None
         self._ctx = zmq.Context(io_threads=1)
         self._sock = self._ctx.socket(zmq.PAIR)
@@ -1006,24 +1007,27 @@ class ZmqLink(Link, SessionView):
         poller.register(self._sock, zmq.POLLIN)
         poller.register(self._mon, zmq.POLLIN)
         prev = time.monotonic()
-        reading = True
         while not self._stop:
             now = time.monotonic()
             # flow control: while the application takes nothing, this side reads nothing more (libzmq's high-water
             # marks hold the rest, and the peer's sends wait), and the peer's silence meanwhile is not the peer's
             full = self._offer_received()
-            if full == reading:
-                reading = not full
-                if reading:
-                    poller.register(self._sock, zmq.POLLIN)
-                else:
+            if full != (self._paused_at is not None):
+                if full:
                     poller.unregister(self._sock)  # a readable socket would wake the poll at once, a busy loop
                     self._stats["rx_full"] += 1
+                    self._paused_at = now
+                else:
+                    poller.register(self._sock, zmq.POLLIN)
+                    self._paused_at = None
             with self._cv:
                 if now - prev > OWN_STALL_S:
                     self._forgive(now - prev)
                 prev = now
-                if full:
+                gone = self._disconnected_at
+                if self._paused_at is not None and (gone is None or gone < self._paused_at):
+                    # unless TCP said the peer's connection closed during the pause: a dead peer was hidden until
+                    # the application had read everything, and then blamed on silence (review of stop 66)
                     self._last_heard = max(self._last_heard, now)
                 self._timers(now)
                 control: list[Any] = list(self._control)
@@ -1047,7 +1051,7 @@ class ZmqLink(Link, SessionView):
                 self._monitor()
             if self._dropped_at is not None and time.monotonic() - self._dropped_at > REDIAL_AFTER_S:
                 self._redial()
-            if reading and self._sock in ready:
+            if self._paused_at is None and self._sock in ready:
                 for _ in range(64):
                     try:
                         parts = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
@@ -1124,7 +1128,8 @@ class ZmqLink(Link, SessionView):
                 # reading (flow control), not a lost session; said once a spell. Losing it failed every pair in
                 # flight, where the peer's own deadlines judge the pairs (review of stop 66)
                 blocked = self._stall_since is not None and now - self._stall_since > self.peer_timeout
-                if blocked and not self._peer_busy_said:
+                # not while this side pauses itself: the peer's silence is then forgiven, not heard
+                if blocked and self._paused_at is None and not self._peer_busy_said:
                     self._peer_busy_said = True
                     self._stats["peer_busy"] += 1
                     self._pending_events.append(

@@ -455,9 +455,14 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
     entries = read_manifest(p / "manifest.json")["pairs"]
     seen: dict[str, int] = {}
     for i, e in enumerate(entries):  # one pair scored twice weighed twice in the medians (QA of stop 66)
-        for key in {(p / e["path"]).resolve().as_posix(), f"label {e.get('label', e['path'])}"}:
+        # outputs are named by the pair directory's last part: a/p1 and b/p1 would share one (review of stop 66)
+        keys = {
+            f"dir {(p / e['path']).resolve().as_posix()}": "names the same pair directory",
+            f"label {e.get('label', e['path'])}": "has the same label",
+            f"name {Path(e['path']).name}": "has the same directory name (its output's name)",
+        }
+        for key, what in keys.items():
             if key in seen:
-                what = "names the same pair directory" if not key.startswith("label ") else "has the same label"
                 raise ScoreError(f"{p / 'manifest.json'}: pair {i} {what} as pair {seen[key]} ({e['path']!r})")
             seen[key] = i
     if not (o / "results.jsonl").is_file():

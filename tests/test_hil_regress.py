@@ -241,8 +241,9 @@ def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metr
 
     nan = math.nan
     m = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "latency_p50_ref_s": 0.2,
-         "e2e_latency_p50_s": 0.3, "cpu_p50_ref_s": nan, "cpu_max_ref_s": nan}  # fmt: skip
-    doc = {"cases": {"board": {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}}}
+         "e2e_latency_p50_s": 0.3, "e2e_latency_max_s": 0.4, "cpu_p50_ref_s": nan, "cpu_max_ref_s": nan}  # fmt: skip
+    doc = {"cases": {"board": {"scenario": "vertical", "budget": "host", "link": "zmq", "flight": "external",
+                               "metrics": m}}}  # fmt: skip
     monkeypatch.setattr(regress, "check_regression", lambda *a, **k: (True, "", json.loads(json.dumps(doc))))
     baseline = tmp_path / "b.json"
     assert regress.run_regression(baseline, update=True, out=tmp_path / "o") == 0
@@ -251,6 +252,10 @@ def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metr
     doc["cases"]["board"]["metrics"] = {**m, "latency_p50_ref_s": nan, "e2e_latency_p50_s": nan}  # no Result at all
     assert regress.run_regression(tmp_path / "c.json", update=True, out=tmp_path / "o") == 1
     assert not (tmp_path / "c.json").exists()
+    # an emulated host case is judged on CPU seconds: recorded without them it could never fail again (review 66)
+    doc["cases"]["board"] = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}
+    assert regress.run_regression(tmp_path / "d.json", update=True, out=tmp_path / "o") == 1
+    assert not (tmp_path / "d.json").exists()
 
 
 def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, monkeypatch):

@@ -535,3 +535,78 @@ def test_only_heartbeats_are_taken_as_datagrams_and_a_reject_names_a_record_of_i
     assert a.established
     a.receive(reject_frame(b.session_id, a.session_id, 0, "late"), 5.1)  # position 0: the old session's record
     assert a.outcome(mid) == "delivered" and a.stats["failures"] == 0
+
+
+def _paused_receiver_run(noise: float, seed: int, n: int = 600, latency: float = 0.0) -> dict:
+    """``n`` messages a -> b over a SimLine (``noise`` per byte for drop, flip and duplicate, both ways) while b's
+    application alternates 3 s of reading nothing with 0.5 s of reading, its queue holding 256 (as the links do:
+    set_rx_full while any message waits beyond it). Returns what b's application read, in order, and the counters."""
+    from collections import deque
+
+    from protocol.messages import Error
+
+    a, b = Arq(CFG, session_id=0xA, now=0.0), Arq(CFG, session_id=0xB, now=0.0)
+    chans = (CorruptingChannel(2 * seed, noise, noise, noise), CorruptingChannel(2 * seed + 1, noise, noise, noise))
+    line = SimLine(a, b, RATE, channels=chans if noise else (None, None), latency=latency)
+    line.run(1.0, stop=lambda s: a.established and b.established)
+    held: deque = deque()
+    queue: deque = deque()
+    got: list[str] = []
+    sent, t, resume_at, read_until = 0, line.now, line.now + 3.0, None
+    while t < 300:
+        while sent < n and a.can_accept(300):
+            a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{sent:06d}" + "x" * 200)), "Error", t)
+            sent += 1
+        t = line.run(t + 0.005)
+        held.extend(line.received[1])
+        line.received[1].clear()
+        while held and len(queue) < 256:
+            queue.append(held.popleft())
+        if bool(held) != b.rx_full:
+            b.set_rx_full(bool(held), t)
+        if resume_at is not None and t >= resume_at:
+            resume_at, read_until = None, t + 0.5
+        if resume_at is None:
+            got.extend(r.message.text[:6] for r in queue)
+            queue.clear()
+            if t >= read_until:
+                resume_at = t + 3.0
+        if sent >= n and a.idle and not held and not queue:
+            break
+    return {"got": got, "a": a, "b": b, "t": t}
+
+
+@pytest.mark.parametrize(("noise", "seed"), [(0.0, 0), (1e-3, 1), (3e-3, 2)])
+def test_a_receiver_that_pauses_again_and_again_loses_nothing_and_keeps_its_session(noise, seed):
+    """Flow control (section 3.2, window 0): on a clean or noisy line every message arrives once, in order, and
+    neither side loses the session though b's application reads nothing for 3 s at a time (peer timeout 4 s)."""
+    r = _paused_receiver_run(noise, seed)
+    assert r["got"] == [f"{i:06d}" for i in range(600)]
+    a, b = r["a"], r["b"]
+    assert a.stats["peer_losses"] == 0 and b.stats["peer_losses"] == 0 and a.stats["failures"] == 0
+    assert a.stats["peer_full"] >= 1 and b.stats["rx_full_drops"] > 0  # the pause was met by window 0
+
+
+def test_a_zero_window_is_probed_sparingly_and_its_reopening_is_no_line_loss():
+    """Told window 0 with 19 frames in flight (0.1 s of line latency), the sender resent every one of them on every
+    ACK: 851 frames in 10 s, 95 % of the line; reopening then took the refused frames for line loss and shrank the
+    frame size 1024 -> 229 B (review of stop 66). Now one probe goes on its timer, and the frame size stays."""
+    from protocol.messages import Error
+
+    a, b = Arq(CFG, session_id=0xA, now=0.0), Arq(CFG, session_id=0xB, now=0.0)
+    line = SimLine(a, b, RATE, latency=0.1)
+    line.run(1.0, stop=lambda s: a.established and b.established)
+    t = line.now
+    b.set_rx_full(True, t)
+    for i in range(200):
+        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t)
+    t = line.run(t + 0.5)
+    assert a.peer_full and a._nxt - a._una > 5 * 1024  # several frames in flight when the window shut
+    frames0 = a.stats["frames_sent"]
+    t = line.run(t + 10.0)
+    assert a.stats["frames_sent"] - frames0 <= 30 and a.stats["peer_losses"] == 0  # probes and keepalives only
+    b.set_rx_full(False, t)
+    t = line.run(t + 0.5)
+    assert not a.peer_full and a.snapshot()["frame_bytes"] == 1024 and a.snapshot()["loss_rate"] == 0.0
+    line.run(t + 10.0, stop=lambda s: a.idle)
+    assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(200)]

@@ -905,3 +905,39 @@ def test_an_application_that_reads_nothing_for_a_while_keeps_its_session(kind):
         assert board.stats["peer_losses"] == 0 and ground.stats["peer_losses"] == 0
         assert not any(str(ground.outcome(i)).startswith("failed") for i in ids)
         assert board.stats["rx_full_drops" if kind == "serial" else "rx_full"] > 0  # it did hold the peer back
+
+
+def test_a_peer_that_dies_while_this_side_pauses_reading_is_still_found_dead():
+    """While its application takes nothing, a ZeroMQ link reads nothing and forgives the peer's silence. A ground
+    killed meanwhile was then hidden until the application had read everything, and blamed on silence alone; it was
+    even said to be "busy" while it answers (review of stop 66). TCP's word that its connection closed now ends the
+    forgiveness."""
+    board = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board", peer_timeout=1.0, keepalive=0.25)
+    child = (
+        "import time\nfrom protocol.links import ZmqLink\nfrom protocol.messages import Error\n"
+        f"g = ZmqLink({board.endpoint!r}, bind=False, insecure=True, name='ground', peer_timeout=1.0, keepalive=0.25)\n"
+        "assert g.wait_established(10)\n"
+        "for i in range(400): g.send(Error(code='m', text=str(i)))\n"
+        "print('sent', flush=True)\ntime.sleep(60)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-P", "-c", child], stdout=subprocess.PIPE, env=env, text=True)
+    try:
+        assert board.wait_established(10)
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "sent"
+        time.sleep(1.0)
+        assert board.stats["rx_full"] >= 1 and board.established  # the application has read nothing
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        end = time.monotonic() + 6.0
+        while board.established and time.monotonic() < end:
+            time.sleep(0.05)
+        time.sleep(0.3)  # the loss's event is told by the I/O loop after it
+        events = board.events()
+        lost = [e.text for e in events if e.kind == "lost"]
+        assert not board.established and lost and "its connection closed" in lost[0], [(e.kind, e.text) for e in events]
+        assert board.stats["peer_busy"] == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        board.close()

@@ -662,6 +662,7 @@ def test_a_manifest_naming_one_pair_twice_is_refused_not_weighed_twice(descent, 
     for pairs, what in (
         ([{"path": "600_300"}, {"path": "./600_300"}], "names the same pair directory as pair 0"),
         ([{"path": "600_300"}, {"path": "300_150", "label": "600_300"}], "has the same label as pair 0"),
+        ([{"path": "600_300"}, {"path": "sub/600_300", "label": "b"}], "has the same directory name"),
     ):
         (twin / "manifest.json").write_text(json.dumps({"pairs": pairs}))
         assert main(["score", str(twin), str(outs)]) == 2
