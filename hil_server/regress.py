@@ -149,6 +149,7 @@ class RegressInterrupted(Exception):
 
         super().__init__(f"interrupted by {signal.Signals(signum).name} during case {case}")
         self.signum = signum
+        self.finished = ""  # the diff table of the cases that had finished (said, not lost: QA of stop 66)
 
 
 def case_config(name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None):
@@ -565,14 +566,18 @@ def check_regression(
     for note in notes:
         print(f"regress: warning: {note}", file=sys.stderr)
     need = 1.0 if min_hit_rate is None else min_hit_rate
-    outcomes = []
+    outcomes: list[CaseOutcome] = []
     missed = False
     for i, n in enumerate(names, 1):
         case = all_cases[n]
         run_case = _with_link(case, board_link)
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
-        cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
+        try:
+            cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
+        except RegressInterrupted as exc:
+            exc.finished = diff_table(outcomes) if outcomes else ""
+            raise
         incomplete = cur.pop("incomplete_reason", None)
         # a user's host-speed budget is unthrottled too: its wall latency measures the host's other load (QA 66a)
         metrics = _judged_for(case, baseline)
@@ -652,6 +657,8 @@ def run_regression(
                 hello_timeout_s=hello_timeout_s,
             )
     except RegressInterrupted as exc:
+        if exc.finished:  # the verdicts of the cases that had run before the signal
+            print(exc.finished)
         print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
         print("INTERRUPTED")
         return 128 + exc.signum

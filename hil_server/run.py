@@ -1565,6 +1565,8 @@ def _descend(checked: CheckedRun, log) -> dict:
         if n:
             log(f"run: clearing {received}: {n} file(s) of an earlier run (received/ is this run's own)")
     shutil.rmtree(received, ignore_errors=True)
+    # the report's pictures are this run's too: an earlier run's pairs' figures stayed beside them (QA of stop 66)
+    shutil.rmtree(out / "figures", ignore_errors=True)
 
     reason: str | None = None
     interrupted: int | None = None

@@ -37,7 +37,10 @@ def telemetry_events(path, name="supervisor.jsonl"):
 
 
 def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / "p099-old_hazard.png").write_bytes(b"an earlier run's")  # QA of stop 66: it stayed
     s = run(manifest, tmp_path, scenario="approach")  # ignored: the manifest says what was streamed
+    assert not (tmp_path / "figures" / "p099-old_hazard.png").exists()
     assert [r["label"] for r in s["records"]] == PAIRS
     assert s["scenario"] == "vertical" and "**vertical** over **zmq**" in (tmp_path / "summary.md").read_text()
     # where the flight's time went, by phase: every phase of the reference pipeline timed, nothing unnamed

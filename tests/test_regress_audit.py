@@ -203,6 +203,21 @@ def test_a_signal_stops_regress_at_its_case_and_exits_128_plus_n(tmp_path, capsy
         assert "interrupted by SIGTERM during case first; the cases after it were not run" in err
         assert "REGRESSION" not in out and "INTERRUPTED" in out
     assert ran == ["first", "first"] and base.read_bytes() == before
+    # stopped during the second case: the first case's verdicts are shown, not lost (QA of stop 66)
+    calls = iter([{}, None])
+
+    def second_interrupted(cfg, log=print):
+        if next(calls) is None:
+            return {"interrupted_by": 15, "complete": False}
+        return {"complete": True, "deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "records": [],
+                **{f"flight_latency_{q}_s": 0.2 for q in ("p50", "p95", "max")},
+                "e2e_latency_max_s": 0.3, "e2e_latency_p50_s": 0.3}  # fmt: skip
+
+    monkeypatch.setattr(run, "run_descent", second_interrupted)
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 128 + 15
+    out, err = capsys.readouterr()
+    assert "interrupted by SIGTERM during case second" in err and out.rstrip().endswith("INTERRUPTED")
+    assert "first " in out and "deadline_hit_rate" in out, out
 
 
 def test_empty_cases_option_is_refused_not_all_cases(tmp_path, capsys):
