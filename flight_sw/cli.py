@@ -228,13 +228,11 @@ def _process(args: argparse.Namespace) -> int:
     import numpy as np
 
     from protocol.pairdir import pair_fingerprint, read_pair
-    from protocol.plan import plan_note
     from reports.html import write_atomic
     from reports.jsondoc import json_text
 
     from .pictures import confusion, write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
-    from .pose_refine import DISAGREES, NO_OVERLAP, UNMATCHED
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
@@ -320,6 +318,8 @@ def _process(args: argparse.Namespace) -> int:
         truth["confusion"] = {**counts, **shares, **cdi, **rates}
     if truth:
         doc["vs_truth"] = truth
+    messages = _process_messages(res, pair, out)
+    doc["warnings"] = [text.removeprefix("warning: ") for warn, text in messages if warn]
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
@@ -378,38 +378,57 @@ def _process(args: argparse.Namespace) -> int:
         else:
             line += "`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth)"
     print(f"{out}: {line}")
+    for warn, text in messages:
+        print(text, file=sys.stderr if warn else sys.stdout)
+    print(f"report: {out / 'report.html'}")
+    return 0
+
+
+def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
+    """What `process` says of a run beyond its summary line, in order: (is a warning, text). Warnings go to stderr,
+    and also into result.json (``warnings``) and the report page: the page showed a run on swapped frames as a green
+    "full" (QA of stop 66)."""
+    msgs: list[tuple[bool, str]] = []
+
+    from protocol.plan import plan_note
+
+    from .pose_refine import DISAGREES, NO_OVERLAP, UNMATCHED
+
+    def say(text: str, file: Any = None) -> None:
+        msgs.append((file is sys.stderr, text))
+
     if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
         skipped = list(res.info.get("skipped", ()))
         why = plan_note(res.info.get("plan"), skipped)
-        print(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
+        say(f"{out}: skipped {', '.join(skipped) or 'nothing'}" + (f"; {why}" if why else ""))
     if "psafe_fallback" in res.info:  # the trees' calibration does not hold here: FP 1.6-5 % at 128 px
-        print(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
+        say(f"warning: {res.info['psafe_fallback']}: P(safe) falls back to the Gaussian rule, whose FP is "
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     for f in res.info.get("noisy_frames", ()):  # nothing else tells a noisy image: the DEM 3-5x worse, unsaid
         others, k, dn = [f"{v:.1f}" for v in f["others_dn"]], f["frame"], f["noise_dn"]
-        print(f"warning: frame {k}'s image is noisy: its pixel noise reads ~{dn:.0f} grey levels against "
+        say(f"warning: frame {k}'s image is noisy: its pixel noise reads ~{dn:.0f} grey levels against "
               f"{', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a sensor fault or a damaged "
               "image); the maps rest on it, and their elevations are the worse for it (result.json "
               "info.noisy_frames)", file=sys.stderr)  # fmt: skip
     for f in res.info.get("blank_frames", ()):  # frame 0 blank: every other frame "could not check", unexplained
         others, k = [f"{v:.1f}" for v in f["others_dn"]], f["frame"]
-        print(f"warning: frame {k}'s image is blank: its pixel-scale detail reads {f['noise_dn']:.1f} grey levels "
+        say(f"warning: frame {k}'s image is blank: its pixel-scale detail reads {f['noise_dn']:.1f} grey levels "
               f"against {', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a black, saturated "
               "or lost image, or mostly so); little or nothing in it can be matched (result.json info.blank_frames)",
               file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
-        print(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",
+        say(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",
               file=sys.stderr)  # fmt: skip
     if res.info.get("altimeter_dem_unchecked"):  # not a fault: too little DEM where the beam lands
-        print(f"{out}: {res.info['altimeter_dem_unchecked']}")
+        say(f"{out}: {res.info['altimeter_dem_unchecked']}")
     side = min(pair.camera.width, pair.camera.height)
     cam = pair.camera
     if not (0.0 <= cam.cx <= cam.width and 0.0 <= cam.cy <= cam.height):  # allowed (a cropped sensor), rarely meant
-        print(f"warning: the camera's principal point ({cam.cx:g}, {cam.cy:g}) lies off its {cam.width}x{cam.height} "
+        say(f"warning: the camera's principal point ({cam.cx:g}, {cam.cy:g}) lies off its {cam.width}x{cam.height} "
               "image: check pair.json's camera (a wrong one gave a DEM 23 m off)", file=sys.stderr)  # fmt: skip
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)
-        print(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")
+        say(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")
     for k, verdict, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
@@ -417,11 +436,11 @@ def _process(args: argparse.Namespace) -> int:
             # the navigation poses say the frames share too little ground to compare: nothing in the images is
             # against the pose, and a warning on every clean deep descent (29 in one QA pass) taught users to
             # skip warnings
-            print(f"{out}: frame {k}: its pose is not checked by the images ({why}); the maps rest on it as "
+            say(f"{out}: frame {k}: its pose is not checked by the images ({why}); the maps rest on it as "
                   "navigation reports it, and a fault in it would go unseen")  # fmt: skip
         elif verdict == DISAGREES:  # matched, and the images ask for more than a navigation error
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
-            print(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
+            say(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
                   f"error should be, so the refinement kept the pose); {rest} (result.json "
                   "info.pose_refinement)", file=sys.stderr)  # fmt: skip
         elif verdict == UNMATCHED:  # texture, and nothing consistent where the pose says: not "could not check"
@@ -432,20 +451,19 @@ def _process(args: argparse.Namespace) -> int:
                 if "the same image twice" in why
                 else ": another or a damaged image, or a pose far from the one declared"
             )
-            print(f"warning: frame {k}: its image does not match where its navigation pose says ({why}{causes}); "
+            say(f"warning: frame {k}: its image does not match where its navigation pose says ({why}{causes}); "
                   f"{rest} (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
         else:
-            print(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
+            say(f"warning: frame {k}: the images could not check its navigation pose ({why}); the maps rest on it "
                   "unchecked (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
     for k, why in _degenerate_poses(res.info.get("pose_refinement"), side):  # a fallback is said (issue 10)
         # not a warning: matched, nothing against the pose, but the geometry cannot fix it (a 1 deg pitch of a
         # highland approach 250/125 pair went by in silence with its DEM 10.6 m off; stop 60's QA F7)
-        print(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
+        say(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
               "navigation reports it")  # fmt: skip
     if res.info.get("sites_withheld") and "altimeter_disagreement" not in res.info:  # the pose warnings above
-        print(f"warning: {res.info['sites_withheld']}", file=sys.stderr)  # do not say what it costs the sites
-    print(f"report: {out / 'report.html'}")
-    return 0
+        say(f"warning: {res.info['sites_withheld']}", file=sys.stderr)  # do not say what it costs the sites
+    return msgs
 
 
 def _refined_poses(info: Any) -> list[str]:

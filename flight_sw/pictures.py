@@ -253,6 +253,10 @@ def write_process_report(
     if rows and rows[0]["fp_pct"] is not None:
         fp = rows[0]["fp_pct"]
         headline.append(Headline("fp_pct", fp, "ok" if fp <= 1.0 else "bad"))
+    warnings = [str(w) for w in doc.get("warnings") or []]
+    if warnings:  # said on the console only, the page showed a run on swapped frames as a green "full" (QA of stop 66)
+        headline.insert(1, Headline("warnings", len(warnings), "warn", "warnings"))
+        sections.insert(0, Section("Warnings", paragraphs=warnings))
     written.append(
         write_page(
             out / "report.html",

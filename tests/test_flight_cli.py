@@ -44,6 +44,13 @@ def test_process_writes_outputs(tmp_path, capsys):
     assert "full" in said.out
     # the trees are calibrated for 512, 256 and 128 px: at 160 px P(safe) falls back, which only result.json used to say
     assert doc["info"]["psafe_fallback"] in said.err and said.err.startswith("warning: calibrated P(safe)"), said.err
+    # and in result.json and on the page, not on the console alone (QA of stop 66: a run on swapped frames was a
+    # green "full" there)
+    assert len(doc["warnings"]) == 1 and doc["warnings"][0].startswith(doc["info"]["psafe_fallback"])
+    assert (
+        ">Warnings<" in (out / "report.html").read_text()
+        and "falls back to the Gaussian rule" in (out / "report.html").read_text()
+    )
     if browser_available():
         page = check_page(out / "report.html")
         assert page.ok and page.images == 3, page  # dem, hazard, confusion: every image loads, no console error
