@@ -41,6 +41,9 @@ def _plt() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
+    # our titles carry people's labels and paths, never math: a '$' in a pair's name was read as mathtext, and a
+    # '$^$' crashed `process` with a traceback before its pictures (QA of stop 66)
+    matplotlib.rcParams["text.parse_math"] = False
     import matplotlib.pyplot as plt
 
     return plt

@@ -102,10 +102,9 @@ def plot_vs_altitude(
 ) -> Path:
     """CDI, hazards detected, safe recognised and FP against altitude for each preset, thesis values dashed (Fig.
     6.6/6.12, which calls the middle two TN% and TP%)."""
-    import matplotlib
+    from reports.plots import _plt
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _plt()  # Agg, and no mathtext in people's labels
 
     fig_tab = {"vertical": ("Fig. 6.6", "6.4"), "approach": ("Fig. 6.12", "6.11")}[scenario]
     presets = sorted({k[1] for k in summary if k[0] == scenario})
@@ -184,10 +183,9 @@ def plot_vs_altitude(
 def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) -> Path:
     """altitude: Fig. 6.13-style scatter heat map of the DEM error increase over (dh1, dh2) per altitude;
     other kinds: increase against the error magnitude. One panel per preset."""
-    import matplotlib
+    from reports.plots import _plt
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _plt()  # Agg, and no mathtext in people's labels
 
     rs = [r for r in rows if r["sample"] >= 0 and r.get("dem_mean_rel_pct") is not None]
     presets = sorted({r["preset"] for r in rs})
@@ -265,10 +263,9 @@ def table_markdown(t: Table) -> str:
 
 def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], path: str | Path) -> Path:
     """CDI and FP of every descent, best single pair against each multi-frame policy (issue 10)."""
-    import matplotlib
+    from reports.plots import _plt
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _plt()  # Agg, and no mathtext in people's labels
 
     names = ["best pair", *[p for p in policies if any(p in d["rows"] for d in per_descent)]]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))

@@ -342,3 +342,17 @@ def test_a_memory_ceiling_far_above_the_peak_is_said_not_drawn_flat():
     near = resources_figure(recs, 0.276, 256.0).axes[1]
     assert near.get_ylim()[1] >= 256.0 and near.get_title() == "memory against the ceiling"
     _plt().close("all")
+
+
+def test_a_dollar_in_a_label_is_text_not_math(tmp_path):
+    """A pair named m$^$x crashed `process` with a mathtext traceback before its pictures, and "cost $5 or $6" was
+    drawn as "cost 5or6" (QA of stop 66). Titles carry people's labels: never math."""
+    from reports.plots import _plt, save
+
+    plt = _plt()
+    for title in ("m$^$x", "cost $5 or $6"):
+        fig, ax = plt.subplots()
+        t = fig.suptitle(title)
+        ax.set_title(title)
+        save(fig, tmp_path / "t.png")
+        assert t.get_text() == title and not t._preprocess_math(title)[1]  # drawn as given, not as math
