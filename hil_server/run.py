@@ -863,7 +863,7 @@ def top_site_text(r: dict) -> str:
 
 def summary_table(summary: dict) -> str:
     from hil_server.run_report import level_text
-    from reports.console import printable
+    from reports.console import md_cell
 
     rows = [
         "| pair | altitude m | outcome | level | end to end s | flight s | result line s | deadline | FP % (grid) "
@@ -877,16 +877,17 @@ def summary_table(summary: dict) -> str:
             dl = "met" if r.get("deadline_met") else "MISSED"
             level = level_text(r)
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {level} | "
+                f"| {md_cell(r['label'])} | {_fmt(r['altitude_m'], '.0f')} | {outcome} | {level} | "
                 f"{_fmt(r.get('e2e_latency_s'))} | {_fmt(r.get('flight_latency_s'))} | "
                 f"{_fmt(r.get('result_line_s'))} | {dl} | {_fmt(sc.get('fp_pct'))} | {_fmt(sc.get('cdi_pct'))} | "
                 f"{_fmt(sc.get('dem_mean_abs'))} | {top_site_text(r)} |"
             )
         else:
             # the reason in the row: the file said only "error: link_down", the reason was in summary.json alone
-            why = printable(str(r.get("text") or "no result"), 160).replace("|", "/")
+            why = md_cell(r.get("text") or "no result", 160)
             rows.append(
-                f"| {r['label']} | {_fmt(r['altitude_m'], '.0f')} | error: {r.get('code')} | — | — | — | — | {why} "
+                f"| {md_cell(r['label'])} | {_fmt(r['altitude_m'], '.0f')} | error: {md_cell(r.get('code'))} | — | — | "
+                f"— | — | {why} "
                 "| — | — | — | — |"
             )
     s = summary

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,6 +99,9 @@ def _environment() -> Any:
     )
     env.filters["fmt"] = fmt_value
     env.filters["code"] = inline_code
+    # a relative path as a URL: a pair labelled "600/300 #1?" named a figure the browser looked for as
+    # "600/300 " with a fragment, a broken image (QA of stop 66)
+    env.filters["url"] = lambda path: urllib.parse.quote(str(path), safe="/")
     return env
 
 

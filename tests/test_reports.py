@@ -356,3 +356,38 @@ def test_a_dollar_in_a_label_is_text_not_math(tmp_path):
         ax.set_title(title)
         save(fig, tmp_path / "t.png")
         assert t.get_text() == title and not t._preprocess_math(title)[1]  # drawn as given, not as math
+
+
+def test_figure_and_file_paths_are_urls_on_the_page(tmp_path):
+    """A pair labelled "600/300 #1?" named a figure the browser looked for as "600/300 " with a fragment: a broken
+    image (QA of stop 66). Paths on the page are percent-encoded; the text shown stays as named."""
+    from reports.html import Figure, Section, write_page
+
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / "p000-600_300 #1?_hazard.png").write_bytes(b"png")
+    (tmp_path / "a #1.csv").write_text("x")
+    page = write_page(
+        tmp_path / "report.html",
+        "t",
+        [Section("s", figures=[Figure("figures/p000-600_300 #1?_hazard.png", "c")], links=[("a #1.csv", "data")])],
+    )
+    text = page.read_text()
+    assert 'src="figures/p000-600_300%20%231%3F_hazard.png"' in text and 'href="a%20%231.csv"' in text
+    assert ">a #1.csv</a>" in text
+
+
+def test_a_label_cannot_break_the_run_summary_table():
+    """summary.md took labels as they were: a '|' added a cell and shifted the columns, '*' and '`' turned into
+    formatting and '<b>' passed as HTML (QA of stop 66)."""
+    from hil_server.run import summary_table
+
+    rec = {"status": "error", "label": "300|150 *x* `y` <b>", "altitude_m": 300.0, "code": "link_down",
+           "text": "a | b"}  # fmt: skip
+    nan = float("nan")
+    s = {"records": [rec], "scenario": "vertical", "link": "zmq", "flight": "emulated", "budget": "host",
+         "results": 0, "pairs": 1, "degraded": 0, "errors": 1, "e2e_latency_p50_s": nan, "e2e_latency_max_s": nan,
+         "flight_latency_p50_s": nan, "deadline_hit_rate": 0.0}  # fmt: skip
+    row = next(line for line in summary_table(s).splitlines() if line.startswith("| 300"))
+    cells = row.replace("\\|", "\x00").split("|")[1:-1]  # an escaped bar is not a cell boundary
+    assert len(cells) == 12, cells
+    assert r"300\|150 \*x\* \`y\` &lt;b&gt;" in row and r"a \| b" in row, row
