@@ -549,6 +549,7 @@ def evaluate_pair(
             est_rough=res.roughness_m,
             true_rough=truth.get("roughness_m", np.full_like(truth_elev, np.nan)),
             covered=res.covered,
+            scored=area,  # the true overlap the scores are over: the pictures' percentages are too
             epipole_box=box,
             rocks=res.rock_mask,
             est_shadow=res.shadow_mask,
