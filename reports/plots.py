@@ -122,7 +122,9 @@ def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dic
         rgb[m] = to_rgb(colour)
         if code == 255:
             continue
-        pct = f" {100.0 * m.sum() / n_in:.1f} %" if show_pct else ""
+        share = 100.0 * m.sum() / n_in
+        # an FP of 0.01 % read "0.0 %" beside a table saying 0.01 (QA of stop 66): small shares keep two decimals
+        pct = (f" {share:.1f} %" if share >= 1.0 or share == 0.0 else f" {share:.2f} %") if show_pct else ""
         handles.append(Patch(facecolor=colour, edgecolor="#555", label=f"{names[code]}{pct}"))
     ax.imshow(rgb, interpolation="nearest")
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=2, frameon=False)
