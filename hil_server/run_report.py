@@ -175,7 +175,12 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     else:
         panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0))
     gsd = _ground_step(pair)
-    save(map_figure(panels, f"{r.get('label')}: hazards", m_per_px=gsd), fig_dir / f"{pid}_hazard.png")
+    # the level and the deadline in the picture too: an image-only Result that missed looked like a full one there
+    met = r.get("deadline_met")
+    dl = "" if met is None else "deadline met" if met else "deadline MISSED"
+    how = ", ".join(x for x in (str(r.get("level") or ""), dl) if x)
+    title = f"{r.get('label')}: hazards" + (f" ({how})" if how else "")
+    save(map_figure(panels, title, m_per_px=gsd), fig_dir / f"{pid}_hazard.png")
     sites = (
         " Circles: the landing sites it offered, numbered by rank; green when the truth says the whole 3 m footprint "
         "is clear, red when it is not, black when this image does not hold the whole footprint."

@@ -349,7 +349,8 @@ def map_figure(
     if sites:  # the circles' colours and weights were explained nowhere
         key = "circles: landing sites, numbered by rank (the top one drawn heaviest)"
         if any(s.safe is not None for s in sites):
-            key += "; green truly safe, red not, black not confirmed (its footprint leaves frame 0)"
+            # one wording for every page: `process` draws black for no truth, the runs for a footprint off frame 0
+            key += "; green truly safe, red not, black not judged (no truth there, or its footprint leaves frame 0)"
         fig.text(0.5, 0.005, key, ha="center", va="bottom", fontsize=7.5, color="#333333")
     fig.tight_layout(rect=(0, 0.03, 1, 1) if sites else (0, 0, 1, 1))
     return fig
