@@ -101,6 +101,8 @@ def dem_figure(
     dem = dem_panels(elevation, truth)
     if fill_fraction:  # the pipeline's own share, of the covered pixels, as process prints it
         dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
+    if not np.isfinite(elevation).any():  # an image-only result drew empty panels with colour bars (QA of stop 66)
+        dem[0].title += ": no elevation recovered"
     if sigma is not None:
         dem.insert(1, Panel("scalar", sigma, "elevation uncertainty sigma", "m", "viridis"))
     fig = map_figure(dem, title, m_per_px=m_per_px)
