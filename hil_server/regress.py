@@ -16,15 +16,15 @@ A regression is: deadline hit rate below the baseline's minus
 ``latency_rel`` (relative) and ``latency_abs_s`` (absolute, reference seconds,
 so tiny latencies do not flap), or more degraded Results (``degraded``: cut to a coarser anytime
 level or with stages skipped; they are faster because they did less) when the baseline records
-that count, or a budget whose figures changed since ``--update`` recorded them
-(``budget_recorded``). ``--update`` rewrites the baseline and records what its numbers
-rest on (``recorded``: the host's calibration and load); it refuses to rewrite
+that count, or another number of pairs than recorded (the case's workload changed), or a budget whose figures
+changed since ``--update`` recorded them (``budget_recorded``). ``--update`` rewrites the baseline and records
+what its numbers rest on (``recorded``: the host's calibration and load); it refuses to rewrite
 the shipped baseline on an uncalibrated host, and says so when the host is
 uncalibrated, stale (``budgets.STALE_CALIBRATION_DAYS``) or loaded. The baseline
 file is checked before anything runs: a malformed one is a one-line error.
 
-The unthrottled ``host`` case is judged on the flight process's CPU seconds per
-pair, not on wall latency: on a busy host the wall clock of an unthrottled
+An unthrottled case (``host``, or a budget of one's own with ``cpu_dmips = "host"``) is judged on the flight
+process's CPU seconds per pair, not on wall latency: on a busy host the wall clock of an unthrottled
 process measures the other load, not the flight software. Throttled budgets
 are judged on latency (the emulator's duty cycle sets their wall time).
 
