@@ -1076,7 +1076,11 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     sun = None
     if doc.get("sun") is not None:
         try:
-            sun = Sun(float(doc["sun"]["azimuth_deg"]), float(doc["sun"]["elevation_deg"]))
+            # JSON numbers, as every other field: "135" passed through float() unnoticed (QA of stop 66)
+            sun = Sun(
+                float(_number(doc["sun"]["azimuth_deg"], "sun.azimuth_deg")),
+                float(_number(doc["sun"]["elevation_deg"], "sun.elevation_deg")),
+            )
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"{meta_path}: sun needs azimuth_deg and elevation_deg ({exc})") from None
         # a NaN angle would make the flight software drop the sun without a word (a different result)

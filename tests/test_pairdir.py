@@ -303,3 +303,14 @@ def test_truth_depth_and_elevation_must_be_finite_and_a_focal_length_in_mm_is_na
     write_pair(tmp_path / "f", pair)
     (note,) = [n for n in read_pair(tmp_path / "f").notes if "per pixel" in n]
     assert "focal length fx = 0.5 px is implausible" in note and "metres" not in note
+
+
+def test_quoted_sun_angles_are_refused_as_every_other_quoted_number(tmp_path):
+    """sun.azimuth_deg "135" passed through float() unnoticed, where every other field refuses a quoted number (QA
+    of stop 66)."""
+    write_pair(tmp_path, make_pair())
+    doc = json.loads((tmp_path / "pair.json").read_text())
+    doc["sun"]["azimuth_deg"] = "135"
+    (tmp_path / "pair.json").write_text(json.dumps(doc))
+    with pytest.raises(PairFormatError, match=r"sun\.azimuth_deg must be a number, got '135'"):
+        read_pair(tmp_path)
