@@ -160,11 +160,13 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     title = "upper image (i1)" + (", landing sites by rank" if marks else "")
     panels = [Panel("image", pair.images[0], title, sites=marks)]
     gt_h = pair.truth.get("hazard")
+    if hz_file.name == "hazard.npy" and "depth" not in pair.truth:
+        gt_h = None  # the overlap is unknown: the scores withhold the full map's, so the picture does (review 66)
     if gt_h is not None:
         # over the true overlap, as the scores beside it (a full map over its own pixels read TN 47.0 % where the
         # table said 46.5; QA of stop 66); the grid's call per pixel is NaN exactly off it already
         covered = np.isfinite(hazard) & np.isfinite(gt_h)
-        if "depth" in pair.truth and hz_file.name == "hazard.npy":
+        if hz_file.name == "hazard.npy":
             from ground_sim.gridscore import pixel_ground, scored_area, true_pose_upper
 
             covered = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), pair.truth["depth"]))
@@ -187,7 +189,13 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
         if marks
         else ""
     )
-    scored = "scored against the truth" if gt_h is not None else "not scored: the pair has no truth hazard"
+    scored = (
+        "scored against the truth"
+        if gt_h is not None
+        else "not scored: the pair has no true depth, so the area to score is unknown"
+        if "hazard" in pair.truth
+        else "not scored: the pair has no truth hazard"
+    )
     figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, {scored}.{sites}"))
     if (out / "elevation.npy").is_file():
         dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))

@@ -322,6 +322,7 @@ class Arq(SessionView):
         self.peer_full = False  # the peer's last ACK said window 0: one probe at a time, and no stall is its fault
         self._last_ack_at = -math.inf  # when the last ACK was built (re-said while full)
         self._reopened = False  # the window reopened and no in-order byte has come since
+        self._reopened_at = -math.inf
         self.closed = False
         self._events: list[_Event] = []
         self._echo_said = -math.inf
@@ -377,6 +378,7 @@ class Arq(SessionView):
         self._last_progress = now
         self._was_busy = False
         self.peer_full = False  # a new peer (or session) has said nothing of its window yet
+        self._reopened = False  # nothing to re-say to a new session
         # receiving
         self._cum = 0
         self._ooo: dict[int, bytes] = {}
@@ -593,7 +595,8 @@ class Arq(SessionView):
         pause for a stalled session); when room returns, an ACK with the window goes at once."""
         if full != self.rx_full:
             self.rx_full = full
-            self._reopened = not full  # re-said until in-order bytes come again (poll)
+            self._reopened = not full  # re-said until in-order bytes come again, for a peer timeout at most (poll)
+            self._reopened_at = now
             self._ack_due = True
             self._rlast = now  # a record held half read meanwhile waited on this side: its clock starts again
 
@@ -1125,6 +1128,8 @@ class Arq(SessionView):
         # a second queued meanwhile, each 0.8 s on the line and ahead of DATA, starved the stream ("peer stopped
         # acknowledging ... 0 bytes unacknowledged", stop 60's QA)
         idle = not self._writing and not self._control
+        if self._reopened and now - self._reopened_at > (cfg.peer_timeout or 4.0):
+            self._reopened = False  # a peer with nothing more to send: the window was said often enough
         if (self.rx_full or self._reopened) and now - self._last_ack_at >= cfg.keepalive / 2:
             # while full, and after until the stream moves again, the window is said twice a keepalive: the peer's
             # probes slow to one per 2 s, and on a noisy line a pause must not read as silence to it, nor a lost

@@ -28,6 +28,6 @@ def md_cell(text: object, limit: int = 200) -> str:
     markdown's emphasis and code marks escaped and ``<`` / ``&`` as entities (a label ``300|150 *x*`` shifted the
     columns and turned bold; QA of stop 66)."""
     out = printable(str(text), limit).replace("\\", "\\\\")
-    for ch in "|*`":  # not "_": GitHub reads no emphasis inside a word, and p000-600_300 stays readable raw
+    for ch in "|*`[]~":  # not "_": GitHub reads no emphasis inside a word, and p000-600_300 stays readable raw
         out = out.replace(ch, "\\" + ch)
     return out.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

@@ -232,3 +232,22 @@ def test_full_maps_without_grids_are_scored_over_the_true_overlap_and_not_at_all
     rec = {"status": "result", "out_dir": str(out), "pair_dir": str(pair_dir), "sites": []}
     score_records([rec])
     assert "scores_full" not in rec and "no true depth" in rec["scores_full_note"]
+
+
+def test_a_full_map_without_true_depth_is_drawn_unscored_as_its_scores_are(tmp_path):
+    """The scores withhold a full map's pixel scores when the pair has no true depth (the overlap is unknown); the
+    run page's picture still drew them over the map's own pixels, captioned "scored against the truth" (review of
+    stop 66)."""
+    from hil_server.run_report import _pair_figures
+
+    manifest = small_descent(tmp_path / "pairs", ["600/300"], px=64)
+    pair_dir = manifest.parent / json.loads(manifest.read_text())["pairs"][0]["path"]
+    out = tmp_path / "out"
+    out.mkdir()
+    np.save(out / "hazard.npy", np.zeros((64, 64), np.float32))
+    rec = {"status": "result", "out_dir": str(out), "pair_dir": str(pair_dir), "pair_id": "p000", "label": "a"}
+    (fig,) = _pair_figures(rec, tmp_path / "figures")
+    assert "scored against the truth" in fig.caption
+    (pair_dir / "gt_depth_i1.npy").unlink()
+    (fig,) = _pair_figures(rec, tmp_path / "figures")
+    assert "not scored: the pair has no true depth" in fig.caption
