@@ -256,9 +256,18 @@ def _read_result(path: Path) -> Any:
     return doc
 
 
+# a detector ranks a few sites; each is judged over the whole image (~1 ms at 512 px): 800 000 of them fit in a
+# 16 MiB result.json and took about 10 min to score (QA of stop 66)
+MAX_SCORED_SITES = 10_000
+
+
 def _site_xyz(raw: Any, path: Path) -> np.ndarray:
     if not isinstance(raw, list):
         raise ScoreError(f'{path}: "sites" must be a list of {{"x", "y", "z"}} objects')
+    if len(raw) > MAX_SCORED_SITES:
+        raise ScoreError(
+            f"{path}: {len(raw)} sites is more than a ranked list of landing sites ({MAX_SCORED_SITES} at most)"
+        )
     xyz = [_site_point(s, i, path) for i, s in enumerate(raw)]
     return np.array(xyz, float).reshape(-1, 3)
 

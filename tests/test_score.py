@@ -698,3 +698,14 @@ def test_an_output_without_result_json_has_unknown_sites_not_no_site(descent, tm
     assert main(["score", str(descent / "600_300"), str(out)]) == 0
     said = capsys.readouterr().out
     assert "| no site |" in said and "unknown" not in said, said
+
+
+def test_a_site_list_too_long_to_judge_is_refused(descent, tmp_path, capsys):
+    """800 000 sites fit in a result.json and took about 10 min to judge (QA of stop 66)."""
+    from studies.score import MAX_SCORED_SITES
+
+    out = tmp_path / "o"
+    _write(out, read_pair(descent / "600_300").truth["hazard"])
+    (out / "result.json").write_text(json.dumps({"sites": [{"x": 0, "y": 0, "z": 0}] * (MAX_SCORED_SITES + 1)}))
+    assert main(["score", str(descent / "600_300"), str(out)]) == 3
+    assert "sites is more than a ranked list" in capsys.readouterr().err
