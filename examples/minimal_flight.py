@@ -321,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
         while not link.closed_by_peer:
             for mtype, msg in link.poll():
                 if mtype == HELLO_MSG:  # the ground (or the HIL server) says Hello: answer once ready
+                    # a new ground session: the last one's half-received pairs will never complete (docs/hil.md)
+                    pending.clear()
                     link.send(
                         HELLO_MSG,
                         {

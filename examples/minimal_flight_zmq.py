@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                     config, pending, epoch = None, {}, s.epoch
                 mtype, msg = got if got is not None else (0, {})
                 if mtype == mf.HELLO_MSG:  # the ground's Hello message: ours in reply
+                    pending.clear()  # a new ground session's Hello: the last one's half pairs never complete
                     hello = {"role": "flight", "protocol_version": mf.PROTOCOL, "software": "minimal_flight_zmq"}
                     s.send(mf.HELLO_MSG, {**hello, "session": s.local})
                 elif mtype == mf.CONFIG:
