@@ -13,7 +13,6 @@ those pictures and the comparison block of ``result.json`` - never by the pipeli
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -121,21 +120,14 @@ def _check_memory(pair_dir: Path, widest_pair: bool) -> None:
     """The memory check of :func:`flight_sw.validate.check_memory`, from pair.json alone: a camera too large
     for this machine is refused before its frames are read. A pair.json that cannot be read this way is left
     to ``read_pair``, which says what is wrong with it."""
-    from protocol.pairdir import MAX_PAIR_JSON_BYTES
+    from protocol.pairdir import declared_size
 
     from .validate import check_memory
 
-    meta = pair_dir / "pair.json"
-    try:
-        # a FIFO would block the read below, and a 200 MB pair.json cost 470 MB to refuse (QA 66b): read_pair
-        # names what is wrong with either
-        if not meta.is_file() or meta.stat().st_size > MAX_PAIR_JSON_BYTES:
-            return
-        doc = json.loads(meta.read_text())
-        w, h, n = int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
-    except (OSError, ValueError, TypeError, KeyError, RecursionError, OverflowError):  # a width of 1e400: inf
-        return
-    check_memory(w, h, 2 if widest_pair else n)
+    size = declared_size(pair_dir)
+    if size is not None:
+        w, h, n = size
+        check_memory(w, h, 2 if widest_pair else n)
 
 
 # what `process` writes in --out, or removes there when this run has none of it (an earlier run's must not stay)

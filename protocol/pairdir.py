@@ -918,6 +918,21 @@ def _check_regular(path: Path, what: str, d: Path) -> None:
         raise PairFormatError(f"{d}: {what} {why}")
 
 
+def declared_size(directory: str | Path) -> tuple[int, int, int] | None:
+    """(width, height, frames) as a pair directory's pair.json declares them, read without its images, for a memory
+    check before they are decoded; None when pair.json cannot be read so (missing, a FIFO, over
+    :data:`MAX_PAIR_JSON_BYTES`, not JSON, a width of 1e400): :func:`read_pair` then says what is wrong with it.
+    Read whole, a 200 MB pair.json cost its size in memory before it was refused (QA of stop 66)."""
+    meta = Path(directory) / "pair.json"
+    try:
+        if not meta.is_file() or meta.stat().st_size > MAX_PAIR_JSON_BYTES:
+            return None
+        doc = json.loads(meta.read_text())
+        return int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
+    except (OSError, ValueError, TypeError, KeyError, RecursionError, OverflowError):
+        return None
+
+
 def named_images(directory: str | Path) -> list[Path]:
     """The images a pair directory's pair.json names, resolved, without reading them: they may lie in
     subdirectories, with any extension (a `score --csv` over `img/frame0.png` replaced a frame). An unreadable

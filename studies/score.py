@@ -505,18 +505,12 @@ def check_read_memory(pair_dir: Path) -> None:
     spend: ``score`` decodes every frame, and 16 frames of 4096^2 16-bit RGB took 2.2 GB and 15 s to say "no ground
     truth" (QA of stop 66). A pair.json that cannot be read this way is left to ``read_pair``, which says why."""
     from flight_sw.validate import memory_room
-    from protocol.pairdir import MAX_PAIR_JSON_BYTES
+    from protocol.pairdir import declared_size
 
-    meta = Path(pair_dir) / "pair.json"
-    try:
-        if not meta.is_file() or meta.stat().st_size > MAX_PAIR_JSON_BYTES:
-            return
-        doc = json.loads(meta.read_text())
-        w, h, n = int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
-    except (OSError, ValueError, TypeError, KeyError, RecursionError, OverflowError):
+    size = declared_size(pair_dir)
+    if size is None or min(size[:2]) <= 0:
         return
-    if w <= 0 or h <= 0:
-        return
+    w, h, n = size
     need = w * h * (n * READ_BYTES_PER_FRAME_PX + READ_BYTES_PER_TRUTH_PX)
     room, what = memory_room()
     if need > room:
