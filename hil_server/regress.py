@@ -463,7 +463,7 @@ def host_conditions() -> tuple[dict, list[str]]:
     """What this host's numbers rest on (its calibration, its load) and, for people, what is wrong with it."""
     import os
 
-    from hil_server.budgets import LOADED_PER_CPU, calibration_notes, load_calibration
+    from hil_server.budgets import calibration_notes, host_load_note, load_calibration
 
     cal = load_calibration()
     notes = calibration_notes(cal)
@@ -471,17 +471,12 @@ def host_conditions() -> tuple[dict, list[str]]:
     if cal is not None:
         cond["calibration"] = {"key": cal.key, "measured_at": cal.measured_at, "units_per_s": cal.units_per_s}
     try:
-        load1 = os.getloadavg()[0]
-        cores = os.cpu_count() or 1
-        cond["load_1min"] = round(load1, 2)
-        cond["cpus"] = cores
-        if load1 > LOADED_PER_CPU * cores:
-            notes.append(
-                f"this host is loaded (1-minute load {load1:.1f} on {cores} CPUs): throttled budgets' latencies "
-                "include the other load's share of the core"
-            )
+        cond["load_1min"] = round(os.getloadavg()[0], 2)
+        cond["cpus"] = os.cpu_count() or 1
     except OSError:
         pass
+    if note := host_load_note():  # the one rule `run` warns by
+        notes.append(note)
     return cond, notes
 
 
