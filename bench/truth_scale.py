@@ -1,32 +1,26 @@
-"""Does the rendered slope/roughness truth miss hazards? Frame 0's truth recomputed on a fine raster (review 66d).
+"""Does the rendered slope/roughness truth miss hazards? Frame 0's truth recomputed on a finer raster (review 66d).
 
     .venv/bin/python bench/truth_scale.py --cases approach thesis_approach --set held-out --n-seeds 3
     .venv/bin/python bench/truth_scale.py --cases vertical --seeds 1000 --altitudes 50 150 500 --json out.json
     .venv/bin/python bench/truth_scale.py --cases approach --seeds 1000 --altitudes 1200 --relief image
 
 The renderer takes slope and roughness truth (DESIGN.md: LSQ plane over the 3 m lander footprint, unsafe at
->= 15 deg; |z - plane| at the point, unsafe at >= 0.30 m) from its *view raster* (``ground_sim.render``,
-:func:`ground_sim.truth.plane_fit`), capped at 1e6 cells: on oblique views from >= 1000 m its cell is 1.5-3.4 m
-and the plane falls back to a 3x3 block (a 5-10 m window), while the image is drawn from per-tile rasters at
-about GSD/2. This bench recomputes frame 0's truth per scored pixel from the scene itself, on a raster of cell
-``min(0.5 m, view cell / 2)`` (or ``--cell``), with the plane fitted over the exact 3 m disk of that raster
-(no coarsening, no 3x3 fallback), combined with the pair's true shadow as the renderer does
-(``hazard_layers``: max of slope/15 deg, roughness/0.30 m, shadow; unsafe at >= 1), and scores the flight
-software's hazard map (run as ``bench/eval_flight.py`` runs it, on its render cache) against both truths over
-the same scored area (``ground_sim.gridscore.scored_area``).
-
-The fine raster is built in row strips (each with the disk's halo rows and only the columns its pixels need),
-so memory stays bounded; the plane's three moments are correlations with disk kernels (``cv2.filter2D``). Every
-strip extends a footprint radius plus two cells beyond its pixels' ground points, so each disk lies wholly on
-scene heights: the raster edge never enters a fit (no border rule needed). ``z`` for the roughness is the
-fine raster's bilinear height at the pixel's true ground point, as the renderer takes the view raster's.
+>= 15 deg; |z - plane| at the point, unsafe at >= 0.30 m) from its view raster while that holds the disk, else
+(since stop 67, ``RENDER_VERSION`` 3) from a world-aligned raster of ``truth_cell_m`` (0.5 m on every 512 px table
+view: :func:`ground_sim.truth.footprint_cell`, :func:`~ground_sim.truth.footprint_planes`). Before, on oblique
+views from >= 1000 m the view raster's cell was 1.5-3.4 m and the plane fell back to a 3x3 block (a 5-10 m
+window). This bench recomputes frame 0's truth per scored pixel from the scene itself on a raster of ``--cell``
+(default 0.25 m: how much the stored truth's cell still misses), with the same exact-disk plane, combined with the
+pair's true shadow as the renderer does (``hazard_layers``: max of slope/15 deg, roughness/0.30 m, shadow; unsafe
+at >= 1), and scores the flight software's hazard map (run as ``bench/eval_flight.py`` runs it, on its render
+cache) against both truths over the same scored area (``ground_sim.gridscore.scored_area``).
 
 ``--relief image`` band-limits the fine raster to the image's own finest raster (wavelength >= GSD_min, as the
 tiles at GSD_min/2 hold) while keeping the fine cell and exact disk: it separates "the plane's window was too
 wide" from "relief finer than any pixel".
 
-As a check, the rendered truth is recomputed from the view raster (``plane_fit`` with its fallback) at the same
-points: ``repro %`` is the share of scored pixels where that agrees with the stored ``gt_hazard`` on unsafe/safe.
+As a check, the rendered truth is recomputed by the renderer's rule at the same points (:func:`stored_truth`):
+``repro %`` is the share of scored pixels where that agrees with the stored ``gt_hazard`` on unsafe/safe.
 """
 
 from __future__ import annotations
@@ -48,89 +42,47 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_flight import CASES, render_case, run_pair  # noqa: E402
 
-from ground_sim.truth import FOOTPRINT_M, ROUGH_LIMIT_M, SLOPE_LIMIT_DEG, hazard_layers, plane_fit  # noqa: E402
-
-STRIP_CELLS = 4_000_000  # cells per strip (float64, ~10 arrays live): ~0.3 GB at most
-
-
-def disk_kernels(cell: float, footprint: float = FOOTPRINT_M) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    """(halo n, kz, kx, ky): the correlation kernels of the LSQ plane over the disk of diameter ``footprint`` on a
-    raster of ``cell`` (cell centres within the radius, as :func:`ground_sim.truth.plane_fit` builds it, but never
-    coarsened and never replaced by a 3x3 block). The disk is symmetric, so a = mean z, b = sum dx z / sum dx^2,
-    c = sum dy z / sum dy^2."""
-    n = int(math.floor(footprint / 2 / cell + 1e-9))
-    if n < 1:
-        raise SystemExit(f"truth_scale: cell {cell:g} m holds no 3 m disk (need <= {footprint / 2:g} m)")
-    off = np.arange(-n, n + 1) * cell
-    dx, dy = np.meshgrid(off, off)
-    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
-    return n, disk / disk.sum(), disk * dx / np.sum(disk * dx * dx), disk * dy / np.sum(disk * dy * dy)
-
-
-def bilinear(A: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """``A`` at fractional (column, row) positions, exact float64 bilinear (positions must lie inside)."""
-    j, i = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
-    fx, fy = gx - j, gy - i
-    a = A[i, j] + (A[i, j + 1] - A[i, j]) * fx
-    b = A[i + 1, j] + (A[i + 1, j + 1] - A[i + 1, j]) * fx
-    return a + (b - a) * fy
+from ground_sim.truth import (  # noqa: E402
+    ROUGH_LIMIT_M,
+    SLOPE_LIMIT_DEG,
+    bilinear_inside,
+    footprint_planes,
+    hazard_layers,
+    plane_fit,
+)
 
 
 def fine_layers(
     scene: Any, X: np.ndarray, Y: np.ndarray, cell: float, min_wavelength: float | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(z, slope deg, |z - plane| m, raster cells built) at the ground points (X, Y) from ``scene``'s heights on a
-    world-aligned raster of ``cell`` (nodes at multiples of ``cell``), exact 3 m disk, in row strips."""
-    n, kz, kx, ky = disk_kernels(cell)
-    pad = n + 2  # cells beyond the outermost point: the disk and the bilinear neighbour stay on the raster
-    gx_all, gy_all = X / cell, Y / cell  # fractional node indices of a raster anchored at (0, 0)
-    z = np.full(X.shape, np.nan)
-    slope = np.full(X.shape, np.nan)
-    rough = np.full(X.shape, np.nan)
-    row = np.floor(gy_all).astype(np.int64)
-    order = np.argsort(row, kind="stable")
-    rs = row[order]
-    r_lo, r_hi = int(rs[0]), int(rs[-1])
-    width = (np.floor(gx_all.max()) - np.floor(gx_all.min())) + 2 * pad + 2
-    strip = max(16, int(STRIP_CELLS / width) - 2 * pad)
-    built = 0
-    for r0 in range(r_lo, r_hi + 1, strip):
-        k0, k1 = np.searchsorted(rs, [r0, r0 + strip])
-        if k1 <= k0:
-            continue
-        idx = order[k0:k1]
-        gx, gy = gx_all[idx], gy_all[idx]
-        c0 = int(np.floor(gx.min())) - pad
-        c1 = int(np.floor(gx.max())) + 1 + pad
-        i0, i1 = r0 - pad, min(r0 + strip, r_hi + 1) + pad  # rows [r0, r0 + strip) hold the points
-        H, _ = scene.raster(c0 * cell, i0 * cell, cell, c1 - c0 + 1, i1 - i0 + 1, min_wavelength)
-        built += H.size
-        zref = float(H.mean())
-        Z = H - zref
-        a = cv2.filter2D(Z, cv2.CV_64F, kz, borderType=cv2.BORDER_REFLECT) + zref  # border rows: never sampled
-        b = cv2.filter2D(Z, cv2.CV_64F, kx, borderType=cv2.BORDER_REFLECT)
-        c = cv2.filter2D(Z, cv2.CV_64F, ky, borderType=cv2.BORDER_REFLECT)
-        lx, ly = gx - c0, gy - i0
-        assert lx.min() >= n and ly.min() >= n and lx.max() < H.shape[1] - n - 1 and ly.max() < H.shape[0] - n - 1
-        zz = bilinear(H, lx, ly)
-        pa, pb, pc = (bilinear(m, lx, ly) for m in (a, b, c))
-        z[idx] = zz
-        slope[idx] = np.degrees(np.arctan(np.hypot(pb, pc)))
-        rough[idx] = np.abs(zz - pa)
-    return z, slope, rough, built
+    """(z, slope deg, |z - plane| m, raster cells built) at the ground points (X, Y): the renderer's own
+    :func:`ground_sim.truth.footprint_planes` on ``scene``'s heights at ``cell``, band-limited to
+    ``min_wavelength`` if given."""
+    built = [0]
+
+    def heights(x0: float, y0: float, c: float, nx: int, ny: int) -> np.ndarray:
+        built[0] += nx * ny
+        return scene.height_raster(x0, y0, c, nx, ny, min_wavelength)
+
+    z, a, b, c = footprint_planes(heights, X, Y, cell)
+    return z, np.degrees(np.arctan(np.hypot(b, c))), np.abs(z - a), built[0]
 
 
-def view_truth(scene: Any, view: dict[str, Any], X: np.ndarray, Y: np.ndarray, shadow: np.ndarray) -> np.ndarray:
-    """The rendered slope/roughness truth again (view raster, ``plane_fit`` with its coarsening and fallback) at
-    (X, Y), combined with ``shadow``: the check that the scene and the combination are reproduced."""
+def stored_truth(scene: Any, view: dict[str, Any], X: np.ndarray, Y: np.ndarray, shadow: np.ndarray) -> np.ndarray:
+    """The rendered slope/roughness truth again at (X, Y) by the renderer's rule (the footprint raster of
+    ``truth_cell_m``, or the view raster's ``plane_fit`` with its coarsening and fallback), combined with
+    ``shadow``: the check that the scene and the rule are reproduced."""
+    cell = float(view["raster_cell_m"])
+    tcell = float(view.get("truth_cell_m", cell))
+    if tcell < cell:
+        return hazard_layers(*footprint_planes(scene.height_raster, X, Y, tcell), shadow)
     x0, y0 = view["raster_origin_m"]
     ny, nx = view["raster_shape"]
-    cell = float(view["raster_cell_m"])
     H, _ = scene.raster(x0, y0, cell, nx, ny)
     a, b, c = plane_fit(H, cell)
     gx = np.clip((X - x0) / cell, 0.0, nx - 1.000001)
     gy = np.clip((Y - y0) / cell, 0.0, ny - 1.000001)
-    zc, pa, pb, pc = (bilinear(m, gx, gy) for m in (H, a, b, c))
+    zc, pa, pb, pc = (bilinear_inside(m, gx, gy) for m in (H, a, b, c))
     return hazard_layers(zc, pa, pb, pc, shadow)
 
 
@@ -145,7 +97,7 @@ def pct(m: np.ndarray, n: int) -> float:
     return 100.0 * float(np.count_nonzero(m)) / max(n, 1)
 
 
-def measure(entry: dict[str, Any], preset: Any, cell_opt: float | None, relief: str, scene: Any) -> dict[str, Any]:
+def measure(entry: dict[str, Any], preset: Any, cell_opt: float, relief: str, scene: Any) -> dict[str, Any]:
     """One pair: both truths over the scored area, and the detector's FP / CDI against each."""
     from ground_sim import scoring
     from ground_sim.gridscore import scored_area
@@ -156,7 +108,7 @@ def measure(entry: dict[str, Any], preset: Any, cell_opt: float | None, relief: 
     pair = read_pair(entry["pair_dir"])
     view = pair.meta["render"][0]
     vcell, gsd = float(view["raster_cell_m"]), float(view["gsd_min_m"])
-    cell = cell_opt if cell_opt else min(0.5, vcell / 2)
+    cell = float(cell_opt)
     world = world_of(pair)
     area = scored_area(pair, world)
     N = int(area.sum())
@@ -169,7 +121,7 @@ def measure(entry: dict[str, Any], preset: Any, cell_opt: float | None, relief: 
         np.maximum(np.clip(slope / SLOPE_LIMIT_DEG, 0, 1), np.clip(rough / ROUGH_LIMIT_M, 0, 1)), shadow
     )  # hazard_layers' combination, on the fine plane
     t2 = time.perf_counter()
-    repro = view_truth(scene, view, X, Y, shadow)
+    repro = stored_truth(scene, view, X, Y, shadow)
     t3 = time.perf_counter()
     res = run_pair(pair, preset)
     t4 = time.perf_counter()
@@ -248,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="*", help="explicit seeds (overrides --set/--n-seeds)")
     ap.add_argument("--altitudes", type=int, nargs="*", help="only these (lower-frame) altitudes")
     ap.add_argument("--preset", default="fast")
-    ap.add_argument("--cell", type=float, default=None, help="fine raster cell m (default min(0.5, view cell / 2))")
+    ap.add_argument("--cell", type=float, default=0.25, help="fine raster cell m (default 0.25)")
     ap.add_argument(
         "--relief",
         choices=("fine", "image"),

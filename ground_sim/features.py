@@ -371,6 +371,13 @@ def boulder_profile(r2: np.ndarray, h: np.ndarray) -> np.ndarray:
     return h * np.sqrt(np.clip(1.0 - r2, 0.0, None))
 
 
+def height_profile(f: Features, r2: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The height change of :func:`profile` alone (the same bytes)."""
+    if f.kind == "crater":
+        return crater_profile(r2, f.d[idx], f.h[idx], f.s[idx])
+    return boulder_profile(r2, f.h[idx])
+
+
 def profile(f: Features, r2: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(height change, relative albedo change) of features ``idx`` at squared normalised radii r2."""
     if f.kind == "crater":

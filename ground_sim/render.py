@@ -15,7 +15,10 @@ Pipeline per frame:
 4. shade with lunar-Lambert (normals from raster gradients) x cast-shadow visibility
    from a horizon sweep; box-downsample the sub-pixels; seeded sensor noise; 8 bit;
 5. truth from pixel-centre rays: elevation, camera z-depth, shadow (< half the pixel
-   lit), hazard (slope/roughness of the true raster + shadow), and the altimeter range
+   lit), hazard (slope/roughness of the true surface + shadow; the plane over the 3 m disk is
+   fitted on the view raster when it holds the disk, else on a world-aligned raster of 0.5 m,
+   :func:`ground_sim.truth.footprint_cell` and :func:`~ground_sim.truth.footprint_planes`; the cell
+   used is ``info["truth_cell_m"]``), and the altimeter range
    (the ray along the optical axis, ``t`` of its hit: the slant range a laser altimeter
    would measure).
 
@@ -34,18 +37,19 @@ import cv2
 import numpy as np
 
 from ground_sim.errors import RenderError
-from ground_sim.geometry import boundary_pixels, pixel_rays
+from ground_sim.geometry import boundary_pixels, ground_footprint, pixel_rays
 from ground_sim.heightfield import Raster, intersect
 from ground_sim.scene import Scene
 from ground_sim.shading import lunar_lambert, sensor, shadow_level
-from ground_sim.truth import FOOTPRINT_M, hazard_layers, plane_fit, plane_fit_factor
+from ground_sim.truth import FOOTPRINT_M, footprint_cell, footprint_planes, hazard_layers, plane_fit, plane_fit_factor
 from protocol.errors import InputError
 from protocol.pairdir import SUN_AZIMUTH_LIMIT_DEG, Camera, Pose, Sun
 
 # Bump when a change alters what is rendered (images or truth) for the same inputs: render caches
 # (ground_sim/render_cache.py) then draw their pairs again. tests/test_render_cache.py pins a small
 # render's bytes to this number, so the change cannot land without the bump.
-RENDER_VERSION = 2  # 2: shadow edges centred on a caster level without the point itself (stop 24)
+RENDER_VERSION = 3  # 2: shadow edges centred on a caster level without the point itself (stop 24); 3: slope and
+# roughness truth on rasters of at most ground_sim.truth.TRUTH_CELL_M (stop 67)
 MAX_CELLS = 1_000_000
 RASTERS = ("view", "tiles")
 # every view at its GSD/supersample from rasters per image tile: "view" (one capped raster per view) draws
@@ -238,7 +242,7 @@ def plan_tile(
 
     The window holds every hit of the box's rays between the view's height bounds, two cells of
     slack, and ``reach_m`` toward the sun (near shadow casters; farther ones come from the view's
-    raster). No hazard pad: slope and roughness truth stay on the view's raster.
+    raster). No hazard pad: slope and roughness truth never come from a tile's raster.
     """
     u0, v0, u1, v1 = box
     s = np.linspace(0.0, 1.0, 9)
@@ -269,6 +273,7 @@ class _Caster:
     blocks: tuple[int, int, int, int]
     zstart: np.ndarray
     margin: float
+    truth_cell: float | None  # the footprint raster of the slope and roughness truth; None: the view raster
 
     def __init__(
         self,
@@ -308,8 +313,14 @@ class _Caster:
         if tile_of is not None:
             # the view's start heights, 1 m higher: fine relief its raster smooths away may rise above them
             self.zstart, self.margin = tile_of.zstart, tile_of.margin + 1.0
+            self.truth_cell = tile_of.truth_cell
         else:
             self._coarse()
+            # the whole view's ground per pixel (also for a box of it: truth_at takes the view's truth cell)
+            corners = ground_footprint(camera, pose, 0.5 * (plan.zlo + plan.zhi))
+            x, y = corners[:, 0], corners[:, 1]
+            area = 0.5 * abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1))))
+            self.truth_cell = footprint_cell(plan.cell, area / (W * Hh))
 
     def _coarse(self) -> None:
         """Every COARSE-th pixel centre, full march from the top of the terrain."""
@@ -404,17 +415,25 @@ class _Caster:
     def truth(self, dp: np.ndarray, tp: np.ndarray, shadow: np.ndarray) -> dict[str, np.ndarray]:
         """Elevation, depth, world X/Y and hazard of centre-ray hits (flat arrays)."""
         Xp = self.C + tp[:, None] * dp
-        a, b, c = plane_fit(self.H, self.cell)
-        r = self.r
-        pa = r.sample(Xp[:, 0], Xp[:, 1], a)
-        pb = r.sample(Xp[:, 0], Xp[:, 1], b)
-        pc = r.sample(Xp[:, 0], Xp[:, 1], c)
+        if self.truth_cell is not None:
+            hazard = hazard_layers(*footprint_planes(self.heights, Xp[:, 0], Xp[:, 1], self.truth_cell), shadow)
+        else:
+            a, b, c = plane_fit(self.H, self.cell)
+            r = self.r
+            pa = r.sample(Xp[:, 0], Xp[:, 1], a)
+            pb = r.sample(Xp[:, 0], Xp[:, 1], b)
+            pc = r.sample(Xp[:, 0], Xp[:, 1], c)
+            hazard = hazard_layers(Xp[:, 2], pa, pb, pc, shadow)
         return {
             "elevation": Xp[:, 2],
             "depth": tp * (dp @ self.pose.R[2]),
             "world_xy": Xp[:, :2],
-            "hazard": hazard_layers(Xp[:, 2], pa, pb, pc, shadow),
+            "hazard": hazard,
         }
+
+    def heights(self, x0: float, y0: float, cell: float, nx: int, ny: int) -> np.ndarray:
+        """The scene's heights on a raster (:func:`ground_sim.truth.footprint_planes`' source)."""
+        return self.scene.height_raster(x0, y0, cell, nx, ny)
 
     def altimeter(self, zs: float) -> float:
         """Slant range from the camera centre to the ground along the optical axis (principal point ray)."""
@@ -438,9 +457,10 @@ def render_view(
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method.
 
     ``raster="tiles"`` (the default) draws the image and the geometric truth from rasters per image tile at
-    the tile's own GSD/supersample (:func:`_render_tiles`); slope and roughness truth and far shadow
-    casters stay on the view's raster. ``raster="view"`` draws everything from one raster per view, capped
-    at ``max_cells`` (the renders before 2026-11-25).
+    the tile's own GSD/supersample (:func:`_render_tiles`); far shadow casters stay on the view's raster, and
+    slope and roughness truth too while it holds the footprint's disk (else a 0.5 m raster; module docstring).
+    ``raster="view"`` draws everything from one raster per view, capped at ``max_cells`` (the renders before
+    2026-11-25).
     """
     _check_pose(camera, pose)
     _check_args(sun, supersample, max_cells)
@@ -510,6 +530,8 @@ def _view_info(cs: _Caster, alt_m: float, **extra: Any) -> dict[str, Any]:
         "gsd_min_m": p.gsd,
         "raster_cell_over_target": extra.pop("raster_cell_over_target"),
         "raster_origin_m": [p.x0, p.y0],
+        # the raster the slope and roughness truth's plane was fitted on (ground_sim.truth.footprint_cell)
+        "truth_cell_m": p.cell if cs.truth_cell is None else cs.truth_cell,
         **extra,
         "altimeter_m": alt_m,
     }
@@ -545,7 +567,8 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
     ``max_cells``) is ray cast on its own raster, grown by one pixel so the pixel-centre rays find
     their start heights. Shadows: casters within :func:`_reach` toward the sun from the tile's raster,
     farther ones from the view's (``shadow_level(min_dist_m=...)``). Slope and roughness truth are the
-    view raster's, at the tile's hits; the shadow truth is the tiles' (the sub-pixel lit fraction).
+    view raster's at the tile's hits, or :func:`ground_sim.truth.footprint_planes`' at them (``cs.truth_cell``);
+    the shadow truth is the tiles' (the sub-pixel lit fraction).
     """
     camera, pose, sun, ss, C = cs.camera, cs.pose, cs.sun, cs.ss, cs.C
     W, Hh = camera.width, camera.height
@@ -554,7 +577,10 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
     reach = _reach(cs)
     S_far = shadow_level(cs.H, cs.cell, sun.azimuth_deg, sun.elevation_deg, min_dist_m=reach)
     S_far32 = (S_far - cs.r.zref).astype(np.float32)
-    a_c, b_c, c_c = plane_fit(cs.H, cs.cell)
+    # slope and roughness truth: the view raster's when it is fine enough, else one footprint-scale raster after
+    # the tiles (footprint_planes over every pixel's ground point: its strips then span the view once)
+    truth_cell = cs.truth_cell
+    a_c, b_c, c_c = (None, None, None) if truth_cell is not None else plane_fit(cs.H, cs.cell)
     off = (np.arange(ss) + 0.5) / ss - 0.5
     rad = np.zeros((Hh, W), np.float32)
     litf = np.zeros((Hh, W), np.float32)
@@ -590,17 +616,20 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
         PU, PV = np.meshgrid(np.arange(u0, u1, dtype=np.float64), np.arange(v0, v1, dtype=np.float64))
         dp, tp = tc.march(PU.ravel(), PV.ravel(), tc.centre_start(zpix[iy, ix].ravel()))
         Xp = C + tp[:, None] * dp
-        shadow = lt[iy, ix] < 0.5
-        zc = cs.r.sample(Xp[:, 0], Xp[:, 1])
-        pa, pb, pc = (cs.r.sample(Xp[:, 0], Xp[:, 1], m) for m in (a_c, b_c, c_c))
         shp = (v1 - v0, u1 - u0)
+        if truth_cell is None:
+            zc = cs.r.sample(Xp[:, 0], Xp[:, 1])
+            pa, pb, pc = (cs.r.sample(Xp[:, 0], Xp[:, 1], m) for m in (a_c, b_c, c_c))
+            haz[v0:v1, u0:u1] = hazard_layers(zc, pa, pb, pc, (lt[iy, ix] < 0.5).ravel()).reshape(shp)
         rad[v0:v1, u0:u1], litf[v0:v1, u0:u1] = rd[iy, ix], lt[iy, ix]
         elev[v0:v1, u0:u1] = Xp[:, 2].reshape(shp)
         depth[v0:v1, u0:u1] = (tp * (dp @ pose.R[2])).reshape(shp)
         wxy[v0:v1, u0:u1] = Xp[:, :2].reshape(shp + (2,))
-        haz[v0:v1, u0:u1] = hazard_layers(zc, pa, pb, pc, shadow.ravel()).reshape(shp)
         if u0 <= iu < u1 and v0 <= iv < v1:
             alt_m = tc.altimeter(float(tc.centre_start(zpix[iv - h0, iu - g0])))
+    if truth_cell is not None:
+        planes = footprint_planes(cs.heights, wxy[..., 0].ravel(), wxy[..., 1].ravel(), truth_cell)
+        haz = hazard_layers(*planes, (litf < 0.5).ravel()).reshape(Hh, W)
     image, gain = _sensor_image(cs, rad, seed, noise)
     info = _view_info(cs, alt_m, raster_cell_over_target=worst, raster_tiles=len(tiles), raster_tile_cells=cells)
     return View(
@@ -635,8 +664,9 @@ def truth_at(
 ) -> dict[str, np.ndarray]:
     """Ground truth at integer pixel centres (u, v) as :func:`render_view` computes it, without an image.
 
-    This is the ``raster="view"`` truth. A tiled render has the same slope and roughness truth (from
-    the view raster), but its own shadows and elevations: those see the relief the view raster smooths away.
+    This is the ``raster="view"`` truth. A tiled render has the same slope and roughness rule (the view
+    raster, or the view's ``truth_cell`` when it is coarser), taken at its own hits, and its own shadows and
+    elevations: those see the relief the view raster smooths away.
 
     The raster covers only the bounding box of the pixels (same cell and grid as the whole
     view's); shadow is the sub-pixel lit fraction < 1/2, as in the render. Centre rays start

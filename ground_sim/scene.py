@@ -510,13 +510,29 @@ class Scene:
         Identical (to rounding) to :meth:`height_albedo` at the grid points; the default
         band limit is two cells (Nyquist) so the raster holds no aliased detail.
         """
+        h, rel = self._height_raster(x0, y0, cell, nx, ny, min_wavelength, albedo=True)
+        assert rel is not None
+        mw = 2.0 * cell if min_wavelength is None else float(min_wavelength)
+        xs = x0 + np.arange(nx) * cell
+        ys = y0 + np.arange(ny) * cell
+        a = self._albedo(None, None, mw, rel, self._albedo_fbm.raster(xs, ys, max(mw, 2.0)))
+        return h, a
+
+    def height_raster(
+        self, x0: float, y0: float, cell: float, nx: int, ny: int, min_wavelength: float | None = None
+    ) -> np.ndarray:
+        """The height of :meth:`raster` alone (the same bytes, without the albedo's cost)."""
+        return self._height_raster(x0, y0, cell, nx, ny, min_wavelength, albedo=False)[0]
+
+    def _height_raster(
+        self, x0: float, y0: float, cell: float, nx: int, ny: int, min_wavelength: float | None, *, albedo: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         mw = 2.0 * cell if min_wavelength is None else float(min_wavelength)
         xs = x0 + np.arange(nx) * cell
         ys = y0 + np.arange(ny) * cell
         h = self._fbm.raster(xs, ys, mw) + self._plane[0] * xs[None, :] + self._plane[1] * ys[:, None]
-        rel = np.zeros_like(h)
+        rel = np.zeros_like(h) if albedo else None
         cr, bl = self.features((xs[0], ys[0], xs[-1], ys[-1]), mw)
         for f in (cr, bl):
             stamp_raster(f, x0, y0, cell, nx, ny, h, rel)
-        a = self._albedo(None, None, mw, rel, self._albedo_fbm.raster(xs, ys, max(mw, 2.0)))
-        return h, a
+        return h, rel

@@ -10,16 +10,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground_sim.features import Features, profile
+from ground_sim.features import Features, height_profile, profile
 
 BIG = 48  # patch side (cells) above which a feature gets its own window
 BATCH = 3_000_000  # max patch elements per vectorised batch
 
 
 def stamp_raster(
-    f: Features, x0: float, y0: float, cell: float, nx: int, ny: int, height: np.ndarray, albedo: np.ndarray
+    f: Features, x0: float, y0: float, cell: float, nx: int, ny: int, height: np.ndarray, albedo: np.ndarray | None
 ) -> None:
-    """Add the features' height/albedo changes to ``height``/``albedo`` (ny x nx) in place."""
+    """Add the features' height/albedo changes to ``height``/``albedo`` (ny x nx) in place (``albedo`` None:
+    heights only, the same height bytes)."""
     if not len(f):
         return
     reach = f.reach
@@ -31,12 +32,12 @@ def stamp_raster(
     for p in np.unique(side[small]):
         sel = small[side[small] == p]
         for chunk in np.array_split(sel, max(1, int(np.ceil(sel.size * p * p / BATCH)))):
-            _stamp_batch(f, chunk, int(p), x0, y0, cell, nx, ny, flat, dh, da)
+            _stamp_batch(f, chunk, int(p), x0, y0, cell, nx, ny, flat, dh, None if albedo is None else da)
     if flat:
         # one scatter-add over the whole raster for all batches (a bincount per batch costs a full raster pass)
         flat_all = np.concatenate(flat)
         height += np.bincount(flat_all, np.concatenate(dh), minlength=nx * ny).reshape(ny, nx)
-        if f.kind == "boulder" or np.any(f.s[small] < 0.9):
+        if albedo is not None and (f.kind == "boulder" or np.any(f.s[small] < 0.9)):
             albedo += np.bincount(flat_all, np.concatenate(da), minlength=nx * ny).reshape(ny, nx)
     for i in np.nonzero(side > BIG)[0]:
         r = reach[i]
@@ -50,6 +51,9 @@ def stamp_raster(
         gy = y0 + np.arange(r0, r1 + 1) * cell - f.y[i]
         rr = (gx[None, :] ** 2 + gy[:, None] ** 2) / (0.5 * f.d[i]) ** 2
         # one index broadcast over the window: the feature's parameters are gathered once, not per cell
+        if albedo is None:
+            height[r0 : r1 + 1, c0 : c1 + 1] += height_profile(f, rr, np.full((1, 1), i))
+            continue
         dh_i, da_i = profile(f, rr, np.full((1, 1), i))
         height[r0 : r1 + 1, c0 : c1 + 1] += dh_i
         albedo[r0 : r1 + 1, c0 : c1 + 1] += da_i
@@ -68,8 +72,11 @@ def _stamp_batch(f, sel, p, x0, y0, cell, nx, ny, flat_out, dh_out, da_out):
     rr = (dx * dx + dy * dy) / (0.25 * f.d[sel] ** 2)[:, None, None]
     ok = (rr < lim[:, None, None]) & (cols >= 0) & (cols < nx) & (rows >= 0) & (rows < ny)
     idx = np.broadcast_to(sel[:, None, None], rr.shape)[ok]
-    dh, da = profile(f, rr[ok], idx)
     flat_out.append((np.broadcast_to(rows, rr.shape) * nx + cols)[ok])
+    if da_out is None:
+        dh_out.append(height_profile(f, rr[ok], idx))
+        return
+    dh, da = profile(f, rr[ok], idx)
     dh_out.append(dh)
     da_out.append(da)
 

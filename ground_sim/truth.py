@@ -12,6 +12,7 @@ and its coefficients are interpolated back (they are smooth at that scale).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -52,6 +53,108 @@ def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_ra
         # coarse cell centre (i+0.5)k-0.5 in fine indices: cv2.resize linear uses the same convention
         a, b, c = (cv2.resize(m, size, interpolation=cv2.INTER_LINEAR) for m in (a, b, c))  # type: ignore[assignment]
     return a, b, c
+
+
+# The slope and roughness truth is taken on a raster of at most this cell: on a coarser one the 3 m disk holds
+# too few cells and plane_fit falls back to a 3x3 block, a window of 2-3 cells a side (5-10 m on high oblique
+# views), which smooths footprint-scale slopes away (docs/scenes.md, "Ground-truth accuracy", item 6).
+TRUTH_CELL_M = 0.5
+# The footprint raster's cost grows with the ground a view covers, not with its pixels: a view may spend at most
+# this many cells per pixel on it, and a coarser cell of TRUTH_CELLS_M is taken beyond (a small camera high up).
+# Every 512 px view of the table altitudes stays at TRUTH_CELL_M (the approach's 2400 m view, the widest, takes
+# 109 cells a pixel); a 128 px camera there would take 1746, and gets the view raster.
+TRUTH_CELLS_PER_PIXEL = 128
+TRUTH_CELLS_M = (TRUTH_CELL_M, 0.75, 1.0)
+# cells of one strip of footprint_planes' raster: about 10 float64 arrays of it live at once (~160 MB)
+STRIP_CELLS = 2_000_000
+
+HeightRaster = Callable[[float, float, float, int, int], np.ndarray]
+
+
+def footprint_cell(view_cell: float, ground_m2_per_pixel: float) -> float | None:
+    """The cell of the raster :func:`footprint_planes` takes a view's slope and roughness truth on: the finest of
+    :data:`TRUTH_CELLS_M` that is finer than the view raster's ``view_cell`` and costs at most
+    :data:`TRUTH_CELLS_PER_PIXEL` cells per pixel (``ground_m2_per_pixel / cell^2``). None when the view raster
+    is as fine (it holds the disk: :func:`plane_fit` on it), or when none fits (the view raster again)."""
+    for cell in TRUTH_CELLS_M:
+        if cell >= view_cell:
+            return None
+        if ground_m2_per_pixel / cell**2 <= TRUTH_CELLS_PER_PIXEL:
+            return cell
+    return None
+
+
+def disk_kernels(cell: float, footprint: float = FOOTPRINT_M) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """(halo n, kz, kx, ky): correlation kernels of the LSQ plane over the cell centres within ``footprint / 2``
+    of a raster node, never coarsened and never a 3x3 block. The disk is symmetric, so the normal equations
+    decouple: a = sum z / N, b = sum dx z / sum dx^2, c = sum dy z / sum dy^2."""
+    n = int(math.floor(footprint / 2 / cell + 1e-9))
+    if n < 1:
+        raise ValueError(f"a raster of {cell:g} m cells holds no {footprint:g} m disk")
+    off = np.arange(-n, n + 1) * cell
+    dx, dy = np.meshgrid(off, off)
+    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+    return n, disk / disk.sum(), disk * dx / np.sum(disk * dx * dx), disk * dy / np.sum(disk * dy * dy)
+
+
+def bilinear_inside(A: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """``A`` at fractional (column, row) positions that lie inside it, float64 bilinear."""
+    j, i = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+    fx, fy = gx - j, gy - i
+    top = A[i, j] + (A[i, j + 1] - A[i, j]) * fx
+    bottom = A[i + 1, j] + (A[i + 1, j + 1] - A[i + 1, j]) * fx
+    return top + (bottom - top) * fy
+
+
+def footprint_planes(
+    heights: HeightRaster,
+    X: np.ndarray,
+    Y: np.ndarray,
+    cell: float = TRUTH_CELL_M,
+    footprint: float = FOOTPRINT_M,
+    strip_cells: int = STRIP_CELLS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(z, a, b, c) at ground points (X, Y): the terrain height and the LSQ plane ``z = a + b dx + c dy`` over
+    the ``footprint`` disk (DESIGN.md "Hazard definitions"), on a world-aligned raster of ``cell`` (nodes at
+    multiples of ``cell``) whose heights ``heights(x0, y0, cell, nx, ny)`` gives (row i at y0 + i cell).
+
+    The plane's moments are correlations with :func:`disk_kernels` at the nodes, interpolated bilinearly to the
+    points, as :func:`plane_fit` does on a view raster. The raster is built in row strips of about
+    ``strip_cells`` cells, each only as wide as its points need and a disk plus two cells beyond them, so no disk
+    reaches a strip's edge: the result does not depend on the strips (to rounding), and the same ground point gets
+    the same truth from every view on the same cell. Memory stays bounded by ``strip_cells``."""
+    X = np.asarray(X, np.float64).ravel()
+    Y = np.asarray(Y, np.float64).ravel()
+    out = tuple(np.full(X.shape, np.nan) for _ in range(4))
+    if X.size == 0:
+        return out  # type: ignore[return-value]
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y))):
+        raise ValueError("footprint_planes: ground points must be finite")
+    n, kz, kx, ky = disk_kernels(cell, footprint)
+    pad = n + 2  # the disk and the bilinear neighbour stay on the strip
+    gx_all, gy_all = X / cell, Y / cell
+    row = np.floor(gy_all).astype(np.int64)
+    order = np.argsort(row, kind="stable")
+    rows = row[order]
+    width = float(np.floor(gx_all.max()) - np.floor(gx_all.min())) + 2 * pad + 2
+    strip = max(16, int(strip_cells / width) - 2 * pad)
+    for r0 in range(int(rows[0]), int(rows[-1]) + 1, strip):
+        k0, k1 = np.searchsorted(rows, [r0, r0 + strip])
+        if k1 <= k0:
+            continue
+        idx = order[k0:k1]
+        gx, gy = gx_all[idx], gy_all[idx]
+        c0 = int(np.floor(gx.min())) - pad
+        c1 = int(np.floor(gx.max())) + 1 + pad
+        i0, i1 = r0 - pad, int(np.floor(gy.max())) + 1 + pad
+        H = np.asarray(heights(c0 * cell, i0 * cell, cell, c1 - c0 + 1, i1 - i0 + 1), np.float64)
+        zref = float(H.mean())
+        Z = H - zref
+        lx, ly = gx - c0, gy - i0
+        sample = (bilinear_inside(m, lx, ly) for m in (H, *(cv2.filter2D(Z, cv2.CV_64F, k) for k in (kz, kx, ky))))
+        for dst, v, shift in zip(out, sample, (0.0, zref, 0.0, 0.0)):
+            dst[idx] = v + shift
+    return out  # type: ignore[return-value]
 
 
 def hazard_layers(z: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, shadow: np.ndarray) -> np.ndarray:

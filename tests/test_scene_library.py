@@ -153,7 +153,7 @@ def test_truth_geometry_error_at_grazing_angles_is_bounded(scene, scenario, idx)
     from ground_sim.heightfield import intersect
     from ground_sim.render import _Caster
     from ground_sim.trajectory import load_trajectory
-    from ground_sim.truth import hazard_layers, plane_fit
+    from ground_sim.truth import footprint_planes, hazard_layers, plane_fit
 
     spec = load_trajectory(scenario, CAM)[idx]
     sc, sun = load_scene(scene, 1000, scenario), lib.scene_sun(scene, scenario, 1000)
@@ -171,8 +171,11 @@ def test_truth_geometry_error_at_grazing_angles_is_bounded(scene, scenario, idx)
     assert hit.all()
     X = C + t[:, None] * d
     dz = np.abs(v.elevation.ravel() - X[:, 2])
-    a, b, c = (cs.r.sample(X[:, 0], X[:, 1], m) for m in plane_fit(cs.H, cs.cell))
-    ref_unsafe = hazard_layers(X[:, 2], a, b, c, v.shadow.ravel()) >= 1
+    if cs.truth_cell is not None:  # the render's rule: the footprint's plane on a raster that holds the disk
+        planes = footprint_planes(cs.heights, X[:, 0], X[:, 1], cs.truth_cell)
+    else:
+        planes = (X[:, 2], *(cs.r.sample(X[:, 0], X[:, 1], m) for m in plane_fit(cs.H, cs.cell)))
+    ref_unsafe = hazard_layers(*planes, v.shadow.ravel()) >= 1
     assert np.mean(dz > 0.01) < 0.03
     assert np.mean(dz > 0.3) < 0.002
     assert np.mean(ref_unsafe != (v.hazard.ravel() >= 1)) < 0.003

@@ -1,0 +1,125 @@
+"""The slope and roughness truth at the footprint's scale (ground_sim.truth.footprint_planes): the exact LSQ plane
+over the 3 m disk, wherever the view raster is too coarse to hold the disk (docs/scenes.md, accuracy item 6)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from ground_sim.geometry import look_rotation
+from ground_sim.render import render_view
+from ground_sim.scene import Scene, load_scene, parse_scene
+from ground_sim.truth import TRUTH_CELL_M, disk_kernels, footprint_cell, footprint_planes, hazard_layers
+from protocol.pairdir import Camera, Pose, Sun
+
+F128 = 64.0 / math.tan(math.radians(15.0))
+CAM = Camera(128, 128, F128, F128, 63.5, 63.5)
+
+
+def _surface(x, y):
+    return np.sin(x / 1.3) * 0.8 + np.cos(y / 0.9) * x / 10.0 + 0.05 * x
+
+
+def _heights(x0, y0, cell, nx, ny):
+    xs, ys = x0 + np.arange(nx) * cell, y0 + np.arange(ny) * cell
+    return _surface(xs[None, :], ys[:, None])
+
+
+def test_the_plane_is_the_least_squares_plane_over_the_disk_at_every_node():
+    rng = np.random.default_rng(5)
+    cell = TRUTH_CELL_M
+    X = np.round(rng.uniform(-40, 40, 60) / cell) * cell  # on nodes: no interpolation between them
+    Y = np.round(rng.uniform(-40, 40, 60) / cell) * cell
+    z, a, b, c = footprint_planes(_heights, X, Y)
+    n, kz, _, _ = disk_kernels(cell)
+    off = np.arange(-n, n + 1) * cell
+    dx, dy = (m[kz > 0] for m in np.meshgrid(off, off))
+    assert dx.size == 29  # the 3 m disk on 0.5 m cells
+    for k in range(X.size):
+        zz = _surface(X[k] + dx, Y[k] + dy)
+        (pa, pb, pc), *_ = np.linalg.lstsq(np.column_stack([np.ones_like(dx), dx, dy]), zz, rcond=None)
+        assert (a[k], b[k], c[k]) == pytest.approx((pa, pb, pc), abs=1e-9)
+        assert z[k] == pytest.approx(_surface(X[k], Y[k]), abs=1e-12)
+
+
+def test_the_truth_does_not_depend_on_the_strips_and_a_plane_is_exact():
+    rng = np.random.default_rng(6)
+    X, Y = rng.uniform(-300, 300, 5000), rng.uniform(-300, 300, 5000)
+    one = footprint_planes(_heights, X, Y, strip_cells=10_000_000)
+    many = footprint_planes(_heights, X, Y, strip_cells=20_000)  # dozens of strips
+    for p, q in zip(one, many):
+        assert np.abs(p - q).max() < 1e-9
+    z, a, b, c = footprint_planes(_plane, X, Y)
+    assert np.abs(b - 0.3).max() < 1e-9 and np.abs(c + 0.1).max() < 1e-9 and np.abs(z - a).max() < 1e-9
+    with pytest.raises(ValueError, match="finite"):
+        footprint_planes(_heights, np.array([0.0, np.nan]), np.array([0.0, 1.0]))
+    with pytest.raises(ValueError, match="holds no 3 m disk"):
+        disk_kernels(2.0)
+
+
+def _plane(x0, y0, cell, nx, ny):
+    xs, ys = x0 + np.arange(nx) * cell, y0 + np.arange(ny) * cell
+    return 5.0 + 0.3 * xs[None, :] - 0.1 * ys[:, None]
+
+
+def _boulder_scene() -> Scene:
+    doc = {
+        "terrain": {"rms_relief_m": 0.0, "micro_rms_m": 0.0},
+        "craters": {"coef": 0.0},
+        "boulders": {"coef": 0.0, "rim_density_m2": 0.0},
+        "albedo": {"sigma": 0.0},
+        "feature": [
+            {"kind": "boulder", "x_m": x, "y_m": y, "diameter_m": 2.5, "height_m": 0.8}
+            for x in (-12.0, -4.0, 4.0, 12.0)
+            for y in (-12.0, -4.0, 4.0, 12.0)
+        ],
+    }
+    return Scene(parse_scene(doc, "test"), 0)
+
+
+def test_a_high_view_sees_the_footprint_scale_hazards_a_low_view_sees():
+    """The same ground gets the same truth from 80 m (a 0.15 m view raster) and from 800 m (a 1.7 m view raster,
+    whose 3x3 fallback plane spans 5 m and whose band limit smooths a 2.5 m boulder away)."""
+    sc, sun = _boulder_scene(), Sun(0.0, 89.0)  # no shadow: slope and roughness only
+    low = render_view(sc, CAM, Pose([0.0, 0.0, 80.0], look_rotation(0.0)), sun, noise=False)
+    high = render_view(sc, CAM, Pose([0.0, 0.0, 800.0], look_rotation(0.0)), sun, noise=False)
+    assert low.info["raster_cell_m"] <= TRUTH_CELL_M < high.info["raster_cell_m"]
+    assert low.info["truth_cell_m"] == low.info["raster_cell_m"] and high.info["truth_cell_m"] == TRUTH_CELL_M
+    # the low view's truth at each high pixel's ground point (its nearest pixel centre)
+    lx, ly = low.world_xy[..., 0], low.world_xy[..., 1]
+    step = float(lx[0, 1] - lx[0, 0])
+    hx, hy = high.world_xy[..., 0], high.world_xy[..., 1]
+    j = np.rint((hx - lx[0, 0]) / step).astype(int)
+    i = np.rint((hy - ly[0, 0]) / float(ly[1, 0] - ly[0, 0])).astype(int)
+    inside = (j >= 0) & (j < 128) & (i >= 0) & (i < 128) & (np.maximum(np.abs(hx), np.abs(hy)) < 16.0)
+    assert inside.sum() >= 80
+    ref = low.hazard[i[inside], j[inside]] >= 1.0
+    got = high.hazard[inside] >= 1.0
+    assert ref.sum() >= 10  # the boulders' flanks
+    assert np.mean(got[ref]) > 0.8 and np.mean(got == ref) > 0.97  # the view-raster truth: 5 of 16, 89 %
+
+
+def test_a_high_oblique_view_takes_its_slope_truth_at_the_footprint_scale():
+    sc = load_scene("thesis", 1000)
+    pose = Pose([0.0, -1500.0, 1200.0], look_rotation(45.0))
+    v = render_view(sc, CAM, pose, Sun(135.0, 25.0), noise=False)
+    cell = v.info["truth_cell_m"]
+    assert v.info["raster_cell_m"] > 2 * cell and cell == 1.0  # a 128 px camera: 0.5 m would take 436 cells a pixel
+    X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
+    planes = footprint_planes(lambda *a: sc.raster(*a)[0], X, Y, cell)
+    fine = hazard_layers(*planes, v.shadow.ravel()).reshape(128, 128)
+    assert np.mean((fine >= 1.0) == (v.hazard >= 1.0)) > 0.999
+
+
+@pytest.mark.parametrize(
+    "view_cell,m2_per_pixel,expect",
+    [
+        (0.3, 27.0, None),  # the view raster holds the disk
+        (3.4, 27.0, 0.5),  # a 512 px view at 2400 m on the approach
+        (3.4, 100.0, 1.0),  # 0.5 and 0.75 m would cost 400 and 178 cells a pixel
+        (6.0, 437.0, None),  # a 128 px camera there: no footprint raster fits, the view raster stays
+        (0.7, 40.0, None),  # the only cell that fits (0.75 m) is no finer than the view's
+    ],
+)
+def test_the_truth_cell_is_the_finest_that_the_view_affords(view_cell, m2_per_pixel, expect):
+    assert footprint_cell(view_cell, m2_per_pixel) == expect
