@@ -62,7 +62,9 @@ TRUTH_CELL_M = 0.5
 # The footprint raster's cost grows with the ground a view covers, not with its pixels: a view may spend at most
 # this many cells per pixel on it, and a coarser cell of TRUTH_CELLS_M is taken beyond (a small camera high up).
 # Every 512 px view of the table altitudes stays at TRUTH_CELL_M (the approach's 2400 m view, the widest, takes
-# 109 cells a pixel); a 128 px camera there would take 1746, and gets the view raster.
+# 109-114 cells a pixel); a 128 px camera there would take 1746, and gets the view raster. A coarser cell is a
+# coarser truth: the raster's band limit (2 cells) drops boulders under one cell, and a 0.5-1 m boulder can stand
+# the 0.30 m roughness limit high, so the same ground's truth then depends on the camera.
 TRUTH_CELLS_PER_PIXEL = 128
 TRUTH_CELLS_M = (TRUTH_CELL_M, 0.75, 1.0)
 # cells of one strip of footprint_planes' raster: about 10 float64 arrays of it live at once (~160 MB)

@@ -270,21 +270,30 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
 
 
 def truth_slope_roughness(
-    scene: Any, world: np.ndarray, cell_m: float, max_cells: int = 4_000_000
+    scene: Any, world: np.ndarray, cell_m: float, max_cells: int = 4_000_000, truth_cell_m: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """True slope (deg) and roughness (m) at each pixel's true ground point.
 
     The scene is rastered at ``cell_m`` over the pixels' footprint and the same
     3 m least-squares plane as the ground-truth hazard (``ground_sim.truth``,
     DESIGN.md) is fitted; slope = atan(|grad|), roughness = |z - z_plane|, both
-    sampled bilinearly at the pixels' true (X, Y).
+    sampled bilinearly at the pixels' true (X, Y). With ``truth_cell_m`` (a render's
+    ``truth_cell_m`` where it is finer than its view raster) they are the renderer's own:
+    :func:`ground_sim.truth.footprint_planes` on that cell, ``z`` from the same raster.
     """
     import cv2
 
-    from ground_sim.truth import plane_fit
+    from ground_sim.truth import footprint_planes, plane_fit
 
     X, Y, Z = world[..., 0], world[..., 1], world[..., 2]
     ok = np.isfinite(X) & np.isfinite(Y)
+    if truth_cell_m is not None:
+        slope = np.full(X.shape, np.nan, np.float32)
+        rough = np.full(X.shape, np.nan, np.float32)
+        z, a, b, c = footprint_planes(scene.height_raster, X[ok], Y[ok], truth_cell_m)
+        slope[ok] = np.degrees(np.arctan(np.hypot(b, c)))
+        rough[ok] = np.abs(z - a)
+        return slope, rough
     pad = FOOTPRINT_M + 2 * cell_m
     x0, x1 = float(X[ok].min()) - pad, float(X[ok].max()) + pad
     y0, y1 = float(Y[ok].min()) - pad, float(Y[ok].max()) + pad
@@ -299,6 +308,16 @@ def truth_slope_roughness(
     zp = cv2.remap(a.astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     r = np.abs(Z.astype(np.float32) - zp)
     return np.where(ok, s, np.nan).astype(np.float32), np.where(ok, r, np.nan).astype(np.float32)
+
+
+def footprint_truth_cell(meta: dict[str, Any]) -> float | None:
+    """Frame 0's footprint-raster cell where its render took the slope and roughness truth on one (pair.json
+    ``render[0]``: ``truth_cell_m`` finer than ``raster_cell_m``, ``RENDER_VERSION`` 3), else None."""
+    views = meta.get("render") or [{}]
+    tcell, vcell = views[0].get("truth_cell_m"), views[0].get("raster_cell_m")
+    if isinstance(tcell, (int, float)) and isinstance(vcell, (int, float)) and 0 < tcell < vcell:
+        return float(tcell)
+    return None
 
 
 # --------------------------------------------------------------------------- scoring one result
@@ -507,7 +526,7 @@ def evaluate_pair(
 
         gsd = float(np.nanmedian(pair.truth["depth"])) / pair.camera.fx
         truth["slope_deg"], truth["roughness_m"] = truth_slope_roughness(
-            load_scene(scene_spec, seed), world, max(gsd, 0.02)
+            load_scene(scene_spec, seed), world, max(gsd, 0.02), truth_cell_m=footprint_truth_cell(pair.meta)
         )
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera

@@ -45,6 +45,29 @@ def test_the_render_version_is_bumped_with_the_renderers_output(small_pair):
     assert small_pair.meta["render_version"] == RENDER_VERSION
 
 
+# the same for a view whose slope and roughness truth takes the footprint raster (ground_sim.truth.footprint_planes,
+# from version 3): the pair above keeps its view rasters, which hold the 3 m disk
+PINNED_FOOTPRINT = {3: "2b06f8bafbca66b2"}
+
+
+def test_the_render_version_is_bumped_with_the_footprint_truths_output():
+    from ground_sim.geometry import look_rotation
+    from ground_sim.render import render_view
+    from protocol.pairdir import Pose
+
+    f = 32.0 / math.tan(math.radians(15.0))
+    cam = Camera(64, 64, f, f, 31.5, 31.5)
+    v = render_view(load_scene("default", 3), cam, Pose([0.0, 0.0, 600.0], look_rotation(0.0)), Sun(135.0, 25.0))
+    assert v.info["truth_cell_m"] == 0.5 < v.info["raster_cell_m"]
+    h = hashlib.sha256()
+    for a in (v.image, v.hazard, v.shadow, v.elevation):
+        h.update(np.ascontiguousarray(a).tobytes())
+    assert h.hexdigest()[:16] == PINNED_FOOTPRINT.get(RENDER_VERSION), (
+        "the footprint truth's output changed: bump ground_sim.render.RENDER_VERSION and pin "
+        f"{h.hexdigest()[:16]} for it here"
+    )
+
+
 def test_a_current_pair_is_reused_and_a_stale_one_rendered_again(tmp_path, small_pair, capsys):
     d = tmp_path / "cache" / "pair_a"
     assert render_version(d) is None and not reusable(d)

@@ -123,3 +123,44 @@ def test_a_high_oblique_view_takes_its_slope_truth_at_the_footprint_scale():
 )
 def test_the_truth_cell_is_the_finest_that_the_view_affords(view_cell, m2_per_pixel, expect):
     assert footprint_cell(view_cell, m2_per_pixel) == expect
+
+
+def test_every_table_view_of_both_scenarios_takes_its_truth_at_half_a_metre():
+    """The 0.5 m truth on every 512 px table view: its ground per pixel stays inside the budget, with room for a
+    scene whose ground lies 50 m lower (deep-crater) or higher."""
+    from ground_sim.geometry import ground_footprint
+    from ground_sim.trajectory import load_trajectory
+    from ground_sim.truth import TRUTH_CELLS_PER_PIXEL
+
+    worst = 0.0
+    for scenario in ("vertical", "approach"):
+        for spec in load_trajectory(scenario):
+            for pose in spec.poses:
+                for z in (-50.0, 50.0):
+                    x, y = ground_footprint(spec.camera, pose, z).T
+                    m2 = 0.5 * abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1))))
+                    m2 /= spec.camera.width * spec.camera.height
+                    assert footprint_cell(10.0, m2) == TRUTH_CELL_M
+                    worst = max(worst, m2 / TRUTH_CELL_M**2)
+    assert 100 < worst < TRUTH_CELLS_PER_PIXEL  # the approach's 2400 m view is the widest
+
+
+def test_evaluate_takes_the_renderers_slope_and_roughness_truth():
+    """`evaluate`'s slope and roughness truth (its slope/roughness errors and FN causes) is the renderer's rule:
+    with the old rule (a 3x3 block of GSD cells) it missed the boulders' flanks the hazard truth holds."""
+    from studies.evaluate import footprint_truth_cell, truth_slope_roughness
+
+    sc = _boulder_scene()
+    v = render_view(sc, CAM, Pose([0.0, 0.0, 800.0], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
+    world = np.dstack([v.world_xy, v.elevation]).astype(np.float64)
+    cell = footprint_truth_cell({"render": [v.info]})
+    assert cell == TRUTH_CELL_M and footprint_truth_cell({"render": [{"raster_cell_m": 0.3}]}) is None
+    unsafe = v.hazard >= 1.0
+    assert unsafe.sum() >= 10
+    for truth_cell, agree in ((cell, 1.0), (None, 0.5)):
+        slope, rough = truth_slope_roughness(sc, world, 3.35, truth_cell_m=truth_cell)
+        called = (slope >= 15.0) | (rough >= 0.30)
+        if truth_cell is None:
+            assert np.mean(called[unsafe]) < agree  # the old rule
+        else:
+            assert np.mean(called[unsafe]) > 0.95 and np.mean(called == unsafe) > 0.999
