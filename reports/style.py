@@ -19,6 +19,7 @@ lists the entries it uses.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 SAFE = "#2e9e44"
@@ -237,6 +238,23 @@ GLOSSARY.update(
             "Share of samples whose DEM error grew by at most 15 % (the thesis's tolerance).",
             "%",
         ),
+        "n_no_dem": Term(
+            "samples without a DEM", "Samples left out of the statistics: no DEM with the error, or none without it."
+        ),
+        "detrended_median_rel_pct": Term(
+            "shape error increase, median %",
+            "Median DEM error increase after removing the error's best plane (the tilt and datum shift a pose error "
+            "leaves): what is left is the DEM's shape.",
+            "%",
+        ),
+        "detrended_max_rel_pct": Term(
+            "shape error increase, worst %", "Largest DEM error increase after removing the error's best plane.", "%"
+        ),
+        "thesis_median_rel_pct": Term(
+            "thesis: DEM error increase %",
+            "The thesis's own median DEM error increase for this study and altitude, where it has one.",
+            "%",
+        ),
         "near_diag_median_rel_pct": Term(
             "increase near dh1 = dh2, median %",
             "Median increase over samples whose two altitude errors differ <= 0.15 m.",
@@ -271,4 +289,16 @@ GLOSSARY.update(
 
 def term(key: str) -> Term:
     """The glossary entry of ``key``; an unknown key is its own label with no explanation."""
-    return GLOSSARY.get(key, Term(key, ""))
+    if key in GLOSSARY:
+        return GLOSSARY[key]
+    # the attitude study's per-level columns (studies.evaluate.sensitivity_summary): rel_pct@+0.15 and the thesis's
+    level = re.fullmatch(r"(thesis_)?rel_pct@([+-]\d+(?:\.\d+)?)", key)
+    if level:
+        who = "thesis: " if level.group(1) else ""
+        return Term(
+            f"{who}pitch {level.group(2)}°, DEM error increase %",
+            f"Median DEM error increase of the samples whose pitch error was {level.group(2)} degrees"
+            + (" in the thesis's attitude study." if level.group(1) else "."),
+            "%",
+        )
+    return Term(key, "")

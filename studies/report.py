@@ -321,7 +321,9 @@ def markdown_tables(md: str) -> list[Table]:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             if head is None:
                 head = cells
-                tables.append(Table([Column(h, h, term=h) for h in head], [], caption))
+                # a raw metric key (rows_markdown's sensitivity summary) reads as its glossary label; a header that
+                # is already a label has no entry and stays itself
+                tables.append(Table([Column(h, term=h) for h in head], [], caption))
             else:
                 tables[-1].rows.append(dict(zip(head, cells)))
             continue

@@ -213,3 +213,32 @@ def test_the_kurtosis_is_called_excess_and_set_beside_no_thesis_value_with_the_r
     md = report.comparison_markdown(cells)
     (block,) = [b for b in md.split("\n\n") if b.startswith("**Table 6.3")]
     assert "not comparable" in block.splitlines()[0] and "kurtosis: thesis" not in block
+
+
+def test_the_sensitivity_tables_on_the_page_read_as_labels_not_metric_keys():
+    """The report page's sensitivity tables showed raw keys (median_rel_pct, rel_pct@+0.15, ...; stop 66's note)."""
+    from reports.style import term
+
+    row = {
+        "kind": "attitude",
+        "preset": "fast",
+        "altitude_m": 300,
+        "n": 4,
+        "n_no_dem": 0,
+        "median_rel_pct": 12.0,
+        "max_rel_pct": 30.0,
+        "within_15pct": 50.0,
+        "detrended_median_rel_pct": 5.0,
+        "detrended_max_rel_pct": 9.0,
+        "rel_pct@+0.15": 30.0,
+        "thesis_median_rel_pct": 100.0,
+        "thesis_rel_pct@-0.05": 40.0,
+    }
+    (t,) = report.markdown_tables(report.rows_markdown([row], list(row)))
+    labels = [c.label or term(c.glossary_key).label for c in t.columns]
+    assert not [lb for lb in labels if "_" in lb or "@" in lb], labels
+    assert "pitch +0.15°, DEM error increase %" in labels and "thesis: pitch -0.05°, DEM error increase %" in labels
+    assert t.rows[0]["rel_pct@+0.15"] == "30.0"  # the cells stay keyed by the column
+    # a header that is already a label stays itself
+    (t2,) = report.markdown_tables("| FP % worst seed: ours (fast) | policy |\n|---:|---|\n| 0.5 | x |\n")
+    assert [c.label or term(c.glossary_key).label for c in t2.columns] == ["FP % worst seed: ours (fast)", "policy"]
