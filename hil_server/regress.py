@@ -18,7 +18,8 @@ so tiny latencies do not flap), or more degraded Results (``degraded``: cut to a
 level or with stages skipped; they are faster because they did less) when the baseline records
 that count, or another number of pairs than recorded (the case's workload changed), or a budget whose figures
 changed since ``--update`` recorded them (``budget_recorded``). ``--update`` rewrites the baseline and records
-what its numbers rest on (``recorded``: the host's calibration and load); it refuses to rewrite
+what its numbers rest on (``recorded``: the host's calibration and load; a partial ``--update --cases`` keeps the
+other cases' sessions under ``recorded.earlier``); it refuses to rewrite
 the shipped baseline on an uncalibrated host, and says so when the host is
 uncalibrated, stale (``budgets.STALE_CALIBRATION_DAYS``) or loaded. The baseline
 file is checked before anything runs: a malformed one is a one-line error.
@@ -480,6 +481,38 @@ def host_conditions() -> tuple[dict, list[str]]:
     return cond, notes
 
 
+def _records(recorded: object) -> list[dict]:
+    """The recording sessions of a baseline's ``recorded`` block, newest first: the block itself, then its
+    ``earlier`` ones (a partial ``--update`` keeps the sessions of the cases it did not run)."""
+    if not isinstance(recorded, dict):
+        return []
+    earlier = recorded.get("earlier")
+    return [recorded] + [r for r in (earlier if isinstance(earlier, list) else []) if isinstance(r, dict)]
+
+
+def _recorded_calibration(doc: dict, name: str) -> dict | None:
+    """The calibration the host that recorded case ``name`` had (a session without a ``cases`` list recorded
+    every case: baselines from before it was kept)."""
+    for rec in _records(doc.get("recorded")):
+        cases = rec.get("cases")
+        if not isinstance(cases, list) or name in cases:
+            cal = rec.get("calibration")
+            return cal if isinstance(cal, dict) else None
+    return None
+
+
+def _earlier_records(recorded: object, names: list[str], all_cases: dict) -> list[dict]:
+    """The sessions behind the cases a partial ``--update`` did not re-record, each with only those cases."""
+    out, done = [], set(names)
+    for rec in _records(recorded):
+        cases = rec.get("cases")
+        left = [n for n in (cases if isinstance(cases, list) else list(all_cases)) if n in all_cases and n not in done]
+        if left:
+            out.append({k: v for k, v in rec.items() if k != "earlier"} | {"cases": left})
+            done.update(left)
+    return out
+
+
 def check_regression(
     baseline: Path,
     *,
@@ -533,12 +566,13 @@ def check_regression(
     from reports.console import printable
 
     cond, notes = host_conditions()
-    rec = (doc.get("recorded") or {}).get("calibration") if isinstance(doc.get("recorded"), dict) else None
     now_cal = cond.get("calibration")
-    if not update and isinstance(rec, dict) and now_cal is not None and rec.get("key") != now_cal.get("key"):
+    others = sorted({str(c.get("key")) for n in names if isinstance(c := _recorded_calibration(doc, n), dict)})
+    if not update and now_cal is not None and [k for k in others if k != now_cal.get("key")]:
         # reference seconds compare across hosts only as far as each host's calibration holds (QA 66a): said
+        keys = ", ".join(printable(k, 60) for k in others if k != now_cal.get("key"))
         notes.append(
-            f"the baseline was recorded on another host ({printable(str(rec.get('key')), 60)}); this one is "
+            f"the baseline was recorded on another host ({keys}); this one is "
             f"{printable(str(now_cal.get('key')), 60)}: its reference seconds rest on both hosts' calibrations"
         )
     if all(is_board(all_cases[n]) for n in names):
@@ -598,6 +632,8 @@ def check_regression(
     }
     if update:  # what the new numbers rest on, for whoever reads the baseline later
         new_doc["recorded"] = {**cond, "warnings": notes, "cases": names}
+        if earlier := _earlier_records(doc.get("recorded"), names, all_cases):
+            new_doc["recorded"]["earlier"] = earlier  # the cases --cases left alone keep what they rest on
     elif "recorded" in doc:
         new_doc["recorded"] = doc["recorded"]
     ok = all(not o.problems for o in outcomes) and not missed

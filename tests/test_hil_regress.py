@@ -270,3 +270,31 @@ def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, mo
     monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
     _, diff, _ = check_regression(tiny_baseline, out=tmp_path / "o")
     assert "warning: the baseline was recorded on another host (vm|elsewhere); this one is vm|here" in diff, diff
+
+
+def test_a_partial_update_keeps_what_the_other_cases_rest_on(tmp_path, monkeypatch):
+    """`--update --cases a` rewrote the whole `recorded` block: case b, recorded on another host, then read as
+    recorded on this one, and its cross-host warning was lost (stop 66's note)."""
+    from hil_server import regress
+
+    m = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "latency_p50_ref_s": 0.2,
+         "e2e_latency_p50_s": 0.3, "e2e_latency_max_s": 0.4, "cpu_p50_ref_s": 0.1, "cpu_max_ref_s": 0.2}  # fmt: skip
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}
+    old = {"calibration": {"key": "vm|old", "measured_at": "2026-12-01", "units_per_s": 70.0}, "cases": ["a", "b"]}
+    baseline = tmp_path / "b.json"
+    baseline.write_text(json.dumps({"cases": {"a": case, "b": case}, "recorded": old}))
+    here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-06", "units_per_s": 71.0}}
+    monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
+    monkeypatch.setattr(regress, "check_cases", lambda *a, **k: None)
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(m))
+    _, _, doc = check_regression(baseline, out=tmp_path / "o", update=True, cases=["a"])
+    assert doc["recorded"]["cases"] == ["a"] and doc["recorded"]["calibration"]["key"] == "vm|here"
+    assert doc["recorded"]["earlier"] == [{**old, "cases": ["b"]}]
+    baseline.write_text(json.dumps(doc))
+    _, diff, _ = check_regression(baseline, out=tmp_path / "o", cases=["a"])
+    assert "another host" not in diff, diff
+    _, diff, _ = check_regression(baseline, out=tmp_path / "o", cases=["b"])
+    assert "recorded on another host (vm|old); this one is vm|here" in diff, diff
+    # a full update leaves no earlier session
+    _, _, doc = check_regression(baseline, out=tmp_path / "o", update=True)
+    assert "earlier" not in doc["recorded"] and doc["recorded"]["cases"] == ["a", "b"]
