@@ -270,7 +270,12 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
 
 
 def truth_slope_roughness(
-    scene: Any, world: np.ndarray, cell_m: float, max_cells: int = 4_000_000, truth_cell_m: float | None = None
+    scene: Any,
+    world: np.ndarray,
+    cell_m: float,
+    max_cells: int = 4_000_000,
+    truth_cell_m: float | None = None,
+    origin_m: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """True slope (deg) and roughness (m) at each pixel's true ground point.
 
@@ -279,11 +284,13 @@ def truth_slope_roughness(
     DESIGN.md) is fitted; slope = atan(|grad|), roughness = |z - z_plane|, both
     sampled bilinearly at the pixels' true (X, Y). With ``truth_cell_m`` (a render's
     ``truth_cell_m`` where it is finer than its view raster) they are the renderer's own:
-    :func:`ground_sim.truth.footprint_planes` on that cell, ``z`` from the same raster.
+    :func:`ground_sim.truth.footprint_planes` on that cell, ``z`` from the same raster. Otherwise, given the
+    render's view raster (``cell_m`` its cell, ``origin_m`` its origin), the raster is laid on the render's own
+    nodes and ``z`` is its height at the point, as the renderer takes it.
     """
     import cv2
 
-    from ground_sim.truth import footprint_planes, plane_fit
+    from ground_sim.truth import footprint_planes, plane_fit, plane_fit_factor
 
     X, Y, Z = world[..., 0], world[..., 1], world[..., 2]
     ok = np.isfinite(X) & np.isfinite(Y)
@@ -298,15 +305,23 @@ def truth_slope_roughness(
     x0, x1 = float(X[ok].min()) - pad, float(X[ok].max()) + pad
     y0, y1 = float(Y[ok].min()) - pad, float(Y[ok].max()) + pad
     cell = max(cell_m, math.sqrt((x1 - x0) * (y1 - y0) / max_cells))
+    if origin_m is not None and cell == cell_m:
+        # the render's view raster: its nodes, and plane_fit's coarse blocks, where the renderer had them
+        snap = cell * plane_fit_factor(cell)
+        x0 = origin_m[0] + math.floor((x0 - origin_m[0]) / snap) * snap
+        y0 = origin_m[1] + math.floor((y0 - origin_m[1]) / snap) * snap
     nx, ny = int(math.ceil((x1 - x0) / cell)) + 1, int(math.ceil((y1 - y0) / cell)) + 1
-    H, _ = scene.raster(x0, y0, cell, nx, ny)
+    H = scene.height_raster(x0, y0, cell, nx, ny)
     a, b, c = plane_fit(H.astype(np.float64), cell, FOOTPRINT_M)
     slope = np.degrees(np.arctan(np.hypot(b, c))).astype(np.float32)
     mu = ((np.where(ok, X, x0) - x0) / cell).astype(np.float32)
     mv = ((np.where(ok, Y, y0) - y0) / cell).astype(np.float32)
     s = cv2.remap(slope, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     zp = cv2.remap(a.astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    r = np.abs(Z.astype(np.float32) - zp)
+    zr: np.ndarray = Z.astype(np.float32)
+    if origin_m is not None:  # the raster's own height at the point, as the renderer takes it
+        zr = cv2.remap(H.astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    r = np.abs(zr - zp)
     return np.where(ok, s, np.nan).astype(np.float32), np.where(ok, r, np.nan).astype(np.float32)
 
 
@@ -525,8 +540,17 @@ def evaluate_pair(
         from ground_sim.scene import load_scene
 
         gsd = float(np.nanmedian(pair.truth["depth"])) / pair.camera.fx
+        view0 = (pair.meta.get("render") or [{}])[0]
+        vcell, origin = view0.get("raster_cell_m"), view0.get("raster_origin_m")
+        rendered = isinstance(vcell, (int, float)) and vcell > 0 and isinstance(origin, list) and len(origin) == 2
+        # the renderer's rule: its footprint raster, else its own view raster (QA 67c: a cell of the GSD
+        # disagreed with the hazard truth on a third of a small camera's high view)
         truth["slope_deg"], truth["roughness_m"] = truth_slope_roughness(
-            load_scene(scene_spec, seed), world, max(gsd, 0.02), truth_cell_m=footprint_truth_cell(pair.meta)
+            load_scene(scene_spec, seed),
+            world,
+            float(vcell) if rendered else max(gsd, 0.02),
+            truth_cell_m=footprint_truth_cell(pair.meta),
+            origin_m=(float(origin[0]), float(origin[1])) if rendered else None,
         )
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera

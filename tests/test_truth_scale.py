@@ -164,3 +164,26 @@ def test_evaluate_takes_the_renderers_slope_and_roughness_truth():
             assert np.mean(called[unsafe]) < agree  # the old rule
         else:
             assert np.mean(called[unsafe]) > 0.95 and np.mean(called == unsafe) > 0.999
+
+
+@pytest.mark.parametrize("altitude", [80.0, 4000.0])
+def test_evaluate_takes_the_renderers_view_raster_where_it_keeps_one(altitude):
+    """Where a render keeps its view raster for the truth (a fine view, or a small camera high up), `evaluate`
+    fits on the render's own raster: with a cell of the GSD it disagreed with the hazard truth on a third of a
+    128 px view's pixels at 1000-2400 m (QA of stop 67)."""
+    from studies.evaluate import footprint_truth_cell, truth_slope_roughness
+
+    sc = load_scene("thesis", 1000)
+    v = render_view(sc, CAM, Pose([0.0, 0.0, altitude], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
+    assert footprint_truth_cell({"render": [v.info]}) is None and v.info["truth_cell_m"] == v.info["raster_cell_m"]
+    world = np.dstack([v.world_xy, v.elevation]).astype(np.float64)
+    origin = tuple(v.info["raster_origin_m"])
+    slope, rough = truth_slope_roughness(sc, world, v.info["raster_cell_m"], origin_m=origin)
+    lit = ~v.shadow
+    called = (slope >= 15.0) | (rough >= 0.30)
+    assert np.mean(called[lit] == (v.hazard[lit] >= 1.0)) > 0.98
+    if altitude > 1000:  # the old cell of the GSD
+        gsd = float(np.nanmedian(np.hypot(*np.gradient(v.world_xy[..., 0]))))
+        slope, rough = truth_slope_roughness(sc, world, gsd)
+        old = (slope >= 15.0) | (rough >= 0.30)
+        assert np.mean(old[lit] == (v.hazard[lit] >= 1.0)) < 0.95
