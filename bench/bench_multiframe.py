@@ -88,7 +88,10 @@ def render_descent(case: str, seed: int, altitudes: list[float], cache: Path) ->
     scene = Scene(params, seed)
     sun = DEFAULT_SUN[case]
     cam = Camera.thesis()
-    views = [render_view(scene, cam, p, sun, seed=seed * 7919 + 104729 * k + 17) for k, p in enumerate(poses)]
+    views = [
+        render_view(scene, cam, p, sun, seed=seed * 7919 + 104729 * k + 17, hazard_truth=k == 0)
+        for k, p in enumerate(poses)
+    ]
     truth = {k: getattr(views[0], k) for k in ("elevation", "depth", "shadow", "hazard")}
     meta = {
         "scenario": case,

@@ -12,8 +12,8 @@ import json
 import sys
 import time
 import zlib
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +88,7 @@ class _Job:
     supersample: int
     max_cells: int = MAX_CELLS
     raster: str = DEFAULT_RASTER
+    hazard_truth: bool = True
 
 
 def _render_job(job: _Job) -> View:
@@ -100,6 +101,7 @@ def _render_job(job: _Job) -> View:
         noise=False,
         max_cells=job.max_cells,
         raster=job.raster,
+        hazard_truth=job.hazard_truth,
     )
 
 
@@ -118,20 +120,28 @@ def render_views(
     max_cells: int = MAX_CELLS,
     raster: str = DEFAULT_RASTER,
     on_view: Callable[[int, int], None] | None = None,
+    hazard_truth: Sequence[bool] | None = None,
 ) -> list[View]:
     """Noise-free views of ``poses`` (duplicates rendered once), in a pool of ``workers`` processes;
-    ``on_view(done, total)`` as each view is drawn (a progress bar)."""
+    ``on_view(done, total)`` as each view is drawn (a progress bar). ``hazard_truth[i]`` False: pose ``i`` needs
+    no slope and roughness truth (``render_view(hazard_truth=False)``; a duplicate that needs it gets it)."""
     from ground_sim.parallel import pool_map
 
     check_max_cells(max_cells)  # here, not in a worker: a bad value is one clear error
     check_raster(raster)
+    wants = [True] * len(poses) if hazard_truth is None else [bool(w) for w in hazard_truth]
+    if len(wants) != len(poses):
+        raise ValueError(f"render_views: {len(wants)} hazard_truth flags for {len(poses)} poses")
     uniq: dict[bytes, int] = {}
     jobs: list[tuple[_Job]] = []
-    for p in poses:
+    for p, want in zip(poses, wants, strict=True):
         k = _pose_key(camera, p)
         if k not in uniq:
             uniq[k] = len(jobs)
-            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells, raster),))
+            jobs.append((_Job(scene.params, scene.seed, camera, p, sun, int(supersample), max_cells, raster, want),))
+        elif want:
+            i = uniq[k]
+            jobs[i] = (replace(jobs[i][0], hazard_truth=True),)
     if workers is None and camera.width * camera.height * len(jobs) <= INLINE_PIXELS:
         workers = 1  # a pool's start-up (spawn + imports, ~1 s) would cost more than it saves
     drawn = [0]
@@ -256,8 +266,14 @@ def render_pair(
         workers=workers,
         max_cells=max_cells,
         raster=raster,
+        hazard_truth=first_frames([spec]),
     )
     return assemble_pair(scene, spec, sun, views, seed=seed, pose_error=pose_error)
+
+
+def first_frames(specs: Sequence[PairSpec]) -> list[bool]:
+    """Per pose of ``specs`` (in order): True for each pair's frame 0, the only frame whose truth a pair keeps."""
+    return [k == 0 for ps in specs for k in range(len(ps.poses))]
 
 
 def _progress(i: int, n: int, label: str, t0: float, enabled: bool) -> None:
@@ -350,6 +366,7 @@ def render_scenario(
         workers=workers,
         max_cells=max_cells,
         raster=raster,
+        hazard_truth=first_frames(specs),
         # the frames are most of the time: one line each in a log (the pairs' lines follow as they are written)
         on_view=lambda k, n: _progress(k, n, "frames", t0, progress),
     )

@@ -274,6 +274,7 @@ class _Caster:
     zstart: np.ndarray
     margin: float
     truth_cell: float | None  # the footprint raster of the slope and roughness truth; None: the view raster
+    hazard_truth: bool  # False: no slope and roughness truth (render_view(hazard_truth=False))
 
     def __init__(
         self,
@@ -286,8 +287,10 @@ class _Caster:
         max_cells: int = MAX_CELLS,
         tile_of: _Caster | None = None,
         plan: RasterPlan | None = None,
+        hazard_truth: bool = True,
     ) -> None:
         self.scene, self.camera, self.pose, self.sun, self.ss = scene, camera, pose, sun, ss
+        self.hazard_truth = hazard_truth if tile_of is None else tile_of.hazard_truth
         W, Hh = camera.width, camera.height
         if tile_of is not None and plan is not None:
             # a tile of a view (render_view(raster="tiles")): its own raster, the view's start heights
@@ -415,7 +418,9 @@ class _Caster:
     def truth(self, dp: np.ndarray, tp: np.ndarray, shadow: np.ndarray) -> dict[str, np.ndarray]:
         """Elevation, depth, world X/Y and hazard of centre-ray hits (flat arrays)."""
         Xp = self.C + tp[:, None] * dp
-        if self.truth_cell is not None:
+        if not self.hazard_truth:
+            hazard = np.full(len(Xp), np.nan, np.float32)
+        elif self.truth_cell is not None:
             hazard = hazard_layers(*footprint_planes(self.heights, Xp[:, 0], Xp[:, 1], self.truth_cell), shadow)
         else:
             a, b, c = plane_fit(self.H, self.cell)
@@ -453,6 +458,7 @@ def render_view(
     noise: bool = True,
     max_cells: int = MAX_CELLS,
     raster: str = DEFAULT_RASTER,
+    hazard_truth: bool = True,
 ) -> View:
     """Render ``scene`` from ``pose`` under ``sun``; see the module docstring for the method.
 
@@ -461,12 +467,16 @@ def render_view(
     slope and roughness truth too while it holds the footprint's disk (else a 0.5 m raster; module docstring).
     ``raster="view"`` draws everything from one raster per view, capped at ``max_cells`` (the renders before
     2026-11-25).
+
+    ``hazard_truth=False`` skips the slope and roughness truth, most of a high view's time (a pair's later
+    frames, whose truth nothing reads): ``View.hazard`` is then all NaN and ``info["truth_cell_m"]`` None. The
+    image and every other truth layer are the same bytes.
     """
     _check_pose(camera, pose)
     _check_args(sun, supersample, max_cells)
     check_raster(raster)
     ss = int(supersample)
-    cs = _Caster(scene, camera, pose, sun, ss, max_cells=max_cells)
+    cs = _Caster(scene, camera, pose, sun, ss, max_cells=max_cells, hazard_truth=hazard_truth)
     if raster == "tiles":
         return _render_tiles(cs, seed=seed, noise=noise, max_cells=max_cells)
     C = cs.C
@@ -531,7 +541,8 @@ def _view_info(cs: _Caster, alt_m: float, **extra: Any) -> dict[str, Any]:
         "raster_cell_over_target": extra.pop("raster_cell_over_target"),
         "raster_origin_m": [p.x0, p.y0],
         # the raster the slope and roughness truth's plane was fitted on (ground_sim.truth.footprint_cell)
-        "truth_cell_m": p.cell if cs.truth_cell is None else cs.truth_cell,
+        # (None: no slope and roughness truth drawn, render_view(hazard_truth=False))
+        "truth_cell_m": None if not cs.hazard_truth else p.cell if cs.truth_cell is None else cs.truth_cell,
         **extra,
         "altimeter_m": alt_m,
     }
@@ -579,15 +590,15 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
     S_far32 = (S_far - cs.r.zref).astype(np.float32)
     # slope and roughness truth: the view raster's when it is fine enough, else one footprint-scale raster after
     # the tiles (footprint_planes over every pixel's ground point: its strips then span the view once)
-    truth_cell = cs.truth_cell
-    a_c, b_c, c_c = (None, None, None) if truth_cell is not None else plane_fit(cs.H, cs.cell)
+    truth_cell, view_truth = cs.truth_cell, cs.hazard_truth and cs.truth_cell is None
+    a_c, b_c, c_c = plane_fit(cs.H, cs.cell) if view_truth else (None, None, None)
     off = (np.arange(ss) + 0.5) / ss - 0.5
     rad = np.zeros((Hh, W), np.float32)
     litf = np.zeros((Hh, W), np.float32)
     elev = np.zeros((Hh, W))
     depth = np.zeros((Hh, W))
     wxy = np.zeros((Hh, W, 2))
-    haz = np.zeros((Hh, W), np.float32)
+    haz = np.zeros((Hh, W), np.float32) if cs.hazard_truth else np.full((Hh, W), np.nan, np.float32)
     alt_m = math.nan
     worst, cells = 1.0, 0
     iu = int(np.clip(round(camera.cx), 0, W - 1))
@@ -617,7 +628,7 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
         dp, tp = tc.march(PU.ravel(), PV.ravel(), tc.centre_start(zpix[iy, ix].ravel()))
         Xp = C + tp[:, None] * dp
         shp = (v1 - v0, u1 - u0)
-        if truth_cell is None:
+        if view_truth:
             zc = cs.r.sample(Xp[:, 0], Xp[:, 1])
             pa, pb, pc = (cs.r.sample(Xp[:, 0], Xp[:, 1], m) for m in (a_c, b_c, c_c))
             haz[v0:v1, u0:u1] = hazard_layers(zc, pa, pb, pc, (lt[iy, ix] < 0.5).ravel()).reshape(shp)
@@ -627,7 +638,7 @@ def _render_tiles(cs: _Caster, *, seed: int, noise: bool, max_cells: int) -> Vie
         wxy[v0:v1, u0:u1] = Xp[:, :2].reshape(shp + (2,))
         if u0 <= iu < u1 and v0 <= iv < v1:
             alt_m = tc.altimeter(float(tc.centre_start(zpix[iv - h0, iu - g0])))
-    if truth_cell is not None:
+    if cs.hazard_truth and truth_cell is not None:
         planes = footprint_planes(cs.heights, wxy[..., 0].ravel(), wxy[..., 1].ravel(), truth_cell)
         haz = hazard_layers(*planes, (litf < 0.5).ravel()).reshape(Hh, W)
     image, gain = _sensor_image(cs, rad, seed, noise)

@@ -27,16 +27,21 @@ def plane_fit_factor(cell: float, footprint: float = FOOTPRINT_M, max_radius_cel
     return max(1, int(math.ceil((footprint / 2) / (max_radius_cells * cell))))
 
 
+def footprint_disk(n: int, cell: float, footprint: float = FOOTPRINT_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dx, dy, disk): the offsets (m) of a (2n+1)^2 block of ``cell`` cells and the float mask of those within
+    ``footprint / 2`` of its centre, the support of every plane fit here (DESIGN.md "Hazard definitions")."""
+    off = np.arange(-n, n + 1) * cell
+    dx, dy = np.meshgrid(off, off)
+    return dx, dy, (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+
+
 def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_radius_cells: int = 12):
     """(a, b, c) rasters of the LSQ plane ``z = a + b dx + c dy`` over a disk around each cell."""
     k = plane_fit_factor(cell, footprint, max_radius_cells)
     Hc = cv2.resize(H, (H.shape[1] // k, H.shape[0] // k), interpolation=cv2.INTER_AREA) if k > 1 else H
     cc = cell * k
     rad = footprint / 2 / cc
-    n = int(math.floor(rad))
-    off = np.arange(-n, n + 1) * cc
-    dx, dy = np.meshgrid(off, off)
-    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+    dx, dy, disk = footprint_disk(int(math.floor(rad)), cc, footprint)
     if disk.sum() < 5:  # footprint under ~2 cells: 3x3 neighbourhood
         disk = np.ones((3, 3))
         dx, dy = np.meshgrid(np.array([-cc, 0, cc]), np.array([-cc, 0, cc]))
@@ -93,9 +98,7 @@ def disk_kernels(cell: float, footprint: float = FOOTPRINT_M) -> tuple[int, np.n
     n = int(math.floor(footprint / 2 / cell + 1e-9))
     if n < 1:
         raise ValueError(f"a raster of {cell:g} m cells holds no {footprint:g} m disk")
-    off = np.arange(-n, n + 1) * cell
-    dx, dy = np.meshgrid(off, off)
-    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+    dx, dy, disk = footprint_disk(n, cell, footprint)
     return n, disk / disk.sum(), disk * dx / np.sum(disk * dx * dx), disk * dy / np.sum(disk * dy * dy)
 
 
@@ -193,9 +196,7 @@ def weighted_plane_fit(
     :func:`plane_fit`, which then takes the 3x3 neighbourhood of a raster finer than any pixel: here the cells
     are the camera's, and a wider plane would be truth at another scale than DESIGN.md's)."""
     n = max(1, int(math.floor(footprint / 2 / cell)))
-    off = np.arange(-n, n + 1) * cell
-    dx, dy = np.meshgrid(off, off)
-    disk = (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
+    dx, dy, disk = footprint_disk(n, cell, footprint)
     shape = np.shape(Z)
     out: tuple[np.ndarray, np.ndarray, np.ndarray] = (
         np.full(shape, np.nan, np.float32),

@@ -187,3 +187,34 @@ def test_evaluate_takes_the_renderers_view_raster_where_it_keeps_one(altitude):
         slope, rough = truth_slope_roughness(sc, world, gsd)
         old = (slope >= 15.0) | (rough >= 0.30)
         assert np.mean(old[lit] == (v.hazard[lit] >= 1.0)) < 0.95
+
+
+def test_a_frame_without_hazard_truth_keeps_every_other_byte_and_its_pair_keeps_frame_0s_truth():
+    from ground_sim.descent import render_views
+
+    sc = load_scene("thesis", 1000)
+    pose = Pose([0.0, -1500.0, 1200.0], look_rotation(45.0))  # takes the footprint raster (test above)
+    sun = Sun(135.0, 25.0)
+    full = render_view(sc, CAM, pose, sun, noise=False)
+    bare = render_view(sc, CAM, pose, sun, noise=False, hazard_truth=False)
+    for k in ("image", "elevation", "depth", "shadow", "world_xy", "radiance"):
+        assert np.array_equal(getattr(full, k), getattr(bare, k)), k
+    assert np.isnan(bare.hazard).all() and np.isfinite(full.hazard).all()
+    assert bare.info["truth_cell_m"] is None and full.info["truth_cell_m"] == 1.0
+    # a pose two pairs share is drawn once, with the truth if any of them needs it
+    a, b = render_views(sc, CAM, [pose, pose], sun, hazard_truth=[False, True])
+    assert np.array_equal(a.hazard, full.hazard) and b is a
+    with pytest.raises(ValueError, match="2 poses"):
+        render_views(sc, CAM, [pose, pose], sun, hazard_truth=[True])
+
+
+def test_a_multi_frame_render_draws_the_truth_of_frame_0_only(tmp_path):
+    import json
+
+    from ground_sim.descent import render_scenario
+
+    render_scenario("approach", tmp_path, frames=[[2400, 2000, 1200]], camera=CAM, progress=False, workers=1)
+    (d,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    views = json.loads((d / "pair.json").read_text())["render"]
+    assert views[0]["truth_cell_m"] is not None and [v["truth_cell_m"] for v in views[1:]] == [None, None]
+    assert np.isfinite(np.load(d / "gt_hazard_i1.npy")).all()
