@@ -45,10 +45,8 @@ from eval_flight import CASES, render_case, run_pair  # noqa: E402
 from ground_sim.truth import (  # noqa: E402
     ROUGH_LIMIT_M,
     SLOPE_LIMIT_DEG,
-    bilinear_inside,
     footprint_planes,
     hazard_layers,
-    plane_fit,
 )
 
 
@@ -69,21 +67,15 @@ def fine_layers(
 
 
 def stored_truth(scene: Any, view: dict[str, Any], X: np.ndarray, Y: np.ndarray, shadow: np.ndarray) -> np.ndarray:
-    """The rendered slope/roughness truth again at (X, Y) by the renderer's rule (the footprint raster of
-    ``truth_cell_m``, or the view raster's ``plane_fit`` with its coarsening and fallback), combined with
-    ``shadow``: the check that the scene and the rule are reproduced."""
-    cell = float(view["raster_cell_m"])
-    tcell = float(view.get("truth_cell_m", cell))
-    if tcell < cell:
-        return hazard_layers(*footprint_planes(scene.height_raster, X, Y, tcell), shadow)
-    x0, y0 = view["raster_origin_m"]
-    ny, nx = view["raster_shape"]
-    H, _ = scene.raster(x0, y0, cell, nx, ny)
-    a, b, c = plane_fit(H, cell)
-    gx = np.clip((X - x0) / cell, 0.0, nx - 1.000001)
-    gy = np.clip((Y - y0) / cell, 0.0, ny - 1.000001)
-    zc, pa, pb, pc = (bilinear_inside(m, gx, gy) for m in (H, a, b, c))
-    return hazard_layers(zc, pa, pb, pc, shadow)
+    """The rendered slope/roughness truth again at (X, Y) by the renderer's rule
+    (:func:`studies.evaluate.recorded_truth_planes`), combined with ``shadow``: the check that the scene and the
+    rule are reproduced."""
+    from studies.evaluate import recorded_truth_planes
+
+    planes = recorded_truth_planes(scene, view, X, Y)
+    if planes is None:
+        raise SystemExit("truth_scale: the pair does not record its view raster (render it with this renderer)")
+    return hazard_layers(*planes, shadow)
 
 
 def scene_of(case: str, seed: int) -> Any:

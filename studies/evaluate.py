@@ -269,35 +269,76 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
     return np.stack([camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx, camera.fy * Xc[:, 1] / Xc[:, 2] + camera.cy], 1)
 
 
+def recorded_truth_planes(
+    scene: Any, view: dict[str, Any], X: np.ndarray, Y: np.ndarray, max_cells: int = 4_000_000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The renderer's footprint planes again at ground points (X, Y): ``(z, a, b, c)`` of ``z = a + b dx + c dy``.
+
+    ``view`` is the render's record of the view (pair.json ``render[k]``, ``ground_sim.render._view_info``). Where
+    ``truth_cell_m`` is finer than ``raster_cell_m``, the planes are :func:`ground_sim.truth.footprint_planes` on that
+    cell; else they are :func:`ground_sim.truth.plane_fit` on the recorded view raster (its origin and shape, with
+    its coarsening and fallback), sampled bilinearly, and ``z`` is that raster's height. This is the rule the
+    hazard truth was drawn with (docs/scenes.md, "Ground-truth accuracy" item 6). None when the record is not a
+    whole one, the raster would exceed ``max_cells`` or does not hold the points (a pair from elsewhere).
+    """
+    from ground_sim.truth import bilinear_inside, footprint_planes, plane_fit
+
+    def finite(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    def num(v: Any) -> float | None:
+        return float(v) if finite(v) and v > 0 else None
+
+    cell, tcell = num(view.get("raster_cell_m")), num(view.get("truth_cell_m"))
+    origin, shape = view.get("raster_origin_m"), view.get("raster_shape")
+    if cell is None or not (isinstance(origin, list) and len(origin) == 2 and all(map(finite, origin))):
+        return None
+    if tcell is not None and tcell < cell:
+        return footprint_planes(scene.height_raster, X, Y, tcell)
+    if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(n, (int, np.integer)) for n in shape)):
+        return None
+    ny, nx = int(shape[0]), int(shape[1])
+    x0, y0 = float(origin[0]), float(origin[1])
+    gx, gy = (X - x0) / cell, (Y - y0) / cell
+    inside = gx.min() >= 0 and gy.min() >= 0 and gx.max() <= nx - 1 and gy.max() <= ny - 1
+    if min(nx, ny) < 2 or nx * ny > max_cells or not inside:
+        return None
+    H = scene.height_raster(x0, y0, cell, nx, ny)
+    a, b, c = plane_fit(H, cell)
+    gx, gy = np.clip(gx, 0.0, nx - 1.000001), np.clip(gy, 0.0, ny - 1.000001)
+    z, pa, pb, pc = (bilinear_inside(m, gx, gy) for m in (H, a, b, c))
+    return z, pa, pb, pc
+
+
 def truth_slope_roughness(
     scene: Any,
     world: np.ndarray,
     cell_m: float,
     max_cells: int = 4_000_000,
-    truth_cell_m: float | None = None,
-    origin_m: tuple[float, float] | None = None,
+    view: dict[str, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """True slope (deg) and roughness (m) at each pixel's true ground point.
+    """True slope (deg) and roughness (m) at each pixel's true ground point: slope = atan(|(b, c)|) and
+    roughness = |z - a| of the least-squares plane ``z = a + b dx + c dy`` over the 3 m footprint
+    (``ground_sim.truth``, DESIGN.md "Hazard definitions").
 
-    The scene is rastered at ``cell_m`` over the pixels' footprint and the same
-    3 m least-squares plane as the ground-truth hazard (``ground_sim.truth``,
-    DESIGN.md) is fitted; slope = atan(|grad|), roughness = |z - z_plane|, both
-    sampled bilinearly at the pixels' true (X, Y). With ``truth_cell_m`` (a render's
-    ``truth_cell_m`` where it is finer than its view raster) they are the renderer's own:
-    :func:`ground_sim.truth.footprint_planes` on that cell, ``z`` from the same raster. Otherwise, given the
-    render's view raster (``cell_m`` its cell, ``origin_m`` its origin), the raster is laid on the render's own
-    nodes and ``z`` is its height at the point, as the renderer takes it.
+    With ``view`` (the render's record of frame 0) the planes are the renderer's own (:func:`recorded_truth_planes`),
+    the ones the hazard truth was drawn with. Otherwise (a pair rendered elsewhere) the scene is rastered at
+    ``cell_m`` over the pixels' ground, coarser if that would exceed ``max_cells``, and the plane is sampled
+    bilinearly at the points, ``z`` being the pixels' own elevation.
     """
     import cv2
 
-    from ground_sim.truth import footprint_planes, plane_fit, plane_fit_factor
+    from ground_sim.truth import plane_fit
 
     X, Y, Z = world[..., 0], world[..., 1], world[..., 2]
     ok = np.isfinite(X) & np.isfinite(Y)
-    if truth_cell_m is not None:
-        slope = np.full(X.shape, np.nan, np.float32)
-        rough = np.full(X.shape, np.nan, np.float32)
-        z, a, b, c = footprint_planes(scene.height_raster, X[ok], Y[ok], truth_cell_m)
+    slope = np.full(X.shape, np.nan, np.float32)
+    rough = np.full(X.shape, np.nan, np.float32)
+    if not ok.any():
+        return slope, rough
+    planes = recorded_truth_planes(scene, view, X[ok], Y[ok], max_cells) if view is not None else None
+    if planes is not None:
+        z, a, b, c = planes
         slope[ok] = np.degrees(np.arctan(np.hypot(b, c)))
         rough[ok] = np.abs(z - a)
         return slope, rough
@@ -305,34 +346,16 @@ def truth_slope_roughness(
     x0, x1 = float(X[ok].min()) - pad, float(X[ok].max()) + pad
     y0, y1 = float(Y[ok].min()) - pad, float(Y[ok].max()) + pad
     cell = max(cell_m, math.sqrt((x1 - x0) * (y1 - y0) / max_cells))
-    if origin_m is not None and cell == cell_m:
-        # the render's view raster: its nodes, and plane_fit's coarse blocks, where the renderer had them
-        snap = cell * plane_fit_factor(cell)
-        x0 = origin_m[0] + math.floor((x0 - origin_m[0]) / snap) * snap
-        y0 = origin_m[1] + math.floor((y0 - origin_m[1]) / snap) * snap
     nx, ny = int(math.ceil((x1 - x0) / cell)) + 1, int(math.ceil((y1 - y0) / cell)) + 1
     H = scene.height_raster(x0, y0, cell, nx, ny)
     a, b, c = plane_fit(H.astype(np.float64), cell, FOOTPRINT_M)
-    slope = np.degrees(np.arctan(np.hypot(b, c))).astype(np.float32)
+    s = np.degrees(np.arctan(np.hypot(b, c))).astype(np.float32)
     mu = ((np.where(ok, X, x0) - x0) / cell).astype(np.float32)
     mv = ((np.where(ok, Y, y0) - y0) / cell).astype(np.float32)
-    s = cv2.remap(slope, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    s = cv2.remap(s, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     zp = cv2.remap(a.astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    zr: np.ndarray = Z.astype(np.float32)
-    if origin_m is not None:  # the raster's own height at the point, as the renderer takes it
-        zr = cv2.remap(H.astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    r = np.abs(zr - zp)
+    r = np.abs(Z.astype(np.float32) - zp)
     return np.where(ok, s, np.nan).astype(np.float32), np.where(ok, r, np.nan).astype(np.float32)
-
-
-def footprint_truth_cell(meta: dict[str, Any]) -> float | None:
-    """Frame 0's footprint-raster cell where its render took the slope and roughness truth on one (pair.json
-    ``render[0]``: ``truth_cell_m`` finer than ``raster_cell_m``, ``RENDER_VERSION`` 3), else None."""
-    views = meta.get("render") or [{}]
-    tcell, vcell = views[0].get("truth_cell_m"), views[0].get("raster_cell_m")
-    if isinstance(tcell, (int, float)) and isinstance(vcell, (int, float)) and 0 < tcell < vcell:
-        return float(tcell)
-    return None
 
 
 # --------------------------------------------------------------------------- scoring one result
@@ -540,17 +563,14 @@ def evaluate_pair(
         from ground_sim.scene import load_scene
 
         gsd = float(np.nanmedian(pair.truth["depth"])) / pair.camera.fx
-        view0 = (pair.meta.get("render") or [{}])[0]
-        vcell, origin = view0.get("raster_cell_m"), view0.get("raster_origin_m")
-        rendered = isinstance(vcell, (int, float)) and vcell > 0 and isinstance(origin, list) and len(origin) == 2
-        # the renderer's rule: its footprint raster, else its own view raster (QA 67c: a cell of the GSD
-        # disagreed with the hazard truth on a third of a small camera's high view)
+        views = pair.meta.get("render")
+        # the renderer's own planes, where the pair records its render (QA 67c: a cell of the GSD disagreed with
+        # the hazard truth on a third of a small camera's high view)
         truth["slope_deg"], truth["roughness_m"] = truth_slope_roughness(
             load_scene(scene_spec, seed),
             world,
-            float(vcell) if rendered else max(gsd, 0.02),
-            truth_cell_m=footprint_truth_cell(pair.meta),
-            origin_m=(float(origin[0]), float(origin[1])) if rendered else None,
+            max(gsd, 0.02),
+            view=views[0] if isinstance(views, list) and views and isinstance(views[0], dict) else None,
         )
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera

@@ -148,20 +148,19 @@ def test_every_table_view_of_both_scenarios_takes_its_truth_at_half_a_metre():
 def test_evaluate_takes_the_renderers_slope_and_roughness_truth():
     """`evaluate`'s slope and roughness truth (its slope/roughness errors and FN causes) is the renderer's rule:
     with the old rule (a 3x3 block of GSD cells) it missed the boulders' flanks the hazard truth holds."""
-    from studies.evaluate import footprint_truth_cell, truth_slope_roughness
+    from studies.evaluate import truth_slope_roughness
 
     sc = _boulder_scene()
     v = render_view(sc, CAM, Pose([0.0, 0.0, 800.0], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
     world = np.dstack([v.world_xy, v.elevation]).astype(np.float64)
-    cell = footprint_truth_cell({"render": [v.info]})
-    assert cell == TRUTH_CELL_M and footprint_truth_cell({"render": [{"raster_cell_m": 0.3}]}) is None
+    assert v.info["truth_cell_m"] == TRUTH_CELL_M < v.info["raster_cell_m"]
     unsafe = v.hazard >= 1.0
     assert unsafe.sum() >= 10
-    for truth_cell, agree in ((cell, 1.0), (None, 0.5)):
-        slope, rough = truth_slope_roughness(sc, world, 3.35, truth_cell_m=truth_cell)
+    for view in (v.info, None):
+        slope, rough = truth_slope_roughness(sc, world, 3.35, view=view)
         called = (slope >= 15.0) | (rough >= 0.30)
-        if truth_cell is None:
-            assert np.mean(called[unsafe]) < agree  # the old rule
+        if view is None:
+            assert np.mean(called[unsafe]) < 0.5  # the old rule
         else:
             assert np.mean(called[unsafe]) > 0.95 and np.mean(called == unsafe) > 0.999
 
@@ -169,24 +168,52 @@ def test_evaluate_takes_the_renderers_slope_and_roughness_truth():
 @pytest.mark.parametrize("altitude", [80.0, 4000.0])
 def test_evaluate_takes_the_renderers_view_raster_where_it_keeps_one(altitude):
     """Where a render keeps its view raster for the truth (a fine view, or a small camera high up), `evaluate`
-    fits on the render's own raster: with a cell of the GSD it disagreed with the hazard truth on a third of a
-    128 px view's pixels at 1000-2400 m (QA of stop 67)."""
-    from studies.evaluate import footprint_truth_cell, truth_slope_roughness
+    fits on the render's own raster and reproduces the hazard truth; with a cell of the GSD it disagreed with it on
+    a third of a 128 px view's pixels at 1000-2400 m (QA of stop 67)."""
+    import json
+
+    from studies.evaluate import recorded_truth_planes, truth_slope_roughness
 
     sc = load_scene("thesis", 1000)
     v = render_view(sc, CAM, Pose([0.0, 0.0, altitude], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
-    assert footprint_truth_cell({"render": [v.info]}) is None and v.info["truth_cell_m"] == v.info["raster_cell_m"]
+    assert v.info["truth_cell_m"] == v.info["raster_cell_m"]
     world = np.dstack([v.world_xy, v.elevation]).astype(np.float64)
-    origin = tuple(v.info["raster_origin_m"])
-    slope, rough = truth_slope_roughness(sc, world, v.info["raster_cell_m"], origin_m=origin)
-    lit = ~v.shadow
+    view = json.loads(json.dumps(v.info))  # as pair.json holds it
+    slope, rough = truth_slope_roughness(sc, world, v.info["raster_cell_m"], view=view)
     called = (slope >= 15.0) | (rough >= 0.30)
+    X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
+    planes = recorded_truth_planes(sc, view, X, Y)
+    assert planes is not None
+    again = hazard_layers(*planes, v.shadow.ravel()).reshape(v.hazard.shape)
+    assert np.array_equal(again >= 1.0, v.hazard >= 1.0)  # the renderer's truth, every pixel
+    lit = ~v.shadow
     assert np.mean(called[lit] == (v.hazard[lit] >= 1.0)) > 0.98
     if altitude > 1000:  # the old cell of the GSD
         gsd = float(np.nanmedian(np.hypot(*np.gradient(v.world_xy[..., 0]))))
         slope, rough = truth_slope_roughness(sc, world, gsd)
         old = (slope >= 15.0) | (rough >= 0.30)
         assert np.mean(old[lit] == (v.hazard[lit] >= 1.0)) < 0.95
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        {"raster_cell_m": None},
+        {"raster_origin_m": ["0", 0]},
+        {"raster_origin_m": [float("nan"), 0.0]},
+        {"raster_shape": [10**6, 10**6]},  # a stranger's pair.json: memory is bounded before it is spent
+        {"raster_shape": [3, 3]},  # does not hold the points
+        {"raster_shape": "big"},
+    ],
+)
+def test_a_render_record_that_is_not_whole_falls_back_to_the_scene(damage):
+    from studies.evaluate import recorded_truth_planes
+
+    sc = load_scene("thesis", 1000)
+    v = render_view(sc, CAM, Pose([0.0, 0.0, 80.0], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
+    X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
+    assert recorded_truth_planes(sc, v.info, X, Y) is not None
+    assert recorded_truth_planes(sc, v.info | damage, X, Y) is None
 
 
 def test_a_frame_without_hazard_truth_keeps_every_other_byte_and_its_pair_keeps_frame_0s_truth():
