@@ -270,35 +270,50 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
 
 
 def recorded_truth_planes(
-    scene: Any, view: dict[str, Any], X: np.ndarray, Y: np.ndarray, max_cells: int = 4_000_000
+    scene: Any,
+    view: dict[str, Any],
+    X: np.ndarray,
+    Y: np.ndarray,
+    max_cells: int = 4_000_000,
+    Z: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The renderer's footprint planes again at ground points (X, Y): ``(z, a, b, c)`` of ``z = a + b dx + c dy``.
 
     ``view`` is the render's record of the view (pair.json ``render[k]``, ``ground_sim.render._view_info``). Where
-    ``truth_cell_m`` is finer than ``raster_cell_m``, the planes are :func:`ground_sim.truth.footprint_planes` on that
-    cell; else they are :func:`ground_sim.truth.plane_fit` on the recorded view raster (its origin and shape, with
-    its coarsening and fallback), sampled bilinearly, and ``z`` is that raster's height. This is the rule the
-    hazard truth was drawn with (docs/scenes.md, "Ground-truth accuracy" item 6). None when the record is not a
-    whole one, the raster would exceed ``max_cells`` or does not hold the points (a pair from elsewhere).
+    ``truth_cell_m`` (one of ``ground_sim.truth.TRUTH_CELLS_M``) is finer than ``raster_cell_m``, the planes are
+    :func:`ground_sim.truth.footprint_planes` on that cell; else they are :func:`ground_sim.truth.plane_fit` on the
+    recorded view raster (its origin and shape, with its coarsening and fallback), sampled bilinearly. ``z`` is
+    that raster's height, except for a render drawn from one raster per view (no ``raster_tiles`` in the record),
+    which took the pixel's own hit: ``Z``, the points' true elevations. This is the rule the hazard truth was drawn
+    with (docs/scenes.md, "Ground-truth accuracy" item 6). None when the record is not a whole one, the raster
+    would exceed ``max_cells`` or does not hold the points (a pair from elsewhere).
     """
-    from ground_sim.truth import bilinear_inside, footprint_planes, plane_fit
+    from ground_sim.truth import TRUTH_CELLS_M, bilinear_inside, footprint_planes, plane_fit
 
-    def finite(v: Any) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    def real(v: Any) -> float | None:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            return None
+        try:
+            f = float(v)  # a 400-digit integer is valid JSON
+        except OverflowError:
+            return None
+        return f if math.isfinite(f) else None
 
     def num(v: Any) -> float | None:
-        return float(v) if finite(v) and v > 0 else None
+        f = real(v)
+        return f if f is not None and 0 < f < 1e4 else None
 
     cell, tcell = num(view.get("raster_cell_m")), num(view.get("truth_cell_m"))
     origin, shape = view.get("raster_origin_m"), view.get("raster_shape")
-    if cell is None or not (isinstance(origin, list) and len(origin) == 2 and all(map(finite, origin))):
+    x0, y0 = (real(o) for o in origin) if isinstance(origin, list) and len(origin) == 2 else (None, None)
+    if cell is None or x0 is None or y0 is None:
         return None
     if tcell is not None and tcell < cell:
-        return footprint_planes(scene.height_raster, X, Y, tcell)
+        # a cell the renderer takes, never another: memory and time follow the ground over cell^2
+        return footprint_planes(scene.height_raster, X, Y, tcell) if tcell in TRUTH_CELLS_M else None
     if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(n, (int, np.integer)) for n in shape)):
         return None
     ny, nx = int(shape[0]), int(shape[1])
-    x0, y0 = float(origin[0]), float(origin[1])
     gx, gy = (X - x0) / cell, (Y - y0) / cell
     inside = gx.min() >= 0 and gy.min() >= 0 and gx.max() <= nx - 1 and gy.max() <= ny - 1
     if min(nx, ny) < 2 or nx * ny > max_cells or not inside:
@@ -307,6 +322,8 @@ def recorded_truth_planes(
     a, b, c = plane_fit(H, cell)
     gx, gy = np.clip(gx, 0.0, nx - 1.000001), np.clip(gy, 0.0, ny - 1.000001)
     z, pa, pb, pc = (bilinear_inside(m, gx, gy) for m in (H, a, b, c))
+    if "raster_tiles" not in view and Z is not None:
+        z = np.asarray(Z, np.float64)
     return z, pa, pb, pc
 
 
@@ -336,7 +353,7 @@ def truth_slope_roughness(
     rough = np.full(X.shape, np.nan, np.float32)
     if not ok.any():
         return slope, rough
-    planes = recorded_truth_planes(scene, view, X[ok], Y[ok], max_cells) if view is not None else None
+    planes = recorded_truth_planes(scene, view, X[ok], Y[ok], max_cells, Z[ok]) if view is not None else None
     if planes is not None:
         z, a, b, c = planes
         slope[ok] = np.degrees(np.arctan(np.hypot(b, c)))

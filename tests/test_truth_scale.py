@@ -204,6 +204,10 @@ def test_evaluate_takes_the_renderers_view_raster_where_it_keeps_one(altitude):
         {"raster_shape": [10**6, 10**6]},  # a stranger's pair.json: memory is bounded before it is spent
         {"raster_shape": [3, 3]},  # does not hold the points
         {"raster_shape": "big"},
+        {"truth_cell_m": 1e-6},  # a 65 TiB raster
+        {"truth_cell_m": 0.02},  # no cell the renderer takes: its cost grows as 1/cell^2
+        {"truth_cell_m": 0.5, "raster_cell_m": 10**400},  # valid JSON
+        {"raster_origin_m": [10**400, 0]},
     ],
 )
 def test_a_render_record_that_is_not_whole_falls_back_to_the_scene(damage):
@@ -245,3 +249,20 @@ def test_a_multi_frame_render_draws_the_truth_of_frame_0_only(tmp_path):
     views = json.loads((d / "pair.json").read_text())["render"]
     assert views[0]["truth_cell_m"] is not None and [v["truth_cell_m"] for v in views[1:]] == [None, None]
     assert np.isfinite(np.load(d / "gt_hazard_i1.npy")).all()
+
+
+@pytest.mark.parametrize("altitude", [80.0, 1000.0])
+def test_evaluate_reproduces_a_view_raster_renders_truth(altitude):
+    """A render drawn from one raster per view (``raster="view"``) took its roughness from the pixel's own hit, not
+    the raster's height: `evaluate` takes the same (review of stop 68: 7 of 16 384 pixels flipped otherwise)."""
+    from studies.evaluate import recorded_truth_planes
+
+    sc = load_scene("thesis", 1000)
+    pose = Pose([0.0, -altitude, altitude], look_rotation(45.0))
+    v = render_view(sc, CAM, pose, Sun(135.0, 25.0), noise=False, raster="view")
+    X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
+    planes = recorded_truth_planes(sc, v.info, X, Y, Z=v.elevation.ravel())
+    assert planes is not None
+    again = hazard_layers(*planes, v.shadow.ravel()).reshape(v.hazard.shape)
+    assert np.array_equal(again >= 1.0, v.hazard >= 1.0)
+    assert np.max(np.abs(again - v.hazard)) < 1e-3
