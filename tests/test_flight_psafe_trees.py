@@ -180,3 +180,34 @@ def test_fit_psafe_refuses_an_operating_point_out_of_bounds_before_it_fits(value
     argv = ["--seeds", "0", "--cases", "vertical", "--layers", str(layers), "--write", str(tmp_path / "m.json")]
     assert main([*argv, "--call", value]) == 2
     assert "error: --call" in capsys.readouterr().out and not layers.exists()
+
+
+def test_the_trees_can_be_fitted_on_the_view_raster_truth_where_a_render_took_a_finer_one(tmp_path):
+    """The shipped trees are fitted on the view-raster truth (``--fit-truth view``, stop 68): on a pair whose truth
+    is on its view raster the rule reproduces the stored truth on every pixel; on one with a footprint raster it
+    differs where sub-pixel relief is, and only such a pair's labels are swapped."""
+    import math
+
+    from fit_psafe import fit_labelled, footprint_truth, view_raster_safe
+
+    from ground_sim.descent import render_scenario
+    from protocol.pairdir import Camera, read_pair
+
+    f = 64.0 / math.tan(math.radians(15.0))
+    cam = Camera(128, 128, f, f, 63.5, 63.5)
+    render_scenario("approach", tmp_path / "hi", frames=[[1200, 600]], camera=cam, progress=False, workers=1)
+    render_scenario("vertical", tmp_path / "lo", frames=[[100, 50]], camera=cam, progress=False, workers=1)
+    (hi,) = [p for p in (tmp_path / "hi").iterdir() if p.is_dir()]
+    (lo,) = [p for p in (tmp_path / "lo").iterdir() if p.is_dir()]
+    assert footprint_truth(str(hi)) and not footprint_truth(str(lo)) and not footprint_truth(str(tmp_path))
+    for d, fine in ((lo, False), (hi, True)):
+        pair = read_pair(d)
+        stored = pair.truth["hazard"] < 1.0
+        view = view_raster_safe(pair, np.ones(stored.shape, bool)).reshape(stored.shape)
+        if fine:
+            assert 0 < np.count_nonzero(view != stored) < 0.2 * stored.size
+        else:
+            assert np.array_equal(view, stored)
+    rows = [{"safe": np.array([True]), "safe_view": np.array([False])}, {"safe": np.array([True])}]
+    assert [r["safe"][0] for r in fit_labelled(rows, "view")] == [False, True]
+    assert [r["safe"][0] for r in fit_labelled(rows, "footprint")] == [True, True]
