@@ -52,7 +52,7 @@ ALL_FEATS = (
 SUN_FEATS = ("a_pc", "upsun")  # NaN together when the pipeline is not told the sun (or skips the shading stage)
 
 
-def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = ()) -> dict[str, Any]:
+def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = (), scene: str | None = None) -> dict[str, Any]:
     """Features (covered pixels, 1-D float32), dark-shadow cue, truth and footprint size of one pair (cached);
     ``set_param``: ``K=V`` overrides of ``fast`` (bench_multiframe.preset_with) the layers are made with."""
     needs_view = footprint_truth(pair_dir)
@@ -73,7 +73,7 @@ def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = ()) -> di
     d["dark"] = res.layers["dark"][cov]
     d["safe"] = pair.truth["hazard"][cov] < 1.0
     if needs_view:
-        d["safe_view"] = view_raster_safe(pair, cov)
+        d["safe_view"] = view_raster_safe(pair, cov, scene)
     d["fp_px"] = np.float32(res.info["footprint_px"])
     d["shape"] = np.asarray(cov.shape)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -91,17 +91,18 @@ def footprint_truth(pair_dir: str) -> bool:
         return False
 
 
-def view_raster_safe(pair: Any, cov: np.ndarray) -> np.ndarray:
+def view_raster_safe(pair: Any, cov: np.ndarray, scene: str | None = None) -> np.ndarray:
     """The covered pixels' truth (safe) by the view-raster rule, the renders' truth before stop 67: the 3 m plane
     fitted on the render's own view raster (``studies.evaluate.recorded_truth_planes`` without the footprint
-    cell), with the stored shadow. The labels ``--fit-truth view`` fits on."""
+    cell), with the stored shadow. The labels ``--fit-truth view`` fits on. ``scene``: the scene spec (a preset
+    or a .toml path) where pair.json names only the scene (a case of ``bench/scenes/``)."""
     from ground_sim.scene import load_scene
     from ground_sim.truth import hazard_layers
     from studies.evaluate import _scene_of, recorded_truth_planes
     from studies.multiframe import world_of
 
     view = {k: v for k, v in pair.meta["render"][0].items() if k != "truth_cell_m"}
-    spec, seed = _scene_of(pair.meta, None, None)
+    spec, seed = _scene_of(pair.meta, scene, None)
     if spec is None:
         raise SystemExit(f"fit_psafe: {pair.meta.get('label')}: the pair names no scene to draw the truth from")
     world = world_of(pair)
@@ -164,7 +165,7 @@ def load_all(
     set_param: tuple[str, ...] = (),
     image_px: int | None = None,
 ) -> list[dict[str, Any]]:
-    from eval_flight import case_key, render_case
+    from eval_flight import CASES, case_key, render_case
 
     rows = []
     for c in cases:
@@ -172,7 +173,9 @@ def load_all(
             for e in render_case(c, s, cache, raster=raster, image_px=image_px):
                 name = f"{c}_s{s}_{e['altitude_m']}"
                 key = case_key(c, s, raster=raster, image_px=image_px)
-                d = pair_layers(e["pair_dir"], layers / f"{key}_{e['altitude_m']}.npz", set_param)
+                spec = CASES[c][1]
+                scene = spec if spec.endswith(".toml") else None  # pair.json names such a scene, not its file
+                d = pair_layers(e["pair_dir"], layers / f"{key}_{e['altitude_m']}.npz", set_param, scene)
                 if "shape" not in d:
                     from protocol.pairdir import read_pair
 

@@ -208,6 +208,14 @@ def test_the_trees_can_be_fitted_on_the_view_raster_truth_where_a_render_took_a_
             assert 0 < np.count_nonzero(view != stored) < 0.2 * stored.size
         else:
             assert np.array_equal(view, stored)
+    # a pair drawn from a .toml scene names only the scene: its file is given (the `crater` and `tilted` cases)
+    pair = read_pair(lo)
+    spec = pair.meta["scene_spec"]
+    pair.meta["scene_spec"] = pair.meta["scene"] = "no_such_scene"
+    with pytest.raises(Exception, match="no_such_scene"):
+        view_raster_safe(pair, np.ones(pair.truth["hazard"].shape, bool))
+    view = view_raster_safe(pair, np.ones(pair.truth["hazard"].shape, bool), spec)
+    assert np.array_equal(view.reshape(pair.truth["hazard"].shape), pair.truth["hazard"] < 1.0)
     rows = [{"safe": np.array([True]), "safe_view": np.array([False])}, {"safe": np.array([True])}]
     assert [r["safe"][0] for r in fit_labelled(rows, "view")] == [False, True]
     assert [r["safe"][0] for r in fit_labelled(rows, "footprint")] == [True, True]
