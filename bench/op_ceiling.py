@@ -36,13 +36,13 @@ TREES = {"iters": 45, "leaves": 31, "lr": 0.15}  # fast's trees (flight_sw/psafe
 
 def out_of_fold(rows: list[dict[str, Any]], seeds: list[int], folds: int) -> list[np.ndarray]:
     """Each row's P(safe) (dark shadow 0) from trees fitted on the other folds' seeds (fit_psafe's CV split)."""
-    from fit_psafe import ALL_FEATS, fit_rows
+    from fit_psafe import ALL_FEATS, fit_labelled, fit_rows
 
     out: list[np.ndarray] = [np.empty(0, np.float32)] * len(rows)
     for k in range(folds):
         fold = seeds[k::folds]
-        model = fit_rows([r for r in rows if r["seed"] not in fold], 2000, 1.0, trees=TREES, names=ALL_FEATS,
-                         blank_shading=0.25)  # fmt: skip
+        train = fit_labelled([r for r in rows if r["seed"] not in fold], "view")  # the shipped trees' labels
+        model = fit_rows(train, 2000, 1.0, trees=TREES, names=ALL_FEATS, blank_shading=0.25)
         for i, r in enumerate(rows):
             if r["seed"] in fold:
                 p = model.predict(r, np.ones(r["safe"].shape, bool))
