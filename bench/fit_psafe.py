@@ -84,11 +84,13 @@ def pair_layers(pair_dir: str, out: Path, set_param: tuple[str, ...] = (), scene
 def footprint_truth(pair_dir: str) -> bool:
     """Whether the pair's frame-0 slope and roughness truth was taken on a footprint raster finer than its view
     raster (``RENDER_VERSION`` 3, docs/scenes.md "Ground-truth accuracy" item 6)."""
+    from studies.evaluate import footprint_truth_cell
+
     try:
         view = json.loads((Path(pair_dir) / "pair.json").read_text())["render"][0]
-        return 0 < float(view["truth_cell_m"]) < float(view["raster_cell_m"])
     except (OSError, ValueError, KeyError, IndexError, TypeError):
         return False
+    return isinstance(view, dict) and footprint_truth_cell(view) is not None
 
 
 def view_raster_safe(pair: Any, cov: np.ndarray, scene: str | None = None) -> np.ndarray:

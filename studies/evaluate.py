@@ -269,6 +269,31 @@ def project_points(camera: Camera, pose: Pose, X: np.ndarray) -> np.ndarray:
     return np.stack([camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx, camera.fy * Xc[:, 1] / Xc[:, 2] + camera.cy], 1)
 
 
+def _record_real(v: Any) -> float | None:
+    """A finite JSON number from a render record, else None (a bool, a string, a 400-digit integer, NaN)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        f = float(v)  # a 400-digit integer is valid JSON
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _record_num(v: Any) -> float | None:
+    """A cell size from a render record: a finite number in (0, 1e4) m, else None."""
+    f = _record_real(v)
+    return f if f is not None and 0 < f < 1e4 else None
+
+
+def footprint_truth_cell(view: dict[str, Any]) -> float | None:
+    """The cell (m) of the footprint raster the render took its slope and roughness truth on, or None where it took
+    them on its view raster: ``truth_cell_m`` finer than ``raster_cell_m`` in the record (``RENDER_VERSION`` 3,
+    docs/scenes.md "Ground-truth accuracy" item 6). A record that is not whole reads as None."""
+    cell, tcell = _record_num(view.get("raster_cell_m")), _record_num(view.get("truth_cell_m"))
+    return tcell if cell is not None and tcell is not None and tcell < cell else None
+
+
 def recorded_truth_planes(
     scene: Any,
     view: dict[str, Any],
@@ -290,25 +315,13 @@ def recorded_truth_planes(
     """
     from ground_sim.truth import TRUTH_CELLS_M, bilinear_inside, footprint_planes, plane_fit
 
-    def real(v: Any) -> float | None:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            return None
-        try:
-            f = float(v)  # a 400-digit integer is valid JSON
-        except OverflowError:
-            return None
-        return f if math.isfinite(f) else None
-
-    def num(v: Any) -> float | None:
-        f = real(v)
-        return f if f is not None and 0 < f < 1e4 else None
-
-    cell, tcell = num(view.get("raster_cell_m")), num(view.get("truth_cell_m"))
+    cell = _record_num(view.get("raster_cell_m"))
     origin, shape = view.get("raster_origin_m"), view.get("raster_shape")
-    x0, y0 = (real(o) for o in origin) if isinstance(origin, list) and len(origin) == 2 else (None, None)
+    x0, y0 = (_record_real(o) for o in origin) if isinstance(origin, list) and len(origin) == 2 else (None, None)
     if cell is None or x0 is None or y0 is None:
         return None
-    if tcell is not None and tcell < cell:
+    tcell = footprint_truth_cell(view)
+    if tcell is not None:
         # a cell the renderer takes, never another: memory and time follow the ground over cell^2
         return footprint_planes(scene.height_raster, X, Y, tcell) if tcell in TRUTH_CELLS_M else None
     if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(n, (int, np.integer)) for n in shape)):

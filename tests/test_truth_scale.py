@@ -1,7 +1,10 @@
 """The slope and roughness truth at the footprint's scale (ground_sim.truth.footprint_planes): the exact LSQ plane
 over the 3 m disk, wherever the view raster is too coarse to hold the disk (docs/scenes.md, accuracy item 6)."""
 
+import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from protocol.pairdir import Camera, Pose, Sun
 
 F128 = 64.0 / math.tan(math.radians(15.0))
 CAM = Camera(128, 128, F128, F128, 63.5, 63.5)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 
 def _surface(x, y):
@@ -218,6 +222,29 @@ def test_a_render_record_that_is_not_whole_falls_back_to_the_scene(damage):
     X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
     assert recorded_truth_planes(sc, v.info, X, Y) is not None
     assert recorded_truth_planes(sc, v.info | damage, X, Y) is None
+
+
+@pytest.mark.parametrize(
+    "record, cell",
+    [
+        ({"raster_cell_m": 3.4, "truth_cell_m": 0.5}, 0.5),
+        ({"raster_cell_m": 0.4, "truth_cell_m": 0.4}, None),  # the truth on the view raster itself
+        ({"raster_cell_m": 0.4, "truth_cell_m": None}, None),  # a later frame: no truth taken
+        ({"raster_cell_m": 3.4}, None),  # renderer version 2
+        ({"raster_cell_m": 10**400, "truth_cell_m": 0.5}, None),
+        ({"raster_cell_m": True, "truth_cell_m": 0.5}, None),
+        ({"raster_cell_m": 3.4, "truth_cell_m": -1.0}, None),
+    ],
+)
+def test_one_predicate_says_where_a_render_took_its_truth_finer_than_its_view(record, cell, tmp_path):
+    """evaluate's planes and fit_psafe's labels ask the same question of the record (stop 68's leftover)."""
+    from fit_psafe import footprint_truth
+
+    from studies.evaluate import footprint_truth_cell
+
+    assert footprint_truth_cell(record) == cell
+    (tmp_path / "pair.json").write_text(json.dumps({"render": [record]}))
+    assert footprint_truth(str(tmp_path)) is (cell is not None)
 
 
 def test_a_frame_without_hazard_truth_keeps_every_other_byte_and_its_pair_keeps_frame_0s_truth():
