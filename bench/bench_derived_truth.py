@@ -25,6 +25,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -76,14 +77,14 @@ def main() -> int:
     if args.synthetic:
         synthetic(args.synthetic)
         return 0
-    rows = []
+    rows: list[dict[str, Any]] = []
     for scenario, pairs in CASES.items():
         d = args.out / scenario
         if not (d / "manifest.json").is_file():
-            r = hh("render", "--scenario", scenario, "--pairs", ",".join(pairs), "--seed", str(args.seed),
-                   "--image-size", str(args.image_size), "--out", str(d))  # fmt: skip
-            if r.returncode:
-                sys.exit(r.stderr)
+            rendered = hh("render", "--scenario", scenario, "--pairs", ",".join(pairs), "--seed", str(args.seed),
+                          "--image-size", str(args.image_size), "--out", str(d))  # fmt: skip
+            if rendered.returncode:
+                sys.exit(rendered.stderr)
         for label in pairs:
             pair = d / label.replace("/", "_")
             out = args.out / "outputs" / f"{scenario}_{pair.name}"

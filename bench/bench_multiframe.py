@@ -152,10 +152,11 @@ def preset_with(name: str, set_param: list[str] | tuple[str, ...]) -> Any:
             words = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
             if v.lower() not in words:
                 raise ValueError(f"--set-param {k}: expected true or false, got {v!r}")
-            preset = dataclasses.replace(preset, **{k: words[v.lower()]})
+            change: dict[str, Any] = {k: words[v.lower()]}  # field k named at run time: no one static type fits
         else:
             kind = float if cur is None else type(cur)  # an unset optional field (cell_m None) takes a number
-            preset = dataclasses.replace(preset, **{k: kind(v)})
+            change = {k: kind(v)}
+        preset = dataclasses.replace(preset, **change)
     return preset
 
 

@@ -164,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = {"source": source, "runs": args.runs, "sun": args.sun, "presets": {}}
     short_any = False
     for preset in args.presets:
-        walls, stages, res = [], {}, None
+        walls, res = [], None
+        stages: dict[str, list[tuple[float, float]]] = {}
         for _ in range(args.runs):
             t0 = time.perf_counter()
             res = run_pipeline(i1, i2, p1, p2, cam, preset=preset, **sun)

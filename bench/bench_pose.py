@@ -37,7 +37,9 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -72,9 +74,9 @@ def slant_ranges(pair, true1, true2) -> tuple[float, float]:
     u = cam.fx * Xc[..., 0] / Xc[..., 2] + cam.cx
     v = cam.fy * Xc[..., 1] / Xc[..., 2] + cam.cy
     d2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
-    r, c = np.unravel_index(int(np.argmin(d2)), d2.shape)
-    r = min(max(r, 1), d2.shape[0] - 2)
-    c = min(max(c, 1), d2.shape[1] - 2)
+    r0, c0 = np.unravel_index(int(np.argmin(d2)), d2.shape)
+    r = min(max(int(r0), 1), d2.shape[0] - 2)
+    c = min(max(int(c0), 1), d2.shape[1] - 2)
     J = np.array(
         [[(u[r, c + 1] - u[r, c - 1]) / 2, (u[r + 1, c] - u[r - 1, c]) / 2],
          [(v[r, c + 1] - v[r, c - 1]) / 2, (v[r + 1, c] - v[r - 1, c]) / 2]]
@@ -352,7 +354,7 @@ def detectors(entries: list[dict]) -> list[dict]:
             pa, pb = descriptor_matches(i1, i2, full, det, 2000, 0.8)
             E, inl = cv2.findEssentialMat(pa, pb, K, cv2.RANSAC, 0.999, 1.0) if len(pa) >= 5 else (None, None)
             raw_err, raw_inl = math.nan, 0
-            if E is not None and E.shape == (3, 3):
+            if E is not None and inl is not None and E.shape == (3, 3):
                 _, R, _, _ = cv2.recoverPose(E, pa, pb, K, mask=inl.copy())
                 raw_err, raw_inl = ang(R @ Rt.T), int(inl.sum())
             raw_ms = 1e3 * (time.thread_time() - c0)
@@ -480,8 +482,15 @@ def main(argv: list[str] | None = None) -> int:
     from flight_sw.pose_refine import RefineParams
 
     over = dict(kv.split("=", 1) for kv in a.refine.split(",") if kv)
-    conv = {bool: lambda v: v.lower() in ("1", "true", "yes"), int: int, float: float, str: str}
-    rp = RefineParams(**{k: conv[type(getattr(RefineParams(), k))](v) for k, v in over.items()})
+    conv: dict[type, Callable[[str], object]] = {
+        bool: lambda v: v.lower() in ("1", "true", "yes"),
+        int: int,
+        float: float,
+        str: str,
+    }
+    # each value parsed as its own field's type (the fields are named at run time: no one static type fits)
+    fields: dict[str, Any] = {k: conv[type(getattr(RefineParams(), k))](v) for k, v in over.items()}
+    rp = RefineParams(**fields)
     pin_one_core()
     seeds = list(SEED_SETS[a.seed_set][: a.n_seeds])
     entries = [{**e, "seed": s} for s in seeds for e in render_cache("approach", s, a.cache, altitudes=a.altitudes)]
@@ -519,10 +528,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"refinement parameters: {a.refine or 'defaults'}\n")
     print(f"perfect knowledge, median over pairs (m): {pm['perfect']}; refined from true poses: {pm['perfect_on']}\n")
     per = {(r["seed"], r["altitude_m"]): r for r in ref if r["variant"] == "perfect"}
-    for k in ("mean_abs", "mad"):
-        ch = [100.0 * (r[k] / per[(r["seed"], r["altitude_m"])][k] - 1) for r in ref if r["variant"] == "perfect_on"]
+    for metric in ("mean_abs", "mad"):
+        ch = [
+            100.0 * (r[metric] / per[(r["seed"], r["altitude_m"])][metric] - 1)
+            for r in ref
+            if r["variant"] == "perfect_on"
+        ]
         print(
-            f"refining the true poses changes {k} by {min(ch):+.0f} / {np.median(ch):+.0f} / {max(ch):+.0f} %"
+            f"refining the true poses changes {metric} by {min(ch):+.0f} / {np.median(ch):+.0f} / {max(ch):+.0f} %"
             " (min / median / max over pairs)"
         )
     print()

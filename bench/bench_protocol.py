@@ -24,6 +24,7 @@ import sys
 import time
 import tracemalloc
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +91,7 @@ def bench_result() -> None:
     for label in ("600_300", "300_150", "200_100"):
         pair = read_pair(_demo_pairs() / label, load_truth=False)
         res = run_pipeline(pair.images[0], pair.images[-1], pair.poses[0], pair.poses[-1], pair.camera, preset="fast")
-        row = {"pair": label, "grid": list(res.grid.state.shape)}
+        row: dict[str, Any] = {"pair": label, "grid": list(res.grid.state.shape)}
         for pstep, step in ((1, 1), (1, 2), (2, 4), (4, 8)):  # ground_sim.stream.auto_grid_steps by line rate
             opts = {"elevation_step": step, "psafe_step": pstep, "result_rev": RESULT_REV}  # as our ground asks
             cfg = Config(camera=pair.camera.to_dict(), budget="b", deadline_s=2.0, options=opts)
@@ -231,7 +232,7 @@ def bench_noise(baud: int = 921600) -> None:
         delivered = sum(o == "delivered" for o in outs)
         failed = [o for o in outs if o.startswith("failed")]
         dt = time.monotonic() - t0
-        row = {
+        row: dict[str, Any] = {
             "rate": r,
             "delivered": delivered,
             "received": got,

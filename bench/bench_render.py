@@ -21,6 +21,7 @@ import statistics
 import time
 
 import cv2
+import numpy as np
 
 from ground_sim.geometry import look_rotation
 from ground_sim.render import DEFAULT_RASTER, MAX_CELLS, RASTERS, render_view
@@ -54,7 +55,7 @@ def main() -> None:
     for name, pos, tilt in CASES:
         if args.cases and name not in args.cases:
             continue
-        pose = Pose(pos, look_rotation(tilt))
+        pose = Pose(np.asarray(pos, dtype=np.float64), look_rotation(tilt))
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         render_view(scene, cam, pose, Sun(135, 25), seed=0, max_cells=mc, raster=args.raster)  # warm-up
         rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024.0  # MiB (peak growth; 0 if lower)

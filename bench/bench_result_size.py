@@ -20,6 +20,11 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from flight_sw.mapping import HazardGrid
+    from flight_sw.sites import Site
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -83,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
             sun_elevation_deg=sun.elevation_deg if sun else None,
             sun_azimuth_deg=sun.azimuth_deg if sun else None,
         )
-        fused, cpu = (None, None, None), ""
+        fused: tuple[HazardGrid | None, list[Site] | None, str | None] = (None, None, None)  # the pair's own map
+        cpu = ""
         if args.fused:
             before, times = flight.fused, []
             for _ in range(5):

@@ -591,11 +591,11 @@ def main(argv: list[str] | None = None) -> int:
             print("| footprint px | " + " | ".join(f"{bins[i]:g}-{min(1, bins[i + 1]):g}" for i in range(8)) + " |")
             print("|---|" + "---|" * 8)
             for lo, hi in ((0, 1.5), (1.5, 4), (4, 12), (12, math.inf)):
-                sel = [(p, y) for f, p, y in rel if lo <= f < hi]
-                if not sel:
+                in_bin = [(p, y) for f, p, y in rel if lo <= f < hi]
+                if not in_bin:
                     continue
-                p = np.concatenate([s[0] for s in sel])
-                y = np.concatenate([s[1] for s in sel])
+                p = np.concatenate([s[0] for s in in_bin])
+                y = np.concatenate([s[1] for s in in_bin])
                 cells = []
                 for i in range(8):
                     m = (p >= bins[i]) & (p < bins[i + 1])

@@ -222,10 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.ceiling:
         from protocol.pairdir import read_pair
 
-        rows = {c: [ceiling(read_pair(d).truth["hazard"]) for cc, d in pairs if cc == c] for c in args.cases}
+        ceilings = {c: [ceiling(read_pair(d).truth["hazard"]) for cc, d in pairs if cc == c] for c in args.cases}
         print("\n| case | pairs | " + " | ".join(f"s = {s:g}: CDI % med / min" for s in CEILING_SIGMAS) + " |")
         print("|---|---:|" + "---|" * len(CEILING_SIGMAS))
-        for c, r in rows.items():
+        for c, r in ceilings.items():
             cols = [f"{_med([x[i] for x in r]):.1f} / {min(x[i] for x in r):.1f}" for i in range(len(CEILING_SIGMAS))]
             print(f"| {c} | {len(r)} | " + " | ".join(cols) + " |")
         return 0

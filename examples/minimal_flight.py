@@ -334,9 +334,7 @@ def main(argv: list[str] | None = None) -> int:
                     )
                 elif mtype == CONFIG:
                     config = msg
-                elif mtype == FRAME_MSG and config is None:
-                    link.send(ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
-                elif mtype == FRAME_MSG:
+                elif mtype == FRAME_MSG and config is not None:
                     pair = pending.setdefault(msg["pair_id"], {})
                     pair[msg["frame_index"]] = msg
                     if len(pair) == 2:
@@ -345,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
                         link.send(RESULT, answer(pair[0], pair[1], config))
                         wall, cpu = time.monotonic() - t0, time.process_time() - c0
                         link.send(TELEMETRY, telemetry(pair[0], pair[1], config, wall, cpu))
+                elif mtype == FRAME_MSG:  # a frame before any Config
+                    link.send(ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
             now = time.monotonic()
             if now >= next_beat:  # any message at least every second: the HIL server's watchdog listens
                 beats += 1

@@ -191,14 +191,14 @@ def main(argv: list[str] | None = None) -> int:
                     s.send(mf.HELLO_MSG, {**hello, "session": s.local})
                 elif mtype == mf.CONFIG:
                     config = msg
-                elif mtype == mf.FRAME_MSG and config is None:
-                    s.send(mf.ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
-                elif mtype == mf.FRAME_MSG:
+                elif mtype == mf.FRAME_MSG and config is not None:
                     pair = pending.setdefault(msg["pair_id"], {})
                     pair[msg["frame_index"]] = msg
                     if len(pair) == 2:
                         del pending[msg["pair_id"]]
                         ready.append((pair, config, epoch))
+                elif mtype == mf.FRAME_MSG:  # a frame before any Config
+                    s.send(mf.ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
             if work is None and ready:  # the detector runs beside the link, which keeps the session up meanwhile
                 pair, cfg, of = ready.popleft()
                 work = (pair, cfg, of, time.monotonic(), detector.submit(timed_answer, pair, cfg))

@@ -54,7 +54,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Refusal, Skipping
 from protocol.codec import DEFAULT_LIMITS, CodecError, Encoded, Limits, decode_parts, encode_message, encode_parts
@@ -218,7 +218,7 @@ class Link:
             self._held.popleft()
         return False
 
-    def __enter__(self) -> Link:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: Any) -> None:
