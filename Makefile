@@ -5,6 +5,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 OUT    ?= out
 PACKAGES := ground_sim flight_sw protocol hil_server studies reports
+# type-checked along with PACKAGES: the bench scripts (where docs' measured figures come from) and the examples
+SCRIPTS  := bench examples
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint chromium bench results install clean
@@ -25,7 +27,7 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	$(VENV)/bin/mypy $(PACKAGES)
+	$(VENV)/bin/mypy $(PACKAGES) $(SCRIPTS)
 
 # The browser test opens every kind of report in Debian's headless Chromium.
 chromium:
