@@ -255,6 +255,54 @@ def bench_noise(baud: int = 921600) -> None:
     RESULTS["noise"] = rows
 
 
+def _paused_line(baud: int, pause_s: float) -> dict[str, Any]:
+    """One window-0 pause of ``pause_s`` on a simulated line at ``baud`` (see :func:`bench_pause`)."""
+    from protocol.arq import Arq, ArqConfig
+    from protocol.linesim import SimLine
+    from protocol.messages import Error
+
+    rate = baud / 10
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
+    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
+    line = SimLine(a, b, rate, latency=0.1)
+    line.run(5.0, stop=lambda s: a.established and b.established)
+    t0 = line.now
+    b.set_rx_full(True, t0)
+    for i in range(40):
+        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t0)
+    line.run(t0 + 60.0, stop=lambda s: a.peer_full and line.now > t0 + 5)
+    t, before = line.now, dict(a.stats)
+    t = line.run(t + pause_s)
+    sent = a.stats["bytes_sent"] - before["bytes_sent"]
+    b.set_rx_full(False, t)
+    line.run(t + 600.0, stop=lambda s: a.idle)
+    got = [r.message.text[:6] for r in line.received[1]]
+    return {
+        "baud": baud,
+        "line_busy_pct": 100.0 * sent / (pause_s * rate),
+        "probes": a.stats["retransmits"] - before["retransmits"],
+        "frames": a.stats["frames_sent"] - before["frames_sent"],
+        "in_order": got == [f"{i:06d}" for i in range(40)],
+        "after_s": line.now - t,
+        "session_losses": a.stats["peer_losses"] + b.stats["peer_losses"],
+    }
+
+
+def bench_pause(pause_s: float = 20.0) -> None:
+    """A receiver that reads nothing for ``pause_s`` (window 0, docs/protocol.md section 3.2) with 40 kB in flight,
+    on a simulated line (protocol.linesim, 0.1 s latency): the sender direction's use of the line meanwhile, and
+    the time to deliver everything once it reads again. Deterministic: no wall clock."""
+    print(f"a {pause_s:g} s pause of the receiving application, 40 x 0.9 kB in flight (simulated line)")
+    rows = [_paused_line(baud, pause_s) for baud in (921600, 115200, 9600)]
+    for row in rows:
+        print(
+            f"  {row['baud']} baud: sender's direction {row['line_busy_pct']:.1f} % busy during the pause "
+            f"({row['probes']} probes, {row['frames']} frames); all delivered in order: {row['in_order']}, "
+            f"{row['after_s']:.1f} s after reading resumed; sessions lost: {row['session_losses']}"
+        )
+    RESULTS["pause"] = rows
+
+
 PEER = ROOT / "tests" / "protocol_peer.py"
 
 
@@ -312,7 +360,7 @@ def main() -> int:
     ap.add_argument("--fuzz", action="store_true", help="run the fuzz campaigns")
     ap.add_argument("--fuzz-inputs", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--only", default="", help="comma-separated: codec,result,bombs,links,noise,timeouts")
+    ap.add_argument("--only", default="", help="comma-separated: codec,result,bombs,links,noise,pause,timeouts")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = ap.parse_args()
     load = os.getloadavg()[0]
@@ -324,6 +372,7 @@ def main() -> int:
         "bombs": bench_bombs,
         "links": bench_links,
         "noise": bench_noise,
+        "pause": bench_pause,
         "timeouts": bench_timeouts,
     }
     wanted = [s for s in args.only.split(",") if s] or list(steps)

@@ -610,3 +610,31 @@ def test_a_zero_window_is_probed_sparingly_and_its_reopening_is_no_line_loss():
     assert not a.peer_full and a.snapshot()["frame_bytes"] == 1024 and a.snapshot()["loss_rate"] == 0.0
     line.run(t + 10.0, stop=lambda s: a.idle)
     assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(200)]
+
+
+def test_a_zero_window_on_a_slow_line_is_probed_with_one_byte_and_everything_goes_after():
+    """The probe was a whole segment: through a pause a 960 byte/s line's sender direction was 35 % busy with
+    probes (stop 66's known limit). A probe is now one byte of the stream; what was in flight goes on reopening."""
+    from protocol.messages import Error
+
+    rate = 9600 / 10
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
+    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
+    line = SimLine(a, b, rate, latency=0.1)
+    line.run(5.0, stop=lambda s: a.established and b.established)
+    t = line.now
+    b.set_rx_full(True, t)
+    for i in range(40):
+        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t)
+    line.run(t + 60.0, stop=lambda s: a.peer_full and line.now > t + 5)
+    assert a.peer_full and a._nxt > a._una  # data in flight when the window shut
+    t, sent0, retx0, probes0 = line.now, a.stats["bytes_sent"], a.stats["retransmit_bytes"], a.stats["retransmits"]
+    t = line.run(t + 20.0)
+    probes = a.stats["retransmits"] - probes0
+    assert probes >= 3 and a.stats["retransmit_bytes"] - retx0 == probes  # probing, one byte each
+    assert a.stats["bytes_sent"] - sent0 < 0.1 * 20 * rate  # was 35 % of the line with whole-segment probes
+    assert a.stats["peer_losses"] == 0 and b.stats["peer_losses"] == 0
+    b.set_rx_full(False, t)
+    line.run(t + 200.0, stop=lambda s: a.idle)
+    assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(40)]
+    assert a.stats["failures"] == 0
