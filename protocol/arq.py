@@ -657,12 +657,13 @@ class Arq(SessionView):
             seg = self._segs.get(start)
             if seg is None or seg.acked or not seg.queued:
                 continue
-            if self.peer_full and seg.end - seg.start > PROBE_BYTES:  # the probe: the range's first bytes alone;
-                # the rest stays sent and unacknowledged, and goes again when the window reopens (_on_ack)
-                rest = _Seg(seg.start + PROBE_BYTES, seg.end, seg.tx, seg.sent_at, seg.order, queued=False)
-                seg.end = seg.start + PROBE_BYTES
-                self._insert_seg(rest)
-            elif seg.end - seg.start > k:  # the line got worse: resend the range in smaller frames
+            if self.peer_full and seg.end - seg.start > PROBE_BYTES:  # the probe: the range's first bytes alone,
+                # the scoreboard unchanged (a cum landing inside the range trims it); the whole range goes again when
+                # the window reopens (_on_ack). Review of stop 69: splitting the range instead fragmented it
+                self.stats["retransmits"] += 1
+                self.stats["retransmit_bytes"] += PROBE_BYTES
+                return self._transmit(seg, now, seg.start + PROBE_BYTES), self._txid
+            if seg.end - seg.start > k:  # the line got worse: resend the range in smaller frames
                 tail = _Seg(seg.start + k, seg.end, tx=seg.tx, queued=True)
                 seg.end = seg.start + k
                 self._insert_seg(tail)
@@ -683,8 +684,9 @@ class Arq(SessionView):
         self._stamp(seg, now, now)  # provisional times: the ack may beat written()
         return self._transmit(seg, now), self._txid
 
-    def _transmit(self, seg: _Seg, now: float) -> bytes:
-        """A DATA frame for ``seg`` under a new transmission number (echoed back by the receiver's ACK)."""
+    def _transmit(self, seg: _Seg, now: float, upto: int | None = None) -> bytes:
+        """A DATA frame for ``seg`` under a new transmission number (echoed back by the receiver's ACK); ``upto``:
+        its bytes below that position only (a zero-window probe)."""
         self._txid += 1
         seg.order = self._txid
         seg.tx += 1
@@ -693,7 +695,8 @@ class Arq(SessionView):
         self._txmap[self._txid] = seg
         if len(self._txmap) > 8192:
             self._txmap.popitem(last=False)
-        return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, seg.end), self._txid)
+        end = seg.end if upto is None else upto
+        return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, end), self._txid)
 
     def _carried(self, seg: _Seg) -> list[tuple[int, int, MessageTimes]]:
         """(start, end, times) of the messages ``seg`` carries bytes of, remembered on it at its first call and
@@ -1016,6 +1019,16 @@ class Arq(SessionView):
                 self.stats["peer_full"] += 1
             self.peer_full = True
             self._last_progress = now
+            # what waits for retransmission does not go now (one probe at a time, chosen by poll): held as sent, it
+            # goes when the window reopens (review of stop 69: each went as a probe of its own, back to back)
+            writing = self._txmap.get(self._txid) if self._writing else None
+            for start in self._retx:
+                seg = self._segs.get(start)
+                if seg is not None and seg.queued and not seg.acked and seg is not writing:
+                    seg.queued = False
+                    if seg.sent_at is None:  # a tail cut off for resending, never sent in its own frame
+                        seg.sent_at = now
+            self._retx.clear()
         else:
             if self.peer_full:  # the window reopens: what went while it was shut was dropped unread, so it goes
                 # again now, not after a backed-off timeout; still as refused, not lost: the frame size stays

@@ -638,3 +638,36 @@ def test_a_zero_window_on_a_slow_line_is_probed_with_one_byte_and_everything_goe
     line.run(t + 200.0, stop=lambda s: a.idle)
     assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(40)]
     assert a.stats["failures"] == 0
+
+
+def test_a_window_that_shuts_again_as_it_reopens_gets_one_probe_at_a_time_and_no_fragments():
+    """A slow consumer reopens the window for 20 ms, then shuts it for 2 s, over and over, with 27 kB in flight at
+    0.3 s latency. The first one-byte probe split each range still queued for resending into a byte and a rest, and
+    sent every byte back to back: 505 DATA frames a cycle and 528 segments after 20 cycles, over max_segments after
+    90 (review of stop 69). The queued ranges are now held as sent while the window is 0."""
+    from protocol.messages import Error
+
+    rate = 92160.0
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
+    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
+    line = SimLine(a, b, rate, latency=0.3)
+    line.run(5.0, stop=lambda s: a.established and b.established)
+    t = line.now
+    b.set_rx_full(True, t)
+    for i in range(100):
+        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t)
+    t = line.run(t + 3.0)
+    segments = len(a._segs)
+    assert a.peer_full and segments >= 20
+    for _ in range(20):
+        frames0 = a.stats["data_frames_sent"]
+        b.set_rx_full(False, t)
+        t = line.run(t + 0.02)
+        b.set_rx_full(True, t)
+        t = line.run(t + 2.0)
+        assert a.stats["data_frames_sent"] - frames0 <= 8  # probes, not a burst
+        assert len(a._segs) <= segments and all(s.end - s.start > 1 for s in a._segs.values())
+    b.set_rx_full(False, t)
+    line.run(t + 60.0, stop=lambda s: a.idle)
+    assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(100)]
+    assert a.stats["peer_losses"] == 0 and a.stats["failures"] == 0 and a.snapshot()["loss_rate"] < 0.01
