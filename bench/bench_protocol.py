@@ -257,20 +257,10 @@ def bench_noise(baud: int = 921600) -> None:
 
 def _paused_line(baud: int, pause_s: float) -> dict[str, Any]:
     """One window-0 pause of ``pause_s`` on a simulated line at ``baud`` (see :func:`bench_pause`)."""
-    from protocol.arq import Arq, ArqConfig
-    from protocol.linesim import SimLine
-    from protocol.messages import Error
+    from protocol.linesim import paused_receiver
 
     rate = baud / 10
-    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
-    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
-    line = SimLine(a, b, rate, latency=0.1)
-    line.run(5.0, stop=lambda s: a.established and b.established)
-    t0 = line.now
-    b.set_rx_full(True, t0)
-    for i in range(40):
-        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t0)
-    line.run(t0 + 60.0, stop=lambda s: a.peer_full and line.now > t0 + 5)
+    a, b, line = paused_receiver(rate, 40)
     t, before = line.now, dict(a.stats)
     t = line.run(t + pause_s)
     sent = a.stats["bytes_sent"] - before["bytes_sent"]

@@ -14,8 +14,10 @@ from __future__ import annotations
 import heapq
 from collections.abc import Callable
 
-from protocol.arq import Arq
+from protocol.arq import Arq, ArqConfig
+from protocol.codec import encode_message
 from protocol.faults import CorruptingChannel
+from protocol.messages import Error
 
 
 class SimLine:
@@ -88,3 +90,20 @@ class SimLine:
                 if nxt is not None:
                     frame, token = nxt
                     self._writing[i] = (now + len(frame) / self.rate, frame, token)
+
+
+def paused_receiver(rate: float, n: int, latency: float = 0.1) -> tuple[Arq, Arq, SimLine]:
+    """a and b on a :class:`SimLine` at ``rate`` bytes/s with ``latency``, established; b's application then takes
+    nothing (window 0, docs/protocol.md section 3.2) and a submits ``n`` Error messages of 0.9 kB whose texts start
+    with their index (``000000``, ``000001``, ...), and the line runs until a has been told window 0 and at least
+    5 s have gone. The retransmission floor is three 1 kB frames' line time, as the tests use."""
+    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
+    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
+    line = SimLine(a, b, rate, latency=latency)
+    line.run(5.0, stop=lambda s: a.established and b.established)
+    t0 = line.now
+    b.set_rx_full(True, t0)
+    for i in range(n):
+        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t0)
+    line.run(t0 + 60.0, stop=lambda s: a.peer_full and line.now > t0 + 5)
+    return a, b, line

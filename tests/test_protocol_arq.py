@@ -615,18 +615,10 @@ def test_a_zero_window_is_probed_sparingly_and_its_reopening_is_no_line_loss():
 def test_a_zero_window_on_a_slow_line_is_probed_with_one_byte_and_everything_goes_after():
     """The probe was a whole segment: through a pause a 960 byte/s line's sender direction was 35 % busy with
     probes (stop 66's known limit). A probe is now one byte of the stream; what was in flight goes on reopening."""
-    from protocol.messages import Error
+    from protocol.linesim import paused_receiver
 
     rate = 9600 / 10
-    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
-    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
-    line = SimLine(a, b, rate, latency=0.1)
-    line.run(5.0, stop=lambda s: a.established and b.established)
-    t = line.now
-    b.set_rx_full(True, t)
-    for i in range(40):
-        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t)
-    line.run(t + 60.0, stop=lambda s: a.peer_full and line.now > t + 5)
+    a, b, line = paused_receiver(rate, 40)
     assert a.peer_full and a._nxt > a._una  # data in flight when the window shut
     t, sent0, retx0, probes0 = line.now, a.stats["bytes_sent"], a.stats["retransmit_bytes"], a.stats["retransmits"]
     t = line.run(t + 20.0)
@@ -645,19 +637,10 @@ def test_a_window_that_shuts_again_as_it_reopens_gets_one_probe_at_a_time_and_no
     0.3 s latency. The first one-byte probe split each range still queued for resending into a byte and a rest, and
     sent every byte back to back: 505 DATA frames a cycle and 528 segments after 20 cycles, over max_segments after
     90 (review of stop 69). The queued ranges are now held as sent while the window is 0."""
-    from protocol.messages import Error
+    from protocol.linesim import paused_receiver
 
-    rate = 92160.0
-    cfg = ArqConfig(rto_min=3 * 1024 / rate + 0.02)
-    a, b = Arq(cfg, session_id=0xA, now=0.0), Arq(cfg, session_id=0xB, now=0.0)
-    line = SimLine(a, b, rate, latency=0.3)
-    line.run(5.0, stop=lambda s: a.established and b.established)
-    t = line.now
-    b.set_rx_full(True, t)
-    for i in range(100):
-        a.submit(Error.TYPE, encode_message(Error(code="m", text=f"{i:06d}" + "x" * 900)), "Error", t)
-    t = line.run(t + 3.0)
-    segments = len(a._segs)
+    a, b, line = paused_receiver(92160.0, 100, latency=0.3)
+    t, segments = line.now, len(a._segs)
     assert a.peer_full and segments >= 20
     for _ in range(20):
         frames0 = a.stats["data_frames_sent"]
