@@ -270,7 +270,7 @@ def _paused_line(baud: int, pause_s: float) -> dict[str, Any]:
     return {
         "baud": baud,
         "line_busy_pct": 100.0 * sent / (pause_s * rate),
-        "probes": a.stats["retransmits"] - before["retransmits"],
+        "probes": a.stats["probes"] - before["probes"],
         "frames": a.stats["frames_sent"] - before["frames_sent"],
         "in_order": got == [f"{i:06d}" for i in range(40)],
         "after_s": line.now - t,

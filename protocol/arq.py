@@ -276,6 +276,7 @@ STAT_KEYS = (
     "data_frames_sent",
     "retransmits",
     "retransmit_bytes",  # payload bytes resent: the frames shrink on a noisy line, so a count alone reads large
+    "probes",  # one-byte probes of a peer's zero window: not line loss, so not counted as retransmissions
     "timeouts",
     "crc_errors",
     "malformed",
@@ -657,12 +658,11 @@ class Arq(SessionView):
             seg = self._segs.get(start)
             if seg is None or seg.acked or not seg.queued:
                 continue
-            if self.peer_full and seg.end - seg.start > PROBE_BYTES:  # the probe: the range's first bytes alone,
-                # the scoreboard unchanged (a cum landing inside the range trims it); the whole range goes again when
-                # the window reopens (_on_ack). Review of stop 69: splitting the range instead fragmented it
-                self.stats["retransmits"] += 1
-                self.stats["retransmit_bytes"] += PROBE_BYTES
-                return self._transmit(seg, now, seg.start + PROBE_BYTES), self._txid
+            if self.peer_full:  # the probe: the range's first bytes alone, the scoreboard unchanged (a cum landing
+                # inside the range trims it); the whole range goes again when the window reopens (_on_ack). Review of
+                # stop 69: splitting the range instead fragmented it
+                self.stats["probes"] += 1
+                return self._transmit(seg, now, min(seg.end, seg.start + PROBE_BYTES)), self._txid
             if seg.end - seg.start > k:  # the line got worse: resend the range in smaller frames
                 tail = _Seg(seg.start + k, seg.end, tx=seg.tx, queued=True)
                 seg.end = seg.start + k
@@ -678,6 +678,8 @@ class Arq(SessionView):
             self._lose("stream positions exhausted", now)
             return None
         n = min(k, sendable)
+        if self.peer_full:  # new data as the probe, nothing being in flight
+            self.stats["probes"] += 1
         seg = _Seg(self._nxt, self._nxt + n)
         self._insert_seg(seg)
         self._nxt += n
