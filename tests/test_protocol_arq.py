@@ -464,8 +464,10 @@ def test_acks_closes_and_rejects_fit_a_small_frame_peers_announced_size():
     from protocol.framing import StreamDecoder, close_frame, reject_frame
     from protocol.messages import Error
 
-    big = Arq(ArqConfig(peer_timeout=4.0), now=0.0)
-    small = Arq(ArqConfig(max_frame=64, min_frame=64, window=4096, peer_timeout=4.0), now=0.0)
+    # fixed session ids: random ones put the seeded drops on other bytes each run, and 3 % of runs lost the session
+    # on this 1.5 % line's backed-off timer (a fresh clone's CI of stop 69; 4 of 150 runs before that stop too)
+    big = Arq(ArqConfig(peer_timeout=4.0), session_id=0xB, now=0.0)
+    small = Arq(ArqConfig(max_frame=64, min_frame=64, window=4096, peer_timeout=4.0), session_id=0xA, now=0.0)
     line = SimLine(small, big, rate=9600, channels=(CorruptingChannel(1, drop=1.5e-2), None))
     line.run(1.0)
     assert big.peer_max_frame == 64
