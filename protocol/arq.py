@@ -94,7 +94,7 @@ from protocol.messages import MESSAGE_TYPES, Heartbeat, Message
 from protocol.session import SessionState, SessionView
 
 # a zero window is probed with this many bytes of the stream, not a whole segment: on a 960 byte/s line a 1 kB probe
-# kept the sender's direction 40 % busy through a pause (stop 66's known limit); TCP probes with one byte (RFC 9293)
+# kept the sender's direction 35-40 % busy through a pause (stop 66's known limit); TCP probes with one byte (RFC 9293)
 PROBE_BYTES = 1
 SEQ_LIMIT = 2**32 - (1 << 26)  # a session ends (and a new one starts) before stream positions could wrap
 RECORD = struct.Struct(">BI")  # a message in the reliable stream: type, body length
