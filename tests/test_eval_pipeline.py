@@ -94,6 +94,38 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert log.read_text() == before and again == rows  # nothing re-ran
 
 
+def test_a_second_preset_reads_the_true_slope_the_first_computed(tmp_path: Path, cache: Path, monkeypatch):
+    """The true slope and roughness (the scene rastered at the renderer's footprint cell: 8 of a 2400 m pair's 9 s)
+    were computed again for every preset scored on a pair."""
+    kw = dict(seeds=[0], cache_dir=cache, camera_px=PX, altitudes=[300], workers=1, progress=False)
+    one = {r["preset"]: r for r in ev.evaluate_scenario("vertical", tmp_path / "one", presets=["thesis"], **kw)}
+    rows = ev.evaluate_scenario("vertical", tmp_path / "both", presets=["fast", "thesis"], **kw)
+    both = {r["preset"]: r for r in rows}
+    drop = ("pipeline_s", "timings", "pair", "figures")
+    assert {k: v for k, v in both["thesis"].items() if k not in drop} == {
+        k: v for k, v in one["thesis"].items() if k not in drop
+    }
+    assert both["thesis"]["slope_mean_abs_deg"] is not None
+    assert not (tmp_path / "both" / "runs" / "truth").exists()  # a scratch of the run, gone with it
+
+    calls = []
+    real = ev.truth_slope_roughness
+    monkeypatch.setattr(ev, "truth_slope_roughness", lambda *a, **k: calls.append(1) or real(*a, **k))
+    pair, kept = one["thesis"]["pair"], tmp_path / "kept"
+    fresh = ev.evaluate_pair(pair, "fast")
+    first = ev.evaluate_pair(pair, "fast", truth_dir=str(kept))
+    second = ev.evaluate_pair(pair, "thesis", truth_dir=str(kept))
+    assert len(calls) == 2 and len(list(kept.glob("*.npz"))) == 1, "the second preset computed them again"
+    assert {k: v for k, v in first.items() if k not in drop} == {k: v for k, v in fresh.items() if k not in drop}
+    for k in ("slope_mean_abs_deg", "slope_median_deg", "rough_mean_abs_m", "rough_median_m"):
+        assert second[k] == one["thesis"][k] is not None, k
+    # a file cut off (a worker stopped while writing) is not read: they are computed again
+    (f,) = kept.glob("*.npz")
+    f.write_bytes(f.read_bytes()[:100])
+    again = ev.evaluate_pair(pair, "thesis", truth_dir=str(kept))
+    assert len(calls) == 3 and again["slope_mean_abs_deg"] == second["slope_mean_abs_deg"]
+
+
 def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path):
     """The copy of an --out resumed from the original's pairs (absolute paths in runs/render.jsonl) for as long as
     the original existed."""
