@@ -229,6 +229,7 @@ class _Seg:
     order: int = 0  # transmission number of its latest transmission
     queued: bool = True  # waiting for (re)transmission or being written
     acked: bool = False
+    refused: bool = False  # queued again because a full peer dropped it unread: its resend is no retransmission
     # (start, end, times) of the messages it carries bytes of, from its first transmission: an ACK that beats the
     # writer's written() delivers them (they leave _msgs), and their line times must still see the write's end
     msgs: list[tuple[int, int, MessageTimes]] = field(default_factory=list)
@@ -277,6 +278,7 @@ STAT_KEYS = (
     "retransmits",
     "retransmit_bytes",  # payload bytes resent: the frames shrink on a noisy line, so a count alone reads large
     "probes",  # one-byte probes of a peer's zero window: not line loss, so not counted as retransmissions
+    "refused_resends",  # what a full peer dropped unread, sent again when its window reopened: not line loss either
     "timeouts",
     "crc_errors",
     "malformed",
@@ -664,12 +666,16 @@ class Arq(SessionView):
                 self.stats["probes"] += 1
                 return self._transmit(seg, now, min(seg.end, seg.start + PROBE_BYTES)), self._txid
             if seg.end - seg.start > k:  # the line got worse: resend the range in smaller frames
-                tail = _Seg(seg.start + k, seg.end, tx=seg.tx, queued=True)
+                tail = _Seg(seg.start + k, seg.end, tx=seg.tx, queued=True, refused=seg.refused)
                 seg.end = seg.start + k
                 self._insert_seg(tail)
                 self._retx.appendleft(tail.start)
-            self.stats["retransmits"] += 1
-            self.stats["retransmit_bytes"] += seg.end - seg.start
+            if seg.refused:  # the HIL reads retransmits as what mended line noise: a pause's resends are apart
+                seg.refused = False
+                self.stats["refused_resends"] += 1
+            else:
+                self.stats["retransmits"] += 1
+                self.stats["retransmit_bytes"] += seg.end - seg.start
             return self._transmit(seg, now), self._txid
         sendable = self._sendable()
         if sendable <= 0:
@@ -1037,6 +1043,7 @@ class Arq(SessionView):
                 # (cleared after the loop, it fell 1024 -> 229 B on a clean line; review of stop 66)
                 for seg in self._segs.values():
                     if not seg.acked and not seg.queued and seg.sent_at is not None:
+                        seg.refused = True
                         self._retransmit(seg)
                 self.peer_full = False
                 self._backoff = 1.0

@@ -633,6 +633,8 @@ def test_a_zero_window_on_a_slow_line_is_probed_with_one_byte_and_everything_goe
     line.run(t + 200.0, stop=lambda s: a.idle)
     assert [r.message.text[:6] for r in line.received[1]] == [f"{i:06d}" for i in range(40)]
     assert a.stats["failures"] == 0
+    # what the paused peer dropped unread went again, counted apart: the line lost nothing
+    assert a.stats["refused_resends"] > 0 and a.stats["retransmits"] == before["retransmits"]
 
 
 def test_a_window_that_shuts_again_as_it_reopens_gets_one_probe_at_a_time_and_no_fragments():
