@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import csv
 import math
-import shutil
 import sys
 import time
 from collections.abc import Iterable
@@ -41,6 +40,9 @@ FOOTPRINT_M = 3.0  # lander footprint (Table 2.1)
 # the packages whose source decides a task's result (studies.executor.code_fingerprint): a saved result
 # of other code is computed again (a render task's code is ground_sim.render_cache's render fingerprint)
 EVAL_CODE = ("flight_sw", "ground_sim", "protocol", "studies")
+# a render cache pair's true slope and roughness, kept by evaluate_pair(keep_truth=True) with the key they were computed
+# under (_truth_key)
+TRUTH_KEPT = "truth_slope_roughness.npz"
 SENSITIVITY_KINDS = ("altitude", "attitude", "lateral", "rollyaw")
 ALTITUDE_ERROR_M = 0.5  # sec 6.3.1: uniform in +-0.5 m per pose
 ATTITUDE_LEVELS_DEG = (-0.15, -0.10, -0.05, 0.05, 0.10, 0.15)  # Tables 6.16-6.19
@@ -541,7 +543,7 @@ def evaluate_pair(
     truth_slope: bool = True,
     figures_dir: str | None = None,
     figure_stem: str | None = None,
-    truth_dir: str | None = None,
+    keep_truth: bool = False,
 ) -> dict[str, Any]:
     """Run the pipeline on one pair directory and score it against its ground truth.
 
@@ -553,10 +555,11 @@ def evaluate_pair(
     ``maps_path`` saves the layers for figures (``.npz``); with ``figures_dir`` the
     figures themselves are drawn here, in the worker (``<figure_stem>_dem.png`` etc.), so
     the report does not redraw them serially. ``epipole_box_px`` (default 80 px scaled by
-    width/512) is the Table 6.7 exclusion square. ``truth_dir`` keeps the true slope and roughness there, keyed by
-    what they are computed from (:func:`_truth_key`), so that another preset scored on the same pair reads them
-    instead of computing them again (the scene rastered at the renderer's footprint cell: 8 s of a 2400 m pair's
-    9 s). Returns the flat metric dict plus ``timings``.
+    width/512) is the Table 6.7 exclusion square. ``keep_truth`` keeps the true slope and roughness in the pair's
+    directory (:data:`TRUTH_KEPT`, a render cache's pair), keyed by what they are computed from and the code that
+    computes them (:func:`_truth_key`): another preset, or a later run on the same render, reads them instead of
+    computing them again (the scene rastered at the renderer's footprint cell: 8 s of a 2400 m pair's 9 s).
+    Returns the flat metric dict plus ``timings``.
     """
     from flight_sw.pipeline import run_pipeline
     from ground_sim import scoring
@@ -603,11 +606,11 @@ def evaluate_pair(
         # the hazard truth on a third of a small camera's high view)
         view = views[0] if isinstance(views, list) and views and isinstance(views[0], dict) else None
         key = _truth_key(pair_dir, scene_spec, seed, gsd, world)
-        got = _load_truth(truth_dir, key) if truth_dir else None
+        got = _load_truth(pair_dir, key) if keep_truth else None
         if got is None:
             got = truth_slope_roughness(load_scene(scene_spec, seed), world, max(gsd, 0.02), view=view)
-            if truth_dir:
-                _save_truth(truth_dir, key, got)
+            if keep_truth:
+                _save_truth(pair_dir, key, got)
         truth["slope_deg"], truth["roughness_m"] = got
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera
@@ -665,38 +668,48 @@ def evaluate_pair(
 
 def _truth_key(pair_dir: str, scene_spec: str, seed: int, gsd: float, world: np.ndarray) -> str:
     """SHA-256 (32 hex digits) of everything :func:`truth_slope_roughness` reads in :func:`evaluate_pair`: the scene
-    and its seed, the pair's record (its render views), the ground cell and the pixels' true ground points."""
+    and its seed, the pair's record (its render views), the ground cell and the pixels' true ground points, and of
+    the code that computes them (ground_sim's render and truth code, and this package)."""
     import hashlib
 
-    h = hashlib.sha256(f"{scene_spec}\0{seed}\0{gsd!r}\0".encode())
+    from ground_sim.render_cache import render_code_fingerprint
+    from studies.executor import code_fingerprint
+
+    code = f"{render_code_fingerprint()}-{code_fingerprint(('studies',))}"
+    h = hashlib.sha256(f"{code}\0{scene_spec}\0{seed}\0{gsd!r}\0".encode())
     h.update((Path(pair_dir) / "pair.json").read_bytes())
     h.update(np.ascontiguousarray(world, np.float64).tobytes())
     return h.hexdigest()[:32]
 
 
-def _load_truth(truth_dir: str, key: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The layers :func:`_save_truth` kept under ``key``, or None when there are none or they are not whole."""
+def _load_truth(pair_dir: str, key: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The layers :func:`_save_truth` kept in ``pair_dir`` under ``key``, or None: none kept, kept under another key
+    (the render, its record or the code changed), or not whole."""
     import zipfile
 
-    path = Path(truth_dir) / f"{key}.npz"
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(Path(pair_dir) / TRUTH_KEPT, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return None
             slope, rough = z["slope_deg"], z["roughness_m"]
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):  # absent, or cut off by a stopped worker
         return None
     return slope, rough
 
 
-def _save_truth(truth_dir: str, key: str, layers: tuple[np.ndarray, np.ndarray]) -> None:
-    """Keep the true slope and roughness under ``key``; written whole or not at all (a rename), as a second worker
-    may read it at once."""
+def _save_truth(pair_dir: str, key: str, layers: tuple[np.ndarray, np.ndarray]) -> None:
+    """Keep the true slope and roughness in ``pair_dir`` under ``key``, in place of what was kept there; written whole
+    or not at all (a rename), as another worker may read it at once."""
     import os
 
-    d = Path(truth_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    tmp = d / f".{key}.{os.getpid()}.npz"
-    np.savez(tmp, slope_deg=layers[0], roughness_m=layers[1])
-    os.replace(tmp, d / f"{key}.npz")
+    d = Path(pair_dir)
+    tmp = d / f".{TRUTH_KEPT}.{os.getpid()}.tmp"
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, key=np.str_(key), slope_deg=layers[0], roughness_m=layers[1])
+        os.replace(tmp, d / TRUTH_KEPT)
+    except OSError:  # a cache this process may read and not write (or a full disk): computed again next time
+        tmp.unlink(missing_ok=True)
 
 
 def _scene_of(meta: dict[str, Any], scene: str | None, seed: int | None) -> tuple[str | None, int]:
@@ -1032,17 +1045,18 @@ def evaluate_scenario(
         )
         tasks: list[Any] = []
         info: dict[str, dict[str, Any]] = {}
-        # the presets score one pair against the same true slope and roughness: the first computes them, the others
-        # read them (a scratch of this run: what an interrupted run left there is not trusted, nor kept)
-        truth_dir = out / "runs" / "truth"
-        shutil.rmtree(truth_dir, ignore_errors=True)
         for preset in presets:
             for e in pairs:
                 alt = int(round(e["altitude_m"]))
                 tid = f"{scenario}-{preset}-s{e['seed']}-{alt}{render_tag(max_cells, raster)}"
-                kw: dict[str, Any] = {"pair_dir": e["pair_dir"], "preset": preset, "maps_path": None}
-                if len(presets) > 1:
-                    kw["truth_dir"] = str(truth_dir)
+                # the true slope and roughness are kept with the render: computed for the first preset of the first
+                # run, read by the others
+                kw: dict[str, Any] = {
+                    "pair_dir": e["pair_dir"],
+                    "preset": preset,
+                    "maps_path": None,
+                    "keep_truth": True,
+                }
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
                     if preset == presets[0]:
@@ -1078,23 +1092,20 @@ def evaluate_scenario(
                 file=sys.stderr,
                 flush=True,
             )
-        try:
-            res = run_tasks(
-                evaluate_pair,
-                tasks,
-                out / "runs" / "evaluate.jsonl",
-                scheduler=scheduler,
-                workers=workers,
-                progress=progress,
-                desc=f"evaluate {scenario}",
-                pool=pool,
-                code=code_fingerprint(EVAL_CODE),
-                inputs=task_inputs(camera_px, render_identity(scenario, scene)),
-                # a saved result whose maps are gone (pruned above, or deleted) is scored again to draw them
-                redo=[t.id for t in tasks if t.kwargs["maps_path"] and not Path(t.kwargs["maps_path"]).is_file()],
-            )
-        finally:
-            shutil.rmtree(truth_dir, ignore_errors=True)
+        res = run_tasks(
+            evaluate_pair,
+            tasks,
+            out / "runs" / "evaluate.jsonl",
+            scheduler=scheduler,
+            workers=workers,
+            progress=progress,
+            desc=f"evaluate {scenario}",
+            pool=pool,
+            code=code_fingerprint(EVAL_CODE),
+            inputs=task_inputs(camera_px, render_identity(scenario, scene)),
+            # a saved result whose maps are gone (pruned above, or deleted) is scored again to draw them
+            redo=[t.id for t in tasks if t.kwargs["maps_path"] and not Path(t.kwargs["maps_path"]).is_file()],
+        )
     rows = [{**info[t.id], **res[t.id]} for t in tasks]
     # another scenario evaluated into the same --out keeps its rows (they were overwritten, without a word)
     others = (

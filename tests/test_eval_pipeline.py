@@ -94,36 +94,38 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     assert log.read_text() == before and again == rows  # nothing re-ran
 
 
-def test_a_second_preset_reads_the_true_slope_the_first_computed(tmp_path: Path, cache: Path, monkeypatch):
+def test_the_true_slope_is_computed_once_per_render_and_again_when_what_it_comes_from_changes(
+    tmp_path: Path, cache: Path, monkeypatch
+):
     """The true slope and roughness (the scene rastered at the renderer's footprint cell: 8 of a 2400 m pair's 9 s)
-    were computed again for every preset scored on a pair."""
+    were computed again for every preset scored on a pair, and on every run."""
     kw = dict(seeds=[0], cache_dir=cache, camera_px=PX, altitudes=[300], workers=1, progress=False)
-    one = {r["preset"]: r for r in ev.evaluate_scenario("vertical", tmp_path / "one", presets=["thesis"], **kw)}
+    (one,) = ev.evaluate_scenario("vertical", tmp_path / "one", presets=["thesis"], **kw)
+    pair = Path(one["pair"])
+    kept = pair / ev.TRUTH_KEPT
+    assert kept.is_file()
     rows = ev.evaluate_scenario("vertical", tmp_path / "both", presets=["fast", "thesis"], **kw)
-    both = {r["preset"]: r for r in rows}
     drop = ("pipeline_s", "timings", "pair", "figures")
-    assert {k: v for k, v in both["thesis"].items() if k not in drop} == {
-        k: v for k, v in one["thesis"].items() if k not in drop
-    }
-    assert both["thesis"]["slope_mean_abs_deg"] is not None
-    assert not (tmp_path / "both" / "runs" / "truth").exists()  # a scratch of the run, gone with it
+    assert {k: v for k, v in rows[1].items() if k not in drop} == {k: v for k, v in one.items() if k not in drop}
 
     calls = []
     real = ev.truth_slope_roughness
     monkeypatch.setattr(ev, "truth_slope_roughness", lambda *a, **k: calls.append(1) or real(*a, **k))
-    pair, kept = one["thesis"]["pair"], tmp_path / "kept"
-    fresh = ev.evaluate_pair(pair, "fast")
-    first = ev.evaluate_pair(pair, "fast", truth_dir=str(kept))
-    second = ev.evaluate_pair(pair, "thesis", truth_dir=str(kept))
-    assert len(calls) == 2 and len(list(kept.glob("*.npz"))) == 1, "the second preset computed them again"
-    assert {k: v for k, v in first.items() if k not in drop} == {k: v for k, v in fresh.items() if k not in drop}
-    for k in ("slope_mean_abs_deg", "slope_median_deg", "rough_mean_abs_m", "rough_median_m"):
-        assert second[k] == one["thesis"][k] is not None, k
+    fresh = ev.evaluate_pair(str(pair), "fast")
+    read = ev.evaluate_pair(str(pair), "fast", keep_truth=True)
+    assert len(calls) == 1, "the kept layers were computed again"
+    assert {k: v for k, v in read.items() if k not in drop} == {k: v for k, v in fresh.items() if k not in drop}
+    assert read["slope_mean_abs_deg"] is not None and read["rough_mean_abs_m"] is not None
+    # another scene seed is other truth: computed, and kept in their place
+    other = ev.evaluate_pair(str(pair), "fast", keep_truth=True, scene_seed=7)
+    assert len(calls) == 2 and other["slope_mean_abs_deg"] != read["slope_mean_abs_deg"]
+    again7 = ev.evaluate_pair(str(pair), "fast", keep_truth=True, scene_seed=7)
+    assert len(calls) == 2 and again7["slope_mean_abs_deg"] == other["slope_mean_abs_deg"]
     # a file cut off (a worker stopped while writing) is not read: they are computed again
-    (f,) = kept.glob("*.npz")
-    f.write_bytes(f.read_bytes()[:100])
-    again = ev.evaluate_pair(pair, "thesis", truth_dir=str(kept))
-    assert len(calls) == 3 and again["slope_mean_abs_deg"] == second["slope_mean_abs_deg"]
+    kept.write_bytes(kept.read_bytes()[:100])
+    again = ev.evaluate_pair(str(pair), "fast", keep_truth=True)
+    assert len(calls) == 3 and again["slope_mean_abs_deg"] == read["slope_mean_abs_deg"]
+    assert not list(pair.glob(".*.tmp"))
 
 
 def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path):
