@@ -701,15 +701,19 @@ def _save_truth(pair_dir: str, key: str, layers: tuple[np.ndarray, np.ndarray]) 
     """Keep the true slope and roughness in ``pair_dir`` under ``key``, in place of what was kept there; written whole
     or not at all (a rename), as another worker may read it at once."""
     import os
+    import tempfile
 
     d = Path(pair_dir)
-    tmp = d / f".{TRUTH_KEPT}.{os.getpid()}.tmp"
     try:
-        with open(tmp, "wb") as f:
+        fd, name = tempfile.mkstemp(prefix=f".{TRUTH_KEPT}.", suffix=".tmp", dir=d)  # unique on a shared disk too
+    except OSError:  # a cache this process may read and not write: computed again next time
+        return
+    try:
+        with os.fdopen(fd, "wb") as f:
             np.savez(f, key=np.str_(key), slope_deg=layers[0], roughness_m=layers[1])
-        os.replace(tmp, d / TRUTH_KEPT)
-    except OSError:  # a cache this process may read and not write (or a full disk): computed again next time
-        tmp.unlink(missing_ok=True)
+        os.replace(name, d / TRUTH_KEPT)
+    except OSError:  # a full disk, say
+        Path(name).unlink(missing_ok=True)
 
 
 def _scene_of(meta: dict[str, Any], scene: str | None, seed: int | None) -> tuple[str | None, int]:
