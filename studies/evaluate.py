@@ -606,7 +606,7 @@ def evaluate_pair(
         # the hazard truth on a third of a small camera's high view)
         view = views[0] if isinstance(views, list) and views and isinstance(views[0], dict) else None
         key = _truth_key(pair_dir, scene_spec, seed, gsd, world)
-        got = _load_truth(pair_dir, key) if keep_truth else None
+        got = _load_truth(pair_dir, key, truth_elev.shape) if keep_truth else None
         if got is None:
             got = truth_slope_roughness(load_scene(scene_spec, seed), world, max(gsd, 0.02), view=view)
             if keep_truth:
@@ -682,9 +682,9 @@ def _truth_key(pair_dir: str, scene_spec: str, seed: int, gsd: float, world: np.
     return h.hexdigest()[:32]
 
 
-def _load_truth(pair_dir: str, key: str) -> tuple[np.ndarray, np.ndarray] | None:
+def _load_truth(pair_dir: str, key: str, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
     """The layers :func:`_save_truth` kept in ``pair_dir`` under ``key``, or None: none kept, kept under another key
-    (the render, its record or the code changed), or not whole."""
+    (the render, its record or the code changed), not whole, or not float32 of ``shape``."""
     import zipfile
 
     try:
@@ -693,6 +693,8 @@ def _load_truth(pair_dir: str, key: str) -> tuple[np.ndarray, np.ndarray] | None
                 return None
             slope, rough = z["slope_deg"], z["roughness_m"]
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):  # absent, or cut off by a stopped worker
+        return None
+    if any(a.shape != shape or a.dtype != np.float32 for a in (slope, rough)):
         return None
     return slope, rough
 
