@@ -875,7 +875,19 @@ import minimal_flight as mf
 import minimal_flight_zmq as z
 
 plain = mf.answer
-mf.answer = lambda *a: (time.sleep(5.0), plain(*a))[1]  # a detector that takes its time
+calls = []
+
+
+def slow(*a):  # a detector that takes its time (past the ground's 4 s link timeout) on the first two pairs it gets
+    calls.append(1)
+    if len(calls) == 1:
+        open({inside!r}, "w").close()  # inside answer() for the first ground: the test stops that ground now
+    if len(calls) <= 2:  # the second: the next ground's first pair, its session kept up meanwhile
+        time.sleep(5.0)
+    return plain(*a)
+
+
+mf.answer = slow
 sys.exit(z.main(sys.argv[1:]))
 """
 
@@ -886,7 +898,8 @@ def test_the_zeromq_example_serves_the_next_ground_after_one_left_while_it_compu
     from hil_server.run import _free_tcp_port
 
     script = tmp_path / "slow_flight.py"
-    script.write_text(SLOW_ZMQ_FLIGHT.format(examples=str(ROOT / "examples")))
+    inside = tmp_path / "inside_answer"
+    script.write_text(SLOW_ZMQ_FLIGHT.format(examples=str(ROOT / "examples"), inside=str(inside)))
     endpoint = f"tcp://127.0.0.1:{_free_tcp_port()}"
     board = subprocess.Popen(
         [sys.executable, str(script), "--endpoint", endpoint, "--insecure"], stderr=subprocess.PIPE
@@ -897,12 +910,15 @@ def test_the_zeromq_example_serves_the_next_ground_after_one_left_while_it_compu
              "--insecure", "--manifest", str(manifest), "--out", str(tmp_path / "first"), "--no-progress"],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip
-        time.sleep(4.0)  # its Hello, Config and the first pair's frames went: the board is inside answer()
+        t0 = time.monotonic()  # its Hello, Config and the first pair's frames went: the board is inside answer()
+        while not inside.exists() and first.poll() is None and time.monotonic() - t0 < 60:
+            time.sleep(0.05)
+        assert inside.exists(), "the board never got the first ground's pair"
         first.send_signal(signal.SIGINT)
         assert first.wait(30) == 130
         s = run_hil(manifest, tmp_path / "second", flight="external", link=f"zmq:{endpoint}", insecure=True)
     finally:
         board.terminate()
         board.communicate(timeout=10)
-    # served: both answered (late, a 5 s detector against a 2 s deadline, which is the board's business)
+    # served: both answered (the first late, a 5 s detector against a 2 s deadline, which is the board's business)
     assert s["complete"] and [r["status"] for r in s["records"]] == ["result", "result"], s.get("reason")
