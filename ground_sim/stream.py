@@ -134,9 +134,10 @@ TELEMETRY_GRACE_S = 10.0
 TELEMETRY_LINE_BYTES = 4096
 
 
-def telemetry_grace_s(baud: float | None) -> float:
-    """How long a Result's Telemetry is awaited on a line of ``baud`` (None or 0: unpaced, ZeroMQ)."""
-    return TELEMETRY_GRACE_S + (2.0 * TELEMETRY_LINE_BYTES * 10 / baud if baud else 0.0)
+def telemetry_grace_s(baud: float | None, base_s: float = TELEMETRY_GRACE_S) -> float:
+    """How long a Result's Telemetry is awaited on a line of ``baud`` (None or 0: unpaced, ZeroMQ); ``base_s``
+    is the grace before the line time (tests shorten it: a board that sends no Telemetry waits it out per pair)."""
+    return base_s + (2.0 * TELEMETRY_LINE_BYTES * 10 / baud if baud else 0.0)
 
 
 UPLINK_NOTE_S = 10.0  # a progress line this often while a pair's frames are on a slow line
@@ -505,11 +506,14 @@ def stream_descent(
     progress=None,
     telemetry_path: Path | None = None,
     where: str = "the link",
+    telemetry_grace_base_s: float = TELEMETRY_GRACE_S,
 ) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``).
 
     ``hello_timeout_s`` bounds the wait for the first session's Hello (the link session included); ``where``
-    names the far end in messages (e.g. ``serial:/dev/ttyUSB0``).
+    names the far end in messages (e.g. ``serial:/dev/ttyUSB0``). ``telemetry_grace_base_s`` is the base of the
+    wait for a Result's Telemetry (:func:`telemetry_grace_s`; tests shorten it, a board without Telemetry waits it
+    out at every pair).
 
     On :class:`Interrupted` (raised by a signal handler) the records so far are on disk and the
     exception propagates. On :class:`NoHello` every pair without a record is recorded as ``not_run`` first.
@@ -755,7 +759,7 @@ def stream_descent(
         """A pair whose Result came :func:`telemetry_grace_s` ago without its Telemetry completes without it: a
         board that sends none lost every Result it sent, each after the whole response timeout (36 s)."""
         now = time.monotonic()
-        grace = telemetry_grace_s(getattr(link, "baud", None))
+        grace = telemetry_grace_s(getattr(link, "baud", None), telemetry_grace_base_s)
         for s in sorted(want):
             o = outcomes[s]
             if telemetry_overdue(o, now, grace):
@@ -1174,7 +1178,7 @@ def stream_descent(
             collect(until, pending)
             # a Result in and its Telemetry on its way: awaited for its own line time, as mid-descent (the last pair
             # at 300 baud lost its Telemetry to the response timeout's end; stop 60's review)
-            grace = telemetry_grace_s(getattr(link, "baud", None))
+            grace = telemetry_grace_s(getattr(link, "baud", None), telemetry_grace_base_s)
             owed = [outcomes[k].result_t_done for k in pending if outcomes[k].result is not None]
             later = max((t + grace for t in owed if t is not None), default=0.0)
             if pending and later > time.monotonic():
@@ -1376,6 +1380,8 @@ def _main(argv: list[str] | None) -> int:
     )
     ap.add_argument("--memory-mib", type=float, default=1024.0, help="this process's memory headroom (MiB)")
     ap.add_argument("--telemetry", type=Path, default=None, help="per-pair timing lines (JSON) written here")
+    # tests: the base of the wait for a Result's Telemetry (s), which a board that sends none waits out per pair
+    ap.add_argument("--telemetry-grace", type=float, default=TELEMETRY_GRACE_S, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import check_reconnect_timeout, open_link
@@ -1391,6 +1397,8 @@ def _main(argv: list[str] | None) -> int:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
         if not (math.isfinite(args.hello_timeout) and args.hello_timeout > 0):
             raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
+        if not (math.isfinite(args.telemetry_grace) and args.telemetry_grace > 0):
+            raise InputError(f"--telemetry-grace must be a positive number of seconds, got {args.telemetry_grace}")
         check_reconnect_timeout(args.reconnect_timeout)
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
@@ -1465,6 +1473,7 @@ def _main(argv: list[str] | None) -> int:
             elevation_unit_cm=unit,
             progress=show,
             telemetry_path=args.telemetry,
+            telemetry_grace_base_s=args.telemetry_grace,
         )
     except Interrupted as exc:
         _say(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}")

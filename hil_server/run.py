@@ -204,6 +204,8 @@ class RunConfig:
     # after a lost session, the ground's wait for a new one, from the loss (ground_sim.stream)
     reconnect_timeout_s: float = 10.0
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
+    # tests: the base of the ground's wait for a Result's Telemetry (s); None: ground_sim.stream.TELEMETRY_GRACE_S
+    telemetry_grace_s: float | None = None
     flight: str = "emulated"  # emulated (under the supervisor) | external (a flight computer on `link`)
     flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
     keys: Path | None = None  # external zmq: the ground's CURVE key directory
@@ -1680,6 +1682,8 @@ def _descend(checked: CheckedRun, log) -> dict:
             ]
             if cfg.full_maps:
                 ground_cmd.append("--full-maps")
+            if cfg.telemetry_grace_s is not None:
+                ground_cmd += ["--telemetry-grace", str(cfg.telemetry_grace_s)]
             ground_cmd.append("--fusion" if cfg.fusion else "--no-fusion")
             if emulated:
                 sup_cmd = [
