@@ -507,13 +507,15 @@ def stream_descent(
     telemetry_path: Path | None = None,
     where: str = "the link",
     telemetry_grace_base_s: float = TELEMETRY_GRACE_S,
+    hello_note_s: float = HELLO_NOTE_S,
 ) -> list[dict]:
     """Run the ground side of a descent; returns one record per pair (also in ``results.jsonl``).
 
     ``hello_timeout_s`` bounds the wait for the first session's Hello (the link session included); ``where``
     names the far end in messages (e.g. ``serial:/dev/ttyUSB0``). ``telemetry_grace_base_s`` is the base of the
     wait for a Result's Telemetry (:func:`telemetry_grace_s`; tests shorten it, a board without Telemetry waits it
-    out at every pair).
+    out at every pair). ``hello_note_s``: how often a line says the first Hello is still awaited (tests shorten
+    it, to see the line without waiting 10 s for it).
 
     On :class:`Interrupted` (raised by a signal handler) the records so far are on disk and the
     exception propagates. On :class:`NoHello` every pair without a record is recorded as ``not_run`` first.
@@ -591,7 +593,7 @@ def stream_descent(
         NoHello. A session lost during the handshake is a LinkDown, as in any session: its pair ends as
         ``link_down`` and the next pair tries again (a very noisy line loses sessions, it is not a silent peer)."""
         t0 = time.monotonic()
-        end, next_note = t0 + hello_timeout_s, t0 + HELLO_NOTE_S
+        end, next_note = t0 + hello_timeout_s, t0 + hello_note_s
         refused_since: float | None = None  # when the far end first refused our CURVE key
         said_unanswered = False
         while not link.wait_established(min(1.0, max(0.0, end - time.monotonic()))):
@@ -647,11 +649,11 @@ def stream_descent(
         handshake(max(0.0, end - time.monotonic()), t0, first=True)
 
     def note_mark(t0: float, now: float) -> float:
-        """Say the latest HELLO_NOTE_S mark passed (10 s, 20 s, ...), not the measured time, which a late loop
+        """Say the latest ``hello_note_s`` mark passed (10 s, 20 s, ...), not the measured time, which a late loop
         rounded up past it ("11 s of 11 s"); after a stall, that mark alone. Returns when the next one is due."""
-        mark = HELLO_NOTE_S * ((now - t0) // HELLO_NOTE_S)
+        mark = hello_note_s * ((now - t0) // hello_note_s)
         note(f"waiting for the flight computer's Hello on {where} ({mark:.0f} s of {hello_timeout_s:.0f} s)")
-        return t0 + mark + HELLO_NOTE_S
+        return t0 + mark + hello_note_s
 
     def handshake(hello_s: float, t0: float, first: bool = False) -> None:
         """Hello both ways in the link session up now, within ``hello_s`` (raises LinkDown, or NoHello when no Hello
@@ -670,7 +672,7 @@ def stream_descent(
         except LinkClosed as exc:
             raise closed(exc) from None
         end = time.monotonic() + hello_s
-        next_note = t0 + HELLO_NOTE_S * (1 + (time.monotonic() - t0) // HELLO_NOTE_S)  # the next mark from now
+        next_note = t0 + hello_note_s * (1 + (time.monotonic() - t0) // hello_note_s)  # the next mark from now
         while True:  # the HIL server answers Hello once its flight process has booted
             pkt = recv(0.5)  # a failed transport reads as nothing: said below (it was a traceback)
             if pkt is not None and isinstance(pkt.message, Hello) and pkt.epoch == epoch:
@@ -1382,6 +1384,8 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--telemetry", type=Path, default=None, help="per-pair timing lines (JSON) written here")
     # tests: the base of the wait for a Result's Telemetry (s), which a board that sends none waits out per pair
     ap.add_argument("--telemetry-grace", type=float, default=TELEMETRY_GRACE_S, help=argparse.SUPPRESS)
+    # tests: how often a line says the first Hello is still awaited (s)
+    ap.add_argument("--hello-note", type=float, default=HELLO_NOTE_S, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import check_reconnect_timeout, open_link
@@ -1399,6 +1403,8 @@ def _main(argv: list[str] | None) -> int:
             raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
         if not (math.isfinite(args.telemetry_grace) and args.telemetry_grace > 0):
             raise InputError(f"--telemetry-grace must be a positive number of seconds, got {args.telemetry_grace}")
+        if not (math.isfinite(args.hello_note) and args.hello_note > 0):
+            raise InputError(f"--hello-note must be a positive number of seconds, got {args.hello_note}")
         check_reconnect_timeout(args.reconnect_timeout)
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(
@@ -1474,6 +1480,7 @@ def _main(argv: list[str] | None) -> int:
             progress=show,
             telemetry_path=args.telemetry,
             telemetry_grace_base_s=args.telemetry_grace,
+            hello_note_s=args.hello_note,
         )
     except Interrupted as exc:
         _say(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}")

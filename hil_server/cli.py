@@ -544,6 +544,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument("--link-fault", default=None, help=argparse.SUPPRESS)  # tests: stall@N | exit@N
     # tests: the ground's wait for a Result's Telemetry (s), which a board that sends none waits out per pair
     p.add_argument("--telemetry-grace", type=float, default=None, help=argparse.SUPPRESS)
+    # tests: how often the ground says the first Hello is still awaited (s)
+    p.add_argument("--hello-note", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)  # tests: crash@N | hang@N | oom@N (our flight sw)
     p.add_argument("--out", type=Path, default=Path("out/run"), help="output directory (created)")
     p.add_argument("--no-progress", action="store_true", help="no render progress bar (per-pair lines still print)")
@@ -579,6 +581,8 @@ def _config(args: argparse.Namespace):
         raise InputError(f"--hello-timeout must be a number of seconds in (0, 86400], got {args.hello_timeout}")
     if args.telemetry_grace is not None and not (math.isfinite(args.telemetry_grace) and args.telemetry_grace > 0):
         raise InputError(f"--telemetry-grace must be a positive number of seconds, got {args.telemetry_grace}")
+    if args.hello_note is not None and not (math.isfinite(args.hello_note) and args.hello_note > 0):
+        raise InputError(f"--hello-note must be a positive number of seconds, got {args.hello_note}")
     if args.link_timeout is not None:
         check_link_timeout(args.link_timeout)
     if args.baud is not None:
@@ -627,6 +631,7 @@ def _config(args: argparse.Namespace):
         reconnect_timeout_s=args.reconnect_timeout,
         link_fault=args.link_fault,
         telemetry_grace_s=args.telemetry_grace,
+        hello_note_s=args.hello_note,
         fault=args.fault,
         flight=args.flight,
         flight_cmd=args.flight_cmd,

@@ -206,6 +206,8 @@ class RunConfig:
     link_fault: str | None = None  # supervisor test fault on the ground link: stall@N | exit@N
     # tests: the base of the ground's wait for a Result's Telemetry (s); None: ground_sim.stream.TELEMETRY_GRACE_S
     telemetry_grace_s: float | None = None
+    # tests: how often the ground says the first Hello is still awaited (s); None: ground_sim.stream.HELLO_NOTE_S
+    hello_note_s: float | None = None
     flight: str = "emulated"  # emulated (under the supervisor) | external (a flight computer on `link`)
     flight_cmd: str | None = None  # the user's flight program instead of ours (emulated only; docs/hil.md)
     keys: Path | None = None  # external zmq: the ground's CURVE key directory
@@ -1684,6 +1686,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                 ground_cmd.append("--full-maps")
             if cfg.telemetry_grace_s is not None:
                 ground_cmd += ["--telemetry-grace", str(cfg.telemetry_grace_s)]
+            if cfg.hello_note_s is not None:
+                ground_cmd += ["--hello-note", str(cfg.hello_note_s)]
             ground_cmd.append("--fusion" if cfg.fusion else "--no-fusion")
             if emulated:
                 sup_cmd = [

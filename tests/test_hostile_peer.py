@@ -229,24 +229,25 @@ def test_an_external_flight_computer_declaring_a_result_over_the_limit_fails_tha
 
 
 def test_a_flight_computer_that_never_answers_ends_the_run_after_the_hello_timeout(manifest, tmp_path, capfd):
-    """The ground waited 60 s for a link session, then 900 s for the Hello, silently, and again for every pair."""
+    """The ground waited 60 s for a link session, then 900 s for the Hello, silently, and again for every pair.
+    (A line says the wait every 2 s here, not every 10 s: a 4 s hello timeout shows one.)"""
     from protocol.faults import PtyBridge
 
     with PtyBridge() as bridge:  # nobody on the other end
         t0 = time.monotonic()
-        code, s = run_cli(
-            manifest, tmp_path, "--flight", "external", "--link", f"serial:{bridge.paths[1]}", "--hello-timeout", "11"
-        )
+        link = f"serial:{bridge.paths[1]}"
+        code, s = run_cli(manifest, tmp_path, "--flight", "external", "--link", link, "--hello-timeout", "4",
+                          "--hello-note", "2")  # fmt: skip
         took = time.monotonic() - t0
     assert code == 1 and s["complete"] is False and s["ground_exit"] == 5
-    assert 11 <= took < 60
-    why = f"no Hello from the flight computer on serial:{bridge.paths[1]} within 11 s: its link never answered"
+    assert 4 <= took < 60
+    why = f"no Hello from the flight computer on serial:{bridge.paths[1]} within 4 s: its link never answered"
     assert s["reason"].startswith(why)
     assert outcomes(s) == [(label, "error", "not_run") for label in PAIRS]  # every pair, none lost
     assert all(r["text"] == f"not run: {s['reason']}" for r in s["records"])
     assert s["results"] == 0 and s["errors"] == 3 and s["link_errors"] == 0
     out, err = capfd.readouterr()
-    assert f"waiting for the flight computer's Hello on serial:{bridge.paths[1]} (10 s of 11 s)" in err
+    assert f"waiting for the flight computer's Hello on serial:{bridge.paths[1]} (2 s of 4 s)" in err
     assert f"ground: error: {why}" in err
     assert err.count("ground: error:") == 1 and "ERROR not_run" not in err  # one line, not one per pair
     assert f"INCOMPLETE ({why}" in out
