@@ -665,9 +665,15 @@ def test_a_stop_inside_a_save_does_not_append_the_same_records_twice(manifest, f
 
 
 def _lockstep(
-    flight: Path, mode: str, manifest: Path, out: Path, baud: int | None = None, telemetry: Path | None = None
+    flight: Path,
+    mode: str,
+    manifest: Path,
+    out: Path,
+    baud: int | None = None,
+    telemetry: Path | None = None,
+    response_timeout_s: float = 5.0,
 ) -> list[dict]:
-    """The ground alone, lockstep, a 5 s response timeout, against the faulty program on a pty."""
+    """The ground alone, lockstep, a 5 s response timeout (unless told), against the faulty program on a pty."""
     from ground_sim.stream import stream_descent
     from protocol.linkspec import open_link
 
@@ -680,7 +686,7 @@ def _lockstep(
                 out,
                 budget="external",
                 deadline_s=1.0,
-                response_timeout_s=5.0,
+                response_timeout_s=response_timeout_s,
                 where=spec,
                 telemetry_path=telemetry,
             )
@@ -733,8 +739,10 @@ def test_an_external_flight_computers_second_result_is_ignored_and_the_first_sta
 def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(manifest, flight, tmp_path, capfd):
     """With a pair given up on, the ground reads answers while the next pair's frames go out: an Error about that
     pair's first frame, taken then, was recorded only after the whole response timeout, with a false "no answer"
-    (review of stop 53's first fix). 115200 baud: each pair's frames are a while on the line."""
-    records = _lockstep(flight, "slow_then_err", manifest, tmp_path, baud=115200)
+    (review of stop 53's first fix). 115200 baud: each pair's frames are a while on the line. A 3 s response
+    timeout: the first pair still has no answer by then (12 s), and the bug's record would still come 3 s past
+    the bound below."""
+    records = _lockstep(flight, "slow_then_err", manifest, tmp_path, baud=115200, response_timeout_s=3.0)
     by_label = {r["label"]: r for r in records}
     assert by_label["600/300"]["status"] == "result" and len(records) == 3
     r = by_label["300/150"]  # its frames take ~3 s at 115200 baud; the Error came after the first of them
