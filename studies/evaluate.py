@@ -605,12 +605,12 @@ def evaluate_pair(
         # the renderer's own planes, where the pair records its render (QA 67c: a cell of the GSD disagreed with
         # the hazard truth on a third of a small camera's high view)
         view = views[0] if isinstance(views, list) and views and isinstance(views[0], dict) else None
-        key = _truth_key(pair_dir, scene_spec, seed, gsd, world)
-        got = _load_truth(pair_dir, key, truth_elev.shape) if keep_truth else None
+        kept_as = _truth_key(pair_dir, scene_spec, seed, gsd, world) if keep_truth else None
+        got = _load_truth(pair_dir, kept_as, truth_elev.shape) if kept_as else None
         if got is None:
             got = truth_slope_roughness(load_scene(scene_spec, seed), world, max(gsd, 0.02), view=view)
-            if keep_truth:
-                _save_truth(pair_dir, key, got)
+            if kept_as:
+                _save_truth(pair_dir, kept_as, got)
         truth["slope_deg"], truth["roughness_m"] = got
     epi = scoring.epipole_px(pair.camera, true1, true2)
     if epipole_box_px is None:  # the thesis's 80 px at 512 px, scaled with the camera
