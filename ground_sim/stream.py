@@ -1388,7 +1388,7 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--hello-note", type=float, default=HELLO_NOTE_S, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
-    from protocol.linkspec import check_reconnect_timeout, open_link
+    from protocol.linkspec import check_positive_seconds, check_reconnect_timeout, open_link
 
     try:
         auto_p, auto_e = auto_grid_steps(args.link)
@@ -1399,12 +1399,9 @@ def _main(argv: list[str] | None) -> int:
         unit = auto_elevation_unit_cm(args.link) if args.elevation_unit_cm == "auto" else int(args.elevation_unit_cm)
         if not 1 <= unit <= 1000:
             raise InputError(f"--elevation-unit-cm must be in [1, 1000] or auto, got {unit}")
-        if not (math.isfinite(args.hello_timeout) and args.hello_timeout > 0):
-            raise InputError(f"--hello-timeout must be a positive number of seconds, got {args.hello_timeout}")
-        if not (math.isfinite(args.telemetry_grace) and args.telemetry_grace > 0):
-            raise InputError(f"--telemetry-grace must be a positive number of seconds, got {args.telemetry_grace}")
-        if not (math.isfinite(args.hello_note) and args.hello_note > 0):
-            raise InputError(f"--hello-note must be a positive number of seconds, got {args.hello_note}")
+        check_positive_seconds("--hello-timeout", args.hello_timeout)
+        check_positive_seconds("--telemetry-grace", args.telemetry_grace)
+        check_positive_seconds("--hello-note", args.hello_note)
         check_reconnect_timeout(args.reconnect_timeout)
         read_manifest(args.manifest)  # before the link: a malformed manifest is one line, exit 2
         link = open_link(

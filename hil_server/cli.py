@@ -573,16 +573,15 @@ def _config(args: argparse.Namespace):
         if given:
             raise InputError(f"--manifest streams pairs already rendered; {', '.join(given)} would be ignored")
     from hil_server.budgets import deadline_problem
-    from protocol.linkspec import check_link_timeout
+    from protocol.linkspec import check_link_timeout, check_positive_seconds
 
     if args.deadline is not None and (why := deadline_problem(args.deadline)):
         raise InputError(f"--deadline {why}")
     if args.hello_timeout is not None and not (math.isfinite(args.hello_timeout) and 0 < args.hello_timeout <= 86400):
         raise InputError(f"--hello-timeout must be a number of seconds in (0, 86400], got {args.hello_timeout}")
-    if args.telemetry_grace is not None and not (math.isfinite(args.telemetry_grace) and args.telemetry_grace > 0):
-        raise InputError(f"--telemetry-grace must be a positive number of seconds, got {args.telemetry_grace}")
-    if args.hello_note is not None and not (math.isfinite(args.hello_note) and args.hello_note > 0):
-        raise InputError(f"--hello-note must be a positive number of seconds, got {args.hello_note}")
+    for option, seconds in (("--telemetry-grace", args.telemetry_grace), ("--hello-note", args.hello_note)):
+        if seconds is not None:
+            check_positive_seconds(option, seconds)
     if args.link_timeout is not None:
         check_link_timeout(args.link_timeout)
     if args.baud is not None:

@@ -70,6 +70,12 @@ def check_reconnect_timeout(seconds: float) -> None:
         )
 
 
+def check_positive_seconds(option: str, seconds: float) -> None:
+    """Refuse a timer option that is not a finite number of seconds above 0."""
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise InputError(f"{option} must be a positive number of seconds, got {seconds}")
+
+
 MAX_LINK_TIMEOUT_S = 3600.0  # a peer silent longer than an hour is gone; beyond this the timers overflow
 # an idle but healthy peer speaks once per keepalive (1 s): a shorter silence is no sign of a lost peer
 MIN_LINK_TIMEOUT_S = 2.0
