@@ -11,7 +11,8 @@ Sending (models: TCP's byte sequence with SACK RFC 2018, RACK RFC 8985, RTO RFC 
 
 * each session direction is one reliable byte stream of records
   ``type:u8 | length:u32 | body`` (one per message), numbered by stream position
-  from 0; DATA frames carry any range of it, at most the current frame size;
+  from 0 (on the wire modulo 2**32: :func:`unwrap`); DATA frames carry any range of it, at most the current
+  frame size;
 * at most ``window`` bytes (and at most the peer's announced window) are
   outstanding, counted from the lowest unacknowledged byte;
 * the receiver's ACK carries ``cum`` (every byte below it arrived), up to 16
@@ -96,8 +97,17 @@ from protocol.session import SessionState, SessionView
 # a zero window is probed with this many bytes of the stream, not a whole segment: on a 960 byte/s line a 1 kB probe
 # kept the sender's direction 35-40 % busy through a pause (stop 66's known limit); TCP probes with one byte (RFC 9293)
 PROBE_BYTES = 1
-SEQ_LIMIT = 2**32 - (1 << 26)  # a session ends (and a new one starts) before stream positions could wrap
 RECORD = struct.Struct(">BI")  # a message in the reliable stream: type, body length
+POS_MOD = 1 << 32  # stream positions go on the wire modulo 2**32 (u32); each side keeps them whole
+_HALF = 1 << 31
+
+
+def unwrap(wire: int, near: int) -> int:
+    """The whole stream position congruent to ``wire`` (mod 2**32) nearest to ``near``: ``near + ((wire - near +
+    2**31) mod 2**32) - 2**31``. Serial-number arithmetic (RFC 1982), decoded as QUIC decodes packet numbers
+    (RFC 9000 A.3): exact while the true position is within 2 GiB of ``near``, and a side's window is at most 1 GiB.
+    Stream positions ended the session at 4 GiB (stop 66's known limit), failing what was in flight."""
+    return near + ((wire - near + _HALF) % POS_MOD) - _HALF
 
 
 @dataclass(frozen=True)
@@ -458,7 +468,12 @@ class Arq(SessionView):
         if notify and not self.closed and self.sess.peer:  # best effort: tell the peer why, so its error says so
             self._control.clear()
             lost = close_frame(
-                self.sess.local, self.sess.peer, self._cum, f"session lost: {reason}", CLOSE_LOST, self.peer_max_frame
+                self.sess.local,
+                self.sess.peer,
+                self._cum % POS_MOD,
+                f"session lost: {reason}",
+                CLOSE_LOST,
+                self.peer_max_frame,
             )
             self._control.append(lost)
         self._drop_all(f"session lost: {reason}", now)
@@ -560,7 +575,7 @@ class Arq(SessionView):
         self.closed = True
         if self.sess.peer:
             self._control.append(
-                close_frame(self.sess.local, self.sess.peer, self._cum, reason, max_frame=self.peer_max_frame)
+                close_frame(self.sess.local, self.sess.peer, self._cum % POS_MOD, reason, max_frame=self.peer_max_frame)
             )
 
     # ------------------------------------------------------------------ transmitting
@@ -591,9 +606,10 @@ class Arq(SessionView):
             ranges.remove(recent)
             ranges.insert(0, recent)
         self.stats["acks_sent"] += 1
-        sacks = ranges[: ack_sack_room(self.peer_max_frame)]  # a small-frame peer drops a longer ACK (section 1)
+        sacks = [(a % POS_MOD, b % POS_MOD) for a, b in ranges[: ack_sack_room(self.peer_max_frame)]]  # a
+        # small-frame peer drops a longer ACK (section 1)
         window = 0 if self.rx_full else self.cfg.window
-        return ack_frame(self.sess.local, self.sess.peer, self._cum, window, sacks, self._echo)
+        return ack_frame(self.sess.local, self.sess.peer, self._cum % POS_MOD, window, sacks, self._echo)
 
     def set_rx_full(self, full: bool, now: float) -> None:
         """The owner's receive queue is full (True) or has room again (False). While full, new stream bytes are
@@ -654,6 +670,9 @@ class Arq(SessionView):
             t, body = self._dgrams.popleft()
             return dgram_frame(self.sess.local, self.sess.peer, t, body), None
         self._dgram_turn = True
+        if self._txid >= POS_MOD - 1 and self._data_ready():  # a u32 txid: 4 TiB of 1 kB frames in one session
+            self._lose("transmission numbers exhausted (2**32 DATA frames in one session)", now)
+            return None
         k = self._payload_size()
         while self._retx:
             start = self._retx.popleft()
@@ -680,10 +699,7 @@ class Arq(SessionView):
         sendable = self._sendable()
         if sendable <= 0:
             return None
-        if self._nxt >= SEQ_LIMIT:
-            self._lose("stream positions exhausted", now)
-            return None
-        n = min(k, sendable)
+        n = min(k, sendable, POS_MOD - self._nxt % POS_MOD)  # no frame crosses 2**32: its pos + len fits a u32
         if self.peer_full:  # new data as the probe, nothing being in flight
             self.stats["probes"] += 1
         seg = _Seg(self._nxt, self._nxt + n)
@@ -704,7 +720,7 @@ class Arq(SessionView):
         if len(self._txmap) > 8192:
             self._txmap.popitem(last=False)
         end = seg.end if upto is None else upto
-        return data_frame(self.sess.local, self.sess.peer, seg.start, self._bytes(seg.start, end), self._txid)
+        return data_frame(self.sess.local, self.sess.peer, seg.start % POS_MOD, self._bytes(seg.start, end), self._txid)
 
     def _carried(self, seg: _Seg) -> list[tuple[int, int, MessageTimes]]:
         """(start, end, times) of the messages ``seg`` carries bytes of, remembered on it at its first call and
@@ -857,14 +873,15 @@ class Arq(SessionView):
             else:
                 self._deliver(f.type_code, f.payload, -1, now, now, f.wire_bytes)
         elif f.kind == CLOSE:  # its cum acknowledges what the peer received before closing
-            self._on_ack(WireFrame(ACK, f.src, f.dst, cum=max(f.cum, self._una), window=self.peer_window), now)
+            cum = max(unwrap(f.cum, self._una), self._una) % POS_MOD
+            self._on_ack(WireFrame(ACK, f.src, f.dst, cum=cum, window=self.peer_window), now)
             if f.code == CLOSE_LOST:  # it gave up on this session and will start a new one
                 self._lose(f"peer gave up on the session ({f.reason or 'no reason given'})", now, notify=False)
             else:
                 self._lose(f"peer closed the link ({f.reason or 'no reason given'})", now, "closed", notify=False)
         elif f.kind == REJECT:
             self.stats["rejected_received"] += 1
-            hit = self._pos_id.get(f.pos)
+            hit = self._pos_id.get(unwrap(f.pos, self._una))
             if hit is not None and not str(self._outcomes.get(hit[0], "")).startswith("failed"):
                 self._remember(self._outcomes, hit[0], f"failed: peer rejected: {f.reason}")
                 self._failures.append(DeliveryFailure(hit[0], hit[1], f"peer rejected: {f.reason}"))
@@ -890,7 +907,8 @@ class Arq(SessionView):
             self._append(m)
 
     def _on_data(self, f: WireFrame, now: float) -> None:
-        s, e = f.pos, f.pos + len(f.payload)
+        s = unwrap(f.pos, self._cum)
+        e = s + len(f.payload)
         self._ack_due = True
         self._echo = max(self._echo, f.txid)
         self._last_pos = s
@@ -968,7 +986,7 @@ class Arq(SessionView):
         self.stats["rejected_sent"] += 1
         self._arrivals += 1
         self._refusals.append(Refusal(type_code, reason, now, self._arrivals, seqs))
-        self._control.append(reject_frame(self.sess.local, self.sess.peer, pos, reason, self.peer_max_frame))
+        self._control.append(reject_frame(self.sess.local, self.sess.peer, pos % POS_MOD, reason, self.peer_max_frame))
 
     def take_refusals(self) -> list[Refusal]:
         """Each message refused from the peer since the last call (the latest
@@ -1018,7 +1036,9 @@ class Arq(SessionView):
 
     def _on_ack(self, f: WireFrame, now: float) -> None:
         self.stats["acks_received"] += 1
-        if f.cum > self._nxt or any(b > self._nxt for _, b in f.sacks) or f.echo > self._txid:
+        cum = unwrap(f.cum, self._una)
+        sacks = [(unwrap(a, cum), unwrap(b, cum)) for a, b in f.sacks]  # each above cum (framing checks it)
+        if cum > self._nxt or any(b > self._nxt for _, b in sacks) or f.echo > self._txid:
             self._bad_acks += 1  # acknowledges what was never sent: counted as malformed (receive())
             self.stats["malformed"] += 1
             return
@@ -1050,13 +1070,13 @@ class Arq(SessionView):
                 self._last_progress = now  # the stall clock starts with the window, not at the last probe
             self.peer_window = max(MIN_FRAME, f.window)
         newly: list[_Seg] = []
-        if f.cum > self._una:
+        if cum > self._una:
             n = 0
             for k in self._keys:
                 seg = self._segs[k]
-                if seg.start >= f.cum:
+                if seg.start >= cum:
                     break
-                if seg.end <= f.cum:
+                if seg.end <= cum:
                     del self._segs[k]
                     n += 1
                     if not seg.acked:
@@ -1064,18 +1084,18 @@ class Arq(SessionView):
                         newly.append(seg)
                 else:  # straddles cum: keep the unacknowledged tail
                     del self._segs[k]
-                    seg.start = f.cum
+                    seg.start = cum
                     self._segs[seg.start] = seg
                     self._keys[n] = seg.start
                     if seg.queued:
                         self._retx.append(seg.start)
                     break
             del self._keys[:n]
-            del self._sbuf[: f.cum - self._una]
-            self._una = f.cum
+            del self._sbuf[: cum - self._una]
+            self._una = cum
             while self._msgs and self._msgs[0].end <= self._una:
                 self._delivered(self._msgs.popleft(), now)
-        for a, b in f.sacks:
+        for a, b in sacks:
             i = bisect.bisect_left(self._keys, a)
             while i < len(self._keys) and self._keys[i] < b:
                 seg = self._segs[self._keys[i]]

@@ -19,7 +19,10 @@ REJECT     6     pos:u32 (stream position of the refused message's record) | rea
 =========  ====  =============================================================
 
 The reliable stream of a session is a sequence of records
-``type:u8 | length:u32 | message body`` (:mod:`protocol.arq`).
+``type:u8 | length:u32 | message body`` (:mod:`protocol.arq`). Stream positions
+(``pos``, ``cum``, SACK ranges) are carried modulo 2**32 and compared in
+serial-number order (RFC 1982), so a session's stream may run past 4 GiB; no
+DATA frame crosses a multiple of 2**32 (``pos + len <= 2**32``).
 
 Why stuffing with a flag byte rather than a start word plus length (F Prime):
 a frame whose tail was lost is closed by the next frame's opening flag, so the
@@ -169,7 +172,7 @@ def parse_body(raw: bytes) -> WireFrame | str:
             return "malformed"
         for k in range(n):
             a, b = SACK_RANGE.unpack_from(body, ACK_HEAD.size + k * SACK_RANGE.size)
-            if not f.cum < a < b <= 2**32:
+            if not 0 < (a - f.cum) % 2**32 < (b - f.cum) % 2**32 < 2**31:  # above cum, in serial-number order
                 return "malformed"
             f.sacks.append((a, b))
     elif kind == DGRAM:

@@ -38,6 +38,15 @@ def test_stuffing_roundtrip_and_no_flag_inside(data):
     assert b"\x7e" not in s and unstuff(s) == data
 
 
+def test_sack_ranges_are_above_cum_in_serial_number_order_across_the_wrap():
+    """Stream positions are u32 on the wire (docs/protocol.md section 1): a range above a cum just short of 2**32 may
+    end, or lie wholly, past the wrap."""
+    cum = 2**32 - 10
+    for ranges in ([(2**32 - 8, 0), (3, 6)], [(2**32 - 4, 3)]):  # one ends at the wrap, one crosses it
+        [f] = StreamDecoder().feed(ack_frame(1, 2, cum, 5, ranges))
+        assert f.kind == ACK and (f.cum, f.sacks) == (cum, ranges)
+
+
 def test_unstuff_rejects_dangling_escape():
     assert unstuff(b"ab\x7d") is None and unstuff(b"\x7d\x41") is None
 
@@ -67,6 +76,9 @@ def test_every_kind_round_trips_with_its_fields():
     [
         _frame(ACK, 1, 2, b"\x00\x00\x00\x05\x00\x00\x00\x01\x01"),  # claims one SACK range, has none
         ack_frame(1, 2, 10, 5, [(4, 8)]),  # SACK range below cum
+        ack_frame(1, 2, 10, 5, [(12, 11)]),  # a range that ends before it starts
+        ack_frame(1, 2, 2**32 - 10, 5, [(2**32 - 20, 2)]),  # starts below cum, across the wrap
+        ack_frame(1, 2, 10, 5, [(12, 2**31 + 10)]),  # ends 2 GiB above cum: no window is that wide
         _frame(HELLO, 1, 2, b"\x00\x00\x00\x10\x00\x00\x00\x01"),  # max_frame 16 < the minimum
         _frame(HELLO, 0, 2, b"\x00\x00\x04\x00\x00\x00\x00\x01"),  # session id 0
         _frame(DATA, 1, 2, b"\x00\x00\x00"),  # no payload
