@@ -272,14 +272,18 @@ def score_records(records: list[dict]) -> list[dict]:
         true_pose_upper,
     )
     from ground_sim.scoring import confusion, dem_error_stats
-    from protocol.pairdir import read_pair
+    from protocol.pairdir import PairFormatError, read_pair
 
     scored: list[tuple[dict, Any]] = []  # (record, its pair) of the Results judged, for the sites of the others
     for rec in records:
         if rec.get("status") != "result" or "out_dir" not in rec:
             continue
         d = Path(rec["out_dir"])
-        pair = read_pair(rec["pair_dir"])
+        try:
+            pair = read_pair(rec["pair_dir"])
+        except PairFormatError as exc:  # read after the whole descent flew: it cost the run its summary (QA 71)
+            rec["truth_note"] = f"its pair directory could not be read again for scoring: {exc}"
+            continue
         try:  # after the whole descent flew: a derivation that fails costs this pair's scores, not the summary
             if note := complete_truth(pair):
                 rec["truth_note"] = note

@@ -143,14 +143,20 @@ def _telemetry_records(records: list[dict]) -> list[dict]:
 
 def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     from hil_server.run import CALLED_FILE, DERIVED_TRUTH_FILE, read_called
-    from protocol.pairdir import read_pair
+    from protocol.pairdir import PairFormatError, read_pair
 
     out = Path(r.get("out_dir", ""))
     # the full-resolution map when the run asked for it, else the compact grid's call per pixel
     hz_file = next((out / n for n in ("hazard.npy", CALLED_FILE) if (out / n).is_file()), None)
     if r.get("status") != "result" or hz_file is None:
         return []
-    pair = read_pair(r["pair_dir"])
+    try:
+        pair = read_pair(r["pair_dir"])
+    except PairFormatError:  # its truth unreadable (the record's truth_note says why): the image and the map alone
+        try:
+            pair = read_pair(r["pair_dir"], load_truth=False)
+        except PairFormatError:
+            return []
     if (out / DERIVED_TRUTH_FILE).is_file() and "hazard" not in pair.truth:  # as the scores derived it
         pair.truth["hazard"] = np.load(out / DERIVED_TRUTH_FILE)
     hazard = np.load(hz_file) if hz_file.name == "hazard.npy" else read_called(hz_file)

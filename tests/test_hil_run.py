@@ -225,10 +225,20 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
     doc["frames"][1]["position_m"][2] = float("nan")  # a NaN pose
     (pairs / "600_300" / "pair.json").write_text(json.dumps(doc))
     cv2.imwrite(str(pairs / "300_150" / "i2.png"), np.zeros((64, 64), np.uint8))  # wrong image size
+    # truth that cannot be read is found when the descent has flown, at scoring: it cost the whole summary (QA 71)
+    (pairs / "200_100" / "gt_elevation_i1.npy").write_bytes(b"junk\n")
     s = run(pairs / "manifest.json", tmp_path / "run")
     got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
     assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"), ("200/100", "result", None)]
     assert "finite" in s["records"][0]["text"] and "does not match" in s["records"][1]["text"]
+    last = s["records"][2]
+    assert "scores" not in last and "gt_elevation_i1.npy: not a readable .npy file" in last["truth_note"]
+    done = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert done["complete"] is True and (tmp_path / "run" / "report.html").is_file()
+    assert (
+        "200/100 could not be scored: its pair directory could not be read"
+        in (tmp_path / "run" / "summary.md").read_text()
+    )
 
 
 def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
