@@ -22,6 +22,11 @@ TOML layout (all keys optional; defaults below)::
 linear factor of the distance from the origin (the nominal landing site), see
 :class:`ground_sim.features.RadialProfile`. A scene spec ``name:variant`` (e.g.
 ``thesis:approach``) names a variant explicitly.
+
+Densities are bounded when a scene is loaded, before anything is drawn: no population (times its profile's
+peak) may be denser than geometric saturation, ``N(>D) = 1.54 D^-2`` per m^2 (features packed side by side;
+the Moon's equilibrium is ~5 % of it), rim boulders of ``d_min_m`` likewise, and boulder fields may overlap
+any point at most 10 times on average.
 """
 
 from __future__ import annotations
@@ -272,6 +277,61 @@ def parse_scene(doc: dict[str, Any], name: str = "custom", variant: str | None =
     return params
 
 
+# N(>D) = 1.54 D^-2 per m^2: craters packed rim to rim, "geometric saturation" (Gault 1970; Hartmann 1984). Lunar
+# equilibrium is ~5 % of it (Trask's 0.079). A denser population draws what no surface holds, and with it as many
+# features as memory lasts: craters.coef = 1e4 took 4.9 GB and ended in a traceback (QA of stop 71)
+GEOMETRIC_SATURATION = 1.54
+
+
+def _over_saturation(name: str, coef: float, exponent: float, d_min: float, d_max: float, peak: float) -> str | None:
+    """Why ``N(>D) = peak * coef * D^-exponent`` on [d_min, d_max] is denser than geometric saturation anywhere, or
+    None. ``N(>D) D^2`` is monotone in D for a power law, so one of the ends holds its largest value."""
+    worst = max(peak * coef * d ** (2.0 - exponent) for d in (d_min, d_max))
+    if worst <= GEOMETRIC_SATURATION:
+        return None
+    limit = min(GEOMETRIC_SATURATION * d ** (exponent - 2.0) for d in (d_min, d_max)) / peak
+    return (
+        f"{name} {coef:g} is {worst / GEOMETRIC_SATURATION:.3g}x denser than features packed side by side "
+        f"(N(>D) = {GEOMETRIC_SATURATION} D^-2 per m^2, geometric saturation): at most {limit:.3g} "
+        f"for exponent {exponent:g} on {d_min:g}-{d_max:g} m"
+        + (f" and a profile peak of {peak:g}" if peak != 1 else "")
+    )
+
+
+def _check_density(p: SceneParams) -> None:
+    """Refuse, before anything is drawn, populations no surface holds (and memory could not)."""
+    c, b, bf = p.craters, p.boulders, p.boulder_fields
+    peak_c = max((f for _, f in c.profile), default=1.0)
+    peak_b = max((f for _, f in b.profile), default=1.0)
+    why = [
+        _over_saturation("craters.coef", c.coef, c.exponent, c.d_min_m, c.d_max_m, peak_c),
+        _over_saturation("boulders.coef", b.coef, b.exponent, b.d_min_m, b.d_max_m, peak_b),
+        _over_saturation("boulder_fields.coef", bf.coef, bf.exponent, b.d_min_m, b.d_max_m, 1.0),
+    ]
+    for i, f in enumerate(p.features):
+        if f.kind == "boulder_field":
+            hi = max([f.coef] + [v for k, _, v in f.ranges if k == "coef"])
+            why.append(_over_saturation(f"feature #{i} coef", hi, bf.exponent, b.d_min_m, b.d_max_m, 1.0))
+    if b.rim_density_m2 * b.d_min_m**2 > GEOMETRIC_SATURATION:  # rim boulders are at least d_min wide
+        why.append(
+            f"boulders.rim_density_m2 {b.rim_density_m2:g} packs boulders of at least {b.d_min_m:g} m denser than "
+            f"side by side: at most {GEOMETRIC_SATURATION / b.d_min_m**2:.3g} per m^2"
+        )
+    cover = bf.per_km2 * 1e-6 * np.pi * bf.radius_m**2
+    if cover > MAX_FIELD_COVER:  # each field holds a population of its own: fields over fields multiply it
+        why.append(
+            f"boulder_fields.per_km2 {bf.per_km2:g} of radius {bf.radius_m:g} m covers the ground {cover:.3g} "
+            f"times over: at most {MAX_FIELD_COVER:g} (per_km2 <= "
+            f"{MAX_FIELD_COVER / (1e-6 * np.pi * bf.radius_m**2):.3g})"
+        )
+    for w in why:
+        if w is not None:
+            raise SceneError(f"scene {p.name}: {w}")
+
+
+MAX_FIELD_COVER = 10.0  # boulder fields over a point, on average (the boulder-field scene: 1.4)
+
+
 def _check(p: SceneParams) -> None:
     t, c, b, a = p.terrain, p.craters, p.boulders, p.albedo
     checks = [
@@ -296,6 +356,7 @@ def _check(p: SceneParams) -> None:
     for ok, msg in checks:
         if not ok:
             raise SceneError(f"scene {p.name}: {msg}")
+    _check_density(p)
     for i, f0 in enumerate(p.features):
         ends = [f0] + [replace(f0, **{k: v}) for k, lo, hi in f0.ranges for v in (lo, hi)]  # type: ignore[arg-type]
         for f in ends:  # a ranged key must be valid over its whole range

@@ -12,7 +12,7 @@ from ground_sim.features import Features, PowerLaw, boulders_in, crater_profile,
 from ground_sim.geometry import ground_footprint, look_rotation, pixel_rays, project
 from ground_sim.pose_error import PoseError
 from ground_sim.render import render_view
-from ground_sim.scene import Scene, load_scene, parse_scene
+from ground_sim.scene import Scene, load_scene, load_scene_params, parse_scene, preset_names
 from ground_sim.trajectory import approach, load_trajectory, vertical
 from protocol.errors import InputError
 from protocol.pairdir import Camera, Pose, Sun, read_pair
@@ -274,6 +274,36 @@ def test_invalid_scene_files_give_clear_errors(tmp_path, text, msg):
     p.write_text(text)
     with pytest.raises(SceneError, match=msg):
         load_scene(p)
+
+
+@pytest.mark.parametrize(
+    "text,msg",
+    [
+        (
+            "[craters]\ncoef = 1e4\n",
+            r"craters.coef 10000 is 6.49e\+03x denser .* at most 1.54 for exponent 2 on 1-400 m",
+        ),
+        ("[craters]\ncoef = 0.5\nprofile = [[0, 4.0], [500, 1.0]]\n", r"and a profile peak of 4"),
+        ("[boulders]\ncoef = 10.0\n", r"boulders.coef 10 is .* at most 0.709 for exponent 2.482 on 0.2-5 m"),
+        ("[boulder_fields]\ncoef = 1.0\nper_km2 = 1.0\n", r"boulder_fields.coef 1 is"),
+        ("[boulders]\nrim_density_m2 = 1e3\n", r"rim_density_m2 1000 packs .* at most 38.5 per m\^2"),
+        ("[boulder_fields]\nper_km2 = 1e5\n", r"covers the ground 283 times over: at most 10 \(per_km2 <= 3.54e\+03\)"),
+        (
+            "[[feature]]\nkind = 'boulder_field'\nx_m = 0\ny_m = 0\ndiameter_m = 50\ncoef = [0.1, 5.0]\n",
+            r"feature #0 coef 5",
+        ),
+    ],
+)
+def test_a_scene_denser_than_features_packed_side_by_side_is_refused_before_anything_is_drawn(tmp_path, text, msg):
+    """craters.coef = 1e4 drew features until 4.9 GB were spent, then ended in a MemoryError traceback (QA of stop 71);
+    rim_density_m2 = 1e3 took 58 s and 5.2 GB for a 64 px pair. Each preset is well inside the bounds."""
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    with pytest.raises(SceneError, match=msg):
+        load_scene(p)
+    for name in preset_names():
+        for variant in (None, "vertical", "approach"):
+            load_scene_params(name, variant)
 
 
 def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
