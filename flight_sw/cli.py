@@ -384,7 +384,7 @@ def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
 
     from protocol.plan import plan_note
 
-    from .pose_refine import DISAGREES, NO_OVERLAP, UNMATCHED
+    from .pose_refine import DISAGREES, NO_OVERLAP, REPEATED, UNMATCHED
 
     def say(text: str, file: Any = None) -> None:
         msgs.append((file is sys.stderr, text))
@@ -435,14 +435,10 @@ def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
             say(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "
                   f"error should be, so the refinement kept the pose); {rest} (result.json "
                   "info.pose_refinement)", file=sys.stderr)  # fmt: skip
-        elif verdict == UNMATCHED:  # texture, and nothing consistent where the pose says: not "could not check"
+        elif verdict in (UNMATCHED, REPEATED):  # texture, nothing consistent where the pose says; or one image twice
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
             # a reason that names its cause (the same image twice) is not followed by the list of causes
-            causes = (
-                ""
-                if "the same image twice" in why
-                else ": another or a damaged image, or a pose far from the one declared"
-            )
+            causes = "" if verdict == REPEATED else ": another or a damaged image, or a pose far from the one declared"
             say(f"warning: frame {k}: its image does not match where its navigation pose says ({why}{causes}); "
                   f"{rest} (result.json info.pose_refinement)", file=sys.stderr)  # fmt: skip
         else:

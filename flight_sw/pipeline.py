@@ -88,6 +88,7 @@ from .pose_refine import (
     DISAGREES,
     KEPT,
     REFINED,
+    REPEATED,
     SKIPPED,
     UNMATCHED,
     contradicted,
@@ -1090,7 +1091,11 @@ def _pose_doubt(
         # warned, and its sites had been offered all the same (a 3 deg pitch of a 300/150 pair's last frame: FP
         # 2.07 %, top site unsafe)
         why = []
-        for verdict, text in ((DISAGREES, "whose navigation pose the images contradict"), (UNMATCHED, _NO_MATCH)):
+        for verdict, text in (
+            (DISAGREES, "whose navigation pose the images contradict"),
+            (UNMATCHED, _NO_MATCH),
+            (REPEATED, "whose image is an earlier frame's, pixel for pixel"),
+        ):
             ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
             if ks:
                 why.append(f"frame{'s' if len(ks) > 1 else ''} {', '.join(ks)}, {text}")

@@ -106,7 +106,10 @@ UNMATCHED = "unmatched"
 # not the pair they claim to be. Clean pairs hardly reach it (docs/benchmarks/pose.md: a polar low sun did)
 DISAGREES = "disagrees"
 SKIPPED = "skipped"  # not tried: the deadline left no time for it
-VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES, SKIPPED)
+# its image is an earlier frame's, pixel for pixel (a camera that sent an image again): evidence at any image size,
+# where a fit's verdict counts only from CHECK_MIN_SIDE (a 128 px pair of one image twice got no word; QA of stop 71)
+REPEATED = "repeated"
+VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES, SKIPPED, REPEATED)
 # px: below it even clean pairs fail the refinement's checks (measured at 96 and 128 px), so a fallback says nothing
 CHECK_MIN_SIDE = 256
 
@@ -114,14 +117,16 @@ CHECK_MIN_SIDE = 256
 def unchecked(verdict: str, side: int) -> bool:
     """True when a frame's ``verdict`` means its pose is unchecked or contradicted by the images
     (:data:`NO_OVERLAP`, :data:`FEW_MATCHES`, :data:`UNMATCHED`, :data:`DISAGREES`), on images of at least
-    :data:`CHECK_MIN_SIDE` px a side."""
-    return side >= CHECK_MIN_SIDE and verdict in (NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES)
+    :data:`CHECK_MIN_SIDE` px a side, or its image repeats an earlier frame's (:data:`REPEATED`, any size)."""
+    checked = side >= CHECK_MIN_SIDE and verdict in (NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAGREES)
+    return verdict == REPEATED or checked
 
 
 def contradicted(verdict: str, side: int) -> bool:
     """True when a frame's ``verdict`` is evidence against it (:data:`UNMATCHED`, :data:`DISAGREES`), on images
-    of at least :data:`CHECK_MIN_SIDE` px a side: such a frame is left out of a multi-frame sweep."""
-    return side >= CHECK_MIN_SIDE and verdict in (UNMATCHED, DISAGREES)
+    of at least :data:`CHECK_MIN_SIDE` px a side, or :data:`REPEATED` at any size: such a frame is left out of a
+    multi-frame sweep."""
+    return verdict == REPEATED or (side >= CHECK_MIN_SIDE and verdict in (UNMATCHED, DISAGREES))
 
 
 @dataclass(frozen=True)
@@ -1209,14 +1214,14 @@ def refine_descent(
     for k, j in repeated_images(images).items():  # before the checks and the chain that read the verdicts
         frames[k - 1].update(
             refined=False,
-            verdict=UNMATCHED,
+            verdict=REPEATED,
             repeat_of=j,
             reason=f"its image is frame {j}'s, pixel for pixel: the same image twice (a camera that sent an image "
             "again)",
         )
         _back_to_navigation(k, out, poses, relative)
         if k == n - 1:
-            info.update(refined=False, verdict=UNMATCHED, reason=frames[k - 1]["reason"], repeat_of=j)
+            info.update(refined=False, verdict=REPEATED, reason=frames[k - 1]["reason"], repeat_of=j)
     for f in _scale_outliers(frames, poses[0], p):
         _back_to_navigation(f["frame"], out, poses, relative)
         if f["frame"] == n - 1:

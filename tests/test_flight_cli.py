@@ -596,14 +596,16 @@ def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
 def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsys):
     """Frame 2 a copy of frame 1: against frame 0 its motion is frame 1's, which no fit of that pair alone can tell
     from its own, so it was "kept", unwarned, the DEM 32 m off without altimeters (stop 62's review). Two
-    exposures are never equal pixel for pixel: named as the same image twice, and left out."""
+    exposures are never equal pixel for pixel: named as the same image twice, and left out, at any image size (below
+    256 px, where the fits' verdicts are not evidence, it went unwarned and stayed in the maps; QA of stop 71). A
+    pair cannot leave its frame out: it is warned of, and offers no site."""
     import shutil
 
     from flight_sw.pose_refine import repeated_images
 
     a, b = np.zeros((4, 4), np.uint8), np.ones((4, 4), np.uint8)
     assert repeated_images([a, b, a.copy(), b, b.astype(np.uint16), a.view(np.int8)]) == {2: 0, 3: 1}  # dtype counts
-    assert main(["render", "--scenario", "vertical", "--frames", "300,250,200", "--image-size", "256", "--no-progress",
+    assert main(["render", "--scenario", "vertical", "--frames", "300,250,200", "--image-size", "128", "--no-progress",
                  "--out", str(tmp_path / "pairs")]) == 0  # fmt: skip
     bad = tmp_path / "bad"
     shutil.copytree(tmp_path / "pairs" / "300_250_200", bad)
@@ -619,6 +621,21 @@ def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsy
     assert "the same image twice (a camera that sent an image again)); it is left out of the maps" in err, err
     info = json.loads((tmp_path / "o" / "result.json").read_text())["info"]
     assert info["frames_dropped"] == [2] and info["pose_refinement"]["frames"][1]["repeat_of"] == 1
+    two = tmp_path / "two"  # frames 0 and 1 alone, the lower image frame 0's
+    shutil.copytree(tmp_path / "pairs" / "300_250_200", two)
+    (two / "i3.png").unlink()
+    doc = json.loads((two / "pair.json").read_text())
+    for key in ("frames", "true_frames"):
+        if key in doc:
+            doc[key] = doc[key][:2]
+    (two / "pair.json").write_text(json.dumps(doc))
+    shutil.copy(two / "i1.png", two / "i2.png")
+    assert main(["process", str(two), "--out", str(tmp_path / "o2")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: frame 1: its image does not match where its navigation pose says (its image is frame 0's" in err
+    doc = json.loads((tmp_path / "o2" / "result.json").read_text())
+    assert doc["sites"] == [] and "whose image is an earlier frame's, pixel for pixel" in doc["info"]["sites_withheld"]
+    assert any("frame 1: its image does not match" in w for w in doc["warnings"])
 
 
 def test_tiny_cameras_infinite_widths_and_huge_pair_files_are_refused_in_one_line(tmp_path, capsys):
