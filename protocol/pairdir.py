@@ -66,6 +66,9 @@ STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE = 0, 1, 2, 255
 
 # The flight software's limits, here so that every tool that writes or reads a pair applies the same ones
 MAX_FOCAL_SIDES = 1000.0  # focal length at most 1000 image sides (a 0.06 deg field of view)
+# and at least 0.05 of its side (a 169 deg field of view; the thesis camera's is 1.87, 30 deg): fx = 1e-300 was
+# mapped, with a screen of numpy overflow warnings and exit 0 (QA of stop 71)
+MIN_FOCAL_SIDES = 0.05
 MAX_PRINCIPAL_SIDES = 10.0  # principal point within 10 image sides of the image
 MAX_POSITION_M = 1.0e7  # 10,000 km: past any descent (the Moon's radius is 1,737 km)
 SUN_AZIMUTH_LIMIT_DEG = 360.0  # |azimuth|; the elevation is in (0, 90]
@@ -136,6 +139,13 @@ class Camera:
             raise PairFormatError(
                 f"camera: focal length {max(self.fx, self.fy):.4g} px is over {MAX_FOCAL_SIDES:g} image sides"
             )
+        for name, f, n in (("fx", self.fx, self.width), ("fy", self.fy, self.height)):
+            if f < MIN_FOCAL_SIDES * n:
+                fov = math.degrees(2.0 * math.atan(0.5 / MIN_FOCAL_SIDES))
+                raise PairFormatError(
+                    f"camera: {name} {f:.4g} px is under {MIN_FOCAL_SIDES:g} of the image's {n} px (a field of view "
+                    f"over {fov:.0f} deg, which no pinhole camera has)"
+                )
         lim = MAX_PRINCIPAL_SIDES * side
         if not (-lim <= self.cx <= self.width + lim and -lim <= self.cy <= self.height + lim):
             raise PairFormatError(

@@ -300,9 +300,18 @@ def test_truth_depth_and_elevation_must_be_finite_and_a_focal_length_in_mm_is_na
     assert np.isnan(read_pair(tmp_path / "nan").truth["depth"]).sum() == 512
     pair = make_pair()
     pair.camera = dataclasses.replace(pair.camera, fx=0.5, fy=0.5)
-    write_pair(tmp_path / "f", pair)
-    (note,) = [n for n in read_pair(tmp_path / "f").notes if "per pixel" in n]
-    assert "focal length fx = 0.5 px is implausible" in note and "metres" not in note
+    # since stop 71 refused outright: under 0.05 of the side (fx = 1e-300 was mapped, with numpy overflow warnings)
+    with pytest.raises(PairFormatError, match=r"camera: fx 0.5 px is under 0.05 of the image's 512 px .*169 deg"):
+        write_pair(tmp_path / "f", pair)
+    doc = json.loads((tmp_path / "nan" / "pair.json").read_text())
+    for fx in (1e-300, 25.0):
+        doc["camera"].update(fx=fx, fy=fx)
+        (tmp_path / "nan" / "pair.json").write_text(json.dumps(doc))
+        with pytest.raises(PairFormatError, match=f"camera: fx {fx:.4g} px is under 0.05"):
+            read_pair(tmp_path / "nan")
+    doc["camera"].update(fx=26.0, fy=26.0)  # a 169 deg field of view: read
+    (tmp_path / "nan" / "pair.json").write_text(json.dumps(doc))
+    assert read_pair(tmp_path / "nan").camera.fx == 26.0
 
 
 def test_quoted_sun_angles_are_refused_as_every_other_quoted_number(tmp_path):
