@@ -489,7 +489,8 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         "--manifest",
         type=Path,
         default=None,
-        help="stream pairs already rendered by `hazard-hil render` (their manifest.json); of a directory of more "
+        help="stream pairs already rendered by `hazard-hil render` (their manifest.json, or the directory that "
+        "holds it); of a directory of more "
         "than two frames, frames 0 and the last; every pair must share the first pair's camera",
     )
     p.add_argument(
@@ -599,7 +600,13 @@ def _config(args: argparse.Namespace):
         check_seed(args.seed)  # the render's terrain hash, as `render --seed`
     link = args.link or defaults.get("link")
     if link is None:  # the budget's own link: a host run over ZeroMQ, a flight board over serial
-        link = get_budget(args.budget, args.budget_file).link if args.flight == "emulated" else "serial"
+        budget = get_budget(args.budget, args.budget_file)
+        link = budget.link if args.flight == "emulated" else "serial"
+        if args.corrupt and link != "serial":  # "not to --link zmq" named an option never given (QA of stop 71)
+            raise InputError(
+                f"--corrupt applies to the serial link only, and the {budget.name} budget's own link is {link}: "
+                "add --link serial"
+            )
     pairs = _pairs(args.pairs) if args.pairs is not None else defaults.get("pairs")
     scenario = args.scenario or defaults.get("scenario", "vertical")
     if args.manifest is None:

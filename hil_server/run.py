@@ -1492,6 +1492,12 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
     manifest: Path | None = None
     if cfg.manifest is not None:
         manifest = Path(cfg.manifest)
+        if manifest.is_dir() and (manifest / "manifest.json").is_file():  # render's --out, as `score` takes it
+            manifest = manifest / "manifest.json"
+            cfg = replace(cfg, manifest=manifest)
+        elif manifest.is_dir():  # it said "does not exist" of a directory that does (QA of stop 71)
+            raise InputError(f"manifest: {manifest} is a directory without a manifest.json (render pairs with "
+                             "`hazard-hil render --out DIR`, then give DIR or DIR/manifest.json)")  # fmt: skip
         if not manifest.is_file():
             raise InputError(f"manifest {manifest} does not exist (render pairs with `hazard-hil render`)")
         from protocol.pairdir import read_manifest

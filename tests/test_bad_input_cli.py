@@ -89,6 +89,10 @@ CASES = [
     (["landings", "--scenes", "thesis", "--n", "2", "--seed-list", "-5"], "--seed-list seeds must be in [0, 2**32)"),
     (["run", "--link", "serial", "--corrupt", "2"], "--corrupt is a per-byte fault rate in [0, 0.05], got 2"),
     (["run", "--link", "zmq", "--corrupt", "0.01"], "--corrupt applies to the serial link only"),
+    # "not to --link zmq" named an option that was never given: the host budget's own link is zmq (QA of stop 71)
+    (["run", "--corrupt", "1e-6"], "--corrupt applies to the serial link only, and the host budget's own link is zmq"),
+    # "does not exist" of a directory that does; one holding a manifest.json is taken (QA of stop 71)
+    (["run", "--manifest", "NOMAN"], "is a directory without a manifest.json (render pairs with"),
     (["run", "--bogus"], "hazard-hil run: error: unrecognized arguments: --bogus (see hazard-hil run --help)"),
     (["evaluate", "--scenario", "vertical", "--frames", "300,250"], "it needs --multi-frame"),  # was ignored
     (["landings", "--scenes", "thesis", "--n", "1", "--per-render", "1000000"], "--per-render 1000000 is more"),
@@ -136,6 +140,8 @@ def test_bad_cli_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, arg
     subst["TYPO"] = str(tmp_path / "typo.toml")
     (tmp_path / "afile").write_text("")
     subst["AFILE"] = str(tmp_path / "afile")
+    (tmp_path / "noman").mkdir()
+    subst["NOMAN"] = str(tmp_path / "noman")
     argv = [subst.get(a, a) for a in argv] + (["--out", str(tmp_path / "out")] if argv[0] not in NO_OUT else [])
     assert main(argv) == 2
     cap = capsys.readouterr()

@@ -227,7 +227,7 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
     cv2.imwrite(str(pairs / "300_150" / "i2.png"), np.zeros((64, 64), np.uint8))  # wrong image size
     # truth that cannot be read is found when the descent has flown, at scoring: it cost the whole summary (QA 71)
     (pairs / "200_100" / "gt_elevation_i1.npy").write_bytes(b"junk\n")
-    s = run(pairs / "manifest.json", tmp_path / "run")
+    s = run(pairs, tmp_path / "run")  # render's --out: its manifest.json is taken (QA of stop 71: "does not exist")
     got = [(r["label"], r["status"], r.get("code")) for r in s["records"]]
     assert got == [("600/300", "error", "bad_input"), ("300/150", "error", "bad_input"), ("200/100", "result", None)]
     assert "finite" in s["records"][0]["text"] and "does not match" in s["records"][1]["text"]
