@@ -587,6 +587,16 @@ def check_regression(
     if board_link is not None and not any(is_board(all_cases[n]) for n in names):
         raise InputError('--link applies to board cases ("flight": "external"); none of these cases is one')
     base_dir = baseline.resolve().parent
+    unrecorded = [n for n in names if not update and all_cases[n].get("metrics") is None]
+    if unrecorded:
+        from protocol.errors import InputError
+
+        # each ran in full, then failed "no baseline" (QA of stop 71): a missing baseline is exit 2
+        raise InputError(
+            f"case{'s' if len(unrecorded) > 1 else ''} {', '.join(unrecorded)} in {baseline} "
+            f"{'have' if len(unrecorded) > 1 else 'has'} no recorded metrics: record them with "
+            f"`hazard-hil regress --update --cases {','.join(unrecorded)}`"
+        )
     check_cases(names, {n: _with_link(all_cases[n], board_link) for n in names}, out, base_dir, hello_timeout_s)
     changed = {} if update else {n: budget_change(all_cases[n], base_dir) for n in names}
     for n, what in changed.items():

@@ -188,9 +188,22 @@ def test_a_budget_named_as_a_shipped_one_in_other_case_is_refused(tmp_path):
         load_budgets(tmp_path / "b.toml")
 
 
+def _recorded(baseline, metrics: dict | None = None):
+    """``baseline`` with its cases' metrics recorded (a case without them is refused before anything runs)."""
+    doc = json.loads(baseline.read_text())
+    m = metrics or {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 1, "degraded": 0, "latency_p50_ref_s": 60.0,
+                    "latency_p95_ref_s": 60.0, "latency_max_ref_s": 60.0}  # fmt: skip
+    for case in doc["cases"].values():
+        case["metrics"] = dict(m)
+    baseline.write_text(json.dumps(doc))
+    return baseline
+
+
 def test_a_signal_under_the_fixture_stops_the_session(hil_regression, tiny_baseline, monkeypatch):
     """The fixture turned regress's interrupt into a traceback in one test, and pytest went on with the next ones."""
     from hil_server import run
+
+    _recorded(tiny_baseline)
 
     monkeypatch.setattr(run, "run_descent", lambda cfg, log=print: {"interrupted_by": 2, "complete": False})
     with pytest.raises(pytest.exit.Exception) as exc:
@@ -263,7 +276,7 @@ def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, mo
     recorded on a Xeon and CI ran it on an EPYC without a word (QA of stop 66)."""
     from hil_server import regress
 
-    doc = json.loads(tiny_baseline.read_text())
+    doc = json.loads(_recorded(tiny_baseline).read_text())
     doc["recorded"] = {"calibration": {"key": "vm|elsewhere", "measured_at": "2026-12-01", "units_per_s": 70.0}}
     tiny_baseline.write_text(json.dumps(doc))
     here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-06", "units_per_s": 71.0}}

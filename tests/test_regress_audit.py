@@ -327,6 +327,24 @@ def test_a_budget_file_changed_since_the_baseline_is_named_and_fails_the_case(tm
     assert said in out and said in err and "--update" in out
 
 
+def test_a_case_without_recorded_metrics_is_refused_before_any_case_runs(tmp_path, capsys, monkeypatch):
+    """It ran in full, then failed "no baseline for this case" with exit 1 (QA of stop 71); a missing baseline is
+    bad usage, exit 2, and found before the first case."""
+    from hil_server import regress
+
+    ran: list[str] = []
+    monkeypatch.setattr(regress, "measure_case", lambda name, *a, **k: ran.append(name) or dict(BASE))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq"}
+    base.write_text(json.dumps({"cases": {"old": {**case, "metrics": dict(BASE)}, "new": case}}))
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "case new in " in err and "has no recorded metrics: record them with `hazard-hil regress --update" in err
+    assert ran == [] and len(err.strip().splitlines()) == 1
+    assert main(["regress", "--baseline", str(base), "--cases", "old", "--out", str(tmp_path / "o")]) == 0
+    assert ran == ["old"]
+
+
 def test_a_budget_file_that_would_mislead_a_table_or_a_summary_is_refused(tmp_path, capsys):
     """Found by stop 56's budget QA, each accepted with exit 0: a 300-character name (it broke every table), two
     names that differ only in case, an [anchor] of its own (dmips = 1 made every board faster than the host), and a
