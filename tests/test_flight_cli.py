@@ -579,7 +579,7 @@ def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
     assert "warning: frame 1: its image does not match where its navigation pose says (its image is frame 0's" in err
     assert "warning: no site is offered on this map: it rests on frame 1" in err, err
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
-    assert doc["sites"] == [] and doc["info"]["pose_refinement"]["verdict"] == "unmatched"
+    assert doc["sites"] == [] and doc["info"]["pose_refinement"]["verdict"] == "repeated"
     # not the same bytes (another exposure from the same place: its own noise): no parallax where the baseline
     # predicts some
     import cv2
