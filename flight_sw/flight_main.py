@@ -543,6 +543,9 @@ class FlightProcess:
         if ratio is not None:
             self.reserve_ratios = [*self.reserve_ratios, ratio][-RESERVE_HISTORY:]
         link_info: dict[str, float] = {}
+        port_baud = getattr(self.link, "baud", None)  # a board's serial port: the ground notes a rate unlike its own
+        if isinstance(port_baud, int) and port_baud > 0:
+            link_info["port_baud"] = float(port_baud)
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
             # a board: the Result's own line time on the ground link, first byte out -> last (under the HIL

@@ -926,6 +926,7 @@ def summary_table(summary: dict) -> str:
         full_maps_note(s),
         truth_note(s),
         hello_note(s),
+        baud_note(s),
         fusion_note(s),
     )
     for note in notes:
@@ -1016,6 +1017,22 @@ def hello_note(summary: dict) -> str:
     said = f"it is {who!r}" if who is not None else "no name (its Hello has no software)"
     proto = f"protocol {version}" + (" by default: its Hello leaves it out" if "protocol_version" in omitted else "")
     return f"the flight side says {said} (role {role!r}, {proto})"
+
+
+def baud_note(summary: dict) -> str:
+    """A board whose serial port is set to another rate than this ground paced the line at ("" when they agree, or
+    either is unknown): its Telemetry's ``link.port_baud``. Only the board's console said so, and a pty or a USB
+    gadget that ignores the rate passed the run (QA of stop 71); on a real UART the bytes are garbled."""
+    line = (summary.get("ground_counters") or {}).get("line_baud")
+    said = [(r.get("link") or {}).get("port_baud") for r in summary.get("records") or []]
+    wrong = sorted({int(p) for p in said if isinstance(p, (int, float)) and p and line and int(p) != int(line)})
+    if not wrong:
+        return ""
+    return (
+        f"the flight side's serial port is set to {', '.join(map(str, wrong))} baud, and this ground paced the line at "
+        f"{int(line)} baud: on a real UART the two must match (this line carried the bytes all the same: a pty or a "
+        "USB gadget ignores the rate); the flight side planned its Results' line time for the ground's rate"
+    )
 
 
 def truth_note(summary: dict) -> str:

@@ -111,6 +111,10 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     for runs in (s, emulated):
         for r in runs["records"]:
             assert r["result_line_s"] > r["result_rx_s"] and r["result_line_s"] >= 0.8 * r["result_bytes"] * 10 / 921600
+    # the board says the rate its port is set to, and the ground compares it with its own (the same here)
+    from hil_server.run import baud_note
+
+    assert all(r["link"]["port_baud"] == 921600 for r in s["records"]) and baud_note(s) == ""
 
 
 class Blackout:
@@ -836,6 +840,15 @@ def test_a_board_says_when_its_port_rate_is_not_the_grounds():
     assert "921600 baud" in said and "set to 9600" in said and "must match" in said
     assert baud_mismatch_note(921600, 921600) == "" and baud_mismatch_note(0, 9600) == ""
     assert baud_mismatch_note(921600, None) == ""  # an unpaced side: nothing to compare
+    # the ground's record of the run says it too (only the board's console did; QA of stop 71)
+    from hil_server.run import baud_note
+
+    summary = {"ground_counters": {"line_baud": 921600}, "records": [{"link": {"port_baud": 115200.0}}, {}]}
+    said = baud_note(summary)
+    assert "serial port is set to 115200 baud, and this ground paced the line at 921600 baud" in said
+    assert baud_note({**summary, "ground_counters": {"line_baud": 0}}) == ""  # an unpaced ground: nothing to compare
+    summary["records"][0]["link"]["port_baud"] = 921600.0
+    assert baud_note(summary) == ""
 
 
 def test_the_zeromq_example_flight_program_serves_a_ground_with_curve(manifest, tmp_path):
