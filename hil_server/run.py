@@ -1024,8 +1024,10 @@ def baud_note(summary: dict) -> str:
     either is unknown): its Telemetry's ``link.port_baud``. Only the board's console said so, and a pty or a USB
     gadget that ignores the rate passed the run (QA of stop 71); on a real UART the bytes are garbled."""
     line = (summary.get("ground_counters") or {}).get("line_baud")
+    if not isinstance(line, (int, float)) or not line:  # unpaced, or unknown: nothing to compare
+        return ""
     said = [(r.get("link") or {}).get("port_baud") for r in summary.get("records") or []]
-    wrong = sorted({int(p) for p in said if isinstance(p, (int, float)) and p and line and int(p) != int(line)})
+    wrong = sorted({int(p) for p in said if isinstance(p, (int, float)) and p and int(p) != int(line)})
     if not wrong:
         return ""
     return (
