@@ -41,6 +41,7 @@ KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where
 REFUSALS_SAID = 5  # refused messages said one by one on the console; then one line per REFUSALS_QUIET_S with a count
 REFUSALS_QUIET_S = 10.0
 PAIR_IDS_KEPT = 4096  # frame seq -> pair_id: far more than the frames in flight at any time
+NOISE_NOTE_S = 10.0  # a byte-stream line that carries only bytes no frame checks out of is said at most this often
 
 
 class GroundSession:
@@ -64,6 +65,7 @@ class GroundSession:
         # Telemetry goes; a Result the link then failed to deliver (the session lost) was never corrected
         self.unconfirmed: OrderedDict[int, str] = OrderedDict()
         self.fused_results: Callable[[], int | None] = lambda: None  # results in the fused map (None: no fusion)
+        self._line_seen: tuple[float, float, float, float] | None = None  # (time, bytes, frames, bad) last looked at
 
     def __getattr__(self, name: str) -> Any:  # flush, stats, failed, close, ...: the link's own
         return getattr(self.link, name)
@@ -72,6 +74,7 @@ class GroundSession:
         """The next message for the flight software, or None (a Hello answered here counts as nothing)."""
         pkt = self.link.recv_packet(timeout)
         self._say_refusals()
+        self._say_line_noise()
         self._confirm_results()
         if pkt is None:
             return None
@@ -108,6 +111,34 @@ class GroundSession:
         for _, unsaid, since, latest in self._refusals.due(now):
             self.log(f"flight: refused {unsaid} more message(s) from the link in the last {since:.0f} s "
                      f"(the latest a {latest})")  # fmt: skip
+
+    def _say_line_noise(self) -> None:
+        """A byte-stream line that carried bytes and not one valid frame over the last ``NOISE_NOTE_S`` s or more:
+        a ground at another baud, or another device on the port. The ground says so when its Hello goes
+        unanswered; the board's console said nothing at all (QA of stop 71)."""
+        now = time.monotonic()
+        if self._line_seen is not None and now - self._line_seen[0] < NOISE_NOTE_S:
+            return
+        stats = getattr(self.link, "stats", None)
+        stats = stats() if callable(stats) else stats
+        if not isinstance(stats, dict) or "crc_errors" not in stats:  # ZeroMQ: TCP delivers whole messages or none
+            return
+        cur = (
+            now,
+            float(stats.get("bytes_received", 0)),
+            float(stats.get("frames_received", 0)),
+            float(stats.get("crc_errors", 0)) + float(stats.get("malformed", 0)),
+        )
+        last, self._line_seen = self._line_seen, cur
+        if last is None:
+            return
+        got, frames, bad = (c - p for c, p in zip(cur[1:], last[1:]))
+        if got > 0 and frames == 0:
+            self.log(
+                f"flight: the line carried {got:.0f} bytes in the last {now - last[0]:.0f} s but not one valid frame "
+                f"of this protocol ({bad:.0f} failed their checks): a ground at another baud, or another device on "
+                "this port?"
+            )
 
     def _new_session(self, hello: Hello, epoch: int) -> None:
         self.counters["sessions"] += 1

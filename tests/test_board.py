@@ -422,6 +422,29 @@ def test_nothing_is_sent_before_a_ground_said_hello_and_a_refused_message_is_sai
     ]
 
 
+def test_a_line_that_carries_only_noise_is_said_on_the_boards_console(monkeypatch):
+    """A ground at another baud, or another device on the port: the ground said "another baud?" when its Hello went
+    unanswered, and the board's console said nothing at all (QA of stop 71). Said per NOISE_NOTE_S while it lasts."""
+    from flight_sw import board
+
+    monkeypatch.setattr(board, "NOISE_NOTE_S", 0.0)
+    link = RecordingLink([])
+    said: list[str] = []
+    ground = GroundSession(link, log=said.append)
+    ground.recv(0.01)  # no stats (a ZeroMQ link has no CRC counters): nothing to say
+    zero = {"bytes_received": 0, "frames_received": 0, "crc_errors": 0, "malformed": 0}
+    link.stats = dict(zero)  # type: ignore[attr-defined]
+    ground.recv(0.01)  # the first look
+    link.stats = {**zero, "bytes_received": 1534, "crc_errors": 50, "malformed": 6}  # type: ignore[attr-defined]
+    ground.recv(0.01)
+    assert len(said) == 1, said
+    assert "the line carried 1534 bytes in the last 0 s but not one valid frame of this protocol (56 failed their " \
+           "checks): a ground at another baud, or another device on this port?" in said[0]  # fmt: skip
+    link.stats = {**zero, "bytes_received": 3000, "frames_received": 3, "crc_errors": 52}  # type: ignore[attr-defined]
+    ground.recv(0.01)  # frames came through: a noisy line, not a wrong one
+    assert len(said) == 1
+
+
 def _board_waiting_for_a_ground(port: str) -> tuple[subprocess.Popen, str]:
     """`hazard-hil flight` on ``port``, once it says it waits for a ground: (the process, what it said so far).
     Waiting, not a fixed sleep: a loaded machine took up to 2.3 s to get there; raw reads under select never
