@@ -310,21 +310,23 @@ def write_run_report(summary: dict, path: Path) -> Path:
         tel_figs.append(Figure("figures/latency.png", "End-to-end latency over the descent; red bars missed."))
     said = [r.get(k) for r in records for k in ("cpu_fraction", "peak_rss_mib")]
     if any(v is not None and math.isfinite(float(v)) for v in said):  # an external board may say neither
-        save(
-            resources_figure(
-                tel,
-                duty if (duty := s.get("cpu_fraction")) is not None and math.isfinite(duty) else None,
-                s.get("memory_mib"),
-            ),
-            fig_dir / "resources.png",
+        duty = d if (d := s.get("cpu_fraction")) is not None and math.isfinite(d) else None
+        save(resources_figure(tel, duty, s.get("memory_mib")), fig_dir / "resources.png")
+        # a board of one's own has no throttle and no ceiling here: the caption said both (QA of stop 71)
+        cpu = (
+            "Achieved CPU fraction against the duty cycle the throttle applied"
+            if duty is not None
+            else "The CPU fraction the flight side reported (no throttle: it runs at its own speed)"
         )
-        tel_figs.append(
-            Figure(
-                "figures/resources.png",
-                "Achieved CPU fraction against the duty cycle the throttle applied, and the private RSS peak "
-                "against the budget's memory ceiling.",
-            )
+        rss = [r.get("peak_rss_mib") for r in records]
+        mem = (
+            "its peak private RSS: not reported"
+            if not any(v is not None and math.isfinite(float(v)) for v in rss)
+            else "the private RSS peak against the budget's memory ceiling"
+            if s.get("memory_mib") is not None
+            else "its peak private RSS as it reported it"
         )
+        tel_figs.append(Figure("figures/resources.png", f"{cpu}, and {mem}."))
     from hil_server.run import phase_note, throttle_check_note
 
     notes = [n[0].upper() + n[1:] + "." for n in (throttle_check_note(s), phase_note(s)) if n]

@@ -597,8 +597,11 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     top = max([*cpu, cpu_budget or 0.0], default=0.0)
     a1.set_ylim(0, 1.15 * top if top > 0 else None)  # headroom: the achieved line sits on the budget's
     rss = [np.nan if r.get("peak_rss_mib") is None else float(r["peak_rss_mib"]) for r in recs]  # None: not said
-    a2.plot(x, rss, "o-", color="#54a24b", label="peak private RSS")
     peak = max((v for v in rss if np.isfinite(v)), default=0.0)
+    if any(np.isfinite(v) for v in rss):
+        a2.plot(x, rss, "o-", color="#54a24b", label="peak private RSS")
+    else:  # a board's own flight program may not say: an empty axis with a legend read as a broken chart (QA 71)
+        a2.text(0.5, 0.5, "not reported by the flight side", ha="center", va="center", transform=a2.transAxes)
     # a ceiling far above the peak flattened the RSS line on the floor (74 MiB under 2048; QA 64b): said instead
     far = memory_mib is not None and peak > 0 and memory_mib > MEMORY_OFF_SCALE * peak
     if memory_mib is not None and not far:
@@ -607,7 +610,8 @@ def resources_figure(records: Sequence[dict[str, Any]], cpu_budget: float | None
     a2.set_ylim(0, 1.25 * peak if far else None)
     for a in (a1, a2):
         _pair_ticks(a, labels)
-        a.legend(fontsize=8)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(fontsize=8)
     # a board of one's own has no throttle and no ceiling here: its own figures, titled as such
     a1.set_title("CPU against the throttle's duty cycle" if cpu_budget is not None else "CPU, as the flight side said")
     if far and memory_mib is not None:

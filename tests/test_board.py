@@ -115,6 +115,14 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     from hil_server.run import baud_note
 
     assert all(r["link"]["port_baud"] == 921600 for r in s["records"]) and baud_note(s) == ""
+    # the report's resources: no throttle and no ceiling on a board, and what it did not report said so (QA of stop
+    # 71: a caption about "the duty cycle the throttle applied" and "the budget's memory ceiling", an empty chart)
+    import html
+
+    page = html.unescape((tmp_path / "board" / "report.html").read_text())
+    assert "The CPU fraction the flight side reported (no throttle: it runs at its own speed), and its peak " \
+           "private RSS: not reported." in page, page[page.find("resources.png") - 400 :][:900]  # fmt: skip
+    assert "the throttle applied" in html.unescape((tmp_path / "emulated" / "report.html").read_text())
 
 
 class Blackout:
