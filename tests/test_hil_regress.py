@@ -32,6 +32,9 @@ def test_compare_flags_slower_latency_and_lower_hit_rate():
 def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline):
     ok, diff, doc = check_regression(tiny_baseline, out=tmp_path / "r1", update=True)
     assert ok and "tiny" in diff
+    # each row says it was recorded, not judged (every row read "ok", a 0 % hit rate too; QA of stop 71)
+    rows = [line for line in diff.splitlines()[1:] if line.startswith("tiny ")]
+    assert rows and all(line.endswith("  recorded") for line in rows), diff
     metrics = doc["cases"]["tiny"]["metrics"]
     assert metrics["deadline_hit_rate"] == 1.0 and metrics["latency_p50_ref_s"] > 0
     tiny_baseline.write_text(json.dumps(doc))
@@ -209,6 +212,22 @@ def test_a_signal_under_the_fixture_stops_the_session(hil_regression, tiny_basel
     with pytest.raises(pytest.exit.Exception) as exc:
         hil_regression(baseline=tiny_baseline)
     assert exc.value.returncode == 130 and "interrupted by SIGINT during case tiny" in str(exc.value)
+
+
+def test_a_hit_rate_under_the_one_required_reads_so_on_its_row_judged_or_recorded():
+    """The hit rate's row read "ok" while the run failed for missed deadlines, and an --update that recorded a 0 %
+    hit rate read "ok" too (QA of stop 71)."""
+    from hil_server.regress import CaseOutcome
+
+    cur = {"deadline_hit_rate": 0.0, "errors": 0, "pairs": 2, "degraded": 0, "latency_p50_ref_s": 0.2}
+    missed = "deadlines: 0% of pairs met theirs end to end, 100% required"
+    o = compare("m", cur, dict(cur), DEFAULT_TOLERANCES)
+    o.problems.append(missed)
+    row = next(line for line in diff_table([o]).splitlines() if " deadline_hit_rate " in line)
+    assert row.endswith("deadlines missed (below the hit rate required)"), row
+    o = CaseOutcome("m", cur, None, problems=[missed], recorded=True)
+    row = next(line for line in diff_table([o]).splitlines() if " deadline_hit_rate " in line)
+    assert row.endswith("recorded; deadlines missed (below the hit rate required)"), row
 
 
 def test_a_case_that_ran_fewer_pairs_than_recorded_is_a_regression():
