@@ -606,8 +606,8 @@ class Arq(SessionView):
             ranges.remove(recent)
             ranges.insert(0, recent)
         self.stats["acks_sent"] += 1
-        sacks = [(a % POS_MOD, b % POS_MOD) for a, b in ranges[: ack_sack_room(self.peer_max_frame)]]  # a
-        # small-frame peer drops a longer ACK (section 1)
+        # a small-frame peer drops a longer ACK (section 1)
+        sacks = [(a % POS_MOD, b % POS_MOD) for a, b in ranges[: ack_sack_room(self.peer_max_frame)]]
         window = 0 if self.rx_full else self.cfg.window
         return ack_frame(self.sess.local, self.sess.peer, self._cum % POS_MOD, window, sacks, self._echo)
 
