@@ -127,7 +127,7 @@ def _check_memory(pair_dir: Path, widest_pair: bool) -> None:
     size = declared_size(pair_dir)
     if size is not None:
         w, h, n = size
-        check_memory(w, h, 2 if widest_pair else n)
+        check_memory(w, h, 2 if widest_pair else n, pictures=True)  # process draws its pictures after the maps
 
 
 # what `process` writes in --out, or removes there when this run has none of it (an earlier run's must not stay)

@@ -137,13 +137,22 @@ FRAME_BYTES_PER_PIXEL = 5
 PROCESS_BASE_BYTES = 34 * 2**20
 
 
-def peak_memory_bytes(width: int, height: int, n_frames: int) -> int:
+# `process` draws its pictures after the pipeline: matplotlib, its canvases and the RGBA copies. Peak RSS of
+# `process` at 512, 1024, 2048 and 4096 px: 255 MiB, 510 MiB, 1.34 GiB and 4.7 GiB against the pipeline's 82, 224,
+# 830 and 3140 MiB (QA of stop 71); a camera that passed the check ended in a traceback while drawing
+PICTURES_BASE_BYTES = 180 * 2**20
+PICTURES_BYTES_PER_PIXEL = 110
+
+
+def peak_memory_bytes(width: int, height: int, n_frames: int, pictures: bool = False) -> int:
     """Expected peak memory (bytes) of running the pipeline on ``n_frames`` frames of ``width x height``:
-    ``base + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL n_frames) width height``. Extra frames add no
-    more than their own images: the cost volume they join is combined plane by plane (measured on a 4-frame
-    descent: 2, 3 and 4 frames peak alike)."""
+    ``base + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL n_frames) width height``, plus
+    ``PICTURES_BASE_BYTES + PICTURES_BYTES_PER_PIXEL width height`` when ``pictures`` are drawn after it. Extra
+    frames add no more than their own images: the cost volume they join is combined plane by plane (measured on
+    a 4-frame descent: 2, 3 and 4 frames peak alike)."""
     px = max(0, int(width)) * max(0, int(height))
-    return PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
+    need = PROCESS_BASE_BYTES + (PIPELINE_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * max(0, int(n_frames))) * px
+    return need + (PICTURES_BASE_BYTES + PICTURES_BYTES_PER_PIXEL * px if pictures else 0)
 
 
 ADDRESS_SPACE_SLACK_BYTES = 256 * 2**20  # mapped, not resident: OpenCV's thread stacks, glibc arenas
@@ -190,11 +199,13 @@ def _cgroup_room() -> int | None:
         return None
 
 
-def check_memory(width: int, height: int, n_frames: int, available_bytes: int | None = None) -> None:
+def check_memory(
+    width: int, height: int, n_frames: int, available_bytes: int | None = None, pictures: bool = False
+) -> None:
     """Refuse, before anything is read, work whose :func:`peak_memory_bytes` exceeds the memory this process can
     spend (:func:`memory_room` unless given): the operating system, or the allocator under a limit, would end it
     part-way."""
-    need = peak_memory_bytes(width, height, n_frames)
+    need = peak_memory_bytes(width, height, n_frames, pictures)
     what = "of memory is available"
     if available_bytes is None:
         available_bytes, what = memory_room()

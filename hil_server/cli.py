@@ -169,6 +169,11 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # the system refused a read or write the command needed: a full disk, a file in the way
         print(f"hazard-hil {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
         return 1
+    except MemoryError as exc:  # past the memory checks (another process took the room): one line, not a traceback
+        why = str(exc) or "an allocation failed"
+        print(f"hazard-hil {args.command}: error: out of memory ({why}): free some, or use a smaller camera",
+              file=sys.stderr)  # fmt: skip
+        return 1
     finally:
         warnings.showwarning = shown
         for sig, old in saved.items():

@@ -220,3 +220,20 @@ def test_usage_errors_are_one_line_too(capsys, argv, message):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and message in err and "--help)" in err, err
+
+
+def test_memory_running_out_past_the_checks_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
+    """A MemoryError past every memory check (another process took the room) ended in a traceback of 60 lines
+    (QA of stop 71: numpy's "Unable to allocate 128. MiB for an array with shape (2048, 2048, 4)")."""
+    import flight_sw.cli
+
+    def boom(args):
+        raise MemoryError("Unable to allocate 128. MiB for an array with shape (2048, 2048, 4) and data type float64")
+
+    monkeypatch.setattr(flight_sw.cli, "_process_held", boom)
+    assert main(["process", str(tmp_path), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "hazard-hil process: error: out of memory (Unable to allocate 128. MiB for an array with shape (2048, 2048, 4) "
+        "and data type float64): free some, or use a smaller camera"
+    )

@@ -187,8 +187,13 @@ def test_process_refuses_a_camera_too_large_for_this_machine_before_reading_it(t
     from flight_sw.validate import peak_memory_bytes
 
     d, _ = _pair(tmp_path)
-    need = peak_memory_bytes(160, 160, 2)
-    assert 34 * 2**20 < need < 40 * 2**20  # 160^2: the process's base and ~5 MiB of work
+    assert 34 * 2**20 < peak_memory_bytes(160, 160, 2) < 40 * 2**20  # 160^2: the process's base and ~5 MiB of work
+    # and the pictures drawn after the maps: a camera that passed the check ended in a traceback while drawing them
+    # (QA of stop 71: `process` peaked at 1.34 GiB at 2048 px, where the pipeline's model said 830 MiB)
+    need = peak_memory_bytes(160, 160, 2, pictures=True)
+    assert need - peak_memory_bytes(160, 160, 2) == 180 * 2**20 + 110 * 160 * 160
+    for px, measured_mib in ((512, 255), (1024, 510), (2048, 1372), (4096, 4813)):
+        assert measured_mib * 2**20 < peak_memory_bytes(px, px, 2, pictures=True) < 1.2 * measured_mib * 2**20, px
     monkeypatch.setattr(psutil, "virtual_memory", lambda: SimpleNamespace(available=need - 1))
     assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
