@@ -551,12 +551,20 @@ def check_regression(
             doc = json.loads(baseline.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise InputError(f"latency baseline {baseline}: unreadable ({exc})") from None
-    else:  # --update without a baseline: record the default cases, and say so
-        print(
-            f"regress: no baseline at {baseline}: recording the shipped cases ({', '.join(DEFAULT_CASES)}) into it",
-            file=sys.stderr,
-        )
-        doc = {"cases": {k: {**v} for k, v in DEFAULT_CASES.items()}}
+    else:  # --update without a baseline: record the default cases (those --cases names), and say so
+        # all of them were put in the new file and only --cases' run: the others then measured nothing, and the
+        # baseline was refused after the run (QA of stop 71)
+        chosen = [k for k in DEFAULT_CASES if cases is None or k in cases]
+        missing = [c for c in cases or () if c not in DEFAULT_CASES]
+        if missing:
+            raise InputError(
+                f"no baseline at {baseline} to hold case(s) {missing}: name shipped cases "
+                f"({', '.join(DEFAULT_CASES)}), or write the file with your cases first "
+                '({"cases": {NAME: {"scenario": ..., "budget": ..., "link": ...}}})'
+            )
+        print(f"regress: no baseline at {baseline}: recording the shipped cases ({', '.join(chosen)}) into it",
+              file=sys.stderr)  # fmt: skip
+        doc = {"cases": {k: {**DEFAULT_CASES[k]} for k in chosen}}
     validate_baseline(doc, str(baseline), baseline.resolve().parent)
     all_cases = doc["cases"]
     tol = {**DEFAULT_TOLERANCES, **doc.get("tolerances", {})}
@@ -599,10 +607,12 @@ def check_regression(
         from protocol.errors import InputError
 
         # each ran in full, then failed "no baseline" (QA of stop 71): a missing baseline is exit 2
+        shipped = baseline.resolve() == default_baseline_path().resolve()
+        where = "" if shipped else f" --baseline {baseline}"  # the hint went to the shipped baseline (QA of stop 71)
         raise InputError(
             f"case{'s' if len(unrecorded) > 1 else ''} {', '.join(unrecorded)} in {baseline} "
             f"{'have' if len(unrecorded) > 1 else 'has'} no recorded metrics: record them with "
-            f"`hazard-hil regress --update --cases {','.join(unrecorded)}`"
+            f"`hazard-hil regress{where} --update --cases {','.join(unrecorded)}`"
         )
     check_cases(names, {n: _with_link(all_cases[n], board_link) for n in names}, out, base_dir, hello_timeout_s)
     changed = {} if update else {n: budget_change(all_cases[n], base_dir) for n in names}

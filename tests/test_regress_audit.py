@@ -339,7 +339,7 @@ def test_a_case_without_recorded_metrics_is_refused_before_any_case_runs(tmp_pat
     base.write_text(json.dumps({"cases": {"old": {**case, "metrics": dict(BASE)}, "new": case}}))
     assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
-    assert "case new in " in err and "has no recorded metrics: record them with `hazard-hil regress --update" in err
+    assert "case new in " in err and f"metrics: record them with `hazard-hil regress --baseline {base} --update" in err
     assert ran == [] and len(err.strip().splitlines()) == 1
     assert main(["regress", "--baseline", str(base), "--cases", "old", "--out", str(tmp_path / "o")]) == 0
     assert ran == ["old"]
@@ -515,3 +515,21 @@ def test_a_budget_file_without_budget_names_what_it_defines(tmp_path, capsys):
     assert main(["run", "--budget-file", _budget_file(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "is not in" in err and "which defines myboard: name one with --budget" in err
+
+
+def test_update_into_a_new_file_records_the_shipped_cases_named_and_only_those(tmp_path, capsys, monkeypatch):
+    """`--update --baseline NEW --cases one` put all three shipped cases in the new file, ran one, then refused to
+    write it because the other two measured nothing (QA of stop 71)."""
+    from hil_server import regress
+
+    cpu = {"cpu_p50_ref_s": 0.2, "cpu_p95_ref_s": 0.2, "cpu_max_ref_s": 0.2}  # the host case is judged on CPU
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: {**BASE, **cpu, "pairs": 3, "degraded": 0})
+    base = tmp_path / "new.json"
+    args = ["regress", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
+    assert main([*args, "--cases", "vertical-host-zmq"]) == 0, capsys.readouterr().err
+    assert list(json.loads(base.read_text())["cases"]) == ["vertical-host-zmq"]
+    assert "recording the shipped cases (vertical-host-zmq) into it" in capsys.readouterr().err
+    base.unlink()
+    assert main([*args, "--cases", "mine"]) == 2
+    err = capsys.readouterr().err
+    assert "no baseline at" in err and "to hold case(s) ['mine']: name shipped cases" in err and not base.exists()
