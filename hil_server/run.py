@@ -927,6 +927,7 @@ def summary_table(summary: dict) -> str:
         truth_note(s),
         hello_note(s),
         baud_note(s),
+        psafe_note(s),
         fusion_note(s),
     )
     for note in notes:
@@ -1152,6 +1153,36 @@ def _image_side(cfg: RunConfig, manifest: Path | None) -> tuple[int, int]:
         if cam.width * cam.height > best[0] * best[1]:
             best = (cam.width, cam.height)
     return best
+
+
+def psafe_fallback(cfg: RunConfig, manifest: Path | None) -> str | None:
+    """Why our flight software's P(safe) falls back to the Gaussian rule on this run's camera (its trees are fitted
+    for 512, 256 and 128 px cameras), or None: `process` warned of it and a run said nothing (QA of stop 71). Not
+    for a flight program of one's own, nor a preset that does not use the trees."""
+    if cfg.flight != "emulated" or cfg.flight_cmd:
+        return None
+    from flight_sw.pipeline import PRESETS
+    from flight_sw.psafe import model_for_image
+
+    params = PRESETS.get(cfg.preset)
+    if params is None or params.psafe_model != "calibrated":
+        return None
+    w, h = _image_side(cfg, manifest)
+    if not w or model_for_image(params.psafe_model_path or None, (h, w)) is not None:
+        return None
+    return f"calibrated P(safe) not fitted for {w}x{h} images"
+
+
+def psafe_note(summary: dict) -> str:
+    """The Gaussian rule in the trees' place, and what it costs ("" when the trees call this camera)."""
+    why = summary.get("psafe_fallback")
+    if not why:
+        return ""
+    return (
+        f"{why}: the flight software's P(safe) falls back to the Gaussian rule, whose FP is higher (over 1 % on 3 "
+        "of 192 held-out pairs at 256 px and 128 px before those sizes had trees; docs/benchmarks/pipeline.md), so "
+        "its calls and sites are less trustworthy than at 512, 256 or 128 px"
+    )
 
 
 def check_memory(budget, width: int, height: int, rendered: bool = False) -> None:
@@ -1874,6 +1905,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "ground_exit": rc,
                 # SIGSTOP cannot be held: the line stopped with this process, and the summary says so
                 "relay_stopped_s": None if relay_stall is None else round(relay_stall.total_s, 3),
+                "psafe_fallback": psafe_fallback(cfg, manifest),
             },
         )
         table = summary_table(summary)  # says flight_note's line itself: logged once, with the table below

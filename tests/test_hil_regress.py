@@ -35,6 +35,12 @@ def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline)
     # each row says it was recorded, not judged (every row read "ok", a 0 % hit rate too; QA of stop 71)
     rows = [line for line in diff.splitlines()[1:] if line.startswith("tiny ")]
     assert rows and all(line.endswith("  recorded") for line in rows), diff
+    # a 96 px camera has no P(safe) trees: the run's summary and page say so, as `process` does (QA of stop 71)
+    import html
+
+    said = "calibrated p(safe) not fitted for 96x96 images: the flight software's p(safe) falls back to the gaussian"
+    assert said in (tmp_path / "r1" / "tiny" / "summary.md").read_text().lower()
+    assert said in html.unescape((tmp_path / "r1" / "tiny" / "report.html").read_text()).lower()
     metrics = doc["cases"]["tiny"]["metrics"]
     assert metrics["deadline_hit_rate"] == 1.0 and metrics["latency_p50_ref_s"] > 0
     tiny_baseline.write_text(json.dumps(doc))

@@ -10,6 +10,7 @@ run goes on. A 128 px camera with the thesis FOV keeps them quick.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -499,3 +500,18 @@ def test_records_are_in_descent_order_whatever_order_the_ground_ended_them():
     ids = ["p001-300_150", "p000-600_300", "p1000-1_0", "p002-200_100", "odd"]
     got = [r["pair_id"] for r in sorted(({"pair_id": x} for x in ids), key=_descent_order)]
     assert got == ["p000-600_300", "p001-300_150", "p002-200_100", "p1000-1_0", "odd"]
+
+
+def test_a_run_says_when_our_p_safe_falls_back_to_the_gaussian_rule(tmp_path):
+    """`process` warned that a 777 px camera's P(safe) falls back to the Gaussian rule, whose FP is higher; a HIL
+    run on the same camera said nothing anywhere (QA of stop 71)."""
+    from hil_server.run import RunConfig, psafe_fallback, psafe_note
+
+    cfg = RunConfig(out=tmp_path, budget="host", link="zmq", image_size=777)
+    assert psafe_fallback(cfg, None) == "calibrated P(safe) not fitted for 777x777 images"
+    assert "falls back to the Gaussian rule, whose FP is higher" in psafe_note({"psafe_fallback": "x"})
+    for fitted in (512, 256, 128):
+        assert psafe_fallback(replace(cfg, image_size=fitted), None) is None
+    assert psafe_fallback(replace(cfg, flight_cmd="my_flight"), None) is None  # a program of one's own
+    assert psafe_fallback(replace(cfg, preset="thesis"), None) is None  # no trees in that preset
+    assert psafe_note({}) == ""
