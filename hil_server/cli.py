@@ -126,6 +126,20 @@ def _stop_signals() -> dict[int, object]:
     return saved
 
 
+def console(text: str = "") -> None:
+    """``print`` to stdout for a long command's progress: once stdout is closed (piped into ``head``), what follows
+    goes nowhere and the command goes on. A BrokenPipeError ended `run` part-way, its summary still "in
+    progress" (QA of stop 71)."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's own advice: the interpreter's last flush fails too else
+        os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     import signal
 
@@ -669,7 +683,7 @@ def _finish(summary: dict, args: argparse.Namespace, name: str) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil_server.run import run_descent
 
-    summary = run_descent(_config(args))
+    summary = run_descent(_config(args), log=console)
     report = Path(args.out) / ("summary.md" if summary.get("report_error") else "report.html")
     print(f"report: {report}")
     return _finish(summary, args, "run")
@@ -689,7 +703,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print("demo: this host is not calibrated yet; measuring it once (hazard-hil calibrate, about 30 s)")
         cal = calibrate_host(seconds=2.0, progress=lambda line: print(f"demo:   {line}", flush=True))
         print(f"demo: {cal.units_per_s:.1f} reference units/s on {cal.cpu_model}")
-    summary = run_descent(cfg)
+    summary = run_descent(cfg, log=console)
     if not summary.get("report_error"):
         print(f"\nDemo finished. Report: {(Path(args.out) / 'report.html').resolve()}")
     print(f"Summary table: {(Path(args.out) / 'summary.md').resolve()}")

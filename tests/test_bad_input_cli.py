@@ -237,3 +237,23 @@ def test_memory_running_out_past_the_checks_is_one_line_and_exit_1(tmp_path, cap
         "hazard-hil process: error: out of memory (Unable to allocate 128. MiB for an array with shape (2048, 2048, 4) "
         "and data type float64): free some, or use a smaller camera"
     )
+
+
+def test_a_closed_stdout_does_not_end_a_long_command(tmp_path):
+    """`hazard-hil run ... | head -1`: the next progress line raised BrokenPipeError, `run` ended with exit 1 and its
+    summary still said "run in progress" (QA of stop 71). Its console lines now go nowhere and it goes on."""
+    import subprocess
+    import sys
+
+    done = tmp_path / "done"
+    code = (
+        "from hil_server.cli import console\n"
+        "for i in range(20000):\n"
+        "    console(f'line {i}')\n"
+        f"open({str(done)!r}, 'w').write('ok')\n"
+    )
+    script = tmp_path / "long.py"
+    script.write_text(code)
+    p = subprocess.run(f"{sys.executable} {script} | head -1", shell=True, capture_output=True, text=True)
+    assert p.stdout == "line 0\n" and done.read_text() == "ok", p.stderr
+    assert "BrokenPipeError" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
