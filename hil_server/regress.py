@@ -604,8 +604,6 @@ def check_regression(
     base_dir = baseline.resolve().parent
     unrecorded = [n for n in names if not update and all_cases[n].get("metrics") is None]
     if unrecorded:
-        from protocol.errors import InputError
-
         # each ran in full, then failed "no baseline" (QA of stop 71): a missing baseline is exit 2
         shipped = baseline.resolve() == default_baseline_path().resolve()
         where = "" if shipped else f" --baseline {baseline}"  # the hint went to the shipped baseline (QA of stop 71)
