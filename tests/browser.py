@@ -101,11 +101,13 @@ def check_page(path: str | Path, timeout: float = 30.0) -> PageCheck:
     try:
         # its own session, so the renderer and crashpad children go down with it and stop
         # writing into the profile before the profile is removed
+        # and its own temporary files inside the profile: each run left an org.chromium.Chromium.* directory in /tmp
         proc = subprocess.Popen(
             [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,
+            env={**os.environ, "TMPDIR": profile},
         )
         try:
             port_file = Path(profile) / "DevToolsActivePort"
