@@ -95,7 +95,7 @@ from .pose_refine import (
     refine_descent,
 )
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
-from .psafe import Model, model_call, model_for_image
+from .psafe import Model, model_call, model_for_image, not_fitted_text
 from .psafe import features as psafe_features
 from .rangefind import (
     altimeter_dem_disagreement,
@@ -1589,7 +1589,7 @@ def _model_and_call(p: Params, shape: tuple[int, ...], info: dict[str, Any]) -> 
         # outside the image sizes the models were fitted on (the 512 px trees on a 128 px camera: FP 1.6-5 % vs
         # 0-3 %), the calibration does not hold: the caller falls back to the Gaussian rule, at the preset's floor
         info.pop("psafe_safe_share", None)
-        info["psafe_fallback"] = f"calibrated P(safe) not fitted for {shape[1]}x{shape[0]} images"
+        info["psafe_fallback"] = not_fitted_text(shape)
         return None, p
     info["psafe_safe_share"] = float(fitted[0].info.get("safe_share", 0.5))
     own = model_call(fitted[0]) if p.psafe_call == "model" else {}

@@ -468,6 +468,12 @@ def model_for_image(path: str | None, shape: tuple[int, ...]) -> tuple[Model, st
     return None
 
 
+def not_fitted_text(shape: tuple[int, ...]) -> str:
+    """Why images of ``shape`` (rows, cols) get the Gaussian rule: no model was fitted on that size
+    (:func:`model_for_image` gave None). `process` warns with it and `run` says it in its summary."""
+    return f"calibrated P(safe) not fitted for {shape[1]}x{shape[0]} images"
+
+
 CALL_KEYS = ("fp_budget", "psafe_min", "call_slope_max")
 
 

@@ -1162,7 +1162,7 @@ def psafe_fallback(cfg: RunConfig, manifest: Path | None) -> str | None:
     if cfg.flight != "emulated" or cfg.flight_cmd:
         return None
     from flight_sw.pipeline import PRESETS
-    from flight_sw.psafe import model_for_image
+    from flight_sw.psafe import model_for_image, not_fitted_text
 
     params = PRESETS.get(cfg.preset)
     if params is None or params.psafe_model != "calibrated":
@@ -1170,7 +1170,7 @@ def psafe_fallback(cfg: RunConfig, manifest: Path | None) -> str | None:
     w, h = _image_side(cfg, manifest)
     if not w or model_for_image(params.psafe_model_path or None, (h, w)) is not None:
         return None
-    return f"calibrated P(safe) not fitted for {w}x{h} images"
+    return not_fitted_text((h, w))
 
 
 def psafe_note(summary: dict) -> str:
