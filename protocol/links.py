@@ -56,7 +56,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Self
 
-from protocol.arq import REFUSALS_KEPT, Arq, ArqConfig, DeliveryFailure, MessageTimes, Received, Refusal, Skipping
+from protocol.arq import (
+    POS_MOD,
+    REFUSALS_KEPT,
+    Arq,
+    ArqConfig,
+    DeliveryFailure,
+    MessageTimes,
+    Received,
+    Refusal,
+    Skipping,
+    unwrap,
+)
 from protocol.codec import DEFAULT_LIMITS, CodecError, Encoded, Limits, decode_parts, encode_message, encode_parts
 from protocol.errors import InputError
 from protocol.framing import CLOSE_APP, CLOSE_LOST
@@ -1174,7 +1185,9 @@ class ZmqLink(Link, SessionView):
                     return
                 m = self._out[0]
                 self._seq += 1
-                head = _ZHEAD.pack(Z_VERSION, Z_MSG, m.type_code, 0, self.sess.local, self.sess.peer, self._seq)
+                # whole on this side, modulo 2**32 on the wire: a session outlives 4e9 messages (section 7)
+                wire_seq = self._seq % POS_MOD
+                head = _ZHEAD.pack(Z_VERSION, Z_MSG, m.type_code, 0, self.sess.local, self.sess.peer, wire_seq)
             parts: list[Any] = [head, m.body, *m.bufs]
             t0 = time.monotonic()
             try:
@@ -1274,16 +1287,17 @@ class ZmqLink(Link, SessionView):
                 self._refusals.append(Refusal(type_code, f"unknown message kind {kind}", now, self._arrivals))
                 self._stats["decode_errors"] += 1
                 return
-            if seq <= self._peer_seq:  # TCP neither repeats nor reorders: the peer's seq did not rise
+            whole = unwrap(seq, self._peer_seq + 1)  # serial-number order (RFC 1982), as the byte stream's positions
+            if whole <= self._peer_seq:  # TCP neither repeats nor reorders: the peer's seq did not rise
                 self._stats["duplicates_dropped"] += 1
                 self._drop_note(
                     "seq",
                     src,
-                    f"messages whose seq ({seq}) is not above the last one taken ({self._peer_seq}), as repeats "
-                    "(each message's seq must rise, docs/protocol.md section 7)",
+                    f"messages whose seq ({seq}) is not above the last one taken ({self._peer_seq % POS_MOD}), as "
+                    "repeats (each message's seq must rise, docs/protocol.md section 7)",
                 )
                 return
-            self._peer_seq = seq
+            self._peer_seq = whole
             epoch = self.sess.epoch
         nbytes = sum(len(p.buffer) for p in parts)
         try:

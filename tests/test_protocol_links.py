@@ -551,6 +551,35 @@ def test_zeromq_frames_the_session_rules_drop_are_said_once_each_and_counted():
         assert G.take_drop_notes() == []
 
 
+def test_zeromq_seq_wraps_at_two_to_the_32_without_a_drop_or_an_end():
+    """A ZeroMQ session numbers its messages with a u32 seq: at 2**32 packing it raised struct.error in the I/O
+    thread. Now seq goes on the wire modulo 2**32 and is read in serial-number order (docs/protocol.md section 7)."""
+    G = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="ground")
+    with G, ZmqLink(G.endpoint, bind=False, insecure=True, name="board") as B:
+        assert G.wait_established(5) and B.wait_established(5)
+        B.send(Error(code="first", text=""))
+        assert G.recv(5).code == "first"
+        with B._cv:
+            B._seq = (1 << 32) - 3  # three messages short of the wrap
+        with G._cv:
+            G._peer_seq = (1 << 32) - 3
+        codes = [f"m{k}" for k in range(6)]  # wire seqs 2**32 - 2, 2**32 - 1, 0, 1, 2, 3
+        for c in codes:
+            B.send(Error(code=c, text=""))
+        got = [G.recv(5) for _ in codes]
+        assert [m.code for m in got] == codes and G.stats["duplicates_dropped"] == 0
+        assert B.sess.established and G.sess.epoch == 1 and B._seq == (1 << 32) + 3
+        with B._cv:
+            B._seq -= 1  # past the wrap a repeated seq is still a repeat
+        B.send(Error(code="again", text=""))
+        deadline = time.monotonic() + 10
+        while G.stats["duplicates_dropped"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert G.stats["duplicates_dropped"] == 1 and G.recv(0.2) is None
+        (note,) = G.take_drop_notes()
+        assert "seq (3) is not above the last one taken (3)" in note
+
+
 def test_a_peer_whose_connection_closed_is_named_so_when_its_session_times_out():
     """A crashed board read as "no message from the peer for 4.0 s", as if the line were slow (stop 58's QA)."""
     S = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board")
