@@ -58,6 +58,7 @@ import numpy as np
 
 from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
+from flight_sw.memory import private_rss_bytes
 
 # loaded at boot, before Hello: not inside the first deadline
 from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
@@ -67,6 +68,7 @@ from protocol.codec import Encoded, encode
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
 from protocol.messages import (
+    MAX_RSS_BYTES,
     MAX_SKIPPED,
     RESULT_FIELD_REV,
     RESULT_REV,
@@ -563,6 +565,8 @@ class FlightProcess:
                 queue_wait_s=queue_wait,
                 total_latency_s=done - pend.arrival,
                 cpu_fraction=(time.process_time() - cpu0) / max(done - start, 1e-9),
+                # a board's own memory (its report said "not reported"); the HIL server puts its watchdog's in place
+                peak_rss_bytes=min((private_rss_bytes() or (0, 0))[1], MAX_RSS_BYTES),
                 deadline_s=float(cfg.deadline_s),
                 # the flight side's own view (compute + expected line time); the ground judges the real one
                 deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,

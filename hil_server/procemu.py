@@ -66,6 +66,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+from flight_sw.memory import private_rss_bytes
 from protocol.errors import EXIT_MEMORY, InputError
 
 MIB = 1 << 20
@@ -288,40 +289,6 @@ def _start_ticks(pid: int) -> int | None:
         return int(fields[19])
     except (ValueError, IndexError):
         return None
-
-
-_MEM_FIELDS = (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem")  # /proc/PID/status keys the watchdog reads
-
-
-def private_rss_bytes(pid: int) -> tuple[int, int] | None:
-    """(private RSS, private RSS peak estimate) in bytes from /proc/PID/status; None once the process is gone.
-
-    Private RSS = ``RssAnon + RssShmem``: the memory the flight software itself holds. File-backed
-    pages (``RssFile``: the mapped code of Python, numpy, OpenCV) are left out because how many of
-    them count as resident depends on the host's page cache, not on the flight software: the same
-    ``import cv2`` is 25 MiB of RssFile from a long-cached install and 53 MiB from one just written
-    (large page-cache folios are mapped whole). A flight computer's code lives in its own memory.
-
-    The kernel keeps no private high-water mark, so the peak is estimated as
-    ``max(private, VmHWM - RssFile)``: with RssFile non-decreasing this never exceeds the true
-    private peak, and it catches a peak between two polls. (wait4's ru_maxrss is not used: after
-    fork+exec it still holds the parent's RSS at fork.)
-    """
-    fields: dict[bytes, int] = {}
-    try:
-        with open(f"/proc/{pid}/status", "rb") as fh:
-            for line in fh:
-                key = line.split(b":", 1)[0]
-                if key in _MEM_FIELDS:
-                    fields[key] = int(line.split()[1]) * 1024
-                    if len(fields) == len(_MEM_FIELDS):
-                        break
-    except (OSError, ValueError):
-        return None
-    if b"RssAnon" not in fields:
-        return None  # zombie: no memory map left
-    private = fields[b"RssAnon"] + fields.get(b"RssShmem", 0)
-    return private, max(private, fields.get(b"VmHWM", 0) - fields.get(b"RssFile", 0))
 
 
 class _Child:

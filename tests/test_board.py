@@ -115,13 +115,15 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     from hil_server.run import baud_note
 
     assert all(r["link"]["port_baud"] == 921600 for r in s["records"]) and baud_note(s) == ""
-    # the report's resources: no throttle and no ceiling on a board, and what it did not report said so (QA of stop
-    # 71: a caption about "the duty cycle the throttle applied" and "the budget's memory ceiling", an empty chart)
+    # the report's resources: no throttle and no ceiling on a board (QA of stop 71: a caption about "the duty cycle
+    # the throttle applied" and "the budget's memory ceiling"), and the board's own memory, which it reports since
+    # stop 72 (the chart was empty): our flight process holds numpy, OpenCV and the maps, tens of MiB at least
     import html
 
     page = html.unescape((tmp_path / "board" / "report.html").read_text())
     assert "The CPU fraction the flight side reported (no throttle: it runs at its own speed), and its peak " \
-           "private RSS: not reported." in page, page[page.find("resources.png") - 400 :][:900]  # fmt: skip
+           "private RSS as it reported it." in page, page[page.find("resources.png") - 400 :][:900]  # fmt: skip
+    assert all(20 < r["peak_rss_mib"] < 2000 for r in s["records"]), [r["peak_rss_mib"] for r in s["records"]]
     assert "the throttle applied" in html.unescape((tmp_path / "emulated" / "report.html").read_text())
 
 

@@ -418,3 +418,23 @@ def test_evaluates_pixel_score_figure_is_over_the_true_overlap_as_its_table(tmp_
     )  # fmt: skip
     figures_from_maps(tmp_path / "m.npz", tmp_path, "p")
     assert len(seen) == 1 and seen[0].sum() == scored.sum()  # 900 scored pixels, not the map's 576
+
+
+def test_a_flight_side_that_reports_no_memory_is_said_so_not_drawn_as_zero(tmp_path):
+    """A flight side of one's own may report its CPU fraction and not its memory: the chart said neither until stop
+    71, and our own board reports its memory since stop 72 (tests/test_board.py), so this branch is held here."""
+    import html
+
+    from hil_server.run_report import write_run_report
+
+    records = [
+        {"status": "result", "label": f"{a}/{a // 2}", "pair_id": str(a), "altitude_m": float(a), "level": "full",
+         "deadline_met": True, "deadline_s": 2.0, "e2e_latency_s": 0.5, "cpu_fraction": 0.9, "peak_rss_mib": rss}
+        for a, rss in ((600, None), (300, float("nan")))
+    ]  # fmt: skip
+    summary = {"records": records, "pairs": 2, "results": 2, "deadline_met": 2}
+    page = html.unescape(write_run_report(summary, tmp_path / "report.html").read_text())
+    assert "and its peak private RSS: not reported." in page
+    records[1]["peak_rss_mib"] = 81.5
+    page = html.unescape(write_run_report(summary, tmp_path / "report.html").read_text())
+    assert "and its peak private RSS as it reported it." in page and "not reported" not in page

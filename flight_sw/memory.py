@@ -1,0 +1,41 @@
+"""The flight process's own memory, as the HIL watchdog reads it from outside (:mod:`hil_server.procemu`).
+
+A board running ``hazard-hil flight`` reports its private RSS peak in each Telemetry (``peak_rss_bytes``) with the same
+reader, so a board run's report shows its memory; under the HIL server the watchdog's own reading replaces it.
+"""
+
+from __future__ import annotations
+
+_MEM_FIELDS = (b"VmHWM", b"RssAnon", b"RssFile", b"RssShmem")  # /proc/PID/status keys the watchdog reads
+
+
+def private_rss_bytes(pid: int | str = "self") -> tuple[int, int] | None:
+    """(private RSS, private RSS peak estimate) in bytes from /proc/PID/status (``"self"``: this process); None once
+    the process is gone, or where there is no /proc (a board that is not Linux).
+
+    Private RSS = ``RssAnon + RssShmem``: the memory the flight software itself holds. File-backed
+    pages (``RssFile``: the mapped code of Python, numpy, OpenCV) are left out because how many of
+    them count as resident depends on the host's page cache, not on the flight software: the same
+    ``import cv2`` is 25 MiB of RssFile from a long-cached install and 53 MiB from one just written
+    (large page-cache folios are mapped whole). A flight computer's code lives in its own memory.
+
+    The kernel keeps no private high-water mark, so the peak is estimated as
+    ``max(private, VmHWM - RssFile)``: with RssFile non-decreasing this never exceeds the true
+    private peak, and it catches a peak between two polls. (wait4's ru_maxrss is not used: after
+    fork+exec it still holds the parent's RSS at fork.)
+    """
+    fields: dict[bytes, int] = {}
+    try:
+        with open(f"/proc/{pid}/status", "rb") as fh:
+            for line in fh:
+                key = line.split(b":", 1)[0]
+                if key in _MEM_FIELDS:
+                    fields[key] = int(line.split()[1]) * 1024
+                    if len(fields) == len(_MEM_FIELDS):
+                        break
+    except (OSError, ValueError):
+        return None
+    if b"RssAnon" not in fields:
+        return None  # zombie: no memory map left
+    private = fields[b"RssAnon"] + fields.get(b"RssShmem", 0)
+    return private, max(private, fields.get(b"VmHWM", 0) - fields.get(b"RssFile", 0))
