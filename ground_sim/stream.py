@@ -81,7 +81,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.arq import ECHO_TEXT, Received, Refusal
-from protocol.errors import InputError
+from protocol.errors import InputError, os_error_text
 from protocol.grids import decimated_geometry, elevation_from_wire, psafe_from_wire
 from protocol.links import MECHANISM_MISMATCH_TEXT, WRITE_RECORD_WAIT_S, LinkClosed, ZmqLink
 from protocol.messages import (
@@ -325,8 +325,12 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         arrays["elevation_filled_image"] = np.asarray(r.elevation_filled_image, bool)
     for name, arr in arrays.items():  # each file whole or absent
         tmp = d / f".{name}.tmp.npy"
-        np.save(tmp, arr)
-        os.replace(tmp, d / f"{name}.npy")
+        try:
+            np.save(tmp, arr)
+            os.replace(tmp, d / f"{name}.npy")
+        except OSError as exc:  # a full disk: numpy's error names no file, and a torn .tmp.npy stayed
+            tmp.unlink(missing_ok=True)
+            raise OSError(exc.errno, exc.strerror or str(exc), str(d / f"{name}.npy")) from None
     e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
     p_origin, p_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.psafe_step)
     e2e = None
@@ -1338,6 +1342,9 @@ def main(argv: list[str] | None = None, *, restore_handlers: bool = True) -> int
     except Interrupted as exc:  # before the descent began: the descent's own stop says what finished
         _say(f"ground: {exc} before the descent began")
         return 128 + exc.signum
+    except OSError as exc:  # a full disk under --out: one line naming the file, not a traceback (QA of stop 72)
+        _say(f"ground: error: {os_error_text(exc)}")
+        return 1
     finally:
         for sig, handler in before.items() if restore_handlers else ():
             signal.signal(sig, handler)

@@ -64,7 +64,7 @@ from hil_server.budgets import (
     UncalibratedWarning,
 )
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
-from protocol.errors import InputError
+from protocol.errors import InputError, os_error_text
 from protocol.messages import SITES_WITHHELD
 from protocol.stall import StallClock
 
@@ -1066,6 +1066,22 @@ GRID_SCORES_NOTE = (
 )
 
 
+def _last_words(path: Path, started: str, reason: str | None, failure: str) -> None:
+    """Put the reason the summary could not be written into ``path`` in place of the placeholder that says the
+    run is in progress. Written over the placeholder's own bytes, not beside it: on a full disk a new file cannot be
+    made, while the placeholder's block is already the file's (the note is kept shorter than a block)."""
+    from reports.jsondoc import json_text
+
+    why = f"the run's summary could not be written ({failure})" + (f"; before that: {reason}" if reason else "")
+    doc = {"complete": False, "reason": why[:3000], "started": started}
+    try:
+        with open(path, "r+b") as f:
+            f.write(json_text(doc, sort_keys=True).encode())
+            f.truncate()
+    except OSError:
+        pass  # nothing more can be said in the file: the console says it
+
+
 def _write_json(path: Path, doc: dict) -> None:
     from reports.html import write_atomic
     from reports.jsondoc import json_text
@@ -1912,16 +1928,21 @@ def _descend(checked: CheckedRun, log) -> dict:
         from hil_server.run_report import write_run_report
         from reports.html import write_atomic
 
-        write_atomic(out / "summary.md", table)
         try:
-            write_run_report(summary, out / "report.html")
-        except Exception as exc:  # a page that fails must not cost the run its summary (it stayed "in progress")
-            summary["report_error"] = f"{type(exc).__name__}: {exc}"
-            log(
-                f"run: warning: report.html could not be written ({summary['report_error']}); summary.md and "
-                "summary.json hold the run"
-            )
-        _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
+            write_atomic(out / "summary.md", table)
+            try:
+                write_run_report(summary, out / "report.html")
+            except Exception as exc:  # a page that fails must not cost the run its summary (it stayed "in progress")
+                summary["report_error"] = f"{type(exc).__name__}: {exc}"
+                log(
+                    f"run: warning: report.html could not be written ({summary['report_error']}); summary.md and "
+                    "summary.json hold the run"
+                )
+            _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
+        except OSError as exc:  # a full disk: the placeholder said "killed" (QA of stop 72)
+            _last_words(out / "summary.json", started, reason, os_error_text(exc))
+            log(table)  # the run's figures, which no file holds
+            raise
         log(table)
     if late.received is not None:  # written whole; the caller says its verdict, then exits 128 + N
         log(f"run: {signal.Signals(late.received).name} came while the summary was written: it was finished first")

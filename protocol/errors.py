@@ -7,6 +7,8 @@ instead of a traceback; library callers can catch it like any ``ValueError``.
 
 from __future__ import annotations
 
+import errno
+
 
 class InputError(ValueError):
     """Bad input, with a message that names the problem and where it is."""
@@ -31,9 +33,15 @@ def comma_items(text: str, option: str) -> list[str]:
     return items
 
 
+# errors only a write meets: said as "cannot write X", whatever verb the caller chose
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
+
+
 def os_error_text(exc: OSError, verb: str = "use") -> str:
     """One line for an OSError the system raised: the file and its reason (``cannot write X: No space left on
     device``), not Python's ``[Errno 28]`` form."""
+    if exc.errno in _WRITE_ERRNOS:
+        verb = "write"
     where = " and ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
     why = exc.strerror or str(exc) or type(exc).__name__
     return f"cannot {verb} {where}: {why}" if where else why

@@ -145,6 +145,11 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
         os.replace(tmp, p)
+    except OSError as exc:  # a full disk: the write's own error names no file ("error: No space left on device")
+        Path(tmp).unlink(missing_ok=True)
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(p)) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -515,3 +516,65 @@ def test_a_run_says_when_our_p_safe_falls_back_to_the_gaussian_rule(tmp_path):
     assert psafe_fallback(replace(cfg, flight_cmd="my_flight"), None) is None  # a program of one's own
     assert psafe_fallback(replace(cfg, preset="thesis"), None) is None  # no trees in that preset
     assert psafe_note({}) == ""
+
+
+def test_a_full_disk_at_the_end_says_so_in_summary_json_and_on_one_line(manifest, tmp_path, monkeypatch):
+    """A disk that filled as the summary was written left summary.json at its placeholder, "run in progress (...
+    killed before it could write a summary)", and the console said "error: No space left on device" naming no
+    file (QA of stop 72). The placeholder is now overwritten in place with the reason, and the error names the file."""
+    import errno
+
+    import reports.html
+
+    real = reports.html.write_atomic
+
+    def full(path, data):
+        if Path(path).name == "summary.md":  # as write_atomic says a full disk (its test below)
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(reports.html, "write_atomic", full)
+    with pytest.raises(OSError) as caught:
+        run_hil(manifest, tmp_path / "full", "zmq")
+    assert caught.value.filename == str(tmp_path / "full" / "summary.md")
+    from protocol.errors import os_error_text
+
+    assert os_error_text(caught.value) == f"cannot write {tmp_path / 'full' / 'summary.md'}: No space left on device"
+    doc = json.loads((tmp_path / "full" / "summary.json").read_text())
+    assert doc["complete"] is False and "in progress" not in doc["reason"], doc
+    assert (
+        doc["reason"].startswith("the run's summary could not be written (cannot write ")
+        and "summary.md" in doc["reason"]
+    )
+
+
+def test_write_atomic_names_the_file_a_full_disk_refused_and_leaves_no_temporary(tmp_path, monkeypatch):
+    """The write's own OSError names no file: the CLI said only "error: No space left on device" (QA of stop 72)."""
+    import errno
+    import os
+    import types
+
+    import reports.html
+
+    class Full:
+        def __init__(self, fd, mode):
+            os.close(fd)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    fake = types.SimpleNamespace(**{k: getattr(os, k) for k in dir(os) if not k.startswith("__")})
+    fake.fdopen = Full
+    monkeypatch.setattr(reports.html, "os", fake)
+    (tmp_path / "summary.md").write_text("the earlier one")
+    with pytest.raises(OSError) as caught:
+        reports.html.write_atomic(tmp_path / "summary.md", "new")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "summary.md")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.md"]  # no .summary.md.* left
+    assert (tmp_path / "summary.md").read_text() == "the earlier one"
