@@ -18,6 +18,8 @@ The HIL server's subcommands: ``budgets``, ``calibrate`` (emulation), ``run``,
 from __future__ import annotations
 
 import argparse
+import errno
+import shutil
 import sys
 import warnings
 from importlib import metadata
@@ -181,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hazard-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the system refused a read or write the command needed: a full disk, a file in the way
-        print(f"hazard-hil {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        print(f"hazard-hil {args.command}: error: {os_error_text(exc)}{_full_disk_where(exc, args)}", file=sys.stderr)
         return 1
     except MemoryError as exc:  # past the memory checks (another process took the room): one line, not a traceback
         why = str(exc) or "an allocation failed"
@@ -192,6 +194,34 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = shown
         for sig, old in saved.items():
             signal.signal(sig, old)  # type: ignore[arg-type]
+
+
+FULL_DISK_BYTES = 1 << 20  # a disk with less than this free is named as the full one
+
+
+def _full_disk_where(exc: OSError, args: argparse.Namespace) -> str:
+    """For a full disk whose error names no file (numpy's, a library's write): which of the command's output
+    locations is on a disk with no room left, e.g. `` (the disk holding --out r1 is full)``; else ""."""
+    if exc.filename is not None or exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+        return ""
+    from hil_server.budgets import calibration_path
+
+    places = [(f"--{o}", getattr(args, o, None)) for o in ("out", "cache", "figures", "csv", "json", "baseline")]
+    places.append(("the calibration store", calibration_path()))
+    full = []
+    for label, value in places:
+        if not isinstance(value, str | Path):
+            continue
+        probe = Path(value).absolute()
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        try:
+            free = shutil.disk_usage(probe).free
+        except OSError:
+            continue
+        if free < FULL_DISK_BYTES:
+            full.append(f"{label} {value}" if label.startswith("--") else f"{label} ({value})")
+    return f" (the disk holding {' and '.join(full)} is full)" if full else ""
 
 
 def _one_line_warning(fallback):

@@ -239,6 +239,34 @@ def test_memory_running_out_past_the_checks_is_one_line_and_exit_1(tmp_path, cap
     )
 
 
+def test_a_full_disk_whose_error_names_no_file_names_the_output_on_it(tmp_path, capsys, monkeypatch):
+    """A library's write (numpy's, matplotlib's) fails on a full disk with no file name: `landings`, `sensitivity`,
+    `scenes --measure` and others said only "error: No space left on device" (QA of stop 72)."""
+    import errno
+    import shutil
+    from collections import namedtuple
+
+    import flight_sw.cli
+
+    def full(args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    out = tmp_path / "o"
+    usage = namedtuple("usage", "total used free")
+    real = shutil.disk_usage
+    monkeypatch.setattr(flight_sw.cli, "_process_held", full)
+    monkeypatch.setattr(
+        shutil, "disk_usage", lambda p: usage(1, 1, 4096) if Path(p) == tmp_path else real(p)
+    )  # the disk holding --out has 4 kB left, the calibration store's has room
+    assert main(["process", str(tmp_path), "--out", str(out)]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"hazard-hil process: error: No space left on device (the disk holding --out {out} is full)"
+    )
+    monkeypatch.setattr(shutil, "disk_usage", real)  # no disk is full now (the file that filled it went): as it was
+    assert main(["process", str(tmp_path), "--out", str(out)]) == 1
+    assert capsys.readouterr().err.strip() == "hazard-hil process: error: No space left on device"
+
+
 def test_a_closed_stdout_does_not_end_a_long_command(tmp_path):
     """`hazard-hil run ... | head -1`: the next progress line raised BrokenPipeError, `run` ended with exit 1 and its
     summary still said "run in progress" (QA of stop 71). Its console lines now go nowhere and it goes on."""
