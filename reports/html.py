@@ -135,6 +135,13 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     report.html private to their writer)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
+    if p.exists() and not p.is_file():  # a device or a pipe (--json /dev/stdout): written through, never replaced
+        try:
+            with open(p, "wb") as f:
+                f.write(data.encode() if isinstance(data, str) else data)
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(p)) from None
+        return p
     try:
         mode = p.stat().st_mode & 0o7777
     except OSError:

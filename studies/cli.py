@@ -769,8 +769,8 @@ def register_score(subparsers: Any) -> None:
         " per pair, named as the pair directory. Exit 0 when every pair was scored with FP at or under the limit,"
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
         " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored);"
-        " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv or --json could not be written (named on"
-        " stderr; the scores are printed), which wins over the others."
+        " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv, --json or a --figures picture could not be"
+        " written (named on stderr; the scores are printed), which wins over the others."
         " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
@@ -853,7 +853,10 @@ def _score(args: argparse.Namespace) -> int:
     drawn = sum("figure" in r for r in rows)
     if args.figures is not None:  # none is drawn for a pair without a usable output: say so, not a bare path
         print(f"figures: {args.figures} ({drawn} of {len(rows)} pairs)" if drawn else "figures: none, no usable output")
-    if not _write_score_files(args, rows, summary):
+    unwritten = [r for r in rows if r.get("figure_error")]
+    for r in unwritten:  # the scores above stand; the picture does not
+        print(f"hazard-hil score: error: {r['pair']}: its figure: {r['figure_error']}", file=sys.stderr)
+    if not _write_score_files(args, rows, summary) or unwritten:
         return EXIT_WRITE_FAILED
     if any(r.get("pair_error") for r in rows):  # the descent's own input, not the detector: as bad usage
         return 2
@@ -865,6 +868,7 @@ def _score(args: argparse.Namespace) -> int:
 def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], summary: dict[str, Any]) -> bool:
     """Write ``--csv`` and ``--json``; False, said in one line naming the file, when the system refuses one (a full
     disk): exit 1 said "FP over the limit" for a detector that passed, and the message named no file (QA 65b L4)."""
+    from reports.html import write_atomic
     from reports.jsondoc import json_text
     from studies.score import json_row, write_csv
 
@@ -875,9 +879,8 @@ def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], sum
         try:
             if option == "--csv":
                 write_csv(rows, path)
-            else:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
+            else:  # whole or not at all, as the csv
+                write_atomic(path, json_text({"summary": summary, "rows": [json_row(r) for r in rows]}))
         except OSError as exc:  # after the scores above, which stand: only the file is missing
             why = exc.strerror or str(exc) or type(exc).__name__
             print(f"hazard-hil score: error: cannot write {option} {path}: {why}", file=sys.stderr)
@@ -928,7 +931,7 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
                     if len(jobs) == 1:
                         raise
                     row["error"], row["pair_error"] = str(exc), True
-                if fig is not None and not row.get("pair_error"):
+                if fig is not None and not row.get("pair_error") and not row.get("figure_error"):
                     row["figure"] = str(fig)
         rows.append(row)
     return rows

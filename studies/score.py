@@ -21,6 +21,7 @@ and scores them by the design's convention (thesis section 2.8, Tables 6.4 and 6
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from collections.abc import Sequence
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import InputError
+from protocol.errors import InputError, os_error_text
 from protocol.pairdir import (
     STATE_OUTSIDE,
     STATE_SAFE,
@@ -41,6 +42,7 @@ from protocol.pairdir import (
     named_images,
 )
 from reports.console import printable
+from reports.html import write_atomic
 
 STATE_CODES = (STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE)  # docs/design.md
 FP_LIMIT_PCT = 1.0  # thesis Table 2.1: undetected hazards must stay at or under 1 % of the pixels
@@ -393,7 +395,10 @@ def score_output(
     if figure is not None:
         radius = _site_radius_px(pair.camera, depth, area)
         gsd = ground_step_m(world[..., :2])
-        _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m, gsd)
+        try:
+            _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m, gsd)
+        except OSError as exc:  # a full disk: the scores stand; exit 1 read as "FP over the limit" (QA of stop 72)
+            m["figure_error"] = os_error_text(exc if exc.filename else OSError(exc.errno, exc.strerror, str(figure)))
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
 
 
@@ -636,9 +641,10 @@ def write_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
             return "true" if v else "false"
         return f"{v:.6g}" if isinstance(v, float) else v
 
-    with p.open("w", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(CSV_COLUMNS)
-        for r in rows:
-            w.writerow([cell(r.get(k)) for k in CSV_COLUMNS])
-    return p
+    text = io.StringIO()
+    w = csv.writer(text, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in rows:
+        w.writerow([cell(r.get(k)) for k in CSV_COLUMNS])
+    # whole or not at all: written in place, a full disk left an empty file, or tore a good earlier one (QA of stop 72)
+    return write_atomic(p, text.getvalue())

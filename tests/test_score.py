@@ -649,6 +649,30 @@ def test_a_report_file_the_system_refuses_is_exit_4_naming_it_not_the_fp_verdict
     assert json.loads(js.read_text())["rows"][0]["pair"] == "300_150"
 
 
+def test_a_figure_the_disk_refuses_is_exit_4_naming_it_and_the_scores_stand(descent, tmp_path, capsys, monkeypatch):
+    """``--figures`` on a full disk exited 1, "FP over the limit", printed no scores, wrote no --json, and said
+    "error: No space left on device" (QA of stop 72)."""
+    import errno
+
+    import studies.score
+
+    d = descent / "300_150"
+    out = _write(tmp_path / "unsafe", np.ones_like(read_pair(d).truth["hazard"]))  # FP 0: passes
+
+    def full(path, *args, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(studies.score, "_figure", full)
+    js = tmp_path / "s.json"
+    assert main(["score", str(d), str(out), "--figures", str(tmp_path / "fig"), "--json", str(js)]) == 4
+    captured = capsys.readouterr()
+    fig = tmp_path / "fig" / "300_150_score.png"
+    assert f"hazard-hil score: error: 300_150: its figure: cannot write {fig}: No space left on device" in captured.err
+    assert "| 300_150 |" in captured.out and "figures: none" in captured.out
+    row = json.loads(js.read_text())["rows"][0]
+    assert row["fp_pct"] == 0.0 and row.get("figure") is None
+
+
 def test_a_manifest_naming_one_pair_twice_is_refused_not_weighed_twice(descent, tmp_path, capsys):
     """Entries naming the same pair directory, or with the same label, were each scored and counted in the medians
     (QA of stop 66: "CDI median 27.9 %" where the two pairs gave 37.2 %)."""
