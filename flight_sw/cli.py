@@ -164,16 +164,9 @@ def _left_after_stop(out: Path, removing: bool = False) -> str:
 
 
 def _save_npy(path: Path, arr: Any) -> None:
-    """``arr`` as a .npy file, through :func:`reports.html.write_atomic`: a reader never sees a half-written array."""
-    import io
+    from reports.html import save_npy_atomic
 
-    import numpy as np
-
-    from reports.html import write_atomic
-
-    buf = io.BytesIO()
-    np.save(buf, arr)
-    write_atomic(path, buf.getvalue())
+    save_npy_atomic(path, arr)
 
 
 def _check_out(pair_dir: Path, out: Path) -> None:

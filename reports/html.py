@@ -163,6 +163,18 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     return p
 
 
+def save_npy_atomic(path: str | Path, arr: Any) -> Path:
+    """``arr`` as a .npy file through :func:`write_atomic`: a reader never sees a half-written array, and a full disk
+    is an OSError naming ``path``."""
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    return write_atomic(path, buf.getvalue())
+
+
 def file_links(page_dir: Path, files: list[tuple[str, str]]) -> list[tuple[str, str]]:
     """``(href, what)`` for the ``files`` (paths relative to ``page_dir``) that exist: a page's "Files" section."""
     return [(href, what) for href, what in files if (Path(page_dir) / href).exists()]

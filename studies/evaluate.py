@@ -638,9 +638,15 @@ def evaluate_pair(
         }
     )
     if maps_path:
-        Path(maps_path).parent.mkdir(parents=True, exist_ok=True)
+        import io
+
+        from reports.html import write_atomic
+
+        buf = (
+            io.BytesIO()
+        )  # written whole or not at all: a stop or a full disk mid-write left a torn npz (QA of stop 72)
         np.savez_compressed(
-            maps_path,
+            buf,
             image=pair.images[0],
             m_per_px=np.float64(ground_step_m(world[..., :2]) or np.nan),  # the pictures' scale bar
             est_elevation=res.elevation,
@@ -658,6 +664,7 @@ def evaluate_pair(
             est_shadow=res.shadow_mask,
             true_shadow=pair.truth.get("shadow", np.zeros(truth_elev.shape, bool)),
         )
+        write_atomic(maps_path, buf.getvalue())
         if figures_dir:
             from studies.report import figures_from_maps
 
