@@ -16,6 +16,7 @@ once per run, under the run's output directory). Generate keys with
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -45,6 +46,7 @@ def generate_keys(directory: str | Path) -> Path:
         raise InputError(f"key directory {d} is a file, not a directory")
     if d.exists() and any(d.iterdir()):
         raise InputError(f"key directory {d} is not empty; refusing to overwrite keys")
+    made = not d.exists()
     try:
         d.mkdir(mode=0o700, parents=True, exist_ok=True)
         os.chmod(d, 0o700)
@@ -53,10 +55,28 @@ def generate_keys(directory: str | Path) -> Path:
         raise InputError(f"cannot create key directory {d}: {exc.strerror or exc}") from None
     s_pub, s_sec = zmq.curve_keypair()
     c_pub, c_sec = zmq.curve_keypair()
-    _write(d / "server.key_secret", s_pub, s_sec)
-    _write(d / "server.key", s_pub, None)
-    _write(d / "client.key_secret", c_pub, c_sec)
-    _write(d / "clients" / "client.key", c_pub, None)
+    files = [
+        (d / "server.key_secret", s_pub, s_sec),
+        (d / "server.key", s_pub, None),
+        (d / "client.key_secret", c_pub, c_sec),
+        (d / "clients" / "client.key", c_pub, None),
+    ]
+    try:
+        for path, pub, sec in files:
+            _write(path, pub, sec)
+    except BaseException as exc:
+        # a full disk left a 0-byte secret key, and the directory, no longer empty, was refused on the next try
+        # (QA of stop 72): what this call made goes, and the user is told the directory is as it was
+        for path, _, _ in files:
+            path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            (d / "clients").rmdir()
+        if made:  # an empty directory that was there before stays
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        if isinstance(exc, OSError):
+            raise InputError(f"cannot write the keys in {d}: {exc.strerror or exc}; nothing was left there") from None
+        raise
     return d
 
 

@@ -287,6 +287,35 @@ def test_keys_refuses_a_directory_it_cannot_make_or_would_overwrite(tmp_path, ca
     assert ran.returncode == 0 and not (tmp_path / "--help").exists()
 
 
+def test_keys_that_cannot_be_written_whole_leave_nothing_behind(tmp_path, capsys, monkeypatch):
+    """A full disk left a 0-byte server.key_secret and clients/, and the next try, with room again, was refused
+    "not empty; refusing to overwrite keys" (QA of stop 72)."""
+    import errno
+
+    import protocol.zmqauth as za
+
+    real, calls = za._write, []
+
+    def full(path, pub, sec):
+        calls.append(path.name)
+        if len(calls) == 3:  # the disk fills at the third file
+            path.write_bytes(b"")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, pub, sec)
+
+    monkeypatch.setattr(za, "_write", full)
+    for d in (tmp_path / "new", tmp_path / "empty"):
+        if d.name == "empty":
+            d.mkdir()
+        calls.clear()
+        assert cli(["keys", str(d)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"cannot write the keys in {d}: No space left on device; nothing was left there" in err, err
+        assert d.exists() == (d.name == "empty") and (not d.exists() or not any(d.iterdir()))
+    monkeypatch.setattr(za, "_write", real)  # room again: the same command works
+    assert cli(["keys", str(tmp_path / "new")]) == 0 and (tmp_path / "new" / "server.key_secret").stat().st_size > 0
+
+
 class socket_port:
     """A free TCP port on loopback (bound and released)."""
 
