@@ -108,6 +108,14 @@ class GroundSession:
                 more = " (from now on at most one line per 10 s, with a count)" if n == REFUSALS_SAID else ""
                 before = f" ({unsaid} more refused before it, not shown)" if unsaid else ""
                 self.log(f"flight: refused a {what} from the link: {reason}{before}{more}")
+        # the link keeps the latest REFUSALS_KEPT between two looks and counts them all: a flood of 20 000 read 64
+        # (QA of stop 72, as the ground's "1000 read 129" of stop 58)
+        counted = self.link.refused_count() if hasattr(self.link, "refused_count") else 0
+        if counted > self.counters["refused"]:
+            self._refusals.add_unsaid(
+                "refused", counted - self.counters["refused"], "message whose reason was not kept"
+            )
+            self.counters["refused"] = counted
         for _, unsaid, since, latest in self._refusals.due(now):
             self.log(f"flight: refused {unsaid} more message(s) from the link in the last {since:.0f} s "
                      f"(the latest a {latest})")  # fmt: skip

@@ -990,8 +990,7 @@ def stream_descent(
             state.telemetry_saved = len(records)
         stats = getattr(link, "stats", None) or {}
         # the link counts every refusal; the ground is handed the latest REFUSALS_KEPT between two looks
-        counted = sum(int(stats.get(k, 0) or 0) for k in ("decode_errors", "reassembly_errors", "protocol_drops"))
-        refused = max(state.refused_messages, counted)
+        refused = max(state.refused_messages, link.refused_count())
         counters = {"refused_messages": refused, "last_refused": state.last_refused, "flight_hello": state.flight_hello}
         counters |= {
             "ignored_results": ignored.seen("Result"),

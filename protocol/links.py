@@ -208,6 +208,12 @@ class Link:
         frames are only counted in ``stats``, and a peer of one's own making them saw its answers vanish."""
         return []
 
+    def refused_count(self) -> int:
+        """Every message from the peer this link refused so far, those :meth:`take_refusals` no longer holds too
+        (it keeps the latest :data:`protocol.arq.REFUSALS_KEPT` between two calls)."""
+        stats: dict = getattr(self, "stats", {})  # every link below has it
+        return sum(int(stats.get(k, 0) or 0) for k in ("decode_errors", "reassembly_errors", "protocol_drops"))
+
     def take_refusals(self) -> list[Refusal]:
         """Each message from the peer that this link refused since the last call (:class:`protocol.arq.Refusal`:
         type code, reason, when): over the size limit, of an unknown type, failing to decode or the schema (e.g. a

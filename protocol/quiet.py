@@ -45,6 +45,15 @@ class Quieter:
         k.latest = text
         return False, 0, since
 
+    def add_unsaid(self, key: Hashable, n: int, text: str = "") -> None:
+        """``n`` occurrences of ``key`` known only by count (their texts were not kept): counted and summed in the
+        next line :meth:`due` gives."""
+        if n > 0:
+            k = self._kinds.setdefault(key, _Kind())
+            k.seen += n
+            k.unsaid += n
+            k.latest = text or k.latest
+
     def seen(self, key: Hashable) -> int:
         """Occurrences of ``key`` so far, said or not."""
         k = self._kinds.get(key)

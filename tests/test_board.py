@@ -997,3 +997,24 @@ def test_the_zeromq_example_serves_the_next_ground_after_one_left_while_it_compu
         board.communicate(timeout=10)
     # served: both answered (the first late, a 5 s detector against a 2 s deadline, which is the board's business)
     assert s["complete"] and [r["status"] for r in s["records"]] == ["result", "result"], s.get("reason")
+
+
+def test_a_flood_past_what_the_link_keeps_is_counted_whole(monkeypatch):
+    """The link hands over the latest REFUSALS_KEPT refusals between two looks and counts them all: a flood of
+    20 000 read "64 message(s) refused" on the board's last line (QA of stop 72)."""
+    from flight_sw import board
+    from protocol.arq import REFUSALS_KEPT
+
+    class Flooded(RecordingLink):
+        def refused_count(self) -> int:
+            return 20_000
+
+    clock = [1000.0]
+    monkeypatch.setattr(board.time, "monotonic", lambda: clock[0])
+    kept = [Refusal(None, "malformed message header: 2 bytes, not 16", 0.0)] * REFUSALS_KEPT
+    said: list[str] = []
+    ground = GroundSession(Flooded([], refusals=kept), log=said.append)
+    assert ground.recv(0.01) is None and ground.counters["refused"] == 20_000
+    clock[0] += board.REFUSALS_QUIET_S
+    assert ground.recv(0.01) is None
+    assert said[-1].startswith(f"flight: refused {20_000 - board.REFUSALS_SAID} more message(s) from the link"), said

@@ -551,6 +551,30 @@ def test_zeromq_frames_the_session_rules_drop_are_said_once_each_and_counted():
         assert G.take_drop_notes() == []
 
 
+def test_a_zeromq_link_counts_every_refusal_past_those_it_keeps():
+    """take_refusals holds the latest REFUSALS_KEPT; refused_count() is what a console's total reads."""
+    import zmq
+
+    from protocol.arq import REFUSALS_KEPT
+
+    B = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="board")
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PAIR)
+    try:
+        with B:
+            s.connect(B.endpoint)
+            n = 3 * REFUSALS_KEPT
+            for _ in range(n):
+                s.send(b"x" * 7)  # a stranger's garbage: no 16-byte header
+            deadline = time.monotonic() + 10
+            while B.refused_count() < n and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert B.refused_count() == n and len(B.take_refusals()) == REFUSALS_KEPT
+    finally:
+        s.close(linger=0)
+        ctx.term()
+
+
 def test_zeromq_seq_wraps_at_two_to_the_32_without_a_drop_or_an_end():
     """A ZeroMQ session numbers its messages with a u32 seq: at 2**32 packing it raised struct.error in the I/O
     thread. Now seq goes on the wire modulo 2**32 and is read in serial-number order (docs/protocol.md section 7)."""
