@@ -79,6 +79,8 @@ def _float(finite: bool = True, lo: float | None = None, slack: float = 0.0) -> 
         f = float(v)
         if finite and not math.isfinite(f):
             raise SchemaError(f"{name}: must be finite, got {f}")
+        if math.isinf(f):  # "NaN allowed" allows NaN, not an infinity (section 5.4; inf reached results.jsonl)
+            raise SchemaError(f"{name}: must be finite or NaN, got {f}")
         if lo is not None and f < lo:  # a duration below 0 was shown as it came ("flight -5.00 s")
             if f < lo - slack:
                 raise SchemaError(f"{name}: must be >= {lo:g}, got {f:g}")
@@ -340,12 +342,27 @@ class Site:
     _NAMES: ClassVar[tuple[str, ...]] = ("x", "y", "z", "hazard", "margin", "distance_m", "p_safe", "clearance_m")
 
     _FINITE: ClassVar[tuple[bool, ...]] = (True, True, False, True, True, True, False, False)
+    # (low, high) of each bounded field (NaN passes where allowed): a P(safe) of 5.0 or a clearance of -3 m passed
+    _RANGE: ClassVar[dict[str, tuple[float, float]]] = {
+        "hazard": (0.0, 1.0),
+        "margin": (0.0, 1.0),
+        "distance_m": (0.0, math.inf),
+        "p_safe": (0.0, 1.0),
+        "clearance_m": (0.0, math.inf),
+    }
 
     @classmethod
     def _check(cls, v: Any) -> list[float]:
         if not isinstance(v, (list, tuple)) or len(v) != len(cls._NAMES):
-            raise SchemaError(f"Site: expected {len(cls._NAMES)} numbers")
-        return [_float(fin)(x, f"Site.{n}") for x, n, fin in zip(v, cls._NAMES, cls._FINITE)]
+            got = "a map" if isinstance(v, dict) else type(v).__name__
+            raise SchemaError(f"Site: expected an array of {len(cls._NAMES)} numbers, got {got}")
+        out = [_float(fin)(x, f"Site.{n}") for x, n, fin in zip(v, cls._NAMES, cls._FINITE)]
+        for f, n in zip(out, cls._NAMES):
+            lo, hi = cls._RANGE.get(n, (-math.inf, math.inf))
+            if not (math.isnan(f) or lo <= f <= hi):
+                bound = f"in [{lo:g}, {hi:g}]" if math.isfinite(hi) else f">= {lo:g}"
+                raise SchemaError(f"Site.{n}: must be {bound}, got {f:g}")
+        return out
 
     def to_wire(self) -> list[float]:
         return self._check([getattr(self, n) for n in self._NAMES])
@@ -355,7 +372,13 @@ class Site:
         if isinstance(v, Site):
             return v
         if isinstance(v, dict):
-            v = [v.get(n, math.nan if n in ("p_safe", "clearance_m") else None) for n in cls._NAMES]
+            missing = [n for n in cls._NAMES[:6] if n not in v]
+            if missing:  # "Site.x: expected a number, got NoneType" named no cause
+                raise SchemaError(
+                    f"Site: expected an array of {len(cls._NAMES)} numbers, or a map with {', '.join(cls._NAMES)};"
+                    f" this map lacks {', '.join(missing)}"
+                )
+            v = [v.get(n, math.nan) for n in cls._NAMES]
         return cls(*cls._check(v))
 
 

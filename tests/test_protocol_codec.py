@@ -48,7 +48,7 @@ from protocol.messages import (
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 duration = st.floats(min_value=0.0, allow_nan=False, allow_infinity=False, width=64)
-anyfloat = st.floats(width=64)
+nan_or_finite = st.one_of(st.floats(allow_nan=False, allow_infinity=False), st.just(float("nan")))  # "NaN allowed"
 names = st.text(max_size=20)
 u32 = st.integers(0, 2**32 - 1)
 
@@ -64,7 +64,13 @@ def f32_grid(max_side: int = 12) -> st.SearchStrategy[np.ndarray]:
 # a hazard map's values (NaN outside the covered area) and an elevation map's (NaN where none was recovered)
 unit_or_nan = st.one_of(st.floats(0.0, 1.0, width=32), st.just(float("nan")))
 finite_or_nan = st.one_of(st.floats(width=32, allow_infinity=False), st.just(float("nan")))
-sites = st.lists(st.builds(Site, finite, finite, anyfloat, finite, finite, finite, anyfloat, anyfloat), max_size=5)
+unit = st.floats(0.0, 1.0)
+nonneg = st.floats(0.0, 1e12)
+nonneg_or_nan = st.one_of(nonneg, st.just(float("nan")))
+# a site's fields in their ranges (docs/protocol.md 5.4): NaN where allowed, never an infinity
+sites = st.lists(
+    st.builds(Site, finite, finite, finite_or_nan, unit, unit, nonneg, unit_or_nan, nonneg_or_nan), max_size=5
+)
 
 
 def flags(shape: tuple[int, int]) -> st.SearchStrategy[np.ndarray]:
@@ -139,7 +145,7 @@ messages = st.one_of(
         capture_time_s=finite,
         position_m=st.tuples(finite, finite, finite),
         R_world_to_cam=hnp.arrays(np.float64, (3, 3), elements=finite),
-        altimeter_m=anyfloat,
+        altimeter_m=nan_or_finite,
         image=hnp.arrays(np.uint8, hnp.array_shapes(min_dims=2, max_dims=2, min_side=0, max_side=16)),
         pair_id=st.none() | names,
         frame_index=st.none() | u32,
@@ -153,9 +159,9 @@ messages = st.one_of(
         ),
         queue_wait_s=duration,
         total_latency_s=duration,
-        cpu_fraction=anyfloat,
+        cpu_fraction=nan_or_finite,
         peak_rss_bytes=st.integers(0, 2**40),
-        deadline_s=anyfloat,
+        deadline_s=nan_or_finite,
         deadline_met=st.booleans(),
         link=st.dictionaries(st.text(max_size=10), st.integers(0, 10**9) | finite, max_size=6),
     ),
@@ -667,3 +673,30 @@ def test_an_integer_grid_of_another_type_is_taken_only_when_its_values_fit():
     ):
         with pytest.raises(SchemaError, match=match):
             encode_message(small_result(**kw))
+
+
+@pytest.mark.parametrize(
+    "values, match",
+    [
+        ((0, 0, 0, 0, 1, 0, math.inf, 1), r"Site.p_safe: must be finite or NaN, got inf"),
+        ((0, 0, 0, 0, 1, 0, 5.0, 1), r"Site.p_safe: must be in \[0, 1\], got 5"),
+        ((0, 0, 0, 0, 1, 0, 0.9, -3), r"Site.clearance_m: must be >= 0, got -3"),
+        ((0, 0, 0, 1.5, 1, 0, 0.9, 1), r"Site.hazard: must be in \[0, 1\], got 1.5"),
+        ((0, 0, 0, 0, -0.2, 0, 0.9, 1), r"Site.margin: must be in \[0, 1\], got -0.2"),
+        ((0, 0, 0, 0, 1, -1, 0.9, 1), r"Site.distance_m: must be >= 0, got -1"),
+        ((0, 0, -math.inf, 0, 1, 0, 0.9, 1), r"Site.z: must be finite or NaN, got -inf"),
+        ({"x": 1.0, "y": 2.0}, r"Site: expected an array of 8 numbers, or a map .* this map lacks z, hazard"),
+    ],
+)
+def test_a_site_out_of_its_fields_ranges_is_refused(values, match):
+    """A flight program's site with P(safe) inf or 5.0, or a clearance of -3 m, was accepted: results.jsonl then
+    held "Infinity" (QA of stop 72). "NaN allowed" allows NaN, never an infinity (docs/protocol.md 5.4)."""
+    with pytest.raises(SchemaError, match=match):
+        Site.from_wire(list(values) if isinstance(values, tuple) else values)
+    assert Site.from_wire([0, 0, math.nan, 0, 1, 0, math.nan, math.nan]).p_safe != 0.5  # NaN stays allowed
+
+
+def test_no_nan_allowed_field_takes_an_infinity():
+    t = Telemetry(frame_seqs=(0, 1), deadline_s=math.inf)
+    with pytest.raises((SchemaError, CodecError), match=r"Telemetry.deadline_s: must be finite or NaN, got inf"):
+        encode_message(t)  # the sender refuses it, as the receiver does
