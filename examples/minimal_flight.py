@@ -312,7 +312,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not args.port:
         ap.error("no serial port: give --port or set HAZARD_HIL_PORT")
-    port = serial.serial_for_url(args.port, baudrate=args.baud, timeout=0.02)
+    try:
+        port = serial.serial_for_url(args.port, baudrate=args.baud, timeout=0.02)
+    except (serial.SerialException, OSError, ValueError) as exc:  # no such device, or another program holds it
+        print(f"minimal_flight: cannot open {args.port}: {exc}", file=sys.stderr)
+        return 1
     link = Link(port)
     config: dict | None = None
     pending: dict[str, dict] = {}

@@ -142,19 +142,29 @@ def timed_answer(pair: dict, config: dict) -> tuple[dict, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--endpoint", default="tcp://*:5555", help="where to bind (default tcp://*:5555)")
+    ap.add_argument(
+        "--endpoint",
+        default="tcp://*:5555",
+        help="where to bind (default tcp://*:5555; with --insecure give a loopback one)",
+    )
     ap.add_argument("--keys", type=Path, help="key directory of `hazard-hil keys`: CURVE, clients/ allowed")
     ap.add_argument("--insecure", action="store_true", help="no CURVE (loopback only)")
     args = ap.parse_args(argv)
     if (args.keys is None) == (not args.insecure):
         ap.error("give --keys DIR (CURVE) or --insecure (loopback only)")
+    host = args.endpoint.removeprefix("tcp://").rpartition(":")[0]
+    if args.insecure and host not in ("127.0.0.1", "localhost", "[::1]"):  # anyone on the network could drive it
+        ap.error(f"--insecure binds on loopback only (tcp://127.0.0.1:PORT), not {args.endpoint}; use --keys DIR")
     ctx = zmq.Context()
     auth = None
     if args.keys is not None:
+        try:
+            public, secret = zmq.auth.load_certificate(str(args.keys / "server.key_secret"))
+        except (OSError, ValueError) as exc:
+            ap.error(f"cannot read the server key in {args.keys} ({exc}): make one with `hazard-hil keys DIR`")
         auth = ThreadAuthenticator(ctx)
         auth.start()
         auth.configure_curve(domain="*", location=str(args.keys / "clients"))
-        public, secret = zmq.auth.load_certificate(str(args.keys / "server.key_secret"))
 
     def listen() -> zmq.Socket:
         sock = ctx.socket(zmq.PAIR)
@@ -170,7 +180,14 @@ def main(argv: list[str] | None = None) -> int:
         sock.bind(args.endpoint)  # still taken: say why
         return sock
 
-    s = Session(listen)
+    try:
+        s = Session(listen)
+    except zmq.ZMQError as exc:  # the port is another program's
+        if auth is not None:
+            auth.stop()
+        ctx.destroy(linger=0)
+        print(f"minimal_flight_zmq: cannot bind {args.endpoint}: {exc}", file=sys.stderr)
+        return 1
     print(f"minimal_flight_zmq: listening on {args.endpoint}", file=sys.stderr, flush=True)
     config: dict | None = None
     pending: dict[str, dict] = {}
