@@ -34,7 +34,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
-from protocol.messages import MESSAGE_NAMES, Frame, Hello, Result, Telemetry
+from protocol.messages import MESSAGE_NAMES, Error, Frame, Hello, Result, Telemetry
 from protocol.quiet import Quieter
 
 KERNELS = ("flight_sw._sgmc", "flight_sw._treesc")  # setup.py builds them where the board has a C compiler
@@ -59,8 +59,9 @@ class GroundSession:
         self.ground_session: int | None = None  # its Hello.session
         self.pair_ids: OrderedDict[int, str] = OrderedDict()  # frame seq -> pair_id, for the pair's line
         self.levels: dict[int, str] = {}  # the last Results' levels by their upper frame's seq, for the pair's line
-        self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0}
+        self.counters = {"sessions": 0, "pairs": 0, "dropped_no_hello": 0, "refused": 0, "errors": 0}
         self._refusals = Quieter(first=REFUSALS_SAID, quiet_s=REFUSALS_QUIET_S)
+        self._errors = Quieter(first=REFUSALS_SAID, quiet_s=REFUSALS_QUIET_S)  # Errors it answered, said alike
         # Results sent and not yet known delivered: message id -> pair id. The pair's line says "met" when its
         # Telemetry goes; a Result the link then failed to deliver (the session lost) was never corrected
         self.unconfirmed: OrderedDict[int, str] = OrderedDict()
@@ -74,6 +75,7 @@ class GroundSession:
         """The next message for the flight software, or None (a Hello answered here counts as nothing)."""
         pkt = self.link.recv_packet(timeout)
         self._say_refusals()
+        self._say_errors_due(time.monotonic())
         self._say_line_noise()
         self._confirm_results()
         if pkt is None:
@@ -180,7 +182,25 @@ class GroundSession:
                 self.unconfirmed.popitem(last=False)
         elif isinstance(msg, Telemetry):
             self._pair_line(msg)
+        elif isinstance(msg, Error):
+            self._error_line(msg)
         return mid
+
+    def _error_line(self, err: Error) -> None:
+        """A pair answered with an Error (a frame the camera or the poses refuse): the board's console showed only
+        its session lines (QA of stop 72). Said as refusals are: the first few, then a count per 10 s."""
+        self.counters["errors"] += 1
+        pair = self.pair_ids.get(int(err.seq), "?") if err.seq is not None else "?"
+        now = time.monotonic()
+        say, unsaid, _ = self._errors.offer("error", now, f"{err.code}")
+        if say:
+            before = f" ({unsaid} more Error(s) before it, not shown)" if unsaid else ""
+            self.log(f"flight: pair {pair}: answered with Error {err.code}: {err.text}{before}")
+        self._say_errors_due(now)
+
+    def _say_errors_due(self, now: float) -> None:
+        for _, n, since, latest in self._errors.due(now):
+            self.log(f"flight: answered {n} more Error(s) in the last {since:.0f} s (the latest {latest})")
 
     def _confirm_results(self) -> None:
         """Say a Result the link failed to deliver after its pair's line was printed (forget the delivered)."""
@@ -222,7 +242,9 @@ class GroundSession:
 def _served(c: dict) -> str:
     """The board's last words: what it served."""
     return (
-        f"served {c['sessions']} ground session(s), {c['pairs']} pair(s); {c['refused']} message(s) refused, "
+        f"served {c['sessions']} ground session(s), {c['pairs']} pair(s)"
+        + (f" ({c['errors']} answered with an Error)" if c.get("errors") else "")
+        + f"; {c['refused']} message(s) refused, "
         f"{c['dropped_no_hello']} dropped (no Hello in their session)"
     )
 

@@ -1018,3 +1018,28 @@ def test_a_flood_past_what_the_link_keeps_is_counted_whole(monkeypatch):
     clock[0] += board.REFUSALS_QUIET_S
     assert ground.recv(0.01) is None
     assert said[-1].startswith(f"flight: refused {20_000 - board.REFUSALS_SAID} more message(s) from the link"), said
+
+
+def test_a_pair_answered_with_an_error_is_a_line_on_the_boards_console(monkeypatch):
+    """A frame the camera refuses was answered `Error bad_frame` to the ground, and the board's console, which
+    prints a line per pair, showed nothing (QA of stop 72). A flood of them is summed as refusals are."""
+    from flight_sw import board
+    from protocol.messages import Error, Hello
+
+    clock = [1000.0]
+    monkeypatch.setattr(board.time, "monotonic", lambda: clock[0])
+    hello = Packet(Hello(role="ground", session=7), epoch=1)
+    frames = [Packet(_frame(10 + k, f"p{k}", 0), epoch=1) for k in range(8)]
+    said: list[str] = []
+    ground = GroundSession(RecordingLink([hello, *frames]), log=said.append)
+    for _ in range(9):
+        ground.recv(0.01)
+    for k in range(8):
+        ground.send(Error(code="bad_frame", text=f"frame {10 + k}: image 64x200, the camera is 128x128", seq=10 + k))
+    lines = [s for s in said if "Error" in s]
+    assert lines[0] == "flight: pair p0: answered with Error bad_frame: frame 10: image 64x200, the camera is 128x128"
+    assert len(lines) == board.REFUSALS_SAID and ground.counters["errors"] == 8
+    clock[0] += board.REFUSALS_QUIET_S
+    ground.recv(0.01)
+    assert said[-1] == "flight: answered 3 more Error(s) in the last 10 s (the latest bad_frame)", said[-1]
+    assert "served 1 ground session(s), 0 pair(s) (8 answered with an Error);" in board._served(ground.counters)
