@@ -181,6 +181,9 @@ def _run(args: argparse.Namespace) -> int:
     if frames:
         check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
     written: list[str] = []
+    from ground_sim.descent import earlier_render
+
+    earlier = earlier_render(Path(args.out)) if Path(args.out).is_dir() else []
     try:
         with claim_out(args.out, "render"):  # two renders into one --out replaced each other's pairs, both exit 0
             out = render_scenario(
@@ -200,13 +203,13 @@ def _run(args: argparse.Namespace) -> int:
                 camera=camera,
                 written=written,
             )
-    except KeyboardInterrupt:
-        print(_kept_after_interrupt(Path(args.out), written), file=sys.stderr)
+    except (KeyboardInterrupt, OSError):  # a stop, or a full disk (said by the caller, in one line)
+        print(_kept_after_interrupt(Path(args.out), written, earlier), file=sys.stderr)
         raise
     except BrokenProcessPool:  # a worker killed outright (the OOM killer): one line, as evaluate and landings say it
         print(
             "render: a worker process died (killed, or out of memory): run it again, with fewer --workers if memory "
-            f"is short; {_kept_after_interrupt(Path(args.out), written).split(': ', 1)[1]}",
+            f"is short; {_kept_after_interrupt(Path(args.out), written, earlier).split(': ', 1)[1]}",
             file=sys.stderr,
         )
         return 1
@@ -222,14 +225,26 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _kept_after_interrupt(out: Path, written: list[str]) -> str:
+def _kept_after_interrupt(out: Path, written: list[str], earlier: list[str] | None = None) -> str:
     """What a stopped render left in ``out``: the frames are rendered first and the pairs written after (each
-    whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again."""
+    whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again. The pairs
+    an earlier render left there and this one did not replace are named: beside ours they read as one descent of
+    two seeds (QA of stop 72)."""
+    left = [p for p in earlier or [] if p not in written and (out / p / "pair.json").is_file()]
+    more = ", ..." if len(left) > 8 else ""
+    old = (
+        f"; {len(left)} pair(s) of an earlier render are still there, not this one's: {', '.join(left[:8])}{more}"
+        if left
+        else ""
+    )
     if not written:
-        return f"render: stopped before any pair was written (frames are rendered first): nothing new in {out}"
+        gone = "" if not left or (out / "manifest.json").is_file() else " (its manifest.json was removed)"
+        return (
+            f"render: stopped before any pair was written (frames are rendered first): nothing new in {out}{old}{gone}"
+        )
     return (
         f"render: stopped; {len(written)} pair(s) written whole in {out}: {', '.join(written)}; "
-        "no manifest.json (it is written last)"
+        f"no manifest.json (it is written last){old}"
     )
 
 

@@ -371,15 +371,22 @@ def render_scenario(
         on_view=lambda k, n: _progress(k, n, "frames", t0, progress),
     )
     entries, thumbs = [], []
-    earlier = _earlier_render(out)
-    # an earlier render's manifest would list a mix of its pairs and ours if this one stopped half-way
-    (out / "manifest.json").unlink(missing_ok=True)
+    earlier = earlier_render(out)
+
+    def drop_manifest() -> None:
+        # an earlier render's manifest would list a mix of its pairs and ours if this one stopped half-way; dropped
+        # as the first pair takes its place, not before: a full disk in the first pair left an intact earlier
+        # render without its manifest (QA of stop 72)
+        (out / "manifest.json").unlink(missing_ok=True)
+
     k = 0
     for i, ps in enumerate(specs):
         vs, k = views[k : k + len(ps.poses)], k + len(ps.poses)
         pair = assemble_pair(sc, ps, sun, vs, seed=seed, pose_error=pose_error)
         kept: list[str] = []
-        d = write_pair_atomic(out / ps.label.replace("/", "_"), pair, replace=True, kept=kept)
+        d = write_pair_atomic(
+            out / ps.label.replace("/", "_"), pair, replace=True, kept=kept, before_rename=drop_manifest
+        )
         if kept:  # a `process --out PAIR/out` was made from the frames this render replaced
             names = ", ".join(kept[:5]) + (", ..." if len(kept) > 5 else "")
             sys.stderr.write(
@@ -428,7 +435,7 @@ def render_scenario(
     return out
 
 
-def _earlier_render(out: Path) -> list[str]:
+def earlier_render(out: Path) -> list[str]:
     """The pair directories an earlier render left in ``out`` (its manifest's, else any with a pair.json)."""
     try:
         doc = json.loads((out / "manifest.json").read_text())

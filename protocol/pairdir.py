@@ -40,7 +40,7 @@ import stat
 import struct
 import time
 import tokenize
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -544,7 +544,12 @@ def _drop_dead_partials(d: Path) -> None:
 
 
 def write_pair_atomic(
-    directory: str | Path, pair: Pair, *, replace: bool = False, kept: list[str] | None = None
+    directory: str | Path,
+    pair: Pair,
+    *,
+    replace: bool = False,
+    kept: list[str] | None = None,
+    before_rename: Callable[[], None] | None = None,
 ) -> Path:
     """:func:`write_pair` into a private sibling, then renamed into place: a reader never sees a
     half-written directory. When the directory exists already, ``replace`` puts ours in its place (the old
@@ -553,7 +558,8 @@ def write_pair_atomic(
     same directory first: two studies rendering into one cache). Files of the old directory that are not
     a render's own (:func:`is_render_file`: a user's notes, a ``process --out PAIR/out``) are moved into the new
     one, not deleted, and their names added to ``kept``. A failed write (a full disk) leaves nothing and names the
-    file. Returns the directory."""
+    file. ``before_rename`` runs once the new directory is whole, before it takes its place (a render drops the
+    earlier render's manifest there, not before a write that may fail). Returns the directory."""
     d = Path(directory)
     tmp = d.with_name(f"{d.name}.partial{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -563,6 +569,8 @@ def write_pair_atomic(
     except BaseException:  # a full disk or a Ctrl-C: no half-written sibling left behind
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if before_rename is not None:
+        before_rename()
     old = d.with_name(f"{d.name}.old{os.getpid()}")
     moved_aside = False
     if replace and d.exists():

@@ -256,13 +256,13 @@ def test_a_replaced_pair_keeps_the_users_own_files_and_drops_the_old_renders(tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["600_300"]
 
 
-def test_a_stopped_writes_leftover_is_not_taken_for_an_earlier_renders_pair(tmp_path):
-    from ground_sim.descent import _earlier_render
+def test_a_stopped_writes_leftover_is_not_taken_for_anearlier_renders_pair(tmp_path):
+    from ground_sim.descent import earlier_render
 
     for name in ("600_300", "600_300.old41", "300_150.partial7"):
         (tmp_path / name).mkdir()
         (tmp_path / name / "pair.json").write_text("{}")
-    assert _earlier_render(tmp_path) == ["600_300"]  # no manifest: the directories with a pair.json
+    assert earlier_render(tmp_path) == ["600_300"]  # no manifest: the directories with a pair.json
 
 
 def test_positions_in_km_are_noted_on_whichever_frame_shows_it():

@@ -232,12 +232,38 @@ def test_a_render_stopped_while_writing_a_pair_leaves_no_half_pair_and_no_mixed_
     assert main([*args, "--seed", "1", "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert "1 pair(s) written whole" in err and "600_300;" in err and "no manifest.json" in err, err
+    # the pair not replaced is the earlier render's, and said (QA of stop 72: beside ours it read as one descent)
+    assert "1 pair(s) of an earlier render are still there, not this one's: 300_150" in err, err
     assert not (out / "manifest.json").exists()  # the old one listed a mix of both renders
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["300_150", "600_300"]  # no partial siblings
     new, old = read_pair(out / "600_300"), read_pair(out / "300_150")
     assert new.meta["seed"] == 1 and old.meta["seed"] == 0  # each pair whole: all new, or all as it was
     assert (out / "300_150" / "gt_hazard_i1.npy").read_bytes() == before["300_150"]
     assert (out / "600_300" / "gt_hazard_i1.npy").read_bytes() != before["600_300"]
+
+
+def test_a_render_a_full_disk_stops_says_what_it_kept_and_what_is_an_earlier_renders(tmp_path, capsys, monkeypatch):
+    """A full disk removed an intact earlier render's manifest.json and said only "No space left on device"
+    (QA of stop 72)."""
+    import errno
+
+    import numpy as np
+
+    out = tmp_path / "o"
+    args = ["render", "--scenario", "vertical", "--pairs", "600/300,300/150", "--image-size", "32", "--no-progress"]
+    assert main([*args, "--seed", "0", "--out", str(out)]) == 0
+    capsys.readouterr()
+
+    def full(path, arr):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "save", full)
+    assert main([*args, "--seed", "1", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "nothing new in" in err and "2 pair(s) of an earlier render are still there, not this one's: " in err, err
+    assert "600_300, 300_150" in err and "error: cannot write " in err and "No space left on device" in err, err
+    # nothing was replaced, so the earlier render stays whole, its manifest.json included
+    assert json.loads((out / "manifest.json").read_text())["seed"] == 0
 
 
 def test_a_render_over_an_earlier_one_says_what_it_replaced_and_what_it_left(tmp_path, capsys):
