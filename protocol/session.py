@@ -52,9 +52,15 @@ class SessionState:
         self.established = False
         self.epoch = 0  # sessions established so far (a new peer session increments it)
         self._retired: deque[int] = deque(maxlen=64)
+        self._past_locals: deque[int] = deque(maxlen=64)  # this side's own ids before :meth:`lose` took new ones
 
     def retired(self, sid: int) -> bool:
         return sid in self._retired
+
+    def was_local(self, sid: int) -> bool:
+        """Whether ``sid`` is one of this side's own past session ids: a peer's frame addressed there is one it
+        sent before it heard this side's loss, not a mistake of the peer's."""
+        return sid in self._past_locals
 
     def classify(self, src: int, dst: int) -> str:
         """For a non-HELLO frame: ``ok``, ``old`` (a past session on either side) or ``foreign``."""
@@ -97,6 +103,7 @@ class SessionState:
     def lose(self) -> int:
         """Give up on the peer: forget it and take a new local id. Returns the peer id (0 if none)."""
         old = self.peer
+        self._past_locals.append(self.local)
         self.local = new_session_id()
         self.peer = 0
         self.established = False

@@ -575,6 +575,53 @@ def test_a_zeromq_link_counts_every_refusal_past_those_it_keeps():
         ctx.term()
 
 
+def test_a_peers_frames_to_this_sides_session_before_its_loss_are_old_not_the_peers_mistake():
+    """A board SIGSTOPped past the ground's timeout woke and sent to the ground's lost session: the ground said the
+    flight side addressed "a session not the ground's" (its mistake, docs/hil.md) and counted it (QA of stop 72).
+    Frames to one of this side's own past sessions are old ones; to any other session they are still a mistake."""
+    import zmq
+
+    from protocol.links import _ZHEAD, Z_HELLO, Z_MSG, Z_VERSION
+
+    G = ZmqLink("tcp://127.0.0.1:*", bind=True, insecure=True, name="ground")
+    ctx = zmq.Context()
+    raw = ctx.socket(zmq.PAIR)  # the board, frame by frame
+    me = 0x0B0A4D01
+
+    def hello(dst: int) -> None:
+        raw.send(_ZHEAD.pack(Z_VERSION, Z_HELLO, 0, 0, me, dst, 0))
+
+    def message(dst: int, seq: int) -> None:
+        raw.send_multipart([_ZHEAD.pack(Z_VERSION, Z_MSG, 7, 0, me, dst, seq), b"\x92\xa1x\xa0"])
+
+    def wait(cond) -> None:
+        deadline = time.monotonic() + 10
+        while not cond() and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    try:
+        with G:
+            raw.connect(G.endpoint)
+            first = G.sess.local
+            hello(0)
+            wait(lambda: G.sess.peer == me)
+            hello(first)
+            wait(lambda: G.established)
+            with G._cv:
+                G.sess.lose()  # the ground's timeout: a new session of its own
+            hello(first)  # the board, back, still on the old one
+            wait(lambda: G.sess.peer == me)
+            message(first, 5)
+            message(0x1234, 6)  # a session the ground never had: the board's mistake
+            wait(lambda: G.stats["old_session_frames"] >= 2)
+            assert G.stats["old_session_frames"] == 2 and G.stats["misaddressed_frames"] == 1
+            (note,) = G.take_drop_notes()
+            assert "addressed to session 00001234" in note
+    finally:
+        raw.close(linger=0)
+        ctx.term()
+
+
 def test_zeromq_seq_wraps_at_two_to_the_32_without_a_drop_or_an_end():
     """A ZeroMQ session numbers its messages with a u32 seq: at 2**32 packing it raised struct.error in the I/O
     thread. Now seq goes on the wire modulo 2**32 and is read in serial-number order (docs/protocol.md section 7)."""
