@@ -239,13 +239,28 @@ class GroundSession:
         )
 
 
-def _served(c: dict) -> str:
-    """The board's last words: what it served."""
+def _stats(link: Any) -> dict:
+    """A link's counters (none before it opened)."""
+    stats = getattr(link, "stats", None) or {}
+    return dict(stats() if callable(stats) else stats)
+
+
+def _served(c: dict, stats: dict | None = None) -> str:
+    """The board's last words: what it served, and what its line dropped (``stats``: the link's)."""
+    from flight_sw.flight_main import line_damage
+
+    damage = line_damage(stats or {})
     return (
         f"served {c['sessions']} ground session(s), {c['pairs']} pair(s)"
         + (f" ({c['errors']} answered with an Error)" if c.get("errors") else "")
         + f"; {c['refused']} message(s) refused, "
         f"{c['dropped_no_hello']} dropped (no Hello in their session)"
+        + (
+            f"; the line dropped {damage['flight_rx_damaged']:.0f} damaged frame(s) "
+            f"({damage['flight_rx_noise_bytes']:.0f} bytes of noise)"
+            if damage
+            else ""
+        )
     )
 
 
@@ -341,11 +356,11 @@ def serve(
         say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
         flight.run(watch_parent=False)  # detached (nohup, a daemon) it must outlive its parent
         why = f"the link failed: {link.failed}" if link.failed else "the link closed"
-        say(f"flight: {why}; {_served(ground.counters)}")  # the last line sums what it did, however it ends
+        say(f"flight: {why}; {_served(ground.counters, _stats(ground.link))}")  # sums what it did, however it ends
         return 1
     except KeyboardInterrupt:  # stop() above, or a Ctrl-C (a signal in the warm-up is hazard-hil's own: 128 + N)
         sig = stopped[0] if stopped else signal.SIGINT
-        say(f"flight: stopped by {signal.Signals(sig).name}; {_served(ground.counters)}")
+        say(f"flight: stopped by {signal.Signals(sig).name}; {_served(ground.counters, _stats(ground.link))}")
         return 128 + sig
     finally:
         signal.signal(signal.SIGTERM, old)

@@ -265,6 +265,16 @@ def left_out_note(cfg: Config) -> str:
     return note
 
 
+def line_damage(stats: dict) -> dict[str, float]:
+    """What this side's byte-stream line dropped so far, for Telemetry's ``link`` (empty when nothing): frames that
+    failed their checks and the bytes of noise around them. A board's line noise reached no summary: the ground
+    counts only its own side's (QA of stop 72)."""
+    bad = float(stats.get("crc_errors", 0) or 0) + float(stats.get("malformed", 0) or 0)
+    if not bad:
+        return {}
+    return {"flight_rx_damaged": bad, "flight_rx_noise_bytes": float(stats.get("bytes_discarded", 0) or 0)}
+
+
 def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, float]:
     """The Telemetry's ``plan``: what the deadline plan had and decided on, in wall seconds on this processor.
 
@@ -548,6 +558,7 @@ class FlightProcess:
         port_baud = getattr(self.link, "baud", None)  # a board's serial port: the ground notes a rate unlike its own
         if isinstance(port_baud, int) and port_baud > 0:
             link_info["port_baud"] = float(port_baud)
+        link_info.update(line_damage(self._link_stats()))
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
             # a board: the Result's own line time on the ground link, first byte out -> last (under the HIL
@@ -575,9 +586,12 @@ class FlightProcess:
             ).for_rev(result_rev(cfg))
         )
 
-    def _bytes_sent(self) -> float:
+    def _link_stats(self) -> dict:
         stats = getattr(self.link, "stats", {})
-        return float((stats() if callable(stats) else stats).get("bytes_sent", 0))
+        return dict(stats() if callable(stats) else stats)
+
+    def _bytes_sent(self) -> float:
+        return float(self._link_stats().get("bytes_sent", 0))
 
     def note_result_bytes(self, nbytes: int) -> None:
         """Remember a Result's framed size; only the last ``RESULT_HISTORY`` plan the next line time."""

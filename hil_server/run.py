@@ -770,8 +770,28 @@ def flight_note(summary: dict) -> str:
         what = "Config or Frame" if other == 1 else "Configs or Frames"
         ignored.append(("and " if ignored else "the ground ignored ") + f"{other} {what} from the flight side")
     server = _server_note(summary, c)
-    parts = (server, ground, ", ".join(ignored), _line_note(g.get("line") or {}), _drops_note(g))
+    parts = (
+        server,
+        ground,
+        ", ".join(ignored),
+        _line_note(g.get("line") or {}),
+        _flight_line_note(summary.get("records") or []),
+        _drops_note(g),
+    )
     return "; ".join(x for x in parts if x)
+
+
+def _flight_line_note(records: list[dict]) -> str:
+    """What the flight side's line dropped, as its Telemetry said it ("" when nothing): a board's noise reached no
+    summary, since the ground's counters are its own side's (QA of stop 72)."""
+    said = [r.get("link") or {} for r in records]
+    bad = max((float(x.get("flight_rx_damaged") or 0) for x in said), default=0.0)
+    if not bad:
+        return ""
+    noise = max(float(x.get("flight_rx_noise_bytes") or 0) for x in said)
+    return (
+        f"the flight side's line dropped {bad:.0f} damaged frame{'' if bad == 1 else 's'} ({noise:.0f} bytes of noise)"
+    )
 
 
 def _drops_note(g: dict) -> str:

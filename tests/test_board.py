@@ -101,6 +101,10 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     assert set(line) == set(LINE_COUNTERS), line
     bad = line["crc_errors"] + line["malformed"]
     assert (f"the ground's line dropped {bad} damaged frame" in flight_note(s)) == (bad > 0), (line, flight_note(s))
+    # and the board's side of the line, which its Telemetry says (QA of stop 72: it reached no summary)
+    fb = max(float(r["link"].get("flight_rx_damaged", 0)) for r in s["records"])
+    assert (f"the flight side's line dropped {fb:.0f} damaged frame" in flight_note(s)) == (fb > 0), flight_note(s)
+    assert fb == 0 or "; the line dropped " in err.strip().splitlines()[-1], err[-400:]  # the board's last line
     # the same frames through the HIL server to the emulated processor at the same rate (so the ground asks for the
     # same grid steps and elevation unit): the same Results, byte for byte in effect
     emulated = run_hil(manifest, tmp_path / "emulated", "serial", baud=921600)
@@ -1043,3 +1047,14 @@ def test_a_pair_answered_with_an_error_is_a_line_on_the_boards_console(monkeypat
     ground.recv(0.01)
     assert said[-1] == "flight: answered 3 more Error(s) in the last 10 s (the latest bad_frame)", said[-1]
     assert "served 1 ground session(s), 0 pair(s) (8 answered with an Error);" in board._served(ground.counters)
+
+
+def test_the_boards_last_line_and_its_telemetry_say_what_its_line_dropped():
+    from flight_sw.board import _served
+    from flight_sw.flight_main import line_damage
+
+    c = {"sessions": 1, "pairs": 2, "refused": 0, "dropped_no_hello": 0}
+    assert line_damage({"crc_errors": 0, "malformed": 0}) == {} and "the line dropped" not in _served(c, {})
+    stats = {"crc_errors": 3, "malformed": 2, "bytes_discarded": 814}
+    assert line_damage(stats) == {"flight_rx_damaged": 5.0, "flight_rx_noise_bytes": 814.0}
+    assert _served(c, stats).endswith("; the line dropped 5 damaged frame(s) (814 bytes of noise)")
