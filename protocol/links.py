@@ -1465,6 +1465,11 @@ class ZmqLink(Link, SessionView):
                     who = f"connection from {addr}" if self.bind else "the server"
                     if mismatch:
                         why = MECHANISM_MISMATCH_TEXT
+                    elif not self.secure:  # no CURVE here: "wrong or missing key" named a cause this side lacks
+                        why = (
+                            "ZeroMQ handshake failed (not a peer of this protocol, or one with CURVE keys while this "
+                            "side runs --insecure?)"
+                        )
                     elif kind == zmq.EVENT_HANDSHAKE_FAILED_AUTH:  # the authenticator said no: the key itself
                         why = "CURVE handshake failed: its key is not accepted (not in clients/)"
                     elif kind == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:  # a peer that left mid-handshake, too

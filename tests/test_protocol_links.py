@@ -433,6 +433,46 @@ def test_second_zeromq_peer_is_refused_and_a_peer_without_the_key_gets_nothing(t
     assert any("CURVE handshake failed" in line for line in log)
 
 
+def test_a_handshake_that_fails_on_a_side_without_curve_does_not_blame_a_key():
+    """An --insecure ground pointed at a TCP server that is no ZeroMQ peer said "CURVE handshake failed (wrong or
+    missing key...)": there is no CURVE on either side (QA of stop 72)."""
+    import socket
+    import threading
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    port = srv.getsockname()[1]
+    stop = threading.Event()
+
+    def stranger() -> None:  # accepts, says something that is no ZMTP greeting, hangs up; again and again
+        srv.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                continue
+            conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n" + b"x" * 64)
+            time.sleep(0.1)
+            conn.close()
+
+    t = threading.Thread(target=stranger, daemon=True)
+    t.start()
+    log: list[str] = []
+    try:
+        with ZmqLink(f"tcp://127.0.0.1:{port}", bind=False, insecure=True, name="ground", log=log.append):
+            deadline = time.monotonic() + 8
+            while not any("handshake failed" in line for line in log) and time.monotonic() < deadline:
+                time.sleep(0.05)
+    finally:
+        stop.set()
+        t.join(2)
+        srv.close()
+    said = [line for line in log if "handshake failed" in line]
+    assert said and not any("CURVE handshake" in line or "wrong or missing key" in line for line in said), log
+    assert "ZeroMQ handshake failed (not a peer of this protocol" in said[0], said
+
+
 _REFUSED_PEER_LEAVES = """
 import time
 from protocol.links import ZmqLink
