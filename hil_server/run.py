@@ -698,6 +698,19 @@ def relay_stop_note(summary: dict) -> str:
     )
 
 
+def server_stop_note(summary: dict) -> str:
+    """Said when the HIL server itself went unscheduled (SIGSTOP, a starved host): the flight process's answers
+    waited unread meanwhile, so a pair late or a Result ignored then is that stop's, not the flight software's ("" when
+    it ran throughout; supervisor.log said it, the summary did not: QA of stop 72)."""
+    stopped = float((summary.get("supervisor_counters") or {}).get("server_stopped_s") or 0.0)
+    if stopped < 0.5:  # a scheduling hiccup, not a stop
+        return ""
+    return (
+        f"the HIL server itself was not scheduled for {stopped:.1f} s in all (SIGSTOP, a starved host): the flight "
+        "process's answers waited unread meanwhile, so pairs late or Results ignored then are that stop's"
+    )
+
+
 def ground_stop_note(summary: dict) -> str:
     """The pairs whose latency includes a stop of the ground process itself ("" when none): measured at the
     ground, an answer that came in time then reads as late."""
@@ -941,6 +954,7 @@ def summary_table(summary: dict) -> str:
         session_note(s),
         noise_note(s),
         relay_stop_note(s),
+        server_stop_note(s),
         ground_stop_note(s),
         off_map_note(s),
         full_maps_note(s),

@@ -343,6 +343,7 @@ class Supervisor:
         self.unlogged_bytes = 0  # the flight incarnations' output past the log's cap (procemu), closed ones
         self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
         self._stall: StallClock | None = None  # this process's own stops (serve() runs it)
+        self.stopped_s = 0.0  # how long this process went unscheduled in all (summary: the run says it)
         self._forgave_at: float | None = None  # the flight's last message as the last forgiven stop left it
         # open for the supervisor's lifetime, closed in serve()'s finally
         self.telemetry_file = open(telemetry_path, "a") if telemetry_path else None  # noqa: SIM115
@@ -977,7 +978,9 @@ class Supervisor:
                 # strangers on the HIL server's port (a wrong key, a second peer): in its log only, the run read PASS
                 stats = getattr(self.ground, "stats", None) or {}  # a property of every Link
                 port = int(stats.get("auth_failures", 0) or 0) + int(stats.get("peers_refused", 0) or 0)
-                self._write_telemetry({"event": "summary", **self.counters, "port_refused": port})
+                self._write_telemetry(
+                    {"event": "summary", **self.counters, "port_refused": port, "server_stopped_s": self.stopped_s}
+                )
                 try:
                     if self.flight:
                         self.flight.close("supervisor shutdown")
@@ -998,6 +1001,7 @@ class Supervisor:
         As the ZeroMQ link does, the flight is forgiven one stop between two hearings of it: what a live flight
         process sent is read within a poll after a stop, so a second stop with nothing heard in between counts
         against it. Forgiven every time, a server starved again and again would never find a hung flight."""
+        self.stopped_s += gap
         reader = self.flight_reader
         heard = None if reader is None else reader.last_message
         if heard is not None and heard == self._forgave_at:

@@ -76,7 +76,11 @@ def test_the_hil_server_forgives_its_flight_one_stop_between_two_hearings():
     pair = SimpleNamespace(done=False, complete_at=1.0, stopped_s=0.0)
     said: list[str] = []
     sup = SimpleNamespace(
-        pairs={"p": pair}, flight_reader=SimpleNamespace(last_message=100.0), _forgave_at=None, log=said.append
+        pairs={"p": pair},
+        flight_reader=SimpleNamespace(last_message=100.0),
+        _forgave_at=None,
+        log=said.append,
+        stopped_s=0.0,
     )
     Supervisor._forgive_own_stop(sup, 3.0)
     assert pair.stopped_s == 3.0 and sup.flight_reader.last_message == 103.0 and "not blamed" in said[-1]
@@ -85,3 +89,10 @@ def test_the_hil_server_forgives_its_flight_one_stop_between_two_hearings():
     sup.flight_reader.last_message = 110.0  # it spoke
     Supervisor._forgive_own_stop(sup, 2.0)
     assert pair.stopped_s == 5.0 and sup.flight_reader.last_message == 112.0
+    # every stop counts in the server's own total, which the run's summary says (QA of stop 72)
+    from hil_server.run import server_stop_note
+
+    assert sup.stopped_s == 7.0
+    note = server_stop_note({"supervisor_counters": {"server_stopped_s": sup.stopped_s}})
+    assert note.startswith("the HIL server itself was not scheduled for 7.0 s in all")
+    assert server_stop_note({"supervisor_counters": {"server_stopped_s": 0.2}}) == "" and server_stop_note({}) == ""
