@@ -155,10 +155,23 @@ def write_process_report(
         )
     )
 
+    # the P(safe) a pixel needs at least to be called safe: the colour scale turns green only above it (green from 0.5
+    # read as "mostly safe" on a pair that called 0.4 % safe, QA of stop 72)
+    floor = float((res.info.get("psafe_call") or {}).get("psafe_min", res.params.get("psafe_min", 0.5)))
     hz = [
         Panel("image", image, "upper image (i1)", sites=marks),
         Panel("state", res.state, "hazard state", sites=marks),
-        Panel("scalar", res.psafe, "P(safe)", "probability", PSAFE_CMAP, 0.0, 1.0),
+        Panel(
+            "scalar",
+            res.psafe,
+            "P(safe)",
+            "probability",
+            PSAFE_CMAP,
+            0.0,
+            1.0,
+            centre=floor,
+            centre_label=f"floor {floor:g}",
+        ),
         Panel(
             "scalar",
             res.hazard,
@@ -174,10 +187,17 @@ def write_process_report(
     figures.append(
         Figure(
             "hazard.png",
-            "Numbered circles are the ranked landing sites' 3 m footprints "
-            "(green truly clear, red not, black without truth; a footprint smaller than 1.5 % of the panel "
-            "is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4). "
-            "Grey in the hazard score: unknown, written as 1.0 in hazard.npy.",
+            (
+                "Numbered circles are the ranked landing sites' 3 m footprints "
+                "(green truly clear, red not, black without truth; a footprint smaller than 1.5 % of the panel "
+                "is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4). "
+                if res.sites
+                else "No landing site was offered (the reason is above). "  # circles explained on a map without any
+            )
+            + "Grey in the hazard score: unknown, written as 1.0 in hazard.npy. P(safe) turns green only above the "
+            "floor marked on its bar: a pixel is called safe only above it (and above the pair's own cut, set by its "
+            "FP budget), with a measured slope under the cap, so ground without an elevation stays unknown however "
+            "high its P(safe).",
         )
     )
 

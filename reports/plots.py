@@ -92,6 +92,11 @@ class Panel:
     # scalar panels: pixels drawn grey (the unknown state) over the colour scale, with a legend entry - a
     # hazard score writes unknown as 1.0, which the colour scale alone cannot tell from a measured hazard
     unknown: np.ndarray | None = None
+    # scalar panels: a value the colour scale turns at (TwoSlopeNorm), marked on the colour bar with its name: a
+    # P(safe) panel green from 0.5 read as "mostly safe" on a pair that called 0.4 % safe (QA of stop 72)
+    centre: float | None = None
+    centre_label: str = ""
+    empty_text: str = "no values here"  # said in a scalar panel with no finite value (not an empty box with a bar)
 
 
 def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -317,12 +322,12 @@ def map_figure(
             vmin = p.vmin if p.vmin is not None else (float(np.percentile(fin, 2)) if fin.size else 0.0)
             vmax = p.vmax if p.vmax is not None else (float(np.percentile(fin, 98)) if fin.size else 1.0)
             cmap = colormap(p.cmap).with_extremes(bad=OUTSIDE)
-            im = ax.imshow(np.ma.masked_invalid(d), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-            cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
-            cb.set_label(p.unit, fontsize=8)
-            cb.ax.tick_params(labelsize=7)
-            if p.unknown is not None:
-                _unknown_overlay(ax, np.asarray(p.unknown, bool) & np.isfinite(d), int(np.isfinite(d).sum()))
+            if not fin.size:  # an empty box under a colour bar read as a map of nothing in particular
+                ax.imshow(np.ma.masked_invalid(d), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+                ax.text(0.5, 0.5, p.empty_text, ha="center", va="center", fontsize=8, color="#555555",
+                        transform=ax.transAxes, wrap=True)  # fmt: skip
+            else:
+                _scalar(fig, ax, p, d, fin, cmap, vmin, vmax)
         elif p.kind == "state":
             _categorical(ax, np.asarray(p.data, np.uint8), STATE_COLOURS, STATE_NAMES, True)
         elif p.kind == "confusion":
@@ -356,19 +361,54 @@ def map_figure(
     return fig
 
 
+def _scalar(fig: Any, ax: Any, p: Panel, d: np.ndarray, fin: np.ndarray, cmap: Any, vmin: float, vmax: float) -> None:
+    """A scalar panel's image and colour bar."""
+    norm = None
+    if p.centre is not None and vmin < p.centre < vmax:
+        from matplotlib.colors import TwoSlopeNorm
+
+        norm = TwoSlopeNorm(vcenter=p.centre, vmin=vmin, vmax=vmax)
+    kw: dict[str, Any] = {"norm": norm} if norm is not None else {"vmin": vmin, "vmax": vmax}
+    im = ax.imshow(np.ma.masked_invalid(d), cmap=cmap, interpolation="nearest", **kw)
+    # a value past the scale drawn as its end's colour, said with a pointed end (a crater floor 6 m below
+    # the scale read as the scale's lowest; QA of stop 72)
+    lo, hi = bool(fin.min() < vmin), bool(fin.max() > vmax)
+    extend = "both" if lo and hi else "min" if lo else "max" if hi else "neither"
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, extend=extend)
+    cb.set_label(p.unit, fontsize=8)
+    cb.ax.tick_params(labelsize=7)
+    if norm is not None and p.centre is not None:  # the turn: a line across the bar, and a tick named for it
+        cb.ax.axhline(p.centre, color=LIMIT, linewidth=1.2)
+        below = [v for v in np.linspace(vmin, vmax, 5) if v < p.centre - 0.1 * (p.centre - vmin)]
+        ticks = [*below, p.centre, vmax]
+        cb.set_ticks(ticks, labels=[f"{v:g}" for v in below] + [p.centre_label or f"{p.centre:g}", f"{vmax:g}"])
+    if p.unknown is not None:
+        _unknown_overlay(ax, np.asarray(p.unknown, bool) & np.isfinite(d), int(np.isfinite(d).sum()))
+
+
 def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elevation", unit: str = "m") -> list[Panel]:
     """Estimate | truth | error panels sharing one colour range (the truth's 2nd-98th percentile)."""
     ref = truth if truth is not None else estimate
     fin = ref[np.isfinite(ref)]
     lo, hi = (float(np.percentile(fin, 2)), float(np.percentile(fin, 98))) if fin.size else (0.0, 1.0)
-    panels = [Panel("scalar", estimate, f"computed {what}", unit, ELEVATION_CMAP, lo, hi)]
+    none = f"no computed {what}\n(none recovered: an image-only result?)"
+    panels = [Panel("scalar", estimate, f"computed {what}", unit, ELEVATION_CMAP, lo, hi, empty_text=none)]
     if truth is not None:
         err = estimate - truth
         fe = np.abs(err[np.isfinite(err)])
         lim = float(np.percentile(fe, 95)) if fe.size else 1.0
         panels += [
-            Panel("scalar", truth, f"true {what}", unit, ELEVATION_CMAP, lo, hi),
-            Panel("scalar", err, f"{what} error (computed - true)", unit, ERROR_CMAP, -lim or -1.0, lim or 1.0),
+            Panel("scalar", truth, f"true {what}", unit, ELEVATION_CMAP, lo, hi, empty_text=f"no true {what}"),
+            Panel(
+                "scalar",
+                err,
+                f"{what} error (computed - true)",
+                unit,
+                ERROR_CMAP,
+                -lim or -1.0,
+                lim or 1.0,
+                empty_text=f"no error to show:\nno computed {what} where the truth is",
+            ),
         ]
     return panels
 

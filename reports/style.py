@@ -3,7 +3,7 @@
 Colours (DESIGN.md scoring: positive = safe):
 
 * green  — safe: a safe state, or a TP (safe ground called safe);
-* purple — hazard: an unsafe state, or a TN (a hazard called unsafe);
+* purple — hazard: an unsafe state, or a TN (a hazard not called safe: called unsafe, or unknown);
 * red    — only ever an undetected hazard (FP: unsafe ground called safe), the
   error a lander cannot afford;
 * orange — a false alarm (FN: safe ground not called safe);
@@ -32,7 +32,7 @@ OUTSIDE = "#ffffff"
 CONFUSION_COLOURS = {"TP": SAFE, "TN": HAZARD, "FP": MISSED, "FN": FALSE_ALARM}
 CONFUSION_NAMES = {
     "TP": "TP: safe, called safe",
-    "TN": "TN: hazard, called unsafe",
+    "TN": "TN: hazard, not called safe",  # unsafe or unknown: "called unsafe" read wrong on an all-unknown map
     "FP": "FP: hazard called safe (undetected)",
     "FN": "FN: safe, not called safe (false alarm)",
 }
@@ -77,12 +77,16 @@ GLOSSARY: dict[str, Term] = {
         "%",
     ),
     "tp_pct": Term("TP % (safe called safe)", "Share of covered pixels that are safe and called safe.", "%"),
-    "tn_pct": Term("TN % (hazard called unsafe)", "Share of covered pixels that are unsafe and called unsafe.", "%"),
+    "tn_pct": Term(
+        "TN % (hazard called unsafe)",
+        "Share of covered pixels that are unsafe and not called safe (unsafe or unknown).",
+        "%",
+    ),
     "cdi_pct": Term(
         "CDI % (correct detection)", "Correct detection index: TP % + TN %, the share of pixels called right.", "%"
     ),
     "hazards_detected_pct": Term(
-        "hazards detected %", "TN / (TN + FP): of the truly unsafe pixels, the share called unsafe.", "%"
+        "hazards detected %", "TN / (TN + FP): of the truly unsafe pixels, the share not called safe.", "%"
     ),
     "safe_detected_pct": Term(
         "safe ground recognised %", "TP / (TP + FN): of the truly safe pixels, the share called safe.", "%"

@@ -438,3 +438,27 @@ def test_a_flight_side_that_reports_no_memory_is_said_so_not_drawn_as_zero(tmp_p
     records[1]["peak_rss_mib"] = 81.5
     page = html.unescape(write_run_report(summary, tmp_path / "report.html").read_text())
     assert "and its peak private RSS as it reported it." in page and "not reported" not in page
+
+
+def test_a_scalar_panel_says_when_it_has_nothing_and_marks_its_clip_and_its_turn(tmp_path):
+    """Image-only results drew blank DEM panels under colour bars; a crater floor 6 m below the scale read as its
+    lowest colour; and the P(safe) panel was green from 0.5, "mostly safe" on a pair that called 0.4 % safe (QA of
+    stop 72)."""
+    from reports.plots import Panel, dem_panels, map_figure
+
+    empty = np.full((32, 32), np.nan)
+    truth = np.linspace(-5.0, 5.0, 32 * 32).reshape(32, 32)
+    fig = map_figure(dem_panels(empty, truth))
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(t.startswith("no computed elevation") for t in texts) and any("no error to show" in t for t in texts)
+    assert len(fig.axes) == 4  # three panels and one colour bar: none for the empty ones
+    bar = fig.axes[-1]
+    assert bar.get_ylim() is not None and fig.axes[1].images[0].colorbar.extend == "both"  # 2nd-98th pct: both clip
+    ps = np.linspace(0.0, 1.0, 32 * 32).reshape(32, 32)
+    fig = map_figure([Panel("scalar", ps, "P(safe)", "probability", "hh-psafe", 0.0, 1.0, centre=0.99,
+                            centre_label="floor 0.99")])  # fmt: skip
+    im = fig.axes[0].images[0]
+    cb = im.colorbar
+    assert "floor 0.99" in [t.get_text() for t in cb.ax.get_yticklabels()]
+    # green (the scale's top colour) only above the floor: 0.9 sits below the turn, 0.995 above it
+    assert im.norm(0.9) < 0.5 < im.norm(0.995)
