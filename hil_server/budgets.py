@@ -257,7 +257,7 @@ def host_load_note() -> str | None:
         return None
     return (
         f"this host is loaded (1-minute load {load1:.1f} on {cores} CPUs): a throttled budget's emulated speed "
-        "follows the other load (up to 1.9x slower in stop 66's QA); emulate slow budgets on a quiet host"
+        "follows the other load (up to 1.9x slower, measured on such a host); emulate slow budgets on a quiet host"
     )
 
 

@@ -1095,8 +1095,9 @@ def truth_note(summary: dict) -> str:
 
 # the run's and `score`'s figures for the same pair differ a little (CDI 25.97 against 25.2): said where both are read
 GRID_SCORES_NOTE = (
-    "(grid): scored from each Result's world grids, read at each pixel's true ground point; `hazard-hil score PAIRS "
-    "OUT/received` scores the full-resolution image maps (`run --full-maps`), so its figures differ a little."
+    "(grid): scored from each Result's world grids, read at each pixel's true ground point; a run with `--full-maps` "
+    "keeps the full-resolution image maps, which `hazard-hil score PAIRS OUT/received` then scores, so its figures "
+    "differ a little."
 )
 
 

@@ -11,6 +11,13 @@ from reports.html import Column, Figure, Headline, Section, Table, fmt_value, re
 from reports.style import GLOSSARY
 
 
+@pytest.fixture(autouse=True)
+def _close_figures():
+    """Figures a test inspects and does not save stay open: past 20 matplotlib warned of the memory held."""
+    yield
+    plots._plt().close("all")
+
+
 def _page(tmp_path, broken: bool = False):
     rng = np.random.default_rng(0)
     img = rng.integers(0, 255, (64, 64), dtype=np.uint8)
