@@ -480,7 +480,17 @@ def pair_jobs(pairs: str | Path, outputs: str | Path) -> list[Job]:
                 raise ScoreError(f"{p / 'manifest.json'}: pair {i} {what} as pair {seen[key]} ({e['path']!r})")
             seen[key] = i
     if not (o / "results.jsonl").is_file():
-        return [Job(str(e.get("label", e["path"])), p / e["path"], o / Path(e["path"]).name) for e in entries]
+        # OUTPUTS one output itself (hazard.npy), given with the descent rather than its pair: said where to look
+        hint = (
+            f"; {o} is one output itself: give the pair it was made from as PAIRS ({p / entries[0]['path']})"
+            if (o / "hazard.npy").is_file() and len(entries) == 1
+            else f"; {o} is one output itself: score it against its pair directory, not the descent"
+            if (o / "hazard.npy").is_file()
+            else ""
+        )
+        return [
+            Job(str(e.get("label", e["path"])), p / e["path"], o / Path(e["path"]).name, hint=hint) for e in entries
+        ]
     records = {Path(str(r.get("pair_dir", ""))).name: r for r in _records(o / "results.jsonl")}
     jobs = []
     for e in entries:

@@ -520,6 +520,15 @@ def test_outputs_one_level_too_high_says_where_the_output_is(descent, tmp_path, 
     assert f"{outs}: no hazard.npy" in err and f"{outs / '600_300'} holds one: give that as OUTPUTS" in err, err
 
 
+def test_one_output_given_with_a_descent_says_to_give_its_pair(descent, tmp_path, capsys):
+    """`score DESCENT OUT` with OUT one pair's output said only "OUT/600_300: no such output directory" (a new
+    user's walk through the README, stop 72)."""
+    out = _write(tmp_path / "one", read_pair(descent / "600_300").truth["hazard"])
+    assert main(["score", str(descent), str(out)]) == 3
+    err = capsys.readouterr().err
+    assert f"{out} is one output itself: score it against its pair directory, not the descent" in err, err
+
+
 def test_a_site_without_z_is_refused_saying_z_may_be_null(descent, tmp_path, capsys):
     """A site with no "z" was refused as needing a numeric z, while "z": null was scored: DESIGN.md lists z for
     every site (only p_safe is "where known"), and protocol.md lets a degraded Result's z be NaN."""
