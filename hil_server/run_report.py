@@ -346,4 +346,8 @@ def write_run_report(summary: dict, path: Path) -> Path:
     links = file_links(path.parent, files)
     if links:
         sections.append(Section("Files", links=links))
-    return write_page(path, "HIL run", sections, subtitle=subtitle, headline=headline)
+    # the per-pair maps draw pixel scores, not hazard states: the states' key sat atop the page (QA of stop 72)
+    scored = any(f.src.endswith("_hazard.png") for sec in sections for f in sec.figures)
+    return write_page(
+        path, "HIL run", sections, subtitle=subtitle, headline=headline, legends=("confusion",) if scored else ()
+    )

@@ -334,7 +334,11 @@ def markdown_tables(md: str) -> list[Table]:
 
 
 def write_html(
-    out_dir: str | Path, title: str, sections: Sequence[tuple[str, str | list[Table], list[str]]], subtitle: str = ""
+    out_dir: str | Path,
+    title: str,
+    sections: Sequence[tuple[str, str | list[Table], list[str]]],
+    subtitle: str = "",
+    legends: tuple[str, ...] = (),
 ) -> Path:
     """``out_dir/index.html`` (the shared page design) from (heading, tables or Markdown tables, [png names])."""
     d = Path(out_dir)
@@ -355,7 +359,9 @@ def write_html(
     links = file_links(d, files)
     if links:
         page.append(Section("Files", links=links))
-    return write_page(d / "index.html", title, page, subtitle=subtitle)
+    # a colour key only for what the page draws: the hazard states' key sat atop pages with no state map (QA of
+    # stop 72); the evaluation's maps draw pixel scores, the sensitivity page no map at all
+    return write_page(d / "index.html", title, page, subtitle=subtitle, legends=legends)
 
 
 def _caption(name: str) -> str:
@@ -492,4 +498,5 @@ def evaluation_report(
         summ = ev.sensitivity_summary(srows)
         cols = [k for k in (summ[0] if summ else {})]
         sections.append((f"sensitivity: {kind}", rows_markdown(summ, cols), [plot.name]))
-    return write_html(rep, title, sections, subtitle=subtitle)
+    drawn = any(name.endswith(".png") and "maps, preset" in head for head, _, names in sections for name in names)
+    return write_html(rep, title, sections, subtitle=subtitle, legends=("confusion",) if drawn else ())

@@ -469,3 +469,20 @@ def test_a_scalar_panel_says_when_it_has_nothing_and_marks_its_clip_and_its_turn
     assert "floor 0.99" in [t.get_text() for t in cb.ax.get_yticklabels()]
     # green (the scale's top colour) only above the floor: 0.9 sits below the turn, 0.995 above it
     assert im.norm(0.9) < 0.5 < im.norm(0.995)
+
+
+def test_a_page_keys_only_the_colours_it_draws(tmp_path):
+    """The hazard states' colour key sat atop every run, evaluate and sensitivity page, none of which draws a state
+    map (QA of stop 72)."""
+    from studies.report import write_html
+
+    page = write_html(tmp_path / "sens", "sensitivity", [("sensitivity: altitude", "| a |\n|---|\n| 1 |", [])])
+    text = page.read_text()
+    assert "hazard states" not in text and "pixel scores" not in text
+    (tmp_path / "ev").mkdir()
+    plots.save(plots.map_figure([plots.Panel("image", np.zeros((8, 8)), "i1")]), tmp_path / "ev" / "m.png")
+    page = write_html(
+        tmp_path / "ev", "evaluate", [("vertical: maps, preset fast", "", ["m.png"])], legends=("confusion",)
+    )
+    text = page.read_text()
+    assert "pixel scores" in text and "hazard states" not in text
