@@ -307,7 +307,9 @@ def write_run_report(summary: dict, path: Path) -> Path:
         )
     if records:
         save(latency_figure(tel), fig_dir / "latency.png")
-        tel_figs.append(Figure("figures/latency.png", "End-to-end latency over the descent; red bars missed."))
+        no_result = sum(r.get("status") != "result" for r in records)
+        key = "red bars missed the deadline" + ("; a red x at 0: no Result at all" if no_result else "")
+        tel_figs.append(Figure("figures/latency.png", f"End-to-end latency over the descent; {key}."))
     said = [r.get(k) for r in records for k in ("cpu_fraction", "peak_rss_mib")]
     if any(v is not None and math.isfinite(float(v)) for v in said):  # an external board may say neither
         duty = d if (d := s.get("cpu_fraction")) is not None and math.isfinite(d) else None

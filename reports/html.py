@@ -81,7 +81,9 @@ def fmt_value(v: Any, digits: int = 3) -> str:
         a = abs(float(v))
         if a == 0:
             return "0"
-        if a >= 1e5 or a < 1e-3:
+        if a < 1e-3:  # "1.79e-04" for a result's line time read as noise: under the last digit shown, said so
+            return "<0.001" if v > 0 else ">-0.001"
+        if a >= 1e5:
             return f"{float(v):.2e}"
         return f"{float(v):.{max(0, digits - 1 - math.floor(math.log10(a)))}f}"
     return str(v)

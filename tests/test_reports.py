@@ -91,7 +91,8 @@ def test_missing_figure_is_refused(tmp_path):
 
 def test_values_are_formatted_for_people():
     assert fmt_value(None) == "–" and fmt_value(float("nan")) == "–"
-    assert fmt_value(0.000012) == "1.20e-05" and fmt_value(81.2345) == "81.2" and fmt_value(True) == "yes"
+    assert fmt_value(0.000179) == "<0.001" and fmt_value(-0.000012) == ">-0.001" and fmt_value(0.0) == "0"
+    assert fmt_value(81.2345) == "81.2" and fmt_value(2.5e6) == "2.50e+06" and fmt_value(True) == "yes"
     assert "<script>" not in render_page("<script>", [Section("x")])
 
 
