@@ -262,7 +262,12 @@ def write_run_report(summary: dict, path: Path) -> Path:
     )
     intro = []
     if not complete:
-        intro.append(f"INCOMPLETE: {s.get('reason')}. Only the pairs below finished.")
+        done = sum(r.get("status") == "result" for r in records)
+        # the table lists the pairs not run too: "only the pairs below finished" sat above a table of them (QA 72)
+        intro.append(
+            f"INCOMPLETE: {s.get('reason')}. {done} of {len(records)} pairs returned a result; the table says what "
+            "became of each."
+        )
     if met is not None:
         intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
     from hil_server.run import budget_note, site_note
