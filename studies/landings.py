@@ -197,7 +197,14 @@ class Campaign:
         return d
 
 
+# a campaign whose top sites are unsafe at most this often is marked ok on its page (issue 9: the top site truly
+# safe on >= 98 % of pairs)
+UNSAFE_SITE_OK = 0.02
+
+
 # --------------------------------------------------------------------------- draws
+
+
 def _rng(*keys: int) -> np.random.Generator:
     return np.random.default_rng([CAMPAIGN_KEY, *[int(k) & 0xFFFFFFFF for k in keys]])
 
@@ -732,6 +739,12 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         lo, hi = st["p_safe_ci95"]
         label = f"P(safe landing), {p}" + (f", INCOMPLETE: {so_far}" if partial else "")
         head.append(Headline("p_safe", f"{st['p_safe']:.3f} [{lo:.3f}, {hi:.3f}]", label=label))
+        # the figure a lander fears most, beside it: a site offered that is not clear (a landing with no site is
+        # not safe either, but it is no crash); the page showed it only deep in the table (QA of stop 72)
+        pu = st.get("p_unsafe")
+        if pu is not None:
+            status = "ok" if pu <= UNSAFE_SITE_OK else "bad"
+            head.append(Headline("p_unsafe", pu, status, f"P(unsafe site), {p}"))
     table_rows = []
     for s, per in summary["per_scene"].items():
         # which pairs the scene was flown at: two scenes side by side may have been flown at other altitudes

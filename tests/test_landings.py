@@ -181,7 +181,11 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_pa
     assert st["p_safe_ci95"] == list(wilson(st["n_safe"], 4))
     lines = (tmp_path / "landings.csv").read_text().splitlines()
     assert len(lines) == 5 and lines[0].startswith("landing,group,preset,outcome,safe")
-    assert (tmp_path / "report" / "index.html").stat().st_size > 1000
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert len(page) > 1000
+    # the unsafe-site share heads the page beside P(safe landing), marked against the 2 % issue 9 allows (QA 72)
+    expect = "ok" if st["n_unsafe"] / 4 <= ld.UNSAFE_SITE_OK else "bad"
+    assert "P(unsafe site), fast" in page and f'class="card {expect}"' in page.replace("card  ", "card "), page[:3000]
     with pytest.raises(LandingError, match=r"other settings \(.*: per_render 1 there, 2 here\)"):
         ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False)
 
