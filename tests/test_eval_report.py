@@ -242,3 +242,19 @@ def test_the_sensitivity_tables_on_the_page_read_as_labels_not_metric_keys():
     # a header that is already a label stays itself
     (t2,) = report.markdown_tables("| FP % worst seed: ours (fast) | policy |\n|---:|---|\n| 0.5 | x |\n")
     assert [c.label or term(c.glossary_key).label for c in t2.columns] == ["FP % worst seed: ours (fast)", "policy"]
+
+
+def test_the_evaluation_page_heads_with_each_presets_worst_fp_marked_against_one_percent():
+    """The page put ~20 tables before any figure and flagged the thesis preset's 8.67 % FP nowhere (QA of stop 72)."""
+    from studies.report import preset_cards
+
+    rows = [
+        {"preset": "fast", "fp_pct": 0.2, "cdi_pct": 55.0},
+        {"preset": "fast", "fp_pct": 0.6, "cdi_pct": 65.0},
+        {"preset": "thesis", "fp_pct": 8.67, "cdi_pct": 40.0},
+        {"preset": "thesis", "fp_pct": None, "cdi_pct": float("nan")},
+    ]
+    cards = {c.label: c for c in preset_cards(rows)}
+    assert cards["worst FP %, fast"].value == 0.6 and cards["worst FP %, fast"].status == "ok"
+    assert cards["worst FP %, thesis"].value == 8.67 and cards["worst FP %, thesis"].status == "bad"
+    assert cards["median CDI %, fast"].value == 60.0 and cards["median CDI %, thesis"].value == 40.0
