@@ -418,6 +418,9 @@ QUEUE_DRAWN_S = 0.01  # a wait shorter than this is no bar and no legend entry (
 LIMIT = "#111111"  # a deadline, a budget, a ceiling: one colour in every telemetry figure (red is a miss)
 
 
+VISIBLE_SHARE = 0.004  # a timeline bar narrower than this share of the axis is not named in the legend
+
+
 def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str | None) -> None:
     if width > 0:
         ax.barh(y, width, left=start, height=0.6, color=colour, edgecolor="none", label=label)
@@ -509,26 +512,37 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         seen.add(name)
         return name
 
+    # a bar too narrow to see is drawn but not named: a ZeroMQ pair's 0.1 ms "frames on the link" and stages that
+    # took no time filled the legend (QA of stop 72); the name waits for a pair where it shows
+    span = max(
+        [float(r.get("e2e_latency_s") or 0.0) for r in recs] + [float(r.get("deadline_s") or 0.0) for r in recs],
+        default=0.0,
+    )
+
+    def bar(y: float, start: float, width: float, colour: str, name: str) -> None:
+        _bar(ax, y, start, width, colour, once(name) if width > VISIBLE_SHARE * span else None)
+
     for i, r in enumerate(recs):
         y = len(recs) - 1 - i
         fl = float(r.get("frames_link_s") or 0.0)
-        _bar(ax, y, -fl, fl, "#cccccc", once("frames on the link"))
+        bar(y, -fl, fl, "#cccccc", "frames on the link")
         t = float(r.get("queue_wait_s") or 0.0)
         if t >= QUEUE_DRAWN_S:
-            _bar(ax, y, 0.0, t, "#eeeeee", once("queued"))
+            bar(y, 0.0, t, "#eeeeee", "queued")
         stages = r.get("stages") or {}
         for k in stage_names:
             w = float((stages.get(k) or {}).get("wall_s", 0.0))
-            _bar(ax, y, t, w, colour[k], once(k))
+            bar(y, t, w, colour[k], k)
             t += w
         if not any(k in stages for k in stage_names) and "total" in stages:  # a flight that reports one figure
             w = float((stages["total"] or {}).get("wall_s", 0.0))
-            _bar(ax, y, t, w, "#6a8fb5", once("flight compute (its total only)"))
+            bar(y, t, w, "#6a8fb5", "flight compute (its total only)")
             t += w
         plan = r.get("plan") or {}
         if "budget_s" in plan:  # the flight's own plan: the time it aimed to be done by, and the DEM's stop-by
             end = float(r.get("queue_wait_s") or 0.0) + float(plan["budget_s"])
-            ax.plot([end], [y + 0.38], marker="v", color="#222222", ms=5, ls="none", label=once("plan: done by"))
+            if end >= 0.0:  # a budget spent before the frames were in is no point on this axis (the table says it)
+                ax.plot([end], [y + 0.38], marker="v", color="#222222", ms=5, ls="none", label=once("plan: done by"))
             need = next((plan[f"{k}_need_s"] for k in ("full_dem", "coarse_dem") if f"{k}_need_s" in plan), None)
             # a stop-by before the frames were in (a DEM that could not start: the table says why) is not drawn
             if need is not None and end - float(need) >= 0.0:
@@ -541,11 +555,11 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         start = (float(e2e) - rl) if e2e is not None else t
         outside = r.get("outside_flight_s")  # ZeroMQ, its sender measured no line time: the rest of e2e, unsplit
         if r.get("result_link_s") is None and outside is not None and e2e is not None:
-            _bar(ax, y, float(e2e) - float(outside), float(outside), "#bbbbbb", once("link and queues (not split)"))
+            bar(y, float(e2e) - float(outside), float(outside), "#bbbbbb", "link and queues (not split)")
         rq = float(r.get("result_queue_s") or 0.0)
         if rq >= QUEUE_DRAWN_S:  # named in the legend only where it happened
-            _bar(ax, y, start - rq, rq, "#999999", once("result queued behind earlier messages"))
-        _bar(ax, y, start, rl, "#7a93ad", once("result on the link"))  # not the deadline line's near-black (QA 64b)
+            bar(y, start - rq, rq, "#999999", "result queued behind earlier messages")
+        bar(y, start, rl, "#7a93ad", "result on the link")  # not the deadline line's near-black (QA 64b)
         if r.get("deadline_s") is not None:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
     # the frames' uplink (6 s at 921600 baud against ~1 s of compute) took most of the axis: shown up to half the

@@ -487,3 +487,20 @@ def test_a_page_keys_only_the_colours_it_draws(tmp_path):
     )
     text = page.read_text()
     assert "pixel scores" in text and "hazard states" not in text
+
+
+def test_the_timeline_names_what_shows_and_leaves_out_a_plan_before_the_frames():
+    """A ZeroMQ pair's 0.1 ms on the link and a stage of no time were named in the legend though nothing showed, and
+    a plan "done by" at -0.92 s sat off the axis with its legend entry (QA of stop 72)."""
+    recs = [
+        {"label": "600/300", "frames_link_s": 0.0001, "e2e_latency_s": 1.2, "deadline_s": 2.0, "queue_wait_s": 0.0,
+         "stages": {"sweep": {"wall_s": 0.9}, "georef": {"wall_s": 0.0002}}, "stage_order": ["sweep", "georef"],
+         "result_link_s": 0.2, "plan": {"budget_s": -0.92}},
+        {"label": "300/150", "frames_link_s": 0.0001, "e2e_latency_s": 1.0, "deadline_s": 2.0, "queue_wait_s": 0.0,
+         "stages": {"sweep": {"wall_s": 0.5}, "georef": {"wall_s": 0.3}}, "stage_order": ["sweep", "georef"],
+         "result_link_s": 0.2},
+    ]  # fmt: skip
+    names = plots.timeline_figure(recs).axes[0].get_legend_handles_labels()[1]
+    assert "frames on the link" not in names and "plan: done by" not in names
+    # georef took no time in the first pair and 0.3 s in the second: named, by the pair where it shows
+    assert {"sweep", "georef", "result on the link", "deadline"} <= set(names), names
