@@ -186,7 +186,10 @@ def plot_vs_altitude(
 def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) -> Path:
     """altitude: Fig. 6.13-style scatter heat map of the DEM error increase over (dh1, dh2) per altitude;
     other kinds: increase against the error magnitude. One panel per preset."""
-    from reports.plots import _plt
+    from matplotlib.colors import TwoSlopeNorm
+
+    from reports.plots import _plt, colormap
+    from reports.style import ERROR_CMAP
 
     plt = _plt()  # Agg, and no mathtext in people's labels
 
@@ -205,23 +208,29 @@ def plot_sensitivity(rows: list[dict[str, Any]], kind: str, path: str | Path) ->
                 ss = [r for r in sel if r["altitude_m"] == a]
                 if not ss:
                     continue
+                # the reports' signed-error scale, white at no change (jet's rainbow put red, the undetected
+                # hazard's colour, on a mere +150 %; QA of stop 72)
                 sc = ax.scatter(
                     [r["dz_m1"] for r in ss],
                     [r["dz_m2"] for r in ss],
                     c=np.clip([r["dem_mean_rel_pct"] for r in ss], -100, 300),
-                    cmap="jet",
+                    cmap=colormap(ERROR_CMAP),
+                    norm=TwoSlopeNorm(vmin=-100, vcenter=0, vmax=300),
                     s=26,
                     marker=shapes.get(a, "o"),
-                    vmin=-100,
-                    vmax=300,
-                    edgecolors="none",
-                    label=f"{a} m",
+                    edgecolors="#555555",
+                    linewidths=0.3,
                 )
             ax.plot([-0.5, 0.5], [-0.5, 0.5], "k:", lw=0.8)
             ax.set_xlabel("dh1 [m]")
             ax.set_ylabel("dh2 [m]")
-            if len(alts) > 1:
-                ax.legend(fontsize=7, title="altitude", title_fontsize=7)
+            if len(alts) > 1:  # the altitudes by shape alone: a marker's colour is its error, not its altitude
+                from matplotlib.lines import Line2D
+
+                keys = [
+                    Line2D([], [], marker=shapes.get(a, "o"), ls="none", color="#555555", label=f"{a} m") for a in alts
+                ]
+                ax.legend(handles=keys, fontsize=7, title="altitude", title_fontsize=7)
             if sc is not None:
                 fig.colorbar(sc, ax=ax, label="DEM mean error increase % (clipped to -100..300)")
         else:
