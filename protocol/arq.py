@@ -568,7 +568,7 @@ class Arq(SessionView):
         self.closed = True
         self._events.clear()
 
-    def close(self, reason: str = "its program closed the link (it ended, or was stopped)") -> None:
+    def close(self, reason: str = "its program ended, or was stopped") -> None:
         """Queue a CLOSE for the peer (if any) and stop accepting messages."""
         if self.closed:
             return

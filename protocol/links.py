@@ -1510,7 +1510,7 @@ class ZmqLink(Link, SessionView):
                 self._control.append(
                     [
                         _ZHEAD.pack(Z_VERSION, Z_CLOSE, 0, 0, self.sess.local, self.sess.peer, 0),
-                        bytes((CLOSE_APP,)) + b"its program closed the link (it ended, or was stopped)",
+                        bytes((CLOSE_APP,)) + b"its program ended, or was stopped",
                     ]
                 )
             self._cv.wait_for(lambda: not self._control, 0.5)
