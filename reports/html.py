@@ -56,6 +56,7 @@ class Section:
     tables: list[Table] = field(default_factory=list)
     figures: list[Figure] = field(default_factory=list)
     status: str = ""  # "", "ok", "warn" or "bad": a coloured marker beside the title
+    figures_first: bool = False  # the pictures above the tables (a page of many tables read as tables only)
     # (href relative to the page, what it holds): the data files beside the page, so that checking a number
     # against its file does not mean leaving the page to look for it
     links: list[tuple[str, str]] = field(default_factory=list)

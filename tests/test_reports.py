@@ -504,3 +504,13 @@ def test_the_timeline_names_what_shows_and_leaves_out_a_plan_before_the_frames()
     assert "frames on the link" not in names and "plan: done by" not in names
     # georef took no time in the first pair and 0.3 s in the second: named, by the pair where it shows
     assert {"sweep", "georef", "result on the link", "deadline"} <= set(names), names
+
+
+def test_a_section_can_put_its_pictures_above_its_tables(tmp_path):
+    """The evaluation page showed ~20 tables before its first picture (QA of stop 72): its sections lead with the
+    plot of their tables."""
+    plots.save(plots.map_figure([plots.Panel("image", np.zeros((8, 8)), "i1")]), tmp_path / "p.png")
+    table = Table([Column("fp_pct")], [{"fp_pct": 0.5}])
+    for first in (True, False):
+        text = render_page("t", [Section("s", tables=[table], figures=[Figure("p.png", "c")], figures_first=first)])
+        assert (text.index("<figure>") < text.index("<table>")) == first
