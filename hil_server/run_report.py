@@ -141,6 +141,22 @@ def _telemetry_records(records: list[dict]) -> list[dict]:
     return out
 
 
+def _pixel_states(r: dict, out: Path, pair: Any) -> np.ndarray | None:
+    """The Result's safe/unsafe/unknown call at each pixel of frame 0: its full-resolution state map (``run
+    --full-maps``), else its world grid read at each pixel's true ground point (which the truth's depth gives);
+    None when neither is at hand (QA of stop 72: the run's figure showed no state at all)."""
+    if (out / "state.npy").is_file():
+        return np.load(out / "state.npy")
+    if not (out / "state_grid.npy").is_file() or "depth" not in pair.truth or r.get("grid_cell_m") is None:
+        return None
+    from ground_sim.gridscore import pixel_ground_xy, states_at_pixels, true_pose_upper
+
+    x, y = pixel_ground_xy(pair.camera, true_pose_upper(pair), pair.truth["depth"])
+    ox, oy = (float(v) for v in r["grid_origin_xy"])
+    origin = (ox, oy)
+    return states_at_pixels(np.load(out / "state_grid.npy"), origin, float(r["grid_cell_m"]), x, y)
+
+
 def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     from hil_server.run import CALLED_FILE, DERIVED_TRUTH_FILE, read_called
     from protocol.pairdir import PairFormatError, read_pair
@@ -165,6 +181,9 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     marks = _site_marks(r, pair)
     title = "upper image (i1)" + (", landing sites by rank" if marks else "")
     panels = [Panel("image", pair.images[0], title, sites=marks)]
+    states = _pixel_states(r, out, pair)
+    if states is not None:  # what the flight side called, beside how it scored: the figure showed the scores only
+        panels.append(Panel("state", states, "hazard state (the Result's)", sites=marks))
     gt_h = pair.truth.get("hazard")
     if hz_file.name == "hazard.npy" and "depth" not in pair.truth:
         gt_h = None  # the overlap is unknown: the scores withhold the full map's, so the picture does (review 66)
@@ -353,8 +372,13 @@ def write_run_report(summary: dict, path: Path) -> Path:
     links = file_links(path.parent, files)
     if links:
         sections.append(Section("Files", links=links))
-    # the per-pair maps draw pixel scores, not hazard states: the states' key sat atop the page (QA of stop 72)
+    # the per-pair maps draw the states and the pixel scores; a page without them keys neither (QA of stop 72)
     scored = any(f.src.endswith("_hazard.png") for sec in sections for f in sec.figures)
     return write_page(
-        path, "HIL run", sections, subtitle=subtitle, headline=headline, legends=("confusion",) if scored else ()
+        path,
+        "HIL run",
+        sections,
+        subtitle=subtitle,
+        headline=headline,
+        legends=("confusion", "state") if scored else (),
     )

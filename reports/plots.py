@@ -132,7 +132,9 @@ def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dic
         pct = (f" {share:.1f} %" if share >= 1.0 or share == 0.0 else f" {share:.2f} %") if show_pct else ""
         handles.append(Patch(facecolor=colour, edgecolor="#555", label=f"{names[code]}{pct}"))
     ax.imshow(rgb, interpolation="nearest")
-    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=2, frameon=False)
+    # two columns of long labels ran under the next panel and into its legend (the run's state beside its scores)
+    ncol = 1 if max((len(str(h.get_label())) for h in handles), default=0) > 24 else 2
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=ncol, frameon=False)
 
 
 def _unknown_overlay(ax: Any, mask: np.ndarray, n_in: int) -> None:

@@ -578,3 +578,20 @@ def test_write_atomic_names_the_file_a_full_disk_refused_and_leaves_no_temporary
     assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "summary.md")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.md"]  # no .summary.md.* left
     assert (tmp_path / "summary.md").read_text() == "the earlier one"
+
+
+def test_the_run_figure_shows_the_results_states_as_scored(manifest, tmp_path):
+    """The run's per-pair figure showed the pixel scores and no state map (QA of stop 72): its state panel reads the
+    Result's grid at each pixel's true ground, the very states the record's scores count."""
+    from ground_sim.gridscore import pixel_ground, scored_area, true_pose_upper
+    from hil_server.run_report import _pixel_states
+    from protocol.pairdir import STATE_UNKNOWN
+
+    s = run(manifest, tmp_path)
+    r = s["records"][0]
+    pair = read_pair(r["pair_dir"])
+    states = _pixel_states(r, Path(r["out_dir"]), pair)
+    assert states is not None and states.shape == pair.images[0].shape
+    area = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), pair.truth["depth"]))
+    unknown = 100.0 * np.count_nonzero(area & (states == STATE_UNKNOWN)) / np.count_nonzero(area)
+    assert unknown == pytest.approx(r["scores"]["unknown_pct"], abs=1e-9)
