@@ -239,12 +239,6 @@ class GroundSession:
         )
 
 
-def _stats(link: Any) -> dict:
-    """A link's counters (none before it opened)."""
-    stats = getattr(link, "stats", None) or {}
-    return dict(stats() if callable(stats) else stats)
-
-
 def _served(c: dict, stats: dict | None = None) -> str:
     """The board's last words: what it served, and what its line dropped (``stats``: the link's)."""
     from flight_sw.flight_main import line_damage
@@ -291,7 +285,7 @@ def serve(
         parse_serial,
     )
 
-    from .flight_main import FaultPlan, FlightProcess
+    from .flight_main import FaultPlan, FlightProcess, link_stats
     from .kernels import load_kernel
     from .pipeline import PRESETS
 
@@ -356,11 +350,11 @@ def serve(
         say(f"flight: serving on {spec}; waiting for a ground (hazard-hil run --flight external --link ...)")
         flight.run(watch_parent=False)  # detached (nohup, a daemon) it must outlive its parent
         why = f"the link failed: {link.failed}" if link.failed else "the link closed"
-        say(f"flight: {why}; {_served(ground.counters, _stats(ground.link))}")  # sums what it did, however it ends
+        say(f"flight: {why}; {_served(ground.counters, link_stats(ground.link))}")  # sums what it did, however it ends
         return 1
     except KeyboardInterrupt:  # stop() above, or a Ctrl-C (a signal in the warm-up is hazard-hil's own: 128 + N)
         sig = stopped[0] if stopped else signal.SIGINT
-        say(f"flight: stopped by {signal.Signals(sig).name}; {_served(ground.counters, _stats(ground.link))}")
+        say(f"flight: stopped by {signal.Signals(sig).name}; {_served(ground.counters, link_stats(ground.link))}")
         return 128 + sig
     finally:
         signal.signal(signal.SIGTERM, old)

@@ -53,6 +53,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -263,6 +264,12 @@ def left_out_note(cfg: Config) -> str:
     if cfg.options.get("full_maps", 0) and "elevation_filled_image" in dropped:
         note += "; full_maps was asked for, but the image maps go without their gap-fill mask"
     return note
+
+
+def link_stats(link: Any) -> dict:
+    """A link's counters (a property on some links, a method on others; none before one is open)."""
+    stats = getattr(link, "stats", None) or {}
+    return dict(stats() if callable(stats) else stats)
 
 
 def line_damage(stats: dict) -> dict[str, float]:
@@ -558,7 +565,7 @@ class FlightProcess:
         port_baud = getattr(self.link, "baud", None)  # a board's serial port: the ground notes a rate unlike its own
         if isinstance(port_baud, int) and port_baud > 0:
             link_info["port_baud"] = float(port_baud)
-        link_info.update(line_damage(self._link_stats()))
+        link_info.update(line_damage(link_stats(self.link)))
         if self.link.flush(timeout=5.0):  # handed over (local link): its framed size plans the next pair
             self.note_result_bytes(int(grown * (self._bytes_sent() - sent0)))  # at the Config's steps
             # a board: the Result's own line time on the ground link, first byte out -> last (under the HIL
@@ -586,12 +593,8 @@ class FlightProcess:
             ).for_rev(result_rev(cfg))
         )
 
-    def _link_stats(self) -> dict:
-        stats = getattr(self.link, "stats", {})
-        return dict(stats() if callable(stats) else stats)
-
     def _bytes_sent(self) -> float:
-        return float(self._link_stats().get("bytes_sent", 0))
+        return float(link_stats(self.link).get("bytes_sent", 0))
 
     def note_result_bytes(self, nbytes: int) -> None:
         """Remember a Result's framed size; only the last ``RESULT_HISTORY`` plan the next line time."""

@@ -102,7 +102,7 @@ from protocol.plan import plan_note as _plan_note
 from protocol.quiet import Quieter
 from protocol.stall import StallClock
 from reports.console import printable
-from reports.html import write_atomic
+from reports.html import save_npy_atomic, write_atomic
 
 from .results_file import append_records
 
@@ -323,14 +323,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
             arrays[name] = np.asarray(arr)
     if r.elevation_filled_image is not None:
         arrays["elevation_filled_image"] = np.asarray(r.elevation_filled_image, bool)
-    for name, arr in arrays.items():  # each file whole or absent
-        tmp = d / f".{name}.tmp.npy"
-        try:
-            np.save(tmp, arr)
-            os.replace(tmp, d / f"{name}.npy")
-        except OSError as exc:  # a full disk: numpy's error names no file, and a torn .tmp.npy stayed
-            tmp.unlink(missing_ok=True)
-            raise OSError(exc.errno, exc.strerror or str(exc), str(d / f"{name}.npy")) from None
+    for name, arr in arrays.items():  # each file whole or absent; a full disk names it
+        save_npy_atomic(d / f"{name}.npy", arr)
     e_origin, e_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.elevation_step)
     p_origin, p_cell = decimated_geometry(tuple(r.grid_origin_xy), r.grid_cell_m, r.psafe_step)
     e2e = None
