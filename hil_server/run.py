@@ -273,6 +273,7 @@ def score_records(records: list[dict]) -> list[dict]:
     )
     from ground_sim.scoring import confusion, dem_error_stats
     from protocol.pairdir import PairFormatError, read_pair
+    from reports.html import save_npy_atomic  # whole or not at all, named when the disk refuses it
 
     scored: list[tuple[dict, Any]] = []  # (record, its pair) of the Results judged, for the sites of the others
     for rec in records:
@@ -290,7 +291,7 @@ def score_records(records: list[dict]) -> list[dict]:
                 if "hazard" in pair.truth:
                     rec["truth"] = "derived"
                     # kept for the report's figures, which would otherwise derive it again
-                    _save_npy(d / DERIVED_TRUTH_FILE, pair.truth["hazard"])
+                    save_npy_atomic(d / DERIVED_TRUTH_FILE, pair.truth["hazard"])
         except (MemoryError, ValueError, ArithmeticError) as exc:
             rec["truth_note"] = f"no gt_hazard_i1.npy, and deriving one failed ({type(exc).__name__}: {exc})"
         truth = pair.truth
@@ -322,7 +323,7 @@ def score_records(records: list[dict]) -> list[dict]:
             scored.append((rec, pair))
             # the call per pixel for the report: 0 safe, 1 not, CALLED_UNSCORED unscored; uint8 where float32 was
             # 1 MiB at 512², most of a pair's output (stop 63's soak QA)
-            _save_npy(d / CALLED_FILE, np.where(np.isnan(called), CALLED_UNSCORED, called).astype(np.uint8))
+            save_npy_atomic(d / CALLED_FILE, np.where(np.isnan(called), CALLED_UNSCORED, called).astype(np.uint8))
             area = np.isfinite(called)  # called_map: NaN exactly off the scored area
         if (d / "hazard.npy").is_file() and "hazard" in truth:
             hazard = np.load(d / "hazard.npy")
@@ -1099,12 +1100,6 @@ GRID_SCORES_NOTE = (
     "keeps the full-resolution image maps, which `hazard-hil score PAIRS OUT/received` then scores, so its figures "
     "differ a little."
 )
-
-
-def _save_npy(path: Path, arr: np.ndarray) -> None:
-    from reports.html import save_npy_atomic  # whole or not at all, named when the disk refuses it
-
-    save_npy_atomic(path, arr)
 
 
 def _last_words(path: Path, started: str, reason: str | None, failure: str) -> None:
