@@ -566,10 +566,7 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
     # the frames' uplink (6 s at 921600 baud against ~1 s of compute) took most of the axis: shown up to half the
     # span after 0, and a longer one is cut there with its length written on it
-    after = max(
-        [float(r.get("e2e_latency_s") or 0.0) for r in recs] + [float(r.get("deadline_s") or 0.0) for r in recs],
-        default=0.0,  # no Result: nothing to cut
-    )
+    after = span  # the longest end to end or deadline (0 with no Result: nothing to cut)
     longest = max([float(r.get("frames_link_s") or 0.0) for r in recs], default=0.0)
     if after > 0 and longest > 0.5 * after:
         left = -0.5 * after
