@@ -358,8 +358,17 @@ def map_figure(
         if any(s.safe is not None for s in sites):
             # one wording for every page: `process` draws black for no truth, the runs for a footprint off frame 0
             key += "; green truly safe, red not, black not judged (no truth there, or its footprint leaves frame 0)"
-        fig.text(0.5, 0.005, key, ha="center", va="bottom", fontsize=7.5, color="#333333")
+        note = fig.text(0.5, 0.005, key, ha="center", va="bottom", fontsize=7.5, color="#333333")
     fig.tight_layout(rect=(0, 0.03, 1, 1) if sites else (0, 0, 1, 1))
+    if sites:  # a tall legend below a panel (the pixel scores' four rows) ran over the key: lift the panels clear
+        r = fig.canvas.get_renderer()
+        top = note.get_window_extent(r).y1 / fig.bbox.height
+        low = min((g.get_window_extent(r).y0 / fig.bbox.height for a in fig.axes if (g := a.get_legend())), default=1.0)
+        if low < top + 0.005:  # taller by the overlap, the panels kept at their size
+            w, h = fig.get_size_inches()
+            lift = min(0.5, top + 0.01 - low) * h
+            fig.set_size_inches(w, h + lift)
+            fig.tight_layout(rect=(0, (0.03 * h + lift) / (h + lift), 1, 1))
     return fig
 
 
