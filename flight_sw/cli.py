@@ -5,9 +5,10 @@ Every frame of the directory is used (2-16, frame 0 the reference: a multi-basel
 
 Writes ``elevation.npy``, ``hazard.npy``, ``state.npy``, ``psafe.npy``, with ``fast`` also
 ``sigma.npy`` (the elevation's 1-sigma) and ``filled.npy`` (True where the elevation is a gap fill
-carried into dark shadow, not a match), ``result.json``, pictures (``dem.png``, ``hazard.png``; with a true hazard map
-also ``confusion.png``) and ``report.html``. Ground truth is read here only for
-those pictures and the comparison block of ``result.json`` - never by the pipeline.
+carried into dark shadow, not a match), ``result.json``, pictures (``dem.png``, ``hazard.png``) and
+``report.html``. The pair is read without its ground truth: flight software never sees it (DESIGN.md).
+The command is registered by :mod:`studies`, which hands :func:`process` a :class:`Scorer` that scores the
+written outputs against the truth as ``hazard-hil score`` does and adds its figures and page section.
 """
 
 from __future__ import annotations
@@ -16,18 +17,45 @@ import argparse
 import math
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from .pictures import Appendix
+
+
+class Scorer(Protocol):
+    """What the command's caller scores a run's outputs with (studies: against the pair's ground truth, as
+    ``hazard-hil score`` does). The flight software hands it only the output directory it wrote."""
+
+    def prepare(self) -> None:
+        """Read and check what the scoring needs, before the pipeline runs: bad input is refused (InputError)
+        before any work, and an earlier run's outputs are still there."""
+
+    def score(self, out: Path, title: str, m_per_px: float | None) -> Appendix | None:
+        """Score the outputs in ``out`` (``result.json`` and the maps are written) and write its own files there;
+        what the console line and the report page add, or None when there is nothing to score against."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """The ``flight`` command; ``process`` is registered by :mod:`studies` (:func:`register_process`)."""
+    _register_flight(subparsers)
+
+
+def register_process(
+    subparsers: argparse._SubParsersAction, scorer: Callable[[argparse.Namespace], Scorer] | None = None
+) -> None:
+    """The ``process`` command; ``scorer(args)`` gives the :class:`Scorer` of a run (none: the outputs alone)."""
     p = subparsers.add_parser(
         "process",
         help="DEM, hazard map and safe sites from a pair directory",
         description="Run the flight pipeline offline on a pair directory (every frame: 2-16, frame 0 the "
         "reference) and write elevation.npy, hazard.npy, state.npy, psafe.npy, sigma.npy and filled.npy (fast), "
         "result.json, pictures and "
-        "report.html in OUT_DIR (docs/design.md). Ground truth in the directory is read only to score the run. "
+        "report.html in OUT_DIR (docs/design.md). The pipeline never reads the directory's ground truth; with one, the "
+        "outputs are then scored against it as `hazard-hil score` scores them (score.json, confusion.png, "
+        "dem_error.png and a section of the page). "
         "Exit 0 when the outputs are written, 1 when the system refused a read or write, 2 on bad input (the pair, "
         "its poses, the options), 128 + N when signal N stopped it (130: Ctrl-C): an earlier run's outputs are "
         "removed first, so what is left is this run's alone.",
@@ -60,8 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="use frames 0 and -1 only (default: every frame of the directory, multi-baseline)",
     )
-    p.set_defaults(func=_process_held)
+    p.set_defaults(func=lambda args: _process_held(args, None if scorer is None else scorer(args)))
 
+
+def _register_flight(subparsers: argparse._SubParsersAction) -> None:
     f = subparsers.add_parser(
         "flight",
         help="run our flight software on a board of your own, serving `run --flight external` over a link",
@@ -101,21 +131,6 @@ def _flight(args: argparse.Namespace) -> int:
     )
 
 
-def _stats(err) -> dict[str, float]:
-    import numpy as np
-
-    e = err[np.isfinite(err)]
-    if e.size == 0:
-        return {"n": 0}
-    med = float(np.median(e))
-    return {
-        "n": int(e.size),
-        "mean_abs_m": float(np.abs(e).mean()),
-        "median_m": med,
-        "mad_m": float(np.median(np.abs(e - med))),
-    }
-
-
 def _check_memory(pair_dir: Path, widest_pair: bool) -> None:
     """The memory check of :func:`flight_sw.validate.check_memory`, from pair.json alone: a camera too large
     for this machine is refused before its frames are read. A pair.json that cannot be read this way is left
@@ -141,7 +156,9 @@ PROCESS_OUTPUTS = (
     "result.json",
     "dem.png",
     "hazard.png",
+    "score.json",  # the scorer's (studies.quicklook): against the truth
     "confusion.png",
+    "dem_error.png",
     "report.html",
 )
 
@@ -198,16 +215,16 @@ def _check_out(pair_dir: Path, out: Path) -> None:
         )
 
 
-def _process_held(args: argparse.Namespace) -> int:
+def _process_held(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     """:func:`_process` with its ``--out`` held (:func:`protocol.outdir.claim_out`): it wrote into a live run's
     directory, and replaced what another command was writing there (QA 64b)."""
     from protocol.outdir import claim_out
 
     with claim_out(args.out, "process"):
-        return _process(args)
+        return _process(args, scorer)
 
 
-def _process(args: argparse.Namespace) -> int:
+def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     import dataclasses
 
     import numpy as np
@@ -215,15 +232,18 @@ def _process(args: argparse.Namespace) -> int:
     from protocol.pairdir import pair_fingerprint, read_pair
     from reports.html import write_atomic
     from reports.jsondoc import json_text
+    from reports.plots import ground_step_m
 
-    from .pictures import confusion, write_process_report
+    from .pictures import write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
     from .validate import FlightInputError
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a finite, non-negative number of seconds, got {args.deadline}")
     _check_memory(Path(args.pair_dir), args.widest_pair)
-    pair = read_pair(args.pair_dir)  # a pair it cannot read is said as such first
+    pair = read_pair(args.pair_dir, load_truth=False)  # a pair it cannot read is said as such first
+    if scorer is not None:  # its input (the truth) refused now, not after the pipeline's work
+        scorer.prepare()
     _check_out(Path(args.pair_dir), Path(args.out))
     for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
         print(f"note: {note}", file=sys.stderr)
@@ -279,30 +299,6 @@ def _process(args: argparse.Namespace) -> int:
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }
-    truth: dict[str, Any] = {}
-    gt_z = pair.truth.get("elevation")
-    if gt_z is not None:
-        # over the map's covered pixels, as FP and CDI here (a quick look: the flight side does not know the true
-        # overlap, which `hazard-hil score` and `evaluate` score over): over every elevation it read 5.7 m
-        # where the map was 41 m off (a deep descent's outer ring, which only frame 0 and one frame see; stop 61's QA)
-        truth["dem_error"] = _stats(np.where(res.covered, res.elevation - gt_z, np.nan))
-    gt_h = pair.truth.get("hazard")
-    if gt_h is not None:
-        masks = confusion(res.hazard, gt_h, res.covered)
-        counts = {k: int(v.sum()) for k, v in masks.items()}
-        n = sum(counts.values())
-        # TP_pct ... FN_pct: shares of the scored pixels (thesis Tables 6.4/6.11; CDI = TP_pct + TN_pct). DESIGN.md's
-        # TN% and TP% are rates, TN/(TN+FP) and TP/(TP+FN): TN_rate_pct (hazards detected), TP_rate_pct
-        shares = {k + "_pct": 100.0 * v / n for k, v in counts.items()} if n else {}
-        rates = {
-            k: 100.0 * counts[a] / (counts[a] + counts[b])
-            for k, a, b in (("TN_rate_pct", "TN", "FP"), ("TP_rate_pct", "TP", "FN"))
-            if counts[a] + counts[b]
-        }
-        cdi = {"CDI_pct": shares["TP_pct"] + shares["TN_pct"]} if shares else {}
-        truth["confusion"] = {**counts, **shares, **cdi, **rates}
-    if truth:
-        doc["vs_truth"] = truth
     messages = _process_messages(res, pair, out)
     doc["warnings"] = [text.removeprefix("warning: ") for warn, text in messages if warn]
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
@@ -326,7 +322,11 @@ def _process(args: argparse.Namespace) -> int:
         if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
             _save_npy(out / "filled.npy", res.filled)
         write_atomic(out / "result.json", json_text(doc))
-        write_process_report(out, pair.images[0], res, pair.truth, doc)
+        gsd = ground_step_m(res.world_xy)
+        name = Path(args.pair_dir).resolve().name  # a saved PNG names its pair: only its folder did
+        head = f"{name}: " if name else ""
+        appendix = None if scorer is None else scorer.score(out, head, gsd)
+        write_process_report(out, pair.images[0], res, doc, appendix, gsd)
     except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
         print(_left_after_stop(out, removing), file=sys.stderr)
         raise
@@ -338,33 +338,13 @@ def _process(args: argparse.Namespace) -> int:
         + (f" ({res.info['no_site_reason']})" if not res.sites and res.info.get("no_site_reason") else "")
         + f", {res.timings['total']['wall_s']:.3f} s"
     )
-    if "dem_error" in truth and truth["dem_error"].get("n"):
-        line += f", DEM mean |error| {truth['dem_error']['mean_abs_m']:.3f} m"
-    c = truth.get("confusion", {})
-    if "FP_pct" in c:  # against the truth over the covered area (docs/design.md; `hazard-hil score` for more)
-        line += f", FP {c['FP_pct']:.2f} %, CDI {c['CDI_pct']:.1f} % of the map's covered pixels"
-    elif "hazard" in pair.truth:  # it was said as missing (QA of stop 66)
-        line += " (gt_hazard_i1.npy holds no value on the covered pixels: FP and CDI not scored here)"
-    elif gt_z is not None:  # DESIGN.md's truth files without ours: the elevation alone is scored, said
-        line += " (no gt_hazard_i1.npy, the truth hazard map of docs/design.md: FP and CDI not scored here; "
-        half, cell = params.footprint_m / 2, res.grid.cell_m
-        # `score` refuses a pair whose frame 0 samples the ground coarser than half the footprint in its coarser
-        # direction; the grid's cell is the median spacing, which an oblique view exceeds by up to 1.5x there
-        if cell > half:  # no hint that then fails
-            line += (
-                f"the ground is sampled every ~{cell:.2g} m, coarser than half the {params.footprint_m:g} m "
-                "footprint, too coarse to derive one from gt_elevation: give gt_hazard_i1.npy to score it)"
-            )
-        elif cell > half / 1.5:
-            line += (
-                f"`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth if frame 0 samples the ground "
-                f"finer than {half:g} m in its coarser direction: here ~{cell:.2g} m at the median)"
-            )
-        else:
-            line += "`hazard-hil score PAIR OUT` derives it from gt_elevation and gt_depth)"
+    if appendix is not None:
+        line += appendix.line
     print(f"{out}: {line}")
     for warn, text in messages:
         print(text, file=sys.stderr if warn else sys.stdout)
+    for text in [] if appendix is None else appendix.notes:
+        print(text, file=sys.stderr)
     print(f"report: {out / 'report.html'}")
     return 0
 

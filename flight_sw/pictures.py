@@ -1,15 +1,15 @@
-"""Pictures and the report page of ``hazard-hil process`` (the CLI's only use of ground truth is here).
+"""Pictures and the report page of ``hazard-hil process``.
 
 Figures follow the one colour convention of :mod:`reports.style` (green safe,
-purple hazard, red only an undetected hazard, orange a false alarm, grey
-unknown) and carry titles, colour bars with units, legends, and the ranked
-landing sites as 3 m footprint circles. Pixel scoring follows docs/design.md:
-positive = safe, a pixel is called safe when its hazard is < 1, scored over
-the covered pixels where the truth is known.
+purple hazard, grey unknown) and carry titles, colour bars with units, legends,
+and the ranked landing sites as 3 m footprint circles. Nothing here reads ground
+truth (DESIGN.md: flight software never sees it); the comparison with the truth
+is the caller's :class:`Appendix` (:mod:`studies.quicklook`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,17 +24,16 @@ FILL_HATCH_COLOUR = "#1a1a1a"
 FILL_LABEL = "gap fill (not matched)"
 
 
-def confusion(hazard: np.ndarray, truth_hazard: np.ndarray, covered: np.ndarray) -> dict[str, np.ndarray]:
-    """Masks TP/TN/FP/FN over covered pixels with known truth; called safe = finite hazard < 1."""
-    known = np.asarray(covered, bool) & np.isfinite(truth_hazard)
-    called_safe = np.isfinite(hazard) & (np.nan_to_num(hazard, nan=1.0) < 1)
-    is_safe = np.nan_to_num(truth_hazard, nan=1.0) < 1
-    return {
-        "TP": known & called_safe & is_safe,
-        "TN": known & ~called_safe & ~is_safe,
-        "FP": known & called_safe & ~is_safe,
-        "FN": known & ~called_safe & is_safe,
-    }
+@dataclass
+class Appendix:
+    """What a scorer adds to a ``process`` run (:class:`flight_sw.cli.Scorer`): text after the summary line,
+    notes for stderr, and the report page's sections (placed first) and headline cards; its own pictures are
+    already written."""
+
+    line: str = ""
+    notes: list[str] = field(default_factory=list)
+    sections: list[Any] = field(default_factory=list)  # reports.html.Section
+    headline: list[Any] = field(default_factory=list)  # reports.html.Headline
 
 
 def site_pixels(world_xy: np.ndarray, sites: list[Any]) -> list[tuple[float, float, float]]:
@@ -86,7 +85,6 @@ def mark_fills(ax: Any, filled: np.ndarray) -> bool:
 
 def dem_figure(
     elevation: np.ndarray,
-    truth: np.ndarray | None = None,
     sigma: np.ndarray | None = None,
     filled: np.ndarray | None = None,
     fill_fraction: float | None = None,
@@ -94,11 +92,11 @@ def dem_figure(
     title: str = "Elevation (DEM)",
 ) -> Any:
     """The DEM picture of ``process``: computed elevation (its gap fills ``filled`` darkened and hatched, their
-    share ``fill_fraction`` in its title), the elevation's ``sigma``, and with ``truth`` the true elevation
-    and the error; a scale bar of ``m_per_px``. Returns the matplotlib figure (:func:`reports.plots.save`)."""
+    share ``fill_fraction`` in its title) and the elevation's ``sigma``; a scale bar of ``m_per_px``. Returns the
+    matplotlib figure (:func:`reports.plots.save`)."""
     from reports.plots import Panel, dem_panels, map_figure
 
-    dem = dem_panels(elevation, truth)
+    dem = dem_panels(elevation, None)
     if fill_fraction:  # the pipeline's own share, of the covered pixels, as process prints it
         dem[0].title += f" ({100.0 * fill_fraction:.1f} % gap fill)"
     if not np.isfinite(elevation).any():  # an image-only result drew empty panels with colour bars (QA of stop 66)
@@ -115,41 +113,34 @@ def write_process_report(
     out: Path,
     image: np.ndarray,
     res: Any,
-    truth: dict[str, np.ndarray],
     doc: dict[str, Any],
+    appendix: Appendix | None = None,
+    m_per_px: float | None = None,
 ) -> list[Path]:
-    """``dem.png``, ``hazard.png`` (and ``confusion.png`` with a true hazard map) and ``report.html`` in ``out``.
+    """``dem.png``, ``hazard.png`` and ``report.html`` in ``out``.
 
-    ``res`` is a :class:`flight_sw.pipeline.PipelineResult`, ``doc`` the
-    ``result.json`` document (its ``vs_truth`` block feeds the page's table).
-    Sites are marked safe/unsafe against the true hazard map when there is one.
+    ``res`` is a :class:`flight_sw.pipeline.PipelineResult`, ``doc`` the ``result.json`` document, ``appendix``
+    a scorer's sections and headline cards for the page, ``m_per_px`` the scale bar's ground step.
     """
     from reports.html import Column, Figure, Headline, Section, Table, write_page
-    from reports.plots import Panel, Site, confusion_codes, ground_step_m, map_figure, save
+    from reports.plots import Panel, Site, ground_step_m, map_figure, save
     from reports.style import HAZARD_CMAP, PSAFE_CMAP
 
-    gt_z, gt_h = truth.get("elevation"), truth.get("hazard")
-    px = site_pixels(res.world_xy, res.sites)
-    truly_safe = None
-    if gt_h is not None:
-        safe_px = np.nan_to_num(gt_h, nan=1.0) < 1
-        yy, xx = np.mgrid[: safe_px.shape[0], : safe_px.shape[1]]
-        truly_safe = [bool(safe_px[(xx - u) ** 2 + (yy - v) ** 2 <= r * r].all()) for u, v, r in px]
-    marks = [Site(u, v, r, i + 1, None if truly_safe is None else truly_safe[i]) for i, (u, v, r) in enumerate(px)]
+    marks = [Site(u, v, r, i + 1, None) for i, (u, v, r) in enumerate(site_pixels(res.world_xy, res.sites))]
     written: list[Path] = []
     figures: list[Figure] = []
 
-    gsd = ground_step_m(res.world_xy)
+    gsd = ground_step_m(res.world_xy) if m_per_px is None else m_per_px
     # a saved PNG names its pair: only its folder did
     name = Path(str(doc.get("pair_dir", ""))).name
     head = f"{name}: " if name else ""
     fills = res.info.get("dem_filled_fraction")
-    fig = dem_figure(res.elevation, gt_z, res.sigma, res.filled, fills, gsd, f"{head}Elevation (DEM)")
+    fig = dem_figure(res.elevation, res.sigma, res.filled, fills, gsd, f"{head}Elevation (DEM)")
     written.append(save(fig, out / "dem.png"))
     figures.append(
         Figure(
             "dem.png",
-            "Computed elevation, its uncertainty; with truth, the true one and the error. White: no elevation "
+            "Computed elevation and its uncertainty. White: no elevation "
             "(outside the area both images cover, or not recovered). Darkened and hatched in the computed "
             "elevation: gap fills carried into dark shadow, not matched (filled.npy; they have a larger sigma).",
         )
@@ -188,9 +179,9 @@ def write_process_report(
         Figure(
             "hazard.png",
             (
-                "Numbered circles are the ranked landing sites' 3 m footprints "
-                "(green truly clear, red not, black without truth; a footprint smaller than 1.5 % of the panel "
-                "is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4). "
+                "Numbered circles are the ranked landing sites' 3 m footprints (a footprint smaller than 1.5 % of "
+                "the panel is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4; "
+                "against the truth, when the pair has one, in confusion.png). "
                 if res.sites
                 else "No landing site was offered (the reason is above). "  # circles explained on a map without any
             )
@@ -201,32 +192,6 @@ def write_process_report(
         )
     )
 
-    rows: list[dict[str, Any]] = []
-    (out / "confusion.png").unlink(missing_ok=True)  # an earlier run's scores must not pass for this one's
-    if gt_h is not None:
-        masks = confusion(res.hazard, gt_h, res.covered)
-        scored = masks["TP"] | masks["TN"] | masks["FP"] | masks["FN"]
-        codes = confusion_codes(masks["TP"] | masks["FP"], masks["TP"] | masks["FN"], scored)
-        conf = [
-            Panel("confusion", codes, "pixel scores, % of the map's covered pixels", sites=marks),
-            Panel("scalar", gt_h, "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
-        ]
-        written.append(save(map_figure(conf, f"{head}Against ground truth", m_per_px=gsd), out / "confusion.png"))
-        figures.append(Figure("confusion.png", "Pixel scores against the true hazard map (positive = safe)."))
-        c = doc.get("vs_truth", {}).get("confusion", {})
-        d = doc.get("vs_truth", {}).get("dem_error", {})
-        rows.append(
-            {
-                "fp_pct": c.get("FP_pct"),
-                "fn_pct": c.get("FN_pct"),
-                "tp_pct": c.get("TP_pct"),
-                "tn_pct": c.get("TN_pct"),
-                "cdi_pct": c.get("CDI_pct"),
-                "dem_mean_abs_m": d.get("mean_abs_m"),
-                "dem_median_m": d.get("median_m"),
-                "dem_mad_m": d.get("mad_m"),
-            }
-        )
     site_rows = [
         {
             "rank": i + 1,
@@ -234,7 +199,6 @@ def write_process_report(
             "y_m": s.y,
             "p_safe_site": s.p_safe,
             "clearance": s.clearance_m,
-            **({"truly_clear": "yes" if truly_safe[i] else "NO"} if truly_safe is not None else {}),
         }
         for i, s in enumerate(res.sites)
     ]
@@ -245,8 +209,6 @@ def write_process_report(
         Column("p_safe_site", "site P(safe)", 3),
         Column("clearance", "clearance [m]", 2),
     ]
-    if truly_safe is not None:
-        site_cols.append(Column("truly_clear", "footprint truly clear"))
     sections = [
         Section(
             "Landing sites",
@@ -255,16 +217,8 @@ def write_process_report(
         ),
         Section("Maps", figures=figures),
     ]
-    if rows:
-        keys = ["fp_pct", "fn_pct", "tp_pct", "tn_pct", "cdi_pct", "dem_mean_abs_m", "dem_median_m", "dem_mad_m"]
-        scope = (  # the same labels in `score`'s output count other pixels: said where both are read
-            "Scored over the pixels this map covers. `hazard-hil score` scores the same output over the truth's "
-            "overlap of the two frames and counts a pixel the map left out as not called safe, so its figures "
-            "differ by the edge band."
-        )
-        sections.insert(
-            0, Section("Against ground truth", paragraphs=[scope], tables=[Table([Column(k) for k in keys], rows)])
-        )
+    if appendix is not None:
+        sections[:0] = appendix.sections
     total = res.timings.get("total", {})
     headline = [
         Headline("level", res.level + (" (degraded)" * res.degraded), "warn" if res.degraded else "ok", "level"),
@@ -272,9 +226,8 @@ def write_process_report(
         Headline("sites", len(res.sites), "ok" if res.sites else "warn", "landing sites"),
         Headline("compute_cpu_s", total.get("cpu_s"), label="compute CPU [s]"),
     ]
-    if rows and rows[0]["fp_pct"] is not None:
-        fp = rows[0]["fp_pct"]
-        headline.append(Headline("fp_pct", fp, "ok" if fp <= 1.0 else "bad"))
+    if appendix is not None:
+        headline += appendix.headline
     warnings = [str(w) for w in doc.get("warnings") or []]
     if warnings:  # said on the console only, the page showed a run on swapped frames as a green "full" (QA of stop 66)
         headline.insert(1, Headline("warnings", len(warnings), "warn", "warnings"))

@@ -32,6 +32,9 @@ from protocol.outdir import refuse_if_held
 ENTRY_POINT_GROUP = "hazard_hil.commands"
 # help order of the project's own packages; commands of other installed packages follow by name
 _ORDER = ("ground_sim", "flight_sw", "hil_server", "studies")
+# `process` is registered by studies (it scores against the truth, which flight_sw never reads) but is listed with
+# the flight software's commands, where a user looks for it
+_LISTED_AFTER = {"process": "scenes"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -94,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
         raise SystemExit("hazard-hil: no commands registered; install the package (make install)")
     for ep in eps:
         ep.load()(sub)
+    listed = sub._choices_actions  # argparse's list of the commands' help lines, in the order --help shows them
+    for name, after in _LISTED_AFTER.items():
+        move = [a for a in listed if a.dest == name]
+        anchor = [i for i, a in enumerate(listed) if a.dest == after]
+        if move and anchor:
+            listed.remove(move[0])
+            listed.insert(anchor[0] + 1, move[0])
     return parser
 
 

@@ -307,6 +307,8 @@ def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
 
 
 def register(subparsers: Any) -> None:
+    from flight_sw.cli import register_process
+
     p = subparsers.add_parser(
         "evaluate",
         help="score the pipeline against ground truth; thesis tables side by side",
@@ -364,6 +366,13 @@ def register(subparsers: Any) -> None:
     s.set_defaults(func=holding_out("sensitivity", _sensitivity))
     register_landings(subparsers)
     register_score(subparsers)
+    register_process(subparsers, scorer=_truth_look)  # flight_sw's command; scoring lives on this side (DESIGN.md)
+
+
+def _truth_look(args: argparse.Namespace) -> Any:
+    from studies.quicklook import TruthLook
+
+    return TruthLook(args.pair_dir)
 
 
 def _parse_alts(text: str | None) -> list[int] | None:

@@ -330,11 +330,17 @@ def truth_problem(pair: Any, where: str) -> tuple[str | None, str | None]:
 
 
 def score_output(
-    pair: Any, output: DetectorOutput, where: str = "the pair", figure: str | Path | None = None
+    pair: Any,
+    output: DetectorOutput,
+    where: str = "the pair",
+    figure: str | Path | None = None,
+    label: str | None = None,
 ) -> dict[str, Any]:
     """Pixel, DEM and site scores of ``output`` against ``pair``'s ground truth (see the module doc); ``where``
     names the pair in errors. With ``figure``, a PNG there: frame 0 with the sites (green truly safe, red not,
-    black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard."""
+    black not confirmed), the pixel scores (TP, TN, FP, FN over the scored area) and the true hazard, titled
+    ``label`` (default: the file's name without ``_score.png``). ``site_verdicts`` holds each site's verdict
+    (True truly safe, False not, None not confirmed: scored as not safe)."""
     from ground_sim import scoring
     from ground_sim.gridscore import judge_site, scored_area, site_verdict
     from reports.plots import ground_step_m
@@ -389,6 +395,7 @@ def score_output(
     m["sites_truly_safe"] = int(sum(each))
     m["sites_unconfirmed"] = sum(site_verdict(j) is None for j in judged)
     m["top_site_truly_safe"] = bool(each[0]) if each else None
+    m["site_verdicts"] = [site_verdict(j) for j in judged]
     if output.sites_unknown is not None:
         m["sites_unknown"] = output.sites_unknown
     m["top_site_confirmed"] = site_verdict(judged[0]) is not None if judged else None
@@ -396,7 +403,7 @@ def score_output(
         radius = _site_radius_px(pair.camera, depth, area)
         gsd = ground_step_m(world[..., :2])
         try:
-            _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m, gsd)
+            _figure(Path(figure), pair.images[0], called, safe, area, gt_h, judged, radius, m, gsd, label)
         except OSError as exc:  # a full disk: the scores stand; exit 1 read as "FP over the limit" (QA of stop 72)
             m["figure_error"] = os_error_text(exc if exc.filename else OSError(exc.errno, exc.strerror, str(figure)))
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
@@ -600,6 +607,7 @@ def _figure(
     radius: float,
     m: dict[str, Any],
     m_per_px: float | None = None,
+    label: str | None = None,
 ) -> Path:
     """The picture of one scored pair (see :func:`score_output`); a derived truth (``m["truth"]``) is titled so."""
     from ground_sim.gridscore import site_verdict
@@ -631,7 +639,7 @@ def _figure(
         title_sites = ""
     top = verdicts[site_verdict(judged[0])] if judged else "none"
     title = (
-        f"{path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, "
+        f"{label or path.name.removesuffix('_score.png')}: FP {m['fp_pct']:.2f} %, CDI {m['cdi_pct']:.1f} %, "
         f"top site {top}{title_sites}"
     )
     return save(map_figure(panels, title, m_per_px=m_per_px), path)

@@ -227,7 +227,7 @@ def test_memory_running_out_past_the_checks_is_one_line_and_exit_1(tmp_path, cap
     (QA of stop 71: numpy's "Unable to allocate 128. MiB for an array with shape (2048, 2048, 4)")."""
     import flight_sw.cli
 
-    def boom(args):
+    def boom(args, scorer=None):
         raise MemoryError("Unable to allocate 128. MiB for an array with shape (2048, 2048, 4) and data type float64")
 
     monkeypatch.setattr(flight_sw.cli, "_process_held", boom)
@@ -248,7 +248,7 @@ def test_a_full_disk_whose_error_names_no_file_names_the_output_on_it(tmp_path, 
 
     import flight_sw.cli
 
-    def full(args):
+    def full(args, scorer=None):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     out = tmp_path / "o"

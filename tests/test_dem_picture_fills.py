@@ -12,14 +12,13 @@ H, W = 64, 80
 BLOCK = (slice(20, 36), slice(30, 50))  # rows, columns of the fill region
 
 
-def _dem() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A sloping DEM with no elevation along its border, its truth and its sigma."""
+def _dem() -> tuple[np.ndarray, np.ndarray]:
+    """A sloping DEM with no elevation along its border, and its sigma."""
     yy, xx = np.mgrid[:H, :W]
     z = (0.05 * xx + 0.02 * yy).astype(np.float32)
     z[:4], z[:, -5:] = np.nan, np.nan
-    truth = z + np.float32(0.1) * np.sin(xx / 5.0).astype(np.float32)
     sigma = np.full((H, W), 0.2, np.float32)
-    return z, truth, sigma
+    return z, sigma
 
 
 def _pixels(fig) -> np.ndarray:
@@ -37,14 +36,14 @@ def _screen_box(ax, rows: slice, cols: slice, fig_h: int) -> tuple[float, float,
     return r0, r1, c0, c1
 
 
-@pytest.mark.parametrize("with_truth", [False, True])
-def test_fill_pixels_are_drawn_apart_and_nothing_else_changes(with_truth):
+@pytest.mark.parametrize("with_sigma", [False, True])
+def test_fill_pixels_are_drawn_apart_and_nothing_else_changes(with_sigma):
     import matplotlib.pyplot as plt
 
-    z, truth, sigma = _dem()
+    z, sigma = _dem()
     fills = np.zeros((H, W), bool)
     fills[BLOCK] = True
-    kw = dict(truth=truth if with_truth else None, sigma=sigma, fill_fraction=0.06)  # one title for both
+    kw = dict(sigma=sigma if with_sigma else None, fill_fraction=0.06)  # one title for both
     marked = dem_figure(z, filled=fills, **kw)
     plain = dem_figure(z, filled=np.zeros((H, W), bool), **kw)
     a, b = _pixels(marked), _pixels(plain)
@@ -81,12 +80,12 @@ def test_without_fills_the_picture_is_the_unmarked_one():
     """An empty mask (a pair without shadow) or none at all (a back-end that does not fill): no legend, no veil."""
     import matplotlib.pyplot as plt
 
-    z, truth, sigma = _dem()
-    figs = [dem_figure(z, truth, sigma, filled=f) for f in (None, np.zeros((H, W), bool))]
+    z, sigma = _dem()
+    figs = [dem_figure(z, sigma, filled=f) for f in (None, np.zeros((H, W), bool))]
     # a mask on pixels without elevation marks nothing either: a fill always has an elevation
     nowhere = np.zeros((H, W), bool)
     nowhere[:4] = True
-    figs.append(dem_figure(z, truth, sigma, filled=nowhere))
+    figs.append(dem_figure(z, sigma, filled=nowhere))
     pix = [_pixels(f) for f in figs]
     assert all(np.array_equal(pix[0], p) for p in pix[1:])
     assert all(f.axes[0].get_legend() is None for f in figs)

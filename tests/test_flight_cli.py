@@ -19,29 +19,40 @@ from protocol.outdir import LOCK_NAME
 from protocol.pairdir import Pair, Pose, write_pair
 
 
-def _pair(tmp_path):
+def _pair(tmp_path, depth: bool = True):
     cam, p1, p2, i1, i2, z = make_pair(160, 150.0, 75.0, crater(20.0, 4.0), seed=21)
     gt_h = np.zeros_like(z)
     gt_h[60:100, 60:80] = 1.0  # inside the area both images see
-    return write_pair(tmp_path / "pair", Pair(cam, (p1, p2), (i1, i2), truth={"elevation": z, "hazard": gt_h})), z
+    truth = {"elevation": z, "hazard": gt_h}
+    if depth:  # a nadir camera: the z-depth is the height above the ground
+        truth["depth"] = (150.0 - z).astype(np.float32)
+    return write_pair(tmp_path / "pair", Pair(cam, (p1, p2), (i1, i2), truth=truth)), z
+
+
+def _dem_err(out: Path) -> float:
+    """The DEM's mean |error| against the truth, as `process` scored it (score.json)."""
+    return json.loads((out / "score.json").read_text())["rows"][0]["dem_mean_abs_m"]
 
 
 def test_process_writes_outputs(tmp_path, capsys):
     d, z = _pair(tmp_path)
     out = tmp_path / "out"
     assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
-    for f in ("elevation.npy", "state.npy", "result.json", "dem.png", "hazard.png", "confusion.png", "report.html"):
+    for f in ("elevation.npy", "state.npy", "result.json", "dem.png", "hazard.png", "report.html"):
+        assert (out / f).is_file(), f
+    for f in ("score.json", "confusion.png", "dem_error.png"):  # the truth's, written by studies.quicklook
         assert (out / f).is_file(), f
     elev = np.load(out / "elevation.npy")
     assert elev.dtype == np.float32 and elev.shape == z.shape
     doc = json.loads((out / "result.json").read_text())
     assert doc["level"] == "full" and doc["params"]["name"] == "fast"
-    assert doc["vs_truth"]["dem_error"]["mean_abs_m"] < 0.5  # crater at 150 m, 160 px
     assert set(doc["timings"]["full_dem"]) == {"wall_s", "cpu_s"}
-    c = doc["vs_truth"]["confusion"]
-    assert c["FP"] + c["TN"] > 0  # the truth's unsafe strip is scored
+    assert "vs_truth" not in doc  # the flight side's record holds no truth (DESIGN.md)
+    row = json.loads((out / "score.json").read_text())["rows"][0]
+    assert row["dem_mean_abs_m"] < 0.5  # crater at 150 m, 160 px
+    assert row["hazards_in_scene_pct"] > 0  # the truth's unsafe strip is scored
     said = capsys.readouterr()
-    assert "full" in said.out
+    assert "full" in said.out and f"against the truth: FP {row['fp_pct']:.2f} %" in said.out
     # the trees are calibrated for 512, 256 and 128 px: at 160 px P(safe) falls back, which only result.json used to say
     assert doc["info"]["psafe_fallback"] in said.err and said.err.startswith("warning: calibrated P(safe)"), said.err
     # and in result.json and on the page, not on the console alone (QA of stop 66: a run on swapped frames was a
@@ -53,7 +64,23 @@ def test_process_writes_outputs(tmp_path, capsys):
     )
     if browser_available():
         page = check_page(out / "report.html")
-        assert page.ok and page.images == 3, page  # dem, hazard, confusion: every image loads, no console error
+        assert page.ok and page.images == 4, page  # dem, hazard, confusion, dem_error: all load, no console error
+    assert ">Against ground truth<" in (out / "report.html").read_text()
+
+
+def test_process_without_gt_depth_scores_over_the_covered_pixels(tmp_path, capsys):
+    """A truth without gt_depth_i1.npy cannot give the ground both frames truly see, as `score` needs: `process`
+    still scores its map where it covers, says so, and judges no site."""
+    d, z = _pair(tmp_path, depth=False)
+    out = tmp_path / "out"
+    assert main(["process", str(d), "--out", str(out)]) == 0
+    said = capsys.readouterr()
+    row = json.loads((out / "score.json").read_text())["rows"][0]
+    assert row["scored_over"] == "covered" and "gt_depth_i1.npy" in row["truth_problem"]
+    assert row["dem_mean_abs_m"] < 0.5 and row["fp_pct"] is not None and row["sites_truly_safe"] is None
+    assert "of the map's covered pixels" in said.out and "not as `hazard-hil score` scores it" in said.err
+    assert "nothing to score against" not in said.err  # it scored what it could
+    assert (out / "dem_error.png").is_file() and not (out / "confusion.png").exists()
 
 
 def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
@@ -379,8 +406,8 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     doc["true_frames"].pop(1)
     (pair / "pair.json").write_text(json.dumps(doc))
     assert main(["process", str(pair), "--out", str(tmp_path / "pair")]) == 0
-    alone = json.loads((tmp_path / "pair" / "result.json").read_text())["vs_truth"]["dem_error"]["mean_abs_m"]
-    assert res["vs_truth"]["dem_error"]["mean_abs_m"] <= 1.2 * alone + 0.05
+    alone = _dem_err(tmp_path / "pair")
+    assert _dem_err(tmp_path / "o") <= 1.2 * alone + 0.05
     # a noise image there: its corners track nothing (it read "too few matches", as a small overlap does, and was
     # swept: a DEM 6.9 m off, stop 59's review)
     cv2.imwrite(str(three / "i2.png"), (np.random.default_rng(1).random((256, 256)) * 255).astype(np.uint8))
@@ -412,7 +439,6 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     assert rc == 0
     d = tmp_path / "r" / "1000_600_300"
     assert main(["process", str(d), "--out", str(tmp_path / "clean")]) == 0
-    clean = json.loads((tmp_path / "clean" / "result.json").read_text())
     capsys.readouterr()
     original = json.loads((d / "pair.json").read_text())
 
@@ -430,7 +456,7 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     last = res["info"]["pose_refinement"]["frames"][-1]
     assert last["against"] == 1 and last["verdict"] == "disagrees" and res["info"]["frames_dropped"] == [2]
     assert "warning: frame 2: the images disagree with its navigation pose (against frame 1:" in err, err
-    assert res["vs_truth"]["dem_error"]["mean_abs_m"] < 2 * clean["vs_truth"]["dem_error"]["mean_abs_m"] + 0.5
+    assert _dem_err(tmp_path / "o") < 2 * _dem_err(tmp_path / "clean") + 0.5
     # frame 0 pitched instead: the one frame that can check it contradicts it and is left out, and what is left
     # (frame 0 and the unchecked 300 m frame) offers no site, saying frame 0 may be the wrong one; it had been
     # mapped 51-362 m off with nothing withheld (stop 61's QA)
@@ -442,24 +468,30 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     assert "it may be frame 0's that is wrong" in err, err
 
 
-def test_process_points_to_score_only_where_score_can_derive_the_truth_hazard(tmp_path, capsys):
-    """Without gt_hazard_i1.npy `process` pointed to `score`, which then refused a pair whose ground is sampled
-    coarser than half the footprint (stop 59's QA)."""
+def test_process_scores_against_a_derived_truth_where_score_can_derive_one(tmp_path, capsys):
+    """Without gt_hazard_i1.npy `process` scores against the hazard DESIGN.md's rules derive from gt_elevation and
+    gt_depth, as `score` does; where frame 0 samples the ground too coarsely for that, it scores the DEM alone and
+    says why (it pointed to `score`, which then refused the pair: stop 59's QA)."""
     import shutil
 
     from hilkit import small_descent
 
     root = small_descent(tmp_path / "pairs", ["600/300", "200/100"], px=128).parent
+    said = {}
     for label in ("600_300", "200_100"):
         d = tmp_path / label
         shutil.copytree(root / label, d)
         (d / "gt_hazard_i1.npy").unlink()
         assert main(["process", str(d), "--out", str(tmp_path / f"o{label}")]) == 0
-    said = capsys.readouterr().out
-    coarse, fine = (ln for ln in said.splitlines() if "no gt_hazard_i1.npy" in ln)
-    assert "coarser than half the 3 m footprint" in coarse and "hazard-hil score" not in coarse, coarse
-    assert "`hazard-hil score PAIR OUT` derives it" in fine, fine
-    assert main(["score", str(tmp_path / "600_300"), str(tmp_path / "o600_300")]) == 2  # as the hint says
+        said[label] = capsys.readouterr()
+    fine = json.loads((tmp_path / "o200_100" / "score.json").read_text())["rows"][0]
+    assert fine["truth"] == "derived" and fine["fp_pct"] is not None
+    assert "the true hazard was derived from gt_elevation and gt_depth" in said["200_100"].err
+    coarse = json.loads((tmp_path / "o600_300" / "score.json").read_text())["rows"][0]
+    assert coarse["scored_over"] == "covered" and coarse["fp_pct"] is None and coarse["dem_mean_abs_m"] > 0
+    assert "over half the 3 m footprint" in said["600_300"].err and "give gt_hazard_i1.npy" in said["600_300"].err
+    assert "FP" not in said["600_300"].out and "DEM mean |error|" in said["600_300"].out
+    assert main(["score", str(tmp_path / "600_300"), str(tmp_path / "o600_300")]) == 2  # as the note says
 
 
 def test_widest_pair_messages_name_the_directorys_frames():
@@ -516,7 +548,7 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     f2 = res["info"]["pose_refinement"]["frames"][1]
     assert f2["verdict"] == "disagrees" and f2["scale_disagrees"] and f2["ground_gap_m"] > 100.0, f2
     assert "warning: frame 2: the images disagree" in err and "from where the first frame's altimeter" in err, err
-    assert res["info"]["frames_dropped"] == [2, 3] and res["vs_truth"]["dem_error"]["mean_abs_m"] < 2.0
+    assert res["info"]["frames_dropped"] == [2, 3] and _dem_err(tmp_path / "o") < 2.0
     # without altimeters (they are optional): the fits' grounds against one another. Frame 2's and 3's were
     # "kept", DEM 202 m off, an unsafe site offered (stop 60's QA)
     blind = json.loads(json.dumps(doc))
@@ -528,7 +560,7 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     odd = res["info"]["pose_refinement"]["frames"][1:]
     assert [f["verdict"] for f in odd] == ["disagrees", "disagrees"] and all(f["scale_disagrees"] for f in odd), odd
     assert "from where the other frames' images put it" in odd[0]["reason"]
-    assert res["info"]["frames_dropped"] == [2, 3] and res["vs_truth"]["dem_error"]["mean_abs_m"] < 2.0
+    assert res["info"]["frames_dropped"] == [2, 3] and _dem_err(tmp_path / "blind") < 2.0
     assert "altimeter_disagreement" not in res["info"]
     # as a pair, frame 2 cannot be left out: said, and no site on a map resting on it
     doc["frames"], doc["true_frames"] = [doc["frames"][0], doc["frames"][2]], [doc["true_frames"][k] for k in (0, 2)]

@@ -52,3 +52,45 @@ def test_the_design_table_says_the_same():
         said = set(row.split("|")[3].replace("`", "").replace(",", " ").split()) & OURS
         if package != "studies":  # its row says "everything"
             assert said == allowed - {package}, (package, said)
+
+
+def test_flight_sw_never_reads_ground_truth():
+    """DESIGN.md: "Scoring lives in ground_sim, never in flight_sw: flight software never sees ground truth".
+    `process` read the pair's truth files and scored itself inside flight_sw; it now reads the pair without them
+    and studies.quicklook scores what it wrote. Every pair read in flight_sw leaves the truth out, and nothing
+    there touches a pair's ``truth``."""
+    offences = []
+    for p in sorted((ROOT / "flight_sw").rglob("*.py")):
+        for node in ast.walk(ast.parse(p.read_text(), str(p))):
+            if isinstance(node, ast.Attribute) and node.attr == "truth":
+                offences.append(f"{p.name}:{node.lineno}: .truth")
+            if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "read_pair":
+                kw = {k.arg: k.value for k in node.keywords}
+                if not (isinstance(kw.get("load_truth"), ast.Constant) and kw["load_truth"].value is False):
+                    offences.append(f"{p.name}:{node.lineno}: read_pair without load_truth=False")
+    assert not offences, offences
+
+
+def test_the_flight_side_of_process_runs_on_a_pair_whose_truth_it_cannot_read(tmp_path, capsys):
+    """Behind the rule above: flight_sw's `process` without a scorer works on a pair whose truth files are not
+    even arrays, writes no score, and its result.json holds nothing of the truth."""
+    import argparse
+    import json
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from hilkit import small_descent
+
+    from flight_sw.cli import _process
+
+    d = small_descent(tmp_path / "pairs", ["600/300"], px=128).parent / "600_300"
+    for f in d.glob("gt_*_i1.npy"):
+        f.write_bytes(b"not an array")
+    args = argparse.Namespace(
+        pair_dir=str(d), out=str(tmp_path / "o"), preset="fast", refine_pose=True, deadline=None, sites=None,
+        widest_pair=False,
+    )  # fmt: skip
+    assert _process(args, None) == 0
+    assert not (tmp_path / "o" / "score.json").exists() and not (tmp_path / "o" / "confusion.png").exists()
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert "vs_truth" not in doc and "against the truth" not in capsys.readouterr().out
