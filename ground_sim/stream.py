@@ -374,7 +374,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         return rec
     rec.update(
         # what the far end reported: its compute latency (last frame in -> Result out) and its own verdict
-        flight_latency_s=t.total_latency_s,
+        # None when its Telemetry leaves it out: a board that does not say is not one that took 0 s
+        flight_latency_s=None if "total_latency_s" in t.omitted else t.total_latency_s,
         flight_deadline_met=bool(t.deadline_met),
         server_e2e_s=t.link.get("server_e2e_s"),
         # the Result's line time as its sender measured it (first byte on the line -> last, MessageTimes.line_s)
@@ -391,7 +392,7 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         stage_order=list(t.stages),
         link=t.link,
     )
-    if rec["result_line_s"] is None and e2e is not None:  # ZeroMQ and a sender that did not measure it
+    if rec["result_line_s"] is None and e2e is not None and rec["flight_latency_s"] is not None:  # ZeroMQ, say
         # what the end-to-end latency holds besides the flight's own compute: the link both ways and any queue
         rec["outside_flight_s"] = max(0.0, e2e - float(t.total_latency_s))
     if t.plan:  # revision 4: the deadline plan's figures
@@ -1429,7 +1430,9 @@ def _main(argv: list[str] | None) -> int:
             flight = rec.get("flight_latency_s")
             why = plan_note(rec)
             stopped = rec.get("ground_stopped_s")
-            missing = rec.get("telemetry_missing") or "no Telemetry"
+            missing = rec.get("telemetry_missing") or (
+                "not reported: its Telemetry has no total_latency_s" if "flight_deadline_met" in rec else "no Telemetry"
+            )
             if stopped:
                 why = f"this process was stopped {stopped:.1f} s meanwhile, which the latency includes" + (
                     f"; {why}" if why else ""

@@ -1451,6 +1451,21 @@ def _manifest_entries(manifest: Path | None) -> list[dict]:
     return list(_manifest(manifest).get("pairs", []))
 
 
+def _supervisor_no_hello(log_path: Path) -> str | None:
+    """The HIL server's last diagnosis of a flight process that never said Hello (what its link saw: nothing, frames
+    failing their CRC, or a link up with no Hello message), from ``supervisor.log``; None if it logged none."""
+    from hil_server.supervisor import NO_HELLO_LOG
+
+    try:
+        with open(log_path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - 256 * 1024))  # its tail: a flight program's output may be long
+            text = f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+    said = [ln for ln in text.splitlines() if ln.startswith(f"supervisor: {NO_HELLO_LOG} ")]
+    return said[-1].split(": ", 2)[-1] if said else None
+
+
 def _no_hello_reason(results: Path) -> str | None:
     """The ground's reason for not running any pair (its not_run records' text, less the prefix), or None."""
     for rec in read_results(results, strict=False):
@@ -1867,9 +1882,11 @@ def _descend(checked: CheckedRun, log) -> dict:
             if reason is None and rc == EXIT_NO_HELLO and emulated:
                 # the ground's link is to the HIL server, which answers; it is the program it runs that never said
                 # Hello (the ground's "its link answers: is its flight software running?" pointed at the wrong thing)
+                why = _supervisor_no_hello(out / "supervisor.log")
                 reason = (
                     f"the flight process never said Hello to the HIL server within {hello:g} s, while it ran (no "
-                    f"crash, no hang the watchdogs saw): its output is in {out / 'supervisor.log'}"
+                    f"crash, no hang the watchdogs saw){f': {why}' if why else ''}; its output is in "
+                    f"{out / 'supervisor.log'}"
                 )
             if reason is None and rc == EXIT_NO_HELLO:  # the ground's reason is on every pair's not_run record
                 reason = (

@@ -67,6 +67,8 @@ LAST_WORDS_QUIET_S = 0.2  # ... or until it has been quiet this long (a pty give
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
+NO_HELLO_NOTE_S = 3.0  # a flight process silent this long after its start gets its link's state in supervisor.log
+NO_HELLO_LOG = "no Hello from the flight process"  # that line's opening, which hazard-hil run quotes
 MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
 # link counters of the flight line that mean "the flight process sent something the HIL server refused":
 # a record over the size limit or of an unknown type (reassembly_errors), a body that fails to decode or the
@@ -245,7 +247,37 @@ class FlightHandle:
         # the flight side answers the ground's Hello (docs/protocol.md section 6); ours says Hello unasked
         self.link.send(Hello(role="hil-server"))
         self.hello = False
+        self.started = time.monotonic()
+        self.hello_noted = ""  # the last no-Hello diagnosis logged (one line per change, not per poll)
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
+
+    def no_hello_note(self) -> str:
+        """Why no Hello has come from this incarnation, as far as its link can tell (a user's own program: a "no
+        Hello" read the same whether it never wrote, wrote frames that failed their CRC, or never sent the
+        message; QA of stop 73)."""
+        try:
+            stats = self.link.stats
+            stats = stats() if callable(stats) else stats
+        except Exception:
+            return ""
+        got, bad = int(stats.get("bytes_received", 0)), int(stats.get("crc_errors", 0) + stats.get("malformed", 0))
+        if not got:
+            return (
+                "nothing came from it on its link: it never answered the link's HELLO frame (is it reading and "
+                "writing the port it was given? docs/protocol.md section 2)"
+            )
+        if not stats.get("established"):
+            if bad:
+                return (
+                    f"its link never came up: {bad} frame{'' if bad == 1 else 's'} it sent failed the CRC or framing "
+                    f"check ({got} bytes came): check its CRC-32 (big-endian on the wire) and the framing's flags "
+                    "and escapes (docs/protocol.md section 1)"
+                )
+            return f"its link never came up: {got} bytes came from it, none a valid HELLO frame (docs/protocol.md)"
+        return (
+            "its link came up (the HELLO frames were exchanged) but no Hello message came over it "
+            "(docs/protocol.md section 6)"
+        )
 
     def take_refusals(self) -> list[Refusal]:
         """The messages the link refused from this incarnation since the last call."""
@@ -922,6 +954,11 @@ class Supervisor:
             self._complete_without_telemetry(
                 waiting, f"none {late:.1f} s after its Result (hard limit {self._hard_limit():.1f} s)"
             )
+        if not self.flight.hello and now - self.flight.started > NO_HELLO_NOTE_S:
+            why = self.flight.no_hello_note()
+            if why and why != self.flight.hello_noted:
+                self.flight.hello_noted = why
+                self.log(f"supervisor: {NO_HELLO_LOG} {now - self.flight.started:.0f} s after its start: {why}")
         hb_limit = HEARTBEAT_TIMEOUT_S / max(self.effective_fraction, 0.01)
         assert self.flight_reader is not None
         if now - self.flight_reader.last_message > hb_limit:

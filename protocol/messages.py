@@ -652,6 +652,18 @@ class Telemetry(Message):
     deadline_met: bool = _wire(_bool, True)
     link: dict = _wire(_number_dict, factory=dict)
     plan: dict = _wire(_number_dict, factory=dict)
+    # the measurements a decoded Telemetry left out (they read as their defaults): a board that does not report its
+    # compute latency must not read as "flight 0.00 s", the whole latency then put on the link (QA of stop 73)
+    omitted: ClassVar[tuple[str, ...]] = ()
+    MEASURED: ClassVar[tuple[str, ...]] = ("total_latency_s", "queue_wait_s", "cpu_fraction", "peak_rss_bytes")
+
+    @classmethod
+    def from_wire(cls, d: Any) -> Message:
+        msg = super().from_wire(d)
+        left_out = tuple(n for n in cls.MEASURED if n not in d)
+        if left_out:
+            object.__setattr__(msg, "omitted", left_out)
+        return msg
 
     def for_rev(self, rev: int) -> Telemetry:
         """As :meth:`Result.for_rev`: every field newer than ``rev`` (``TELEMETRY_FIELD_REV``) at its default."""

@@ -41,7 +41,15 @@ ap = argparse.ArgumentParser()
 ap.add_argument("--port")
 ap.add_argument("--mode")
 args = ap.parse_args()
-link = mf.Link(serial.serial_for_url(args.port, baudrate=921600, timeout=0.02))
+port = serial.serial_for_url(args.port, baudrate=921600, timeout=0.02)
+while args.mode == "mute":  # reads its line and never writes a byte
+    port.read(4096)
+if args.mode == "badcrc":  # a first implementation's bug: the CRC-32 written little-endian, so every frame fails it
+    def bad_frame(kind, src, dst, body):
+        raw = struct.pack(">BBHII", mf.VERSION, kind, 0, src, dst) + body
+        return bytes([mf.FLAG]) + mf.stuff(raw + struct.pack("<I", mf.zlib.crc32(raw))) + bytes([mf.FLAG])
+    mf.frame = bad_frame
+link = mf.Link(port)
 config, pending, answered, next_beat, backlog, refused = None, {{}}, 0, 0.0, [], set()
 
 
@@ -124,6 +132,8 @@ while not link.closed_by_peer:
             if faulty and args.mode == "hostile":
                 link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
             tel = telemetry(pair)
+            if args.mode == "no_latency":  # the spec's defaults let a board leave its measurements out
+                del tel["total_latency_s"]
             if args.mode == "bad_telemetry" and answered == 1:
                 tel["peak_rss_bytes"] = -1  # out of range: refused by the schema
             if args.mode == "queue_lie":  # its own link's figure, which is not the ground link's
@@ -283,6 +293,21 @@ def test_a_program_that_runs_but_never_says_hello_is_named(manifest, flight, tmp
     assert code == 1 and s["complete"] is False
     assert "the flight process never said Hello to the HIL server within 4 s" in s["reason"], s["reason"]
     assert "supervisor.log" in s["reason"] and "its link answers" not in s["reason"]
+
+
+@pytest.mark.parametrize(
+    "mode, says",
+    [
+        ("mute", "nothing came from it on its link"),
+        ("badcrc", "failed the CRC or framing check"),
+        ("no_hello", "its link came up (the HELLO frames were exchanged) but no Hello message came"),
+    ],
+)
+def test_why_a_program_never_said_hello_is_told_apart(manifest, flight, tmp_path, mode, says):
+    """A program that never wrote, one whose every frame failed its CRC, and one whose link came up without a Hello
+    message all read "never said Hello": what the HIL server's link saw now names which (QA of stop 73)."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, mode), "--hello-timeout", "5")
+    assert code == 1 and "never said Hello" in s["reason"] and says in s["reason"], s["reason"]
 
 
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
@@ -888,3 +913,11 @@ def test_an_external_boards_config_echo_and_second_result_are_ignored_said_and_c
     assert [st for _, st, _ in outcomes(s)] == ["result"] * 3
     assert g["ignored_results"] == 3 and g["ignored_other"] == 3 and g["unattributed_errors"] == 3, g
     assert "and 3 Configs or Frames from the flight side" in (tmp_path / "ext" / "summary.md").read_text()
+
+
+def test_an_external_board_that_does_not_report_its_latency_is_not_read_as_taking_none(manifest, flight, tmp_path):
+    """A Telemetry without total_latency_s read as "flight 0.00 s", the whole latency put on the link and its queues
+    (QA of stop 73): what a board does not say stays unknown."""
+    s = external_run(manifest, flight, "no_latency", tmp_path / "ext")
+    recs = [r for r in s["records"] if r["status"] == "result"]
+    assert recs and all(r["flight_latency_s"] is None and "outside_flight_s" not in r for r in recs), recs
