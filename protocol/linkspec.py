@@ -277,6 +277,24 @@ def check_serial_device(device: str) -> None:
     holder = _lock_holder(st)
     if holder is not None:
         raise InputError(f"serial device {device} is held by process {holder} (a ground or board still running on it?)")
+    # with this process's effective ids and capabilities, and without opening it (an open toggles DTR, which resets
+    # some boards): a port one may not open was found only after the render, as an exit 1 (QA of stop 73)
+    effective = os.access in os.supports_effective_ids
+    if not os.access(device, os.R_OK | os.W_OK, effective_ids=effective):
+        raise InputError(f"serial device {device}: permission denied (it needs read and write access; {_who_may(st)})")
+
+
+def _who_may(st: os.stat_result) -> str:
+    """How to be let at a device of ``st``: its group, which a user joins (``dialout`` on Debian)."""
+    import grp
+
+    try:
+        group = grp.getgrgid(st.st_gid).gr_name
+    except (KeyError, OverflowError):
+        group = str(st.st_gid)
+    if st.st_mode & 0o060 == 0o060:
+        return f"its group {group!r} has it: `sudo usermod -aG {group} $USER`, then log in again"
+    return f"its owner and mode {st.st_mode & 0o777:03o} keep others out: ask whoever set them up"
 
 
 def open_link(

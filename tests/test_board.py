@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -247,6 +248,46 @@ def test_a_ground_refuses_a_serial_device_it_cannot_use_before_rendering(tmp_pat
                 holder.close()
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and SAYS[what] in err[0], err
+    assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
+
+
+@pytest.mark.parametrize("mode, says", [(0o600, "its owner and mode 600 keep others out"), (0o660, "usermod -aG")])
+def test_a_serial_device_one_may_not_open_is_refused_before_any_work(tmp_path, mode, says):
+    """A port the user may not read and write (not in the dialout group) was found only after the render, as
+    "the ground simulator exited with 2" and exit 1; `flight` found it after its warm-up (QA of stop 73). As
+    another user than the device's owner (nobody, when the tests run as root), both refuse it at once."""
+    import grp
+    import shutil
+
+    from protocol.faults import PtyBridge
+
+    root = os.geteuid() == 0
+    if root and shutil.which("setpriv") is None:
+        pytest.skip("root without setpriv: no way to be refused a device")
+    with PtyBridge() as bridge:
+        device = bridge.paths[1]
+        if root:  # root without its override of file permissions, the device another user's
+            try:
+                gid = grp.getgrnam("dialout").gr_gid
+            except KeyError:
+                gid = 65534
+            os.chown(device, 65534, gid)
+            prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search"]
+        else:
+            mode, prefix = 0, []  # not even its owner, then
+        os.chmod(device, mode)
+        for argv in (
+            ["run", "--flight", "external", "--link", f"serial:{device}@921600", "--out", str(tmp_path / "o")],
+            ["flight", "--link", f"serial:{device}@921600"],
+        ):
+            p = subprocess.run(
+                [*prefix, sys.executable, "-m", "hil_server.cli", *argv], capture_output=True, text=True,
+                timeout=120, cwd=tmp_path,
+            )  # fmt: skip
+            assert p.returncode == 2, (argv[0], p.stderr)
+            assert f"serial device {device}: permission denied" in p.stderr, p.stderr
+            if root:
+                assert says in p.stderr, p.stderr
     assert not (tmp_path / "o" / "pairs").exists()  # nothing rendered
 
 
