@@ -788,6 +788,7 @@ def _cmd_regress(args: argparse.Namespace) -> int:
         min_hit_rate=args.min_hit_rate,
         board_link=args.link,
         hello_timeout_s=args.hello_timeout,
+        uncalibrated=args.uncalibrated,
     )
 
 
@@ -861,6 +862,12 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="give up a case whose flight side has not said Hello after S seconds (default as `run`: 120 s for a "
         "board, 900 s for the emulated processor); a board that is off then fails its cases sooner",
+    )
+    p.add_argument(
+        "--uncalibrated",
+        action="store_true",
+        help="judge on a host never calibrated (refused otherwise: its reference seconds would assume the anchor's "
+        "speed, a looser gate by the host's speed ratio); the verdict line says so",
     )
     p.set_defaults(func=_cmd_regress)
 

@@ -6,11 +6,12 @@ Installed with the package (entry point ``pytest11``), it adds the option
     def test_flight_software_keeps_its_deadlines(hil_regression):
         hil_regression(cases=["vertical-snapdragon-serial"])   # fails with the diff table
 
-``hil_regression(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None)`` runs the
-cases of the baseline (``baseline``, else ``--hil-baseline``, else the shipped one; see
+``hil_regression(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None,
+uncalibrated=False)`` runs the cases of the baseline (``baseline``, else ``--hil-baseline``, else the shipped one; see
 :mod:`hil_server.regress`), as ``hazard-hil regress`` does with the same options, and returns the diff table.
 It fails the test with that table when any case regresses, and with one line on bad usage (an unknown case, a
-malformed baseline), as the command's exit 2 does.
+malformed baseline, a host never calibrated: run ``hazard-hil calibrate`` in the job first), as the command's
+exit 2 does.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 @pytest.fixture
 def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
-    """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None) -> diff``: run the
+    """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None, uncalibrated=False)
+    -> diff``: run the
     baseline's cases (all, or ``cases``, a list of names); fail the test with the diff when one regresses."""
 
     def check(
@@ -35,6 +37,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
         min_hit_rate: float | None = None,
         link: str | None = None,
         hello_timeout_s: float | None = None,
+        uncalibrated: bool = False,
     ) -> str:
         from hil_server.regress import RegressInterrupted, check_regression, default_baseline_path
         from protocol.errors import InputError
@@ -53,6 +56,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
                 min_hit_rate=min_hit_rate,
                 board_link=link,
                 hello_timeout_s=hello_timeout_s,
+                uncalibrated=uncalibrated,
             )
         except InputError as exc:  # bad usage: one line, not a traceback from inside the library
             bad = f"hil_regression: {exc}"

@@ -592,7 +592,7 @@ def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
             [*BOARD, "--link", f"serial:{bridge.paths[0]}@0"], cwd=ROOT, stderr=subprocess.PIPE, text=True
         )
         try:
-            args = ["regress", "--baseline", str(base), "--out", str(tmp_path / "out"), "--link"]
+            args = ["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "out"), "--link"]
             args.append(f"serial:{bridge.paths[1]}@0")
             assert cli([*args, "--update"]) == 0
             doc = json.loads(base.read_text())
@@ -637,7 +637,7 @@ def test_a_malformed_board_case_is_one_line_and_exit_2(tmp_path, capsys, change,
     base = tmp_path / "b.json"
     case = {"scenario": "vertical", "budget": "host", "link": "zmq", **change}
     base.write_text(json.dumps({"cases": {"c": case}}))
-    assert cli(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
+    assert cli(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]
 
@@ -649,7 +649,7 @@ def test_regress_gives_up_on_a_board_that_is_off_after_its_hello_timeout(tmp_pat
     base = tmp_path / "b.json"
     case = {"scenario": "vertical", "budget": "host", "flight": "external", "pairs": ["600/300"], "image_size": 64}
     base.write_text(json.dumps({"cases": {"c": {**case, "link": "serial:/dev/the-lab-board@0"}}}))
-    args = ["regress", "--baseline", str(base), "--out", str(tmp_path / "o"), "--hello-timeout"]
+    args = ["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o"), "--hello-timeout"]
     assert (
         cli([*args, "0"]) == 2
         and "--hello-timeout must be a number of seconds in (0, 86400]" in capsys.readouterr().err
@@ -665,7 +665,21 @@ def test_regress_gives_up_on_a_board_that_is_off_after_its_hello_timeout(tmp_pat
 def test_regress_link_needs_a_board_case(tmp_path, capsys):
     base = tmp_path / "b.json"
     base.write_text(json.dumps({"cases": {"c": {"scenario": "vertical", "budget": "host", "link": "zmq"}}}))
-    assert cli(["regress", "--baseline", str(base), "--link", "serial:/dev/x@0", "--out", str(tmp_path / "o")]) == 2
+    assert (
+        cli(
+            [
+                "regress",
+                "--uncalibrated",
+                "--baseline",
+                str(base),
+                "--link",
+                "serial:/dev/x@0",
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     assert "none of these cases is one" in capsys.readouterr().err
 
 
@@ -703,7 +717,15 @@ def test_regress_update_that_records_nothing_keeps_the_old_baseline(tmp_path, ca
     from protocol.faults import PtyBridge
 
     with PtyBridge() as bridge:  # a board that is off
-        args = ["regress", "--baseline", str(base), "--update", "--link", f"serial:{bridge.paths[1]}@0"]
+        args = [
+            "regress",
+            "--uncalibrated",
+            "--baseline",
+            str(base),
+            "--update",
+            "--link",
+            f"serial:{bridge.paths[1]}@0",
+        ]
         assert cli([*args, "--hello-timeout", "1", "--out", str(tmp_path / "o")]) == 1
     assert base.read_text() == before
     assert "baseline NOT written" in capsys.readouterr().out

@@ -30,7 +30,7 @@ def test_compare_flags_slower_latency_and_lower_hit_rate():
 
 
 def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline):
-    ok, diff, doc = check_regression(tiny_baseline, out=tmp_path / "r1", update=True)
+    ok, diff, doc = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r1", update=True)
     assert ok and "tiny" in diff
     # each row says it was recorded, not judged (every row read "ok", a 0 % hit rate too; QA of stop 71)
     rows = [line for line in diff.splitlines()[1:] if line.startswith("tiny ")]
@@ -44,14 +44,14 @@ def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline)
     metrics = doc["cases"]["tiny"]["metrics"]
     assert metrics["deadline_hit_rate"] == 1.0 and metrics["latency_p50_ref_s"] > 0
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r2")
+    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r2")
     assert ok, diff
     # make the baseline impossibly fast: the same run now regresses, and the diff says where
     # (the tiny case runs on the unthrottled host budget, so it is judged on CPU seconds)
     doc["cases"]["tiny"]["metrics"].update(cpu_p50_ref_s=1e-4, cpu_p95_ref_s=1e-4, cpu_max_ref_s=1e-4)
     doc["tolerances"]["latency_abs_s"] = 0.0
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, _ = check_regression(tiny_baseline, out=tmp_path / "r3")
+    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r3")
     assert not ok and "REGRESSION" in diff and "cpu_p50_ref_s" in diff
 
 
@@ -78,20 +78,20 @@ def tiny_baseline(tmp_path):
 
 def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regression, tiny_baseline, tmp_path):
     assert request.config.pluginmanager.has_plugin("hazard_hil")
-    _, _, doc = check_regression(tiny_baseline, out=tmp_path / "u", update=True)
+    _, _, doc = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "u", update=True)
     tiny_baseline.write_text(json.dumps(doc))
-    assert "tiny" in hil_regression(baseline=tiny_baseline)
+    assert "tiny" in hil_regression(uncalibrated=True, baseline=tiny_baseline)
     doc["cases"]["tiny"]["metrics"]["cpu_p50_ref_s"] = 1e-9  # unreachable: must fail
     doc["tolerances"] = {"hit_rate_drop": 0.0, "latency_rel": 0.0, "latency_abs_s": 0.0}
     tiny_baseline.write_text(json.dumps(doc))
     with pytest.raises(pytest.fail.Exception, match="cpu_p50_ref_s"):
-        hil_regression(baseline=tiny_baseline)
+        hil_regression(uncalibrated=True, baseline=tiny_baseline)
     # bad usage fails in one line, as the command's exit 2 (it was a traceback from inside the library)
     with pytest.raises(pytest.fail.Exception, match=r"^hil_regression: unknown regression case\(s\) \['nope'\]") as e:
-        hil_regression(baseline=tiny_baseline, cases=["nope"])
+        hil_regression(uncalibrated=True, baseline=tiny_baseline, cases=["nope"])
     assert e.value.__context__ is None  # said once, not twice with "During handling of the above exception"
     with pytest.raises(pytest.fail.Exception, match="takes a list of case names, got the string 'tiny'"):
-        hil_regression(baseline=tiny_baseline, cases="tiny")  # type: ignore[arg-type]
+        hil_regression(uncalibrated=True, baseline=tiny_baseline, cases="tiny")  # type: ignore[arg-type]
 
 
 def test_a_board_is_judged_on_the_end_to_end_latency_the_ground_measures_too():
@@ -136,10 +136,10 @@ def test_regress_from_another_directory_and_bad_names(tmp_path, tiny_baseline, m
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
     rel = "../baseline.json"
-    assert main(["regress", "--baseline", rel, "--update", "--out", "o"]) == 0
-    assert main(["regress", "--baseline", rel, "--out", "o"]) == 0
-    assert main(["regress", "--baseline", rel, "--cases", "nope", "--out", "o"]) == 2
-    assert main(["regress", "--baseline", "missing.json", "--out", "o"]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", rel, "--update", "--out", "o"]) == 0
+    assert main(["regress", "--uncalibrated", "--baseline", rel, "--out", "o"]) == 0
+    assert main(["regress", "--uncalibrated", "--baseline", rel, "--cases", "nope", "--out", "o"]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", "missing.json", "--out", "o"]) == 2
 
 
 def test_packaged_baseline_exists_and_names_its_cases():
@@ -174,7 +174,7 @@ def test_a_case_on_a_budget_of_ones_own_runs_from_its_file(tmp_path, tiny_baseli
     doc = json.loads(tiny_baseline.read_text())
     doc["cases"]["tiny"].update(budget="fastboard", budget_file="mine.toml")  # relative to the baseline file
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, new = check_regression(tiny_baseline, out=tmp_path / "r", update=True)
+    ok, diff, new = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r", update=True)
     assert ok, diff
     assert (
         new["cases"]["tiny"]["budget_file"] == "mine.toml" and new["cases"]["tiny"]["metrics"]["latency_p50_ref_s"] > 0
@@ -186,7 +186,7 @@ def test_a_case_on_a_budget_of_ones_own_runs_from_its_file(tmp_path, tiny_baseli
     with pytest.raises(
         InputError, match=r"case 'tiny': unknown budget 'rad750' in mine.toml; choose one of: fastboard"
     ):
-        check_regression(tiny_baseline, out=tmp_path / "r2")
+        check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r2")
 
 
 def test_a_budget_named_as_a_shipped_one_in_other_case_is_refused(tmp_path):
@@ -216,7 +216,7 @@ def test_a_signal_under_the_fixture_stops_the_session(hil_regression, tiny_basel
 
     monkeypatch.setattr(run, "run_descent", lambda cfg, log=print: {"interrupted_by": 2, "complete": False})
     with pytest.raises(pytest.exit.Exception) as exc:
-        hil_regression(baseline=tiny_baseline)
+        hil_regression(uncalibrated=True, baseline=tiny_baseline)
     assert exc.value.returncode == 130 and "interrupted by SIGINT during case tiny" in str(exc.value)
 
 
@@ -265,10 +265,10 @@ def test_case_outputs_that_cannot_be_written_are_refused_before_any_case_runs(tm
     out.mkdir()
     (out / "tiny").write_text("x")
     with pytest.raises(InputError, match=r"case 'tiny': its output .*tiny is a file"):
-        check_regression(tiny_baseline, out=out, update=True)
+        check_regression(tiny_baseline, uncalibrated=True, out=out, update=True)
     (out / "tiny").unlink()
     with claim_out(out / "tiny", "run"), pytest.raises(InputError, match="is being written by hazard-hil run"):
-        check_regression(tiny_baseline, out=out, update=True)
+        check_regression(tiny_baseline, uncalibrated=True, out=out, update=True)
 
 
 def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metric_out(tmp_path, monkeypatch):
@@ -285,15 +285,15 @@ def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metr
                                "metrics": m}}}  # fmt: skip
     monkeypatch.setattr(regress, "check_regression", lambda *a, **k: (True, "", json.loads(json.dumps(doc))))
     baseline = tmp_path / "b.json"
-    assert regress.run_regression(baseline, update=True, out=tmp_path / "o") == 0
+    assert regress.run_regression(baseline, uncalibrated=True, update=True, out=tmp_path / "o") == 0
     kept = json.loads(baseline.read_text())["cases"]["board"]["metrics"]
     assert "cpu_p50_ref_s" not in kept and kept["latency_p50_ref_s"] == 0.2
     doc["cases"]["board"]["metrics"] = {**m, "latency_p50_ref_s": nan, "e2e_latency_p50_s": nan}  # no Result at all
-    assert regress.run_regression(tmp_path / "c.json", update=True, out=tmp_path / "o") == 1
+    assert regress.run_regression(tmp_path / "c.json", uncalibrated=True, update=True, out=tmp_path / "o") == 1
     assert not (tmp_path / "c.json").exists()
     # an emulated host case is judged on CPU seconds: recorded without them it could never fail again (review 66)
     doc["cases"]["board"] = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}
-    assert regress.run_regression(tmp_path / "d.json", update=True, out=tmp_path / "o") == 1
+    assert regress.run_regression(tmp_path / "d.json", uncalibrated=True, update=True, out=tmp_path / "o") == 1
     assert not (tmp_path / "d.json").exists()
 
 
@@ -307,7 +307,7 @@ def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, mo
     tiny_baseline.write_text(json.dumps(doc))
     here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-06", "units_per_s": 71.0}}
     monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
-    _, diff, _ = check_regression(tiny_baseline, out=tmp_path / "o")
+    _, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "o")
     assert "warning: the baseline was recorded on another host (vm|elsewhere); this one is vm|here" in diff, diff
 
 
@@ -326,14 +326,14 @@ def test_a_partial_update_keeps_what_the_other_cases_rest_on(tmp_path, monkeypat
     monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
     monkeypatch.setattr(regress, "check_cases", lambda *a, **k: None)
     monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(m))
-    _, _, doc = check_regression(baseline, out=tmp_path / "o", update=True, cases=["a"])
+    _, _, doc = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", update=True, cases=["a"])
     assert doc["recorded"]["cases"] == ["a"] and doc["recorded"]["calibration"]["key"] == "vm|here"
     assert doc["recorded"]["earlier"] == [{**old, "cases": ["b"]}]
     baseline.write_text(json.dumps(doc))
-    _, diff, _ = check_regression(baseline, out=tmp_path / "o", cases=["a"])
+    _, diff, _ = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", cases=["a"])
     assert "another host" not in diff, diff
-    _, diff, _ = check_regression(baseline, out=tmp_path / "o", cases=["b"])
+    _, diff, _ = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", cases=["b"])
     assert "recorded on another host (vm|old); this one is vm|here" in diff, diff
     # a full update leaves no earlier session
-    _, _, doc = check_regression(baseline, out=tmp_path / "o", update=True)
+    _, _, doc = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", update=True)
     assert "earlier" not in doc["recorded"] and doc["recorded"]["cases"] == ["a", "b"]

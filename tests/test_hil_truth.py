@@ -266,7 +266,9 @@ def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, t
 
 def test_regress_from_another_directory_uses_the_packaged_baseline(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert cli(["regress", "--cases", "nope", "--out", "o"]) == 2  # found the packaged baseline, named the case
+    assert (
+        cli(["regress", "--uncalibrated", "--cases", "nope", "--out", "o"]) == 2
+    )  # found the packaged baseline, named the case
     err = capsys.readouterr().err
     assert "unknown regression case" in err and "vertical-host-zmq" in err
 

@@ -111,7 +111,7 @@ def _edit(doc: dict, path: str, value: object) -> dict:
 def test_malformed_baseline_is_one_line_exit_2(tmp_path, capsys, path, value, reason):
     bad = tmp_path / "baseline.json"
     bad.write_text(json.dumps(_edit(_shipped(), path, value)))
-    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert reason in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()  # refused before any case ran
@@ -120,7 +120,7 @@ def test_malformed_baseline_is_one_line_exit_2(tmp_path, capsys, path, value, re
 def test_baseline_that_is_not_an_object_is_exit_2(tmp_path, capsys):
     bad = tmp_path / "baseline.json"
     bad.write_text("[]")
-    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "expected a JSON object" in capsys.readouterr().err
 
 
@@ -132,7 +132,7 @@ def test_a_baseline_of_json_null_is_refused_not_the_shipped_cases(tmp_path, caps
     bad = tmp_path / "baseline.json"
     bad.write_text(text)
     for extra in ([], ["--update"]):
-        assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o"), *extra]) == 2
+        assert main(["regress", "--uncalibrated", "--baseline", str(bad), "--out", str(tmp_path / "o"), *extra]) == 2
         assert reason in capsys.readouterr().err
     assert bad.read_text() == text and not (tmp_path / "o").exists()
 
@@ -145,7 +145,7 @@ def test_a_case_name_that_could_drive_the_terminal_or_leave_out_is_refused(tmp_p
     doc["cases"] = {name: doc["cases"]["vertical-host-zmq"]}
     bad = tmp_path / "baseline.json"
     bad.write_text(json.dumps(doc))
-    assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "a case name is 1-100 printable characters without '/'" in err and len(err.strip().splitlines()) == 1
 
@@ -155,7 +155,20 @@ def test_update_into_a_directory_is_refused_before_the_cases_run(tmp_path, capsy
 
     monkeypatch.setattr(run, "run_descent", lambda *a, **k: pytest.fail("a case ran"))
     (tmp_path / "dir.json").mkdir()
-    assert main(["regress", "--baseline", str(tmp_path / "dir.json"), "--update", "--out", str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            [
+                "regress",
+                "--uncalibrated",
+                "--baseline",
+                str(tmp_path / "dir.json"),
+                "--update",
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     assert "is a directory" in capsys.readouterr().err
 
 
@@ -174,7 +187,7 @@ def test_every_case_is_checked_before_the_first_runs(tmp_path, capsys, monkeypat
         doc["cases"] = {"first": good, "second": later}
         bad = tmp_path / "baseline.json"
         bad.write_text(json.dumps(doc))
-        assert main(["regress", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
+        assert main(["regress", "--uncalibrated", "--baseline", str(bad), "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err
         assert "case 'second': " in err and reason in err and len(err.strip().splitlines()) == 1, err
 
@@ -198,7 +211,10 @@ def test_a_signal_stops_regress_at_its_case_and_exits_128_plus_n(tmp_path, capsy
     base.write_text(json.dumps(doc))
     before = base.read_bytes()
     for extra in ([], ["--update"]):
-        assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o"), *extra]) == 128 + 15
+        assert (
+            main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o"), *extra])
+            == 128 + 15
+        )
         out, err = capsys.readouterr()
         assert "interrupted by SIGTERM during case first; the cases after it were not run" in err
         assert "REGRESSION" not in out and "INTERRUPTED" in out
@@ -214,21 +230,21 @@ def test_a_signal_stops_regress_at_its_case_and_exits_128_plus_n(tmp_path, capsy
                 "e2e_latency_max_s": 0.3, "e2e_latency_p50_s": 0.3}  # fmt: skip
 
     monkeypatch.setattr(run, "run_descent", second_interrupted)
-    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 128 + 15
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 128 + 15
     out, err = capsys.readouterr()
     assert "interrupted by SIGTERM during case second" in err and out.rstrip().endswith("INTERRUPTED")
     assert "first " in out and "deadline_hit_rate" in out, out
 
 
 def test_empty_cases_option_is_refused_not_all_cases(tmp_path, capsys):
-    assert main(["regress", "--cases", ",", "--out", str(tmp_path / "o")]) == 2
+    assert main(["regress", "--uncalibrated", "--cases", ",", "--out", str(tmp_path / "o")]) == 2
     assert "--cases names no case" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
 def test_update_of_the_shipped_baseline_refuses_an_uncalibrated_host(home, tmp_path, capsys):
     before = default_baseline_path().read_bytes()
-    code = main(["regress", "--update", "--cases", "vertical-host-zmq", "--out", str(tmp_path / "o")])
+    code = main(["regress", "--uncalibrated", "--update", "--cases", "vertical-host-zmq", "--out", str(tmp_path / "o")])
     assert code == 2
     assert "uncalibrated host" in capsys.readouterr().err
     assert default_baseline_path().read_bytes() == before and not (tmp_path / "o").exists()
@@ -315,13 +331,15 @@ def test_a_budget_file_changed_since_the_baseline_is_named_and_fails_the_case(tm
     base = tmp_path / "baseline.json"
     case = {"scenario": "vertical", "budget": "myboard", "budget_file": board, "link": "serial"}
     base.write_text(json.dumps({"cases": {"mine": case}}))
-    assert main(["regress", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]) == 0
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]) == 0
     recorded = json.loads(base.read_text())["cases"]["mine"]["budget_recorded"]
     assert recorded["cpu_dmips"] == 2760 and recorded["deadline_s"] == 10 and recorded["baud"] == 115200
     capsys.readouterr()
-    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 0  # unchanged: passes
+    assert (
+        main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 0
+    )  # unchanged: passes
     _budget_file(tmp_path, cpu_dmips="400")
-    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
     out, err = capsys.readouterr()
     said = "budget myboard changed since the baseline (cpu_dmips 2760.0 -> 400.0)"
     assert said in out and said in err and "--update" in out
@@ -337,11 +355,14 @@ def test_a_case_without_recorded_metrics_is_refused_before_any_case_runs(tmp_pat
     base = tmp_path / "baseline.json"
     case = {"scenario": "vertical", "budget": "host", "link": "zmq"}
     base.write_text(json.dumps({"cases": {"old": {**case, "metrics": dict(BASE)}, "new": case}}))
-    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "case new in " in err and f"metrics: record them with `hazard-hil regress --baseline {base} --update" in err
     assert ran == [] and len(err.strip().splitlines()) == 1
-    assert main(["regress", "--baseline", str(base), "--cases", "old", "--out", str(tmp_path / "o")]) == 0
+    assert (
+        main(["regress", "--uncalibrated", "--baseline", str(base), "--cases", "old", "--out", str(tmp_path / "o")])
+        == 0
+    )
     assert ran == ["old"]
 
 
@@ -394,7 +415,7 @@ def test_a_case_whose_run_did_not_finish_says_why_in_the_table(tmp_path, capsys,
     base = tmp_path / "baseline.json"
     case = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": {**BASE, "pairs": 2, "degraded": 0}}
     base.write_text(json.dumps({"cases": {"board": case}}))
-    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
     assert f"board                          the run did not finish: {why}" in capsys.readouterr().out
 
 
@@ -525,7 +546,7 @@ def test_update_into_a_new_file_records_the_shipped_cases_named_and_only_those(t
     cpu = {"cpu_p50_ref_s": 0.2, "cpu_p95_ref_s": 0.2, "cpu_max_ref_s": 0.2}  # the host case is judged on CPU
     monkeypatch.setattr(regress, "measure_case", lambda *a, **k: {**BASE, **cpu, "pairs": 3, "degraded": 0})
     base = tmp_path / "new.json"
-    args = ["regress", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
+    args = ["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
     assert main([*args, "--cases", "vertical-host-zmq"]) == 0, capsys.readouterr().err
     assert list(json.loads(base.read_text())["cases"]) == ["vertical-host-zmq"]
     assert "recording the shipped cases (vertical-host-zmq) into it" in capsys.readouterr().err
@@ -533,3 +554,58 @@ def test_update_into_a_new_file_records_the_shipped_cases_named_and_only_those(t
     assert main([*args, "--cases", "mine"]) == 2
     err = capsys.readouterr().err
     assert "no baseline at" in err and "to hold case(s) ['mine']: name shipped cases" in err and not base.exists()
+
+
+def test_an_uncalibrated_host_is_refused_unless_told_and_its_verdict_says_so(home, tmp_path, capsys, monkeypatch):
+    """On a runner never calibrated, reference seconds assume the anchor's speed: the host case read 30 % low and
+    passed with a warning on stderr alone (QA of stop 73). It is refused before any case runs; --uncalibrated
+    judges anyway, and the verdict line says so."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0}
+    ran = []
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: ran.append(1) or dict(metrics))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial", "metrics": metrics}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    assert main(["regress", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 2
+    assert "this host is not calibrated" in capsys.readouterr().err and not ran
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert ran and out[-1].startswith("PASS against") and "(uncalibrated host" in out[-1], out
+
+
+def test_update_shows_what_it_replaces_and_does_not_record_missed_deadlines(tmp_path, capsys, monkeypatch):
+    """--update overwrote a baseline 3x faster without showing the old figure, and recorded a case that missed
+    every deadline, which every later run then passed against (QA of stop 73)."""
+    from hil_server import regress
+
+    old = {**BASE, "pairs": 2, "degraded": 0}
+    now = {**old, "latency_p50_ref_s": 3.0 * old["latency_p50_ref_s"]}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(now))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial", "metrics": old}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
+    assert main(argv) == 0
+    row = next(ln for ln in capsys.readouterr().out.splitlines() if "latency_p50_ref_s" in ln)
+    assert "recorded (was 1.000, +200 %)" in row, row
+    missed = {**now, "deadline_hit_rate": 0.0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(missed))
+    before = base.read_text()
+    assert main(argv) == 1
+    out = capsys.readouterr().out
+    assert "baseline NOT written" in out and base.read_text() == before
+    assert main([*argv, "--min-hit-rate", "0"]) == 0  # recorded when asked to, by the hit rate it may have
+    assert json.loads(base.read_text())["cases"]["c"]["metrics"]["deadline_hit_rate"] == 0.0
+
+
+def test_a_metric_the_absolute_tolerance_lets_double_reads_loosely_ok():
+    """A 0.03 s case could grow 3x under the 0.1 s absolute tolerance and read plain "ok" (QA of stop 73)."""
+    from hil_server.regress import DEFAULT_TOLERANCES, compare, diff_table
+
+    base = {**BASE, "latency_p50_ref_s": 0.03, "latency_p95_ref_s": 2.0}
+    o = compare("c", {**base, "latency_p50_ref_s": 0.09}, base, DEFAULT_TOLERANCES)
+    rows = {ln.split()[1]: ln for ln in diff_table([o]).splitlines()[1:]}
+    assert not o.problems and "ok (loosely: the absolute tolerance lets it double)" in rows["latency_p50_ref_s"]
+    assert rows["latency_p95_ref_s"].endswith(" ok")  # 2 s: held to +35 %
