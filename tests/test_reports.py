@@ -398,7 +398,19 @@ def test_a_label_cannot_break_the_run_summary_table():
     row = next(line for line in summary_table(s).splitlines() if line.startswith("| 300"))
     cells = row.replace("\\|", "\x00").split("|")[1:-1]  # an escaped bar is not a cell boundary
     assert len(cells) == 12, cells
-    assert r"300\|150 \*x\* \`y\` &lt;b&gt;" in row and r"a \| b" in row, row
+    assert r"300\|150 \*x\* \`y\` &lt;b>" in row and r"a \| b" in row, row
+
+
+def test_a_markdown_cell_escapes_markup_only():
+    """A memory ceiling's "36.6 MiB > 36 MiB" read "36.6 MiB &gt; 36 MiB" in summary.md and on the console (QA of
+    stop 73): only a "<" or "&" that would start a tag, a comment or an entity is written as one."""
+    from reports.console import md_cell
+
+    assert md_cell("private RSS 36.6 MiB > 36 MiB, P <0.001, A & B") == "private RSS 36.6 MiB > 36 MiB, P <0.001, A & B"
+    assert (
+        md_cell("<script>x</script> <!-- c --> &amp; &#60;")
+        == "&lt;script>x&lt;/script> &lt;!-- c --> &amp;amp; &amp;#60;"
+    )
 
 
 def test_evaluates_pixel_score_figure_is_over_the_true_overlap_as_its_table(tmp_path, monkeypatch):
