@@ -331,6 +331,7 @@ def _budgets(args: argparse.Namespace) -> int:
         load_calibration,
         max_image_side,
     )
+    from protocol.pairdir import IMAGE_SIZE_MAX
 
     budgets = load_budgets(args.file)
     cal = load_calibration()
@@ -347,7 +348,7 @@ def _budgets(args: argparse.Namespace) -> int:
         )
     width = max(15, *(len(n) + 2 for n in budgets))
     print(
-        f"{'budget':<{width}}{'DMIPS':>8}{'share':>9}{'slower':>10}{'duty':>9}{'memory':>10}{'max image':>11}"
+        f"{'budget':<{width}}{'DMIPS':>8}{'share':>9}{'slower':>10}{'duty':>9}{'memory':>11}{'max image':>11}"
         f"{'deadline':>10}  {'link':<16}description"
     )
     with warnings.catch_warnings():
@@ -357,11 +358,13 @@ def _budgets(args: argparse.Namespace) -> int:
             link = b.link if b.baud is None else f"{b.link} {b.baud}"
             duty = b.duty(cal)
             side = max_image_side(b.memory_mib)
-            camera = f"{side}x{side}" if side > 0 else "none"
+            # `render` and `run --image-size` make at most IMAGE_SIZE_MAX px: a larger "max image" is none they make
+            camera = "none" if side <= 0 else f">={IMAGE_SIZE_MAX}" if side > IMAGE_SIZE_MAX else f"{side}x{side}"
             share, applied = f"{100 * duty.effective:.3g}%", f"{100 * duty.applied:.3g}%"
+            memory = f"{b.memory_mib:g} MiB" if b.memory_mib < 10**5 else f"{b.memory_mib / 1024:.0f} GiB"
             print(
                 f"{b.name:<{width}}{dmips:>8}{share:>9}{f'{1 / duty.effective:.1f}x':>10}{applied:>9}"
-                f"{b.memory_mib:>6} MiB{camera:>11}{b.deadline_s:>9g}s  {link:<16}{b.description}"
+                f"{memory:>11}{camera:>11}{b.deadline_s:>9g}s  {link:<16}{b.description}"
             )
             if args.sources:
                 print(f"{'':<{width}}source: {b.source}")
@@ -379,6 +382,16 @@ def _budgets(args: argparse.Namespace) -> int:
     return 0
 
 
+def _physical_mib() -> float | None:
+    """This host's RAM in MiB, or None where the system does not say."""
+    import os
+
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**20
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
     """What `run` would say of ``budget`` on this host, said in `budgets`' listing before anyone waits for it."""
     from hil_server.budgets import BudgetError, check_runnable, flight_peak_rss_mib, max_image_side
@@ -392,6 +405,12 @@ def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
         out.append(
             f"faster than this host's core ({host_dmips:.0f} DMIPS): it runs at this core's full speed, so its "
             "verdict is pessimistic"
+        )
+    ram = _physical_mib()
+    if ram is not None and budget.memory_mib > ram:  # the ceiling then never binds: this host runs out first
+        out.append(
+            f"its memory ceiling, {budget.memory_mib:.0f} MiB, is over this host's {ram:.0f} MiB of RAM: the host "
+            "runs out before the ceiling is reached"
         )
     if max_image_side(budget.memory_mib) <= 0:
         out.append(

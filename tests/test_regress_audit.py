@@ -303,6 +303,7 @@ def _budget_file(tmp_path, name: str = "myboard", **changes: str | None) -> str:
     "changes, reason",
     [
         ({"deadline_s": None}, "missing 'deadline_s'"),
+        ({"description": None, "link": None}, "missing 'description', 'link'"),  # at once, not one per round
         ({"cpu_dmips": "0"}, "'cpu_dmips' must be > 0"),
         ({"memory_mib": "-5"}, "'memory_mib' must be > 0"),
         ({"memory_mib": "1e30"}, "'memory_mib' must be <= 1048576"),
@@ -609,3 +610,24 @@ def test_a_metric_the_absolute_tolerance_lets_double_reads_loosely_ok():
     rows = {ln.split()[1]: ln for ln in diff_table([o]).splitlines()[1:]}
     assert not o.problems and "ok (loosely: the absolute tolerance lets it double)" in rows["latency_p50_ref_s"]
     assert rows["latency_p95_ref_s"].endswith(" ok")  # 2 s: held to +35 %
+
+
+def test_a_serial_budget_may_leave_out_its_baud_and_source(tmp_path):
+    """`run --help` said the baud defaults to "the budget's, else 921600", yet a serial budget without one was
+    refused; so was one without its free-text source (QA of stop 73)."""
+    from hil_server.budgets import load_budgets
+
+    b = load_budgets(_budget_file(tmp_path, link='"serial"', baud=None, source=None))["myboard"]
+    assert b.baud == 921600 and b.source == "(not given)"
+
+
+def test_a_memory_ceiling_past_the_host_and_the_camera_cap_is_said_and_the_table_stays_aligned(tmp_path, capsys):
+    """A 1 TiB ceiling ran its columns together ("100%1048576 MiB68183x68183"), offered a 68183 px camera
+    `run --image-size` cannot make, and said nothing of this host having far less RAM (QA of stop 73)."""
+    assert main(["budgets", "--file", _budget_file(tmp_path, memory_mib="1048576")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    head = next(ln for ln in out if ln.startswith("budget "))
+    row = next(ln for ln in out if ln.startswith("myboard"))
+    assert " 1024 GiB" in row and ">=4096" in row and "68183" not in row, row
+    assert row.index("1024 GiB") + len("1024 GiB") == head.index("memory") + len("memory")  # under its header
+    assert any("over this host's" in ln and "MiB of RAM" in ln for ln in out), out
