@@ -117,6 +117,7 @@ class CaseOutcome:
     below_required: bool = False  # its hit rate is under the one the run requires (--min-hit-rate, else every pair)
     previous: dict | None = None  # --update: the metrics it replaces, shown beside the new ones
     loose: list[str] = field(default_factory=list)  # metrics whose limit is at least twice the baseline
+    unwritten: bool = False  # --update interrupted: measured, and the baseline was left unchanged
 
 
 def effective_speed(budget_name: str, budget_file: Path | None = None) -> tuple[float, float]:
@@ -299,6 +300,29 @@ def _change(was: Any, now: Any, fmt: str) -> str:
     return head + (f", {100.0 * (n - w) / w:+.0f} %" if w else "")
 
 
+def _metric_verdict(o: CaseOutcome, k: str) -> str:
+    """The verdict of metric ``k`` of case outcome ``o``, as the diff table and regress.json say it."""
+    c = o.current.get(k, math.nan)
+    fmt = "d" if k == "degraded" else ".3f"
+    bad = any(_about(p, k) for p in o.problems)
+    verdict = "REGRESSION" if bad else "ok"
+    if o.baseline is not None and k not in o.baseline:
+        verdict = "not judged: not in the baseline (record it with --update)"
+    # a hit rate under the one required read "ok" beside a FAIL, even as an --update recorded it (QA 71)
+    missed = k == "deadline_hit_rate" and o.below_required
+    if o.unwritten:
+        verdict = "measured; not recorded (interrupted: the baseline is unchanged)"
+    elif o.recorded:
+        verdict = "recorded" + ("; deadlines missed (below the hit rate required)" if missed else "")
+        if o.previous is not None and k in o.previous:  # what the update replaces, and by how much
+            verdict += f" (was {_change(o.previous[k], c, fmt)})"
+    elif missed and not bad:
+        verdict = "deadlines missed (below the hit rate required)"
+    elif k in o.loose and not bad:
+        verdict = "ok (loosely: the absolute tolerance lets it double)"
+    return verdict
+
+
 def diff_table(outcomes: list[CaseOutcome]) -> str:
     """One line per case and metric: baseline, the limit it was held to, the current value, the verdict.
 
@@ -313,23 +337,9 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
             lim = o.limits.get(k, math.nan)
             fmt = "d" if k == "degraded" else ".3f"
             bound = ("≥" if k == "deadline_hit_rate" else "≤") + f"{lim:{fmt}}" if math.isfinite(lim) else "–"
-            bad = any(_about(p, k) for p in o.problems)
-            verdict = "REGRESSION" if bad else "ok"
-            if o.baseline is not None and k not in o.baseline:
-                verdict = "not judged: not in the baseline (record it with --update)"
-            # a hit rate under the one required read "ok" beside a FAIL, even as an --update recorded it (QA 71)
-            missed = k == "deadline_hit_rate" and o.below_required
-            if o.recorded:
-                verdict = "recorded" + ("; deadlines missed (below the hit rate required)" if missed else "")
-                if o.previous is not None and k in o.previous:  # what the update replaces, and by how much
-                    verdict += f" (was {_change(o.previous[k], c, fmt)})"
-            elif missed and not bad:
-                verdict = "deadlines missed (below the hit rate required)"
-            elif k in o.loose and not bad:
-                verdict = "ok (loosely: the absolute tolerance lets it double)"
             b_txt = f"{b:>10{fmt}}" if isinstance(b, int) or math.isfinite(b) else f"{'–':>10}"
             c_txt = f"{c:>10{fmt}}" if isinstance(c, int) or math.isfinite(c) else f"{'–':>10}"
-            lines.append(f"{o.name:<30} {k:<22} {b_txt} {bound:>10} {c_txt}  {verdict}")
+            lines.append(f"{o.name:<30} {k:<22} {b_txt} {bound:>10} {c_txt}  {_metric_verdict(o, k)}")
         for p in o.problems:
             if not any(_about(p, k) for k in keys):
                 lines.append(f"{o.name:<30} {p}")
@@ -663,6 +673,8 @@ def check_regression(
         try:
             cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
         except RegressInterrupted as exc:
+            for o in outcomes:  # the table read "recorded" for cases the baseline then did not get (QA of stop 73)
+                o.unwritten = o.recorded
             exc.finished = diff_table(outcomes) if outcomes else ""
             raise
         incomplete = cur.pop("incomplete_reason", None)
@@ -700,7 +712,54 @@ def check_regression(
     diff = diff_table(outcomes)
     if notes:
         diff += "\n" + "\n".join(f"warning: {n}" for n in notes)
+    _write_report(out, {"baseline": str(baseline), "update": update, "judged_ok": ok, "warnings": notes,
+                        "cases": outcome_rows(outcomes)})  # fmt: skip
     return ok, diff, new_doc
+
+
+REPORT_NAME = "regress.json"  # in --out: the diff table and verdict for a CI to read (QA of stop 73)
+
+
+def outcome_rows(outcomes: list[CaseOutcome]) -> list[dict]:
+    """The diff table as data: per case its problems and, per metric, baseline, limit, current and verdict."""
+    rows = []
+    for o in outcomes:
+        metrics = {
+            k: {
+                "baseline": _finite((o.baseline or {}).get(k)),
+                "limit": _finite(o.limits.get(k)),
+                "current": _finite(o.current.get(k)),
+                "verdict": _metric_verdict(o, k),
+            }
+            for k in ["deadline_hit_rate", "degraded", *o.metrics]
+        }
+        rows.append({"case": o.name, "problems": list(o.problems), "recorded": o.recorded, "metrics": metrics})
+    return rows
+
+
+def _finite(v: Any) -> Any:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _write_report(out: Path, doc: dict) -> None:
+    """``OUT/regress.json``, whole or not at all; a refused write is said, not fatal (the console has the table)."""
+    from reports.html import write_atomic
+
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        write_atomic(Path(out) / REPORT_NAME, json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    except OSError as exc:
+        print(f"regress: warning: {Path(out) / REPORT_NAME} not written ({exc.strerror or exc})", file=sys.stderr)
+
+
+def _final_report(out: Path, verdict: str, code: int) -> None:
+    """Add the command's own verdict and exit code to ``OUT/regress.json``."""
+    path = Path(out) / REPORT_NAME
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        doc = {}
+    _write_report(out, {**doc, "verdict": verdict, "exit_code": code})
 
 
 def _check_writable(baseline: Path) -> None:
@@ -779,6 +838,7 @@ def run_regression(
                 f"judged on (no Result, or a flight program whose Telemetry leaves them out); {baseline} is unchanged"
             )
             print("FAIL")
+            _final_report(out, "FAIL: baseline not written (a case measured none of its metrics)", 1)
             return 1
         if not ok:  # a baseline of missed deadlines passed every later run held to it (QA of stop 73)
             print(
@@ -786,11 +846,14 @@ def run_regression(
                 "unchanged (to record a case that misses some, give the hit rate it may have: --min-hit-rate)"
             )
             print("FAIL")
+            _final_report(out, "FAIL: baseline not written (a case missed its deadlines or did not finish)", 1)
             return 1
         write_atomic(Path(baseline), json.dumps(new_doc, indent=1, sort_keys=True) + "\n")
         print(f"baseline written: {baseline}")
     blind = " (uncalibrated host: reference seconds at the anchor's speed)" if _judged_uncalibrated(new_doc) else ""
-    print(("PASS" if ok else "FAIL") + (" (baseline recorded)" if update else f" against {baseline}") + blind)
+    verdict = ("PASS" if ok else "FAIL") + (" (baseline recorded)" if update else f" against {baseline}") + blind
+    print(verdict)
+    _final_report(out, verdict, 0 if ok else 1)
     return 0 if ok else 1
 
 

@@ -903,7 +903,9 @@ def top_site_text(r: dict) -> str:
     return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count}{on})"
 
 
-def summary_table(summary: dict) -> str:
+def summary_table(summary: dict, verdict: bool = False) -> str:
+    """summary.md: the run's setting, its notes and one row per pair; ``verdict``: the run's verdict line last (the
+    file's; the console says it apart)."""
     from hil_server.run_report import level_text
     from reports.console import md_cell
 
@@ -912,6 +914,7 @@ def summary_table(summary: dict) -> str:
         "| CDI % (grid) | DEM mean abs m (grid) | top site |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    errors: list[str] = []
     for r in summary["records"]:
         sc = r.get("scores", {})
         if r.get("status") == "result":
@@ -925,12 +928,12 @@ def summary_table(summary: dict) -> str:
                 f"{_fmt(sc.get('dem_mean_abs'))} | {top_site_text(r)} |"
             )
         else:
-            # the reason in the row: the file said only "error: link_down", the reason was in summary.json alone
-            why = md_cell(r.get("text") or "no result", 160)
+            # the reason below the table, by the pair: the file said only "error: link_down", the reason was in
+            # summary.json alone; then it sat in the deadline column (QA of stop 73)
+            errors.append(f"- **{md_cell(r['label'])}**: {md_cell(r.get('text') or 'no result', 400)}")
             rows.append(
-                f"| {md_cell(r['label'])} | {_fmt(r['altitude_m'], '.0f')} | error: {md_cell(r.get('code'))} | — | — | "
-                f"— | — | {why} "
-                "| — | — | — | — |"
+                f"| {md_cell(r['label'])} | {_fmt(r['altitude_m'], '.0f')} | error: {md_cell(r.get('code'))} "
+                f"(below) | — | — | — | — | — | — | — | — | — |"
             )
     s = summary
     eff = s.get("effective_fraction")
@@ -970,7 +973,10 @@ def summary_table(summary: dict) -> str:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):
         head = f"**INCOMPLETE: {s.get('reason')}**\n\n" + head
-    return head + "\n\n" + "\n".join(rows) + "\n\n" + GRID_SCORES_NOTE + "\n"
+    table = "\n".join(rows) + ("\n\nErrors:\n\n" + "\n".join(errors) if errors else "")
+    said = s.get("verdict")
+    tail = f"\n\n**{said['line']}** (exit {said['exit_code']})" if verdict and isinstance(said, dict) else ""
+    return head + "\n\n" + table + "\n\n" + GRID_SCORES_NOTE + tail + "\n"
 
 
 def fusion_sources(entries: list[dict], base: Path | None = None) -> list[str]:
@@ -1977,12 +1983,20 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "psafe_fallback": psafe_fallback(cfg, manifest),
             },
         )
+        # the run's own verdict, for a CI that reads files (a signal while they are written still exits 128 + N)
+        code = exit_code(summary, cfg.min_hit_rate)
+        summary["verdict"] = {
+            "exit_code": code,
+            "pass": code == 0,
+            "line": verdict_line(summary, cfg.min_hit_rate),
+            "min_hit_rate": cfg.min_hit_rate,
+        }
         table = summary_table(summary)  # says flight_note's line itself: logged once, with the table below
         from hil_server.run_report import write_run_report
         from reports.html import write_atomic
 
         try:
-            write_atomic(out / "summary.md", table)
+            write_atomic(out / "summary.md", summary_table(summary, verdict=True))
             try:
                 write_run_report(summary, out / "report.html")
             except Exception as exc:  # a page that fails must not cost the run its summary (it stayed "in progress")

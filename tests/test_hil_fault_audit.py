@@ -206,6 +206,9 @@ def test_a_refused_result_ends_its_pair_at_once_with_the_schema_reason(manifest,
     then waited for the hard limit and was reported as a hang. A hostile message was not reported at all."""
     code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "hostile"))
     assert code == 1
+    # the verdict in the files, for a CI that reads them (QA of stop 73)
+    assert s["verdict"]["exit_code"] == 1 and not s["verdict"]["pass"] and s["verdict"]["line"].startswith("FAIL")
+    assert md.rstrip().endswith(f"**{s['verdict']['line']}** (exit 1)")
     assert outcomes(s) == [("600/300", "result", None), ("300/150", "error", "bad_result"), ("200/100", "result", None)]
     text = s["records"][1]["text"]
     assert "Result was refused" in text and "state_grid" in text and "2-D" in text
@@ -314,6 +317,7 @@ def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_pa
     """The ground used to wait 36 s per pair for the Telemetry and record "no result" although it held the Result."""
     code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "no_telemetry"), "--deadline", "1")
     assert [r["status"] for r in s["records"]] == ["result"] * 3
+    assert s["verdict"]["pass"] is (code == 0) and s["verdict"]["exit_code"] == code
     assert s["supervisor_counters"]["missing_telemetry"] == 2
     assert all(e["event"] == "missing_telemetry" for e in s["flight_events"])
     assert code == 0

@@ -288,9 +288,12 @@ def test_a_hil_server_that_fails_ends_the_run_at_once_with_its_reason(manifest, 
 
     # pairs never reached are said to be so, not reported as deadlines missed
     assert s["not_run"] == 3 and "(0 late, 3 errors: 3 not run; " in verdict_line(s)
-    # and each row says why (summary.md read only "error: not_run")
-    rows = [line for line in summary_table(s).splitlines() if line.startswith("| ") and "error: not_run" in line]
-    assert len(rows) == 3 and all("supervisor: error: cannot open the link" in line for line in rows), rows
+    # and each pair's reason is said, below the table (summary.md read only "error: not_run")
+    text = summary_table(s)
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "error: not_run" in line]
+    why = [line for line in text.splitlines() if line.startswith("- **")]
+    assert len(rows) == 3 and len(why) == 3, text
+    assert all("supervisor: error: cannot open the link" in line for line in why), why
     assert "MISSED" not in summary_table(s)
 
 

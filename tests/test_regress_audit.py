@@ -631,3 +631,49 @@ def test_a_memory_ceiling_past_the_host_and_the_camera_cap_is_said_and_the_table
     assert " 1024 GiB" in row and ">=4096" in row and "68183" not in row, row
     assert row.index("1024 GiB") + len("1024 GiB") == head.index("memory") + len("memory")  # under its header
     assert any("over this host's" in ln and "MiB of RAM" in ln for ln in out), out
+
+
+def test_regress_writes_its_verdict_for_a_ci_to_read(tmp_path, capsys, monkeypatch):
+    """The diff table and the verdict were on the console alone (QA of stop 73): OUT/regress.json holds each case's
+    metrics with baseline, limit, current and verdict, and the command's verdict and exit code."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0}
+    slow = {**metrics, "latency_p50_ref_s": 2.0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(slow))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial", "metrics": metrics}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    assert main(["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]) == 1
+    doc = json.loads((tmp_path / "o" / "regress.json").read_text())
+    assert doc["exit_code"] == 1 and doc["verdict"].startswith("FAIL against") and not doc["judged_ok"]
+    (c,) = doc["cases"]
+    p50 = c["metrics"]["latency_p50_ref_s"]
+    assert (p50["baseline"], p50["current"], p50["verdict"]) == (1.0, 2.0, "REGRESSION") and p50["limit"] == 1.35
+    assert c["metrics"]["deadline_hit_rate"]["verdict"] == "ok" and c["problems"]
+
+
+def test_an_interrupted_update_does_not_say_recorded(tmp_path, capsys, monkeypatch):
+    """A SIGINT during the second case of an --update left the first one's rows reading "recorded", then "the
+    baseline is unchanged" (QA of stop 73)."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0}
+    calls = []
+
+    def measure(name, *a, **k):
+        calls.append(name)
+        if len(calls) > 1:
+            raise regress.RegressInterrupted(2, name)
+        return dict(metrics)
+
+    monkeypatch.setattr(regress, "measure_case", measure)
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial", "metrics": metrics}
+    base.write_text(json.dumps({"cases": {"a": case, "b": case}}))
+    before = base.read_text()
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
+    assert main(argv) == 130
+    out = capsys.readouterr().out
+    assert "recorded" not in out.replace("not recorded", "") and "not recorded (interrupted" in out, out
+    assert base.read_text() == before

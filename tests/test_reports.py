@@ -395,10 +395,13 @@ def test_a_label_cannot_break_the_run_summary_table():
     s = {"records": [rec], "scenario": "vertical", "link": "zmq", "flight": "emulated", "budget": "host",
          "results": 0, "pairs": 1, "degraded": 0, "errors": 1, "e2e_latency_p50_s": nan, "e2e_latency_max_s": nan,
          "flight_latency_p50_s": nan, "deadline_hit_rate": 0.0}  # fmt: skip
-    row = next(line for line in summary_table(s).splitlines() if line.startswith("| 300"))
+    text = summary_table(s)
+    row = next(line for line in text.splitlines() if line.startswith("| 300"))
     cells = row.replace("\\|", "\x00").split("|")[1:-1]  # an escaped bar is not a cell boundary
     assert len(cells) == 12, cells
-    assert r"300\|150 \*x\* \`y\` &lt;b>" in row and r"a \| b" in row, row
+    assert r"300\|150 \*x\* \`y\` &lt;b>" in row and "error: link_down (below)" in row, row
+    # the reason below the table, by its pair: it sat in the deadline column (QA of stop 73)
+    assert cells[7].strip() == "—" and r"- **300\|150 \*x\* \`y\` &lt;b>**: a \| b" in text, text
 
 
 def test_a_markdown_cell_escapes_markup_only():
