@@ -96,7 +96,7 @@ CODES = {np.dtype(v): k for k, v in DTYPES.items()}
 
 
 def ext_hook(code: int, data: bytes):
-    """Arrays: ext 1 (raw) and ext 3 (zlib, optional delta filter) - section 5.2."""
+    """Arrays: ext 1 (raw) and ext 3 (zlib, delta filter 0, 1 or 2: the trailing axes differenced) - section 5.2."""
     dt = np.dtype(DTYPES[data[0]])
     ndim = data[1]
     shape = struct.unpack(f">{ndim}I", data[2 : 2 + 4 * ndim])
@@ -105,7 +105,11 @@ def ext_hook(code: int, data: bytes):
         return np.frombuffer(rest, dt).reshape(shape)
     if code == 3:
         arr = np.frombuffer(zlib.decompress(rest[1:]), dt).reshape(shape)
-        return np.cumsum(arr, axis=-1, dtype=dt) if rest[0] == 1 else arr
+        if rest[0] > min(ndim, 2) or (rest[0] and dt.kind not in "iu"):
+            raise ValueError(f"filter {rest[0]} does not apply to a {ndim}-d {dt} array")
+        for axis in range(ndim - rest[0], ndim):  # filter k: the last k axes were differenced, in order
+            arr = np.cumsum(arr, axis=axis, dtype=dt)
+        return arr
     raise ValueError(f"ext type {code} is not for byte streams")
 
 

@@ -30,7 +30,10 @@ def parse_serial(rest: str) -> tuple[str, int | None]:
     if sep and url and not baud:
         raise InputError(f"serial link spec {rest!r}: nothing after '@' (the baud, e.g. @921600, or @0 for unpaced)")
     if sep and url and baud and "/" not in baud and not baud.isdigit():  # serial:/dev/ttyS0@fast: a baud meant
-        raise InputError(f"serial link spec {rest!r}: the baud after '@' must be a whole number, got {baud!r}")
+        raise InputError(
+            f"serial link spec {rest!r}: the baud after '@' must be a whole number of bits per second (0: unpaced), "
+            f"got {baud!r}"
+        )
     if not sep or not baud.isdigit():
         return rest, DEFAULT_BAUD
     if not url:

@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hilkit import small_descent, strict_json
 
@@ -346,3 +347,20 @@ def test_a_pair_in_flight_when_the_run_is_stopped_is_interrupted_not_not_run(man
         r"interrupted by SIGINT (after|while) its frames went; its answer was not awaited", s["records"][1]["text"]
     )
     assert s["not_run"] == 1
+
+
+@pytest.mark.parametrize("filt", [0, 1, 2])
+def test_the_example_flight_program_decodes_every_filter_the_spec_allows(filt):
+    """examples/minimal_flight.py's decoder handled filters 0 and 1 only, and read a filter-2 array (which section
+    5.2 lets a sender use on any integer array) as if unfiltered (QA of stop 73). Against the reference encoder."""
+    import sys
+    import zlib
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    import minimal_flight as mf
+
+    from protocol.codec import _array_header, _wire_array, delta_encode
+
+    a = _wire_array((np.arange(48, dtype=np.int16).reshape(6, 8) * 37) % 251 - 100)
+    payload = _array_header(a) + bytes((filt,)) + zlib.compress(delta_encode(a, filt).tobytes())
+    assert np.array_equal(mf.ext_hook(3, payload), a)
