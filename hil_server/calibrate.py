@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import statistics
 import subprocess
 import sys
@@ -212,7 +213,9 @@ class EfficiencyProbe:
             popen.stdin.flush()
         line = popen.stdout.readline()
         if not line:
-            raise RuntimeError(f"the throttle-efficiency probe ended (exit {popen.wait()})")
+            code = popen.wait()
+            how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit {code}"
+            raise RuntimeError(f"the throttle-efficiency probe ended ({how})")
         return [float(x) for x in json.loads(line)]
 
     def eta(self, fraction: float, min_wall_s: float = 0.0) -> float:

@@ -453,6 +453,9 @@ def start_at_full_speed(argv: list[str], **popen_kwargs) -> subprocess.Popen:
     starter = os.getpid()
 
     def preexec() -> None:  # between fork and exec: async-signal-safe calls only
+        # its own process group: stopped by the throttle, in its starter's group it got the kernel's SIGHUP when a
+        # launching shell exited and left that group orphaned (`run ... &` from a script; QA of stop 73)
+        os.setpgid(0, 0)
         # SIGKILL when its starter dies: a throttled probe is stopped half the time, and a SIGTERM would wait on
         # a SIGCONT that never comes (a `run` killed during its throttle check left it stopped, orphaned; stop 63)
         if prctl is not None:

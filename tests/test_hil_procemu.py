@@ -480,3 +480,19 @@ def test_a_pairs_cpu_fraction_cannot_pass_one_core():
     throttled = {"cpu_s": 1.05, "wall_s": 11.0, "contention_s": 0.6}  # 0.05 s CPU of 0.9 s it could run
     assert pair_cpu_fraction(before, throttled) == pytest.approx(0.05 / 0.9)
     assert math.isnan(pair_cpu_fraction(None, throttled))
+
+
+def test_a_full_speed_probe_runs_in_its_own_process_group():
+    """`run`'s throttle-check probe sat in run's process group: stopped by the throttle when a launching shell
+    exited, the kernel's SIGHUP to the orphaned group ended it ("the probe ended (exit -1)"; QA of stop 73)."""
+    import os
+    import subprocess
+    import sys
+
+    from hil_server.procemu import start_at_full_speed
+
+    p = start_at_full_speed(
+        [sys.executable, "-c", "import os; print(os.getpgid(0))"], stdout=subprocess.PIPE, text=True
+    )
+    out, _ = p.communicate(timeout=60)
+    assert int(out) == p.pid and p.pid != os.getpgid(0)
