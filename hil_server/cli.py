@@ -239,9 +239,13 @@ def _one_line_warning(fallback):
     file, line number and code line; any other warning is shown as Python shows it (``fallback``)."""
     from hil_server.budgets import UncalibratedWarning
 
+    said: set[str] = set()
+
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, UncalibratedWarning):
-            print(f"warning: {message}", file=file or sys.stderr)
+            if str(message) not in said:  # once per command: each place that asks the host's speed warned (3x a run)
+                said.add(str(message))
+                print(f"warning: {message}", file=file or sys.stderr)
         else:
             fallback(message, category, filename, lineno, file, line)
 

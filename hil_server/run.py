@@ -57,6 +57,7 @@ import numpy as np
 from ground_sim.results_file import read_results
 from hil_server.budgets import (
     THROTTLE_CHECK_TOLERANCE,
+    UNCALIBRATED_SAID,
     Budget,
     Duty,
     HostCalibration,
@@ -146,7 +147,12 @@ def budget_note(summary: dict) -> str:
     return (
         f"budget {name}{own}: {dmips:,.0f} DMIPS = {100 * float(b['share']):.3g} % of this host's core "
         f"({host:,.0f} DMIPS, {when}), {float(b['slowdown']):.3g}x slower than it; the throttle's duty cycle "
-        f"{100 * float(b['duty']):.3g} % delivers that share"
+        + (
+            f"{100 * float(b['duty']):.3g} % delivers that share"
+            if b.get("calibrated_at")
+            else f"{100 * float(b['duty']):.3g} % assumes a throttled CPU-second does a full one's work, not measured "
+            "here (a calibration measures it, and run then checks it)"
+        )
     )
 
 
@@ -1780,7 +1786,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                     duty = budget.duty(cal)
                     log(f"run: {throttle_note(throttle, duty.applied)}")
                     fraction, effective = duty.applied, duty.effective
-            env = dict(os.environ)
+            env = {**os.environ, UNCALIBRATED_SAID: "1"}  # said once, here, not again by each process
             ground_cmd = [
                 sys.executable,
                 "-m",

@@ -677,3 +677,25 @@ def test_an_interrupted_update_does_not_say_recorded(tmp_path, capsys, monkeypat
     out = capsys.readouterr().out
     assert "recorded" not in out.replace("not recorded", "") and "not recorded (interrupted" in out, out
     assert base.read_text() == before
+
+
+def test_an_uncalibrated_run_says_so_once_and_does_not_claim_the_duty_delivers(home, tmp_path, capsys):
+    """An uncalibrated run warned three times, and its summary said "the throttle's duty cycle 32.6 % delivers that
+    share", which nothing had measured (QA of stop 73)."""
+    argv = [
+        "run",
+        "--budget",
+        "snapdragon801",
+        "--image-size",
+        "64",
+        "--pairs",
+        "600/300",
+        "--out",
+        str(tmp_path / "r"),
+    ]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("no calibration for this host") == 1, err
+    assert "no calibration" not in (tmp_path / "r" / "supervisor.log").read_text()
+    md = (tmp_path / "r" / "summary.md").read_text()
+    assert "delivers that share" not in md and "not measured here" in md
