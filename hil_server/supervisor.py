@@ -251,6 +251,15 @@ class FlightHandle:
         self.hello_noted = ""  # the last no-Hello diagnosis logged (one line per change, not per poll)
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
 
+    def line_garbage(self) -> int:
+        """Frames from this incarnation that failed the line's checks (CRC, framing, size) since it started."""
+        try:
+            stats = self.link.stats
+            stats = stats() if callable(stats) else stats
+        except Exception:
+            return 0
+        return int(sum(float(stats.get(k, 0)) for k in LINE_ERROR_STATS))
+
     def no_hello_note(self) -> str:
         """Why no Hello has come from this incarnation, as far as its link can tell (a user's own program: a "no
         Hello" read the same whether it never wrote, wrote frames that failed their CRC, or never sent the
@@ -890,8 +899,16 @@ class Supervisor:
         if skipping is not None:
             return f"; the flight process is sending a message the HIL server refuses ({skipping.reason})"
         last, ignored = self.flight.last_refusal, self.flight.last_ignored
-        return (f"; last refused from the flight process: {last}" if last else "") + (
-            f"; it sent {ignored}, which was ignored (its frame_seqs wrong?)" if ignored else ""
+        bad = self.flight.line_garbage()
+        return (
+            (f"; last refused from the flight process: {last}" if last else "")
+            + (f"; it sent {ignored}, which was ignored (its frame_seqs wrong?)" if ignored else "")
+            # junk on its line instead of a Result read as a plain hang (QA of stop 73)
+            + (
+                f"; {bad} frame{'' if bad == 1 else 's'} it sent failed the line's checks (garbage on its line)"
+                if bad
+                else ""
+            )
         )
 
     def _check_held_stream(self) -> bool:

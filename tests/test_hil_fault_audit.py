@@ -89,6 +89,10 @@ while not link.closed_by_peer:
                     link.send(mf.ERROR, {{"code": "flood", "text": "about nothing"}})
                 answered += 1
                 continue
+            if args.mode == "junk" and answered == 1:  # bytes on its line where its Result should be
+                link.port.write(bytes(range(256)) * 12)
+                answered += 1
+                continue
             if args.mode == "exit0_mid" and answered == 1:  # ends itself, with success, holding the second pair
                 os._exit(0)
             if args.mode in ("slow_first", "slow_then_err") and answered == 0:  # the first answer comes late
@@ -311,6 +315,15 @@ def test_why_a_program_never_said_hello_is_told_apart(manifest, flight, tmp_path
     message all read "never said Hello": what the HIL server's link saw now names which (QA of stop 73)."""
     code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, mode), "--hello-timeout", "5")
     assert code == 1 and "never said Hello" in s["reason"] and says in s["reason"], s["reason"]
+
+
+def test_junk_on_the_line_instead_of_a_result_is_named_in_the_pairs_reason(manifest, flight, tmp_path):
+    """A program writing garbage where its Result should be read as a plain hang; the garbage was a line apart in
+    the summary, tied to no pair (QA of stop 73)."""
+    code, s, _ = run_cli(manifest, tmp_path, *flight_cmd(flight, "junk"))
+    rec = s["records"][1]
+    assert code == 1 and rec["code"] == "deadline_hang", rec
+    assert "failed the line's checks (garbage on its line)" in rec["text"], rec["text"]
 
 
 def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_path):
