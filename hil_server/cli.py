@@ -327,6 +327,7 @@ def _budgets(args: argparse.Namespace) -> int:
     from hil_server.budgets import (
         FLIGHT_BASE_MIB,
         FLIGHT_BYTES_PER_PIXEL,
+        FLIGHT_FLOOR_MIB,
         FLIGHT_RSS_MARGIN,
         UncalibratedWarning,
         calibration_notes,
@@ -380,7 +381,8 @@ def _budgets(args: argparse.Namespace) -> int:
     )
     print(
         f"max image: the largest square camera whose flight process fits the memory ceiling (peak private RSS ~"
-        f"{FLIGHT_BASE_MIB:.0f} MiB + {FLIGHT_BYTES_PER_PIXEL:.0f} B/pixel, +{FLIGHT_RSS_MARGIN:.0%}); "
+        f"{FLIGHT_BASE_MIB:.0f} MiB + {FLIGHT_BYTES_PER_PIXEL:.0f} B/pixel, at least {FLIGHT_FLOOR_MIB:g} MiB, "
+        f"+{FLIGHT_RSS_MARGIN:.0%}); "
         "`run` refuses larger ones"
     )
     return 0

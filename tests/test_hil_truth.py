@@ -356,3 +356,12 @@ def test_a_killed_hil_server_is_named_as_killed_and_blamed_for_the_pair_in_fligh
     assert not any("interrupted by SIGTERM" in str(r.get("text")) for r in s["records"]), s["records"]
     blamed = [r for r in s["records"] if r.get("code") == "server_failed"]  # the pair in flight, if one was
     assert all("killed by SIGKILL" in r["text"] for r in blamed), blamed
+
+
+def test_the_memory_estimate_holds_the_flight_processs_floor_at_small_cameras():
+    """A 36 MiB budget admitted a 32 px camera (estimate 35.4 MiB), then every pair breached its ceiling at 36.6 MiB:
+    the process peaks at ~37.2 MiB however small its camera (QA of stop 73)."""
+    from hil_server.budgets import flight_peak_rss_mib, max_image_side
+
+    assert min(flight_peak_rss_mib(px * px) for px in (32, 64, 128)) >= 37.2 * 1.1
+    assert max_image_side(36) == 0 and max_image_side(37.2 * 1.1) == 0 and max_image_side(42) >= 128
