@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any
 
 from hil_server.budgets import BUDGET_FIGURES
+from hil_server.run import CONTENTION_SHOWN_PCT
 
 # The absolute term keeps tiny latencies from flapping; at 0.25 reference s it dominated every shipped case (the host
 # case could grow +95 %, a 256 px snapdragon801 case 4x, before it was flagged: stop 56's budget QA). At 0.1 the
@@ -118,6 +119,7 @@ class CaseOutcome:
     previous: dict | None = None  # --update: the metrics it replaces, shown beside the new ones
     loose: list[str] = field(default_factory=list)  # metrics whose limit is at least twice the baseline
     unwritten: bool = False  # --update interrupted: measured, and the baseline was left unchanged
+    contention_pct: float | None = None  # the share of its flight time the flight process waited for its core
 
 
 def effective_speed(budget_name: str, budget_file: Path | None = None) -> tuple[float, float]:
@@ -229,6 +231,8 @@ def measure_case(
         "pairs": summary["pairs"],
         # Results the flight software cut short (a coarser anytime level or stages skipped): faster, not better
         "degraded": int(summary.get("degraded") or 0),
+        # not a metric either: the share of the flight time its process waited for its core (the host's load)
+        "contention_pct": summary.get("flight_contention_pct"),
     }
     for m in LATENCY_METRICS:
         cur[m] = summary["flight_" + m.replace("_ref_s", "_s")] * scale
@@ -343,6 +347,12 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
         for p in o.problems:
             if not any(_about(p, k) for k in keys):
                 lines.append(f"{o.name:<30} {p}")
+        if o.contention_pct is not None and o.contention_pct >= CONTENTION_SHOWN_PCT:
+            # a loaded host read exactly as a slower program, its load warning taken before the run (QA of stop 73)
+            lines.append(
+                f"{o.name:<30} note: its flight process waited {o.contention_pct:.0f} % of its flight time for its "
+                "core, which other processes held: a latency over its limit here may be the host's load"
+            )
     return "\n".join(lines)
 
 
@@ -678,6 +688,7 @@ def check_regression(
             exc.finished = diff_table(outcomes) if outcomes else ""
             raise
         incomplete = cur.pop("incomplete_reason", None)
+        contended = cur.pop("contention_pct", None)
         # a user's host-speed budget is unthrottled too: its wall latency measures the host's other load (QA 66a)
         metrics = _judged_for(case, baseline)
         o = compare(n, cur, None if update else case.get("metrics"), tol, metrics)
@@ -691,6 +702,7 @@ def check_regression(
             o.problems.append(changed[n])
         if incomplete:
             o.problems.append(f"the run did not finish: {incomplete}")
+        o.contention_pct = contended
         if not cur["deadline_hit_rate"] >= need - 1e-12:
             missed = o.below_required = True
             o.problems.append(
@@ -733,7 +745,15 @@ def outcome_rows(outcomes: list[CaseOutcome]) -> list[dict]:
             }
             for k in ["deadline_hit_rate", "degraded", *o.metrics]
         }
-        rows.append({"case": o.name, "problems": list(o.problems), "recorded": o.recorded, "metrics": metrics})
+        rows.append(
+            {
+                "case": o.name,
+                "problems": list(o.problems),
+                "recorded": o.recorded,
+                "metrics": metrics,
+                "contention_pct": o.contention_pct,
+            }
+        )
     return rows
 
 

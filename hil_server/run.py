@@ -542,11 +542,40 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "result_line_max_s": max(line) if line else float("nan"),
         "result_bytes_max": max((r.get("result_bytes", 0) for r in records), default=0),
         "flight_phases_p50_s": phase_times(ok),
+        **contention(ok),
         "sites": site_summary(ok),
         "link_errors": sum(r.get("code") == "link_down" for r in records),
         **extra,
         "records": records,
     }
+
+
+CONTENTION_SHOWN_PCT = 5.0  # a run whose flight process waited this share of its flight time for its core says so
+
+
+def contention(records: list[dict]) -> dict:
+    """The flight process's wait for its core while other processes held it, over the pairs the HIL server measured
+    it for (its ``flight_contention_s``): the seconds, and their share of those pairs' flight time. A latency
+    regression on a busy host looked exactly like a slower program (QA of stop 73). Empty without a measurement
+    (a board: its core is its own)."""
+    got = [r for r in records if isinstance((r.get("link") or {}).get("flight_contention_s"), (int, float))]
+    if not got:
+        return {}
+    wait = sum(float(r["link"]["flight_contention_s"]) for r in got)
+    flight = sum(float(r.get("flight_latency_s") or 0.0) for r in got)
+    return {"flight_contention_s": wait, "flight_contention_pct": 100.0 * wait / flight if flight > 0 else 0.0}
+
+
+def contention_note(summary: dict) -> str:
+    """A sentence when the flight process waited a notable share of its flight time for its core ("" otherwise)."""
+    pct = summary.get("flight_contention_pct")
+    if not isinstance(pct, (int, float)) or pct < CONTENTION_SHOWN_PCT:
+        return ""
+    return (
+        f"host contention: the flight process waited {summary['flight_contention_s']:.2f} s for its core while other "
+        f"processes held it, {pct:.0f} % of its flight time: its latencies read that much higher than the budget's "
+        "alone (a loaded host, not the flight software)"
+    )
 
 
 # the returned summary's key (not in summary.json) for signal N that came while the summary was written
@@ -959,6 +988,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         budget_note(s),
         throttle_check_note(s),
         phase_note(s),
+        contention_note(s),
         site_note(s),
         flight_note(s),
         session_note(s),

@@ -136,6 +136,17 @@ def to_replay(pairs: list[PairState]) -> list[PairState]:
     return [st for st in pairs if not st.done and (st.result is None or st.flight_telemetry is None)]
 
 
+def pair_contention_s(before: dict | None, after: dict) -> float:
+    """Run-queue wait of the flight process while a pair was outstanding (s): the time it was ready to run and
+    another process held its core, capped at the wall time it did not run (see :func:`pair_cpu_fraction`). A
+    latency regression on a busy host showed no sign of it (QA of stop 73)."""
+    if before is None:
+        return float("nan")
+    d_cpu = after["cpu_s"] - before["cpu_s"]
+    d_wall = after["wall_s"] - before["wall_s"]
+    return max(0.0, min(after["contention_s"] - before["contention_s"], max(0.0, d_wall - d_cpu)))
+
+
 def pair_cpu_fraction(before: dict | None, after: dict) -> float:
     """CPU the flight process got while a pair was outstanding, over the wall time it could run.
 
@@ -686,6 +697,12 @@ class Supervisor:
                 **({} if st.result_queue_s is None else {"result_queue_s": st.result_queue_s}),
                 "server_e2e_s": server_e2e,
                 "restarts": float(self.counters["restarts"]),
+                # its wait for its core while another process held it (none known before its last frame came)
+                **(
+                    {}
+                    if st.proc_at_complete is None
+                    else {"flight_contention_s": pair_contention_s(st.proc_at_complete, st.proc_at_result or stats)}
+                ),
             },
         )
         self.counters["results"] += 1

@@ -598,3 +598,27 @@ def test_the_run_figure_shows_the_results_states_as_scored(manifest, tmp_path):
     area = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), pair.truth["depth"]))
     unknown = 100.0 * np.count_nonzero(area & (states == STATE_UNKNOWN)) / np.count_nonzero(area)
     assert unknown == pytest.approx(r["scores"]["unknown_pct"], abs=1e-9)
+
+
+def test_a_core_another_process_holds_is_measured_and_said(manifest, tmp_path):
+    """A loaded host read exactly as a slower program: regress warned of the load average before the run, which
+    lags, and nothing after it (QA of stop 73). The flight process's wait for its core is measured per pair and
+    said when it is a notable share of its flight time; regress's table notes it beside the case."""
+    import os
+    import subprocess
+    import sys
+
+    from hil_server.regress import CaseOutcome, diff_table
+
+    core = max(os.sched_getaffinity(0))  # the emulated processor's
+    hog = subprocess.Popen([sys.executable, "-c", f"import os\nos.sched_setaffinity(0, {{{core}}})\nwhile True: pass"])
+    try:
+        s = run(manifest, tmp_path, link="zmq")
+    finally:
+        hog.kill()
+        hog.wait()
+    assert all("flight_contention_s" in r["link"] for r in s["records"] if r["status"] == "result")
+    assert s["flight_contention_pct"] >= 20, s["flight_contention_pct"]
+    assert "Host contention: the flight process waited" in (tmp_path / "summary.md").read_text()
+    o = CaseOutcome("c", {"deadline_hit_rate": 1.0}, None, contention_pct=s["flight_contention_pct"])
+    assert "waited" in diff_table([o]) and "the host's load" in diff_table([o])
