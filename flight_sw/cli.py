@@ -98,7 +98,9 @@ def _register_flight(subparsers: argparse._SubParsersAction) -> None:
         description="Run the flight software (the `fast` pipeline, fusion, the deadline plan) on this machine - a "
         "board of your own - and serve a ground over a serial line or ZeroMQ: on the ground PC, "
         "`hazard-hil run --flight external --link serial:DEVICE@BAUD` (docs/hil.md section 6). Serves one ground "
-        "session after another until stopped (exit 128 + the signal) or the link fails (exit 1).",
+        "session after another until stopped (exit 128 + the signal) or the link fails (exit 1); exit 2 on bad "
+        "usage, before the warm-up (a device that is missing, not a serial port, held by another process or not "
+        "yours to open, a bad link spec or key directory).",
     )
     f.add_argument(
         "--link",
