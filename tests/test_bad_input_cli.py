@@ -65,7 +65,10 @@ CASES = [
     # both waited out the 120 s hello timeout, then read as a board that never answered
     (["run", "--flight", "external", "--link", "zmq:tcp://no-such-host.invalid:5555", "--insecure"], "not resolve"),
     (["run", "--flight", "external", "--link", "zmq:inproc://board", "--insecure"], "inproc:// joins threads"),
-    (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@fast"], "must be a whole number, got 'fast'"),
+    (
+        ["run", "--flight", "external", "--link", "serial:/dev/ttyS0@fast"],
+        "must be a whole number of bits per second (0: unpaced), got 'fast'",
+    ),
     (["run", "--flight", "external", "--link", "serial:/dev/ttyS0@"], "nothing after '@'"),
     # the board: before its warm-up
     (["flight", "--link", "zmq:tcp://*:99999", "--insecure"], "1..65535, got '99999'"),
