@@ -57,8 +57,8 @@ def register_process(
         "outputs are then scored against it as `hazard-hil score` scores them (score.json, confusion.png, "
         "dem_error.png and a section of the page). "
         "Exit 0 when the outputs are written, 1 when the system refused a read or write, 2 on bad input (the pair, "
-        "its poses, the options), 128 + N when signal N stopped it (130: Ctrl-C): an earlier run's outputs are "
-        "removed first, so what is left is this run's alone.",
+        "its poses or truth files, the options, an --out that cannot be written), 128 + N when signal N stopped it "
+        "(130: Ctrl-C): an earlier run's outputs are removed first, so what is left is this run's alone.",
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")
     p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
@@ -327,7 +327,12 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         gsd = ground_step_m(res.world_xy)
         name = Path(args.pair_dir).resolve().name  # a saved PNG names its pair: only its folder did
         head = f"{name}: " if name else ""
-        appendix = None if scorer is None else scorer.score(out, head, gsd)
+        appendix, unscored = None, None
+        if scorer is not None:
+            try:
+                appendix = scorer.score(out, head, gsd)
+            except OSError as exc:  # its own files refused: the flight side's pictures and page still come
+                unscored = exc
         write_process_report(out, pair.images[0], res, doc, appendix, gsd)
     except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
         print(_left_after_stop(out, removing), file=sys.stderr)
@@ -348,6 +353,8 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     for text in [] if appendix is None else appendix.notes:
         print(text, file=sys.stderr)
     print(f"report: {out / 'report.html'}")
+    if unscored is not None:  # the maps, result.json and the page stand; the scores against the truth do not
+        raise unscored
     return 0
 
 

@@ -80,6 +80,10 @@ TRUTH_FILES = {
     "hazard": "gt_hazard_i1.npy",
 }
 _TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_, "hazard": np.float32}
+# pair.json's keys that hold truth (the renderer's): the true poses, the injected pose errors, the hazards and the
+# overlap the truth gives. A pair read without its truth leaves them out: flight software never sees them (a
+# flight-side `process` refused a pair over a malformed true_frames; QA of stop 73)
+TRUTH_META_KEYS = ("true_frames", "pose_error", "hazards_in_scene_pct", "hazard_fraction", "overlap_pct")
 
 
 class PairFormatError(InputError):
@@ -1051,7 +1055,8 @@ def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
 
 def read_pair(directory: str | Path, *, load_truth: bool = True) -> Pair:
     """Read and validate a pair directory; every problem raises :class:`PairFormatError`, a file the system
-    will not let us read too (it was an OSError: exit 1 where every other bad pair is exit 2)."""
+    will not let us read too (it was an OSError: exit 1 where every other bad pair is exit 2). Without
+    ``load_truth`` neither the truth files nor pair.json's truth (:data:`TRUTH_META_KEYS`) are read."""
     try:
         return _read_pair(directory, load_truth=load_truth)
     except OSError as exc:
@@ -1137,9 +1142,11 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
             if os.path.lexists(p):  # optional; but one that is there must be a readable array
                 _check_regular(p, fname, d)
                 truth[name] = _load_truth(p, name, (camera.height, camera.width))
-    meta = {k: v for k, v in doc.items() if k not in ("format", "camera", "frames", "sun")}
+    left_out = ("format", "camera", "frames", "sun", *(() if load_truth else TRUTH_META_KEYS))
+    meta = {k: v for k, v in doc.items() if k not in left_out}
     pair = Pair(camera, tuple(poses), tuple(images), sun, truth, meta, tuple(alts), notes)
-    true_poses(pair, meta_path)  # a study's truth that cannot be read is refused here, not met mid-score
+    if load_truth:
+        true_poses(pair, meta_path)  # a study's truth that cannot be read is refused here, not met mid-score
     try:
         pair.validate()
     except PairFormatError as exc:  # validate() speaks of frames; name the file they are in

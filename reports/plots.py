@@ -418,7 +418,11 @@ def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elev
                 ERROR_CMAP,
                 -lim or -1.0,
                 lim or 1.0,
-                empty_text=f"no error to show:\nno computed {what} where the truth is",
+                empty_text=(
+                    f"no error to show:\nno computed {what} where the truth is"
+                    if np.isfinite(truth).any()
+                    else f"no error to show:\nthe truth holds no {what}"
+                ),
             ),
         ]
     return panels

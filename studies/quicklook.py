@@ -12,7 +12,9 @@ flight pipeline on the pair read without its truth (:mod:`flight_sw.cli`) and ha
 
 A pair whose truth ``score`` cannot use (no ``gt_depth_i1.npy``, say, so its true overlap is unknown) is scored
 over the pixels the map covers instead, and said so: the DEM error where both elevations are finite, and the
-pixel scores where ``gt_hazard_i1.npy`` gives a value; its sites are not judged.
+pixel scores where ``gt_hazard_i1.npy`` gives a value, in ``confusion.png`` too; its sites are not judged, and
+``score.json``'s summary says ``"scored_over": "covered"`` and why. A truth that gives none of this writes no
+``score.json``, and says so.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ SCOPE = (
     "safe; a footprint frame 0 does not wholly see is not confirmed, and counts as not safe."
 )
 COVERED_SCOPE = (
-    "Scored over the pixels this map covers, and its sites not judged: `hazard-hil score` needs gt_depth_i1.npy "
-    "and gt_elevation_i1.npy to find the ground both frames truly see and where each site lies"
+    "Scored over the pixels this map covers, and its sites not judged: `hazard-hil score` cannot score this pair "
+    "as docs/design.md does"
 )
 
 
@@ -86,10 +88,11 @@ class TruthLook:
         if row.get("figure_error"):  # a full disk: said, and the run fails as any refused write does
             raise OSError(row["figure_error"])
         row["figure"] = str(out / "confusion.png")
-        dem = _dem_error_figure(output.elevation, pair.truth.get("elevation"), out, label, m_per_px, row)
-        write_atomic(
-            out / "score.json", json_text({"summary": summarise([row], self.fp_limit_pct), "rows": [json_row(row)]})
-        )
+        figures = [CONFUSION_FIGURE]
+        if _dem_error_figure(output.elevation, pair.truth.get("elevation"), out, label, m_per_px, row):
+            figures.append(DEM_FIGURE)
+        doc = {"summary": summarise([row], self.fp_limit_pct), "rows": [json_row(row)]}
+        write_atomic(out / "score.json", json_text(doc))
         if row.get("truth_note"):
             notes.append(f"note: {self.pair_dir}: {row['truth_note']}")
         if row.get("truth_poses") == "reported":
@@ -100,17 +103,18 @@ class TruthLook:
         return Appendix(
             line=_line(row, self.fp_limit_pct),
             notes=notes,
-            sections=[_section(row, SCOPE, dem, self.fp_limit_pct)],
+            sections=[_section(row, SCOPE, figures, self.fp_limit_pct, "the scores, in the layout of score --json")],
             headline=_headline(row, self.fp_limit_pct),
         )
 
     def _covered(self, pair: Any, output: Any, out: Path, label: str, m_per_px: float | None, problem: str) -> Appendix:
-        """The scores a truth without gt_depth allows: over the map's covered pixels, no sites."""
+        """What a truth `score` cannot use allows: the scores over the map's covered pixels, no sites."""
         from ground_sim import scoring
         from reports.html import write_atomic
         from reports.jsondoc import json_text
         from studies.score import json_row
 
+        why = problem.removesuffix(": nothing to score against")
         covered = np.isfinite(output.hazard)
         row: dict[str, Any] = {
             "pair": self.pair_dir.name,
@@ -118,9 +122,10 @@ class TruthLook:
             "output_dir": str(out),
             "error": None,
             "scored_over": "covered",
-            "truth_problem": problem,
+            "truth_problem": why,
         }
         gt_h, gt_z = pair.truth.get("hazard"), pair.truth.get("elevation")
+        figures = []
         if gt_h is not None:  # the pixel scores over the map
             c = scoring.confusion(output.hazard, gt_h, covered)
             if c["n"]:
@@ -140,19 +145,54 @@ class TruthLook:
             if d["n"]:
                 row.update(dem_mean_abs_m=d["mean_abs"], dem_median_m=d["median"], dem_mad_m=d["mad"])
         row = {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
-        dem = _dem_error_figure(output.elevation, gt_z, out, label, m_per_px, row)
-        write_atomic(out / "score.json", json_text({"rows": [json_row(row)]}))
-        scored = "fp_pct" in row or "dem_mean_abs_m" in row
-        line = _line(row, self.fp_limit_pct) + " of the map's covered pixels" if scored else ""
+        if row.get("fp_pct") is None and row.get("dem_mean_abs_m") is None:  # nothing to say: no file either
+            return Appendix(notes=[f"note: nothing of this output could be scored against the truth: {why}"])
+        if row.get("fp_pct") is not None:
+            _covered_confusion_figure(output.hazard, gt_h, covered, out, label, m_per_px, row)
+            figures.append(COVERED_CONFUSION_FIGURE)
+        if _dem_error_figure(output.elevation, gt_z, out, label, m_per_px, row):
+            figures.append(DEM_FIGURE)
+        summary = {"pairs": 1, "scored_over": "covered", "truth_problem": why}
+        write_atomic(out / "score.json", json_text({"summary": summary, "rows": [json_row(row)]}))
         return Appendix(
-            line=line,
-            notes=[
-                "note: scored over the map's covered pixels, not as `hazard-hil score` scores it: "
-                + problem.removesuffix(": nothing to score against")
+            line=_line(row, self.fp_limit_pct) + " of the map's covered pixels",
+            notes=[f"note: scored over the map's covered pixels, not as `hazard-hil score` scores it: {why}"],
+            sections=[
+                _section(
+                    row,
+                    f"{COVERED_SCOPE} ({why}).",
+                    figures,
+                    self.fp_limit_pct,
+                    "the scores over the map's covered pixels (hazard-hil score cannot score this pair)",
+                )
             ],
-            sections=[_section(row, f"{COVERED_SCOPE} ({problem}).", dem, self.fp_limit_pct)] if scored else [],
             headline=_headline(row, self.fp_limit_pct),
         )
+
+
+def _covered_confusion_figure(
+    hazard: np.ndarray,
+    truth: np.ndarray,
+    covered: np.ndarray,
+    out: Path,
+    label: str,
+    m_per_px: float | None,
+    row: dict[str, Any],
+) -> None:
+    """``confusion.png`` over the map's covered pixels where the truth is known: the pixel scores, the true hazard
+    (no sites: without gt_depth their ground is unknown)."""
+    from ground_sim import scoring
+    from reports.plots import Panel, confusion_codes, map_figure, save
+    from reports.style import HAZARD_CMAP
+
+    gt = np.asarray(truth, np.float32)
+    codes = confusion_codes(~scoring.unsafe_estimate(hazard), gt < 1.0, covered & np.isfinite(gt))
+    panels = [
+        Panel("confusion", codes, "pixel scores, over the map's covered pixels"),
+        Panel("scalar", gt, "true hazard (>= 1 unsafe)", "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
+    ]
+    title = f"{label}: FP {row['fp_pct']:.2f} %, CDI {row['cdi_pct']:.1f} % of the map's covered pixels"
+    save(map_figure(panels, title, m_per_px=m_per_px), out / "confusion.png")
 
 
 def _dem_error_figure(
@@ -163,15 +203,15 @@ def _dem_error_figure(
     m_per_px: float | None,
     row: dict[str, Any],
 ) -> bool:
-    """``dem_error.png``: the true elevation and the error of the computed one; False when there is no pair of
-    elevations to draw."""
+    """``dem_error.png``: the computed elevation, the true one on the same colour scale, and the error; False when
+    there is no pair of elevations to draw."""
     from reports.plots import dem_panels, map_figure, save
 
     if elevation is None or truth is None:
         return False
     err = row.get("dem_mean_abs_m")
     title = f"{label}: elevation against ground truth" + ("" if err is None else f", mean |error| {err:.3f} m")
-    panels = dem_panels(np.asarray(elevation, np.float32), np.asarray(truth, np.float32))[1:]
+    panels = dem_panels(np.asarray(elevation, np.float32), np.asarray(truth, np.float32))
     save(map_figure(panels, title, m_per_px=m_per_px), out / "dem_error.png")
     return True
 
@@ -209,7 +249,19 @@ def _headline(row: dict[str, Any], limit: float) -> list[Any]:
     return cards
 
 
-def _section(row: dict[str, Any], scope: str, dem_drawn: bool, limit: float) -> Any:
+CONFUSION_FIGURE = (
+    "confusion.png",
+    "Frame 0 with the sites judged against the truth (green truly safe, red not, black not confirmed), the pixel "
+    "scores (positive = safe) and the true hazard.",
+)
+COVERED_CONFUSION_FIGURE = ("confusion.png", "The pixel scores over the map's covered pixels, and the true hazard.")
+DEM_FIGURE = (
+    "dem_error.png",
+    "The computed elevation and the true one on one colour scale, and the error (computed - true).",
+)
+
+
+def _section(row: dict[str, Any], scope: str, figures: list[tuple[str, str]], limit: float, link: str) -> Any:
     from reports.html import Column, Figure, Section, Table
 
     keys = ["fp_pct", "fn_pct", "tp_pct", "tn_pct", "cdi_pct", "dem_mean_abs_m", "dem_median_m", "dem_mad_m"]
@@ -223,23 +275,12 @@ def _section(row: dict[str, Any], scope: str, dem_drawn: bool, limit: float) -> 
                 [{"rank": i + 1, "truly_clear": words[v]} for i, v in enumerate(verdicts)],
             )
         )
-    figures = []
-    if "site_verdicts" in row:
-        figures.append(
-            Figure(
-                "confusion.png",
-                "Frame 0 with the sites judged against the truth (green truly safe, red not, black not confirmed), "
-                "the pixel scores (positive = safe) and the true hazard.",
-            )
-        )
-    if dem_drawn:
-        figures.append(Figure("dem_error.png", "The true elevation and the computed one's error (computed - true)."))
     status = "" if row.get("fp_pct") is None else ("ok" if row["fp_pct"] <= limit else "bad")
     return Section(
         "Against ground truth",
         paragraphs=[scope],
         tables=tables,
-        figures=figures,
+        figures=[Figure(src, caption) for src, caption in figures],
         status=status,
-        links=[("score.json", "the scores, as `hazard-hil score --json` writes them")],
+        links=[("score.json", link)],
     )

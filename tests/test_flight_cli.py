@@ -79,8 +79,38 @@ def test_process_without_gt_depth_scores_over_the_covered_pixels(tmp_path, capsy
     assert row["scored_over"] == "covered" and "gt_depth_i1.npy" in row["truth_problem"]
     assert row["dem_mean_abs_m"] < 0.5 and row["fp_pct"] is not None and row["sites_truly_safe"] is None
     assert "of the map's covered pixels" in said.out and "not as `hazard-hil score` scores it" in said.err
-    assert "nothing to score against" not in said.err  # it scored what it could
-    assert (out / "dem_error.png").is_file() and not (out / "confusion.png").exists()
+    page = (out / "report.html").read_text()
+    assert "nothing to score against" not in said.err + page  # it scored what it could (QA of stop 73)
+    summary = json.loads((out / "score.json").read_text())["summary"]
+    assert summary["scored_over"] == "covered" and "gt_depth_i1.npy" in summary["truth_problem"]
+    assert (out / "dem_error.png").is_file() and (out / "confusion.png").is_file()  # the pixel scores drawn too
+
+
+def test_process_writes_no_score_when_the_truth_scores_nothing(tmp_path, capsys):
+    """A pair with only gt_shadow_i1.npy got a score.json of nulls, linked from nowhere (QA of stop 73)."""
+    d, z = _pair(tmp_path, depth=False)
+    for f in ("gt_hazard_i1.npy", "gt_elevation_i1.npy"):
+        (d / f).unlink()
+    np.save(d / "gt_shadow_i1.npy", np.zeros(z.shape, bool))
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    said = capsys.readouterr()
+    assert not any((tmp_path / "o" / f).exists() for f in ("score.json", "confusion.png", "dem_error.png"))
+    assert (
+        "nothing of this output could be scored against the truth" in said.err and "against the truth" not in said.out
+    )
+
+
+def test_a_refused_score_file_costs_process_nothing_else(tmp_path, capsys):
+    """score.json refused (a directory by its name): the run stopped before its pictures and page, and said to run
+    it again "for the rest", which could not help (QA of stop 73). Now the flight side's files are all written, and
+    the refusal is said, exit 1."""
+    d, _ = _pair(tmp_path)
+    out = tmp_path / "o"
+    (out / "score.json").mkdir(parents=True)
+    assert main(["process", str(d), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert all((out / f).is_file() for f in ("result.json", "dem.png", "hazard.png", "report.html"))
+    assert "score.json" in err and "run it again for the rest" not in err, err
 
 
 def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):

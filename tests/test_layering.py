@@ -86,6 +86,8 @@ def test_the_flight_side_of_process_runs_on_a_pair_whose_truth_it_cannot_read(tm
     d = small_descent(tmp_path / "pairs", ["600/300"], px=128).parent / "600_300"
     for f in d.glob("gt_*_i1.npy"):
         f.write_bytes(b"not an array")
+    doc = json.loads((d / "pair.json").read_text())  # and pair.json's truth, which it must not read either
+    (d / "pair.json").write_text(json.dumps({**doc, "true_frames": "garbage", "pose_error": {"frames": "x"}}))
     args = argparse.Namespace(
         pair_dir=str(d), out=str(tmp_path / "o"), preset="fast", refine_pose=True, deadline=None, sites=None,
         widest_pair=False,
@@ -94,3 +96,6 @@ def test_the_flight_side_of_process_runs_on_a_pair_whose_truth_it_cannot_read(tm
     assert not (tmp_path / "o" / "score.json").exists() and not (tmp_path / "o" / "confusion.png").exists()
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
     assert "vs_truth" not in doc and "against the truth" not in capsys.readouterr().out
+    from protocol.pairdir import TRUTH_META_KEYS, read_pair
+
+    assert not set(TRUTH_META_KEYS) & set(read_pair(d, load_truth=False).meta)

@@ -529,3 +529,14 @@ def test_a_section_can_put_its_pictures_above_its_tables(tmp_path):
     for first in (True, False):
         text = render_page("t", [Section("s", tables=[table], figures=[Figure("p.png", "c")], figures_first=first)])
         assert (text.index("<figure>") < text.index("<table>")) == first
+
+
+def test_an_empty_error_panel_names_the_side_that_is_empty():
+    """A truth of NaN drew an error panel saying "no computed elevation where the truth is", though the computed
+    elevation was there (QA of stop 73)."""
+    from reports.plots import dem_panels
+
+    z = np.zeros((8, 8), np.float32)
+    nan = np.full((8, 8), np.nan, np.float32)
+    assert "the truth holds no elevation" in dem_panels(z, nan)[2].empty_text
+    assert "no computed elevation where the truth is" in dem_panels(nan, z)[2].empty_text
