@@ -42,7 +42,7 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
     # flight software's covered area
     from protocol.pairdir import read_pair
 
-    meta = read_pair(r["pair"], load_truth=False).meta
+    meta = read_pair(r["pair"]).meta  # a truth key: read with the truth
     assert r["hazards_in_scene_pct"] == pytest.approx(meta["hazards_in_scene_pct"], abs=0.05)
     assert 0 < r["hazards_in_scored_pct"] < 100
     fn_parts = [
