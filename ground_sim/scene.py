@@ -32,6 +32,7 @@ any point at most 10 times on average.
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from itertools import pairwise
@@ -374,18 +375,41 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
 
 
-def scene_document(spec: str | Path) -> tuple[dict[str, Any], str, Path]:
-    """(parsed TOML, name, path) of a preset name or a TOML file; ``name:variant`` specs lose their variant here."""
+def split_scene_spec(spec: str | Path) -> tuple[str, str | None]:
+    """(preset name or scene file, variant or None) of a scene spec: ``name``, ``name:variant``, a file ending in
+    ``.toml`` or naming a directory (``./mine``, ``dir/mine.toml``), or ``file.toml:variant``.
+
+    A spec is a file only when it says so: a file or directory in the working directory named after a preset
+    (``render --scene mare --out mare``) made ``mare`` a missing scene file, and an empty file named ``mare`` gave
+    the default scene's terrain under the name mare (QA of stop 73)."""
     text = str(spec)
-    path = Path(spec)
-    if path.suffix != ".toml" and not path.exists():
-        path = PRESET_DIR / f"{text.split(':', 1)[0]}.toml"
+    if ".toml:" in text:
+        base, variant = text.rsplit(".toml:", 1)
+        return base + ".toml", variant
+    if text.endswith(".toml") or "/" in text or os.sep in text:
+        return text, None
+    name, sep, variant = text.partition(":")
+    return name, (variant if sep else None)
+
+
+def _is_file_spec(base: str) -> bool:
+    return base.endswith(".toml") or "/" in base or os.sep in base
+
+
+def scene_document(spec: str | Path) -> tuple[dict[str, Any], str, Path]:
+    """(parsed TOML, name, path) of a preset name or a TOML file (:func:`split_scene_spec`); a spec's variant is
+    left out here."""
+    base, _ = split_scene_spec(spec)
+    if _is_file_spec(base):
+        path = Path(base)
+        if not path.is_file():
+            raise SceneError(f"scene file {path} does not exist")
+    else:
+        path = PRESET_DIR / f"{base}.toml"
         if not path.is_file():
             raise SceneError(
-                f"unknown scene preset {text!r} (presets: {', '.join(preset_names())}; or give a .toml file)"
+                f"unknown scene preset {base!r} (presets: {', '.join(preset_names())}; or give a .toml file)"
             )
-    if not path.is_file():
-        raise SceneError(f"scene file {path} does not exist")
     try:
         doc = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -399,19 +423,17 @@ def load_scene_params(spec: str | Path = "default", scenario: str | None = None)
     ``scenario`` selects the scene's ``[variant.<scenario>]`` if it has one (an explicit
     ``:variant`` in the spec wins).
     """
-    text = str(spec)
+    _, asked = split_scene_spec(spec)
+    doc, name, _ = scene_document(spec)
     variant = scenario
-    if not text.endswith(".toml") and ":" in text and not Path(text).exists():
-        variant = text.split(":", 1)[1]
-        doc, name, _ = scene_document(text)
+    if asked is not None:
+        variant = asked
         if variant not in doc.get("variant", {}):
             have = sorted(doc.get("variant", {}))
             raise SceneError(
                 f"scene {name} has no variant {variant!r} "
                 + (f"(it has {', '.join(have)})" if have else f"(it has none: give {name} alone)")
             )
-    else:
-        doc, name, _ = scene_document(spec)
     return parse_scene(doc, name, variant)
 
 

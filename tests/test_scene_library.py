@@ -195,3 +195,23 @@ def test_scenes_command_lists_the_library(capsys):
 
     (d,) = json.loads(capsys.readouterr().out)
     assert d["name"] == "thesis" and d["problems"] == [] and set(d["hazards_in_scene_pct"]) == {"vertical", "approach"}
+
+
+def test_a_scene_name_means_the_preset_whatever_the_working_directory_holds(tmp_path, monkeypatch):
+    """`render --scene mare --out mare` failed "scene file mare does not exist" (its --out made first), and an empty
+    file named mare gave the default terrain under the name mare (QA of stop 73): a spec is a file only when it
+    ends in .toml or names a directory."""
+    from ground_sim.errors import SceneError
+    from ground_sim.scene import PRESET_DIR, load_scene_params, split_scene_spec
+
+    preset = load_scene_params("mare")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mare").mkdir()
+    (tmp_path / "thesis").write_text("")
+    assert load_scene_params("mare") == preset and load_scene_params("thesis").name == "thesis"
+    assert split_scene_spec("mine.toml:approach") == ("mine.toml", "approach")
+    assert split_scene_spec("./mine") == ("./mine", None) and split_scene_spec("mare:vertical") == ("mare", "vertical")
+    (tmp_path / "mine.toml").write_text((PRESET_DIR / "thesis.toml").read_text())
+    assert load_scene_params("mine.toml") == load_scene_params("thesis")  # the file, read as one
+    with pytest.raises(SceneError, match=r"scene file nope does not exist"):
+        load_scene_params("./nope")
