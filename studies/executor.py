@@ -164,6 +164,55 @@ def check_scheduler_address(address: str) -> str:
     return address
 
 
+SCHEDULER_PROBE_S = 10.0  # a Dask scheduler sends its handshake on accept, within milliseconds
+MAX_HANDSHAKE_BYTES = 1 << 16
+
+
+def probe_scheduler(address: str, timeout_s: float = SCHEDULER_PROBE_S) -> None:
+    """Refuse, in one line, a plain-TCP address where no Dask scheduler answers: Dask's own connect waited forever
+    on a port that accepted and said nothing, and read an HTTP server's reply as a message of 3 EiB ("out of
+    memory: use a smaller camera", exit 1; QA of stop 73). A scheduler writes its handshake as soon as it accepts:
+    a u64 (little-endian) byte count, then msgpack naming ``compression`` and ``pickle-protocol``. Other schemes
+    (tls://, inproc://) are left to Dask."""
+    import socket
+    import struct
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, loc = parse_address(str(address))
+    if scheme != "tcp":
+        return
+    host, port = parse_host_port(loc)
+    where = f"Dask scheduler {address!r}"
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            head = _read_exactly(sock, 8)
+            (n,) = struct.unpack("<Q", head)
+            if not 0 < n <= MAX_HANDSHAKE_BYTES:
+                raise InputError(f"{where}: not a Dask scheduler (it answered in another protocol: {head!r})")
+            body = _read_exactly(sock, n)
+    except TimeoutError:
+        raise InputError(
+            f"{where}: not a Dask scheduler (it took the connection and sent nothing in {timeout_s:g} s)"
+        ) from None
+    except OSError as exc:
+        raise InputError(f"cannot reach {where}: {exc.strerror or exc}") from None
+    if b"pickle-protocol" not in body and b"compression" not in body:
+        raise InputError(f"{where}: not a Dask scheduler (its first message is not Dask's handshake)")
+
+
+def _read_exactly(sock: Any, n: int) -> bytes:
+    """``n`` bytes from ``sock``; OSError when it closes first."""
+    buf = bytearray()
+    while len(buf) < n:
+        got = sock.recv(n - len(buf))
+        if not got:
+            raise OSError(f"it closed the connection after {len(buf)} bytes")
+        buf += got
+    return bytes(buf)
+
+
 def run_tasks(
     fn: Callable[..., dict[str, Any]],
     tasks: Iterable[Task],
@@ -358,6 +407,7 @@ def _run_dask(
     own = not isinstance(scheduler, Client)
     if own:
         check_scheduler_address(scheduler)
+        probe_scheduler(scheduler)
     try:
         client = Client(scheduler, timeout="20s") if own else scheduler
     except OSError as exc:

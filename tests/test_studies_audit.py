@@ -625,3 +625,50 @@ def test_the_sensitivity_summary_sets_the_thesiss_own_figures_beside_ours():
     assert all(f"thesis_rel_pct@{lv:+.2f}" in att for lv in ATTITUDE_LEVELS_DEG)
     assert by[("altitude", 400)]["thesis_median_rel_pct"] is None  # no such table: said as none, same columns
     assert "thesis_median_rel_pct" not in by[("lateral", 125)]  # a study the thesis did not make
+
+
+def test_a_scheduler_address_where_no_dask_scheduler_answers_is_refused_in_one_line():
+    """A port that took the connection and said nothing held `evaluate --scheduler` at 0 % for good; one where a web
+    server answered read its reply as a 3 EiB message: "out of memory: use a smaller camera", exit 1 (QA of stop
+    73). A Dask scheduler's handshake is read first, with a time limit."""
+    import socket
+    import threading
+
+    from distributed import LocalCluster
+
+    from studies.executor import probe_scheduler
+
+    def server(reply: bytes | None) -> tuple[socket.socket, str]:
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+
+        def serve() -> None:
+            held = []
+            while True:
+                try:
+                    c, _ = s.accept()
+                except OSError:
+                    return
+                held.append(c)
+                if reply is not None:
+                    c.sendall(reply)
+
+        threading.Thread(target=serve, daemon=True).start()
+        return s, f"tcp://127.0.0.1:{s.getsockname()[1]}"
+
+    silent, quiet_addr = server(None)
+    web, web_addr = server(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+    try:
+        with pytest.raises(
+            InputError, match=r"not a Dask scheduler \(it took the connection and sent nothing in 0.5 s\)"
+        ):
+            probe_scheduler(quiet_addr, timeout_s=0.5)
+        with pytest.raises(InputError, match=r"not a Dask scheduler \(it answered in another protocol"):
+            probe_scheduler(web_addr, timeout_s=2.0)
+    finally:
+        silent.close()
+        web.close()
+    with LocalCluster(n_workers=0, processes=False, protocol="tcp://", dashboard_address=None) as cl:
+        assert cl.scheduler_address.startswith("tcp://")
+        probe_scheduler(cl.scheduler_address, timeout_s=5.0)  # a scheduler passes
