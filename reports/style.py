@@ -275,7 +275,7 @@ GLOSSARY.update(
         ),
         "cdi_pct_worst": Term("CDI % worst seed", "The lowest CDI % of any seed at this altitude.", "%"),
         "dem_mean_abs_m_worst": Term(
-            "DEM mean abs err worst seed", "The largest DEM mean absolute error of any seed at this altitude.", "m"
+            "DEM mean abs err worst seed [m]", "The largest DEM mean absolute error of any seed at this altitude.", "m"
         ),
         "hazards_in_scene_pct_worst": Term(
             "hazards in scene % most hazardous seed",

@@ -392,6 +392,10 @@ def _caption(name: str) -> str:
     return stem.replace("_", " ")
 
 
+# a thesis table's median figure and the worst seed's, set beside it (the guide: the worst case beside the median)
+WORST_BESIDE = {"fp_pct": "fp_pct_worst", "cdi_pct": "cdi_pct_worst", "dem_mean_abs_m": "dem_mean_abs_m_worst"}
+
+
 def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list[Table]:
     """Page tables, one per thesis table (split every ``max_metrics`` metrics): rows = altitude, per metric
     the thesis's value then ours per preset (ours alone for :data:`studies.evaluate.NOT_COMPARABLE`, the caption
@@ -423,7 +427,12 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
                 digits = 2 if "kurtosis" in m or "skewness" in m else 3
                 if table != "-" and m not in ev.NOT_COMPARABLE:
                     cols.append(Column(f"{m}|reference", f"{term(m).label}: thesis", digits, term=m))
-                cols += [Column(f"{m}|{p}", f"{term(m).label}: ours ({p})", digits, term=m) for p in presets]
+                worst = WORST_BESIDE.get(m, "") if table != "-" else ""
+                shown = bool(worst) and any(("-", worst, a) in by for a in alts)
+                for p in presets:
+                    cols.append(Column(f"{m}|{p}", f"{term(m).label}: ours ({p})", digits, term=m))
+                    if shown:  # the worst seed beside the median, not 60 lines below it (QA of stop 73)
+                        cols.append(Column(f"{worst}|{p}", f"{term(m).label}: ours ({p}), worst seed", digits, worst))
             rows = []
             for a in alts:
                 if not any((table, m, a) in by for m in ms):
@@ -433,6 +442,9 @@ def comparison_tables(cells: list[dict[str, Any]], max_metrics: int = 3) -> list
                     c = by.get((table, m, a), {})
                     row[f"{m}|reference"] = c.get("thesis")
                     row.update({f"{m}|{p}": c.get(f"ours_{p}") for p in presets})
+                    w = WORST_BESIDE.get(m, "") if table != "-" else ""
+                    if w and ("-", w, a) in by:
+                        row.update({f"{w}|{p}": by[("-", w, a)].get(f"ours_{p}") for p in presets})
                     if m.startswith("chosen_sites_safe_pct"):  # no value where the preset ran: no site was offered
                         row.update(
                             {f"{m}|{p}": "no site" for p in presets if row[f"{m}|{p}"] is None and (a, p) in ran}
