@@ -774,12 +774,16 @@ def _tiff_size(path: Path, head: bytes) -> tuple[int, int]:
     return int(size[256]), int(size[257])
 
 
+DEEP_SCALE_PERCENTILE = 99.99  # 16-bit frames are scaled to 8 bits from this percentile of their values
+
+
 def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray], list[str]]:
     """8-bit gray versions of decoded images, and notes on what was converted.
 
     Colour becomes luminance (OpenCV's BT.601 weights). Deeper images are
     shifted right by the same number of bits in every frame (the bits above
-    the largest value are unused), so the frames keep one common radiometric
+    the frames' :data:`DEEP_SCALE_PERCENTILE` percentile are unused; the few
+    pixels above it saturate), so the frames keep one common radiometric
     scale, which the correlation needs.
     """
     import cv2
@@ -800,11 +804,20 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
         for k in deep:
             if out[k].dtype not in (np.uint16, np.dtype(">u2")):
                 raise PairFormatError(f"{names[k]}: {out[k].dtype} pixels (need 8- or 16-bit unsigned)")
-        top = max(int(out[k].max()) for k in deep)
+        # the scale from a high percentile, not the maximum: one hot pixel at 65535 in a 12-bit image shifted it by 8
+        # bits, not 4, and left ~9 grey levels (coverage 96 % -> 41 %, no warning; QA of stop 73). The few pixels
+        # above it saturate at 255 and are counted
+        top = max(int(np.percentile(out[k], DEEP_SCALE_PERCENTILE, method="higher")) for k in deep)
         shift = max(0, top.bit_length() - 8)
+        clipped = 0
         for k in deep:
-            out[k] = np.right_shift(out[k].astype(np.uint16), shift).astype(np.uint8)
-        notes.append(f"16-bit images ({', '.join(names[k] for k in deep)}) shifted right by {shift} bits to 8-bit")
+            shifted = np.right_shift(out[k].astype(np.uint16), shift)
+            clipped += int(np.count_nonzero(shifted > 255))
+            out[k] = np.minimum(shifted, 255).astype(np.uint8)
+        notes.append(
+            f"16-bit images ({', '.join(names[k] for k in deep)}) shifted right by {shift} bits to 8-bit"
+            + (f"; {clipped} pixels above the {DEEP_SCALE_PERCENTILE:g}th percentile saturated" if clipped else "")
+        )
     return out, notes
 
 
