@@ -54,3 +54,21 @@ def ground_footprint(camera: Camera, pose: Pose, z: float = 0.0) -> np.ndarray:
     d = pixel_rays(camera, pose, u, v)
     t = (z - pose.position[2]) / d[:, 2]
     return pose.position[:2] + t[:, None] * d[:, :2]
+
+
+MIN_RAY_DOWN = 0.05  # |d_z| below this: a ray too close to the horizon to meet the ground
+
+
+def sky_problem(camera: Camera, pose: Pose) -> str | None:
+    """Why a view cannot be rendered because some of it sees the sky or the horizon (a border ray or the centre
+    pointing less than asin(:data:`MIN_RAY_DOWN`) below the horizontal), or None. Checked where a trajectory is
+    read, so that the error names its pair and frame, and again by the renderer."""
+    bu, bv = boundary_pixels(camera, 12)
+    d = pixel_rays(camera, pose, np.append(bu, camera.cx), np.append(bv, camera.cy))
+    if d[:, 2].max() <= -MIN_RAY_DOWN:
+        return None
+    worst = math.degrees(math.asin(min(1.0, float(d[:, 2].max()))))
+    return (
+        f"camera sees the sky or the horizon (a border ray points {worst:+.1f} deg "
+        f"from horizontal; need < {-math.degrees(math.asin(MIN_RAY_DOWN)):.1f})"
+    )

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from ground_sim.errors import RenderError
-from ground_sim.geometry import boundary_pixels, ground_footprint, pixel_rays
+from ground_sim.geometry import boundary_pixels, ground_footprint, pixel_rays, sky_problem
 from ground_sim.heightfield import Raster, intersect
 from ground_sim.scene import Scene
 from ground_sim.shading import lunar_lambert, sensor, shadow_level
@@ -56,7 +56,6 @@ RASTERS = ("view", "tiles")
 # 512 px views 1.2-4.2x coarser and the two views of a pair see different detail (docs/scenes.md, item 4)
 DEFAULT_RASTER = "tiles"
 MAX_CELLS_LIMIT = 16_000_000  # a render process peaked at 1.0-1.7 GB with it (docs/scenes.md): refused above
-MIN_RAY_DOWN = 0.05  # |d_z| below this: ray too close to the horizon
 COARSE = 4
 REFERENCE_DN = 95.0  # DN of flat ground of mean albedo under this sun
 
@@ -172,16 +171,11 @@ def plan_raster(
     fit's coarsening) so the rasters agree where they overlap.
     """
     C = pose.position
+    sky = sky_problem(camera, pose)
+    if sky is not None:
+        raise RenderError(sky)
     bu, bv = boundary_pixels(camera, 12)
-    bu = np.append(bu, camera.cx)
-    bv = np.append(bv, camera.cy)
-    d = pixel_rays(camera, pose, bu, bv)
-    if d[:, 2].max() > -MIN_RAY_DOWN:
-        worst = math.degrees(math.asin(min(1.0, d[:, 2].max())))
-        raise RenderError(
-            f"camera sees the sky or the horizon (a border ray points {worst:+.1f} deg "
-            f"from horizontal; need < {-math.degrees(math.asin(MIN_RAY_DOWN)):.1f})"
-        )
+    d = pixel_rays(camera, pose, np.append(bu, camera.cx), np.append(bv, camera.cy))
     # coarse terrain bounds around the approximate footprint
     z_c = float(scene.height(np.array([C[0]]), np.array([C[1]]), 1.0)[0])
     if C[2] <= z_c + 0.5:

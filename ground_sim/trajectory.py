@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ground_sim.errors import TrajectoryError
-from ground_sim.geometry import look_rotation
+from ground_sim.geometry import look_rotation, sky_problem
 from protocol.errors import InputError
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, MAX_POSITION_M, Camera, Pose
 
@@ -273,6 +273,15 @@ def from_file(path: Path) -> list[PairSpec]:
         for k in range(1, len(poses)):
             if not poses[k].position[2] < poses[k - 1].position[2]:
                 raise TrajectoryError(f"{where}: frame {k} must be below frame {k - 1}")
+            if poses[k].time_s < poses[k - 1].time_s:  # said by the pair's check, naming no file (QA of stop 73)
+                raise TrajectoryError(
+                    f"{where}: frame {k} is earlier than frame {k - 1} (time_s {poses[k].time_s:g} vs "
+                    f"{poses[k - 1].time_s:g})"
+                )
+        for k, pose in enumerate(poses):  # the renderer said it of no pair or frame
+            sky = sky_problem(cam, pose)
+            if sky is not None:
+                raise TrajectoryError(f"{where} frame {k}: {sky}")
         hl = _number(p, "altitude_m", float(poses[-1].position[2]), where)
         if not hl > 0:  # the table row a pair is scored in: an altitude above the reference plane
             raise TrajectoryError(f"{where}: altitude_m must be positive, got {hl:g}")

@@ -196,6 +196,9 @@ BAD_FIELDS = [
     ({}, {"time_s": "abc"}, "frame 0: time_s must be a number"),
     ({}, {"time_s": float("nan")}, "frame 0: time_s must be finite"),
     ({}, {"position_m": [0, 0, "high"]}, "frame 0: position_m must be [x, y, z]"),
+    # said by the renderer and the pair's check with no file, pair or frame (QA of stop 73)
+    ({}, {"off_nadir_deg": 85}, "frame 0: camera sees the sky or the horizon"),
+    ({}, {"time_s": 99}, "frame 1 is earlier than frame 0 (time_s 0 vs 99)"),
 ]
 
 
