@@ -795,7 +795,17 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
             code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(img.shape[2])
             if code is None:
                 raise PairFormatError(f"{name}: {img.shape[2]} channels (need gray, BGR or BGRA)")
-            notes.append(f"{name}: colour converted to gray")
+            gray = (
+                img.shape[2] == 4
+                and np.array_equal(img[..., 0], img[..., 1])
+                and np.array_equal(img[..., 1], img[..., 2])
+            )
+            # gray+alpha, which the decoder gives as BGRA: nothing was colour (QA of stop 73)
+            notes.append(
+                f"{name}: gray with an alpha channel: the alpha left out"
+                if gray
+                else f"{name}: colour converted to gray"
+            )
             out.append(cv2.cvtColor(img, code))
         else:
             out.append(img)
@@ -948,7 +958,10 @@ def _check_regular(path: Path, what: str, d: Path) -> None:
     """Refuse ``path`` (``what`` in pair directory ``d``) unless it is an existing regular file."""
     why = _not_regular(path)
     if why == MISSING:
-        raise PairFormatError(f"{d}: missing {what}")
+        # a rendered descent given where one of its pairs is meant read only "missing pair.json" (QA of stop 73)
+        descent = what == "pair.json" and (d / "manifest.json").is_file()
+        hint = " (it is a rendered descent, manifest.json: give one of its pair directories)" if descent else ""
+        raise PairFormatError(f"{d}: missing {what}{hint}")
     if why is not None:
         raise PairFormatError(f"{d}: {what} {why}")
 

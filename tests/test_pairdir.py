@@ -343,3 +343,20 @@ def test_a_hot_pixel_does_not_set_a_16_bit_images_scale(tmp_path):
     expect[0, 0] = 255
     np.testing.assert_array_equal(back.images[0], expect)
     np.testing.assert_array_equal(back.images[1], pair.images[1])
+
+
+def test_gray_with_alpha_is_said_as_such_and_a_descent_is_not_a_pair(tmp_path):
+    """A gray+alpha PNG was said "colour converted to gray"; `process DESCENT` said only "missing pair.json" (QA of
+    stop 73)."""
+    import cv2
+
+    pair = make_pair()
+    write_pair(tmp_path / "p", pair)
+    ga = np.dstack([pair.images[0]] * 3 + [np.full_like(pair.images[0], 200)])
+    cv2.imwrite(str(tmp_path / "p" / "i1.png"), ga)
+    back = read_pair(tmp_path / "p")
+    np.testing.assert_array_equal(back.images[0], pair.images[0])
+    assert any("gray with an alpha channel: the alpha left out" in n for n in back.notes), back.notes
+    (tmp_path / "manifest.json").write_text("{}")
+    with pytest.raises(PairFormatError, match=r"rendered descent, manifest\.json: give one of its pair directories"):
+        read_pair(tmp_path)
