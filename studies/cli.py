@@ -755,6 +755,14 @@ def _landings(args: argparse.Namespace) -> int:
     print(f"{'':7s}   [lo, hi]: {summary.get('ci95_note') or ''}")
     used = [int(x) for x in summary.get("seeds_used") or seeds]  # the landings drew these, not the whole set
     print(f"{describe_seeds(used, seed_set)}{camera_note(args.camera_px)}; wall {time.time() - t0:.0f} s")
+    unused = [s for s in seeds if s not in used]
+    if unused and used:  # asked for, never drawn: the campaign rests on fewer seeds than asked (QA of stop 73)
+        print(
+            f"note: seed{'s' if len(unused) > 1 else ''} {', '.join(map(str, unused))} asked for but not drawn: "
+            f"{summary.get('n_landings_flown', '?')} landings drew {len(used)} of the {len(seeds)} seeds; more "
+            "landings (--n) reach more of them",
+            file=sys.stderr,
+        )
     print(f"rows:    {args.out / 'landings.csv'}\nsummary: {args.out / 'landings.json'}")
     print(f"report:  {args.out / 'report' / 'index.html'}")
     return 0

@@ -45,6 +45,7 @@ from ground_sim.render import DEFAULT_RASTER
 from ground_sim.seeds import describe_seeds, not_held_out
 from protocol.errors import InputError
 from protocol.messages import SITES_WITHHELD
+from protocol.pairdir import Camera
 from reports.html import write_atomic
 from reports.jsondoc import json_text
 from reports.style import SERIES_COLOURS
@@ -599,6 +600,8 @@ def _write_summary(
     if not complete:
         summary["incomplete_reason"] = reason
     summary["seeds_used"] = sorted({int(r["scene_seed"]) for r in rows})
+    # the camera the landings saw: the campaign's camera_px is null for the scenarios' own (QA of stop 73)
+    summary["camera_px_used"] = c.camera_px or Camera.thesis().width
     summary["ci95_note"] = CI_NOTE.format(per_render=c.per_render)  # travels with the numbers (QA 65b L3)
     summary["wall_s_this_run"] = wall
     # each file whole or not at all: a signal in the last instant must not leave a truncated landings.json

@@ -559,9 +559,12 @@ def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, cap
     """L1/L3: `landings --camera-px 64` said nothing of the camera on the console, and its interval's caveat was
     on the page only."""
     argv = ["landings", "--scenes", "mare", "--n", "1", "--per-render", "1", "--preset", "fast", "--camera-px", "64"]
-    assert main([*argv, "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
+    assert main([*argv, "--seeds", "2", "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
     out, err = capsys.readouterr()
     assert "a 64 px camera, not the thesis's 512 px: not its setup" in err  # the campaign's opening line
+    # one landing draws one of the two seeds asked for: said, and the camera recorded (QA of stop 73)
+    assert "asked for but not drawn: 1 landings drew 1 of the 2 seeds" in err, err
+    assert json.loads((tmp_path / "l" / "landings.json").read_text())["camera_px_used"] == 64
     assert "a 64 px camera, not the thesis's 512 px" in out
     assert "[lo, hi]: 95 % Wilson interval taking the landings as independent draws; the 1 aim points" in out
 
