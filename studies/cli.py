@@ -568,7 +568,10 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
     from studies import report
 
     summ = ev.sensitivity_summary(rows)
-    print(report.rows_markdown(summ, list(summ[0]) if summ else []))
+    # the seeds and camera first, as evaluate says them; the columns by the glossary's labels, as the page names
+    # them (the console's raw field names were explained nowhere on it; QA of stop 73)
+    print(f"{args.kind}: {seeds_text}{camera_note(args.camera_px)}")
+    print(report.rows_markdown(summ, list(summ[0]) if summ else [], labels=True))
     # one page for every study run into this directory, so kinds do not overwrite each other; each section
     # states its own seeds and camera: the headline's are this run's, and earlier kinds' may differ
     sections, other = [], []
@@ -597,7 +600,6 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
     page = report.write_html(
         args.out / "report", title, sections, subtitle=f"WARNING ({args.kind}): {warning}" if warning else ""
     )
-    print(f"{seeds_text}{note}")
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     if other:
         _note(

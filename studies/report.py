@@ -309,11 +309,13 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
     return save_figure(fig, path, dpi=110, bbox_inches=None)
 
 
-def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str]) -> str:
+def rows_markdown(rows: list[dict[str, Any]], columns: Iterable[str], labels: bool = False) -> str:
+    """``rows`` as a Markdown pipe table of ``columns``; ``labels``: headed by the glossary's labels, not the keys."""
     cols = list(columns)
     # numbers right, words left (kind and preset read right-aligned; QA 64b)
     words = {c for c in cols if any(isinstance(r.get(c), str) for r in rows)}
-    lines = ["| " + " | ".join(cols) + " |", "|" + "".join("---|" if c in words else "---:|" for c in cols)]
+    head = [term(c).label.replace("|", "\\|") if labels else c for c in cols]
+    lines = ["| " + " | ".join(head) + " |", "|" + "".join("---|" if c in words else "---:|" for c in cols)]
     for r in rows:
         lines.append("| " + " | ".join(fmt_number(r.get(c)) for c in cols) + " |")
     return "\n".join(lines) + "\n"

@@ -416,7 +416,11 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     assert header[:4] == ["kind", "preset", "seed", "altitude_m"] and header[-1] == "camera_px"  # appended
     argv = ["sensitivity", "--kind", "altitude", *common, "--seeds", "1", "--camera-px", "64"]
     assert main([*argv, "--out", str(out)]) == 0
-    err = capsys.readouterr().err
+    said, err = capsys.readouterr()
+    # the setting above the table, whose columns carry the page's labels, not raw field names (QA of stop 73)
+    first, header = said.splitlines()[:2]
+    assert first.startswith("altitude: held-out seeds 1000 (1)") and "a 64 px camera" in first, said
+    assert header.startswith("| error kind |") and "median_rel_pct" not in header, header
     page = html.unescape((out / "report" / "index.html").read_text())
     assert "sensitivity: altitude (held-out seeds 1000 (1), a 64 px camera)" in page
     assert "sensitivity: rollyaw (held-out seeds 1001 (1), a 128 px camera)" in page
