@@ -262,10 +262,17 @@ def run_tasks(
     if (code is not None or inputs is not None) and pending:
         stale = (set(load_results(path)) & {t.id for t in pending}) - again
         if stale:
-            other = "by other code" if inputs is None else f"by other code or not from {inputs}"
+            # which of the two: "by other code or not from camera_px=256, renders ..." left the user to guess
+            # (QA of stop 73)
+            same_code = set(load_results(path, code)) & stale if code is not None else stale
+            causes: list[str] = []
+            if len(stale) > len(same_code):
+                causes.append(f"{len(stale) - len(same_code)} by other code (the packages' source changed since)")
+            if inputs is not None and (from_other := len(same_code - set(load_results(path, code, inputs)))):
+                causes.append(f"{from_other} from other inputs than this run's ({inputs})")
             print(
-                f"note: {desc}: {len(stale)} of {len(tasks)} saved results in {path} were computed {other};"
-                " computing them again",
+                f"note: {desc}: {len(stale)} of {len(tasks)} saved results in {path} were computed "
+                f"{'; '.join(causes) or 'otherwise'}; computing them again",
                 file=sys.stderr,
                 flush=True,
             )

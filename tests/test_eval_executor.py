@@ -125,3 +125,17 @@ def test_the_code_fingerprint_follows_the_source(tmp_path: Path, monkeypatch):
     assert code_fingerprint(["studies", "flight_sw"]) == code_fingerprint(["flight_sw", "studies"])
     with pytest.raises(InputError, match="not an importable package"):
         code_fingerprint(["no_such_package_here"])
+
+
+def test_the_rerun_note_says_which_of_code_and_inputs_changed(tmp_path, capsys):
+    """The note "computed by other code or not from camera_px=256, ..." left the user to guess which (QA of stop
+    73): each cause is counted apart."""
+    path = tmp_path / "r.jsonl"
+    run_tasks(noisy_mean, TASKS, path, workers=1, progress=False, code="A", inputs="camera_px=128")
+    capsys.readouterr()
+    run_tasks(noisy_mean, TASKS, path, workers=1, progress=False, code="A", inputs="camera_px=256")
+    err = capsys.readouterr().err
+    assert f"{len(TASKS)} from other inputs than this run's (camera_px=256)" in err and "other code" not in err, err
+    run_tasks(noisy_mean, TASKS, path, workers=1, progress=False, code="B", inputs="camera_px=256")
+    err = capsys.readouterr().err
+    assert f"{len(TASKS)} by other code" in err and "other inputs" not in err, err
