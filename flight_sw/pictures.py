@@ -181,7 +181,7 @@ def write_process_report(
             (
                 "Numbered circles are the ranked landing sites' 3 m footprints (a footprint smaller than 1.5 % of "
                 "the panel is drawn at that size; sites too close to label apart share one label, e.g. 1,2,4; "
-                "against the truth, when the pair has one, in confusion.png). "
+                "judged against the truth in confusion.png when the pair's truth allows). "
                 if res.sites
                 else "No landing site was offered (the reason is above). "  # circles explained on a map without any
             )

@@ -855,7 +855,8 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         "percentiles (host-independent reference seconds; the unthrottled host case on CPU seconds) with "
         "tolerances. Exit 0 when nothing regressed and every pair met its deadline (or --min-hit-rate of them), 1 "
         "with a diff table that shows "
-        "each crossed limit (or the deadlines a case missed), 2 on bad usage, 128 + N when signal N stopped it.",
+        "each crossed limit (or the deadlines a case missed), 2 on bad usage (a host never calibrated, unless "
+        "--uncalibrated), 128 + N when signal N stopped it. OUT/regress.json holds the table and the verdict.",
     )
     p.add_argument(
         "--baseline",
@@ -863,7 +864,12 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="latency baseline JSON (default: the one shipped with the package, hil_server/latency_baseline.json)",
     )
-    p.add_argument("--update", action="store_true", help="rewrite the baseline with this run's numbers")
+    p.add_argument(
+        "--update",
+        action="store_true",
+        help="rewrite the baseline with this run's numbers, each shown beside the one it replaces; a case that "
+        "missed deadlines (below --min-hit-rate) or measured none of its metrics is not recorded (exit 1)",
+    )
     p.add_argument("--cases", default=None, help="comma-separated case names (default: all in the baseline)")
     p.add_argument(
         "--min-hit-rate",

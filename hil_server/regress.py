@@ -118,7 +118,7 @@ class CaseOutcome:
     below_required: bool = False  # its hit rate is under the one the run requires (--min-hit-rate, else every pair)
     previous: dict | None = None  # --update: the metrics it replaces, shown beside the new ones
     loose: list[str] = field(default_factory=list)  # metrics whose limit is at least twice the baseline
-    unwritten: bool = False  # --update interrupted: measured, and the baseline was left unchanged
+    unwritten: str = ""  # --update: measured, and the baseline left unchanged (why: interrupted, refused)
     contention_pct: float | None = None  # the share of its flight time the flight process waited for its core
 
 
@@ -315,7 +315,7 @@ def _metric_verdict(o: CaseOutcome, k: str) -> str:
     # a hit rate under the one required read "ok" beside a FAIL, even as an --update recorded it (QA 71)
     missed = k == "deadline_hit_rate" and o.below_required
     if o.unwritten:
-        verdict = "measured; not recorded (interrupted: the baseline is unchanged)"
+        verdict = f"measured; not recorded ({o.unwritten})"
     elif o.recorded:
         verdict = "recorded" + ("; deadlines missed (below the hit rate required)" if missed else "")
         if o.previous is not None and k in o.previous:  # what the update replaces, and by how much
@@ -684,7 +684,7 @@ def check_regression(
             cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
         except RegressInterrupted as exc:
             for o in outcomes:  # the table read "recorded" for cases the baseline then did not get (QA of stop 73)
-                o.unwritten = o.recorded
+                o.unwritten = "interrupted: the baseline is unchanged" if o.recorded else ""
             exc.finished = diff_table(outcomes) if outcomes else ""
             raise
         incomplete = cur.pop("incomplete_reason", None)
@@ -721,12 +721,49 @@ def check_regression(
     elif "recorded" in doc:
         new_doc["recorded"] = doc["recorded"]
     ok = all(not o.problems for o in outcomes) and not missed
+    refusal = _refusal(all_cases, baseline, ok) if update else ""
+    if refusal:  # its rows read "recorded" above "baseline NOT written" (review of stop 73)
+        ok = False
+        for o in outcomes:
+            o.unwritten = "the baseline is not written: see below"
     diff = diff_table(outcomes)
     if notes:
         diff += "\n" + "\n".join(f"warning: {n}" for n in notes)
+    # whether the verdict rests on an uncalibrated host: the cases run, not every case of the baseline
+    uncal = cond["calibration"] is None and not all(is_board(all_cases[n]) for n in names)
     _write_report(out, {"baseline": str(baseline), "update": update, "judged_ok": ok, "warnings": notes,
-                        "cases": outcome_rows(outcomes)})  # fmt: skip
+                        "refusal": refusal, "uncalibrated": uncal, "cases": outcome_rows(outcomes)})  # fmt: skip
     return ok, diff, new_doc
+
+
+def _refusal(cases: dict, baseline: Path, ok: bool) -> str:
+    """Why an --update must not write ``cases`` (with the metrics just measured), or "" when it may; the metrics it
+    would write are cleaned of non-finite values meanwhile."""
+    # a case without a single result has no latency to record (NaN): such a baseline could never be read back,
+    # and writing it would lose the one that was there. A metric a case cannot measure (a board whose Telemetry
+    # leaves out its stages has no CPU seconds) is left out, and read back as "not judged" (QA 66a)
+    empty = []
+    for n, c in cases.items():
+        m = c.get("metrics") or {}
+        # the metrics the case is judged on must be there, or it could never fail again (review of stop 66);
+        # a board's own latency alone may be missing (its Telemetry need not report one): its end-to-end is judged
+        must = E2E_METRICS if is_board(c) else _judged_for(c, baseline)
+        missing = [k for k in ("deadline_hit_rate", *must) if _not_finite(m.get(k, math.nan))]
+        if missing:
+            empty.append(f"{n} ({', '.join(missing)})")
+        else:
+            c["metrics"] = {k: v for k, v in m.items() if not _not_finite(v)}
+    if empty:
+        return (
+            f"case(s) {', '.join(empty)} measured none of the metrics named, which they are judged on (no Result, or "
+            "a flight program whose Telemetry leaves them out)"
+        )
+    if not ok:  # a baseline of missed deadlines passed every later run held to it (QA of stop 73)
+        return (
+            "a case missed its deadlines or did not finish (above); to record a case that misses some, give the hit "
+            "rate it may have: --min-hit-rate"
+        )
+    return ""
 
 
 REPORT_NAME = "regress.json"  # in --out: the diff table and verdict for a CI to read (QA of stop 73)
@@ -749,7 +786,7 @@ def outcome_rows(outcomes: list[CaseOutcome]) -> list[dict]:
             {
                 "case": o.name,
                 "problems": list(o.problems),
-                "recorded": o.recorded,
+                "recorded": o.recorded and not o.unwritten,
                 "metrics": metrics,
                 "contention_pct": o.contention_pct,
             }
@@ -772,14 +809,18 @@ def _write_report(out: Path, doc: dict) -> None:
         print(f"regress: warning: {Path(out) / REPORT_NAME} not written ({exc.strerror or exc})", file=sys.stderr)
 
 
+def _read_report(out: Path) -> dict:
+    """``OUT/regress.json`` as :func:`check_regression` wrote it ({} when it could not)."""
+    try:
+        doc = json.loads((Path(out) / REPORT_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
 def _final_report(out: Path, verdict: str, code: int) -> None:
     """Add the command's own verdict and exit code to ``OUT/regress.json``."""
-    path = Path(out) / REPORT_NAME
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError):
-        doc = {}
-    _write_report(out, {**doc, "verdict": verdict, "exit_code": code})
+    _write_report(out, {**_read_report(out), "verdict": verdict, "exit_code": code})
 
 
 def _check_writable(baseline: Path) -> None:
@@ -818,6 +859,8 @@ def run_regression(
 
     try:
         with claim_out(out, "regress"):  # each case's run holds its own OUT/<case> too
+            # an earlier run's verdict must not pass for this one's when this one ends early (exit 2, a signal)
+            (Path(out) / REPORT_NAME).unlink(missing_ok=True)
             ok, diff, new_doc = check_regression(
                 baseline,
                 out=out,
@@ -835,59 +878,22 @@ def run_regression(
         print("INTERRUPTED")
         return 128 + exc.signum
     print(diff)
+    report = _read_report(out)
     if update:
         from reports.html import write_atomic
 
-        # a case without a single result has no latency to record (NaN): such a baseline could never be read back,
-        # and writing it would lose the one that was there. A metric a case cannot measure (a board whose Telemetry
-        # leaves out its stages has no CPU seconds) is left out, and read back as "not judged" (QA 66a)
-        empty = []
-        for n, c in new_doc["cases"].items():
-            m = c.get("metrics") or {}
-            # the metrics the case is judged on must be there, or it could never fail again (review of stop 66);
-            # a board's own latency alone may be missing (its Telemetry need not report one): its end-to-end is judged
-            must = E2E_METRICS if is_board(c) else _judged_for(c, baseline)
-            missing = [k for k in ("deadline_hit_rate", *must) if _not_finite(m.get(k, math.nan))]
-            if missing:
-                empty.append(f"{n} ({', '.join(missing)})")
-            else:
-                c["metrics"] = {k: v for k, v in m.items() if not _not_finite(v)}
-        if empty:
-            print(
-                f"baseline NOT written: case(s) {', '.join(empty)} measured none of the metrics named, which they are "
-                f"judged on (no Result, or a flight program whose Telemetry leaves them out); {baseline} is unchanged"
-            )
+        if report.get("refusal"):
+            print(f"baseline NOT written: {report['refusal']}; {baseline} is unchanged")
             print("FAIL")
-            _final_report(out, "FAIL: baseline not written (a case measured none of its metrics)", 1)
-            return 1
-        if not ok:  # a baseline of missed deadlines passed every later run held to it (QA of stop 73)
-            print(
-                f"baseline NOT written: a case missed its deadlines or did not finish (above); {baseline} is "
-                "unchanged (to record a case that misses some, give the hit rate it may have: --min-hit-rate)"
-            )
-            print("FAIL")
-            _final_report(out, "FAIL: baseline not written (a case missed its deadlines or did not finish)", 1)
+            _final_report(out, "FAIL: baseline not written", 1)
             return 1
         write_atomic(Path(baseline), json.dumps(new_doc, indent=1, sort_keys=True) + "\n")
         print(f"baseline written: {baseline}")
-    blind = " (uncalibrated host: reference seconds at the anchor's speed)" if _judged_uncalibrated(new_doc) else ""
+    blind = " (uncalibrated host: reference seconds at the anchor's speed)" if report.get("uncalibrated") else ""
     verdict = ("PASS" if ok else "FAIL") + (" (baseline recorded)" if update else f" against {baseline}") + blind
     print(verdict)
     _final_report(out, verdict, 0 if ok else 1)
     return 0 if ok else 1
-
-
-def _judged_uncalibrated(doc: dict) -> bool:
-    """Whether this host has no calibration and ``doc`` holds an emulated case (the verdict then says so)."""
-    import warnings
-
-    from hil_server.budgets import UncalibratedWarning, load_calibration
-
-    if all(is_board(c) for c in doc.get("cases", {}).values()):
-        return False
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UncalibratedWarning)
-        return load_calibration() is None
 
 
 def _judged_for(case: dict, baseline: Path) -> tuple[str, ...]:

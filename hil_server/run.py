@@ -1924,6 +1924,7 @@ def _descend(checked: CheckedRun, log) -> dict:
             if reason is None and rc == EXIT_NO_HELLO and emulated:
                 # the ground's link is to the HIL server, which answers; it is the program it runs that never said
                 # Hello (the ground's "its link answers: is its flight software running?" pointed at the wrong thing)
+                _stop(sup)  # its last words say what its link to the flight process saw (none while it waits)
                 why = _supervisor_no_hello(out / "supervisor.log")
                 reason = (
                     f"the flight process never said Hello to the HIL server within {hello:g} s, while it ran (no "

@@ -67,7 +67,6 @@ LAST_WORDS_QUIET_S = 0.2  # ... or until it has been quiet this long (a pty give
 EXIT_LINK_LOST = 3
 EXIT_FLIGHT_FAILED = 4  # the flight program never came up: it died MAX_BOOT_FAILURES times before its Hello
 MAX_BOOT_FAILURES = 3
-NO_HELLO_NOTE_S = 3.0  # a flight process silent this long after its start gets its link's state in supervisor.log
 NO_HELLO_LOG = "no Hello from the flight process"  # that line's opening, which hazard-hil run quotes
 MAX_REFUSAL_LOGS = 100  # refusals logged one by one per run; past that only counted (the logs stay bounded)
 # link counters of the flight line that mean "the flight process sent something the HIL server refused":
@@ -89,6 +88,7 @@ class PairState:
     arrivals: dict[int, float] = field(default_factory=dict)  # frame_index -> monotonic arrival time
     complete_at: float | None = None  # monotonic time the last frame arrived
     proc_at_complete: dict | None = None  # emulated-processor stats then, for the pair's CPU fraction
+    garbage_at_complete: int = 0  # frames from the flight process that had failed the line's checks by then
     proc_at_result: dict | None = None
     sent_to: int = -1  # flight generation the frames went to
     frame_mids: dict[int, int] = field(default_factory=dict)  # frame_index -> message id on that generation's link
@@ -259,7 +259,6 @@ class FlightHandle:
         self.link.send(Hello(role="hil-server"))
         self.hello = False
         self.started = time.monotonic()
-        self.hello_noted = ""  # the last no-Hello diagnosis logged (one line per change, not per poll)
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
 
     def line_garbage(self) -> int:
@@ -271,30 +270,31 @@ class FlightHandle:
             return 0
         return int(sum(float(stats.get(k, 0)) for k in LINE_ERROR_STATS))
 
-    def no_hello_note(self) -> str:
-        """Why no Hello has come from this incarnation, as far as its link can tell (a user's own program: a "no
-        Hello" read the same whether it never wrote, wrote frames that failed their CRC, or never sent the
-        message; QA of stop 73)."""
+    def no_hello_note(self) -> tuple[int, str]:
+        """Why no Hello has come from this incarnation, as far as its link can tell, and how far it got (0 nothing
+        came, 1 bytes but no frame, 2 frames failing their checks, 3 a link but no Hello message): a user's own
+        program read "no Hello" the same whether it never wrote, wrote frames that failed their CRC, or never sent
+        the message (QA of stop 73)."""
         try:
             stats = self.link.stats
             stats = stats() if callable(stats) else stats
         except Exception:
-            return ""
+            return 0, ""
         got, bad = int(stats.get("bytes_received", 0)), int(stats.get("crc_errors", 0) + stats.get("malformed", 0))
         if not got:
-            return (
+            return 0, (
                 "nothing came from it on its link: it never answered the link's HELLO frame (is it reading and "
                 "writing the port it was given? docs/protocol.md section 2)"
             )
         if not stats.get("established"):
             if bad:
-                return (
+                return 2, (
                     f"its link never came up: {bad} frame{'' if bad == 1 else 's'} it sent failed the CRC or framing "
                     f"check ({got} bytes came): check its CRC-32 (big-endian on the wire) and the framing's flags "
                     "and escapes (docs/protocol.md section 1)"
                 )
-            return f"its link never came up: {got} bytes came from it, none a valid HELLO frame (docs/protocol.md)"
-        return (
+            return 1, f"its link never came up: {got} bytes came from it, none a valid HELLO frame (docs/protocol.md)"
+        return 3, (
             "its link came up (the HELLO frames were exchanged) but no Hello message came over it "
             "(docs/protocol.md section 6)"
         )
@@ -392,6 +392,7 @@ class Supervisor:
             "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
         }
         self.boot_failures = 0  # flight incarnations in a row that died before their Hello
+        self.no_hello_seen: tuple[int, str] = (-1, "")  # the furthest an incarnation without a Hello got, and why
         self.unlogged_bytes = 0  # the flight incarnations' output past the log's cap (procemu), closed ones
         self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
         self._stall: StallClock | None = None  # this process's own stops (serve() runs it)
@@ -423,8 +424,15 @@ class Supervisor:
                 st.stopped_s = 0.0  # its clock starts at the replay: earlier stops are not its slack
             self.flight.replayed += 1
 
+    def _keep_no_hello_note(self) -> None:
+        """Keep the furthest any incarnation without a Hello got (:meth:`FlightHandle.no_hello_note`): a restart
+        by the heartbeat watchdog left a fresh link that had seen nothing yet."""
+        if self.flight is not None and not self.flight.hello:
+            self.no_hello_seen = max(self.no_hello_seen, self.flight.no_hello_note(), key=lambda n: (n[0], bool(n[1])))
+
     def _restart_flight(self, reason: str) -> None:
         assert self.flight is not None
+        self._keep_no_hello_note()
         self._check_refusals()  # what this incarnation sent that was refused is accounted for before it goes
         report = None
         if self.flight.proc.alive:
@@ -541,6 +549,7 @@ class Supervisor:
             if len(st.frames) == 2:
                 st.complete_at = st.sent_at = time.monotonic()
                 st.proc_at_complete = self.flight.proc.stats()
+                st.garbage_at_complete = self.flight.line_garbage()
             if st.sent_to != self.generation:
                 st.frame_mids.clear()
             st.frame_mids[msg.frame_index] = self.flight.link.send(fmsg)
@@ -909,14 +918,15 @@ class Supervisor:
         )
         self._finish_if_delivered(st)
 
-    def _flight_note(self) -> str:
-        """What the HIL server refused from the current flight incarnation, for a hang's reason (or "")."""
+    def _flight_note(self, st: PairState | None = None) -> str:
+        """What the HIL server refused from the current flight incarnation, for a hang's reason (or ""); the line
+        garbage since pair ``st``'s frames were all in (all of this incarnation's without one)."""
         assert self.flight is not None
         skipping = self.flight.skipping()
         if skipping is not None:
             return f"; the flight process is sending a message the HIL server refuses ({skipping.reason})"
         last, ignored = self.flight.last_refusal, self.flight.last_ignored
-        bad = self.flight.line_garbage()
+        bad = max(0, self.flight.line_garbage() - (st.garbage_at_complete if st is not None else 0))
         return (
             (f"; last refused from the flight process: {last}" if last else "")
             + (f"; it sent {ignored}, which was ignored (its frame_seqs wrong?)" if ignored else "")
@@ -965,7 +975,7 @@ class Supervisor:
             and (now - since - st.stopped_s > self._hard_limit())
         ):
             self.counters["hangs"] += 1
-            note = self._flight_note()
+            note = self._flight_note(st)
             skipping = self.flight.skipping()
             if skipping is not None:  # a record of an unknown type still trickling in: never refused otherwise
                 self._refuse_skipped(skipping)
@@ -988,17 +998,12 @@ class Supervisor:
             self._complete_without_telemetry(
                 waiting, f"none {late:.1f} s after its Result (hard limit {self._hard_limit():.1f} s)"
             )
-        if not self.flight.hello and now - self.flight.started > NO_HELLO_NOTE_S:
-            why = self.flight.no_hello_note()
-            if why and why != self.flight.hello_noted:
-                self.flight.hello_noted = why
-                self.log(f"supervisor: {NO_HELLO_LOG} {now - self.flight.started:.0f} s after its start: {why}")
         hb_limit = HEARTBEAT_TIMEOUT_S / max(self.effective_fraction, 0.01)
         assert self.flight_reader is not None
         if now - self.flight_reader.last_message > hb_limit:
             self.counters["hangs"] += 1
             if st is not None:
-                self._fail_pair(st, "heartbeat_lost", f"no heartbeat for {hb_limit:.1f} s{self._flight_note()}")
+                self._fail_pair(st, "heartbeat_lost", f"no heartbeat for {hb_limit:.1f} s{self._flight_note(st)}")
             self._restart_flight("heartbeat lost")
             return
         report = self.flight.proc.poll()
@@ -1038,6 +1043,11 @@ class Supervisor:
                     return self._exit_code()
         finally:
             self.closing = True  # main()'s SIGTERM handler no longer interrupts: the summary must be written
+            if self.flight is not None and not self.flight.hello:  # what its links saw, for the run's reason
+                self._keep_no_hello_note()
+                why = self.no_hello_seen[1]
+                if why:
+                    self.log(f"supervisor: {NO_HELLO_LOG} in {time.monotonic() - self.t_start:.0f} s: {why}")
             self._stall.close()
             ground_reader.stopped.set()
             if self.flight_reader:

@@ -81,8 +81,8 @@ TRUTH_FILES = {
 }
 _TRUTH_DTYPES = {"elevation": np.float32, "depth": np.float32, "shadow": np.bool_, "hazard": np.float32}
 # pair.json's keys that hold truth (the renderer's): the true poses, the injected pose errors, the hazards and the
-# overlap the truth gives. A pair read without its truth leaves them out: flight software never sees them (a
-# flight-side `process` refused a pair over a malformed true_frames; QA of stop 73)
+# overlap the truth gives. A pair read without its truth leaves them out: flight software never sees them (the
+# flight side's read refused a pair over a malformed true_frames, which it has no use for; QA of stop 73)
 TRUTH_META_KEYS = ("true_frames", "pose_error", "hazards_in_scene_pct", "hazard_fraction", "overlap_pct")
 
 
@@ -774,7 +774,15 @@ def _tiff_size(path: Path, head: bytes) -> tuple[int, int]:
     return int(size[256]), int(size[257])
 
 
-DEEP_SCALE_PERCENTILE = 99.99  # 16-bit frames are scaled to 8 bits from this percentile of their values
+DEEP_SCALE_SHARE = 1e-4  # 16-bit frames are scaled to 8 bits ignoring this share of their brightest pixels (>= 1)
+
+
+def _bright_end(img: np.ndarray) -> int:
+    """The value below which all but the brightest max(1, :data:`DEEP_SCALE_SHARE` x n) pixels lie: one hot pixel
+    in a 100 px frame (its 99.99th percentile is its maximum) set the scale too (review of stop 73)."""
+    flat = np.asarray(img).reshape(-1)
+    k = flat.size - 1 - min(flat.size - 1, max(1, int(flat.size * DEEP_SCALE_SHARE)))
+    return int(np.partition(flat, k)[k])
 
 
 def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray], list[str]]:
@@ -782,8 +790,8 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
 
     Colour becomes luminance (OpenCV's BT.601 weights). Deeper images are
     shifted right by the same number of bits in every frame (the bits above
-    the frames' :data:`DEEP_SCALE_PERCENTILE` percentile are unused; the few
-    pixels above it saturate), so the frames keep one common radiometric
+    the frames' brightest but a few, :func:`_bright_end`, are unused; those
+    few saturate), so the frames keep one common radiometric
     scale, which the correlation needs.
     """
     import cv2
@@ -817,7 +825,7 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
         # the scale from a high percentile, not the maximum: one hot pixel at 65535 in a 12-bit image shifted it by 8
         # bits, not 4, and left ~9 grey levels (coverage 96 % -> 41 %, no warning; QA of stop 73). The few pixels
         # above it saturate at 255 and are counted
-        top = max(int(np.percentile(out[k], DEEP_SCALE_PERCENTILE, method="higher")) for k in deep)
+        top = max(_bright_end(out[k]) for k in deep)
         shift = max(0, top.bit_length() - 8)
         clipped = 0
         for k in deep:
@@ -826,7 +834,7 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
             out[k] = np.minimum(shifted, 255).astype(np.uint8)
         notes.append(
             f"16-bit images ({', '.join(names[k] for k in deep)}) shifted right by {shift} bits to 8-bit"
-            + (f"; {clipped} pixels above the {DEEP_SCALE_PERCENTILE:g}th percentile saturated" if clipped else "")
+            + (f"; {clipped} of their brightest pixels saturated" if clipped else "")
         )
     return out, notes
 

@@ -185,7 +185,13 @@ def probe_scheduler(address: str, timeout_s: float = SCHEDULER_PROBE_S) -> None:
     host, port = parse_host_port(loc)
     where = f"Dask scheduler {address!r}"
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+        sock = socket.create_connection((host, int(port)), timeout=timeout_s)
+    except TimeoutError:  # a firewall dropping the connection's packets: nothing took it
+        raise InputError(f"cannot reach {where}: no answer to the connection in {timeout_s:g} s") from None
+    except OSError as exc:
+        raise InputError(f"cannot reach {where}: {exc.strerror or exc}") from None
+    try:
+        with sock:
             sock.settimeout(timeout_s)
             head = _read_exactly(sock, 8)
             (n,) = struct.unpack("<Q", head)

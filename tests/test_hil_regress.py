@@ -283,18 +283,23 @@ def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metr
          "e2e_latency_p50_s": 0.3, "e2e_latency_max_s": 0.4, "cpu_p50_ref_s": nan, "cpu_max_ref_s": nan}  # fmt: skip
     doc = {"cases": {"board": {"scenario": "vertical", "budget": "host", "link": "zmq", "flight": "external",
                                "metrics": m}}}  # fmt: skip
-    monkeypatch.setattr(regress, "check_regression", lambda *a, **k: (True, "", json.loads(json.dumps(doc))))
     baseline = tmp_path / "b.json"
-    assert regress.run_regression(baseline, uncalibrated=True, update=True, out=tmp_path / "o") == 0
-    kept = json.loads(baseline.read_text())["cases"]["board"]["metrics"]
+    cases = json.loads(json.dumps(doc))["cases"]
+    assert regress._refusal(cases, baseline, True) == ""  # recorded, the metric it cannot measure left out
+    kept = cases["board"]["metrics"]
     assert "cpu_p50_ref_s" not in kept and kept["latency_p50_ref_s"] == 0.2
     doc["cases"]["board"]["metrics"] = {**m, "latency_p50_ref_s": nan, "e2e_latency_p50_s": nan}  # no Result at all
-    assert regress.run_regression(tmp_path / "c.json", uncalibrated=True, update=True, out=tmp_path / "o") == 1
-    assert not (tmp_path / "c.json").exists()
+    assert "board (e2e_latency_p50_s) measured none of the metrics" in regress._refusal(doc["cases"], baseline, True)
     # an emulated host case is judged on CPU seconds: recorded without them it could never fail again (review 66)
     doc["cases"]["board"] = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}
+    assert "measured none of the metrics" in regress._refusal(doc["cases"], baseline, True)
+    # and run_regression writes no baseline the check refused
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(doc["cases"]["board"]["metrics"]))
+    (tmp_path / "d.json").write_text(json.dumps({"cases": {"h": {k: v for k, v in doc["cases"]["board"].items()
+                                                                 if k != "metrics"}}}))  # fmt: skip
+    before = (tmp_path / "d.json").read_text()
     assert regress.run_regression(tmp_path / "d.json", uncalibrated=True, update=True, out=tmp_path / "o") == 1
-    assert not (tmp_path / "d.json").exists()
+    assert (tmp_path / "d.json").read_text() == before
 
 
 def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, monkeypatch):

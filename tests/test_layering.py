@@ -64,6 +64,10 @@ def test_flight_sw_never_reads_ground_truth():
         for node in ast.walk(ast.parse(p.read_text(), str(p))):
             if isinstance(node, ast.Attribute) and node.attr == "truth":
                 offences.append(f"{p.name}:{node.lineno}: .truth")
+            # a truth file or pair.json's truth named directly (TRUTH_FILES is used only to keep --out off them)
+            named = node.value if isinstance(node, ast.Constant) and isinstance(node.value, str) else ""
+            if named.startswith("gt_") or named in ("true_frames", "pose_error", "hazards_in_scene_pct"):
+                offences.append(f"{p.name}:{node.lineno}: {named!r}")
             if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "read_pair":
                 kw = {k.arg: k.value for k in node.keywords}
                 if not (isinstance(kw.get("load_truth"), ast.Constant) and kw["load_truth"].value is False):

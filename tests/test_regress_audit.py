@@ -597,6 +597,10 @@ def test_update_shows_what_it_replaces_and_does_not_record_missed_deadlines(tmp_
     assert main(argv) == 1
     out = capsys.readouterr().out
     assert "baseline NOT written" in out and base.read_text() == before
+    rows = [ln for ln in out.splitlines() if ln.startswith("c ") and "_" in ln.split()[1]]
+    assert rows and all("not recorded" in ln for ln in rows), out  # not "recorded" above "NOT written"
+    report = json.loads((tmp_path / "o" / "regress.json").read_text())
+    assert report["exit_code"] == 1 and not report["cases"][0]["recorded"]
     assert main([*argv, "--min-hit-rate", "0"]) == 0  # recorded when asked to, by the hit rate it may have
     assert json.loads(base.read_text())["cases"]["c"]["metrics"]["deadline_hit_rate"] == 0.0
 
@@ -699,3 +703,57 @@ def test_an_uncalibrated_run_says_so_once_and_does_not_claim_the_duty_delivers(h
     assert "no calibration" not in (tmp_path / "r" / "supervisor.log").read_text()
     md = (tmp_path / "r" / "summary.md").read_text()
     assert "delivers that share" not in md and "not measured here" in md
+
+
+def test_a_run_that_ends_early_leaves_no_earlier_verdict_behind(tmp_path, capsys, monkeypatch):
+    """regress.json is written at the end: a later run into the same --out that ended with exit 2 left the earlier
+    run's PASS for a CI to read (review of stop 73)."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(metrics))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial", "metrics": metrics}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]
+    assert main(argv) == 0 and json.loads((tmp_path / "o" / "regress.json").read_text())["exit_code"] == 0
+    assert main([*argv, "--cases", "nosuch"]) == 2
+    assert not (tmp_path / "o" / "regress.json").exists()
+
+
+def test_a_board_case_on_an_uncalibrated_host_is_not_called_uncalibrated(home, tmp_path, capsys, monkeypatch):
+    """The verdict's "uncalibrated host" looked at every case of the baseline, not those run: a board case, which
+    needs no calibration, was labelled so (review of stop 73)."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0, "e2e_latency_max_s": 1.0, "e2e_latency_p50_s": 1.0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(metrics))
+    monkeypatch.setattr(regress, "check_cases", lambda *a, **k: None)
+    base = tmp_path / "baseline.json"
+    board = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial:/dev/x", "flight": "external"}
+    emulated = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial"}
+    base.write_text(json.dumps({"cases": {"b": {**board, "metrics": metrics}, "e": {**emulated, "metrics": metrics}}}))
+    assert main(["regress", "--baseline", str(base), "--cases", "b", "--out", str(tmp_path / "o")]) == 0
+    verdict = capsys.readouterr().out.strip().splitlines()[-1]
+    assert verdict.startswith("PASS against") and "uncalibrated" not in verdict, verdict
+
+
+def test_a_cases_contention_reaches_its_row_in_the_table(tmp_path, capsys, monkeypatch):
+    """measure_case carries the run's flight_contention_pct to the case outcome, which notes it under the case, and
+    regress.json keeps it; it is not written into the baseline (review of stop 73)."""
+    from hil_server import run
+
+    summary = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "complete": True,
+               "flight_latency_p50_s": 1.0, "flight_latency_p95_s": 1.0, "flight_latency_max_s": 1.0,
+               "e2e_latency_max_s": 1.2, "e2e_latency_p50_s": 1.1, "records": [], "flight_contention_pct": 40.0,
+               "flight_contention_s": 0.8}  # fmt: skip
+    monkeypatch.setattr(run, "run_descent", lambda cfg, log=None: dict(summary))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "snapdragon801", "link": "serial"}
+    base.write_text(json.dumps({"cases": {"c": case}}))
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
+    main(argv)
+    out = capsys.readouterr().out
+    assert "note: its flight process waited 40 % of its flight time for its core" in out, out
+    assert json.loads((tmp_path / "o" / "regress.json").read_text())["cases"][0]["contention_pct"] == 40.0
+    assert "contention_pct" not in json.loads(base.read_text())["cases"]["c"].get("metrics", {})
