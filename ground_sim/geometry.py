@@ -59,12 +59,17 @@ def ground_footprint(camera: Camera, pose: Pose, z: float = 0.0) -> np.ndarray:
 MIN_RAY_DOWN = 0.05  # |d_z| below this: a ray too close to the horizon to meet the ground
 
 
-def sky_problem(camera: Camera, pose: Pose) -> str | None:
-    """Why a view cannot be rendered because some of it sees the sky or the horizon (a border ray or the centre
-    pointing less than asin(:data:`MIN_RAY_DOWN`) below the horizontal), or None. Checked where a trajectory is
-    read, so that the error names its pair and frame, and again by the renderer."""
+def border_rays(camera: Camera, pose: Pose) -> np.ndarray:
+    """World directions (N x 3) of rays through the image border (12 per side) and its centre."""
     bu, bv = boundary_pixels(camera, 12)
-    d = pixel_rays(camera, pose, np.append(bu, camera.cx), np.append(bv, camera.cy))
+    return pixel_rays(camera, pose, np.append(bu, camera.cx), np.append(bv, camera.cy))
+
+
+def sky_problem(rays: np.ndarray) -> str | None:
+    """Why a view whose :func:`border_rays` are ``rays`` cannot be rendered because some of it sees the sky or the
+    horizon (a ray pointing less than asin(:data:`MIN_RAY_DOWN`) below the horizontal), or None. Checked where a
+    trajectory is read, so that the error names its pair and frame, and again by the renderer."""
+    d = np.asarray(rays)
     if d[:, 2].max() <= -MIN_RAY_DOWN:
         return None
     worst = math.degrees(math.asin(min(1.0, float(d[:, 2].max()))))

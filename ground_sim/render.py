@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from ground_sim.errors import RenderError
-from ground_sim.geometry import boundary_pixels, ground_footprint, pixel_rays, sky_problem
+from ground_sim.geometry import border_rays, ground_footprint, pixel_rays, sky_problem
 from ground_sim.heightfield import Raster, intersect
 from ground_sim.scene import Scene
 from ground_sim.shading import lunar_lambert, sensor, shadow_level
@@ -171,11 +171,10 @@ def plan_raster(
     fit's coarsening) so the rasters agree where they overlap.
     """
     C = pose.position
-    sky = sky_problem(camera, pose)
+    d = border_rays(camera, pose)
+    sky = sky_problem(d)
     if sky is not None:
         raise RenderError(sky)
-    bu, bv = boundary_pixels(camera, 12)
-    d = pixel_rays(camera, pose, np.append(bu, camera.cx), np.append(bv, camera.cy))
     # coarse terrain bounds around the approximate footprint
     z_c = float(scene.height(np.array([C[0]]), np.array([C[1]]), 1.0)[0])
     if C[2] <= z_c + 0.5:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ground_sim.errors import TrajectoryError
-from ground_sim.geometry import look_rotation, sky_problem
+from ground_sim.geometry import border_rays, look_rotation, sky_problem
 from protocol.errors import InputError
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, MAX_POSITION_M, Camera, Pose
 
@@ -279,7 +279,7 @@ def from_file(path: Path) -> list[PairSpec]:
                     f"{poses[k - 1].time_s:g})"
                 )
         for k, pose in enumerate(poses):  # the renderer said it of no pair or frame
-            sky = sky_problem(cam, pose)
+            sky = sky_problem(border_rays(cam, pose))
             if sky is not None:
                 raise TrajectoryError(f"{where} frame {k}: {sky}")
         hl = _number(p, "altitude_m", float(poses[-1].position[2]), where)

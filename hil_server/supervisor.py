@@ -159,9 +159,7 @@ def pair_cpu_fraction(before: dict | None, after: dict) -> float:
     if before is None:
         return float("nan")
     d_cpu = after["cpu_s"] - before["cpu_s"]
-    d_wall = after["wall_s"] - before["wall_s"]
-    d_wait = min(after["contention_s"] - before["contention_s"], max(0.0, d_wall - d_cpu))
-    d_avail = d_wall - d_wait
+    d_avail = after["wall_s"] - before["wall_s"] - pair_contention_s(before, after)
     return d_cpu / d_avail if d_avail > 0 else float("nan")
 
 
@@ -261,12 +259,18 @@ class FlightHandle:
         self.started = time.monotonic()
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
 
-    def line_garbage(self) -> int:
-        """Frames from this incarnation that failed the line's checks (CRC, framing, size) since it started."""
+    def link_stats(self) -> dict | None:
+        """This incarnation's link counters, or None once its link cannot say (closed)."""
         try:
             stats = self.link.stats
-            stats = stats() if callable(stats) else stats
+            return stats() if callable(stats) else stats
         except Exception:
+            return None
+
+    def line_garbage(self) -> int:
+        """Frames from this incarnation that failed the line's checks (CRC, framing, size) since it started."""
+        stats = self.link_stats()
+        if stats is None:
             return 0
         return int(sum(float(stats.get(k, 0)) for k in LINE_ERROR_STATS))
 
@@ -275,10 +279,8 @@ class FlightHandle:
         came, 1 bytes but no frame, 2 frames failing their checks, 3 a link but no Hello message): a user's own
         program read "no Hello" the same whether it never wrote, wrote frames that failed their CRC, or never sent
         the message (QA of stop 73)."""
-        try:
-            stats = self.link.stats
-            stats = stats() if callable(stats) else stats
-        except Exception:
+        stats = self.link_stats()
+        if stats is None:
             return 0, ""
         got, bad = int(stats.get("bytes_received", 0)), int(stats.get("crc_errors", 0) + stats.get("malformed", 0))
         if not got:
@@ -311,10 +313,8 @@ class FlightHandle:
 
     def new_counts(self) -> dict[str, int]:
         """The refusal and line-error counters of this incarnation's link since the last call."""
-        try:
-            stats = self.link.stats
-            stats = stats() if callable(stats) else stats
-        except Exception:  # a closed link: nothing new
+        stats = self.link_stats()
+        if stats is None:  # a closed link: nothing new
             return {}
         out = {}
         for k, before in self.seen.items():

@@ -112,7 +112,7 @@ class TruthLook:
         from ground_sim import scoring
         from reports.html import write_atomic
         from reports.jsondoc import json_text
-        from studies.score import json_row
+        from studies.score import json_row, pixel_scores
 
         why = problem.removesuffix(": nothing to score against")
         covered = np.isfinite(output.hazard)
@@ -129,17 +129,7 @@ class TruthLook:
         if gt_h is not None:  # the pixel scores over the map
             c = scoring.confusion(output.hazard, gt_h, covered)
             if c["n"]:
-                row.update(
-                    pixels=c["n"],
-                    tp_pct=c["tp"],
-                    fp_pct=c["fp"],
-                    fn_pct=c["fn"],
-                    tn_pct=c["tn"],
-                    cdi_pct=c["cdi"],
-                    hazards_detected_pct=c["tn_rate"],
-                    safe_recognised_pct=c["tp_rate"],
-                    hazards_in_scene_pct=c["hazards_pct"],
-                )
+                row.update(pixel_scores(c))
         if gt_z is not None and output.elevation is not None:
             d = scoring.dem_error_stats(output.elevation, gt_z.astype(np.float32), covered)
             if d["n"]:

@@ -329,6 +329,21 @@ def truth_problem(pair: Any, where: str) -> tuple[str | None, str | None]:
     return derived, None
 
 
+def pixel_scores(c: dict[str, float]) -> dict[str, Any]:
+    """A row's pixel scores from :func:`ground_sim.scoring.confusion`'s counts, under `score`'s column names."""
+    return {
+        "pixels": c["n"],
+        "tp_pct": c["tp"],
+        "fp_pct": c["fp"],
+        "fn_pct": c["fn"],
+        "tn_pct": c["tn"],
+        "cdi_pct": c["cdi"],
+        "hazards_detected_pct": c["tn_rate"],
+        "safe_recognised_pct": c["tp_rate"],
+        "hazards_in_scene_pct": c["hazards_pct"],
+    }
+
+
 def score_output(
     pair: Any,
     output: DetectorOutput,
@@ -369,15 +384,7 @@ def score_output(
         # DESIGN.md: scoring judges against the true poses; without them the reported ones stand in, and a navigation
         # error in them goes unseen (the sites are placed on the ground through frame 0's pose)
         "truth_poses": "true_frames" if isinstance(pair.meta, dict) and "true_frames" in pair.meta else "reported",
-        "pixels": c["n"],
-        "tp_pct": c["tp"],
-        "fp_pct": c["fp"],
-        "fn_pct": c["fn"],
-        "tn_pct": c["tn"],
-        "cdi_pct": c["cdi"],
-        "hazards_detected_pct": c["tn_rate"],
-        "safe_recognised_pct": c["tp_rate"],
-        "hazards_in_scene_pct": c["hazards_pct"],
+        **pixel_scores(c),
         "unmapped_pct": 100.0 * np.count_nonzero(area & ~np.isfinite(output.hazard)) / n,
     }
     if output.state is not None:
