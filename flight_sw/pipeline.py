@@ -1196,12 +1196,13 @@ def _finish(timings: dict[str, dict[str, float]]) -> None:
     }
 
 
-def _overlapping(covered: np.ndarray, z: float) -> np.ndarray:
-    """``covered``, or a clear error when the frames share no ground (the world grid would be empty)."""
+def _overlapping(covered: np.ndarray, z: float, other: str = "the other frame") -> np.ndarray:
+    """``covered``, or a clear error when the frames share no ground (the world grid would be empty); ``other``
+    names the frames compared with the reference ("the other frame" was ambiguous of four; QA 74)."""
     if not np.any(covered):
         raise FlightInputError(
-            f"the frames do not overlap: no pixel of the reference frame sees ground at Z = {z:.1f} m that the "
-            "other frame sees (check the poses)"
+            f"the frames do not overlap: no pixel of the reference frame sees ground at Z = {z:.1f} m that "
+            f"{other} sees (check the poses)"
         )
     return covered
 
@@ -1824,7 +1825,13 @@ def _run_v2(
         if extra and p.multi_extent == "union":
             for _, pose_k in extra:
                 covered |= coverage_mask(camera, pose1, pose_k, z_mid)
-        covered = _overlapping(covered, z_mid)
+        if not extra:
+            other = "the other frame"
+        elif p.multi_extent == "union":
+            other = "the last frame used, nor any frame between,"
+        else:
+            other = "the last frame used"
+        covered = _overlapping(covered, z_mid, other)
         rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
         overlap = min(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) if rows.size else 0
         W_coarse = window_px(p.coarse_half_window, overlap // 2, p.cap_window_to_overlap)

@@ -219,6 +219,7 @@ class PairOutcome:
     telemetry_wait_stopped_s: float = 0.0  # ... and while its Result was in and its Telemetry awaited
     last_frame_started: float | None = None  # the lower frame's first byte handed to the line
     frame_ids: tuple[int, ...] = ()  # its Frames' message ids on the link
+    frames_in_dir: int = 2  # its pair directory's frames: the HIL streams frames 0 and the last of them
 
     @property
     def finished(self) -> bool:
@@ -303,6 +304,8 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
     }
     if o.ground_stopped_s:  # its latency includes it: an answer that came in time may read as late
         rec["ground_stopped_s"] = o.ground_stopped_s
+    if o.frames_in_dir > 2:  # said once on stderr alone, and the row's "300/250/200/150" read as all four (QA 74)
+        rec["frames_in_dir"] = o.frames_in_dir
     if o.error is not None:
         # the flight side's words, escaped: they reach the console, the logs and the summary
         rec.update(status="error", code=printable(o.error.code, 100), text=printable(o.error.text))
@@ -1106,6 +1109,7 @@ def stream_descent(
             except InputError as exc:
                 give_up(o, "bad_input", str(exc))
                 continue
+            o.frames_in_dir = len(pair.images)
             if len(pair.images) > 2 and not state.said_middle_frames:
                 state.said_middle_frames = True
                 note(

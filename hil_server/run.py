@@ -66,6 +66,7 @@ from hil_server.budgets import (
 )
 from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
 from protocol.errors import InputError, os_error_text
+from protocol.links import BITS_PER_BYTE
 from protocol.messages import SITES_WITHHELD
 from protocol.stall import StallClock
 
@@ -925,12 +926,13 @@ def _server_note(summary: dict, c: dict) -> str:
 
 
 def top_site_text(r: dict) -> str:
-    """A Result's landing sites in a word or two: 'clear (3 sites)', 'NOT clear (1 site)', 'none offered', or
-    '3 sites' when the truth could not judge them."""
+    """A Result's landing sites in a word or two: 'clear (3 sites)', 'NOT clear (1 site)', 'none offered',
+    'withheld' (the flight side's own checks doubt the map: a row that read "none offered" beside the fused map's
+    scores looked like a normal result; QA 74), or '3 sites' when the truth could not judge them."""
     sc = r.get("scores") or {}
     n = len(r.get("sites") or [])
     if n == 0:
-        return "none offered"
+        return "withheld" if str(r.get("no_site_reason") or "").startswith(SITES_WITHHELD) else "none offered"
     count = f"{n} site{'' if n == 1 else 's'}"
     if "top_site_clear" not in sc:
         return f"not judged ({count})" if r.get("site_truth") else count
@@ -1000,7 +1002,9 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         full_maps_note(s),
         truth_note(s),
         hello_note(s),
+        frames_note(s),
         baud_note(s),
+        unpaced_note(s),
         psafe_note(s),
         fusion_note(s),
     )
@@ -1112,6 +1116,69 @@ def baud_note(summary: dict) -> str:
         f"the flight side's serial port is set to {', '.join(map(str, wrong))} baud, and this ground paced the line at "
         f"{int(line)} baud: on a real UART the two must match (this line carried the bytes all the same: a pty or a "
         "USB gadget ignores the rate); the flight side planned its Results' line time for the ground's rate"
+    )
+
+
+def frames_note(summary: dict) -> str:
+    """The pairs whose directories hold more than two frames, of which the HIL streamed two ("" when none): the
+    ground said so once, on stderr alone, and a row labelled "300/250/200/150" read as all four used (QA 74)."""
+    many = [r for r in summary.get("records") or [] if (r.get("frames_in_dir") or 2) > 2]
+    if not many:
+        return ""
+    named = ", ".join(f"{r.get('label', r.get('pair_id'))}: {r['frames_in_dir']}" for r in many[:4])
+    more = f" and {len(many) - 4} more" if len(many) > 4 else ""
+    return (
+        f"{len(many)} pair director{'y holds' if len(many) == 1 else 'ies hold'} more than two frames ({named}{more}): "
+        "the HIL streams a pair, frames 0 and the last (DESIGN.md), not those between; `hazard-hil process` "
+        "uses every frame"
+    )
+
+
+# A Result counts as unpaced when it reached the ground in under this share of the time the line's rate needs for
+# its bytes (start and stop bits included); the share leaves room for the two sides' clocks and timing jitter
+UNPACED_SHARE = 0.5
+UNPACED_MIN_LINE_S = 0.002  # a Result shorter on the line than this cannot be told from the clocks' jitter
+
+
+def unpaced_note(summary: dict) -> str:
+    """Results that reached the ground faster than its line rate can carry them ("" when none, or the ground did
+    not pace): a board that writes unpaced into a pty (``examples/minimal_flight.py`` in hil.md's recipe) read
+    "end to end 0.0011 s, met" for 342 bytes that need 3.7 ms at 921600 baud, and said nothing (QA of stop 74).
+
+    The line time a Result needs is ``t_min = 10 n / baud`` (8N1, :data:`protocol.links.BITS_PER_BYTE`); it had
+    ``e2e - flight - queue`` (what the end-to-end latency leaves beside the flight side's compute and its
+    queue; all of ``e2e`` when the flight side gave no latency). Below ``UNPACED_SHARE t_min`` the downlink was
+    not paced, and the latency misses ``t_min`` minus what it had."""
+    baud = (summary.get("ground_counters") or {}).get("line_baud")
+    if not isinstance(baud, (int, float)) or isinstance(baud, bool) or baud <= 0:
+        return ""
+    deadline = summary.get("deadline_s")
+    fast, would_miss = [], 0
+    for r in summary.get("records") or []:
+        e2e, n = r.get("e2e_latency_s"), r.get("result_bytes")
+        if not isinstance(e2e, (int, float)) or not isinstance(n, (int, float)) or n <= 0:
+            continue
+        need = float(n) * BITS_PER_BYTE / float(baud)
+        had = float(e2e) - float(r.get("flight_latency_s") or 0.0) - float(r.get("result_queue_s") or 0.0)
+        if need < UNPACED_MIN_LINE_S or had >= UNPACED_SHARE * need:
+            continue
+        fast.append((r, need, max(0.0, had)))
+        if r.get("deadline_met") and isinstance(deadline, (int, float)) and float(e2e) + need - had > deadline:
+            would_miss += 1
+    if not fast:
+        return ""
+    r, need, had = max(fast, key=lambda f: f[1] - f[2])
+    miss = (
+        f"; with it, {would_miss} of the deadlines met here would have been missed"
+        if would_miss
+        else "; with it, every deadline met here would still be met"
+    )
+    return (
+        f"{len(fast)} of {len(summary.get('records') or [])} Results reached this ground faster than {int(baud)} baud "
+        f"carries them (pair {r.get('label', r.get('pair_id'))}: {int(r['result_bytes'])} bytes need {need:.4f} s, "
+        f"and had at most {had:.4f} s): the flight side writes without pacing its line (a pty carries bytes at once), "
+        f"so the end-to-end latencies leave out the downlink a real UART at {int(baud)} baud adds, up to "
+        f"{need - had:.4f} s a Result{miss}"
     )
 
 

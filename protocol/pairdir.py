@@ -1186,7 +1186,23 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     except PairFormatError as exc:  # validate() speaks of frames; name the file they are in
         raise PairFormatError(f"{meta_path}: {exc}") from None
     pair.notes += pair.scale_notes()
+    pair.notes += [f"{meta_path}: {n}" for n in same_time_notes(pair.poses)]
     return pair
+
+
+def same_time_notes(poses: Sequence[Pose]) -> list[str]:
+    """Consecutive frames at one ``time_s`` but different heights: allowed (time must not run backwards), but no
+    lander drops 50 m in no time, so the times are likely wrong (a tool that wrote 0 for each; QA 74)."""
+    out = []
+    for k in range(1, len(poses)):
+        t0, t1 = poses[k - 1].time_s, poses[k].time_s
+        if t1 == t0:
+            dz = float(poses[k - 1].position[2] - poses[k].position[2])
+            out.append(
+                f"frames {k - 1} and {k} have the same time_s ({t1:g} s) {dz:.3g} m apart in height: frames are "
+                "ordered by time, so check the times"
+            )
+    return out
 
 
 MANIFEST_FORMAT = "hazard-hil-descent/1"

@@ -131,7 +131,7 @@ def make_pair(
     """Camera, poses, images and true elevation of i1 for a vertical descent alt1 -> alt2."""
     cam = camera_fov30(size)
     p1 = Pose(np.array([0.0, 0.0, alt1]), R)
-    p2 = Pose(np.array([offset2[0], offset2[1], alt2]), R)
+    p2 = Pose(np.array([offset2[0], offset2[1], alt2]), R, 10.0)  # later: frames are ordered by time
     gsd2 = alt2 / cam.fx
     half = alt1 * 0.6 + 10
     tex = Texture.random(half, gsd2 / 1.5, seed, spots_per_km2=spots_per_km2, spot_m=3 * gsd2)

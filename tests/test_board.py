@@ -120,6 +120,10 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     from hil_server.run import baud_note
 
     assert all(r["link"]["port_baud"] == 921600 for r in s["records"]) and baud_note(s) == ""
+    # both pace their Results at the line's rate: no downlink missing from the latencies
+    from hil_server.run import unpaced_note
+
+    assert unpaced_note(s) == "" and unpaced_note(emulated) == ""
     # the report's resources: no throttle and no ceiling on a board (QA of stop 71: a caption about "the duty cycle
     # the throttle applied" and "the budget's memory ceiling"), and the board's own memory, which it reports since
     # stop 72 (the chart was empty): our flight process holds numpy, OpenCV and the maps, tens of MiB at least
@@ -978,6 +982,30 @@ def test_a_board_says_when_its_port_rate_is_not_the_grounds():
     assert baud_note({**summary, "ground_counters": {"line_baud": 0}}) == ""  # an unpaced ground: nothing to compare
     summary["records"][0]["link"]["port_baud"] = 921600.0
     assert baud_note(summary) == ""
+
+
+def test_a_result_faster_than_the_line_rate_is_said_with_the_downlink_it_leaves_out():
+    """QA of stop 74: a board writing unpaced into a pty read "end to end 0.0011 s, met" for 342 bytes that take
+    3.7 ms at 921600 baud. The note names the time left out and whether a deadline would flip with it."""
+    from hil_server.run import unpaced_note
+
+    def rec(e2e: float, n: int, flight: float | None = 0.0005, met: bool = True) -> dict:
+        return {"label": "600/300", "e2e_latency_s": e2e, "result_bytes": n, "flight_latency_s": flight,
+                "deadline_met": met}  # fmt: skip
+
+    s = {"ground_counters": {"line_baud": 921600}, "deadline_s": 2.0, "records": [rec(0.0011, 342), {"status": "x"}]}
+    said = unpaced_note(s)
+    assert said.startswith("1 of 2 Results reached this ground faster than 921600 baud"), said
+    assert "342 bytes need 0.0037 s" in said and "every deadline met here would still be met" in said, said
+    # a deadline it would flip: 200 kB at 115200 baud is 17 s of line, arrived in 1.5 s
+    s = {"ground_counters": {"line_baud": 115200}, "deadline_s": 2.0, "records": [rec(1.5, 200_000, flight=None)]}
+    assert "with it, 1 of the deadlines met here would have been missed" in unpaced_note(s), unpaced_note(s)
+    # paced: the line time is in the latency; and an unpaced ground, a tiny Result, or no figures say nothing
+    assert unpaced_note({**s, "records": [rec(18.0, 200_000)]}) == ""
+    assert unpaced_note({**s, "ground_counters": {"line_baud": 0}}) == ""
+    fast = {**s, "ground_counters": {"line_baud": 921600}}
+    assert unpaced_note({**fast, "records": [rec(0.0001, 100)]}) == ""  # 1.1 ms of line: within the clocks' jitter
+    assert unpaced_note({**s, "records": [{"e2e_latency_s": None, "result_bytes": 342}]}) == ""
 
 
 def test_the_zeromq_example_flight_program_serves_a_ground_with_curve(manifest, tmp_path):

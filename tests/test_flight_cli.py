@@ -559,6 +559,13 @@ def test_a_clean_frame_that_hardly_overlaps_frame_0_is_a_note_not_a_warning(tmp_
     assert "frame 2: its pose is not checked by the images (the images hardly overlap" in said.out, said.out
     assert "a fault in it would go unseen" in said.out
     assert "warning: frame" not in said.err, said.err
+    # the last frame 2 km off shares no ground with frame 0: the error names which frame, not "the other" of three
+    doc = json.loads((tmp_path / "1000_500_150" / "pair.json").read_text())
+    doc["frames"][-1]["position_m"][0] += 2000.0
+    (tmp_path / "1000_500_150" / "pair.json").write_text(json.dumps(doc))
+    assert main(["process", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "the frames do not overlap" in err and "that the last frame used" in err, err
 
 
 def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimeter_gives(tmp_path, capsys):

@@ -68,6 +68,10 @@ def test_each_site_is_judged_on_the_truth_and_the_reports_say_so(tmp_path):
     ]
     score_records(records)
     a, b, c, d = records
+    # sites the flight side's own checks withheld: not "none offered", which read as a normal result (QA 74)
+    from protocol.messages import SITES_WITHHELD
+
+    assert top_site_text({**c, "no_site_reason": f"{SITES_WITHHELD}: its frames disagree"}) == "withheld"
     assert (
         "top_site_clear" not in d["scores"] and d["site_truth"][0]["incomplete"] and not d["site_truth"][0]["n_unsafe"]
     )

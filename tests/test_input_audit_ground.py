@@ -484,6 +484,9 @@ def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descen
     assert s["fusion"] is True and s["fusion_sources"] == ["scene thesis seed 0"]  # the scene from pair.json
     md = (tmp_path / "run" / "summary.md").read_text()
     assert "The Results report the map fused over the descent" in md and "fused as one descent" not in md
+    # the three-frame directory streamed as a pair is said in the record and the summary, not on stderr alone (QA 74)
+    assert [r.get("frames_in_dir") for r in s["records"]] == [None, None, 3]
+    assert "1 pair directory holds more than two frames (600/300/150: 3): the HIL streams a pair" in md, md
 
 
 def test_the_summary_says_when_pairs_of_other_ground_are_fused_as_one_descent():

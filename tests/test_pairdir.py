@@ -371,3 +371,19 @@ def test_a_hot_pixel_does_not_set_a_small_16_bit_frames_scale_either():
     img[0, 0] = 65535
     (out,), notes = to_gray8([img], ["i1.png"])
     assert "shifted right by 4" in notes[0] and out[0, 0] == 255 and out[0, 32] == 32 >> 4  # 12-bit, by 4 bits
+
+
+def test_frames_at_one_time_but_different_heights_are_said(tmp_path):
+    """Time must not run backwards; two frames 300 m apart in height at one time_s were taken without a word (a
+    tool that writes 0 for each; QA of stop 74). Said as a note naming the frames; distinct times say nothing."""
+    pair = make_pair()
+    write_pair(tmp_path, pair)
+    assert not any("time_s" in n for n in read_pair(tmp_path).notes)
+
+    def same_time(doc):
+        doc["frames"][1]["time_s"] = doc["frames"][0]["time_s"]
+
+    _rewrite(tmp_path, same_time)
+    said = [n for n in read_pair(tmp_path).notes if "same time_s" in n]
+    assert len(said) == 1 and "frames 0 and 1 have the same time_s (0 s) 300 m apart in height" in said[0], said
+    assert str(tmp_path / "pair.json") in said[0]
