@@ -789,7 +789,8 @@ def register_score(subparsers: Any) -> None:
         " 1 when one was over it, 3 when a pair had no usable output (each named on stderr; the others are still"
         " scored), 2 on bad usage or a pair of a descent without ground truth (named; the others are still scored);"
         " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv, --json or a --figures picture could not be"
-        " written (named on stderr; the scores are printed), which wins over the others."
+        " written once scored (named on stderr; the scores are printed), which wins over the others; a target"
+        " refused before any scoring (a directory, or one that cannot be written) is bad usage, 2."
         " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
