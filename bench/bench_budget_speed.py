@@ -26,6 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pages import write_page  # noqa: E402
+
 from hil_server.budgets import get_budget, load_calibration  # noqa: E402
 from hil_server.procemu import Throttle, start_at_full_speed  # noqa: E402
 
@@ -139,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     print("\n".join(lines))
     if args.out:
-        Path(args.out).write_text("\n".join(lines))
+        print(write_page(args.out, "\n".join(lines), "bench_budget_speed.py"))
         print(f"wrote {args.out}")
     return 0
 

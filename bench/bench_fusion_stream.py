@@ -17,7 +17,8 @@ Per case: pixel FP % (median / worst, Results over 1 %), CDI % (median), and the
 Result (FP: largest increase and how many Results rise by more than 0.1 points; CDI: median and smallest),
 and the CPU time of fusing each Result and reading out its map (median; one thread).
 Seeds come from ``ground_sim.seeds``: tune on ``tuning``, quote ``held-out``; worst cases beside medians.
-Pipeline grids are cached per stream in ``--grids`` so that fusion settings can be compared quickly.
+Pipeline grids are cached per stream in ``--grids`` so that fusion settings can be compared quickly, keyed by
+the case, seed, settings, the render cache and the code of flight_sw, ground_sim and protocol.
 
 ``--levels`` runs the stream's pairs at the given levels, position by position (cycled), as a slow
 flight processor delivers them: ``image_only`` (the nominal-slowdown trick of the tests: reserves that
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -66,6 +68,22 @@ def dense_incomplete(on: bool) -> Iterator[None]:
         pl.dense_dem = real
 
 
+def grids_file(
+    grids: Path, key: str, cache: Path, levels: tuple[str, ...] = ("full",), set_param: tuple[str, ...] = ()
+) -> Path:
+    """Where one stream's pipeline grids are kept: a name per case and seed (``key``), level pattern, setting, render
+    cache and code, so that no other run's grids stand in for them."""
+    from studies.executor import code_fingerprint
+
+    tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
+    tag += "".join(f"-{kv}" for kv in set_param)  # a variant's grids never stand in for another's
+    # nor another code's or model's: a refitted P(safe) model changes every grid (stop 41); nor another render's:
+    # the grids of one --cache stood in for another's, and a changed renderer's pairs were never rendered (QA 74)
+    where = hashlib.sha256(str(cache.resolve()).encode()).hexdigest()[:8]
+    tag += f"-{code_fingerprint(['flight_sw', 'ground_sim', 'protocol'])}-{where}"
+    return grids / f"{key}{tag}.pkl"
+
+
 def stream_results(
     case: str,
     seed: int,
@@ -82,15 +100,10 @@ def stream_results(
     from flight_sw.pipeline import run_pipeline
     from ground_sim.gridscore import scored_area
     from protocol.pairdir import read_pair
-    from studies.executor import code_fingerprint
     from studies.multiframe import world_of
 
     preset = preset_with("fast", set_param)
-    tag = "" if set(levels) == {"full"} else "-" + "-".join(x[0] for x in levels)  # i / c / f per position
-    tag += "".join(f"-{kv}" for kv in set_param)  # a variant's grids never stand in for another's
-    # nor another code's or model's: a refitted P(safe) model changes every grid (stop 41)
-    tag += "-" + code_fingerprint(["flight_sw"])
-    f = grids / f"{case_key(case, seed)}{tag}.pkl"
+    f = grids_file(grids, case_key(case, seed), cache, levels, set_param)
     if f.is_file():
         return list(pickle.loads(f.read_bytes()))
     out = []
@@ -194,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-seeds", type=int, default=6)
     ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES))
     ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
-    ap.add_argument("--grids", default="/tmp/fusion_stream_grids_sun", help="cached pipeline grids per stream")
+    ap.add_argument("--grids", help="cached pipeline grids per stream (default: CACHE_fusion_grids)")
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
     ap.add_argument("--json", help="write per-Result rows and the summary here")
     ap.add_argument("--levels", default="full", help="comma list of pipeline levels per stream position, cycled")
@@ -228,7 +241,14 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list[dict[str, float]]] = {c: [] for c in args.cases}
     t0 = time.perf_counter()
     for k, (case, seed) in enumerate(streams, 1):
-        res = stream_results(case, seed, Path(args.cache), Path(args.grids), levels, tuple(args.set_param))
+        res = stream_results(
+            case,
+            seed,
+            Path(args.cache),
+            Path(args.grids or f"{args.cache.rstrip('/')}_fusion_grids"),
+            levels,
+            tuple(args.set_param),
+        )
         rows[case] += [{"seed": seed, **r} for r in score_stream(res, overrides)]
         print(f"[{k}/{len(streams)}] {case} seed {seed}: {len(res)} pairs ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)  # fmt: skip

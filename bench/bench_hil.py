@@ -23,6 +23,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from pages import write_page  # noqa: E402
+
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -110,9 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     why = [f"- {r['budget']} {w}" for r in rows for w in r["why"]]
     if why:
         lines += ["", "Why the degraded pairs stopped where they did (the flight's plan telemetry):", "", *why]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    print(write_page(args.out, "\n".join(lines), "bench_hil.py"))
     return 0
 
 

@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from pages import write_page
+
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
@@ -162,7 +164,11 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--only", default="render,evaluate")
-    ap.add_argument("--out", default=None, help="write the tables (Markdown) here")
+    ap.add_argument(
+        "--out",
+        default=None,
+        help="write the tables (Markdown) into this page (its earlier text is kept: bench/pages.py)",
+    )
     ap.add_argument("--json", default=None, help="write the raw timings here")
     args = ap.parse_args()
     only = set(args.only.split(","))
@@ -183,7 +189,7 @@ def main() -> None:
     text = "\n".join(out) + "\n"
     print(text)
     if args.out:
-        Path(args.out).write_text(text)
+        print(write_page(args.out, text, "bench_parallel.py"))
     if args.json:
         Path(args.json).write_text(json.dumps(raw, indent=1) + "\n")
 

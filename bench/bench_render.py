@@ -22,6 +22,7 @@ import time
 
 import cv2
 import numpy as np
+from pages import write_page
 
 from ground_sim.geometry import look_rotation
 from ground_sim.render import DEFAULT_RASTER, MAX_CELLS, RASTERS, render_view
@@ -42,7 +43,9 @@ CASES = [
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--out", default=None, help="write the table here (a file of its own: it is overwritten)")
+    ap.add_argument(
+        "--out", default=None, help="write the table into this page (its earlier text is kept: bench/pages.py)"
+    )
     ap.add_argument("--max-raster-cells", type=int, default=MAX_CELLS)
     ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER)
     ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")
@@ -95,8 +98,7 @@ def main() -> None:
             f"| {n} | {m:.2f} | {lo:.2f} | {hi:.2f} | {cp:.2f} | {s[0]}x{s[1]} | {c:.3f} | {r:.2f} | {g:.0f} |"
             for n, m, lo, hi, cp, s, c, r, g in rows
         ]
-        with open(args.out, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+        print(write_page(args.out, "\n".join(lines), "bench_render.py"))
 
 
 if __name__ == "__main__":

@@ -26,6 +26,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pages import write_page
+
 from hil_server.calibrate import PROBE_UNITS, measure_throttle_efficiency
 from hil_server.procemu import MIN_ON_SLICE_S, EmulatedProcessor, ProcessorSpec, on_slice_s
 
@@ -77,7 +79,7 @@ def med(xs):
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default="docs/benchmarks/throttle.md")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "throttle.md"))
     args = ap.parse_args()
     fractions = (0.05, 0.25, 0.5, 1.0) if args.quick else (0.008, 0.017, 0.05, 0.1, 0.25, 0.33, 0.5, 0.75, 1.0)
     reps = 1 if args.quick else 3
@@ -224,7 +226,7 @@ def main() -> int:
         "",
     ]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
+    print(write_page(args.out, "\n".join(lines), "bench_throttle.py"))
     print(f"wrote {args.out}")
     return 0
 
