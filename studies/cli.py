@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ground_sim.render import DEFAULT_RASTER, RASTERS
-from ground_sim.seeds import describe_seeds
+from ground_sim.seeds import describe_seeds, seed_runs
 from protocol.errors import InputError, comma_items
 from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, THESIS_CAMERA_PX
 
@@ -760,7 +760,7 @@ def _landings(args: argparse.Namespace) -> int:
     unused = [s for s in seeds if s not in used]
     if unused and used:  # asked for, never drawn: the campaign rests on fewer seeds than asked (QA of stop 73)
         print(
-            f"note: seed{'s' if len(unused) > 1 else ''} {', '.join(map(str, unused))} asked for but not drawn: "
+            f"note: seed{'s' if len(unused) > 1 else ''} {seed_runs(unused)} asked for but not drawn: "
             f"{summary.get('n_landings_flown', '?')} landings drew {len(used)} of the {len(seeds)} seeds; more "
             "landings (--n) reach more of them",
             file=sys.stderr,

@@ -491,3 +491,13 @@ def test_a_telemetry_that_does_not_measure_the_results_line_time_leaves_it_unkno
     rec = write_outcome(tmp_path, o, 10.0)
     assert rec["result_line_s"] is None and rec["result_rx_s"] == 0.0
     assert rec["outside_flight_s"] == pytest.approx(0.2)  # what is known: the end to end less the compute
+
+
+def test_seed_lists_are_said_as_runs():
+    """`landings --n 2` listed the 99 seeds it did not draw one by one (QA of stop 74)."""
+    from ground_sim.seeds import describe_seeds, seed_runs
+
+    assert seed_runs(list(range(1002, 1101))) == "1002-1100"
+    assert seed_runs([1003, 1001, 1002, 1005, 1007, 1008, 1005]) == "1001-1003,1005,1007-1008"
+    assert describe_seeds([1000, 1001, 1002, 1004], "held-out") == "held-out seeds 1000-1002,1004 (4)"
+    assert describe_seeds([7], "tuning") == "tuning seeds 7 (1)"
