@@ -999,3 +999,16 @@ def test_kept_hazards_past_the_cap_are_counted_not_dropped_silently(monkeypatch)
     fm = fuse(None, grid_of(st, np.zeros((6, 6), np.float32)), FusionParams())
     fm = fuse(fm, uniform(STATE_SAFE, 0.999, origin=(100.0, 0.0)), FusionParams())  # a divert: all 36 left out
     assert fm.kept is not None and len(fm.kept) == 2 and fm.kept_dropped == 34
+
+
+def test_a_map_of_one_result_calls_safe_only_what_it_called_safe_at_the_floor():
+    """The module doc: a map of one result holds its P(safe), and its calls are the fusion rule's. A cell the
+    result called safe at a P(safe) under p_min is unknown on the map (the first fused Result of a descent read
+    CDI 44.0 against 45.2 % alone, which nothing said; QA of stop 74); nothing it did not call safe is safe."""
+    prm = FusionParams()
+    state = np.array([[STATE_SAFE, STATE_SAFE, STATE_UNKNOWN, STATE_UNSAFE]], np.uint8)
+    p_hi = 1 - (1 - prm.p_min) / 2
+    g = grid_of(state, np.array([[p_hi, prm.p_min / 2 + 0.3, p_hi, 0.2]], np.float32))
+    fused, psafe = fused_state(fuse(None, g, prm), prm)
+    assert fused.tolist() == [[STATE_SAFE, STATE_UNKNOWN, STATE_UNKNOWN, STATE_UNSAFE]]
+    np.testing.assert_allclose(psafe, g.psafe, rtol=1e-5)
