@@ -49,6 +49,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -1086,7 +1087,21 @@ def fusion_note(summary: dict) -> str:
     sources = summary.get("fusion_sources") or []
     if len(sources) > 1:
         said += f"; its pairs come from {len(sources)} scenes or seeds ({', '.join(sources[:4])}), fused as one descent"
+    up = climb(summary.get("records") or [])
+    if up:  # fused as one descent all the same, unsaid (QA 74)
+        said += f"; {up}, and the map is fused across it all the same"
     return said
+
+
+def climb(records: list[dict]) -> str:
+    """The first pair streamed lower than the one after it ("" when the altitudes never rise): a descent's pairs
+    come highest first, and fusion takes each newer one as the finer."""
+    alts = [(r.get("label", r.get("pair_id")), r.get("altitude_m")) for r in records]
+    known = [(label, float(a)) for label, a in alts if isinstance(a, (int, float)) and math.isfinite(a)]
+    for (la, a), (lb, b) in pairwise(known):
+        if b > a:
+            return f"pair {lb} ({b:g} m) comes after {la} ({a:g} m): the stream goes back up"
+    return ""
 
 
 def hello_note(summary: dict) -> str:

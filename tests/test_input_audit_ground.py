@@ -544,3 +544,17 @@ def test_an_hil_pair_whose_dem_the_altimeter_contradicts_offers_no_site_even_fus
     rec = {r["label"]: r for r in s["records"]}["300/150"]
     assert rec["status"] == "result" and rec["sites"] == [], rec.get("sites")
     assert rec["no_site_reason"].startswith("no site is offered on this map: the frames' altimeters"), rec
+
+
+def test_the_summary_says_when_a_fused_stream_goes_back_up():
+    """Pairs streamed 200/100, 600/300, 300/150 were fused as one descent without a word (QA of stop 74)."""
+    from hil_server.run import fusion_note
+
+    recs = [{"label": "200/100", "altitude_m": 100.0}, {"label": "600/300", "altitude_m": 300.0},
+            {"label": "300/150", "altitude_m": 150.0}]  # fmt: skip
+    said = fusion_note({"fusion": True, "flight": "emulated", "records": recs})
+    assert "pair 600/300 (300 m) comes after 200/100 (100 m): the stream goes back up" in said, said
+    assert "fused across it all the same" in said
+    down = [recs[1], recs[2], recs[0], {"label": "x", "altitude_m": None}]
+    assert "back up" not in fusion_note({"fusion": True, "flight": "emulated", "records": down})
+    assert "back up" not in fusion_note({"fusion": False, "records": recs})  # each pair alone: nothing fused
