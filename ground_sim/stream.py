@@ -1110,6 +1110,8 @@ def stream_descent(
                 give_up(o, "bad_input", str(exc))
                 continue
             o.frames_in_dir = len(pair.images)
+            if not math.isfinite(o.altitude_m):  # a hand-made manifest without altitude_m: the lower frame's height
+                o.altitude_m = float(pair.poses[-1].position[2])  # (the table said "—"; QA 74)
             if len(pair.images) > 2 and not state.said_middle_frames:
                 state.said_middle_frames = True
                 note(

@@ -469,7 +469,7 @@ def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descen
     doc["pairs"] = [
         doc["pairs"][0],
         {**doc["pairs"][0], "path": "small", "label": "96px"},
-        {**doc["pairs"][0], "path": "three", "label": "600/300/150"},
+        {**{k: v for k, v in doc["pairs"][0].items() if k != "altitude_m"}, "path": "three", "label": "600/300/150"},
     ]
     (pairs / "manifest.json").write_text(json.dumps(doc))
     t0 = time.monotonic()
@@ -486,6 +486,8 @@ def test_a_pair_of_another_camera_in_a_descent_is_refused_at_once_and_the_descen
     assert "The Results report the map fused over the descent" in md and "fused as one descent" not in md
     # the three-frame directory streamed as a pair is said in the record and the summary, not on stderr alone (QA 74)
     assert [r.get("frames_in_dir") for r in s["records"]] == [None, None, 3]
+    # without altitude_m in the manifest, the row reads the lower frame's height (it read "—"; QA 74)
+    assert s["records"][2]["altitude_m"] == pytest.approx(150.0, abs=1.0)
     assert "1 pair directory holds more than two frames (600/300/150: 3): the HIL streams a pair" in md, md
 
 
