@@ -303,9 +303,11 @@ def plot_multiframe(per_descent: list[dict[str, Any]], policies: Sequence[str], 
     fps = [d["rows"].get(n, {}).get("fp", np.nan) for d in per_descent for n in names]
     if fps and np.nanmax(np.r_[fps, 0.0]) == 0.0:  # zero-height bars draw nothing: say what the blank means
         axes[1].text(0.5, 0.5, "FP 0 % on every descent and policy", transform=axes[1].transAxes, ha="center")
-    axes[0].legend(fontsize=7)
-    axes[1].legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
+    # one legend for both panels, above them: inside a panel it covered the tallest CDI bars (QA 74)
+    axes[0].set_ylim(0, 100)
+    handles, names_shown = axes[1].get_legend_handles_labels()
+    fig.legend(handles, names_shown, loc="upper center", ncol=min(len(handles), 5), fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.9))
     return save_figure(fig, path, dpi=110, bbox_inches=None)
 
 
