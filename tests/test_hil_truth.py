@@ -181,6 +181,9 @@ def test_minimal_flight_runs_a_descent_under_flight_cmd(manifest, tmp_path, caps
     s = json.loads((out / "summary.json").read_text())
     _check_minimal_results(s, out)
     assert s["flight"].startswith("command:") and s["budget"] == "snapdragon801"
+    from hil_server.run import unpaced_note
+
+    assert unpaced_note(s) == ""  # the HIL server paces its relay of the program's Results at the line's rate
     assert 0 < np.median([r["cpu_fraction"] for r in s["records"]]) < 0.9  # throttled like ours
 
 
