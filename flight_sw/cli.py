@@ -366,11 +366,15 @@ def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
 
     from protocol.plan import plan_note
 
+    from .kernels import kernels_note, missing_kernels
     from .pose_refine import DISAGREES, NO_OVERLAP, REPEATED, UNMATCHED
 
     def say(text: str, file: Any = None) -> None:
         msgs.append((file is sys.stderr, text))
 
+    slow = kernels_note(missing_kernels())
+    if slow:  # an optional build that failed: every timing of this install is the numpy fallback's
+        say(f"warning: {slow}", file=sys.stderr)
     if res.degraded:  # what the deadline left out, and why (the plan's figures, as the HIL ground shows them)
         skipped = list(res.info.get("skipped", ()))
         why = plan_note(res.info.get("plan"), skipped)

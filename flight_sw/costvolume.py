@@ -14,11 +14,11 @@ views of the same facet (the lunar photometric function depends on the view angl
 Costs are stored as ``uint16`` (``COST_SCALE`` per grey level, saturated at ``COST_MAX``) in a
 ``(D, h, w)`` slab over a region of interest of the reference image; ``valid`` marks the
 (plane, pixel) entries with at least ``min_support`` of their support inside the other image (a
-bilinear sample that touches the image's edge counts as outside). Slabs of several
-frames against the same reference and planes are combined by :func:`combine` (mean over the
-frames that saw each entry; Okutomi & Kanade 1993's sum of costs over baselines, normalised
-so that the overlap-edge band where only some frames see a plane is not penalised) and then
-handed to the aggregation (:mod:`flight_sw.sgm`).
+bilinear sample that touches the image's edge counts as outside). Several frames against the
+same reference and planes are combined plane by plane by :func:`multi_cost_slab` (a weighted mean
+over the frames that saw each entry; Okutomi & Kanade 1993's sum of costs over baselines,
+normalised so that the overlap-edge band where only some frames see a plane is not penalised), so
+only the combined slab is stored, and then handed to the aggregation (:mod:`flight_sw.sgm`).
 """
 
 from __future__ import annotations
@@ -349,30 +349,6 @@ def frame_roi(
     if rows.size == 0:
         return x0, y0, 0, 0
     return int(x0 + cols[0]), int(y0 + rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
-
-
-def combine(slabs: list[CostSlab]) -> CostSlab:
-    """Mean cost over the slabs that saw each (plane, pixel) entry (same planes and roi required).
-
-    ``sum_f valid_f C_f / sum_f valid_f``; entries no frame saw stay ``COST_MAX`` and invalid.
-    One slab is returned unchanged.
-    """
-    if not slabs:
-        raise ValueError("combine needs at least one slab")
-    if len(slabs) == 1:
-        return slabs[0]
-    ref = slabs[0]
-    for s in slabs[1:]:
-        if s.roi != ref.roi or s.planes.shape != ref.planes.shape or not np.allclose(s.planes, ref.planes):
-            raise ValueError("slabs must share planes and roi")
-    total = np.zeros(ref.cost.shape, np.uint32)
-    count = np.zeros(ref.cost.shape, np.uint8)
-    for s in slabs:
-        total += np.where(s.valid, s.cost, 0).astype(np.uint32)
-        count += s.valid
-    valid = count > 0
-    mean = np.where(valid, total // np.maximum(count, 1), COST_MAX).astype(np.uint16)
-    return CostSlab(mean, valid, ref.planes, ref.roi, all(s.complete for s in slabs))
 
 
 def valid_interval(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

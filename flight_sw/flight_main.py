@@ -364,7 +364,7 @@ class FlightProcess:
                 return
 
     # -- message handling ------------------------------------------------------------------
-    def handle(self, msg) -> None:
+    def handle(self, msg: object) -> None:
         if isinstance(msg, Config):
             try:
                 cam = Camera.from_dict(msg.camera)

@@ -65,6 +65,7 @@ class HazardGrid:
 
 
 def grid_xy(shape: tuple[int, int], origin_xy: tuple[float, float], cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """World ``(X, Y)`` of every cell centre: ``x = x0 + j cell``, ``y = y0 - i cell`` (rows toward -Y)."""
     i, j = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
     return origin_xy[0] + j * cell_m, origin_xy[1] - i * cell_m
 

@@ -267,6 +267,7 @@ class PoseRefinement:
 
 # --------------------------------------------------------------------------- rotation helpers
 def skew(v: np.ndarray) -> np.ndarray:
+    """``[v]_x``, the cross-product matrix: ``skew(v) @ u = v x u``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
@@ -290,10 +291,12 @@ def rot_log(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle of a rotation, ``|log R|`` (:func:`rot_log`), in degrees."""
     return math.degrees(float(np.linalg.norm(rot_log(R))))
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """``acos(a . b / (|a| |b|))`` in degrees (clipped: rounding cannot leave acos's domain)."""
     c = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 

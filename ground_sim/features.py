@@ -24,6 +24,8 @@ import numpy as np
 
 from ground_sim.hashing import hash_u64, poisson, uniform
 
+BBox = tuple[float, float, float, float]  # x0, y0, x1, y1 (m)
+
 CRATER_STREAM, BOULDER_STREAM, RIM_BOULDER_STREAM, FIELD_STREAM, FIELD_BOULDER_STREAM = 2, 3, 4, 5, 6
 CRATER_REACH = 2.0  # influence radius / crater radius (ejecta cut)
 BOULDER_REACH = 1.0
@@ -119,7 +121,7 @@ def _scaled(sfd: PowerLaw, profile: RadialProfile | None) -> PowerLaw:
     return PowerLaw(sfd.coef * profile.peak, sfd.exponent, sfd.d_min, sfd.d_max)
 
 
-def _cells(bbox: tuple[float, float, float, float], cell: float, margin: float):
+def _cells(bbox: BBox, cell: float, margin: float):
     x0, y0, x1, y1 = bbox
     i0, i1 = int(np.floor((x0 - margin) / cell)), int(np.floor((x1 + margin) / cell))
     j0, j1 = int(np.floor((y0 - margin) / cell)), int(np.floor((y1 + margin) / cell))
@@ -134,7 +136,7 @@ def _populate(
     lo: float,
     hi: float,
     sfd: PowerLaw,
-    bbox,
+    bbox: BBox,
     reach_factor: float,
     mean_per_cell: float = 1.5,
 ):
@@ -160,7 +162,7 @@ def _populate(
 
 
 def craters_in(
-    seed: int, sfd: PowerLaw, bbox, d_min: float, degradation: float, profile: RadialProfile | None = None
+    seed: int, sfd: PowerLaw, bbox: BBox, d_min: float, degradation: float, profile: RadialProfile | None = None
 ) -> Features:
     """Craters with diameter >= ``d_min`` whose influence reaches ``bbox`` = (x0, y0, x1, y1)."""
     parts = []
@@ -194,7 +196,7 @@ def _select2(f: Features, u: np.ndarray, m: np.ndarray) -> tuple[Features, np.nd
 def boulders_in(
     seed: int,
     sfd: PowerLaw,
-    bbox,
+    bbox: BBox,
     d_min: float,
     craters: Features,
     rim_per_crater_m2: float,
@@ -253,7 +255,7 @@ def field_boulders(
     fy: np.ndarray,
     fr: np.ndarray,
     keys: np.ndarray,
-    bbox,
+    bbox: BBox,
     d_min: float,
 ) -> Features:
     """Boulders of boulder fields: disks (centre fx, fy, radius fr) each holding its own population.
@@ -287,7 +289,7 @@ def field_boulders(
 
 
 def random_fields(
-    seed: int, per_km2: float, radius_m: float, bbox
+    seed: int, per_km2: float, radius_m: float, bbox: BBox
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Centres, radii (uniform in 0.5-1.5 x ``radius_m``) and keys of random boulder fields touching ``bbox``."""
     dens = per_km2 * 1e-6
@@ -340,7 +342,7 @@ def _poisson_many(lam: np.ndarray, u: np.ndarray) -> np.ndarray:
     return out
 
 
-def _touches(f: Features, bbox) -> np.ndarray:
+def _touches(f: Features, bbox: BBox) -> np.ndarray:
     x0, y0, x1, y1 = bbox
     r = f.reach
     return (f.x + r >= x0) & (f.x - r <= x1) & (f.y + r >= y0) & (f.y - r <= y1)

@@ -75,6 +75,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -505,7 +506,7 @@ def stream_descent(
     elevation_step: int = 1,
     psafe_step: int = 1,
     elevation_unit_cm: int = 1,
-    progress=None,
+    progress: Callable[[dict], None] | None = None,
     telemetry_path: Path | None = None,
     where: str = "the link",
     telemetry_grace_base_s: float = TELEMETRY_GRACE_S,

@@ -35,7 +35,9 @@ def footprint_disk(n: int, cell: float, footprint: float = FOOTPRINT_M) -> tuple
     return dx, dy, (dx**2 + dy**2 <= (footprint / 2) ** 2 + 1e-9).astype(np.float64)
 
 
-def plane_fit(H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_radius_cells: int = 12):
+def plane_fit(
+    H: np.ndarray, cell: float, footprint: float = FOOTPRINT_M, max_radius_cells: int = 12
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(a, b, c) rasters of the LSQ plane ``z = a + b dx + c dy`` over a disk around each cell."""
     k = plane_fit_factor(cell, footprint, max_radius_cells)
     Hc = cv2.resize(H, (H.shape[1] // k, H.shape[0] // k), interpolation=cv2.INTER_AREA) if k > 1 else H

@@ -65,6 +65,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from flight_sw.memory import private_rss_bytes
 from protocol.errors import EXIT_MEMORY, InputError
@@ -104,7 +105,7 @@ MIN_ON_SLICE_S = 0.001  # below ~1 ms, signal and sleep latency dominate a slice
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-def libc_prctl():
+def libc_prctl() -> Any:
     """libc's prctl, loaded before fork (loading a library in the forked child is not safe); None if absent."""
     try:
         return ctypes.CDLL(None, use_errno=True).prctl

@@ -55,10 +55,13 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil_server.budgets import BUDGET_FIGURES
 from hil_server.run import CONTENTION_SHOWN_PCT
+
+if TYPE_CHECKING:
+    from hil_server.run import RunConfig
 
 # The absolute term keeps tiny latencies from flapping; at 0.25 reference s it dominated every shipped case (the host
 # case could grow +95 %, a 256 px snapdragon801 case 4x, before it was flagged: stop 56's budget QA). At 0.1 the
@@ -161,7 +164,9 @@ class RegressInterrupted(Exception):
         self.finished = ""  # the diff table of the cases that had finished (said, not lost: QA of stop 66)
 
 
-def case_config(name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None):
+def case_config(
+    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
+) -> RunConfig:
     """The :class:`hil_server.run.RunConfig` a case runs with."""
     from hil_server.run import RunConfig
 

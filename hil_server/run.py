@@ -51,10 +51,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from itertools import pairwise
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from flight_sw.kernels import kernels_note, missing_kernels
 from ground_sim.results_file import read_results
 from hil_server.budgets import (
     THROTTLE_CHECK_TOLERANCE,
@@ -70,6 +71,9 @@ from protocol.errors import InputError, os_error_text
 from protocol.links import BITS_PER_BYTE
 from protocol.messages import SITES_WITHHELD
 from protocol.stall import StallClock
+
+if TYPE_CHECKING:
+    from protocol.pairdir import Camera
 
 EXIT_LINK_LOST = 3  # ground_sim.stream: a link session was lost (its pairs are recorded as link_down)
 EXIT_NO_HELLO = 5  # ground_sim.stream: the flight side never said Hello (every pair recorded as not_run)
@@ -244,7 +248,7 @@ def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
     )
 
 
-def scaled_camera(size: int):
+def scaled_camera(size: int) -> Camera:
     """The thesis camera's 30 deg FOV on a ``size`` x ``size`` sensor (``--image-size``)."""
     from protocol.pairdir import square_camera
 
@@ -1006,6 +1010,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         frames_note(s),
         baud_note(s),
         unpaced_note(s),
+        kernel_note(s),
         psafe_note(s),
         fusion_note(s),
     )
@@ -1349,6 +1354,11 @@ def psafe_fallback(cfg: RunConfig, manifest: Path | None) -> str | None:
     return not_fitted_text((h, w))
 
 
+def kernel_note(summary: dict) -> str:
+    """Our flight process ran without the install's compiled kernels ("" when it had them, or was not ours)."""
+    return kernels_note(list(summary.get("kernels_missing") or []))
+
+
 def psafe_note(summary: dict) -> str:
     """The Gaussian rule in the trees' place, and what it costs ("" when the trees call this camera)."""
     why = summary.get("psafe_fallback")
@@ -1361,7 +1371,7 @@ def psafe_note(summary: dict) -> str:
     )
 
 
-def check_memory(budget, width: int, height: int, rendered: bool = False) -> None:
+def check_memory(budget: Budget, width: int, height: int, rendered: bool = False) -> None:
     """Refuse, before anything runs, a camera whose flight pipeline cannot fit the budget's memory ceiling.
     ``rendered``: the pairs exist already (``--manifest``), so ``--image-size`` is no remedy."""
     from hil_server.budgets import flight_peak_rss_mib, max_image_side
@@ -1763,7 +1773,7 @@ def check_run_config(cfg: RunConfig) -> CheckedRun:
     return CheckedRun(cfg, kind, spec, budget, deadline, hello, manifest)
 
 
-def run_descent(cfg: RunConfig, log=print) -> dict:
+def run_descent(cfg: RunConfig, log: Callable[[str], None] = print) -> dict:
     """Run one end-to-end HIL descent; returns the summary (also written under ``cfg.out``).
 
     Bad usage raises :class:`InputError` before anything runs, and so does an ``out`` another command is
@@ -1799,6 +1809,10 @@ def _descend(checked: CheckedRun, log) -> dict:
     effective = duty.effective if duty is not None else float("nan")
     # a doubtful host speed is a doubtful emulated processor (no calibration at all warns in duty_fraction)
     doubts = calibration_notes(cal) if cal is not None and not budget.is_host else []
+    # our flight process runs this install's kernels: a build without them is slower at every budget, said first
+    kernels_missing = missing_kernels() if emulated else []
+    if kernels_missing:
+        log(f"run: warning: {kernels_note(kernels_missing)}")
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -2100,6 +2114,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 # SIGSTOP cannot be held: the line stopped with this process, and the summary says so
                 "relay_stopped_s": None if relay_stall is None else round(relay_stall.total_s, 3),
                 "psafe_fallback": psafe_fallback(cfg, manifest),
+                "kernels_missing": kernels_missing,
             },
         )
         # the run's own verdict, for a CI that reads files (a signal while they are written still exits 128 + N)

@@ -301,6 +301,7 @@ def write_run_report(summary: dict, path: Path) -> Path:
         frames_note,
         fusion_note,
         hello_note,
+        kernel_note,
         psafe_note,
         truth_note,
         unpaced_note,
@@ -313,6 +314,7 @@ def write_run_report(summary: dict, path: Path) -> Path:
         frames_note(s),
         baud_note(s),
         unpaced_note(s),
+        kernel_note(s),
         psafe_note(s),
     ):
         if extra:

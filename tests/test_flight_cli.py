@@ -749,3 +749,24 @@ def test_tiny_cameras_infinite_widths_and_huge_pair_files_are_refused_in_one_lin
     traj.write_text(" " * (5 << 20))
     with pytest.raises(TrajectoryError, match="more than a trajectory can be"):
         from_file(traj)
+
+
+def test_an_install_without_the_compiled_kernels_is_said(tmp_path, capsys, monkeypatch):
+    """setup.py builds the SGM and trees kernels as optional extensions: a machine without a C compiler installed,
+    ran the numpy references (4-11x slower) and said nothing, so its timings and deadlines misled (review of stop
+    74). `process` warns, into result.json too; so does a HIL run's summary."""
+    from flight_sw import kernels
+    from hil_server.run import kernel_note
+
+    assert kernels.missing_kernels() == []  # this install built them (`make install`)
+    monkeypatch.setattr(kernels, "load_kernel", lambda module: None)
+    missing = kernels.missing_kernels()
+    assert missing == ["the SGM aggregation (~4x slower)", "the P(safe) trees (~11x slower)"]
+    d, _ = _pair(tmp_path)
+    assert main(["process", str(d), "--out", str(tmp_path / "o"), "--sites", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the install built no compiled kernel for the SGM aggregation (~4x slower) or the P(safe)" in err
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert any(w.startswith("the install built no compiled kernel") for w in doc["warnings"]), doc["warnings"]
+    assert "then `make install`" in kernel_note({"kernels_missing": missing})
+    assert kernel_note({"kernels_missing": []}) == "" and kernel_note({}) == ""
