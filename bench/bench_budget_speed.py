@@ -26,6 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import positive_int, run  # noqa: E402
 from pages import write_page  # noqa: E402
 
 from hil_server.budgets import get_budget, load_calibration  # noqa: E402
@@ -54,10 +55,12 @@ for _ in sys.stdin:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--budgets", nargs="+", default=["snapdragon801", "rad750", "gr740"])
-    ap.add_argument("--runs", type=int, default=2)
+    ap.add_argument("--runs", type=positive_int, default=2)
     ap.add_argument("--uncompensated", action="store_true", help="also run at duty = share (the old rule)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "budget_speed.md"), help="'' to print only")
     args = ap.parse_args(argv)
+    for name in args.budgets:  # every name, before the probe starts
+        get_budget(name)
     cal = load_calibration()
     if cal is None or not cal.throttle_efficiency:
         print("this host has no throttle efficiency on record: run `hazard-hil calibrate` first", file=sys.stderr)
@@ -147,4 +150,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

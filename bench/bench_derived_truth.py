@@ -12,6 +12,9 @@ Renders the vertical descent's 600/300, 300/150 and 200/100 pairs and the approa
 - `hazard-hil score` of the same output against each: FP, CDI, pixels scored and the top site's verdict;
 - the derivation's time (median of 3).
 
+Where frame 0 samples the ground too coarsely for any footprint's slope (the approach's 600/300 at 256 px), no
+truth can be derived: the pair's row says so, with the reason, and keeps the scores against the renderer's truth.
+
 Nothing here is tuned: the derivation has no free parameter but the footprint (3 m) and the half-seen disk rule.
 """
 
@@ -32,6 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import InputError, positive_int, run  # noqa: E402
+
 from ground_sim.gridscore import complete_truth  # noqa: E402
 from protocol.pairdir import read_pair  # noqa: E402
 
@@ -43,9 +48,51 @@ def hh(*args: str) -> subprocess.CompletedProcess:
 
 
 def score(pair: Path, out: Path, js: Path) -> dict:
-    hh("score", str(pair), str(out), "--json", str(js))
+    js.unlink(missing_ok=True)  # never an earlier pair's scores (exit 1 only says a pair is over the FP limit)
+    scored = hh("score", str(pair), str(out), "--json", str(js))
+    if not js.is_file():
+        why = (scored.stderr.strip().splitlines() or [f"exit status {scored.returncode}"])[-1]
+        raise SystemExit(f"bench_derived_truth: score {pair}: {why}")
     (row,) = json.loads(js.read_text())["rows"]
     return row
+
+
+def check_reused(out: Path, seed: int, size: int) -> None:
+    """Refuse an ``--out`` whose renders (reused: renders are looked up by scenario only) are of another seed or
+    image size than asked for."""
+    for scenario, pairs in CASES.items():
+        if not (out / scenario / "manifest.json").is_file():
+            continue
+        for label in pairs:
+            meta = out / scenario / label.replace("/", "_") / "pair.json"
+            if not meta.is_file():
+                continue
+            m = json.loads(meta.read_text())
+            have = (m.get("scene_seed"), (m.get("camera") or {}).get("width"))
+            if have != (seed, size):
+                raise InputError(
+                    f"--out {out} holds {scenario} renders of seed {have[0]} at {have[1]} px, not seed {seed} at "
+                    f"{size} px: give another --out"
+                )
+
+
+def table(rows: list[dict[str, Any]]) -> list[str]:
+    """The Markdown table; a pair whose truth could not be derived says so in its row, with the reason."""
+    head = ("pair", "resolved %", "agree %", "derived safe, raster unsafe %", "FP % raster / derived", "CDI %")
+    out = ["| " + " | ".join(head) + " | top site | s |", "|---|---:|---:|---:|---|---|---|---:|"]
+    for r in rows:
+        if r.get("not_derived"):
+            out.append(
+                f"| {r['pair']} | 0.0 | no truth derived: {r['not_derived']} | - | {r['fp'][0]:.2f} / - | "
+                f"{r['cdi'][0]:.1f} / - | {r['top'][0]} / - | {r['s']:.3f} |"
+            )
+            continue
+        out.append(
+            f"| {r['pair']} | {r['resolved_pct']:.1f} | {r['agree_pct']:.1f} | {r['missed_pct']:.2f} | "
+            f"{r['fp'][0]:.2f} / {r['fp'][1]:.2f} | {r['cdi'][0]:.1f} / {r['cdi'][1]:.1f} | "
+            f"{r['top'][0]} / {r['top'][1]} | {r['s']:.3f} |"
+        )
+    return out
 
 
 def synthetic(n: int) -> None:
@@ -71,12 +118,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("/tmp/derived_truth"))
     ap.add_argument("--seed", type=int, default=1000, help="a held-out seed by default (the project's seed sets)")
-    ap.add_argument("--image-size", type=int, default=512)
-    ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time an N x N lattice instead")
+    ap.add_argument("--image-size", type=positive_int, default=512)
+    ap.add_argument("--synthetic", type=positive_int, default=None, metavar="N", help="time an N x N lattice instead")
     args = ap.parse_args()
     if args.synthetic:
         synthetic(args.synthetic)
         return 0
+    check_reused(args.out, args.seed, args.image_size)
     rows: list[dict[str, Any]] = []
     for scenario, pairs in CASES.items():
         d = args.out / scenario
@@ -95,15 +143,29 @@ def main() -> int:
             shutil.copytree(pair, mine)
             (mine / "gt_hazard_i1.npy").unlink()
             p = read_pair(mine)
-            times = []
+            times, note = [], None
             for _ in range(3):
                 p.truth.pop("hazard", None)
                 t0 = time.perf_counter()
-                complete_truth(p)
+                note = complete_truth(p)
                 times.append(time.perf_counter() - t0)
+            a = score(pair, out, args.out / "a.json")
+            if "hazard" not in p.truth:  # the files give no footprint's hazard (ground sampled too coarsely, ...)
+                rows.append(
+                    {
+                        "pair": f"{scenario} {label}",
+                        "not_derived": note or "no truth could be derived",
+                        "fp": (a["fp_pct"], None),
+                        "cdi": (a["cdi_pct"], None),
+                        "pixels": (a["pixels"], None),
+                        "top": (a["top_site_truly_safe"], None),
+                        "s": statistics.median(times),
+                    }
+                )
+                print(f"{scenario} {label}: no truth derived: {note}", file=sys.stderr, flush=True)
+                continue
             g, h = read_pair(pair).truth["hazard"], p.truth["hazard"]
             both = np.isfinite(g) & np.isfinite(h)
-            a = score(pair, out, args.out / "a.json")
             b = score(mine, out, args.out / "b.json")
             rows.append(
                 {
@@ -118,17 +180,9 @@ def main() -> int:
                     "s": statistics.median(times),
                 }
             )
-    head = ("pair", "resolved %", "agree %", "derived safe, raster unsafe %", "FP % raster / derived", "CDI %")
-    print("| " + " | ".join(head) + " | top site | s |")
-    print("|---|---:|---:|---:|---|---|---|---:|")
-    for r in rows:
-        print(
-            f"| {r['pair']} | {r['resolved_pct']:.1f} | {r['agree_pct']:.1f} | {r['missed_pct']:.2f} | "
-            f"{r['fp'][0]:.2f} / {r['fp'][1]:.2f} | {r['cdi'][0]:.1f} / {r['cdi'][1]:.1f} | "
-            f"{r['top'][0]} / {r['top'][1]} | {r['s']:.3f} |"
-        )
+    print("\n".join(table(rows)))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

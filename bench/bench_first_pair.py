@@ -21,6 +21,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from _cli import positive_int, run
+
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
@@ -61,21 +63,25 @@ print(json.dumps({{"cpu": cpu, "boot": boot}}))
 def one_start(mode: str, pair: str, cpu: int) -> dict:
     code = CHILD.format(root=str(ROOT), bench=str(ROOT / "bench"), tests=str(ROOT / "tests"))
     cmd = ["taskset", "-c", str(cpu), sys.executable, "-c", code, mode, pair]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if out.returncode:  # its last line (the exception), not the inline script in a CalledProcessError
+        why = (out.stderr.strip().splitlines() or [f"exit status {out.returncode}"])[-1]
+        raise SystemExit(f"bench_first_pair: a {mode} start failed: {why}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pair", default="", help="a pair directory (default: the synthetic 512 px pair)")
-    ap.add_argument("--starts", type=int, default=3, help="fresh processes per mode")
+    ap.add_argument("--starts", type=positive_int, default=3, help="fresh processes per mode")
     modes = ["cold", "settle", "warm", "warm+heap"]
     ap.add_argument("--modes", nargs="+", default=modes, choices=modes)
     ap.add_argument("--cpu", type=int, default=max(os.cpu_count() or 1, 1) - 1, help="the CPU to pin to")
     args = ap.parse_args(argv)
-    if args.pair and not Path(args.pair).is_dir():
-        print(f"bench_first_pair: no pair directory {args.pair}", file=sys.stderr)
-        return 2
+    if args.pair:  # a pair the children cannot read: said here, in one line, before any start
+        from protocol.pairdir import read_pair
+
+        read_pair(args.pair)
     print("| mode | starts | first / steady CPU: median | worst | first ms (median) | steady ms (median) | boot ms |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for mode in args.modes:
@@ -95,4 +101,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

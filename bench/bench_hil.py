@@ -5,7 +5,8 @@ through ground -> link -> supervisor -> emulated flight processor and reports
 the end-to-end latency (the deadline's: last frame sent -> whole Result held at the ground, docs/hil.md)
 p50/p95/max beside the flight latency (last frame in -> Result out), deadline hit rate, the
 level reached, the achieved CPU fraction and the line time of frames and
-results. Writes ``docs/benchmarks/hil.md``.
+results. Writes ``docs/benchmarks/hil.md``. The pairs and runs go to a temporary directory
+(``/tmp/bench_hil_*``), removed at the end unless ``--keep``.
 
     .venv/bin/python bench/bench_hil.py [--budgets host,snapdragon801,rad750,gr740] [--pairs 600/300,300/150]
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import sys
 import tempfile
@@ -23,6 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _cli import InputError, run, unknown  # noqa: E402
 from pages import write_page  # noqa: E402
 
 
@@ -32,14 +35,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", default="600/300,300/150,200/100")
     ap.add_argument("--scenario", default="vertical")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "hil.md")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary directory of pairs and runs (named)")
     args = ap.parse_args(argv)
 
+    from ground_sim.trajectory import load_trajectory
+    from hil_server.budgets import get_budget
+    from protocol.errors import comma_items
+
+    # every name checked before the temporary directory is made and the pairs are rendered
+    budgets = comma_items(args.budgets, "--budgets") or [""]  # "" is no budget's name either
+    for name in budgets:
+        get_budget(name)
+    pairs = comma_items(args.pairs, "--pairs")
+    labels = [s.label for s in load_trajectory(args.scenario)]
+    if not pairs:
+        raise InputError(f"--pairs: name at least one of {', '.join(labels)}")
+    unknown("--pairs", pairs, labels)
+    args.budgets, args.pairs = ",".join(budgets), ",".join(pairs)  # as checked (spaces around commas dropped)
+
+    work = Path(tempfile.mkdtemp(prefix="bench_hil_"))
+    try:
+        return bench(args, work)
+    finally:
+        if args.keep:
+            print(f"bench_hil: kept {work}", file=sys.stderr)
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def bench(args: argparse.Namespace, work: Path) -> int:
+    """Render the pairs into ``work``, run each budget's descent there and write the table."""
     from ground_sim.descent import render_scenario
     from hil_server.budgets import get_budget, load_calibration
     from hil_server.run import LATE_SIGNAL, RunConfig, run_descent
     from protocol.plan import plan_note
 
-    work = Path(tempfile.mkdtemp(prefix="bench_hil_"))
     pairs = args.pairs.split(",")
     manifest = render_scenario(args.scenario, work / "pairs", pairs=pairs, progress=True) / "manifest.json"
     cal = load_calibration()
@@ -118,4 +148,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

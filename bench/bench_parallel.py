@@ -30,10 +30,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from _cli import InputError, positive_int, run, unknown
 from pages import write_page
+
+from protocol.errors import comma_items
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
+CASES = ("render", "evaluate")  # --only
 
 RENDER_BEFORE = """
 import time, tempfile
@@ -161,17 +165,16 @@ def _table(title: str, res: dict, base: str) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--only", default="render,evaluate")
-    ap.add_argument(
-        "--out",
-        default=None,
-        help="write the tables (Markdown) into this page (its earlier text is kept: bench/pages.py)",
-    )
+    ap.add_argument("--repeat", type=positive_int, default=3)
+    ap.add_argument("--workers", type=positive_int, default=2)
+    ap.add_argument("--only", default=",".join(CASES), help=f"comma-separated: {','.join(CASES)}")
+    ap.add_argument("--out", default=None, help="write the tables into this page (its other text kept: bench/pages.py)")
     ap.add_argument("--json", default=None, help="write the raw timings here")
     args = ap.parse_args()
-    only = set(args.only.split(","))
+    only = set(comma_items(args.only, "--only"))
+    if not only:  # checked before anything runs or is written
+        raise InputError(f"--only: name at least one of {', '.join(CASES)}")
+    unknown("--only", sorted(only), CASES)
     out: list[str] = [f"Host: {os.cpu_count()} cores, load average at start {_load():.2f}."]
     raw: dict[str, dict] = {}
     if "render" in only:
@@ -195,4 +198,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -26,6 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
+from _cli import positive_int, run, unknown  # noqa: E402
+
 
 def synthetic_pair(size: int, seed: int = 0, spots_per_km2: float = 2000.0):
     from synthetic import make_pair
@@ -116,8 +118,8 @@ def ablation(i1, i2, p1, p2, cam, z) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pair", help="pair directory (default: synthetic)")
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--size", type=positive_int, default=512)
+    ap.add_argument("--runs", type=positive_int, default=7)
     ap.add_argument("--presets", nargs="+", default=["fast", "fast_v1", "thesis"])
     ap.add_argument("--json", help="write the summary here")
     ap.add_argument(
@@ -141,11 +143,13 @@ def main(argv: list[str] | None = None) -> int:
         "median CPU time of the stages it must cover",
     )
     args = ap.parse_args(argv)
+    from flight_sw.pipeline import PRESETS, reserve_table, run_pipeline
+
+    unknown("--presets", args.presets, PRESETS)  # before the warm-up and every other preset's runs
 
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    from flight_sw.pipeline import PRESETS, reserve_table, run_pipeline
 
     if args.pair:
         from protocol.pairdir import read_pair
@@ -233,4 +237,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -47,6 +47,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import InputError, positive_int, run  # noqa: E402
+
 VARIANTS = ("off", "on", "on_alt", "oracle", "oracle_alt")
 
 
@@ -462,17 +464,19 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed-set", choices=sorted(SEED_SETS), default="held-out")
-    ap.add_argument("--n-seeds", type=int, default=2, help="first N seeds of the set")
-    ap.add_argument("--samples", type=int, default=20, help="altitude samples per pair (attitude: the 6 levels)")
+    ap.add_argument("--n-seeds", type=positive_int, default=2, help="first N seeds of the set")
+    ap.add_argument(
+        "--samples", type=positive_int, default=20, help="altitude samples per pair (attitude: the 6 levels)"
+    )
     ap.add_argument("--altitudes", type=int, nargs="+", default=[125, 150, 250, 300])
     kinds = ["altitude", "attitude", "frame2", "cam2"]
     ap.add_argument("--kinds", nargs="+", default=["altitude", "attitude"], choices=kinds)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    ap.add_argument("--cam2-samples", type=int, default=2, help="cam2 kind: samples (alternating signs)")
+    ap.add_argument("--cam2-samples", type=positive_int, default=2, help="cam2 kind: samples (alternating signs)")
     ap.add_argument("--alt-noise-m", type=float, default=0.0, help="Gaussian noise of the simulated altimeter")
     ap.add_argument("--cache", type=Path, default=Path("out/bench_pose/cache"))
     ap.add_argument("--out", type=Path, default=Path("out/bench_pose"))
-    ap.add_argument("--timing-runs", type=int, default=7)
+    ap.add_argument("--timing-runs", type=positive_int, default=7)
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-sensitivity", action="store_true")
     ap.add_argument("--detectors", action="store_true", help="also compare ORB and SIFT, raw and guided")
@@ -481,16 +485,18 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     from flight_sw.pose_refine import RefineParams
 
-    over = dict(kv.split("=", 1) for kv in a.refine.split(",") if kv)
     conv: dict[type, Callable[[str], object]] = {
         bool: lambda v: v.lower() in ("1", "true", "yes"),
         int: int,
         float: float,
         str: str,
     }
-    # each value parsed as its own field's type (the fields are named at run time: no one static type fits)
-    fields: dict[str, Any] = {k: conv[type(getattr(RefineParams(), k))](v) for k, v in over.items()}
-    rp = RefineParams(**fields)
+    try:  # each value parsed as its own field's type (the fields are named at run time: no one static type fits)
+        over = dict(kv.split("=", 1) for kv in a.refine.split(",") if kv)
+        fields: dict[str, Any] = {k: conv[type(getattr(RefineParams(), k))](v) for k, v in over.items()}
+        rp = RefineParams(**fields)
+    except (ValueError, TypeError, AttributeError, KeyError) as exc:
+        raise InputError(f"--refine {a.refine!r}: expected K=V,... with K a field of RefineParams ({exc})") from None
     pin_one_core()
     seeds = list(SEED_SETS[a.seed_set][: a.n_seeds])
     entries = [{**e, "seed": s} for s in seeds for e in render_cache("approach", s, a.cache, altitudes=a.altitudes)]
@@ -548,4 +554,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -31,8 +31,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import positive_int, run, unknown  # noqa: E402
+
 from protocol.arq import ArqConfig  # noqa: E402
 from protocol.codec import decode_message, encode_message  # noqa: E402
+from protocol.errors import comma_items  # noqa: E402
 from protocol.faults import CorruptingChannel, PtyBridge  # noqa: E402
 from protocol.fuzz import fuzz_hostile, fuzz_noise, nested_map_bomb  # noqa: E402
 from protocol.links import LOCAL_CONFIG, SerialLink, StreamLink, ZmqLink  # noqa: E402
@@ -348,14 +351,11 @@ def bench_fuzz(n: int, seed: int) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fuzz", action="store_true", help="run the fuzz campaigns")
-    ap.add_argument("--fuzz-inputs", type=int, default=100_000)
+    ap.add_argument("--fuzz-inputs", type=positive_int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated: codec,result,bombs,links,noise,pause,timeouts")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = ap.parse_args()
-    load = os.getloadavg()[0]
-    print(f"host load average {load:.2f} on {os.cpu_count()} cores")
-    RESULTS["load"] = load
     steps = {
         "codec": bench_codec,
         "result": bench_result,
@@ -365,7 +365,11 @@ def main() -> int:
         "pause": bench_pause,
         "timeouts": bench_timeouts,
     }
-    wanted = [s for s in args.only.split(",") if s] or list(steps)
+    wanted = comma_items(args.only, "--only") or list(steps)
+    unknown("--only", wanted, steps)  # before any step runs
+    load = os.getloadavg()[0]
+    print(f"host load average {load:.2f} on {os.cpu_count()} cores")
+    RESULTS["load"] = load
     for name in wanted:
         steps[name]()
     if args.fuzz:
@@ -377,4 +381,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -22,6 +22,7 @@ import time
 
 import cv2
 import numpy as np
+from _cli import positive_int, run, unknown
 from pages import write_page
 
 from ground_sim.geometry import look_rotation
@@ -42,14 +43,14 @@ CASES = [
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument(
-        "--out", default=None, help="write the table into this page (its earlier text is kept: bench/pages.py)"
-    )
-    ap.add_argument("--max-raster-cells", type=int, default=MAX_CELLS)
+    ap.add_argument("--repeat", type=positive_int, default=5)
+    ap.add_argument("--out", default=None, help="write the table into this page (its other text kept: bench/pages.py)")
+    ap.add_argument("--max-raster-cells", type=positive_int, default=MAX_CELLS)
     ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER)
     ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")
     args = ap.parse_args()
+    if args.cases:  # a name that matches none would leave an empty table (names with spaces: quote each)
+        unknown("--cases", args.cases, [name for name, _, _ in CASES])
     mc = args.max_raster_cells
     cv2.setNumThreads(1)
     scene = load_scene("default", 0)
@@ -102,4 +103,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -29,6 +29,8 @@ if TYPE_CHECKING:
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import InputError, run  # noqa: E402
+
 STEPS = ((1, 1), (1, 2), (2, 2), (2, 4), (4, 8))
 
 
@@ -48,6 +50,21 @@ def result_bytes(res, camera, kp: int, k: int, unit: int = 1, grid=None, sites=N
     return len(encode_message(msg))
 
 
+def _counts(text: str, option: str, n: int | None = None) -> tuple[int, ...]:
+    """``text``'s comma-separated whole numbers >= 1 (exactly ``n`` of them if given)."""
+    from protocol.errors import comma_items
+
+    items = comma_items(text, option)
+    try:
+        values = tuple(int(v) for v in items)
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1 or (n is not None and len(values) != n):
+        what = f"{n} comma-separated whole numbers >= 1" if n else "comma-separated whole numbers >= 1"
+        raise InputError(f"{option}: expected {what}, got {text!r}")
+    return values
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache", default="/tmp/demo_pairs", help="where the demo pairs are rendered (reused)")
@@ -56,13 +73,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", default=None, help="kp,k pairs such as 2,2;2,4 (default: every auto choice)")
     ap.add_argument("--units", default="1", help="elevation units in cm, comma-separated (default 1)")
     args = ap.parse_args(argv)
+    # every argument checked before a pair is rendered or run
+    steps = STEPS if args.steps is None else tuple(_counts(s, "--steps", 2) for s in args.steps.split(";"))
+    units = _counts(args.units, "--units")
+    if args.manifest is not None and not args.manifest.is_file():
+        raise InputError(f"--manifest {args.manifest}: no such file")
     from flight_sw.flight_main import FaultPlan, FlightProcess
     from flight_sw.pipeline import run_pipeline
     from ground_sim.descent import render_scenario
     from protocol.pairdir import read_pair
 
-    steps = STEPS if args.steps is None else tuple(tuple(int(v) for v in s.split(",")) for s in args.steps.split(";"))
-    units = [int(u) for u in args.units.split(",")]
     if args.manifest is not None:
         out = args.manifest.parent
     else:
@@ -104,4 +124,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -33,6 +33,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from _cli import InputError, check_dir, positive_int, run, unknown  # noqa: E402
+
 from flight_sw.psafe import model_call, model_for_image  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
@@ -60,6 +62,23 @@ def case_key(
 
     px = "" if image_px is None or image_px == THESIS_CAMERA_PX else f"_px{image_px}"
     return f"{case}_s{seed}{render_tag(max_cells, raster)}{px}"
+
+
+def check_altitudes(cases: list[str], altitudes: list[int] | None) -> None:
+    """Refuse ``--altitudes`` that would leave a case without a pair or that no case has, naming each case's
+    (lower-frame) altitudes: :func:`render_case` keeps only the pairs at those altitudes, silently."""
+    from ground_sim import trajectory
+
+    if not altitudes:
+        return
+    have = {c: sorted({int(round(s.altitude_m)) for s in getattr(trajectory, CASES[c][0])()}) for c in cases}
+    listed = "; ".join(f"{c} has {', '.join(map(str, a))}" for c, a in have.items())
+    nowhere = sorted({a for a in altitudes if not any(a in h for h in have.values())})
+    if nowhere:
+        raise InputError(f"--altitudes: no pair at {', '.join(map(str, nowhere))} m ({listed})")
+    empty = [c for c, h in have.items() if not set(h) & set(altitudes)]
+    if empty:
+        raise InputError(f"--altitudes: no pair of {', '.join(empty)} at {', '.join(map(str, altitudes))} m ({listed})")
 
 
 def cached_raster(pair_dir: Path) -> str:
@@ -425,7 +444,7 @@ def ablation_variants() -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
-    ap.add_argument("--n-seeds", type=int, default=2, help="first N seeds of the set")
+    ap.add_argument("--n-seeds", type=positive_int, default=2, help="first N seeds of the set")
     ap.add_argument("--seeds", type=int, nargs="*", help="explicit seeds (overrides --set/--n-seeds)")
     ap.add_argument("--cases", nargs="+", default=["vertical", "approach"], choices=list(CASES))
     ap.add_argument("--altitudes", type=int, nargs="*", help="only these (lower-frame) altitudes")
@@ -435,14 +454,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument(
         "--max-raster-cells",
-        type=int,
+        type=positive_int,
         default=None,
         help="render with this raster cap (docs/scenes.md); use a cache of its own, renders are reused by path",
     )
     ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER, help="terrain rasters (docs/scenes.md)")
     ap.add_argument(
         "--image-size",
-        type=int,
+        type=positive_int,
         default=None,
         help="a square camera of this many px with the thesis camera's field of view (default: its 512 px)",
     )
@@ -455,6 +474,15 @@ def main(argv: list[str] | None = None) -> int:
         help="score every pair of this landing render cache (hazard-hil landings --cache) instead of --cases",
     )
     args = ap.parse_args(argv)
+    from flight_sw.pipeline import PRESETS
+
+    # every argument checked before anything is rendered or scored
+    if args.library:
+        check_dir(args.library, "--library")
+    else:
+        check_altitudes(args.cases, args.altitudes)
+    if not args.ablation:
+        unknown("--presets", args.presets, PRESETS)
 
     import cv2
 
@@ -464,19 +492,6 @@ def main(argv: list[str] | None = None) -> int:
     seeds = args.seeds or list((TUNING_SEEDS if args.set == "tuning" else HELD_OUT_SEEDS)[: args.n_seeds])
     cache = Path(args.cache)
     mc = args.max_raster_cells
-    if args.library:
-        pairs = library_pairs(Path(args.library), args.raster)
-        seeds = sorted({e["seed"] for e in pairs})
-    else:
-        pairs = [
-            e
-            for c in args.cases
-            for s in seeds
-            for e in render_case(c, s, cache, args.altitudes, mc, args.raster, args.image_size)
-        ]
-    if args.render_only:
-        print(f"{len(pairs)} pairs in {cache}")
-        return 0
     if args.ablation:
         variants = ablation_variants()
     else:
@@ -487,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
             try:  # a bad key or value ends the bench with one line (booleans: true/false/1/0/yes/no)
                 prm = preset_with(p, args.set_param)
             except (ValueError, AttributeError, KeyError) as exc:
-                raise SystemExit(f"eval_flight: --presets/--set-param: {exc}") from None
+                raise InputError(f"--presets/--set-param: {exc}") from None
             variants[p + ("" if not args.set_param else " " + " ".join(args.set_param))] = prm
             swept = [
                 k
@@ -501,6 +516,19 @@ def main(argv: list[str] | None = None) -> int:
                 said = ", ".join(swept)
                 print(f"note: {said} set, but {Path(fitted[1]).name}'s own operating point replaces them: add "
                       "psafe_call=params to sweep them", file=sys.stderr)  # fmt: skip
+    if args.library:
+        pairs = library_pairs(Path(args.library), args.raster)
+        seeds = sorted({e["seed"] for e in pairs})
+    else:
+        pairs = [
+            e
+            for c in args.cases
+            for s in seeds
+            for e in render_case(c, s, cache, args.altitudes, mc, args.raster, args.image_size)
+        ]
+    if args.render_only:
+        print(f"{len(pairs)} pairs in {cache}")
+        return 0
     all_rows: dict[str, list[dict[str, Any]]] = {}
     for name, prm in variants.items():
         rows = []
@@ -527,4 +555,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

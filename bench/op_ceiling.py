@@ -30,6 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _cli import InputError, check_dir, note_cache_dir, positive_int, run  # noqa: E402
+from eval_flight import CASES  # noqa: E402
+
 CUTS = (0.25, 0.5, 0.9)  # the ceiling's FP limits, % of the covered points
 TREES = {"iters": 45, "leaves": 31, "lr": 0.15}  # fast's trees (flight_sw/psafe_model.json info)
 
@@ -76,14 +79,24 @@ def group(r: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
-    ap.add_argument("--cases", nargs="+", default=["vertical", "approach", "thesis_vertical", "thesis_approach"])
-    ap.add_argument("--cache", default="/tmp/flight_eval_cache")
+    ap.add_argument(
+        "--cases", nargs="+", default=["vertical", "approach", "thesis_vertical", "thesis_approach"], choices=CASES
+    )
+    ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="eval_flight's renders (made on first use)")
     ap.add_argument("--layers", default="/tmp/flight_psafe_layers", help="fit_psafe's layers (made on first use)")
     ap.add_argument("--library", nargs="*", default=[], help="tuning landing render caches (fit_psafe --library)")
-    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--folds", type=positive_int, default=5)
     ap.add_argument("--budget", type=float, default=0.00175)
     ap.add_argument("--approach-budgets", type=float, nargs="*", default=[0.00175, 0.002, 0.0025, 0.003])
     args = ap.parse_args(argv)
+    from ground_sim.seeds import TUNING_SEEDS
+
+    if any(s not in TUNING_SEEDS for s in args.seeds):
+        raise InputError(f"--seeds must be tuning seeds ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]}, ground_sim.seeds)")
+    for lib in args.library:  # inputs that must exist, before the cases are rendered and their layers made
+        check_dir(lib, "--library")
+    note_cache_dir(args.cache, "--cache")  # caches made on demand: said, so that a mistyped path is seen
+    note_cache_dir(args.layers, "--layers")
 
     import cv2
 
@@ -91,11 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     from fit_psafe import barred, claim_layers, load_all, load_library
 
     from flight_sw.psafe import budget_rule
-    from ground_sim.seeds import TUNING_SEEDS
 
-    if any(s not in TUNING_SEEDS for s in args.seeds):
-        print("error: --seeds must be tuning seeds (ground_sim.seeds.TUNING_SEEDS)")
-        return 2
     refused = claim_layers(Path(args.layers), {})
     if refused:
         print(f"error: {refused}")
@@ -164,4 +173,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -18,6 +18,8 @@ import re
 import shutil
 from pathlib import Path
 
+from _cli import InputError, run
+
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES = {"vertical": (50, 300), "approach": (125, 300)}
 
@@ -77,12 +79,44 @@ def _f(v: float | None) -> str:
     return "-" if v is None else f"{v:.1f}"
 
 
+def check_inputs(out: Path, results: Path) -> None:
+    """Refuse, before anything is copied or written, what would stop this script part way: no directory ``out``,
+    a file it reads missing (those of an optional part present included), a block ``results`` lacks."""
+    if not out.is_dir():
+        raise InputError(f"{out}: no such directory (the `evaluate` and `landings` output directories' parent)")
+    need, blocks = [results], ["vertical", "approach", "landings", "provenance"]
+    for scen in ("vertical", "approach"):
+        rep = out / f"eval_{scen}" / "report"
+        need += [rep / f"tables_{scen}.md", out / f"eval_{scen}" / "metrics.csv"]
+        if (rep / f"multiframe_{scen}.md").is_file():
+            need.append(rep / f"{scen}_multiframe.png")
+            blocks.append("multiframe")
+    lp, pn = out / "landings", out / "landings_perfect_nav"
+    need += [
+        lp / "landings.json",
+        *(lp / "report" / f for f in ("p_safe_by_scene.png", "outcomes.png", "divert_cdf.png")),
+    ]
+    if (pn / "landings.json").is_file():
+        need.append(pn / "report" / "p_safe_by_scene.png")
+        blocks.append("landings_perfect_nav")
+    missing = [str(f) for f in need if not f.is_file()]
+    if missing:
+        raise InputError(f"missing {', '.join(missing)}")
+    text = results.read_text()
+    lacking = [
+        b for b in dict.fromkeys(blocks) if not re.search(rf"<!-- BEGIN {b} -->\n.*?<!-- END {b} -->", text, re.S)
+    ]
+    if lacking:
+        raise InputError(f"{results} has no <!-- BEGIN name --> ... <!-- END name --> block for {', '.join(lacking)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("out", type=Path)
     ap.add_argument("--results", type=Path, default=ROOT / "docs" / "RESULTS.md")
     ap.add_argument("--wall", default="", help="free text on the wall times, put in the provenance block")
     args = ap.parse_args()
+    check_inputs(args.out, args.results)
     dest = args.results.parent / "results"
     dest.mkdir(parents=True, exist_ok=True)
     text = args.results.read_text()
@@ -131,4 +165,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -22,6 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from _cli import note_cache_dir, run
+
 
 def fly(seed_set: str, pose_error: str, cache: str) -> list[dict[str, Any]]:
     from flight_sw.pipeline import PRESETS, run_pipeline
@@ -74,10 +76,15 @@ def replay(rows: list[dict[str, Any]], key: int, thresholds: list[float]) -> lis
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed-set", choices=("tuning", "held-out"), default="tuning")
-    ap.add_argument("--pose-error", default="default", help="'none' for perfect navigation knowledge")
-    ap.add_argument("--cache", required=True, help="the landings campaign's render cache")
+    ap.add_argument(
+        "--pose-error", choices=("default", "none"), default="default", help="'none' for perfect navigation knowledge"
+    )
+    ap.add_argument(
+        "--cache", required=True, help="the landings campaign's render cache (filled where it lacks a pair)"
+    )
     ap.add_argument("--json", help="write the flown rows here")
     args = ap.parse_args()
+    note_cache_dir(args.cache, "--cache")  # one made on demand is said, so that a mistyped path is seen
     rows = fly(args.seed_set, args.pose_error, args.cache)
     if args.json:
         Path(args.json).write_text(json.dumps(rows))
@@ -89,4 +96,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

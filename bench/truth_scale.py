@@ -40,7 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_flight import CASES, render_case, run_pair  # noqa: E402
+from _cli import positive_int, run, unknown  # noqa: E402
+from eval_flight import CASES, check_altitudes, render_case, run_pair  # noqa: E402
 
 from ground_sim.truth import (  # noqa: E402
     ROUGH_LIMIT_M,
@@ -188,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", nargs="+", default=["approach", "thesis_approach"], choices=list(CASES))
     ap.add_argument("--set", choices=("tuning", "held-out"), default="held-out")
-    ap.add_argument("--n-seeds", type=int, default=3)
+    ap.add_argument("--n-seeds", type=positive_int, default=3)
     ap.add_argument("--seeds", type=int, nargs="*", help="explicit seeds (overrides --set/--n-seeds)")
     ap.add_argument("--altitudes", type=int, nargs="*", help="only these (lower-frame) altitudes")
     ap.add_argument("--preset", default="fast")
@@ -207,6 +208,10 @@ def main(argv: list[str] | None = None) -> int:
         print(table([json.loads(ln) for f in args.from_json for ln in Path(f).read_text().splitlines() if ln]))
         return 0
 
+    from flight_sw.pipeline import PRESETS
+
+    unknown("--preset", [args.preset], PRESETS)
+    check_altitudes(args.cases, args.altitudes)  # one that matches no pair would leave an empty table
     cv2.setNumThreads(1)
     from bench_multiframe import preset_with
 
@@ -240,4 +245,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)
