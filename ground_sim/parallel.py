@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
@@ -148,6 +148,42 @@ def _tracker_deaf_to_hangup() -> None:
         signal.signal(signal.SIGHUP, old)
 
 
+def in_flight(workers: int) -> int:
+    """How many tasks a pool holds submitted at once: enough to keep every worker busy and its call queue fed.
+
+    Submitting every task up front deadlocked Python 3.11's pool (CPython gh-105829, fixed in 3.12): each submit
+    writes a wake-up message into a pipe under the pool's lock, and once some 16 000 of them fill the pipe the
+    submitting thread blocks there while the pool's manager thread waits for that lock to read them. A Ctrl-C
+    during `sensitivity --samples 10000`'s 80 008 submits hung it for good (QA of stop 74). Fewer tasks in flight
+    also keep the pending tasks' arguments out of memory."""
+    return 2 * max(1, workers) + 2
+
+
+def submit_windowed(
+    pool: ProcessPoolExecutor, calls: Iterable[tuple[Callable[..., Any], tuple[Any, ...]]], window: int
+) -> Iterator[tuple[int, Future]]:
+    """Submit ``calls`` (``(fn, args)``) keeping at most ``window`` unfinished; yield ``(index, future)`` as each
+    finishes, in the order they finish. Closing the generator (an interrupt) cancels what has not started."""
+    todo = iter(enumerate(calls))
+    running: dict[Future, int] = {}
+    try:
+        while True:
+            while len(running) < window:
+                nxt = next(todo, None)
+                if nxt is None:
+                    break
+                i, (fn, args) = nxt
+                running[pool.submit(fn, *args)] = i
+            if not running:
+                return
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for f in sorted(done, key=running.__getitem__):
+                yield running.pop(f), f
+    finally:
+        for f in running:
+            f.cancel()
+
+
 def stop_workers(pool: ProcessPoolExecutor) -> None:
     """Terminate the pool's worker processes now (the executor has no public way; they ignore SIGINT)."""
     for proc in list((getattr(pool, "_processes", None) or {}).values()):
@@ -166,8 +202,6 @@ def pool_map(
     """``[fn(*item) for item in items]`` in order; inline (one OpenCV thread) when one worker suffices.
 
     ``on_done(i)`` is called as item ``i`` finishes, in the order the items finish (a progress bar)."""
-    from concurrent.futures import as_completed
-
     items = list(items)
     n = resolve_workers(workers, len(items))
     if n <= 1:
@@ -179,10 +213,9 @@ def pool_map(
                     on_done(i)
         return out_inline
     with process_pool(n) as pool:
-        futs = {pool.submit(fn, *it): i for i, it in enumerate(items)}
         out: list[Any] = [None] * len(items)
-        for f in as_completed(futs):
-            out[futs[f]] = f.result()
+        for i, f in submit_windowed(pool, ((fn, tuple(it)) for it in items), in_flight(n)):
+            out[i] = f.result()
             if on_done is not None:
-                on_done(futs[f])
+                on_done(i)
         return out

@@ -31,7 +31,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -389,21 +389,18 @@ def _drain(
     record: Callable[[str, dict[str, Any]], None],
     failures: dict[str, str],
 ) -> None:
-    futs: dict[Future, str] = {pool.submit(_call, fn, t.kwargs): t.id for t in pending}
-    try:
-        remaining = set(futs)
-        while remaining:
-            finished, remaining = wait(remaining, return_when=FIRST_COMPLETED)
-            for f in sorted(finished, key=lambda f: futs[f]):
-                exc = f.exception()
-                if exc is not None:
-                    failures[futs[f]] = f"{type(exc).__name__}: {exc}"
-                else:
-                    record(futs[f], f.result())
-    except KeyboardInterrupt:
-        for f in futs:  # the pool's context (ground_sim.parallel.process_pool) ends the workers
-            f.cancel()
-        raise
+    from ground_sim.parallel import in_flight, submit_windowed
+
+    # a bounded window of submitted tasks (ground_sim.parallel.in_flight: all 80 008 at once deadlocked Python 3.11's
+    # pool); on an interrupt the generator cancels what has not started, and the pool's context ends the workers
+    window = in_flight(getattr(pool, "_max_workers", 1))
+    calls = ((_call, (fn, t.kwargs)) for t in pending)
+    for i, f in submit_windowed(pool, calls, window):
+        exc = f.exception()
+        if exc is not None:
+            failures[pending[i].id] = f"{type(exc).__name__}: {exc}"
+        else:
+            record(pending[i].id, f.result())
 
 
 def _run_dask(

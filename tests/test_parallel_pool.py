@@ -156,3 +156,60 @@ def test_an_inline_worker_runs_one_blas_thread_too():
         assert cv2.getNumThreads() == 1
         assert all(i["num_threads"] == 1 for i in threadpool_info())
     assert [i["num_threads"] for i in threadpool_info()] == before
+
+
+class _CountingPool:
+    """A thread pool that records how many submitted tasks were unfinished at once."""
+
+    def __init__(self, workers: int) -> None:
+        import threading
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(workers)
+        self._max_workers = workers
+        self._lock = threading.Lock()
+        self.open = self.most = self.submitted = 0
+
+    def submit(self, fn, *args):
+        with self._lock:
+            self.open += 1
+            self.submitted += 1
+            self.most = max(self.most, self.open)
+        fut = self._pool.submit(fn, *args)
+        fut.add_done_callback(self._done)
+        return fut
+
+    def _done(self, _fut) -> None:
+        with self._lock:
+            self.open -= 1
+
+
+def test_a_pool_holds_a_bounded_window_of_tasks(monkeypatch):
+    """Submitting all 80 008 tasks of `sensitivity --samples 10000` at once deadlocked Python 3.11's process pool
+    (CPython gh-105829: the wake-up pipe fills under the pool's lock) and a Ctrl-C then hung for good (QA of stop
+    74). pool_map and the studies' executor keep at most ``in_flight(workers)`` tasks submitted and unfinished;
+    every result still comes back, in order, and an interrupt cancels what had not started."""
+    import contextlib
+
+    from ground_sim import parallel
+    from studies import executor
+
+    pool = _CountingPool(2)
+    monkeypatch.setattr(parallel, "process_pool", lambda n: contextlib.nullcontext(pool))
+    done: list[int] = []
+    assert parallel.pool_map(pow, [(k, 2) for k in range(500)], workers=2, on_done=done.append) == [
+        k * k for k in range(500)
+    ]
+    assert pool.submitted == 500 and 2 < pool.most <= parallel.in_flight(2) and sorted(done) == list(range(500))
+
+    pool2 = _CountingPool(2)
+    got: dict[str, dict] = {}
+    tasks = [executor.Task(f"t{k:03d}", {"k": k}) for k in range(300)]
+    executor._drain(pool2, lambda k: {"k2": k * k}, tasks, got.__setitem__, {})  # type: ignore[arg-type]
+    assert got == {f"t{k:03d}": {"k2": k * k} for k in range(300)} and pool2.most <= parallel.in_flight(2)
+
+    pool3 = _CountingPool(1)
+    gen = parallel.submit_windowed(pool3, ((time.sleep, (0.05,)) for _ in range(100)), 4)  # type: ignore[arg-type]
+    next(gen)
+    gen.close()  # an interrupt in the consumer: what had not started is cancelled, nothing more is submitted
+    assert pool3.submitted <= 5
