@@ -746,3 +746,31 @@ def test_a_site_list_too_long_to_judge_is_refused(descent, tmp_path, capsys):
     (out / "result.json").write_text(json.dumps({"sites": [{"x": 0, "y": 0, "z": 0}] * (MAX_SCORED_SITES + 1)}))
     assert main(["score", str(descent / "600_300"), str(out)]) == 3
     assert "sites is more than a ranked list" in capsys.readouterr().err
+
+
+def test_a_long_descent_shows_its_progress_and_an_interrupt_says_how_far_it_got(monkeypatch, capsys):
+    """3000 pairs were scored for 21 s without a word, and a Ctrl-C said only "interrupted" (QA of stop 74)."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from studies import cli as scli
+
+    jobs = [SimpleNamespace(label=f"p{k}") for k in range(60)]
+    monkeypatch.setattr(scli, "_score_job", lambda job, n, figures: {"pair": job.label})
+    assert [r["pair"] for r in scli._score_rows(jobs, None)] == [j.label for j in jobs]
+    err = capsys.readouterr().err
+    assert "score [" in err and "60/60" in err, err
+
+    def stop_at_30(job, n, figures):
+        if job.label == "p30":
+            raise KeyboardInterrupt
+        return {"pair": job.label}
+
+    monkeypatch.setattr(scli, "_score_job", stop_at_30)
+    with pytest.raises(KeyboardInterrupt):
+        scli._score_rows(jobs, None)
+    assert "interrupted after 30 of 60 pairs: nothing is printed or written" in capsys.readouterr().err
+    monkeypatch.setattr(scli, "_score_job", lambda job, n, figures: {"pair": job.label})
+    scli._score_rows(jobs[:3], None)
+    assert capsys.readouterr().err == ""  # a short descent draws no bar
