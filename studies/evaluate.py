@@ -948,7 +948,7 @@ def render_all(
     from ground_sim import trajectory
     from ground_sim.render_cache import reusable
     from ground_sim.scene import load_scene_params
-    from studies.executor import Task, run_tasks
+    from studies.executor import PAIR_BYTES_PER_PX, Task, run_tasks
 
     have = sorted(int(round(s.altitude_m)) for s in getattr(trajectory, scenario)(None))
     alts = have if altitudes is None else sorted({int(a) for a in altitudes})
@@ -990,6 +990,7 @@ def render_all(
         # what decides the renders, not all of ground_sim: "computing them again" is then said only when the
         # cached renders are drawn again (render_cache, reusable), not when an unrelated module changed
         code=identity,
+        disk=(cache_dir, int(PAIR_BYTES_PER_PX * (camera_px or THESIS_CAMERA_PX) ** 2)),
     )
     out = []
     cache = Path(cache_dir).resolve()

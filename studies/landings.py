@@ -543,7 +543,7 @@ def run_campaign(
     ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
     Returns (rows, summary)."""
     from studies.evaluate import EVAL_CODE
-    from studies.executor import CampaignError, Task, code_fingerprint, load_results, run_tasks
+    from studies.executor import PAIR_BYTES_PER_PX, CampaignError, Task, code_fingerprint, load_results, run_tasks
 
     out = claim_out_dir(c, out_dir)
     cache = None if cache_dir is None else str(Path(cache_dir).resolve())
@@ -569,6 +569,8 @@ def run_campaign(
             desc=f"landings ({c.per_render} per render)",
             code=code,
             inputs=inputs,
+            # a kept render per group (none kept without a cache)
+            disk=None if cache is None else (cache, int(PAIR_BYTES_PER_PX * (c.camera_px or 512) ** 2)),
         )
     except (KeyboardInterrupt, CampaignError) as exc:
         # a partial summary of the renders that finished, marked incomplete, then the interruption goes on

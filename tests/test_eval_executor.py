@@ -139,3 +139,33 @@ def test_the_rerun_note_says_which_of_code_and_inputs_changed(tmp_path, capsys):
     run_tasks(noisy_mean, TASKS, path, workers=1, progress=False, code="B", inputs="camera_px=256")
     err = capsys.readouterr().err
     assert f"{len(TASKS)} by other code" in err and "other inputs" not in err, err
+
+
+def test_work_that_would_not_fit_the_disk_is_refused_before_it_starts(tmp_path, monkeypatch, capsys):
+    """800 renders at 4096 px would have written 180 GB onto 74 GB free, and nothing said so before it started
+    (QA of stop 74): the tasks to run times their size is checked against the free space first, and work over a
+    GiB says how much it will write."""
+    import shutil
+    from collections import namedtuple
+
+    import pytest
+
+    from protocol.errors import InputError
+    from studies import executor
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(100 << 30, 90 << 30, 10 << 30))
+    ran: list[int] = []
+    tasks = [executor.Task(f"t{k}", {"k": k}) for k in range(4)]
+    with pytest.raises(InputError, match=r"render: 4 tasks would write about 12\.0 GiB under .*, and its file system "
+                                         r"has 10\.0 GiB free"):  # fmt: skip
+        executor.run_tasks(lambda k: ran.append(k) or {}, tasks, tmp_path / "r.jsonl", workers=1, desc="render",
+                           progress=False, disk=(tmp_path / "not" / "yet", 3 << 30))  # fmt: skip
+    assert ran == []  # nothing ran
+    executor.run_tasks(lambda k: ran.append(k) or {}, tasks, tmp_path / "r.jsonl", workers=1, desc="render",
+                       progress=False, disk=(tmp_path, 1 << 30))  # fmt: skip
+    assert ran == [0, 1, 2, 3] and "will write about 4.0 GiB under" in capsys.readouterr().err
+    # a rerun has nothing left to write: no check, no note
+    executor.run_tasks(lambda k: {}, tasks, tmp_path / "r.jsonl", workers=1, desc="render", progress=False,
+                       disk=(tmp_path, 100 << 30))  # fmt: skip
+    assert "GiB" not in capsys.readouterr().err
