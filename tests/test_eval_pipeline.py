@@ -345,6 +345,8 @@ def test_cli_multi_frame_report_and_bad_frames(tmp_path: Path, cache: Path, caps
     assert main([*base, "--multi-frame", "--frames", "300,250,200", "--out", str(tmp_path / "ok")]) == 0
     out = capsys.readouterr().out
     assert "multi-frame descents (300/250/200 m) against the best pair" in out and "| fused window 2 | 1 |" in out
+    # where its renders are kept, and their size: only the tables and the page were named (QA of stop 74)
+    assert f"renders: {cache} (" in out and "MiB; a rerun reuses them" in out, out[-300:]
     page = (tmp_path / "ok" / "report" / "index.html").read_text()
     assert "multi-frame descents" in page and "vertical_multiframe.png" in page
     assert (tmp_path / "ok" / "report" / "vertical_multiframe.png").stat().st_size > 5000
