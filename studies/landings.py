@@ -32,6 +32,7 @@ import json
 import math
 import re
 import signal
+import sys
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -529,6 +530,9 @@ def campaign_key(c: Campaign) -> str:
     return "campaign-" + hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+PLAN_NOTE_GROUPS = 10_000  # planning this many render groups takes seconds: said before it starts
+
+
 def run_campaign(
     c: Campaign,
     out_dir: str | Path,
@@ -548,6 +552,8 @@ def run_campaign(
     out = claim_out_dir(c, out_dir)
     cache = None if cache_dir is None else str(Path(cache_dir).resolve())
     ctx = PlanContext.of(c)
+    if progress and c.n_groups >= PLAN_NOTE_GROUPS:  # a million landings planned for a minute without a word (QA 74)
+        print(f"landings: planning {c.n_groups} renders of {c.n_landings} landings", file=sys.stderr, flush=True)
     tasks = [
         Task(f"g{g:05d}", {"plan": plan_group(c, g, ctx), "presets": list(c.presets), "cache_dir": cache})
         for g in range(c.n_groups)
