@@ -17,6 +17,9 @@ $(STAMP): pyproject.toml setup.py flight_sw/_sgmc.c flight_sw/_treesc.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test,fit]'
+	@# the C kernels are optional extensions: a build without a compiler installs, slower, and is said here
+	@$(PY) -c "import sys; from flight_sw.kernels import kernels_note, missing_kernels; m = missing_kernels(); \
+	  m and print('warning: ' + kernels_note(m), file=sys.stderr)"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -54,6 +54,6 @@ def write_page(path: str | Path, text: str, script: str) -> str:
     p.write_text(merge(old, text, script))
     if not old.strip():
         return f"wrote {p}"
-    if begin in old:
+    if begin in old and markers(script)[1] in old[old.index(begin) :]:
         return f"{p}: replaced bench/{script}'s text; the rest of the page is as it was"
     return f"{p}: the table is under the page's title, between markers; the page's earlier text is kept below it"

@@ -29,7 +29,8 @@ def kernels_note(missing: list[str]) -> str:
         return ""
     return (
         f"the install built no compiled kernel for {' or '.join(missing)}: the numpy reference runs instead, with the "
-        "same results, and deadlines and timings are of it (install gcc and the Python headers, then `make install`)"
+        "same results, and deadlines and timings are of it (install gcc and the Python headers, then "
+        "`.venv/bin/pip install -e .` builds them)"
     )
 
 

@@ -151,11 +151,11 @@ def _tracker_deaf_to_hangup() -> None:
 def in_flight(workers: int) -> int:
     """How many tasks a pool holds submitted at once: enough to keep every worker busy and its call queue fed.
 
-    Submitting every task up front deadlocked Python 3.11's pool (CPython gh-105829, fixed in 3.12): each submit
-    writes a wake-up message into a pipe under the pool's lock, and once some 16 000 of them fill the pipe the
-    submitting thread blocks there while the pool's manager thread waits for that lock to read them. A Ctrl-C
-    during `sensitivity --samples 10000`'s 80 008 submits hung it for good (QA of stop 74). Fewer tasks in flight
-    also keep the pending tasks' arguments out of memory."""
+    With every task submitted up front, a Ctrl-C during `sensitivity --samples 10000` (80 008 tasks) left Python
+    3.11's pool shutting down with tens of thousands of pending futures, and it hung for good, its workers
+    defunct, on 2 of 2 tries; so did one `landings --n 1000000` (QA of stop 74). The cause inside the pool was not
+    pinned down (CPython has fixed hangs of this kind in its shutdown, e.g. gh-94440). With a window, 3 of 3 such
+    Ctrl-Cs ended at once. Fewer tasks in flight also keep the pending tasks' arguments out of memory."""
     return 2 * max(1, workers) + 2
 
 
@@ -163,9 +163,16 @@ def submit_windowed(
     pool: ProcessPoolExecutor, calls: Iterable[tuple[Callable[..., Any], tuple[Any, ...]]], window: int
 ) -> Iterator[tuple[int, Future]]:
     """Submit ``calls`` (``(fn, args)``) keeping at most ``window`` unfinished; yield ``(index, future)`` as each
-    finishes, in the order they finish. Closing the generator (an interrupt) cancels what has not started."""
+    finishes, in the order they finish. Closing the generator (an interrupt) cancels what has not started.
+
+    A pool broken by a worker that died (the OOM killer, a crash) refuses further submits: each call not yet
+    submitted is then yielded as a future holding that error, as the submitted ones hold it, so that the caller
+    records every task as failed (with all submitted up front, each future failed this way)."""
+    from concurrent.futures import BrokenExecutor
+
     todo = iter(enumerate(calls))
     running: dict[Future, int] = {}
+    window = max(1, int(window))
     try:
         while True:
             while len(running) < window:
@@ -173,7 +180,12 @@ def submit_windowed(
                 if nxt is None:
                     break
                 i, (fn, args) = nxt
-                running[pool.submit(fn, *args)] = i
+                try:
+                    running[pool.submit(fn, *args)] = i
+                except BrokenExecutor as exc:
+                    yield from _failed(i, exc)
+                    for j, _ in todo:
+                        yield from _failed(j, exc)
             if not running:
                 return
             done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -182,6 +194,13 @@ def submit_windowed(
     finally:
         for f in running:
             f.cancel()
+
+
+def _failed(i: int, exc: BaseException) -> Iterator[tuple[int, Future]]:
+    """``(i, a future that failed with exc)``."""
+    f: Future = Future()
+    f.set_exception(exc)
+    yield i, f
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:

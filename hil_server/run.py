@@ -1092,9 +1092,9 @@ def fusion_note(summary: dict) -> str:
     sources = summary.get("fusion_sources") or []
     if len(sources) > 1:
         said += f"; its pairs come from {len(sources)} scenes or seeds ({', '.join(sources[:4])}), fused as one descent"
-    up = climb(summary.get("records") or [])
+    up = climb([r for r in summary.get("records") or [] if r.get("status") == "result"])
     if up:  # fused as one descent all the same, unsaid (QA 74)
-        said += f"; {up}, and the map is fused across it all the same"
+        said += f"; {up}, and {'where it fuses, ' if 'asked of' in said else ''}the map is fused across it all the same"
     return said
 
 
@@ -1179,14 +1179,16 @@ def unpaced_note(summary: dict) -> str:
         if not isinstance(e2e, (int, float)) or not isinstance(n, (int, float)) or n <= 0:
             continue
         need = float(n) * BITS_PER_BYTE / float(baud)
-        had = float(e2e) - float(r.get("flight_latency_s") or 0.0) - float(r.get("result_queue_s") or 0.0)
+        # clipped: a flight latency over the end to end (the two sides' clocks) leaves no line time, not less
+        had = max(0.0, float(e2e) - float(r.get("flight_latency_s") or 0.0) - float(r.get("result_queue_s") or 0.0))
         if need < UNPACED_MIN_LINE_S or had >= UNPACED_SHARE * need:
             continue
-        fast.append((r, need, max(0.0, had)))
+        fast.append((r, need, had))
         if r.get("deadline_met") and isinstance(deadline, (int, float)) and float(e2e) + need - had > deadline:
             would_miss += 1
     if not fast:
         return ""
+    results = sum(isinstance(x.get("e2e_latency_s"), (int, float)) for x in summary.get("records") or [])
     r, need, had = max(fast, key=lambda f: f[1] - f[2])
     miss = (
         f"; with it, {would_miss} of the deadlines met here would have been missed"
@@ -1194,7 +1196,7 @@ def unpaced_note(summary: dict) -> str:
         else "; with it, every deadline met here would still be met"
     )
     return (
-        f"{len(fast)} of {len(summary.get('records') or [])} Results reached this ground faster than {int(baud)} baud "
+        f"{len(fast)} of {results} Results reached this ground faster than {int(baud)} baud "
         f"carries them (pair {r.get('label', r.get('pair_id'))}: {int(r['result_bytes'])} bytes need {need:.4f} s, "
         f"and had at most {had:.4f} s): the flight side writes without pacing its line (a pty carries bytes at once), "
         f"so the end-to-end latencies leave out the downlink a real UART at {int(baud)} baud adds, up to "

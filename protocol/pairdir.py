@@ -1199,7 +1199,7 @@ def same_time_notes(poses: Sequence[Pose]) -> list[str]:
         if t1 == t0:
             dz = float(poses[k - 1].position[2] - poses[k].position[2])
             out.append(
-                f"frames {k - 1} and {k} have the same time_s ({t1:g} s) {dz:.3g} m apart in height: frames are "
+                f"frames {k - 1} and {k} have the same time_s ({t1:g} s) {dz:g} m apart in height: frames are "
                 "ordered by time, so check the times"
             )
     return out

@@ -918,6 +918,9 @@ def _write_score_files(args: argparse.Namespace, rows: list[dict[str, Any]], sum
     return ok
 
 
+SCORE_PROGRESS_PAIRS = 50  # a descent this long shows a progress bar (scoring takes ~7 ms a 128 px pair, 0.1 s at 512)
+
+
 def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
     """One row per pair job of ``score``: its scores, or why it has none (``error``; ``pair_error`` when the
     pair itself, not the detector's output, is at fault)."""
@@ -932,16 +935,15 @@ def _score_rows(jobs: list[Any], figures: Path | None) -> list[dict[str, Any]]:
             rows.append(_score_job(job, len(jobs), figures))
             bar.update(label=job.label)
     except KeyboardInterrupt:
+        drawn = f"; the figures of those pairs are in {figures}" if figures is not None and rows else ""
         print(
-            f"hazard-hil score: interrupted after {len(rows)} of {len(jobs)} pairs: nothing is printed or written "
-            "(its files are written whole, once every pair is scored); run it again",
+            ("\n" if bar.enabled and sys.stderr.isatty() else "")  # the bar's line is not ended on a terminal
+            + f"hazard-hil score: interrupted after {len(rows)} of {len(jobs)} pairs: no table, --csv or --json "
+            f"(written whole, once every pair is scored){drawn}; run it again",
             file=sys.stderr,
         )
         raise
     return rows
-
-
-SCORE_PROGRESS_PAIRS = 50  # a descent this long shows a progress bar (scoring takes ~7 ms a 128 px pair, 0.1 s at 512)
 
 
 def _score_job(job: Any, n_jobs: int, figures: Path | None) -> dict[str, Any]:

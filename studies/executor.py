@@ -241,10 +241,17 @@ def check_disk(where: str | Path, need: int, what: str) -> None:
     except OSError:
         return  # nothing to measure against: the writes say for themselves what the disk refuses
     gib = 1 << 30
+    held = Path(where).is_dir() and any(Path(where).iterdir())
+    if need > free and held:  # a shared cache: the renders already in it are reused, so the need is an upper bound
+        print(f"warning: {what} may write up to {need / gib:.1f} GiB under {where}, whose file system has "
+              f"{free / gib:.1f} GiB free; the renders it holds already are reused, so it may be less",
+              file=sys.stderr, flush=True)  # fmt: skip
+        return
     if need > free:
         raise InputError(
             f"{what} would write about {need / gib:.1f} GiB under {where}, and its file system has "
-            f"{free / gib:.1f} GiB free: ask for fewer or smaller ones, or give a directory on a larger disk"
+            f"{free / gib:.1f} GiB free: ask for fewer seeds, altitudes or landings or a smaller --camera-px, or "
+            "give --cache a directory on a larger disk"
         )
     if need > DISK_NOTE_BYTES:
         print(f"note: {what} will write about {need / gib:.1f} GiB under {where} ({free / gib:.1f} GiB free)",

@@ -546,6 +546,7 @@ def run_campaign(
 
     ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
     Returns (rows, summary)."""
+    from protocol.pairdir import THESIS_CAMERA_PX
     from studies.evaluate import EVAL_CODE
     from studies.executor import PAIR_BYTES_PER_PX, CampaignError, Task, code_fingerprint, load_results, run_tasks
 
@@ -576,7 +577,7 @@ def run_campaign(
             code=code,
             inputs=inputs,
             # a kept render per group (none kept without a cache)
-            disk=None if cache is None else (cache, int(PAIR_BYTES_PER_PX * (c.camera_px or 512) ** 2)),
+            disk=None if cache is None else (cache, int(PAIR_BYTES_PER_PX * (c.camera_px or THESIS_CAMERA_PX) ** 2)),
         )
     except (KeyboardInterrupt, CampaignError) as exc:
         # a partial summary of the renders that finished, marked incomplete, then the interruption goes on

@@ -1,6 +1,7 @@
 """Bad arguments to the bench/ scripts: exit 2 with one line naming the problem (the valid choices where there are
 some), no traceback, and nothing rendered or written first. Each case runs the script as `make bench` would, in a
-process of its own; all of them are refused before any work, so the whole file takes seconds."""
+process of its own; all of them are refused before any work, in about 10 s
+(each script starts a Python of its own)."""
 
 from __future__ import annotations
 

@@ -993,7 +993,8 @@ def test_a_result_faster_than_the_line_rate_is_said_with_the_downlink_it_leaves_
         return {"label": "600/300", "e2e_latency_s": e2e, "result_bytes": n, "flight_latency_s": flight,
                 "deadline_met": met}  # fmt: skip
 
-    s = {"ground_counters": {"line_baud": 921600}, "deadline_s": 2.0, "records": [rec(0.0011, 342), {"status": "x"}]}
+    recs = [rec(0.0011, 342), rec(0.5, 342), {"status": "error"}]  # an error record is no Result
+    s = {"ground_counters": {"line_baud": 921600}, "deadline_s": 2.0, "records": recs}
     said = unpaced_note(s)
     assert said.startswith("1 of 2 Results reached this ground faster than 921600 baud"), said
     assert "342 bytes need 0.0037 s" in said and "every deadline met here would still be met" in said, said

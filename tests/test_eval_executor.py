@@ -165,6 +165,13 @@ def test_work_that_would_not_fit_the_disk_is_refused_before_it_starts(tmp_path, 
     executor.run_tasks(lambda k: ran.append(k) or {}, tasks, tmp_path / "r.jsonl", workers=1, desc="render",
                        progress=False, disk=(tmp_path, 1 << 30))  # fmt: skip
     assert ran == [0, 1, 2, 3] and "will write about 4.0 GiB under" in capsys.readouterr().err
+    # a cache that holds renders already (shared by studies: "render once, fly many times"): its need is an upper
+    # bound, so it is a warning, not a refusal (review of stop 74)
+    held = tmp_path / "cache"
+    held.mkdir()
+    (held / "a_pair").mkdir()
+    executor.check_disk(held, 12 << 30, "render: 4 tasks")
+    assert "may write up to 12.0 GiB under" in capsys.readouterr().err
     # a rerun has nothing left to write: no check, no note
     executor.run_tasks(lambda k: {}, tasks, tmp_path / "r.jsonl", workers=1, desc="render", progress=False,
                        disk=(tmp_path, 100 << 30))  # fmt: skip

@@ -198,7 +198,8 @@ BAD_FIELDS = [
     ({}, {"position_m": [0, 0, "high"]}, "frame 0: position_m must be [x, y, z]"),
     # said by the renderer and the pair's check with no file, pair or frame (QA of stop 73)
     ({}, {"off_nadir_deg": 85}, "frame 0: camera sees the sky or the horizon"),
-    ({}, {"time_s": 99}, "frame 1 is earlier than frame 0 (time_s 0 vs 99)"),
+    # a time on frame 0 only: frame 1's absent time read as 0 s, "earlier" (since stop 74 every frame or none)
+    ({}, {"time_s": 99}, "give time_s for every frame or for none (frame 1 has none)"),
 ]
 
 
@@ -552,11 +553,12 @@ def test_the_summary_says_when_a_fused_stream_goes_back_up():
     """Pairs streamed 200/100, 600/300, 300/150 were fused as one descent without a word (QA of stop 74)."""
     from hil_server.run import fusion_note
 
-    recs = [{"label": "200/100", "altitude_m": 100.0}, {"label": "600/300", "altitude_m": 300.0},
-            {"label": "300/150", "altitude_m": 150.0}]  # fmt: skip
+    recs = [{"label": "200/100", "altitude_m": 100.0, "status": "result"},
+            {"label": "600/300", "altitude_m": 300.0, "status": "result"},
+            {"label": "300/150", "altitude_m": 150.0, "status": "result"}]  # fmt: skip
     said = fusion_note({"fusion": True, "flight": "emulated", "records": recs})
     assert "pair 600/300 (300 m) comes after 200/100 (100 m): the stream goes back up" in said, said
     assert "fused across it all the same" in said
-    down = [recs[1], recs[2], recs[0], {"label": "x", "altitude_m": None}]
+    down = [recs[1], recs[2], recs[0], {"label": "x", "altitude_m": None}, {"label": "bad", "altitude_m": 900.0}]
     assert "back up" not in fusion_note({"fusion": True, "flight": "emulated", "records": down})
     assert "back up" not in fusion_note({"fusion": False, "records": recs})  # each pair alone: nothing fused

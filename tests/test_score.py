@@ -770,7 +770,7 @@ def test_a_long_descent_shows_its_progress_and_an_interrupt_says_how_far_it_got(
     monkeypatch.setattr(scli, "_score_job", stop_at_30)
     with pytest.raises(KeyboardInterrupt):
         scli._score_rows(jobs, None)
-    assert "interrupted after 30 of 60 pairs: nothing is printed or written" in capsys.readouterr().err
+    assert "interrupted after 30 of 60 pairs: no table, --csv or --json" in capsys.readouterr().err
     monkeypatch.setattr(scli, "_score_job", lambda job, n, figures: {"pair": job.label})
     scli._score_rows(jobs[:3], None)
     assert capsys.readouterr().err == ""  # a short descent draws no bar
