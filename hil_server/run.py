@@ -1005,13 +1005,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         ground_stop_note(s),
         off_map_note(s),
         full_maps_note(s),
-        truth_note(s),
-        hello_note(s),
-        frames_note(s),
-        baud_note(s),
-        unpaced_note(s),
-        kernel_note(s),
-        psafe_note(s),
+        *setting_notes(s),
         fusion_note(s),
     )
     for note in notes:
@@ -1137,6 +1131,20 @@ def baud_note(summary: dict) -> str:
         f"{int(line)} baud: on a real UART the two must match (this line carried the bytes all the same: a pty or a "
         "USB gadget ignores the rate); the flight side planned its Results' line time for the ground's rate"
     )
+
+
+def setting_notes(summary: dict) -> list[str]:
+    """The notes on what a run's figures rest on (its truth, its flight side, its frames, its line and kernels, its
+    P(safe)), in the order summary.md and the report page both give them; "" where one has nothing to say."""
+    return [
+        truth_note(summary),
+        hello_note(summary),
+        frames_note(summary),
+        baud_note(summary),
+        unpaced_note(summary),
+        kernel_note(summary),
+        psafe_note(summary),
+    ]
 
 
 def frames_note(summary: dict) -> str:

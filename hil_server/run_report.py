@@ -296,27 +296,9 @@ def write_run_report(summary: dict, path: Path) -> Path:
     from hil_server.run import GRID_SCORES_NOTE
 
     intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
-    from hil_server.run import (
-        baud_note,
-        frames_note,
-        fusion_note,
-        hello_note,
-        kernel_note,
-        psafe_note,
-        truth_note,
-        unpaced_note,
-    )
+    from hil_server.run import fusion_note, setting_notes
 
-    for extra in (
-        fusion_note(s),
-        truth_note(s),
-        hello_note(s),
-        frames_note(s),
-        baud_note(s),
-        unpaced_note(s),
-        kernel_note(s),
-        psafe_note(s),
-    ):
+    for extra in (fusion_note(s), *setting_notes(s)):
         if extra:
             intro.append(extra[0].upper() + extra[1:] + ".")
     if site_note(s):
