@@ -11,8 +11,8 @@
 * a TOML/JSON file: ``{"pairs": [{"label": .., "altitude_m": .., "frames": [{"position_m":
   [x,y,z], "off_nadir_deg": t, "heading_deg": h} | {"position_m", "R_world_to_cam"}, ...]}]}``
   with 2-16 frames per entry, ordered by time (each lower than the one before); a frame's ``time_s`` is
-  optional, for every frame of an entry or none: without, the times follow the velocity profile below over
-  the frames' heights, as on the vertical descent.
+  optional (0 s where another frame of the entry gives one; where none does, the times follow the velocity
+  profile below over the frames' heights, as on the vertical descent).
 * :func:`frames_at`: one multi-frame entry of a built-in scenario at chosen altitudes
   (``render --frames 300,250,200,150``), frame 0 the highest.
 
@@ -272,12 +272,8 @@ def from_file(path: Path) -> list[PairSpec]:
         if not isinstance(p, dict) or not isinstance(p.get("frames"), list) or not 2 <= len(p["frames"]) <= MAX_FRAMES:
             raise TrajectoryError(f"{where}: needs 'frames' with 2-{MAX_FRAMES} frames")
         poses = tuple(_frame(fr, f"{where} frame {k}") for k, fr in enumerate(p["frames"]))
-        timed = [isinstance(fr, dict) and "time_s" in fr for fr in p["frames"]]
-        if any(timed) and not all(timed):  # one frame's 0.0 beside another's 12.5 would say it came first
-            raise TrajectoryError(
-                f"{where}: give time_s for every frame or for none (frame {timed.index(False)} has none)"
-            )
-        if not any(timed):  # every frame at 0 s read as frames at one time (a note on every such pair; QA of stop 74)
+        # every frame at 0 s read as frames taken at one time (a note on every such pair; QA of stop 74)
+        if not any(isinstance(fr, dict) and "time_s" in fr for fr in p["frames"]):
             z0 = float(poses[0].position[2])
             poses = tuple(replace(q, time_s=_time(z0, float(q.position[2]))) for q in poses)
         for k in range(1, len(poses)):

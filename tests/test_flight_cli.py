@@ -768,5 +768,5 @@ def test_an_install_without_the_compiled_kernels_is_said(tmp_path, capsys, monke
     assert "warning: the install built no compiled kernel for the SGM aggregation (~4x slower) or the P(safe)" in err
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
     assert any(w.startswith("the install built no compiled kernel") for w in doc["warnings"]), doc["warnings"]
-    assert "then `make install`" in kernel_note({"kernels_missing": missing})
+    assert "then `.venv/bin/pip install -e .` builds them" in kernel_note({"kernels_missing": missing})
     assert kernel_note({"kernels_missing": []}) == "" and kernel_note({}) == ""

@@ -198,8 +198,7 @@ BAD_FIELDS = [
     ({}, {"position_m": [0, 0, "high"]}, "frame 0: position_m must be [x, y, z]"),
     # said by the renderer and the pair's check with no file, pair or frame (QA of stop 73)
     ({}, {"off_nadir_deg": 85}, "frame 0: camera sees the sky or the horizon"),
-    # a time on frame 0 only: frame 1's absent time read as 0 s, "earlier" (since stop 74 every frame or none)
-    ({}, {"time_s": 99}, "give time_s for every frame or for none (frame 1 has none)"),
+    ({}, {"time_s": 99}, "frame 1 is earlier than frame 0 (time_s 0 vs 99)"),
 ]
 
 

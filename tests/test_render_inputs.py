@@ -359,10 +359,10 @@ def test_the_trajectory_file_design_md_shows_is_one(tmp_path):
     assert axis[1] > 0 and abs(float(np.degrees(np.arccos(-axis[2]))) - 30.0) < 1e-6
 
 
-def test_a_trajectorys_frames_without_times_get_the_descents_and_half_given_times_are_refused(tmp_path):
+def test_a_trajectorys_frames_without_times_get_the_descents(tmp_path):
     """Frames without time_s were all given 0 s, so every rendered pair read as frames taken at one time (a note
-    since stop 74). Now they follow the descent's velocity profile over their heights; a time on some frames only
-    is refused (a frame's 0 s beside another's 12.5 s would put it first)."""
+    since stop 74). Now they follow the descent's velocity profile over their heights; where some frame gives a
+    time, a frame without one is at 0 s, as design.md's example has it (a later one is then said to come first)."""
     from ground_sim.errors import TrajectoryError
     from ground_sim.trajectory import load_trajectory
 
@@ -372,7 +372,7 @@ def test_a_trajectorys_frames_without_times_get_the_descents_and_half_given_time
     assert t[0] == 0.0 and t[0] < t[1] < t[2], t
     (vert,) = [s for s in load_trajectory("vertical") if s.label == "400/200"]
     assert t[2] - t[0] == pytest.approx(vert.poses[1].time_s - vert.poses[0].time_s, rel=1e-9)  # the same profile
-    with pytest.raises(TrajectoryError, match=r"give time_s for every frame or for none \(frame 1 has none\)"):
-        load_trajectory(trajectory(tmp_path, [_frame(400.0, 0.0), untimed[1]]))
+    with pytest.raises(TrajectoryError, match=r"frame 1 is earlier than frame 0 \(time_s 0 vs 3\)"):
+        load_trajectory(trajectory(tmp_path, [{**untimed[0], "time_s": 3.0}, untimed[1]]))
     (given,) = load_trajectory(trajectory(tmp_path, [_frame(400.0, 0.0), _frame(200.0, 4.0)]))
     assert [q.time_s for q in given.poses] == [0.0, 4.0]  # given times are kept
