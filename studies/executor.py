@@ -434,8 +434,9 @@ def _drain(
 ) -> None:
     from ground_sim.parallel import in_flight, submit_windowed
 
-    # a bounded window of submitted tasks (ground_sim.parallel.in_flight: all 80 008 at once deadlocked Python 3.11's
-    # pool); on an interrupt the generator cancels what has not started, and the pool's context ends the workers
+    # a bounded window of submitted tasks (ground_sim.parallel.in_flight: with all 80 008 submitted at once, a Ctrl-C
+    # hung Python 3.11's pool); on an interrupt the generator cancels what has not started, and the pool's context
+    # ends the workers
     window = in_flight(getattr(pool, "_max_workers", 1))
     calls = ((_call, (fn, t.kwargs)) for t in pending)
     for i, f in submit_windowed(pool, calls, window):
