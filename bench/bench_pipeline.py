@@ -139,11 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--check-reserves",
         action="store_true",
-        help="exit 1 when a v2 preset's deadline reserve (flight_sw.pipeline.reserve_table) is shorter than the "
+        help="exit 1 when a v2 preset's deadline reserve (flight_sw.anytime.reserve_table) is shorter than the "
         "median CPU time of the stages it must cover",
     )
     args = ap.parse_args(argv)
-    from flight_sw.pipeline import PRESETS, reserve_table, run_pipeline
+    from flight_sw.anytime import reserve_table
+    from flight_sw.pipeline import PRESETS, run_pipeline
 
     unknown("--presets", args.presets, PRESETS)  # before the warm-up and every other preset's runs
 
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1, default=float) + "\n")
     if args.check_reserves and short_any:
-        print("a deadline reserve is shorter than the stages it covers (flight_sw.pipeline.reserves)", file=sys.stderr)
+        print("a deadline reserve is shorter than the stages it covers (flight_sw.anytime.reserves)", file=sys.stderr)
         return 1
     return 0
 

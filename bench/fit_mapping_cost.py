@@ -1,4 +1,4 @@
-"""Fit the mapping reserve's cost model (``flight_sw.pipeline.mapping_cost_s``) on tuning pairs; check it held-out.
+"""Fit the mapping reserve's cost model (``flight_sw.anytime.mapping_cost_s``) on tuning pairs; check it held-out.
 
     taskset -c 1 .venv/bin/python bench/fit_mapping_cost.py --seeds 0 1 --check-seeds 1000 1001
 
@@ -8,7 +8,7 @@ The flight v2 flow keeps, before its DEM sweeps, a reserve for the stages that m
     t = (MAP_IMAGE_S n_image + MAP_COVERED_S n_covered + MAP_CELLS_S n_cells) / REF_PIXELS
 
 with ``n_covered`` the overlap's pixels and ``n_cells`` the world grid's size as the pipeline estimates them
-before the DEM exists (:func:`flight_sw.pipeline.grid_cells_estimate`). A model above the real cost leaves
+before the DEM exists (:func:`flight_sw.anytime.grid_cells_estimate`). A model above the real cost leaves
 the slow budgets' deadlines partly unused (the DEM sweep stops early to keep the reserve); one below it lets
 the mapping run past the deadline. Each pair of the given tuning seeds (the four ``bench/eval_flight.py``
 cases, rendered into ``--cache``) is run ``--runs`` times through ``fast`` on one core; the median CPU of its
@@ -39,7 +39,8 @@ CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 def measure(run: Callable[[], Any], camera: Any, pose1: Any, runs: int) -> dict[str, Any]:
     """Run the pipeline ``runs`` times (``run()``); the planning counts of the pair and the median CPU s of its
     mapping stages and of every stage."""
-    from flight_sw.pipeline import MAPPING_STAGES, PRESETS, grid_cells_estimate
+    from flight_sw.anytime import MAPPING_STAGES, grid_cells_estimate
+    from flight_sw.pipeline import PRESETS
 
     cpu, res = [], None
     stages: dict[str, list[float]] = {}
@@ -114,7 +115,7 @@ def collect(seeds: list[int], cases: list[str], cache: Path, runs: int, out: Pat
 
 
 def design(rows: list[dict[str, Any]]) -> np.ndarray:
-    from flight_sw.pipeline import REF_PIXELS
+    from flight_sw.anytime import REF_PIXELS
 
     return np.array([[r["n_image"], r["n_covered"], r["n_cells"]] for r in rows], float) / REF_PIXELS
 
@@ -137,7 +138,7 @@ def ratio_table(rows: list[dict[str, Any]], coef: np.ndarray, label: str) -> lis
 def stage_table(rows: list[dict[str, Any]]) -> str:
     """The pipeline's fixed stage costs (``REFINE_S``, the shadow stage, the gates after the slope fit) against
     the CPU the stages took on ``rows``, scaled to 512^2 as the pipeline scales them: median, p90, max."""
-    from flight_sw.pipeline import AFTER_SLOPE_S, REF_PIXELS, REFINE_S, SHADING_SLOPE_S, SHADOW_BASE_S, WALL_CUE_S
+    from flight_sw.anytime import AFTER_SLOPE_S, REF_PIXELS, REFINE_S, SHADING_SLOPE_S, SHADOW_BASE_S, WALL_CUE_S
 
     groups = {
         "pose_refine": (("pose_refine",), REFINE_S),
@@ -155,7 +156,7 @@ def stage_table(rows: list[dict[str, Any]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     from scipy.optimize import nnls
 
-    from flight_sw.pipeline import MAP_CELLS_S, MAP_COVERED_S, MAP_IMAGE_S
+    from flight_sw.anytime import MAP_CELLS_S, MAP_COVERED_S, MAP_IMAGE_S
     from ground_sim.seeds import HELD_OUT_SEEDS, TUNING_SEEDS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

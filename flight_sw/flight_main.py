@@ -32,7 +32,7 @@ Result's expected size (the largest of the last few Results, or a prior from the
 and the grid steps for the first) and the rate ``Config.options["link_baud"]``
 announces; a longer measured output time of the last pair is kept back as well.
 The reserves themselves are planned from what the reserved work cost on the last
-pairs with a DEM (``pipeline.measured_reserve_ratio``, the largest of the last
+pairs with a DEM (``anytime.measured_reserve_ratio``, the largest of the last
 ``RESERVE_HISTORY``).
 
 ``--fault`` injects test faults (the NOS Engine idea: fault injection belongs
@@ -57,12 +57,12 @@ from typing import Any
 
 import numpy as np
 
+# loaded at boot, before Hello: not inside the first deadline
+from flight_sw.anytime import measured_reserve_ratio
 from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
 from flight_sw.memory import private_rss_bytes
-
-# loaded at boot, before Hello: not inside the first deadline
-from flight_sw.pipeline import PRESETS, measured_reserve_ratio, run_pipeline
+from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
 from protocol.codec import Encoded, encode
@@ -124,7 +124,7 @@ FUSION_RESERVE_S = 0.03
 # past it in 2 of 6 (docs/hil.md, stop 39)
 DEADLINE_GUARD = 0.01
 # the reserves of the next pair are planned from the largest of the last few pairs' measured costs
-# (pipeline.measured_reserve_ratio): one fast pair does not shrink them
+# (anytime.measured_reserve_ratio): one fast pair does not shrink them
 RESERVE_HISTORY = 3
 RESULT_HISTORY = 3  # the next Result's line time is planned from the largest of the last this many Results
 # ... times this. 1.2 until stop 33; since a Result that outgrows its plan is sent with coarser grids (fit_to_line),
@@ -286,7 +286,7 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
     """The Telemetry's ``plan``: what the deadline plan had and decided on, in wall seconds on this processor.
 
     ``budget_s``: from the pipeline's start to the time it aimed to be done by (the deadline less the Result's
-    planned ``line_s`` and the guard); then, from ``info["plan"]`` (``pipeline._Clock.decide``), for each DEM
+    planned ``line_s`` and the guard); then, from ``info["plan"]`` (``anytime._Clock.decide``), for each DEM
     stage that was weighed, the time left at its start and the time kept for the work after it (the DEM stage
     runs only while the first exceeds the second), and the slowdown they were planned at (``measured`` 1 when
     from the previous pairs' measured cost, 0 when from the first stages' slowdown)."""

@@ -409,7 +409,7 @@ def degraded_note(summary: dict) -> str:
 
 
 # the reference flight software's stages (flight_sw/pipeline.py, flight_main.py) by phase; a user's own flight
-# program names its stages as it likes, and those count as "other". "mapping" is pipeline.MAPPING_STAGES (what the
+# program names its stages as it likes, and those count as "other". "mapping" is anytime.MAPPING_STAGES (what the
 # plan's mapping reserve covers; tests/test_hil_run.py keeps the two in step)
 STAGE_PHASES: dict[str, tuple[str, ...]] = {
     "before the DEM": ("validate", "pose_refine", "prepare", "rocks", "shadow", "range", "coverage"),

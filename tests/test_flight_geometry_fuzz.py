@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from synthetic import make_pair, plane, tilted_R
 
-from flight_sw.pipeline import MAX_GRID_CELLS_PER_PIXEL, run_pipeline
+from flight_sw.anytime import MAX_GRID_CELLS_PER_PIXEL
+from flight_sw.pipeline import run_pipeline
 from flight_sw.validate import FlightInputError
 
 

@@ -507,7 +507,7 @@ def test_deadline_gives_a_degraded_result_in_time():
 
 
 def test_each_deadline_reserve_covers_stages_the_pipeline_really_times():
-    from flight_sw.pipeline import reserve_shortfalls, reserves
+    from flight_sw.anytime import reserve_shortfalls, reserves
 
     cam, p1, p2, i1, i2, _ = make_pair(128, 200.0, 100.0, plane(0.0), seed=39)
     r = run_pipeline(i1, i2, p1, p2, cam, preset="fast", sun_azimuth_deg=135.0, sun_elevation_deg=25.0)
@@ -535,7 +535,7 @@ def test_the_mapping_reserve_follows_the_pairs_own_grid():
     per covered pixel; the grid's size is estimated before the DEM within 20 % of the grid it builds."""
     from synthetic import tilted_R
 
-    from flight_sw.pipeline import grid_cells_estimate, mapping_cost_s
+    from flight_sw.anytime import grid_cells_estimate, mapping_cost_s
     from flight_sw.sweep import coverage_mask
 
     fast = PRESETS["fast"]
@@ -575,7 +575,7 @@ def test_a_view_toward_the_horizon_gets_a_bounded_grid(preset):
     grid asked for 16 GiB of indices (a fuzzed pose); the cell now grows until the grid fits its bound."""
     from synthetic import tilted_R
 
-    from flight_sw.pipeline import MAX_GRID_CELLS_PER_PIXEL
+    from flight_sw.anytime import MAX_GRID_CELLS_PER_PIXEL
 
     cam, p1, p2, i1, i2, _ = make_pair(128, 60.6, 34.1, plane(0.0), seed=3, R=tilted_R(80.3))
     r = run_pipeline(i1, i2, p1, p2, cam, preset=preset, sun_azimuth_deg=38.0, sun_elevation_deg=50.7)
@@ -686,7 +686,7 @@ def test_v2_params_are_checked():
 
 
 def test_clock_learns_the_slowdown_not_a_stage_that_costs_more_on_this_data():
-    from flight_sw.pipeline import MAX_LEARNED_SCALE, _Clock
+    from flight_sw.anytime import MAX_LEARNED_SCALE, _Clock
 
     # snapdragon801 (1 / 0.366): the shadow stage cost 0.034 s CPU on the demo's 200/100 pair (reference 0.014 s)
     # and ran 0.11 s wall: a 3.5x slowdown, not 8x (which made the demo's third pair skip its DEM)
@@ -709,7 +709,7 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     """With a measurement of what the reserved work took on earlier pairs, the clock plans from it (x the
     margin, raised by this pair's own slowdown over the nominal one) instead of the nominal slowdown alone;
     without one it plans as before. The measurement is wall s per reserved unthrottled s."""
-    from flight_sw.pipeline import (
+    from flight_sw.anytime import (
         MAPPING_STAGES,
         MEASURED_RESERVE_MARGIN,
         REF_PIXELS,
@@ -767,7 +767,7 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
 def test_a_full_dem_that_cannot_finish_is_not_started():
     """After a coarse DEM, the full one (3.5-8x its cost on the eval pairs) starts only with twice the coarse DEM's
     wall time before the mapping reserve; without a coarse DEM to judge by it is tried."""
-    from flight_sw.pipeline import FULL_OVER_COARSE_MIN, full_dem_fits
+    from flight_sw.anytime import FULL_OVER_COARSE_MIN, full_dem_fits
 
     assert FULL_OVER_COARSE_MIN == 2.0
     assert full_dem_fits(7.4, 3.7) and not full_dem_fits(7.3, 3.7)

@@ -647,7 +647,7 @@ def test_a_pair_whose_sites_are_withheld_is_not_fused_into_the_descents_map():
 
 def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_cost(monkeypatch):
     """The first pair of a Config plans its reserves from the nominal slowdown; each later one from the
-    largest measured cost of the reserved work on the last pairs (pipeline.measured_reserve_ratio); a new
+    largest measured cost of the reserved work on the last pairs (anytime.measured_reserve_ratio); a new
     Config measures anew."""
     import flight_sw.flight_main as fm
     from protocol.messages import Config, Result

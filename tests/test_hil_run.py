@@ -317,7 +317,7 @@ def test_asap_pacing_records_each_answer_as_it_comes(manifest, tmp_path):
 
 
 def test_the_flight_time_is_told_by_phase():
-    from flight_sw.pipeline import MAPPING_STAGES
+    from flight_sw.anytime import MAPPING_STAGES
     from hil_server.run import STAGE_PHASES, phase_note, phase_times
 
     # the server names the flight's phases itself (it does not import the pipeline for them): kept in step here
