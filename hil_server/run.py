@@ -1077,7 +1077,8 @@ def fusion_note(summary: dict) -> str:
         return ""
     if not summary["fusion"]:
         return "each Result reports its pair alone (`--no-fusion`)"
-    if summary.get("flight") not in (None, "emulated"):  # a board or a --flight-cmd program decides for itself
+    theirs = summary.get("flight") not in (None, "emulated")  # a board or a --flight-cmd program decides for itself
+    if theirs:
         said = "fusion was asked of the flight side (Config option `fusion` 1): where it fuses, a pair's scores are "
     else:
         said = "the Results report the map fused over the descent (flight_sw.fusion; `--no-fusion` reports each "
@@ -1088,7 +1089,7 @@ def fusion_note(summary: dict) -> str:
         said += f"; its pairs come from {len(sources)} scenes or seeds ({', '.join(sources[:4])}), fused as one descent"
     up = climb([r for r in summary.get("records") or [] if r.get("status") == "result"])
     if up:  # fused as one descent all the same, unsaid (QA 74)
-        said += f"; {up}, and {'where it fuses, ' if 'asked of' in said else ''}the map is fused across it all the same"
+        said += f"; {up}, and {'where it fuses, ' if theirs else ''}the map is fused across it all the same"
     return said
 
 

@@ -557,7 +557,9 @@ def test_the_summary_says_when_a_fused_stream_goes_back_up():
             {"label": "300/150", "altitude_m": 150.0, "status": "result"}]  # fmt: skip
     said = fusion_note({"fusion": True, "flight": "emulated", "records": recs})
     assert "pair 600/300 (300 m) comes after 200/100 (100 m): the stream goes back up" in said, said
-    assert "fused across it all the same" in said
+    assert "fused across it all the same" in said and "where it fuses" not in said
+    board = fusion_note({"fusion": True, "flight": "external", "records": recs})  # a board decides for itself
+    assert "goes back up, and where it fuses, the map is fused across it all the same" in board, board
     down = [recs[1], recs[2], recs[0], {"label": "x", "altitude_m": None}, {"label": "bad", "altitude_m": 900.0}]
     assert "back up" not in fusion_note({"fusion": True, "flight": "emulated", "records": down})
     assert "back up" not in fusion_note({"fusion": False, "records": recs})  # each pair alone: nothing fused
