@@ -337,8 +337,10 @@ def detectors(entries: list[dict]) -> list[dict]:
     """
     import dataclasses
 
-    from flight_sw.pose_refine import RefineParams, descriptor_matches, refine_pair, relative_pose, rot_exp
-    from flight_sw.pose_refine import rotation_angle_deg as ang
+    from flight_sw.guided_match import descriptor_matches
+    from flight_sw.pose_refine import RefineParams, refine_pair
+    from flight_sw.twoview import relative_pose, rot_exp
+    from flight_sw.twoview import rotation_angle_deg as ang
     from protocol.pairdir import Pose, read_pair
     from studies.evaluate import true_poses
 
@@ -381,8 +383,9 @@ def detectors(entries: list[dict]) -> list[dict]:
 
 
 def _rotation_cases(i1, i2, t1, t2, cam, configs: dict, axes: np.ndarray, deg: float) -> dict[str, list[float]]:
-    from flight_sw.pose_refine import refine_pair, relative_pose, rot_exp
-    from flight_sw.pose_refine import rotation_angle_deg as ang
+    from flight_sw.pose_refine import refine_pair
+    from flight_sw.twoview import relative_pose, rot_exp
+    from flight_sw.twoview import rotation_angle_deg as ang
     from protocol.pairdir import Pose
 
     Rt, _ = relative_pose(t1, t2)

@@ -66,6 +66,9 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    motion: any such split maps the ground plane alike, and the ground's
    mapping is what the sweep needs. If that moves the ground's image by less
    than ``min_held_change_px``, navigation is kept.
+
+Steps 1 and 3 live in :mod:`flight_sw.guided_match` and :mod:`flight_sw.pose_map`, the geometry they share in
+:mod:`flight_sw.twoview`; this module holds the knobs, the checks and verdicts, and the descent's chain of fits.
 """
 
 from __future__ import annotations
@@ -82,8 +85,20 @@ import numpy as np
 
 from protocol.pairdir import Camera, Pose
 
+from .guided_match import apply_h, corners_in, descriptor_matches, gray8, highpass, prewarp, shift_h, track
 from .homography import plane_homography
+from .pose_map import MotionState, map_refine
 from .rangefind import altimeter_ground, prior_range
+from .twoview import (
+    angle_between_deg,
+    axis_depth,
+    gric,
+    homography_sampson_px,
+    relative_pose,
+    rotation_angle_deg,
+    sampson_px,
+    triangulate_depths,
+)
 from .validate import FlightInputError
 from .warping import area_sigma
 
@@ -265,390 +280,6 @@ class PoseRefinement:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-# --------------------------------------------------------------------------- rotation helpers
-def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x``, the cross-product matrix: ``skew(v) @ u = v x u``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def rot_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation by ``|w|`` about ``w``."""
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3) + skew(w)
-    k = skew(np.asarray(w, float) / th)
-    return np.eye(3) + math.sin(th) * k + (1.0 - math.cos(th)) * (k @ k)
-
-
-def rot_log(R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation (inverse of :func:`rot_exp` for angles < pi)."""
-    c = (float(np.trace(R)) - 1.0) / 2.0
-    th = math.acos(min(1.0, max(-1.0, c)))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    if th < 1e-9:
-        return v
-    return v * (th / math.sin(th))
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle of a rotation, ``|log R|`` (:func:`rot_log`), in degrees."""
-    return math.degrees(float(np.linalg.norm(rot_log(R))))
-
-
-def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """``acos(a . b / (|a| |b|))`` in degrees (clipped: rounding cannot leave acos's domain)."""
-    c = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
-    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
-
-
-def tangent_basis(b: np.ndarray) -> np.ndarray:
-    """3x2 orthonormal basis of the plane orthogonal to the unit vector ``b``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(b[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = skew(b) @ a
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, skew(b) @ e1], axis=1)
-
-
-# --------------------------------------------------------------------------- two-view geometry
-def relative_pose(pose1: Pose, pose2: Pose) -> tuple[np.ndarray, np.ndarray]:
-    """``(R21, t21)`` with ``X2 = R21 X1 + t21`` (DESIGN.md): ``R21 = R2 R1^T``, ``t21 = R2 (C1 - C2)``."""
-    return pose2.R @ pose1.R.T, pose2.R @ (pose1.position - pose2.position)
-
-
-def fundamental(K: np.ndarray, R21: np.ndarray, t21: np.ndarray) -> np.ndarray:
-    """``F = K^-T [t]x R K^-1`` (H&Z eq. 9.12 with ``E = [t]x R``, eq. 9.13)."""
-    Ki = np.linalg.inv(K)
-    return Ki.T @ skew(t21) @ R21 @ Ki
-
-
-def homog(u: np.ndarray) -> np.ndarray:
-    """Nx2 pixels -> Nx3 homogeneous."""
-    return np.concatenate([u, np.ones((len(u), 1))], axis=1)
-
-
-def sampson_px(F: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
-    """Signed Sampson distance (px, H&Z eq. 11.9).
-
-    ``r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2)``.
-
-    ``u1``, ``u2``: Nx2 pixels or Nx3 homogeneous pixels.
-    """
-    x1 = u1 if u1.shape[1] == 3 else homog(u1)
-    x2 = u2 if u2.shape[1] == 3 else homog(u2)
-    Fx1 = x1 @ F.T
-    Ftx2 = x2 @ F
-    num = np.sum(x2 * Fx1, axis=1)
-    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
-    return np.asarray(num / np.sqrt(np.maximum(den, 1e-300)))
-
-
-def homography_sampson_px(H: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
-    """Sampson error of correspondences to a homography (H&Z sec 4.2.6), px: ``sqrt(e^T (J J^T)^-1 e)``.
-
-    ``e`` are the two first rows of ``x2 x (H x1)`` and ``J`` their derivatives
-    with respect to ``(u1, v1, u2, v2)``.
-    """
-    x, y = u1[:, 0], u1[:, 1]
-    X, Y = u2[:, 0], u2[:, 1]
-    h = H.ravel()
-    a = h[0] * x + h[1] * y + h[2]
-    b = h[3] * x + h[4] * y + h[5]
-    c = h[6] * x + h[7] * y + h[8]
-    e1 = b - Y * c  # row of x2 x Hx1 (up to sign)
-    e2 = X * c - a
-    j1 = np.stack([h[3] - Y * h[6], h[4] - Y * h[7], np.zeros_like(x), -c], axis=1)
-    j2 = np.stack([X * h[6] - h[0], X * h[7] - h[1], c, np.zeros_like(x)], axis=1)
-    A = np.sum(j1 * j1, 1)
-    B = np.sum(j1 * j2, 1)
-    C = np.sum(j2 * j2, 1)
-    det = np.maximum(A * C - B * B, 1e-300)
-    q = (C * e1 * e1 - 2 * B * e1 * e2 + A * e2 * e2) / det
-    return np.asarray(np.sqrt(np.maximum(q, 0.0)))
-
-
-def gric(err_px: np.ndarray, sigma_px: float, d: int, k: int) -> float:
-    """Torr's Geometric Robust Information Criterion (1998), ``r = 4`` (two image points per match)."""
-    n = err_px.size
-    r = 4
-    rho = np.minimum((err_px / sigma_px) ** 2, 2.0 * (r - d))
-    return float(rho.sum() + math.log(r) * d * n + math.log(r * n) * k)
-
-
-def triangulate_depths(R21: np.ndarray, t21: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Camera-1 depth ``z`` of each normalised match: least squares of ``x2 x (z R21 x1 + t21) = 0``."""
-    c = np.cross(x2, x1 @ R21.T)
-    d = np.cross(x2, np.broadcast_to(t21, x2.shape))
-    return np.asarray(-np.sum(c * d, 1) / np.maximum(np.sum(c * c, 1), 1e-300))
-
-
-def axis_depth(x: np.ndarray, z: np.ndarray, radius: float = 0.08) -> float:
-    """Depth on the optical axis from scattered depths: weighted LS of ``1/z = a x + b y + c``, returns ``1/c``.
-
-    Inverse depth is exactly linear in normalised coordinates over a plane, so
-    the fit follows the terrain's mean plane; Gaussian weights of ``radius``
-    (rad) keep it local to the axis. NaN when the fit is not possible.
-    """
-    ok = np.isfinite(z) & (z > 0)
-    if ok.sum() < 6:
-        return math.nan
-    xs, zs = x[ok], z[ok]
-    w = np.exp(-0.5 * (xs[:, 0] ** 2 + xs[:, 1] ** 2) / radius**2)
-    A = np.c_[xs[:, 0], xs[:, 1], np.ones(len(xs))] * w[:, None]
-    sol, *_ = np.linalg.lstsq(A, w / zs, rcond=None)
-    return float(1.0 / sol[2]) if sol[2] > 0 else math.nan
-
-
-# --------------------------------------------------------------------------- matching
-def _gray8(img: np.ndarray) -> np.ndarray:
-    """8-bit copy for the detectors and LK; float images in [0, 1] are taken as 0..255."""
-    a = np.asarray(img)
-    if a.dtype == np.uint8:
-        return a
-    f = a.astype(np.float32)
-    if f.size and float(f.max()) <= 1.0:
-        f = f * 255.0
-    return np.clip(np.rint(f), 0, 255).astype(np.uint8)
-
-
-def _overlap(camera: Camera, H: np.ndarray, margin: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """i1 pixels whose image through ``H`` (i1 -> i2) lies inside i2 by ``margin`` px, and its bounding box."""
-    w, h = camera.width, camera.height
-    ones = np.full((h, w), 255, np.uint8)
-    inside = cv2.warpPerspective(
-        ones, H, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT
-    )
-    if margin > 0:
-        inside = cv2.erode(inside, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
-    x0, y0, w, h = cv2.boundingRect(inside)
-    return inside > 0, (int(x0), int(y0), int(w), int(h))
-
-
-def _warp(src: np.ndarray, H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """``out[v, u] = src(H [u, v, 1])``, bilinear, border replicated (keeps LK pyramids out of black)."""
-    return cv2.warpPerspective(
-        src, H, (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
-    )
-
-
-def _prewarp(
-    b2: np.ndarray, H: np.ndarray, camera: Camera, margin: int
-) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray]:
-    """i2 warped onto i1 through ``H`` over the overlap's bounding box: (mask, roi, image), both ROI-local."""
-    mask, roi = _overlap(camera, H, margin)
-    x0, y0, w, h = roi
-    if w == 0 or h == 0:
-        return mask[0:0, 0:0], roi, np.zeros((0, 0), np.uint8)
-    return mask[y0 : y0 + h, x0 : x0 + w], roi, _warp(b2, H @ _shift(x0, y0), (h, w))
-
-
-def _detector(name: str, n: int) -> Any:
-    # the OpenCV 5 type stubs omit the feature factories
-    if name == "sift":
-        return cv2.SIFT_create(nfeatures=n, contrastThreshold=0.01)  # type: ignore[attr-defined]
-    if name == "akaze":
-        return cv2.AKAZE_create(threshold=1e-4)  # type: ignore[attr-defined]
-    return cv2.ORB_create(  # type: ignore[attr-defined]
-        nfeatures=n, scaleFactor=1.2, nlevels=4, edgeThreshold=15, patchSize=15, fastThreshold=5
-    )
-
-
-def _strongest(found: tuple[Any, np.ndarray | None], n: int) -> tuple[Any, np.ndarray | None]:
-    """The ``n`` keypoints of highest response. ORB keeps more than ``nfeatures`` when responses tie (a regular
-    dot grid gave 8192^2 / 35 of them), and a matcher refuses more than 2^18 rows with an assertion."""
-    keys, desc = found
-    if desc is None or len(keys) <= n:
-        return keys, desc
-    keep = np.argsort([-k.response for k in keys], kind="stable")[:n]
-    return [keys[i] for i in keep], desc[keep]
-
-
-def descriptor_matches(
-    a: np.ndarray, b: np.ndarray, mask: np.ndarray, detector: str, n: int, ratio: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Detector matches ``a -> b`` inside ``mask``: Lowe's ratio test and a mutual (cross) check. Nx2 each."""
-    det = _detector(detector, n)
-    m8 = mask.astype(np.uint8) * 255
-    ka, da = _strongest(det.detectAndCompute(a, m8), n)
-    kb, db = _strongest(det.detectAndCompute(b, m8), n)
-    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    norm = cv2.NORM_L2 if detector == "sift" else cv2.NORM_HAMMING
-    bf = cv2.BFMatcher(norm)
-    fwd = bf.knnMatch(da, db, k=2)
-    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(db, da, k=1) if m}
-    pairs = [
-        (m[0].queryIdx, m[0].trainIdx)
-        for m in fwd
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance and back.get(m[0].trainIdx) == m[0].queryIdx
-    ]
-    if not pairs:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    pa = np.array([ka[i].pt for i, _ in pairs], np.float64)
-    pb = np.array([kb[j].pt for _, j in pairs], np.float64)
-    return pa, pb
-
-
-def corners_in(a: np.ndarray, mask: np.ndarray, p: RefineParams, min_distance: float) -> np.ndarray:
-    """Shi-Tomasi corners of ``a`` inside ``mask`` (Nx2, float64)."""
-    pts = cv2.goodFeaturesToTrack(
-        a, p.n_corners, p.corner_quality, max(1.0, min_distance), mask=mask.astype(np.uint8) * 255, blockSize=7
-    )
-    return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
-
-
-def highpass(a: np.ndarray, sigma: float) -> np.ndarray:
-    """``128 + 2 (a - G_sigma * a)`` as 8-bit (``a`` itself when ``sigma`` <= 0): brightness that varies
-    slowly between two views (exposure, lunar-Lambert emission angle) leaves what LK tracks unchanged."""
-    if sigma <= 0:
-        return a
-    f = a.astype(np.float32)
-    g = f - cv2.GaussianBlur(f, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
-    return np.clip(128.0 + 2.0 * g, 0, 255).astype(np.uint8)
-
-
-def track(a: np.ndarray, b: np.ndarray, pts: np.ndarray, p: RefineParams) -> tuple[np.ndarray, np.ndarray]:
-    """Pyramidal Lucas-Kanade ``a -> b`` of ``pts``; kept (bool mask) where tracking back lands within ``fb_max_px``."""
-    if len(pts) == 0:
-        return np.zeros(0, bool), np.zeros((0, 2))
-    p0 = pts.astype(np.float32).reshape(-1, 1, 2)
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    win = (p.track_window, p.track_window)
-    lk = {"winSize": win, "maxLevel": p.track_levels, "criteria": crit}
-    fwd, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, p0.copy(), **lk)  # type: ignore[call-overload]
-    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, p0.copy(), **lk)  # type: ignore[call-overload]
-    fb = np.linalg.norm((bwd - p0).reshape(-1, 2), axis=1)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_px)
-    return ok, fwd.reshape(-1, 2).astype(np.float64)
-
-
-def _apply_h(H: np.ndarray, u: np.ndarray) -> np.ndarray:
-    x = np.c_[u, np.ones(len(u))] @ H.T
-    return np.asarray(x[:, :2] / x[:, 2:3])
-
-
-def _shift(x: float, y: float) -> np.ndarray:
-    return np.array([[1.0, 0.0, x], [0.0, 1.0, y], [0.0, 0.0, 1.0]])
-
-
-# --------------------------------------------------------------------------- MAP refinement
-@dataclass
-class _State:
-    R1: np.ndarray
-    R2: np.ndarray
-    b: np.ndarray  # unit world baseline direction C2 - C1
-
-    def step(self, d: np.ndarray) -> _State:
-        b = self.b + tangent_basis(self.b) @ d[6:8]
-        return _State(rot_exp(d[0:3]) @ self.R1, rot_exp(d[3:6]) @ self.R2, b / np.linalg.norm(b))
-
-
-def _prior_residuals(s: _State, nav: _State, B_nav: np.ndarray, sig: tuple[float, float, float]) -> np.ndarray:
-    """Whitened navigation priors (world axes): frame-1 attitude error ``e1 = c``, frame-2 error ``e2 = c + r``
-    (``c`` common to both frames, ``r`` accrued between them), and the baseline direction."""
-    e1 = nav.R1.T @ rot_log(s.R1 @ nav.R1.T)
-    e2 = nav.R2.T @ rot_log(s.R2 @ nav.R2.T)
-    s_c, s_r, s_dir = sig
-    return np.r_[e1 / s_c, (e2 - e1) / s_r, (B_nav.T @ s.b) / s_dir]
-
-
-def _data_residuals(s: _State, K: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
-    R21 = s.R2 @ s.R1.T
-    return sampson_px(fundamental(K, R21, -s.R2 @ s.b), u1, u2)
-
-
-def _f_derivatives(s: _State, K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """``F`` of the state and its derivatives along the 8 increments of :meth:`_State.step`.
-
-    ``R1 <- exp(d1) R1`` gives ``dR21 = -R21 [e_k]x``; ``R2 <- exp(d2) R2`` gives
-    ``dR21 = [e_k]x R21`` and ``dt = [e_k]x t``; ``b <- b + B e`` gives ``dt = -R2 B_k``;
-    with ``E = [t]x R21``, ``dE = [dt]x R21 + [t]x dR21``.
-    """
-    Ki = np.linalg.inv(K)
-    R21 = s.R2 @ s.R1.T
-    t = -s.R2 @ s.b
-    B = tangent_basis(s.b)
-    tx = skew(t)
-    dE = []
-    for k in range(3):
-        G = skew(np.eye(3)[k])
-        dE.append(tx @ (-R21 @ G))
-    for k in range(3):
-        G = skew(np.eye(3)[k])
-        dE.append(skew(G @ t) @ R21 + tx @ G @ R21)
-    for k in range(2):
-        dE.append(skew(-s.R2 @ B[:, k]) @ R21)
-    return Ki.T @ tx @ R21 @ Ki, [Ki.T @ d @ Ki for d in dE]
-
-
-def map_refine(
-    K: np.ndarray,
-    u1: np.ndarray,
-    u2: np.ndarray,
-    nav: _State,
-    prior_sigmas: tuple[float, float, float],
-    sigma_px: float,
-    cauchy_k: float,
-    max_iterations: int,
-    start: _State | None = None,
-) -> tuple[_State, np.ndarray, np.ndarray, int, bool]:
-    """Levenberg-Marquardt on ``sum rho(r_i / sigma_px) + |prior|^2`` with Cauchy ``rho`` (IRLS weights).
-
-    Returns the state, the data residuals (px), the 8x8 posterior covariance
-    (rad^2), the iterations and whether the step converged.
-    """
-    B_nav = tangent_basis(nav.b)
-    c = cauchy_k
-    u1, u2 = homog(u1), homog(u2)
-
-    def cost(s: _State) -> tuple[float, np.ndarray, np.ndarray]:
-        r = _data_residuals(s, K, u1, u2) / sigma_px
-        q = _prior_residuals(s, nav, B_nav, prior_sigmas)
-        return float(c * c * np.log1p((r / c) ** 2).sum() + q @ q), r, q
-
-    s = start or nav
-    f0, r, q = cost(s)
-    lam, h = 1e-3, 1e-7
-    converged = False
-    it = 0
-    J = np.zeros((r.size, 8))
-    Jq = np.zeros((q.size, 8))
-    w = np.ones(r.size)
-    s_c, s_r, s_dir = prior_sigmas
-    for it in range(1, max_iterations + 1):  # noqa: B007 (it is returned)
-        F, dF = _f_derivatives(s, K)
-        for k in range(8):  # data: central differences of the Sampson error along dF/dp_k
-            J[:, k] = (sampson_px(F + h * dF[k], u1, u2) - sampson_px(F - h * dF[k], u1, u2)) / (2 * h * sigma_px)
-        # priors: first-order derivatives (d log(exp(d) R) ~ d for the sub-degree errors at stake)
-        Jq[0:3, 0:3] = nav.R1.T / s_c
-        Jq[3:6, 0:3] = -nav.R1.T / s_r
-        Jq[3:6, 3:6] = nav.R2.T / s_r
-        Jq[6:8, 6:8] = B_nav.T @ tangent_basis(s.b) / s_dir
-        w = 1.0 / (1.0 + (r / c) ** 2)
-        A = J.T @ (J * w[:, None]) + Jq.T @ Jq
-        g = J.T @ (w * r) + Jq.T @ q
-        f_prev = f0
-        while True:
-            dp = -np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-12 * np.eye(8), g)
-            s_new = s.step(dp)
-            f1, r1, q1 = cost(s_new)
-            if f1 <= f0:
-                s, f0, r, q = s_new, f1, r1, q1
-                lam = max(lam / 10.0, 1e-9)
-                break
-            lam *= 10.0
-            if lam > 1e8:
-                break
-        if lam > 1e8:
-            converged = True  # no downhill step left: at the minimum to numerical precision
-            break
-        if np.linalg.norm(dp) < 1e-10 or f_prev - f0 < 1e-10 * max(1.0, f0):
-            converged = True
-            break
-    w = 1.0 / (1.0 + (r / c) ** 2)
-    cov = np.linalg.pinv(J.T @ (J * w[:, None]) + Jq.T @ Jq)
-    return s, r * sigma_px, cov, it, converged
-
-
 # --------------------------------------------------------------------------- the block
 def _spread(u: np.ndarray, mask: np.ndarray, roi: tuple[int, int, int, int]) -> float:
     """Share of the overlap's 4x4 cells (at least half inside the ROI-local ``mask``) that hold a point."""
@@ -699,7 +330,7 @@ def refine_pair(
     p.validate()
     alt = _check_altimeter(altimeter_m)
     info: dict[str, Any] = {"detector": p.detector, "refined": False}
-    a1, a2 = _gray8(i1), _gray8(i2)
+    a1, a2 = gray8(i1), gray8(i2)
     if a1.shape != (camera.height, camera.width) or a2.shape != a1.shape:
         raise FlightInputError(f"pose refinement: images must be {camera.width}x{camera.height}")
 
@@ -714,7 +345,7 @@ def refine_pair(
     sig = area_sigma(gsd_ratio)
     b2 = cv2.GaussianBlur(a2, (0, 0), sig, borderType=cv2.BORDER_REPLICATE) if sig > 0 else a2
     margin = p.track_window // 2 + 2
-    mask, roi, w2 = _prewarp(b2, H_nav, camera, margin)
+    mask, roi, w2 = prewarp(b2, H_nav, camera, margin)
     if roi[2] < 4 * p.track_window or roi[3] < 4 * p.track_window:  # small images: a 128 px 2:1 pair shares ~46 px
         return _fallback(
             pose1,
@@ -734,10 +365,10 @@ def refine_pair(
         Hc, inl = cv2.findHomography(pa, pb, cv2.RANSAC, p.coarse_ransac_px, maxIters=2000, confidence=0.999)
         if Hc is not None and inl is not None and int(inl.sum()) >= 8:
             info["coarse_inliers"] = int(inl.sum())
-            H_c = _shift(x0, y0) @ Hc @ _shift(-x0, -y0)
+            H_c = shift_h(x0, y0) @ Hc @ shift_h(-x0, -y0)
     # how far the images disagree with navigation, over the overlap's corners
     corners = np.array([[x0, y0], [x0 + w, y0], [x0, y0 + h], [x0 + w, y0 + h]], float)
-    shift = float(np.max(np.linalg.norm(_apply_h(H_c, corners) - corners, axis=1)))
+    shift = float(np.max(np.linalg.norm(apply_h(H_c, corners) - corners, axis=1)))
     info["prewarp_shift_px"] = shift
     if shift > p.max_prewarp_shift_px:
         return _fallback(
@@ -763,7 +394,7 @@ def refine_pair(
                 break
             H_tot = Hf / Hf[2, 2]
         if k > 0 or not np.allclose(H_c, np.eye(3)):
-            mask, roi, w2 = _prewarp(b2, H_tot, camera, margin)
+            mask, roi, w2 = prewarp(b2, H_tot, camera, margin)
         x0, y0, w, h = roi
         if pts is None:
             mind = max(3.0, math.sqrt(w * h / max(1, p.n_corners)) / 1.5)
@@ -773,7 +404,7 @@ def refine_pair(
         sel = sel[mask[(sel[:, 1] - y0).astype(int), (sel[:, 0] - x0).astype(int)]]
         ok, uw = track(hp1[y0 : y0 + h, x0 : x0 + w], highpass(w2, p.track_highpass_sigma), sel - [x0, y0], p)
         u1 = sel[ok]
-        u2 = _apply_h(H_tot, uw[ok] + [x0, y0]) if ok.any() else np.zeros((0, 2))
+        u2 = apply_h(H_tot, uw[ok] + [x0, y0]) if ok.any() else np.zeros((0, 2))
     info["tracks"] = len(u1)
     info["corners"] = 0 if pts is None else len(sel)  # tried in the last pass: texture there, and what tracked
     spread_cells = (mask, roi)
@@ -848,18 +479,18 @@ def _ground_change_px(
         h_nav = plane_homography(camera, nav[0], nav[1], z_ground)
     except ValueError:
         return math.inf, z_ground
-    return float(np.max(np.linalg.norm(_apply_h(h_ref, u1) - _apply_h(h_nav, u1), axis=1))), z_ground
+    return float(np.max(np.linalg.norm(apply_h(h_ref, u1) - apply_h(h_nav, u1), axis=1))), z_ground
 
 
 def _map_solve(
     K: np.ndarray,
     v1: np.ndarray,
     v2: np.ndarray,
-    nav: _State,
+    nav: MotionState,
     sigmas: tuple[float, float, float],
     p: RefineParams,
     info: dict[str, Any],
-) -> tuple[_State, np.ndarray, float]:
+) -> tuple[MotionState, np.ndarray, float]:
     """Step 3 of the module doc: MAP pose from the inlier matches under ``sigmas`` (frame-1 attitude,
     added frame-2 attitude, baseline direction; rad). Writes the fit's telemetry into ``info``; returns
     the state, the inlier mask and the inliers' depth spread (:func:`_depth_spread`) under it."""
@@ -873,7 +504,7 @@ def _map_solve(
     J_rel = np.c_[-R21, np.eye(3), np.zeros((3, 2))]  # relative-rotation error ~ d2 - R21 d1 (camera-2 axes)
     t_unit = -s.R2 @ s.b
     Ki = np.linalg.inv(K)
-    flow = v2 - _apply_h(K @ R21 @ Ki, v1)  # motion left after removing the rotation
+    flow = v2 - apply_h(K @ R21 @ Ki, v1)  # motion left after removing the rotation
     info.update(
         inliers=int(inl.sum()),
         iterations=iters,
@@ -909,7 +540,7 @@ def _nav_parallax_px(camera: Camera, pose1: Pose, pose2: Pose, altimeter_m: floa
     H_inf = K @ R21 @ np.linalg.inv(K)
     if len(u1) == 0:
         return 0.0
-    return float(np.median(np.linalg.norm(_apply_h(H_g, u1) - _apply_h(H_inf, u1), axis=1)))
+    return float(np.median(np.linalg.norm(apply_h(H_g, u1) - apply_h(H_inf, u1), axis=1)))
 
 
 def _depth_spread(R21: np.ndarray, t21: np.ndarray, v1: np.ndarray, v2: np.ndarray, Ki: np.ndarray) -> float:
@@ -977,7 +608,7 @@ def _refine_matches(
     v1, v2 = u1[keep], u2[keep]
 
     # -- 3. MAP refinement of R1, R2 and the baseline direction
-    nav = _State(pose1.R, pose2.R, base / L_nav)
+    nav = MotionState(pose1.R, pose2.R, base / L_nav)
     s_att, s_dir = math.radians(p.nav_att_sigma_deg), math.sqrt(2.0) * p.nav_pos_sigma_m / L_nav
     # confounded nadir pairs (module doc, step 6): judged first under the navigation's geometry, so such
     # a pair costs one solve; again after the free fit in the rare case it finds the depths flatter

@@ -32,10 +32,8 @@ from flight_sw.pose_refine import (
     contradicted,
     refine_from_matches,
     refine_pair,
-    relative_pose,
-    rot_exp,
-    rotation_angle_deg,
 )
+from flight_sw.twoview import relative_pose, rot_exp, rotation_angle_deg
 from flight_sw.validate import FlightInputError
 from protocol.pairdir import Pose
 
@@ -396,7 +394,8 @@ def test_tracks_on_highpassed_images_ignore_smooth_brightness_changes():
     # two views of the same texture, shifted by a known sub-pixel amount, the second brighter by a smooth
     # field (exposure, emission angle): LK's brightness constancy breaks on the raw images, not on the
     # high-passed ones the refinement tracks on
-    from flight_sw.pose_refine import RefineParams, corners_in, highpass, track
+    from flight_sw.guided_match import corners_in, highpass, track
+    from flight_sw.pose_refine import RefineParams
 
     rng = np.random.default_rng(0)
     n = 200
@@ -478,7 +477,7 @@ def test_altimeter_scale_is_weighed_against_the_reported_baseline():
 def test_tied_keypoints_are_capped_before_matching():
     """ORB keeps every keypoint whose response ties with the last kept one: a regular dot grid gave ~270000 at
     3072 px, over the matcher's 2^18 rows, and process ended in an OpenCV assertion."""
-    from flight_sw.pose_refine import descriptor_matches
+    from flight_sw.guided_match import descriptor_matches
 
     a = np.zeros((3072, 3072), np.uint8)
     a[::7, ::5] = 100
