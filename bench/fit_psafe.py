@@ -20,6 +20,7 @@ import json
 import math
 import statistics
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
+from flight_sw import psafe  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
 ALL_FEATS = (
@@ -207,13 +209,136 @@ def load_library(
     return rows
 
 
+# bin edges per feature (a value equal to an edge goes to the upper bin; NaN contributes nothing)
+DEFAULT_EDGES: dict[str, tuple[float, ...]] = {
+    "a": (0.2, 0.4, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 3.0),
+    "u": (0.1, 0.2, 0.3, 0.5, 0.8, 1.2, 2.0),
+    "rough": (0.25, 0.5, 0.75, 1.0, 1.5),
+    "rho": (-0.4, -0.25, -0.15, -0.1, -0.05, 0.05, 0.1, 0.15, 0.25, 0.4),
+    "arho": (0.03, 0.05, 0.08, 0.12, 0.2),
+    "nbad": (0.01, 0.05, 0.1, 0.2, 0.4),
+    "nbad_w": (0.01, 0.03, 0.07, 0.15),
+    "nwall": (0.05, 0.1, 0.2, 0.35, 0.5, 0.7),
+    "nwall_w": (0.1, 0.2, 0.3, 0.4),
+    "amean": (0.3, 0.5, 0.7, 1.0, 1.5),
+    "nknown": (0.3, 0.6, 0.9),
+    "scale": (0.0, 1.0, 2.0, 3.0, 4.0),
+    "gbad": (0.005, 0.01, 0.02, 0.04, 0.08),
+}
+# the binned model's 1-D features (flight_sw.psafe.PsafeModel)
+ADDITIVE = ("rough", "rho", "arho", "nbad", "nbad_w", "nwall", "nwall_w", "amean", "nknown", "scale", "gbad")
+MONOTONE_DECREASING = ("rough", "nbad", "nbad_w")  # P(safe) never grows with these (both models)
+
+
+def _pava_decreasing(w: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """Weighted least-squares projection of ``w`` onto non-increasing sequences (pool adjacent violators)."""
+    vals: list[float] = []
+    wts: list[float] = []
+    lens: list[int] = []
+    for x, c in zip(w.tolist(), np.maximum(cnt, 1e-9).tolist(), strict=True):
+        vals.append(x)
+        wts.append(c)
+        lens.append(1)
+        while len(vals) > 1 and vals[-2] < vals[-1]:
+            v2, c2, l2 = vals.pop(), wts.pop(), lens.pop()
+            vals[-1] = (vals[-1] * wts[-1] + v2 * c2) / (wts[-1] + c2)
+            wts[-1] += c2
+            lens[-1] += l2
+    return np.repeat(np.asarray(vals), lens)
+
+
+def _design(feats: Mapping[str, np.ndarray], edges: Mapping[str, Sequence[float]]) -> tuple[np.ndarray, list[str]]:
+    """One-hot design matrix (1-D features in, rows = points) and the column groups' names."""
+    a, u = np.asarray(feats["a"]), np.asarray(feats["u"])
+    n = a.size
+    known = np.isfinite(a) & np.isfinite(u)
+    na, nu = len(edges["a"]) + 1, len(edges["u"]) + 1
+    cols = [(~known).astype(np.float32)[:, None]]
+    groups = ["nodem"]
+    oh = np.zeros((n, na * nu), np.float32)
+    idx = np.digitize(np.where(known, a, 0), edges["a"]) * nu + np.digitize(np.where(known, u, 0), edges["u"])
+    oh[np.arange(n), idx] = 1.0
+    oh[~known] = 0.0
+    cols.append(oh)
+    groups += ["au"] * (na * nu)
+    for f in ADDITIVE:
+        x = np.asarray(feats[f])
+        ok = np.isfinite(x)
+        m = len(edges[f]) + 1
+        o = np.zeros((n, m), np.float32)
+        o[np.arange(n), np.digitize(np.where(ok, x, 0), edges[f])] = 1.0
+        o[~ok] = 0.0
+        cols.append(o)
+        groups += [f] * m
+    cols.append(np.ones((n, 1), np.float32))
+    groups.append("bias")
+    return np.concatenate(cols, axis=1), groups
+
+
+def fit_gam(
+    feats: Mapping[str, np.ndarray],
+    safe: np.ndarray,
+    seeds: Sequence[int],
+    *,
+    edges: Mapping[str, Sequence[float]] | None = None,
+    ridge: float = 1.0,
+    iters: int = 40,
+    info: Mapping[str, Any] | None = None,
+) -> psafe.PsafeModel:
+    """Fit the model to 1-D feature arrays and truth labels ``safe`` (bool) by ridge-regularised IRLS.
+
+    ``seeds`` are recorded in the model (``fitted_on``); the caller checks they are tuning seeds
+    (:func:`fit_rows`: flight_sw does not import ground_sim).
+    """
+    E = {k: tuple(float(x) for x in v) for k, v in (edges or DEFAULT_EDGES).items()}
+    X, groups = _design(feats, E)
+    y = np.asarray(safe, np.float64).ravel()
+    if X.shape[0] != y.size or y.size == 0:
+        raise ValueError("psafe fit: features and labels differ in length or are empty")
+    w = np.zeros(X.shape[1])
+    reg = ridge * np.ones(X.shape[1])
+    reg[-1] = 1e-6  # the bias is not shrunk
+    for _ in range(iters):
+        z = X @ w
+        p = 1.0 / (1.0 + np.exp(-np.clip(z, -30, 30)))
+        g = X.T @ (p - y) + reg * w
+        H = (X * (p * (1.0 - p))[:, None]).T @ X + np.diag(reg)
+        step = np.linalg.solve(H, g)
+        w -= step
+        if np.abs(step).max() < 1e-5:
+            break
+    cnt = X.sum(axis=0)
+    grp = np.asarray(groups)
+    na, nu = len(E["a"]) + 1, len(E["u"]) + 1
+    T = w[grp == "au"].reshape(na, nu)
+    Tc = cnt[grp == "au"].reshape(na, nu)
+    for j in range(nu):  # P(safe) does not grow with the estimated slope at a given uncertainty
+        T[:, j] = _pava_decreasing(T[:, j], Tc[:, j])
+    weights: dict[str, tuple[float, ...]] = {}
+    for f in ADDITIVE:
+        sel = grp == f
+        wf, cf = w[sel], cnt[sel]
+        if f in MONOTONE_DECREASING:
+            wf = _pava_decreasing(wf, cf)
+        weights[f] = tuple(float(x) for x in wf)
+    return psafe.PsafeModel(
+        E,
+        tuple(tuple(float(x) for x in row) for row in T),
+        weights,
+        float(w[grp == "nodem"][0]),
+        float(w[-1]),
+        tuple(int(s) for s in seeds),
+        dict(info or {}),
+    )
+
+
 def fit_trees(
     feats: dict[str, np.ndarray], safe: np.ndarray, seeds: list[int], trees: dict[str, Any], info: dict[str, Any]
 ) -> Any:
     """Histogram gradient boosting (scikit-learn) on the features, exported as a flight_sw TreeModel."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    from flight_sw.psafe import MONOTONE_DECREASING, TreeModel
+    from flight_sw.psafe import TreeModel
 
     monotone = ("a", "a_pc", *MONOTONE_DECREASING)  # P(safe) never grows with the slope either
 
@@ -271,7 +396,6 @@ def fit_rows(
     (``SUN_FEATS``) are set to NaN, so the trees also learn the case of an unknown sun (the pipeline gives NaN then).
     ``pipeline``: the fast overrides the layers were made with, recorded in the model's info (the pipeline
     refuses the model where its DEM settings differ: flight_sw.pipeline.MODEL_DEM_PARAMS)."""
-    from flight_sw import psafe
 
     rng = np.random.default_rng(rng_seed)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "safe")}
@@ -305,7 +429,7 @@ def fit_rows(
         info["pipeline"] = dict(pipeline)
     if trees:
         return fit_trees({k: cat[k] for k in names}, cat["safe"], seeds, trees, info)
-    return psafe.fit({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
+    return fit_gam({k: cat[k] for k in names}, cat["safe"], seeds, ridge=ridge, info=info)
 
 
 def barred(r: dict[str, Any], a_max: float, cap: str = "a", cap_hi: tuple[float, float] | None = None) -> np.ndarray:
