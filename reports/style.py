@@ -99,11 +99,16 @@ GLOSSARY: dict[str, Term] = {
     ),
     "hazards_in_scored_pct": Term(
         "hazards in the scored area %",
-        "Share of the pixels the flight software covered (and that are scored) that are unsafe by the "
-        "ground-truth rules: the most FP % could be.",
+        "Share of the scored pixels that are unsafe by the ground-truth rules: the most FP % could be. Every "
+        "pixel whose true ground both frames see is scored, so it equals hazards in scene %.",
         "%",
     ),
-    "valid_pct": Term("DEM coverage %", "Share of the covered area (seen by both images) that got an elevation.", "%"),
+    "valid_pct": Term(
+        "DEM coverage %",
+        "Share of the area the flight software takes as seen by both images (by its poses) that got an elevation; "
+        "hazard-hil score's DEM coverage is over the true overlap instead (a few points apart at most).",
+        "%",
+    ),
     "dem_mean_abs_m": Term("DEM mean |error| [m]", "Mean absolute elevation error over pixels with both values.", "m"),
     "dem_median_m": Term("DEM median error [m]", "Median of the signed elevation error (estimate - truth).", "m"),
     "dem_mad_m": Term(
@@ -201,8 +206,14 @@ GLOSSARY.update(
         "site_cdi_pct": Term("site CDI %", "CDI computed on footprint disks (as site FP) instead of pixels.", "%"),
         "chosen_sites_safe_pct": Term(
             "chosen sites truly clear %",
-            "Share of the offered sites whose footprint is truly clear.",
+            "Share of the offered sites whose footprint is truly clear; over the seeds that offered a site "
+            "(seeds that offered a site).",
             "%",
+        ),
+        "chosen_sites_seeds": Term(
+            "seeds that offered a site",
+            "How many seeds offered at least one landing site: the chosen-sites figures are over these seeds only.",
+            "",
         ),
         "pipeline_s": Term("pipeline time [s]", "Wall time of the flight pipeline for the pair on one core.", "s"),
         "fn_unmapped_pct": Term(

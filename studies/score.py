@@ -224,6 +224,9 @@ def read_output(
             raise ScoreError(f"{out / 'psafe.npy'}: must be float32 (DESIGN.md), got dtype {psafe.dtype}")
         if np.isinf(psafe).any() or (np.nan_to_num(psafe, nan=0.0) < 0).any() or (psafe > 1.0).any():
             raise ScoreError(f"{out / 'psafe.npy'}: a probability: values must lie in [0, 1], or be NaN outside")
+        holes = int(np.count_nonzero(np.isnan(psafe) & ~np.isnan(hazard)))
+        if holes:  # NaN says "outside": inside, a pixel without a probability breaks the file's type (QA of stop 75)
+            raise ScoreError(f"{out / 'psafe.npy'}: NaN on {holes} pixels where hazard.npy has a value; give P(safe)")
     xyz = np.zeros((0, 3))
     unknown = None
     if sites is not None:

@@ -84,6 +84,19 @@ def test_summary_is_median_over_seeds_and_comparison_pairs_thesis_cells():
         assert len({ln.count("|") - ln.count("\\|") for ln in rows}) <= 1, block  # escaped pipes are text
 
 
+def test_the_chosen_sites_share_says_how_many_seeds_offered_a_site():
+    """A seed without a site has no share of clear sites: the median is over the others, and their count goes
+    beside it (the vertical 100 m thesis row was 3 of 5 seeds, read as 5; QA of stop 75)."""
+    rows = _rows()
+    for r, v in zip(rows, (100.0, math.nan, 50.0, None), strict=False):
+        r["chosen_sites_safe_pct"] = v
+    s = ev.summarise(rows)[("vertical", "fast", 300)]
+    assert s["chosen_sites_seeds"] == 1 and s["chosen_sites_safe_pct"] == 100.0 and s["n_seeds"] == 2
+    assert ev.summarise(rows)[("vertical", "fast", 500)]["chosen_sites_seeds"] == 1
+    md = report.comparison_markdown(ev.comparison(ev.summarise(rows), "vertical"))
+    assert re.search(r"\| 300 \| 100 \| [^|]+ \| 100 \| [^|]+ \| 1 \| ", md), md  # a count, not "1.00"
+
+
 def test_metrics_csv_roundtrip(tmp_path: Path):
     rows = _rows()
     rows[0]["cdi_pct"] = float("nan")

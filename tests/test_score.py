@@ -175,6 +175,8 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         # not scored, but DESIGN.md's probability: a 5.0 or a float64 file passed without a word
         (lambda o, s: np.save(o / "psafe.npy", np.full(s, 5.0, np.float32)), "psafe.npy: a probability"),
         (lambda o, s: np.save(o / "psafe.npy", np.full(s, 0.5)), "psafe.npy: must be float32 (DESIGN.md), got"),
+        # NaN means outside: inside the map it passed without a word (QA of stop 75)
+        (lambda o, s: np.save(o / "psafe.npy", np.full(s, np.nan, np.float32)), "psafe.npy: NaN on 16384 pixels"),
         # hazard.npy is 1.0 everywhere (not called safe): each disagreement is named with its direction
         (lambda o, s: np.save(o / "state.npy", np.zeros(s, np.uint8)), "says 0 (safe) where hazard.npy is >= 1 on"),
         (lambda o, s: np.save(o / "state.npy", np.full(s, 255, np.uint8)), "says 255 (outside) where hazard.npy has"),
