@@ -148,7 +148,7 @@ def judge_site(
     """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
     ``radius_m`` of the site has hazard < 1. A footprint that falls between pixel centres (ground sampled
     coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
-    A footprint that holds no pixel (off the image), reaches the image border (part of it unseen), holds a
+    A footprint that holds no pixel (off the image), reaches past the image's edge (part of it unseen), holds a
     pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) or whose pixels touch
     one without a ground point (NaN depth: where it lies is unknown) cannot be confirmed and is judged unsafe
     (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).
@@ -166,7 +166,7 @@ def judge_site(
     n = int(np.count_nonzero(near))
     unknown = near & np.isnan(hazard)  # truth that cannot say (a derived one, where too little ground is seen)
     unsafe = int(np.count_nonzero(near & ~unknown & ~(hazard < 1.0)))
-    partial = bool(near[0].any() or near[-1].any() or near[:, 0].any() or near[:, -1].any() or unknown.any())
+    partial = _past_the_border(world_xy, near, sx, sy, radius_m) or bool(unknown.any())
     if n:
         # a pixel without a ground point (NaN depth) has no place in the world, so it is never "near": one beside
         # the footprint's pixels may hide part of it. A rock's pixels with NaN depth left a site over it judged
@@ -185,6 +185,39 @@ def judge_site(
         "incomplete": partial or n == 0,
         "uv": uv,
     }
+
+
+def _past_the_border(world_xy: np.ndarray, near: np.ndarray, sx: float, sy: float, radius_m: float) -> bool:
+    """Whether the footprint may reach past the image, on the sides whose border pixels it holds.
+
+    The image ends half a pixel past its border pixels' centres: on the ground, ``e = w_b + (w_b - w_i) / 2``
+    with ``w_b`` a border pixel's ground and ``w_i`` its inward neighbour's. The footprint is wholly seen when
+    the site lies more than ``radius_m`` from that edge line. The edge is known at samples ``s`` apart, and the
+    nearest sample is at most ``s / 2`` along the line from the foot of the perpendicular, so the distance to
+    the line is at least ``sqrt(d^2 - s^2 / 4)`` (``d`` the nearest sample's distance). A footprint touching a
+    border pixel's centre was called unconfirmed although it ended a tenth of a pixel inside (QA of stop 75).
+    An edge without a ground point (NaN) may hide anything: reached."""
+    h, w = near.shape
+    sides = []
+    if near[0].any():
+        sides.append((world_xy[0], world_xy[min(1, h - 1)]))
+    if near[-1].any():
+        sides.append((world_xy[-1], world_xy[max(h - 2, 0)]))
+    if near[:, 0].any():
+        sides.append((world_xy[:, 0], world_xy[:, min(1, w - 1)]))
+    if near[:, -1].any():
+        sides.append((world_xy[:, -1], world_xy[:, max(w - 2, 0)]))
+    for border, inner in sides:
+        if h < 2 or w < 2:
+            return True  # a line of pixels has no inward neighbour to size its edge by
+        edge = border.astype(np.float64) + 0.5 * (border.astype(np.float64) - inner)
+        if not np.isfinite(edge).all():
+            return True
+        step = float(np.hypot(*np.diff(edge, axis=0).T).max()) if len(edge) > 1 else 0.0
+        d2 = float(np.min((edge[:, 0] - sx) ** 2 + (edge[:, 1] - sy) ** 2))
+        if d2 - step * step / 4 < radius_m * radius_m:
+            return True
+    return False
 
 
 def _cell_holding(world_xy: np.ndarray, d2: np.ndarray) -> np.ndarray:

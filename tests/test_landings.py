@@ -60,6 +60,12 @@ def test_site_rule_uses_every_truth_pixel_within_the_footprint():
     # a footprint that reaches the image border cannot be confirmed
     edge = judge_site((4.5, 0.0), world, np.zeros_like(hazard))
     assert not edge["safe"] and edge["incomplete"]
+    # the image ends at 5.125 m (half a pixel past the last centre): a footprint reaching 5.1 m holds the border
+    # column's pixels and is wholly seen; one reaching 5.2 m is not (QA of stop 75: the first was unconfirmed)
+    inside, past = (judge_site((x, 0.0), world, np.zeros_like(hazard)) for x in (3.6, 3.7))
+    assert inside["safe"] and not inside["incomplete"] and not past["safe"] and past["incomplete"]
+    corner = judge_site((3.6, 3.7), world, np.zeros_like(hazard))  # inside on one side, past on the other
+    assert corner["incomplete"] and not corner["safe"]
     # NaN truth is not safe truth
     hazard[:] = 0.0
     hazard[20, 20] = np.nan
