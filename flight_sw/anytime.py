@@ -2,7 +2,7 @@
 
 The pipeline runs against a deadline on a processor of unknown speed (the HIL's emulated budgets, a board).
 Stage costs are unthrottled CPU seconds on a reference host at ``REF_PIXELS``; a stage that cannot stop
-part-way starts only when its cost, times the slowdown the clock has learned (:class:`_Clock`), fits before
+part-way starts only when its cost, times the slowdown the clock has learned (:class:`Clock`), fits before
 the reserve the stages after it need (:func:`reserves`). The mapping reserve follows the pair's size
 (:func:`mapping_cost_s`, fitted by ``bench/fit_mapping_cost.py``), and a flight process that has run pairs
 plans from what their reserved work really took (:func:`measured_reserve_ratio`). docs/hil.md, "How our
@@ -50,7 +50,7 @@ CASTER_MAX_PX = 16  # the caster search's reach (px): shadow.caster_distance cos
 AFTER_SLOPE_S = 0.050
 # pose refinement, per refined frame pair: 31-39 ms CPU, median 34, on the 32 pairs of tuning seed 0 (one core,
 # quiet host, stop 45). It was 0.06 (stop 20's loaded host): a reference above the stage's real cost hides the
-# slowdown from _Clock.learn, and rad750's reserves were planned at 77x while the mapping ran at 110x
+# slowdown from Clock.learn, and rad750's reserves were planned at 77x while the mapping ran at 110x
 REFINE_S = 0.035
 # the full DEM costs at least this many times the coarse one (CPU, 512^2, one core): 3.60 at least, 4.39 p10, 5.16
 # median on the 64 tuning pairs of the four eval cases (seeds 0-1); held-out seeds 1000-1001: 3.52, 4.42, 5.19
@@ -77,7 +77,7 @@ MAP_CELLS_S = 0.103
 
 # the stages the mapping reserve covers: what runs after the DEM (measured_reserve_ratio sums their wall time)
 MAPPING_STAGES = ("georef", "grid", "slope", "shading_slope", "hazard", "sites")
-# planning from what the reserved work really took on the previous pairs (_Clock.reserve_scale): kept x this.
+# planning from what the reserved work really took on the previous pairs (Clock.reserve_scale): kept x this.
 # Demo pairs (snapdragon801 at 21 % duty, 2026-12-02): the mapping stages and the fusion + output took 2.5-3.4 wall s
 # per reserved second against the nominal 4.75; planning with the largest of the last pairs x this covers that spread
 MEASURED_RESERVE_MARGIN = 1.25
@@ -192,7 +192,7 @@ def reserve_shortfalls(
 
 
 @dataclass
-class _Clock:
+class Clock:
     """The deadline in ``time.monotonic()`` seconds; reserves are unthrottled seconds x :meth:`reserve_scale`.
 
     ``scale`` is the emulated processor's slowdown (1 / CPU fraction): a reserve that covers the

@@ -286,7 +286,7 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
     """The Telemetry's ``plan``: what the deadline plan had and decided on, in wall seconds on this processor.
 
     ``budget_s``: from the pipeline's start to the time it aimed to be done by (the deadline less the Result's
-    planned ``line_s`` and the guard); then, from ``info["plan"]`` (``anytime._Clock.decide``), for each DEM
+    planned ``line_s`` and the guard); then, from ``info["plan"]`` (``anytime.Clock.decide``), for each DEM
     stage that was weighed, the time left at its start and the time kept for the work after it (the DEM stage
     runs only while the first exceeds the second), and the slowdown they were planned at (``measured`` 1 when
     from the previous pairs' measured cost, 0 when from the first stages' slowdown)."""

@@ -42,3 +42,16 @@ def map_points(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray,
     """Apply a homography to pixel coordinates (vectorised), returning the mapped (u, v)."""
     w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
     return (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w, (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
+
+
+def centre_gsd(camera: Camera, pose: Pose) -> float:
+    """Ground sample distance (m) at the image centre over the reference plane: slant range / f."""
+    d = pose.position[2] / max(1e-9, -pose.R[2, 2])
+    return float(max(1e-6, d / camera.fx))
+
+
+def gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
+    """GSD(i2) / GSD(i1) at the image centre over the reference plane (~0.5 for a halved altitude)."""
+    d1 = pose1.position[2] / max(1e-9, -pose1.R[2, 2])
+    d2 = pose2.position[2] / max(1e-9, -pose2.R[2, 2])
+    return float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0

@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass
 
 from .costvolume import RULES
+from .dense import DenseParams
 from .evidence import CAP_SLOPES
 from .validate import FlightInputError
 
@@ -386,3 +387,25 @@ PRESETS["fast_gaussian"] = dataclasses.replace(
 
 # fast with the navigation poses as given: the A/B of the pose refinement (hazard-hil sensitivity --preset refine)
 PRESETS["fast_unrefined"] = dataclasses.replace(PRESETS["fast"], name="fast_unrefined", refine_pose=False)
+
+
+def dense_params(p: Params) -> DenseParams:
+    """The dense-matching knobs of a preset (:class:`flight_sw.dense.DenseParams`)."""
+    return DenseParams(
+        radius=p.sgm_radius,
+        mean_radius=p.sgm_mean_radius,
+        p1=p.sgm_p1,
+        p2=p.sgm_p2,
+        p2_g0=p.sgm_p2_g0,
+        p2_adapt=p.p2_gradient_adapt,
+        paths=p.sgm_paths,
+        uniqueness=p.uniqueness,
+        speckle_px=p.speckle_px,
+        temperature=p.sigma_temperature,
+        kappa_floor=p.kappa_floor,
+        uniq_scale=p.sigma_uniq_scale,
+        end_margin=p.end_margin,
+        min_interval_frac=p.min_interval_frac,
+        fill_max_m=p.dark_fill_m,
+        fill_slope=p.dark_fill_slope,
+    )

@@ -57,14 +57,14 @@ from .anytime import (
     SHADING_SLOPE_S,
     SHADOW_BASE_S,
     WALL_CUE_S,
-    _Clock,
+    Clock,
     full_dem_fits,
     grid_cells_estimate,
     mapping_cost_s,
 )
 from .confidence import elevation_uncertainty, reject_uncertain
-from .costvolume import frame_roi, local_contrast, multi_cost_slab, parallax_px
-from .dense import DenseDEM, DenseParams, dem_from_slab, dense_dem, roi_of
+from .costvolume import local_contrast
+from .dense import dense_dem
 from .evidence import (
     Evidence,
     below_model_scale,
@@ -78,6 +78,7 @@ from .evidence import (
 )
 from .gapfill import fill_small_gaps
 from .georef import backproject
+from .homography import centre_gsd, gsd_scale
 from .lowerview import average_where_both, lower_view_dem, read_into_reference
 from .mapping import (
     HazardGrid,
@@ -96,8 +97,9 @@ from .mapping import (
     sample_grid,
     three_state,
 )
+from .multibaseline import multi_baseline_dem
 from .noise import blank_frames, noise_sigma, noisy_frames
-from .params import PRESETS, Params, window_px
+from .params import PRESETS, Params, dense_params, window_px
 from .photoclinometry import incidence_cosine, measured_incidence, shading_gradient
 from .pose_refine import (
     CHECK_MIN_SIDE,
@@ -196,19 +198,6 @@ def _resolve(preset: str | Params) -> Params:
     return p
 
 
-def _centre_gsd(camera: Camera, pose: Pose) -> float:
-    """Ground sample distance (m) at the image centre over the reference plane: slant range / f."""
-    d = pose.position[2] / max(1e-9, -pose.R[2, 2])
-    return float(max(1e-6, d / camera.fx))
-
-
-def _gsd_scale(camera: Camera, pose1: Pose, pose2: Pose) -> float:
-    """GSD(i2) / GSD(i1) at the image centre over the reference plane (~0.5 for a halved altitude)."""
-    d1 = pose1.position[2] / max(1e-9, -pose1.R[2, 2])
-    d2 = pose2.position[2] / max(1e-9, -pose2.R[2, 2])
-    return float(min(1.0, d2 / d1)) if d1 > 0 and d2 > 0 else 1.0
-
-
 def _note_started(info: dict[str, Any], stage: str) -> None:
     """``info["plan"][<stage>_started] = 1`` when a DEM stage the plan weighed did start (a planned run only): a
     stage that was then left out was cut at its deadline, not refused by the plan."""
@@ -259,7 +248,7 @@ def run_pipeline(
     (``Pair.altimeter_m``: a per-frame sequence is accepted; NaN = none); the v2 flow centres
     its ground search on it. ``time_scale`` is the emulated processor's slowdown factor
     (1 / CPU fraction): the stage reserves (``mapping_reserve_s``) are unthrottled seconds and
-    are multiplied by it (or by the slowdown the first stages really saw, if larger: ``_Clock.learn``).
+    are multiplied by it (or by the slowdown the first stages really saw, if larger: ``Clock.learn``).
     ``after_s`` is the caller's own work after the pipeline returns (encoding, fusion), in
     unthrottled seconds: it is reserved before the deadline at the same scale. ``sun_elevation_deg``
     (None or NaN = unknown) lets the shading cue be read as under the sun the P(safe) model was fitted
@@ -269,7 +258,7 @@ def run_pipeline(
     images (:mod:`flight_sw.pose_refine`); its telemetry is ``info["pose_refinement"]``.
     ``reserve_measured`` (wall s per reserved unthrottled s, :func:`measured_reserve_ratio` on the caller's
     previous pairs) plans the reserves from what they really cost instead of ``time_scale`` alone
-    (``_Clock.reserve_scale``). Raises :class:`FlightInputError` for bad arguments.
+    (``Clock.reserve_scale``). Raises :class:`FlightInputError` for bad arguments.
     """
     return run_pipeline_multi(
         [i1, i2],
@@ -348,7 +337,7 @@ def run_pipeline_multi(
         ):
             raise FlightInputError(f"reserve_measured must be a positive number, got {reserve_measured!r}")
         measured = None if reserve_measured is None else float(reserve_measured)
-        clock = _Clock(min(ends) if ends else None, float(time_scale), float(after_s), measured)
+        clock = Clock(min(ends) if ends else None, float(time_scale), float(after_s), measured)
     # a frame far noisier than the others (a sensor fault, a damaged image) is mapped like any other: said
     # (flight_sw.noise; 2 ms a 512 px pair)
     noise = [noise_sigma(im) for im in images]
@@ -702,7 +691,7 @@ def _run_v1(
     pose2: Pose,
     camera: Camera,
     p: Params,
-    clock: _Clock,
+    clock: Clock,
     nominal: tuple[float, float],
     timings: dict[str, dict[str, float]],
 ) -> PipelineResult:
@@ -714,7 +703,7 @@ def _run_v1(
         alt = float(pose1.position[2])
         margin = max(p.relief_margin_min_m, p.relief_margin_frac * alt)
         z_lo, z_hi = -margin, min(margin, float(pose2.position[2]) * 0.5)
-        scale = _gsd_scale(camera, pose1, pose2)
+        scale = gsd_scale(camera, pose1, pose2)
         sigma = area_sigma(scale) if p.prefilter else 0.0
     info: dict[str, Any] = {"sweep_range_m": [z_lo, z_hi], "gsd_ratio": scale, "skipped": []}
 
@@ -724,7 +713,7 @@ def _run_v1(
         shadow = shadow_mask(i1)
         shading = np.zeros(i1.shape, bool)
         if (p.shadow_dark_rel > 0 or p.shading_limit > 0) and clock.ok(p.mapping_reserve_s):
-            fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+            fp_px = p.footprint_m / centre_gsd(camera, pose1)
             rho = relative_brightness(
                 i1, max(p.shading_sigma_px, p.shading_sigma_footprints * fp_px), max(1.0, fp_px / 3.0)
             )
@@ -939,27 +928,6 @@ def _bounded_planes(
     return planes
 
 
-def _dense_params(p: Params) -> DenseParams:
-    return DenseParams(
-        radius=p.sgm_radius,
-        mean_radius=p.sgm_mean_radius,
-        p1=p.sgm_p1,
-        p2=p.sgm_p2,
-        p2_g0=p.sgm_p2_g0,
-        p2_adapt=p.p2_gradient_adapt,
-        paths=p.sgm_paths,
-        uniqueness=p.uniqueness,
-        speckle_px=p.speckle_px,
-        temperature=p.sigma_temperature,
-        kappa_floor=p.kappa_floor,
-        uniq_scale=p.sigma_uniq_scale,
-        end_margin=p.end_margin,
-        min_interval_frac=p.min_interval_frac,
-        fill_max_m=p.dark_fill_m,
-        fill_slope=p.dark_fill_slope,
-    )
-
-
 def _check_model_dem(p: Params, shape: tuple[int, ...] = (512, 512)) -> None:
     """The calibrated P(safe) holds only for the DEM its trees were fitted on: a model records the pipeline
     settings that change that DEM (``info["pipeline"]``, from ``bench/fit_psafe.py --set-param``; absent: the
@@ -1026,95 +994,6 @@ def _matching_mask(img: np.ndarray, p: Params) -> np.ndarray:
     return out
 
 
-def _multi_dem(
-    a1: np.ndarray,
-    a2: np.ndarray,
-    pose1: Pose,
-    pose2: Pose,
-    extra: Sequence[tuple[np.ndarray, Pose]],
-    camera: Camera,
-    planes: np.ndarray,
-    p: Params,
-    ignore: np.ndarray,
-    clock: _Clock,
-    prior: np.ndarray | None,
-    info: dict[str, Any],
-    reserve: float,
-) -> DenseDEM:
-    """Multi-baseline dense DEM (issue 10): the widest pair and the ``extra`` frames in one cost volume.
-
-    The slab covers the widest pair's reach (``multi_extent="widest"``) or every frame's
-    (``"union"``). Frame f's parallax per plane relative to the widest frame, ``s_f``
-    (:func:`flight_sw.costvolume.parallax_px`), sets its weight ``w_f = s_f^multi_weight_exp``
-    in the robust mean (:func:`flight_sw.costvolume.multi_cost_slab`): near its minimum a frame's
-    cost is ``~ kappa s_f^2 dk^2`` plus noise, so a short-baseline frame carries little depth
-    signal and mostly adds interpolation noise. The slab then goes through the pair's SGM,
-    winner and sigma (:func:`flight_sw.dense.dem_from_slab`).
-
-    Sigma: the curvature-based sigma of the combined cost assumes one pair's noise. If the
-    frames' cost noise were independent, the minimum of the combination would be
-    ``sqrt(I)`` times better determined, ``I = sum_f s_f^2`` over the frames that saw the pixel
-    (1 for a pair); the frames share the reference image, so ``sigma / I^(gamma / 2)`` with
-    ``gamma = multi_sigma_gamma`` in [0, 1] calibrated on tuning seeds (docs/benchmarks/multiframe.md).
-    """
-    frames = [(a2, pose2)] + [(np.ascontiguousarray(img, dtype=np.float32), pose) for img, pose in extra]
-    z_lo, z_hi = float(planes[0]), float(planes[-1])
-    roi = roi_of(camera, pose1, pose2, z_lo, z_hi)
-    if p.multi_extent == "union":
-        whole = (0, 0, camera.width, camera.height)
-        boxes = [roi] + [frame_roi(camera, pose1, pose, z_lo, z_hi, whole) for _, pose in extra]
-        boxes = [b for b in boxes if b[2] > 0 and b[3] > 0]
-        if boxes:
-            bx0, by0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
-            bx1, by1 = max(b[0] + b[2] for b in boxes), max(b[1] + b[3] for b in boxes)
-            roi = (bx0, by0, bx1 - bx0, by1 - by0)
-    dp = _dense_params(p)
-    deadline = clock.before(reserve)  # the v2 reserve (scaled with the pixel count)
-    par = [parallax_px(camera, pose1, pose, z_lo, z_hi, roi) for _, pose in frames]
-    rel = [min(1.0, v / par[0]) if par[0] > 0 else 1.0 for v in par]
-    weights = [max(r, 1e-3) ** p.multi_weight_exp for r in rel]
-    slab = multi_cost_slab(
-        a1,
-        [f[0] for f in frames],
-        camera,
-        pose1,
-        [f[1] for f in frames],
-        planes,
-        roi,
-        prefilter_sigmas=[area_sigma(_gsd_scale(camera, pose1, f[1])) if p.prefilter else 0.0 for f in frames],
-        weights=weights,
-        info=[r * r for r in rel],
-        rule=p.multi_rule,
-        gain=p.multi_cost_gain,
-        truncate=p.multi_truncate,
-        radius=dp.radius,
-        mean_radius=dp.mean_radius,
-        ignore=ignore,
-        deadline=deadline,
-        check_every=p.check_every,
-    )
-    dem = dem_from_slab(slab, a1, a1.shape, dp, deadline, prior, ignore, _centre_gsd(camera, pose1), release=True)
-    gain_img = np.ones(a1.shape, np.float32)
-    if slab.info is not None:
-        x0, y0, w, h = roi
-        gain_img[y0 : y0 + h, x0 : x0 + w] = np.maximum(slab.info, 1.0)
-    if dem.complete and p.multi_sigma_gamma > 0:
-        if dem.filled is not None:  # more frames sharpen a match, not an elevation carried into a gap
-            gain_img[dem.filled] = 1.0
-        dem.sigma = (dem.sigma * gain_img ** np.float32(-0.5 * p.multi_sigma_gamma)).astype(np.float32)
-    ok = np.isfinite(dem.elevation)
-    info["multi_frame"] = {
-        "frames": len(frames) + 1,
-        "rule": p.multi_rule,
-        "extent": p.multi_extent,
-        "roi": [int(v) for v in roi],
-        "parallax_rel": [round(v, 3) for v in rel],
-        "weights": [round(v, 3) for v in weights],
-        "info_median": float(np.median(gain_img[ok])) if ok.any() else 0.0,
-    }
-    return dem
-
-
 def _run_v2(
     i1: np.ndarray,
     i2: np.ndarray,
@@ -1122,7 +1001,7 @@ def _run_v2(
     pose2: Pose,
     camera: Camera,
     p: Params,
-    clock: _Clock,
+    clock: Clock,
     nominal: tuple[float, float],
     alt_range: float | None,
     timings: dict[str, dict[str, float]],
@@ -1143,7 +1022,7 @@ def _run_v2(
     with _stage(timings, "prepare"):
         a1 = np.ascontiguousarray(i1, dtype=np.float32)
         a2 = np.ascontiguousarray(i2, dtype=np.float32)
-        scale = _gsd_scale(camera, pose1, pose2)
+        scale = gsd_scale(camera, pose1, pose2)
         sigma_pf = area_sigma(scale) if p.prefilter else 0.0
     info: dict[str, Any] = {"gsd_ratio": scale, "skipped": [], "sgm_kernel": "c" if sgm_kernel() else "numpy"}
 
@@ -1163,7 +1042,7 @@ def _run_v2(
         else:
             dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)
-        fp_px = p.footprint_m / _centre_gsd(camera, pose1)
+        fp_px = p.footprint_m / centre_gsd(camera, pose1)
         info["footprint_px"] = fp_px
         calibrated = p.psafe_model == "calibrated"
         p_asked = p  # before a model's own operating point: what a lower view's fallback starts from
@@ -1309,7 +1188,9 @@ def _run_v2(
             info["full_range_m"] = [f_lo, f_hi]
             prior = elevation if level == "coarse" else None
             if extra:
-                dem = _multi_dem(a1, a2, pose1, pose2, extra, camera, planes, p, ignore, clock, prior, info, reserve)
+                dem = multi_baseline_dem(
+                    a1, a2, pose1, pose2, extra, camera, planes, p, ignore, clock, prior, info, reserve
+                )
             else:
                 dem = dense_dem(
                     a1,
@@ -1318,12 +1199,12 @@ def _run_v2(
                     pose1,
                     pose2,
                     planes,
-                    _dense_params(p),
+                    dense_params(p),
                     prefilter_sigma=sigma_pf,
                     ignore=ignore,
                     deadline=clock.before(reserve),
                     prior=prior,
-                    gsd_m=_centre_gsd(camera, pose1),
+                    gsd_m=centre_gsd(camera, pose1),
                 )
             info["dense"] = dem.info
             if dem.complete:
@@ -1358,7 +1239,7 @@ def _run_v2(
                     pose1,
                     pose2,
                     planes_2,
-                    _dense_params(p),
+                    dense_params(p),
                     area_sigma_px=sigma_pf,
                     ignore2=ignore2,
                     deadline=clock.before(reserve),

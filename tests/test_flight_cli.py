@@ -215,7 +215,7 @@ def test_an_image_only_map_of_every_preset_calls_no_ground_safe_and_offers_no_si
     from flight_sw import pipeline
 
     # no time for a DEM, and time for the rest (a deadline of 0.02 s did so on a quiet machine only)
-    monkeypatch.setattr(pipeline._Clock, "decide", lambda self, info, stage, reserve_s: not stage.endswith("_dem"))
+    monkeypatch.setattr(pipeline.Clock, "decide", lambda self, info, stage, reserve_s: not stage.endswith("_dem"))
     for preset in ("fast", "thesis", "fast_v1"):
         out = tmp_path / preset
         assert main(["process", str(d), "--out", str(out), "--preset", preset]) == 0

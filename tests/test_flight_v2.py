@@ -686,19 +686,19 @@ def test_v2_params_are_checked():
 
 
 def test_clock_learns_the_slowdown_not_a_stage_that_costs_more_on_this_data():
-    from flight_sw.anytime import MAX_LEARNED_SCALE, _Clock
+    from flight_sw.anytime import MAX_LEARNED_SCALE, Clock
 
     # snapdragon801 (1 / 0.366): the shadow stage cost 0.034 s CPU on the demo's 200/100 pair (reference 0.014 s)
     # and ran 0.11 s wall: a 3.5x slowdown, not 8x (which made the demo's third pair skip its DEM)
-    c = _Clock(deadline=None, scale=2.73)
+    c = Clock(deadline=None, scale=2.73)
     c.learn(0.014, 0.11, 0.034)
     assert 3.0 < c.scale < 4.0
     # at rad750's duty (1 / 0.019) cold caches add up to 40 % to a stage's CPU: that slowdown is still learnt
-    c = _Clock(deadline=None, scale=52.0)
+    c = Clock(deadline=None, scale=52.0)
     c.learn(0.014, 0.014 * 52.0 * 1.4, 0.014 * 1.4)
     assert c.scale == pytest.approx(52.0 * 1.4)
     # a first call that costs 2.1x its steady CPU (one-off set-up) is not read as a 2.1x slowdown
-    c = _Clock(deadline=None, scale=52.0)
+    c = Clock(deadline=None, scale=52.0)
     c.learn(0.06, 0.126 * 58.0, 0.126)
     assert c.scale < 52.0 * 1.6
     c.learn(0.014, 1e3, 0.028)  # bounded
@@ -714,13 +714,13 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
         MEASURED_RESERVE_MARGIN,
         REF_PIXELS,
         SHADING_SLOPE_S,
-        _Clock,
+        Clock,
         measured_reserve_ratio,
     )
 
     # snapdragon801 on a host faster than the reserves' reference: the work took 3 wall s per reserved s, not 4.75
-    nominal = _Clock(deadline=100.0, scale=4.75, after=0.07)
-    measured = _Clock(deadline=100.0, scale=4.75, after=0.07, measured=3.0)
+    nominal = Clock(deadline=100.0, scale=4.75, after=0.07)
+    measured = Clock(deadline=100.0, scale=4.75, after=0.07, measured=3.0)
     assert nominal.before(0.14) == pytest.approx(100.0 - 0.21 * 4.75)
     assert measured.before(0.14) == pytest.approx(100.0 - 0.21 * 3.0 * MEASURED_RESERVE_MARGIN)
     assert measured.before(0.14) > nominal.before(0.14)  # more of the deadline for the DEM
@@ -731,7 +731,7 @@ def test_reserves_follow_what_the_reserved_work_really_cost():
     assert nominal.reserve_scale() == pytest.approx(4.75 * 1.4)
     assert measured.reserve_scale() == pytest.approx(3.0 * MEASURED_RESERVE_MARGIN)
     # a slower host than the reference: the measurement raises the reserve above the nominal one
-    assert _Clock(deadline=0.0, scale=4.75, measured=6.0).reserve_scale() > 4.75
+    assert Clock(deadline=0.0, scale=4.75, measured=6.0).reserve_scale() > 4.75
 
     timings = {k: {"wall_s": 0.05, "cpu_s": 0.01} for k in MAPPING_STAGES}
     n, info = len(MAPPING_STAGES), {"mapping_reserve_s": 0.1, "skipped": []}
