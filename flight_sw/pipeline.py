@@ -125,7 +125,7 @@ from .rangefind import (
 from .rocks import rock_mask
 from .sgm import kernel as sgm_kernel
 from .shading import local_shadow_mask, relative_brightness, rho_at_sun, shading_mask, speck_contrast
-from .shadow import caster_distance, lit_level, shadow_mask
+from .shadow import caster_distance, dark_shadow, lit_level, shadow_mask
 from .sites import Site, no_site_reason, select_safe_sites, select_sites
 from .slope import footprint_cells, plane_fit, roughness
 from .sweep import (
@@ -1036,9 +1036,7 @@ def _run_v2(
         if p.shadow_dark_frac > 0:
             lit = lit_level(a1, p.shadow_mode_ratio)  # the median unless shadow is the majority
             info["shadow_lit_level"] = lit
-            dark = a1 < np.float32(p.shadow_dark_frac * lit)
-            cue = a1 < np.float32(p.shadow_cue_frac * lit) if p.shadow_cue_frac > 0 else dark
-            shadow = cv2.dilate(cue.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # + the penumbra
+            dark, shadow = dark_shadow(a1, lit, p.shadow_dark_frac, p.shadow_cue_frac)
         else:
             dark = shadow = shadow_mask(i1)
         wall = np.zeros(i1.shape, bool)

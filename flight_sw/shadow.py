@@ -56,6 +56,19 @@ def lit_level(img: np.ndarray, ratio: float, dynamic_range: float = 1000.0) -> f
     return hi if hi >= ratio * lo else med
 
 
+def dark_shadow(img: np.ndarray, lit: float, dark_frac: float, cue_frac: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flight v2's shadow (issue #9: "detect shadow with a dark threshold"): ``(dark, cue)``.
+
+    ``dark = I < dark_frac * lit`` is what has nothing to match; the hazard cue is
+    ``I < cue_frac * lit`` (``dark`` when ``cue_frac`` is 0) dilated by one pixel, which takes in
+    the penumbra. ``lit`` is the lit ground's brightness (:func:`lit_level`).
+    """
+    a = np.asarray(img, np.float32)
+    dark = a < np.float32(dark_frac * lit)
+    cue = a < np.float32(cue_frac * lit) if cue_frac > 0 else dark
+    return dark, cv2.dilate(cue.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+
+
 def caster_distance(dark: np.ndarray, toward_sun: tuple[float, float], max_px: int) -> np.ndarray:
     """Distance (px, float32) from each pixel to the nearest dark pixel *away from the sun*, ``inf`` beyond ``max_px``.
 

@@ -115,3 +115,16 @@ def test_fast_calls_a_boulder_shadow_speck_unsafe():
     assert np.mean(res.state[res.covered & (speck1 == 0)] == 0) > 0.2  # the open plain still is
     old = run_pipeline(i1, i2, p1, p2, cam, preset=dataclasses.replace(PRESETS["fast"], shadow_cue_frac=0.0))
     assert np.mean(old.state[cov] == 0) > 0.2  # the old threshold called half of them safe
+
+
+def test_dark_shadow_splits_what_has_nothing_to_match_from_the_hazard_cue_and_takes_in_the_penumbra():
+    from flight_sw.shadow import dark_shadow
+
+    img = np.full((9, 9), 100.0, np.float32)
+    img[4, 4] = 10.0  # under 0.15 of the lit level: dark, and a cue
+    img[1, 1] = 25.0  # under the cue's 0.3 only: a hazard cue, yet texture to match
+    dark, cue = dark_shadow(img, 100.0, 0.15, 0.3)
+    assert dark.sum() == 1 and dark[4, 4]
+    assert cue[3:6, 3:6].all() and cue[0:3, 0:3].all() and cue.sum() == 18  # each dilated by one pixel
+    same, cue0 = dark_shadow(img, 100.0, 0.15, 0.0)  # no cue fraction: the cue is the dark pixels
+    assert (same == dark).all() and cue0.sum() == 9 and not cue0[1, 1]
