@@ -238,7 +238,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
 
     from .pictures import write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
-    from .validate import FlightInputError
+    from .validate import FlightInputError, check_frames
 
     if args.deadline is not None and not (math.isfinite(args.deadline) and args.deadline >= 0):
         raise FlightInputError(f"--deadline must be a finite, non-negative number of seconds, got {args.deadline}")
@@ -247,8 +247,6 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     if scorer is not None:  # its input (the truth) refused now, not after the pipeline's work
         scorer.prepare()
     _check_out(Path(args.pair_dir), Path(args.out))
-    for note in pair.notes:  # conversions and repairs the reader made, and implausible scales
-        print(f"note: {note}", file=sys.stderr)
     params = PRESETS[args.preset]
     if not args.refine_pose:
         params = dataclasses.replace(params, refine_pose=False)
@@ -257,6 +255,15 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
         params = dataclasses.replace(params, n_sites=args.sites)
     frames = [0, pair.n_frames - 1] if args.widest_pair else list(range(pair.n_frames))
+    try:  # the pipeline's own input checks first: a pair it refuses is that one error, not notes then it (a 2 px
+        # camera's "160 m per pixel" note came before "too small to map"; QA of stop 75)
+        check_frames([pair.images[k] for k in frames], [pair.poses[k] for k in frames], pair.camera)
+    except FlightInputError as exc:
+        raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
+    for note in pair.notes:  # conversions and repairs the reader made: into result.json and onto the page too
+        print(f"note: {note}", file=sys.stderr)
+    for text in pair.warnings:  # implausible scales, a frame the 16-bit shift crushed: as the pipeline's warnings
+        print(f"warning: {text}", file=sys.stderr)
     try:
         res = run_pipeline_multi(
             [pair.images[k] for k in frames],
@@ -301,8 +308,11 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }
-    messages = _process_messages(res, pair, out)
-    doc["warnings"] = [text.removeprefix("warning: ") for warn, text in messages if warn]
+    messages = _process_messages(res, pair, out, frames)
+    # the reader's warnings (said before the pipeline ran) and the run's; the reader's notes too: said on stderr
+    # alone, a pair in km left a DEM in km with an empty warnings list (QA of stop 75)
+    doc["warnings"] = [*pair.warnings, *(text.removeprefix("warning: ") for warn, text in messages if warn)]
+    doc["notes"] = list(pair.notes)
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
@@ -358,11 +368,13 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     return 0
 
 
-def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
+def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None = None) -> list[tuple[bool, str]]:
     """What `process` says of a run beyond its summary line, in order: (is a warning, text). Warnings go to stderr,
     and also into result.json (``warnings``) and the report page: the page showed a run on swapped frames as a green
-    "full" (QA of stop 66)."""
+    "full" (QA of stop 66). ``frames``: the directory's frames the run used (default: all)."""
     msgs: list[tuple[bool, str]] = []
+    # frames the reader's common 16-bit shift crushed (its warning names them): the noise readings compare them
+    crushed = [k for k in pair.shallow_frames if frames is None or k in frames]
 
     from protocol.plan import plan_note
 
@@ -384,16 +396,29 @@ def _process_messages(res: Any, pair: Any, out: Path) -> list[tuple[bool, str]]:
               "higher (docs/benchmarks/pipeline.md)", file=sys.stderr)  # fmt: skip
     for f in res.info.get("noisy_frames", ()):  # nothing else tells a noisy image: the DEM 3-5x worse, unsaid
         others, k, dn = [f"{v:.1f}" for v in f["others_dn"]], f["frame"], f["noise_dn"]
+        # beside a frame the common shift crushed, a clean frame reads noisy (QA of stop 75)
+        low = [j for j in crushed if j != k]
+        why = (
+            f"likely because frame {', '.join(map(str, low))} reads too little: its 16-bit values crushed by the "
+            "pair's common 8-bit shift, as warned above"
+            if low
+            else "a sensor fault or a damaged image"
+        )
         say(f"warning: frame {k}'s image is noisy: its pixel noise reads ~{dn:.0f} grey levels against "
-              f"{', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a sensor fault or a damaged "
-              "image); the maps rest on it, and their elevations are the worse for it (result.json "
-              "info.noisy_frames)", file=sys.stderr)  # fmt: skip
+              f"{', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} ({why}); the maps rest on "
+              "it, and their elevations are the worse for it (result.json info.noisy_frames)",
+              file=sys.stderr)  # fmt: skip
     for f in res.info.get("blank_frames", ()):  # frame 0 blank: every other frame "could not check", unexplained
         others, k = [f"{v:.1f}" for v in f["others_dn"]], f["frame"]
+        # a 16-bit frame the common shift crushed is no black or lost image: the reader's warning names its cause
+        why = (
+            "its 16-bit values crushed to a few grey levels by the pair's common 8-bit shift, as warned above"
+            if k in crushed
+            else "a black, saturated or lost image, or mostly so"
+        )
         say(f"warning: frame {k}'s image is blank: its pixel-scale detail reads {f['noise_dn']:.1f} grey levels "
-              f"against {', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} (a black, saturated "
-              "or lost image, or mostly so); little or nothing in it can be matched (result.json info.blank_frames)",
-              file=sys.stderr)  # fmt: skip
+              f"against {', '.join(others)} in the other frame{'s' if len(others) > 1 else ''} ({why}); little or "
+              "nothing in it can be matched (result.json info.blank_frames)", file=sys.stderr)  # fmt: skip
     if "altimeter_disagreement" in res.info:
         say(f"warning: {res.info['altimeter_disagreement']}; no site is offered on this map (result.json info)",
               file=sys.stderr)  # fmt: skip

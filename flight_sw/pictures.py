@@ -232,6 +232,9 @@ def write_process_report(
     if warnings:  # said on the console only, the page showed a run on swapped frames as a green "full" (QA of stop 66)
         headline.insert(1, Headline("warnings", len(warnings), "warn", "warnings"))
         sections.insert(0, Section("Warnings", paragraphs=warnings))
+    notes = [str(n) for n in doc.get("notes") or []]
+    if notes:  # what reading the pair converted or repaired (16-bit shifted, colour to gray): on the page, not stderr
+        sections.append(Section("Reading the pair", paragraphs=notes))
     written.append(
         write_page(
             out / "report.html",

@@ -25,7 +25,9 @@ before anything is decoded, colour and 16-bit images are converted (with a
 note in :attr:`Pair.notes`), a rotation off orthonormal by up to
 :data:`ORTHONORMAL_TOL` is re-orthonormalised (with a note), quaternions are
 accepted, and geometry that cannot see the ground is refused. Every problem is
-one :class:`PairFormatError` line naming the file.
+one :class:`PairFormatError` line naming the file. What is legal but likely makes
+the maps meaningless (an implausible scale, a 16-bit frame the common shift
+leaves with a few grey levels) is in :attr:`Pair.warnings`.
 """
 
 from __future__ import annotations
@@ -291,7 +293,10 @@ class Pair:
 
     Tools that need exactly two images use :attr:`upper` and :attr:`lower`
     (frames 0 and -1). ``altimeter_m`` holds one slant range per frame (NaN:
-    no reading). ``notes`` collects what reading had to convert or repair.
+    no reading). ``notes`` collects what reading had to convert or repair; ``warnings`` what it found legal but
+    implausible enough to make the maps meaningless (:meth:`scale_notes`, a frame the common 16-bit shift left with
+    a few grey levels: those frames' numbers are ``shallow_frames``). A reader's caller records both with its
+    outputs (``process``: result.json ``notes`` and ``warnings``).
     """
 
     camera: Camera
@@ -302,6 +307,8 @@ class Pair:
     meta: dict[str, Any] = field(default_factory=dict)
     altimeter_m: tuple[float, ...] = ()
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    shallow_frames: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         self.poses = tuple(self.poses)
@@ -785,24 +792,37 @@ def _bright_end(img: np.ndarray) -> int:
     return int(np.partition(flat, k)[k])
 
 
-def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray], list[str]]:
-    """8-bit gray versions of decoded images, and notes on what was converted.
+# a 16-bit frame the common shift leaves fewer bits than this (32 grey levels), where a shift of its own would have
+# kept more, is warned: the frames' bit depths (or exposures) differ, and little in it can be matched
+SHALLOW_BITS = 6
+
+
+def to_gray8(
+    imgs: list[np.ndarray], names: list[str], paths: Sequence[str | Path] | None = None
+) -> tuple[list[np.ndarray], list[str], dict[int, str]]:
+    """8-bit gray versions of decoded images, notes on what was converted, and warnings by frame.
 
     Colour becomes luminance (OpenCV's BT.601 weights). Deeper images are
     shifted right by the same number of bits in every frame (the bits above
     the frames' brightest but a few, :func:`_bright_end`, are unused; those
     few saturate), so the frames keep one common radiometric
-    scale, which the correlation needs.
+    scale, which the correlation needs. A frame whose own values span so many
+    fewer bits than the deepest frame's that the common shift leaves it under
+    :data:`SHALLOW_BITS` (a 16-bit file of 12-bit values beside one of 16) is
+    warned, naming its file: it keeps a few grey levels, which the flight
+    software would otherwise call a blank image. ``names`` name the frames in
+    notes, ``paths`` (default: ``names``) in errors and warnings.
     """
     import cv2
 
+    where = [str(p) for p in (paths if paths is not None else names)]
     notes = []
     out = []
-    for img, name in zip(imgs, names):
+    for k, img in enumerate(imgs):
         if img.ndim == 3:
             code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(img.shape[2])
             if code is None:
-                raise PairFormatError(f"{name}: {img.shape[2]} channels (need gray, BGR or BGRA)")
+                raise PairFormatError(f"{where[k]}: {img.shape[2]} channels (need gray, BGR or BGRA)")
             gray = (
                 img.shape[2] == 4
                 and np.array_equal(img[..., 0], img[..., 1])
@@ -810,33 +830,47 @@ def to_gray8(imgs: list[np.ndarray], names: list[str]) -> tuple[list[np.ndarray]
             )
             # gray+alpha, which the decoder gives as BGRA: nothing was colour (QA of stop 73)
             notes.append(
-                f"{name}: gray with an alpha channel: the alpha left out"
+                f"{names[k]}: gray with an alpha channel: the alpha left out"
                 if gray
-                else f"{name}: colour converted to gray"
+                else f"{names[k]}: colour converted to gray"
             )
             out.append(cv2.cvtColor(img, code))
         else:
             out.append(img)
+    warnings: dict[int, str] = {}
     deep = [k for k, img in enumerate(out) if img.dtype != np.uint8]
     if deep:
         for k in deep:
             if out[k].dtype not in (np.uint16, np.dtype(">u2")):
-                raise PairFormatError(f"{names[k]}: {out[k].dtype} pixels (need 8- or 16-bit unsigned)")
+                raise PairFormatError(f"{where[k]}: {out[k].dtype} pixels (need 8- or 16-bit unsigned)")
         # the scale from a high percentile, not the maximum: one hot pixel at 65535 in a 12-bit image shifted it by 8
         # bits, not 4, and left ~9 grey levels (coverage 96 % -> 41 %, no warning; QA of stop 73). The few pixels
         # above it saturate at 255 and are counted
-        top = max(_bright_end(out[k]) for k in deep)
+        ends = {k: _bright_end(out[k]) for k in deep}
+        top_k = max(deep, key=lambda k: ends[k])
+        top = ends[top_k]
         shift = max(0, top.bit_length() - 8)
         clipped = 0
         for k in deep:
             shifted = np.right_shift(out[k].astype(np.uint16), shift)
             clipped += int(np.count_nonzero(shifted > 255))
             out[k] = np.minimum(shifted, 255).astype(np.uint8)
+            own = ends[k].bit_length()
+            kept = max(0, own - shift)
+            # the shift took bits this frame would have kept with a shift of its own (a 12-bit frame beside a 16-bit
+            # one kept 16 grey levels and was then called a blank, black or lost image; QA of stop 75)
+            if kept < SHALLOW_BITS and kept < min(own, 8):
+                levels = len(np.unique(out[k]))
+                warnings[k] = (
+                    f"{where[k]}: after the common 8-bit shift (right by {shift} bits, set by {names[top_k]}) it keeps "
+                    f"only {levels} grey levels: its values span {own} bits, {names[top_k]}'s {top.bit_length()}; "
+                    "a pair's 16-bit frames must share one bit depth and radiometric scale"
+                )
         notes.append(
             f"16-bit images ({', '.join(names[k] for k in deep)}) shifted right by {shift} bits to 8-bit"
             + (f"; {clipped} of their brightest pixels saturated" if clipped else "")
         )
-    return out, notes
+    return out, notes, warnings
 
 
 def _load_json(path: Path) -> Any:
@@ -1119,7 +1153,7 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
         n = len(frames) if isinstance(frames, list) else "none" if frames is None else kinds.get(type(frames), "?")
         raise PairFormatError(f"{meta_path}: 'frames' must list {MIN_FRAMES} to {MAX_FRAMES} frames, got {n}")
     notes: list[str] = []
-    poses, raw, names, alts = [], [], [], []
+    poses, raw, names, paths, alts = [], [], [], [], []
     for k, fr in enumerate(frames):
         pose, img_name, alt = _frame_pose(fr, k, meta_path)
         pose, note = pose.orthonormalised(f"{meta_path}: frame {k}")
@@ -1142,8 +1176,9 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
         poses.append(pose)
         raw.append(img)
         names.append(img_name)
+        paths.append(img_path)
         alts.append(alt)
-    images, conv = to_gray8(raw, names)
+    images, conv, shallow = to_gray8(raw, names, paths)
     notes += conv
     sun = None
     if doc.get("sun") is not None:
@@ -1185,7 +1220,11 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
         pair.validate()
     except PairFormatError as exc:  # validate() speaks of frames; name the file they are in
         raise PairFormatError(f"{meta_path}: {exc}") from None
-    pair.notes += pair.scale_notes()
+    # implausible scales make the maps meaningless: warnings, which `process` records with its outputs (they were
+    # notes on stderr alone: a pair in km gave a DEM in km with an empty result.json warnings; QA of stop 75)
+    pair.warnings += [f"{meta_path}: {n}" for n in pair.scale_notes()]
+    pair.warnings += list(shallow.values())
+    pair.shallow_frames = tuple(sorted(shallow))
     pair.notes += [f"{meta_path}: {n}" for n in same_time_notes(pair.poses)]
     return pair
 

@@ -770,3 +770,89 @@ def test_an_install_without_the_compiled_kernels_is_said(tmp_path, capsys, monke
     assert any(w.startswith("the install built no compiled kernel") for w in doc["warnings"]), doc["warnings"]
     assert "then `.venv/bin/pip install -e .` builds them" in kernel_note({"kernels_missing": missing})
     assert kernel_note({"kernels_missing": []}) == "" and kernel_note({}) == ""
+
+
+def _copy_without_truth(d: Path, dst: Path, camera: dict | None = None, scale_m: float = 1.0) -> Path:
+    """``d``'s pair.json and images in ``dst`` (no truth), its camera updated by ``camera`` and its positions
+    multiplied by ``scale_m`` (their altimeter readings and true poses dropped)."""
+    dst.mkdir()
+    for f in d.iterdir():
+        if not f.name.startswith("gt_") and f.name != "pair.json":
+            (dst / f.name).write_bytes(f.read_bytes())
+    doc = json.loads((d / "pair.json").read_text())
+    doc["camera"].update(camera or {})
+    for fr in doc["frames"]:
+        fr["position_m"] = [v * scale_m for v in fr["position_m"]]
+        fr.pop("altimeter_m", None)
+    doc.pop("true_frames", None)
+    (dst / "pair.json").write_text(json.dumps(doc))
+    return dst
+
+
+def test_the_readers_warnings_and_notes_are_recorded_in_result_json_and_on_the_page(tmp_path, capsys):
+    """QA of stop 75: positions in km ("frame 1 sees 0.00063 m per pixel ... positions must be in metres") were a
+    note on stderr alone: exit 0, a DEM in km, result.json `warnings` [] and nothing on report.html. The reader's
+    warnings are the run's first warnings; its notes (a 16-bit frame shifted) are result.json `notes`, on the page
+    too."""
+    import cv2
+
+    d, _ = _pair(tmp_path)
+    km = _copy_without_truth(d, tmp_path / "km", scale_m=1e-3)
+    i2 = cv2.imread(str(km / "i2.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(km / "i2.png"), i2.astype(np.uint16) * 257)  # a 16-bit frame: converted, with a note
+    out = tmp_path / "out"
+    assert main(["process", str(km), "--out", str(out), "--sites", "0"]) == 0
+    err = capsys.readouterr().err
+    doc = json.loads((out / "result.json").read_text())
+    scale = [w for w in doc["warnings"] if "positions must be in metres" in w]
+    assert len(scale) == 1 and scale[0].startswith(f"{km / 'pair.json'}: frame "), doc["warnings"]
+    assert doc["warnings"][0] == scale[0] and f"warning: {scale[0]}" in err  # the reader's, first, as said
+    assert doc["notes"] == ["16-bit images (i2.png) shifted right by 8 bits to 8-bit"], doc["notes"]
+    page = (out / "report.html").read_text()
+    assert ">Warnings<" in page and "positions must be in metres" in page
+    assert ">Reading the pair<" in page and "shifted right by 8 bits" in page
+
+
+def test_a_camera_too_small_to_map_is_its_one_error_without_a_note_before_it(tmp_path, capsys):
+    """A 2 px camera: `process` printed the reader's "160 m per pixel ... positions must be in metres" first, then
+    the real error (QA of stop 75). The pipeline's own checks come before anything is said of the pair."""
+    from PIL import Image
+
+    d, _ = _pair(tmp_path)
+    tiny = _copy_without_truth(d, tmp_path / "tiny", {"width": 2, "height": 2, "fx": 1.0, "fy": 1.0, "cx": 0.5,
+                                                       "cy": 0.5})  # fmt: skip
+    for f in ("i1.png", "i2.png"):
+        Image.fromarray(np.full((2, 2), 120, np.uint8)).save(tiny / f)
+    from protocol.pairdir import read_pair
+
+    assert any("m per pixel" in w for w in read_pair(tiny).scale_notes())  # the reader has a word to say, unsaid
+    assert main(["process", str(tiny), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("hazard-hil process: error: "), err
+    assert f"{tiny / 'pair.json'}: camera: images of 2x2 px are too small to map" in err, err
+
+
+def test_a_16_bit_frame_the_common_shift_crushed_is_not_called_a_lost_image(tmp_path, capsys):
+    """i1.png 12-bit values in a 16-bit file, i2.png full 16-bit: the one shift left i1 ~16 grey levels, and the only
+    words were "frame 0's image is blank ... (a black, saturated or lost image)" (QA of stop 75). The reader's
+    warning names the file and the bit spans; the blank-image warning points to it."""
+    import cv2
+
+    d, _ = _pair(tmp_path)
+    mixed = _copy_without_truth(d, tmp_path / "mixed")
+    for f, gain in (("i1.png", 16), ("i2.png", 257)):
+        img = cv2.imread(str(mixed / f), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(mixed / f), img.astype(np.uint16) * gain)
+    out = tmp_path / "out"
+    assert main(["process", str(mixed), "--out", str(out), "--sites", "0"]) == 0
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith(f"warning: {(mixed / 'i1.png').resolve()}: ")]
+    assert len(lines) == 1 and "its values span 12 bits, i2.png's 16" in lines[0], err
+    # the noise readings compare frame 0's ~16 levels with frame 1's 256: at this size frame 1 reads noisy (at 256
+    # px frame 0 read blank): either warning points to the shift, not to a lost image or a sensor fault
+    said = [line for line in err.splitlines() if "image is blank" in line or "image is noisy" in line]
+    assert said, err
+    for line in said:
+        assert "lost image" not in line and "sensor fault" not in line and "common 8-bit shift" in line, err
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["warnings"][0] == lines[0].removeprefix("warning: ")

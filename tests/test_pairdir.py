@@ -169,10 +169,16 @@ def test_hostile_or_broken_input_is_one_clear_error(tmp_path, attack, message):
 
 
 def test_positions_in_km_are_flagged(tmp_path):
+    """A warning naming pair.json, not a note: the caller records warnings with its outputs (`process` printed the
+    notes on stderr alone, and a pair in km left a DEM in km with an empty result.json warnings; QA of stop 75)."""
     pair = make_pair()
     pair.poses = (Pose([0, 0, 0.6], NADIR, 0.0), Pose([0, 0, 0.3], NADIR, 12.5))
     write_pair(tmp_path, pair)
-    assert any("metres" in n for n in read_pair(tmp_path).notes)
+    back = read_pair(tmp_path)
+    said = [w for w in back.warnings if "positions must be in metres" in w]
+    assert len(said) == 1 and said[0].startswith(f"{tmp_path / 'pair.json'}: frame "), back.warnings
+    write_pair(tmp_path, make_pair())  # a pair in metres has none
+    assert read_pair(tmp_path).warnings == []
 
 
 def test_atomic_write_keeps_a_concurrent_copy_and_leaves_no_partial(tmp_path):
@@ -369,7 +375,8 @@ def test_a_hot_pixel_does_not_set_a_small_16_bit_frames_scale_either():
 
     img = (np.arange(64 * 64, dtype=np.uint16).reshape(64, 64) % 4000).astype(np.uint16)
     img[0, 0] = 65535
-    (out,), notes = to_gray8([img], ["i1.png"])
+    (out,), notes, warned = to_gray8([img], ["i1.png"])
+    assert warned == {}
     assert "shifted right by 4" in notes[0] and out[0, 0] == 255 and out[0, 32] == 32 >> 4  # 12-bit, by 4 bits
 
 
@@ -387,3 +394,40 @@ def test_frames_at_one_time_but_different_heights_are_said(tmp_path):
     said = [n for n in read_pair(tmp_path).notes if "same time_s" in n]
     assert len(said) == 1 and "frames 0 and 1 have the same time_s (0 s) 300 m apart in height" in said[0], said
     assert str(tmp_path / "pair.json") in said[0]
+
+
+def test_a_16_bit_frame_the_common_shift_crushes_is_warned_naming_its_file(tmp_path):
+    """i1.png a 16-bit file of 12-bit values, i2.png of full 16-bit range: the one shift (8 bits) every frame gets
+    left i1 ~16 grey levels, and the flight software then called it a blank, "black, saturated or lost" image (QA of
+    stop 75). The reader keeps the one shift (docs/design.md) and says the cause in one line naming the file."""
+    import cv2
+
+    pair = make_pair()
+    write_pair(tmp_path, pair)
+    cv2.imwrite(str(tmp_path / "i1.png"), pair.images[0].astype(np.uint16) * 16)
+    cv2.imwrite(str(tmp_path / "i2.png"), pair.images[1].astype(np.uint16) * 257)
+    back = read_pair(tmp_path)
+    np.testing.assert_array_equal(back.images[1], pair.images[1])  # one shift for both: 8 bits
+    np.testing.assert_array_equal(back.images[0], pair.images[0] >> 4)
+    assert back.shallow_frames == (0,)
+    (said,) = back.warnings
+    assert said.startswith(f"{(tmp_path / 'i1.png').resolve()}: after the common 8-bit shift"), said
+    assert "keeps only 16 grey levels: its values span 12 bits, i2.png's 16" in said and "\n" not in said, said
+    # frames of one depth, however deep, are not warned: 12-bit values in both, or a hot pixel in one
+    cv2.imwrite(str(tmp_path / "i2.png"), pair.images[1].astype(np.uint16) * 16)
+    same = read_pair(tmp_path)
+    assert same.warnings == [] and same.shallow_frames == ()
+
+
+def test_a_float_tiff_is_refused_naming_its_path(tmp_path):
+    """Every refusal names the file's path; the float-TIFF one gave the bare name (QA of stop 75)."""
+    import cv2
+
+    pair = make_pair()
+    write_pair(tmp_path, pair)
+    for k in (0, 1):
+        cv2.imwrite(str(tmp_path / f"i{k + 1}.tif"), pair.images[k].astype(np.float32) / 255)
+    _rewrite(tmp_path, lambda doc: [f.update(image=f["image"].replace(".png", ".tif")) for f in doc["frames"]])
+    with pytest.raises(PairFormatError) as exc:
+        read_pair(tmp_path)
+    assert str(exc.value) == f"{(tmp_path / 'i1.tif').resolve()}: float32 pixels (need 8- or 16-bit unsigned)"
