@@ -29,15 +29,26 @@ class MotionState:
         return MotionState(rot_exp(d[0:3]) @ self.R1, rot_exp(d[3:6]) @ self.R2, b / np.linalg.norm(b))
 
 
+def relative_whitening(nav: MotionState, s_r: float, s_axis: float | None) -> np.ndarray | None:
+    """Whitening of the relative-rotation prior when its sd differs about frame 1's optical axis: ``W r`` with
+    ``W = diag(1/s_r, 1/s_r, 1/s_axis) R1`` (``R1``'s rows are frame 1's camera axes in world coordinates, the
+    third its optical axis). None when the prior is isotropic (``s_axis`` None or ``s_r``): ``r / s_r``."""
+    if s_axis is None or s_axis == s_r:
+        return None
+    return np.diag([1.0 / s_r, 1.0 / s_r, 1.0 / s_axis]) @ nav.R1
+
+
 def _prior_residuals(
-    s: MotionState, nav: MotionState, B_nav: np.ndarray, sig: tuple[float, float, float]
+    s: MotionState, nav: MotionState, B_nav: np.ndarray, sig: tuple[float, float, float], W: np.ndarray | None
 ) -> np.ndarray:
     """Whitened navigation priors (world axes): frame-1 attitude error ``e1 = c``, frame-2 error ``e2 = c + r``
-    (``c`` common to both frames, ``r`` accrued between them), and the baseline direction."""
+    (``c`` common to both frames, ``r`` accrued between them; ``W r`` with :func:`relative_whitening`'s ``W``
+    where given), and the baseline direction."""
     e1 = nav.R1.T @ rot_log(s.R1 @ nav.R1.T)
     e2 = nav.R2.T @ rot_log(s.R2 @ nav.R2.T)
     s_c, s_r, s_dir = sig
-    return np.r_[e1 / s_c, (e2 - e1) / s_r, (B_nav.T @ s.b) / s_dir]
+    rel = (e2 - e1) / s_r if W is None else W @ (e2 - e1)
+    return np.r_[e1 / s_c, rel, (B_nav.T @ s.b) / s_dir]
 
 
 def _data_residuals(s: MotionState, K: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
@@ -79,19 +90,22 @@ def map_refine(
     cauchy_k: float,
     max_iterations: int,
     start: MotionState | None = None,
+    axis_sigma: float | None = None,
 ) -> tuple[MotionState, np.ndarray, np.ndarray, int, bool]:
     """Levenberg-Marquardt on ``sum rho(r_i / sigma_px) + |prior|^2`` with Cauchy ``rho`` (IRLS weights).
 
-    Returns the state, the data residuals (px), the 8x8 posterior covariance
-    (rad^2), the iterations and whether the step converged.
+    ``axis_sigma``: the relative rotation's prior sd about frame 1's optical axis, where it differs from
+    ``prior_sigmas[1]`` (:func:`relative_whitening`). Returns the state, the data residuals (px), the 8x8
+    posterior covariance (rad^2), the iterations and whether the step converged.
     """
     B_nav = tangent_basis(nav.b)
+    W = relative_whitening(nav, prior_sigmas[1], axis_sigma)
     c = cauchy_k
     u1, u2 = homog(u1), homog(u2)
 
     def cost(s: MotionState) -> tuple[float, np.ndarray, np.ndarray]:
         r = _data_residuals(s, K, u1, u2) / sigma_px
-        q = _prior_residuals(s, nav, B_nav, prior_sigmas)
+        q = _prior_residuals(s, nav, B_nav, prior_sigmas, W)
         return float(c * c * np.log1p((r / c) ** 2).sum() + q @ q), r, q
 
     s = start or nav
@@ -109,8 +123,12 @@ def map_refine(
             J[:, k] = (sampson_px(F + h * dF[k], u1, u2) - sampson_px(F - h * dF[k], u1, u2)) / (2 * h * sigma_px)
         # priors: first-order derivatives (d log(exp(d) R) ~ d for the sub-degree errors at stake)
         Jq[0:3, 0:3] = nav.R1.T / s_c
-        Jq[3:6, 0:3] = -nav.R1.T / s_r
-        Jq[3:6, 3:6] = nav.R2.T / s_r
+        if W is None:
+            Jq[3:6, 0:3] = -nav.R1.T / s_r
+            Jq[3:6, 3:6] = nav.R2.T / s_r
+        else:
+            Jq[3:6, 0:3] = -W @ nav.R1.T
+            Jq[3:6, 3:6] = W @ nav.R2.T
         Jq[6:8, 6:8] = B_nav.T @ tangent_basis(s.b) / s_dir
         w = 1.0 / (1.0 + (r / c) ** 2)
         A = J.T @ (J * w[:, None]) + Jq.T @ Jq

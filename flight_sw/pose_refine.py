@@ -195,6 +195,9 @@ class RefineParams:
     # campaign, vertical pairs under navigation errors: DEM mean |error| 2.65 -> 0.47 m median
     # (docs/benchmarks/pose.md, "Nadir pairs")
     held_rel_att_sigma_deg: float = 0.03
+    # ... about the two axes across the view only: the rotation about frame 1's optical axis keeps the free fit's
+    # prior (nav_rel_att_sigma_deg), since a roll turns the image and no baseline change does that
+    held_axis_free: bool = True
     # ... unless that moves the ground's image by less than this (px): the held fit maps the ground to
     # ~0.4 px of the truth from poses 2.7 px off, and moves exact poses by 0.05-0.20 px (tuning renders'
     # vertical pairs, p10-p90), so a smaller correction is not evidence and navigation is kept
@@ -490,14 +493,18 @@ def _map_solve(
     sigmas: tuple[float, float, float],
     p: RefineParams,
     info: dict[str, Any],
+    axis_sigma: float | None = None,
 ) -> tuple[MotionState, np.ndarray, float]:
     """Step 3 of the module doc: MAP pose from the inlier matches under ``sigmas`` (frame-1 attitude,
-    added frame-2 attitude, baseline direction; rad). Writes the fit's telemetry into ``info``; returns
-    the state, the inlier mask and the inliers' depth spread (:func:`_depth_spread`) under it."""
+    added frame-2 attitude, baseline direction; rad; ``axis_sigma``: the added attitude's about frame 1's
+    optical axis, where it differs). Writes the fit's telemetry into ``info``; returns the state, the inlier
+    mask and the inliers' depth spread (:func:`_depth_spread`) under it."""
     # matching noise: robust spread of the residuals at the navigation pose's best fit, floored
-    s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations)
+    s, r, _, _, _ = map_refine(K, v1, v2, nav, sigmas, 1.0, p.cauchy_k, p.max_iterations, axis_sigma=axis_sigma)
     sigma_px = max(p.sigma_px_min, 1.4826 * float(np.median(np.abs(r))))
-    s, r, cov, iters, converged = map_refine(K, v1, v2, nav, sigmas, sigma_px, p.cauchy_k, p.max_iterations, s)
+    s, r, cov, iters, converged = map_refine(
+        K, v1, v2, nav, sigmas, sigma_px, p.cauchy_k, p.max_iterations, s, axis_sigma=axis_sigma
+    )
     inl = np.abs(r) < max(1.0, 3.0 * sigma_px)
     R21 = s.R2 @ s.R1.T
     R21_nav = nav.R2 @ nav.R1.T
@@ -616,10 +623,14 @@ def _refine_matches(
     s_held = math.radians(p.held_rel_att_sigma_deg)
     spread_nav = _depth_spread(*relative_pose(pose1, pose2), v1, v2, Ki)
     held = can_hold and spread_nav < p.min_depth_spread
-    s_rel = s_held if held else math.radians(p.nav_rel_att_sigma_deg)
-    s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, s_rel, s_dir), p, info)
+    s_free = math.radians(p.nav_rel_att_sigma_deg)
+    s_rel = s_held if held else s_free
+    # held: only the axes across the view are confounded with the baseline; a roll about the optical axis turns
+    # the image, which no baseline change does (a 0.5 deg roll was kept as "navigation agrees"; QA of stop 75)
+    s_axis = s_free if p.held_axis_free else None
+    s, inl, spread = _map_solve(K, v1, v2, nav, (s_att, s_rel, s_dir), p, info, s_axis if held else None)
     if can_hold and not held and spread < p.min_depth_spread:
-        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, s_held, s_dir), p, info)
+        s, inl, _ = _map_solve(K, v1, v2, nav, (s_att, s_held, s_dir), p, info, s_axis)
         held = True
     info.update(depth_spread=spread, depth_spread_nav=spread_nav, relative_rotation_held=held)
     info["spread"] = _spread(v1[inl], mask, roi)
