@@ -50,6 +50,37 @@ def test_range_search_finds_ground_50m_below_datum(deep_pair):
     assert v1.valid_fraction < 0.05 or np.nanmean(np.abs(v1.elevation - z)) > 5.0
 
 
+def test_range_search_spans_20m_of_relief_on_a_floor_50m_below_datum():
+    """The crater test above has a flat floor, where the 5-95 % percentiles and the 40-60 % ones coincide, and its
+    padding hides a range cut to the percentiles (mutation audit of stop 75). Here the floor 50 m below the datum
+    climbs 20 m (a 27 deg ramp from -60 m to -40 m between flats): the found range is the quarter-resolution
+    elevations' 5-95 % percentiles padded by two coarse plane steps and 3 % of the depth (module doc), so it
+    holds the whole relief, and what is left once the padding is taken off spans most of it."""
+    from flight_sw.sweep import planes_uniform_disparity, scaled_camera
+
+    cam, p1, p2, i1, i2, z = make_pair(256, 200.0, 100.0, lambda x, y: -50.0 + np.clip(0.5 * x, -10.0, 10.0), seed=36)
+    lo, hi, src = prior_range(p1, p2, None)
+    gr = find_ground(i1, i2, cam, p1, p2, lo, hi)
+    assert src == "wide" and gr.found and -55.0 < gr.median_z < -45.0
+    # the padding, as documented: the coarse pass is at quarter resolution for a 256 px camera
+    planes = planes_uniform_disparity(scaled_camera(cam, 2), p1, p2, lo, hi, 0.5)
+    assert planes.size == gr.planes
+    pad = 2.0 * float(np.max(np.diff(planes))) + 0.03 * (200.0 - gr.median_z)
+    core = (gr.z_lo + pad, gr.z_hi - pad)  # the 5th and 95th percentiles the pass measured
+    # they are elevations of ground that is there, and they span most of the 20 m (measured: 18 m; the 40-60 %
+    # percentiles would span ~4 m)
+    assert -62.0 < core[0] < core[1] < -38.0 and core[1] - core[0] > 15.0
+    res = run_pipeline(i1, i2, p1, p2, cam, preset="fast")
+    seen = z[res.covered]  # the ground both frames see: the range the fine sweeps get holds all of it
+    assert seen.min() == pytest.approx(-60.0) and seen.max() == pytest.approx(-40.0)
+    assert gr.z_lo < seen.min() and gr.z_hi > seen.max() and gr.z_hi - gr.z_lo < 0.6 * (hi - lo)
+    assert res.level == "full" and res.valid_fraction > 0.9
+    err = np.abs(res.elevation - z)
+    for band in (z < -59.5, (z > -59.0) & (z < -41.0), z > -40.5):  # the low floor, the ramp, the high floor
+        on = band & res.covered & np.isfinite(err)
+        assert on.sum() > 2000 and np.mean(err[on]) < 0.4, (on.sum(), np.mean(err[on]))
+
+
 def test_altimeter_centres_the_search(deep_pair):
     cam, p1, p2, i1, i2, z = deep_pair
     slant = 250.0  # nadir camera 200 m above the datum, ground at -50 m
@@ -86,15 +117,17 @@ def no_256_model(monkeypatch):
     monkeypatch.setattr(psafe, "SHIPPED_MODELS", (psafe.MODEL_PATH,))
 
 
-def _blank_texture_pair(size=256, seed=32):
-    """Textured plane at -2 m with a square of uniform albedo (no texture at all) in the middle."""
+def _blank_texture_pair(size=256, seed=32, contrast=0.0):
+    """Textured plane at -2 m with a square of uniform albedo (no texture at all) in the middle; with
+    ``contrast`` > 0 the square keeps that fraction of its texture's contrast about mid-grey."""
     cam = camera_fov30(size)
     p1 = Pose(np.array([0.0, 0.0, 200.0]), NADIR_R)
     p2 = Pose(np.array([0.0, 0.0, 100.0]), NADIR_R)
     tex = Texture.random(130.0, (100.0 / cam.fx) / 1.5, seed)
     c = tex.img.shape[0] // 2
     half = int(round(12.0 / tex.cell))  # a 24 m square
-    tex.img[c - half : c + half, c - half : c + half] = 128.0
+    square = tex.img[c - half : c + half, c - half : c + half]
+    tex.img[c - half : c + half, c - half : c + half] = 128.0 + contrast * (square - 128.0)
     i1, z1 = render(cam, p1, plane(-2.0), tex)
     i2, _ = render(cam, p2, plane(-2.0), tex)
     # the square's pixels in i1: world |X|, |Y| < 12 m (nadir, +X right, +Y up)
@@ -106,13 +139,23 @@ def _blank_texture_pair(size=256, seed=32):
     return cam, p1, p2, i1, i2, z1, blank, textured
 
 
-def test_sigma_grows_where_texture_vanishes(no_256_model):
-    cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair()
+def test_sigma_grows_where_texture_fades(no_256_model):
+    """Where the texture fades (a square at 5 % of its contrast, ~2 grey levels) the pixels are still matched but
+    their sigma is clearly larger than on textured ground. Until the mutation audit of stop 75 this test used a blank
+    square only, where nothing is matched and the sigma is NaN: a sigma blind to the cost curve's curvature passed
+    (it reads the same 0.14 planes on both here)."""
+    cam, p1, p2, i1, i2, z, faint, textured = _blank_texture_pair(contrast=0.05)
     res = run_pipeline(i1, i2, p1, p2, cam)
     assert res.sigma is not None and res.sigma.dtype == np.float32
     cov = res.covered
     tex_sig = np.nanmedian(res.sigma[cov & textured])
+    sf = res.sigma[cov & faint]
+    assert np.isfinite(sf).sum() >= 100 and np.isfinite(sf).mean() > 0.9  # matched, not left out (measured: all)
+    assert np.median(sf[np.isfinite(sf)]) > 3.0 * tex_sig  # measured: 0.70 vs 0.14
     # on blank ground: either no elevation at all, or one with a much larger sigma
+    cam, p1, p2, i1, i2, z, blank, textured = _blank_texture_pair()
+    res = run_pipeline(i1, i2, p1, p2, cam)
+    cov = res.covered
     sb = res.sigma[cov & blank]
     big = ~np.isfinite(sb) | (sb > 3.0 * tex_sig)
     assert (cov & blank).sum() > 200 and big.mean() > 0.9
@@ -369,6 +412,32 @@ def test_the_winners_uniqueness_test_on_strips_equals_one_copy_of_the_sum(monkey
         s0 = np.take_along_axis(S, k[..., None], 2)[..., 0].astype(np.float32)
         s2 = np.take_along_axis(S2, k2[..., None], 2)[..., 0].astype(np.float32)
         assert np.array_equal(m.uniq, (s2 - s0) / np.maximum(s0, 1.0))
+
+
+def test_plane_sigma_follows_its_formula():
+    """``sgm.plane_sigma``: sigma^2 = T / kappa + 1/12 + w (k2 - k)^2, w = max(0, 1 - uniq / uniq_scale); inf where
+    the cost curve is not convex. A sigma that ignored the curvature, or the second minimum, passed the pipeline
+    tests (mutation audit of stop 75)."""
+    from flight_sw.sgm import plane_sigma
+
+    T = 4.0
+    kappa = np.array([0.25, 0.5, 1.0, 2.0, 4.0, 16.0, 64.0, 1e4], np.float32)
+    s = plane_sigma(kappa, T)
+    assert s.dtype == np.float32 and np.all(np.diff(s) < 0)  # the sharper the minimum, the surer the plane
+    assert s == pytest.approx(np.sqrt(T / kappa + 1.0 / 12.0), rel=1e-6)
+    assert s[0] > 3.0 * s[-1]  # a flat minimum is several planes uncertain, a sharp one about a quantum (1/12)
+    assert np.all(np.isinf(plane_sigma(np.array([0.0, -2.0], np.float32), T)))  # not convex
+    # the ambiguity of a second minimum 3 planes away: counts fully at uniq 0, not at all from uniq_scale up
+    uniq = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.5], np.float32)
+    k4, jump = np.full(uniq.shape, 4.0, np.float32), np.full(uniq.shape, 3.0, np.float32)
+    amb = plane_sigma(k4, T, uniq, jump, uniq_scale=0.2)
+    w = np.clip(1.0 - uniq / 0.2, 0.0, 1.0)
+    assert amb == pytest.approx(np.sqrt(T / 4.0 + 1.0 / 12.0 + w * 9.0), rel=1e-6)
+    assert np.all(np.diff(amb[:5]) < 0) and amb[0] > 2.5 * amb[4]  # grows as the second minimum nears the first
+    assert amb[4] == amb[5] == pytest.approx(plane_sigma(k4[:1], T)[0], rel=1e-6)  # no ambiguity past the scale
+    far = plane_sigma(k4[:3], T, np.full(3, 0.05, np.float32), np.array([1.0, 2.0, 6.0], np.float32), 0.2)
+    assert np.all(np.diff(far) > 0)  # and with its distance
+    assert plane_sigma(k4, T, uniq, jump, uniq_scale=0.0) == pytest.approx(plane_sigma(k4, T))  # scale 0: off
 
 
 def test_a_slab_handed_over_gives_the_same_dem_and_is_freed(deep_pair):

@@ -645,6 +645,30 @@ def test_a_pair_whose_sites_are_withheld_is_not_fused_into_the_descents_map():
     assert np.array_equal(g2.state, g1.state) and np.any(g2.state == STATE_SAFE)  # the map fused so far
 
 
+def test_the_result_carries_the_maps_states_code_for_code():
+    """The Result's state grid is the fused map's, code for code: an unsafe cell goes out as 1, unknown as 2,
+    outside as 255, through the encoder too. The HIL runs only check that the codes are among {0, 1, 2, 255}; a
+    Result that sent every unsafe cell as unknown passed them (mutation audit of stop 75)."""
+    from types import SimpleNamespace
+
+    from flight_sw.flight_main import FlightProcess
+    from protocol.codec import decode_message, encode_message
+    from protocol.messages import Config, Result
+
+    codes = np.array([STATE_SAFE, STATE_UNSAFE, STATE_UNKNOWN, STATE_OUTSIDE], np.uint8)
+    state = codes[(np.arange(6 * 8).reshape(6, 8) * 7 // 3) % 4]
+    assert set(np.unique(state)) == set(codes)
+    grid = grid_of(state, np.where(state == STATE_SAFE, 0.95, 0.3), origin=(-3.0, 4.0), cell=0.5)
+    res = SimpleNamespace(degraded=False, level="full", info={}, hazard=None, elevation=None, state=None, filled=None)
+    cam = {"width": 128, "height": 128, "fx": 238.9, "fy": 238.9, "cx": 63.5, "cy": 63.5}
+    cfg = Config(camera=cam, budget="host", deadline_s=30.0, preset="fast", options={})
+    msg = FlightProcess._result_message(res, (1, 2), cfg, grid, [], None)
+    assert msg.state_grid.dtype == np.uint8 and np.array_equal(msg.state_grid, state)
+    back = decode_message(encode_message(msg))
+    assert isinstance(back, Result) and np.array_equal(back.state_grid, state)
+    assert (back.state_grid == STATE_UNSAFE).sum() == (state == STATE_UNSAFE).sum() > 0
+
+
 def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_cost(monkeypatch):
     """The first pair of a Config plans its reserves from the nominal slowdown; each later one from the
     largest measured cost of the reserved work on the last pairs (anytime.measured_reserve_ratio); a new

@@ -431,6 +431,23 @@ def test_a_result_recorded_without_its_telemetry_has_no_line_time(tmp_path):
     assert rec["e2e_latency_s"] == pytest.approx(4.5) and rec["telemetry_missing"].startswith("no Telemetry")
 
 
+def test_a_results_deadline_is_met_up_to_and_including_its_end_to_end_latency(tmp_path):
+    """``deadline_met`` is ``e2e_latency_s <= deadline_s`` (docs/hil.md): a Result 4.5 s end to end misses a 4.4 s
+    deadline and meets one of exactly 4.5 s. The unit tests set a 10 s deadline only, which a record calling every
+    Result that came met passed (mutation audit of stop 75: only a 30 s end-to-end run killed it)."""
+    from resultrev import small_result
+
+    from ground_sim.stream import PairOutcome, write_outcome
+
+    o = PairOutcome("p000", "600/300", 300.0, str(tmp_path), (0, 1), sent_at=1.0)
+    o.result, o.frames_written_at, o.result_t_first, o.result_t_done = small_result(), 2.0, 5.0, 6.5
+    o.telemetry_missing = "no Telemetry came within 10 s of its Result"
+    for deadline, met in ((4.4, False), (4.5, True), (10.0, True)):
+        rec = write_outcome(tmp_path, o, deadline)
+        assert rec["status"] == "result" and rec["e2e_latency_s"] == 4.5
+        assert rec["deadline_met"] is met and rec["deadline_margin_s"] == pytest.approx(deadline - 4.5), deadline
+
+
 def test_an_answer_that_beat_its_frames_written_stamp_has_no_negative_latency(tmp_path):
     """Under load the writer stamps a frame "written" late, after a fast flight side's Result had arrived: the
     end-to-end latency read -0.00 s (a CI run with 4 workers on 2 cores). No answer starts before the frames are

@@ -59,6 +59,17 @@ def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manif
         assert r["deadline_margin_s"] == pytest.approx(0.1 - r["e2e_latency_s"])
     assert not any(r["deadline_met"] for r in recs) and s["deadline_hit_rate"] == 0.0
     assert min(r["flight_latency_s"] for r in recs) < 0.1  # computed in time, late only on the line
+    # the HIL server's own view agrees: judged from the last frame in to the Result acknowledged, so it holds the
+    # Result's line time; a server that judged on the flight latency alone, or called every pair met, passed the
+    # ground's checks above (mutation audit of stop 75)
+    for r in recs:
+        assert r["flight_deadline_met"] is False  # the Telemetry's verdict is the server's
+        assert r["server_e2e_s"] >= r["flight_latency_s"] + r["result_line_s"] > 0.1
+    events = [json.loads(line) for line in (out / "supervisor.jsonl").read_text().splitlines()]
+    served = [e for e in events if e["event"] == "result"]
+    assert [e["pair_id"] for e in served] == [r["pair_id"] for r in recs]
+    assert not any(e["server_deadline_met"] for e in served) and all(e["server_e2e_s"] > 0.1 for e in served)
+    assert s["supervisor_counters"]["deadline_missed"] == len(recs) == s["deadline_missed"]
     assert "over **serial** (115200 baud)" in (out / "summary.md").read_text()
 
 

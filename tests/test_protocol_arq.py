@@ -404,6 +404,33 @@ def test_duplicated_frames_on_the_line_give_each_message_once():
     assert line.eps[1].stats["duplicates_dropped"] > 0
 
 
+def test_partly_overlapping_segments_give_each_stream_byte_once():
+    """A segment held out of order that the in-order one then partly covers gives only its new bytes: DATA
+    [10, n) then [0, 15) is the stream [0, n) once, and its two messages once each. A receiver that handed on the
+    whole held segment (bytes 10-14 twice) passed every test (mutation audit of stop 75)."""
+    from protocol.arq import RECORD
+    from protocol.messages import Error
+
+    a, b = Arq(ArqConfig(), now=0.0), Arq(ArqConfig(), now=0.0)
+    line = SimLine(a, b, rate=1e5)
+    line.run(1.0)
+    assert a.established and b.established
+    msgs = [Error(code="x", text="first"), Error(code="y", text="second")]
+    records = [RECORD.pack(Error.TYPE, len(body)) + body for body in map(encode_message, msgs)]
+    stream = b"".join(records)
+    n = len(stream)
+    assert n > 20
+    got: list[bytes] = []
+    consume = b._consume
+    b._consume = lambda data, now: (got.append(bytes(data)), consume(data, now))[1]  # type: ignore[method-assign]
+    b.receive(data_frame(a.session_id, b.session_id, 10, stream[10:], txid=1), 1.1)
+    assert got == [] and b.take_received() == []  # held: bytes 0-9 are missing
+    b.receive(data_frame(a.session_id, b.session_id, 0, stream[:15], txid=2), 1.2)
+    assert b"".join(got) == stream  # bytes 0..n-1, each once
+    assert [(r.message, r.seq) for r in b.take_received()] == [(msgs[0], 0), (msgs[1], len(records[0]))]
+    assert b.stats["decode_errors"] == 0 and b.take_refusals() == []
+
+
 def test_a_gap_after_a_long_idle_is_not_a_stall():
     """Regression: the reassembly clock starts when data is first held, not at the last message
     (the first frame of a Result lost after 10 s of silence ended the session at once)."""

@@ -156,6 +156,30 @@ def test_oversize_frame_is_dropped_without_buffering_it_all():
     assert [f.payload for f in out] == [b"ok"] and d.stats["oversize"] == 1
 
 
+def test_a_frame_one_byte_over_max_frame_is_refused_whatever_its_stuffing():
+    """``max_frame`` bounds the unstuffed frame (header to CRC): one of 1001 to 1999 bytes is refused and counted
+    as oversize although its stuffed piece is within the 2 x max_frame the decoder holds, also when it is made mostly
+    of flag bytes (each stuffed to two); one of exactly max_frame decodes. Until the mutation audit of stop 75 only
+    a 5000-byte frame was tried, which the piece's own length refuses before it is unstuffed."""
+    overhead = len(unstuff(data_frame(1, 2, 0, b"")[1:-1]))  # header, DATA head, CRC
+    # (fill, unstuffed length): 1001 flag bytes' frame stuffs to 1978 bytes, 1010 to 1996; 1500 to 2952, which the
+    # piece's length refuses unread
+    for fill, lengths in ((b"\x01", (1001, 1500, 1999)), (b"\x7e", (1001, 1010, 1500))):
+        for n in lengths:
+            d = StreamDecoder(max_frame=1000)
+            big = data_frame(1, 2, 0, fill * (n - overhead))
+            assert len(unstuff(big[1:-1])) == n
+            assert (len(big) - 2 <= 2 * 1000) == (fill == b"\x01" or n < 1500)  # held whole, unstuffed, refused
+            out = d.feed(big + data_frame(1, 2, 0, b"ok"))
+            assert [f.payload for f in out] == [b"ok"], (fill, n)
+            assert d.stats["oversize"] == 1 and d.stats["frames_ok"] == 1, (fill, n, d.stats)
+        d = StreamDecoder(max_frame=1000)
+        exact = fill * (1000 - overhead)
+        assert len(unstuff(data_frame(1, 2, 0, exact)[1:-1])) == 1000
+        out = d.feed(data_frame(1, 2, 0, exact))
+        assert [f.payload for f in out] == [exact] and d.stats["oversize"] == 0, fill
+
+
 def test_garbage_and_idle_flags_between_frames():
     rng = np.random.default_rng(1)
     d = StreamDecoder()
