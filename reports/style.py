@@ -240,11 +240,17 @@ GLOSSARY.update(
             "altitude [m]", "The lower frame's altitude, as in the thesis tables (600/300 is its 300 m row).", "m"
         ),
         "kind": Term("error kind", "Which navigation error the sensitivity study injects (thesis sec 6.3)."),
-        "preset": Term("preset", "The flight software parameter preset."),
+        "preset": Term(
+            "preset",
+            "The flight software parameter preset: fast (flight v2, which refines the poses from the images "
+            "first), fast_unrefined (fast taking the navigation poses as given), thesis (the thesis's method).",
+        ),
         "n": Term("samples", "Number of Monte Carlo samples behind the row."),
         "median_rel_pct": Term(
             "DEM error increase, median %",
-            "Median over samples of the DEM mean |error| with the injected error relative to without it, minus 100.",
+            "Median over samples of the DEM mean |error| with the injected error relative to without it, minus 100. "
+            "Each preset against its own run on the true poses: fast's reference is refined from them too, so its "
+            "rows and fast_unrefined's have different references.",
             "%",
         ),
         "max_rel_pct": Term("DEM error increase, worst %", "Largest DEM error increase over the samples.", "%"),
