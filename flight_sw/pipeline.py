@@ -215,10 +215,11 @@ def _altimeter(altimeter_m: float | Sequence[float] | None) -> float | None:
             f = float(v)
         except (TypeError, ValueError):
             raise FlightInputError(f"altimeter_m must be a number (m) or None, got {altimeter_m!r}") from None
-        if math.isfinite(f):
-            if f <= 0:
-                raise FlightInputError(f"altimeter_m must be a positive slant range, got {f}")
-            return f
+        if math.isnan(f):
+            continue
+        if not (math.isfinite(f) and f > 0):  # inf read as "no reading" here and refused by the refinement (stop 75)
+            raise FlightInputError(f"altimeter_m must be a positive slant range, got {f}")
+        return f
     return None
 
 
@@ -574,6 +575,8 @@ def _altimeter_frames(altimeter_m: float | Sequence[float] | None, n: int) -> li
     if isinstance(altimeter_m, (int, float)):
         return [float(altimeter_m)] + [math.nan] * (n - 1)
     seq = [math.nan if a is None else float(a) for a in altimeter_m]
+    if any(not (math.isnan(a) or (math.isfinite(a) and a > 0)) for a in seq):  # as every path reads them
+        raise FlightInputError(f"altimeter_m must be positive slant ranges (m), NaN where none, got {altimeter_m!r}")
     if len(seq) == 1:  # i1's reading only
         return seq + [math.nan] * (n - 1)
     if len(seq) != n:

@@ -92,6 +92,12 @@ def test_altimeter_centres_the_search(deep_pair):
     assert np.nanmean(np.abs(res.elevation - z)) < 0.15
     with pytest.raises(FlightInputError, match="altimeter"):
         run_pipeline(i1, i2, p1, p2, cam, altimeter_m=-3.0)
+    # an infinite reading is no range on either path: the sweep alone had read it as "none", while the refinement
+    # refused it (pose QA of stop 75)
+    for preset in ("fast", "fast_unrefined"):
+        for alt in ([math.inf, 150.0], [slant, -math.inf]):
+            with pytest.raises(FlightInputError, match="altimeter_m must be (a )?positive slant range"):
+                run_pipeline(i1, i2, p1, p2, cam, preset=preset, altimeter_m=alt)
 
 
 def test_altimeter_finds_a_highland_above_the_datum():
