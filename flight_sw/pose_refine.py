@@ -95,6 +95,7 @@ from .twoview import (
     gric,
     homography_sampson_px,
     relative_pose,
+    rot_log,
     rotation_angle_deg,
     sampson_px,
     triangulate_depths,
@@ -485,6 +486,11 @@ def _ground_change_px(
     return float(np.max(np.linalg.norm(apply_h(h_ref, u1) - apply_h(h_nav, u1), axis=1))), z_ground
 
 
+def _vec_deg(R: np.ndarray) -> list[float]:
+    """A small rotation's axis-angle vector (:func:`flight_sw.twoview.rot_log`) in degrees, for telemetry."""
+    return [round(math.degrees(float(v)), 5) for v in rot_log(R)]
+
+
 def _map_solve(
     K: np.ndarray,
     v1: np.ndarray,
@@ -522,6 +528,10 @@ def _map_solve(
         parallax_px=float(np.median(np.linalg.norm(flow[inl], axis=1))) if inl.any() else 0.0,
         rotation_correction_deg=[rotation_angle_deg(s.R1 @ nav.R1.T), rotation_angle_deg(s.R2 @ nav.R2.T)],
         relative_rotation_correction_deg=rotation_angle_deg(R21 @ R21_nav.T),
+        # signed, about each frame's own camera axes x, y, z (R <- exp(w) R): the magnitudes alone could not be
+        # checked against a known error's sign (pose QA of stop 75)
+        rotation_correction_vec_deg=[_vec_deg(s.R1 @ nav.R1.T), _vec_deg(s.R2 @ nav.R2.T)],
+        relative_rotation_correction_vec_deg=_vec_deg(R21 @ R21_nav.T),
         translation_dir_change_deg=angle_between_deg(s.b, nav.b),
         sigma_rel_rot_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(J_rel @ cov @ J_rel.T))))),
         sigma_att1_deg=math.degrees(math.sqrt(max(0.0, float(np.trace(cov[0:3, 0:3]))))),
@@ -924,6 +934,7 @@ def _summary(r: PoseRefinement, k: int, upper: str = "the reference frame") -> d
         "ground_gap_m": r.info.get("ground_gap_m"),
         "scale_disagrees": bool(r.info.get("scale_disagrees")),
         "relative_rotation_correction_deg": r.info.get("relative_rotation_correction_deg", 0.0),
+        "relative_rotation_correction_vec_deg": r.info.get("relative_rotation_correction_vec_deg"),
         "wall_s": r.info.get("wall_s"),
         # a near-nadir fit holds the relative rotation and moves the baseline instead (module doc, 6): a 1 deg
         # pitch read "corrected by 0.10 deg" with the rest of it unsaid (stop 61's QA)

@@ -96,7 +96,7 @@ def test_altimeter_centres_the_search(deep_pair):
     # refused it (pose QA of stop 75)
     for preset in ("fast", "fast_unrefined"):
         for alt in ([math.inf, 150.0], [slant, -math.inf]):
-            with pytest.raises(FlightInputError, match="altimeter_m must be (a )?positive slant range"):
+            with pytest.raises(FlightInputError, match=r"altimeter_m must be (a )?positive slant range"):
                 run_pipeline(i1, i2, p1, p2, cam, preset=preset, altimeter_m=alt)
 
 

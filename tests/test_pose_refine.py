@@ -369,6 +369,9 @@ def test_a_nadir_pairs_roll_about_the_optical_axis_is_refined_not_held(deg):
     r = refine_pair(i1, i2, p1, nav2, cam)
     assert r.refined and r.info["relative_rotation_held"], r.info["reason"]
     assert rel_rot_err(r.pose1, r.pose2, p1, p2) <= 0.01, rel_rot_err(r.pose1, r.pose2, p1, p2)
+    # the telemetry carries the signed correction: frame 2 turned back about its optical axis (camera z)
+    x, y, zr = r.info["relative_rotation_correction_vec_deg"]
+    assert zr == pytest.approx(-deg, abs=0.01) and abs(x) < 0.01 and abs(y) < 0.01, (x, y, zr)
     held3 = refine_pair(i1, i2, p1, nav2, cam, params=RefineParams(held_axis_free=False))  # the rule before
     assert rel_rot_err(held3.pose1, held3.pose2, p1, p2) > 0.5 * abs(deg)
 
