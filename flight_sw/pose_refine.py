@@ -902,13 +902,16 @@ def _back_to_navigation(k: int, out: list[Pose], poses: Sequence[Pose], relative
 
 def repeated_images(images: Sequence[np.ndarray]) -> dict[int, int]:
     """``{k: j}`` for each frame ``k`` whose image equals an earlier frame ``j``'s pixel for pixel. Two exposures
-    never do (sensor noise, the camera moved); a camera that sent its last image again does. A descent's frame 2
+    never do (sensor noise, the camera moved); a camera that sent its last image again does. Uniform images are
+    left out (blank, not repeated: the pipeline's blank-image check names them). A descent's frame 2
     a copy of frame 1 was "kept" against frame 0, unwarned, the DEM 32 m off (stop 62's review): its motion
     from frame 0 is frame 1's, which no fit against frame 0 alone can tell from its own."""
     seen: dict[bytes, int] = {}
     out: dict[int, int] = {}
     for k, im in enumerate(images):
         a = np.ascontiguousarray(im)
+        if a.size == 0 or a.min() == a.max():  # a uniform image is blank, said as such: two of them were called
+            continue  # "the same image twice, a camera that sent an image again" (pose QA of stop 75)
         h = hashlib.blake2b(str((a.shape, a.dtype.str)).encode(), digest_size=16)
         h.update(a.data.cast("B"))  # the pixels, not copied
         key = h.digest()

@@ -677,8 +677,11 @@ def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsy
 
     from flight_sw.pose_refine import repeated_images
 
-    a, b = np.zeros((4, 4), np.uint8), np.ones((4, 4), np.uint8)
+    a = np.arange(16, dtype=np.uint8).reshape(4, 4)
+    b = a[::-1].copy()
     assert repeated_images([a, b, a.copy(), b, b.astype(np.uint16), a.view(np.int8)]) == {2: 0, 3: 1}  # dtype counts
+    blank = np.zeros((4, 4), np.uint8)  # two lost frames are blank, not "a camera that sent an image again"
+    assert repeated_images([a, blank, blank.copy()]) == {}
     assert main(["render", "--scenario", "vertical", "--frames", "300,250,200", "--image-size", "128", "--no-progress",
                  "--out", str(tmp_path / "pairs")]) == 0  # fmt: skip
     bad = tmp_path / "bad"
