@@ -432,6 +432,9 @@ def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None =
     refined = _refined_poses(res.info.get("pose_refinement"))
     if refined:  # a correction was said only in result.json (stop 59's QA)
         say(f"{out}: navigation poses refined from the images: {'; '.join(refined)}")
+    entries = _pose_entries(res.info.get("pose_refinement"))
+    on_scale = [k for k, f, _ in entries if f.get("scale_disagrees")]  # the ground against frame 0's altimeter
+    checked = [k for k, f, _ in entries if f.get("ground_gap_m") is not None]  # the ones it could be checked on
     for k, verdict, why in _unverified_poses(res.info.get("pose_refinement"), side):
         # the maps then rest on poses the images did not confirm (swapped or mislabelled frames, a gross pose error,
         # or terrain too bland to match): a 46 m DEM error on swapped frames looked like any other "full" run
@@ -442,6 +445,18 @@ def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None =
             # "the maps rest on it" read wrong of a frame 2 km off that added nothing to them (QA 74)
             say(f"{out}: frame {k}: its pose is not checked by the images ({why}); what it adds to the maps rests on "
                   "it as navigation reports it, and a fault in it would go unseen")  # fmt: skip
+        elif verdict == DISAGREES and k in on_scale:  # the ground against frame 0's altimeter: either may be wrong
+            rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
+            # a wrong frame-0 reading put every frame's pose at fault (pose QA of stop 75): the two are not told apart
+            also = (
+                f"; every frame checked ({', '.join(map(str, on_scale))}) disagrees alike, which points to frame 0's "
+                "altimeter reading"
+                if len(on_scale) > 1 and len(on_scale) == len(checked)
+                else ""
+            )
+            say(f"warning: frame {k}: its images and navigation pose put the ground away from frame 0's altimeter "
+                  f"({why}): the pose or frame 0's altimeter reading is wrong{also}; {rest} (result.json "
+                  "info.pose_refinement)", file=sys.stderr)  # fmt: skip
         elif verdict == DISAGREES:  # matched, and the images ask for more than a navigation error
             rest = "it is left out of the maps" if k in res.info.get("frames_dropped", ()) else "the maps rest on it"
             say(f"warning: frame {k}: the images disagree with its navigation pose ({why}: more than a navigation "

@@ -584,7 +584,10 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     f2 = res["info"]["pose_refinement"]["frames"][1]
     assert f2["verdict"] == "disagrees" and f2["scale_disagrees"] and f2["ground_gap_m"] > 100.0, f2
-    assert "warning: frame 2: the images disagree" in err and "from where the first frame's altimeter" in err, err
+    assert (
+        "warning: frame 2: its images and navigation pose put the ground away" in err
+        and "from where the first frame's altimeter" in err
+    ), err
     assert res["info"]["frames_dropped"] == [2, 3] and _dem_err(tmp_path / "o") < 2.0
     # without altimeters (they are optional): the fits' grounds against one another. Frame 2's and 3's were
     # "kept", DEM 202 m off, an unsafe site offered (stop 60's QA)
@@ -859,3 +862,23 @@ def test_a_16_bit_frame_the_common_shift_crushed_is_not_called_a_lost_image(tmp_
         assert "lost image" not in line and "sensor fault" not in line and "common 8-bit shift" in line, err
     doc = json.loads((out / "result.json").read_text())
     assert doc["warnings"][0] == lines[0].removeprefix("warning: ")
+
+
+def test_a_wrong_frame_0_altimeter_is_not_blamed_on_the_other_frames_poses(tmp_path, capsys):
+    """Frame 0's altimeter reading 15 % long: every later frame was warned as "the images disagree with its
+    navigation pose", though their poses were exact (pose QA of stop 75). The ground against frame 0's altimeter
+    cannot tell the two apart: the warning names both, and when every frame checked disagrees alike, the reading."""
+    assert main(["render", "--scenario", "vertical", "--frames", "600,450,300", "--image-size", "256", "--seed",
+                 "1000", "--no-progress", "--out", str(tmp_path / "r")]) == 0  # fmt: skip
+    d = tmp_path / "r" / "600_450_300"
+    doc = json.loads((d / "pair.json").read_text())
+    doc["frames"][0]["altimeter_m"] *= 1.15
+    (d / "pair.json").write_text(json.dumps(doc))
+    capsys.readouterr()
+    main(["process", str(d), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if line.startswith("warning: frame ") and "altimeter" in line]
+    assert len(said) == 2, err
+    for line in said:
+        assert "the pose or frame 0's altimeter reading is wrong" in line and "points to frame 0's altimeter" in line
+        assert "disagree with its navigation pose" not in line
