@@ -84,6 +84,12 @@ def register_process(
     )
     p.add_argument("--sites", type=int, default=None, metavar="K", help="number of safe sites (default 5)")
     p.add_argument(
+        "--aim",
+        default=None,
+        metavar="X,Y",
+        help="the aim point (world metres) the sites are ranked by distance to (default 0,0: the world origin)",
+    )
+    p.add_argument(
         "--widest-pair",
         action="store_true",
         help="use frames 0 and -1 only (default: every frame of the directory, multi-baseline)",
@@ -254,6 +260,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         if args.sites < 0:
             raise FlightInputError(f"--sites must be >= 0, got {args.sites}")
         params = dataclasses.replace(params, n_sites=args.sites)
+    aim = _aim_point(args.aim)
     frames = [0, pair.n_frames - 1] if args.widest_pair else list(range(pair.n_frames))
     try:  # the pipeline's own input checks first: a pair it refuses is that one error, not notes then it (a 2 px
         # camera's "160 m per pixel" note came before "too small to map"; QA of stop 75)
@@ -275,6 +282,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
             sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
             sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
             frame_numbers=frames,  # --widest-pair: its messages name the directory's frames
+            nominal_site_xy=aim,
         )
     except FlightInputError as exc:  # the pipeline's checks of the camera and poses: name the file they came from
         raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
@@ -303,12 +311,16 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
             "shape": list(res.grid.hazard.shape),
             "rows_toward": "-Y",
         },
+        "aim_xy": list(aim),
         "sites": [s.to_dict() for s in res.sites],
         "no_site_reason": res.info.get("no_site_reason", ""),
         "covered_fraction": float(res.covered.mean()),
         "unsafe_fraction": float(np.mean(res.hazard[res.covered] >= 1)) if res.covered.any() else None,
     }
     messages = _process_messages(res, pair, out, frames)
+    off = _aim_off_map(aim, res.grid)
+    if off:  # sites bunched in the map's corner nearest an aim 190 m away, without a word (sites QA of stop 75)
+        messages.append((False, f"{out}: {off}"))
     # the reader's warnings (said before the pipeline ran) and the run's; the reader's notes too: said on stderr
     # alone, a pair in km left a DEM in km with an empty warnings list (QA of stop 75)
     doc["warnings"] = [*pair.warnings, *(text.removeprefix("warning: ") for warn, text in messages if warn)]
@@ -366,6 +378,41 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     if unscored is not None:  # the maps, result.json and the page stand; the scores against the truth do not
         raise unscored
     return 0
+
+
+def _aim_point(text: str | None) -> tuple[float, float]:
+    """``--aim X,Y`` as world metres; the world origin when not given."""
+    from .validate import FlightInputError
+
+    if text is None:
+        return (0.0, 0.0)
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise FlightInputError(f"--aim must be X,Y in metres, got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise FlightInputError(f"--aim must be finite, got {text!r}")
+    return (x, y)
+
+
+def _aim_off_map(aim: tuple[float, float], grid: Any) -> str:
+    """A note when the aim point lies outside the mapped ground (the grid's cells with a state), else ""."""
+    import numpy as np
+
+    from protocol.pairdir import STATE_OUTSIDE
+
+    mapped = np.asarray(grid.state) != STATE_OUTSIDE
+    if not mapped.any():
+        return ""
+    X, Y = grid.cell_xy()
+    x, y = X[mapped], Y[mapped]
+    half = 0.5 * float(grid.cell_m)
+    if x.min() - half <= aim[0] <= x.max() + half and y.min() - half <= aim[1] <= y.max() + half:
+        return ""
+    return (
+        f"the aim point ({aim[0]:g}, {aim[1]:g}) lies outside the mapped ground (x {x.min():.0f} to {x.max():.0f} m, "
+        f"y {y.min():.0f} to {y.max():.0f} m): the sites are the safe ones nearest it, not near it (--aim)"
+    )
 
 
 def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None = None) -> list[tuple[bool, str]]:

@@ -882,3 +882,23 @@ def test_a_wrong_frame_0_altimeter_is_not_blamed_on_the_other_frames_poses(tmp_p
     for line in said:
         assert "the pose or frame 0's altimeter reading is wrong" in line and "points to frame 0's altimeter" in line
         assert "disagree with its navigation pose" not in line
+
+
+def test_the_aim_point_can_be_given_and_one_off_the_map_is_said(tmp_path, capsys):
+    """The sites are ranked by distance to an aim point that nothing but the library could set: `process` always
+    measured from the world origin, and an aim off the map put the sites in its nearest corner without a word
+    (sites QA of stop 75)."""
+    assert main(["render", "--scenario", "approach", "--pairs", "600/300", "--image-size", "256", "--no-progress",
+                 "--out", str(tmp_path / "r")]) == 0  # fmt: skip
+    d = tmp_path / "r" / "600_300"
+    for aim, out in (("3,-2", "near"), ("2000,0", "far")):
+        assert main(["process", str(d), "--out", str(tmp_path / out), "--aim", aim, "--sites", "20"]) == 0
+        doc = json.loads((tmp_path / out / "result.json").read_text())
+        ax, ay = (float(v) for v in aim.split(","))
+        assert doc["aim_xy"] == [ax, ay] and doc["sites"], doc["no_site_reason"]
+        for s in doc["sites"]:
+            assert s["distance_m"] == pytest.approx(math.hypot(s["x"] - ax, s["y"] - ay), abs=1e-6)
+        said = capsys.readouterr().out
+        assert ("the aim point (2000, 0) lies outside the mapped ground" in said) == (out == "far"), said
+    assert main(["process", str(d), "--out", str(tmp_path / "bad"), "--aim", "3"]) == 2
+    assert "--aim must be X,Y in metres, got '3'" in capsys.readouterr().err

@@ -256,6 +256,23 @@ def test_no_safe_site_is_reported():
     assert sites == [] and "footprint" in reason
 
 
+def test_a_sites_clearance_is_the_exact_distance_and_an_unmapped_grid_says_so():
+    """Clearance came from a 5x5 chamfer distance, up to 0.12 m off; a grid with nothing mapped read "no cell is
+    known safe (0 % of the mapped grid cells unknown, the rest unsafe)" (sites QA of stop 75)."""
+    n = 41
+    st = np.full((n, n), STATE_SAFE, np.uint8)
+    st[20 + 3, 20 + 7] = STATE_UNSAFE  # the nearest cell not known safe from the centre, sqrt(58) cells away
+    g = HazardGrid(np.zeros((n, n), np.float32), np.zeros((n, n), np.float32), (0.0, 0.0), 0.5, st,
+                   np.full((n, n), 0.99, np.float32))  # fmt: skip
+    X, Y = g.cell_xy()
+    sites, reason = select_safe_sites(g, 3.0, (float(X[20, 20]), float(Y[20, 20])), k=1, margin_m=0.5)
+    assert reason == "" and (sites[0].x, sites[0].y) == (X[20, 20], Y[20, 20])
+    assert sites[0].clearance_m == pytest.approx(0.5 * math.sqrt(58), abs=1e-3)
+    out = HazardGrid(np.full((n, n), np.nan, np.float32), np.full((n, n), np.nan, np.float32), (0.0, 0.0), 0.5,
+                     np.full((n, n), STATE_OUTSIDE, np.uint8), np.full((n, n), np.nan, np.float32))  # fmt: skip
+    assert select_safe_sites(out) == ([], "nothing was mapped")
+
+
 def test_sites_rank_by_psafe_then_distance():
     n = 60
     st = np.full((n, n), STATE_SAFE, np.uint8)
