@@ -542,8 +542,9 @@ def _refined_poses(info: Any) -> list[str]:
             turn = f.get("translation_dir_change_deg")
             if f.get("relative_rotation_held") and turn is not None:  # the rest of an attitude error went here
                 what = (
-                    f"near-nadir: relative rotation held, corrected by {rot:.2f} deg, the baseline turned "
-                    f"{float(turn):.2f} deg, which the images cannot tell from a rotation"
+                    f"near-nadir: relative rotation held across the view, corrected by {rot:.2f} deg (its roll about "
+                    f"the optical axis fitted), the baseline turned {float(turn):.2f} deg, which the images cannot "
+                    "tell from a rotation across the view"
                 )
             out.append(f"frame {int(f.get('frame', i + 1))} ({rel}{what})")
     return out

@@ -61,8 +61,10 @@ that agrees with them. Arrays in, arrays out; no I/O, no ground truth.
    matches (``min_depth_spread``: a lateral change of the baseline moves points
    by ~1/depth, a rotation does not, so on a near-nadir view of flat ground the
    two are confounded and a free fit follows tiny matching biases - 0.05-0.4
-   deg from exact poses) the relative rotation is held at navigation
-   (``held_rel_att_sigma_deg``) and the baseline direction takes the image
+   deg from exact poses) the relative rotation is held at navigation about the
+   two axes across the view (``held_rel_att_sigma_deg``; its roll about frame 1's
+   optical axis, which no baseline change mimics, keeps the free fit's prior:
+   ``held_axis_free``) and the baseline direction takes the image
    motion: any such split maps the ground plane alike, and the ground's
    mapping is what the sweep needs. If that moves the ground's image by less
    than ``min_held_change_px``, navigation is kept.

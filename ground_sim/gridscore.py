@@ -148,7 +148,9 @@ def judge_site(
     """DESIGN.md site rule on frame-0 truth: safe iff every pixel whose true ground (X, Y) lies within
     ``radius_m`` of the site has hazard < 1. A footprint that falls between pixel centres (ground sampled
     coarser than the footprint) is judged by the pixel whose ground cell holds it (:func:`_cell_holding`).
-    A footprint that holds no pixel (off the image), reaches past the image's edge (part of it unseen), holds a
+    A footprint that holds no pixel (off the image), reaches past the image's edge on a side whose border pixels it
+    holds (part of it unseen; on a grid sheared strongly enough a footprint can cross an edge between border
+    centres unseen by this test, as by the one before stop 75), holds a
     pixel whose truth is unknown (NaN: a derived truth where too little ground was seen) or whose pixels touch
     one without a ground point (NaN depth: where it lies is unknown) cannot be confirmed and is judged unsafe
     (:func:`site_verdict`: not confirmed, unless a pixel of it is truly unsafe).

@@ -683,8 +683,9 @@ class Supervisor:
         st.done = True
         # flight latency: last frame in here -> Result out of the flight process (before its line time)
         latency = st.result_at - (st.complete_at or st.result_at)
-        # the server's view of the deadline: last frame in -> Result acknowledged by the ground. It exceeds the
-        # ground's e2e_latency_s (the deadline's definition, judged at the ground) by the ACK's trip back.
+        # the server's view of the deadline: last frame in -> Result acknowledged by the ground, on this clock. The
+        # ground's e2e_latency_s (the deadline's definition, judged at the ground) starts and ends at other events:
+        # the two differ by a few ms either way (docs/hil.md)
         server_e2e = (st.result_acked_at or time.monotonic()) - (st.complete_at or st.result_at)
         deadline = float(self.config.deadline_s if self.config else self.budget.deadline_s)
         met = server_e2e <= deadline

@@ -389,7 +389,7 @@ def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(
     said = capsys.readouterr().out
     # a nadir pair: the fit holds the relative rotation and turns the baseline, and says both (a 1 deg pitch read
     # "corrected by 0.10 deg" with the baseline's 0.54 deg unsaid, stop 61's QA)
-    assert "navigation poses refined from the images: frame 1 (near-nadir: relative rotation held, corrected" in said
+    assert "refined from the images: frame 1 (near-nadir: relative rotation held across the view, corrected" in said
     assert "the baseline turned 0." in said, said
     assert main(["process", str(off), "--out", str(tmp_path / "raw"), "--no-refine-pose"]) == 0
     said = capsys.readouterr().out
