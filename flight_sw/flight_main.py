@@ -657,6 +657,9 @@ class FlightProcess:
         sites, reason = select_safe_sites(
             grid, footprint, (0.0, 0.0), n_sites, margin, relief_max_m=relief, relief_window_m=window, reach_cells=reach
         )
+        beyond = res.info.get("psafe_beyond_scale")
+        if reason and beyond:  # why this pair called nothing safe, as its own map says it (sites QA of stop 75)
+            reason = f"{beyond} ({reason})"
         return grid, sites, (reason or None)
 
     @staticmethod

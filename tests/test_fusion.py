@@ -609,6 +609,18 @@ def test_flight_process_applies_the_relief_guard_to_the_fused_map():
         near_wall.append(min(abs(s.x) for s in sites))
     assert near_wall[0] < 2.0  # the aim point (0, 0) is at the wall: without the guard the site is there
     assert near_wall[1] >= 14.0
+    # a pair whose footprint is below the model's scale calls nothing safe: the fused map's "no site" says why, as
+    # `process` does (the HIL's said only "no cell is known safe"; sites QA of stop 75)
+    from flight_sw.mapping import HazardGrid
+    from protocol.pairdir import STATE_UNKNOWN
+
+    n = 40
+    blank = HazardGrid(np.ones((n, n), np.float32), np.zeros((n, n), np.float32), (0.0, 0.0), 4.0,
+                       np.full((n, n), STATE_UNKNOWN, np.uint8), np.full((n, n), 0.5, np.float32))  # fmt: skip
+    why = "the 3 m footprint is 0.29 px here, below the 0.39 px the P(safe) model was fitted down to"
+    res = SimpleNamespace(params=params, info={"psafe_beyond_scale": why}, grid=blank, level="full")
+    _, sites, reason = FlightProcess(_Link(), FaultPlan())._fuse(res)
+    assert not sites and reason is not None and reason.startswith(why + " (no cell is known safe"), reason
 
 
 def test_a_pair_whose_sites_are_withheld_is_not_fused_into_the_descents_map():
