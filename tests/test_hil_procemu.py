@@ -70,7 +70,9 @@ def test_throttle_accuracy_and_wall_scaling():
     # Same CPU work per unit of fraction -> the wall time of each run is ~1.2 s + startup,
     # while the 0.05 run did 20x less work than the 1.0 run in about the same available time.
     cpu = {f: s["cpu_s"] for f, s in rows}
-    assert cpu[1.0] / cpu[0.05] > 8
+    # each run's CPU includes the interpreter's start-up (~0.1 s, more on a slow host): 1.2 s + s0 against
+    # 0.06 s + s0 is 8.1 at s0 = 0.1 s and read 7.7 once on a host 1.5x slower (stop 75); unthrottled it would be ~1
+    assert cpu[1.0] / cpu[0.05] > 5
 
 
 def test_idle_time_is_not_banked():
