@@ -62,6 +62,7 @@ from flight_sw.anytime import measured_reserve_ratio
 from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
 from flight_sw.memory import private_rss_bytes
+from flight_sw.pair_report import pair_notes, pose_figures, pose_verdict
 from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
@@ -69,6 +70,8 @@ from protocol.codec import Encoded, encode
 from protocol.errors import EXIT_MEMORY, InputError
 from protocol.grids import elevation_to_wire, filled_to_wire, psafe_to_wire
 from protocol.messages import (
+    MAX_NOTE_CHARS,
+    MAX_NOTES,
     MAX_RSS_BYTES,
     MAX_SKIPPED,
     RESULT_FIELD_REV,
@@ -525,8 +528,13 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
+        # the Result has no words: the Telemetry carries the first few (revision 5), the flight log every one
         withheld = res.info.get("sites_withheld")
-        if withheld:  # the Result has no words for why: the flight log does
+        side = min(np.shape(upper.image)[:2])
+        for note in pair_notes(res.info, seqs, side):
+            if note != withheld:
+                print(f"flight: frames {list(seqs)}: {note}", file=sys.stderr, flush=True)
+        if withheld:
             print(
                 f"flight: frames {list(seqs)}: {withheld}" + ("; it is not fused into the descent's map" * fusion),
                 file=sys.stderr,
@@ -590,6 +598,9 @@ class FlightProcess:
                 deadline_met=(done - pend.arrival) + line_s <= cfg.deadline_s,
                 plan=plan_telemetry(res.info, deadline_at - start, line_s),
                 link=link_info,
+                pose=pose_figures(res.info),
+                pose_verdict=pose_verdict(res.info),
+                notes=pair_notes(res.info, seqs, side, MAX_NOTES, MAX_NOTE_CHARS),
             ).for_rev(result_rev(cfg))
         )
 

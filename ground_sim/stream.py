@@ -173,6 +173,9 @@ TELEMETRY_KEYS = (
     "stages",
     "stage_order",
     "plan",
+    "pose_verdict",
+    "pose",
+    "flight_notes",
     "elapsed_s",
 )
 
@@ -401,6 +404,14 @@ def write_outcome(out_dir: Path, o: PairOutcome, deadline_s: float = float("nan"
         rec["outside_flight_s"] = max(0.0, e2e - float(t.total_latency_s))
     if t.plan:  # revision 4: the deadline plan's figures
         rec["plan"] = t.plan
+    # revision 5: the pose refinement's outcome and the flight side's warnings (a pose kept at navigation, sensors
+    # that disagree), which no ground saw before; left out when the flight side does not say
+    if t.pose_verdict:
+        rec["pose_verdict"] = printable(t.pose_verdict)
+    if t.pose:
+        rec["pose"] = t.pose
+    if t.notes:
+        rec["flight_notes"] = [printable(n) for n in t.notes]
     return rec
 
 
@@ -1464,6 +1475,8 @@ def _main(argv: list[str] | None) -> int:
                 )
                 + (f"; {why}" if why else "")
             )
+            for note in rec.get("flight_notes", ()):  # the flight side's own warnings on the pair
+                _say(f"ground: {'':>10}  flight says: {note}")
         else:
             _say(f"ground: {rec['label']:>10}  ERROR {rec['code']}: {rec['text']}")
 

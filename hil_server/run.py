@@ -550,10 +550,55 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
         "flight_phases_p50_s": phase_times(ok),
         **contention(ok),
         "sites": site_summary(ok),
+        "pose": pose_summary(ok),
         "link_errors": sum(r.get("code") == "link_down" for r in records),
         **extra,
         "records": records,
     }
+
+
+def pose_summary(records: list[dict]) -> dict:
+    """What the flight side's Telemetry said of its pose refinement (revision 5) over the pairs with a Result:
+    each verdict's count, the largest rotation correction applied, and the flight side's notes per pair (its own
+    judgement of which verdicts matter: below 256 px clean pairs fail the checks too). Empty when no Telemetry
+    said (a flight side of revision 4 or below, a preset without refinement)."""
+    said = [r for r in records if r.get("pose_verdict")]
+    noted = [r for r in records if r.get("flight_notes")]
+    if not said and not noted:
+        return {}
+    verdicts: dict[str, int] = {}
+    for r in said:
+        verdicts[r["pose_verdict"]] = verdicts.get(r["pose_verdict"], 0) + 1
+    applied = [
+        float(r["pose"]["rot_deg"])
+        for r in said
+        if (r.get("pose") or {}).get("applied") and isinstance(r["pose"].get("rot_deg"), (int, float))
+    ]
+    return {
+        "verdicts": verdicts,
+        "max_rotation_applied_deg": max(applied) if applied else None,
+        "noted": [{"label": r["label"], "notes": list(r["flight_notes"])} for r in noted],
+    }
+
+
+def pose_note(summary: dict) -> str:
+    """'pose refinement: refined 2, kept 1 (largest rotation applied 0.31 deg); the flight side noted 2 thing(s) on
+    1 pair(s) (first, 200/100: ...)' ("" when no Telemetry said)."""
+    p = summary.get("pose")
+    if not p:
+        return ""
+    parts = []
+    if p.get("verdicts"):
+        counts = ", ".join(f"{v} {n}" for v, n in sorted(p["verdicts"].items(), key=lambda kv: -kv[1]))
+        big = p.get("max_rotation_applied_deg")
+        parts.append(f"pose refinement: {counts}" + (f" (largest rotation applied {big:.2f} deg)" if big else ""))
+    if noted := p.get("noted"):
+        n = sum(len(x["notes"]) for x in noted)
+        first = noted[0]
+        parts.append(
+            f"the flight side noted {n} thing(s) on {len(noted)} pair(s) (first, {first['label']}: {first['notes'][0]})"
+        )
+    return "; ".join(parts)
 
 
 CONTENTION_SHOWN_PCT = 5.0  # a run whose flight process waited this share of its flight time for its core says so
@@ -997,6 +1042,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         phase_note(s),
         contention_note(s),
         site_note(s),
+        pose_note(s),
         flight_note(s),
         session_note(s),
         noise_note(s),

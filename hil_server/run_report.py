@@ -45,6 +45,7 @@ PAIR_COLUMNS = [
     Column("cdi_pct"),
     Column("dem_mean_abs_m"),
     Column("top_site"),
+    Column("pose_cell"),
 ]
 
 
@@ -87,7 +88,19 @@ def pair_row(r: dict) -> dict[str, Any]:
         "cdi_pct": sc.get("cdi_pct"),
         "dem_mean_abs_m": _first(sc, "dem_mean_abs", "dem_mean_abs_m"),
         "top_site": _site_cell(r) if ok else None,
+        "pose_cell": pose_cell(r) if ok else None,
     }
+
+
+def pose_cell(r: dict) -> str | None:
+    """ "refined (0.31 deg)", "kept", "degenerate", ... from the pair's Telemetry (revision 5); None when it did not
+    say. The rotation is the relative rotation's correction, shown only when it was applied."""
+    verdict = r.get("pose_verdict")
+    if not verdict:
+        return None
+    pose = r.get("pose") or {}
+    rot = pose.get("rot_deg")
+    return printable(verdict, 40) + (f" ({rot:.2f} deg)" if pose.get("applied") and isinstance(rot, float) else "")
 
 
 def _site_cell(r: dict) -> str:
@@ -303,8 +316,10 @@ def write_run_report(summary: dict, path: Path) -> Path:
             intro.append(extra[0].upper() + extra[1:] + ".")
     if site_note(s):
         intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
-    from hil_server.run import flight_note, session_note
+    from hil_server.run import flight_note, pose_note, session_note
 
+    if pose := pose_note(s):  # the pose refinement's outcome and the flight side's notes (Telemetry revision 5)
+        intro.append(pose[0].upper() + pose[1:] + ".")
     if flight := flight_note(s):  # refusals, ignored answers, dropped frames: the page said a clean PASS without
         intro.append(flight[0].upper() + flight[1:] + ".")
     if sessions := session_note(s):  # a session lost or restarted: said at the time, and in no output
@@ -317,6 +332,15 @@ def write_run_report(summary: dict, path: Path) -> Path:
             status="ok" if hit_ok and complete else "bad",
         )
     ]
+    said = [r for r in records if r.get("flight_notes")]
+    if said:  # the flight side's own warnings (Telemetry revision 5): they were in no output before stop 76
+        sections.append(
+            Section(
+                "What the flight side said",
+                paragraphs=[f"{r.get('label')}: {printable(n, 300)}" for r in said for n in r["flight_notes"]],
+                status="warn",
+            )
+        )
     tel = _telemetry_records(records)
     tel_figs = []
     if any(r.get("status") == "result" for r in records):

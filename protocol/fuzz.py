@@ -111,7 +111,14 @@ def sample_messages(seed: int, image_side: int = 32) -> list[Message]:
             # the gap fills among elevation_image's pixels (a fill always has an elevation)
             elevation_filled_image=((rng.random((6, 6)) < 0.3) & np.isfinite(elevation)).astype(np.uint8),
         ),
-        Telemetry(frame_seqs=(1, 2), stages={"dem": {"wall_s": 1.5, "cpu_s": 0.4}}, link={"crc_errors": 3}),
+        Telemetry(
+            frame_seqs=(1, 2),
+            stages={"dem": {"wall_s": 1.5, "cpu_s": 0.4}},
+            link={"crc_errors": 3},
+            pose={"applied": 1, "inliers": 212, "rot_deg": 0.31},
+            pose_verdict="refined",
+            notes=("frame 2's image is noisy",),
+        ),
         Heartbeat(time_s=12.0, counter=7),
         Error(code="deadline", text="pair 3 missed its deadline", seq=3),
     ]

@@ -33,6 +33,10 @@ MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
 MAX_DICT_ITEMS = 128  # stages, link statistics, camera
 MAX_SKIPPED = 32  # pipeline stages a Result can name as skipped
+# a Telemetry's notes: few and short, since they share a slow line with the next Result (4 x 256 chars ~ 8.5 s at
+# 1200 baud, within the ground's Telemetry grace: ground_sim.stream.TELEMETRY_LINE_BYTES)
+MAX_NOTES = 4
+MAX_NOTE_CHARS = 256
 # a Result's no_site_reason that begins so: the flight side withheld the sites of a map its own checks doubt (sensors
 # that disagree, a pose the images contradict), not "nothing known safe"; the ground names such maps first
 SITES_WITHHELD = "no site is offered on this map"
@@ -513,6 +517,10 @@ RESULT_FIELD_REV: dict[str, int] = {
 # The same revisions number the Telemetry's optional fields: a ground of an older revision refuses them too.
 TELEMETRY_FIELD_REV: dict[str, int] = {
     "plan": 4,  # stop 46: the deadline plan's figures, why a stage did not run
+    # stop 76: the pose refinement's outcome and the flight side's words on the pair (they reached no ground)
+    "pose": 5,
+    "pose_verdict": 5,
+    "notes": 5,
 }
 # the revision this schema decodes and the reference flight side fills
 RESULT_REV = max(*RESULT_FIELD_REV.values(), *TELEMETRY_FIELD_REV.values())
@@ -638,6 +646,11 @@ class Telemetry(Message):
 
     ``plan`` (revision 4, optional) holds the figures the flight side's deadline plan decided on, numbers only
     (docs/protocol.md lists the reference flight side's keys: why a DEM stage did not run).
+
+    Revision 5 (optional): ``pose`` holds the relative-pose refinement's figures (inliers, reprojection error, the
+    correction applied; numbers only), ``pose_verdict`` its outcome in one word (the reference's are
+    ``flight_sw.pose_refine.VERDICTS``; "" when none ran), and ``notes`` the flight side's warnings on the pair
+    (a pose kept at navigation and why, sensors that disagree, sites withheld), which had reached no ground.
     """
 
     TYPE: ClassVar[int] = 5
@@ -652,6 +665,9 @@ class Telemetry(Message):
     deadline_met: bool = _wire(_bool, True)
     link: dict = _wire(_number_dict, factory=dict)
     plan: dict = _wire(_number_dict, factory=dict)
+    pose: dict = _wire(_number_dict, factory=dict)
+    pose_verdict: str = _wire(_str(32), "")
+    notes: tuple = _wire(_names(MAX_NOTES, MAX_NOTE_CHARS), factory=tuple)
     # the measurements a decoded Telemetry left out (they read as their defaults): a board that does not report its
     # compute latency must not read as "flight 0.00 s", the whole latency then put on the link (QA of stop 73)
     omitted: ClassVar[tuple[str, ...]] = ()

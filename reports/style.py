@@ -155,6 +155,13 @@ GLOSSARY: dict[str, Term] = {
         "lies within its 3 m footprint is safe; none offered when the Result says no site qualified (and why).",
     ),
     "outcome": Term("outcome", "The Result's level (full, or the coarser level it stopped at), or the error."),
+    "pose_cell": Term(
+        "pose refinement",
+        "What the flight side's relative-pose refinement did, as its Telemetry said: refined (the images' pose "
+        "replaced navigation's, with the relative rotation's correction), kept (the images agree with navigation), "
+        "or why the images could not confirm the navigation pose, which the maps then rest on; blank when the "
+        "flight side did not say (an older flight side, or a preset without refinement).",
+    ),
     "results": Term("results", "Pairs that returned a Result (on time or late), of the pairs asked for."),
     "degraded": Term(
         "Results degraded", "Results at a coarser level, or at the full level with pipeline stages skipped."

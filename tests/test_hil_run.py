@@ -60,6 +60,12 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     for name in ("summary.json", "summary.md", "telemetry.jsonl", "received/results.jsonl", "supervisor.jsonl"):
         assert f'<a href="{name}">' in page and (tmp_path / name).is_file(), name
     assert s["results"] == 3 and s["errors"] == 0 and s["degraded"] == 0
+    # the pose refinement's outcome came over the link (Telemetry revision 5), for the summary and the page's column
+    # (at 128 px the navigation poses leave too little overlap to track: "no_overlap", unchecked and no note)
+    assert s["pose"]["verdicts"] == {"no_overlap": 3} and all(r["pose"]["applied"] == 0 for r in s["records"])
+    assert "\n\nPose refinement: no_overlap 3\n" in (tmp_path / "summary.md").read_text()
+    assert ">pose refinement</abbr></th>" in page and "<td>no_overlap</td>" in page
+    assert not any("flight_notes" in r for r in s["records"]) and "What the flight side said" not in page
     for r in s["records"]:
         assert r["status"] == "result" and r["level"] == "full" and r["deadline_met"]
         # the deadline is judged end to end at the ground: it includes the flight's compute and the line

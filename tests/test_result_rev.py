@@ -47,7 +47,8 @@ def test_the_baseline_is_the_result_of_stop_41_and_every_later_field_has_a_revis
     assert names - set(RESULT_FIELD_REV) == STOP41_RESULT_FIELDS
     assert set(RESULT_FIELD_REV) <= names
     assert sorted(set(RESULT_FIELD_REV.values())) == [1, 2, 3]
-    assert TELEMETRY_FIELD_REV == {"plan": 4} and RESULT_REV == 4  # revision 4 is the Telemetry's
+    # revisions 4 and 5 are the Telemetry's
+    assert TELEMETRY_FIELD_REV == {"plan": 4, "pose": 5, "pose_verdict": 5, "notes": 5} and RESULT_REV == 5
     assert {f.name for f in fields(Telemetry)} - set(TELEMETRY_FIELD_REV) == STOP41_TELEMETRY_FIELDS
     for name in RESULT_FIELD_REV:  # only optional fields can be left out: each has a default the decoder restores
         f = next(f for f in fields(Result) if f.name == name)
@@ -93,6 +94,33 @@ def test_an_old_ground_refuses_the_telemetrys_plan_and_takes_it_at_its_revision(
     assert isinstance(back, Telemetry) and back.plan == tel.plan
     with pytest.raises(SchemaError, match="expected a number"):
         encode_message(replace(tel, plan={"budget_s": "soon"}))
+
+
+def test_an_old_ground_refuses_the_telemetrys_pose_and_notes_and_takes_it_at_its_revision():
+    """Telemetry.pose, pose_verdict and notes (revision 5): a ground of revision 4 refused the whole Telemetry, so a
+    flight side told revision 4 leaves them off; one told 5 sends them, and today's ground reads them back."""
+    tel = Telemetry(
+        frame_seqs=(4, 5),
+        plan={"budget_s": 41.5},
+        pose={"applied": 1, "inliers": 430, "rot_deg": 0.31},
+        pose_verdict="degenerate",
+        notes=("pose of frame 5 degenerate: too little parallax",),
+    )
+    with pytest.raises(SchemaError, match=r"Telemetry: unknown fields \['notes', 'pose', 'pose_verdict'\]"):
+        old_ground_decode(encode_message(tel), 4)
+    cut = tel.for_rev(4)
+    assert not wire_keys(encode_message(cut)) & {"pose", "pose_verdict", "notes"}
+    assert old_ground_decode(encode_message(cut), 4).plan == tel.plan  # type: ignore[attr-defined]
+    back = old_ground_decode(encode_message(tel), 5)
+    assert (back.pose, back.pose_verdict, back.notes) == (tel.pose, tel.pose_verdict, tel.notes)  # type: ignore
+    assert Telemetry(frame_seqs=(4, 5)).for_rev(4) == Telemetry(frame_seqs=(4, 5))  # unsaid: nothing to leave off
+    # the notes share a slow line with the next Result: few and short
+    with pytest.raises(SchemaError, match="at most 4"):
+        encode_message(replace(tel, notes=("a",) * 5))
+    with pytest.raises(SchemaError, match="exceeds 256"):
+        encode_message(replace(tel, notes=("a" * 257,)))
+    with pytest.raises(SchemaError, match="expected a number"):
+        encode_message(replace(tel, pose={"verdict": "kept"}))
 
 
 def test_the_encoder_leaves_only_the_newer_fields_off_and_only_at_their_default():

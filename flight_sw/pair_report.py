@@ -1,0 +1,106 @@
+"""What the flight process tells the ground of a pair beyond its maps: the pose refinement's outcome and warnings.
+
+`process` says these from the pipeline's ``info`` on its console and in result.json; under the HIL they went
+nowhere, so a run whose poses fell back to navigation, or whose altimeter disagreed with its images, looked like
+any other (issue 10: "fall back to the navigation poses, saying so"; "pose-quality telemetry: inliers,
+reprojection error, the correction applied"). The Telemetry carries them (revision 5, docs/protocol.md):
+
+- :func:`pose_figures`: numbers only, for ``Telemetry.pose``;
+- :func:`pose_verdict`: the refinement's outcome in one word (``flight_sw.pose_refine.VERDICTS``);
+- :func:`pair_notes`: a few short sentences for ``Telemetry.notes``, the most telling first.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, unchecked
+
+# the refinement's figures the ground gets, under the short names it gets them by: they share a slow line with the
+# next Result (these eight add ~160 B to a ~760 B Telemetry; result.json's names added 300 B); its time is in stages
+_FIGURES = (
+    ("inliers", "inliers"),
+    ("reproj_rms_px", "reproj_rms_px"),
+    ("relative_rotation_correction_deg", "rot_deg"),
+    ("translation_dir_change_deg", "dir_deg"),
+)
+_AXES = ("x", "y", "z")
+
+
+def _number(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(v) else None
+
+
+def pose_figures(info: Mapping[str, Any]) -> dict[str, float | int]:
+    """The relative-pose refinement's figures for ``Telemetry.pose`` ({} when none ran).
+
+    ``applied`` is 1 when the images' pose replaced navigation's (verdict ``refined``), else 0: the other figures
+    are then what the fit asked for, not what was applied. ``inliers`` and ``reproj_rms_px`` (px) are the fit's
+    matches and their reprojection RMS, ``rot_deg`` the relative rotation's correction angle, ``rot_{x,y,z}_deg``
+    its signed components about the lower frame's camera axes (R <- exp(w) R), ``dir_deg`` the baseline direction's
+    change (flight_sw.pose_refine, module doc)."""
+    pr = info.get("pose_refinement")
+    if not isinstance(pr, Mapping):
+        return {}
+    out: dict[str, float | int] = {"applied": int(bool(pr.get("refined")))}
+    for key, name in _FIGURES:
+        v = _number(pr.get(key))
+        if v is not None:
+            out[name] = int(v) if key == "inliers" else v
+    vec = pr.get("relative_rotation_correction_vec_deg")
+    if isinstance(vec, Sequence) and len(vec) == 3:
+        for axis, c in zip(_AXES, vec):
+            v = _number(c)
+            if v is not None:
+                out[f"rot_{axis}_deg"] = v
+    return out
+
+
+def pose_verdict(info: Mapping[str, Any]) -> str:
+    """The refinement's outcome (``refined``, ``kept``, ``degenerate``, ...), or "" when none ran."""
+    pr = info.get("pose_refinement")
+    return str(pr.get("verdict") or "") if isinstance(pr, Mapping) else ""
+
+
+def pair_notes(
+    info: Mapping[str, Any],
+    seqs: tuple[int, int],
+    side: int,
+    max_notes: int | None = None,
+    max_chars: int | None = None,
+) -> tuple[str, ...]:
+    """The flight side's warnings on the pair ``seqs`` (upper, lower) of images ``side`` px a side (the smaller),
+    at most ``max_notes`` of at most ``max_chars`` characters each (None: all of them, whole).
+
+    In order: sensors that disagree (the upper frame's altimeter against the images), a pose the images could not
+    confirm or that they contradict, or whose geometry cannot fix it, and why (the maps then rest on navigation's),
+    images that read blank or noisy, and sites withheld for any of these. As `process` says them: a refined or kept
+    pose is no note (its figures are in :func:`pose_figures`), and below ``pose_refine.CHECK_MIN_SIDE`` px only a
+    repeated image is, since there clean pairs fail the refinement's checks too."""
+    notes: list[str] = []
+    if info.get("altimeter_disagreement"):
+        notes.append(str(info["altimeter_disagreement"]))
+    verdict = pose_verdict(info)
+    if unchecked(verdict, side) or (verdict == DEGENERATE and side >= CHECK_MIN_SIDE):
+        pr = info["pose_refinement"]
+        why = str(pr.get("reason") or "no reason given")
+        notes.append(f"pose of frame {seqs[1]} {verdict}: {why}; the maps rest on its navigation pose")
+    for kind, what in (("blank", "its pixel-scale detail"), ("noisy", "its pixel noise")):
+        for f in info.get(f"{kind}_frames", ()):
+            seq = seqs[min(max(int(f.get("frame", 0)), 0), 1)]
+            others = ", ".join(f"{v:.1f}" for v in f.get("others_dn", ()))
+            notes.append(
+                f"frame {seq}'s image is {kind}: {what} reads {float(f.get('noise_dn', math.nan)):.1f} grey levels "
+                f"against {others} in the other frame"
+            )
+    if info.get("sites_withheld") and not info.get("altimeter_disagreement"):
+        notes.append(str(info["sites_withheld"]))
+    if max_chars is not None:
+        notes = [n if len(n) <= max_chars else n[: max_chars - 3] + "..." for n in notes]
+    if max_notes is not None and len(notes) > max_notes:  # said, not dropped: the flight log has every note
+        notes = [*notes[: max_notes - 1], f"{len(notes) - max_notes + 1} more notes in the flight log"]
+    return tuple(notes)

@@ -1,0 +1,139 @@
+"""The pose refinement's outcome reaches the HIL ground (Telemetry revision 5: ``pose``, ``pose_verdict``, ``notes``).
+
+Until stop 76 only `process` said what the refinement did; under the HIL a pose that fell back to navigation, or an
+altimeter that disagreed with the images, reached no output (issue 10: "fall back to the navigation poses, saying
+so"; "pose-quality telemetry: inliers, reprojection error, the correction applied").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from synthetic import NADIR_R, Texture, camera_fov30, frames_of, plane, render
+from test_result_rev import _Link
+
+from flight_sw.pair_report import pair_notes, pose_figures, pose_verdict
+from flight_sw.twoview import rot_exp
+from protocol.codec import decode_message, encode_message
+from protocol.messages import MAX_NOTE_CHARS, MAX_NOTES, RESULT_REV, Config, Telemetry
+from protocol.pairdir import Pose
+
+PX = 256
+
+
+def _rolled(pose: Pose, deg: float) -> Pose:
+    """``pose`` turned ``deg`` about its own optical axis (the camera's z)."""
+    return Pose(pose.position, rot_exp(math.radians(deg) * np.array([0.0, 0.0, 1.0])) @ pose.R, pose.time_s)
+
+
+def _fly(pose_img: list, cam) -> Telemetry:
+    """One pair through the reference flight process as the HIL runs it; its Telemetry as the ground decodes it."""
+    import flight_sw.flight_main as fm
+
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(Config(camera=cam.to_dict(), budget="host", deadline_s=60.0, preset="fast",
+                     options={"result_rev": RESULT_REV, "descent_id": 1}))  # fmt: skip
+    for f in frames_of("p0", 0, pose_img):
+        fp.handle(f)
+    (tel,) = [m for m in link.sent if isinstance(m, Telemetry)]
+    back = decode_message(encode_message(tel))
+    assert isinstance(back, Telemetry)
+    return back
+
+
+@pytest.fixture(scope="module")
+def nadir():
+    cam = camera_fov30(PX)
+    p1, p2 = Pose(np.array([0.0, 0.0, 300.0]), NADIR_R), Pose(np.array([0.0, 0.0, 150.0]), NADIR_R, 10.0)
+    tex = Texture.random(300.0, 150.0 / cam.fx, 4, blur_cells=2.0)
+    i1, _ = render(cam, p1, plane(-2.0), tex)
+    i2, _ = render(cam, p2, plane(-2.0), tex)
+    return cam, p1, p2, _sensor(i1, 1), _sensor(i2, 2)
+
+
+def _sensor(img: np.ndarray, seed: int) -> np.ndarray:
+    """A real sensor's 2 DN of noise: a noise-free render reads as a blank image (its pixel-scale detail ~0.5 DN)."""
+    noisy = img.astype(float) + np.random.default_rng(seed).normal(0.0, 2.0, img.shape)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+def test_a_rolled_lower_frame_reaches_the_ground_as_refined_with_its_signed_correction(nadir):
+    """The lower frame reported 0.5 deg turned about its optical axis: the ground learns that the images refined it
+    (``applied`` 1), by how much and which way, on how many inliers, with no note; on exact poses, "kept" with
+    nothing applied."""
+    cam, p1, p2, i1, i2 = nadir
+    tel = _fly([(p1, i1), (_rolled(p2, 0.5), i2)], cam)
+    assert tel.pose_verdict == "refined" and tel.notes == ()
+    pose = tel.pose
+    assert pose["applied"] == 1 and pose["inliers"] >= 40 and 0 <= pose["reproj_rms_px"] < 1.0
+    assert pose["rot_z_deg"] == pytest.approx(-0.5, abs=0.02)  # turned back
+    assert abs(pose["rot_x_deg"]) < 0.02 and abs(pose["rot_y_deg"]) < 0.02
+    assert pose["rot_deg"] == pytest.approx(0.5, abs=0.02)
+    exact = _fly([(p1, i1), (p2, i2)], cam)
+    assert exact.pose_verdict == "kept" and exact.pose["applied"] == 0 and exact.notes == ()
+
+
+def test_a_lower_frame_of_other_ground_is_said_in_the_telemetrys_notes(nadir):
+    """The lower image is of other ground than its pose says: the refinement cannot match it, the maps rest on the
+    navigation pose, and the ground is told so in words (it was told nothing)."""
+    cam, p1, p2, i1, _ = nadir
+    other = Texture.random(300.0, 150.0 / cam.fx, 99, blur_cells=2.0)
+    i2, _ = render(cam, p2, plane(-2.0), other)
+    tel = _fly([(p1, i1), (p2, _sensor(i2, 3))], cam)
+    assert tel.pose_verdict in ("unmatched", "few_matches", "disagrees") and tel.pose["applied"] == 0
+    assert tel.notes[0].startswith(f"pose of frame 1 {tel.pose_verdict}: "), tel.notes
+    assert tel.notes[0].endswith("; the maps rest on its navigation pose")
+    # ... and a map resting on a pose the images contradict offers no site: said as well
+    assert tel.pose_verdict == "few_matches" or tel.notes[1].startswith("no site is offered on this map")
+
+
+def test_notes_are_the_flights_judgement_few_and_short_and_none_is_dropped_unsaid():
+    info = {
+        "pose_refinement": {"verdict": "degenerate", "refined": False, "reason": "too little parallax", "inliers": 12},
+        "altimeter_disagreement": "the altimeter reads 310 m where the images put the ground at 296 m",
+        "sites_withheld": "no site is offered on this map: its sensors disagree",
+        "blank_frames": [{"frame": 1, "noise_dn": 0.2, "others_dn": [3.1]}],
+    }
+    # below 256 px the refinement fails clean pairs too: a degenerate fit there is no note (as in `process`)
+    assert pair_notes(info, (7, 8), 128)[0] == info["altimeter_disagreement"]
+    assert not any(n.startswith("pose") for n in pair_notes(info, (7, 8), 128))
+    notes = pair_notes(info, (7, 8), 512)
+    assert notes[1] == "pose of frame 8 degenerate: too little parallax; the maps rest on its navigation pose"
+    assert notes[2].startswith("frame 8's image is blank: its pixel-scale detail reads 0.2 grey levels against 3.1")
+    # withheld because the sensors disagree: said once, by the disagreement
+    assert len(notes) == 3
+    many = {**info, "noisy_frames": [{"frame": 0, "noise_dn": 9.0, "others_dn": [1.0]}] * 4}
+    capped = pair_notes(many, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
+    assert len(capped) == MAX_NOTES and capped[-1] == "4 more notes in the flight log"
+    long = pair_notes({"altimeter_disagreement": "x" * 400}, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
+    assert len(long[0]) == MAX_NOTE_CHARS and long[0].endswith("...")
+    Telemetry(frame_seqs=(7, 8), notes=capped).validated()  # the wire takes what the flight side sends
+    # numbers only, and nothing when no refinement ran (the thesis preset)
+    assert pose_figures({}) == {} and pose_verdict({}) == ""
+    assert pose_figures(info) == {"applied": 0, "inliers": 12}
+    unreached = {"refined": True, "reproj_rms_px": None, "translation_dir_change_deg": math.nan}
+    assert pose_figures({"pose_refinement": unreached}) == {"applied": 1}
+
+
+def test_the_ground_counts_the_verdicts_and_names_the_notes():
+    """What a run's summary and page say from the records' Telemetry (revision 5); nothing from a flight side that
+    did not say."""
+    from hil_server.run import pose_note, pose_summary
+    from hil_server.run_report import pose_cell
+
+    records = [
+        {"label": "600/300", "pose_verdict": "refined", "pose": {"applied": 1, "rot_deg": 0.31}},
+        {"label": "300/150", "pose_verdict": "kept", "pose": {"applied": 0, "rot_deg": 0.02}},
+        {"label": "200/100", "pose_verdict": "degenerate", "pose": {"applied": 0}, "flight_notes": ["pose of ..."]},
+    ]
+    s = {"pose": pose_summary(records)}
+    assert s["pose"]["verdicts"] == {"refined": 1, "kept": 1, "degenerate": 1}
+    assert pose_note(s) == (
+        "pose refinement: refined 1, kept 1, degenerate 1 (largest rotation applied 0.31 deg); the flight side "
+        "noted 1 thing(s) on 1 pair(s) (first, 200/100: pose of ...)"
+    )
+    assert [pose_cell(r) for r in records] == ["refined (0.31 deg)", "kept", "degenerate"]
+    assert pose_summary([{"label": "a"}]) == {} and pose_note({"pose": {}}) == "" and pose_cell({}) is None
