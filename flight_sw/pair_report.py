@@ -19,7 +19,7 @@ from typing import Any
 from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, unchecked
 
 # the refinement's figures the ground gets, under the short names it gets them by: they share a slow line with the
-# next Result (these eight add ~160 B to a ~760 B Telemetry; result.json's names added 300 B); its time is in stages
+# next Result (these ten add ~190 B to a ~760 B Telemetry; result.json's names added 300 B); its time is in stages
 _FIGURES = (
     ("inliers", "inliers"),
     ("reproj_rms_px", "reproj_rms_px"),
@@ -41,8 +41,9 @@ def pose_figures(info: Mapping[str, Any]) -> dict[str, float | int]:
     ``applied`` is 1 when the images' pose replaced navigation's (verdict ``refined``), else 0: the other figures
     are then what the fit asked for, not what was applied. ``inliers`` and ``reproj_rms_px`` (px) are the fit's
     matches and their reprojection RMS, ``rot_deg`` the relative rotation's correction angle, ``rot_{x,y,z}_deg``
-    its signed components about the lower frame's camera axes (R <- exp(w) R), ``dir_deg`` the baseline direction's
-    change (flight_sw.pose_refine, module doc)."""
+    its signed components about the lower frame's camera axes (R <- exp(w) R), ``att1_deg`` and ``att2_deg`` the
+    upper (i1) and lower (i2) frame's own attitude corrections, ``dir_deg`` the baseline direction's change
+    (flight_sw.pose_refine, module doc)."""
     pr = info.get("pose_refinement")
     if not isinstance(pr, Mapping):
         return {}
@@ -51,6 +52,12 @@ def pose_figures(info: Mapping[str, Any]) -> dict[str, float | int]:
         v = _number(pr.get(key))
         if v is not None:
             out[name] = int(v) if key == "inliers" else v
+    att = pr.get("rotation_correction_deg")  # each frame's own attitude: a pitch common to both moves no relative
+    if isinstance(att, Sequence) and len(att) == 2:
+        for k, c in zip((1, 2), att):
+            v = _number(c)
+            if v is not None:
+                out[f"att{k}_deg"] = v
     vec = pr.get("relative_rotation_correction_vec_deg")
     if isinstance(vec, Sequence) and len(vec) == 3:
         for axis, c in zip(_AXES, vec):

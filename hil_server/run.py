@@ -559,9 +559,10 @@ def summarize(records: list[dict], cfg: RunConfig, extra: dict) -> dict:
 
 def pose_summary(records: list[dict]) -> dict:
     """What the flight side's Telemetry said of its pose refinement (revision 5) over the pairs with a Result:
-    each verdict's count, the largest rotation correction applied, and the flight side's notes per pair (its own
-    judgement of which verdicts matter: below 256 px clean pairs fail the checks too). Empty when no Telemetry
-    said (a flight side of revision 4 or below, a preset without refinement)."""
+    each verdict's count, the largest corrections applied (the relative rotation's, and a frame's own attitude's),
+    and the flight side's notes per pair (its own judgement of which verdicts matter: below 256 px clean pairs fail
+    the checks too). Empty when no Telemetry said (a flight side of revision 4 or below, a preset without
+    refinement)."""
     said = [r for r in records if r.get("pose_verdict")]
     noted = [r for r in records if r.get("flight_notes")]
     if not said and not noted:
@@ -569,29 +570,44 @@ def pose_summary(records: list[dict]) -> dict:
     verdicts: dict[str, int] = {}
     for r in said:
         verdicts[r["pose_verdict"]] = verdicts.get(r["pose_verdict"], 0) + 1
-    applied = [
-        float(r["pose"]["rot_deg"])
-        for r in said
-        if (r.get("pose") or {}).get("applied") and isinstance(r["pose"].get("rot_deg"), (int, float))
-    ]
+
+    def largest(*keys: str) -> float | None:
+        got = [
+            float(v)
+            for r in said
+            if (r.get("pose") or {}).get("applied")
+            for k in keys
+            if isinstance(v := r["pose"].get(k), (int, float))
+        ]
+        return max(got) if got else None
+
     return {
         "verdicts": verdicts,
-        "max_rotation_applied_deg": max(applied) if applied else None,
+        "max_rotation_applied_deg": largest("rot_deg"),
+        "max_attitude_applied_deg": largest("att1_deg", "att2_deg"),
         "noted": [{"label": r["label"], "notes": list(r["flight_notes"])} for r in noted],
     }
 
 
 def pose_note(summary: dict) -> str:
-    """'pose refinement: refined 2, kept 1 (largest rotation applied 0.31 deg); the flight side noted 2 thing(s) on
-    1 pair(s) (first, 200/100: ...)' ("" when no Telemetry said)."""
+    """'pose refinement: refined 2, kept 1 (largest correction applied: relative rotation 0.03 deg, a frame's
+    attitude 0.15 deg); the flight side noted 2 thing(s) on 1 pair(s) (first, 200/100: ...)' ("" when no Telemetry
+    said)."""
     p = summary.get("pose")
     if not p:
         return ""
     parts = []
     if p.get("verdicts"):
         counts = ", ".join(f"{v} {n}" for v, n in sorted(p["verdicts"].items(), key=lambda kv: -kv[1]))
-        big = p.get("max_rotation_applied_deg")
-        parts.append(f"pose refinement: {counts}" + (f" (largest rotation applied {big:.2f} deg)" if big else ""))
+        big = [
+            f"{what} {v:.2f} deg"
+            for what, v in (
+                ("relative rotation", p.get("max_rotation_applied_deg")),
+                ("a frame's attitude", p.get("max_attitude_applied_deg")),
+            )
+            if v is not None
+        ]
+        parts.append(f"pose refinement: {counts}" + (f" (largest correction applied: {', '.join(big)})" * bool(big)))
     if noted := p.get("noted"):
         n = sum(len(x["notes"]) for x in noted)
         first = noted[0]

@@ -93,14 +93,20 @@ def pair_row(r: dict) -> dict[str, Any]:
 
 
 def pose_cell(r: dict) -> str | None:
-    """ "refined (0.31 deg)", "kept", "degenerate", ... from the pair's Telemetry (revision 5); None when it did not
-    say. The rotation is the relative rotation's correction, shown only when it was applied."""
+    """The pair's pose refinement from its Telemetry (revision 5): "refined (relative 0.01 deg, attitude 0.15 deg)",
+    "kept", "degenerate", ...; None when it did not say. The corrections (the relative rotation's; the larger of the
+    two frames' own attitudes) are shown only when they were applied."""
     verdict = r.get("pose_verdict")
     if not verdict:
         return None
     pose = r.get("pose") or {}
-    rot = pose.get("rot_deg")
-    return printable(verdict, 40) + (f" ({rot:.2f} deg)" if pose.get("applied") and isinstance(rot, float) else "")
+    att = [float(v) for v in (pose.get("att1_deg"), pose.get("att2_deg")) if isinstance(v, (int, float))]
+    said = [
+        f"{name} {v:.2f} deg"
+        for name, v in (("relative", pose.get("rot_deg")), ("attitude", max(att) if att else None))
+        if isinstance(v, (int, float))
+    ]
+    return printable(verdict, 40) + (f" ({', '.join(said)})" if pose.get("applied") and said else "")
 
 
 def _site_cell(r: dict) -> str:

@@ -71,6 +71,7 @@ def test_a_rolled_lower_frame_reaches_the_ground_as_refined_with_its_signed_corr
     assert pose["applied"] == 1 and pose["inliers"] >= 40 and 0 <= pose["reproj_rms_px"] < 1.0
     assert pose["rot_z_deg"] == pytest.approx(-0.5, abs=0.02)  # turned back
     assert abs(pose["rot_x_deg"]) < 0.02 and abs(pose["rot_y_deg"]) < 0.02
+    assert pose["att2_deg"] == pytest.approx(0.5, abs=0.02) and pose["att1_deg"] < 0.02  # the lower frame's own
     assert pose["rot_deg"] == pytest.approx(0.5, abs=0.02)
     exact = _fly([(p1, i1), (p2, i2)], cam)
     assert exact.pose_verdict == "kept" and exact.pose["applied"] == 0 and exact.notes == ()
@@ -125,15 +126,16 @@ def test_the_ground_counts_the_verdicts_and_names_the_notes():
     from hil_server.run_report import pose_cell
 
     records = [
-        {"label": "600/300", "pose_verdict": "refined", "pose": {"applied": 1, "rot_deg": 0.31}},
+        {"label": "600/300", "pose_verdict": "refined", "pose": {"applied": 1, "rot_deg": 0.31, "att2_deg": 0.4}},
         {"label": "300/150", "pose_verdict": "kept", "pose": {"applied": 0, "rot_deg": 0.02}},
         {"label": "200/100", "pose_verdict": "degenerate", "pose": {"applied": 0}, "flight_notes": ["pose of ..."]},
     ]
     s = {"pose": pose_summary(records)}
     assert s["pose"]["verdicts"] == {"refined": 1, "kept": 1, "degenerate": 1}
     assert pose_note(s) == (
-        "pose refinement: refined 1, kept 1, degenerate 1 (largest rotation applied 0.31 deg); the flight side "
-        "noted 1 thing(s) on 1 pair(s) (first, 200/100: pose of ...)"
+        "pose refinement: refined 1, kept 1, degenerate 1 (largest correction applied: relative rotation 0.31 deg, "
+        "a frame's attitude 0.40 deg); the flight side noted 1 thing(s) on 1 pair(s) (first, 200/100: pose of ...)"
     )
-    assert [pose_cell(r) for r in records] == ["refined (0.31 deg)", "kept", "degenerate"]
+    cells = ["refined (relative 0.31 deg, attitude 0.40 deg)", "kept", "degenerate"]
+    assert [pose_cell(r) for r in records] == cells
     assert pose_summary([{"label": "a"}]) == {} and pose_note({"pose": {}}) == "" and pose_cell({}) is None
