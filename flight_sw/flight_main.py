@@ -301,10 +301,20 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
 
 
 def _reading(altimeter_m: float) -> float:
-    """A later frame's altimeter reading, or NaN ("none") where it is no range: the lower frame's reading only
-    checks the positions (flight_sw.rangefind), and a 0 there refused the whole pair as bad input."""
+    """A frame's altimeter reading, or NaN ("none") where it is no range (0, negative or infinite: a sensor without
+    lock). A 0 in the upper frame refused the whole pair as bad input, and one in the lower frame was dropped
+    unsaid; both are now mapped without it, and :func:`_readings_ignored` says so."""
     a = float(altimeter_m)
     return a if math.isfinite(a) and a > 0 else math.nan
+
+
+def _readings_ignored(frames: tuple[Frame, ...]) -> list[str]:
+    """A note for each frame whose altimeter reading :func:`_reading` set aside (NaN is no reading: no note)."""
+    return [
+        f"frame {f.seq}'s altimeter reading {float(f.altimeter_m):g} m is no range: the pair is mapped without it"
+        for f in frames
+        if not math.isnan(float(f.altimeter_m)) and math.isnan(_reading(f.altimeter_m))
+    ]
 
 
 def frame_pose(frame: Frame) -> Pose:
@@ -514,7 +524,7 @@ class FlightProcess:
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
-                altimeter_m=[float(upper.altimeter_m), _reading(lower.altimeter_m)],
+                altimeter_m=[_reading(upper.altimeter_m), _reading(lower.altimeter_m)],
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
@@ -528,6 +538,8 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
+        if ignored := _readings_ignored((upper, lower)):
+            res.info["altimeter_readings_ignored"] = ignored
         # the Result has no words: the Telemetry carries the first few (revision 5), the flight log every one
         withheld = res.info.get("sites_withheld")
         side = min(np.shape(upper.image)[:2])

@@ -83,12 +83,13 @@ def pair_notes(
     """The flight side's warnings on the pair ``seqs`` (upper, lower) of images ``side`` px a side (the smaller),
     at most ``max_notes`` of at most ``max_chars`` characters each (None: all of them, whole).
 
-    In order: sensors that disagree (the upper frame's altimeter against the images), a pose the images could not
+    In order: altimeter readings that were no range (``altimeter_readings_ignored``, the flight process's), sensors
+    that disagree (the upper frame's altimeter against the images), a pose the images could not
     confirm or that they contradict, or whose geometry cannot fix it, and why (the maps then rest on navigation's),
     images that read blank or noisy, and sites withheld for any of these. As `process` says them: a refined or kept
     pose is no note (its figures are in :func:`pose_figures`), and below ``pose_refine.CHECK_MIN_SIDE`` px only a
     repeated image is, since there clean pairs fail the refinement's checks too."""
-    notes: list[str] = []
+    notes: list[str] = [str(n) for n in info.get("altimeter_readings_ignored", ())]
     if info.get("altimeter_disagreement"):
         notes.append(str(info["altimeter_disagreement"]))
     verdict = pose_verdict(info)

@@ -7,6 +7,7 @@ so"; "pose-quality telemetry: inliers, reprojection error, the correction applie
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -28,7 +29,7 @@ def _rolled(pose: Pose, deg: float) -> Pose:
     return Pose(pose.position, rot_exp(math.radians(deg) * np.array([0.0, 0.0, 1.0])) @ pose.R, pose.time_s)
 
 
-def _fly(pose_img: list, cam) -> Telemetry:
+def _fly(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math.nan)) -> Telemetry:
     """One pair through the reference flight process as the HIL runs it; its Telemetry as the ground decodes it."""
     import flight_sw.flight_main as fm
 
@@ -36,9 +37,10 @@ def _fly(pose_img: list, cam) -> Telemetry:
     fp = fm.FlightProcess(link, fm.FaultPlan())
     fp.handle(Config(camera=cam.to_dict(), budget="host", deadline_s=60.0, preset="fast",
                      options={"result_rev": RESULT_REV, "descent_id": 1}))  # fmt: skip
-    for f in frames_of("p0", 0, pose_img):
-        fp.handle(f)
-    (tel,) = [m for m in link.sent if isinstance(m, Telemetry)]
+    for f, a in zip(frames_of("p0", 0, pose_img), altimeter_m):
+        fp.handle(dataclasses.replace(f, altimeter_m=a))
+    assert [type(m).__name__ for m in link.sent] == ["Result", "Telemetry"], link.sent
+    tel = link.sent[1]
     back = decode_message(encode_message(tel))
     assert isinstance(back, Telemetry)
     return back
@@ -75,6 +77,18 @@ def test_a_rolled_lower_frame_reaches_the_ground_as_refined_with_its_signed_corr
     assert pose["rot_deg"] == pytest.approx(0.5, abs=0.02)
     exact = _fly([(p1, i1), (p2, i2)], cam)
     assert exact.pose_verdict == "kept" and exact.pose["applied"] == 0 and exact.notes == ()
+
+
+@pytest.mark.parametrize("upper, lower", [(0.0, math.nan), (-150.0, 0.0), (math.inf, math.nan)])
+def test_an_altimeter_reading_that_is_no_range_is_mapped_without_and_said(nadir, upper, lower):
+    """A reading of 0, negative or infinite (an altimeter without lock) in the upper frame refused the whole pair as
+    bad input, and one in the lower frame was dropped unsaid: now the pair is mapped without it, and the ground is
+    told which reading was set aside."""
+    cam, p1, p2, i1, i2 = nadir
+    tel = _fly([(p1, i1), (p2, i2)], cam, (upper, lower))
+    said = [f"frame {k}'s altimeter reading {a:g} m is no range: the pair is mapped without it"
+            for k, a in enumerate((upper, lower)) if not math.isnan(a)]  # fmt: skip
+    assert list(tel.notes) == said and tel.pose_verdict == "kept"
 
 
 def test_a_lower_frame_of_other_ground_is_said_in_the_telemetrys_notes(nadir):
