@@ -271,19 +271,24 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         print(f"note: {note}", file=sys.stderr)
     for text in pair.warnings:  # implausible scales, a frame the 16-bit shift crushed: as the pipeline's warnings
         print(f"warning: {text}", file=sys.stderr)
+    from reports.progress import Ticker
+
+    # minutes at 4096 px went without a word
+    ticker = Ticker(f"process: {len(frames)} frames of {pair.camera.width}x{pair.camera.height} px, working")
     try:
-        res = run_pipeline_multi(
-            [pair.images[k] for k in frames],
-            [pair.poses[k] for k in frames],
-            pair.camera,
-            preset=params,
-            deadline_s=args.deadline,
-            altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
-            sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
-            sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
-            frame_numbers=frames,  # --widest-pair: its messages name the directory's frames
-            nominal_site_xy=aim,
-        )
+        with ticker:
+            res = run_pipeline_multi(
+                [pair.images[k] for k in frames],
+                [pair.poses[k] for k in frames],
+                pair.camera,
+                preset=params,
+                deadline_s=args.deadline,
+                altimeter_m=[pair.altimeter_m[k] for k in frames],  # per frame used (NaN: none)
+                sun_elevation_deg=pair.sun.elevation_deg if pair.sun else None,  # the shading cues' sun (optional)
+                sun_azimuth_deg=pair.sun.azimuth_deg if pair.sun else None,
+                frame_numbers=frames,  # --widest-pair: its messages name the directory's frames
+                nominal_site_xy=aim,
+            )
     except FlightInputError as exc:  # the pipeline's checks of the camera and poses: name the file they came from
         raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
     out = Path(args.out)
@@ -329,36 +334,39 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
     # beside new maps; stop 63's QA)
-    removing = True
-    try:
-        for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
-            (out / name).unlink(missing_ok=True)
-        for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target (write_atomic's)
-            for tmp in out.glob(f".{name}.*"):
-                tmp.unlink(missing_ok=True)
-        removing = False
-        _save_npy(out / "elevation.npy", res.elevation)
-        _save_npy(out / "hazard.npy", res.hazard)
-        _save_npy(out / "state.npy", res.state)
-        _save_npy(out / "psafe.npy", res.psafe)
-        if res.sigma is not None:  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
-            _save_npy(out / "sigma.npy", res.sigma)
-        if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
-            _save_npy(out / "filled.npy", res.filled)
-        write_atomic(out / "result.json", json_text(doc))
-        gsd = ground_step_m(res.world_xy)
-        name = Path(args.pair_dir).resolve().name  # a saved PNG names its pair: only its folder did
-        head = f"{name}: " if name else ""
-        appendix, unscored = None, None
-        if scorer is not None:
-            try:
-                appendix = scorer.score(out, head, gsd)
-            except OSError as exc:  # its own files refused: the flight side's pictures and page still come
-                unscored = exc
-        write_process_report(out, pair.images[0], res, doc, appendix, gsd)
-    except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
-        print(_left_after_stop(out, removing), file=sys.stderr)
-        raise
+    with Ticker(f"process: writing the maps and the report of {out}"):
+        removing = True
+        try:
+            for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first
+                (out / name).unlink(missing_ok=True)
+            for name in PROCESS_OUTPUTS:  # what a run killed outright mid-write left beside its target (write_atomic's)
+                for tmp in out.glob(f".{name}.*"):
+                    tmp.unlink(missing_ok=True)
+            removing = False
+            _save_npy(out / "elevation.npy", res.elevation)
+            _save_npy(out / "hazard.npy", res.hazard)
+            _save_npy(out / "state.npy", res.state)
+            _save_npy(out / "psafe.npy", res.psafe)
+            if (
+                res.sigma is not None
+            ):  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
+                _save_npy(out / "sigma.npy", res.sigma)
+            if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
+                _save_npy(out / "filled.npy", res.filled)
+            write_atomic(out / "result.json", json_text(doc))
+            gsd = ground_step_m(res.world_xy)
+            name = Path(args.pair_dir).resolve().name  # a saved PNG names its pair: only its folder did
+            head = f"{name}: " if name else ""
+            appendix, unscored = None, None
+            if scorer is not None:
+                try:
+                    appendix = scorer.score(out, head, gsd)
+                except OSError as exc:  # its own files refused: the flight side's pictures and page still come
+                    unscored = exc
+            write_process_report(out, pair.images[0], res, doc, appendix, gsd)
+        except BaseException:  # a Ctrl-C, a SIGTERM, a full disk: what is there is this run's alone, and said
+            print(_left_after_stop(out, removing), file=sys.stderr)
+            raise
     fills = res.info.get("dem_filled_fraction")
     line = (
         f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}"

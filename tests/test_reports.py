@@ -540,3 +540,24 @@ def test_an_empty_error_panel_names_the_side_that_is_empty():
     nan = np.full((8, 8), np.nan, np.float32)
     assert "the truth holds no elevation" in dem_panels(z, nan)[2].empty_text
     assert "no computed elevation where the truth is" in dem_panels(nan, z)[2].empty_text
+
+
+def test_a_ticker_speaks_only_while_long_work_runs():
+    """`process` on a large pair ran for a minute or more without a word: a line every so often, none for short
+    work, and none after the work ended."""
+    import io
+    import time
+
+    from reports.progress import Ticker
+
+    quick = io.StringIO()
+    with Ticker("process: working", stream=quick):
+        pass
+    assert quick.getvalue() == ""
+    slow = io.StringIO()
+    with Ticker("process: working", stream=slow, first_s=0.05, every_s=0.05) as t:
+        time.sleep(0.5)
+    said = slow.getvalue()
+    time.sleep(0.15)
+    assert slow.getvalue() == said and t.lines >= 2  # stopped with the work
+    assert said.splitlines()[0].startswith("process: working: ") and said.splitlines()[0].endswith(" s so far")
