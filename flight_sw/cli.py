@@ -347,9 +347,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
             _save_npy(out / "hazard.npy", res.hazard)
             _save_npy(out / "state.npy", res.state)
             _save_npy(out / "psafe.npy", res.psafe)
-            if (
-                res.sigma is not None
-            ):  # v2: the elevation's 1-sigma (m); an elevation carried into a gap has a large one
+            if res.sigma is not None:  # v2: the elevation's 1-sigma (m); a gap fill's is large
                 _save_npy(out / "sigma.npy", res.sigma)
             if res.filled is not None:  # v2: True where elevation.npy holds a gap fill (dark shadow), not a match
                 _save_npy(out / "filled.npy", res.filled)

@@ -63,7 +63,7 @@ from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, par
 from flight_sw.mapping import HazardGrid
 from flight_sw.memory import private_rss_bytes
 from flight_sw.pair_report import pair_notes, pose_figures, pose_verdict
-from flight_sw.pipeline import PRESETS, run_pipeline
+from flight_sw.pipeline import PRESETS, run_pipeline_multi
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
 from protocol.codec import Encoded, encode
@@ -301,9 +301,9 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
 
 
 def _reading(altimeter_m: float) -> float:
-    """A frame's altimeter reading, or NaN ("none") where it is no range (0, negative or infinite: a sensor without
-    lock). A 0 in the upper frame refused the whole pair as bad input, and one in the lower frame was dropped
-    unsaid; both are now mapped without it, and :func:`_readings_ignored` says so."""
+    """A frame's altimeter reading, or NaN ("none") where it is no range (0 or negative: a sensor without lock; the
+    wire refuses an infinite one). A 0 in the upper frame refused the whole pair as bad input, and one in the lower
+    frame was dropped unsaid; both are now mapped without it, and :func:`_readings_ignored` says so."""
     a = float(altimeter_m)
     return a if math.isfinite(a) and a > 0 else math.nan
 
@@ -515,12 +515,11 @@ class FlightProcess:
         due = pend.arrival + cfg.deadline_s * (1.0 - DEADLINE_GUARD)  # what the plan aims at
         deadline_at = due - line_s - max(0.0, self.last_output_s - after_s * time_scale)
         try:
-            res = run_pipeline(
-                np.asarray(upper.image),
-                np.asarray(lower.image),
-                frame_pose(upper),
-                frame_pose(lower),
+            res = run_pipeline_multi(
+                [np.asarray(upper.image), np.asarray(lower.image)],
+                [frame_pose(upper), frame_pose(lower)],
                 Camera.from_dict(cfg.camera),
+                frame_numbers=seqs,  # its words (notes, no_site_reason) name the frames as the ground does
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
@@ -541,10 +540,10 @@ class FlightProcess:
         if ignored := _readings_ignored((upper, lower)):
             res.info["altimeter_readings_ignored"] = ignored
         # the Result has no words: the Telemetry carries the first few (revision 5), the flight log every one
-        withheld = res.info.get("sites_withheld")
+        withheld = str(res.info.get("sites_withheld") or "")
         side = min(np.shape(upper.image)[:2])
         for note in pair_notes(res.info, seqs, side):
-            if note != withheld:
+            if note not in withheld:  # an altimeter disagreement is the withheld sites' reason: said once
                 print(f"flight: frames {list(seqs)}: {note}", file=sys.stderr, flush=True)
         if withheld:
             print(

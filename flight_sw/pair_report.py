@@ -16,7 +16,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, unchecked
+from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, FEW_MATCHES, NO_OVERLAP, unchecked
 
 # the refinement's figures the ground gets, under the short names it gets them by: they share a slow line with the
 # next Result (these ten add ~190 B to a ~760 B Telemetry; result.json's names added 300 B); its time is in stages
@@ -81,32 +81,38 @@ def pair_notes(
     max_chars: int | None = None,
 ) -> tuple[str, ...]:
     """The flight side's warnings on the pair ``seqs`` (upper, lower) of images ``side`` px a side (the smaller),
-    at most ``max_notes`` of at most ``max_chars`` characters each (None: all of them, whole).
+    at most ``max_notes`` of at most ``max_chars`` characters each (None: all of them, whole). ``info`` is the
+    pipeline's, run with ``frame_numbers=seqs`` so that its own words name the frames as these do.
 
     In order: altimeter readings that were no range (``altimeter_readings_ignored``, the flight process's), sensors
-    that disagree (the upper frame's altimeter against the images), a pose the images could not
-    confirm or that they contradict, or whose geometry cannot fix it, and why (the maps then rest on navigation's),
-    images that read blank or noisy, and sites withheld for any of these. As `process` says them: a refined or kept
-    pose is no note (its figures are in :func:`pose_figures`), and below ``pose_refine.CHECK_MIN_SIDE`` px only a
-    repeated image is, since there clean pairs fail the refinement's checks too."""
+    that disagree (the altimeter against the positions or the images), a pose the images could not check, one they
+    contradict, or one whose geometry they cannot fix, and why (the maps then rest on navigation's), and images that
+    read blank or noisy. As `process` judges them: a refined or kept pose is no note (its figures are in
+    :func:`pose_figures`), and below ``pose_refine.CHECK_MIN_SIDE`` px only a repeated image is, since there clean
+    pairs fail the refinement's checks too. Sites withheld for any of these are not repeated here: the Result's
+    ``no_site_reason`` says it."""
     notes: list[str] = [str(n) for n in info.get("altimeter_readings_ignored", ())]
     if info.get("altimeter_disagreement"):
         notes.append(str(info["altimeter_disagreement"]))
     verdict = pose_verdict(info)
     if unchecked(verdict, side) or (verdict == DEGENERATE and side >= CHECK_MIN_SIDE):
-        pr = info["pose_refinement"]
-        why = str(pr.get("reason") or "no reason given")
-        notes.append(f"pose of frame {seqs[1]} {verdict}: {why}; the maps rest on its navigation pose")
+        why, lower = str(info["pose_refinement"].get("reason") or "no reason given"), seqs[1]
+        if verdict in (NO_OVERLAP, FEW_MATCHES):  # geometry or bland ground: nothing in the images is against it
+            notes.append(f"frame {lower}'s pose is not checked by the images ({verdict}: {why}); the maps rest on it "
+                         "as navigation reports it")  # fmt: skip
+        elif verdict == DEGENERATE:
+            notes.append(f"the images matched but cannot fix frame {lower}'s pose ({why}); the maps rest on it as "
+                         "navigation reports it")  # fmt: skip
+        else:  # unmatched, disagrees, repeated: evidence against it
+            notes.append(f"the images contradict frame {lower}'s navigation pose ({verdict}: {why}); the maps rest "
+                         "on it")  # fmt: skip
     for kind, what in (("blank", "its pixel-scale detail"), ("noisy", "its pixel noise")):
         for f in info.get(f"{kind}_frames", ()):
-            seq = seqs[min(max(int(f.get("frame", 0)), 0), 1)]
             others = ", ".join(f"{v:.1f}" for v in f.get("others_dn", ()))
             notes.append(
-                f"frame {seq}'s image is {kind}: {what} reads {float(f.get('noise_dn', math.nan)):.1f} grey levels "
-                f"against {others} in the other frame"
+                f"frame {f.get('frame')}'s image is {kind}: {what} reads {float(f.get('noise_dn', math.nan)):.1f} "
+                f"grey levels against {others} in the other frame"
             )
-    if info.get("sites_withheld") and not info.get("altimeter_disagreement"):
-        notes.append(str(info["sites_withheld"]))
     if max_chars is not None:
         notes = [n if len(n) <= max_chars else n[: max_chars - 3] + "..." for n in notes]
     if max_notes is not None and len(notes) > max_notes:  # said, not dropped: the flight log has every note

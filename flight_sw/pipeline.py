@@ -111,6 +111,7 @@ from .pose_refine import (
     UNMATCHED,
     contradicted,
     refine_descent,
+    repeat_reason,
 )
 from .psafe import WIDE_PX as PSAFE_WIDE_PX
 from .psafe import Model, model_call, model_for_image, not_fitted_text
@@ -468,9 +469,11 @@ def _renumber(info: dict[str, Any], numbers: list[int]) -> None:
             info[key] = [numbers[k] for k in info[key]]
     pr = info.get("pose_refinement")
     for f in [pr, *(pr.get("frames") or ())] if isinstance(pr, dict) else ():
-        for key in ("frame", "against") if isinstance(f, dict) else ():  # against: pose_refine._chain
+        for key in ("frame", "against", "repeat_of") if isinstance(f, dict) else ():  # against: pose_refine._chain
             if isinstance(f.get(key), int) and 0 <= f[key] < len(numbers):
                 f[key] = numbers[f[key]]
+        if isinstance(f, dict) and f.get("verdict") == REPEATED and isinstance(f.get("repeat_of"), int):
+            f["reason"] = repeat_reason(f["repeat_of"])  # its words named the input's position
 
 
 def _pose_doubt(

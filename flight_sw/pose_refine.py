@@ -132,6 +132,11 @@ VERDICTS = (REFINED, KEPT, DEGENERATE, NO_OVERLAP, FEW_MATCHES, UNMATCHED, DISAG
 CHECK_MIN_SIDE = 256
 
 
+def repeat_reason(j: int) -> str:
+    """The reason of a :data:`REPEATED` verdict: the frame's image is frame ``j``'s."""
+    return f"its image is frame {j}'s, pixel for pixel: the same image twice (a camera that sent an image again)"
+
+
 def unchecked(verdict: str, side: int) -> bool:
     """True when a frame's ``verdict`` means its pose is unchecked or contradicted by the images
     (:data:`NO_OVERLAP`, :data:`FEW_MATCHES`, :data:`UNMATCHED`, :data:`DISAGREES`), on images of at least
@@ -873,8 +878,7 @@ def refine_descent(
             refined=False,
             verdict=REPEATED,
             repeat_of=j,
-            reason=f"its image is frame {j}'s, pixel for pixel: the same image twice (a camera that sent an image "
-            "again)",
+            reason=repeat_reason(j),
         )
         _back_to_navigation(k, out, poses, relative)
         if k == n - 1:

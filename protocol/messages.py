@@ -33,8 +33,9 @@ MAX_TEXT = 4096  # longest free-text field (error text, names)
 MAX_SITES = 256
 MAX_DICT_ITEMS = 128  # stages, link statistics, camera
 MAX_SKIPPED = 32  # pipeline stages a Result can name as skipped
-# a Telemetry's notes: few and short, since they share a slow line with the next Result (4 x 256 chars ~ 8.5 s at
-# 1200 baud, within the ground's Telemetry grace: ground_sim.stream.TELEMETRY_LINE_BYTES)
+# a Telemetry's notes: few and short, since they share a slow line with the next Result (4 x 256 ASCII chars ~ 8.5 s
+# at 1200 baud, within the ground's Telemetry grace: ground_sim.stream.TELEMETRY_LINE_BYTES; characters, not bytes,
+# are counted: another script's notes can take up to 4x the bytes)
 MAX_NOTES = 4
 MAX_NOTE_CHARS = 256
 # a Result's no_site_reason that begins so: the flight side withheld the sites of a map its own checks doubt (sensors

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from typing import TextIO
 
@@ -86,29 +87,31 @@ class Ticker:
         first_s: float = TICK_FIRST_S,
         every_s: float = TICK_EVERY_S,
     ):
-        import threading
-
         self.desc, self.enabled, self.first_s, self.every_s = desc, enabled, first_s, every_s
         self.stream = stream if stream is not None else sys.stderr
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="ticker", daemon=True)
+        self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self.lines = 0
 
     def __enter__(self) -> Ticker:
         self._t0 = time.monotonic()
+        self._stop = threading.Event()
         if self.enabled:
+            self._thread = threading.Thread(target=self._run, args=(self._stop,), name="ticker", daemon=True)
             self._thread.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join()
+        if self._thread is not None:
+            # a line half written to a blocked stderr must not hold up the exit (or a Ctrl-C): it is a daemon
+            self._thread.join(timeout=1.0)
+            self._thread = None
 
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         wait = self.first_s
-        while not self._stop.wait(wait):
+        while not stop.wait(wait):
             self.stream.write(f"{self.desc}: {time.monotonic() - self._t0:.0f} s so far\n")
             self.stream.flush()
             self.lines += 1

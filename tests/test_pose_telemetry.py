@@ -22,6 +22,7 @@ from protocol.messages import MAX_NOTE_CHARS, MAX_NOTES, RESULT_REV, Config, Tel
 from protocol.pairdir import Pose
 
 PX = 256
+SEQ0 = 10
 
 
 def _rolled(pose: Pose, deg: float) -> Pose:
@@ -30,14 +31,15 @@ def _rolled(pose: Pose, deg: float) -> Pose:
 
 
 def _fly(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math.nan)) -> Telemetry:
-    """One pair through the reference flight process as the HIL runs it; its Telemetry as the ground decodes it."""
+    """One pair through the reference flight process as the HIL runs it, as frames 10 and 11 (seqs that are not the
+    frames' positions: the notes must name the ground's); its Telemetry as the ground decodes it."""
     import flight_sw.flight_main as fm
 
     link = _Link()
     fp = fm.FlightProcess(link, fm.FaultPlan())
     fp.handle(Config(camera=cam.to_dict(), budget="host", deadline_s=60.0, preset="fast",
                      options={"result_rev": RESULT_REV, "descent_id": 1}))  # fmt: skip
-    for f, a in zip(frames_of("p0", 0, pose_img), altimeter_m):
+    for f, a in zip(frames_of("p0", SEQ0, pose_img), altimeter_m):
         fp.handle(dataclasses.replace(f, altimeter_m=a))
     assert [type(m).__name__ for m in link.sent] == ["Result", "Telemetry"], link.sent
     tel = link.sent[1]
@@ -79,15 +81,15 @@ def test_a_rolled_lower_frame_reaches_the_ground_as_refined_with_its_signed_corr
     assert exact.pose_verdict == "kept" and exact.pose["applied"] == 0 and exact.notes == ()
 
 
-@pytest.mark.parametrize("upper, lower", [(0.0, math.nan), (-150.0, 0.0), (math.inf, math.nan)])
+@pytest.mark.parametrize("upper, lower", [(0.0, math.nan), (-150.0, 0.0), (math.nan, -1.0)])
 def test_an_altimeter_reading_that_is_no_range_is_mapped_without_and_said(nadir, upper, lower):
-    """A reading of 0, negative or infinite (an altimeter without lock) in the upper frame refused the whole pair as
-    bad input, and one in the lower frame was dropped unsaid: now the pair is mapped without it, and the ground is
-    told which reading was set aside."""
+    """A reading of 0 or negative (an altimeter without lock; the wire refuses an infinite one) in the upper frame
+    refused the whole pair as bad input, and one in the lower frame was dropped unsaid: now the pair is mapped
+    without it, and the ground is told which reading was set aside."""
     cam, p1, p2, i1, i2 = nadir
     tel = _fly([(p1, i1), (p2, i2)], cam, (upper, lower))
     said = [f"frame {k}'s altimeter reading {a:g} m is no range: the pair is mapped without it"
-            for k, a in enumerate((upper, lower)) if not math.isnan(a)]  # fmt: skip
+            for k, a in enumerate((upper, lower), SEQ0) if not math.isnan(a)]  # fmt: skip
     assert list(tel.notes) == said and tel.pose_verdict == "kept"
 
 
@@ -99,10 +101,13 @@ def test_a_lower_frame_of_other_ground_is_said_in_the_telemetrys_notes(nadir):
     i2, _ = render(cam, p2, plane(-2.0), other)
     tel = _fly([(p1, i1), (p2, _sensor(i2, 3))], cam)
     assert tel.pose_verdict in ("unmatched", "few_matches", "disagrees") and tel.pose["applied"] == 0
-    assert tel.notes[0].startswith(f"pose of frame 1 {tel.pose_verdict}: "), tel.notes
-    assert tel.notes[0].endswith("; the maps rest on its navigation pose")
-    # ... and a map resting on a pose the images contradict offers no site: said as well
-    assert tel.pose_verdict == "few_matches" or tel.notes[1].startswith("no site is offered on this map")
+    if tel.pose_verdict == "few_matches":
+        assert tel.notes[0].startswith("frame 11's pose is not checked by the images (few_matches: ")
+        assert len(tel.notes) == 1, tel.notes
+    else:  # evidence against it: the map offers no site, which the Result says (not repeated in the notes)
+        assert tel.notes[0].startswith(f"the images contradict frame 11's navigation pose ({tel.pose_verdict}: ")
+        assert tel.notes[0].endswith("); the maps rest on it") and len(tel.notes) == 1, tel.notes
+    assert not any(ch in "".join(tel.notes) for ch in ("frame 0", "frame 1's", "frame 1 "))  # seqs, not positions
 
 
 def test_notes_are_the_flights_judgement_few_and_short_and_none_is_dropped_unsaid():
@@ -110,17 +115,20 @@ def test_notes_are_the_flights_judgement_few_and_short_and_none_is_dropped_unsai
         "pose_refinement": {"verdict": "degenerate", "refined": False, "reason": "too little parallax", "inliers": 12},
         "altimeter_disagreement": "the altimeter reads 310 m where the images put the ground at 296 m",
         "sites_withheld": "no site is offered on this map: its sensors disagree",
-        "blank_frames": [{"frame": 1, "noise_dn": 0.2, "others_dn": [3.1]}],
+        "blank_frames": [{"frame": 8, "noise_dn": 0.2, "others_dn": [3.1]}],
     }
     # below 256 px the refinement fails clean pairs too: a degenerate fit there is no note (as in `process`)
     assert pair_notes(info, (7, 8), 128)[0] == info["altimeter_disagreement"]
-    assert not any(n.startswith("pose") for n in pair_notes(info, (7, 8), 128))
+    assert len(pair_notes(info, (7, 8), 128)) == 2  # the disagreement and the blank image
     notes = pair_notes(info, (7, 8), 512)
-    assert notes[1] == "pose of frame 8 degenerate: too little parallax; the maps rest on its navigation pose"
+    assert notes[1] == (
+        "the images matched but cannot fix frame 8's pose (too little parallax); the maps rest on it as navigation "
+        "reports it"
+    )
+    # the pipeline names the frames as it was told (frame_numbers=seqs); the withheld sites are the Result's to say
     assert notes[2].startswith("frame 8's image is blank: its pixel-scale detail reads 0.2 grey levels against 3.1")
-    # withheld because the sensors disagree: said once, by the disagreement
     assert len(notes) == 3
-    many = {**info, "noisy_frames": [{"frame": 0, "noise_dn": 9.0, "others_dn": [1.0]}] * 4}
+    many = {**info, "noisy_frames": [{"frame": 7, "noise_dn": 9.0, "others_dn": [1.0]}] * 4}
     capped = pair_notes(many, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
     assert len(capped) == MAX_NOTES and capped[-1] == "4 more notes in the flight log"
     long = pair_notes({"altimeter_disagreement": "x" * 400}, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
@@ -153,3 +161,15 @@ def test_the_ground_counts_the_verdicts_and_names_the_notes():
     cells = ["refined (relative 0.31 deg, attitude 0.40 deg)", "kept", "degenerate"]
     assert [pose_cell(r) for r in records] == cells
     assert pose_summary([{"label": "a"}]) == {} and pose_note({"pose": {}}) == "" and pose_cell({}) is None
+
+
+def test_an_image_sent_twice_is_named_by_the_grounds_frame_numbers(nadir):
+    """The lower frame carries the upper frame's image again: the note names both frames by the ground's seqs (the
+    pipeline's reason said "frame 0's", the upper frame's position, whatever the ground called it)."""
+    cam, p1, p2, i1, _ = nadir
+    tel = _fly([(p1, i1), (p2, i1.copy())], cam)
+    assert tel.pose_verdict == "repeated"
+    assert tel.notes == (
+        "the images contradict frame 11's navigation pose (repeated: its image is frame 10's, pixel for pixel: the "
+        "same image twice (a camera that sent an image again)); the maps rest on it",
+    )

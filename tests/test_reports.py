@@ -561,3 +561,21 @@ def test_a_ticker_speaks_only_while_long_work_runs():
     time.sleep(0.15)
     assert slow.getvalue() == said and t.lines >= 2  # stopped with the work
     assert said.splitlines()[0].startswith("process: working: ") and said.splitlines()[0].endswith(" s so far")
+    # a Ctrl-C in the work stops it too, and the ticker can time the next piece of work
+    stopped = io.StringIO()
+    ticker = Ticker("process: writing", stream=stopped, first_s=0.05, every_s=0.05)
+    with pytest.raises(KeyboardInterrupt), ticker:
+        time.sleep(0.2)
+        raise KeyboardInterrupt
+    n = stopped.getvalue().count("\n")
+    with ticker:
+        time.sleep(0.2)
+    time.sleep(0.15)
+    assert n >= 1 and stopped.getvalue().count("\n") > n and ticker.lines == stopped.getvalue().count("\n")
+    said = stopped.getvalue()
+    time.sleep(0.15)
+    assert stopped.getvalue() == said
+    off = io.StringIO()
+    with Ticker("process: working", stream=off, enabled=False, first_s=0.01, every_s=0.01):
+        time.sleep(0.1)
+    assert off.getvalue() == ""
