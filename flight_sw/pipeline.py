@@ -414,11 +414,11 @@ def run_pipeline_multi(
         matched = res.elevation if res.filled is None else np.where(res.filled, np.nan, res.elevation)
         # along the axis navigation reports: the beam follows the camera, and a refinement that took an altitude
         # error in as attitude (up to 3 sd) moved the point and halved the gap
-        gap, unchecked = altimeter_dem_gap(matched, camera, poses_in[0], alt0)
+        gap, unchecked = altimeter_dem_gap(matched, camera, poses_in[0], alt0, numbers[0])
         res.info["altimeter_dem_gap_m"] = None if math.isnan(gap) else gap
         if unchecked:
             res.info["altimeter_dem_unchecked"] = unchecked
-        alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0)) if n)
+        alt_note = "; ".join(n for n in (alt_note, altimeter_dem_disagreement(gap, alt0, numbers[0])) if n)
     if alt_note:
         res.info["altimeter_disagreement"] = alt_note
         # which sensor is wrong is unknown, and a map two of them disagree on is no ground to land on: said, with
@@ -489,7 +489,7 @@ def _pose_doubt(
         why = []
         for verdict, text in (
             (DISAGREES, "whose navigation pose the images contradict"),
-            (UNMATCHED, _NO_MATCH),
+            (UNMATCHED, _NO_MATCH.format(ref=numbers[0])),
             (REPEATED, "whose image is an earlier frame's, pixel for pixel"),
         ):
             ks = [str(numbers[k]) for k in swept if verdicts.get(k) == verdict]
@@ -523,7 +523,7 @@ def _contradicted_frames(pose_info: dict[str, Any] | None, n: int, side: int) ->
 # an UNMATCHED frame: texture, and no consistent match where its pose says it overlaps frame 0 (a blank or another
 # image, or a pose far off): the images do not bear its pose out, which is not "contradict" (a fit that asks for a
 # correction beyond the navigation's accuracy); stop 61's QA found the two said alike
-_NO_MATCH = "whose image does not match frame 0's where its navigation pose says"
+_NO_MATCH = "whose image does not match frame {ref}'s where its navigation pose says"
 
 
 def _verdicts(pose_info: dict[str, Any] | None) -> dict[int, str]:

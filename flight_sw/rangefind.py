@@ -127,28 +127,32 @@ def altimeter_ring(elevation: np.ndarray, camera: Camera) -> np.ndarray:
     return z[y0:y1, x0:x1][(d >= r0) & (d <= r1)]
 
 
-def altimeter_dem_gap(elevation: np.ndarray, camera: Camera, pose: Pose, slant_range_m: float) -> tuple[float, str]:
+def altimeter_dem_gap(
+    elevation: np.ndarray, camera: Camera, pose: Pose, slant_range_m: float, frame: int = 0
+) -> tuple[float, str]:
     """``(z_DEM - Z_alt, "")``: the DEM's median elevation on a ring about frame 0's principal point (the beam lands
     at its centre, DESIGN.md; :func:`altimeter_ring`) less the altimeter's ground point (:func:`altimeter_ground`).
     ``(NaN, why)`` where the DEM has too little there (under :data:`ALT_DEM_MIN_SHARE` of the ring) or the ring
     is off the image: said rather than passed over (on 21 of 315 clean directories the check was silently not
-    made)."""
+    made). ``frame``: what ``why`` calls frame 0 (the HIL names frames by their seq)."""
     ring = altimeter_ring(elevation, camera)
     if ring.size == 0:
         return math.nan, (
-            "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off the image"
+            f"frame {frame}'s altimeter was not checked against the DEM: its optical axis meets the ground off the "
+            "image"
         )
     share = float(np.count_nonzero(np.isfinite(ring))) / ring.size
     if share < ALT_DEM_MIN_SHARE:
         return math.nan, (  # floored: 24.6 % is not "25 % (it needs 25 %)"
-            f"frame 0's altimeter was not checked against the DEM: {math.floor(100 * share)} % of the ring about "
+            f"frame {frame}'s altimeter was not checked against the DEM: {math.floor(100 * share)} % of the ring about "
             f"its optical axis has a matched elevation (it needs {100 * ALT_DEM_MIN_SHARE:.0f} %)"
         )
     return float(np.nanmedian(ring)) - altimeter_ground(pose, slant_range_m), ""
 
 
-def altimeter_dem_disagreement(gap_m: float, slant_range_m: float) -> str:
-    """Why the DEM and frame 0's altimeter cannot both be right ("" when they agree or there is no gap to judge).
+def altimeter_dem_disagreement(gap_m: float, slant_range_m: float, frame: int = 0) -> str:
+    """Why the DEM and frame 0's altimeter cannot both be right ("" when they agree or there is no gap to judge);
+    ``frame`` is what the words call frame 0.
 
     The images fix the DEM's shape, not its scale: a frame reported 50 m from where it was (or an image from
     another frame) scales the whole DEM, and the pose refinement cannot see it (stop 59's QA: a DEM 24 m off,
@@ -157,7 +161,7 @@ def altimeter_dem_disagreement(gap_m: float, slant_range_m: float) -> str:
     if not math.isfinite(gap_m) or abs(gap_m) <= tol:
         return ""
     return (
-        f"the DEM puts the ground under frame 0's optical axis {gap_m:+.1f} m from where its altimeter reads it "
+        f"the DEM puts the ground under frame {frame}'s optical axis {gap_m:+.1f} m from where its altimeter reads it "
         f"(more than {tol:.1f} m): a frame's position or image is wrong, or the reading, and the DEM's scale with it"
     )
 

@@ -173,3 +173,18 @@ def test_an_image_sent_twice_is_named_by_the_grounds_frame_numbers(nadir):
         "the images contradict frame 11's navigation pose (repeated: its image is frame 10's, pixel for pixel: the "
         "same image twice (a camera that sent an image again)); the maps rest on it",
     )
+
+
+def test_an_altimeter_the_images_disagree_with_is_said_of_the_grounds_frames(nadir):
+    """The upper frame's altimeter reads 30 m long: the notes name frames 10 and 11, the ground's (the pipeline's
+    words said "frame 0's" of the altimeter whatever the ground called the frame)."""
+    from flight_sw.rangefind import altimeter_dem_disagreement, altimeter_dem_gap
+
+    cam, p1, p2, i1, i2 = nadir
+    tel = _fly([(p1, i1), (p2, i2)], cam, (332.0, math.nan))  # the ground 302 m down the axis
+    assert tel.notes and any("frame 10's altimeter" in n for n in tel.notes), tel.notes
+    assert not any("frame 0" in n or "frame 1'" in n for n in tel.notes), tel.notes
+    # the DEM's own check of the reading names the frame it is given
+    assert "under frame 10's optical axis +30.0 m" in altimeter_dem_disagreement(30.0, 300.0, 10)
+    blank = np.full((cam.height, cam.width), np.nan, np.float32)
+    assert altimeter_dem_gap(blank, cam, p1, 302.0, 10)[1].startswith("frame 10's altimeter was not checked")
