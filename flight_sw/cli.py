@@ -269,7 +269,10 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         raise FlightInputError(f"{Path(args.pair_dir) / 'pair.json'}: {exc}") from None
     for note in pair.notes:  # conversions and repairs the reader made: into result.json and onto the page too
         print(f"note: {note}", file=sys.stderr)
-    for text in pair.warnings:  # implausible scales, a frame the 16-bit shift crushed: as the pipeline's warnings
+    # a crushed frame the run leaves out (--widest-pair) is no warning on its maps
+    unused = {text for k, text in pair.shallow_warnings.items() if k not in frames}
+    reader_warnings = [text for text in pair.warnings if text not in unused]
+    for text in reader_warnings:  # implausible scales, a frame the 16-bit shift crushed: as the pipeline's warnings
         print(f"warning: {text}", file=sys.stderr)
     from reports.progress import Ticker
 
@@ -328,7 +331,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         messages.append((False, f"{out}: {off}"))
     # the reader's warnings (said before the pipeline ran) and the run's; the reader's notes too: said on stderr
     # alone, a pair in km left a DEM in km with an empty warnings list (QA of stop 75)
-    doc["warnings"] = [*pair.warnings, *(text.removeprefix("warning: ") for warn, text in messages if warn)]
+    doc["warnings"] = [*reader_warnings, *(text.removeprefix("warning: ") for warn, text in messages if warn)]
     doc["notes"] = list(pair.notes)
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,

@@ -295,8 +295,8 @@ class Pair:
     (frames 0 and -1). ``altimeter_m`` holds one slant range per frame (NaN:
     no reading). ``notes`` collects what reading had to convert or repair; ``warnings`` what it found legal but
     implausible enough to make the maps meaningless (:meth:`scale_notes`, a frame the common 16-bit shift left with
-    a few grey levels: those frames' numbers are ``shallow_frames``). A reader's caller records both with its
-    outputs (``process``: result.json ``notes`` and ``warnings``).
+    a few grey levels: those frames' numbers are ``shallow_frames``, and ``shallow_warnings`` each one's warning). A
+    reader's caller records both with its outputs (``process``: result.json ``notes`` and ``warnings``).
     """
 
     camera: Camera
@@ -309,6 +309,7 @@ class Pair:
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     shallow_frames: tuple[int, ...] = ()
+    shallow_warnings: dict[int, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.poses = tuple(self.poses)
@@ -1225,6 +1226,7 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     pair.warnings += [f"{meta_path}: {n}" for n in pair.scale_notes()]
     pair.warnings += list(shallow.values())
     pair.shallow_frames = tuple(sorted(shallow))
+    pair.shallow_warnings = dict(shallow)
     pair.notes += [f"{meta_path}: {n}" for n in same_time_notes(pair.poses)]
     return pair
 

@@ -838,6 +838,34 @@ def test_a_camera_too_small_to_map_is_its_one_error_without_a_note_before_it(tmp
     assert f"{tiny / 'pair.json'}: camera: images of 2x2 px are too small to map" in err, err
 
 
+def test_widest_pair_warns_of_no_crushed_frame_it_leaves_out(tmp_path, capsys):
+    """A middle frame of 12-bit values in a 16-bit file beside full 16-bit ones: the reader warns of it, and
+    `process --widest-pair`, which uses frames 0 and 2 only, listed that warning on its maps too (QA of stop 75)."""
+    import cv2
+
+    from protocol.pairdir import read_pair
+
+    d, _ = _pair(tmp_path)
+    three = _copy_without_truth(d, tmp_path / "three")
+    for f in ("i1.png", "i2.png"):
+        img = cv2.imread(str(three / f), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(three / f), img.astype(np.uint16) * 257)
+    cv2.imwrite(str(three / "mid.png"), cv2.imread(str(d / "i2.png"), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 16)
+    doc = json.loads((three / "pair.json").read_text())
+    a, b = doc["frames"]
+    mid = {**b, "image": "mid.png", "position_m": [(x + y) / 2 for x, y in zip(a["position_m"], b["position_m"])],
+           "time_s": (a["time_s"] + b["time_s"]) / 2}  # fmt: skip
+    doc["frames"] = [a, mid, b]
+    (three / "pair.json").write_text(json.dumps(doc))
+    crushed = f"{(three / 'mid.png').resolve()}: after the common 8-bit shift"
+    assert [w for w in read_pair(three).warnings if w.startswith(crushed)]  # the reader says it
+    out = tmp_path / "out"
+    assert main(["process", str(three), "--out", str(out), "--widest-pair", "--sites", "0"]) == 0
+    err = capsys.readouterr().err
+    assert not [line for line in err.splitlines() if line.startswith("warning:") and "mid.png" in line], err
+    assert not any("mid.png" in w for w in json.loads((out / "result.json").read_text())["warnings"])
+
+
 def test_a_16_bit_frame_the_common_shift_crushed_is_not_called_a_lost_image(tmp_path, capsys):
     """i1.png 12-bit values in a 16-bit file, i2.png full 16-bit: the one shift left i1 ~16 grey levels, and the only
     words were "frame 0's image is blank ... (a black, saturated or lost image)" (QA of stop 75). The reader's
