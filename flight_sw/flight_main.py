@@ -62,7 +62,7 @@ from flight_sw.anytime import measured_reserve_ratio
 from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, params_for, to_hazard_grid
 from flight_sw.mapping import HazardGrid
 from flight_sw.memory import private_rss_bytes
-from flight_sw.pair_report import pair_notes, pose_figures, pose_verdict
+from flight_sw.pair_report import ground_words, pair_notes, pose_figures, pose_verdict
 from flight_sw.pipeline import PRESETS, run_pipeline_multi
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
@@ -721,7 +721,7 @@ class FlightProcess:
                 Site(s.x, s.y, s.z, s.hazard, s.margin, s.distance_m, float(s.p_safe), float(s.clearance_m))
                 for s in sites
             ],
-            no_site_reason=None if reason is None else _clip(str(reason), 256),
+            no_site_reason=None if reason is None else _clip(ground_words(str(reason)), 256),
             degraded=bool(res.degraded),
             level=str(res.level),
             # why a Result at level full can still be degraded: the stages that no longer fit

@@ -35,6 +35,18 @@ def _number(v: Any) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
+# the pipeline's words point `process` users to result.json; the HIL ground has the pair's Telemetry instead
+_POINTERS = ((" (info.pose_refinement)", " (the pair's Telemetry: pose)"),)
+
+
+def ground_words(text: str) -> str:
+    """``text`` (a reason the pipeline wrote for `process`) with its pointers into result.json's ``info`` turned
+    into what the HIL ground has: the pair's Telemetry."""
+    for old, new in _POINTERS:
+        text = text.replace(old, new)
+    return text
+
+
 def pose_figures(info: Mapping[str, Any]) -> dict[str, float | int]:
     """The relative-pose refinement's figures for ``Telemetry.pose`` ({} when none ran).
 

@@ -18,7 +18,7 @@ from test_result_rev import _Link
 from flight_sw.pair_report import pair_notes, pose_figures, pose_verdict
 from flight_sw.twoview import rot_exp
 from protocol.codec import decode_message, encode_message
-from protocol.messages import MAX_NOTE_CHARS, MAX_NOTES, RESULT_REV, Config, Telemetry
+from protocol.messages import MAX_NOTE_CHARS, MAX_NOTES, RESULT_REV, Config, Result, Telemetry
 from protocol.pairdir import Pose
 
 PX = 256
@@ -33,6 +33,11 @@ def _rolled(pose: Pose, deg: float) -> Pose:
 def _fly(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math.nan)) -> Telemetry:
     """One pair through the reference flight process as the HIL runs it, as frames 10 and 11 (seqs that are not the
     frames' positions: the notes must name the ground's); its Telemetry as the ground decodes it."""
+    return _fly_both(pose_img, cam, altimeter_m)[1]
+
+
+def _fly_both(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math.nan)) -> tuple[Result, Telemetry]:
+    """:func:`_fly`'s pair: its Result and its Telemetry, as the ground decodes them."""
     import flight_sw.flight_main as fm
 
     link = _Link()
@@ -42,10 +47,9 @@ def _fly(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math
     for f, a in zip(frames_of("p0", SEQ0, pose_img), altimeter_m):
         fp.handle(dataclasses.replace(f, altimeter_m=a))
     assert [type(m).__name__ for m in link.sent] == ["Result", "Telemetry"], link.sent
-    tel = link.sent[1]
-    back = decode_message(encode_message(tel))
-    assert isinstance(back, Telemetry)
-    return back
+    result, tel = (decode_message(encode_message(m)) for m in link.sent)
+    assert isinstance(result, Result) and isinstance(tel, Telemetry)
+    return result, tel
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +171,13 @@ def test_an_image_sent_twice_is_named_by_the_grounds_frame_numbers(nadir):
     """The lower frame carries the upper frame's image again: the note names both frames by the ground's seqs (the
     pipeline's reason said "frame 0's", the upper frame's position, whatever the ground called it)."""
     cam, p1, p2, i1, _ = nadir
-    tel = _fly([(p1, i1), (p2, i1.copy())], cam)
+    result, tel = _fly_both([(p1, i1), (p2, i1.copy())], cam)
+    # no site on a map resting on it, and why, pointing to what the ground has (it said "info.pose_refinement", a
+    # key of `process`'s result.json)
+    assert result.sites == [] and result.no_site_reason == (
+        "no site is offered on this map: it rests on frame 11, whose image is an earlier frame's, pixel for pixel "
+        "(the pair's Telemetry: pose)"
+    )
     assert tel.pose_verdict == "repeated"
     assert tel.notes == (
         "the images contradict frame 11's navigation pose (repeated: its image is frame 10's, pixel for pixel: the "
