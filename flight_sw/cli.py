@@ -234,6 +234,7 @@ def _process_held(args: argparse.Namespace, scorer: Scorer | None = None) -> int
 
 def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     import dataclasses
+    import time
 
     import numpy as np
 
@@ -277,7 +278,8 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     from reports.progress import Ticker
 
     # minutes at 4096 px went without a word
-    ticker = Ticker(f"process: {len(frames)} frames of {pair.camera.width}x{pair.camera.height} px, working")
+    shape = f"{pair.camera.width}x{pair.camera.height} px"
+    ticker = Ticker(f"process: {len(frames)} frames of {shape}, working", since=time.monotonic())
     try:
         with ticker:
             res = run_pipeline_multi(
@@ -337,7 +339,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
     # beside new maps; stop 63's QA)
-    with Ticker(f"process: writing the maps and the report of {out}"):
+    with Ticker(f"process: writing the maps and the report of {out}", since=ticker.since):
         removing = True
         try:
             for name in sorted(earlier, key=lambda n: n != "result.json"):  # the record of the earlier run first

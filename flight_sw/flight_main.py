@@ -309,10 +309,11 @@ def _reading(altimeter_m: float) -> float:
 
 
 def _readings_ignored(frames: tuple[Frame, ...]) -> list[str]:
-    """A note for each frame whose altimeter reading :func:`_reading` set aside (NaN is no reading: no note)."""
+    """A note for each of a pair's frames (upper, lower) whose altimeter reading :func:`_reading` set aside (NaN is
+    no reading: no note), in the pipeline's numbering (frame 0, frame 1: :func:`ground_words` names them)."""
     return [
-        f"frame {f.seq}'s altimeter reading {float(f.altimeter_m):g} m is no range: the pair is mapped without it"
-        for f in frames
+        f"frame {k}'s altimeter reading {float(f.altimeter_m) + 0.0:g} m is no range: the pair is mapped without it"
+        for k, f in enumerate(frames)
         if not math.isnan(float(f.altimeter_m)) and math.isnan(_reading(f.altimeter_m))
     ]
 
@@ -519,7 +520,6 @@ class FlightProcess:
                 [np.asarray(upper.image), np.asarray(lower.image)],
                 [frame_pose(upper), frame_pose(lower)],
                 Camera.from_dict(cfg.camera),
-                frame_numbers=seqs,  # its words (notes, no_site_reason) name the frames as the ground does
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
@@ -540,9 +540,9 @@ class FlightProcess:
         if ignored := _readings_ignored((upper, lower)):
             res.info["altimeter_readings_ignored"] = ignored
         # the Result has no words: the Telemetry carries the first few (revision 5), the flight log every one
-        withheld = str(res.info.get("sites_withheld") or "")
+        withheld = ground_words(str(res.info.get("sites_withheld") or ""))
         side = min(np.shape(upper.image)[:2])
-        for note in pair_notes(res.info, seqs, side):
+        for note in pair_notes(res.info, side):
             if note not in withheld:  # an altimeter disagreement is the withheld sites' reason: said once
                 print(f"flight: frames {list(seqs)}: {note}", file=sys.stderr, flush=True)
         if withheld:
@@ -611,7 +611,7 @@ class FlightProcess:
                 link=link_info,
                 pose=pose_figures(res.info),
                 pose_verdict=pose_verdict(res.info),
-                notes=pair_notes(res.info, seqs, side, MAX_NOTES, MAX_NOTE_CHARS),
+                notes=pair_notes(res.info, side, MAX_NOTES, MAX_NOTE_CHARS),
             ).for_rev(result_rev(cfg))
         )
 

@@ -13,10 +13,11 @@ reprojection error, the correction applied"). The Telemetry carries them (revisi
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, FEW_MATCHES, NO_OVERLAP, unchecked
+from .pose_refine import CHECK_MIN_SIDE, DEGENERATE, FEW_MATCHES, NO_OVERLAP, REPEATED, unchecked
 
 # the refinement's figures the ground gets, under the short names it gets them by: they share a slow line with the
 # next Result (these ten add ~190 B to a ~760 B Telemetry; result.json's names added 300 B); its time is in stages
@@ -37,14 +38,20 @@ def _number(v: Any) -> float | None:
 
 # the pipeline's words point `process` users to result.json; the HIL ground has the pair's Telemetry instead
 _POINTERS = ((" (info.pose_refinement)", " (the pair's Telemetry: pose)"),)
+# a pair's frames by their role: the flight process cannot name them by the ground's seqs (the HIL server forwards
+# them renumbered), and the ground shows each note beside its pair's label
+_FRAME = re.compile(r"\bframe ([01])\b")
+_ROLES = ("the upper frame", "the lower frame")
 
 
 def ground_words(text: str) -> str:
-    """``text`` (a reason the pipeline wrote for `process`) with its pointers into result.json's ``info`` turned
-    into what the HIL ground has: the pair's Telemetry."""
+    """``text`` (words the pipeline wrote for `process`, of a pair run with the default frame numbers) as the HIL
+    ground reads them: "frame 0" and "frame 1" become "the upper frame" and "the lower frame" (under the HIL server
+    the flight process sees other seqs than the ground's), and pointers into result.json's ``info`` point to the
+    pair's Telemetry."""
     for old, new in _POINTERS:
         text = text.replace(old, new)
-    return text
+    return _FRAME.sub(lambda m: _ROLES[int(m.group(1))], text)
 
 
 def pose_figures(info: Mapping[str, Any]) -> dict[str, float | int]:
@@ -87,37 +94,40 @@ def pose_verdict(info: Mapping[str, Any]) -> str:
 
 def pair_notes(
     info: Mapping[str, Any],
-    seqs: tuple[int, int],
     side: int,
     max_notes: int | None = None,
     max_chars: int | None = None,
 ) -> tuple[str, ...]:
-    """The flight side's warnings on the pair ``seqs`` (upper, lower) of images ``side`` px a side (the smaller),
-    at most ``max_notes`` of at most ``max_chars`` characters each (None: all of them, whole). ``info`` is the
-    pipeline's, run with ``frame_numbers=seqs`` so that its own words name the frames as these do.
+    """The flight side's warnings on a pair of images ``side`` px a side (the smaller), at most ``max_notes`` of at
+    most ``max_chars`` characters each (None: all of them, whole), in the ground's words (:func:`ground_words`).
+    ``info`` is the pipeline's, run on the pair (upper frame 0, lower frame 1).
 
     In order: altimeter readings that were no range (``altimeter_readings_ignored``, the flight process's), sensors
-    that disagree (the altimeter against the positions or the images), a pose the images could not check, one they
-    contradict, or one whose geometry they cannot fix, and why (the maps then rest on navigation's), and images that
-    read blank or noisy. As `process` judges them: a refined or kept pose is no note (its figures are in
-    :func:`pose_figures`), and below ``pose_refine.CHECK_MIN_SIDE`` px only a repeated image is, since there clean
-    pairs fail the refinement's checks too. Sites withheld for any of these are not repeated here: the Result's
-    ``no_site_reason`` says it."""
+    that disagree (the altimeter against the positions or the images), poses the images could not check, that they
+    contradict, or whose geometry they cannot fix (the maps then rest on navigation's), and images that read blank
+    or noisy. Each says its conclusion first and its figures last, so that a note cut at ``max_chars`` loses the
+    figures. As `process` judges them: a refined or kept pose is no note (its figures are in :func:`pose_figures`),
+    and below ``pose_refine.CHECK_MIN_SIDE`` px only a repeated image is, since there clean pairs fail the
+    refinement's checks too. The pair's fit is of both frames: a fallback is not laid on the lower frame alone. Sites
+    withheld for any of these are not repeated here: the Result's ``no_site_reason`` says it."""
     notes: list[str] = [str(n) for n in info.get("altimeter_readings_ignored", ())]
     if info.get("altimeter_disagreement"):
         notes.append(str(info["altimeter_disagreement"]))
     verdict = pose_verdict(info)
     if unchecked(verdict, side) or (verdict == DEGENERATE and side >= CHECK_MIN_SIDE):
-        why, lower = str(info["pose_refinement"].get("reason") or "no reason given"), seqs[1]
-        if verdict in (NO_OVERLAP, FEW_MATCHES):  # geometry or bland ground: nothing in the images is against it
-            notes.append(f"frame {lower}'s pose is not checked by the images ({verdict}: {why}); the maps rest on it "
-                         "as navigation reports it")  # fmt: skip
+        why = str(info["pose_refinement"].get("reason") or "no reason given")
+        if verdict == REPEATED:
+            notes.append(f"frame 1's image repeats another, so the images cannot check the poses; the maps rest on "
+                         f"them as navigation reports them ({why})")  # fmt: skip
+        elif verdict in (NO_OVERLAP, FEW_MATCHES):  # geometry or bland ground: nothing in the images is against them
+            notes.append(f"the images could not check the pair's poses; the maps rest on them as navigation reports "
+                         f"them ({verdict}: {why})")  # fmt: skip
         elif verdict == DEGENERATE:
-            notes.append(f"the images matched but cannot fix frame {lower}'s pose ({why}); the maps rest on it as "
-                         "navigation reports it")  # fmt: skip
-        else:  # unmatched, disagrees, repeated: evidence against it
-            notes.append(f"the images contradict frame {lower}'s navigation pose ({verdict}: {why}); the maps rest "
-                         "on it")  # fmt: skip
+            notes.append(f"the images matched but cannot fix the pair's poses; the maps rest on them as navigation "
+                         f"reports them ({why})")  # fmt: skip
+        else:  # unmatched, disagrees: evidence against them
+            notes.append(f"the images contradict the pair's navigation poses, which the maps rest on ({verdict}: "
+                         f"{why})")  # fmt: skip
     for kind, what in (("blank", "its pixel-scale detail"), ("noisy", "its pixel noise")):
         for f in info.get(f"{kind}_frames", ()):
             others = ", ".join(f"{v:.1f}" for v in f.get("others_dn", ()))
@@ -125,6 +135,7 @@ def pair_notes(
                 f"frame {f.get('frame')}'s image is {kind}: {what} reads {float(f.get('noise_dn', math.nan)):.1f} "
                 f"grey levels against {others} in the other frame"
             )
+    notes = [ground_words(n) for n in notes]
     if max_chars is not None:
         notes = [n if len(n) <= max_chars else n[: max_chars - 3] + "..." for n in notes]
     if max_notes is not None and len(notes) > max_notes:  # said, not dropped: the flight log has every note

@@ -86,16 +86,20 @@ class Ticker:
         stream: TextIO | None = None,
         first_s: float = TICK_FIRST_S,
         every_s: float = TICK_EVERY_S,
+        since: float | None = None,
     ):
         self.desc, self.enabled, self.first_s, self.every_s = desc, enabled, first_s, every_s
         self.stream = stream if stream is not None else sys.stderr
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        # when the work began (time.monotonic()): a second phase's ticker counts from the first's start, so two
+        # phases of 10 s each are not 20 s without a word
+        self.since = since
         self._t0 = time.monotonic()
         self.lines = 0
 
     def __enter__(self) -> Ticker:
-        self._t0 = time.monotonic()
+        self._t0 = time.monotonic() if self.since is None else self.since
         self._stop = threading.Event()
         if self.enabled:
             self._thread = threading.Thread(target=self._run, args=(self._stop,), name="ticker", daemon=True)
@@ -110,7 +114,7 @@ class Ticker:
             self._thread = None
 
     def _run(self, stop: threading.Event) -> None:
-        wait = self.first_s
+        wait = max(0.0, self._t0 + self.first_s - time.monotonic())
         while not stop.wait(wait):
             self.stream.write(f"{self.desc}: {time.monotonic() - self._t0:.0f} s so far\n")
             self.stream.flush()

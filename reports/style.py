@@ -158,9 +158,10 @@ GLOSSARY: dict[str, Term] = {
     "pose_cell": Term(
         "pose refinement",
         "What the flight side's relative-pose refinement did, as its Telemetry said: refined (the images' pose "
-        "replaced navigation's, with the relative rotation's correction), kept (the images agree with navigation), "
-        "or why the images could not confirm the navigation pose, which the maps then rest on; blank when the "
-        "flight side did not say (an older flight side, or a preset without refinement).",
+        "replaced navigation's; the corrections applied: the relative rotation's, and the larger of the two "
+        "frames' own attitudes), kept (the images agree with navigation), or why the images could not confirm the "
+        "navigation poses, which the maps then rest on; – when the "
+        "flight side did not say (an older flight side or one of your own, or a preset without refinement).",
     ),
     "results": Term("results", "Pairs that returned a Result (on time or late), of the pairs asked for."),
     "degraded": Term(

@@ -260,6 +260,34 @@ def test_bad_pairs_are_reported_with_reasons_and_the_descent_goes_on(manifest, t
     )
 
 
+def test_the_flight_sides_notes_reach_the_ground_through_the_hil_server(manifest, tmp_path):
+    """A pair whose lower image is its upper one again: the flight side says so, and the ground shows it beside the
+    pair, in the frames' roles (the HIL server forwards frames renumbered, so numbers would name other frames than the
+    ground's). Before Telemetry revision 5 the words stayed in the flight log."""
+    import html
+    import shutil
+
+    pairs = tmp_path / "pairs"
+    shutil.copytree(manifest.parent, pairs)
+    shutil.copyfile(pairs / "300_150" / "i1.png", pairs / "300_150" / "i2.png")
+    s = run(pairs / "manifest.json", tmp_path / "run", link="serial")
+    rec = {r["label"]: r for r in s["records"]}
+    assert [r["status"] for r in s["records"]] == ["result"] * 3
+    assert rec["300/150"]["pose_verdict"] == "repeated" and "flight_notes" not in rec["600/300"]
+    (note,) = rec["300/150"]["flight_notes"]
+    assert note.startswith("the lower frame's image repeats another, so the images cannot check the poses"), note
+    assert "its image is the upper frame's, pixel for pixel" in note and "frame 1" not in note
+    # no site on a map resting on it, and why, in the same words
+    assert rec["300/150"]["sites"] == [] and "it rests on the lower frame" in rec["300/150"]["no_site_reason"]
+    assert s["pose"]["noted"] == [{"label": "300/150", "notes": [note]}]
+    assert (
+        "the flight side noted 1 thing(s) on 1 pair(s) (first, 300/150: "
+        in (tmp_path / "run" / "summary.md").read_text()
+    )
+    page = html.unescape((tmp_path / "run" / "report.html").read_text())
+    assert "What the flight side said" in page and f"300/150: {note}" in page
+
+
 def test_noisy_serial_line_loses_nothing(manifest, tmp_path):
     """Every pair's result comes back through a noisy line byte for byte as through a clean one.
 

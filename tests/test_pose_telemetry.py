@@ -32,7 +32,7 @@ def _rolled(pose: Pose, deg: float) -> Pose:
 
 def _fly(pose_img: list, cam, altimeter_m: tuple[float, float] = (math.nan, math.nan)) -> Telemetry:
     """One pair through the reference flight process as the HIL runs it, as frames 10 and 11 (seqs that are not the
-    frames' positions: the notes must name the ground's); its Telemetry as the ground decodes it."""
+    frames' positions, as under the HIL server, which renumbers them); its Telemetry as the ground decodes it."""
     return _fly_both(pose_img, cam, altimeter_m)[1]
 
 
@@ -92,8 +92,8 @@ def test_an_altimeter_reading_that_is_no_range_is_mapped_without_and_said(nadir,
     without it, and the ground is told which reading was set aside."""
     cam, p1, p2, i1, i2 = nadir
     tel = _fly([(p1, i1), (p2, i2)], cam, (upper, lower))
-    said = [f"frame {k}'s altimeter reading {a:g} m is no range: the pair is mapped without it"
-            for k, a in enumerate((upper, lower), SEQ0) if not math.isnan(a)]  # fmt: skip
+    said = [f"{k}'s altimeter reading {a:g} m is no range: the pair is mapped without it"
+            for k, a in zip(("the upper frame", "the lower frame"), (upper, lower)) if not math.isnan(a)]  # fmt: skip
     assert list(tel.notes) == said and tel.pose_verdict == "kept"
 
 
@@ -106,12 +106,17 @@ def test_a_lower_frame_of_other_ground_is_said_in_the_telemetrys_notes(nadir):
     tel = _fly([(p1, i1), (p2, _sensor(i2, 3))], cam)
     assert tel.pose_verdict in ("unmatched", "few_matches", "disagrees") and tel.pose["applied"] == 0
     if tel.pose_verdict == "few_matches":
-        assert tel.notes[0].startswith("frame 11's pose is not checked by the images (few_matches: ")
+        assert tel.notes[0].startswith(
+            "the images could not check the pair's poses; the maps rest on them as navigation reports them "
+            "(few_matches: "
+        )
         assert len(tel.notes) == 1, tel.notes
     else:  # evidence against it: the map offers no site, which the Result says (not repeated in the notes)
-        assert tel.notes[0].startswith(f"the images contradict frame 11's navigation pose ({tel.pose_verdict}: ")
-        assert tel.notes[0].endswith("); the maps rest on it") and len(tel.notes) == 1, tel.notes
-    assert not any(ch in "".join(tel.notes) for ch in ("frame 0", "frame 1's", "frame 1 "))  # seqs, not positions
+        assert tel.notes[0].startswith(
+            f"the images contradict the pair's navigation poses, which the maps rest on ({tel.pose_verdict}: "
+        )
+        assert len(tel.notes) == 1, tel.notes
+    assert not any(ch in "".join(tel.notes) for ch in ("frame 0", "frame 1"))  # roles, not numbers
 
 
 def test_notes_are_the_flights_judgement_few_and_short_and_none_is_dropped_unsaid():
@@ -119,23 +124,23 @@ def test_notes_are_the_flights_judgement_few_and_short_and_none_is_dropped_unsai
         "pose_refinement": {"verdict": "degenerate", "refined": False, "reason": "too little parallax", "inliers": 12},
         "altimeter_disagreement": "the altimeter reads 310 m where the images put the ground at 296 m",
         "sites_withheld": "no site is offered on this map: its sensors disagree",
-        "blank_frames": [{"frame": 8, "noise_dn": 0.2, "others_dn": [3.1]}],
+        "blank_frames": [{"frame": 1, "noise_dn": 0.2, "others_dn": [3.1]}],
     }
     # below 256 px the refinement fails clean pairs too: a degenerate fit there is no note (as in `process`)
-    assert pair_notes(info, (7, 8), 128)[0] == info["altimeter_disagreement"]
-    assert len(pair_notes(info, (7, 8), 128)) == 2  # the disagreement and the blank image
-    notes = pair_notes(info, (7, 8), 512)
+    assert pair_notes(info, 128)[0] == info["altimeter_disagreement"]
+    assert len(pair_notes(info, 128)) == 2  # the disagreement and the blank image
+    notes = pair_notes(info, 512)
     assert notes[1] == (
-        "the images matched but cannot fix frame 8's pose (too little parallax); the maps rest on it as navigation "
-        "reports it"
+        "the images matched but cannot fix the pair's poses; the maps rest on them as navigation reports them (too "
+        "little parallax)"
     )
-    # the pipeline names the frames as it was told (frame_numbers=seqs); the withheld sites are the Result's to say
-    assert notes[2].startswith("frame 8's image is blank: its pixel-scale detail reads 0.2 grey levels against 3.1")
+    # frames by their role in the pair; the withheld sites are the Result's to say
+    assert notes[2].startswith("the lower frame's image is blank: its pixel-scale detail reads 0.2 grey levels")
     assert len(notes) == 3
-    many = {**info, "noisy_frames": [{"frame": 7, "noise_dn": 9.0, "others_dn": [1.0]}] * 4}
-    capped = pair_notes(many, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
+    many = {**info, "noisy_frames": [{"frame": 0, "noise_dn": 9.0, "others_dn": [1.0]}] * 4}
+    capped = pair_notes(many, 512, MAX_NOTES, MAX_NOTE_CHARS)
     assert len(capped) == MAX_NOTES and capped[-1] == "4 more notes in the flight log"
-    long = pair_notes({"altimeter_disagreement": "x" * 400}, (7, 8), 512, MAX_NOTES, MAX_NOTE_CHARS)
+    long = pair_notes({"altimeter_disagreement": "x" * 400}, 512, MAX_NOTES, MAX_NOTE_CHARS)
     assert len(long[0]) == MAX_NOTE_CHARS and long[0].endswith("...")
     Telemetry(frame_seqs=(7, 8), notes=capped).validated()  # the wire takes what the flight side sends
     # numbers only, and nothing when no refinement ran (the thesis preset)
@@ -168,20 +173,22 @@ def test_the_ground_counts_the_verdicts_and_names_the_notes():
 
 
 def test_an_image_sent_twice_is_named_by_the_grounds_frame_numbers(nadir):
-    """The lower frame carries the upper frame's image again: the note names both frames by the ground's seqs (the
+    """The lower frame carries the upper frame's image again: the note names both frames by their role (the
     pipeline's reason said "frame 0's", the upper frame's position, whatever the ground called it)."""
     cam, p1, p2, i1, _ = nadir
     result, tel = _fly_both([(p1, i1), (p2, i1.copy())], cam)
     # no site on a map resting on it, and why, pointing to what the ground has (it said "info.pose_refinement", a
     # key of `process`'s result.json)
     assert result.sites == [] and result.no_site_reason == (
-        "no site is offered on this map: it rests on frame 11, whose image is an earlier frame's, pixel for pixel "
+        "no site is offered on this map: it rests on the lower frame, whose image is an earlier frame's, pixel for "
+        "pixel "
         "(the pair's Telemetry: pose)"
     )
     assert tel.pose_verdict == "repeated"
     assert tel.notes == (
-        "the images contradict frame 11's navigation pose (repeated: its image is frame 10's, pixel for pixel: the "
-        "same image twice (a camera that sent an image again)); the maps rest on it",
+        "the lower frame's image repeats another, so the images cannot check the poses; the maps rest on them as "
+        "navigation reports them (its image is the upper frame's, pixel for pixel: the "
+        "same image twice (a camera that sent an image again))",
     )
 
 
@@ -192,7 +199,7 @@ def test_an_altimeter_the_images_disagree_with_is_said_of_the_grounds_frames(nad
 
     cam, p1, p2, i1, i2 = nadir
     tel = _fly([(p1, i1), (p2, i2)], cam, (332.0, math.nan))  # the ground 302 m down the axis
-    assert tel.notes and any("frame 10's altimeter" in n for n in tel.notes), tel.notes
+    assert tel.notes and any("the upper frame's altimeter" in n for n in tel.notes), tel.notes
     assert not any("frame 0" in n or "frame 1'" in n for n in tel.notes), tel.notes
     # the DEM's own check of the reading names the frame it is given
     assert "under frame 10's optical axis +30.0 m" in altimeter_dem_disagreement(30.0, 300.0, 10)

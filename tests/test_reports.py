@@ -575,6 +575,14 @@ def test_a_ticker_speaks_only_while_long_work_runs():
     said = stopped.getvalue()
     time.sleep(0.15)
     assert stopped.getvalue() == said
+    # a second phase counts from the first one's start: two phases just under first_s each are not silent
+    began = time.monotonic() - 0.3
+    late = io.StringIO()
+    with Ticker("process: writing", stream=late, first_s=0.4, every_s=10.0, since=began):
+        time.sleep(0.3)
+    assert late.getvalue().startswith("process: writing: 0 s so far") or late.getvalue().startswith(
+        "process: writing: 1 s so far"
+    ), late.getvalue()
     off = io.StringIO()
     with Ticker("process: working", stream=off, enabled=False, first_s=0.01, every_s=0.01):
         time.sleep(0.1)
