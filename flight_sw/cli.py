@@ -242,6 +242,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     from reports.html import write_atomic
     from reports.jsondoc import json_text
     from reports.plots import ground_step_m
+    from reports.progress import Ticker
 
     from .pictures import write_process_report
     from .pipeline import PRESETS, run_pipeline_multi
@@ -275,8 +276,6 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     reader_warnings = [text for text in pair.warnings if text not in unused]
     for text in reader_warnings:  # implausible scales, a frame the 16-bit shift crushed: as the pipeline's warnings
         print(f"warning: {text}", file=sys.stderr)
-    from reports.progress import Ticker
-
     # minutes at 4096 px went without a word
     shape = f"{pair.camera.width}x{pair.camera.height} px"
     ticker = Ticker(f"process: {len(frames)} frames of {shape}, working", since=time.monotonic())

@@ -63,7 +63,7 @@ from flight_sw.fusion import MAX_KEPT_HAZARDS, FusedMap, FusionParams, fuse, par
 from flight_sw.mapping import HazardGrid
 from flight_sw.memory import private_rss_bytes
 from flight_sw.pair_report import ground_words, pair_notes, pose_figures, pose_verdict
-from flight_sw.pipeline import PRESETS, run_pipeline_multi
+from flight_sw.pipeline import PRESETS, run_pipeline
 from flight_sw.sites import Site as SiteResult
 from flight_sw.sites import select_safe_sites
 from protocol.codec import Encoded, encode
@@ -516,9 +516,11 @@ class FlightProcess:
         due = pend.arrival + cfg.deadline_s * (1.0 - DEADLINE_GUARD)  # what the plan aims at
         deadline_at = due - line_s - max(0.0, self.last_output_s - after_s * time_scale)
         try:
-            res = run_pipeline_multi(
-                [np.asarray(upper.image), np.asarray(lower.image)],
-                [frame_pose(upper), frame_pose(lower)],
+            res = run_pipeline(
+                np.asarray(upper.image),
+                np.asarray(lower.image),
+                frame_pose(upper),
+                frame_pose(lower),
                 Camera.from_dict(cfg.camera),
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,

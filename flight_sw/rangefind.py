@@ -134,7 +134,7 @@ def altimeter_dem_gap(
     at its centre, DESIGN.md; :func:`altimeter_ring`) less the altimeter's ground point (:func:`altimeter_ground`).
     ``(NaN, why)`` where the DEM has too little there (under :data:`ALT_DEM_MIN_SHARE` of the ring) or the ring
     is off the image: said rather than passed over (on 21 of 315 clean directories the check was silently not
-    made). ``frame``: what ``why`` calls frame 0 (the HIL names frames by their seq)."""
+    made). ``frame``: what ``why`` calls frame 0 (``run_pipeline_multi``'s ``frame_numbers``)."""
     ring = altimeter_ring(elevation, camera)
     if ring.size == 0:
         return math.nan, (

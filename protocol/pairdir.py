@@ -295,8 +295,8 @@ class Pair:
     (frames 0 and -1). ``altimeter_m`` holds one slant range per frame (NaN:
     no reading). ``notes`` collects what reading had to convert or repair; ``warnings`` what it found legal but
     implausible enough to make the maps meaningless (:meth:`scale_notes`, a frame the common 16-bit shift left with
-    a few grey levels: those frames' numbers are ``shallow_frames``, and ``shallow_warnings`` each one's warning). A
-    reader's caller records both with its outputs (``process``: result.json ``notes`` and ``warnings``).
+    a few grey levels: ``shallow_warnings`` holds each such frame's warning by its number, ``shallow_frames`` the
+    numbers). A reader's caller records both with its outputs (``process``: result.json ``notes`` and ``warnings``).
     """
 
     camera: Camera
@@ -308,8 +308,12 @@ class Pair:
     altimeter_m: tuple[float, ...] = ()
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
-    shallow_frames: tuple[int, ...] = ()
     shallow_warnings: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def shallow_frames(self) -> tuple[int, ...]:
+        """The frames the common 16-bit shift left with a few grey levels (:attr:`shallow_warnings`' numbers)."""
+        return tuple(sorted(self.shallow_warnings))
 
     def __post_init__(self) -> None:
         self.poses = tuple(self.poses)
@@ -1225,7 +1229,6 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     # notes on stderr alone: a pair in km gave a DEM in km with an empty result.json warnings; QA of stop 75)
     pair.warnings += [f"{meta_path}: {n}" for n in pair.scale_notes()]
     pair.warnings += list(shallow.values())
-    pair.shallow_frames = tuple(sorted(shallow))
     pair.shallow_warnings = dict(shallow)
     pair.notes += [f"{meta_path}: {n}" for n in same_time_notes(pair.poses)]
     return pair

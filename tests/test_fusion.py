@@ -690,13 +690,13 @@ def test_flight_process_plans_each_pair_from_what_the_last_ones_reserved_work_co
 
     cam, poses, imgs = _roof_descent((200.0, 100.0), seed=22)
     seen: list = []
-    real = fm.run_pipeline_multi
+    real = fm.run_pipeline
 
     def spy(*args, **kw):
         seen.append((kw.get("reserve_measured"), list(fp.reserve_ratios)))  # what it was told, what it had
         return real(*args, **kw)
 
-    monkeypatch.setattr(fm, "run_pipeline_multi", spy)
+    monkeypatch.setattr(fm, "run_pipeline", spy)
     link = _Link()
     fp = fm.FlightProcess(link, fm.FaultPlan())
     cfg = {"camera": cam.to_dict(), "budget": "host", "deadline_s": 30.0, "preset": "fast"}
@@ -881,8 +881,7 @@ def _stub_flight(monkeypatch):
 
     calls: list[tuple[int, int]] = []
 
-    def pipeline(images, poses, camera, **kw):
-        i1, i2 = images
+    def pipeline(i1, i2, pose1, pose2, camera, **kw):
         calls.append((int(i1.mean()), int(i2.mean())))
         dark = i1.mean() < 100
         st = np.full((16, 16), STATE_UNSAFE if dark else STATE_SAFE, np.uint8)
@@ -896,7 +895,7 @@ def _stub_flight(monkeypatch):
             **out, degraded=False, hazard=z, elevation=z, state=z.astype(np.uint8), filled=None
         )
 
-    monkeypatch.setattr(fmn, "run_pipeline_multi", pipeline)
+    monkeypatch.setattr(fmn, "run_pipeline", pipeline)
     monkeypatch.setattr(fmn, "measured_reserve_ratio", lambda *a, **k: None)
     link = _Link()
     return fmn, fmn.FlightProcess(link, fmn.FaultPlan()), link, calls
