@@ -7,8 +7,9 @@ Installed with the package (entry point ``pytest11``), it adds the option
         hil_regression(cases=["vertical-snapdragon-serial"])   # fails with the diff table
 
 ``hil_regression(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None,
-uncalibrated=False)`` runs the cases of the baseline (``baseline``, else ``--hil-baseline``, else the shipped one; see
-:mod:`hil_server.regress`), as ``hazard-hil regress`` does with the same options, and returns the diff table.
+uncalibrated=False, figures=False)`` runs the cases of the baseline (``baseline``, else ``--hil-baseline``, else the
+shipped one; see :mod:`hil_server.regress`), as ``hazard-hil regress --no-figures`` does with the same options, and
+returns the diff table.
 It fails the test with that table when any case regresses, and with one line on bad usage (an unknown case, a
 malformed baseline, a host never calibrated: run ``hazard-hil calibrate`` in the job first), as the command's
 exit 2 does.
@@ -27,9 +28,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 @pytest.fixture
 def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
-    """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None, uncalibrated=False)
-    -> diff``: run the
-    baseline's cases (all, or ``cases``, a list of names); fail the test with the diff when one regresses."""
+    """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None, uncalibrated=False,
+    figures=False) -> diff``: run the baseline's cases (all, or ``cases``, a list of names); fail the test with the
+    diff when one regresses. The cases' report pages are drawn without pictures unless ``figures``: a test reads
+    the verdict, and the pictures cost about 0.5 s per pair."""
 
     def check(
         baseline: str | Path | None = None,
@@ -38,6 +40,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
         link: str | None = None,
         hello_timeout_s: float | None = None,
         uncalibrated: bool = False,
+        figures: bool = False,
     ) -> str:
         from hil_server.regress import RegressInterrupted, check_regression, default_baseline_path
         from protocol.errors import InputError
@@ -57,6 +60,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
                 board_link=link,
                 hello_timeout_s=hello_timeout_s,
                 uncalibrated=uncalibrated,
+                figures=figures,
             )
         except InputError as exc:  # bad usage: one line, not a traceback from inside the library
             bad = f"hil_regression: {exc}"

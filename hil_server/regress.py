@@ -165,9 +165,14 @@ class RegressInterrupted(Exception):
 
 
 def case_config(
-    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
+    name: str,
+    case: dict,
+    out: Path,
+    base_dir: Path | None = None,
+    hello_timeout_s: float | None = None,
+    figures: bool = True,
 ) -> RunConfig:
-    """The :class:`hil_server.run.RunConfig` a case runs with."""
+    """The :class:`hil_server.run.RunConfig` a case runs with (``figures``: its report.html's pictures)."""
     from hil_server.run import RunConfig
 
     manifest = _path(case.get("manifest"), base_dir)
@@ -185,6 +190,7 @@ def case_config(
         keys=_path(case.get("keys"), base_dir),
         deadline_s=case.get("deadline_s"),
         hello_timeout_s=hello_timeout_s,
+        figures=figures,
     )
 
 
@@ -215,11 +221,16 @@ def check_cases(
 
 
 def measure_case(
-    name: str, case: dict, out: Path, base_dir: Path | None = None, hello_timeout_s: float | None = None
+    name: str,
+    case: dict,
+    out: Path,
+    base_dir: Path | None = None,
+    hello_timeout_s: float | None = None,
+    figures: bool = True,
 ) -> dict:
     from hil_server.run import LATE_SIGNAL, run_descent
 
-    cfg = case_config(name, case, out, base_dir, hello_timeout_s)
+    cfg = case_config(name, case, out, base_dir, hello_timeout_s, figures)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     stop = summary.get("interrupted_by") or summary.get(LATE_SIGNAL)
     if stop:  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
@@ -577,6 +588,7 @@ def check_regression(
     board_link: str | None = None,
     hello_timeout_s: float | None = None,
     uncalibrated: bool = False,
+    figures: bool = True,
 ) -> tuple[bool, str, dict]:
     """Run the cases; returns (ok, readable diff, new baseline document).
 
@@ -585,7 +597,7 @@ def check_regression(
     the board cases (``"flight": "external"``) on this link instead of their own (not written back).
     ``hello_timeout_s``: how long each case waits for its flight side's first Hello (None: ``run``'s default).
     ``uncalibrated``: judge emulated cases on a host that was never calibrated (refused otherwise: their reference
-    seconds would assume the anchor's speed).
+    seconds would assume the anchor's speed). ``figures``: each case's report.html draws its pictures.
     """
     from protocol.errors import InputError
 
@@ -686,7 +698,7 @@ def check_regression(
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
         try:
-            cur = measure_case(n, run_case, out, base_dir, hello_timeout_s)
+            cur = measure_case(n, run_case, out, base_dir, hello_timeout_s, figures)
         except RegressInterrupted as exc:
             for o in outcomes:  # the table read "recorded" for cases the baseline then did not get (QA of stop 73)
                 o.unwritten = "interrupted: the baseline is unchanged" if o.recorded else ""
@@ -859,6 +871,7 @@ def run_regression(
     board_link: str | None = None,
     hello_timeout_s: float | None = None,
     uncalibrated: bool = False,
+    figures: bool = True,
 ) -> int:
     from protocol.outdir import claim_out
 
@@ -875,6 +888,7 @@ def run_regression(
                 board_link=board_link,
                 hello_timeout_s=hello_timeout_s,
                 uncalibrated=uncalibrated,
+                figures=figures,
             )
     except RegressInterrupted as exc:
         if exc.finished:  # the verdicts of the cases that had run before the signal

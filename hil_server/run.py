@@ -225,6 +225,7 @@ class RunConfig:
     keys: Path | None = None  # external zmq: the ground's CURVE key directory
     min_hit_rate: float | None = None  # exit code: pass at this deadline hit rate instead of every pair
     progress: bool = True  # the render progress bar (off: --no-progress)
+    figures: bool = True  # report.html's pictures (off: --no-figures, the tables alone)
     # measure the throttle's efficiency at a slow budget's duty cycle before the run (budgets.ThrottleCheck)
     throttle_check: bool = True
 
@@ -2205,7 +2206,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         try:
             write_atomic(out / "summary.md", summary_table(summary, verdict=True))
             try:
-                write_run_report(summary, out / "report.html")
+                write_run_report(summary, out / "report.html", figures=cfg.figures)
             except Exception as exc:  # a page that fails must not cost the run its summary (it stayed "in progress")
                 summary["report_error"] = f"{type(exc).__name__}: {exc}"
                 log(

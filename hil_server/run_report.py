@@ -248,8 +248,10 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     return figs
 
 
-def write_run_report(summary: dict, path: Path) -> Path:
-    """Write ``report.html`` (and ``figures/``) for a run summary; returns the page's path."""
+def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
+    """Write ``report.html`` (and ``figures/``) for a run summary; returns the page's path. Without ``figures``
+    the page has its tables and notes and no pictures: drawing them is 0.3-0.5 s each, about 2 s for a short
+    descent, which a gate reading summary.json does not need."""
     path = Path(path)
     fig_dir = path.parent / "figures"
     s = summary
@@ -349,7 +351,9 @@ def write_run_report(summary: dict, path: Path) -> Path:
         )
     tel = _telemetry_records(records)
     tel_figs = []
-    if any(r.get("status") == "result" for r in records):
+    if not figures:
+        intro.append("Pictures not drawn (the run was asked for none: --no-figures).")
+    elif any(r.get("status") == "result" for r in records):
         save(timeline_figure(tel), fig_dir / "timeline.png")
         tel_figs.append(
             Figure(
@@ -359,13 +363,13 @@ def write_run_report(summary: dict, path: Path) -> Path:
                 "by to leave the reserve for the mapping after it (open triangle).",
             )
         )
-    if records:
+    if records and figures:
         save(latency_figure(tel), fig_dir / "latency.png")
         no_result = sum(r.get("status") != "result" for r in records)
         key = "red bars missed the deadline" + ("; a red x at 0: no Result at all" if no_result else "")
         tel_figs.append(Figure("figures/latency.png", f"End-to-end latency over the descent; {key}."))
     said = [r.get(k) for r in records for k in ("cpu_fraction", "peak_rss_mib")]
-    if any(v is not None and math.isfinite(float(v)) for v in said):  # an external board may say neither
+    if figures and any(v is not None and math.isfinite(float(v)) for v in said):  # an external board may say neither
         duty = d if (d := s.get("cpu_fraction")) is not None and math.isfinite(d) else None
         save(resources_figure(tel, duty, s.get("memory_mib")), fig_dir / "resources.png")
         # a board of one's own has no throttle and no ceiling here: the caption said both (QA of stop 71)
@@ -387,7 +391,7 @@ def write_run_report(summary: dict, path: Path) -> Path:
 
     notes = [n[0].upper() + n[1:] + "." for n in (throttle_check_note(s), phase_note(s)) if n]
     sections.append(Section("Telemetry", paragraphs=notes, figures=tel_figs))
-    for r in records:
+    for r in records if figures else ():
         figs = _pair_figures(r, fig_dir)
         if figs:
             sections.append(Section(f"Pair {r.get('label')}", figures=figs))

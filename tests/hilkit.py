@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -31,15 +34,38 @@ def one_line_error(capsys, argv: list[str]) -> str:
     return err
 
 
+# Where small_descent keeps its renders for the session (tests/conftest.py sets it; empty: render every time)
+DESCENT_CACHE: list[Path] = []
+
+
 def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:
-    """Render the vertical descent's ``pairs`` at ``px`` x ``px`` into ``out``; returns its manifest."""
-    render_scenario("vertical", out, pairs=pairs, camera=scaled_camera(px), progress=False)
+    """Render the vertical descent's ``pairs`` at ``px`` x ``px`` into ``out``; returns its manifest.
+
+    Renders are deterministic, so a session renders each (pairs, px) once and copies it: two dozen modules
+    render the same few descents, 2-5 s each. Into a directory that already holds something the render runs
+    for real, as the renderer's own handling of an earlier render is then part of what is tested."""
+    out = Path(out)
+    if not DESCENT_CACHE or (out.exists() and any(out.iterdir())):
+        render_scenario("vertical", out, pairs=pairs, camera=scaled_camera(px), progress=False)
+        return out / "manifest.json"
+    root = DESCENT_CACHE[0]
+    root.mkdir(parents=True, exist_ok=True)
+    done = root / f"{px}px_{'_'.join(p.replace('/', '-') for p in pairs)}"
+    with open(root / f"{done.name}.lock", "w") as lock:  # pytest-xdist workers share the cache
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.is_dir():
+            part = root / f"{done.name}.part{os.getpid()}"
+            shutil.rmtree(part, ignore_errors=True)
+            render_scenario("vertical", part, pairs=pairs, camera=scaled_camera(px), progress=False)
+            part.rename(done)
+    shutil.copytree(done, out, dirs_exist_ok=True)
     return out / "manifest.json"
 
 
 def run_hil(manifest: Path, out: Path, link: str, **kw) -> dict:
-    """One HIL run of ``manifest`` on the host budget (``kw`` overrides any RunConfig field), quietly."""
-    cfg = RunConfig(out=out, manifest=manifest, **{"link": link, "budget": "host", **kw})
+    """One HIL run of ``manifest`` on the host budget (``kw`` overrides any RunConfig field), quietly, and without
+    report.html's pictures unless ``figures=True`` (about 2 s a run: the tests that look at them ask)."""
+    cfg = RunConfig(out=out, manifest=manifest, **{"link": link, "budget": "host", "figures": False, **kw})
     return run_descent(cfg, log=lambda s: None)
 
 

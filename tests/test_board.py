@@ -88,7 +88,8 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
             [*BOARD, "--link", f"serial:{bridge.paths[0]}@921600"], cwd=ROOT, stderr=subprocess.PIPE, text=True
         )
         try:
-            s = run_hil(manifest, tmp_path / "board", flight="external", link=f"serial:{bridge.paths[1]}@921600")
+            link = f"serial:{bridge.paths[1]}@921600"
+            s = run_hil(manifest, tmp_path / "board", flight="external", link=link, figures=True)  # the captions
         finally:
             rc, err = _stop(board)
     assert sum(ch.stats[k] for ch in (up, down) for k in ("dropped", "flipped", "duplicated")) > 10, "must corrupt"
@@ -108,7 +109,7 @@ def test_a_board_on_a_noisy_line_answers_what_the_emulated_processor_answers(man
     assert fb == 0 or "; the line dropped " in err.strip().splitlines()[-1], err[-400:]  # the board's last line
     # the same frames through the HIL server to the emulated processor at the same rate (so the ground asks for the
     # same grid steps and elevation unit): the same Results, byte for byte in effect
-    emulated = run_hil(manifest, tmp_path / "emulated", "serial", baud=921600)
+    emulated = run_hil(manifest, tmp_path / "emulated", "serial", baud=921600, figures=True)
     assert _scores(s) == _scores(emulated)
     assert rc == 128 + signal.SIGTERM
     # the board reports its Result's own line time (first byte out -> acknowledged), as the HIL server does: the

@@ -178,8 +178,10 @@ def flight(tmp_path_factory):
 
 
 def run_cli(manifest, out, *extra) -> tuple[int, dict, str]:
-    """`hazard-hil run` on the host budget over serial: (exit code, summary.json, summary.md)."""
-    argv = ["run", "--manifest", str(manifest), "--budget", "host", "--link", "serial", "--out", str(out), *extra]
+    """`hazard-hil run` on the host budget over serial, its page without pictures: (exit code, summary.json,
+    summary.md)."""
+    argv = ["run", "--manifest", str(manifest), "--budget", "host", "--link", "serial", "--out", str(out)]
+    argv += ["--no-figures", *extra]
     code = main(argv)
     return code, strict_json(out / "summary.json"), (out / "summary.md").read_text()
 

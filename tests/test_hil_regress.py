@@ -30,7 +30,7 @@ def test_compare_flags_slower_latency_and_lower_hit_rate():
 
 
 def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline):
-    ok, diff, doc = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r1", update=True)
+    ok, diff, doc = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "r1", update=True)
     assert ok and "tiny" in diff
     # each row says it was recorded, not judged (every row read "ok", a 0 % hit rate too; QA of stop 71)
     rows = [line for line in diff.splitlines()[1:] if line.startswith("tiny ") and " note: " not in line]
@@ -44,14 +44,14 @@ def test_regress_round_trip_update_check_and_regression(tmp_path, tiny_baseline)
     metrics = doc["cases"]["tiny"]["metrics"]
     assert metrics["deadline_hit_rate"] == 1.0 and metrics["latency_p50_ref_s"] > 0
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r2")
+    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "r2")
     assert ok, diff
     # make the baseline impossibly fast: the same run now regresses, and the diff says where
     # (the tiny case runs on the unthrottled host budget, so it is judged on CPU seconds)
     doc["cases"]["tiny"]["metrics"].update(cpu_p50_ref_s=1e-4, cpu_p95_ref_s=1e-4, cpu_max_ref_s=1e-4)
     doc["tolerances"]["latency_abs_s"] = 0.0
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r3")
+    ok, diff, _ = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "r3")
     assert not ok and "REGRESSION" in diff and "cpu_p50_ref_s" in diff
 
 
@@ -78,9 +78,11 @@ def tiny_baseline(tmp_path):
 
 def test_plugin_fixture_passes_on_baseline_and_fails_with_diff(request, hil_regression, tiny_baseline, tmp_path):
     assert request.config.pluginmanager.has_plugin("hazard_hil")
-    _, _, doc = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "u", update=True)
+    _, _, doc = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "u", update=True)
     tiny_baseline.write_text(json.dumps(doc))
     assert "tiny" in hil_regression(uncalibrated=True, baseline=tiny_baseline)
+    page = (tmp_path / "regress" / "tiny" / "report.html").read_text()  # a test reads the verdict: no pictures
+    assert "Pictures not drawn" in page and not list((tmp_path / "regress" / "tiny").glob("figures/*.png"))
     doc["cases"]["tiny"]["metrics"]["cpu_p50_ref_s"] = 1e-9  # unreachable: must fail
     doc["tolerances"] = {"hit_rate_drop": 0.0, "latency_rel": 0.0, "latency_abs_s": 0.0}
     tiny_baseline.write_text(json.dumps(doc))
@@ -174,7 +176,7 @@ def test_a_case_on_a_budget_of_ones_own_runs_from_its_file(tmp_path, tiny_baseli
     doc = json.loads(tiny_baseline.read_text())
     doc["cases"]["tiny"].update(budget="fastboard", budget_file="mine.toml")  # relative to the baseline file
     tiny_baseline.write_text(json.dumps(doc))
-    ok, diff, new = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r", update=True)
+    ok, diff, new = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "r", update=True)
     assert ok, diff
     assert (
         new["cases"]["tiny"]["budget_file"] == "mine.toml" and new["cases"]["tiny"]["metrics"]["latency_p50_ref_s"] > 0
@@ -186,7 +188,7 @@ def test_a_case_on_a_budget_of_ones_own_runs_from_its_file(tmp_path, tiny_baseli
     with pytest.raises(
         InputError, match=r"case 'tiny': unknown budget 'rad750' in mine.toml; choose one of: fastboard"
     ):
-        check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "r2")
+        check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "r2")
 
 
 def test_a_budget_named_as_a_shipped_one_in_other_case_is_refused(tmp_path):
@@ -265,10 +267,10 @@ def test_case_outputs_that_cannot_be_written_are_refused_before_any_case_runs(tm
     out.mkdir()
     (out / "tiny").write_text("x")
     with pytest.raises(InputError, match=r"case 'tiny': its output .*tiny is a file"):
-        check_regression(tiny_baseline, uncalibrated=True, out=out, update=True)
+        check_regression(tiny_baseline, uncalibrated=True, figures=False, out=out, update=True)
     (out / "tiny").unlink()
     with claim_out(out / "tiny", "run"), pytest.raises(InputError, match="is being written by hazard-hil run"):
-        check_regression(tiny_baseline, uncalibrated=True, out=out, update=True)
+        check_regression(tiny_baseline, uncalibrated=True, figures=False, out=out, update=True)
 
 
 def test_update_records_a_board_that_reports_no_cpu_seconds_and_leaves_that_metric_out(tmp_path, monkeypatch):
@@ -312,7 +314,7 @@ def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, mo
     tiny_baseline.write_text(json.dumps(doc))
     here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-06", "units_per_s": 71.0}}
     monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
-    _, diff, _ = check_regression(tiny_baseline, uncalibrated=True, out=tmp_path / "o")
+    _, diff, _ = check_regression(tiny_baseline, uncalibrated=True, figures=False, out=tmp_path / "o")
     assert "warning: the baseline was recorded on another host (vm|elsewhere); this one is vm|here" in diff, diff
 
 
@@ -331,14 +333,16 @@ def test_a_partial_update_keeps_what_the_other_cases_rest_on(tmp_path, monkeypat
     monkeypatch.setattr(regress, "host_conditions", lambda: (here, []))
     monkeypatch.setattr(regress, "check_cases", lambda *a, **k: None)
     monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(m))
-    _, _, doc = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", update=True, cases=["a"])
+    _, _, doc = check_regression(
+        baseline, uncalibrated=True, figures=False, out=tmp_path / "o", update=True, cases=["a"]
+    )
     assert doc["recorded"]["cases"] == ["a"] and doc["recorded"]["calibration"]["key"] == "vm|here"
     assert doc["recorded"]["earlier"] == [{**old, "cases": ["b"]}]
     baseline.write_text(json.dumps(doc))
-    _, diff, _ = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", cases=["a"])
+    _, diff, _ = check_regression(baseline, uncalibrated=True, figures=False, out=tmp_path / "o", cases=["a"])
     assert "another host" not in diff, diff
-    _, diff, _ = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", cases=["b"])
+    _, diff, _ = check_regression(baseline, uncalibrated=True, figures=False, out=tmp_path / "o", cases=["b"])
     assert "recorded on another host (vm|old); this one is vm|here" in diff, diff
     # a full update leaves no earlier session
-    _, _, doc = check_regression(baseline, uncalibrated=True, out=tmp_path / "o", update=True)
+    _, _, doc = check_regression(baseline, uncalibrated=True, figures=False, out=tmp_path / "o", update=True)
     assert "earlier" not in doc["recorded"] and doc["recorded"]["cases"] == ["a", "b"]

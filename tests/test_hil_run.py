@@ -41,7 +41,7 @@ def telemetry_events(path, name="supervisor.jsonl"):
 def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     (tmp_path / "figures").mkdir()
     (tmp_path / "figures" / "p099-old_hazard.png").write_bytes(b"an earlier run's")  # QA of stop 66: it stayed
-    s = run(manifest, tmp_path, scenario="approach")  # ignored: the manifest says what was streamed
+    s = run(manifest, tmp_path, scenario="approach", figures=True)  # ignored: the manifest says what was streamed
     assert not (tmp_path / "figures" / "p099-old_hazard.png").exists()
     assert [r["label"] for r in s["records"]] == PAIRS
     assert s["scenario"] == "vertical" and "**vertical** over **zmq**" in (tmp_path / "summary.md").read_text()
@@ -112,6 +112,22 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
     if browser_available():  # every figure (3 telemetry + 1 map per pair) loads, no console error
         page = check_page(tmp_path / "report.html")
         assert page.ok and page.images == 3 + 3, page
+
+
+def test_no_figures_draws_no_pictures_and_the_page_says_so(manifest, tmp_path, capsys):
+    """`run --no-figures`: the page keeps its tables and notes, draws nothing, and says why there are no pictures;
+    an earlier run's pictures do not stay as if they were this run's."""
+    from hil_server.cli import main
+
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / "timeline.png").write_bytes(b"an earlier run's")
+    argv = ["run", "--manifest", str(manifest), "--link", "zmq", "--budget", "host"]
+    assert main([*argv, "--out", str(tmp_path), "--no-figures"]) == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "<img" not in page and "Pictures not drawn (the run was asked for none: --no-figures)." in page
+    assert "200/100" in page and ">deadline hit rate<" in page  # the table and the headline stay
+    assert not any((tmp_path / "figures").glob("*")), list((tmp_path / "figures").glob("*"))
+    assert f"report: {tmp_path / 'report.html'}" in capsys.readouterr().out  # the page, not summary.md: it held
 
 
 def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):

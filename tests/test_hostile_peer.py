@@ -90,8 +90,9 @@ def hostile(tmp_path_factory) -> Path:
 
 
 def run_cli(manifest: Path, out: Path, *extra: str) -> tuple[int, dict]:
-    """`hazard-hil run` with a 30 s deadline: (exit code, summary.json)."""
-    argv = ["run", "--manifest", str(manifest), "--deadline", str(DEADLINE_S), "--out", str(out), *extra]
+    """`hazard-hil run` with a 30 s deadline, its page without pictures: (exit code, summary.json)."""
+    argv = ["run", "--manifest", str(manifest), "--deadline", str(DEADLINE_S), "--out", str(out), "--no-figures"]
+    argv += extra
     code = main(argv)
     return code, strict_json(out / "summary.json")
 

@@ -81,7 +81,13 @@ def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manife
     one after ends at once (each used to wait the whole 10 s: a minute and a half for an 8-pair descent whose board
     was gone). The freeze is at the last pair, so only the vanishing pays that wait (4 s here, 10 s by default)."""
     cfg = RunConfig(
-        out=tmp_path, manifest=manifest4, link="serial", budget="host", link_fault=fault, reconnect_timeout_s=4.0
+        out=tmp_path,
+        manifest=manifest4,
+        link="serial",
+        budget="host",
+        link_fault=fault,
+        reconnect_timeout_s=4.0,
+        figures=False,
     )
     s = run_descent(cfg, log=lambda s: None)
     at = int(fault.split("@")[1])
@@ -105,6 +111,7 @@ def test_far_end_that_freezes_or_vanishes_is_an_explicit_error_within_5_s(manife
 @pytest.mark.slow
 def test_cli_run_exits_nonzero_on_a_link_error(manifest, tmp_path, capsys):
     args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--out", str(tmp_path)]
+    args += ["--no-figures"]
     # the last pair's: no later pair waits out the 10 s for a new session (the freeze/vanish test covers that)
     assert _cli(*args, "--link-fault", f"exit@{len(PAIRS) - 1}", "--link-timeout", "2") == 1
     assert "LINK ERROR" in capsys.readouterr().err
