@@ -116,8 +116,9 @@ def write_process_report(
     doc: dict[str, Any],
     appendix: Appendix | None = None,
     m_per_px: float | None = None,
+    figures: bool = True,
 ) -> list[Path]:
-    """``dem.png``, ``hazard.png`` and ``report.html`` in ``out``.
+    """``dem.png``, ``hazard.png`` and ``report.html`` in ``out``; without ``figures`` the page alone.
 
     ``res`` is a :class:`flight_sw.pipeline.PipelineResult`, ``doc`` the ``result.json`` document, ``appendix``
     a scorer's sections and headline cards for the page, ``m_per_px`` the scale bar's ground step.
@@ -128,16 +129,17 @@ def write_process_report(
 
     marks = [Site(u, v, r, i + 1, None) for i, (u, v, r) in enumerate(site_pixels(res.world_xy, res.sites))]
     written: list[Path] = []
-    figures: list[Figure] = []
+    maps: list[Figure] = []
 
     gsd = ground_step_m(res.world_xy) if m_per_px is None else m_per_px
     # a saved PNG names its pair: only its folder did
     name = Path(str(doc.get("pair_dir", ""))).name
     head = f"{name}: " if name else ""
     fills = res.info.get("dem_filled_fraction")
-    fig = dem_figure(res.elevation, res.sigma, res.filled, fills, gsd, f"{head}Elevation (DEM)")
-    written.append(save(fig, out / "dem.png"))
-    figures.append(
+    if figures:
+        fig = dem_figure(res.elevation, res.sigma, res.filled, fills, gsd, f"{head}Elevation (DEM)")
+        written.append(save(fig, out / "dem.png"))
+    maps.append(
         Figure(
             "dem.png",
             "Computed elevation and its uncertainty. White: no elevation "
@@ -174,8 +176,9 @@ def write_process_report(
             unknown=np.asarray(res.state) == 2,  # written as 1.0 in hazard.npy; drawn grey, not as a hazard
         ),
     ]
-    written.append(save(map_figure(hz, f"{head}Hazards and landing sites", m_per_px=gsd), out / "hazard.png"))
-    figures.append(
+    if figures:
+        written.append(save(map_figure(hz, f"{head}Hazards and landing sites", m_per_px=gsd), out / "hazard.png"))
+    maps.append(
         Figure(
             "hazard.png",
             (
@@ -215,7 +218,9 @@ def write_process_report(
             paragraphs=[doc.get("no_site_reason") or ""] if not res.sites else [],
             tables=[Table(site_cols, site_rows)] if site_rows else [],
         ),
-        Section("Maps", figures=figures),
+        Section("Maps", figures=maps)
+        if figures
+        else Section("Maps", paragraphs=["Pictures not drawn (the run was asked for none: --no-figures)."]),
     ]
     if appendix is not None:
         sections[:0] = appendix.sections

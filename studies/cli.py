@@ -372,7 +372,7 @@ def register(subparsers: Any) -> None:
 def _truth_look(args: argparse.Namespace) -> Any:
     from studies.quicklook import TruthLook
 
-    return TruthLook(args.pair_dir)
+    return TruthLook(args.pair_dir, figures=not args.no_figures)
 
 
 def _parse_alts(text: str | None) -> list[int] | None:

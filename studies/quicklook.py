@@ -42,9 +42,10 @@ COVERED_SCOPE = (
 class TruthLook:
     """The :class:`flight_sw.cli.Scorer` of ``process``: the pair's ground truth, read by :meth:`prepare`."""
 
-    def __init__(self, pair_dir: str | Path, fp_limit_pct: float | None = None) -> None:
+    def __init__(self, pair_dir: str | Path, fp_limit_pct: float | None = None, figures: bool = True) -> None:
         from studies.score import FP_LIMIT_PCT
 
+        self.figures = figures  # confusion.png and dem_error.png (off: process --no-figures)
         self.pair_dir = Path(pair_dir)
         self.fp_limit_pct = FP_LIMIT_PCT if fp_limit_pct is None else fp_limit_pct
         self._pair: Any = None
@@ -83,13 +84,16 @@ class TruthLook:
             "output_dir": str(out),
             "error": None,
         }
-        row.update(score_output(pair, output, str(self.pair_dir), out / "confusion.png", label))
+        drawn = out / "confusion.png" if self.figures else None
+        row.update(score_output(pair, output, str(self.pair_dir), drawn, label))
         notes = []
         if row.get("figure_error"):  # a full disk: said, and the run fails as any refused write does
             raise OSError(row["figure_error"])
-        row["figure"] = str(out / "confusion.png")
-        figures = [CONFUSION_FIGURE]
-        if _dem_error_figure(output.elevation, pair.truth.get("elevation"), out, label, m_per_px, row):
+        figures = []
+        if drawn is not None:
+            row["figure"] = str(drawn)
+            figures.append(CONFUSION_FIGURE)
+        if self.figures and _dem_error_figure(output.elevation, pair.truth.get("elevation"), out, label, m_per_px, row):
             figures.append(DEM_FIGURE)
         doc = {"summary": summarise([row], self.fp_limit_pct), "rows": [json_row(row)]}
         write_atomic(out / "score.json", json_text(doc))
@@ -137,10 +141,10 @@ class TruthLook:
         row = {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
         if row.get("fp_pct") is None and row.get("dem_mean_abs_m") is None:  # nothing to say: no file either
             return Appendix(notes=[f"note: nothing of this output could be scored against the truth: {why}"])
-        if row.get("fp_pct") is not None:
+        if row.get("fp_pct") is not None and self.figures:
             _covered_confusion_figure(output.hazard, gt_h, covered, out, label, m_per_px, row)
             figures.append(COVERED_CONFUSION_FIGURE)
-        if _dem_error_figure(output.elevation, gt_z, out, label, m_per_px, row):
+        if self.figures and _dem_error_figure(output.elevation, gt_z, out, label, m_per_px, row):
             figures.append(DEM_FIGURE)
         summary = {"pairs": 1, "scored_over": "covered", "truth_problem": why}
         write_atomic(out / "score.json", json_text({"summary": summary, "rows": [json_row(row)]}))

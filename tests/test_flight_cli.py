@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -66,6 +67,45 @@ def test_process_writes_outputs(tmp_path, capsys):
         page = check_page(out / "report.html")
         assert page.ok and page.images == 4, page  # dem, hazard, confusion, dem_error: all load, no console error
     assert ">Against ground truth<" in (out / "report.html").read_text()
+
+
+def test_process_no_figures_writes_the_same_maps_and_scores_and_no_picture(tmp_path, capsys):
+    """`process --no-figures`: the arrays, result.json and score.json as with the pictures, and the page says why
+    it has none; an earlier run's pictures in OUT go, as its other outputs do."""
+    d, _ = _pair(tmp_path)
+    assert main(["process", str(d), "--out", str(tmp_path / "drawn")]) == 0
+    out = tmp_path / "bare"
+    shutil.copytree(tmp_path / "drawn", out)
+    assert main(["process", "--no-figures", str(d), "--out", str(out)]) == 0
+    assert "report: " in capsys.readouterr().out
+    assert not list(out.glob("*.png")), list(out.glob("*.png"))
+    for f in ("elevation.npy", "state.npy", "psafe.npy"):
+        assert np.array_equal(np.load(out / f), np.load(tmp_path / "drawn" / f), equal_nan=True), f
+    rows = [json.loads((o / "score.json").read_text())["rows"][0] for o in (tmp_path / "drawn", out)]
+    same = [{k: v for k, v in r.items() if k not in ("figure", "output_dir")} for r in rows]
+    assert same[0] == same[1] and rows[0]["figure"] and not rows[1].get("figure")
+    page = (out / "report.html").read_text()
+    assert "<img" not in page and "Pictures not drawn (the run was asked for none: --no-figures)." in page
+    assert ">Against ground truth<" in page  # the scores' table stays
+
+
+def test_a_pair_that_fits_only_without_its_pictures_is_told_so_and_runs_without_them(tmp_path, capsys, monkeypatch):
+    """The pictures drawn after the maps are most of the memory a large pair needs (~180 MiB + 110 B per pixel):
+    a machine with room for the maps alone is told that --no-figures fits, and the run with it goes through."""
+    from flight_sw import validate
+
+    d, _ = _pair(tmp_path)
+    bare, drawn = (validate.peak_memory_bytes(160, 160, 2, pictures) for pictures in (False, True))
+    monkeypatch.setattr(validate, "memory_room", lambda: ((bare + drawn) // 2, "of memory is available"))
+    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "160x160 px x 2 frames needs ~" in err and err.rstrip().endswith(
+        "without its pictures (--no-figures) it fits"
+    )
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o")]) == 0
+    monkeypatch.setattr(validate, "memory_room", lambda: (bare // 2, "of memory is available"))  # fits neither way
+    assert main(["process", str(d), "--out", str(tmp_path / "o2")]) == 2
+    assert "--no-figures" not in capsys.readouterr().err
 
 
 def test_process_without_gt_depth_scores_over_the_covered_pixels(tmp_path, capsys):
@@ -295,14 +335,14 @@ def test_process_warns_when_the_images_cannot_check_the_navigation_poses(tmp_pat
     from hilkit import small_descent
 
     pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
-    assert main(["process", str(pair), "--out", str(tmp_path / "ok")]) == 0
+    assert main(["process", "--no-figures", str(pair), "--out", str(tmp_path / "ok")]) == 0
     err = capsys.readouterr().err
     assert "navigation pose" not in err and "P(safe)" not in err  # 256 px has its own trees (stop 63)
     swapped = tmp_path / "swapped"
     shutil.copytree(pair, swapped)
     (swapped / "i1.png").write_bytes((pair / "i2.png").read_bytes())
     (swapped / "i2.png").write_bytes((pair / "i1.png").read_bytes())
-    assert main(["process", str(swapped), "--out", str(tmp_path / "bad")]) == 0
+    assert main(["process", "--no-figures", str(swapped), "--out", str(tmp_path / "bad")]) == 0
     err = capsys.readouterr().err
     # texture, and no consistent match: the image does not bear the pose out (said as "could not check" until the
     # withheld sites' reason said "contradict" of the same frame, stop 61's QA)
@@ -326,7 +366,7 @@ def test_process_warns_when_the_images_disagree_with_the_navigation_pose(tmp_pat
     doc = json.loads((gross / "pair.json").read_text())
     doc["frames"][1]["position_m"][0] += 30.0
     (gross / "pair.json").write_text(json.dumps(doc))
-    assert main(["process", str(gross), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(gross), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: the images disagree with its navigation pose (attitude correction" in err, err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
@@ -358,7 +398,7 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     the map rests on it (DEM 27 m off); no altimeter check fires. Sites on such a map had been offered all the
     same (a 3 deg pitch, stop 59's QA: FP 2.07 %, the top site unsafe)."""
     pair, off = _pitched_pair(tmp_path, 2.0)
-    assert main(["process", str(off), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(off), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: the images disagree with its navigation pose" in err
     assert "warning: no site is offered on this map: it rests on frame 1" in err, err
@@ -367,7 +407,7 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     assert "rests on frame 1, whose navigation pose the images contradict" in res["info"]["no_site_reason"]
     assert res["info"]["sites_withheld"] == res["info"]["no_site_reason"]  # the HIL's fused map withholds on it
     # the clean pair offers its sites
-    assert main(["process", str(pair), "--out", str(tmp_path / "clean")]) == 0
+    assert main(["process", "--no-figures", str(pair), "--out", str(tmp_path / "clean")]) == 0
     clean = json.loads((tmp_path / "clean" / "result.json").read_text())["info"]
     assert "sites_withheld" not in clean
     # a principal point off the image: the DEM-altimeter check cannot be made, and says so (it crashed once)
@@ -375,7 +415,7 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
     doc["camera"]["cx"] = doc["camera"]["width"] + 40.0
     (off / "pair.json").write_text(json.dumps(doc))
     capsys.readouterr()
-    assert main(["process", str(off), "--out", str(tmp_path / "cx")]) == 0
+    assert main(["process", "--no-figures", str(off), "--out", str(tmp_path / "cx")]) == 0
     said = capsys.readouterr()
     assert "frame 0's altimeter was not checked against the DEM: its optical axis meets the ground off" in said.out
     assert "warning: the camera's principal point (296, " in said.err, said.err
@@ -385,13 +425,13 @@ def test_no_site_is_offered_on_a_map_resting_on_a_pose_the_images_contradict(tmp
 def test_process_says_what_the_pose_refinement_corrected_and_can_be_told_not_to(tmp_path, capsys):
     """A correction was said only in result.json, and `process` had no way to run without it (stop 59's QA)."""
     _, off = _pitched_pair(tmp_path, 0.3)
-    assert main(["process", str(off), "--out", str(tmp_path / "on")]) == 0
+    assert main(["process", "--no-figures", str(off), "--out", str(tmp_path / "on")]) == 0
     said = capsys.readouterr().out
     # a nadir pair: the fit holds the relative rotation and turns the baseline, and says both (a 1 deg pitch read
     # "corrected by 0.10 deg" with the baseline's 0.54 deg unsaid, stop 61's QA)
     assert "refined from the images: frame 1 (near-nadir: relative rotation held across the view, corrected" in said
     assert "the baseline turned 0." in said, said
-    assert main(["process", str(off), "--out", str(tmp_path / "raw"), "--no-refine-pose"]) == 0
+    assert main(["process", "--no-figures", str(off), "--out", str(tmp_path / "raw"), "--no-refine-pose"]) == 0
     said = capsys.readouterr().out
     raw = json.loads((tmp_path / "raw" / "result.json").read_text())
     assert "refined from the images" not in said and raw["params"]["refine_pose"] is False
@@ -422,7 +462,7 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     shutil.copy(root / "300_150" / low["frames"][1]["image"], three / "i3.png")
     # the 300 m frame's image is another view (frame 0's, turned 90 deg): it matches, and contradicts its pose
     cv2.imwrite(str(three / "i2.png"), np.rot90(cv2.imread(str(three / "i1.png"), cv2.IMREAD_GRAYSCALE)).copy())
-    assert main(["process", str(three), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(three), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     assert res["info"]["frames_dropped"] == [1], res["info"].get("pose_refinement")
@@ -435,13 +475,13 @@ def test_a_later_frame_the_images_cannot_check_is_left_out_of_the_maps(tmp_path,
     doc["frames"].pop(1)
     doc["true_frames"].pop(1)
     (pair / "pair.json").write_text(json.dumps(doc))
-    assert main(["process", str(pair), "--out", str(tmp_path / "pair")]) == 0
+    assert main(["process", "--no-figures", str(pair), "--out", str(tmp_path / "pair")]) == 0
     alone = _dem_err(tmp_path / "pair")
     assert _dem_err(tmp_path / "o") <= 1.2 * alone + 0.05
     # a noise image there: its corners track nothing (it read "too few matches", as a small overlap does, and was
     # swept: a DEM 6.9 m off, stop 59's review)
     cv2.imwrite(str(three / "i2.png"), (np.random.default_rng(1).random((256, 256)) * 255).astype(np.uint8))
-    assert main(["process", str(three), "--out", str(tmp_path / "noise")]) == 0
+    assert main(["process", "--no-figures", str(three), "--out", str(tmp_path / "noise")]) == 0
     noisy = json.loads((tmp_path / "noise" / "result.json").read_text())["info"]
     assert noisy["frames_dropped"] == [1], noisy["pose_refinement"]["frames"]
     # frame 0 is never left alone, and small images (whose clean frames fail the checks too) drop nothing
@@ -468,7 +508,7 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
                "--workers", "1", "--no-progress", "--out", str(tmp_path / "r")])  # fmt: skip
     assert rc == 0
     d = tmp_path / "r" / "1000_600_300"
-    assert main(["process", str(d), "--out", str(tmp_path / "clean")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "clean")]) == 0
     capsys.readouterr()
     original = json.loads((d / "pair.json").read_text())
 
@@ -480,7 +520,7 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
         (d / "pair.json").write_text(json.dumps(doc))
 
     pitched(2, 2.0)
-    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     last = res["info"]["pose_refinement"]["frames"][-1]
@@ -491,7 +531,7 @@ def test_a_deep_descents_last_frame_is_checked_against_the_frame_above_and_left_
     # (frame 0 and the unchecked 300 m frame) offers no site, saying frame 0 may be the wrong one; it had been
     # mapped 51-362 m off with nothing withheld (stop 61's QA)
     pitched(0, 1.5)
-    assert main(["process", str(d), "--out", str(tmp_path / "f0")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "f0")]) == 0
     err = capsys.readouterr().err
     info = json.loads((tmp_path / "f0" / "result.json").read_text())["info"]
     assert info["frames_dropped"] == [1] and "no frame left confirms frame 0's pose" in info["sites_withheld"]
@@ -512,7 +552,7 @@ def test_process_scores_against_a_derived_truth_where_score_can_derive_one(tmp_p
         d = tmp_path / label
         shutil.copytree(root / label, d)
         (d / "gt_hazard_i1.npy").unlink()
-        assert main(["process", str(d), "--out", str(tmp_path / f"o{label}")]) == 0
+        assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / f"o{label}")]) == 0
         said[label] = capsys.readouterr()
     fine = json.loads((tmp_path / "o200_100" / "score.json").read_text())["rows"][0]
     assert fine["truth"] == "derived" and fine["fp_pct"] is not None
@@ -554,7 +594,7 @@ def test_a_clean_frame_that_hardly_overlaps_frame_0_is_a_note_not_a_warning(tmp_
     assert main(["render", "--scenario", "vertical", "--frames", "1000,500,150", "--image-size", "256",
                  "--out", str(tmp_path), "--no-progress"]) == 0  # fmt: skip
     capsys.readouterr()
-    assert main(["process", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o")]) == 0
     said = capsys.readouterr()
     assert "frame 2: its pose is not checked by the images (the images hardly overlap" in said.out, said.out
     assert "a fault in it would go unseen" in said.out
@@ -563,7 +603,7 @@ def test_a_clean_frame_that_hardly_overlaps_frame_0_is_a_note_not_a_warning(tmp_
     doc = json.loads((tmp_path / "1000_500_150" / "pair.json").read_text())
     doc["frames"][-1]["position_m"][0] += 2000.0
     (tmp_path / "1000_500_150" / "pair.json").write_text(json.dumps(doc))
-    assert main(["process", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o2")]) == 2
+    assert main(["process", "--no-figures", str(tmp_path / "1000_500_150"), "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "the frames do not overlap" in err and "that the last frame used" in err, err
 
@@ -579,7 +619,7 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     doc["frames"][2]["image"], doc["frames"][3]["image"] = doc["frames"][3]["image"], doc["frames"][2]["image"]
     (d / "pair.json").write_text(json.dumps(doc))
     capsys.readouterr()
-    assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     res = json.loads((tmp_path / "o" / "result.json").read_text())
     f2 = res["info"]["pose_refinement"]["frames"][1]
@@ -595,7 +635,7 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     for f in blind["frames"]:
         f.pop("altimeter_m", None)
     (d / "pair.json").write_text(json.dumps(blind))
-    assert main(["process", str(d), "--out", str(tmp_path / "blind")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "blind")]) == 0
     res = json.loads((tmp_path / "blind" / "result.json").read_text())
     odd = res["info"]["pose_refinement"]["frames"][1:]
     assert [f["verdict"] for f in odd] == ["disagrees", "disagrees"] and all(f["scale_disagrees"] for f in odd), odd
@@ -605,7 +645,7 @@ def test_an_image_from_another_altitude_is_refused_by_the_scale_frame_0s_altimet
     # as a pair, frame 2 cannot be left out: said, and no site on a map resting on it
     doc["frames"], doc["true_frames"] = [doc["frames"][0], doc["frames"][2]], [doc["true_frames"][k] for k in (0, 2)]
     (d / "pair.json").write_text(json.dumps(doc))
-    assert main(["process", str(d), "--out", str(tmp_path / "p")]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "p")]) == 0
     err = capsys.readouterr().err
     info = json.loads((tmp_path / "p" / "result.json").read_text())["info"]
     assert "frame 1's images put the ground +" in info["altimeter_disagreement"], info
@@ -619,7 +659,7 @@ def test_process_widest_pair_names_the_directorys_frame_in_the_altimeter_warning
     doc = json.loads((d / "pair.json").read_text())
     doc["frames"][3]["altimeter_m"] += 50.0  # 50 m long: frame 3's beam puts the ground 50 m down
     (d / "pair.json").write_text(json.dumps(doc))
-    assert main(["process", str(d), "--widest-pair", "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(d), "--widest-pair", "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "frame 3 at" in err and "frame 1 at" not in err, err
 
@@ -651,7 +691,7 @@ def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
     bad = tmp_path / "bad"
     shutil.copytree(pair, bad)
     shutil.copy(bad / "i1.png", bad / "i2.png")
-    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: its image does not match where its navigation pose says (its image is frame 0's" in err
     assert "warning: no site is offered on this map: it rests on frame 1" in err, err
@@ -664,7 +704,7 @@ def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):
     img = cv2.imread(str(bad / "i1.png"), cv2.IMREAD_GRAYSCALE).astype(np.int16)
     img += np.random.default_rng(0).integers(-1, 2, img.shape).astype(np.int16)
     cv2.imwrite(str(bad / "i2.png"), np.clip(img, 0, 255).astype(np.uint8))
-    assert main(["process", str(bad), "--out", str(tmp_path / "o2")]) == 0
+    assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / "o2")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: its image does not match where its navigation pose says (no parallax between" in err
     assert "warning: no site is offered on this map: it rests on frame 1" in err, err
@@ -695,7 +735,7 @@ def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsy
         f.pop("altimeter_m", None)  # the altimeters' own check would see it
     (bad / "pair.json").write_text(json.dumps(doc))
     capsys.readouterr()
-    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 2: its image does not match where its navigation pose says (its image is frame 1's" in err
     assert "the same image twice (a camera that sent an image again)); it is left out of the maps" in err, err
@@ -710,7 +750,7 @@ def test_a_descent_frame_that_repeats_the_one_before_is_left_out(tmp_path, capsy
             doc[key] = doc[key][:2]
     (two / "pair.json").write_text(json.dumps(doc))
     shutil.copy(two / "i1.png", two / "i2.png")
-    assert main(["process", str(two), "--out", str(tmp_path / "o2")]) == 0
+    assert main(["process", "--no-figures", str(two), "--out", str(tmp_path / "o2")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1: its image does not match where its navigation pose says (its image is frame 0's" in err
     doc = json.loads((tmp_path / "o2" / "result.json").read_text())
@@ -738,14 +778,14 @@ def test_tiny_cameras_infinite_widths_and_huge_pair_files_are_refused_in_one_lin
 
             for f in ("i1.png", "i2.png"):
                 Image.fromarray(np.full((2, 2), 120, np.uint8)).save(bad / f)
-        assert main(["process", str(bad), "--out", str(tmp_path / f"o_{name}")]) == 2
+        assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / f"o_{name}")]) == 2
         err = capsys.readouterr().err
         assert "Traceback" not in err and err.count("\n") <= 2, err
         assert ("too small to map" if name == "tiny" else "whole number") in err, err
     huge = tmp_path / "huge"
     huge.mkdir()
     (huge / "pair.json").write_text(json.dumps({**doc, "pad": "x" * MAX_PAIR_JSON_BYTES}))
-    assert main(["process", str(huge), "--out", str(tmp_path / "o_huge")]) == 2
+    assert main(["process", "--no-figures", str(huge), "--out", str(tmp_path / "o_huge")]) == 2
     assert "more than a pair.json can be" in capsys.readouterr().err
     traj = tmp_path / "t.json"
     traj.write_text(json.dumps({"camera": {"width": 2, "height": 2, "fx": 4.0, "fy": 4.0, "cx": 1.0, "cy": 1.0},
@@ -769,7 +809,7 @@ def test_an_install_without_the_compiled_kernels_is_said(tmp_path, capsys, monke
     missing = kernels.missing_kernels()
     assert missing == ["the SGM aggregation (~4x slower)", "the P(safe) trees (~11x slower)"]
     d, _ = _pair(tmp_path)
-    assert main(["process", str(d), "--out", str(tmp_path / "o"), "--sites", "0"]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o"), "--sites", "0"]) == 0
     err = capsys.readouterr().err
     assert "warning: the install built no compiled kernel for the SGM aggregation (~4x slower) or the P(safe)" in err
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
@@ -807,7 +847,7 @@ def test_the_readers_warnings_and_notes_are_recorded_in_result_json_and_on_the_p
     i2 = cv2.imread(str(km / "i2.png"), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(km / "i2.png"), i2.astype(np.uint16) * 257)  # a 16-bit frame: converted, with a note
     out = tmp_path / "out"
-    assert main(["process", str(km), "--out", str(out), "--sites", "0"]) == 0
+    assert main(["process", "--no-figures", str(km), "--out", str(out), "--sites", "0"]) == 0
     err = capsys.readouterr().err
     doc = json.loads((out / "result.json").read_text())
     scale = [w for w in doc["warnings"] if "positions must be in metres" in w]
@@ -832,7 +872,7 @@ def test_a_camera_too_small_to_map_is_its_one_error_without_a_note_before_it(tmp
     from protocol.pairdir import read_pair
 
     assert any("m per pixel" in w for w in read_pair(tiny).scale_notes())  # the reader has a word to say, unsaid
-    assert main(["process", str(tiny), "--out", str(tmp_path / "o")]) == 2
+    assert main(["process", "--no-figures", str(tiny), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("hazard-hil process: error: "), err
     assert f"{tiny / 'pair.json'}: camera: images of 2x2 px are too small to map" in err, err
@@ -860,7 +900,7 @@ def test_widest_pair_warns_of_no_crushed_frame_it_leaves_out(tmp_path, capsys):
     crushed = f"{(three / 'mid.png').resolve()}: after the common 8-bit shift"
     assert [w for w in read_pair(three).warnings if w.startswith(crushed)]  # the reader says it
     out = tmp_path / "out"
-    assert main(["process", str(three), "--out", str(out), "--widest-pair", "--sites", "0"]) == 0
+    assert main(["process", "--no-figures", str(three), "--out", str(out), "--widest-pair", "--sites", "0"]) == 0
     err = capsys.readouterr().err
     assert not [line for line in err.splitlines() if line.startswith("warning:") and "mid.png" in line], err
     assert not any("mid.png" in w for w in json.loads((out / "result.json").read_text())["warnings"])
@@ -878,7 +918,7 @@ def test_a_16_bit_frame_the_common_shift_crushed_is_not_called_a_lost_image(tmp_
         img = cv2.imread(str(mixed / f), cv2.IMREAD_UNCHANGED)
         cv2.imwrite(str(mixed / f), img.astype(np.uint16) * gain)
     out = tmp_path / "out"
-    assert main(["process", str(mixed), "--out", str(out), "--sites", "0"]) == 0
+    assert main(["process", "--no-figures", str(mixed), "--out", str(out), "--sites", "0"]) == 0
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith(f"warning: {(mixed / 'i1.png').resolve()}: ")]
     assert len(lines) == 1 and "its values span 12 bits, i2.png's 16" in lines[0], err
@@ -903,7 +943,7 @@ def test_a_wrong_frame_0_altimeter_is_not_blamed_on_the_other_frames_poses(tmp_p
     doc["frames"][0]["altimeter_m"] *= 1.15
     (d / "pair.json").write_text(json.dumps(doc))
     capsys.readouterr()
-    main(["process", str(d), "--out", str(tmp_path / "o")])
+    main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     said = [line for line in err.splitlines() if line.startswith("warning: frame ") and "altimeter" in line]
     assert len(said) == 2, err
@@ -920,7 +960,9 @@ def test_the_aim_point_can_be_given_and_one_off_the_map_is_said(tmp_path, capsys
                  "--out", str(tmp_path / "r")]) == 0  # fmt: skip
     d = tmp_path / "r" / "600_300"
     for aim, out in (("3,-2", "near"), ("2000,0", "far")):
-        assert main(["process", str(d), "--out", str(tmp_path / out), "--aim", aim, "--sites", "20"]) == 0
+        assert (
+            main(["process", "--no-figures", str(d), "--out", str(tmp_path / out), "--aim", aim, "--sites", "20"]) == 0
+        )
         doc = json.loads((tmp_path / out / "result.json").read_text())
         ax, ay = (float(v) for v in aim.split(","))
         assert doc["aim_xy"] == [ax, ay] and doc["sites"], doc["no_site_reason"]
@@ -928,5 +970,5 @@ def test_the_aim_point_can_be_given_and_one_off_the_map_is_said(tmp_path, capsys
             assert s["distance_m"] == pytest.approx(math.hypot(s["x"] - ax, s["y"] - ay), abs=1e-6)
         said = capsys.readouterr().out
         assert ("the aim point (2000, 0) lies outside the mapped ground" in said) == (out == "far"), said
-    assert main(["process", str(d), "--out", str(tmp_path / "bad"), "--aim", "3"]) == 2
+    assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "bad"), "--aim", "3"]) == 2
     assert "--aim must be X,Y in metres, got '3'" in capsys.readouterr().err

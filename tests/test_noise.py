@@ -47,7 +47,7 @@ def test_process_warns_of_a_noisy_frame(tmp_path, capsys):
     from hilkit import small_descent
 
     pair = small_descent(tmp_path / "pairs", ["300/150"], px=256).parent / "300_150"
-    assert main(["process", str(pair), "--out", str(tmp_path / "ok")]) == 0
+    assert main(["process", "--no-figures", str(pair), "--out", str(tmp_path / "ok")]) == 0
     assert "noisy" not in capsys.readouterr().err
     info = json.loads((tmp_path / "ok" / "result.json").read_text())["info"]
     assert "noisy_frames" not in info and "blank_frames" not in info
@@ -56,7 +56,7 @@ def test_process_warns_of_a_noisy_frame(tmp_path, capsys):
     img = cv2.imread(str(bad / "i2.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
     img += np.random.default_rng(3).normal(0.0, 30.0, img.shape)
     cv2.imwrite(str(bad / "i2.png"), np.clip(img, 0, 255).astype(np.uint8))
-    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 1's image is noisy: its pixel noise reads ~" in err, err
     (f,) = json.loads((tmp_path / "o" / "result.json").read_text())["info"]["noisy_frames"]
@@ -72,7 +72,7 @@ def test_process_names_a_blank_frame_0(tmp_path, capsys):
     shutil.copytree(pair, bad)
     img = cv2.imread(str(bad / "i1.png"), cv2.IMREAD_GRAYSCALE)
     cv2.imwrite(str(bad / "i1.png"), np.zeros_like(img))
-    assert main(["process", str(bad), "--out", str(tmp_path / "o")]) == 0
+    assert main(["process", "--no-figures", str(bad), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "warning: frame 0's image is blank: its pixel-scale detail reads 0.0 grey levels against" in err, err
     assert "little or nothing in it can be matched" in err
