@@ -94,7 +94,7 @@ def test_the_flight_side_of_process_runs_on_a_pair_whose_truth_it_cannot_read(tm
     (d / "pair.json").write_text(json.dumps({**doc, "true_frames": "garbage", "pose_error": {"frames": "x"}}))
     args = argparse.Namespace(
         pair_dir=str(d), out=str(tmp_path / "o"), preset="fast", refine_pose=True, deadline=None, sites=None,
-        widest_pair=False, aim=None,
+        widest_pair=False, aim=None, no_figures=False,
     )  # fmt: skip
     assert _process(args, None) == 0
     assert not (tmp_path / "o" / "score.json").exists() and not (tmp_path / "o" / "confusion.png").exists()
