@@ -167,7 +167,15 @@ while not link.closed_by_peer:
 
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory):
-    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS)
+    """64 px: these programs' answers do not depend on the images, and the frames' line time is a quarter of
+    128 px's (0.1 s a pair at 921600 baud)."""
+    return small_descent(tmp_path_factory.mktemp("pairs"), PAIRS, px=64)
+
+
+@pytest.fixture(scope="module")
+def manifest128(tmp_path_factory):
+    """128 px, for a test that needs a pair's frames a while on the line (~3 s at 115200 baud)."""
+    return small_descent(tmp_path_factory.mktemp("pairs128"), PAIRS)
 
 
 @pytest.fixture(scope="module")
@@ -782,13 +790,15 @@ def test_an_external_flight_computers_second_result_is_ignored_and_the_first_sta
     assert ground["ignored_results"] == 3 and ground["unattributed_errors"] == 3
 
 
-def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(manifest, flight, tmp_path, capfd):
+def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(
+    manifest128, flight, tmp_path, capfd
+):
     """With a pair given up on, the ground reads answers while the next pair's frames go out: an Error about that
     pair's first frame, taken then, was recorded only after the whole response timeout, with a false "no answer"
     (review of stop 53's first fix). 115200 baud: each pair's frames are a while on the line. A 3 s response
     timeout: the first pair still has no answer by then (12 s), and the bug's record would still come 3 s past
     the bound below."""
-    records = _lockstep(flight, "slow_then_err", manifest, tmp_path, baud=115200, response_timeout_s=3.0)
+    records = _lockstep(flight, "slow_then_err", manifest128, tmp_path, baud=115200, response_timeout_s=3.0)
     by_label = {r["label"]: r for r in records}
     assert by_label["600/300"]["status"] == "result" and len(records) == 3
     r = by_label["300/150"]  # its frames take ~3 s at 115200 baud; the Error came after the first of them
