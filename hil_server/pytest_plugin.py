@@ -31,7 +31,7 @@ def hil_regression(request: pytest.FixtureRequest, tmp_path: Path):
     """``check(baseline=None, cases=None, min_hit_rate=None, link=None, hello_timeout_s=None, uncalibrated=False,
     figures=False) -> diff``: run the baseline's cases (all, or ``cases``, a list of names); fail the test with the
     diff when one regresses. The cases' report pages are drawn without pictures unless ``figures``: a test reads
-    the verdict, and the pictures cost about 0.5 s per pair."""
+    the verdict, and the pictures cost about 1 s per pair."""
 
     def check(
         baseline: str | Path | None = None,

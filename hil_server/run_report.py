@@ -250,8 +250,8 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
 
 def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
     """Write ``report.html`` (and ``figures/``) for a run summary; returns the page's path. Without ``figures``
-    the page has its tables and notes and no pictures: drawing them is 0.3-0.5 s each, about 2 s for a short
-    descent, which a gate reading summary.json does not need."""
+    the page has its tables and notes and no pictures: drawing them is 0.3-0.5 s each (a three-pair 128 px run
+    took 7.7 s with them, 4.8 s without), which a gate reading summary.json does not need."""
     path = Path(path)
     fig_dir = path.parent / "figures"
     s = summary
@@ -332,6 +332,8 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
         intro.append(flight[0].upper() + flight[1:] + ".")
     if sessions := session_note(s):  # a session lost or restarted: said at the time, and in no output
         intro.append(sessions[0].upper() + sessions[1:] + ".")
+    if not figures:
+        intro.append("Pictures not drawn (the run was asked for none: --no-figures).")
     sections = [
         Section(
             "Pairs",
@@ -351,9 +353,7 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
         )
     tel = _telemetry_records(records)
     tel_figs = []
-    if not figures:
-        intro.append("Pictures not drawn (the run was asked for none: --no-figures).")
-    elif any(r.get("status") == "result" for r in records):
+    if figures and any(r.get("status") == "result" for r in records):
         save(timeline_figure(tel), fig_dir / "timeline.png")
         tel_figs.append(
             Figure(

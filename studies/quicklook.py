@@ -10,6 +10,8 @@ flight pipeline on the pair read without its truth (:mod:`flight_sw.cli`) and ha
   pixel scores and the true hazard;
 * ``dem_error.png``: the true elevation and the error of the computed one.
 
+The two pictures are not drawn with ``process --no-figures`` (``TruthLook(figures=False)``).
+
 A pair whose truth ``score`` cannot use (no ``gt_depth_i1.npy``, say, so its true overlap is unknown) is scored
 over the pixels the map covers instead, and said so: the DEM error where both elevations are finite, and the
 pixel scores where ``gt_hazard_i1.npy`` gives a value, in ``confusion.png`` too; its sites are not judged, and

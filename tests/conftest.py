@@ -1,17 +1,20 @@
-"""Each pytest-xdist worker (`make test` runs two) keeps to a core of its own; the workers share one cache of
-the small descents the HIL tests render (tests/hilkit.py).
+"""Each pytest-xdist worker keeps to one core; the workers share one cache of the small descents the HIL tests
+render (tests/hilkit.py).
 
-The emulated flight processor pins its process to the highest core the run may use (hil_server.procemu). Two
-workers that could both use every core would pin two flight processes to the same one, and each would run at half
-the budget's speed while the other ran. A worker pinned to its own core pins its flight processes there too, so
-the two never share a core. Without xdist (a plain `pytest`) nothing changes.
+The emulated flight processor pins its process to the highest core the run may use (hil_server.procemu). Workers
+that could all use every core would pin all their flight processes to the same one, and each would run at a
+fraction of the budget's speed while the others ran. A worker pinned to a core pins its flight processes there
+too. `make test` runs one worker more than there are cores (the end-to-end tests mostly wait on lines and timers),
+so two workers share a core: worker k takes core k mod n. A test marked ``exclusive_core`` (a throttled budget's
+run, a timing bound) has its core to itself: the other worker there finishes its test and starts no other until
+it ends. Without xdist (a plain `pytest`) nothing changes.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 
-import hilkit
 import pytest
 
 
@@ -23,10 +26,36 @@ def pytest_configure(config) -> None:
     os.sched_setaffinity(0, {cores[int(worker[2:]) % len(cores)]})
 
 
+def _shared_root(tmp_path_factory):
+    """What the session's workers share: the parent of their own temporary directories (one per session)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _descent_cache(tmp_path_factory):
-    """The session's render cache: beside the workers' own temporary directories, so that they share it."""
-    base = tmp_path_factory.getbasetemp()
-    hilkit.DESCENT_CACHE[:] = [(base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "descent-cache"]
+    """The session's render cache, shared by the workers."""
+    import hilkit  # here, not at the top: numpy, which it imports, starts its threads after the worker is pinned
+
+    hilkit.DESCENT_CACHE[:] = [_shared_root(tmp_path_factory) / "descent-cache"]
     yield
     hilkit.DESCENT_CACHE.clear()
+
+
+@pytest.fixture(autouse=True)
+def _core_turn(request, tmp_path_factory):
+    """Every test holds its core's lock shared, an ``exclusive_core`` test holds it alone. A turnstile taken before
+    the lock keeps the tests that share it from starving one that waits for it alone."""
+    if not os.environ.get("PYTEST_XDIST_WORKER", "").startswith("gw") or not hasattr(os, "sched_getaffinity"):
+        yield
+        return
+    core = min(os.sched_getaffinity(0))
+    root = _shared_root(tmp_path_factory)
+    alone = request.node.get_closest_marker("exclusive_core") is not None
+    with open(root / f"core{core}.turnstile", "a") as gate, open(root / f"core{core}.lock", "a") as lock:
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        yield

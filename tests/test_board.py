@@ -585,6 +585,7 @@ def test_a_board_whose_line_fails_ends_with_what_it_served(tmp_path):
     assert last.startswith("flight: the link failed") and "served 0 ground session(s), 0 pair(s)" in last, err
 
 
+@pytest.mark.exclusive_core
 def test_regress_gates_a_board_against_its_own_baseline(tmp_path, capsys):
     from protocol.faults import PtyBridge
 

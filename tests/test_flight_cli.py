@@ -100,7 +100,7 @@ def test_a_pair_that_fits_only_without_its_pictures_is_told_so_and_runs_without_
     assert main(["process", str(d), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "160x160 px x 2 frames needs ~" in err and err.rstrip().endswith(
-        "without its pictures (--no-figures) it fits"
+        "without its pictures (--no-figures) it would fit"
     )
     assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "o")]) == 0
     monkeypatch.setattr(validate, "memory_room", lambda: (bare // 2, "of memory is available"))  # fits neither way

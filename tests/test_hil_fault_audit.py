@@ -2,7 +2,8 @@
 counted, and the run goes on (or ends non-zero at once), with an outcome record for every pair.
 
 The faulty flight programs are examples/minimal_flight.py with one fault each (``--flight-cmd``); the rest runs for
-real: the supervisor, the emulated processor, the ground streamer, a pty pair. Small 128 px pairs, host budget.
+real: the supervisor, the emulated processor, the ground streamer, a pty pair. Small 64 px pairs (128 px where a
+pair's frames must be a while on the line), host budget.
 The same programs on the far end of a pty as an external flight computer (``--flight external``), and one on
 ZeroMQ, test the ground on its own: there the ground's link is the one that refuses.
 """
@@ -185,11 +186,11 @@ def flight(tmp_path_factory):
     return path
 
 
-def run_cli(manifest, out, *extra) -> tuple[int, dict, str]:
-    """`hazard-hil run` on the host budget over serial, its page without pictures: (exit code, summary.json,
-    summary.md)."""
+def run_cli(manifest, out, *extra, figures: bool = False) -> tuple[int, dict, str]:
+    """`hazard-hil run` on the host budget over serial, its page without pictures unless ``figures``: (exit code,
+    summary.json, summary.md)."""
     argv = ["run", "--manifest", str(manifest), "--budget", "host", "--link", "serial", "--out", str(out)]
-    argv += ["--no-figures", *extra]
+    argv += [*extra] if figures else ["--no-figures", *extra]
     code = main(argv)
     return code, strict_json(out / "summary.json"), (out / "summary.md").read_text()
 
@@ -220,8 +221,8 @@ def outcomes(summary: dict) -> list[tuple[str, str, str | None]]:
 def test_a_refused_result_ends_its_pair_at_once_with_the_schema_reason(manifest, flight, tmp_path):
     """A wrong-shaped grid used to vanish in the link (refused, reason sent only to the flight program): the pair
     then waited for the hard limit and was reported as a hang. A hostile message was not reported at all."""
-    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "hostile"))
-    assert code == 1
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "hostile"), figures=True)
+    assert code == 1 and "report_error" not in s  # its pictures drawn, the refused pair's too
     # the verdict in the files, for a CI that reads them (QA of stop 73)
     assert s["verdict"]["exit_code"] == 1 and not s["verdict"]["pass"] and s["verdict"]["line"].startswith("FAIL")
     assert md.rstrip().endswith(f"**{s['verdict']['line']}** (exit 1)")
@@ -465,6 +466,7 @@ def test_a_child_that_exits_at_once_gets_an_exit_report(monkeypatch):
     assert errors == []
 
 
+@pytest.mark.exclusive_core
 def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     """`budgets --file` listed a user's board, but `run` only knew the packaged budgets."""
     from hil_server.budgets import default_budgets_path
@@ -486,6 +488,7 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     assert "unknown budget 'myboard'" in capsys.readouterr().err
 
 
+@pytest.mark.exclusive_core
 def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(manifest, flight, tmp_path, monkeypatch):
     """The throttle's loss drifts with what else the host runs: a calibration measured eta 0.79-0.83 and, half an hour
     later on the same idle host, 0.62-0.66, and rad750 ran our pipeline 1.26x slower than it stands for (stop 48).
@@ -759,10 +762,11 @@ def test_an_external_pair_answered_under_the_wrong_frame_seqs_says_so_when_it_ti
     assert "Result(s) came for frames" not in next(x for x in records if x["label"] == "200/100").get("text", "")
 
 
-def test_an_answer_that_came_before_its_pairs_frames_is_no_answer(manifest, flight, tmp_path, capfd):
+def test_an_answer_that_came_before_its_pairs_frames_is_no_answer(manifest128, flight, tmp_path, capfd):
     """A board that guessed the next pair's frame seqs and answered before they were sent: the ground took that
-    Result as the pair's answer, recorded a negative end-to-end latency as "met", and the run passed."""
-    records = _lockstep(flight, "future", manifest, tmp_path)
+    Result as the pair's answer, recorded a negative end-to-end latency as "met", and the run passed. 128 px: the
+    guess must come before the pair's lower frame starts on the line, ~0.18 s after its upper one (45 ms at 64 px)."""
+    records = _lockstep(flight, "future", manifest128, tmp_path)
     by_label = {r["label"]: r for r in records}
     assert by_label["600/300"]["status"] == "result" and by_label["200/100"]["status"] == "result"
     r = by_label["300/150"]

@@ -10,6 +10,9 @@ from ground_sim.descent import render_scenario
 from hil_server.regress import DEFAULT_TOLERANCES, check_regression, compare, diff_table
 from hil_server.run import scaled_camera
 
+# latencies compared with a baseline measured moments before: each case with its core to itself
+pytestmark = pytest.mark.exclusive_core
+
 
 def test_compare_flags_slower_latency_and_lower_hit_rate():
     base = {

@@ -130,6 +130,7 @@ def test_no_figures_draws_no_pictures_and_the_page_says_so(manifest, tmp_path, c
     assert f"report: {tmp_path / 'report.html'}" in capsys.readouterr().out  # the page, not summary.md: it held
 
 
+@pytest.mark.exclusive_core
 def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
     s = run(manifest, tmp_path, link="serial", budget="snapdragon801", pairs=None)
     assert s["results"] == 3 and s["errors"] == 0
@@ -154,6 +155,7 @@ def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
     assert s["supervisor_counters"]["deadline_missed"] == missed
 
 
+@pytest.mark.exclusive_core
 def test_too_short_deadline_gives_degraded_results_never_a_hang(manifest, tmp_path):
     s = run(manifest, tmp_path, deadline_s=0.02, full_maps=True)
     assert s["results"] == 3 and s["errors"] == 0

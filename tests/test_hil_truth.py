@@ -38,6 +38,7 @@ def run(manifest, tmp_path, **kw):
     return run_hil(manifest, tmp_path, kw.pop("link", "zmq"), **kw)
 
 
+@pytest.mark.exclusive_core
 def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):
     # Full maps at 115200 baud: even an image-only Result needs ~0.12 s on the line, more than the 0.1 s deadline,
     # while the flight side answers within a few hundredths of a second. Counting only "last frame in -> result
@@ -84,6 +85,7 @@ def test_baud_0_runs_the_loopback_line_unpaced_as_serial_dev_at_0_does(manifest,
         assert ground["line_baud"] == (0 if baud else 921600)
 
 
+@pytest.mark.exclusive_core
 @pytest.mark.slow  # ~13 s: the flight process's Python imports take ~10 s at a 4 % duty
 def test_a_slow_budgets_deadline_the_full_level_cannot_meet_returns_a_degraded_result_in_time(tmp_path):
     """A board of 1000 DMIPS (x23 slower than the anchor; rad750 is x59 and was this test until it took 28 s of
@@ -183,6 +185,7 @@ def _check_minimal_results(s: dict, out: Path) -> None:
         assert states.size > 0 and set(np.unique(states)) == {2}  # everything unknown, honestly
 
 
+@pytest.mark.exclusive_core
 def test_minimal_flight_runs_a_descent_under_flight_cmd(manifest, tmp_path, capsys):
     out = tmp_path / "run"
     cmd = f"{sys.executable} {MINIMAL} --port {{port}}"

@@ -205,6 +205,7 @@ def test_restarted_ground_resynchronises_and_gets_results(manifest, tmp_path):
         assert np.array_equal(np.load(first / grid), np.load(tmp_path / "g2" / first.name / grid), equal_nan=True)
 
 
+@pytest.mark.exclusive_core
 @pytest.mark.slow
 def test_115200_baud_works_end_to_end_and_reports_the_result_line_time(manifest, tmp_path):
     s = run(manifest, tmp_path, budget="snapdragon801", baud=115200, pairs=None)
