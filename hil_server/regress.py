@@ -220,17 +220,10 @@ def check_cases(
             raise InputError(f"case {n!r}: {exc}") from None
 
 
-def measure_case(
-    name: str,
-    case: dict,
-    out: Path,
-    base_dir: Path | None = None,
-    hello_timeout_s: float | None = None,
-    figures: bool = True,
-) -> dict:
+def measure_case(name: str, case: dict, cfg: RunConfig) -> dict:
+    """Run ``case`` as ``cfg`` (:func:`case_config`) says; its metrics, in reference seconds."""
     from hil_server.run import LATE_SIGNAL, run_descent
 
-    cfg = case_config(name, case, out, base_dir, hello_timeout_s, figures)
     summary = run_descent(cfg, log=lambda s: print(s, file=sys.stderr))
     stop = summary.get("interrupted_by") or summary.get(LATE_SIGNAL)
     if stop:  # Ctrl-C or a cancelled CI job: not a regression, and nothing more runs
@@ -698,7 +691,7 @@ def check_regression(
         where = f"the board on {run_case['link']}" if is_board(case) else case["budget"]
         print(f"regress: case {i}/{len(names)} {n} ({case['scenario']} on {where})", file=sys.stderr)
         try:
-            cur = measure_case(n, run_case, out, base_dir, hello_timeout_s, figures)
+            cur = measure_case(n, run_case, case_config(n, run_case, out, base_dir, hello_timeout_s, figures))
         except RegressInterrupted as exc:
             for o in outcomes:  # the table read "recorded" for cases the baseline then did not get (QA of stop 73)
                 o.unwritten = "interrupted: the baseline is unchanged" if o.recorded else ""
