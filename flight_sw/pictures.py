@@ -123,7 +123,7 @@ def write_process_report(
     ``res`` is a :class:`flight_sw.pipeline.PipelineResult`, ``doc`` the ``result.json`` document, ``appendix``
     a scorer's sections and headline cards for the page, ``m_per_px`` the scale bar's ground step.
     """
-    from reports.html import Column, Figure, Headline, Section, Table, write_page
+    from reports.html import NO_FIGURES_NOTE, Column, Figure, Headline, Section, Table, write_page
     from reports.plots import Panel, Site, ground_step_m, map_figure, save
     from reports.style import HAZARD_CMAP, PSAFE_CMAP
 
@@ -218,9 +218,7 @@ def write_process_report(
             paragraphs=[doc.get("no_site_reason") or ""] if not res.sites else [],
             tables=[Table(site_cols, site_rows)] if site_rows else [],
         ),
-        Section("Maps", figures=maps)
-        if figures
-        else Section("Maps", paragraphs=["Pictures not drawn (the run was asked for none: --no-figures)."]),
+        Section("Maps", figures=maps) if figures else Section("Maps", paragraphs=[NO_FIGURES_NOTE]),
     ]
     if appendix is not None:
         sections[:0] = appendix.sections

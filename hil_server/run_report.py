@@ -19,7 +19,7 @@ import numpy as np
 
 from protocol.plan import plan_note
 from reports.console import printable
-from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
+from reports.html import NO_FIGURES_NOTE, Column, Figure, Headline, Section, Table, file_links, write_page
 from reports.plots import (
     Panel,
     Site,
@@ -333,7 +333,7 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
     if sessions := session_note(s):  # a session lost or restarted: said at the time, and in no output
         intro.append(sessions[0].upper() + sessions[1:] + ".")
     if not figures:
-        intro.append("Pictures not drawn (the run was asked for none: --no-figures).")
+        intro.append(NO_FIGURES_NOTE)
     sections = [
         Section(
             "Pairs",

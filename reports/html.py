@@ -22,6 +22,9 @@ import numpy as np
 
 from reports.style import CONFUSION_COLOURS, CONFUSION_NAMES, STATE_COLOURS, STATE_NAMES, Term, term
 
+# what a page drawn without its pictures says in their place (`run`, `regress` and `process --no-figures`)
+NO_FIGURES_NOTE = "Pictures not drawn (the run was asked for none: --no-figures)."
+
 
 @dataclass
 class Column:

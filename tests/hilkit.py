@@ -45,8 +45,12 @@ def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:
     render the same few descents, 2-5 s each. Into a directory that already holds something the render runs
     for real, as the renderer's own handling of an earlier render is then part of what is tested."""
     out = Path(out)
+
+    def render(where: Path) -> None:
+        render_scenario("vertical", where, pairs=pairs, camera=scaled_camera(px), progress=False)
+
     if not DESCENT_CACHE or (out.exists() and any(out.iterdir())):
-        render_scenario("vertical", out, pairs=pairs, camera=scaled_camera(px), progress=False)
+        render(out)
         return out / "manifest.json"
     root = DESCENT_CACHE[0]
     root.mkdir(parents=True, exist_ok=True)
@@ -56,7 +60,7 @@ def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:
         if not done.is_dir():
             part = root / f"{done.name}.part{os.getpid()}"
             shutil.rmtree(part, ignore_errors=True)
-            render_scenario("vertical", part, pairs=pairs, camera=scaled_camera(px), progress=False)
+            render(part)
             part.rename(done)
     shutil.copytree(done, out, dirs_exist_ok=True)
     return out / "manifest.json"
