@@ -326,6 +326,7 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         "pair_fingerprint": pair_fingerprint(pair.images),  # `score` refuses this output against another pair
         "preset": args.preset,
         "frames": len(frames),
+        "figures": not args.no_figures,  # False: --no-figures, no picture was drawn by request
         "params": res.params,
         "level": res.level,
         "degraded": res.degraded,
@@ -549,8 +550,12 @@ def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None =
     for k, why in _degenerate_poses(res.info.get("pose_refinement"), side):  # a fallback is said (issue 10)
         # not a warning: matched, nothing against the pose, but the geometry cannot fix it (a 1 deg pitch of a
         # highland approach 250/125 pair went by in silence with its DEM 10.6 m off; stop 60's QA F7)
-        say(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
-              "navigation reports it")  # fmt: skip
+        if len(entries) == 1:  # a pair's fit is of both frames' attitudes: not the lower frame's fault alone
+            say(f"{out}: frames 0 and {k}: the images matched but cannot fix the pair's poses ({why}); the maps rest "
+                  "on them as navigation reports them")  # fmt: skip
+        else:
+            say(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
+                  "navigation reports it")  # fmt: skip
     if res.info.get("sites_withheld") and "altimeter_disagreement" not in res.info:  # the pose warnings above
         say(f"warning: {res.info['sites_withheld']}", file=sys.stderr)  # do not say what it costs the sites
     return msgs

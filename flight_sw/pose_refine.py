@@ -86,6 +86,7 @@ import cv2
 import numpy as np
 
 from protocol.pairdir import Camera, Pose
+from reports.console import apart, past
 
 from .guided_match import apply_h, corners_in, descriptor_matches, gray8, highpass, prewarp, shift_h, track
 from .homography import plane_homography
@@ -727,16 +728,19 @@ def _refine_matches(
         )
         verdict = UNMATCHED
     elif parallax < p.min_parallax_px:  # before convergence: without parallax the translation wanders
-        reason = f"too little parallax ({parallax:.2f} px < {p.min_parallax_px:g}): translation unobservable"
+        shown = past(parallax, p.min_parallax_px)
+        reason = f"too little parallax ({shown} px < {p.min_parallax_px:g}): translation unobservable"
     elif not info["converged"]:
         reason = f"refinement did not converge in {info['iterations']} iterations"
     elif info["spread"] < p.min_spread:
-        reason = f"inliers poorly spread over the overlap ({info['spread']:.2f} < {p.min_spread:g})"
+        reason = f"inliers poorly spread over the overlap ({past(info['spread'], p.min_spread)} < {p.min_spread:g})"
     elif max(info["rotation_correction_deg"]) > p.max_rotation_deg:
-        reason = f"attitude correction {max(info['rotation_correction_deg']):.2f} deg > {p.max_rotation_deg:g}"
+        shown = past(max(info["rotation_correction_deg"]), p.max_rotation_deg)
+        reason = f"attitude correction {shown} deg > {p.max_rotation_deg:g}"
         verdict = DISAGREES
     elif info["translation_dir_change_deg"] > p.max_direction_deg:
-        reason = f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_direction_deg:g}"
+        shown = past(info["translation_dir_change_deg"], p.max_direction_deg)
+        reason = f"baseline direction change {shown} deg > {p.max_direction_deg:g}"
         verdict = DISAGREES
     elif beyond := _beyond_navigation(info["rotation_correction_deg"], p):
         # held or not: on the approach a lower frame reported 20 m high came out as 1.1-1.7 deg of both attitudes,
@@ -748,23 +752,25 @@ def _refine_matches(
         )
         verdict = DISAGREES
     elif held and info["translation_dir_change_deg"] > p.max_correction_sd * math.degrees(s_dir):
+        turn, sd_limit = apart(info["translation_dir_change_deg"], p.max_correction_sd * math.degrees(s_dir))
         reason = (
-            f"baseline direction change {info['translation_dir_change_deg']:.2f} deg > {p.max_correction_sd:g} sd"
-            f" of the navigation's ({p.max_correction_sd * math.degrees(s_dir):.2f}) on a near-nadir pair, "
-            "whose images cannot tell a relative rotation from a baseline change"
+            f"baseline direction change {turn} deg > {p.max_correction_sd:g} sd of the navigation's ({sd_limit}) on a "
+            "near-nadir pair, whose images cannot tell a relative rotation from a baseline change"
         )
         verdict = DISAGREES
     elif rms > p.max_rms_px:
-        reason = f"inlier residual {rms:.2f} px > {p.max_rms_px:g}"
+        reason = f"inlier residual {past(rms, p.max_rms_px)} px > {p.max_rms_px:g}"
         verdict = DISAGREES
     elif info["depth_spread"] < p.min_depth_spread and not held:
+        shown = past(info["depth_spread"], p.min_depth_spread, 3)
         reason = (
-            f"too little depth variation over the inliers ({info['depth_spread']:.3f} < {p.min_depth_spread:g}):"
+            f"too little depth variation over the inliers ({shown} < {p.min_depth_spread:g}):"
             " a rotation and a baseline-direction change are confounded (near-nadir view of flat ground)"
         )
     elif info["sigma_rel_rot_deg"] > p.max_rel_rot_sd_deg:
+        shown = past(info["sigma_rel_rot_deg"], p.max_rel_rot_sd_deg)
         reason = (
-            f"the images do not pin down the relative rotation (posterior sd {info['sigma_rel_rot_deg']:.2f} deg"
+            f"the images do not pin down the relative rotation (posterior sd {shown} deg"
             f" > {p.max_rel_rot_sd_deg:g}): near-degenerate geometry"
         )
     elif not (C2[2] < C1[2] and L > 0):
@@ -801,9 +807,10 @@ def _beyond_navigation(corrections_deg: Sequence[float], p: RefineParams) -> str
     for k, (c, sd) in enumerate(zip(corrections_deg, sds)):
         limit = p.max_correction_sd * sd
         if c > limit:
+            shown, limit_shown = apart(c, limit)
             return (
-                f"attitude correction {c:.2f} deg of the pair's {('upper', 'lower')[k]} frame > "
-                f"{p.max_correction_sd:g} sd of the navigation's ({limit:.2f})"
+                f"attitude correction {shown} deg of the pair's {('upper', 'lower')[k]} frame > "
+                f"{p.max_correction_sd:g} sd of the navigation's ({limit_shown})"
             )
     return ""
 

@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil_server.budgets import BUDGET_FIGURES
 from hil_server.run import CONTENTION_SHOWN_PCT
+from reports.console import apart
 
 if TYPE_CHECKING:
     from hil_server.run import RunConfig
@@ -265,9 +266,8 @@ def compare(
         o.problems.append("no baseline for this case (run with --update)")
         return o
     if cur["deadline_hit_rate"] < base["deadline_hit_rate"] - tol["hit_rate_drop"] - 1e-9:
-        o.problems.append(
-            f"deadline hit rate {cur['deadline_hit_rate']:.2f} < baseline {base['deadline_hit_rate']:.2f}"
-        )
+        rate, base_rate = apart(cur["deadline_hit_rate"], base["deadline_hit_rate"])
+        o.problems.append(f"deadline hit rate {rate} < baseline {base_rate}")
     if cur.get("errors", 0) > base.get("errors", 0):
         o.problems.append(f"errors {cur['errors']} > baseline {base.get('errors', 0)}")
     if "pairs" in base and cur.get("pairs") != base["pairs"]:  # half the workload passed as a whole (QA 66a)
@@ -292,7 +292,8 @@ def compare(
         if limit >= 2.0 * b:  # a fast case: the absolute tolerance lets it double unseen (QA of stop 73)
             o.loose.append(k)
         if math.isnan(c) or c > limit:
-            o.problems.append(f"{k} {c:.3f} > limit {limit:.3f} (baseline {b:.3f})")
+            shown, limit_shown = apart(c, limit, 3)
+            o.problems.append(f"{k} {shown} > limit {limit_shown} (baseline {b:.3f})")
     return o
 
 

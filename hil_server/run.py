@@ -2189,6 +2189,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "relay_stopped_s": None if relay_stall is None else round(relay_stall.total_s, 3),
                 "psafe_fallback": psafe_fallback(cfg, manifest),
                 "kernels_missing": kernels_missing,
+                "figures": cfg.figures,  # False: --no-figures, report.html has no pictures by request
             },
         )
         # the run's own verdict, for a CI that reads files (a signal while they are written still exits 128 + N)

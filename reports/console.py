@@ -12,7 +12,7 @@ import re
 
 MAX_TEXT = 2000  # characters kept of one text from the far end (an Error's text is bounded by the codec anyway)
 
-__all__ = ["MAX_TEXT", "printable"]
+__all__ = ["MAX_TEXT", "apart", "past", "printable"]
 
 
 def printable(text: object, limit: int = MAX_TEXT) -> str:
@@ -23,6 +23,29 @@ def printable(text: object, limit: int = MAX_TEXT) -> str:
     if len(out) > limit:
         out = f"{out[:limit]}... ({len(out) - limit} more characters)"
     return out
+
+
+def past(value: float, limit: float, digits: int = 2) -> str:
+    """``value`` with ``digits`` decimals, or as many more (up to 6) as it takes to land on the same side of
+    ``limit`` as the value itself: "2.00 deg > 2" read as no excess at all (an attitude correction of 2.004 deg).
+    For a limit shown exactly (``:g``); one shown rounded as well is :func:`apart`'s."""
+    return _shown(value, limit, digits, exact=True)[0]
+
+
+def apart(value: float, limit: float, digits: int = 2) -> tuple[str, str]:
+    """``value`` and ``limit`` with the fewest decimals, at least ``digits`` and at most 6, at which the shown
+    numbers compare as the true ones do (both exact when they are closer than that)."""
+    return _shown(value, limit, digits, exact=False)
+
+
+def _shown(value: float, limit: float, digits: int, exact: bool) -> tuple[str, str]:
+    side = (value > limit) - (value < limit)
+    for d in range(digits, 7):
+        v, lim = f"{value:.{d}f}", f"{limit:.{d}f}"
+        against = limit if exact else float(lim)
+        if (float(v) > against) - (float(v) < against) == side:
+            return v, lim
+    return repr(float(value)), repr(float(limit))
 
 
 def md_cell(text: object, limit: int = 200) -> str:

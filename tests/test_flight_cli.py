@@ -87,6 +87,8 @@ def test_process_no_figures_writes_the_same_maps_and_scores_and_no_picture(tmp_p
     page = (out / "report.html").read_text()
     assert "<img" not in page and "Pictures not drawn (the run was asked for none: --no-figures)." in page
     assert ">Against ground truth<" in page  # the scores' table stays
+    # a tool reading result.json tells a run asked for no pictures from one that lost them
+    assert [json.loads((o / "result.json").read_text())["figures"] for o in (tmp_path / "drawn", out)] == [True, False]
 
 
 def test_a_pair_that_fits_only_without_its_pictures_is_told_so_and_runs_without_them(tmp_path, capsys, monkeypatch):
@@ -676,6 +678,17 @@ def test_a_pose_the_images_matched_but_cannot_fix_is_said():
                                                               "against": 1}]}  # fmt: skip
     assert _degenerate_poses(multi, 256) == [(2, "against frame 1: r")]
     assert _degenerate_poses({"verdict": "kept"}, 512) == [] and _degenerate_poses(None, 512) == []
+
+
+def test_a_pairs_fit_that_cannot_fix_its_poses_names_both_frames(tmp_path, capsys):
+    """A pair's fit is of both frames' attitudes: its `degenerate` fallback said "frame 1: ... cannot fix its pose",
+    laying it on the lower frame alone (the HIL's note already said "the pair's poses")."""
+    assert main(["render", "--scenario", "vertical", "--frames", "300,299", "--image-size", "256", "--no-progress",
+                 "--out", str(tmp_path / "pairs")]) == 0  # fmt: skip
+    assert main(["process", "--no-figures", str(tmp_path / "pairs" / "300_299"), "--out", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert "frames 0 and 1: the images matched but cannot fix the pair's poses (too little parallax" in out, out
+    assert "frame 1: the images matched" not in out
 
 
 def test_a_frame_sent_twice_is_warned_and_offers_no_site(tmp_path, capsys):

@@ -128,6 +128,7 @@ def test_no_figures_draws_no_pictures_and_the_page_says_so(manifest, tmp_path, c
     assert "200/100" in page and ">deadline hit rate<" in page  # the table and the headline stay
     assert not any((tmp_path / "figures").glob("*")), list((tmp_path / "figures").glob("*"))
     assert f"report: {tmp_path / 'report.html'}" in capsys.readouterr().out  # the page, not summary.md: it held
+    assert json.loads((tmp_path / "summary.json").read_text())["figures"] is False  # by request, not lost
 
 
 @pytest.mark.exclusive_core

@@ -5,6 +5,8 @@ import os
 import numpy as np
 import pytest
 from browser import check_page, chromium_path
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from reports import plots
 from reports.html import Column, Figure, Headline, Section, Table, fmt_value, render_page, write_page
@@ -414,6 +416,27 @@ def test_a_markdown_cell_escapes_markup_only():
         md_cell("<script>x</script> <!-- c --> &amp; &#60;")
         == "&lt;script>x&lt;/script> &lt;!-- c --> &amp;amp; &amp;#60;"
     )
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    limit=st.floats(0.001, 100.0),
+    offset=st.floats(-0.02, 0.02),
+    digits=st.integers(0, 3),
+)
+def test_a_number_beside_its_limit_is_shown_on_its_own_side(limit, offset, digits):
+    """A pose fallback read "attitude correction 2.00 deg > 2": the value shown must compare with the limit shown
+    as the true ones do, so a value just past a limit gets the decimals that show it."""
+    from reports.console import apart, past
+
+    value = limit + offset
+    side = (value > limit) - (value < limit)
+    shown, limit_shown = apart(value, limit, digits)
+    assert (float(shown) > float(limit_shown)) - (float(shown) < float(limit_shown)) == side, (shown, limit_shown)
+    exact = past(value, limit, digits)
+    assert (float(exact) > limit) - (float(exact) < limit) == side, exact
+    assert len(exact.partition(".")[2]) >= digits  # never fewer decimals than asked
+    assert past(2.004, 2.0) == "2.004" and past(2.5, 2.0) == "2.50" and apart(0.748, 0.746) == ("0.748", "0.746")
 
 
 def test_evaluates_pixel_score_figure_is_over_the_true_overlap_as_its_table(tmp_path, monkeypatch):
