@@ -576,13 +576,14 @@ def test_weighted_plane_fit_and_classification():
 
 def test_deadline_gives_a_degraded_result_in_time():
     cam, p1, p2, i1, i2, _ = make_pair(256, 200.0, 100.0, plane(-3.0), seed=36)
+    run_pipeline(i1, i2, p1, p2, cam)  # warm: the timed run below is not the process's first
     full = run_pipeline(i1, i2, p1, p2, cam)
     assert full.level == "full" and not full.degraded
     # a deadline the full level cannot meet
-    t0 = time.monotonic()
     r = run_pipeline(i1, i2, p1, p2, cam, deadline_s=0.4 * full.timings["total"]["wall_s"])
     assert r.degraded and r.level in ("image_only", "coarse")
-    assert time.monotonic() - t0 < full.timings["total"]["wall_s"]
+    # in CPU seconds, which another worker on the core cannot stretch (its wall time flaked by 12 % under load)
+    assert r.timings["total"]["cpu_s"] < full.timings["total"]["cpu_s"], (r.timings["total"], full.timings["total"])
     # whether a sweep never started or was cut at the deadline, the Result names every DEM it lacks
     lacks = {"image_only": {"coarse_dem", "full_dem"}, "coarse": {"full_dem"}}
     assert lacks[r.level] <= set(r.info["skipped"]), r.info["skipped"]
