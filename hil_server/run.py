@@ -1321,6 +1321,21 @@ def _last_words(path: Path, started: str, reason: str | None, failure: str) -> N
         pass  # nothing more can be said in the file: the console says it
 
 
+def _unsaid(table: Path, page: Path, failure: str) -> None:
+    """Take back a verdict ``table`` (summary.md) and ``page`` (report.html) gave before ``summary.json`` failed: the
+    page goes (freeing its room), the table's bytes are overwritten with the failure, which is shorter."""
+    page.unlink(missing_ok=True)
+    text = f"# HIL run\n\n**INCOMPLETE ({failure[:1500]}): see the console; exit 1**\n"
+    try:
+        with open(table, "r+b") as f:
+            f.write(text.encode())
+            f.truncate()
+    except FileNotFoundError:
+        pass  # never written: nothing claims a verdict
+    except OSError:
+        table.unlink(missing_ok=True)  # a verdict the run did not end with must not stay
+
+
 def _write_json(path: Path, doc: dict) -> None:
     from reports.html import write_atomic
     from reports.jsondoc import json_text
@@ -2217,6 +2232,12 @@ def _descend(checked: CheckedRun, log) -> dict:
             _write_json(out / "summary.json", summary)  # last: complete only once everything else is in place
         except OSError as exc:  # a full disk: the placeholder said "killed" (QA of stop 72)
             _last_words(out / "summary.json", started, reason, os_error_text(exc))
+            # summary.md and the page, written first, said PASS (exit 0) while the run ended 1 (QA of stop 78)
+            _unsaid(
+                out / "summary.md",
+                out / "report.html",
+                f"the run's summary could not be written ({os_error_text(exc)})",
+            )
             log(table)  # the run's figures, which no file holds
             raise
         log(table)

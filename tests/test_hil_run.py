@@ -585,10 +585,13 @@ def test_a_run_says_when_our_p_safe_falls_back_to_the_gaussian_rule(tmp_path):
     assert psafe_note({}) == ""
 
 
-def test_a_full_disk_at_the_end_says_so_in_summary_json_and_on_one_line(manifest, tmp_path, monkeypatch):
+@pytest.mark.parametrize("failing", ["summary.md", "summary.json"])
+def test_a_full_disk_at_the_end_says_so_in_summary_json_and_on_one_line(manifest, tmp_path, monkeypatch, failing):
     """A disk that filled as the summary was written left summary.json at its placeholder, "run in progress (...
     killed before it could write a summary)", and the console said "error: No space left on device" naming no
-    file (QA of stop 72). The placeholder is now overwritten in place with the reason, and the error names the file."""
+    file (QA of stop 72). The placeholder is now overwritten in place with the reason, and the error names the file.
+    When summary.json is the one refused, summary.md and the page written before it no longer say PASS (exit 0)
+    beside the run's exit 1 (QA of stop 78)."""
     import errno
 
     import reports.html
@@ -596,23 +599,28 @@ def test_a_full_disk_at_the_end_says_so_in_summary_json_and_on_one_line(manifest
     real = reports.html.write_atomic
 
     def full(path, data):
-        if Path(path).name == "summary.md":  # as write_atomic says a full disk (its test below)
+        # the final write, not summary.json's placeholder at the start; as write_atomic says a full disk (below)
+        if Path(path).name == failing and "PASS" in str(data):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         return real(path, data)
 
     monkeypatch.setattr(reports.html, "write_atomic", full)
     with pytest.raises(OSError) as caught:
         run_hil(manifest, tmp_path / "full", "zmq")
-    assert caught.value.filename == str(tmp_path / "full" / "summary.md")
+    assert caught.value.filename == str(tmp_path / "full" / failing)
     from protocol.errors import os_error_text
 
-    assert os_error_text(caught.value) == f"cannot write {tmp_path / 'full' / 'summary.md'}: No space left on device"
+    assert os_error_text(caught.value) == f"cannot write {tmp_path / 'full' / failing}: No space left on device"
     doc = json.loads((tmp_path / "full" / "summary.json").read_text())
     assert doc["complete"] is False and "in progress" not in doc["reason"], doc
     assert (
-        doc["reason"].startswith("the run's summary could not be written (cannot write ")
-        and "summary.md" in doc["reason"]
+        doc["reason"].startswith("the run's summary could not be written (cannot write ") and failing in doc["reason"]
     )
+    table = tmp_path / "full" / "summary.md"
+    assert not table.exists() or "PASS" not in table.read_text(), table.read_text()
+    if failing == "summary.json":
+        assert "**INCOMPLETE (the run's summary could not be written (cannot write" in table.read_text()
+    assert not (tmp_path / "full" / "report.html").exists()
 
 
 def test_write_atomic_names_the_file_a_full_disk_refused_and_leaves_no_temporary(tmp_path, monkeypatch):
