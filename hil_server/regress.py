@@ -17,10 +17,11 @@ A regression is: deadline hit rate below the baseline's minus
 so tiny latencies do not flap), or more degraded Results (``degraded``: cut to a coarser anytime
 level or with stages skipped; they are faster because they did less) when the baseline records
 that count, or another number of pairs than recorded (the case's workload changed), or a budget whose figures
-changed since ``--update`` recorded them (``budget_recorded``). ``--update`` rewrites the baseline and records
-what its numbers rest on (``recorded``: the host's calibration and load; a partial ``--update --cases`` keeps the
-other cases' sessions under ``recorded.earlier``); it refuses to rewrite
-the shipped baseline on an uncalibrated host, and says so when the host is
+changed since ``--update`` recorded them (``budget_recorded``), or a workload that did (``workload_recorded``: the
+scenario, pairs, seed, image size, manifest and its digest, deadline and flight side). ``--update`` rewrites the
+baseline and records what its numbers rest on (``recorded``: the host's calibration and load; a partial
+``--update --cases`` keeps the other cases' sessions under ``recorded.earlier``); it refuses to rewrite the shipped
+baseline on an uncalibrated host, and says so when the host is
 uncalibrated, stale (``budgets.STALE_CALIBRATION_DAYS``) or loaded. The baseline
 file is checked before anything runs: a malformed one is a one-line error.
 
@@ -50,6 +51,7 @@ is not written).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -381,6 +383,7 @@ CASE_KEYS = frozenset(
         "keys",
         "deadline_s",
         "budget_recorded",
+        "workload_recorded",
     }
 )
 DOC_KEYS = frozenset({"cases", "tolerances", "note", "recorded"})
@@ -451,6 +454,11 @@ def validate_baseline(doc: object, where: str, base_dir: Path | None = None) -> 
         rec = case.get("budget_recorded")
         if rec is not None and (not isinstance(rec, dict) or set(rec) - set(BUDGET_FIGURES)):
             raise bad(f"{w}: 'budget_recorded' is what --update writes: an object of {', '.join(BUDGET_FIGURES)}")
+        work = case.get("workload_recorded")
+        if work is not None and (not isinstance(work, dict) or set(work) - WORKLOAD_KEYS):
+            raise bad(
+                f"{w}: 'workload_recorded' is what --update writes: an object of {', '.join(sorted(WORKLOAD_KEYS))}"
+            )
         if "seed" in case and (isinstance(case["seed"], bool) or not isinstance(case["seed"], int) or case["seed"] < 0):
             raise bad(f"{w}: 'seed' must be an integer >= 0, got {case['seed']!r}")
         size = case.get("image_size")
@@ -502,6 +510,55 @@ def budget_record(case: dict, base_dir: Path | None) -> dict:
 
     b = get_budget(case["budget"], _path(case.get("budget_file"), base_dir))
     return {k: getattr(b, k) for k in BUDGET_FIGURES}
+
+
+# what a case's latencies were measured on, with the value a case that leaves the key out runs with
+WORKLOAD_DEFAULTS: dict[str, Any] = {
+    "scenario": None,
+    "pairs": None,
+    "seed": 0,
+    "image_size": None,
+    "manifest": None,
+    "deadline_s": None,
+    "flight": "emulated",
+}
+WORKLOAD_KEYS = frozenset({*WORKLOAD_DEFAULTS, "manifest_sha256"})
+
+
+def workload_record(case: dict, base_dir: Path | None) -> dict:
+    """What a case runs (``workload_recorded``, written by ``--update``): its scenario, pairs, seed, image size,
+    manifest (with the first 16 hex digits of its manifest.json's SHA-256), deadline and flight side. Only the pair
+    count was compared: a case moved to another scenario, seed or image size passed against latencies measured on
+    the old one (QA of stop 78)."""
+    rec = {k: case.get(k, d) for k, d in WORKLOAD_DEFAULTS.items()}
+    m = _path(case.get("manifest"), base_dir)
+    if m is not None:
+        f = m / "manifest.json" if m.is_dir() else m
+        try:
+            rec["manifest_sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()[:16]
+        except OSError:
+            rec["manifest_sha256"] = None
+    return rec
+
+
+def workload_change(case: dict, base_dir: Path | None) -> str:
+    """'the case's workload changed since the baseline (scenario 'vertical' -> 'approach')', or '' (unchanged, or
+    not recorded: baselines written before stop 78 are judged on their pair count alone)."""
+    old = case.get("workload_recorded")
+    if not isinstance(old, dict):
+        return ""
+    new = workload_record(case, base_dir)
+    moved = [
+        f"{k} {old.get(k, WORKLOAD_DEFAULTS.get(k))!r} -> {v!r}"
+        for k, v in new.items()
+        if old.get(k, WORKLOAD_DEFAULTS.get(k)) != v
+    ]
+    if not moved:
+        return ""
+    return (
+        f"the case's workload changed since the baseline ({', '.join(moved)}): its latencies were measured on "
+        "another; re-record the case with --update"
+    )
 
 
 def budget_change(case: dict, base_dir: Path | None) -> str:
@@ -677,9 +734,9 @@ def check_regression(
             f"`hazard-hil regress{where} --update --cases {','.join(unrecorded)}`"
         )
     check_cases(names, {n: _with_link(all_cases[n], board_link) for n in names}, out, base_dir, hello_timeout_s)
-    changed = {} if update else {n: budget_change(all_cases[n], base_dir) for n in names}
-    for n, what in changed.items():
-        if what:
+    changed = {} if update else {n: _changes(all_cases[n], base_dir) for n in names}
+    for n, whats in changed.items():
+        for what in whats:
             print(f"regress: case {n}: {what}", file=sys.stderr)
     for note in notes:
         print(f"regress: warning: {note}", file=sys.stderr)
@@ -709,8 +766,9 @@ def check_regression(
             o.previous = case.get("metrics")
             case["metrics"] = cur
             case["budget_recorded"] = budget_record(case, base_dir)
-        elif changed.get(n):
-            o.problems.append(changed[n])
+            case["workload_recorded"] = workload_record(case, base_dir)
+        else:
+            o.problems.extend(changed.get(n, []))
         if incomplete:
             o.problems.append(f"the run did not finish: {incomplete}")
         o.contention_pct = contended
@@ -745,6 +803,11 @@ def check_regression(
     _write_report(out, {"baseline": str(baseline), "update": update, "judged_ok": ok, "warnings": notes,
                         "refusal": refusal, "uncalibrated": uncal, "cases": outcome_rows(outcomes)})  # fmt: skip
     return ok, diff, new_doc
+
+
+def _changes(case: dict, base_dir: Path | None) -> list[str]:
+    """What changed in a case since its metrics were recorded: its budget's figures, its workload."""
+    return [w for w in (budget_change(case, base_dir), workload_change(case, base_dir)) if w]
 
 
 def _refusal(cases: dict, baseline: Path, ok: bool) -> str:

@@ -346,6 +346,55 @@ def test_a_budget_file_changed_since_the_baseline_is_named_and_fails_the_case(tm
     assert said in out and said in err and "--update" in out
 
 
+def test_a_case_whose_workload_changed_since_the_baseline_is_named_and_fails(tmp_path, capsys, monkeypatch):
+    """Only the pair count was compared: a case moved to another scenario, seed or image size, or its manifest
+    rendered again, passed against latencies measured on the old workload (QA of stop 78). --update records the
+    workload; a later run names what moved and fails the case; a seed written out as its default is no change."""
+    from hil_server import regress
+
+    metrics = {**BASE, "pairs": 2, "degraded": 0, "cpu_p50_ref_s": 0.1, "cpu_p95_ref_s": 0.1, "cpu_max_ref_s": 0.1}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(metrics))
+    base = tmp_path / "baseline.json"
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq", "pairs": ["600/300", "300/150"]}
+    base.write_text(json.dumps({"cases": {"mine": case}}))
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--update"]) == 0
+    doc = json.loads(base.read_text())
+    assert doc["cases"]["mine"]["workload_recorded"]["scenario"] == "vertical"
+    doc["cases"]["mine"]["seed"] = 0  # its default, now written out
+    base.write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(argv) == 0
+    for change, said in (
+        ({"scenario": "approach", "pairs": ["500/250", "250/125"]}, "scenario 'vertical' -> 'approach', pairs"),
+        ({"seed": 7}, "seed 0 -> 7"),
+        ({"image_size": 64}, "image_size None -> 64"),
+    ):
+        base.write_text(json.dumps({**doc, "cases": {"mine": {**doc["cases"]["mine"], **change}}}))
+        assert main(argv) == 1, change
+        out, err = capsys.readouterr()
+        assert f"the case's workload changed since the baseline ({said}" in out and said in err, out
+        assert "re-record the case with --update" in out
+    # a manifest rendered again under the same path: its digest moved
+    from hilkit import small_descent
+
+    manifest = small_descent(tmp_path / "m", ["600/300", "300/150"], px=64)
+    case_m = {**case, "manifest": "m"}
+    base.write_text(json.dumps({"cases": {"mine": case_m}}))
+    assert main([*argv, "--update"]) == 0
+    assert main(argv) == 0
+    doc_m = json.loads(manifest.read_text())
+    manifest.write_text(json.dumps({**doc_m, "seed": 1}))
+    capsys.readouterr()
+    assert main(argv) == 1
+    assert "manifest_sha256 " in capsys.readouterr().out
+    # what --update writes is what the checker takes, and nothing else
+    bad = {"cases": {"mine": {**case, "workload_recorded": {"colour": 1}}}}
+    base.write_text(json.dumps(bad))
+    assert main(argv) == 2
+    assert "'workload_recorded' is what --update writes" in capsys.readouterr().err
+
+
 def test_a_case_without_recorded_metrics_is_refused_before_any_case_runs(tmp_path, capsys, monkeypatch):
     """It ran in full, then failed "no baseline for this case" with exit 1 (QA of stop 71); a missing baseline is
     bad usage, exit 2, and found before the first case."""
