@@ -160,9 +160,28 @@ def _number(obj: dict, key: str, default: float, where: str) -> float:
     return f
 
 
+# a typo ("off_nadir = 20") was dropped without a word and the frame rendered looking straight down (QA of
+# stop 78); scene and budget files already refused unknown keys
+DOC_KEYS = ("name", "camera", "pairs")
+PAIR_KEYS = ("label", "altitude_m", "frames")
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+FRAME_KEYS = ("position_m", "R_world_to_cam", "off_nadir_deg", "heading_deg", "time_s")
+
+
+def _known(obj: dict, known: tuple[str, ...], where: str) -> None:
+    """Refuse a key of ``obj`` that is not in ``known``, naming it and the known ones."""
+    for key in obj:
+        if key not in known:
+            raise TrajectoryError(f"{where}: unknown key {str(key)!r:.40} (known: {', '.join(known)})")
+
+
 def _frame(fr: object, where: str) -> Pose:
     if not isinstance(fr, dict):
         raise TrajectoryError(f"{where}: must be an object with position_m and R_world_to_cam or off_nadir_deg")
+    _known(fr, FRAME_KEYS, where)
+    both = [k for k in ("off_nadir_deg", "heading_deg") if k in fr]
+    if "R_world_to_cam" in fr and both:  # the matrix won and the angles were dropped
+        raise TrajectoryError(f"{where}: give R_world_to_cam or {' and '.join(both)}, not both")
     try:
         pos = np.array(fr["position_m"], dtype=float).reshape(3)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
@@ -252,10 +271,12 @@ def from_file(path: Path) -> list[PairSpec]:
     pairs = doc.get("pairs") if isinstance(doc, dict) else None
     if not isinstance(pairs, list) or not pairs:
         raise TrajectoryError(f"trajectory file {path}: needs a non-empty 'pairs' list")
+    _known(doc, DOC_KEYS, f"trajectory file {path}")
     cam = Camera.thesis()
     if "camera" in doc and not isinstance(doc["camera"], dict):  # was ignored: the 512 px camera rendered instead
         raise TrajectoryError(f"trajectory file {path}: 'camera' must be an object (width, height, fx, fy, cx, cy)")
     if isinstance(doc.get("camera"), dict):
+        _known(doc["camera"], CAMERA_KEYS, f"trajectory file {path} camera")  # a lens term would go unrendered
         try:
             cam = Camera.from_dict(doc["camera"])
         except InputError as exc:
@@ -271,6 +292,7 @@ def from_file(path: Path) -> list[PairSpec]:
         where = f"trajectory file {path} pair #{i}"
         if not isinstance(p, dict) or not isinstance(p.get("frames"), list) or not 2 <= len(p["frames"]) <= MAX_FRAMES:
             raise TrajectoryError(f"{where}: needs 'frames' with 2-{MAX_FRAMES} frames")
+        _known(p, PAIR_KEYS, where)
         poses = tuple(_frame(fr, f"{where} frame {k}") for k, fr in enumerate(p["frames"]))
         # every frame at 0 s read as frames taken at one time (a note on every such pair; QA of stop 74)
         if not any(isinstance(fr, dict) and "time_s" in fr for fr in p["frames"]):

@@ -199,6 +199,14 @@ BAD_FIELDS = [
     # said by the renderer and the pair's check with no file, pair or frame (QA of stop 73)
     ({}, {"off_nadir_deg": 85}, "frame 0: camera sees the sky or the horizon"),
     ({}, {"time_s": 99}, "frame 1 is earlier than frame 0 (time_s 0 vs 99)"),
+    # a typo was dropped without a word and frame 0 rendered looking straight down (QA of stop 78)
+    ({}, {"off_nadir": 20}, "frame 0: unknown key 'off_nadir' (known: position_m, R_world_to_cam, off_nadir_deg"),
+    ({"lable": "y"}, None, "unknown key 'lable' (known: label, altitude_m, frames)"),
+    (
+        {},
+        {"R_world_to_cam": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "off_nadir_deg": 20},
+        "frame 0: give R_world_to_cam or off_nadir_deg, not both",
+    ),
 ]
 
 
@@ -207,6 +215,24 @@ def test_non_numeric_trajectory_field_is_one_line_naming_file_pair_and_field(tmp
     path = trajectory(tmp_path, pair, frame0)
     err = one_line_error(capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "out")])
     assert f"trajectory file {path} pair #0" in err and message in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        ({"nmae": "x"}, "unknown key 'nmae' (known: name, camera, pairs)"),
+        (
+            {"camera": {"width": 64, "height": 64, "fx": 60, "fy": 60, "cx": 31.5, "cy": 31.5, "k1": 0.1}},
+            "camera: unknown key 'k1' (known: width, height, fx, fy, cx, cy)",
+        ),
+    ],
+)
+def test_a_trajectory_files_unknown_key_is_refused_not_dropped(tmp_path, capsys, extra, message):
+    path = trajectory(tmp_path, {})
+    path.write_text(json.dumps({**json.loads(path.read_text()), **extra}))
+    err = one_line_error(capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "out")])
+    assert f"trajectory file {path}" in err and message in err, err
     assert not (tmp_path / "out").exists()
 
 
