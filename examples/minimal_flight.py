@@ -9,7 +9,10 @@ receive, cumulative ACKs, resend after a timeout) and datagrams for heartbeats.
 It answers every pair with a valid Result that knows nothing: the upper image's
 footprint on the ground as a grid of cells in state 2 (unknown), P(safe) 0, no
 elevation, no sites - the honest answer of a hazard detector that has not been
-written yet. Replace ``answer()`` with your own and keep the rest.
+written yet. Replace ``answer()`` with your own and keep the rest: it runs in a thread
+beside the link, which keeps the session up (ACKs, keepalives, heartbeats) however long
+it takes. A detector that blocked the loop for more than the link timeout (4 s) lost
+its session, and the ground blamed the link.
 
 Run it under the emulated budget (the HIL server starts it, gives it its line as
 ``{port}`` and ``$HAZARD_HIL_PORT``, and throttles, pins, caps and watches it):
@@ -35,6 +38,8 @@ import struct
 import sys
 import time
 import zlib
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import msgpack
 import numpy as np
@@ -307,6 +312,12 @@ def telemetry(upper: dict, lower: dict, config: dict, wall: float, cpu: float) -
     }
 
 
+def timed_answer(upper: dict, lower: dict, config: dict) -> tuple[dict, float]:
+    """``answer()`` and the CPU seconds its thread spent on it."""
+    c0 = time.thread_time()
+    return answer(upper, lower, config), time.thread_time() - c0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -325,12 +336,16 @@ def main(argv: list[str] | None = None) -> int:
     config: dict | None = None
     pending: dict[str, dict] = {}
     next_beat, beats = 0.0, 0
+    ready: deque[tuple[dict, dict, int]] = deque()  # pairs whose frames are all in, with their Config and session
+    work: tuple[dict, dict, int, float, Future] | None = None  # the pair the detector is on, since when
+    detector = ThreadPoolExecutor(max_workers=1)
     try:
         while not link.closed_by_peer:
             for mtype, msg in link.poll():
                 if mtype == HELLO_MSG:  # the ground (or the HIL server) says Hello: answer once ready
                     # a new ground session: the last one's half-received pairs will never complete (docs/hil.md)
                     pending.clear()
+                    ready.clear()
                     link.send(
                         HELLO_MSG,
                         {
@@ -346,13 +361,20 @@ def main(argv: list[str] | None = None) -> int:
                     pair = pending.setdefault(msg["pair_id"], {})
                     pair[msg["frame_index"]] = msg
                     if len(pair) == 2:
-                        t0, c0 = time.monotonic(), time.process_time()
                         del pending[msg["pair_id"]]
-                        link.send(RESULT, answer(pair[0], pair[1], config))
-                        wall, cpu = time.monotonic() - t0, time.process_time() - c0
-                        link.send(TELEMETRY, telemetry(pair[0], pair[1], config, wall, cpu))
+                        ready.append((pair, config, link.local))
                 elif mtype == FRAME_MSG:  # a frame before any Config
                     link.send(ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
+            if work is None and ready:  # one pair at a time, in the order their frames completed
+                pair, cfg, session = ready.popleft()
+                work = (pair, cfg, session, time.monotonic(), detector.submit(timed_answer, pair[0], pair[1], cfg))
+            if work is not None and work[4].done():
+                pair, cfg, session, t0, future = work
+                work = None
+                result, cpu = future.result()
+                if session == link.local:  # its ground is still the one attached (a new session has a new id)
+                    link.send(RESULT, result)
+                    link.send(TELEMETRY, telemetry(pair[0], pair[1], cfg, time.monotonic() - t0, cpu))
             now = time.monotonic()
             if now >= next_beat:  # any message at least every second: the HIL server's watchdog listens
                 beats += 1
@@ -361,6 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     except (serial.SerialException, OSError):  # the line went away (the HIL server closed its end)
         return 0
     finally:
+        detector.shutdown(wait=False, cancel_futures=True)
         port.close()
     return 0
 

@@ -225,6 +225,31 @@ def test_external_flight_computer_on_a_serial_device(manifest, tmp_path):
     assert note in unpaced_note(s) and note in (tmp_path / "summary.md").read_text(), unpaced_note(s)
 
 
+def test_the_serial_examples_detector_may_take_longer_than_the_link_timeout(manifest, tmp_path):
+    """examples/minimal_flight.py called answer() inside its link loop: a detector of one's own that took 6 s left
+    the line silent past the 4 s link timeout, and every pair ended "link_down", the link blamed (QA of stop 78).
+    The detector now runs beside the link, as the ZeroMQ example's does."""
+    from protocol.faults import PtyBridge
+
+    slow = tmp_path / "slow.py"  # the first pair's answer takes 5 s, past the 4 s without a frame
+    slow.write_text(
+        f"import sys, time\nsys.path.insert(0, {str(MINIMAL.parent)!r})\nimport minimal_flight as mf\n"
+        "real, calls = mf.answer, []\n"
+        "def answer(*a):\n    calls.append(1)\n    time.sleep(5.0 if len(calls) == 1 else 0.0)\n    return real(*a)\n"
+        "mf.answer = answer\nsys.exit(mf.main())\n"
+    )
+    with PtyBridge() as bridge:
+        board = subprocess.Popen([sys.executable, str(slow), "--port", bridge.paths[0]])
+        try:
+            link = f"serial:{bridge.paths[1]}@921600"
+            s = run(manifest, tmp_path / "run", flight="external", link=link, deadline_s=20.0)
+        finally:
+            board.terminate()
+            board.wait(timeout=10)
+    assert [r["status"] for r in s["records"]] == ["result", "result"], [r.get("text") for r in s["records"]]
+    assert s["records"][0]["e2e_latency_s"] > 5.0 and exit_code(s) == 0
+
+
 def _descendants(pid: int) -> set[int]:
     children: dict[int, list[int]] = {}
     for d in Path("/proc").iterdir():
