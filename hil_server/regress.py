@@ -165,6 +165,7 @@ class RegressInterrupted(Exception):
         super().__init__(f"interrupted by {signal.Signals(signum).name} during case {case}")
         self.signum = signum
         self.finished = ""  # the diff table of the cases that had finished (said, not lost: QA of stop 66)
+        self.rows: list[dict] = []  # and their rows, for OUT/regress.json
 
 
 def case_config(
@@ -754,6 +755,7 @@ def check_regression(
             for o in outcomes:  # the table read "recorded" for cases the baseline then did not get (QA of stop 73)
                 o.unwritten = "interrupted: the baseline is unchanged" if o.recorded else ""
             exc.finished = diff_table(outcomes) if outcomes else ""
+            exc.rows = outcome_rows(outcomes)
             raise
         incomplete = cur.pop("incomplete_reason", None)
         contended = cur.pop("contention_pct", None)
@@ -952,6 +954,9 @@ def run_regression(
             print(exc.finished)
         print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
         print("INTERRUPTED")
+        # a CI job reading OUT/regress.json found none: the earlier one is removed at the start (QA of stop 78)
+        doc = {"baseline": str(baseline), "update": update, "judged_ok": False, "interrupted": str(exc)}
+        _write_report(out, {**doc, "cases": exc.rows, "verdict": "INTERRUPTED", "exit_code": 128 + exc.signum})
         return 128 + exc.signum
     print(diff)
     report = _read_report(out)

@@ -234,6 +234,10 @@ def test_a_signal_stops_regress_at_its_case_and_exits_128_plus_n(tmp_path, capsy
     out, err = capsys.readouterr()
     assert "interrupted by SIGTERM during case second" in err and out.rstrip().endswith("INTERRUPTED")
     assert "first " in out and "deadline_hit_rate" in out, out
+    # and OUT/regress.json says so, with the finished case's row: a CI job reading it found no file (QA of stop 78)
+    report = json.loads((tmp_path / "o" / "regress.json").read_text())
+    assert report["verdict"] == "INTERRUPTED" and report["exit_code"] == 128 + 15 and report["judged_ok"] is False
+    assert [r["case"] for r in report["cases"]] == ["first"] and "during case second" in report["interrupted"]
 
 
 def test_empty_cases_option_is_refused_not_all_cases(tmp_path, capsys):
