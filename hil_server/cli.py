@@ -407,6 +407,15 @@ def _unrunnable(budget, duty, host_dmips: float) -> list[str]:
         check_runnable(budget.name, budget, duty)
     except BudgetError as exc:
         out.append(f"`run` refuses it here: {str(exc).split(': ', 1)[-1]}")
+    if budget.link == "serial" and budget.baud:
+        from hil_server.run import RunConfig
+        from protocol.errors import InputError
+        from protocol.linkspec import check_baud
+
+        try:  # a 300-baud budget listed without a word, then `run` refused it (QA of stop 78)
+            check_baud(budget.baud, RunConfig.link_timeout_s)
+        except InputError as exc:
+            out.append(f"`run` refuses its line at the default --link-timeout: {exc}")
     if budget.outruns(host_dmips):
         out.append(
             f"faster than this host's core ({host_dmips:.0f} DMIPS): it runs at this core's full speed, so its "

@@ -324,6 +324,16 @@ def test_bad_user_budget_file_is_one_line_exit_2(tmp_path, capsys, changes, reas
     assert reason in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_budget_whose_line_run_refuses_is_noted_in_the_listing(tmp_path, capsys):
+    """A 300-baud budget listed without a word, and `run` then refused it: one link frame takes 51 s, past the 4 s
+    link timeout (QA of stop 78)."""
+    assert main(["budgets", "--file", _budget_file(tmp_path, baud="300")]) == 0
+    out = capsys.readouterr().out
+    assert "note: `run` refuses its line at the default --link-timeout: at 300 baud one link frame" in out, out
+    assert main(["budgets", "--file", _budget_file(tmp_path, baud="115200")]) == 0
+    assert "refuses its line" not in capsys.readouterr().out
+
+
 def test_a_budget_file_changed_since_the_baseline_is_named_and_fails_the_case(tmp_path, capsys, monkeypatch):
     """Latencies are in reference seconds, so a board made 7x slower in its file read exactly as before and the
     baseline held nothing to notice it (stop 56's budget QA). --update records the budget's figures; a later run
