@@ -182,12 +182,19 @@ def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
     (:func:`flight_sw.validate.peak_memory_bytes`); refuse a camera one run cannot fit in the memory this process
     can spend, as ``process`` refuses one pair (an 8192 px camera started and would have needed ~12 GiB per
     worker), and run only as many workers at once as fit (said). ``n_frames`` > 2: the multi-frame descents,
-    which run one at a time in this process. More workers than cores is allowed, and said."""
+    which run one at a time in this process. More workers than cores is allowed, and said. With ``--scheduler``,
+    the scheduler is probed instead (:func:`studies.executor.probe_scheduler`)."""
     import os
 
     from flight_sw.validate import memory_room, peak_memory_bytes
 
     if getattr(args, "scheduler", None) is not None:  # the cluster's workers: their memory is theirs to judge
+        from studies.executor import probe_scheduler
+
+        try:  # but one that is not there is said now: a render's progress bar and an OUT came first (QA of stop 78)
+            probe_scheduler(args.scheduler)
+        except ImportError:
+            raise InputError("--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'") from None
         return
     cores = os.cpu_count() or 1
     workers = args.workers or cores

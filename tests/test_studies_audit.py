@@ -125,6 +125,9 @@ def test_another_camera_into_the_same_out_is_scored_not_reused_and_its_maps_are_
         (["evaluate", "--scenario", "vertical", "--scheduler", "garbage"], "not a Dask scheduler address"),
         (["sensitivity", "--kind", "altitude", "--scheduler", ""], "not a Dask scheduler address"),
         (["landings", "--scenes", "mare", "--n", "1", "--scheduler", "tcp://h:99999"], "port 99999 out of range"),
+        # no scheduler there: said after a render's progress bar, with an OUT left behind (QA of stop 78)
+        (["evaluate", "--scenario", "vertical", "--scheduler", "tcp://127.0.0.1:1"], "cannot reach Dask scheduler"),
+        (["landings", "--scenes", "mare", "--n", "1", "--scheduler", "tcp://127.0.0.1:1"], "cannot reach Dask"),
         # sized before the renders: 8 M pipeline runs were accepted, and their tasks would not have fitted in memory
         (
             ["sensitivity", "--kind", "attitude", "--seeds", "100", "--samples", "10000", "--preset", "both"],
