@@ -1051,6 +1051,11 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
         if r["error"] is None and (r.get("unmapped_pct") or 0.0) >= UNMAPPED_WARN_PCT:
             print(f"warning: {r['pair']}: {r['unmapped_pct']:.0f} % of the scored pixels have no hazard value "
                   "(NaN in hazard.npy, counted as not called safe)", file=sys.stderr)  # fmt: skip
+        # an elevation.npy of NaN alone read "-" in the DEM column without a word, as hazard.npy's did (QA of stop 78)
+        cover = r.get("dem_coverage_pct")
+        if r["error"] is None and cover is not None and cover <= 100.0 - UNMAPPED_WARN_PCT:
+            print(f"warning: {r['pair']}: elevation.npy has a value on {cover:.0f} % of the scored pixels "
+                  "(NaN where no elevation was recovered)", file=sys.stderr)  # fmt: skip
     no_truth = sum(bool(r.get("pair_error")) for r in rows)
     failed = "".join(
         f"; {n} {what}"

@@ -76,6 +76,13 @@ def test_perfect_all_unsafe_all_safe_and_blank_detectors(descent, tmp_path, caps
     r = doc["rows"][0]
     assert code == 0 and r["unmapped_pct"] == 100 and r["cdi_pct"] == pytest.approx(hazards)
     assert r["pixels"] == doc["rows"][0]["pixels"] > 0.2 * gt.size
+    # an elevation.npy of NaN alone is said too, as hazard.npy's is (it read "-" without a word; QA of stop 78)
+    nodem = _write(tmp_path / "nodem", gt, elevation=np.full(gt.shape, np.nan, np.float32))
+    assert main(["score", str(d), str(nodem)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 300_150: elevation.npy has a value on 0 % of the scored pixels" in err, err
+    assert main(["score", str(d), str(tmp_path / "oracle")]) == 0
+    assert "elevation.npy has a value" not in capsys.readouterr().err
 
 
 def test_sites_judged_over_their_true_footprint(descent, tmp_path, capsys):
