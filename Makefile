@@ -46,13 +46,15 @@ chromium:
 # host, with the suite grown, three took it from 10.8 to 8.8 min (1.38 -> 1.62 cores busy; stop 77).
 TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 # mypy (25 s from a cold cache) runs beside the tests at the lowest priority, on the CPU they leave idle while
-# they wait; its verdict is printed after theirs, and either failing fails the target.
+# they wait; its verdict is printed after theirs, and either failing fails the target. sh starts a background
+# job with SIGINT ignored: the traps end it with the recipe, or a Ctrl-C left it running.
 test: $(STAMP) chromium
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	@nice -n 19 $(MYPY) > $(VENV)/mypy.log 2>&1 & types=$$!; \
+	  trap 'kill $$types 2>/dev/null' EXIT; trap 'exit 130' INT TERM; \
 	  HAZARD_HIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile; tests=$$?; \
-	  wait $$types; typed=$$?; echo "mypy:"; cat $(VENV)/mypy.log; \
+	  wait $$types; typed=$$?; trap - EXIT; echo "mypy:"; cat $(VENV)/mypy.log; \
 	  [ $$tests -eq 0 ] && [ $$typed -eq 0 ]
 
 bench: $(STAMP)
