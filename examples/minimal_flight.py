@@ -36,10 +36,11 @@ import os
 import random
 import struct
 import sys
+import threading
 import time
 import zlib
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 import msgpack
 import numpy as np
@@ -312,10 +313,33 @@ def telemetry(upper: dict, lower: dict, config: dict, wall: float, cpu: float) -
     }
 
 
-def timed_answer(upper: dict, lower: dict, config: dict) -> tuple[dict, float]:
-    """``answer()`` and the CPU seconds its thread spent on it."""
-    c0 = time.thread_time()
-    return answer(upper, lower, config), time.thread_time() - c0
+def detect(pair: dict, config: dict) -> Future:
+    """``answer()`` for ``pair`` (frame index -> Frame) in a thread of its own, beside the link loop, which keeps the
+    session up meanwhile; the Future holds ``(result fields, CPU seconds)``. The CPU is the process's over the
+    call, so that a detector's own threads (OpenCV, BLAS) count. A daemon thread: a detector still running, or
+    hung, does not keep the program from exiting when its ground is done."""
+    done: Future = Future()
+
+    def run() -> None:
+        c0 = time.process_time()
+        try:
+            done.set_result((answer(pair[0], pair[1], config), time.process_time() - c0))
+        except BaseException as exc:  # said by the loop, which sends the Error
+            done.set_exception(exc)
+
+    threading.Thread(target=run, name="detector", daemon=True).start()
+    return done
+
+
+def answered(pair: dict, config: dict, t0: float, done: Future) -> list[tuple[int, dict]]:
+    """The messages that end a pair whose :func:`detect` (started at ``t0``, monotonic) is done: its Result and
+    Telemetry, or an Error with the detector's exception, so that one bad pair does not end the program."""
+    failed = done.exception()
+    if failed is not None:
+        text = f"{type(failed).__name__}: {failed}"[:2000]
+        return [(ERROR, {"code": "pipeline_failure", "text": text, "seq": pair[1]["seq"]})]
+    result, cpu = done.result()
+    return [(RESULT, result), (TELEMETRY, telemetry(pair[0], pair[1], config, time.monotonic() - t0, cpu))]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -338,7 +362,6 @@ def main(argv: list[str] | None = None) -> int:
     next_beat, beats = 0.0, 0
     ready: deque[tuple[dict, dict, int]] = deque()  # pairs whose frames are all in, with their Config and session
     work: tuple[dict, dict, int, float, Future] | None = None  # the pair the detector is on, since when
-    detector = ThreadPoolExecutor(max_workers=1)
     try:
         while not link.closed_by_peer:
             for mtype, msg in link.poll():
@@ -365,16 +388,16 @@ def main(argv: list[str] | None = None) -> int:
                         ready.append((pair, config, link.local))
                 elif mtype == FRAME_MSG:  # a frame before any Config
                     link.send(ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
-            if work is None and ready:  # one pair at a time, in the order their frames completed
+            while work is None and ready:  # one pair at a time, in the order their frames completed
                 pair, cfg, session = ready.popleft()
-                work = (pair, cfg, session, time.monotonic(), detector.submit(timed_answer, pair[0], pair[1], cfg))
+                if session == link.local:  # not an earlier ground's pair, which no one would read
+                    work = (pair, cfg, session, time.monotonic(), detect(pair, cfg))
             if work is not None and work[4].done():
                 pair, cfg, session, t0, future = work
                 work = None
-                result, cpu = future.result()
                 if session == link.local:  # its ground is still the one attached (a new session has a new id)
-                    link.send(RESULT, result)
-                    link.send(TELEMETRY, telemetry(pair[0], pair[1], cfg, time.monotonic() - t0, cpu))
+                    for mtype, fields in answered(pair, cfg, t0, future):
+                        link.send(mtype, fields)
             now = time.monotonic()
             if now >= next_beat:  # any message at least every second: the HIL server's watchdog listens
                 beats += 1
@@ -383,7 +406,6 @@ def main(argv: list[str] | None = None) -> int:
     except (serial.SerialException, OSError):  # the line went away (the HIL server closed its end)
         return 0
     finally:
-        detector.shutdown(wait=False, cancel_futures=True)
         port.close()
     return 0
 

@@ -26,7 +26,6 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import msgpack
@@ -133,13 +132,6 @@ class Session:
         return int(got[0]), got[1]
 
 
-def timed_answer(pair: dict, config: dict) -> tuple[dict, float]:
-    """``minimal_flight.answer`` (replace it with your detector) and the CPU seconds of the thread that ran it."""
-    c0 = time.thread_time()
-    result = mf.answer(pair[0], pair[1], config)
-    return result, time.thread_time() - c0
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -194,7 +186,6 @@ def main(argv: list[str] | None = None) -> int:
     epoch = 0
     ready: deque[tuple[dict, dict, int]] = deque()  # pairs whose frames are all in, with their Config and session
     work = None  # the pair the detector is on: (pair, config, session, start, future)
-    detector = ThreadPoolExecutor(max_workers=1)
     try:
         while True:
             if s.sock.poll(50):
@@ -216,16 +207,16 @@ def main(argv: list[str] | None = None) -> int:
                         ready.append((pair, config, epoch))
                 elif mtype == mf.FRAME_MSG:  # a frame before any Config
                     s.send(mf.ERROR, {"code": "no_config", "text": "frame before Config", "seq": msg["seq"]})
-            if work is None and ready:  # the detector runs beside the link, which keeps the session up meanwhile
+            while work is None and ready:  # the detector runs beside the link, which keeps the session up meanwhile
                 pair, cfg, of = ready.popleft()
-                work = (pair, cfg, of, time.monotonic(), detector.submit(timed_answer, pair, cfg))
+                if of == s.epoch:  # not an earlier ground's pair, which no one would read
+                    work = (pair, cfg, of, time.monotonic(), mf.detect(pair, cfg))  # mf.answer: your detector
             if work is not None and work[4].done():
                 pair, cfg, of, t0, future = work
                 work = None
-                result, cpu = future.result()
                 if of == s.epoch:  # its ground is still the one attached
-                    s.send(mf.RESULT, result)
-                    s.send(mf.TELEMETRY, mf.telemetry(pair[0], pair[1], cfg, time.monotonic() - t0, cpu))
+                    for mtype, fields in mf.answered(pair, cfg, t0, future):
+                        s.send(mtype, fields)
             now = time.monotonic()
             if s.peer and now - s.heard > PEER_TIMEOUT_S:  # the ground went away: wait for the next one
                 s.give_up(f"no message from the ground for {now - s.heard:.1f} s")
@@ -234,7 +225,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 0
     finally:
-        detector.shutdown(wait=False, cancel_futures=True)
         s.sock.close()
         if auth is not None:
             auth.stop()

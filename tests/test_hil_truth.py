@@ -250,6 +250,36 @@ def test_the_serial_examples_detector_may_take_longer_than_the_link_timeout(mani
     assert s["records"][0]["e2e_latency_s"] > 5.0 and exit_code(s) == 0
 
 
+def test_the_examples_detector_thread_neither_holds_the_exit_nor_ends_the_program_when_it_fails():
+    """The detector ran in a ThreadPoolExecutor, whose threads Python joins at exit: a detector still running (or
+    hung) kept the board program alive after its ground was done (review of stop 78). It is a daemon thread now;
+    and an exception in it is the pair's Error, not the end of the program."""
+    import importlib.util
+    import threading
+
+    spec = importlib.util.spec_from_file_location("minimal_flight_t", MINIMAL)
+    assert spec is not None and spec.loader is not None
+    mf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mf)
+    release = threading.Event()
+    mf.answer = lambda *a: release.wait(10) and {"frame_seqs": [1, 2]}
+    pair = {0: {"seq": 1}, 1: {"seq": 2}}
+    done = mf.detect(pair, {"deadline_s": 2.0})
+    (thread,) = [t for t in threading.enumerate() if t.name == "detector"]
+    assert thread.daemon and not done.done()
+    release.set()
+    assert done.result(timeout=5)[0] == {"frame_seqs": [1, 2]}
+
+    def broken(*a):
+        raise ValueError("my detector's bug")
+
+    mf.answer = broken
+    done = mf.detect(pair, {"deadline_s": 2.0})
+    done.exception(timeout=5)
+    (said,) = mf.answered(pair, {"deadline_s": 2.0}, 0.0, done)
+    assert said == (mf.ERROR, {"code": "pipeline_failure", "text": "ValueError: my detector's bug", "seq": 2})
+
+
 def _descendants(pid: int) -> set[int]:
     children: dict[int, list[int]] = {}
     for d in Path("/proc").iterdir():
