@@ -550,9 +550,10 @@ def _process_messages(res: Any, pair: Any, out: Path, frames: list[int] | None =
     for k, why in _degenerate_poses(res.info.get("pose_refinement"), side):  # a fallback is said (issue 10)
         # not a warning: matched, nothing against the pose, but the geometry cannot fix it (a 1 deg pitch of a
         # highland approach 250/125 pair went by in silence with its DEM 10.6 m off; stop 60's QA F7)
-        if len(entries) == 1:  # a pair's fit is of both frames' attitudes: not the lower frame's fault alone
-            say(f"{out}: frames 0 and {k}: the images matched but cannot fix the pair's poses ({why}); the maps rest "
-                  "on them as navigation reports them")  # fmt: skip
+        used = len(frames) if frames is not None else pair.n_frames
+        if used == 2:  # a pair's fit is of both frames' attitudes: not the lower frame's fault alone
+            say(f"{out}: frames {(frames or [0])[0]} and {k}: the images matched but cannot fix the pair's poses "
+                  f"({why}); the maps rest on them as navigation reports them")  # fmt: skip
         else:
             say(f"{out}: frame {k}: the images matched but cannot fix its pose ({why}); the maps rest on it as "
                   "navigation reports it")  # fmt: skip

@@ -523,7 +523,7 @@ WORKLOAD_DEFAULTS: dict[str, Any] = {
     "deadline_s": None,
     "flight": "emulated",
 }
-WORKLOAD_KEYS = frozenset({*WORKLOAD_DEFAULTS, "manifest_sha256"})
+WORKLOAD_KEYS = frozenset({*WORKLOAD_DEFAULTS, "manifest_sha256", "scenario_sha256"})
 
 
 def workload_record(case: dict, base_dir: Path | None) -> dict:
@@ -534,12 +534,19 @@ def workload_record(case: dict, base_dir: Path | None) -> dict:
     rec = {k: case.get(k, d) for k, d in WORKLOAD_DEFAULTS.items()}
     m = _path(case.get("manifest"), base_dir)
     if m is not None:
-        f = m / "manifest.json" if m.is_dir() else m
-        try:
-            rec["manifest_sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()[:16]
-        except OSError:
-            rec["manifest_sha256"] = None
+        rec["manifest_sha256"] = _digest(m / "manifest.json" if m.is_dir() else m)
+    scenario = str(case.get("scenario"))
+    if scenario not in ("vertical", "approach"):  # a trajectory file (as `run` takes it): edited under one name
+        rec["scenario_sha256"] = _digest(Path(scenario))
     return rec
+
+
+def _digest(path: Path | None) -> str | None:
+    """The first 16 hex digits of ``path``'s SHA-256 (None when it cannot be read)."""
+    try:
+        return hashlib.sha256(Path(str(path)).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return None
 
 
 def workload_change(case: dict, base_dir: Path | None) -> str:
@@ -934,10 +941,10 @@ def run_regression(
 ) -> int:
     from protocol.outdir import claim_out
 
-    try:
-        with claim_out(out, "regress"):  # each case's run holds its own OUT/<case> too
-            # an earlier run's verdict must not pass for this one's when this one ends early (exit 2, a signal)
-            (Path(out) / REPORT_NAME).unlink(missing_ok=True)
+    with claim_out(out, "regress"):  # each case's run holds its own OUT/<case> too
+        # an earlier run's verdict must not pass for this one's when this one ends early (exit 2, a signal)
+        (Path(out) / REPORT_NAME).unlink(missing_ok=True)
+        try:
             ok, diff, new_doc = check_regression(
                 baseline,
                 out=out,
@@ -949,15 +956,17 @@ def run_regression(
                 uncalibrated=uncalibrated,
                 figures=figures,
             )
-    except RegressInterrupted as exc:
-        if exc.finished:  # the verdicts of the cases that had run before the signal
-            print(exc.finished)
-        print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
-        print("INTERRUPTED")
-        # a CI job reading OUT/regress.json found none: the earlier one is removed at the start (QA of stop 78)
-        doc = {"baseline": str(baseline), "update": update, "judged_ok": False, "interrupted": str(exc)}
-        _write_report(out, {**doc, "cases": exc.rows, "verdict": "INTERRUPTED", "exit_code": 128 + exc.signum})
-        return 128 + exc.signum
+        except RegressInterrupted as exc:
+            if exc.finished:  # the verdicts of the cases that had run before the signal
+                print(exc.finished)
+            print(f"regress: {exc}; the cases after it were not run, {baseline} is unchanged", file=sys.stderr)
+            print("INTERRUPTED")
+            # a CI job reading OUT/regress.json found none: the earlier one is removed at the start (QA of stop 78);
+            # the keys a finished run's report has, its warnings and refusal unknown at the signal
+            doc = {"baseline": str(baseline), "update": update, "judged_ok": False, "warnings": [], "refusal": ""}
+            doc.update(uncalibrated=None, interrupted=str(exc), cases=exc.rows)
+            _write_report(out, {**doc, "verdict": "INTERRUPTED", "exit_code": 128 + exc.signum})
+            return 128 + exc.signum
     print(diff)
     report = _read_report(out)
     if update:

@@ -1324,8 +1324,11 @@ def _last_words(path: Path, started: str, reason: str | None, failure: str) -> N
 def _unsaid(table: Path, page: Path, failure: str) -> None:
     """Take back a verdict ``table`` (summary.md) and ``page`` (report.html) gave before ``summary.json`` failed: the
     page goes (freeing its room), the table's bytes are overwritten with the failure, which is shorter."""
-    page.unlink(missing_ok=True)
-    text = f"# HIL run\n\n**INCOMPLETE ({failure[:1500]}): see the console; exit 1**\n"
+    from reports.console import md_cell
+
+    with contextlib.suppress(OSError):  # the table's correction matters more than the page's removal
+        page.unlink(missing_ok=True)
+    text = f"# HIL run\n\n**INCOMPLETE ({md_cell(failure, 1500)}): see the console; exit 1**\n"
     try:
         with open(table, "r+b") as f:
             f.write(text.encode())

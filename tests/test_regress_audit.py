@@ -402,6 +402,18 @@ def test_a_case_whose_workload_changed_since_the_baseline_is_named_and_fails(tmp
     capsys.readouterr()
     assert main(argv) == 1
     assert "manifest_sha256 " in capsys.readouterr().out
+    # a trajectory file edited under the same name
+    traj = tmp_path / "mine.json"
+    frames = [{"position_m": [0, 0, 600]}, {"position_m": [0, 0, 300]}]
+    traj.write_text(json.dumps({"pairs": [{"label": "600/300", "frames": frames}]}))
+    base.write_text(json.dumps({"cases": {"mine": {**case, "scenario": str(traj), "pairs": ["600/300"]}}}))
+    metrics["pairs"] = 1
+    assert main([*argv, "--update"]) == 0
+    assert main(argv) == 0
+    traj.write_text(json.dumps({"pairs": [{"label": "600/300", "frames": frames, "altitude_m": 250}]}))
+    capsys.readouterr()
+    assert main(argv) == 1
+    assert "scenario_sha256 " in capsys.readouterr().out
     # what --update writes is what the checker takes, and nothing else
     bad = {"cases": {"mine": {**case, "workload_recorded": {"colour": 1}}}}
     base.write_text(json.dumps(bad))
