@@ -136,6 +136,12 @@ def _float32(a: np.ndarray) -> bool:
     return a.dtype.kind == "f" and a.dtype.itemsize == 4
 
 
+def _cast_hint(a: np.ndarray) -> str:
+    """How to write a float map of another width as DESIGN.md's float32: numpy's default float64 was refused with
+    the rule alone (QA of stop 78)."""
+    return "; save it with np.save(path, a.astype(np.float32))" if a.dtype.kind == "f" else ""
+
+
 def _check_state(path: Path, state: np.ndarray, hazard: np.ndarray) -> None:
     """``state.npy`` must agree with ``hazard.npy`` pixel by pixel (DESIGN.md): 255 exactly where the hazard is
     NaN, 0 (safe) exactly where it is < 1, 1 or 2 (unsafe, unknown) where it is >= 1. The first disagreement is
@@ -192,7 +198,9 @@ def read_output(
     # DESIGN.md's dtypes exactly: other tools read these files as it says they are
     hazard = _load(out / "hazard.npy", shape)
     if not _float32(hazard):
-        raise ScoreError(f"{out / 'hazard.npy'}: must be float32 (DESIGN.md), got dtype {hazard.dtype}")
+        raise ScoreError(
+            f"{out / 'hazard.npy'}: must be float32 (DESIGN.md), got dtype {hazard.dtype}{_cast_hint(hazard)}"
+        )
     hazard = hazard.astype(np.float32)  # a big-endian file (>f4) is float32 too
     if np.isinf(hazard).any() or (np.nan_to_num(hazard, nan=0.0) < 0).any() or (hazard > 1.0).any():
         raise ScoreError(
@@ -205,6 +213,7 @@ def read_output(
         if not _float32(elevation):
             raise ScoreError(
                 f"{out / 'elevation.npy'}: must be float32 (NaN where not recovered), got dtype {elevation.dtype}"
+                f"{_cast_hint(elevation)}"
             )
         elevation = elevation.astype(np.float32)
         if np.isinf(elevation).any():  # scored as "-" without a word; a float32 overflow is no elevation
@@ -221,7 +230,9 @@ def read_output(
     if present("psafe.npy"):  # not scored, but a file that breaks DESIGN.md's type is named, not passed over
         psafe = _load(out / "psafe.npy", shape)
         if not _float32(psafe):
-            raise ScoreError(f"{out / 'psafe.npy'}: must be float32 (DESIGN.md), got dtype {psafe.dtype}")
+            raise ScoreError(
+                f"{out / 'psafe.npy'}: must be float32 (DESIGN.md), got dtype {psafe.dtype}{_cast_hint(psafe)}"
+            )
         if np.isinf(psafe).any() or (np.nan_to_num(psafe, nan=0.0) < 0).any() or (psafe > 1.0).any():
             raise ScoreError(f"{out / 'psafe.npy'}: a probability: values must lie in [0, 1], or be NaN outside")
         holes = int(np.count_nonzero(np.isnan(psafe) & ~np.isnan(hazard)))

@@ -170,7 +170,7 @@ def test_a_descent_with_one_output_missing_scores_the_rest_and_fails(descent, tm
         (lambda o, s: np.save(o / "hazard.npy", np.full(s, 2.0, np.float32)), "values must lie in [0, 1] or be NaN"),
         (
             lambda o, s: np.save(o / "hazard.npy", np.ones(s)),
-            "hazard.npy: must be float32 (DESIGN.md), got dtype float64",
+            "hazard.npy: must be float32 (DESIGN.md), got dtype float64; save it with np.save(path, a.astype(np",
         ),
         (lambda o, s: np.save(o / "hazard.npy", np.ones(s, np.int64)), "must be float32 (DESIGN.md), got dtype int64"),
         (lambda o, s: (o / "hazard.npy").write_bytes(b"not npy"), "not a readable .npy"),
