@@ -541,12 +541,18 @@ def workload_record(case: dict, base_dir: Path | None) -> dict:
     return rec
 
 
-def _digest(path: Path | None) -> str | None:
+def _digest(path: Path) -> str | None:
     """The first 16 hex digits of ``path``'s SHA-256 (None when it cannot be read)."""
     try:
-        return hashlib.sha256(Path(str(path)).read_bytes()).hexdigest()[:16]
+        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
     except OSError:
         return None
+
+
+def _moved(old: dict, new: dict, defaults: dict) -> list[str]:
+    """'key old -> new' for each of ``new``'s keys whose value differs from ``old``'s (``defaults``' where ``old``
+    leaves it out)."""
+    return [f"{k} {old.get(k, defaults.get(k))!r} -> {v!r}" for k, v in new.items() if old.get(k, defaults.get(k)) != v]
 
 
 def workload_change(case: dict, base_dir: Path | None) -> str:
@@ -555,12 +561,7 @@ def workload_change(case: dict, base_dir: Path | None) -> str:
     old = case.get("workload_recorded")
     if not isinstance(old, dict):
         return ""
-    new = workload_record(case, base_dir)
-    moved = [
-        f"{k} {old.get(k, WORKLOAD_DEFAULTS.get(k))!r} -> {v!r}"
-        for k, v in new.items()
-        if old.get(k, WORKLOAD_DEFAULTS.get(k)) != v
-    ]
+    moved = _moved(old, workload_record(case, base_dir), WORKLOAD_DEFAULTS)
     if not moved:
         return ""
     return (
@@ -575,7 +576,7 @@ def budget_change(case: dict, base_dir: Path | None) -> str:
     if not old:
         return ""
     new = budget_record(case, base_dir)
-    moved = [f"{k} {old.get(k)!r} -> {new[k]!r}" for k in BUDGET_FIGURES if old.get(k) != new[k]]
+    moved = _moved(old, new, {})
     if not moved:
         return ""
     return (

@@ -1313,12 +1313,16 @@ def _last_words(path: Path, started: str, reason: str | None, failure: str) -> N
 
     why = f"the run's summary could not be written ({failure})" + (f"; before that: {reason}" if reason else "")
     doc = {"complete": False, "reason": why[:3000], "started": started}
-    try:
-        with open(path, "r+b") as f:
-            f.write(json_text(doc, sort_keys=True).encode())
-            f.truncate()
-    except OSError:
-        pass  # nothing more can be said in the file: the console says it
+    with contextlib.suppress(OSError):  # nothing more can be said in the file: the console says it
+        _in_place(path, json_text(doc, sort_keys=True))
+
+
+def _in_place(path: Path, text: str) -> None:
+    """Write ``text`` over ``path``'s own bytes and cut what is left: on a full disk a new file cannot be made, while
+    an existing file's blocks are already its own (``text`` no longer than what it replaces)."""
+    with open(path, "r+b") as f:
+        f.write(text.encode())
+        f.truncate()
 
 
 def _unsaid(table: Path, page: Path, failure: str) -> None:
@@ -1328,11 +1332,8 @@ def _unsaid(table: Path, page: Path, failure: str) -> None:
 
     with contextlib.suppress(OSError):  # the table's correction matters more than the page's removal
         page.unlink(missing_ok=True)
-    text = f"# HIL run\n\n**INCOMPLETE ({md_cell(failure, 1500)}): see the console; exit 1**\n"
     try:
-        with open(table, "r+b") as f:
-            f.write(text.encode())
-            f.truncate()
+        _in_place(table, f"# HIL run\n\n**INCOMPLETE ({md_cell(failure, 1500)}): see the console; exit 1**\n")
     except FileNotFoundError:
         pass  # never written: nothing claims a verdict
     except OSError:

@@ -191,10 +191,8 @@ def check_local_room(args: argparse.Namespace, n_frames: int = 2) -> None:
     if getattr(args, "scheduler", None) is not None:  # the cluster's workers: their memory is theirs to judge
         from studies.executor import probe_scheduler
 
-        try:  # but one that is not there is said now: a render's progress bar and an OUT came first (QA of stop 78)
-            probe_scheduler(args.scheduler)
-        except ImportError:
-            raise InputError("--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'") from None
+        # but one that is not there is said now: a render's progress bar and an OUT came first (QA of stop 78)
+        probe_scheduler(args.scheduler)
         return
     cores = os.cpu_count() or 1
     workers = args.workers or cores

@@ -168,6 +168,9 @@ SCHEDULER_PROBE_S = 10.0  # a Dask scheduler sends its handshake on accept, with
 MAX_HANDSHAKE_BYTES = 1 << 16
 
 
+NO_DASK = "--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'"
+
+
 def probe_scheduler(address: str, timeout_s: float = SCHEDULER_PROBE_S) -> None:
     """Refuse, in one line, a plain-TCP address where no Dask scheduler answers: Dask's own connect waited forever
     on a port that accepted and said nothing, and read an HTTP server's reply as a message of 3 EiB ("out of
@@ -177,7 +180,10 @@ def probe_scheduler(address: str, timeout_s: float = SCHEDULER_PROBE_S) -> None:
     import socket
     import struct
 
-    from distributed.comm.addressing import parse_address, parse_host_port
+    try:
+        from distributed.comm.addressing import parse_address, parse_host_port
+    except ImportError:
+        raise InputError(NO_DASK) from None
 
     scheme, loc = parse_address(str(address))
     if scheme != "tcp":
@@ -457,7 +463,7 @@ def _run_dask(
     try:
         from distributed import Client, as_completed
     except ImportError:
-        raise InputError("--scheduler needs dask.distributed: pip install 'hazard-hil[cluster]'") from None
+        raise InputError(NO_DASK) from None
     own = not isinstance(scheduler, Client)
     if own:
         check_scheduler_address(scheduler)
