@@ -326,6 +326,8 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         "pair_fingerprint": pair_fingerprint(pair.images),  # `score` refuses this output against another pair
         "preset": args.preset,
         "frames": len(frames),
+        "frames_used": frames,  # the directory's frames the run read (--widest-pair: the first and the last)
+        "frames_in_dir": pair.n_frames,
         "figures": not args.no_figures,  # False: --no-figures, no picture was drawn by request
         "params": res.params,
         "level": res.level,
@@ -394,8 +396,11 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
         f"{'' if fills is None else f' ({fills:.1%} gap fill)'}, "
         f"{len(res.sites)} sites"
         + (f" ({res.info['no_site_reason']})" if not res.sites and res.info.get("no_site_reason") else "")
-        + f", {res.timings['total']['wall_s']:.3f} s"
+        + f", {res.timings['total']['wall_s']:.3f} s wall ({res.timings['total']['cpu_s']:.3f} s CPU)"
     )
+    if pair.n_frames > 2:  # the page said "2 frames" of a 4-frame directory, naming none (QA of stop 78)
+        heights = ", ".join(f"{k} ({float(pair.poses[k].position[2]):.0f} m)" for k in frames)
+        line += f"; frames {heights} of {pair.n_frames}"
     if appendix is not None:
         line += appendix.line
     print(f"{out}: {line}")

@@ -243,8 +243,16 @@ def write_process_report(
             out / "report.html",
             f"process: {Path(doc.get('pair_dir', '')).name}",
             sections,
-            subtitle=f"preset {doc.get('preset', '')}, {doc.get('frames', 2)} frames",
+            subtitle=f"preset {doc.get('preset', '')}, {_frames_used(doc)}",
             headline=headline,
         )
     )
     return written
+
+
+def _frames_used(doc: dict) -> str:
+    """'2 frames', or 'frames 0 and 3 of 4' when the run read some of a directory's frames (--widest-pair)."""
+    used, of = doc.get("frames_used"), doc.get("frames_in_dir")
+    if not isinstance(used, list) or not isinstance(of, int) or len(used) == of:
+        return f"{doc.get('frames', 2)} frames"
+    return f"frames {', '.join(map(str, used[:-1]))} and {used[-1]} of {of}"

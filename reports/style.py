@@ -78,7 +78,7 @@ GLOSSARY: dict[str, Term] = {
     ),
     "tp_pct": Term("TP % (safe called safe)", "Share of covered pixels that are safe and called safe.", "%"),
     "tn_pct": Term(
-        "TN % (hazard called unsafe)",
+        "TN % (hazard not called safe)",
         "Share of covered pixels that are unsafe and not called safe (unsafe or unknown).",
         "%",
     ),

@@ -914,9 +914,14 @@ def test_widest_pair_warns_of_no_crushed_frame_it_leaves_out(tmp_path, capsys):
     assert [w for w in read_pair(three).warnings if w.startswith(crushed)]  # the reader says it
     out = tmp_path / "out"
     assert main(["process", "--no-figures", str(three), "--out", str(out), "--widest-pair", "--sites", "0"]) == 0
-    err = capsys.readouterr().err
+    said, err = capsys.readouterr()
     assert not [line for line in err.splitlines() if line.startswith("warning:") and "mid.png" in line], err
-    assert not any("mid.png" in w for w in json.loads((out / "result.json").read_text())["warnings"])
+    doc = json.loads((out / "result.json").read_text())
+    assert not any("mid.png" in w for w in doc["warnings"])
+    # which of the directory's frames the run read: said nowhere, the page read "2 frames" (QA of stop 78)
+    assert (doc["frames_used"], doc["frames_in_dir"]) == ([0, 2], 3)
+    assert "; frames 0 (" in said and " m), 2 (" in said and " m) of 3" in said, said
+    assert "preset fast, frames 0 and 2 of 3" in (out / "report.html").read_text()
 
 
 def test_a_16_bit_frame_the_common_shift_crushed_is_not_called_a_lost_image(tmp_path, capsys):
