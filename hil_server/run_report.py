@@ -282,13 +282,15 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
     unjudged = len(judged.get("top_not_judged", [])) if judged else 0
     n_judged = judged["with_site"] - unjudged if judged else 0
     if judged and judged["with_site"]:  # the answer a lander acts on: red when one is not clear, amber when unjudged
-        status = "bad" if judged["top_not_clear"] else ("warn" if unjudged else "ok")
+        # or when most pairs offered no site: a green "1/1" stood for a run where 7 of 8 offered none (QA of stop 78)
+        few = 2 * judged["with_site"] < judged["pairs"]
+        status = "bad" if judged["top_not_clear"] else ("warn" if unjudged or few else "ok")
         headline.append(
             Headline(
                 "top_site",
                 f"{judged['top_clear']}/{n_judged}" + (f" ({unjudged} not judged)" if unjudged else ""),
                 status,
-                "top landing site truly clear",
+                f"top landing site truly clear ({judged['with_site']} of {judged['pairs']} pairs offered one)",
             )
         )
     fps = [r["scores"]["fp_pct"] for r in records if (r.get("scores") or {}).get("fp_pct") is not None]

@@ -109,6 +109,16 @@ def test_each_site_is_judged_on_the_truth_and_the_reports_say_so(tmp_path):
     assert "none offered: no 3 m footprint with a 1 m margin" in page
     assert (tmp_path / "figures" / "a_hazard.png").is_file()
     assert "Circles: the landing sites it offered" in page
+    # the card counts the pairs that offered none: a green "1/1" stood for a run where 7 of 8 offered none (QA of
+    # stop 78); amber when most offered none, even with every top site clear
+    only_a = [a, c, c, c]
+    few = {**summary, "records": only_a, "sites": site_summary(only_a)}
+    page = write_run_report(few, tmp_path / "few.html", figures=False).read_text()
+    import re
+
+    card = re.search(r'<div class="card (\w*)"[^>]*><div class="v">[^<]*</div><div class="l">top landing site', page)
+    assert card is not None and card.group(1) == "warn", card
+    assert "top landing site truly clear (1 of 4 pairs offered one)" in page
 
 
 def test_a_site_that_is_not_a_point_on_the_ground_is_not_clear(tmp_path):
