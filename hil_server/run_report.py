@@ -176,7 +176,21 @@ def _pixel_states(r: dict, out: Path, pair: Any) -> np.ndarray | None:
     return states_at_pixels(np.load(out / "state_grid.npy"), origin, float(r["grid_cell_m"]), x, y)
 
 
-def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
+def _map_source(summary: dict, answered: list[str]) -> str:
+    """What a pair's returned map rests on, for its picture: the pair alone, or the map fused over the Results so
+    far (a fused and an unfused run's pictures had the same titles and captions; QA round 2 of stop 78)."""
+    if summary.get("fusion") is None:
+        return ""
+    if not summary["fusion"]:
+        return "of this pair alone"
+    over = ", ".join(answered) if len(answered) <= 4 else f"{answered[0]}, ..., {answered[-1]}"
+    mine = summary.get("flight") in (None, "emulated")  # a board or a --flight-cmd program decides for itself
+    return f"fused over {len(answered)} pair{'s' if len(answered) > 1 else ''} ({over})" + (
+        "" if mine else ", where the flight side fuses"
+    )
+
+
+def _pair_figures(r: dict, fig_dir: Path, source: str = "") -> list[Figure]:
     from hil_server.run import CALLED_FILE, DERIVED_TRUTH_FILE, read_called
     from protocol.pairdir import PairFormatError, read_pair
 
@@ -225,6 +239,7 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
     met = r.get("deadline_met")
     dl = "" if met is None else "deadline met" if met else "deadline MISSED"
     how = ", ".join(x for x in (str(r.get("level") or ""), dl) if x)
+    how = "; ".join(x for x in (how, source.partition(" (")[0]) if x)  # "fused over 5 pairs": the list is below
     title = f"{r.get('label')}: hazards" + (f" ({how})" if how else "")
     save(map_figure(panels, title, m_per_px=gsd), fig_dir / f"{pid}_hazard.png")
     sites = (
@@ -240,7 +255,8 @@ def _pair_figures(r: dict, fig_dir: Path) -> list[Figure]:
         if "hazard" in pair.truth
         else "not scored: the pair has no truth hazard"
     )
-    figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: what came back, {scored}.{sites}"))
+    came = f"what came back (the map {source})" if source else "what came back"
+    figs.append(Figure(f"figures/{pid}_hazard.png", f"{r.get('label')}: {came}, {scored}.{sites}"))
     if (out / "elevation.npy").is_file():
         dem = dem_panels(np.load(out / "elevation.npy"), pair.truth.get("elevation"))
         save(map_figure(dem, f"{r.get('label')}: elevation", m_per_px=gsd), fig_dir / f"{pid}_dem.png")
@@ -393,8 +409,11 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
 
     notes = [n[0].upper() + n[1:] + "." for n in (throttle_check_note(s), phase_note(s)) if n]
     sections.append(Section("Telemetry", paragraphs=notes, figures=tel_figs))
+    answered: list[str] = []  # the pairs whose Results came back so far: what a fused map rests on
     for r in records if figures else ():
-        figs = _pair_figures(r, fig_dir)
+        if r.get("status") == "result":
+            answered.append(str(r.get("label")))
+        figs = _pair_figures(r, fig_dir, _map_source(s, answered))
         if figs:
             sections.append(Section(f"Pair {r.get('label')}", figures=figs))
     files = [

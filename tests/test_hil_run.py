@@ -56,6 +56,9 @@ def test_zmq_host_run_returns_scored_result_for_every_pair(manifest, tmp_path):
 
     page = html.unescape((tmp_path / "report.html").read_text())
     assert "each phase's median (they need not" in page
+    # each pair's picture says what its map rests on: a fused and an unfused run's read the same (QA of stop 78)
+    assert "200/100: what came back (the map fused over 3 pairs (600/300, 300/150, 200/100))" in page
+    assert "600/300: what came back (the map fused over 1 pair (600/300))" in page
     # the data beside the page, linked from it (checking a figure meant leaving the page to look for its file)
     for name in ("summary.json", "summary.md", "telemetry.jsonl", "received/results.jsonl", "supervisor.jsonl"):
         assert f'<a href="{name}">' in page and (tmp_path / name).is_file(), name
@@ -694,3 +697,14 @@ def test_a_core_another_process_holds_is_measured_and_said(manifest, tmp_path):
     assert "Host contention: the flight process waited" in (tmp_path / "summary.md").read_text()
     o = CaseOutcome("c", {"deadline_hit_rate": 1.0}, None, contention_pct=s["flight_contention_pct"])
     assert "waited" in diff_table([o]) and "the host's load" in diff_table([o])
+
+
+def test_a_pairs_picture_says_whether_its_map_is_fused_and_over_which_pairs():
+    """A fused and an unfused run's pair pictures had the same titles and captions (QA round 2 of stop 78)."""
+    from hil_server.run_report import _map_source
+
+    assert _map_source({"fusion": False}, ["a"]) == "of this pair alone"
+    assert _map_source({"fusion": True, "flight": "emulated"}, ["a", "b"]) == "fused over 2 pairs (a, b)"
+    many = _map_source({"fusion": True, "flight": "command: mine"}, list("abcde"))
+    assert many == "fused over 5 pairs (a, ..., e), where the flight side fuses"
+    assert _map_source({}, ["a"]) == ""  # a summary that does not say
