@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from protocol.pairdir import STATE_OUTSIDE, STATE_SAFE, STATE_UNKNOWN
+from reports.console import apart
 
 from .mapping import HazardGrid
 from .slope import footprint_cells
@@ -203,9 +204,13 @@ def select_safe_sites(
     # exact Euclidean (the 5x5 chamfer mask read up to 0.12 m off; sites QA of stop 75)
     dist = cv2.distanceTransform(np.pad(s8, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
     if not ok.any():
+        # both in metres from a cell's centre: "clearance 3.3 m" read as room to spare beside a 2.5 m radius, where a
+        # site also needs the cells its disk reaches into (QA round 2 of stop 78)
+        clear, need = apart(float(dist.max()) * grid.cell_m, rc * grid.cell_m, 1)
         return [], (
-            f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe "
-            f"(largest clearance {float(dist.max()) * grid.cell_m:.1f} m)"
+            f"no {footprint_m:g} m footprint with a {margin_m:g} m margin is entirely known safe (largest clearance "
+            f"{clear} m from a cell's centre to the nearest cell not known safe, where a site needs over {need} m on "
+            f"this {grid.cell_m:.2g} m grid)"
         )
     # a site is reported with its height: a cell the DEM did not measure is none (its state comes from
     # the pixels' calls pulled onto the grid, its elevation from the pixels' DEM, which can have a hole)

@@ -312,6 +312,12 @@ def test_a_sites_disk_holds_every_cell_it_reaches_into():
     assert len(sites) == 1 and (sites[0].x, sites[0].y) == pytest.approx(centre)
     none, why = select_safe_sites(g, 3.0, centre, k=1, margin_m=0.5, reach_cells=0.5)
     assert none == [] and "entirely known safe" in why
+    # the clearance and what a site needs, in the same metres: "largest clearance 3.3 m" beside a 2.5 m radius read
+    # as room to spare (QA round 2 of stop 78); here the disk of 2 m plus half a 0.5 m cell
+    import re
+
+    clear, need = (float(v) for v in re.search(r"clearance ([\d.]+) m .* needs over ([\d.]+) m", why).groups())
+    assert need == pytest.approx(2.25, abs=0.05) and clear < need, why
 
 
 def test_sites_need_a_measured_elevation():
