@@ -69,6 +69,21 @@ def test_process_writes_outputs(tmp_path, capsys):
     assert ">Against ground truth<" in (out / "report.html").read_text()
 
 
+def test_the_sites_table_says_how_sites_are_ranked_and_what_their_psafe_is(tmp_path):
+    """Sites at P(safe) 0.988 under the caption's 0.99 floor, ranked out of that order, read as a fault (QA round 2 of
+    stop 78): the ranking rule and the grid's P(safe) are said beside the table, with each site's distance."""
+    from hilkit import small_descent
+
+    small_descent(tmp_path / "d", ["1000/500"])  # 128 px: the vertical 1000/500 pair offers sites
+    assert main(["process", "--no-figures", str(tmp_path / "d" / "1000_500"), "--out", str(tmp_path / "o")]) == 0
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert len(doc["sites"]) > 1
+    page = (tmp_path / "o" / "report.html").read_text()
+    assert "to the aim point [m]" in page and "Ranked by site P(safe) in steps of 0.01" in page
+    ranked = [(math.floor(s["p_safe"] / 0.01 + 1e-6), -s["distance_m"]) for s in doc["sites"]]
+    assert ranked == sorted(ranked, reverse=True)  # the rule the page states
+
+
 def test_process_no_figures_writes_the_same_maps_and_scores_and_no_picture(tmp_path, capsys):
     """`process --no-figures`: the arrays, result.json and score.json as with the pictures, and the page says why
     it has none; an earlier run's pictures in OUT go, as its other outputs do."""
