@@ -79,7 +79,8 @@ class Site:
 
 @dataclass
 class Panel:
-    """One map panel. ``kind``: ``image`` (gray), ``scalar`` (colour bar), ``state`` or ``confusion``."""
+    """One map panel. ``kind``: ``image`` (gray), ``scalar`` (colour bar), ``state``, ``truth`` (safe or unsafe:
+    :func:`truth_panel`) or ``confusion``."""
 
     kind: str
     data: np.ndarray
@@ -109,6 +110,15 @@ def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np
     out[cov & cs & ~ts] = 2
     out[cov & ~cs & ts] = 3
     return out
+
+
+def truth_panel(true_hazard: np.ndarray, title: str = "true hazard: safe, or unsafe (>= 1)") -> Panel:
+    """The true hazard as its two classes (safe below 1, unsafe at 1; NaN outside), keyed with their shares. On the
+    continuous scale, safe ground at 0.7-0.9 looked as dark as a hazard at 1.0 beside the scores that called it safe
+    (QA round 2 of stop 78)."""
+    h = np.asarray(true_hazard, np.float32)
+    codes = np.where(np.isnan(h), np.uint8(255), np.where(h < 1.0, np.uint8(0), np.uint8(1))).astype(np.uint8)
+    return Panel("truth", codes, title)
 
 
 _CONF_ORDER = ("TP", "TN", "FP", "FN")
@@ -228,7 +238,7 @@ def mapped_box(panels: Sequence[Panel]) -> tuple[int, int, int, int] | None:
     "outside" on its state and confusion panels, else the pixels finite on every scalar panel (a truth panel is
     finite everywhere; the computed one only where it mapped).
     """
-    cats = [np.asarray(p.data) != 255 for p in panels if p.kind in ("state", "confusion")]
+    cats = [np.asarray(p.data) != 255 for p in panels if p.kind in ("state", "truth", "confusion")]
     scal = [np.isfinite(np.asarray(p.data, np.float64)) for p in panels if p.kind == "scalar"]
     masks = cats or scal
     if not masks or len({m.shape for m in masks}) != 1:
@@ -330,8 +340,9 @@ def map_figure(
                         transform=ax.transAxes, wrap=True)  # fmt: skip
             else:
                 _scalar(fig, ax, p, d, fin, cmap, vmin, vmax)
-        elif p.kind == "state":
-            _categorical(ax, np.asarray(p.data, np.uint8), STATE_COLOURS, STATE_NAMES, True)
+        elif p.kind in ("state", "truth"):  # the truth has no unknown: its key would read "unknown 0.0 %"
+            keep = STATE_COLOURS if p.kind == "state" else {k: v for k, v in STATE_COLOURS.items() if k != 2}
+            _categorical(ax, np.asarray(p.data, np.uint8), keep, STATE_NAMES, True)
         elif p.kind == "confusion":
             names = {i: CONFUSION_NAMES[k] for i, k in enumerate(_CONF_ORDER)} | {255: "outside"}
             colours = {i: CONFUSION_COLOURS[k] for i, k in enumerate(_CONF_ORDER)} | {255: OUTSIDE}

@@ -178,14 +178,13 @@ def _covered_confusion_figure(
     """``confusion.png`` over the map's covered pixels where the truth is known: the pixel scores, the true hazard
     (no sites: without gt_depth their ground is unknown)."""
     from ground_sim import scoring
-    from reports.plots import Panel, confusion_codes, map_figure, save
-    from reports.style import HAZARD_CMAP
+    from reports.plots import Panel, confusion_codes, map_figure, save, truth_panel
 
     gt = np.asarray(truth, np.float32)
     codes = confusion_codes(~scoring.unsafe_estimate(hazard), gt < 1.0, covered & np.isfinite(gt))
     panels = [
         Panel("confusion", codes, "pixel scores, over the map's covered pixels"),
-        Panel("scalar", gt, "true hazard (>= 1 unsafe)", "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
+        truth_panel(gt),
     ]
     title = f"{label}: FP {row['fp_pct']:.2f} %, CDI {row['cdi_pct']:.1f} % of the map's covered pixels"
     save(map_figure(panels, title, m_per_px=m_per_px), out / "confusion.png")

@@ -46,7 +46,7 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     truth, true hazard), and with true slope ``{stem}_slope.png`` and ``{stem}_rough.png``. ``px`` is unused
     (kept for callers of the OpenCV version).
     """
-    from reports.plots import Panel, confusion_codes, dem_panels, map_figure, save
+    from reports.plots import Panel, confusion_codes, dem_panels, map_figure, save, truth_panel
 
     z = np.load(maps_path)
     out = Path(out_dir)
@@ -85,7 +85,7 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     hz = [
         Panel("image", m["image"], "upper image (i1)"),
         Panel("confusion", confusion_codes(called_safe, truly_safe, scored), "pixel scores"),
-        Panel("scalar", masked(m["true_hazard"]), "true hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0),
+        truth_panel(masked(m["true_hazard"])),
     ]
     files.append(save(map_figure(hz, f"{name}: hazards", PANEL_IN, m_per_px=gsd), out / f"{stem}_hazard.png"))
     if np.isfinite(m["true_slope"]).any():

@@ -632,8 +632,7 @@ def _figure(
 ) -> Path:
     """The picture of one scored pair (see :func:`score_output`); a derived truth (``m["truth"]``) is titled so."""
     from ground_sim.gridscore import site_verdict
-    from reports.plots import Panel, Site, confusion_codes, map_figure, save
-    from reports.style import HAZARD_CMAP
+    from reports.plots import Panel, Site, confusion_codes, map_figure, save, truth_panel
 
     # drawn at the pixel whose true ground is nearest the site; black where frame 0 does not hold the footprint
     marks = [
@@ -642,16 +641,16 @@ def _figure(
         if j["uv"] is not None
     ]
     truth_title = (
-        "true hazard, derived from gt_elevation (>= 1 unsafe; white: unknown)"
+        "true hazard, derived from gt_elevation: safe, or unsafe (>= 1); white: unknown"
         if m.get("truth") == "derived"
-        else "true hazard (>= 1 unsafe)"
+        else "true hazard: safe, or unsafe (>= 1)"
     )
     # NaN (unmapped) pixels are scored as not called safe, so they read as TN/FN: say how many there are
     unmapped = f" ({m['unmapped_pct']:.0f} % unmapped: NaN, not called safe)" if m.get("unmapped_pct") else ""
     panels = [
         Panel("image", image, "frame 0 and the sites", sites=marks),
         Panel("confusion", confusion_codes(called, safe, area), f"pixel scores{unmapped}", sites=marks),
-        Panel("scalar", gt_h, truth_title, "true hazard (1 = unsafe)", HAZARD_CMAP, 0.0, 1.0),
+        truth_panel(gt_h, truth_title),
     ]
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0, or truth unknown)", False: "NOT safe"}
     if len(judged) > len(marks):

@@ -610,3 +610,14 @@ def test_a_ticker_speaks_only_while_long_work_runs():
     with Ticker("process: working", stream=off, enabled=False, first_s=0.01, every_s=0.01):
         time.sleep(0.1)
     assert off.getvalue() == ""
+
+
+def test_the_true_hazard_is_drawn_as_its_two_classes():
+    """On the continuous scale, safe ground at 0.7-0.9 looked as dark as a hazard at 1.0 beside the scores that
+    called it safe (QA round 2 of stop 78): the truth is drawn safe or unsafe, keyed with their shares, no unknown."""
+    truth = np.array([[0.0, 0.8, 0.99], [1.0, 2.0, np.nan]], np.float32)
+    p = plots.truth_panel(truth)
+    assert p.kind == "truth" and p.data.tolist() == [[0, 0, 0], [1, 1, 255]]
+    fig = plots.map_figure([p])
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["safe 60.0 %", "unsafe 40.0 %"], labels
