@@ -445,6 +445,7 @@ LIMIT = "#111111"  # a deadline, a budget, a ceiling: one colour in every teleme
 
 
 VISIBLE_SHARE = 0.004  # a timeline bar narrower than this share of the axis is not named in the legend
+ZOOM_SHARE = 0.25  # the timeline zooms to the work when the longest pair took under this share of the deadline
 
 
 def _bar(ax: Any, y: float, start: float, width: float, colour: str, label: str | None) -> None:
@@ -540,10 +541,12 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
 
     # a bar too narrow to see is drawn but not named: a ZeroMQ pair's 0.1 ms "frames on the link" and stages that
     # took no time filled the legend (QA of stop 72); the name waits for a pair where it shows
-    span = max(
-        [float(r.get("e2e_latency_s") or 0.0) for r in recs] + [float(r.get("deadline_s") or 0.0) for r in recs],
-        default=0.0,
-    )
+    work = max([float(r.get("e2e_latency_s") or 0.0) for r in recs], default=0.0)
+    deadline = max([float(r.get("deadline_s") or 0.0) for r in recs], default=0.0)
+    # a host-budget run's pairs took 0.08 s of a 2 s deadline: every bar a sliver and most stages unnamed (QA round 2
+    # of stop 78). Zoomed to the work then, the deadline said at the axis's end
+    zoom = work > 0.0 and ZOOM_SHARE * deadline > work
+    span = 1.25 * work if zoom else max(work, deadline)
 
     def bar(y: float, start: float, width: float, colour: str, name: str) -> None:
         _bar(ax, y, start, width, colour, once(name) if width > VISIBLE_SHARE * span else None)
@@ -567,11 +570,13 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         plan = r.get("plan") or {}
         if "budget_s" in plan:  # the flight's own plan: the time it aimed to be done by, and the DEM's stop-by
             end = float(r.get("queue_wait_s") or 0.0) + float(plan["budget_s"])
-            if end >= 0.0:  # a budget spent before the frames were in is no point on this axis (the table says it)
+            # a budget spent before the frames were in is no point on this axis (the table says it), nor one past a
+            # zoomed axis's end
+            if end >= 0.0 and not (zoom and end > span):
                 ax.plot([end], [y + 0.38], marker="v", color="#222222", ms=5, ls="none", label=once("plan: done by"))
             need = next((plan[f"{k}_need_s"] for k in ("full_dem", "coarse_dem") if f"{k}_need_s" in plan), None)
             # a stop-by before the frames were in (a DEM that could not start: the table says why) is not drawn
-            if need is not None and end - float(need) >= 0.0:
+            if need is not None and end - float(need) >= 0.0 and not (zoom and end - float(need) > span):
                 ax.plot(
                     [end - float(need)], [y + 0.38], marker="v", color="#ffffff", mec="#222222", ms=5, ls="none",
                     label=once("plan: DEM stop-by (then the mapping's reserve)"),
@@ -586,8 +591,11 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
         if rq >= QUEUE_DRAWN_S:  # named in the legend only where it happened
             bar(y, start - rq, rq, "#999999", "result queued behind earlier messages")
         bar(y, start, rl, "#7a93ad", "result on the link")  # not the deadline line's near-black (QA 64b)
-        if r.get("deadline_s") is not None:
+        if r.get("deadline_s") is not None and not zoom:
             ax.plot([r["deadline_s"]] * 2, [y - 0.4, y + 0.4], color=LIMIT, lw=2, label=once("deadline"))
+        elif r.get("deadline_s") is not None:  # off the zoomed axis: said at its end, in the deadline's colour
+            ax.text(span, y, f"deadline {float(r['deadline_s']):g} s \u2192", va="center", ha="right", fontsize=7,
+                    color=LIMIT)  # fmt: skip
     # the frames' uplink (6 s at 921600 baud against ~1 s of compute) took most of the axis: shown up to half the
     # span after 0, and a longer one is cut there with its length written on it
     after = span  # the longest end to end or deadline (0 with no Result: nothing to cut)
@@ -599,11 +607,16 @@ def timeline_figure(records: Sequence[dict[str, Any]]) -> Any:
             fl = float(r.get("frames_link_s") or 0.0)
             if fl > -left:
                 ax.text(left, len(recs) - 1 - i, f" frames {fl:.1f} s \u2190", va="center", ha="left", fontsize=7)
+    if zoom:
+        ax.set_xlim(right=span)
     ax.set_ylim(-0.6, len(recs) - 0.4 + 0.25)  # room above the top row for its plan markers
     ax.set_yticks(range(len(recs)))
     ax.set_yticklabels([str(r.get("label", i)) for i, r in enumerate(recs)][::-1], fontsize=8)
     ax.axvline(0, color="#888", lw=0.8)
-    ax.set_xlabel("seconds since the ground sent the pair's last frame")
+    ax.set_xlabel(
+        "seconds since the ground sent the pair's last frame"
+        + (f" (zoomed to the work: the deadline, {deadline:g} s, is off the axis)" if zoom else "")
+    )
     ax.set_title("where each pair's time went")
     if ax.get_legend_handles_labels()[0]:  # no result with timings: nothing to name
         ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False, ncol=ncol)

@@ -621,3 +621,23 @@ def test_the_true_hazard_is_drawn_as_its_two_classes():
     fig = plots.map_figure([p])
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == ["safe 60.0 %", "unsafe 40.0 %"], labels
+
+
+def test_a_timeline_whose_work_is_a_sliver_of_the_deadline_zooms_to_the_work():
+    """A host run's pairs took 0.08 s of a 2 s deadline: every bar a sliver at the left and most stages unnamed (QA
+    round 2 of stop 78). The axis ends a quarter past the longest pair, the deadline said at its end."""
+    order = ["pose_refine", "coarse_dem", "full_dem", "slope", "hazard", "output"]
+    recs = [
+        {"label": p, "e2e_latency_s": 0.08, "deadline_s": 2.0, "result_link_s": 0.01, "stage_order": order,
+         "stages": {k: {"wall_s": 0.01} for k in order}}
+        for p in ("600/300", "300/150")
+    ]  # fmt: skip
+    ax = plots.timeline_figure(recs).axes[0]
+    assert ax.get_xlim()[1] == pytest.approx(0.1)
+    assert set(order) <= set(ax.get_legend_handles_labels()[1])  # every stage drawn is named
+    assert [t.get_text() for t in ax.texts].count("deadline 2 s \u2192") == 2 and "deadline, 2 s, is off" in (
+        ax.get_xlabel()
+    )
+    recs[0]["e2e_latency_s"] = 1.2  # a pair that took most of its deadline: the deadline is on the axis again
+    ax = plots.timeline_figure(recs).axes[0]
+    assert ax.get_xlim()[1] > 2.0 and "deadline" in ax.get_legend_handles_labels()[1]
