@@ -640,7 +640,8 @@ def contention_note(summary: dict) -> str:
     if not isinstance(pct, (int, float)) or pct < CONTENTION_SHOWN_PCT:
         return ""
     return (
-        f"host contention: the flight process waited {summary['flight_contention_s']:.2f} s for its core while other "
+        # three significant figures: "waited 0.00 s ... 8 % of its flight time" read as a contradiction (QA of stop 78)
+        f"host contention: the flight process waited {summary['flight_contention_s']:.3g} s for its core while other "
         f"processes held it, {pct:.0f} % of its flight time: its latencies read that much higher than the budget's "
         "alone (a loaded host, not the flight software)"
     )

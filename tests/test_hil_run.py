@@ -708,3 +708,12 @@ def test_a_pairs_picture_says_whether_its_map_is_fused_and_over_which_pairs():
     many = _map_source({"fusion": True, "flight": "command: mine"}, list("abcde"))
     assert many == "fused over 5 pairs (a, ..., e), where the flight side fuses"
     assert _map_source({}, ["a"]) == ""  # a summary that does not say
+
+
+def test_a_short_contention_wait_is_said_in_significant_figures():
+    """ "waited 0.00 s for its core ... 8 % of its flight time" read as a contradiction (QA of stop 78)."""
+    from hil_server.run import contention_note
+
+    note = contention_note({"flight_contention_pct": 8.0, "flight_contention_s": 0.0041})
+    assert "waited 0.0041 s for its core" in note and "8 % of its flight time" in note
+    assert contention_note({"flight_contention_pct": 2.0, "flight_contention_s": 0.001}) == ""  # under the 5 % shown
