@@ -127,6 +127,8 @@ def write_process_report(
     from reports.plots import Panel, Site, ground_step_m, map_figure, save
     from reports.style import HAZARD_CMAP, PSAFE_CMAP
 
+    from .sites import P_QUANTUM
+
     marks = [Site(u, v, r, i + 1, None) for i, (u, v, r) in enumerate(site_pixels(res.world_xy, res.sites))]
     written: list[Path] = []
     maps: list[Figure] = []
@@ -217,7 +219,7 @@ def write_process_report(
     # sites at P(safe) 0.988 under a caption's 0.99 floor, and ranked out of that order, read as a fault (QA round 2
     # of stop 78): both follow from the grid and the ranking rule, said here
     site_note = (
-        "Ranked by site P(safe) in steps of 0.01, then by distance to the aim point. A site's P(safe) is the "
+        f"Ranked by site P(safe) in steps of {P_QUANTUM:g}, then by distance to the aim point. A site's P(safe) is the "
         "smallest over its footprint and margin on the world grid, whose cells average the pixels' P(safe): every "
         "one of those cells is known safe, and the least of them can sit a little under the pixels' floor. "
         "Clearance: from the site's centre to the nearest cell not known safe."

@@ -43,6 +43,9 @@ class Site:
         return {k: float(v) for k, v in asdict(self).items()}
 
 
+P_QUANTUM = 0.01  # sites are ranked by P(safe) in steps of this, then by distance to the aim point
+
+
 def footprint_stats(hazard: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Per cell: whether the n x n footprint is all known-safe, and the max hazard over it."""
     h = np.where(np.isfinite(hazard), hazard, np.float32(1.0)).astype(np.float32)
@@ -157,7 +160,7 @@ def select_safe_sites(
     nominal_xy: tuple[float, float] = (0.0, 0.0),
     k: int = 5,
     margin_m: float = 0.5,
-    p_quantum: float = 0.01,
+    p_quantum: float = P_QUANTUM,
     relief_max_m: float = 0.0,
     relief_window_m: float = 30.0,
     reach_cells: float = 0.0,
