@@ -1135,13 +1135,18 @@ def _pair_doc(path: Path) -> dict:
     return doc if isinstance(doc, dict) else {}
 
 
+def flight_decides_fusion(summary: dict) -> bool:
+    """Whether the run's flight side fuses as it decides (a board, a --flight-cmd program), not as ours does."""
+    return summary.get("flight") not in (None, "emulated")
+
+
 def fusion_note(summary: dict) -> str:
     """Whether the Results were fused over the descent, which the scores and sites are of."""
     if summary.get("fusion") is None:
         return ""
     if not summary["fusion"]:
         return "each Result reports its pair alone (`--no-fusion`)"
-    theirs = summary.get("flight") not in (None, "emulated")  # a board or a --flight-cmd program decides for itself
+    theirs = flight_decides_fusion(summary)
     if theirs:
         said = "fusion was asked of the flight side (Config option `fusion` 1): where it fuses, a pair's scores are "
     else:

@@ -184,9 +184,10 @@ def _map_source(summary: dict, answered: list[str]) -> str:
     if not summary["fusion"]:
         return "of this pair alone"
     over = ", ".join(answered) if len(answered) <= 4 else f"{answered[0]}, ..., {answered[-1]}"
-    mine = summary.get("flight") in (None, "emulated")  # a board or a --flight-cmd program decides for itself
+    from hil_server.run import flight_decides_fusion
+
     return f"fused over {len(answered)} pair{'s' if len(answered) > 1 else ''} ({over})" + (
-        "" if mine else ", where the flight side fuses"
+        ", where the flight side fuses" if flight_decides_fusion(summary) else ""
     )
 
 
