@@ -22,7 +22,6 @@ thesis camera scaled to ``size`` px). Both images are rendered with the pipeline
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import time
 from typing import Any
 
@@ -81,11 +80,15 @@ def settle_allocator() -> bool:
     heap above the trim threshold to the kernel. Fixing both (``mallopt``) makes a pair's arrays
     (a 512 px cost slab is a few MiB) come from heap pages an earlier pair already touched. The
     address space is the same as the largest pair's, which the memory ceiling bounds anyway.
+
+    ``mallopt`` is looked up among the symbols the process has loaded (``dlopen(NULL)``), not with
+    ``ctypes.util.find_library``: that runs ``ldconfig -p`` in a child process, and a child not yet
+    past its ``exec`` shows the flight process's own pages as its RssAnon. The HIL's memory watch
+    charges a flight process for its children, so it read the flight process twice (a 128 px
+    camera at 51 MiB against its 37 MiB; stop 79).
     """
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError, TypeError):
         return False
     ok = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_B) == 1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes.util
+import os
 import sys
 
 import numpy as np
@@ -35,6 +36,20 @@ def test_boot_warm_up_reports_what_it_did():
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not ctypes.util.find_library("c"), reason="glibc only")
 def test_settle_allocator_takes_on_glibc():
     assert settle_allocator() is True
+
+
+def test_the_flight_process_starts_no_process_to_settle_its_allocator(monkeypatch):
+    """ctypes.util.find_library runs ``ldconfig -p`` in a child; caught before its exec, the child showed the
+    flight process's own pages, and the HIL's memory watch, which charges a flight process for its children,
+    counted them twice (51 MiB for a 37 MiB process; stop 79)."""
+    import subprocess
+
+    def spawned(*args, **kwargs):
+        raise AssertionError(f"a process was started: {args}")
+
+    monkeypatch.setattr(subprocess, "Popen", spawned)
+    monkeypatch.setattr(os, "fork", spawned)
+    assert settle_allocator() is (sys.platform.startswith("linux"))
 
 
 def test_heap_touched_for_a_camera_stays_inside_the_hil_memory_model():
