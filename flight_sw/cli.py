@@ -88,7 +88,8 @@ def register_process(
         "--aim",
         default=None,
         metavar="X,Y",
-        help="the aim point (world metres) the sites are ranked by distance to (default 0,0: the world origin)",
+        help="the aim point (world metres): sites of equal P(safe), in steps of 0.01, are ranked by their distance "
+        "to it (default 0,0: the world origin)",
     )
     p.add_argument(
         "--widest-pair",
@@ -355,6 +356,9 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
     # alone, a pair in km left a DEM in km with an empty warnings list (QA of stop 75)
     doc["warnings"] = [*reader_warnings, *(text.removeprefix("warning: ") for warn, text in messages if warn)]
     doc["notes"] = list(pair.notes)
+    # the run's own notes (an aim point off the map, poses refined or left unchecked, stages skipped) had been said
+    # on stdout alone (QA of stop 79)
+    doc["run_notes"] = [text.removeprefix(f"{out}: ") for warn, text in messages if not warn]
     # the earlier run's outputs go first, each of this run's is written whole beside its target and renamed over
     # it, result.json after the arrays and the pictures after it: an interrupted run leaves only its own files,
     # never a mix of two runs that `score` took for one (a kill mid-write left the old result.json and pictures
@@ -392,7 +396,8 @@ def _process(args: argparse.Namespace, scorer: Scorer | None = None) -> int:
             raise
     fills = res.info.get("dem_filled_fraction")
     line = (
-        f"{res.level}{' (degraded)' if res.degraded else ''}: valid {res.valid_fraction:.1%}"
+        f"{res.level}{' (degraded)' if res.degraded else ''}: "
+        f"DEM on {res.valid_fraction:.1%} of the overlap its poses give"
         f"{'' if fills is None else f' ({fills:.1%} gap fill)'}, "
         f"{len(res.sites)} sites"
         + (f" ({res.info['no_site_reason']})" if not res.sites and res.info.get("no_site_reason") else "")

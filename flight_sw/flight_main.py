@@ -353,6 +353,8 @@ class FlightProcess:
         # the last ground session's Config and fused map, until the new session's Config says whether it goes on
         self.resumable: tuple[Config, FusedMap | None] | None = None
         self.fusion_params = FusionParams()
+        # the P(safe) fallback last said: once per camera size, on this process's log (a board's console)
+        self.fallback_said = ""
         self._stop = threading.Event()
 
     def new_ground_session(self) -> None:
@@ -547,6 +549,11 @@ class FlightProcess:
         for note in pair_notes(res.info, side):
             if note not in withheld:  # an altimeter disagreement is the withheld sites' reason: said once
                 print(f"flight: frames {list(seqs)}: {note}", file=sys.stderr, flush=True)
+        fallback = str(res.info.get("psafe_fallback") or "")
+        if fallback and fallback != self.fallback_said:  # `process` warned of it, a board said nothing (QA of stop 79)
+            self.fallback_said = fallback
+            print(f"flight: {fallback}: P(safe) falls back to the Gaussian rule, whose FP is higher "
+                  "(docs/benchmarks/pipeline.md)", file=sys.stderr, flush=True)  # fmt: skip
         if withheld:
             print(
                 f"flight: frames {list(seqs)}: {withheld}" + ("; it is not fused into the descent's map" * fusion),

@@ -247,6 +247,9 @@ def write_process_report(
     if warnings:  # said on the console only, the page showed a run on swapped frames as a green "full" (QA of stop 66)
         headline.insert(1, Headline("warnings", len(warnings), "warn", "warnings"))
         sections.insert(0, Section("Warnings", paragraphs=warnings))
+    said = [str(n) for n in doc.get("run_notes") or []]
+    if said:  # an aim point off the map, poses refined or not checked: said on stdout alone (QA of stop 79)
+        sections.insert(1 if warnings else 0, Section("Notes on the run", paragraphs=said))
     notes = [str(n) for n in doc.get("notes") or []]
     if notes:  # what reading the pair converted or repaired (16-bit shifted, colour to gray): on the page, not stderr
         sections.append(Section("Reading the pair", paragraphs=notes))

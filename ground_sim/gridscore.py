@@ -290,9 +290,14 @@ def complete_truth(pair: Any) -> str | None:
             why = "no 3 m footprint of frame 0 is half seen"
         return f"no gt_hazard_i1.npy, and none can be derived from gt_elevation and gt_depth: {why}"
     truth["hazard"] = hazard
-    shadow = "" if "shadow" in truth else " (no gt_shadow_i1.npy: shadow not counted)"
+    # the shadow counts too: the note named two of the three files it came from (QA of stop 79)
+    files = (
+        "gt_elevation, gt_depth and gt_shadow"
+        if "shadow" in truth
+        else "gt_elevation and gt_depth (no gt_shadow_i1.npy: shadow not counted)"
+    )
     return (
-        f"no gt_hazard_i1.npy: the true hazard was derived from gt_elevation and gt_depth{shadow} by DESIGN.md's "
+        f"no gt_hazard_i1.npy: the true hazard was derived from {files} by DESIGN.md's "
         f"rules at the camera's resolution ({100 * known:.0f} % of frame 0 resolved; docs/design.md)"
     )
 

@@ -503,6 +503,9 @@ def _pairs(text: str | None) -> list[str] | None:
     return comma_items(text, "--pairs") if text else None
 
 
+BUDGET_LINK = "the budget's link, see `hazard-hil budgets`"  # --link's default where a run names none
+
+
 def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.set_defaults(run_defaults=defaults)
     p.add_argument(
@@ -515,7 +518,7 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
         default=None,
         help="serial | zmq (a loopback link to the emulated flight processor); with --flight external the far "
         "end: serial:DEVICE[@BAUD] (e.g. serial:/dev/ttyUSB0@115200) or zmq:tcp://HOST:PORT "
-        f"(default: {defaults.get('link', 'the budget’s link, see `hazard-hil budgets`')})",
+        f"(default: {defaults.get('link', BUDGET_LINK)})",
     )
     p.add_argument(
         "--flight",
@@ -848,7 +851,9 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         description="Render a descent (or stream --manifest pairs), send each pair's frames over a serial line or "
         "ZeroMQ to flight software on an emulated flight processor, and score what comes back against the "
         "deadline (end to end, docs/hil.md) and the truth. Writes summary.json, summary.md, telemetry.jsonl, "
-        "supervisor.jsonl, ground.log, received/ (each pair's Result) and report.html in --out. Exit 0 only "
+        "supervisor.jsonl, supervisor.log (the flight process's own log), ground.log, received/ (each pair's "
+        "Result), pairs/ (the rendered pairs; not with --manifest), figures/ (not with --no-figures) and "
+        "report.html in --out. Exit 0 only "
         "when every pair met its deadline (or --min-hit-rate of them), 1 otherwise, 2 on bad usage, 128 + N when "
         "signal N stopped it "
         "(SIGINT, SIGTERM, SIGHUP: every process stopped, summary.json marked incomplete).",

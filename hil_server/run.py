@@ -676,7 +676,7 @@ def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
     return (
         f"{head}: {s['deadline_met']}/{s['pairs']} pairs returned a result within the "
         f"{_fmt(s.get('deadline_s'), 'g')} s deadline end to end "
-        f"({s['deadline_missed']} late, {s['errors']} errors{_not_run(s)}; needed: {need})"
+        f"({s['deadline_missed']} late, {s['errors']} error{'s' * (s['errors'] != 1)}{_not_run(s)}; needed: {need})"
         # a met deadline with a degraded answer is not the full answer: said beside the verdict, not only in the table
         + (f"; {degraded_note(s)}" if s.get("degraded") else "")
     )
@@ -1050,7 +1050,8 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
     head = (
         f"**{s['scenario']}** over **{s['link']}**{pace}, flight {s['flight']}{where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
-        f"degraded), {s['errors']} errors{_not_run(s)}; end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
+        f"degraded), {s['errors']} error{'s' * (s['errors'] != 1)}{_not_run(s)}; "
+        f"end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
@@ -1295,8 +1296,9 @@ def truth_note(summary: dict) -> str:
     parts = []
     if derived:
         parts.append(
-            f"the scores of {names(derived)} are against a truth hazard derived from gt_elevation and gt_depth (no "
-            "gt_hazard_i1.npy): it sees only the relief the camera resolves (docs/design.md, Ground-truth hazard)"
+            f"the scores of {names(derived)} are against a truth hazard derived from gt_elevation and gt_depth (and "
+            "gt_shadow where there is one; no gt_hazard_i1.npy): it sees only the relief the camera resolves "
+            "(docs/design.md, Ground-truth hazard)"
         )
     if without:
         parts.append(f"{names(without)} could not be scored: {without[0]['truth_note']}")

@@ -231,7 +231,7 @@ def _pair_figures(r: dict, fig_dir: Path, source: str = "") -> list[Figure]:
             covered = scored_area(pair, pixel_ground(pair.camera, true_pose_upper(pair), pair.truth["depth"]))
         called_safe = covered & (np.nan_to_num(hazard, nan=1.0) < 1)
         truly_safe = np.nan_to_num(gt_h, nan=1.0) < 1
-        derived = " (truth derived from gt_elevation)" if r.get("truth") == "derived" else ""
+        derived = " (truth derived from the other truth files)" if r.get("truth") == "derived" else ""
         panels.append(Panel("confusion", confusion_codes(called_safe, truly_safe, covered), f"pixel scores{derived}"))
     else:
         panels.append(Panel("scalar", hazard, "hazard (>= 1 unsafe)", "score", HAZARD_CMAP, 0.0, 1.0))

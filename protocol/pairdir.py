@@ -190,6 +190,9 @@ def _numbers(v: Any, name: str) -> np.ndarray:
     return np.array(v, dtype=float)
 
 
+# a frame this close to the datum is a camera lying on the ground: its positions are in km, not m (the 1 mm per
+# pixel floor alone let km pass for cameras under ~300 px)
+MIN_ALTITUDE_M = 1.0
 QUATERNION_NORM_TOL = 1e-3  # a quaternion written with four decimals is normalised; further off is an error
 
 
@@ -395,6 +398,15 @@ class Pair:
                     )
                 )
                 break
+        else:
+            # a camera under 128 px sees over 1 mm per pixel even from 0.3 m: positions in km passed (QA of stop 79)
+            low = min(range(len(self.poses)), key=lambda k: float(self.poses[k].position[2]))
+            z = float(self.poses[low].position[2])
+            if z < MIN_ALTITUDE_M:
+                out.append(
+                    f"frame {low} is {z:g} m above the datum (expected at least {MIN_ALTITUDE_M:g} m): positions must "
+                    f"be in metres (in km, a {1000 * z:g} m altitude reads {z:g})"
+                )
         base = float(np.linalg.norm(self.poses[0].position - self.poses[-1].position))
         if base < 0.01 * z0:
             out.append(

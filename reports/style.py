@@ -106,7 +106,8 @@ GLOSSARY: dict[str, Term] = {
     "valid_pct": Term(
         "DEM coverage %",
         "Share of the area the flight software takes as seen by both images (by its poses) that got an elevation; "
-        "hazard-hil score's DEM coverage is over the true overlap instead (a few points apart at most).",
+        "hazard-hil score's DEM coverage is over the true overlap instead (98.2 against 97.6 % on a 512 px "
+        "vertical 600/300 pair, 96.5 against 95.5 % at 256 px; a QA pass saw 6 points apart on a small camera).",
         "%",
     ),
     "dem_mean_abs_m": Term("DEM mean |error| [m]", "Mean absolute elevation error over pixels with both values.", "m"),

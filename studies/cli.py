@@ -797,7 +797,8 @@ def register_score(subparsers: Any) -> None:
         " when several apply, 2 wins over 3, and 3 over 1; 4 when --csv, --json or a --figures picture could not be"
         " written once scored (named on stderr; the scores are printed), which wins over the others; a target"
         " refused before any scoring (a directory, or one that cannot be written) is bad usage, 2."
-        " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation and gt_depth (docs/design.md). An"
+        " Without gt_hazard_i1.npy the true hazard is derived from gt_elevation, gt_depth and, when there,"
+        " gt_shadow (docs/design.md). An"
         " output that maps nothing (all NaN) is usable: it calls nothing safe.",
     )
     p.add_argument("pairs", type=Path, help="a pair directory with ground truth, or a descent with manifest.json")
@@ -1061,7 +1062,7 @@ def _print_scores(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
         if n
     )
     if s.get("truth_derived"):
-        failed += f"; {s['truth_derived']} against a truth hazard derived from gt_elevation (see the notes)"
+        failed += f"; {s['truth_derived']} against a truth hazard derived from the other truth files (see the notes)"
     n_unconf = s.get("top_sites_unconfirmed", 0)
     unconfirmed = f"{n_unconf} not confirmed: footprint off frame 0; " if n_unconf else ""
     if s["scored"]:

@@ -641,7 +641,7 @@ def _figure(
         if j["uv"] is not None
     ]
     truth_title = (
-        "true hazard, derived from gt_elevation: safe, or unsafe (>= 1); white: unknown"
+        "true hazard, derived from the truth's elevation: safe, or unsafe (>= 1); white: unknown"
         if m.get("truth") == "derived"
         else "true hazard: safe, or unsafe (>= 1)"
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 import json
 import math
 import shutil
@@ -573,7 +574,7 @@ def test_process_scores_against_a_derived_truth_where_score_can_derive_one(tmp_p
         said[label] = capsys.readouterr()
     fine = json.loads((tmp_path / "o200_100" / "score.json").read_text())["rows"][0]
     assert fine["truth"] == "derived" and fine["fp_pct"] is not None
-    assert "the true hazard was derived from gt_elevation and gt_depth" in said["200_100"].err
+    assert "the true hazard was derived from gt_elevation, gt_depth and gt_shadow" in said["200_100"].err
     coarse = json.loads((tmp_path / "o600_300" / "score.json").read_text())["rows"][0]
     assert coarse["scored_over"] == "covered" and coarse["fp_pct"] is None and coarse["dem_mean_abs_m"] > 0
     assert "over half the 3 m footprint" in said["600_300"].err and "give gt_hazard_i1.npy" in said["600_300"].err
@@ -1003,5 +1004,10 @@ def test_the_aim_point_can_be_given_and_one_off_the_map_is_said(tmp_path, capsys
             assert s["distance_m"] == pytest.approx(math.hypot(s["x"] - ax, s["y"] - ay), abs=1e-6)
         said = capsys.readouterr().out
         assert ("the aim point (2000, 0) lies outside the mapped ground" in said) == (out == "far"), said
+        # kept with the outputs, not said on stdout alone (QA of stop 79)
+        kept = [n for n in doc["run_notes"] if n.startswith("the aim point (2000, 0) lies outside the mapped")]
+        assert len(kept) == (out == "far"), doc["run_notes"]
+        page = html.unescape((tmp_path / out / "report.html").read_text())
+        assert ("Notes on the run" in page and "the aim point (2000, 0) lies outside" in page) == (out == "far")
     assert main(["process", "--no-figures", str(d), "--out", str(tmp_path / "bad"), "--aim", "3"]) == 2
     assert "--aim must be X,Y in metres, got '3'" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """The pair-directory format (shared/DESIGN.md) round-trips and rejects bad input."""
 
+import dataclasses
 import json
 import time
 
@@ -179,6 +180,11 @@ def test_positions_in_km_are_flagged(tmp_path):
     assert len(said) == 1 and said[0].startswith(f"{tmp_path / 'pair.json'}: frame "), back.warnings
     write_pair(tmp_path, make_pair())  # a pair in metres has none
     assert read_pair(tmp_path).warnings == []
+    # a small camera sees over 1 mm per pixel from 0.3 m: km positions passed at 128 px (QA of stop 79)
+    pair.camera = dataclasses.replace(pair.camera, fx=240.0, fy=240.0)
+    write_pair(tmp_path, pair)
+    (said,) = read_pair(tmp_path).warnings
+    assert "frame 1 is 0.3 m above the datum (expected at least 1 m): positions must be in metres" in said, said
 
 
 def test_atomic_write_keeps_a_concurrent_copy_and_leaves_no_partial(tmp_path):

@@ -97,6 +97,29 @@ def test_an_altimeter_reading_that_is_no_range_is_mapped_without_and_said(nadir,
     assert list(tel.notes) == said and tel.pose_verdict == "kept"
 
 
+def test_a_camera_the_psafe_trees_were_not_fitted_for_is_said_once_on_the_flight_log(capsys):
+    """`process` warned of the Gaussian fallback; our flight software on a board said nothing (QA of stop 79)."""
+    import flight_sw.flight_main as fm
+
+    cam = camera_fov30(96)  # the trees are fitted for 512, 256 and 128 px cameras
+    p1, p2 = Pose(np.array([0.0, 0.0, 300.0]), NADIR_R), Pose(np.array([0.0, 0.0, 150.0]), NADIR_R, 10.0)
+    tex = Texture.random(300.0, 150.0 / cam.fx, 4, blur_cells=2.0)
+    i1, i2 = (_sensor(render(cam, p, plane(-2.0), tex)[0], s) for p, s in ((p1, 1), (p2, 2)))
+    link = _Link()
+    fp = fm.FlightProcess(link, fm.FaultPlan())
+    fp.handle(Config(camera=cam.to_dict(), budget="host", deadline_s=60.0, preset="fast",
+                     options={"result_rev": RESULT_REV, "descent_id": 1}))  # fmt: skip
+    for k in range(2):  # two pairs of one descent
+        for f in frames_of(f"p{k}", SEQ0 + 2 * k, [(p1, i1), (p2, i2)]):
+            fp.handle(f)
+    assert [type(m).__name__ for m in link.sent] == ["Result", "Telemetry"] * 2, link.sent
+    said = [line for line in capsys.readouterr().err.splitlines() if "falls back to the Gaussian rule" in line]
+    assert said == [
+        "flight: calibrated P(safe) not fitted for 96x96 images: P(safe) falls back to the Gaussian rule, whose FP is "
+        "higher (docs/benchmarks/pipeline.md)"
+    ]
+
+
 def test_a_lower_frame_of_other_ground_is_said_in_the_telemetrys_notes(nadir):
     """The lower image is of other ground than its pose says: the refinement cannot match it, the maps rest on the
     navigation pose, and the ground is told so in words (it was told nothing)."""
