@@ -41,12 +41,13 @@ chromium:
 	    $(SUDO) apt-get install -y -q chromium >/dev/null 2>&1 || \
 	    { $(SUDO) apt-get update -q >/dev/null && $(SUDO) apt-get install -y -q chromium >/dev/null; }; }
 
-# One worker per core plus one, each pinned to a core (tests/conftest.py), whole files apiece. The end-to-end
-# tests mostly wait on lines and timers: two at once halved the suite (9.5 -> 4.5 min, stop 14); on this 2-core
-# host, with the suite grown, three took it from 10.8 to 8.8 min (1.38 -> 1.62 cores busy; stop 77). Four took
-# 8.6 min against 8.8-9.5 min for three the same morning, within the host's hourly spread, and one of three runs
-# saw the flight process peak at 51 MiB against the 41 MiB a 128 px camera is modelled at (stop 78): kept at three.
-TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
+# Two workers per core, each pinned to a core (tests/conftest.py), whole files apiece. The end-to-end tests mostly
+# wait on lines and timers: two at once halved the suite (9.5 -> 4.5 min, stop 14); on this 2-core host three took
+# it from 10.8 to 8.8 min (stop 77), and four from 8.9 to 7.1 min the same hour (stop 79; three had put two workers
+# on one core and one on the other). Stop 78 kept three after one four-worker run saw the flight process peak at
+# 51 MiB against its 41 MiB model: the memory watch had read the flight's ldconfig child as a second copy of it
+# (flight_sw.warmup.settle_allocator no longer starts one).
+TEST_WORKERS ?= $(shell echo $$(( 2 * $$(nproc) )))
 # mypy (25 s from a cold cache) runs beside the tests at the lowest priority, on the CPU they leave idle while
 # they wait; its verdict is printed after theirs, and either failing fails the target. sh starts a background
 # job with SIGINT ignored: the traps end it with the recipe, or a Ctrl-C left it running.

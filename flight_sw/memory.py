@@ -39,3 +39,28 @@ def private_rss_bytes(pid: int | str = "self") -> tuple[int, int] | None:
         return None  # zombie: no memory map left
     private = fields[b"RssAnon"] + fields.get(b"RssShmem", 0)
     return private, max(private, fields.get(b"VmHWM", 0) - fields.get(b"RssFile", 0))
+
+
+_PSS_FIELDS = (b"Pss_Anon", b"Pss_Shmem")
+
+
+def proportional_private_bytes(pid: int) -> int | None:
+    """Private memory of ``pid`` with every page it shares with another process counted in proportion
+    (``Pss_Anon + Pss_Shmem`` of ``/proc/PID/smaps_rollup``); None once the process is gone, or where the kernel
+    gives no such split (before Linux 5.x; not Linux).
+
+    Summed over a process tree it counts each page once. A forked child's ``RssAnon`` holds every page it still
+    shares with its parent (copy-on-write), so a sum of ``RssAnon`` counted those pages twice.
+    """
+    fields: dict[bytes, int] = {}
+    try:
+        with open(f"/proc/{pid}/smaps_rollup", "rb") as fh:
+            for line in fh:
+                key = line.split(b":", 1)[0]
+                if key in _PSS_FIELDS:
+                    fields[key] = int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        return None
+    if b"Pss_Anon" not in fields:
+        return None
+    return fields[b"Pss_Anon"] + fields.get(b"Pss_Shmem", 0)

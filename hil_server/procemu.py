@@ -10,7 +10,8 @@ the parent side, because flight_sw must not import hil_server:
   ``cv2.setNumThreads(1)``; the affinity alone already keeps it on one core.)
 * **Memory ceiling.** ``memory_mib`` caps the private resident set (``RssAnon +
   RssShmem``; mapped library code is not counted, see :func:`private_rss_bytes`):
-  a watchdog thread polls ``/proc/PID/status`` and kills the child when it exceeds it. The
+  a watchdog thread polls ``/proc/PID/status`` and kills the child when it exceeds it; the
+  processes it starts count too, by proportional shares (:func:`tree_private_bytes`). The
   hard stop is ``RLIMIT_AS`` = measured address-space baseline of a Python with
   numpy/cv2/zmq/msgpack/serial imported + ``memory_mib`` + headroom; an
   allocation past it fails in the child (``MemoryError``).
@@ -67,7 +68,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from flight_sw.memory import private_rss_bytes
+from flight_sw.memory import private_rss_bytes, proportional_private_bytes
 from protocol.errors import EXIT_MEMORY, InputError
 
 MIB = 1 << 20
@@ -248,6 +249,26 @@ def _runnable(pid: int) -> bool:
     except OSError:
         return False
     return any(_stat_fields(f"/proc/{pid}/task/{tid}/stat")[:1] == [b"R"] for tid in tids)
+
+
+def tree_private_bytes(pid: int, mem: tuple[int, int], members: list[int]) -> tuple[int, int, int]:
+    """(the flight process's share, its child processes' share, the tree's peak estimate) of private memory, in
+    bytes; ``mem`` is :func:`private_rss_bytes` of ``pid``.
+
+    With children the shares are proportional (:func:`flight_sw.memory.proportional_private_bytes`): a forked
+    child's RssAnon holds every page it still shares with the flight process, and a 48 MiB program that forked
+    was read as 96 MiB. A child caught between ``vfork`` and ``exec`` shares the flight process's whole address
+    space and is still read twice, for the microseconds it lasts. Where the kernel gives no proportional split,
+    the children's RssAnon is added as it is.
+    """
+    if not members:
+        return mem[0], 0, mem[1]
+    shares = [proportional_private_bytes(p) for p in (pid, *members)]
+    if shares[0] is None:  # no smaps_rollup split here (or the process just left): the plain sum
+        extra = sum((private_rss_bytes(p) or (0, 0))[0] for p in members)
+        return mem[0], extra, mem[1] + extra
+    own, extra = shares[0], sum(s or 0 for s in shares[1:])
+    return own, extra, max(mem[1], own + extra)
 
 
 def descendants(pid: int) -> list[int]:
@@ -746,9 +767,9 @@ class EmulatedProcessor:
             mem = private_rss_bytes(child.pid)
             if mem is not None:
                 # the memory of the processes it started counts against the same ceiling
-                extra = sum((private_rss_bytes(pid) or (0, 0))[0] for pid, _ in child.members)
-                child.rss = mem[0] + extra
-                child.peak_rss = max(child.peak_rss, mem[1] + extra)
+                own, extra, peak = tree_private_bytes(child.pid, mem, [pid for pid, _ in child.members])
+                child.rss = own + extra
+                child.peak_rss = max(child.peak_rss, peak)
                 if limit is not None and child.rss > limit:
                     who = f" (its {len(child.members)} child process(es) hold {extra / MIB:.1f})" if extra else ""
                     why = f"memory ceiling: private RSS {child.rss / MIB:.1f} MiB{who} > {self.spec.memory_mib:g} MiB"

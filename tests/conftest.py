@@ -4,10 +4,10 @@ render (tests/hilkit.py).
 The emulated flight processor pins its process to the highest core the run may use (hil_server.procemu). Workers
 that could all use every core would pin all their flight processes to the same one, and each would run at a
 fraction of the budget's speed while the others ran. A worker pinned to a core pins its flight processes there
-too. `make test` runs one worker more than there are cores (the end-to-end tests mostly wait on lines and timers),
-so two workers share a core: worker k takes core k mod n. A test marked ``exclusive_core`` (a throttled budget's
-run, a timing bound) has its core to itself: the other worker there finishes its test and starts no other until
-it ends. Without xdist (a plain `pytest`) nothing changes.
+too. `make test` runs two workers per core (the end-to-end tests mostly wait on lines and timers), so
+two workers share a core: worker k takes core k mod n. A test marked ``exclusive_core`` (a throttled budget's
+run, a timing bound) has its core to itself: the other workers there finish their tests and start no other
+until it ends. Without xdist (a plain `pytest`) nothing changes.
 """
 
 from __future__ import annotations

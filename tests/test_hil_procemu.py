@@ -377,6 +377,28 @@ def test_a_child_process_counts_against_the_memory_ceiling():
     assert "child process" in report.reason and report.peak_rss_mib >= 128
 
 
+def test_a_forked_child_is_not_charged_for_the_pages_it_shares_with_its_parent():
+    """A forked child's RssAnon holds every page it still shares with its parent: a 48 MiB program that forked was
+    read as ~100 MiB and killed under a 96 MiB ceiling it never came near (stop 79). Shares are proportional now."""
+    code = textwrap.dedent("""
+        import os, time
+        import numpy as np
+        hog = np.ones(48 << 20, np.uint8)
+        kid = os.fork()
+        if kid == 0:
+            time.sleep(1.5)
+            os._exit(0)
+        os.waitpid(kid, 0)
+    """)
+    proc = EmulatedProcessor(ProcessorSpec(memory_mib=96))
+    proc.start([PY, "-c", code], stdout=subprocess.PIPE)
+    report = proc.wait(60)
+    stats = proc.stats()
+    proc.close()
+    assert report is not None and report.kind == "ok", report
+    assert 48 <= stats["peak_rss_mib"] < 96, stats
+
+
 def test_a_child_process_runs_on_the_budget_too():
     """On a 25 % budget the child's busy loop took the core it was pinned to: only the parent was stopped."""
     work = "import time\nt = time.monotonic()\nwhile time.monotonic() - t < 2.0: pass"
