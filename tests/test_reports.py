@@ -298,6 +298,22 @@ def test_a_long_descents_pair_labels_are_thinned_to_stay_legible():
     assert [t.get_text() for t in short.axes[0].get_xticklabels()] == [r["label"] for r in recs[:8]]
 
 
+def test_the_latency_picture_names_what_it_draws_and_each_pairs_latency():
+    """Its title said "(x: no result)" over a run with a result for every pair, the bars' colours were unnamed, and a
+    0.07 s pair under a 2 s deadline was a sliver with no figure (QA of stop 78)."""
+    met = {"label": "600/300", "e2e_latency_s": 0.07, "deadline_s": 2.0, "deadline_met": True}
+
+    def said(recs: list[dict]) -> tuple[list[str], list[str]]:
+        ax = plots.latency_figure(recs).axes[0]
+        return [t.get_text() for t in ax.get_legend().get_texts()], [t.get_text() for t in ax.texts]
+
+    assert said([met, dict(met, label="300/150")]) == (["deadline", "met"], ["0.07 s", "0.07 s"])
+    late = dict(met, label="200/100", e2e_latency_s=2.4, deadline_met=False)
+    legend, values = said([met, {"label": "300/150", "status": "error"}, late])
+    assert legend == ["deadline", "met", "late", "no result"] and values == ["0.07 s", "2.4 s"]
+    assert "no result" not in plots.latency_figure([met]).axes[0].get_title()
+
+
 def test_a_picture_stopped_mid_write_leaves_the_one_before_whole(tmp_path):
     """`savefig` wrote onto the final name: a stop inside it left a truncated PNG there (review of stop 63)."""
     from reports.plots import _plt, save
