@@ -140,11 +140,13 @@ def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
     assert s["results"] == 3 and s["errors"] == 0
     target = s["cpu_fraction"]
     assert target < 0.9  # a flight budget is slower than a host core
-    fractions = [r["cpu_fraction"] for r in s["records"]]
-    # measured over the pair's processing window, from the process's own CPU time. A 128 px pair's window is ~50 ms,
-    # a few duty cycles, which a contended host can read as 1.0 (stop 75: [1.0, 1.0, 0.67] once in three full runs):
-    # the throttle must show on some pair; test_hil_fault_audit measures its efficiency on longer work
-    assert min(fractions) < min(1.0, 1.6 * target), fractions
+    # the throttle stretched the flight's own pipeline on some pair (its CPU over its wall, as the flight timed it):
+    # 0.91-0.95 unthrottled (the host budget), 0.57-0.84 at this budget's 0.56 duty: a 128 px pair is ~30 ms of CPU.
+    # The server's cpu_fraction read all three pairs as 1.0 once (stop 79; stop 75: [1.0, 1.0, 0.67] once in three
+    # full runs): it takes the run-queue wait of the flight's threads, which queue together after each SIGCONT, for
+    # host contention. test_hil_fault_audit measures the throttle's efficiency on longer work.
+    own = [r["stages"]["total"]["cpu_s"] / r["stages"]["total"]["wall_s"] for r in s["records"]]
+    assert min(own) < 0.9, (own, [r["cpu_fraction"] for r in s["records"]])
     for r in s["records"]:
         assert r["link"]["ground_bytes_received"] > 2 * 128 * 128  # both frames crossed the serial line
         assert r["link"]["result_link_s"] > 0
