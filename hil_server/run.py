@@ -959,6 +959,11 @@ def _server_note(summary: dict, c: dict) -> str:
         ("hangs", "hang", "hangs"),
         ("memory_ceiling", "memory ceiling breach", "memory ceiling breaches"),
         ("restarts", "restart", "restarts"),
+        (
+            "flight_sessions",
+            "new link session from it (Hello, Config and its unanswered pairs sent again)",
+            "new link sessions from it (Hello, Config and its unanswered pairs sent again each time)",
+        ),
         ("refused_messages", "refused message", "refused messages"),
         ("missing_telemetry", "Result without Telemetry", "Results without Telemetry"),
         ("flight_line_errors", "corrupted frame dropped", "corrupted frames dropped"),

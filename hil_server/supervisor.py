@@ -163,12 +163,23 @@ def pair_cpu_fraction(before: dict | None, after: dict) -> float:
     return d_cpu / d_avail if d_avail > 0 else float("nan")
 
 
-class Reader(threading.Thread):
-    """Moves messages from a link into the supervisor's single event queue."""
+@dataclass(frozen=True)
+class NewLinkSession:
+    """A :class:`Reader`'s event: its link's session ``epoch`` is up; ``why`` is the link's reason the one before it
+    ended (the peer gave it up, docs/protocol.md section 2 rule 7), "" for the link's first."""
 
-    def __init__(self, link, tag: str, events: queue.Queue, generation: int = 0) -> None:
+    epoch: int
+    why: str
+
+
+class Reader(threading.Thread):
+    """Moves messages from a link into the supervisor's single event queue; with ``sessions``, a
+    :class:`NewLinkSession` ahead of the first message of each link session."""
+
+    def __init__(self, link, tag: str, events: queue.Queue, generation: int = 0, sessions: bool = False) -> None:
         super().__init__(name=f"reader-{tag}", daemon=True)
         self.link, self.tag, self.events, self.generation = link, tag, events, generation
+        self.sessions = sessions
         self.stopped = threading.Event()
         # stamped here, not in the main loop: the loop may be busy (a result's line time on a slow
         # or noisy link) while the peer is perfectly alive
@@ -177,12 +188,19 @@ class Reader(threading.Thread):
     def run(self) -> None:
         from protocol.links import LinkClosed
 
+        seen: int | None = None  # the link session its messages came in so far
         while not self.stopped.is_set():
             try:
                 pkt = self.link.recv_packet(timeout=0.2)
+                up = self.link.established
             except (EOFError, OSError, LinkClosed):
                 self.events.put((self.tag, self.generation, EOFError(), 0))
                 return
+            epoch = pkt.epoch if pkt is not None else (self.link.epoch if up else None)
+            if self.sessions and epoch is not None and epoch != seen:
+                why = "" if seen is None else str(getattr(self.link, "last_error", None) or "the peer started anew")
+                self.events.put((self.tag, self.generation, NewLinkSession(epoch, why), epoch))
+                seen = epoch
             if pkt is not None:
                 self.last_message = time.monotonic()
                 self.events.put((self.tag, self.generation, pkt.message, pkt.epoch))
@@ -258,6 +276,9 @@ class FlightHandle:
         self.hello = False
         self.started = time.monotonic()
         self.replayed = 0  # pairs whose frames were sent at its start, right behind the Hello
+        # its link session the server last sent Config in (None: its first, not yet up): what is sent to it goes
+        # in that session or fails, never ahead of the Config a new session is sent (supervisor._resync_flight)
+        self.epoch: int | None = None
 
     def link_stats(self) -> dict | None:
         """This incarnation's link counters, or None once its link cannot say (closed)."""
@@ -390,6 +411,7 @@ class Supervisor:
             "refused_messages": 0,  # messages from the flight process the HIL server refused (with reasons)
             "missing_telemetry": 0,  # Results the flight process sent no Telemetry for
             "flight_line_errors": 0,  # corrupted or malformed frames from the flight process, dropped
+            "flight_sessions": 0,  # link sessions the flight program started anew (protocol.md section 2 rule 7)
         }
         self.boot_failures = 0  # flight incarnations in a row that died before their Hello
         self.no_hello_seen: tuple[int, str] = (-1, "")  # the furthest an incarnation without a Hello got, and why
@@ -412,7 +434,7 @@ class Supervisor:
             self.heartbeat_s,
             self.flight_cmd,
         )
-        self.flight_reader = Reader(self.flight.link, "flight", self.events, self.generation)
+        self.flight_reader = Reader(self.flight.link, "flight", self.events, self.generation, sessions=True)
         self.flight_reader.start()
         if self.config is not None:
             self.flight.link.send(self.config)
@@ -423,6 +445,36 @@ class Supervisor:
                 st.sent_at = time.monotonic()
                 st.stopped_s = 0.0  # its clock starts at the replay: earlier stops are not its slack
             self.flight.replayed += 1
+
+    def _resync_flight(self, new: NewLinkSession) -> None:
+        """The flight program gave up its link session and started a new one (docs/protocol.md section 2 rule 7:
+        a spec-kept program does so after 4 s without a frame): say Hello and send Config again, as a ground does
+        after a new session, and the frames of every pair it has not answered, which the old session's loss took
+        with it. Until stop 79 the server went on with Frames alone, and a program that waits for a Config after
+        a new session answered every later pair ``no_config``."""
+        assert self.flight is not None
+        first, self.flight.epoch = self.flight.epoch is None, new.epoch
+        if first:  # its link's first session: what was sent before it goes in it
+            return
+        self.counters["flight_sessions"] += 1
+        again = [st for st in to_replay([self.pairs[pid] for pid in self.order]) if st.sent_to == self.generation]
+        self.log(
+            f"supervisor: the flight program started a new link session ({printable(new.why, 200)}): Hello, Config "
+            f"and the frames of {len(again)} unanswered pair(s) sent again"
+        )
+        self._write_telemetry({"event": "flight_session", "reason": new.why, "pairs_resent": len(again)})
+        self._to_flight(Hello(role="hil-server", session=self.ground_session or 0))
+        if self.config is not None:
+            self._to_flight(self.config)
+        for st in again:  # their deadline clocks run on: the ground judges them end to end
+            st.frame_mids = {idx: self._to_flight(st.fframes[idx]) for idx in sorted(st.fframes)}
+
+    def _to_flight(self, msg) -> int:
+        """Send ``msg`` to the flight program in its link session the server knows: after that session ended it
+        fails, where it would have gone ahead of the next session's Config (:meth:`_resync_flight` sends it
+        again)."""
+        assert self.flight is not None
+        return self.flight.link.send(msg, epoch=self.flight.epoch)
 
     def _keep_no_hello_note(self) -> None:
         """Keep the furthest any incarnation without a Hello got (:meth:`FlightHandle.no_hello_note`): a restart
@@ -527,7 +579,7 @@ class Supervisor:
             # full-speed second, not per throttled CPU-second (those do less work, hil_server.budgets)
             self.config = replace(msg, options={**msg.options, "time_scale": 1.0 / self.effective_fraction})
             assert self.flight is not None
-            self.flight.link.send(self.config)
+            self._to_flight(self.config)
         elif isinstance(msg, Frame):
             if msg.pair_id is None or msg.frame_index not in (0, 1):
                 self._to_ground(Error(code="bad_frame", seq=msg.seq, text="frame needs pair_id and frame_index 0/1"))
@@ -552,7 +604,7 @@ class Supervisor:
                 st.garbage_at_complete = self.flight.line_garbage()
             if st.sent_to != self.generation:
                 st.frame_mids.clear()
-            st.frame_mids[msg.frame_index] = self.flight.link.send(fmsg)
+            st.frame_mids[msg.frame_index] = self._to_flight(fmsg)
             st.sent_to = self.generation
         return True
 
@@ -581,7 +633,7 @@ class Supervisor:
         if self.flight is not None:
             # the flight process drops the old session's half pairs (recorded here already): held, they came back
             # after 8 more pairs as a stale frame_dropped (QA 65f L1). A board is told the same way (flight_sw.board)
-            self.flight.link.send(Hello(role="hil-server", session=hello.session))
+            self._to_flight(Hello(role="hil-server", session=hello.session))
 
     def _end_ground_session(self, code: str, text: str) -> None:
         """The pairs of the ending ground session can no longer be answered: record them, clear the tables."""
@@ -598,6 +650,8 @@ class Supervisor:
             return  # a message from a dead incarnation
         if isinstance(msg, EOFError):
             self._on_flight_exit()
+        elif isinstance(msg, NewLinkSession):
+            self._resync_flight(msg)
         elif isinstance(msg, Hello):
             self.flight.hello = True
             self._answer_ground_hello()
@@ -1214,7 +1268,9 @@ def main(argv: list[str] | None = None) -> int:
     log(
         f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f} (x{duty.efficiency:.2f} = "
         f"{duty.effective:.4f} of full speed), memory {budget.memory_mib} MiB, "
-        f"deadline {budget.deadline_s} s; own memory ceiling {limit / 2**20:.0f} MiB address space"
+        # the ground's Config may set another deadline (`run --deadline 30` read "deadline 2.0 s" here; QA of stop 79)
+        f"budget deadline {budget.deadline_s} s (the ground's Config may set another); own memory ceiling "
+        f"{limit / 2**20:.0f} MiB address space"
     )
     failed: str | None = None
     try:

@@ -78,8 +78,10 @@ from protocol.stall import OWN_STALL_S
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 # A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
-# peer timeout - a throttled flight process answers late; the supervisor's heartbeat watchdog judges it.
-LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=5.0)
+# peer timeout - a throttled flight process answers late; the supervisor's heartbeat watchdog judges it. The
+# keepalive is docs/protocol.md's 1 s (section 2 rule 6): a `--flight-cmd` program kept to rule 7 gave its session
+# up after 4 s of the server's 5 s silences (QA of stop 79).
+LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=1.0)
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
 # events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per

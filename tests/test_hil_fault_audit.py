@@ -80,6 +80,9 @@ while not link.closed_by_peer:
             if len(pair) < 2:
                 continue
             del pending[msg["pair_id"]]
+            if config is None:  # a new session's pairs wait for its Config (mode new_session)
+                link.send(mf.ERROR, {{"code": "no_config", "text": "no Config in this session", "seq": pair[1]["seq"]}})
+                continue
             if args.mode == "future" and answered == 1:  # it answered this pair before its frames came (below)
                 answered += 1
                 continue
@@ -152,6 +155,16 @@ while not link.closed_by_peer:
                 link.send(mf.RESULT, {{**res, "frame_seqs": guess}})
                 link.send(mf.TELEMETRY, {{**tel, "frame_seqs": guess}})
             answered += 1
+            if args.mode == "new_session" and answered == 1:  # gives its link session up, as rule 7 has a program
+                # do after 4 s without a frame, and starts over: its pairs wait for the new session's Config
+                end = time.monotonic() + 0.3
+                while time.monotonic() < end and link.tx_data:  # its answer delivered first
+                    link.poll()
+                link.write(mf.CLOSE, struct.pack(">IB", link.rx_cum, 1) + b"starting over")
+                link.retired.add(link.peer)
+                link.new_session()
+                config, pending, backlog = None, {{}}, []
+                break  # what the old session brought is dropped with it
             if args.mode == "crash_between_pairs":  # exit once the answer is out: no pair is outstanding
                 # as soon as the ground has acknowledged every byte of it: a fixed 0.3 s let the next pair's frames
                 # arrive first on a loaded host, and its crash was then one "while processing" (CI of stop 74)
@@ -347,6 +360,18 @@ def test_a_result_without_telemetry_is_kept_and_counted(manifest, flight, tmp_pa
     assert s["supervisor_counters"]["missing_telemetry"] == 2
     assert all(e["event"] == "missing_telemetry" for e in s["flight_events"])
     assert code == 0
+
+
+def test_a_flight_program_that_starts_a_new_link_session_is_sent_hello_and_config_again(manifest, flight, tmp_path):
+    """A program kept to docs/protocol.md gives its session up after 4 s without a frame (section 2 rule 7) and
+    waits for the new session's Config, as a ground sends one. The HIL server went on with Frames alone: every
+    later pair ended "no_config" (QA of stop 79, a program written from the docs). It now says Hello and sends
+    Config again, with the frames of every pair not answered, and counts it."""
+    code, s, md = run_cli(manifest, tmp_path, *flight_cmd(flight, "new_session"))
+    assert [r["status"] for r in s["records"]] == ["result"] * 3, [r.get("text") for r in s["records"]]
+    assert code == 0 and s["supervisor_counters"]["flight_sessions"] == 1
+    assert "1 new link session from it (Hello, Config and its unanswered pairs sent again)" in md
+    assert "the flight program started a new link session" in (tmp_path / "supervisor.log").read_text()
 
 
 def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manifest, tmp_path):

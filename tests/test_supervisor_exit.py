@@ -76,9 +76,30 @@ def test_a_new_ground_session_is_passed_on_to_the_flight_process():
 
     sent: list = []
     sup = Supervisor(None, SimpleNamespace(deadline_s=2.0), None, log=lambda s: None)
-    sup.flight = SimpleNamespace(generation=1, link=SimpleNamespace(send=sent.append))  # type: ignore[assignment]
+    link = SimpleNamespace(send=lambda m, epoch=None: sent.append(m))
+    sup.flight = SimpleNamespace(generation=1, link=link, epoch=None)  # type: ignore[assignment]
     sup._new_ground_session(Hello(role="ground", session=11), epoch=1)
     sup._new_ground_session(Hello(role="ground", session=11), epoch=1)  # the same ground again
     sup._new_ground_session(Hello(role="ground", session=12), epoch=2)
     assert [(type(m).__name__, m.session) for m in sent] == [("Hello", 11), ("Hello", 12)]
     assert sup.ground_gen == 2
+
+
+def test_the_hil_servers_local_link_keeps_a_rule_7_peers_session_through_silence():
+    """docs/protocol.md section 2: a HELLO after 1 s without sending (rule 6), and a peer gives its session up after
+    `peer_timeout` without a frame (rule 7). The server's side of its local link sent one every 5 s, so a
+    `--flight-cmd` program kept to both lost its session in every 4 s the server had nothing to say (QA of stop
+    79). Here the program's timeout is 2 s: 3 s of silence on both sides must not cost it its session."""
+    from protocol.arq import ArqConfig
+
+    a_sock, b_sock = socket.socketpair()
+    server = StreamLink(a_sock, config=LOCAL_CONFIG, name="server-side")
+    program = StreamLink(b_sock, config=ArqConfig(peer_timeout=2.0, keepalive=5.0), name="their-program")
+    try:
+        assert server.wait_established(5) and program.wait_established(5)
+        epoch = program.epoch
+        time.sleep(3.0)
+        assert program.established and program.epoch == epoch, program.last_error
+    finally:
+        program.close()
+        server.close()
