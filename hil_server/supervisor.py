@@ -62,6 +62,7 @@ from reports.console import printable
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
+END_GRACE_S = 1.0  # a run's end: the flight program's time to exit after the CLOSE, before it is killed
 LAST_WORDS_S = 1.0  # a dead flight process's link is read to its end for at most this long ...
 LAST_WORDS_QUIET_S = 0.2  # ... or until it has been quiet this long (a pty gives no end of stream)
 EXIT_LINK_LOST = 3
@@ -344,7 +345,13 @@ class FlightHandle:
             self.seen[k] = now
         return out
 
-    def close(self, reason: str | None = None) -> None:
+    def close(self, reason: str | None = None, grace_s: float = 0.0) -> None:
+        """End the program: with ``grace_s``, a CLOSE first (code 0, the ground is done: docs/protocol.md section 2
+        rule 8) and that long to exit, as a board is told; then, or at once, killed with ``reason``. Until stop 79
+        a run's end killed a `--flight-cmd` program outright: its exit handlers never ran."""
+        if grace_s > 0 and self.proc.alive:
+            self.link.close()
+            self.proc.wait(grace_s)
         if reason and self.proc.alive:
             self.proc.kill(reason)
         self.link.close()
@@ -1119,7 +1126,7 @@ class Supervisor:
                 )
                 try:
                     if self.flight:
-                        self.flight.close("supervisor shutdown")
+                        self.flight.close("supervisor shutdown", grace_s=END_GRACE_S)
                         self.unlogged_bytes += getattr(self.flight.proc, "unlogged_bytes", 0)
                     # after the close: the last incarnation's count is known once its output pipe ended
                     self._write_telemetry({"event": "flight_output", "unlogged_bytes": self.unlogged_bytes})

@@ -41,6 +41,7 @@ import numpy as np, serial
 ap = argparse.ArgumentParser()
 ap.add_argument("--port")
 ap.add_argument("--mode")
+ap.add_argument("--end-file")
 args = ap.parse_args()
 port = serial.serial_for_url(args.port, baudrate=921600, timeout=0.02)
 while args.mode == "mute":  # reads its line and never writes a byte
@@ -176,6 +177,8 @@ while not link.closed_by_peer:
     if now >= next_beat:
         link.datagram(mf.HEARTBEAT, {{"time_s": now, "counter": 1}})
         next_beat = now + 0.5
+if args.end_file:  # told the ground is done (CLOSE code 0): a program's own ending runs
+    open(args.end_file, "w").write("closed by the ground")
 """
 
 
@@ -372,6 +375,17 @@ def test_a_flight_program_that_starts_a_new_link_session_is_sent_hello_and_confi
     assert code == 0 and s["supervisor_counters"]["flight_sessions"] == 1
     assert "1 new link session from it (Hello, Config and its unanswered pairs sent again)" in md
     assert "the flight program started a new link session" in (tmp_path / "supervisor.log").read_text()
+
+
+def test_a_flight_program_is_told_the_run_is_over_and_may_end_itself(manifest, flight, tmp_path):
+    """A run's end killed a --flight-cmd program outright: no CLOSE, no signal it could catch, no exit handler
+    (QA of stop 79, a program written from the docs). It is now sent CLOSE code 0, as a board is, and given
+    supervisor.END_GRACE_S to end before it is killed."""
+    end = tmp_path / "ended"
+    cmd = f"{sys.executable} {flight} --mode plain --end-file {end} --port {{port}}"
+    code, s, _ = run_cli(manifest, tmp_path / "run", "--flight-cmd", cmd)
+    assert code == 0 and [r["status"] for r in s["records"]] == ["result"] * 3
+    assert end.read_text() == "closed by the ground"
 
 
 def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manifest, tmp_path):
