@@ -24,18 +24,8 @@ def private_rss_bytes(pid: int | str = "self") -> tuple[int, int] | None:
     private peak, and it catches a peak between two polls. (wait4's ru_maxrss is not used: after
     fork+exec it still holds the parent's RSS at fork.)
     """
-    fields: dict[bytes, int] = {}
-    try:
-        with open(f"/proc/{pid}/status", "rb") as fh:
-            for line in fh:
-                key = line.split(b":", 1)[0]
-                if key in _MEM_FIELDS:
-                    fields[key] = int(line.split()[1]) * 1024
-                    if len(fields) == len(_MEM_FIELDS):
-                        break
-    except (OSError, ValueError):
-        return None
-    if b"RssAnon" not in fields:
+    fields = _proc_kib(f"/proc/{pid}/status", _MEM_FIELDS)
+    if fields is None or b"RssAnon" not in fields:
         return None  # zombie: no memory map left
     private = fields[b"RssAnon"] + fields.get(b"RssShmem", 0)
     return private, max(private, fields.get(b"VmHWM", 0) - fields.get(b"RssFile", 0))
@@ -52,15 +42,24 @@ def proportional_private_bytes(pid: int) -> int | None:
     Summed over a process tree it counts each page once. A forked child's ``RssAnon`` holds every page it still
     shares with its parent (copy-on-write), so a sum of ``RssAnon`` counted those pages twice.
     """
-    fields: dict[bytes, int] = {}
-    try:
-        with open(f"/proc/{pid}/smaps_rollup", "rb") as fh:
-            for line in fh:
-                key = line.split(b":", 1)[0]
-                if key in _PSS_FIELDS:
-                    fields[key] = int(line.split()[1]) * 1024
-    except (OSError, ValueError):
-        return None
-    if b"Pss_Anon" not in fields:
+    fields = _proc_kib(f"/proc/{pid}/smaps_rollup", _PSS_FIELDS)
+    if fields is None or b"Pss_Anon" not in fields:
         return None
     return fields[b"Pss_Anon"] + fields.get(b"Pss_Shmem", 0)
+
+
+def _proc_kib(path: str, keys: tuple[bytes, ...]) -> dict[bytes, int] | None:
+    """``keys`` of a ``/proc`` file of ``Key:  N kB`` lines, in bytes (read up to the last of them); None when the
+    file cannot be read (the process is gone)."""
+    fields: dict[bytes, int] = {}
+    try:
+        with open(path, "rb") as fh:
+            for line in fh:
+                key = line.split(b":", 1)[0]
+                if key in keys:
+                    fields[key] = int(line.split()[1]) * 1024
+                    if len(fields) == len(keys):
+                        break
+    except (OSError, ValueError):
+        return None
+    return fields
