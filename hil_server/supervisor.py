@@ -422,6 +422,7 @@ class Supervisor:
         }
         self.boot_failures = 0  # flight incarnations in a row that died before their Hello
         self.no_hello_seen: tuple[int, str] = (-1, "")  # the furthest an incarnation without a Hello got, and why
+        self.hello_seen = False  # some incarnation said Hello
         self.unlogged_bytes = 0  # the flight incarnations' output past the log's cap (procemu), closed ones
         self.closing = False  # serve() is shutting down: a second SIGTERM must not cut the summary short
         self._stall: StallClock | None = None  # this process's own stops (serve() runs it)
@@ -660,7 +661,7 @@ class Supervisor:
         elif isinstance(msg, NewLinkSession):
             self._resync_flight(msg)
         elif isinstance(msg, Hello):
-            self.flight.hello = True
+            self.hello_seen = self.flight.hello = True
             self._answer_ground_hello()
         elif isinstance(msg, Heartbeat):
             pass
@@ -1108,8 +1109,16 @@ class Supervisor:
             if self.flight is not None and not self.flight.hello:  # what its links saw, for the run's reason
                 self._keep_no_hello_note()
                 why = self.no_hello_seen[1]
+                # after a restart it is the last start's silence: "in 17 s" read as if none had ever said Hello, of
+                # a program whose first two starts had (QA of stop 79)
+                since = (
+                    f"since its restart {time.monotonic() - self.flight.started:.0f} s before the end (an earlier "
+                    "start did say Hello)"
+                    if self.hello_seen
+                    else f"in {time.monotonic() - self.t_start:.0f} s"
+                )
                 if why:
-                    self.log(f"supervisor: {NO_HELLO_LOG} in {time.monotonic() - self.t_start:.0f} s: {why}")
+                    self.log(f"supervisor: {NO_HELLO_LOG} {since}: {why}")
             self._stall.close()
             ground_reader.stopped.set()
             if self.flight_reader:
