@@ -62,7 +62,8 @@ from reports.console import printable
 # arrive meanwhile are queued and replayed.
 HEARTBEAT_TIMEOUT_S = 5.0  # at full speed; scaled by 1/duty when throttled
 MIN_GRACE_S = 2.0
-END_GRACE_S = 1.0  # a run's end: the flight program's time to exit after the CLOSE, before it is killed
+END_GRACE_S = 1.0  # a run's end: a flight program's time to exit after the CLOSE at full speed, before it is killed
+END_GRACE_MAX_S = 5.0  # ... scaled by its budget's slowdown, to this at most
 LAST_WORDS_S = 1.0  # a dead flight process's link is read to its end for at most this long ...
 LAST_WORDS_QUIET_S = 0.2  # ... or until it has been quiet this long (a pty gives no end of stream)
 EXIT_LINK_LOST = 3
@@ -198,7 +199,8 @@ class Reader(threading.Thread):
                 self.events.put((self.tag, self.generation, EOFError(), 0))
                 return
             epoch = pkt.epoch if pkt is not None else (self.link.epoch if up else None)
-            if self.sessions and epoch is not None and epoch != seen:
+            # a later session only: the old session's last message can be read after the new one is up
+            if self.sessions and epoch is not None and (seen is None or epoch > seen):
                 why = "" if seen is None else str(getattr(self.link, "last_error", None) or "the peer started anew")
                 self.events.put((self.tag, self.generation, NewLinkSession(epoch, why), epoch))
                 seen = epoch
@@ -233,9 +235,10 @@ class FlightHandle:
         heartbeat_s: float,
         flight_cmd: str | None = None,
     ) -> None:
-        from protocol.links import LOCAL_CONFIG, StreamLink
+        from protocol.links import LOCAL_CONFIG, PTY_CONFIG, StreamLink
 
         self.generation = generation
+        self.flight_cmd = flight_cmd
         self.proc = processor_factory()
         if flight_cmd:
             from protocol.faults import open_pty_pair
@@ -247,7 +250,7 @@ class FlightHandle:
             except BaseException:
                 os.close(master)
                 raise
-            self.link = StreamLink(master, config=LOCAL_CONFIG, name=f"flight{generation}")
+            self.link = StreamLink(master, config=PTY_CONFIG, name=f"flight{generation}")
             self.says_eof = False  # a pty's master reads EIO, which the link takes for "not open yet"
         else:
             parent, child = socket.socketpair()
@@ -346,11 +349,12 @@ class FlightHandle:
         return out
 
     def close(self, reason: str | None = None, grace_s: float = 0.0) -> None:
-        """End the program: with ``grace_s``, a CLOSE first (code 0, the ground is done: docs/protocol.md section 2
-        rule 8) and that long to exit, as a board is told; then, or at once, killed with ``reason``. Until stop 79
-        a run's end killed a `--flight-cmd` program outright: its exit handlers never ran."""
-        if grace_s > 0 and self.proc.alive:
-            self.link.close()
+        """End the program: with ``grace_s`` and a user's program, a CLOSE first (code 0, the ground is done:
+        docs/protocol.md section 2 rule 8) and that long to exit, as a board is told; then, or at once, killed with
+        ``reason``. Until stop 79 a run's end killed a `--flight-cmd` program outright: its exit handlers never ran.
+        Our own flight process ends on its socket's end and is spared the wait."""
+        if grace_s > 0 and self.flight_cmd and self.proc.alive:
+            self.link.say_done("the ground is done")
             self.proc.wait(grace_s)
         if reason and self.proc.alive:
             self.proc.kill(reason)
@@ -460,22 +464,35 @@ class Supervisor:
         after a new session, and the frames of every pair it has not answered, which the old session's loss took
         with it. Until stop 79 the server went on with Frames alone, and a program that waits for a Config after
         a new session answered every later pair ``no_config``."""
+        from protocol.links import LinkClosed
+
         assert self.flight is not None
-        first, self.flight.epoch = self.flight.epoch is None, new.epoch
-        if first:  # its link's first session: what was sent before it goes in it
+        if not self.flight.proc.alive:  # a dead incarnation's last words: its exit is judged, nothing is resent
+            return
+        known = self.flight.epoch
+        if known is not None and new.epoch <= known:
+            return
+        self.flight.epoch = new.epoch
+        if known is None and new.epoch == 1:  # its link's first session: what was sent at its start went in it
             return
         self.counters["flight_sessions"] += 1
-        again = [st for st in to_replay([self.pairs[pid] for pid in self.order]) if st.sent_to == self.generation]
+        pairs = [st for st in to_replay([self.pairs[pid] for pid in self.order]) if st.sent_to == self.generation]
+        for st in [st for st in pairs if st.result is not None]:  # its Result came: computed again it is a second
+            self._complete_without_telemetry(st, "its Telemetry was lost with the link session")
+        again = [st for st in pairs if st.result is None]
         self.log(
             f"supervisor: the flight program started a new link session ({printable(new.why, 200)}): Hello, Config "
             f"and the frames of {len(again)} unanswered pair(s) sent again"
         )
         self._write_telemetry({"event": "flight_session", "reason": new.why, "pairs_resent": len(again)})
-        self._to_flight(Hello(role="hil-server", session=self.ground_session or 0))
-        if self.config is not None:
-            self._to_flight(self.config)
-        for st in again:  # their deadline clocks run on: the ground judges them end to end
-            st.frame_mids = {idx: self._to_flight(st.fframes[idx]) for idx in sorted(st.fframes)}
+        try:
+            self._to_flight(Hello(role="hil-server", session=self.ground_session or 0))
+            if self.config is not None:
+                self._to_flight(self.config)
+            for st in again:  # their deadline clocks run on: the ground judges them end to end
+                st.frame_mids = {idx: self._to_flight(st.fframes[idx]) for idx in sorted(st.fframes)}
+        except LinkClosed:  # it died meanwhile: its exit comes as the reader's EOF
+            pass
 
     def _to_flight(self, msg) -> int:
         """Send ``msg`` to the flight program in its link session the server knows: after that session ended it
@@ -1135,7 +1152,9 @@ class Supervisor:
                 )
                 try:
                     if self.flight:
-                        self.flight.close("supervisor shutdown", grace_s=END_GRACE_S)
+                        # a throttled program's exit takes its share's time: 1 s at 2 % is 20 ms of a core
+                        grace = min(END_GRACE_MAX_S, END_GRACE_S / max(self.effective_fraction, 1e-3))
+                        self.flight.close("supervisor shutdown", grace_s=grace)
                         self.unlogged_bytes += getattr(self.flight.proc, "unlogged_bytes", 0)
                     # after the close: the last incarnation's count is known once its output pipe ended
                     self._write_telemetry({"event": "flight_output", "unlogged_bytes": self.unlogged_bytes})

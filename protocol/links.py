@@ -78,10 +78,12 @@ from protocol.stall import OWN_STALL_S
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 # A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
-# peer timeout - a throttled flight process answers late; the supervisor's heartbeat watchdog judges it. The
-# keepalive is docs/protocol.md's 1 s (section 2 rule 6): a `--flight-cmd` program kept to rule 7 gave its session
-# up after 4 s of the server's 5 s silences (QA of stop 79).
-LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=1.0)
+# peer timeout - a throttled flight process answers late; the supervisor's heartbeat watchdog judges it.
+LOCAL_CONFIG = ArqConfig(max_frame=1 << 16, window=1 << 22, peer_timeout=None, connect_timeout=None, keepalive=5.0)
+# The HIL server's side of a `--flight-cmd` program's pty: docs/protocol.md's 1 s keepalive (section 2 rule 6). At
+# 5 s a program kept to rule 7's 4 s timeout gave its session up while it computed (QA of stop 79); our own flight
+# process, which keeps no peer timeout, is spared the wake-ups.
+PTY_CONFIG = dataclasses.replace(LOCAL_CONFIG, keepalive=1.0)
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 RX_QUEUE_MESSAGES = 256  # received but not yet taken by recv(): beyond this the reader stops reading
 # events a retrying peer repeats (a wrong CURVE key, a second ground on a busy board): said once per
@@ -95,6 +97,7 @@ REPEAT_QUIET_S = 10.0
 __all__ = [
     "BITS_PER_BYTE",
     "LOCAL_CONFIG",
+    "PTY_CONFIG",
     "ByteStreamLink",
     "DeliveryFailure",
     "Link",
@@ -490,11 +493,24 @@ class ByteStreamLink(Link):
                 self.arq.transport_failed(reason, time.monotonic())
                 self._cv.notify_all()
 
+    def say_done(self, reason: str, flush_timeout: float = 1.0) -> None:
+        """Flush (bounded) and tell the peer the session is over (CLOSE code 0 with ``reason``), keeping the
+        transport open: a pty's master closed at once hangs its slave up, and the kernel drops what the peer had not
+        read yet, the CLOSE with it. :meth:`close` ends the link."""
+        if self._closed.is_set():
+            return
+        if self._failed is None and self.arq.established:
+            self.flush(flush_timeout)
+        with self._cv:
+            self.arq.close(reason)
+            self._cv.notify_all()
+            self._cv.wait_for(lambda: not self.arq.control_pending or self._failed is not None, 0.5)
+
     def close(self, flush_timeout: float = 1.0) -> None:
         """Flush (bounded), tell the peer (CLOSE), stop the threads, fail what is left, close the transport."""
         if self._closed.is_set():
             return
-        if self._failed is None and self.arq.established:
+        if self._failed is None and self.arq.established and not self.arq.closed:
             self.flush(flush_timeout)
         with self._cv:
             self.arq.close()

@@ -675,7 +675,8 @@ def latency_figure(records: Sequence[dict[str, Any]]) -> Any:
     if handles:
         ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     _pair_ticks(ax, labels)
-    ax.set_xlim(-0.5, len(records) - 0.5)
+    if records:
+        ax.set_xlim(-0.5, len(records) - 0.5)
     ax.set_ylabel("end-to-end latency [s]")
     ax.set_title("each pair's end-to-end latency against its deadline, in descent order")
     fig.tight_layout()

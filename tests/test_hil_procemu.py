@@ -379,7 +379,7 @@ def test_a_child_process_counts_against_the_memory_ceiling():
 
 def test_a_forked_child_is_not_charged_for_the_pages_it_shares_with_its_parent():
     """A forked child's RssAnon holds every page it still shares with its parent: a 48 MiB program that forked was
-    read as ~100 MiB and killed under a 96 MiB ceiling it never came near (stop 79). Shares are proportional now."""
+    read as 122 MiB and killed under a 96 MiB ceiling it never came near (stop 79). Shares are proportional now."""
     code = textwrap.dedent("""
         import os, time
         import numpy as np

@@ -146,7 +146,7 @@ def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
     # full runs): it takes the run-queue wait of the flight's threads, which queue together after each SIGCONT, for
     # host contention. test_hil_fault_audit measures the throttle's efficiency on longer work.
     own = [r["stages"]["total"]["cpu_s"] / r["stages"]["total"]["wall_s"] for r in s["records"]]
-    assert min(own) < 0.9, (own, [r["cpu_fraction"] for r in s["records"]])
+    assert min(own) < 0.85, (own, [r["cpu_fraction"] for r in s["records"]])
     for r in s["records"]:
         assert r["link"]["ground_bytes_received"] > 2 * 128 * 128  # both frames crossed the serial line
         assert r["link"]["result_link_s"] > 0

@@ -8,7 +8,7 @@ import time
 from types import SimpleNamespace
 
 from hil_server.supervisor import PairState, Reader, Supervisor
-from protocol.links import LOCAL_CONFIG, StreamLink
+from protocol.links import LOCAL_CONFIG, PTY_CONFIG, StreamLink
 from protocol.messages import Error
 
 
@@ -93,7 +93,7 @@ def test_the_hil_servers_local_link_keeps_a_rule_7_peers_session_through_silence
     from protocol.arq import ArqConfig
 
     a_sock, b_sock = socket.socketpair()
-    server = StreamLink(a_sock, config=LOCAL_CONFIG, name="server-side")
+    server = StreamLink(a_sock, config=PTY_CONFIG, name="server-side")  # the HIL server's side of their pty
     program = StreamLink(b_sock, config=ArqConfig(peer_timeout=2.0, keepalive=5.0), name="their-program")
     try:
         assert server.wait_established(5) and program.wait_established(5)
