@@ -449,9 +449,9 @@ class Supervisor:
         self.flight_reader = Reader(self.flight.link, "flight", self.events, self.generation, sessions=True)
         self.flight_reader.start()
         if self.config is not None:
-            self.flight.link.send(self.config)
+            self._to_flight(self.config)
         for st in to_replay([self.pairs[pid] for pid in self.order]):  # what the dead incarnation never answered
-            st.frame_mids = {idx: self.flight.link.send(st.fframes[idx]) for idx in sorted(st.fframes)}
+            self._send_frames(st)
             st.sent_to = self.generation
             if st.complete_at is not None:
                 st.sent_at = time.monotonic()
@@ -490,9 +490,13 @@ class Supervisor:
             if self.config is not None:
                 self._to_flight(self.config)
             for st in again:  # their deadline clocks run on: the ground judges them end to end
-                st.frame_mids = {idx: self._to_flight(st.fframes[idx]) for idx in sorted(st.fframes)}
+                self._send_frames(st)
         except LinkClosed:  # it died meanwhile: its exit comes as the reader's EOF
             pass
+
+    def _send_frames(self, st: PairState) -> None:
+        """(Re)send the frames of ``st`` the server holds, in order, keeping their message ids."""
+        st.frame_mids = {idx: self._to_flight(st.fframes[idx]) for idx in sorted(st.fframes)}
 
     def _to_flight(self, msg) -> int:
         """Send ``msg`` to the flight program in its link session the server knows: after that session ended it
