@@ -682,6 +682,14 @@ class Supervisor:
         elif isinstance(msg, NewLinkSession):
             self._resync_flight(msg)
         elif isinstance(msg, Hello):
+            if self.flight_cmd and not self.flight.hello:  # who a user's program says it is: kept nowhere before
+                said = ", ".join(
+                    f"{k} {printable(str(getattr(msg, k)), 128)!r}"
+                    for k in ("role", "software", "protocol_version")
+                    if k not in msg.omitted
+                )
+                left = f" (it leaves out {', '.join(msg.omitted)})" if msg.omitted else ""
+                self.log(f"supervisor: the flight program's Hello: {said or 'no fields'}{left}")
             self.hello_seen = self.flight.hello = True
             self._answer_ground_hello()
         elif isinstance(msg, Heartbeat):

@@ -374,7 +374,11 @@ def test_a_flight_program_that_starts_a_new_link_session_is_sent_hello_and_confi
     assert [r["status"] for r in s["records"]] == ["result"] * 3, [r.get("text") for r in s["records"]]
     assert code == 0 and s["supervisor_counters"]["flight_sessions"] == 1
     assert "1 new link session from it (Hello, Config and its unanswered pairs sent again)" in md
-    assert "the flight program started a new link session" in (tmp_path / "supervisor.log").read_text()
+    log = (tmp_path / "supervisor.log").read_text()
+    assert "the flight program started a new link session" in log
+    # who it said it was: only the HIL server's own Hello had been kept (QA of stop 79); it leaves software out
+    said = "supervisor: the flight program's Hello: role 'flight' (it leaves out protocol_version, software)"
+    assert log.count(said) == 1, log
 
 
 def test_a_flight_program_is_told_the_run_is_over_and_may_end_itself(manifest, flight, tmp_path):
