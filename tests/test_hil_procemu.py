@@ -46,6 +46,7 @@ def _gone(pid: int) -> bool:
         return True
 
 
+@pytest.mark.exclusive_core  # a throttle's timing: two workers share each core (stop 79)
 def test_throttle_accuracy_and_wall_scaling():
     """Achieved fraction within 10 % of the target; available wall time = CPU work / fraction.
 
@@ -75,6 +76,7 @@ def test_throttle_accuracy_and_wall_scaling():
     assert cpu[1.0] / cpu[0.05] > 5
 
 
+@pytest.mark.exclusive_core  # a throttle's timing: two workers share each core (stop 79)
 def test_idle_time_is_not_banked():
     """A slow processor that waited for I/O is not faster afterwards: after 0.6 s asleep,
     0.1 s of CPU work at f = 0.25 still takes ~0.4 s (it would take ~0.2 s if the
@@ -308,6 +310,7 @@ def test_bad_argv_is_input_error():
     assert proc.stats()["cpu_s"] == 0.0
 
 
+@pytest.mark.exclusive_core  # a throttle's timing: two workers share each core (stop 79)
 def test_throttle_adopts_a_running_process_from_now_on():
     """The calibration's probe starts at full speed and is throttled only for its measured batches: the CPU it
     used before does not count against it, work inside the block runs at the fraction, and it leaves running."""
@@ -399,6 +402,7 @@ def test_a_forked_child_is_not_charged_for_the_pages_it_shares_with_its_parent()
     assert 48 <= stats["peak_rss_mib"] < 96, stats
 
 
+@pytest.mark.exclusive_core  # a throttle's timing: two workers share each core (stop 79)
 def test_a_child_process_runs_on_the_budget_too():
     """On a 25 % budget the child's busy loop took the core it was pinned to: only the parent was stopped."""
     work = "import time\nt = time.monotonic()\nwhile time.monotonic() - t < 2.0: pass"
