@@ -48,6 +48,10 @@ chromium:
 # 51 MiB against its 41 MiB model: the memory watch had read the flight's ldconfig child as a second copy of it
 # (flight_sw.warmup.settle_allocator no longer starts one).
 TEST_WORKERS ?= $(shell echo $$(( 2 * $$(nproc) )))
+# The tests write bytecode even where PYTHONDONTWRITEBYTECODE is set (it is on this VM): otherwise each worker
+# rewrote the tests' asserts (12 s of CPU apiece) and every command a test started compiled the packages again.
+# The caches go to __pycache__ beside the sources, which git ignores. tests/conftest.py hands out the longest files
+# first (tests/file_seconds.json).
 # mypy (25 s from a cold cache) runs beside the tests at the lowest priority, on the CPU they leave idle while
 # they wait; its verdict is printed after theirs, and either failing fails the target. sh starts a background
 # job with SIGINT ignored: the traps end it with the recipe, or a Ctrl-C left it running.
@@ -56,7 +60,7 @@ test: $(STAMP) chromium
 	$(VENV)/bin/ruff format --check .
 	@nice -n 19 $(MYPY) > $(VENV)/mypy.log 2>&1 & types=$$!; \
 	  trap 'kill $$types 2>/dev/null' EXIT; trap 'exit 130' INT TERM; \
-	  HAZARD_HIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile; tests=$$?; \
+	  env -u PYTHONDONTWRITEBYTECODE HAZARD_HIL_REQUIRE_BROWSER=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile; tests=$$?; \
 	  wait $$types; typed=$$?; trap - EXIT; echo "mypy:"; cat $(VENV)/mypy.log; \
 	  [ $$tests -eq 0 ] && [ $$typed -eq 0 ]
 
