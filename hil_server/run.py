@@ -708,7 +708,15 @@ def read_called(path: Path) -> np.ndarray:
 
 
 # supervisor.jsonl events the summary keeps
-FLIGHT_EVENTS = ("restart", "refused", "missing_telemetry", "stale_result", "stale_error", "unexpected_message")
+FLIGHT_EVENTS = (
+    "restart",
+    "refused",
+    "missing_telemetry",
+    "stale_result",
+    "stale_error",
+    "stale_telemetry",
+    "unexpected_message",
+)
 MAX_FLIGHT_EVENTS = 100  # a program that crashes or misbehaves on every pair: the summary keeps the last ones
 
 
@@ -973,6 +981,11 @@ def _server_note(summary: dict, c: dict) -> str:
             "Results ignored (second ones, or for no open pair)",
         ),
         ("stale_errors", "Error about no open pair ignored", "Errors about no open pair ignored"),
+        (
+            "stale_telemetry",
+            "Telemetry ignored (a second one, or for no open pair)",
+            "Telemetry messages ignored (second ones, or for no open pair)",
+        ),
         ("unexpected_messages", "Config or Frame from it ignored", "Configs or Frames from it ignored"),
         (
             "port_refused",
@@ -1180,15 +1193,21 @@ def climb(records: list[dict]) -> str:
 
 
 def hello_note(summary: dict) -> str:
-    """Who a flight computer of one's own said it is in its Hello ("" under the HIL server, or when unknown)."""
-    h = (summary.get("ground_counters") or {}).get("flight_hello") or {}
-    if summary.get("flight") != "external" or not h:
+    """Who a flight computer or a ``--flight-cmd`` program of one's own said it is in its Hello ("" for our own
+    flight software, or when unknown). A program's Hello went to supervisor.log alone (QA of stop 79)."""
+    if summary.get("flight") == "external":
+        h, side = (summary.get("ground_counters") or {}).get("flight_hello") or {}, "flight side"
+    elif str(summary.get("flight") or "").startswith("command:"):
+        h, side = summary.get("flight_program_hello") or {}, "flight program"
+    else:
+        return ""
+    if not h:
         return ""
     who, role, version = h.get("software"), h.get("role"), h.get("protocol_version")
     omitted = h.get("omitted") or []
     said = f"it is {who!r}" if who is not None else "no name (its Hello has no software)"
     proto = f"protocol {version}" + (" by default: its Hello leaves it out" if "protocol_version" in omitted else "")
-    return f"the flight side says {said} (role {role!r}, {proto})"
+    return f"the {side} says {said} (role {role!r}, {proto})"
 
 
 def baud_note(summary: dict) -> str:
@@ -2186,12 +2205,15 @@ def _descend(checked: CheckedRun, log) -> dict:
         score_records(records)
         counters = {}
         unlogged = 0
+        program_hello: dict | None = None
         flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
         for line in server_events:
             if line.get("event") == "summary":
                 counters = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") == "flight_output":
                 unlogged = int(line.get("unlogged_bytes") or 0)
+            elif line.get("event") == "flight_program_hello":  # the last incarnation's word stands
+                program_hello = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") in FLIGHT_EVENTS:
                 flight_events.append(line)
         summary = summarize(
@@ -2212,6 +2234,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "memory_mib": budget.memory_mib if emulated else None,
                 "wall_s": wall,
                 "supervisor_counters": counters,
+                # who a --flight-cmd program's Hello says it is (ground_counters.flight_hello is the HIL server's)
+                "flight_program_hello": program_hello,
                 "flight_output_unlogged_bytes": unlogged,
                 "flight_events": list(flight_events),
                 # what the ground refused from the flight side (an external flight computer; via the HIL server, none)

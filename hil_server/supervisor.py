@@ -418,6 +418,7 @@ class Supervisor:
             "link_errors": 0,
             "stale_results": 0,
             "stale_errors": 0,
+            "stale_telemetry": 0,  # Telemetry after the pair's first, after its Error, or for no open pair
             "unexpected_messages": 0,
             "refused_messages": 0,  # messages from the flight process the HIL server refused (with reasons)
             "missing_telemetry": 0,  # Results the flight process sent no Telemetry for
@@ -690,6 +691,16 @@ class Supervisor:
                 )
                 left = f" (it leaves out {', '.join(msg.omitted)})" if msg.omitted else ""
                 self.log(f"supervisor: the flight program's Hello: {said or 'no fields'}{left}")
+                # for the run's summary: its ground's flight_hello is this server's
+                self._write_telemetry(
+                    {
+                        "event": "flight_program_hello",
+                        "role": printable(str(msg.role), 64),
+                        "software": None if "software" in msg.omitted else printable(str(msg.software), 128),
+                        "protocol_version": msg.protocol_version,
+                        "omitted": list(msg.omitted),
+                    }
+                )
             self.hello_seen = self.flight.hello = True
             self._answer_ground_hello()
         elif isinstance(msg, Heartbeat):
@@ -715,7 +726,12 @@ class Supervisor:
             self._finish_if_delivered(st)
         elif isinstance(msg, Telemetry):
             st = self._pair_for_fseqs(msg.frame_seqs)
-            if st is None or st.done:
+            if st is None or st.done or st.flight_telemetry is not None:
+                # one Telemetry per Result (docs/protocol.md); a second one, or one after an Error or for a pair
+                # closed already, vanished without a word (the ground counts its own as ignored_telemetry)
+                second = st is not None and not st.done
+                what = "a second Telemetry: the first stands" if second else "a Telemetry for no open pair"
+                self._ignore("stale_telemetry", "stale_telemetry", f"ignored {what} (frames {list(msg.frame_seqs)})")
                 return
             st.flight_telemetry = msg
             self._finish_if_delivered(st)

@@ -149,6 +149,8 @@ while not link.closed_by_peer:
                 tel["link"] = {{"result_queue_s": 500.0, "own_figure": 1.0}}
             if not (faulty and args.mode == "no_telemetry"):
                 link.send(mf.TELEMETRY, tel)
+            if args.mode == "dup_result":  # and a second Telemetry
+                link.send(mf.TELEMETRY, tel)
             if args.mode == "bad_telemetry" and answered == 1:  # and a message of another type, refused
                 link.tx_data += struct.pack(">BI", mf.HELLO_MSG, len(nested)) + nested
             if args.mode == "future" and answered == 0:  # guesses the next pair's seqs and answers it at once
@@ -321,6 +323,9 @@ def test_a_second_result_for_a_pair_does_not_replace_the_first(manifest, flight,
     assert "Results ignored" in md and any(e["event"] == "stale_result" for e in s["flight_events"])
     assert s["supervisor_counters"]["stale_errors"] == len(PAIRS) and "Errors about no open pair ignored" in md
     assert s["supervisor_counters"]["unexpected_messages"] == len(PAIRS) and "Configs or Frames from it ignored" in md
+    # a second Telemetry vanished without a word under the HIL server (the ground counted its own; QA of stop 79)
+    # (the last pair's may come after the run has ended)
+    assert s["supervisor_counters"]["stale_telemetry"] >= len(PAIRS) - 1 and "Telemetry messages ignored" in md
 
 
 def test_a_program_that_runs_but_never_says_hello_is_named(manifest, flight, tmp_path):
@@ -379,6 +384,11 @@ def test_a_flight_program_that_starts_a_new_link_session_is_sent_hello_and_confi
     # who it said it was: only the HIL server's own Hello had been kept (QA of stop 79); it leaves software out
     said = "supervisor: the flight program's Hello: role 'flight' (it leaves out protocol_version, software)"
     assert log.count(said) == 1, log
+    # ... and in the summary: it said no name, not the HIL server's "hazard-hil" (ground_counters.flight_hello)
+    assert s["flight_program_hello"] == {
+        "role": "flight", "software": None, "protocol_version": 2, "omitted": ["protocol_version", "software"]
+    }  # fmt: skip
+    assert "The flight program says no name (its Hello has no software) (role 'flight', protocol 2 by default" in md
 
 
 def test_a_flight_program_is_told_the_run_is_over_and_may_end_itself(manifest, flight, tmp_path):
@@ -835,6 +845,7 @@ def test_an_external_flight_computers_second_result_is_ignored_and_the_first_sta
     assert [(r["level"], r["degraded"]) for r in records] == [("none", True)] * 3
     ground = json.loads((tmp_path / "ground.json").read_text())
     assert ground["ignored_results"] == 3 and ground["unattributed_errors"] == 3
+    assert ground["ignored_telemetry"] >= 2  # each second Telemetry; the last pair's may come after the ground ended
 
 
 def test_lockstep_records_at_once_a_pair_answered_while_its_frames_were_on_the_line(
@@ -990,6 +1001,7 @@ def test_an_external_boards_config_echo_and_second_result_are_ignored_said_and_c
     g = s["ground_counters"]
     assert [st for _, st, _ in outcomes(s)] == ["result"] * 3
     assert g["ignored_results"] == 3 and g["ignored_other"] == 3 and g["unattributed_errors"] == 3, g
+    assert g["ignored_telemetry"] >= 2, g  # the second Telemetry too; the last pair's may come after the run's end
     assert "and 3 Configs or Frames from the flight side" in (tmp_path / "ext" / "summary.md").read_text()
 
 
