@@ -500,6 +500,10 @@ def _parse_anchor(doc: dict, where: str) -> Anchor:
     unknown = sorted(set(a) - ANCHOR_KEYS)
     if unknown:  # a misspelt key was ignored without a word (QA 66a)
         raise BudgetError(f"{w}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(ANCHOR_KEYS))}")
+    # every missing key at once, as a budget's are (hil.md section 4; QA of stop 80 found them named one a round)
+    missing = [k for k in ("description", "dmips", "units_per_s") if k not in a]
+    if missing:
+        raise BudgetError(f"{w}: missing {', '.join(repr(k) for k in missing)}")
     return Anchor(
         description=_string(a, "description", w),
         dmips=_number(a, "dmips", w),

@@ -321,6 +321,28 @@ def test_a_baseline_recorded_on_another_host_is_said(tmp_path, tiny_baseline, mo
     assert "warning: the baseline was recorded on another host (vm|elsewhere); this one is vm|here" in diff, diff
 
 
+def test_a_host_calibrated_again_since_the_baseline_is_said(tmp_path, monkeypatch):
+    """A new calibration on the same host (32.9 -> 43.3 units/s) moved every emulated case's duty cycle, and the
+    FAIL that followed read as the flight software's (QA of stop 80). Within 10 % nothing is said."""
+    from hil_server import regress
+
+    m = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 2, "degraded": 0, "latency_p50_ref_s": 0.2,
+         "e2e_latency_p50_s": 0.3, "e2e_latency_max_s": 0.4, "cpu_p50_ref_s": 0.1, "cpu_max_ref_s": 0.2}  # fmt: skip
+    case = {"scenario": "vertical", "budget": "host", "link": "zmq", "metrics": m}
+    baseline = tmp_path / "b.json"
+    rec = {"calibration": {"key": "vm|here", "measured_at": "2026-12-01", "units_per_s": 32.9}}
+    baseline.write_text(json.dumps({"cases": {"a": case}, "recorded": rec}))
+    monkeypatch.setattr(regress, "check_cases", lambda *a, **k: None)
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(m))
+    said = "this host's calibration reads 43.3 units/s, and the baseline was recorded under 32.9"
+    for units, says in ((43.3, True), (35.0, False)):
+        here = {"calibration": {"key": "vm|here", "measured_at": "2026-12-07", "units_per_s": units}}
+        monkeypatch.setattr(regress, "host_conditions", lambda here=here: (here, []))
+        _, diff, _ = check_regression(baseline, uncalibrated=True, figures=False, out=tmp_path / "o")
+        assert (said in diff) is says, diff
+        assert "another host" not in diff, diff
+
+
 def test_a_partial_update_keeps_what_the_other_cases_rest_on(tmp_path, monkeypatch):
     """`--update --cases a` rewrote the whole `recorded` block: case b, recorded on another host, then read as
     recorded on this one, and its cross-host warning was lost (stop 66's note)."""
