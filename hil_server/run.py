@@ -1026,6 +1026,31 @@ def top_site_text(r: dict) -> str:
     return f"{'clear' if sc['top_site_clear'] == 1.0 else 'NOT clear'} ({count}{on})"
 
 
+def summary_notes(summary: dict) -> list[str]:
+    """What a run's figures rest on and what went wrong beside its verdict, in the order summary.md and the report
+    page both give them ("" where one has nothing to say). The page gave only some: a run whose flight process
+    waited a quarter of its time for its core said so in summary.md alone (QA of stop 80)."""
+    s = summary
+    return [
+        budget_note(s),
+        throttle_check_note(s),
+        phase_note(s),
+        contention_note(s),
+        site_note(s),
+        pose_note(s),
+        flight_note(s),
+        session_note(s),
+        noise_note(s),
+        relay_stop_note(s),
+        server_stop_note(s),
+        ground_stop_note(s),
+        off_map_note(s),
+        full_maps_note(s),
+        *setting_notes(s),
+        fusion_note(s),
+    ]
+
+
 def summary_table(summary: dict, verdict: bool = False) -> str:
     """summary.md: the run's setting, its notes and one row per pair; ``verdict``: the run's verdict line last (the
     file's; the console says it apart)."""
@@ -1073,25 +1098,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
     )
-    notes = (
-        budget_note(s),
-        throttle_check_note(s),
-        phase_note(s),
-        contention_note(s),
-        site_note(s),
-        pose_note(s),
-        flight_note(s),
-        session_note(s),
-        noise_note(s),
-        relay_stop_note(s),
-        server_stop_note(s),
-        ground_stop_note(s),
-        off_map_note(s),
-        full_maps_note(s),
-        *setting_notes(s),
-        fusion_note(s),
-    )
-    for note in notes:
+    for note in summary_notes(s):
         if note:
             head += f"\n\n{note[0].upper()}{note[1:]}"
     if not s.get("complete", True):

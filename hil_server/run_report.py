@@ -279,7 +279,13 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
     hit = s.get("deadline_hit_rate")
     hit_ok = isinstance(hit, (int, float)) and math.isfinite(hit) and hit >= 1.0
     complete = s.get("complete", True)
-    headline = [
+    said = s.get("verdict") if isinstance(s.get("verdict"), dict) else None
+    headline = []
+    if said is not None:  # the run's own verdict and exit code: in summary.md and summary.json, not here (QA 80)
+        word = "PASS" if said.get("pass") else ("FAIL" if complete else "INCOMPLETE")
+        status = "ok" if said.get("pass") else "bad"
+        headline.append(Headline("verdict", f"{word} (exit {said.get('exit_code')})", status, "the run's verdict"))
+    headline += [
         Headline("deadline_hit_rate", hit, "ok" if hit_ok and complete else "bad"),
         Headline("results", f"{results}/{pairs}", "ok" if results == pairs and pairs else "bad", "results"),
         Headline("e2e_latency_s", _first(s, "e2e_latency_p50_s", "latency_p50_s"), label="end-to-end latency p50 [s]"),
@@ -319,7 +325,7 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
         f"{s.get('scenario')} over {s.get('link')} on {where}; deadline {s.get('deadline_s', '?')} s, judged end "
         "to end: from the ground sending a pair's last frame to the ground holding the whole Result (docs/hil.md)."
     )
-    intro = []
+    intro = [f"{said['line']} (exit {said.get('exit_code')})."] if said is not None and said.get("line") else []
     if not complete:
         done = sum(r.get("status") == "result" for r in records)
         # the table lists the pairs not run too: "only the pairs below finished" sat above a table of them (QA 72)
@@ -329,28 +335,12 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
         )
     if met is not None:
         intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
-    from hil_server.run import budget_note, site_note
+    from hil_server.run import GRID_SCORES_NOTE, summary_notes
 
-    if budget_note(s):
-        intro.append(budget_note(s)[0].upper() + budget_note(s)[1:] + ".")
-    from hil_server.run import GRID_SCORES_NOTE
-
+    # every note summary.md gives, in its order: the budget, the throttle, host contention, sites, pose, the flight
+    # side's refusals and ignored answers, lost sessions, stops, and what the figures rest on
+    intro += [note[0].upper() + note[1:] + ("" if note.endswith(".") else ".") for note in summary_notes(s) if note]
     intro.append("FP, CDI and DEM error are " + GRID_SCORES_NOTE.removeprefix("(grid): "))
-    from hil_server.run import fusion_note, setting_notes
-
-    for extra in (fusion_note(s), *setting_notes(s)):
-        if extra:
-            intro.append(extra[0].upper() + extra[1:] + ".")
-    if site_note(s):
-        intro.append(site_note(s)[0].upper() + site_note(s)[1:] + ".")
-    from hil_server.run import flight_note, pose_note, session_note
-
-    if pose := pose_note(s):  # the pose refinement's outcome and the flight side's notes (Telemetry revision 5)
-        intro.append(pose[0].upper() + pose[1:] + ".")
-    if flight := flight_note(s):  # refusals, ignored answers, dropped frames: the page said a clean PASS without
-        intro.append(flight[0].upper() + flight[1:] + ".")
-    if sessions := session_note(s):  # a session lost or restarted: said at the time, and in no output
-        intro.append(sessions[0].upper() + sessions[1:] + ".")
     if not figures:
         intro.append(NO_FIGURES_NOTE)
     sections = [

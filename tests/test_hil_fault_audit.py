@@ -256,6 +256,13 @@ def test_a_refused_result_ends_its_pair_at_once_with_the_schema_reason(manifest,
 
     page = html.unescape((tmp_path / "report.html").read_text())  # the page says why too (it showed the code alone)
     assert "error: bad_result: " in page and "Result was refused" in page
+    # the run's verdict and every note summary.md gives: the page had no PASS or FAIL (QA of stop 80)
+    assert "FAIL (exit 1)" in page and f"{s['verdict']['line']} (exit 1)." in page
+    from hil_server.run import summary_notes
+
+    text = re.sub(r"<[^>]+>", "", page)  # `code` in a note is set as <code>
+    notes = [n.replace("`", "") for n in summary_notes(s) if n]
+    assert notes and all(n[1:] in text for n in notes), [n for n in notes if n[1:] not in text]
 
 
 def test_crashes_between_pairs_are_counted_and_reported(manifest, flight, tmp_path, capsys):
