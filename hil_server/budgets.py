@@ -820,7 +820,7 @@ def calibration_notes(cal: HostCalibration | None, now: _dt.datetime | None = No
         )
     if cal.spread > NOISY_CALIBRATION_SPREAD:
         notes.append(
-            f"this host's calibration was noisy (batch spread {cal.spread:.0%} > {NOISY_CALIBRATION_SPREAD:.0%}: "
+            f"this host's calibration was noisy (batch spread {cal.spread:.1%} > {NOISY_CALIBRATION_SPREAD:.0%}: "
             "other work shared the core); re-run `hazard-hil calibrate` on a quiet host"
         )
     if not cal.throttle_efficiency:
