@@ -333,7 +333,7 @@ def write_run_report(summary: dict, path: Path, figures: bool = True) -> Path:
             f"INCOMPLETE: {s.get('reason')}. {done} of {len(records)} pairs returned a result; the table says what "
             "became of each."
         )
-    if met is not None:
+    if met is not None and said is None:  # the verdict line says it
         intro.append(f"{met} of {pairs} pairs returned a result within the deadline.")
     from hil_server.run import GRID_SCORES_NOTE, summary_notes
 
