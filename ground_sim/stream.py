@@ -135,6 +135,21 @@ TELEMETRY_GRACE_S = 10.0
 TELEMETRY_LINE_BYTES = 4096
 
 
+def hello_record(h: Hello) -> dict:
+    """Who a Hello says its sender is, as the run's files keep it (ground.json's ``flight_hello``, and the HIL
+    server's record of a ``--flight-cmd`` program's): ``role``, ``software`` (None when the Hello left it out: a
+    board that names nobody is not "hazard-hil") and ``protocol_version``, escaped; the fields it left out, read as
+    their documented defaults, under ``omitted``."""
+    out: dict = {
+        "role": printable(h.role, 64),
+        "software": None if "software" in h.omitted else printable(h.software, 128),
+        "protocol_version": h.protocol_version,
+    }
+    if h.omitted:
+        out["omitted"] = list(h.omitted)
+    return out
+
+
 def telemetry_grace_s(baud: float | None, base_s: float = TELEMETRY_GRACE_S) -> float:
     """How long a Result's Telemetry is awaited on a line of ``baud`` (None or 0: unpaced, ZeroMQ); ``base_s``
     is the grace before the line time (tests shorten it: a board that sends no Telemetry waits it out per pair)."""
@@ -711,13 +726,7 @@ def stream_descent(
 
     def said_hello(h: Hello) -> None:
         """Keep who the flight side says it is (ground.json, the summary); say what this ground cannot vouch for."""
-        new: dict = {
-            "role": printable(h.role, 64),
-            "software": None if "software" in h.omitted else printable(h.software, 128),
-            "protocol_version": h.protocol_version,
-        }
-        if h.omitted:  # read as their documented defaults: said apart from what the flight side did say
-            new["omitted"] = list(h.omitted)
+        new = hello_record(h)
         if new == state.flight_hello:
             return
         state.flight_hello = new

@@ -692,15 +692,9 @@ class Supervisor:
                 left = f" (it leaves out {', '.join(msg.omitted)})" if msg.omitted else ""
                 self.log(f"supervisor: the flight program's Hello: {said or 'no fields'}{left}")
                 # for the run's summary: its ground's flight_hello is this server's
-                self._write_telemetry(
-                    {
-                        "event": "flight_program_hello",
-                        "role": printable(str(msg.role), 64),
-                        "software": None if "software" in msg.omitted else printable(str(msg.software), 128),
-                        "protocol_version": msg.protocol_version,
-                        "omitted": list(msg.omitted),
-                    }
-                )
+                from ground_sim.stream import hello_record  # the record the ground keeps of a board's Hello
+
+                self._write_telemetry({"event": "flight_program_hello", **hello_record(msg)})
             self.hello_seen = self.flight.hello = True
             self._answer_ground_hello()
         elif isinstance(msg, Heartbeat):
