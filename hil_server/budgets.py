@@ -634,8 +634,14 @@ def _refuse_redefined(budgets: dict[str, Budget], p: Path) -> None:
             )
 
 
-def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
-    """The budget called ``name``; :class:`BudgetError` naming the choices otherwise."""
+# what `run --budget NAME` adds when NAME is no budget: a board of one's own lives in a budget file, and the choices
+# alone did not say how to name one (QA of stop 80)
+OWN_BUDGET_HINT = "a budget of your own: define it in a TOML file and give it with --budget-file, see docs/hil.md"
+
+
+def get_budget(name: str, path: str | os.PathLike | None = None, *, hint: str = "") -> Budget:
+    """The budget called ``name``; :class:`BudgetError` naming the choices otherwise (and ``hint``, said after them,
+    where the command offers a way to a budget of one's own)."""
     budgets = load_budgets(path)
     try:
         return budgets[name]
@@ -644,7 +650,8 @@ def get_budget(name: str, path: str | os.PathLike | None = None) -> Budget:
             raise BudgetError(
                 f"budget {name!r} is not in {path}, which defines {', '.join(budgets)}: name one with --budget"
             ) from None
-        raise BudgetError(f"unknown budget {name!r}; choose one of: {', '.join(budgets)}") from None
+        more = f" ({hint})" if hint else ""
+        raise BudgetError(f"unknown budget {name!r}; choose one of: {', '.join(budgets)}{more}") from None
 
 
 # --- calibration ---------------------------------------------------------------------------

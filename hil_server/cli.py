@@ -667,7 +667,7 @@ _RENDER_OPTIONS = ("scenario", "pairs", "seed", "scene", "image_size")
 def _config(args: argparse.Namespace):
     import math
 
-    from hil_server.budgets import get_budget
+    from hil_server.budgets import OWN_BUDGET_HINT, get_budget
     from hil_server.run import RunConfig
 
     defaults = getattr(args, "run_defaults", {})
@@ -702,7 +702,7 @@ def _config(args: argparse.Namespace):
         check_seed(args.seed)  # the render's terrain hash, as `render --seed`
     link = args.link or defaults.get("link")
     if link is None:  # the budget's own link: a host run over ZeroMQ, a flight board over serial
-        budget = get_budget(args.budget, args.budget_file)
+        budget = get_budget(args.budget, args.budget_file, hint=OWN_BUDGET_HINT)
         link = budget.link if args.flight == "emulated" else "serial"
         if args.corrupt and link != "serial":  # "not to --link zmq" named an option never given (QA of stop 71)
             raise InputError(

@@ -1831,13 +1831,13 @@ class CheckedRun:
 
 def check_run_config(cfg: RunConfig) -> CheckedRun:
     """Refuse bad options with one line (:class:`InputError`) before anything is calibrated, rendered or run."""
-    from hil_server.budgets import deadline_problem, get_budget
+    from hil_server.budgets import OWN_BUDGET_HINT, deadline_problem, get_budget
 
     emulated = cfg.flight == "emulated"
     kind, spec = _parse_link(cfg)
     if spec is not None and spec != cfg.link:  # --baud folded into an external serial link's spec
         cfg = replace(cfg, link=spec)
-    budget = get_budget(cfg.budget, cfg.budget_file)
+    budget = get_budget(cfg.budget, cfg.budget_file, hint=OWN_BUDGET_HINT)
     if cfg.deadline_s is not None and (why := deadline_problem(cfg.deadline_s)):
         raise InputError(f"--deadline {why}")
     deadline = float(cfg.deadline_s if cfg.deadline_s is not None else budget.deadline_s)

@@ -545,7 +545,8 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     assert "budget myboard -> cpu fraction" in (tmp_path / "o" / "supervisor.log").read_text()  # the server's too
     capsys.readouterr()
     assert main(["run", "--manifest", str(manifest), "--budget", "myboard", "--out", str(tmp_path / "x")]) == 2
-    assert "unknown budget 'myboard'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "unknown budget 'myboard'" in err and "give it with --budget-file" in err  # the way to one's own, named
 
 
 @pytest.mark.exclusive_core
