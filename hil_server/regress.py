@@ -71,6 +71,19 @@ if TYPE_CHECKING:
 # 35 % governs the shipped cases (host: +38 %).
 DEFAULT_TOLERANCES = {"hit_rate_drop": 0.0, "latency_rel": 0.35, "latency_abs_s": 0.1}
 
+
+def _near_baseline(path: Path) -> Path | None:
+    """The JSON file beside ``path`` whose name is closest to its name (difflib's ratio >= 0.8), if any."""
+    import difflib
+
+    try:
+        names = [p.name for p in path.parent.glob("*.json") if p.is_file()]
+    except OSError:
+        return None
+    near = difflib.get_close_matches(path.name, names, n=1, cutoff=0.8)
+    return path.parent / near[0] if near else None
+
+
 # The cases `regress` runs when the baseline does not exist yet (`--update`).
 DEFAULT_CASES: dict[str, dict] = {
     "vertical-host-zmq": {"scenario": "vertical", "budget": "host", "link": "zmq", "pairs": ["600/300", "300/150"]},
@@ -719,8 +732,10 @@ def check_regression(
                 f"({', '.join(DEFAULT_CASES)}), or write the file with your cases first "
                 '({"cases": {NAME: {"scenario": ..., "budget": ..., "link": ...}}})'
             )
-        print(f"regress: no baseline at {baseline}: recording the shipped cases ({', '.join(chosen)}) into it",
-              file=sys.stderr)  # fmt: skip
+        # a misspelt --baseline read as a new file, silently beside the one meant (QA of stop 80)
+        near = _near_baseline(baseline)
+        print(f"regress: no baseline at {baseline}: recording the shipped cases ({', '.join(chosen)}) into it"
+              + (f" (not {near}, which is there: did you mean it?)" if near else ""), file=sys.stderr)  # fmt: skip
         doc = {"cases": {k: {**DEFAULT_CASES[k]} for k in chosen}}
     validate_baseline(doc, str(baseline), baseline.resolve().parent)
     all_cases = doc["cases"]

@@ -641,7 +641,12 @@ def test_update_into_a_new_file_records_the_shipped_cases_named_and_only_those(t
     args = ["regress", "--uncalibrated", "--baseline", str(base), "--update", "--out", str(tmp_path / "o")]
     assert main([*args, "--cases", "vertical-host-zmq"]) == 0, capsys.readouterr().err
     assert list(json.loads(base.read_text())["cases"]) == ["vertical-host-zmq"]
-    assert "recording the shipped cases (vertical-host-zmq) into it" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "recording the shipped cases (vertical-host-zmq) into it" in err and "did you mean" not in err
+    # a misspelt name beside a baseline that is there: said, as it records into a new file (QA of stop 80)
+    typo = tmp_path / "nwe.json"
+    assert main(["regress", *args[1:3], str(typo), *args[4:], "--cases", "vertical-host-zmq"]) == 0
+    assert f"into it (not {base}, which is there: did you mean it?)" in capsys.readouterr().err
     base.unlink()
     assert main([*args, "--cases", "mine"]) == 2
     err = capsys.readouterr().err
