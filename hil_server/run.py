@@ -676,16 +676,19 @@ def verdict_line(summary: dict, min_hit_rate: float | None = None) -> str:
     return (
         f"{head}: {s['deadline_met']}/{s['pairs']} pairs returned a result within the "
         f"{_fmt(s.get('deadline_s'), 'g')} s deadline end to end "
-        f"({s['deadline_missed']} late, {s['errors']} error{'s' * (s['errors'] != 1)}{_not_run(s)}; needed: {need})"
+        f"({s['deadline_missed']} late, {_errors(s)}; needed: {need})"
         # a met deadline with a degraded answer is not the full answer: said beside the verdict, not only in the table
         + (f"; {degraded_note(s)}" if s.get("degraded") else "")
     )
 
 
-def _not_run(summary: dict) -> str:
-    """': 7 not run' when errors are pairs the run never reached (an interrupt, a lost ground), else ''."""
-    n = int(summary.get("not_run") or 0)
-    return f": {n} not run" if n == summary.get("errors") and n else (f", {n} of them not run" if n else "")
+def _errors(summary: dict) -> str:
+    """'2 errors', '3 errors, 2 of them not run', or '2 not run' when every error is a pair the run never reached (an
+    interrupt, a lost ground): "2 errors: 2 not run" called pairs that never ran errors first (QA of stop 80)."""
+    e, n = int(summary.get("errors") or 0), int(summary.get("not_run") or 0)
+    if n and n == e:
+        return f"{n} not run"
+    return f"{e} error{'s' * (e != 1)}" + (f", {n} of them not run" if n else "")
 
 
 def _fmt(v, spec: str = ".2f") -> str:
@@ -1093,7 +1096,7 @@ def summary_table(summary: dict, verdict: bool = False) -> str:
     head = (
         f"**{s['scenario']}** over **{s['link']}**{pace}, flight {s['flight']}{where}, deadline "
         f"{_fmt(s.get('deadline_s'), 'g')} s end to end: {s['results']}/{s['pairs']} results ({s['degraded']} "
-        f"degraded), {s['errors']} error{'s' * (s['errors'] != 1)}{_not_run(s)}; "
+        f"degraded), {_errors(s)}; "
         f"end to end p50 {_fmt(s['e2e_latency_p50_s'])} s, "
         f"max {_fmt(s['e2e_latency_max_s'])} s (flight p50 {_fmt(s['flight_latency_p50_s'])} s); "
         f"deadline hit rate {_fmt(100 * s['deadline_hit_rate'], '.0f')} %"
