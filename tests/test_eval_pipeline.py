@@ -19,7 +19,17 @@ def cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("render_cache")
 
 
-def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path):
+@pytest.fixture
+def no_map_figures(monkeypatch):
+    """The evaluated pairs' map figures left undrawn (about 3 CPU-s a pair), for the tests of the rows, the resume,
+    the kept truth and the caches; the tests of the figures draw them (test_evaluate_dask_matches_..._draw_the_figures,
+    test_a_rerun_with_other_seeds_leaves_no_map_or_figure_of_the_earlier_one)."""
+    from studies import report
+
+    monkeypatch.setattr(report, "figures_from_maps", lambda maps_path, out_dir, stem, px=0: [])
+
+
+def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path, no_map_figures):
     rows = ev.evaluate_scenario(
         "vertical",
         tmp_path,
@@ -95,7 +105,7 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
 
 
 def test_the_true_slope_is_computed_once_per_render_and_again_when_what_it_comes_from_changes(
-    tmp_path: Path, cache: Path, monkeypatch
+    tmp_path: Path, cache: Path, monkeypatch, no_map_figures
 ):
     """The true slope and roughness (the scene rastered at the renderer's footprint cell: 8 of a 2400 m pair's 9 s)
     were computed again for every preset scored on a pair, and on every run."""
@@ -128,7 +138,7 @@ def test_the_true_slope_is_computed_once_per_render_and_again_when_what_it_comes
     assert not list(pair.glob(".*.tmp"))
 
 
-def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path):
+def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path, no_map_figures):
     """The copy of an --out resumed from the original's pairs (absolute paths in runs/render.jsonl) for as long as
     the original existed."""
     import shutil
@@ -155,7 +165,7 @@ def test_pose_knowledge_errors_raise_dem_error(cache: Path):
     assert perfect["slope_mean_abs_deg"] is None  # truth slope skipped on request
 
 
-def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, cache: Path):
+def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, cache: Path, no_map_figures):
     """A non-default terrain raster cap renders other pairs: own cache directory and task ids, its cap in them."""
     (default,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
     rows = ev.evaluate_scenario(

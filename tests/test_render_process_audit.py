@@ -36,10 +36,11 @@ def pair_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def processed(pair_dir, tmp_path_factory) -> tuple[Path, Path]:
-    """The pair processed twice into two directories."""
+    """The pair processed twice into two directories, without the pictures (about 1.2 CPU-s each): these tests read
+    the arrays, result.json, score.json and report.html; test_hazard_picture_greys_the_unknown_state draws them."""
     a, b = tmp_path_factory.mktemp("p1"), tmp_path_factory.mktemp("p2")
     for out in (a, b):
-        assert main(["process", str(pair_dir), "--out", str(out)]) == 0
+        assert main(["process", str(pair_dir), "--out", str(out), "--no-figures"]) == 0
     return a, b
 
 

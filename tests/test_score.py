@@ -116,7 +116,7 @@ def test_our_process_output_scores_as_process_saw_it(descent, tmp_path, capsys):
     """`process` scores its output as `score` does (the flight side never reads the truth, DESIGN.md): its own
     vs_truth over the map's covered pixels differed from `score`'s by the edge band."""
     d = descent / "600_300"
-    assert main(["process", str(d), "--out", str(tmp_path / "p")]) == 0
+    assert main(["process", str(d), "--out", str(tmp_path / "p"), "--no-figures"]) == 0  # its scores, not pictures
     said, _ = capsys.readouterr()
     assert "vs_truth" not in json.loads((tmp_path / "p" / "result.json").read_text())  # the flight side's record
     own = json.loads((tmp_path / "p" / "score.json").read_text())
@@ -231,7 +231,7 @@ def test_process_output_scored_against_another_pair_is_refused(descent, tmp_path
     (and blamed the detector for the other pair's hazards)."""
     a, b = sorted(p for p in descent.iterdir() if (p / "pair.json").is_file())[:2]
     out = tmp_path / "p"
-    assert main(["process", str(a), "--out", str(out)]) == 0
+    assert main(["process", str(a), "--out", str(out), "--no-figures"]) == 0  # the pair it records, not pictures
     capsys.readouterr()
     assert main(["score", str(a), str(out)]) in (0, 1)  # its own pair: scored (1 only if FP is over the limit)
     assert "made from another pair" not in capsys.readouterr().out

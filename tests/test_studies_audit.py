@@ -94,6 +94,23 @@ def _eval(tmp_path: Path, out: str, px: int) -> list[str]:
     ]
 
 
+@pytest.fixture
+def no_map_figures(monkeypatch):
+    """The evaluated pairs' map figures left undrawn (about 3 of a 48 px `evaluate`'s 4 CPU-s), for the tests of
+    what they do not touch: tables, messages, exit codes, caches. The tests of the figures and their place on the
+    page draw them (test_another_camera_into_the_same_out_..., test_a_rerun_stopped_before_its_report_...)."""
+    from studies import report
+
+    monkeypatch.setattr(report, "figures_from_maps", lambda maps_path, out_dir, stem, px=0: [])
+
+
+@pytest.fixture
+def no_landing_figures(monkeypatch):
+    """A campaign's figures left undrawn, as test_a_partial_landings_page_... does, for the tests of its files and
+    numbers (test_the_partial_figures_are_titled_incomplete draws them)."""
+    monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: [])
+
+
 def _metrics(path: Path) -> dict:
     from studies.evaluate import read_metrics_csv
 
@@ -156,7 +173,7 @@ def _campaign() -> ld.Campaign:
 
 
 def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to_the_same_numbers(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, no_landing_figures
 ):
     real = _ctrl_c_at_third_group(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
@@ -186,7 +203,7 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
     assert done == fresh
 
 
-def test_a_lost_campaign_json_does_not_let_another_campaigns_landings_pass_as_this_ones(tmp_path):
+def test_a_lost_campaign_json_does_not_let_another_campaigns_landings_pass_as_this_ones(tmp_path, no_landing_figures):
     """The task ids (g00000, ...) name no scene: with campaign.json gone, a `mare` campaign into the same --out
     reused a `thesis` landing and reported it as its own."""
     other = ld.Campaign(("thesis",), 1, (1000,), "held-out", ("fast",), 1, None, 64)
@@ -241,7 +258,7 @@ def test_sensitivity_summary_counts_the_samples_without_a_dem_instead_of_droppin
     assert "no sample of [('lateral', 'fast', 150)] has a DEM error" in capsys.readouterr().err
 
 
-def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path, capsys):
+def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path, capsys, no_map_figures):
     """metrics.csv was rewritten with the second scenario's rows alone; the first's vanished without a word."""
     from studies.evaluate import read_metrics_csv
 
@@ -271,7 +288,7 @@ def test_a_tuning_campaign_takes_the_whole_set_when_the_default_count_is_larger(
         resolve_seeds(args, 100)
 
 
-def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys):
+def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys, no_map_figures):
     """A full disk or a directory where metrics.csv goes ended evaluate, sensitivity and landings in tracebacks."""
     out = tmp_path / "out"
     (out / "metrics.csv").mkdir(parents=True)  # in the way of the study's last write
@@ -296,7 +313,7 @@ def test_a_failed_multi_frame_descent_is_one_line_and_exit_1(tmp_path, capsys, m
     assert "hazard-hil evaluate: multi-frame: 1 task(s) failed" in err and "rerun the same command" in err
 
 
-def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
+def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys, no_map_figures):
     """... and a study that replaces another's page in a shared --out says so (it replaced it without a word)."""
     (tmp_path / "out" / "report").mkdir(parents=True)
     (tmp_path / "out" / "report" / "index.html").write_text("<title>hazard-hil sensitivity (thesis sec 6.3)</title>")
@@ -310,7 +327,9 @@ def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
         assert "calibrated P(safe) is not fitted for it" in text and "pose refinement is skipped" in text
 
 
-def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_path, capsys, monkeypatch):
+def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(
+    tmp_path, capsys, monkeypatch, no_map_figures
+):
     from studies import report
 
     def interrupted(*args, **kwargs):
@@ -431,7 +450,7 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
 
 
-def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(tmp_path, capsys):
+def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(tmp_path, capsys, no_map_figures):
     """runs/render.jsonl vouched for a cached pair whose image was truncated since: every rerun failed on it, though
     the error said "rerun the same command to retry them" (stop 63's QA). It is now found, removed and rendered
     again, and said."""
@@ -455,7 +474,9 @@ def _scene_eval(tmp_path: Path, scene: Path, out: str) -> dict:
     return {k: v for k, v in row.items() if k not in ("pipeline_s", "pair", "timings")}
 
 
-def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(tmp_path, capsys, monkeypatch):
+def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(
+    tmp_path, capsys, monkeypatch, no_map_figures
+):
     """QA 65b H2: the render cache is keyed by the scene's name, so an edited preset (a) or truth rule (b) was
     scored on the old renders: "reusing 4 of 4", or "computing them again" while the renders were reused. Each
     change now draws the pairs again and scores them: the rerun gives what a fresh --out gives."""
@@ -580,7 +601,9 @@ def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, cap
     "seeds, said",
     [(["--seed-set", "tuning", "--seeds", "1"], "tuning seeds: "), (["--seed-list", "5,1000"], "seed(s) 5 (not held")],
 )
-def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(tmp_path, capsys, seeds, said):
+def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(
+    tmp_path, capsys, seeds, said, no_map_figures
+):
     """QA 65b M3: --seed-set tuning, or a --seed-list pooling tuning and held-out seeds, was only named; the pasted
     tables_<scenario>.md named neither seeds nor scene nor camera, and metrics.csv had no camera column."""
     from studies.evaluate import read_metrics_csv

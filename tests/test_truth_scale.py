@@ -20,6 +20,24 @@ CAM = Camera(128, 128, F128, F128, 63.5, 63.5)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 
+@pytest.fixture(scope="module")
+def oblique():
+    """The thesis scene (seed 1000) seen from 1200 m at 45 deg with its sun, a view that takes the footprint raster
+    for its truth: (scene, pose, sun, view), rendered once for the tests that read it (none changes it)."""
+    sc = load_scene("thesis", 1000)
+    pose = Pose([0.0, -1500.0, 1200.0], look_rotation(45.0))
+    sun = Sun(135.0, 25.0)
+    return sc, pose, sun, render_view(sc, CAM, pose, sun, noise=False)
+
+
+@pytest.fixture(scope="module")
+def vertical_80m():
+    """The thesis scene (seed 1000) seen straight down from 80 m under a high sun, a view that keeps its view raster
+    for the truth: (scene, view), rendered once for the tests that read it (none changes it)."""
+    sc = load_scene("thesis", 1000)
+    return sc, render_view(sc, CAM, Pose([0.0, 0.0, 80.0], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
+
+
 def _surface(x, y):
     return np.sin(x / 1.3) * 0.8 + np.cos(y / 0.9) * x / 10.0 + 0.05 * x
 
@@ -103,10 +121,8 @@ def test_a_high_view_sees_the_footprint_scale_hazards_a_low_view_sees():
     assert np.mean(got[ref]) > 0.8 and np.mean(got == ref) > 0.97  # the view-raster truth: 5 of 16, 89 %
 
 
-def test_a_high_oblique_view_takes_its_slope_truth_at_the_footprint_scale():
-    sc = load_scene("thesis", 1000)
-    pose = Pose([0.0, -1500.0, 1200.0], look_rotation(45.0))
-    v = render_view(sc, CAM, pose, Sun(135.0, 25.0), noise=False)
+def test_a_high_oblique_view_takes_its_slope_truth_at_the_footprint_scale(oblique):
+    sc, _, _, v = oblique
     cell = v.info["truth_cell_m"]
     assert v.info["raster_cell_m"] > 2 * cell and cell == 1.0  # a 128 px camera: 0.5 m would take 436 cells a pixel
     X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
@@ -214,11 +230,10 @@ def test_evaluate_takes_the_renderers_view_raster_where_it_keeps_one(altitude):
         {"raster_origin_m": [10**400, 0]},
     ],
 )
-def test_a_render_record_that_is_not_whole_falls_back_to_the_scene(damage):
+def test_a_render_record_that_is_not_whole_falls_back_to_the_scene(damage, vertical_80m):
     from studies.evaluate import recorded_truth_planes
 
-    sc = load_scene("thesis", 1000)
-    v = render_view(sc, CAM, Pose([0.0, 0.0, 80.0], look_rotation(0.0)), Sun(0.0, 89.0), noise=False)
+    sc, v = vertical_80m
     X, Y = (v.world_xy[..., k].ravel().astype(np.float64) for k in (0, 1))
     assert recorded_truth_planes(sc, v.info, X, Y) is not None
     assert recorded_truth_planes(sc, v.info | damage, X, Y) is None
@@ -247,13 +262,10 @@ def test_one_predicate_says_where_a_render_took_its_truth_finer_than_its_view(re
     assert footprint_truth(str(tmp_path)) is (cell is not None)
 
 
-def test_a_frame_without_hazard_truth_keeps_every_other_byte_and_its_pair_keeps_frame_0s_truth():
+def test_a_frame_without_hazard_truth_keeps_every_other_byte_and_its_pair_keeps_frame_0s_truth(oblique):
     from ground_sim.descent import render_views
 
-    sc = load_scene("thesis", 1000)
-    pose = Pose([0.0, -1500.0, 1200.0], look_rotation(45.0))  # takes the footprint raster (test above)
-    sun = Sun(135.0, 25.0)
-    full = render_view(sc, CAM, pose, sun, noise=False)
+    sc, pose, sun, full = oblique  # takes the footprint raster (test above)
     bare = render_view(sc, CAM, pose, sun, noise=False, hazard_truth=False)
     for k in ("image", "elevation", "depth", "shadow", "world_xy", "radiance"):
         assert np.array_equal(getattr(full, k), getattr(bare, k)), k
