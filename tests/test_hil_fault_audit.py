@@ -538,7 +538,7 @@ def test_a_budget_of_ones_own_runs_from_its_file(manifest, tmp_path, capsys):
     )
     path = tmp_path / "boards.toml"
     path.write_text(shipped[: shipped.index("[budget.")] + board)  # the shipped anchor, one board
-    argv = ["run", "--manifest", str(manifest), "--budget", "myboard", "--budget-file", str(path)]
+    argv = ["run", "--manifest", str(manifest), "--budget", "myboard", "--budget-file", str(path), "--no-figures"]
     code = main([*argv, "--out", str(tmp_path / "o")])
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert code == 0 and s["budget"] == "myboard" and s["budget_file"] == str(path) and s["deadline_s"] == 6.0
@@ -597,7 +597,7 @@ def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(m
 def run_external(manifest: Path, out: Path, link: str, *extra: str) -> tuple[int, dict, str]:
     """`hazard-hil run --flight external` with a 30 s deadline: (exit code, summary.json, summary.md)."""
     argv = ["run", "--manifest", str(manifest), "--flight", "external", "--link", link, "--deadline", str(DEADLINE_S)]
-    code = main([*argv, "--out", str(out), *extra])
+    code = main([*argv, "--out", str(out), "--no-figures", *extra])  # the files these tests read, not the pictures
     return code, strict_json(out / "summary.json"), (out / "summary.md").read_text()
 
 

@@ -46,7 +46,7 @@ def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manif
     # must not.
     out = tmp_path / "run"
     args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--baud", "115200"]
-    args += ["--full-maps", "--deadline", "0.1", "--out", str(out)]
+    args += ["--full-maps", "--deadline", "0.1", "--out", str(out), "--no-figures"]  # its files, not pictures
     assert cli(args) == 1  # a missed deadline fails the run
     assert "FAIL: " in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
@@ -78,7 +78,7 @@ def test_baud_0_runs_the_loopback_line_unpaced_as_serial_dev_at_0_does(manifest,
     # `--baud 0` was refused while `serial:DEV@0` meant unpaced; an unset --baud is the default 921600
     for baud, said in (["0"], "(unpaced)"), ([], "(921600 baud)"):
         out = tmp_path / f"run{len(baud)}"
-        args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host"]
+        args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--no-figures"]
         assert cli([*args, *(["--baud", *baud] if baud else []), "--out", str(out)]) == 0
         assert f"over **serial** {said}" in (out / "summary.md").read_text()
         ground = json.loads((out / "received" / "ground.json").read_text())
@@ -309,7 +309,7 @@ def _alive(pid: int) -> bool:
 def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, tmp_path, sig):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
-    cmd += ["--budget", "snapdragon801", "--baud", "115200", "--out", str(out)]
+    cmd += ["--budget", "snapdragon801", "--baud", "115200", "--out", str(out), "--no-figures"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen: set[int] = set()
     t0 = time.monotonic()
@@ -408,7 +408,9 @@ def test_a_killed_hil_server_is_named_as_killed_and_blamed_for_the_pair_in_fligh
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
     cmd += ["--budget", "host", "--deadline", "10", "--flight-cmd", f"{sys.executable} {slow} --port {{port}}"]
-    proc = subprocess.Popen([*cmd, "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [*cmd, "--out", str(out), "--no-figures"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     try:
         t0 = time.monotonic()
         server = None

@@ -323,7 +323,7 @@ def test_a_pair_in_flight_when_the_run_is_stopped_is_interrupted_not_not_run(man
     # the second pair's answer trickles (a record of 1 MB, 640 B/s): it is in flight when the signal comes
     cmd = f"{sys.executable} {hostile} --declare {1 << 20} --port {{port}}"
     argv = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--deadline", "30"]
-    argv += ["--out", str(out), "--budget", "host", "--link", "serial", "--flight-cmd", cmd]
+    argv += ["--out", str(out), "--budget", "host", "--link", "serial", "--flight-cmd", cmd, "--no-figures"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         results = out / "received" / "results.jsonl"

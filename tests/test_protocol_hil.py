@@ -238,7 +238,7 @@ def test_ctrl_z_does_not_stop_a_run_that_relays_its_own_serial_line(manifest, tm
     on it failed as link_down, the run recorded complete and FAIL (stop 63's QA). The SIGTSTP is now held and said;
     a SIGSTOP cannot be, and the summary says the line stopped with the run."""
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--budget", "host",
-           "--link", "serial", "--out", str(tmp_path / "out")]  # fmt: skip
+           "--link", "serial", "--out", str(tmp_path / "out"), "--no-figures"]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert proc.stdout is not None
     lines = []
