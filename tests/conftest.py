@@ -51,12 +51,16 @@ def _shared_root(tmp_path_factory):
 
 @pytest.fixture(scope="session", autouse=True)
 def _descent_cache(tmp_path_factory):
-    """The session's render cache, shared by the workers."""
-    import hilkit  # here, not at the top: numpy, which it imports, starts its threads after the worker is pinned
+    """The session's render caches (tests/hilkit.py's descents, tests/evalpairs.py's pairs), shared by the workers."""
+    # here, not at the top: numpy, which they import, starts its threads after the worker is pinned
+    import evalpairs
+    import hilkit
 
     hilkit.DESCENT_CACHE[:] = [_shared_root(tmp_path_factory) / "descent-cache"]
+    evalpairs.PAIR_CACHE[:] = [_shared_root(tmp_path_factory) / "eval-pairs"]
     yield
     hilkit.DESCENT_CACHE.clear()
+    evalpairs.PAIR_CACHE.clear()
 
 
 @pytest.fixture(autouse=True)

@@ -176,11 +176,12 @@ def test_a_second_run_into_the_same_out_leaves_nothing_of_the_first(tmp_path):
     run's sigma beside the thesis maps, where a reader would take it for theirs."""
     d, _ = _pair(tmp_path)
     out = tmp_path / "out"
-    assert main(["process", str(d), "--out", str(out), "--preset", "fast"]) == 0
+    # the maps alone: an earlier run's pictures go as its other outputs do (test_process_no_figures_writes_...)
+    assert main(["process", "--no-figures", str(d), "--out", str(out), "--preset", "fast"]) == 0
     assert (out / "sigma.npy").is_file()
     filled, elev = np.load(out / "filled.npy"), np.load(out / "elevation.npy")
     assert filled.dtype == bool and filled.shape == elev.shape and np.isfinite(elev[filled]).all()
-    assert main(["process", str(d), "--out", str(out), "--preset", "thesis"]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(out), "--preset", "thesis"]) == 0
     assert json.loads((out / "result.json").read_text())["preset"] == "thesis"
     assert not (out / "sigma.npy").exists() and not (out / "filled.npy").exists()
 
@@ -206,7 +207,7 @@ def test_process_holds_its_out_as_the_other_commands_do(tmp_path, capsys):
     finally:
         proc.kill()
         proc.wait()
-    assert main(["process", str(d), "--out", str(out)]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(out)]) == 0
 
 
 def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_path, monkeypatch, capsys):
@@ -233,7 +234,8 @@ def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_
     said = capsys.readouterr().err
     assert "it holds this run's elevation.npy, hazard.npy, state.npy only (no result.json: incomplete)" in said
     monkeypatch.setattr(cli, "_save_npy", saved)
-    assert main(["process", str(d), "--out", str(out), "--preset", "thesis"]) == 0
+    # a whole earlier run again (its maps, result.json and page; pictures are outputs as these are)
+    assert main(["process", "--no-figures", str(d), "--out", str(out), "--preset", "thesis"]) == 0
     capsys.readouterr()
     real_unlink = Path.unlink
 
@@ -252,7 +254,7 @@ def test_a_run_interrupted_while_it_writes_leaves_nothing_of_the_run_before(tmp_
 def test_process_deadline_zero_is_degraded(tmp_path, capsys):
     d, _ = _pair(tmp_path)
     out = tmp_path / "out0"
-    assert main(["process", str(d), "--out", str(out), "--deadline", "0"]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(out), "--deadline", "0"]) == 0
     doc = json.loads((out / "result.json").read_text())
     assert doc["level"] == "image_only" and doc["degraded"] is True
     # and why: the plan had no time left for the coarse DEM (result.json keeps the figures)
@@ -276,7 +278,7 @@ def test_an_image_only_map_of_every_preset_calls_no_ground_safe_and_offers_no_si
     monkeypatch.setattr(pipeline.Clock, "decide", lambda self, info, stage, reserve_s: not stage.endswith("_dem"))
     for preset in ("fast", "thesis", "fast_v1"):
         out = tmp_path / preset
-        assert main(["process", str(d), "--out", str(out), "--preset", preset]) == 0
+        assert main(["process", "--no-figures", str(d), "--out", str(out), "--preset", preset]) == 0  # maps: no picture
         doc = json.loads((out / "result.json").read_text())
         assert doc["level"] == "image_only" and doc["sites"] == [], (preset, doc["sites"])
         hazard, state = np.load(out / "hazard.npy"), np.load(out / "state.npy")

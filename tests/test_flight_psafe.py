@@ -138,10 +138,11 @@ def test_psafe_is_calibrated_on_a_tuning_scene():
     assert hi.mean() > 0.3 and safe[hi].mean() > 0.97
 
 
-def _fp_tp(pair, sun: bool = True, **over) -> tuple[float, float]:
-    """(FP, TP) in % of the covered pixels: undetected hazards and truly safe ground called safe."""
+def _fp_tp(pair, sun: bool = True, res=None, **over) -> tuple[float, float]:
+    """(FP, TP) in % of the covered pixels: undetected hazards and truly safe ground called safe (``res``: the
+    result of ``_run(pair, sun, **over)`` where the caller has it already)."""
     truth = pair.truth["hazard"]
-    res = _run(pair, sun, **over)
+    res = _run(pair, sun, **over) if res is None else res
     cov = res.covered & np.isfinite(truth)
     called = (res.state == STATE_SAFE) & cov
     n = cov.sum()
@@ -197,7 +198,7 @@ def test_a_256_px_camera_is_called_by_its_own_model_within_the_fp_limit():
     res = _run(low, True)
     assert "psafe_fallback" not in res.info and res.info["psafe_call"] == model_call(load_model(str(SHIPPED_MODELS[1])))
     assert res.info["psafe_safe_share"] == load_model(str(SHIPPED_MODELS[1])).info["safe_share"]
-    assert _fp_tp(low, psafe_model="gaussian")[0] > 1.0 and _fp_tp(low)[0] <= 1.0
+    assert _fp_tp(low, psafe_model="gaussian")[0] > 1.0 and _fp_tp(low, res=res)[0] <= 1.0
     high = eval_pair("approach", "approach", HELD_OUT_SEEDS[0], "600/300", image_px=256)
     fp, tp = _fp_tp(high)
     assert fp <= 1.0 and tp > _fp_tp(high, psafe_model="gaussian")[1] + 15.0
@@ -217,8 +218,15 @@ def test_the_shading_slope_calls_more_safe_ground_within_the_fp_limit():
     assert tp_sun > tp_blind + 2.0, (tp_sun, tp_blind)
 
 
+@pytest.fixture(scope="module")
+def tuning_run():
+    """The tuning pair vertical 600/300 and ``fast``'s run on it, told its sun: what the grid tests read (only)."""
+    pair = eval_pair("vertical", "default", TUNING_SEEDS[0], "600/300")
+    return pair, _run(pair)
+
+
 @pytest.mark.slow
-def test_the_grid_calls_what_the_pixels_call():
+def test_the_grid_calls_what_the_pixels_call(tuning_run):
     """The world grid (what sites, the fused map and the HIL Result read) takes the pixels' call: read back at
     each pixel's true ground point it calls as much truly safe ground safe as the pixel map, and lets no more
     hazards through. A cell safe only where every pixel its bilinear read touches was called safe
@@ -228,7 +236,7 @@ def test_the_grid_calls_what_the_pixels_call():
     from protocol.pairdir import STATE_OUTSIDE
     from studies.multiframe import pixel_world, sample_cells
 
-    pair = eval_pair("vertical", "default", TUNING_SEEDS[0], "600/300")
+    pair, run = tuning_run
     truth = pair.truth["hazard"]
     xy = pixel_world(pair)
 
@@ -242,7 +250,7 @@ def test_the_grid_calls_what_the_pixels_call():
             out.append((100.0 * float((c & (truth >= 1.0)).sum()) / n, 100.0 * float((c & (truth < 1.0)).sum()) / n))
         return out[0], out[1]
 
-    (fp_px, tp_px), (fp_g, tp_g) = fp_tp(_run(pair))
+    (fp_px, tp_px), (fp_g, tp_g) = fp_tp(run)
     assert tp_px > 20.0 and fp_px <= 1.0
     assert abs(tp_g - tp_px) < 1.0 and fp_g <= fp_px + 0.05, (tp_px, tp_g, fp_px, fp_g)
     (_, tp_px0), (_, tp_g0) = fp_tp(_run(pair, grid_call_share=0.999))
@@ -250,7 +258,7 @@ def test_the_grid_calls_what_the_pixels_call():
 
 
 @pytest.mark.slow
-def test_the_grid_reports_the_dems_gap_fills_as_the_pixel_map_does():
+def test_the_grid_reports_the_dems_gap_fills_as_the_pixel_map_does(tuning_run):
     """The DEM carries its elevation up to 1 m into dark shadow (``dark_fill_m``); the pixel map reports those
     fills, and now so does the grid (``HazardGrid.dem``, what a Result sends and the fused map reports), read
     back at each pixel's true ground point: its DEM coverage of the covered pixels is within 1 point of the
@@ -258,9 +266,9 @@ def test_the_grid_reports_the_dems_gap_fills_as_the_pixel_map_does():
     stage and the sites read is unchanged: matched elevations only, and a match beats a fill beside it."""
     from studies.multiframe import pixel_world, sample_cells
 
-    pair = eval_pair("vertical", "default", TUNING_SEEDS[0], "600/300")
+    pair, on = tuning_run
     xy = pixel_world(pair)
-    on, off = _run(pair), _run(pair, grid_dem_filled=False)
+    off = _run(pair, grid_dem_filled=False)
     cov = on.covered & np.isfinite(pair.truth["hazard"])
 
     def coverage(g, layer) -> float:

@@ -95,25 +95,31 @@ def test_eval_cache_of_another_raster_is_refused(tmp_path):
     import json
 
     from eval_flight import cached_raster, case_key, render_case
+    from synthetic import make_pair, plane
 
     from ground_sim.render import RENDER_VERSION
+    from protocol.pairdir import Pair, write_pair
 
     assert case_key("approach", 0) == "approach_s0_tiles"
     assert case_key("approach", 0, raster="view") == "approach_s0"
     assert case_key("approach", 0, 20_000, "view") == "approach_s0_cells20000"
     d = tmp_path / "approach_s0_tiles" / "500_250"
-    d.mkdir(parents=True)
+    # a whole pair (a small synthetic one: a cache hit reads its files' structure, not what they show), from before
+    # pairs recorded their render fingerprints (trusted here), of this renderer version (another one would be
+    # redrawn, not refused: ground_sim.render_cache)
+    cam, p1, p2, i1, i2, _ = make_pair(64, 500.0, 250.0, plane(0.0), seed=1)
+    write_pair(d, Pair(cam, (p1, p2), (i1, i2)))
+    doc = json.loads((d / "pair.json").read_text())
     views = [{"raster_cell_over_target": 2.2}, {"raster_cell_over_target": 2.6}]
-    # a pair of this renderer version (another one would be redrawn, not refused: ground_sim.render_cache)
-    (d / "pair.json").write_text(json.dumps({"render": views, "render_version": RENDER_VERSION}))
+    (d / "pair.json").write_text(json.dumps({**doc, "render": views, "render_version": RENDER_VERSION}))
     assert cached_raster(d) == "view"
     with pytest.raises(SystemExit, match="raster=view renders, not tiles"):
         render_case("approach", 0, tmp_path, [250])
     tiled = [dict(v, raster_tiles=4) for v in views]
-    (d / "pair.json").write_text(json.dumps({"render": tiled, "render_version": RENDER_VERSION}))
+    (d / "pair.json").write_text(json.dumps({**doc, "render": tiled, "render_version": RENDER_VERSION}))
     assert cached_raster(d) == "tiles"
     (e,) = render_case("approach", 0, tmp_path, [250])
-    assert e["pair_dir"] == str(d)
+    assert e["pair_dir"] == str(d) and json.loads((d / "pair.json").read_text())["render"] == tiled  # reused
 
 
 def test_library_caches_are_scored_per_scene_and_fitted_on_tuning_seeds_only(tmp_path):

@@ -217,7 +217,7 @@ def test_three_states_reach_the_result_and_process_outputs(tmp_path, no_256_mode
     # the process command writes them
     d = write_pair(tmp_path / "pair", Pair(cam, (p1, p2), (i1, i2), truth={"elevation": z}))
     out = tmp_path / "out"
-    assert main(["process", str(d), "--out", str(out)]) == 0
+    assert main(["process", "--no-figures", str(d), "--out", str(out)]) == 0  # the arrays: no picture read
     st = np.load(out / "state.npy")
     ps = np.load(out / "psafe.npy")
     hz = np.load(out / "hazard.npy")
