@@ -66,7 +66,7 @@ from hil_server.budgets import (
     ThrottleCheck,
     UncalibratedWarning,
 )
-from hil_server.procemu import PR_SET_PDEATHSIG, libc_prctl
+from hil_server.procemu import PR_SET_PDEATHSIG, hil_cores, libc_prctl
 from protocol.errors import InputError, os_error_text
 from protocol.links import BITS_PER_BYTE
 from protocol.messages import SITES_WITHHELD
@@ -643,7 +643,21 @@ def contention_note(summary: dict) -> str:
         # three significant figures: "waited 0.00 s ... 8 % of its flight time" read as a contradiction (QA of stop 78)
         f"host contention: the flight process waited {summary['flight_contention_s']:.3g} s for its core while other "
         f"processes held it, {pct:.0f} % of its flight time: its latencies read that much higher than the budget's "
-        "alone (a loaded host, not the flight software)"
+        "alone (a loaded host, not the flight software)" + _shared_core(summary)
+    )
+
+
+def _shared_core(summary: dict) -> str:
+    """'; ...' when the HIL's own processes ran on the flight's core (one core allowed to the run), else ''."""
+    cores = summary.get("host_cores") or {}
+    flight = cores.get("flight")
+    names = {"ground": "ground", "hil_server": "HIL server", "line_relay": "serial line's relay"}
+    shared = [n for k, n in names.items() if flight is not None and flight in (cores.get(k) or ())]
+    if not shared:
+        return ""
+    return (
+        f"; the {' and the '.join(shared)} shared its core (one core allowed to the run: `taskset -c A,B` gives "
+        "them another)"
     )
 
 
@@ -1530,14 +1544,17 @@ def check_memory(budget: Budget, width: int, height: int, rendered: bool = False
         )
 
 
-def _spawn(cmd: list[str], env: dict, *, hold_interrupts: bool = False, **kw) -> subprocess.Popen:
+def _spawn(
+    cmd: list[str], env: dict, *, hold_interrupts: bool = False, cores: frozenset[int] = frozenset(), **kw
+) -> subprocess.Popen:
     """A child leading its own process group: stopped as a whole, and the terminal's Ctrl-C reaches us only.
 
     It gets SIGTERM when the thread that started it dies (``PR_SET_PDEATHSIG``): a run killed outright (SIGKILL,
     the OOM killer) must not leave its ground streamer holding the serial device, or its HIL server the port.
     SIGTERM, not SIGKILL, so each records what it has and closes its link. With ``hold_interrupts`` the child
     starts with SIGINT and SIGTERM blocked (the mask survives exec): one sent before it has a handler stays
-    pending until the child unblocks them (``ground_sim.stream.main``)."""
+    pending until the child unblocks them (``ground_sim.stream.main``). With ``cores`` it runs on those (every
+    thread it starts inherits them): off the emulated core (:func:`hil_server.procemu.hil_cores`)."""
     prctl = libc_prctl()
 
     def preexec() -> None:  # between fork and exec: async-signal-safe calls only
@@ -1545,6 +1562,8 @@ def _spawn(cmd: list[str], env: dict, *, hold_interrupts: bool = False, **kw) ->
             prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
         if hold_interrupts:
             signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+        if cores:
+            os.sched_setaffinity(0, cores)
 
     return subprocess.Popen(cmd, env=env, process_group=0, preexec_fn=preexec, **kw)
 
@@ -1983,6 +2002,7 @@ def _descend(checked: CheckedRun, log) -> dict:
     relay_stall: StallClock | None = None  # this process's own stops while it relays the loopback line
     held_tstp: Any = None
     sup = ground = None
+    ground_cores: list[int] | None = None
     ground_tee: _Tee | None = None
     sup_log = None
     t0 = time.monotonic()
@@ -2004,7 +2024,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                         d: CorruptingChannel(seed=cfg.seed * 2 + k, drop=cfg.corrupt, flip=cfg.corrupt, dup=cfg.corrupt)
                         for k, d in enumerate(("a_to_b", "b_to_a"))
                     }
-                bridge = PtyBridge(**channels)
+                # the relay off the emulated core, with the ground and the HIL server
+                bridge = PtyBridge(**channels, cores=hil_cores() if emulated else frozenset())
                 # the relay is this process: stopped, it stops the line, and the pairs then on it fail as link_down
                 relay_stall = StallClock()
                 if threading.current_thread() is threading.main_thread():
@@ -2132,7 +2153,18 @@ def _descend(checked: CheckedRun, log) -> dict:
                     f"run: external flight computer on {ground_spec}: deadline {deadline:g} s end to end; "
                     f"waiting up to {hello:g} s for its Hello"
                 )
-            ground = _spawn(ground_cmd, env, hold_interrupts=True, stderr=subprocess.PIPE)
+            # the ground off the emulated core (the HIL server moves itself): it shared it with the flight process
+            ground = _spawn(
+                ground_cmd,
+                env,
+                hold_interrupts=True,
+                stderr=subprocess.PIPE,
+                cores=hil_cores() if emulated else frozenset(),
+            )
+            try:  # as it is, not as asked: read back from the process
+                ground_cores = sorted(os.sched_getaffinity(ground.pid))
+            except OSError:  # it has already ended
+                ground_cores = None
             ground_tee = _Tee(ground.stderr, out / "ground.log")
             ground_tee.start()
             limit = max(cfg.timeout_s, hello + GRACE_S)  # the first Hello may be awaited longer, when asked to
@@ -2215,6 +2247,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         score_records(records)
         counters = {}
         unlogged = 0
+        cores: dict | None = None
         program_hello: dict | None = None
         flight_events: deque[dict] = deque(maxlen=MAX_FLIGHT_EVENTS)
         for line in server_events:
@@ -2222,6 +2255,10 @@ def _descend(checked: CheckedRun, log) -> dict:
                 counters = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") == "flight_output":
                 unlogged = int(line.get("unlogged_bytes") or 0)
+            elif line.get("event") == "cores":
+                cores = {"flight": line.get("flight"), "hil_server": line.get("server"), "ground": ground_cores}
+                if bridge is not None:  # the loopback serial line's relay, in this process
+                    cores["line_relay"] = bridge.relays[0].cores_used
             elif line.get("event") == "flight_program_hello":  # the last incarnation's word stands
                 program_hello = {k: v for k, v in line.items() if k != "event"}
             elif line.get("event") in FLIGHT_EVENTS:
@@ -2244,6 +2281,8 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "memory_mib": budget.memory_mib if emulated else None,
                 "wall_s": wall,
                 "supervisor_counters": counters,
+                # the emulated core and where the HIL's own processes ran (off it, when the host allows another)
+                "host_cores": cores,
                 # who a --flight-cmd program's Hello says it is (ground_counters.flight_hello is the HIL server's)
                 "flight_program_hello": program_hello,
                 "flight_output_unlogged_bytes": unlogged,

@@ -1240,7 +1240,7 @@ def parse_efficiency(text: str) -> tuple[float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     from hil_server.budgets import get_budget, load_calibration
-    from hil_server.procemu import EmulatedProcessor, ProcessorSpec
+    from hil_server.procemu import EmulatedProcessor, ProcessorSpec, flight_core, keep_off_core
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import open_link
 
@@ -1286,7 +1286,10 @@ def main(argv: list[str] | None = None) -> int:
             cal = cal.rescaled(*parse_efficiency(args.throttle_efficiency))
         duty = budget.duty(cal)
         fraction = duty.applied
-        spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib)
+        # the flight's core fixed before this server leaves it: a restarted flight process keeps the same one
+        core = flight_core()
+        spec = ProcessorSpec(cpu_fraction=fraction, memory_mib=budget.memory_mib, core=core)
+        own_cores = keep_off_core(core)  # the flight's core is the flight's (procemu's docstring, stop 81)
         link = open_link(
             args.link,
             server=True,
@@ -1321,13 +1324,16 @@ def main(argv: list[str] | None = None) -> int:
         effective_fraction=duty.effective,
         log=log,
     )
+    # where each ran, as it is, for the run's summary (a host of one allowed core shares it)
+    sup._write_telemetry({"event": "cores", "flight": core, "server": sorted(own_cores)})
     limit = apply_memory_ceiling(args.memory_mib)
     log(
         f"supervisor: budget {budget.name} -> cpu fraction {fraction:.4f} (x{duty.efficiency:.2f} = "
         f"{duty.effective:.4f} of full speed), memory {budget.memory_mib} MiB, "
         # the ground's Config may set another deadline (`run --deadline 30` read "deadline 2.0 s" here; QA of stop 79)
         f"budget deadline {budget.deadline_s} s (the ground's Config may set another); own memory ceiling "
-        f"{limit / 2**20:.0f} MiB address space"
+        f"{limit / 2**20:.0f} MiB address space; the flight on core {core}, this server on "
+        + (f"core(s) {_cores(own_cores)}" if core not in own_cores else "the same (the only one allowed)")
     )
     failed: str | None = None
     try:
@@ -1342,6 +1348,10 @@ def main(argv: list[str] | None = None) -> int:
         link.close()
         if failed:  # the last line of supervisor.log: `run` reports it as the reason
             log(f"supervisor: error: {failed}")
+
+
+def _cores(cores: frozenset[int]) -> str:
+    return ",".join(str(c) for c in sorted(cores))
 
 
 if __name__ == "__main__":

@@ -73,16 +73,28 @@ def open_pty_pair() -> tuple[int, str]:
 
 
 class ByteRelay:
-    """Copy bytes from ``src_fd`` to ``dst_fd`` in a daemon thread, through ``channel`` if given."""
+    """Copy bytes from ``src_fd`` to ``dst_fd`` in a daemon thread, through ``channel`` if given; with ``cores``
+    the thread runs on those host cores (``cores_used``: the ones it runs on, read back once it has started)."""
 
-    def __init__(self, src_fd: int, dst_fd: int, channel: CorruptingChannel | None = None) -> None:
+    def __init__(
+        self, src_fd: int, dst_fd: int, channel: CorruptingChannel | None = None, cores: frozenset[int] = frozenset()
+    ) -> None:
         self.src, self.dst, self.channel = src_fd, dst_fd, channel
         self.bytes_relayed = 0
+        self.cores_used: list[int] | None = None
+        self._started = threading.Event()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="byte-relay", daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(cores,), name="byte-relay", daemon=True)
         self._thread.start()
+        self._started.wait(5.0)
 
-    def _run(self) -> None:
+    def _run(self, cores: frozenset[int]) -> None:
+        try:
+            if cores and hasattr(os, "sched_setaffinity"):
+                os.sched_setaffinity(0, cores)  # 0: this thread alone
+            self.cores_used = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        finally:
+            self._started.set()
         while not self._stop.is_set():
             try:
                 r, _, _ = select.select([self.src], [], [], 0.05)
@@ -113,13 +125,19 @@ class ByteRelay:
 
 
 class PtyBridge:
-    """Two raw ptys whose masters are relayed to each other (optionally corrupted per direction).
+    """Two raw ptys whose masters are relayed to each other (optionally corrupted per direction; the relay threads
+    on ``cores`` if given, see :class:`ByteRelay`).
 
     ``paths = (slave_a, slave_b)``. The slaves are kept open here (never read)
     so the masters do not see EIO while the peers come and go.
     """
 
-    def __init__(self, a_to_b: CorruptingChannel | None = None, b_to_a: CorruptingChannel | None = None) -> None:
+    def __init__(
+        self,
+        a_to_b: CorruptingChannel | None = None,
+        b_to_a: CorruptingChannel | None = None,
+        cores: frozenset[int] = frozenset(),
+    ) -> None:
         self._fds: list[int] = []
         paths = []
         for _ in range(2):
@@ -129,7 +147,7 @@ class PtyBridge:
             self._fds += [master, slave]
         self.paths: tuple[str, str] = (paths[0], paths[1])
         m_a, m_b = self._fds[0], self._fds[2]
-        self.relays = (ByteRelay(m_a, m_b, a_to_b), ByteRelay(m_b, m_a, b_to_a))
+        self.relays = (ByteRelay(m_a, m_b, a_to_b, cores), ByteRelay(m_b, m_a, b_to_a, cores))
 
     def close(self) -> None:
         """Stop the relays and close the ptys; again is a no-op. A second close closed the same descriptor numbers

@@ -19,7 +19,7 @@ from browser import browser_available, check_page
 from hilkit import run_hil, small_descent
 
 from ground_sim.scoring import confusion
-from hil_server.run import read_called
+from hil_server.run import contention_note, read_called
 from protocol.pairdir import read_pair
 
 PAIRS = ["600/300", "300/150", "200/100"]
@@ -719,3 +719,44 @@ def test_a_short_contention_wait_is_said_in_significant_figures():
     note = contention_note({"flight_contention_pct": 8.0, "flight_contention_s": 0.0041})
     assert "waited 0.0041 s for its core" in note and "8 % of its flight time" in note
     assert contention_note({"flight_contention_pct": 2.0, "flight_contention_s": 0.001}) == ""  # under the 5 % shown
+
+
+def test_the_hils_own_processes_keep_off_the_emulated_core_when_the_host_has_another(manifest, tmp_path):
+    """On a 2-core host the ground streamer and the HIL server ran on the flight's core too (a host-budget 128 px
+    run's flight process waited 5.9 % of its flight time for its core, 3.6 % since; stop 81). They now keep to the
+    other cores, read back from each process; a run allowed one core says they shared it. The run is started with
+    every core of the host allowed (this test worker is pinned to one)."""
+    import os
+    import subprocess
+    import sys
+
+    every = set(range(os.cpu_count() or 1))
+    if len(every) < 2:
+        pytest.skip("a host of one core: nothing to keep off")
+    argv = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--budget", "host"]
+    argv += ["--no-figures", "--link", "serial"]  # the loopback line's relay, in the run's own process, too
+    for name, cores in (("all", every), ("one", {max(every)})):
+        done = subprocess.run(
+            [*argv, "--out", str(tmp_path / name)],
+            preexec_fn=lambda cores=cores: os.sched_setaffinity(0, cores),
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        s = json.loads((tmp_path / name / "summary.json").read_text())
+        c = s["host_cores"]
+        assert c["flight"] == max(cores)
+        if name == "all":
+            assert c["ground"] == c["hil_server"] == c["line_relay"] == sorted(cores - {c["flight"]})
+            assert "shared its core" not in (tmp_path / name / "summary.md").read_text()
+        else:
+            assert c["ground"] == c["hil_server"] == c["line_relay"] == [c["flight"]]
+            assert (
+                f"the flight on core {c['flight']}, this server on the same"
+                in (tmp_path / name / "supervisor.log").read_text()
+            )
+        # a notable wait says whether the HIL's own processes shared the core (the share here is the host's)
+        note = contention_note({**s, "flight_contention_pct": 30.0, "flight_contention_s": 0.1})
+        said = "the ground and the HIL server and the serial line's relay shared its core"
+        assert (said in note) == (name == "one"), note
