@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import copy
-import fcntl
 import functools
-import os
 import pickle
 from pathlib import Path
+
+from sessioncache import made_once
 
 from ground_sim import trajectory
 from ground_sim.descent import DEFAULT_SUN, render_pair
@@ -43,13 +43,9 @@ def _render(scenario: str, scene: str, seed: int, label: str, image_px: int | No
 def _rendered(scenario: str, scene: str, seed: int, label: str, image_px: int | None) -> Pair:
     if not PAIR_CACHE:
         return _render(scenario, scene, seed, label, image_px)
-    root = PAIR_CACHE[0]
-    root.mkdir(parents=True, exist_ok=True)
-    done = root / f"{scenario}_{scene}_s{seed}_{label.replace('/', '-')}_{image_px or 'default'}px.pickle"
-    with open(root / f"{done.name}.lock", "w") as lock:  # pytest-xdist workers share the cache
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not done.is_file():
-            part = root / f"{done.name}.part{os.getpid()}"
-            part.write_bytes(pickle.dumps(_render(scenario, scene, seed, label, image_px), pickle.HIGHEST_PROTOCOL))
-            part.rename(done)
-    return pickle.loads(done.read_bytes())
+    name = f"{scenario}_{scene}_s{seed}_{label.replace('/', '-')}_{image_px or 'default'}px.pickle"
+
+    def render(path: Path) -> None:
+        path.write_bytes(pickle.dumps(_render(scenario, scene, seed, label, image_px), pickle.HIGHEST_PROTOCOL))
+
+    return pickle.loads(made_once(PAIR_CACHE[0], name, render).read_bytes())

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import fcntl
 import json
-import os
 import shutil
 import time
 from pathlib import Path
 from typing import Any
+
+from sessioncache import made_once
 
 from ground_sim.descent import render_scenario
 from hil_server.run import RunConfig, run_descent, scaled_camera
@@ -52,16 +52,7 @@ def small_descent(out: Path, pairs: list[str], px: int = 128) -> Path:
     if not DESCENT_CACHE or (out.exists() and any(out.iterdir())):
         render(out)
         return out / "manifest.json"
-    root = DESCENT_CACHE[0]
-    root.mkdir(parents=True, exist_ok=True)
-    done = root / f"{px}px_{'_'.join(p.replace('/', '-') for p in pairs)}"
-    with open(root / f"{done.name}.lock", "w") as lock:  # pytest-xdist workers share the cache
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not done.is_dir():
-            part = root / f"{done.name}.part{os.getpid()}"
-            shutil.rmtree(part, ignore_errors=True)
-            render(part)
-            part.rename(done)
+    done = made_once(DESCENT_CACHE[0], f"{px}px_{'_'.join(p.replace('/', '-') for p in pairs)}", render)
     shutil.copytree(done, out, dirs_exist_ok=True)
     return out / "manifest.json"
 
