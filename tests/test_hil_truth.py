@@ -38,14 +38,21 @@ def run(manifest, tmp_path, **kw):
     return run_hil(manifest, tmp_path, kw.pop("link", "zmq"), **kw)
 
 
+@pytest.fixture(scope="module")
+def one_pair(tmp_path_factory):
+    """The descent's first pair alone: a test that holds its core alone holds it half as long (test_board.py renders
+    the same pair, so the session's cache has it)."""
+    return small_descent(tmp_path_factory.mktemp("one"), PAIRS[:1])
+
+
 @pytest.mark.exclusive_core
-def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(manifest, tmp_path, capsys):
+def test_result_line_time_that_pushes_past_the_deadline_is_reported_missed(one_pair, tmp_path, capsys):
     # Full maps at 115200 baud: even an image-only Result needs ~0.12 s on the line, more than the 0.1 s deadline,
     # while the flight side answers within a few hundredths of a second. Counting only "last frame in -> result
     # out" (the flight latency) would call it met; the ground, which holds the Result only after its line time,
     # must not.
     out = tmp_path / "run"
-    args = ["run", "--manifest", str(manifest), "--link", "serial", "--budget", "host", "--baud", "115200"]
+    args = ["run", "--manifest", str(one_pair), "--link", "serial", "--budget", "host", "--baud", "115200"]
     args += ["--full-maps", "--deadline", "0.1", "--out", str(out), "--no-figures"]  # its files, not pictures
     assert cli(args) == 1  # a missed deadline fails the run
     assert "FAIL: " in capsys.readouterr().out
