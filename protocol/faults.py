@@ -136,6 +136,7 @@ class PtyBridge:
         self,
         a_to_b: CorruptingChannel | None = None,
         b_to_a: CorruptingChannel | None = None,
+        *,
         cores: frozenset[int] = frozenset(),
     ) -> None:
         self._fds: list[int] = []
