@@ -509,8 +509,7 @@ def flight_core() -> int:
 def hil_cores() -> frozenset[int]:
     """The cores the HIL's own processes keep to: every allowed core but :func:`flight_core`'s (none when only
     one is allowed: they then share it, as on a 1-core host)."""
-    allowed = os.sched_getaffinity(0)
-    return frozenset(allowed - {max(allowed)})
+    return frozenset(os.sched_getaffinity(0) - {flight_core()})
 
 
 def keep_off_core(core: int) -> frozenset[int]:
