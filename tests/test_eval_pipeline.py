@@ -19,16 +19,6 @@ def cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("render_cache")
 
 
-@pytest.fixture
-def no_map_figures(monkeypatch):
-    """The evaluated pairs' map figures left undrawn (about 3 CPU-s a pair), for the tests of the rows, the resume,
-    the kept truth and the caches; the tests of the figures draw them (test_evaluate_dask_matches_..._draw_the_figures,
-    test_a_rerun_with_other_seeds_leaves_no_map_or_figure_of_the_earlier_one)."""
-    from studies import report
-
-    monkeypatch.setattr(report, "figures_from_maps", lambda maps_path, out_dir, stem, px=0: [])
-
-
 def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path, no_map_figures):
     rows = ev.evaluate_scenario(
         "vertical",

@@ -96,13 +96,6 @@ def test_a_footprint_smaller_than_the_ground_sample_is_judged_by_the_pixel_that_
     assert not j["safe"] and j["incomplete"] and j["n_px"] == 0, j
 
 
-@pytest.fixture
-def no_campaign_figures(monkeypatch):
-    """A campaign's figures left undrawn (``_plots``: about 1 CPU-s each), for the tests of its rows, resuming and
-    caches; test_summary_and_report_page_from_known_rows draws them and loads them in a browser."""
-    monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: [])
-
-
 def _campaign(**kw):
     base = dict(
         scenes=("thesis", "mare"),
@@ -172,7 +165,7 @@ def test_a_tiled_campaign_is_its_own_and_old_campaigns_keep_their_identity():
 
 
 def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(
-    tmp_path: Path, monkeypatch, no_campaign_figures
+    tmp_path: Path, monkeypatch, no_landing_figures
 ):
     calls = []
     real = ld.land_group
@@ -206,7 +199,7 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(
 
 
 @pytest.mark.slow
-def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path, no_campaign_figures):
+def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path, no_landing_figures):
     from distributed import Client, LocalCluster
 
     c = _campaign(n=2, presets=("fast", "thesis"))
@@ -224,7 +217,7 @@ def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path, no_camp
 
 
 @pytest.mark.slow
-def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch, no_campaign_figures):
+def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch, no_landing_figures):
     c = _campaign(n=2)
     fresh, _ = ld.run_campaign(c, tmp_path / "a", workers=1, progress=False)
     cached1, _ = ld.run_campaign(c, tmp_path / "b", workers=1, progress=False, cache_dir=tmp_path / "cache")

@@ -94,23 +94,6 @@ def _eval(tmp_path: Path, out: str, px: int) -> list[str]:
     ]
 
 
-@pytest.fixture
-def no_map_figures(monkeypatch):
-    """The evaluated pairs' map figures left undrawn (about 3 of a 48 px `evaluate`'s 4 CPU-s), for the tests of
-    what they do not touch: tables, messages, exit codes, caches. The tests of the figures and their place on the
-    page draw them (test_another_camera_into_the_same_out_..., test_a_rerun_stopped_before_its_report_...)."""
-    from studies import report
-
-    monkeypatch.setattr(report, "figures_from_maps", lambda maps_path, out_dir, stem, px=0: [])
-
-
-@pytest.fixture
-def no_landing_figures(monkeypatch):
-    """A campaign's figures left undrawn, as test_a_partial_landings_page_... does, for the tests of its files and
-    numbers (test_the_partial_figures_are_titled_incomplete draws them)."""
-    monkeypatch.setattr(ld, "_plots", lambda out, rows, summary: [])
-
-
 def _metrics(path: Path) -> dict:
     from studies.evaluate import read_metrics_csv
 
