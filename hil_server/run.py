@@ -2003,6 +2003,8 @@ def _descend(checked: CheckedRun, log) -> dict:
     held_tstp: Any = None
     sup = ground = None
     ground_cores: list[int] | None = None
+    # the cores the run's own processes and relay keep to: all but the emulated one (an external flight: any)
+    own_cores = hil_cores() if emulated else frozenset()
     ground_tee: _Tee | None = None
     sup_log = None
     t0 = time.monotonic()
@@ -2025,7 +2027,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                         for k, d in enumerate(("a_to_b", "b_to_a"))
                     }
                 # the relay off the emulated core, with the ground and the HIL server
-                bridge = PtyBridge(**channels, cores=hil_cores() if emulated else frozenset())
+                bridge = PtyBridge(**channels, cores=own_cores)
                 # the relay is this process: stopped, it stops the line, and the pairs then on it fail as link_down
                 relay_stall = StallClock()
                 if threading.current_thread() is threading.main_thread():
@@ -2159,7 +2161,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 env,
                 hold_interrupts=True,
                 stderr=subprocess.PIPE,
-                cores=hil_cores() if emulated else frozenset(),
+                cores=own_cores,
             )
             try:  # as it is, not as asked: read back from the process
                 ground_cores = sorted(os.sched_getaffinity(ground.pid))
