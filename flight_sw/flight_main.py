@@ -165,10 +165,15 @@ class FaultPlan:
             raise InputError(f"--fault must be crash@N, hang@N or oom@N, got {spec!r}")
         return cls(kind, int(idx))
 
-    def trigger(self, pair_index: int) -> None:
+    def trigger(self, pair_index: int, settle: Callable[[], object] | None = None) -> None:
+        """Inject the fault if this is its pair. ``settle`` runs before a crash: the frames' ACKs go out first, as
+        they would before a crash inside the pipeline (without it, on a loaded core the abort could beat them,
+        and the supervisor rightly took the pair as never received and sent it to the next incarnation)."""
         if pair_index != self.pair_index:
             return
         if self.kind == "crash":
+            if settle is not None:
+                settle()
             os.abort()
         if self.kind == "hang":  # a hang in native code: no heartbeats, no progress
             time.sleep(1e6)
@@ -505,7 +510,8 @@ class FlightProcess:
         start = time.monotonic()
         cpu0 = time.process_time()
         queue_wait = start - pend.arrival
-        self.faults.trigger(self.pairs_seen)
+        acknowledged = getattr(self.link, "acknowledged", None)
+        self.faults.trigger(self.pairs_seen, None if acknowledged is None else lambda: acknowledged(1.0))
         self.pairs_seen += 1
         time_scale = float(cfg.options.get("time_scale", 1.0))
         fusion = bool(cfg.options.get("fusion", DEFAULT_FUSION))

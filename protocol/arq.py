@@ -549,6 +549,11 @@ class Arq(SessionView):
         }
 
     @property
+    def ack_pending(self) -> bool:
+        """An ACK for what was received is due or a frame is being written: the peer may not yet know all of it."""
+        return self._ack_due or self._writing
+
+    @property
     def control_pending(self) -> bool:
         """Control frames (HELLO, CLOSE, REJECT) not yet handed to the line."""
         return bool(self._control)

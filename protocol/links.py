@@ -400,6 +400,12 @@ class ByteStreamLink(Link):
         with self._cv:
             return self._cv.wait_for(lambda: self.arq.idle or self._dead(), timeout) and self.arq.idle
 
+    def acknowledged(self, timeout: float) -> bool:
+        """Wait (at most ``timeout`` s) until an ACK for every byte received so far has been written; False if not.
+        A process about to die on purpose calls it, so that the peer knows what reached it (the tests' crash fault)."""
+        with self._cv:
+            return bool(self._cv.wait_for(lambda: not self.arq.ack_pending or self._dead(), timeout))
+
     def _pace(self, n: int) -> float:
         """Sleep until the line has carried ``n`` more bytes; returns when the first of them started."""
         now = time.monotonic()

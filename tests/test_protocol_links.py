@@ -55,6 +55,31 @@ def test_socketpair_delivers_in_order_with_outcomes_and_line_times():
         assert t is not None and 0 <= t.line_s < 5 and t.first_tx <= t.written <= t.delivered
 
 
+_RECEIVE_ONE_AND_DIE = """
+import os, socket, sys
+from protocol.links import StreamLink
+link = StreamLink(socket.socket(fileno=int(sys.argv[1])), name="B")
+assert link.recv(10.0) is not None
+ok = link.acknowledged(2.0)
+os._exit(0 if ok else 3)  # no close, no flush: a crash right after the message reached it
+"""
+
+
+def test_a_process_that_dies_after_acknowledged_has_told_its_peer():
+    # the tests' crash fault relies on it: a pair is the crash's only if the supervisor knows it reached the flight
+    a, b = socket.socketpair()
+    child = subprocess.Popen([sys.executable, "-c", _RECEIVE_ONE_AND_DIE, str(b.fileno())], pass_fds=[b.fileno()])
+    b.close()
+    with StreamLink(a, name="A") as A:
+        assert A.wait_established(10)
+        mid = A.send(frame(0, 64))
+        assert child.wait(20) == 0
+        t0 = time.monotonic()
+        while A.outcome(mid) != "delivered" and time.monotonic() - t0 < 2.0:
+            time.sleep(0.01)
+        assert A.outcome(mid) == "delivered"
+
+
 def test_baud_pacing_costs_real_line_time():
     a, b = socket.socketpair()
     with StreamLink(a, baud=19200, name="A") as A, StreamLink(b, name="B") as B:
