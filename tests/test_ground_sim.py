@@ -8,7 +8,7 @@ import pytest
 
 from ground_sim.descent import render_scenario
 from ground_sim.errors import RenderError, SceneError, TrajectoryError
-from ground_sim.features import Features, PowerLaw, boulders_in, crater_profile, craters_in
+from ground_sim.features import Features, PowerLaw, boulders_in, crater_albedo, crater_profile, craters_in
 from ground_sim.geometry import ground_footprint, look_rotation, pixel_rays, project
 from ground_sim.pose_error import PoseError
 from ground_sim.render import render_view
@@ -68,6 +68,29 @@ def test_single_crater_elevation_matches_profile():
     # depth is consistent with the hit point: z_cam of (x, y, elevation)
     X = np.dstack([v.world_xy, v.elevation]).astype(float)
     assert np.abs(project(CAM, pose, X)[2] - v.depth).max() < 1e-3
+
+
+def test_crater_profile_and_albedo_are_their_docstring_formulas():
+    # the renderer's in-place forms against the formulas written plainly, with per-point and broadcast parameters
+    rng = np.random.default_rng(3)
+    r2 = rng.uniform(0.0, 5.0, 4000)
+    d = rng.uniform(1.0, 40.0, r2.size)
+    h = rng.uniform(0.05, 0.25, r2.size) * d
+    s = np.where(rng.uniform(size=r2.size) < 0.3, 0.0, rng.uniform(size=r2.size))
+    r = np.sqrt(r2)
+    hr = (0.036 / 0.196) * h
+    fresh = np.where(r < 1.0, -h + (h + hr) * r2, hr * r**-3.0 * np.clip(1.0 - (r2 - 1.0) / 3.0, 0.0, None) ** 2)
+    worn = -0.04 * d * np.clip(1.0 - r2 / 1.44, 0.0, None) ** 2
+    assert np.allclose(crater_profile(r2, d, h, s), (1.0 - s) * fresh + s * worn, rtol=1e-12, atol=1e-12)
+    one = crater_profile(r2.reshape(40, 100), d[:1, None], h[:1, None], s[:1, None])
+    assert np.allclose(
+        one, crater_profile(r2, np.full(r2.size, d[0]), np.full(r2.size, h[0]), np.full(r2.size, s[0])).reshape(40, 100)
+    )
+    assert np.all(
+        crater_profile(r2[r2 >= 4.0], d[r2 >= 4.0], h[r2 >= 4.0], s[r2 >= 4.0]) == 0.0
+    )  # nothing past the reach
+    halo = np.where(r2 < 1.0, 0.3 + 0.7 * r2, np.clip((4.0 - r2) / 3.0, 0.0, 1.0))
+    assert np.allclose(crater_albedo(r2, s), 0.12 * (1.0 - s) ** 3 * halo, rtol=1e-12, atol=1e-15)
 
 
 def test_tilted_footprint_is_the_thesis_trapezoid():
