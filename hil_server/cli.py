@@ -897,8 +897,9 @@ def _register_runs(sub: argparse._SubParsersAction) -> None:
         "--min-hit-rate",
         type=float,
         default=None,
-        help="also pass when a case's pairs met the deadline at least this often (default: every pair must); "
-        "the baseline's own hit rate still holds (hit_rate_drop)",
+        help="also pass when a case's pairs met the deadline at least this often (default: the rate the case was "
+        "recorded with, else every pair); the baseline's own hit rate still holds (hit_rate_drop). With --update "
+        "the cases recorded keep it",
     )
     p.add_argument("--out", type=Path, default=Path("out/regress"), help="where the cases' runs are written")
     p.add_argument(

@@ -718,6 +718,35 @@ def test_update_shows_what_it_replaces_and_does_not_record_missed_deadlines(tmp_
     assert json.loads(base.read_text())["cases"]["c"]["metrics"]["deadline_hit_rate"] == 0.0
 
 
+def test_a_case_recorded_with_min_hit_rate_is_checked_at_that_rate_unless_told_otherwise(tmp_path, capsys, monkeypatch):
+    """A case recorded with --min-hit-rate 0.5 failed every later check that did not repeat the option: the
+    baseline kept the hit rate but not the rate allowed (QA of stop 80)."""
+    from hil_server import regress
+
+    half = {**BASE, "pairs": 2, "degraded": 0, "deadline_hit_rate": 0.5}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(half))
+    base = tmp_path / "baseline.json"
+    base.write_text(json.dumps({"cases": {"c": {"scenario": "vertical", "budget": "snapdragon801", "link": "serial"}}}))
+    argv = ["regress", "--uncalibrated", "--baseline", str(base), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--update", "--min-hit-rate", "0.5"]) == 0
+    assert json.loads(base.read_text())["cases"]["c"]["min_hit_rate"] == 0.5
+    assert main(argv) == 0  # checked at the rate it was recorded at
+    assert main([*argv, "--min-hit-rate", "1"]) == 1  # the option, when given, wins
+    assert "50% of pairs met theirs end to end, 100% required" in capsys.readouterr().out
+    none = {**half, "deadline_hit_rate": 0.0}
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(none))
+    assert main(argv) == 1
+    assert "0% of pairs met theirs end to end, 50% required (the baseline's min_hit_rate" in capsys.readouterr().out
+    monkeypatch.setattr(regress, "measure_case", lambda *a, **k: dict(half, deadline_hit_rate=1.0))
+    assert main([*argv, "--update"]) == 0  # recorded again without the option: every pair is required again
+    assert "min_hit_rate" not in json.loads(base.read_text())["cases"]["c"]
+    doc = json.loads(base.read_text())
+    doc["cases"]["c"]["min_hit_rate"] = 1.5
+    base.write_text(json.dumps(doc))
+    assert main(argv) == 2
+    assert "'min_hit_rate' (as --min-hit-rate) must be a number in [0, 1], got 1.5" in capsys.readouterr().err
+
+
 def test_a_metric_the_absolute_tolerance_lets_double_reads_loosely_ok():
     """A 0.03 s case could grow 3x under the 0.1 s absolute tolerance and read plain "ok" (QA of stop 73); the
     verdict then said "double" of a 0.003 s case held to 0.103 s, 34x (QA of stop 80)."""
