@@ -292,6 +292,9 @@ def compare(
             "record it again with --update)"
         )
     o.limits["deadline_hit_rate"] = base["deadline_hit_rate"] - tol["hit_rate_drop"]
+    o.limits["errors"] = base.get("errors", 0)
+    if "pairs" in base:
+        o.limits["pairs"] = base["pairs"]
     if "degraded" in base:  # baselines recorded before the count was kept cannot judge it (diff_table says so)
         o.limits["degraded"] = base["degraded"]
         if cur.get("degraded", 0) > base["degraded"]:
@@ -311,6 +314,19 @@ def compare(
             shown, limit_shown = apart(c, limit, 3)
             o.problems.append(f"{k} {shown} > limit {limit_shown} (baseline {b:.3f})")
     return o
+
+
+COUNTS = ("degraded", "errors", "pairs")  # the table's whole-number rows
+
+
+def _table_keys(o: CaseOutcome) -> list[str]:
+    """The rows of case outcome ``o`` in the diff table and regress.json: the hit rate, the counts (errors and
+    the pair count were judged but shown nowhere, QA of stop 80), then its judged metrics."""
+    return ["deadline_hit_rate", *COUNTS, *o.metrics]
+
+
+def _fmt(metric: str) -> str:
+    return "d" if metric in COUNTS else ".3f"
 
 
 def _about(problem: str, metric: str) -> bool:
@@ -333,7 +349,7 @@ def _change(was: Any, now: Any, fmt: str) -> str:
 def _metric_verdict(o: CaseOutcome, k: str) -> str:
     """The verdict of metric ``k`` of case outcome ``o``, as the diff table and regress.json say it."""
     c = o.current.get(k, math.nan)
-    fmt = "d" if k == "degraded" else ".3f"
+    fmt = _fmt(k)
     bad = any(_about(p, k) for p in o.problems)
     verdict = "REGRESSION" if bad else "ok"
     if o.baseline is not None and k not in o.baseline:
@@ -363,18 +379,18 @@ def diff_table(outcomes: list[CaseOutcome]) -> str:
     """
     lines = [f"{'case':<30} {'metric':<22} {'baseline':>10} {'limit':>10} {'current':>10}  verdict"]
     for o in outcomes:
-        keys = ["deadline_hit_rate", "degraded", *o.metrics]
+        keys = _table_keys(o)
         for k in keys:
             b = (o.baseline or {}).get(k, math.nan)
             c = o.current.get(k, math.nan)
             lim = o.limits.get(k, math.nan)
-            fmt = "d" if k == "degraded" else ".3f"
-            bound = ("≥" if k == "deadline_hit_rate" else "≤") + f"{lim:{fmt}}" if math.isfinite(lim) else "–"
+            fmt = _fmt(k)
+            bound = {"deadline_hit_rate": "≥", "pairs": "="}.get(k, "≤") + f"{lim:{fmt}}" if math.isfinite(lim) else "–"
             b_txt = f"{b:>10{fmt}}" if isinstance(b, int) or math.isfinite(b) else f"{'–':>10}"
             c_txt = f"{c:>10{fmt}}" if isinstance(c, int) or math.isfinite(c) else f"{'–':>10}"
             lines.append(f"{o.name:<30} {k:<22} {b_txt} {bound:>10} {c_txt}  {_metric_verdict(o, k)}")
-        for p in o.problems:
-            if not any(_about(p, k) for k in keys):
+        for p in o.problems:  # a changed pair count's says what to do about it: kept below its row
+            if not any(_about(p, k) for k in keys if k != "pairs"):
                 lines.append(f"{o.name:<30} {p}")
         if o.contention_pct is not None and o.contention_pct >= CONTENTION_SHOWN_PCT:
             # a loaded host read exactly as a slower program, its load warning taken before the run (QA of stop 73)
@@ -945,7 +961,7 @@ def outcome_rows(outcomes: list[CaseOutcome]) -> list[dict]:
                 "current": _finite(o.current.get(k)),
                 "verdict": _metric_verdict(o, k),
             }
-            for k in ["deadline_hit_rate", "degraded", *o.metrics]
+            for k in _table_keys(o)
         }
         rows.append(
             {

@@ -252,6 +252,21 @@ def test_a_case_that_ran_fewer_pairs_than_recorded_is_a_regression():
     assert compare("m", base, base, DEFAULT_TOLERANCES).problems == []
 
 
+def test_the_table_shows_the_error_and_pair_counts_it_judges():
+    """Errors and the pair count were judged but had no row: a case failed on them with no figure beside the
+    verdict, and an --update never showed them (QA of stop 80)."""
+    base = {"deadline_hit_rate": 1.0, "errors": 0, "pairs": 3, "degraded": 0, "latency_p50_ref_s": 0.2}
+    rows = diff_table([compare("m", {**base, "errors": 2, "pairs": 2}, base, DEFAULT_TOLERANCES)]).splitlines()
+    assert any(r.split()[1:] == ["errors", "0", "≤0", "2", "REGRESSION"] for r in rows), rows
+    assert any(r.split()[1:] == ["pairs", "3", "=3", "2", "REGRESSION"] for r in rows), rows
+    ok = diff_table([compare("m", dict(base), base, DEFAULT_TOLERANCES)]).splitlines()
+    assert any(r.split()[1:] == ["pairs", "3", "=3", "3", "ok"] for r in ok), ok
+    rec = compare("m", dict(base), None, DEFAULT_TOLERANCES)
+    rec.problems.clear()
+    rec.recorded = True
+    assert any(r.split()[1:] == ["errors", "–", "–", "0", "recorded"] for r in diff_table([rec]).splitlines())
+
+
 def test_an_unthrottled_budget_of_ones_own_is_judged_on_cpu_seconds_like_host():
     """A user's budget with cpu_dmips = "host" was judged on wall latency, which a busy host ruins (QA of stop 66)."""
     from hil_server.regress import CPU_METRICS, LATENCY_METRICS, judged_metrics
