@@ -309,6 +309,16 @@ def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
         "docs/scenes.md); each raster's renders and runs are kept apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _no_figures_option(p)
+
+
+def _no_figures_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-figures",
+        action="store_true",
+        help="report/index.html without its pictures, the tables alone (as `run --no-figures`; an evaluated "
+        "pair's map figures take about 1 CPU-s each, and evaluate keeps its maps, so a later run draws them)",
+    )
 
 
 def register(subparsers: Any) -> None:
@@ -447,6 +457,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             max_cells=args.max_raster_cells,
             raster=args.raster,
+            figures=not args.no_figures,
         )
     except CampaignError as exc:
         return _campaign_failed("evaluate", exc)
@@ -503,6 +514,7 @@ def _evaluation_page(
         map_tag=ev.render_tag(args.max_raster_cells, args.raster),
         setting=setting,
         subtitle=f"WARNING: {warning}" if warning else "",
+        figures=not args.no_figures,
     )
     print(f"scene {rows[0]['scene'] if rows else '?'}, {seeds_text}")
     print((args.out / "report" / f"tables_{args.scenario}.md").read_text())
@@ -588,10 +600,14 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
             continue
         krows = rows if kind == args.kind else ev.read_metrics_csv(csv_path)
         ks = ev.sensitivity_summary(krows)
-        plot = report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png")
+        plots = (
+            []
+            if args.no_figures
+            else [report.plot_sensitivity(krows, kind, args.out / "report" / f"sensitivity_{kind}.png").name]
+        )
         table = report.Table([report.Column(k) for k in (ks[0] if ks else {})], ks)
         setting = sensitivity_setting(krows)
-        sections.append((f"sensitivity: {kind} ({setting})", [table], [plot.name]))
+        sections.append((f"sensitivity: {kind} ({setting})", [table], plots))
         if kind != args.kind and setting != mine:
             other.append(f"{kind} ({setting})")
     note = camera_note(args.camera_px)
@@ -604,7 +620,11 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
             "earlier runs into this --out with other settings, each stated in its heading"
         )
     page = report.write_html(
-        args.out / "report", title, sections, subtitle=f"WARNING ({args.kind}): {warning}" if warning else ""
+        args.out / "report",
+        title,
+        sections,
+        subtitle=f"WARNING ({args.kind}): {warning}" if warning else "",
+        figures=not args.no_figures,
     )
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     if other:
@@ -676,6 +696,7 @@ def register_landings(subparsers: Any) -> None:
         "raster per view (docs/scenes.md); each raster's renders are cached apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _no_figures_option(p)
     p.set_defaults(func=holding_out("landings", _landings))
 
 
@@ -732,6 +753,7 @@ def _landings(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             cache_dir=args.cache,
+            figures=not args.no_figures,
         )
     except CampaignError as exc:
         code = _campaign_failed("landings", exc)

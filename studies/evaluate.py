@@ -1021,6 +1021,7 @@ def evaluate_scenario(
     scene: str | None = None,
     max_cells: int | None = None,
     raster: str = DEFAULT_RASTER,
+    figures: bool = True,
 ) -> list[dict[str, Any]]:
     """Render, run and score a scenario for every preset and seed; write ``metrics.csv``; return the rows.
 
@@ -1028,8 +1029,8 @@ def evaluate_scenario(
     scene and the seed set each seed belongs to). Finished pairs are logged to
     ``out_dir/runs/evaluate.jsonl`` so a rerun resumes. The layers of the first
     ``maps_seeds`` seeds are kept in ``out_dir/maps``, and the first preset's
-    figures of them are drawn by the workers into ``out_dir/report``. Rendering
-    and evaluation share one pool of single-threaded processes.
+    figures of them are drawn by the workers into ``out_dir/report`` (not without ``figures``: the maps are kept,
+    and a later run's page draws them). Rendering and evaluation share one pool of single-threaded processes.
     """
     from ground_sim.seeds import seed_set_of
     from studies.executor import Task, code_fingerprint, local_pool, run_tasks
@@ -1073,7 +1074,7 @@ def evaluate_scenario(
                 }
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
-                    if preset == presets[0]:
+                    if preset == presets[0] and figures:
                         kw["figures_dir"] = str(out / "report")
                         kw["figure_stem"] = f"{scenario}_{alt}m"
                 tasks.append(Task(tid, kw))

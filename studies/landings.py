@@ -541,11 +541,12 @@ def run_campaign(
     workers: int | None = None,
     progress: bool = True,
     cache_dir: str | Path | None = None,
+    figures: bool = True,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Fly the campaign (resuming ``out_dir/runs/landings.jsonl``); write CSV, JSON and the page.
 
-    ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times).
-    Returns (rows, summary)."""
+    ``cache_dir`` keeps the rendered pairs for later campaigns (render once, fly many times). ``figures``: the
+    page draws its figures (off: ``--no-figures``, the tables alone). Returns (rows, summary)."""
     from protocol.pairdir import THESIS_CAMERA_PX
     from studies.evaluate import EVAL_CODE
     from studies.executor import PAIR_BYTES_PER_PX, CampaignError, Task, code_fingerprint, load_results, run_tasks
@@ -590,15 +591,22 @@ def run_campaign(
             if isinstance(exc, KeyboardInterrupt)
             else str(exc)
         )
-        _write_summary(c, out, part, time.time() - t0, complete=False, reason=why)
+        _write_summary(c, out, part, time.time() - t0, complete=False, reason=why, figures=figures)
         raise
     rows = [r for t in tasks for r in res[t.id]["rows"]]
-    summary = _write_summary(c, out, rows, time.time() - t0, complete=True)
+    summary = _write_summary(c, out, rows, time.time() - t0, complete=True, figures=figures)
     return rows, summary
 
 
 def _write_summary(
-    c: Campaign, out: Path, rows: list[dict[str, Any]], wall: float, *, complete: bool, reason: str = ""
+    c: Campaign,
+    out: Path,
+    rows: list[dict[str, Any]],
+    wall: float,
+    *,
+    complete: bool,
+    reason: str = "",
+    figures: bool = True,
 ) -> dict[str, Any]:
     """``landings.csv``, ``landings.json`` (``complete`` false, with the reason, when renders are missing)
     and the page; a partial campaign's statistics cover only the landings flown."""
@@ -617,7 +625,7 @@ def _write_summary(
     write_rows(rows, out / "landings.csv", complete=complete)
     write_atomic(out / "landings.json", json_text(summary))
     if rows:
-        write_report(out, rows, summary)
+        write_report(out, rows, summary, figures=figures)
     return summary
 
 
@@ -734,13 +742,14 @@ def counted(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
-def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> Path:
-    """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page)."""
-    from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
+def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any], *, figures: bool = True) -> Path:
+    """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page; without
+    ``figures`` the page says they were not drawn)."""
+    from reports.html import NO_FIGURES_NOTE, Column, Figure, Headline, Section, Table, file_links, write_page
 
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
-    figs = _plots(rep, rows, summary)
+    figs = _plots(rep, rows, summary) if figures else []
     camp = summary["campaign"]
     seeds = summary.get("seeds_used") or camp["seeds"]
     partial = summary.get("complete") is False
@@ -826,7 +835,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any])
         Section("Per scene", [intro], [Table(cols, table_rows)]),
         # a heading over nothing when every landing had a site
         *([Section("Why no site", [], [Table(why_cols, why_rows)])] if why_rows else []),
-        Section("Figures", [], [], [Figure(f, cap) for f, cap in figs]),
+        Section("Figures", [] if figures else [NO_FIGURES_NOTE], [], [Figure(f, cap) for f, cap in figs]),
     ]
     links = file_links(
         rep,

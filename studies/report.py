@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from reports.html import Column, Figure, Headline, Section, Table, file_links, write_page
+from reports.html import NO_FIGURES_NOTE, Column, Figure, Headline, Section, Table, file_links, write_page
 from reports.plots import save as save_figure
 from reports.style import HAZARD, HAZARD_CMAP, SAFE, SERIES_COLOURS, term
 
@@ -353,11 +353,13 @@ def write_html(
     subtitle: str = "",
     legends: tuple[str, ...] = (),
     headline: list[Headline] | None = None,
+    figures: bool = True,
 ) -> Path:
-    """``out_dir/index.html`` (the shared page design) from (heading, tables or Markdown tables, [png names])."""
+    """``out_dir/index.html`` (the shared page design) from (heading, tables or Markdown tables, [png names]);
+    ``figures`` False: the page says its pictures were not drawn (``--no-figures``)."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    page = []
+    page = [] if figures else [Section("Pictures", paragraphs=[NO_FIGURES_NOTE])]
     for heading, tables, images in sections:
         page.append(
             Section(
@@ -470,6 +472,7 @@ def evaluation_report(
     map_tag: str | None = None,
     setting: str = "",
     subtitle: str = "",
+    figures: bool = True,
 ) -> Path:
     """Figures + side-by-side tables + ``index.html`` for evaluation rows (and optional sensitivity rows).
 
@@ -479,7 +482,8 @@ def evaluation_report(
     ``figure_altitudes`` (all when None) whose maps were kept. ``map_tag`` ends the kept maps' names (the
     raster tag of the run's task ids, :func:`studies.evaluate.render_tag`; default: the default raster's, or
     none). ``setting`` (seeds, scene, scenario, camera) is the first line of each ``tables_<scenario>.md``;
-    ``subtitle`` goes under the page's title (a warning that the seeds are not held-out).
+    ``subtitle`` goes under the page's title (a warning that the seeds are not held-out). Without ``figures`` the
+    page has the tables alone and says so (``--no-figures``).
     """
     from ground_sim.render import DEFAULT_RASTER
     from studies import evaluate as ev
@@ -496,11 +500,11 @@ def evaluation_report(
     for scen in [s for s in ev.SCENARIOS if any(r["scenario"] == s for r in rows)]:
         cells = ev.comparison(summary, scen, thesis)
         (rep / f"tables_{scen}.md").write_text((f"{setting}\n\n" if setting else "") + comparison_markdown(cells))
-        plot = plot_vs_altitude(summary, scen, thesis, rep / f"{scen}_detection.png")
-        sections.append((f"{scen}: ours vs thesis (medians over seeds)", comparison_tables(cells), [plot.name]))
+        plots = [plot_vs_altitude(summary, scen, thesis, rep / f"{scen}_detection.png").name] if figures else []
+        sections.append((f"{scen}: ours vs thesis (medians over seeds)", comparison_tables(cells), plots))
         imgs: list[str] = []
         for alt in sorted({int(r["altitude_m"]) for r in rows if r["scenario"] == scen}):
-            if want is not None and alt not in want:
+            if (want is not None and alt not in want) or not figures:
                 continue
             maps = sorted(m for t in tags for m in (out / "maps").glob(f"{scen}-{figure_preset}-s*-{alt}{t}.npz"))
             if maps:
@@ -519,17 +523,23 @@ def evaluation_report(
 
         scen = multiframe[0]["scenario"]
         alts = "/".join(f"{a:g}" for a in multiframe[0]["frames"])
-        plot = plot_multiframe(multiframe, mf.POLICIES, rep / f"{scen}_multiframe.png")
+        plots = [plot_multiframe(multiframe, mf.POLICIES, rep / f"{scen}_multiframe.png").name] if figures else []
         table = (rep / f"multiframe_{scen}.md").read_text()
-        sections.append((f"{scen}: multi-frame descents ({alts} m) against the best pair", table, [plot.name]))
+        sections.append((f"{scen}: multi-frame descents ({alts} m) against the best pair", table, plots))
     for kind, srows in (sensitivity or {}).items():
-        plot = plot_sensitivity(srows, kind, rep / f"sensitivity_{kind}.png")
+        plots = [plot_sensitivity(srows, kind, rep / f"sensitivity_{kind}.png").name] if figures else []
         summ = ev.sensitivity_summary(srows)
         cols = [k for k in (summ[0] if summ else {})]
-        sections.append((f"sensitivity: {kind}", rows_markdown(summ, cols), [plot.name]))
+        sections.append((f"sensitivity: {kind}", rows_markdown(summ, cols), plots))
     drawn = any(name.endswith(".png") and "maps, preset" in head for head, _, names in sections for name in names)
     return write_html(
-        rep, title, sections, subtitle=subtitle, legends=("confusion",) if drawn else (), headline=preset_cards(rows)
+        rep,
+        title,
+        sections,
+        subtitle=subtitle,
+        legends=("confusion",) if drawn else (),
+        headline=preset_cards(rows),
+        figures=figures,
     )
 
 

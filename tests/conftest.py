@@ -80,21 +80,3 @@ def _core_turn(request, tmp_path_factory):
         finally:
             fcntl.flock(gate, fcntl.LOCK_UN)
         yield
-
-
-# The studies' pictures left undrawn (about 1 CPU-s a figure) for the tests of what does not touch them: rows,
-# resuming, tables, messages, exit codes, caches. The tests of the figures, and of the pages that show them, draw them.
-@pytest.fixture
-def no_map_figures(monkeypatch):
-    """An evaluated pair's map figures (``studies.report.figures_from_maps``) left undrawn."""
-    from studies import report
-
-    monkeypatch.setattr(report, "figures_from_maps", lambda maps_path, out_dir, stem, px=0: [])
-
-
-@pytest.fixture
-def no_landing_figures(monkeypatch):
-    """A landing campaign's figures (``studies.landings._plots``) left undrawn."""
-    from studies import landings
-
-    monkeypatch.setattr(landings, "_plots", lambda out, rows, summary: [])

@@ -19,7 +19,7 @@ def cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("render_cache")
 
 
-def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path, no_map_figures):
+def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Path):
     rows = ev.evaluate_scenario(
         "vertical",
         tmp_path,
@@ -30,6 +30,7 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
         altitudes=[300],
         workers=1,
         progress=False,
+        figures=False,
     )
     (r,) = rows
     assert r["scenario"] == "vertical" and r["altitude_m"] == 300 and r["label"] == "600/300"
@@ -90,21 +91,22 @@ def test_scenario_rows_score_against_truth_and_resume(tmp_path: Path, cache: Pat
         altitudes=[300],
         workers=1,
         progress=False,
+        figures=False,
     )
     assert log.read_text() == before and again == rows  # nothing re-ran
 
 
 def test_the_true_slope_is_computed_once_per_render_and_again_when_what_it_comes_from_changes(
-    tmp_path: Path, cache: Path, monkeypatch, no_map_figures
+    tmp_path: Path, cache: Path, monkeypatch
 ):
     """The true slope and roughness (the scene rastered at the renderer's footprint cell: 8 of a 2400 m pair's 9 s)
     were computed again for every preset scored on a pair, and on every run."""
     kw = dict(seeds=[0], cache_dir=cache, camera_px=PX, altitudes=[300], workers=1, progress=False)
-    (one,) = ev.evaluate_scenario("vertical", tmp_path / "one", presets=["thesis"], **kw)
+    (one,) = ev.evaluate_scenario("vertical", tmp_path / "one", presets=["thesis"], **kw, figures=False)
     pair = Path(one["pair"])
     kept = pair / ev.TRUTH_KEPT
     assert kept.is_file()
-    rows = ev.evaluate_scenario("vertical", tmp_path / "both", presets=["fast", "thesis"], **kw)
+    rows = ev.evaluate_scenario("vertical", tmp_path / "both", presets=["fast", "thesis"], **kw, figures=False)
     drop = ("pipeline_s", "timings", "pair", "figures")
     assert {k: v for k, v in rows[1].items() if k not in drop} == {k: v for k, v in one.items() if k not in drop}
 
@@ -128,15 +130,15 @@ def test_the_true_slope_is_computed_once_per_render_and_again_when_what_it_comes
     assert not list(pair.glob(".*.tmp"))
 
 
-def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path, no_map_figures):
+def test_a_copied_out_reads_its_own_render_cache(tmp_path: Path):
     """The copy of an --out resumed from the original's pairs (absolute paths in runs/render.jsonl) for as long as
     the original existed."""
     import shutil
 
     kw = dict(presets=["fast"], seeds=[0], camera_px=64, altitudes=[300], workers=1, progress=False)
-    (a,) = ev.evaluate_scenario("vertical", tmp_path / "a", **kw)
+    (a,) = ev.evaluate_scenario("vertical", tmp_path / "a", **kw, figures=False)
     shutil.copytree(tmp_path / "a", tmp_path / "b")
-    (b,) = ev.evaluate_scenario("vertical", tmp_path / "b", **kw)
+    (b,) = ev.evaluate_scenario("vertical", tmp_path / "b", **kw, figures=False)
     assert Path(a["pair"]).is_relative_to(tmp_path / "a") and Path(b["pair"]).is_relative_to(tmp_path / "b")
     assert {k: v for k, v in a.items() if k != "pair"} == {k: v for k, v in b.items() if k != "pair"}
 
@@ -155,7 +157,7 @@ def test_pose_knowledge_errors_raise_dem_error(cache: Path):
     assert perfect["slope_mean_abs_deg"] is None  # truth slope skipped on request
 
 
-def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, cache: Path, no_map_figures):
+def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, cache: Path):
     """A non-default terrain raster cap renders other pairs: own cache directory and task ids, its cap in them."""
     (default,) = ev.render_cache("vertical", 0, cache, camera_px=PX, altitudes=[300])
     rows = ev.evaluate_scenario(
@@ -168,6 +170,7 @@ def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, 
         progress=False,
         max_cells=20_000,
         raster="view",
+        figures=False,
     )
     capped = Path(rows[0]["pair"])
     assert capped.parent.name.endswith("_cells20000") and capped != Path(default["pair_dir"])

@@ -164,9 +164,7 @@ def test_a_tiled_campaign_is_its_own_and_old_campaigns_keep_their_identity():
         Campaign(("thesis",), 8, (1000,), "held-out", raster="mosaic")
 
 
-def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(
-    tmp_path: Path, monkeypatch, no_landing_figures
-):
+def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(tmp_path: Path, monkeypatch):
     calls = []
     real = ld.land_group
 
@@ -175,12 +173,13 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(
         return real(plan, presets, **kw)
 
     monkeypatch.setattr(ld, "land_group", counting)
-    rows1, s1 = ld.run_campaign(_campaign(n=2), tmp_path, workers=1, progress=False)
+    rows1, s1 = ld.run_campaign(_campaign(n=2), tmp_path, workers=1, progress=False, figures=False)
     assert calls == [0, 1] and len(rows1) == 2
-    rows2, _ = ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False)  # 4: each of the 2 scenes alike
+    # 4: each of the 2 scenes alike
+    rows2, _ = ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False, figures=False)
     assert calls == [0, 1, 2, 3]  # only the new groups ran
     assert rows2[:2] == rows1
-    ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False)
+    ld.run_campaign(_campaign(n=4), tmp_path, workers=1, progress=False, figures=False)
     assert calls == [0, 1, 2, 3]  # nothing left to do
     doc = json.loads((tmp_path / "landings.json").read_text())
     assert doc["per_preset"]["fast"]["n"] == 4 and set(doc["per_scene"]) == {"thesis", "mare"}
@@ -195,20 +194,20 @@ def test_campaign_resumes_without_redoing_work_and_refuses_other_settings(
     expect = "ok" if st["n_unsafe"] / 4 <= ld.UNSAFE_SITE_OK else "bad"
     assert "P(unsafe site), fast" in page and f'class="card {expect}"' in page.replace("card  ", "card "), page[:3000]
     with pytest.raises(LandingError, match=r"other settings \(.*: per_render 1 there, 2 here\)"):
-        ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False)
+        ld.run_campaign(_campaign(n=3, per_render=2), tmp_path, workers=1, progress=False, figures=False)
 
 
 @pytest.mark.slow
-def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path, no_landing_figures):
+def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path):
     from distributed import Client, LocalCluster
 
     c = _campaign(n=2, presets=("fast", "thesis"))
-    local, _ = ld.run_campaign(c, tmp_path / "local", workers=2, progress=False)
+    local, _ = ld.run_campaign(c, tmp_path / "local", workers=2, progress=False, figures=False)
     with (
         LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl,
         Client(cl) as client,
     ):
-        dask, _ = ld.run_campaign(c, tmp_path / "dask", scheduler=client, progress=False)
+        dask, _ = ld.run_campaign(c, tmp_path / "dask", scheduler=client, progress=False, figures=False)
     drop = ("pipeline_s",)  # CPU time differs; everything else must not
     assert [{k: v for k, v in r.items() if k not in drop} for r in local] == [
         {k: v for k, v in r.items() if k not in drop} for r in dask
@@ -217,10 +216,12 @@ def test_dask_and_local_processes_give_the_same_landings(tmp_path: Path, no_land
 
 
 @pytest.mark.slow
-def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch, no_landing_figures):
+def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: Path, monkeypatch):
     c = _campaign(n=2)
-    fresh, _ = ld.run_campaign(c, tmp_path / "a", workers=1, progress=False)
-    cached1, _ = ld.run_campaign(c, tmp_path / "b", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    fresh, _ = ld.run_campaign(c, tmp_path / "a", workers=1, progress=False, figures=False)
+    cached1, _ = ld.run_campaign(
+        c, tmp_path / "b", workers=1, progress=False, cache_dir=tmp_path / "cache", figures=False
+    )
     assert len(list((tmp_path / "cache").iterdir())) == 2
 
     def no_render(*a, **k):
@@ -228,7 +229,9 @@ def test_render_cache_gives_the_same_landings_without_rendering_again(tmp_path: 
 
     monkeypatch.setattr("ground_sim.descent.render_pair", no_render)
     other = _campaign(n=2, pose_error=None)  # other navigation errors: same renders
-    cached2, _ = ld.run_campaign(other, tmp_path / "c", workers=1, progress=False, cache_dir=tmp_path / "cache")
+    cached2, _ = ld.run_campaign(
+        other, tmp_path / "c", workers=1, progress=False, cache_dir=tmp_path / "cache", figures=False
+    )
     drop = ("pipeline_s",)
     assert [{k: v for k, v in r.items() if k not in drop} for r in fresh] == [
         {k: v for k, v in r.items() if k not in drop} for r in cached1

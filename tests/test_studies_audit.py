@@ -21,6 +21,7 @@ import pytest
 
 from hil_server.cli import main
 from protocol.errors import InputError
+from reports.html import NO_FIGURES_NOTE
 from studies import landings as ld
 from studies.executor import CampaignError, Task, run_tasks
 
@@ -162,11 +163,11 @@ def _campaign() -> ld.Campaign:
 
 
 def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to_the_same_numbers(
-    tmp_path, monkeypatch, no_landing_figures
+    tmp_path, monkeypatch
 ):
     real = _ctrl_c_at_third_group(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
-        ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
+        ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False, figures=False)
     part = json.loads((tmp_path / "a" / "landings.json").read_text())
     assert part["complete"] is False and part["incomplete_reason"] == "interrupted"
     assert part["n_landings_flown"] == 2 and part["per_preset"]["fast"]["n"] == 2
@@ -179,12 +180,12 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
 
     monkeypatch.setattr(ld, "land_group", killed)
     with pytest.raises(Terminated):
-        ld.run_campaign(_campaign(), tmp_path / "k", workers=1, progress=False)
+        ld.run_campaign(_campaign(), tmp_path / "k", workers=1, progress=False, figures=False)
     assert json.loads((tmp_path / "k" / "landings.json").read_text())["incomplete_reason"] == "stopped by SIGTERM"
 
     monkeypatch.setattr(ld, "land_group", real)
-    ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False)
-    ld.run_campaign(_campaign(), tmp_path / "b", workers=1, progress=False)
+    ld.run_campaign(_campaign(), tmp_path / "a", workers=1, progress=False, figures=False)
+    ld.run_campaign(_campaign(), tmp_path / "b", workers=1, progress=False, figures=False)
     done, fresh = (json.loads((tmp_path / d / "landings.json").read_text()) for d in ("a", "b"))
     assert done["complete"] is True and done["n_landings_flown"] == 4
     for s in (done, fresh):
@@ -192,16 +193,16 @@ def test_an_interrupted_landing_campaign_leaves_a_partial_summary_and_resumes_to
     assert done == fresh
 
 
-def test_a_lost_campaign_json_does_not_let_another_campaigns_landings_pass_as_this_ones(tmp_path, no_landing_figures):
+def test_a_lost_campaign_json_does_not_let_another_campaigns_landings_pass_as_this_ones(tmp_path):
     """The task ids (g00000, ...) name no scene: with campaign.json gone, a `mare` campaign into the same --out
     reused a `thesis` landing and reported it as its own."""
     other = ld.Campaign(("thesis",), 1, (1000,), "held-out", ("fast",), 1, None, 64)
     mine = ld.Campaign(("mare",), 1, (1000,), "held-out", ("fast",), 1, None, 64)
-    ld.run_campaign(other, tmp_path / "a", workers=1, progress=False)
+    ld.run_campaign(other, tmp_path / "a", workers=1, progress=False, figures=False)
     (tmp_path / "a" / "campaign.json").unlink()
-    rows, summary = ld.run_campaign(mine, tmp_path / "a", workers=1, progress=False)
+    rows, summary = ld.run_campaign(mine, tmp_path / "a", workers=1, progress=False, figures=False)
     assert {r["scene"] for r in rows} == {"mare"}
-    fresh_rows, _ = ld.run_campaign(mine, tmp_path / "b", workers=1, progress=False)
+    fresh_rows, _ = ld.run_campaign(mine, tmp_path / "b", workers=1, progress=False, figures=False)
     untimed = [[{k: v for k, v in r.items() if k != "pipeline_s"} for r in rs] for rs in (rows, fresh_rows)]
     assert untimed[0] == untimed[1]
     assert ld.campaign_key(mine) != ld.campaign_key(other)
@@ -247,11 +248,11 @@ def test_sensitivity_summary_counts_the_samples_without_a_dem_instead_of_droppin
     assert "no sample of [('lateral', 'fast', 150)] has a DEM error" in capsys.readouterr().err
 
 
-def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path, capsys, no_map_figures):
+def test_a_second_scenario_into_the_same_out_keeps_the_first_ones_rows(tmp_path, capsys):
     """metrics.csv was rewritten with the second scenario's rows alone; the first's vanished without a word."""
     from studies.evaluate import read_metrics_csv
 
-    vertical = _eval(tmp_path, "a", 48)
+    vertical = [*_eval(tmp_path, "a", 48), "--no-figures"]
     approach = [*vertical]
     approach[approach.index("vertical")] = "approach"
     approach[approach.index("300")] = "1000"
@@ -277,11 +278,28 @@ def test_a_tuning_campaign_takes_the_whole_set_when_the_default_count_is_larger(
         resolve_seeds(args, 100)
 
 
-def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys, no_map_figures):
+def test_evaluate_without_figures_keeps_the_maps_and_a_later_run_draws_them(tmp_path, capsys):
+    """`evaluate --no-figures`: the tables alone, said on the page; the maps are kept, so the same command
+    without it draws the figures from them without scoring any pair again."""
+    argv = _eval(tmp_path, "out", 48)
+    rep = tmp_path / "out" / "report"
+    assert main([*argv, "--no-figures"]) == 0
+    page = html.unescape((rep / "index.html").read_text())
+    assert NO_FIGURES_NOTE in page and "<img" not in page and not list(rep.glob("*.png"))
+    assert list((tmp_path / "out" / "maps").glob("vertical-*-300*.npz"))
+    log = (tmp_path / "out" / "runs" / "evaluate.jsonl").read_text()
+    assert main(argv) == 0
+    assert (tmp_path / "out" / "runs" / "evaluate.jsonl").read_text() == log  # nothing scored again
+    drawn = {p.name for p in rep.glob("*.png")}
+    assert {"vertical_detection.png", "vertical_300m_hazard.png"} <= drawn, drawn
+    assert NO_FIGURES_NOTE not in html.unescape((rep / "index.html").read_text())
+
+
+def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys):
     """A full disk or a directory where metrics.csv goes ended evaluate, sensitivity and landings in tracebacks."""
     out = tmp_path / "out"
     (out / "metrics.csv").mkdir(parents=True)  # in the way of the study's last write
-    argv = _eval(tmp_path, "out", 48)
+    argv = [*_eval(tmp_path, "out", 48), "--no-figures"]
     assert main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert "Traceback" not in "".join(err)
@@ -302,11 +320,11 @@ def test_a_failed_multi_frame_descent_is_one_line_and_exit_1(tmp_path, capsys, m
     assert "hazard-hil evaluate: multi-frame: 1 task(s) failed" in err and "rerun the same command" in err
 
 
-def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys, no_map_figures):
+def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys):
     """... and a study that replaces another's page in a shared --out says so (it replaced it without a word)."""
     (tmp_path / "out" / "report").mkdir(parents=True)
     (tmp_path / "out" / "report" / "index.html").write_text("<title>hazard-hil sensitivity (thesis sec 6.3)</title>")
-    assert main(_eval(tmp_path, "out", 48)) == 0
+    assert main([*_eval(tmp_path, "out", 48), "--no-figures"]) == 0
     out, err = capsys.readouterr()
     assert "index.html was the sensitivity page and is now evaluate's; give each study its own --out" in err
     page = html.unescape((tmp_path / "out" / "report" / "index.html").read_text())
@@ -316,9 +334,7 @@ def test_the_tables_say_when_the_camera_is_not_the_thesiss(tmp_path, capsys, no_
         assert "calibrated P(safe) is not fitted for it" in text and "pose refinement is skipped" in text
 
 
-def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(
-    tmp_path, capsys, monkeypatch, no_map_figures
-):
+def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(tmp_path, capsys, monkeypatch):
     from studies import report
 
     def interrupted(*args, **kwargs):
@@ -328,7 +344,7 @@ def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(
     page.parent.mkdir(parents=True)
     page.write_text("<title>hazard-hil evaluate</title> an earlier run's page")
     monkeypatch.setattr(report, "evaluation_report", interrupted)
-    assert main(_eval(tmp_path, "out", 48)) == 130
+    assert main([*_eval(tmp_path, "out", 48), "--no-figures"]) == 130
     err = capsys.readouterr().err
     assert "interrupted while writing the report, whose page is removed; every result is saved in" in err
     assert "nothing is computed" in err
@@ -341,7 +357,7 @@ def test_a_ctrl_c_while_the_report_is_written_says_a_rerun_only_writes_it(
         raise BrokenPipeError(32, "Broken pipe")
 
     monkeypatch.setattr(report, "evaluation_report", written_then_pipe_breaks)
-    assert main(_eval(tmp_path, "out", 48)) == 1
+    assert main([*_eval(tmp_path, "out", 48), "--no-figures"]) == 1
     err = capsys.readouterr().err
     assert "stopped while writing the report, its page is this run's; every result is saved in" in err
     assert "rerun" not in err and page.is_file()  # this run's page was removed too (review of stop 63)
@@ -437,19 +453,26 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     assert "sensitivity: rollyaw (held-out seeds 1001 (1), a 128 px camera)" in page
     assert "the other sections are earlier runs into this --out with other settings" in page
     assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
+    assert {p.name for p in (out / "report").glob("*.png")} == {"sensitivity_altitude.png", "sensitivity_rollyaw.png"}
+    for png in (out / "report").glob("*.png"):
+        png.unlink()
+    assert main([*argv, "--out", str(out), "--no-figures"]) == 0  # the tables alone, and the page says why
+    assert not list((out / "report").glob("*.png"))
+    page = html.unescape((out / "report" / "index.html").read_text())
+    assert NO_FIGURES_NOTE in page and "<img" not in page and "sensitivity: rollyaw (held-out" in page
 
 
-def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(tmp_path, capsys, no_map_figures):
+def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(tmp_path, capsys):
     """runs/render.jsonl vouched for a cached pair whose image was truncated since: every rerun failed on it, though
     the error said "rerun the same command to retry them" (stop 63's QA). It is now found, removed and rendered
     again, and said."""
-    assert main(_eval(tmp_path, "out", 48)) == 0
+    assert main([*_eval(tmp_path, "out", 48), "--no-figures"]) == 0
     images = sorted((tmp_path / "cache").rglob("i2.png"))
     assert images
     data = images[0].read_bytes()
     images[0].write_bytes(data[: len(data) // 2])
     capsys.readouterr()
-    assert main(_eval(tmp_path, "out", 48)) == 0
+    assert main([*_eval(tmp_path, "out", 48), "--no-figures"]) == 0
     err = capsys.readouterr().err
     assert "rendering again" in err and "failed" not in err
     assert images[0].read_bytes() == data  # the same render again, byte for byte
@@ -458,14 +481,12 @@ def test_a_cached_pair_damaged_since_its_render_is_rendered_again_on_the_rerun(t
 def _scene_eval(tmp_path: Path, scene: Path, out: str) -> dict:
     from studies import evaluate as ev
 
-    kw = {"seeds": [1000], "altitudes": [300], "camera_px": 48, "workers": 1, "progress": False}
+    kw = {"seeds": [1000], "altitudes": [300], "camera_px": 48, "workers": 1, "progress": False, "figures": False}
     (row,) = ev.evaluate_scenario("vertical", tmp_path / out, scene=str(scene), cache_dir=tmp_path / "cache", **kw)
     return {k: v for k, v in row.items() if k not in ("pipeline_s", "pair", "timings")}
 
 
-def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(
-    tmp_path, capsys, monkeypatch, no_map_figures
-):
+def test_an_edited_scene_or_render_code_draws_the_renders_again_and_scores_them(tmp_path, capsys, monkeypatch):
     """QA 65b H2: the render cache is keyed by the scene's name, so an edited preset (a) or truth rule (b) was
     scored on the old renders: "reusing 4 of 4", or "computing them again" while the renders were reused. Each
     change now draws the pairs again and scores them: the rerun gives what a fresh --out gives."""
@@ -576,7 +597,10 @@ def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, cap
     """L1/L3: `landings --camera-px 64` said nothing of the camera on the console, and its interval's caveat was
     on the page only."""
     argv = ["landings", "--scenes", "mare", "--n", "1", "--per-render", "1", "--preset", "fast", "--camera-px", "64"]
+    argv += ["--no-figures"]  # the page without its three figures, and it says so
     assert main([*argv, "--seeds", "2", "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
+    page = html.unescape((tmp_path / "l" / "report" / "index.html").read_text())
+    assert NO_FIGURES_NOTE in page and "<img" not in page and not list((tmp_path / "l" / "report").glob("*.png"))
     out, err = capsys.readouterr()
     assert "a 64 px camera, not the thesis's 512 px: not its setup" in err  # the campaign's opening line
     # one landing draws one of the two seeds asked for: said, and the camera recorded (QA of stop 73)
@@ -590,14 +614,12 @@ def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, cap
     "seeds, said",
     [(["--seed-set", "tuning", "--seeds", "1"], "tuning seeds: "), (["--seed-list", "5,1000"], "seed(s) 5 (not held")],
 )
-def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(
-    tmp_path, capsys, seeds, said, no_map_figures
-):
+def test_tuning_or_mixed_seeds_are_warned_of_and_the_tables_name_seeds_scene_and_camera(tmp_path, capsys, seeds, said):
     """QA 65b M3: --seed-set tuning, or a --seed-list pooling tuning and held-out seeds, was only named; the pasted
     tables_<scenario>.md named neither seeds nor scene nor camera, and metrics.csv had no camera column."""
     from studies.evaluate import read_metrics_csv
 
-    argv = _eval(tmp_path, "out", 48)
+    argv = [*_eval(tmp_path, "out", 48), "--no-figures"]
     i = argv.index("--seed-list")
     argv[i : i + 2] = seeds
     assert main(argv) == 0
