@@ -356,7 +356,7 @@ def crater_profile(r2: np.ndarray, d: np.ndarray, h: np.ndarray, s: np.ndarray) 
     at r = 2), ``Hr = (0.036/0.196) H`` (MPD ratio); worn: ``-0.04 D (1 - r^2/1.44)^2``.
     ``d``, ``h``, ``s`` broadcast against ``r2``.
     """
-    # in place and without a fractional power: the renderer's costliest function (3x faster, docs/benchmarks/render.md)
+    # in place, without a fractional power: the renderer's costliest function, 2.2x faster (docs/benchmarks/render.md)
     r2c = np.clip(r2, 1.0, 4.0)
     fresh = 4.0 - r2c  # 3 x taper
     fresh *= fresh
