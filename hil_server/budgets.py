@@ -133,6 +133,10 @@ THROTTLE_CHECK_TOLERANCE = 0.1
 # idle host (calibration: 0.76); each low reading adopted ran rad750 1.6x faster than the others, and faster than it
 # stands for (stop 56's budget QA): a single round's spread is as wide as the tolerance.
 THROTTLE_CHECK_ROUNDS = 2
+# the host's full-speed rate now against its calibration's: beyond this the run says the budget runs that much faster or
+# slower than it stands for (this VM's rate moved 2.3x between two calibrations, docs/hil.md section 4; one probe
+# batch of 3 units reads within about 12 % of the calibration's median on a quiet host)
+HOST_RATE_TOLERANCE = 0.2
 
 
 @dataclass(frozen=True)
@@ -149,6 +153,21 @@ class ThrottleCheck:
     duty: float  # the duty cycle checked: the one the calibration gives the budget
     calibrated: float  # eta there by the stored calibration
     rounds: tuple[float, ...]  # eta there now, per round measured
+    # the reference workload's full-speed rate (units per CPU-second) the probe measured now, and the calibration's:
+    # eta is a ratio of the two speeds of one minute, so it cannot see the host itself run faster or slower
+    host_rate: float = math.nan
+    calibrated_rate: float = math.nan
+
+    @property
+    def rate_ratio(self) -> float:
+        """The host's full-speed rate now over its calibration's (NaN when either is unknown)."""
+        ok = self.calibrated_rate > 0 and math.isfinite(self.host_rate) and math.isfinite(self.calibrated_rate)
+        return self.host_rate / self.calibrated_rate if ok else math.nan
+
+    @property
+    def rate_drifted(self) -> bool:
+        """The host runs the reference workload more than :data:`HOST_RATE_TOLERANCE` off its calibration."""
+        return math.isfinite(self.rate_ratio) and abs(self.rate_ratio - 1.0) > HOST_RATE_TOLERANCE
 
     @property
     def measured(self) -> float:
@@ -174,13 +193,16 @@ class ThrottleCheck:
         """``cal`` rescaled to the measured efficiency when it is adopted, else ``cal``."""
         return cal.rescaled(self.duty, self.measured) if self.adopted else cal
 
-    def to_dict(self) -> dict[str, float | bool | list[float]]:
+    def to_dict(self) -> dict[str, float | bool | list[float] | None]:
         return {
             "duty": self.duty,
             "calibrated": self.calibrated,
             "measured": self.measured,
             "rounds": list(self.rounds),
             "adopted": self.adopted,
+            # null when not measured (JSON has no NaN)
+            "host_rate": self.host_rate if math.isfinite(self.host_rate) else None,
+            "calibrated_rate": self.calibrated_rate if math.isfinite(self.calibrated_rate) else None,
         }
 
     @classmethod
@@ -190,7 +212,11 @@ class ThrottleCheck:
         rounds = tuple(float(e) for e in d.get("rounds", ()))
         if not rounds:
             rounds = (measured,) * (THROTTLE_CHECK_ROUNDS if d.get("adopted") else 1)
-        return cls(float(d["duty"]), float(d["calibrated"]), rounds)
+        rates = (  # since stop 82
+            math.nan if d.get("host_rate") is None else float(d["host_rate"]),
+            math.nan if d.get("calibrated_rate") is None else float(d["calibrated_rate"]),
+        )
+        return cls(float(d["duty"]), float(d["calibrated"]), rounds, *rates)
 
 
 def calibration_drift(
@@ -274,11 +300,11 @@ def check_throttle(budget: Budget, cal: HostCalibration) -> ThrottleCheck:
     from hil_server.calibrate import EfficiencyProbe
 
     f = budget.duty(cal).applied
-    check = ThrottleCheck(f, cal.efficiency(f), ())
+    check = ThrottleCheck(f, cal.efficiency(f), (), calibrated_rate=cal.units_per_s)
     with EfficiencyProbe(throttle_check_units(budget, cal)) as probe:
         while not (check.rounds and check.confirmed):
             check = replace(check, rounds=(*check.rounds, probe.eta(f)))
-    return check
+        return replace(check, host_rate=probe.units_per_s)
 
 
 def throttle_check_seconds(budget: Budget, cal: HostCalibration) -> float:

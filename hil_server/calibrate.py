@@ -218,6 +218,11 @@ class EfficiencyProbe:
             raise RuntimeError(f"the throttle-efficiency probe ended ({how})")
         return [float(x) for x in json.loads(line)]
 
+    @property
+    def units_per_s(self) -> float:
+        """The reference workload's rate at full speed in the latest batch: units per CPU-second (the median's)."""
+        return 1.0 / max(statistics.median(self._full), 1e-9) if self._full else math.nan
+
     def eta(self, fraction: float, min_wall_s: float = 0.0) -> float:
         """One round at duty cycle ``fraction`` in (0, 1): batches of ``units`` units, more when they would take
         less than ``min_wall_s`` under the throttle (at most :data:`MAX_UNITS`)."""

@@ -100,13 +100,30 @@ def throttle_note(check: ThrottleCheck, applied: float) -> str:
     )
     tol = f"{THROTTLE_CHECK_TOLERANCE:.0%}"
     if check.adopted:
-        return (
+        said = (
             f"{what}, beyond {tol} in each round: the duty cycle becomes {applied:.2%} for the same share in this "
             "run (the stored calibration is unchanged; `hazard-hil calibrate` measures it again)"
         )
-    if len(check.rounds) > 1:
-        return f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
-    return f"{what}; within {tol}, the calibration stands"
+    elif len(check.rounds) > 1:
+        said = f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
+    else:
+        said = f"{what}; within {tol}, the calibration stands"
+    return said + host_rate_note(check)
+
+
+def host_rate_note(check: ThrottleCheck) -> str:
+    """'; WARNING: this host ran ...' when the check's probe found the host's full-speed rate off its calibration's
+    by more than :data:`~hil_server.budgets.HOST_RATE_TOLERANCE` ("" otherwise): eta cannot show it, and the budget
+    then runs that much faster or slower than it stands for (docs/hil.md section 4)."""
+    if not check.rate_drifted:
+        return ""
+    r = check.rate_ratio
+    how = f"{r:.2g}x as fast as" if r > 1 else f"{1 / r:.2g}x slower than"
+    return (
+        f"; WARNING: this host ran the reference workload {how} when it was calibrated ({check.host_rate:.1f} "
+        f"against {check.calibrated_rate:.1f} units per CPU-second), so the budget runs about that much "
+        f"{'faster' if r > 1 else 'slower'} than it stands for: `hazard-hil calibrate` in this hour"
+    )
 
 
 def budget_speed(budget: Budget, cal: HostCalibration | None, duty: Duty) -> dict:
