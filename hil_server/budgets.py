@@ -307,6 +307,15 @@ def check_throttle(budget: Budget, cal: HostCalibration) -> ThrottleCheck:
         return replace(check, host_rate=probe.units_per_s)
 
 
+def measure_host_rate() -> float:
+    """The reference workload's full-speed rate now, in units per CPU-second, as the calibration measures it: a probe
+    process on the emulated core, :data:`~hil_server.calibrate.PROBE_UNITS` units after its warm-up (about 2 s)."""
+    from hil_server.calibrate import PROBE_UNITS, EfficiencyProbe
+
+    with EfficiencyProbe(PROBE_UNITS) as probe:
+        return probe.units_per_s
+
+
 def throttle_check_seconds(budget: Budget, cal: HostCalibration) -> float:
     """About how long one round of :func:`check_throttle` takes, with the probe's start and warm-up (~2 s)."""
     units = throttle_check_units(budget, cal)

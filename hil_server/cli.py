@@ -655,8 +655,9 @@ def _add_run_options(p: argparse.ArgumentParser, defaults: dict) -> None:
     p.add_argument(
         "--no-throttle-check",
         action="store_true",
-        help="run a slow budget on the stored calibration as it is; by default the throttle's efficiency is measured "
-        "again at its duty cycle first (5-10 s; docs/hil.md section 4)",
+        help="run a throttled budget on the stored calibration as it is; by default the throttle's efficiency is "
+        "measured again at a slow budget's duty cycle first (5-10 s), and the host's full-speed rate on a faster one "
+        "(0.5 s), each said when it drifted (docs/hil.md section 4)",
     )
 
 

@@ -108,21 +108,24 @@ def throttle_note(check: ThrottleCheck, applied: float) -> str:
         said = f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
     else:
         said = f"{what}; within {tol}, the calibration stands"
-    return said + host_rate_note(check)
+    return said
 
 
-def host_rate_note(check: ThrottleCheck) -> str:
-    """'; WARNING: this host ran ...' when the check's probe found the host's full-speed rate off its calibration's
-    by more than :data:`~hil_server.budgets.HOST_RATE_TOLERANCE` ("" otherwise): eta cannot show it, and the budget
-    then runs that much faster or slower than it stands for (docs/hil.md section 4)."""
+def host_rate_note(summary: dict) -> str:
+    """'WARNING: this host ran ...' from a run summary's ``host_rate_check`` when the host's full-speed rate just
+    before the run was off its calibration's by more than :data:`~hil_server.budgets.HOST_RATE_TOLERANCE` ("" when
+    it was not, or not measured): the budget then ran that much faster or slower than it stands for, and the
+    throttle check's eta cannot show it (docs/hil.md section 4)."""
+    rec = summary.get("host_rate_check") or {}
+    check = ThrottleCheck.from_dict({"duty": 0.0, "calibrated": 1.0, "measured": 1.0, **rec})
     if not check.rate_drifted:
         return ""
     r = check.rate_ratio
     how = f"{r:.2g}x as fast as" if r > 1 else f"{1 / r:.2g}x slower than"
     return (
-        f"; WARNING: this host ran the reference workload {how} when it was calibrated ({check.host_rate:.1f} "
-        f"against {check.calibrated_rate:.1f} units per CPU-second), so the budget runs about that much "
-        f"{'faster' if r > 1 else 'slower'} than it stands for: `hazard-hil calibrate` in this hour"
+        f"WARNING: this host ran the reference workload {how} when it was calibrated ({check.host_rate:.1f} "
+        f"against {check.calibrated_rate:.1f} units per CPU-second) just before the run, so the budget ran about "
+        f"that much {'faster' if r > 1 else 'slower'} than it stands for: `hazard-hil calibrate` in this hour"
     )
 
 
@@ -1068,6 +1071,7 @@ def summary_notes(summary: dict) -> list[str]:
     return [
         budget_note(s),
         throttle_check_note(s),
+        host_rate_note(s),
         phase_note(s),
         contention_note(s),
         site_note(s),
@@ -1965,6 +1969,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         check_throttle,
         host_load_note,
         load_calibration,
+        measure_host_rate,
         needs_throttle_check,
         throttle_check_seconds,
     )
@@ -2013,6 +2018,7 @@ def _descend(checked: CheckedRun, log) -> dict:
     interrupted: int | None = None
     sup_reason: str | None = None  # the HIL server failed: its reason
     throttle: ThrottleCheck | None = None
+    host_rate: dict | None = None  # the host's full-speed rate just before the flight, beside its calibration's
     rc: int | None = None
     channels: dict = {}
     bridge = None
@@ -2083,10 +2089,19 @@ def _descend(checked: CheckedRun, log) -> dict:
                 except (OSError, RuntimeError, ValueError) as exc:  # a probe that could not run: the run goes on
                     log(f"run: warning: the throttle check failed ({exc}); the calibration stands as stored")
                 else:
+                    host_rate = {"host_rate": throttle.host_rate, "calibrated_rate": throttle.calibrated_rate}
                     cal = throttle.calibration(cal)
                     duty = budget.duty(cal)
                     log(f"run: {throttle_note(throttle, duty.applied)}")
                     fraction, effective = duty.applied, duty.effective
+            elif emulated and cfg.throttle_check and cal is not None and not budget.is_host:
+                # a fast budget's throttle loses little, but the host's own speed drifts all the same (stop 82)
+                try:
+                    host_rate = {"host_rate": measure_host_rate(), "calibrated_rate": cal.units_per_s}
+                except (OSError, RuntimeError, ValueError) as exc:
+                    log(f"run: warning: the host's speed could not be measured ({exc}); the calibration stands")
+            if note := host_rate_note({"host_rate_check": host_rate}):
+                log(f"run: {note}")
             env = {**os.environ, UNCALIBRATED_SAID: "1"}  # said once, here, not again by each process
             ground_cmd = [
                 sys.executable,
@@ -2294,6 +2309,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 "effective_fraction": effective,
                 "budget_speed": None if duty is None else budget_speed(budget, cal, budget.duty(cal)),
                 "throttle_check": None if throttle is None else throttle.to_dict(),
+                "host_rate_check": host_rate,
                 "deadline_s": deadline,
                 "line_faults": {d: ch.stats for d, ch in channels.items()},
                 "fusion_sources": fusion_sources(entries, None if manifest is None else manifest.parent),

@@ -328,20 +328,22 @@ def test_a_run_says_whether_its_throttle_check_moved_the_duty_and_that_the_store
 
 def test_a_run_says_when_the_host_runs_faster_or_slower_than_when_it_was_calibrated():
     """This VM's speed moved 2.3x between two calibrations and snapdragon801's duty with it (24.4 -> 55.9 %): eta is
-    a ratio of one minute's speeds and cannot see it, so the check compares the probe's full-speed rate with the
-    calibration's and says the drift beyond 20 %."""
+    a ratio of one minute's speeds and cannot see it, so a run on a throttled budget measures the host's full-speed
+    rate first and says a drift beyond 20 % from the calibration's."""
     import json
 
-    from hil_server.run import throttle_check_note
+    from hil_server.run import host_rate_note, summary_notes
 
-    base = {"duty": 0.0166, "calibrated": 0.76, "measured": 0.75, "rounds": [0.75], "calibrated_rate": 32.9}
-    fast = throttle_check_note({"throttle_check": {**base, "host_rate": 75.6}})
-    assert "WARNING: this host ran the reference workload 2.3x as fast as when it was calibrated" in fast, fast
+    cal = {"calibrated_rate": 32.9}
+    fast = host_rate_note({"host_rate_check": {**cal, "host_rate": 75.6}})
+    assert fast.startswith("WARNING: this host ran the reference workload 2.3x as fast as when it was calibrated")
     assert "(75.6 against 32.9 units per CPU-second)" in fast and "about that much faster than it stands for" in fast
-    slow = throttle_check_note({"throttle_check": {**base, "host_rate": 16.0}})
+    slow = host_rate_note({"host_rate_check": {**cal, "host_rate": 16.0}})
     assert "2.1x slower than when it was calibrated" in slow and "that much slower than it stands for" in slow
-    assert "WARNING" not in throttle_check_note({"throttle_check": {**base, "host_rate": 36.0}})  # within 20 %
-    check = B.ThrottleCheck.from_dict({**base, "host_rate": 75.6})
+    assert slow in summary_notes({"host_rate_check": {**cal, "host_rate": 16.0}})  # summary.md and the page say it
+    assert host_rate_note({"host_rate_check": {**cal, "host_rate": 36.0}}) == ""  # within 20 %
+    assert host_rate_note({"host_rate_check": None}) == host_rate_note({}) == ""  # host budget, or an older summary
+    check = B.ThrottleCheck(0.0166, 0.76, (0.75,), host_rate=75.6, calibrated_rate=32.9)
     assert check.rate_drifted and check.rate_ratio == pytest.approx(75.6 / 32.9)
     assert B.ThrottleCheck.from_dict(json.loads(json.dumps(check.to_dict()))) == check
     unmeasured = B.ThrottleCheck(0.02, 0.7, (0.7,))  # JSON has no NaN: null, and back

@@ -586,6 +586,7 @@ def test_a_slow_budget_runs_at_the_throttle_efficiency_measured_before_the_run(m
     assert check["calibrated"] == pytest.approx(0.3) and check["measured"] > 0.45  # no host loses 70 % at ~8 %
     # the probe's full-speed rate, against the calibration's (the anchor's here): recorded, and said when off by 20 %
     assert check["host_rate"] > 0 and check["calibrated_rate"] == pytest.approx(anchor.units_per_s)
+    assert s["host_rate_check"] == {"host_rate": check["host_rate"], "calibrated_rate": check["calibrated_rate"]}
     assert s["effective_fraction"] == pytest.approx(stored.effective)  # the same share of the core
     assert s["cpu_fraction"] == pytest.approx(stored.effective / check["measured"], rel=0.02)
     assert s["cpu_fraction"] < 0.7 * stored.applied

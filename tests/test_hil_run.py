@@ -140,6 +140,14 @@ def test_serial_run_on_flight_budget_is_throttled_and_paced(manifest, tmp_path):
     assert s["results"] == 3 and s["errors"] == 0
     target = s["cpu_fraction"]
     assert target < 0.9  # a flight budget is slower than a host core
+    # too fast a budget for a throttle check, but the host's own speed is measured against its calibration (stop 82)
+    from hil_server.budgets import load_calibration
+
+    assert s["throttle_check"] is None
+    if load_calibration() is not None:
+        assert s["host_rate_check"]["host_rate"] > 0 and s["host_rate_check"]["calibrated_rate"] > 0
+    else:  # a CI machine may never have been calibrated: nothing to compare with
+        assert s["host_rate_check"] is None
     # the throttle stretched the flight's own pipeline on some pair (its CPU over its wall, as the flight timed it):
     # 0.91-0.95 unthrottled (the host budget), 0.57-0.84 at this budget's 0.56 duty: a 128 px pair is ~30 ms of CPU.
     # The server's cpu_fraction read all three pairs as 1.0 once (stop 79; stop 75: [1.0, 1.0, 0.67] once in three
