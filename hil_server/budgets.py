@@ -160,14 +160,8 @@ class ThrottleCheck:
 
     @property
     def rate_ratio(self) -> float:
-        """The host's full-speed rate now over its calibration's (NaN when either is unknown)."""
-        ok = self.calibrated_rate > 0 and math.isfinite(self.host_rate) and math.isfinite(self.calibrated_rate)
-        return self.host_rate / self.calibrated_rate if ok else math.nan
-
-    @property
-    def rate_drifted(self) -> bool:
-        """The host runs the reference workload more than :data:`HOST_RATE_TOLERANCE` off its calibration."""
-        return math.isfinite(self.rate_ratio) and abs(self.rate_ratio - 1.0) > HOST_RATE_TOLERANCE
+        """The host's full-speed rate now over its calibration's (:func:`rate_ratio`)."""
+        return rate_ratio(self.host_rate, self.calibrated_rate)
 
     @property
     def measured(self) -> float:
@@ -307,9 +301,17 @@ def check_throttle(budget: Budget, cal: HostCalibration) -> ThrottleCheck:
         return replace(check, host_rate=probe.units_per_s)
 
 
+def rate_ratio(host_rate: float | None, calibrated_rate: float | None) -> float:
+    """The host's full-speed rate on the reference workload now over its calibration's; NaN when either is unknown.
+    Beyond :data:`HOST_RATE_TOLERANCE` from 1, a budget runs that much faster or slower than it stands for."""
+    if host_rate is None or calibrated_rate is None or not (calibrated_rate > 0 and math.isfinite(host_rate)):
+        return math.nan
+    return host_rate / calibrated_rate
+
+
 def measure_host_rate() -> float:
     """The reference workload's full-speed rate now, in units per CPU-second, as the calibration measures it: a probe
-    process on the emulated core, :data:`~hil_server.calibrate.PROBE_UNITS` units after its warm-up (about 2 s)."""
+    process on the emulated core, :data:`~hil_server.calibrate.PROBE_UNITS` units after its warm-up (about 0.5 s)."""
     from hil_server.calibrate import PROBE_UNITS, EfficiencyProbe
 
     with EfficiencyProbe(PROBE_UNITS) as probe:

@@ -58,6 +58,7 @@ import numpy as np
 from flight_sw.kernels import kernels_note, missing_kernels
 from ground_sim.results_file import read_results
 from hil_server.budgets import (
+    HOST_RATE_TOLERANCE,
     THROTTLE_CHECK_TOLERANCE,
     UNCALIBRATED_SAID,
     Budget,
@@ -65,6 +66,7 @@ from hil_server.budgets import (
     HostCalibration,
     ThrottleCheck,
     UncalibratedWarning,
+    rate_ratio,
 )
 from hil_server.procemu import PR_SET_PDEATHSIG, hil_cores, libc_prctl
 from protocol.errors import InputError, os_error_text
@@ -117,14 +119,14 @@ def host_rate_note(summary: dict) -> str:
     it was not, or not measured): the budget then ran that much faster or slower than it stands for, and the
     throttle check's eta cannot show it (docs/hil.md section 4)."""
     rec = summary.get("host_rate_check") or {}
-    check = ThrottleCheck.from_dict({"duty": 0.0, "calibrated": 1.0, "measured": 1.0, **rec})
-    if not check.rate_drifted:
+    now, then = rec.get("host_rate"), rec.get("calibrated_rate")
+    r = rate_ratio(now, then)
+    if not abs(r - 1.0) > HOST_RATE_TOLERANCE:  # NaN too: not measured
         return ""
-    r = check.rate_ratio
     how = f"{r:.2g}x as fast as" if r > 1 else f"{1 / r:.2g}x slower than"
     return (
-        f"WARNING: this host ran the reference workload {how} when it was calibrated ({check.host_rate:.1f} "
-        f"against {check.calibrated_rate:.1f} units per CPU-second) just before the run, so the budget ran about "
+        f"WARNING: this host ran the reference workload {how} when it was calibrated ({now:.1f} "
+        f"against {then:.1f} units per CPU-second) just before the run, so the budget ran about "
         f"that much {'faster' if r > 1 else 'slower'} than it stands for: `hazard-hil calibrate` in this hour"
     )
 
@@ -2089,7 +2091,7 @@ def _descend(checked: CheckedRun, log) -> dict:
                 except (OSError, RuntimeError, ValueError) as exc:  # a probe that could not run: the run goes on
                     log(f"run: warning: the throttle check failed ({exc}); the calibration stands as stored")
                 else:
-                    host_rate = {"host_rate": throttle.host_rate, "calibrated_rate": throttle.calibrated_rate}
+                    host_rate = {k: v for k, v in throttle.to_dict().items() if k in ("host_rate", "calibrated_rate")}
                     cal = throttle.calibration(cal)
                     duty = budget.duty(cal)
                     log(f"run: {throttle_note(throttle, duty.applied)}")
