@@ -1348,6 +1348,16 @@ def _interrupt(signum: int, frame: object) -> None:
     raise Interrupted(signum)
 
 
+def _interruption(exc: BaseException) -> Interrupted | None:
+    """The :class:`Interrupted` that ``exc`` was raised while handling (its ``__context__`` chain), or None."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, Interrupted):
+            return seen
+        seen = seen.__context__
+    return None
+
+
 def main(argv: list[str] | None = None, *, restore_handlers: bool = True) -> int:
     """The ground streamer's process entry. SIGINT and SIGTERM end it with what finished recorded.
 
@@ -1366,6 +1376,13 @@ def main(argv: list[str] | None = None, *, restore_handlers: bool = True) -> int
     except OSError as exc:  # a full disk under --out: one line naming the file, not a traceback (QA of stop 72)
         _say(f"ground: error: {os_error_text(exc)}")
         return 1
+    except Exception as exc:
+        # the handler raised inside threading's Thread.start (a signal while the stall clock started), which then
+        # failed on its own registry with a KeyError: a traceback, the signal only its context (CI of stop 82)
+        if (signalled := _interruption(exc)) is None:
+            raise
+        _say(f"ground: {signalled} before the descent began")
+        return 128 + signalled.signum
     finally:
         for sig, handler in before.items() if restore_handlers else ():
             signal.signal(sig, handler)

@@ -541,3 +541,29 @@ def test_seed_lists_are_said_as_runs():
     assert seed_runs([1003, 1001, 1002, 1005, 1007, 1008, 1005]) == "1001-1003,1005,1007-1008"
     assert describe_seeds([1000, 1001, 1002, 1004], "held-out") == "held-out seeds 1000-1002,1004 (4)"
     assert describe_seeds([7], "tuning") == "tuning seeds 7 (1)"
+
+
+def test_a_signal_that_breaks_a_thread_start_still_ends_the_ground_as_interrupted(monkeypatch, capsys):
+    """CI of stop 82: SIGTERM came while the ground started its stall clock's thread; the handler's Interrupted,
+    raised inside Thread.start, left threading raising a KeyError of its own, and the ground ended in a traceback
+    instead of "ground: interrupted by SIGTERM"."""
+    import signal
+
+    from ground_sim import stream
+
+    def broken_start(argv):
+        try:
+            raise stream.Interrupted(signal.SIGTERM)
+        except stream.Interrupted:
+            raise KeyError("<Thread(stall-clock, started daemon)>") from None
+
+    monkeypatch.setattr(stream, "_main", broken_start)
+    assert stream.main([]) == 128 + signal.SIGTERM
+    assert "ground: interrupted by SIGTERM before the descent began" in capsys.readouterr().err
+
+    def plain_bug(argv):
+        raise KeyError("a bug, not a signal")
+
+    monkeypatch.setattr(stream, "_main", plain_bug)
+    with pytest.raises(KeyError, match="a bug"):
+        stream.main([])
