@@ -102,15 +102,13 @@ def throttle_note(check: ThrottleCheck, applied: float) -> str:
     )
     tol = f"{THROTTLE_CHECK_TOLERANCE:.0%}"
     if check.adopted:
-        said = (
+        return (
             f"{what}, beyond {tol} in each round: the duty cycle becomes {applied:.2%} for the same share in this "
             "run (the stored calibration is unchanged; `hazard-hil calibrate` measures it again)"
         )
-    elif len(check.rounds) > 1:
-        said = f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
-    else:
-        said = f"{what}; within {tol}, the calibration stands"
-    return said
+    if len(check.rounds) > 1:
+        return f"{what}; the second round did not confirm the first beyond {tol}, so the calibration stands"
+    return f"{what}; within {tol}, the calibration stands"
 
 
 def host_rate_note(summary: dict) -> str:
