@@ -785,6 +785,7 @@ class ZmqLink(Link, SessionView):
                 "connections",
                 "protocol_drops",
                 "listener_resets",
+                "redials",  # connecting side: connections dropped after a silent session, and dialled anew
                 "busy_s",
                 "dgrams_dropped",  # heartbeats sent with no session to hear them
                 "rx_full",  # times this side stopped reading: its application was not taking messages
@@ -811,15 +812,16 @@ class ZmqLink(Link, SessionView):
                 (zmq.LINGER, 1000),
                 (zmq.RECONNECT_IVL, 100),
                 (zmq.RECONNECT_IVL_MAX, 1000),
-                # A dead peer is found by TCP, not by ZMTP heartbeats: with heartbeats on, libzmq 4.3 aborts the
-                # whole process (stream_engine_base.cpp "!_io_error") when a peer that PAIR refused goes away.
-                # Keepalive probes an idle connection; TCP_MAXRT ends one whose data goes unacknowledged (our
-                # own keepalive HELLOs make sure there is some).
+                # A dead peer is found by TCP keepalive and our own silence timer, not by ZMTP heartbeats: with
+                # heartbeats on, libzmq 4.3 aborts the whole process (stream_engine_base.cpp "!_io_error") when a
+                # peer that PAIR refused goes away. No TCP_MAXRT (TCP_USER_TIMEOUT) either: Linux applies it to
+                # zero-window probes too, so it cut the connection of a live peer whose application was busy
+                # (flow control) for twice the peer timeout, and what libzmq held for it was lost unsaid (CI of
+                # stop 82). A silent session's connection is dropped by the silence timer instead (_timers).
                 (zmq.TCP_KEEPALIVE, 1),
                 (zmq.TCP_KEEPALIVE_IDLE, max(1, math.ceil((peer_timeout or 30.0) / 2))),
                 (zmq.TCP_KEEPALIVE_INTVL, 1),
                 (zmq.TCP_KEEPALIVE_CNT, 3),
-                (zmq.TCP_MAXRT, int(2000 * (peer_timeout or 30.0))),
                 # libzmq takes an IPv6 address ("tcp://[::1]:5555") only on a socket told it may; off, binding
                 # one fails with a bare EAGAIN and connecting to one never happens
                 (zmq.IPV6, 1 if "://[" in endpoint else 0),
@@ -850,7 +852,9 @@ class ZmqLink(Link, SessionView):
         self._relisten: str | None = None  # binding side: why every connection is to be dropped (listen anew)
         self._unheard: set[int] = set()  # binding side: fds of connections PAIR refused, still open
         self._sessionless_since = time.monotonic()  # binding side: the attached peer has had no session since
+        self._attached_heard_at = -1e9  # when the attached connection last carried a message
         self._dropped_at: float | None = None  # connecting side: that connection dropped, no retry reported yet
+        self._redial_why: str | None = None  # connecting side: why the connection is to be dropped and dialled anew
         self._disconnected_at: float | None = None  # the attached peer's connection closed (said in a loss's reason)
         self._connect_retries, self._connected_ever = 0, False  # connecting side: TCP attempts refused, any made
         self._stop = False
@@ -1082,6 +1086,8 @@ class ZmqLink(Link, SessionView):
             self._send_pending(now)
             if self._relisten is not None:
                 self._listen_anew(self._relisten)
+            if self._redial_why is not None:
+                self._dial_anew()
             try:
                 ready = dict(poller.poll(20))
             except zmq.ZMQError:
@@ -1149,6 +1155,18 @@ class ZmqLink(Link, SessionView):
                 self._relisten = (
                     f"the attached peer opened no session in {idle:.1f} s while {len(self._unheard)} other(s) waited"
                 )
+            mute = now - max(self._sessionless_since, self._attached_heard_at)
+            if (
+                self.bind
+                and self._owner is not None
+                and self._relisten is None
+                and self._paused_at is None
+                and mute > wait
+            ):
+                # Every peer says HELLO while it has no session. One that has said nothing may be on a connection
+                # PAIR refused unseen: a peer that left and dialled again while this side was stopped (both seen
+                # at once on waking, the new pipe before the old one's end) held the place, deaf, for good.
+                self._relisten = f"the attached peer has said nothing for {mute:.1f} s"
             if self.connect_timeout is not None:
                 while self._out and now - self._out[0].submitted > self.connect_timeout:
                     m = self._out.popleft()
@@ -1189,6 +1207,11 @@ class ZmqLink(Link, SessionView):
                 # and refuses every other ground meanwhile: drop them all, and whoever dials first is served
                 self._relisten = "the silent peer's connection held the one place"
                 reason += "; its connection is dropped so that another peer can attach"
+            elif gone is None or gone < self._last_heard:
+                # TCP has not said the connection closed. To a host that vanished it stays up, retransmitting for
+                # many minutes (no TCP_MAXRT: see __init__), and a board back on that address is never dialled
+                self._redial_why = reason
+                reason += "; its connection is dropped and the peer dialled again"
             self._lose(reason)
 
     def _retire_trackers(self, now: float) -> None:
@@ -1246,6 +1269,7 @@ class ZmqLink(Link, SessionView):
                 self._last_sent = now
 
     def _on_parts(self, parts: list, now: float) -> None:
+        self._attached_heard_at = now
         self._stats["bytes_received"] += sum(len(p.buffer) for p in parts)
         self._stats["frames_received"] += 1
         if self._closing:  # we said CLOSE: whatever the peer says now is not for this link
@@ -1357,21 +1381,13 @@ class ZmqLink(Link, SessionView):
         session would time out and the link never connect again. Instead: the drop is a refusal with its likely
         reason, the session is given up at once (what was in flight fails with that reason, the peer is told), and
         the link connects anew; a new session follows as after any loss."""
-        zmq = self._zmq
         self._dropped_at = None
         reason = (
             "libzmq dropped the connection: the peer sent a message part over its "
             f"{self.limits.max_message_bytes + (1 << 20)}-byte maximum (or broke the ZeroMQ protocol); "
             "that message is lost"
         )
-        try:
-            self._sock.disconnect(self.endpoint)
-        except zmq.ZMQError:
-            pass  # already forgotten by libzmq
-        try:
-            self._sock.connect(self.endpoint)
-        except zmq.ZMQError as exc:
-            reason += f"; connecting again failed: {exc}"
+        reason += self._reconnect()
         with self._cv:
             self._stats["protocol_drops"] += 1
             self._arrivals += 1
@@ -1380,6 +1396,34 @@ class ZmqLink(Link, SessionView):
                 self._lose(reason)
             else:
                 self._pending_events.append(("lost", reason, self.sess.epoch))
+
+    def _reconnect(self) -> str:
+        """Connecting side: close the connection and dial again (libzmq retries until the peer answers); what
+        went wrong, as a clause to add to a reason, or ""."""
+        zmq = self._zmq
+        try:
+            self._sock.disconnect(self.endpoint)
+        except zmq.ZMQError:
+            pass  # already forgotten by libzmq
+        try:
+            # PAIR refuses a second pipe, and the old one ends only once libzmq's I/O thread has acknowledged its
+            # end: a pipe made at once by connect() can find it still attached and be refused, deaf. IMMEDIATE
+            # makes the pipe when the new connection's handshake is done, a round trip to the peer later.
+            self._sock.setsockopt(zmq.IMMEDIATE, 1)
+            self._sock.connect(self.endpoint)
+        except zmq.ZMQError as exc:
+            return f"; connecting again failed: {exc}"
+        return ""
+
+    def _dial_anew(self) -> None:
+        """Connecting side: the session was lost to silence on a connection TCP still holds up; drop it and dial
+        again, so that a peer back on its address is reached (event ``redial``, stat ``redials``)."""
+        why, self._redial_why = self._redial_why, None
+        trouble = self._reconnect()
+        with self._cv:
+            self._stats["redials"] += 1
+            text = f"dropped the connection and dialling again: {why}{trouble}"
+            self._pending_events.append(("redial", text, self.sess.epoch))
 
     def _listen_anew(self, why: str) -> None:
         """Binding side: unbind the endpoint, which closes every connection accepted on it, and bind it again.
