@@ -1150,23 +1150,17 @@ class ZmqLink(Link, SessionView):
                 self._last_hello = now
             wait = self.peer_timeout if self.peer_timeout is not None else SESSIONLESS_OWNER_S
             idle = now - self._sessionless_since
-            # a stranger, or a frozen peer, holds the one place while others wait
-            if self._owner is not None and self._unheard and self._relisten is None and idle > wait:
-                self._relisten = (
-                    f"the attached peer opened no session in {idle:.1f} s while {len(self._unheard)} other(s) waited"
+            # A stranger, or a frozen peer, holds the one place while others wait. And every peer says HELLO while
+            # it has no session: one that has said nothing at all may be on a connection PAIR refused unseen (a
+            # peer that left and dialled again while this side was stopped: both seen at once on waking, the new
+            # pipe before the old one's end), and it held the place, deaf, for good, with no one else waiting.
+            mute = self._paused_at is None and now - max(self._sessionless_since, self._attached_heard_at) > wait
+            if self._owner is not None and self._relisten is None and idle > wait and (self._unheard or mute):
+                self._relisten = f"the attached peer opened no session in {idle:.1f} s" + (
+                    " and has said nothing" if mute else ""
                 )
-            mute = now - max(self._sessionless_since, self._attached_heard_at)
-            if (
-                self.bind
-                and self._owner is not None
-                and self._relisten is None
-                and self._paused_at is None
-                and mute > wait
-            ):
-                # Every peer says HELLO while it has no session. One that has said nothing may be on a connection
-                # PAIR refused unseen: a peer that left and dialled again while this side was stopped (both seen
-                # at once on waking, the new pipe before the old one's end) held the place, deaf, for good.
-                self._relisten = f"the attached peer has said nothing for {mute:.1f} s"
+                if self._unheard:
+                    self._relisten += f" while {len(self._unheard)} other(s) waited"
             if self.connect_timeout is not None:
                 while self._out and now - self._out[0].submitted > self.connect_timeout:
                     m = self._out.popleft()
