@@ -413,6 +413,7 @@ class Arq(SessionView):
         self._rlast = now
         # liveness
         self._last_heard = now
+        self._forgave_at: float | None = None  # _last_heard as a stop's forgiveness left it (forgive)
         self._peer_writing = -math.inf  # the last bytes of a peer's frame not (yet) whole: only a stranger's test
         self._last_sent = now
         self._writing = False  # a frame from next_frame is being written (its written() has not come)
@@ -1164,6 +1165,21 @@ class Arq(SessionView):
         self._frame = int(max(self.cfg.min_frame, min(self.cfg.max_frame, f)))
 
     # ------------------------------------------------------------------ timers
+    def forgive(self, gap: float) -> bool:
+        """This process was not scheduled for ``gap`` s (SIGSTOP, a paused VM, a starved host): the peer's silence
+        meanwhile is this side's. Its liveness, progress and reassembly clocks restart, so that the peer's frames,
+        sent once it too runs again, are heard before it is judged (a 3 s stop of a process holding both ends of a
+        2 s link lost both sessions on waking, 3 of 3). As on ZeroMQ (:mod:`protocol.links`), the silence is forgiven
+        once between two hearings of the peer: a loop starved again and again must still time out a dead peer.
+        True when forgiven."""
+        if self._forgave_at is not None and self._last_heard == self._forgave_at:
+            return False
+        self._last_heard += gap
+        self._forgave_at = self._last_heard
+        self._last_progress += gap
+        self._rlast += gap
+        return True
+
     def poll(self, now: float) -> None:
         """Timers: retransmission, keepalive, handshake, liveness, reassembly, connect timeout."""
         if self.closed:

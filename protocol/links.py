@@ -453,7 +453,7 @@ class ByteStreamLink(Link):
             self._fail_transport(f"internal error in the link's reader: {exc!r}")
 
     def _read_until_stopped(self) -> None:
-        last_rx = time.monotonic()
+        last_rx = prev = time.monotonic()
         while not self._stop:
             try:
                 data = self._read(0.05)
@@ -465,7 +465,20 @@ class ByteStreamLink(Link):
                     self._fail_transport(f"read failed: {exc}")
                 return
             now = time.monotonic()
+            stalled = ""
             with self._cv:
+                # a turn this late: the process was stopped, and the peer's silence meanwhile is not the peer's
+                # (the CI of stop 83 lost two serial runs' sessions at once on waking, as ZeroMQ no longer does)
+                if now - prev > OWN_STALL_S:
+                    forgiven = self.arq.forgive(now - prev)
+                    pt = self.arq.cfg.peer_timeout
+                    if pt is not None and now - prev > pt / 2:  # said where it could have cost a session
+                        stalled = f"this side was not scheduled for {now - prev:.1f} s; " + (
+                            "the peer's silence is counted from now"
+                            if forgiven
+                            else "the peer, not heard since the last such stop, is judged by its silence meanwhile"
+                        )
+                prev = now
                 if data:
                     last_rx = now
                     self.arq.receive(data, now)
@@ -476,6 +489,8 @@ class ByteStreamLink(Link):
                 got = self.arq.take_received()
                 events = self.arq.take_events()
                 self._cv.notify_all()
+            if stalled:
+                self._event("stalled", stalled, self.arq.epoch)
             for ev in events:
                 self._event(ev.kind, ev.text, ev.epoch)
             full = self._offer_received(got)

@@ -946,6 +946,59 @@ def test_a_connecting_side_drops_a_silent_sessions_connection_and_dials_again():
         child.wait(10)
 
 
+_BOTH_ENDS = """
+import socket, time
+from protocol.arq import ArqConfig
+from protocol.links import StreamLink
+a, b = socket.socketpair()
+cfg = ArqConfig(peer_timeout=2.0, keepalive=0.25)
+with StreamLink(a, config=cfg, name="ground") as g, StreamLink(b, config=cfg, name="board") as s:
+    assert g.wait_established(5) and s.wait_established(5)
+    print("up", flush=True)
+    input()
+    time.sleep(1.5)
+    print(g.stats["peer_losses"], s.stats["peer_losses"], *sorted({e.kind for e in [*g.events(), *s.events()]}))
+"""
+
+
+def test_a_byte_stream_link_stopped_with_its_peer_keeps_its_session():
+    """A paused VM or a starved host stops every process at once. On waking, each byte-stream link judged its peer
+    by a silence that was its own, before the peer could speak: two serial HIL runs lost their sessions together
+    in a fresh clone's CI of stop 83 ("no frame from the peer for 4.0 s"), and a 3 s stop of one process holding
+    both ends of a 2 s link lost both sessions, 3 of 3. The reader now sees its own late turn, forgives the peer's
+    silence once (as the ZeroMQ link does), and says so (event ``stalled``)."""
+    child = subprocess.Popen(
+        [sys.executable, "-P", "-c", _BOTH_ENDS],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert child.stdin is not None and child.stdout is not None
+        assert child.stdout.readline().strip() == "up"
+        os.kill(child.pid, signal.SIGSTOP)
+        time.sleep(3.0)
+        os.kill(child.pid, signal.SIGCONT)
+        child.stdin.write("\n")
+        child.stdin.flush()
+        out = child.stdout.readline().split()
+    finally:
+        child.kill()
+        child.wait(10)
+    assert out[:2] == ["0", "0"] and "stalled" in out and "lost" not in out, out
+
+
+def test_forgiveness_of_a_stop_is_once_between_hearings():
+    """Forgiven at every stop, a loop starved again and again would never time a dead peer out."""
+    from protocol.arq import Arq, ArqConfig
+
+    arq = Arq(ArqConfig(peer_timeout=2.0), now=0.0)
+    heard = arq._last_heard
+    assert arq.forgive(3.0) and arq._last_heard == heard + 3.0
+    assert not arq.forgive(3.0) and arq._last_heard == heard + 3.0  # nothing heard since: judged by its silence
+
+
 def test_a_board_refuses_a_clients_directory_no_ground_could_pass(tmp_path):
     """libzmq's authenticator logged a corrupt clients/*.key and served on; an empty clients/ served silently.
     Either way no ground could ever connect, and the ground learnt it only after its handshakes failed."""
