@@ -468,7 +468,7 @@ class ByteStreamLink(Link):
             stalled = ""
             with self._cv:
                 # a turn this late: the process was stopped, and the peer's silence meanwhile is not the peer's
-                # (the CI of stop 83 lost two serial runs' sessions at once on waking, as ZeroMQ no longer does)
+                # (as on ZeroMQ, _forgive; likely what lost two serial runs' sessions at once in a CI of stop 83)
                 if now - prev > OWN_STALL_S:
                     forgiven = self.arq.forgive(now - prev)
                     pt = self.arq.cfg.peer_timeout

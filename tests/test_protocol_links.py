@@ -963,8 +963,8 @@ with StreamLink(a, config=cfg, name="ground") as g, StreamLink(b, config=cfg, na
 
 def test_a_byte_stream_link_stopped_with_its_peer_keeps_its_session():
     """A paused VM or a starved host stops every process at once. On waking, each byte-stream link judged its peer
-    by a silence that was its own, before the peer could speak: two serial HIL runs lost their sessions together
-    in a fresh clone's CI of stop 83 ("no frame from the peer for 4.0 s"), and a 3 s stop of one process holding
+    by a silence that was its own, before the peer could speak (likely why two serial HIL runs lost their sessions
+    together in a fresh clone's CI of stop 83, "no frame from the peer for 4.0 s"): a 3 s stop of one process holding
     both ends of a 2 s link lost both sessions, 3 of 3. The reader now sees its own late turn, forgives the peer's
     silence once (as the ZeroMQ link does), and says so (event ``stalled``)."""
     child = subprocess.Popen(
