@@ -257,6 +257,18 @@ class Link:
         raise NotImplementedError
 
 
+def _stall_note(gap: float, forgiven: bool, peer_timeout: float | None) -> str:
+    """The ``stalled`` event's text for a stop of this process of ``gap`` s, or "" when the stop was under half the
+    peer timeout (said only where it could have cost a session)."""
+    if peer_timeout is None or gap <= peer_timeout / 2:
+        return ""
+    return f"this side was not scheduled for {gap:.1f} s; " + (
+        "the peer's silence is counted from now"
+        if forgiven
+        else "the peer, not heard since the last such stop, is judged by its silence meanwhile"
+    )
+
+
 class ByteStreamLink(Link):
     """Segmented, selectively acknowledged link over a byte stream; subclasses supply ``_read``/``_write``."""
 
@@ -470,14 +482,7 @@ class ByteStreamLink(Link):
                 # a turn this late: the process was stopped, and the peer's silence meanwhile is not the peer's
                 # (as on ZeroMQ, _forgive; likely what lost two serial runs' sessions at once in a CI of stop 83)
                 if now - prev > OWN_STALL_S:
-                    forgiven = self.arq.forgive(now - prev)
-                    pt = self.arq.cfg.peer_timeout
-                    if pt is not None and now - prev > pt / 2:  # said where it could have cost a session
-                        stalled = f"this side was not scheduled for {now - prev:.1f} s; " + (
-                            "the peer's silence is counted from now"
-                            if forgiven
-                            else "the peer, not heard since the last such stop, is judged by its silence meanwhile"
-                        )
+                    stalled = _stall_note(now - prev, self.arq.forgive(now - prev), self.arq.cfg.peer_timeout)
                 prev = now
                 if data:
                     last_rx = now
@@ -1149,12 +1154,7 @@ class ZmqLink(Link, SessionView):
             self._handshaken_at += gap
         for m in self._out:  # the connect timeout of what waits to be sent: the stop was not the peer's
             m.submitted += gap
-        if self.peer_timeout is not None and gap > self.peer_timeout / 2:  # said where it could have cost a session
-            text = f"this side was not scheduled for {gap:.1f} s; " + (
-                "the peer's silence is counted from now"
-                if forgiven
-                else "the peer, not heard since the last such stop, is judged by its silence meanwhile"
-            )
+        if text := _stall_note(gap, forgiven, self.peer_timeout):
             self._pending_events.append(("stalled", text, self.sess.epoch))
 
     def _timers(self, now: float) -> None:
