@@ -8,8 +8,9 @@ of a process stops together, so a tick that came ``threshold_s`` late is a stop 
 in Python bytecode elsewhere is not one (the ticker needs the GIL only for a moment; Python hands it over every
 5 ms). A C call that holds the GIL for over ``threshold_s`` (a huge ``json.dumps``) is still taken for a stop.
 
-The HIL server's watchdogs and the ground's latency notes read it; the ZeroMQ link's I/O loop, which does
-nothing but poll, measures its own turns (:mod:`protocol.links`) with the same threshold.
+The HIL server's watchdogs and the ground's latency notes read it. The links' loops measure their own turns
+with the same threshold (:mod:`protocol.links`): the ZeroMQ I/O loop does nothing but poll, and the byte-stream
+reader only reads and decodes what came, so a turn over a second late is a stop there too (stop 83).
 """
 
 from __future__ import annotations
