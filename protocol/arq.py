@@ -93,6 +93,7 @@ from protocol.framing import (
 )
 from protocol.messages import MESSAGE_TYPES, Heartbeat, Message
 from protocol.session import SessionState, SessionView
+from protocol.stall import forgiven_hearing
 
 # a zero window is probed with this many bytes of the stream, not a whole segment: on a 960 byte/s line a 1 kB probe
 # kept the sender's direction 35-40 % busy through a pause (stop 66's known limit); TCP probes with one byte (RFC 9293)
@@ -1170,12 +1171,11 @@ class Arq(SessionView):
         meanwhile is this side's. Its liveness, progress and reassembly clocks restart, so that the peer's frames,
         sent once it too runs again, are heard before it is judged (a 3 s stop of a process holding both ends of a
         2 s link lost both sessions on waking, 3 of 3). As on ZeroMQ (:mod:`protocol.links`), the silence is forgiven
-        once between two hearings of the peer: a loop starved again and again must still time out a dead peer.
-        True when forgiven."""
-        if self._forgave_at is not None and self._last_heard == self._forgave_at:
+        once between two hearings of the peer (:func:`protocol.stall.forgiven_hearing`). True when forgiven."""
+        heard = forgiven_hearing(self._last_heard, self._forgave_at, gap)
+        if heard is None:
             return False
-        self._last_heard += gap
-        self._forgave_at = self._last_heard
+        self._last_heard = self._forgave_at = heard
         self._last_progress += gap
         self._rlast += gap
         return True

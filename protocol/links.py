@@ -74,7 +74,7 @@ from protocol.framing import CLOSE_APP, CLOSE_LOST
 from protocol.messages import Heartbeat, Message, message_class
 from protocol.quiet import Quieter
 from protocol.session import SessionState, SessionView
-from protocol.stall import OWN_STALL_S
+from protocol.stall import OWN_STALL_S, forgiven_hearing
 
 UNRELIABLE_TYPES = frozenset({Heartbeat.TYPE})
 # A lossless local socket pair (HIL supervisor <-> flight process): big frames, a big window, and no
@@ -1138,15 +1138,13 @@ class ZmqLink(Link, SessionView):
         in libzmq's queue. The silence clocks restart, so a Result that arrived during the stop is read before
         the peer is judged silent (after an 8 s stop it was dropped and the peer blamed).
 
-        The peer's silence is forgiven for one stop between two hearings of it: what a live peer sent is read
-        within a poll after the stop, so a second stop with nothing heard in between counts against it. Forgiven
-        every time, a loop starved for over a second again and again would never time out a dead peer. This
-        side's own clocks (no session yet, a handshake unanswered, a connect timeout) are its own and always
-        move with the stop."""
-        forgiven = self._forgave_at is None or self._last_heard != self._forgave_at
-        if forgiven:
-            self._last_heard += gap
-            self._forgave_at = self._last_heard
+        The peer's silence is forgiven for one stop between two hearings of it (:func:`protocol.stall.
+        forgiven_hearing`). This side's own clocks (no session yet, a handshake unanswered, a connect timeout) are
+        its own and always move with the stop."""
+        heard = forgiven_hearing(self._last_heard, self._forgave_at, gap)
+        forgiven = heard is not None
+        if heard is not None:
+            self._last_heard = self._forgave_at = heard
             if self._stall_since is not None:
                 self._stall_since += gap
         self._sessionless_since += gap

@@ -22,6 +22,20 @@ OWN_STALL_S = 1.0  # a 50 ms tick this much late: the process was stopped (a loa
 TICK_S = 0.05
 
 
+def forgiven_hearing(last_heard: float, forgave_at: float | None, gap: float) -> float | None:
+    """When the peer was last heard, moved past a stop of this process of ``gap`` s; None when a stop since that
+    hearing was forgiven already (``forgave_at``, what an earlier forgiveness left ``last_heard`` at).
+
+    A stop is forgiven once between two hearings of the peer: what a live peer sent is read within a turn after
+    the stop, so a second stop with nothing heard in between counts against it. Forgiven every time, a loop
+    starved for over a second again and again would never time out a dead peer. Both links use this rule
+    (:mod:`protocol.links`, :meth:`protocol.arq.Arq.forgive`); the caller sets both clocks to the value returned.
+    """
+    if forgave_at is not None and last_heard == forgave_at:
+        return None
+    return last_heard + gap
+
+
 class StallClock:
     """Sums the stops of this process that a ticker thread sees; :meth:`take` hands over what it saw since the
     last call. A context manager; the thread is a daemon and ends with :meth:`close`."""
