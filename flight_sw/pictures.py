@@ -204,24 +204,35 @@ def write_process_report(
             "y_m": s.y,
             "p_safe_site": s.p_safe,
             "clearance": s.clearance_m,
+            "margin": s.margin,
             "distance": s.distance_m,
         }
         for i, s in enumerate(res.sites)
     ]
+    # the thesis's spiral search (thesis, fast_v1) estimates no P(safe): its page gave v2's ranking rule over a table
+    # of dashes whose distances were out of that order (QA of stop 84)
+    spiral = bool(res.sites) and all(not np.isfinite(s.p_safe) for s in res.sites)
     site_cols = [
         Column("rank", "rank", 0),
         Column("x_m", "X [m]", 1),
         Column("y_m", "Y [m]", 1),
-        Column("p_safe_site", "site P(safe)", 3),
-        Column("clearance", "clearance [m]", 2),
+        *(
+            [Column("margin", "margin (1 - max hazard)", 2)]
+            if spiral
+            else [Column("p_safe_site", "site P(safe)", 3), Column("clearance", "clearance [m]", 2)]
+        ),
         Column("distance", "to the aim point [m]", 1),
     ]
     # sites at P(safe) 0.988 under a caption's 0.99 floor, and ranked out of that order, read as a fault (QA round 2
     # of stop 78): both follow from the grid and the ranking rule, said here
     site_note = (
-        f"Ranked by site P(safe) in steps of {P_QUANTUM:g}, then by distance to the aim point. A site's P(safe) is the "
-        "smallest over its footprint and margin on the world grid, whose cells average the pixels' P(safe): every "
-        "one of those cells is known safe, and the least of them can sit a little under the pixels' floor. "
+        "The thesis's spiral search (sec. 2.1): every cell of a site's footprint is known and safe; sites are taken "
+        "in rings one footprint wide around the aim point, nearest ring first, and within a ring by decreasing "
+        "margin (1 minus the largest hazard score over the footprint). This preset estimates no P(safe)."
+        if spiral
+        else f"Ranked by site P(safe) in steps of {P_QUANTUM:g}, then by distance to the aim point. A site's P(safe) "
+        "is the smallest over its footprint and margin on the world grid, whose cells average the pixels' P(safe): "
+        "every one of those cells is known safe, and the least of them can sit a little under the pixels' floor. "
         "Clearance: from the site's centre to the nearest cell not known safe."
     )
     sections = [

@@ -83,6 +83,15 @@ def test_the_sites_table_says_how_sites_are_ranked_and_what_their_psafe_is(tmp_p
     assert "to the aim point [m]" in page and "Ranked by site P(safe) in steps of 0.01" in page
     ranked = [(math.floor(s["p_safe"] / 0.01 + 1e-6), -s["distance_m"]) for s in doc["sites"]]
     assert ranked == sorted(ranked, reverse=True)  # the rule the page states
+    # the thesis's spiral search has no P(safe): its page gave the rule above over a table of dashes (QA of stop 84)
+    args = ["process", "--no-figures", str(tmp_path / "d" / "1000_500"), "--preset", "thesis"]
+    assert main([*args, "--out", str(tmp_path / "t")]) == 0
+    doc = json.loads((tmp_path / "t" / "result.json").read_text())
+    page = (tmp_path / "t" / "report.html").read_text()
+    assert len(doc["sites"]) > 1 and "site P(safe)" not in page and "steps of" not in page
+    assert "spiral search" in page and "margin (1 - max hazard)" in page
+    rings = [(math.floor(s["distance_m"] / 3.0), -s["margin"]) for s in doc["sites"]]
+    assert rings == sorted(rings)  # nearest ring first, then by margin: the rule this page states
 
 
 def test_process_no_figures_writes_the_same_maps_and_scores_and_no_picture(tmp_path, capsys):
