@@ -14,6 +14,7 @@ import math
 import os
 import tempfile
 import urllib.parse
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,15 @@ from reports.style import CONFUSION_COLOURS, CONFUSION_NAMES, STATE_COLOURS, STA
 
 # what a page drawn without its pictures says in their place (`run`, `regress` and `process --no-figures`)
 NO_FIGURES_NOTE = "Pictures not drawn (the run was asked for none: --no-figures)."
+
+
+def drop_pictures(paths: Iterable[Path]) -> list[Path]:
+    """Remove the pictures an earlier run drew where this one draws none (``--no-figures``); returns those removed.
+    Its page says none were drawn, and a picture left beside it reads as this run's (QA of stop 84)."""
+    gone = [Path(p) for p in paths if Path(p).is_file()]
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 @dataclass

@@ -582,6 +582,7 @@ def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
 
 
 def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, warning: str = "") -> int:
+    from reports.html import drop_pictures
     from studies import evaluate as ev
     from studies import report
 
@@ -594,6 +595,13 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
     # states its own seeds and camera: the headline's are this run's, and earlier kinds' may differ
     sections, other = [], []
     mine = sensitivity_setting(rows)
+    if args.no_figures and (
+        gone := drop_pictures(args.out / "report" / f"sensitivity_{kind}.png" for kind in ev.SENSITIVITY_KINDS)
+    ):
+        _note(
+            f"sensitivity: removed {len(gone)} figure{'s' * (len(gone) != 1)} an earlier run drew in "
+            f"{args.out / 'report'}: this run draws none (--no-figures)"
+        )
     for kind in ev.SENSITIVITY_KINDS:
         csv_path = args.out / f"sensitivity_{kind}.csv"
         if not csv_path.is_file():

@@ -1060,6 +1060,7 @@ def evaluate_scenario(
         )
         tasks: list[Any] = []
         info: dict[str, dict[str, Any]] = {}
+        stems: set[str] = set()  # the map figures this run's page has, drawn or (--no-figures) not
         for preset in presets:
             for e in pairs:
                 alt = int(round(e["altitude_m"]))
@@ -1074,6 +1075,8 @@ def evaluate_scenario(
                 }
                 if e["seed"] in seeds[:maps_seeds]:
                     kw["maps_path"] = str(out / "maps" / f"{tid}.npz")
+                    if preset == presets[0]:
+                        stems.add(f"{scenario}_{alt}m")
                     if preset == presets[0] and figures:
                         kw["figures_dir"] = str(out / "report")
                         kw["figure_stem"] = f"{scenario}_{alt}m"
@@ -1090,20 +1093,27 @@ def evaluate_scenario(
                     "camera_px": camera_px or THESIS_CAMERA_PX,  # as the sensitivity CSV states it
                 }
         maps = {Path(t.kwargs["maps_path"]).name for t in tasks if t.kwargs["maps_path"]}
-        stems = {t.kwargs["figure_stem"] for t in tasks if t.kwargs.get("figure_stem")}
         retired = retire_page(out, scenario)
         if retired:  # before any figure changes: an interrupted or failed run left the old page over new figures
             print(
                 f"evaluate: removed the earlier {scenario} page ({', '.join(p.name for p in retired)}) from "
-                f"{out / 'report'}: this run's figures replace its figures, and this run writes it when it finishes",
+                f"{out / 'report'}: "
+                + ("this run's figures replace its figures, and " if figures else "")
+                + "this run writes it when it finishes",
                 file=sys.stderr,
                 flush=True,
             )
-        gone = prune_other_runs(out, scenario, maps, stems)
+        gone, undrawn = prune_other_runs(out, scenario, maps, stems, figures=figures)
         if gone:  # said with --no-progress too: scripts are where a silent deletion hurts
             print(
-                f"evaluate: removed {len(gone)} maps and figures of {scenario} that an earlier run with other settings "
-                f"left in {out}",
+                f"evaluate: removed {_count(gone)} of {scenario} that an earlier run with other settings left in {out}",
+                file=sys.stderr,
+                flush=True,
+            )
+        if undrawn:  # an earlier run's, with the same settings: the page says none were drawn, so none may stay
+            print(
+                f"evaluate: removed {_count(undrawn)} of {scenario} an earlier run drew in {out / 'report'}: this run "
+                "draws none (--no-figures)",
                 file=sys.stderr,
                 flush=True,
             )
@@ -1151,26 +1161,38 @@ def retire_page(out: Path, scenario: str) -> list[Path]:
     return gone
 
 
-def prune_other_runs(out: Path, scenario: str, maps: set[str], stems: set[str]) -> list[Path]:
+def prune_other_runs(
+    out: Path, scenario: str, maps: set[str], stems: set[str], *, figures: bool = True
+) -> tuple[list[Path], list[Path]]:
     """Remove ``scenario``'s maps (``out/maps``) and figures (``out/report``) that this run will not write: an
     earlier run into ``out`` with other seeds, altitudes or presets left them, and the report took the first map
-    of an altitude it found, another seed's among them. ``maps``: this run's map file names; ``stems``: its
-    figure stems. The figures of this run's stems go too (redrawn: their names hold no preset or seed). Other
-    scenarios' files, and every other file, are kept. Returns what an earlier run left (this run's own figures
-    not counted)."""
+    of an altitude it found, another seed's among them. ``maps``: this run's map file names; ``stems``: the
+    stems of its page's map figures. The figures of this run's stems go too (redrawn: their names hold no preset
+    or seed), and so do its charts (``<scenario>_detection.png`` ...) when it draws none (``figures`` False). Other
+    scenarios' files, and every other file, are kept. Returns what an earlier run with other settings left, and
+    the figures of this run's page that it draws none of (``--no-figures``)."""
     import re
 
     from studies.report import FIGURE_KINDS
 
     figure = re.compile(rf"^({re.escape(scenario)}_\d+m)_({'|'.join(FIGURE_KINDS)})\.png$")
     gone = [p for p in sorted((out / "maps").glob(f"{scenario}-*.npz")) if p.name not in maps]
-    figures = {p: m[1] for p in sorted((out / "report").glob(f"{scenario}_*.png")) if (m := figure.match(p.name))}
-    gone += [p for p, stem in figures.items() if stem not in stems]
-    # this run's own stems too, unsaid: a name says no preset or seed, so an earlier run's first preset could pass
-    # for this one's; the workers, or the report from this run's maps, draw them again
-    for p in [*gone, *figures]:
+    drawn = {p: m[1] for p in sorted((out / "report").glob(f"{scenario}_*.png")) if (m := figure.match(p.name))}
+    gone += [p for p, stem in drawn.items() if stem not in stems]
+    undrawn = [] if figures else [p for p in sorted((out / "report").glob(f"{scenario}_*.png")) if p not in gone]
+    # this run's own stems too, unsaid when redrawn: a name says no preset or seed, so an earlier run's first preset
+    # could pass for this one's; the workers, or the report from this run's maps, draw them again
+    for p in [*gone, *drawn, *undrawn]:
         p.unlink(missing_ok=True)
-    return gone
+    return gone, undrawn
+
+
+def _count(paths: list[Path]) -> str:
+    """``3 maps and 2 figures``: what a list of removed files holds, by kind."""
+    n_maps = sum(p.suffix == ".npz" for p in paths)
+    n_figs = len(paths) - n_maps
+    parts = [f"{n} {w}{'s' * (n != 1)}" for n, w in ((n_maps, "map"), (n_figs, "figure")) if n]
+    return " and ".join(parts)
 
 
 def write_metrics_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:

@@ -650,6 +650,9 @@ def _cell(v: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- report
+PLOT_NAMES = ("p_safe_by_scene.png", "outcomes.png", "divert_cdf.png")  # _plots' files, in its order
+
+
 def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> list[tuple[str, str]]:
     """The page's figures: P(safe) per scene with Wilson bars and the blind baseline; outcomes; divert CDF. A
     partial campaign's are titled INCOMPLETE: a figure is shown and passed on without its page."""
@@ -693,7 +696,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     ax.set_title(f"{mark}top-ranked site truly safe (95 % Wilson interval); grey: landing blind at the aim point")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside: it hid a bar (QA 64b)
     fig.tight_layout()
-    files.append((save(fig, out / "p_safe_by_scene.png").name, "P(safe landing) per scene and preset"))
+    files.append((save(fig, out / PLOT_NAMES[0]).name, "P(safe landing) per scene and preset"))
 
     fig, axes = plt.subplots(1, len(presets), figsize=(4.2 * len(presets), 3.4), squeeze=False)
     colours = {"safe": SAFE, "unsafe": MISSED, "no_site": FALSE_ALARM}
@@ -711,7 +714,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
         ax.tick_params(axis="x", rotation=30, labelsize=8)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside, not over a bar
     fig.tight_layout()
-    files.append((save(fig, out / "outcomes.png").name, "outcome shares per scene: safe, unsafe site, no site"))
+    files.append((save(fig, out / PLOT_NAMES[1]).name, "outcome shares per scene: safe, unsafe site, no site"))
 
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     for p in presets:
@@ -733,7 +736,7 @@ def _plots(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> li
     ax.set_ylabel("share of landings with a site")
     ax.legend(fontsize=8, title="preset (landings with a site)", title_fontsize=7)
     fig.tight_layout()
-    files.append((save(fig, out / "divert_cdf.png").name, "cumulative divert distance"))
+    files.append((save(fig, out / PLOT_NAMES[2]).name, "cumulative divert distance"))
     return files
 
 
@@ -745,11 +748,28 @@ def counted(n: int, noun: str) -> str:
 def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any], *, figures: bool = True) -> Path:
     """``out/report/index.html``: headline P(safe) per preset, a table per scene, the figures (one page; without
     ``figures`` the page says they were not drawn)."""
-    from reports.html import NO_FIGURES_NOTE, Column, Figure, Headline, Section, Table, file_links, write_page
+    from reports.html import (
+        NO_FIGURES_NOTE,
+        Column,
+        Figure,
+        Headline,
+        Section,
+        Table,
+        drop_pictures,
+        file_links,
+        write_page,
+    )
 
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
     figs = _plots(rep, rows, summary) if figures else []
+    if not figures and (gone := drop_pictures(rep / name for name in PLOT_NAMES)):
+        print(
+            f"landings: removed {len(gone)} figure{'s' * (len(gone) != 1)} an earlier run drew in {rep}: this run "
+            "draws none (--no-figures)",
+            file=sys.stderr,
+            flush=True,
+        )
     camp = summary["campaign"]
     seeds = summary.get("seeds_used") or camp["seeds"]
     partial = summary.get("complete") is False

@@ -293,6 +293,13 @@ def test_evaluate_without_figures_keeps_the_maps_and_a_later_run_draws_them(tmp_
     drawn = {p.name for p in rep.glob("*.png")}
     assert {"vertical_detection.png", "vertical_300m_hazard.png"} <= drawn, drawn
     assert NO_FIGURES_NOTE not in html.unescape((rep / "index.html").read_text())
+    # and back: the figures just drawn go, said as what --no-figures draws, not as another run's leftovers; the maps
+    # stay (QA of stop 84: "removed 4 maps and figures ... with other settings", and the chart stayed)
+    capsys.readouterr()
+    assert main([*argv, "--no-figures"]) == 0
+    err = capsys.readouterr().err
+    assert f"removed {len(drawn)} figures of vertical an earlier run drew" in err and "other settings" not in err, err
+    assert not list(rep.glob("*.png")) and list((tmp_path / "out" / "maps").glob("vertical-*-300*.npz"))
 
 
 def test_a_write_the_system_refuses_is_one_line_and_exit_1(tmp_path, capsys):
@@ -454,10 +461,10 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     assert "the other sections are earlier runs into this --out with other settings" in page
     assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
     assert {p.name for p in (out / "report").glob("*.png")} == {"sensitivity_altitude.png", "sensitivity_rollyaw.png"}
-    for png in (out / "report").glob("*.png"):
-        png.unlink()
     assert main([*argv, "--out", str(out), "--no-figures"]) == 0  # the tables alone, and the page says why
+    # the pictures the earlier runs drew go, said: left, they read as this page's (QA of stop 84)
     assert not list((out / "report").glob("*.png"))
+    assert "sensitivity: removed 2 figures an earlier run drew" in capsys.readouterr().err
     page = html.unescape((out / "report" / "index.html").read_text())
     assert NO_FIGURES_NOTE in page and "<img" not in page and "sensitivity: rollyaw (held-out" in page
 
@@ -598,11 +605,14 @@ def test_landings_console_says_the_camera_and_the_intervals_caveat(tmp_path, cap
     on the page only."""
     argv = ["landings", "--scenes", "mare", "--n", "1", "--per-render", "1", "--preset", "fast", "--camera-px", "64"]
     argv += ["--no-figures"]  # the page without its three figures, and it says so
+    (tmp_path / "l" / "report").mkdir(parents=True)
+    (tmp_path / "l" / "report" / "outcomes.png").write_bytes(b"an earlier run's")  # goes, said (QA of stop 84)
     assert main([*argv, "--seeds", "2", "--workers", "1", "--no-progress", "--out", str(tmp_path / "l")]) == 0
     page = html.unescape((tmp_path / "l" / "report" / "index.html").read_text())
     assert NO_FIGURES_NOTE in page and "<img" not in page and not list((tmp_path / "l" / "report").glob("*.png"))
     out, err = capsys.readouterr()
     assert "a 64 px camera, not the thesis's 512 px: not its setup" in err  # the campaign's opening line
+    assert "landings: removed 1 figure an earlier run drew" in err, err
     # one landing draws one of the two seeds asked for: said, and the camera recorded (QA of stop 73)
     assert "asked for but not drawn: 1 landings drew 1 of the 2 seeds" in err, err
     assert json.loads((tmp_path / "l" / "landings.json").read_text())["camera_px_used"] == 64
