@@ -2340,7 +2340,10 @@ def _descend(checked: CheckedRun, log) -> dict:
             "line": verdict_line(summary, cfg.min_hit_rate),
             "min_hit_rate": cfg.min_hit_rate,
         }
-        table = summary_table(summary)  # says flight_note's line itself: logged once, with the table below
+        # says flight_note's line itself: logged once, with the table below; as a terminal shows markdown
+        from reports.console import md_console
+
+        table = md_console(summary_table(summary))
         from hil_server.run_report import write_run_report
         from reports.html import write_atomic
 

@@ -60,3 +60,10 @@ def md_cell(text: object, limit: int = 200) -> str:
     # or a comment, an "&" before "name;" or "#nn;" is an entity
     out = re.sub(r"&(?=#?\w+;)", "&amp;", out)
     return re.sub(r"<(?=[A-Za-z/!?])", "&lt;", out)
+
+
+def md_console(text: str) -> str:
+    """Markdown written by :func:`md_cell` as a terminal shows it: its escapes undone but ``\\|``, which keeps a
+    table's columns apart (the console printed ``(\\`hazard-hil flight\\`, ...)`` from summary.md; QA of stop 84)."""
+    out = re.sub(r"\\([\\*`\[\]~])", r"\1", text)
+    return out.replace("&lt;", "<").replace("&amp;", "&")

@@ -153,11 +153,11 @@ class Campaign:
         if len(set(self.scenes)) != len(self.scenes):
             raise LandingError(f"--scenes: each scene once, got {list(self.scenes)}")
         if self.n < 1 or self.per_render < 1:
-            raise LandingError(f"need n >= 1 and per_render >= 1, got n={self.n}, per_render={self.per_render}")
+            raise LandingError(f"need --n >= 1 and --per-render >= 1, got {self.n} and {self.per_render}")
         if self.n > MAX_LANDINGS or self.per_render > MAX_LANDINGS:
             raise LandingError(
-                f"need n and per_render <= {MAX_LANDINGS} (a landing is a pipeline run of about 0.3 s, its plan held "
-                f"in memory), got n={self.n}, per_render={self.per_render}"
+                f"need --n and --per-render <= {MAX_LANDINGS} (a landing is a pipeline run of about 0.3 s, its plan "
+                f"held in memory), got {self.n} and {self.per_render}"
             )
         if self.per_render > max(self.n, PER_RENDER):  # n is rounded up to whole renders: 1 landing became 1e6
             raise LandingError(

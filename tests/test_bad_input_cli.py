@@ -84,7 +84,7 @@ CASES = [
     (["demo", "--budget", "slow10", "--budget-file", "SLOW"], "refused before calibrating this host"),
     (["run", "--reconnect-timeout", "0"], "--reconnect-timeout must be a number of seconds in (0, 3600]"),
     (["sensitivity", "--kind", "altitude", "--samples", "100000000"], "samples must be an integer in [1, 10000]"),
-    (["landings", "--scenes", "thesis", "--n", "100000000"], "need n and per_render <= 1000000"),
+    (["landings", "--scenes", "thesis", "--n", "100000000"], "need --n and --per-render <= 1000000"),
     (["evaluate", "--scenario", "vertical", "--cache", "AFILE"], "is a file, not a directory"),  # was a failed task
     (["evaluate", "--scenario", "vertical", "--seeds", "1", "--seed-list", "1000"], "--seeds N and --seed-list"),
     (["evaluate", "--scenario", "vertical", "--seed-list", ""], "--seed-list is empty"),  # ran the default seeds

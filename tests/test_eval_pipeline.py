@@ -183,7 +183,7 @@ def test_raster_cap_renders_are_kept_apart_and_bad_caps_refused(tmp_path: Path, 
     (tiled,) = ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300])
     assert Path(tiled["pair_dir"]).parent.name.endswith("_tiles")
     assert all("raster_tiles" in v for v in read_pair(tiled["pair_dir"]).meta["render"])
-    with pytest.raises(ev.EvaluationError, match="max raster cells"):
+    with pytest.raises(ev.EvaluationError, match="--max-raster-cells must be"):
         ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], max_cells=5)
     with pytest.raises(ev.EvaluationError, match="raster must be one of"):
         ev.render_cache("vertical", 0, tmp_path / "c", camera_px=PX, altitudes=[300], raster="mosaic")

@@ -342,7 +342,7 @@ def test_raster_cap_is_reported_and_can_be_raised(tmp_path):
     rows, cols = capped.info["raster_shape"]
     assert rows * cols <= 10_000 * 1.05  # the cap holds (to the rounding of the window)
     for bad in (0, 9_999, 16_000_001, 2.5, True):
-        with pytest.raises(RenderError, match="max raster cells"):
+        with pytest.raises(RenderError, match="--max-raster-cells must be"):
             render_view(sc, CAM, pose, Sun(135, 30), max_cells=bad)
     out = render_scenario(
         "vertical", tmp_path / "r", seed=3, pairs=["200/100"], progress=False, max_cells=20_000, raster="view"
