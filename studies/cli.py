@@ -278,7 +278,7 @@ def _executor_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
+def _common(p: argparse.ArgumentParser, seeds_default: int, figures_note: str = "") -> None:
     add_seed_options(p, seeds_default)
     p.add_argument("--out", required=True, type=Path, help="output directory (resumes if it exists)")
     p.add_argument("--cache", type=Path, default=None, help="rendered-pair cache (default OUT/cache)")
@@ -309,15 +309,16 @@ def _common(p: argparse.ArgumentParser, seeds_default: int) -> None:
         "docs/scenes.md); each raster's renders and runs are kept apart",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    _no_figures_option(p)
+    _no_figures_option(p, figures_note)
 
 
-def _no_figures_option(p: argparse.ArgumentParser) -> None:
+def _no_figures_option(p: argparse.ArgumentParser, note: str = "") -> None:
+    """``note``: what the command's pictures cost or keep, after the option's common help."""
     p.add_argument(
         "--no-figures",
         action="store_true",
-        help="report/index.html without its pictures, the tables alone (as `run --no-figures`; an evaluated "
-        "pair's map figures take about 1 CPU-s each, and evaluate keeps its maps, so a later run draws them)",
+        help="report/index.html without its pictures, the tables alone, as `run --no-figures`; the pictures an "
+        f"earlier run drew for the page are removed{note}",
     )
 
 
@@ -348,7 +349,11 @@ def register(subparsers: Any) -> None:
         default=None,
         help="with --multi-frame: comma-separated frame altitudes [m], decreasing, 2-16 (default 300,250,200,150)",
     )
-    _common(p, seeds_default=3)
+    _common(
+        p,
+        seeds_default=3,
+        figures_note=" (a pair's map figures take about 1 CPU-s each; the maps are kept, so a later run draws them)",
+    )
     p.set_defaults(func=holding_out("evaluate", _evaluate))
 
     s = subparsers.add_parser(
