@@ -112,11 +112,19 @@ def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np
     return out
 
 
-def truth_panel(true_hazard: np.ndarray, title: str = "true hazard: safe, or unsafe (>= 1)") -> Panel:
+def truth_panel(
+    true_hazard: np.ndarray,
+    title: str = "true hazard where scored (unsafe: >= 1)",
+    scored: np.ndarray | None = None,
+) -> Panel:
     """The true hazard as its two classes (safe below 1, unsafe at 1; NaN outside), keyed with their shares. On the
     continuous scale, safe ground at 0.7-0.9 looked as dark as a hazard at 1.0 beside the scores that called it safe
-    (QA round 2 of stop 78)."""
+    (QA round 2 of stop 78). ``scored``: the pixels the scores beside it count; the rest are left white, so the
+    shares are over the same pixels (whole-frame shares read 23.5 % unsafe beside scores whose 29.2 % were; QA of
+    stop 84)."""
     h = np.asarray(true_hazard, np.float32)
+    if scored is not None:
+        h = np.where(np.asarray(scored, bool), h, np.float32(np.nan))
     codes = np.where(np.isnan(h), np.uint8(255), np.where(h < 1.0, np.uint8(0), np.uint8(1))).astype(np.uint8)
     return Panel("truth", codes, title)
 

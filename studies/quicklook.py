@@ -181,10 +181,11 @@ def _covered_confusion_figure(
     from reports.plots import Panel, confusion_codes, map_figure, save, truth_panel
 
     gt = np.asarray(truth, np.float32)
-    codes = confusion_codes(~scoring.unsafe_estimate(hazard), gt < 1.0, covered & np.isfinite(gt))
+    scored = covered & np.isfinite(gt)
+    codes = confusion_codes(~scoring.unsafe_estimate(hazard), gt < 1.0, scored)
     panels = [
         Panel("confusion", codes, "pixel scores, over the map's covered pixels"),
-        truth_panel(gt),
+        truth_panel(gt, scored=scored),
     ]
     title = f"{label}: FP {row['fp_pct']:.2f} %, CDI {row['cdi_pct']:.1f} % of the map's covered pixels"
     save(map_figure(panels, title, m_per_px=m_per_px), out / "confusion.png")

@@ -85,7 +85,7 @@ def figures_from_maps(maps_path: str | Path, out_dir: str | Path, stem: str, px:
     hz = [
         Panel("image", m["image"], "upper image (i1)"),
         Panel("confusion", confusion_codes(called_safe, truly_safe, scored), "pixel scores"),
-        truth_panel(masked(m["true_hazard"])),
+        truth_panel(masked(m["true_hazard"]), scored=scored),
     ]
     files.append(save(map_figure(hz, f"{name}: hazards", PANEL_IN, m_per_px=gsd), out / f"{stem}_hazard.png"))
     if np.isfinite(m["true_slope"]).any():

@@ -641,16 +641,16 @@ def _figure(
         if j["uv"] is not None
     ]
     truth_title = (
-        "true hazard, derived from the truth's elevation: safe, or unsafe (>= 1); white: unknown"
+        "derived true hazard where scored (unsafe: >= 1; white: unknown)"
         if m.get("truth") == "derived"
-        else "true hazard: safe, or unsafe (>= 1)"
+        else "true hazard where scored (unsafe: >= 1)"
     )
     # NaN (unmapped) pixels are scored as not called safe, so they read as TN/FN: say how many there are
     unmapped = f" ({m['unmapped_pct']:.0f} % unmapped: NaN, not called safe)" if m.get("unmapped_pct") else ""
     panels = [
         Panel("image", image, "frame 0 and the sites", sites=marks),
         Panel("confusion", confusion_codes(called, safe, area), f"pixel scores{unmapped}", sites=marks),
-        truth_panel(gt_h, truth_title),
+        truth_panel(gt_h, truth_title, scored=area),
     ]
     verdicts = {True: "truly safe", None: "not confirmed (off frame 0, or truth unknown)", False: "NOT safe"}
     if len(judged) > len(marks):

@@ -647,6 +647,16 @@ def test_the_true_hazard_is_drawn_as_its_two_classes():
     fig = plots.map_figure([p])
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == ["safe 60.0 %", "unsafe 40.0 %"], labels
+    # beside the pixel scores, over the pixels they score: the whole frame's 23.5 % unsafe sat beside scores whose
+    # hazards were 29.2 % (QA of stop 84); here the truth's unsafe share is the scores' TN + FP
+    scored = np.array([[True, True, False], [True, True, False]])
+    called = np.array([[True, False, True], [False, True, True]])
+    codes = plots.confusion_codes(called, np.nan_to_num(truth, nan=1.0) < 1.0, scored)
+    fig = plots.map_figure([plots.Panel("confusion", codes, "scores"), plots.truth_panel(truth, scored=scored)])
+    conf, true = ([t.get_text() for t in ax.get_legend().get_texts()] for ax in fig.axes[:2])
+    assert true == ["safe 50.0 %", "unsafe 50.0 %"], true
+    shares = {t.split(":")[0]: float(t.split()[-2]) for t in conf}
+    assert shares["TN"] + shares["FP"] == 50.0, conf
 
 
 def test_a_timeline_whose_work_is_a_sliver_of_the_deadline_zooms_to_the_work():
