@@ -87,9 +87,7 @@ def _check_pose(camera: Camera, pose: Pose) -> None:
 def check_max_cells(max_cells: int) -> None:
     """Refuse a raster-size bound that is not an integer in [10 000, ``MAX_CELLS_LIMIT``] (memory is bounded first)."""
     if isinstance(max_cells, bool) or not isinstance(max_cells, int) or not 10_000 <= max_cells <= MAX_CELLS_LIMIT:
-        raise RenderError(
-            f"--max-raster-cells must be an integer in [10000, {MAX_CELLS_LIMIT}], got {max_cells!r}"
-        )
+        raise RenderError(f"--max-raster-cells must be an integer in [10000, {MAX_CELLS_LIMIT}], got {max_cells!r}")
 
 
 def check_raster(raster: str) -> None:
