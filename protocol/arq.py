@@ -1171,7 +1171,10 @@ class Arq(SessionView):
         meanwhile is this side's. Its liveness, progress and reassembly clocks restart, so that the peer's frames,
         sent once it too runs again, are heard before it is judged (a 3 s stop of a process holding both ends of a
         2 s link lost both sessions on waking, 3 of 3). As on ZeroMQ (:mod:`protocol.links`), the silence is forgiven
-        once between two hearings of the peer (:func:`protocol.stall.forgiven_hearing`). True when forgiven."""
+        once between two hearings of the peer (:func:`protocol.stall.forgiven_hearing`). The connect timeout of what
+        waits for a session is this side's own clock and moves with every stop, as on ZeroMQ. True when forgiven."""
+        for m in self._pending:
+            m.submitted += gap
         heard = forgiven_hearing(self._last_heard, self._forgave_at, gap)
         if heard is None:
             return False

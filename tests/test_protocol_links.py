@@ -993,10 +993,16 @@ def test_forgiveness_of_a_stop_is_once_between_hearings():
     """Forgiven at every stop, a loop starved again and again would never time a dead peer out."""
     from protocol.arq import Arq, ArqConfig
 
-    arq = Arq(ArqConfig(peer_timeout=2.0), now=0.0)
+    arq = Arq(ArqConfig(peer_timeout=2.0, connect_timeout=5.0), now=0.0)
     heard = arq._last_heard
+    arq.submit(0x10, b"x" * 10, "waits", now=0.0)  # no session yet: it waits on the connect timeout
     assert arq.forgive(3.0) and arq._last_heard == heard + 3.0
     assert not arq.forgive(3.0) and arq._last_heard == heard + 3.0  # nothing heard since: judged by its silence
+    # the connect timeout is this side's own clock: both stops move it (as on ZeroMQ), so at 6.5 s nothing has failed
+    arq.poll(6.5)
+    assert not arq.take_events() and len(arq._pending) == 1
+    arq.poll(11.5)
+    assert len(arq._pending) == 0  # 5 s of its own waiting past the stops
 
 
 def test_a_board_refuses_a_clients_directory_no_ground_could_pass(tmp_path):
