@@ -93,7 +93,15 @@ DEFAULT_CASES: dict[str, dict] = {
         "link": "serial",
         "pairs": ["600/300", "300/150"],
     },
-    "approach-rad750-serial": {"scenario": "approach", "budget": "rad750", "link": "serial", "pairs": ["500/250"]},
+    # 40 s, not the budget's 30: at 30 the case failed 1 run in 3 (docs/BENCHMARKS.md, stop 64); a baseline recorded
+    # into a new file had the 30 s the shipped one left behind (QA of stop 84)
+    "approach-rad750-serial": {
+        "scenario": "approach",
+        "budget": "rad750",
+        "link": "serial",
+        "pairs": ["500/250"],
+        "deadline_s": 40.0,
+    },
 }
 # the flight latency (summary["flight_latency_*_s"]) in reference seconds; the names predate the end-to-end deadline
 LATENCY_METRICS = ("latency_p50_ref_s", "latency_p95_ref_s", "latency_max_ref_s")

@@ -154,6 +154,18 @@ def test_packaged_baseline_exists_and_names_its_cases():
     assert set(doc["cases"]) >= {"vertical-host-zmq", "vertical-snapdragon-serial"}
 
 
+def test_a_new_baseline_records_the_shipped_cases_as_shipped():
+    """`regress --update` into a new file recorded the rad750 case at its budget's 30 s, where the shipped baseline
+    holds it at 40 s because at 30 it failed 1 run in 3 (QA of stop 84): the definitions are the shipped ones."""
+    from hil_server.regress import DEFAULT_CASES, default_baseline_path
+
+    shipped = json.loads(default_baseline_path().read_text())["cases"]
+    assert set(shipped) == set(DEFAULT_CASES)
+    for name, case in shipped.items():
+        defined = {k: v for k, v in case.items() if not isinstance(v, dict)}  # not its measures and records
+        assert defined == DEFAULT_CASES[name], name
+
+
 OWN_BUDGETS = """
 [anchor]
 description = "the reference machine"
