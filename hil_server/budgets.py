@@ -491,10 +491,11 @@ def deadline_problem(value: object) -> str | None:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if ok and MIN_DEADLINE_S <= value <= MAX_DEADLINE_S:  # type: ignore[operator]
         return None
-    return (
-        f"must be a number of seconds in [{MIN_DEADLINE_S:g}, {MAX_DEADLINE_S:g}] (a Result cannot cross even a "
-        f"local link in less), got {value!r}"
-    )
+    # the reason for the bound that was crossed: a deadline of 1e9 s was told that a Result cannot cross a link in less
+    # (QA of stop 84)
+    too_long = isinstance(value, (int, float)) and value > MAX_DEADLINE_S
+    why = "an hour per pair at most" if ok and too_long else "a Result cannot cross even a local link in less"
+    return f"must be a number of seconds in [{MIN_DEADLINE_S:g}, {MAX_DEADLINE_S:g}] ({why}), got {value!r}"
 
 
 def _number(

@@ -41,7 +41,7 @@ CASES = [
     (["run", "--manifest", "FORMAT"], "format must be 'hazard-hil-descent/1'"),
     (["budgets", "--file", "PAIR"], "cannot be read as a budget file"),
     (["budgets", "--file", "TYPO"], "unknown key(s) baudd"),
-    (["run", "--deadline", "-1"], "--deadline must be a number of seconds in [0.001, 3600]"),
+    (["run", "--deadline", "-1"], "[0.001, 3600] (a Result cannot cross even a local link in less)"),
     (["run", "--deadline", "1e-6"], "--deadline must be a number of seconds in [0.001, 3600]"),
     (["run", "--link-timeout", "nan"], "--link-timeout must be a number of seconds in [2, 3600]"),
     (["run", "--link-timeout", "0.5"], "--link-timeout must be a number of seconds in [2, 3600]"),
@@ -56,7 +56,10 @@ CASES = [
     (["run", "--image-size", "5"], "--image-size must be 32..4096 px"),
     (["run", "--image-size", "20"], "--image-size must be 32..4096 px"),
     (["run", "--link-timeout", "1e12"], "--link-timeout must be a number of seconds in [2, 3600]"),
-    (["run", "--deadline", "1e308"], "--deadline must be a number of seconds in [0.001, 3600]"),
+    (
+        ["run", "--deadline", "1e308"],
+        "--deadline must be a number of seconds in [0.001, 3600] (an hour per pair at most)",
+    ),
     # a ZeroMQ board's endpoint, refused before rendering (the ground refused it after, exit 1)
     (["run", "--flight", "external", "--link", "zmq:tcp://127.0.0.1:abc", "--insecure"], "1..65535, got 'abc'"),
     (["run", "--flight", "external", "--link", "zmq:tcp://127.0.0.1", "--insecure"], "needs a host and a port"),
