@@ -697,6 +697,10 @@ class FlightProcess:
         beyond = res.info.get("psafe_beyond_scale")
         if reason and beyond:  # why this pair called nothing safe, as its own map says it (sites QA of stop 75)
             reason = f"{beyond} ({reason})"
+        if reason and "sites" in res.info.get("skipped", ()):
+            # the pair's own search gave way to the deadline and the fused map's ran: a row listing "sites" among the
+            # skipped stages beside a reason about the map read as a contradiction (QA of stop 84)
+            reason = f"{reason}, on the descent's fused map (this pair's own site search was skipped for the deadline)"
         return grid, sites, (reason or None)
 
     @staticmethod

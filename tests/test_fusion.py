@@ -621,6 +621,12 @@ def test_flight_process_applies_the_relief_guard_to_the_fused_map():
     res = SimpleNamespace(params=params, info={"psafe_beyond_scale": why}, grid=blank, level="full")
     _, sites, reason = FlightProcess(_Link(), FaultPlan())._fuse(res)
     assert not sites and reason is not None and reason.startswith(why + " (no cell is known safe"), reason
+    # a pair whose own search gave way to the deadline: the reason says the fused map's search ran, as a row that
+    # listed "sites" among the skipped stages beside a reason about the map read as a contradiction (QA of stop 84)
+    res = SimpleNamespace(params=params, info={"skipped": ["full_dem", "sites"]}, grid=blank, level="coarse")
+    _, sites, reason = FlightProcess(_Link(), FaultPlan())._fuse(res)
+    assert not sites and reason is not None and reason.startswith("no cell is known safe"), reason
+    assert reason.endswith("on the descent's fused map (this pair's own site search was skipped for the deadline)")
 
 
 def test_a_pair_whose_sites_are_withheld_is_not_fused_into_the_descents_map():
