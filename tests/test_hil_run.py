@@ -217,6 +217,12 @@ def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
         "and it takes at least 0.13 s"
     )
     assert plan_note({**rec, "skipped": ["rocks"]}) == ""  # a full-level Result: no DEM stage to explain
+    # reached past the deadline: said so, not as "-0.07 s left" (QA of stop 84)
+    late = {"level": "image_only", "skipped": ["coarse_dem", "full_dem"], "plan": {"coarse_dem_left_s": -0.071,
+            "coarse_dem_need_s": 0.05, "scale": 1.0}}  # fmt: skip
+    assert (
+        plan_note(late) == "coarse_dem not started: the deadline had passed (0.07 s over) (x1, from the first stages)"
+    )
     # a flight side that says which stages started: one that did was cut, one that did not was left out
     started = {**plan, "coarse_dem_started": 1, "scale": 4.8, "measured": 1}
     assert plan_note({**rec, "plan": {**started, "full_dem_started": 1}}).startswith("full_dem cut at its deadline")
