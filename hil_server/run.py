@@ -868,10 +868,23 @@ def ground_stop_note(summary: dict) -> str:
     if not hit:
         return ""
     most = max(float(r["ground_stopped_s"]) for r in hit)
+    timed = [r for r in hit if r.get("e2e_latency_s") is not None]
+    # a pair the stop left without a Result has no latency to include it (QA of stop 84: a link_down pair was said so)
+    told = []
+    if timed:
+        told.append(f"{_labels(timed)}: {'its' if len(timed) == 1 else 'their'} end-to-end latency includes it")
+    if len(timed) < len(hit):
+        told.append(f"{_labels([r for r in hit if r not in timed])}: no Result, whose loss may be that stop's")
     return (
         f"the ground process itself was not scheduled for up to {most:.1f} s while {len(hit)} pair(s) were in "
-        f"flight ({', '.join(str(r.get('label')) for r in hit[:5])}): their end-to-end latency includes it"
+        f"flight ({'; '.join(told)})"
     )
+
+
+def _labels(records: list[dict], most: int = 5) -> str:
+    """The first ``most`` records' pair labels, and how many more."""
+    more = f" and {len(records) - most} more" if len(records) > most else ""
+    return ", ".join(str(r.get("label")) for r in records[:most]) + more
 
 
 def session_note(summary: dict) -> str:

@@ -774,3 +774,19 @@ def test_the_hils_own_processes_keep_off_the_emulated_core_when_the_host_has_ano
         note = contention_note({**s, "flight_contention_pct": 30.0, "flight_contention_s": 0.1})
         said = "the ground and the HIL server and the serial line's relay shared its core"
         assert (said in note) == (name == "one"), note
+
+
+def test_a_ground_stop_is_said_against_each_pairs_outcome():
+    """A pair that an 8 s stop of the ground left without a Result (link_down) was said to have its end-to-end
+    latency include the stop, with no latency at all (QA of stop 84)."""
+    from hil_server.run import ground_stop_note
+
+    recs = [
+        {"label": "600/300", "ground_stopped_s": 0.0, "e2e_latency_s": 0.4},
+        {"label": "300/150", "ground_stopped_s": 7.98, "e2e_latency_s": None, "status": "error"},
+        {"label": "200/100", "ground_stopped_s": 1.5, "e2e_latency_s": 2.1},
+    ]
+    note = ground_stop_note({"records": recs})
+    assert note.startswith("the ground process itself was not scheduled for up to 8.0 s while 2 pair(s)"), note
+    assert "200/100: its end-to-end latency includes it" in note and "300/150: no Result" in note, note
+    assert ground_stop_note({"records": recs[:1]}) == ""
