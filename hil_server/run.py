@@ -2186,6 +2186,9 @@ def _descend(checked: CheckedRun, log) -> dict:
                     f"run: {who} on budget {budget.name}: CPU fraction {fraction:.4f}"
                     + (f" (= {effective:.4f} at full speed)" if effective < fraction else "")
                     + f", memory {budget.memory_mib} MiB, deadline {deadline:g} s end to end, link {server_spec}"
+                    # a loopback line has two ends: the ground's "Hello on serial:/dev/pts/1" named another device
+                    # than this line's pts/0 (QA of stop 84)
+                    + (f" (the ground's end: {ground_spec})" if ground_spec != server_spec else "")
                     + ("" if cfg.flight_cmd else boot_hint(effective))
                 )
                 for doubt in doubts:
