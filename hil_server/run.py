@@ -961,12 +961,27 @@ def _flight_line_note(records: list[dict]) -> str:
     """What the flight side's line dropped, as its Telemetry said it ("" when nothing): a board's noise reached no
     summary, since the ground's counters are its own side's (QA of stop 72)."""
     said = [r.get("link") or {} for r in records]
-    bad = max((float(x.get("flight_rx_damaged") or 0) for x in said), default=0.0)
+    counts = [float(x.get("flight_rx_damaged") or 0) for x in said if "flight_rx_damaged" in x]
+    bad = max(counts, default=0.0)
     if not bad:
-        return ""
+        # the emulated flight's line ends at the HIL server, whose link counts its damage as ground_* (the link it
+        # holds to the ground): under --corrupt that side's was in summary.json alone (QA of stop 84)
+        server = [(float(x.get("ground_crc_errors") or 0) + float(x.get("ground_malformed") or 0), x) for x in said]
+        worst, x = max(server, key=lambda t: t[0], default=(0.0, {}))
+        if not worst:
+            return ""
+        return (
+            f"the HIL server's end of the line dropped {worst:.0f} damaged frame{'' if worst == 1 else 's'} "
+            f"({float(x.get('ground_bytes_discarded') or 0):.0f} bytes of noise); "
+            f"{float(x.get('ground_retransmits') or 0):.0f} retransmissions on its side"
+        )
     noise = max(float(x.get("flight_rx_noise_bytes") or 0) for x in said)
+    # the flight program's count since it started: a board that served earlier grounds counts their damage too, so a
+    # second run read as twice as noisy (QA of stop 84); what grew over this run's pairs is said beside it
+    grew = f"; {bad - min(counts):.0f} of them after this run's first Result" if len(counts) > 1 else ""
     return (
-        f"the flight side's line dropped {bad:.0f} damaged frame{'' if bad == 1 else 's'} ({noise:.0f} bytes of noise)"
+        f"the flight side's line dropped {bad:.0f} damaged frame{'' if bad == 1 else 's'} ({noise:.0f} bytes of noise) "
+        f"since its flight program started, as its Telemetry counts them{grew}"
     )
 
 

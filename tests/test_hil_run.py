@@ -790,3 +790,23 @@ def test_a_ground_stop_is_said_against_each_pairs_outcome():
     assert note.startswith("the ground process itself was not scheduled for up to 8.0 s while 2 pair(s)"), note
     assert "200/100: its end-to-end latency includes it" in note and "300/150: no Result" in note, note
     assert ground_stop_note({"records": recs[:1]}) == ""
+
+
+def test_the_flight_ends_line_damage_is_said_for_this_run_and_at_the_hil_server():
+    """A long-lived board counts its line damage since it started: a second run read as twice as noisy; and under
+    --corrupt the HIL server's own end of the line, counted as its ground link's, reached no summary (QA of stop 84)."""
+    from hil_server.run import _flight_line_note
+
+    board = [{"link": {"flight_rx_damaged": 214.0, "flight_rx_noise_bytes": 8e4}},
+             {"link": {"flight_rx_damaged": 306.0, "flight_rx_noise_bytes": 111930.0}}]  # fmt: skip
+    note = _flight_line_note(board)
+    assert note.startswith("the flight side's line dropped 306 damaged frames (111930 bytes of noise) since its")
+    assert note.endswith("; 92 of them after this run's first Result"), note
+    server = [{"link": {"ground_crc_errors": 158.0, "ground_malformed": 2.0, "ground_bytes_discarded": 36184.0}},
+              {"link": {"ground_crc_errors": 343.0, "ground_malformed": 5.0, "ground_bytes_discarded": 55195.0,
+                        "ground_retransmits": 62.0}}]  # fmt: skip
+    assert _flight_line_note(server) == (
+        "the HIL server's end of the line dropped 348 damaged frames (55195 bytes of noise); 62 retransmissions on "
+        "its side"
+    )
+    assert _flight_line_note([{"link": {"ground_crc_errors": 0.0}}]) == ""
