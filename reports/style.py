@@ -155,7 +155,13 @@ GLOSSARY: dict[str, Term] = {
         "The site the flight software ranked first, judged on the truth: clear when every pixel whose true ground "
         "lies within its 3 m footprint is safe; none offered when the Result says no site qualified (and why).",
     ),
-    "outcome": Term("outcome", "The Result's level (full, or the coarser level it stopped at), or the error."),
+    "outcome": Term(
+        "outcome",
+        "The Result's level (full, or the coarser level it stopped at), or the error. A level below full says why "
+        "from the flight side's deadline plan: the time left when the DEM stage was due and the time kept for the "
+        "work after it; (x5, ...) is the slowdown against the reference machine those times were planned at, from "
+        "the first stages of the pair or measured on the previous pairs.",
+    ),
     "pose_cell": Term(
         "pose refinement",
         "What the flight side's relative-pose refinement did, as its Telemetry said: refined (the images' pose "
