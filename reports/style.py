@@ -159,8 +159,9 @@ GLOSSARY: dict[str, Term] = {
         "outcome",
         "The Result's level (full, or the coarser level it stopped at), or the error. A level below full says why "
         "from the flight side's deadline plan: the time left when the DEM stage was due and the time kept for the "
-        "work after it; (x5, ...) is the slowdown against the reference machine those times were planned at, from "
-        "the first stages of the pair or measured on the previous pairs.",
+        "work after it; (x5, ...) is the slowdown against this host at full speed that those times were planned at "
+        "(the emulated processor's 1 / CPU fraction, raised to what the pair's first stages took, or measured on "
+        "the previous pairs).",
     ),
     "pose_cell": Term(
         "pose refinement",
