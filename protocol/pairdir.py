@@ -126,7 +126,9 @@ class Camera:
         try:
             w, h = (_whole(d[k], k) for k in ("width", "height"))
             cam = cls(w, h, *(float(_number(d[k], k)) for k in ("fx", "fy", "cx", "cy")))
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        except KeyError as exc:  # "('fx')" read as Python's, not the format's (QA of stop 84)
+            raise PairFormatError(f"camera: need width, height, fx, fy, cx, cy (missing {exc})") from None
+        except (TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"camera: need width, height, fx, fy, cx, cy ({exc})") from None
         cam.validate()
         return cam
@@ -890,6 +892,31 @@ def to_gray8(
     return out, notes, warnings
 
 
+# the fields the format gives a frame, the camera and the sun (DESIGN.md); anything else is said, not read
+FRAME_KEYS = ("image", "position_m", "R_world_to_cam", "q_world_to_cam", "time_s", "altimeter_m")
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+SUN_KEYS = ("azimuth_deg", "elevation_deg")
+
+
+def unknown_keys(obj: Any, known: Sequence[str], where: str) -> list[str]:
+    """A warning for each key of ``obj`` the format does not have, with the known key it is closest to: a frame's
+    ``"altimeter_range_m"`` was ignored without a word, and with it the check of the DEM against the altimeter, as
+    was a camera's distortion model (QA of stop 84)."""
+    import difflib
+
+    if not isinstance(obj, dict):
+        return []
+    out = []
+    for key in obj:
+        if key in known:
+            continue
+        near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.5)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        shown = repr(str(key)[:60])  # repr: a key's control characters escaped, not written to a terminal
+        out.append(f"{where}: {shown} is not a field of the format and was ignored{hint}; it has {', '.join(known)}")
+    return out
+
+
 def _load_json(path: Path) -> Any:
     size = path.stat().st_size
     if size > MAX_PAIR_JSON_BYTES:
@@ -1199,13 +1226,20 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     notes += conv
     sun = None
     if doc.get("sun") is not None:
+        if not isinstance(doc["sun"], dict):  # Python's "string indices must be integers" said nothing of the format
+            raise PairFormatError(
+                f'{meta_path}: sun must be an object {{"azimuth_deg": ..., "elevation_deg": ...}}, got '
+                f"{json.dumps(doc['sun'])[:60]}"
+            )
         try:
             # JSON numbers, as every other field: "135" passed through float() unnoticed (QA of stop 66)
             sun = Sun(
                 float(_number(doc["sun"]["azimuth_deg"], "sun.azimuth_deg")),
                 float(_number(doc["sun"]["elevation_deg"], "sun.elevation_deg")),
             )
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        except KeyError as exc:
+            raise PairFormatError(f"{meta_path}: sun needs azimuth_deg and elevation_deg (missing {exc})") from None
+        except (TypeError, ValueError, OverflowError) as exc:
             raise PairFormatError(f"{meta_path}: sun needs azimuth_deg and elevation_deg ({exc})") from None
         # a NaN angle would make the flight software drop the sun without a word (a different result)
         if not (math.isfinite(sun.azimuth_deg) and math.isfinite(sun.elevation_deg)):
@@ -1243,6 +1277,9 @@ def _read_pair(directory: str | Path, *, load_truth: bool) -> Pair:
     pair.warnings += list(shallow.values())
     pair.shallow_warnings = dict(shallow)
     pair.notes += [f"{meta_path}: {n}" for n in same_time_notes(pair.poses)]
+    pair.warnings += unknown_keys(doc.get("camera"), CAMERA_KEYS, f"{meta_path}: camera")
+    pair.warnings += [w for k, fr in enumerate(frames) for w in unknown_keys(fr, FRAME_KEYS, f"{meta_path}: frame {k}")]
+    pair.warnings += unknown_keys(doc.get("sun"), SUN_KEYS, f"{meta_path}: sun")
     return pair
 
 

@@ -337,6 +337,36 @@ def test_quoted_sun_angles_are_refused_as_every_other_quoted_number(tmp_path):
         read_pair(tmp_path)
 
 
+def test_a_field_the_format_does_not_have_is_warned_with_the_one_meant(tmp_path):
+    """A frame's "altimeter_range_m" was ignored without a word, and with it the DEM's check against the altimeter;
+    so was a camera's distortion model (QA of stop 84). Each is a warning naming the field, and the one meant."""
+    write_pair(tmp_path, make_pair())
+    assert read_pair(tmp_path).warnings == []  # what the writer writes is all the format's
+
+    def typo(doc):
+        doc["frames"][0]["altimeter_range_m"] = 640.0
+        doc["camera"]["k1"] = -0.3
+        doc["sun"]["elevation"] = 20.0
+
+    _rewrite(tmp_path, typo)
+    warned = read_pair(tmp_path).warnings
+    assert len(warned) == 3, warned
+    assert (
+        "frame 0: 'altimeter_range_m' is not a field of the format and was ignored (did you mean 'altimeter_m'?)"
+        in (warned[1])
+    )
+    assert "camera: 'k1' is not a field" in warned[0] and "sun: 'elevation' is not a field" in warned[2], warned
+
+
+@pytest.mark.parametrize("sun", ["135,25", [135, 25], 5])
+def test_a_sun_that_is_no_object_is_said_in_the_formats_words(tmp_path, sun):
+    """Python's "string indices must be integers" came through as the reason (QA of stop 84)."""
+    write_pair(tmp_path, make_pair())
+    _rewrite(tmp_path, lambda doc: doc.update(sun=sun))
+    with pytest.raises(PairFormatError, match=r'sun must be an object \{"azimuth_deg": ..., "elevation_deg": ...\}'):
+        read_pair(tmp_path)
+
+
 def test_a_hot_pixel_does_not_set_a_16_bit_images_scale(tmp_path):
     """One pixel at 65535 in a 12-bit image shifted it by 8 bits, not 4, and left ~9 grey levels: coverage 96 % ->
     41 % with a note only (QA of stop 73). The scale comes from a high percentile; the hot pixel saturates, said."""
