@@ -1398,7 +1398,8 @@ def truth_note(summary: dict) -> str:
             "(docs/design.md, Ground-truth hazard)"
         )
     if without:
-        parts.append(f"{names(without)} could not be scored: {without[0]['truth_note']}")
+        # "pair(s)" first: the sentence's capital went to a user's own label ("Noderive"; QA of stop 84)
+        parts.append(f"pair{'s' * (len(without) > 1)} {names(without)} could not be scored: {without[0]['truth_note']}")
     return "; ".join(parts)
 
 

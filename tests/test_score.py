@@ -497,7 +497,9 @@ def test_an_hil_run_says_a_pair_without_derivable_truth_is_unscored_and_blames_n
     rec = next(r for r in s["records"] if r["label"] == "600/300")
     assert rec["status"] == "result" and "scores" not in rec and "none can be derived" in rec["truth_note"]
     md = (tmp_path / "run" / "summary.md").read_text()
-    assert "mapped none of the scored ground" not in md and "600/300 could not be scored" in md
+    assert (
+        "mapped none of the scored ground" not in md and "Pair 600/300 could not be scored" in md
+    )  # the label as given (QA of stop 84)
 
 
 # --------------------------------------------------------------------------- QA 61a
