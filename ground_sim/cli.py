@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="ALT,ALT,...",
         help="one multi-frame directory (2-16 frames, highest first) at these altitudes along the "
         f"scenario's path ({MIN_ALTITUDE_M:g} m - {MAX_ALTITUDE_M / 1000:g} km), e.g. 300,250,200,150; "
-        "repeat for several",
+        "repeat for several; not with --pairs",
     )
     p.add_argument("--seed", type=int, default=0, help="scene and noise seed (default 0)")
     p.add_argument(
