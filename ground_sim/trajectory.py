@@ -131,7 +131,8 @@ def frames_at(scenario: str, altitudes: list[float], camera: Camera | None = Non
     if not all(a > 0 for a in alts) or any(b >= a for a, b in pairwise(alts)):
         raise TrajectoryError(f"--frames: altitudes must be positive and strictly decreasing, got {alts}")
     if alts[-1] < MIN_ALTITUDE_M:  # a render below it takes minutes to hours (see MIN_ALTITUDE_M)
-        raise TrajectoryError(f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got {alts[-1]:g}")
+        low = ", ".join(f"{a:g}" for a in alts if a < MIN_ALTITUDE_M)  # every one, not the lowest alone (QA of stop 84)
+        raise TrajectoryError(f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got {low}")
     if alts[0] > MAX_ALTITUDE_M:  # the reader refuses pixels over 100 m of ground (protocol.pairdir.scale_notes)
         raise TrajectoryError(f"--frames: altitudes must be at most {MAX_ALTITUDE_M:g} m, got {alts[0]:g}")
     cam = camera or Camera.thesis()

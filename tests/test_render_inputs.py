@@ -114,7 +114,9 @@ def test_sun_azimuth_at_the_limit_renders(tmp_path, capsys):
 def test_low_frames_are_refused_before_rendering(tmp_path, capsys, no_rendering):
     argv = ["render", "--scenario", "vertical", "--frames", "2,1", "--out", str(tmp_path / "low"), "--workers", "1"]
     err = one_line_error(capsys, argv)
-    assert f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got 1" in err, err
+    assert f"--frames: altitudes must be at least {MIN_ALTITUDE_M:g} m, got 2, 1" in err, (
+        err
+    )  # every one too low (QA of stop 84)
     assert not (tmp_path / "low").exists()
 
 
