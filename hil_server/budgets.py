@@ -493,9 +493,13 @@ def deadline_problem(value: object) -> str | None:
         return None
     # the reason for the bound that was crossed: a deadline of 1e9 s was told that a Result cannot cross a link in less
     # (QA of stop 84)
-    too_long = isinstance(value, (int, float)) and value > MAX_DEADLINE_S
-    why = "an hour per pair at most" if ok and too_long else "a Result cannot cross even a local link in less"
-    return f"must be a number of seconds in [{MIN_DEADLINE_S:g}, {MAX_DEADLINE_S:g}] ({why}), got {value!r}"
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    why = ""
+    if number and value > MAX_DEADLINE_S:  # type: ignore[operator]
+        why = " (an hour per pair at most)"
+    elif number and value < MIN_DEADLINE_S:  # type: ignore[operator]
+        why = " (a Result cannot cross even a local link in less)"
+    return f"must be a number of seconds in [{MIN_DEADLINE_S:g}, {MAX_DEADLINE_S:g}]{why}, got {value!r}"
 
 
 def _number(
