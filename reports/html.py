@@ -36,6 +36,15 @@ def drop_pictures(paths: Iterable[Path]) -> list[Path]:
     return gone
 
 
+def dropped_note(command: str, n: int, where: Path, what: str = "") -> str:
+    """The line a ``--no-figures`` run says of the ``n`` pictures it removed from ``where`` (:func:`drop_pictures`);
+    ``what`` follows the count (" of vertical")."""
+    return (
+        f"{command}: removed {n} figure{'s' * (n != 1)}{what} an earlier run drew in {where}: this run draws none "
+        "(--no-figures)"
+    )
+
+
 @dataclass
 class Column:
     key: str

@@ -587,7 +587,7 @@ def sensitivity_setting(rows: list[dict[str, Any]]) -> str:
 
 
 def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, warning: str = "") -> int:
-    from reports.html import drop_pictures
+    from reports.html import drop_pictures, dropped_note
     from studies import evaluate as ev
     from studies import report
 
@@ -603,10 +603,7 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
     if args.no_figures and (
         gone := drop_pictures(args.out / "report" / f"sensitivity_{kind}.png" for kind in ev.SENSITIVITY_KINDS)
     ):
-        _note(
-            f"sensitivity: removed {len(gone)} figure{'s' * (len(gone) != 1)} an earlier run drew in "
-            f"{args.out / 'report'}: this run draws none (--no-figures)"
-        )
+        _note(dropped_note("sensitivity", len(gone), args.out / "report"))
     for kind in ev.SENSITIVITY_KINDS:
         csv_path = args.out / f"sensitivity_{kind}.csv"
         if not csv_path.is_file():

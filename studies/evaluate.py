@@ -31,6 +31,7 @@ from ground_sim.render import DEFAULT_RASTER
 from protocol.errors import InputError
 from protocol.pairdir import THESIS_CAMERA_PX, Camera, PairFormatError, Pose, read_pair
 from protocol.pairdir import true_poses as pairdir_true_poses
+from reports.html import dropped_note
 from reports.plots import ground_step_m
 
 SCENARIOS = ("vertical", "approach")
@@ -1111,12 +1112,8 @@ def evaluate_scenario(
                 flush=True,
             )
         if undrawn:  # an earlier run's, with the same settings: the page says none were drawn, so none may stay
-            print(
-                f"evaluate: removed {_count(undrawn)} of {scenario} an earlier run drew in {out / 'report'}: this run "
-                "draws none (--no-figures)",
-                file=sys.stderr,
-                flush=True,
-            )
+            said = dropped_note("evaluate", len(undrawn), out / "report", f" of {scenario}")
+            print(said, file=sys.stderr, flush=True)
         res = run_tasks(
             evaluate_pair,
             tasks,

@@ -756,6 +756,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any],
         Section,
         Table,
         drop_pictures,
+        dropped_note,
         file_links,
         write_page,
     )
@@ -764,12 +765,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any],
     rep.mkdir(parents=True, exist_ok=True)
     figs = _plots(rep, rows, summary) if figures else []
     if not figures and (gone := drop_pictures(rep / name for name in PLOT_NAMES)):
-        print(
-            f"landings: removed {len(gone)} figure{'s' * (len(gone) != 1)} an earlier run drew in {rep}: this run "
-            "draws none (--no-figures)",
-            file=sys.stderr,
-            flush=True,
-        )
+        print(dropped_note("landings", len(gone), rep), file=sys.stderr, flush=True)
     camp = summary["campaign"]
     seeds = summary.get("seeds_used") or camp["seeds"]
     partial = summary.get("complete") is False
