@@ -417,9 +417,15 @@ def _scalar(fig: Any, ax: Any, p: Panel, d: np.ndarray, fin: np.ndarray, cmap: A
 
 
 def dem_panels(estimate: np.ndarray, truth: np.ndarray | None, what: str = "elevation", unit: str = "m") -> list[Panel]:
-    """Estimate | truth | error panels sharing one colour range (the truth's 2nd-98th percentile)."""
+    """Estimate | truth | error panels sharing one colour range.
+
+    The range is the truth's 2nd-98th percentile where the estimate has a value (the whole truth when it has
+    none): a crater outside the mapped ground would otherwise stretch the range and flatten the estimate into
+    one colour (stop 85's QA). Truth beyond the range is drawn at the range's ends.
+    """
     ref = truth if truth is not None else estimate
-    fin = ref[np.isfinite(ref)]
+    both = np.isfinite(ref) & np.isfinite(estimate)
+    fin = ref[both] if both.any() else ref[np.isfinite(ref)]
     lo, hi = (float(np.percentile(fin, 2)), float(np.percentile(fin, 98))) if fin.size else (0.0, 1.0)
     none = f"no computed {what}\n(none recovered: an image-only result?)"
     panels = [Panel("scalar", estimate, f"computed {what}", unit, ELEVATION_CMAP, lo, hi, empty_text=none)]

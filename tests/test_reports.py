@@ -591,6 +591,23 @@ def test_an_empty_error_panel_names_the_side_that_is_empty():
     assert "no computed elevation where the truth is" in dem_panels(nan, z)[2].empty_text
 
 
+def test_the_dem_colour_range_is_the_truth_where_the_dem_is():
+    """A deep crater outside the mapped ground stretched the shared range to -44..-3 m while the DEM spanned
+    -12..-4 m, and the computed elevation came out one flat colour (QA of stop 85)."""
+    from reports.plots import dem_panels
+
+    crater = np.full((64, 16), -44.0, np.float32)  # which the DEM does not reach
+    truth = np.hstack([crater, np.tile(np.linspace(-12.0, -4.0, 48, dtype=np.float32), (64, 1))])
+    estimate = truth + 0.1
+    estimate[:, :16] = np.nan
+    computed, true, _ = dem_panels(estimate, truth)
+    assert computed.vmin is not None and computed.vmax is not None
+    assert -12.0 <= computed.vmin < -11.0 and -5.0 < computed.vmax <= -4.0
+    assert (true.vmin, true.vmax) == (computed.vmin, computed.vmax)
+    # with no computed elevation at all, the truth's own range
+    assert dem_panels(np.full_like(truth, np.nan), truth)[0].vmin == -44.0
+
+
 def test_a_ticker_speaks_only_while_long_work_runs():
     """`process` on a large pair ran for a minute or more without a word: a line every so often, none for short
     work, and none after the work ended."""
