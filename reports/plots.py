@@ -169,10 +169,11 @@ def _unknown_overlay(ax: Any, mask: np.ndarray, n_in: int) -> None:
     ax.legend(handles=[handle], loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, frameon=False)
 
 
-def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
+def _draw_sites(ax: Any, sites: Sequence[Site]) -> list[Any]:
     """Footprint circles numbered by rank, with a white halo so they read on dark and light maps alike.
 
-    A footprint smaller than 1.5 % of the panel is drawn at that size (a 3 m circle at 600 m is ~2 px).
+    A footprint smaller than 1.5 % of the panel is drawn at that size (a 3 m circle at 600 m is ~2 px). Returns
+    the labels in rank order, for :func:`_unclash_labels` once the figure's layout is final.
     """
     import matplotlib.patheffects as pe
     from matplotlib.patches import Circle
@@ -186,19 +187,51 @@ def _draw_sites(ax: Any, sites: Sequence[Site]) -> None:
         circle = Circle((s.u, s.v), max(s.radius_px, floor), fill=False, lw=2.8 if s.rank == 1 else 1.4, color=colour)
         circle.set_path_effects(halo)
         ax.add_patch(circle)
+    labels = []
     for group in site_label_groups(sites, 3.0 * floor):
         s = group[0]  # the best-ranked site of the cluster carries the label
         colour = "#000000" if s.safe is None else (SAFE if s.safe else MISSED)
-        ax.annotate(
+        label = ax.annotate(
             ",".join(str(g.rank) for g in group),
             (s.u, s.v),
-            xytext=(5, 5),
+            xytext=LABEL_OFFSETS[0],
             textcoords="offset points",
             fontsize=8,
             color=colour,
             weight="bold",
             path_effects=halo,
+            arrowprops={"arrowstyle": "-", "lw": 0.7, "color": colour, "shrinkA": 0, "shrinkB": 0},
         )
+        label.arrow_patch.set_visible(False)  # a leader only for a label moved off its place
+        labels.append(label)
+    return labels
+
+
+# Where a site's label may go, in points from its centre: up-right first, then ever further above and below.
+LABEL_OFFSETS = [(5.0, 5.0)] + [(5.0, 5.0 + sign * 11.0 * k) for k in range(1, 7) for sign in (-1, 1)]
+
+
+def _unclash_labels(fig: Any, labels: Sequence[Any]) -> None:
+    """Move each site label, best rank first, to the first place in :data:`LABEL_OFFSETS` where it overprints no
+    label placed before it, with a leader line back to its circle.
+
+    Labels of nearby clusters ("1,3" beside "2,4,5") overprinted into "1,:2,4,5" and lost a rank (stop 85's
+    QA). Placed after the layout is final, since tight layout rescales the axes under labels set in points.
+    """
+    if not labels:
+        return
+    from matplotlib.text import Text
+
+    r = fig.canvas.get_renderer()
+    placed: list[Any] = []
+    for label in labels:
+        for dx, dy in LABEL_OFFSETS:
+            label.xyann = (dx, dy)
+            box = Text.get_window_extent(label, r)  # the text alone: an annotation's own extent holds its leader
+            if not any(box.overlaps(b) for b in placed):
+                break
+        label.arrow_patch.set_visible(label.xyann != LABEL_OFFSETS[0])
+        placed.append(box)
 
 
 def site_label_groups(sites: Sequence[Site], min_sep: float) -> list[list[Site]]:
@@ -330,6 +363,7 @@ def map_figure(
     box = mapped_box(panels) if zoom else None
     shape = next((np.shape(p.data)[:2] for p in panels if p.kind != "image"), None)  # the maps' frame
     fig, axes = plt.subplots(1, n, figsize=(panel_in * n, panel_in * 1.25), squeeze=False)
+    labels: list[Any] = []
     for ax, p in zip(axes[0], panels):
         ax.set_title(p.title, fontsize=9)
         ax.set_xticks([])
@@ -360,7 +394,7 @@ def map_figure(
         if box is not None and np.shape(p.data)[:2] == shape:
             ax.set_xlim(box[2] - 0.5, box[3] + 0.5)
             ax.set_ylim(box[1] + 0.5, box[0] - 0.5)  # rows down, as the image
-        _draw_sites(ax, p.sites)
+        labels += _draw_sites(ax, p.sites)
         if m_per_px is not None and np.isfinite(m_per_px) and m_per_px > 0 and np.shape(p.data)[:2] == shape:
             _scale_bar(ax, float(m_per_px))
     if box is not None:  # on a line of its own: after a long title it ran off the figure's edge
@@ -388,6 +422,7 @@ def map_figure(
             lift = min(0.5, top + 0.01 - low) * h
             fig.set_size_inches(w, h + lift)
             fig.tight_layout(rect=(0, (0.03 * h + lift) / (h + lift), 1, 1))
+    _unclash_labels(fig, labels)
     return fig
 
 

@@ -694,3 +694,23 @@ def test_a_timeline_whose_work_is_a_sliver_of_the_deadline_zooms_to_the_work():
     recs[0]["e2e_latency_s"] = 1.2  # a pair that took most of its deadline: the deadline is on the axis again
     ax = plots.timeline_figure(recs).axes[0]
     assert ax.get_xlim()[1] > 2.0 and "deadline" in ax.get_legend_handles_labels()[1]
+
+
+def test_site_labels_of_nearby_clusters_do_not_overprint():
+    """Labels "1,2,3" and "4,5" of two clusters 9 px apart printed over each other as "1,4,3,5", and rank 2 was
+    lost (QA of stop 85). Every label is now clear of the others and every rank is written."""
+    state = np.zeros((170, 170), np.uint8)
+    sites = [plots.Site(124.0, 100.0 + k, 2.0, k + 1, True) for k in range(3)]
+    sites += [plots.Site(133.0, 100.0 + k, 2.0, k + 4, False) for k in range(2)]
+    sites += [plots.Site(126.0, 92.0, 2.0, 6, True)]  # a third cluster, above the first label
+    fig = plots.map_figure([plots.Panel("state", state, "hazard states", sites=sites)])
+    from matplotlib.text import Text
+
+    r = fig.canvas.get_renderer()
+    labels = [t for t in fig.axes[0].texts if t.get_text()[:1].isdigit()]
+    boxes = [Text.get_window_extent(t, r) for t in labels]
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
+    assert sorted(int(k) for t in labels for k in t.get_text().split(",")) == [1, 2, 3, 4, 5, 6]
+    # a moved label keeps a line to its circle; the top site's stays in its place
+    assert all(t.arrow_patch.get_visible() == (tuple(t.xyann) != plots.LABEL_OFFSETS[0]) for t in labels)
+    assert tuple(labels[0].xyann) == plots.LABEL_OFFSETS[0]
