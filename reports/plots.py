@@ -98,6 +98,10 @@ class Panel:
     centre: float | None = None
     centre_label: str = ""
     empty_text: str = "no values here"  # said in a scalar panel with no finite value (not an empty box with a bar)
+    # categorical panels: what the legend's shares are of (default by kind: a state map's mapped pixels, a
+    # confusion map's scored ones); a hazard-state legend of the mapped area beside scores of the scored area
+    # read as a disagreement (safe 10.8 % against TP + FP 9.9 %; QA of stop 85)
+    share_of: str = ""
 
 
 def confusion_codes(called_safe: np.ndarray, truly_safe: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -126,13 +130,18 @@ def truth_panel(
     if scored is not None:
         h = np.where(np.asarray(scored, bool), h, np.float32(np.nan))
     codes = np.where(np.isnan(h), np.uint8(255), np.where(h < 1.0, np.uint8(0), np.uint8(1))).astype(np.uint8)
-    return Panel("truth", codes, title)
+    return Panel("truth", codes, title, share_of="scored area" if scored is not None else "area with truth")
 
 
 _CONF_ORDER = ("TP", "TN", "FP", "FN")
 
 
-def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dict[int, str], show_pct: bool) -> None:
+SHARE_OF = {"state": "mapped area", "confusion": "scored area", "truth": "area with truth"}
+
+
+def _categorical(
+    ax: Any, codes: np.ndarray, colours: dict[int, str], names: dict[int, str], show_pct: bool, share_of: str = ""
+) -> None:
     from matplotlib.colors import to_rgb
     from matplotlib.patches import Patch
 
@@ -152,7 +161,17 @@ def _categorical(ax: Any, codes: np.ndarray, colours: dict[int, str], names: dic
     ax.imshow(rgb, interpolation="nearest")
     # two columns of long labels ran under the next panel and into its legend (the run's state beside its scores)
     ncol = 1 if max((len(str(h.get_label())) for h in handles), default=0) > 24 else 2
-    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, ncol=ncol, frameon=False)
+    title = f"share of the {share_of}" if show_pct and share_of else None
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.02),
+        fontsize=7,
+        ncol=ncol,
+        frameon=False,
+        title=title,
+        title_fontsize=7,
+    )
 
 
 def _unknown_overlay(ax: Any, mask: np.ndarray, n_in: int) -> None:
@@ -384,11 +403,11 @@ def map_figure(
                 _scalar(fig, ax, p, d, fin, cmap, vmin, vmax)
         elif p.kind in ("state", "truth"):  # the truth has no unknown: its key would read "unknown 0.0 %"
             keep = STATE_COLOURS if p.kind == "state" else {k: v for k, v in STATE_COLOURS.items() if k != 2}
-            _categorical(ax, np.asarray(p.data, np.uint8), keep, STATE_NAMES, True)
+            _categorical(ax, np.asarray(p.data, np.uint8), keep, STATE_NAMES, True, p.share_of or SHARE_OF[p.kind])
         elif p.kind == "confusion":
             names = {i: CONFUSION_NAMES[k] for i, k in enumerate(_CONF_ORDER)} | {255: "outside"}
             colours = {i: CONFUSION_COLOURS[k] for i, k in enumerate(_CONF_ORDER)} | {255: OUTSIDE}
-            _categorical(ax, np.asarray(p.data, np.uint8), colours, names, True)
+            _categorical(ax, np.asarray(p.data, np.uint8), colours, names, True, p.share_of or SHARE_OF[p.kind])
         else:
             raise ValueError(f"unknown panel kind {p.kind!r}")
         if box is not None and np.shape(p.data)[:2] == shape:

@@ -714,3 +714,23 @@ def test_site_labels_of_nearby_clusters_do_not_overprint():
     # a moved label keeps a line to its circle; the top site's stays in its place
     assert all(t.arrow_patch.get_visible() == (tuple(t.xyann) != plots.LABEL_OFFSETS[0]) for t in labels)
     assert tuple(labels[0].xyann) == plots.LABEL_OFFSETS[0]
+
+
+def test_each_share_legend_says_what_its_shares_are_of():
+    """A hazard-state legend over the mapped pixels read "safe 10.8 %" beside pixel scores over the scored ones
+    whose TP + FP was 9.9 % (QA of stop 85): each legend now names its area, and the shares are of that area."""
+    state = np.full((40, 40), 255, np.uint8)
+    state[:, :30] = 0  # mapped: 30 columns, all safe
+    scored = np.zeros((40, 40), bool)
+    scored[:, 10:30] = True
+    conf = plots.confusion_codes(np.ones((40, 40), bool), np.ones((40, 40), bool), scored)
+    panels = [
+        plots.Panel("state", state, "hazard state"),
+        plots.Panel("confusion", conf, "pixel scores"),
+        plots.truth_panel(np.zeros((40, 40), np.float32), scored=scored),
+    ]
+    fig = plots.map_figure(panels, zoom=False)
+    titles = [ax.get_legend().get_title().get_text() for ax in fig.axes[:3]]
+    assert titles == ["share of the mapped area", "share of the scored area", "share of the scored area"]
+    assert "safe 100.0 %" in [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert plots.truth_panel(np.zeros((4, 4), np.float32)).share_of == "area with truth"
