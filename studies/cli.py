@@ -635,6 +635,9 @@ def _sensitivity_page(args: argparse.Namespace, rows: list, seeds_text: str, war
         sections,
         subtitle=f"WARNING ({args.kind}): {warning}" if warning else "",
         figures=not args.no_figures,
+        # the samples the console names were linked nowhere on the page (QA of stop 85)
+        files=[(f"../sensitivity_{k}.csv", f"the {k} study's samples: a row per draw") for k in ev.SENSITIVITY_KINDS]
+        + [("../runs/", "the logs a rerun resumes from")],
     )
     print(f"samples: {args.out / f'sensitivity_{args.kind}.csv'}\nreport:  {page}")
     if other:

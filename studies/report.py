@@ -354,9 +354,11 @@ def write_html(
     legends: tuple[str, ...] = (),
     headline: list[Headline] | None = None,
     figures: bool = True,
+    files: Sequence[tuple[str, str]] | None = None,
 ) -> Path:
     """``out_dir/index.html`` (the shared page design) from (heading, tables or Markdown tables, [png names]);
-    ``figures`` False: the page says its pictures were not drawn (``--no-figures``)."""
+    ``figures`` False: the page says its pictures were not drawn (``--no-figures``). ``files``: ``(href, what)``
+    of the data beside the page, linked where they exist (default: the evaluation's)."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     page = [] if figures else [Section("Pictures", paragraphs=[NO_FIGURES_NOTE])]
@@ -371,11 +373,12 @@ def write_html(
                 figures_first=True,
             )
         )
-    files = [  # the report lives in OUT/report; the data beside it
-        ("../metrics.csv", "a row per preset, seed and pair: every figure of these tables"),
-        ("../runs/", "the logs a rerun resumes from"),
-    ] + [(f"../multiframe_{s}.json", f"the {s} multi-frame descents, scored") for s in ("vertical", "approach")]
-    links = file_links(d, files)
+    if files is None:  # the report lives in OUT/report; the data beside it
+        files = [
+            ("../metrics.csv", "a row per preset, seed and pair: every figure of these tables"),
+            ("../runs/", "the logs a rerun resumes from"),
+        ] + [(f"../multiframe_{s}.json", f"the {s} multi-frame descents, scored") for s in ("vertical", "approach")]
+    links = file_links(d, list(files))
     if links:
         page.append(Section("Files", links=links))
     # a colour key only for what the page draws: the hazard states' key sat atop pages with no state map (QA of

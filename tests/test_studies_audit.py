@@ -458,6 +458,9 @@ def test_sensitivity_sections_of_earlier_runs_state_their_own_seeds_and_camera(t
     page = html.unescape((out / "report" / "index.html").read_text())
     assert "sensitivity: altitude (held-out seeds 1000 (1), a 64 px camera)" in page
     assert "sensitivity: rollyaw (held-out seeds 1001 (1), a 128 px camera)" in page
+    # each study's samples linked from the page, not only named on the console (QA of stop 85)
+    assert 'href="../sensitivity_altitude.csv"' in page and 'href="../sensitivity_rollyaw.csv"' in page
+    assert "../metrics.csv" not in page
     assert "the other sections are earlier runs into this --out with other settings" in page
     assert "note: the page also shows rollyaw (held-out seeds 1001 (1), a 128 px camera)" in err, err
     assert {p.name for p in (out / "report").glob("*.png")} == {"sensitivity_altitude.png", "sensitivity_rollyaw.png"}
