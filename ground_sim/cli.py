@@ -181,7 +181,7 @@ def _run(args: argparse.Namespace) -> int:
     if frames:
         check_distinct_dirs(["/".join(f"{a:g}" for a in f) for f in frames], "--frames")
     written: list[str] = []
-    from ground_sim.descent import earlier_render
+    from ground_sim.descent import earlier_render, kept_after_stop
 
     earlier = earlier_render(Path(args.out)) if Path(args.out).is_dir() else []
     try:
@@ -204,12 +204,12 @@ def _run(args: argparse.Namespace) -> int:
                 written=written,
             )
     except (KeyboardInterrupt, OSError):  # a stop, or a full disk (said by the caller, in one line)
-        print(_kept_after_interrupt(Path(args.out), written, earlier), file=sys.stderr)
+        print(kept_after_stop(Path(args.out), written, earlier), file=sys.stderr)
         raise
     except BrokenProcessPool:  # a worker killed outright (the OOM killer): one line, as evaluate and landings say it
         print(
             "render: a worker process died (killed, or out of memory): run it again, with fewer --workers if memory "
-            f"is short; {_kept_after_interrupt(Path(args.out), written, earlier).split(': ', 1)[1]}",
+            f"is short; {kept_after_stop(Path(args.out), written, earlier).split(': ', 1)[1]}",
             file=sys.stderr,
         )
         return 1
@@ -223,29 +223,6 @@ def _run(args: argparse.Namespace) -> int:
         )
     print(out / "manifest.json")
     return 0
-
-
-def _kept_after_interrupt(out: Path, written: list[str], earlier: list[str] | None = None) -> str:
-    """What a stopped render left in ``out``: the frames are rendered first and the pairs written after (each
-    whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again. The pairs
-    an earlier render left there and this one did not replace are named: beside ours they read as one descent of
-    two seeds (QA of stop 72)."""
-    left = [p for p in earlier or [] if p not in written and (out / p / "pair.json").is_file()]
-    more = ", ..." if len(left) > 8 else ""
-    old = (
-        f"; {len(left)} pair(s) of an earlier render are still there, not this one's: {', '.join(left[:8])}{more}"
-        if left
-        else ""
-    )
-    if not written:
-        gone = "" if not left or (out / "manifest.json").is_file() else " (its manifest.json was removed)"
-        return (
-            f"render: stopped before any pair was written (frames are rendered first): nothing new in {out}{old}{gone}"
-        )
-    return (
-        f"render: stopped; {len(written)} pair(s) written whole in {out}: {', '.join(written)}; "
-        f"no manifest.json (it is written last){old}"
-    )
 
 
 def _table_doc(path: Path) -> dict[str, Any]:

@@ -444,6 +444,29 @@ def earlier_render(out: Path) -> list[str]:
         return sorted(p.parent.name for p in out.glob("*/pair.json") if not is_write_leftover(p.parent.name))
 
 
+def kept_after_stop(out: Path, written: list[str], earlier: list[str] | None = None) -> str:
+    """What a stopped render left in ``out``: the frames are rendered first and the pairs written after (each
+    whole, never half), so a stop while rendering keeps nothing; render has no resume, so run it again. The pairs
+    an earlier render left there and this one did not replace are named: beside ours they read as one descent of
+    two seeds (QA of stop 72)."""
+    left = [p for p in earlier or [] if p not in written and (out / p / "pair.json").is_file()]
+    more = ", ..." if len(left) > 8 else ""
+    old = (
+        f"; {len(left)} pair(s) of an earlier render are still there, not this one's: {', '.join(left[:8])}{more}"
+        if left
+        else ""
+    )
+    if not written:
+        gone = "" if not left or (out / "manifest.json").is_file() else " (its manifest.json was removed)"
+        return (
+            f"render: stopped before any pair was written (frames are rendered first): nothing new in {out}{old}{gone}"
+        )
+    return (
+        f"render: stopped; {len(written)} pair(s) written whole in {out}: {', '.join(written)}; "
+        f"no manifest.json (it is written last){old}"
+    )
+
+
 def _say_replaced(out: Path, earlier: list[str], ours: list[str]) -> None:
     """One line when ``out`` held an earlier render: which pairs this one replaced, and which it left in place
     (kept, nothing deleted, but no longer in manifest.json)."""

@@ -256,17 +256,38 @@ def _free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-def _render(cfg: RunConfig, pairs_dir: Path) -> Path:
-    from ground_sim.descent import render_scenario
-
+def _render(cfg: RunConfig, pairs_dir: Path, log: Callable[[str], None]) -> Path:
+    """The run's descent rendered into ``pairs_dir``. Stopped, it says what the directory holds: an earlier run's
+    pairs stayed there unnamed, to be taken for this run's by a later ``--manifest`` (QA of stop 85)."""
     kwargs: dict = {}
     if cfg.scene:
         kwargs["scene"] = cfg.scene
     if cfg.image_size:
         kwargs["camera"] = scaled_camera(cfg.image_size)
-    return Path(
-        render_scenario(cfg.scenario, pairs_dir, seed=cfg.seed, pairs=cfg.pairs, progress=cfg.progress, **kwargs)
-    )
+    earlier: list[str] | None = None
+    written: list[str] = []
+    try:  # the import too: a stop during it (a second or more) is a stop before the render wrote anything
+        from ground_sim.descent import earlier_render, render_scenario
+
+        earlier = earlier_render(pairs_dir) if pairs_dir.is_dir() else []
+        return Path(
+            render_scenario(
+                cfg.scenario,
+                pairs_dir,
+                seed=cfg.seed,
+                pairs=cfg.pairs,
+                progress=cfg.progress,
+                written=written,
+                **kwargs,
+            )
+        )
+    except (KeyboardInterrupt, OSError, _Interrupted):  # a stop, or a full disk
+        from ground_sim.descent import earlier_render, kept_after_stop
+
+        if earlier is None:  # stopped before the render began: what the directory holds is all earlier
+            earlier = earlier_render(pairs_dir) if pairs_dir.is_dir() else []
+        log(kept_after_stop(pairs_dir, written, earlier))
+        raise
 
 
 def scaled_camera(size: int) -> Camera:
@@ -2031,8 +2052,9 @@ def _descend(checked: CheckedRun, log) -> dict:
         },
     )
     # an earlier run's logs went only once the ground started: a stop before that read its supervisor.jsonl as
-    # this run's, and its answered pairs as this run's interrupted ones (review of stop 64)
-    for stale in ("summary.md", "report.html", "telemetry.jsonl", "supervisor.jsonl"):
+    # this run's, and its answered pairs as this run's interrupted ones (review of stop 64); its text logs too,
+    # which the report links as this run's (QA of stop 85)
+    for stale in ("summary.md", "report.html", "telemetry.jsonl", "supervisor.jsonl", "ground.log", "supervisor.log"):
         (out / stale).unlink(missing_ok=True)
     received = out / "received"
     if received.is_dir():  # a previous run's records must not pass for this one's: cleared, and said
@@ -2064,7 +2086,7 @@ def _descend(checked: CheckedRun, log) -> dict:
         try:
             if manifest is None:
                 log(f"run: rendering {cfg.scenario} pairs into {out / 'pairs'}")
-                manifest = _render(cfg, out / "pairs") / "manifest.json"
+                manifest = _render(cfg, out / "pairs", log) / "manifest.json"
             security: list[str] = []
             if kind == "serial" and spec is None:
                 from protocol.faults import PtyBridge

@@ -453,6 +453,12 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
     # stop 64)
     earlier = [{"pair_id": p, "event": e} for p in ("p000-600_300", "p001-300_150") for e in ("frame", "result")]
     (tmp_path / "supervisor.jsonl").write_text("".join(json.dumps(x) + "\n" for x in earlier))
+    # its text logs, which the report linked as this run's, and its pairs, which stayed unnamed (QA of stop 85)
+    for log in ("ground.log", "supervisor.log"):
+        (tmp_path / log).write_text("ground: 3 pairs, 3 results, 0 errors\n")
+    (tmp_path / "pairs" / "1000_500").mkdir(parents=True)
+    (tmp_path / "pairs" / "1000_500" / "pair.json").write_text("{}")
+    (tmp_path / "pairs" / "manifest.json").write_text(json.dumps({"pairs": [{"path": "1000_500"}]}))
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--pairs", "600/300,300/150", "--budget", "host"]
     proc = subprocess.Popen(
         [*cmd, "--out", str(tmp_path)], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
@@ -462,8 +468,10 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
         if "run: rendering" in line:
             proc.send_signal(getattr(signal, signame))
             break
-    proc.communicate(timeout=60)
+    said, _ = proc.communicate(timeout=60)
     assert proc.returncode == 128 + getattr(signal, signame)
+    assert not (tmp_path / "ground.log").exists() and not (tmp_path / "supervisor.log").exists()
+    assert "1 pair(s) of an earlier render are still there, not this one's: 1000_500" in said, said
     s = json.loads((tmp_path / "summary.json").read_text())
     assert not s["complete"] and s["reason"] == f"interrupted by {signame}"
     assert s["pairs"] == 2 and s["not_run"] == 2
