@@ -1431,6 +1431,8 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--telemetry-grace", type=float, default=TELEMETRY_GRACE_S, help=argparse.SUPPRESS)
     # tests: how often a line says the first Hello is still awaited (s)
     ap.add_argument("--hello-note", type=float, default=HELLO_NOTE_S, help=argparse.SUPPRESS)
+    # started by `hazard-hil run`: a SIGTERM is then the run's, which says its reason on the line before
+    ap.add_argument("--under-run", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     from protocol.ceiling import apply_memory_ceiling
     from protocol.linkspec import check_positive_seconds, check_reconnect_timeout, open_link
@@ -1529,7 +1531,14 @@ def _main(argv: list[str] | None) -> int:
             hello_note_s=args.hello_note,
         )
     except Interrupted as exc:
-        _say(f"ground: {exc}; the pairs that finished are in {args.out / 'results.jsonl'}")
+        # under `run` a SIGTERM is the run stopping its ground (a failed HIL server, a user's SIGTERM): "interrupted
+        # by SIGTERM" read as a signal from outside, which nobody sent (QA of stop 85)
+        why = (
+            "stopped by `hazard-hil run` (SIGTERM; its reason is on the line above)"
+            if args.under_run and exc.signum == signal.SIGTERM
+            else str(exc)
+        )
+        _say(f"ground: {why}; the pairs that finished are in {args.out / 'results.jsonl'}")
         return 128 + exc.signum
     except NoHello as exc:  # every pair is recorded as not run (results.jsonl)
         _say(f"ground: error: {exc}")

@@ -2195,6 +2195,7 @@ def _descend(checked: CheckedRun, log) -> dict:
             if cfg.hello_note_s is not None:
                 ground_cmd += ["--hello-note", str(cfg.hello_note_s)]
             ground_cmd.append("--fusion" if cfg.fusion else "--no-fusion")
+            ground_cmd.append("--under-run")
             if emulated:
                 sup_cmd = [
                     sys.executable,

@@ -425,6 +425,9 @@ def test_a_flight_program_that_never_comes_up_ends_the_run_with_its_reason(manif
     assert all(r["status"] == "error" and r["code"] in ("not_run", "server_failed") for r in s["records"])
     assert s["link_errors"] == 0
     assert s["supervisor_counters"]["restarts"] == 3
+    # the run stopped its ground: said so, not "interrupted by SIGTERM", a signal nobody sent (QA of stop 85)
+    ground = (tmp_path / "ground.log").read_text()
+    assert "ground: stopped by `hazard-hil run` (SIGTERM" in ground and "interrupted by" not in ground, ground
 
 
 def test_fault_injection_reaches_our_flight_software_from_the_cli(manifest, tmp_path):
