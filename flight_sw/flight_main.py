@@ -86,7 +86,7 @@ from protocol.messages import (
     Site,
     Telemetry,
 )
-from protocol.pairdir import STATE_SAFE, Camera, Pose
+from protocol.pairdir import STATE_SAFE, Camera, PairFormatError, Pose, check_altimeter
 
 # Building, fitting and encoding the Result happen after the pipeline returns: unthrottled seconds, scaled like the
 # pipeline's reserves by the slowdown it measures. They grow with the Result: OUTPUT_BASE_S + OUTPUT_PER_BYTE_S x its
@@ -305,22 +305,35 @@ def plan_telemetry(info: dict, budget_s: float, line_s: float) -> dict[str, floa
     return plan
 
 
-def _reading(altimeter_m: float) -> float:
-    """A frame's altimeter reading, or NaN ("none") where it is no range (0 or negative: a sensor without lock; the
-    wire refuses an infinite one). A 0 in the upper frame refused the whole pair as bad input, and one in the lower
-    frame was dropped unsaid; both are now mapped without it, and :func:`_readings_ignored` says so."""
-    a = float(altimeter_m)
-    return a if math.isfinite(a) and a > 0 else math.nan
+def _reading_set_aside(frame: Frame, k: int) -> str | None:
+    """Why frame ``k``'s (0 upper, 1 lower) altimeter reading is set aside, or None when it is used or absent (NaN).
+
+    Set aside: no range (0 or negative: a sensor without lock; the wire refuses an infinite one), or one no terrain
+    can explain for the frame's pose (:func:`protocol.pairdir.check_altimeter`, the pair reader's rule: a 1e300
+    reading failed deep in the range search as a ``pipeline_failure``, and 65535 m at 300 m passed unsaid; QA of
+    stop 85). The pair is mapped without it, and said; a 0 in the upper frame once refused the whole pair.
+    """
+    a = float(frame.altimeter_m)
+    if math.isnan(a):
+        return None
+    if not (math.isfinite(a) and a > 0):
+        return f"frame {k}'s altimeter reading {a + 0.0:g} m is no range: the pair is mapped without it"
+    try:
+        check_altimeter(a, frame_pose(frame), f"frame {k}")
+    except PairFormatError as exc:
+        return f"{exc}; the pair is mapped without it"
+    return None
+
+
+def _reading(frame: Frame, k: int) -> float:
+    """Frame ``k``'s altimeter reading for the pipeline: NaN ("none") where :func:`_reading_set_aside` sets it aside."""
+    return math.nan if _reading_set_aside(frame, k) is not None else float(frame.altimeter_m)
 
 
 def _readings_ignored(frames: tuple[Frame, ...]) -> list[str]:
-    """A note for each of a pair's frames (upper, lower) whose altimeter reading :func:`_reading` set aside (NaN is
-    no reading: no note), in the pipeline's numbering (frame 0, frame 1: :func:`ground_words` names them)."""
-    return [
-        f"frame {k}'s altimeter reading {float(f.altimeter_m) + 0.0:g} m is no range: the pair is mapped without it"
-        for k, f in enumerate(frames)
-        if not math.isnan(float(f.altimeter_m)) and math.isnan(_reading(f.altimeter_m))
-    ]
+    """A note for each of a pair's frames (upper, lower) whose altimeter reading was set aside, in the pipeline's
+    numbering (frame 0, frame 1: :func:`ground_words` names them)."""
+    return [note for k, f in enumerate(frames) if (note := _reading_set_aside(f, k)) is not None]
 
 
 def frame_pose(frame: Frame) -> Pose:
@@ -347,6 +360,9 @@ class FlightProcess:
         # the pairs dropped half received, newest last: a late frame of one is said as dropped, not held as a new
         # half pair to be dropped and said a second time (QA of stop 65)
         self.dropped: deque[str] = deque(maxlen=4 * MAX_PENDING_PAIRS)
+        # the pairs a frame of which was refused (no_config, bad_frame): their other frame gets no second Error
+        # (protocol.md: one Error per pair; two read as two pairs on a board's console; QA of stop 85)
+        self.refused: deque[str] = deque(maxlen=4 * MAX_PENDING_PAIRS)
         self.pairs_seen = 0
         # wire sizes (framed) of the last RESULT_HISTORY Results under the current Config, for the next pair's line
         # time: the largest of them, since a degraded Result can be smaller than the full one the next pair may reach
@@ -369,6 +385,7 @@ class FlightProcess:
         told from the next run, so its descent starts afresh."""
         self.pending.clear()
         self.dropped.clear()  # the new session may send those pairs again, whole
+        self.refused.clear()
         if self.config is not None:
             self.resumable = (self.config, self.fused)
         self.config = None
@@ -446,6 +463,7 @@ class FlightProcess:
                 if mismatch:
                     print(f"flight: {mismatch}", file=sys.stderr, flush=True)
             self.config = msg
+            self.refused.clear()  # refused for want of this Config, or for another camera: they may come again
             if self.prefault and cam.width * cam.height > self.heap_ready_px:
                 from flight_sw.warmup import heap_mib_for, prefault_heap
 
@@ -460,27 +478,35 @@ class FlightProcess:
             # ids carry the old session), and the server has recorded them already (QA 65f L1)
             self.new_ground_session()
 
+    def _refuse(self, frame: Frame, code: str, text: str) -> None:
+        """One Error per pair for a frame refused before its pair is whole: its other frame is only logged."""
+        pid = frame.pair_id
+        if pid is not None and pid in self.refused:
+            print(
+                f"flight: pair {pid!r}: its other frame ignored ({code}: {text}); the pair was answered with an Error",
+                file=sys.stderr,
+                flush=True,
+            )
+            return
+        if pid is not None:
+            self.refused.append(pid)
+            self.pending.pop(pid, None)  # a frame of it held whole: the pair is over
+        self.link.send(Error(code=code, text=text, seq=frame.seq))
+
     def _on_frame(self, frame: Frame) -> None:
         now = time.monotonic()
         if self.config is None:
-            self.link.send(Error(code="no_config", text="frame received before Config", seq=frame.seq))
+            self._refuse(frame, "no_config", "frame received before Config")
             return
         if frame.pair_id is None or frame.frame_index not in (0, 1):
-            self.link.send(
-                Error(
-                    code="bad_frame", seq=frame.seq, text="frame needs pair_id and frame_index 0 (upper) or 1 (lower)"
-                )
-            )
+            self._refuse(frame, "bad_frame", "frame needs pair_id and frame_index 0 (upper) or 1 (lower)")
+            return
+        if frame.pair_id in self.refused:
+            self._refuse(frame, "bad_frame", "its pair was refused")
             return
         cam = Camera.from_dict(self.config.camera)
         if frame.image.shape != (cam.height, cam.width):
-            self.link.send(
-                Error(
-                    code="bad_frame",
-                    seq=frame.seq,
-                    text=f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}",
-                )
-            )
+            self._refuse(frame, "bad_frame", f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}")
             return
         if frame.pair_id in self.dropped:
             self._say_dropped(frame.pair_id, PendingPair({frame.frame_index: frame}), "dropped earlier, half received")
@@ -533,7 +559,7 @@ class FlightProcess:
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
-                altimeter_m=[_reading(upper.altimeter_m), _reading(lower.altimeter_m)],
+                altimeter_m=[_reading(upper, 0), _reading(lower, 1)],
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it

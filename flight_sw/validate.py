@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.errors import InputError
-from protocol.pairdir import MAX_POSITION_M, Camera, PairFormatError, Pose
+from protocol.pairdir import MAX_POSITION_M, Camera, PairFormatError, Pose, check_sees_ground
 
 
 class FlightInputError(InputError):
@@ -65,6 +65,12 @@ def check_geometry(camera: Camera, poses: list[Pose]) -> None:
                 f"{MAX_POSITION_M:g} m from "
                 "the origin"
             )
+        # the reader's rule, for the frames of a link too: a camera looking up failed in OpenCV's remap as a
+        # pipeline_failure, one looking at the horizon in numpy's divide warnings (QA of stop 85)
+        try:
+            check_sees_ground(pose, f"pose{k + 1}")
+        except PairFormatError as exc:
+            raise FlightInputError(str(exc)) from None
 
 
 MIN_IMAGE_SIDE = 8  # the smallest camera the pipeline maps (an 8 px camera runs; 1 and 2 px ones crashed)

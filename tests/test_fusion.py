@@ -1054,3 +1054,68 @@ def test_a_map_of_one_result_calls_safe_only_what_it_called_safe_at_the_floor():
     fused, psafe = fused_state(fuse(None, g, prm), prm)
     assert fused.tolist() == [[STATE_SAFE, STATE_UNKNOWN, STATE_UNKNOWN, STATE_UNSAFE]]
     np.testing.assert_allclose(psafe, g.psafe, rtol=1e-5)
+
+
+def test_a_pair_refused_frame_by_frame_gets_one_error(monkeypatch):
+    """Frames before any Config, and a pair one frame of which has the wrong size, were answered with an Error per
+    frame: a board's console counted two pairs answered with an Error for one (QA of stop 85; protocol.md: every
+    pair ends in exactly one Result or one Error)."""
+    from protocol.messages import Config, Error
+
+    _, fp, link, calls = _stub_flight(monkeypatch)
+    fp.handle(_frame(1, "x", 0, 200, 300.0))
+    fp.handle(_frame(2, "x", 1, 200, 150.0))
+    errors = [m for m in link.sent if isinstance(m, Error)]
+    assert [(e.code, e.seq) for e in errors] == [("no_config", 1)]
+    fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options={"descent_id": 1}))
+    fp.handle(_frame(3, "y", 0, 200, 300.0))  # held, then its lower frame is the wrong size
+    fp.handle(_frame(4, "y", 1, 200, 150.0, px=32))
+    fp.handle(_frame(5, "z", 0, 200, 300.0, px=32))  # the upper one wrong, the lower one right
+    fp.handle(_frame(6, "z", 1, 200, 150.0))
+    errors = [m for m in link.sent if isinstance(m, Error)]
+    assert [(e.code, e.seq) for e in errors] == [("no_config", 1), ("bad_frame", 4), ("bad_frame", 5)]
+    assert calls == [] and not fp.pending  # nothing held of the refused pairs
+    fp.handle(_frame(7, "x", 0, 200, 300.0))  # the pair refused for want of a Config, sent again after it
+    fp.handle(_frame(8, "x", 1, 200, 150.0))
+    assert len(calls) == 1
+
+
+def test_an_altimeter_reading_no_terrain_explains_is_set_aside_and_said(monkeypatch):
+    """A reading of 1e300 m failed deep in the range search as a pipeline_failure, and 65535 m at 300 m passed
+    unsaid, where the pair reader refuses both (QA of stop 85). The flight side maps the pair without it."""
+    from protocol.messages import Config
+
+    fmn, fp, link, calls = _stub_flight(monkeypatch)
+    seen: list[list[float]] = []
+    stub = fmn.run_pipeline
+    monkeypatch.setattr(fmn, "run_pipeline", lambda *a, **kw: seen.append(kw["altimeter_m"]) or stub(*a, **kw))
+    fp.handle(Config(camera=CAM, budget="host", deadline_s=30.0, options={}))
+    for k, (upper, lower) in enumerate([(1e300, 150.0), (65535.0, 0.0), (310.0, 148.0)]):
+        a = dataclasses.replace(_frame(10 + 2 * k, f"p{k}", 0, 200, 300.0), altimeter_m=upper)
+        b = dataclasses.replace(_frame(11 + 2 * k, f"p{k}", 1, 200, 150.0), altimeter_m=lower)
+        fp.handle(a)
+        fp.handle(b)
+        notes = fmn._readings_ignored((a, b))
+        if k == 0:
+            assert len(notes) == 1 and "frame 0: altimeter_m 1e+300 m is implausible" in notes[0], notes
+        elif k == 1:
+            assert "implausible" in notes[0] and "is no range" in notes[1], notes
+        else:
+            assert notes == []
+    assert np.isnan(seen[0][0]) and seen[0][1] == 150.0
+    assert np.isnan(seen[1]).all() and seen[2] == [310.0, 148.0]
+    assert len(calls) == 3
+
+
+def test_the_flight_side_refuses_a_camera_that_cannot_see_the_ground():
+    """A camera looking up failed in OpenCV's remap as a pipeline_failure, one looking at the horizon in numpy's
+    divide warnings: both are now the pair reader's bad input (QA of stop 85)."""
+    from flight_sw.validate import FlightInputError, check_geometry
+    from protocol.pairdir import Camera, Pose
+
+    cam = Camera.from_dict(CAM)
+    down = Pose(np.array([0.0, 0.0, 300.0]), np.diag([1.0, -1.0, -1.0]))
+    check_geometry(cam, [down, down])
+    for R in (np.eye(3), np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])):
+        with pytest.raises(FlightInputError, match="cannot see the ground"):
+            check_geometry(cam, [down, Pose(np.array([0.0, 0.0, 150.0]), R)])
