@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import positive_int, run  # noqa: E402
+from _cli import out_file_or_empty, positive_int, run  # noqa: E402
 from pages import write_page  # noqa: E402
 
 from hil_server.budgets import get_budget, load_calibration  # noqa: E402
@@ -57,7 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budgets", nargs="+", default=["snapdragon801", "rad750", "gr740"])
     ap.add_argument("--runs", type=positive_int, default=2)
     ap.add_argument("--uncompensated", action="store_true", help="also run at duty = share (the old rule)")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "budget_speed.md"), help="'' to print only")
+    ap.add_argument(
+        "--out",
+        type=out_file_or_empty,
+        default=str(ROOT / "docs" / "benchmarks" / "budget_speed.md"),
+        help="'' to print only",
+    )
     args = ap.parse_args(argv)
     for name in args.budgets:  # every name, before the probe starts
         get_budget(name)

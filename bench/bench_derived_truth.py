@@ -35,10 +35,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import InputError, positive_int, run  # noqa: E402
+from _cli import InputError, bounded_int, out_dir, positive_int, run  # noqa: E402
 
 from ground_sim.gridscore import complete_truth  # noqa: E402
-from protocol.pairdir import read_pair  # noqa: E402
+from protocol.pairdir import IMAGE_SIZE_MAX, IMAGE_SIZE_MIN, read_pair  # noqa: E402
 
 CASES = {"vertical": ["600/300", "300/150", "200/100"], "approach": ["600/300", "300/150", "250/125"]}
 
@@ -116,9 +116,14 @@ def synthetic(n: int) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("/tmp/derived_truth"))
+    ap.add_argument("--out", type=out_dir, default=Path("/tmp/derived_truth"))
     ap.add_argument("--seed", type=int, default=1000, help="a held-out seed by default (the project's seed sets)")
-    ap.add_argument("--image-size", type=positive_int, default=512)
+    ap.add_argument(
+        "--image-size",
+        type=bounded_int(IMAGE_SIZE_MIN, IMAGE_SIZE_MAX),
+        default=512,
+        help=f"px, {IMAGE_SIZE_MIN}..{IMAGE_SIZE_MAX}",
+    )
     ap.add_argument("--synthetic", type=positive_int, default=None, metavar="N", help="time an N x N lattice instead")
     args = ap.parse_args()
     if args.synthetic:

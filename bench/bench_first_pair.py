@@ -21,7 +21,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _cli import positive_int, run
+from _cli import InputError, positive_int, run
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,14 +76,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--starts", type=positive_int, default=3, help="fresh processes per mode")
     modes = ["cold", "settle", "warm", "warm+heap"]
     ap.add_argument("--modes", nargs="+", default=modes, choices=modes)
-    ap.add_argument("--cpu", type=int, default=max(os.cpu_count() or 1, 1) - 1, help="the CPU to pin to")
+    cpus = sorted(os.sched_getaffinity(0))  # the CPUs this process may run on (taskset refuses any other)
+    ap.add_argument("--cpu", type=int, default=cpus[-1], help=f"the CPU to pin to (default {cpus[-1]})")
     args = ap.parse_args(argv)
+    if args.cpu not in cpus:  # taskset's own refusal came after the first start
+        raise InputError(f"--cpu {args.cpu}: no such CPU here; choose from {', '.join(map(str, cpus))}")
     if args.pair:  # a pair the children cannot read: said here, in one line, before any start
         from protocol.pairdir import read_pair
 
         read_pair(args.pair)
     print("| mode | starts | first / steady CPU: median | worst | first ms (median) | steady ms (median) | boot ms |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|", flush=True)
     for mode in args.modes:
         runs = []
         for i in range(args.starts):
@@ -95,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         boot = statistics.median(r["boot"] for r in runs)
         print(
             f"| {mode} | {len(runs)} | {statistics.median(ratios):.2f}x | {max(ratios):.2f}x | "
-            f"{1e3 * first:.0f} | {1e3 * steady:.0f} | {1e3 * boot:.0f} |"
+            f"{1e3 * first:.0f} | {1e3 * steady:.0f} | {1e3 * boot:.0f} |",
+            flush=True,
         )
     return 0
 

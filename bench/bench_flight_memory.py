@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from _cli import InputError, out_file, positive_int, run, write_out
+
 MIB = 2**20
 
 
@@ -143,11 +145,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pair", nargs="+", help="pair directories (default: the held-out approach 1000/500)")
     ap.add_argument("--cache", default="/tmp/bench_flight_memory", help="where the default pair is rendered")
-    ap.add_argument("--scale", nargs="+", type=int, default=[1, 2], help="upsampling factors (default 1 2)")
+    ap.add_argument("--scale", nargs="+", type=positive_int, default=[1, 2], help="upsampling factors (default 1 2)")
     ap.add_argument("--no-prefault", action="store_true", help="skip the heap prefault (the pipeline's own need)")
-    ap.add_argument("--runs", type=int, default=2, help="pipeline runs per process (default 2)")
+    ap.add_argument("--runs", type=positive_int, default=2, help="pipeline runs per process (default 2)")
     ap.add_argument("--heap-bytes-per-px", type=float, help="prefault this heap (default: flight_sw.warmup's)")
-    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--json", type=out_file, help="write the rows here")
     ap.add_argument("--child", nargs=3, metavar=("PAIR", "SCALE", "PREFAULT"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:
@@ -157,13 +159,12 @@ def main(argv: list[str] | None = None) -> int:
         a.pair = [str(default_pair(Path(a.cache)))]
     for d in a.pair:
         if not (Path(d) / "pair.json").is_file():
-            print(f"error: {d}: not a pair directory (no pair.json)", file=sys.stderr)
-            return 2
+            raise InputError(f"--pair {d}: not a pair directory (no pair.json)")
     from hil_server.budgets import flight_peak_rss_mib
 
     rows = []
     print("| pair | camera | prefault | base MiB | after prefault | peak MiB | B/px over base | model MiB | levels |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---|")
+    print("|---|---|---|---:|---:|---:|---:|---:|---|", flush=True)
     for d in a.pair:
         for s in a.scale:
             cmd = [sys.executable, __file__, "--pair", d, "--runs", str(a.runs), "--child", d, str(s)]
@@ -185,9 +186,9 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
     if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+        write_out(a.json, json.dumps(rows, indent=1) + "\n")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

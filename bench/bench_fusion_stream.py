@@ -48,6 +48,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _cli import out_file, run, write_out  # noqa: E402
+
 DEFAULT_CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
 
@@ -209,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
     ap.add_argument("--grids", help="cached pipeline grids per stream (default: CACHE_fusion_grids)")
     ap.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields to override")
-    ap.add_argument("--json", help="write per-Result rows and the summary here")
+    ap.add_argument("--json", type=out_file, help="write per-Result rows and the summary here")
     ap.add_argument("--levels", default="full", help="comma list of pipeline levels per stream position, cycled")
     ap.add_argument("--set-param", nargs="*", default=[], metavar="K=V", help="fields of the fast preset to override")
     args = ap.parse_args(argv)
@@ -258,10 +260,10 @@ def main(argv: list[str] | None = None) -> int:
           f"overrides {overrides or 'none'}, fast {' '.join(args.set_param) or 'as shipped'}\n")  # fmt: skip
     print(table(per_case))
     if args.json:
-        Path(args.json).write_text(json.dumps({"seeds": seeds, "overrides": overrides, "summary": per_case,
+        write_out(args.json, json.dumps({"seeds": seeds, "overrides": overrides, "summary": per_case,
                                                "rows": rows}, indent=1))  # fmt: skip
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _cli import InputError, run, unknown  # noqa: E402
+from _cli import InputError, out_path, run, unknown  # noqa: E402
 from pages import write_page  # noqa: E402
 
 
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budgets", default="host,snapdragon801,rad750,gr740")
     ap.add_argument("--pairs", default="600/300,300/150,200/100")
     ap.add_argument("--scenario", default="vertical")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "hil.md")
+    ap.add_argument("--out", type=out_path, default=ROOT / "docs" / "benchmarks" / "hil.md")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory of pairs and runs (named)")
     args = ap.parse_args(argv)
 

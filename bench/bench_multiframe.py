@@ -46,6 +46,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import out_file, run, write_out  # noqa: E402
+
 DEFAULT_ALTITUDES = (300.0, 250.0, 200.0, 150.0)
 SCENE = {"vertical": "default", "approach": "approach"}
 
@@ -248,7 +250,7 @@ def accuracy(args: argparse.Namespace) -> int:
         print(table([d for d in per if d["case"] == case], which, f"{case} {alts} m, seeds {seeds}"))
     print(table(per, which, f"all cases, seeds {seeds}"))
     if args.json:
-        Path(args.json).write_text(json.dumps(per, indent=1, default=float) + "\n")
+        write_out(args.json, json.dumps(per, indent=1, default=float) + "\n")
     return 0
 
 
@@ -273,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--cases", nargs="+", default=list(SCENE), choices=list(SCENE))
             p.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields")
             p.add_argument("--policies", nargs="*", default=None)
-            p.add_argument("--json")
+            p.add_argument("--json", type=out_file)
     argv = sys.argv[1:] if argv is None else argv
     args = ap.parse_args(argv or ["speed"])  # bare (``make bench``): the per-frame cost, ~30 s
     import cv2
@@ -283,4 +285,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _cli import InputError, positive_int, run, unknown
+from _cli import InputError, out_file, positive_int, run, unknown, write_out
 from pages import write_page
 
 from protocol.errors import comma_items
@@ -168,8 +168,13 @@ def main() -> None:
     ap.add_argument("--repeat", type=positive_int, default=3)
     ap.add_argument("--workers", type=positive_int, default=2)
     ap.add_argument("--only", default=",".join(CASES), help=f"comma-separated: {','.join(CASES)}")
-    ap.add_argument("--out", default=None, help="write the tables into this page (its other text kept: bench/pages.py)")
-    ap.add_argument("--json", default=None, help="write the raw timings here")
+    ap.add_argument(
+        "--out",
+        type=out_file,
+        default=None,
+        help="write the tables into this page (its other text kept: bench/pages.py)",
+    )
+    ap.add_argument("--json", type=out_file, default=None, help="write the raw timings here")
     args = ap.parse_args()
     only = set(comma_items(args.only, "--only"))
     if not only:  # checked before anything runs or is written
@@ -194,7 +199,7 @@ def main() -> None:
     if args.out:
         print(write_page(args.out, text, "bench_parallel.py"))
     if args.json:
-        Path(args.json).write_text(json.dumps(raw, indent=1) + "\n")
+        write_out(args.json, json.dumps(raw, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _cli import positive_int, run, unknown  # noqa: E402
+from _cli import out_file, positive_int, run, unknown, write_out  # noqa: E402
 
 
 def synthetic_pair(size: int, seed: int = 0, spots_per_km2: float = 2000.0):
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=positive_int, default=512)
     ap.add_argument("--runs", type=positive_int, default=7)
     ap.add_argument("--presets", nargs="+", default=["fast", "fast_v1", "thesis"])
-    ap.add_argument("--json", help="write the summary here")
+    ap.add_argument("--json", type=out_file, help="write the summary here")
     ap.add_argument(
         "--sun",
         nargs=2,
@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.ablation and z is not None:
         summary["ablation"] = ablation(i1, i2, p1, p2, cam, z)
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=1, default=float) + "\n")
+        write_out(args.json, json.dumps(summary, indent=1, default=float) + "\n")
     if args.check_reserves and short_any:
         print("a deadline reserve is shorter than the stages it covers (flight_sw.anytime.reserves)", file=sys.stderr)
         return 1

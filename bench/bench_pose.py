@@ -47,7 +47,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import InputError, positive_int, run  # noqa: E402
+from _cli import InputError, out_dir, positive_int, run  # noqa: E402
 
 VARIANTS = ("off", "on", "on_alt", "oracle", "oracle_alt")
 
@@ -478,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cam2-samples", type=positive_int, default=2, help="cam2 kind: samples (alternating signs)")
     ap.add_argument("--alt-noise-m", type=float, default=0.0, help="Gaussian noise of the simulated altimeter")
     ap.add_argument("--cache", type=Path, default=Path("out/bench_pose/cache"))
-    ap.add_argument("--out", type=Path, default=Path("out/bench_pose"))
+    ap.add_argument("--out", type=out_dir, default=Path("out/bench_pose"))
     ap.add_argument("--timing-runs", type=positive_int, default=7)
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-sensitivity", action="store_true")

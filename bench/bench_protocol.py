@@ -23,6 +23,7 @@ import subprocess
 import sys
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import positive_int, run, unknown  # noqa: E402
+from _cli import out_path, positive_int, run, unknown, write_out  # noqa: E402
 
 from protocol.arq import ArqConfig  # noqa: E402
 from protocol.codec import decode_message, encode_message  # noqa: E402
@@ -69,7 +70,7 @@ def bench_codec() -> None:
     body = encode_message(f)
     enc = timeit(lambda: encode_message(f), 30)
     dec = timeit(lambda: decode_message(body), 30)
-    print(f"512x512 Frame: body {len(body)} B; encode {1e3 * enc[0]:.3f} ms, decode {1e3 * dec[0]:.3f} ms")
+    print(f"512x512 Frame: body {len(body)} B; encode {1e3 * enc[0]:.3f} ms, decode {1e3 * dec[0]:.3f} ms", flush=True)
     RESULTS["frame"] = {"body_bytes": len(body), "encode_ms": 1e3 * enc[0], "decode_ms": 1e3 * dec[0]}
 
 
@@ -114,7 +115,8 @@ def bench_result() -> None:
             f"Result {label}: grid {row['grid']}, steps (P(safe), elevation) (1,1) {row['p1e1_bytes']} B, "
             f"(1,2) {row['p1e2_bytes']} B, (2,4) {row['p2e4_bytes']} B, (4,8) {row['p4e8_bytes']} B; "
             f"with full maps {row['full_maps_bytes']} B; encode {row['encode_ms']:.1f} ms CPU, "
-            f"decode {row['decode_ms']:.1f} ms CPU"
+            f"decode {row['decode_ms']:.1f} ms CPU",
+            flush=True,
         )
     RESULTS["result"] = rows
 
@@ -150,7 +152,8 @@ def bench_bombs(repeat: int = 20) -> None:
         }
         print(
             f"bomb {mib} MiB ({len(body)} B): refused in {1e3 * wall:.2f} ms wall / {1e3 * cpu:.2f} ms CPU "
-            f"(median of {repeat}); allocations {peak / 1024:.1f} KiB, max RSS +{(rss1 - rss0) / 1024:.1f} MiB"
+            f"(median of {repeat}); allocations {peak / 1024:.1f} KiB, max RSS +{(rss1 - rss0) / 1024:.1f} MiB",
+            flush=True,
         )
     RESULTS["bombs"] = out
 
@@ -171,7 +174,7 @@ def _goodput(a, b, msgs) -> tuple[float, float, float]:
 
 
 def bench_links(repeat: int = 3) -> None:
-    print("link throughput against line rate (8N1: baud / 10 bytes per second), medians of", repeat)
+    print("link throughput against line rate (8N1: baud / 10 bytes per second), medians of", repeat, flush=True)
     rows = []
     for baud, msgs in ((921600, [frame(i, 512) for i in range(2)]), (115200, [frame(i, 256) for i in range(1)])):
         effs = []
@@ -182,7 +185,7 @@ def bench_links(repeat: int = 3) -> None:
         eff = statistics.median(e for e, _ in effs)
         rows.append({"link": f"pty {baud} baud", "payload_bytes": payload, "goodput_of_line": eff})
         print(f"  pty bridge at {baud} baud: {payload} B payload, goodput {100 * eff:.1f} % of the line rate "
-              f"(framing+ack overhead on the wire {100 * effs[0][1]:.1f} %)")  # fmt: skip
+              f"(framing+ack overhead on the wire {100 * effs[0][1]:.1f} %)", flush=True)  # fmt: skip
     for label, cfg in (("socketpair, 1 KiB frames", ArqConfig()), ("socketpair, local (64 KiB)", LOCAL_CONFIG)):
         rates = []
         for _ in range(repeat):
@@ -191,7 +194,7 @@ def bench_links(repeat: int = 3) -> None:
                 payload, t, _ = _goodput(a, b, [frame(i, 512) for i in range(10)])
             rates.append(payload / t / 1e6)
         rows.append({"link": label, "MB_per_s": statistics.median(rates)})
-        print(f"  {label}: {statistics.median(rates):.1f} MB/s (unpaced: CPU-bound)")
+        print(f"  {label}: {statistics.median(rates):.1f} MB/s (unpaced: CPU-bound)", flush=True)
     keys = generate_keys(ROOT / "out" / f"bench_keys_{os.getpid()}")
     for label, kw in (("ZeroMQ tcp, CURVE", {"keys": keys}), ("ZeroMQ tcp, insecure", {"insecure": True})):
         rates = []
@@ -206,7 +209,7 @@ def bench_links(repeat: int = 3) -> None:
                     assert s.recv(60) is not None
                 rates.append(sum(len(encode_message(m)) for m in msgs) / (time.monotonic() - t0) / 1e6)
         rows.append({"link": label, "MB_per_s": statistics.median(rates)})
-        print(f"  {label}: {statistics.median(rates):.1f} MB/s")
+        print(f"  {label}: {statistics.median(rates):.1f} MB/s", flush=True)
     import shutil
 
     shutil.rmtree(keys, ignore_errors=True)
@@ -215,7 +218,7 @@ def bench_links(repeat: int = 3) -> None:
 
 def bench_noise(baud: int = 921600) -> None:
     """Two SerialLinks over a pty bridge with drop, flip and duplicate at rate r per byte, both directions."""
-    print(f"noisy pty line at {baud} baud: 8 x 128x128 Frames (16.4 kB each) one way")
+    print(f"noisy pty line at {baud} baud: 8 x 128x128 Frames (16.4 kB each) one way", flush=True)
     rows = []
     for r in (1e-4, 1e-3, 1e-2):
         chans = [CorruptingChannel(seed=k, drop=r, flip=r, dup=r) for k in (1, 2)]
@@ -253,7 +256,8 @@ def bench_noise(baud: int = 921600) -> None:
             f"  r={r:g}: {delivered}/8 delivered ({got} received), {len(failed)} failed, {row['pending']} pending "
             f"after {dt:.1f} s; goodput {100 * row['goodput_of_line']:.1f} % of line; "
             f"{int(st['retransmits'])} retransmissions, frame size now {int(st['frame_bytes'])} B"
-            + (f"; {failed[0][:90]}" if failed else "")
+            + (f"; {failed[0][:90]}" if failed else ""),
+            flush=True,
         )
     RESULTS["noise"] = rows
 
@@ -285,13 +289,14 @@ def bench_pause(pause_s: float = 20.0) -> None:
     """A receiver that reads nothing for ``pause_s`` (window 0, docs/protocol.md section 3.2) with 40 kB in flight,
     on a simulated line (protocol.linesim, 0.1 s latency): the sender direction's use of the line meanwhile, and
     the time to deliver everything once it reads again. Deterministic: no wall clock."""
-    print(f"a {pause_s:g} s pause of the receiving application, 40 x 0.9 kB in flight (simulated line)")
+    print(f"a {pause_s:g} s pause of the receiving application, 40 x 0.9 kB in flight (simulated line)", flush=True)
     rows = [_paused_line(baud, pause_s) for baud in (921600, 115200, 9600)]
     for row in rows:
         print(
             f"  {row['baud']} baud: sender's direction {row['line_busy_pct']:.1f} % busy during the pause "
             f"({row['probes']} probes, {row['frames']} frames); all delivered in order: {row['in_order']}, "
-            f"{row['after_s']:.1f} s after reading resumed; sessions lost: {row['session_losses']}"
+            f"{row['after_s']:.1f} s after reading resumed; sessions lost: {row['session_losses']}",
+            flush=True,
         )
     RESULTS["pause"] = rows
 
@@ -301,7 +306,7 @@ PEER = ROOT / "tests" / "protocol_peer.py"
 
 def bench_timeouts(repeat: int = 3) -> None:
     """A peer process on a pty bridge freezes (SIGSTOP), dies (SIGKILL) or closes: time to an explicit error."""
-    print("far-end failure -> explicit error (pty bridge: the line stays open, only the protocol can tell)")
+    print("far-end failure -> explicit error (pty bridge: the line stays open, only the protocol can tell)", flush=True)
     rows = {}
     for how in ("stop", "kill", "close"):
         times = []
@@ -330,19 +335,40 @@ def bench_timeouts(repeat: int = 3) -> None:
                         os.kill(peer.pid, signal.SIGKILL)
                     peer.wait(10)
         rows[how] = {"median_s": statistics.median(times), "max_s": max(times)}
-        print(f"  peer {how}: explicit error after {statistics.median(times):.2f} s median, {max(times):.2f} s max")
+        print(
+            f"  peer {how}: explicit error after {statistics.median(times):.2f} s median, {max(times):.2f} s max",
+            flush=True,
+        )
     RESULTS["timeouts"] = rows
+
+
+PROGRESS_S = 10.0  # a fuzz campaign's progress line on stderr at least this often (and at each tenth of it)
+
+
+def fuzz_progress(label: str, n: int, every_s: float = PROGRESS_S) -> Callable[[int], None]:
+    """A fuzz campaign's ``progress`` callback: how far it is, on stderr, every ``every_s`` seconds and at each
+    tenth of its ``n`` inputs."""
+    t0 = last = time.monotonic()
+    tenth = max(1, n // 10)
+
+    def say(done: int) -> None:
+        nonlocal last
+        if done and (done % tenth == 0 or time.monotonic() - last >= every_s):
+            last = time.monotonic()
+            print(f"  {label}: {done}/{n} inputs, {last - t0:.0f} s", file=sys.stderr, flush=True)
+
+    return say
 
 
 def bench_fuzz(n: int, seed: int) -> None:
     t0 = time.perf_counter()
-    rep = fuzz_noise(n, seed)
+    rep = fuzz_noise(n, seed, progress=fuzz_progress("noise fuzz", n))
     dt = time.perf_counter() - t0
-    print(f"noise fuzz: {rep['inputs']} inputs, {rep['bytes'] / 1e6:.1f} MB in {dt:.0f} s: {rep}")
+    print(f"noise fuzz: {rep['inputs']} inputs, {rep['bytes'] / 1e6:.1f} MB in {dt:.0f} s: {rep}", flush=True)
     t0 = time.perf_counter()
-    host = fuzz_hostile(n, seed)
+    host = fuzz_hostile(n, seed, progress=fuzz_progress("hostile fuzz", n))
     dt2 = time.perf_counter() - t0
-    print(f"hostile fuzz: {host['inputs']} inputs, {host['bytes'] / 1e6:.1f} MB in {dt2:.0f} s: {host}")
+    print(f"hostile fuzz: {host['inputs']} inputs, {host['bytes'] / 1e6:.1f} MB in {dt2:.0f} s: {host}", flush=True)
     RESULTS["fuzz"] = {"noise": rep, "noise_s": dt, "hostile": host, "hostile_s": dt2}
     if rep["spurious"] or rep["missed"] or host["violations"]:
         raise SystemExit("FUZZ FAILURE")
@@ -354,7 +380,7 @@ def main() -> int:
     ap.add_argument("--fuzz-inputs", type=positive_int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated: codec,result,bombs,links,noise,pause,timeouts")
-    ap.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
+    ap.add_argument("--json", type=out_path, default=None, help="also write the figures as JSON")
     args = ap.parse_args()
     steps = {
         "codec": bench_codec,
@@ -368,15 +394,14 @@ def main() -> int:
     wanted = comma_items(args.only, "--only") or list(steps)
     unknown("--only", wanted, steps)  # before any step runs
     load = os.getloadavg()[0]
-    print(f"host load average {load:.2f} on {os.cpu_count()} cores")
+    print(f"host load average {load:.2f} on {os.cpu_count()} cores", flush=True)
     RESULTS["load"] = load
     for name in wanted:
         steps[name]()
     if args.fuzz:
         bench_fuzz(args.fuzz_inputs, args.seed)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(RESULTS, indent=1, default=float) + "\n")
+        write_out(args.json, json.dumps(RESULTS, indent=1, default=float) + "\n")
     return 0
 
 

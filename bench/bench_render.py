@@ -22,7 +22,7 @@ import time
 
 import cv2
 import numpy as np
-from _cli import positive_int, run, unknown
+from _cli import out_file, positive_int, run, unknown
 from pages import write_page
 
 from ground_sim.geometry import look_rotation
@@ -44,7 +44,12 @@ CASES = [
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=positive_int, default=5)
-    ap.add_argument("--out", default=None, help="write the table into this page (its other text kept: bench/pages.py)")
+    ap.add_argument(
+        "--out",
+        type=out_file,
+        default=None,
+        help="write the table into this page (its other text kept: bench/pages.py)",
+    )
     ap.add_argument("--max-raster-cells", type=positive_int, default=MAX_CELLS)
     ap.add_argument("--raster", choices=list(RASTERS), default=DEFAULT_RASTER)
     ap.add_argument("--cases", nargs="*", default=None, help="only these case names (default: all)")

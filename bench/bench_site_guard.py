@@ -25,6 +25,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cli import out_file, run, write_out  # noqa: E402
+
 from studies import landings as L  # noqa: E402
 
 PARAMS = ("site_relief_max_m", "site_margin_m", "grid_call_share", "site_reach_cells", "grid_elev_finite")
@@ -57,7 +59,7 @@ def main() -> int:
     )
     ap.add_argument("--cache", default=str(ROOT / "out" / "landing_renders"))
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--json", help="write every campaign's rows here")
+    ap.add_argument("--json", type=out_file, help="write every campaign's rows here")
     a = ap.parse_args()
     from ground_sim import library
     from ground_sim.seeds import SEED_SETS
@@ -79,9 +81,9 @@ def main() -> int:
                 where = f"{r['scene']} seed {r['scene_seed']} {r['scenario']} {r['pair']}"
                 print(f"    unsafe: {where} landing {r['landing']}")
     if a.json:
-        Path(a.json).write_text(json.dumps(out))
+        write_out(a.json, json.dumps(out))
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

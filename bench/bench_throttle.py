@@ -26,6 +26,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import _cli
+from _cli import out_file
 from pages import write_page
 
 from hil_server.calibrate import PROBE_UNITS, measure_throttle_efficiency
@@ -79,7 +81,9 @@ def med(xs):
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "throttle.md"))
+    ap.add_argument(
+        "--out", type=out_file, default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "throttle.md")
+    )
     args = ap.parse_args()
     fractions = (0.05, 0.25, 0.5, 1.0) if args.quick else (0.008, 0.017, 0.05, 0.1, 0.25, 0.33, 0.5, 0.75, 1.0)
     reps = 1 if args.quick else 3
@@ -225,11 +229,10 @@ def main() -> int:
         "interval), which the closed loop then pays back.",
         "",
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     print(write_page(args.out, "\n".join(lines), "bench_throttle.py"))
     print(f"wrote {args.out}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    _cli.run(main)

@@ -33,7 +33,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from _cli import InputError, check_dir, positive_int, run, unknown  # noqa: E402
+from _cli import InputError, check_dir, out_file, positive_int, run, unknown, write_out  # noqa: E402
 
 from flight_sw.psafe import model_call, model_for_image  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
@@ -466,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
         help="a square camera of this many px with the thesis camera's field of view (default: its 512 px)",
     )
     ap.add_argument("--render-only", action="store_true")
-    ap.add_argument("--json", help="write all rows here")
+    ap.add_argument("--json", type=out_file, help="write all rows here")
     ap.add_argument("--causes", action="store_true", help="also print the FN/FP breakdown by cause (v2 presets)")
     ap.add_argument(
         "--library",
@@ -550,7 +550,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {s['fn_med']:.1f} | {s['cdi_med']:.1f} | {s['top_safe']}/{s['top_n']} | {s['cpu_med']:.3f} |"
             )
     if args.json:
-        Path(args.json).write_text(json.dumps(all_rows, indent=1, default=float) + "\n")
+        write_out(args.json, json.dumps(all_rows, indent=1, default=float) + "\n")
     return 0
 
 

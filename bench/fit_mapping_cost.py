@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _cli import out_dir, run  # noqa: E402
+
 CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
 
@@ -166,7 +168,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--sizes", type=int, nargs="*", default=[], help="also check synthetic pairs of these sizes (px)")
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
-    ap.add_argument("--out", default="out/fit_mapping_cost", help="per-pair costs (JSON lines) are kept here")
+    ap.add_argument(
+        "--out", type=out_dir, default="out/fit_mapping_cost", help="per-pair costs (JSON lines) are kept here"
+    )
     args = ap.parse_args(argv)
     bad = [s for s in args.seeds if s not in TUNING_SEEDS]
     if bad:
@@ -210,4 +214,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

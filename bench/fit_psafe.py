@@ -29,6 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
+from _cli import out_file, run, unknown, write_out  # noqa: E402
+
 from flight_sw import psafe  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
 
@@ -513,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iters", type=int, default=30, help="trees: boosting iterations (shipped: 30)")
     ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
-    ap.add_argument("--write", help="fit on all the seeds and write the model here")
+    ap.add_argument("--write", type=out_file, help="fit on all the seeds and write the model here")
     ap.add_argument(
         "--call",
         nargs="*",
@@ -570,6 +572,9 @@ def main(argv: list[str] | None = None) -> int:
         "records them (info.pipeline) and the pipeline refuses it with other values of the DEM's settings",
     )
     args = ap.parse_args(argv)
+    from eval_flight import CASES
+
+    unknown("--cases", args.cases, CASES)  # before any render or layer (render_case: a KeyError after the first)
 
     import cv2
 
@@ -741,10 +746,10 @@ def main(argv: list[str] | None = None) -> int:
             model = dataclasses.replace(model, info={**model.info, "call": call})
             model_call(model)  # the bounds the pipeline checks, before anything is written
         indent = None if trees else 1  # the trees' node arrays are long flat lists: one line keeps the file small
-        Path(args.write).write_text(json.dumps(model.to_json(), indent=indent) + "\n")
+        write_out(args.write, json.dumps(model.to_json(), indent=indent) + "\n")
         print(f"wrote {args.write} (fitted on seeds {list(model.fitted_on)})")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -18,7 +18,7 @@ import re
 import shutil
 from pathlib import Path
 
-from _cli import InputError, run
+from _cli import InputError, out_path, run
 
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES = {"vertical": (50, 300), "approach": (125, 300)}
@@ -113,7 +113,7 @@ def check_inputs(out: Path, results: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("out", type=Path)
-    ap.add_argument("--results", type=Path, default=ROOT / "docs" / "RESULTS.md")
+    ap.add_argument("--results", type=out_path, default=ROOT / "docs" / "RESULTS.md")
     ap.add_argument("--wall", default="", help="free text on the wall times, put in the provenance block")
     args = ap.parse_args()
     check_inputs(args.out, args.results)

@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _cli import note_cache_dir, run
+from _cli import note_cache_dir, out_file, run, write_out
 
 
 def fly(seed_set: str, pose_error: str, cache: str) -> list[dict[str, Any]]:
@@ -82,12 +82,12 @@ def main() -> int:
     ap.add_argument(
         "--cache", required=True, help="the landings campaign's render cache (filled where it lacks a pair)"
     )
-    ap.add_argument("--json", help="write the flown rows here")
+    ap.add_argument("--json", type=out_file, help="write the flown rows here")
     args = ap.parse_args()
     note_cache_dir(args.cache, "--cache")  # one made on demand is said, so that a mistyped path is seen
     rows = fly(args.seed_set, args.pose_error, args.cache)
     if args.json:
-        Path(args.json).write_text(json.dumps(rows))
+        write_out(args.json, json.dumps(rows))
     print("| site P(safe) >= | safe | unsafe | no site |\n|---:|---:|---:|---:|")
     print("\n".join(replay(rows, 0, [0.0, 0.98, 0.99, 0.993, 0.995, 0.997])))
     print("\n| clearance m >= | safe | unsafe | no site |\n|---:|---:|---:|---:|")

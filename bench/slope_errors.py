@@ -45,6 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _cli import InputError, out_file, run, unknown, write_out  # noqa: E402
+
 TAN_LIMIT = math.tan(math.radians(15.0))
 CEILING_SIGMAS = (0.0, 0.1, 0.15, 0.2, 0.25, 0.3)
 TAIL_BIG_FP = 10.0  # a truly steep region of at least this many footprint areas is "big"
@@ -79,11 +81,11 @@ def parse_variant(spec: str) -> dict[str, Any]:
     pairs = spec.split(",")
     bad = [kv for kv in pairs if not kv.partition("=")[2]]
     if bad:
-        raise SystemExit(f"slope_errors: variant {spec!r}: expected k=v, got {bad[0]!r}")
+        raise InputError(f"--variants {spec!r}: expected base or k=v,k=v, got {bad[0]!r}")
     try:
         prm = preset_with("fast", pairs)
     except (ValueError, AttributeError, KeyError) as exc:
-        raise SystemExit(f"slope_errors: variant {spec!r}: {exc}") from None
+        raise InputError(f"--variants {spec!r}: {exc}") from None
     return {k: getattr(prm, k) for k in (kv.partition("=")[0] for kv in pairs)}
 
 
@@ -204,11 +206,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument("--variants", nargs="+", default=["base"], help="base, or Params overrides k=v,k=v")
     ap.add_argument("--ceiling", action="store_true", help="print the truth-only CDI ceiling table instead")
-    ap.add_argument("--json", help="write every pair's metrics here")
+    ap.add_argument("--json", type=out_file, help="write every pair's metrics here")
     args = ap.parse_args(argv)
-    unknown = [c for c in args.cases if c not in CASES]
-    if unknown:
-        raise SystemExit(f"slope_errors: unknown case(s) {unknown}; known: {sorted(CASES)}")
+    unknown("--cases", args.cases, CASES)
     variants = {v: parse_variant(v) for v in args.variants}
     seeds = args.seeds if args.seeds else list(SEED_SETS[args.set][: args.n_seeds])
     cv2.setNumThreads(1)
@@ -249,9 +249,9 @@ def main(argv: list[str] | None = None) -> int:
             vals = " | ".join(cells)
             print(f"| {name} | {c} | {len(sel)} | {vals} |", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(dump, indent=1) + "\n")
+        write_out(args.json, json.dumps(dump, indent=1) + "\n")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

@@ -40,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _cli import positive_int, run, unknown  # noqa: E402
+from _cli import out_file, positive_int, run, unknown  # noqa: E402
 from eval_flight import CASES, check_altitudes, render_case, run_pair  # noqa: E402
 
 from ground_sim.truth import (  # noqa: E402
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         help="fine: all relief the fine raster holds; image: band-limited to the image's finest raster (GSD_min)",
     )
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
-    ap.add_argument("--json", help="write the rows here (JSON lines, appended per pair)")
+    ap.add_argument("--json", type=out_file, help="write the rows here (JSON lines, appended per pair)")
     ap.add_argument("--from-json", nargs="+", metavar="FILE", help="print the table of these rows; run nothing")
     args = ap.parse_args(argv)
     if args.from_json:
@@ -238,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
                 if args.json:
+                    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
                     with open(args.json, "a") as fh:
                         fh.write(json.dumps(r, default=float) + "\n")
     print(table(rows))

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -60,6 +62,57 @@ CASES = [
     ),
     ("site_rules.py", ["--cache", "IN/file"], "--cache IN/file: not a directory"),
     ("bench_derived_truth.py", ["--out", "IN/derived"], "holds vertical renders of seed 1000 at 256 px, not seed 1000"),
+    # an output file that could not be written: refused when the arguments are read, not after the work (IN/file
+    # is a regular file, IN/empty a directory)
+    (
+        "bench_pipeline.py",
+        ["--runs", "2", "--presets", "fast", "--json", "IN/file/x.json"],
+        "argument --json: IN/file/x.json: IN/file is not a directory",
+    ),
+    (
+        "bench_render.py",
+        ["--repeat", "1", "--cases", "nadir 1000 m", "--out", "IN/empty"],
+        "argument --out: IN/empty: is a directory",
+    ),
+    ("bench_hil.py", ["--out", "IN/file/hil.md"], "argument --out: IN/file/hil.md: IN/file is not a directory"),
+    ("bench_protocol.py", ["--only", "codec", "--json", "IN/file/x.json"], "argument --json: IN/file/x.json: IN/file"),
+    ("bench_protocol.py", ["--only", "codec", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("bench_budget_speed.py", ["--runs", "1", "--out", "IN/empty"], "argument --out: IN/empty: is a directory"),
+    ("bench_parallel.py", ["--out", "IN/file/p.md"], "argument --out: IN/file/p.md: IN/file is not a directory"),
+    ("bench_parallel.py", ["--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("bench_throttle.py", ["--quick", "--out", "IN/empty"], "argument --out: IN/empty: is a directory"),
+    ("bench_flight_memory.py", ["--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("bench_fusion_stream.py", ["--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("bench_multiframe.py", ["accuracy", "--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a"),
+    ("bench_site_guard.py", ["--cache", "W/c", "--json", "IN/file/s.json"], "argument --json: IN/file/s.json: IN/file"),
+    ("eval_flight.py", ["--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("site_rules.py", ["--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("slope_errors.py", ["--cache", "W/c", "--json", "IN/empty"], "argument --json: IN/empty: is a directory"),
+    ("truth_scale.py", ["--cache", "W/c", "--json", "IN/file/t.json"], "argument --json: IN/file/t.json: IN/file"),
+    ("fit_psafe.py", ["--cache", "W/c", "--layers", "W/l", "--write", "IN/empty"], "argument --write: IN/empty: is a"),
+    ("results.py", ["IN/results_out", "--results", "IN/empty"], "argument --results: IN/empty: is a directory"),
+    ("fit_mapping_cost.py", ["--cache", "W/c", "--out", "IN/file"], "argument --out: IN/file: not a directory"),
+    ("bench_pose.py", ["--cache", "W/c", "--out", "IN/file"], "argument --out: IN/file: not a directory"),
+    ("bench_derived_truth.py", ["--out", "IN/file/d"], "argument --out: IN/file/d: IN/file is not a directory"),
+    # values checked before any render or start
+    ("bench_flight_memory.py", ["--scale", "0", "--cache", "W/c"], "argument --scale: must be at least 1, got 0"),
+    ("bench_flight_memory.py", ["--scale", "-1", "--cache", "W/c"], "argument --scale: must be at least 1, got -1"),
+    ("bench_flight_memory.py", ["--pair", "IN/empty"], "--pair IN/empty: not a pair directory (no pair.json)"),
+    (
+        "fit_psafe.py",
+        ["--cases", "bogus", "--cache", "W/c", "--layers", "W/l"],
+        "--cases: unknown 'bogus'; choose from 'vertical'",
+    ),
+    (
+        "fit_psafe.py",
+        ["--cases", "vertical", "bogus2", "--cache", "W/c", "--layers", "W/l"],
+        "--cases: unknown 'bogus2'; choose from 'vertical'",
+    ),
+    ("bench_derived_truth.py", ["--image-size", "99999", "--out", "W/d"], "argument --image-size: must be 32..4096"),
+    ("bench_derived_truth.py", ["--image-size", "31", "--out", "W/d"], "argument --image-size: must be 32..4096, got"),
+    ("bench_first_pair.py", ["--cpu", "99"], "--cpu 99: no such CPU here; choose from 0"),
+    ("slope_errors.py", ["--variants", "bogus", "--cache", "W/c"], "--variants 'bogus': expected base or k=v,k=v"),
+    ("slope_errors.py", ["--cases", "nosuch", "--cache", "W/c"], "--cases: unknown 'nosuch'; choose from 'vertical'"),
 ]
 
 
@@ -101,7 +154,7 @@ def _error_line(p: subprocess.CompletedProcess, script: str) -> str:
     assert "Traceback" not in p.stderr, p.stderr
     lines = p.stderr.rstrip("\n").splitlines()
     *usage, last = lines
-    assert last.startswith(f"{script}: error: "), p.stderr
+    assert re.match(rf"{re.escape(script)}( [a-z]+)?: error: ", last), p.stderr  # (a subcommand's prog names it)
     assert not usage or (usage[0].startswith("usage: ") and all(u.startswith(" ") for u in usage[1:])), p.stderr
     return last
 
@@ -185,3 +238,80 @@ def test_a_pair_whose_truth_cannot_be_derived_keeps_its_row():
     said = f"| approach 600/300 | 0.0 | no truth derived: {note} | - | 0.05 / - | 45.4 / - | True / - | 0.014 |"
     assert lines[2] == said
     assert lines[3].startswith("| approach 300/150 | 76.5 | 97.0 | 1.72 | 0.01 / 0.00 | 49.7 / 51.7 |")
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a disk that is always full)")
+def test_an_output_that_fails_late_is_one_line_and_exit_1(tmp_path):
+    """The arguments were right (/dev/full can be opened for writing), the write at the end fails: one line naming
+    the file, exit 1 (not 2: no bad argument), no traceback."""
+    p = _run("bench_protocol.py", ["--only", "codec", "--json", "/dev/full"], tmp_path, tmp_path)
+    assert p.returncode == 1, (p.returncode, p.stderr[-2000:])
+    assert "Traceback" not in p.stderr
+    assert p.stderr.splitlines() == ["bench_protocol.py: error: cannot write /dev/full: No space left on device"]
+
+
+def test_run_says_a_late_os_error_in_one_line(monkeypatch, capsys):
+    import errno
+
+    import _cli
+
+    monkeypatch.setattr(sys, "argv", ["bench_x.py"])
+
+    def fail() -> int:
+        raise PermissionError(errno.EACCES, "Permission denied", "/data/out.json")
+
+    with pytest.raises(SystemExit) as exc:
+        _cli.run(fail)
+    assert exc.value.code == 1
+    assert capsys.readouterr().err == "bench_x.py: error: cannot use /data/out.json: Permission denied\n"
+
+
+def test_output_file_types(tmp_path):
+    import argparse
+
+    import _cli
+
+    (tmp_path / "file").write_text("x")
+    deep = tmp_path / "new" / "dirs" / "x.json"  # missing directories are made when the file is written
+    assert _cli.out_file(str(deep)) == str(deep)
+    assert _cli.out_path(str(deep)) == deep
+    assert _cli.write_out(deep, "{}\n") == deep and deep.read_text() == "{}\n"
+    assert _cli.out_file(str(deep)) == str(deep)  # an existing file is overwritten
+    assert _cli.out_file_or_empty("") == ""
+    assert _cli.out_dir(str(tmp_path / "made" / "later")) == tmp_path / "made" / "later"
+    refused = {
+        _cli.out_file: ["", str(tmp_path), str(tmp_path / "file" / "x.json"), str(tmp_path / "file" / "a" / "b")],
+        _cli.out_file_or_empty: [str(tmp_path)],
+        _cli.out_dir: [str(tmp_path / "file"), str(tmp_path / "file" / "d")],
+    }
+    for parse, texts in refused.items():
+        for text in texts:
+            with pytest.raises(argparse.ArgumentTypeError):
+                parse(text)
+    if os.geteuid() != 0:  # root may write anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        with pytest.raises(argparse.ArgumentTypeError, match="permission denied"):
+            _cli.out_file(str(ro / "x.json"))
+    with pytest.raises(argparse.ArgumentTypeError, match=re.escape("must be 32..4096, got 4097")):
+        _cli.bounded_int(32, 4096)("4097")
+
+
+def test_bench_protocol_prints_as_it_goes_and_says_how_far_the_fuzz_is(tmp_path):
+    """Through a pipe (block buffered unless said otherwise) each result line arrives when printed, not when the
+    script ends; a fuzz campaign says on stderr how far it is (here at each tenth of its inputs)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    cmd = [sys.executable, str(BENCH / "bench_protocol.py"), "--only", "codec", "--fuzz", "--fuzz-inputs", "2000"]
+    t0 = time.monotonic()
+    with subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as p:
+        assert p.stdout is not None and p.stderr is not None
+        first = p.stdout.readline()
+        t_first = time.monotonic()
+        rest, err = p.stdout.read(), p.stderr.read()
+        rc = p.wait(60)
+    t_end = time.monotonic()
+    assert rc == 0, err[-2000:]
+    assert first.startswith("host load average")
+    assert "noise fuzz: 2000 inputs" in rest and "hostile fuzz: 2000 inputs" in rest
+    assert t_end - t_first > 0.5, (t_first - t0, t_end - t0)  # printed before the fuzz ran, not at the end
+    assert "  noise fuzz: 200/2000 inputs, " in err and "  hostile fuzz: 1800/2000 inputs, " in err
