@@ -57,8 +57,9 @@ def register_process(
         "report.html in OUT_DIR (docs/design.md). The pipeline never reads the directory's ground truth; with one, the "
         "outputs are then scored against it as `hazard-hil score` scores them (score.json, confusion.png, "
         "dem_error.png and a section of the page). "
-        "Exit 0 when the outputs are written, 1 when the system refused a read or write, 2 on bad input (the pair, "
-        "its poses or truth files, the options, an --out that cannot be written), 128 + N when signal N stopped it "
+        "Exit 0 when the outputs are written, 1 when the system refused a write (a full disk), 2 on bad input (the "
+        "pair, its poses or truth files, also one the system will not let it read; the options; an --out that "
+        "cannot be written), 128 + N when signal N stopped it "
         "(130: Ctrl-C): an earlier run's outputs are removed first, so what is left is this run's alone.",
     )
     p.add_argument("pair_dir", metavar="PAIR_DIR", help="pair directory (pair.json, i1.png, i2.png, ...)")

@@ -189,7 +189,10 @@ def _numbers(v: Any, name: str) -> np.ndarray:
             (stack.append if isinstance(item, (list, tuple)) else flat.append)(item)
     for item in flat:
         _number(item, f"{name} entries")
-    return np.array(v, dtype=float)
+    try:
+        return np.array(v, dtype=float)
+    except ValueError:  # rows of unequal length: numpy's "inhomogeneous shape" was the whole message (QA of stop 85)
+        raise ValueError(f"{name} has rows of unequal length: {v!r:.60}") from None
 
 
 # a frame this close to the datum is a camera lying on the ground: its positions are in km, not m (the 1 mm per
@@ -234,8 +237,9 @@ class Pose:
         """Raise :class:`PairFormatError` unless finite with ``R`` a proper rotation."""
         if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.R)) and math.isfinite(self.time_s)):
             raise PairFormatError(f"{what}: position, rotation and time must be finite (got NaN/inf)")
-        err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
-        if err > tol:
+        with np.errstate(over="ignore", invalid="ignore"):  # an entry of 1e308 overflows: inf is then the error
+            err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
+        if not err <= tol:
             raise PairFormatError(f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.4g})")
         if np.linalg.det(self.R) < 0:
             raise PairFormatError(f"{what}: R_world_to_cam is a reflection (det < 0)")
@@ -248,10 +252,11 @@ class Pose:
         """
         if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.R)) and math.isfinite(self.time_s)):
             raise PairFormatError(f"{what}: position, rotation and time must be finite (got NaN/inf)")
-        err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
+        with np.errstate(over="ignore", invalid="ignore"):  # an entry of 1e308 overflows: inf is then the error
+            err = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
         if err <= 1e-9:
             return self, None
-        if err > tol:
+        if not err <= tol:
             raise PairFormatError(
                 f"{what}: R_world_to_cam is not orthonormal (max |R R^T - I| = {err:.6g} > {tol:g}); "
                 "give a rotation matrix or q_world_to_cam"
@@ -1062,9 +1067,11 @@ def declared_size(directory: str | Path) -> tuple[int, int, int] | None:
         if not meta.is_file() or meta.stat().st_size > MAX_PAIR_JSON_BYTES:
             return None
         doc = json.loads(meta.read_text())
-        return int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
+        w, h, n = int(doc["camera"]["width"]), int(doc["camera"]["height"]), len(doc["frames"])
     except (OSError, ValueError, TypeError, KeyError, RecursionError, OverflowError):
         return None
+    # a size no camera has is the reader's to refuse: a width of 10**30 read as a memory shortfall (QA of stop 85)
+    return (w, h, n) if 0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE else None
 
 
 def named_images(directory: str | Path) -> list[Path]:
@@ -1144,7 +1151,13 @@ def _load_truth(p: Path, name: str, shape: tuple[int, int]) -> np.ndarray:
     if a.shape != shape:
         raise PairFormatError(f"{p}: ground truth {name}: shape {a.shape} != image shape {shape}")
     if name == "shadow" and a.dtype.kind != "b":
-        return np.array(a != 0)
+        mask = np.array(a)
+        if (bad := (mask != 0) & (mask != 1)).any():  # a 2 (a class code? 255 for true?) passed as shadow, unsaid
+            raise PairFormatError(
+                f"{p}: ground truth shadow must be bool or integer 0/1; {int(bad.sum())} pixels hold other values, "
+                f"e.g. {mask[bad].flat[0]}"
+            )
+        return mask != 0
     out = np.array(a)
     if name in ("depth", "elevation"):  # NaN where unknown; an inf was taken as ground, a negative depth as a
         # scene with no common ground (QA of stop 66)

@@ -150,8 +150,10 @@ def _save_object(p: Path) -> None:
         ("gt_elevation_i1.npy", _save_object, "Python objects"),  # never unpickled
         ("gt_shadow_i1.npy", lambda p: np.save(p, np.full((PX, PX), 0.5)), "must hold bool"),
         ("gt_hazard_i1.npy", lambda p: np.save(p, np.zeros((3, 3), np.float32)), "shape (3, 3) != image shape"),
+        # a 2 passed as shadow unsaid (QA of stop 85)
+        ("gt_shadow_i1.npy", lambda p: np.save(p, np.full((PX, PX), 2, np.uint8)), "bool or integer 0/1; 4096 pixels"),
     ],
-    ids=["string", "complex", "object", "float-shadow", "shape"],
+    ids=["string", "complex", "object", "float-shadow", "shape", "shadow-of-2"],
 )
 def test_truth_arrays_that_are_not_numeric_maps(good, tmp_path, capsys, fname, write, says):
     bad = _copy(good[0], tmp_path / "bad")
@@ -244,8 +246,21 @@ def test_a_site_off_the_image_is_not_truly_safe(good, tmp_path, capsys):
             lambda doc: doc["frames"][1].update(q_world_to_cam=[0, 0, 0, 0]) or doc["frames"][1].pop("R_world_to_cam"),
             "frame 1: q_world_to_cam has norm 0",
         ),
+        # numpy's "setting an array element with a sequence. The requested array has an inhomogeneous shape"
+        (
+            lambda doc: doc["frames"][1].update(R_world_to_cam=[[1, 0, 0], [0, -1], [0, 0, -1]]),
+            "frame 1: R_world_to_cam has rows of unequal length",
+        ),
+        # numpy's overflow warning and its source line came before the error (QA of stop 85)
+        (
+            lambda doc: doc["frames"][1]["R_world_to_cam"][0].__setitem__(0, 1e308),
+            "R_world_to_cam is not orthonormal (max |R R^T - I| = inf",
+        ),
+        # read as a memory shortfall of 2.3e28 MiB (QA of stop 85)
+        (lambda doc: doc["camera"].update(width=10**30), "camera: size must be 1..8192 px per side"),
     ],
 )
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # a numpy warning is a second line on a user's console
 def test_pair_json_numbers_must_be_numbers(good, tmp_path, capsys, edit, says):
     """float() took "150" and true as numbers and int() cut 64.5 px to 64: a hand-edited pair.json with quoted or
     fractional values ran as if it were fine."""
