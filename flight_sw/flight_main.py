@@ -508,8 +508,13 @@ class FlightProcess:
         if frame.image.shape != (cam.height, cam.width):
             self._refuse(frame, "bad_frame", f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}")
             return
-        if frame.pair_id in self.dropped:
-            self._say_dropped(frame.pair_id, PendingPair({frame.frame_index: frame}), "dropped earlier, half received")
+        if frame.pair_id in self.dropped:  # its frame_dropped Error went when it was dropped: one per pair
+            print(
+                f"flight: pair {frame.pair_id!r}: its other frame came after the pair was dropped half received "
+                "(answered then with Error frame_dropped); ignored",
+                file=sys.stderr,
+                flush=True,
+            )
             return
         if frame.pair_id not in self.pending and len(self.pending) >= MAX_PENDING_PAIRS:
             oldest = min(self.pending, key=lambda k: self.pending[k].arrival)
