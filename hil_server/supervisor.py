@@ -1158,6 +1158,9 @@ class Supervisor:
                 )
                 if why:
                     self.log(f"supervisor: {NO_HELLO_LOG} {since}: {why}")
+            # a stop the loop never looked at since: `run` continues and ends a server stopped to the end at once,
+            # and its summary said 0 s while the ground's pairs read as lost to the flight computer (QA of stop 85)
+            self.stopped_s += self._stall.take()
             self._stall.close()
             ground_reader.stopped.set()
             if self.flight_reader:

@@ -319,6 +319,36 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+def test_a_hil_server_stopped_to_the_end_of_the_run_is_said(manifest, tmp_path):
+    """A HIL server stopped (SIGSTOP) until the run ended it had its stop unsaid: the run continues and stops it at
+    once, before its loop looked at the clock, so its summary said 0 s and the lost pairs read as the flight
+    computer's (QA of stop 85). Its last look now counts it."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hil_server.cli", "run", "--manifest", str(manifest), "--link", "serial"]
+    cmd += ["--budget", "host", "--out", str(out), "--no-figures", "--reconnect-timeout", "1"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = None
+    t0 = time.monotonic()
+    try:
+        results = out / "received" / "results.jsonl"
+        while server is None and time.monotonic() - t0 < 60:  # stopped once the first pair is answered
+            if results.is_file() and results.read_text().strip():
+                kids = _descendants(proc.pid)
+                server = next(p for p in kids if b"hil_server.supervisor" in Path(f"/proc/{p}/cmdline").read_bytes())
+            time.sleep(0.05)
+        assert server is not None
+        os.kill(server, signal.SIGSTOP)  # the ground's session lapses (4 s), it waits 1 s, and the run ends it
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    s = json.loads((out / "summary.json").read_text())
+    assert s["supervisor_counters"]["server_stopped_s"] >= 3.0, s["supervisor_counters"]
+    md = (out / "summary.md").read_text()
+    assert "The HIL server itself was not scheduled for" in md, md
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_stops_every_process_and_leaves_an_incomplete_summary(manifest, tmp_path, sig):
     out = tmp_path / "run"
