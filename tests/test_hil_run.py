@@ -461,7 +461,7 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
     (tmp_path / "pairs" / "manifest.json").write_text(json.dumps({"pairs": [{"path": "1000_500"}]}))
     cmd = [sys.executable, "-m", "hil_server.cli", "run", "--pairs", "600/300,300/150", "--budget", "host"]
     proc = subprocess.Popen(
-        [*cmd, "--out", str(tmp_path)], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        [*cmd, "--out", str(tmp_path)], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     assert proc.stdout is not None
     for line in proc.stdout:  # the 512 px frames take seconds: stopped in the middle of them
@@ -470,8 +470,8 @@ def test_a_run_stopped_while_rendering_records_every_planned_pair_as_not_run(tmp
             break
     said, _ = proc.communicate(timeout=60)
     assert proc.returncode == 128 + getattr(signal, signame)
-    assert not (tmp_path / "ground.log").exists() and not (tmp_path / "supervisor.log").exists()
     assert "1 pair(s) of an earlier render are still there, not this one's: 1000_500" in said, said
+    assert not (tmp_path / "ground.log").exists() and not (tmp_path / "supervisor.log").exists()
     s = json.loads((tmp_path / "summary.json").read_text())
     assert not s["complete"] and s["reason"] == f"interrupted by {signame}"
     assert s["pairs"] == 2 and s["not_run"] == 2
@@ -818,3 +818,21 @@ def test_the_flight_ends_line_damage_is_said_for_this_run_and_at_the_hil_server(
         "its side"
     )
     assert _flight_line_note([{"link": {"ground_crc_errors": 0.0}}]) == ""
+
+
+def test_summary_md_shows_latencies_with_the_decimals_their_deadline_needs():
+    """At two decimals 0.5485 s read "0.55 ... met" beside a 0.549 s deadline, and 0.2046 s "0.20 ... MISSED" beside
+    a 0.2 s one (QA of stop 85): the console and the page had the digits, summary.md did not."""
+    from hil_server.run import summary_table
+
+    def rec(label: str, e2e: float, met: bool) -> dict:
+        return {"label": label, "altitude_m": 300.0, "status": "result", "e2e_latency_s": e2e, "deadline_met": met,
+                "flight_latency_s": 0.1, "result_line_s": 0.01}  # fmt: skip
+
+    for deadline, e2e, met, shown in ((0.549, 0.5485, True, "0.548"), (0.2, 0.2046, False, "0.205")):
+        s = {"records": [rec("a", e2e, met)], "scenario": "v", "link": "l", "flight": "f", "budget": None,
+             "degraded": 0, "errors": 0, "results": 1, "pairs": 1, "deadline_s": deadline, "e2e_latency_p50_s": e2e,
+             "e2e_latency_max_s": e2e, "flight_latency_p50_s": 0.1, "deadline_hit_rate": float(met)}  # fmt: skip
+        text = summary_table(s)
+        assert f"| {shown} | 0.10 | 0.01 | {'met' if met else 'MISSED'} |" in text, text
+        assert f"end to end p50 {shown} s, max {shown} s" in text, text
