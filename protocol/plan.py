@@ -42,6 +42,12 @@ def plan_note(plan: Mapping[str, float] | None, skipped: Iterable[str] | None) -
         how = "measured on the previous pairs" if plan.get("measured") else "from the first stages"
         scale = f" (x{plan['scale']:.0f}, {how})" if "scale" in plan else ""
         if left <= 0:  # "-0.07 s left" read as a fault in the figures (QA of stop 84)
+            line = plan.get("line_s")
+            if line is not None and left + line > 0:  # the deadline was ahead: the Result's line time took it all
+                return (
+                    f"{stage} not started: the Result's expected time on the line ({sec(line)} s) left no time for "
+                    f"it before the deadline ({sec(-left)} s short){scale}"
+                )
             return f"{stage} not started: the deadline had passed ({sec(-left)} s over){scale}"
         if left <= need:
             return f"{stage} not started: {sec(left)} s left, {sec(need)} s kept for the work after it{scale}"

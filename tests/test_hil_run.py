@@ -223,6 +223,14 @@ def test_the_plan_note_says_why_a_dem_stage_did_not_complete():
     assert (
         plan_note(late) == "coarse_dem not started: the deadline had passed (0.07 s over) (x1, from the first stages)"
     )
+    # the Result's planned line time took a deadline still ahead: a full-maps Result at 115200 baud read "the
+    # deadline had passed (8.08 s over)" 0.03 s into a 2 s deadline (QA of stop 85)
+    long_line = {**late, "plan": {**late["plan"], "coarse_dem_left_s": -8.08, "line_s": 9.62}}
+    assert plan_note(long_line) == (
+        "coarse_dem not started: the Result's expected time on the line (9.62 s) left no time for it before the "
+        "deadline (8.08 s short) (x1, from the first stages)"
+    )
+    assert "the deadline had passed" in plan_note({**late, "plan": {**late["plan"], "line_s": 0.05}})
     # a flight side that says which stages started: one that did was cut, one that did not was left out
     started = {**plan, "coarse_dem_started": 1, "scale": 4.8, "measured": 1}
     assert plan_note({**rec, "plan": {**started, "full_dem_started": 1}}).startswith("full_dem cut at its deadline")
