@@ -48,7 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _cli import out_file, run, write_out  # noqa: E402
+from _cli import out_file, positive_int, run, write_out  # noqa: E402
 
 DEFAULT_CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
@@ -206,7 +206,7 @@ def table(per_case: dict[str, dict[str, float]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
-    ap.add_argument("--n-seeds", type=int, default=6)
+    ap.add_argument("--n-seeds", type=positive_int, default=6)
     ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES))
     ap.add_argument("--cache", default="/tmp/flight_eval_cache", help="rendered pairs (shared with eval_flight)")
     ap.add_argument("--grids", help="cached pipeline grids per stream (default: CACHE_fusion_grids)")

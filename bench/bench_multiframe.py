@@ -46,7 +46,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import out_file, run, write_out  # noqa: E402
+from _cli import out_file, positive_int, run, write_out  # noqa: E402
 
 DEFAULT_ALTITUDES = (300.0, 250.0, 200.0, 150.0)
 SCENE = {"vertical": "default", "approach": "approach"}
@@ -266,11 +266,11 @@ def main(argv: list[str] | None = None) -> int:
         if name == "speed":
             p.add_argument("--case", default="vertical", choices=list(SCENE))
             p.add_argument("--seed", type=int, default=0)
-            p.add_argument("--runs", type=int, default=5)
+            p.add_argument("--runs", type=positive_int, default=5)
             p.add_argument("--check", type=float, default=None, help="exit 1 if the per-frame cost exceeds this (s)")
         else:
             p.add_argument("--set", choices=("tuning", "held-out"), default="tuning")
-            p.add_argument("--n-seeds", type=int, default=4)
+            p.add_argument("--n-seeds", type=positive_int, default=4)
             p.add_argument("--seeds", type=int, nargs="*")
             p.add_argument("--cases", nargs="+", default=list(SCENE), choices=list(SCENE))
             p.add_argument("--fusion", nargs="*", default=[], metavar="K=V", help="FusionParams fields")

@@ -25,7 +25,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _cli import out_file, run, write_out  # noqa: E402
+from _cli import out_file, positive_int, run, write_out  # noqa: E402
 
 from studies import landings as L  # noqa: E402
 
@@ -47,7 +47,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed-set", choices=("tuning", "held-out"), default="tuning")
     ap.add_argument("--seeds", type=int, default=0, help="first N seeds of the set (default: all of it)")
-    ap.add_argument("--n", type=int, default=1008, help="landings per campaign")
+    ap.add_argument("--n", type=positive_int, default=1008, help="landings per campaign")
     ap.add_argument("--pose-error", default=L.DEFAULT_POSE_ERROR, help="PoseError syntax, or 'none'")
     ap.add_argument("--param", choices=PARAMS, default=PARAMS[0], help="the fast preset's field to vary")
     ap.add_argument(
@@ -58,7 +58,7 @@ def main() -> int:
         help="its values (m, or a share)",
     )
     ap.add_argument("--cache", default=str(ROOT / "out" / "landing_renders"))
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=positive_int, default=2)
     ap.add_argument("--json", type=out_file, help="write every campaign's rows here")
     a = ap.parse_args()
     from ground_sim import library

@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _cli import out_dir, run  # noqa: E402
+from _cli import out_dir, positive_int, run  # noqa: E402
 
 CASES = ("vertical", "approach", "thesis_vertical", "thesis_approach")
 
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="tuning seeds to fit on")
     ap.add_argument("--check-seeds", type=int, nargs="*", default=[], help="held-out seeds to check the fit on")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=positive_int, default=3)
     ap.add_argument("--sizes", type=int, nargs="*", default=[], help="also check synthetic pairs of these sizes (px)")
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument(

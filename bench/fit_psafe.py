@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
-from _cli import out_file, run, unknown, write_out  # noqa: E402
+from _cli import bounded_int, out_file, positive_int, run, unknown, write_out  # noqa: E402
 
 from flight_sw import psafe  # noqa: E402
 from ground_sim.render import DEFAULT_RASTER, RASTERS  # noqa: E402
@@ -486,10 +486,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", nargs="+", default=["vertical", "approach"])
     ap.add_argument("--cache", default="/tmp/flight_eval_cache")
     ap.add_argument("--layers", default="/tmp/flight_psafe_layers")
-    ap.add_argument("--per-pair", type=int, default=15000, help="points sampled per pair for the fit")
+    ap.add_argument("--per-pair", type=positive_int, default=15000, help="points sampled per pair for the fit")
     ap.add_argument("--ridge", type=float, default=1.0)
     ap.add_argument("--cv", action="store_true", help="leave-fold-out cross-validation of the budget")
-    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--folds", type=bounded_int(2, 100), default=5)
     ap.add_argument(
         "--repeats",
         type=int,
@@ -512,8 +512,8 @@ def main(argv: list[str] | None = None) -> int:
         help="the eval cases with a square camera of this many px (thesis FOV; default its 512 px); the model "
         "records the sizes it was fitted on, and the pipeline uses it on those only",
     )
-    ap.add_argument("--iters", type=int, default=30, help="trees: boosting iterations (shipped: 30)")
-    ap.add_argument("--leaves", type=int, default=15, help="trees: leaves per tree")
+    ap.add_argument("--iters", type=positive_int, default=30, help="trees: boosting iterations (shipped: 30)")
+    ap.add_argument("--leaves", type=bounded_int(2, 4096), default=15, help="trees: leaves per tree")
     ap.add_argument("--lr", type=float, default=0.2, help="trees: learning rate (shipped: 0.2)")
     ap.add_argument("--write", type=out_file, help="fit on all the seeds and write the model here")
     ap.add_argument(

@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _cli import InputError, out_file, run, unknown, write_out  # noqa: E402
+from _cli import InputError, out_file, positive_int, run, unknown, write_out  # noqa: E402
 
 TAN_LIMIT = math.tan(math.radians(15.0))
 CEILING_SIGMAS = (0.0, 0.1, 0.15, 0.2, 0.25, 0.3)
@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--set", choices=tuple(SEED_SETS), default="tuning")
-    ap.add_argument("--n-seeds", type=int, default=3)
+    ap.add_argument("--n-seeds", type=positive_int, default=3)
     ap.add_argument("--seeds", type=int, nargs="*")
     ap.add_argument("--cases", nargs="+", default=["vertical", "thesis_vertical", "approach", "thesis_approach"])
     ap.add_argument("--altitudes", type=int, nargs="*", help="lower-frame altitudes (m); default: all of a case's")

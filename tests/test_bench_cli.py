@@ -113,6 +113,12 @@ CASES = [
     ("bench_first_pair.py", ["--cpu", "99"], "--cpu 99: no such CPU here; choose from "),
     ("slope_errors.py", ["--variants", "bogus", "--cache", "W/c"], "--variants 'bogus': expected base or k=v,k=v"),
     ("slope_errors.py", ["--cases", "nosuch", "--cache", "W/c"], "--cases: unknown 'nosuch'; choose from 'vertical'"),
+    # counts: a 0 ran nothing and reported it, or failed deep in the work
+    ("slope_errors.py", ["--n-seeds", "0", "--cache", "W/c"], "argument --n-seeds: must be at least 1, got 0"),
+    ("bench_fusion_stream.py", ["--n-seeds", "0"], "argument --n-seeds: must be at least 1, got 0"),
+    ("bench_site_guard.py", ["--workers", "0"], "argument --workers: must be at least 1, got 0"),
+    ("fit_psafe.py", ["--folds", "1", "--cache", "W/c", "--layers", "W/l"], "argument --folds: must be 2..100, got 1"),
+    ("fit_psafe.py", ["--per-pair", "0", "--cache", "W/c", "--layers", "W/l"], "argument --per-pair: must be at least"),
 ]
 
 
