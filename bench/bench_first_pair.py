@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
 
         read_pair(args.pair)
     print("| mode | starts | first / steady CPU: median | worst | first ms (median) | steady ms (median) | boot ms |")
-    print("|---|---:|---:|---:|---:|---:|---:|", flush=True)
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for mode in args.modes:
         runs = []
         for i in range(args.starts):
@@ -99,7 +99,6 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"| {mode} | {len(runs)} | {statistics.median(ratios):.2f}x | {max(ratios):.2f}x | "
             f"{1e3 * first:.0f} | {1e3 * steady:.0f} | {1e3 * boot:.0f} |",
-            flush=True,
         )
     return 0
 

@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
     print("| pair | camera | prefault | base MiB | after prefault | peak MiB | B/px over base | model MiB | levels |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---|", flush=True)
+    print("|---|---|---|---:|---:|---:|---:|---:|---|")
     for d in a.pair:
         for s in a.scale:
             cmd = [sys.executable, __file__, "--pair", d, "--runs", str(a.runs), "--child", d, str(s)]

@@ -70,7 +70,7 @@ def bench_codec() -> None:
     body = encode_message(f)
     enc = timeit(lambda: encode_message(f), 30)
     dec = timeit(lambda: decode_message(body), 30)
-    print(f"512x512 Frame: body {len(body)} B; encode {1e3 * enc[0]:.3f} ms, decode {1e3 * dec[0]:.3f} ms", flush=True)
+    print(f"512x512 Frame: body {len(body)} B; encode {1e3 * enc[0]:.3f} ms, decode {1e3 * dec[0]:.3f} ms")
     RESULTS["frame"] = {"body_bytes": len(body), "encode_ms": 1e3 * enc[0], "decode_ms": 1e3 * dec[0]}
 
 
@@ -115,8 +115,7 @@ def bench_result() -> None:
             f"Result {label}: grid {row['grid']}, steps (P(safe), elevation) (1,1) {row['p1e1_bytes']} B, "
             f"(1,2) {row['p1e2_bytes']} B, (2,4) {row['p2e4_bytes']} B, (4,8) {row['p4e8_bytes']} B; "
             f"with full maps {row['full_maps_bytes']} B; encode {row['encode_ms']:.1f} ms CPU, "
-            f"decode {row['decode_ms']:.1f} ms CPU",
-            flush=True,
+            f"decode {row['decode_ms']:.1f} ms CPU"
         )
     RESULTS["result"] = rows
 
@@ -152,8 +151,7 @@ def bench_bombs(repeat: int = 20) -> None:
         }
         print(
             f"bomb {mib} MiB ({len(body)} B): refused in {1e3 * wall:.2f} ms wall / {1e3 * cpu:.2f} ms CPU "
-            f"(median of {repeat}); allocations {peak / 1024:.1f} KiB, max RSS +{(rss1 - rss0) / 1024:.1f} MiB",
-            flush=True,
+            f"(median of {repeat}); allocations {peak / 1024:.1f} KiB, max RSS +{(rss1 - rss0) / 1024:.1f} MiB"
         )
     RESULTS["bombs"] = out
 
@@ -174,7 +172,7 @@ def _goodput(a, b, msgs) -> tuple[float, float, float]:
 
 
 def bench_links(repeat: int = 3) -> None:
-    print("link throughput against line rate (8N1: baud / 10 bytes per second), medians of", repeat, flush=True)
+    print("link throughput against line rate (8N1: baud / 10 bytes per second), medians of", repeat)
     rows = []
     for baud, msgs in ((921600, [frame(i, 512) for i in range(2)]), (115200, [frame(i, 256) for i in range(1)])):
         effs = []
@@ -185,7 +183,7 @@ def bench_links(repeat: int = 3) -> None:
         eff = statistics.median(e for e, _ in effs)
         rows.append({"link": f"pty {baud} baud", "payload_bytes": payload, "goodput_of_line": eff})
         print(f"  pty bridge at {baud} baud: {payload} B payload, goodput {100 * eff:.1f} % of the line rate "
-              f"(framing+ack overhead on the wire {100 * effs[0][1]:.1f} %)", flush=True)  # fmt: skip
+              f"(framing+ack overhead on the wire {100 * effs[0][1]:.1f} %)")  # fmt: skip
     for label, cfg in (("socketpair, 1 KiB frames", ArqConfig()), ("socketpair, local (64 KiB)", LOCAL_CONFIG)):
         rates = []
         for _ in range(repeat):
@@ -194,7 +192,7 @@ def bench_links(repeat: int = 3) -> None:
                 payload, t, _ = _goodput(a, b, [frame(i, 512) for i in range(10)])
             rates.append(payload / t / 1e6)
         rows.append({"link": label, "MB_per_s": statistics.median(rates)})
-        print(f"  {label}: {statistics.median(rates):.1f} MB/s (unpaced: CPU-bound)", flush=True)
+        print(f"  {label}: {statistics.median(rates):.1f} MB/s (unpaced: CPU-bound)")
     keys = generate_keys(ROOT / "out" / f"bench_keys_{os.getpid()}")
     for label, kw in (("ZeroMQ tcp, CURVE", {"keys": keys}), ("ZeroMQ tcp, insecure", {"insecure": True})):
         rates = []
@@ -209,7 +207,7 @@ def bench_links(repeat: int = 3) -> None:
                     assert s.recv(60) is not None
                 rates.append(sum(len(encode_message(m)) for m in msgs) / (time.monotonic() - t0) / 1e6)
         rows.append({"link": label, "MB_per_s": statistics.median(rates)})
-        print(f"  {label}: {statistics.median(rates):.1f} MB/s", flush=True)
+        print(f"  {label}: {statistics.median(rates):.1f} MB/s")
     import shutil
 
     shutil.rmtree(keys, ignore_errors=True)
@@ -218,7 +216,7 @@ def bench_links(repeat: int = 3) -> None:
 
 def bench_noise(baud: int = 921600) -> None:
     """Two SerialLinks over a pty bridge with drop, flip and duplicate at rate r per byte, both directions."""
-    print(f"noisy pty line at {baud} baud: 8 x 128x128 Frames (16.4 kB each) one way", flush=True)
+    print(f"noisy pty line at {baud} baud: 8 x 128x128 Frames (16.4 kB each) one way")
     rows = []
     for r in (1e-4, 1e-3, 1e-2):
         chans = [CorruptingChannel(seed=k, drop=r, flip=r, dup=r) for k in (1, 2)]
@@ -256,8 +254,7 @@ def bench_noise(baud: int = 921600) -> None:
             f"  r={r:g}: {delivered}/8 delivered ({got} received), {len(failed)} failed, {row['pending']} pending "
             f"after {dt:.1f} s; goodput {100 * row['goodput_of_line']:.1f} % of line; "
             f"{int(st['retransmits'])} retransmissions, frame size now {int(st['frame_bytes'])} B"
-            + (f"; {failed[0][:90]}" if failed else ""),
-            flush=True,
+            + (f"; {failed[0][:90]}" if failed else "")
         )
     RESULTS["noise"] = rows
 
@@ -289,14 +286,13 @@ def bench_pause(pause_s: float = 20.0) -> None:
     """A receiver that reads nothing for ``pause_s`` (window 0, docs/protocol.md section 3.2) with 40 kB in flight,
     on a simulated line (protocol.linesim, 0.1 s latency): the sender direction's use of the line meanwhile, and
     the time to deliver everything once it reads again. Deterministic: no wall clock."""
-    print(f"a {pause_s:g} s pause of the receiving application, 40 x 0.9 kB in flight (simulated line)", flush=True)
+    print(f"a {pause_s:g} s pause of the receiving application, 40 x 0.9 kB in flight (simulated line)")
     rows = [_paused_line(baud, pause_s) for baud in (921600, 115200, 9600)]
     for row in rows:
         print(
             f"  {row['baud']} baud: sender's direction {row['line_busy_pct']:.1f} % busy during the pause "
             f"({row['probes']} probes, {row['frames']} frames); all delivered in order: {row['in_order']}, "
-            f"{row['after_s']:.1f} s after reading resumed; sessions lost: {row['session_losses']}",
-            flush=True,
+            f"{row['after_s']:.1f} s after reading resumed; sessions lost: {row['session_losses']}"
         )
     RESULTS["pause"] = rows
 
@@ -306,7 +302,7 @@ PEER = ROOT / "tests" / "protocol_peer.py"
 
 def bench_timeouts(repeat: int = 3) -> None:
     """A peer process on a pty bridge freezes (SIGSTOP), dies (SIGKILL) or closes: time to an explicit error."""
-    print("far-end failure -> explicit error (pty bridge: the line stays open, only the protocol can tell)", flush=True)
+    print("far-end failure -> explicit error (pty bridge: the line stays open, only the protocol can tell)")
     rows = {}
     for how in ("stop", "kill", "close"):
         times = []
@@ -335,10 +331,7 @@ def bench_timeouts(repeat: int = 3) -> None:
                         os.kill(peer.pid, signal.SIGKILL)
                     peer.wait(10)
         rows[how] = {"median_s": statistics.median(times), "max_s": max(times)}
-        print(
-            f"  peer {how}: explicit error after {statistics.median(times):.2f} s median, {max(times):.2f} s max",
-            flush=True,
-        )
+        print(f"  peer {how}: explicit error after {statistics.median(times):.2f} s median, {max(times):.2f} s max")
     RESULTS["timeouts"] = rows
 
 
@@ -364,11 +357,11 @@ def bench_fuzz(n: int, seed: int) -> None:
     t0 = time.perf_counter()
     rep = fuzz_noise(n, seed, progress=fuzz_progress("noise fuzz", n))
     dt = time.perf_counter() - t0
-    print(f"noise fuzz: {rep['inputs']} inputs, {rep['bytes'] / 1e6:.1f} MB in {dt:.0f} s: {rep}", flush=True)
+    print(f"noise fuzz: {rep['inputs']} inputs, {rep['bytes'] / 1e6:.1f} MB in {dt:.0f} s: {rep}")
     t0 = time.perf_counter()
     host = fuzz_hostile(n, seed, progress=fuzz_progress("hostile fuzz", n))
     dt2 = time.perf_counter() - t0
-    print(f"hostile fuzz: {host['inputs']} inputs, {host['bytes'] / 1e6:.1f} MB in {dt2:.0f} s: {host}", flush=True)
+    print(f"hostile fuzz: {host['inputs']} inputs, {host['bytes'] / 1e6:.1f} MB in {dt2:.0f} s: {host}")
     RESULTS["fuzz"] = {"noise": rep, "noise_s": dt, "hostile": host, "hostile_s": dt2}
     if rep["spurious"] or rep["missed"] or host["violations"]:
         raise SystemExit("FUZZ FAILURE")
@@ -394,7 +387,7 @@ def main() -> int:
     wanted = comma_items(args.only, "--only") or list(steps)
     unknown("--only", wanted, steps)  # before any step runs
     load = os.getloadavg()[0]
-    print(f"host load average {load:.2f} on {os.cpu_count()} cores", flush=True)
+    print(f"host load average {load:.2f} on {os.cpu_count()} cores")
     RESULTS["load"] = load
     for name in wanted:
         steps[name]()
