@@ -325,11 +325,6 @@ def _reading_set_aside(frame: Frame, k: int) -> str | None:
     return None
 
 
-def _reading(frame: Frame, k: int) -> float:
-    """Frame ``k``'s altimeter reading for the pipeline: NaN ("none") where :func:`_reading_set_aside` sets it aside."""
-    return math.nan if _reading_set_aside(frame, k) is not None else float(frame.altimeter_m)
-
-
 def _readings_ignored(frames: tuple[Frame, ...]) -> list[str]:
     """A note for each of a pair's frames (upper, lower) whose altimeter reading was set aside, in the pipeline's
     numbering (frame 0, frame 1: :func:`ground_words` names them)."""
@@ -478,15 +473,16 @@ class FlightProcess:
             # ids carry the old session), and the server has recorded them already (QA 65f L1)
             self.new_ground_session()
 
+    @staticmethod
+    def _ignore_frame(pid: str, why: str) -> None:
+        """A frame of a pair already answered with an Error: logged, not answered again (one Error per pair)."""
+        print(f"flight: pair {pid!r}: its other frame ignored: {why}", file=sys.stderr, flush=True)
+
     def _refuse(self, frame: Frame, code: str, text: str) -> None:
         """One Error per pair for a frame refused before its pair is whole: its other frame is only logged."""
         pid = frame.pair_id
         if pid is not None and pid in self.refused:
-            print(
-                f"flight: pair {pid!r}: its other frame ignored ({code}: {text}); the pair was answered with an Error",
-                file=sys.stderr,
-                flush=True,
-            )
+            self._ignore_frame(pid, f"the pair was answered with an Error ({code}: {text})")
             return
         if pid is not None:
             self.refused.append(pid)
@@ -502,19 +498,14 @@ class FlightProcess:
             self._refuse(frame, "bad_frame", "frame needs pair_id and frame_index 0 (upper) or 1 (lower)")
             return
         if frame.pair_id in self.refused:
-            self._refuse(frame, "bad_frame", "its pair was refused")
+            self._ignore_frame(frame.pair_id, "the pair was answered with an Error")
             return
         cam = Camera.from_dict(self.config.camera)
         if frame.image.shape != (cam.height, cam.width):
             self._refuse(frame, "bad_frame", f"image shape {frame.image.shape} != camera {cam.height}x{cam.width}")
             return
         if frame.pair_id in self.dropped:  # its frame_dropped Error went when it was dropped: one per pair
-            print(
-                f"flight: pair {frame.pair_id!r}: its other frame came after the pair was dropped half received "
-                "(answered then with Error frame_dropped); ignored",
-                file=sys.stderr,
-                flush=True,
-            )
+            self._ignore_frame(frame.pair_id, "the pair was dropped half received (Error frame_dropped)")
             return
         if frame.pair_id not in self.pending and len(self.pending) >= MAX_PENDING_PAIRS:
             oldest = min(self.pending, key=lambda k: self.pending[k].arrival)
@@ -555,6 +546,7 @@ class FlightProcess:
         due = pend.arrival + cfg.deadline_s * (1.0 - DEADLINE_GUARD)  # what the plan aims at
         deadline_at = due - line_s - max(0.0, self.last_output_s - after_s * time_scale)
         try:
+            aside = [_reading_set_aside(f, k) for k, f in enumerate((upper, lower))]  # judged once, used twice
             res = run_pipeline(
                 np.asarray(upper.image),
                 np.asarray(lower.image),
@@ -564,7 +556,7 @@ class FlightProcess:
                 preset=cfg.preset or "fast",
                 deadline_at=deadline_at,
                 # NaN: no reading; both, so that a position the lower frame's reading contradicts is said
-                altimeter_m=[_reading(upper, 0), _reading(lower, 1)],
+                altimeter_m=[math.nan if aside[k] else float(f.altimeter_m) for k, f in enumerate((upper, lower))],
                 sun_elevation_deg=upper.sun_elevation_deg,  # None: not sent
                 sun_azimuth_deg=upper.sun_azimuth_deg,
                 # the emulated processor's slowdown (1 / CPU fraction), when the supervisor sends it
@@ -578,7 +570,7 @@ class FlightProcess:
         except Exception as exc:  # a flight bug must not kill the loop: report and go on
             self.link.send(Error(code="pipeline_failure", text=f"{type(exc).__name__}: {exc}", seq=lower.seq))
             return
-        if ignored := _readings_ignored((upper, lower)):
+        if ignored := [note for note in aside if note is not None]:
             res.info["altimeter_readings_ignored"] = ignored
         # the Result has no words: the Telemetry carries the first few (revision 5), the flight log every one
         withheld = ground_words(str(res.info.get("sites_withheld") or ""))
